@@ -1,0 +1,5 @@
+import sys
+
+from prt_torch.cli import main
+
+sys.exit(main())

@@ -1,0 +1,157 @@
+"""The project's on-disk format: tensors plus versioned JSON metadata, written atomically.
+
+Layout of a ``.prt`` file (it *is* a safetensors file, so any safetensors reader opens it):
+
+* the tensors, by name, little-endian, in the safetensors layout;
+* the safetensors ``__metadata__`` holds one key, ``"prt_torch"``, whose value is a JSON
+  object with at least::
+
+      {"format": "prt_torch", "format_version": 1, "kind": "<what this file is>", ...}
+
+  ``kind`` says what the tensors mean (e.g. ``"transfer/diffuse"``, ``"codec/cpca"``); the
+  rest is free-form metadata of the producer (bands, samples, seed, mesh hash, ...).
+
+No pickle is ever used: a file can be loaded by another program with ``prt_torch`` (or with
+``safetensors`` and ``json`` alone).
+
+Writing is atomic: data goes to ``<path>.<pid>.partial`` and is renamed over ``path`` only
+once it is complete, so an interrupted write never leaves a half-written file at ``path``.
+"""
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+from pathlib import Path
+from typing import Any, Iterator
+
+import torch
+
+FORMAT = "prt_torch"
+FORMAT_VERSION = 1
+
+__all__ = ["save", "load", "load_meta", "atomic_path", "atomic_write_text", "atomic_write_json", "FORMAT_VERSION"]
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | os.PathLike, overwrite: bool = True) -> Iterator[Path]:
+    """Yield a temporary path next to ``path``; rename it over ``path`` when the block succeeds.
+
+    On an exception the temporary file is removed and ``path`` is left as it was. With
+    ``overwrite=False`` an existing ``path`` is refused before any work.
+    """
+    path = Path(path)
+    if not overwrite and path.exists():
+        raise FileExistsError(f"output {str(path)!r} exists; pass overwrite=True (CLI: --overwrite) to replace it")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f"{path.name}.{os.getpid()}.partial")
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+
+
+def atomic_write_text(path: str | os.PathLike, text: str) -> None:
+    """Write ``text`` to ``path`` atomically."""
+    with atomic_path(path) as tmp:
+        tmp.write_text(text)
+
+
+def atomic_write_json(path: str | os.PathLike, obj: Any) -> None:
+    """Write ``obj`` as indented JSON to ``path`` atomically."""
+    atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=False, default=_json_default) + "\n")
+
+
+def _json_default(o: Any) -> Any:
+    if isinstance(o, torch.Tensor):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    if hasattr(o, "item"):
+        return o.item()
+    if hasattr(o, "tolist"):
+        return o.tolist()
+    raise TypeError(f"cannot serialise {type(o).__name__} to JSON")
+
+
+def save(
+    path: str | os.PathLike,
+    tensors: dict[str, torch.Tensor],
+    kind: str,
+    meta: dict[str, Any] | None = None,
+    overwrite: bool = True,
+) -> Path:
+    """Save ``tensors`` (name -> tensor, any shape/dtype) with metadata, atomically.
+
+    Tensors are made contiguous and moved to the CPU. ``meta`` must be JSON-serialisable.
+    Returns the path written.
+    """
+    from safetensors.torch import save_file
+
+    if not isinstance(kind, str) or not kind:
+        raise ValueError(f"kind={kind!r}; accepted: a non-empty string such as 'transfer/diffuse'")
+    for k, v in tensors.items():
+        if not isinstance(v, torch.Tensor):
+            raise TypeError(f"tensors[{k!r}] is {type(v).__name__}; accepted: torch.Tensor")
+    header = {"format": FORMAT, "format_version": FORMAT_VERSION, "kind": kind}
+    header.update(meta or {})
+    text = json.dumps(header, default=_json_default)
+    data = {k: v.detach().to("cpu").contiguous() for k, v in tensors.items()}
+    with atomic_path(path, overwrite=overwrite) as tmp:
+        save_file(data, str(tmp), metadata={FORMAT: text})
+    return Path(path)
+
+
+def load_meta(path: str | os.PathLike) -> dict[str, Any]:
+    """Read only the metadata of a ``.prt`` file (cheap: the tensors are not read)."""
+    from safetensors import safe_open
+
+    path = _existing(path)
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            raw = (f.metadata() or {}).get(FORMAT)
+    except Exception as e:  # safetensors raises its own error types
+        raise ValueError(f"{str(path)!r} is not a readable prt_torch file ({e}); expected a file written by prt_torch.io.save") from None
+    return _parse_meta(path, raw)
+
+
+def load(path: str | os.PathLike, expect_kind: str | None = None) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
+    """Load a ``.prt`` file: returns ``(tensors, meta)``.
+
+    ``expect_kind``, if given, is a prefix the file's ``kind`` must start with
+    (e.g. ``"transfer/"``); anything else is refused with the kind found.
+    """
+    from safetensors import safe_open
+
+    path = _existing(path)
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            raw = (f.metadata() or {}).get(FORMAT)
+            tensors = {k: f.get_tensor(k) for k in f.keys()}
+    except Exception as e:
+        raise ValueError(f"{str(path)!r} is not a readable prt_torch file ({e}); expected a file written by prt_torch.io.save") from None
+    meta = _parse_meta(path, raw)
+    if expect_kind is not None and not str(meta.get("kind", "")).startswith(expect_kind):
+        raise ValueError(f"{str(path)!r} holds kind={meta.get('kind')!r}; expected a kind starting with {expect_kind!r}")
+    return tensors, meta
+
+
+def _existing(path: str | os.PathLike) -> Path:
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no such file: {str(path)!r}")
+    return path
+
+
+def _parse_meta(path: Path, raw: str | None) -> dict[str, Any]:
+    if raw is None:
+        raise ValueError(f"{str(path)!r} is a safetensors file without prt_torch metadata; expected a file written by prt_torch.io.save")
+    meta = json.loads(raw)
+    version = meta.get("format_version")
+    if not isinstance(version, int) or version > FORMAT_VERSION:
+        raise ValueError(
+            f"{str(path)!r} has format_version={version!r}; this prt_torch reads versions 1..{FORMAT_VERSION} (upgrade prt_torch)"
+        )
+    return meta
