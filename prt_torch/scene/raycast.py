@@ -1,0 +1,229 @@
+"""Batched ray casting over Embree (the ``embreex`` binding, called directly).
+
+``RayCaster(mesh)`` answers two batched queries:
+
+* ``occluded(origins[R,3], dirs[R,3]) -> bool[R]`` (any hit; Embree ``rtcOccluded1``),
+* ``intersect(origins, dirs) -> (hit bool[R], tri int64[R], bary float64[R,2], t float64[R])``
+  (first hit; ``rtcIntersect1``), with the hit point ``(1-u-v)·v0 + u·v1 + v·v2``.
+
+Self-intersection: rays leaving a surface are offset by ``eps = offset · (bounding-box
+diagonal)`` along the surface normal (towards the side the ray leaves on) when ``normals`` are
+given, and by ``eps`` along the ray (equivalent to t_near = eps, which embreex does not expose);
+``t`` is reported from the caller's origin.
+
+Parallelism: embreex runs its per-ray loop holding the GIL (measured: two threads on two cores
+are *slower* than one, see reports/benchmarks/transfer_diffuse.md), so batches above
+``min_parallel_rays`` are split over worker *processes* (spawn context, each with its own copy
+of the Embree scene built once); the calling process traces one share itself.
+"""
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+from typing import Any
+
+import numpy as np
+import torch
+
+from .._checks import check_float, check_int
+
+__all__ = ["RayCaster", "default_workers"]
+
+# Embree reports "no geometry" as RTC_INVALID_GEOMETRY_ID = 0xFFFFFFFF, i.e. -1 as int32.
+_INVALID = -1
+
+_worker_scene = None  # the per-process scene of pool workers
+
+
+def default_workers() -> int:
+    """Cores available to this process (``os.sched_getaffinity`` where supported)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - non-Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def _build_scene(vertices: np.ndarray, faces: np.ndarray):
+    from embreex import rtcore_scene
+    from embreex.mesh_construction import TriangleMesh
+
+    scene = rtcore_scene.EmbreeScene()
+    TriangleMesh(scene, np.ascontiguousarray(vertices, np.float32), np.ascontiguousarray(faces, np.int32))
+    return scene
+
+
+def _run(scene, query: str, o: np.ndarray, d: np.ndarray, tfar: np.ndarray | None, chunk: int):
+    """Trace rays in chunks of ``chunk`` (bounded temporaries) on one scene; numpy in/out."""
+    R = o.shape[0]
+    if query == "occluded":
+        out = np.empty(R, dtype=bool)
+    else:
+        out = (np.empty(R, np.int32), np.empty(R, np.float32), np.empty(R, np.float32), np.empty(R, np.float32))
+    for s in range(0, R, chunk):  # a handful of chunks: bounds the embreex temporaries
+        e = min(R, s + chunk)
+        dists = None if tfar is None else np.ascontiguousarray(tfar[s:e], np.float32)
+        if query == "occluded":
+            r = scene.run(o[s:e], d[s:e], dists=dists, query="OCCLUDED")
+            out[s:e] = r != _INVALID
+        else:
+            r = scene.run(o[s:e], d[s:e], dists=dists, output=1)
+            out[0][s:e] = r["primID"]
+            out[1][s:e] = r["u"]
+            out[2][s:e] = r["v"]
+            out[3][s:e] = r["tfar"]
+    return out
+
+
+def _worker_init(vertices: np.ndarray, faces: np.ndarray) -> None:
+    global _worker_scene
+    _worker_scene = _build_scene(vertices, faces)
+
+
+def _worker_run(query: str, o: np.ndarray, d: np.ndarray, tfar: np.ndarray | None, chunk: int):
+    return _run(_worker_scene, query, o, d, tfar, chunk)
+
+
+def _as_np3(name: str, x: Any) -> np.ndarray:
+    a = x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
+    if a.ndim != 2 or a.shape[1] != 3:
+        raise ValueError(f"{name} has shape {a.shape}; accepted: [R, 3]")
+    return a
+
+
+class RayCaster:
+    """Embree ray casting over one triangle mesh.
+
+    Args:
+        mesh: a ``prt_torch.scene.Mesh`` (or pass ``vertices=``/``faces=`` arrays).
+        workers: processes to split large batches over; ``None`` = all cores, 1 = in-process only.
+        offset: self-intersection offset as a fraction of the bounding-box diagonal (default 1e-4,
+            about 1000 float32 ulps of the scene extent).
+        min_parallel_rays: batches smaller than this are traced in-process (process hand-off
+            costs ~24 bytes/ray each way plus a one-off pool start of ~1-2 s).
+        chunk_rays: rays per embreex call (bounds temporaries).
+    """
+
+    def __init__(self, mesh=None, *, vertices: Any = None, faces: Any = None, workers: int | None = 1,
+                 offset: float = 1e-4, min_parallel_rays: int = 200_000, chunk_rays: int = 1 << 20):
+        if mesh is not None:
+            vertices, faces = mesh.vertices, mesh.faces
+        if vertices is None or faces is None:
+            raise ValueError("RayCaster needs a mesh or both vertices= and faces=")
+        v = _as_np3("vertices", vertices).astype(np.float64)
+        f = np.asarray(faces.numpy() if isinstance(faces, torch.Tensor) else faces)
+        if f.ndim != 2 or f.shape[1] != 3 or f.shape[0] == 0:
+            raise ValueError(f"faces have shape {f.shape}; accepted: [F, 3] with F >= 1")
+        if not np.isfinite(v).all():
+            raise ValueError("vertices hold NaN or Inf; accepted: finite coordinates")
+        self.vertices = v
+        self.faces = f.astype(np.int64)
+        self.scale = float(np.linalg.norm(v.max(0) - v.min(0)))
+        self.offset = check_float("offset", offset, 0.0, 0.1)
+        self.eps = self.offset * self.scale
+        self.workers = default_workers() if workers is None else check_int("workers", workers, 1, 256)
+        self.min_parallel_rays = check_int("min_parallel_rays", min_parallel_rays, 1)
+        self.chunk_rays = check_int("chunk_rays", chunk_rays, 1)
+        self._scene = _build_scene(v, self.faces)
+        self._pool = None
+        self.rays_traced = 0
+
+    # ---------------------------------------------------------------- lifecycle
+    def close(self) -> None:
+        """Stop the worker processes (the in-process scene stays usable)."""
+        if self._pool is not None:
+            self._pool.terminate()
+            self._pool.join()
+            self._pool = None
+
+    def __enter__(self) -> "RayCaster":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __del__(self):  # pragma: no cover - best effort
+        try:
+            self.close()
+        except Exception:
+            pass
+
+    def _get_pool(self):
+        if self._pool is None:
+            ctx = mp.get_context("spawn")  # fork is unsafe after torch/OpenMP threads started
+            self._pool = ctx.Pool(self.workers - 1, initializer=_worker_init,
+                                  initargs=(self.vertices.astype(np.float32), self.faces.astype(np.int32)))
+        return self._pool
+
+    # ---------------------------------------------------------------- helpers
+    def prepare(self, origins: Any, dirs: Any, normals: Any = None) -> tuple[np.ndarray, np.ndarray]:
+        """Offset origins off the surface and return contiguous float32 ``(origins, dirs)``.
+
+        ``o' = o + eps·sign(n·d)·n + eps·d`` (the normal term only when ``normals`` are given).
+        """
+        o = _as_np3("origins", origins).astype(np.float64)
+        d = _as_np3("dirs", dirs).astype(np.float64)
+        if o.shape != d.shape:
+            raise ValueError(f"origins {o.shape} and dirs {d.shape} differ; accepted: equal [R, 3] shapes")
+        if normals is not None:
+            n = _as_np3("normals", normals).astype(np.float64)
+            if n.shape != o.shape:
+                raise ValueError(f"normals {n.shape} and origins {o.shape} differ; accepted: equal [R, 3] shapes")
+            side = np.where(np.einsum("ij,ij->i", n, d) >= 0, self.eps, -self.eps)
+            o = o + side[:, None] * n
+        o = o + self.eps * d
+        return np.ascontiguousarray(o, np.float32), np.ascontiguousarray(d, np.float32)
+
+    def _dispatch(self, query: str, o: np.ndarray, d: np.ndarray, tfar: np.ndarray | None):
+        R = o.shape[0]
+        self.rays_traced += R
+        if self.workers == 1 or R < self.min_parallel_rays:
+            return _run(self._scene, query, o, d, tfar, self.chunk_rays)
+        pool = self._get_pool()
+        bounds = np.linspace(0, R, self.workers + 1).astype(np.int64)
+        jobs = []
+        for w in range(1, self.workers):  # one job per worker process
+            s, e = bounds[w], bounds[w + 1]
+            jobs.append(pool.apply_async(_worker_run, (query, o[s:e], d[s:e], None if tfar is None else tfar[s:e],
+                                                       self.chunk_rays)))
+        s, e = bounds[0], bounds[1]
+        first = _run(self._scene, query, o[s:e], d[s:e], None if tfar is None else tfar[s:e], self.chunk_rays)
+        parts = [first] + [j.get() for j in jobs]
+        if query == "occluded":
+            return np.concatenate(parts)
+        return tuple(np.concatenate([p[k] for p in parts]) for k in range(4))
+
+    # ---------------------------------------------------------------- queries
+    def occluded(self, origins: Any, dirs: Any, normals: Any = None, tfar: Any = None) -> torch.Tensor:
+        """Any-hit test.
+
+        Args:
+            origins, dirs: ``[R,3]`` (torch or numpy; dirs unit length).
+            normals: optional ``[R,3]`` surface normals at the origins (self-intersection offset).
+            tfar: optional ``[R]`` or scalar maximum distance (default: infinite).
+        Returns:
+            ``bool [R]`` torch tensor, True where the ray hits any triangle.
+        """
+        o, d = self.prepare(origins, dirs, normals)
+        tf = None
+        if tfar is not None:
+            tf = np.broadcast_to(np.asarray(tfar.numpy() if isinstance(tfar, torch.Tensor) else tfar, np.float64),
+                                 (o.shape[0],)) - self.eps
+            tf = np.ascontiguousarray(np.maximum(tf, 0.0), np.float32)
+        return torch.from_numpy(self._dispatch("occluded", o, d, tf))
+
+    def intersect(self, origins: Any, dirs: Any, normals: Any = None):
+        """First-hit query.
+
+        Returns:
+            ``hit bool[R]``, ``tri int64[R]`` (-1 on a miss), ``bary float64[R,2]`` = (u, v) with
+            hit point (1-u-v)·v0 + u·v1 + v·v2 of ``faces[tri]``, ``t float64[R]`` distance from
+            the offset origin plus eps, i.e. ≈ from the given origin (inf on a miss).
+        """
+        o, d = self.prepare(origins, dirs, normals)
+        prim, u, v, t = self._dispatch("intersect", o, d, None)
+        hit = prim != _INVALID
+        tri = np.where(hit, prim, -1).astype(np.int64)
+        bary = np.stack([u, v], 1).astype(np.float64)
+        bary[~hit] = 0.0
+        t = np.where(hit, t.astype(np.float64) + self.eps, np.inf)
+        return torch.from_numpy(hit), torch.from_numpy(tri), torch.from_numpy(bary), torch.from_numpy(t)

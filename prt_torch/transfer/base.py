@@ -1,0 +1,210 @@
+"""The ``Transfer`` container and the chunked, resumable runner every precompute uses.
+
+File layout (``prt_torch.io``, kind ``"transfer/<kind>"``): tensor ``data`` plus the mesh arrays
+under ``mesh.*`` (vertices, faces, normals, tangents, bitangents, albedo), and metadata::
+
+    {"kind": "transfer/diffuse", "transfer_version": 1, "transfer_kind": "diffuse",
+     "mesh_name": ..., "mesh_hash": ..., "bands": 5, "samples": 1024, "seed": 0, ...}
+
+Shapes of ``data`` (interfaces.md): diffuse ``[V, n²]`` (albedo kept separate, in
+``mesh.albedo``) or ``[V, 3, n²]`` (RGB, albedo folded); glossy ``[V, n_out, n_in]``
+(``meta['matrix_shape'] = [n_out, n_in]``); MRT ``[V, M*M, n²]``; transport as its module says.
+"""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import math
+import os
+import shutil
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import torch
+
+from .. import io
+from .._checks import check_choice, check_int
+from ..scene import Mesh
+
+__all__ = ["Transfer", "KINDS", "TRANSFER_VERSION", "run_chunks", "ChunkInterrupt", "default_state_dir", "remove_state"]
+
+KINDS = ("diffuse", "glossy", "mrt", "transport")
+TRANSFER_VERSION = 1
+
+
+@dataclasses.dataclass
+class Transfer:
+    """Per-vertex transfer of one kind over one mesh.
+
+    Attributes:
+        kind: 'diffuse' | 'glossy' | 'mrt' | 'transport'.
+        data: ``float32 [V, ...]`` (see module docstring for the shapes of each kind).
+        mesh: the ``Mesh`` it was computed for (frames, albedo).
+        meta: bands, samples, seed, bounces, mesh hash, choices made, timings ...
+    """
+
+    kind: str
+    data: torch.Tensor
+    mesh: Mesh
+    meta: dict = dataclasses.field(default_factory=dict)
+
+    def __post_init__(self):
+        check_choice("kind", self.kind, KINDS)
+        if not isinstance(self.data, torch.Tensor) or self.data.ndim < 2:
+            raise ValueError(f"Transfer.data must be a tensor [V, ...]; got {getattr(self.data, 'shape', type(self.data))}")
+        if self.data.shape[0] != self.mesh.num_vertices:
+            raise ValueError(f"Transfer.data has {self.data.shape[0]} rows but the mesh has {self.mesh.num_vertices} vertices")
+
+    @property
+    def num_vertices(self) -> int:
+        return int(self.data.shape[0])
+
+    def signal(self) -> torch.Tensor:
+        """``[V, D]`` float32: the per-vertex data flattened for codecs (Sloan 2003 §3.3: the
+        n-dimensional signal x_p). ``meta['matrix_shape']`` says how to fold D back for matrices."""
+        return self.data.reshape(self.data.shape[0], -1).to(torch.float32)
+
+    def save(self, path: str | os.PathLike, overwrite: bool = False) -> Path:
+        """Write atomically as io kind ``"transfer/<kind>"`` with the mesh arrays alongside."""
+        meta = dict(self.meta)
+        meta.update(transfer_version=TRANSFER_VERSION, transfer_kind=self.kind, mesh_name=self.mesh.name,
+                    mesh_hash=self.mesh.content_hash(), data_shape=list(self.data.shape),
+                    mesh_meta=_jsonable(self.mesh.meta))
+        tensors = {"data": self.data.to(torch.float32)}
+        tensors.update(self.mesh.to_tensors("mesh."))
+        return io.save(path, tensors, kind=f"transfer/{self.kind}", meta=meta, overwrite=overwrite)
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> "Transfer":
+        """Load a file written by ``save``; checks kind, shapes and the mesh hash."""
+        tensors, meta = io.load(path, expect_kind="transfer/")
+        kind = meta["kind"].split("/", 1)[1]
+        if "data" not in tensors:
+            raise ValueError(f"{str(path)!r} has no 'data' tensor; accepted: a file written by Transfer.save")
+        mesh = Mesh.from_tensors(tensors, name=meta.get("mesh_name", "mesh"), meta=meta.get("mesh_meta"))
+        h = mesh.content_hash()
+        if meta.get("mesh_hash") not in (None, h):
+            raise ValueError(f"{str(path)!r}: stored mesh hash {meta.get('mesh_hash')} does not match its arrays ({h}); the file is corrupt")
+        for k in ("format", "format_version", "kind", "transfer_version", "transfer_kind", "mesh_name", "mesh_hash",
+                  "data_shape", "mesh_meta"):
+            meta.pop(k, None)
+        return cls(kind=kind, data=tensors["data"], mesh=mesh, meta=meta)
+
+    def __repr__(self) -> str:
+        return f"Transfer(kind={self.kind!r}, data={tuple(self.data.shape)}, mesh={self.mesh!r})"
+
+
+def _jsonable(obj: Any) -> Any:
+    return json.loads(json.dumps(obj, default=str))
+
+
+# ----------------------------------------------------------------------------------------
+# chunked, resumable runner
+# ----------------------------------------------------------------------------------------
+
+class ChunkInterrupt(RuntimeError):
+    """Raised by a ``callback`` to stop a run after a chunk (tests simulate interruption with it)."""
+
+
+def default_state_dir(output: str | os.PathLike) -> Path:
+    """Where a precompute writing ``output`` keeps its finished chunks: ``<output>.state/``."""
+    output = Path(output)
+    return output.with_name(output.name + ".state")
+
+
+def _fingerprint_hash(fp: dict) -> str:
+    return hashlib.sha256(json.dumps(_jsonable(fp), sort_keys=True).encode()).hexdigest()[:32]
+
+
+def run_chunks(
+    n_items: int,
+    chunk_size: int,
+    compute: Callable[[int, int], dict[str, torch.Tensor]],
+    *,
+    state_dir: str | os.PathLike | None = None,
+    fingerprint: dict | None = None,
+    resume: bool = False,
+    progress: bool = False,
+    desc: str = "precompute",
+    rays_of: Callable[[dict[str, torch.Tensor]], int] | None = None,
+    callback: Callable[[int, int], None] | None = None,
+) -> list[dict[str, torch.Tensor]]:
+    """Run ``compute(start, stop)`` over ``[0, n_items)`` in chunks; return the chunk results in order.
+
+    With ``state_dir``, each finished chunk is saved atomically as ``chunk_<i>.prt`` (io format)
+    next to ``manifest.json`` holding ``fingerprint`` (all parameters that determine the result:
+    mesh hash, bands, samples, seed, ...). With ``resume=True`` chunks already on disk are loaded
+    instead of recomputed, so an interrupted run resumed gives exactly the uninterrupted result
+    (chunks are deterministic functions of the fingerprint). Without ``resume`` an existing state
+    directory is refused (it holds an interrupted run). A fingerprint mismatch is refused too.
+
+    Args:
+        compute: ``(start, stop) -> dict[name, tensor]`` for items start..stop-1.
+        progress: show a tqdm bar; ``rays_of(result)`` (rays traced for a chunk) adds a rays/s figure.
+        callback: called as ``callback(chunk_index, n_chunks)`` after each chunk is saved;
+            it may raise (e.g. ``ChunkInterrupt``) to stop the run.
+    """
+    n_items = check_int("n_items", n_items, 0)
+    chunk_size = check_int("chunk_size", chunk_size, 1)
+    n_chunks = max(1, math.ceil(n_items / chunk_size)) if n_items else 0
+    sd = None
+    if state_dir is not None:
+        sd = Path(state_dir)
+        manifest = sd / "manifest.json"
+        want = {"fingerprint_hash": _fingerprint_hash(fingerprint or {}), "n_items": n_items, "chunk_size": chunk_size,
+                "fingerprint": _jsonable(fingerprint or {})}
+        if sd.exists():
+            if not resume:
+                raise FileExistsError(f"state directory {str(sd)!r} holds an interrupted run; pass resume=True (CLI: --resume) "
+                                      "to continue it, or remove it (CLI: --overwrite) to start again")
+            try:
+                have = json.loads(manifest.read_text())
+            except (OSError, ValueError):
+                have = None
+            if have is None or any(have.get(k) != want[k] for k in ("fingerprint_hash", "n_items", "chunk_size")):
+                raise ValueError(f"state directory {str(sd)!r} belongs to a run with other parameters "
+                                 f"({None if have is None else have.get('fingerprint')}); accepted: resume with the same "
+                                 "mesh and parameters, or remove it (CLI: --overwrite)")
+        else:
+            sd.mkdir(parents=True)
+            io.atomic_write_json(manifest, want)
+    results: list[dict[str, torch.Tensor]] = []
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=n_items, desc=desc, unit="vtx", dynamic_ncols=True)
+    rays_done, t0 = 0, time.perf_counter()
+    try:
+        for i in range(n_chunks):  # a loop over chunks, each a batched computation
+            start, stop = i * chunk_size, min(n_items, (i + 1) * chunk_size)
+            path = None if sd is None else sd / f"chunk_{i:06d}.prt"
+            if path is not None and path.exists():
+                res, _ = io.load(path, expect_kind="transfer/chunk")
+                fresh = False
+            else:
+                res = compute(start, stop)
+                fresh = True
+                if path is not None:
+                    io.save(path, res, kind="transfer/chunk", meta={"chunk": i, "start": start, "stop": stop})
+            results.append(res)
+            if bar is not None:
+                if fresh and rays_of is not None:
+                    rays_done += int(rays_of(res))
+                    el = max(time.perf_counter() - t0, 1e-9)
+                    bar.set_postfix_str(f"{rays_done / el / 1e6:.2f} Mrays/s")
+                bar.update(stop - start)
+            if callback is not None:
+                callback(i, n_chunks)
+    finally:
+        if bar is not None:
+            bar.close()
+    return results
+
+
+def remove_state(state_dir: str | os.PathLike | None) -> None:
+    """Delete a finished run's state directory."""
+    if state_dir is not None and Path(state_dir).exists():
+        shutil.rmtree(state_dir)
