@@ -18,6 +18,7 @@ Kernels (all returned as ``[..., bands]`` *zonal coefficients* h_l, float64 by d
 from __future__ import annotations
 
 import math
+from functools import lru_cache
 
 import numpy as np
 import torch
@@ -102,7 +103,8 @@ def microfacet(sigma: float, bands: int, exact: bool = False, dtype: torch.dtype
 
     The lobe is ρ(θ) = exp(-θ²/(4σ²)) / (4πσ²) for θ ≤ π/2, zero beyond.
     ``exact=False`` returns the approximation Λ_l h_l = exp(-(σl)²) (eq. 3.51), good for
-    small σ; ``exact=True`` integrates eq. 3.44 by 1-D Gauss-Legendre quadrature in θ.
+    small σ (measured: max_l |error| ≈ 0.45σ over l < 12, e.g. 0.021 at σ = 0.05);
+    ``exact=True`` integrates eq. 3.44 by 1-D Gauss-Legendre quadrature in θ.
     Returns ``[bands]``.
     """
     bands = check_int("bands", bands, 1, MAX_BANDS)
@@ -114,6 +116,12 @@ def microfacet(sigma: float, bands: int, exact: bool = False, dtype: torch.dtype
     return zonal_project(lobe, bands, lower=0.0, n=max(256, 8 * bands)).to(dtype)
 
 
+@lru_cache(maxsize=32)
+def _leggauss(n: int) -> tuple[np.ndarray, np.ndarray]:
+    # numpy solves an n×n eigenproblem for the nodes: cache it.
+    return np.polynomial.legendre.leggauss(n)
+
+
 def zonal_project(fn, bands: int, lower: float = -1.0, n: int = 512) -> torch.Tensor:
     """h_l = 2π ∫_{lower}^{1} fn(t) Y_l0(t) dt for a radially symmetric fn(cos θ).
 
@@ -121,7 +129,7 @@ def zonal_project(fn, bands: int, lower: float = -1.0, n: int = 512) -> torch.Te
     below the horizon, so the kink at the horizon is not integrated across). ``fn`` maps a
     float64 tensor of cosines ``[n]`` to values ``[n]``. Returns ``[bands]`` float64.
     """
-    x, w = np.polynomial.legendre.leggauss(int(n))
+    x, w = _leggauss(int(n))
     t = torch.tensor(lower + (x + 1) * (1 - lower) / 2, dtype=torch.float64)
     wt = torch.tensor(w * (1 - lower) / 2, dtype=torch.float64)
     vals = fn(t)
