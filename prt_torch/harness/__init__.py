@@ -1,0 +1,1 @@
+"""prt_torch.harness — metrics, timing, sweeps, result files, tables and plots."""
