@@ -112,14 +112,14 @@ def check_float_dtype(name: str, t: torch.Tensor) -> torch.Tensor:
 def check_unit_vectors(name: str, dirs: torch.Tensor, tol: float | None = None) -> torch.Tensor:
     """Check ``dirs`` is a float tensor ``[..., 3]`` of finite unit vectors.
 
-    ``tol`` is the accepted deviation of the norm from 1; by default 1e-4 in float32 and 1e-8
+    ``tol`` is the accepted deviation of the norm from 1; by default 1e-4 in float32 and 1e-6
     in float64. Zero-length, NaN and non-unit vectors are refused with the index of the first.
     """
     check_shape(name, dirs, last=(3,))
     check_float_dtype(name, dirs)
     check_finite(name, dirs)
     if tol is None:
-        tol = 1e-4 if dirs.dtype == torch.float32 else 1e-8
+        tol = 1e-4 if dirs.dtype == torch.float32 else 1e-6
     if dirs.numel():
         dev = (dirs.norm(dim=-1) - 1.0).abs()
         worst = float(dev.max())
