@@ -1,0 +1,100 @@
+"""One entry point for "a light", by name, file or analytic spec: :func:`load_light`.
+
+Accepted ``spec``:
+
+* an :class:`Environment`;
+* a built-in environment name (``list_builtin_environments()``: sky, sunset, studio, overcast);
+* an analytic spec string ``kind`` or ``kind:key=value;key=value`` with kind in directional, cap,
+  sky_gradient, hemisphere, constant and the keys of the function of that name in
+  :mod:`prt_torch.lighting.analytic` (vectors as ``x,y,z``; ``half_angle_deg`` accepted for
+  caps), e.g. ``directional:direction=0,0,1;intensity=2`` or
+  ``cap:direction=1,0,1;half_angle_deg=10;intensity=1,0.8,0.6``;
+* a dict ``{"type": kind, **kwargs}`` of the same;
+* a file path, or a '{face}' pattern / list of six paths (see :func:`load_environment`).
+"""
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from . import analytic
+from .builtin import BUILTIN_SIZE, builtin_environment, list_builtin_environments
+from .environment import Environment, expand_window, load_environment, window_factors
+
+__all__ = ["load_light", "parse_light_spec", "ANALYTIC_KINDS"]
+
+ANALYTIC_KINDS = {
+    "directional": analytic.directional,
+    "cap": analytic.cap,
+    "sky_gradient": analytic.sky_gradient,
+    "hemisphere": analytic.hemisphere,
+    "constant": analytic.constant,
+}
+
+
+def _value(text: str) -> Any:
+    parts = [p for p in text.split(",") if p.strip()]
+    try:
+        vals = [float(p) for p in parts]
+    except ValueError:
+        raise ValueError(f"light spec value {text!r}; accepted: a number or comma-separated numbers") from None
+    return vals[0] if len(vals) == 1 else vals
+
+
+def parse_light_spec(spec: str) -> dict | None:
+    """'kind:key=value;...' -> {'type': kind, key: value, ...}; None if ``spec`` is no analytic kind."""
+    kind, _, rest = spec.partition(":")
+    if kind not in ANALYTIC_KINDS:
+        return None
+    out: dict = {"type": kind}
+    for item in filter(None, (s.strip() for s in rest.split(";"))):
+        key, eq, val = item.partition("=")
+        if not eq:
+            raise ValueError(f"light spec {spec!r}: item {item!r}; accepted: key=value items separated by ';'")
+        out[key.strip()] = _value(val)
+    return out
+
+
+def _analytic(d: dict, bands: int) -> torch.Tensor:
+    d = dict(d)
+    kind = d.pop("type", None)
+    if kind not in ANALYTIC_KINDS:
+        raise ValueError(f"light type {kind!r}; accepted: {sorted(ANALYTIC_KINDS)}")
+    if "half_angle_deg" in d:
+        d["half_angle"] = math.radians(d.pop("half_angle_deg"))
+    try:
+        return ANALYTIC_KINDS[kind](bands=bands, **d)
+    except TypeError as e:
+        raise ValueError(f"light spec for {kind!r}: {e}") from None
+
+
+def load_light(spec: Any, bands: int = 3, window: Any = None, size: int = BUILTIN_SIZE, **load_kw) -> torch.Tensor:
+    """SH lighting vector ``[C, n²]`` float64 for ``spec`` (see module doc).
+
+    ``window`` is applied to every kind (off by default); ``size`` is the resolution of a
+    built-in environment; ``load_kw`` (layout, rotation, up, clamp) go to :func:`load_environment`
+    for files (``rotation`` also rotates built-ins)."""
+    if isinstance(spec, Environment):
+        return spec.project(bands, window)
+    if isinstance(spec, dict):
+        L = _analytic(spec, bands)
+    elif isinstance(spec, str) and spec in list_builtin_environments():
+        env = builtin_environment(spec, size=size, rotation=load_kw.get("rotation"))
+        return env.project(bands, window)
+    elif isinstance(spec, str) and parse_light_spec(spec) is not None:
+        L = _analytic(parse_light_spec(spec), bands)
+    elif isinstance(spec, (str, os.PathLike, list, tuple)):
+        if isinstance(spec, (str, os.PathLike)) and "{face}" not in str(spec) and not Path(spec).exists():
+            raise FileNotFoundError(
+                f"light {str(spec)!r} is neither an existing file, a built-in environment "
+                f"({', '.join(list_builtin_environments())}) nor an analytic spec ({', '.join(ANALYTIC_KINDS)}, "
+                "e.g. 'directional:direction=0,0,1;intensity=1')")
+        return load_environment(spec, **load_kw).project(bands, window)
+    else:
+        raise TypeError(f"light spec of type {type(spec).__name__}; accepted: str, path, dict, Environment")
+    w = window_factors(window, bands)
+    return L if w is None else L * expand_window(w)
