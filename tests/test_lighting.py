@@ -260,7 +260,7 @@ def test_same_environment_in_every_layout(tmp_path):
         back = load_environment(str(tmp_path / f"{layout}_{name}"), layout=layout)
         L = back.project(bands)
         err = float((L - ref).norm() / ref.norm())
-        assert err < 0.02, (layout, err)
+        assert err < 0.005, (layout, err)
 
 
 @pytest.mark.parametrize("layout,size", [("latlong", 48), ("angular", 96), ("hcross", 24), ("vcross", 24), ("faces", 24)])
@@ -451,7 +451,7 @@ def test_map_irradiance_vs_brute_force():
         E9 = irradiance(env.project(3), n)
         Eb = _brute_irradiance(env, n)
         rel = float(((E9 - Eb).abs().mean(0) / Eb.mean(0)).max())
-        assert rel < 0.015, rel
+        assert rel < 0.01, rel
 
 
 @pytest.mark.parametrize("layout", LAYOUTS)
@@ -605,3 +605,17 @@ def test_bad_faces(tmp_path):
         load_environment([tmp_path / "f_px.exr"] * 5)
     with pytest.raises(FileNotFoundError):
         load_environment(str(tmp_path / "none_{face}.exr"))
+
+
+def test_latlong_projection_matches_scipy_prefilter():
+    """Independent peer: θ from +z, φ from +x towards +y, scipy's complex SH converted to real."""
+    import importlib.util
+    import pathlib
+
+    spec = importlib.util.spec_from_file_location(
+        "bench_lighting", pathlib.Path(__file__).resolve().parent.parent / "benchmarks" / "bench_lighting.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    img = torch.rand(8, 16, 3, generator=torch.Generator().manual_seed(2))
+    ours = Environment(img, "latlong").project(4)
+    np.testing.assert_allclose(ours.numpy(), mod.numpy_project(img.numpy(), 4), atol=1e-12)

@@ -137,15 +137,29 @@ class Environment:
             self._cache["mask"] = L.valid_mask(self.layout, *self.shape) & (self.solid_angles() > 0)
         return self._cache["mask"]
 
+    def _flat_geometry(self):
+        """Cached (dirs [P, 3], Ω [P], pixel index [P] or None when every pixel is valid)."""
+        if "flat" not in self._cache:
+            m = self.mask().reshape(-1)
+            d = self.directions().reshape(-1, 3)
+            om = self.solid_angles().reshape(-1)
+            if bool(m.all()):
+                self._cache["flat"] = (d, om, None)
+            else:
+                idx = torch.nonzero(m).squeeze(1)
+                self._cache["flat"] = (d[idx].contiguous(), om[idx].contiguous(), idx)
+        return self._cache["flat"]
+
     # ---- SH ---------------------------------------------------------------------------
     def project(self, bands: int, window: Any = None) -> torch.Tensor:
         """SH coefficients of the map, ``[C, n²]`` float64 (Ramamoorthi 2002, eq. 4.13).
 
         ``window`` (off by default): see :func:`window_factors` — 'hanning', 'lanczos',
         'gaussian:σ' (eq. 6.7) or per-band factors."""
-        m = self.mask()
-        vals = self.image[m].to(torch.float64)  # [P, C]
-        out = _project_flat(vals, self.directions()[m], self.solid_angles()[m], bands)
+        dirs, omega, idx = self._flat_geometry()
+        vals = self.image.reshape(-1, self.channels)
+        vals = (vals if idx is None else vals[idx]).to(torch.float64)  # [P, C]
+        out = _project_flat(vals, dirs, omega, bands)
         w = window_factors(window, bands)
         return out if w is None else out * expand_window(w)
 
