@@ -1,0 +1,52 @@
+"""``prt bench [CONFIG] [key.path=value ...]`` — the benchmark harness (prt_torch.harness)."""
+from __future__ import annotations
+
+import argparse
+
+
+def register(sub) -> None:
+    p = sub.add_parser(
+        "bench",
+        help="run a benchmark config: transfer, every codec setting, PSNR/fps tables, plots, renders",
+        description="Run a benchmark config (default: configs/default.yaml). Overrides are dotted "
+        "key=value pairs parsed as YAML, e.g. transfer.bands=3 'codecs.0.vectors=[2,4]'. Lists expand into sweeps.",
+    )
+    p.add_argument("config", nargs="?", default=None, help="config name in configs/ or a YAML path (default: default)")
+    p.add_argument("overrides", nargs="*", help="key.path=value overrides")
+    p.add_argument("--target-psnr", type=float, default=None, help="find the smallest setting of --target-codec meeting this PSNR (dB)")
+    p.add_argument("--target-codec", default=None, help="codec for --target-psnr (default: the config's target.codec)")
+    p.add_argument("--target-param", default=None, help="integer size parameter to search (default: the config's target.param)")
+    p.add_argument("--no-resume", action="store_true", help="recompute settings even if their records exist")
+    p.add_argument("--no-render", action="store_true", help="skip the pyrender images")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.add_argument("--dry-run", action="store_true", help="validate and print the resolved config and sweep, do no work")
+    p.add_argument("--debug", action="store_true", help="show tracebacks")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    import json
+
+    from ..harness.config import expand_codecs, expand_runs, load_config
+    from ..harness.run import run_benchmark
+
+    overrides = list(args.overrides)
+    if args.no_render:
+        overrides.append("render.enabled=false")
+    if args.target_psnr is not None:
+        overrides.append(f"target.psnr={args.target_psnr}")
+    if args.target_codec:
+        overrides.append(f"target.codec={args.target_codec}")
+    if args.target_param:
+        overrides.append(f"target.param={args.target_param}")
+    cfg = load_config(args.config, overrides)
+    runs = expand_runs(cfg)
+    if args.dry_run:
+        for c in runs:
+            print(json.dumps({k: v for k, v in c.items() if not k.startswith("_")}, indent=2))
+            print(f"# {len(expand_codecs(c['codecs']))} codec settings")
+        return 0
+    for c in runs:
+        out = run_benchmark(c, resume=not args.no_resume, progress=not args.quiet)
+        print(f"report: {out / 'report.md'}")
+    return 0

@@ -1,0 +1,24 @@
+"""``prt plot RESULTS... -o DIR`` — draw any set of result files together."""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+
+def register(sub) -> None:
+    p = sub.add_parser("plot", help="rate–distortion and speed–accuracy plots of one or more results.json files")
+    p.add_argument("results", nargs="+", help="results.json files or reports/<run>/ directories")
+    p.add_argument("-o", "--output", default="reports/plots", help="output directory (default: reports/plots)")
+    p.add_argument("--labels", nargs="*", default=None, help="one label per results file")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..harness.report import load_results, plot_results
+
+    res = [load_results(r) for r in args.results]
+    if args.labels is not None and len(args.labels) != len(res):
+        raise ValueError(f"--labels has {len(args.labels)} entries for {len(res)} results files; accepted: one label per file")
+    for p in plot_results(res, Path(args.output), labels=args.labels):
+        print(p)
+    return 0

@@ -1,0 +1,252 @@
+"""Result files of a benchmark run and the pictures made from them.
+
+reports/<run>/
+  results.json     one record per codec setting + run context (schema: docs/harness.md)
+  results.csv      the scalar columns of the records, one row per setting
+  report.md        PSNR / fps tables, the target search, links to the figures
+  rd.png           rate–distortion: PSNR vs bytes per vertex, one line per codec
+  speed_accuracy.png  relighting fps vs PSNR, Pareto front marked
+  renders/         uncompressed vs best setting of each codec, with error heat maps
+  records/         one JSON per finished setting (what makes a run resumable)
+"""
+from __future__ import annotations
+
+import csv
+import io as _io
+import json
+import math
+from pathlib import Path
+from typing import Any, Callable
+
+from .. import io
+
+__all__ = ["write_outputs", "pareto_front", "plot_results", "CSV_COLUMNS", "load_results"]
+
+CSV_COLUMNS = [
+    "setting_id", "codec", "params", "encode_s", "bytes_total", "bytes_per_vertex", "compression_ratio",
+    "sloan_cost_floats", "se", "relative_se", "psnr_random_db", "psnr_random_closed_form_db", "psnr_lights_db",
+    "psnr_lights_min_db", "relight_s", "relight_spread", "vertices_per_s", "fps", "speedup_vs_uncompressed",
+]
+
+
+def load_results(path: str | Path) -> dict:
+    """Read a results.json (or the run directory holding one)."""
+    p = Path(path)
+    if p.is_dir():
+        p = p / "results.json"
+    if not p.is_file():
+        raise FileNotFoundError(f"no results file at {str(p)!r}; accepted: a results.json or a reports/<run>/ directory")
+    try:
+        data = json.loads(p.read_text())
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{str(p)!r} is not valid JSON ({e})") from None
+    if data.get("format") != "prt_torch.results":
+        raise ValueError(f"{str(p)!r} is not a prt_torch results file (format={data.get('format')!r})")
+    return data
+
+
+def pareto_front(points: list[tuple[float, float]]) -> list[int]:
+    """Indices of the points not dominated when maximising both coordinates."""
+    idx = []
+    for i, (a, b) in enumerate(points):
+        if not any((c >= a and d >= b) and (c > a or d > b) for j, (c, d) in enumerate(points) if j != i):
+            idx.append(i)
+    return idx
+
+
+def _fmt(v: Any, digits: int = 3) -> str:
+    if isinstance(v, float):
+        if math.isinf(v):
+            return "∞"
+        if v != 0 and (abs(v) >= 1e5 or abs(v) < 1e-3):
+            return f"{v:.{digits - 1}e}"
+        return f"{v:.{digits}g}" if abs(v) < 100 else f"{v:.1f}"
+    return str(v)
+
+
+def _params(p: dict) -> str:
+    return ", ".join(f"{k}={v}" for k, v in p.items()) or "–"
+
+
+def write_csv(path: Path, records: list[dict]) -> None:
+    buf = _io.StringIO()
+    w = csv.writer(buf)
+    w.writerow(CSV_COLUMNS)
+    for r in records:
+        w.writerow([json.dumps(r["params"], sort_keys=True) if c == "params" else r.get(c) for c in CSV_COLUMNS])
+    io.atomic_write_text(path, buf.getvalue())
+
+
+def plot_results(results_list: list[dict], out_dir: Path, labels: list[str] | None = None) -> list[Path]:
+    """Rate–distortion and speed–accuracy plots of one or more result sets (``prt plot``)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    labels = labels or [r["name"] for r in results_list]
+    paths = []
+    markers = "osD^v<>p*h"
+    fig, ax = plt.subplots(figsize=(6.4, 4.4))
+    for ri, (res, lab) in enumerate(zip(results_list, labels)):
+        by = {}
+        for r in res["records"]:
+            by.setdefault(r["codec"], []).append(r)
+        for ci, (codec, rs) in enumerate(sorted(by.items())):
+            rs = sorted(rs, key=lambda r: r["bytes_per_vertex"])
+            ys = [min(r["psnr_lights_db"], 120.0) for r in rs]
+            ax.plot([r["bytes_per_vertex"] for r in rs], ys, marker=markers[ci % len(markers)],
+                    linestyle="-" if ri == 0 else "--", label=f"{codec}" + (f" ({lab})" if len(results_list) > 1 else ""))
+        unc = res.get("uncompressed", {})
+        if unc and ri == 0:
+            ax.axvline(unc["bytes_per_vertex"], color="grey", linestyle=":", label="uncompressed size")
+    ax.set_xscale("log")
+    ax.set_xlabel("bytes per vertex")
+    ax.set_ylabel("PSNR vs uncompressed, lights × views (dB)")
+    ax.set_title("Rate–distortion")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    p = out_dir / "rd.png"
+    with io.atomic_path(p) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)
+    paths.append(p)
+
+    fig, ax = plt.subplots(figsize=(6.4, 4.4))
+    allpts = []
+    for ri, (res, lab) in enumerate(zip(results_list, labels)):
+        by = {}
+        for r in res["records"]:
+            by.setdefault(r["codec"], []).append(r)
+        for ci, (codec, rs) in enumerate(sorted(by.items())):
+            xs = [min(r["psnr_lights_db"], 120.0) for r in rs]
+            ys = [r["fps"] for r in rs]
+            allpts += list(zip(xs, ys))
+            ax.scatter(xs, ys, marker=markers[ci % len(markers)], label=codec + (f" ({lab})" if len(results_list) > 1 else ""))
+        unc = res.get("uncompressed", {})
+        if unc and ri == 0:
+            ax.axhline(unc["fps"], color="grey", linestyle=":", label="uncompressed relight")
+    front = sorted((allpts[i] for i in pareto_front(allpts)), key=lambda t: t[0])
+    if front:
+        ax.plot([f[0] for f in front], [f[1] for f in front], color="black", linewidth=1, label="Pareto front")
+    ax.set_yscale("log")
+    ax.set_xlabel("PSNR vs uncompressed (dB)")
+    ax.set_ylabel("relighting frames/s (whole mesh, CPU)")
+    ax.set_title("Speed–accuracy")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    p = out_dir / "speed_accuracy.png"
+    with io.atomic_path(p) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)
+    paths.append(p)
+    return paths
+
+
+def markdown(results: dict, figures: list[str], renders: list[str]) -> str:
+    r = results
+    m = r["machine"]
+    unc = r["uncompressed"]
+    lines = [
+        f"# Benchmark `{r['name']}`",
+        "",
+        f"Scene **{r['scene']['name']}** ({r['scene']['vertices']} vertices), transfer **{r['transfer']['kind']}** "
+        f"{tuple(r['transfer']['shape'])} ({r['transfer']['raw_bytes'] / 2**20:.2f} MiB float32), "
+        f"lights: {', '.join(r['lights'])}; {max(1, len(r['views']))} view(s).",
+        f"Machine: {m['cpu']}, {m['cores']} cores, torch {m['torch']} with {m['torch_threads']} threads.",
+        f"Reproduce: `prt bench {r.get('config_source') or r['name']}` (config recorded in results.json).",
+        "",
+        f"Uncompressed relighting (the peer): {unc['vertices_per_s'] / 1e6:.2f} M vertices/s, {unc['fps']:.1f} fps "
+        f"(spread {unc['relight_spread']:.0%}), {unc['bytes_per_vertex']:.0f} B/vertex.",
+        "",
+        "## PSNR / fps",
+        "",
+        "PSNR (lights) is against the uncompressed result, averaged over lights × views; PSNR (rand) is MRT eq. 11 over "
+        "random norm-1 lighting vectors (Monte Carlo; closed form in results.json). Throughput: median of repeats after "
+        "warm-up; spread = IQR/median; speed-up relative to uncompressed relighting measured in the same run.",
+        "",
+        "| codec | setting | B/vertex | ratio | SE | rel. SE | PSNR rand (dB) | PSNR lights (dB) | Mvert/s | fps | vs uncompr. | encode (s) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for x in sorted(r["records"], key=lambda x: (x["codec"], x["bytes_per_vertex"])):
+        lines.append(
+            f"| {x['codec']} | {_params(x['params'])} | {x['bytes_per_vertex']:.1f} | {_fmt(x['compression_ratio'])} | {_fmt(x['se'])} | "
+            f"{_fmt(x['relative_se'])} | {_fmt(x['psnr_random_db'])} | {_fmt(x['psnr_lights_db'])} | {x['vertices_per_s'] / 1e6:.2f} "
+            f"(±{x['relight_spread']:.0%}) | {_fmt(x['fps'])} | {_fmt(x['speedup_vs_uncompressed'])}× | {_fmt(x['encode_s'])} |"
+        )
+    pts = [(min(x["psnr_lights_db"], 1e9), x["fps"]) for x in r["records"]]
+    front = [r["records"][i]["setting_id"] for i in pareto_front(pts)]
+    lines += ["", f"Pareto front (PSNR vs fps): {', '.join(front)}.", ""]
+    t = r.get("target")
+    if t:
+        lines += ["## Smallest setting meeting the target", ""]
+        if t["met"]:
+            lines.append(f"{t['codec']}: {t['param']}={t['value']} reaches {t['achieved_db']:.2f} dB ≥ {t['goal_db']} dB "
+                         f"({t['metric']}) at {t['bytes_per_vertex']:.1f} B/vertex; evaluated {t['param']} ∈ {t['evaluated']}.")
+        else:
+            lines.append(f"{t['codec']}: not met — {t['note']}.")
+        lines.append("")
+    if figures:
+        lines += ["## Plots", ""] + [f"![{Path(f).stem}]({f})" for f in figures] + [""]
+    if renders:
+        lines += ["## Renders", "", "Left to right: uncompressed, compressed, |error| heat map (first light, first view).", ""]
+        lines += [f"![{Path(f).stem}]({f})" for f in renders] + [""]
+    return "\n".join(lines)
+
+
+def write_outputs(run_dir: Path, results: dict, ev=None, lights=None, views=None, cams=None, cfg=None,
+                  log: Callable[[str], None] = print) -> None:
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    io.atomic_write_json(run_dir / "results.json", results)
+    write_csv(run_dir / "results.csv", results["records"])
+    figs = [p.name for p in plot_results([results], run_dir)]
+    renders: list[str] = []
+    if cfg is not None and cfg["render"]["enabled"] and ev is not None:
+        try:
+            renders = render_best(run_dir, results, ev, lights, views, cams, cfg)
+        except Exception as e:  # rendering must not lose a finished benchmark; say why
+            log(f"[bench] renders skipped: {type(e).__name__}: {e}")
+            results["render_error"] = f"{type(e).__name__}: {e}"
+            io.atomic_write_json(run_dir / "results.json", results)
+    io.atomic_write_text(run_dir / "report.md", markdown(results, figs, renders))
+    log(f"[bench] wrote {run_dir}/report.md, results.json, results.csv, {', '.join(figs)}" + (f", {len(renders)} render(s)" if renders else ""))
+
+
+def render_best(run_dir: Path, results: dict, ev, lights, views, cams, cfg) -> list[str]:
+    """Render the uncompressed result and the best setting (highest PSNR) of each codec for the
+    first light and view, with an error heat map; returns relative paths of the composites."""
+    import torch
+
+    from .. import codecs, render
+    from .run import _fit_encode, _relight
+
+    rc = cfg["render"]
+    out_dir = run_dir / "renders"
+    out_dir.mkdir(parents=True, exist_ok=True)
+    mesh = ev.transfer.mesh
+    L = lights[0]
+    ref = ev.reference(L, views[0]).clamp_min(0)
+    cam = render.Camera.look_at(cams[0], ev.points.mean(0), width=rc["width"], height=rc["height"]) if cams is not None and len(cams) else None
+    paths = []
+    with render.Renderer(rc["width"], rc["height"]) as rd:
+        img_ref, mask = rd.render(mesh, ref, camera=cam)
+        best: dict[str, dict] = {}
+        for x in results["records"]:
+            if x["codec"] not in best or x["psnr_lights_db"] > best[x["codec"]]["psnr_lights_db"]:
+                best[x["codec"]] = x
+        for codec_name, x in sorted(best.items())[: max(1, int(rc["best"])) * 8]:
+            codec = codecs.get(codec_name, **x["params"])
+            enc = _fit_encode(codec, ev.X, ev.matrix_shape)
+            out = ev.finish(_relight(codec, enc, ev.light_matrix(L), views[0])).clamp_min(0)
+            img, _ = rd.render(mesh, out, camera=cam)
+            heat = render.error_heatmap(img, img_ref, mask)
+            comp = render.side_by_side([img_ref, img, heat], ["uncompressed", f"{x['setting_id']}", "|error|"])
+            p = out_dir / f"{x['setting_id']}.png"
+            render.save_png(p, comp)
+            paths.append(f"renders/{p.name}")
+        render.save_png(out_dir / "uncompressed.png", img_ref)
+    return paths

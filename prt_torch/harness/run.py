@@ -1,0 +1,337 @@
+"""The benchmark run: scene -> transfer (cached) -> every codec setting -> records -> report.
+
+``run_benchmark(cfg)`` (what ``prt bench`` calls):
+
+1. loads the scene and estimates memory (transfer + codec workspace) — refused before any
+   work when over ``metrics.max_memory_gb``;
+2. computes the transfer once and caches it in ``cache_dir/transfer-<hash>.prt`` keyed by the
+   scene, its mesh content hash and the transfer parameters, so sweeps and re-runs reuse it;
+3. loads the lights (built-in names, files, analytic specs) and places the views;
+4. for every codec setting (grids expanded), fits and encodes, then measures: encode time;
+   bytes (total, per vertex), compression ratio and Sloan's cost; SE and relative error;
+   random-lighting PSNR (MRT eq. 11, Monte Carlo and closed form); PSNR against the
+   uncompressed result for every light × view; relighting throughput (vertices/s, fps) as
+   the median of repeats after warm-up with its spread, next to the uncompressed peer
+   measured in the same run;
+5. writes each finished setting's record to ``records/<id>.json`` at once (atomic), so an
+   interrupted sweep keeps what it finished and a re-run skips it;
+6. optional target search (smallest size parameter meeting a PSNR target), then
+   results.json/csv, report.md, plots and renders (harness.report).
+"""
+from __future__ import annotations
+
+import copy
+import json
+import math
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import torch
+
+from .. import codecs, io
+from ..transfer import Transfer
+from .config import config_hash, expand_codecs
+from .evaluate import Evaluator, camera_positions
+from .metrics import psnr_vs_reference, random_light_psnr, random_light_psnr_analytic, squared_error
+from .timing import machine_info, measure
+
+__all__ = ["run_benchmark", "compute_transfer", "evaluate_setting", "RESULTS_VERSION"]
+
+RESULTS_VERSION = 1
+
+
+# --------------------------------------------------------------------------- transfer
+
+def _precompute_fn(kind: str) -> Callable[..., Transfer]:
+    from .. import transfer as T
+
+    if kind == "diffuse":
+        return T.precompute_diffuse
+    if kind == "glossy":
+        from ..transfer import glossy
+
+        return glossy.precompute_glossy
+    if kind == "mrt":
+        from ..transfer import mrt
+
+        return mrt.precompute_mrt
+    raise ValueError(f"transfer.kind={kind!r} cannot be benchmarked; accepted: diffuse, glossy, mrt")
+
+
+def transfer_params(cfg: dict) -> dict:
+    t = cfg["transfer"]
+    p = {"bands": t["bands"], "samples": t["samples"], "seed": cfg["seed"]}
+    if t["kind"] == "diffuse":
+        p.update(bounces=t["bounces"], shadows=t["shadows"])
+    p.update(t.get("params") or {})
+    return p
+
+
+def estimate_memory(cfg: dict, num_vertices: int) -> dict:
+    """Rough peak bytes: the transfer signal (float32) a few times over (signal, decoded copy,
+    float64 error pass) plus the largest codec workspace (per-cluster covariances in float64)."""
+    t = cfg["transfer"]
+    n2 = t["bands"] ** 2
+    p = t.get("params") or {}
+    if t["kind"] == "diffuse":
+        D = n2 * 3
+    elif t["kind"] == "glossy":
+        D = int(p.get("out_bands", t["bands"])) ** 2 * n2
+    else:
+        D = int(p.get("M", 8)) ** 2 * n2
+    signal = num_vertices * D * 4
+    work = 0
+    for s in expand_codecs(cfg["codecs"]):
+        k = int(s.get("clusters", 1) or 1)
+        m = min(D, max(1, num_vertices // k))
+        work = max(work, k * m * m * 8)
+    total = 6 * signal + work
+    return {"signal_bytes": signal, "codec_workspace_bytes": work, "estimated_peak_bytes": total, "D": D}
+
+
+def compute_transfer(cfg: dict, mesh, cache_dir: Path, progress: bool = True) -> tuple[Transfer, dict]:
+    """Transfer for ``cfg`` on ``mesh``, from the cache if it is there. Returns (transfer, info)."""
+    kind = cfg["transfer"]["kind"]
+    params = transfer_params(cfg)
+    key = config_hash({"kind": kind, "params": params, "mesh": mesh.content_hash()})
+    path = Path(cache_dir) / f"transfer-{kind}-{key}.prt"
+    if path.is_file():
+        t0 = time.perf_counter()
+        tr = Transfer.load(path)
+        return tr, {"cache": "hit", "path": str(path), "seconds": time.perf_counter() - t0, "key": key}
+    fn = _precompute_fn(kind)
+    t0 = time.perf_counter()
+    tr = fn(mesh, **params, progress=progress)
+    secs = time.perf_counter() - t0
+    tr.save(path, overwrite=True)
+    return tr, {"cache": "miss", "path": str(path), "seconds": secs, "key": key}
+
+
+# --------------------------------------------------------------------------- codec adapter
+
+def _fit_encode(codec, X: torch.Tensor, matrix_shape) -> Any:
+    codec.fit(X, matrix_shape=matrix_shape)
+    return codec.encode(X)
+
+
+def _relight(codec, enc, L: torch.Tensor, view: Any) -> torch.Tensor:
+    return codec.relight(enc, L, view=view)
+
+
+# --------------------------------------------------------------------------- one setting
+
+def setting_id(setting: dict) -> str:
+    parts = [setting["name"]] + [f"{k}{v}" for k, v in sorted(setting.items()) if k != "name"]
+    return "-".join(str(p).replace("/", "_").replace(" ", "") for p in parts)
+
+
+def evaluate_setting(ev: Evaluator, setting: dict, lights: list[torch.Tensor], views: list[Any], cfg: dict,
+                     ref_cache: dict) -> dict:
+    """Fit, encode and measure one codec setting. Returns the record (JSON-able)."""
+    params = dict(setting)
+    name = params.pop("name")
+    codec = codecs.get(name, **params)
+    X = ev.X
+    t0 = time.perf_counter()
+    enc = _fit_encode(codec, X, ev.matrix_shape)
+    encode_s = time.perf_counter() - t0
+    storage = dict(codec.storage(enc))
+    X_hat = codec.decode(enc).to(torch.float32)
+    se, rel = squared_error(X, X_hat)
+    m = cfg["metrics"]
+    psnr_rand = random_light_psnr(X, X_hat, ev.n_in, m["random_lights"], seed=cfg["seed"])
+    psnr_rand_closed = random_light_psnr_analytic(se, ev.V, ev.n_in)
+    per = []
+    for li, L in enumerate(lights):
+        Lm = ev.light_matrix(L)
+        for vi, view in enumerate(views):
+            ref = ref_cache[(li, vi)]
+            out = ev.finish(_relight(codec, enc, Lm, view))
+            per.append({"light": li, "view": vi, "psnr_db": psnr_vs_reference(ref, out)})
+    # throughput: relight one light (and view) from the compressed form; median of repeats
+    L0 = ev.light_matrix(lights[0])
+    v0 = views[0]
+    tm = measure(lambda: _relight(codec, enc, L0, v0), repeats=m["repeats"], warmup=m["warmup"])
+    psnrs = [p["psnr_db"] for p in per]
+    finite = [p for p in psnrs if math.isfinite(p)]
+    mean_psnr = (sum(finite) / len(finite)) if len(finite) == len(psnrs) else float("inf")
+    bytes_total = int(storage.get("bytes_total", storage.get("bytes", 0)))
+    rec = {
+        "setting_id": setting_id(setting),
+        "codec": name,
+        "params": params,
+        "encode_s": encode_s,
+        "bytes_total": bytes_total,
+        "bytes_per_vertex": bytes_total / ev.V,
+        "compression_ratio": ev.raw_bytes / bytes_total if bytes_total else float("inf"),
+        "sloan_cost_floats": storage.get("sloan_cost", storage.get("sloan_cost_floats")),
+        "storage": storage,
+        "se": se,
+        "relative_se": rel,
+        "psnr_random_db": psnr_rand,
+        "psnr_random_closed_form_db": psnr_rand_closed,
+        "psnr_lights_db": mean_psnr,
+        "psnr_lights_min_db": min(psnrs),
+        "psnr_per_light_view": per,
+        "relight_s": tm.median,
+        "relight_spread": tm.spread,
+        "relight_timing": tm.as_dict(),
+        "vertices_per_s": tm.rate(ev.V),
+        "fps": 1.0 / tm.median if tm.median > 0 else float("inf"),
+    }
+    return rec
+
+
+# --------------------------------------------------------------------------- the run
+
+def _load_records(rec_dir: Path) -> dict[str, dict]:
+    out = {}
+    if rec_dir.is_dir():
+        for p in sorted(rec_dir.glob("*.json")):
+            try:
+                r = json.loads(p.read_text())
+            except (OSError, json.JSONDecodeError):
+                continue  # a torn file cannot exist (atomic writes), but never trust the disk
+            out[r.get("key", "")] = r
+    return out
+
+
+def run_benchmark(cfg: dict, resume: bool = True, progress: bool = True, log: Callable[[str], None] = print) -> Path:
+    """Run one benchmark config end to end; returns the run directory reports/<name>/."""
+    from ..lighting import load_light
+    from ..scene import load_scene
+
+    cfg = copy.deepcopy(cfg)
+    run_dir = Path(cfg["output_dir"]) / cfg["name"]
+    rec_dir = run_dir / "records"
+    sc = cfg["scene"]
+    mesh = load_scene(sc["name"], size=sc["size"], up=sc["up"], albedo=sc["albedo"])
+    mem = estimate_memory(cfg, mesh.num_vertices)
+    limit = float(cfg["metrics"]["max_memory_gb"]) * 2**30
+    if mem["estimated_peak_bytes"] > limit:
+        raise ValueError(
+            f"this config needs an estimated {mem['estimated_peak_bytes'] / 2**30:.1f} GiB "
+            f"(signal {mem['signal_bytes'] / 2**30:.2f} GiB for {mesh.num_vertices} vertices × D={mem['D']}, codec workspace "
+            f"{mem['codec_workspace_bytes'] / 2**30:.2f} GiB) > metrics.max_memory_gb={cfg['metrics']['max_memory_gb']}; "
+            "accepted: a smaller scene, fewer bands or clusters, or a larger max_memory_gb"
+        )
+    log(f"[bench] {cfg['name']}: scene {mesh.name} ({mesh.num_vertices} vertices), transfer {cfg['transfer']['kind']}")
+    tr, tinfo = compute_transfer(cfg, mesh, Path(cfg["cache_dir"]), progress=progress)
+    log(f"[bench] transfer {tuple(tr.data.shape)} ({tinfo['cache']}, {tinfo['seconds']:.1f} s)")
+    ev = Evaluator(tr)
+    lights = [load_light(spec, bands=ev.bands_in) for spec in cfg["lights"]]
+    center = ev.points.mean(0)
+    radius = float((ev.points - center).norm(dim=-1).max())
+    cams = camera_positions(center, radius, cfg["views"]["count"], cfg["views"]["elevation"], cfg["views"]["azimuth0"])
+    views = [ev.view_weights(c) for c in cams] if ev.needs_view else [None]
+    ref_cache = {(li, vi): ev.reference(L, v) for li, L in enumerate(lights) for vi, v in enumerate(views)}
+    L0 = ev.light_matrix(lights[0])
+    ref_t = measure(lambda: ev.reference(lights[0], views[0]), repeats=cfg["metrics"]["repeats"], warmup=cfg["metrics"]["warmup"])
+    uncompressed = {"relight_s": ref_t.median, "relight_spread": ref_t.spread, "vertices_per_s": ref_t.rate(ev.V),
+                    "fps": 1.0 / ref_t.median, "bytes_total": ev.raw_bytes, "bytes_per_vertex": ev.raw_bytes / ev.V}
+
+    settings = expand_codecs(cfg["codecs"])
+    done = _load_records(rec_dir) if resume else {}
+    records: list[dict] = []
+    context_key = config_hash({"transfer": tinfo["key"], "lights": cfg["lights"], "views": cfg["views"],
+                               "metrics": cfg["metrics"], "seed": cfg["seed"]})
+
+    def run_setting(s: dict) -> dict:
+        key = config_hash({"setting": s, "context": context_key})
+        if key in done:
+            return done[key]
+        rec = evaluate_setting(ev, s, lights, views, cfg, ref_cache)
+        rec["key"] = key
+        rec["speedup_vs_uncompressed"] = uncompressed["relight_s"] / rec["relight_s"] if rec["relight_s"] > 0 else float("inf")
+        io.atomic_write_json(rec_dir / f"{rec['setting_id']}.json", rec)
+        done[key] = rec
+        return rec
+
+    try:
+        from tqdm import tqdm
+
+        it = tqdm(settings, desc="codec settings", disable=not progress, unit="setting")
+    except ImportError:  # pragma: no cover
+        it = settings
+    skipped = 0
+    for s in it:
+        was_done = config_hash({"setting": s, "context": context_key}) in done
+        rec = run_setting(s)
+        skipped += was_done
+        records.append(rec)
+        if not was_done:
+            log(f"[bench] {rec['setting_id']}: {rec['bytes_per_vertex']:.1f} B/vertex, PSNR {rec['psnr_lights_db']:.2f} dB, "
+                f"{rec['vertices_per_s'] / 1e6:.2f} Mvert/s, encode {rec['encode_s']:.2f} s")
+    if skipped:
+        log(f"[bench] resumed: {skipped} finished setting(s) reused from {rec_dir}")
+
+    target = None
+    if cfg["target"].get("psnr") is not None:
+        target = find_smallest(cfg, run_setting)
+        for r in target.pop("_records"):
+            if r["setting_id"] not in {x["setting_id"] for x in records}:
+                records.append(r)
+
+    results = {
+        "format": "prt_torch.results",
+        "results_version": RESULTS_VERSION,
+        "name": cfg["name"],
+        "config": {k: v for k, v in cfg.items() if not k.startswith("_")},
+        "config_source": cfg.get("_source"),
+        "machine": machine_info(),
+        "scene": {"name": mesh.name, "vertices": mesh.num_vertices, "faces": mesh.num_faces, "hash": mesh.content_hash()},
+        "transfer": {"kind": tr.kind, "shape": list(tr.data.shape), "matrix_shape": list(ev.matrix_shape) if ev.matrix_shape else None,
+                     "n_in": ev.n_in, "raw_bytes": ev.raw_bytes, "cache": tinfo, "meta": _jsonable(tr.meta)},
+        "memory_estimate": mem,
+        "lights": [str(s) for s in cfg["lights"]],
+        "views": cams.tolist() if ev.needs_view else [],
+        "uncompressed": uncompressed,
+        "target": target,
+        "records": records,
+    }
+    from .report import write_outputs
+
+    write_outputs(run_dir, results, ev=ev, lights=lights, views=views, cams=cams, cfg=cfg, log=log)
+    return run_dir
+
+
+def find_smallest(cfg: dict, run_setting: Callable[[dict], dict]) -> dict:
+    """Smallest integer value of ``target.param`` whose setting meets ``target.psnr`` on
+    ``target.metric`` (bisection, assuming the metric grows with the parameter — true for
+    the size parameters of every codec here: clusters, vectors). CompressAI's find_close in
+    spirit. Other parameters come from the first codec entry of that name (lists -> first)."""
+    t = cfg["target"]
+    base = next((dict(e) for e in cfg["codecs"] if e["name"] == t["codec"]), {"name": t["codec"]})
+    base = {k: (v[0] if isinstance(v, list) else v) for k, v in base.items()}
+    lo, hi = int(t["lo"]), int(t["hi"])
+    metric, goal = t["metric"], float(t["psnr"])
+    tried = []
+
+    def ok(v: int) -> bool:
+        s = dict(base)
+        s[t["param"]] = v
+        r = run_setting(s)
+        tried.append(r)
+        return r[metric] >= goal
+
+    if not ok(hi):
+        return {"met": False, "codec": t["codec"], "param": t["param"], "value": None, "goal_db": goal, "metric": metric,
+                "note": f"{t['param']}={hi} (the upper bound) does not reach {goal} dB", "_records": tried}
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if ok(mid):
+            hi = mid
+        else:
+            lo = mid + 1
+    best = next(r for r in tried if r["params"].get(t["param"]) == lo) if any(r["params"].get(t["param"]) == lo for r in tried) else None
+    if best is None:
+        ok(lo)
+        best = tried[-1]
+    return {"met": True, "codec": t["codec"], "param": t["param"], "value": lo, "goal_db": goal, "metric": metric,
+            "achieved_db": best[metric], "bytes_per_vertex": best["bytes_per_vertex"], "setting_id": best["setting_id"],
+            "evaluated": [r["params"].get(t["param"]) for r in tried], "_records": tried}
+
+
+def _jsonable(obj: Any) -> Any:
+    return json.loads(json.dumps(obj, default=str))
