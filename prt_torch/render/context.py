@@ -38,19 +38,18 @@ class RenderUnavailable(RuntimeError):
 
 
 def _platform_note() -> str:
-    os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
-    plat = os.environ["PYOPENGL_PLATFORM"]
+    plat = os.environ.get("PYOPENGL_PLATFORM", "")
     gl_platform = sys.modules.get("OpenGL.platform")
     current = type(getattr(gl_platform, "PLATFORM", None)).__name__ if gl_platform is not None else "not loaded"
     return f"PYOPENGL_PLATFORM={plat!r}, PyOpenGL platform {current}"
 
 
 def _create():
-    note = _platform_note()  # sets PYOPENGL_PLATFORM=egl unless the user chose otherwise
+    os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
     try:
         from pyrender.platforms.egl import EGLPlatform
     except Exception as e:  # ImportError, RuntimeError('EGL platform plugin is not available'), OSError
-        raise RenderUnavailable(f"cannot load pyrender's EGL platform ({type(e).__name__}: {e}; {note}); "
+        raise RenderUnavailable(f"cannot load pyrender's EGL platform ({type(e).__name__}: {e}; {_platform_note()}); "
                                 f"{INSTALL_HINT}") from e
 
     class _SharedEGL(EGLPlatform):
@@ -75,7 +74,7 @@ def _create():
         raise
     except Exception as e:  # AssertionError from pyrender's asserts, GLError, EGLError, OSError
         raise RenderUnavailable(f"cannot create an EGL OpenGL context ({type(e).__name__}: {e or 'EGL call failed'}; "
-                                f"{note}); "
+                                f"{_platform_note()}); "
                                 f"{INSTALL_HINT}") from e
     if (major, minor) < (4, 1):
         plat.delete_context()
