@@ -1,0 +1,66 @@
+"""`prt render`: a diffuse transfer file relit and rendered, checked against the analytic value."""
+from __future__ import annotations
+
+import importlib.util
+
+import numpy as np
+import pytest
+
+from prt_torch.cli import main
+
+
+@pytest.fixture(scope="module")
+def transfer_file(tmp_path_factory):
+    from prt_torch.scene import builtin
+    from prt_torch.transfer import Transfer, unshadowed_transfer
+
+    mesh = builtin("convex", size="small").with_albedo([0.2, 0.5, 0.8])
+    t = Transfer("diffuse", unshadowed_transfer(mesh.normals, 3).float(), mesh, {"bands": 3, "albedo_folded": False})
+    path = tmp_path_factory.mktemp("cli") / "convex.prt"
+    t.save(path)
+    return path
+
+
+def _read(path):
+    import OpenImageIO as oiio
+
+    inp = oiio.ImageInput.open(str(path))
+    spec = inp.spec()
+    arr = np.asarray(inp.read_image(0, 0, 0, spec.nchannels, "float")).reshape(spec.height, spec.width, -1)
+    inp.close()
+    return arr
+
+
+def test_constant_light_renders_albedo(transfer_file, tmp_path, capsys):
+    """Unshadowed diffuse transfer under uniform radiance 1 gives L_out = ρ at every vertex
+    (transfer/diffuse.py normalisation, l_00 = 2√π), so every covered pixel shows the albedo."""
+    out = tmp_path / "c.exr"
+    rc = main(["render", str(transfer_file), "--light", "constant:value=1", "-o", str(out), "--width", "40",
+               "--height", "32", "--background", "-1", "--supersample", "1"])
+    assert rc == 0, capsys.readouterr().err
+    img = _read(out)
+    assert img.shape == (32, 40, 3)
+    covered = img[:, :, 0] != -1
+    assert covered.sum() > 200
+    assert np.abs(img[covered] - [0.2, 0.5, 0.8]).max() < 1e-5
+    png = tmp_path / "c.png"
+    assert main(["render", str(transfer_file), "-o", str(png), "--width", "24", "--height", "24",
+                 "--orthographic", "--light", "sky"]) == 0
+    assert png.stat().st_size > 0
+
+
+def test_cli_errors(transfer_file, tmp_path, capsys):
+    out = tmp_path / "x.png"
+    out.write_bytes(b"")
+    assert main(["render", str(transfer_file), "-o", str(out)]) == 2
+    assert "--overwrite" in capsys.readouterr().err
+    assert main(["render", str(transfer_file), "-o", str(tmp_path / "x.jpg")]) == 2
+    assert "accepted extensions" in capsys.readouterr().err
+    assert main(["render", str(transfer_file), "-o", str(tmp_path / "y.png"), "--compare", str(tmp_path / "z.png")]) == 2
+    assert "--codec-file" in capsys.readouterr().err
+    assert main(["render", str(tmp_path / "missing.prt"), "-o", str(tmp_path / "y.png")]) == 2
+    assert main(["render", str(transfer_file), "-o", str(tmp_path / "y.png"), "--exposure", "bright"]) == 2
+    if importlib.util.find_spec("prt_torch.codecs") is None:
+        assert main(["render", str(transfer_file), "-o", str(tmp_path / "y.png"), "--codec-file", "c.prt"]) == 2
+        assert "prt_torch.codecs" in capsys.readouterr().err
+    assert not (tmp_path / "y.png").exists()
