@@ -103,7 +103,9 @@ def main(argv=None) -> int:
                      f"{r['speedup_warm_vs_numpy']:.1f}x | {r['max_abs_diff_vs_numpy']:.1e} |")
     m = result["machine"]
     lines += ["", f"Machine: {m.get('cpu', m)}; torch threads {torch.get_num_threads()}.",
-              "Reproduce: `.venv/bin/python benchmarks/bench_lighting.py`", ""]
+              "Reproduce: `OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_lighting.py` (on an oversubscribed",
+              "machine two torch threads spin against each other and every torch figure drops ~5-10x; the committed",
+              "table was taken single-threaded, with other engineers' jobs running).", ""]
     atomic_write_text(OUT / "lighting.md", "\n".join(lines))
     print("\n".join(lines))
     return 0

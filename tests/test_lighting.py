@@ -529,6 +529,10 @@ def test_cli_light(tmp_path, capsys):
     assert rc == 0 and "layout=latlong" in text and len([ln for ln in text.splitlines() if not ln.startswith("#")]) == 5
     irr = load_environment(tmp_path / "irr.exr")
     assert irr.layout == "latlong" and (tmp_path / "p.png").exists()
+    # analytic light rotated by Euler angles: +z turned 90° about x points to -y
+    assert main(["light", "directional:direction=0,0,1", "--rotate", "90,0,0", "--bands", "2", "--json"]) == 0
+    c = json.loads(capsys.readouterr().out)["coeffs"][0]
+    assert c[1] < -1.5 and abs(c[2]) < 1e-12  # y_1,-1 ∝ y, y_1,0 ∝ z
     assert main(["light", str(tmp_path / "missing.exr")]) == 2
     assert "does not exist" in capsys.readouterr().err
 

@@ -21,7 +21,8 @@ from ..lighting import (
 )
 from ..lighting.environment import expand_window, window_factors
 from ..lighting.spec import load_light
-from ..sh import lm_of
+from ..lighting.layouts import resolve_rotation
+from ..sh import lm_of, rotate as sh_rotate
 
 
 def register(subparsers) -> None:
@@ -74,6 +75,8 @@ def run(args: argparse.Namespace) -> int:
         L = env.project(args.bands, args.window)
     else:
         L = load_light(spec, args.bands, args.window)
+        if args.rotate is not None or args.up != "z":  # analytic light: rotate its SH vector
+            L = sh_rotate(L, resolve_rotation(args.rotate, args.up))
     # outputs
     if args.irradiance_map or args.preview:
         E = irradiance_map(L, args.irradiance_layout, args.irradiance_size)
