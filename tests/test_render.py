@@ -377,3 +377,16 @@ def test_clear_error_without_egl():
     assert "MSG" in out.stdout, out.stdout + out.stderr
     for word in ("PYOPENGL_PLATFORM", "libegl1", "libegl-mesa0", "libgl1-mesa-dri"):
         assert word in out.stdout
+
+
+def test_pyrender_offscreen_renderer_in_same_process_does_not_break_ours(renderer):
+    """pyrender.OffscreenRenderer.delete() calls eglTerminate on its display; ours is separate."""
+    import pyrender
+
+    tri = (np.array([[-1, -1, 0], [1, -1, 0], [0, 1, 0]], float), np.array([[0, 1, 2]]))
+    rad = np.array([[1.0, 2, 3], [4, 5, 6], [7, 8, 9]])
+    before, _ = renderer.render_radiance(tri, rad, TOP, 16, 16)
+    other = pyrender.OffscreenRenderer(8, 8)
+    other.delete()
+    after, _ = renderer.render_radiance(tri, rad, TOP, 16, 16)
+    assert np.array_equal(before, after)

@@ -4,6 +4,8 @@
   (``os.environ.setdefault``). pyrender pins PyOpenGL 3.1.0, whose OSMesa path does not work, so
   EGL is the only supported platform (pyrender's EGL module switches an already-loaded PyOpenGL
   to EGL; a failure names the platform in use).
+* The display is Mesa's surfaceless platform where available (our own display, unaffected by
+  other EGL users), else pyrender's default EGL device.
 * One context per process, shared by every :class:`~prt_torch.render.Renderer` and reference
   counted: it is created by the first :func:`acquire` and destroyed by the last :func:`release`.
   (pyrender's own ``EGLPlatform.delete_context`` also calls ``eglTerminate`` on the display,
@@ -44,6 +46,38 @@ def _platform_note() -> str:
     return f"PYOPENGL_PLATFORM={plat!r}, PyOpenGL platform {current}"
 
 
+class _SurfacelessDevice:
+    """An ``EGLDevice`` stand-in for pyrender's ``EGLPlatform`` giving Mesa's surfaceless display
+    (EGL_MESA_platform_surfaceless): a display of our own, so that another EGL user terminating
+    the device display (``pyrender.OffscreenRenderer.delete`` calls ``eglTerminate``) does not
+    take our context with it."""
+
+    name = "mesa-surfaceless"
+
+    def get_display(self):
+        import pyrender.platforms.egl as pe
+
+        return pe._eglGetPlatformDisplayEXT(EGL_PLATFORM_SURFACELESS_MESA, None, None)
+
+
+EGL_PLATFORM_SURFACELESS_MESA = 0x31DD
+
+
+def _display_source():
+    """Mesa's surfaceless platform when the EGL client advertises it, else pyrender's default
+    device (e.g. NVIDIA's EGL device platform)."""
+    import pyrender.platforms.egl as pe
+    from OpenGL import EGL
+
+    try:
+        ext = EGL.eglQueryString(EGL.EGL_NO_DISPLAY, EGL.EGL_EXTENSIONS) or b""
+    except Exception:  # EGL_EXT_client_extensions missing: the query itself fails
+        ext = b""
+    if b"EGL_MESA_platform_surfaceless" in ext and pe._eglGetPlatformDisplayEXT is not None:
+        return _SurfacelessDevice()
+    return pe.get_default_device()
+
+
 def _create():
     os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
     try:
@@ -62,7 +96,7 @@ def _create():
             self._egl_context = None
 
     try:
-        plat = _SharedEGL(1, 1)
+        plat = _SharedEGL(1, 1, device=_display_source())
         plat.init_context()
         from OpenGL import GL
 
