@@ -1,29 +1,60 @@
 """prt_torch.scene — validated triangle meshes, built-in procedural scenes, Embree ray casting.
 
 World frame: right-handed, +z up; built-in scenes stand on the plane z = 0.
+
+Public API (imported lazily, PEP 562, so that ray-casting worker processes importing
+``prt_torch.scene._embree_worker`` start without torch):
+
+* ``Mesh``, ``make_mesh``, ``load_mesh``, ``vertex_normals``, ``tangent_frames`` (mesh.py)
+* ``builtin``, ``list_builtins``, ``SIZES``, ``geodesic_sphere``, ``sphere_on_plane_visibility`` (builtins.py)
+* ``RayCaster``, ``default_workers`` (raycast.py)
+* ``load_scene(name_or_path, size='small', up='z', albedo=None)``
 """
 from __future__ import annotations
 
+import importlib
 import os
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
-from .builtins import SIZES, builtin, geodesic_sphere, list_builtins, sphere_on_plane_visibility
-from .mesh import MESH_SUFFIXES, Mesh, load_mesh, make_mesh, tangent_frames, vertex_normals
-from .raycast import RayCaster, default_workers
+_LAZY = {
+    "Mesh": "mesh", "make_mesh": "mesh", "load_mesh": "mesh", "vertex_normals": "mesh", "tangent_frames": "mesh",
+    "MESH_SUFFIXES": "mesh", "face_areas": "mesh",
+    "builtin": "builtins", "list_builtins": "builtins", "SIZES": "builtins", "geodesic_sphere": "builtins",
+    "sphere_on_plane_visibility": "builtins",
+    "RayCaster": "raycast", "default_workers": "raycast",
+}
 
-__all__ = [
-    "Mesh", "make_mesh", "load_mesh", "load_scene", "builtin", "list_builtins", "SIZES",
-    "RayCaster", "default_workers", "vertex_normals", "tangent_frames", "geodesic_sphere",
-    "sphere_on_plane_visibility", "MESH_SUFFIXES",
-]
+__all__ = sorted(_LAZY) + ["load_scene"]
+
+if TYPE_CHECKING:  # pragma: no cover
+    from .builtins import SIZES, builtin, geodesic_sphere, list_builtins, sphere_on_plane_visibility  # noqa: F401
+    from .mesh import MESH_SUFFIXES, Mesh, face_areas, load_mesh, make_mesh, tangent_frames, vertex_normals  # noqa: F401
+    from .raycast import RayCaster, default_workers  # noqa: F401
 
 
-def load_scene(name_or_path: str | os.PathLike, size: str = "small", up: str = "z", albedo=None, **kw) -> Mesh:
-    """A built-in scene by name (``"bumpy_sphere"`` or ``"bumpy_sphere:large"``) or a mesh file.
+def __getattr__(name: str) -> Any:
+    mod = _LAZY.get(name)
+    if mod is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"{__name__}.{mod}"), name)
+    globals()[name] = value
+    return value
 
-    Built-in names take precedence over a file of the same name only when no such file exists.
-    Extra keywords go to ``load_mesh`` for files.
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))
+
+
+def load_scene(name_or_path: str | os.PathLike, size: str = "small", up: str = "z", albedo=None, **kw):
+    """A built-in scene by name (``"bumpy_sphere"`` or ``"bumpy_sphere:large"``) or a mesh file -> ``Mesh``.
+
+    A built-in name is used only when no file of that name exists. Extra keywords go to
+    ``load_mesh`` for files.
     """
+    from .builtins import builtin, list_builtins
+    from .mesh import MESH_SUFFIXES, load_mesh
+
     s = str(name_or_path)
     if not Path(s).exists() and s.split(":", 1)[0] in list_builtins():
         return builtin(s, size=size, albedo=albedo)

@@ -13,13 +13,18 @@ given, and by ``eps`` along the ray (equivalent to t_near = eps, which embreex d
 
 Parallelism: embreex runs its per-ray loop holding the GIL (measured: two threads on two cores
 are *slower* than one, see reports/benchmarks/transfer_diffuse.md), so batches above
-``min_parallel_rays`` are split over worker *processes* (spawn context, each with its own copy
-of the Embree scene built once); the calling process traces one share itself.
+``min_parallel_rays`` are split over worker *processes* (``python -m
+prt_torch.scene._embree_worker``, each with its own Embree scene built once, fed raw float32
+arrays over pipes: no pickle, no re-import of the caller's ``__main__``); the calling process
+traces one share itself.
 """
 from __future__ import annotations
 
-import multiprocessing as mp
 import os
+import struct
+import subprocess
+import sys
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -29,10 +34,10 @@ from .._checks import check_float, check_int
 
 __all__ = ["RayCaster", "default_workers"]
 
-# Embree reports "no geometry" as RTC_INVALID_GEOMETRY_ID = 0xFFFFFFFF, i.e. -1 as int32.
-_INVALID = -1
-
-_worker_scene = None  # the per-process scene of pool workers
+from ._embree_worker import INVALID as _INVALID
+from ._embree_worker import build_scene as _build_scene
+from ._embree_worker import decode_reply, encode_request
+from ._embree_worker import trace as _run
 
 
 def default_workers() -> int:
@@ -41,46 +46,6 @@ def default_workers() -> int:
         return max(1, len(os.sched_getaffinity(0)))
     except AttributeError:  # pragma: no cover - non-Linux
         return max(1, os.cpu_count() or 1)
-
-
-def _build_scene(vertices: np.ndarray, faces: np.ndarray):
-    from embreex import rtcore_scene
-    from embreex.mesh_construction import TriangleMesh
-
-    scene = rtcore_scene.EmbreeScene()
-    TriangleMesh(scene, np.ascontiguousarray(vertices, np.float32), np.ascontiguousarray(faces, np.int32))
-    return scene
-
-
-def _run(scene, query: str, o: np.ndarray, d: np.ndarray, tfar: np.ndarray | None, chunk: int):
-    """Trace rays in chunks of ``chunk`` (bounded temporaries) on one scene; numpy in/out."""
-    R = o.shape[0]
-    if query == "occluded":
-        out = np.empty(R, dtype=bool)
-    else:
-        out = (np.empty(R, np.int32), np.empty(R, np.float32), np.empty(R, np.float32), np.empty(R, np.float32))
-    for s in range(0, R, chunk):  # a handful of chunks: bounds the embreex temporaries
-        e = min(R, s + chunk)
-        dists = None if tfar is None else np.ascontiguousarray(tfar[s:e], np.float32)
-        if query == "occluded":
-            r = scene.run(o[s:e], d[s:e], dists=dists, query="OCCLUDED")
-            out[s:e] = r != _INVALID
-        else:
-            r = scene.run(o[s:e], d[s:e], dists=dists, output=1)
-            out[0][s:e] = r["primID"]
-            out[1][s:e] = r["u"]
-            out[2][s:e] = r["v"]
-            out[3][s:e] = r["tfar"]
-    return out
-
-
-def _worker_init(vertices: np.ndarray, faces: np.ndarray) -> None:
-    global _worker_scene
-    _worker_scene = _build_scene(vertices, faces)
-
-
-def _worker_run(query: str, o: np.ndarray, d: np.ndarray, tfar: np.ndarray | None, chunk: int):
-    return _run(_worker_scene, query, o, d, tfar, chunk)
 
 
 def _as_np3(name: str, x: Any) -> np.ndarray:
@@ -131,8 +96,17 @@ class RayCaster:
     def close(self) -> None:
         """Stop the worker processes (the in-process scene stays usable)."""
         if self._pool is not None:
-            self._pool.terminate()
-            self._pool.join()
+            for p in self._pool:
+                try:
+                    p.stdin.close()  # EOF: the worker returns
+                    p.wait(timeout=5)
+                except Exception:
+                    p.kill()
+                    p.wait()
+                try:
+                    p.stdout.close()
+                except Exception:
+                    pass
             self._pool = None
 
     def __enter__(self) -> "RayCaster":
@@ -147,11 +121,24 @@ class RayCaster:
         except Exception:
             pass
 
-    def _get_pool(self):
+    def _get_pool(self) -> list:
+        """Start ``workers - 1`` worker processes (each builds its own Embree scene once)."""
         if self._pool is None:
-            ctx = mp.get_context("spawn")  # fork is unsafe after torch/OpenMP threads started
-            self._pool = ctx.Pool(self.workers - 1, initializer=_worker_init,
-                                  initargs=(self.vertices.astype(np.float32), self.faces.astype(np.int32)))
+            env = dict(os.environ)
+            root = str(Path(__file__).resolve().parents[2])
+            env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+            v = np.ascontiguousarray(self.vertices, "<f4")
+            f = np.ascontiguousarray(self.faces, "<i4")
+            procs = []
+            for _ in range(self.workers - 1):
+                p = subprocess.Popen([sys.executable, "-m", "prt_torch.scene._embree_worker"], stdin=subprocess.PIPE,
+                                     stdout=subprocess.PIPE, env=env)
+                p.stdin.write(b"PRTE" + struct.pack("<QQ", v.shape[0], f.shape[0]))
+                p.stdin.write(v.data)
+                p.stdin.write(f.data)
+                p.stdin.flush()
+                procs.append(p)
+            self._pool = procs
         return self._pool
 
     # ---------------------------------------------------------------- helpers
@@ -179,15 +166,21 @@ class RayCaster:
         if self.workers == 1 or R < self.min_parallel_rays:
             return _run(self._scene, query, o, d, tfar, self.chunk_rays)
         pool = self._get_pool()
+        op = 1 if query == "occluded" else 2
         bounds = np.linspace(0, R, self.workers + 1).astype(np.int64)
-        jobs = []
-        for w in range(1, self.workers):  # one job per worker process
-            s, e = bounds[w], bounds[w + 1]
-            jobs.append(pool.apply_async(_worker_run, (query, o[s:e], d[s:e], None if tfar is None else tfar[s:e],
-                                                       self.chunk_rays)))
-        s, e = bounds[0], bounds[1]
-        first = _run(self._scene, query, o[s:e], d[s:e], None if tfar is None else tfar[s:e], self.chunk_rays)
-        parts = [first] + [j.get() for j in jobs]
+        try:
+            for w, p in enumerate(pool, start=1):  # hand each worker its share, then trace ours
+                s, e = bounds[w], bounds[w + 1]
+                for part in encode_request(op, o[s:e], d[s:e], None if tfar is None else tfar[s:e], self.chunk_rays):
+                    p.stdin.write(part)
+                p.stdin.flush()
+            s, e = bounds[0], bounds[1]
+            parts = [_run(self._scene, query, o[s:e], d[s:e], None if tfar is None else tfar[s:e], self.chunk_rays)]
+            for w, p in enumerate(pool, start=1):
+                parts.append(decode_reply(p.stdout, op, int(bounds[w + 1] - bounds[w])))
+        except (EOFError, BrokenPipeError, OSError) as err:
+            self.close()
+            raise RuntimeError(f"a ray-casting worker process failed ({err!r}); retry with workers=1") from None
         if query == "occluded":
             return np.concatenate(parts)
         return tuple(np.concatenate([p[k] for p in parts]) for k in range(4))

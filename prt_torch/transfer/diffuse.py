@@ -38,7 +38,7 @@ import scipy.sparse
 import torch
 
 from .._checks import check_choice, check_float, check_int
-from ..scene import Mesh, RayCaster
+from ..scene import Mesh, RayCaster, default_workers
 from ..sh import clamped_cosine, eval_sh, num_coeffs, rotate_zonal
 from .base import Transfer, remove_state, run_chunks
 from .sampling import cosine_hemisphere, to_world, uniform_sphere
@@ -242,7 +242,7 @@ def precompute_diffuse(
         bounce_tol: stop adding bounces once one adds less than this fraction of the
             accumulated transfer's norm (the bounce is kept).
         chunk_size: vertices per chunk (default: ~2²⁰ traced rays per chunk).
-        workers: ray-casting processes (None = all cores).
+        workers: ray-casting processes (None = all cores when the run traces ≥ 4M rays, else 1).
         state_dir: where finished chunks are kept (resumable); None = in memory only.
         resume: continue from ``state_dir``; ``keep_state`` keeps it after success.
         progress: tqdm bar with rays/s; ``callback(i, n_chunks)`` after each chunk (may raise).
@@ -278,6 +278,9 @@ def precompute_diffuse(
     traced = False
     try:
         if shadows != "never":
+            if workers is None:  # processes pay off only for long runs (pool start ~0.5 s)
+                est = V * (samples // 2 if sampling == "uniform" else samples)
+                workers = default_workers() if est >= 4_000_000 else 1
             caster = RayCaster(mesh, workers=workers, offset=offset)
             meta["ray_eps"] = caster.eps
             if shadows == "auto":
