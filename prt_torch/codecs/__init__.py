@@ -1,0 +1,23 @@
+"""Compression of PRT signals behind one interface (issue 6): VQ, PCA, clustered PCA (static,
+iterative, adaptive; Sloan 2003 §3.3–4) and MRT-PCA (Lehtinen & Kautz 2003 §6).
+
+    >>> from prt_torch import codecs
+    >>> codec = codecs.get("cpca", clusters=64, vectors=8)          # validated, no work yet
+    >>> enc = codec.fit_encode(X, matrix_shape=(n_out, n_in))         # X [P, D] float32
+    >>> out = codec.relight(enc, light, view=y_local)                 # straight from the codes
+    >>> codec.storage(enc)["compression_ratio"]
+    >>> codec.save("out.prt", enc); codec2, enc2 = codecs.load("out.prt")
+
+Names: ``codecs.available()``; parameters of one: ``codecs.describe(name)``. File layout:
+docs/codecs.md.
+"""
+from .base import (CODEC_FORMAT_VERSION, Codec, ConvergenceError, ConvergenceWarning, Encoded, Param, available,
+                   describe, get, load, register)
+from .affine import AffineCodec, label_dtype
+from .cpca import CPCA, MRTPCA, PCA, VQ
+
+__all__ = [
+    "Codec", "Encoded", "Param", "AffineCodec", "VQ", "PCA", "CPCA", "MRTPCA",
+    "register", "get", "available", "describe", "load", "label_dtype",
+    "ConvergenceWarning", "ConvergenceError", "CODEC_FORMAT_VERSION",
+]

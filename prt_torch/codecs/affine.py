@@ -1,0 +1,452 @@
+"""The piecewise-affine model shared by VQ, PCA, CPCA and MRT-PCA (Sloan 2003 §3.3).
+
+Every point p belongs to a cluster k(p) and is approximated as
+
+    x̃_p = x_0^k + Σ_{i ≤ n_k} w_p^i x_i^k                      (Sloan 2003 §3.3)
+
+VQ is the case n_k = 0, PCA the case of one cluster, CPCA the general case (n_k constant or,
+adaptive, varying per cluster), MRT-PCA one cluster without a mean (Lehtinen & Kautz 2003
+eq. (12)). Fitted state (float32): ``means_ [K, D]`` (x_0, absent for uncentred models),
+``basis_ [K, n_max, D]`` (orthonormal rows x_i; rows i ≥ n_k are zero), ``n_vectors_ [K]``.
+
+Encoded codes: ``labels [P]`` (uint8 / int16 / int32, the smallest that holds K; absent when
+K = 1) and ``coeffs`` — ``[P, n']`` float32, or, when n_k varies, packed: the n_{k(p)}
+weights of each point one after the other, in point order (meta ``packed: true``).
+
+Relighting from the compressed form (Sloan 2003 §6, Lehtinen & Kautz 2003 eq. (13)): the
+per-cluster constants ``M_i l`` (``[K, 1+n, n_out, C]``) are computed once per light, then
+every point takes its weighted sum ``e_p = (M_0 l) + Σ_i w_p^i (M_i l)`` as one batched GEMM
+over cluster tiles (``segment.tiles_bmm``), never decoding x̃_p. With a view, ``y(v_p)·e_p``
+(dense ``[P, n_out]``) or the 4-tap tent sum of eq. (13) (``(idx, w)``).
+"""
+from __future__ import annotations
+
+import math
+import time
+from typing import Any
+
+import torch
+
+from .base import (Codec, Encoded, check_light, check_matrix_shape, check_signal, check_view, check_weights)
+from .kmeans import row_chunk
+from .segment import from_tiles, segment_matmul, tile_layout, tiles_bmm, to_tiles
+
+__all__ = ["AffineCodec", "label_dtype"]
+
+
+def label_dtype(K: int) -> torch.dtype:
+    """Smallest integer dtype holding cluster indices 0..K-1 (uint8, int16 or int32)."""
+    if K <= 256:
+        return torch.uint8
+    if K <= 32768:
+        return torch.int16
+    return torch.int32
+
+
+class AffineCodec(Codec):
+    """Shared encode / decode / relight / storage / persistence of piecewise-affine codecs.
+
+    Subclasses implement ``_check_data(P, D, matrix_shape)`` (data-dependent parameter checks,
+    run before any work) and ``_fit_model(Xc, w, gen) -> dict`` returning ``labels int64 [P]``,
+    ``means [K, D] float64`` (in the centred coordinates of Xc, or None), ``basis
+    [K, n_max, D] float64``, ``n_vectors int64 [K]`` and ``info`` (dict).
+    """
+
+    centered: bool = True  # fit an affine (mean + vectors) model; False: linear (no mean)
+
+    # ----------------------------------------------------------------- fit
+    def _check_data(self, P: int, D: int, matrix_shape) -> None:
+        pass
+
+    def _fit_model(self, Xc: torch.Tensor, w: torch.Tensor | None, gen: torch.Generator) -> dict:
+        raise NotImplementedError
+
+    def _is_centered(self) -> bool:
+        return bool(self.params.get("center", self.centered))
+
+    def _fit_dtype(self, P: int, D: int) -> torch.dtype:
+        choice = self.params.get("fit_dtype", "auto")
+        if choice == "float64" or (choice == "auto" and P * D <= 2**23):
+            return torch.float64
+        return torch.float32
+
+    def fit(self, X: torch.Tensor, weights: torch.Tensor | None = None, matrix_shape=None) -> "AffineCodec":
+        """Fit on ``X [P, D]`` (float32/64, finite), optional ``weights [P]`` ≥ 0 and
+        ``matrix_shape=(n_out, n_in)``. All parameter/data checks happen before any work."""
+        X = check_signal("X", X)
+        P, D = X.shape
+        w = check_weights(weights, P)
+        ms = check_matrix_shape(matrix_shape, D)
+        self._check_data(P, D, ms)
+        t0 = time.perf_counter()
+        dtype = self._fit_dtype(P, D)
+        centred = self._is_centered()
+        if centred:
+            offset = (X.double() * (w[:, None] if w is not None else 1.0)).sum(0) / (float(w.sum()) if w is not None else P)
+        else:
+            offset = torch.zeros(D, dtype=torch.float64)
+        Xc = torch.empty(P, D, dtype=dtype)
+        step = row_chunk(D, 8)
+        for i in range(0, P, step):  # chunks bound the float64 temporary
+            Xc[i:i + step] = (X[i:i + step].double() - offset).to(dtype)
+        w64 = None if w is None else w.double()
+        gen = torch.Generator().manual_seed(int(self.params.get("seed", 0)))
+        res = self._fit_model(Xc, w64, gen)
+        labels = res["labels"].long()
+        K = int(res["basis"].shape[0])
+        basis = res["basis"]
+        nvec = res["n_vectors"].long()
+        for name, t in (("means", res["means"]), ("basis", basis)):
+            if t is not None and not bool(torch.isfinite(t).all()):
+                raise RuntimeError(f"codec {self.codec_name!r}: the fit produced non-finite {name}; "
+                                   "the signal may be too badly scaled for float32 (try fit_dtype='float64')")
+        self.K_, self.D_, self.matrix_shape_ = K, D, ms
+        self.means_ = (res["means"] + offset).to(torch.float32) if centred else None
+        self.basis_ = basis.to(torch.float32)
+        self.n_vectors_ = nvec
+        self.fitted_ = True
+        # training encoding, with the fit's float64 model (coefficients = B_k (x_p - x_0^k))
+        coeffs = self._project(Xc, labels, res["means"], basis, dtype)
+        enc = self._make_encoded(labels, coeffs)
+        self._train = (_key(X), enc)
+        info = dict(res.get("info", {}))
+        info["seconds"] = time.perf_counter() - t0
+        info["fit_dtype"] = str(dtype).replace("torch.", "")
+        info["se"] = self.squared_error(X, enc, w)
+        info["se_relative"] = info["se"] / max(1e-300, float(_total_energy(Xc, w, centred)))
+        self.fit_info_ = info
+        return self
+
+    def _project(self, Xc, labels, means, basis, dtype) -> torch.Tensor:
+        """Per-point weights w_p = B_k (x_p − x_0^k) ``[P, n_max]`` float32, masked by n_k."""
+        P = Xc.shape[0]
+        K, nmax, D = basis.shape
+        if nmax == 0:
+            return torch.zeros(P, 0, dtype=torch.float32)
+        Bt = basis.transpose(1, 2).to(dtype)  # [K, D, n]
+        if K == 1:
+            c = Xc @ Bt[0]
+        else:
+            c = segment_matmul(tile_layout(labels, K), Xc, Bt)
+        if means is not None:
+            mb = torch.einsum("knd,kd->kn", basis, means).to(dtype)
+            c -= mb[labels] if K > 1 else mb[0]
+        c = c.to(torch.float32)
+        mask = torch.arange(nmax)[None, :] < self.n_vectors_[labels][:, None]
+        return c * mask
+
+    # ----------------------------------------------------------------- codes
+    @property
+    def uniform_(self) -> bool:
+        return bool((self.n_vectors_ == self.n_vectors_.max()).all()) if self.n_vectors_.numel() else True
+
+    def _make_encoded(self, labels: torch.Tensor, coeffs: torch.Tensor) -> Encoded:
+        P = labels.numel()
+        tensors = {}
+        if self.K_ > 1:
+            tensors["labels"] = labels.to(label_dtype(self.K_))
+        nmax = self.basis_.shape[1]
+        packed = False
+        if nmax > 0:
+            if self.uniform_:
+                tensors["coeffs"] = coeffs.contiguous()
+            else:
+                mask = torch.arange(nmax)[None, :] < self.n_vectors_[labels][:, None]
+                tensors["coeffs"] = coeffs[mask].contiguous()
+                packed = True
+        meta = {"points": P, "dim": self.D_, "clusters": self.K_, "n_max": nmax, "packed": packed,
+                "matrix_shape": list(self.matrix_shape_) if self.matrix_shape_ else None,
+                "centered": self.means_ is not None}
+        return Encoded(codec=self.codec_name, tensors=tensors, meta=meta)
+
+    def _check_enc(self, enc: Encoded) -> None:
+        self._require_fitted()
+        if not isinstance(enc, Encoded):
+            raise TypeError(f"enc must be an Encoded (from encode/load), got {type(enc).__name__}")
+        if enc.codec != self.codec_name or enc.meta.get("dim") != self.D_ or enc.meta.get("clusters") != self.K_:
+            raise ValueError(f"enc (codec {enc.codec!r}, dim {enc.meta.get('dim')}, clusters {enc.meta.get('clusters')}) "
+                             f"was not produced by this codec ({self.codec_name!r}, dim {self.D_}, clusters {self.K_})")
+
+    def labels_of(self, enc: Encoded) -> torch.Tensor:
+        """Cluster index of every point, ``int64 [P]``."""
+        if "labels" in enc.tensors:
+            return enc.tensors["labels"].long()
+        return torch.zeros(enc.points, dtype=torch.long)
+
+    def coeffs_of(self, enc: Encoded) -> torch.Tensor:
+        """Per-point weights ``[P, n_max] float32`` (zero beyond each point's n_k)."""
+        nmax = self.basis_.shape[1]
+        P = enc.points
+        if nmax == 0:
+            return torch.zeros(P, 0, dtype=torch.float32)
+        c = enc.tensors["coeffs"]
+        if not enc.meta.get("packed"):
+            return c
+        if "coeffs_padded" not in enc.cache:
+            lab = self.labels_of(enc)
+            mask = torch.arange(nmax)[None, :] < self.n_vectors_[lab][:, None]
+            full = torch.zeros(P, nmax, dtype=torch.float32)
+            full[mask] = c
+            enc.cache["coeffs_padded"] = full
+        return enc.cache["coeffs_padded"]
+
+    # ----------------------------------------------------------------- encode
+    def encode(self, X: torch.Tensor) -> Encoded:
+        """Codes of ``X [P, D]``: each point to the cluster of least reconstruction error
+        (Sloan 2003 §4.2), weights by projection onto that cluster's vectors (§4.1). The
+        training signal's encoding is returned from the fit without recomputation."""
+        self._require_fitted()
+        X = check_signal("X", X)
+        if X.shape[1] != self.D_:
+            raise ValueError(f"X has D={X.shape[1]}; this codec was fitted with D={self.D_}")
+        train = getattr(self, "_train", None)
+        if train is not None and train[0] == _key(X):
+            return train[1]
+        dtype = torch.float64 if X.dtype == torch.float64 else torch.float32
+        off = self.means_.double().mean(0) if self.means_ is not None else torch.zeros(self.D_, dtype=torch.float64)
+        Xc = (X.double() - off).to(dtype)
+        means = None if self.means_ is None else (self.means_.double() - off)
+        basis = self.basis_.double()
+        labels = self._classify(Xc, means, basis)
+        return self._make_encoded(labels, self._project(Xc, labels, means, basis, dtype))
+
+    def _classify(self, Xc, means, basis) -> torch.Tensor:
+        """argmin_k ||x − x_0^k||² − Σ_i ((x − x_0^k)·x_i^k)² over all clusters (Sloan 2003 §4.2),
+        by chunked GEMM against all representatives."""
+        P = Xc.shape[0]
+        K = basis.shape[0]
+        if K == 1:
+            return torch.zeros(P, dtype=torch.long)
+        return classify_all(Xc, Xc.square().sum(1), means, basis)[0]
+
+    # ----------------------------------------------------------------- decode
+    def _n_eff(self, n_vectors) -> int:
+        nmax = self.basis_.shape[1]
+        if n_vectors is None:
+            return nmax
+        if isinstance(n_vectors, bool) or not isinstance(n_vectors, int) or n_vectors < 0:
+            raise ValueError(f"n_vectors={n_vectors!r}; accepted: None or an integer in [0, {nmax}] (a prefix of the PCA vectors)")
+        return min(int(n_vectors), nmax)
+
+    def decode(self, enc: Encoded, n_vectors: int | None = None) -> torch.Tensor:
+        """x̃_p ``[P, D] float32`` (Sloan 2003 §3.3); ``n_vectors`` keeps only a prefix of each
+        cluster's PCA vectors (run-time quality knob, Lehtinen & Kautz 2003 §6)."""
+        self._check_enc(enc)
+        n = self._n_eff(n_vectors)
+        reps = self._representatives(n)  # [K, J, D]
+        W = self._weights1(enc, n)  # [P, J]
+        K = self.K_
+        if K == 1:
+            return W @ reps[0]
+        if reps.shape[1] == 1 and self.means_ is not None:
+            return reps[:, 0][self.labels_of(enc)]
+        plan = self._plan(enc)
+        out_t = tiles_bmm(plan["W1t"][..., : reps.shape[1]], reps, plan["layout"].tile_cluster)
+        return from_tiles(plan["layout"], out_t)
+
+    def _representatives(self, n: int) -> torch.Tensor:
+        """``[K, J, D] float32``: (x_0,) x_1..x_n — J = n+1 with a mean, n without."""
+        B = self.basis_[:, :n]
+        if self.means_ is None:
+            return B
+        return torch.cat([self.means_[:, None], B], 1)
+
+    def _weights1(self, enc: Encoded, n: int) -> torch.Tensor:
+        """``[P, J]``: (1,) w_p^1..w_p^n (cached)."""
+        key = ("W1", n)
+        if key not in enc.cache:
+            c = self.coeffs_of(enc)[:, :n]
+            if self.means_ is not None:
+                c = torch.cat([torch.ones(c.shape[0], 1), c], 1)
+            enc.cache[key] = c.contiguous()
+        return enc.cache[key]
+
+    def _plan(self, enc: Encoded) -> dict:
+        """Tile layout of the points by cluster and the weights in tile order, built once per
+        encoding (the CPU counterpart of uploading per-cluster vertex buffers)."""
+        if "plan" not in enc.cache:
+            layout = tile_layout(self.labels_of(enc), self.K_)
+            W1 = self._weights1(enc, self.basis_.shape[1])
+            enc.cache["plan"] = {"layout": layout, "W1t": to_tiles(layout, W1).contiguous()}
+        return enc.cache["plan"]
+
+    # ----------------------------------------------------------------- relight
+    def cluster_constants(self, light: torch.Tensor, n: int | None = None) -> torch.Tensor:
+        """Per-cluster constants M_i l (Sloan 2003 §6): ``[K, J, n_out, C] float32`` for a light
+        ``[n_in, C]`` (J = n+1 with the mean term M_0 l, n without)."""
+        self._require_fitted()
+        n_out, n_in = self.matrix_shape_ or (1, self.D_)
+        L = check_light(light, n_in)
+        reps = self._representatives(self._n_eff(n))
+        K, J, _ = reps.shape
+        return (reps.reshape(K * J * n_out, n_in) @ L).view(K, J, n_out, L.shape[1])
+
+    def relight(self, enc: Encoded, light: torch.Tensor, view: Any = None, n_vectors: int | None = None) -> torch.Tensor:
+        """Radiance straight from the compressed form (Sloan 2003 §6; Lehtinen & Kautz 2003 eq. (13)).
+
+        Args:
+            light: ``[n_in, C]`` SH light (n_in = D for vector signals).
+            view: None; dense ``[P, n_out]`` (e.g. y(v_p) in the local frame); or taps
+                ``(idx int64 [P, k], w [P, k])`` (MRT tent basis, k = 4).
+            n_vectors: use only the first n PCA vectors of each cluster (None: all).
+        Returns: ``[P, C]`` float32 (vectors, or matrices with a view), else ``[P, n_out, C]``.
+        """
+        self._check_enc(enc)
+        P = enc.points
+        n_out, n_in = self.matrix_shape_ or (1, self.D_)
+        if self.matrix_shape_ is None and view is not None:
+            raise ValueError("view was given but this codec was fitted on vectors (no matrix_shape); accepted: view=None")
+        view = check_view(view, P, n_out) if self.matrix_shape_ is not None else None
+        n = self._n_eff(n_vectors)
+        consts = self.cluster_constants(light, n)  # [K, J, n_out, C]
+        K, J, _, C = consts.shape
+        W = self._weights1(enc, n)  # [P, J]
+        if K == 1 and isinstance(view, tuple):
+            return _taps_relight(consts[0], W, view)
+        F = n_out * C
+        if K == 1:
+            out = W @ consts[0].reshape(J, F)
+        elif J == 1 and self.means_ is not None:
+            out = consts[:, 0].reshape(K, F)[self.labels_of(enc)]
+        else:
+            plan = self._plan(enc)
+            out_t = tiles_bmm(plan["W1t"][..., :J], consts.reshape(K, J, F), plan["layout"].tile_cluster)
+            out = from_tiles(plan["layout"], out_t)
+        out = out.view(P, n_out, C)
+        if view is None:
+            return out[:, 0] if self.matrix_shape_ is None else out
+        if isinstance(view, tuple):
+            idx, w = view
+            taps = torch.gather(out, 1, idx[:, :, None].expand(-1, -1, C))
+            return torch.einsum("pt,ptc->pc", w, taps)
+        return torch.einsum("po,poc->pc", view, out)
+
+    # ----------------------------------------------------------------- storage
+    def storage(self, enc: Encoded) -> dict[str, Any]:
+        """Actual bytes (``Codec.storage``) plus Sloan 2003 §4.1's float count
+        ``m_p n' + m_c (n'+1) n`` — generalised to per-cluster n_k as Σ_p n_{k(p)} + Σ_k (n_k+1) n
+        (n_k n without a mean); cluster indices are not floats and are counted only in bytes."""
+        self._check_enc(enc)
+        out = super().storage(enc)
+        P, D = enc.points, self.D_
+        lab = self.labels_of(enc)
+        nk = self.n_vectors_
+        per_point = int(nk[lab].sum())
+        per_cluster = int(((nk + (1 if self.means_ is not None else 0)) * D).sum())
+        cost = per_point + per_cluster
+        out.update({
+            "clusters": self.K_, "vectors_max": int(self.basis_.shape[1]),
+            "vectors_mean_per_point": per_point / max(P, 1),
+            "sloan_cost_floats": cost, "sloan_per_point_floats": per_point, "sloan_per_cluster_floats": per_cluster,
+            "sloan_ratio": P * D / cost if cost else math.inf,
+            "relight_macs_per_point_per_channel": self._relight_cost(),
+        })
+        return out
+
+    def _relight_cost(self) -> float:
+        """Multiply-adds per point per colour channel of the per-point stage (Sloan 2003 §6:
+        n'+1 per output; ×n_out for matrices without a view)."""
+        n_out = self.matrix_shape_[0] if self.matrix_shape_ else 1
+        J = self.basis_.shape[1] + (1 if self.means_ is not None else 0)
+        return float(J * n_out)
+
+    # ----------------------------------------------------------------- persistence
+    def _state(self):
+        tensors = {"basis": self.basis_.contiguous(), "n_vectors": self.n_vectors_.to(torch.int32)}
+        if self.means_ is not None:
+            tensors["means"] = self.means_.contiguous()
+        meta = {"clusters": self.K_, "dim": self.D_, "centered": self.means_ is not None,
+                "matrix_shape": list(self.matrix_shape_) if self.matrix_shape_ else None,
+                "fit_info": _jsonable(getattr(self, "fit_info_", {}))}
+        return tensors, meta
+
+    def _set_state(self, tensors, meta):
+        try:
+            self.basis_ = tensors["basis"].to(torch.float32)
+            self.n_vectors_ = tensors["n_vectors"].long()
+            self.means_ = tensors["means"].to(torch.float32) if meta.get("centered") else None
+            self.K_, self.D_ = int(meta["clusters"]), int(meta["dim"])
+        except KeyError as e:
+            raise ValueError(f"codec file lacks {e}; it was not written by this codec's save") from None
+        ms = meta.get("matrix_shape")
+        self.matrix_shape_ = tuple(ms) if ms else None
+        self.fit_info_ = meta.get("fit_info", {})
+        if self.basis_.shape[0] != self.K_ or self.basis_.shape[2] != self.D_:
+            raise ValueError(f"codec file: basis has shape {tuple(self.basis_.shape)}, expected [{self.K_}, n, {self.D_}]")
+
+
+# ----------------------------------------------------------------------------------------
+# kernels used by relight and by the fits
+# ----------------------------------------------------------------------------------------
+
+def _taps_relight(consts: torch.Tensor, W: torch.Tensor, view: tuple) -> torch.Tensor:
+    """Lehtinen & Kautz 2003 eq. (13): ``Σ_{j∈taps} g_j(v) Σ_k w_{p,k} (A_k l)_j``.
+
+    ``consts [J, n_out, C]`` = A_k·l computed once per light; ``W [P, J]``; taps
+    ``(idx [P, t], g [P, t])``. Per point: a gather of t·J·C constants and t·J multiply-adds
+    per colour (4K for the tent basis). Chunks of points keep the gathered block in cache.
+    """
+    idx, g = view
+    J, n_out, C = consts.shape
+    Lk = consts.permute(1, 0, 2).reshape(n_out, J * C).contiguous()  # row j: (A_k l)_j for all k
+    P = W.shape[0]
+    out = torch.empty(P, C, dtype=torch.float32)
+    step = 8192
+    for i in range(0, P, step):  # a handful of chunks (cache-sized), not a loop over points
+        G = Lk[idx[i:i + step]]  # [p, t, J*C]
+        s = torch.bmm(g[i:i + step, None, :], G).view(-1, J, C)  # Σ_t g_t (A_k l)_{j_t}
+        out[i:i + step] = torch.bmm(W[i:i + step, None, :], s).view(-1, C)
+    return out
+
+
+def classify_all(Xc: torch.Tensor, xx: torch.Tensor, means: torch.Tensor | None, basis: torch.Tensor,
+                 top: int = 0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    """Reconstruction error of every point in every cluster (Sloan 2003 §4.2):
+
+        e_k(x) = ||x − x_0^k||² − Σ_i ((x − x_0^k)·x_i^k)²
+
+    by one GEMM against all representatives per chunk of points (``[P, D] @ [D, K(1+n)]``).
+    Returns ``(labels int64 [P], e_min [P], top_k int64 [P, top] or None)``.
+    """
+    P, D = Xc.shape
+    K, n, _ = basis.shape
+    dt = Xc.dtype
+    if means is None:
+        means = torch.zeros(K, D, dtype=torch.float64)
+    W = torch.cat([means[:, None], basis], 1).to(dt).reshape(K * (1 + n), D)
+    mm = means.square().sum(1).to(dt)
+    mb = torch.einsum("knd,kd->kn", basis, means).to(dt)
+    labels = torch.empty(P, dtype=torch.long)
+    emin = torch.empty(P, dtype=dt)
+    tops = torch.empty(P, top, dtype=torch.long) if top else None
+    step = row_chunk(K * (1 + n), Xc.element_size())
+    for i in range(0, P, step):  # chunks bound the [rows, K(1+n)] block
+        G = (Xc[i:i + step] @ W.T).view(-1, K, 1 + n)
+        e = xx[i:i + step, None] - 2 * G[..., 0] + mm
+        if n:
+            e -= (G[..., 1:] - mb).square().sum(-1)
+        m = e.min(1)
+        labels[i:i + step] = m.indices
+        emin[i:i + step] = m.values.clamp_min(0)
+        if top:
+            tops[i:i + step] = torch.topk(e, min(top, K), dim=1, largest=False).indices
+    return labels, emin, tops
+
+
+def _total_energy(Xc: torch.Tensor, w, centred: bool) -> float:
+    s = 0.0
+    for i in range(0, Xc.shape[0], 8192):
+        r = Xc[i:i + 8192].double().square().sum(1)
+        if w is not None:
+            r = r * w[i:i + 8192]
+        s += float(r.sum())
+    return s
+
+
+def _key(X: torch.Tensor) -> tuple:
+    return (X.data_ptr(), tuple(X.shape), X.dtype, X._version, tuple(X.stride()))
+
+
+def _jsonable(obj):
+    import json
+    return json.loads(json.dumps(obj, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))

@@ -1,0 +1,451 @@
+"""VQ, PCA, clustered PCA (static, iterative, adaptive) and MRT-PCA (Sloan 2003 §4; Lehtinen &
+Kautz 2003 §6), all fitted into the piecewise-affine model of ``affine.py``.
+
+* ``VQ``   — LBG/Lloyd with k-means++ seeding (Sloan 2003 §4.1, "VQ Clustering"): n' = 0.
+* ``PCA``  — one affine subspace (Sloan 2003 §4.1 with one cluster); ``center=False`` gives
+  the linear PCA of Lehtinen & Kautz 2003 eq. (12).
+* ``CPCA`` — ``method='static'``: VQ then per-cluster PCA (Sloan 2003 §4.1);
+  ``'iterative'``: Kambhatla–Leen / generalised LBG — classify each point to the cluster of
+  least reconstruction error, refit each cluster's PCA, adding PCA vectors one at a time with
+  ``iterations`` rounds per vector (Sloan 2003 §4.2); ``'adaptive'``: then redistribute PCA
+  vectors among clusters by ranking D_i²/m_k within a budget of per-point weights
+  (Sloan 2003 §4.3).
+* ``MRTPCA`` — PCA directly on MRT matrices A_p, relit with the 4-tap eq. (13).
+
+Speed (the fit is batched over clusters; no Python loop over clusters or points):
+* the signal is kept in cluster-tile order during the fit (``segment``), so per-cluster
+  means, scatter products and projections are batched GEMMs;
+* per-cluster PCA is an exact batched eigensolve for small K·D³, else a warm-started block
+  subspace iteration whose span contains the previous basis (so no refit increases error);
+* classification at the start of each vector stage is exact over all clusters (one GEMM
+  against all representatives); the other rounds of that stage compare each point only
+  with the ``candidates`` clusters its cluster's members found best in that exact pass
+  (``candidates=0``: exact over all clusters every round). A point's own cluster is always a
+  candidate, so a round never increases the error.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+
+from .affine import AffineCodec, classify_all
+from .base import Param, p_bool, p_choice, p_float, p_int, register
+from .kmeans import kmeans_pp, lloyd, repair_empty
+from .segment import choose_tile, from_tiles, tile_layout, tiles_bmm, to_tiles  # noqa: F401
+from .subspace import cluster_pca, total_variance
+
+__all__ = ["VQ", "PCA", "CPCA", "MRTPCA"]
+
+_COMMON = {
+    "seed": (0, p_int(0), "random seed (k-means++ draws, random subspace starts); results are deterministic per seed"),
+    "fit_dtype": ("auto", p_choice("auto", "float32", "float64"),
+                  "working precision of the fit; auto: float64 when P·D ≤ 2^23, else float32 (sums in float64)"),
+    "strict": (False, p_bool(), "raise ConvergenceError instead of warning when an iteration limit is hit"),
+}
+_VQ = {
+    "clusters": (64, p_int(1), "number of clusters m_c"),
+    "max_iter": (50, p_int(1), "LBG/Lloyd iteration limit (Sloan 2003 used 20)"),
+    "tol": (1e-4, p_float(0.0), "Lloyd stops when the squared centre shift ≤ tol · mean per-dimension variance"),
+    "n_init": (1, p_int(1), "k-means restarts (different seeds); the lowest error is kept"),
+    "init": ("k-means++", p_choice("k-means++", "random"), "seeding of the cluster centres"),
+}
+_PCA = {
+    "vectors": (8, p_int(0), "PCA vectors n' per cluster"),
+    "solver": ("auto", p_choice("auto", "eigh", "svd", "randomized"),
+               "eigh: Sloan 2003 §4.1 normal form (CᵀC or CCᵀ by shape); svd; randomized: subspace iteration; "
+               "auto: eigh when K·D³ is small, else randomized"),
+    "oversample": (8, p_int(0, 256), "extra columns of the randomized subspace"),
+    "power_iters": (3, p_int(0, 50), "power steps of a cold randomized start (warm starts use 1)"),
+}
+
+
+def _params(*groups, **override) -> dict:
+    out = {}
+    for g in groups:
+        for k, (d, c, doc) in g.items():
+            out[k] = Param(d, c, doc)
+    for k, v in override.items():
+        out[k] = v
+    return out
+
+
+# ----------------------------------------------------------------------------------------
+# fit machinery
+# ----------------------------------------------------------------------------------------
+
+class _Work:
+    """The centred signal in cluster-tile order, with buffers reused across iterations."""
+
+    def __init__(self, Xc: torch.Tensor, w: torch.Tensor | None, K: int, centred: bool = True):
+        self.X, self.w, self.K, self.centred = Xc, w, K, centred
+        self.P, self.D = Xc.shape
+        self.dt = Xc.dtype
+        self.T = choose_tile(self.P, K) if K > 1 else 256
+        self.xx = Xc.square().sum(1)
+        self.sw = None if w is None else w.sqrt().to(self.dt)
+        rows = self.P + K * (self.T - 1)
+        self._raw = torch.empty(rows, self.D, dtype=self.dt)
+        self._y = torch.empty(rows, self.D, dtype=self.dt)
+        self.labels = None
+
+    def set_labels(self, labels: torch.Tensor) -> None:
+        self.labels = labels
+        lay = tile_layout(labels, self.K, self.T)
+        self.layout, self.tc, self.counts = lay, lay.tile_cluster, lay.counts
+        NT = lay.NT
+        raw = self._raw[: NT * self.T]
+        raw.zero_()
+        raw.index_copy_(0, lay.pos, self.X)
+        self.Xt = raw.view(NT, self.T, self.D)
+        ones = torch.ones(self.P, dtype=self.dt) if self.sw is None else self.sw
+        self.swt = to_tiles(lay, ones)  # [NT, T]; zero on padding rows
+        self.xxt = to_tiles(lay, self.xx)
+
+    def means(self) -> torch.Tensor:
+        """Weighted cluster means [K, D] float64 (x_0, Sloan 2003 §4.1); empty clusters: 0."""
+        w2 = self.swt.square()
+        s = torch.bmm(w2[:, None, :], self.Xt).squeeze(1).double()
+        sums = torch.zeros(self.K, self.D, dtype=torch.float64).index_add_(0, self.tc, s)
+        ws = torch.zeros(self.K, dtype=torch.float64).index_add_(0, self.tc, w2.sum(1).double())
+        return sums / ws.clamp_min(1e-300)[:, None]
+
+    def refit(self, n: int, solver: str, gen, init=None, oversample=8, power_iters=3, alloc=None) -> dict:
+        """Means, top-n PCA vectors and squared error of the current clusters (Sloan 2003 §4.1)."""
+        means = self.means() if self.centred else None
+        Yt = self._y[: self.Xt.shape[0] * self.T].view_as(self.Xt)
+        Yt.copy_(self.Xt)
+        if means is not None:
+            Yt -= means.to(self.dt)[self.tc][:, None, :]
+        Yt *= self.swt[..., None]
+        pi = power_iters if init is None or init.shape[1] == 0 else 1
+        basis, evals = cluster_pca(Yt, self.tc, self.counts, n, solver, gen=gen, init=init,
+                                   oversample=oversample, power_iters=pi)
+        tv = total_variance(Yt, self.tc, self.K)
+        return {"labels": self.labels, "means": means, "basis": basis, "evals": evals, "tv": tv,
+                "n_vectors": torch.full((self.K,), n, dtype=torch.long), "se": float(tv.sum() - evals.sum())}
+
+    def classify_candidates(self, st: dict, cand: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Least reconstruction error among each cluster's candidate clusters ``cand [K, L]``
+        (own cluster first), in tile order: one tile-GEMM against the candidates' stacked
+        representatives. Returns (labels [P], e_min [P])."""
+        means, basis = st["means"], st["basis"]
+        K, n, D = basis.shape
+        L = cand.shape[1]
+        if means is None:
+            means = torch.zeros(K, D, dtype=torch.float64)
+        Wall = torch.cat([means[:, None], basis], 1)  # [K, 1+n, D]
+        Wc = Wall[cand].permute(0, 3, 1, 2).reshape(K, D, L * (1 + n)).to(self.dt)
+        E = tiles_bmm(self.Xt, Wc, self.tc).view(*self.Xt.shape[:2], L, 1 + n)
+        mm = means.square().sum(1)[cand].to(self.dt)  # [K, L]
+        e = self.xxt[..., None] - 2 * E[..., 0] + mm[self.tc][:, None, :]
+        if n:
+            mb = torch.einsum("knd,kd->kn", basis, means)[cand].to(self.dt)  # [K, L, n]
+            e -= (E[..., 1:] - mb[self.tc][:, None]).square().sum(-1)
+        m = e.min(-1)
+        lab_t = torch.gather(cand[self.tc][:, None, :].expand(-1, self.T, -1), 2, m.indices[..., None]).squeeze(-1)
+        labels = from_tiles(self.layout, lab_t[..., None]).squeeze(-1)
+        emin = from_tiles(self.layout, m.values.clamp_min(0)[..., None]).squeeze(-1)
+        return labels, emin
+
+
+def _candidate_sets(labels: torch.Tensor, top: torch.Tensor, K: int, L: int) -> torch.Tensor:
+    """Per-cluster candidates ``[K, L]``: the cluster itself, then the clusters most often among
+    its members' ``top`` choices (one bincount over (cluster, choice) pairs)."""
+    L = min(L, K)
+    pairs = (labels[:, None] * K + top).flatten()
+    cnt = torch.bincount(pairs, minlength=K * K).view(K, K).double()
+    cnt[torch.arange(K), torch.arange(K)] = math.inf
+    return torch.topk(cnt, L, dim=1).indices
+
+
+def _allocate(evals: torch.Tensor, counts: torch.Tensor, budget: float) -> torch.Tensor:
+    """Sloan 2003 §4.3: rank PCA vectors of all clusters by D_i²/m_k (error reduction per
+    stored weight), add them in decreasing order while Σ_k m_k n_k ≤ budget. ``[K]`` int64."""
+    K, nmax = evals.shape
+    m = counts.double().clamp_min(1)[:, None]
+    gain = torch.where((counts[:, None] > 0) & (evals > 0), evals / m, torch.full_like(evals, -1.0))
+    flat = gain.flatten()
+    order = torch.argsort(flat, descending=True, stable=True)
+    useful = flat[order] > 0
+    cost = counts.double()[order // nmax]
+    take = (torch.cumsum(cost, 0) <= budget + 1e-9) & useful
+    take = take & (torch.cumsum((~take).long(), 0) == 0)  # a prefix of the ranking
+    return torch.bincount(order[take] // nmax, minlength=K)
+
+
+def _mask_basis(st: dict, nvec: torch.Tensor) -> dict:
+    nmax = st["basis"].shape[1]
+    keep = torch.arange(nmax)[None, :] < nvec[:, None]
+    out = dict(st)
+    out["basis"] = st["basis"] * keep[..., None]
+    out["n_vectors"] = nvec
+    out["se"] = float(st["tv"].sum() - (st["evals"] * keep).sum())
+    return out
+
+
+# ----------------------------------------------------------------------------------------
+# codecs
+# ----------------------------------------------------------------------------------------
+
+class _VQMixin:
+    def _run_vq(self, Xc, w, gen, K):
+        xx = Xc.square().sum(1)
+        best = None
+        for r in range(self.params["n_init"]):  # restarts: a handful, each a full batched fit
+            if self.params["init"] == "k-means++":
+                idx = kmeans_pp(Xc, K, gen, w, xx=xx)
+            else:
+                p = torch.ones(Xc.shape[0], dtype=torch.float64) if w is None else w.double()
+                idx = torch.multinomial(p / p.sum(), K, replacement=False, generator=gen)
+            res = lloyd(Xc, Xc[idx], self.params["max_iter"], self.params["tol"], w, xx)
+            if best is None or res["inertia"] < best["inertia"]:
+                best = res
+        if not best["converged"]:
+            self._warn_or_raise(
+                f"codec {self.codec_name!r}: LBG/Lloyd did not converge in max_iter={self.params['max_iter']} "
+                f"iterations (tol={self.params['tol']}); the clustering is usable but not a fixed point — "
+                "raise max_iter or tol")
+        return best
+
+
+@register("vq")
+class VQ(_VQMixin, AffineCodec):
+    """Vector quantisation (LBG with k-means++ seeding): n' = 0 (Sloan 2003 §4.1)."""
+
+    codec_name = "vq"
+    PARAMS = _params(_VQ, _COMMON)
+
+    def _check_data(self, P, D, ms):
+        if self.params["clusters"] > P:
+            raise ValueError(f"clusters={self.params['clusters']} exceeds the number of points P={P}; accepted: 1..{P}")
+
+    def _fit_model(self, Xc, w, gen):
+        K = self.params["clusters"]
+        r = self._run_vq(Xc, w, gen, K)
+        return {"labels": r["labels"], "means": r["centers"], "basis": torch.zeros(K, 0, Xc.shape[1], dtype=torch.float64),
+                "n_vectors": torch.zeros(K, dtype=torch.long),
+                "info": {"inertia": r["inertia"], "lloyd_iterations": r["n_iter"], "converged": r["converged"],
+                         "empty_repairs": r["repaired"]}}
+
+
+def _resolve_solver(solver: str, K: int, D: int, limit: float) -> str:
+    if solver != "auto":
+        return solver
+    return "eigh" if K * D ** 3 <= limit else "randomized"
+
+
+@register("pca")
+class PCA(AffineCodec):
+    """One global affine subspace: mean + n' PCA vectors (Sloan 2003 §4.1 with m_c = 1)."""
+
+    codec_name = "pca"
+    PARAMS = _params(_PCA, _COMMON, center=Param(
+        True, p_bool(), "subtract the mean (affine PCA); false: linear PCA as Lehtinen & Kautz 2003 eq. (12)"))
+
+    def _check_data(self, P, D, ms):
+        n = self.params["vectors"]
+        hi = D if not self.params["center"] else D - 1
+        if n > hi:
+            raise ValueError(f"vectors={n} must be < D={D} (n' < n, Sloan 2003 §3.3)" if self.params["center"]
+                             else f"vectors={n} exceeds D={D}; accepted: 0..{D}")
+
+    def _fit_model(self, Xc, w, gen):
+        P, D = Xc.shape
+        n = self.params["vectors"]
+        solver = _resolve_solver(self.params["solver"], 1, D, 4e8)
+        work = _Work(Xc, w, 1, centred=self.params["center"])
+        work.set_labels(torch.zeros(P, dtype=torch.long))
+        st = work.refit(n, solver, gen, oversample=self.params["oversample"], power_iters=self.params["power_iters"])
+        means = st["means"]
+        return {"labels": work.labels, "means": means, "basis": st["basis"], "n_vectors": st["n_vectors"],
+                "info": {"solver": solver, "eigenvalues": st["evals"][0].tolist(), "se_model": st["se"],
+                         "total_variance": float(st["tv"].sum())}}
+
+
+@register("cpca", preset=None)
+class CPCA(_VQMixin, AffineCodec):
+    """Clustered PCA: per-cluster affine subspaces (Sloan 2003 §3.3–4.3)."""
+
+    codec_name = "cpca"
+    PARAMS = _params(_VQ, _PCA, _COMMON, **{
+        k: Param(*v) for k, v in {
+            "method": ("iterative", p_choice("static", "iterative", "adaptive"),
+                       "static (§4.1), iterative (§4.2) or adaptive (§4.3)"),
+            "iterations": (10, p_int(1), "classify/refit rounds per added PCA vector (Sloan 2003: 10-20)"),
+            "candidates": (8, p_int(0), "clusters compared per point between exact passes (0: all, every round)"),
+            "budget": (None, p_float(0.0, allow_none=True),
+                       "adaptive: mean per-point PCA weights Σ m_k n_k / P (default: vectors)"),
+            "max_vectors": (None, p_int(1, allow_none=True),
+                            "adaptive: most PCA vectors one cluster may take (default: 2·vectors, < D)"),
+            "adapt_iters": (5, p_int(1), "adaptive: classify/refit/redistribute rounds (Sloan 2003 §4.3)"),
+        }.items()})
+
+    def _check_params(self):
+        p = self.params
+        if p["method"] != "adaptive":
+            for k in ("budget", "max_vectors"):
+                if p[k] is not None:
+                    raise ValueError(f"{k}={p[k]!r} applies only to method='adaptive' (method={p['method']!r})")
+        else:
+            mv = p["max_vectors"] if p["max_vectors"] is not None else max(1, 2 * p["vectors"])
+            b = p["budget"] if p["budget"] is not None else float(p["vectors"])
+            if b > mv:
+                raise ValueError(f"budget={b} mean weights per point cannot be met with max_vectors={mv} per cluster; "
+                                 f"accepted: budget <= max_vectors")
+
+    def _check_data(self, P, D, ms):
+        p = self.params
+        if p["clusters"] > P:
+            raise ValueError(f"clusters={p['clusters']} exceeds the number of points P={P}; accepted: 1..{P}")
+        if p["vectors"] >= D:
+            raise ValueError(f"vectors={p['vectors']} must be < D={D} (n' < n, Sloan 2003 §3.3); accepted: 0..{D - 1}")
+        if p["method"] == "adaptive":
+            mv = p["max_vectors"] if p["max_vectors"] is not None else min(D - 1, max(1, 2 * p["vectors"]))
+            if mv >= D:
+                raise ValueError(f"max_vectors={mv} must be < D={D}; accepted: 1..{D - 1}")
+            b = p["budget"] if p["budget"] is not None else float(p["vectors"])
+            if b > mv:
+                raise ValueError(f"budget={b} mean weights per point cannot be met: at most max_vectors={mv} "
+                                 f"vectors per cluster (D={D}); accepted: budget <= {mv}")
+
+    def _fit_model(self, Xc, w, gen):
+        p = self.params
+        P, D = Xc.shape
+        K, n = p["clusters"], p["vectors"]
+        method = p["method"]
+        limit = 4e8 if method == "static" else 5e7
+        solver = _resolve_solver(p["solver"], K, D, limit)
+        kw = {"oversample": p["oversample"], "power_iters": p["power_iters"]}
+        info = {"solver": solver, "method": method}
+        vq = self._run_vq(Xc, w, gen, K)
+        info.update(lloyd_iterations=vq["n_iter"], vq_converged=vq["converged"], vq_se=vq["inertia"])
+        work = _Work(Xc, w, K)
+        work.set_labels(vq["labels"])
+        static = work.refit(n, solver, gen, **kw)
+        info["static_se"] = static["se"]
+        best = static
+        if method in ("iterative", "adaptive") and n > 0:
+            best = self._iterative(work, vq, static, solver, gen, kw, info)
+        if method == "adaptive":
+            best = self._adaptive(work, best, solver, gen, kw, info, D)
+        info["se_model"] = best["se"]
+        info["n_vectors_hist"] = torch.bincount(best["n_vectors"]).tolist()
+        return {"labels": best["labels"], "means": best["means"], "basis": best["basis"],
+                "n_vectors": best["n_vectors"], "info": info}
+
+    # -- Sloan 2003 §4.2 ------------------------------------------------------------------
+    def _rounds(self, work, st, n, solver, gen, kw, rounds, L):
+        """Generalised LBG rounds at fixed n: [classify, refit] × rounds; first classification
+        exact over all clusters, later ones among candidate sets (L > 0). Returns the best state
+        and the number of label changes per round."""
+        changes = []
+        best = st
+        cand = None
+        for r in range(rounds):
+            if cand is None:
+                labels, emin, top = classify_all(work.X, work.xx, st["means"], st["basis"], top=L if L else 0)
+            else:
+                labels, emin = work.classify_candidates(st, cand)
+            labels, emin, _ = repair_empty(labels, emin, work.K, work.w)
+            ch = int((labels != work.labels).sum())
+            changes.append(ch)
+            if ch == 0:
+                break
+            work.set_labels(labels)
+            if L and cand is None:
+                cand = _candidate_sets(labels, top, work.K, L)
+            st = work.refit(n, solver, gen, init=st["basis"], **kw)
+            if st["se"] < best["se"]:
+                best = st
+        return best, changes
+
+    def _iterative(self, work, vq, static, solver, gen, kw, info):
+        p = self.params
+        n, L = p["vectors"], p["candidates"]
+        st = {"labels": vq["labels"], "basis": torch.zeros(work.K, 0, work.D, dtype=torch.float64)}
+        stages = []
+        work.set_labels(vq["labels"])
+        for j in range(1, n + 1):  # add PCA vectors one at a time (Sloan 2003 §4.2)
+            st = work.refit(j, solver, gen, init=st["basis"], **kw)
+            st, changes = self._rounds(work, st, j, solver, gen, kw, p["iterations"], L)
+            if not torch.equal(work.labels, st["labels"]):
+                work.set_labels(st["labels"])
+            stages.append({"vectors": j, "se": st["se"], "changes": changes})
+        info["stages"] = stages
+        info["iterative_se"] = st["se"]
+        if st["se"] > static["se"]:
+            # the incremental path ended above the static fit: continue from the static one
+            # instead (its rounds never increase error), and keep the better of the two
+            work.set_labels(static["labels"])
+            st2, changes = self._rounds(work, static, n, solver, gen, kw, p["iterations"], L)
+            info["restarted_from_static"] = {"se": st2["se"], "changes": changes}
+            if st2["se"] < st["se"]:
+                st = st2
+        return st
+
+    # -- Sloan 2003 §4.3 ------------------------------------------------------------------
+    def _adaptive(self, work, st, solver, gen, kw, info, D):
+        p = self.params
+        n = p["vectors"]
+        nmax = p["max_vectors"] if p["max_vectors"] is not None else min(D - 1, max(1, 2 * n))
+        budget = (p["budget"] if p["budget"] is not None else float(n)) * work.P
+        if not torch.equal(work.labels, st["labels"]):
+            work.set_labels(st["labels"])
+        best = st
+        if int((st["n_vectors"] * work.counts).sum()) > budget + 1e-9:
+            best = {**st, "se": math.inf}  # the uniform start is over this budget
+        alloc = lambda s: _allocate(s["evals"], work.counts, budget)  # noqa: E731
+        cur = st
+        hist = []
+        for a in range(p["adapt_iters"]):  # classify -> refit -> redistribute (Sloan 2003 §4.3)
+            full = work.refit(nmax, solver, gen, init=cur["basis"], **kw)
+            cur = _mask_basis(full, alloc(full))
+            hist.append(cur["se"])
+            if cur["se"] < best["se"]:
+                best = cur
+            labels, emin, _ = classify_all(work.X, work.xx, cur["means"], cur["basis"])
+            labels, emin, _ = repair_empty(labels, emin, work.K, work.w)
+            if torch.equal(labels, work.labels):
+                break
+            work.set_labels(labels)
+        else:
+            full = work.refit(nmax, solver, gen, init=cur["basis"], **kw)
+            cur = _mask_basis(full, alloc(full))
+            hist.append(cur["se"])
+            if cur["se"] < best["se"]:
+                best = cur
+        if best["basis"].shape[1] < nmax:  # the iterative start won: pad its basis to n_max
+            pad = torch.zeros(work.K, nmax - best["basis"].shape[1], work.D, dtype=torch.float64)
+            best = {**best, "basis": torch.cat([best["basis"], pad], 1)}
+        info["adaptive_se"] = hist
+        info["budget_weights"] = budget
+        info["used_weights"] = int((best["n_vectors"] * torch.bincount(best["labels"], minlength=work.K)).sum())
+        return best
+
+
+register("cpca_static", CPCA, preset={"method": "static"}, doc="CPCA, VQ then per-cluster PCA (Sloan 2003 §4.1)")
+register("cpca_iterative", CPCA, preset={"method": "iterative"}, doc="CPCA, iterative (Sloan 2003 §4.2)")
+register("cpca_adaptive", CPCA, preset={"method": "adaptive"}, doc="CPCA, adaptive n' per cluster (Sloan 2003 §4.3)")
+
+
+@register("mrt_pca")
+class MRTPCA(PCA):
+    """PCA on matrix radiance transfer A_p (Lehtinen & Kautz 2003 §6, eq. (12)); relight with the
+    4-tap eq. (13), K (``n_vectors``) adjustable at run time as a prefix."""
+
+    codec_name = "mrt_pca"
+    PARAMS = dict(PCA.PARAMS)
+    PARAMS["vectors"] = Param(
+        25, p_int(1), "principal components K (Lehtinen & Kautz 2003 used 10-50)")
+    PARAMS["center"] = Param(
+        False, p_bool(), "subtract the mean matrix first (eq. (12) has none)")
+
+    def _check_data(self, P, D, ms):
+        if ms is None:
+            raise ValueError("mrt_pca needs matrix_shape=(M*M, n_in) (each row an MRT matrix A_p, Lehtinen & Kautz 2003 §6)")
+        super()._check_data(P, D, ms)
+
+    def _relight_cost(self) -> float:
+        """4K multiply-adds per colour per vertex with the tent basis (eq. (13)); 4(K+1) with a mean."""
+        return 4.0 * (self.basis_.shape[1] + (1 if self.means_ is not None else 0))
