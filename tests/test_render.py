@@ -128,7 +128,7 @@ def test_orthographic_triangle_matches_barycentric_interpolation(renderer):
     ref = b @ val  # CPU barycentric interpolation at pixel centres, float64
     scale = np.abs(val).max(0)
     err = np.abs(img[inside] - ref[inside]) / scale
-    assert err.max() < 1e-5, err.max()
+    assert err.max() < 1e-6, err.max()  # measured 1.1e-7: float32 rounding
     assert np.isnan(img[~mask]).all()
     # at a pixel whose centre is a vertex's nearest, the value tends to the vertex value
     assert np.allclose(img[inside].max(0), ref[inside].max(0), rtol=1e-5)
@@ -158,7 +158,7 @@ def test_perspective_tilted_triangle_is_perspective_correct(renderer):
     assert mask[inside].all() and not mask[outside].any()
     ref = b @ val
     err = np.abs(img[inside] - ref[inside]) / np.abs(val).max(0)
-    assert err.max() < 2e-5, err.max()
+    assert err.max() < 2e-6, err.max()  # measured 2.7e-7
     # screen-space-linear interpolation would be visibly different here: the test can fail
     xy, _ = cam.project(tri, W, H)
     pxl = np.stack(np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5), -1)

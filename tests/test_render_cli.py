@@ -64,3 +64,25 @@ def test_cli_errors(transfer_file, tmp_path, capsys):
         assert main(["render", str(transfer_file), "-o", str(tmp_path / "y.png"), "--codec-file", "c.prt"]) == 2
         assert "prt_torch.codecs" in capsys.readouterr().err
     assert not (tmp_path / "y.png").exists()
+
+
+def test_codec_file_compare(transfer_file, tmp_path):
+    codecs = pytest.importorskip("prt_torch.codecs")
+    from prt_torch.transfer import Transfer
+
+    t = Transfer.load(transfer_file)
+    codec = codecs.get("vq", clusters=8) if "vq" in codecs.available() else None
+    if codec is None:
+        pytest.skip("no 'vq' codec registered")
+    X = t.signal()
+    codec.fit(X)
+    cfile = tmp_path / "vq.prt"
+    codec.save(cfile, codec.encode(X))
+    out, cmp_, ref = tmp_path / "vq.exr", tmp_path / "cmp.png", tmp_path / "ref.exr"
+    common = ["--width", "32", "--height", "32", "--light", "directional:direction=1,0,1", "--supersample", "1"]
+    rc = main(["render", str(transfer_file), "--codec-file", str(cfile), "-o", str(out), "--compare", str(cmp_), *common])
+    assert rc == 0 and out.exists() and cmp_.exists()
+    assert main(["render", str(transfer_file), "-o", str(ref), *common]) == 0
+    # VQ with 8 clusters quantises the normals' transfer: its render differs from the uncompressed one
+    a, b = _read(out), _read(ref)
+    assert np.abs(a - b).max() > 1e-2

@@ -126,12 +126,13 @@ def error_map(img, ref, mask=None, kind: str = "abs", eps: float | None = None) 
 
 
 def error_heatmap(img, ref, mask=None, kind: str = "abs", vmax: float | None = None, cmap: str = "inferno",
-                  background=(0.0, 0.0, 0.0), percentile: float = 99.0) -> np.ndarray:
+                  background=(1.0, 1.0, 1.0), percentile: float = 99.0) -> np.ndarray:
     """Heat map of :func:`error_map` as linear RGB ``[H, W, 3] float32`` in [0, 1].
 
     The error is divided by ``vmax`` (default: its ``percentile`` over the mask; pass the same
     value to every panel of a comparison and state it in the label) and coloured by the
-    matplotlib colormap ``cmap``; pixels outside ``mask`` get ``background``."""
+    matplotlib colormap ``cmap``; pixels outside ``mask`` get ``background`` (white by default,
+    distinct from inferno's black zero)."""
     import matplotlib
 
     e = error_map(img, ref, mask, kind)
