@@ -20,7 +20,6 @@ from prt_torch.render import (
     DrawInputs,
     Decoder,
     IndexedRadianceDecoder,
-    RadianceDecoder,
     Renderer,
     RenderUnavailable,
     ShaderProgram,
