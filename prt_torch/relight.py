@@ -1,0 +1,172 @@
+"""Uncompressed reference relighting: light vector (and view) in, exit radiance per vertex out.
+
+View-dependent paths return 0 where the local view is below the tangent plane (v_z ≤ 0): exit
+radiance is only defined over the hemisphere (a hemispherical least-squares fit extrapolates
+wildly below it). All paths are batched over vertices (GEMMs and gathers, no per-vertex Python loop) and run in
+float32 by default (run-time precision; pass float64 tensors for references). Lighting is
+``L [C, n²]`` (global SH radiance, coefficients last, C = 1 or 3) or ``[n²]``.
+
+* :func:`diffuse` — Sloan et al. 2002: one dot product per vertex and channel.
+* :func:`glossy` — exit-radiance transfer (Sloan 2003 §3.1): e_p = M_p l, then
+  L_out = Σ_r y_{o(r)}(v_p) e_{p,r} at the local view v_p.
+* :func:`mrt` — matrix radiance transfer (Lehtinen & Kautz 2003 eq. 9 / eq. 13 without PCA):
+  only the four tents nonzero at v_p are needed: four rows of A_p, four dot products.
+* :func:`kautz` — Kautz, Sloan & Snyder 2002, the baseline of MRT's Table 1 (a): transferred
+  radiance T_p l (global), rotated into the local frame with R_p, dotted with the view-dependent
+  BRDF coefficients b(v_p) = Bᵀ y(v_p) ("rotate, multiply, dot").
+* :func:`local_view` — the per-vertex local view direction F_p (eye - x_p)/|eye - x_p| or F_p d.
+"""
+from __future__ import annotations
+
+import torch
+
+from ._checks import check_shape, describe
+from .sh import eval_sh, rotation_blocks
+from .transfer.mrt import tent_taps
+
+__all__ = ["diffuse", "glossy", "mrt", "kautz", "kautz_setup", "local_view"]
+
+
+def _light(L: torch.Tensor, n_in: int, dtype: torch.dtype) -> torch.Tensor:
+    if not isinstance(L, torch.Tensor):
+        raise TypeError(f"light must be a torch.Tensor [C, n²] or [n²], got {describe(L)}")
+    L = L[None] if L.ndim == 1 else L
+    if L.ndim != 2 or L.shape[1] != n_in:
+        raise ValueError(f"light has shape {tuple(L.shape)}; accepted: [C, {n_in}] or [{n_in}] (SH coefficients last)")
+    return L.to(dtype)
+
+
+def _bands(n2: int, what: str) -> int:
+    b = int(round(n2 ** 0.5))
+    if b * b != n2:
+        raise ValueError(f"{what} has {n2} SH coefficients; accepted: a square number n²")
+    return b
+
+
+def local_view(frames: torch.Tensor, positions: torch.Tensor | None = None, eye: torch.Tensor | None = None,
+               direction: torch.Tensor | None = None) -> torch.Tensor:
+    """Per-vertex local view directions ``[V, 3]`` (towards the viewer).
+
+    Either ``eye [3]`` with ``positions [V, 3]`` (perspective: v = (eye - x_p)/|eye - x_p|) or a
+    global ``direction [3]`` / ``[V, 3]`` towards the viewer; rotated to local by ``frames``
+    ``[V, 3, 3]`` (rows t, b, n). Dtype of ``frames``.
+    """
+    if eye is not None:
+        if positions is None:
+            raise ValueError("local_view with eye= needs positions [V, 3]")
+        d = eye.to(frames.dtype)[None] - positions.to(frames.dtype)
+    elif direction is not None:
+        d = direction.to(frames.dtype).expand(frames.shape[0], 3)
+    else:
+        raise ValueError("local_view needs eye= (with positions=) or direction=")
+    d = d / d.norm(dim=-1, keepdim=True).clamp_min(1e-30)
+    return torch.einsum("vij,vj->vi", frames, d)
+
+
+def diffuse(T: torch.Tensor, L: torch.Tensor) -> torch.Tensor:
+    """Diffuse PRT (Sloan 2002): ``T [V, n²]`` (shared across channels) or ``[V, C, n²]`` with
+    ``L [C, n²]`` → ``[V, C]`` (dtype of T)."""
+    check_shape("T", T, last=(T.shape[-1],))
+    Lc = _light(L, T.shape[-1], T.dtype)
+    if T.ndim == 2:
+        return T @ Lc.T
+    if T.ndim == 3:
+        Lc = Lc.expand(T.shape[1], -1) if Lc.shape[0] == 1 else Lc
+        return torch.einsum("vcn,cn->vc", T, Lc)
+    raise ValueError(f"T has shape {tuple(T.shape)}; accepted: [V, n²] or [V, C, n²]")
+
+
+def glossy(M: torch.Tensor, L: torch.Tensor, view_local: torch.Tensor, out_index: torch.Tensor | list | None = None) -> torch.Tensor:
+    """Exit radiance from glossy exit transfer (Sloan 2003 §3.1).
+
+    Args:
+        M: ``[V, N_r, N_i]`` exit-transfer matrices (Transfer kind 'glossy', quantity 'exit').
+        L: ``[C, N_i]`` light. view_local: ``[V, 3]`` unit local view directions.
+        out_index: flat SH index of each row (``meta['out_index']``; default 0..N_r-1).
+    Returns:
+        ``[V, C]`` (dtype of M): Σ_r y_{o(r)}(v_p) (M_p L_c)_r.
+    """
+    check_shape("M", M, ndim=3)
+    V, n_out, n_in = M.shape
+    Lc = _light(L, n_in, M.dtype)
+    idx = torch.arange(n_out) if out_index is None else torch.as_tensor(out_index, dtype=torch.int64)
+    if idx.numel() != n_out:
+        raise ValueError(f"out_index has {idx.numel()} entries but M has {n_out} rows; accepted: one SH index per row")
+    bands_out = _bands_from_index(idx)
+    y = eval_sh(view_local.to(M.dtype), bands_out, check=False)[:, idx]  # [V, N_r]
+    e = (M.reshape(V * n_out, n_in) @ Lc.T).reshape(V, n_out, -1)  # one GEMM: [V·N_r, C]
+    return torch.einsum("vr,vrc->vc", y, e) * (view_local[:, 2:3] > 0).to(M.dtype)
+
+
+def _bands_from_index(idx: torch.Tensor) -> int:
+    top = int(idx.max()) if idx.numel() else 0
+    b = 1
+    while b * b <= top:
+        b += 1
+    return b
+
+
+def mrt(A: torch.Tensor, L: torch.Tensor, view_local: torch.Tensor) -> torch.Tensor:
+    """Matrix radiance transfer exit radiance, four taps (Lehtinen & Kautz 2003 eq. 9).
+
+    Args:
+        A: ``[V, M², n²]`` (Transfer kind 'mrt'). L: ``[C, n²]``. view_local: ``[V, 3]``.
+    Returns:
+        ``[V, C]`` = Σ_{j ∈ 4 taps} g_j(v_p) (A_p L)_j — only the four rows of A_p whose tents
+        are nonzero at v_p are read (a gather of 4·n² floats per vertex, then one GEMM).
+    """
+    check_shape("A", A, ndim=3)
+    V, M2, n_in = A.shape
+    Mside = int(round(M2 ** 0.5))
+    if Mside * Mside != M2:
+        raise ValueError(f"A has {M2} rows; accepted: M² rows of an M×M tent basis")
+    Lc = _light(L, n_in, A.dtype)
+    idx, w = tent_taps(view_local.to(A.dtype), Mside)  # [V, 4]
+    rows = (torch.arange(V)[:, None] * M2 + idx).reshape(-1)
+    taps = A.reshape(V * M2, n_in).index_select(0, rows)  # [V·4, n²]
+    e = (taps @ Lc.T).reshape(V, 4, -1)
+    return (e * w[:, :, None]).sum(1) * (view_local[:, 2:3] > 0).to(A.dtype)
+
+
+def kautz_setup(frames: torch.Tensor, bands: int) -> list[torch.Tensor]:
+    """Per-vertex SH rotation blocks R_p = D(F_p) for :func:`kautz` (static; computed once)."""
+    return rotation_blocks(frames, bands)
+
+
+def kautz(T: torch.Tensor | None, rot_blocks: list[torch.Tensor], B: torch.Tensor, L: torch.Tensor,
+          view_local: torch.Tensor, material_index: torch.Tensor | None = None) -> torch.Tensor:
+    """Kautz, Sloan & Snyder 2002 (MRT Table 1 (a)): rotate, multiply, dot.
+
+    Args:
+        T: ``[V, n², n²]`` global transferred-radiance matrices (Transfer 'glossy' with
+            quantity 'transferred'), or None for unshadowed lighting (T_p = I).
+        rot_blocks: from :func:`kautz_setup` (blocks ``[V, 2l+1, 2l+1]``).
+        B: BRDF matrix ``[m², n²]`` (zero-hemisphere or least squares, all m² rows) or one per
+            material ``[U, m², n²]`` with ``material_index [V]``.
+        L: ``[C, n²]``. view_local: ``[V, 3]``.
+    Returns:
+        ``[V, C]``: b(v_p) · R_p T_p L with the view-dependent BRDF coefficients b(v) = Bᵀ y(v).
+    """
+    n_in = B.shape[-1]
+    bands_in = _bands(n_in, "B columns")
+    bands_out = _bands(B.shape[-2], "B rows")
+    dtype = rot_blocks[0].dtype if T is None else T.dtype
+    Lc = _light(L, n_in, dtype)
+    V = view_local.shape[0]
+    if T is None:
+        t = Lc.T.expand(V, n_in, Lc.shape[0])  # [V, n², C]
+    else:
+        t = (T.reshape(-1, n_in) @ Lc.T).reshape(V, n_in, -1)  # transferred radiance, global
+    tl = torch.empty(V, n_in, Lc.shape[0], dtype=dtype)
+    for l in range(bands_in):  # rotate into the local frame: a loop over bands, batched bmm each
+        a, b = l * l, (l + 1) * (l + 1)
+        tl[:, a:b] = rot_blocks[l].to(dtype) @ t[:, a:b]
+    y = eval_sh(view_local.to(dtype), bands_out, check=False)  # [V, m²]
+    Bd = B.to(dtype)
+    if Bd.ndim == 2:
+        bv = y @ Bd  # [V, n²] view-dependent BRDF coefficients (one GEMM)
+    else:
+        if material_index is None:
+            raise ValueError("B holds one matrix per material; pass material_index [V]")
+        bv = torch.einsum("vi,vij->vj", y, Bd[material_index])
+    return torch.einsum("vj,vjc->vc", bv, tl) * (view_local[:, 2:3] > 0).to(dtype)

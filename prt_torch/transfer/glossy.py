@@ -1,0 +1,390 @@
+"""Glossy transfer matrices: transferred radiance T_p, exit-radiance transfer M_p = B R_p T_p
+(Sloan 2003 §3.1) and matrix radiance transfer A_p = G⁻¹ C B_p R_p T_p (Lehtinen & Kautz
+2003, eq. 9).
+
+Quantities per vertex p (lighting l is a *global* SH radiance vector, n² = ``bands²``):
+
+* T_p (n² × n², global frame; Sloan et al. 2002 shadowed glossy transfer):
+  (T_p)_ij = ∫ y_i(s) y_j(s) V_p(s) [n_p·s > 0] ds, so T_p l are the SH coefficients of the
+  transferred incident radiance L(s) V_p(s), zeroed below the tangent plane (the
+  "zero-hemisphere" transferred radiance of Sloan 2003 §3.2). Monte Carlo over one shared
+  stratified sphere set {s_k} with weights 4π/N: T_p = Σ_k w_k V_pk y(s_k) y(s_k)ᵀ, for a chunk
+  of vertices one GEMM ``W [k, N] @ YY [N, n⁴]`` with YY_k = vec(y(s_k) y(s_k)ᵀ).
+* R_p (block-diagonal SH rotation, Kautz et al. 2002; Sloan 2003 §3.1): D(F_p) with F_p the
+  rows (t, b, n) of ``Mesh.frames()``; R_p T_p l is the transferred radiance in the local
+  frame (normal = +z, tangent = +x).
+* M_p = B_p R_p T_p (N_r × N_i; Sloan 2003 §3.1, eq. (1) with the least-squares projection
+  folded into B; N_r = m² or m² - 1 with (1,0) dropped, §6.1). Exit radiance towards the
+  local view v: L_out = Σ_r y_{o(r)}(v) (M_p l)_r with o = ``meta['out_index']``.
+* A_p = (G⁻¹ C) B_p R_p T_p (M² × n²; Lehtinen & Kautz eq. 9): exit radiance in the tent basis,
+  L_out(v) = Σ_{4 taps j} g_j(v) (A_p l)_j (eq. 13 without PCA).
+
+Interreflection is not included (shadowed direct transfer only; Sloan 2002's glossy bounce
+pass would add Σ over hit points of the neighbours' exit radiance, left for later).
+"""
+from __future__ import annotations
+
+import math
+import os
+import time
+from typing import Any, Callable
+
+import torch
+
+from .._checks import check_choice, check_float, check_int, describe
+from ..brdf import BRDF, AshikhminShirley, brdf_matrices, output_index
+from ..scene import Mesh, RayCaster, default_workers
+from ..sh import MAX_BANDS, eval_sh, rotation_blocks
+from .base import Transfer, remove_state, run_chunks
+from .mrt import MAX_TENTS, MRTBasis
+from .sampling import uniform_sphere
+
+__all__ = [
+    "MAX_GLOSSY_BANDS",
+    "check_frames",
+    "estimate_memory",
+    "transferred_radiance",
+    "rotate_rows",
+    "precompute_glossy",
+    "precompute_mrt",
+]
+
+MAX_GLOSSY_BANDS = 16
+MAX_SAMPLES = 1 << 18
+
+
+def _available_memory() -> int:
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+    except (ValueError, OSError, AttributeError):  # pragma: no cover
+        return 16 << 30
+
+
+def check_frames(mesh: Mesh, tol: float = 1e-6) -> torch.Tensor:
+    """Return ``mesh.frames()`` ``[V, 3, 3]`` float64 after checking every frame is a proper
+    rotation (rows orthonormal, det +1, finite): R_p needs one per vertex. Raises naming the
+    number of bad vertices and the first."""
+    if not isinstance(mesh, Mesh):
+        raise TypeError(f"mesh must be a prt_torch.scene.Mesh, got {describe(mesh)}")
+    F = mesh.frames().to(torch.float64)
+    ok = torch.isfinite(F).all(dim=(-1, -2))
+    dev = (F @ F.transpose(-1, -2) - torch.eye(3, dtype=torch.float64)).abs().amax(dim=(-1, -2))
+    det = torch.linalg.det(torch.where(ok[:, None, None], F, torch.eye(3, dtype=torch.float64)))
+    good = ok & (dev <= tol) & (det > 0)
+    if not bool(good.all()):
+        bad = torch.nonzero(~good).flatten()
+        i = int(bad[0])
+        raise ValueError(
+            f"mesh {mesh.name!r} has {bad.numel()} vertices without a usable tangent frame (first: vertex {i}, "
+            f"|F Fᵀ - I| = {float(dev[i]) if bool(ok[i]) else float('nan'):.3g}, det = {float(det[i]):.3g}); accepted: "
+            "orthonormal right-handed rows (t, b, n) — rebuild the frames with prt_torch.scene.tangent_frames"
+        )
+    return F
+
+
+def estimate_memory(vertices: int, n_out: int, n_in: int, samples: int, chunk_size: int) -> int:
+    """Bytes a glossy/MRT precompute holds at its peak: the float32 result twice (chunk list +
+    assembled tensor) plus one chunk's working set (weights, rays, float64 matrices)."""
+    result = 2 * vertices * n_out * n_in * 4
+    chunk = chunk_size * (samples * (8 + 8 + 3 * 8 * 2 + 16) + n_in * n_in * 8 * 3 + n_out * n_in * 8 * 2)
+    table = samples * n_in * n_in * 8  # YY [N, n⁴] with n_in = n²
+    return int(result + chunk + table)
+
+
+def _fmt_bytes(b: float) -> str:
+    for unit in ("B", "KiB", "MiB", "GiB", "TiB"):
+        if b < 1024 or unit == "TiB":
+            return f"{b:.3g} {unit}"
+        b /= 1024
+    return f"{b:.3g} TiB"  # pragma: no cover
+
+
+class _Directions:
+    """Shared stratified sphere set with the outer-product table YY [N, n⁴] evaluated once."""
+
+    def __init__(self, bands: int, samples: int, seed: int):
+        self.dirs, w = uniform_sphere(samples, seed)  # [N,3] float64, weights 4π/N
+        self.weight = float(w[0])
+        Y = eval_sh(self.dirs, bands)
+        self.YY = (Y[:, :, None] * Y[:, None, :]).reshape(samples, -1)  # [N, n⁴]
+        self.n2 = bands * bands
+
+
+def transferred_radiance(caster: RayCaster | None, points: torch.Tensor, normals: torch.Tensor,
+                         directions: _Directions) -> tuple[torch.Tensor, int]:
+    """T_p for a chunk of points (module docstring): ``[k, n², n²]`` float64 and rays traced.
+    ``caster=None`` skips visibility (unshadowed: only the tangent-plane cut)."""
+    cos = normals.to(torch.float64) @ directions.dirs.T  # [k, N]
+    i, j = torch.nonzero(cos > 0, as_tuple=True)
+    W = torch.zeros_like(cos)
+    if caster is not None and i.numel():
+        vis = ~caster.occluded(points[i], directions.dirs[j], normals=normals[i])
+        W[i[vis], j[vis]] = directions.weight
+    else:
+        W[i, j] = directions.weight
+    T = (W @ directions.YY).reshape(-1, directions.n2, directions.n2)
+    return T, int(i.numel()) if caster is not None else 0
+
+
+def rotate_rows(T: torch.Tensor, blocks: list[torch.Tensor]) -> torch.Tensor:
+    """R_p T_p: apply per-vertex block-diagonal SH rotations (``rotation_blocks(F [k,3,3])``)
+    to the rows of ``T [k, n², c]``. A loop over bands (n iterations), each a batched matmul."""
+    bands = int(round(math.sqrt(T.shape[1])))
+    out = torch.empty_like(T)
+    for l in range(bands):
+        a, b = l * l, (l + 1) * (l + 1)
+        out[:, a:b] = blocks[l].to(T.dtype) @ T[:, a:b]
+    return out
+
+
+def _brdf_for(mesh: Mesh, brdf: BRDF | None) -> BRDF:
+    if brdf is None:
+        return AshikhminShirley(40.0, 40.0, rs=0.05, rd=0.0)
+    if not isinstance(brdf, BRDF):
+        raise TypeError(f"brdf must be a prt_torch.brdf.BRDF, got {describe(brdf)}")
+    bs = brdf.batch_shape
+    if len(bs) not in (0, 1) or (len(bs) == 1 and bs[0] not in (1, mesh.num_vertices)):
+        raise ValueError(f"brdf parameters have batch shape {tuple(bs)}; accepted: scalars (one material) or "
+                         f"[V] = [{mesh.num_vertices}] (one per vertex)")
+    return brdf
+
+
+def _run_exit_transfer(
+    kind: str, mesh: Mesh, left: torch.Tensor, index: torch.Tensor, bands: int, samples: int, seed: int,
+    shadows: bool, chunk_size: int | None, workers: int | None, offset: float, state_dir: Any, resume: bool,
+    keep_state: bool, progress: bool, callback: Callable | None, max_memory: int | None, fingerprint: dict,
+    vertices: torch.Tensor | None,
+) -> tuple[torch.Tensor, dict]:
+    """Shared driver: data[p] = left[index[p]] @ R_p T_p over chunks of vertices (``left``:
+    ``[U, n_out, n²]`` float64, e.g. B or G⁻¹CB; None-like identity when left is empty)."""
+    F_all = check_frames(mesh)
+    n2 = bands * bands
+    sel = torch.arange(mesh.num_vertices) if vertices is None else vertices
+    V = int(sel.numel())
+    n_out = left.shape[1] if left.numel() else n2
+    rays_per_vertex = max(1, samples // 2)
+    if chunk_size is None:
+        chunk_size = int(min(max(8, (1 << 19) // rays_per_vertex), 8192))
+    chunk_size = check_int("chunk_size", chunk_size, 1)
+    need = estimate_memory(V, n_out, n2, samples, min(chunk_size, max(V, 1)))
+    budget = int(0.6 * _available_memory()) if max_memory is None else int(max_memory)
+    if need > budget:
+        raise ValueError(
+            f"{kind} transfer for {V} vertices with {n_out}×{n2} matrices and {samples} samples needs about "
+            f"{_fmt_bytes(need)} (result {_fmt_bytes(V * n_out * n2 * 4)} float32, held twice while assembling), "
+            f"more than the budget {_fmt_bytes(budget)}; accepted: fewer bands or tents, fewer samples / a smaller "
+            "chunk_size, a vertex subset, or a larger max_memory"
+        )
+    directions = _Directions(bands, samples, seed)
+    caster = None
+    meta: dict[str, Any] = {"estimated_bytes": need, "chunk_size": chunk_size}
+    t0 = time.perf_counter()
+    try:
+        if shadows:
+            if workers is None:
+                workers = default_workers() if V * rays_per_vertex >= 4_000_000 else 1
+            caster = RayCaster(mesh, workers=workers, offset=offset)
+            meta["ray_eps"] = caster.eps
+
+        def compute(a: int, b: int) -> dict[str, torch.Tensor]:
+            idx = sel[a:b]
+            T, rays = transferred_radiance(caster, mesh.vertices[idx], mesh.normals[idx], directions)
+            RT = rotate_rows(T, rotation_blocks(F_all[idx], bands))
+            if left.numel():
+                out = left[index[idx]] @ RT
+            else:
+                out = RT
+            return {"data": out.to(torch.float32), "rays": torch.tensor([rays], dtype=torch.int64)}
+
+        parts = run_chunks(V, chunk_size, compute, state_dir=state_dir, fingerprint=fingerprint, resume=resume,
+                           progress=progress, desc=f"{kind} {mesh.name}", rays_of=lambda r: int(r["rays"].sum()),
+                           callback=callback)
+        data = torch.empty(V, n_out, n2, dtype=torch.float32)
+        o = 0
+        while parts:  # assemble, releasing each chunk as it is copied (bounds the peak)
+            p = parts.pop(0)
+            k = p["data"].shape[0]
+            data[o : o + k] = p["data"]
+            meta["rays_traced"] = meta.get("rays_traced", 0) + int(p["rays"].sum())
+            o += k
+    finally:
+        if caster is not None:
+            meta["workers"] = caster.workers
+            caster.close()
+    meta["seconds"] = time.perf_counter() - t0
+    meta.setdefault("rays_traced", 0)
+    if not keep_state:
+        remove_state(state_dir)
+    return data, meta
+
+
+def _common_checks(bands, samples, seed, offset):
+    bands = check_int("bands", bands, 1, MAX_GLOSSY_BANDS)
+    samples = check_int("samples", samples, 1, MAX_SAMPLES)
+    seed = check_int("seed", seed, 0, 2**63 - 1)
+    offset = check_float("offset", offset, 0.0, 0.1)
+    return bands, samples, seed, offset
+
+
+def precompute_glossy(
+    mesh: Mesh,
+    bands: int = 5,
+    bands_out: int | None = None,
+    *,
+    brdf: BRDF | None = None,
+    exit: bool = True,
+    projection: str = "least_squares",
+    drop_out: list[tuple[int, int]] | None = None,
+    rcond: float | None = None,
+    window: str | None = None,
+    window_width: int | None = None,
+    quad_bands: int | None = None,
+    samples: int = 1024,
+    seed: int = 0,
+    shadows: bool = True,
+    vertices: torch.Tensor | None = None,
+    chunk_size: int | None = None,
+    workers: int | None = 1,
+    offset: float = 1e-4,
+    max_memory: int | None = None,
+    state_dir: Any = None,
+    resume: bool = False,
+    keep_state: bool = False,
+    progress: bool = False,
+    callback: Callable[[int, int], None] | None = None,
+) -> Transfer:
+    """Glossy transfer for every vertex (or the subset ``vertices``) of ``mesh``.
+
+    Args:
+        bands: n, lighting bands (n² = N_i columns), 1..16.
+        bands_out: m, exit radiance bands (default n); N_r = m² rows (minus dropped ones).
+        brdf: the reflectance (default isotropic Ashikhmin–Shirley N = 40, Rs = 0.05);
+            parameters may be per vertex ``[V]`` (each distinct set gets its own B).
+        exit: True: M_p = B_p R_p T_p (Sloan 2003 §3.1); False: the global transferred-radiance
+            matrices T_p of Sloan et al. 2002 (``meta['quantity']='transferred'``; BRDF unused).
+        projection, drop_out, rcond, window, window_width, quad_bands: as
+            :func:`prt_torch.brdf.brdf_matrix` (default least squares, Sloan 2003 eq. (1)).
+        samples: stratified sphere directions per vertex (about half are traced).
+        shadows: trace visibility (False: only the tangent-plane cut, no rays).
+        max_memory: refuse up front if the estimate exceeds it (default 60% of RAM).
+        state_dir/resume/keep_state/progress/callback: the resumable chunk runner.
+    Returns:
+        ``Transfer(kind='glossy')``, data float32 ``[V, N_r, n²]``, ``meta['matrix_shape']``,
+        ``meta['out_index']`` (flat SH index of each row), ``meta['brdf']``.
+    """
+    bands, samples, seed, offset = _common_checks(bands, samples, seed, offset)
+    bands_out = bands if bands_out is None else check_int("bands_out", bands_out, 1, MAX_GLOSSY_BANDS)
+    brdf = _brdf_for(mesh, brdf)
+    t0 = time.perf_counter()
+    if exit:
+        B, index = brdf_matrices(brdf, bands_out, bands, projection=projection, drop_out=drop_out, rcond=rcond,
+                                 window=window, window_width=window_width, quad_bands=quad_bands)
+        if index.numel() == 1:
+            index = index.expand(mesh.num_vertices)
+        out_idx = output_index(bands_out, drop_out)
+    else:
+        B, index = torch.zeros(0, 0, 0, dtype=torch.float64), torch.zeros(mesh.num_vertices, dtype=torch.int64)
+        out_idx = torch.arange(bands * bands)
+    t_brdf = time.perf_counter() - t0
+    sel = None if vertices is None else torch.as_tensor(vertices, dtype=torch.int64)
+    fp = {"kind": "glossy", "mesh_hash": mesh.content_hash(), "bands": bands, "bands_out": bands_out,
+          "exit": exit, "brdf": brdf.meta() if exit else None, "projection": projection, "drop_out": drop_out,
+          "rcond": rcond, "window": window, "window_width": window_width, "samples": samples, "seed": seed,
+          "shadows": shadows, "offset": offset, "quad_bands": quad_bands,
+          "vertices": None if sel is None else sel.tolist()}
+    data, run_meta = _run_exit_transfer("glossy", mesh, B, index, bands, samples, seed, shadows, chunk_size, workers,
+                                        offset, state_dir, resume, keep_state, progress, callback, max_memory, fp, sel)
+    meta = dict(run_meta)
+    meta.update(
+        bands=bands, bands_in=bands, bands_out=bands_out, samples=samples, seed=seed, shadows=shadows, bounces=0,
+        quantity="exit" if exit else "transferred", frame="local" if exit else "global",
+        matrix_shape=[int(data.shape[1]), int(data.shape[2])], out_index=out_idx.tolist(),
+        projection=projection if exit else None, drop_out=[list(d) for d in (drop_out or [])],
+        window=window, brdf=brdf.meta() if exit else None, brdf_seconds=t_brdf,
+        materials=int(B.shape[0]) if exit else 0,
+        vertices=None if sel is None else sel.tolist(),
+        normalisation=("exit radiance towards local view v: sum_r y_{out_index[r]}(v) (data[p] @ l)[r], "
+                       "l global SH radiance [n²]" if exit else
+                       "transferred incident radiance coefficients (global frame) T_p @ l, zero below the tangent plane"),
+        sh_convention="real SH, graphics convention, no Condon-Shortley phase, index l(l+1)+m",
+    )
+    mesh_out = mesh if sel is None else _submesh(mesh, sel)
+    return Transfer(kind="glossy", data=data, mesh=mesh_out, meta=meta)
+
+
+def precompute_mrt(
+    mesh: Mesh,
+    bands: int = 5,
+    bands_out: int = 8,
+    M: int = 11,
+    *,
+    brdf: BRDF | None = None,
+    window: str | None = None,
+    window_width: int | None = None,
+    quad_bands: int | None = None,
+    samples: int = 1024,
+    seed: int = 0,
+    shadows: bool = True,
+    vertices: torch.Tensor | None = None,
+    chunk_size: int | None = None,
+    workers: int | None = 1,
+    offset: float = 1e-4,
+    max_memory: int | None = None,
+    state_dir: Any = None,
+    resume: bool = False,
+    keep_state: bool = False,
+    progress: bool = False,
+    callback: Callable[[int, int], None] | None = None,
+) -> Transfer:
+    """Matrix radiance transfer A_p = G⁻¹ C B_p R_p T_p (Lehtinen & Kautz 2003 eq. 9).
+
+    B is the zero-hemisphere BRDF matrix (m² × n², eq. 4) — the tent projection G⁻¹C integrates
+    exit radiance over the hemisphere only, so no hemispherical SH projection is needed on the
+    output side. Defaults follow the paper: n = 5, m = 8, M = 11 (windowing optional).
+
+    Returns ``Transfer(kind='mrt')``, data float32 ``[V, M², n²]``, meta with ``M``,
+    ``bands_out`` (m), ``cond_G`` and ``matrix_shape``.
+    """
+    bands, samples, seed, offset = _common_checks(bands, samples, seed, offset)
+    bands_out = check_int("bands_out", bands_out, 1, MAX_GLOSSY_BANDS)
+    M = check_int("M (tents per side)", M, 2, MAX_TENTS)
+    brdf = _brdf_for(mesh, brdf)
+    t0 = time.perf_counter()
+    basis = MRTBasis(M, bands_out)
+    B, index = brdf_matrices(brdf, bands_out, bands, projection="zero", window=window, window_width=window_width,
+                             quad_bands=quad_bands)
+    if index.numel() == 1:
+        index = index.expand(mesh.num_vertices)
+    W = basis.P_ @ B  # [U, M², n²]
+    t_brdf = time.perf_counter() - t0
+    sel = None if vertices is None else torch.as_tensor(vertices, dtype=torch.int64)
+    fp = {"kind": "mrt", "mesh_hash": mesh.content_hash(), "bands": bands, "bands_out": bands_out, "M": M,
+          "brdf": brdf.meta(), "window": window, "window_width": window_width, "samples": samples, "seed": seed,
+          "shadows": shadows, "offset": offset, "quad_bands": quad_bands,
+          "vertices": None if sel is None else sel.tolist()}
+    data, run_meta = _run_exit_transfer("mrt", mesh, W, index, bands, samples, seed, shadows, chunk_size, workers,
+                                        offset, state_dir, resume, keep_state, progress, callback, max_memory, fp, sel)
+    meta = dict(run_meta)
+    meta.update(
+        bands=bands, bands_in=bands, bands_out=bands_out, M=M, cond_G=basis.cond_G_, samples=samples, seed=seed,
+        shadows=shadows, bounces=0, quantity="exit", frame="local", basis="tent (Shirley-Chiu concentric map)",
+        matrix_shape=[M * M, bands * bands], brdf=brdf.meta(), window=window, brdf_seconds=t_brdf,
+        materials=int(B.shape[0]), vertices=None if sel is None else sel.tolist(),
+        normalisation="exit radiance towards local view v: sum_j g_j(v) (data[p] @ l)[j] over the 4 tents at v",
+        sh_convention="real SH, graphics convention, no Condon-Shortley phase, index l(l+1)+m",
+    )
+    mesh_out = mesh if sel is None else _submesh(mesh, sel)
+    return Transfer(kind="mrt", data=data, mesh=mesh_out, meta=meta)
+
+
+def _submesh(mesh: Mesh, sel: torch.Tensor) -> Mesh:
+    """Point-set mesh of the selected vertices (no faces survive a vertex subset; a degenerate
+    triangle on vertex 0 keeps the container valid). Used when ``vertices=`` is given."""
+    import dataclasses
+
+    faces = torch.zeros(1, 3, dtype=torch.int64)
+    return dataclasses.replace(
+        mesh, vertices=mesh.vertices[sel], faces=faces, normals=mesh.normals[sel], tangents=mesh.tangents[sel],
+        bitangents=mesh.bitangents[sel], albedo=mesh.albedo[sel], name=f"{mesh.name}[subset {sel.numel()}]",
+        meta={**mesh.meta, "subset_of": mesh.content_hash(), "subset_vertices": int(sel.numel())},
+    )
