@@ -186,6 +186,20 @@ class RayCaster:
         return tuple(np.concatenate([p[k] for p in parts]) for k in range(4))
 
     # ---------------------------------------------------------------- queries
+    def trace(self, origins: np.ndarray, dirs: np.ndarray, query: str = "occluded", tfar: np.ndarray | None = None):
+        """The bare path: float32 numpy rays, no offsets, straight to Embree (split over workers).
+
+        Returns numpy ``bool [R]`` for ``query='occluded'``, or ``(primID int32 [R] (-1 = miss),
+        u float32 [R], v float32 [R], tfar float32 [R])`` for ``'intersect'``.
+        """
+        if query not in ("occluded", "intersect"):
+            raise ValueError(f"query={query!r}; accepted: 'occluded' or 'intersect'")
+        o = np.ascontiguousarray(origins, np.float32)
+        d = np.ascontiguousarray(dirs, np.float32)
+        if o.ndim != 2 or o.shape[1] != 3 or o.shape != d.shape:
+            raise ValueError(f"origins {o.shape} / dirs {d.shape}; accepted: equal [R, 3] shapes")
+        return self._dispatch(query, o, d, None if tfar is None else np.ascontiguousarray(tfar, np.float32))
+
     def occluded(self, origins: Any, dirs: Any, normals: Any = None, tfar: Any = None) -> torch.Tensor:
         """Any-hit test.
 

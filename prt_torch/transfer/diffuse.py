@@ -88,32 +88,30 @@ class _Sampler:
             self.dirs, _ = uniform_sphere(samples, seed)  # [N,3] float64, weights 4π/N
             self.Y = eval_sh(self.dirs, bands)  # [N, n²], shared by every vertex
             self.weight = 4.0 / samples  # (4π/N)·(1/π)
+            self.dirs32 = np.ascontiguousarray(self.dirs.numpy(), np.float32)
         else:
             self.dirs = cosine_hemisphere(samples, seed)  # local frame
             self.Y = None
             self.weight = 1.0 / samples
 
-    def rays(self, normals: torch.Tensor, frames: torch.Tensor | None):
-        """Ray set of a chunk: (vertex index i [R], sample index j [R], world dirs [R,3], ray weight [R])."""
-        if self.sampling == "uniform":
-            cos = normals @ self.dirs.T  # [k,N]
-            i, j = torch.nonzero(cos > 0, as_tuple=True)
-            return i, j, self.dirs[j], self.weight * cos[i, j]
-        k = normals.shape[0]
-        world = to_world(self.dirs, frames)  # [k,N,3]
-        i = torch.arange(k).repeat_interleave(self.samples)
-        j = torch.arange(self.samples).repeat(k)
-        return i, j, world.reshape(-1, 3), torch.full((i.shape[0],), self.weight, dtype=torch.float64)
+    def rays(self, points: torch.Tensor, normals: torch.Tensor, frames: torch.Tensor | None, eps: float):
+        """Ray set of a chunk of k vertices (numpy, ready for Embree).
 
-    def project(self, k: int, i: torch.Tensor, j: torch.Tensor, dirs: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
-        """Σ_j w_ij y(s_ij) per vertex, ``[k, n²]`` float64 (w already holds visibility)."""
+        Returns ``(i [R] vertex index, j [R] sample index, origins float32 [R,3],
+        dirs float32 [R,3], cos)`` with origins offset by ``eps`` along the normal. For uniform
+        sampling only directions above the tangent plane are traced and ``cos`` is the
+        ``[k,N]`` matrix max(n·s, 0); for cosine sampling ``cos`` is None and dirs are per vertex.
+        """
+        o_v = (points + eps * normals).numpy().astype(np.float32)  # [k,3] offset origins
         if self.sampling == "uniform":
-            W = torch.zeros(k, self.samples, dtype=torch.float64)
-            W[i, j] = w
-            return W @ self.Y  # one GEMM per chunk
-        Y = eval_sh(dirs, self.bands, check=False)  # [R, n²] (per-vertex directions)
-        out = torch.zeros(k, Y.shape[1], dtype=torch.float64)
-        return out.index_add_(0, i, Y * w[:, None])
+            cos = (normals @ self.dirs.T).numpy()  # [k,N] float64
+            i, j = np.nonzero(cos > 0)  # row-major: rays grouped by vertex
+            return i, j, o_v[i], self.dirs32[j], np.maximum(cos, 0.0)
+        k = normals.shape[0]
+        world = to_world(self.dirs, frames).reshape(-1, 3).numpy()  # [k·N,3]
+        i = np.repeat(np.arange(k), self.samples)
+        j = np.tile(np.arange(self.samples), k)
+        return i, j, o_v[i], world, None
 
 
 def _check_points(points: Any, normals: Any) -> tuple[torch.Tensor, torch.Tensor]:
@@ -127,28 +125,42 @@ def _check_points(points: Any, normals: Any) -> tuple[torch.Tensor, torch.Tensor
 
 
 def _chunk(caster: RayCaster, sampler: _Sampler, points: torch.Tensor, normals: torch.Tensor,
-           frames: torch.Tensor | None, faces: torch.Tensor | None, face_normals: torch.Tensor | None,
+           frames: torch.Tensor | None, faces: np.ndarray | None, face_normals: np.ndarray | None,
            n_vertices: int, record_hits: bool) -> dict[str, torch.Tensor]:
-    """Shadowed transfer (ρ = 1) of a chunk of k points, and (optionally) its bounce entries."""
+    """Shadowed transfer (ρ = 1) of a chunk of k points, and (optionally) its bounce entries.
+
+    Uniform sampling: T = (4/N) · (V ⊙ max(n·s,0)) @ Y — one masked GEMM per chunk
+    (course notes 2005, "Precomputation"). Cosine sampling: T = (1/N) Σ_j V y(s_j).
+    """
     k = points.shape[0]
-    i, j, d, w = sampler.rays(normals, frames)
-    out: dict[str, torch.Tensor] = {}
+    i, j, o, d, cos = sampler.rays(points, normals, frames, caster.eps)
     if record_hits:
-        hit, tri, bary, _ = caster.intersect(points[i], d, normals=normals[i])
+        prim, bu, bv, _ = caster.trace(o, d, "intersect")
+        hit = prim != -1
     else:
-        hit = caster.occluded(points[i], d, normals=normals[i])
-    vis = ~hit
-    out["T"] = sampler.project(k, i[vis], j[vis], d[vis], w[vis])
-    out["rays"] = torch.tensor([i.shape[0]], dtype=torch.int64)
+        hit = caster.trace(o, d, "occluded")
+    out: dict[str, torch.Tensor] = {"rays": torch.tensor([i.shape[0]], dtype=torch.int64)}
+    if sampler.sampling == "uniform":
+        W = cos * sampler.weight  # [k,N]; zero below the horizon
+        W[i[hit], j[hit]] = 0.0  # blocked directions
+        out["T"] = torch.from_numpy(W) @ sampler.Y  # one GEMM per chunk
+        w_ray = W.dtype.type(sampler.weight) * cos[i, j] if record_hits else None
+    else:
+        vis = ~hit
+        Y = eval_sh(torch.from_numpy(d[vis]).to(torch.float64), sampler.bands, check=False)  # per-vertex directions
+        out["T"] = torch.zeros(k, Y.shape[1], dtype=torch.float64).index_add_(0, torch.from_numpy(i[vis]), Y * sampler.weight)
+        w_ray = np.full(i.shape[0], sampler.weight) if record_hits else None
     if record_hits:
-        h = torch.nonzero(hit, as_tuple=True)[0]
-        front = (face_normals[tri[h]] * d[h]).sum(-1) < 0  # the ray meets the front of the triangle
-        h = h[front]
-        u, v = bary[h, 0], bary[h, 1]
-        beta = torch.stack([1 - u - v, u, v], 1)  # [h,3] barycentric weights of faces[tri]
-        rows = i[h].repeat_interleave(3).numpy()
-        cols = faces[tri[h]].reshape(-1).numpy()
-        vals = (w[h][:, None] * beta).reshape(-1).numpy()
+        h = np.nonzero(hit)[0]
+        tri = prim[h].astype(np.int64)
+        dh = d[h].astype(np.float64)
+        front = np.einsum("ij,ij->i", face_normals[tri], dh) < 0  # the ray meets the front of the triangle
+        h, tri = h[front], tri[front]
+        u, v = bu[h].astype(np.float64), bv[h].astype(np.float64)
+        beta = np.stack([1 - u - v, u, v], 1)  # [h,3] barycentric weights of faces[tri]
+        rows = np.repeat(i[h], 3)
+        cols = faces[tri].reshape(-1)
+        vals = (w_ray[h][:, None] * beta).reshape(-1)
         # this chunk's rows of S [V,V] in CSR form, duplicates summed (scipy's C++ conversion)
         S = scipy.sparse.coo_matrix((vals, (rows, cols)), shape=(k, n_vertices)).tocsr()
         S.sum_duplicates()
@@ -308,12 +320,13 @@ def precompute_diffuse(
                 chunk_size = int(min(max(16, (1 << 20) // max(1, rays_per_vertex)), 16384))
             chunk_size = check_int("chunk_size", chunk_size, 1)
             frames = mesh.frames() if sampling == "cosine" else None
-            tri = mesh.vertices[mesh.faces]
-            fn = torch.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], dim=-1)
+            faces_np = mesh.faces.numpy()
+            tri = mesh.vertices.numpy()[faces_np]
+            fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # geometric face normals (winding)
 
             def compute(a: int, b: int) -> dict[str, torch.Tensor]:
                 return _chunk(caster, sampler, mesh.vertices[a:b], mesh.normals[a:b],
-                              None if frames is None else frames[a:b], mesh.faces, fn, V, record_hits)
+                              None if frames is None else frames[a:b], faces_np, fn, V, record_hits)
 
             fingerprint = {"mesh_hash": mesh.content_hash(), "bands": bands, "samples": samples, "seed": seed,
                            "sampling": sampling, "record_hits": record_hits, "offset": offset, "kind": "diffuse"}
