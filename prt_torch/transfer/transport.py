@@ -1,0 +1,281 @@
+"""Tabulated transport functions T_{x,ω_o}(ω_i) on cube maps (Green 2005, §1.2 eq. 1.2 and §2.2.1).
+
+For a vertex x, a global view direction ω_o and a light direction ω_i (all pointing away from
+the surface), direct glossy transport with visibility is
+
+    T_{x,ω_o}(ω_i) = f_r(ω_i, ω_o) V_x(ω_i) max(n_x·ω_i, 0)                 (Green eq. 1.2)
+
+and exit radiance is L_o(x, ω_o) = ∫ T_{x,ω_o}(ω_i) L_i(ω_i) dω_i (eq. 1.1), here the sum over
+cube-map texels of T · L · Δω. Green tabulates T for the 92 views of a subdivided icosahedron
+(frequency 3: 10·3² + 2 = 92) on small cube maps (e.g. 6×8×8) per vertex. At 50k vertices,
+92 views and 6×8×8 texels this is 7 GB in float32, so the table is **streamed** to a directory:
+
+    <out>/manifest.json        kind "transfer/transport", meta (views, res, brdf, chunks, ...)
+    <out>/views.prt            the view directions [J, 3] and texel solid angles [6, r, r]
+    <out>/mesh.prt             the mesh arrays (as Transfer.save stores them)
+    <out>/chunk_000000.prt ... data [k, J, 6, r, r] (float32 or float16) for vertices start..stop-1
+
+Chunks are written atomically and skipped when present, so an interrupted run resumes.
+T is zero for views below the vertex's tangent plane and for occluded or below-horizon texels.
+
+Cube-map convention (OpenGL order +x, -x, +y, -y, +z, -z; texel (row t, column s) centre at
+sc = 2(s+½)/r - 1, tc = 2(t+½)/r - 1):
++x: (1, -tc, -sc)  -x: (-1, -tc, sc)  +y: (sc, 1, tc)  -y: (sc, -1, -tc)  +z: (sc, -tc, 1)  -z: (-sc, -tc, -1).
+Texel solid angles are exact (the cube-face area integral, Σ = 4π).
+"""
+from __future__ import annotations
+
+import json
+import math
+import time
+from pathlib import Path
+from typing import Any, Iterator
+
+import torch
+
+from .. import io
+from .._checks import check_choice, check_float, check_int, describe
+from ..brdf import BRDF, AshikhminShirley
+from ..scene import Mesh, RayCaster
+from .glossy import check_frames
+
+__all__ = [
+    "icosphere_directions",
+    "cube_directions",
+    "precompute_transport",
+    "TransportTable",
+    "transport_radiance",
+    "MAX_CUBE_RES",
+]
+
+MAX_CUBE_RES = 64
+
+
+def icosphere_directions(frequency: int = 3) -> torch.Tensor:
+    """Vertices of a geodesic icosphere of the given frequency, ``[10 f² + 2, 3]`` float64 unit
+    vectors (f = 3: Green's 92 view directions)."""
+    from ..scene import geodesic_sphere
+
+    frequency = check_int("frequency", frequency, 1, 64)
+    v, _ = geodesic_sphere(frequency)
+    v = torch.from_numpy(v).to(torch.float64)
+    return v / v.norm(dim=-1, keepdim=True)
+
+
+def cube_directions(res: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Texel-centre directions ``[6, r, r, 3]`` and exact solid angles ``[6, r, r]`` (float64)
+    of a cube map in the module's convention."""
+    res = check_int("res", res, 1, MAX_CUBE_RES)
+    c = (torch.arange(res, dtype=torch.float64) + 0.5) * (2.0 / res) - 1.0
+    tc, sc = torch.meshgrid(c, c, indexing="ij")  # rows t, columns s
+    one = torch.ones_like(sc)
+    faces = [
+        (one, -tc, -sc), (-one, -tc, sc), (sc, one, tc), (sc, -one, -tc), (sc, -tc, one), (-sc, -tc, -one),
+    ]
+    d = torch.stack([torch.stack(f, -1) for f in faces])
+    d = d / d.norm(dim=-1, keepdim=True)
+    e = torch.linspace(-1.0, 1.0, res + 1, dtype=torch.float64)
+    x0, x1 = e[:-1][None, :], e[1:][None, :]
+    y0, y1 = e[:-1][:, None], e[1:][:, None]
+    area = lambda x, y: torch.atan2(x * y, torch.sqrt(x * x + y * y + 1.0))  # noqa: E731
+    sa = area(x1, y1) - area(x0, y1) - area(x1, y0) + area(x0, y0)  # [r, r]
+    return d, sa[None].expand(6, res, res).clone()
+
+
+def _chunk_transport(caster, brdf, points, normals, frames, texels, views, mat_index, shadows) -> torch.Tensor:
+    """T for k vertices: ``[k, J, P]`` float64 (P = 6r² texels)."""
+    cos = normals @ texels.T  # [k, P]
+    W = cos.clamp_min(0)
+    if shadows:
+        i, j = torch.nonzero(cos > 0, as_tuple=True)
+        if i.numel():
+            occ = caster.occluded(points[i], texels[j], normals=normals[i])
+            W[i[occ], j[occ]] = 0.0
+    wi = torch.einsum("kab,pb->kpa", frames, texels)  # [k, P, 3] local light directions
+    wo = torch.einsum("kab,jb->kja", frames, views)  # [k, J, 3] local views
+    b = brdf if mat_index is None else brdf.select(mat_index).view(-1, 1, 1)
+    f = b.eval(wi[:, None, :, :], wo[:, :, None, :])  # [k, J, P]
+    return f * W[:, None, :]
+
+
+def precompute_transport(
+    mesh: Mesh,
+    out: str | Path,
+    *,
+    brdf: BRDF | None = None,
+    views: torch.Tensor | int = 3,
+    res: int = 8,
+    dtype: str = "float32",
+    shadows: bool = True,
+    chunk_size: int | None = None,
+    workers: int | None = 1,
+    offset: float = 1e-4,
+    resume: bool = False,
+    overwrite: bool = False,
+    progress: bool = False,
+    max_chunks: int | None = None,
+) -> "TransportTable":
+    """Stream direct glossy transport tables (Green 2005 §2.2.1) for every vertex to ``out``.
+
+    Args:
+        brdf: reflectance (default isotropic Ashikhmin–Shirley N = 40); per-vertex ``[V]``
+            parameters are allowed.
+        views: global view directions ``[J, 3]``, or an icosphere frequency (3 → Green's 92).
+        res: cube-map face resolution r (6 r² texels per table).
+        dtype: stored precision, 'float32' or 'float16'.
+        chunk_size: vertices per chunk file (default: ~64 MB of float64 work per chunk).
+        resume: keep chunk files already in ``out`` (same fingerprint) and compute the rest;
+            overwrite: remove an existing ``out`` first. Otherwise an existing ``out`` is refused.
+        max_chunks: stop after this many new chunks (for measuring a subset; the table is then
+            incomplete and says so in ``manifest['complete']``).
+    Returns:
+        :class:`TransportTable` over ``out``.
+    """
+    if not isinstance(mesh, Mesh):
+        raise TypeError(f"mesh must be a prt_torch.scene.Mesh, got {describe(mesh)}")
+    res = check_int("res", res, 1, MAX_CUBE_RES)
+    check_choice("dtype", dtype, ["float32", "float16"])
+    offset = check_float("offset", offset, 0.0, 0.1)
+    brdf = AshikhminShirley(40.0, 40.0, rs=0.05, rd=0.0) if brdf is None else brdf
+    if not isinstance(brdf, BRDF):
+        raise TypeError(f"brdf must be a prt_torch.brdf.BRDF, got {describe(brdf)}")
+    V = mesh.num_vertices
+    bs = brdf.batch_shape
+    mat_index = None
+    if len(bs) == 1 and bs[0] == V and V > 1:
+        mat_index = torch.arange(V)
+    elif len(bs) > 1 or (len(bs) == 1 and bs[0] != 1):
+        raise ValueError(f"brdf parameters have batch shape {tuple(bs)}; accepted: scalars or [V] = [{V}]")
+    elif len(bs) == 1:
+        brdf = brdf.view()  # a single [1] material -> scalar parameters
+    view_dirs = icosphere_directions(views) if isinstance(views, int) else torch.as_tensor(views, dtype=torch.float64)
+    if view_dirs.ndim != 2 or view_dirs.shape[1] != 3:
+        raise ValueError(f"views has shape {tuple(view_dirs.shape)}; accepted: [J, 3] directions or an icosphere frequency")
+    view_dirs = view_dirs / view_dirs.norm(dim=-1, keepdim=True)
+    J = view_dirs.shape[0]
+    F = check_frames(mesh)
+    texels, solid = cube_directions(res)
+    P = 6 * res * res
+    if chunk_size is None:
+        chunk_size = int(max(1, min(4096, (8 << 20) // (J * P))))
+    chunk_size = check_int("chunk_size", chunk_size, 1)
+    out = Path(out)
+    fingerprint = {"mesh_hash": mesh.content_hash(), "brdf": brdf.meta() if mat_index is None else "per-vertex",
+                   "views": view_dirs.tolist() if isinstance(views, torch.Tensor) else int(views), "res": res,
+                   "dtype": dtype, "shadows": shadows, "offset": offset, "chunk_size": chunk_size}
+    manifest_path = out / "manifest.json"
+    if out.exists():
+        if overwrite:
+            import shutil
+
+            shutil.rmtree(out)
+        elif not resume:
+            raise FileExistsError(f"output {str(out)!r} exists; pass resume=True to continue it or overwrite=True to replace it")
+        else:
+            try:
+                have = json.loads(manifest_path.read_text())["fingerprint"]
+            except (OSError, ValueError, KeyError):
+                have = None
+            if have != json.loads(json.dumps(fingerprint)):
+                raise ValueError(f"{str(out)!r} holds transport tables with other parameters; accepted: the same "
+                                 "parameters to resume, or overwrite=True")
+    out.mkdir(parents=True, exist_ok=True)
+    n_chunks = math.ceil(V / chunk_size)
+    meta: dict[str, Any] = {
+        "kind": "transfer/transport", "transfer_kind": "transport", "fingerprint": fingerprint,
+        "vertices": V, "views": J, "res": res, "texels": P, "dtype": dtype, "chunk_size": chunk_size,
+        "chunks": n_chunks, "brdf": brdf.meta(), "shadows": shadows, "mesh_name": mesh.name,
+        "shape_per_vertex": [J, 6, res, res], "bytes_total": V * J * P * (4 if dtype == "float32" else 2),
+        "layout": "cube faces +x,-x,+y,-y,+z,-z (OpenGL); data[v, j, face, row, col]",
+        "normalisation": "L_o(x_v, views[j]) = sum over texels of data * L(texel dir) * solid_angle",
+        "complete": False,
+    }
+    io.atomic_write_json(manifest_path, meta)
+    io.save(out / "views.prt", {"views": view_dirs, "texels": texels, "solid_angles": solid}, kind="transfer/transport_views")
+    io.save(out / "mesh.prt", mesh.to_tensors("mesh."), kind="scene/mesh", meta={"mesh_name": mesh.name})
+    caster = RayCaster(mesh, workers=workers, offset=offset) if shadows else None
+    texels_flat = texels.reshape(-1, 3)
+    store = torch.float32 if dtype == "float32" else torch.float16
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=V, desc=f"transport {mesh.name}", unit="vtx", dynamic_ncols=True)
+    t0, new = time.perf_counter(), 0
+    try:
+        for c in range(n_chunks):  # loop over chunk files; each chunk is one batched computation
+            a, b = c * chunk_size, min(V, (c + 1) * chunk_size)
+            path = out / f"chunk_{c:06d}.prt"
+            if not path.exists():
+                if max_chunks is not None and new >= max_chunks:
+                    break
+                T = _chunk_transport(caster, brdf, mesh.vertices[a:b], mesh.normals[a:b], F[a:b], texels_flat,
+                                     view_dirs, None if mat_index is None else mat_index[a:b], shadows)
+                io.save(path, {"data": T.reshape(b - a, J, 6, res, res).to(store)}, kind="transfer/transport_chunk",
+                        meta={"chunk": c, "start": a, "stop": b})
+                new += 1
+            if bar is not None:
+                bar.update(b - a)
+    finally:
+        if bar is not None:
+            bar.close()
+        if caster is not None:
+            caster.close()
+    done = all((out / f"chunk_{c:06d}.prt").exists() for c in range(n_chunks))
+    meta["complete"] = done
+    meta["seconds_last_run"] = time.perf_counter() - t0
+    meta["chunks_computed_last_run"] = new
+    io.atomic_write_json(manifest_path, meta)
+    return TransportTable(out)
+
+
+class TransportTable:
+    """Read access to a streamed transport directory (see module docstring)."""
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        mp = self.path / "manifest.json"
+        if not mp.exists():
+            raise FileNotFoundError(f"{str(self.path)!r} is not a transport table (no manifest.json)")
+        self.meta = json.loads(mp.read_text())
+        if self.meta.get("kind") != "transfer/transport":
+            raise ValueError(f"{str(mp)!r} has kind {self.meta.get('kind')!r}; accepted: 'transfer/transport'")
+        t, _ = io.load(self.path / "views.prt")
+        self.views, self.texels, self.solid_angles = t["views"], t["texels"], t["solid_angles"]
+
+    @property
+    def num_vertices(self) -> int:
+        return int(self.meta["vertices"])
+
+    def chunk(self, c: int) -> tuple[int, int, torch.Tensor]:
+        """(start, stop, data ``[k, J, 6, r, r]``) of chunk ``c``."""
+        t, m = io.load(self.path / f"chunk_{c:06d}.prt", expect_kind="transfer/transport_chunk")
+        return int(m["start"]), int(m["stop"]), t["data"]
+
+    def __iter__(self) -> Iterator[tuple[int, int, torch.Tensor]]:
+        for c in range(int(self.meta["chunks"])):
+            if (self.path / f"chunk_{c:06d}.prt").exists():
+                yield self.chunk(c)
+
+    def mesh(self) -> Mesh:
+        t, m = io.load(self.path / "mesh.prt")
+        return Mesh.from_tensors(t, name=m.get("mesh_name", "mesh"))
+
+    def radiance(self, light: torch.Tensor, view: int) -> torch.Tensor:
+        """Exit radiance ``[V, C]`` towards ``views[view]`` under a cube-map light ``[C, 6, r, r]``
+        (radiance per texel), chunk by chunk (Green eq. 1.1). Missing chunks give NaN rows."""
+        out = torch.full((self.num_vertices, light.shape[0]), float("nan"), dtype=torch.float64)
+        for a, b, T in self:
+            out[a:b] = transport_radiance(T[:, view], light, self.solid_angles)
+        return out
+
+    def __repr__(self) -> str:
+        m = self.meta
+        return f"TransportTable({str(self.path)!r}, V={m['vertices']}, views={m['views']}, res={m['res']}, complete={m['complete']})"
+
+
+def transport_radiance(T: torch.Tensor, light: torch.Tensor, solid_angles: torch.Tensor) -> torch.Tensor:
+    """Σ_texels T · L · Δω (Green 2005 eq. 1.1) for tables ``T [k, 6, r, r]`` and a cube light
+    ``[C, 6, r, r]`` → ``[k, C]`` float64."""
+    w = (light.to(torch.float64) * solid_angles.to(torch.float64)[None]).reshape(light.shape[0], -1)
+    return T.reshape(T.shape[0], -1).to(torch.float64) @ w.T
