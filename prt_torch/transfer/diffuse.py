@@ -105,8 +105,10 @@ class _Sampler:
         o_v = (points + eps * normals).numpy().astype(np.float32)  # [k,3] offset origins
         if self.sampling == "uniform":
             cos = (normals @ self.dirs.T).numpy()  # [k,N] float64
-            i, j = np.nonzero(cos > 0)  # row-major: rays grouped by vertex
-            return i, j, o_v[i], self.dirs32[j], np.maximum(cos, 0.0)
+            up = cos > 0
+            i, j = np.nonzero(up)  # row-major: rays grouped by vertex
+            o = np.repeat(o_v, up.sum(1), axis=0)  # == o_v[i], without a gather
+            return i, j, o, np.take(self.dirs32, j, axis=0), np.maximum(cos, 0.0, out=cos)
         k = normals.shape[0]
         world = to_world(self.dirs, frames).reshape(-1, 3).numpy()  # [k·N,3]
         i = np.repeat(np.arange(k), self.samples)
