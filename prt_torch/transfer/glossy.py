@@ -177,7 +177,8 @@ def _run_exit_transfer(
         )
     directions = _Directions(bands, samples, seed)
     caster = None
-    meta: dict[str, Any] = {"estimated_bytes": need, "chunk_size": chunk_size}
+    meta: dict[str, Any] = {"estimated_bytes": need, "chunk_size": chunk_size,
+                            "shadow_decision": "tracing shadow rays" if shadows else "shadows off: tangent-plane cut only"}
     t0 = time.perf_counter()
     try:
         if shadows:
@@ -387,4 +388,64 @@ def _submesh(mesh: Mesh, sel: torch.Tensor) -> Mesh:
         mesh, vertices=mesh.vertices[sel], faces=faces, normals=mesh.normals[sel], tangents=mesh.tangents[sel],
         bitangents=mesh.bitangents[sel], albedo=mesh.albedo[sel], name=f"{mesh.name}[subset {sel.numel()}]",
         meta={**mesh.meta, "subset_of": mesh.content_hash(), "subset_vertices": int(sel.numel())},
+    )
+
+
+# ----------------------------------------------------------------------------------------
+# `prt precompute --kind glossy|mrt` hooks (called by prt_torch.cli.precompute)
+# ----------------------------------------------------------------------------------------
+
+def _parse_brdf_params(items: list[str] | None) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for it in items or []:
+        if "=" not in it:
+            raise ValueError(f"--brdf-param {it!r}: accepted: NAME=VALUE, e.g. nu=40")
+        k, v = it.split("=", 1)
+        k = k.strip()
+        v = v.strip()
+        if v.lower() in ("true", "false"):
+            out[k] = v.lower() == "true"
+        else:
+            try:
+                out[k] = float(v)
+            except ValueError:
+                out[k] = v  # e.g. form=reflection
+    return out
+
+
+def brdf_from_args(args) -> BRDF:
+    """The BRDF named by ``--brdf`` with ``--brdf-param NAME=VALUE`` options."""
+    from ..brdf import make_brdf
+
+    return make_brdf(args.brdf, **_parse_brdf_params(getattr(args, "brdf_param", None)))
+
+
+def add_precompute_arguments(parser) -> None:
+    """BRDF and matrix options shared by ``--kind glossy``, ``mrt`` and ``transport``."""
+    g = parser.add_argument_group("glossy / mrt / transport (issue 5)")
+    g.add_argument("--brdf", default="ashikhmin_shirley",
+                   help="reflectance model: lambertian, phong, blinn_phong, ashikhmin_shirley (default), ward")
+    g.add_argument("--brdf-param", action="append", metavar="NAME=VALUE",
+                   help="BRDF parameter, repeatable: e.g. nu=40 nv=10 rs=0.05 rd=0.3 (AS), s=32 ks=1 kd=0.2 form=reflection (Phong)")
+    g.add_argument("--bands-out", type=int, default=None, help="exit radiance SH bands m (glossy: default = --bands; mrt: default 8)")
+    g.add_argument("--projection", default="least_squares", choices=["zero", "least_squares", "odd", "even"],
+                   help="hemispherical SH projection of B (glossy; Sloan 2003 eq. 1), default least_squares")
+    g.add_argument("--drop-10", action="store_true", help="drop the (1,0) exit basis function: N_r = m²-1 (Sloan 2003 §6.1)")
+    g.add_argument("--rcond", type=float, default=None, help="pseudo-inverse threshold for least squares beyond ~6 bands")
+    g.add_argument("--window", default=None, choices=["hanning", "lanczos"], help="window the exit-radiance bands against ringing")
+    g.add_argument("--window-width", type=int, default=None)
+    g.add_argument("--quad-bands", type=int, default=None, help="BRDF double-projection quadrature size (default from sharpness)")
+    g.add_argument("--transferred", action="store_true", help="glossy: store global T_p (Sloan 2002) instead of exit M_p")
+    g.add_argument("--memory-limit", type=float, default=None, help="GiB; refuse a run estimated above it (default 60%% of RAM)")
+
+
+def precompute_from_args(mesh: Mesh, args) -> Transfer:
+    """``prt precompute --kind glossy``."""
+    return precompute_glossy(
+        mesh, args.bands, args.bands_out, brdf=brdf_from_args(args), exit=not args.transferred,
+        projection=args.projection, drop_out=[(1, 0)] if args.drop_10 else None, rcond=args.rcond, window=args.window,
+        window_width=args.window_width, quad_bands=args.quad_bands, samples=args.samples, seed=args.seed,
+        shadows=args.shadows != "never", chunk_size=args.chunk, workers=args.workers,
+        max_memory=None if args.memory_limit is None else int(args.memory_limit * (1 << 30)),
+        state_dir=args.state_dir, resume=args.resume, progress=not args.no_progress,
     )

@@ -323,3 +323,20 @@ class MRTBasis:
 
     def __repr__(self) -> str:
         return f"MRTBasis(M={self.M}, bands={self.bands}, cond_G={self.cond_G_:.3g})"
+
+
+# `prt precompute --kind mrt` hooks (the shared BRDF options come from transfer.glossy)
+def add_precompute_arguments(parser) -> None:
+    parser.add_argument("--tents", type=int, default=11, help="mrt: M, the M×M tent basis (default 11)")
+
+
+def precompute_from_args(mesh, args):
+    from .glossy import brdf_from_args, precompute_mrt
+
+    return precompute_mrt(
+        mesh, args.bands, 8 if args.bands_out is None else args.bands_out, args.tents, brdf=brdf_from_args(args),
+        window=args.window, window_width=args.window_width, quad_bands=args.quad_bands, samples=args.samples,
+        seed=args.seed, shadows=args.shadows != "never", chunk_size=args.chunk, workers=args.workers,
+        max_memory=None if args.memory_limit is None else int(args.memory_limit * (1 << 30)),
+        state_dir=args.state_dir, resume=args.resume, progress=not args.no_progress,
+    )

@@ -279,3 +279,53 @@ def transport_radiance(T: torch.Tensor, light: torch.Tensor, solid_angles: torch
     ``[C, 6, r, r]`` → ``[k, C]`` float64."""
     w = (light.to(torch.float64) * solid_angles.to(torch.float64)[None]).reshape(light.shape[0], -1)
     return T.reshape(T.shape[0], -1).to(torch.float64) @ w.T
+
+
+# ----------------------------------------------------------------------------------------
+# `prt precompute --kind transport` hooks: the table is written into <output>.state/ (so
+# --resume works as for the other kinds) and renamed to <output> (a directory) when complete.
+# ----------------------------------------------------------------------------------------
+
+class _FinishedTable:
+    """What ``precompute_from_args`` hands the CLI: ``save`` moves the finished directory."""
+
+    kind = "transport"
+
+    def __init__(self, table: TransportTable):
+        self.table = table
+        m = table.meta
+        self.meta = {"rays_traced": 0, "seconds": m.get("seconds_last_run", 0.0), "shadow_decision": "direct transport"}
+        # a zero-stride shape descriptor (no memory): the table lives on disk
+        self.data = torch.zeros(()).expand(m["vertices"], *m["shape_per_vertex"])
+
+    def save(self, path, overwrite: bool = False) -> Path:
+        import shutil
+
+        path = Path(path)
+        if not self.table.meta.get("complete"):
+            raise ValueError(f"transport table in {str(self.table.path)!r} is incomplete; rerun with --resume")
+        if path.exists():
+            if not overwrite:
+                raise FileExistsError(f"output {str(path)!r} exists; pass --overwrite to replace it")
+            shutil.rmtree(path) if path.is_dir() else path.unlink()
+        self.table.path.rename(path)
+        self.table.path = path
+        return path
+
+
+def add_precompute_arguments(parser) -> None:
+    g = parser.add_argument_group("transport (Green 2005)")
+    g.add_argument("--views", type=int, default=3, help="icosphere frequency of the view set (3 -> 92 views)")
+    g.add_argument("--cube-res", type=int, default=8, help="cube-map face resolution r (6 r² texels)")
+    g.add_argument("--transport-dtype", default="float32", choices=["float32", "float16"])
+
+
+def precompute_from_args(mesh, args):
+    from .glossy import brdf_from_args
+
+    table = precompute_transport(
+        mesh, args.state_dir, brdf=brdf_from_args(args), views=args.views, res=args.cube_res,
+        dtype=args.transport_dtype, shadows=args.shadows != "never", chunk_size=args.chunk, workers=args.workers,
+        resume=args.resume, progress=not args.no_progress,
+    )
+    return _FinishedTable(table)
