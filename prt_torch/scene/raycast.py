@@ -12,7 +12,7 @@ given, and by ``eps`` along the ray (equivalent to t_near = eps, which embreex d
 ``t`` is reported from the caller's origin.
 
 Parallelism: embreex runs its per-ray loop holding the GIL (measured: two threads on two cores
-are *slower* than one, see reports/benchmarks/transfer_diffuse.md), so batches above
+are no faster than one, see reports/benchmarks/transfer_diffuse.md), so batches above
 ``min_parallel_rays`` are split over worker *processes* (``python -m
 prt_torch.scene._embree_worker``, each with its own Embree scene built once, fed raw float32
 arrays over pipes: no pickle, no re-import of the caller's ``__main__``); the calling process
