@@ -31,6 +31,9 @@ def run(args: argparse.Namespace) -> int:
     from ..harness.run import run_benchmark
 
     overrides = list(args.overrides)
+    if args.config is not None and "=" in args.config:  # `prt bench key=value ...` with the default config
+        overrides.insert(0, args.config)
+        args.config = None
     if args.no_render:
         overrides.append("render.enabled=false")
     if args.target_psnr is not None:

@@ -190,6 +190,24 @@ def validate(cfg: dict) -> None:
     for k in kinds:
         if k not in KINDS:
             raise ValueError(f"config key 'transfer.kind' = {k!r}; accepted: {list(KINDS)}")
+    params = cfg["transfer"].get("params") or {}
+    if not isinstance(params, dict):
+        raise ValueError(f"config key 'transfer.params' must be a mapping, got {params!r}")
+    import inspect
+
+    from .run import _build_params, _precompute_fn
+
+    for k in kinds:
+        accepted = set(inspect.signature(_precompute_fn(k)).parameters) - {"mesh", "progress", "bands", "samples", "seed"}
+        for key in params:
+            if key not in accepted:
+                raise ValueError(f"config key 'transfer.params.{key}' is not a parameter of the {k} precompute; accepted: {sorted(accepted)}")
+    if isinstance(params.get("brdf"), dict):
+
+        try:
+            _build_params({"brdf": params["brdf"]})
+        except (ValueError, TypeError) as e:
+            raise ValueError(f"config key 'transfer.params.brdf': {e}") from None
     if not isinstance(cfg["lights"], list) or not cfg["lights"]:
         raise ValueError(f"config key 'lights' must be a non-empty list, got {cfg['lights']!r}")
     if not isinstance(cfg["codecs"], list) or not cfg["codecs"]:

@@ -95,14 +95,11 @@ class Evaluator:
         v = self.local_views(camera)
         if self.kind == "glossy":
             n_out = self.matrix_shape[0]
-            out_idx = self.transfer.meta.get("out_indices")
-            bands_out = int(self.transfer.meta.get("out_bands", math.isqrt(n_out) if out_idx is None else 0) or 0)
+            out_idx = self.transfer.meta.get("out_index")
             if out_idx is None:
-                y = sh.eval_sh(v, math.isqrt(n_out), check=False)
-            else:
-                nb = bands_out or (math.isqrt(max(out_idx)) + 1)
-                y = sh.eval_sh(v, nb, check=False)[:, out_idx]
-            return y.to(torch.float32)
+                return sh.eval_sh(v, math.isqrt(n_out), check=False).to(torch.float32)
+            bands_out = int(self.transfer.meta.get("bands_out", math.isqrt(max(out_idx)) + 1))
+            return sh.eval_sh(v, bands_out, check=False)[:, torch.as_tensor(out_idx)].to(torch.float32)
         from ..transfer import mrt
 
         M = int(self.transfer.meta.get("M", math.isqrt(self.matrix_shape[0])))

@@ -156,7 +156,9 @@ def markdown(results: dict, figures: list[str], renders: list[str]) -> str:
         f"Scene **{r['scene']['name']}** ({r['scene']['vertices']} vertices), transfer **{r['transfer']['kind']}** "
         f"{tuple(r['transfer']['shape'])} ({r['transfer']['raw_bytes'] / 2**20:.2f} MiB float32), "
         f"lights: {', '.join(r['lights'])}; {max(1, len(r['views']))} view(s).",
-        f"Machine: {m['cpu']}, {m['cores']} cores, torch {m['torch']} with {m['torch_threads']} threads.",
+        f"Machine: {m['cpu']}, {m['cores']} cores, torch {m['torch']} with {m['torch_threads']} threads, "
+        f"load average {m.get('load_average_1min', float('nan')):.1f} at the start"
+        + (" — **busy machine: throughput figures are unreliable**." if m.get("load_average_1min", 0) > (m.get("cores") or 1) else "."),
         f"Reproduce: `prt bench {r.get('config_source') or r['name']}` (config recorded in results.json).",
         "",
         f"Uncompressed relighting (the peer): {unc['vertices_per_s'] / 1e6:.2f} M vertices/s, {unc['fps']:.1f} fps "
@@ -230,23 +232,33 @@ def render_best(run_dir: Path, results: dict, ev, lights, views, cams, cfg) -> l
     mesh = ev.transfer.mesh
     L = lights[0]
     ref = ev.reference(L, views[0]).clamp_min(0)
-    cam = render.Camera.look_at(cams[0], ev.points.mean(0), width=rc["width"], height=rc["height"]) if cams is not None and len(cams) else None
+    center = ev.points.mean(0)
+    radius = float((ev.points - center).norm(dim=-1).max())
+    eye = cams[0]
+    dist = float((eye - center).norm())
+    # the same eye as the view directions used for glossy/MRT metrics; fov frames the bounding sphere
+    fov = 2 * math.degrees(math.asin(min(0.99, 1.08 * radius / dist)))
+    cam = render.Camera(eye=eye.numpy(), target=center.numpy(), fov=fov, near=max(1e-3, dist - 1.5 * radius), far=dist + 1.5 * radius)
+    best: dict[str, dict] = {}
+    for x in results["records"]:
+        if x["codec"] not in best or x["psnr_lights_db"] > best[x["codec"]]["psnr_lights_db"]:
+            best[x["codec"]] = x
     paths = []
     with render.Renderer(rc["width"], rc["height"]) as rd:
-        img_ref, mask = rd.render(mesh, ref, camera=cam)
-        best: dict[str, dict] = {}
-        for x in results["records"]:
-            if x["codec"] not in best or x["psnr_lights_db"] > best[x["codec"]]["psnr_lights_db"]:
-                best[x["codec"]] = x
-        for codec_name, x in sorted(best.items())[: max(1, int(rc["best"])) * 8]:
+        img_ref, mask = rd.render_radiance(mesh, ref, camera=cam)
+        expo = render.auto_exposure(img_ref, mask)  # stops, shared by every panel
+        render.save_png(out_dir / "uncompressed.png", img_ref, exposure=expo)
+        render.save_exr(out_dir / "uncompressed.exr", img_ref)
+        for codec_name, x in sorted(best.items()):
             codec = codecs.get(codec_name, **x["params"])
             enc = _fit_encode(codec, ev.X, ev.matrix_shape)
             out = ev.finish(_relight(codec, enc, ev.light_matrix(L), views[0])).clamp_min(0)
-            img, _ = rd.render(mesh, out, camera=cam)
-            heat = render.error_heatmap(img, img_ref, mask)
-            comp = render.side_by_side([img_ref, img, heat], ["uncompressed", f"{x['setting_id']}", "|error|"])
+            img, _ = rd.render_radiance(mesh, out, camera=cam)
+            vmax = float(max(1e-12, abs(img_ref[mask]).max())) * 0.1 if mask.any() else None
+            heat = render.error_heatmap(img, img_ref, mask, vmax=vmax)
             p = out_dir / f"{x['setting_id']}.png"
-            render.save_png(p, comp)
+            render.side_by_side([img_ref, img, heat],
+                                ["uncompressed", f"{codec_name} ({x['psnr_lights_db']:.1f} dB)", "|error| (10% of peak = top)"],
+                                exposure=[expo, expo, 0.0], path=p)
             paths.append(f"renders/{p.name}")
-        render.save_png(out_dir / "uncompressed.png", img_ref)
     return paths

@@ -48,14 +48,10 @@ def _precompute_fn(kind: str) -> Callable[..., Transfer]:
 
     if kind == "diffuse":
         return T.precompute_diffuse
-    if kind == "glossy":
+    if kind in ("glossy", "mrt"):
         from ..transfer import glossy
 
-        return glossy.precompute_glossy
-    if kind == "mrt":
-        from ..transfer import mrt
-
-        return mrt.precompute_mrt
+        return glossy.precompute_glossy if kind == "glossy" else glossy.precompute_mrt
     raise ValueError(f"transfer.kind={kind!r} cannot be benchmarked; accepted: diffuse, glossy, mrt")
 
 
@@ -64,7 +60,26 @@ def transfer_params(cfg: dict) -> dict:
     p = {"bands": t["bands"], "samples": t["samples"], "seed": cfg["seed"]}
     if t["kind"] == "diffuse":
         p.update(bounces=t["bounces"], shadows=t["shadows"])
+    else:  # glossy / mrt trace visibility unless told not to; 'auto' keeps the default
+        if t["shadows"] in ("off", "none", False):
+            p["shadows"] = False
     p.update(t.get("params") or {})
+    return p
+
+
+def _build_params(params: dict) -> dict:
+    """Config values -> precompute arguments: a ``brdf`` mapping {model, ...} becomes a BRDF."""
+    p = dict(params)
+    if isinstance(p.get("brdf"), dict):
+        from ..brdf import make_brdf
+
+        b = dict(p["brdf"])
+        model = b.pop("model", None)
+        if model is None:
+            raise ValueError("config key 'transfer.params.brdf' needs a 'model' (e.g. phong, blinn_phong, ashikhmin_shirley, ward, lambertian)")
+        p["brdf"] = make_brdf(model, **b)
+    if isinstance(p.get("drop_out"), list):
+        p["drop_out"] = [tuple(d) for d in p["drop_out"]]
     return p
 
 
@@ -77,9 +92,9 @@ def estimate_memory(cfg: dict, num_vertices: int) -> dict:
     if t["kind"] == "diffuse":
         D = n2 * 3
     elif t["kind"] == "glossy":
-        D = int(p.get("out_bands", t["bands"])) ** 2 * n2
+        D = int(p.get("bands_out", t["bands"])) ** 2 * n2
     else:
-        D = int(p.get("M", 8)) ** 2 * n2
+        D = int(p.get("M", 11)) ** 2 * n2
     signal = num_vertices * D * 4
     work = 0
     for s in expand_codecs(cfg["codecs"]):
@@ -102,7 +117,7 @@ def compute_transfer(cfg: dict, mesh, cache_dir: Path, progress: bool = True) ->
         return tr, {"cache": "hit", "path": str(path), "seconds": time.perf_counter() - t0, "key": key}
     fn = _precompute_fn(kind)
     t0 = time.perf_counter()
-    tr = fn(mesh, **params, progress=progress)
+    tr = fn(mesh, **_build_params(params), progress=progress)
     secs = time.perf_counter() - t0
     tr.save(path, overwrite=True)
     return tr, {"cache": "miss", "path": str(path), "seconds": secs, "key": key}

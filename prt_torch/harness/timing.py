@@ -7,6 +7,7 @@ a wrong number.
 """
 from __future__ import annotations
 
+import math
 import os
 import platform
 import statistics
@@ -33,6 +34,7 @@ class Timing:
     max: float
     repeats: int
     warmup: int
+    inner: int = 1
 
     @property
     def spread(self) -> float:
@@ -49,24 +51,32 @@ class Timing:
         return d
 
 
-def measure(fn: Callable[[], Any], repeats: int = 5, warmup: int = 1, min_time: float = 0.0) -> Timing:
-    """Time ``fn()``: ``warmup`` untimed calls, then ``repeats`` timed calls (at least
-    ``min_time`` seconds in total: more repeats are added until it is reached)."""
+def measure(fn: Callable[[], Any], repeats: int = 5, warmup: int = 1, min_time: float = 0.0,
+            min_sample_time: float = 0.02) -> Timing:
+    """Time ``fn()``: ``warmup`` untimed calls, then ``repeats`` timed samples (more are added
+    until ``min_time`` seconds in total). Like ``timeit``, a sample of a fast function runs it
+    ``inner`` times in a row, with ``inner`` calibrated so a sample lasts ≥ ``min_sample_time``
+    (scheduler noise on a busy machine is ~10 ms slices); times are per call."""
     repeats = check_int("repeats", repeats, 1)
     warmup = check_int("warmup", warmup, 0)
     for _ in range(warmup):
         fn()
+    t0 = time.perf_counter()
+    fn()
+    first = time.perf_counter() - t0
+    inner = 1 if first <= 0 or first >= min_sample_time else min(10_000, int(math.ceil(min_sample_time / first)))
     times: list[float] = []
     total = 0.0
     while len(times) < repeats or (total < min_time and len(times) < 1000):
         t0 = time.perf_counter()
-        fn()
+        for _ in range(inner):
+            fn()
         dt = time.perf_counter() - t0
-        times.append(dt)
+        times.append(dt / inner)
         total += dt
     times.sort()
     q = statistics.quantiles(times, n=4) if len(times) >= 2 else [times[0]] * 3
-    return Timing(statistics.median(times), q[0], q[2], times[0], times[-1], len(times), warmup)
+    return Timing(statistics.median(times), q[0], q[2], times[0], times[-1], len(times), warmup, inner)
 
 
 def _cpu_name() -> str:
@@ -93,6 +103,10 @@ def machine_info() -> dict[str, Any]:
         "numpy": numpy.__version__,
         "platform": platform.platform(),
     }
+    try:
+        info["load_average_1min"] = os.getloadavg()[0]  # > cores: timings were taken on a busy machine
+    except OSError:  # pragma: no cover
+        pass
     try:
         import prt_torch
 

@@ -1,0 +1,231 @@
+"""The benchmark harness: configs, overrides and sweeps, an end-to-end tiny sweep whose numbers
+are checked against each other, resume after a crash, the target search, and the metrics."""
+import csv
+import json
+import math
+import os
+import time
+from pathlib import Path
+
+import pytest
+import torch
+import yaml
+
+from prt_torch.harness import config as hc
+from prt_torch.harness import metrics as hm
+from prt_torch.harness.timing import measure
+
+TINY = {
+    "name": "tiny",
+    "scene": {"name": "convex", "size": "small"},
+    "transfer": {"kind": "diffuse", "bands": 3, "samples": 64},
+    "lights": ["sky", "directional:direction=0.3,0.2,1;intensity=2"],
+    "metrics": {"random_lights": 256, "repeats": 3, "warmup": 1},
+    "codecs": [
+        {"name": "vq", "clusters": [4, 16]},
+        {"name": "pca", "vectors": [2]},
+        {"name": "cpca", "clusters": 4, "vectors": 2},
+    ],
+    "render": {"enabled": True, "width": 64, "height": 64},
+}
+
+
+def write_cfg(tmp_path, cfg):
+    c = dict(cfg)
+    c.setdefault("cache_dir", str(tmp_path / "cache"))
+    c.setdefault("output_dir", str(tmp_path / "reports"))
+    p = tmp_path / "cfg.yaml"
+    p.write_text(yaml.safe_dump(c))
+    return p
+
+
+# ------------------------------------------------------------------ config, overrides, sweeps
+
+def test_overrides_and_sweep_expansion(tmp_path):
+    p = write_cfg(tmp_path, TINY)
+    cfg = hc.load_config(str(p), ["transfer.bands=4", "codecs.1.vectors=[1,2,3]", "metrics.repeats=7"])
+    assert cfg["transfer"]["bands"] == 4 and cfg["metrics"]["repeats"] == 7
+    settings = hc.expand_codecs(cfg["codecs"])
+    assert [s["name"] for s in settings] == ["vq", "vq", "pca", "pca", "pca", "cpca"]
+    assert [s.get("vectors") for s in settings if s["name"] == "pca"] == [1, 2, 3]
+    grid = hc.expand_codecs([{"name": "cpca", "clusters": [2, 4], "vectors": [1, 2, 3]}])
+    assert len(grid) == 6 and {(g["clusters"], g["vectors"]) for g in grid} == {(c, v) for c in (2, 4) for v in (1, 2, 3)}
+    runs = hc.expand_runs(hc.load_config(str(p), ["transfer.bands=[2,3]"]))
+    assert [r["transfer"]["bands"] for r in runs] == [2, 3]
+    assert [r["name"] for r in runs] == ["tiny-bands2", "tiny-bands3"]
+
+
+@pytest.mark.parametrize(
+    "override, match",
+    [
+        ("transfer.bandz=3", "unknown key 'transfer.bandz'"),
+        ("metrics.repeats=abc", "metrics.repeats"),
+        ("codecs.0.name=nosuchcodec", "nosuchcodec"),
+        ("codecs.1.vectors=-1", "vectors"),
+        ("codecs.0.colour=1", "colour"),
+        ("transfer.kind=spectral", "transfer.kind"),
+        ("scene.name=/no/such/mesh.obj", "scene.name"),
+        ("codecs.5.vectors=1", "not a valid index"),
+        ("nonsense", "key.path=value"),
+    ],
+)
+def test_invalid_config_fails_before_any_work(tmp_path, override, match):
+    p = write_cfg(tmp_path, TINY)
+    with pytest.raises((ValueError, FileNotFoundError), match=match):
+        cfg = hc.load_config(str(p), [override])
+    assert not (tmp_path / "cache").exists() and not (tmp_path / "reports").exists()
+
+
+def test_unknown_top_level_key_and_missing_config(tmp_path):
+    bad = dict(TINY, colour_space="srgb")
+    with pytest.raises(ValueError, match="unknown config key 'colour_space'"):
+        hc.load_config(str(write_cfg(tmp_path, bad)))
+    with pytest.raises(FileNotFoundError, match="not found"):
+        hc.load_config("no-such-config")
+
+
+def test_shipped_configs_validate():
+    root = Path(__file__).resolve().parents[1] / "configs"
+    names = sorted(p.stem for p in root.glob("*.yaml"))
+    assert "default" in names
+    for n in names:
+        cfg = hc.load_config(n)
+        assert hc.expand_codecs(cfg["codecs"])
+
+
+# ------------------------------------------------------------------ metrics and timing
+
+def test_random_light_psnr_monte_carlo_matches_closed_form():
+    g = torch.Generator().manual_seed(0)
+    X = torch.randn(300, 2 * 9, generator=g)
+    Xh = X + 0.01 * torch.randn(300, 18, generator=g)
+    se, rel = hm.squared_error(X, Xh)
+    closed = hm.random_light_psnr_analytic(se, 300, 9)
+    mc = hm.random_light_psnr(X, Xh, 9, n_lights=20000, seed=1)
+    assert abs(mc - closed) < 0.1
+    # brute force for a handful of lights, straight from the definition
+    L = hm.random_unit_vectors(500, 9, seed=2)
+    d = (X - Xh).double().reshape(300, 2, 9)
+    brute = float(((d @ L.T) ** 2).sum(1).mean())
+    assert abs(-10 * math.log10(brute) - hm.random_light_psnr(X, Xh, 9, n_lights=500, seed=2)) < 1e-9
+    assert 0 < rel < 1e-3
+
+
+def test_psnr_vs_reference_definition():
+    ref = torch.tensor([[1.0, 2.0], [4.0, 0.0]])
+    test = ref + torch.tensor([[0.1, -0.1], [0.0, 0.2]])
+    mse = (0.01 + 0.01 + 0.04) / 4
+    assert math.isclose(hm.psnr_vs_reference(ref, test), 10 * math.log10(16 / mse), rel_tol=1e-12)
+    assert hm.psnr_vs_reference(ref, ref) == float("inf")
+
+
+def test_measure_reports_median_and_spread():
+    calls = []
+
+    def f():
+        calls.append(1)
+        time.sleep(0.002)
+
+    t = measure(f, repeats=5, warmup=2, min_sample_time=0.0)
+    assert len(calls) == 8 and t.repeats == 5 and t.warmup == 2 and t.inner == 1  # + 1 calibration call
+    fast = []
+    t2 = measure(lambda: fast.append(1), repeats=3, warmup=0, min_sample_time=0.01)
+    assert t2.inner > 1 and len(fast) == 1 + 3 * t2.inner  # timeit-style inner loop for fast functions
+    assert 0.0019 < t.median < 0.5 and t.min <= t.q1 <= t.median <= t.q3 <= t.max
+    assert t.spread >= 0 and t.rate(10) == pytest.approx(10 / t.median)
+
+
+# ------------------------------------------------------------------ end to end
+
+def test_tiny_sweep_end_to_end_and_consistent_numbers(tmp_path):
+    from prt_torch.harness.run import run_benchmark
+
+    cfg = hc.load_config(str(write_cfg(tmp_path, TINY)))
+    logs = []
+    run_dir = run_benchmark(cfg, progress=False, log=logs.append)
+    for f in ["results.json", "results.csv", "report.md", "rd.png", "speed_accuracy.png", "renders/uncompressed.png", "renders/uncompressed.exr"]:
+        assert (run_dir / f).is_file(), f
+    res = json.loads((run_dir / "results.json").read_text())
+    assert res["format"] == "prt_torch.results" and len(res["records"]) == 4
+    assert res["machine"]["cores"] and res["config"]["transfer"]["bands"] == 3
+    V = res["scene"]["vertices"]
+    raw = res["transfer"]["raw_bytes"]
+    n_in = res["transfer"]["n_in"]
+    assert n_in == 9
+    for r in res["records"]:
+        assert r["bytes_per_vertex"] == pytest.approx(r["bytes_total"] / V)
+        assert r["compression_ratio"] == pytest.approx(raw / r["bytes_total"])
+        assert r["psnr_random_closed_form_db"] == pytest.approx(-10 * math.log10(r["se"] / (V * n_in)), abs=1e-9)
+        assert abs(r["psnr_random_db"] - r["psnr_random_closed_form_db"]) < 1.0  # 256 random lights
+        assert r["fps"] == pytest.approx(1 / r["relight_s"]) and r["vertices_per_s"] == pytest.approx(V / r["relight_s"])
+        assert r["relight_timing"]["repeats"] >= 3
+        assert len(r["psnr_per_light_view"]) == 2
+        assert r["psnr_lights_db"] == pytest.approx(sum(p["psnr_db"] for p in r["psnr_per_light_view"]) / 2)
+    vq = sorted((r for r in res["records"] if r["codec"] == "vq"), key=lambda r: r["params"]["clusters"])
+    assert vq[1]["se"] <= vq[0]["se"]  # more clusters, less error
+    rows = list(csv.DictReader((run_dir / "results.csv").open()))
+    assert len(rows) == 4 and float(rows[0]["se"]) == pytest.approx(res["records"][0]["se"])
+    md = (run_dir / "report.md").read_text()
+    assert "| vq |" in md and "| pca |" in md and "| cpca |" in md and "Pareto front" in md
+    renders = list((run_dir / "renders").glob("*.png"))
+    assert len(renders) == 4  # uncompressed + best of each of 3 codecs
+    # cached transfer, records for resume
+    assert len(list((tmp_path / "cache").glob("transfer-diffuse-*.prt"))) == 1
+    assert len(list((run_dir / "records").glob("*.json"))) == 4
+
+
+def test_crash_mid_sweep_keeps_records_and_resume_skips_them(tmp_path, monkeypatch):
+    from prt_torch.harness import run as hr
+
+    cfg = hc.load_config(str(write_cfg(tmp_path, dict(TINY, render={"enabled": False}))))
+    real = hr.evaluate_setting
+    calls = []
+
+    def crashing(ev, setting, *a, **k):
+        calls.append(setting)
+        if len(calls) == 3:
+            raise KeyboardInterrupt("simulated interruption")
+        return real(ev, setting, *a, **k)
+
+    monkeypatch.setattr(hr, "evaluate_setting", crashing)
+    with pytest.raises(KeyboardInterrupt):
+        hr.run_benchmark(cfg, progress=False, log=lambda s: None)
+    run_dir = tmp_path / "reports" / "tiny"
+    assert len(list((run_dir / "records").glob("*.json"))) == 2
+    assert not (run_dir / "results.json").exists()
+    calls.clear()
+    monkeypatch.setattr(hr, "evaluate_setting", real)
+    counted = []
+    monkeypatch.setattr(hr, "evaluate_setting", lambda *a, **k: counted.append(1) or real(*a, **k))
+    hr.run_benchmark(cfg, progress=False, log=lambda s: None)
+    assert len(counted) == 2  # only the two unfinished settings ran
+    assert len(json.loads((run_dir / "results.json").read_text())["records"]) == 4
+
+
+def test_memory_estimate_refuses_before_work(tmp_path):
+    from prt_torch.harness.run import run_benchmark
+
+    cfg = hc.load_config(str(write_cfg(tmp_path, TINY)), ["metrics.max_memory_gb=0.0001"])
+    with pytest.raises(ValueError, match="estimated"):
+        run_benchmark(cfg, progress=False, log=lambda s: None)
+    assert not (tmp_path / "cache").exists()
+
+
+def test_target_search_finds_the_smallest_setting(tmp_path):
+    from prt_torch.harness.run import run_benchmark
+
+    cfg = hc.load_config(str(write_cfg(tmp_path, dict(TINY, render={"enabled": False}, codecs=[{"name": "pca", "vectors": 1}]))),
+                         ["target.psnr=35", "target.codec=pca", "target.param=vectors", "target.lo=1", "target.hi=9"])
+    run_dir = run_benchmark(cfg, progress=False, log=lambda s: None)
+    res = json.loads((run_dir / "results.json").read_text())
+    t = res["target"]
+    assert t["met"] and t["achieved_db"] >= 35
+    by_v = {r["params"]["vectors"]: r["psnr_lights_db"] for r in res["records"] if r["codec"] == "pca"}
+    k = t["value"]
+    assert by_v[k] >= 35
+    if k > 1:  # brute-force check of minimality: one vector fewer misses the target
+        if k - 1 not in by_v:
+            cfg2 = hc.load_config(str(write_cfg(tmp_path, dict(TINY, render={"enabled": False}, codecs=[{"name": "pca", "vectors": k - 1}]))))
+            res2 = json.loads((run_benchmark(cfg2, progress=False, log=lambda s: None) / "results.json").read_text())
+            by_v[k - 1] = res2["records"][0]["psnr_lights_db"]
+        assert by_v[k - 1] < 35
