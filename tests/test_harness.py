@@ -112,8 +112,8 @@ def test_random_light_psnr_monte_carlo_matches_closed_form():
 
 
 def test_psnr_vs_reference_definition():
-    ref = torch.tensor([[1.0, 2.0], [4.0, 0.0]])
-    test = ref + torch.tensor([[0.1, -0.1], [0.0, 0.2]])
+    ref = torch.tensor([[1.0, 2.0], [4.0, 0.0]], dtype=torch.float64)
+    test = ref + torch.tensor([[0.1, -0.1], [0.0, 0.2]], dtype=torch.float64)
     mse = (0.01 + 0.01 + 0.04) / 4
     assert math.isclose(hm.psnr_vs_reference(ref, test), 10 * math.log10(16 / mse), rel_tol=1e-12)
     assert hm.psnr_vs_reference(ref, ref) == float("inf")
@@ -215,7 +215,7 @@ def test_target_search_finds_the_smallest_setting(tmp_path):
     from prt_torch.harness.run import run_benchmark
 
     cfg = hc.load_config(str(write_cfg(tmp_path, dict(TINY, render={"enabled": False}, codecs=[{"name": "pca", "vectors": 1}]))),
-                         ["target.psnr=35", "target.codec=pca", "target.param=vectors", "target.lo=1", "target.hi=9"])
+                         ["target.psnr=35", "target.codec=pca", "target.param=vectors", "target.lo=1", "target.hi=8"])
     run_dir = run_benchmark(cfg, progress=False, log=lambda s: None)
     res = json.loads((run_dir / "results.json").read_text())
     t = res["target"]
