@@ -200,7 +200,7 @@ def markdown(results: dict, figures: list[str], renders: list[str]) -> str:
 
 
 def write_outputs(run_dir: Path, results: dict, ev=None, lights=None, views=None, cams=None, cfg=None,
-                  log: Callable[[str], None] = print) -> None:
+                  log: Callable[[str], None] = print, fitted: dict | None = None) -> None:
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     io.atomic_write_json(run_dir / "results.json", results)
@@ -209,7 +209,7 @@ def write_outputs(run_dir: Path, results: dict, ev=None, lights=None, views=None
     renders: list[str] = []
     if cfg is not None and cfg["render"]["enabled"] and ev is not None:
         try:
-            renders = render_best(run_dir, results, ev, lights, views, cams, cfg)
+            renders = render_best(run_dir, results, ev, lights, views, cams, cfg, fitted or {})
         except Exception as e:  # rendering must not lose a finished benchmark; say why
             log(f"[bench] renders skipped: {type(e).__name__}: {e}")
             results["render_error"] = f"{type(e).__name__}: {e}"
@@ -218,7 +218,7 @@ def write_outputs(run_dir: Path, results: dict, ev=None, lights=None, views=None
     log(f"[bench] wrote {run_dir}/report.md, results.json, results.csv, {', '.join(figs)}" + (f", {len(renders)} render(s)" if renders else ""))
 
 
-def render_best(run_dir: Path, results: dict, ev, lights, views, cams, cfg) -> list[str]:
+def render_best(run_dir: Path, results: dict, ev, lights, views, cams, cfg, fitted: dict) -> list[str]:
     """Render the uncompressed result and the best setting (highest PSNR) of each codec for the
     first light and view, with an error heat map; returns relative paths of the composites."""
     import torch
@@ -250,8 +250,11 @@ def render_best(run_dir: Path, results: dict, ev, lights, views, cams, cfg) -> l
         render.save_png(out_dir / "uncompressed.png", img_ref, exposure=expo)
         render.save_exr(out_dir / "uncompressed.exr", img_ref)
         for codec_name, x in sorted(best.items()):
-            codec = codecs.get(codec_name, **x["params"])
-            enc = _fit_encode(codec, ev.X, ev.matrix_shape)
+            if codec_name in fitted and fitted[codec_name][0] == x["setting_id"]:
+                codec, enc = fitted[codec_name][1:]
+            else:  # restored from a record of an earlier run: refit (deterministic per seed)
+                codec = codecs.get(codec_name, **x["params"])
+                enc = _fit_encode(codec, ev.X, ev.matrix_shape)
             out = ev.finish(_relight(codec, enc, ev.light_matrix(L), views[0])).clamp_min(0)
             img, _ = rd.render_radiance(mesh, out, camera=cam)
             vmax = float(max(1e-12, abs(img_ref[mask]).max())) * 0.1 if mask.any() else None

@@ -142,8 +142,11 @@ def setting_id(setting: dict) -> str:
 
 
 def evaluate_setting(ev: Evaluator, setting: dict, lights: list[torch.Tensor], views: list[Any], cfg: dict,
-                     ref_cache: dict) -> dict:
-    """Fit, encode and measure one codec setting. Returns the record (JSON-able)."""
+                     ref_cache: dict, keep: dict | None = None) -> dict:
+    """Fit, encode and measure one codec setting. Returns the record (JSON-able).
+
+    ``keep``: if given, ``keep[codec name] = (psnr, setting_id, codec, encoded)`` is updated
+    with the best setting of each codec so far (the renders reuse it instead of refitting)."""
     params = dict(setting)
     name = params.pop("name")
     codec = codecs.get(name, **params)
@@ -195,6 +198,8 @@ def evaluate_setting(ev: Evaluator, setting: dict, lights: list[torch.Tensor], v
         "vertices_per_s": tm.rate(ev.V),
         "fps": 1.0 / tm.median if tm.median > 0 else float("inf"),
     }
+    if keep is not None and (name not in keep or mean_psnr > keep[name][0]):
+        keep[name] = (mean_psnr, rec["setting_id"], codec, enc)
     return rec
 
 
@@ -249,6 +254,7 @@ def run_benchmark(cfg: dict, resume: bool = True, progress: bool = True, log: Ca
     settings = expand_codecs(cfg["codecs"])
     done = _load_records(rec_dir) if resume else {}
     records: list[dict] = []
+    fitted: dict[str, tuple] = {}  # best (psnr, setting_id, codec, encoded) per codec, for the renders
     context_key = config_hash({"transfer": tinfo["key"], "lights": cfg["lights"], "views": cfg["views"],
                                "metrics": cfg["metrics"], "seed": cfg["seed"]})
 
@@ -256,7 +262,7 @@ def run_benchmark(cfg: dict, resume: bool = True, progress: bool = True, log: Ca
         key = config_hash({"setting": s, "context": context_key})
         if key in done:
             return done[key]
-        rec = evaluate_setting(ev, s, lights, views, cfg, ref_cache)
+        rec = evaluate_setting(ev, s, lights, views, cfg, ref_cache, keep=fitted)
         rec["key"] = key
         rec["speedup_vs_uncompressed"] = uncompressed["relight_s"] / rec["relight_s"] if rec["relight_s"] > 0 else float("inf")
         io.atomic_write_json(rec_dir / f"{rec['setting_id']}.json", rec)
@@ -307,7 +313,8 @@ def run_benchmark(cfg: dict, resume: bool = True, progress: bool = True, log: Ca
     }
     from .report import write_outputs
 
-    write_outputs(run_dir, results, ev=ev, lights=lights, views=views, cams=cams, cfg=cfg, log=log)
+    write_outputs(run_dir, results, ev=ev, lights=lights, views=views, cams=cams, cfg=cfg, log=log,
+                  fitted={k: v[1:] for k, v in fitted.items()})
     return run_dir
 
 
