@@ -164,17 +164,9 @@ def _run_exit_transfer(
     n_out = left.shape[1] if left.numel() else n2
     rays_per_vertex = max(1, samples // 2)
     if chunk_size is None:
-        chunk_size = int(min(max(8, (1 << 19) // rays_per_vertex), 8192))
+        chunk_size = _default_chunk(samples)
     chunk_size = check_int("chunk_size", chunk_size, 1)
-    need = estimate_memory(V, n_out, n2, samples, min(chunk_size, max(V, 1)))
-    budget = int(0.6 * _available_memory()) if max_memory is None else int(max_memory)
-    if need > budget:
-        raise ValueError(
-            f"{kind} transfer for {V} vertices with {n_out}×{n2} matrices and {samples} samples needs about "
-            f"{_fmt_bytes(need)} (result {_fmt_bytes(V * n_out * n2 * 4)} float32, held twice while assembling), "
-            f"more than the budget {_fmt_bytes(budget)}; accepted: fewer bands or tents, fewer samples / a smaller "
-            "chunk_size, a vertex subset, or a larger max_memory"
-        )
+    need = _check_memory(kind, V, n_out, n2, samples, chunk_size, max_memory)
     directions = _Directions(bands, samples, seed)
     caster = None
     meta: dict[str, Any] = {"estimated_bytes": need, "chunk_size": chunk_size,
@@ -190,11 +182,10 @@ def _run_exit_transfer(
         def compute(a: int, b: int) -> dict[str, torch.Tensor]:
             idx = sel[a:b]
             T, rays = transferred_radiance(caster, mesh.vertices[idx], mesh.normals[idx], directions)
-            RT = rotate_rows(T, rotation_blocks(F_all[idx], bands))
             if left.numel():
-                out = left[index[idx]] @ RT
+                out = left[index[idx]] @ rotate_rows(T, rotation_blocks(F_all[idx], bands))  # B_p R_p T_p
             else:
-                out = RT
+                out = T  # the global transferred-radiance matrices (Sloan 2002)
             return {"data": out.to(torch.float32), "rays": torch.tensor([rays], dtype=torch.int64)}
 
         parts = run_chunks(V, chunk_size, compute, state_dir=state_dir, fingerprint=fingerprint, resume=resume,
@@ -217,6 +208,26 @@ def _run_exit_transfer(
     if not keep_state:
         remove_state(state_dir)
     return data, meta
+
+
+def _default_chunk(samples: int) -> int:
+    return int(min(max(8, (1 << 19) // max(1, samples // 2)), 8192))
+
+
+def _check_memory(kind: str, V: int, n_out: int, n2: int, samples: int, chunk_size: int | None,
+                  max_memory: int | None) -> int:
+    """Refuse up front (before any BRDF projection or ray) when the estimate exceeds the budget."""
+    chunk = _default_chunk(samples) if chunk_size is None else chunk_size
+    need = estimate_memory(V, n_out, n2, samples, min(chunk, max(V, 1)))
+    budget = int(0.6 * _available_memory()) if max_memory is None else int(max_memory)
+    if need > budget:
+        raise ValueError(
+            f"{kind} transfer for {V} vertices with {n_out}×{n2} matrices and {samples} samples needs about "
+            f"{_fmt_bytes(need)} (result {_fmt_bytes(V * n_out * n2 * 4)} float32, held twice while assembling), "
+            f"more than the budget {_fmt_bytes(budget)}; accepted: fewer bands or tents, fewer samples / a smaller "
+            "chunk_size, a vertex subset, or a larger max_memory"
+        )
+    return need
 
 
 def _common_checks(bands, samples, seed, offset):
@@ -276,6 +287,10 @@ def precompute_glossy(
     bands, samples, seed, offset = _common_checks(bands, samples, seed, offset)
     bands_out = bands if bands_out is None else check_int("bands_out", bands_out, 1, MAX_GLOSSY_BANDS)
     brdf = _brdf_for(mesh, brdf)
+    check_frames(mesh)
+    n_rows = (bands_out * bands_out - len(drop_out or [])) if exit else bands * bands
+    n_sel = mesh.num_vertices if vertices is None else len(vertices)
+    _check_memory("glossy", n_sel, n_rows, bands * bands, samples, chunk_size, max_memory)
     t0 = time.perf_counter()
     if exit:
         B, index = brdf_matrices(brdf, bands_out, bands, projection=projection, drop_out=drop_out, rcond=rcond,
@@ -350,6 +365,9 @@ def precompute_mrt(
     bands_out = check_int("bands_out", bands_out, 1, MAX_GLOSSY_BANDS)
     M = check_int("M (tents per side)", M, 2, MAX_TENTS)
     brdf = _brdf_for(mesh, brdf)
+    check_frames(mesh)
+    n_sel = mesh.num_vertices if vertices is None else len(vertices)
+    _check_memory("mrt", n_sel, M * M, bands * bands, samples, chunk_size, max_memory)
     t0 = time.perf_counter()
     basis = MRTBasis(M, bands_out)
     B, index = brdf_matrices(brdf, bands_out, bands, projection="zero", window=window, window_width=window_width,
