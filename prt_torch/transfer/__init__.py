@@ -17,3 +17,13 @@ try:  # the diffuse precompute (this package's own module); optional so base sta
 except ModuleNotFoundError as _e:  # pragma: no cover
     if _e.name != f"{__name__}.diffuse":
         raise
+
+try:  # glossy / MRT / transport (issue 5); optional like diffuse
+    from .glossy import precompute_glossy, precompute_mrt  # noqa: F401
+    from .mrt import MRTBasis  # noqa: F401
+    from .transport import TransportTable, precompute_transport  # noqa: F401
+
+    __all__ += ["precompute_glossy", "precompute_mrt", "MRTBasis", "precompute_transport", "TransportTable"]
+except ModuleNotFoundError as _e:  # pragma: no cover
+    if _e.name not in (f"{__name__}.glossy", f"{__name__}.mrt", f"{__name__}.transport"):
+        raise
