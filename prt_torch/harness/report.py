@@ -77,6 +77,22 @@ def write_csv(path: Path, records: list[dict]) -> None:
     io.atomic_write_text(path, buf.getvalue())
 
 
+def _by_codec(res: dict) -> list[tuple[str, list[dict]]]:
+    by: dict[str, list[dict]] = {}
+    for r in res["records"]:
+        by.setdefault(r["codec"], []).append(r)
+    return sorted(by.items())
+
+
+def _save_figure(fig, path: Path) -> Path:
+    import matplotlib.pyplot as plt
+
+    with io.atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)
+    return path
+
+
 def plot_results(results_list: list[dict], out_dir: Path, labels: list[str] | None = None) -> list[Path]:
     """Rate–distortion and speed–accuracy plots of one or more result sets (``prt plot``)."""
     import matplotlib
@@ -90,10 +106,7 @@ def plot_results(results_list: list[dict], out_dir: Path, labels: list[str] | No
     markers = "osD^v<>p*h"
     fig, ax = plt.subplots(figsize=(6.4, 4.4))
     for ri, (res, lab) in enumerate(zip(results_list, labels)):
-        by = {}
-        for r in res["records"]:
-            by.setdefault(r["codec"], []).append(r)
-        for ci, (codec, rs) in enumerate(sorted(by.items())):
+        for ci, (codec, rs) in enumerate(_by_codec(res)):
             rs = sorted(rs, key=lambda r: r["bytes_per_vertex"])
             ys = [min(r["psnr_lights_db"], 120.0) for r in rs]
             ax.plot([r["bytes_per_vertex"] for r in rs], ys, marker=markers[ci % len(markers)],
@@ -108,19 +121,12 @@ def plot_results(results_list: list[dict], out_dir: Path, labels: list[str] | No
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    p = out_dir / "rd.png"
-    with io.atomic_path(p) as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
-    paths.append(p)
+    paths.append(_save_figure(fig, out_dir / "rd.png"))
 
     fig, ax = plt.subplots(figsize=(6.4, 4.4))
     allpts = []
     for ri, (res, lab) in enumerate(zip(results_list, labels)):
-        by = {}
-        for r in res["records"]:
-            by.setdefault(r["codec"], []).append(r)
-        for ci, (codec, rs) in enumerate(sorted(by.items())):
+        for ci, (codec, rs) in enumerate(_by_codec(res)):
             xs = [min(r["psnr_lights_db"], 120.0) for r in rs]
             ys = [r["fps"] for r in rs]
             allpts += list(zip(xs, ys))
@@ -138,11 +144,7 @@ def plot_results(results_list: list[dict], out_dir: Path, labels: list[str] | No
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    p = out_dir / "speed_accuracy.png"
-    with io.atomic_path(p) as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
-    paths.append(p)
+    paths.append(_save_figure(fig, out_dir / "speed_accuracy.png"))
     return paths
 
 

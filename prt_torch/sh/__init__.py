@@ -13,6 +13,7 @@ from .quadrature import (
     project_callable,
     reconstruct,
     stratified_sphere,
+    stratified_square,
 )
 from .rotation import blocks_to_dense, random_rotations, rotate, rotation_blocks, rotation_matrix
 from .zonal import (

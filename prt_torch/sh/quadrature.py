@@ -32,6 +32,7 @@ __all__ = [
     "gauss_sphere",
     "gauss_hemisphere",
     "latlong_grid",
+    "stratified_square",
     "stratified_sphere",
     "fibonacci_sphere",
     "project",
@@ -104,11 +105,11 @@ def latlong_grid(height: int, width: int, dtype: torch.dtype = torch.float64) ->
     return dirs.to(dtype), w.to(dtype)
 
 
-def stratified_sphere(n: int, seed: int = 0, dtype: torch.dtype = torch.float64) -> tuple[torch.Tensor, torch.Tensor]:
-    """``n`` jittered stratified directions, uniform on the sphere, equal weights 4π/n.
+def stratified_square(n: int, seed: int = 0) -> torch.Tensor:
+    """``n`` jittered stratified points in the unit square ``[n, 2]`` float64.
 
-    Strata form a ⌊√n⌋-by-⌈n/⌊√n⌋⌉ grid in (z, φ) (equal-area in z); remaining samples
-    beyond a full grid are uniform. Deterministic for a given ``seed``.
+    Strata form a ⌊√n⌋-by-⌊n/⌊√n⌋⌋ grid; samples beyond a full grid are uniform.
+    Deterministic for a given ``seed``. The sphere and hemisphere samplers map these.
     """
     n = check_int("n", n, 1)
     g = torch.Generator().manual_seed(int(seed))
@@ -117,14 +118,21 @@ def stratified_sphere(n: int, seed: int = 0, dtype: torch.dtype = torch.float64)
     full = rows * cols
     u = torch.rand(n, 2, generator=g, dtype=torch.float64)
     i = torch.arange(full, dtype=torch.float64)
-    a = torch.empty(n, dtype=torch.float64)
-    b = torch.empty(n, dtype=torch.float64)
-    a[:full] = (torch.div(i, cols, rounding_mode="floor") + u[:full, 0]) / rows
-    b[:full] = (torch.remainder(i, cols) + u[:full, 1]) / cols
-    a[full:] = u[full:, 0]
-    b[full:] = u[full:, 1]
-    z = 1.0 - 2.0 * a
-    dirs = _dirs_from_z_phi(z, 2 * math.pi * b)
+    out = u.clone()
+    out[:full, 0] = (torch.div(i, cols, rounding_mode="floor") + u[:full, 0]) / rows
+    out[:full, 1] = (torch.remainder(i, cols) + u[:full, 1]) / cols
+    return out
+
+
+def stratified_sphere(n: int, seed: int = 0, dtype: torch.dtype = torch.float64) -> tuple[torch.Tensor, torch.Tensor]:
+    """``n`` jittered stratified directions, uniform on the sphere, equal weights 4π/n.
+
+    :func:`stratified_square` mapped equal-area to the sphere (z = 1 - 2a, φ = 2πb).
+    Deterministic for a given ``seed``.
+    """
+    n = check_int("n", n, 1)
+    ab = stratified_square(n, seed)
+    dirs = _dirs_from_z_phi(1.0 - 2.0 * ab[:, 0], 2 * math.pi * ab[:, 1])
     return dirs.to(dtype), torch.full((n,), 4 * math.pi / n, dtype=dtype)
 
 

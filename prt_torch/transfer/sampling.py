@@ -15,7 +15,7 @@ import math
 import torch
 
 from .._checks import check_int
-from ..sh import stratified_sphere
+from ..sh import stratified_sphere, stratified_square
 
 __all__ = ["uniform_sphere", "cosine_hemisphere", "to_world"]
 
@@ -33,16 +33,8 @@ def cosine_hemisphere(n: int, seed: int = 0) -> torch.Tensor:
     ``torch.Generator`` seeded with ``seed``; mapped by Malley's method (pdf = cos θ / π).
     """
     n = check_int("samples", n, 1)
-    g = torch.Generator().manual_seed(int(seed))
-    rows = max(1, math.isqrt(n))
-    cols = n // rows
-    full = rows * cols
-    u = torch.rand(n, 2, generator=g, dtype=torch.float64)
-    i = torch.arange(full, dtype=torch.float64)
-    a = u[:, 0].clone()
-    b = u[:, 1].clone()
-    a[:full] = (torch.div(i, cols, rounding_mode="floor") + u[:full, 0]) / rows
-    b[:full] = (torch.remainder(i, cols) + u[:full, 1]) / cols
+    ab = stratified_square(n, seed)
+    a, b = ab[:, 0], ab[:, 1]
     r = torch.sqrt(a)
     phi = 2 * math.pi * b
     z = torch.sqrt((1 - a).clamp_min(0.0))
