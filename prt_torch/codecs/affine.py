@@ -241,7 +241,7 @@ class AffineCodec(Codec):
         if reps.shape[1] == 1 and self.means_ is not None:
             return reps[:, 0][self.labels_of(enc)]
         plan = self._plan(enc)
-        out_t = tiles_bmm(plan["W1t"][..., : reps.shape[1]], reps, plan["layout"].tile_cluster)
+        out_t = tiles_bmm(plan["layout"], plan["W1t"][..., : reps.shape[1]], reps)
         return from_tiles(plan["layout"], out_t)
 
     def _representatives(self, n: int) -> torch.Tensor:
@@ -310,7 +310,7 @@ class AffineCodec(Codec):
             out = consts[:, 0].reshape(K, F)[self.labels_of(enc)]
         else:
             plan = self._plan(enc)
-            out_t = tiles_bmm(plan["W1t"][..., :J], consts.reshape(K, J, F), plan["layout"].tile_cluster)
+            out_t = tiles_bmm(plan["layout"], plan["W1t"][..., :J], consts.reshape(K, J, F))
             out = from_tiles(plan["layout"], out_t)
         out = out.view(P, n_out, C)
         if view is None:
@@ -418,7 +418,7 @@ def classify_all(Xc: torch.Tensor, xx: torch.Tensor, means: torch.Tensor | None,
     mb = torch.einsum("knd,kd->kn", basis, means).to(dt)
     labels = torch.empty(P, dtype=torch.long)
     emin = torch.empty(P, dtype=dt)
-    tops = torch.empty(P, top, dtype=torch.long) if top else None
+    tops = torch.empty(P, min(top, K), dtype=torch.long) if top else None  # fewer clusters than candidates
     step = row_chunk(K * (1 + n), Xc.element_size())
     for i in range(0, P, step):  # chunks bound the [rows, K(1+n)] block
         G = (Xc[i:i + step] @ W.T).view(-1, K, 1 + n)

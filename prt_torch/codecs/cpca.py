@@ -32,7 +32,7 @@ import torch
 from .affine import AffineCodec, classify_all
 from .base import Param, p_bool, p_choice, p_float, p_int, register
 from .kmeans import kmeans_pp, lloyd, repair_empty
-from .segment import choose_tile, from_tiles, tile_layout, tiles_bmm, to_tiles  # noqa: F401
+from .segment import choose_tile, from_tiles, tile_layout, tiles_bmm, to_tiles
 from .subspace import cluster_pca, total_variance
 
 __all__ = ["VQ", "PCA", "CPCA", "MRTPCA"]
@@ -49,6 +49,9 @@ _VQ = {
     "tol": (1e-4, p_float(0.0), "Lloyd stops when the squared centre shift ≤ tol · mean per-dimension variance"),
     "n_init": (1, p_int(1), "k-means restarts (different seeds); the lowest error is kept"),
     "init": ("k-means++", p_choice("k-means++", "random"), "seeding of the cluster centres"),
+    "init_sample": (None, p_int(1, allow_none=True),
+                    "k-means++ draws its seeds from a random subset of this many points "
+                    "(default: all points if P ≤ 64·clusters, else 64·clusters; each seed costs one pass over the subset)"),
 }
 _PCA = {
     "vectors": (8, p_int(0), "PCA vectors n' per cluster"),
@@ -88,16 +91,14 @@ class _Work:
         self._raw = torch.empty(rows, self.D, dtype=self.dt)
         self._y = torch.empty(rows, self.D, dtype=self.dt)
         self.labels = None
+        self.cache: dict = {}
 
     def set_labels(self, labels: torch.Tensor) -> None:
         self.labels = labels
         lay = tile_layout(labels, self.K, self.T)
         self.layout, self.tc, self.counts = lay, lay.tile_cluster, lay.counts
         NT = lay.NT
-        raw = self._raw[: NT * self.T]
-        raw.zero_()
-        raw.index_copy_(0, lay.pos, self.X)
-        self.Xt = raw.view(NT, self.T, self.D)
+        self.Xt = to_tiles(lay, self.X, out=self._raw)
         ones = torch.ones(self.P, dtype=self.dt) if self.sw is None else self.sw
         self.swt = to_tiles(lay, ones)  # [NT, T]; zero on padding rows
         self.xxt = to_tiles(lay, self.xx)
@@ -119,9 +120,9 @@ class _Work:
             Yt -= means.to(self.dt)[self.tc][:, None, :]
         Yt *= self.swt[..., None]
         pi = power_iters if init is None or init.shape[1] == 0 else 1
-        basis, evals = cluster_pca(Yt, self.tc, self.counts, n, solver, gen=gen, init=init,
-                                   oversample=oversample, power_iters=pi)
-        tv = total_variance(Yt, self.tc, self.K)
+        basis, evals = cluster_pca(self.layout, Yt, n, solver, gen=gen, init=init,
+                                   oversample=oversample, power_iters=pi, cache=self.cache)
+        tv = total_variance(self.layout, Yt)
         return {"labels": self.labels, "means": means, "basis": basis, "evals": evals, "tv": tv,
                 "n_vectors": torch.full((self.K,), n, dtype=torch.long), "se": float(tv.sum() - evals.sum())}
 
@@ -136,7 +137,7 @@ class _Work:
             means = torch.zeros(K, D, dtype=torch.float64)
         Wall = torch.cat([means[:, None], basis], 1)  # [K, 1+n, D]
         Wc = Wall[cand].permute(0, 3, 1, 2).reshape(K, D, L * (1 + n)).to(self.dt)
-        E = tiles_bmm(self.Xt, Wc, self.tc).view(*self.Xt.shape[:2], L, 1 + n)
+        E = tiles_bmm(self.layout, self.Xt, Wc).view(*self.Xt.shape[:2], L, 1 + n)
         mm = means.square().sum(1)[cand].to(self.dt)  # [K, L]
         e = self.xxt[..., None] - 2 * E[..., 0] + mm[self.tc][:, None, :]
         if n:
@@ -189,19 +190,26 @@ def _mask_basis(st: dict, nvec: torch.Tensor) -> dict:
 # ----------------------------------------------------------------------------------------
 
 class _VQMixin:
-    def _run_vq(self, Xc, w, gen, K):
+    def _run_vq(self, Xc, w, gen, K, final):
+        """LBG from k-means++ (or random) seeds; ``final``: the clustering is the codec's result,
+        so stopping at max_iter warns (CPCA records it in fit_info_ and warns only if strict)."""
         xx = Xc.square().sum(1)
         best = None
         for r in range(self.params["n_init"]):  # restarts: a handful, each a full batched fit
             if self.params["init"] == "k-means++":
-                idx = kmeans_pp(Xc, K, gen, w, xx=xx)
+                m = self.params["init_sample"] or 64 * K
+                if m < Xc.shape[0]:
+                    sub = torch.randperm(Xc.shape[0], generator=gen)[:m]
+                    idx = sub[kmeans_pp(Xc[sub], K, gen, None if w is None else w[sub], xx=xx[sub])]
+                else:
+                    idx = kmeans_pp(Xc, K, gen, w, xx=xx)
             else:
                 p = torch.ones(Xc.shape[0], dtype=torch.float64) if w is None else w.double()
                 idx = torch.multinomial(p / p.sum(), K, replacement=False, generator=gen)
             res = lloyd(Xc, Xc[idx], self.params["max_iter"], self.params["tol"], w, xx)
             if best is None or res["inertia"] < best["inertia"]:
                 best = res
-        if not best["converged"]:
+        if not best["converged"] and (final or self.params.get("strict")):
             self._warn_or_raise(
                 f"codec {self.codec_name!r}: LBG/Lloyd did not converge in max_iter={self.params['max_iter']} "
                 f"iterations (tol={self.params['tol']}); the clustering is usable but not a fixed point — "
@@ -222,7 +230,7 @@ class VQ(_VQMixin, AffineCodec):
 
     def _fit_model(self, Xc, w, gen):
         K = self.params["clusters"]
-        r = self._run_vq(Xc, w, gen, K)
+        r = self._run_vq(Xc, w, gen, K, final=True)
         return {"labels": r["labels"], "means": r["centers"], "basis": torch.zeros(K, 0, Xc.shape[1], dtype=torch.float64),
                 "n_vectors": torch.zeros(K, dtype=torch.long),
                 "info": {"inertia": r["inertia"], "lloyd_iterations": r["n_iter"], "converged": r["converged"],
@@ -268,7 +276,7 @@ class CPCA(_VQMixin, AffineCodec):
     """Clustered PCA: per-cluster affine subspaces (Sloan 2003 §3.3–4.3)."""
 
     codec_name = "cpca"
-    PARAMS = _params(_VQ, _PCA, _COMMON, **{
+    PARAMS = _params(_VQ, _PCA, _COMMON, max_iter=Param(20, p_int(1), "LBG iterations of the initial VQ (Sloan 2003 §4.1 used 20)"), **{
         k: Param(*v) for k, v in {
             "method": ("iterative", p_choice("static", "iterative", "adaptive"),
                        "static (§4.1), iterative (§4.2) or adaptive (§4.3)"),
@@ -318,7 +326,7 @@ class CPCA(_VQMixin, AffineCodec):
         solver = _resolve_solver(p["solver"], K, D, limit)
         kw = {"oversample": p["oversample"], "power_iters": p["power_iters"]}
         info = {"solver": solver, "method": method}
-        vq = self._run_vq(Xc, w, gen, K)
+        vq = self._run_vq(Xc, w, gen, K, final=False)
         info.update(lloyd_iterations=vq["n_iter"], vq_converged=vq["converged"], vq_se=vq["inertia"])
         work = _Work(Xc, w, K)
         work.set_labels(vq["labels"])

@@ -1,21 +1,22 @@
 """Segment ("per-cluster") matrix products as a few batched GEMMs: the tile layout.
 
 CPCA needs, for every point p in cluster k(p), products with that cluster's matrices —
-``y_p = x_p W_{k(p)}`` (projection onto a cluster's PCA vectors, Sloan 2003 §4.1; per-cluster
-constants applied to per-point weights, Sloan 2003 §6) — and the per-cluster accumulations
-``S_k = Σ_{p∈k} x_pᵀ y_p`` (scatter matrices, subspace iteration). A gather of W per point
-would move K·D·r floats per point; a Python loop over clusters is banned on a hot path.
+``y_p = x_p W_{k(p)}`` (projection onto a cluster's PCA vectors, Sloan 2003 §4.1; per-point
+weights applied to per-cluster constants, Sloan 2003 §6) — and per-cluster accumulations
+``S_k = Σ_{p∈k} x_pᵀ y_p`` (scatter products for the PCA). A gather of W per point would move
+K·D·r floats per point, and a Python loop over clusters is banned on a hot path.
 
-The tile layout sorts points by cluster and cuts each cluster into tiles of ``T`` rows
-(the last tile of a cluster zero-padded), so every tile belongs to exactly one cluster. A
-segment product is then one ``torch.bmm`` over tiles, ``[NT, T, D] @ [NT, D, r]``, with the
-cluster's matrix gathered once per *tile* (not per point). Padding costs at most ``K·(T-1)``
-rows; ``choose_tile`` keeps it under about a quarter of the points. This is the CPU analogue of
-Sloan 2003 §6.2's per-cluster draw calls (a chunk of geometry per cluster).
+The tile layout cuts each cluster's points into tiles of ``T`` rows (the last one
+zero-padded), so every tile belongs to one cluster. Tiles are stored *group-major*: group j
+holds the j-th tile of every cluster that has more than j tiles, clusters in the order of
+decreasing tile count (``corder``). The clusters of group j are therefore a prefix of
+``corder``, so a segment product is one ``bmm`` per group against a *prefix view* of the
+cluster matrices permuted once, ``W[corder][:c_j]`` — no per-tile copy of W. The number of
+groups is the tile count of the largest cluster (a loop over tile rows, not clusters).
+Padding costs at most ``K·(T−1)`` rows; ``choose_tile`` keeps it near a quarter of the
+points at most. This is the CPU analogue of Sloan 2003 §6.2's per-cluster draw calls.
 
-All functions take/return batch-first tensors; dtypes follow the inputs (float32 or float64).
-Work is done in chunks of tiles to bound the temporary memory (a loop over a handful of
-chunks, not over clusters).
+All functions are batch-first; dtypes follow the inputs (float32 or float64).
 """
 from __future__ import annotations
 
@@ -23,11 +24,8 @@ from dataclasses import dataclass
 
 import torch
 
-__all__ = ["TileLayout", "tile_layout", "choose_tile", "segment_matmul", "segment_accumulate", "to_tiles", "from_tiles",
-           "tiles_bmm", "tiles_accumulate"]
-
-#: Bytes of temporaries one chunk of tiles may allocate (gathered rows + gathered matrices).
-CHUNK_BYTES = 48 * 2**20
+__all__ = ["TileLayout", "tile_layout", "choose_tile", "to_tiles", "from_tiles", "tiles_bmm", "tiles_accumulate",
+           "segment_matmul"]
 
 
 def choose_tile(P: int, K: int) -> int:
@@ -41,164 +39,132 @@ def choose_tile(P: int, K: int) -> int:
 
 @dataclass
 class TileLayout:
-    """Points (or point/cluster pairs) sorted by cluster and cut into tiles of ``T`` rows.
+    """Items (points) of K clusters cut into tiles of ``T`` rows, stored group-major.
 
     Attributes:
         K, T, n: clusters, tile height, number of items.
-        counts: ``int64 [K]`` items per cluster.
-        tile_cluster: ``int64 [NT]`` the cluster of each tile.
-        order: ``int64 [n]`` items sorted by cluster (stable).
-        pos_sorted: ``int64 [n]`` flat tile position (tile·T + slot) of ``order[i]``, increasing.
-        pos: ``int64 [n]`` flat tile position of item i (``pos[order] = pos_sorted``).
-        rows: ``int64 [n]`` or None — the row of the data matrix item i reads (pairs layouts).
+        counts: ``int64 [K]`` items per cluster; ntiles: ``int64 [K]`` tiles per cluster.
+        corder: ``int64 [K]`` clusters by decreasing tile count (stable); crank: its inverse.
+        groups: list of ``(t0, t1)`` tile ranges; group j holds clusters ``corder[:t1-t0]``.
+        tile_cluster: ``int64 [NT]`` cluster of each tile.
+        pos: ``int64 [n]`` flat tile position (tile·T + slot) of each item.
+        order: ``int64 [n]`` items by increasing ``pos``; pos_sorted = pos[order].
     """
 
     K: int
     T: int
     n: int
     counts: torch.Tensor
+    ntiles: torch.Tensor
+    corder: torch.Tensor
+    crank: torch.Tensor
+    groups: list
+    group_start: torch.Tensor
     tile_cluster: torch.Tensor
+    pos: torch.Tensor
     order: torch.Tensor
     pos_sorted: torch.Tensor
-    pos: torch.Tensor
-    rows: torch.Tensor | None = None
 
     @property
     def NT(self) -> int:
         return int(self.tile_cluster.numel())
 
-    def chunks(self, row_bytes: int):
-        """Yield ``(t0, t1, i0, i1)``: tile range [t0, t1) and the slice [i0, i1) of ``order``
-        whose items live in those tiles, each chunk holding about CHUNK_BYTES of temporaries."""
-        per_tile = max(1, self.T * max(1, row_bytes))
-        step = max(1, CHUNK_BYTES // per_tile)
-        bounds = torch.arange(0, self.NT + step, step).clamp_max(self.NT)
-        item_bounds = torch.searchsorted(self.pos_sorted, bounds * self.T).tolist()
-        b = bounds.tolist()
-        for j in range(len(b) - 1):
-            if b[j] < b[j + 1]:
-                yield b[j], b[j + 1], item_bounds[j], item_bounds[j + 1]
+    def cluster_rows(self, ks: torch.Tensor, R: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Flat tile rows of clusters ``ks`` as ``[len(ks), R]`` (R ≥ T·max ntiles[ks]) and a mask
+        of the rows that belong to the cluster (padding rows of a last tile are zero anyway)."""
+        r = torch.arange(R)
+        j = r // self.T
+        valid = j[None, :] < self.ntiles[ks][:, None]
+        gs = self.group_start[j.clamp_max(self.group_start.numel() - 1)]
+        tiles = gs[None, :] + self.crank[ks][:, None]
+        rows = tiles * self.T + (r % self.T)[None, :]
+        return torch.where(valid, rows, torch.zeros_like(rows)), valid
 
 
-def tile_layout(labels: torch.Tensor, K: int, T: int | None = None, rows: torch.Tensor | None = None) -> TileLayout:
-    """Build the tile layout of ``labels`` (``int [n]`` in [0, K)).
-
-    ``rows`` (``int64 [n]``, optional) maps each item to the data row it reads, for layouts
-    over (point, candidate cluster) pairs. Fully vectorised: sort, bincount, cumsum.
-    """
+def tile_layout(labels: torch.Tensor, K: int, T: int | None = None) -> TileLayout:
+    """Build the group-major tile layout of ``labels`` (``int [n]`` in [0, K)). Vectorised:
+    sort, bincount, cumsum."""
     labels = labels.reshape(-1).long()
     n = labels.numel()
     if T is None:
         T = choose_tile(n, K)
     counts = torch.bincount(labels, minlength=K)
     ntiles = (counts + T - 1) // T
-    tile_start = torch.cumsum(ntiles, 0) - ntiles
-    tile_cluster = torch.repeat_interleave(torch.arange(K), ntiles)
-    order = torch.argsort(labels, stable=True)
-    sl = labels[order]
+    corder = torch.argsort(ntiles, descending=True, stable=True)
+    crank = torch.empty_like(corder)
+    crank[corder] = torch.arange(K)
+    G = int(ntiles.max()) if K else 0
+    # clusters in group j: those with ntiles > j  ->  c_j = #{k: ntiles_k > j}
+    c = torch.bincount(ntiles, minlength=G + 1).flip(0).cumsum(0).flip(0)[1:G + 1] if G else torch.zeros(0, dtype=torch.long)
+    group_start = torch.cumsum(c, 0) - c
+    gs, cl = group_start.tolist(), c.tolist()
+    groups = [(gs[j], gs[j] + cl[j]) for j in range(G)]
+    NT = int(c.sum())
+    tile_cluster = torch.empty(NT, dtype=torch.long)
+    if NT:
+        jj = torch.repeat_interleave(torch.arange(G), c)
+        tile_cluster[:] = corder[torch.arange(NT) - group_start[jj]]
+    order0 = torch.argsort(labels, stable=True)
+    sl = labels[order0]
     cstart = torch.cumsum(counts, 0) - counts
     rank = torch.arange(n) - cstart[sl]
-    pos_sorted = (tile_start[sl] + rank // T) * T + rank % T
-    pos = torch.empty_like(pos_sorted)
-    pos[order] = pos_sorted
-    return TileLayout(K=K, T=T, n=n, counts=counts, tile_cluster=tile_cluster, order=order,
-                      pos_sorted=pos_sorted, pos=pos, rows=None if rows is None else rows.reshape(-1).long())
+    j = rank // T
+    tile = group_start[j] + crank[sl] if n else rank
+    pos = torch.empty(n, dtype=torch.long)
+    pos[order0] = tile * T + rank % T
+    order = torch.argsort(pos)
+    return TileLayout(K=K, T=T, n=n, counts=counts, ntiles=ntiles, corder=corder, crank=crank, groups=groups,
+                      group_start=group_start, tile_cluster=tile_cluster, pos=pos, order=order, pos_sorted=pos[order])
 
 
-def _gather_rows(layout: TileLayout, X: torch.Tensor, i0: int, i1: int) -> torch.Tensor:
-    idx = layout.order[i0:i1]
-    if layout.rows is not None:
-        idx = layout.rows[idx]
-    return X.index_select(0, idx)
-
-
-def to_tiles(layout: TileLayout, Y: torch.Tensor) -> torch.Tensor:
-    """``Y [n, *F]`` (item order) -> ``[NT, T, *F]`` in tile order, zero-padded."""
-    out = Y.new_zeros((layout.NT * layout.T, *Y.shape[1:]))
-    out[layout.pos] = Y if layout.rows is None else Y[layout.rows]
+def to_tiles(layout: TileLayout, Y: torch.Tensor, out: torch.Tensor | None = None) -> torch.Tensor:
+    """``Y [n, *F]`` (item order) -> ``[NT, T, *F]`` (tile order), zero-padded."""
+    rows = layout.NT * layout.T
+    if out is None:
+        out = Y.new_zeros((rows, *Y.shape[1:]))
+    else:
+        out = out[:rows]
+        out.zero_()
+    out.index_copy_(0, layout.pos, Y)
     return out.view(layout.NT, layout.T, *Y.shape[1:])
 
 
 def from_tiles(layout: TileLayout, Yt: torch.Tensor) -> torch.Tensor:
-    """``[NT, T, *F]`` in tile order -> ``[n, *F]`` in item order."""
+    """``[NT, T, *F]`` (tile order) -> ``[n, *F]`` (item order)."""
     return Yt.reshape(layout.NT * layout.T, *Yt.shape[2:]).index_select(0, layout.pos)
 
 
-def segment_matmul(layout: TileLayout, X: torch.Tensor, W: torch.Tensor) -> torch.Tensor:
-    """``out[i] = X[row(i)] @ W[k(i)]``: ``X [P, D]``, ``W [K, D, r]`` -> ``[n, r]`` (item order).
+def tiles_bmm(layout: TileLayout, Yt: torch.Tensor, W: torch.Tensor, out: torch.Tensor | None = None) -> torch.Tensor:
+    """``out[t] = Yt[t] @ W[tile_cluster[t]]``: ``Yt [NT, T, D]``, ``W [K, D, r]`` -> ``[NT, T, r]``.
 
-    One ``bmm`` per chunk of tiles; W gathered per tile. dtype of X (W is cast to it).
-    """
-    D, r = X.shape[1], W.shape[2]
-    W = W.to(X.dtype)
-    out = X.new_empty((layout.n, r))
-    if layout.n == 0:
-        return out
-    es = X.element_size()
-    for t0, t1, i0, i1 in layout.chunks((D + r) * es + D * r * es // layout.T):
-        nt = t1 - t0
-        Xt = X.new_zeros((nt * layout.T, D))
-        local = layout.pos_sorted[i0:i1] - t0 * layout.T
-        Xt[local] = _gather_rows(layout, X, i0, i1)
-        Yt = torch.bmm(Xt.view(nt, layout.T, D), W.index_select(0, layout.tile_cluster[t0:t1]))
-        out[layout.order[i0:i1]] = Yt.view(nt * layout.T, r)[local]
-    return out
-
-
-def segment_accumulate(layout: TileLayout, X: torch.Tensor, Y: torch.Tensor, out_dtype=torch.float64) -> torch.Tensor:
-    """``S[k] = Σ_{i∈k} X[row(i)]ᵀ Y[i]``: ``X [P, D]``, ``Y [n, r]`` (item order) -> ``[K, D, r]``.
-
-    Per-tile products in the dtype of X (T ≤ 256 terms), accumulated over tiles in
-    ``out_dtype`` (float64 by default) with ``index_add_``.
-    """
-    D, r = X.shape[1], Y.shape[1]
-    S = torch.zeros((layout.K, D, r), dtype=out_dtype)
-    if layout.n == 0:
-        return S
-    Y = Y.to(X.dtype)
-    es = X.element_size()
-    for t0, t1, i0, i1 in layout.chunks((D + r) * es + D * r * es // layout.T):
-        nt = t1 - t0
-        local = layout.pos_sorted[i0:i1] - t0 * layout.T
-        Xt = X.new_zeros((nt * layout.T, D))
-        Xt[local] = _gather_rows(layout, X, i0, i1)
-        Yt = X.new_zeros((nt * layout.T, r))
-        Yt[local] = Y.index_select(0, layout.order[i0:i1])
-        St = torch.bmm(Xt.view(nt, layout.T, D).transpose(1, 2), Yt.view(nt, layout.T, r))
-        S.index_add_(0, layout.tile_cluster[t0:t1], St.to(out_dtype))
-    return S
-
-
-def tiles_bmm(Yt: torch.Tensor, W: torch.Tensor, tile_cluster: torch.Tensor) -> torch.Tensor:
-    """``[NT, T, D] @ W[tile_cluster]`` with ``W [K, D, r]`` -> ``[NT, T, r]``.
-
-    For data already in tile order (the fit keeps its centred signal that way, so no per-point
-    gather happens inside an iteration). W is gathered per tile, in chunks of tiles.
-    """
+    One ``bmm`` per tile group against a prefix view of ``W[corder]`` (W permuted once)."""
     NT, T, D = Yt.shape
     r = W.shape[2]
-    W = W.to(Yt.dtype)
-    out = Yt.new_empty((NT, T, r))
-    step = max(1, CHUNK_BYTES // max(1, (D * r + T * r) * Yt.element_size()))
-    for t0 in range(0, NT, step):  # a handful of chunks, bounded memory
-        t1 = min(NT, t0 + step)
-        torch.bmm(Yt[t0:t1], W.index_select(0, tile_cluster[t0:t1]), out=out[t0:t1])
+    Ws = W.to(Yt.dtype).index_select(0, layout.corder)
+    if out is None:
+        out = Yt.new_empty((NT, T, r))
+    for t0, t1 in layout.groups:  # one bmm per tile row of the largest cluster
+        torch.bmm(Yt[t0:t1], Ws[: t1 - t0], out=out[t0:t1])
     return out
 
 
-def tiles_accumulate(At: torch.Tensor, Bt: torch.Tensor, tile_cluster: torch.Tensor, K: int,
-                     out_dtype=torch.float64) -> torch.Tensor:
-    """``S[k] = Σ_{tiles of k} A_tᵀ B_t``: ``At [NT, T, D]``, ``Bt [NT, T, r]`` -> ``[K, D, r]``.
+def tiles_accumulate(layout: TileLayout, At: torch.Tensor, Bt: torch.Tensor, out_dtype=torch.float64) -> torch.Tensor:
+    """``S[k] = Σ_{tiles t of k} A_tᵀ B_t``: ``At [NT, T, D]``, ``Bt [NT, T, r]`` -> ``[K, D, r]``.
 
-    Per-tile products in the input dtype, summed over tiles in ``out_dtype`` (index_add_).
-    """
-    NT, T, D = At.shape
-    r = Bt.shape[2]
-    S = torch.zeros((K, D, r), dtype=out_dtype)
+    One ``baddbmm`` per tile group into a prefix view of the cluster-permuted sum (each group
+    adds a few hundred products per cluster in the input dtype), then un-permuted."""
+    D, r = At.shape[2], Bt.shape[2]
     Bt = Bt.to(At.dtype)
-    step = max(1, CHUNK_BYTES // max(1, D * r * At.element_size()))
-    for t0 in range(0, NT, step):  # a handful of chunks, bounded memory
-        t1 = min(NT, t0 + step)
-        St = torch.bmm(At[t0:t1].transpose(1, 2), Bt[t0:t1])
-        S.index_add_(0, tile_cluster[t0:t1], St.to(out_dtype))
+    Ss = torch.zeros((layout.K, D, r), dtype=At.dtype)
+    for t0, t1 in layout.groups:  # one batched GEMM per tile row of the largest cluster
+        c = t1 - t0
+        Ss[:c].baddbmm_(At[t0:t1].transpose(1, 2), Bt[t0:t1])
+    S = torch.empty((layout.K, D, r), dtype=out_dtype)
+    S[layout.corder] = Ss.to(out_dtype)
     return S
+
+
+def segment_matmul(layout: TileLayout, X: torch.Tensor, W: torch.Tensor) -> torch.Tensor:
+    """``out[i] = X[i] @ W[k(i)]``: ``X [n, D]`` (item order), ``W [K, D, r]`` -> ``[n, r]``."""
+    Xt = to_tiles(layout, X)
+    return from_tiles(layout, tiles_bmm(layout, Xt, W))

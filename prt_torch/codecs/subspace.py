@@ -24,15 +24,43 @@ from __future__ import annotations
 
 import torch
 
-from .segment import tiles_accumulate, tiles_bmm
+from .segment import TileLayout, tiles_accumulate, tiles_bmm
 
-__all__ = ["cluster_pca", "total_variance"]
+__all__ = ["cluster_pca", "total_variance", "orthonormalize"]
 
 
-def total_variance(Yt: torch.Tensor, tile_cluster: torch.Tensor, K: int) -> torch.Tensor:
-    """``Σ_{p∈k} ||y_p||²`` per cluster, float64 ``[K]``."""
-    per_tile = Yt.square().sum((1, 2)).double()
-    return torch.zeros(K, dtype=torch.float64).index_add_(0, tile_cluster, per_tile)
+def total_variance(layout: TileLayout, Yt: torch.Tensor) -> torch.Tensor:
+    """``Σ_{p∈k} ||y_p||²`` per cluster, float64 ``[K]`` (no temporary of Yt's size)."""
+    per_tile = torch.linalg.vector_norm(Yt, dim=(1, 2)).double().square()
+    return torch.zeros(layout.K, dtype=torch.float64).index_add_(0, layout.tile_cluster, per_tile)
+
+
+def orthonormalize(A: torch.Tensor, passes: int = 2) -> torch.Tensor:
+    """Orthonormal columns spanning ``A [K, D, r]`` (float64), batched: Q = A V Λ^{-1/2} from the
+    eigen-decomposition of the small Gram AᵀA, twice for accuracy ("eigen-QR", like CholeskyQR2
+    but tolerant of rank deficiency: directions with no energy become zero columns). Used
+    instead of Householder QR, whose batched CPU path is far slower for these shapes."""
+    Q = A
+    for _ in range(passes):
+        G = Q.transpose(1, 2) @ Q
+        lam, V = torch.linalg.eigh(0.5 * (G + G.transpose(1, 2)))
+        tol = lam[:, -1:].clamp_min(1e-300) * (G.shape[-1] * torch.finfo(torch.float64).eps * 64)
+        ok = lam > tol
+        scale = torch.where(ok, lam.clamp_min(1e-300).rsqrt(), torch.zeros_like(lam))
+        Q = Q @ (V * scale[:, None, :])
+    return Q
+
+
+def _test_block(gen: torch.Generator, K: int, D: int, r: int, cache: dict | None) -> torch.Tensor:
+    """Gaussian test block ``[K, D, r]`` float64, drawn once per shape per ``cache`` (one fit):
+    later warm-started refits reuse it (the warm basis carries the subspace; fresh draws add
+    nothing and are not free). Deterministic per seed."""
+    if cache is None:
+        return torch.randn(K, D, r, generator=gen, dtype=torch.float64)
+    key = ("test_block", K, D, r)
+    if key not in cache:
+        cache[key] = torch.randn(K, D, r, generator=gen, dtype=torch.float64)
+    return cache[key]
 
 
 def _top(evals: torch.Tensor, evecs: torch.Tensor, n: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -40,76 +68,63 @@ def _top(evals: torch.Tensor, evecs: torch.Tensor, n: int) -> tuple[torch.Tensor
     return evals[..., -n:].flip(-1).clamp_min(0), evecs[..., -n:].flip(-1)
 
 
-def _eigh_normal_form(Yt, tile_cluster, counts, n, T):
-    NT, _, D = Yt.shape
-    K = counts.numel()
+def _eigh_normal_form(layout, Yt, n):
+    NT, T, D = Yt.shape
+    K = layout.K
+    counts = layout.counts
     basis = torch.zeros(K, n, D, dtype=torch.float64)
     evals = torch.zeros(K, n, dtype=torch.float64)
     if n == 0:
         return basis, evals
     big = counts >= D
-    # clusters with m_k >= D: C^T C (D x D)
+    # clusters with m_k >= D: C^T C (D x D), eigenvectors = PCA vectors (Sloan 2003 §4.1)
     ka = torch.nonzero(big).flatten()
     if ka.numel():
-        tmask = big[tile_cluster]
-        remap = torch.full((K,), -1, dtype=torch.long)
-        remap[ka] = torch.arange(ka.numel())
-        S = tiles_accumulate(Yt[tmask], Yt[tmask], remap[tile_cluster[tmask]], ka.numel())
-        S = 0.5 * (S + S.transpose(1, 2))
-        lam, V = torch.linalg.eigh(S)
+        S = tiles_accumulate(layout, Yt, Yt)[ka]
+        lam, V = torch.linalg.eigh(0.5 * (S + S.transpose(1, 2)))
         lam, V = _top(lam, V, n)
         basis[ka] = V.transpose(1, 2)
         evals[ka] = lam
-    # clusters with 0 < m_k < D: C C^T (m_k x m_k), padded to the largest such cluster
+    # clusters with 0 < m_k < D: C C^T (m_k x m_k); right vectors V^T = D^-1 U^T C
     kb = torch.nonzero((~big) & (counts > 0)).flatten()
     if kb.numel():
-        ntiles = (counts + T - 1) // T
-        tstart = torch.cumsum(ntiles, 0) - ntiles
-        R = int(ntiles[kb].max()) * T
-        rows = tstart[kb, None] * T + torch.arange(R)[None, :]  # [Kb, R] flat rows of each cluster
-        valid = torch.arange(R)[None, :] < (ntiles[kb] * T)[:, None]
-        flat = Yt.reshape(NT * T, D)
-        Cb = flat[rows.clamp_max(NT * T - 1)].double() * valid[..., None]
+        R = int(layout.ntiles[kb].max()) * T
+        rows, valid = layout.cluster_rows(kb, R)
+        Cb = Yt.reshape(NT * T, D)[rows].double() * valid[..., None]
         G = Cb @ Cb.transpose(1, 2)
-        G = 0.5 * (G + G.transpose(1, 2))
-        lam, U = torch.linalg.eigh(G)
+        lam, U = torch.linalg.eigh(0.5 * (G + G.transpose(1, 2)))
         nb = min(n, R)
         lam, U = _top(lam, U, nb)
-        sig = lam.sqrt()
         ok = lam > lam[:, :1].clamp_min(1e-300) * (R * torch.finfo(torch.float64).eps * 16)
-        V = (Cb.transpose(1, 2) @ U) / torch.where(ok, sig, torch.ones_like(sig))[:, None, :]
-        V = V * ok[:, None, :]
+        sig = torch.where(ok, lam, torch.ones_like(lam)).sqrt()
+        V = (Cb.transpose(1, 2) @ U) / sig[:, None, :] * ok[:, None, :]
         basis[kb, :nb] = V.transpose(1, 2)
         evals[kb, :nb] = lam * ok
     return basis, evals
 
 
-def _svd(Yt, tile_cluster, counts, n, T):
-    NT, _, D = Yt.shape
-    K = counts.numel()
+def _svd(layout, Yt, n):
+    NT, T, D = Yt.shape
+    K = layout.K
     basis = torch.zeros(K, n, D, dtype=torch.float64)
     evals = torch.zeros(K, n, dtype=torch.float64)
-    ks = torch.nonzero(counts > 0).flatten()
+    ks = torch.nonzero(layout.counts > 0).flatten()
     if n == 0 or ks.numel() == 0:
         return basis, evals
-    ntiles = (counts + T - 1) // T
-    tstart = torch.cumsum(ntiles, 0) - ntiles
-    R = int(ntiles[ks].max()) * T
-    rows = tstart[ks, None] * T + torch.arange(R)[None, :]
-    valid = torch.arange(R)[None, :] < (ntiles[ks] * T)[:, None]
-    Cb = Yt.reshape(NT * T, D)[rows.clamp_max(NT * T - 1)].double() * valid[..., None]
+    R = int(layout.ntiles[ks].max()) * T
+    rows, valid = layout.cluster_rows(ks, R)
+    Cb = Yt.reshape(NT * T, D)[rows].double() * valid[..., None]
     _, S, Vh = torch.linalg.svd(Cb, full_matrices=False)
     nb = min(n, S.shape[1])
-    lam = S[:, :nb].square()
     ok = S[:, :nb] > S[:, :1].clamp_min(1e-300) * (max(R, D) * torch.finfo(torch.float64).eps * 4)
     basis[ks, :nb] = Vh[:, :nb] * ok[..., None]
-    evals[ks, :nb] = lam * ok
+    evals[ks, :nb] = S[:, :nb].square() * ok
     return basis, evals
 
 
-def _randomized(Yt, tile_cluster, counts, n, gen, init, oversample, power_iters):
+def _randomized(layout, Yt, n, gen, init, oversample, power_iters, cache):
     NT, T, D = Yt.shape
-    K = counts.numel()
+    K = layout.K
     basis = torch.zeros(K, n, D, dtype=torch.float64)
     evals = torch.zeros(K, n, dtype=torch.float64)
     if n == 0:
@@ -118,48 +133,50 @@ def _randomized(Yt, tile_cluster, counts, n, gen, init, oversample, power_iters)
     warm = None
     if init is not None and init.shape[1] > 0:
         warm = init[:, : min(init.shape[1], n)].double().transpose(1, 2)  # [K, D, n0]
-    g = torch.randn(K, D, r, generator=gen, dtype=torch.float64)
-    Q = g if warm is None else torch.cat([warm, g[..., : max(0, r - warm.shape[2])]], 2)
-    Q = torch.linalg.qr(Q).Q
-    for _ in range(power_iters):  # a few power steps (each: 2 tile-GEMMs)
-        Z = tiles_bmm(Yt, Q, tile_cluster)
-        Q = torch.linalg.qr(tiles_accumulate(Yt, Z, tile_cluster, K)).Q
-    if warm is not None:
-        Q = torch.linalg.qr(torch.cat([warm, Q], 2)[..., :D]).Q
-    Z = tiles_bmm(Yt, Q, tile_cluster)
-    H = tiles_accumulate(Z, Z, tile_cluster, K)
-    H = 0.5 * (H + H.transpose(1, 2))
-    lam, U = torch.linalg.eigh(H)
+    n_rand = r if warm is None else max(0, r - warm.shape[2])
+    g = _test_block(gen, K, D, n_rand, cache)
+    if warm is None:
+        Q = orthonormalize(g)
+        for _ in range(max(1, power_iters)):  # power steps (each: 2 tile-GEMMs + a small orth)
+            Q = orthonormalize(tiles_accumulate(layout, Yt, tiles_bmm(layout, Yt, Q)))
+    else:
+        # one power step on [warm, random], then Rayleigh-Ritz on span([warm, S [warm, random]]):
+        # the warm basis stays in the span, so the captured variance cannot drop
+        Q0 = torch.cat([warm, g], 2)
+        SQ = tiles_accumulate(layout, Yt, tiles_bmm(layout, Yt, Q0))
+        Q = orthonormalize(torch.cat([warm, SQ], 2)[..., :D])
+    Z = tiles_bmm(layout, Yt, Q)
+    H = tiles_accumulate(layout, Z, Z)
+    lam, U = torch.linalg.eigh(0.5 * (H + H.transpose(1, 2)))
     nb = min(n, lam.shape[1])
     lam, U = _top(lam, U, nb)
-    V = Q @ U  # [K, D, nb]
-    basis[:, :nb] = V.transpose(1, 2)
+    basis[:, :nb] = (Q @ U).transpose(1, 2)
     evals[:, :nb] = lam
-    # a cluster with fewer points than vectors: drop directions with (numerically) zero variance
+    # fewer points than vectors, or zero columns: drop directions without variance
     small = evals <= evals[:, :1].clamp_min(1e-300) * (D * torch.finfo(Yt.dtype).eps * 16)
     basis[small] = 0
     evals[small] = 0
     return basis, evals
 
 
-def cluster_pca(Yt: torch.Tensor, tile_cluster: torch.Tensor, counts: torch.Tensor, n: int, solver: str,
-                gen: torch.Generator | None = None, init: torch.Tensor | None = None,
-                oversample: int = 8, power_iters: int = 4) -> tuple[torch.Tensor, torch.Tensor]:
+def cluster_pca(layout: TileLayout, Yt: torch.Tensor, n: int, solver: str, gen: torch.Generator | None = None,
+                init: torch.Tensor | None = None, oversample: int = 8, power_iters: int = 3,
+                cache: dict | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Top-``n`` PCA vectors of every cluster: ``(basis [K, n, D], evals [K, n])`` float64.
 
     Args:
-        Yt: ``[NT, T, D]`` centred, sqrt(weight)-scaled rows in tile order (float32/64).
-        tile_cluster: ``int64 [NT]``; counts: ``int64 [K]`` points per cluster.
+        layout: the tile layout of the clusters; Yt: ``[NT, T, D]`` centred,
+            sqrt(weight)-scaled rows in that tile order (float32/64; padding rows zero).
         solver: 'eigh' | 'svd' | 'randomized' (see module docstring).
         init: ``[K, n0, D]`` warm-start basis for 'randomized' (its span is kept).
+        cache: a dict owned by one fit, to reuse the random test block across refits.
     """
-    T = Yt.shape[1]
     if solver == "eigh":
-        return _eigh_normal_form(Yt, tile_cluster, counts, n, T)
+        return _eigh_normal_form(layout, Yt, n)
     if solver == "svd":
-        return _svd(Yt, tile_cluster, counts, n, T)
+        return _svd(layout, Yt, n)
     if solver == "randomized":
         if gen is None:
             gen = torch.Generator().manual_seed(0)
-        return _randomized(Yt, tile_cluster, counts, n, gen, init, oversample, power_iters)
+        return _randomized(layout, Yt, n, gen, init, oversample, power_iters, cache)
     raise ValueError(f"solver={solver!r}; accepted: 'eigh', 'svd', 'randomized'")
