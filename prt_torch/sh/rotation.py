@@ -83,15 +83,16 @@ def _band_tables(l: int) -> tuple[torch.Tensor, ...]:
 
 
 def _aux_p(r: torch.Tensor, i: int, prev: torch.Tensor, l: int) -> torch.Tensor:
-    """P(i, l, a, n) for all a = -(l-1)..l-1 and n = -l..l, plus a zero row: ``[B, 2l, 2l+1]``."""
-    B = prev.shape[0]
-    out = prev.new_zeros(B, 2 * l, 2 * l + 1)
-    ri1 = r[:, i + 1, 2, None]  # r[i][1]
-    rim1 = r[:, i + 1, 0, None]  # r[i][-1]
-    ri0 = r[:, i + 1, 1, None, None]  # r[i][0]
-    out[:, : 2 * l - 1, 1 : 2 * l] = ri0 * prev
-    out[:, : 2 * l - 1, 2 * l] = ri1 * prev[:, :, -1] - rim1 * prev[:, :, 0]
-    out[:, : 2 * l - 1, 0] = ri1 * prev[:, :, 0] + rim1 * prev[:, :, -1]
+    """P(i, l, a, n) for a = -(l-1)..l-1 and n = -l..l, plus a zero row: ``[2l, 2l+1, B]``.
+
+    Batch-last layout: every operation below is a contiguous run over the B rotations.
+    ``r`` is the band-1 block ``[3, 3, B]``, ``prev`` band l-1 ``[2l-1, 2l-1, B]``."""
+    B = prev.shape[-1]
+    out = prev.new_zeros(2 * l, 2 * l + 1, B)
+    ri1, rim1, ri0 = r[i + 1, 2], r[i + 1, 0], r[i + 1, 1]  # r[i][1], r[i][-1], r[i][0]: [B]
+    torch.mul(prev, ri0, out=out[: 2 * l - 1, 1 : 2 * l])
+    out[: 2 * l - 1, 2 * l] = ri1 * prev[:, -1] - rim1 * prev[:, 0]
+    out[: 2 * l - 1, 0] = ri1 * prev[:, 0] + rim1 * prev[:, -1]
     return out
 
 
@@ -123,9 +124,28 @@ def rotation_blocks(R: torch.Tensor, bands: int) -> list[torch.Tensor]:
                 f"R must hold proper rotations (RᵀR = I, det = +1); max |RRᵀ - I| = {float(dev):.3g}, "
                 f"min det = {float(det.min()):.3g}; accepted: orthonormal matrices with det +1"
             )
-    blocks = [torch.ones(B, 1, 1, dtype=R.dtype, device=R.device)]
+    r_all = Rf[:, _PERM][:, :, _PERM]  # band-1 blocks, rows/cols in (y, z, x) order: [B, 3, 3]
+    out = [R.new_empty(B, 2 * l + 1, 2 * l + 1) for l in range(bands)]
+    # Rotations are processed in chunks small enough that a band's intermediates stay in cache
+    # (the recurrence is memory-bound on full-batch temporaries); the loop is over chunks and
+    # bands, each step batched over the chunk in a batch-last layout [2l+1, 2l+1, b].
+    for s0 in range(0, B, _CHUNK):
+        for l, blk in enumerate(_blocks_batch_last(r_all[s0 : s0 + _CHUNK], bands)):
+            out[l][s0 : s0 + _CHUNK] = blk.permute(2, 0, 1)
+    return [b.reshape(*lead, b.shape[1], b.shape[2]) for b in out]
+
+
+#: Rotations per chunk in :func:`rotation_blocks` (measured: 100k rotations at 6 bands,
+#: float64, 1 thread, busy machine: 1.9 s unchunked, 0.75–0.82 s in chunks of 2048–4096).
+_CHUNK = 4096
+
+
+def _blocks_batch_last(r_b: torch.Tensor, bands: int) -> list[torch.Tensor]:
+    """IR recurrence for a chunk of band-1 blocks ``[b, 3, 3]``: list of ``[2l+1, 2l+1, b]``."""
+    b = r_b.shape[0]
+    r = r_b.permute(1, 2, 0).contiguous()
+    blocks = [r.new_ones(1, 1, b)]
     if bands > 1:
-        r = Rf[:, _PERM][:, :, _PERM]  # band-1 block, rows/cols in (y, z, x) order
         blocks.append(r)
         for l in range(2, bands):
             rU, rV1, rVm, rW1, rWm, cU, cV1, cVm, cW1, cWm = _band_tables(l)
@@ -133,16 +153,23 @@ def rotation_blocks(R: torch.Tensor, bands: int) -> list[torch.Tensor]:
             P0 = _aux_p(r, 0, prev, l)
             P1 = _aux_p(r, 1, prev, l)
             Pm = _aux_p(r, -1, prev, l)
-            t = lambda c: c.to(R.dtype)
-            M = (
-                t(cU) * P0[:, rU]
-                + t(cV1) * P1[:, rV1]
-                + t(cVm) * Pm[:, rVm]
-                + t(cW1) * P1[:, rW1]
-                + t(cWm) * Pm[:, rWm]
-            )
+            t = lambda c: _coef(c, r.dtype)
+            M = t(cU) * P0[rU]
+            M.addcmul_(t(cV1), P1[rV1]).addcmul_(t(cVm), Pm[rVm]).addcmul_(t(cW1), P1[rW1]).addcmul_(t(cWm), Pm[rWm])
             blocks.append(M)
-    return [b.reshape(*lead, b.shape[-2], b.shape[-1]) for b in blocks]
+    return blocks
+
+
+_COEF: dict = {}
+
+
+def _coef(c: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+    """Coefficient table as ``[2l+1, 2l+1, 1]`` in ``dtype`` (cached per table and dtype)."""
+    key = (id(c), dtype)
+    v = _COEF.get(key)
+    if v is None:
+        v = _COEF[key] = c.to(dtype)[:, :, None]
+    return v
 
 
 def blocks_to_dense(blocks: list[torch.Tensor]) -> torch.Tensor:
