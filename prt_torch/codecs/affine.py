@@ -383,20 +383,15 @@ def _taps_relight(consts: torch.Tensor, W: torch.Tensor, view: tuple) -> torch.T
     """Lehtinen & Kautz 2003 eq. (13): ``Σ_{j∈taps} g_j(v) Σ_k w_{p,k} (A_k l)_j``.
 
     ``consts [J, n_out, C]`` = A_k·l computed once per light; ``W [P, J]``; taps
-    ``(idx [P, t], g [P, t])``. Per point: a gather of t·J·C constants and t·J multiply-adds
-    per colour (4K for the tent basis). Chunks of points keep the gathered block in cache.
+    ``(idx [P, t], g [P, t])``. Per point: the t tapped rows of the constants, weighted by g
+    (one fused gather-and-sum, ``embedding_bag``), then J multiply-adds per colour with the
+    point's weights — t·J + J per colour (4K + K for the tent basis). Returns ``[P, C]``.
     """
     idx, g = view
     J, n_out, C = consts.shape
     Lk = consts.permute(1, 0, 2).reshape(n_out, J * C).contiguous()  # row j: (A_k l)_j for all k
-    P = W.shape[0]
-    out = torch.empty(P, C, dtype=torch.float32)
-    step = 8192
-    for i in range(0, P, step):  # a handful of chunks (cache-sized), not a loop over points
-        G = Lk[idx[i:i + step]]  # [p, t, J*C]
-        s = torch.bmm(g[i:i + step, None, :], G).view(-1, J, C)  # Σ_t g_t (A_k l)_{j_t}
-        out[i:i + step] = torch.bmm(W[i:i + step, None, :], s).view(-1, C)
-    return out
+    s = torch.nn.functional.embedding_bag(idx, Lk, per_sample_weights=g, mode="sum").view(-1, J, C)
+    return torch.einsum("pj,pjc->pc", W, s)
 
 
 def classify_all(Xc: torch.Tensor, xx: torch.Tensor, means: torch.Tensor | None, basis: torch.Tensor,

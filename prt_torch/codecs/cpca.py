@@ -51,7 +51,7 @@ _VQ = {
     "init": ("k-means++", p_choice("k-means++", "random"), "seeding of the cluster centres"),
     "init_sample": (None, p_int(1, allow_none=True),
                     "k-means++ draws its seeds from a random subset of this many points "
-                    "(default: all points if P ≤ 64·clusters, else 64·clusters; each seed costs one pass over the subset)"),
+                    "(default: all points for vq; 64·clusters for the initial clustering of cpca; each seed costs one pass)"),
 }
 _PCA = {
     "vectors": (8, p_int(0), "PCA vectors n' per cluster"),
@@ -197,7 +197,7 @@ class _VQMixin:
         best = None
         for r in range(self.params["n_init"]):  # restarts: a handful, each a full batched fit
             if self.params["init"] == "k-means++":
-                m = self.params["init_sample"] or 64 * K
+                m = self.params["init_sample"] or (Xc.shape[0] if final else 64 * K)
                 if m < Xc.shape[0]:
                     sub = torch.randperm(Xc.shape[0], generator=gen)[:m]
                     idx = sub[kmeans_pp(Xc[sub], K, gen, None if w is None else w[sub], xx=xx[sub])]
