@@ -148,6 +148,15 @@ def plot_results(results_list: list[dict], out_dir: Path, labels: list[str] | No
     return paths
 
 
+def _config_arg(r: dict) -> str:
+    """How a user names this run's config: a configs/ name, else the file path."""
+    src = r.get("config_source")
+    if not src:
+        return r["name"]
+    p = Path(src)
+    return p.stem if p.parent.name == "configs" else str(p)
+
+
 def markdown(results: dict, figures: list[str], renders: list[str]) -> str:
     r = results
     m = r["machine"]
@@ -161,7 +170,7 @@ def markdown(results: dict, figures: list[str], renders: list[str]) -> str:
         f"Machine: {m['cpu']}, {m['cores']} cores, torch {m['torch']} with {m['torch_threads']} threads, "
         f"load average {m.get('load_average_1min', float('nan')):.1f} at the start"
         + (" — **busy machine: throughput figures are unreliable**." if m.get("load_average_1min", 0) > (m.get("cores") or 1) else "."),
-        f"Reproduce: `prt bench {r.get('config_source') or r['name']}` (config recorded in results.json).",
+        f"Reproduce: `prt bench {_config_arg(r)}` (the fully resolved config is recorded in results.json).",
         "",
         f"Uncompressed relighting (the peer): {unc['vertices_per_s'] / 1e6:.2f} M vertices/s, {unc['fps']:.1f} fps "
         f"(spread {unc['relight_spread']:.0%}), {unc['bytes_per_vertex']:.0f} B/vertex.",
