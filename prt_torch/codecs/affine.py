@@ -303,6 +303,15 @@ class AffineCodec(Codec):
         W = self._weights1(enc, n)  # [P, J]
         if K == 1 and isinstance(view, tuple):
             return _taps_relight(consts[0], W, view)
+        if isinstance(view, tuple) and self.means_ is not None:
+            # sparse view (MRT tents): gather only the k tapped outputs of each point's cluster
+            # constants — k·J loads per point instead of n_out·J multiply-adds, then one bmm.
+            idx, w = view
+            lab = self.labels_of(enc)
+            rows = ((lab[:, None] * J + torch.arange(J, device=lab.device)) * n_out)[:, :, None] + idx[:, None, :]
+            vals = consts.reshape(-1, C)[rows.reshape(P, -1)]  # [P, J·k, C]
+            cw = (W[:, :, None] * w[:, None, :]).reshape(P, 1, -1)  # [P, 1, J·k]
+            return torch.bmm(cw, vals).squeeze(1)
         F = n_out * C
         if K == 1:
             out = W @ consts[0].reshape(J, F)
