@@ -61,8 +61,10 @@ def transfer_params(cfg: dict) -> dict:
     if t["kind"] == "diffuse":
         p.update(bounces=t["bounces"], shadows=t["shadows"])
     else:  # glossy / mrt trace visibility unless told not to; 'auto' keeps the default
-        if t["shadows"] in ("off", "none", False):
+        if t["shadows"] in ("off", "none", "never", False):
             p["shadows"] = False
+        if t["bounces"]:
+            p["bounces"] = t["bounces"]
     p.update(t.get("params") or {})
     return p
 

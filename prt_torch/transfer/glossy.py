@@ -24,6 +24,8 @@ pass would add Σ over hit points of the neighbours' exit radiance, left for lat
 """
 from __future__ import annotations
 
+import dataclasses
+
 import math
 import os
 import time
@@ -106,24 +108,81 @@ class _Directions:
         self.dirs, w = uniform_sphere(samples, seed)  # [N,3] float64, weights 4π/N
         self.weight = float(w[0])
         Y = eval_sh(self.dirs, bands)
+        self.Y = Y  # [N, n²]
         self.YY = (Y[:, :, None] * Y[:, None, :]).reshape(samples, -1)  # [N, n⁴]
         self.n2 = bands * bands
 
 
 def transferred_radiance(caster: RayCaster | None, points: torch.Tensor, normals: torch.Tensor,
-                         directions: _Directions) -> tuple[torch.Tensor, int]:
+                         directions: _Directions, bounce: "Bounce | None" = None) -> tuple[torch.Tensor, int]:
     """T_p for a chunk of points (module docstring): ``[k, n², n²]`` float64 and rays traced.
-    ``caster=None`` skips visibility (unshadowed: only the tangent-plane cut)."""
+    ``caster=None`` skips visibility (unshadowed: only the tangent-plane cut).
+
+    ``bounce``: interreflection. A direction s blocked by the mesh brings the exit radiance of
+    the surface point q it hits, t_q·l, where t_q is the diffuse transfer at q (with its own
+    shadowing and one bounce fewer), interpolated from the hit triangle's vertices by
+    barycentrics; the backs of triangles are black (as in the diffuse bounces). So
+    T_p = Σ_s w_s [V(p,s) y(s) y(s)ᵀ + (1 - V(p,s)) y(s) t_q(s)ᵀ] over n·s > 0
+    (Sloan et al. 2002 §5's interreflected transfer, with diffuse reflectors)."""
     cos = normals.to(torch.float64) @ directions.dirs.T  # [k, N]
     i, j = torch.nonzero(cos > 0, as_tuple=True)
     W = torch.zeros_like(cos)
+    T_ind = None
     if caster is not None and i.numel():
-        vis = ~caster.occluded(points[i], directions.dirs[j], normals=normals[i])
+        if bounce is None:
+            vis = ~caster.occluded(points[i], directions.dirs[j], normals=normals[i])
+        else:
+            hit, tri, bary, _ = caster.intersect(points[i], directions.dirs[j], normals=normals[i])
+            hit, tri, bary = torch.as_tensor(hit), torch.as_tensor(tri), torch.as_tensor(bary)
+            vis = ~hit
+            h = torch.nonzero(hit).flatten()
+            th = tri[h]
+            front = (bounce.face_normals[th] * directions.dirs[j[h]]).sum(-1) < 0
+            h, th = h[front], th[front]
+            beta = torch.stack([1 - bary[h, 0] - bary[h, 1], bary[h, 0], bary[h, 1]], 1)  # [H, 3]
+            t_hit = (beta[:, :, None] * bounce.transfer[bounce.faces[th]]).sum(1)  # [H, n²]
+            A = torch.zeros(cos.shape[0], cos.shape[1], t_hit.shape[1], dtype=torch.float64)
+            A[i[h], j[h]] = t_hit  # [k, N, n²]: radiance transfer arriving along each blocked direction
+            T_ind = torch.matmul((directions.Y * directions.weight).T, A)  # [k, n², n²], one batched GEMM
         W[i[vis], j[vis]] = directions.weight
     else:
         W[i, j] = directions.weight
     T = (W @ directions.YY).reshape(-1, directions.n2, directions.n2)
+    if T_ind is not None:
+        T += T_ind
     return T, int(i.numel()) if caster is not None else 0
+
+
+@dataclasses.dataclass
+class Bounce:
+    """What the glossy interreflection needs: faces ``[F,3]`` int64, their unit geometric
+    normals ``[F,3]`` float64, and the diffuse transfer of every vertex ``[V, n²]`` float64
+    (exit radiance t_q·l of a diffuse surface point, albedo folded in)."""
+
+    faces: torch.Tensor
+    face_normals: torch.Tensor
+    transfer: torch.Tensor
+
+
+#: Luminance weights (Rec. 709) used to make a coloured bounce table monochrome: glossy
+#: transfer matrices are one per vertex, shared by the colour channels of the light.
+_LUMA = torch.tensor([0.2126, 0.7152, 0.0722], dtype=torch.float64)
+
+
+def bounce_table(mesh: Mesh, bands: int, samples: int, seed: int, bounces: int, offset: float) -> Bounce:
+    """Diffuse transfer with ``bounces - 1`` bounces for every vertex (the reflectors seen by the
+    glossy vertices), via :func:`prt_torch.transfer.diffuse.precompute_diffuse`."""
+    from .diffuse import precompute_diffuse
+
+    d = precompute_diffuse(mesh, bands, samples, bounces=bounces - 1, seed=seed, shadows="always",
+                           fold_albedo=True, offset=offset).data.to(torch.float64)
+    if d.ndim == 3:  # [V, 3, n²] coloured albedo -> luminance
+        d = torch.einsum("vcn,c->vn", d, _LUMA)
+    v = mesh.vertices.to(torch.float64)
+    f = mesh.faces.to(torch.int64)
+    fn = torch.linalg.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]], dim=-1)
+    fn = fn / fn.norm(dim=-1, keepdim=True).clamp_min(1e-300)
+    return Bounce(faces=f, face_normals=fn, transfer=d)
 
 
 def rotate_rows(T: torch.Tensor, blocks: list[torch.Tensor]) -> torch.Tensor:
@@ -153,7 +212,7 @@ def _run_exit_transfer(
     kind: str, mesh: Mesh, left: torch.Tensor, index: torch.Tensor, bands: int, samples: int, seed: int,
     shadows: bool, chunk_size: int | None, workers: int | None, offset: float, state_dir: Any, resume: bool,
     keep_state: bool, progress: bool, callback: Callable | None, max_memory: int | None, fingerprint: dict,
-    vertices: torch.Tensor | None,
+    vertices: torch.Tensor | None, bounces: int = 0,
 ) -> tuple[torch.Tensor, dict]:
     """Shared driver: data[p] = left[index[p]] @ R_p T_p over chunks of vertices (``left``:
     ``[U, n_out, n²]`` float64, e.g. B or G⁻¹CB; None-like identity when left is empty)."""
@@ -178,10 +237,17 @@ def _run_exit_transfer(
                 workers = default_workers() if V * rays_per_vertex >= 4_000_000 else 1
             caster = RayCaster(mesh, workers=workers, offset=offset)
             meta["ray_eps"] = caster.eps
+        bounce = None
+        if bounces:
+            if not shadows:
+                raise ValueError("bounces > 0 needs shadows=True (interreflected light arrives along blocked directions)")
+            tb = time.perf_counter()
+            bounce = bounce_table(mesh, bands, samples, seed, bounces, offset)
+            meta["bounce_table_seconds"] = time.perf_counter() - tb
 
         def compute(a: int, b: int) -> dict[str, torch.Tensor]:
             idx = sel[a:b]
-            T, rays = transferred_radiance(caster, mesh.vertices[idx], mesh.normals[idx], directions)
+            T, rays = transferred_radiance(caster, mesh.vertices[idx], mesh.normals[idx], directions, bounce)
             if left.numel():
                 out = left[index[idx]] @ rotate_rows(T, rotation_blocks(F_all[idx], bands))  # B_p R_p T_p
             else:
@@ -254,6 +320,7 @@ def precompute_glossy(
     samples: int = 1024,
     seed: int = 0,
     shadows: bool = True,
+    bounces: int = 0,
     vertices: torch.Tensor | None = None,
     chunk_size: int | None = None,
     workers: int | None = 1,
@@ -278,6 +345,10 @@ def precompute_glossy(
             :func:`prt_torch.brdf.brdf_matrix` (default least squares, Sloan 2003 eq. (1)).
         samples: stratified sphere directions per vertex (about half are traced).
         shadows: trace visibility (False: only the tangent-plane cut, no rays).
+        bounces: interreflection bounces (0: shadowed direct light only). Blocked directions bring
+            the exit radiance of the diffuse surface they hit, from a diffuse transfer with
+            ``bounces - 1`` bounces (see :func:`transferred_radiance`); coloured albedo is
+            reduced to luminance since the glossy matrices are shared by the colour channels.
         max_memory: refuse up front if the estimate exceeds it (default 60% of RAM).
         state_dir/resume/keep_state/progress/callback: the resumable chunk runner.
     Returns:
@@ -285,6 +356,7 @@ def precompute_glossy(
         ``meta['out_index']`` (flat SH index of each row), ``meta['brdf']``.
     """
     bands, samples, seed, offset = _common_checks(bands, samples, seed, offset)
+    bounces = check_int("bounces", bounces, 0, 16)
     bands_out = bands if bands_out is None else check_int("bands_out", bands_out, 1, MAX_GLOSSY_BANDS)
     brdf = _brdf_for(mesh, brdf)
     check_frames(mesh)
@@ -306,13 +378,14 @@ def precompute_glossy(
     fp = {"kind": "glossy", "mesh_hash": mesh.content_hash(), "bands": bands, "bands_out": bands_out,
           "exit": exit, "brdf": brdf.meta() if exit else None, "projection": projection, "drop_out": drop_out,
           "rcond": rcond, "window": window, "window_width": window_width, "samples": samples, "seed": seed,
-          "shadows": shadows, "offset": offset, "quad_bands": quad_bands,
+          "shadows": shadows, "bounces": bounces, "offset": offset, "quad_bands": quad_bands,
           "vertices": None if sel is None else sel.tolist()}
     data, run_meta = _run_exit_transfer("glossy", mesh, B, index, bands, samples, seed, shadows, chunk_size, workers,
-                                        offset, state_dir, resume, keep_state, progress, callback, max_memory, fp, sel)
+                                        offset, state_dir, resume, keep_state, progress, callback, max_memory, fp, sel,
+                                        bounces=bounces)
     meta = dict(run_meta)
     meta.update(
-        bands=bands, bands_in=bands, bands_out=bands_out, samples=samples, seed=seed, shadows=shadows, bounces=0,
+        bands=bands, bands_in=bands, bands_out=bands_out, samples=samples, seed=seed, shadows=shadows, bounces=bounces,
         quantity="exit" if exit else "transferred", frame="local" if exit else "global",
         matrix_shape=[int(data.shape[1]), int(data.shape[2])], out_index=out_idx.tolist(),
         projection=projection if exit else None, drop_out=[list(d) for d in (drop_out or [])],
@@ -341,6 +414,7 @@ def precompute_mrt(
     samples: int = 1024,
     seed: int = 0,
     shadows: bool = True,
+    bounces: int = 0,
     vertices: torch.Tensor | None = None,
     chunk_size: int | None = None,
     workers: int | None = 1,
@@ -362,6 +436,7 @@ def precompute_mrt(
     ``bands_out`` (m), ``cond_G`` and ``matrix_shape``.
     """
     bands, samples, seed, offset = _common_checks(bands, samples, seed, offset)
+    bounces = check_int("bounces", bounces, 0, 16)
     bands_out = check_int("bands_out", bands_out, 1, MAX_GLOSSY_BANDS)
     M = check_int("M (tents per side)", M, 2, MAX_TENTS)
     brdf = _brdf_for(mesh, brdf)
@@ -379,14 +454,15 @@ def precompute_mrt(
     sel = None if vertices is None else torch.as_tensor(vertices, dtype=torch.int64)
     fp = {"kind": "mrt", "mesh_hash": mesh.content_hash(), "bands": bands, "bands_out": bands_out, "M": M,
           "brdf": brdf.meta(), "window": window, "window_width": window_width, "samples": samples, "seed": seed,
-          "shadows": shadows, "offset": offset, "quad_bands": quad_bands,
+          "shadows": shadows, "bounces": bounces, "offset": offset, "quad_bands": quad_bands,
           "vertices": None if sel is None else sel.tolist()}
     data, run_meta = _run_exit_transfer("mrt", mesh, W, index, bands, samples, seed, shadows, chunk_size, workers,
-                                        offset, state_dir, resume, keep_state, progress, callback, max_memory, fp, sel)
+                                        offset, state_dir, resume, keep_state, progress, callback, max_memory, fp, sel,
+                                        bounces=bounces)
     meta = dict(run_meta)
     meta.update(
         bands=bands, bands_in=bands, bands_out=bands_out, M=M, cond_G=basis.cond_G_, samples=samples, seed=seed,
-        shadows=shadows, bounces=0, quantity="exit", frame="local", basis="tent (Shirley-Chiu concentric map)",
+        shadows=shadows, bounces=bounces, quantity="exit", frame="local", basis="tent (Shirley-Chiu concentric map)",
         matrix_shape=[M * M, bands * bands], brdf=brdf.meta(), window=window, brdf_seconds=t_brdf,
         materials=int(B.shape[0]), vertices=None if sel is None else sel.tolist(),
         normalisation="exit radiance towards local view v: sum_j g_j(v) (data[p] @ l)[j] over the 4 tents at v",
@@ -463,7 +539,7 @@ def precompute_from_args(mesh: Mesh, args) -> Transfer:
         mesh, args.bands, args.bands_out, brdf=brdf_from_args(args), exit=not args.transferred,
         projection=args.projection, drop_out=[(1, 0)] if args.drop_10 else None, rcond=args.rcond, window=args.window,
         window_width=args.window_width, quad_bands=args.quad_bands, samples=args.samples, seed=args.seed,
-        shadows=args.shadows != "never", chunk_size=args.chunk, workers=args.workers,
+        shadows=args.shadows != "never", bounces=args.bounces, chunk_size=args.chunk, workers=args.workers,
         max_memory=None if args.memory_limit is None else int(args.memory_limit * (1 << 30)),
         state_dir=args.state_dir, resume=args.resume, progress=not args.no_progress,
     )

@@ -336,7 +336,7 @@ def precompute_from_args(mesh, args):
     return precompute_mrt(
         mesh, args.bands, 8 if args.bands_out is None else args.bands_out, args.tents, brdf=brdf_from_args(args),
         window=args.window, window_width=args.window_width, quad_bands=args.quad_bands, samples=args.samples,
-        seed=args.seed, shadows=args.shadows != "never", chunk_size=args.chunk, workers=args.workers,
+        seed=args.seed, shadows=args.shadows != "never", bounces=args.bounces, chunk_size=args.chunk, workers=args.workers,
         max_memory=None if args.memory_limit is None else int(args.memory_limit * (1 << 30)),
         state_dir=args.state_dir, resume=args.resume, progress=not args.no_progress,
     )
