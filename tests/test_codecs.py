@@ -77,15 +77,15 @@ def test_registry_names_and_describe():
 @pytest.mark.parametrize("name, params, match", [
     ("nope", {}, "unknown codec 'nope'"),
     ("cpca", {"clustres": 8}, r"unknown parameter\(s\) \['clustres'\]"),
-    ("cpca", {"clusters": 0}, "clusters=0 is out of range"),
-    ("cpca", {"clusters": 2.5}, "clusters must be an integer"),
-    ("pca", {"vectors": -1}, "vectors=-1 is out of range"),
-    ("cpca", {"method": "magic"}, "method='magic' is not accepted"),
+    ("cpca", {"clusters": 0}, r"cpca: clusters=0; accepted: an int in \[1, inf\)"),
+    ("cpca", {"clusters": 2.5}, "clusters=2.5; accepted: an int"),
+    ("pca", {"vectors": -1}, "vectors=-1; accepted"),
+    ("cpca", {"method": "magic"}, "method='magic'; accepted: one of 'static', 'iterative', 'adaptive'"),
     ("cpca", {"budget": 4.0}, "budget=4.0 applies only to method='adaptive'"),
     ("cpca_adaptive", {"vectors": 4, "budget": 9.0, "max_vectors": 8}, "cannot be met"),
     ("cpca_iterative", {"method": "static"}, "fixes method='iterative'"),
-    ("vq", {"tol": float("nan")}, "tol=nan is out of range"),
-    ("pca", {"center": "yes"}, "center must be true or false"),
+    ("vq", {"tol": float("nan")}, "tol=nan; accepted"),
+    ("pca", {"center": "yes"}, "center='yes'; accepted: true or false"),
 ])
 def test_get_rejects_bad_names_and_params(name, params, match):
     with pytest.raises((ValueError, TypeError), match=match):

@@ -1,5 +1,6 @@
-"""Compression of PRT signals behind one interface (issue 6): VQ, PCA, clustered PCA (static,
-iterative, adaptive; Sloan 2003 §3.3–4) and MRT-PCA (Lehtinen & Kautz 2003 §6).
+"""Compression of PRT signals behind one interface: VQ, PCA, clustered PCA (static, iterative,
+adaptive; Sloan 2003 §3.3–4) and MRT-PCA (Lehtinen & Kautz 2003 §6). Every codec is a
+scikit-learn estimator (``get_params``/``set_params``/``clone``, ``fit`` returns self, ``score``).
 
     >>> from prt_torch import codecs
     >>> codec = codecs.get("cpca", clusters=64, vectors=8)          # validated, no work yet
@@ -8,16 +9,16 @@ iterative, adaptive; Sloan 2003 §3.3–4) and MRT-PCA (Lehtinen & Kautz 2003 §
     >>> codec.storage(enc)["compression_ratio"]
     >>> codec.save("out.prt", enc); codec2, enc2 = codecs.load("out.prt")
 
-Names: ``codecs.available()``; parameters of one: ``codecs.describe(name)``. File layout:
-docs/codecs.md.
+Names: ``codecs.available()``; parameters of one: ``codecs.describe(name)``. File layout and
+use from other pipelines (numpy arrays, GridSearchCV): docs/codecs.md.
 """
-from .base import (CODEC_FORMAT_VERSION, Codec, ConvergenceError, ConvergenceWarning, Encoded, Param, available,
+from .base import (CODEC_FORMAT_VERSION, Codec, ConvergenceError, ConvergenceWarning, Encoded, available,
                    describe, get, load, register)
 from .affine import AffineCodec, label_dtype
-from .cpca import CPCA, MRTPCA, PCA, VQ
+from .cpca import CPCA, MRTPCA, PCA, VQ, CPCAAdaptive, CPCAIterative, CPCAStatic
 
 __all__ = [
-    "Codec", "Encoded", "Param", "AffineCodec", "VQ", "PCA", "CPCA", "MRTPCA",
+    "Codec", "Encoded", "AffineCodec", "VQ", "PCA", "CPCA", "CPCAStatic", "CPCAIterative", "CPCAAdaptive", "MRTPCA",
     "register", "get", "available", "describe", "load", "label_dtype",
     "ConvergenceWarning", "ConvergenceError", "CODEC_FORMAT_VERSION",
 ]

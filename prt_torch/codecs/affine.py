@@ -23,10 +23,12 @@ from __future__ import annotations
 
 import math
 import time
+import weakref
 from typing import Any
 
 import torch
 
+from ..params import Boolean, Interval, Options
 from .base import (Codec, Encoded, check_light, check_matrix_shape, check_signal, check_view, check_weights)
 from .kmeans import row_chunk
 from .segment import from_tiles, segment_matmul, tile_layout, tiles_bmm, to_tiles
@@ -53,6 +55,11 @@ class AffineCodec(Codec):
     """
 
     centered: bool = True  # fit an affine (mean + vectors) model; False: linear (no mean)
+    _parameter_constraints: dict[str, list] = {
+        "seed": [Interval(int, 0, None)],
+        "fit_dtype": [Options("auto", "float32", "float64")],
+        "strict": [Boolean()],
+    }
 
     # ----------------------------------------------------------------- fit
     def _check_data(self, P: int, D: int, matrix_shape) -> None:
@@ -70,10 +77,13 @@ class AffineCodec(Codec):
             return torch.float64
         return torch.float32
 
-    def fit(self, X: torch.Tensor, weights: torch.Tensor | None = None, matrix_shape=None) -> "AffineCodec":
-        """Fit on ``X [P, D]`` (float32/64, finite), optional ``weights [P]`` ≥ 0 and
-        ``matrix_shape=(n_out, n_in)``. All parameter/data checks happen before any work."""
-        X = check_signal("X", X)
+    def fit(self, X, y=None, weights=None, matrix_shape=None) -> "AffineCodec":
+        """Fit on ``X [P, D]`` (float32/64 tensor or numpy array, finite), optional ``weights
+        [P]`` ≥ 0 (by keyword) and ``matrix_shape=(n_out, n_in)``; ``y`` is ignored
+        (scikit-learn convention). Parameters are validated first (``_parameter_constraints``,
+        then ``_check_params``); all parameter/data checks happen before any work. Returns self."""
+        self._validate()
+        X_in, X = X, check_signal("X", X)
         P, D = X.shape
         w = check_weights(weights, P)
         ms = check_matrix_shape(matrix_shape, D)
@@ -108,7 +118,8 @@ class AffineCodec(Codec):
         # training encoding, with the fit's float64 model (coefficients = B_k (x_p - x_0^k))
         coeffs = self._project(Xc, labels, res["means"], basis, dtype)
         enc = self._make_encoded(labels, coeffs)
-        self._train = (_key(X), enc)
+        # the training encoding, returned by encode(X) while X (the object passed in) is alive
+        self._train = (_key(X), weakref.ref(X_in), enc)
         info = dict(res.get("info", {}))
         info["seconds"] = time.perf_counter() - t0
         info["fit_dtype"] = str(dtype).replace("torch.", "")
@@ -200,8 +211,8 @@ class AffineCodec(Codec):
         if X.shape[1] != self.D_:
             raise ValueError(f"X has D={X.shape[1]}; this codec was fitted with D={self.D_}")
         train = getattr(self, "_train", None)
-        if train is not None and train[0] == _key(X):
-            return train[1]
+        if train is not None and train[0] == _key(X) and train[1]() is not None:
+            return train[2]
         dtype = torch.float64 if X.dtype == torch.float64 else torch.float32
         off = self.means_.double().mean(0) if self.means_ is not None else torch.zeros(self.D_, dtype=torch.float64)
         Xc = (X.double() - off).to(dtype)

@@ -1,9 +1,13 @@
-"""The codec interface, its parameter validation, the registry, and the on-disk layout.
+"""The codec interface, its parameters, the registry, and the on-disk layout.
 
 A codec compresses a surface signal ``X [P, D]`` (Sloan 2003 §3.3: an n-dimensional signal
-x_p at P surface points; D = n) and relights straight from the compressed form. In the
-scikit-learn spirit a codec is configured in ``__init__`` (parameters validated there, before
-any work), learns in ``fit`` (fitted state in attributes ending in ``_``) and then
+x_p at P surface points; D = n) and relights straight from the compressed form. A codec is a
+scikit-learn estimator (``sklearn.base.BaseEstimator``): ``__init__`` only stores its keyword
+parameters (``get_params``/``set_params``/``clone`` work), the accepted values are declared once
+per class in ``_parameter_constraints`` (the vocabulary of :mod:`prt_torch.params`) and checked
+by ``codecs.get`` and at the start of ``fit``; ``fit`` learns (fitted state in attributes ending
+in ``_``) and returns the codec; ``score(X)`` is minus the mean per-point squared
+reconstruction error. Then
 
 * ``encode(X) -> Encoded``            per-point codes (weights, cluster indices, ...);
 * ``decode(enc) -> [P, D] float32``    the approximation x̃_p;
@@ -17,28 +21,33 @@ what ``relight`` takes as a light (``'sh'``: an SH coefficient matrix ``[n_in, C
 non-linear fit such as Green 2005's per-vertex sums of spherical Gaussians (lighting from a
 prefiltered environment map) fits behind the same registry.
 
-Registry: ``register(name)`` (a class decorator, optionally with fixed parameters — a
-*preset*), ``get(name, **params)`` (unknown names, unknown parameters and invalid values are
-refused here, before any work), ``available()``, ``describe(name)``.
+Registry: ``register(name)`` (a class decorator; with ``preset={...}`` it registers a small
+subclass whose parameters are fixed to those values), ``get(name, **params)`` (unknown names,
+unknown parameters and invalid values are refused here, before any work), ``available()``,
+``describe(name)`` (defaults from ``__init__``, docs from the class's numpydoc "Parameters").
 """
 from __future__ import annotations
 
 import dataclasses
+import inspect
 import math
 import os
+import re
 import warnings
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
+import numpy as np
 import torch
+from sklearn.base import BaseEstimator
 
 from .. import io
-from .._checks import check_choice, check_finite, check_float, check_int, check_shape, describe as _describe
+from .._checks import check_finite, check_shape, describe as _describe
+from ..params import Options, validate_params
 
 __all__ = [
-    "Codec", "Encoded", "Param", "register", "get", "available", "describe", "load",
+    "Codec", "Encoded", "register", "get", "available", "describe", "load",
     "ConvergenceWarning", "ConvergenceError", "CODEC_FORMAT_VERSION",
-    "p_int", "p_float", "p_choice", "p_bool",
 ]
 
 #: Version of the codec file layout (docs/codecs.md). Readers accept versions <= this.
@@ -51,52 +60,6 @@ class ConvergenceWarning(UserWarning):
 
 class ConvergenceError(RuntimeError):
     """Raised instead of ConvergenceWarning when the codec was built with ``strict=True``."""
-
-
-# ----------------------------------------------------------------------------------------
-# parameters
-# ----------------------------------------------------------------------------------------
-
-@dataclasses.dataclass(frozen=True)
-class Param:
-    """One codec parameter: default, a checker ``(name, value) -> normalised value`` that
-    raises ValueError/TypeError naming the parameter, and a one-line description."""
-
-    default: Any
-    check: Callable[[str, Any], Any]
-    doc: str = ""
-
-
-def p_int(lo: int | None = None, hi: int | None = None, allow_none: bool = False):
-    def check(name, v):
-        if v is None and allow_none:
-            return None
-        return check_int(name, v, lo, hi)
-    return check
-
-
-def p_float(lo: float | None = None, hi: float | None = None, lo_open: bool = False, allow_none: bool = False):
-    def check(name, v):
-        if v is None and allow_none:
-            return None
-        if isinstance(v, bool):
-            raise TypeError(f"{name} must be a real number, got {_describe(v)}")
-        return check_float(name, v, lo, hi, lo_open=lo_open)
-    return check
-
-
-def p_choice(*choices):
-    def check(name, v):
-        return check_choice(name, v, choices)
-    return check
-
-
-def p_bool():
-    def check(name, v):
-        if not isinstance(v, bool):
-            raise TypeError(f"{name} must be true or false, got {_describe(v)}")
-        return v
-    return check
 
 
 # ----------------------------------------------------------------------------------------
@@ -138,70 +101,64 @@ class Encoded:
 # the interface
 # ----------------------------------------------------------------------------------------
 
-class Codec:
-    """Base class of every codec; subclasses declare ``PARAMS`` and implement the hooks.
+class Codec(BaseEstimator):
+    """Base class of every codec: a scikit-learn estimator.
 
-    Shapes: ``X [P, D]`` float32/float64 (stored and decoded as float32); ``weights [P]``
-    non-negative (per-point importance, e.g. vertex area; default all 1); ``matrix_shape =
-    (n_out, n_in)`` when each row is a row-major n_out×n_in matrix (glossy M_p, MRT A_p).
-    ``light``: ``[n_in, C]`` (n_in = D for vectors). ``view``: None, dense ``[P, n_out]``
-    weights (e.g. y(v_p), Sloan 2003 §6) or sparse taps ``(idx int64 [P, k], w [P, k])``
-    (Lehtinen & Kautz 2003 eq. (13)). ``relight`` returns ``[P, C]`` for vectors or with a
-    view, ``[P, n_out, C]`` for matrices without one.
+    Subclasses write an explicit ``__init__`` with keyword parameters that only stores each
+    argument as the attribute of the same name, document the parameters in a numpydoc
+    "Parameters" section of the class docstring, declare the accepted values in
+    ``_parameter_constraints`` (merged with the base class's: ``{**Base._parameter_constraints,
+    ...}``) and implement the hooks below.
+
+    Shapes: ``X [P, D]`` float32/float64 tensor or numpy array (stored and decoded as float32);
+    ``weights [P]`` non-negative (per-point importance, e.g. vertex area; default all 1);
+    ``matrix_shape = (n_out, n_in)`` when each row is a row-major n_out×n_in matrix (glossy M_p,
+    MRT A_p). ``light``: ``[n_in, C]`` (n_in = D for vectors). ``view``: None, dense
+    ``[P, n_out]`` weights (e.g. y(v_p), Sloan 2003 §6) or sparse taps ``(idx int64 [P, k],
+    w [P, k])`` (Lehtinen & Kautz 2003 eq. (13)). ``relight`` returns ``[P, C]`` for vectors or
+    with a view, ``[P, n_out, C]`` for matrices without one.
     """
 
-    #: name -> Param; the full set of accepted constructor parameters.
-    PARAMS: dict[str, Param] = {}
+    #: registry name, written into saved files and ``Encoded.codec`` (set by ``register``).
+    codec_name: str = ""
+    #: parameter name -> list of constraints (prt_torch.params); a value is valid when any accepts it.
+    _parameter_constraints: dict[str, list] = {}
+    #: parameters fixed by a preset name (``register(name, cls, preset=...)``).
+    _fixed_params: dict[str, Any] = {}
     #: relight(enc, l) equals relighting decode(enc) (to float32 rounding).
     linear: bool = True
     #: what ``relight`` takes as a light: 'sh' = SH coefficient matrix [n_in, C].
     light_kind: str = "sh"
 
-    def __init__(self, **params: Any):
-        self.codec_name = getattr(self, "codec_name", None) or type(self).__name__.lower()
-        self.params = self._validate(params)
-        self._check_params()
-        self.fitted_ = False
-
     # -- parameters ------------------------------------------------------------------
-    @classmethod
-    def _validate(cls, params: dict[str, Any], where: str | None = None) -> dict[str, Any]:
-        where = where or cls.__name__
-        unknown = sorted(set(params) - set(cls.PARAMS))
-        if unknown:
-            raise ValueError(
-                f"unknown parameter(s) {unknown} for codec {where!r}; accepted: {sorted(cls.PARAMS)}"
-            )
-        out = {}
-        for k, spec in cls.PARAMS.items():
-            v = params.get(k, spec.default)
-            out[k] = spec.check(k, v) if (k in params or v is not None) else v
-        return out
+    @property
+    def params(self) -> dict[str, Any]:
+        """The parameters checked against ``_parameter_constraints`` and normalised (ints as
+        int, reals as float); raises ValueError/TypeError naming an invalid one."""
+        return validate_params(self._parameter_constraints, self.get_params(deep=False), where=self.codec_name)
 
-    def _check_params(self) -> None:
-        """Cross-parameter checks (subclasses); raise ValueError naming the parameters."""
+    def _validate(self) -> dict[str, Any]:
+        """``params`` plus the cross-parameter checks of ``_check_params``; run by
+        ``codecs.get`` and at the start of ``fit``."""
+        p = self.params
+        self._check_params(p)
+        return p
 
-    def get_params(self) -> dict[str, Any]:
-        return dict(self.params)
+    def _check_params(self, p: dict[str, Any]) -> None:
+        """Cross-parameter checks on the validated ``p`` (subclasses); raise ValueError naming them."""
 
-    def __getattr__(self, name: str) -> Any:
-        params = self.__dict__.get("params")
-        if params is not None and name in params:
-            return params[name]
-        raise AttributeError(name)
-
-    def __repr__(self) -> str:
-        ps = ", ".join(f"{k}={v!r}" for k, v in self.params.items() if v != self.PARAMS[k].default)
-        return f"{self.codec_name}({ps})"
+    def __sklearn_is_fitted__(self) -> bool:
+        return bool(getattr(self, "fitted_", False))
 
     # -- the interface -------------------------------------------------------------------
-    def fit(self, X: torch.Tensor, weights: torch.Tensor | None = None, matrix_shape=None) -> "Codec":
+    def fit(self, X, y=None, weights=None, matrix_shape=None) -> "Codec":
+        """Fit on ``X [P, D]`` (``y`` is ignored: scikit-learn convention). Returns self."""
         raise NotImplementedError
 
-    def encode(self, X: torch.Tensor) -> Encoded:
+    def encode(self, X) -> Encoded:
         raise NotImplementedError
 
-    def fit_encode(self, X: torch.Tensor, weights: torch.Tensor | None = None, matrix_shape=None) -> Encoded:
+    def fit_encode(self, X, weights=None, matrix_shape=None) -> Encoded:
         """``fit`` then ``encode`` the same signal (the training encoding is reused, not recomputed)."""
         return self.fit(X, weights=weights, matrix_shape=matrix_shape).encode(X)
 
@@ -210,6 +167,13 @@ class Codec:
 
     def relight(self, enc: Encoded, light: torch.Tensor, view: Any = None) -> torch.Tensor:
         raise NotImplementedError
+
+    def score(self, X, y=None) -> float:
+        """Minus the mean per-point squared reconstruction error, ``-(1/P) Σ_p ||x_p − x̃_p||²``
+        (unweighted, float64) of ``X`` encoded by this fitted codec: higher is better, 0 is
+        lossless. ``y`` is ignored. This is what ``GridSearchCV`` maximises by default."""
+        X = check_signal("X", X)
+        return -self.squared_error(X, self.encode(X)) / X.shape[0]
 
     def storage(self, enc: Encoded) -> dict[str, Any]:
         """Sizes: per-tensor bytes (model and codes), totals, raw float32 size, ratios.
@@ -232,8 +196,9 @@ class Codec:
             "raw_bytes": raw, "compression_ratio": raw / total if total else math.inf,
         }
 
-    def squared_error(self, X: torch.Tensor, enc: Encoded, weights: torch.Tensor | None = None) -> float:
+    def squared_error(self, X, enc: Encoded, weights: torch.Tensor | None = None) -> float:
         """Σ_p w_p ||x_p − x̃_p||² in float64 (Sloan 2003 Table 1's "SE", weights default 1)."""
+        X = _as_tensor(X)
         Xh = self.decode(enc)
         se = 0.0
         for i in range(0, X.shape[0], 8192):  # chunks bound the float64 temporaries
@@ -276,11 +241,11 @@ class Codec:
 
     # -- helpers -----------------------------------------------------------------------
     def _require_fitted(self) -> None:
-        if not self.fitted_:
+        if not getattr(self, "fitted_", False):
             raise ValueError(f"codec {self.codec_name!r} is not fitted; call fit(X) first (or load a saved codec)")
 
     def _warn_or_raise(self, message: str) -> None:
-        if self.params.get("strict"):
+        if getattr(self, "strict", False):
             raise ConvergenceError(message)
         warnings.warn(message, ConvergenceWarning, stacklevel=3)
 
@@ -293,10 +258,19 @@ def _nbytes(t: torch.Tensor) -> int:
 # input validation shared by codecs
 # ----------------------------------------------------------------------------------------
 
+def _as_tensor(X: Any) -> Any:
+    """numpy arrays become tensors (float32 stays float32, other dtypes become float64)."""
+    if isinstance(X, np.ndarray):
+        X = np.ascontiguousarray(X if X.dtype in (np.float32, np.float64) else X.astype(np.float64))
+        return torch.from_numpy(X)
+    return X
+
+
 def check_signal(name: str, X: Any) -> torch.Tensor:
-    """``X`` must be a finite float tensor [P, D] with P, D >= 1."""
+    """``X`` must be a finite float tensor or numpy array [P, D] with P, D >= 1."""
+    X = _as_tensor(X)
     if not isinstance(X, torch.Tensor):
-        raise TypeError(f"{name} must be a torch.Tensor [P, D], got {_describe(X)}")
+        raise TypeError(f"{name} must be a torch.Tensor or numpy array [P, D], got {_describe(X)}")
     check_shape(name, X, ndim=2)
     if X.dtype not in (torch.float32, torch.float64):
         raise TypeError(f"{name} has dtype {X.dtype}; accepted: torch.float32 or torch.float64")
@@ -377,15 +351,62 @@ def check_view(view: Any, P: int, n_out: int):
 # registry
 # ----------------------------------------------------------------------------------------
 
-_REGISTRY: dict[str, tuple[type, dict[str, Any], str]] = {}
+_REGISTRY: dict[str, tuple[type, str]] = {}
+
+
+class _Fixed(Options):
+    """The one value a preset name fixes; refusals say which name fixes it and where to go."""
+
+    def __init__(self, value: Any, param: str, name: str, base: type):
+        super().__init__(value)
+        self.param, self.name, self.base = param, name, base
+        self.others = [v for c in base._parameter_constraints.get(param, []) if isinstance(c, Options)
+                       for v in c.values if v != value]
+
+    def invalid(self) -> list[Any]:
+        return self.others + super().invalid()
+
+    def __str__(self) -> str:
+        v = self.values[0]
+        return (f"{v!r} only (codec {self.name!r} fixes {self.param}={v!r}; "
+                f"use codec {self.base.codec_name!r} to choose {self.param})")
+
+
+def _preset_class(base: type, name: str, fixed: dict[str, Any], doc: str) -> type:
+    """A subclass of ``base`` whose ``codec_name`` is ``name`` and whose parameters ``fixed``
+    default to (and accept only) the given values, so ``clone`` keeps the name."""
+    sig = inspect.signature(base.__init__)
+    unknown = sorted(set(fixed) - set(sig.parameters) - {"self"})
+    if unknown:
+        raise ValueError(f"preset of codec {name!r} fixes unknown parameter(s) {unknown}; "
+                         f"accepted: {sorted(base._parameter_constraints)}")
+    base_init = base.__init__
+
+    def __init__(self, **params):
+        base_init(self, **{**fixed, **params})
+
+    __init__.__signature__ = sig.replace(parameters=[
+        p.replace(default=fixed[p.name]) if p.name in fixed else p for p in sig.parameters.values()])
+    clsname = base.__name__ + "".join(str(v).title().replace("_", "") for v in fixed.values())
+    cls = type(clsname, (base,), {
+        "__init__": __init__, "__doc__": doc or base.__doc__, "__module__": base.__module__,
+        "__qualname__": clsname, "codec_name": name, "_fixed_params": dict(fixed),
+        "_parameter_constraints": {**base._parameter_constraints,
+                                   **{k: [_Fixed(v, k, name, base)] for k, v in fixed.items()}},
+    })
+    __init__.__qualname__ = f"{clsname}.__init__"
+    validate_params(cls._parameter_constraints, fixed, where=name)  # presets must themselves be valid
+    return cls
 
 
 def register(name: str, cls: type | None = None, *, preset: dict[str, Any] | None = None, doc: str = "",
              replace: bool = False):
-    """Register codec class ``cls`` under ``name`` (usable as a decorator).
+    """Register codec class ``cls`` under ``name`` (usable as a decorator); returns the class.
 
-    ``preset`` fixes some parameters for this name (e.g. ``'cpca_iterative'`` = ``'cpca'``
-    with ``method='iterative'``); passing a different value for them to ``get`` is refused.
+    The class's ``codec_name`` becomes ``name`` (a class may be registered under one name).
+    ``preset`` registers instead a generated subclass that fixes some parameters (e.g.
+    ``'cpca_iterative'`` = ``'cpca'`` with ``method='iterative'``, class ``CPCAIterative``) and
+    returns it; passing a different value for them is refused.
     """
     if not isinstance(name, str) or not name or not name.replace("_", "").isalnum():
         raise ValueError(f"codec name {name!r}; accepted: a non-empty identifier such as 'cpca'")
@@ -395,9 +416,13 @@ def register(name: str, cls: type | None = None, *, preset: dict[str, Any] | Non
             raise TypeError(f"register({name!r}) needs a Codec subclass, got {c!r}")
         if name in _REGISTRY and not replace:
             raise ValueError(f"codec name {name!r} is already registered (to {_REGISTRY[name][0].__name__}); pass replace=True")
-        p = dict(preset or {})
-        c._validate(p, where=name)  # presets must themselves be valid
-        _REGISTRY[name] = (c, p, doc or (c.__doc__ or "").strip().splitlines()[0] if (doc or c.__doc__) else "")
+        if preset:
+            c = _preset_class(c, name, dict(preset), doc)
+        elif c.__dict__.get("codec_name", name) != name:
+            raise ValueError(f"class {c.__name__} is registered as {c.codec_name!r}; register a subclass "
+                             f"(or a preset) under {name!r}")
+        c.codec_name = name
+        _REGISTRY[name] = (c, doc or (c.__doc__ or "").strip().split("\n")[0])
         return c
 
     return deco(cls) if cls is not None else deco
@@ -408,7 +433,7 @@ def available() -> list[str]:
     return sorted(_REGISTRY)
 
 
-def _lookup(name: str) -> tuple[type, dict[str, Any], str]:
+def _lookup(name: str) -> tuple[type, str]:
     if name not in _REGISTRY:
         raise ValueError(f"unknown codec {name!r}; accepted: {available()}")
     return _REGISTRY[name]
@@ -420,29 +445,39 @@ def get(name: str, **params: Any) -> Codec:
     Unknown names, unknown parameters and invalid values raise ValueError/TypeError naming
     them and what is accepted — before any work.
     """
-    cls, preset, _ = _lookup(name)
-    for k, v in preset.items():
-        if k in params and params[k] != v:
-            raise ValueError(f"{k}={params[k]!r} conflicts with codec {name!r}, which fixes {k}={v!r}; "
-                             f"use the general codec name to choose {k}")
-    merged = {**params, **preset}
-    try:
-        cls._validate(merged, where=name)
-    except (ValueError, TypeError) as e:
-        raise type(e)(str(e)) from None
-    obj = cls.__new__(cls)
-    obj.codec_name = name
-    Codec.__init__(obj, **merged)
-    return obj
+    cls, _ = _lookup(name)
+    validate_params(cls._parameter_constraints, params, where=name)  # unknown names before construction
+    codec = cls(**params)
+    codec._validate()
+    return codec
+
+
+def _param_docs(cls: type) -> dict[str, str]:
+    """Parameter -> one-line description, from the numpydoc "Parameters" sections of ``cls``
+    and its bases (the most derived class wins)."""
+    out: dict[str, str] = {}
+    for klass in reversed(cls.__mro__):
+        doc = inspect.cleandoc(klass.__dict__.get("__doc__") or "")
+        m = re.search(r"^Parameters\n-+\n(.*?)(?=^\S[^\n]*\n-+\n|\Z)", doc, re.S | re.M)
+        if not m:
+            continue
+        for entry in re.split(r"\n(?=\S)", m.group(1).strip()):
+            head, _, body = entry.partition("\n")
+            for p in head.split(":")[0].split(","):
+                out[p.strip()] = " ".join(body.split())
+    return out
 
 
 def describe(name: str) -> dict[str, Any]:
-    """``{'name', 'class', 'doc', 'params': {param: {'default', 'doc'}}, 'preset'}`` for ``name``."""
-    cls, preset, doc = _lookup(name)
+    """``{'name', 'class', 'doc', 'preset', 'params': {param: {'default', 'doc', 'fixed'}}}`` for
+    ``name``: defaults from ``__init__``, docs from the class docstring's "Parameters"."""
+    cls, doc = _lookup(name)
+    docs = _param_docs(cls)
+    sig = inspect.signature(cls.__init__)
     return {
-        "name": name, "class": cls.__name__, "doc": doc, "preset": dict(preset),
-        "params": {k: {"default": preset.get(k, p.default), "doc": p.doc, "fixed": k in preset}
-                   for k, p in cls.PARAMS.items()},
+        "name": name, "class": cls.__name__, "doc": doc, "preset": dict(cls._fixed_params),
+        "params": {k: {"default": p.default, "doc": docs.get(k, ""), "fixed": k in cls._fixed_params}
+                   for k, p in sig.parameters.items() if k != "self"},
     }
 
 

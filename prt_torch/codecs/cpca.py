@@ -30,47 +30,62 @@ import math
 import torch
 
 from .affine import AffineCodec, classify_all
-from .base import Param, p_bool, p_choice, p_float, p_int, register
+from ..params import Boolean, Interval, Options
+from .base import register
 from .kmeans import kmeans_pp, lloyd, repair_empty
 from .segment import choose_tile, from_tiles, tile_layout, tiles_bmm, to_tiles
 from .subspace import cluster_pca, total_variance
 
-__all__ = ["VQ", "PCA", "CPCA", "MRTPCA"]
+__all__ = ["VQ", "PCA", "CPCA", "CPCAStatic", "CPCAIterative", "CPCAAdaptive", "MRTPCA"]
 
-_COMMON = {
-    "seed": (0, p_int(0), "random seed (k-means++ draws, random subspace starts); results are deterministic per seed"),
-    "fit_dtype": ("auto", p_choice("auto", "float32", "float64"),
-                  "working precision of the fit; auto: float64 when P·D ≤ 2^23, else float32 (sums in float64)"),
-    "strict": (False, p_bool(), "raise ConvergenceError instead of warning when an iteration limit is hit"),
+_VQ_CONSTRAINTS = {
+    "clusters": [Interval(int, 1, None)],
+    "max_iter": [Interval(int, 1, None)],
+    "tol": [Interval(float, 0, None)],
+    "n_init": [Interval(int, 1, None)],
+    "init": [Options("k-means++", "random")],
+    "init_sample": [Interval(int, 1, None), None],
 }
-_VQ = {
-    "clusters": (64, p_int(1), "number of clusters m_c"),
-    "max_iter": (50, p_int(1), "LBG/Lloyd iteration limit (Sloan 2003 used 20)"),
-    "tol": (1e-4, p_float(0.0), "Lloyd stops when the squared centre shift ≤ tol · mean per-dimension variance"),
-    "n_init": (1, p_int(1), "k-means restarts (different seeds); the lowest error is kept"),
-    "init": ("k-means++", p_choice("k-means++", "random"), "seeding of the cluster centres"),
-    "init_sample": (None, p_int(1, allow_none=True),
-                    "k-means++ draws its seeds from a random subset of this many points "
-                    "(default: all points for vq; 64·clusters for the initial clustering of cpca; each seed costs one pass)"),
-}
-_PCA = {
-    "vectors": (8, p_int(0), "PCA vectors n' per cluster"),
-    "solver": ("auto", p_choice("auto", "eigh", "svd", "randomized"),
-               "eigh: Sloan 2003 §4.1 normal form (CᵀC or CCᵀ by shape); svd; randomized: subspace iteration; "
-               "auto: eigh when K·D³ is small, else randomized"),
-    "oversample": (8, p_int(0, 256), "extra columns of the randomized subspace"),
-    "power_iters": (3, p_int(0, 50), "power steps of a cold randomized start (warm starts use 1)"),
+_PCA_CONSTRAINTS = {
+    "vectors": [Interval(int, 0, None)],
+    "solver": [Options("auto", "eigh", "svd", "randomized")],
+    "oversample": [Interval(int, 0, 256)],
+    "power_iters": [Interval(int, 0, 50)],
 }
 
+# numpydoc entries shared by the class docstrings below (each class lists all its parameters)
+_DOC_VQ = """
+    clusters : int, default=64
+        Number of clusters m_c.
+    tol : float, default=1e-4
+        Lloyd stops when the squared centre shift ≤ tol · mean per-dimension variance.
+    n_init : int, default=1
+        k-means restarts (different seeds); the lowest error is kept.
+    init : {'k-means++', 'random'}, default='k-means++'
+        Seeding of the cluster centres.
+    init_sample : int or None, default=None
+        k-means++ draws its seeds from a random subset of this many points (default: all
+        points for vq; 64·clusters for the initial clustering of cpca; each seed costs one pass)."""
+_DOC_PCA = """
+    solver : {'auto', 'eigh', 'svd', 'randomized'}, default='auto'
+        eigh: Sloan 2003 §4.1 normal form (CᵀC or CCᵀ by shape); svd; randomized: subspace
+        iteration; auto: eigh when K·D³ is small, else randomized.
+    oversample : int in [0, 256], default=8
+        Extra columns of the randomized subspace.
+    power_iters : int in [0, 50], default=3
+        Power steps of a cold randomized start (warm starts use 1)."""
+_DOC_COMMON = """
+    seed : int, default=0
+        Random seed (k-means++ draws, random subspace starts); results are deterministic per seed.
+    fit_dtype : {'auto', 'float32', 'float64'}, default='auto'
+        Working precision of the fit; auto: float64 when P·D ≤ 2^23, else float32 (sums in float64).
+    strict : bool, default=False
+        Raise ConvergenceError instead of warning when an iteration limit is hit."""
 
-def _params(*groups, **override) -> dict:
-    out = {}
-    for g in groups:
-        for k, (d, c, doc) in g.items():
-            out[k] = Param(d, c, doc)
-    for k, v in override.items():
-        out[k] = v
-    return out
+
+def _doc(summary: str, *entries: str) -> str:
+    """A numpydoc class docstring: ``summary`` then a "Parameters" section of ``entries``."""
+    return summary + "\n\n    Parameters\n    ----------" + "".join(entries) + "\n    "
 
 
 # ----------------------------------------------------------------------------------------
@@ -193,36 +208,51 @@ class _VQMixin:
     def _run_vq(self, Xc, w, gen, K, final):
         """LBG from k-means++ (or random) seeds; ``final``: the clustering is the codec's result,
         so stopping at max_iter warns (CPCA records it in fit_info_ and warns only if strict)."""
+        p = self.params
         xx = Xc.square().sum(1)
         best = None
-        for r in range(self.params["n_init"]):  # restarts: a handful, each a full batched fit
-            if self.params["init"] == "k-means++":
-                m = self.params["init_sample"] or (Xc.shape[0] if final else 64 * K)
+        for r in range(p["n_init"]):  # restarts: a handful, each a full batched fit
+            if p["init"] == "k-means++":
+                m = p["init_sample"] or (Xc.shape[0] if final else 64 * K)
                 if m < Xc.shape[0]:
                     sub = torch.randperm(Xc.shape[0], generator=gen)[:m]
                     idx = sub[kmeans_pp(Xc[sub], K, gen, None if w is None else w[sub], xx=xx[sub])]
                 else:
                     idx = kmeans_pp(Xc, K, gen, w, xx=xx)
             else:
-                p = torch.ones(Xc.shape[0], dtype=torch.float64) if w is None else w.double()
-                idx = torch.multinomial(p / p.sum(), K, replacement=False, generator=gen)
-            res = lloyd(Xc, Xc[idx], self.params["max_iter"], self.params["tol"], w, xx)
+                pw = torch.ones(Xc.shape[0], dtype=torch.float64) if w is None else w.double()
+                idx = torch.multinomial(pw / pw.sum(), K, replacement=False, generator=gen)
+            res = lloyd(Xc, Xc[idx], p["max_iter"], p["tol"], w, xx)
             if best is None or res["inertia"] < best["inertia"]:
                 best = res
-        if not best["converged"] and (final or self.params.get("strict")):
+        if not best["converged"] and (final or p["strict"]):
             self._warn_or_raise(
-                f"codec {self.codec_name!r}: LBG/Lloyd did not converge in max_iter={self.params['max_iter']} "
-                f"iterations (tol={self.params['tol']}); the clustering is usable but not a fixed point — "
+                f"codec {self.codec_name!r}: LBG/Lloyd did not converge in max_iter={p['max_iter']} "
+                f"iterations (tol={p['tol']}); the clustering is usable but not a fixed point — "
                 "raise max_iter or tol")
         return best
 
 
 @register("vq")
 class VQ(_VQMixin, AffineCodec):
-    """Vector quantisation (LBG with k-means++ seeding): n' = 0 (Sloan 2003 §4.1)."""
+    __doc__ = _doc("""Vector quantisation (LBG with k-means++ seeding): n' = 0 (Sloan 2003 §4.1).""", _DOC_VQ, """
+    max_iter : int, default=50
+        LBG/Lloyd iteration limit (Sloan 2003 used 20).""", _DOC_COMMON)
 
     codec_name = "vq"
-    PARAMS = _params(_VQ, _COMMON)
+    _parameter_constraints = {**AffineCodec._parameter_constraints, **_VQ_CONSTRAINTS}
+
+    def __init__(self, *, clusters=64, max_iter=50, tol=1e-4, n_init=1, init="k-means++", init_sample=None,
+                 seed=0, fit_dtype="auto", strict=False):
+        self.clusters = clusters
+        self.max_iter = max_iter
+        self.tol = tol
+        self.n_init = n_init
+        self.init = init
+        self.init_sample = init_sample
+        self.seed = seed
+        self.fit_dtype = fit_dtype
+        self.strict = strict
 
     def _check_data(self, P, D, ms):
         if self.params["clusters"] > P:
@@ -245,11 +275,26 @@ def _resolve_solver(solver: str, K: int, D: int, limit: float) -> str:
 
 @register("pca")
 class PCA(AffineCodec):
-    """One global affine subspace: mean + n' PCA vectors (Sloan 2003 §4.1 with m_c = 1)."""
+    __doc__ = _doc("""One global affine subspace: mean + n' PCA vectors (Sloan 2003 §4.1 with m_c = 1).""", """
+    vectors : int, default=8
+        PCA vectors n'.
+    center : bool, default=True
+        Subtract the mean (affine PCA); false: linear PCA as Lehtinen & Kautz 2003 eq. (12).""",
+                   _DOC_PCA, _DOC_COMMON)
 
     codec_name = "pca"
-    PARAMS = _params(_PCA, _COMMON, center=Param(
-        True, p_bool(), "subtract the mean (affine PCA); false: linear PCA as Lehtinen & Kautz 2003 eq. (12)"))
+    _parameter_constraints = {**AffineCodec._parameter_constraints, **_PCA_CONSTRAINTS, "center": [Boolean()]}
+
+    def __init__(self, *, vectors=8, center=True, solver="auto", oversample=8, power_iters=3,
+                 seed=0, fit_dtype="auto", strict=False):
+        self.vectors = vectors
+        self.center = center
+        self.solver = solver
+        self.oversample = oversample
+        self.power_iters = power_iters
+        self.seed = seed
+        self.fit_dtype = fit_dtype
+        self.strict = strict
 
     def _check_data(self, P, D, ms):
         n = self.params["vectors"]
@@ -271,26 +316,61 @@ class PCA(AffineCodec):
                          "total_variance": float(st["tv"].sum())}}
 
 
-@register("cpca", preset=None)
+@register("cpca")
 class CPCA(_VQMixin, AffineCodec):
-    """Clustered PCA: per-cluster affine subspaces (Sloan 2003 §3.3–4.3)."""
+    __doc__ = _doc("""Clustered PCA: per-cluster affine subspaces (Sloan 2003 §3.3–4.3).""", _DOC_VQ, """
+    max_iter : int, default=20
+        LBG iterations of the initial VQ (Sloan 2003 §4.1 used 20).
+    vectors : int, default=8
+        PCA vectors n' per cluster (adaptive: the mean per point, see budget).""", _DOC_PCA, """
+    method : {'static', 'iterative', 'adaptive'}, default='iterative'
+        static (§4.1), iterative (§4.2) or adaptive (§4.3).
+    iterations : int, default=10
+        Classify/refit rounds per added PCA vector (Sloan 2003: 10-20).
+    candidates : int, default=8
+        Clusters compared per point between exact passes (0: all, every round).
+    budget : float or None, default=None
+        Adaptive: mean per-point PCA weights Σ m_k n_k / P (default: vectors).
+    max_vectors : int or None, default=None
+        Adaptive: most PCA vectors one cluster may take (default: 2·vectors, < D).
+    adapt_iters : int, default=5
+        Adaptive: classify/refit/redistribute rounds (Sloan 2003 §4.3).""", _DOC_COMMON)
 
     codec_name = "cpca"
-    PARAMS = _params(_VQ, _PCA, _COMMON, max_iter=Param(20, p_int(1), "LBG iterations of the initial VQ (Sloan 2003 §4.1 used 20)"), **{
-        k: Param(*v) for k, v in {
-            "method": ("iterative", p_choice("static", "iterative", "adaptive"),
-                       "static (§4.1), iterative (§4.2) or adaptive (§4.3)"),
-            "iterations": (10, p_int(1), "classify/refit rounds per added PCA vector (Sloan 2003: 10-20)"),
-            "candidates": (8, p_int(0), "clusters compared per point between exact passes (0: all, every round)"),
-            "budget": (None, p_float(0.0, allow_none=True),
-                       "adaptive: mean per-point PCA weights Σ m_k n_k / P (default: vectors)"),
-            "max_vectors": (None, p_int(1, allow_none=True),
-                            "adaptive: most PCA vectors one cluster may take (default: 2·vectors, < D)"),
-            "adapt_iters": (5, p_int(1), "adaptive: classify/refit/redistribute rounds (Sloan 2003 §4.3)"),
-        }.items()})
+    _parameter_constraints = {
+        **AffineCodec._parameter_constraints, **_VQ_CONSTRAINTS, **_PCA_CONSTRAINTS,
+        "method": [Options("static", "iterative", "adaptive")],
+        "iterations": [Interval(int, 1, None)],
+        "candidates": [Interval(int, 0, None)],
+        "budget": [Interval(float, 0, None), None],
+        "max_vectors": [Interval(int, 1, None), None],
+        "adapt_iters": [Interval(int, 1, None)],
+    }
 
-    def _check_params(self):
-        p = self.params
+    def __init__(self, *, clusters=64, max_iter=20, tol=1e-4, n_init=1, init="k-means++", init_sample=None,
+                 vectors=8, solver="auto", oversample=8, power_iters=3, method="iterative", iterations=10,
+                 candidates=8, budget=None, max_vectors=None, adapt_iters=5, seed=0, fit_dtype="auto", strict=False):
+        self.clusters = clusters
+        self.max_iter = max_iter
+        self.tol = tol
+        self.n_init = n_init
+        self.init = init
+        self.init_sample = init_sample
+        self.vectors = vectors
+        self.solver = solver
+        self.oversample = oversample
+        self.power_iters = power_iters
+        self.method = method
+        self.iterations = iterations
+        self.candidates = candidates
+        self.budget = budget
+        self.max_vectors = max_vectors
+        self.adapt_iters = adapt_iters
+        self.seed = seed
+        self.fit_dtype = fit_dtype
+        self.strict = strict
+
+    def _check_params(self, p):
         if p["method"] != "adaptive":
             for k in ("budget", "max_vectors"):
                 if p[k] is not None:
@@ -432,22 +512,29 @@ class CPCA(_VQMixin, AffineCodec):
         return best
 
 
-register("cpca_static", CPCA, preset={"method": "static"}, doc="CPCA, VQ then per-cluster PCA (Sloan 2003 §4.1)")
-register("cpca_iterative", CPCA, preset={"method": "iterative"}, doc="CPCA, iterative (Sloan 2003 §4.2)")
-register("cpca_adaptive", CPCA, preset={"method": "adaptive"}, doc="CPCA, adaptive n' per cluster (Sloan 2003 §4.3)")
+# presets: subclasses CPCAStatic, CPCAIterative, CPCAAdaptive with ``method`` fixed (they keep
+# their registry name through sklearn.base.clone)
+CPCAStatic = register("cpca_static", CPCA, preset={"method": "static"}, doc="CPCA, VQ then per-cluster PCA (Sloan 2003 §4.1)")
+CPCAIterative = register("cpca_iterative", CPCA, preset={"method": "iterative"}, doc="CPCA, iterative (Sloan 2003 §4.2)")
+CPCAAdaptive = register("cpca_adaptive", CPCA, preset={"method": "adaptive"}, doc="CPCA, adaptive n' per cluster (Sloan 2003 §4.3)")
 
 
 @register("mrt_pca")
 class MRTPCA(PCA):
-    """PCA on matrix radiance transfer A_p (Lehtinen & Kautz 2003 §6, eq. (12)); relight with the
-    4-tap eq. (13), K (``n_vectors``) adjustable at run time as a prefix."""
+    __doc__ = _doc("""PCA on matrix radiance transfer A_p (Lehtinen & Kautz 2003 §6, eq. (12)); relight with the
+    4-tap eq. (13), K (``n_vectors``) adjustable at run time as a prefix.""", """
+    vectors : int, default=25
+        Principal components K (Lehtinen & Kautz 2003 used 10-50).
+    center : bool, default=False
+        Subtract the mean matrix first (eq. (12) has none).""", _DOC_PCA, _DOC_COMMON)
 
     codec_name = "mrt_pca"
-    PARAMS = dict(PCA.PARAMS)
-    PARAMS["vectors"] = Param(
-        25, p_int(1), "principal components K (Lehtinen & Kautz 2003 used 10-50)")
-    PARAMS["center"] = Param(
-        False, p_bool(), "subtract the mean matrix first (eq. (12) has none)")
+    _parameter_constraints = {**PCA._parameter_constraints, "vectors": [Interval(int, 1, None)]}
+
+    def __init__(self, *, vectors=25, center=False, solver="auto", oversample=8, power_iters=3,
+                 seed=0, fit_dtype="auto", strict=False):
+        super().__init__(vectors=vectors, center=center, solver=solver, oversample=oversample,
+                         power_iters=power_iters, seed=seed, fit_dtype=fit_dtype, strict=strict)
 
     def _check_data(self, P, D, ms):
         if ms is None:
