@@ -2,8 +2,10 @@
 (Sloan 2003 §4.1's error identity), scikit-learn's KMeans and PCA, brute-force per-point
 reconstruction errors and relighting of the decoded signal; losslessness limits; a fresh
 process loading a saved codec; and bad input."""
+import inspect
 import json
 import math
+import re
 import subprocess
 import sys
 import warnings
@@ -13,6 +15,7 @@ import pytest
 import torch
 
 from prt_torch import codecs, io
+from prt_torch.params import invalid_values
 from prt_torch.codecs import ConvergenceError, ConvergenceWarning
 from prt_torch.codecs.synthetic import tent_taps_random, transfer_like
 
@@ -72,6 +75,15 @@ def test_registry_names_and_describe():
     d = codecs.describe("cpca_adaptive")
     assert d["params"]["method"]["default"] == "adaptive" and d["params"]["method"]["fixed"]
     assert "clusters" in d["params"] and "budget" in d["params"]
+    for name in names:  # docs from the numpydoc "Parameters" section, defaults from __init__
+        d = codecs.describe(name)
+        cls = type(codecs.get(name))
+        sig = inspect.signature(cls.__init__).parameters
+        assert set(d["params"]) == set(cls._parameter_constraints) == set(sig) - {"self"}, name
+        for k, v in d["params"].items():
+            assert v["doc"] and v["default"] == sig[k].default, (name, k)
+    assert codecs.describe("mrt_pca")["params"]["vectors"]["default"] == 25
+    assert "Lehtinen" in codecs.describe("mrt_pca")["params"]["vectors"]["doc"]
 
 
 @pytest.mark.parametrize("name, params, match", [
@@ -90,6 +102,76 @@ def test_registry_names_and_describe():
 def test_get_rejects_bad_names_and_params(name, params, match):
     with pytest.raises((ValueError, TypeError), match=match):
         codecs.get(name, **params)
+
+
+def _invalid_cases():
+    for name in codecs.available():
+        for p, cons in type(codecs.get(name))._parameter_constraints.items():
+            for bad in invalid_values(cons):
+                yield pytest.param(name, p, bad, id=f"{name}-{p}-{bad!r}"[:60])
+
+
+@pytest.mark.parametrize("name, param, bad", list(_invalid_cases()))
+def test_invalid_parameter_values_are_refused(name, param, bad):
+    """Generated from each codec's _parameter_constraints: get() refuses, naming the parameter."""
+    with pytest.raises((ValueError, TypeError), match=re.escape(f" {param}=")):
+        codecs.get(name, **{param: bad})
+
+
+@pytest.mark.parametrize("name", codecs.available())
+def test_codecs_are_sklearn_estimators(name):
+    from sklearn.base import clone
+
+    c = codecs.get(name, seed=3)
+    c2 = clone(c)
+    assert type(c2) is type(c) and c2.codec_name == c.codec_name == name
+    assert c2.get_params() == c.get_params() and c.get_params()["seed"] == 3
+    assert c.get_params(deep=False) == c.get_params()
+    assert "fitted_" not in vars(type(c)(**c.get_params()))  # __init__ only stores parameters
+    assert c.set_params(seed=4) is c and c.seed == 4 and c.params["seed"] == 4
+    with pytest.raises(ValueError, match="Invalid parameter"):
+        c.set_params(no_such_parameter=1)
+    X = transfer_like(120, 4, 3, seed=1).double()
+    c.set_params(strict="yes")  # stored as given (sklearn's rule), refused at the next fit
+    with pytest.raises((TypeError, ValueError), match="strict='yes'"):
+        c.fit(X, matrix_shape=(4, 3))
+    small = {"clusters": 4, "vectors": 2}
+    c.set_params(strict=False, **{k: v for k, v in small.items() if k in c.get_params()})
+    assert c.fit(X, matrix_shape=(4, 3)) is c and c.fitted_  # fit returns self
+    assert c.score(X) == pytest.approx(-c.squared_error(X, c.encode(X)) / 120) and c.score(X) <= 0
+    fitted_clone = clone(c)  # a clone is unfitted, with the same parameters
+    assert not getattr(fitted_clone, "fitted_", False) and fitted_clone.get_params() == c.get_params()
+    if name.startswith("cpca_"):
+        other = "static" if name != "cpca_static" else "iterative"
+        with pytest.raises(ValueError, match=f"codec '{name}' fixes method="):
+            clone(c).set_params(method=other).fit(X)
+
+
+def test_numpy_input_fits_like_torch_and_grid_search_works():
+    from sklearn.model_selection import GridSearchCV
+
+    X = transfer_like(300, 1, 12, seed=17).double()
+    t = codecs.get("cpca", clusters=4, vectors=2).fit_encode(X)
+    n = codecs.get("cpca", clusters=4, vectors=2).fit_encode(X.numpy())
+    assert torch.equal(t.tensors["labels"], n.tensors["labels"]) and torch.equal(t.tensors["coeffs"], n.tensors["coeffs"])
+    search = GridSearchCV(codecs.get("pca"), {"vectors": [1, 3, 6]}, cv=2).fit(X.float().numpy())
+    assert search.best_params_ == {"vectors": 6}  # the default score never prefers fewer vectors
+    assert search.best_estimator_.codec_name == "pca" and search.best_estimator_.fitted_
+
+
+def test_docs_pipeline_example_runs(tmp_path, monkeypatch, capsys):
+    """The example of docs/codecs.md "Using a codec from another pipeline", executed as written."""
+    from pathlib import Path
+
+    text = (Path(__file__).parents[1] / "docs" / "codecs.md").read_text()
+    section = text.split("## Using a codec from another pipeline", 1)[1]
+    code = re.search(r"```python\n(.*?)```", section, re.S).group(1)
+    monkeypatch.chdir(tmp_path)
+    ns: dict = {}
+    exec(compile(code, "docs/codecs.md", "exec"), ns)
+    out = capsys.readouterr().out
+    assert "{'vectors': 8}" in out and "{'vectors': 3}" in out
+    assert ns["best"].vectors == 3 and (tmp_path / "signal.pca.prt").exists()
 
 
 # ---------------------------------------------------------------- losslessness and identities
@@ -308,7 +390,7 @@ def test_deterministic_per_seed_and_robust_to_duplicates_and_empties():
         enc = c.fit_encode(Xd)
         assert bool(torch.isfinite(c.decode(enc)).all())
         assert c.fit_info_["se"] < 1e-8
-        assert int(torch.bincount(c.labels_of(enc), minlength=8).min()) >= 0
+        assert int(torch.bincount(c.labels_of(enc), minlength=8).min()) >= 1  # empty clusters were repaired
 
 
 # ---------------------------------------------------------------- scikit-learn cross-checks
