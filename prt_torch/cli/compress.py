@@ -5,7 +5,8 @@ Fits a codec (prt_torch.codecs, by registry name) on the transfer signal of a tr
 ``meta['matrix_shape']`` or the data's trailing two axes give the matrix shape) and writes the
 fitted codec with its encoding (io kind ``codec/<name>``; ``prt info`` reads it). Any codec
 parameter can be given with ``--param KEY=VALUE`` (YAML scalars); ``prt compress --list``
-shows the codecs and ``prt compress --describe NAME`` their parameters.
+shows the codecs and ``prt compress --describe NAME`` their parameters (defaults and docs of
+the codec class; see docs/codecs.md).
 """
 from __future__ import annotations
 
@@ -34,18 +35,10 @@ def register(subparsers) -> None:
 
 
 def _params(args) -> dict:
-    import yaml
+    from ..params import parse_assignments
 
-    params = {}
-    for k in ("clusters", "vectors", "method", "budget", "seed"):
-        v = getattr(args, k)
-        if v is not None:
-            params[k] = v
-    for item in args.param:
-        if "=" not in item:
-            raise ValueError(f"--param {item!r}; accepted: KEY=VALUE, e.g. --param iterations=15")
-        k, v = item.split("=", 1)
-        params[k.strip()] = yaml.safe_load(v)
+    params = {k: getattr(args, k) for k in ("clusters", "vectors", "method", "budget", "seed") if getattr(args, k) is not None}
+    params.update(parse_assignments(args.param, what="--param"))
     return params
 
 

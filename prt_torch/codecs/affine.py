@@ -111,6 +111,7 @@ class AffineCodec(Codec):
                 raise RuntimeError(f"codec {self.codec_name!r}: the fit produced non-finite {name}; "
                                    "the signal may be too badly scaled for float32 (try fit_dtype='float64')")
         self.K_, self.D_, self.matrix_shape_ = K, D, ms
+        self.n_features_in_ = D  # scikit-learn convention
         self.means_ = (res["means"] + offset).to(torch.float32) if centred else None
         self.basis_ = basis.to(torch.float32)
         self.n_vectors_ = nvec
@@ -386,6 +387,7 @@ class AffineCodec(Codec):
             self.n_vectors_ = tensors["n_vectors"].long()
             self.means_ = tensors["means"].to(torch.float32) if meta.get("centered") else None
             self.K_, self.D_ = int(meta["clusters"]), int(meta["dim"])
+            self.n_features_in_ = self.D_
         except KeyError as e:
             raise ValueError(f"codec file lacks {e}; it was not written by this codec's save") from None
         ms = meta.get("matrix_shape")

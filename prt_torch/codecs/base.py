@@ -422,7 +422,7 @@ def register(name: str, cls: type | None = None, *, preset: dict[str, Any] | Non
             raise ValueError(f"class {c.__name__} is registered as {c.codec_name!r}; register a subclass "
                              f"(or a preset) under {name!r}")
         c.codec_name = name
-        _REGISTRY[name] = (c, doc or (c.__doc__ or "").strip().split("\n")[0])
+        _REGISTRY[name] = (c, doc or " ".join(inspect.cleandoc(c.__doc__ or "").split("\n\n")[0].split()))
         return c
 
     return deco(cls) if cls is not None else deco
