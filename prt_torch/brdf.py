@@ -37,7 +37,7 @@ SH forms:
 from __future__ import annotations
 
 import math
-from typing import Callable, Iterable
+from typing import Any, Callable, Iterable
 
 import numpy as np
 import torch
@@ -65,6 +65,7 @@ __all__ = [
     "Ward",
     "MODELS",
     "make_brdf",
+    "from_spec",
     "reflect",
     "zonal_matrix",
     "double_project",
@@ -425,6 +426,23 @@ def make_brdf(model: str, **params) -> BRDF:
         return cls(**params)
     except TypeError as e:
         raise ValueError(f"bad parameters for BRDF model {key!r}: {e}") from None
+
+
+def from_spec(spec: Any) -> BRDF:
+    """A BRDF from a config value: a :class:`BRDF` (returned as is), a model name
+    (``'phong'``, default parameters) or a mapping ``{type: phong, s: 12, ...}`` — the ``type``
+    key names the model, as for every typed object in configs."""
+    if isinstance(spec, BRDF):
+        return spec
+    if isinstance(spec, str):
+        return make_brdf(spec)
+    if isinstance(spec, dict):
+        d = dict(spec)
+        model = d.pop("type", None)
+        if model is None:
+            raise ValueError(f"BRDF spec {spec!r} has no 'type'; accepted: {{type: MODEL, ...}} with MODEL in {sorted(MODELS)}")
+        return make_brdf(model, **d)
+    raise TypeError(f"BRDF spec {describe(spec)}; accepted: a BRDF, a model name, or {{type: MODEL, <param>: value}}")
 
 
 # ----------------------------------------------------------------------------------------

@@ -30,7 +30,7 @@ import torch
 FORMAT = "prt_torch"
 FORMAT_VERSION = 1
 
-__all__ = ["save", "load", "load_meta", "atomic_path", "atomic_write_text", "atomic_write_json", "FORMAT_VERSION"]
+__all__ = ["save", "load", "load_meta", "atomic_path", "atomic_write_text", "atomic_write_json", "jsonable", "FORMAT_VERSION"]
 
 
 @contextlib.contextmanager
@@ -64,7 +64,13 @@ def atomic_write_json(path: str | os.PathLike, obj: Any) -> None:
     atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=False, default=_json_default) + "\n")
 
 
-def _json_default(o: Any) -> Any:
+def jsonable(obj: Any) -> Any:
+    """``obj`` as plain JSON types (tensors and arrays to lists, paths and other objects to
+    strings): what metadata and result files store."""
+    return json.loads(json.dumps(obj, default=lambda o: _json_default(o, strict=False)))
+
+
+def _json_default(o: Any, strict: bool = True) -> Any:
     if isinstance(o, torch.Tensor):
         return o.tolist()
     if isinstance(o, Path):
@@ -73,6 +79,8 @@ def _json_default(o: Any) -> Any:
         return o.item()
     if hasattr(o, "tolist"):
         return o.tolist()
+    if not strict:
+        return str(o)
     raise TypeError(f"cannot serialise {type(o).__name__} to JSON")
 
 

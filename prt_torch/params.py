@@ -29,7 +29,7 @@ from typing import Any, Iterable
 from ._checks import describe
 
 __all__ = [
-    "Interval", "Options", "Boolean", "Constraint",
+    "Interval", "Options", "Boolean", "Predicate", "Constraint",
     "check_param", "validate_params", "invalid_values", "describe_constraints",
     "parse_value", "parse_assignments",
 ]
@@ -130,6 +130,26 @@ class Boolean(Constraint):
 
     def __str__(self) -> str:
         return "true or false"
+
+
+class Predicate(Constraint):
+    """Values for which ``test(value)`` is true (or does not raise); ``text`` says what they are,
+    e.g. ``Predicate(lambda v: from_spec(v), "a BRDF or {type: MODEL, ...}")``."""
+
+    def __init__(self, test, text: str, invalid: tuple = ("not-valid", 3.5)):
+        self.test, self.text, self._invalid = test, text, list(invalid)
+
+    def accepts(self, v: Any) -> bool:
+        try:
+            return self.test(v) is not False
+        except (ValueError, TypeError, KeyError):
+            return False
+
+    def invalid(self) -> list[Any]:
+        return self._invalid
+
+    def __str__(self) -> str:
+        return self.text
 
 
 def _accepts(c: Any, v: Any) -> bool:

@@ -15,16 +15,26 @@ float32 by default (run-time precision; pass float64 tensors for references). Li
   radiance T_p l (global), rotated into the local frame with R_p, dotted with the view-dependent
   BRDF coefficients b(v_p) = Bᵀ y(v_p) ("rotate, multiply, dot").
 * :func:`local_view` — the per-vertex local view direction F_p (eye - x_p)/|eye - x_p| or F_p d.
+
+The view-dependent paths are two steps, so that a caller relighting many lights from one view
+(the harness, a codec) computes the view part once: :func:`glossy_view_weights` /
+:func:`mrt_view_taps` turn local views into per-vertex output weights (zero below the horizon),
+:func:`apply_dense` / :func:`apply_taps` apply them. ``glossy`` and ``mrt`` are the two steps
+in one call. These are *the* uncompressed reference of the project: the harness, the
+benchmarks and ``prt render`` all relight through them.
 """
 from __future__ import annotations
+
+import math
 
 import torch
 
 from ._checks import check_shape, describe
-from .sh import eval_sh, rotation_blocks
-from .transfer.mrt import tent_taps
+from .sh import band_of_coeffs, eval_sh, rotation_blocks
+from .transfer.tents import tent_taps
 
-__all__ = ["diffuse", "glossy", "mrt", "kautz", "kautz_setup", "local_view"]
+__all__ = ["diffuse", "glossy", "mrt", "kautz", "kautz_setup", "local_view", "glossy_view_weights", "mrt_view_taps",
+           "apply_dense", "apply_taps"]
 
 
 def _light(L: torch.Tensor, n_in: int, dtype: torch.dtype) -> torch.Tensor:
@@ -34,13 +44,6 @@ def _light(L: torch.Tensor, n_in: int, dtype: torch.dtype) -> torch.Tensor:
     if L.ndim != 2 or L.shape[1] != n_in:
         raise ValueError(f"light has shape {tuple(L.shape)}; accepted: [C, {n_in}] or [{n_in}] (SH coefficients last)")
     return L.to(dtype)
-
-
-def _bands(n2: int, what: str) -> int:
-    b = int(round(n2 ** 0.5))
-    if b * b != n2:
-        raise ValueError(f"{what} has {n2} SH coefficients; accepted: a square number n²")
-    return b
 
 
 def local_view(frames: torch.Tensor, positions: torch.Tensor | None = None, eye: torch.Tensor | None = None,
@@ -76,6 +79,46 @@ def diffuse(T: torch.Tensor, L: torch.Tensor) -> torch.Tensor:
     raise ValueError(f"T has shape {tuple(T.shape)}; accepted: [V, n²] or [V, C, n²]")
 
 
+def glossy_view_weights(view_local: torch.Tensor, out_index: torch.Tensor | list | None, n_out: int,
+                        dtype: torch.dtype = torch.float32) -> torch.Tensor:
+    """Per-vertex weights over the rows of exit transfer (Sloan 2003 §3.1): y_{o(r)}(v_p),
+    zero where the local view is below the horizon. ``view_local [V, 3]`` → ``[V, n_out]``."""
+    idx = torch.arange(n_out) if out_index is None else torch.as_tensor(out_index, dtype=torch.int64)
+    if idx.numel() != n_out:
+        raise ValueError(f"out_index has {idx.numel()} entries but the matrices have {n_out} rows; accepted: one SH index per row")
+    y = eval_sh(view_local.to(torch.float64), _bands_from_index(idx), check=False)[:, idx]
+    return (y * (view_local[:, 2:3] > 0)).to(dtype)
+
+
+def mrt_view_taps(view_local: torch.Tensor, M: int, dtype: torch.dtype = torch.float32) -> tuple[torch.Tensor, torch.Tensor]:
+    """The four nonzero tents at each local view (Lehtinen & Kautz 2003 eq. 13), weights zero
+    below the horizon: (idx int64 ``[V, 4]`` into the M² rows, w ``[V, 4]``)."""
+    idx, w = tent_taps(view_local.to(torch.float64), M)
+    return idx, (w * (view_local[:, 2:3] > 0)).to(dtype)
+
+
+def apply_dense(M: torch.Tensor, L: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """Σ_r y_pr (M_p l_c)_r: ``M [V, N_r, N_i]``, ``L [C, N_i]``, ``y [V, N_r]`` → ``[V, C]``
+    (dtype of M; one GEMM over all rows, then the weighted sum)."""
+    check_shape("M", M, ndim=3)
+    V, n_out, n_in = M.shape
+    Lc = _light(L, n_in, M.dtype)
+    e = (M.reshape(V * n_out, n_in) @ Lc.T).reshape(V, n_out, -1)  # [V, N_r, C]
+    return torch.einsum("vr,vrc->vc", y.to(M.dtype), e)
+
+
+def apply_taps(A: torch.Tensor, L: torch.Tensor, idx: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """Σ_k w_pk (A_p l_c)_{idx_pk}: ``A [V, R, N_i]``, ``L [C, N_i]``, taps ``[V, k]`` → ``[V, C]``
+    (a gather of k rows per vertex, then one GEMM)."""
+    check_shape("A", A, ndim=3)
+    V, R, n_in = A.shape
+    Lc = _light(L, n_in, A.dtype)
+    rows = (torch.arange(V)[:, None] * R + idx).reshape(-1)
+    taps = A.reshape(V * R, n_in).index_select(0, rows)  # [V·k, N_i]
+    e = (taps @ Lc.T).reshape(V, idx.shape[1], -1)
+    return (e * w.to(A.dtype)[:, :, None]).sum(1)
+
+
 def glossy(M: torch.Tensor, L: torch.Tensor, view_local: torch.Tensor, out_index: torch.Tensor | list | None = None) -> torch.Tensor:
     """Exit radiance from glossy exit transfer (Sloan 2003 §3.1).
 
@@ -84,26 +127,15 @@ def glossy(M: torch.Tensor, L: torch.Tensor, view_local: torch.Tensor, out_index
         L: ``[C, N_i]`` light. view_local: ``[V, 3]`` unit local view directions.
         out_index: flat SH index of each row (``meta['out_index']``; default 0..N_r-1).
     Returns:
-        ``[V, C]`` (dtype of M): Σ_r y_{o(r)}(v_p) (M_p L_c)_r.
+        ``[V, C]`` (dtype of M): Σ_r y_{o(r)}(v_p) (M_p L_c)_r, zero below the horizon.
     """
     check_shape("M", M, ndim=3)
-    V, n_out, n_in = M.shape
-    Lc = _light(L, n_in, M.dtype)
-    idx = torch.arange(n_out) if out_index is None else torch.as_tensor(out_index, dtype=torch.int64)
-    if idx.numel() != n_out:
-        raise ValueError(f"out_index has {idx.numel()} entries but M has {n_out} rows; accepted: one SH index per row")
-    bands_out = _bands_from_index(idx)
-    y = eval_sh(view_local.to(M.dtype), bands_out, check=False)[:, idx]  # [V, N_r]
-    e = (M.reshape(V * n_out, n_in) @ Lc.T).reshape(V, n_out, -1)  # one GEMM: [V·N_r, C]
-    return torch.einsum("vr,vrc->vc", y, e) * (view_local[:, 2:3] > 0).to(M.dtype)
+    return apply_dense(M, L, glossy_view_weights(view_local, out_index, M.shape[1], M.dtype))
 
 
 def _bands_from_index(idx: torch.Tensor) -> int:
     top = int(idx.max()) if idx.numel() else 0
-    b = 1
-    while b * b <= top:
-        b += 1
-    return b
+    return math.isqrt(top) + 1
 
 
 def mrt(A: torch.Tensor, L: torch.Tensor, view_local: torch.Tensor) -> torch.Tensor:
@@ -113,19 +145,15 @@ def mrt(A: torch.Tensor, L: torch.Tensor, view_local: torch.Tensor) -> torch.Ten
         A: ``[V, M², n²]`` (Transfer kind 'mrt'). L: ``[C, n²]``. view_local: ``[V, 3]``.
     Returns:
         ``[V, C]`` = Σ_{j ∈ 4 taps} g_j(v_p) (A_p L)_j — only the four rows of A_p whose tents
-        are nonzero at v_p are read (a gather of 4·n² floats per vertex, then one GEMM).
+        are nonzero at v_p are read (a gather of 4·n² floats per vertex, then one GEMM); zero
+        below the horizon.
     """
     check_shape("A", A, ndim=3)
-    V, M2, n_in = A.shape
-    Mside = int(round(M2 ** 0.5))
+    M2 = A.shape[1]
+    Mside = math.isqrt(M2)
     if Mside * Mside != M2:
         raise ValueError(f"A has {M2} rows; accepted: M² rows of an M×M tent basis")
-    Lc = _light(L, n_in, A.dtype)
-    idx, w = tent_taps(view_local.to(A.dtype), Mside)  # [V, 4]
-    rows = (torch.arange(V)[:, None] * M2 + idx).reshape(-1)
-    taps = A.reshape(V * M2, n_in).index_select(0, rows)  # [V·4, n²]
-    e = (taps @ Lc.T).reshape(V, 4, -1)
-    return (e * w[:, :, None]).sum(1) * (view_local[:, 2:3] > 0).to(A.dtype)
+    return apply_taps(A, L, *mrt_view_taps(view_local, Mside, A.dtype))
 
 
 def kautz_setup(frames: torch.Tensor, bands: int) -> list[torch.Tensor]:
@@ -148,8 +176,8 @@ def kautz(T: torch.Tensor | None, rot_blocks: list[torch.Tensor], B: torch.Tenso
         ``[V, C]``: b(v_p) · R_p T_p L with the view-dependent BRDF coefficients b(v) = Bᵀ y(v).
     """
     n_in = B.shape[-1]
-    bands_in = _bands(n_in, "B columns")
-    bands_out = _bands(B.shape[-2], "B rows")
+    bands_in = band_of_coeffs(n_in, "B columns")
+    bands_out = band_of_coeffs(B.shape[-2], "B rows")
     dtype = rot_blocks[0].dtype if T is None else T.dtype
     Lc = _light(L, n_in, dtype)
     V = view_local.shape[0]

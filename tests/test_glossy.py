@@ -10,8 +10,9 @@ import torch
 from prt_torch import brdf as B
 from prt_torch import relight, sh
 from prt_torch.scene import RayCaster, builtin
-from prt_torch.transfer import ChunkInterrupt, precompute_diffuse
-from prt_torch.transfer.glossy import precompute_glossy, precompute_mrt
+from prt_torch.transfer import ChunkInterrupt, RunOptions, precompute_diffuse
+from prt_torch.transfer.glossy import precompute_glossy
+from prt_torch.transfer.mrt import precompute_mrt
 from prt_torch.transfer.transport import cube_directions, precompute_transport, TransportTable
 
 
@@ -169,7 +170,7 @@ def test_glossy_kautz_and_mrt_paths_agree(scene):
 
 def test_memory_estimate_and_bad_input(scene, tmp_path):
     with pytest.raises(ValueError, match=r"needs about .*(MiB|GiB)"):
-        precompute_glossy(scene, 16, samples=4096, max_memory=1 << 20)
+        precompute_glossy(scene, 16, samples=4096, run=RunOptions(max_memory=1 << 20))
     with pytest.raises(ValueError, match="bands"):
         precompute_glossy(scene, 0)
     with pytest.raises(ValueError, match="M"):
@@ -184,8 +185,8 @@ def test_memory_estimate_and_bad_input(scene, tmp_path):
 def test_resume_gives_the_uninterrupted_result(tmp_path):
     mesh = builtin("occluder_over_plane", "small")
     vids = torch.arange(0, mesh.num_vertices, 7)
-    kw = dict(brdf=B.Phong(8.0), samples=64, vertices=vids, chunk_size=64, quad_bands=12)
-    full = precompute_glossy(mesh, 3, **kw)
+    kw = dict(brdf=B.Phong(8.0), samples=64, vertices=vids, quad_bands=12)
+    full = precompute_glossy(mesh, 3, **kw, run=RunOptions(chunk_size=64))
 
     def stop(i, n):
         if i == 1:
@@ -193,8 +194,8 @@ def test_resume_gives_the_uninterrupted_result(tmp_path):
 
     state = tmp_path / "g.state"
     with pytest.raises(ChunkInterrupt):
-        precompute_glossy(mesh, 3, state_dir=state, callback=stop, **kw)
-    again = precompute_glossy(mesh, 3, state_dir=state, resume=True, **kw)
+        precompute_glossy(mesh, 3, **kw, run=RunOptions(chunk_size=64, state_dir=state, callback=stop))
+    again = precompute_glossy(mesh, 3, **kw, run=RunOptions(chunk_size=64, state_dir=state, resume=True))
     assert torch.equal(full.data, again.data)
     assert not state.exists()
 
@@ -205,16 +206,16 @@ def test_transport_tables(tmp_path):
     mesh = builtin("convex", "small")
     kd = 0.6
     out = tmp_path / "t"
-    t = precompute_transport(mesh, out, brdf=B.Lambertian(kd), views=1, res=12, chunk_size=500)
+    t = precompute_transport(mesh, out, brdf=B.Lambertian(kd), views=1, res=12, run=RunOptions(chunk_size=500))
     r = t.radiance(torch.ones(1, 6, 12, 12), view=3)[:, 0]
     facing = mesh.normals @ t.views[3].double() > 0
     assert torch.allclose(r[facing], torch.full_like(r[facing], kd), atol=2e-3)
     assert (r[~facing] == 0).all()
     part = tmp_path / "p"
-    precompute_transport(mesh, part, brdf=B.Phong(10.0), views=1, res=4, chunk_size=500, max_chunks=1)
+    precompute_transport(mesh, part, brdf=B.Phong(10.0), views=1, res=4, max_chunks=1, run=RunOptions(chunk_size=500))
     assert not TransportTable(part).meta["complete"]
-    done = precompute_transport(mesh, part, brdf=B.Phong(10.0), views=1, res=4, chunk_size=500, resume=True)
-    ref = precompute_transport(mesh, tmp_path / "r", brdf=B.Phong(10.0), views=1, res=4, chunk_size=500)
+    done = precompute_transport(mesh, part, brdf=B.Phong(10.0), views=1, res=4, run=RunOptions(chunk_size=500, resume=True))
+    ref = precompute_transport(mesh, tmp_path / "r", brdf=B.Phong(10.0), views=1, res=4, run=RunOptions(chunk_size=500))
     assert done.meta["complete"]
     for (a0, b0, x), (a1, b1, y) in zip(done, ref):
         assert (a0, b0) == (a1, b1) and torch.equal(x, y)

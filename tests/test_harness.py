@@ -18,13 +18,13 @@ from prt_torch.harness.timing import measure
 TINY = {
     "name": "tiny",
     "scene": {"name": "convex", "size": "small"},
-    "transfer": {"kind": "diffuse", "bands": 3, "samples": 64},
+    "transfer": {"type": "diffuse", "bands": 3, "samples": 64},
     "lights": ["sky", "directional:direction=0.3,0.2,1;intensity=2"],
     "metrics": {"random_lights": 256, "repeats": 3, "warmup": 1},
     "codecs": [
-        {"name": "vq", "clusters": [4, 16]},
-        {"name": "pca", "vectors": [2]},
-        {"name": "cpca", "clusters": 4, "vectors": 2},
+        {"type": "vq", "clusters": [4, 16]},
+        {"type": "pca", "vectors": [2]},
+        {"type": "cpca", "clusters": 4, "vectors": 2},
     ],
     "render": {"enabled": True, "width": 64, "height": 64},
 }
@@ -46,9 +46,9 @@ def test_overrides_and_sweep_expansion(tmp_path):
     cfg = hc.load_config(str(p), ["transfer.bands=4", "codecs.1.vectors=[1,2,3]", "metrics.repeats=7"])
     assert cfg["transfer"]["bands"] == 4 and cfg["metrics"]["repeats"] == 7
     settings = hc.expand_codecs(cfg["codecs"])
-    assert [s["name"] for s in settings] == ["vq", "vq", "pca", "pca", "pca", "cpca"]
-    assert [s.get("vectors") for s in settings if s["name"] == "pca"] == [1, 2, 3]
-    grid = hc.expand_codecs([{"name": "cpca", "clusters": [2, 4], "vectors": [1, 2, 3]}])
+    assert [s["type"] for s in settings] == ["vq", "vq", "pca", "pca", "pca", "cpca"]
+    assert [s.get("vectors") for s in settings if s["type"] == "pca"] == [1, 2, 3]
+    grid = hc.expand_codecs([{"type": "cpca", "clusters": [2, 4], "vectors": [1, 2, 3]}])
     assert len(grid) == 6 and {(g["clusters"], g["vectors"]) for g in grid} == {(c, v) for c in (2, 4) for v in (1, 2, 3)}
     runs = hc.expand_runs(hc.load_config(str(p), ["transfer.bands=[2,3]"]))
     assert [r["transfer"]["bands"] for r in runs] == [2, 3]
@@ -58,12 +58,17 @@ def test_overrides_and_sweep_expansion(tmp_path):
 @pytest.mark.parametrize(
     "override, match",
     [
-        ("transfer.bandz=3", "unknown key 'transfer.bandz'"),
+        ("transfer.bandz=3", "bandz"),
+        ("transfer.M=8", "M"),  # a parameter of mrt, not of diffuse
+        ("transfer.bands=0", "bands"),
+        ("transfer.brdf={type: nosuchbrdf}", "brdf"),
         ("metrics.repeats=abc", "metrics.repeats"),
-        ("codecs.0.name=nosuchcodec", "nosuchcodec"),
+        ("codecs.0.type=nosuchcodec", "nosuchcodec"),
         ("codecs.1.vectors=-1", "vectors"),
         ("codecs.0.colour=1", "colour"),
-        ("transfer.kind=spectral", "transfer.kind"),
+        ("transfer.type=spectral", "transfer.type"),
+        ("transfer.type=transport", "transfer.type"),  # not relightable by the harness
+        ("lights.1={type: spotlight}", "lights.1"),
         ("scene.name=/no/such/mesh.obj", "scene.name"),
         ("codecs.5.vectors=1", "not a valid index"),
         ("nonsense", "key.path=value"),
@@ -85,12 +90,28 @@ def test_unknown_top_level_key_and_missing_config(tmp_path):
 
 
 def test_shipped_configs_validate():
-    root = Path(__file__).resolve().parents[1] / "configs"
-    names = sorted(p.stem for p in root.glob("*.yaml"))
-    assert "default" in names
+    names = hc.builtin_configs()
+    assert {"default", "glossy", "diffuse"} <= set(names)
     for n in names:
         cfg = hc.load_config(n)
         assert hc.expand_codecs(cfg["codecs"])
+
+
+@pytest.mark.parametrize("entry, where", [
+    ({"codecs": [{"name": "pca", "vectors": 2}]}, "codecs.0.name"),
+    ({"transfer": {"kind": "diffuse"}}, "transfer.kind"),
+    ({"transfer": {"type": "glossy", "params": {"bands_out": 3}}}, "transfer.params"),
+])
+def test_old_config_keys_say_what_they_are_now(tmp_path, entry, where):
+    with pytest.raises(ValueError, match=f"'{where}'"):
+        hc.load_config(str(write_cfg(tmp_path, {**TINY, **entry})))
+
+
+def test_transfer_parameter_lists_sweep_unless_the_parameter_takes_a_list(tmp_path):
+    cfg = hc.load_config(str(write_cfg(tmp_path, dict(TINY, transfer={"type": "glossy", "bands": [2, 3], "drop_out": [[1, 0]]}))))
+    runs = hc.expand_runs(cfg)
+    assert [r["transfer"]["bands"] for r in runs] == [2, 3]
+    assert all(r["transfer"]["drop_out"] == [[1, 0]] for r in runs)
 
 
 # ------------------------------------------------------------------ metrics and timing
@@ -214,7 +235,7 @@ def test_memory_estimate_refuses_before_work(tmp_path):
 def test_target_search_finds_the_smallest_setting(tmp_path):
     from prt_torch.harness.run import run_benchmark
 
-    cfg = hc.load_config(str(write_cfg(tmp_path, dict(TINY, render={"enabled": False}, codecs=[{"name": "pca", "vectors": 1}]))),
+    cfg = hc.load_config(str(write_cfg(tmp_path, dict(TINY, render={"enabled": False}, codecs=[{"type": "pca", "vectors": 1}]))),
                          ["target.psnr=35", "target.codec=pca", "target.param=vectors", "target.lo=1", "target.hi=8"])
     run_dir = run_benchmark(cfg, progress=False, log=lambda s: None)
     res = json.loads((run_dir / "results.json").read_text())
@@ -225,7 +246,37 @@ def test_target_search_finds_the_smallest_setting(tmp_path):
     assert by_v[k] >= 35
     if k > 1:  # brute-force check of minimality: one vector fewer misses the target
         if k - 1 not in by_v:
-            cfg2 = hc.load_config(str(write_cfg(tmp_path, dict(TINY, render={"enabled": False}, codecs=[{"name": "pca", "vectors": k - 1}]))))
+            cfg2 = hc.load_config(str(write_cfg(tmp_path, dict(TINY, render={"enabled": False}, codecs=[{"type": "pca", "vectors": k - 1}]))))
             res2 = json.loads((run_benchmark(cfg2, progress=False, log=lambda s: None) / "results.json").read_text())
             by_v[k - 1] = res2["records"][0]["psnr_lights_db"]
         assert by_v[k - 1] < 35
+
+
+# ------------------------------------------------------------------ one uncompressed reference
+
+@pytest.mark.parametrize("kind", ["glossy", "mrt"])
+def test_harness_reference_is_relight(kind):
+    """The harness's uncompressed PSNR reference and its speed peer are prt_torch.relight: the
+    same numbers as relight.glossy / relight.mrt called on the transfer from a camera position,
+    including the zero below each vertex's horizon."""
+    from prt_torch import relight
+    from prt_torch.harness.evaluate import Evaluator, camera_positions
+    from prt_torch.lighting import load_light
+    from prt_torch.scene import load_scene
+    from prt_torch.transfer import get_kind
+
+    mesh = load_scene("bumpy_sphere", size="small")
+    params = {"bands": 3, "samples": 32, "bands_out": 3} | ({"M": 5} if kind == "mrt" else {})
+    tr = get_kind(kind).precompute(mesh, params)
+    ev = Evaluator(tr)
+    L = load_light("sky", bands=3)
+    center = ev.points.mean(0)
+    cam = camera_positions(center, float((ev.points - center).norm(dim=-1).max()), 1, 35.0, 20.0)[0]
+    got = ev.reference(L, ev.view_weights(cam))
+    v = relight.local_view(mesh.frames().double(), mesh.vertices.double(), eye=cam)
+    want = (relight.glossy(tr.data, L.float(), v, tr.meta["out_index"]) if kind == "glossy"
+            else relight.mrt(tr.data, L.float(), v))
+    below = v[:, 2] <= 0
+    assert below.any() and not below.all()  # the camera sees some vertices from behind
+    assert torch.allclose(got, want, rtol=1e-5, atol=1e-6)
+    assert bool((got[below] == 0).all())

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from prt_torch import sh
-from prt_torch.transfer import mrt
+from prt_torch.transfer import tents as mrt
 
 
 def test_concentric_map_round_trip_and_area_preservation():

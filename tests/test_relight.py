@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from prt_torch import relight, sh
-from prt_torch.transfer import mrt
+from prt_torch.transfer import tents as mrt
 
 
 def _views(V, seed, below=0):

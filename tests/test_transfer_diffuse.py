@@ -11,7 +11,7 @@ import torch
 from prt_torch.cli import main as cli_main
 from prt_torch.scene import RayCaster, builtin, geodesic_sphere, make_mesh, sphere_on_plane_visibility
 from prt_torch.sh import eval_sh, gauss_sphere
-from prt_torch.transfer import ChunkInterrupt, Transfer, diffuse_radiance, precompute_diffuse, unshadowed_transfer
+from prt_torch.transfer import ChunkInterrupt, RunOptions, Transfer, diffuse_radiance, precompute_diffuse, unshadowed_transfer
 from prt_torch.transfer.diffuse import transfer_at_points
 from prt_torch.transfer.sampling import cosine_hemisphere, uniform_sphere
 
@@ -163,7 +163,9 @@ def test_bounce_tolerance_stops_early_and_albedo_rules():
 # ------------------------------------------------------------------------------ determinism and resume
 def test_same_seed_same_result_and_resume_equals_uninterrupted(tmp_path):
     m = builtin("occluder_over_plane")
-    kw = dict(bands=3, samples=64, bounces=2, chunk_size=400)
+    kw = dict(bands=3, samples=64, bounces=2)
+    run = RunOptions(chunk_size=400)
+    kw["run"] = run
     a = precompute_diffuse(m, seed=7, **kw)
     b = precompute_diffuse(m, seed=7, **kw)
     c = precompute_diffuse(m, seed=8, **kw)
@@ -177,14 +179,15 @@ def test_same_seed_same_result_and_resume_equals_uninterrupted(tmp_path):
             raise ChunkInterrupt("simulated interruption")
 
     with pytest.raises(ChunkInterrupt):
-        precompute_diffuse(m, seed=7, state_dir=state, callback=stop_after_two, **kw)
+        precompute_diffuse(m, seed=7, **{**kw, "run": RunOptions(chunk_size=400, state_dir=state, callback=stop_after_two)})
     assert sorted(p.name for p in state.glob("chunk_*.prt")) == ["chunk_000000.prt", "chunk_000001.prt"]
     with pytest.raises(FileExistsError, match="resume"):
-        precompute_diffuse(m, seed=7, state_dir=state, **kw)
+        precompute_diffuse(m, seed=7, **{**kw, "run": RunOptions(chunk_size=400, state_dir=state)})
     with pytest.raises(ValueError, match="other parameters"):
-        precompute_diffuse(m, seed=9, state_dir=state, resume=True, **kw)
+        precompute_diffuse(m, seed=9, **{**kw, "run": RunOptions(chunk_size=400, state_dir=state, resume=True)})
     computed = []
-    r = precompute_diffuse(m, seed=7, state_dir=state, resume=True, callback=lambda i, n: computed.append(i), **kw)
+    r = precompute_diffuse(m, seed=7, **{**kw, "run": RunOptions(chunk_size=400, state_dir=state, resume=True,
+                                                                 callback=lambda i, n: computed.append(i))})
     assert torch.equal(r.data, a.data)
     assert not state.exists()  # cleaned up after success
     assert computed == list(range(len(computed))) and len(computed) == math.ceil(m.num_vertices / 400)
@@ -265,10 +268,10 @@ def test_cli_resume_after_interruption(tmp_path, monkeypatch):
         kw["callback"] = lambda i, n: (_ for _ in ()).throw(KeyboardInterrupt()) if i == 2 else None
         return real(*a, **kw)
 
-    monkeypatch.setattr("prt_torch.transfer.diffuse.run_chunks", interrupted)
+    monkeypatch.setattr(base, "run_chunks", interrupted)
     with pytest.raises(KeyboardInterrupt):
         cli_main(args)
-    monkeypatch.setattr("prt_torch.transfer.diffuse.run_chunks", real)
+    monkeypatch.setattr(base, "run_chunks", real)
     assert not out.exists() and (tmp_path / "r.prt.state").is_dir()
     assert cli_main(args) == 2  # refuses to silently restart
     assert cli_main(args + ["--resume"]) == 0

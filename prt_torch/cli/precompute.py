@@ -6,13 +6,12 @@ refused unless ``--overwrite``. Finished chunks are kept in ``<out>.state/`` whi
 after an interruption ``--resume`` continues from the last finished chunk (same result as an
 uninterrupted run); ``--overwrite`` discards such a state directory.
 
-Kinds other than ``diffuse`` are provided by their transfer modules: ``prt_torch.transfer.<kind>``
-may define ``add_precompute_arguments(parser)`` and ``precompute_from_args(mesh, args) -> Transfer``.
+Every kind and its options come from the transfer registry (``prt_torch.transfer.kinds()``);
+an option a kind does not take is refused. Unset options take the kind's defaults.
 """
 from __future__ import annotations
 
 import argparse
-import importlib
 import shutil
 import sys
 from pathlib import Path
@@ -29,48 +28,121 @@ def _albedo_arg(text: str):
     return vals[0] if len(vals) == 1 else vals
 
 
+def _kind_args() -> dict[str, tuple]:
+    """flag -> (Arg, [kinds using it]) over every registered kind (one option per flag)."""
+    from ..transfer import get_kind, kinds
+
+    out: dict[str, tuple] = {}
+    for name in kinds():
+        for a in get_kind(name).args:
+            if a.flag in out:
+                if out[a.flag][0].param != a.param:  # pragma: no cover - a registry bug
+                    raise RuntimeError(f"option {a.flag} sets {out[a.flag][0].param} and {a.param}")
+                out[a.flag][1].append(name)
+            else:
+                out[a.flag] = (a, [name])
+    return out
+
+
+def _dest(flag: str) -> str:
+    return "k_" + flag.lstrip("-").replace("-", "_")
+
+
 def register(subparsers) -> None:
+    from ..transfer import get_kind, kinds
+
     p = subparsers.add_parser("precompute", help="precompute transfer for a mesh or built-in scene",
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("scene", metavar="MESH_OR_BUILTIN", help="mesh file, or built-in scene name[:size] (see `prt info --builtins`)")
-    p.add_argument("--kind", default="diffuse", choices=["diffuse", "glossy", "mrt", "transport"])
-    p.add_argument("--bands", type=int, default=5, help="SH bands n (n² coefficients), default 5")
-    p.add_argument("--samples", type=int, default=1024, help="Monte Carlo directions per vertex, default 1024")
-    p.add_argument("--bounces", type=int, default=0, help="interreflection bounces after the direct pass, default 0")
-    p.add_argument("--seed", type=int, default=0, help="direction-set seed, default 0")
-    p.add_argument("-o", "--output", required=True, help="output .prt file")
+    p.add_argument("--kind", default="diffuse", choices=kinds(),
+                   help="; ".join(f"{k}: {get_kind(k).doc}" for k in kinds()))
+    p.add_argument("-o", "--output", required=True, help="output .prt file (a directory for --kind transport)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output (and discard a stale state dir)")
     p.add_argument("--resume", action="store_true", help="continue an interrupted run from <output>.state/")
     p.add_argument("--size", default="small", choices=["small", "medium", "large"], help="built-in scene size")
     p.add_argument("--up", default="z", choices=["z", "-z", "y", "-y", "x", "-x"], help="up axis of the mesh file")
     p.add_argument("--albedo", type=_albedo_arg, default=None, help="uniform albedo: ρ or R,G,B (default: the scene's)")
-    p.add_argument("--sampling", default="uniform", choices=["uniform", "cosine"])
-    p.add_argument("--shadows", default="auto", choices=["auto", "always", "never"])
-    p.add_argument("--fold-albedo", default="auto", choices=["auto", "yes", "no"],
-                   help="store [V,3,n²] with albedo folded (yes), [V,n²] without (no), or as needed (auto)")
-    p.add_argument("--bounce-tol", type=float, default=1e-3, help="stop adding bounces below this energy fraction")
-    p.add_argument("--chunk", type=int, default=None, help="vertices per chunk (default ~1M rays per chunk)")
-    p.add_argument("--workers", type=int, default=None, help="ray-casting processes (default: all cores)")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    g = p.add_argument_group("run options (every kind)")
+    g.add_argument("--chunk", type=int, default=None, help="vertices per chunk (default ~1M rays per chunk)")
+    g.add_argument("--workers", type=int, default=None, help="ray-casting processes (default: all cores for long runs)")
+    g.add_argument("--memory-limit", type=float, default=None, help="GiB; refuse a run estimated above it (default 60%% of RAM)")
+    g.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--debug", action="store_true", help="show tracebacks")
-    for kind in ("glossy", "mrt", "transport"):
-        try:
-            mod = importlib.import_module(f"prt_torch.transfer.{kind}")
-        except ImportError:
-            continue
-        if hasattr(mod, "add_precompute_arguments"):
-            mod.add_precompute_arguments(p)
+    g = p.add_argument_group("transfer parameters (default: the kind's)")
+    for flag, (a, used_by) in _kind_args().items():
+        defaults = {k: get_kind(k).defaults()[a.param] for k in used_by}
+        dtxt = ", ".join(f"{k}: {v}" for k, v in defaults.items()) if not a.is_switch and not a.spec else ""
+        help_text = f"{a.help} [{', '.join(used_by)}" + (f"; default {dtxt}" if dtxt else "") + "]"
+        if a.is_switch:
+            g.add_argument(flag, dest=_dest(flag), action="store_true", help=help_text)
+        elif a.values is not None:
+            g.add_argument(flag, dest=_dest(flag), choices=list(a.values), default=None, help=help_text)
+        else:
+            g.add_argument(flag, dest=_dest(flag), default=None, help=help_text, metavar=a.param.upper())
+        if a.spec:
+            g.add_argument(f"{flag}-param", dest=_dest(flag) + "_param", action="append", metavar="NAME=VALUE",
+                           help=f"a parameter of {flag}, repeatable")
     p.set_defaults(func=run)
+
+
+def params_from_args(kind: str, args: argparse.Namespace) -> dict:
+    """The parameters of ``kind`` given on the command line (unset options are left out);
+    options of other kinds are refused."""
+    from ..params import parse_assignments, parse_value
+    from ..transfer import get_kind
+
+    k = get_kind(kind)
+    mine = {a.flag for a in k.args}
+    params: dict = {}
+    for flag, (a, used_by) in _kind_args().items():
+        v = getattr(args, _dest(flag), None)
+        sub = getattr(args, _dest(flag) + "_param", None) if a.spec else None
+        if v in (None, False) and not sub:
+            continue
+        if flag not in mine:
+            raise ValueError(f"{flag} does not apply to --kind {kind}; it is an option of {', '.join(used_by)}")
+        if a.is_switch:
+            params[a.param] = a.const
+        elif a.values is not None:
+            params[a.param] = a.values[v]
+        elif a.spec:
+            spec = {"type": v if v is not None else k.defaults()[a.param] or "ashikhmin_shirley"}
+            spec.update(parse_assignments(sub or [], what=f"{flag}-param"))
+            params[a.param] = spec
+        else:
+            params[a.param] = parse_value(v)
+    return params
+
+
+class _TableDir:
+    """Moves a finished transport table from the state directory to the output."""
+
+    def __init__(self, table):
+        self.table = table
+
+    def save(self, path: Path, overwrite: bool = False) -> Path:
+        if not self.table.meta.get("complete"):
+            raise ValueError(f"transport table in {str(self.table.path)!r} is incomplete; rerun with --resume")
+        if path.exists():
+            if not overwrite:
+                raise FileExistsError(f"output {str(path)!r} exists; pass --overwrite to replace it")
+            shutil.rmtree(path) if path.is_dir() else path.unlink()
+        self.table.path.rename(path)
+        self.table.path = path
+        return path
 
 
 def run(args) -> int:
     from ..scene import load_scene
-    from ..transfer import default_state_dir, precompute_diffuse
+    from ..transfer import RunOptions, default_state_dir, get_kind
 
+    kind = get_kind(args.kind)
+    params = params_from_args(args.kind, args)
+    kind.validate(params, where=f"prt precompute --kind {args.kind}")
     out = Path(args.output)
     if out.exists() and not args.overwrite:
         raise FileExistsError(f"output {str(out)!r} exists; pass --overwrite to replace it")
-    if out.is_dir():
+    if out.is_dir() and kind.output == "file":
         raise ValueError(f"output {str(out)!r} is a directory; accepted: a file path")
     state = default_state_dir(out)
     if state.exists() and not args.resume:
@@ -81,22 +153,15 @@ def run(args) -> int:
                                   "or --overwrite to start again")
     mesh = load_scene(args.scene, size=args.size, up=args.up, albedo=args.albedo)
     print(f"prt precompute: {mesh.name}: {mesh.num_vertices} vertices, {mesh.num_faces} faces", file=sys.stderr)
-    if args.kind == "diffuse":
-        fold = {"auto": None, "yes": True, "no": False}[args.fold_albedo]
-        tr = precompute_diffuse(
-            mesh, args.bands, args.samples, args.bounces, args.seed, sampling=args.sampling, shadows=args.shadows,
-            fold_albedo=fold, bounce_tol=args.bounce_tol, chunk_size=args.chunk, workers=args.workers,
-            state_dir=state, resume=args.resume, progress=not args.no_progress,
-        )
-    else:
-        try:
-            mod = importlib.import_module(f"prt_torch.transfer.{args.kind}")
-        except ModuleNotFoundError:
-            mod = None
-        if mod is None or not hasattr(mod, "precompute_from_args"):
-            raise ValueError(f"--kind {args.kind} is not available in this build; accepted: diffuse")
-        args.state_dir = state
-        tr = mod.precompute_from_args(mesh, args)
+    opts = RunOptions(chunk_size=args.chunk, workers=args.workers, state_dir=state, resume=args.resume,
+                      progress=not args.no_progress,
+                      max_memory=None if args.memory_limit is None else int(args.memory_limit * (1 << 30)))
+    if kind.output == "directory":
+        table = kind.precompute(mesh, params, run=opts, out=state)
+        _TableDir(table).save(out, overwrite=args.overwrite)
+        print(f"prt precompute: wrote {out}/ kind={kind.name} ({table!r})", file=sys.stderr)
+        return 0
+    tr = kind.precompute(mesh, params, run=opts)
     tr.save(out, overwrite=args.overwrite)
     m = tr.meta
     print(f"prt precompute: wrote {out} kind={tr.kind} data={tuple(tr.data.shape)} "

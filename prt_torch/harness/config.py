@@ -5,34 +5,43 @@ A config is a nested mapping (see configs/default.yaml, documented in docs/harne
     name: default                 # run name -> reports/<name>/
     seed: 0
     scene:    {name: bumpy_sphere, size: small}      # built-in name or a mesh file path
-    transfer: {kind: mrt, bands: 4, samples: 256, ...}  # passed to the precompute of that kind
-    lights:   [sky, studio, "directional:direction=0.3,0.2,1;intensity=3"]
+    transfer: {type: mrt, bands: 4, samples: 256, M: 8, brdf: {type: phong, s: 12}}
+    lights:   [sky, studio, {type: directional, direction: [0.3, 0.2, 1], intensity: 3}]
     views:    {count: 3, elevation: 30.0}
-    metrics:  {random_lights: 64, repeats: 5, warmup: 1, lights_for_timing: 1}
+    metrics:  {random_lights: 64, repeats: 5, warmup: 1}
     codecs:
-      - {name: pca, vectors: [2, 4, 8]}             # lists expand into a grid
-      - {name: cpca, clusters: [8, 32], vectors: [2, 4]}
-    render:   {enabled: true, width: 256, height: 256, best: 2}
+      - {type: pca, vectors: [2, 4, 8]}             # lists expand into a grid
+      - {type: cpca, clusters: [8, 32], vectors: [2, 4]}
+    render:   {enabled: true, width: 256, height: 256}
     target:   {psnr: null, codec: pca, param: vectors, lo: 1, hi: 64}
 
-Overrides (``prt bench CONFIG key.sub=value ...``) are YAML scalars/lists set at a dotted
-path; ``codecs.0.clusters=[4,8]`` addresses the first codec entry. Every key must already exist
-in the schema (or be a codec parameter, validated by the codec registry): an unknown key or
-an invalid value fails here, before any work starts.
+Typed objects (transfer, codec, BRDF, analytic light) are mappings whose ``type`` key names
+the type; the other keys are that type's parameters, validated by its registry
+(``prt_torch.transfer.get_kind``, ``prt_torch.codecs.get``, ``prt_torch.brdf.from_spec``,
+``prt_torch.lighting.load_light``). A light may also be a built-in name, a file or a spec
+string (``"cap:direction=0.4,-0.3,1;half_angle_deg=20"``).
+
+Overrides (``prt bench CONFIG key.sub=value ...``) are values parsed by
+:func:`prt_torch.params.parse_value` set at a dotted path; ``codecs.0.clusters=[4,8]``
+addresses the first codec entry. Every key must exist in the schema or be a parameter of the
+typed object it is in: an unknown key or an invalid value fails here, before any work starts.
 
 Sweeps: inside a codec entry, a list value expands into a grid over that parameter (the
-Cartesian product over all list-valued parameters). Scalar schema keys elsewhere also accept
-a list, which expands the whole run into one grid point per value (e.g. ``transfer.bands=[3,4]``).
+Cartesian product over all list-valued parameters). Elsewhere a list where one value is
+expected expands the whole run into one grid point per value (e.g. ``transfer.bands=[3,4]``).
 """
 from __future__ import annotations
 
 import copy
 import itertools
 import json
+from importlib import resources
 from pathlib import Path
 from typing import Any
 
 import yaml
+
+from ..params import parse_value
 
 __all__ = ["DEFAULTS", "load_config", "apply_override", "expand_runs", "expand_codecs", "validate", "resolve_config_path", "config_hash"]
 
@@ -41,19 +50,12 @@ DEFAULTS: dict[str, Any] = {
     "name": "default",
     "seed": 0,
     "scene": {"name": "bumpy_sphere", "size": "small", "up": "z", "albedo": None},
-    "transfer": {
-        "kind": "diffuse",
-        "bands": 4,
-        "samples": 256,
-        "bounces": 0,
-        "shadows": "auto",
-        "params": {},  # extra keyword arguments of the kind's precompute (BRDF, M, ...)
-    },
+    "transfer": {"type": "diffuse", "bands": 4, "samples": 256},  # + any parameter of that type
     "lights": ["sky", "studio"],
     "views": {"count": 3, "elevation": 30.0, "azimuth0": 20.0},
     "metrics": {"random_lights": 64, "repeats": 5, "warmup": 1, "max_memory_gb": 16.0},
     "codecs": [],
-    "render": {"enabled": True, "width": 256, "height": 256, "best": 2},
+    "render": {"enabled": True, "width": 256, "height": 256},
     "target": {"psnr": None, "codec": None, "param": None, "lo": 1, "hi": 64, "metric": "psnr_lights_db"},
     "cache_dir": "cache",
     "output_dir": "reports",
@@ -61,23 +63,31 @@ DEFAULTS: dict[str, Any] = {
 
 #: Keys whose value is itself a list (so a list there is not a sweep).
 LIST_KEYS = {"lights", "codecs"}
-#: Keys whose value is a free-form mapping (not validated key by key here).
-FREE_KEYS = {"transfer.params"}
+#: Keys whose value is a typed object: its keys are the parameters of its ``type``, validated
+#: by that type's registry rather than by this schema.
+FREE_KEYS = {"transfer"}
+#: Keys renamed when the one ``type`` vocabulary arrived: old name -> new name.
+RENAMED = {"name": "type", "kind": "type", "model": "type"}
+
+
+def builtin_configs() -> list[str]:
+    """Names of the configs shipped with the package (``prt_torch/configs/*.yaml``)."""
+    return sorted(p.name[:-5] for p in (resources.files("prt_torch") / "configs").iterdir() if p.name.endswith(".yaml"))
 
 
 def resolve_config_path(name_or_path: str | None) -> Path:
-    """A config file path, or the name of one in the repository's configs/ (without .yaml)."""
-    root = Path(__file__).resolve().parents[2] / "configs"
+    """A config file path, or the name of a config shipped with the package (without .yaml)."""
     if name_or_path is None:
         name_or_path = "default"
     p = Path(name_or_path)
     if p.is_file():
         return p
-    cand = root / f"{name_or_path}.yaml"
+    if p.is_dir():
+        raise ValueError(f"config {str(name_or_path)!r} is a directory; accepted: a YAML file path or one of {builtin_configs()}")
+    cand = resources.files("prt_torch") / "configs" / f"{name_or_path}.yaml"
     if cand.is_file():
-        return cand
-    avail = sorted(q.stem for q in root.glob("*.yaml")) if root.is_dir() else []
-    raise FileNotFoundError(f"config {str(name_or_path)!r} not found; accepted: a YAML file path or one of {avail}")
+        return Path(str(cand))
+    raise FileNotFoundError(f"config {str(name_or_path)!r} not found; accepted: a YAML file path or one of {builtin_configs()}")
 
 
 def _merge(base: dict, upd: dict, path: str = "") -> dict:
@@ -90,6 +100,8 @@ def _merge(base: dict, upd: dict, path: str = "") -> dict:
             if not isinstance(v, dict):
                 raise ValueError(f"config key {key!r} must be a mapping, got {v!r}")
             out[k] = _merge(base[k], v, key + ".")
+        elif key in FREE_KEYS and isinstance(v, dict):  # typed object: the defaults, then the file's keys
+            out[k] = {**copy.deepcopy(base[k]), **copy.deepcopy(v)}
         else:
             out[k] = copy.deepcopy(v)
     return out
@@ -118,9 +130,9 @@ def apply_override(cfg: dict, text: str) -> dict:
         raise ValueError(f"override {text!r} is not of the form key.path=value")
     key, val = text.split("=", 1)
     try:
-        value = yaml.safe_load(val)
-    except yaml.YAMLError as e:
-        raise ValueError(f"override {text!r}: value is not valid YAML ({e})") from None
+        value = parse_value(val)
+    except ValueError as e:
+        raise ValueError(f"override {text!r}: {e}") from None
     parts = key.strip().split(".")
     cfg = copy.deepcopy(cfg)
     node: Any = cfg
@@ -169,9 +181,43 @@ def _check_type(key: str, value: Any, default: Any) -> None:
             raise ValueError(f"config key {key!r} = {v!r}: expected {type(default).__name__}" + (" (or a list of them, a sweep)" if key not in LIST_KEYS else ""))
 
 
+def _renamed(entry: Any, where: str) -> None:
+    """Refuse the keys the one ``type`` vocabulary replaced, saying what they are now."""
+    if isinstance(entry, dict):
+        for old, new in RENAMED.items():
+            if old in entry:
+                raise ValueError(f"config key '{where}.{old}' is now '{where}.{new}' (every typed object names its type "
+                                 f"with 'type'), e.g. {{type: {entry[old]!r}, ...}}")
+
+
+def transfer_types(cfg: dict) -> list[str]:
+    """The transfer type(s) of a config (a list when ``transfer.type`` is swept)."""
+    t = cfg["transfer"]["type"]
+    return t if isinstance(t, list) else [t]
+
+
+def _transfer_sweeps(cfg: dict) -> list[str]:
+    """Parameters of ``transfer`` given as a list the parameter itself does not accept: sweeps."""
+    from ..transfer import get_kind
+
+    t = cfg["transfer"]
+    out = []
+    for k, v in t.items():
+        if not isinstance(v, list):
+            continue
+        if k == "type":
+            out.append(k)
+            continue
+        accepts_list = any(not isinstance(c, list) and c is not None and c.accepts(v)
+                           for name in transfer_types(cfg) for c in get_kind(name).constraints.get(k, []))
+        if not accepts_list:
+            out.append(k)
+    return out
+
+
 def validate(cfg: dict) -> None:
-    """Types of schema keys; codec names and parameters (through the codec registry); the
-    scene, light and transfer kind names. Raises ValueError naming the key."""
+    """Types of schema keys; the transfer, codec and light specs through their registries; the
+    scene. Raises ValueError naming the key, before any work."""
 
     def walk(node: dict, schema: dict, path: str):
         for k, d in schema.items():
@@ -184,50 +230,19 @@ def validate(cfg: dict) -> None:
                 _check_type(key, node[k], d)
 
     walk(cfg, DEFAULTS, "")
-    from ..transfer import KINDS
-
-    kinds = cfg["transfer"]["kind"] if isinstance(cfg["transfer"]["kind"], list) else [cfg["transfer"]["kind"]]
-    for k in kinds:
-        if k not in KINDS:
-            raise ValueError(f"config key 'transfer.kind' = {k!r}; accepted: {list(KINDS)}")
-    params = cfg["transfer"].get("params") or {}
-    if not isinstance(params, dict):
-        raise ValueError(f"config key 'transfer.params' must be a mapping, got {params!r}")
-    import inspect
-
-    from .run import _build_params, _precompute_fn
-
-    for k in kinds:
-        accepted = set(inspect.signature(_precompute_fn(k)).parameters) - {"mesh", "progress", "bands", "samples", "seed"}
-        for key in params:
-            if key not in accepted:
-                raise ValueError(f"config key 'transfer.params.{key}' is not a parameter of the {k} precompute; accepted: {sorted(accepted)}")
-    if isinstance(params.get("brdf"), dict):
-
-        try:
-            _build_params({"brdf": params["brdf"]})
-        except (ValueError, TypeError) as e:
-            raise ValueError(f"config key 'transfer.params.brdf': {e}") from None
-    if not isinstance(cfg["lights"], list) or not cfg["lights"]:
-        raise ValueError(f"config key 'lights' must be a non-empty list, got {cfg['lights']!r}")
-    if not isinstance(cfg["codecs"], list) or not cfg["codecs"]:
-        raise ValueError("config key 'codecs' must be a non-empty list of codec settings, e.g. [{name: pca, vectors: [4, 8]}]")
-    from .. import codecs
-
-    for i, entry in enumerate(cfg["codecs"]):
-        if not isinstance(entry, dict) or "name" not in entry:
-            raise ValueError(f"config key 'codecs.{i}' must be a mapping with a 'name', got {entry!r}")
-        for params in expand_codecs([entry]):
-            p = dict(params)
-            name = p.pop("name")
-            try:
-                codecs.get(name, **p)  # validates name and parameters, no work
-            except (ValueError, TypeError) as e:
-                raise ValueError(f"config key 'codecs.{i}': {e}") from None
+    _validate_transfer(cfg)
+    _validate_lights(cfg["lights"])
+    _validate_codecs(cfg["codecs"])
     t = cfg["target"]
     if t.get("psnr") is not None:
         if not t.get("codec") or not t.get("param"):
             raise ValueError("config key 'target': a psnr target needs 'codec' and 'param' (the size parameter to search)")
+        from .. import codecs
+
+        try:
+            codecs.get(t["codec"], **{t["param"]: int(t["lo"])})
+        except (ValueError, TypeError) as e:
+            raise ValueError(f"config key 'target': {e}") from None
     from ..scene import list_builtins
 
     scene_names = cfg["scene"]["name"] if isinstance(cfg["scene"]["name"], list) else [cfg["scene"]["name"]]
@@ -236,11 +251,67 @@ def validate(cfg: dict) -> None:
             raise FileNotFoundError(f"config key 'scene.name' = {s!r}: not a built-in scene ({list_builtins()}) nor an existing mesh file")
 
 
+def _validate_transfer(cfg: dict) -> None:
+    from ..transfer import get_kind
+    from .evaluate import KINDS
+
+    t = cfg["transfer"]
+    if not isinstance(t, dict):
+        raise ValueError(f"config key 'transfer' must be a mapping {{type: KIND, ...}}, got {t!r}")
+    _renamed(t, "transfer")
+    if "params" in t:
+        raise ValueError("config key 'transfer.params' is gone: write the parameters of the transfer type directly under "
+                         "'transfer' (e.g. transfer: {type: mrt, M: 8, brdf: {type: phong, s: 12}})")
+    sweeps = set(_transfer_sweeps(cfg))
+    for name in transfer_types(cfg):
+        if name not in KINDS:
+            raise ValueError(f"config key 'transfer.type' = {name!r}; accepted: {list(KINDS)} (the types the harness relights)")
+        kind = get_kind(name)
+        params = {k: v for k, v in t.items() if k != "type"}
+        for combo in itertools.product(*[(params[k] if k in sweeps else [params[k]]) for k in params]):
+            try:
+                kind.validate(dict(zip(params, combo)), where=f"config key 'transfer' (type {name})")
+            except (ValueError, TypeError) as e:
+                raise ValueError(str(e)) from None
+
+
+def _validate_lights(lights: Any) -> None:
+    from ..lighting import load_light
+
+    if not isinstance(lights, list) or not lights:
+        raise ValueError(f"config key 'lights' must be a non-empty list, got {lights!r}")
+    for i, spec in enumerate(lights):
+        _renamed(spec, f"lights.{i}")
+        if isinstance(spec, dict) or (isinstance(spec, str) and ":" in spec and not Path(spec).exists()):
+            try:
+                load_light(spec, bands=1)  # analytic: cheap; refuses bad types and parameters
+            except (ValueError, TypeError, FileNotFoundError) as e:
+                raise ValueError(f"config key 'lights.{i}': {e}") from None
+
+
+def _validate_codecs(entries: Any) -> None:
+    from .. import codecs
+
+    if not isinstance(entries, list) or not entries:
+        raise ValueError("config key 'codecs' must be a non-empty list of codec settings, e.g. [{type: pca, vectors: [4, 8]}]")
+    for i, entry in enumerate(entries):
+        _renamed(entry, f"codecs.{i}")
+        if not isinstance(entry, dict) or "type" not in entry:
+            raise ValueError(f"config key 'codecs.{i}' must be a mapping with a 'type', got {entry!r}")
+        for params in expand_codecs([entry]):
+            p = dict(params)
+            name = p.pop("type")
+            try:
+                codecs.get(name, **p)  # validates name and parameters, no work
+            except (ValueError, TypeError) as e:
+                raise ValueError(f"config key 'codecs.{i}': {e}") from None
+
+
 def expand_codecs(entries: list[dict]) -> list[dict]:
     """Each codec entry with list-valued parameters becomes the grid of its settings (in order)."""
     out = []
     for e in entries:
-        keys = [k for k, v in e.items() if isinstance(v, list) and k != "name"]
+        keys = [k for k, v in e.items() if isinstance(v, list) and k != "type"]
         if not keys:
             out.append(dict(e))
             continue
@@ -252,13 +323,16 @@ def expand_codecs(entries: list[dict]) -> list[dict]:
 
 
 def _sweep_paths(node: Any, schema: Any, path: str) -> list[str]:
+    """Dotted paths of list values that expand a run into a grid (see module docstring)."""
     out = []
     if isinstance(schema, dict) and isinstance(node, dict):
         for k, d in schema.items():
             key = f"{path}{k}"
-            if k not in node or key in LIST_KEYS or key in FREE_KEYS:
+            if k not in node or key in LIST_KEYS:
                 continue
-            if isinstance(d, dict):
+            if key == "transfer":
+                out += [f"transfer.{p}" for p in _transfer_sweeps(node)]
+            elif isinstance(d, dict):
                 out += _sweep_paths(node[k], d, key + ".")
             elif isinstance(node[k], list):
                 out.append(key)

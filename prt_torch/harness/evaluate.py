@@ -12,7 +12,10 @@ camera position into per-vertex view weights over the n_out outputs:
 * mrt ``[V, M², n²]``: radiance = Σ of the four tent basis functions nonzero at v_p times
   (A_p l) (Lehtinen & Kautz 2003, eq. 9 and §5).
 
-View weights are dense ``[V, n_out]`` (glossy) or sparse taps ``(idx [V, k], w [V, k])`` (MRT).
+View weights are dense ``[V, n_out]`` (glossy) or sparse taps ``(idx [V, k], w [V, k])`` (MRT),
+zero below each vertex's horizon, from :mod:`prt_torch.relight` (the project's one uncompressed
+reference): the reference relights through ``relight`` and every codec gets the same weights,
+so a PSNR measures the codec alone.
 """
 from __future__ import annotations
 
@@ -22,10 +25,13 @@ from typing import Any
 
 import torch
 
-from .. import sh
+from .. import relight, sh
 from ..transfer import Transfer
 
-__all__ = ["Evaluator", "camera_positions"]
+__all__ = ["Evaluator", "camera_positions", "KINDS"]
+
+#: transfer kinds the harness can relight
+KINDS = ("diffuse", "glossy", "mrt")
 
 
 def camera_positions(center: torch.Tensor, radius: float, count: int, elevation_deg: float, azimuth0_deg: float,
@@ -58,11 +64,11 @@ class Evaluator:
                 self.matrix_shape = (data.shape[1], data.shape[2])
                 self.n_in = data.shape[2]
                 self.albedo = None
-        elif t.kind in ("glossy", "mrt"):
+        elif t.kind in KINDS:
             self.matrix_shape = tuple(int(v) for v in t.meta.get("matrix_shape", data.shape[1:3]))
             self.n_in = self.matrix_shape[1]
         else:
-            raise ValueError(f"transfer kind {t.kind!r} is not supported by the harness yet; accepted: diffuse, glossy, mrt")
+            raise ValueError(f"transfer kind {t.kind!r} is not supported by the harness; accepted: {', '.join(KINDS)}")
         self.bands_in = sh.band_of_coeffs(self.n_in, "transfer input coefficients")
         self.frames = t.mesh.frames().to(torch.float64)  # [V, 3, 3] rows (t, b, n)
         self.points = t.mesh.vertices.to(torch.float64) if isinstance(t.mesh.vertices, torch.Tensor) else torch.as_tensor(t.mesh.vertices, dtype=torch.float64)
@@ -89,25 +95,18 @@ class Evaluator:
         return torch.einsum("vij,vj->vi", self.frames, v)
 
     def view_weights(self, camera: torch.Tensor | None) -> Any:
-        """Per-vertex weights over the n_out outputs for ``camera`` (None for view-independent kinds)."""
+        """Per-vertex weights over the n_out outputs for ``camera`` (None for view-independent
+        kinds), zero below the horizon: ``relight.glossy_view_weights`` / ``relight.mrt_view_taps``."""
         if not self.needs_view:
             return None
         v = self.local_views(camera)
         if self.kind == "glossy":
-            n_out = self.matrix_shape[0]
-            out_idx = self.transfer.meta.get("out_index")
-            if out_idx is None:
-                return sh.eval_sh(v, math.isqrt(n_out), check=False).to(torch.float32)
-            bands_out = int(self.transfer.meta.get("bands_out", math.isqrt(max(out_idx)) + 1))
-            return sh.eval_sh(v, bands_out, check=False)[:, torch.as_tensor(out_idx)].to(torch.float32)
-        from ..transfer import mrt
-
-        M = int(self.transfer.meta.get("M", math.isqrt(self.matrix_shape[0])))
-        idx, w = mrt.tent_taps(v, M)
-        return idx, w.to(torch.float32)
+            return relight.glossy_view_weights(v, self.transfer.meta.get("out_index"), self.matrix_shape[0])
+        return relight.mrt_view_taps(v, math.isqrt(self.matrix_shape[0]))
 
     def finish(self, out: torch.Tensor) -> torch.Tensor:
-        """Codec/reference output -> per-vertex RGB radiance ``[V, C]``."""
+        """Codec output -> per-vertex RGB radiance ``[V, C]`` (albedo of unfolded diffuse
+        transfer; the diagonal of an RGB diffuse [V, 3, C] product)."""
         if self.kind == "diffuse":
             if self.matrix_shape is None:
                 return out * self.albedo[:, : out.shape[1]]
@@ -115,17 +114,15 @@ class Evaluator:
         return out
 
     def reference(self, light: torch.Tensor, view: Any) -> torch.Tensor:
-        """Uncompressed relighting: the peer every codec is compared against. ``[V, C]``."""
-        L = self.light_matrix(light)
-        if self.matrix_shape is None:
-            return self.finish(self.X @ L)
+        """Uncompressed relighting through :mod:`prt_torch.relight`: the peer every codec is
+        compared against. ``light [C, n²]`` (any bands; truncated or zero-padded), ``view``
+        from :meth:`view_weights`. Returns ``[V, C]`` float32."""
+        L = self.light_matrix(light).T  # [C, n_in]
+        if self.kind == "diffuse":
+            data = self.X if self.matrix_shape is None else self.X.view(self.V, *self.matrix_shape)
+            out = relight.diffuse(data, L)
+            return out * self.albedo[:, : out.shape[1]] if self.matrix_shape is None else out
         Mx = self.X.view(self.V, *self.matrix_shape)
-        if view is None:
-            return self.finish(torch.matmul(Mx, L))  # [V, n_out, C]
         if isinstance(view, tuple):
-            idx, w = view
-            rows = torch.gather(Mx, 1, idx[:, :, None].expand(-1, -1, self.n_in))  # [V, k, n_in]
-            r = torch.einsum("vk,vki->vi", w, rows)
-            return r @ L
-        r = torch.einsum("vo,voi->vi", view, Mx)
-        return r @ L
+            return relight.apply_taps(Mx, L, *view)
+        return relight.apply_dense(Mx, L, view)

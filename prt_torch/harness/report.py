@@ -6,8 +6,13 @@ reports/<run>/
   report.md        PSNR / fps tables, the target search, links to the figures
   rd.png           rate–distortion: PSNR vs bytes per vertex, one line per codec
   speed_accuracy.png  relighting fps vs PSNR, Pareto front marked
-  renders/         uncompressed vs best setting of each codec, with error heat maps
-  records/         one JSON per finished setting (what makes a run resumable)
+  renders/         uncompressed vs best setting of each codec, with error heat maps (made by
+                   harness.renders in the run step; this module only links them)
+  records/         one JSON per finished setting and its encoding as a codec file (what makes
+                   a run resumable)
+
+This module reads results (a plain dict, or a results.json) and writes files; it never fits,
+relights or renders.
 """
 from __future__ import annotations
 
@@ -210,69 +215,14 @@ def markdown(results: dict, figures: list[str], renders: list[str]) -> str:
     return "\n".join(lines)
 
 
-def write_outputs(run_dir: Path, results: dict, ev=None, lights=None, views=None, cams=None, cfg=None,
-                  log: Callable[[str], None] = print, fitted: dict | None = None) -> None:
+def write_outputs(run_dir: Path, results: dict, log: Callable[[str], None] = print) -> None:
+    """Write results.json, results.csv, the plots and report.md for ``results`` (a plain dict,
+    as harness.run makes it; ``results['renders']`` lists image paths relative to ``run_dir``)."""
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     io.atomic_write_json(run_dir / "results.json", results)
     write_csv(run_dir / "results.csv", results["records"])
     figs = [p.name for p in plot_results([results], run_dir)]
-    renders: list[str] = []
-    if cfg is not None and cfg["render"]["enabled"] and ev is not None:
-        try:
-            renders = render_best(run_dir, results, ev, lights, views, cams, cfg, fitted or {})
-        except Exception as e:  # rendering must not lose a finished benchmark; say why
-            log(f"[bench] renders skipped: {type(e).__name__}: {e}")
-            results["render_error"] = f"{type(e).__name__}: {e}"
-            io.atomic_write_json(run_dir / "results.json", results)
+    renders = list(results.get("renders") or [])
     io.atomic_write_text(run_dir / "report.md", markdown(results, figs, renders))
     log(f"[bench] wrote {run_dir}/report.md, results.json, results.csv, {', '.join(figs)}" + (f", {len(renders)} render(s)" if renders else ""))
-
-
-def render_best(run_dir: Path, results: dict, ev, lights, views, cams, cfg, fitted: dict) -> list[str]:
-    """Render the uncompressed result and the best setting (highest PSNR) of each codec for the
-    first light and view, with an error heat map; returns relative paths of the composites."""
-    import torch
-
-    from .. import codecs, render
-    from .run import _fit_encode, _relight
-
-    rc = cfg["render"]
-    out_dir = run_dir / "renders"
-    out_dir.mkdir(parents=True, exist_ok=True)
-    mesh = ev.transfer.mesh
-    L = lights[0]
-    ref = ev.reference(L, views[0]).clamp_min(0)
-    center = ev.points.mean(0)
-    radius = float((ev.points - center).norm(dim=-1).max())
-    eye = cams[0]
-    dist = float((eye - center).norm())
-    # the same eye as the view directions used for glossy/MRT metrics; fov frames the bounding sphere
-    fov = 2 * math.degrees(math.asin(min(0.99, 1.08 * radius / dist)))
-    cam = render.Camera(eye=eye.numpy(), target=center.numpy(), fov=fov, near=max(1e-3, dist - 1.5 * radius), far=dist + 1.5 * radius)
-    best: dict[str, dict] = {}
-    for x in results["records"]:
-        if x["codec"] not in best or x["psnr_lights_db"] > best[x["codec"]]["psnr_lights_db"]:
-            best[x["codec"]] = x
-    paths = []
-    with render.Renderer(rc["width"], rc["height"]) as rd:
-        img_ref, mask = rd.render_radiance(mesh, ref, camera=cam)
-        expo = render.auto_exposure(img_ref, mask)  # stops, shared by every panel
-        render.save_png(out_dir / "uncompressed.png", img_ref, exposure=expo)
-        render.save_exr(out_dir / "uncompressed.exr", img_ref)
-        for codec_name, x in sorted(best.items()):
-            if codec_name in fitted and fitted[codec_name][0] == x["setting_id"]:
-                codec, enc = fitted[codec_name][1:]
-            else:  # restored from a record of an earlier run: refit (deterministic per seed)
-                codec = codecs.get(codec_name, **x["params"])
-                enc = _fit_encode(codec, ev.X, ev.matrix_shape)
-            out = ev.finish(_relight(codec, enc, ev.light_matrix(L), views[0])).clamp_min(0)
-            img, _ = rd.render_radiance(mesh, out, camera=cam)
-            vmax = float(max(1e-12, abs(img_ref[mask]).max())) * 0.1 if mask.any() else None
-            heat = render.error_heatmap(img, img_ref, mask, vmax=vmax)
-            p = out_dir / f"{x['setting_id']}.png"
-            render.side_by_side([img_ref, img, heat],
-                                ["uncompressed", f"{codec_name} ({x['psnr_lights_db']:.1f} dB)", "|error| (10% of peak = top)"],
-                                exposure=[expo, expo, 0.0], path=p)
-            paths.append(f"renders/{p.name}")
-    return paths

@@ -13,10 +13,15 @@
    uncompressed result for every light × view; relighting throughput (vertices/s, fps) as
    the median of repeats after warm-up with its spread, next to the uncompressed peer
    measured in the same run;
-5. writes each finished setting's record to ``records/<id>.json`` at once (atomic), so an
-   interrupted sweep keeps what it finished and a re-run skips it;
-6. optional target search (smallest size parameter meeting a PSNR target), then
-   results.json/csv, report.md, plots and renders (harness.report).
+5. writes each finished setting's record to ``records/<id>.json`` and its fitted codec and
+   encoding to ``records/<id>.prt`` at once (atomic), so an interrupted sweep keeps what it
+   finished and a re-run skips it;
+6. optional target search (smallest size parameter meeting a PSNR target);
+7. renders the uncompressed result and the best setting of each codec from the encodings it
+   has (harness.renders), then hands the results (a plain JSON-able dict) and the image paths
+   to harness.report, which writes results.json/csv, report.md and the plots.
+
+Layers flow one way: run → renders, run → report; report never fits, relights or renders.
 """
 from __future__ import annotations
 
@@ -34,6 +39,8 @@ from ..transfer import Transfer
 from .config import config_hash, expand_codecs
 from .evaluate import Evaluator, camera_positions
 from .metrics import psnr_vs_reference, random_light_psnr, random_light_psnr_analytic, squared_error
+from .renders import render_best
+from .report import write_outputs
 from .timing import machine_info, measure
 
 __all__ = ["run_benchmark", "compute_transfer", "evaluate_setting", "RESULTS_VERSION"]
@@ -43,60 +50,32 @@ RESULTS_VERSION = 1
 
 # --------------------------------------------------------------------------- transfer
 
-def _precompute_fn(kind: str) -> Callable[..., Transfer]:
-    from .. import transfer as T
-
-    if kind == "diffuse":
-        return T.precompute_diffuse
-    if kind in ("glossy", "mrt"):
-        from ..transfer import glossy
-
-        return glossy.precompute_glossy if kind == "glossy" else glossy.precompute_mrt
-    raise ValueError(f"transfer.kind={kind!r} cannot be benchmarked; accepted: diffuse, glossy, mrt")
-
-
 def transfer_params(cfg: dict) -> dict:
+    """The precompute parameters of ``cfg['transfer']`` (everything but ``type``); the run's
+    ``seed`` unless the transfer sets its own."""
+    from ..transfer import get_kind
+
     t = cfg["transfer"]
-    p = {"bands": t["bands"], "samples": t["samples"], "seed": cfg["seed"]}
-    if t["kind"] == "diffuse":
-        p.update(bounces=t["bounces"], shadows=t["shadows"])
-    else:  # glossy / mrt trace visibility unless told not to; 'auto' keeps the default
-        if t["shadows"] in ("off", "none", "never", False):
-            p["shadows"] = False
-        if t["bounces"]:
-            p["bounces"] = t["bounces"]
-    p.update(t.get("params") or {})
-    return p
-
-
-def _build_params(params: dict) -> dict:
-    """Config values -> precompute arguments: a ``brdf`` mapping {model, ...} becomes a BRDF."""
-    p = dict(params)
-    if isinstance(p.get("brdf"), dict):
-        from ..brdf import make_brdf
-
-        b = dict(p["brdf"])
-        model = b.pop("model", None)
-        if model is None:
-            raise ValueError("config key 'transfer.params.brdf' needs a 'model' (e.g. phong, blinn_phong, ashikhmin_shirley, ward, lambertian)")
-        p["brdf"] = make_brdf(model, **b)
-    if isinstance(p.get("drop_out"), list):
-        p["drop_out"] = [tuple(d) for d in p["drop_out"]]
+    p = {k: v for k, v in t.items() if k != "type"}
+    if "seed" in get_kind(t["type"]).constraints:
+        p.setdefault("seed", cfg["seed"])
     return p
 
 
 def estimate_memory(cfg: dict, num_vertices: int) -> dict:
     """Rough peak bytes: the transfer signal (float32) a few times over (signal, decoded copy,
     float64 error pass) plus the largest codec workspace (per-cluster covariances in float64)."""
+    from ..transfer import get_kind
+
     t = cfg["transfer"]
-    n2 = t["bands"] ** 2
-    p = t.get("params") or {}
-    if t["kind"] == "diffuse":
+    p = {**get_kind(t["type"]).defaults(), **transfer_params(cfg)}
+    n2 = p["bands"] ** 2
+    if t["type"] == "diffuse":
         D = n2 * 3
-    elif t["kind"] == "glossy":
-        D = int(p.get("bands_out", t["bands"])) ** 2 * n2
+    elif t["type"] == "glossy":
+        D = int(p["bands_out"] or p["bands"]) ** 2 * n2
     else:
-        D = int(p.get("M", 11)) ** 2 * n2
+        D = int(p["M"]) ** 2 * n2
     signal = num_vertices * D * 4
     work = 0
     for s in expand_codecs(cfg["codecs"]):
@@ -109,7 +88,9 @@ def estimate_memory(cfg: dict, num_vertices: int) -> dict:
 
 def compute_transfer(cfg: dict, mesh, cache_dir: Path, progress: bool = True) -> tuple[Transfer, dict]:
     """Transfer for ``cfg`` on ``mesh``, from the cache if it is there. Returns (transfer, info)."""
-    kind = cfg["transfer"]["kind"]
+    from ..transfer import RunOptions, get_kind
+
+    kind = cfg["transfer"]["type"]
     params = transfer_params(cfg)
     key = config_hash({"kind": kind, "params": params, "mesh": mesh.content_hash()})
     path = Path(cache_dir) / f"transfer-{kind}-{key}.prt"
@@ -117,44 +98,30 @@ def compute_transfer(cfg: dict, mesh, cache_dir: Path, progress: bool = True) ->
         t0 = time.perf_counter()
         tr = Transfer.load(path)
         return tr, {"cache": "hit", "path": str(path), "seconds": time.perf_counter() - t0, "key": key}
-    fn = _precompute_fn(kind)
     t0 = time.perf_counter()
-    tr = fn(mesh, **_build_params(params), progress=progress)
+    tr = get_kind(kind).precompute(mesh, params, run=RunOptions(progress=progress))
     secs = time.perf_counter() - t0
     tr.save(path, overwrite=True)
     return tr, {"cache": "miss", "path": str(path), "seconds": secs, "key": key}
 
 
-# --------------------------------------------------------------------------- codec adapter
-
-def _fit_encode(codec, X: torch.Tensor, matrix_shape) -> Any:
-    codec.fit(X, matrix_shape=matrix_shape)
-    return codec.encode(X)
-
-
-def _relight(codec, enc, L: torch.Tensor, view: Any) -> torch.Tensor:
-    return codec.relight(enc, L, view=view)
-
-
 # --------------------------------------------------------------------------- one setting
 
 def setting_id(setting: dict) -> str:
-    parts = [setting["name"]] + [f"{k}{v}" for k, v in sorted(setting.items()) if k != "name"]
+    parts = [setting["type"]] + [f"{k}{v}" for k, v in sorted(setting.items()) if k != "type"]
     return "-".join(str(p).replace("/", "_").replace(" ", "") for p in parts)
 
 
 def evaluate_setting(ev: Evaluator, setting: dict, lights: list[torch.Tensor], views: list[Any], cfg: dict,
-                     ref_cache: dict, keep: dict | None = None) -> dict:
-    """Fit, encode and measure one codec setting. Returns the record (JSON-able).
-
-    ``keep``: if given, ``keep[codec name] = (psnr, setting_id, codec, encoded)`` is updated
-    with the best setting of each codec so far (the renders reuse it instead of refitting)."""
+                     ref_cache: dict) -> tuple[dict, Any, Any]:
+    """Fit, encode and measure one codec setting ``{type: NAME, <param>: value}``.
+    Returns (the record, JSON-able; the fitted codec; its encoding)."""
     params = dict(setting)
-    name = params.pop("name")
+    name = params.pop("type")
     codec = codecs.get(name, **params)
     X = ev.X
     t0 = time.perf_counter()
-    enc = _fit_encode(codec, X, ev.matrix_shape)
+    enc = codec.fit_encode(X, matrix_shape=ev.matrix_shape)
     encode_s = time.perf_counter() - t0
     storage = dict(codec.storage(enc))
     X_hat = codec.decode(enc).to(torch.float32)
@@ -167,16 +134,16 @@ def evaluate_setting(ev: Evaluator, setting: dict, lights: list[torch.Tensor], v
         Lm = ev.light_matrix(L)
         for vi, view in enumerate(views):
             ref = ref_cache[(li, vi)]
-            out = ev.finish(_relight(codec, enc, Lm, view))
+            out = ev.finish(codec.relight(enc, Lm, view=view))
             per.append({"light": li, "view": vi, "psnr_db": psnr_vs_reference(ref, out)})
     # throughput: relight one light (and view) from the compressed form; median of repeats
     L0 = ev.light_matrix(lights[0])
     v0 = views[0]
-    tm = measure(lambda: _relight(codec, enc, L0, v0), repeats=m["repeats"], warmup=m["warmup"])
+    tm = measure(lambda: codec.relight(enc, L0, view=v0), repeats=m["repeats"], warmup=m["warmup"])
     psnrs = [p["psnr_db"] for p in per]
     finite = [p for p in psnrs if math.isfinite(p)]
     mean_psnr = (sum(finite) / len(finite)) if len(finite) == len(psnrs) else float("inf")
-    bytes_total = int(storage.get("bytes_total", storage.get("bytes", 0)))
+    bytes_total = int(storage["bytes_total"])
     rec = {
         "setting_id": setting_id(setting),
         "codec": name,
@@ -185,7 +152,7 @@ def evaluate_setting(ev: Evaluator, setting: dict, lights: list[torch.Tensor], v
         "bytes_total": bytes_total,
         "bytes_per_vertex": bytes_total / ev.V,
         "compression_ratio": ev.raw_bytes / bytes_total if bytes_total else float("inf"),
-        "sloan_cost_floats": storage.get("sloan_cost", storage.get("sloan_cost_floats")),
+        "sloan_cost_floats": storage.get("sloan_cost_floats"),
         "storage": storage,
         "se": se,
         "relative_se": rel,
@@ -200,14 +167,14 @@ def evaluate_setting(ev: Evaluator, setting: dict, lights: list[torch.Tensor], v
         "vertices_per_s": tm.rate(ev.V),
         "fps": 1.0 / tm.median if tm.median > 0 else float("inf"),
     }
-    if keep is not None and (name not in keep or mean_psnr > keep[name][0]):
-        keep[name] = (mean_psnr, rec["setting_id"], codec, enc)
-    return rec
+    return rec, codec, enc
 
 
 # --------------------------------------------------------------------------- the run
 
 def _load_records(rec_dir: Path) -> dict[str, dict]:
+    """Finished settings of an earlier run: key -> record, for records whose encoding
+    (``<id>.prt``) is there too."""
     out = {}
     if rec_dir.is_dir():
         for p in sorted(rec_dir.glob("*.json")):
@@ -215,7 +182,8 @@ def _load_records(rec_dir: Path) -> dict[str, dict]:
                 r = json.loads(p.read_text())
             except (OSError, json.JSONDecodeError):
                 continue  # a torn file cannot exist (atomic writes), but never trust the disk
-            out[r.get("key", "")] = r
+            if "key" in r and p.with_suffix(".prt").is_file():
+                out[r["key"]] = r
     return out
 
 
@@ -238,7 +206,7 @@ def run_benchmark(cfg: dict, resume: bool = True, progress: bool = True, log: Ca
             f"{mem['codec_workspace_bytes'] / 2**30:.2f} GiB) > metrics.max_memory_gb={cfg['metrics']['max_memory_gb']}; "
             "accepted: a smaller scene, fewer bands or clusters, or a larger max_memory_gb"
         )
-    log(f"[bench] {cfg['name']}: scene {mesh.name} ({mesh.num_vertices} vertices), transfer {cfg['transfer']['kind']}")
+    log(f"[bench] {cfg['name']}: scene {mesh.name} ({mesh.num_vertices} vertices), transfer {cfg['transfer']['type']}")
     tr, tinfo = compute_transfer(cfg, mesh, Path(cfg["cache_dir"]), progress=progress)
     log(f"[bench] transfer {tuple(tr.data.shape)} ({tinfo['cache']}, {tinfo['seconds']:.1f} s)")
     ev = Evaluator(tr)
@@ -248,7 +216,6 @@ def run_benchmark(cfg: dict, resume: bool = True, progress: bool = True, log: Ca
     cams = camera_positions(center, radius, cfg["views"]["count"], cfg["views"]["elevation"], cfg["views"]["azimuth0"])
     views = [ev.view_weights(c) for c in cams] if ev.needs_view else [None]
     ref_cache = {(li, vi): ev.reference(L, v) for li, L in enumerate(lights) for vi, v in enumerate(views)}
-    L0 = ev.light_matrix(lights[0])
     ref_t = measure(lambda: ev.reference(lights[0], views[0]), repeats=cfg["metrics"]["repeats"], warmup=cfg["metrics"]["warmup"])
     uncompressed = {"relight_s": ref_t.median, "relight_spread": ref_t.spread, "vertices_per_s": ref_t.rate(ev.V),
                     "fps": 1.0 / ref_t.median, "bytes_total": ev.raw_bytes, "bytes_per_vertex": ev.raw_bytes / ev.V}
@@ -256,7 +223,6 @@ def run_benchmark(cfg: dict, resume: bool = True, progress: bool = True, log: Ca
     settings = expand_codecs(cfg["codecs"])
     done = _load_records(rec_dir) if resume else {}
     records: list[dict] = []
-    fitted: dict[str, tuple] = {}  # best (psnr, setting_id, codec, encoded) per codec, for the renders
     context_key = config_hash({"transfer": tinfo["key"], "lights": cfg["lights"], "views": cfg["views"],
                                "metrics": cfg["metrics"], "seed": cfg["seed"]})
 
@@ -264,9 +230,10 @@ def run_benchmark(cfg: dict, resume: bool = True, progress: bool = True, log: Ca
         key = config_hash({"setting": s, "context": context_key})
         if key in done:
             return done[key]
-        rec = evaluate_setting(ev, s, lights, views, cfg, ref_cache, keep=fitted)
+        rec, codec, enc = evaluate_setting(ev, s, lights, views, cfg, ref_cache)
         rec["key"] = key
         rec["speedup_vs_uncompressed"] = uncompressed["relight_s"] / rec["relight_s"] if rec["relight_s"] > 0 else float("inf")
+        codec.save(rec_dir / f"{rec['setting_id']}.prt", enc, overwrite=True)  # before the record: a record implies its encoding
         io.atomic_write_json(rec_dir / f"{rec['setting_id']}.json", rec)
         done[key] = rec
         return rec
@@ -305,18 +272,22 @@ def run_benchmark(cfg: dict, resume: bool = True, progress: bool = True, log: Ca
         "machine": machine_info(),
         "scene": {"name": mesh.name, "vertices": mesh.num_vertices, "faces": mesh.num_faces, "hash": mesh.content_hash()},
         "transfer": {"kind": tr.kind, "shape": list(tr.data.shape), "matrix_shape": list(ev.matrix_shape) if ev.matrix_shape else None,
-                     "n_in": ev.n_in, "raw_bytes": ev.raw_bytes, "cache": tinfo, "meta": _jsonable(tr.meta)},
+                     "n_in": ev.n_in, "raw_bytes": ev.raw_bytes, "cache": tinfo, "meta": io.jsonable(tr.meta)},
         "memory_estimate": mem,
         "lights": [str(s) for s in cfg["lights"]],
         "views": cams.tolist() if ev.needs_view else [],
         "uncompressed": uncompressed,
         "target": target,
         "records": records,
+        "renders": [],
     }
-    from .report import write_outputs
-
-    write_outputs(run_dir, results, ev=ev, lights=lights, views=views, cams=cams, cfg=cfg, log=log,
-                  fitted={k: v[1:] for k, v in fitted.items()})
+    if cfg["render"]["enabled"]:
+        try:
+            results["renders"] = render_best(run_dir, records, ev, lights[0], views[0], cams[0], cfg["render"])
+        except Exception as e:  # rendering must not lose a finished benchmark; say why
+            log(f"[bench] renders skipped: {type(e).__name__}: {e}")
+            results["render_error"] = f"{type(e).__name__}: {e}"
+    write_outputs(run_dir, results, log=log)
     return run_dir
 
 
@@ -326,7 +297,7 @@ def find_smallest(cfg: dict, run_setting: Callable[[dict], dict]) -> dict:
     the size parameters of every codec here: clusters, vectors). CompressAI's find_close in
     spirit. Other parameters come from the first codec entry of that name (lists -> first)."""
     t = cfg["target"]
-    base = next((dict(e) for e in cfg["codecs"] if e["name"] == t["codec"]), {"name": t["codec"]})
+    base = next((dict(e) for e in cfg["codecs"] if e["type"] == t["codec"]), {"type": t["codec"]})
     base = {k: (v[0] if isinstance(v, list) else v) for k, v in base.items()}
     lo, hi = int(t["lo"]), int(t["hi"])
     metric, goal = t["metric"], float(t["psnr"])
@@ -348,7 +319,7 @@ def find_smallest(cfg: dict, run_setting: Callable[[dict], dict]) -> dict:
             hi = mid
         else:
             lo = mid + 1
-    best = next(r for r in tried if r["params"].get(t["param"]) == lo) if any(r["params"].get(t["param"]) == lo for r in tried) else None
+    best = next((r for r in tried if r["params"].get(t["param"]) == lo), None)
     if best is None:
         ok(lo)
         best = tried[-1]
@@ -356,6 +327,3 @@ def find_smallest(cfg: dict, run_setting: Callable[[dict], dict]) -> dict:
             "achieved_db": best[metric], "bytes_per_vertex": best["bytes_per_vertex"], "setting_id": best["setting_id"],
             "evaluated": [r["params"].get(t["param"]) for r in tried], "_records": tried}
 
-
-def _jsonable(obj: Any) -> Any:
-    return json.loads(json.dumps(obj, default=str))

@@ -25,13 +25,72 @@ from typing import Any, Callable
 import torch
 
 from .. import io
-from .._checks import check_choice, check_int
+from .._checks import check_choice, check_float, check_int
 from ..scene import Mesh
 
-__all__ = ["Transfer", "KINDS", "TRANSFER_VERSION", "run_chunks", "ChunkInterrupt", "default_state_dir", "remove_state"]
+__all__ = ["Transfer", "KINDS", "TRANSFER_VERSION", "RunOptions", "run_chunks", "ChunkInterrupt", "default_state_dir",
+           "remove_state"]
 
 KINDS = ("diffuse", "glossy", "mrt", "transport")
 TRANSFER_VERSION = 1
+
+
+@dataclasses.dataclass(frozen=True)
+class RunOptions:
+    """How a precompute runs (every kind takes one as ``run=``); none of these changes the
+    result except ``offset``, which is part of each run's fingerprint.
+
+    Attributes:
+        chunk_size: vertices per chunk (None: each kind's default, about 2¹⁹–2²⁰ rays per chunk).
+        workers: ray-casting processes (None: all cores when the run traces ≥ 4M rays, else 1).
+        offset: ray-origin offset along the normal, relative to the mesh's bounding radius.
+        max_memory: bytes; refuse a run estimated above it before any work (None: 60% of RAM).
+        state_dir: where finished chunks are kept (resumable); None = in memory only.
+        resume: continue from ``state_dir``; without it an existing state dir is refused.
+        keep_state: keep ``state_dir`` after success.
+        progress: a tqdm bar with rays/s.
+        callback: ``callback(chunk_index, n_chunks)`` after each chunk is saved (may raise,
+            e.g. :class:`ChunkInterrupt`).
+    """
+
+    chunk_size: int | None = None
+    workers: int | None = 1
+    offset: float = 1e-4
+    max_memory: int | None = None
+    state_dir: str | os.PathLike | None = None
+    resume: bool = False
+    keep_state: bool = False
+    progress: bool = False
+    callback: Callable[[int, int], None] | None = None
+
+    def __post_init__(self):
+        if self.chunk_size is not None:
+            check_int("chunk_size", self.chunk_size, 1)
+        if self.workers is not None:
+            check_int("workers", self.workers, 1)
+        check_float("offset", self.offset, 0.0, 0.1)
+        if self.max_memory is not None:
+            check_int("max_memory", self.max_memory, 1)
+        for k in ("resume", "keep_state", "progress"):
+            if not isinstance(getattr(self, k), bool):
+                raise TypeError(f"RunOptions.{k} must be true or false, got {getattr(self, k)!r}")
+        if self.callback is not None and not callable(self.callback):
+            raise TypeError(f"RunOptions.callback must be callable, got {self.callback!r}")
+
+    def chunks(self, default: int) -> int:
+        """``chunk_size`` or the kind's ``default``."""
+        return default if self.chunk_size is None else int(self.chunk_size)
+
+    def run_chunks(self, n_items: int, chunk_size: int, compute, *, fingerprint: dict, desc: str,
+                   rays_of=None) -> list[dict[str, torch.Tensor]]:
+        """:func:`run_chunks` with these options (state dir, resume, progress, callback)."""
+        return run_chunks(n_items, chunk_size, compute, state_dir=self.state_dir, fingerprint=fingerprint,
+                          resume=self.resume, progress=self.progress, desc=desc, rays_of=rays_of, callback=self.callback)
+
+    def finish(self) -> None:
+        """After a successful run: remove the state directory unless ``keep_state``."""
+        if not self.keep_state:
+            remove_state(self.state_dir)
 
 
 @dataclasses.dataclass
@@ -71,7 +130,7 @@ class Transfer:
         meta = dict(self.meta)
         meta.update(transfer_version=TRANSFER_VERSION, transfer_kind=self.kind, mesh_name=self.mesh.name,
                     mesh_hash=self.mesh.content_hash(), data_shape=list(self.data.shape),
-                    mesh_meta=_jsonable(self.mesh.meta))
+                    mesh_meta=io.jsonable(self.mesh.meta))
         tensors = {"data": self.data.to(torch.float32)}
         tensors.update(self.mesh.to_tensors("mesh."))
         return io.save(path, tensors, kind=f"transfer/{self.kind}", meta=meta, overwrite=overwrite)
@@ -96,10 +155,6 @@ class Transfer:
         return f"Transfer(kind={self.kind!r}, data={tuple(self.data.shape)}, mesh={self.mesh!r})"
 
 
-def _jsonable(obj: Any) -> Any:
-    return json.loads(json.dumps(obj, default=str))
-
-
 # ----------------------------------------------------------------------------------------
 # chunked, resumable runner
 # ----------------------------------------------------------------------------------------
@@ -115,7 +170,7 @@ def default_state_dir(output: str | os.PathLike) -> Path:
 
 
 def _fingerprint_hash(fp: dict) -> str:
-    return hashlib.sha256(json.dumps(_jsonable(fp), sort_keys=True).encode()).hexdigest()[:32]
+    return hashlib.sha256(json.dumps(io.jsonable(fp), sort_keys=True).encode()).hexdigest()[:32]
 
 
 def run_chunks(
@@ -154,7 +209,7 @@ def run_chunks(
         sd = Path(state_dir)
         manifest = sd / "manifest.json"
         want = {"fingerprint_hash": _fingerprint_hash(fingerprint or {}), "n_items": n_items, "chunk_size": chunk_size,
-                "fingerprint": _jsonable(fingerprint or {})}
+                "fingerprint": io.jsonable(fingerprint or {})}
         if sd.exists():
             if not resume:
                 raise FileExistsError(f"state directory {str(sd)!r} holds an interrupted run; pass resume=True (CLI: --resume) "

@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import math
 import time
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 import scipy.sparse
@@ -39,8 +39,8 @@ import torch
 
 from .._checks import check_choice, check_float, check_int
 from ..scene import Mesh, RayCaster, default_workers
-from ..sh import clamped_cosine, eval_sh, num_coeffs, rotate_zonal
-from .base import Transfer, remove_state, run_chunks
+from ..sh import clamped_cosine, eval_sh, rotate_zonal
+from .base import RunOptions, Transfer
 from .sampling import cosine_hemisphere, to_world, uniform_sphere
 
 __all__ = [
@@ -229,14 +229,7 @@ def precompute_diffuse(
     fold_albedo: bool | None = None,
     bounce_tol: float = 1e-3,
     probe_tol: float = 1e-3,
-    chunk_size: int | None = None,
-    workers: int | None = 1,
-    offset: float = 1e-4,
-    state_dir: Any = None,
-    resume: bool = False,
-    keep_state: bool = False,
-    progress: bool = False,
-    callback: Callable[[int, int], None] | None = None,
+    run: RunOptions | None = None,
 ) -> Transfer:
     """Diffuse PRT transfer vectors for every vertex of ``mesh`` (see module docstring).
 
@@ -255,17 +248,15 @@ def precompute_diffuse(
             True = always ``[V,3,n²]``, False = always ``[V,n²]`` (refused if colour bleeds).
         bounce_tol: stop adding bounces once one adds less than this fraction of the
             accumulated transfer's norm (the bounce is kept).
-        chunk_size: vertices per chunk (default: ~2²⁰ traced rays per chunk).
-        workers: ray-casting processes (None = all cores when the run traces ≥ 4M rays, else 1).
-        state_dir: where finished chunks are kept (resumable); None = in memory only.
-        resume: continue from ``state_dir``; ``keep_state`` keeps it after success.
-        progress: tqdm bar with rays/s; ``callback(i, n_chunks)`` after each chunk (may raise).
+        run: how it runs (:class:`RunOptions`: chunks — default ~2²⁰ traced rays each —,
+            workers, ray offset, resumable state, progress).
     Returns:
         ``Transfer(kind='diffuse')`` with ``data`` float32 ``[V,n²]`` or ``[V,3,n²]`` and ``meta``
         recording every choice (shadows traced, probe, bounces used and their energy, albedo folding).
     """
     if not isinstance(mesh, Mesh):
         raise TypeError(f"mesh must be a prt_torch.scene.Mesh, got {type(mesh).__name__}")
+    run = RunOptions() if run is None else run
     bands = check_int("bands", bands, 1, MAX_DIFFUSE_BANDS)
     samples = check_int("samples", samples, 1, MAX_SAMPLES)
     bounces = check_int("bounces", bounces, 0, MAX_BOUNCES)
@@ -276,118 +267,141 @@ def precompute_diffuse(
     bounce_tol = check_float("bounce_tol", bounce_tol, 0.0, 1.0, hi_open=True)
     probe_tol = check_float("probe_tol", probe_tol, 0.0, 1.0, hi_open=True)
     t_start = time.perf_counter()
-    V, n2 = mesh.num_vertices, num_coeffs(bands)
-    grey = mesh.is_grey()
-    if fold_albedo is False and bounces > 0 and not grey:
+    if fold_albedo is False and bounces > 0 and not mesh.is_grey():
         raise ValueError("fold_albedo=False with coloured albedo and bounces > 0: interreflection bleeds colour, so the albedo "
                          "cannot be kept separate; accepted: fold_albedo=None/True, or bounces=0, or a grey albedo")
     meta: dict[str, Any] = {
         "bands": bands, "samples": samples, "seed": seed, "sampling": sampling, "bounces_requested": bounces,
-        "bounce_tol": bounce_tol, "shadows": shadows, "offset": offset,
+        "bounce_tol": bounce_tol, "shadows": shadows, "offset": run.offset,
         "normalisation": "exit radiance L_out[v,c] = sum_i data[v,(c),i] * l[c,i] (times mesh.albedo[v,c] when "
                          "albedo_folded is false); t = (rho/pi) int V max(n.s,0) y(s) ds; constant radiance 1 -> l00 = 2 sqrt(pi)",
         "sh_convention": "real SH, graphics convention, no Condon-Shortley phase, index l(l+1)+m",
     }
     caster = None
-    traced = False
     try:
         if shadows != "never":
-            if workers is None:  # processes pay off only for long runs (pool start ~0.5 s)
-                est = V * (samples // 2 if sampling == "uniform" else samples)
-                workers = default_workers() if est >= 4_000_000 else 1
-            caster = RayCaster(mesh, workers=workers, offset=offset)
+            caster = RayCaster(mesh, workers=_workers(run, mesh, samples, sampling), offset=run.offset)
             meta["ray_eps"] = caster.eps
-            if shadows == "auto":
-                probe = probe_self_occlusion(caster, mesh, seed)
-                meta["probe"] = probe
-                traced = probe["occluded_fraction"] > probe_tol
-                meta["shadow_decision"] = (f"probe: shadowing removes {probe['occluded_fraction']:.3g} of the energy "
-                                           f"({'>' if traced else '<='} probe_tol={probe_tol:g}); "
-                                           + ("tracing shadow rays" if traced else "no self-occlusion: analytic unshadowed transfer, no bounces"))
-            else:
-                traced = True
-                meta["shadow_decision"] = "shadows='always': tracing shadow rays"
+        traced = _decide_shadows(caster, mesh, shadows, seed, probe_tol, meta)
+        if traced:
+            T0, S = _trace_direct(caster, mesh, bands, samples, seed, sampling, bounces > 0, run, meta)
         else:
-            meta["shadow_decision"] = "shadows='never': analytic unshadowed transfer, no bounces"
-        meta["shadows_traced"] = traced
-        record_hits = traced and bounces > 0
-        rays = 0
-        if not traced:
-            T0 = unshadowed_transfer(mesh.normals, bands)  # [V, n²] float64, exact
-            S = None
-        else:
-            sampler = _Sampler(bands, samples, seed, sampling)
-            rays_per_vertex = samples // 2 if sampling == "uniform" else samples
-            if chunk_size is None:
-                chunk_size = int(min(max(16, (1 << 20) // max(1, rays_per_vertex)), 16384))
-            chunk_size = check_int("chunk_size", chunk_size, 1)
-            frames = mesh.frames() if sampling == "cosine" else None
-            faces_np = mesh.faces.numpy()
-            tri = mesh.vertices.numpy()[faces_np]
-            fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # geometric face normals (winding)
-
-            def compute(a: int, b: int) -> dict[str, torch.Tensor]:
-                return _chunk(caster, sampler, mesh.vertices[a:b], mesh.normals[a:b],
-                              None if frames is None else frames[a:b], faces_np, fn, V, record_hits)
-
-            fingerprint = {"mesh_hash": mesh.content_hash(), "bands": bands, "samples": samples, "seed": seed,
-                           "sampling": sampling, "record_hits": record_hits, "offset": offset, "kind": "diffuse"}
-            parts = run_chunks(V, chunk_size, compute, state_dir=state_dir, fingerprint=fingerprint, resume=resume,
-                               progress=progress, desc=f"diffuse {mesh.name}", rays_of=lambda r: int(r["rays"].sum()),
-                               callback=callback)
-            T0 = torch.cat([p["T"] for p in parts]).to(torch.float64)
-            rays = int(sum(int(p["rays"].sum()) for p in parts))
-            S = None
-            if record_hits:
-                S = scipy.sparse.vstack([
-                    scipy.sparse.csr_matrix((p["S_data"].numpy(), p["S_indices"].numpy(), p["S_indptr"].numpy()),
-                                            shape=(p["T"].shape[0], V)) for p in parts], format="csr")
-                meta["bounce_matrix_nnz"] = int(S.nnz)
-            meta["chunk_size"] = chunk_size
-        meta["rays_traced"] = rays
-        # ---------------------------------------------------------------- interreflection
-        rho = mesh.albedo.to(torch.float64)
-        C = 1 if (grey or S is None) else 3
-        rho_c = rho[:, :1] if C == 1 else rho  # [V,C]
-        tb = T0[:, None, :].expand(V, C, n2).clone()  # t̃⁰ (ρ_p kept out)
-        total = tb.clone()
-        energy = []
-        used = 0
-        if S is not None:
-            for b in range(1, bounces + 1):  # a loop over bounces: each one sparse product over all vertices
-                x = (rho_c[:, :, None] * tb).reshape(V, C * n2)
-                tb = torch.from_numpy(S @ x.numpy()).reshape(V, C, n2)
-                total += tb
-                used = b
-                frac = float(tb.norm() / total.norm().clamp_min(1e-300))
-                energy.append(frac)
-                if frac < bounce_tol:
-                    break
-        meta["bounces_used"] = used
-        meta["bounce_energy_fraction"] = energy
-        if bounces > 0 and S is None:
-            meta["bounce_decision"] = "no interreflection: shadow rays were not traced (no occluding geometry)"
-        elif bounces > 0:
-            meta["bounce_decision"] = (f"stopped after {used} of {bounces} bounces"
-                                       + (f" (bounce {used} added {energy[-1]:.3g} < bounce_tol)" if used < bounces else ""))
-        # ---------------------------------------------------------------- albedo
-        fold = (C == 3) if fold_albedo is None else bool(fold_albedo)
-        if fold:
-            data = rho[:, :, None] * total.expand(V, 3, n2)  # [V,3,n²]
-        else:
-            data = total[:, 0, :]
-        meta["albedo_folded"] = fold
-        meta["channels"] = 3 if fold else 1
+            T0, S = unshadowed_transfer(mesh.normals, bands), None  # [V, n²] float64, exact
+            meta["rays_traced"] = 0
+        total, C = _interreflect(T0, S, mesh, bounces, bounce_tol, meta)
+        data = _store_albedo(total, mesh, C, fold_albedo, meta)
         meta["seconds"] = time.perf_counter() - t_start
-        meta["rays_per_second"] = rays / meta["seconds"] if rays else 0.0
+        meta["rays_per_second"] = meta["rays_traced"] / meta["seconds"] if meta["rays_traced"] else 0.0
         meta["workers"] = caster.workers if caster is not None else 1
         tr = Transfer(kind="diffuse", data=data.to(torch.float32).contiguous(), mesh=mesh, meta=meta)
     finally:
         if caster is not None:
             caster.close()
-    if not keep_state:
-        remove_state(state_dir)
+    run.finish()
     return tr
+
+
+def _workers(run: RunOptions, mesh: Mesh, samples: int, sampling: str) -> int:
+    """``run.workers``, or (None) all cores when the run traces ≥ 4M rays: processes pay off
+    only for long runs (pool start ~0.5 s)."""
+    if run.workers is not None:
+        return run.workers
+    est = mesh.num_vertices * (samples // 2 if sampling == "uniform" else samples)
+    return default_workers() if est >= 4_000_000 else 1
+
+
+def _decide_shadows(caster: RayCaster | None, mesh: Mesh, shadows: str, seed: int, probe_tol: float, meta: dict) -> bool:
+    """Step 1: trace shadow rays or not ('auto' probes the self-occlusion). Records the decision."""
+    if shadows == "never":
+        meta["shadow_decision"] = "shadows='never': analytic unshadowed transfer, no bounces"
+        traced = False
+    elif shadows == "always":
+        meta["shadow_decision"] = "shadows='always': tracing shadow rays"
+        traced = True
+    else:
+        probe = probe_self_occlusion(caster, mesh, seed)
+        meta["probe"] = probe
+        traced = probe["occluded_fraction"] > probe_tol
+        meta["shadow_decision"] = (f"probe: shadowing removes {probe['occluded_fraction']:.3g} of the energy "
+                                   f"({'>' if traced else '<='} probe_tol={probe_tol:g}); "
+                                   + ("tracing shadow rays" if traced else "no self-occlusion: analytic unshadowed transfer, no bounces"))
+    meta["shadows_traced"] = traced
+    return traced
+
+
+def _trace_direct(caster: RayCaster, mesh: Mesh, bands: int, samples: int, seed: int, sampling: str,
+                  record_hits: bool, run: RunOptions, meta: dict) -> tuple[torch.Tensor, Any]:
+    """Step 2: shadowed transfer t⁰ ``[V, n²]`` float64 over resumable chunks, and (when
+    ``record_hits``) the bounce matrix S ``[V, V]`` (scipy CSR) of the same rays."""
+    V = mesh.num_vertices
+    sampler = _Sampler(bands, samples, seed, sampling)
+    rays_per_vertex = samples // 2 if sampling == "uniform" else samples
+    chunk_size = check_int("chunk_size", run.chunks(int(min(max(16, (1 << 20) // max(1, rays_per_vertex)), 16384))), 1)
+    frames = mesh.frames() if sampling == "cosine" else None
+    faces_np = mesh.faces.numpy()
+    tri = mesh.vertices.numpy()[faces_np]
+    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # geometric face normals (winding)
+
+    def compute(a: int, b: int) -> dict[str, torch.Tensor]:
+        return _chunk(caster, sampler, mesh.vertices[a:b], mesh.normals[a:b],
+                      None if frames is None else frames[a:b], faces_np, fn, V, record_hits)
+
+    fingerprint = {"mesh_hash": mesh.content_hash(), "bands": bands, "samples": samples, "seed": seed,
+                   "sampling": sampling, "record_hits": record_hits, "offset": run.offset, "kind": "diffuse"}
+    parts = run.run_chunks(V, chunk_size, compute, fingerprint=fingerprint, desc=f"diffuse {mesh.name}",
+                           rays_of=lambda r: int(r["rays"].sum()))
+    T0 = torch.cat([p["T"] for p in parts]).to(torch.float64)
+    meta["rays_traced"] = int(sum(int(p["rays"].sum()) for p in parts))
+    meta["chunk_size"] = chunk_size
+    if not record_hits:
+        return T0, None
+    S = scipy.sparse.vstack([
+        scipy.sparse.csr_matrix((p["S_data"].numpy(), p["S_indices"].numpy(), p["S_indptr"].numpy()),
+                                shape=(p["T"].shape[0], V)) for p in parts], format="csr")
+    meta["bounce_matrix_nnz"] = int(S.nnz)
+    return T0, S
+
+
+def _interreflect(T0: torch.Tensor, S: Any, mesh: Mesh, bounces: int, bounce_tol: float, meta: dict) -> tuple[torch.Tensor, int]:
+    """Step 3: t = Σ_b t̃^b with t̃^b = S (ρ ⊙ t̃^{b-1}) (course notes 2005, "Interreflections"),
+    ρ_p kept out. Returns (``[V, C, n²]`` float64, C) with C = 3 only for coloured bounces."""
+    V, n2 = T0.shape
+    rho = mesh.albedo.to(torch.float64)
+    C = 1 if (mesh.is_grey() or S is None) else 3
+    rho_c = rho[:, :1] if C == 1 else rho  # [V,C]
+    tb = T0[:, None, :].expand(V, C, n2).clone()  # t̃⁰ (ρ_p kept out)
+    total = tb.clone()
+    energy = []
+    used = 0
+    if S is not None:
+        for b in range(1, bounces + 1):  # a loop over bounces: each one sparse product over all vertices
+            x = (rho_c[:, :, None] * tb).reshape(V, C * n2)
+            tb = torch.from_numpy(S @ x.numpy()).reshape(V, C, n2)
+            total += tb
+            used = b
+            frac = float(tb.norm() / total.norm().clamp_min(1e-300))
+            energy.append(frac)
+            if frac < bounce_tol:
+                break
+    meta["bounces_used"] = used
+    meta["bounce_energy_fraction"] = energy
+    if bounces > 0 and S is None:
+        meta["bounce_decision"] = "no interreflection: shadow rays were not traced (no occluding geometry)"
+    elif bounces > 0:
+        meta["bounce_decision"] = (f"stopped after {used} of {bounces} bounces"
+                                   + (f" (bounce {used} added {energy[-1]:.3g} < bounce_tol)" if used < bounces else ""))
+    return total, C
+
+
+def _store_albedo(total: torch.Tensor, mesh: Mesh, C: int, fold_albedo: bool | None, meta: dict) -> torch.Tensor:
+    """Step 4: ``[V, 3, n²]`` with the albedo folded in, or ``[V, n²]`` without (module docstring)."""
+    fold = (C == 3) if fold_albedo is None else bool(fold_albedo)
+    meta["albedo_folded"] = fold
+    meta["channels"] = 3 if fold else 1
+    if fold:
+        V, _, n2 = total.shape
+        return mesh.albedo.to(torch.float64)[:, :, None] * total.expand(V, 3, n2)
+    return total[:, 0, :]
 
 
 def diffuse_radiance(transfer: Transfer | torch.Tensor, light: torch.Tensor, albedo: torch.Tensor | None = None) -> torch.Tensor:

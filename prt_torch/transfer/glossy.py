@@ -1,6 +1,6 @@
-"""Glossy transfer matrices: transferred radiance T_p, exit-radiance transfer M_p = B R_p T_p
-(Sloan 2003 §3.1) and matrix radiance transfer A_p = G⁻¹ C B_p R_p T_p (Lehtinen & Kautz
-2003, eq. 9).
+"""Glossy transfer matrices: transferred radiance T_p and exit-radiance transfer
+M_p = B R_p T_p (Sloan 2003 §3.1), and the machinery shared with matrix radiance transfer
+(:mod:`prt_torch.transfer.mrt`, A_p = G⁻¹ C B_p R_p T_p).
 
 Quantities per vertex p (lighting l is a *global* SH radiance vector, n² = ``bands²``):
 
@@ -19,13 +19,14 @@ Quantities per vertex p (lighting l is a *global* SH radiance vector, n² = ``ba
 * A_p = (G⁻¹ C) B_p R_p T_p (M² × n²; Lehtinen & Kautz eq. 9): exit radiance in the tent basis,
   L_out(v) = Σ_{4 taps j} g_j(v) (A_p l)_j (eq. 13 without PCA).
 
-Interreflection is not included (shadowed direct transfer only; Sloan 2002's glossy bounce
-pass would add Σ over hit points of the neighbours' exit radiance, left for later).
+Interreflection (``bounces > 0``): a blocked direction s brings the diffuse exit radiance of
+the point q it hits, t_q·l (diffuse transfer with one bounce fewer, interpolated over the hit
+triangle; backs black), so T_p gains Σ_s w_s (1 - V(p,s)) y(s) t_q(s)ᵀ — Sloan et al. 2002
+§5 with diffuse reflectors (see :func:`transferred_radiance`).
 """
 from __future__ import annotations
 
 import dataclasses
-
 import math
 import os
 import time
@@ -37,18 +38,23 @@ from .._checks import check_choice, check_float, check_int, describe
 from ..brdf import BRDF, AshikhminShirley, brdf_matrices, output_index
 from ..scene import Mesh, RayCaster, default_workers
 from ..sh import MAX_BANDS, eval_sh, rotation_blocks
-from .base import Transfer, remove_state, run_chunks
-from .mrt import MAX_TENTS, MRTBasis
+from .base import RunOptions, Transfer
 from .sampling import uniform_sphere
 
 __all__ = [
     "MAX_GLOSSY_BANDS",
     "check_frames",
+    "check_brdf",
+    "check_memory",
+    "check_common",
+    "decide_shadows",
+    "default_chunk",
     "estimate_memory",
     "transferred_radiance",
     "rotate_rows",
+    "run_exit_transfer",
+    "submesh",
     "precompute_glossy",
-    "precompute_mrt",
 ]
 
 MAX_GLOSSY_BANDS = 16
@@ -175,7 +181,7 @@ def bounce_table(mesh: Mesh, bands: int, samples: int, seed: int, bounces: int, 
     from .diffuse import precompute_diffuse
 
     d = precompute_diffuse(mesh, bands, samples, bounces=bounces - 1, seed=seed, shadows="always",
-                           fold_albedo=True, offset=offset).data.to(torch.float64)
+                           fold_albedo=True, run=RunOptions(offset=offset)).data.to(torch.float64)
     if d.ndim == 3:  # [V, 3, n²] coloured albedo -> luminance
         d = torch.einsum("vcn,c->vn", d, _LUMA)
     v = mesh.vertices.to(torch.float64)
@@ -196,7 +202,7 @@ def rotate_rows(T: torch.Tensor, blocks: list[torch.Tensor]) -> torch.Tensor:
     return out
 
 
-def _brdf_for(mesh: Mesh, brdf: BRDF | None) -> BRDF:
+def check_brdf(mesh: Mesh, brdf: BRDF | None) -> BRDF:
     if brdf is None:
         return AshikhminShirley(40.0, 40.0, rs=0.05, rd=0.0)
     if not isinstance(brdf, BRDF):
@@ -208,41 +214,38 @@ def _brdf_for(mesh: Mesh, brdf: BRDF | None) -> BRDF:
     return brdf
 
 
-def _run_exit_transfer(
+def run_exit_transfer(
     kind: str, mesh: Mesh, left: torch.Tensor, index: torch.Tensor, bands: int, samples: int, seed: int,
-    shadows: bool, chunk_size: int | None, workers: int | None, offset: float, state_dir: Any, resume: bool,
-    keep_state: bool, progress: bool, callback: Callable | None, max_memory: int | None, fingerprint: dict,
-    vertices: torch.Tensor | None, bounces: int = 0,
+    shadows: bool, run: RunOptions, fingerprint: dict, vertices: torch.Tensor | None, bounces: int = 0,
 ) -> tuple[torch.Tensor, dict]:
-    """Shared driver: data[p] = left[index[p]] @ R_p T_p over chunks of vertices (``left``:
-    ``[U, n_out, n²]`` float64, e.g. B or G⁻¹CB; None-like identity when left is empty)."""
+    """Shared driver of glossy and MRT: data[p] = left[index[p]] @ R_p T_p over chunks of
+    vertices (``left``: ``[U, n_out, n²]`` float64, e.g. B or G⁻¹CB; empty = identity, the
+    global T_p). Returns (data ``[V, n_out, n²]`` float32, run meta)."""
     F_all = check_frames(mesh)
     n2 = bands * bands
     sel = torch.arange(mesh.num_vertices) if vertices is None else vertices
     V = int(sel.numel())
     n_out = left.shape[1] if left.numel() else n2
     rays_per_vertex = max(1, samples // 2)
-    if chunk_size is None:
-        chunk_size = _default_chunk(samples)
-    chunk_size = check_int("chunk_size", chunk_size, 1)
-    need = _check_memory(kind, V, n_out, n2, samples, chunk_size, max_memory)
+    chunk_size = check_int("chunk_size", run.chunks(default_chunk(samples)), 1)
+    need = check_memory(kind, V, n_out, n2, samples, chunk_size, run.max_memory)
     directions = _Directions(bands, samples, seed)
     caster = None
-    meta: dict[str, Any] = {"estimated_bytes": need, "chunk_size": chunk_size,
-                            "shadow_decision": "tracing shadow rays" if shadows else "shadows off: tangent-plane cut only"}
+    meta: dict[str, Any] = {"estimated_bytes": need, "chunk_size": chunk_size}
     t0 = time.perf_counter()
     try:
         if shadows:
+            workers = run.workers
             if workers is None:
                 workers = default_workers() if V * rays_per_vertex >= 4_000_000 else 1
-            caster = RayCaster(mesh, workers=workers, offset=offset)
+            caster = RayCaster(mesh, workers=workers, offset=run.offset)
             meta["ray_eps"] = caster.eps
         bounce = None
         if bounces:
             if not shadows:
-                raise ValueError("bounces > 0 needs shadows=True (interreflected light arrives along blocked directions)")
+                raise ValueError("bounces > 0 needs shadows traced (interreflected light arrives along blocked directions)")
             tb = time.perf_counter()
-            bounce = bounce_table(mesh, bands, samples, seed, bounces, offset)
+            bounce = bounce_table(mesh, bands, samples, seed, bounces, run.offset)
             meta["bounce_table_seconds"] = time.perf_counter() - tb
 
         def compute(a: int, b: int) -> dict[str, torch.Tensor]:
@@ -254,9 +257,8 @@ def _run_exit_transfer(
                 out = T  # the global transferred-radiance matrices (Sloan 2002)
             return {"data": out.to(torch.float32), "rays": torch.tensor([rays], dtype=torch.int64)}
 
-        parts = run_chunks(V, chunk_size, compute, state_dir=state_dir, fingerprint=fingerprint, resume=resume,
-                           progress=progress, desc=f"{kind} {mesh.name}", rays_of=lambda r: int(r["rays"].sum()),
-                           callback=callback)
+        parts = run.run_chunks(V, chunk_size, compute, fingerprint=fingerprint, desc=f"{kind} {mesh.name}",
+                               rays_of=lambda r: int(r["rays"].sum()))
         data = torch.empty(V, n_out, n2, dtype=torch.float32)
         o = 0
         while parts:  # assemble, releasing each chunk as it is copied (bounds the peak)
@@ -271,19 +273,43 @@ def _run_exit_transfer(
             caster.close()
     meta["seconds"] = time.perf_counter() - t0
     meta.setdefault("rays_traced", 0)
-    if not keep_state:
-        remove_state(state_dir)
+    run.finish()
     return data, meta
 
 
-def _default_chunk(samples: int) -> int:
+def decide_shadows(mesh: Mesh, shadows: bool | str, seed: int, run: RunOptions, probe_tol: float = 1e-3) -> tuple[bool, dict]:
+    """Whether to trace visibility: ``True``/'always', ``False``/'never', or 'auto' (probe the
+    mesh's self-occlusion as the diffuse precompute does and trace only when shadowing removes
+    more than ``probe_tol`` of the energy). Returns (trace, meta with ``shadow_decision``)."""
+    if isinstance(shadows, bool):
+        shadows = "always" if shadows else "never"
+    check_choice("shadows", shadows, ["auto", "always", "never", True, False])
+    if shadows == "always":
+        return True, {"shadow_decision": "tracing shadow rays"}
+    if shadows == "never":
+        return False, {"shadow_decision": "shadows off: tangent-plane cut only"}
+    from .diffuse import probe_self_occlusion
+
+    caster = RayCaster(mesh, workers=1, offset=run.offset)
+    try:
+        probe = probe_self_occlusion(caster, mesh, seed)
+    finally:
+        caster.close()
+    traced = probe["occluded_fraction"] > probe_tol
+    return traced, {"probe": probe, "shadow_decision": (
+        f"probe: shadowing removes {probe['occluded_fraction']:.3g} of the energy "
+        f"({'>' if traced else '<='} probe_tol={probe_tol:g}); "
+        + ("tracing shadow rays" if traced else "no self-occlusion: tangent-plane cut only"))}
+
+
+def default_chunk(samples: int) -> int:
     return int(min(max(8, (1 << 19) // max(1, samples // 2)), 8192))
 
 
-def _check_memory(kind: str, V: int, n_out: int, n2: int, samples: int, chunk_size: int | None,
+def check_memory(kind: str, V: int, n_out: int, n2: int, samples: int, chunk_size: int | None,
                   max_memory: int | None) -> int:
     """Refuse up front (before any BRDF projection or ray) when the estimate exceeds the budget."""
-    chunk = _default_chunk(samples) if chunk_size is None else chunk_size
+    chunk = default_chunk(samples) if chunk_size is None else chunk_size
     need = estimate_memory(V, n_out, n2, samples, min(chunk, max(V, 1)))
     budget = int(0.6 * _available_memory()) if max_memory is None else int(max_memory)
     if need > budget:
@@ -296,12 +322,12 @@ def _check_memory(kind: str, V: int, n_out: int, n2: int, samples: int, chunk_si
     return need
 
 
-def _common_checks(bands, samples, seed, offset):
+def check_common(bands: int, samples: int, seed: int) -> tuple[int, int, int]:
+    """bands in [1, 16], samples in [1, 2¹⁸], seed ≥ 0 (glossy and MRT)."""
     bands = check_int("bands", bands, 1, MAX_GLOSSY_BANDS)
     samples = check_int("samples", samples, 1, MAX_SAMPLES)
     seed = check_int("seed", seed, 0, 2**63 - 1)
-    offset = check_float("offset", offset, 0.0, 0.1)
-    return bands, samples, seed, offset
+    return bands, samples, seed
 
 
 def precompute_glossy(
@@ -319,18 +345,10 @@ def precompute_glossy(
     quad_bands: int | None = None,
     samples: int = 1024,
     seed: int = 0,
-    shadows: bool = True,
+    shadows: bool | str = True,
     bounces: int = 0,
     vertices: torch.Tensor | None = None,
-    chunk_size: int | None = None,
-    workers: int | None = 1,
-    offset: float = 1e-4,
-    max_memory: int | None = None,
-    state_dir: Any = None,
-    resume: bool = False,
-    keep_state: bool = False,
-    progress: bool = False,
-    callback: Callable[[int, int], None] | None = None,
+    run: RunOptions | None = None,
 ) -> Transfer:
     """Glossy transfer for every vertex (or the subset ``vertices``) of ``mesh``.
 
@@ -344,25 +362,28 @@ def precompute_glossy(
         projection, drop_out, rcond, window, window_width, quad_bands: as
             :func:`prt_torch.brdf.brdf_matrix` (default least squares, Sloan 2003 eq. (1)).
         samples: stratified sphere directions per vertex (about half are traced).
-        shadows: trace visibility (False: only the tangent-plane cut, no rays).
+        shadows: trace visibility: True/'always', False/'never' (only the tangent-plane cut,
+            no rays), or 'auto' (probe the mesh's self-occlusion first, :func:`decide_shadows`).
         bounces: interreflection bounces (0: shadowed direct light only). Blocked directions bring
             the exit radiance of the diffuse surface they hit, from a diffuse transfer with
             ``bounces - 1`` bounces (see :func:`transferred_radiance`); coloured albedo is
             reduced to luminance since the glossy matrices are shared by the colour channels.
-        max_memory: refuse up front if the estimate exceeds it (default 60% of RAM).
-        state_dir/resume/keep_state/progress/callback: the resumable chunk runner.
+        run: how it runs (:class:`RunOptions`: chunks, workers, ray offset, memory limit —
+            refused up front when the estimate exceeds it —, resumable state, progress).
     Returns:
         ``Transfer(kind='glossy')``, data float32 ``[V, N_r, n²]``, ``meta['matrix_shape']``,
         ``meta['out_index']`` (flat SH index of each row), ``meta['brdf']``.
     """
-    bands, samples, seed, offset = _common_checks(bands, samples, seed, offset)
+    run = RunOptions() if run is None else run
+    bands, samples, seed = check_common(bands, samples, seed)
     bounces = check_int("bounces", bounces, 0, 16)
     bands_out = bands if bands_out is None else check_int("bands_out", bands_out, 1, MAX_GLOSSY_BANDS)
-    brdf = _brdf_for(mesh, brdf)
+    brdf = check_brdf(mesh, brdf)
     check_frames(mesh)
     n_rows = (bands_out * bands_out - len(drop_out or [])) if exit else bands * bands
     n_sel = mesh.num_vertices if vertices is None else len(vertices)
-    _check_memory("glossy", n_sel, n_rows, bands * bands, samples, chunk_size, max_memory)
+    check_memory("glossy", n_sel, n_rows, bands * bands, samples, run.chunk_size, run.max_memory)
+    shadows, shadow_meta = decide_shadows(mesh, shadows, seed, run)
     t0 = time.perf_counter()
     if exit:
         B, index = brdf_matrices(brdf, bands_out, bands, projection=projection, drop_out=drop_out, rcond=rcond,
@@ -378,12 +399,11 @@ def precompute_glossy(
     fp = {"kind": "glossy", "mesh_hash": mesh.content_hash(), "bands": bands, "bands_out": bands_out,
           "exit": exit, "brdf": brdf.meta() if exit else None, "projection": projection, "drop_out": drop_out,
           "rcond": rcond, "window": window, "window_width": window_width, "samples": samples, "seed": seed,
-          "shadows": shadows, "bounces": bounces, "offset": offset, "quad_bands": quad_bands,
+          "shadows": shadows, "bounces": bounces, "offset": run.offset, "quad_bands": quad_bands,
           "vertices": None if sel is None else sel.tolist()}
-    data, run_meta = _run_exit_transfer("glossy", mesh, B, index, bands, samples, seed, shadows, chunk_size, workers,
-                                        offset, state_dir, resume, keep_state, progress, callback, max_memory, fp, sel,
-                                        bounces=bounces)
-    meta = dict(run_meta)
+    data, run_meta = run_exit_transfer("glossy", mesh, B, index, bands, samples, seed, shadows, run, fp, sel,
+                                       bounces=bounces)
+    meta = {**shadow_meta, **run_meta}
     meta.update(
         bands=bands, bands_in=bands, bands_out=bands_out, samples=samples, seed=seed, shadows=shadows, bounces=bounces,
         quantity="exit" if exit else "transferred", frame="local" if exit else "global",
@@ -397,82 +417,11 @@ def precompute_glossy(
                        "transferred incident radiance coefficients (global frame) T_p @ l, zero below the tangent plane"),
         sh_convention="real SH, graphics convention, no Condon-Shortley phase, index l(l+1)+m",
     )
-    mesh_out = mesh if sel is None else _submesh(mesh, sel)
+    mesh_out = mesh if sel is None else submesh(mesh, sel)
     return Transfer(kind="glossy", data=data, mesh=mesh_out, meta=meta)
 
 
-def precompute_mrt(
-    mesh: Mesh,
-    bands: int = 5,
-    bands_out: int = 8,
-    M: int = 11,
-    *,
-    brdf: BRDF | None = None,
-    window: str | None = None,
-    window_width: int | None = None,
-    quad_bands: int | None = None,
-    samples: int = 1024,
-    seed: int = 0,
-    shadows: bool = True,
-    bounces: int = 0,
-    vertices: torch.Tensor | None = None,
-    chunk_size: int | None = None,
-    workers: int | None = 1,
-    offset: float = 1e-4,
-    max_memory: int | None = None,
-    state_dir: Any = None,
-    resume: bool = False,
-    keep_state: bool = False,
-    progress: bool = False,
-    callback: Callable[[int, int], None] | None = None,
-) -> Transfer:
-    """Matrix radiance transfer A_p = G⁻¹ C B_p R_p T_p (Lehtinen & Kautz 2003 eq. 9).
-
-    B is the zero-hemisphere BRDF matrix (m² × n², eq. 4) — the tent projection G⁻¹C integrates
-    exit radiance over the hemisphere only, so no hemispherical SH projection is needed on the
-    output side. Defaults follow the paper: n = 5, m = 8, M = 11 (windowing optional).
-
-    Returns ``Transfer(kind='mrt')``, data float32 ``[V, M², n²]``, meta with ``M``,
-    ``bands_out`` (m), ``cond_G`` and ``matrix_shape``.
-    """
-    bands, samples, seed, offset = _common_checks(bands, samples, seed, offset)
-    bounces = check_int("bounces", bounces, 0, 16)
-    bands_out = check_int("bands_out", bands_out, 1, MAX_GLOSSY_BANDS)
-    M = check_int("M (tents per side)", M, 2, MAX_TENTS)
-    brdf = _brdf_for(mesh, brdf)
-    check_frames(mesh)
-    n_sel = mesh.num_vertices if vertices is None else len(vertices)
-    _check_memory("mrt", n_sel, M * M, bands * bands, samples, chunk_size, max_memory)
-    t0 = time.perf_counter()
-    basis = MRTBasis(M, bands_out)
-    B, index = brdf_matrices(brdf, bands_out, bands, projection="zero", window=window, window_width=window_width,
-                             quad_bands=quad_bands)
-    if index.numel() == 1:
-        index = index.expand(mesh.num_vertices)
-    W = basis.P_ @ B  # [U, M², n²]
-    t_brdf = time.perf_counter() - t0
-    sel = None if vertices is None else torch.as_tensor(vertices, dtype=torch.int64)
-    fp = {"kind": "mrt", "mesh_hash": mesh.content_hash(), "bands": bands, "bands_out": bands_out, "M": M,
-          "brdf": brdf.meta(), "window": window, "window_width": window_width, "samples": samples, "seed": seed,
-          "shadows": shadows, "bounces": bounces, "offset": offset, "quad_bands": quad_bands,
-          "vertices": None if sel is None else sel.tolist()}
-    data, run_meta = _run_exit_transfer("mrt", mesh, W, index, bands, samples, seed, shadows, chunk_size, workers,
-                                        offset, state_dir, resume, keep_state, progress, callback, max_memory, fp, sel,
-                                        bounces=bounces)
-    meta = dict(run_meta)
-    meta.update(
-        bands=bands, bands_in=bands, bands_out=bands_out, M=M, cond_G=basis.cond_G_, samples=samples, seed=seed,
-        shadows=shadows, bounces=bounces, quantity="exit", frame="local", basis="tent (Shirley-Chiu concentric map)",
-        matrix_shape=[M * M, bands * bands], brdf=brdf.meta(), window=window, brdf_seconds=t_brdf,
-        materials=int(B.shape[0]), vertices=None if sel is None else sel.tolist(),
-        normalisation="exit radiance towards local view v: sum_j g_j(v) (data[p] @ l)[j] over the 4 tents at v",
-        sh_convention="real SH, graphics convention, no Condon-Shortley phase, index l(l+1)+m",
-    )
-    mesh_out = mesh if sel is None else _submesh(mesh, sel)
-    return Transfer(kind="mrt", data=data, mesh=mesh_out, meta=meta)
-
-
-def _submesh(mesh: Mesh, sel: torch.Tensor) -> Mesh:
+def submesh(mesh: Mesh, sel: torch.Tensor) -> Mesh:
     """Point-set mesh of the selected vertices (no faces survive a vertex subset; a degenerate
     triangle on vertex 0 keeps the container valid). Used when ``vertices=`` is given."""
     import dataclasses
@@ -482,64 +431,4 @@ def _submesh(mesh: Mesh, sel: torch.Tensor) -> Mesh:
         mesh, vertices=mesh.vertices[sel], faces=faces, normals=mesh.normals[sel], tangents=mesh.tangents[sel],
         bitangents=mesh.bitangents[sel], albedo=mesh.albedo[sel], name=f"{mesh.name}[subset {sel.numel()}]",
         meta={**mesh.meta, "subset_of": mesh.content_hash(), "subset_vertices": int(sel.numel())},
-    )
-
-
-# ----------------------------------------------------------------------------------------
-# `prt precompute --kind glossy|mrt` hooks (called by prt_torch.cli.precompute)
-# ----------------------------------------------------------------------------------------
-
-def _parse_brdf_params(items: list[str] | None) -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    for it in items or []:
-        if "=" not in it:
-            raise ValueError(f"--brdf-param {it!r}: accepted: NAME=VALUE, e.g. nu=40")
-        k, v = it.split("=", 1)
-        k = k.strip()
-        v = v.strip()
-        if v.lower() in ("true", "false"):
-            out[k] = v.lower() == "true"
-        else:
-            try:
-                out[k] = float(v)
-            except ValueError:
-                out[k] = v  # e.g. form=reflection
-    return out
-
-
-def brdf_from_args(args) -> BRDF:
-    """The BRDF named by ``--brdf`` with ``--brdf-param NAME=VALUE`` options."""
-    from ..brdf import make_brdf
-
-    return make_brdf(args.brdf, **_parse_brdf_params(getattr(args, "brdf_param", None)))
-
-
-def add_precompute_arguments(parser) -> None:
-    """BRDF and matrix options shared by ``--kind glossy``, ``mrt`` and ``transport``."""
-    g = parser.add_argument_group("glossy / mrt / transport (issue 5)")
-    g.add_argument("--brdf", default="ashikhmin_shirley",
-                   help="reflectance model: lambertian, phong, blinn_phong, ashikhmin_shirley (default), ward")
-    g.add_argument("--brdf-param", action="append", metavar="NAME=VALUE",
-                   help="BRDF parameter, repeatable: e.g. nu=40 nv=10 rs=0.05 rd=0.3 (AS), s=32 ks=1 kd=0.2 form=reflection (Phong)")
-    g.add_argument("--bands-out", type=int, default=None, help="exit radiance SH bands m (glossy: default = --bands; mrt: default 8)")
-    g.add_argument("--projection", default="least_squares", choices=["zero", "least_squares", "odd", "even"],
-                   help="hemispherical SH projection of B (glossy; Sloan 2003 eq. 1), default least_squares")
-    g.add_argument("--drop-10", action="store_true", help="drop the (1,0) exit basis function: N_r = m²-1 (Sloan 2003 §6.1)")
-    g.add_argument("--rcond", type=float, default=None, help="pseudo-inverse threshold for least squares beyond ~6 bands")
-    g.add_argument("--window", default=None, choices=["hanning", "lanczos"], help="window the exit-radiance bands against ringing")
-    g.add_argument("--window-width", type=int, default=None)
-    g.add_argument("--quad-bands", type=int, default=None, help="BRDF double-projection quadrature size (default from sharpness)")
-    g.add_argument("--transferred", action="store_true", help="glossy: store global T_p (Sloan 2002) instead of exit M_p")
-    g.add_argument("--memory-limit", type=float, default=None, help="GiB; refuse a run estimated above it (default 60%% of RAM)")
-
-
-def precompute_from_args(mesh: Mesh, args) -> Transfer:
-    """``prt precompute --kind glossy``."""
-    return precompute_glossy(
-        mesh, args.bands, args.bands_out, brdf=brdf_from_args(args), exit=not args.transferred,
-        projection=args.projection, drop_out=[(1, 0)] if args.drop_10 else None, rcond=args.rcond, window=args.window,
-        window_width=args.window_width, quad_bands=args.quad_bands, samples=args.samples, seed=args.seed,
-        shadows=args.shadows != "never", bounces=args.bounces, chunk_size=args.chunk, workers=args.workers,
-        max_memory=None if args.memory_limit is None else int(args.memory_limit * (1 << 30)),
-        state_dir=args.state_dir, resume=args.resume, progress=not args.no_progress,
     )

@@ -34,10 +34,11 @@ from typing import Any, Iterator
 import torch
 
 from .. import io
-from .._checks import check_choice, check_float, check_int, describe
+from .._checks import check_choice, check_int, describe
 from ..brdf import BRDF, AshikhminShirley
 from ..scene import Mesh, RayCaster
-from .glossy import check_frames
+from .base import RunOptions
+from .glossy import check_frames, decide_shadows
 
 __all__ = [
     "icosphere_directions",
@@ -106,14 +107,10 @@ def precompute_transport(
     views: torch.Tensor | int = 3,
     res: int = 8,
     dtype: str = "float32",
-    shadows: bool = True,
-    chunk_size: int | None = None,
-    workers: int | None = 1,
-    offset: float = 1e-4,
-    resume: bool = False,
+    shadows: bool | str = True,
     overwrite: bool = False,
-    progress: bool = False,
     max_chunks: int | None = None,
+    run: RunOptions | None = None,
 ) -> "TransportTable":
     """Stream direct glossy transport tables (Green 2005 §2.2.1) for every vertex to ``out``.
 
@@ -123,9 +120,12 @@ def precompute_transport(
         views: global view directions ``[J, 3]``, or an icosphere frequency (3 → Green's 92).
         res: cube-map face resolution r (6 r² texels per table).
         dtype: stored precision, 'float32' or 'float16'.
-        chunk_size: vertices per chunk file (default: ~64 MB of float64 work per chunk).
-        resume: keep chunk files already in ``out`` (same fingerprint) and compute the rest;
-            overwrite: remove an existing ``out`` first. Otherwise an existing ``out`` is refused.
+        overwrite: remove an existing ``out`` first. Otherwise an existing ``out`` is refused
+            unless ``run.resume`` (keep the chunk files already there, same fingerprint, and
+            compute the rest): ``out`` is this kind's resumable state.
+        run: :class:`RunOptions` — ``chunk_size`` (vertices per chunk file, default ~64 MB of
+            float64 work per chunk), ``workers``, ``offset``, ``resume``, ``progress``,
+            ``callback(chunk, n_chunks)`` after each chunk written.
         max_chunks: stop after this many new chunks (for measuring a subset; the table is then
             incomplete and says so in ``manifest['complete']``).
     Returns:
@@ -133,9 +133,11 @@ def precompute_transport(
     """
     if not isinstance(mesh, Mesh):
         raise TypeError(f"mesh must be a prt_torch.scene.Mesh, got {describe(mesh)}")
+    run = RunOptions() if run is None else run
     res = check_int("res", res, 1, MAX_CUBE_RES)
     check_choice("dtype", dtype, ["float32", "float16"])
-    offset = check_float("offset", offset, 0.0, 0.1)
+    offset, resume = run.offset, run.resume
+    shadows, shadow_meta = decide_shadows(mesh, shadows, 0, run)
     brdf = AshikhminShirley(40.0, 40.0, rs=0.05, rd=0.0) if brdf is None else brdf
     if not isinstance(brdf, BRDF):
         raise TypeError(f"brdf must be a prt_torch.brdf.BRDF, got {describe(brdf)}")
@@ -156,9 +158,7 @@ def precompute_transport(
     F = check_frames(mesh)
     texels, solid = cube_directions(res)
     P = 6 * res * res
-    if chunk_size is None:
-        chunk_size = int(max(1, min(4096, (8 << 20) // (J * P))))
-    chunk_size = check_int("chunk_size", chunk_size, 1)
+    chunk_size = run.chunks(int(max(1, min(4096, (8 << 20) // (J * P)))))
     out = Path(out)
     fingerprint = {"mesh_hash": mesh.content_hash(), "brdf": brdf.meta() if mat_index is None else "per-vertex",
                    "views": view_dirs.tolist() if isinstance(views, torch.Tensor) else int(views), "res": res,
@@ -188,16 +188,16 @@ def precompute_transport(
         "shape_per_vertex": [J, 6, res, res], "bytes_total": V * J * P * (4 if dtype == "float32" else 2),
         "layout": "cube faces +x,-x,+y,-y,+z,-z (OpenGL); data[v, j, face, row, col]",
         "normalisation": "L_o(x_v, views[j]) = sum over texels of data * L(texel dir) * solid_angle",
-        "complete": False,
+        "complete": False, **shadow_meta,
     }
     io.atomic_write_json(manifest_path, meta)
     io.save(out / "views.prt", {"views": view_dirs, "texels": texels, "solid_angles": solid}, kind="transfer/transport_views")
     io.save(out / "mesh.prt", mesh.to_tensors("mesh."), kind="scene/mesh", meta={"mesh_name": mesh.name})
-    caster = RayCaster(mesh, workers=workers, offset=offset) if shadows else None
+    caster = RayCaster(mesh, workers=run.workers, offset=offset) if shadows else None
     texels_flat = texels.reshape(-1, 3)
     store = torch.float32 if dtype == "float32" else torch.float16
     bar = None
-    if progress:
+    if run.progress:
         from tqdm.auto import tqdm
 
         bar = tqdm(total=V, desc=f"transport {mesh.name}", unit="vtx", dynamic_ncols=True)
@@ -216,6 +216,8 @@ def precompute_transport(
                 new += 1
             if bar is not None:
                 bar.update(b - a)
+            if run.callback is not None:
+                run.callback(c, n_chunks)
     finally:
         if bar is not None:
             bar.close()
@@ -279,53 +281,3 @@ def transport_radiance(T: torch.Tensor, light: torch.Tensor, solid_angles: torch
     ``[C, 6, r, r]`` → ``[k, C]`` float64."""
     w = (light.to(torch.float64) * solid_angles.to(torch.float64)[None]).reshape(light.shape[0], -1)
     return T.reshape(T.shape[0], -1).to(torch.float64) @ w.T
-
-
-# ----------------------------------------------------------------------------------------
-# `prt precompute --kind transport` hooks: the table is written into <output>.state/ (so
-# --resume works as for the other kinds) and renamed to <output> (a directory) when complete.
-# ----------------------------------------------------------------------------------------
-
-class _FinishedTable:
-    """What ``precompute_from_args`` hands the CLI: ``save`` moves the finished directory."""
-
-    kind = "transport"
-
-    def __init__(self, table: TransportTable):
-        self.table = table
-        m = table.meta
-        self.meta = {"rays_traced": 0, "seconds": m.get("seconds_last_run", 0.0), "shadow_decision": "direct transport"}
-        # a zero-stride shape descriptor (no memory): the table lives on disk
-        self.data = torch.zeros(()).expand(m["vertices"], *m["shape_per_vertex"])
-
-    def save(self, path, overwrite: bool = False) -> Path:
-        import shutil
-
-        path = Path(path)
-        if not self.table.meta.get("complete"):
-            raise ValueError(f"transport table in {str(self.table.path)!r} is incomplete; rerun with --resume")
-        if path.exists():
-            if not overwrite:
-                raise FileExistsError(f"output {str(path)!r} exists; pass --overwrite to replace it")
-            shutil.rmtree(path) if path.is_dir() else path.unlink()
-        self.table.path.rename(path)
-        self.table.path = path
-        return path
-
-
-def add_precompute_arguments(parser) -> None:
-    g = parser.add_argument_group("transport (Green 2005)")
-    g.add_argument("--views", type=int, default=3, help="icosphere frequency of the view set (3 -> 92 views)")
-    g.add_argument("--cube-res", type=int, default=8, help="cube-map face resolution r (6 r² texels)")
-    g.add_argument("--transport-dtype", default="float32", choices=["float32", "float16"])
-
-
-def precompute_from_args(mesh, args):
-    from .glossy import brdf_from_args
-
-    table = precompute_transport(
-        mesh, args.state_dir, brdf=brdf_from_args(args), views=args.views, res=args.cube_res,
-        dtype=args.transport_dtype, shadows=args.shadows != "never", chunk_size=args.chunk, workers=args.workers,
-        resume=args.resume, progress=not args.no_progress,
-    )
-    return _FinishedTable(table)

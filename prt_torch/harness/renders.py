@@ -1,0 +1,64 @@
+"""Renders of a benchmark run (the run step makes them; the report only links them).
+
+For the first light and view: the uncompressed result and, for each codec, its best setting
+(highest PSNR), relit from the encoding the run saved (``records/<setting_id>.prt``, the
+project's codec file — no refitting), side by side with an |error| heat map.
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from .. import codecs, render
+from .evaluate import Evaluator
+
+__all__ = ["render_best", "best_per_codec"]
+
+
+def best_per_codec(records: list[dict]) -> dict[str, dict]:
+    """codec name -> its record with the highest ``psnr_lights_db``."""
+    best: dict[str, dict] = {}
+    for x in records:
+        if x["codec"] not in best or x["psnr_lights_db"] > best[x["codec"]]["psnr_lights_db"]:
+            best[x["codec"]] = x
+    return best
+
+
+def render_best(run_dir: Path, records: list[dict], ev: Evaluator, light: torch.Tensor, view: Any,
+                eye: torch.Tensor, opts: dict) -> list[str]:
+    """Render the uncompressed result and the best setting of each codec under ``light``
+    (SH ``[C, n²]``) seen from ``eye [3]`` (``view``: its per-vertex weights); ``opts`` is the
+    config's ``render`` section (width, height). Returns the composites' paths relative to
+    ``run_dir``."""
+    out_dir = Path(run_dir) / "renders"
+    out_dir.mkdir(parents=True, exist_ok=True)
+    mesh = ev.transfer.mesh
+    ref = ev.reference(light, view).clamp_min(0)
+    center = ev.points.mean(0)
+    radius = float((ev.points - center).norm(dim=-1).max())
+    dist = float((eye - center).norm())
+    # the same eye as the view directions used for glossy/MRT metrics; fov frames the bounding sphere
+    fov = 2 * math.degrees(math.asin(min(0.99, 1.08 * radius / dist)))
+    cam = render.Camera(eye=eye.numpy(), target=center.numpy(), fov=fov, near=max(1e-3, dist - 1.5 * radius), far=dist + 1.5 * radius)
+    Lm = ev.light_matrix(light)
+    paths = []
+    with render.Renderer(opts["width"], opts["height"]) as rd:
+        img_ref, mask = rd.render_radiance(mesh, ref, camera=cam)
+        expo = render.auto_exposure(img_ref, mask)  # stops, shared by every panel
+        render.save_png(out_dir / "uncompressed.png", img_ref, exposure=expo)
+        render.save_exr(out_dir / "uncompressed.exr", img_ref)
+        vmax = float(max(1e-12, abs(img_ref[mask]).max())) * 0.1 if mask.any() else None
+        for name, x in sorted(best_per_codec(records).items()):
+            codec, enc = codecs.load(Path(run_dir) / "records" / f"{x['setting_id']}.prt")
+            out = ev.finish(codec.relight(enc, Lm, view=view)).clamp_min(0)
+            img, _ = rd.render_radiance(mesh, out, camera=cam)
+            heat = render.error_heatmap(img, img_ref, mask, vmax=vmax)
+            p = out_dir / f"{x['setting_id']}.png"
+            render.side_by_side([img_ref, img, heat],
+                                ["uncompressed", f"{name} ({x['psnr_lights_db']:.1f} dB)", "|error| (10% of peak = top)"],
+                                exposure=[expo, expo, 0.0], path=p)
+            paths.append(f"renders/{p.name}")
+    return paths

@@ -1,0 +1,270 @@
+"""Every transfer kind by name: its precompute function, its parameter constraints and its
+command-line options (as data; the parser is built in :mod:`prt_torch.cli.precompute`).
+
+``prt precompute``, benchmark configs (``transfer: {type: mrt, bands: 4, M: 8, ...}``) and the
+harness all go through :func:`get_kind`, so a parameter is named, defaulted and validated the
+same way everywhere:
+
+    >>> from prt_torch import transfer
+    >>> k = transfer.get_kind("mrt")
+    >>> k.validate({"bands": 4, "M": 8, "brdf": {"type": "phong", "s": 12}})  # refused before work
+    >>> tr = k.precompute(mesh, k.resolve({"bands": 4, "M": 8}), run=transfer.RunOptions())
+
+A parameter's default is the precompute function's; a kind accepts exactly the parameters
+named in its ``constraints``. Typed values (the BRDF) are given as ``{type: MODEL, ...}``.
+"""
+from __future__ import annotations
+
+import dataclasses
+import inspect
+from typing import Any, Callable
+
+from ..brdf import from_spec as brdf_from_spec
+from ..params import Boolean, Interval, Options, Predicate, describe_constraints, validate_params
+from .base import RunOptions, Transfer
+from .diffuse import MAX_BOUNCES, MAX_DIFFUSE_BANDS, MAX_SAMPLES, precompute_diffuse
+from .glossy import MAX_GLOSSY_BANDS, precompute_glossy
+from .glossy import MAX_SAMPLES as MAX_GLOSSY_SAMPLES
+from .mrt import precompute_mrt
+from .tents import MAX_TENTS
+from .transport import MAX_CUBE_RES, precompute_transport
+
+__all__ = ["Arg", "TransferKind", "get_kind", "kinds", "register_kind"]
+
+_NOTSET = object()
+
+
+@dataclasses.dataclass(frozen=True)
+class Arg:
+    """One command-line option of a kind: ``flag`` sets parameter ``param``.
+
+    ``values``: text → value table (e.g. ``--fold-albedo yes`` → True); ``const``: a flag
+    without a value that sets ``param`` to ``const``; ``spec``: the option names the ``type`` of
+    a typed object, with ``--<flag>-param NAME=VALUE`` for its parameters (the BRDF).
+    """
+
+    flag: str
+    param: str
+    help: str
+    values: dict | None = None
+    const: Any = _NOTSET
+    spec: bool = False
+
+    @property
+    def is_switch(self) -> bool:
+        return self.const is not _NOTSET
+
+
+@dataclasses.dataclass(frozen=True)
+class TransferKind:
+    """A transfer kind: ``precompute(mesh, **params, run=RunOptions)``, the ``constraints`` of
+    its parameters (:mod:`prt_torch.params` vocabulary), its command-line ``args``, and where
+    its result goes (``output``: 'file' — a Transfer — or 'directory' — streamed tables, whose
+    precompute also takes the directory as its second argument)."""
+
+    name: str
+    function: Callable[..., Any]
+    constraints: dict[str, list]
+    args: tuple[Arg, ...]
+    doc: str
+    output: str = "file"
+
+    def defaults(self) -> dict[str, Any]:
+        """Default of every parameter (from the precompute function's signature)."""
+        sig = inspect.signature(self.function).parameters
+        return {k: sig[k].default for k in self.constraints}
+
+    def validate(self, params: dict[str, Any], where: str | None = None) -> dict[str, Any]:
+        """Check ``params`` (unknown names, types, ranges, typed objects); returns them
+        normalised. Raises ValueError/TypeError naming ``where`` (default: the kind)."""
+        if not isinstance(params, dict):
+            raise TypeError(f"{where or self.name}: parameters must be a mapping, got {type(params).__name__}")
+        return validate_params(self.constraints, params, where or f"transfer type {self.name!r}")
+
+    def resolve(self, params: dict[str, Any]) -> dict[str, Any]:
+        """Validated keyword arguments for the precompute: typed objects built (a BRDF spec
+        becomes a BRDF), pairs as tuples."""
+        p = self.validate(params)
+        if p.get("brdf") is not None:
+            p["brdf"] = brdf_from_spec(p["brdf"])
+        if p.get("drop_out") is not None:
+            p["drop_out"] = [tuple(d) for d in p["drop_out"]]
+        return p
+
+    def precompute(self, mesh, params: dict[str, Any], run: RunOptions | None = None, out=None):
+        """Run the precompute on ``mesh`` with ``params`` (validated and resolved here).
+        'directory' kinds write to ``out``; 'file' kinds return the :class:`Transfer`."""
+        kw = self.resolve(params)
+        if self.output == "directory":
+            if out is None:
+                raise ValueError(f"transfer type {self.name!r} streams its tables to a directory; pass out=")
+            return self.function(mesh, out, **kw, run=run)
+        return self.function(mesh, **kw, run=run)
+
+    def describe(self) -> dict[str, dict[str, Any]]:
+        """``{param: {'default', 'accepted'}}`` for help texts and docs."""
+        d = self.defaults()
+        return {k: {"default": d[k], "accepted": describe_constraints(c)} for k, c in self.constraints.items()}
+
+
+_KINDS: dict[str, TransferKind] = {}
+
+
+def register_kind(kind: TransferKind, replace: bool = False) -> TransferKind:
+    """Add ``kind`` to the registry (refused if the name is taken, unless ``replace``)."""
+    if kind.name in _KINDS and not replace:
+        raise ValueError(f"transfer type {kind.name!r} is already registered; pass replace=True")
+    missing = set(kind.constraints) - set(inspect.signature(kind.function).parameters)
+    if missing:
+        raise ValueError(f"transfer type {kind.name!r}: constraints name {sorted(missing)}, which "
+                         f"{kind.function.__name__} does not take")
+    _KINDS[kind.name] = kind
+    return kind
+
+
+def kinds() -> list[str]:
+    """Registered transfer kind names."""
+    return list(_KINDS)
+
+
+def get_kind(name: str) -> TransferKind:
+    """The registered kind ``name``; unknown names are refused naming the accepted ones."""
+    if name not in _KINDS:
+        raise ValueError(f"transfer type {name!r} is not known; accepted: {kinds()}")
+    return _KINDS[name]
+
+
+# ----------------------------------------------------------------------------------------
+# the kinds
+# ----------------------------------------------------------------------------------------
+
+def _is_brdf(v: Any) -> bool:
+    brdf_from_spec(v)
+    return True
+
+
+def _is_pairs(v: Any) -> bool:
+    return isinstance(v, (list, tuple)) and all(
+        isinstance(d, (list, tuple)) and len(d) == 2 and all(isinstance(x, int) and not isinstance(x, bool) for x in d)
+        for d in v)
+
+
+def _is_index_list(v: Any) -> bool:
+    import torch
+
+    if isinstance(v, torch.Tensor):
+        return v.ndim == 1 and not v.is_floating_point()
+    return isinstance(v, (list, tuple)) and all(isinstance(x, int) and not isinstance(x, bool) for x in v)
+
+
+def _is_directions(v: Any) -> bool:
+    import torch
+
+    t = torch.as_tensor(v, dtype=torch.float64)
+    return t.ndim == 2 and t.shape[1] == 3 and bool(torch.isfinite(t).all())
+
+
+_SEED = [Interval(int, 0, None)]
+_SHADOWS = [Options("auto", "always", "never")]
+_BRDF = [Predicate(_is_brdf, "a BRDF model name or {type: MODEL, <param>: value} (models: lambertian, phong, "
+                   "blinn_phong, ashikhmin_shirley, ward)"), None]
+_WINDOW = [Options("hanning", "lanczos"), None]
+_OPT_INT = [Interval(int, 1, None), None]
+_VERTICES = [Predicate(_is_index_list, "a list of vertex indices"), None]
+
+# options shared by several kinds (one flag each on the command line)
+_A = {a.param: a for a in (
+    Arg("--bands", "bands", "SH bands n of the lighting (n² coefficients)"),
+    Arg("--samples", "samples", "Monte Carlo directions per vertex"),
+    Arg("--bounces", "bounces", "interreflection bounces after the direct pass"),
+    Arg("--seed", "seed", "direction-set seed"),
+    Arg("--shadows", "shadows", "trace visibility: auto (probe self-occlusion first), always, never",
+        values={"auto": "auto", "always": "always", "never": "never"}),
+    Arg("--brdf", "brdf", "reflectance model (lambertian, phong, blinn_phong, ashikhmin_shirley, ward); "
+        "its parameters with --brdf-param NAME=VALUE, e.g. s=32 ks=1 kd=0.2 (Phong), nu=40 nv=10 rs=0.05 (AS)", spec=True),
+    Arg("--bands-out", "bands_out", "exit radiance SH bands m"),
+    Arg("--window", "window", "window the exit-radiance bands against ringing",
+        values={"hanning": "hanning", "lanczos": "lanczos"}),
+    Arg("--window-width", "window_width", "window width in bands"),
+    Arg("--quad-bands", "quad_bands", "BRDF double-projection quadrature size (default from the lobe's sharpness)"),
+)}
+
+
+def _args(*names: str) -> tuple[Arg, ...]:
+    return tuple(_A[n] for n in names)
+
+
+register_kind(TransferKind(
+    name="diffuse", function=precompute_diffuse, doc="diffuse transfer vectors: unshadowed, shadowed, interreflected "
+    "(Sloan 2002; course notes 2005)",
+    constraints={
+        "bands": [Interval(int, 1, MAX_DIFFUSE_BANDS)], "samples": [Interval(int, 1, MAX_SAMPLES)],
+        "bounces": [Interval(int, 0, MAX_BOUNCES)], "seed": _SEED, "sampling": [Options("uniform", "cosine")],
+        "shadows": _SHADOWS, "fold_albedo": [Boolean(), None], "bounce_tol": [Interval(float, 0, 1, closed="left")],
+        "probe_tol": [Interval(float, 0, 1, closed="left")],
+    },
+    args=_args("bands", "samples", "bounces", "seed", "shadows") + (
+        Arg("--sampling", "sampling", "uniform sphere set (SH evaluated once) or cosine-weighted hemisphere per vertex",
+            values={"uniform": "uniform", "cosine": "cosine"}),
+        Arg("--fold-albedo", "fold_albedo", "store [V,3,n²] with albedo folded (yes), [V,n²] without (no), or as needed (auto)",
+            values={"auto": None, "yes": True, "no": False}),
+        Arg("--bounce-tol", "bounce_tol", "stop adding bounces below this energy fraction"),
+    ),
+))
+
+_GLOSSY_COMMON = {
+    "brdf": _BRDF, "window": _WINDOW, "window_width": _OPT_INT, "quad_bands": _OPT_INT,
+    "samples": [Interval(int, 1, MAX_GLOSSY_SAMPLES)], "seed": _SEED,
+    "shadows": [Boolean()] + _SHADOWS, "bounces": [Interval(int, 0, 16)], "vertices": _VERTICES,
+}
+
+register_kind(TransferKind(
+    name="glossy", function=precompute_glossy, doc="glossy exit transfer M_p = B R_p T_p (Sloan 2003 §3.1) or "
+    "transferred radiance T_p (Sloan 2002)",
+    constraints={
+        "bands": [Interval(int, 1, MAX_GLOSSY_BANDS)], "bands_out": [Interval(int, 1, MAX_GLOSSY_BANDS), None],
+        "exit": [Boolean()], "projection": [Options("zero", "least_squares", "odd", "even")],
+        "drop_out": [Predicate(_is_pairs, "a list of (l, m) pairs"), None], "rcond": [Interval(float, 0, None), None],
+        **_GLOSSY_COMMON,
+    },
+    args=_args("bands", "bands_out", "brdf", "samples", "seed", "shadows", "bounces", "window", "window_width",
+               "quad_bands") + (
+        Arg("--projection", "projection", "hemispherical SH projection of B (Sloan 2003 eq. 1)",
+            values={k: k for k in ("zero", "least_squares", "odd", "even")}),
+        Arg("--drop-10", "drop_out", "drop the (1,0) exit basis function: N_r = m²-1 (Sloan 2003 §6.1)", const=[[1, 0]]),
+        Arg("--rcond", "rcond", "pseudo-inverse threshold of the least-squares projection beyond ~6 bands"),
+        Arg("--transferred", "exit", "store the global transferred radiance T_p (Sloan 2002) instead of exit M_p",
+            const=False),
+    ),
+))
+
+register_kind(TransferKind(
+    name="mrt", function=precompute_mrt, doc="matrix radiance transfer A_p = G⁻¹ C B R_p T_p in an M×M tent basis "
+    "(Lehtinen & Kautz 2003)",
+    constraints={
+        "bands": [Interval(int, 1, MAX_GLOSSY_BANDS)], "bands_out": [Interval(int, 1, MAX_GLOSSY_BANDS)],
+        "M": [Interval(int, 2, MAX_TENTS)], **_GLOSSY_COMMON,
+    },
+    args=_args("bands", "bands_out", "brdf", "samples", "seed", "shadows", "bounces", "window", "window_width",
+               "quad_bands") + (
+        Arg("--tents", "M", "M, the M×M tent basis over the hemisphere"),
+    ),
+))
+
+register_kind(TransferKind(
+    name="transport", function=precompute_transport, output="directory",
+    doc="tabulated direct transport functions on cube maps for a set of views (Green 2005 §2.2.1), streamed to a directory",
+    constraints={
+        "brdf": _BRDF, "views": [Interval(int, 1, 16), Predicate(_is_directions, "view directions [J, 3]")],
+        "res": [Interval(int, 1, MAX_CUBE_RES)], "dtype": [Options("float32", "float16")],
+        "shadows": [Boolean()] + _SHADOWS,
+        "max_chunks": _OPT_INT,
+    },
+    args=_args("brdf", "shadows") + (
+        Arg("--views", "views", "icosphere frequency of the view set (3 -> 92 views)"),
+        Arg("--cube-res", "res", "cube-map face resolution r (6 r² texels)"),
+        Arg("--transport-dtype", "dtype", "stored precision", values={"float32": "float32", "float16": "float16"}),
+    ),
+))
+
+del _A
