@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import resource
 import subprocess
 import sys
@@ -41,8 +40,8 @@ def stage(name: str, subset: int, samples: int) -> dict:
     """Run one precompute stage in this process; print JSON (time, peak RSS, vertices)."""
     from prt_torch.brdf import AshikhminShirley
     from prt_torch.scene import builtin
-    from prt_torch.transfer import precompute_diffuse
-    from prt_torch.transfer.glossy import precompute_glossy, precompute_mrt
+    from prt_torch.transfer.glossy import precompute_glossy
+    from prt_torch.transfer.mrt import precompute_mrt
 
     mesh = builtin(SCENE)
     V = mesh.num_vertices
@@ -60,9 +59,9 @@ def stage(name: str, subset: int, samples: int) -> dict:
     else:
         sub = mesh
         if sel is not None:
-            from prt_torch.transfer.glossy import _submesh
+            from prt_torch.transfer.glossy import submesh
 
-            sub = _submesh(mesh, sel)
+            sub = submesh(mesh, sel)
         # diffuse peer: same rays; its own chunking over the subset's points
         from prt_torch.scene import RayCaster
         from prt_torch.transfer.diffuse import transfer_at_points
@@ -89,10 +88,10 @@ def stage(name: str, subset: int, samples: int) -> dict:
 
 
 def _estimate(name: str, V: int, samples: int) -> int:
-    from prt_torch.transfer.glossy import _default_chunk, estimate_memory
+    from prt_torch.transfer.glossy import default_chunk, estimate_memory
 
     n_out = 25 if name == "glossy" else 121
-    return estimate_memory(V, n_out, 25, samples, _default_chunk(samples))
+    return estimate_memory(V, n_out, 25, samples, default_chunk(samples))
 
 
 def run_stage_subprocess(name: str, subset: int, samples: int) -> dict:
@@ -161,7 +160,7 @@ def relight_fps(V: int, reps: int) -> dict:
 
 
 def fig2_table() -> list[dict]:
-    from prt_torch.transfer.mrt import MRTBasis, average_psnr
+    from prt_torch.transfer.tents import MRTBasis, average_psnr
 
     rows = []
     for m in (3, 5, 8):
@@ -216,7 +215,8 @@ def main() -> int:
     for name, r in pre.items():
         per_v = (r["seconds"] - r["setup_seconds"]) / r["vertices_measured"]
         r["extrapolated_seconds_full"] = r["setup_seconds"] + per_v * r["vertices_total"]
-        r["ratio_to_diffuse"] = r["extrapolated_seconds_full"] / pre["diffuse"]["extrapolated_seconds_full"] if "extrapolated_seconds_full" in pre["diffuse"] else None
+        full = pre["diffuse"].get("extrapolated_seconds_full")
+        r["ratio_to_diffuse"] = r["extrapolated_seconds_full"] / full if full else None
     for name, r in pre.items():
         r["ratio_to_diffuse"] = r["extrapolated_seconds_full"] / pre["diffuse"]["extrapolated_seconds_full"]
     fps = {}
@@ -232,7 +232,8 @@ def main() -> int:
     conv = brdf_convergence()
     result = {
         "benchmark": "glossy_mrt", "scene": SCENE, "torch": torch.__version__, "threads": torch.get_num_threads(),
-        "subset": subset, "samples": args.samples, "load_average": list(__import__("os").getloadavg()), "precompute": pre, "relight_vertices": args.vertices, "relight": fps,
+        "subset": subset, "samples": args.samples, "load_average": list(__import__("os").getloadavg()), "precompute": pre,
+        "relight_vertices": args.vertices, "relight": fps,
         "paper_table1": PAPER, "fig2": fig2, "brdf_quadrature": conv, "wall_seconds": time.perf_counter() - t_start,
     }
     out_dir = ROOT / "reports" / "benchmarks"
@@ -282,7 +283,8 @@ def render_md(r: dict) -> str:
         L.append("| path | ms/frame | fps | × (a) shadowed | × (a) unshadowed |")
         L.append("|---|---|---|---|---|")
         for name, p in paths.items():
-            L.append(f"| {name} | {1000 * p['seconds_per_frame']:.1f} | {p['fps']:.1f} | {p['ratio_to_a_shadowed']:.2f} | {p['ratio_to_a_unshadowed']:.2f} |")
+            L.append(f"| {name} | {1000 * p['seconds_per_frame']:.1f} | {p['fps']:.1f} | {p['ratio_to_a_shadowed']:.2f} "
+                     f"| {p['ratio_to_a_unshadowed']:.2f} |")
         L.append("")
     L.append("Paper (Lehtinen & Kautz 2003, Table 1, P4 2.26 GHz, software): bird (shadowed) b/a = "
              f"{9.3 / 1.6:.1f}, c/a = {8.7 / 1.6:.1f}; head (unshadowed) b/a = {9.7 / 2.9:.1f}, c/a = {8.7 / 2.9:.1f}.")

@@ -34,7 +34,8 @@ from prt_torch.harness.timing import machine_info, measure  # noqa: E402
 from prt_torch.io import atomic_write_json, atomic_write_text  # noqa: E402
 from prt_torch.lighting import load_light  # noqa: E402
 from prt_torch.scene import builtin  # noqa: E402
-from prt_torch.transfer import diffuse_radiance, unshadowed_transfer  # noqa: E402
+from prt_torch.relight import diffuse  # noqa: E402
+from prt_torch.transfer import unshadowed_transfer  # noqa: E402
 
 OUT = Path(__file__).resolve().parent.parent / "reports" / "benchmarks"
 
@@ -65,7 +66,7 @@ def main() -> int:
         for size, res in sizes:
             mesh = builtin("bumpy_sphere", size=size)
             T = unshadowed_transfer(mesh.normals, 3)
-            rad = diffuse_radiance(T, load_light("sky", bands=3), mesh.albedo)  # [V,3] float64
+            rad = diffuse(T.double(), load_light("sky", bands=3), mesh.albedo)  # [V,3] float64
             cam = Camera.fit(mesh, azimuth=35, elevation=25, fov=40)
             img, mask = r.render_radiance(mesh, rad, cam, res, res)
             t_ours = measure(lambda: r.render_radiance(mesh, rad, cam, res, res), repeats=repeats, warmup=2)
@@ -98,7 +99,8 @@ def main() -> int:
             print(rows[-1])
     info = machine_info()
     md = ["# Render benchmark: float path vs pyrender 8-bit path", "",
-          f"Machine: {info.get('cpu', '?')}, {info.get('cores', '?')} cores, torch threads {info.get('torch_threads', '?')}; renderer {r.info['renderer']}.",
+          f"Machine: {info.get('cpu', '?')}, {info.get('cores', '?')} cores, torch threads {info.get('torch_threads', '?')}; "
+          f"renderer {r.info['renderer']}.",
           "Same EGL context kind, same camera, same size; median of repeats after warm-up (spread = IQR/median).", "",
           "| mesh | V | px | float ms | pyrender 8-bit ms | ratio | mask IoU | 8-bit rel. err median / p90 / p99 |",
           "|---|---:|---:|---:|---:|---:|---:|---|"]

@@ -14,7 +14,6 @@ Writes reports/benchmarks/sh.md and sh.json.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -112,13 +111,16 @@ def main(argv=None):
           "|---|---|---|---|---|---|"]
     for r in basis:
         md.append(f"| {r['dtype']} | {r['bands']} | {r['torch_dirs_per_s']/1e6:.2f} (±{r['torch_spread']:.0%}) | "
-                  f"{r['sphericart_dirs_per_s']/1e6:.2f} (±{r['sphericart_spread']:.0%}) | {r['speedup_sphericart_over_torch']:.2f}× | {r['max_abs_diff_vs_float64_torch']:.1e} |")
-    md += ["", f"## Rotation matrices, {n_rot} rotations (peer: direct quadrature construction on {min(n_rot, 10_000)} of them, same run; rates per rotation)", "",
+                  f"{r['sphericart_dirs_per_s']/1e6:.2f} (±{r['sphericart_spread']:.0%}) | {r['speedup_sphericart_over_torch']:.2f}× "
+                  f"| {r['max_abs_diff_vs_float64_torch']:.1e} |")
+    md += ["", f"## Rotation matrices, {n_rot} rotations (peer: direct quadrature construction on {min(n_rot, 10_000)} of them, "
+           "same run; rates per rotation)", "",
            "| bands | dtype | IR (rotations/s) | quadrature peer (rotations/s) | IR / peer | max diff | apply blocks (vec/s) | blocks / dense bmm |",
            "|---|---|---|---|---|---|---|---|"]
     for r in rot:
         md.append(f"| {r['bands']} | {r['dtype']} | {r['ir_rotations_per_s']/1e6:.2f} M | {r['quadrature_peer_rotations_per_s']/1e6:.3f} M | "
-                  f"{r['speedup_ir_over_quadrature']:.1f}× | {r['max_abs_diff_ir_vs_quadrature']:.1e} | {r['apply_blocks_vectors_per_s']/1e6:.2f} M | {r['apply_speedup_blocks_over_dense']:.2f}× |")
+                  f"{r['speedup_ir_over_quadrature']:.1f}× | {r['max_abs_diff_ir_vs_quadrature']:.1e} | "
+                  f"{r['apply_blocks_vectors_per_s']/1e6:.2f} M | {r['apply_speedup_blocks_over_dense']:.2f}× |")
     atomic_write_text(OUT / "sh.md", "\n".join(md) + "\n")
     print("\n".join(md))
     return 0

@@ -34,7 +34,8 @@ sys.path.insert(0, str(ROOT))
 
 from prt_torch import io  # noqa: E402
 from prt_torch.scene import RayCaster, builtin, default_workers  # noqa: E402
-from prt_torch.transfer.diffuse import _Sampler, precompute_diffuse  # noqa: E402
+from prt_torch.transfer import RunOptions  # noqa: E402
+from prt_torch.transfer.diffuse import DiffuseSampler, precompute_diffuse  # noqa: E402
 
 warnings.filterwarnings("ignore", message="Sparse")
 
@@ -93,14 +94,14 @@ def main(argv=None) -> int:
         args.scene, args.samples = "bumpy_sphere:medium", 256
     workers = args.workers or default_workers()
     mesh = builtin(args.scene)
-    sampler = _Sampler(args.bands, args.samples, 0, "uniform")
+    sampler = DiffuseSampler(args.bands, args.samples, 0, "uniform")
     load0 = os.getloadavg()
     runs = []
     for B in args.bounces:
         rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
         t = time.perf_counter()
-        tr = precompute_diffuse(mesh, args.bands, args.samples, B, seed=0, shadows="always", workers=workers,
-                                progress=False)
+        tr = precompute_diffuse(mesh, args.bands, args.samples, B, seed=0, shadows="always",
+                                run=RunOptions(workers=workers))
         wall = time.perf_counter() - t
         rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
         child = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss

@@ -42,7 +42,7 @@ from typing import Any, Callable, Iterable
 import numpy as np
 import torch
 
-from ._checks import check_choice, check_int, check_shape, check_float_dtype, check_finite, describe
+from ._checks import check_choice, check_int, check_shape, check_float_dtype, describe
 from .sh import (
     MAX_BANDS,
     band_factor,

@@ -33,7 +33,7 @@ from ._checks import check_shape, describe
 from .sh import band_of_coeffs, eval_sh, rotation_blocks
 from .transfer.tents import tent_taps
 
-__all__ = ["diffuse", "glossy", "mrt", "kautz", "kautz_setup", "local_view", "glossy_view_weights", "mrt_view_taps",
+__all__ = ["diffuse", "diffuse_transfer", "glossy", "mrt", "kautz", "kautz_setup", "local_view", "glossy_view_weights", "mrt_view_taps",
            "apply_dense", "apply_taps"]
 
 
@@ -66,17 +66,30 @@ def local_view(frames: torch.Tensor, positions: torch.Tensor | None = None, eye:
     return torch.einsum("vij,vj->vi", frames, d)
 
 
-def diffuse(T: torch.Tensor, L: torch.Tensor) -> torch.Tensor:
+def diffuse(T: torch.Tensor, L: torch.Tensor, albedo: torch.Tensor | None = None) -> torch.Tensor:
     """Diffuse PRT (Sloan 2002): ``T [V, n²]`` (shared across channels) or ``[V, C, n²]`` with
-    ``L [C, n²]`` → ``[V, C]`` (dtype of T)."""
+    ``L [C, n²]`` → ``[V, C]`` (dtype of T); ``albedo [V, C']`` multiplies the result of
+    ``[V, n²]`` transfer stored without it (``meta['albedo_folded']`` false; C' = 3 broadcasts
+    a grey light to colour)."""
     check_shape("T", T, last=(T.shape[-1],))
     Lc = _light(L, T.shape[-1], T.dtype)
     if T.ndim == 2:
-        return T @ Lc.T
+        out = T @ Lc.T
+        return out if albedo is None else out * albedo.to(T.dtype)
     if T.ndim == 3:
         Lc = Lc.expand(T.shape[1], -1) if Lc.shape[0] == 1 else Lc
         return torch.einsum("vcn,cn->vc", T, Lc)
     raise ValueError(f"T has shape {tuple(T.shape)}; accepted: [V, n²] or [V, C, n²]")
+
+
+def diffuse_transfer(transfer, L: torch.Tensor) -> torch.Tensor:
+    """Exit radiance ``[V, C]`` float64 of a diffuse :class:`~prt_torch.transfer.Transfer` under
+    ``L [C, n²]``: :func:`diffuse` with the mesh albedo applied when it is not folded in."""
+    if transfer.kind != "diffuse":
+        raise ValueError(f"transfer holds {transfer.kind!r} data; accepted: diffuse")
+    data = transfer.data.to(torch.float64)
+    folded = transfer.meta.get("albedo_folded", data.ndim == 3)
+    return diffuse(data, L.to(torch.float64), None if folded else transfer.mesh.albedo)
 
 
 def glossy_view_weights(view_local: torch.Tensor, out_index: torch.Tensor | list | None, n_out: int,

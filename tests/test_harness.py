@@ -3,9 +3,7 @@ are checked against each other, resume after a crash, the target search, and the
 import csv
 import json
 import math
-import os
 import time
-from pathlib import Path
 
 import pytest
 import torch
@@ -77,7 +75,7 @@ def test_overrides_and_sweep_expansion(tmp_path):
 def test_invalid_config_fails_before_any_work(tmp_path, override, match):
     p = write_cfg(tmp_path, TINY)
     with pytest.raises((ValueError, FileNotFoundError), match=match):
-        cfg = hc.load_config(str(p), [override])
+        hc.load_config(str(p), [override])
     assert not (tmp_path / "cache").exists() and not (tmp_path / "reports").exists()
 
 

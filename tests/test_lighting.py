@@ -459,7 +459,6 @@ def test_irradiance_map_of_constant(layout):
     env = irradiance_map(constant(0.5, 3), layout, 16)
     m = env.mask()
     torch.testing.assert_close(env.image[m], torch.full_like(env.image[m], math.pi * 0.5), rtol=1e-5, atol=0)
-    L = sh.eval_sh(torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64), 3)
     Ld = directional(Z, 1.0, 3)
     Em = irradiance_map(Ld, layout, 16)
     torch.testing.assert_close(Em.image, irradiance(Ld, Em.directions()).to(torch.float32) * m[..., None])

@@ -112,7 +112,8 @@ def test_project_reconstruct_round_trip_and_channels():
 
 
 def test_stratified_monte_carlo_converges_and_is_deterministic():
-    f = lambda d: torch.exp(d[:, 0]) + d[:, 2] ** 2
+    def f(d):
+        return torch.exp(d[:, 0]) + d[:, 2] ** 2
     exact = sh.project_callable(f, 3, oversample=8)
     a = sh.project_callable(f, 3, quadrature="stratified", n=40000, seed=7)
     b = sh.project_callable(f, 3, quadrature="stratified", n=40000, seed=7)
@@ -191,7 +192,8 @@ def test_irradiance_constants_c1_to_c5_of_eq_4_15():
 @pytest.mark.parametrize("s", [0.0, 1.0, 7.5, 32.0, 500.0])
 def test_phong_eq_3_37_against_quadrature(s):
     bands = 12
-    lobe = lambda t: (s + 1) / (2 * math.pi) * t.clamp_min(0) ** s
+    def lobe(t):
+        return (s + 1) / (2 * math.pi) * t.clamp_min(0) ** s
     quad = sh.zonal_project(lobe, bands, lower=0.0, n=300)
     assert (sh.phong(s, bands) - quad).abs().max() < 1e-10
     # unit energy: Λ_0 h_0 = 1
@@ -297,7 +299,8 @@ def test_least_squares_projection_against_numpy_lstsq():
     """Fit a non-band-limited hemispherical function by least squares on dense samples with
     numpy (independent), compare with A⁻¹ b."""
     bands = 4
-    f = lambda d: torch.exp(2 * d[:, 0]) * d[:, 2] + 0.3
+    def f(d):
+        return torch.exp(2 * d[:, 0]) * d[:, 2] + 0.3
     dirs, w = sh.gauss_hemisphere(bands, oversample=12)
     b = sh.project(f(dirs), dirs, w, bands)
     c = sh.project_hemisphere(b, "least_squares")

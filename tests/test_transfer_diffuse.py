@@ -11,7 +11,8 @@ import torch
 from prt_torch.cli import main as cli_main
 from prt_torch.scene import RayCaster, builtin, geodesic_sphere, make_mesh, sphere_on_plane_visibility
 from prt_torch.sh import eval_sh, gauss_sphere
-from prt_torch.transfer import ChunkInterrupt, RunOptions, Transfer, diffuse_radiance, precompute_diffuse, unshadowed_transfer
+from prt_torch.relight import diffuse_transfer as diffuse_radiance
+from prt_torch.transfer import ChunkInterrupt, RunOptions, Transfer, precompute_diffuse, unshadowed_transfer
 from prt_torch.transfer.diffuse import transfer_at_points
 from prt_torch.transfer.sampling import cosine_hemisphere, uniform_sphere
 

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 
 import torch
 
@@ -19,7 +18,6 @@ from ..lighting import (
     render_sh,
     write_image,
 )
-from ..lighting.environment import expand_window, window_factors
 from ..lighting.spec import load_light
 from ..lighting.layouts import resolve_rotation
 from ..sh import lm_of, rotate as sh_rotate

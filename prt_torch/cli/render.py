@@ -100,7 +100,8 @@ def run(args) -> int:
     from ..lighting.spec import load_light
     from ..render import (Camera, Renderer, RenderUnavailable, auto_exposure, error_heatmap, error_map,
                           side_by_side)
-    from ..transfer import Transfer, diffuse_radiance
+    from ..relight import diffuse_transfer
+    from ..transfer import Transfer
 
     out = Path(args.output)
     ext = out.suffix.lower()
@@ -125,10 +126,10 @@ def run(args) -> int:
         raise ValueError(f"{args.transfer!r} holds {transfer.kind!r} transfer; `prt render` handles 'diffuse' "
                          "(glossy/MRT need a view direction per vertex: not implemented here yet)")
     light = load_light(args.light, bands=_bands(transfer))
-    ref = diffuse_radiance(transfer, light)  # [V, C] float64, Sloan 2002: L_out = t_p · l
+    ref = diffuse_transfer(transfer, light)  # [V, C] float64, Sloan 2002: L_out = t_p · l
     rad = ref
     if args.codec_file:
-        rad = diffuse_radiance(_decode_codec_file(args.codec_file, transfer), light)
+        rad = diffuse_transfer(_decode_codec_file(args.codec_file, transfer), light)
 
     mesh = transfer.mesh
     cam = Camera.fit(mesh, azimuth=args.azimuth, elevation=args.elevation, fov=args.fov,

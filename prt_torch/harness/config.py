@@ -178,7 +178,8 @@ def _check_type(key: str, value: Any, default: Any) -> None:
         if isinstance(v, bool) and type(default) is not bool:
             raise ValueError(f"config key {key!r} = {v!r}: expected {type(default).__name__}")
         if not isinstance(v, want):
-            raise ValueError(f"config key {key!r} = {v!r}: expected {type(default).__name__}" + (" (or a list of them, a sweep)" if key not in LIST_KEYS else ""))
+            raise ValueError(f"config key {key!r} = {v!r}: expected {type(default).__name__}"
+                             + (" (or a list of them, a sweep)" if key not in LIST_KEYS else ""))
 
 
 def _renamed(entry: Any, where: str) -> None:

@@ -71,7 +71,7 @@ class Evaluator:
             raise ValueError(f"transfer kind {t.kind!r} is not supported by the harness; accepted: {', '.join(KINDS)}")
         self.bands_in = sh.band_of_coeffs(self.n_in, "transfer input coefficients")
         self.frames = t.mesh.frames().to(torch.float64)  # [V, 3, 3] rows (t, b, n)
-        self.points = t.mesh.vertices.to(torch.float64) if isinstance(t.mesh.vertices, torch.Tensor) else torch.as_tensor(t.mesh.vertices, dtype=torch.float64)
+        self.points = torch.as_tensor(t.mesh.vertices).to(torch.float64)  # [V, 3]
 
     @property
     def needs_view(self) -> bool:

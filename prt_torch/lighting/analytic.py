@@ -31,7 +31,7 @@ from typing import Any
 
 import torch
 
-from .._checks import check_float, check_int, check_unit_vectors, describe
+from .._checks import check_float, check_int, describe
 from ..sh import MAX_BANDS, eval_sh, rotate_zonal, zonal_project
 
 __all__ = ["directional", "cap", "cap_zonal", "sky_gradient", "hemisphere", "constant", "color"]

@@ -10,16 +10,14 @@ done per channel and batched as one GEMM per chunk of pixels through
 """
 from __future__ import annotations
 
-import math
 import os
-import re
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
 import numpy as np
 import torch
 
-from .._checks import check_choice, check_float, check_int, check_shape, describe
+from .._checks import check_choice, check_int, check_shape, describe
 from ..sh import MAX_BANDS, band_of_coeffs, eval_sh, window as sh_window
 from . import layouts as L
 from .imageio import read_image, write_image

@@ -20,7 +20,7 @@ from typing import Any
 import torch
 
 from .._checks import check_shape, check_unit_vectors
-from ..sh import band_of_coeffs, clamped_cosine_A, eval_sh, reconstruct
+from ..sh import band_of_coeffs, clamped_cosine_A, reconstruct
 
 __all__ = ["irradiance_coeffs", "irradiance_constants", "irradiance_matrix", "irradiance",
            "irradiance_quadratic", "irradiance_polynomial", "irradiance_map"]

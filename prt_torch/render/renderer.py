@@ -28,7 +28,7 @@ from .camera import Camera, bounding_sphere
 from .decoders import Decoder, DrawInputs, RadianceDecoder, TableData
 from .program import Attribute, FloatBuffer, FloatTexture, GLProgram, ShaderProgram
 
-__all__ = ["Renderer", "render_radiance", "render", "float_roundtrip", "default_renderer", "MAX_PIXELS"]
+__all__ = ["Renderer", "render_radiance", "render", "default_renderer", "MAX_PIXELS"]
 
 MAX_PIXELS = 1 << 26  # 64 Mi pixels (1 GiB of RGBA32F): refuse before allocating
 
@@ -398,7 +398,7 @@ def render_radiance(mesh, radiance, camera: Camera | None = None, width: int = 2
     Args:
         mesh: a ``Mesh`` or (vertices ``[V,3]``, faces ``[F,3]``).
         radiance: ``[V,3]`` (or ``[V]`` grey) float32/float64 tensor or array — e.g. the output
-            of ``relight.diffuse`` / ``transfer.diffuse_radiance`` (Sloan 2002: L_out = t_p·l).
+            of ``relight.diffuse`` (Sloan 2002: L_out = t_p·l).
         camera: a :class:`Camera` (default: fitted to the bounding sphere, azimuth 35°,
             elevation 25°, 40° field of view).
         width, height: pixels; background: value of uncovered pixels; supersample: s×s samples.

@@ -307,7 +307,8 @@ def make_mesh(vertices: Any, faces: Any, albedo: Any = None, name: str = "mesh",
         zero = area <= (1e-12 * scale) ** 2 if scale > 0 else np.ones_like(rep)
         drop = rep | zero
         if drop.all():
-            raise ValueError(f"{name}: all {f.shape[0]} faces have zero area (degenerate mesh); accepted: a mesh with at least one face of positive area")
+            raise ValueError(f"{name}: all {f.shape[0]} faces have zero area (degenerate mesh); "
+                             "accepted: a mesh with at least one face of positive area")
         report["degenerate_faces_removed"] = int(drop.sum())
         f = f[~drop]
         # 3. unreferenced vertices removed

@@ -153,9 +153,9 @@ def _blocks_batch_last(r_b: torch.Tensor, bands: int) -> list[torch.Tensor]:
             P0 = _aux_p(r, 0, prev, l)
             P1 = _aux_p(r, 1, prev, l)
             Pm = _aux_p(r, -1, prev, l)
-            t = lambda c: _coef(c, r.dtype)
-            M = t(cU) * P0[rU]
-            M.addcmul_(t(cV1), P1[rV1]).addcmul_(t(cVm), Pm[rVm]).addcmul_(t(cW1), P1[rW1]).addcmul_(t(cWm), Pm[rWm])
+            u, v1, vm, w1, wm = (_coef(c, r.dtype) for c in (cU, cV1, cVm, cW1, cWm))
+            M = u * P0[rU]
+            M.addcmul_(v1, P1[rV1]).addcmul_(vm, Pm[rVm]).addcmul_(w1, P1[rW1]).addcmul_(wm, Pm[rWm])
             blocks.append(M)
     return blocks
 

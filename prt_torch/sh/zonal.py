@@ -112,7 +112,9 @@ def microfacet(sigma: float, bands: int, exact: bool = False, dtype: torch.dtype
     if not exact:
         l = torch.arange(bands, dtype=torch.float64)
         return (torch.exp(-((sigma * l) ** 2)) / band_factor(bands)).to(dtype)
-    lobe = lambda c: torch.exp(-torch.arccos(c.clamp(-1, 1)) ** 2 / (4 * sigma * sigma)) / (4 * math.pi * sigma * sigma)
+    def lobe(c):
+        return torch.exp(-torch.arccos(c.clamp(-1, 1)) ** 2 / (4 * sigma * sigma)) / (4 * math.pi * sigma * sigma)
+
     return zonal_project(lobe, bands, lower=0.0, n=max(256, 8 * bands)).to(dtype)
 
 

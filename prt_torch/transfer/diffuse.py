@@ -47,8 +47,8 @@ __all__ = [
     "unshadowed_transfer",
     "transfer_at_points",
     "precompute_diffuse",
-    "diffuse_radiance",
     "probe_self_occlusion",
+    "DiffuseSampler",
     "MAX_DIFFUSE_BANDS",
     "MAX_SAMPLES",
 ]
@@ -79,7 +79,7 @@ def unshadowed_transfer(normals: torch.Tensor, bands: int, albedo: torch.Tensor 
     return t * a[:, None] if a.ndim == 1 else a[:, :, None] * t[:, None, :]
 
 
-class _Sampler:
+class DiffuseSampler:
     """The direction set of one run, with SH values evaluated once where they are shared."""
 
     def __init__(self, bands: int, samples: int, seed: int, sampling: str):
@@ -126,7 +126,7 @@ def _check_points(points: Any, normals: Any) -> tuple[torch.Tensor, torch.Tensor
     return p, n / n.norm(dim=-1, keepdim=True)
 
 
-def _chunk(caster: RayCaster, sampler: _Sampler, points: torch.Tensor, normals: torch.Tensor,
+def _chunk(caster: RayCaster, sampler: DiffuseSampler, points: torch.Tensor, normals: torch.Tensor,
            frames: torch.Tensor | None, faces: np.ndarray | None, face_normals: np.ndarray | None,
            n_vertices: int, record_hits: bool) -> dict[str, torch.Tensor]:
     """Shadowed transfer (ρ = 1) of a chunk of k points, and (optionally) its bounce entries.
@@ -192,7 +192,7 @@ def transfer_at_points(caster: RayCaster, points: Any, normals: Any, bands: int,
     if sampling == "cosine":
         t, b = tangent_frames(n.numpy())
         frames = torch.stack([torch.from_numpy(t), torch.from_numpy(b), n], dim=-2)
-    return _chunk(caster, _Sampler(bands, samples, seed, sampling), p, n, frames, None, None, 0, False)["T"]
+    return _chunk(caster, DiffuseSampler(bands, samples, seed, sampling), p, n, frames, None, None, 0, False)["T"]
 
 
 def probe_self_occlusion(caster: RayCaster, mesh: Mesh, seed: int = 0, vertices: int = 1024,
@@ -334,7 +334,7 @@ def _trace_direct(caster: RayCaster, mesh: Mesh, bands: int, samples: int, seed:
     """Step 2: shadowed transfer t⁰ ``[V, n²]`` float64 over resumable chunks, and (when
     ``record_hits``) the bounce matrix S ``[V, V]`` (scipy CSR) of the same rays."""
     V = mesh.num_vertices
-    sampler = _Sampler(bands, samples, seed, sampling)
+    sampler = DiffuseSampler(bands, samples, seed, sampling)
     rays_per_vertex = samples // 2 if sampling == "uniform" else samples
     chunk_size = check_int("chunk_size", run.chunks(int(min(max(16, (1 << 20) // max(1, rays_per_vertex)), 16384))), 1)
     frames = mesh.frames() if sampling == "cosine" else None
@@ -402,34 +402,3 @@ def _store_albedo(total: torch.Tensor, mesh: Mesh, C: int, fold_albedo: bool | N
         V, _, n2 = total.shape
         return mesh.albedo.to(torch.float64)[:, :, None] * total.expand(V, 3, n2)
     return total[:, 0, :]
-
-
-def diffuse_radiance(transfer: Transfer | torch.Tensor, light: torch.Tensor, albedo: torch.Tensor | None = None) -> torch.Tensor:
-    """Exit radiance per vertex from diffuse transfer and an SH light (Sloan 2002: a dot product).
-
-    Args:
-        transfer: a diffuse ``Transfer`` (its mesh albedo is applied when not folded) or data
-            ``[V,n²]`` / ``[V,3,n²]``.
-        light: ``[C, n²]`` SH radiance coefficients (C = 1 or 3), or ``[n²]``.
-        albedo: ``[V,3]`` to multiply ``[V,n²]`` data by (default: from the Transfer when unfolded).
-    Returns:
-        ``[V, C']`` float64 with C' = 3 when colour comes from the albedo or light, else C.
-    """
-    if isinstance(transfer, Transfer):
-        data = transfer.data
-        if albedo is None and not transfer.meta.get("albedo_folded", data.ndim == 3):
-            albedo = transfer.mesh.albedo
-    else:
-        data = transfer
-    L = light.to(torch.float64)
-    if L.ndim == 1:
-        L = L[None]
-    d = data.to(torch.float64)
-    if d.shape[-1] != L.shape[-1]:
-        raise ValueError(f"transfer has {d.shape[-1]} coefficients but light has {L.shape[-1]}; accepted: equal counts")
-    if d.ndim == 3:
-        return torch.einsum("vck,ck->vc", d, L.expand(d.shape[1], -1) if L.shape[0] == 1 else L)
-    out = d @ L.T  # [V,C]
-    if albedo is not None:
-        out = out * albedo.to(torch.float64)
-    return out

@@ -30,14 +30,14 @@ import dataclasses
 import math
 import os
 import time
-from typing import Any, Callable
+from typing import Any
 
 import torch
 
-from .._checks import check_choice, check_float, check_int, describe
+from .._checks import check_choice, check_int, describe
 from ..brdf import BRDF, AshikhminShirley, brdf_matrices, output_index
 from ..scene import Mesh, RayCaster, default_workers
-from ..sh import MAX_BANDS, eval_sh, rotation_blocks
+from ..sh import eval_sh, rotation_blocks
 from .base import RunOptions, Transfer
 from .sampling import uniform_sphere
 

@@ -21,7 +21,7 @@ from typing import Any, Callable
 
 from ..brdf import from_spec as brdf_from_spec
 from ..params import Boolean, Interval, Options, Predicate, describe_constraints, validate_params
-from .base import RunOptions, Transfer
+from .base import RunOptions
 from .diffuse import MAX_BOUNCES, MAX_DIFFUSE_BANDS, MAX_SAMPLES, precompute_diffuse
 from .glossy import MAX_GLOSSY_BANDS, precompute_glossy
 from .glossy import MAX_SAMPLES as MAX_GLOSSY_SAMPLES
@@ -173,7 +173,7 @@ _OPT_INT = [Interval(int, 1, None), None]
 _VERTICES = [Predicate(_is_index_list, "a list of vertex indices"), None]
 
 # options shared by several kinds (one flag each on the command line)
-_A = {a.param: a for a in (
+_SHARED_ARGS = {a.param: a for a in (
     Arg("--bands", "bands", "SH bands n of the lighting (n² coefficients)"),
     Arg("--samples", "samples", "Monte Carlo directions per vertex"),
     Arg("--bounces", "bounces", "interreflection bounces after the direct pass"),
@@ -191,7 +191,7 @@ _A = {a.param: a for a in (
 
 
 def _args(*names: str) -> tuple[Arg, ...]:
-    return tuple(_A[n] for n in names)
+    return tuple(_SHARED_ARGS[n] for n in names)
 
 
 register_kind(TransferKind(
@@ -267,4 +267,3 @@ register_kind(TransferKind(
     ),
 ))
 
-del _A

@@ -41,7 +41,7 @@ from functools import lru_cache
 import numpy as np
 import torch
 
-from .._checks import check_int, check_shape, check_float_dtype
+from .._checks import check_int
 from ..sh import MAX_BANDS, eval_sh, hemisphere_gram
 
 __all__ = [
