@@ -5,6 +5,7 @@ process loading a saved codec; and bad input."""
 import inspect
 import json
 import math
+import pickle
 import re
 import subprocess
 import sys
@@ -139,6 +140,8 @@ def test_codecs_are_sklearn_estimators(name):
     c.set_params(strict=False, **{k: v for k, v in small.items() if k in c.get_params()})
     assert c.fit(X, matrix_shape=(4, 3)) is c and c.fitted_  # fit returns self
     assert c.score(X) == pytest.approx(-c.squared_error(X, c.encode(X)) / 120) and c.score(X) <= 0
+    pickled = pickle.loads(pickle.dumps(c))  # e.g. joblib workers; the training cache is dropped
+    assert type(pickled) is type(c) and pickled.score(X) == pytest.approx(c.score(X), rel=1e-4)
     fitted_clone = clone(c)  # a clone is unfitted, with the same parameters
     assert not getattr(fitted_clone, "fitted_", False) and fitted_clone.get_params() == c.get_params()
     if name.startswith("cpca_"):

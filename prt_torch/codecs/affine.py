@@ -61,6 +61,10 @@ class AffineCodec(Codec):
         "strict": [Boolean()],
     }
 
+    def __getstate__(self):
+        # the cached training encoding (a weak reference to the training X) is not state
+        return {k: v for k, v in super().__getstate__().items() if k != "_train"}
+
     # ----------------------------------------------------------------- fit
     def _check_data(self, P: int, D: int, matrix_shape) -> None:
         pass
@@ -68,11 +72,7 @@ class AffineCodec(Codec):
     def _fit_model(self, Xc: torch.Tensor, w: torch.Tensor | None, gen: torch.Generator) -> dict:
         raise NotImplementedError
 
-    def _is_centered(self) -> bool:
-        return bool(self.params.get("center", self.centered))
-
-    def _fit_dtype(self, P: int, D: int) -> torch.dtype:
-        choice = self.params.get("fit_dtype", "auto")
+    def _fit_dtype(self, P: int, D: int, choice: str) -> torch.dtype:
         if choice == "float64" or (choice == "auto" and P * D <= 2**23):
             return torch.float64
         return torch.float32
@@ -82,15 +82,15 @@ class AffineCodec(Codec):
         [P]`` ≥ 0 (by keyword) and ``matrix_shape=(n_out, n_in)``; ``y`` is ignored
         (scikit-learn convention). Parameters are validated first (``_parameter_constraints``,
         then ``_check_params``); all parameter/data checks happen before any work. Returns self."""
-        self._validate()
+        p = self._validate()
         X_in, X = X, check_signal("X", X)
         P, D = X.shape
         w = check_weights(weights, P)
         ms = check_matrix_shape(matrix_shape, D)
         self._check_data(P, D, ms)
         t0 = time.perf_counter()
-        dtype = self._fit_dtype(P, D)
-        centred = self._is_centered()
+        dtype = self._fit_dtype(P, D, p.get("fit_dtype", "auto"))
+        centred = bool(p.get("center", self.centered))
         if centred:
             offset = (X.double() * (w[:, None] if w is not None else 1.0)).sum(0) / (float(w.sum()) if w is not None else P)
         else:
@@ -100,7 +100,7 @@ class AffineCodec(Codec):
         for i in range(0, P, step):  # chunks bound the float64 temporary
             Xc[i:i + step] = (X[i:i + step].double() - offset).to(dtype)
         w64 = None if w is None else w.double()
-        gen = torch.Generator().manual_seed(int(self.params.get("seed", 0)))
+        gen = torch.Generator().manual_seed(int(p.get("seed", 0)))
         res = self._fit_model(Xc, w64, gen)
         labels = res["labels"].long()
         K = int(res["basis"].shape[0])

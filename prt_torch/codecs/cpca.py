@@ -255,8 +255,9 @@ class VQ(_VQMixin, AffineCodec):
         self.strict = strict
 
     def _check_data(self, P, D, ms):
-        if self.params["clusters"] > P:
-            raise ValueError(f"clusters={self.params['clusters']} exceeds the number of points P={P}; accepted: 1..{P}")
+        K = self.params["clusters"]
+        if K > P:
+            raise ValueError(f"clusters={K} exceeds the number of points P={P}; accepted: 1..{P}")
 
     def _fit_model(self, Xc, w, gen):
         K = self.params["clusters"]
@@ -297,19 +298,21 @@ class PCA(AffineCodec):
         self.strict = strict
 
     def _check_data(self, P, D, ms):
-        n = self.params["vectors"]
-        hi = D if not self.params["center"] else D - 1
+        p = self.params
+        n = p["vectors"]
+        hi = D if not p["center"] else D - 1
         if n > hi:
-            raise ValueError(f"vectors={n} must be < D={D} (n' < n, Sloan 2003 §3.3)" if self.params["center"]
+            raise ValueError(f"vectors={n} must be < D={D} (n' < n, Sloan 2003 §3.3)" if p["center"]
                              else f"vectors={n} exceeds D={D}; accepted: 0..{D}")
 
     def _fit_model(self, Xc, w, gen):
         P, D = Xc.shape
-        n = self.params["vectors"]
-        solver = _resolve_solver(self.params["solver"], 1, D, 4e8)
-        work = _Work(Xc, w, 1, centred=self.params["center"])
+        p = self.params
+        n = p["vectors"]
+        solver = _resolve_solver(p["solver"], 1, D, 4e8)
+        work = _Work(Xc, w, 1, centred=p["center"])
         work.set_labels(torch.zeros(P, dtype=torch.long))
-        st = work.refit(n, solver, gen, oversample=self.params["oversample"], power_iters=self.params["power_iters"])
+        st = work.refit(n, solver, gen, oversample=p["oversample"], power_iters=p["power_iters"])
         means = st["means"]
         return {"labels": work.labels, "means": means, "basis": st["basis"], "n_vectors": st["n_vectors"],
                 "info": {"solver": solver, "eigenvalues": st["evals"][0].tolist(), "se_model": st["se"],
