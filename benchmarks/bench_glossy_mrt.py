@@ -1,4 +1,4 @@
-"""Benchmark: glossy / MRT precompute and uncompressed relighting (issue 5).
+"""Benchmark: glossy / MRT precompute and uncompressed relighting.
 
 1. Precompute time and peak memory for glossy 25×25 (n = m = 5, least squares) and MRT 11×11
    (n = 5, m = 8) on the ~50k-vertex built-in ``bumpy_sphere:large`` with an anisotropic
@@ -248,7 +248,7 @@ def _gib(b):
 
 
 def render_md(r: dict) -> str:
-    L = ["# Glossy / MRT precompute and uncompressed relighting (issue 5)", ""]
+    L = ["# Glossy / MRT precompute and uncompressed relighting", ""]
     L.append(f"Machine: {r['threads']} torch threads, CPU; torch {r['torch']}. Reproduce: "
              "`.venv/bin/python benchmarks/bench_glossy_mrt.py` (add `--full` to precompute all vertices).")
     L.append("")

@@ -242,6 +242,6 @@ def parse_assignments(items: str | Iterable[str], what: str = "parameter", sep: 
             continue
         key, eq, val = it.partition("=")
         if not eq or not key.strip():
-            raise ValueError(f"{what} {it!r}; accepted: NAME=VALUE (e.g. vectors=8)")
+            raise ValueError(f"{what} {it!r}; accepted: key=value items (e.g. vectors=8)")
         out[key.strip()] = parse_value(val)
     return out

@@ -8,7 +8,6 @@ reference | codec | relative-error heat map side by side.
 """
 from __future__ import annotations
 
-import math
 import sys
 from pathlib import Path
 
@@ -51,11 +50,9 @@ def register(subparsers) -> None:
 
 
 def _bands(transfer) -> int:
-    n2 = int(transfer.data.shape[-1])
-    b = int(round(math.sqrt(n2)))
-    if b * b != n2:
-        raise ValueError(f"transfer data has {n2} coefficients per vertex; accepted: a square number (bands²)")
-    return int(transfer.meta.get("bands", b))
+    from ..sh import band_of_coeffs
+
+    return int(transfer.meta.get("bands", band_of_coeffs(int(transfer.data.shape[-1]), "transfer coefficients per vertex")))
 
 
 def _decode_codec_file(path: str, transfer):

@@ -21,6 +21,7 @@ from typing import Any
 
 import torch
 
+from ..params import parse_assignments
 from . import analytic
 from .builtin import BUILTIN_SIZE, builtin_environment, list_builtin_environments
 from .environment import Environment, expand_window, load_environment, window_factors
@@ -36,26 +37,19 @@ ANALYTIC_KINDS = {
 }
 
 
-def _value(text: str) -> Any:
-    parts = [p for p in text.split(",") if p.strip()]
-    try:
-        vals = [float(p) for p in parts]
-    except ValueError:
-        raise ValueError(f"light spec value {text!r}; accepted: a number or comma-separated numbers") from None
-    return vals[0] if len(vals) == 1 else vals
-
-
 def parse_light_spec(spec: str) -> dict | None:
-    """'kind:key=value;...' -> {'type': kind, key: value, ...}; None if ``spec`` is no analytic kind."""
+    """'kind:key=value;...' -> {'type': kind, key: value, ...} (values by
+    :func:`prt_torch.params.parse_value`: numbers, ``x,y,z`` lists); None if ``spec`` is no
+    analytic kind."""
     kind, _, rest = spec.partition(":")
     if kind not in ANALYTIC_KINDS:
         return None
     out: dict = {"type": kind}
-    for item in filter(None, (s.strip() for s in rest.split(";"))):
-        key, eq, val = item.partition("=")
-        if not eq:
-            raise ValueError(f"light spec {spec!r}: item {item!r}; accepted: key=value items separated by ';'")
-        out[key.strip()] = _value(val)
+    out.update(parse_assignments(rest, what=f"light spec {spec!r}: item", sep=";"))
+    for k, v in out.items():
+        if k != "type" and not (isinstance(v, (int, float)) and not isinstance(v, bool)
+                                or isinstance(v, list) and all(isinstance(x, (int, float)) for x in v)):
+            raise ValueError(f"light spec {spec!r}: {k}={v!r}; accepted: a number or comma-separated numbers")
     return out
 
 
