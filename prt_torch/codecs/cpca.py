@@ -112,7 +112,6 @@ class _Work:
         self.labels = labels
         lay = tile_layout(labels, self.K, self.T)
         self.layout, self.tc, self.counts = lay, lay.tile_cluster, lay.counts
-        NT = lay.NT
         self.Xt = to_tiles(lay, self.X, out=self._raw)
         ones = torch.ones(self.P, dtype=self.dt) if self.sw is None else self.sw
         self.swt = to_tiles(lay, ones)  # [NT, T]; zero on padding rows

@@ -143,7 +143,7 @@ def lloyd(X: torch.Tensor, C0: torch.Tensor, max_iter: int, tol: float, w: torch
     Returns dict: ``centers [K, D] float64``, ``labels int64 [P]``, ``d2 [P]`` (X dtype),
     ``inertia`` (Σ w d2, float64), ``n_iter``, ``converged``, ``repaired`` (total moves).
     """
-    K, P = C0.shape[0], X.shape[0]
+    K = C0.shape[0]
     if xx is None:
         xx = X.square().sum(1)
     wd = None if w is None else w.double()
