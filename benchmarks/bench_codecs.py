@@ -1,4 +1,4 @@
-"""Codec benchmarks (issue 6), every figure a ratio against a peer or bound measured in this run.
+"""Codec benchmarks, every figure a ratio against a peer or bound measured in this run.
 
 1. Encode time of iterative CPCA (Sloan 2003 §4.2), 256 clusters, n' = 8:
    * on a 50 000 × 625 float32 synthetic transfer-like signal (``codecs.synthetic.transfer_like``:
@@ -323,7 +323,7 @@ def _f(v, nd=3):
 
 def report(r: dict) -> str:
     m = r["machine"]
-    L = ["# Codec benchmarks (issue 6)", "",
+    L = ["# Codec benchmarks", "",
          f"Machine: {m.get('cpu')}, {m.get('cores')} cores, torch threads {m.get('torch_threads')}, "
          f"OMP_WAIT_POLICY={r.get('omp_wait_policy')}; load average before {tuple(round(x, 2) for x in r['load_average_before'])}, "
          f"after {tuple(round(x, 2) for x in r['load_average_after'])} (other jobs share this machine; "
@@ -350,7 +350,8 @@ def report(r: dict) -> str:
               f"Iterative CPCA: **{it['seconds']:.0f} s** (goal < 120 s); the paper's iterative encodes took 1–4.5 h: "
               f"**{e['paper_over_ours'][0]:.0f}–{e['paper_over_ours'][1]:.0f}× faster** (different hardware, 2003 vs today). "
               f"Stages (vectors: SE, rounds): " + ", ".join(f"{s['vectors']}: {_f(s['se'])} ({s['rounds']})" for s in it["stages"])
-              + (". The incremental path ended above the static fit, so it continued from the static one." if it["restarted_from_static"] else "."), ""]
+              + (". The incremental path ended above the static fit, so it continued from the static one."
+                 if it["restarted_from_static"] else "."), ""]
         if "ratios" in e:
             q, s = e["ratios"], e["sklearn"]
             L += ["Against scikit-learn on the same data. ratio: times are scikit-learn / ours (> 1: ours faster); "
@@ -358,12 +359,15 @@ def report(r: dict) -> str:
                   "Lloyd from k-means++ seeds; their static-PCA errors differ by tens of percent from seed to seed "
                   "(the iterative fit removes most of that sensitivity).", "",
                   "| comparison | scikit-learn | ours | ratio |", "|---|---|---|---|",
-                  f"| VQ time (KMeans k-means++, 20 Lloyd iterations) | {s['kmeans_s']:.1f} s | {e['vq']['seconds']:.1f} s | {q['vq_time_sklearn_over_ours']:.2f}× |",
+                  f"| VQ time (KMeans k-means++, 20 Lloyd iterations) | {s['kmeans_s']:.1f} s | {e['vq']['seconds']:.1f} s "
+                  f"| {q['vq_time_sklearn_over_ours']:.2f}× |",
                   f"| VQ inertia | {_f(s['kmeans_inertia'])} | {_f(e['vq']['inertia'])} | {q['vq_inertia_ours_over_sklearn']:.4f} |",
-                  f"| static CPCA time (KMeans + per-cluster PCA) | {s['static_s']:.1f} s | {e['static']['seconds']:.1f} s | {q['static_time_sklearn_over_ours']:.2f}× |",
+                  f"| static CPCA time (KMeans + per-cluster PCA) | {s['static_s']:.1f} s | {e['static']['seconds']:.1f} s "
+                  f"| {q['static_time_sklearn_over_ours']:.2f}× |",
                   f"| static CPCA SE | {_f(s['static_se'])} | {_f(e['static']['se'])} | {q['static_se_ours_over_sklearn']:.4f} |",
                   f"| PCA time (full SVD) | {s['pca_full_s']:.2f} s | {e['pca']['seconds']:.2f} s | {q['pca_time_sklearn_full_over_ours']:.2f}× |",
-                  f"| PCA time (randomized) | {s['pca_randomized_s']:.2f} s | {e['pca']['seconds']:.2f} s | {q['pca_time_sklearn_randomized_over_ours']:.2f}× |",
+                  f"| PCA time (randomized) | {s['pca_randomized_s']:.2f} s | {e['pca']['seconds']:.2f} s "
+                  f"| {q['pca_time_sklearn_randomized_over_ours']:.2f}× |",
                   f"| PCA eigenvalues, max relative difference | | | {q['pca_eigenvalue_max_rel_diff']:.1e} |",
                   f"| iterative SE / static SE | | | {q['iterative_se_over_static_se']:.4f} |", ""]
     rd = r["rate_distortion"]
@@ -389,7 +393,8 @@ def report(r: dict) -> str:
           "(1 = at the memory-bandwidth bound). Uncompressed: relighting the float32 transfer directly.", "",
           "A second bound adds writing the output once (a `fill_` of the output's bytes): without a view the output "
           "(n_out×3 floats per vertex) is larger than the codes, so writing it dominates.", "",
-          "| codec | view | relight (ms) | Mvert/s | bytes read | bytes written | read bound (ms) | relight / read bound | read+write bound (ms) | relight / r+w bound | vs uncompressed |",
+          "| codec | view | relight (ms) | Mvert/s | bytes read | bytes written | read bound (ms) | relight / read bound "
+          "| read+write bound (ms) | relight / r+w bound | vs uncompressed |",
           "|---|---|---|---|---|---|---|---|---|---|---|"]
     for x in rl["rows"]:
         L.append(f"| {x['codec']} | {x['view']} | {1e3 * x['relight_s']:.2f} (±{x['spread']:.0%}) | {x['vertices_per_s'] / 1e6:.1f} | "

@@ -28,6 +28,7 @@ from typing import Any
 
 import torch
 
+from .. import io
 from ..params import Boolean, Interval, Options
 from .base import (Codec, Encoded, check_light, check_matrix_shape, check_signal, check_view, check_weights)
 from .kmeans import row_chunk
@@ -378,7 +379,7 @@ class AffineCodec(Codec):
             tensors["means"] = self.means_.contiguous()
         meta = {"clusters": self.K_, "dim": self.D_, "centered": self.means_ is not None,
                 "matrix_shape": list(self.matrix_shape_) if self.matrix_shape_ else None,
-                "fit_info": _jsonable(getattr(self, "fit_info_", {}))}
+                "fit_info": io.jsonable(getattr(self, "fit_info_", {}))}
         return tensors, meta
 
     def _set_state(self, tensors, meta):
@@ -463,7 +464,3 @@ def _total_energy(Xc: torch.Tensor, w, centred: bool) -> float:
 def _key(X: torch.Tensor) -> tuple:
     return (X.data_ptr(), tuple(X.shape), X.dtype, X._version, tuple(X.stride()))
 
-
-def _jsonable(obj):
-    import json
-    return json.loads(json.dumps(obj, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))
