@@ -67,6 +67,12 @@ def test_overrides_and_sweep_expansion(tmp_path):
         ("transfer.type=spectral", "transfer.type"),
         ("transfer.type=transport", "transfer.type"),  # not relightable by the harness
         ("lights.1={type: spotlight}", "lights.1"),
+        ("views.count=0", "views.count"),
+        ("render.width=0", "render.width"),
+        ("scene.size=huge", "scene.size"),
+        ("metrics.max_memory_gb=-1", "max_memory_gb"),
+        ("target.lo=70", "lo=70 > hi"),
+        ("target.metric=speed", "target.metric"),
         ("scene.name=/no/such/mesh.obj", "scene.name"),
         ("codecs.5.vectors=1", "not a valid index"),
         ("nonsense", "key.path=value"),

@@ -41,7 +41,7 @@ from typing import Any
 
 import yaml
 
-from ..params import parse_value
+from ..params import Boolean, Interval, Options, Predicate, check_param, parse_value
 
 __all__ = ["DEFAULTS", "load_config", "apply_override", "expand_runs", "expand_codecs", "validate", "resolve_config_path", "config_hash"]
 
@@ -166,20 +166,50 @@ def apply_override(cfg: dict, text: str) -> dict:
     return cfg
 
 
-def _check_type(key: str, value: Any, default: Any) -> None:
-    if default is None or value is None:
-        return
-    kinds = {bool: (bool,), int: (int,), float: (int, float), str: (str,)}
-    want = kinds.get(type(default))
-    if want is None:
-        return
-    vals = value if isinstance(value, list) else [value]
+def _is_albedo(v: Any) -> bool:
+    vals = v if isinstance(v, list) else [v]
+    return len(vals) in (1, 3) and all(isinstance(x, (int, float)) and not isinstance(x, bool) and 0 <= x <= 1 for x in vals)
+
+
+#: Accepted values of every scalar schema key (the prt_torch.params vocabulary, as codecs and
+#: transfer kinds declare theirs). A list of accepted values at these keys is a sweep.
+CONSTRAINTS: dict[str, list] = {
+    "name": [Predicate(lambda v: isinstance(v, str) and v and "/" not in v, "a run name (no '/')")],
+    "seed": [Interval(int, 0, None)],
+    "scene.name": [Predicate(lambda v: isinstance(v, str) and v, "a built-in scene name or a mesh file path")],
+    "scene.size": [Options("small", "medium", "large")],
+    "scene.up": [Options("z", "-z", "y", "-y", "x", "-x")],
+    "scene.albedo": [Predicate(_is_albedo, "a reflectance in [0, 1] or [r, g, b]"), None],
+    "views.count": [Interval(int, 1, 360)],
+    "views.elevation": [Interval(float, -90, 90)],
+    "views.azimuth0": [Interval(float, -360, 360)],
+    "metrics.random_lights": [Interval(int, 1, None)],
+    "metrics.repeats": [Interval(int, 1, None)],
+    "metrics.warmup": [Interval(int, 0, None)],
+    "metrics.max_memory_gb": [Interval(float, 0, None, closed="neither")],
+    "render.enabled": [Boolean()],
+    "render.width": [Interval(int, 1, 8192)],
+    "render.height": [Interval(int, 1, 8192)],
+    "target.psnr": [Interval(float, 0, 1000, closed="neither"), None],
+    "target.codec": [Predicate(lambda v: isinstance(v, str), "a codec name"), None],
+    "target.param": [Predicate(lambda v: isinstance(v, str), "an integer size parameter of the codec"), None],
+    "target.lo": [Interval(int, 0, None)],
+    "target.hi": [Interval(int, 1, None)],
+    "target.metric": [Options("psnr_lights_db", "psnr_lights_min_db", "psnr_random_db", "psnr_random_closed_form_db")],
+    "cache_dir": [Predicate(lambda v: isinstance(v, str) and v, "a directory path")],
+    "output_dir": [Predicate(lambda v: isinstance(v, str) and v, "a directory path")],
+}
+
+
+def _check_value(key: str, value: Any) -> None:
+    """``value`` (or each value of a sweep list) against ``CONSTRAINTS[key]``."""
+    cons = CONSTRAINTS[key]
+    vals = value if isinstance(value, list) and not any(c is not None and c.accepts(value) for c in cons) else [value]
     for v in vals:
-        if isinstance(v, bool) and type(default) is not bool:
-            raise ValueError(f"config key {key!r} = {v!r}: expected {type(default).__name__}")
-        if not isinstance(v, want):
-            raise ValueError(f"config key {key!r} = {v!r}: expected {type(default).__name__}"
-                             + (" (or a list of them, a sweep)" if key not in LIST_KEYS else ""))
+        try:
+            check_param(key, v, cons, where="config key")
+        except TypeError as e:  # a config value of the wrong type is a bad value of the config
+            raise ValueError(str(e)) from None
 
 
 def _renamed(entry: Any, where: str) -> None:
@@ -228,13 +258,15 @@ def validate(cfg: dict) -> None:
             if isinstance(d, dict) and key not in FREE_KEYS:
                 walk(node[k], d, key + ".")
             elif key not in LIST_KEYS and key not in FREE_KEYS:
-                _check_type(key, node[k], d)
+                _check_value(key, node[k])
 
     walk(cfg, DEFAULTS, "")
     _validate_transfer(cfg)
     _validate_lights(cfg["lights"])
     _validate_codecs(cfg["codecs"])
     t = cfg["target"]
+    if t["lo"] > t["hi"]:
+        raise ValueError(f"config key 'target': lo={t['lo']} > hi={t['hi']}; accepted: lo <= hi")
     if t.get("psnr") is not None:
         if not t.get("codec") or not t.get("param"):
             raise ValueError("config key 'target': a psnr target needs 'codec' and 'param' (the size parameter to search)")
