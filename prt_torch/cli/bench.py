@@ -8,10 +8,11 @@ def register(sub) -> None:
     p = sub.add_parser(
         "bench",
         help="run a benchmark config: transfer, every codec setting, PSNR/fps tables, plots, renders",
-        description="Run a benchmark config (default: configs/default.yaml). Overrides are dotted "
+        description="Run a benchmark config (default: the packaged 'default'; also 'glossy', 'diffuse', or a YAML path). "
+        "Outputs go to cache/ and reports/ under the current directory. Overrides are dotted "
         "key=value pairs parsed as YAML, e.g. transfer.bands=3 'codecs.0.vectors=[2,4]'. Lists expand into sweeps.",
     )
-    p.add_argument("config", nargs="?", default=None, help="config name in configs/ or a YAML path (default: default)")
+    p.add_argument("config", nargs="?", default=None, help="a packaged config name (default, glossy, diffuse) or a YAML path (default: default)")
     p.add_argument("overrides", nargs="*", help="key.path=value overrides")
     p.add_argument("--target-psnr", type=float, default=None, help="find the smallest setting of --target-codec meeting this PSNR (dB)")
     p.add_argument("--target-codec", default=None, help="codec for --target-psnr (default: the config's target.codec)")

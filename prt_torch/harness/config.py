@@ -1,6 +1,7 @@
-"""Benchmark configs: YAML files in configs/, command-line overrides, sweeps, validation.
+"""Benchmark configs: YAML files (shipped ones in prt_torch/configs/), command-line overrides,
+sweeps, validation.
 
-A config is a nested mapping (see configs/default.yaml, documented in docs/harness.md)::
+A config is a nested mapping (see prt_torch/configs/default.yaml, documented in docs/harness.md)::
 
     name: default                 # run name -> reports/<name>/
     seed: 0

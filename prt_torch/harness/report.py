@@ -154,7 +154,7 @@ def plot_results(results_list: list[dict], out_dir: Path, labels: list[str] | No
 
 
 def _config_arg(r: dict) -> str:
-    """How a user names this run's config: a configs/ name, else the file path."""
+    """How a user names this run's config: a packaged config's name, else the file path."""
     src = r.get("config_source")
     if not src:
         return r["name"]

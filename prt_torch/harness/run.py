@@ -187,25 +187,41 @@ def _load_records(rec_dir: Path) -> dict[str, dict]:
     return out
 
 
-def run_benchmark(cfg: dict, resume: bool = True, progress: bool = True, log: Callable[[str], None] = print) -> Path:
-    """Run one benchmark config end to end; returns the run directory reports/<name>/."""
-    from ..lighting import load_light
+def load_mesh_within_budget(cfg: dict):
+    """The config's scene, after checking the run's estimated peak memory against
+    ``metrics.max_memory_gb`` (refused before any precompute). Returns (mesh, estimate)."""
     from ..scene import load_scene
 
-    cfg = copy.deepcopy(cfg)
-    run_dir = Path(cfg["output_dir"]) / cfg["name"]
-    rec_dir = run_dir / "records"
     sc = cfg["scene"]
     mesh = load_scene(sc["name"], size=sc["size"], up=sc["up"], albedo=sc["albedo"])
     mem = estimate_memory(cfg, mesh.num_vertices)
-    limit = float(cfg["metrics"]["max_memory_gb"]) * 2**30
-    if mem["estimated_peak_bytes"] > limit:
+    if mem["estimated_peak_bytes"] > float(cfg["metrics"]["max_memory_gb"]) * 2**30:
         raise ValueError(
             f"this config needs an estimated {mem['estimated_peak_bytes'] / 2**30:.1f} GiB "
             f"(signal {mem['signal_bytes'] / 2**30:.2f} GiB for {mesh.num_vertices} vertices × D={mem['D']}, codec workspace "
             f"{mem['codec_workspace_bytes'] / 2**30:.2f} GiB) > metrics.max_memory_gb={cfg['metrics']['max_memory_gb']}; "
             "accepted: a smaller scene, fewer bands or clusters, or a larger max_memory_gb"
         )
+    return mesh, mem
+
+
+def measure_uncompressed(ev: Evaluator, lights: list[torch.Tensor], views: list[Any], metrics: dict) -> tuple[dict, dict]:
+    """The reference radiance ``[V, C]`` for every (light, view) and the uncompressed peer's
+    throughput (relighting the first light and view through ``prt_torch.relight``)."""
+    refs = {(li, vi): ev.reference(L, v) for li, L in enumerate(lights) for vi, v in enumerate(views)}
+    t = measure(lambda: ev.reference(lights[0], views[0]), repeats=metrics["repeats"], warmup=metrics["warmup"])
+    return refs, {"relight_s": t.median, "relight_spread": t.spread, "vertices_per_s": t.rate(ev.V), "fps": 1.0 / t.median,
+                  "bytes_total": ev.raw_bytes, "bytes_per_vertex": ev.raw_bytes / ev.V}
+
+
+def run_benchmark(cfg: dict, resume: bool = True, progress: bool = True, log: Callable[[str], None] = print) -> Path:
+    """Run one benchmark config end to end; returns the run directory reports/<name>/."""
+    from ..lighting import load_light
+
+    cfg = copy.deepcopy(cfg)
+    run_dir = Path(cfg["output_dir"]) / cfg["name"]
+    rec_dir = run_dir / "records"
+    mesh, mem = load_mesh_within_budget(cfg)
     log(f"[bench] {cfg['name']}: scene {mesh.name} ({mesh.num_vertices} vertices), transfer {cfg['transfer']['type']}")
     tr, tinfo = compute_transfer(cfg, mesh, Path(cfg["cache_dir"]), progress=progress)
     log(f"[bench] transfer {tuple(tr.data.shape)} ({tinfo['cache']}, {tinfo['seconds']:.1f} s)")
@@ -215,10 +231,7 @@ def run_benchmark(cfg: dict, resume: bool = True, progress: bool = True, log: Ca
     radius = float((ev.points - center).norm(dim=-1).max())
     cams = camera_positions(center, radius, cfg["views"]["count"], cfg["views"]["elevation"], cfg["views"]["azimuth0"])
     views = [ev.view_weights(c) for c in cams] if ev.needs_view else [None]
-    ref_cache = {(li, vi): ev.reference(L, v) for li, L in enumerate(lights) for vi, v in enumerate(views)}
-    ref_t = measure(lambda: ev.reference(lights[0], views[0]), repeats=cfg["metrics"]["repeats"], warmup=cfg["metrics"]["warmup"])
-    uncompressed = {"relight_s": ref_t.median, "relight_spread": ref_t.spread, "vertices_per_s": ref_t.rate(ev.V),
-                    "fps": 1.0 / ref_t.median, "bytes_total": ev.raw_bytes, "bytes_per_vertex": ev.raw_bytes / ev.V}
+    ref_cache, uncompressed = measure_uncompressed(ev, lights, views, cfg["metrics"])
 
     settings = expand_codecs(cfg["codecs"])
     done = _load_records(rec_dir) if resume else {}
