@@ -68,6 +68,12 @@ def register(subparsers) -> None:
     g.add_argument("--memory-limit", type=float, default=None, help="GiB; refuse a run estimated above it (default 60%% of RAM)")
     g.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--debug", action="store_true", help="show tracebacks")
+    g = p.add_argument_group("automatic choices ('auto' for --bands, --bands-out, --tents)")
+    g.add_argument("--energy", type=float, default=None,
+                   help="fraction of the reflected energy an 'auto' choice keeps, in (0, 1] (default 0.99)")
+    g.add_argument("--light", action="append", default=None, metavar="SPEC",
+                   help="a light of the scene (built-in name, file or analytic spec), repeatable: 'auto' bands keep "
+                        "the energy of these lights through the BRDF lobe (default: a flat light spectrum)")
     g = p.add_argument_group("transfer parameters (default: the kind's)")
     for flag, (a, used_by) in _kind_args().items():
         defaults = {k: get_kind(k).defaults()[a.param] for k in used_by}
@@ -111,6 +117,8 @@ def params_from_args(kind: str, args: argparse.Namespace) -> dict:
             params[a.param] = spec
         else:
             params[a.param] = parse_value(v)
+    if getattr(args, "energy", None) is not None:
+        params["energy"] = args.energy
     return params
 
 
@@ -161,9 +169,16 @@ def run(args) -> int:
         _TableDir(table).save(out, overwrite=args.overwrite)
         print(f"prt precompute: wrote {out}/ kind={kind.name} ({table!r})", file=sys.stderr)
         return 0
-    tr = kind.precompute(mesh, params, run=opts)
+    lights = None
+    if args.light:
+        from ..lighting import load_light
+
+        lights = [load_light(spec, bands=32) for spec in args.light]
+    tr = kind.precompute(mesh, params, run=opts, lights=lights)
     tr.save(out, overwrite=args.overwrite)
     m = tr.meta
+    for k, d in m.get("auto", {}).items():
+        print(f"prt precompute: {k}={d['value']} keeps {d['energy_kept']:.4f} of the energy ({d['reason']})", file=sys.stderr)
     print(f"prt precompute: wrote {out} kind={tr.kind} data={tuple(tr.data.shape)} "
           f"({m.get('shadow_decision', '')}; bounces used {m.get('bounces_used', 0)}; "
           f"{m.get('rays_traced', 0)} rays in {m.get('seconds', 0):.1f} s)", file=sys.stderr)

@@ -162,6 +162,27 @@ def _config_arg(r: dict) -> str:
     return p.stem if p.parent.name == "configs" else str(p)
 
 
+def scene_required(results: dict) -> list[str]:
+    """Markdown lines: the precompute's automatic decisions (shadows traced or skipped, bounces
+    used, 'auto' parameters with the energy they keep) from ``results['transfer']['meta']``."""
+    m = results["transfer"].get("meta") or {}
+    items = []
+    if m.get("shadow_decision"):
+        items.append(f"shadows: {m['shadow_decision']}")
+    if "bounces_used" in m or m.get("bounce_decision"):
+        items.append(f"bounces: {m.get('bounces_used', 0)} used" + (f" ({m['bounce_decision']})" if m.get("bounce_decision") else ""))
+    elif "bounces" in m:
+        items.append(f"bounces: {m['bounces']}")
+    for k, d in (m.get("auto") or {}).items():
+        items.append(f"{k} = {d['value']} (auto): keeps {d['energy_kept']:.4f} of the energy, target {d['target']:g} — {d['reason']}")
+    for k in ("bands", "bands_out", "M"):
+        if k in m and k not in (m.get("auto") or {}):
+            items.append(f"{k} = {m[k]} (as configured)")
+    if not items:
+        return []
+    return ["## What the scene required", ""] + [f"- {x}" for x in items] + [""]
+
+
 def markdown(results: dict, figures: list[str], renders: list[str]) -> str:
     r = results
     m = r["machine"]
@@ -198,6 +219,7 @@ def markdown(results: dict, figures: list[str], renders: list[str]) -> str:
     pts = [(min(x["psnr_lights_db"], 1e9), x["fps"]) for x in r["records"]]
     front = [r["records"][i]["setting_id"] for i in pareto_front(pts)]
     lines += ["", f"Pareto front (PSNR vs fps): {', '.join(front)}.", ""]
+    lines += scene_required(r)
     t = r.get("target")
     if t:
         lines += ["## Smallest setting meeting the target", ""]

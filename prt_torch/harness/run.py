@@ -69,6 +69,9 @@ def estimate_memory(cfg: dict, num_vertices: int) -> dict:
 
     t = cfg["transfer"]
     p = {**get_kind(t["type"]).defaults(), **transfer_params(cfg)}
+    for k, worst in (("bands", 16), ("bands_out", 16), ("M", 24)):  # 'auto': bound by the largest choice
+        if p.get(k) == "auto":
+            p[k] = worst if t["type"] != "diffuse" else 32
     n2 = p["bands"] ** 2
     if t["type"] == "diffuse":
         D = n2 * 3
@@ -87,19 +90,30 @@ def estimate_memory(cfg: dict, num_vertices: int) -> dict:
 
 
 def compute_transfer(cfg: dict, mesh, cache_dir: Path, progress: bool = True) -> tuple[Transfer, dict]:
-    """Transfer for ``cfg`` on ``mesh``, from the cache if it is there. Returns (transfer, info)."""
+    """Transfer for ``cfg`` on ``mesh``, from the cache if it is there. Returns (transfer, info).
+
+    ``'auto'`` parameters are chosen from the config's lights (projected to 32 bands) and the
+    BRDF (``prt_torch.transfer.auto``); the choices are part of the cache key and land in
+    ``meta['auto']``."""
+    from ..lighting import load_light
     from ..transfer import RunOptions, get_kind
 
     kind = cfg["transfer"]["type"]
     params = transfer_params(cfg)
-    key = config_hash({"kind": kind, "params": params, "mesh": mesh.content_hash()})
+    lights = None
+    keyed: dict[str, Any] = {"kind": kind, "params": params, "mesh": mesh.content_hash()}
+    if "auto" in params.values():
+        lights = [load_light(spec, bands=32) for spec in cfg["lights"]]
+        _, decisions = get_kind(kind).resolve(params, lights)
+        keyed["auto"] = {k: d["value"] for k, d in decisions.items()}
+    key = config_hash(keyed)
     path = Path(cache_dir) / f"transfer-{kind}-{key}.prt"
     if path.is_file():
         t0 = time.perf_counter()
         tr = Transfer.load(path)
         return tr, {"cache": "hit", "path": str(path), "seconds": time.perf_counter() - t0, "key": key}
     t0 = time.perf_counter()
-    tr = get_kind(kind).precompute(mesh, params, run=RunOptions(progress=progress))
+    tr = get_kind(kind).precompute(mesh, params, run=RunOptions(progress=progress), lights=lights)
     secs = time.perf_counter() - t0
     tr.save(path, overwrite=True)
     return tr, {"cache": "miss", "path": str(path), "seconds": secs, "key": key}

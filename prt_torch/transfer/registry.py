@@ -21,6 +21,7 @@ from typing import Any, Callable
 
 from ..brdf import from_spec as brdf_from_spec
 from ..params import Boolean, Interval, Options, Predicate, describe_constraints, validate_params
+from .auto import AUTO, resolve_auto
 from .base import RunOptions
 from .diffuse import MAX_BOUNCES, MAX_DIFFUSE_BANDS, MAX_SAMPLES, precompute_diffuse
 from .glossy import MAX_GLOSSY_BANDS, precompute_glossy
@@ -75,31 +76,40 @@ class TransferKind:
         return {k: sig[k].default for k in self.constraints}
 
     def validate(self, params: dict[str, Any], where: str | None = None) -> dict[str, Any]:
-        """Check ``params`` (unknown names, types, ranges, typed objects); returns them
-        normalised. Raises ValueError/TypeError naming ``where`` (default: the kind)."""
+        """Check ``params`` (unknown names, types, ranges, typed objects, ``'auto'`` where a
+        rule exists, ``energy`` — the fraction an ``'auto'`` choice keeps, in (0, 1]); returns
+        them normalised. Raises ValueError/TypeError naming ``where`` (default: the kind)."""
         if not isinstance(params, dict):
             raise TypeError(f"{where or self.name}: parameters must be a mapping, got {type(params).__name__}")
-        return validate_params(self.constraints, params, where or f"transfer type {self.name!r}")
+        return validate_params({**self.constraints, "energy": _ENERGY}, params, where or f"transfer type {self.name!r}")
 
-    def resolve(self, params: dict[str, Any]) -> dict[str, Any]:
-        """Validated keyword arguments for the precompute: typed objects built (a BRDF spec
-        becomes a BRDF), pairs as tuples."""
+    def resolve(self, params: dict[str, Any], lights: list | None = None) -> tuple[dict[str, Any], dict[str, Any]]:
+        """Keyword arguments for the precompute and the automatic decisions: validated, typed
+        objects built (a BRDF spec becomes a BRDF), pairs as tuples, ``'auto'`` replaced by the
+        value :func:`prt_torch.transfer.auto.resolve_auto` chooses from ``lights`` (SH
+        ``[C, n²]`` tensors, the scene's lighting; None: a flat spectrum) and the BRDF."""
         p = self.validate(params)
         if p.get("brdf") is not None:
             p["brdf"] = brdf_from_spec(p["brdf"])
         if p.get("drop_out") is not None:
             p["drop_out"] = [tuple(d) for d in p["drop_out"]]
-        return p
+        max_bands = next((int(c.right) for c in self.constraints.get("bands", []) if isinstance(c, Interval)), 16)
+        brdf = p.get("brdf") or (None if self.name == "diffuse" else _default_brdf())
+        return resolve_auto(self.name, p, lights, brdf, max_bands)
 
-    def precompute(self, mesh, params: dict[str, Any], run: RunOptions | None = None, out=None):
-        """Run the precompute on ``mesh`` with ``params`` (validated and resolved here).
-        'directory' kinds write to ``out``; 'file' kinds return the :class:`Transfer`."""
-        kw = self.resolve(params)
+    def precompute(self, mesh, params: dict[str, Any], run: RunOptions | None = None, out=None, lights: list | None = None):
+        """Run the precompute on ``mesh`` with ``params`` (validated and resolved here, ``'auto'``
+        chosen from ``lights``; the decisions land in ``meta['auto']``). 'directory' kinds write
+        to ``out``; 'file' kinds return the :class:`Transfer`."""
+        kw, decisions = self.resolve(params, lights)
         if self.output == "directory":
             if out is None:
                 raise ValueError(f"transfer type {self.name!r} streams its tables to a directory; pass out=")
             return self.function(mesh, out, **kw, run=run)
-        return self.function(mesh, **kw, run=run)
+        tr = self.function(mesh, **kw, run=run)
+        if decisions:
+            tr.meta["auto"] = decisions
+        return tr
 
     def describe(self) -> dict[str, dict[str, Any]]:
         """``{param: {'default', 'accepted'}}`` for help texts and docs."""
@@ -165,6 +175,14 @@ def _is_directions(v: Any) -> bool:
 
 
 _SEED = [Interval(int, 0, None)]
+_AUTO = Options(AUTO)
+_ENERGY = [Interval(float, 0, 1, closed="right")]
+
+
+def _default_brdf():
+    from ..brdf import AshikhminShirley
+
+    return AshikhminShirley(40.0, 40.0, rs=0.05, rd=0.0)  # the glossy/MRT precompute default
 _SHADOWS = [Options("auto", "always", "never")]
 _BRDF = [Predicate(_is_brdf, "a BRDF model name or {type: MODEL, <param>: value} (models: lambertian, phong, "
                    "blinn_phong, ashikhmin_shirley, ward)"), None]
@@ -198,7 +216,7 @@ register_kind(TransferKind(
     name="diffuse", function=precompute_diffuse, doc="diffuse transfer vectors: unshadowed, shadowed, interreflected "
     "(Sloan 2002; course notes 2005)",
     constraints={
-        "bands": [Interval(int, 1, MAX_DIFFUSE_BANDS)], "samples": [Interval(int, 1, MAX_SAMPLES)],
+        "bands": [Interval(int, 1, MAX_DIFFUSE_BANDS), _AUTO], "samples": [Interval(int, 1, MAX_SAMPLES)],
         "bounces": [Interval(int, 0, MAX_BOUNCES)], "seed": _SEED, "sampling": [Options("uniform", "cosine")],
         "shadows": _SHADOWS, "fold_albedo": [Boolean(), None], "bounce_tol": [Interval(float, 0, 1, closed="left")],
         "probe_tol": [Interval(float, 0, 1, closed="left")],
@@ -222,7 +240,7 @@ register_kind(TransferKind(
     name="glossy", function=precompute_glossy, doc="glossy exit transfer M_p = B R_p T_p (Sloan 2003 §3.1) or "
     "transferred radiance T_p (Sloan 2002)",
     constraints={
-        "bands": [Interval(int, 1, MAX_GLOSSY_BANDS)], "bands_out": [Interval(int, 1, MAX_GLOSSY_BANDS), None],
+        "bands": [Interval(int, 1, MAX_GLOSSY_BANDS), _AUTO], "bands_out": [Interval(int, 1, MAX_GLOSSY_BANDS), _AUTO, None],
         "exit": [Boolean()], "projection": [Options("zero", "least_squares", "odd", "even")],
         "drop_out": [Predicate(_is_pairs, "a list of (l, m) pairs"), None], "rcond": [Interval(float, 0, None), None],
         **_GLOSSY_COMMON,
@@ -242,8 +260,8 @@ register_kind(TransferKind(
     name="mrt", function=precompute_mrt, doc="matrix radiance transfer A_p = G⁻¹ C B R_p T_p in an M×M tent basis "
     "(Lehtinen & Kautz 2003)",
     constraints={
-        "bands": [Interval(int, 1, MAX_GLOSSY_BANDS)], "bands_out": [Interval(int, 1, MAX_GLOSSY_BANDS)],
-        "M": [Interval(int, 2, MAX_TENTS)], **_GLOSSY_COMMON,
+        "bands": [Interval(int, 1, MAX_GLOSSY_BANDS), _AUTO], "bands_out": [Interval(int, 1, MAX_GLOSSY_BANDS), _AUTO],
+        "M": [Interval(int, 2, MAX_TENTS), _AUTO], **_GLOSSY_COMMON,
     },
     args=_args("bands", "bands_out", "brdf", "samples", "seed", "shadows", "bounces", "window", "window_width",
                "quad_bands") + (

@@ -1,0 +1,140 @@
+"""Model only what the scene requires: band count, exit bands and tent count chosen from the
+energy of the lights and of the BRDF's lobe (``bands: auto``, ``bands_out: auto``, ``M: auto``).
+
+Reflected radiance is the lighting filtered by the BRDF lobe: per band l its SH coefficients
+are ρ_l L_lm with ρ_l = Λ_l h_l the lobe's filter (Ramamoorthi 2002 eq. 4.11 for the clamped
+cosine, eq. 3.37 for Phong). The energy of band l of the result is therefore
+
+    E_l = ρ_l² Σ_m L_lm²                       (Ramamoorthi 2002 eq. 5.15–5.17)
+
+and the smallest band count n with Σ_{l<n} E_l ≥ f Σ_l E_l keeps a fraction f of it (3 bands keep
+99.3% of the irradiance of a flat spectrum; a Phong lobe of exponent s, ρ_l ≈ exp(-l²/2s), needs
+about √s bands). Lights come from the config (each normalised to unit energy, so every light
+counts equally); without lights the spectrum is flat (Σ_m L_lm² ∝ 2l+1) and only the lobe
+decides. A BRDF that is not a sum of radially symmetric lobes is represented by the Phong lobe
+of its equivalent exponent (``BRDF.sharpness``) plus its diffuse part; the reason says so.
+
+Tents (MRT): the smallest M whose M×M tent projection keeps a fraction f of the energy of exit
+radiance with ``bands_out`` bands: 1 − tr(E)/tr(A_m) ≥ f with E the projection error matrix of
+Lehtinen & Kautz 2003 eq. 10 and A_m the hemisphere Gram matrix (the expectation over random
+unit SH vectors, eq. 11).
+
+Every decision is returned with its reason; the harness and ``prt precompute`` store them in
+``Transfer.meta['auto']``.
+"""
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import torch
+
+from .._checks import check_float
+from ..brdf import BRDF, Lambertian
+from ..sh import band_factor, clamped_cosine, hemisphere_gram, phong
+from .tents import MAX_TENTS, error_matrix
+
+__all__ = ["AUTO", "DEFAULT_ENERGY", "lobe_filter", "light_spectrum", "choose_bands", "choose_tents", "resolve_auto"]
+
+AUTO = "auto"
+DEFAULT_ENERGY = 0.99
+#: bands over which spectra are evaluated (the lobe and light energy beyond it is neglected)
+SPECTRUM_BANDS = 32
+
+
+def lobe_filter(brdf: BRDF | None, bands: int = SPECTRUM_BANDS) -> tuple[torch.Tensor, str]:
+    """Per-band energy filter ρ_l² ``[bands]`` float64 of a BRDF's lobes (summed over lobes;
+    ``None`` = diffuse transfer, the clamped cosine) and a one-line reason."""
+    if brdf is None:
+        rho = clamped_cosine(bands) * band_factor(bands)
+        return rho ** 2, "diffuse: clamped-cosine filter A_l (Ramamoorthi 2002 eq. 4.11)"
+    try:
+        lobes = brdf.lobes(bands)
+        parts = [(band_factor(bands) * h.reshape(-1, bands)).pow(2).amax(0) for _, h in lobes]
+        return sum(parts), f"{brdf.name}: its radially symmetric lobes ({', '.join(a for a, _ in lobes)})"
+    except ValueError:
+        pass
+    if isinstance(brdf, Lambertian):  # pragma: no cover - Lambertian defines lobes()
+        return lobe_filter(None, bands)
+    s = float(brdf.sharpness)
+    spec = phong(s, bands) * band_factor(bands)
+    diff = clamped_cosine(bands) * band_factor(bands)
+    return spec ** 2 + diff ** 2 / math.pi ** 2, (f"{brdf.name}: Phong lobe of its equivalent exponent s={s:g} "
+                                                   "(Ramamoorthi 2002 eq. 3.37) plus a diffuse part")
+
+
+def light_spectrum(lights: list[torch.Tensor] | None, bands: int = SPECTRUM_BANDS) -> tuple[torch.Tensor, str]:
+    """Per-band light energy Σ_m L_lm² ``[bands]`` float64, each light ``[C, n²]`` normalised to
+    unit energy and summed; ``None``/empty: a flat spectrum (2l+1 per band)."""
+    if not lights:
+        return torch.arange(bands, dtype=torch.float64) * 2 + 1, "no lights given: flat light spectrum"
+    out = torch.zeros(bands, dtype=torch.float64)
+    for L in lights:
+        L = L.to(torch.float64).reshape(-1, L.shape[-1])
+        n = min(bands, math.isqrt(L.shape[-1]))
+        e = torch.stack([L[:, l * l:(l + 1) ** 2].pow(2).sum() for l in range(n)])  # a loop over bands
+        tot = float(e.sum())
+        if tot > 0:
+            out[:n] += e / tot
+    return out, f"{len(lights)} light(s), each normalised to unit energy"
+
+
+def choose_bands(energy: float, lobe: torch.Tensor, light: torch.Tensor, max_bands: int) -> tuple[int, float]:
+    """Smallest n ≤ ``max_bands`` with Σ_{l<n} E_l ≥ energy · Σ_l E_l, E_l = lobe_l · light_l.
+    Returns (n, fraction kept); n = max_bands (and its fraction) when even that is short."""
+    e = lobe[: light.numel()] * light[: lobe.numel()]
+    total = float(e.sum())
+    if total <= 0:
+        return 1, 1.0
+    cum = torch.cumsum(e, 0) / total
+    ok = torch.nonzero(cum >= energy - 1e-12).flatten()
+    n = int(ok[0]) + 1 if ok.numel() else e.numel()
+    n = min(n, max_bands)
+    return n, float(cum[n - 1])
+
+
+def choose_tents(bands_out: int, energy: float, max_tents: int = 24) -> tuple[int, float]:
+    """Smallest M in [2, max_tents] whose tent projection keeps ``energy`` of exit radiance with
+    ``bands_out`` bands: 1 − tr(E)/tr(A_m) (Lehtinen & Kautz 2003 eq. 10–11). Returns (M, kept)."""
+    total = float(torch.trace(hemisphere_gram(bands_out)))
+    kept = 0.0
+    for M in range(2, min(max_tents, MAX_TENTS) + 1):  # a short search, one small matrix each
+        kept = 1.0 - float(torch.trace(error_matrix(M, bands_out))) / total
+        if kept >= energy:
+            return M, kept
+    return min(max_tents, MAX_TENTS), kept
+
+
+def resolve_auto(kind: str, params: dict[str, Any], lights: list[torch.Tensor] | None, brdf: BRDF | None,
+                 max_bands: int) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Replace ``'auto'`` in ``params`` (bands, bands_out, M) by the chosen values.
+
+    ``params['energy']`` (default 0.99, in (0, 1]) is the fraction kept; it is removed from the
+    returned parameters. Returns (parameters for the precompute, decisions: per parameter
+    ``{'value', 'energy_kept', 'reason'}``)."""
+    p = dict(params)
+    energy = check_float("energy", p.pop("energy", DEFAULT_ENERGY), 0.0, 1.0, lo_open=True)
+    decisions: dict[str, Any] = {}
+    if not any(p.get(k) == AUTO for k in ("bands", "bands_out", "M")):
+        return p, decisions
+    lobe, lobe_why = lobe_filter(None if kind == "diffuse" else brdf)
+    light, light_why = light_spectrum(lights)
+    if p.get("bands") == AUTO:
+        n, kept = choose_bands(energy, lobe, light, max_bands)
+        p["bands"] = n
+        decisions["bands"] = {"value": n, "energy_kept": kept, "target": energy,
+                              "reason": f"smallest band count keeping {energy:g} of the reflected energy "
+                                        f"(lobe filter × light spectrum; {lobe_why}; {light_why})"}
+    if p.get("bands_out") == AUTO:
+        n, kept = choose_bands(energy, lobe, torch.arange(lobe.numel(), dtype=torch.float64) * 2 + 1, max_bands)
+        p["bands_out"] = n
+        decisions["bands_out"] = {"value": n, "energy_kept": kept, "target": energy,
+                                  "reason": f"smallest exit band count keeping {energy:g} of the BRDF lobe's energy ({lobe_why})"}
+    if p.get("M") == AUTO:
+        m = int(p.get("bands_out") or 8)
+        M, kept = choose_tents(m, energy)
+        p["M"] = M
+        decisions["M"] = {"value": M, "energy_kept": kept, "target": energy,
+                          "reason": f"smallest tent grid whose projection keeps {energy:g} of exit radiance with {m} bands "
+                                    "(Lehtinen & Kautz 2003 eq. 10-11)"}
+    return p, decisions
