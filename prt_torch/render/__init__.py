@@ -42,7 +42,19 @@ from .images import (  # noqa: E402
     to_display,
     tonemap,
 )
+from .glsl import (  # noqa: E402
+    AffineDecoder,
+    CPCADecoder,
+    MRTPCADecoder,
+    PCADecoder,
+    TransferDecoder,
+    VQDecoder,
+    codec_decoder,
+    codec_decoders,
+    register_codec_decoder,
+)
 from .program import Attribute, FloatBuffer, FloatTexture, GLProgram, ShaderProgram  # noqa: E402
+from .prt import GLSLCheck, PRTScene, check_codec_file, frame_rate, glsl_vs_cpu, psnr  # noqa: E402
 from .renderer import Renderer, default_renderer, render, render_radiance  # noqa: E402
 
 __all__ = [
@@ -53,4 +65,7 @@ __all__ = [
     "Attribute", "ShaderProgram", "GLProgram", "FloatTexture", "FloatBuffer",
     "error_map", "error_heatmap", "auto_exposure", "tonemap", "to_display", "srgb_encode", "srgb_decode",
     "save_png", "save_exr", "side_by_side",
+    "TransferDecoder", "AffineDecoder", "VQDecoder", "PCADecoder", "CPCADecoder", "MRTPCADecoder",
+    "register_codec_decoder", "codec_decoder", "codec_decoders",
+    "PRTScene", "glsl_vs_cpu", "GLSLCheck", "check_codec_file", "psnr", "frame_rate",
 ]

@@ -267,9 +267,11 @@ class Renderer:
                 prog.use()
                 for name, value in (uniforms or {}).items():
                     prog.set_uniform(name, value)
-                for unit, (name, table) in enumerate((tables or {}).items()):
-                    tex = FloatBuffer(table.data) if table.kind == "buffer" else FloatTexture(table.data)
-                    textures.append(tex)
+                # create every table first, then bind: creating one binds and unbinds it on the
+                # active unit, which would clear a table already bound there
+                for name, table in (tables or {}).items():
+                    textures.append(FloatBuffer(table.data) if table.kind == "buffer" else FloatTexture(table.data))
+                for unit, (name, tex) in enumerate(zip((tables or {}).keys(), textures)):
                     tex.bind(unit)
                     prog.set_uniform(name, unit)
                 if idx.size:

@@ -1,0 +1,397 @@
+"""GLSL decoders: precomputed radiance transfer evaluated in the vertex shader.
+
+Every decoder here computes, per vertex p, the exit radiance of one transfer kind from data
+uploaded unquantised (float attributes, int attributes, ``RGBA32F`` texture buffers, float
+uniforms — see :mod:`.program`), and writes it to the rasteriser as a varying (Gouraud). The
+CPU side computes only what a real-time engine computes per light (the light vector, and the
+per-cluster constants M_k·l of a codec) and per camera (the per-vertex view weights).
+
+Programs are generated from a few integers (rows, clusters, vectors, view mode) so that Python
+and GLSL cannot disagree; :func:`ShaderProgram` values are cached (equal specs share one
+compiled program in a :class:`~prt_torch.render.Renderer`).
+
+View modes (how the n_out outputs of a vertex become one RGB radiance):
+
+* ``'none'``     — vector signal (diffuse ``[V, n²]``): rgb = row 0 (× albedo).
+* ``'diagonal'`` — diffuse RGB transfer ``[V, 3, n²]``: channel c = channel c of row c.
+* ``'dense'``    — glossy exit transfer (Sloan 2003 §3.1): rgb = Σ_o y_{o}(v_p) row_o, the
+  per-vertex SH weights y(v_p) (zero below the horizon, ``relight.glossy_view_weights``) read
+  from a texture buffer ``[V·n_out]``.
+* ``'taps'``     — matrix radiance transfer (Lehtinen & Kautz 2003 eq. 13): rgb = Σ_{t<4}
+  g_t(v_p) row_{idx_t}, the four tent taps (``relight.mrt_view_taps``) as ``ivec4``/``vec4``
+  attributes.
+
+Rows:
+
+* :class:`TransferDecoder` (uncompressed): row_o = Σ_i T_p[o, i] l_i, the transfer read from a
+  texture buffer (RGBA32F, 4 coefficients a texel) and the light as a uniform array
+  (Sloan 2002 eq. (7) for diffuse; e_p = M_p l, Sloan 2003 §3.1; A_p l, MRT eq. 9).
+* :class:`AffineDecoder` and its per-family subclasses (VQ, PCA, CPCA, MRT-PCA; Sloan 2003
+  §6.2 eq. (3)–(4), MRT eq. 13): row_o = (M_k^0 l)_o + Σ_i w_p^i (M_k^i l)_o with k the
+  vertex's cluster (int attribute), w_p its PCA weights (``vec4`` attributes, or a texture
+  buffer when there are more than fit the attribute budget) and the per-cluster constants
+  M_k^i l computed per light on the CPU (``codec.cluster_constants``) into a float table
+  indexed by cluster id.
+
+Codec decoders are chosen by codec name (:func:`register_codec_decoder`,
+:func:`codec_decoder`): a new codec family (e.g. Green 2005's Gaussians) registers its own
+:class:`~prt_torch.render.decoders.Decoder` subclass with a ``from_codec`` constructor.
+"""
+from __future__ import annotations
+
+import functools
+from typing import Callable
+
+import numpy as np
+
+from .decoders import Decoder, DrawInputs, TableData
+from .program import Attribute, ShaderProgram
+
+__all__ = ["VIEW_MODES", "TransferDecoder", "AffineDecoder", "VQDecoder", "PCADecoder", "CPCADecoder",
+           "MRTPCADecoder", "register_codec_decoder", "codec_decoder", "codec_decoders", "transfer_program",
+           "affine_program", "MAX_WEIGHT_ATTRIBUTES"]
+
+VIEW_MODES = ("none", "diagonal", "dense", "taps")
+#: vec4 weight attributes at most (16 attribute slots on every GL 4 implementation: position,
+#: cluster, albedo, two tap attributes leave 11); more weights go through a texture buffer.
+MAX_WEIGHT_ATTRIBUTES = 11
+
+
+def _np(name: str, x, dtype) -> np.ndarray:
+    a = np.asarray(x.detach().cpu().numpy() if hasattr(x, "detach") else x)
+    if a.dtype.kind not in "fiub":
+        raise TypeError(f"{name} has dtype {a.dtype}; accepted: real numbers")
+    a = np.ascontiguousarray(a, dtype=dtype)
+    if a.dtype.kind == "f" and not np.isfinite(a).all():
+        raise ValueError(f"{name} has non-finite values; accepted: finite float32 values")
+    return a
+
+
+_FRAGMENT = """
+in vec3 v_radiance;
+void main() {
+    prt_color = vec4(v_radiance, 1.0);
+}
+"""
+
+
+def _view_glsl(mode: str, n_out: int) -> tuple[tuple[Attribute, ...], str, str]:
+    """Attributes, declarations and the body of ``vec3 view_sum()`` for a view mode."""
+    if mode == "none":
+        return (), "", "vec3 view_sum() { return row(0); }\n"
+    if mode == "diagonal":
+        return (), "", ("vec3 view_sum() {\n    return vec3(row(0).r, row(1).g, row(2).b);\n}\n")
+    if mode == "dense":
+        decl = "uniform samplerBuffer view_weights;  // R32F [V * N_OUT]: y_o(v_p), 0 below the horizon\n"
+        body = ("vec3 view_sum() {\n    vec3 s = vec3(0.0);\n    int base = gl_VertexID * N_OUT;\n"
+                "    for (int o = 0; o < N_OUT; ++o) {\n        float y = texelFetch(view_weights, base + o).r;\n"
+                "        if (y != 0.0) s += y * row(o);\n    }\n    return s;\n}\n")
+        return (), decl, body
+    if mode == "taps":
+        attrs = (Attribute("tap_idx", 4, "int"), Attribute("tap_w", 4))
+        body = ("vec3 view_sum() {  // Lehtinen & Kautz 2003 eq. 13: four tents nonzero at v_p\n"
+                "    vec3 s = vec3(0.0);\n    for (int t = 0; t < 4; ++t) {\n"
+                "        if (tap_w[t] != 0.0) s += tap_w[t] * row(tap_idx[t]);\n    }\n    return s;\n}\n")
+        return attrs, "", body
+    raise ValueError(f"view mode {mode!r}; accepted: {', '.join(VIEW_MODES)}")
+
+
+def _main() -> str:
+    return ("void main() {\n    prt_setup();\n    v_radiance = view_sum() * albedo;\n"
+            "    gl_Position = prt_mvp * vec4(position, 1.0);\n}\n")
+
+
+@functools.lru_cache(maxsize=None)
+def transfer_program(mode: str, rows: int, n_in: int) -> ShaderProgram:
+    """Uncompressed transfer decoded in the vertex shader.
+
+    Table ``transfer``: RGBA32F texture buffer ``[V · rows · N4]`` (N4 = ⌈n_in/4⌉ texels per
+    row, zero-padded); uniform ``vec4 light[3·N4]`` (channel c's SH vector at ``[c·N4 ..]``).
+    row_o = Σ_i T_p[o, i] l_{c,i} per channel c."""
+    n4 = -(-n_in // 4)
+    vattrs, vdecl, vbody = _view_glsl(mode, rows)
+    body = f"""
+uniform mat4 prt_mvp;
+uniform samplerBuffer transfer;  // RGBA32F [V * ROWS * N4]
+uniform vec4 light[{3 * n4}];       // [3 * N4]: r, g, b SH vectors, 4 coefficients a vec4
+{vdecl}const int ROWS = {rows};
+const int N_OUT = {rows};
+const int N4 = {n4};
+out vec3 v_radiance;
+void prt_setup() {{}}
+vec3 row(int o) {{  // (T_p l)_o per channel
+    int base = (gl_VertexID * ROWS + o) * N4;
+    vec3 s = vec3(0.0);
+    for (int q = 0; q < N4; ++q) {{
+        vec4 t = texelFetch(transfer, base + q);
+        s += vec3(dot(t, light[q]), dot(t, light[N4 + q]), dot(t, light[2 * N4 + q]));
+    }}
+    return s;
+}}
+{vbody}{_main()}"""
+    return ShaderProgram(name=f"prt_transfer_{mode}_{rows}x{n_in}", attributes=(Attribute("albedo", 3),) + vattrs,
+                         vertex_body=body, fragment_body=_FRAGMENT)
+
+
+@functools.lru_cache(maxsize=None)
+def affine_program(mode: str, n_out: int, J: int, centred: bool, n_weights: int, weights_in: str) -> ShaderProgram:
+    """Piecewise-affine codec (VQ / PCA / CPCA / MRT-PCA) decoded in the vertex shader.
+
+    Table ``consts``: RGBA32F texture buffer ``[K · J · n_out]`` of M_k^j l (rgb), J = n+1 with
+    the mean term (``centred``), n without; int attribute ``cluster``; the n PCA weights as
+    ``vec4`` attributes ``w0..`` (``weights_in='attributes'``) or an R32F texture buffer
+    ``weights [V · n]`` (``'buffer'``). row_o = Σ_j ŵ_j (M_k^j l)_o with ŵ = (1, w_p) or w_p."""
+    if weights_in not in ("attributes", "buffer"):
+        raise ValueError(f"weights_in={weights_in!r}; accepted: 'attributes' or 'buffer'")
+    vattrs, vdecl, vbody = _view_glsl(mode, n_out)
+    m4 = -(-n_weights // 4)
+    wattrs: tuple[Attribute, ...] = ()
+    if n_weights == 0:
+        wdecl, wsetup, wfun = "", "", "float weight(int i) { return 0.0; }\n"
+    elif weights_in == "attributes":
+        wattrs = tuple(Attribute(f"w{i}", 4) for i in range(m4))
+        wdecl = f"vec4 W[{m4}];\n"
+        wsetup = f"    W = vec4[{m4}]({', '.join(f'w{i}' for i in range(m4))});\n"
+        wfun = "float weight(int i) { return W[i >> 2][i & 3]; }\n"
+    else:
+        wdecl = "uniform samplerBuffer weights;  // R32F [V * N_W]\n"
+        wsetup = ""
+        wfun = "float weight(int i) { return texelFetch(weights, gl_VertexID * N_W + i).r; }\n"
+    first = 1 if centred else 0
+    body = f"""
+uniform mat4 prt_mvp;
+uniform samplerBuffer consts;  // RGBA32F [K * J * N_OUT]: rgb = M_k^j l (per light, CPU)
+{vdecl}const int N_OUT = {n_out};
+const int J = {J};
+const int N_W = {max(n_weights, 1)};
+const int FIRST = {first};        // 1: j = 0 is the mean term with weight 1
+{wdecl}out vec3 v_radiance;
+void prt_setup() {{
+{wsetup}}}
+{wfun}vec3 row(int o) {{  // Sloan 2003 eq. (4): (M_k^0 l)_o + sum_i w_p^i (M_k^i l)_o
+    int base = cluster * J * N_OUT + o;
+    vec3 s = vec3(0.0);
+    if (FIRST == 1) s = texelFetch(consts, base).rgb;
+    for (int j = FIRST; j < J; ++j) {{
+        float w = weight(j - FIRST);
+        if (w != 0.0) s += w * texelFetch(consts, base + j * N_OUT).rgb;
+    }}
+    return s;
+}}
+{vbody}{_main()}"""
+    attrs = (Attribute("cluster", 1, "int"), Attribute("albedo", 3)) + wattrs + vattrs
+    return ShaderProgram(name=f"prt_affine_{mode}_{n_out}_J{J}{'c' if centred else ''}_{weights_in}", attributes=attrs,
+                         vertex_body=body, fragment_body=_FRAGMENT)
+
+
+def _view_inputs(mode: str, view, V: int, n_out: int) -> tuple[dict, dict]:
+    """(attributes, tables) of a view: dense weights ``[V, n_out]`` or taps (idx, w) ``[V, k≤4]``."""
+    if mode in ("none", "diagonal"):
+        if view is not None:
+            raise ValueError(f"view mode {mode!r} takes no view; got {type(view).__name__}")
+        return {}, {}
+    if mode == "dense":
+        y = _np("view weights", view, np.float32)
+        if y.shape != (V, n_out):
+            raise ValueError(f"dense view weights have shape {y.shape}; accepted: [V, n_out] = [{V}, {n_out}]")
+        return {}, {"view_weights": TableData(y.reshape(-1), "buffer")}
+    if not (isinstance(view, (tuple, list)) and len(view) == 2):
+        raise TypeError("view mode 'taps' needs view = (idx int [V, k], w float [V, k]) with k ≤ 4")
+    idx = _np("tap indices", view[0], np.int64)
+    w = _np("tap weights", view[1], np.float32)
+    if idx.ndim != 2 or idx.shape[0] != V or w.shape != idx.shape or idx.shape[1] > 4:
+        raise ValueError(f"taps have shapes {idx.shape}, {w.shape}; accepted: [V, k] with V={V}, k ≤ 4")
+    if idx.size and (idx.min() < 0 or idx.max() >= n_out):
+        raise ValueError(f"tap indices span [{idx.min()}, {idx.max()}]; accepted: 0..{n_out - 1}")
+    pad = 4 - idx.shape[1]
+    idx4 = np.pad(idx, ((0, 0), (0, pad))).astype(np.int32)
+    w4 = np.pad(w, ((0, 0), (0, pad))).astype(np.float32)
+    return {"tap_idx": idx4, "tap_w": w4}, {}
+
+
+def _albedo(albedo, V: int) -> np.ndarray:
+    if albedo is None:
+        return np.ones((V, 3), np.float32)
+    a = _np("albedo", albedo, np.float32)
+    a = a[:, None] if a.ndim == 1 else a
+    if a.shape[0] != V or a.shape[1] not in (1, 3):
+        raise ValueError(f"albedo has shape {a.shape}; accepted: [V, 3] or [V] with V={V}")
+    return np.ascontiguousarray(np.broadcast_to(a, (V, 3)))
+
+
+def _light3(light, n_in: int) -> np.ndarray:
+    """``[n_in, C]`` (C = 1 or 3) -> ``[n_in, 3]`` float32 (grey replicated)."""
+    L = _np("light", light, np.float32)
+    L = L[:, None] if L.ndim == 1 else L
+    if L.ndim != 2 or L.shape[0] != n_in or L.shape[1] not in (1, 3):
+        raise ValueError(f"light has shape {L.shape}; accepted: [n_in, C] = [{n_in}, 1 or 3] (SH on rows)")
+    return np.ascontiguousarray(np.broadcast_to(L, (n_in, 3)))
+
+
+class TransferDecoder(Decoder):
+    """Uncompressed PRT decoded in the vertex shader (light as uniforms, transfer as a float table).
+
+    Args:
+        transfer: ``[V, R, n_in]`` float (``[V, n_in]`` = one row): diffuse ``[V, n²]`` (R = 1,
+            mode 'none'), diffuse RGB ``[V, 3, n²]`` ('diagonal'), glossy exit transfer
+            ``[V, n_out, n²]`` ('dense'), MRT ``[V, M², n²]`` ('taps').
+        light: ``[n_in, C]`` SH light (C = 1 or 3; coefficients on rows, as codecs take it).
+        mode: one of :data:`VIEW_MODES`; view: None, dense ``[V, R]`` or taps (idx, w) ``[V, 4]``.
+        albedo: ``[V, 3]`` multiplied into the result (diffuse transfer stored without albedo).
+    Radiance at p: Σ_o y_o(v_p) Σ_i T_p[o, i] l_i (Sloan 2002 eq. (7); Sloan 2003 §3.1; MRT eq. 9).
+    """
+
+    def __init__(self, transfer, light, mode: str = "none", view=None, albedo=None):
+        T = _np("transfer", transfer, np.float32)
+        T = T[:, None, :] if T.ndim == 2 else T
+        if T.ndim != 3:
+            raise ValueError(f"transfer has shape {T.shape}; accepted: [V, n_in] or [V, R, n_in]")
+        V, R, n_in = T.shape
+        if mode not in VIEW_MODES:
+            raise ValueError(f"mode={mode!r}; accepted: {', '.join(VIEW_MODES)}")
+        if mode == "none" and R != 1 or mode == "diagonal" and R != 3:
+            raise ValueError(f"mode {mode!r} needs {1 if mode == 'none' else 3} row(s) per vertex; transfer has {R}")
+        n4 = -(-n_in // 4)
+        Tp = np.zeros((V, R, n4 * 4), np.float32)
+        Tp[:, :, :n_in] = T
+        L = _light3(light, n_in)
+        Lp = np.zeros((3, n4 * 4), np.float32)
+        Lp[:, :n_in] = L.T
+        self.program = transfer_program(mode, R, n_in)
+        self.num_vertices = V
+        self._attrs = {"albedo": _albedo(albedo, V)}
+        va, vt = _view_inputs(mode, view, V, R)
+        self._attrs.update(va)
+        self._tables = {"transfer": TableData(Tp.reshape(-1, 4), "buffer"), **vt}
+        self._uniforms = {"light": Lp.reshape(3 * n4, 4)}
+
+    def inputs(self, num_vertices: int) -> DrawInputs:
+        if num_vertices != self.num_vertices:
+            raise ValueError(f"decoder holds {self.num_vertices} vertices but the mesh has {num_vertices}")
+        return DrawInputs(attributes=self._attrs, uniforms=self._uniforms, tables=self._tables)
+
+
+class AffineDecoder(Decoder):
+    """Piecewise-affine compressed transfer decoded in the vertex shader (Sloan 2003 §6.2).
+
+    Args:
+        labels: ``[V]`` int cluster of each vertex.
+        weights: ``[V, n]`` float PCA weights (n may be 0: VQ).
+        consts: ``[K, J, n_out, C]`` float per-cluster constants M_k^j l for the current light
+            (``AffineCodec.cluster_constants``; C = 1 or 3), J = n+1 with a mean term, n without.
+        centred: whether j = 0 is the mean term (weight 1).
+        mode, view, albedo: as :class:`TransferDecoder`.
+        weights_in: ``'auto'`` (attributes when ⌈n/4⌉ ≤ :data:`MAX_WEIGHT_ATTRIBUTES`, else a
+            texture buffer), ``'attributes'`` or ``'buffer'``.
+    Radiance at p: Σ_o y_o(v_p) [(M_k^0 l)_o + Σ_i w_p^i (M_k^i l)_o], k = labels[p]
+    (Sloan 2003 eq. (4); with MRT taps, Lehtinen & Kautz 2003 eq. 13).
+    """
+
+    def __init__(self, labels, weights, consts, centred: bool = True, mode: str = "none", view=None, albedo=None,
+                 weights_in: str = "auto"):
+        lab = _np("labels", labels, np.int64)
+        W = _np("weights", weights, np.float32)
+        c = _np("consts", consts, np.float32)
+        if lab.ndim != 1:
+            raise ValueError(f"labels have shape {lab.shape}; accepted: [V]")
+        V = lab.shape[0]
+        W = W.reshape(V, -1)
+        if c.ndim != 4 or c.shape[3] not in (1, 3):
+            raise ValueError(f"consts have shape {c.shape}; accepted: [K, J, n_out, C] with C = 1 or 3")
+        K, J, n_out, C = c.shape
+        n = W.shape[1]
+        if J != n + (1 if centred else 0):
+            raise ValueError(f"consts have J={J} terms per cluster but the weights have n={n} columns "
+                             f"({'centred: J = n+1' if centred else 'uncentred: J = n'})")
+        if V and (lab.min() < 0 or lab.max() >= K):
+            raise ValueError(f"labels span [{lab.min()}, {lab.max()}]; accepted: 0..{K - 1} (clusters)")
+        if mode not in VIEW_MODES:
+            raise ValueError(f"mode={mode!r}; accepted: {', '.join(VIEW_MODES)}")
+        if mode == "none" and n_out != 1 or mode == "diagonal" and n_out != 3:
+            raise ValueError(f"mode {mode!r} needs n_out = {1 if mode == 'none' else 3}; consts have {n_out}")
+        m4 = -(-n // 4)
+        if weights_in == "auto":
+            weights_in = "attributes" if m4 <= MAX_WEIGHT_ATTRIBUTES else "buffer"
+        self.program = affine_program(mode, n_out, J, bool(centred), n, weights_in)
+        self.num_vertices = V
+        tab = np.ones((K * J * n_out, 4), np.float32)
+        tab[:, :3] = np.broadcast_to(c.reshape(-1, C), (K * J * n_out, 3))
+        self._attrs = {"cluster": lab.astype(np.int32), "albedo": _albedo(albedo, V)}
+        self._tables = {"consts": TableData(tab, "buffer")}
+        if n and weights_in == "attributes":
+            Wp = np.zeros((V, m4 * 4), np.float32)
+            Wp[:, :n] = W
+            self._attrs.update({f"w{i}": np.ascontiguousarray(Wp[:, 4 * i:4 * i + 4]) for i in range(m4)})
+        elif n:
+            self._tables["weights"] = TableData(W.reshape(-1), "buffer")
+        va, vt = _view_inputs(mode, view, V, n_out)
+        self._attrs.update(va)
+        self._tables.update(vt)
+
+    @classmethod
+    def from_codec(cls, codec, enc, light, mode: str = "none", view=None, albedo=None, **kw) -> "AffineDecoder":
+        """From a fitted piecewise-affine codec (``prt_torch.codecs.affine.AffineCodec``) and its
+        encoding: labels and weights from the codes (``labels_of``, ``coeffs_of``), constants
+        ``codec.cluster_constants(light [n_in, C])`` — K·J·n_out dot products, per light."""
+        consts = codec.cluster_constants(light)
+        return cls(codec.labels_of(enc), codec.coeffs_of(enc), consts, centred=codec.means_ is not None, mode=mode,
+                   view=view, albedo=albedo, **kw)
+
+    def inputs(self, num_vertices: int) -> DrawInputs:
+        if num_vertices != self.num_vertices:
+            raise ValueError(f"decoder holds {self.num_vertices} vertices but the mesh has {num_vertices}")
+        return DrawInputs(attributes=self._attrs, tables=self._tables)
+
+
+class VQDecoder(AffineDecoder):
+    """VQ (Sloan 2003 eq. (2)): n = 0, every vertex shows its cluster's M_k·l."""
+
+
+class PCADecoder(AffineDecoder):
+    """PCA (one cluster, Sloan 2003 §3.3): x̃_p = x_0 + Σ_i w_p^i x_i, relit as Σ_i w_p^i (x_i·l)."""
+
+
+class CPCADecoder(AffineDecoder):
+    """CPCA (Sloan 2003 §6.2 eq. (4)): per-cluster constants M_k^i·l indexed by cluster id,
+    N' weights per vertex (static, iterative and adaptive fits alike; packed weights padded)."""
+
+
+class MRTPCADecoder(AffineDecoder):
+    """MRT-PCA (Lehtinen & Kautz 2003 eq. 13): Σ_{j∈4 taps} g_j(v_p) Σ_k w_p^k (A_k l)_j, the
+    uncentred basis A_k relit per light on the CPU."""
+
+
+_CODEC_DECODERS: dict[str, type] = {}
+
+
+def register_codec_decoder(*names: str) -> Callable[[type], type]:
+    """Class decorator: use this :class:`Decoder` subclass (with a ``from_codec(codec, enc,
+    light, mode, view, albedo)`` classmethod) for the codecs registered under ``names``."""
+    def deco(cls: type) -> type:
+        if not (isinstance(cls, type) and issubclass(cls, Decoder) and hasattr(cls, "from_codec")):
+            raise TypeError(f"{cls!r} is not a Decoder subclass with a from_codec classmethod")
+        for n in names:
+            _CODEC_DECODERS[n] = cls
+        return cls
+    return deco
+
+
+register_codec_decoder("vq")(VQDecoder)
+register_codec_decoder("pca")(PCADecoder)
+register_codec_decoder("cpca", "cpca_static", "cpca_iterative", "cpca_adaptive")(CPCADecoder)
+register_codec_decoder("mrt_pca")(MRTPCADecoder)
+
+
+def codec_decoders() -> dict[str, type]:
+    """codec name -> decoder class (a copy)."""
+    return dict(_CODEC_DECODERS)
+
+
+def codec_decoder(codec, enc, light, mode: str = "none", view=None, albedo=None, **kw) -> Decoder:
+    """The GLSL decoder of ``codec`` (by ``codec.codec_name``) for ``enc`` under ``light [n_in, C]``."""
+    name = getattr(codec, "codec_name", None)
+    cls = _CODEC_DECODERS.get(name)
+    if cls is None:
+        raise ValueError(f"codec {name!r} has no GLSL decoder; accepted: {', '.join(sorted(_CODEC_DECODERS))} "
+                         "(register one with prt_torch.render.register_codec_decoder), or decode on the CPU")
+    return cls.from_codec(codec, enc, light, mode=mode, view=view, albedo=albedo, **kw)
