@@ -284,3 +284,48 @@ def test_harness_reference_is_relight(kind):
     assert below.any() and not below.all()  # the camera sees some vertices from behind
     assert torch.allclose(got, want, rtol=1e-5, atol=1e-6)
     assert bool((got[below] == 0).all())
+
+
+# ------------------------------------------------------------------ cross-family target search
+
+def test_target_search_across_families_matches_brute_force(tmp_path):
+    """`prt bench --target-psnr X` without a codec: the winner meets X, and brute force over the
+    same grid (every family's axes, CPCA's clusters × vectors) finds no setting with fewer bytes."""
+    from prt_torch.harness.run import run_benchmark
+
+    base = dict(TINY, render={"enabled": False}, metrics={"random_lights": 8, "repeats": 1, "warmup": 0},
+                codecs=[{"type": "vq", "clusters": 2}, {"type": "pca", "vectors": 1}, {"type": "cpca", "clusters": 2, "vectors": 1}])
+    goal = 38.0
+    over = [f"target.psnr={goal}", "target.lo=1", "target.hi=8", "target.hi_clusters=16"]
+    res = json.loads((run_benchmark(hc.load_config(str(write_cfg(tmp_path, base)), over), progress=False,
+                                    log=lambda s: None) / "results.json").read_text())
+    t = res["target"]
+    assert t["mode"] == "families" and t["met"] and t["winner"]["achieved_db"] >= goal
+    assert set(t["families"]) == {"vq", "pca", "cpca"} and t["evaluated"] >= 3
+    md = (tmp_path / "reports" / "tiny" / "report.md").read_text()
+    assert "## Cheapest setting meeting the target" in md and f"**Winner: {t['winner']['setting_id']}**" in md
+    # brute force over the same grid, in the same run directory (searched settings are reused)
+    grid = dict(base, codecs=[{"type": "vq", "clusters": [1, 2, 4, 8, 16]}, {"type": "pca", "vectors": list(range(1, 9))},
+                              {"type": "cpca", "clusters": [1, 2, 4, 8, 16], "vectors": list(range(1, 9))}])
+    res2 = json.loads((run_benchmark(hc.load_config(str(write_cfg(tmp_path, grid))), progress=False,
+                                     log=lambda s: None) / "results.json").read_text())
+    meeting = [r for r in res2["records"] if r["psnr_lights_db"] >= goal]
+    assert meeting and min(r["bytes_per_vertex"] for r in meeting) == pytest.approx(t["winner"]["bytes_per_vertex"])
+    for name, f in t["families"].items():  # each family's runner-up is its own cheapest under brute force
+        mine = [r for r in meeting if r["codec"] == name]
+        if f.get("best"):
+            assert min(r["bytes_per_vertex"] for r in mine) == pytest.approx(f["best"]["bytes_per_vertex"])
+        else:
+            assert not mine
+
+
+def test_unreachable_target_says_the_best_found(tmp_path):
+    from prt_torch.harness.run import run_benchmark
+
+    base = dict(TINY, render={"enabled": False}, metrics={"random_lights": 8, "repeats": 1, "warmup": 0},
+                codecs=[{"type": "vq", "clusters": 2}, {"type": "pca", "vectors": 1}])
+    cfg = hc.load_config(str(write_cfg(tmp_path, base)), ["target.psnr=500", "target.hi=4", "target.hi_clusters=4"])
+    run_dir = run_benchmark(cfg, progress=False, log=lambda s: None)
+    t = json.loads((run_dir / "results.json").read_text())["target"]
+    assert not t["met"] and "the best was" in t["note"] and "dB by" in t["note"]
+    assert "Not met" in (run_dir / "report.md").read_text()

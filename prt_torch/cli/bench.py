@@ -14,8 +14,11 @@ def register(sub) -> None:
     )
     p.add_argument("config", nargs="?", default=None, help="a packaged config name (default, glossy, diffuse) or a YAML path (default: default)")
     p.add_argument("overrides", nargs="*", help="key.path=value overrides")
-    p.add_argument("--target-psnr", type=float, default=None, help="find the smallest setting of --target-codec meeting this PSNR (dB)")
-    p.add_argument("--target-codec", default=None, help="codec for --target-psnr (default: the config's target.codec)")
+    p.add_argument("--target-psnr", type=float, default=None,
+                   help="find the cheapest setting meeting this PSNR (dB): of every codec family in the config, or of --target-codec")
+    p.add_argument("--target-by", choices=["bytes", "fps"], default=None,
+                   help="what 'cheapest' means across families: fewest bytes per vertex (default) or highest relighting rate")
+    p.add_argument("--target-codec", default=None, help="search only this codec's --target-param (default: the config's target.codec)")
     p.add_argument("--target-param", default=None, help="integer size parameter to search (default: the config's target.param)")
     p.add_argument("--no-resume", action="store_true", help="recompute settings even if their records exist")
     p.add_argument("--no-render", action="store_true", help="skip the pyrender images")
@@ -39,6 +42,8 @@ def run(args: argparse.Namespace) -> int:
         overrides.append("render.enabled=false")
     if args.target_psnr is not None:
         overrides.append(f"target.psnr={args.target_psnr}")
+    if args.target_by:
+        overrides.append(f"target.by={args.target_by}")
     if args.target_codec:
         overrides.append(f"target.codec={args.target_codec}")
     if args.target_param:

@@ -57,7 +57,8 @@ DEFAULTS: dict[str, Any] = {
     "metrics": {"random_lights": 64, "repeats": 5, "warmup": 1, "max_memory_gb": 16.0},
     "codecs": [],
     "render": {"enabled": True, "width": 256, "height": 256},
-    "target": {"psnr": None, "codec": None, "param": None, "lo": 1, "hi": 64, "metric": "psnr_lights_db"},
+    "target": {"psnr": None, "codec": None, "param": None, "lo": 1, "hi": 64, "hi_clusters": 256, "metric": "psnr_lights_db",
+               "by": "bytes"},
     "cache_dir": "cache",
     "output_dir": "reports",
 }
@@ -196,6 +197,8 @@ CONSTRAINTS: dict[str, list] = {
     "target.param": [Predicate(lambda v: isinstance(v, str), "an integer size parameter of the codec"), None],
     "target.lo": [Interval(int, 0, None)],
     "target.hi": [Interval(int, 1, None)],
+    "target.hi_clusters": [Interval(int, 1, None)],
+    "target.by": [Options("bytes", "fps")],
     "target.metric": [Options("psnr_lights_db", "psnr_lights_min_db", "psnr_random_db", "psnr_random_closed_form_db")],
     "cache_dir": [Predicate(lambda v: isinstance(v, str) and v, "a directory path")],
     "output_dir": [Predicate(lambda v: isinstance(v, str) and v, "a directory path")],
@@ -268,9 +271,10 @@ def validate(cfg: dict) -> None:
     t = cfg["target"]
     if t["lo"] > t["hi"]:
         raise ValueError(f"config key 'target': lo={t['lo']} > hi={t['hi']}; accepted: lo <= hi")
-    if t.get("psnr") is not None:
-        if not t.get("codec") or not t.get("param"):
-            raise ValueError("config key 'target': a psnr target needs 'codec' and 'param' (the size parameter to search)")
+    if t.get("psnr") is not None and t.get("codec"):
+        if not t.get("param"):
+            raise ValueError("config key 'target': a target codec needs 'param' (its size parameter to search); "
+                             "leave 'codec' empty to search every codec family of the config")
         from .. import codecs
 
         try:

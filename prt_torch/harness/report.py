@@ -183,6 +183,31 @@ def scene_required(results: dict) -> list[str]:
     return ["## What the scene required", ""] + [f"- {x}" for x in items] + [""]
 
 
+def target_lines(t: dict) -> list[str]:
+    """Markdown of a cross-family target search (harness.target.search_families)."""
+    what = "fewest bytes per vertex" if t["by"] == "bytes" else "highest relighting rate"
+    out = ["## Cheapest setting meeting the target", "",
+           f"Target {t['goal_db']} dB ({t['metric']}), cheapest = {what}; search cost {t['evaluated']} evaluations "
+           f"({t['distinct_settings']} distinct settings), {t['seconds']:.1f} s.", ""]
+    if t["met"]:
+        w = t["winner"]
+        out += [f"**Winner: {w['setting_id']}** — {w['achieved_db']:.2f} dB at {w['bytes_per_vertex']:.1f} B/vertex, "
+                f"{w['fps']:.0f} fps.", ""]
+    else:
+        out += [f"**Not met**: {t['note']}.", ""]
+    out += ["| family | size axes | evaluated | cheapest setting meeting the target | dB | B/vertex | fps |", "|---|---|---|---|---|---|---|"]
+    for name, f in t["families"].items():
+        if not f.get("searched"):
+            out.append(f"| {name} | – | 0 | {f['note']} | | | |")
+        elif f.get("best"):
+            b = f["best"]
+            out.append(f"| {name} | {' × '.join(f['axes'])} | {f['evaluated']} | {_params(b['params'])} | {b['achieved_db']:.2f} | "
+                       f"{b['bytes_per_vertex']:.1f} | {b['fps']:.0f} |")
+        else:
+            out.append(f"| {name} | {' × '.join(f['axes'])} | {f['evaluated']} | none: {f['note']} | | | |")
+    return out + [""]
+
+
 def markdown(results: dict, figures: list[str], renders: list[str]) -> str:
     r = results
     m = r["machine"]
@@ -221,7 +246,9 @@ def markdown(results: dict, figures: list[str], renders: list[str]) -> str:
     lines += ["", f"Pareto front (PSNR vs fps): {', '.join(front)}.", ""]
     lines += scene_required(r)
     t = r.get("target")
-    if t:
+    if t and t.get("mode") == "families":
+        lines += target_lines(t)
+    elif t:
         lines += ["## Smallest setting meeting the target", ""]
         if t["met"]:
             lines.append(f"{t['codec']}: {t['param']}={t['value']} reaches {t['achieved_db']:.2f} dB ≥ {t['goal_db']} dB "

@@ -41,6 +41,7 @@ from .evaluate import Evaluator, camera_positions
 from .metrics import psnr_vs_reference, random_light_psnr, random_light_psnr_analytic, squared_error
 from .renders import render_best
 from .report import write_outputs
+from .target import find_smallest, search_families
 from .timing import machine_info, measure
 
 __all__ = ["run_benchmark", "compute_transfer", "evaluate_setting", "RESULTS_VERSION"]
@@ -285,7 +286,13 @@ def run_benchmark(cfg: dict, resume: bool = True, progress: bool = True, log: Ca
 
     target = None
     if cfg["target"].get("psnr") is not None:
-        target = find_smallest(cfg, run_setting)
+        if cfg["target"].get("codec"):
+            target = find_smallest(cfg, run_setting)
+        else:
+            target = search_families(cfg, run_setting, ev.V, ev.X.shape[1])
+            log(f"[bench] target {target['goal_db']} dB: " + (
+                f"{target['winner']['setting_id']} ({target['winner']['bytes_per_vertex']:.1f} B/vertex, "
+                f"{target['winner']['fps']:.0f} fps) after {target['evaluated']} evaluations" if target["met"] else target["note"]))
         for r in target.pop("_records"):
             if r["setting_id"] not in {x["setting_id"] for x in records}:
                 records.append(r)
@@ -316,41 +323,3 @@ def run_benchmark(cfg: dict, resume: bool = True, progress: bool = True, log: Ca
             results["render_error"] = f"{type(e).__name__}: {e}"
     write_outputs(run_dir, results, log=log)
     return run_dir
-
-
-def find_smallest(cfg: dict, run_setting: Callable[[dict], dict]) -> dict:
-    """Smallest integer value of ``target.param`` whose setting meets ``target.psnr`` on
-    ``target.metric`` (bisection, assuming the metric grows with the parameter — true for
-    the size parameters of every codec here: clusters, vectors). CompressAI's find_close in
-    spirit. Other parameters come from the first codec entry of that name (lists -> first)."""
-    t = cfg["target"]
-    base = next((dict(e) for e in cfg["codecs"] if e["type"] == t["codec"]), {"type": t["codec"]})
-    base = {k: (v[0] if isinstance(v, list) else v) for k, v in base.items()}
-    lo, hi = int(t["lo"]), int(t["hi"])
-    metric, goal = t["metric"], float(t["psnr"])
-    tried = []
-
-    def ok(v: int) -> bool:
-        s = dict(base)
-        s[t["param"]] = v
-        r = run_setting(s)
-        tried.append(r)
-        return r[metric] >= goal
-
-    if not ok(hi):
-        return {"met": False, "codec": t["codec"], "param": t["param"], "value": None, "goal_db": goal, "metric": metric,
-                "note": f"{t['param']}={hi} (the upper bound) does not reach {goal} dB", "_records": tried}
-    while lo < hi:
-        mid = (lo + hi) // 2
-        if ok(mid):
-            hi = mid
-        else:
-            lo = mid + 1
-    best = next((r for r in tried if r["params"].get(t["param"]) == lo), None)
-    if best is None:
-        ok(lo)
-        best = tried[-1]
-    return {"met": True, "codec": t["codec"], "param": t["param"], "value": lo, "goal_db": goal, "metric": metric,
-            "achieved_db": best[metric], "bytes_per_vertex": best["bytes_per_vertex"], "setting_id": best["setting_id"],
-            "evaluated": [r["params"].get(t["param"]) for r in tried], "_records": tried}
-

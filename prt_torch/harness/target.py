@@ -1,0 +1,156 @@
+"""Target searches: the cheapest codec setting that reaches a PSNR target.
+
+* :func:`find_smallest` — one codec, one integer size parameter (``target.codec``,
+  ``target.param``): bisection on [lo, hi].
+* :func:`search_families` — every codec family of the config (``target.codec`` unset): each
+  family's size parameters are searched on their own monotone axes — ``vectors`` and ``lobes``
+  by bisection on integers in [lo, hi], ``clusters`` on powers of two in [1, hi_clusters]
+  (bisection over that list); CPCA, with two size parameters, walks its Pareto front: for every
+  cluster count, the fewest vectors that reach the target, then the cheapest of those points.
+  The winner is the setting with the fewest bytes per vertex (``by='bytes'``) or the highest
+  relighting rate (``by='fps'``) among the settings found; each family's best is reported as its
+  runner-up, with the search cost (settings evaluated, seconds).
+
+Both assume the target metric grows with each size parameter (nested subspaces for vectors;
+more clusters or lobes fit at least as well), the premise of CompressAI's ``find_close``. The
+searches only call ``run_setting(setting) -> record`` (harness.run evaluates, caches and
+saves), so every evaluated setting is also in the results.
+"""
+from __future__ import annotations
+
+import time
+from typing import Any, Callable
+
+__all__ = ["find_smallest", "search_families", "size_axes", "SIZE_AXES"]
+
+#: The size parameters of each codec family (registry name -> parameters, in search order).
+SIZE_AXES: dict[str, tuple[str, ...]] = {
+    "vq": ("clusters",), "pca": ("vectors",), "mrt_pca": ("vectors",), "cpca": ("clusters", "vectors"),
+    "cpca_static": ("clusters", "vectors"), "cpca_iterative": ("clusters", "vectors"),
+    "cpca_adaptive": ("clusters", "vectors"), "gaussian": ("lobes",),
+}
+
+
+def size_axes(codec: str) -> tuple[str, ...]:
+    """Size parameters of ``codec`` (a codec class may declare ``size_params``)."""
+    from .. import codecs
+
+    cls = type(codecs.get(codec))
+    return tuple(getattr(cls, "size_params", SIZE_AXES.get(codec, ())))
+
+
+def _bisect(lo: int, hi: int, ok: Callable[[int], bool]) -> int | None:
+    """Smallest v in [lo, hi] with ok(v) (ok monotone), or None when ok(hi) fails."""
+    if lo > hi or not ok(hi):
+        return None
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if ok(mid):
+            hi = mid
+        else:
+            lo = mid + 1
+    return lo
+
+
+def _base(cfg: dict, codec: str) -> dict:
+    """The first config entry of ``codec`` with list values reduced to their first element."""
+    base = next((dict(e) for e in cfg["codecs"] if e["type"] == codec), {"type": codec})
+    return {k: (v[0] if isinstance(v, list) else v) for k, v in base.items()}
+
+
+def find_smallest(cfg: dict, run_setting: Callable[[dict], dict]) -> dict:
+    """Smallest integer value of ``target.param`` of ``target.codec`` whose setting meets
+    ``target.psnr`` on ``target.metric`` (bisection on [lo, hi]). Other parameters come from the
+    first codec entry of that name (lists → first)."""
+    t = cfg["target"]
+    base = _base(cfg, t["codec"])
+    metric, goal = t["metric"], float(t["psnr"])
+    tried: list[dict] = []
+
+    def ok(v: int) -> bool:
+        r = run_setting({**base, t["param"]: v})
+        tried.append(r)
+        return r[metric] >= goal
+
+    v = _bisect(int(t["lo"]), int(t["hi"]), ok)
+    if v is None:
+        best = max(tried, key=lambda r: r[metric])
+        return {"met": False, "codec": t["codec"], "param": t["param"], "value": None, "goal_db": goal, "metric": metric,
+                "note": f"{t['param']}={t['hi']} (the upper bound) does not reach {goal} dB; the best was "
+                        f"{best[metric]:.2f} dB by {best['setting_id']}", "_records": tried}
+    best = next(r for r in tried if r["params"].get(t["param"]) == v)
+    return {"met": True, "codec": t["codec"], "param": t["param"], "value": v, "goal_db": goal, "metric": metric,
+            "achieved_db": best[metric], "bytes_per_vertex": best["bytes_per_vertex"], "setting_id": best["setting_id"],
+            "evaluated": [r["params"].get(t["param"]) for r in tried], "_records": tried}
+
+
+def _summary(r: dict, metric: str) -> dict:
+    return {"setting_id": r["setting_id"], "codec": r["codec"], "params": r["params"], "achieved_db": r[metric],
+            "bytes_per_vertex": r["bytes_per_vertex"], "fps": r["fps"]}
+
+
+def search_families(cfg: dict, run_setting: Callable[[dict], dict], points: int, dim: int) -> dict:
+    """Search every codec family of ``cfg['codecs']`` for its cheapest setting reaching
+    ``target.psnr`` (module docstring); ``points``/``dim`` bound clusters (≤ P) and vectors (< D).
+    Returns the JSON-able search record (``_records``: every record evaluated)."""
+    t = cfg["target"]
+    metric, goal, by = t["metric"], float(t["psnr"]), t["by"]
+    lo, hi = int(t["lo"]), int(t["hi"])
+    clusters = [c for c in (2 ** i for i in range(0, 31)) if c <= min(int(t["hi_clusters"]), points)]
+    tried: list[dict] = []
+    families: dict[str, Any] = {}
+    t_start = time.perf_counter()
+
+    def evaluate(base: dict, **size) -> dict:
+        r = run_setting({**base, **size})
+        tried.append(r)
+        return r
+
+    for codec in dict.fromkeys(e["type"] for e in cfg["codecs"]):  # one search per family, config order
+        base = _base(cfg, codec)
+        axes = size_axes(codec)
+        n0, found = len(tried), []
+        vec_hi = min(hi, dim - 1 if base.get("center", True) else dim)
+
+        def meets(r: dict) -> bool:
+            return r[metric] >= goal
+
+        if axes == ("clusters",):
+            i = _bisect(0, len(clusters) - 1, lambda k: meets(evaluate(base, clusters=clusters[k])))
+            found = [] if i is None else [next(r for r in tried[n0:] if r["params"]["clusters"] == clusters[i])]
+        elif axes in (("vectors",), ("lobes",)):
+            ax = axes[0]
+            top = vec_hi if ax == "vectors" else hi
+            v = _bisect(lo, top, lambda k: meets(evaluate(base, **{ax: k})))
+            found = [] if v is None else [next(r for r in tried[n0:] if r["params"][ax] == v)]
+        elif axes == ("clusters", "vectors"):
+            for c in clusters:  # the Pareto front: fewest vectors per cluster count
+                v = _bisect(lo, vec_hi, lambda k: meets(evaluate(base, clusters=c, vectors=k)))
+                if v is not None:
+                    found.append(next(r for r in tried[n0:] if r["params"]["clusters"] == c and r["params"]["vectors"] == v))
+        else:
+            families[codec] = {"searched": False, "note": f"codec {codec!r} declares no size parameter"}
+            continue
+        mine = tried[n0:]
+        key = (lambda r: r["bytes_per_vertex"]) if by == "bytes" else (lambda r: -r["fps"])
+        fam = {"searched": True, "axes": list(axes), "evaluated": len(mine),
+               "front": [_summary(r, metric) for r in sorted(found, key=key)]}
+        if found:
+            fam["best"] = _summary(min(found, key=key), metric)
+        else:
+            top_r = max(mine, key=lambda r: r[metric])
+            fam["note"] = f"no setting in range reaches {goal} dB; the best was {top_r[metric]:.2f} dB by {top_r['setting_id']}"
+        families[codec] = fam
+    bests = [f["best"] for f in families.values() if f.get("best")]
+    key = (lambda s: s["bytes_per_vertex"]) if by == "bytes" else (lambda s: -s["fps"])
+    out = {"mode": "families", "met": bool(bests), "goal_db": goal, "metric": metric, "by": by, "families": families,
+           "evaluated": len(tried), "distinct_settings": len({r["setting_id"] for r in tried}),
+           "seconds": time.perf_counter() - t_start, "_records": tried}
+    if bests:
+        out["winner"] = min(bests, key=key)
+        out["runners_up"] = sorted((b for b in bests if b is not out["winner"]), key=key)
+    else:
+        top_r = max(tried, key=lambda r: r[metric])
+        out["note"] = (f"no setting of any family reaches {goal} dB ({metric}); the best was {top_r[metric]:.2f} dB by "
+                       f"{top_r['setting_id']} — raise target.hi / target.hi_clusters or lower the target")
+    return out
