@@ -1,4 +1,5 @@
-"""`prt render`: a diffuse transfer file relit and rendered, checked against the analytic value."""
+"""`prt render`: transfer files of every kind relit and rendered (GLSL and CPU decode), checked against the
+analytic value and against each other."""
 from __future__ import annotations
 
 import importlib.util
@@ -56,8 +57,8 @@ def test_cli_errors(transfer_file, tmp_path, capsys):
     assert "--overwrite" in capsys.readouterr().err
     assert main(["render", str(transfer_file), "-o", str(tmp_path / "x.jpg")]) == 2
     assert "accepted extensions" in capsys.readouterr().err
-    assert main(["render", str(transfer_file), "-o", str(tmp_path / "y.png"), "--compare", str(tmp_path / "z.png")]) == 2
-    assert "--codec-file" in capsys.readouterr().err
+    assert main(["render", str(transfer_file), "-o", str(tmp_path / "y.png"), "--compare", str(tmp_path / "z.exr")]) == 2
+    assert ".png" in capsys.readouterr().err
     assert main(["render", str(tmp_path / "missing.prt"), "-o", str(tmp_path / "y.png")]) == 2
     assert main(["render", str(transfer_file), "-o", str(tmp_path / "y.png"), "--exposure", "bright"]) == 2
     if importlib.util.find_spec("prt_torch.codecs") is None:
@@ -86,3 +87,61 @@ def test_codec_file_compare(transfer_file, tmp_path):
     # VQ with 8 clusters quantises the normals' transfer: its render differs from the uncompressed one
     a, b = _read(out), _read(ref)
     assert np.abs(a - b).max() > 1e-2
+
+
+@pytest.fixture(scope="module")
+def kind_files(tmp_path_factory):
+    """Glossy [V, 9, 16] and MRT [V, 36, 16] transfer files (synthetic transfer-like data on a real
+    mesh) and a codec file for each."""
+    from prt_torch import codecs
+    from prt_torch.codecs.synthetic import transfer_like
+    from prt_torch.scene import builtin
+    from prt_torch.transfer import Transfer
+
+    mesh = builtin("bumpy_sphere", size="small")
+    V = mesh.num_vertices
+    d = tmp_path_factory.mktemp("kinds")
+    out = {}
+    for kind, n_out, name, kw in (("glossy", 9, "cpca", dict(clusters=4, vectors=3)), ("mrt", 36, "mrt_pca", dict(vectors=6))):
+        t = Transfer(kind, transfer_like(V, n_out, 16, seed=3).view(V, n_out, 16), mesh,
+                     {"matrix_shape": [n_out, 16], **({"out_index": list(range(9))} if kind == "glossy" else {})})
+        t.save(d / f"{kind}.prt")
+        c = codecs.get(name, **kw).fit(t.signal(), matrix_shape=(n_out, 16))
+        c.save(d / f"{kind}.{name}.prt", c.encode(t.signal()), extra_meta={"mesh_hash": mesh.content_hash()})
+        out[kind] = (d / f"{kind}.prt", d / f"{kind}.{name}.prt")
+    return out
+
+
+@pytest.mark.parametrize("kind", ["glossy", "mrt"])
+def test_view_dependent_kinds_glsl_equals_cpu(kind_files, kind, tmp_path, capsys):
+    tfile, cfile = kind_files[kind]
+    common = ["--width", "48", "--height", "40", "--supersample", "1", "--light", "sky"]
+    for codec in ([], ["--codec-file", str(cfile)]):
+        g, c = tmp_path / "g.exr", tmp_path / "c.exr"
+        assert main(["render", str(tfile), *codec, "--decode", "glsl", "-o", str(g), "--overwrite", *common]) == 0
+        assert main(["render", str(tfile), *codec, "--decode", "cpu", "-o", str(c), "--overwrite", *common]) == 0
+        a, b = _read(g), _read(c)
+        m = np.abs(b).sum(2) > 0
+        assert m.sum() > 200
+        mse = float(np.mean((a[m] - b[m]) ** 2))
+        assert mse == 0 or 10 * np.log10(np.abs(b[m]).max() ** 2 / mse) > 50
+    capsys.readouterr()
+    cmp_ = tmp_path / "cmp.png"
+    rc = main(["render", str(tfile), "--codec-file", str(cfile), "-o", str(tmp_path / "x.png"), "--compare", str(cmp_),
+               "--validate", *common])
+    text = capsys.readouterr().out
+    assert rc == 0, text
+    assert "GLSL vs CPU:" in text and "-> ok" in text
+    assert cmp_.exists() and cmp_.with_suffix(".exr").exists()
+    comp = _read(cmp_.with_suffix(".exr"))
+    assert comp.shape[0] == 40 and comp.shape[1] == 3 * 48 + 2 * 4
+
+
+def test_codec_file_of_another_transfer_is_refused(kind_files, transfer_file, tmp_path, capsys):
+    _, glossy_codec = kind_files["glossy"]
+    mrt_file, _ = kind_files["mrt"]
+    assert main(["render", str(mrt_file), "--codec-file", str(glossy_codec), "-o", str(tmp_path / "x.png")]) == 2
+    assert "does not belong" in capsys.readouterr().err
+    assert main(["render", str(transfer_file), "--codec-file", str(glossy_codec), "-o", str(tmp_path / "x.png")]) == 2
+    assert "hash" in capsys.readouterr().err
+    assert not (tmp_path / "x.png").exists()

@@ -1,10 +1,15 @@
-"""``prt render TRANSFER.prt [--light SPEC] [--codec-file X] -o out.png``: relight a diffuse
-transfer file with a light (SH dot product per vertex, Sloan 2002) and render the per-vertex
-exit radiance offscreen as a float image (PNG tone-mapped, or EXR/PFM/HDR/TIF float).
+"""``prt render TRANSFER.prt [--light SPEC] [--codec-file X] [--decode glsl|cpu] -o out.png``:
+relight a transfer file of any kind (diffuse, glossy, MRT) with a light and render it offscreen
+as a float image (PNG tone-mapped, or EXR/PFM/HDR/TIF float).
 
-With ``--codec-file`` the radiance comes from the transfer decoded from that compressed file
-(needs ``prt_torch.codecs``); ``--compare OUT.png`` then also writes
-reference | codec | relative-error heat map side by side.
+``--decode glsl`` (default) decodes in the vertex shader, the way a real-time engine does
+(prt_torch.render.glsl: light as uniforms, transfer or per-cluster constants M_k·l as float
+tables, per-vertex codec weights as attributes); ``--decode cpu`` draws the per-vertex radiance
+the torch engine computed (``relight`` / ``codec.relight``). For view-dependent kinds the camera
+eye gives each vertex its local view direction (``relight.local_view`` with the mesh frames).
+``--codec-file`` renders from a compressed transfer (refused when it belongs to another
+transfer); ``--compare OUT.png`` also writes uncompressed (CPU) | this render | error heat map,
+as PNG and as linear EXR (OUT.exr); ``--validate`` renders both decodes and prints their PSNR.
 """
 from __future__ import annotations
 
@@ -12,7 +17,6 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import torch
 
 EXTS_FLOAT = (".exr", ".pfm", ".hdr", ".tif", ".tiff")
 
@@ -20,20 +24,25 @@ EXTS_FLOAT = (".exr", ".pfm", ".hdr", ".tif", ".tiff")
 def register(subparsers) -> None:
     p = subparsers.add_parser(
         "render",
-        help="render a relit diffuse transfer file offscreen (EGL) to PNG/EXR",
+        help="render a relit transfer file (diffuse, glossy, MRT; raw or compressed) offscreen (EGL) to PNG/EXR",
         description=(
-            "Relight TRANSFER (a diffuse .prt file from `prt precompute`) with LIGHT and render the per-vertex "
-            "radiance through pyrender's EGL context into a float framebuffer. The output format follows the "
-            "extension: .png (tone-mapped 8-bit sRGB) or .exr/.pfm/.hdr/.tif (linear float). Needs EGL: "
+            "Relight TRANSFER (a .prt file from `prt precompute`: diffuse, glossy or mrt) with LIGHT, optionally from "
+            "a compressed form (--codec-file, from `prt compress`), and render it through pyrender's EGL context into "
+            "a float framebuffer, decoded in GLSL (--decode glsl) or on the CPU (--decode cpu). The output format "
+            "follows the extension: .png (tone-mapped 8-bit sRGB) or .exr/.pfm/.hdr/.tif (linear float). Needs EGL: "
             "PYOPENGL_PLATFORM=egl and the Debian packages libegl1 libegl-mesa0 libgl1-mesa-dri."
         ),
     )
     p.add_argument("transfer", metavar="TRANSFER.prt")
     p.add_argument("--light", default="sky", help="built-in environment, analytic spec or image file (default: sky)")
-    p.add_argument("--codec-file", default=None, help="render from this compressed transfer instead (prt compress output)")
+    p.add_argument("--codec-file", default=None, help="render from this compressed transfer (prt compress output)")
+    p.add_argument("--decode", default="glsl", choices=["glsl", "cpu"],
+                   help="glsl: decode in the vertex shader (default); cpu: per-vertex radiance from the torch engine")
     p.add_argument("-o", "--output", required=True, help="output image (.png, .exr, .pfm, .hdr, .tif)")
     p.add_argument("--compare", default=None, metavar="OUT.png",
-                   help="with --codec-file: also write reference | codec | error heat map")
+                   help="also write uncompressed (CPU) | this render | relative-error heat map (OUT.png and OUT.exr)")
+    p.add_argument("--validate", action="store_true",
+                   help="also render with the other decode and print GLSL vs CPU PSNR (exit 1 below 50 dB)")
     p.add_argument("--width", type=int, default=512)
     p.add_argument("--height", type=int, default=512)
     p.add_argument("--azimuth", type=float, default=35.0, help="camera azimuth in degrees (from +x toward +y)")
@@ -49,35 +58,13 @@ def register(subparsers) -> None:
     p.set_defaults(func=run)
 
 
+VALIDATE_DB = 50.0
+
+
 def _bands(transfer) -> int:
     from ..sh import band_of_coeffs
 
-    return int(transfer.meta.get("bands", band_of_coeffs(int(transfer.data.shape[-1]), "transfer coefficients per vertex")))
-
-
-def _decode_codec_file(path: str, transfer):
-    """Transfer data reconstructed from a codec file (API of prt_torch.codecs: ``load(path)``
-    returning (codec, encoded) or an object with ``decode``)."""
-    try:
-        from .. import codecs
-    except ModuleNotFoundError as e:
-        raise ValueError(f"--codec-file needs prt_torch.codecs, which this build does not have ({e})") from None
-    loaded = codecs.load(path)
-    if isinstance(loaded, tuple) and len(loaded) == 2:
-        codec, enc = loaded
-        x = codec.decode(enc)
-    elif hasattr(loaded, "decode"):
-        x = loaded.decode()
-    else:
-        raise ValueError(f"{path!r}: prt_torch.codecs.load returned {type(loaded).__name__}; "
-                         "expected (codec, encoded)")
-    x = torch.as_tensor(x)
-    if x.numel() != transfer.data.numel():
-        raise ValueError(f"{path!r} decodes to {tuple(x.shape)}, which does not match the transfer data "
-                         f"{tuple(transfer.data.shape)}; was it compressed from {transfer.mesh.name!r}?")
-    from ..transfer import Transfer
-
-    return Transfer(transfer.kind, x.reshape(transfer.data.shape).to(torch.float32), transfer.mesh, dict(transfer.meta))
+    return band_of_coeffs(int(transfer.data.shape[-1]), "transfer coefficients per vertex")
 
 
 def _write(path: Path, img, exposure, tonemap, overwrite: bool) -> None:
@@ -93,22 +80,30 @@ def _write(path: Path, img, exposure, tonemap, overwrite: bool) -> None:
         write_image(path, img, overwrite=overwrite)
 
 
+def _linear_composite(panels: list[np.ndarray], gap: int = 4) -> np.ndarray:
+    """Float panels ``[H, W, 3]`` side by side with NaN gaps (linear, for EXR)."""
+    h = panels[0].shape[0]
+    sep = np.full((h, gap, 3), np.nan, np.float32)
+    parts = []
+    for i, p in enumerate(panels):
+        parts += ([sep] if i else []) + [p.astype(np.float32)]
+    return np.concatenate(parts, 1)
+
+
 def run(args) -> int:
     from ..lighting.spec import load_light
-    from ..render import (Camera, Renderer, RenderUnavailable, auto_exposure, error_heatmap, error_map,
-                          side_by_side)
-    from ..relight import diffuse_transfer
+    from ..render import (Camera, PRTScene, Renderer, RenderUnavailable, auto_exposure, check_codec_file,
+                          error_heatmap, error_map, psnr, side_by_side)
     from ..transfer import Transfer
 
     out = Path(args.output)
     ext = out.suffix.lower()
     if ext not in (".png",) + EXTS_FLOAT:
         raise ValueError(f"output {str(out)!r}; accepted extensions: .png, {', '.join(EXTS_FLOAT)}")
-    outputs = [out] + ([Path(args.compare)] if args.compare else [])
-    if args.compare and not args.codec_file:
-        raise ValueError("--compare needs --codec-file (it compares the codec's render with the uncompressed one)")
-    if args.compare and Path(args.compare).suffix.lower() != ".png":
-        raise ValueError(f"--compare {args.compare!r}; accepted: a .png path")
+    cmp_png = Path(args.compare) if args.compare else None
+    if cmp_png is not None and cmp_png.suffix.lower() != ".png":
+        raise ValueError(f"--compare {args.compare!r}; accepted: a .png path (the linear EXR goes next to it)")
+    outputs = [out] + ([cmp_png, cmp_png.with_suffix(".exr")] if cmp_png else [])
     for o in outputs:
         if o.exists() and not args.overwrite:
             raise FileExistsError(f"output {str(o)!r} exists; pass --overwrite to replace it")
@@ -119,42 +114,59 @@ def run(args) -> int:
             raise ValueError(f"--exposure {args.exposure!r}; accepted: a number of stops or 'auto'") from None
 
     transfer = Transfer.load(args.transfer)
-    if transfer.kind != "diffuse":
-        raise ValueError(f"{args.transfer!r} holds {transfer.kind!r} transfer; `prt render` handles 'diffuse' "
-                         "(glossy/MRT need a view direction per vertex: not implemented here yet)")
-    light = load_light(args.light, bands=_bands(transfer))
-    ref = diffuse_transfer(transfer, light)  # [V, C] float64, Sloan 2002: L_out = t_p · l
-    rad = ref
+    scene = PRTScene(transfer)  # refuses kinds it cannot relight, naming the accepted ones
+    codec = enc = None
     if args.codec_file:
-        rad = diffuse_transfer(_decode_codec_file(args.codec_file, transfer), light)
-
+        codec, enc = check_codec_file(args.codec_file, scene)
+    light = load_light(args.light, bands=_bands(transfer))
     mesh = transfer.mesh
     cam = Camera.fit(mesh, azimuth=args.azimuth, elevation=args.elevation, fov=args.fov,
                      projection="orthographic" if args.orthographic else "perspective",
                      aspect=args.width / args.height)
+    view = scene.view(cam.eye)  # per-vertex view weights (None for diffuse)
+    rs = dict(background=args.background, supersample=args.supersample)
     try:
         with Renderer(args.width, args.height) as r:
-            img, mask = r.render_radiance(mesh, rad, cam, background=args.background, supersample=args.supersample)
-            ref_img = None
-            if args.compare:
-                ref_img, _ = r.render_radiance(mesh, ref, cam, background=args.background,
-                                               supersample=args.supersample)
+            def draw(decode, c, e):
+                if decode == "glsl":
+                    return r.render(mesh, scene.decoder(light, view, c, e), cam, **rs)
+                return r.render_radiance(mesh, scene.cpu_radiance(light, view, c, e), cam, **rs)
+
+            img, mask = draw(args.decode, codec, enc)
+            ref_img = draw("cpu", None, None)[0] if cmp_png else None
+            other = draw("cpu" if args.decode == "glsl" else "glsl", codec, enc) if args.validate else None
     except RenderUnavailable as e:
         print(f"prt render: error: {e}", file=sys.stderr)
         return 3
     base = ref_img if ref_img is not None else img
     ev = auto_exposure(base, mask) if args.exposure == "auto" else float(args.exposure)
     _write(out, img, ev, args.tonemap, args.overwrite)
-    print(f"wrote {out} ({args.width}x{args.height}, {int(mask.sum())} covered pixels, "
-          f"radiance range [{float(img[mask].min()) if mask.any() else 0:.4g}, "
+    what = f"{transfer.kind} transfer" + (f", codec {codec.codec_name}" if codec is not None else "")
+    print(f"wrote {out} ({args.width}x{args.height}, {what}, decoded by {args.decode}, {int(mask.sum())} covered "
+          f"pixels, radiance range [{float(img[mask].min()) if mask.any() else 0:.4g}, "
           f"{float(img[mask].max()) if mask.any() else 0:.4g}], exposure {ev:+.2f} EV)")
-    if args.compare:
+    status = 0
+    if other is not None:
+        o_img, o_mask = other
+        same = bool(np.array_equal(mask, o_mask))
+        db = psnr(img, o_img, mask & o_mask) if (mask & o_mask).any() else float("nan")
+        ok = same and db >= VALIDATE_DB
+        print(f"GLSL vs CPU: {db:.1f} dB (same coverage: {'yes' if same else 'NO'}; threshold {VALIDATE_DB:.0f} dB) "
+              f"-> {'ok' if ok else 'FAILED'}")
+        status = 0 if ok else 1
+    if cmp_png is not None:
         e = error_map(img, ref_img, mask, kind="rel")
         vmax = float(np.percentile(e[mask], 99.0)) if mask.any() else 0.0
         vmax = vmax if vmax > 0 else 1.0
         heat = error_heatmap(img, ref_img, mask, kind="rel", vmax=vmax)
-        side_by_side([ref_img, img, heat], ["uncompressed", Path(args.codec_file).name,
+        label = (Path(args.codec_file).name if codec is not None else "uncompressed") + f" ({args.decode})"
+        db = psnr(img, ref_img, mask) if mask.any() else float("nan")
+        side_by_side([ref_img, img, heat], ["uncompressed (cpu)", f"{label}, {db:.1f} dB",
                                             f"relative error (0..{vmax:.3g})"],
-                     exposure=[ev, ev, 0.0], path=args.compare)
-        print(f"wrote {args.compare}")
-    return 0
+                     exposure=[ev, ev, 0.0], path=cmp_png)
+        abserr = np.nan_to_num(error_map(img, ref_img, mask, kind="abs"), nan=0.0).astype(np.float32)
+        _write(cmp_png.with_suffix(".exr"), _linear_composite([ref_img, img, np.repeat(abserr[:, :, None], 3, 2)]),
+               ev, args.tonemap, args.overwrite)
+        print(f"wrote {cmp_png} and {cmp_png.with_suffix('.exr')} (linear: reference | render | |error|), "
+              f"PSNR vs uncompressed {db:.1f} dB")
+    return status
