@@ -317,7 +317,8 @@ def run_benchmark(cfg: dict, resume: bool = True, progress: bool = True, log: Ca
     }
     if cfg["render"]["enabled"]:
         try:
-            results["renders"] = render_best(run_dir, records, ev, lights[0], views[0], cams[0], cfg["render"])
+            rendered = render_best(run_dir, records, ev, lights[0], views[0], cams[0], cfg["render"])
+            results["renders"], results["glsl"] = rendered["images"], rendered["glsl"]  # GLSL vs CPU per codec
         except Exception as e:  # rendering must not lose a finished benchmark; say why
             log(f"[bench] renders skipped: {type(e).__name__}: {e}")
             results["render_error"] = f"{type(e).__name__}: {e}"
