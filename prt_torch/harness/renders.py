@@ -3,6 +3,13 @@
 For the first light and view: the uncompressed result and, for each codec, its best setting
 (highest PSNR), relit from the encoding the run saved (``records/<setting_id>.prt``, the
 project's codec file — no refitting), side by side with an |error| heat map.
+
+Every run also re-validates the GLSL decoders (prt_torch.render.glsl): each best setting is
+rendered decoded in the vertex shader and as the CPU engine's per-vertex radiance
+(``codec.relight``) with the same camera, and the PSNR of the GLSL image against the CPU image
+(same coverage required) is recorded with the GLSL frame rate (per-light constants on the CPU,
+upload, draw, float read-back) next to the CPU relighting rate of the same setting measured by
+the run (``fps`` of its record).
 """
 from __future__ import annotations
 
@@ -14,8 +21,9 @@ import torch
 
 from .. import codecs, render
 from .evaluate import Evaluator
+from .timing import measure
 
-__all__ = ["render_best", "best_per_codec"]
+__all__ = ["render_best", "best_per_codec", "glsl_check"]
 
 
 def best_per_codec(records: list[dict]) -> dict[str, dict]:
@@ -27,12 +35,29 @@ def best_per_codec(records: list[dict]) -> dict[str, dict]:
     return best
 
 
+def glsl_check(rd, scene, light: torch.Tensor, cam, codec=None, enc=None, repeats: int = 5) -> dict:
+    """GLSL vs CPU decode of one setting: ``{psnr_db, same_mask, max_abs, glsl_fps, glsl_spread}``
+    (``psnr_db`` None when the images are identical, i.e. infinite), or ``{error}`` when the
+    codec has no GLSL decoder or the shader fails."""
+    try:
+        c = render.glsl_vs_cpu(rd, scene, light, cam, codec, enc)
+        view = scene.view(cam.eye)
+        t = measure(lambda: rd.render(scene.mesh, scene.decoder(light, view, codec, enc), cam), repeats=repeats, warmup=1)
+    except (ValueError, TypeError) as e:
+        return {"error": f"{type(e).__name__}: {e}"}
+    return {"psnr_db": None if math.isinf(c.psnr_db) else float(c.psnr_db), "same_mask": c.same_mask,
+            "max_abs": c.max_abs, "glsl_fps": 1.0 / t.median, "glsl_spread": t.spread}
+
+
 def render_best(run_dir: Path, records: list[dict], ev: Evaluator, light: torch.Tensor, view: Any,
-                eye: torch.Tensor, opts: dict) -> list[str]:
+                eye: torch.Tensor, opts: dict) -> dict:
     """Render the uncompressed result and the best setting of each codec under ``light``
     (SH ``[C, n²]``) seen from ``eye [3]`` (``view``: its per-vertex weights); ``opts`` is the
-    config's ``render`` section (width, height). Returns the composites' paths relative to
-    ``run_dir``."""
+    config's ``render`` section (width, height).
+
+    Returns ``{"images": [composite paths relative to run_dir], "glsl": {codec name: {setting_id,
+    psnr_db (GLSL vs CPU, None = identical), same_mask, glsl_fps, cpu_fps, ...}, "uncompressed":
+    {...}}}`` — the GLSL decoders re-validated against the CPU engine in every run."""
     out_dir = Path(run_dir) / "renders"
     out_dir.mkdir(parents=True, exist_ok=True)
     mesh = ev.transfer.mesh
@@ -45,12 +70,15 @@ def render_best(run_dir: Path, records: list[dict], ev: Evaluator, light: torch.
     cam = render.Camera(eye=eye.numpy(), target=center.numpy(), fov=fov, near=max(1e-3, dist - 1.5 * radius), far=dist + 1.5 * radius)
     Lm = ev.light_matrix(light)
     paths = []
+    glsl: dict[str, dict] = {}
+    scene = render.PRTScene(ev.transfer)
     with render.Renderer(opts["width"], opts["height"]) as rd:
         img_ref, mask = rd.render_radiance(mesh, ref, camera=cam)
         expo = render.auto_exposure(img_ref, mask)  # stops, shared by every panel
         render.save_png(out_dir / "uncompressed.png", img_ref, exposure=expo)
         render.save_exr(out_dir / "uncompressed.exr", img_ref)
         vmax = float(max(1e-12, abs(img_ref[mask]).max())) * 0.1 if mask.any() else None
+        glsl["uncompressed"] = glsl_check(rd, scene, light, cam)
         for name, x in sorted(best_per_codec(records).items()):
             codec, enc = codecs.load(Path(run_dir) / "records" / f"{x['setting_id']}.prt")
             out = ev.finish(codec.relight(enc, Lm, view=view)).clamp_min(0)
@@ -61,4 +89,7 @@ def render_best(run_dir: Path, records: list[dict], ev: Evaluator, light: torch.
                                 ["uncompressed", f"{name} ({x['psnr_lights_db']:.1f} dB)", "|error| (10% of peak = top)"],
                                 exposure=[expo, expo, 0.0], path=p)
             paths.append(f"renders/{p.name}")
-    return paths
+            g = glsl_check(rd, scene, light, cam, codec, enc)
+            g.update(setting_id=x["setting_id"], cpu_fps=x.get("fps"))
+            glsl[name] = g
+    return {"images": paths, "glsl": glsl}
