@@ -329,3 +329,39 @@ def test_unreachable_target_says_the_best_found(tmp_path):
     t = json.loads((run_dir / "results.json").read_text())["target"]
     assert not t["met"] and "the best was" in t["note"] and "dB by" in t["note"]
     assert "Not met" in (run_dir / "report.md").read_text()
+
+
+# ------------------------------------------------------------------ ablations
+
+def test_transfer_ablation_lands_in_one_combined_report(tmp_path):
+    from prt_torch.harness.run import run_benchmark
+
+    cfg = dict(TINY, name="abl", render={"enabled": False}, metrics={"random_lights": 8, "repeats": 1, "warmup": 0},
+               scene={"name": "occluder_over_plane", "size": "small"},
+               transfer={"type": "diffuse", "bands": 3, "samples": 32, "shadows": ["never", "always"]},
+               codecs=[{"type": "pca", "vectors": [1, 2]}], ablation="transfer.shadows")
+    c = hc.load_config(str(write_cfg(tmp_path, cfg)))
+    assert len(hc.expand_runs(c)) == 1  # the ablation key is not a run sweep
+    run_dir = run_benchmark(c, progress=False, log=lambda s: None)
+    assert sorted(p.name for p in (tmp_path / "reports").iterdir()) == ["abl"]
+    res = json.loads((run_dir / "results.json").read_text())
+    a = res["ablation"]
+    assert a["key"] == "transfer.shadows" and a["reference_value"] == "always" and len(res["records"]) == 4
+    assert {(r["ablation"]["value"], r["params"]["vectors"]) for r in res["records"]} == {(v, k) for v in ("never", "always") for k in (1, 2)}
+    by = {p["value"]: p for p in a["per_value"]}
+    assert by["always"]["model_psnr_db"] == float("inf") and by["never"]["rays_traced"] == 0 and by["always"]["rays_traced"] > 0
+    assert math.isfinite(by["never"]["model_psnr_db"]) and by["never"]["model_psnr_db"] < 40  # shadows matter on this scene
+    md = (run_dir / "report.md").read_text()
+    assert "## Ablation" in md and "**shadows=never**" in md and (run_dir / "ablation.png").is_file()
+
+
+def test_codec_parameter_ablation_tags_records(tmp_path):
+    from prt_torch.harness.run import run_benchmark
+
+    cfg = dict(TINY, name="abl2", render={"enabled": False}, metrics={"random_lights": 8, "repeats": 1, "warmup": 0},
+               codecs=[{"type": "cpca", "method": ["static", "iterative"], "clusters": 4, "vectors": 2}], ablation="codecs.0.method")
+    res = json.loads((run_benchmark(hc.load_config(str(write_cfg(tmp_path, cfg))), progress=False, log=lambda s: None)
+                      / "results.json").read_text())
+    assert sorted(r["ablation"]["value"] for r in res["records"]) == ["iterative", "static"]
+    with pytest.raises(ValueError, match="ablation"):
+        hc.load_config(str(write_cfg(tmp_path, dict(cfg, ablation="codecs.0.clusters"))))  # not a list

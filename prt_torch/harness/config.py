@@ -61,6 +61,8 @@ DEFAULTS: dict[str, Any] = {
                "by": "bytes"},
     "cache_dir": "cache",
     "output_dir": "reports",
+    "ablation": None,  # a swept key (transfer.<param> or codecs.<i>.<param>): one combined report
+    "ablation_reference": None,  # the value the others are compared with (default: the last)
 }
 
 #: Keys whose value is itself a list (so a list there is not a sweep).
@@ -74,7 +76,11 @@ RENAMED = {"name": "type", "kind": "type", "model": "type"}
 
 def builtin_configs() -> list[str]:
     """Names of the configs shipped with the package (``prt_torch/configs/*.yaml``)."""
-    return sorted(p.name[:-5] for p in (resources.files("prt_torch") / "configs").iterdir() if p.name.endswith(".yaml"))
+    root = resources.files("prt_torch") / "configs"
+    out = [p.name[:-5] for p in root.iterdir() if p.name.endswith(".yaml")]
+    for sub in (p for p in root.iterdir() if p.is_dir() and not p.name.startswith("_")):
+        out += [f"{sub.name}/{p.name[:-5]}" for p in sub.iterdir() if p.name.endswith(".yaml")]
+    return sorted(out)
 
 
 def resolve_config_path(name_or_path: str | None) -> Path:
@@ -202,6 +208,9 @@ CONSTRAINTS: dict[str, list] = {
     "target.metric": [Options("psnr_lights_db", "psnr_lights_min_db", "psnr_random_db", "psnr_random_closed_form_db")],
     "cache_dir": [Predicate(lambda v: isinstance(v, str) and v, "a directory path")],
     "output_dir": [Predicate(lambda v: isinstance(v, str) and v, "a directory path")],
+    "ablation": [Predicate(lambda v: isinstance(v, str) and v.startswith(("transfer.", "codecs.")),
+                           "a swept key: transfer.<param> or codecs.<i>.<param>"), None],
+    "ablation_reference": [Predicate(lambda v: isinstance(v, (str, int, float, bool)), "one of the ablation's values"), None],
 }
 
 
@@ -265,6 +274,7 @@ def validate(cfg: dict) -> None:
                 _check_value(key, node[k])
 
     walk(cfg, DEFAULTS, "")
+    _validate_ablation(cfg)
     _validate_transfer(cfg)
     _validate_lights(cfg["lights"])
     _validate_codecs(cfg["codecs"])
@@ -287,6 +297,24 @@ def validate(cfg: dict) -> None:
     for s in scene_names:
         if s not in list_builtins() and not Path(str(s)).is_file():
             raise FileNotFoundError(f"config key 'scene.name' = {s!r}: not a built-in scene ({list_builtins()}) nor an existing mesh file")
+
+
+def _validate_ablation(cfg: dict) -> None:
+    key = cfg.get("ablation")
+    if not key:
+        return
+    node: Any = cfg
+    try:
+        for k in key.split("."):
+            node = node[int(k)] if isinstance(node, list) else node[k]
+    except (KeyError, IndexError, ValueError, TypeError):
+        raise ValueError(f"config key 'ablation' = {key!r} names no key of this config; accepted: a key holding the "
+                         "list of values to sweep, e.g. transfer.bands or codecs.0.method") from None
+    if not isinstance(node, list) or len(node) < 2:
+        raise ValueError(f"config key 'ablation' = {key!r}: {key} = {node!r}; accepted: a list of at least two values")
+    ref = cfg.get("ablation_reference")
+    if ref is not None and ref not in node:
+        raise ValueError(f"config key 'ablation_reference' = {ref!r}; accepted: one of {node}")
 
 
 def _validate_transfer(cfg: dict) -> None:
@@ -379,7 +407,7 @@ def _sweep_paths(node: Any, schema: Any, path: str) -> list[str]:
 
 def expand_runs(cfg: dict) -> list[dict]:
     """Expand list values at scalar schema keys into one config per grid point."""
-    paths = _sweep_paths(cfg, DEFAULTS, "")
+    paths = [p for p in _sweep_paths(cfg, DEFAULTS, "") if p != cfg.get("ablation")]
     if not paths:
         return [cfg]
 

@@ -183,6 +183,71 @@ def scene_required(results: dict) -> list[str]:
     return ["## What the scene required", ""] + [f"- {x}" for x in items] + [""]
 
 
+def _setting(x: dict) -> str:
+    """A record's parameters, led by its ablation value when it has one."""
+    a = x.get("ablation")
+    lead = f"**{a['key'].split('.')[-1]}={a['value']}**" if a and a["key"].startswith("transfer.") else ""
+    return ", ".join(p for p in (lead, _params(x["params"])) if p)
+
+
+def ablation_lines(res: dict) -> list[str]:
+    """Markdown of an ablation: the swept key, and for a transfer key what each value costs and
+    how far its uncompressed result is from the reference value's."""
+    a = res["ablation"]
+    out = ["## Ablation", "", f"Swept `{a['key']}` over {a['values']}; every record carries `ablation: {{key, value}}`.", ""]
+    if a["key"].startswith("transfer."):
+        out += [f"Model PSNR: the uncompressed radiance of each value against that of `{a['key'].split('.')[-1]}="
+                f"{a['reference_value']}` (the reference), over the same lights × views — what the modelling choice costs "
+                "before any compression.", "",
+                "| value | transfer | B/vertex (raw) | precompute (s) | rays | model PSNR (dB) | uncompressed Mvert/s | decisions |",
+                "|---|---|---|---|---|---|---|---|"]
+        for p in a["per_value"]:
+            d = p.get("decisions", {})
+            dec = "; ".join(str(d[k]) for k in ("shadow_decision", "bounce_decision") if k in d)
+            out.append(f"| {p['value']} | {tuple(p['transfer_shape'])} | {p['raw_bytes_per_vertex']:.0f} | {_fmt(p['precompute_s'])} | "
+                       f"{p['rays_traced']} | {_fmt(p['model_psnr_db'])} | {p['uncompressed']['vertices_per_s'] / 1e6:.2f} | {dec or '–'} |")
+        out.append("")
+    return out
+
+
+def plot_ablation(res: dict, out_dir: Path) -> Path:
+    """ablation.png: PSNR (each codec setting, and for transfer keys the model PSNR) and
+    relighting rate across the swept values."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    a = res["ablation"]
+    labels = [str(v) for v in a["values"]]
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10.0, 4.2))
+    lines: dict[str, dict] = {}
+    for r in res["records"]:
+        if r.get("ablation") is None:
+            continue
+        name = f"{r['codec']} {_params(r['params'])}" if a["key"].startswith("transfer.") else r["codec"]
+        lines.setdefault(name, {})[str(r["ablation"]["value"])] = r
+    for name, by in sorted(lines.items()):
+        xs = [i for i, v in enumerate(labels) if v in by]
+        ax1.plot(xs, [min(by[labels[i]]["psnr_lights_db"], 120.0) for i in xs], marker="o", label=name)
+        ax2.plot(xs, [by[labels[i]]["fps"] for i in xs], marker="o", label=name)
+    if a["key"].startswith("transfer."):
+        ax1.plot(range(len(labels)), [min(p["model_psnr_db"], 120.0) for p in a["per_value"]], color="black", linestyle="--",
+                 marker="s", label=f"uncompressed vs {a['reference_value']}")
+        ax2.plot(range(len(labels)), [p["uncompressed"]["fps"] for p in a["per_value"]], color="black", linestyle="--",
+                 marker="s", label="uncompressed")
+    for ax, yl in ((ax1, "PSNR (dB)"), (ax2, "relighting frames/s")):
+        ax.set_xticks(range(len(labels)), labels)
+        ax.set_xlabel(a["key"])
+        ax.set_ylabel(yl)
+        ax.grid(True, alpha=0.3)
+    ax2.set_yscale("log")
+    ax1.legend(fontsize=7)
+    fig.suptitle(f"Ablation of {a['key']}")
+    fig.tight_layout()
+    return _save_figure(fig, out_dir / "ablation.png")
+
+
 def target_lines(t: dict) -> list[str]:
     """Markdown of a cross-family target search (harness.target.search_families)."""
     what = "fewest bytes per vertex" if t["by"] == "bytes" else "highest relighting rate"
@@ -237,7 +302,7 @@ def markdown(results: dict, figures: list[str], renders: list[str]) -> str:
     ]
     for x in sorted(r["records"], key=lambda x: (x["codec"], x["bytes_per_vertex"])):
         lines.append(
-            f"| {x['codec']} | {_params(x['params'])} | {x['bytes_per_vertex']:.1f} | {_fmt(x['compression_ratio'])} | {_fmt(x['se'])} | "
+            f"| {x['codec']} | {_setting(x)} | {x['bytes_per_vertex']:.1f} | {_fmt(x['compression_ratio'])} | {_fmt(x['se'])} | "
             f"{_fmt(x['relative_se'])} | {_fmt(x['psnr_random_db'])} | {_fmt(x['psnr_lights_db'])} | {x['vertices_per_s'] / 1e6:.2f} "
             f"(±{x['relight_spread']:.0%}) | {_fmt(x['fps'])} | {_fmt(x['speedup_vs_uncompressed'])}× | {_fmt(x['encode_s'])} |"
         )
@@ -245,6 +310,8 @@ def markdown(results: dict, figures: list[str], renders: list[str]) -> str:
     front = [r["records"][i]["setting_id"] for i in pareto_front(pts)]
     lines += ["", f"Pareto front (PSNR vs fps): {', '.join(front)}.", ""]
     lines += scene_required(r)
+    if r.get("ablation"):
+        lines += ablation_lines(r)
     t = r.get("target")
     if t and t.get("mode") == "families":
         lines += target_lines(t)
@@ -287,6 +354,8 @@ def write_outputs(run_dir: Path, results: dict, log: Callable[[str], None] = pri
     io.atomic_write_json(run_dir / "results.json", results)
     write_csv(run_dir / "results.csv", results["records"])
     figs = [p.name for p in plot_results([results], run_dir)]
+    if results.get("ablation"):
+        figs.append(plot_ablation(results, run_dir).name)
     renders = list(results.get("renders") or [])
     io.atomic_write_text(run_dir / "report.md", markdown(results, figs, renders))
     log(f"[bench] wrote {run_dir}/report.md, results.json, results.csv, {', '.join(figs)}" + (f", {len(renders)} render(s)" if renders else ""))

@@ -26,6 +26,7 @@ Layers flow one way: run → renders, run → report; report never fits, relight
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
 import math
 import time
@@ -229,15 +230,37 @@ def measure_uncompressed(ev: Evaluator, lights: list[torch.Tensor], views: list[
                   "bytes_total": ev.raw_bytes, "bytes_per_vertex": ev.raw_bytes / ev.V}
 
 
-def run_benchmark(cfg: dict, resume: bool = True, progress: bool = True, log: Callable[[str], None] = print) -> Path:
-    """Run one benchmark config end to end; returns the run directory reports/<name>/."""
+@dataclasses.dataclass
+class RunState:
+    """One transfer's evaluation inside a run: what the target search, the renders and the
+    results need (``run_setting(setting) -> record`` evaluates, saves and caches a setting)."""
+
+    cfg: dict
+    mesh: Any
+    mem: dict
+    tr: Transfer
+    tinfo: dict
+    ev: Evaluator
+    lights: list
+    cams: torch.Tensor
+    views: list
+    refs: dict
+    uncompressed: dict
+    records: list
+    run_setting: Callable[[dict], dict]
+
+
+def evaluate_run(cfg: dict, run_dir: Path, resume: bool = True, progress: bool = True,
+                 log: Callable[[str], None] = print, label: str | None = None) -> RunState:
+    """Transfer (cached), lights, views, the uncompressed reference, and every codec setting of
+    ``cfg`` evaluated (or restored from ``run_dir/records``). ``label`` prefixes the setting ids
+    (an ablation's value, so that its settings do not collide with another value's)."""
     from ..lighting import load_light
 
-    cfg = copy.deepcopy(cfg)
-    run_dir = Path(cfg["output_dir"]) / cfg["name"]
     rec_dir = run_dir / "records"
     mesh, mem = load_mesh_within_budget(cfg)
-    log(f"[bench] {cfg['name']}: scene {mesh.name} ({mesh.num_vertices} vertices), transfer {cfg['transfer']['type']}")
+    log(f"[bench] {cfg['name']}{f' [{label}]' if label else ''}: scene {mesh.name} ({mesh.num_vertices} vertices), "
+        f"transfer {cfg['transfer']['type']}")
     tr, tinfo = compute_transfer(cfg, mesh, Path(cfg["cache_dir"]), progress=progress)
     log(f"[bench] transfer {tuple(tr.data.shape)} ({tinfo['cache']}, {tinfo['seconds']:.1f} s)")
     ev = Evaluator(tr)
@@ -260,6 +283,8 @@ def run_benchmark(cfg: dict, resume: bool = True, progress: bool = True, log: Ca
             return done[key]
         rec, codec, enc = evaluate_setting(ev, s, lights, views, cfg, ref_cache)
         rec["key"] = key
+        if label:
+            rec["setting_id"] = f"{label}-{rec['setting_id']}"
         rec["speedup_vs_uncompressed"] = uncompressed["relight_s"] / rec["relight_s"] if rec["relight_s"] > 0 else float("inf")
         codec.save(rec_dir / f"{rec['setting_id']}.prt", enc, overwrite=True)  # before the record: a record implies its encoding
         io.atomic_write_json(rec_dir / f"{rec['setting_id']}.json", rec)
@@ -283,6 +308,42 @@ def run_benchmark(cfg: dict, resume: bool = True, progress: bool = True, log: Ca
                 f"{rec['vertices_per_s'] / 1e6:.2f} Mvert/s, encode {rec['encode_s']:.2f} s")
     if skipped:
         log(f"[bench] resumed: {skipped} finished setting(s) reused from {rec_dir}")
+    return RunState(cfg, mesh, mem, tr, tinfo, ev, lights, cams, views, ref_cache, uncompressed, records, run_setting)
+
+
+def _results(cfg: dict, st: RunState, records: list[dict], target: dict | None) -> dict:
+    """The results dict (results.json) of a run whose context is ``st``."""
+    ev, tr = st.ev, st.tr
+    return {
+        "format": "prt_torch.results",
+        "results_version": RESULTS_VERSION,
+        "name": cfg["name"],
+        "config": {k: v for k, v in cfg.items() if not k.startswith("_")},
+        "config_source": cfg.get("_source"),
+        "machine": machine_info(),
+        "scene": {"name": st.mesh.name, "vertices": st.mesh.num_vertices, "faces": st.mesh.num_faces, "hash": st.mesh.content_hash()},
+        "transfer": {"kind": tr.kind, "shape": list(tr.data.shape), "matrix_shape": list(ev.matrix_shape) if ev.matrix_shape else None,
+                     "n_in": ev.n_in, "raw_bytes": ev.raw_bytes, "cache": st.tinfo, "meta": io.jsonable(tr.meta)},
+        "memory_estimate": st.mem,
+        "lights": [str(s) for s in cfg["lights"]],
+        "views": st.cams.tolist() if ev.needs_view else [],
+        "uncompressed": st.uncompressed,
+        "target": target,
+        "records": records,
+        "renders": [],
+    }
+
+
+def run_benchmark(cfg: dict, resume: bool = True, progress: bool = True, log: Callable[[str], None] = print) -> Path:
+    """Run one benchmark config end to end; returns the run directory reports/<name>/.
+    A config with ``ablation`` set runs every value of that key into one combined report
+    (:func:`run_ablation`)."""
+    cfg = copy.deepcopy(cfg)
+    if cfg.get("ablation"):
+        return run_ablation(cfg, resume=resume, progress=progress, log=log)
+    run_dir = Path(cfg["output_dir"]) / cfg["name"]
+    st = evaluate_run(cfg, run_dir, resume, progress, log)
+    ev, lights, views, cams, records, run_setting = st.ev, st.lights, st.views, st.cams, list(st.records), st.run_setting
 
     target = None
     if cfg["target"].get("psnr") is not None:
@@ -297,24 +358,7 @@ def run_benchmark(cfg: dict, resume: bool = True, progress: bool = True, log: Ca
             if r["setting_id"] not in {x["setting_id"] for x in records}:
                 records.append(r)
 
-    results = {
-        "format": "prt_torch.results",
-        "results_version": RESULTS_VERSION,
-        "name": cfg["name"],
-        "config": {k: v for k, v in cfg.items() if not k.startswith("_")},
-        "config_source": cfg.get("_source"),
-        "machine": machine_info(),
-        "scene": {"name": mesh.name, "vertices": mesh.num_vertices, "faces": mesh.num_faces, "hash": mesh.content_hash()},
-        "transfer": {"kind": tr.kind, "shape": list(tr.data.shape), "matrix_shape": list(ev.matrix_shape) if ev.matrix_shape else None,
-                     "n_in": ev.n_in, "raw_bytes": ev.raw_bytes, "cache": tinfo, "meta": io.jsonable(tr.meta)},
-        "memory_estimate": mem,
-        "lights": [str(s) for s in cfg["lights"]],
-        "views": cams.tolist() if ev.needs_view else [],
-        "uncompressed": uncompressed,
-        "target": target,
-        "records": records,
-        "renders": [],
-    }
+    results = _results(cfg, st, records, target)
     if cfg["render"]["enabled"]:
         try:
             rendered = render_best(run_dir, records, ev, lights[0], views[0], cams[0], cfg["render"])
@@ -322,5 +366,79 @@ def run_benchmark(cfg: dict, resume: bool = True, progress: bool = True, log: Ca
         except Exception as e:  # rendering must not lose a finished benchmark; say why
             log(f"[bench] renders skipped: {type(e).__name__}: {e}")
             results["render_error"] = f"{type(e).__name__}: {e}"
+    write_outputs(run_dir, results, log=log)
+    return run_dir
+
+
+# --------------------------------------------------------------------------- ablations
+
+def _get(cfg: dict, path: str) -> Any:
+    node: Any = cfg
+    for k in path.split("."):
+        node = node[int(k)] if isinstance(node, list) else node[k]
+    return node
+
+
+def _put(cfg: dict, path: str, value: Any) -> None:
+    ks = path.split(".")
+    node: Any = cfg
+    for k in ks[:-1]:
+        node = node[int(k)] if isinstance(node, list) else node[k]
+    if isinstance(node, list):
+        node[int(ks[-1])] = value
+    else:
+        node[ks[-1]] = value
+
+
+def run_ablation(cfg: dict, resume: bool = True, progress: bool = True, log: Callable[[str], None] = print) -> Path:
+    """One modelling choice swept, one combined report (reports/<name>/).
+
+    ``cfg['ablation']`` names the swept key — ``transfer.<param>`` (bands, samples, shadows,
+    bounces, M, ...: one transfer per value) or ``codecs.<i>.<param>`` (e.g. CPCA's method: one
+    transfer, the codec entry's grid). Every record carries ``ablation: {key, value}``. For a
+    transfer key, each value's uncompressed radiance is also compared with the reference
+    value's (``ablation_reference``, default the last value, the richest model): ``model_psnr_db``
+    is what the modelling choice itself costs in accuracy, next to its precompute time, bytes
+    and relighting rate."""
+    key = cfg["ablation"]
+    values = _get(cfg, key)
+    run_dir = Path(cfg["output_dir"]) / cfg["name"]
+    leaf = key.split(".")[-1]
+    per_value: list[dict] = []
+    records: list[dict] = []
+    if key.startswith("transfer."):
+        ref_value = values[-1] if cfg.get("ablation_reference") is None else cfg["ablation_reference"]
+        states = []
+        for v in values:
+            sub = copy.deepcopy(cfg)
+            _put(sub, key, v)
+            st = evaluate_run(sub, run_dir, resume, progress, log, label=f"{leaf}{v}")
+            for r in st.records:
+                r["ablation"] = {"key": key, "value": v}
+            records += st.records
+            states.append((v, st))
+        ref = next(st for v, st in states if v == ref_value)
+        for v, st in states:
+            psnrs = [psnr_vs_reference(ref.refs[k], st.refs[k]) for k in ref.refs]
+            finite = [p for p in psnrs if math.isfinite(p)]
+            m = st.tr.meta
+            per_value.append({
+                "value": v, "transfer_shape": list(st.tr.data.shape), "raw_bytes_per_vertex": st.ev.raw_bytes / st.ev.V,
+                "precompute_s": float(m.get("seconds", 0.0)), "rays_traced": int(m.get("rays_traced", 0)),
+                "model_psnr_db": (sum(finite) / len(finite)) if len(finite) == len(psnrs) else float("inf"),
+                "uncompressed": st.uncompressed,
+                "decisions": {k: m[k] for k in ("shadow_decision", "bounces_used", "bounce_decision", "auto") if k in m},
+            })
+        base = ref
+    else:
+        base = evaluate_run(cfg, run_dir, resume, progress, log)
+        param = key.split(".")[-1]
+        for r in base.records:
+            r["ablation"] = {"key": key, "value": r["params"].get(param)}
+        records = list(base.records)
+        per_value = [{"value": v} for v in values]
+        ref_value = None
+    results = _results(cfg, base, records, None)
+    results["ablation"] = {"key": key, "values": values, "reference_value": ref_value, "per_value": per_value}
     write_outputs(run_dir, results, log=log)
     return run_dir
