@@ -16,9 +16,10 @@ from .base import (CODEC_FORMAT_VERSION, Codec, ConvergenceError, ConvergenceWar
                    describe, get, load, register)
 from .affine import AffineCodec, label_dtype
 from .cpca import CPCA, MRTPCA, PCA, VQ, CPCAAdaptive, CPCAIterative, CPCAStatic
+from .gaussian import GaussianCodec
 
 __all__ = [
-    "Codec", "Encoded", "AffineCodec", "VQ", "PCA", "CPCA", "CPCAStatic", "CPCAIterative", "CPCAAdaptive", "MRTPCA",
+    "Codec", "Encoded", "AffineCodec", "VQ", "PCA", "CPCA", "CPCAStatic", "CPCAIterative", "CPCAAdaptive", "MRTPCA", "GaussianCodec",
     "register", "get", "available", "describe", "load", "label_dtype",
     "ConvergenceWarning", "ConvergenceError", "CODEC_FORMAT_VERSION",
 ]

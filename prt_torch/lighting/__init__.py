@@ -32,6 +32,7 @@ from .irradiance import (
 )
 from .builtin import builtin_environment, list_builtin_environments
 from .spec import load_light, parse_light_spec
+from .prefilter import PrefilteredEnvironment, prefilter_environment, spherical_gaussian
 
 __all__ = [
     "LAYOUTS", "FACE_NAMES", "detect_layout", "layout_shape", "pixel_to_dir", "dir_to_pixel", "pixel_directions",
@@ -42,4 +43,5 @@ __all__ = [
     "irradiance", "irradiance_coeffs", "irradiance_constants", "irradiance_map", "irradiance_matrix",
     "irradiance_polynomial", "irradiance_quadratic",
     "builtin_environment", "list_builtin_environments", "load_light", "parse_light_spec",
+    "PrefilteredEnvironment", "prefilter_environment", "spherical_gaussian",
 ]
