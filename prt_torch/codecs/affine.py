@@ -314,17 +314,10 @@ class AffineCodec(Codec):
         consts = self.cluster_constants(light, n)  # [K, J, n_out, C]
         K, J, _, C = consts.shape
         W = self._weights1(enc, n)  # [P, J]
-        if K == 1 and isinstance(view, tuple):
-            return _taps_relight(consts[0], W, view)
-        if isinstance(view, tuple) and self.means_ is not None:
-            # sparse view (MRT tents): gather only the k tapped outputs of each point's cluster
-            # constants — k·J loads per point instead of n_out·J multiply-adds, then one bmm.
-            idx, w = view
-            lab = self.labels_of(enc)
-            rows = ((lab[:, None] * J + torch.arange(J, device=lab.device)) * n_out)[:, :, None] + idx[:, None, :]
-            vals = consts.reshape(-1, C)[rows.reshape(P, -1)]  # [P, J·k, C]
-            cw = (W[:, :, None] * w[:, None, :]).reshape(P, 1, -1)  # [P, 1, J·k]
-            return torch.bmm(cw, vals).squeeze(1)
+        if isinstance(view, tuple):
+            # sparse view (MRT tents): gather only the k tapped rows of each point's cluster
+            # constants (one fused gather-sum), then J multiply-adds per colour
+            return _taps_relight(consts, W, view, None if K == 1 else self.labels_of(enc))
         F = n_out * C
         if K == 1:
             out = W @ consts[0].reshape(J, F)
@@ -402,18 +395,21 @@ class AffineCodec(Codec):
 # kernels used by relight and by the fits
 # ----------------------------------------------------------------------------------------
 
-def _taps_relight(consts: torch.Tensor, W: torch.Tensor, view: tuple) -> torch.Tensor:
-    """Lehtinen & Kautz 2003 eq. (13): ``Σ_{j∈taps} g_j(v) Σ_k w_{p,k} (A_k l)_j``.
+def _taps_relight(consts: torch.Tensor, W: torch.Tensor, view: tuple, labels: torch.Tensor | None = None) -> torch.Tensor:
+    """Lehtinen & Kautz 2003 eq. (13), per cluster: ``Σ_{j∈taps} g_j(v) Σ_i w_{p,i} (M_i^{k(p)} l)_j``.
 
-    ``consts [J, n_out, C]`` = A_k·l computed once per light; ``W [P, J]``; taps
-    ``(idx [P, t], g [P, t])``. Per point: the t tapped rows of the constants, weighted by g
-    (one fused gather-and-sum, ``embedding_bag``), then J multiply-adds per colour with the
-    point's weights — t·J + J per colour (4K + K for the tent basis). Returns ``[P, C]``.
+    ``consts [K, J, n_out, C]`` = M_i^k·l computed once per light (Sloan 2003 §6); ``W [P, J]``;
+    taps ``(idx [P, t], g [P, t])``; ``labels [P]`` the cluster of each point (None: K = 1).
+    Per point: the t tapped rows of its cluster's constants, weighted by g (one fused
+    gather-and-sum over a ``[K·n_out, J·C]`` table, ``embedding_bag``), then J multiply-adds per
+    colour with the point's weights — t·J·C loads and J·C multiply-adds, whatever n_out.
+    Returns ``[P, C]``.
     """
     idx, g = view
-    J, n_out, C = consts.shape
-    Lk = consts.permute(1, 0, 2).reshape(n_out, J * C).contiguous()  # row j: (A_k l)_j for all k
-    s = torch.nn.functional.embedding_bag(idx, Lk, per_sample_weights=g, mode="sum").view(-1, J, C)
+    K, J, n_out, C = consts.shape
+    table = consts.permute(0, 2, 1, 3).reshape(K * n_out, J * C).contiguous()  # row (k, o): (M_i^k l)_o for all i
+    rows = idx if labels is None else labels[:, None] * n_out + idx
+    s = torch.nn.functional.embedding_bag(rows, table, per_sample_weights=g, mode="sum").view(-1, J, C)
     return torch.einsum("pj,pjc->pc", W, s)
 
 
