@@ -65,7 +65,6 @@ def test_overrides_and_sweep_expansion(tmp_path):
         ("codecs.1.vectors=-1", "vectors"),
         ("codecs.0.colour=1", "colour"),
         ("transfer.type=spectral", "transfer.type"),
-        ("transfer.type=transport", "transfer.type"),  # not relightable by the harness
         ("lights.1={type: spotlight}", "lights.1"),
         ("views.count=0", "views.count"),
         ("render.width=0", "render.width"),
@@ -365,3 +364,23 @@ def test_codec_parameter_ablation_tags_records(tmp_path):
     assert sorted(r["ablation"]["value"] for r in res["records"]) == ["iterative", "static"]
     with pytest.raises(ValueError, match="ablation"):
         hc.load_config(str(write_cfg(tmp_path, dict(cfg, ablation="codecs.0.clusters"))))  # not a list
+
+
+def test_paired_timing_gives_the_work_ratio_and_reports_contention():
+    """measure_paired: a peer doing exactly twice the test's work comes out ~2x slower (the
+    estimator, not a speed goal), and the contention record names its evidence."""
+    from prt_torch.harness.timing import measure_paired
+
+    a = torch.randn(256, 256, dtype=torch.float64)
+
+    def work(k):
+        for _ in range(k):
+            a @ a
+
+    p = measure_paired(lambda: work(4), lambda: work(8), repeats=9, warmup=1, min_sample_time=0.01)
+    assert 1.3 < p.ratio.median < 3.0
+    c = p.contention
+    assert {"involuntary_switches_per_s", "cpu_over_wall", "load_average_1min", "trusted", "why_not"} <= set(c)
+    assert c["trusted"] == (not c["why_not"])
+    strict = measure_paired(lambda: work(1), lambda: work(1), repeats=3, max_switch_rate=-1.0)
+    assert not strict.contention["trusted"] and "context switches" in strict.contention["why_not"][0]

@@ -30,7 +30,8 @@ __all__ = ["write_outputs", "pareto_front", "plot_results", "CSV_COLUMNS", "load
 CSV_COLUMNS = [
     "setting_id", "codec", "params", "encode_s", "bytes_total", "bytes_per_vertex", "compression_ratio",
     "sloan_cost_floats", "se", "relative_se", "psnr_random_db", "psnr_random_closed_form_db", "psnr_lights_db",
-    "psnr_lights_min_db", "relight_s", "relight_spread", "vertices_per_s", "fps", "speedup_vs_uncompressed",
+    "psnr_lights_min_db", "relight_s", "relight_spread", "vertices_per_s", "fps", "speedup_vs_uncompressed", "speedup_spread",
+    "timing_trusted",
 ]
 
 
@@ -183,6 +184,25 @@ def scene_required(results: dict) -> list[str]:
     return ["## What the scene required", ""] + [f"- {x}" for x in items] + [""]
 
 
+def _speedup(x: dict) -> str:
+    """'2.41× (±8%)', with ⚠ when the paired timing saw contention (harness.timing.measure_paired)."""
+    out = f"{_fmt(x['speedup_vs_uncompressed'])}×"
+    if "speedup_spread" in x:
+        out += f" (±{x['speedup_spread']:.0%})"
+    if x.get("timing_trusted") is False:
+        out += " ⚠"
+    return out
+
+
+def _contention_note(records: list[dict]) -> list[str]:
+    bad = [r for r in records if r.get("timing_trusted") is False]
+    if not bad:
+        return []
+    why = sorted({w for r in bad for w in r.get("contention", {}).get("why_not", [])})[:4]
+    return [f"⚠ {len(bad)} of {len(records)} settings were timed under contention ({'; '.join(why)}): their rates are "
+            "not to be trusted; their speed-ups, paired ratios of interleaved samples, are more robust but wider.", ""]
+
+
 def _setting(x: dict) -> str:
     """A record's parameters, led by its ablation value when it has one."""
     a = x.get("ablation")
@@ -295,7 +315,8 @@ def markdown(results: dict, figures: list[str], renders: list[str]) -> str:
         "",
         "PSNR (lights) is against the uncompressed result, averaged over lights × views; PSNR (rand) is MRT eq. 11 over "
         "random norm-1 lighting vectors (Monte Carlo; closed form in results.json). Throughput: median of repeats after "
-        "warm-up; spread = IQR/median; speed-up relative to uncompressed relighting measured in the same run.",
+        "warm-up; spread = IQR/median; speed-up = median of paired ratios, each codec sample timed back to back with one "
+        "of the uncompressed relighting (interleaved, same run), with its spread; ⚠ = measured under contention.",
         "",
         "| codec | setting | B/vertex | ratio | SE | rel. SE | PSNR rand (dB) | PSNR lights (dB) | Mvert/s | fps | vs uncompr. | encode (s) |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|",
@@ -304,11 +325,12 @@ def markdown(results: dict, figures: list[str], renders: list[str]) -> str:
         lines.append(
             f"| {x['codec']} | {_setting(x)} | {x['bytes_per_vertex']:.1f} | {_fmt(x['compression_ratio'])} | {_fmt(x['se'])} | "
             f"{_fmt(x['relative_se'])} | {_fmt(x['psnr_random_db'])} | {_fmt(x['psnr_lights_db'])} | {x['vertices_per_s'] / 1e6:.2f} "
-            f"(±{x['relight_spread']:.0%}) | {_fmt(x['fps'])} | {_fmt(x['speedup_vs_uncompressed'])}× | {_fmt(x['encode_s'])} |"
+            f"(±{x['relight_spread']:.0%}) | {_fmt(x['fps'])} | {_speedup(x)} | {_fmt(x['encode_s'])} |"
         )
     pts = [(min(x["psnr_lights_db"], 1e9), x["fps"]) for x in r["records"]]
     front = [r["records"][i]["setting_id"] for i in pareto_front(pts)]
     lines += ["", f"Pareto front (PSNR vs fps): {', '.join(front)}.", ""]
+    lines += _contention_note(r["records"])
     lines += scene_required(r)
     if r.get("ablation"):
         lines += ablation_lines(r)

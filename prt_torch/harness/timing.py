@@ -20,7 +20,7 @@ import torch
 
 from .._checks import check_int
 
-__all__ = ["Timing", "measure", "machine_info"]
+__all__ = ["Timing", "Paired", "measure", "measure_paired", "machine_info"]
 
 
 @dataclass
@@ -77,6 +77,95 @@ def measure(fn: Callable[[], Any], repeats: int = 5, warmup: int = 1, min_time: 
     times.sort()
     q = statistics.quantiles(times, n=4) if len(times) >= 2 else [times[0]] * 3
     return Timing(statistics.median(times), q[0], q[2], times[0], times[-1], len(times), warmup, inner)
+
+
+@dataclass
+class Paired:
+    """Interleaved timing of a function and its peer (:func:`measure_paired`).
+
+    ``test`` / ``peer``: per-call :class:`Timing` of each; ``ratio``: the distribution of the
+    per-repeat ratio peer/test (how many times faster ``test`` is), each ratio taken from two
+    samples measured back to back, so a slow-down of the machine hits both sides of a ratio;
+    ``contention``: what the process saw while timing — involuntary context switches per
+    second (the scheduler handing our cores to other processes), CPU time over wall time, and
+    the load average — and ``trusted``, false when the figures should not be believed."""
+
+    test: Timing
+    peer: Timing
+    ratio: Timing
+    contention: dict
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"test": self.test.as_dict(), "peer": self.peer.as_dict(), "ratio": self.ratio.as_dict(),
+                "contention": dict(self.contention)}
+
+
+def _quantiles(xs: list[float], warmup: int, inner: int = 1) -> Timing:
+    xs = sorted(xs)
+    q = statistics.quantiles(xs, n=4) if len(xs) >= 2 else [xs[0]] * 3
+    return Timing(statistics.median(xs), q[0], q[2], xs[0], xs[-1], len(xs), warmup, inner)
+
+
+def _inner(fn: Callable[[], Any], min_sample_time: float) -> int:
+    t0 = time.perf_counter()
+    fn()
+    first = time.perf_counter() - t0
+    return 1 if first <= 0 or first >= min_sample_time else min(10_000, int(math.ceil(min_sample_time / first)))
+
+
+def measure_paired(test: Callable[[], Any], peer: Callable[[], Any], repeats: int = 7, warmup: int = 1,
+                   min_sample_time: float = 0.02, max_switch_rate: float = 50.0, max_spread: float = 0.5) -> Paired:
+    """Time ``test`` and its ``peer`` interleaved: every repeat times one sample of each, back to
+    back (the order alternating), and the speed-up is the median of the per-repeat ratios
+    peer/test — a paired estimate that a busy machine slows down on both sides at once.
+
+    Contention is measured, not assumed: involuntary context switches per second of timing
+    (``getrusage``), process CPU time over wall time, and the 1-minute load average against
+    the core count. ``trusted`` is false when switches exceed ``max_switch_rate`` per second,
+    the load exceeds the cores, or the ratio's relative spread exceeds ``max_spread``."""
+    import resource
+
+    repeats = check_int("repeats", repeats, 1)
+    warmup = check_int("warmup", warmup, 0)
+    for _ in range(warmup):
+        test()
+        peer()
+    n_t, n_p = _inner(test, min_sample_time), _inner(peer, min_sample_time)
+    tt: list[float] = []
+    tp: list[float] = []
+    ratios: list[float] = []
+    r0 = resource.getrusage(resource.RUSAGE_SELF)
+    c0, w0 = time.process_time(), time.perf_counter()
+    for i in range(repeats):
+        pair = {}
+        for name in (("test", "peer") if i % 2 == 0 else ("peer", "test")):
+            fn, n = (test, n_t) if name == "test" else (peer, n_p)
+            t0 = time.perf_counter()
+            for _ in range(n):
+                fn()
+            pair[name] = (time.perf_counter() - t0) / n
+        tt.append(pair["test"])
+        tp.append(pair["peer"])
+        ratios.append(pair["peer"] / pair["test"] if pair["test"] > 0 else float("inf"))
+    wall, cpu = time.perf_counter() - w0, time.process_time() - c0
+    r1 = resource.getrusage(resource.RUSAGE_SELF)
+    switches = (r1.ru_nivcsw - r0.ru_nivcsw) / max(wall, 1e-9)
+    try:
+        load = os.getloadavg()[0]
+    except OSError:  # pragma: no cover
+        load = float("nan")
+    cores = os.cpu_count() or 1
+    ratio = _quantiles(ratios, warmup)
+    reasons = []
+    if switches > max_switch_rate:
+        reasons.append(f"{switches:.0f} involuntary context switches/s (> {max_switch_rate:g})")
+    if load > cores:
+        reasons.append(f"load average {load:.1f} > {cores} cores")
+    if ratio.spread > max_spread:
+        reasons.append(f"speed-up spread {ratio.spread:.0%} (> {max_spread:.0%})")
+    contention = {"involuntary_switches_per_s": switches, "cpu_over_wall": cpu / max(wall, 1e-9), "load_average_1min": load,
+                  "cores": cores, "torch_threads": torch.get_num_threads(), "trusted": not reasons, "why_not": reasons}
+    return Paired(_quantiles(tt, warmup, n_t), _quantiles(tp, warmup, n_p), ratio, contention)
 
 
 def _cpu_name() -> str:
