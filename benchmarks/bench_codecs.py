@@ -41,7 +41,7 @@ import torch  # noqa: E402
 
 from prt_torch import codecs  # noqa: E402
 from prt_torch.codecs.synthetic import tent_taps_random, transfer_like  # noqa: E402
-from prt_torch.harness.timing import machine_info, measure  # noqa: E402
+from prt_torch.harness.timing import io_bound_fn, machine_info, measure  # noqa: E402
 from prt_torch.io import atomic_write_json, atomic_write_text  # noqa: E402
 
 OUT = Path(__file__).resolve().parent.parent / "reports" / "benchmarks"
@@ -136,10 +136,7 @@ def relight_row(label, codec, enc, light, view, uncompressed, repeats, P):
     tb = copy_bound(nbytes, repeats)
     out = codec.relight(enc, light, view=view)
     obytes = out.numel() * out.element_size()
-    src = torch.empty(nbytes, dtype=torch.uint8).random_(0, 255)
-    dst = torch.empty_like(src)
-    obuf = torch.empty(obytes, dtype=torch.uint8)
-    tio = measure(lambda: (dst.copy_(src), obuf.fill_(1)), repeats=repeats, warmup=2).median
+    tio = measure(io_bound_fn(nbytes, obytes), repeats=repeats, warmup=2).median
     tu = measure(uncompressed, repeats=repeats, warmup=2).median
     return {"codec": label, "view": "none" if view is None else ("taps" if isinstance(view, tuple) else "dense"),
             "relight_s": t.median, "spread": t.spread, "vertices_per_s": P / t.median, "bytes_read": nbytes,

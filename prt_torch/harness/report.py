@@ -30,7 +30,7 @@ __all__ = ["write_outputs", "pareto_front", "plot_results", "CSV_COLUMNS", "load
 CSV_COLUMNS = [
     "setting_id", "codec", "params", "encode_s", "bytes_total", "bytes_per_vertex", "compression_ratio",
     "sloan_cost_floats", "se", "relative_se", "psnr_random_db", "psnr_random_closed_form_db", "psnr_lights_db",
-    "psnr_lights_min_db", "relight_s", "relight_spread", "vertices_per_s", "fps", "speedup_vs_uncompressed", "speedup_spread",
+    "psnr_lights_min_db", "relight_s", "relight_spread", "vertices_per_s", "fps", "speedup_vs_uncompressed", "speedup_spread", "fraction_of_bound",
     "timing_trusted",
 ]
 
@@ -184,6 +184,11 @@ def scene_required(results: dict) -> list[str]:
     return ["## What the scene required", ""] + [f"- {x}" for x in items] + [""]
 
 
+def _bound(x: dict) -> str:
+    """Fraction of the setting's own memory-bandwidth bound (1 = at the bound)."""
+    return f"{x['fraction_of_bound']:.2f}" if "fraction_of_bound" in x else "–"
+
+
 def _speedup(x: dict) -> str:
     """'2.41× (±8%)', with ⚠ when the paired timing saw contention (harness.timing.measure_paired)."""
     out = f"{_fmt(x['speedup_vs_uncompressed'])}×"
@@ -316,16 +321,19 @@ def markdown(results: dict, figures: list[str], renders: list[str]) -> str:
         "PSNR (lights) is against the uncompressed result, averaged over lights × views; PSNR (rand) is MRT eq. 11 over "
         "random norm-1 lighting vectors (Monte Carlo; closed form in results.json). Throughput: median of repeats after "
         "warm-up; spread = IQR/median; speed-up = median of paired ratios, each codec sample timed back to back with one "
-        "of the uncompressed relighting (interleaved, same run), with its spread; ⚠ = measured under contention.",
+        "of the uncompressed relighting (interleaved, same run), with its spread; ⚠ = measured under contention. "
+        "Of bound: the time of reading the encoded data (and the view) once and writing the output once (a copy_ and a fill_ "
+        "of those byte counts, paired in the same run) over the relighting time — 1 is the memory-bandwidth bound.",
         "",
-        "| codec | setting | B/vertex | ratio | SE | rel. SE | PSNR rand (dB) | PSNR lights (dB) | Mvert/s | fps | vs uncompr. | encode (s) |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| codec | setting | B/vertex | ratio | SE | rel. SE | PSNR rand (dB) | PSNR lights (dB) | Mvert/s | fps | of bound "
+        "| vs uncompr. | encode (s) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for x in sorted(r["records"], key=lambda x: (x["codec"], x["bytes_per_vertex"])):
         lines.append(
             f"| {x['codec']} | {_setting(x)} | {x['bytes_per_vertex']:.1f} | {_fmt(x['compression_ratio'])} | {_fmt(x['se'])} | "
             f"{_fmt(x['relative_se'])} | {_fmt(x['psnr_random_db'])} | {_fmt(x['psnr_lights_db'])} | {x['vertices_per_s'] / 1e6:.2f} "
-            f"(±{x['relight_spread']:.0%}) | {_fmt(x['fps'])} | {_speedup(x)} | {_fmt(x['encode_s'])} |"
+            f"(±{x['relight_spread']:.0%}) | {_fmt(x['fps'])} | {_bound(x)} | {_speedup(x)} | {_fmt(x['encode_s'])} |"
         )
     pts = [(min(x["psnr_lights_db"], 1e9), x["fps"]) for x in r["records"]]
     front = [r["records"][i]["setting_id"] for i in pareto_front(pts)]

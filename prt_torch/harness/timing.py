@@ -20,7 +20,7 @@ import torch
 
 from .._checks import check_int
 
-__all__ = ["Timing", "Paired", "measure", "measure_paired", "machine_info"]
+__all__ = ["Timing", "Paired", "measure", "measure_paired", "io_bound_fn", "machine_info"]
 
 
 @dataclass
@@ -166,6 +166,16 @@ def measure_paired(test: Callable[[], Any], peer: Callable[[], Any], repeats: in
     contention = {"involuntary_switches_per_s": switches, "cpu_over_wall": cpu / max(wall, 1e-9), "load_average_1min": load,
                   "cores": cores, "torch_threads": torch.get_num_threads(), "trusted": not reasons, "why_not": reasons}
     return Paired(_quantiles(tt, warmup, n_t), _quantiles(tp, warmup, n_p), ratio, contention)
+
+
+def io_bound_fn(bytes_read: int, bytes_written: int) -> Callable[[], Any]:
+    """The memory-bandwidth bound of a kernel that reads ``bytes_read`` once and writes
+    ``bytes_written`` once: a plain ``copy_`` of that many bytes plus a ``fill_`` of the output's
+    bytes (buffers allocated here, outside the timed call)."""
+    src = torch.empty(max(1, int(bytes_read)), dtype=torch.uint8).random_(0, 255)
+    dst = torch.empty_like(src)
+    out = torch.empty(max(1, int(bytes_written)), dtype=torch.uint8)
+    return lambda: (dst.copy_(src), out.fill_(1))
 
 
 def _cpu_name() -> str:
