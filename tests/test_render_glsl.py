@@ -37,6 +37,8 @@ from prt_torch.scene import load_scene
 from prt_torch.transfer import Transfer, unshadowed_transfer
 
 MIN_DB = 50.0
+# short fits on purpose (the decode is under test): a not-converged clustering is still a codec
+pytestmark = pytest.mark.filterwarnings("ignore::prt_torch.codecs.base.ConvergenceWarning")
 
 
 @pytest.fixture(scope="module")
@@ -83,23 +85,28 @@ def camera(mesh):
     return Camera.fit(mesh, azimuth=30, elevation=20, fov=40, aspect=80 / 64)
 
 
-CODECS = {
-    "vq": dict(clusters=12),
+CODECS = {  # small, cheap fits: the decode is under test, not the fit
+    "vq": dict(clusters=12, max_iter=5),
     "pca": dict(vectors=6),
-    "cpca": dict(clusters=6, vectors=4),
-    "cpca_adaptive": dict(clusters=6, vectors=4),
+    "cpca": dict(clusters=6, vectors=4, max_iter=3, iterations=2),
+    "cpca_adaptive": dict(clusters=6, vectors=4, max_iter=3, iterations=2, adapt_iters=1),
     "mrt_pca": dict(vectors=8),
 }
+_FITS: dict = {}
 PATHS = ([(k, None) for k in ("diffuse", "diffuse_rgb", "glossy", "mrt")]
          + [(k, c) for k in ("diffuse", "diffuse_rgb", "glossy", "mrt") for c in ("vq", "pca", "cpca", "cpca_adaptive")]
          + [("mrt", "mrt_pca"), ("glossy", "mrt_pca")])
 
 
 def _fit(tr, name):
-    sc = PRTScene(tr)
-    X = tr.signal()
-    codec = codecs.get(name, **CODECS[name]).fit(X, matrix_shape=sc.matrix_shape)
-    return sc, codec, codec.encode(X)
+    """(PRTScene, fitted codec, encoding), fitted once per transfer and codec in this module."""
+    key = (id(tr), name)
+    if key not in _FITS:
+        sc = PRTScene(tr)
+        X = tr.signal()
+        codec = codecs.get(name, **CODECS[name]).fit(X, matrix_shape=sc.matrix_shape)
+        _FITS[key] = (tr, sc, codec, codec.encode(X))
+    return _FITS[key][1:]
 
 
 def _check(c, min_pixels=1000):
@@ -234,3 +241,35 @@ def test_decoder_input_checks(transfers, light):
         TransferDecoder(sc.rows, torch.zeros(4, 3), "dense", torch.zeros(sc.V, 9))
     with pytest.raises(ValueError, match="vertices"):
         TransferDecoder(sc.rows, L, "dense", torch.zeros(sc.V, 9)).inputs(sc.V + 1)
+
+
+def test_per_vertex_data_stays_resident_and_set_light_relights(renderer, transfers, camera):
+    """Decoders mark per-vertex data read-only: the renderer uploads it once and keeps it while
+    the decoder lives; a new light changes only the uniform / the constants table, and gives the
+    image a freshly made decoder gives."""
+    sc, cd, enc = _fit(transfers["glossy"], "cpca")
+    view = sc.view(camera.eye)
+    l1, l2 = load_light("sky", bands=4), load_light("directional:direction=1,0,1;intensity=2", bands=4)
+    for codec, e in ((None, None), (cd, enc)):
+        dec = sc.decoder(l1, view, codec, e)
+        renderer.render(sc.mesh, dec, camera)
+        n_resident = len(renderer._resident)
+        assert n_resident >= 3  # albedo, view weights, transfer / cluster ids and weights
+        dec.set_light(sc.light_matrix(l2))
+        a, m = renderer.render(sc.mesh, dec, camera)
+        assert len(renderer._resident) == n_resident  # nothing new uploaded to stay
+        b, _ = renderer.render(sc.mesh, sc.decoder(l2, view, codec, e), camera)
+        assert np.array_equal(a[m], b[m])
+        c = glsl_vs_cpu(renderer, sc, l2, camera, codec, e)
+        assert psnr(a, c.cpu, m) > MIN_DB
+        del dec
+    import gc
+
+    gc.collect()
+    renderer.render_radiance(sc.mesh, np.ones((sc.V, 3)), camera)  # purges data whose arrays died
+    assert len(renderer._resident) == 0
+    user = np.ones((sc.V, 3), np.float32)
+    from prt_torch.render import TransferDecoder as TD
+
+    TD(sc.rows[:, :1, :], sc.light_matrix(l1), "none", None, user)
+    assert user.flags.writeable  # the caller's arrays are copied, never frozen

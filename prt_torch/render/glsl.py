@@ -67,6 +67,14 @@ def _np(name: str, x, dtype) -> np.ndarray:
     return a
 
 
+def _frozen(a: np.ndarray) -> np.ndarray:
+    """A read-only private copy: the renderer keeps read-only arrays resident on the GPU (uploaded
+    once, for as long as the array lives)."""
+    b = np.array(a, copy=True, order="C")
+    b.setflags(write=False)
+    return b
+
+
 _FRAGMENT = """
 in vec3 v_radiance;
 void main() {
@@ -194,7 +202,7 @@ def _view_inputs(mode: str, view, V: int, n_out: int) -> tuple[dict, dict]:
         y = _np("view weights", view, np.float32)
         if y.shape != (V, n_out):
             raise ValueError(f"dense view weights have shape {y.shape}; accepted: [V, n_out] = [{V}, {n_out}]")
-        return {}, {"view_weights": TableData(y.reshape(-1), "buffer")}
+        return {}, {"view_weights": TableData(_frozen(y.reshape(-1)), "buffer")}
     if not (isinstance(view, (tuple, list)) and len(view) == 2):
         raise TypeError("view mode 'taps' needs view = (idx int [V, k], w float [V, k]) with k ≤ 4")
     idx = _np("tap indices", view[0], np.int64)
@@ -206,17 +214,17 @@ def _view_inputs(mode: str, view, V: int, n_out: int) -> tuple[dict, dict]:
     pad = 4 - idx.shape[1]
     idx4 = np.pad(idx, ((0, 0), (0, pad))).astype(np.int32)
     w4 = np.pad(w, ((0, 0), (0, pad))).astype(np.float32)
-    return {"tap_idx": idx4, "tap_w": w4}, {}
+    return {"tap_idx": _frozen(idx4), "tap_w": _frozen(w4)}, {}
 
 
 def _albedo(albedo, V: int) -> np.ndarray:
     if albedo is None:
-        return np.ones((V, 3), np.float32)
+        return _frozen(np.ones((V, 3), np.float32))
     a = _np("albedo", albedo, np.float32)
     a = a[:, None] if a.ndim == 1 else a
     if a.shape[0] != V or a.shape[1] not in (1, 3):
         raise ValueError(f"albedo has shape {a.shape}; accepted: [V, 3] or [V] with V={V}")
-    return np.ascontiguousarray(np.broadcast_to(a, (V, 3)))
+    return _frozen(np.broadcast_to(a, (V, 3)))
 
 
 def _light3(light, n_in: int) -> np.ndarray:
@@ -254,15 +262,22 @@ class TransferDecoder(Decoder):
         n4 = -(-n_in // 4)
         Tp = np.zeros((V, R, n4 * 4), np.float32)
         Tp[:, :, :n_in] = T
-        L = _light3(light, n_in)
-        Lp = np.zeros((3, n4 * 4), np.float32)
-        Lp[:, :n_in] = L.T
+        Tp = Tp.reshape(-1, 4)
+        Tp.setflags(write=False)  # resident on the GPU: uploaded once
         self.program = transfer_program(mode, R, n_in)
-        self.num_vertices = V
+        self.num_vertices, self.n_in = V, n_in
         self._attrs = {"albedo": _albedo(albedo, V)}
         va, vt = _view_inputs(mode, view, V, R)
         self._attrs.update(va)
-        self._tables = {"transfer": TableData(Tp.reshape(-1, 4), "buffer"), **vt}
+        self._tables = {"transfer": TableData(Tp, "buffer"), **vt}
+        self.set_light(light)
+
+    def set_light(self, light) -> None:
+        """A new light ``[n_in, C]``: only the uniform changes (per-light work: none on the CPU)."""
+        L = _light3(light, self.n_in)
+        n4 = -(-self.n_in // 4)
+        Lp = np.zeros((3, n4 * 4), np.float32)
+        Lp[:, :self.n_in] = L.T
         self._uniforms = {"light": Lp.reshape(3 * n4, 4)}
 
     def inputs(self, num_vertices: int) -> DrawInputs:
@@ -314,19 +329,38 @@ class AffineDecoder(Decoder):
             weights_in = "attributes" if m4 <= MAX_WEIGHT_ATTRIBUTES else "buffer"
         self.program = affine_program(mode, n_out, J, bool(centred), n, weights_in)
         self.num_vertices = V
-        tab = np.ones((K * J * n_out, 4), np.float32)
-        tab[:, :3] = np.broadcast_to(c.reshape(-1, C), (K * J * n_out, 3))
-        self._attrs = {"cluster": lab.astype(np.int32), "albedo": _albedo(albedo, V)}
-        self._tables = {"consts": TableData(tab, "buffer")}
+        self.consts_shape = (K, J, n_out)
+        self._codec = None
+        self._attrs = {"cluster": _frozen(lab.astype(np.int32)), "albedo": _albedo(albedo, V)}
+        self._tables = {}
         if n and weights_in == "attributes":
             Wp = np.zeros((V, m4 * 4), np.float32)
             Wp[:, :n] = W
-            self._attrs.update({f"w{i}": np.ascontiguousarray(Wp[:, 4 * i:4 * i + 4]) for i in range(m4)})
+            self._attrs.update({f"w{i}": _frozen(Wp[:, 4 * i:4 * i + 4]) for i in range(m4)})
         elif n:
-            self._tables["weights"] = TableData(W.reshape(-1), "buffer")
+            self._tables["weights"] = TableData(_frozen(W.reshape(-1)), "buffer")
         va, vt = _view_inputs(mode, view, V, n_out)
         self._attrs.update(va)
         self._tables.update(vt)
+        self.set_consts(c)
+
+    def set_consts(self, consts) -> None:
+        """New per-cluster constants ``[K, J, n_out, C]`` (a new light): the only per-light data
+        (uploaded on the next draw; the per-vertex data stays resident)."""
+        c = _np("consts", consts, np.float32)
+        if c.ndim != 4 or c.shape[:3] != self.consts_shape or c.shape[3] not in (1, 3):
+            raise ValueError(f"consts have shape {c.shape}; accepted: [{', '.join(map(str, self.consts_shape))}, 1 or 3]")
+        rows = int(np.prod(self.consts_shape))
+        tab = np.ones((rows, 4), np.float32)
+        tab[:, :3] = np.broadcast_to(c.reshape(rows, -1), (rows, 3))
+        self._tables["consts"] = TableData(tab, "buffer")
+
+    def set_light(self, light) -> None:
+        """A new light ``[n_in, C]`` for a decoder made by :meth:`from_codec`: the per-cluster
+        constants ``codec.cluster_constants(light)`` (K·J·n_out dot products on the CPU)."""
+        if self._codec is None:
+            raise ValueError("set_light needs a decoder made by from_codec; use set_consts")
+        self.set_consts(self._codec.cluster_constants(light))
 
     @classmethod
     def from_codec(cls, codec, enc, light, mode: str = "none", view=None, albedo=None, **kw) -> "AffineDecoder":
@@ -334,8 +368,10 @@ class AffineDecoder(Decoder):
         encoding: labels and weights from the codes (``labels_of``, ``coeffs_of``), constants
         ``codec.cluster_constants(light [n_in, C])`` — K·J·n_out dot products, per light."""
         consts = codec.cluster_constants(light)
-        return cls(codec.labels_of(enc), codec.coeffs_of(enc), consts, centred=codec.means_ is not None, mode=mode,
-                   view=view, albedo=albedo, **kw)
+        dec = cls(codec.labels_of(enc), codec.coeffs_of(enc), consts, centred=codec.means_ is not None, mode=mode,
+                  view=view, albedo=albedo, **kw)
+        dec._codec = codec
+        return dec
 
     def inputs(self, num_vertices: int) -> DrawInputs:
         if num_vertices != self.num_vertices:

@@ -13,11 +13,18 @@ both faces drawn unless ``cull_back``. A pixel is covered when its centre is ins
 (GL's rule), and its value is the perspective-correct barycentric interpolation of the vertex
 values at the pixel centre. ``supersample=s`` renders s×s samples per pixel and averages the
 *covered* samples (edges do not blend toward the background); the mask is "any sample covered".
+
+Resident data: a numpy array passed as an attribute or table that is READ-ONLY
+(``arr.flags.writeable`` False) is uploaded once and kept on the GPU for as long as the array
+lives (cached by identity through a weak reference), the way a real-time engine keeps static
+vertex data resident; writeable arrays (e.g. per-light constants) are uploaded on every draw.
+The GLSL decoders mark their per-vertex data read-only.
 """
 from __future__ import annotations
 
 import atexit
 import ctypes
+import weakref
 from typing import Any
 
 import numpy as np
@@ -106,6 +113,7 @@ class Renderer:
         self.height = check_int("height", height, 1)
         self.cull_back = bool(cull_back)
         self._programs: dict[ShaderProgram, GLProgram] = {}
+        self._resident: dict[int, tuple] = {}  # id(array) -> (weakref, kind, GL object)
         self._fbo = 0
         self._rbos: list[int] = []
         self._size: tuple[int, int] | None = None
@@ -131,6 +139,8 @@ class Renderer:
 
                 for p in self._programs.values():
                     p.delete()
+                for key in list(self._resident):
+                    self._drop_resident(GL, key)
                 self._free_fbo(GL)
             finally:
                 self._programs.clear()
@@ -176,6 +186,28 @@ class Renderer:
                                             f"(status 0x{int(status):04x}) on {self.info['renderer']}")
         self._size = (width, height)
 
+    # -- resident (read-only) data ----------------------------------------------------------
+    @staticmethod
+    def _is_static(obj) -> bool:
+        return isinstance(obj, np.ndarray) and not obj.flags.writeable
+
+    def _drop_resident(self, GL, key: int) -> None:
+        _, kind, obj = self._resident.pop(key)
+        if kind == "vbo":
+            GL.glDeleteBuffers(1, [obj])
+        else:
+            obj.delete()
+
+    def _purge_resident(self, GL) -> None:
+        for key in [k for k, (ref, _, _) in self._resident.items() if ref() is None]:
+            self._drop_resident(GL, key)
+
+    def _lookup(self, obj, kind: str):
+        hit = self._resident.get(id(obj))
+        if hit is not None and hit[0]() is obj and hit[1] == kind:
+            return hit[2]
+        return None
+
     def _program(self, spec: ShaderProgram) -> GLProgram:
         prog = self._programs.get(spec)
         if prog is None:
@@ -205,11 +237,13 @@ class Renderer:
         if self._closed:
             raise ValueError("this Renderer is closed; create a new one")
         arrays = []
+        origins = []
         nverts = None
         for a in program.layout:
             if a.name not in attributes:
                 raise ValueError(f"program {program.name!r} needs attribute {a.name!r}; got {sorted(attributes)}")
             x = attributes[a.name]
+            origins.append(x)
             x = np.asarray(x.detach().cpu().numpy() if hasattr(x, "detach") else x)
             x = np.ascontiguousarray(x.reshape(x.shape[0], -1), dtype=a.numpy_dtype)
             if x.shape[1] != a.components:
@@ -248,14 +282,24 @@ class Renderer:
             GL.glClearColor(0.0, 0.0, 0.0, 0.0)
             GL.glClearDepth(1.0)
             GL.glClear(GL.GL_COLOR_BUFFER_BIT | GL.GL_DEPTH_BUFFER_BIT)
+            self._purge_resident(GL)
             vao = int(GL.glGenVertexArrays(1))
             vbos = [int(x) for x in np.atleast_1d(GL.glGenBuffers(len(arrays) + 1))]
             textures: list = []
             try:
                 GL.glBindVertexArray(vao)
-                for loc, (a, x) in enumerate(zip(program.layout, arrays)):
-                    GL.glBindBuffer(GL.GL_ARRAY_BUFFER, vbos[loc])
-                    GL.glBufferData(GL.GL_ARRAY_BUFFER, x.nbytes, x, GL.GL_STATIC_DRAW)
+                for loc, (a, x, orig) in enumerate(zip(program.layout, arrays, origins)):
+                    vbo = self._lookup(orig, "vbo") if self._is_static(orig) else None
+                    if vbo is not None:
+                        GL.glBindBuffer(GL.GL_ARRAY_BUFFER, vbo)
+                    elif self._is_static(orig):  # upload once, keep while the array lives
+                        vbo = int(np.atleast_1d(GL.glGenBuffers(1))[0])
+                        GL.glBindBuffer(GL.GL_ARRAY_BUFFER, vbo)
+                        GL.glBufferData(GL.GL_ARRAY_BUFFER, x.nbytes, x, GL.GL_STATIC_DRAW)
+                        self._resident[id(orig)] = (weakref.ref(orig), "vbo", vbo)
+                    else:
+                        GL.glBindBuffer(GL.GL_ARRAY_BUFFER, vbos[loc])
+                        GL.glBufferData(GL.GL_ARRAY_BUFFER, x.nbytes, x, GL.GL_STATIC_DRAW)
                     GL.glEnableVertexAttribArray(loc)
                     if a.kind == "float":
                         GL.glVertexAttribPointer(loc, a.components, GL.GL_FLOAT, GL.GL_FALSE, 0, ctypes.c_void_p(0))
@@ -269,9 +313,18 @@ class Renderer:
                     prog.set_uniform(name, value)
                 # create every table first, then bind: creating one binds and unbinds it on the
                 # active unit, which would clear a table already bound there
+                bound = []
                 for name, table in (tables or {}).items():
-                    textures.append(FloatBuffer(table.data) if table.kind == "buffer" else FloatTexture(table.data))
-                for unit, (name, tex) in enumerate(zip((tables or {}).keys(), textures)):
+                    kind = "tbo" if table.kind == "buffer" else "tex"
+                    tex = self._lookup(table.data, kind) if self._is_static(table.data) else None
+                    if tex is None:
+                        tex = FloatBuffer(table.data) if table.kind == "buffer" else FloatTexture(table.data)
+                        if self._is_static(table.data):
+                            self._resident[id(table.data)] = (weakref.ref(table.data), kind, tex)
+                        else:
+                            textures.append(tex)  # deleted after the draw
+                    bound.append((name, tex))
+                for unit, (name, tex) in enumerate(bound):
                     tex.bind(unit)
                     prog.set_uniform(name, unit)
                 if idx.size:
