@@ -14,10 +14,9 @@ Implemented here:
   point of cluster k shares the representative M_k, so its exit radiance is the table entry
   M_k·l computed once per cluster).
 
-The CPCA decoder of a later issue follows the same pattern (Sloan 2003 eq. (3)/(4)): attributes
-``cluster`` (int) and the PCA weights w_p (float, split over ``vec4`` attributes ``w0, w1, ...``),
-a ``FloatBuffer`` holding per cluster the N'+1 precomputed vectors M_k^i·l (colour as RGB), and
-a vertex shader computing ``Σ_i w_p^i (M_k^i·l) + M_k^0·l``. See docs/render.md.
+The PRT decoders — uncompressed diffuse/glossy/MRT transfer and the piecewise-affine codecs
+(VQ, PCA, CPCA, MRT-PCA; Sloan 2003 §6.2, Lehtinen & Kautz 2003 eq. 13) — are in :mod:`.glsl`,
+built on these classes. See docs/render.md.
 """
 from __future__ import annotations
 
