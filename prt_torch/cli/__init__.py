@@ -11,7 +11,7 @@ import importlib
 import sys
 
 # Order here is the order in ``prt --help``.
-COMMANDS = ["bench", "precompute", "compress", "light", "info", "render", "plot"]
+COMMANDS = ["bench", "precompute", "compress", "light", "info", "render", "plot", "validate"]
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -16,11 +16,18 @@ gives L_out = ρ on an unoccluded vertex: t_00 = (ρ/π) · π · Y_00 = ρ/(2�
   vertices as one masked GEMM W[k,N] @ Y[N,n²]; or with cosine-weighted hemisphere samples
   t = (ρ/N) Σ_j V(p,s_j) y(s_j).
 * Interreflection, bounce b (course notes 2005, "Precomputation – Interreflections"):
-  t^b_p = (ρ_p/π) ∫ t^{b-1}_{q(s)} (1 − V(p,s)) max(n_p·s, 0) ds, with t^{b-1} at the first hit
-  q(s) interpolated from its triangle's vertices by barycentrics; t = Σ_b t^b. All bounces reuse
-  the hits of the shadow pass: they form a sparse matrix S [V,V] (S_pq = Σ_j w_j β_q(hit_j)), so
-  bounce b is one sparse product t̃^b = S (ρ ⊙ t̃^{b-1}). Hits on the back of a triangle
-  (the ray arrives from behind it) contribute nothing (one-sided surfaces are black behind).
+  t^b_p = (ρ_p/π) ∫ ρ_q t^{b-1}_{q(s)} (1 − V(p,s)) max(n_p·s, 0) ds with q(s) the first hit;
+  t = Σ_b t^b. The hit's t^{b-1}_q is taken (``bounce_points``) at the hit point itself over the
+  hit face's hemisphere (default 'hits': ``hit_samples`` rays from each hit, :class:`HitBounce`;
+  the hit's own deeper bounces read face-centroid tables x_f, themselves bounced by a sparse
+  face-to-face matrix), or — kept for comparison — from face-centroid tables ('faces'), the
+  face's corners ('corners'), or the course notes' interpolation of the hit triangle's *vertex*
+  values ('vertices': a sparse S [V,V], S_pq = Σ_j w_j β_q(hit_j), t̃^b = S (ρ ⊙ t̃^{b-1})). A
+  vertex value is an integral over the vertex normal's hemisphere, which differs from the hit
+  face's where the faces tilt away from the vertex normal: checked against Mitsuba 3
+  (docs/validate.md) the 'vertices' interpolation runs high there. Hits on the back of a
+  triangle (the ray arrives from behind it) contribute nothing (one-sided surfaces are black
+  behind). Every tracer offsets ray origins by :func:`offset_origins`.
 
 Internally ρ_p is kept out (t̃ = t/ρ_p per channel, exact: the bounce uses ρ_q of the *hit*
 vertices). A grey scene needs one channel; coloured albedo with bounces needs three (colour
@@ -30,6 +37,7 @@ by ``mesh.albedo`` at run time), or ``[V, 3, n²]`` with the albedo folded in.
 from __future__ import annotations
 
 import math
+import os
 import time
 from typing import Any
 
@@ -40,13 +48,18 @@ import torch
 from .._checks import check_choice, check_float, check_int
 from ..scene import Mesh, RayCaster, default_workers
 from ..sh import clamped_cosine, eval_sh, rotate_zonal
-from .base import RunOptions, Transfer
+from .base import RunOptions, Transfer, remove_state, run_chunks
 from .sampling import cosine_hemisphere, to_world, uniform_sphere
 
 __all__ = [
     "unshadowed_transfer",
     "transfer_at_points",
     "precompute_diffuse",
+    "face_points",
+    "face_transfer",
+    "hit_bounce",
+    "HitBounce",
+    "offset_origins",
     "probe_self_occlusion",
     "DiffuseSampler",
     "MAX_DIFFUSE_BANDS",
@@ -79,6 +92,18 @@ def unshadowed_transfer(normals: torch.Tensor, bands: int, albedo: torch.Tensor 
     return t * a[:, None] if a.ndim == 1 else a[:, :, None] * t[:, None, :]
 
 
+def offset_origins(points: Any, normals: Any, dirs: Any, eps: float) -> np.ndarray:
+    """Ray origins leaving surface points, ``p + eps·n + eps·d`` as float32 numpy ``[R,3]``
+    (per-ray ``points``, ``normals``, ``dirs``): the one self-intersection rule of every
+    transfer tracer (diffuse, glossy, MRT, the bounce's face and hit points; the rule of
+    :meth:`prt_torch.scene.RayCaster.prepare` for rays above the tangent plane). The step along
+    the ray matters at a vertex lying on *another* surface (a floor vertex where a wall stands,
+    a block's bottom edge on the floor): ``p + eps·n`` is still on that surface and every ray
+    would hit it at t = 0; moving along the ray leaves it on the side the ray goes to."""
+    o = np.asarray(points, np.float64) + eps * np.asarray(normals, np.float64) + eps * np.asarray(dirs, np.float64)
+    return o.astype(np.float32)
+
+
 class DiffuseSampler:
     """The direction set of one run, with SH values evaluated once where they are shared."""
 
@@ -102,18 +127,128 @@ class DiffuseSampler:
         sampling only directions above the tangent plane are traced and ``cos`` is the
         ``[k,N]`` matrix max(n·s, 0); for cosine sampling ``cos`` is None and dirs are per vertex.
         """
-        o_v = (points + eps * normals).numpy().astype(np.float32)  # [k,3] offset origins
+        o_v = (points.to(torch.float64) + eps * normals.to(torch.float64)).numpy()  # [k,3]
         if self.sampling == "uniform":
             cos = (normals @ self.dirs.T).numpy()  # [k,N] float64
             up = cos > 0
             i, j = np.nonzero(up)  # row-major: rays grouped by vertex
             o = np.repeat(o_v, up.sum(1), axis=0)  # == o_v[i], without a gather
+            o = offset_origins(o, 0.0, self.dirs.numpy()[j], eps)  # the step along the ray (offset_origins)
             return i, j, o, np.take(self.dirs32, j, axis=0), np.maximum(cos, 0.0, out=cos)
         k = normals.shape[0]
         world = to_world(self.dirs, frames).reshape(-1, 3).numpy()  # [k·N,3]
         i = np.repeat(np.arange(k), self.samples)
         j = np.tile(np.arange(self.samples), k)
-        return i, j, o_v[i], world, None
+        return i, j, offset_origins(o_v[i], 0.0, world, eps), world, None
+
+
+_M1, _M2, _M3 = np.uint64(0x9E3779B97F4A7C15), np.uint64(0xBF58476D1CE4E5B9), np.uint64(0x94D049BB133111EB)
+
+
+def _hash_uniform(seed: int, a: np.ndarray, b: np.ndarray, stream: int) -> np.ndarray:
+    """Uniform [0,1) ``[R]`` float64 from (seed, a, b, stream) by splitmix64: a function of the
+    keys only, so a hit's random numbers do not depend on chunking or on which tracer asks."""
+    with np.errstate(over="ignore"):
+        x = (np.uint64(seed) * _M1) ^ (a.astype(np.uint64) * _M2) ^ (b.astype(np.uint64) * _M3) ^ np.uint64(stream * 0x632BE59BD9B4E019)
+        for _ in range(2):
+            x = x + _M1
+            x = (x ^ (x >> np.uint64(30))) * _M2
+            x = (x ^ (x >> np.uint64(27))) * _M3
+            x = x ^ (x >> np.uint64(31))
+    return (x >> np.uint64(11)).astype(np.float64) * (1.0 / (1 << 53))
+
+
+class HitBounce:
+    """Exit transfer at bounce-ray hit points, estimated at the hit point itself.
+
+    A blocked direction of vertex p hits face f at q. What it brings is ρ_q x(q)·l with x(q) the
+    diffuse transfer of q over the hemisphere of f's normal (course notes 2005,
+    "Interreflections", with the integrand evaluated where the ray lands). x(q) is estimated with
+    ``M`` cosine-weighted rays from q (a Hammersley set, Cranley–Patterson-rotated per hit by
+    :func:`_hash_uniform` of (seed, vertex, direction)): bounce 0 of the hit brings
+    (1/M) Σ_m V(q,s_m) y(s_m); bounce k ≥ 1 brings (1/M) Σ_m [front hit f'] ρ_{f'} x^{k-1}_{f'}
+    with x_{f'} the face-centroid tables (``tables[k-1]`` ``[F, C, n²]``, ρ kept out). Unbiased
+    for the first bounce; deeper bounces carry the centroid tables' error times ρ^k.
+    """
+
+    def __init__(self, mesh: Mesh, bands: int, hit_samples: int, seed: int, tables: list[torch.Tensor], channels: int):
+        from ..scene.mesh import tangent_frames
+
+        self.bands, self.M, self.seed, self.tables, self.C = bands, hit_samples, int(seed), tables, channels
+        _, fn, rho_f = face_points(mesh)
+        self.face_normals = fn
+        t, b = tangent_frames(fn.numpy())
+        self.frames = np.stack([t, b, fn.numpy()], 1)  # [F,3,3] rows (t, b, n)
+        self.rho_faces = (rho_f[:, :1] if channels == 1 else rho_f)  # [F,C]
+        self.rho_vertices = mesh.albedo.to(torch.float64)
+        self.faces = mesh.faces.numpy()
+        self.vertices = mesh.vertices.to(torch.float64).numpy()
+        m = np.arange(self.M)
+        rad = np.zeros(self.M)
+        f, k = 0.5, m.copy()
+        while k.any():  # radical inverse base 2 (van der Corput)
+            rad += f * (k & 1)
+            k >>= 1
+            f *= 0.5
+        self.base = np.stack([(m + 0.5) / self.M, rad], 1)  # [M,2] Hammersley
+
+    @property
+    def terms(self) -> int:
+        """Bounce terms a hit brings: x⁰ and one per face table."""
+        return 1 + len(self.tables)
+
+    def albedo_at(self, tri: np.ndarray, bary: np.ndarray) -> torch.Tensor:
+        """ρ_q ``[H, C]``: the vertex albedo interpolated at the hit."""
+        rho = (torch.from_numpy(bary)[:, :, None] * self.rho_vertices[torch.from_numpy(self.faces[tri])]).sum(1)
+        return rho[:, :1] if self.C == 1 else rho
+
+    def exit_transfer(self, caster: RayCaster, tri: np.ndarray, bary: np.ndarray, key_a: np.ndarray,
+                      key_b: np.ndarray) -> torch.Tensor:
+        """``[H, C, n²]`` float64: ρ_q Σ_k x^k(q), the whole exit transfer a hit brings (albedo
+        folded), in batches of about 2¹⁸ secondary rays."""
+        out = torch.empty(tri.shape[0], self.C, self.bands * self.bands, dtype=torch.float64)
+        step = max(1, (1 << 18) // self.M)
+        for a in range(0, tri.shape[0], step):  # a loop over hit batches, each one traced batch
+            sl = slice(a, a + step)
+            x = self.values(caster, tri[sl], bary[sl], key_a[sl], key_b[sl]).sum(1)
+            out[sl] = self.albedo_at(tri[sl], bary[sl])[:, :, None] * x
+        return out
+
+    def values(self, caster: RayCaster, tri: np.ndarray, bary: np.ndarray, key_a: np.ndarray, key_b: np.ndarray) -> torch.Tensor:
+        """``[H, terms, C, n²]`` float64: x^k(q) for each hit (ρ_q not applied) — the
+        (1/M)-averages of the class docstring, over H·M rays traced in one batch."""
+        H, M = tri.shape[0], self.M
+        q = np.einsum("hk,hkj->hj", bary, self.vertices[self.faces[tri]])  # [H,3] hit points
+        n = self.face_normals.numpy()[tri]
+        u1 = _hash_uniform(self.seed, key_a, key_b, 1)[:, None]
+        u2 = _hash_uniform(self.seed, key_a, key_b, 2)[:, None]
+        a = (self.base[None, :, 0] + u1) % 1.0  # [H,M]
+        b = (self.base[None, :, 1] + u2) % 1.0
+        r, phi = np.sqrt(a), 2 * math.pi * b
+        local = np.stack([r * np.cos(phi), r * np.sin(phi), np.sqrt(np.maximum(1 - a, 1e-24))], -1)  # [H,M,3]
+        d = np.einsum("hmk,hkj->hmj", local, self.frames[tri]).reshape(-1, 3)
+        o = offset_origins(np.repeat(q, M, axis=0), np.repeat(n, M, axis=0), d, caster.eps)
+        n2 = self.bands * self.bands
+        out = torch.zeros(H, self.terms, self.C, n2, dtype=torch.float64)
+        row = torch.from_numpy(np.repeat(np.arange(H), M))
+        if self.tables:
+            prim = caster.trace(o, d.astype(np.float32), "intersect")[0]
+            hit = prim != -1
+        else:
+            hit = caster.trace(o, d.astype(np.float32), "occluded")
+        vis = ~hit
+        Y = eval_sh(torch.from_numpy(d[vis]), self.bands, check=False) / M  # [R_vis, n²]
+        out[:, 0] = torch.zeros(H, n2, dtype=torch.float64).index_add_(0, row[torch.from_numpy(vis)], Y)[:, None, :]
+        if self.tables:
+            hh = np.nonzero(hit)[0]
+            t2 = prim[hh].astype(np.int64)
+            front = np.einsum("ij,ij->i", self.face_normals.numpy()[t2], d[hh]) < 0
+            hh, t2 = hh[front], t2[front]
+            rh = row[torch.from_numpy(hh)]
+            rho2 = self.rho_faces[torch.from_numpy(t2)][:, :, None] / M  # [R,C,1]
+            for k, X in enumerate(self.tables, start=1):
+                out[:, k] = torch.zeros(H, self.C, n2, dtype=torch.float64).index_add_(0, rh, rho2 * X[torch.from_numpy(t2)])
+        return out
 
 
 def _check_points(points: Any, normals: Any) -> tuple[torch.Tensor, torch.Tensor]:
@@ -128,11 +263,18 @@ def _check_points(points: Any, normals: Any) -> tuple[torch.Tensor, torch.Tensor
 
 def _chunk(caster: RayCaster, sampler: DiffuseSampler, points: torch.Tensor, normals: torch.Tensor,
            frames: torch.Tensor | None, faces: np.ndarray | None, face_normals: np.ndarray | None,
-           n_vertices: int, record_hits: bool) -> dict[str, torch.Tensor]:
+           n_vertices: int, record_hits: bool, hit_columns: str = "vertices", hits: HitBounce | None = None,
+           first_id: int = 0) -> dict[str, torch.Tensor]:
     """Shadowed transfer (ρ = 1) of a chunk of k points, and (optionally) its bounce entries.
 
     Uniform sampling: T = (4/N) · (V ⊙ max(n·s,0)) @ Y — one masked GEMM per chunk
     (course notes 2005, "Precomputation"). Cosine sampling: T = (1/N) Σ_j V y(s_j).
+    Bounce entries (rows of S): ``hit_columns='faces'`` puts a front hit's weight on the hit
+    face's column (``n_vertices`` is then the face count), ``'corners'`` on the hit face's three
+    corner points by barycentrics, ``'vertices'`` on the hit face's vertices by barycentrics.
+    ``hit_columns='hits'`` (with ``hits``): no S; the bounce terms are estimated at each hit point
+    (:class:`HitBounce`, keys: vertex ``first_id + i`` and direction j) and returned as
+    ``TB [k, terms, C, n²]`` (ρ_p kept out, ρ_q in).
     """
     k = points.shape[0]
     i, j, o, d, cos = sampler.rays(points, normals, frames, caster.eps)
@@ -158,17 +300,40 @@ def _chunk(caster: RayCaster, sampler: DiffuseSampler, points: torch.Tensor, nor
         dh = d[h].astype(np.float64)
         front = np.einsum("ij,ij->i", face_normals[tri], dh) < 0  # the ray meets the front of the triangle
         h, tri = h[front], tri[front]
-        u, v = bu[h].astype(np.float64), bv[h].astype(np.float64)
-        beta = np.stack([1 - u - v, u, v], 1)  # [h,3] barycentric weights of faces[tri]
-        rows = np.repeat(i[h], 3)
-        cols = faces[tri].reshape(-1)
-        vals = (w_ray[h][:, None] * beta).reshape(-1)
+        if hits is not None:
+            out["TB"] = _hit_bounces(caster, hits, k, i[h], j[h], tri,
+                                     bu[h], bv[h], w_ray[h], first_id, sampler.bands)
+            return out
+        if hit_columns == "faces":
+            rows, cols, vals = i[h], tri, w_ray[h]
+        else:
+            u, v = bu[h].astype(np.float64), bv[h].astype(np.float64)
+            beta = np.stack([1 - u - v, u, v], 1)  # [h,3] barycentric weights of faces[tri]
+            rows = np.repeat(i[h], 3)
+            cols = (faces[tri] if hit_columns == "vertices" else 3 * tri[:, None] + np.arange(3)).reshape(-1)
+            vals = (w_ray[h][:, None] * beta).reshape(-1)
         # this chunk's rows of S [V,V] in CSR form, duplicates summed (scipy's C++ conversion)
         S = scipy.sparse.coo_matrix((vals, (rows, cols)), shape=(k, n_vertices)).tocsr()
         S.sum_duplicates()
         out["S_indptr"] = torch.from_numpy(S.indptr.astype(np.int64))
         out["S_indices"] = torch.from_numpy(S.indices.astype(np.int32))
         out["S_data"] = torch.from_numpy(S.data.astype(np.float64))
+    return out
+
+
+def _hit_bounces(caster: RayCaster, hits: HitBounce, k: int, rows: np.ndarray, dirs_j: np.ndarray, tri: np.ndarray,
+                 u: np.ndarray, v: np.ndarray, w: np.ndarray, first_id: int, bands: int) -> torch.Tensor:
+    """Σ over a chunk's front hits of w ρ_q x^k(q), per vertex row: ``[k, terms, C, n²]`` float64,
+    in batches of about 2¹⁸ secondary rays."""
+    n2 = bands * bands
+    out = torch.zeros(k, hits.terms, hits.C, n2, dtype=torch.float64)
+    step = max(1, (1 << 18) // hits.M)
+    for a in range(0, rows.shape[0], step):  # a loop over hit batches, each one traced batch
+        sl = slice(a, a + step)
+        bary = np.stack([1 - u[sl] - v[sl], u[sl], v[sl]], 1).astype(np.float64)
+        x = hits.values(caster, tri[sl], bary, first_id + rows[sl], dirs_j[sl])  # [h, terms, C, n²]
+        wr = torch.from_numpy(np.asarray(w[sl], np.float64))[:, None] * hits.albedo_at(tri[sl], bary)  # [h, C]
+        out.index_add_(0, torch.from_numpy(rows[sl]), x * wr[:, None, :, None])
     return out
 
 
@@ -229,6 +394,8 @@ def precompute_diffuse(
     fold_albedo: bool | None = None,
     bounce_tol: float = 1e-3,
     probe_tol: float = 1e-3,
+    bounce_points: str = "hits",
+    hit_samples: int = 8,
     run: RunOptions | None = None,
 ) -> Transfer:
     """Diffuse PRT transfer vectors for every vertex of ``mesh`` (see module docstring).
@@ -248,6 +415,16 @@ def precompute_diffuse(
             True = always ``[V,3,n²]``, False = always ``[V,n²]`` (refused if colour bleeds).
         bounce_tol: stop adding bounces once one adds less than this fraction of the
             accumulated transfer's norm (the bounce is kept).
+        bounce_points: where a bounce ray's hit takes its exit radiance from (no effect without
+            bounces): 'hits' (default) — the hit point's own transfer over the hit face's
+            hemisphere, estimated with ``hit_samples`` rays from the hit (:class:`HitBounce`;
+            deeper bounces of the hit read face-centroid tables); 'faces' — the hit face's
+            transfer at its centroid; 'corners' — the hit face's transfer at its three corners
+            (over the face's hemisphere) interpolated by barycentrics; 'vertices' — the hit
+            face's vertex transfers interpolated by barycentrics (course notes 2005; each over
+            its vertex normal's hemisphere, which runs high at sharp and concave vertices). The
+            last three are kept for comparison (docs/validate.md has the measurements).
+        hit_samples: rays per hit point for ``bounce_points='hits'`` (in [1, 4096]).
         run: how it runs (:class:`RunOptions`: chunks — default ~2²⁰ traced rays each —,
             workers, ray offset, resumable state, progress).
     Returns:
@@ -264,6 +441,8 @@ def precompute_diffuse(
     check_choice("sampling", sampling, ["uniform", "cosine"])
     check_choice("shadows", shadows, ["auto", "always", "never"])
     check_choice("fold_albedo", fold_albedo, [None, True, False])
+    check_choice("bounce_points", bounce_points, ["hits", "faces", "corners", "vertices"])
+    hit_samples = check_int("hit_samples", hit_samples, 1, 4096)
     bounce_tol = check_float("bounce_tol", bounce_tol, 0.0, 1.0, hi_open=True)
     probe_tol = check_float("probe_tol", probe_tol, 0.0, 1.0, hi_open=True)
     t_start = time.perf_counter()
@@ -273,6 +452,7 @@ def precompute_diffuse(
     meta: dict[str, Any] = {
         "bands": bands, "samples": samples, "seed": seed, "sampling": sampling, "bounces_requested": bounces,
         "bounce_tol": bounce_tol, "shadows": shadows, "offset": run.offset,
+        "bounce_points": bounce_points if bounces > 0 else None,
         "normalisation": "exit radiance L_out[v,c] = sum_i data[v,(c),i] * l[c,i] (times mesh.albedo[v,c] when "
                          "albedo_folded is false); t = (rho/pi) int V max(n.s,0) y(s) ds; constant radiance 1 -> l00 = 2 sqrt(pi)",
         "sh_convention": "real SH, graphics convention, no Condon-Shortley phase, index l(l+1)+m",
@@ -283,12 +463,19 @@ def precompute_diffuse(
             caster = RayCaster(mesh, workers=_workers(run, mesh, samples, sampling), offset=run.offset)
             meta["ray_eps"] = caster.eps
         traced = _decide_shadows(caster, mesh, shadows, seed, probe_tol, meta)
+        faces = None
+        hits = None
+        if traced and bounces > 0 and bounce_points == "hits":
+            hits = _hit_tables(caster, mesh, bands, samples, seed, sampling, bounces, hit_samples, run, meta)
         if traced:
-            T0, S = _trace_direct(caster, mesh, bands, samples, seed, sampling, bounces > 0, run, meta)
+            hit_columns = bounce_points if bounces > 0 else "vertices"
+            T0, S = _trace_direct(caster, mesh, bands, samples, seed, sampling, bounces > 0, run, meta, hit_columns, hits)
+            if bounces > 0 and bounce_points in ("faces", "corners"):
+                faces = _trace_faces(caster, mesh, bands, samples, seed, sampling, bounces > 1, run, meta, bounce_points)
         else:
             T0, S = unshadowed_transfer(mesh.normals, bands), None  # [V, n²] float64, exact
             meta["rays_traced"] = 0
-        total, C = _interreflect(T0, S, mesh, bounces, bounce_tol, meta)
+        total, C = _interreflect(T0, S, mesh, bounces, bounce_tol, meta, faces)
         data = _store_albedo(total, mesh, C, fold_albedo, meta)
         meta["seconds"] = time.perf_counter() - t_start
         meta["rays_per_second"] = meta["rays_traced"] / meta["seconds"] if meta["rays_traced"] else 0.0
@@ -298,6 +485,8 @@ def precompute_diffuse(
         if caster is not None:
             caster.close()
     run.finish()
+    if not run.keep_state:
+        remove_state(face_state_dir(run))
     return tr
 
 
@@ -329,10 +518,31 @@ def _decide_shadows(caster: RayCaster | None, mesh: Mesh, shadows: str, seed: in
     return traced
 
 
+def _hit_tables(caster: RayCaster, mesh: Mesh, bands: int, samples: int, seed: int, sampling: str, bounces: int,
+                hit_samples: int, run: RunOptions, meta: dict) -> HitBounce:
+    """Step 2a (``bounce_points='hits'``): the face-centroid tables x⁰..x^{B-2} ``[F, C, n²]``
+    (ρ kept out) that the hit points' own bounces read, and the :class:`HitBounce` estimator."""
+    C = 1 if mesh.is_grey() else 3
+    tables: list[torch.Tensor] = []
+    if bounces >= 2:
+        fc = _trace_faces(caster, mesh, bands, samples, seed, sampling, bounces >= 3, run, meta, "faces")
+        F, n2 = fc["X0"].shape
+        rho = fc["rho"][:, :1] if C == 1 else fc["rho"]
+        x = fc["X0"][:, None, :].expand(F, C, n2).clone()
+        tables.append(x)
+        for _ in range(bounces - 2):  # a loop over bounces: each one sparse product over all faces
+            x = torch.from_numpy(fc["S"] @ (rho[:, :, None] * x).reshape(F, C * n2).numpy()).reshape(F, C, n2)
+            tables.append(x)
+    meta["hit_samples"] = hit_samples
+    return HitBounce(mesh, bands, hit_samples, seed, tables, C)
+
+
 def _trace_direct(caster: RayCaster, mesh: Mesh, bands: int, samples: int, seed: int, sampling: str,
-                  record_hits: bool, run: RunOptions, meta: dict) -> tuple[torch.Tensor, Any]:
+                  record_hits: bool, run: RunOptions, meta: dict, hit_columns: str = "vertices",
+                  hits: HitBounce | None = None) -> tuple[torch.Tensor, Any]:
     """Step 2: shadowed transfer t⁰ ``[V, n²]`` float64 over resumable chunks, and (when
-    ``record_hits``) the bounce matrix S ``[V, V]`` (scipy CSR) of the same rays."""
+    ``record_hits``) the bounce matrix S of the same rays (scipy CSR): ``[V, V]`` for
+    ``hit_columns='vertices'``, ``[V, F]`` for ``'faces'``."""
     V = mesh.num_vertices
     sampler = DiffuseSampler(bands, samples, seed, sampling)
     rays_per_vertex = samples // 2 if sampling == "uniform" else samples
@@ -342,12 +552,18 @@ def _trace_direct(caster: RayCaster, mesh: Mesh, bands: int, samples: int, seed:
     tri = mesh.vertices.numpy()[faces_np]
     fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # geometric face normals (winding)
 
+    n_cols = {"faces": faces_np.shape[0], "corners": 3 * faces_np.shape[0]}.get(hit_columns, V)
+
     def compute(a: int, b: int) -> dict[str, torch.Tensor]:
         return _chunk(caster, sampler, mesh.vertices[a:b], mesh.normals[a:b],
-                      None if frames is None else frames[a:b], faces_np, fn, V, record_hits)
+                      None if frames is None else frames[a:b], faces_np, fn, n_cols, record_hits, hit_columns, hits, a)
 
     fingerprint = {"mesh_hash": mesh.content_hash(), "bands": bands, "samples": samples, "seed": seed,
                    "sampling": sampling, "record_hits": record_hits, "offset": run.offset, "kind": "diffuse"}
+    if record_hits and hit_columns != "vertices":
+        fingerprint["hit_columns"] = hit_columns
+    if hits is not None:
+        fingerprint.update(hit_samples=hits.M, hit_terms=hits.terms)
     parts = run.run_chunks(V, chunk_size, compute, fingerprint=fingerprint, desc=f"diffuse {mesh.name}",
                            rays_of=lambda r: int(r["rays"].sum()))
     T0 = torch.cat([p["T"] for p in parts]).to(torch.float64)
@@ -355,16 +571,130 @@ def _trace_direct(caster: RayCaster, mesh: Mesh, bands: int, samples: int, seed:
     meta["chunk_size"] = chunk_size
     if not record_hits:
         return T0, None
+    if hits is not None:
+        TB = torch.cat([p["TB"] for p in parts])  # [V, terms, C, n²]
+        return T0, TB
     S = scipy.sparse.vstack([
         scipy.sparse.csr_matrix((p["S_data"].numpy(), p["S_indices"].numpy(), p["S_indptr"].numpy()),
-                                shape=(p["T"].shape[0], V)) for p in parts], format="csr")
+                                shape=(p["T"].shape[0], n_cols)) for p in parts], format="csr")
     meta["bounce_matrix_nnz"] = int(S.nnz)
     return T0, S
 
 
-def _interreflect(T0: torch.Tensor, S: Any, mesh: Mesh, bounces: int, bounce_tol: float, meta: dict) -> tuple[torch.Tensor, int]:
-    """Step 3: t = Σ_b t̃^b with t̃^b = S (ρ ⊙ t̃^{b-1}) (course notes 2005, "Interreflections"),
-    ρ_p kept out. Returns (``[V, C, n²]`` float64, C) with C = 3 only for coloured bounces."""
+def face_points(mesh: Mesh) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The surface points a bounce takes its exit radiance from: face centroids ``[F,3]``, unit
+    geometric (winding) normals ``[F,3]`` and face albedo (mean of the vertices') ``[F,3]``,
+    all float64. Degenerate faces get the normal +z (they are never hit)."""
+    v = mesh.vertices.to(torch.float64)
+    f = mesh.faces.to(torch.int64)
+    tri = v[f]  # [F,3,3]
+    fn = torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], dim=-1)
+    norm = fn.norm(dim=-1, keepdim=True)
+    fn = torch.where(norm > 0, fn / norm.clamp_min(1e-300), torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))
+    return tri.mean(1), fn, mesh.albedo.to(torch.float64)[f].mean(1)
+
+
+def face_state_dir(run: RunOptions) -> str | None:
+    """Where the face pass keeps its finished chunks: ``<state_dir>.faces`` (beside the vertex
+    pass's state, which must not exist before the vertex pass starts)."""
+    return None if run.state_dir is None else os.fspath(run.state_dir) + ".faces"
+
+
+def _trace_faces(caster: RayCaster, mesh: Mesh, bands: int, samples: int, seed: int, sampling: str,
+                 record_hits: bool, run: RunOptions, meta: dict, points: str = "faces") -> dict[str, Any]:
+    """Step 2b (bounces with ``bounce_points`` 'faces' or 'corners'): the shadowed transfer x⁰
+    of the reflector points over their face's own hemisphere (the same direction set and ray
+    offset rule as the vertices) — ``[F, n²]`` at the face centroids, or ``[3F, n²]`` at each
+    face's three corners (row 3f+k: corner k of face f) — and (``record_hits``, for bounces ≥ 2)
+    the point-to-point bounce matrix ``[P, P]``. Resumable: chunks under :func:`face_state_dir`."""
+    c, fn, rho_f = face_points(mesh)
+    if points == "corners":
+        f = mesh.faces.to(torch.int64)
+        c = mesh.vertices.to(torch.float64)[f].reshape(-1, 3)  # [3F,3] the corners themselves
+        fn = fn.repeat_interleave(3, 0)
+        rho_f = mesh.albedo.to(torch.float64)[f].reshape(-1, 3)
+    F = c.shape[0]
+    sampler = DiffuseSampler(bands, samples, seed, sampling)
+    rays_per_point = samples // 2 if sampling == "uniform" else samples
+    chunk_size = check_int("chunk_size", run.chunks(int(min(max(16, (1 << 20) // max(1, rays_per_point)), 16384))), 1)
+    frames = None
+    if sampling == "cosine":
+        from ..scene.mesh import tangent_frames
+
+        t, b = tangent_frames(fn.numpy())
+        frames = torch.stack([torch.from_numpy(t), torch.from_numpy(b), fn], dim=-2)
+    faces_np = mesh.faces.numpy()
+    fn_np = face_points(mesh)[1].numpy()
+
+    def compute(a: int, b: int) -> dict[str, torch.Tensor]:
+        return _chunk(caster, sampler, c[a:b], fn[a:b], None if frames is None else frames[a:b], faces_np, fn_np, F,
+                      record_hits, points)
+
+    fingerprint = {"mesh_hash": mesh.content_hash(), "bands": bands, "samples": samples, "seed": seed,
+                   "sampling": sampling, "record_hits": record_hits, "offset": run.offset, "kind": f"diffuse_{points}"}
+    state = face_state_dir(run)
+    if state is not None and not run.resume and os.path.exists(state):
+        if os.path.exists(run.state_dir):  # an interrupted run: refused as the vertex pass would refuse it
+            raise FileExistsError(f"state directory {os.fspath(run.state_dir)!r} holds an interrupted run; pass resume=True "
+                                  "(CLI: --resume) to continue it, or remove it (CLI: --overwrite) to start again")
+        remove_state(state)  # the face pass of a run whose state was discarded (CLI --overwrite)
+    parts = run_chunks(F, chunk_size, compute, state_dir=state, fingerprint=fingerprint, resume=run.resume,
+                       progress=run.progress, desc=f"diffuse faces {mesh.name}", rays_of=lambda r: int(r["rays"].sum()))
+    X0 = torch.cat([p["T"] for p in parts]).to(torch.float64)
+    meta["rays_traced"] = meta.get("rays_traced", 0) + int(sum(int(p["rays"].sum()) for p in parts))
+    meta["face_points"] = F
+    S = None
+    if record_hits:
+        S = scipy.sparse.vstack([
+            scipy.sparse.csr_matrix((p["S_data"].numpy(), p["S_indices"].numpy(), p["S_indptr"].numpy()),
+                                    shape=(p["T"].shape[0], F)) for p in parts], format="csr")
+        meta["face_bounce_matrix_nnz"] = int(S.nnz)
+    return {"X0": X0, "S": S, "rho": rho_f, "normals": fn}
+
+
+def hit_bounce(mesh: Mesh, bands: int, samples: int, seed: int, bounces: int, offset: float = 1e-4,
+               hit_samples: int = 8, sampling: str = "uniform") -> HitBounce:
+    """The :class:`HitBounce` a diffuse precompute with ``bounces`` ≥ 1 uses (its face tables
+    traced here): a glossy/MRT vertex with ``bounces`` bounces reads the same hit values, so
+    its interreflection equals the diffuse one."""
+    bounces = check_int("bounces", bounces, 1, MAX_BOUNCES)
+    run = RunOptions(offset=offset)
+    with RayCaster(mesh, workers=_workers(run, mesh, samples, sampling), offset=offset) as caster:
+        return _hit_tables(caster, mesh, bands, samples, seed, sampling, bounces, hit_samples, run, {})
+
+
+def face_transfer(mesh: Mesh, bands: int, samples: int, seed: int, bounces: int, offset: float = 1e-4,
+                  sampling: str = "uniform") -> tuple[torch.Tensor, torch.Tensor]:
+    """Diffuse transfer of every face (at its centroid, over its own hemisphere) with ``bounces``
+    bounces and the face albedo folded in: ``([F, C, n²] float64, unit face normals [F, 3])``,
+    C = 3 for coloured albedo, else 1. What a bounce ray hitting face f brings (exit radiance
+    x_f · l); used by the glossy/MRT interreflection so that it equals the diffuse bounces."""
+    bands = check_int("bands", bands, 1, MAX_DIFFUSE_BANDS)
+    samples = check_int("samples", samples, 1, MAX_SAMPLES)
+    bounces = check_int("bounces", bounces, 0, MAX_BOUNCES)
+    run = RunOptions(offset=offset)
+    meta: dict[str, Any] = {}
+    with RayCaster(mesh, workers=_workers(run, mesh, samples, sampling), offset=offset) as caster:
+        fc = _trace_faces(caster, mesh, bands, samples, seed, sampling, bounces > 0, run, meta)
+    C = 1 if mesh.is_grey() else 3
+    rho = fc["rho"][:, :1] if C == 1 else fc["rho"]  # [F,C]
+    F, n2 = fc["X0"].shape
+    x = fc["X0"][:, None, :].expand(F, C, n2).clone()
+    total = x.clone()
+    for _ in range(bounces):  # a loop over bounces: each one sparse product over all faces
+        x = torch.from_numpy(fc["S"] @ (rho[:, :, None] * x).reshape(F, C * n2).numpy()).reshape(F, C, n2)
+        total += x
+    return rho[:, :, None] * total, fc["normals"]
+
+
+def _interreflect(T0: torch.Tensor, S: Any, mesh: Mesh, bounces: int, bounce_tol: float, meta: dict,
+                  faces: dict | None = None) -> tuple[torch.Tensor, int]:
+    """Step 3: t = Σ_b t̃^b (course notes 2005, "Interreflections"), ρ_p kept out. Returns
+    (``[V, C, n²]`` float64, C) with C = 3 only for coloured bounces.
+
+    ``faces`` None (``bounce_points='vertices'``): t̃^b = S (ρ ⊙ t̃^{b-1}) with S ``[V,V]``.
+    ``faces`` given: the hit face's own transfer x_f (centroid, face hemisphere) is what a bounce
+    ray brings: t̃^b = S_vf (ρ_f ⊙ x^{b-1}), x^b = S_ff (ρ_f ⊙ x^{b-1}), x⁰ the faces' direct pass."""
     V, n2 = T0.shape
     rho = mesh.albedo.to(torch.float64)
     C = 1 if (mesh.is_grey() or S is None) else 3
@@ -373,10 +703,30 @@ def _interreflect(T0: torch.Tensor, S: Any, mesh: Mesh, bounces: int, bounce_tol
     total = tb.clone()
     energy = []
     used = 0
-    if S is not None:
+    if faces is not None:
+        F = faces["X0"].shape[0]
+        rho_c = faces["rho"][:, :1] if C == 1 else faces["rho"]  # [F,C]: the reflectors are faces
+        xf = faces["X0"][:, None, :].expand(F, C, n2).clone()
+    if isinstance(S, torch.Tensor):  # bounce_points='hits': the bounce terms are already per vertex
+        S = S if C == S.shape[2] else S.expand(-1, -1, C, -1)
+        for b in range(1, bounces + 1):  # a loop over bounces (B tensor additions)
+            tb = S[:, b - 1]
+            total += tb
+            used = b
+            frac = float(tb.norm() / total.norm().clamp_min(1e-300))
+            energy.append(frac)
+            if frac < bounce_tol:
+                break
+    elif S is not None:
         for b in range(1, bounces + 1):  # a loop over bounces: each one sparse product over all vertices
-            x = (rho_c[:, :, None] * tb).reshape(V, C * n2)
-            tb = torch.from_numpy(S @ x.numpy()).reshape(V, C, n2)
+            if faces is None:
+                x = (rho_c[:, :, None] * tb).reshape(V, C * n2)
+                tb = torch.from_numpy(S @ x.numpy()).reshape(V, C, n2)
+            else:
+                x = (rho_c[:, :, None] * xf).reshape(F, C * n2).numpy()
+                tb = torch.from_numpy(S @ x).reshape(V, C, n2)
+                if b < bounces:
+                    xf = torch.from_numpy(faces["S"] @ x).reshape(F, C, n2)
             total += tb
             used = b
             frac = float(tb.norm() / total.norm().clamp_min(1e-300))

@@ -32,6 +32,7 @@ import os
 import time
 from typing import Any
 
+import numpy as np
 import torch
 
 from .._checks import check_choice, check_int, describe
@@ -39,6 +40,7 @@ from ..brdf import BRDF, AshikhminShirley, brdf_matrices, output_index
 from ..scene import Mesh, RayCaster, default_workers
 from ..sh import eval_sh, rotation_blocks
 from .base import RunOptions, Transfer
+from .diffuse import HitBounce, hit_bounce, offset_origins
 from .sampling import uniform_sphere
 
 __all__ = [
@@ -115,19 +117,24 @@ class _Directions:
         self.weight = float(w[0])
         Y = eval_sh(self.dirs, bands)
         self.Y = Y  # [N, n²]
+        self.dirs32 = np.ascontiguousarray(self.dirs.numpy(), np.float32)
         self.YY = (Y[:, :, None] * Y[:, None, :]).reshape(samples, -1)  # [N, n⁴]
         self.n2 = bands * bands
 
 
 def transferred_radiance(caster: RayCaster | None, points: torch.Tensor, normals: torch.Tensor,
-                         directions: _Directions, bounce: "Bounce | None" = None) -> tuple[torch.Tensor, int]:
+                         directions: _Directions, bounce: "Bounce | None" = None,
+                         ids: torch.Tensor | None = None) -> tuple[torch.Tensor, int]:
     """T_p for a chunk of points (module docstring): ``[k, n², n²]`` float64 and rays traced.
     ``caster=None`` skips visibility (unshadowed: only the tangent-plane cut).
 
     ``bounce``: interreflection. A direction s blocked by the mesh brings the exit radiance of
-    the surface point q it hits, t_q·l, where t_q is the diffuse transfer at q (with its own
-    shadowing and one bounce fewer), interpolated from the hit triangle's vertices by
-    barycentrics; the backs of triangles are black (as in the diffuse bounces). So
+    the point q it hits, x_q·l, where x_q is the diffuse transfer of q itself over the hit face's
+    hemisphere (with its own shadowing and one bounce fewer, albedo folded), estimated at the hit
+    by :class:`prt_torch.transfer.diffuse.HitBounce` with the keys (vertex id ``ids``, direction
+    index) the diffuse precompute uses — so a Lambertian glossy transfer equals the diffuse one;
+    the backs of triangles are black (as in the diffuse bounces). Ray origins follow
+    :func:`~prt_torch.transfer.diffuse.offset_origins`. So
     T_p = Σ_s w_s [V(p,s) y(s) y(s)ᵀ + (1 - V(p,s)) y(s) t_q(s)ᵀ] over n·s > 0
     (Sloan et al. 2002 §5's interreflected transfer, with diffuse reflectors)."""
     cos = normals.to(torch.float64) @ directions.dirs.T  # [k, N]
@@ -135,18 +142,24 @@ def transferred_radiance(caster: RayCaster | None, points: torch.Tensor, normals
     W = torch.zeros_like(cos)
     T_ind = None
     if caster is not None and i.numel():
+        o = offset_origins(points.to(torch.float64)[i].numpy(), normals.to(torch.float64)[i].numpy(),
+                           directions.dirs.numpy()[j.numpy()], caster.eps)  # the one offset rule
+        d = directions.dirs32[j.numpy()]
         if bounce is None:
-            vis = ~caster.occluded(points[i], directions.dirs[j], normals=normals[i])
+            vis = ~torch.from_numpy(caster.trace(o, d, "occluded"))
         else:
-            hit, tri, bary, _ = caster.intersect(points[i], directions.dirs[j], normals=normals[i])
-            hit, tri, bary = torch.as_tensor(hit), torch.as_tensor(tri), torch.as_tensor(bary)
+            prim, bu, bv, _ = caster.trace(o, d, "intersect")
+            hit = torch.from_numpy(prim != -1)
             vis = ~hit
             h = torch.nonzero(hit).flatten()
-            th = tri[h]
-            front = (bounce.face_normals[th] * directions.dirs[j[h]]).sum(-1) < 0
-            h, th = h[front], th[front]
-            beta = torch.stack([1 - bary[h, 0] - bary[h, 1], bary[h, 0], bary[h, 1]], 1)  # [H, 3]
-            t_hit = (beta[:, :, None] * bounce.transfer[bounce.faces[th]]).sum(1)  # [H, n²]
+            th = torch.from_numpy(prim.astype(np.int64))[h]
+            front = (bounce.hits.face_normals[th] * directions.dirs[j[h]]).sum(-1) < 0
+            h, th = h[front].numpy(), th[front].numpy()
+            bary = np.stack([1 - bu[h] - bv[h], bu[h], bv[h]], 1).astype(np.float64)
+            vid = (torch.arange(points.shape[0]) if ids is None else ids.to(torch.int64))[i].numpy()
+            t_hit = bounce.hits.exit_transfer(caster, th, bary, vid[h], j.numpy()[h])  # [H, C, n²] at the hit itself
+            t_hit = torch.einsum("hcn,c->hn", t_hit, _LUMA) if t_hit.shape[1] == 3 else t_hit[:, 0]
+            h = torch.from_numpy(h)
             A = torch.zeros(cos.shape[0], cos.shape[1], t_hit.shape[1], dtype=torch.float64)
             A[i[h], j[h]] = t_hit  # [k, N, n²]: radiance transfer arriving along each blocked direction
             T_ind = torch.matmul((directions.Y * directions.weight).T, A)  # [k, n², n²], one batched GEMM
@@ -161,13 +174,10 @@ def transferred_radiance(caster: RayCaster | None, points: torch.Tensor, normals
 
 @dataclasses.dataclass
 class Bounce:
-    """What the glossy interreflection needs: faces ``[F,3]`` int64, their unit geometric
-    normals ``[F,3]`` float64, and the diffuse transfer of every vertex ``[V, n²]`` float64
-    (exit radiance t_q·l of a diffuse surface point, albedo folded in)."""
+    """What the glossy interreflection needs: the diffuse precompute's hit-point estimator
+    (:class:`prt_torch.transfer.diffuse.HitBounce`, its face tables traced)."""
 
-    faces: torch.Tensor
-    face_normals: torch.Tensor
-    transfer: torch.Tensor
+    hits: HitBounce
 
 
 #: Luminance weights (Rec. 709) used to make a coloured bounce table monochrome: glossy
@@ -176,19 +186,10 @@ _LUMA = torch.tensor([0.2126, 0.7152, 0.0722], dtype=torch.float64)
 
 
 def bounce_table(mesh: Mesh, bands: int, samples: int, seed: int, bounces: int, offset: float) -> Bounce:
-    """Diffuse transfer with ``bounces - 1`` bounces for every vertex (the reflectors seen by the
-    glossy vertices), via :func:`prt_torch.transfer.diffuse.precompute_diffuse`."""
-    from .diffuse import precompute_diffuse
-
-    d = precompute_diffuse(mesh, bands, samples, bounces=bounces - 1, seed=seed, shadows="always",
-                           fold_albedo=True, run=RunOptions(offset=offset)).data.to(torch.float64)
-    if d.ndim == 3:  # [V, 3, n²] coloured albedo -> luminance
-        d = torch.einsum("vcn,c->vn", d, _LUMA)
-    v = mesh.vertices.to(torch.float64)
-    f = mesh.faces.to(torch.int64)
-    fn = torch.linalg.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]], dim=-1)
-    fn = fn / fn.norm(dim=-1, keepdim=True).clamp_min(1e-300)
-    return Bounce(faces=f, face_normals=fn, transfer=d)
+    """What a blocked direction brings (the hit point's diffuse transfer with ``bounces - 1``
+    bounces), via :func:`prt_torch.transfer.diffuse.hit_bounce` — the estimator the diffuse
+    bounces use (coloured albedo becomes luminance: one matrix per vertex)."""
+    return Bounce(hits=hit_bounce(mesh, bands, samples, seed, bounces, offset=offset))
 
 
 def rotate_rows(T: torch.Tensor, blocks: list[torch.Tensor]) -> torch.Tensor:
@@ -250,7 +251,7 @@ def run_exit_transfer(
 
         def compute(a: int, b: int) -> dict[str, torch.Tensor]:
             idx = sel[a:b]
-            T, rays = transferred_radiance(caster, mesh.vertices[idx], mesh.normals[idx], directions, bounce)
+            T, rays = transferred_radiance(caster, mesh.vertices[idx], mesh.normals[idx], directions, bounce, ids=idx)
             if left.numel():
                 out = left[index[idx]] @ rotate_rows(T, rotation_blocks(F_all[idx], bands))  # B_p R_p T_p
             else:

@@ -1,0 +1,164 @@
+"""prt validate: engine against Mitsuba 3 path tracing, and Mitsuba's own conventions pinned.
+
+The Mitsuba-side tests pin its orientation and units (envmap axes, a constant environment, a
+single lit quad against its analytic value) so that a failing engine comparison points at one
+side. The engine comparisons use small vertex and sample counts (seconds each); their
+tolerance is derived from the measured noise of both sides (z-scores), not from a fixed %.
+"""
+from __future__ import annotations
+
+import math
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from prt_torch.cli import main as cli_main
+from prt_torch.scene import builtin, make_mesh
+from prt_torch.sh import eval_sh
+from prt_torch.transfer import precompute_diffuse
+from prt_torch import validate as V
+
+mi = pytest.importorskip("mitsuba", reason="pip install 'prt-torch[validate]'")
+
+Z_MAX = 4.0  # |engine/mitsuba - 1| within 4 standard errors (both sides' noise in quadrature)
+
+
+def _two_band(c0=1.0, x=0.0, y=0.0, z=0.0) -> torch.Tensor:
+    """SH [1, 4] of the radiance c0 + x s_x + y s_y + z s_z (exactly 2 bands)."""
+    k0, k1 = 0.5 / math.sqrt(math.pi), math.sqrt(3 / (4 * math.pi))  # y_00 = k0; y_1m = k1 (s_y, s_z, s_x)
+    return torch.tensor([[c0 / k0, y / k1, z / k1, x / k1]], dtype=torch.float64)
+
+
+def test_two_band_helper_is_the_function():
+    L = _two_band(1.0, 0.3, -0.2, 0.5)
+    d = torch.nn.functional.normalize(torch.randn(50, 3, dtype=torch.float64), dim=-1)
+    got = (eval_sh(d, 2) @ L.T)[:, 0]
+    torch.testing.assert_close(got, 1.0 + 0.3 * d[:, 0] - 0.2 * d[:, 1] + 0.5 * d[:, 2])
+
+
+# ------------------------------------------------------------------------------ Mitsuba's conventions
+def test_envmap_axes_match_the_world_frame():
+    """Mitsuba's envmap, fed light_image, returns the light's radiance in every world direction
+    (+z up, no hidden rotation): the axis convention of the validator."""
+    V.require_mitsuba()
+    L = _two_band(1.0, 0.5, 0.3, 0.2)
+    em = mi.load_dict({"type": "envmap", "bitmap": mi.Bitmap(V.light_image(L, 64))})
+    dirs = torch.tensor([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0.6, 0, 0.8], [0, -0.6, 0.8], [0.48, 0.6, -0.64]],
+                        dtype=torch.float64)
+    for d in dirs:
+        si = mi.SurfaceInteraction3f()
+        si.wi = -mi.Vector3f(*d.tolist())
+        got = float(np.asarray(em.eval(si))[0])
+        want = 1.0 + 0.5 * float(d[0]) + 0.3 * float(d[1]) + 0.2 * float(d[2])
+        assert abs(got - want) < 1e-2 * want, (d.tolist(), got, want)  # bilinear lookups; a wrong axis errs by 0.2+
+
+
+def test_constant_environment_gives_pi_irradiance_and_albedo_exit():
+    """Units: radiance 1 everywhere -> irradiance π at any probe, exit radiance = albedo."""
+    L = torch.tensor([[2 * math.sqrt(math.pi)]], dtype=torch.float64)
+    pts = torch.tensor([[0.0, 0, 0], [1, 2, 3]], dtype=torch.float64)
+    nrm = torch.tensor([[0.0, 0, 1], [0.6, 0, -0.8]], dtype=torch.float64)
+    r = V.mitsuba_exit_radiance(None, pts, nrm, V.light_image(L, 16), [1], spp=256, batches=4,
+                                albedo=torch.tensor([[0.5, 0.5, 0.5], [0.8, 0.2, 0.1]]))
+    torch.testing.assert_close(r["irradiance"][0], torch.full((2, 3), math.pi, dtype=torch.float64), atol=1e-3, rtol=0)
+    torch.testing.assert_close(r["radiance"][0], torch.tensor([[0.5, 0.5, 0.5], [0.8, 0.2, 0.1]], dtype=torch.float64),
+                               atol=1e-3, rtol=0)
+
+
+def _rect_ff(X: float, Y: float) -> float:
+    """Form factor from a differential area to a parallel X×Y rectangle (unit height) with one
+    corner straight above/below it."""
+    a, b = math.sqrt(1 + X * X), math.sqrt(1 + Y * Y)
+    return (X / a * math.atan(Y / a) + Y / b * math.atan(X / b)) / (2 * math.pi)
+
+
+def test_single_lit_quad_against_its_analytic_value():
+    """A quad facing +z under L = 1 + s_z (albedo ρ): a probe on it facing up gets E = π + 2π/3
+    (direct); a probe at height h facing down sees the quad reflect L_q = ρ (1 + 2/3), so its
+    one-bounce part (max_depth 2 minus 1) is L_q · π · F with F the analytic form factor."""
+    a, h, rho = 1.0, 0.5, 0.6
+    quad = make_mesh(np.array([[-a, -a, 0], [a, -a, 0], [a, a, 0], [-a, a, 0]], float), np.array([[0, 1, 2], [0, 2, 3]]),
+                     rho, name="quad")
+    L = _two_band(1.0, 0.0, 0.0, 1.0)
+    pts = torch.tensor([[0.1, 0.2, 0.0], [0.0, 0.0, h]], dtype=torch.float64)
+    nrm = torch.tensor([[0.0, 0, 1], [0.0, 0, -1]], dtype=torch.float64)
+    r = V.mitsuba_exit_radiance(quad, pts, nrm, V.light_image(L, 64), [1, 2], spp=1 << 15, batches=8, eps=1e-5, seed=1)
+    E_up = r["irradiance"][0, 0, 0]
+    assert abs(float(E_up) - (math.pi + 2 * math.pi / 3)) < 4 * float(r["irradiance_se"][0, 0, 0]) + 2e-3
+    bounce = float(r["irradiance"][1, 1, 0] - r["irradiance"][0, 1, 0])
+    want = rho * (5 / 3) * math.pi * 4 * _rect_ff(a / h, a / h)
+    se = float(r["diff_se"][1, 1, 0])
+    assert abs(bounce - want) < 4 * se + 2e-3 * want, (bounce, want, se)
+
+
+# ------------------------------------------------------------------------------ engine against Mitsuba
+LIGHT = "hemisphere:upper=1;lower=0.2"
+
+
+@pytest.mark.parametrize("scene", ["cornell_box", "occluder_over_plane", "bumpy_sphere"])
+def test_engine_matches_mitsuba_direct_and_interreflected(scene):
+    m = builtin(scene)
+    rep0 = V.validate(precompute_diffuse(m, 2, 512, bounces=0, seed=2, shadows="always"), LIGHT, vertices=24, spp=2048, seed=5)
+    assert rep0["bounces"] == 0 and "inter" not in rep0
+    assert abs(rep0["direct"]["z"]) < Z_MAX, V.format_report(rep0)
+    tr = precompute_diffuse(m, 2, 512, bounces=2, seed=2, bounce_tol=0.0, shadows="always")
+    rep = V.validate(tr, LIGHT, vertices=24, spp=2048, seed=5)
+    assert rep["bounces"] == 2 and rep["bounce_points"] == "hits"
+    assert abs(rep["direct"]["z"]) < Z_MAX and abs(rep["inter"]["z"]) < Z_MAX, V.format_report(rep)
+    assert rep["inter"]["mitsuba"] > 0 and rep["inter"]["ratio_se"] < 0.25  # the check has teeth
+    # B = 0 results unchanged by bounces: the direct part is the same rays
+    torch.testing.assert_close(torch.tensor(rep["per_vertex"]["engine_direct"]), torch.tensor(rep0["per_vertex"]["engine_direct"]))
+
+
+def test_source_image_axes_and_sh_truncation(tmp_path):
+    """An environment file reaches Mitsuba with the world axes of prt_torch's own projection: for
+    a band-limited image the 'image' and 'sh' lights agree, so the SH truncation is ~0."""
+    from prt_torch.lighting import Environment
+
+    env = Environment.from_function(lambda d: (1.0 + 0.5 * d[:, :1] + 0.3 * d[:, 1:2] + 0.2 * d[:, 2:3]).expand(-1, 3),
+                                    "latlong", 64, supersample=2)
+    path = tmp_path / "env.pfm"
+    env.save(path)
+    img_src = V._source_image(str(path), 32)
+    img_sh = V.light_image(__import__("prt_torch").lighting.load_light(str(path), 2), 32)
+    assert np.abs(img_src - img_sh).max() < 0.03
+    m = builtin("occluder_over_plane")
+    rep = V.validate(precompute_diffuse(m, 2, 256, seed=1, shadows="always"), str(path), vertices=8, spp=512,
+                     light_source="image")
+    assert abs(rep["source_image"]["sh_truncation"]["ratio"] - 1) < 0.02
+
+
+# ------------------------------------------------------------------------------ refusals and CLI
+def test_refusals_before_any_work(monkeypatch):
+    m = builtin("occluder_over_plane")
+    tr = precompute_diffuse(m, 3, 32, seed=0)
+    with pytest.raises(ValueError, match="directional.*negative"):
+        V.validate(tr, "directional:direction=0,0,1", vertices=4)
+    from prt_torch.transfer import precompute_glossy
+
+    g = precompute_glossy(m, 2, 2, samples=16, vertices=torch.arange(4))
+    with pytest.raises(ValueError, match="'glossy'"):
+        V.validate(g, "constant", vertices=4)
+    with pytest.raises(ValueError, match="light_source='image'"):
+        V.validate(tr, "constant", vertices=4, light_source="image")
+    monkeypatch.setitem(sys.modules, "mitsuba", None)  # not installed
+    with pytest.raises(V.ValidatorUnavailable, match=r"pip install 'prt-torch\[validate\]'"):
+        V.validate(tr, "constant", vertices=4)
+
+
+def test_cli_validate(tmp_path, capsys, monkeypatch):
+    m = builtin("occluder_over_plane")
+    out = tmp_path / "t.prt"
+    precompute_diffuse(m, 2, 128, bounces=1, seed=0, shadows="always").save(out)
+    js = tmp_path / "r.json"
+    assert cli_main(["validate", str(out), "--light", LIGHT, "--vertices", "6", "--spp", "256", "--json", str(js)]) == 0
+    text = capsys.readouterr().out
+    assert "direct" in text and "interreflected" in text and "engine/mitsuba" in text and js.exists()
+    assert cli_main(["validate", str(out), "--light", "directional:direction=0,0,1"]) == 2
+    assert "negative" in capsys.readouterr().err
+    monkeypatch.setitem(sys.modules, "mitsuba", None)
+    assert cli_main(["validate", str(out), "--light", LIGHT]) == 3
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "pip install" in err[0]
