@@ -98,6 +98,18 @@ def resolve_config_path(name_or_path: str | None) -> Path:
     raise FileNotFoundError(f"config {str(name_or_path)!r} not found; accepted: a YAML file path or one of {builtin_configs()}")
 
 
+def _drop_foreign_defaults(merged: dict, given: dict) -> dict:
+    """A transfer of another type than the default's keeps only the default keys its type
+    declares (e.g. 'transport' has no 'bands' or 'samples'); the file's own keys all stay."""
+    from ..transfer import get_kind
+
+    try:
+        declared = set(get_kind(given["type"]).constraints)
+    except (ValueError, KeyError, TypeError):
+        return merged  # an unknown type is refused by validation, naming it
+    return {k: v for k, v in merged.items() if k == "type" or k in given or k in declared}
+
+
 def _merge(base: dict, upd: dict, path: str = "") -> dict:
     out = copy.deepcopy(base)
     for k, v in upd.items():
@@ -110,6 +122,8 @@ def _merge(base: dict, upd: dict, path: str = "") -> dict:
             out[k] = _merge(base[k], v, key + ".")
         elif key in FREE_KEYS and isinstance(v, dict):  # typed object: the defaults, then the file's keys
             out[k] = {**copy.deepcopy(base[k]), **copy.deepcopy(v)}
+            if key == "transfer" and v.get("type", base[k].get("type")) != base[k].get("type"):
+                out[k] = _drop_foreign_defaults(out[k], v)
         else:
             out[k] = copy.deepcopy(v)
     return out
