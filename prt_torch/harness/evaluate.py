@@ -10,7 +10,14 @@ camera position into per-vertex view weights over the n_out outputs:
 * glossy ``[V, n_out, n_in]``: e_p = M_p l (exit radiance SH, Sloan 2003 §3.1), radiance =
   y(v_p)·e_p with v_p the view direction in the vertex's local frame (rows of Mesh.frames());
 * mrt ``[V, M², n²]``: radiance = Σ of the four tent basis functions nonzero at v_p times
-  (A_p l) (Lehtinen & Kautz 2003, eq. 9 and §5).
+  (A_p l) (Lehtinen & Kautz 2003, eq. 9 and §5);
+* transport ``[V, J, 6, r, r]`` (Green 2005 tables, a directory): rows are J×P matrices
+  (P = 6r² texels); the light is the SH light evaluated at the texel centres times the texel
+  solid angles, ``[P, C]`` (eq. 1.1 as a sum), so L_o = Σ_taps w_t (T_{p,j_t} · L Δω) over the
+  three stored views nearest the global view direction (barycentric taps, zero below the
+  horizon) — the uncompressed reference; linear codecs take that ``[P, C]`` light, the
+  ``gaussian`` codec (light kind 'prefiltered') a Gaussian-prefiltered environment of the same
+  light (``codec_light``) and interpolates its lobes at the same taps (Green §2.3).
 
 View weights are dense ``[V, n_out]`` (glossy) or sparse taps ``(idx [V, k], w [V, k])`` (MRT),
 zero below each vertex's horizon, from :mod:`prt_torch.relight` (the project's one uncompressed
@@ -28,10 +35,44 @@ import torch
 from .. import relight, sh
 from ..transfer import Transfer
 
-__all__ = ["Evaluator", "camera_positions", "KINDS"]
+__all__ = ["Evaluator", "camera_positions", "KINDS", "load_directory_transfer", "check_codecs_for_kind",
+           "TRANSPORT_LIGHT_BANDS"]
 
 #: transfer kinds the harness can relight
-KINDS = ("diffuse", "glossy", "mrt")
+KINDS = ("diffuse", "glossy", "mrt", "transport")
+#: SH bands of the lights of a transport benchmark (evaluated on the cube texels / prefiltered)
+TRANSPORT_LIGHT_BANDS = 10
+
+
+def load_directory_transfer(path) -> Transfer:
+    """A streamed transport directory (``transfer.precompute_transport``) as a :class:`Transfer`
+    of kind 'transport' with ``data [V, J, 6, r, r]`` float32 and ``meta['views'] [J, 3]``,
+    ``meta['res']``. Refuses an incomplete table."""
+    from ..transfer import TransportTable
+
+    table = TransportTable(path)
+    if not table.meta.get("complete"):
+        raise ValueError(f"transport table {str(path)!r} is incomplete (missing chunks); accepted: a complete table "
+                         "(re-run prt precompute --kind transport with --resume)")
+    V, J, r = table.num_vertices, int(table.meta["views"]), int(table.meta["res"])
+    data = torch.empty(V, J, 6, r, r, dtype=torch.float32)
+    for a, b, T in table:  # chunk files
+        data[a:b] = T.to(torch.float32)
+    meta = {k: v for k, v in table.meta.items() if k not in ("fingerprint",)}
+    meta.update(views=table.views.tolist(), matrix_shape=[J, 6 * r * r], source=str(path))
+    return Transfer("transport", data, table.mesh(), meta)
+
+
+def check_codecs_for_kind(kind: str, names: list[str]) -> None:
+    """Refuse, before any work, codecs that cannot relight transfer ``kind`` (the Gaussian
+    codec, light kind 'prefiltered', fits transport tables only)."""
+    from .. import codecs
+
+    for name in names:
+        lk = getattr(codecs.get(name), "light_kind", "sh")
+        if lk == "prefiltered" and kind != "transport":
+            raise ValueError(f"codec {name!r} fits transport tables (transfer type 'transport'); the config's transfer "
+                             f"type is {kind!r}; accepted: transfer type 'transport' for codec {name!r}")
 
 
 def camera_positions(center: torch.Tensor, radius: float, count: int, elevation_deg: float, azimuth0_deg: float,
@@ -64,29 +105,70 @@ class Evaluator:
                 self.matrix_shape = (data.shape[1], data.shape[2])
                 self.n_in = data.shape[2]
                 self.albedo = None
+        elif t.kind == "transport":
+            J = data.shape[1]
+            self.res = int(data.shape[-1])
+            self.matrix_shape = (J, 6 * self.res * self.res)
+            self.n_in = self.matrix_shape[1]
+            self.views = torch.as_tensor(t.meta["views"], dtype=torch.float64)
+            from ..lighting.prefilter import cube_map_directions
+
+            d, sa = cube_map_directions(self.res)
+            self.texels, self.solid_angles = d.reshape(-1, 3), sa.reshape(-1)
+            self._prefiltered: dict[int, Any] = {}
         elif t.kind in KINDS:
             self.matrix_shape = tuple(int(v) for v in t.meta.get("matrix_shape", data.shape[1:3]))
             self.n_in = self.matrix_shape[1]
         else:
             raise ValueError(f"transfer kind {t.kind!r} is not supported by the harness; accepted: {', '.join(KINDS)}")
-        self.bands_in = sh.band_of_coeffs(self.n_in, "transfer input coefficients")
+        self.bands_in = (TRANSPORT_LIGHT_BANDS if self.kind == "transport"
+                         else sh.band_of_coeffs(self.n_in, "transfer input coefficients"))
         self.frames = t.mesh.frames().to(torch.float64)  # [V, 3, 3] rows (t, b, n)
         self.points = torch.as_tensor(t.mesh.vertices).to(torch.float64)  # [V, 3]
 
     @property
     def needs_view(self) -> bool:
-        return self.kind in ("glossy", "mrt")
+        return self.kind in ("glossy", "mrt", "transport")
 
     @property
     def raw_bytes(self) -> int:
         return self.X.numel() * 4
 
     def light_matrix(self, light: torch.Tensor) -> torch.Tensor:
-        """SH light ``[C, n²]`` (any bands) -> ``[n_in, C]`` float32, truncated or zero-padded."""
+        """SH light ``[C, n²]`` (any bands) -> ``[n_in, C]`` float32, truncated or zero-padded.
+        Transport: the light's radiance at the texel centres (2×2 sub-texel average) times the
+        texel solid angles, ``[P, C]`` (Green eq. 1.1 as a sum over texels)."""
+        if self.kind == "transport":
+            from ..lighting.prefilter import cube_map_directions
+
+            d, _ = cube_map_directions(2 * self.res)
+            bands = sh.band_of_coeffs(light.shape[1], "light coefficients")
+            vals = sh.eval_sh(d, bands, check=False) @ light.to(torch.float64).T  # [6, 2r, 2r, C]
+            vals = vals.reshape(6, self.res, 2, self.res, 2, -1).mean((2, 4)).reshape(-1, light.shape[0])
+            return (vals * self.solid_angles[:, None]).to(torch.float32)
         L = torch.zeros(self.n_in, light.shape[0], dtype=torch.float32)
         k = min(self.n_in, light.shape[1])
         L[:k] = light[:, :k].T.to(torch.float32)
         return L
+
+    def codec_light(self, codec, light: torch.Tensor) -> Any:
+        """The light as ``codec`` takes it: :meth:`light_matrix` for SH-kind codecs; for light
+        kind 'prefiltered' (the ``gaussian`` codec) a Gaussian-prefiltered environment of the
+        same SH light (built once per light)."""
+        if getattr(codec, "light_kind", "sh") != "prefiltered":
+            return self.light_matrix(light)
+        key = id(light)
+        if key not in self._prefiltered:
+            from ..lighting import prefilter_environment
+
+            self._prefiltered[key] = (light, prefilter_environment(light.to(torch.float64), res=max(16, 2 * self.res)))
+        return self._prefiltered[key][1]
+
+    def fit_kwargs(self, codec) -> dict:
+        """Geometry a codec with light kind 'prefiltered' needs (views, mesh faces, the kind)."""
+        if getattr(codec, "light_kind", "sh") != "prefiltered":
+            return {}
+        return {"views": self.views, "faces": torch.as_tensor(self.transfer.mesh.faces), "kind": self.kind}
 
     def local_views(self, camera: torch.Tensor) -> torch.Tensor:
         """Unit view directions toward ``camera [3]`` in each vertex's local frame, ``[V, 3]``."""
@@ -99,6 +181,14 @@ class Evaluator:
         kinds), zero below the horizon: ``relight.glossy_view_weights`` / ``relight.mrt_view_taps``."""
         if not self.needs_view:
             return None
+        if self.kind == "transport":
+            from ..codecs.gaussian import view_taps
+
+            d = camera[None].double() - self.points
+            d = d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+            idx, w = view_taps(self.views, d)
+            above = (d * self.frames[:, 2]).sum(-1) > 0  # the vertex's horizon
+            return idx, w * above[:, None].to(w.dtype)
         v = self.local_views(camera)
         if self.kind == "glossy":
             return relight.glossy_view_weights(v, self.transfer.meta.get("out_index"), self.matrix_shape[0])
