@@ -30,7 +30,8 @@ import torch
 FORMAT = "prt_torch"
 FORMAT_VERSION = 1
 
-__all__ = ["save", "load", "load_meta", "atomic_path", "atomic_write_text", "atomic_write_json", "jsonable", "FORMAT_VERSION"]
+__all__ = ["save", "load", "load_meta", "atomic_path", "atomic_write_text", "atomic_write_json", "jsonable", "check_writable",
+           "FORMAT_VERSION"]
 
 
 @contextlib.contextmanager
@@ -51,6 +52,46 @@ def atomic_path(path: str | os.PathLike, overwrite: bool = True) -> Iterator[Pat
     finally:
         if tmp.exists():
             tmp.unlink()
+
+
+def _umask() -> int:
+    """The process umask (read without changing it where /proc allows)."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except OSError:  # pragma: no cover - not Linux
+        pass
+    m = os.umask(0o022)  # pragma: no cover
+    os.umask(m)  # pragma: no cover
+    return m  # pragma: no cover
+
+
+def check_writable(path: str | os.PathLike, what: str = "output", directory: bool = False) -> Path:
+    """Refuse, before any work, an output location that cannot be written: ``path`` (a file,
+    or with ``directory=True`` a directory) must be creatable — its nearest existing ancestor a
+    writable directory, ``path`` itself not a directory (for files) — which is checked by
+    creating and removing a probe file there. Raises ValueError naming ``what`` and the path."""
+    path = Path(path)
+    if not directory and path.is_dir():
+        raise ValueError(f"{what} {str(path)!r} is a directory; accepted: a file path")
+    if directory and path.exists() and not path.is_dir():
+        raise ValueError(f"{what} {str(path)!r} exists and is not a directory; accepted: a directory path")
+    parent = path if directory else path.parent
+    anc = parent
+    while not anc.exists() and anc != anc.parent:
+        anc = anc.parent
+    if not anc.is_dir():
+        raise ValueError(f"{what} {str(path)!r}: {str(anc)!r} is not a directory; accepted: a path under a writable directory")
+    probe = anc / f".prt_write_probe.{os.getpid()}"
+    try:
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as e:
+        raise ValueError(f"{what} {str(path)!r} cannot be written ({e.strerror or e}: {str(anc)!r}); "
+                         "accepted: a path in a writable directory") from None
+    return path
 
 
 def atomic_write_text(path: str | os.PathLike, text: str) -> None:
@@ -107,8 +148,16 @@ def save(
     header.update(meta or {})
     text = json.dumps(header, default=_json_default)
     data = {k: v.detach().to("cpu").contiguous() for k, v in tensors.items()}
-    with atomic_path(path, overwrite=overwrite) as tmp:
-        save_file(data, str(tmp), metadata={FORMAT: text})
+    try:
+        with atomic_path(path, overwrite=overwrite) as tmp:
+            save_file(data, str(tmp), metadata={FORMAT: text})
+            os.chmod(tmp, 0o666 & ~_umask())  # safetensors writes through a private (0600) temporary file
+    except FileExistsError:
+        raise
+    except Exception as e:  # OSError, or safetensors' own SafetensorError for I/O failures
+        if not isinstance(e, OSError) and type(e).__name__ != "SafetensorError":
+            raise
+        raise OSError(f"cannot write {str(path)!r}: {e}") from None
     return Path(path)
 
 

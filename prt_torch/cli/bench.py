@@ -51,7 +51,10 @@ def run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config, overrides)
     runs = expand_runs(cfg)
     if args.dry_run:
+        from ..harness.run import load_mesh_within_budget
+
         for c in runs:
+            load_mesh_within_budget(c)  # the memory estimate the real run refuses on
             print(json.dumps({k: v for k, v in c.items() if not k.startswith("_")}, indent=2))
             print(f"# {len(expand_codecs(c['codecs']))} codec settings")
         return 0

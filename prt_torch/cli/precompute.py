@@ -148,10 +148,11 @@ def run(args) -> int:
     params = params_from_args(args.kind, args)
     kind.validate(params, where=f"prt precompute --kind {args.kind}")
     out = Path(args.output)
+    from ..io import check_writable
+
+    check_writable(out, "output", directory=kind.output == "directory")  # before any work
     if out.exists() and not args.overwrite:
         raise FileExistsError(f"output {str(out)!r} exists; pass --overwrite to replace it")
-    if out.is_dir() and kind.output == "file":
-        raise ValueError(f"output {str(out)!r} is a directory; accepted: a file path")
     state = default_state_dir(out)
     if state.exists() and not args.resume:
         if args.overwrite:

@@ -305,6 +305,10 @@ def validate(cfg: dict) -> None:
             codecs.get(t["codec"], **{t["param"]: int(t["lo"])})
         except (ValueError, TypeError) as e:
             raise ValueError(f"config key 'target': {e}") from None
+    from ..io import check_writable
+
+    check_writable(Path(cfg["output_dir"]) / str(cfg["name"]), "config key 'output_dir'", directory=True)
+    check_writable(cfg["cache_dir"], "config key 'cache_dir'", directory=True)
     from ..scene import list_builtins
 
     scene_names = cfg["scene"]["name"] if isinstance(cfg["scene"]["name"], list) else [cfg["scene"]["name"]]

@@ -85,13 +85,16 @@ def estimate_memory(cfg: dict, num_vertices: int) -> dict:
     else:
         D = int(p["M"]) ** 2 * n2
     signal = num_vertices * D * 4
+    # metrics: the float64 difference of signal and decoded signal (random-light PSNR, SE) and
+    # the random lights themselves
+    metrics = num_vertices * D * 8 + int(cfg["metrics"]["random_lights"]) * n2 * 8
     work = 0
     for s in expand_codecs(cfg["codecs"]):
         k = int(s.get("clusters", 1) or 1)
         m = min(D, max(1, num_vertices // k))
         work = max(work, k * m * m * 8)
-    total = 6 * signal + work
-    return {"signal_bytes": signal, "codec_workspace_bytes": work, "estimated_peak_bytes": total, "D": D}
+    total = 6 * signal + work + metrics
+    return {"signal_bytes": signal, "codec_workspace_bytes": work, "metrics_bytes": metrics, "estimated_peak_bytes": total, "D": D}
 
 
 def compute_transfer(cfg: dict, mesh, cache_dir: Path, progress: bool = True) -> tuple[Transfer, dict]:

@@ -1,0 +1,58 @@
+"""Hostile input: unwritable outputs refused before any work, files written with the umask's
+permissions, bad values refused by --dry-run exactly as by the real run."""
+import os
+import stat
+
+import pytest
+import torch
+import yaml
+
+from prt_torch import io
+from prt_torch.cli import main as cli_main
+
+
+def test_unwritable_output_is_refused_before_any_work(tmp_path, capsys, monkeypatch):
+    import prt_torch.transfer.diffuse as d
+
+    monkeypatch.setattr(d, "probe_self_occlusion", lambda *a, **k: pytest.fail("work started"))
+    for bad in ("/proc/x.prt", str(tmp_path)):  # a path under /proc; a directory given as the output file
+        assert cli_main(["precompute", "convex", "--samples", "8", "--no-progress", "-o", bad]) == 2
+        err = capsys.readouterr().err
+        assert bad in err and ("cannot be written" in err or "is a directory" in err), err
+    (tmp_path / "f").write_text("x")
+    with pytest.raises(ValueError, match="not a directory"):
+        io.check_writable(tmp_path / "f" / "out.prt")
+
+
+def test_files_get_the_umask_permissions(tmp_path):
+    old = os.umask(0o027)
+    try:
+        p = io.save(tmp_path / "a.prt", {"x": torch.zeros(3)}, kind="test")
+        io.atomic_write_json(tmp_path / "b.json", {"a": 1})
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE(os.stat(p).st_mode) == 0o640 == stat.S_IMODE(os.stat(tmp_path / "b.json").st_mode)
+
+
+def test_save_to_an_impossible_place_is_a_clear_oserror(tmp_path):
+    with pytest.raises(OSError, match="cannot write '/proc/"):
+        io.save("/proc/nope/a.prt", {"x": torch.zeros(2)}, kind="test")
+
+
+@pytest.mark.parametrize("override, match", [
+    ("output_dir=/proc/reports", "output_dir"),
+    ("cache_dir=/proc/cache", "cache_dir"),
+    ("target.psnr=.nan", "target.psnr"),
+    ("metrics.max_memory_gb=0.00001", "estimated"),
+])
+def test_dry_run_refuses_what_the_real_run_would(tmp_path, capsys, override, match):
+    cfg = {"name": "h", "scene": {"name": "convex", "size": "small"}, "transfer": {"type": "diffuse", "bands": 3, "samples": 16},
+           "lights": ["sky"], "codecs": [{"type": "pca", "vectors": 2}], "cache_dir": str(tmp_path / "c"),
+           "output_dir": str(tmp_path / "r")}
+    p = tmp_path / "c.yaml"
+    p.write_text(yaml.safe_dump(cfg))
+    assert cli_main(["bench", str(p), override, "--dry-run"]) == 2
+    assert match in capsys.readouterr().err
+    assert not (tmp_path / "c").exists() and not (tmp_path / "r").exists()
+    assert cli_main(["bench", str(tmp_path), "--dry-run"]) == 2  # a directory is not a config
+    assert "is a directory" in capsys.readouterr().err
