@@ -23,7 +23,7 @@ import contextlib
 import json
 import os
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Callable, Iterator
 
 import torch
 
@@ -31,7 +31,7 @@ FORMAT = "prt_torch"
 FORMAT_VERSION = 1
 
 __all__ = ["save", "load", "load_meta", "atomic_path", "atomic_write_text", "atomic_write_json", "jsonable", "check_writable",
-           "FORMAT_VERSION"]
+           "describe", "register_check", "FORMAT_VERSION"]
 
 
 @contextlib.contextmanager
@@ -174,8 +174,43 @@ def load_meta(path: str | os.PathLike) -> dict[str, Any]:
     return _parse_meta(path, raw)
 
 
+#: kind prefix -> checker(path, meta, shapes {name: [dims]}) raising ValueError on a file whose
+#: metadata disagrees with its tensors; registered by the modules that own each kind.
+_CHECKS: dict[str, Callable[[Path, dict, dict], None]] = {}
+
+
+def register_check(kind_prefix: str, check: Callable[[Path, dict, dict], None]) -> None:
+    """Register the consistency check of the files whose ``kind`` starts with ``kind_prefix``
+    (e.g. ``"transfer/"``); :func:`load` and :func:`describe` run it on every file they open."""
+    _CHECKS[kind_prefix] = check
+
+
+def _check(path: Path, meta: dict, shapes: dict) -> None:
+    for prefix, fn in _CHECKS.items():
+        if str(meta.get("kind", "")).startswith(prefix):
+            fn(path, meta, shapes)
+
+
+def describe(path: str | os.PathLike) -> dict[str, Any]:
+    """``{'meta': {...}, 'tensors': {name: {'shape', 'dtype'}}}`` of a ``.prt`` file without
+    reading the tensors, after the kind's consistency check (metadata against shapes)."""
+    from safetensors import safe_open
+
+    path = _existing(path)
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            raw = (f.metadata() or {}).get(FORMAT)
+            tensors = {k: {"shape": list(f.get_slice(k).get_shape()), "dtype": str(f.get_slice(k).get_dtype())} for k in f.keys()}
+    except Exception as e:
+        raise ValueError(f"{str(path)!r} is not a readable prt_torch file ({e}); expected a file written by prt_torch.io.save") from None
+    meta = _parse_meta(path, raw)
+    _check(path, meta, {k: t["shape"] for k, t in tensors.items()})
+    return {"meta": meta, "tensors": tensors}
+
+
 def load(path: str | os.PathLike, expect_kind: str | None = None) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
-    """Load a ``.prt`` file: returns ``(tensors, meta)``.
+    """Load a ``.prt`` file: returns ``(tensors, meta)``, after the kind's consistency check
+    (:func:`register_check`).
 
     ``expect_kind``, if given, is a prefix the file's ``kind`` must start with
     (e.g. ``"transfer/"``); anything else is refused with the kind found.
@@ -192,11 +227,14 @@ def load(path: str | os.PathLike, expect_kind: str | None = None) -> tuple[dict[
     meta = _parse_meta(path, raw)
     if expect_kind is not None and not str(meta.get("kind", "")).startswith(expect_kind):
         raise ValueError(f"{str(path)!r} holds kind={meta.get('kind')!r}; expected a kind starting with {expect_kind!r}")
+    _check(path, meta, {k: list(v.shape) for k, v in tensors.items()})
     return tensors, meta
 
 
 def _existing(path: str | os.PathLike) -> Path:
     path = Path(path)
+    if path.is_dir():
+        raise ValueError(f"{str(path)!r} is a directory; accepted: a .prt file")
     if not path.is_file():
         raise FileNotFoundError(f"no such file: {str(path)!r}")
     return path
@@ -205,7 +243,12 @@ def _existing(path: str | os.PathLike) -> Path:
 def _parse_meta(path: Path, raw: str | None) -> dict[str, Any]:
     if raw is None:
         raise ValueError(f"{str(path)!r} is a safetensors file without prt_torch metadata; expected a file written by prt_torch.io.save")
-    meta = json.loads(raw)
+    try:
+        meta = json.loads(raw)
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{str(path)!r}: its prt_torch metadata is not valid JSON ({e})") from None
+    if not isinstance(meta, dict):
+        raise ValueError(f"{str(path)!r}: its prt_torch metadata is not a JSON object")
     version = meta.get("format_version")
     if not isinstance(version, int) or version > FORMAT_VERSION:
         raise ValueError(

@@ -56,3 +56,24 @@ def test_dry_run_refuses_what_the_real_run_would(tmp_path, capsys, override, mat
     assert not (tmp_path / "c").exists() and not (tmp_path / "r").exists()
     assert cli_main(["bench", str(tmp_path), "--dry-run"]) == 2  # a directory is not a config
     assert "is a directory" in capsys.readouterr().err
+
+
+def test_inconsistent_files_are_refused_by_every_command(tmp_path, capsys):
+    """Metadata that disagrees with the tensors (data shape, bands, row counts) is refused on
+    load by one check, whichever command opens the file."""
+    from prt_torch.scene import load_scene
+    from prt_torch.transfer import Transfer, unshadowed_transfer
+
+    mesh = load_scene("convex", size="small")
+    tr = Transfer("diffuse", unshadowed_transfer(mesh.normals, 3).float(), mesh, {"bands": 3})
+    good = tr.save(tmp_path / "t.prt")
+    tensors, meta = io.load(good)
+    for name, bad_meta in (("bands", {**meta, "bands": 4}), ("shape", {**meta, "data_shape": [5, 9]})):
+        p = tmp_path / f"bad_{name}.prt"
+        io.save(p, tensors, kind=meta["kind"], meta={k: v for k, v in bad_meta.items() if k not in ("format", "format_version", "kind")})
+        for argv in (["info", str(p)], ["compress", str(p), "--codec", "pca", "--param", "vectors=2", "-o", str(tmp_path / "o.prt")],
+                     ["render", str(p), "-o", str(tmp_path / "o.png")]):
+            assert cli_main(argv) == 2, argv
+            err = capsys.readouterr().err
+            assert "inconsistent" in err and str(p) in err, (argv, err)
+    assert cli_main(["info", str(tmp_path)]) == 2 and "is a directory" in capsys.readouterr().err

@@ -25,18 +25,11 @@ def _short(v, limit: int = 8):
 
 
 def describe_file(path) -> dict:
-    """``{'meta': {...}, 'tensors': {name: {'shape': [...], 'dtype': str}}}`` of a prt_torch file."""
-    from safetensors import safe_open
-
+    """``{'meta': {...}, 'tensors': {name: {'shape': [...], 'dtype': str}}}`` of a prt_torch file,
+    after its kind's consistency check (``prt_torch.io.describe``)."""
     from .. import io
 
-    meta = io.load_meta(path)
-    tensors = {}
-    with safe_open(str(path), framework="pt") as f:
-        for k in f.keys():
-            sl = f.get_slice(k)
-            tensors[k] = {"shape": list(sl.get_shape()), "dtype": str(sl.get_dtype())}
-    return {"meta": meta, "tensors": tensors}
+    return io.describe(path)
 
 
 def run(args) -> int:

@@ -481,6 +481,33 @@ def describe(name: str) -> dict[str, Any]:
     }
 
 
+def check_codec_file(path: Path, meta: dict, shapes: dict[str, list[int]]) -> None:
+    """Consistency of a codec file (``io.register_check('codec/')``): the codes' rows against
+    ``encoded.points``, the model's dimension against ``encoded.dim``. Raises ValueError naming
+    the file and the disagreement."""
+    enc = meta.get("encoded") or {}
+    P, D = enc.get("points"), enc.get("dim")
+    problems = []
+    lab = shapes.get("codes.labels")
+    if isinstance(P, int) and lab is not None and lab[0] != P:
+        problems.append(f"encoded.points={P} but codes.labels has {lab[0]} rows")
+    co = shapes.get("codes.coeffs")
+    if isinstance(P, int) and co is not None and len(co) == 2 and not enc.get("packed") and co[0] != P:
+        problems.append(f"encoded.points={P} but codes.coeffs has {co[0]} rows")
+    for name in ("model.means", "model.basis"):
+        sh = shapes.get(name)
+        if isinstance(D, int) and sh is not None and sh[-1] != D:
+            problems.append(f"encoded.dim={D} but {name} has {sh[-1]} columns")
+    ms = enc.get("matrix_shape")
+    if isinstance(D, int) and ms and ms[0] * ms[1] != D:
+        problems.append(f"matrix_shape {ms} does not fold dim={D}")
+    if problems:
+        raise ValueError(f"{str(path)!r} is inconsistent: {'; '.join(problems)}")
+
+
+io.register_check("codec/", check_codec_file)
+
+
 def load(path: str | os.PathLike) -> tuple[Codec, Encoded]:
     """Load ``(codec, enc)`` from a codec file (``Codec.save``); layout in docs/codecs.md."""
     tensors, meta = io.load(path, expect_kind="codec/")

@@ -155,6 +155,36 @@ class Transfer:
         return f"Transfer(kind={self.kind!r}, data={tuple(self.data.shape)}, mesh={self.mesh!r})"
 
 
+def check_transfer_file(path: Path, meta: dict, shapes: dict[str, list[int]]) -> None:
+    """Consistency of a transfer file (``io.register_check('transfer/')``): the data tensor
+    against the recorded shape, the mesh rows, the bands and the matrix shape. Raises
+    ValueError naming the file and the disagreement."""
+    kind = str(meta.get("kind", "")).split("/", 1)[-1]
+    if kind in ("chunk", "transport_chunk", "transport_views"):
+        return
+    if "data" not in shapes:
+        raise ValueError(f"{str(path)!r} has no 'data' tensor; accepted: a file written by Transfer.save")
+    d = shapes["data"]
+    problems = []
+    if meta.get("data_shape") is not None and list(meta["data_shape"]) != d:
+        problems.append(f"metadata data_shape {meta['data_shape']} but the data tensor is {d}")
+    if "mesh.vertices" in shapes and shapes["mesh.vertices"][0] != d[0]:
+        problems.append(f"{shapes['mesh.vertices'][0]} mesh vertices but {d[0]} data rows")
+    bands = meta.get("bands_in", meta.get("bands"))
+    if isinstance(bands, int) and kind in ("diffuse", "glossy", "mrt") and d[-1] != bands * bands:
+        problems.append(f"bands={bands} (n²={bands * bands}) but {d[-1]} coefficients per row")
+    ms = meta.get("matrix_shape")
+    if ms is not None and kind in ("glossy", "mrt") and list(ms) != d[1:3]:
+        problems.append(f"matrix_shape {ms} but data {d}")
+    if kind == "mrt" and isinstance(meta.get("M"), int) and d[1] != meta["M"] ** 2:
+        problems.append(f"M={meta['M']} (M²={meta['M'] ** 2}) but {d[1]} rows")
+    if problems:
+        raise ValueError(f"{str(path)!r} is inconsistent: {'; '.join(problems)}")
+
+
+io.register_check("transfer/", check_transfer_file)
+
+
 # ----------------------------------------------------------------------------------------
 # chunked, resumable runner
 # ----------------------------------------------------------------------------------------
