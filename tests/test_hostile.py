@@ -77,3 +77,29 @@ def test_inconsistent_files_are_refused_by_every_command(tmp_path, capsys):
             err = capsys.readouterr().err
             assert "inconsistent" in err and str(p) in err, (argv, err)
     assert cli_main(["info", str(tmp_path)]) == 2 and "is a directory" in capsys.readouterr().err
+
+
+def test_ctrl_c_during_bench_is_quiet_and_says_how_to_continue(tmp_path, capsys, monkeypatch):
+    from prt_torch.harness import run as hr
+
+    cfg = {"name": "h", "scene": {"name": "convex", "size": "small"}, "transfer": {"type": "diffuse", "bands": 3, "samples": 16},
+           "lights": ["sky"], "codecs": [{"type": "pca", "vectors": [1, 2]}], "render": {"enabled": False},
+           "metrics": {"random_lights": 4, "repeats": 1, "warmup": 0},
+           "cache_dir": str(tmp_path / "c"), "output_dir": str(tmp_path / "r")}
+    p = tmp_path / "c.yaml"
+    p.write_text(yaml.safe_dump(cfg))
+    real, calls = hr.evaluate_setting, []
+
+    def interrupted(*a, **k):
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real(*a, **k)
+
+    monkeypatch.setattr(hr, "evaluate_setting", interrupted)
+    assert cli_main(["bench", str(p), "--quiet"]) == 130
+    err = capsys.readouterr().err
+    assert "interrupted" in err and "records" in err and "Traceback" not in err
+    monkeypatch.setattr(hr, "evaluate_setting", real)
+    assert cli_main(["bench", str(p), "--quiet"]) == 0
+    assert "resumed: 1 finished setting" in capsys.readouterr().out

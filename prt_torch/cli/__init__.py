@@ -2,7 +2,9 @@
 calls the library modules.
 
 A subcommand module defines ``register(subparsers)``, which adds its parser and sets
-``func=run`` on it via ``set_defaults``. ``run(args) -> int`` returns the exit status.
+``func=run`` on it via ``set_defaults``. ``run(args) -> int`` returns the exit status. Bad
+input ends with one line and status 2; Ctrl-C ends quietly with status 130 and, where the
+command set ``args.resume_hint`` before its long work, says what was kept and how to continue.
 """
 from __future__ import annotations
 
@@ -47,7 +49,13 @@ def main(argv: list[str] | None = None) -> int:
 
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
-    except (ValueError, FileNotFoundError, FileExistsError, TypeError) as e:
+    except KeyboardInterrupt:
+        if getattr(args, "debug", False):
+            raise
+        hint = getattr(args, "resume_hint", None)
+        print(f"prt {args.command}: interrupted" + (f"; {hint}" if hint else ""), file=sys.stderr)
+        return 130
+    except (ValueError, FileNotFoundError, FileExistsError, TypeError, OSError) as e:
         if getattr(args, "debug", False):
             raise
         print(f"prt {args.command}: error: {e}", file=sys.stderr)

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 
 def register(sub) -> None:
@@ -59,6 +60,8 @@ def run(args: argparse.Namespace) -> int:
             print(f"# {len(expand_codecs(c['codecs']))} codec settings")
         return 0
     for c in runs:
+        args.resume_hint = (f"finished settings are kept in {str(Path(c['output_dir']) / c['name'] / 'records')!r}; "
+                            "run the same command again to continue (they are not recomputed)")
         out = run_benchmark(c, resume=not args.no_resume, progress=not args.quiet)
         print(f"report: {out / 'report.md'}")
     return 0

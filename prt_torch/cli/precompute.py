@@ -12,6 +12,7 @@ an option a kind does not take is refused. Unset options take the kind's default
 from __future__ import annotations
 
 import argparse
+import shlex
 import shutil
 import sys
 from pathlib import Path
@@ -91,6 +92,12 @@ def register(subparsers) -> None:
     p.set_defaults(func=run)
 
 
+def _argv(args: argparse.Namespace) -> list[str]:
+    """The command line that started this run, without --resume/--overwrite (for the hint)."""
+    argv = sys.argv[1:] if sys.argv and sys.argv[0].endswith(("prt", "__main__.py")) else ["precompute", args.scene, "-o", args.output]
+    return [a for a in argv if a not in ("--resume", "--overwrite")]
+
+
 def params_from_args(kind: str, args: argparse.Namespace) -> dict:
     """The parameters of ``kind`` given on the command line (unset options are left out);
     options of other kinds are refused."""
@@ -162,6 +169,8 @@ def run(args) -> int:
                                   "or --overwrite to start again")
     mesh = load_scene(args.scene, size=args.size, up=args.up, albedo=args.albedo)
     print(f"prt precompute: {mesh.name}: {mesh.num_vertices} vertices, {mesh.num_faces} faces", file=sys.stderr)
+    args.resume_hint = (f"finished chunks are kept in {str(state)!r}; continue with: "
+                        f"prt {' '.join(shlex.quote(a) for a in _argv(args))} --resume")
     opts = RunOptions(chunk_size=args.chunk, workers=args.workers, state_dir=state, resume=args.resume,
                       progress=not args.no_progress,
                       max_memory=None if args.memory_limit is None else int(args.memory_limit * (1 << 30)))
