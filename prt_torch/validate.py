@@ -6,9 +6,10 @@ with no scale fit:
 * **What a vertex is.** Diffuse exit radiance at vertex p is (ρ_p/π) E_p with E_p the
   irradiance over the hemisphere of the vertex normal n_p at the vertex position (course notes
   2005, "Diffuse PRT"). Mitsuba measures E_p with an ``irradiancemeter`` sensor attached to a
-  tiny one-sided disk (radius ``1e-2·eps``, black) centred at p + eps·n_p facing n_p — eps is
-  the transfer's own ray offset (``offset`` × bounding-box diagonal), so both sides start their
-  rays at the same point. The rest of the scene is the transfer's mesh, flat-shaded (its
+  tiny one-sided disk (radius ``1e-2·eps``, black) centred at the engine's ray origin
+  p + eps·n_p (+ eps·b_p on open mesh boundaries, :func:`prt_torch.transfer.diffuse.offset_origins`)
+  facing n_p — eps is the transfer's own ray offset (``offset`` × bounding-box diagonal), so
+  both sides start their rays at the same point. The rest of the scene is the transfer's mesh, flat-shaded (its
   triangles, as the engine's rays see them), one-sided Lambertian (Mitsuba's ``diffuse`` is
   black behind, as the engine's bounces are) with the mesh albedo as a vertex attribute.
 * **The light.** The SH light ``[C, n²]`` is reconstructed on a lat-long image in Mitsuba's
@@ -54,7 +55,7 @@ from .relight import diffuse_transfer
 from .scene import Mesh, RayCaster
 from .sh import eval_sh
 from .transfer import Transfer
-from .transfer.diffuse import DiffuseSampler, face_points, transfer_at_points
+from .transfer.diffuse import DiffuseSampler, HitBounce, boundary_nudge, face_points, hit_bounce, offset_origins, transfer_at_points
 
 __all__ = [
     "ValidatorUnavailable",
@@ -208,13 +209,16 @@ def _probe(mi, p: np.ndarray, n: np.ndarray, radius: float, spp: int) -> dict:
 
 
 def mitsuba_exit_radiance(mesh: Mesh | None, points: Any, normals: Any, image: np.ndarray, depths: list[int], spp: int = 1024,
-                          batches: int = 8, eps: float = 1e-4, seed: int = 0, albedo: Any = None) -> dict[str, torch.Tensor]:
+                          batches: int = 8, eps: float = 1e-4, seed: int = 0, albedo: Any = None,
+                          nudge: Any = None) -> dict[str, torch.Tensor]:
     """Mitsuba 3 path-traced irradiance at probe points (module docstring).
 
     Args:
         mesh: the scene (flat-shaded, one-sided Lambertian, ``mesh.albedo``); None = only the
             environment.
-        points, normals: ``[P, 3]``; each probe is centred at p + eps·n facing n.
+        points, normals: ``[P, 3]``; each probe is centred at p + eps·n (+ eps·nudge) facing n —
+            the engine's ray origin (:func:`prt_torch.transfer.diffuse.offset_origins`).
+        nudge: optional ``[P, 3]`` :func:`prt_torch.transfer.diffuse.boundary_nudge` rows.
         image: ``[H, 2H, 3]`` environment radiance on Mitsuba's lat-long grid (:func:`light_image`).
         depths: ``path`` integrator ``max_depth`` values (1 = direct light only).
         spp: samples per probe and depth, split over ``batches`` independent renders.
@@ -229,6 +233,7 @@ def mitsuba_exit_radiance(mesh: Mesh | None, points: Any, normals: Any, image: n
     P = torch.as_tensor(points, dtype=torch.float64).numpy()
     N = torch.as_tensor(normals, dtype=torch.float64)
     N = (N / N.norm(dim=-1, keepdim=True)).numpy()
+    C = offset_origins(P, N, eps, None if nudge is None else torch.as_tensor(nudge, dtype=torch.float64).numpy())
     batches = check_int("batches", batches, 2)
     per = max(1, int(spp) // batches)
     scene: dict[str, Any] = {"type": "scene", "env": {"type": "envmap", "bitmap": mi.Bitmap(np.ascontiguousarray(image, np.float32))}}
@@ -240,7 +245,7 @@ def mitsuba_exit_radiance(mesh: Mesh | None, points: Any, normals: Any, image: n
             scene["mesh"] = {"type": "ply", "filename": str(ply), "face_normals": True,
                              "bsdf": {"type": "diffuse", "reflectance": {"type": "mesh_attribute", "name": "vertex_color"}}}
         for k in range(P.shape[0]):  # scene description, one probe per vertex (Mitsuba builds the scene once)
-            scene[f"probe_{k:06d}"] = _probe(mi, P[k] + eps * N[k], N[k], radius, per)
+            scene[f"probe_{k:06d}"] = _probe(mi, C[k], N[k], radius, per)
         sc = mi.load_dict(scene)
     sensors = sc.sensors()
     if len(sensors) != P.shape[0]:  # pragma: no cover - Mitsuba always keeps them in order
@@ -285,13 +290,18 @@ def engine_parts(transfer: Transfer, L: torch.Tensor, idx: torch.Tensor, data: t
     traced = bool(meta.get("shadows_traced", True))
     with RayCaster(mesh, offset=offset) as caster:
         if traced:
-            t0 = transfer_at_points(caster, p, n, bands, samples, seed, sampling)  # [k, n²], ρ = 1
+            t0 = transfer_at_points(caster, p, n, bands, samples, seed, sampling, nudge=boundary_nudge(mesh)[idx])  # [k, n²], ρ = 1
         else:
             from .transfer.diffuse import unshadowed_transfer
 
             t0 = unshadowed_transfer(n, bands)
         direct = rho * (t0 @ L3.T)
-        direct_se, inter_se = _ray_noise(caster, mesh, p, n, L3, bands, samples, seed, sampling, total_all)
+        hits = None
+        bounces_used = int(meta.get("bounces_used", 0))
+        if traced and bounces_used > 0 and meta.get("bounce_points") == "hits":
+            hits = hit_bounce(mesh, bands, samples, seed, bounces_used, offset=offset,
+                              hit_samples=int(meta.get("hit_samples", 8)), sampling=sampling)
+        direct_se, inter_se = _ray_noise(caster, mesh, p, n, L3, bands, samples, seed, sampling, total_all, hits, idx)
     if not traced:  # analytic unshadowed transfer: no Monte Carlo noise
         direct_se = torch.zeros_like(direct_se)
     bounces = int(meta.get("bounces_used", 0))
@@ -307,10 +317,13 @@ def _scatter_rows(transfer: Transfer, idx: torch.Tensor, rows: torch.Tensor) -> 
 
 
 def _ray_noise(caster: RayCaster, mesh: Mesh, p: torch.Tensor, n: torch.Tensor, L3: torch.Tensor, bands: int, samples: int,
-               seed: int, sampling: str, total_all: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+               seed: int, sampling: str, total_all: torch.Tensor, hits: HitBounce | None = None,
+               idx: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Standard errors ``[k, 3]`` (ρ = 1) of the per-ray estimators of the direct part
     (4 V cos y·l for uniform, V y·l for cosine sampling) and of the interreflected part (the
-    same with (1 − V) and the hit's exit radiance, the stored total interpolated at the hit)."""
+    same with (1 − V) and the hit's exit radiance: with ``hits`` the engine's own per-hit
+    estimate — same keys, so its hit-sampling noise is included —, else the stored total
+    interpolated at the hit)."""
     sampler = DiffuseSampler(bands, samples, seed, sampling)
     frames = None
     if sampling == "cosine":
@@ -318,7 +331,7 @@ def _ray_noise(caster: RayCaster, mesh: Mesh, p: torch.Tensor, n: torch.Tensor, 
 
         t, b = tangent_frames(n.numpy())
         frames = torch.stack([torch.from_numpy(t), torch.from_numpy(b), n], dim=-2)
-    i, j, o, d, cos = sampler.rays(p, n, frames, caster.eps)
+    i, j, o, d, cos = sampler.rays(p, n, frames, caster.eps, boundary_nudge(mesh)[idx])
     prim, bu, bv, _ = caster.trace(o, d, "intersect")
     hit = prim != -1
     k = p.shape[0]
@@ -328,9 +341,15 @@ def _ray_noise(caster: RayCaster, mesh: Mesh, p: torch.Tensor, n: torch.Tensor, 
     f = mesh.faces.numpy()
     tri = np.where(hit, prim, 0).astype(np.int64)
     beta = torch.from_numpy(np.stack([1 - bu - bv, bu, bv], 1).astype(np.float64))
-    Lh = (beta[:, :, None] * total_all[torch.from_numpy(f[tri])]).sum(1)  # [R, 3]
     _, fn, _ = face_points(mesh)
     front = hit & (np.einsum("ij,ij->i", fn.numpy()[tri], d) < 0)
+    if hits is not None:
+        Lh = torch.zeros(i.shape[0], 3, dtype=torch.float64)
+        fr = np.nonzero(front)[0]
+        x = hits.exit_transfer(caster, tri[fr], beta[fr].numpy(), idx.numpy()[i[fr]], j[fr])  # [H, C, n²]
+        Lh[torch.from_numpy(fr)] = torch.einsum("hcn,cn->hc", x.expand(-1, 3, -1) if x.shape[1] == 1 else x, L3)
+    else:
+        Lh = (beta[:, :, None] * total_all[torch.from_numpy(f[tri])]).sum(1)  # [R, 3]
     f_ind = torch.from_numpy(w * front)[:, None] * Lh
     Ns = samples  # the estimator averages over all N directions (zeros below the horizon)
     ii = torch.from_numpy(i)
@@ -426,7 +445,8 @@ def validate(transfer: Transfer | str | os.PathLike, light: Any, *, vertices: in
     depths = [1] if bounces == 0 else [1, bounces + 1]
     rho = mesh.albedo.to(torch.float64)[idx]
     p, n = mesh.vertices[idx], mesh.normals[idx]
-    mit = mitsuba_exit_radiance(mesh, p, n, sh_img, depths, spp, batches, eps, seed, rho)
+    nudge = boundary_nudge(mesh)[idx]
+    mit = mitsuba_exit_radiance(mesh, p, n, sh_img, depths, spp, batches, eps, seed, rho, nudge)
     m_dir, m_dir_se = mit["radiance"][0], mit["radiance_se"][0]
     if bounces:
         m_tot, m_tot_se = mit["radiance"][1], mit["radiance_se"][1]
@@ -461,7 +481,7 @@ def validate(transfer: Transfer | str | os.PathLike, light: Any, *, vertices: in
         if bounces:
             rep["codec"]["inter"] = _ratio(ce["total"] - eng["direct"], eng["inter_se"], m_int, m_int_se)
     if src_img is not None:
-        ms = mitsuba_exit_radiance(mesh, p, n, src_img, depths, spp, batches, eps, seed, rho)
+        ms = mitsuba_exit_radiance(mesh, p, n, src_img, depths, spp, batches, eps, seed, rho, nudge)
         rep["source_image"] = {
             "total": _ratio(eng["total"], tot_se, ms["radiance"][-1], ms["radiance_se"][-1]),
             "sh_truncation": _ratio(m_tot, m_tot_se, ms["radiance"][-1], ms["radiance_se"][-1]),

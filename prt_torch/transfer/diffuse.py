@@ -57,6 +57,7 @@ __all__ = [
     "precompute_diffuse",
     "face_points",
     "face_transfer",
+    "boundary_nudge",
     "hit_bounce",
     "HitBounce",
     "offset_origins",
@@ -92,16 +93,50 @@ def unshadowed_transfer(normals: torch.Tensor, bands: int, albedo: torch.Tensor 
     return t * a[:, None] if a.ndim == 1 else a[:, :, None] * t[:, None, :]
 
 
-def offset_origins(points: Any, normals: Any, dirs: Any, eps: float) -> np.ndarray:
-    """Ray origins leaving surface points, ``p + eps·n + eps·d`` as float32 numpy ``[R,3]``
-    (per-ray ``points``, ``normals``, ``dirs``): the one self-intersection rule of every
-    transfer tracer (diffuse, glossy, MRT, the bounce's face and hit points; the rule of
-    :meth:`prt_torch.scene.RayCaster.prepare` for rays above the tangent plane). The step along
-    the ray matters at a vertex lying on *another* surface (a floor vertex where a wall stands,
-    a block's bottom edge on the floor): ``p + eps·n`` is still on that surface and every ray
-    would hit it at t = 0; moving along the ray leaves it on the side the ray goes to."""
-    o = np.asarray(points, np.float64) + eps * np.asarray(normals, np.float64) + eps * np.asarray(dirs, np.float64)
-    return o.astype(np.float32)
+def boundary_nudge(mesh: Mesh) -> torch.Tensor:
+    """``[V,3]`` float64: for a vertex on an open boundary of the mesh (an edge with one face),
+    the unit direction in its tangent plane towards the centroid of its faces; zero elsewhere.
+
+    Such a vertex can lie on *another* surface (a floor vertex at the foot of a wall, a box's
+    open bottom edge standing on the floor); :func:`offset_origins` moves its ray origins by eps
+    along this direction, into the vertex's own surface, so that the hemisphere it integrates
+    is the limit from inside its faces: rays towards the wall meet the wall's front, rays away
+    from it leave. Closed-surface and interior vertices are not moved."""
+    f = mesh.faces.numpy().astype(np.int64)
+    V = mesh.num_vertices
+    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    key = e[:, 0] * V + e[:, 1]
+    _, inv, cnt = np.unique(key, return_inverse=True, return_counts=True)
+    border = e[cnt[inv.reshape(-1)] == 1].reshape(-1)
+    out = torch.zeros(V, 3, dtype=torch.float64)
+    if border.size == 0:
+        return out
+    v = mesh.vertices.to(torch.float64).numpy()
+    c = v[f].mean(1)  # [F,3] face centroids
+    acc = np.zeros((V, 3))
+    np.add.at(acc, f.reshape(-1), np.repeat(c, 3, axis=0))
+    deg = np.bincount(f.reshape(-1), minlength=V)[:, None]
+    on = np.zeros(V, bool)
+    on[border] = True
+    n = mesh.normals.to(torch.float64).numpy()
+    d = acc / np.maximum(deg, 1) - v
+    d -= np.einsum("ij,ij->i", d, n)[:, None] * n  # into the tangent plane
+    norm = np.linalg.norm(d, axis=1, keepdims=True)
+    ok = on & (norm[:, 0] > 0)
+    out[torch.from_numpy(ok)] = torch.from_numpy(d[ok] / norm[ok])
+    return out
+
+
+def offset_origins(points: Any, normals: Any, eps: float, nudge: Any = None) -> np.ndarray:
+    """Ray origins leaving surface points: ``p + eps·n (+ eps·b)``, float64 numpy ``[k,3]`` —
+    the one self-intersection rule of every transfer tracer (diffuse, glossy, MRT, the bounce's
+    face and hit points; rays are traced only above the tangent plane, so the origin sits on the
+    side they leave towards). ``nudge`` b: :func:`boundary_nudge` rows for mesh vertices (zero
+    except on open boundaries, where a vertex may lie on another surface)."""
+    o = np.asarray(points, np.float64) + eps * np.asarray(normals, np.float64)
+    if nudge is not None:
+        o = o + eps * np.asarray(nudge, np.float64)
+    return o
 
 
 class DiffuseSampler:
@@ -119,27 +154,28 @@ class DiffuseSampler:
             self.Y = None
             self.weight = 1.0 / samples
 
-    def rays(self, points: torch.Tensor, normals: torch.Tensor, frames: torch.Tensor | None, eps: float):
+    def rays(self, points: torch.Tensor, normals: torch.Tensor, frames: torch.Tensor | None, eps: float,
+             nudge: torch.Tensor | None = None):
         """Ray set of a chunk of k vertices (numpy, ready for Embree).
 
         Returns ``(i [R] vertex index, j [R] sample index, origins float32 [R,3],
-        dirs float32 [R,3], cos)`` with origins offset by ``eps`` along the normal. For uniform
+        dirs float32 [R,3], cos)`` with origins by :func:`offset_origins` (``nudge``: the
+        points' :func:`boundary_nudge` rows, or None). For uniform
         sampling only directions above the tangent plane are traced and ``cos`` is the
         ``[k,N]`` matrix max(n·s, 0); for cosine sampling ``cos`` is None and dirs are per vertex.
         """
-        o_v = (points.to(torch.float64) + eps * normals.to(torch.float64)).numpy()  # [k,3]
+        o_v = offset_origins(points.numpy(), normals.numpy(), eps, None if nudge is None else nudge.numpy()).astype(np.float32)
         if self.sampling == "uniform":
             cos = (normals @ self.dirs.T).numpy()  # [k,N] float64
             up = cos > 0
             i, j = np.nonzero(up)  # row-major: rays grouped by vertex
             o = np.repeat(o_v, up.sum(1), axis=0)  # == o_v[i], without a gather
-            o = offset_origins(o, 0.0, self.dirs.numpy()[j], eps)  # the step along the ray (offset_origins)
             return i, j, o, np.take(self.dirs32, j, axis=0), np.maximum(cos, 0.0, out=cos)
         k = normals.shape[0]
         world = to_world(self.dirs, frames).reshape(-1, 3).numpy()  # [k·N,3]
         i = np.repeat(np.arange(k), self.samples)
         j = np.tile(np.arange(self.samples), k)
-        return i, j, offset_origins(o_v[i], 0.0, world, eps), world, None
+        return i, j, o_v[i], world, None
 
 
 _M1, _M2, _M3 = np.uint64(0x9E3779B97F4A7C15), np.uint64(0xBF58476D1CE4E5B9), np.uint64(0x94D049BB133111EB)
@@ -227,7 +263,7 @@ class HitBounce:
         r, phi = np.sqrt(a), 2 * math.pi * b
         local = np.stack([r * np.cos(phi), r * np.sin(phi), np.sqrt(np.maximum(1 - a, 1e-24))], -1)  # [H,M,3]
         d = np.einsum("hmk,hkj->hmj", local, self.frames[tri]).reshape(-1, 3)
-        o = offset_origins(np.repeat(q, M, axis=0), np.repeat(n, M, axis=0), d, caster.eps)
+        o = np.repeat(offset_origins(q, n, caster.eps), M, axis=0).astype(np.float32)
         n2 = self.bands * self.bands
         out = torch.zeros(H, self.terms, self.C, n2, dtype=torch.float64)
         row = torch.from_numpy(np.repeat(np.arange(H), M))
@@ -264,7 +300,7 @@ def _check_points(points: Any, normals: Any) -> tuple[torch.Tensor, torch.Tensor
 def _chunk(caster: RayCaster, sampler: DiffuseSampler, points: torch.Tensor, normals: torch.Tensor,
            frames: torch.Tensor | None, faces: np.ndarray | None, face_normals: np.ndarray | None,
            n_vertices: int, record_hits: bool, hit_columns: str = "vertices", hits: HitBounce | None = None,
-           first_id: int = 0) -> dict[str, torch.Tensor]:
+           first_id: int = 0, nudge: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
     """Shadowed transfer (ρ = 1) of a chunk of k points, and (optionally) its bounce entries.
 
     Uniform sampling: T = (4/N) · (V ⊙ max(n·s,0)) @ Y — one masked GEMM per chunk
@@ -277,7 +313,7 @@ def _chunk(caster: RayCaster, sampler: DiffuseSampler, points: torch.Tensor, nor
     ``TB [k, terms, C, n²]`` (ρ_p kept out, ρ_q in).
     """
     k = points.shape[0]
-    i, j, o, d, cos = sampler.rays(points, normals, frames, caster.eps)
+    i, j, o, d, cos = sampler.rays(points, normals, frames, caster.eps, nudge)
     if record_hits:
         prim, bu, bv, _ = caster.trace(o, d, "intersect")
         hit = prim != -1
@@ -338,12 +374,13 @@ def _hit_bounces(caster: RayCaster, hits: HitBounce, k: int, rows: np.ndarray, d
 
 
 def transfer_at_points(caster: RayCaster, points: Any, normals: Any, bands: int, samples: int, seed: int = 0,
-                       sampling: str = "uniform") -> torch.Tensor:
+                       sampling: str = "uniform", nudge: Any = None) -> torch.Tensor:
     """Shadowed diffuse transfer (ρ = 1, no interreflection) at arbitrary surface points.
 
     Args:
         caster: ``RayCaster`` of the occluding geometry.
         points, normals: ``[P,3]``.
+        nudge: optional ``[P,3]`` :func:`boundary_nudge` rows (mesh vertices: the precompute's origins).
     Returns:
         ``[P, n²] float64`` — course notes 2005 t⁰ with ρ = 1 (Monte Carlo, see module docstring).
     """
@@ -357,7 +394,8 @@ def transfer_at_points(caster: RayCaster, points: Any, normals: Any, bands: int,
     if sampling == "cosine":
         t, b = tangent_frames(n.numpy())
         frames = torch.stack([torch.from_numpy(t), torch.from_numpy(b), n], dim=-2)
-    return _chunk(caster, DiffuseSampler(bands, samples, seed, sampling), p, n, frames, None, None, 0, False)["T"]
+    nd = None if nudge is None else torch.as_tensor(nudge, dtype=torch.float64)
+    return _chunk(caster, DiffuseSampler(bands, samples, seed, sampling), p, n, frames, None, None, 0, False, nudge=nd)["T"]
 
 
 def probe_self_occlusion(caster: RayCaster, mesh: Mesh, seed: int = 0, vertices: int = 1024,
@@ -553,10 +591,13 @@ def _trace_direct(caster: RayCaster, mesh: Mesh, bands: int, samples: int, seed:
     fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # geometric face normals (winding)
 
     n_cols = {"faces": faces_np.shape[0], "corners": 3 * faces_np.shape[0]}.get(hit_columns, V)
+    nudge = boundary_nudge(mesh)
+    nudge = nudge if bool(nudge.any()) else None
 
     def compute(a: int, b: int) -> dict[str, torch.Tensor]:
         return _chunk(caster, sampler, mesh.vertices[a:b], mesh.normals[a:b],
-                      None if frames is None else frames[a:b], faces_np, fn, n_cols, record_hits, hit_columns, hits, a)
+                      None if frames is None else frames[a:b], faces_np, fn, n_cols, record_hits, hit_columns, hits, a,
+                      None if nudge is None else nudge[a:b])
 
     fingerprint = {"mesh_hash": mesh.content_hash(), "bands": bands, "samples": samples, "seed": seed,
                    "sampling": sampling, "record_hits": record_hits, "offset": run.offset, "kind": "diffuse"}

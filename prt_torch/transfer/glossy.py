@@ -40,7 +40,7 @@ from ..brdf import BRDF, AshikhminShirley, brdf_matrices, output_index
 from ..scene import Mesh, RayCaster, default_workers
 from ..sh import eval_sh, rotation_blocks
 from .base import RunOptions, Transfer
-from .diffuse import HitBounce, hit_bounce, offset_origins
+from .diffuse import HitBounce, boundary_nudge, hit_bounce, offset_origins
 from .sampling import uniform_sphere
 
 __all__ = [
@@ -124,7 +124,7 @@ class _Directions:
 
 def transferred_radiance(caster: RayCaster | None, points: torch.Tensor, normals: torch.Tensor,
                          directions: _Directions, bounce: "Bounce | None" = None,
-                         ids: torch.Tensor | None = None) -> tuple[torch.Tensor, int]:
+                         ids: torch.Tensor | None = None, nudge: torch.Tensor | None = None) -> tuple[torch.Tensor, int]:
     """T_p for a chunk of points (module docstring): ``[k, n², n²]`` float64 and rays traced.
     ``caster=None`` skips visibility (unshadowed: only the tangent-plane cut).
 
@@ -142,8 +142,8 @@ def transferred_radiance(caster: RayCaster | None, points: torch.Tensor, normals
     W = torch.zeros_like(cos)
     T_ind = None
     if caster is not None and i.numel():
-        o = offset_origins(points.to(torch.float64)[i].numpy(), normals.to(torch.float64)[i].numpy(),
-                           directions.dirs.numpy()[j.numpy()], caster.eps)  # the one offset rule
+        o = offset_origins(points.to(torch.float64).numpy(), normals.to(torch.float64).numpy(), caster.eps,
+                           None if nudge is None else nudge.numpy())[i.numpy()].astype(np.float32)  # the one offset rule
         d = directions.dirs32[j.numpy()]
         if bounce is None:
             vis = ~torch.from_numpy(caster.trace(o, d, "occluded"))
@@ -241,6 +241,8 @@ def run_exit_transfer(
                 workers = default_workers() if V * rays_per_vertex >= 4_000_000 else 1
             caster = RayCaster(mesh, workers=workers, offset=run.offset)
             meta["ray_eps"] = caster.eps
+        nudge = boundary_nudge(mesh) if shadows else None  # the diffuse tracer's origins (offset_origins)
+        nudge = nudge if nudge is not None and bool(nudge.any()) else None
         bounce = None
         if bounces:
             if not shadows:
@@ -251,7 +253,8 @@ def run_exit_transfer(
 
         def compute(a: int, b: int) -> dict[str, torch.Tensor]:
             idx = sel[a:b]
-            T, rays = transferred_radiance(caster, mesh.vertices[idx], mesh.normals[idx], directions, bounce, ids=idx)
+            T, rays = transferred_radiance(caster, mesh.vertices[idx], mesh.normals[idx], directions, bounce, ids=idx,
+                                           nudge=None if nudge is None else nudge[idx])
             if left.numel():
                 out = left[index[idx]] @ rotate_rows(T, rotation_blocks(F_all[idx], bands))  # B_p R_p T_p
             else:
