@@ -31,7 +31,7 @@ FORMAT = "prt_torch"
 FORMAT_VERSION = 1
 
 __all__ = ["save", "load", "load_meta", "atomic_path", "atomic_write_text", "atomic_write_json", "jsonable", "check_writable",
-           "describe", "register_check", "FORMAT_VERSION"]
+           "describe", "register_check", "format_bytes", "FORMAT_VERSION"]
 
 
 @contextlib.contextmanager
@@ -52,6 +52,15 @@ def atomic_path(path: str | os.PathLike, overwrite: bool = True) -> Iterator[Pat
     finally:
         if tmp.exists():
             tmp.unlink()
+
+
+def format_bytes(b: float) -> str:
+    """'3.2 MiB', '0.0123 GiB'-free: three significant digits in the largest unit below the value."""
+    for unit in ("B", "KiB", "MiB", "GiB", "TiB"):
+        if abs(b) < 1024 or unit == "TiB":
+            return f"{b:.3g} {unit}"
+        b /= 1024
+    return f"{b:.3g} TiB"  # pragma: no cover
 
 
 def _umask() -> int:

@@ -103,3 +103,28 @@ def test_ctrl_c_during_bench_is_quiet_and_says_how_to_continue(tmp_path, capsys,
     monkeypatch.setattr(hr, "evaluate_setting", real)
     assert cli_main(["bench", str(p), "--quiet"]) == 0
     assert "resumed: 1 finished setting" in capsys.readouterr().out
+
+
+def test_lights_refuse_aliasing_and_negative_radiance():
+    from prt_torch.lighting import load_light
+    from prt_torch.lighting.environment import Environment
+
+    env = Environment(torch.ones(8, 16, 3), "latlong")  # 128 pixels resolve l <= 4
+    assert env.project(5).shape == (3, 25)
+    with pytest.raises(ValueError, match="alias.*at most 5 bands"):
+        env.project(6)
+    with pytest.raises(ValueError, match="negative"):
+        load_light("directional:direction=0,0,1;intensity=-1", bands=2)
+    with pytest.raises(ValueError, match="negative"):
+        load_light({"type": "cap", "direction": [0, 0, 1], "half_angle_deg": 10, "intensity": [1, -0.5, 1]}, bands=2)
+
+
+def test_memory_refusal_rounds_honestly(tmp_path, capsys):
+    cfg = {"name": "h", "scene": {"name": "convex", "size": "small"}, "transfer": {"type": "diffuse", "bands": 3, "samples": 16},
+           "lights": ["sky"], "codecs": [{"type": "pca", "vectors": 2}], "cache_dir": str(tmp_path / "c"),
+           "output_dir": str(tmp_path / "r"), "metrics": {"max_memory_gb": 0.00001}}
+    p = tmp_path / "c.yaml"
+    p.write_text(yaml.safe_dump(cfg))
+    assert cli_main(["bench", str(p), "--dry-run"]) == 2
+    err = capsys.readouterr().err
+    assert "0.0 GiB" not in err and "KiB" in err and "MiB" in err, err

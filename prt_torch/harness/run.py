@@ -245,11 +245,13 @@ def load_mesh_within_budget(cfg: dict):
     mesh = load_scene(sc["name"], size=sc["size"], up=sc["up"], albedo=sc["albedo"])
     mem = estimate_memory(cfg, mesh.num_vertices)
     if mem["estimated_peak_bytes"] > float(cfg["metrics"]["max_memory_gb"]) * 2**30:
+        fb = io.format_bytes
         raise ValueError(
-            f"this config needs an estimated {mem['estimated_peak_bytes'] / 2**30:.1f} GiB "
-            f"(signal {mem['signal_bytes'] / 2**30:.2f} GiB for {mesh.num_vertices} vertices × D={mem['D']}, codec workspace "
-            f"{mem['codec_workspace_bytes'] / 2**30:.2f} GiB) > metrics.max_memory_gb={cfg['metrics']['max_memory_gb']}; "
-            "accepted: a smaller scene, fewer bands or clusters, or a larger max_memory_gb"
+            f"this config needs an estimated {fb(mem['estimated_peak_bytes'])} (signal {fb(mem['signal_bytes'])} for "
+            f"{mesh.num_vertices} vertices × D={mem['D']}, codec workspace {fb(mem['codec_workspace_bytes'])}, metrics "
+            f"{fb(mem['metrics_bytes'])}) > metrics.max_memory_gb={cfg['metrics']['max_memory_gb']} "
+            f"({fb(float(cfg['metrics']['max_memory_gb']) * 2**30)}); accepted: a smaller scene, fewer bands or clusters, "
+            "or a larger max_memory_gb"
         )
     return mesh, mem
 

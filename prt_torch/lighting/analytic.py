@@ -44,6 +44,8 @@ def color(value: Any, name: str = "intensity") -> torch.Tensor:
         t = t.repeat(3)
     if t.ndim != 1 or t.numel() < 1 or not torch.isfinite(t).all():
         raise ValueError(f"{name}={describe(value)}; accepted: a finite number or a sequence of per-channel values")
+    if bool((t < 0).any()):
+        raise ValueError(f"{name}={describe(value)} is negative; accepted: radiance ≥ 0 per channel (as for image pixels)")
     return t
 
 

@@ -10,6 +10,8 @@ done per channel and batched as one GEMM per chunk of pixels through
 """
 from __future__ import annotations
 
+import math
+
 import os
 from pathlib import Path
 from typing import Any, Callable, Sequence
@@ -65,9 +67,21 @@ def expand_window(w: torch.Tensor) -> torch.Tensor:
     return w[torch.repeat_interleave(torch.arange(bands), 2 * torch.arange(bands) + 1)]
 
 
+def max_resolved_bands(pixels: int) -> int:
+    """The most SH bands a map of ``pixels`` valid pixels resolves without aliasing: two samples
+    per shortest wavelength (2π/l) along a great circle. A lat-long H×2H map (2H² pixels) has H
+    rows over π, so l ≤ H/2: n = ⌊√(P/8)⌋ + 1 bands (P/8 = H²/4)."""
+    return math.isqrt(max(0, int(pixels)) // 8) + 1
+
+
 def _project_flat(values: torch.Tensor, dirs: torch.Tensor, weights: torch.Tensor, bands: int) -> torch.Tensor:
-    """values ``[P, K]``, dirs ``[P, 3]``, weights ``[P]`` -> ``[K, n²]`` float64, chunked GEMM."""
+    """values ``[P, K]``, dirs ``[P, 3]``, weights ``[P]`` -> ``[K, n²]`` float64, chunked GEMM.
+    Refuses ``bands`` beyond what P samples resolve (:func:`max_resolved_bands`)."""
     bands = check_int("bands", bands, 1, MAX_BANDS)
+    top = max_resolved_bands(values.shape[0])
+    if bands > top:
+        raise ValueError(f"bands={bands} from a map of {values.shape[0]} pixels would alias: it resolves at most {top} bands; "
+                         f"accepted: bands <= {top}, or a larger image (about {8 * (bands - 1) ** 2} pixels for {bands} bands)")
     out = torch.zeros(values.shape[1], bands * bands, dtype=torch.float64)
     for s in range(0, values.shape[0], _CHUNK):  # a handful of chunks, each a GEMM
         y = eval_sh(dirs[s:s + _CHUNK], bands, check=False)
