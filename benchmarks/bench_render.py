@@ -144,7 +144,9 @@ def glsl_md(rows: list[dict], load: tuple[float, float]) -> list[str]:
           "* GLSL vs CPU: PSNR of the GLSL image against the CPU-decoded image (peak = max of the CPU image), both "
           "masks identical (inf = bit-identical images).",
           f"* Shared machine: other engineers' jobs ran at the same time (load average {load[0]:.1f} before, "
-          f"{load[1]:.1f} after, on 2 cores); absolute rates are indicative, ratios are from the same run.", "",
+          f"{load[1]:.1f} after, on 2 cores); absolute rates are indicative, ratios are from the same run. A spread "
+          "above 50% marks a figure disturbed by those jobs (a load average above 2 means they competed for the "
+          "cores during the timing); re-run on an idle machine for absolute rates.", "",
           "| transfer | codec | GLSL vs CPU | same mask | GLSL fps | CPU relight/s | CPU frame fps | GLSL fps / CPU relight/s | GLSL / CPU frame |",
           "|---|---|---|---|---:|---:|---:|---:|---:|"]
     for x in rows:
