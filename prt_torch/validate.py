@@ -467,9 +467,8 @@ def validate(transfer: Transfer | str | os.PathLike, light: Any, *, vertices: in
     }
     if bounces:
         rep["inter"] = _ratio(eng["inter"], eng["inter_se"], m_int, m_int_se)
-        if bool(sharp.any()):
+        if bool(sharp.any()) and bool((~sharp).any()):  # both subsets, else 'inter' says it all
             rep["inter_sharp"] = _ratio(eng["inter"][sharp], eng["inter_se"][sharp], m_int[sharp], m_int_se[sharp])
-        if bool((~sharp).any()):
             rep["inter_smooth"] = _ratio(eng["inter"][~sharp], eng["inter_se"][~sharp], m_int[~sharp], m_int_se[~sharp])
     if codec is not None:
         c, enc = codec
