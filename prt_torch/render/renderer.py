@@ -114,6 +114,8 @@ class Renderer:
         self.cull_back = bool(cull_back)
         self._programs: dict[ShaderProgram, GLProgram] = {}
         self._resident: dict[int, tuple] = {}  # id(array) -> (weakref, kind, GL object)
+        self._index_max_cache: dict[int, tuple] = {}
+        self._geometry_cache: dict[int, tuple] = {}
         self._fbo = 0
         self._rbos: list[int] = []
         self._size: tuple[int, int] | None = None
@@ -193,7 +195,7 @@ class Renderer:
 
     def _drop_resident(self, GL, key: int) -> None:
         _, kind, obj = self._resident.pop(key)
-        if kind == "vbo":
+        if kind in ("vbo", "ebo"):
             GL.glDeleteBuffers(1, [obj])
         else:
             obj.delete()
@@ -201,6 +203,41 @@ class Renderer:
     def _purge_resident(self, GL) -> None:
         for key in [k for k, (ref, _, _) in self._resident.items() if ref() is None]:
             self._drop_resident(GL, key)
+
+    def _index_max(self, indices, idx, static: bool) -> int:
+        """Largest index; remembered for resident (read-only) index arrays."""
+        if static:
+            hit = self._index_max_cache.get(id(indices))
+            if hit is not None and hit[0]() is indices:
+                return hit[1]
+            m = int(idx.max())
+            self._index_max_cache[id(indices)] = (weakref.ref(indices), m)
+            return m
+        return int(idx.max())
+
+    def _mesh_geometry(self, mesh):
+        """(vertices [V,3] float64, faces [F,3] uint32 read-only, centre [3], centred positions
+        [V,3] float32 read-only) of ``mesh``, computed once per mesh object (a ``Mesh`` is treated
+        as immutable while it lives; (vertices, faces) pairs are recomputed every call)."""
+        key = id(mesh)
+        hit = self._geometry_cache.get(key)
+        if hit is not None and hit[0]() is mesh and hit[1] == (id(mesh.vertices), id(mesh.faces)):
+            return hit[2]
+        v, f = _geometry(mesh)
+        f = np.array(f, copy=True)  # private: never freeze the caller's array
+        centre, _ = bounding_sphere(v)  # draw in centred coordinates: float32 keeps its precision
+        pos = (v - centre).astype(np.float32)
+        for a in (f, pos):
+            a.setflags(write=False)  # resident on the GPU while the mesh lives
+        out = (v, f, centre, pos)
+        try:
+            ref = weakref.ref(mesh, lambda _r, k=key, c=self._geometry_cache: c.pop(k, None))
+        except TypeError:  # tuples are not weak-referenceable: no caching
+            return out
+        for k in [k for k, e in self._geometry_cache.items() if e[0]() is None]:
+            del self._geometry_cache[k]
+        self._geometry_cache[key] = (ref, (id(mesh.vertices), id(mesh.faces)), out)
+        return out
 
     def _lookup(self, obj, kind: str):
         hit = self._resident.get(id(obj))
@@ -253,10 +290,11 @@ class Renderer:
                 raise ValueError(f"attribute {a.name!r} has {x.shape[0]} rows, others {nverts}")
             nverts = x.shape[0]
             arrays.append(x)
+        static_idx = self._is_static(indices) and indices.dtype == np.uint32
         idx = np.ascontiguousarray(np.asarray(indices).reshape(-1), dtype=np.uint32)
         if idx.size % 3:
             raise ValueError(f"indices hold {idx.size} values; accepted: a multiple of 3 (triangles)")
-        if idx.size and nverts is not None and int(idx.max()) >= nverts:
+        if idx.size and nverts is not None and int(self._index_max(indices, idx, static_idx)) >= nverts:
             raise ValueError(f"indices reach {int(idx.max())}; accepted: below the {nverts} vertices")
         with context.LOCK:
             context.make_current()
@@ -305,9 +343,18 @@ class Renderer:
                         GL.glVertexAttribPointer(loc, a.components, GL.GL_FLOAT, GL.GL_FALSE, 0, ctypes.c_void_p(0))
                     else:
                         GL.glVertexAttribIPointer(loc, a.components, GL.GL_INT, 0, ctypes.c_void_p(0))
-                GL.glBindBuffer(GL.GL_ELEMENT_ARRAY_BUFFER, vbos[-1])
-                GL.glBufferData(GL.GL_ELEMENT_ARRAY_BUFFER, max(idx.nbytes, 4), idx if idx.size else np.zeros(1, np.uint32),
-                                GL.GL_STATIC_DRAW)
+                ebo = self._lookup(indices, "ebo") if static_idx and idx.size else None
+                if ebo is not None:
+                    GL.glBindBuffer(GL.GL_ELEMENT_ARRAY_BUFFER, ebo)
+                elif static_idx and idx.size:
+                    ebo = int(np.atleast_1d(GL.glGenBuffers(1))[0])
+                    GL.glBindBuffer(GL.GL_ELEMENT_ARRAY_BUFFER, ebo)
+                    GL.glBufferData(GL.GL_ELEMENT_ARRAY_BUFFER, idx.nbytes, idx, GL.GL_STATIC_DRAW)
+                    self._resident[id(indices)] = (weakref.ref(indices), "ebo", ebo)
+                else:
+                    GL.glBindBuffer(GL.GL_ELEMENT_ARRAY_BUFFER, vbos[-1])
+                    GL.glBufferData(GL.GL_ELEMENT_ARRAY_BUFFER, max(idx.nbytes, 4), idx if idx.size else np.zeros(1, np.uint32),
+                                    GL.GL_STATIC_DRAW)
                 prog.use()
                 for name, value in (uniforms or {}).items():
                     prog.set_uniform(name, value)
@@ -371,16 +418,20 @@ class Renderer:
             raise TypeError(f"decoder of type {type(decoder).__name__}; accepted: a prt_torch.render Decoder")
         if not decoder.program.mesh:
             raise ValueError(f"program {decoder.program.name!r} is not a mesh program (mesh=False)")
-        v, f = _geometry(mesh)
+        if isinstance(mesh, (tuple, list)):
+            v, f = _geometry(mesh)
+            centre, _ = bounding_sphere(v)  # draw in centred coordinates: float32 keeps its precision
+            pos = (v - centre).astype(np.float32)
+        else:
+            v, f, centre, pos = self._mesh_geometry(mesh)
         if camera is None:
             camera = Camera.fit(v, aspect=width / height)
         elif not isinstance(camera, Camera):
             raise TypeError(f"camera of type {type(camera).__name__}; accepted: prt_torch.render.Camera or None")
         inputs: DrawInputs = decoder.inputs(v.shape[0])
-        centre, _ = bounding_sphere(v)  # draw in centred coordinates: float32 keeps its precision
         mvp = camera.clip_matrix(width, height) @ _translation(centre)
         attrs = dict(inputs.attributes)
-        attrs["position"] = (v - centre).astype(np.float32)
+        attrs["position"] = pos
         uniforms = dict(inputs.uniforms)
         uniforms["prt_mvp"] = mvp
         raw = self.draw(decoder.program, attrs, f, width * s, height * s, uniforms=uniforms, tables=inputs.tables)
