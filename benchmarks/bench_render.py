@@ -137,8 +137,8 @@ def glsl_md(rows: list[dict], load: tuple[float, float]) -> list[str]:
           "than this benchmark; the decode cost depends on the shapes only).", "",
           "* GLSL fps: one frame = per-light constants on the CPU (light vector or per-cluster M_k·l) and their upload, "
           "draw, float read-back of the image — Mesa llvmpipe (software rasteriser, 2 cores). Per-vertex data (transfer, "
-          "cluster ids, weights, view weights) is resident on the GPU (uploaded once, as an engine does); positions "
-          "and indices are re-sent every frame.",
+          "cluster ids, weights, view weights) and the mesh (positions, indices) are resident on the GPU (uploaded once, "
+          "as an engine does).",
           "* CPU relight/s: the torch engine's per-vertex radiance for the same light and view (`codec.relight` / "
           "`relight.*`), no image; CPU frame fps: that plus drawing the per-vertex radiance (the `--decode cpu` frame).",
           "* GLSL vs CPU: PSNR of the GLSL image against the CPU-decoded image (peak = max of the CPU image), both "
