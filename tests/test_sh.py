@@ -370,3 +370,24 @@ def test_bad_bands_and_shapes():
         sh.hemisphere_projector(3, drop=[(3, 0)])
     with pytest.raises(TypeError, match="dtype"):
         sh.eval_sh(torch.tensor([[0, 0, 1]]), 2)
+
+
+def test_float32_sh_stays_accurate_at_high_bands():
+    """Found by benchmarks/bench_extremes.py: sphericart in float32 is wrong from 20 bands (NaN
+    from 32); the auto backend must not use it there. Reference: scipy's spherical harmonics
+    in the real graphics convention, float64."""
+    import numpy as np
+    from scipy.special import sph_harm_y
+
+    g = torch.Generator().manual_seed(3)
+    d = torch.randn(64, 3, generator=g, dtype=torch.float64)
+    d = d / d.norm(dim=1, keepdim=True)
+    theta, phi = torch.arccos(d[:, 2]).numpy(), torch.atan2(d[:, 1], d[:, 0]).numpy()
+    for bands in (20, 32, 64):
+        l, m = bands - 1, -(bands // 3)
+        c = sph_harm_y(l, abs(m), theta, phi)
+        ref = np.sqrt(2) * (-1) ** m * c.imag
+        y = sh.eval_sh(d.float(), bands)[:, l * (l + 1) + m].double().numpy()
+        assert np.isfinite(y).all() and np.abs(y - ref).max() < 1e-4 * max(1.0, np.abs(ref).max())
+    with pytest.raises(ValueError, match="sphericart"):
+        sh.eval_sh(d.float(), 24, backend="sphericart")

@@ -36,6 +36,10 @@ __all__ = [
 
 #: Hard upper limit on ``bands`` accepted by the evaluators (memory, not accuracy, is the limit).
 MAX_BANDS = 128
+#: sphericart's float32 evaluation loses accuracy past this many bands (against float64:
+#: ≤ 1e-5 absolute to 19 bands, 2.5e-2 at 20, NaN from 32 — benchmarks/bench_extremes.py);
+#: beyond it ``backend='auto'`` uses this module's recurrences, which stay at ~1e-4 to 64 bands.
+SPHERICART_FLOAT32_MAX_BANDS = 19
 
 
 def num_coeffs(bands: int) -> int:
@@ -164,8 +168,14 @@ def eval_sh(dirs: torch.Tensor, bands: int, check: bool = True, backend: str = "
         raise ValueError(f"backend={backend!r}; accepted: {list(BACKENDS)}")
     if check:
         check_unit_vectors("dirs", dirs)
+    f32_unsafe = dirs.dtype != torch.float64 and bands > SPHERICART_FLOAT32_MAX_BANDS
+    if backend == "sphericart" and f32_unsafe:
+        raise ValueError(f"backend='sphericart' in {dirs.dtype} is wrong beyond {SPHERICART_FLOAT32_MAX_BANDS} bands "
+                         f"(measured: 2.5e-2 absolute error at 20 bands, NaN from 32); got bands={bands}; accepted: "
+                         "float64 directions, backend='torch', or fewer bands")
     if backend == "sphericart" or (
-        backend == "auto" and dirs.device.type == "cpu" and not dirs.requires_grad and _have_sphericart_cached()
+        backend == "auto" and not f32_unsafe and dirs.device.type == "cpu" and not dirs.requires_grad
+        and _have_sphericart_cached()
     ):
         flat = dirs.reshape(-1, 3)
         if flat.shape[0] == 0:
