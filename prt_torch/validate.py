@@ -55,7 +55,7 @@ from .relight import diffuse_transfer
 from .scene import Mesh, RayCaster
 from .sh import eval_sh
 from .transfer import Transfer
-from .transfer.diffuse import DiffuseSampler, HitBounce, boundary_nudge, face_points, hit_bounce, offset_origins, transfer_at_points
+from .transfer.diffuse import DiffuseSampler, HitBounce, boundary_nudge, face_points, offset_origins, transfer_at_points, vertex_transfer
 
 __all__ = [
     "ValidatorUnavailable",
@@ -255,7 +255,8 @@ def mitsuba_exit_radiance(mesh: Mesh | None, points: Any, normals: Any, image: n
         integ = mi.load_dict({"type": "path", "max_depth": int(depth), "rr_depth": 1000})
         for k in range(P.shape[0]):  # Mitsuba renders one sensor per call (C++ inside, spp samples each)
             for b in range(batches):
-                out[di, b, k] = np.asarray(mi.render(sc, sensor=k, integrator=integ, spp=per, seed=int(seed) * 7919 + b)).reshape(-1)[:3]
+                sd = (int(seed) * 7919 + b * 100003 + k * 1009) % (1 << 31)  # independent per probe and batch
+                out[di, b, k] = np.asarray(mi.render(sc, sensor=k, integrator=integ, spp=per, seed=sd)).reshape(-1)[:3]
     E = torch.from_numpy(out)
     mean = E.mean(1)
     se = E.std(1, unbiased=True) / math.sqrt(batches)
@@ -269,17 +270,28 @@ def mitsuba_exit_radiance(mesh: Mesh | None, points: Any, normals: Any, image: n
 # engine side
 # ---------------------------------------------------------------------------------------------
 
-def engine_parts(transfer: Transfer, L: torch.Tensor, idx: torch.Tensor, data: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+def engine_parts(transfer: Transfer, L: torch.Tensor, idx: torch.Tensor, data: torch.Tensor | None = None,
+                 replicas: int = 6) -> dict[str, Any]:
     """The engine's exit radiance at vertices ``idx`` split into direct and interreflected parts,
-    with per-ray standard errors (module docstring). ``data``: replacement transfer rows for
+    with their Monte Carlo noise (module docstring). ``data``: replacement transfer rows for
     ``idx`` (e.g. a codec's reconstruction); its total replaces the stored one.
 
-    Returns ``{'total', 'direct', 'inter', 'direct_se', 'inter_se'}``, each ``[k, 3]`` float64."""
+    Noise: the engine shares one direction set between all vertices, so its errors are
+    correlated across vertices and a sum over vertices does not average them down. It is
+    measured by re-running the sampled vertices with ``replicas`` other seeds
+    (:func:`prt_torch.transfer.diffuse.vertex_transfer`, the precompute's own estimator): the
+    standard deviation over replicas per vertex (``*_se``) and of the vertex sum (``*_sum_se``,
+    luminance). Interreflection with ``bounce_points`` other than 'hits' needs the whole mesh
+    per seed; there the per-ray estimate is used instead (``noise`` says which).
+
+    Returns ``{'total', 'direct', 'inter', 'direct_se', 'inter_se'}`` ``[k, 3]`` float64,
+    ``direct_sum_se``, ``inter_sum_se`` (floats or None) and ``noise`` (str)."""
     mesh, meta = transfer.mesh, transfer.meta
     bands = int(meta["bands"])
     samples, seed = int(meta.get("samples", 1024)), int(meta.get("seed", 0))
     sampling = meta.get("sampling", "uniform")
     offset = float(meta.get("offset", 1e-4))
+    hit_samples = int(meta.get("hit_samples", 8))
     L = torch.as_tensor(L, dtype=torch.float64)
     L3 = L.expand(3, -1) if L.shape[0] == 1 else L  # [3, n²]
     tr = transfer if data is None else Transfer(kind="diffuse", data=_scatter_rows(transfer, idx, data), mesh=mesh, meta=meta)
@@ -288,26 +300,48 @@ def engine_parts(transfer: Transfer, L: torch.Tensor, idx: torch.Tensor, data: t
     rho = mesh.albedo.to(torch.float64)[idx]  # [k, 3]
     p, n = mesh.vertices[idx].to(torch.float64), mesh.normals[idx].to(torch.float64)
     traced = bool(meta.get("shadows_traced", True))
-    with RayCaster(mesh, offset=offset) as caster:
-        if traced:
-            t0 = transfer_at_points(caster, p, n, bands, samples, seed, sampling, nudge=boundary_nudge(mesh)[idx])  # [k, n²], ρ = 1
-        else:
-            from .transfer.diffuse import unshadowed_transfer
-
-            t0 = unshadowed_transfer(n, bands)
-        direct = rho * (t0 @ L3.T)
-        hits = None
-        bounces_used = int(meta.get("bounces_used", 0))
-        if traced and bounces_used > 0 and meta.get("bounce_points") == "hits":
-            hits = hit_bounce(mesh, bands, samples, seed, bounces_used, offset=offset,
-                              hit_samples=int(meta.get("hit_samples", 8)), sampling=sampling)
-        direct_se, inter_se = _ray_noise(caster, mesh, p, n, L3, bands, samples, seed, sampling, total_all, hits, idx)
-    if not traced:  # analytic unshadowed transfer: no Monte Carlo noise
-        direct_se = torch.zeros_like(direct_se)
     bounces = int(meta.get("bounces_used", 0))
-    inter = total - direct if bounces > 0 else torch.zeros_like(direct)
-    return {"total": total, "direct": direct, "inter": inter, "direct_se": rho * direct_se,
-            "inter_se": rho * inter_se if bounces > 0 else torch.zeros_like(direct)}
+    zero = torch.zeros(idx.numel(), 3, dtype=torch.float64)
+    if not traced:  # analytic unshadowed transfer: exact, no Monte Carlo noise
+        from .transfer.diffuse import unshadowed_transfer
+
+        direct = rho * (unshadowed_transfer(n, bands) @ L3.T)
+        return {"total": total, "direct": direct, "inter": zero, "direct_se": zero, "inter_se": zero,
+                "direct_sum_se": 0.0, "inter_sum_se": 0.0, "noise": "none (analytic unshadowed transfer)"}
+    with RayCaster(mesh, offset=offset) as caster:
+        t0 = transfer_at_points(caster, p, n, bands, samples, seed, sampling, nudge=boundary_nudge(mesh)[idx])  # [k, n²], ρ = 1
+        direct = rho * (t0 @ L3.T)
+        hits_mode = bounces > 0 and meta.get("bounce_points") == "hits"
+        if bounces > 0 and not hits_mode:
+            _, inter_se = _ray_noise(caster, mesh, p, n, L3, bands, samples, seed, sampling, total_all, None, idx)
+    inter = total - direct if bounces > 0 else zero
+    lum = lambda x: x @ _LUMA  # noqa: E731
+    D, I = [], []
+    for r in range(int(replicas)):  # a loop over replica seeds; each one batched over the vertices
+        T0r, TBr = vertex_transfer(mesh, idx, bands, samples, seed + 7919 * (r + 1), bounces if hits_mode else 0,
+                                   sampling=sampling, offset=offset, hit_samples=hit_samples)
+        D.append(rho * (T0r @ L3.T))
+        if TBr is not None:
+            tb = TBr.sum(1)  # [k, C, n²]
+            tb = tb.expand(-1, 3, -1) if tb.shape[1] == 1 else tb
+            I.append(rho * torch.einsum("kcn,cn->kc", tb, L3))
+    if not D:  # no replicas: no noise estimate
+        return {"total": total, "direct": direct, "inter": inter, "direct_se": zero, "inter_se": zero, "direct_sum_se": 0.0,
+                "inter_sum_se": 0.0, "noise": "not measured"}
+    D = torch.stack(D)
+    out = {"total": total, "direct": direct, "inter": inter, "direct_se": D.std(0), "direct_sum_se": float(lum(D).sum(1).std()),
+           "direct_reps": D, "noise": f"engine: std over {replicas} replica seeds (direct"}
+    if bounces == 0:
+        out.update(inter_se=zero, inter_sum_se=0.0)
+        out["noise"] += ")"
+    elif hits_mode:
+        I = torch.stack(I)
+        out.update(inter_se=I.std(0), inter_sum_se=float(lum(I).sum(1).std()), inter_reps=I)
+        out["noise"] += " and interreflected)"
+    else:
+        out.update(inter_se=rho * inter_se, inter_sum_se=None)
+        out["noise"] += "); interreflected: per-ray estimate, uncorrelated (an underestimate for sums)"
+    return out
 
 
 def _scatter_rows(transfer: Transfer, idx: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
@@ -367,12 +401,15 @@ def _ray_noise(caster: RayCaster, mesh: Mesh, p: torch.Tensor, n: torch.Tensor, 
 # the comparison
 # ---------------------------------------------------------------------------------------------
 
-def _ratio(e: torch.Tensor, e_se: torch.Tensor, m: torch.Tensor, m_se: torch.Tensor) -> dict[str, float]:
-    """Engine/Mitsuba ratio of sums (luminance over the vertices) with its 1σ noise (quadrature)."""
+def _ratio(e: torch.Tensor, e_se: torch.Tensor, m: torch.Tensor, m_se: torch.Tensor, e_sum_se: float | None = None) -> dict[str, float]:
+    """Engine/Mitsuba ratio of sums (luminance over the vertices) with its 1σ noise: Mitsuba's
+    per-vertex errors are independent (quadrature); the engine's sum error is ``e_sum_se`` when
+    measured (replica seeds), else the quadrature of ``e_se``."""
     lum = lambda x: x @ _LUMA  # noqa: E731
     lum_se = lambda x: ((x ** 2) @ (_LUMA ** 2)).sqrt()  # noqa: E731
     E, M = float(lum(e).sum()), float(lum(m).sum())
-    sE, sM = float(lum_se(e_se).pow(2).sum().sqrt()), float(lum_se(m_se).pow(2).sum().sqrt())
+    sE = float(lum_se(e_se).pow(2).sum().sqrt()) if e_sum_se is None else float(e_sum_se)
+    sM = float(lum_se(m_se).pow(2).sum().sqrt())
     if M <= 0:
         return {"engine": E, "mitsuba": M, "ratio": float("nan"), "ratio_se": float("nan"), "engine_se": sE, "mitsuba_se": sM}
     r = E / M
@@ -456,33 +493,37 @@ def validate(transfer: Transfer | str | os.PathLike, light: Any, *, vertices: in
         m_int, m_int_se = torch.zeros_like(m_dir), torch.zeros_like(m_dir)
     sharp = sharp_vertices(mesh)[idx] >= sharp_deg
     tot_se = (eng["direct_se"] ** 2 + eng["inter_se"] ** 2).sqrt()
+    tot_sum_se = None if eng["inter_sum_se"] is None else math.hypot(eng["direct_sum_se"], eng["inter_sum_se"])
     rep: dict[str, Any] = {
         "scene": mesh.name, "vertices": int(idx.numel()), "bounces": bounces, "bands": bands, "light": name,
         "light_source": light_source, "spp": int(spp), "batches": int(batches), "samples": int(transfer.meta.get("samples", 0)),
         "bounce_points": transfer.meta.get("bounce_points"), "sharp_deg": sharp_deg, "sharp_vertices": int(sharp.sum()),
         "mitsuba_variant": VARIANT, "eps": eps,
-        "direct": _ratio(eng["direct"], eng["direct_se"], m_dir, m_dir_se),
-        "total": _ratio(eng["total"], tot_se, m_tot, m_tot_se),
+        "direct": _ratio(eng["direct"], eng["direct_se"], m_dir, m_dir_se, eng["direct_sum_se"]),
+        "total": _ratio(eng["total"], tot_se, m_tot, m_tot_se, tot_sum_se),
+        "engine_noise": eng["noise"],
         "direct_rms_rel": _rms_rel(eng["direct"], m_dir),
     }
     if bounces:
-        rep["inter"] = _ratio(eng["inter"], eng["inter_se"], m_int, m_int_se)
+        rep["inter"] = _ratio(eng["inter"], eng["inter_se"], m_int, m_int_se, eng["inter_sum_se"])
         if bool(sharp.any()) and bool((~sharp).any()):  # both subsets, else 'inter' says it all
-            rep["inter_sharp"] = _ratio(eng["inter"][sharp], eng["inter_se"][sharp], m_int[sharp], m_int_se[sharp])
-            rep["inter_smooth"] = _ratio(eng["inter"][~sharp], eng["inter_se"][~sharp], m_int[~sharp], m_int_se[~sharp])
+            for key, sel in (("inter_sharp", sharp), ("inter_smooth", ~sharp)):
+                reps = eng.get("inter_reps")
+                sum_se = None if reps is None else float((reps[:, sel] @ _LUMA).sum(1).std())
+                rep[key] = _ratio(eng["inter"][sel], eng["inter_se"][sel], m_int[sel], m_int_se[sel], sum_se)
     if codec is not None:
         c, enc = codec
         rows = c.decode(enc).to(torch.float64)
         if rows.shape[0] != mesh.num_vertices:
             raise ValueError(f"codec file {str(codec_file)!r} holds {rows.shape[0]} points; the transfer has {mesh.num_vertices} vertices")
-        ce = engine_parts(transfer, L, idx, data=rows[idx])
-        rep["codec"] = {"file": str(codec_file), "total": _ratio(ce["total"], tot_se, m_tot, m_tot_se)}
+        ce = engine_parts(transfer, L, idx, data=rows[idx], replicas=0)
+        rep["codec"] = {"file": str(codec_file), "total": _ratio(ce["total"], tot_se, m_tot, m_tot_se, tot_sum_se)}
         if bounces:
-            rep["codec"]["inter"] = _ratio(ce["total"] - eng["direct"], eng["inter_se"], m_int, m_int_se)
+            rep["codec"]["inter"] = _ratio(ce["total"] - eng["direct"], eng["inter_se"], m_int, m_int_se, eng["inter_sum_se"])
     if src_img is not None:
         ms = mitsuba_exit_radiance(mesh, p, n, src_img, depths, spp, batches, eps, seed, rho, nudge)
         rep["source_image"] = {
-            "total": _ratio(eng["total"], tot_se, ms["radiance"][-1], ms["radiance_se"][-1]),
+            "total": _ratio(eng["total"], tot_se, ms["radiance"][-1], ms["radiance_se"][-1], tot_sum_se),
             "sh_truncation": _ratio(m_tot, m_tot_se, ms["radiance"][-1], ms["radiance_se"][-1]),
         }
     rep["per_vertex"] = {

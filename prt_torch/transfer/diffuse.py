@@ -58,6 +58,7 @@ __all__ = [
     "face_points",
     "face_transfer",
     "boundary_nudge",
+    "vertex_transfer",
     "hit_bounce",
     "HitBounce",
     "offset_origins",
@@ -185,7 +186,7 @@ def _hash_uniform(seed: int, a: np.ndarray, b: np.ndarray, stream: int) -> np.nd
     """Uniform [0,1) ``[R]`` float64 from (seed, a, b, stream) by splitmix64: a function of the
     keys only, so a hit's random numbers do not depend on chunking or on which tracer asks."""
     with np.errstate(over="ignore"):
-        x = (np.uint64(seed) * _M1) ^ (a.astype(np.uint64) * _M2) ^ (b.astype(np.uint64) * _M3) ^ np.uint64(stream * 0x632BE59BD9B4E019)
+        x = (np.uint64(seed) * _M1) ^ (a.astype(np.uint64) * _M2) ^ (b.astype(np.uint64) * _M3) ^ (np.uint64(stream) * np.uint64(0x632BE59BD9B4E019))
         for _ in range(2):
             x = x + _M1
             x = (x ^ (x >> np.uint64(30))) * _M2
@@ -194,44 +195,49 @@ def _hash_uniform(seed: int, a: np.ndarray, b: np.ndarray, stream: int) -> np.nd
     return (x >> np.uint64(11)).astype(np.float64) * (1.0 / (1 << 53))
 
 
+def _hammersley(M: int) -> np.ndarray:
+    """``[M, 2]`` Hammersley points ((m + ½)/M, radical inverse base 2 of m)."""
+    m = np.arange(M)
+    rad = np.zeros(M)
+    f, k = 0.5, m.copy()
+    while k.any():  # radical inverse base 2 (van der Corput), one pass per bit
+        rad += f * (k & 1)
+        k >>= 1
+        f *= 0.5
+    return np.stack([(m + 0.5) / M, rad], 1)
+
+
 class HitBounce:
     """Exit transfer at bounce-ray hit points, estimated at the hit point itself.
 
     A blocked direction of vertex p hits face f at q. What it brings is ρ_q x(q)·l with x(q) the
     diffuse transfer of q over the hemisphere of f's normal (course notes 2005,
-    "Interreflections", with the integrand evaluated where the ray lands). x(q) is estimated with
-    ``M`` cosine-weighted rays from q (a Hammersley set, Cranley–Patterson-rotated per hit by
-    :func:`_hash_uniform` of (seed, vertex, direction)): bounce 0 of the hit brings
-    (1/M) Σ_m V(q,s_m) y(s_m); bounce k ≥ 1 brings (1/M) Σ_m [front hit f'] ρ_{f'} x^{k-1}_{f'}
-    with x_{f'} the face-centroid tables (``tables[k-1]`` ``[F, C, n²]``, ρ kept out). Unbiased
-    for the first bounce; deeper bounces carry the centroid tables' error times ρ^k.
+    "Interreflections", with the integrand evaluated where the ray lands), x = Σ_k x^k over the
+    ``terms`` = B bounce terms. x(q) is estimated at q with M cosine-weighted rays over the
+    face's hemisphere (a Hammersley set, Cranley–Patterson-rotated per hit by
+    :func:`_hash_uniform` of (seed, vertex, direction, path), so the numbers depend on neither
+    chunking nor which tracer asks): x⁰(q) = (1/M) Σ_m V(q,s_m) y(s_m) and, recursively,
+    x^k(q) = (1/M) Σ_m [front hit q'] ρ_{q'} x^{k-1}(q'). M = ``hit_samples`` at the first hit
+    and a quarter of it per further level (at least 1): an unbiased path-traced estimate of
+    every bounce, no per-vertex or per-face table.
     """
 
-    def __init__(self, mesh: Mesh, bands: int, hit_samples: int, seed: int, tables: list[torch.Tensor], channels: int):
+    def __init__(self, mesh: Mesh, bands: int, hit_samples: int, seed: int, terms: int, channels: int):
         from ..scene.mesh import tangent_frames
 
-        self.bands, self.M, self.seed, self.tables, self.C = bands, hit_samples, int(seed), tables, channels
-        _, fn, rho_f = face_points(mesh)
+        self.bands, self.M, self.seed, self.C = bands, int(hit_samples), int(seed), channels
+        self.terms = int(terms)
+        _, fn, _ = face_points(mesh)
         self.face_normals = fn
         t, b = tangent_frames(fn.numpy())
         self.frames = np.stack([t, b, fn.numpy()], 1)  # [F,3,3] rows (t, b, n)
-        self.rho_faces = (rho_f[:, :1] if channels == 1 else rho_f)  # [F,C]
         self.rho_vertices = mesh.albedo.to(torch.float64)
         self.faces = mesh.faces.numpy()
         self.vertices = mesh.vertices.to(torch.float64).numpy()
-        m = np.arange(self.M)
-        rad = np.zeros(self.M)
-        f, k = 0.5, m.copy()
-        while k.any():  # radical inverse base 2 (van der Corput)
-            rad += f * (k & 1)
-            k >>= 1
-            f *= 0.5
-        self.base = np.stack([(m + 0.5) / self.M, rad], 1)  # [M,2] Hammersley
 
-    @property
-    def terms(self) -> int:
-        """Bounce terms a hit brings: x⁰ and one per face table."""
-        return 1 + len(self.tables)
+    def samples_at(self, level: int) -> int:
+        """Rays per hit at recursion ``level`` (0 = the first hit)."""
+        return max(1, self.M >> (2 * level))
 
     def albedo_at(self, tri: np.ndarray, bary: np.ndarray) -> torch.Tensor:
         """ρ_q ``[H, C]``: the vertex albedo interpolated at the hit."""
@@ -250,40 +256,47 @@ class HitBounce:
             out[sl] = self.albedo_at(tri[sl], bary[sl])[:, :, None] * x
         return out
 
-    def values(self, caster: RayCaster, tri: np.ndarray, bary: np.ndarray, key_a: np.ndarray, key_b: np.ndarray) -> torch.Tensor:
-        """``[H, terms, C, n²]`` float64: x^k(q) for each hit (ρ_q not applied) — the
-        (1/M)-averages of the class docstring, over H·M rays traced in one batch."""
-        H, M = tri.shape[0], self.M
+    def values(self, caster: RayCaster, tri: np.ndarray, bary: np.ndarray, key_a: np.ndarray, key_b: np.ndarray,
+               level: int = 0) -> torch.Tensor:
+        """``[H, terms - level, C, n²]`` float64: x^k(q), k = 0 .. terms-level-1, for each hit
+        (ρ_q not applied) — the class docstring's estimates, one traced batch per level."""
+        H, depth = tri.shape[0], self.terms - level
+        M = self.samples_at(level)
+        n2 = self.bands * self.bands
+        out = torch.zeros(H, depth, self.C, n2, dtype=torch.float64)
+        if H == 0:
+            return out
         q = np.einsum("hk,hkj->hj", bary, self.vertices[self.faces[tri]])  # [H,3] hit points
         n = self.face_normals.numpy()[tri]
-        u1 = _hash_uniform(self.seed, key_a, key_b, 1)[:, None]
-        u2 = _hash_uniform(self.seed, key_a, key_b, 2)[:, None]
-        a = (self.base[None, :, 0] + u1) % 1.0  # [H,M]
-        b = (self.base[None, :, 1] + u2) % 1.0
+        u1 = _hash_uniform(self.seed, key_a, key_b, 2 * level + 1)[:, None]
+        u2 = _hash_uniform(self.seed, key_a, key_b, 2 * level + 2)[:, None]
+        base = _hammersley(M)
+        a = (base[None, :, 0] + u1) % 1.0  # [H,M] Cranley–Patterson rotation per hit
+        b = (base[None, :, 1] + u2) % 1.0
         r, phi = np.sqrt(a), 2 * math.pi * b
         local = np.stack([r * np.cos(phi), r * np.sin(phi), np.sqrt(np.maximum(1 - a, 1e-24))], -1)  # [H,M,3]
         d = np.einsum("hmk,hkj->hmj", local, self.frames[tri]).reshape(-1, 3)
         o = np.repeat(offset_origins(q, n, caster.eps), M, axis=0).astype(np.float32)
-        n2 = self.bands * self.bands
-        out = torch.zeros(H, self.terms, self.C, n2, dtype=torch.float64)
-        row = torch.from_numpy(np.repeat(np.arange(H), M))
-        if self.tables:
-            prim = caster.trace(o, d.astype(np.float32), "intersect")[0]
+        row = np.repeat(np.arange(H), M)
+        if depth > 1:
+            prim, bu, bv, _ = caster.trace(o, d.astype(np.float32), "intersect")
             hit = prim != -1
         else:
             hit = caster.trace(o, d.astype(np.float32), "occluded")
         vis = ~hit
         Y = eval_sh(torch.from_numpy(d[vis]), self.bands, check=False) / M  # [R_vis, n²]
-        out[:, 0] = torch.zeros(H, n2, dtype=torch.float64).index_add_(0, row[torch.from_numpy(vis)], Y)[:, None, :]
-        if self.tables:
+        out[:, 0] = torch.zeros(H, n2, dtype=torch.float64).index_add_(0, torch.from_numpy(row[vis]), Y)[:, None, :]
+        if depth > 1:
             hh = np.nonzero(hit)[0]
             t2 = prim[hh].astype(np.int64)
             front = np.einsum("ij,ij->i", self.face_normals.numpy()[t2], d[hh]) < 0
             hh, t2 = hh[front], t2[front]
-            rh = row[torch.from_numpy(hh)]
-            rho2 = self.rho_faces[torch.from_numpy(t2)][:, :, None] / M  # [R,C,1]
-            for k, X in enumerate(self.tables, start=1):
-                out[:, k] = torch.zeros(H, self.C, n2, dtype=torch.float64).index_add_(0, rh, rho2 * X[torch.from_numpy(t2)])
+            bary2 = np.stack([1 - bu[hh] - bv[hh], bu[hh], bv[hh]], 1).astype(np.float64)
+            kb2 = key_b[row[hh]].astype(np.uint64) * np.uint64(64) + (hh % M).astype(np.uint64)
+            x2 = self.values(caster, t2, bary2, key_a[row[hh]], kb2, level + 1)  # [R, depth-1, C, n²]
+            w2 = self.albedo_at(t2, bary2)[:, None, :, None] / M
+            out[:, 1:] = torch.zeros(H, depth - 1, self.C, n2, dtype=torch.float64).index_add_(
+                0, torch.from_numpy(row[hh]), w2 * x2)
         return out
 
 
@@ -300,7 +313,7 @@ def _check_points(points: Any, normals: Any) -> tuple[torch.Tensor, torch.Tensor
 def _chunk(caster: RayCaster, sampler: DiffuseSampler, points: torch.Tensor, normals: torch.Tensor,
            frames: torch.Tensor | None, faces: np.ndarray | None, face_normals: np.ndarray | None,
            n_vertices: int, record_hits: bool, hit_columns: str = "vertices", hits: HitBounce | None = None,
-           first_id: int = 0, nudge: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+           first_id: int = 0, nudge: torch.Tensor | None = None, ids: np.ndarray | None = None) -> dict[str, torch.Tensor]:
     """Shadowed transfer (ρ = 1) of a chunk of k points, and (optionally) its bounce entries.
 
     Uniform sampling: T = (4/N) · (V ⊙ max(n·s,0)) @ Y — one masked GEMM per chunk
@@ -338,7 +351,7 @@ def _chunk(caster: RayCaster, sampler: DiffuseSampler, points: torch.Tensor, nor
         h, tri = h[front], tri[front]
         if hits is not None:
             out["TB"] = _hit_bounces(caster, hits, k, i[h], j[h], tri,
-                                     bu[h], bv[h], w_ray[h], first_id, sampler.bands)
+                                     bu[h], bv[h], w_ray[h], first_id, sampler.bands, ids)
             return out
         if hit_columns == "faces":
             rows, cols, vals = i[h], tri, w_ray[h]
@@ -358,7 +371,8 @@ def _chunk(caster: RayCaster, sampler: DiffuseSampler, points: torch.Tensor, nor
 
 
 def _hit_bounces(caster: RayCaster, hits: HitBounce, k: int, rows: np.ndarray, dirs_j: np.ndarray, tri: np.ndarray,
-                 u: np.ndarray, v: np.ndarray, w: np.ndarray, first_id: int, bands: int) -> torch.Tensor:
+                 u: np.ndarray, v: np.ndarray, w: np.ndarray, first_id: int, bands: int,
+                 ids: np.ndarray | None = None) -> torch.Tensor:
     """Σ over a chunk's front hits of w ρ_q x^k(q), per vertex row: ``[k, terms, C, n²]`` float64,
     in batches of about 2¹⁸ secondary rays."""
     n2 = bands * bands
@@ -367,7 +381,8 @@ def _hit_bounces(caster: RayCaster, hits: HitBounce, k: int, rows: np.ndarray, d
     for a in range(0, rows.shape[0], step):  # a loop over hit batches, each one traced batch
         sl = slice(a, a + step)
         bary = np.stack([1 - u[sl] - v[sl], u[sl], v[sl]], 1).astype(np.float64)
-        x = hits.values(caster, tri[sl], bary, first_id + rows[sl], dirs_j[sl])  # [h, terms, C, n²]
+        key = first_id + rows[sl] if ids is None else ids[rows[sl]]  # global vertex ids
+        x = hits.values(caster, tri[sl], bary, key, dirs_j[sl])  # [h, terms, C, n²]
         wr = torch.from_numpy(np.asarray(w[sl], np.float64))[:, None] * hits.albedo_at(tri[sl], bary)  # [h, C]
         out.index_add_(0, torch.from_numpy(rows[sl]), x * wr[:, None, :, None])
     return out
@@ -558,21 +573,10 @@ def _decide_shadows(caster: RayCaster | None, mesh: Mesh, shadows: str, seed: in
 
 def _hit_tables(caster: RayCaster, mesh: Mesh, bands: int, samples: int, seed: int, sampling: str, bounces: int,
                 hit_samples: int, run: RunOptions, meta: dict) -> HitBounce:
-    """Step 2a (``bounce_points='hits'``): the face-centroid tables x⁰..x^{B-2} ``[F, C, n²]``
-    (ρ kept out) that the hit points' own bounces read, and the :class:`HitBounce` estimator."""
-    C = 1 if mesh.is_grey() else 3
-    tables: list[torch.Tensor] = []
-    if bounces >= 2:
-        fc = _trace_faces(caster, mesh, bands, samples, seed, sampling, bounces >= 3, run, meta, "faces")
-        F, n2 = fc["X0"].shape
-        rho = fc["rho"][:, :1] if C == 1 else fc["rho"]
-        x = fc["X0"][:, None, :].expand(F, C, n2).clone()
-        tables.append(x)
-        for _ in range(bounces - 2):  # a loop over bounces: each one sparse product over all faces
-            x = torch.from_numpy(fc["S"] @ (rho[:, :, None] * x).reshape(F, C * n2).numpy()).reshape(F, C, n2)
-            tables.append(x)
+    """Step 2a (``bounce_points='hits'``): the :class:`HitBounce` estimator of this run (it
+    needs no table: every bounce is estimated at its own hit point)."""
     meta["hit_samples"] = hit_samples
-    return HitBounce(mesh, bands, hit_samples, seed, tables, C)
+    return HitBounce(mesh, bands, hit_samples, seed, bounces, 1 if mesh.is_grey() else 3)
 
 
 def _trace_direct(caster: RayCaster, mesh: Mesh, bands: int, samples: int, seed: int, sampling: str,
@@ -691,6 +695,25 @@ def _trace_faces(caster: RayCaster, mesh: Mesh, bands: int, samples: int, seed: 
                                     shape=(p["T"].shape[0], F)) for p in parts], format="csr")
         meta["face_bounce_matrix_nnz"] = int(S.nnz)
     return {"X0": X0, "S": S, "rho": rho_f, "normals": fn}
+
+
+def vertex_transfer(mesh: Mesh, idx: Any, bands: int, samples: int, seed: int, bounces: int = 0, *,
+                    sampling: str = "uniform", offset: float = 1e-4, hit_samples: int = 8) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """What ``precompute_diffuse(..., bounce_points='hits')`` computes for the vertices ``idx``
+    alone (the same rays, keys and offsets): ``(t⁰ [k, n²], TB [k, B, C, n²] or None)`` float64,
+    ρ_p kept out. Cheap for a few vertices (no pass over the mesh): the validator uses it to
+    measure the engine's Monte Carlo noise by re-running other seeds."""
+    idx = torch.as_tensor(idx, dtype=torch.int64)
+    frames = mesh.frames()[idx] if sampling == "cosine" else None
+    nudge = boundary_nudge(mesh)[idx]
+    run = RunOptions(offset=offset)
+    with RayCaster(mesh, workers=_workers(run, mesh, samples, sampling), offset=offset) as caster:
+        hits = HitBounce(mesh, bands, hit_samples, seed, bounces, 1 if mesh.is_grey() else 3) if bounces > 0 else None
+        faces_np = mesh.faces.numpy()
+        out = _chunk(caster, DiffuseSampler(bands, samples, seed, sampling), mesh.vertices[idx], mesh.normals[idx], frames,
+                     faces_np, face_points(mesh)[1].numpy(), faces_np.shape[0], bounces > 0, "hits" if bounces else "vertices",
+                     hits, 0, nudge, idx.numpy())
+    return out["T"].to(torch.float64), out.get("TB")
 
 
 def hit_bounce(mesh: Mesh, bands: int, samples: int, seed: int, bounces: int, offset: float = 1e-4,
