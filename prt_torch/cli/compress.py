@@ -7,6 +7,12 @@ fitted codec with its encoding (io kind ``codec/<name>``; ``prt info`` reads it)
 parameter can be given with ``--param KEY=VALUE`` (YAML scalars); ``prt compress --list``
 shows the codecs and ``prt compress --describe NAME`` their parameters (defaults and docs of
 the codec class; see docs/codecs.md).
+
+``prt compress TRANSPORT_DIR --codec gaussian --param lobes=2 -o out.prt`` fits Green 2005's
+spherical Gaussians to a transport table directory (``prt precompute --kind transport``); the
+views, cube texels and mesh faces come from the table. ``--json`` reports ``relative_l2``, the
+fit's relative L2 error over all functions (‖T̃ − T‖/‖T‖ with texel solid angles for the
+Gaussian codec; √(relative SE) for the others).
 """
 from __future__ import annotations
 
@@ -16,7 +22,7 @@ import time
 
 def register(subparsers) -> None:
     p = subparsers.add_parser("compress", help="compress a transfer file with a codec (VQ, PCA, CPCA, MRT-PCA)")
-    p.add_argument("transfer", nargs="?", help="transfer file (.prt, io kind transfer/*)")
+    p.add_argument("transfer", nargs="?", help="transfer file (.prt, io kind transfer/*) or a transport table directory")
     p.add_argument("-o", "--output", help="output codec file (.prt)")
     p.add_argument("--codec", default="cpca", help="codec name (see --list); default cpca")
     p.add_argument("--clusters", type=int, help="number of clusters m_c (vq, cpca)")
@@ -61,6 +67,35 @@ def load_signal(path):
     return X, (tuple(int(v) for v in ms) if ms else None), meta
 
 
+def load_input(path, codec):
+    """``(X [V, D] float32, matrix_shape, meta, fit keywords)`` from a transfer file or a
+    transport table directory; a codec with light kind 'prefiltered' (gaussian) takes only
+    the latter — refused (reading only metadata) before any data is loaded."""
+    from pathlib import Path
+
+    from .. import io
+
+    p = Path(path)
+    wants_transport = getattr(codec, "light_kind", "sh") == "prefiltered"
+    if p.is_dir():
+        from ..harness.evaluate import load_directory_transfer
+
+        if not (p / "manifest.json").is_file():
+            raise FileNotFoundError(f"{str(path)!r} is a directory without manifest.json; accepted: a transfer file or a "
+                                    "transport table directory (prt precompute --kind transport)")
+        tr = load_directory_transfer(p)
+        X = tr.data.reshape(tr.data.shape[0], -1)
+        ms = tuple(tr.meta["matrix_shape"])
+        geometry = {"views": tr.meta["views"], "faces": tr.mesh.faces, "kind": "transport"} if wants_transport else {}
+        return X, ms, dict(tr.meta, kind="transfer/transport", mesh_hash=tr.mesh.content_hash()), geometry
+    if wants_transport:
+        kind = io.load_meta(path).get("kind")
+        raise ValueError(f"codec {codec.codec_name!r} fits transport tables; {str(path)!r} holds {kind!r}; accepted: a "
+                         "transport table directory (prt precompute --kind transport -o DIR)")
+    X, ms, meta = load_signal(path)
+    return X, ms, meta, {}
+
+
 def run(args) -> int:
     from .. import codecs
     from ..codecs import ConvergenceError
@@ -84,10 +119,10 @@ def run(args) -> int:
 
     if Path(args.output).exists() and not args.overwrite:
         raise FileExistsError(f"output {args.output!r} exists; pass --overwrite to replace it")
-    X, ms, meta = load_signal(args.transfer)
+    X, ms, meta, geometry = load_input(args.transfer, codec)
     t0 = time.perf_counter()
     try:
-        enc = codec.fit_encode(X, matrix_shape=ms)
+        enc = codec.fit_encode(X, matrix_shape=ms, **geometry)
     except ConvergenceError as e:
         raise ValueError(str(e)) from None
     secs = time.perf_counter() - t0
@@ -101,13 +136,17 @@ def run(args) -> int:
         "matrix_shape": ms, "encode_seconds": secs, "se": info.get("se"), "se_relative": info.get("se_relative"),
         "bytes_total": st["bytes_total"], "compression_ratio": st["compression_ratio"],
         "sloan_cost_floats": st["sloan_cost_floats"],
+        "relative_l2": info.get("relative_l2", (info.get("se_relative") or 0.0) ** 0.5),
     }
+    for k in ("functions", "functions_fitted", "converged_fraction", "relative_l2_median", "functions_per_s"):
+        if k in info:
+            summary[k] = info[k]
     if args.json:
         print(json.dumps(summary, indent=2, default=str))
     else:
         print(f"{args.codec}: {X.shape[0]} points × D={X.shape[1]}"
               + (f" ({ms[0]}×{ms[1]})" if ms else "") + f" encoded in {secs:.2f} s")
-        print(f"  SE {info.get('se'):.6g} (relative {info.get('se_relative'):.3g}); "
+        print(f"  SE {info.get('se'):.6g} (relative {info.get('se_relative'):.3g}, relative L2 {summary['relative_l2']:.4g}); "
               f"{st['bytes_total']} bytes, ratio {st['compression_ratio']:.1f}:1 vs float32; "
               f"Sloan cost {st['sloan_cost_floats']} floats")
         print(f"  wrote {args.output}")

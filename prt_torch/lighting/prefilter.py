@@ -119,6 +119,12 @@ class PrefilteredEnvironment:
         self.channels = int(levels.shape[1])
         self._log_sigmas = sigmas.log().to(torch.float32)
 
+    @property
+    def shape(self) -> tuple[int, int]:
+        """``(rows, C)``: the table as a light matrix (all levels' texels × channels), so code
+        written for SH lights ``[n_in, C]`` reads the channel count from ``shape[-1]``."""
+        return (int(self.levels[:, 0].numel()), self.channels)
+
     def __repr__(self) -> str:
         return (f"PrefilteredEnvironment(levels={self.levels.shape[0]}, C={self.channels}, res={self.res}, "
                 f"sigma=[{float(self.sigmas[0]):.3g}, {float(self.sigmas[-1]):.3g}])")
