@@ -32,11 +32,18 @@ of eq. 2.2, which keeps the solves per function). The spatial term S uses the al
 vertices among the mesh neighbours: vertices are processed in Green's flood-fill (breadth-first)
 order from vertex 0, a wavefront of vertices per batch.
 
-Green's factorisation (§3.1, Algorithm 1/2): most of a table is zero (below the horizon,
-shadowed). Functions that are zero everywhere are not optimised at all (weights 0; μ, σ follow
-their view neighbours, eq. 2.4–2.5), and each batch keeps only the texels that are nonzero in
-some function of the batch or lie within 3σ of a current lobe (S_∃ plus the model's support);
-the rest contributes Σ F² only, which is bounded by the lobes' mass outside the kept set.
+Green's factorisation (§3.1, Algorithms 1–2) exploits that most of a table is zero. Here the
+zero set is exploited per function, where it is largest: a function that is zero everywhere (a
+view below the vertex's horizon or fully shadowed — about half of all functions) is not
+optimised at all (weights 0; μ, σ follow their view neighbours, the minimiser of eq. 2.4–2.5
+alone). Within a nonzero function the data term runs over all P texels: with the 6×8×8 tables
+of the transport precompute (P = 384) a dense batched evaluation is cheaper than Green's
+per-function quadtree of the zero region (Algorithm 2), and the closed form of Algorithm 1 is
+not used (Green found it less stable; it also breaks the Gauss–Newton structure).
+
+The narrowest lobe is :func:`resolvable_sigma` (0.6 × the texel spacing): on coarser tables a
+fit could put a lobe between texel centres, and its prefiltered integral (what rendering uses)
+would then differ from the table's texel sum by tens of percent.
 
 Initialisation: peaks and moments — lobe k at the centroid of the half-maximum region around
 the largest remaining value, σ² from that region's solid angle (2π ln2 σ² for a Gaussian),
