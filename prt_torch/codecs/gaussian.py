@@ -881,7 +881,8 @@ def _lm_batch(Tn, nonzero, dirs, sa, J, vn, N, beta, delta, sb, smin, smax, max_
             sbk = None
             if sb is not None and k > 1:
                 sbk = sb[:, [q for q, (i, j) in enumerate(prob_pairs(N)) if j < k]]
-            a, ls, mu, conv, itk = _lm_loop(prob, a, ls, mu, z.clone(), z, targets, sbk, max_iter, tol, smin, smax)
+            stage_iter = max_iter if k == N else max(5, max_iter // 4)  # earlier stages only start the next lobe
+            a, ls, mu, conv, itk = _lm_loop(prob, a, ls, mu, z.clone(), z, targets, sbk, stage_iter, tol, smin, smax)
             it += itk
     sel = torch.arange(B)
     tm, ts = targets(mu, ls, sel)
@@ -903,7 +904,7 @@ def _lm_batch(Tn, nonzero, dirs, sa, J, vn, N, beta, delta, sb, smin, smax, max_
         a2[bi, k] = w1[:, 0].clamp_min(1e-10).log()
         mu2[bi, k] = m1[:, 0]
         ls2[bi, k] = s1[:, 0].log()
-        a2, ls2, mu2, conv2, it2 = _lm_loop(prob, a2, ls2, mu2, ~bad, z, targets, sb, max_iter, tol, smin, smax)
+        a2, ls2, mu2, conv2, it2 = _lm_loop(prob, a2, ls2, mu2, ~bad, z, targets, sb, max(5, max_iter // 2), tol, smin, smax)
         E2 = prob.evaluate(a2[bi], ls2[bi], mu2[bi], bi, *targets(mu2, ls2, bi), None if sb is None else sb[bi])[0]
         better = E2 < E[bi]
         gi = bi[better]
