@@ -459,9 +459,14 @@ def validate(transfer: Transfer | str | os.PathLike, light: Any, *, vertices: in
     L = L[None] if L.ndim == 1 else L
     if L.shape[1] != bands * bands:
         raise ValueError(f"light {name!r} has {L.shape[1]} SH coefficients; accepted: {bands * bands} (the transfer's {bands} bands)")
-    sh_img = check_expressible(L, name, image_height)
     src_img = None
-    if light_source == "image":
+    if light_source == "sh":
+        sh_img = check_expressible(L, name, image_height)
+    else:
+        try:  # the band-limited light too, when Mitsuba can emit it: the SH truncation figure
+            sh_img = check_expressible(L, name, image_height)
+        except ValueError:
+            sh_img = None
         if isinstance(light, torch.Tensor) or (src_img := _source_image(light, image_height)) is None:
             raise ValueError(f"light_source='image' with light {name!r}: no environment image behind it; accepted: an "
                              "environment file or a built-in environment name, or light_source='sh'")
@@ -483,7 +488,7 @@ def validate(transfer: Transfer | str | os.PathLike, light: Any, *, vertices: in
     rho = mesh.albedo.to(torch.float64)[idx]
     p, n = mesh.vertices[idx], mesh.normals[idx]
     nudge = boundary_nudge(mesh)[idx]
-    mit = mitsuba_exit_radiance(mesh, p, n, sh_img, depths, spp, batches, eps, seed, rho, nudge)
+    mit = mitsuba_exit_radiance(mesh, p, n, sh_img if src_img is None else src_img, depths, spp, batches, eps, seed, rho, nudge)
     m_dir, m_dir_se = mit["radiance"][0], mit["radiance_se"][0]
     if bounces:
         m_tot, m_tot_se = mit["radiance"][1], mit["radiance_se"][1]
@@ -520,12 +525,9 @@ def validate(transfer: Transfer | str | os.PathLike, light: Any, *, vertices: in
         rep["codec"] = {"file": str(codec_file), "total": _ratio(ce["total"], tot_se, m_tot, m_tot_se, tot_sum_se)}
         if bounces:
             rep["codec"]["inter"] = _ratio(ce["total"] - eng["direct"], eng["inter_se"], m_int, m_int_se, eng["inter_sum_se"])
-    if src_img is not None:
-        ms = mitsuba_exit_radiance(mesh, p, n, src_img, depths, spp, batches, eps, seed, rho, nudge)
-        rep["source_image"] = {
-            "total": _ratio(eng["total"], tot_se, ms["radiance"][-1], ms["radiance_se"][-1], tot_sum_se),
-            "sh_truncation": _ratio(m_tot, m_tot_se, ms["radiance"][-1], ms["radiance_se"][-1]),
-        }
+    if src_img is not None and sh_img is not None:  # Mitsuba under the band-limited light / under the image
+        msh = mitsuba_exit_radiance(mesh, p, n, sh_img, depths, spp, batches, eps, seed, rho, nudge)
+        rep["sh_truncation"] = _ratio(msh["radiance"][-1], msh["radiance_se"][-1], m_tot, m_tot_se)
     rep["per_vertex"] = {
         "index": idx.tolist(), "sharp": sharp.tolist(),
         "engine_direct": eng["direct"].tolist(), "engine_inter": eng["inter"].tolist(),
@@ -554,7 +556,6 @@ def format_report(rep: dict[str, Any]) -> str:
         out.append(line("codec total", rep["codec"]["total"]))
         if "inter" in rep["codec"]:
             out.append(line("codec interreflected", rep["codec"]["inter"]))
-    if "source_image" in rep:
-        out.append(line("total vs image light", rep["source_image"]["total"]))
-        out.append(line("SH truncation (mitsuba)", rep["source_image"]["sh_truncation"]))
+    if "sh_truncation" in rep:
+        out.append(line("SH light / image light", rep["sh_truncation"]))
     return "\n".join(out)

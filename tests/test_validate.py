@@ -127,7 +127,8 @@ def test_source_image_axes_and_sh_truncation(tmp_path):
     m = builtin("occluder_over_plane")
     rep = V.validate(precompute_diffuse(m, 2, 256, seed=1, shadows="always"), str(path), vertices=8, spp=512,
                      light_source="image")
-    assert abs(rep["source_image"]["sh_truncation"]["ratio"] - 1) < 0.02
+    assert rep["light_source"] == "image" and abs(rep["sh_truncation"]["ratio"] - 1) < 0.02
+    assert abs(rep["direct"]["z"]) < Z_MAX, V.format_report(rep)
 
 
 # ------------------------------------------------------------------------------ refusals and CLI
