@@ -163,3 +163,19 @@ def test_cli_validate(tmp_path, capsys, monkeypatch):
     assert cli_main(["validate", str(out), "--light", LIGHT]) == 3
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "pip install" in err[0]
+
+
+# ------------------------------------------------------------------------------ the estimator the validator re-runs
+def test_vertex_transfer_reproduces_the_precompute_rows():
+    """vertex_transfer (used for the engine's noise) is the precompute's own estimator: at chosen
+    vertices it gives the stored rows (same rays, keys, offsets), for direct and bounces."""
+    from prt_torch.transfer.diffuse import vertex_transfer
+
+    m = builtin("cornell_box")
+    tr = precompute_diffuse(m, 2, 128, bounces=2, seed=4, bounce_tol=0.0, fold_albedo=True)
+    idx = torch.tensor([3, 400, 1234, 2000])
+    T0, TB = vertex_transfer(m, idx, 2, 128, 4, 2)
+    rows = m.albedo.double()[idx][:, :, None] * (T0[:, None, :] + TB.sum(1))
+    torch.testing.assert_close(rows.float(), tr.data[idx], rtol=1e-5, atol=1e-6)
+    b0 = precompute_diffuse(m, 2, 128, bounces=0, seed=4)
+    torch.testing.assert_close(T0.float(), b0.data[idx])
