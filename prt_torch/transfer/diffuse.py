@@ -234,6 +234,9 @@ class HitBounce:
         self.rho_vertices = mesh.albedo.to(torch.float64)
         self.faces = mesh.faces.numpy()
         self.vertices = mesh.vertices.to(torch.float64).numpy()
+        rf = self.rho_vertices[mesh.faces.to(torch.int64)]  # [F,3,3]
+        # faces whose three vertices share one albedo (every built-in scene): a lookup, no interpolation
+        self.rho_face = rf[:, 0] if bool((rf == rf[:, :1]).all()) else None
 
     def samples_at(self, level: int) -> int:
         """Rays per hit at recursion ``level`` (0 = the first hit)."""
@@ -241,7 +244,10 @@ class HitBounce:
 
     def albedo_at(self, tri: np.ndarray, bary: np.ndarray) -> torch.Tensor:
         """ρ_q ``[H, C]``: the vertex albedo interpolated at the hit."""
-        rho = (torch.from_numpy(bary)[:, :, None] * self.rho_vertices[torch.from_numpy(self.faces[tri])]).sum(1)
+        if self.rho_face is not None:
+            rho = self.rho_face[torch.from_numpy(tri)]
+        else:
+            rho = (torch.from_numpy(bary)[:, :, None] * self.rho_vertices[torch.from_numpy(self.faces[tri])]).sum(1)
         return rho[:, :1] if self.C == 1 else rho
 
     def exit_transfer(self, caster: RayCaster, tri: np.ndarray, bary: np.ndarray, key_a: np.ndarray,
@@ -266,7 +272,9 @@ class HitBounce:
         out = torch.zeros(H, depth, self.C, n2, dtype=torch.float64)
         if H == 0:
             return out
-        q = np.einsum("hk,hkj->hj", bary, self.vertices[self.faces[tri]])  # [H,3] hit points
+        ft = self.faces[tri]
+        vt = self.vertices
+        q = bary[:, :1] * vt[ft[:, 0]] + bary[:, 1:2] * vt[ft[:, 1]] + bary[:, 2:3] * vt[ft[:, 2]]  # [H,3] hit points
         n = self.face_normals.numpy()[tri]
         u1 = _hash_uniform(self.seed, key_a, key_b, 2 * level + 1)[:, None]
         u2 = _hash_uniform(self.seed, key_a, key_b, 2 * level + 2)[:, None]
@@ -275,7 +283,8 @@ class HitBounce:
         b = (base[None, :, 1] + u2) % 1.0
         r, phi = np.sqrt(a), 2 * math.pi * b
         local = np.stack([r * np.cos(phi), r * np.sin(phi), np.sqrt(np.maximum(1 - a, 1e-24))], -1)  # [H,M,3]
-        d = np.einsum("hmk,hkj->hmj", local, self.frames[tri]).reshape(-1, 3)
+        fr = self.frames[tri]  # [H,3,3] rows (t, b, n)
+        d = (local[..., :1] * fr[:, None, 0] + local[..., 1:2] * fr[:, None, 1] + local[..., 2:3] * fr[:, None, 2]).reshape(-1, 3)
         o = np.repeat(offset_origins(q, n, caster.eps), M, axis=0).astype(np.float32)
         row = np.repeat(np.arange(H), M)
         if depth > 1:
