@@ -326,6 +326,40 @@ def check_memory(kind: str, V: int, n_out: int, n2: int, samples: int, chunk_siz
     return need
 
 
+#: Above this condition number of the hemisphere Gram matrix (9 bands and more) the exact
+#: least-squares inverse amplifies the Monte Carlo error of T_p enough to matter, and the
+#: glossy precompute chooses its rcond from the predicted error (prt_torch.transfer.lsq).
+LSQ_CHECK_CONDITION = 1e10
+
+
+def _least_squares_rcond(brdf: BRDF, bands_out: int, bands: int, samples: int, seed: int, drop_out, quad_bands) -> tuple:
+    """(rcond, meta) for the least-squares projection when the caller gave none: the exact
+    inverse while the Gram matrices are well enough conditioned, else the rcond with the
+    smallest predicted error for these samples (transfer.lsq.choose_rcond, on the first
+    material); a predicted error above 10% is warned about."""
+    import warnings
+
+    from ..sh import hemisphere_gram
+    from .lsq import choose_rcond
+
+    b = max(bands_out, bands)
+    ev = torch.linalg.eigvalsh(hemisphere_gram(b))
+    cond = float(ev[-1] / ev[0])
+    if cond <= LSQ_CHECK_CONDITION:
+        return None, {"rcond_decision": f"exact least-squares inverse (hemisphere Gram condition {cond:.3g} at {b} bands "
+                                        f"<= {LSQ_CHECK_CONDITION:g})"}
+    first = brdf.select(torch.zeros(1, dtype=torch.int64)) if len(brdf.batch_shape) else brdf  # the first material
+    r = choose_rcond(first, bands_out, bands, samples, seed, drop_out, quad_bands)
+    why = (f"rcond={r['rcond']} chosen from the predicted error for {samples} samples: {r['predicted_error']:.3g} "
+           + (f"(exact inverse: {r['exact_error']:.3g})" if r["exact_error"] is not None else "(no exact inverse)")
+           + f"; hemisphere Gram condition {cond:.3g} at {b} bands")
+    if r["predicted_error"] > 0.1:
+        warnings.warn(f"glossy least-squares projection at {bands_out}x{bands} bands with {samples} samples: predicted "
+                      f"error {r['predicted_error']:.0%} even with the best rcond; use more samples, fewer bands or "
+                      "projection='zero'", UserWarning, stacklevel=3)
+    return r["rcond"], {"rcond_decision": why, "rcond_chosen": r["rcond"], "lsq_predicted_error": r["predicted_error"]}
+
+
 def check_common(bands: int, samples: int, seed: int) -> tuple[int, int, int]:
     """bands in [1, 16], samples in [1, 2¹⁸], seed ≥ 0 (glossy and MRT)."""
     bands = check_int("bands", bands, 1, MAX_GLOSSY_BANDS)
@@ -389,6 +423,9 @@ def precompute_glossy(
     check_memory("glossy", n_sel, n_rows, bands * bands, samples, run.chunk_size, run.max_memory)
     shadows, shadow_meta = decide_shadows(mesh, shadows, seed, run)
     t0 = time.perf_counter()
+    rcond_meta: dict[str, Any] = {}
+    if exit and projection == "least_squares" and rcond is None:
+        rcond, rcond_meta = _least_squares_rcond(brdf, bands_out, bands, samples, seed, drop_out, quad_bands)
     if exit:
         B, index = brdf_matrices(brdf, bands_out, bands, projection=projection, drop_out=drop_out, rcond=rcond,
                                  window=window, window_width=window_width, quad_bands=quad_bands)
@@ -407,7 +444,7 @@ def precompute_glossy(
           "vertices": None if sel is None else sel.tolist()}
     data, run_meta = run_exit_transfer("glossy", mesh, B, index, bands, samples, seed, shadows, run, fp, sel,
                                        bounces=bounces)
-    meta = {**shadow_meta, **run_meta}
+    meta = {**shadow_meta, **run_meta, **rcond_meta}
     meta.update(
         bands=bands, bands_in=bands, bands_out=bands_out, samples=samples, seed=seed, shadows=shadows, bounces=bounces,
         quantity="exit" if exit else "transferred", frame="local" if exit else "global",
