@@ -220,6 +220,7 @@ register_kind(TransferKind(
         "bounces": [Interval(int, 0, MAX_BOUNCES)], "seed": _SEED, "sampling": [Options("uniform", "cosine")],
         "shadows": _SHADOWS, "fold_albedo": [Boolean(), None], "bounce_tol": [Interval(float, 0, 1, closed="left")],
         "probe_tol": [Interval(float, 0, 1, closed="left")],
+        "bounce_points": [Options("hits", "vertices")], "hit_samples": [Interval(int, 1, 1024)],
     },
     args=_args("bands", "samples", "bounces", "seed", "shadows") + (
         Arg("--sampling", "sampling", "uniform sphere set (SH evaluated once) or cosine-weighted hemisphere per vertex",
@@ -227,6 +228,10 @@ register_kind(TransferKind(
         Arg("--fold-albedo", "fold_albedo", "store [V,3,n²] with albedo folded (yes), [V,n²] without (no), or as needed (auto)",
             values={"auto": None, "yes": True, "no": False}),
         Arg("--bounce-tol", "bounce_tol", "stop adding bounces below this energy fraction"),
+        Arg("--bounce-points", "bounce_points", "where a bounce takes the reflected light: at the hit point itself "
+            "(hits; unbiased near sharp vertices) or interpolated from the hit face's vertices (vertices; faster)",
+            values={"hits": "hits", "vertices": "vertices"}),
+        Arg("--hit-samples", "hit_samples", "rays per bounce hit point (bounce_points=hits)"),
     ),
 ))
 
