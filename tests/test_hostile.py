@@ -128,3 +128,19 @@ def test_memory_refusal_rounds_honestly(tmp_path, capsys):
     assert cli_main(["bench", str(p), "--dry-run"]) == 2
     err = capsys.readouterr().err
     assert "0.0 GiB" not in err and "KiB" in err and "MiB" in err, err
+
+
+@pytest.mark.parametrize("argv, match", [
+    (["--width", "0"], "--width '0'; accepted: an integer number of pixels"),
+    (["--background", "nan"], "--background 'nan'; accepted: a finite number"),
+])
+def test_render_refuses_bad_numbers_by_name(tmp_path, capsys, argv, match):
+    with pytest.raises(SystemExit) as e:
+        cli_main(["render", str(tmp_path / "t.prt"), "-o", str(tmp_path / "o.png"), *argv])
+    assert e.value.code == 2 and match in capsys.readouterr().err
+
+
+def test_missing_light_file_is_refused_by_dry_run(tmp_path, capsys):
+    assert cli_main(["bench", "default", "lights=[sky, nosuch.hdr]", f"output_dir={tmp_path}/r", f"cache_dir={tmp_path}/c",
+                     "--dry-run"]) == 2
+    assert "'lights.1' = 'nosuch.hdr'" in capsys.readouterr().err

@@ -13,12 +13,38 @@ as PNG and as linear EXR (OUT.exr); ``--validate`` renders both decodes and prin
 """
 from __future__ import annotations
 
+import argparse
+import math
 import sys
 from pathlib import Path
 
 import numpy as np
 
 EXTS_FLOAT = (".exr", ".pfm", ".hdr", ".tif", ".tiff")
+
+
+def _pixels(flag: str):
+    def parse(text: str) -> int:
+        try:
+            v = int(text)
+        except ValueError:
+            v = -1
+        if not 1 <= v <= 16384:
+            raise argparse.ArgumentTypeError(f"{flag} {text!r}; accepted: an integer number of pixels in 1..16384")
+        return v
+    return parse
+
+
+def _finite(flag: str):
+    def parse(text: str) -> float:
+        try:
+            v = float(text)
+        except ValueError:
+            v = float("nan")
+        if not math.isfinite(v):
+            raise argparse.ArgumentTypeError(f"{flag} {text!r}; accepted: a finite number")
+        return v
+    return parse
 
 
 def register(subparsers) -> None:
@@ -43,8 +69,8 @@ def register(subparsers) -> None:
                    help="also write uncompressed (CPU) | this render | relative-error heat map (OUT.png and OUT.exr)")
     p.add_argument("--validate", action="store_true",
                    help="also render with the other decode and print GLSL vs CPU PSNR (exit 1 below 50 dB)")
-    p.add_argument("--width", type=int, default=512)
-    p.add_argument("--height", type=int, default=512)
+    p.add_argument("--width", type=_pixels("--width"), default=512, help="image width in pixels (1..16384)")
+    p.add_argument("--height", type=_pixels("--height"), default=512, help="image height in pixels (1..16384)")
     p.add_argument("--azimuth", type=float, default=35.0, help="camera azimuth in degrees (from +x toward +y)")
     p.add_argument("--elevation", type=float, default=25.0, help="camera elevation in degrees above the xy-plane")
     p.add_argument("--fov", type=float, default=40.0, help="vertical field of view in degrees (perspective)")
@@ -52,7 +78,7 @@ def register(subparsers) -> None:
     p.add_argument("--exposure", default="auto", help="stops (EV) for PNG output, or 'auto' (default)")
     p.add_argument("--tonemap", default="clip", choices=["clip", "reinhard"])
     p.add_argument("--supersample", type=int, default=2, help="s×s samples per pixel (default 2)")
-    p.add_argument("--background", type=float, default=0.0, help="value of uncovered pixels (default 0)")
+    p.add_argument("--background", type=_finite("--background"), default=0.0, help="value of uncovered pixels (default 0)")
     p.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     p.add_argument("--debug", action="store_true", help="show tracebacks")
     p.set_defaults(func=run)

@@ -364,8 +364,14 @@ def _validate_lights(lights: Any) -> None:
 
     if not isinstance(lights, list) or not lights:
         raise ValueError(f"config key 'lights' must be a non-empty list, got {lights!r}")
+    from ..lighting import list_builtin_environments
+
     for i, spec in enumerate(lights):
         _renamed(spec, f"lights.{i}")
+        if isinstance(spec, str) and ":" not in spec and spec not in list_builtin_environments() and "{face}" not in spec \
+                and not Path(spec).is_file():
+            raise FileNotFoundError(f"config key 'lights.{i}' = {spec!r}: not a built-in environment "
+                                    f"({', '.join(list_builtin_environments())}), an analytic spec or an existing image file")
         if isinstance(spec, dict) or (isinstance(spec, str) and ":" in spec and not Path(spec).exists()):
             try:
                 load_light(spec, bands=1)  # analytic: cheap; refuses bad types and parameters
