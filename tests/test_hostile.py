@@ -144,3 +144,12 @@ def test_missing_light_file_is_refused_by_dry_run(tmp_path, capsys):
     assert cli_main(["bench", "default", "lights=[sky, nosuch.hdr]", f"output_dir={tmp_path}/r", f"cache_dir={tmp_path}/c",
                      "--dry-run"]) == 2
     assert "'lights.1' = 'nosuch.hdr'" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("override", ["views=3", "metrics=[1]", "target=5", "render=true", "transfer.bands=[]",
+                                      "codecs.0.clusters=[]", "codecs.0.type=[pca,vq]", "codecs=[3]", "transfer=3",
+                                      "transfer.brdf=3", "lights=sky", "name=null"])
+def test_malformed_config_structures_get_one_line(tmp_path, capsys, override):
+    assert cli_main(["bench", "default", override, f"output_dir={tmp_path}/r", f"cache_dir={tmp_path}/c", "--dry-run"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("prt bench: error: config key") and err.count("\n") == 1, err

@@ -141,6 +141,8 @@ def load_config(name_or_path: str | None = None, overrides: list[str] | None = N
     cfg = _merge(DEFAULTS, raw)
     for ov in overrides or []:
         cfg = apply_override(cfg, ov)
+    if overrides:  # an override may have replaced a section: check its shape, fill its defaults
+        cfg = _merge(DEFAULTS, cfg)
     cfg["_source"] = str(path)
     validate(cfg)
     return cfg
@@ -273,9 +275,22 @@ def _transfer_sweeps(cfg: dict) -> list[str]:
     return out
 
 
+def _no_empty_lists(node: Any, path: str) -> None:
+    """A list where a sweep may stand must not be empty (a sweep of nothing runs nothing)."""
+    if isinstance(node, dict):
+        for k, v in node.items():
+            _no_empty_lists(v, f"{path}{k}.")
+    elif isinstance(node, list):
+        if not node and path.rstrip(".") not in ("transfer.drop_out", "transfer.vertices"):
+            raise ValueError(f"config key {path.rstrip('.')!r} is an empty list; accepted: a value, or a non-empty list (a sweep)")
+        for i, v in enumerate(node):
+            _no_empty_lists(v, f"{path}{i}.")
+
+
 def validate(cfg: dict) -> None:
     """Types of schema keys; the transfer, codec and light specs through their registries; the
     scene. Raises ValueError naming the key, before any work."""
+    _no_empty_lists({k: v for k, v in cfg.items() if not k.startswith("_")}, "")
 
     def walk(node: dict, schema: dict, path: str):
         for k, d in schema.items():
@@ -388,6 +403,9 @@ def _validate_codecs(entries: Any) -> None:
         _renamed(entry, f"codecs.{i}")
         if not isinstance(entry, dict) or "type" not in entry:
             raise ValueError(f"config key 'codecs.{i}' must be a mapping with a 'type', got {entry!r}")
+        if not isinstance(entry["type"], str):
+            raise ValueError(f"config key 'codecs.{i}.type' = {entry['type']!r}; accepted: one codec name "
+                             f"({', '.join(codecs.available())}) — list several codecs as separate entries")
         for params in expand_codecs([entry]):
             p = dict(params)
             name = p.pop("type")
