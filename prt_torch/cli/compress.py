@@ -117,6 +117,9 @@ def run(args) -> int:
     codec = codecs.get(args.codec, **params)  # validates name and parameters before any work
     from pathlib import Path
 
+    from ..io import check_writable
+
+    check_writable(args.output, "output")  # before the fit
     if Path(args.output).exists() and not args.overwrite:
         raise FileExistsError(f"output {args.output!r} exists; pass --overwrite to replace it")
     X, ms, meta, geometry = load_input(args.transfer, codec)

@@ -130,7 +130,10 @@ def run(args) -> int:
     if cmp_png is not None and cmp_png.suffix.lower() != ".png":
         raise ValueError(f"--compare {args.compare!r}; accepted: a .png path (the linear EXR goes next to it)")
     outputs = [out] + ([cmp_png, cmp_png.with_suffix(".exr")] if cmp_png else [])
+    from ..io import check_writable
+
     for o in outputs:
+        check_writable(o, "output")  # before any rendering
         if o.exists() and not args.overwrite:
             raise FileExistsError(f"output {str(o)!r} exists; pass --overwrite to replace it")
     if args.exposure != "auto":
