@@ -33,8 +33,13 @@ Rows:
   M_k^i l computed per light on the CPU (``codec.cluster_constants``) into a float table
   indexed by cluster id.
 
+* :class:`GaussianDecoder` (Green 2005 eq. 2.7, §2.3): Σ_k w_k E_{σ_k}(μ_k) with the lobes
+  interpolated across the three nearest stored views on the CPU once per camera
+  (:func:`gaussian_view_lobes`) and the prefiltered-environment lookup done in GLSL exactly as
+  ``PrefilteredEnvironment.lookup`` (the cube levels as one RGBA32F texture buffer).
+
 Codec decoders are chosen by codec name (:func:`register_codec_decoder`,
-:func:`codec_decoder`): a new codec family (e.g. Green 2005's Gaussians) registers its own
+:func:`codec_decoder`): a new codec family registers its own
 :class:`~prt_torch.render.decoders.Decoder` subclass with a ``from_codec`` constructor.
 """
 from __future__ import annotations
@@ -49,7 +54,8 @@ from .program import Attribute, ShaderProgram
 
 __all__ = ["VIEW_MODES", "TransferDecoder", "AffineDecoder", "VQDecoder", "PCADecoder", "CPCADecoder",
            "MRTPCADecoder", "register_codec_decoder", "codec_decoder", "codec_decoders", "transfer_program",
-           "affine_program", "MAX_WEIGHT_ATTRIBUTES"]
+           "affine_program", "MAX_WEIGHT_ATTRIBUTES", "GaussianDecoder", "gaussian_program", "gaussian_view_lobes",
+           "MAX_LOBE_ATTRIBUTES"]
 
 VIEW_MODES = ("none", "diagonal", "dense", "taps")
 #: vec4 weight attributes at most (16 attribute slots on every GL 4 implementation: position,
@@ -431,3 +437,284 @@ def codec_decoder(codec, enc, light, mode: str = "none", view=None, albedo=None,
         raise ValueError(f"codec {name!r} has no GLSL decoder; accepted: {', '.join(sorted(_CODEC_DECODERS))} "
                          "(register one with prt_torch.render.register_codec_decoder), or decode on the CPU")
     return cls.from_codec(codec, enc, light, mode=mode, view=view, albedo=albedo, **kw)
+
+
+# ----------------------------------------------------------------------------- Green 2005 Gaussians
+
+#: lobes at most passed as vertex attributes (one ``vec4 (μ, σ)`` each plus ``vec4`` weights);
+#: more go through an RGBA32F texture buffer.
+MAX_LOBE_ATTRIBUTES = 4
+
+_CUBE_LOOKUP_GLSL = """
+// PrefilteredEnvironment.lookup (prt_torch.lighting.prefilter), step for step: OpenGL face
+// selection and texel coordinates (cube_map_lookup_coords), bilinear inside the face clamped at
+// its edges, linear in log sigma between the two ladder levels bracketing sigma (clamped).
+int cube_face(vec3 d, out vec2 st) {  // face 0..5 (+x, -x, +y, -y, +z, -z); st = (column s, row t)
+    float ax = abs(d.x), ay = abs(d.y), az = abs(d.z);
+    bool is_x = ax >= ay && ax >= az;
+    bool is_y = !is_x && ay >= az;
+    float m = max(is_x ? ax : (is_y ? ay : az), 1e-30);
+    int face = is_x ? (d.x < 0.0 ? 1 : 0) : (is_y ? (d.y < 0.0 ? 3 : 2) : (d.z < 0.0 ? 5 : 4));
+    float sc = is_x ? (d.x >= 0.0 ? -d.z : d.z) : (is_y ? d.x : (d.z >= 0.0 ? d.x : -d.x));
+    float tc = is_x ? -d.y : (is_y ? (d.y >= 0.0 ? d.z : -d.z) : -d.y);
+    sc /= m;
+    tc /= m;
+    st = vec2((sc + 1.0) * (float(RES) / 2.0) - 0.5, (tc + 1.0) * (float(RES) / 2.0) - 0.5);
+    return face;
+}
+vec3 texel(int li, int face, int t, int s) {
+    return texelFetch(levels, ((li * 6 + face) * RES + t) * RES + s).rgb;
+}
+vec3 prefiltered(vec3 mu, float sigma) {  // E_sigma(mu), Green eq. 2.7
+    vec2 st;
+    int face = cube_face(mu, st);
+    float s = clamp(st.x, 0.0, float(RES - 1));
+    float t = clamp(st.y, 0.0, float(RES - 1));
+    int s0 = min(int(floor(s)), max(RES - 2, 0));
+    int t0 = min(int(floor(t)), max(RES - 2, 0));
+    float fs = clamp(s - float(s0), 0.0, 1.0);
+    float ft = clamp(t - float(t0), 0.0, 1.0);
+    int s1 = min(s0 + 1, RES - 1);
+    int t1 = min(t0 + 1, RES - 1);
+    float ls = log(max(sigma, 1e-12));
+    int hi = 0;  // searchsorted(ladder, ls), clamped to 1..L-1
+    while (hi < NL && ladder[hi] < ls) ++hi;
+    hi = clamp(hi, 1, max(NL - 1, 1));
+    int lo = max(hi - 1, 0);
+    float a = 0.0;
+    if (NL > 1) a = clamp((ls - ladder[lo]) / (ladder[hi] - ladder[lo]), 0.0, 1.0);
+    else { hi = 0; lo = 0; }
+    vec3 blo = (1.0 - ft) * ((1.0 - fs) * texel(lo, face, t0, s0) + fs * texel(lo, face, t0, s1))
+             + ft * ((1.0 - fs) * texel(lo, face, t1, s0) + fs * texel(lo, face, t1, s1));
+    vec3 bhi = (1.0 - ft) * ((1.0 - fs) * texel(hi, face, t0, s0) + fs * texel(hi, face, t0, s1))
+             + ft * ((1.0 - fs) * texel(hi, face, t1, s0) + fs * texel(hi, face, t1, s1));
+    return (1.0 - a) * blo + a * bhi;
+}
+"""
+
+
+@functools.lru_cache(maxsize=None)
+def gaussian_program(lobes: int, n_levels: int, res: int, lobes_in: str) -> ShaderProgram:
+    """Green 2005's Gaussian transport decoded in the vertex shader (eq. 2.7).
+
+    Per vertex, the N lobes already interpolated across the three nearest stored views (§2.3,
+    on the CPU once per camera): weight w_k (the taps' sum folded in), unit mean μ_k and width
+    σ_k — as attributes ``vec4 lobe{k} = (μ, σ)`` and ``vec4 lobe_w{q}`` (``lobes_in='attributes'``)
+    or an RGBA32F texture buffer ``lobes [V · N · 2]`` = ((μ, σ), (w, 0, 0, 0)) (``'buffer'``);
+    ``vec3 diffuse``: the SH diffuse part's t·l times the taps' data weight (zero without one).
+    Table ``levels``: RGBA32F texture buffer ``[L · 6 · r · r]`` (level, face, row t, column s) of
+    the prefiltered environment; ``uniform float ladder[L]``: log σ_l.
+    radiance = albedo · (diffuse + Σ_k w_k E_{σ_k}(μ_k))."""
+    if lobes_in not in ("attributes", "buffer"):
+        raise ValueError(f"lobes_in={lobes_in!r}; accepted: 'attributes' or 'buffer'")
+    q4 = -(-lobes // 4)
+    if lobes_in == "attributes":
+        attrs = tuple(Attribute(f"lobe{k}", 4) for k in range(lobes)) + tuple(Attribute(f"lobe_w{q}", 4)
+                                                                               for q in range(q4))
+        decl = ""
+        lobe_fn = ("vec4 lobe(int k) {\n    " + " ".join(f"if (k == {k}) return lobe{k};" for k in range(lobes))
+                   + "\n    return vec4(0.0, 0.0, 1.0, 1.0);\n}\n"
+                   + "float lobe_weight(int k) {\n    " + " ".join(f"if ((k >> 2) == {q}) return lobe_w{q}[k & 3];"
+                                                                  for q in range(q4))
+                   + "\n    return 0.0;\n}\n")
+    else:
+        attrs = ()
+        decl = "uniform samplerBuffer lobes;  // RGBA32F [V * N * 2]: (mu, sigma), (w, 0, 0, 0)\n"
+        lobe_fn = ("vec4 lobe(int k) { return texelFetch(lobes, (gl_VertexID * N + k) * 2); }\n"
+                   "float lobe_weight(int k) { return texelFetch(lobes, (gl_VertexID * N + k) * 2 + 1).r; }\n")
+    body = f"""
+uniform mat4 prt_mvp;
+uniform samplerBuffer levels;  // RGBA32F [L * 6 * RES * RES]: prefiltered cube levels (rgb)
+uniform float ladder[{n_levels}];     // log sigma_l, increasing
+{decl}const int N = {lobes};
+const int NL = {n_levels};
+const int RES = {res};
+out vec3 v_radiance;
+{_CUBE_LOOKUP_GLSL}{lobe_fn}void main() {{
+    vec3 s = diffuse;
+    for (int k = 0; k < N; ++k) {{
+        float w = lobe_weight(k);
+        if (w != 0.0) {{
+            vec4 l = lobe(k);
+            s += w * prefiltered(l.xyz, l.w);
+        }}
+    }}
+    v_radiance = s * albedo;
+    gl_Position = prt_mvp * vec4(position, 1.0);
+}}
+"""
+    return ShaderProgram(name=f"prt_gaussian_N{lobes}_L{n_levels}_r{res}_{lobes_in}",
+                         attributes=(Attribute("albedo", 3), Attribute("diffuse", 3)) + attrs,
+                         vertex_body=body, fragment_body=_FRAGMENT)
+
+
+def gaussian_view_lobes(codec, enc, light, view) -> tuple:
+    """What ``GaussianCodec.relight(enc, light, view)`` computes per camera before its lookups:
+    per vertex the lobes blended across the tapped stored views (Green §2.3, ``blend_lobes``)
+    with the taps' sum folded into the weights, and the SH diffuse part (Green §3.1) times the
+    taps' data weight. ``view``: taps ``(idx [V, k], w [V, k])`` or global directions ``[V, 3]``.
+    Returns ``(w [V, N], mu [V, N, 3], sigma [V, N], diffuse [V, C])`` float32 tensors."""
+    import torch
+
+    from ..codecs.gaussian import blend_lobes, view_taps
+    from ..lighting.prefilter import PrefilteredEnvironment
+
+    if not isinstance(light, PrefilteredEnvironment):
+        raise TypeError(f"light is {type(light).__name__}; accepted: a PrefilteredEnvironment "
+                        "(prt_torch.lighting.prefilter_environment; the gaussian codec's light kind 'prefiltered')")
+    w, mu, sg = enc.tensors["weights"], enc.tensors["mu"], enc.tensors["sigma"]
+    V, J, N = w.shape
+    if view is None:
+        raise ValueError("the gaussian decoder needs a view: taps (idx [V, k], w [V, k]) or directions [V, 3] "
+                         "(one radiance per vertex and camera)")
+    if isinstance(view, torch.Tensor):
+        if view.shape != (V, 3):
+            raise ValueError(f"view has shape {tuple(view.shape)}; accepted: taps (idx, w) or global directions [V, 3]")
+        view = view_taps(codec.views_, view / view.norm(dim=-1, keepdim=True).clamp_min(1e-12))
+    if not (isinstance(view, (tuple, list)) and len(view) == 2):
+        raise TypeError("view must be taps (idx int64 [V, k], w [V, k]) or directions [V, 3]")
+    idx, a = (torch.as_tensor(v) for v in view)
+    if idx.ndim != 2 or idx.shape[0] != V or a.shape != idx.shape:
+        raise ValueError(f"view taps have shapes {tuple(idx.shape)}, {tuple(a.shape)}; accepted: [V, k] with V={V}")
+    idx = idx.long()
+    if idx.numel() and (int(idx.min()) < 0 or int(idx.max()) >= J):
+        raise ValueError(f"view tap indices span [{int(idx.min())}, {int(idx.max())}]; accepted: 0..{J - 1}")
+    rows = torch.arange(V)[:, None]
+    a = a.float()
+    tot = a.sum(1, keepdim=True)
+    wb, mb, sgb = blend_lobes(w[rows, idx], mu[rows, idx], sg[rows, idx], a / tot.clamp_min(1e-12))
+    C = int(light.channels)
+    diff = torch.zeros(V, C)
+    if "diffuse" in enc.tensors:
+        t = enc.tensors["diffuse"]
+        if light.sh is None:
+            raise ValueError(f"this encoding has an SH diffuse part of {t.shape[1]} coefficients; accepted: a "
+                             "PrefilteredEnvironment with SH coefficients (an SH light, or prefilter_environment(..., "
+                             "sh_bands=))")
+        L = torch.zeros(C, t.shape[1])
+        k = min(t.shape[1], light.sh.shape[1])
+        L[:, :k] = light.sh[:, :k].float()
+        hd = enc.tensors["has_data"].float()[rows, idx]
+        diff = (t @ L.T) * (a * hd).sum(1, keepdim=True)
+    return (wb * tot).float(), mb.float(), sgb.float(), diff.float()
+
+
+def _rgb(x: np.ndarray) -> np.ndarray:
+    """``[..., C]`` (C = 1 or 3) -> ``[..., 3]`` (grey replicated)."""
+    if x.shape[-1] not in (1, 3):
+        raise ValueError(f"{x.shape[-1]} light channels; accepted: 1 or 3")
+    return np.broadcast_to(x, x.shape[:-1] + (3,))
+
+
+class GaussianDecoder(Decoder):
+    """Green 2005's Gaussian-mixture transport decoded in the vertex shader (eq. 2.7, §2.3).
+
+    Args:
+        weights ``[V, N]``, mu ``[V, N, 3]`` (unit), sigma ``[V, N]``: each vertex's lobes for the
+            current camera (interpolated across its three nearest stored views,
+            :func:`gaussian_view_lobes`).
+        light: the :class:`~prt_torch.lighting.PrefilteredEnvironment` (C = 1 or 3 channels).
+        diffuse: ``[V, C]`` added radiance (the SH diffuse part), or None.
+        albedo: ``[V, 3]`` multiplied into the result, or None.
+        lobes_in: ``'auto'`` (attributes for N ≤ :data:`MAX_LOBE_ATTRIBUTES`, else a texture
+            buffer), ``'attributes'`` or ``'buffer'``.
+    Radiance at p: albedo · (diffuse_p + Σ_k w_pk E_{σ_pk}(μ_pk)), the lookup E done in GLSL
+    exactly as ``PrefilteredEnvironment.lookup`` (same face, texels, bilinear and level weights)
+    from the levels uploaded unquantised as one RGBA32F texture buffer.
+    """
+
+    def __init__(self, weights, mu, sigma, light, diffuse=None, albedo=None, lobes_in: str = "auto"):
+        w = _np("lobe weights", weights, np.float32)
+        if w.ndim != 2:
+            raise ValueError(f"lobe weights have shape {w.shape}; accepted: [V, N]")
+        V, N = w.shape
+        if N < 1:
+            raise ValueError("no lobes; accepted: N ≥ 1 lobes per vertex")
+        if lobes_in == "auto":
+            lobes_in = "attributes" if N <= MAX_LOBE_ATTRIBUTES else "buffer"
+        if lobes_in not in ("attributes", "buffer"):
+            raise ValueError(f"lobes_in={lobes_in!r}; accepted: 'auto', 'attributes' or 'buffer'")
+        self.num_vertices, self.lobes, self.lobes_in = V, N, lobes_in
+        self._attrs = {"albedo": _albedo(albedo, V)}
+        self._tables: dict = {}
+        self._light = None
+        self.set_light(light)
+        self.set_lobes(w, mu, sigma, diffuse)
+
+    def set_light(self, light) -> None:
+        """A new prefiltered environment: the levels table and the ladder (per light)."""
+        from ..lighting.prefilter import PrefilteredEnvironment
+
+        if not isinstance(light, PrefilteredEnvironment):
+            raise TypeError(f"light is {type(light).__name__}; accepted: a PrefilteredEnvironment "
+                            "(prt_torch.lighting.prefilter_environment)")
+        lv = _np("prefiltered levels", light.levels, np.float32)  # [L, C, 6, r, r]
+        L, r = lv.shape[0], lv.shape[-1]
+        tab = np.ones((L, 6, r, r, 4), np.float32)
+        tab[..., :3] = _rgb(np.moveaxis(lv, 1, -1))
+        self._tables["levels"] = TableData(_frozen(tab.reshape(-1, 4)), "buffer")
+        import torch
+
+        ladder = _np("log sigma ladder", torch.as_tensor(light.sigmas).log().to(torch.float32), np.float32)
+        self._uniforms = {"ladder": ladder}
+        self.program = gaussian_program(self.lobes, L, r, self.lobes_in)
+        self._light = light
+
+    def set_lobes(self, weights, mu, sigma, diffuse=None) -> None:
+        """New per-vertex lobes (a new camera): ``[V, N]``, ``[V, N, 3]``, ``[V, N]``, diffuse ``[V, C]``."""
+        V, N = self.num_vertices, self.lobes
+        w = _np("lobe weights", weights, np.float32)
+        m = _np("lobe means", mu, np.float32)
+        s = _np("lobe widths", sigma, np.float32)
+        if w.shape != (V, N) or m.shape != (V, N, 3) or s.shape != (V, N):
+            raise ValueError(f"lobes have shapes {w.shape}, {m.shape}, {s.shape}; accepted: [V, N], [V, N, 3], [V, N] "
+                             f"with V={V}, N={N}")
+        if diffuse is None:
+            d = np.zeros((V, 3), np.float32)
+        else:
+            d = _np("diffuse", diffuse, np.float32)
+            d = d[:, None] if d.ndim == 1 else d
+            if d.ndim != 2 or d.shape[0] != V:
+                raise ValueError(f"diffuse has shape {d.shape}; accepted: [V, C] with V={V}, C = 1 or 3")
+            d = np.ascontiguousarray(_rgb(d))
+        self._attrs["diffuse"] = d
+        ms = np.concatenate([m, s[..., None]], -1)  # [V, N, 4]
+        for k in [k for k in self._attrs if k.startswith("lobe")]:
+            del self._attrs[k]
+        self._tables.pop("lobes", None)
+        if self.lobes_in == "attributes":
+            q4 = -(-N // 4)
+            wp = np.zeros((V, 4 * q4), np.float32)
+            wp[:, :N] = w
+            self._attrs.update({f"lobe{k}": np.ascontiguousarray(ms[:, k]) for k in range(N)})
+            self._attrs.update({f"lobe_w{q}": np.ascontiguousarray(wp[:, 4 * q:4 * q + 4]) for q in range(q4)})
+        else:
+            tab = np.zeros((V, N, 2, 4), np.float32)
+            tab[:, :, 0] = ms
+            tab[:, :, 1, 0] = w
+            self._tables["lobes"] = TableData(tab.reshape(-1, 4), "buffer")
+
+    def set_view(self, view) -> None:
+        """A new camera for a decoder made by :meth:`from_codec`: the lobes re-interpolated."""
+        if getattr(self, "_codec", None) is None:
+            raise ValueError("set_view needs a decoder made by from_codec; use set_lobes")
+        self.set_lobes(*gaussian_view_lobes(self._codec, self._enc, self._light, view))
+
+    @classmethod
+    def from_codec(cls, codec, enc, light, mode: str = "taps", view=None, albedo=None, **kw) -> "GaussianDecoder":
+        """From a fitted ``gaussian`` codec, its encoding, a :class:`PrefilteredEnvironment` and
+        the camera's view (taps over the stored views, or global directions ``[V, 3]``; as
+        ``GaussianCodec.relight``). ``mode`` is accepted for the registry's signature and not used
+        (the view is always the codec's own)."""
+        w, mu, sigma, diffuse = gaussian_view_lobes(codec, enc, light, view)
+        dec = cls(w, mu, sigma, light, diffuse=diffuse, albedo=albedo, **kw)
+        dec._codec, dec._enc = codec, enc
+        return dec
+
+    def inputs(self, num_vertices: int) -> DrawInputs:
+        if num_vertices != self.num_vertices:
+            raise ValueError(f"decoder holds {self.num_vertices} vertices but the mesh has {num_vertices}")
+        return DrawInputs(attributes=self._attrs, uniforms=self._uniforms, tables=self._tables)
+
+
+register_codec_decoder("gaussian")(GaussianDecoder)
