@@ -47,6 +47,17 @@ def paragraph(res: dict) -> str:
         if s:
             speed.append(f"{NAMES[codec]} {min(s):.1f}–{max(s):.1f}×")
     m = res["machine"]
+    extra = ""
+    bounds = [r["fraction_of_bound"] for r in recs if "fraction_of_bound" in r]
+    if bounds:
+        extra += (f" Relighting reaches {min(bounds):.2f}–{max(bounds):.2f} of each setting's own memory-bandwidth bound "
+                  "(read the codes and view once, write the output once).")
+    g = {k: v for k, v in (res.get("glsl") or {}).items() if isinstance(v, dict)}
+    if g:
+        db = [v["psnr_db"] for v in g.values() if v.get("psnr_db") is not None]
+        same = all(v.get("same_mask", True) for v in g.values())
+        extra += (f" The GLSL decoders ({', '.join(sorted(g))}) reproduce the CPU engine's images "
+                  + (f"at ≥ {min(db):.0f} dB" if db else "bit for bit") + (" with identical pixel coverage." if same else "."))
     return (
         f"`reports/baseline/report.md` is the committed output of the first command (load average "
         f"{m.get('load_average_1min', float('nan')):.1f} on {m.get('cores')} cores): {t['kind']} transfer of the built-in "
@@ -54,7 +65,7 @@ def paragraph(res: dict) -> str:
         f"under {len(res['lights'])} lights ({', '.join(res['lights'])}) and {max(1, len(res['views']))} views. "
         f"At about {budget:.0f} B/vertex, PSNR against the uncompressed result: {'; '.join(at_budget)}. "
         f"Relighting speed relative to the uncompressed path measured in the same run "
-        f"({unc['vertices_per_s'] / 1e6:.2f} M vertices/s): {', '.join(speed)}."
+        f"({unc['vertices_per_s'] / 1e6:.2f} M vertices/s): {', '.join(speed)}." + extra
     )
 
 
