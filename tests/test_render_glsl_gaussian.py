@@ -132,7 +132,8 @@ def test_lobes_through_attributes_and_buffer_agree(renderer, table, fits):
     cam = Camera.fit(table.mesh, azimuth=60, elevation=-10, fov=40, aspect=80 / 64)
     a = _render_both(renderer, table, codec, enc, pe, cam, lobes_in="attributes")
     b = _render_both(renderer, table, codec, enc, pe, cam, lobes_in="buffer")
-    assert "lobes" in b[4].inputs(table.V if hasattr(table, "V") else table.data.shape[0]).tables
+    V = table.data.shape[0]
+    assert "lobes" in b[4].inputs(V).tables and "lobe0" in a[4].inputs(V).attributes
     _check(*a[:4])
     _check(*b[:4])
     assert psnr(a[0], b[0], a[1]) > 100
