@@ -35,6 +35,14 @@ with no scale fit:
   ray contributions use the stored total's exit radiance interpolated at the hits (an estimate).
   The ratio engine/Mitsuba of sums over the vertices carries both, combined in quadrature.
 
+* **Glossy exit transfer** (kind 'glossy', quantity 'exit', bounces 0): :func:`validate_glossy`.
+  The engine's BRDF model becomes a Mitsuba BSDF written in Python (:func:`engine_bsdf`:
+  f_r·cos θ_i in the vertex frame, cosine-hemisphere sampling) on a tiny disk at the engine's
+  ray origin; a ``radiancemeter`` along a view v looks back at it (``max_depth`` 2: direct
+  light). The engine side is :func:`prt_torch.relight.glossy`, recomputed from the transfer's own
+  direction set (noise from replica seeds) and, on a dense set, with the BRDF unprojected: the
+  engine's SH truncation bias at the vertices is reported apart (docs/validate.md).
+
 Mitsuba is an optional dependency (``pip install 'prt-torch[validate]'``); without it
 :func:`require_mitsuba` raises :class:`ValidatorUnavailable` with that one line.
 """
@@ -70,6 +78,12 @@ __all__ = [
     "engine_parts",
     "validate",
     "format_report",
+    "BSDF_PLUGIN",
+    "engine_bsdf",
+    "glossy_brdf",
+    "engine_glossy",
+    "mitsuba_glossy_exit",
+    "validate_glossy",
 ]
 
 INSTALL_HINT = "prt validate needs Mitsuba 3: pip install 'prt-torch[validate]' (or: pip install 'mitsuba>=3.5')"
@@ -425,11 +439,14 @@ def _rms_rel(e: torch.Tensor, m: torch.Tensor) -> float:
 
 def validate(transfer: Transfer | str | os.PathLike, light: Any, *, vertices: int = 32, spp: int = 1024, batches: int = 8,
              seed: int = 0, codec_file: str | os.PathLike | None = None, light_source: str = "sh", light_name: str | None = None,
-             sharp_deg: float = 18.0, image_height: int = 128, idx: torch.Tensor | None = None) -> dict[str, Any]:
+             sharp_deg: float = 18.0, image_height: int = 128, idx: torch.Tensor | None = None, mesh: Mesh | None = None,
+             view_deg: float = 60.0) -> dict[str, Any]:
     """Engine vs Mitsuba 3 at ``vertices`` sampled vertices (module docstring); no scale fit.
 
     Args:
-        transfer: a diffuse :class:`Transfer` or its file.
+        transfer: a diffuse or glossy (exit, bounces 0) :class:`Transfer` or its file; glossy goes
+            to :func:`validate_glossy` (``mesh``: the full mesh of a vertex-subset transfer;
+            ``view_deg``: the views' largest angle from the normal).
         light: anything :func:`prt_torch.lighting.load_light` takes, or an SH tensor ``[C, n²]``.
         spp, batches: Mitsuba samples per vertex and depth, split into independent batches (noise).
         codec_file: also compare a codec's reconstruction of this transfer (total and
@@ -448,9 +465,13 @@ def validate(transfer: Transfer | str | os.PathLike, light: Any, *, vertices: in
     """
     if not isinstance(transfer, Transfer):
         transfer = Transfer.load(transfer)
-    if transfer.kind != "diffuse":
-        raise ValueError(f"transfer kind {transfer.kind!r}: the validator expresses diffuse (Lambertian) transfer only so far; "
-                         "accepted: a diffuse transfer (prt precompute --kind diffuse)")
+    if transfer.kind not in ("diffuse", "glossy"):
+        raise ValueError(f"transfer kind {transfer.kind!r}: the validator expresses diffuse and glossy exit transfer; "
+                         "accepted: prt precompute --kind diffuse or --kind glossy")
+    if transfer.kind == "glossy":
+        glossy_brdf(transfer)  # a BRDF, quantity or bounces it cannot express: refused before any work
+        if codec_file is not None:
+            raise ValueError("codec_file with a glossy transfer: codec comparison is for diffuse transfer; accepted: no codec_file")
     check_choice("light_source", light_source, ["sh", "image"])
     bands = int(transfer.meta["bands"])
     name = light_name or (str(light) if not isinstance(light, torch.Tensor) else "SH tensor")
@@ -476,6 +497,11 @@ def validate(transfer: Transfer | str | os.PathLike, light: Any, *, vertices: in
 
         codec = codecs.load(codec_file)
     require_mitsuba()
+    if transfer.kind == "glossy":
+        rep = validate_glossy(transfer, L, name, sh_img if src_img is None else src_img, mesh=mesh, vertices=vertices, spp=spp,
+                              batches=batches, seed=seed, view_deg=view_deg, idx=idx)
+        rep["light_source"] = light_source
+        return rep
     mesh = transfer.mesh
     if idx is None:
         idx = sample_vertices(mesh, vertices, seed)
@@ -544,6 +570,16 @@ def format_report(rep: dict[str, Any]) -> str:
         return (f"  {label:<22} engine/mitsuba = {r['ratio']:.4f} ± {r['ratio_se']:.4f} (1σ)   "
                 f"engine {r['engine']:.5g} ± {r['engine_se']:.2g}, mitsuba {r['mitsuba']:.5g} ± {r['mitsuba_se']:.2g}")
 
+    if rep.get("kind") == "glossy":
+        b = rep["brdf"] or {}
+        bs = ", ".join(f"{k}={v:g}" if isinstance(v, float) else f"{k}={v}" for k, v in b.items() if k != "model")
+        return "\n".join([
+            f"{rep['scene']}: {rep['vertices']} vertices, glossy {b.get('model')}({bs}), {rep['bands']}->{rep['bands_out']} bands "
+            f"({rep['projection']}), views within {rep['view_deg']:g}° of the normal, light {rep['light']}, Mitsuba {rep['spp']} spp, "
+            f"engine {rep['samples']} directions, no scale fit",
+            line("direct (SH transfer)", rep["direct"]) + f"   rms rel {rep['direct_rms_rel']:.4f}",
+            line("direct, BRDF unprojected", rep["direct_unprojected"]),
+            f"  {'SH truncation bias':<22} {rep['sh_truncation']:+.4f} of Mitsuba (engine's rays, dense set of {rep['dense']})"])
     out = [f"{rep['scene']}: {rep['vertices']} vertices ({rep['sharp_vertices']} sharp ≥ {rep['sharp_deg']:g}°), "
            f"bounces {rep['bounces']}, light {rep['light']} ({rep['light_source']}), Mitsuba {rep['spp']} spp, "
            f"engine {rep['samples']} directions, no scale fit"]
@@ -559,3 +595,323 @@ def format_report(rep: dict[str, Any]) -> str:
     if "sh_truncation" in rep:
         out.append(line("SH light / image light", rep["sh_truncation"]))
     return "\n".join(out)
+
+
+# ---------------------------------------------------------------------------------------------
+# glossy exit transfer
+# ---------------------------------------------------------------------------------------------
+
+_BSDF_CLASS: Any = None
+BSDF_PLUGIN = "prt_engine_brdf"
+
+
+def _bsdf_class(mi):
+    """The Mitsuba BSDF (written in Python, registered once as ``prt_engine_brdf``) that
+    evaluates an engine :class:`prt_torch.brdf.BRDF` in a given local frame."""
+    global _BSDF_CLASS
+    if _BSDF_CLASS is not None:
+        return _BSDF_CLASS
+
+    class EngineBRDF(mi.BSDF):
+        """f_r of an engine BRDF in the frame ``self.frame`` (rows t, b, n, world), so anisotropic
+        models keep the engine's tangent; ``eval`` returns f_r(wi, wo)·cos θ_i (Mitsuba's
+        convention: its ``wo`` is the engine's wi, towards the light; its ``si.wi`` is the
+        engine's wo, towards the viewer); ``sample`` draws a cosine-weighted direction about
+        the shading normal (pdf cos θ/π, positive wherever f_r·cos is), so estimates are
+        unbiased whatever the lobe."""
+
+        def __init__(self, props):
+            mi.BSDF.__init__(self, props)
+            flags = mi.BSDFFlags.GlossyReflection | mi.BSDFFlags.FrontSide
+            self.m_components = [flags]
+            self.m_flags = flags
+            self.brdf = None
+            self.frame = np.eye(3)
+
+        def _local(self, si, d) -> np.ndarray:
+            w = si.to_world(d)
+            return self.frame @ np.array([float(w[0]), float(w[1]), float(w[2])])
+
+        def _f_cos(self, si, wo) -> float:
+            a, b = self._local(si, wo), self._local(si, si.wi)  # towards the light, towards the viewer
+            if a[2] <= 0 or b[2] <= 0:
+                return 0.0
+            a, b = a / np.linalg.norm(a), b / np.linalg.norm(b)
+            f = float(self.brdf.eval(torch.from_numpy(a)[None], torch.from_numpy(b)[None]).reshape(-1)[0])
+            return f * float(a[2])
+
+        def eval(self, ctx, si, wo, active=True):
+            return mi.Color3f(self._f_cos(si, wo))
+
+        def pdf(self, ctx, si, wo, active=True):
+            return mi.warp.square_to_cosine_hemisphere_pdf(wo) if float(mi.Frame3f.cos_theta(si.wi)) > 0 else mi.Float(0.0)
+
+        def eval_pdf(self, ctx, si, wo, active=True):
+            return self.eval(ctx, si, wo, active), self.pdf(ctx, si, wo, active)
+
+        def sample(self, ctx, si, sample1, sample2, active=True):
+            bs = mi.BSDFSample3f()
+            if float(mi.Frame3f.cos_theta(si.wi)) <= 0:
+                return bs, mi.Color3f(0.0)
+            wo = mi.warp.square_to_cosine_hemisphere(sample2)
+            pdf = float(mi.warp.square_to_cosine_hemisphere_pdf(wo))
+            bs.wo, bs.pdf, bs.eta = wo, pdf, 1.0
+            bs.sampled_type = mi.UInt32(+mi.BSDFFlags.GlossyReflection)
+            bs.sampled_component = 0
+            return bs, mi.Color3f(self._f_cos(si, wo) / pdf if pdf > 0 else 0.0)
+
+        def to_string(self):
+            return f"EngineBRDF[{self.brdf!r}]"
+
+    mi.register_bsdf(BSDF_PLUGIN, lambda props: EngineBRDF(props))
+    _BSDF_CLASS = EngineBRDF
+    return EngineBRDF
+
+
+def engine_bsdf(brdf: Any, frame: Any):
+    """A Mitsuba BSDF object evaluating the engine BRDF ``brdf`` (one material) in the local
+    frame ``frame`` ``[3, 3]`` (rows t, b, n in world coordinates)."""
+    mi = require_mitsuba()
+    _bsdf_class(mi)
+    obj = mi.load_dict({"type": BSDF_PLUGIN})
+    obj.brdf = brdf
+    obj.frame = torch.as_tensor(frame, dtype=torch.float64).numpy()
+    return obj
+
+
+def _frame_transform(mi, frame: np.ndarray, centre: np.ndarray, scale: float):
+    m = np.eye(4)
+    m[:3, :3] = frame.T * scale  # columns t, b, n: the disk's local x, y, z (normal)
+    m[:3, 3] = centre
+    return mi.ScalarTransform4f(m.tolist())
+
+
+def mitsuba_glossy_exit(mesh: Mesh | None, points: Any, frames: Any, views: Any, brdfs: list, image: np.ndarray, spp: int = 1024,
+                        batches: int = 8, eps: float = 1e-4, seed: int = 0, nudge: Any = None,
+                        max_depth: int = 2) -> dict[str, torch.Tensor]:
+    """Mitsuba 3 exit radiance of the engine's BRDF at probe points towards world views.
+
+    Each probe is a one-sided disk (radius ``1e-2·eps``) centred at the engine's ray origin
+    p + eps·n (+ eps·nudge), its local frame the vertex frame ``frames[k]`` (rows t, b, n), with
+    :func:`engine_bsdf` ``brdfs[k]``; a ``radiancemeter`` at distance eps along ``views[k]``
+    looks back at its centre. ``max_depth`` 2: the disk plus one segment to the environment
+    (direct light; the mesh only occludes). Returns ``{'radiance': [P, 3],
+    'radiance_se': [P, 3]}`` float64 (standard error of the mean of ``batches`` renders)."""
+    mi = require_mitsuba()
+    P = torch.as_tensor(points, dtype=torch.float64).numpy()
+    F = torch.as_tensor(frames, dtype=torch.float64).numpy()
+    Vw = torch.as_tensor(views, dtype=torch.float64)
+    Vw = (Vw / Vw.norm(dim=-1, keepdim=True)).numpy()
+    C = offset_origins(P, F[:, 2], eps, None if nudge is None else torch.as_tensor(nudge, dtype=torch.float64).numpy())
+    batches = check_int("batches", batches, 2)
+    per = max(1, int(spp) // batches)
+    scene: dict[str, Any] = {"type": "scene", "env": {"type": "envmap", "bitmap": mi.Bitmap(np.ascontiguousarray(image, np.float32))}}
+    radius = max(eps * 1e-2, 1e-7)
+    with tempfile.TemporaryDirectory() as tmp:
+        if mesh is not None:
+            ply = Path(tmp) / "mesh.ply"
+            _write_ply(ply, mesh)
+            scene["mesh"] = {"type": "ply", "filename": str(ply), "face_normals": True,
+                             "bsdf": {"type": "diffuse", "reflectance": {"type": "mesh_attribute", "name": "vertex_color"}}}
+        for k in range(P.shape[0]):
+            scene[f"probe_{k:06d}"] = {"type": "disk", "to_world": _frame_transform(mi, F[k], C[k], radius),
+                                       "bsdf": engine_bsdf(brdfs[k], F[k])}
+            o = C[k] + eps * Vw[k]
+            up = F[k, 0] if abs(float(F[k, 0] @ Vw[k])) < 0.9 else F[k, 1]
+            scene[f"sensor_{k:06d}"] = {
+                "type": "radiancemeter",
+                "to_world": mi.ScalarTransform4f().look_at(origin=mi.ScalarPoint3f(*o), target=mi.ScalarPoint3f(*C[k]),
+                                                           up=mi.ScalarVector3f(*up)),
+                "film": {"type": "hdrfilm", "width": 1, "height": 1, "rfilter": {"type": "box"}, "pixel_format": "rgb"},
+                "sampler": {"type": "independent", "sample_count": per}}
+        sc = mi.load_dict(scene)
+    sensors = sc.sensors()
+    if len(sensors) != P.shape[0]:  # pragma: no cover
+        raise RuntimeError("Mitsuba did not keep one sensor per probe")
+    integ = mi.load_dict({"type": "path", "max_depth": int(max_depth), "rr_depth": 1000})
+    out = np.zeros((batches, P.shape[0], 3))
+    for k in range(P.shape[0]):
+        for b in range(batches):
+            sd = (int(seed) * 7919 + b * 100003 + k * 1009) % (1 << 31)
+            out[b, k] = np.asarray(mi.render(sc, sensor=k, integrator=integ, spp=per, seed=sd)).reshape(-1)[:3]
+    R = torch.from_numpy(out)
+    return {"radiance": R.mean(0), "radiance_se": R.std(0, unbiased=True) / math.sqrt(batches)}
+
+
+def glossy_brdf(transfer: Transfer) -> Any:
+    """The engine BRDF of a glossy exit transfer, rebuilt from ``meta['brdf']``; ``ValueError``
+    naming the model when the validator cannot express it (before any work)."""
+    from .brdf import MODELS, make_brdf
+
+    meta = transfer.meta
+    if meta.get("quantity", "exit") != "exit":
+        raise ValueError(f"glossy transfer quantity {meta.get('quantity')!r}: the validator compares exit radiance; accepted: "
+                         "quantity 'exit' (prt precompute --kind glossy, the default)")
+    if int(meta.get("bounces", 0)):
+        raise ValueError(f"glossy transfer with bounces={meta.get('bounces')}: the validator compares glossy direct light only "
+                         "so far; accepted: a glossy transfer with bounces 0")
+    spec = dict(meta.get("brdf") or {})
+    model = str(spec.pop("model", None))
+    if model not in MODELS:
+        raise ValueError(f"glossy transfer BRDF model {model!r}: the validator's Mitsuba BSDF evaluates the engine's own "
+                         f"models only; accepted: {sorted(MODELS)}")
+    try:
+        return make_brdf(model, **spec)
+    except ValueError as e:
+        raise ValueError(f"glossy transfer BRDF {meta.get('brdf')!r} cannot be rebuilt: {e}") from None
+
+
+def _view_directions(frames: torch.Tensor, max_deg: float, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-vertex view directions: local (θ uniform in cos over [0, max_deg], φ uniform) and world."""
+    g = torch.Generator().manual_seed(int(seed) + 7727)
+    k = frames.shape[0]
+    cmin = math.cos(math.radians(max_deg))
+    ct = 1 - (1 - cmin) * torch.rand(k, generator=g, dtype=torch.float64)
+    ph = 2 * math.pi * torch.rand(k, generator=g, dtype=torch.float64)
+    st = (1 - ct * ct).clamp_min(0).sqrt()
+    vl = torch.stack([st * torch.cos(ph), st * torch.sin(ph), ct], -1)
+    return vl, torch.einsum("kij,ki->kj", frames, vl)
+
+
+def engine_glossy(transfer: Transfer, L: torch.Tensor, idx: torch.Tensor, view_local: torch.Tensor, mesh: Mesh,
+                  brdf: Any, dense: int = 1 << 14, replicas: int = 6) -> dict[str, Any]:
+    """The engine's glossy exit radiance at vertices ``idx`` towards ``view_local`` and what
+    it is made of.
+
+    The stored rows give ``stored`` (:func:`prt_torch.relight.glossy`). The same number is the
+    mean over the transfer's direction set {s_k} (seed, samples, ray offset) of the per-ray
+    contributions x_k = 4π V_k [n·s_k > 0] h(s_k) L(s_k), h(s) = y_out(v)ᵀ B_p y(F_p s) (the
+    SH-projected BRDF at the view): ``recomputed`` (a check that the reading is right). Its
+    noise ``se`` ``[k, 3]`` and ``sum_se`` (luminance, summed over vertices: one direction set
+    for all vertices, so errors correlate) is the spread of the same estimator over
+    ``replicas`` other seeds (B_p reused); with ``replicas=0`` the per-ray standard error
+    (an upper bound for stratified sets). On a dense independent set
+    (``dense`` directions, traced) the same integral with the BRDF itself in place of h gives
+    ``exact`` (no SH truncation; its noise ``exact_se``) and ``truncation`` = mean of
+    (h − f_r cos θ_i) — the engine's SH truncation bias at these vertices, visibility included."""
+    from .brdf import brdf_matrices
+    from .relight import glossy as relight_glossy
+    from .transfer.sampling import uniform_sphere
+
+    meta = transfer.meta
+    bands, bands_out = int(meta["bands"]), int(meta.get("bands_out", meta["bands"]))
+    samples, seed = int(meta.get("samples", 1024)), int(meta.get("seed", 0))
+    out_index = torch.as_tensor(meta.get("out_index", list(range(bands_out * bands_out))), dtype=torch.int64)
+    L3 = L.expand(3, -1) if L.shape[0] == 1 else L
+    rows = transfer.data.to(torch.float64)
+    sub = meta.get("vertices")
+    pos = idx if sub is None else torch.as_tensor([list(sub).index(int(i)) for i in idx], dtype=torch.int64)
+    stored = relight_glossy(rows[pos], L3, view_local, out_index)
+    B, mat = brdf_matrices(brdf, bands_out, bands, projection=meta.get("projection") or "least_squares",
+                           drop_out=[tuple(d) for d in meta.get("drop_out") or []] or None, rcond=meta.get("rcond_chosen"),
+                           window=meta.get("window"))
+    mat = mat.expand(mesh.num_vertices) if mat.numel() == 1 else mat
+    F = mesh.frames().to(torch.float64)[idx]
+    n = F[:, 2]
+    p = mesh.vertices.to(torch.float64)[idx]
+    nudge = boundary_nudge(mesh)[idx]
+    diag = float(np.linalg.norm(mesh.vertices.numpy().max(0) - mesh.vertices.numpy().min(0)))
+    eps = float(meta.get("ray_eps", 1e-4 * diag))
+    yv = eval_sh(view_local, bands_out, check=False)[:, out_index] * (view_local[:, 2:3] > 0)  # [k, N_r]
+    hv = torch.einsum("kr,krj->kj", yv, B.to(torch.float64)[mat[idx]])  # [k, n²]: the projected BRDF at the view
+    res = {k: torch.zeros(idx.numel(), 3, dtype=torch.float64) for k in ("recomputed", "se", "exact", "exact_se", "truncation")}
+    sets = {"engine": uniform_sphere(samples, seed)[0], "dense": uniform_sphere(int(dense), seed + 999331)[0]}
+    for r in range(int(replicas)):  # the precompute's estimator with other seeds: the engine's noise
+        sets[f"replica_{r}"] = uniform_sphere(samples, seed + 7919 * (r + 1))[0]
+    reps = []
+    with RayCaster(mesh, offset=eps / diag) as caster:
+        for name, dirs in sets.items():
+            Ld = eval_sh(dirs, bands, check=False) @ L3.T  # [N, 3]
+            N = dirs.shape[0]
+            for k in range(idx.numel()):
+                up = torch.nonzero(dirs @ n[k] > 0).flatten()
+                o = offset_origins(p[k:k + 1].numpy(), n[k:k + 1].numpy(), caster.eps,
+                                   None if nudge is None else nudge[k:k + 1].numpy())
+                d = dirs[up].numpy()
+                vis = ~caster.trace(np.repeat(o, d.shape[0], 0).astype(np.float32), d.astype(np.float32), "occluded")
+                s_loc = dirs[up] @ F[k].T  # local directions F s
+                h = eval_sh(s_loc, bands, check=False) @ hv[k]
+                w = torch.zeros(N, dtype=torch.float64)
+                w[up] = 4 * math.pi * torch.from_numpy(vis.astype(np.float64))
+                x_sh = (w * torch.zeros(N, dtype=torch.float64).index_put_((up,), h))[:, None] * Ld  # [N, 3]
+                if name == "engine":
+                    res["recomputed"][k] = x_sh.mean(0)
+                    res["se"][k] = x_sh.std(0) / math.sqrt(N)
+                    continue
+                if name.startswith("replica"):
+                    if k == 0:
+                        reps.append(torch.zeros(idx.numel(), 3, dtype=torch.float64))
+                    reps[-1][k] = x_sh.mean(0)
+                    continue
+                b = brdf.select(mat[idx[k]:idx[k] + 1]) if len(brdf.batch_shape) else brdf
+                fc = b.cosine_weighted(s_loc, view_local[k].expand_as(s_loc)).reshape(-1)
+                x_f = (w * torch.zeros(N, dtype=torch.float64).index_put_((up,), fc))[:, None] * Ld
+                res["exact"][k] = x_f.mean(0)
+                res["exact_se"][k] = x_f.std(0) / math.sqrt(N)
+                res["truncation"][k] = (x_sh - x_f).mean(0)
+    res["stored"] = stored
+    if reps:
+        R = torch.stack(reps)  # [replicas, k, 3]
+        res["se"] = R.std(0)
+        res["sum_se"] = float((R @ _LUMA).sum(1).std())
+        res["noise"] = f"engine: std over {len(reps)} replica seeds of the precompute's estimator (B_p reused)"
+    else:
+        res["sum_se"] = None
+        res["noise"] = "engine: per-ray standard error, per vertex in quadrature (an upper bound for stratified sets)"
+    return res
+
+
+def validate_glossy(transfer: Transfer, L: torch.Tensor, name: str, image: np.ndarray, *, mesh: Mesh | None = None,
+                    vertices: int = 16, spp: int = 4096, batches: int = 8, seed: int = 0, view_deg: float = 60.0,
+                    idx: torch.Tensor | None = None, dense: int = 1 << 14) -> dict[str, Any]:
+    """Glossy direct exit radiance, engine vs Mitsuba (:func:`validate` for kind 'glossy').
+
+    ``mesh``: the full mesh when the transfer holds a vertex subset (``vertices=`` in
+    :func:`prt_torch.transfer.precompute_glossy`; its content hash must match). Views: one per
+    vertex, within ``view_deg`` of the normal. The report's ``direct`` is the stored SH
+    transfer against Mitsuba; ``direct_unprojected`` the engine's rays with the BRDF itself
+    (no SH truncation) against Mitsuba — 1 within noise when visibility, frames, BRDF and light
+    agree; ``sh_truncation`` the engine's truncation bias relative to Mitsuba, so
+    ``direct`` − 1 ≈ ``sh_truncation`` ± noise."""
+    brdf = glossy_brdf(transfer)
+    meta = transfer.meta
+    if meta.get("vertices") is not None:
+        want = transfer.mesh.meta.get("subset_of")
+        if mesh is None or mesh.content_hash() != want:
+            raise ValueError("this glossy transfer holds a vertex subset (no faces to trace); accepted: pass mesh= the full "
+                             "mesh it was computed on (same content hash)")
+        pool = torch.as_tensor(meta["vertices"], dtype=torch.int64)
+    else:
+        mesh = transfer.mesh
+        pool = torch.arange(mesh.num_vertices)
+    if idx is None and pool.numel() == mesh.num_vertices:
+        idx = sample_vertices(mesh, vertices, seed)
+    elif idx is None:
+        g = torch.Generator().manual_seed(int(seed) + 104729)
+        idx = pool[torch.randperm(pool.numel(), generator=g)[: min(check_int("vertices", vertices, 1), pool.numel())]].sort().values
+    idx = torch.as_tensor(idx, dtype=torch.int64)
+    F = mesh.frames().to(torch.float64)[idx]
+    vl, vw = _view_directions(F, view_deg, seed)
+    eng = engine_glossy(transfer, L, idx, vl, mesh, brdf, dense)
+    eps = float(meta.get("ray_eps", 1e-4 * float(np.linalg.norm(mesh.vertices.numpy().max(0) - mesh.vertices.numpy().min(0)))))
+    brdfs = [brdf.select(torch.tensor([int(i)])) if len(brdf.batch_shape) else brdf for i in idx]
+    mit = mitsuba_glossy_exit(mesh, mesh.vertices[idx], F, vw, brdfs, image, spp, batches, eps, seed, boundary_nudge(mesh)[idx])
+    m, m_se = mit["radiance"], mit["radiance_se"]
+    lum = lambda x: float((x @ _LUMA).sum())  # noqa: E731
+    M = lum(m)
+    rep = {
+        "kind": "glossy", "scene": mesh.name, "vertices": int(idx.numel()), "bounces": 0, "bands": int(meta["bands"]),
+        "bands_out": int(meta.get("bands_out", meta["bands"])), "brdf": meta.get("brdf"), "projection": meta.get("projection"),
+        "light": name, "spp": int(spp), "batches": int(batches), "samples": int(meta.get("samples", 0)), "view_deg": view_deg,
+        "mitsuba_variant": VARIANT, "eps": eps, "dense": int(dense),
+        "direct": _ratio(eng["stored"], eng["se"], m, m_se, eng["sum_se"]),
+        "direct_unprojected": _ratio(eng["exact"], eng["exact_se"], m, m_se),
+        "sh_truncation": lum(eng["truncation"]) / M if M > 0 else float("nan"),
+        "recomputed_rel": float((eng["recomputed"] - eng["stored"]).abs().max() / eng["stored"].abs().max().clamp_min(1e-300)),
+        "direct_rms_rel": _rms_rel(eng["stored"], m),
+        "engine_noise": eng["noise"],
+    }
+    rep["per_vertex"] = {"index": idx.tolist(), "view_local": vl.tolist(), "engine": eng["stored"].tolist(),
+                         "engine_se": eng["se"].tolist(), "engine_unprojected": eng["exact"].tolist(),
+                         "truncation": eng["truncation"].tolist(), "mitsuba": m.tolist(), "mitsuba_se": m_se.tolist()}
+    return rep

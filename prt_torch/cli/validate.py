@@ -4,7 +4,9 @@ Per-vertex exit radiance of a diffuse transfer (and of a codec's reconstruction 
 ``--codec-file``) against Mitsuba 3 path tracing of the same mesh, albedo and light, at sampled
 vertices, with no scale fit: the direct part (Mitsuba ``max_depth`` 1 against the transfer's
 shadowed pass) and the interreflected part (``max_depth`` B+1 minus 1 against the transfer's
-bounces), each with both sides' Monte Carlo noise. See docs/validate.md.
+bounces), each with both sides' Monte Carlo noise. A glossy exit transfer (bounces 0) is
+compared for direct light toward one view per vertex, with the engine's BRDF as a Mitsuba BSDF
+(the SH truncation bias reported apart). See docs/validate.md.
 
 Mitsuba 3 is optional: ``pip install 'prt-torch[validate]'``. A transfer kind or light the
 validator cannot express is refused by name before any work.
@@ -19,7 +21,7 @@ from pathlib import Path
 def register(subparsers) -> None:
     p = subparsers.add_parser("validate", help="compare a transfer's exit radiance with Mitsuba 3 path tracing",
                               description=__doc__.split("\n\n")[1])
-    p.add_argument("transfer", help="a diffuse transfer file (prt precompute --kind diffuse)")
+    p.add_argument("transfer", help="a diffuse or glossy (exit, bounces 0) transfer file (prt precompute)")
     p.add_argument("--light", required=True,
                    help="built-in environment, environment file or analytic spec (see prt light); its band-limited "
                         "radiance must be non-negative")
@@ -31,6 +33,9 @@ def register(subparsers) -> None:
     p.add_argument("--light-source", choices=["sh", "image"], default="sh",
                    help="what Mitsuba sees: the band-limited light (sh, exact comparison) or the original environment "
                         "image (image; adds the SH-truncation effect)")
+    p.add_argument("--mesh", help="glossy transfer of a vertex subset: the full mesh it was computed on (built-in name or file)")
+    p.add_argument("--view-deg", type=float, default=60.0,
+                   help="glossy: views drawn within this angle of each vertex normal (default 60)")
     p.add_argument("--json", metavar="PATH", help="also write the full report (per-vertex values) as JSON")
     p.add_argument("--debug", action="store_true", help="show tracebacks")
     p.set_defaults(func=run)
@@ -41,9 +46,15 @@ def run(args) -> int:
 
     if not Path(args.transfer).exists():
         raise FileNotFoundError(f"transfer file {args.transfer!r} does not exist")
+    mesh = None
+    if args.mesh:
+        from ..scene import load_scene
+
+        mesh = load_scene(args.mesh)
     try:
         rep = validate(args.transfer, args.light, vertices=args.vertices, spp=args.spp, batches=args.batches, seed=args.seed,
-                       codec_file=args.codec_file, light_source=args.light_source, light_name=args.light)
+                       codec_file=args.codec_file, light_source=args.light_source, light_name=args.light, mesh=mesh,
+                       view_deg=args.view_deg)
     except ValidatorUnavailable as e:
         print(f"prt validate: {e}", file=sys.stderr)
         return 3
