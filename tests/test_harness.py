@@ -384,3 +384,21 @@ def test_paired_timing_gives_the_work_ratio_and_reports_contention():
     assert c["trusted"] == (not c["why_not"])
     strict = measure_paired(lambda: work(1), lambda: work(1), repeats=3, max_switch_rate=-1.0)
     assert not strict.contention["trusted"] and "context switches" in strict.contention["why_not"][0]
+
+
+def test_bench_report_has_a_mitsuba_validation_section(tmp_path):
+    import os
+
+    if not os.environ.get("CI"):  # in CI Mitsuba is installed (dev extra) and a missing one must fail
+        pytest.importorskip("mitsuba")
+    from prt_torch.harness.run import run_benchmark
+
+    cfg = dict(TINY, name="val", render={"enabled": False}, metrics={"random_lights": 8, "repeats": 1, "warmup": 0},
+               scene={"name": "occluder_over_plane", "size": "small"}, codecs=[{"type": "pca", "vectors": 2}],
+               transfer={"type": "diffuse", "bands": 2, "samples": 64}, lights=["studio"],
+               validation={"enabled": True, "vertices": 8, "spp": 64})
+    run_dir = run_benchmark(hc.load_config(str(write_cfg(tmp_path, cfg))), progress=False, log=lambda s: None)
+    res = json.loads((run_dir / "results.json").read_text())
+    d = res["validation"]["report"]["direct"]
+    assert 0.5 < d["ratio"] < 1.5 and d["ratio_se"] > 0  # 8 vertices, 64 spp: a coarse but independent check
+    assert "## Validation against Mitsuba 3" in (run_dir / "report.md").read_text()

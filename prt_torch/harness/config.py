@@ -61,6 +61,7 @@ DEFAULTS: dict[str, Any] = {
                "by": "bytes"},
     "cache_dir": "cache",
     "output_dir": "reports",
+    "validation": {"enabled": False, "vertices": 24, "spp": 256},  # engine vs Mitsuba 3 (prt_torch.validate)
     "ablation": None,  # a swept key (transfer.<param> or codecs.<i>.<param>): one combined report
     "ablation_reference": None,  # the value the others are compared with (default: the last)
 }
@@ -224,6 +225,9 @@ CONSTRAINTS: dict[str, list] = {
     "target.metric": [Options("psnr_lights_db", "psnr_lights_min_db", "psnr_random_db", "psnr_random_closed_form_db")],
     "cache_dir": [Predicate(lambda v: isinstance(v, str) and v, "a directory path")],
     "output_dir": [Predicate(lambda v: isinstance(v, str) and v, "a directory path")],
+    "validation.enabled": [Boolean(), Options("auto")],
+    "validation.vertices": [Interval(int, 1, 10_000)],
+    "validation.spp": [Interval(int, 1, 1 << 20)],
     "ablation": [Predicate(lambda v: isinstance(v, str) and v.startswith(("transfer.", "codecs.")),
                            "a swept key: transfer.<param> or codecs.<i>.<param>"), None],
     "ablation_reference": [Predicate(lambda v: isinstance(v, (str, int, float, bool)), "one of the ablation's values"), None],

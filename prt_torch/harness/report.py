@@ -340,6 +340,11 @@ def markdown(results: dict, figures: list[str], renders: list[str]) -> str:
     lines += ["", f"Pareto front (PSNR vs fps): {', '.join(front)}.", ""]
     lines += _contention_note(r["records"])
     lines += scene_required(r)
+    if r.get("validation"):
+        v = r["validation"]
+        lines += ["## Validation against Mitsuba 3", ""]
+        lines += (["Engine vs an independent path tracer (prt_torch.validate, docs/validate.md), no scale fit:", "", "```",
+                   v["text"], "```", ""] if "text" in v else [f"Not run: {v['skipped']}", ""])
     if r.get("ablation"):
         lines += ablation_lines(r)
     t = r.get("target")

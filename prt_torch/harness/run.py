@@ -393,6 +393,8 @@ def run_benchmark(cfg: dict, resume: bool = True, progress: bool = True, log: Ca
                 records.append(r)
 
     results = _results(cfg, st, records, target)
+    if cfg["validation"]["enabled"]:
+        results["validation"] = run_validation(st, cfg, log)
     if cfg["render"]["enabled"]:
         try:
             rendered = render_best(run_dir, records, ev, lights[0], views[0], cams[0], cfg["render"])
@@ -402,6 +404,36 @@ def run_benchmark(cfg: dict, resume: bool = True, progress: bool = True, log: Ca
             results["render_error"] = f"{type(e).__name__}: {e}"
     write_outputs(run_dir, results, log=log)
     return run_dir
+
+
+# --------------------------------------------------------------------------- validation
+
+def run_validation(st: RunState, cfg: dict, log: Callable[[str], None] = print) -> dict:
+    """Engine vs Mitsuba 3 path tracing at ``validation.vertices`` sampled vertices of the run's
+    transfer under the first config light the validator can emit (:func:`prt_torch.validate.validate`).
+    Returns ``{'report': ..., 'text': ...}`` or ``{'skipped': why}`` (Mitsuba missing with
+    ``enabled: auto``, a transfer kind or light it cannot express); never raises, so a finished
+    benchmark is not lost."""
+    from .. import validate as V
+
+    v = cfg["validation"]
+    try:
+        V.require_mitsuba()
+    except V.ValidatorUnavailable as e:
+        if v["enabled"] == "auto":
+            return {"skipped": str(e)}
+        raise ValueError(f"config key 'validation.enabled' is true but {e}") from None
+    refusals = []
+    for spec in cfg["lights"]:
+        for source in ("sh", "image"):  # the SH light itself, else (environments) Mitsuba sees the original image
+            try:
+                t0 = time.perf_counter()
+                rep = V.validate(st.tr, spec, vertices=v["vertices"], spp=v["spp"], seed=cfg["seed"], light_source=source)
+                log(f"[bench] validation against Mitsuba: {time.perf_counter() - t0:.1f} s")
+                return {"report": io.jsonable(rep), "text": V.format_report(rep), "seconds": time.perf_counter() - t0}
+            except ValueError as e:
+                refusals.append(f"{spec} ({source}): {e}")
+    return {"skipped": "; ".join(refusals)}
 
 
 # --------------------------------------------------------------------------- ablations
