@@ -35,11 +35,11 @@ with no scale fit:
   ray contributions use the stored total's exit radiance interpolated at the hits (an estimate).
   The ratio engine/Mitsuba of sums over the vertices carries both, combined in quadrature.
 
-* **Glossy exit transfer** (kind 'glossy', quantity 'exit', bounces 0): :func:`validate_glossy`.
+* **Glossy exit transfer** (kind 'glossy', quantity 'exit'): :func:`validate_glossy`.
   The engine's BRDF model becomes a Mitsuba BSDF written in Python (:func:`engine_bsdf`:
   f_r·cos θ_i in the vertex frame, cosine-hemisphere sampling) on a tiny disk at the engine's
   ray origin; a ``radiancemeter`` along a view v looks back at it (``max_depth`` 2: direct
-  light). The engine side is :func:`prt_torch.relight.glossy`, recomputed from the transfer's own
+  light; B+2 adds the transfer's B diffuse bounces). The engine side is :func:`prt_torch.relight.glossy`, recomputed from the transfer's own
   direction set (noise from replica seeds) and, on a dense set, with the BRDF unprojected: the
   engine's SH truncation bias at the vertices is reported apart (docs/validate.md).
 
@@ -444,7 +444,7 @@ def validate(transfer: Transfer | str | os.PathLike, light: Any, *, vertices: in
     """Engine vs Mitsuba 3 at ``vertices`` sampled vertices (module docstring); no scale fit.
 
     Args:
-        transfer: a diffuse or glossy (exit, bounces 0) :class:`Transfer` or its file; glossy goes
+        transfer: a diffuse or glossy (exit) :class:`Transfer` or its file; glossy goes
             to :func:`validate_glossy` (``mesh``: the full mesh of a vertex-subset transfer;
             ``view_deg``: the views' largest angle from the normal).
         light: anything :func:`prt_torch.lighting.load_light` takes, or an SH tensor ``[C, n²]``.
@@ -578,8 +578,9 @@ def format_report(rep: dict[str, Any]) -> str:
             f"({rep['projection']}), views within {rep['view_deg']:g}° of the normal, light {rep['light']}, Mitsuba {rep['spp']} spp, "
             f"engine {rep['samples']} directions, no scale fit",
             line("direct (SH transfer)", rep["direct"]) + f"   rms rel {rep['direct_rms_rel']:.4f}",
-            line("direct, BRDF unprojected", rep["direct_unprojected"]),
-            f"  {'SH truncation bias':<22} {rep['sh_truncation']:+.4f} of Mitsuba (engine's rays, dense set of {rep['dense']})"])
+            line("BRDF unprojected", rep["direct_unprojected"]),
+            f"  {'SH truncation bias':<22} {rep['sh_truncation']:+.4f} of Mitsuba (direct; engine's rays, dense set of {rep['dense']})"]
+            + ([line("interreflected", rep["inter"]), line("total", rep["total"])] if "inter" in rep else []))
     out = [f"{rep['scene']}: {rep['vertices']} vertices ({rep['sharp_vertices']} sharp ≥ {rep['sharp_deg']:g}°), "
            f"bounces {rep['bounces']}, light {rep['light']} ({rep['light_source']}), Mitsuba {rep['spp']} spp, "
            f"engine {rep['samples']} directions, no scale fit"]
@@ -688,15 +689,17 @@ def _frame_transform(mi, frame: np.ndarray, centre: np.ndarray, scale: float):
 
 def mitsuba_glossy_exit(mesh: Mesh | None, points: Any, frames: Any, views: Any, brdfs: list, image: np.ndarray, spp: int = 1024,
                         batches: int = 8, eps: float = 1e-4, seed: int = 0, nudge: Any = None,
-                        max_depth: int = 2) -> dict[str, torch.Tensor]:
+                        max_depth: int = 2, depths: list[int] | None = None) -> dict[str, torch.Tensor]:
     """Mitsuba 3 exit radiance of the engine's BRDF at probe points towards world views.
 
     Each probe is a one-sided disk (radius ``1e-2·eps``) centred at the engine's ray origin
     p + eps·n (+ eps·nudge), its local frame the vertex frame ``frames[k]`` (rows t, b, n), with
     :func:`engine_bsdf` ``brdfs[k]``; a ``radiancemeter`` at distance eps along ``views[k]``
     looks back at its centre. ``max_depth`` 2: the disk plus one segment to the environment
-    (direct light; the mesh only occludes). Returns ``{'radiance': [P, 3],
-    'radiance_se': [P, 3]}`` float64 (standard error of the mean of ``batches`` renders)."""
+    (direct light; the mesh only occludes); ``depths`` = [2, B+2] adds B bounces off the mesh
+    (one-sided Lambertian, ``mesh.albedo``). Returns ``{'radiance': [P, 3], 'radiance_se': [P, 3]}``
+    float64 (standard error of the mean of ``batches`` renders) for ``max_depth``; with ``depths``
+    ``[D, P, 3]`` each and ``'diff_se'`` (depth d minus the first, same seeds)."""
     mi = require_mitsuba()
     P = torch.as_tensor(points, dtype=torch.float64).numpy()
     F = torch.as_tensor(frames, dtype=torch.float64).numpy()
@@ -728,14 +731,19 @@ def mitsuba_glossy_exit(mesh: Mesh | None, points: Any, frames: Any, views: Any,
     sensors = sc.sensors()
     if len(sensors) != P.shape[0]:  # pragma: no cover
         raise RuntimeError("Mitsuba did not keep one sensor per probe")
-    integ = mi.load_dict({"type": "path", "max_depth": int(max_depth), "rr_depth": 1000})
-    out = np.zeros((batches, P.shape[0], 3))
-    for k in range(P.shape[0]):
-        for b in range(batches):
-            sd = (int(seed) * 7919 + b * 100003 + k * 1009) % (1 << 31)
-            out[b, k] = np.asarray(mi.render(sc, sensor=k, integrator=integ, spp=per, seed=sd)).reshape(-1)[:3]
+    ds = [int(max_depth)] if depths is None else [int(d) for d in depths]
+    out = np.zeros((len(ds), batches, P.shape[0], 3))
+    for di, depth in enumerate(ds):
+        integ = mi.load_dict({"type": "path", "max_depth": depth, "rr_depth": 1000})
+        for k in range(P.shape[0]):
+            for b in range(batches):
+                sd = (int(seed) * 7919 + b * 100003 + k * 1009) % (1 << 31)
+                out[di, b, k] = np.asarray(mi.render(sc, sensor=k, integrator=integ, spp=per, seed=sd)).reshape(-1)[:3]
     R = torch.from_numpy(out)
-    return {"radiance": R.mean(0), "radiance_se": R.std(0, unbiased=True) / math.sqrt(batches)}
+    mean, se = R.mean(1), R.std(1, unbiased=True) / math.sqrt(batches)
+    if depths is None:
+        return {"radiance": mean[0], "radiance_se": se[0]}
+    return {"radiance": mean, "radiance_se": se, "diff_se": (R - R[:1]).std(1, unbiased=True) / math.sqrt(batches)}
 
 
 def glossy_brdf(transfer: Transfer) -> Any:
@@ -747,9 +755,6 @@ def glossy_brdf(transfer: Transfer) -> Any:
     if meta.get("quantity", "exit") != "exit":
         raise ValueError(f"glossy transfer quantity {meta.get('quantity')!r}: the validator compares exit radiance; accepted: "
                          "quantity 'exit' (prt precompute --kind glossy, the default)")
-    if int(meta.get("bounces", 0)):
-        raise ValueError(f"glossy transfer with bounces={meta.get('bounces')}: the validator compares glossy direct light only "
-                         "so far; accepted: a glossy transfer with bounces 0")
     spec = dict(meta.get("brdf") or {})
     model = str(spec.pop("model", None))
     if model not in MODELS:
@@ -850,6 +855,22 @@ def engine_glossy(transfer: Transfer, L: torch.Tensor, idx: torch.Tensor, view_l
                 res["exact_se"][k] = x_f.std(0) / math.sqrt(N)
                 res["truncation"][k] = (x_sh - x_f).mean(0)
     res["stored"] = stored
+    bounces = int(meta.get("bounces", 0))
+    if bounces:  # the stored total also holds B bounces; rerun the precompute's driver per seed (B_p reused)
+        from .transfer import RunOptions
+        from .transfer.glossy import run_exit_transfer
+
+        def total(sd: int) -> torch.Tensor:
+            data, _ = run_exit_transfer("glossy", mesh, B.to(torch.float64), mat, bands, samples, sd, True,
+                                        RunOptions(offset=eps / diag), {}, idx, bounces=bounces)
+            return relight_glossy(data.to(torch.float64), L3, view_local, out_index)
+
+        res["total_check"] = total(seed)
+        tots = [total(seed + 7919 * (r + 1)) for r in range(len(reps))]
+        I = torch.stack([t - d for t, d in zip(tots, reps)]) if reps else None
+        res["inter"] = stored - res["recomputed"]
+        if I is not None:
+            res["inter_se"], res["inter_sum_se"] = I.std(0), float((I @ _LUMA).sum(1).std())
     if reps:
         R = torch.stack(reps)  # [replicas, k, 3]
         res["se"] = R.std(0)
@@ -864,7 +885,9 @@ def engine_glossy(transfer: Transfer, L: torch.Tensor, idx: torch.Tensor, view_l
 def validate_glossy(transfer: Transfer, L: torch.Tensor, name: str, image: np.ndarray, *, mesh: Mesh | None = None,
                     vertices: int = 16, spp: int = 4096, batches: int = 8, seed: int = 0, view_deg: float = 60.0,
                     idx: torch.Tensor | None = None, dense: int = 1 << 14) -> dict[str, Any]:
-    """Glossy direct exit radiance, engine vs Mitsuba (:func:`validate` for kind 'glossy').
+    """Glossy exit radiance, engine vs Mitsuba (:func:`validate` for kind 'glossy'): direct, and
+    with bounces B > 0 interreflected (Mitsuba max_depth B+2 minus 2, mesh at its luminance
+    albedo) and total.
 
     ``mesh``: the full mesh when the transfer holds a vertex subset (``vertices=`` in
     :func:`prt_torch.transfer.precompute_glossy`; its content hash must match). Views: one per
@@ -873,8 +896,11 @@ def validate_glossy(transfer: Transfer, L: torch.Tensor, name: str, image: np.nd
     (no SH truncation) against Mitsuba — 1 within noise when visibility, frames, BRDF and light
     agree; ``sh_truncation`` the engine's truncation bias relative to Mitsuba, so
     ``direct`` − 1 ≈ ``sh_truncation`` ± noise."""
+    import dataclasses
+
     brdf = glossy_brdf(transfer)
     meta = transfer.meta
+    bounces = int(meta.get("bounces", 0))
     if meta.get("vertices") is not None:
         want = transfer.mesh.meta.get("subset_of")
         if mesh is None or mesh.content_hash() != want:
@@ -895,23 +921,34 @@ def validate_glossy(transfer: Transfer, L: torch.Tensor, name: str, image: np.nd
     eng = engine_glossy(transfer, L, idx, vl, mesh, brdf, dense)
     eps = float(meta.get("ray_eps", 1e-4 * float(np.linalg.norm(mesh.vertices.numpy().max(0) - mesh.vertices.numpy().min(0)))))
     brdfs = [brdf.select(torch.tensor([int(i)])) if len(brdf.batch_shape) else brdf for i in idx]
-    mit = mitsuba_glossy_exit(mesh, mesh.vertices[idx], F, vw, brdfs, image, spp, batches, eps, seed, boundary_nudge(mesh)[idx])
-    m, m_se = mit["radiance"], mit["radiance_se"]
+    # the engine's reflectors are grey (luminance albedo: one glossy matrix for all channels)
+    grey = dataclasses.replace(mesh, albedo=(mesh.albedo.to(torch.float64) @ _LUMA)[:, None].expand(-1, 3).contiguous())
+    mit = mitsuba_glossy_exit(grey, mesh.vertices[idx], F, vw, brdfs, image, spp, batches, eps, seed, boundary_nudge(mesh)[idx],
+                              depths=[2, bounces + 2] if bounces else [2])
+    m, m_se = mit["radiance"][0], mit["radiance_se"][0]
     lum = lambda x: float((x @ _LUMA).sum())  # noqa: E731
     M = lum(m)
     rep = {
-        "kind": "glossy", "scene": mesh.name, "vertices": int(idx.numel()), "bounces": 0, "bands": int(meta["bands"]),
+        "kind": "glossy", "scene": mesh.name, "vertices": int(idx.numel()), "bounces": bounces, "bands": int(meta["bands"]),
         "bands_out": int(meta.get("bands_out", meta["bands"])), "brdf": meta.get("brdf"), "projection": meta.get("projection"),
         "light": name, "spp": int(spp), "batches": int(batches), "samples": int(meta.get("samples", 0)), "view_deg": view_deg,
         "mitsuba_variant": VARIANT, "eps": eps, "dense": int(dense),
-        "direct": _ratio(eng["stored"], eng["se"], m, m_se, eng["sum_se"]),
+        "direct": _ratio(eng["recomputed"] if bounces else eng["stored"], eng["se"], m, m_se, eng["sum_se"]),
         "direct_unprojected": _ratio(eng["exact"], eng["exact_se"], m, m_se),
         "sh_truncation": lum(eng["truncation"]) / M if M > 0 else float("nan"),
-        "recomputed_rel": float((eng["recomputed"] - eng["stored"]).abs().max() / eng["stored"].abs().max().clamp_min(1e-300)),
-        "direct_rms_rel": _rms_rel(eng["stored"], m),
+        "recomputed_rel": float(((eng["total_check"] if bounces else eng["recomputed"]) - eng["stored"]).abs().max()
+                                / eng["stored"].abs().max().clamp_min(1e-300)),
+        "direct_rms_rel": _rms_rel(eng["recomputed"] if bounces else eng["stored"], m),
         "engine_noise": eng["noise"],
     }
-    rep["per_vertex"] = {"index": idx.tolist(), "view_local": vl.tolist(), "engine": eng["stored"].tolist(),
+    if bounces:
+        m_int, m_int_se = mit["radiance"][1] - m, mit["diff_se"][1]
+        e_int_se, e_int_sum = eng.get("inter_se", torch.zeros_like(m)), eng.get("inter_sum_se")
+        rep["inter"] = _ratio(eng["inter"], e_int_se, m_int, m_int_se, e_int_sum)
+        tot_sum = None if e_int_sum is None or eng["sum_se"] is None else math.hypot(eng["sum_se"], e_int_sum)
+        rep["total"] = _ratio(eng["stored"], (eng["se"] ** 2 + e_int_se ** 2).sqrt(), mit["radiance"][1], mit["radiance_se"][1], tot_sum)
+        rep["per_vertex"] = {"engine_inter": eng["inter"].tolist(), "mitsuba_inter": m_int.tolist()}
+    rep.setdefault("per_vertex", {}).update({"index": idx.tolist(), "view_local": vl.tolist(), "engine": eng["stored"].tolist(),
                          "engine_se": eng["se"].tolist(), "engine_unprojected": eng["exact"].tolist(),
-                         "truncation": eng["truncation"].tolist(), "mitsuba": m.tolist(), "mitsuba_se": m_se.tolist()}
+                         "truncation": eng["truncation"].tolist(), "mitsuba": m.tolist(), "mitsuba_se": m_se.tolist()})
     return rep
