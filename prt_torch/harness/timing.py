@@ -210,6 +210,7 @@ def machine_info() -> dict[str, Any]:
         import prt_torch
 
         info["prt_torch"] = prt_torch.__version__
+        info["omp_wait_policy"] = prt_torch.OMP_POLICY_CHOICE
     except Exception:  # pragma: no cover
         pass
     return info
