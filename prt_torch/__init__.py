@@ -4,10 +4,10 @@ Modules, in dependency order (a module imports only those before it):
 _checks, params, io, sh, lighting, scene, brdf, transfer, codecs, relight, render, validate,
 harness, cli. See docs/ARCHITECTURE.md.
 
-OpenMP wait policy (measured, measured as the README says): on an idle
-2-core machine the default (spinning) OpenMP threads relight 1.1–3× faster than
+OpenMP wait policy (benchmarks/bench_threads.py, reports/benchmarks/threads.md): on an idle
+2-core machine the default (spinning) OpenMP threads relight 1.1–2.4× faster than
 ``OMP_WAIT_POLICY=PASSIVE``; beside two busy processes spinning threads stall on descheduled
-peers (medians 1.1–2.1× and tails up to 7× slower than PASSIVE). So when this package is
+peers (PASSIVE 1.4–14× faster at the median, tails up to 18×). So when this package is
 imported before torch while other processes already occupy ≥ 0.75 × the cores (runnable now,
 from /proc/loadavg — not the load average, which counts our own recent work), PASSIVE is set —
 unless the user set ``OMP_WAIT_POLICY`` themselves. ``OMP_POLICY_CHOICE`` records what
