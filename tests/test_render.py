@@ -21,22 +21,12 @@ from prt_torch.render import (
     Decoder,
     IndexedRadianceDecoder,
     Renderer,
-    RenderUnavailable,
     ShaderProgram,
     render_radiance,
 )
 
 
-@pytest.fixture(scope="module")
-def renderer():
-    try:
-        r = Renderer(64, 48)
-    except RenderUnavailable as e:
-        if os.environ.get("PRT_SKIP_GL") == "1" and os.environ.get("CI", "").lower() != "true":
-            pytest.skip(f"PRT_SKIP_GL=1 and no GL: {e}")
-        raise
-    yield r
-    r.close()
+RENDER_SIZE = (64, 48)  # the shared `renderer` fixture (conftest.py)
 
 
 # ---------------------------------------------------------------------------------------------

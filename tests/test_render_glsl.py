@@ -10,7 +10,6 @@ hint; PRT_SKIP_GL=1 skips them explicitly — except under CI (CI=true), where t
 """
 from __future__ import annotations
 
-import os
 
 import numpy as np
 import pytest
@@ -24,8 +23,6 @@ from prt_torch.render import (
     Camera,
     Decoder,
     PRTScene,
-    Renderer,
-    RenderUnavailable,
     TransferDecoder,
     codec_decoder,
     codec_decoders,
@@ -41,16 +38,7 @@ MIN_DB = 50.0
 pytestmark = pytest.mark.filterwarnings("ignore::prt_torch.codecs.base.ConvergenceWarning")
 
 
-@pytest.fixture(scope="module")
-def renderer():
-    try:
-        r = Renderer(80, 64)
-    except RenderUnavailable as e:
-        if os.environ.get("PRT_SKIP_GL") == "1" and os.environ.get("CI", "").lower() != "true":
-            pytest.skip(f"PRT_SKIP_GL=1 and no GL: {e}")
-        raise
-    yield r
-    r.close()
+RENDER_SIZE = (80, 64)  # the shared `renderer` fixture (conftest.py)
 
 
 @pytest.fixture(scope="module")

@@ -13,7 +13,6 @@ hint; PRT_SKIP_GL=1 skips them explicitly — except under CI (CI=true), where t
 from __future__ import annotations
 
 import dataclasses
-import os
 import warnings
 
 import numpy as np
@@ -26,7 +25,7 @@ from prt_torch.codecs.gaussian import view_taps
 from prt_torch.harness.evaluate import load_directory_transfer
 from prt_torch.lighting import load_light, prefilter_environment
 from prt_torch.lighting.prefilter import PrefilteredEnvironment
-from prt_torch.render import Camera, Renderer, RenderUnavailable, codec_decoder, codec_decoders, psnr
+from prt_torch.render import Camera, codec_decoder, codec_decoders, psnr
 from prt_torch.render.glsl import GaussianDecoder, gaussian_view_lobes
 from prt_torch.scene import geodesic_sphere
 from prt_torch.scene.mesh import make_mesh
@@ -36,16 +35,7 @@ MIN_DB = 50.0
 RES = 8  # transport table and prefiltered cube face resolution
 
 
-@pytest.fixture(scope="module")
-def renderer():
-    try:
-        r = Renderer(80, 64)
-    except RenderUnavailable as e:
-        if os.environ.get("PRT_SKIP_GL") == "1" and os.environ.get("CI", "").lower() != "true":
-            pytest.skip(f"PRT_SKIP_GL=1 and no GL: {e}")
-        raise
-    yield r
-    r.close()
+RENDER_SIZE = (80, 64)  # the shared `renderer` fixture (conftest.py)
 
 
 @pytest.fixture(scope="module")

@@ -10,7 +10,6 @@ Rendering for real (EGL + llvmpipe); without EGL these FAIL (PRT_SKIP_GL=1 skips
 """
 from __future__ import annotations
 
-import os
 
 import numpy as np
 import pytest
@@ -18,22 +17,13 @@ import torch
 
 from prt_torch import codecs, relight
 from prt_torch.lighting import load_light
-from prt_torch.render import Camera, PRTScene, Renderer, RenderUnavailable, glsl_vs_cpu
+from prt_torch.render import Camera, PRTScene, glsl_vs_cpu
 from prt_torch.scene import geodesic_sphere, make_mesh
 
 pytestmark = pytest.mark.filterwarnings("ignore::prt_torch.codecs.base.ConvergenceWarning")
 
 
-@pytest.fixture(scope="module")
-def renderer():
-    try:
-        r = Renderer(72, 64)
-    except RenderUnavailable as e:
-        if os.environ.get("PRT_SKIP_GL") == "1" and os.environ.get("CI", "").lower() != "true":
-            pytest.skip(f"PRT_SKIP_GL=1 and no GL: {e}")
-        raise
-    yield r
-    r.close()
+RENDER_SIZE = (72, 64)  # the shared `renderer` fixture (conftest.py)
 
 
 @pytest.fixture(scope="module")
