@@ -145,3 +145,29 @@ def test_codec_file_of_another_transfer_is_refused(kind_files, transfer_file, tm
     assert main(["render", str(transfer_file), "--codec-file", str(glossy_codec), "-o", str(tmp_path / "x.png")]) == 2
     assert "hash" in capsys.readouterr().err
     assert not (tmp_path / "x.png").exists()
+
+
+def test_render_transport_tables_and_gaussian_codec_file(tmp_path, capsys):
+    """`prt render TABLE_DIR --codec-file gaussian.prt`: the shader's prefiltered lookups against
+    the CPU engine (GLSL vs CPU above 50 dB, same coverage); uncompressed tables render on the CPU
+    and their GLSL decode is refused by name."""
+    import re
+    import warnings
+
+    from prt_torch.cli import main
+
+    table = tmp_path / "table"
+    assert main(["precompute", "convex", "--kind", "transport", "--views", "1", "--cube-res", "4", "--brdf", "phong",
+                 "--brdf-param", "s=8", "--no-progress", "-o", str(table)]) == 0
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        assert main(["compress", str(table), "--codec", "gaussian", "--param", "lobes=1", "--param", "max_iter=5",
+                     "-o", str(tmp_path / "g.prt")]) == 0
+    capsys.readouterr()
+    assert main(["render", str(table), "--codec-file", str(tmp_path / "g.prt"), "--decode", "glsl", "--validate",
+                 "--width", "96", "--height", "96", "-o", str(tmp_path / "g.png")]) == 0
+    m = re.search(r"GLSL vs CPU: ([\d.]+) dB \(same coverage: yes", capsys.readouterr().out)
+    assert m and float(m.group(1)) > 50
+    assert main(["render", str(table), "--decode", "cpu", "--width", "64", "--height", "64", "-o", str(tmp_path / "u.png")]) == 0
+    assert main(["render", str(table), "--decode", "glsl", "-o", str(tmp_path / "u2.png")]) == 2
+    assert "no GLSL decoder" in capsys.readouterr().err

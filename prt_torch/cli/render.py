@@ -118,8 +118,7 @@ def _linear_composite(panels: list[np.ndarray], gap: int = 4) -> np.ndarray:
 
 def run(args) -> int:
     from ..lighting.spec import load_light
-    from ..render import (Camera, PRTScene, Renderer, RenderUnavailable, auto_exposure, check_codec_file,
-                          error_heatmap, error_map, psnr, side_by_side)
+    from ..render import (Camera, PRTScene, Renderer, RenderUnavailable, check_codec_file)
     from ..transfer import Transfer
 
     out = Path(args.output)
@@ -142,6 +141,8 @@ def run(args) -> int:
         except ValueError:
             raise ValueError(f"--exposure {args.exposure!r}; accepted: a number of stops or 'auto'") from None
 
+    if Path(args.transfer).is_dir():  # Green 2005 transport tables (a directory): gaussian or other codec files
+        return _run_transport(args, out, cmp_png)
     transfer = Transfer.load(args.transfer)
     scene = PRTScene(transfer)  # refuses kinds it cannot relight, naming the accepted ones
     codec = enc = None
@@ -167,10 +168,17 @@ def run(args) -> int:
     except RenderUnavailable as e:
         print(f"prt render: error: {e}", file=sys.stderr)
         return 3
+    what = f"{transfer.kind} transfer" + (f", codec {codec.codec_name}" if codec is not None else "")
+    return _write_outputs(args, out, cmp_png, img, mask, ref_img, other, what)
+
+
+def _write_outputs(args, out: Path, cmp_png: Path | None, img, mask, ref_img, other, what: str) -> int:
+    """Write the image, the optional comparison (PNG + linear EXR) and the GLSL-vs-CPU check."""
+    from ..render import auto_exposure, error_heatmap, error_map, psnr, side_by_side
+
     base = ref_img if ref_img is not None else img
     ev = auto_exposure(base, mask) if args.exposure == "auto" else float(args.exposure)
     _write(out, img, ev, args.tonemap, args.overwrite)
-    what = f"{transfer.kind} transfer" + (f", codec {codec.codec_name}" if codec is not None else "")
     print(f"wrote {out} ({args.width}x{args.height}, {what}, decoded by {args.decode}, {int(mask.sum())} covered "
           f"pixels, radiance range [{float(img[mask].min()) if mask.any() else 0:.4g}, "
           f"{float(img[mask].max()) if mask.any() else 0:.4g}], exposure {ev:+.2f} EV)")
@@ -188,7 +196,7 @@ def run(args) -> int:
         vmax = float(np.percentile(e[mask], 99.0)) if mask.any() else 0.0
         vmax = vmax if vmax > 0 else 1.0
         heat = error_heatmap(img, ref_img, mask, kind="rel", vmax=vmax)
-        label = (Path(args.codec_file).name if codec is not None else "uncompressed") + f" ({args.decode})"
+        label = (Path(args.codec_file).name if args.codec_file else "uncompressed") + f" ({args.decode})"
         db = psnr(img, ref_img, mask) if mask.any() else float("nan")
         side_by_side([ref_img, img, heat], ["uncompressed (cpu)", f"{label}, {db:.1f} dB",
                                             f"relative error (0..{vmax:.3g})"],
@@ -199,3 +207,57 @@ def run(args) -> int:
         print(f"wrote {cmp_png} and {cmp_png.with_suffix('.exr')} (linear: reference | render | |error|), "
               f"PSNR vs uncompressed {db:.1f} dB")
     return status
+
+
+def _run_transport(args, out: Path, cmp_png: Path | None) -> int:
+    """``prt render TABLE_DIR [--codec-file F]``: transport tables (Green 2005) relit toward the
+    camera through the harness's evaluator — the three nearest stored views, zero below each
+    vertex's horizon — uncompressed (CPU only) or from a codec file (CPU, or GLSL with the
+    codec's decoder, e.g. the Gaussian prefiltered lookups)."""
+    import torch
+
+    from .. import codecs
+    from ..harness.evaluate import Evaluator, load_directory_transfer
+    from ..lighting.spec import load_light
+    from ..render import Camera, Renderer, RenderUnavailable, codec_decoder
+
+    tr = load_directory_transfer(args.transfer)
+    ev = Evaluator(tr)
+    codec = enc = None
+    if args.codec_file:
+        codec, enc = codecs.load(args.codec_file)
+        if enc.points != ev.V or enc.meta.get("dim") != ev.X.shape[1]:
+            raise ValueError(f"codec file {args.codec_file!r} ({enc.points} points × {enc.meta.get('dim')}) does not belong to "
+                             f"the transport table {args.transfer!r} ({ev.V} vertices × {ev.X.shape[1]}); accepted: a codec "
+                             "file compressed from this table")
+    if args.decode == "glsl" and codec is None:
+        raise ValueError("uncompressed transport tables have no GLSL decoder; accepted: --decode cpu, or --codec-file "
+                         "with a codec that has one (e.g. gaussian)")
+    light = load_light(args.light, bands=ev.bands_in)
+    mesh = tr.mesh
+    cam = Camera.fit(mesh, azimuth=args.azimuth, elevation=args.elevation, fov=args.fov,
+                     projection="orthographic" if args.orthographic else "perspective", aspect=args.width / args.height)
+    view = ev.view_weights(torch.as_tensor(np.asarray(cam.eye, np.float64)))
+    rs = dict(background=args.background, supersample=args.supersample)
+
+    def rgb(x):
+        return x.expand(-1, 3) if x.shape[1] == 1 else x
+
+    try:
+        with Renderer(args.width, args.height) as r:
+            def draw(decode, use_codec):
+                if not use_codec:
+                    return r.render_radiance(mesh, rgb(ev.reference(light, view)), cam, **rs)
+                Lc = ev.codec_light(codec, light)
+                if decode == "glsl":
+                    return r.render(mesh, codec_decoder(codec, enc, Lc, mode="taps", view=view), cam, **rs)
+                return r.render_radiance(mesh, rgb(ev.finish(codec.relight(enc, Lc, view=view))), cam, **rs)
+
+            img, mask = draw(args.decode, codec is not None)
+            ref_img = draw("cpu", False)[0] if cmp_png else None
+            other = draw("cpu" if args.decode == "glsl" else "glsl", True) if (args.validate and codec is not None) else None
+    except RenderUnavailable as e:
+        print(f"prt render: error: {e}", file=sys.stderr)
+        return 3
+    what = "transport tables" + (f", codec {codec.codec_name}" if codec is not None else "")
+    return _write_outputs(args, out, cmp_png, img, mask, ref_img, other, what)
