@@ -736,6 +736,24 @@ class GaussianCodec(Codec):
         L[:, :k] = light.sh[:, :k].float()
         return t @ L.T  # [V, C]
 
+    def checked_taps(self, view: Any, V: int, J: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """A view as taps over the stored views: ``(idx int64 [V, k], w [V, k])`` as given, or
+        the three nearest views of global directions ``[V, 3]`` (:func:`view_taps`). Refuses
+        other shapes and indices outside 0..J-1 (shared by :meth:`relight` and the GLSL decoder)."""
+        if isinstance(view, torch.Tensor):
+            if view.shape != (V, 3):
+                raise ValueError(f"view has shape {tuple(view.shape)}; accepted: taps (idx, w) or global directions [V, 3]")
+            view = view_taps(self.views_, view / view.norm(dim=-1, keepdim=True).clamp_min(1e-12))
+        if not (isinstance(view, (tuple, list)) and len(view) == 2):
+            raise TypeError("view must be taps (idx int64 [V, k], w [V, k]) or directions [V, 3]")
+        idx, a = (torch.as_tensor(v) for v in view)
+        if idx.ndim != 2 or idx.shape[0] != V or a.shape != idx.shape:
+            raise ValueError(f"view taps have shapes {tuple(idx.shape)}, {tuple(a.shape)}; accepted: [V, k] with V={V}")
+        idx = idx.long()
+        if idx.numel() and (int(idx.min()) < 0 or int(idx.max()) >= J):
+            raise ValueError(f"view tap indices span [{int(idx.min())}, {int(idx.max())}]; accepted: 0..{J - 1}")
+        return idx, a
+
     def relight(self, enc: Encoded, light: PrefilteredEnvironment, view: Any = None) -> torch.Tensor:
         """Exit radiance from the Gaussian form (Green eq. 2.7: Σ_k w_k E_{σ_k}(μ_k)).
 
@@ -754,16 +772,7 @@ class GaussianCodec(Codec):
             if "diffuse" in enc.tensors:
                 out = out + self._diffuse(enc, light)[:, None, :] * enc.tensors["has_data"].float()[..., None]
             return out
-        if isinstance(view, torch.Tensor):
-            if view.shape != (V, 3):
-                raise ValueError(f"view has shape {tuple(view.shape)}; accepted: taps (idx, w) or global directions [V, 3]")
-            view = view_taps(self.views_, view / view.norm(dim=-1, keepdim=True).clamp_min(1e-12))
-        if not (isinstance(view, (tuple, list)) and len(view) == 2):
-            raise TypeError("view must be None, taps (idx int64 [V, k], w [V, k]) or directions [V, 3]")
-        idx, a = view
-        if idx.shape[0] != V or a.shape != idx.shape:
-            raise ValueError(f"view taps have shapes {tuple(idx.shape)}, {tuple(a.shape)}; accepted: [V, k] with V={V}")
-        idx = idx.long()
+        idx, a = self.checked_taps(view, V, J)
         rows = torch.arange(V)[:, None]
         a = a.float()
         tot = a.sum(1, keepdim=True)

@@ -556,7 +556,7 @@ def gaussian_view_lobes(codec, enc, light, view) -> tuple:
     Returns ``(w [V, N], mu [V, N, 3], sigma [V, N], diffuse [V, C])`` float32 tensors."""
     import torch
 
-    from ..codecs.gaussian import blend_lobes, view_taps
+    from ..codecs.gaussian import blend_lobes
     from ..lighting.prefilter import PrefilteredEnvironment
 
     if not isinstance(light, PrefilteredEnvironment):
@@ -567,18 +567,7 @@ def gaussian_view_lobes(codec, enc, light, view) -> tuple:
     if view is None:
         raise ValueError("the gaussian decoder needs a view: taps (idx [V, k], w [V, k]) or directions [V, 3] "
                          "(one radiance per vertex and camera)")
-    if isinstance(view, torch.Tensor):
-        if view.shape != (V, 3):
-            raise ValueError(f"view has shape {tuple(view.shape)}; accepted: taps (idx, w) or global directions [V, 3]")
-        view = view_taps(codec.views_, view / view.norm(dim=-1, keepdim=True).clamp_min(1e-12))
-    if not (isinstance(view, (tuple, list)) and len(view) == 2):
-        raise TypeError("view must be taps (idx int64 [V, k], w [V, k]) or directions [V, 3]")
-    idx, a = (torch.as_tensor(v) for v in view)
-    if idx.ndim != 2 or idx.shape[0] != V or a.shape != idx.shape:
-        raise ValueError(f"view taps have shapes {tuple(idx.shape)}, {tuple(a.shape)}; accepted: [V, k] with V={V}")
-    idx = idx.long()
-    if idx.numel() and (int(idx.min()) < 0 or int(idx.max()) >= J):
-        raise ValueError(f"view tap indices span [{int(idx.min())}, {int(idx.max())}]; accepted: 0..{J - 1}")
+    idx, a = codec.checked_taps(view, V, J)
     rows = torch.arange(V)[:, None]
     a = a.float()
     tot = a.sum(1, keepdim=True)
