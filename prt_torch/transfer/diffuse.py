@@ -780,32 +780,31 @@ def _interreflect(T0: torch.Tensor, S: Any, mesh: Mesh, bounces: int, bounce_tol
         F = faces["X0"].shape[0]
         rho_c = faces["rho"][:, :1] if C == 1 else faces["rho"]  # [F,C]: the reflectors are faces
         xf = faces["X0"][:, None, :].expand(F, C, n2).clone()
-    if isinstance(S, torch.Tensor):  # bounce_points='hits': the bounce terms are already per vertex
-        S = S if C == S.shape[2] else S.expand(-1, -1, C, -1)
-        for b in range(1, bounces + 1):  # a loop over bounces (B tensor additions)
-            tb = S[:, b - 1]
-            total += tb
-            used = b
-            frac = float(tb.norm() / total.norm().clamp_min(1e-300))
-            energy.append(frac)
-            if frac < bounce_tol:
-                break
-    elif S is not None:
-        for b in range(1, bounces + 1):  # a loop over bounces: each one sparse product over all vertices
-            if faces is None:
-                x = (rho_c[:, :, None] * tb).reshape(V, C * n2)
-                tb = torch.from_numpy(S @ x.numpy()).reshape(V, C, n2)
-            else:
-                x = (rho_c[:, :, None] * xf).reshape(F, C * n2).numpy()
-                tb = torch.from_numpy(S @ x).reshape(V, C, n2)
-                if b < bounces:
-                    xf = torch.from_numpy(faces["S"] @ x).reshape(F, C, n2)
-            total += tb
-            used = b
-            frac = float(tb.norm() / total.norm().clamp_min(1e-300))
-            energy.append(frac)
-            if frac < bounce_tol:
-                break
+    def bounce_terms():  # t̃^1, t̃^2, ... lazily, so a converged sum stops computing
+        nonlocal tb
+        if isinstance(S, torch.Tensor):  # bounce_points='hits': the bounce terms are already per vertex
+            St = S if C == S.shape[2] else S.expand(-1, -1, C, -1)
+            for b in range(bounces):
+                yield St[:, b]
+        elif S is not None:
+            xb = xf if faces is not None else None
+            for b in range(1, bounces + 1):  # each bounce one sparse product over all vertices
+                if faces is None:
+                    tb = torch.from_numpy(S @ (rho_c[:, :, None] * tb).reshape(V, C * n2).numpy()).reshape(V, C, n2)
+                else:
+                    x = (rho_c[:, :, None] * xb).reshape(F, C * n2).numpy()
+                    tb = torch.from_numpy(S @ x).reshape(V, C, n2)
+                    if b < bounces:
+                        xb = torch.from_numpy(faces["S"] @ x).reshape(F, C, n2)
+                yield tb
+
+    for b, term in enumerate(bounce_terms(), 1):  # a loop over bounces
+        total += term
+        used = b
+        frac = float(term.norm() / total.norm().clamp_min(1e-300))
+        energy.append(frac)
+        if frac < bounce_tol:
+            break
     meta["bounces_used"] = used
     meta["bounce_energy_fraction"] = energy
     if bounces > 0 and S is None:
