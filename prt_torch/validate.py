@@ -212,6 +212,18 @@ def _write_ply(path: Path, mesh: Mesh) -> None:
         fh.write(fd.tobytes())
 
 
+def _base_scene(mi, image: np.ndarray, mesh: Mesh | None, tmp: Path) -> dict[str, Any]:
+    """The Mitsuba scene both measurements share: the light image as ``envmap`` and (if given)
+    the mesh, flat-shaded, one-sided Lambertian with its vertex albedo (written to ``tmp``)."""
+    scene: dict[str, Any] = {"type": "scene", "env": {"type": "envmap", "bitmap": mi.Bitmap(np.ascontiguousarray(image, np.float32))}}
+    if mesh is not None:
+        ply = tmp / "mesh.ply"
+        _write_ply(ply, mesh)
+        scene["mesh"] = {"type": "ply", "filename": str(ply), "face_normals": True,
+                         "bsdf": {"type": "diffuse", "reflectance": {"type": "mesh_attribute", "name": "vertex_color"}}}
+    return scene
+
+
 def _probe(mi, p: np.ndarray, n: np.ndarray, radius: float, spp: int) -> dict:
     up = (0.0, 0.0, 1.0) if abs(n[2]) < 0.9 else (1.0, 0.0, 0.0)
     T = mi.ScalarTransform4f().look_at(origin=mi.ScalarPoint3f(*p), target=mi.ScalarPoint3f(*(p + n)), up=mi.ScalarVector3f(*up))
@@ -250,14 +262,9 @@ def mitsuba_exit_radiance(mesh: Mesh | None, points: Any, normals: Any, image: n
     C = offset_origins(P, N, eps, None if nudge is None else torch.as_tensor(nudge, dtype=torch.float64).numpy())
     batches = check_int("batches", batches, 2)
     per = max(1, int(spp) // batches)
-    scene: dict[str, Any] = {"type": "scene", "env": {"type": "envmap", "bitmap": mi.Bitmap(np.ascontiguousarray(image, np.float32))}}
     radius = max(eps * 1e-2, 1e-7)
     with tempfile.TemporaryDirectory() as tmp:
-        if mesh is not None:
-            ply = Path(tmp) / "mesh.ply"
-            _write_ply(ply, mesh)
-            scene["mesh"] = {"type": "ply", "filename": str(ply), "face_normals": True,
-                             "bsdf": {"type": "diffuse", "reflectance": {"type": "mesh_attribute", "name": "vertex_color"}}}
+        scene = _base_scene(mi, image, mesh, Path(tmp))
         for k in range(P.shape[0]):  # scene description, one probe per vertex (Mitsuba builds the scene once)
             scene[f"probe_{k:06d}"] = _probe(mi, C[k], N[k], radius, per)
         sc = mi.load_dict(scene)
@@ -708,14 +715,9 @@ def mitsuba_glossy_exit(mesh: Mesh | None, points: Any, frames: Any, views: Any,
     C = offset_origins(P, F[:, 2], eps, None if nudge is None else torch.as_tensor(nudge, dtype=torch.float64).numpy())
     batches = check_int("batches", batches, 2)
     per = max(1, int(spp) // batches)
-    scene: dict[str, Any] = {"type": "scene", "env": {"type": "envmap", "bitmap": mi.Bitmap(np.ascontiguousarray(image, np.float32))}}
     radius = max(eps * 1e-2, 1e-7)
     with tempfile.TemporaryDirectory() as tmp:
-        if mesh is not None:
-            ply = Path(tmp) / "mesh.ply"
-            _write_ply(ply, mesh)
-            scene["mesh"] = {"type": "ply", "filename": str(ply), "face_normals": True,
-                             "bsdf": {"type": "diffuse", "reflectance": {"type": "mesh_attribute", "name": "vertex_color"}}}
+        scene = _base_scene(mi, image, mesh, Path(tmp))
         for k in range(P.shape[0]):
             scene[f"probe_{k:06d}"] = {"type": "disk", "to_world": _frame_transform(mi, F[k], C[k], radius),
                                        "bsdf": engine_bsdf(brdfs[k], F[k])}
