@@ -12,6 +12,7 @@ Shapes of ``data`` (interfaces.md): diffuse ``[V, n²]`` (albedo kept separate, 
 """
 from __future__ import annotations
 
+import copyreg
 import dataclasses
 import hashlib
 import json
@@ -26,7 +27,8 @@ import torch
 
 from .. import io
 from .._checks import check_choice, check_float, check_int
-from ..scene import Mesh
+from ..executor import Executor, LocalExecutor, TaskFailure
+from ..scene import Mesh, RayCaster
 
 __all__ = ["Transfer", "KINDS", "TRANSFER_VERSION", "RunOptions", "run_chunks", "ChunkInterrupt", "default_state_dir",
            "remove_state"]
@@ -51,6 +53,10 @@ class RunOptions:
         progress: a tqdm bar with rays/s.
         callback: ``callback(chunk_index, n_chunks)`` after each chunk is saved (may raise,
             e.g. :class:`ChunkInterrupt`).
+        executor: where the chunks run (:mod:`prt_torch.executor`): None = this process, in
+            order; a ``RayExecutor`` runs each chunk as a Ray task (the state files are still
+            written here, by :func:`run_chunks`). Not part of the result: a chunk is a
+            deterministic function of its range and the fingerprint.
     """
 
     chunk_size: int | None = None
@@ -62,6 +68,7 @@ class RunOptions:
     keep_state: bool = False
     progress: bool = False
     callback: Callable[[int, int], None] | None = None
+    executor: Executor | None = None
 
     def __post_init__(self):
         if self.chunk_size is not None:
@@ -76,6 +83,9 @@ class RunOptions:
                 raise TypeError(f"RunOptions.{k} must be true or false, got {getattr(self, k)!r}")
         if self.callback is not None and not callable(self.callback):
             raise TypeError(f"RunOptions.callback must be callable, got {self.callback!r}")
+        if self.executor is not None and not isinstance(self.executor, Executor):
+            raise TypeError(f"RunOptions.executor must be a prt_torch.executor.Executor (LocalExecutor, RayExecutor) or None, "
+                            f"got {self.executor!r}")
 
     def chunks(self, default: int) -> int:
         """``chunk_size`` or the kind's ``default``."""
@@ -85,7 +95,8 @@ class RunOptions:
                    rays_of=None) -> list[dict[str, torch.Tensor]]:
         """:func:`run_chunks` with these options (state dir, resume, progress, callback)."""
         return run_chunks(n_items, chunk_size, compute, state_dir=self.state_dir, fingerprint=fingerprint,
-                          resume=self.resume, progress=self.progress, desc=desc, rays_of=rays_of, callback=self.callback)
+                          resume=self.resume, progress=self.progress, desc=desc, rays_of=rays_of, callback=self.callback,
+                          executor=self.executor)
 
     def finish(self) -> None:
         """After a successful run: remove the state directory unless ``keep_state``."""
@@ -215,6 +226,7 @@ def run_chunks(
     desc: str = "precompute",
     rays_of: Callable[[dict[str, torch.Tensor]], int] | None = None,
     callback: Callable[[int, int], None] | None = None,
+    executor: Executor | None = None,
 ) -> list[dict[str, torch.Tensor]]:
     """Run ``compute(start, stop)`` over ``[0, n_items)`` in chunks; return the chunk results in order.
 
@@ -230,6 +242,11 @@ def run_chunks(
         progress: show a tqdm bar; ``rays_of(result)`` (rays traced for a chunk) adds a rays/s figure.
         callback: called as ``callback(chunk_index, n_chunks)`` after each chunk is saved;
             it may raise (e.g. ``ChunkInterrupt``) to stop the run.
+        executor: where the missing chunks are computed (:mod:`prt_torch.executor`; None: in this
+            process, in order). With a ``RayExecutor`` each chunk is a Ray task (``compute`` is
+            pickled with what it captures); chunks are saved here as they finish, in any order,
+            so an interruption keeps every finished chunk. A chunk that fails on every attempt
+            raises ``RuntimeError`` naming it after the other chunks finished (and were saved).
     """
     n_items = check_int("n_items", n_items, 0)
     chunk_size = check_int("chunk_size", chunk_size, 1)
@@ -255,38 +272,75 @@ def run_chunks(
         else:
             sd.mkdir(parents=True)
             io.atomic_write_json(manifest, want)
-    results: list[dict[str, torch.Tensor]] = []
+    executor = LocalExecutor() if executor is None else executor
+    ranges = [(i * chunk_size, min(n_items, (i + 1) * chunk_size)) for i in range(n_chunks)]
+    paths = [None if sd is None else sd / f"chunk_{i:06d}.prt" for i in range(n_chunks)]
+    results: list[dict[str, torch.Tensor] | None] = [None] * n_chunks
     bar = None
     if progress:
         from tqdm.auto import tqdm
 
         bar = tqdm(total=n_items, desc=desc, unit="vtx", dynamic_ncols=True)
     rays_done, t0 = 0, time.perf_counter()
+
+    def finished(i: int, res: dict[str, torch.Tensor], fresh: bool) -> None:
+        nonlocal rays_done
+        start, stop = ranges[i]
+        if fresh and paths[i] is not None:
+            io.save(paths[i], res, kind="transfer/chunk", meta={"chunk": i, "start": start, "stop": stop})
+        results[i] = res
+        if bar is not None:
+            if fresh and rays_of is not None:
+                rays_done += int(rays_of(res))
+                el = max(time.perf_counter() - t0, 1e-9)
+                bar.set_postfix_str(f"{rays_done / el / 1e6:.2f} Mrays/s")
+            bar.update(stop - start)
+        if callback is not None:
+            callback(i, n_chunks)
+
     try:
-        for i in range(n_chunks):  # a loop over chunks, each a batched computation
-            start, stop = i * chunk_size, min(n_items, (i + 1) * chunk_size)
-            path = None if sd is None else sd / f"chunk_{i:06d}.prt"
-            if path is not None and path.exists():
-                res, _ = io.load(path, expect_kind="transfer/chunk")
-                fresh = False
+        todo = []
+        for i in range(n_chunks):  # chunks of an earlier run first (a prefix, for a local run)
+            if paths[i] is not None and paths[i].exists():
+                finished(i, io.load(paths[i], expect_kind="transfer/chunk")[0], False)
             else:
-                res = compute(start, stop)
-                fresh = True
-                if path is not None:
-                    io.save(path, res, kind="transfer/chunk", meta={"chunk": i, "start": start, "stop": stop})
-            results.append(res)
-            if bar is not None:
-                if fresh and rays_of is not None:
-                    rays_done += int(rays_of(res))
-                    el = max(time.perf_counter() - t0, 1e-9)
-                    bar.set_postfix_str(f"{rays_done / el / 1e6:.2f} Mrays/s")
-                bar.update(stop - start)
-            if callback is not None:
-                callback(i, n_chunks)
+                todo.append(i)
+        out = executor.map(ChunkTask(compute, ranges), todo, on_result=lambda k, res: finished(todo[k], res, True))
+        failed = [f for f in out if isinstance(f, TaskFailure)]
+        if failed:
+            f = failed[0]
+            raise RuntimeError(f"{desc}: chunk {f.item} (items {ranges[f.item][0]}..{ranges[f.item][1] - 1}) failed "
+                               f"{f.attempts} time(s): {f.error}; {len(failed)} of {n_chunks} chunk(s) failed"
+                               + (f", the others are kept in {str(sd)!r} (resume to compute the rest)" if sd is not None else ""))
     finally:
         if bar is not None:
             bar.close()
-    return results
+    return results  # type: ignore[return-value]
+
+
+class ChunkTask:
+    """``chunk index -> compute(start, stop)``: what :func:`run_chunks` hands an executor (a
+    plain object, so a Ray task gets ``compute`` and the ranges in one pickle)."""
+
+    def __init__(self, compute: Callable[[int, int], dict[str, torch.Tensor]], ranges: list[tuple[int, int]]):
+        self.compute, self.ranges = compute, ranges
+
+    def __call__(self, i: int) -> dict[str, torch.Tensor]:
+        return self.compute(*self.ranges[i])
+
+
+def _rebuild_caster(vertices, faces, offset: float) -> RayCaster:
+    return RayCaster(vertices=vertices, faces=faces, workers=1, offset=offset)
+
+
+def _reduce_caster(c: RayCaster):
+    """Pickling a :class:`~prt_torch.scene.RayCaster` (a chunk's ``compute`` sent to a Ray task
+    captures one): its geometry and offset; the receiving process builds its own Embree scene
+    and traces in-process (``workers=1``: the executor is what runs chunks in parallel)."""
+    return _rebuild_caster, (c.vertices, c.faces, c.offset)
+
+
+copyreg.pickle(RayCaster, _reduce_caster)
 
 
 def remove_state(state_dir: str | os.PathLike | None) -> None:

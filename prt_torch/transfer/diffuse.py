@@ -693,7 +693,8 @@ def _trace_faces(caster: RayCaster, mesh: Mesh, bands: int, samples: int, seed: 
                                   "(CLI: --resume) to continue it, or remove it (CLI: --overwrite) to start again")
         remove_state(state)  # the face pass of a run whose state was discarded (CLI --overwrite)
     parts = run_chunks(F, chunk_size, compute, state_dir=state, fingerprint=fingerprint, resume=run.resume,
-                       progress=run.progress, desc=f"diffuse faces {mesh.name}", rays_of=lambda r: int(r["rays"].sum()))
+                       progress=run.progress, desc=f"diffuse faces {mesh.name}", rays_of=lambda r: int(r["rays"].sum()),
+                       executor=run.executor)
     X0 = torch.cat([p["T"] for p in parts]).to(torch.float64)
     meta["rays_traced"] = meta.get("rays_traced", 0) + int(sum(int(p["rays"].sum()) for p in parts))
     meta["face_points"] = F

@@ -36,6 +36,7 @@ import torch
 from .. import io
 from .._checks import check_choice, check_int, describe
 from ..brdf import BRDF, AshikhminShirley
+from ..executor import LocalExecutor, TaskFailure
 from ..scene import Mesh, RayCaster
 from .base import RunOptions
 from .glossy import check_frames, decide_shadows
@@ -202,22 +203,37 @@ def precompute_transport(
 
         bar = tqdm(total=V, desc=f"transport {mesh.name}", unit="vtx", dynamic_ncols=True)
     t0, new = time.perf_counter(), 0
+    ranges = [(c * chunk_size, min(V, (c + 1) * chunk_size)) for c in range(n_chunks)]
+
+    def compute(c: int) -> torch.Tensor:  # one chunk file's tables; a task of run.executor
+        a, b = ranges[c]
+        T = _chunk_transport(caster, brdf, mesh.vertices[a:b], mesh.normals[a:b], F[a:b], texels_flat,
+                             view_dirs, None if mat_index is None else mat_index[a:b], shadows)
+        return T.reshape(b - a, J, 6, res, res).to(store)
+
+    def finished(c: int, T: torch.Tensor | None) -> None:
+        if T is not None:
+            io.save(out / f"chunk_{c:06d}.prt", {"data": T}, kind="transfer/transport_chunk",
+                    meta={"chunk": c, "start": ranges[c][0], "stop": ranges[c][1]})
+        if bar is not None:
+            bar.update(ranges[c][1] - ranges[c][0])
+        if run.callback is not None:
+            run.callback(c, n_chunks)
+
     try:
-        for c in range(n_chunks):  # loop over chunk files; each chunk is one batched computation
-            a, b = c * chunk_size, min(V, (c + 1) * chunk_size)
-            path = out / f"chunk_{c:06d}.prt"
-            if not path.exists():
-                if max_chunks is not None and new >= max_chunks:
-                    break
-                T = _chunk_transport(caster, brdf, mesh.vertices[a:b], mesh.normals[a:b], F[a:b], texels_flat,
-                                     view_dirs, None if mat_index is None else mat_index[a:b], shadows)
-                io.save(path, {"data": T.reshape(b - a, J, 6, res, res).to(store)}, kind="transfer/transport_chunk",
-                        meta={"chunk": c, "start": a, "stop": b})
-                new += 1
-            if bar is not None:
-                bar.update(b - a)
-            if run.callback is not None:
-                run.callback(c, n_chunks)
+        todo = []
+        for c in range(n_chunks):
+            if (out / f"chunk_{c:06d}.prt").exists():
+                finished(c, None)
+            elif max_chunks is None or len(todo) < max_chunks:
+                todo.append(c)
+        ex = LocalExecutor() if run.executor is None else run.executor
+        res = ex.map(compute, todo, on_result=lambda k, T: finished(todo[k], T))
+        new = sum(not isinstance(r, TaskFailure) for r in res)
+        bad = [r for r in res if isinstance(r, TaskFailure)]
+        if bad:
+            raise RuntimeError(f"transport {mesh.name}: chunk {todo[bad[0].index]} failed {bad[0].attempts} time(s): {bad[0].error}; "
+                               f"{len(bad)} chunk(s) failed, the others are kept in {str(out)!r} (resume to compute the rest)")
     finally:
         if bar is not None:
             bar.close()
