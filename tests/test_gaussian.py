@@ -96,6 +96,43 @@ def test_extremes_fit_from_peaks_and_moments(cube, case, mu, sigma):
     assert float(enc.tensors["weights"][0, 0, 0]) == pytest.approx(2.0, rel=1e-2), case
 
 
+@pytest.mark.filterwarnings("ignore::DeprecationWarning")  # torch.jit inside autograd.functional
+@pytest.mark.parametrize("N", [1, 2, 3])
+def test_normal_equations_equal_autograd_jacobian(cube, N):
+    """The moment-factorised JᵀJ and Jᵀr of the data term (Problem.normal_equations) against the
+    Jacobian of the residual √Δω (Σ_k w_k G_k − T) taken by autograd in the same coordinates
+    (log w, log σ, tangent-plane u, v of each mean)."""
+    from prt_torch.codecs.gaussian import _Problem, _tangents
+    from prt_torch.lighting.prefilter import sg_normaliser
+
+    dirs, sa = (t.double() for t in cube)
+    g = torch.Generator().manual_seed(N)
+    b = 3
+    mu = torch.nn.functional.normalize(torch.randn(b, N, 3, generator=g, dtype=torch.float64), dim=-1)
+    ls = torch.log(torch.rand(b, N, generator=g, dtype=torch.float64) * 0.5 + 0.15)
+    a = torch.randn(b, N, generator=g, dtype=torch.float64)
+    T = mixture(dirs, torch.rand(b, N, generator=g, dtype=torch.float64),
+                torch.nn.functional.normalize(torch.randn(b, N, 3, generator=g, dtype=torch.float64), dim=-1),
+                torch.full((b, N), 0.3, dtype=torch.float64))
+    prob = _Problem(T, dirs, sa, N, 0.0, 0.0, 0.0, 0.1, 3.0)
+    JtJ, Jtr, E = prob.normal_equations(a, ls, mu, torch.arange(b), None, None, None)
+    t1, t2 = _tangents(mu)
+    for f in range(b):
+        def resid(theta):
+            th = theta.view(N, 4)
+            m = mu[f] + th[:, 2:3] * t1[f] + th[:, 3:4] * t2[f]
+            m = m / m.norm(dim=-1, keepdim=True)
+            lam = torch.exp(-2 * (ls[f] + th[:, 1]))
+            val = (torch.exp(a[f] + th[:, 0]) * sg_normaliser(lam))[:, None] * torch.exp(lam[:, None] * (m @ dirs.T - 1))
+            return sa.sqrt() * (val.sum(0) - T[f])
+        Jf = torch.autograd.functional.jacobian(resid, torch.zeros(4 * N, dtype=torch.float64), vectorize=True,
+                                                strategy="forward-mode")  # [P, 4N]
+        r0 = resid(torch.zeros(4 * N, dtype=torch.float64))
+        torch.testing.assert_close(JtJ[f], Jf.T @ Jf, rtol=1e-9, atol=1e-12)
+        torch.testing.assert_close(Jtr[f], Jf.T @ r0, rtol=1e-9, atol=1e-12)
+        torch.testing.assert_close(E[f], r0.square().sum(), rtol=1e-12, atol=1e-14)
+
+
 def test_all_zero_function_gives_zero_weights_and_no_nan(cube):
     d, _ = cube
     T = torch.zeros(3, d.shape[0])
