@@ -965,6 +965,19 @@ def _lm_loop(prob, a, ls, mu, conv, z, targets, sb, max_iter, tol, smin, smax):
         tm, ts = targets(mu, ls, act)
         sba = None if sb is None else sb[act]
         JtJ, Jtr, E0 = prob.normal_equations(a[act], ls[act], mu[act], act, tm, ts, sba)
+        # active set (projected Newton): a log-width or log-weight at its bound whose gradient
+        # points outward is frozen for this step (its row and column replaced by the identity,
+        # its gradient zeroed), so the bound no longer swallows the step of the others
+        nA = act.numel()
+        frozen = torch.zeros(nA, a.shape[1], 4, dtype=torch.bool)
+        g4 = Jtr.view(nA, -1, 4)
+        frozen[..., 1] = ((ls[act] <= prob.lsmin + 1e-6) & (g4[..., 1] > 0)) | ((ls[act] >= prob.lsmax - 1e-6) & (g4[..., 1] < 0))
+        frozen[..., 0] = (a[act] <= _LOG_W_MIN + 1e-6) & (g4[..., 0] > 0)
+        frozen = frozen.reshape(nA, -1)
+        if bool(frozen.any()):
+            free = (~frozen).double()
+            JtJ = JtJ * free[:, :, None] * free[:, None, :] + torch.diag_embed(frozen.double())
+            Jtr = Jtr * free
         diag = torch.diagonal(JtJ, dim1=1, dim2=2)
         A = JtJ + torch.diag_embed(lm[act, None] * diag + 1e-12 * (1 + diag.amax(1, keepdim=True)))
         L, info = torch.linalg.cholesky_ex(A)
