@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 
@@ -25,8 +26,31 @@ def register(sub) -> None:
     p.add_argument("--no-render", action="store_true", help="skip the pyrender images")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.add_argument("--dry-run", action="store_true", help="validate and print the resolved config and sweep, do no work")
+    add_executor_args(p, "the transfer's chunks and the codec settings")
     p.add_argument("--debug", action="store_true", help="show tracebacks")
     p.set_defaults(func=run)
+
+
+def add_executor_args(p, what: str) -> None:
+    """``--executor {local,ray}`` and ``--ray-address`` (shared with ``prt precompute``)."""
+    from ..executor import EXECUTORS
+
+    p.add_argument("--executor", choices=list(EXECUTORS), default="local",
+                   help=f"where {what} run: 'local' (this process, default) or 'ray' (one Ray task each; needs "
+                        "pip install 'prt-torch[ray]'; docs/ray.md)")
+    p.add_argument("--ray-address", default=None, metavar="ADDR",
+                   help="with --executor ray: join this Ray cluster (HOST:PORT from `ray start --head`, or 'auto'); "
+                        "default: start a local Ray with every core")
+
+
+def executor_from_args(args: argparse.Namespace):
+    """The executor ``--executor``/``--ray-address`` ask for; checks that Ray is installed
+    before any work (it connects on first use)."""
+    from ..executor import make_executor
+
+    if args.ray_address is not None and args.executor != "ray":
+        raise ValueError(f"--ray-address {args.ray_address!r} needs --executor ray (got --executor {args.executor})")
+    return make_executor(args.executor, args.ray_address)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -49,6 +73,7 @@ def run(args: argparse.Namespace) -> int:
         overrides.append(f"target.codec={args.target_codec}")
     if args.target_param:
         overrides.append(f"target.param={args.target_param}")
+    executor = executor_from_args(args)
     cfg = load_config(args.config, overrides)
     runs = expand_runs(cfg)
     if args.dry_run:
@@ -59,9 +84,19 @@ def run(args: argparse.Namespace) -> int:
             print(json.dumps({k: v for k, v in c.items() if not k.startswith("_")}, indent=2))
             print(f"# {len(expand_codecs(c['codecs']))} codec settings")
         return 0
-    for c in runs:
-        args.resume_hint = (f"finished settings are kept in {str(Path(c['output_dir']) / c['name'] / 'records')!r}; "
-                            "run the same command again to continue (they are not recomputed)")
-        out = run_benchmark(c, resume=not args.no_resume, progress=not args.quiet)
-        print(f"report: {out / 'report.md'}")
+    failed = 0
+    with executor:
+        for c in runs:
+            args.resume_hint = (f"finished settings are kept in {str(Path(c['output_dir']) / c['name'] / 'records')!r}; "
+                                "run the same command again to continue (they are not recomputed)")
+            out = run_benchmark(c, resume=not args.no_resume, progress=not args.quiet, executor=executor)
+            print(f"report: {out / 'report.md'}")
+            fails = json.loads((out / "results.json").read_text()).get("failures") or []
+            for f in fails:
+                print(f"prt bench: setting {f['setting_id']} failed after {f['attempts']} attempt(s): {f['error']}", file=sys.stderr)
+            failed += len(fails)
+    if failed:
+        print(f"prt bench: {failed} setting(s) failed (listed in the report); run the same command again to retry them",
+              file=sys.stderr)
+        return 1
     return 0

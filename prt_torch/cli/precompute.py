@@ -6,6 +6,9 @@ refused unless ``--overwrite``. Finished chunks are kept in ``<out>.state/`` whi
 after an interruption ``--resume`` continues from the last finished chunk (same result as an
 uninterrupted run); ``--overwrite`` discards such a state directory.
 
+With ``--executor ray`` the chunks run as Ray tasks (a local Ray, or a cluster with
+``--ray-address``); the state directory and the result are the same as a local run's.
+
 Every kind and its options come from the transfer registry (``prt_torch.transfer.kinds()``);
 an option a kind does not take is refused. Unset options take the kind's defaults.
 """
@@ -16,6 +19,8 @@ import shlex
 import shutil
 import sys
 from pathlib import Path
+
+from .bench import add_executor_args, executor_from_args
 
 
 def _albedo_arg(text: str):
@@ -68,6 +73,7 @@ def register(subparsers) -> None:
     g.add_argument("--workers", type=int, default=None, help="ray-casting processes (default: all cores for long runs)")
     g.add_argument("--memory-limit", type=float, default=None, help="GiB; refuse a run estimated above it (default 60%% of RAM)")
     g.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_executor_args(g, "the chunks")
     p.add_argument("--debug", action="store_true", help="show tracebacks")
     g = p.add_argument_group("automatic choices ('auto' for --bands, --bands-out, --tents)")
     g.add_argument("--energy", type=float, default=None,
@@ -148,6 +154,11 @@ class _TableDir:
 
 
 def run(args) -> int:
+    with executor_from_args(args) as executor:  # Ray checked before any work; a local Ray stops at the end
+        return _run(args, executor)
+
+
+def _run(args, executor) -> int:
     from ..scene import load_scene
     from ..transfer import RunOptions, default_state_dir, get_kind
 
@@ -172,7 +183,7 @@ def run(args) -> int:
     args.resume_hint = (f"finished chunks are kept in {str(state)!r}; continue with: "
                         f"prt {' '.join(shlex.quote(a) for a in _argv(args))} --resume")
     opts = RunOptions(chunk_size=args.chunk, workers=args.workers, state_dir=state, resume=args.resume,
-                      progress=not args.no_progress,
+                      progress=not args.no_progress, executor=executor,
                       max_memory=None if args.memory_limit is None else int(args.memory_limit * (1 << 30)))
     if kind.output == "directory":
         table = kind.precompute(mesh, params, run=opts, out=state)

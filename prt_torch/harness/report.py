@@ -208,6 +208,22 @@ def _contention_note(records: list[dict]) -> list[str]:
             "not to be trusted; their speed-ups, paired ratios of interleaved samples, are more robust but wider.", ""]
 
 
+def executor_lines(res: dict) -> list[str]:
+    """Where the settings ran (``prt bench --executor``) and the settings that failed there."""
+    ex = res.get("executor") or {}
+    out: list[str] = []
+    if ex.get("executor", "local") != "local":
+        out += [f"Executor: {ex['executor']} ({ex.get('address', '')}, {ex.get('parallelism', '?')} task slots): settings ran "
+                "concurrently, so their absolute rates (Mvert/s, fps) are contended; compare the paired speed-ups "
+                "(vs uncompr.), which are timed back to back inside each task. Errors, bytes and PSNR do not depend on it.", ""]
+    fails = res.get("failures") or []
+    if fails:
+        out += [f"## Failed settings ({len(fails)})", "", "Each failed on every attempt; the other settings finished. "
+                "Run the same command again to retry only these.", "", "| setting | attempts | error |", "|---|---|---|"]
+        out += [f"| {f['setting_id']} | {f['attempts']} | {str(f['error']).replace('|', '/')} |" for f in fails] + [""]
+    return out
+
+
 def _setting(x: dict) -> str:
     """A record's parameters, led by its ablation value when it has one."""
     a = x.get("ablation")
@@ -339,6 +355,7 @@ def markdown(results: dict, figures: list[str], renders: list[str]) -> str:
     front = [r["records"][i]["setting_id"] for i in pareto_front(pts)]
     lines += ["", f"Pareto front (PSNR vs fps): {', '.join(front)}.", ""]
     lines += _contention_note(r["records"])
+    lines += executor_lines(r)
     lines += scene_required(r)
     if r.get("validation"):
         v = r["validation"]

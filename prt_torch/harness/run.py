@@ -36,6 +36,7 @@ from typing import Any, Callable
 import torch
 
 from .. import codecs, io
+from ..executor import Executor, LocalExecutor, TaskFailure
 from ..transfer import Transfer
 from .config import config_hash, expand_codecs
 from .evaluate import Evaluator, camera_positions
@@ -97,9 +98,12 @@ def estimate_memory(cfg: dict, num_vertices: int) -> dict:
     return {"signal_bytes": signal, "codec_workspace_bytes": work, "metrics_bytes": metrics, "estimated_peak_bytes": total, "D": D}
 
 
-def compute_transfer(cfg: dict, mesh, cache_dir: Path, progress: bool = True) -> tuple[Transfer, dict]:
+def compute_transfer(cfg: dict, mesh, cache_dir: Path, progress: bool = True,
+                     executor: Executor | None = None) -> tuple[Transfer, dict]:
     """Transfer for ``cfg`` on ``mesh``, from the cache if it is there. Returns (transfer, info).
 
+    A cache miss precomputes once, its chunks on ``executor`` (None: in this process; a
+    ``RayExecutor``: one Ray task per chunk — the same result, bit for bit).
     ``'auto'`` parameters are chosen from the config's lights (projected to 32 bands) and the
     BRDF (``prt_torch.transfer.auto``); the choices are part of the cache key and land in
     ``meta['auto']``."""
@@ -122,7 +126,7 @@ def compute_transfer(cfg: dict, mesh, cache_dir: Path, progress: bool = True) ->
         t0 = time.perf_counter()
         hit = (path / "manifest.json").is_file() and json.loads((path / "manifest.json").read_text()).get("complete")
         if not hit:
-            get_kind(kind).precompute(mesh, params, run=RunOptions(progress=progress, resume=path.exists()), out=path)
+            get_kind(kind).precompute(mesh, params, run=RunOptions(progress=progress, resume=path.exists(), executor=executor), out=path)
         tr = load_directory_transfer(path)
         return tr, {"cache": "hit" if hit else "miss", "path": str(path), "seconds": time.perf_counter() - t0, "key": key}
     path = Path(cache_dir) / f"transfer-{kind}-{key}.prt"
@@ -131,7 +135,7 @@ def compute_transfer(cfg: dict, mesh, cache_dir: Path, progress: bool = True) ->
         tr = Transfer.load(path)
         return tr, {"cache": "hit", "path": str(path), "seconds": time.perf_counter() - t0, "key": key}
     t0 = time.perf_counter()
-    tr = get_kind(kind).precompute(mesh, params, run=RunOptions(progress=progress), lights=lights)
+    tr = get_kind(kind).precompute(mesh, params, run=RunOptions(progress=progress, executor=executor), lights=lights)
     secs = time.perf_counter() - t0
     tr.save(path, overwrite=True)
     return tr, {"cache": "miss", "path": str(path), "seconds": secs, "key": key}
@@ -217,6 +221,18 @@ def evaluate_setting(ev: Evaluator, setting: dict, lights: list[torch.Tensor], v
     return rec, codec, enc
 
 
+class SettingTask:
+    """``setting -> (record, codec, encoding)``: :func:`evaluate_setting` with one run's context
+    (evaluator, lights, views, config, reference radiance) bound — what :func:`evaluate_run`
+    hands its executor (for Ray, pickled once and shared by every setting's task)."""
+
+    def __init__(self, ev: Evaluator, lights: list[torch.Tensor], views: list[Any], cfg: dict, ref_cache: dict):
+        self.ev, self.lights, self.views, self.cfg, self.ref_cache = ev, lights, views, cfg, ref_cache
+
+    def __call__(self, setting: dict) -> tuple[dict, Any, Any]:
+        return evaluate_setting(self.ev, setting, self.lights, self.views, self.cfg, self.ref_cache)
+
+
 # --------------------------------------------------------------------------- the run
 
 def _load_records(rec_dir: Path) -> dict[str, dict]:
@@ -283,20 +299,30 @@ class RunState:
     uncompressed: dict
     records: list
     run_setting: Callable[[dict], dict]
+    failures: list = dataclasses.field(default_factory=list)
+    executor: dict = dataclasses.field(default_factory=lambda: LocalExecutor().describe())
 
 
 def evaluate_run(cfg: dict, run_dir: Path, resume: bool = True, progress: bool = True,
-                 log: Callable[[str], None] = print, label: str | None = None) -> RunState:
+                 log: Callable[[str], None] = print, label: str | None = None,
+                 executor: Executor | None = None) -> RunState:
     """Transfer (cached), lights, views, the uncompressed reference, and every codec setting of
     ``cfg`` evaluated (or restored from ``run_dir/records``). ``label`` prefixes the setting ids
-    (an ablation's value, so that its settings do not collide with another value's)."""
+    (an ablation's value, so that its settings do not collide with another value's).
+
+    ``executor`` (:mod:`prt_torch.executor`; None: this process, in order) runs the transfer's
+    chunks and the settings still to evaluate: each setting is one task; its record and encoding
+    are written here as it finishes (atomic, so an interruption keeps every finished setting and
+    a re-run skips it). With a ``RayExecutor`` a setting whose task fails on every attempt is
+    listed in ``RunState.failures`` (setting, error, attempts) while the others finish."""
     from ..lighting import load_light
 
+    executor = LocalExecutor() if executor is None else executor
     rec_dir = run_dir / "records"
     mesh, mem = load_mesh_within_budget(cfg)
     log(f"[bench] {cfg['name']}{f' [{label}]' if label else ''}: scene {mesh.name} ({mesh.num_vertices} vertices), "
         f"transfer {cfg['transfer']['type']}")
-    tr, tinfo = compute_transfer(cfg, mesh, Path(cfg["cache_dir"]), progress=progress)
+    tr, tinfo = compute_transfer(cfg, mesh, Path(cfg["cache_dir"]), progress=progress, executor=executor)
     log(f"[bench] transfer {tuple(tr.data.shape)} ({tinfo['cache']}, {tinfo['seconds']:.1f} s)")
     ev = Evaluator(tr)
     lights = [load_light(spec, bands=ev.bands_in) for spec in cfg["lights"]]
@@ -308,41 +334,63 @@ def evaluate_run(cfg: dict, run_dir: Path, resume: bool = True, progress: bool =
 
     settings = expand_codecs(cfg["codecs"])
     done = _load_records(rec_dir) if resume else {}
-    records: list[dict] = []
     context_key = config_hash({"transfer": tinfo["key"], "lights": cfg["lights"], "views": cfg["views"],
                                "metrics": cfg["metrics"], "seed": cfg["seed"]})
+    task = SettingTask(ev, lights, views, cfg, ref_cache)
 
-    def run_setting(s: dict) -> dict:
-        key = config_hash({"setting": s, "context": context_key})
-        if key in done:
-            return done[key]
-        rec, codec, enc = evaluate_setting(ev, s, lights, views, cfg, ref_cache)
-        rec["key"] = key
+    def key_of(s: dict) -> str:
+        return config_hash({"setting": s, "context": context_key})
+
+    def save(s: dict, result: tuple[dict, Any, Any]) -> dict:
+        rec, codec, enc = result
+        rec["key"] = key_of(s)
         if label:
             rec["setting_id"] = f"{label}-{rec['setting_id']}"
         codec.save(rec_dir / f"{rec['setting_id']}.prt", enc, overwrite=True)  # before the record: a record implies its encoding
         io.atomic_write_json(rec_dir / f"{rec['setting_id']}.json", rec)
-        done[key] = rec
+        done[rec["key"]] = rec
         return rec
 
-    try:
+    def run_setting(s: dict) -> dict:
+        """One setting (the target search's probes): from the records, else evaluated on the executor."""
+        if key_of(s) in done:
+            return done[key_of(s)]
+        (res,) = executor.map(task, [s])
+        if isinstance(res, TaskFailure):
+            raise RuntimeError(f"codec setting {setting_id(s)} failed {res.attempts} time(s): {res.error}")
+        return save(s, res)
+
+    todo = [s for s in settings if key_of(s) not in done]
+    skipped = len(settings) - len(todo)
+    bar = None
+    if progress and todo:
         from tqdm import tqdm
 
-        it = tqdm(settings, desc="codec settings", disable=not progress, unit="setting")
-    except ImportError:  # pragma: no cover
-        it = settings
-    skipped = 0
-    for s in it:
-        was_done = config_hash({"setting": s, "context": context_key}) in done
-        rec = run_setting(s)
-        skipped += was_done
-        records.append(rec)
-        if not was_done:
-            log(f"[bench] {rec['setting_id']}: {rec['bytes_per_vertex']:.1f} B/vertex, PSNR {rec['psnr_lights_db']:.2f} dB, "
-                f"{rec['vertices_per_s'] / 1e6:.2f} Mvert/s, encode {rec['encode_s']:.2f} s")
+        bar = tqdm(total=len(todo), desc="codec settings", unit="setting")
+
+    def finished(i: int, result: tuple[dict, Any, Any]) -> None:
+        rec = save(todo[i], result)
+        if bar is not None:
+            bar.update(1)
+        log(f"[bench] {rec['setting_id']}: {rec['bytes_per_vertex']:.1f} B/vertex, PSNR {rec['psnr_lights_db']:.2f} dB, "
+            f"{rec['vertices_per_s'] / 1e6:.2f} Mvert/s, encode {rec['encode_s']:.2f} s")
+
+    try:
+        out = executor.map(task, todo, on_result=finished)
+    finally:
+        if bar is not None:
+            bar.close()
+    failures = []
+    for f in out:
+        if isinstance(f, TaskFailure):
+            sid = f"{label}-{setting_id(f.item)}" if label else setting_id(f.item)
+            failures.append({"setting_id": sid, "setting": f.item, "error": f.error, "attempts": f.attempts})
+            log(f"[bench] FAILED {sid} after {f.attempts} attempt(s): {f.error}")
+    records = [done[key_of(s)] for s in settings if key_of(s) in done]
     if skipped:
         log(f"[bench] resumed: {skipped} finished setting(s) reused from {rec_dir}")
-    return RunState(cfg, mesh, mem, tr, tinfo, ev, lights, cams, views, ref_cache, uncompressed, records, run_setting)
+    return RunState(cfg, mesh, mem, tr, tinfo, ev, lights, cams, views, ref_cache, uncompressed, records, run_setting,
+                    failures, executor.describe())
 
 
 def _results(cfg: dict, st: RunState, records: list[dict], target: dict | None) -> dict:
@@ -364,19 +412,24 @@ def _results(cfg: dict, st: RunState, records: list[dict], target: dict | None) 
         "uncompressed": st.uncompressed,
         "target": target,
         "records": records,
+        "failures": st.failures,
+        "executor": st.executor,
         "renders": [],
     }
 
 
-def run_benchmark(cfg: dict, resume: bool = True, progress: bool = True, log: Callable[[str], None] = print) -> Path:
+def run_benchmark(cfg: dict, resume: bool = True, progress: bool = True, log: Callable[[str], None] = print,
+                  executor: Executor | None = None) -> Path:
     """Run one benchmark config end to end; returns the run directory reports/<name>/.
     A config with ``ablation`` set runs every value of that key into one combined report
-    (:func:`run_ablation`)."""
+    (:func:`run_ablation`). ``executor``: where the transfer's chunks and the codec settings
+    run (:func:`evaluate_run`; None: this process); failed settings are listed in
+    ``results['failures']`` and the report."""
     cfg = copy.deepcopy(cfg)
     if cfg.get("ablation"):
-        return run_ablation(cfg, resume=resume, progress=progress, log=log)
+        return run_ablation(cfg, resume=resume, progress=progress, log=log, executor=executor)
     run_dir = Path(cfg["output_dir"]) / cfg["name"]
-    st = evaluate_run(cfg, run_dir, resume, progress, log)
+    st = evaluate_run(cfg, run_dir, resume, progress, log, executor=executor)
     ev, lights, views, cams, records, run_setting = st.ev, st.lights, st.views, st.cams, list(st.records), st.run_setting
 
     target = None
@@ -456,7 +509,8 @@ def _put(cfg: dict, path: str, value: Any) -> None:
         node[ks[-1]] = value
 
 
-def run_ablation(cfg: dict, resume: bool = True, progress: bool = True, log: Callable[[str], None] = print) -> Path:
+def run_ablation(cfg: dict, resume: bool = True, progress: bool = True, log: Callable[[str], None] = print,
+                 executor: Executor | None = None) -> Path:
     """One modelling choice swept, one combined report (reports/<name>/).
 
     ``cfg['ablation']`` names the swept key — ``transfer.<param>`` (bands, samples, shadows,
@@ -478,7 +532,7 @@ def run_ablation(cfg: dict, resume: bool = True, progress: bool = True, log: Cal
         for v in values:
             sub = copy.deepcopy(cfg)
             _put(sub, key, v)
-            st = evaluate_run(sub, run_dir, resume, progress, log, label=f"{leaf}{v}")
+            st = evaluate_run(sub, run_dir, resume, progress, log, label=f"{leaf}{v}", executor=executor)
             for r in st.records:
                 r["ablation"] = {"key": key, "value": v}
             records += st.records
@@ -497,7 +551,7 @@ def run_ablation(cfg: dict, resume: bool = True, progress: bool = True, log: Cal
             })
         base = ref
     else:
-        base = evaluate_run(cfg, run_dir, resume, progress, log)
+        base = evaluate_run(cfg, run_dir, resume, progress, log, executor=executor)
         param = key.split(".")[-1]
         for r in base.records:
             r["ablation"] = {"key": key, "value": r["params"].get(param)}
@@ -505,6 +559,8 @@ def run_ablation(cfg: dict, resume: bool = True, progress: bool = True, log: Cal
         per_value = [{"value": v} for v in values]
         ref_value = None
     results = _results(cfg, base, records, None)
+    if key.startswith("transfer."):
+        results["failures"] = [f for _, st in states for f in st.failures]
     results["ablation"] = {"key": key, "values": values, "reference_value": ref_value, "per_value": per_value}
     write_outputs(run_dir, results, log=log)
     return run_dir
