@@ -80,6 +80,24 @@ def test_recovers_known_mixture_from_perturbed_start(cube, lobes, sigmas):
     assert c.fit_info_["relative_l2"] < 1e-3
 
 
+def test_warns_when_the_tables_do_not_resolve_the_lobes(cube):
+    """A lobe far narrower than a texel is fitted at the resolvable width and the fit says the
+    tables are too coarse (naming the fix); a resolved lobe gives no such warning."""
+    d, _ = cube
+    mu = _MU[0][None, None]
+    for sigma, expect in ((0.02, True), (0.3, False)):
+        T = mixture(d, torch.tensor([[1.0]], dtype=torch.float64), mu, torch.tensor([[sigma]], dtype=torch.float64))
+        c = codecs.get("gaussian", lobes=1)
+        with warnings.catch_warnings(record=True) as rec:
+            warnings.simplefilter("always")
+            c.fit(T.float())
+        hit = [w for w in rec if "narrowest width the tables resolve" in str(w.message)]
+        assert bool(hit) == expect, sigma
+        assert (c.fit_info_["lobes_at_resolution_limit"] == 1.0) == expect
+        if expect:
+            assert "--res" in str(hit[0].message)
+
+
 def test_lbfgs_alternative_recovers_a_known_lobe(cube):
     """optimizer='lbfgs' (the measured alternative) fits a noise-free lobe from a perturbed start:
     mean within 0.5°, width and weight within 2% (first-order: looser than LM's 0.05°/0.2%)."""

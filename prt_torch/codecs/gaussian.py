@@ -60,6 +60,7 @@ from __future__ import annotations
 import contextlib
 import math
 import time
+import warnings
 import weakref
 from typing import Any
 
@@ -607,6 +608,13 @@ class GaussianCodec(Codec):
         enc, info = self._encode(X, p, init)
         self._train = ((X.data_ptr(), tuple(X.shape), X.dtype, X._version), weakref.ref(X_in), enc)
         self.fit_info_ = info
+        if info.get("lobes_at_resolution_limit", 0.0) > 0.25:
+            warnings.warn(
+                f"codec {self.codec_name!r}: {100 * info['lobes_at_resolution_limit']:.0f}% of the fitted lobes sit at the "
+                f"narrowest width the tables resolve (sigma = {info['sigma_resolvable']:.3f} rad, 0.6 texel spacings at "
+                f"{layout}): the transport is sharper than its texels, so those functions keep a large error whatever "
+                "the lobe count; tabulate with a finer cube map (prt precompute --kind transport --res 16 or more)",
+                UserWarning, stacklevel=2)
         if info["converged_fraction"] < 1.0:
             self._warn_or_raise(f"codec {self.codec_name!r}: {info['not_converged']} of {info['functions_fitted']} "
                                 f"transport functions did not converge in max_iter={p['max_iter']} iterations")
@@ -721,7 +729,10 @@ class GaussianCodec(Codec):
                             "iterations": it, "converged_fraction": float(conv[nonzero].float().mean()) if nf else 1.0,
                             "objective_mean": float(E[nonzero].mean()) if nf else 0.0,
                             "seconds": time.perf_counter() - tb})
+        live = W > 0
+        at_limit = float((live & (SG <= smin * (1 + 1e-3))).sum()) / max(1, int(live.sum()))
         info = {"batches": batches, "functions": V * J, "functions_fitted": fitted, "not_converged": not_conv,
+                "sigma_resolvable": smin, "lobes_at_resolution_limit": at_limit,
                 "converged_fraction": 1.0 - not_conv / max(1, fitted), "lobes": N,
                 "optimiser": ("batched Levenberg-Marquardt (4N x 4N Cholesky per function)" if p["optimizer"] == "lm"
                               else "L-BFGS (strong Wolfe) on the batch's summed objective"),
