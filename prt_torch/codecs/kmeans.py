@@ -5,6 +5,22 @@ All functions take ``X [P, D]`` (float32 or float64; distances are computed in t
 sums of points accumulated in float64) and optional point weights ``w [P]`` float64.
 Randomness comes only from the ``torch.Generator`` passed in, so results are deterministic
 per seed.
+
+Speed (issue 15): the cost of k-means is distance evaluations — one ``[P, D] @ [D, K]`` GEMM
+per full assignment, one ``[P, D] @ [D, trials]`` pass per k-means++ centre. Both skip the
+points the triangle inequality proves cannot change:
+
+* ``lloyd`` keeps Hamerly's (2010) bounds per point — an upper bound ``u`` on the distance to
+  its centre and a lower bound ``l`` on the distance to every other centre, loosened by the
+  centre shifts each iteration — and evaluates distances only for the points with
+  ``u > max(l, s_a)`` (``s_a``: half the distance from its centre to the nearest other
+  centre): first ``u`` is tightened to the exact distance (one row each), then the rest get a
+  full GEMM row against all centres. Cluster sums are updated incrementally from the points
+  that changed cluster (float64). The labels are those of plain Lloyd (the skipped points
+  provably keep their centre; bounds carry a margin for float32 rounding).
+* ``kmeans_pp`` evaluates a candidate centre only for the points within twice their current
+  distance of their nearest chosen centre (``||c − c_a|| ≥ 2 d(x, c_a)`` ⇒ ``d(x, c) ≥ d(x, c_a)``),
+  gathered in one block; the seeds are those of the unpruned greedy k-means++.
 """
 from __future__ import annotations
 
@@ -16,6 +32,10 @@ __all__ = ["row_chunk", "sq_dists", "assign", "kmeans_pp", "lloyd", "repair_empt
 
 #: Bytes of one [rows, K] distance block.
 BLOCK_BYTES = 64 * 2**20
+
+#: Relative float32/float64 rounding margin of a GEMM squared distance ``xx − 2x·c + cc``: the
+#: bounds of ``lloyd`` and ``kmeans_pp`` widen by ``_ROUND[dtype]·(||x||² + max ||c||²)``.
+_ROUND = {torch.float32: 64 * 2.0 ** -24, torch.float64: 64 * 2.0 ** -53}
 
 
 def row_chunk(cols: int, itemsize: int = 4) -> int:
@@ -34,21 +54,40 @@ def sq_dists(X: torch.Tensor, C: torch.Tensor, xx: torch.Tensor | None = None, c
     return d.clamp_min_(0)
 
 
-def assign(X: torch.Tensor, C: torch.Tensor, xx: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-    """Nearest centre of every point: ``(labels int64 [P], d2 [P])`` (chunked GEMM distances)."""
+def assign(X: torch.Tensor, C: torch.Tensor, xx: torch.Tensor | None = None,
+           second: bool = False) -> tuple[torch.Tensor, ...]:
+    """Nearest centre of every point: ``(labels int64 [P], d2 [P])``, and with ``second`` the
+    squared distance to the second-nearest centre ``d2nd [P]`` (inf when K = 1); dtype of X.
+
+    Row blocks of one GEMM each, ``||c||² − 2 x·c`` (``addmm``), then a row min (top-2 with
+    ``second``); ``||x||²`` is added to the K-wide block's minimum only (faiss's order)."""
     P = X.shape[0]
     if xx is None:
         xx = X.square().sum(1)
     C = C.to(X.dtype)
-    cc = C.square().sum(1)
+    K = C.shape[0]
+    cc = C.square().sum(1)[None, :]
     labels = torch.empty(P, dtype=torch.long)
     d2 = torch.empty(P, dtype=X.dtype)
-    step = row_chunk(C.shape[0], X.element_size())
+    d2b = torch.full((P,), math.inf, dtype=X.dtype) if second else None
+    step = row_chunk(K, X.element_size())
     for i in range(0, P, step):  # chunks bound the [rows, K] block
-        d = sq_dists(X[i:i + step], C, xx[i:i + step], cc)
-        m = d.min(1)
-        labels[i:i + step] = m.indices
-        d2[i:i + step] = m.values
+        d = torch.addmm(cc, X[i:i + step], C.T, beta=1.0, alpha=-2.0)
+        if second and K > 1:
+            v, j = torch.topk(d, 2, dim=1, largest=False)
+            labels[i:i + step] = j[:, 0]
+            d2[i:i + step] = v[:, 0]
+            d2b[i:i + step] = v[:, 1]
+        else:
+            m = d.min(1)
+            labels[i:i + step] = m.indices
+            d2[i:i + step] = m.values
+    d2 += xx
+    d2.clamp_min_(0)
+    if second:
+        d2b += xx
+        d2b.clamp_min_(0)
+        return labels, d2, d2b
     return labels, d2
 
 
@@ -79,22 +118,29 @@ def repair_empty(labels: torch.Tensor, err: torch.Tensor, K: int, w: torch.Tenso
     The moved point's error becomes 0 (it is its new cluster's only member), so the total error
     does not increase. Vectorised: one topk, no loop over clusters.
     """
+    labels, err, moved = _repair(labels, err, K, w)
+    return labels, err, int(moved.numel())
+
+
+def _repair(labels, err, K, w):
+    """``repair_empty`` that also returns the indices of the moved points ``int64 [e]``."""
+    none = torch.zeros(0, dtype=torch.long)
     counts = torch.bincount(labels, minlength=K)
     empty = torch.nonzero(counts == 0).flatten()
     e = int(empty.numel())
     if e == 0:
-        return labels, err, 0
+        return labels, err, none
     score = err.double() * (w if w is not None else 1.0)
     score = torch.where(counts[labels] > 1, score, torch.full_like(score, -1.0))
     e = min(e, int((counts[labels] > 1).sum()))
     if e == 0:
-        return labels, err, 0
+        return labels, err, none
     top = torch.topk(score, e).indices
     labels = labels.clone()
     err = err.clone()
     labels[top] = empty[:e]
     err[top] = 0
-    return labels, err, e
+    return labels, err, top
 
 
 def kmeans_pp(X: torch.Tensor, K: int, gen: torch.Generator, w: torch.Tensor | None = None,
@@ -104,7 +150,9 @@ def kmeans_pp(X: torch.Tensor, K: int, gen: torch.Generator, w: torch.Tensor | N
     probability ∝ w·D². Returns the indices ``int64 [K]`` of the chosen points.
 
     The loop over the K centres is sequential by definition of the method; each step is one
-    GEMM over all points (``[P, D] @ [D, trials]``).
+    GEMM ``[S, D] @ [D, trials]`` over the points S that a candidate can move: those whose
+    distance to their nearest chosen centre exceeds half that centre's distance to a
+    candidate (the others provably keep their D²; module docstring).
     """
     P = X.shape[0]
     if trials is None:
@@ -115,6 +163,9 @@ def kmeans_pp(X: torch.Tensor, K: int, gen: torch.Generator, w: torch.Tensor | N
     chosen = torch.empty(K, dtype=torch.long)
     chosen[0] = torch.multinomial(wd / wd.sum(), 1, generator=gen)[0]
     d2 = sq_dists(X, X[chosen[0]][None], xx, xx[chosen[0]][None]).flatten().double()
+    near = torch.zeros(P, dtype=torch.long)  # index into chosen of each point's nearest centre
+    # rounding margin of a GEMM squared distance (both sides of the pruning test)
+    margin = 2 * _ROUND.get(X.dtype, _ROUND[torch.float32]) * (xx.double() + float(xx.max()))
     for i in range(1, K):
         p = wd * d2
         s = float(p.sum())
@@ -122,10 +173,24 @@ def kmeans_pp(X: torch.Tensor, K: int, gen: torch.Generator, w: torch.Tensor | N
             p = wd.clone()
             s = float(p.sum())
         cand = torch.multinomial(p / s, trials, replacement=True, generator=gen)
-        dc = sq_dists(X, X[cand], xx, xx[cand]).double()  # [P, trials]
-        new = torch.minimum(d2[:, None], dc)
-        best = int(torch.argmin((wd[:, None] * new).sum(0)))
-        d2 = new[:, best].contiguous()
+        # ||c_near − cand||² ≥ 4 d2 (with rounding margin): the candidate cannot come closer
+        cc = sq_dists(X[chosen[:i]], X[cand], xx[chosen[:i]], xx[cand]).double()  # [i, trials]
+        need = (cc[near] < 4.0 * (d2 + 2 * margin)[:, None]).any(1)
+        S = torch.nonzero(need).flatten()
+        if S.numel() > P // 2:  # most points: no gather
+            S = None
+        XS, xxS = (X, xx) if S is None else (X[S], xx[S])
+        dS, wS = (d2, wd) if S is None else (d2[S], wd[S])
+        dc = sq_dists(XS, X[cand], xxS, xx[cand]).double()  # [|S|, trials]
+        new = torch.minimum(dS[:, None], dc)
+        best = int(torch.argmin((wS[:, None] * new).sum(0)))
+        moved = dc[:, best] < dS
+        if S is None:
+            d2 = new[:, best].contiguous()
+            near[moved] = i
+        else:
+            d2[S] = new[:, best]
+            near[S[moved]] = i
         chosen[i] = cand[best]
     return chosen
 
@@ -134,63 +199,148 @@ def lloyd(X: torch.Tensor, C0: torch.Tensor, max_iter: int, tol: float, w: torch
           xx: torch.Tensor | None = None) -> dict:
     """LBG / Lloyd iterations from centres ``C0 [K, D]`` (Sloan 2003 §4.1).
 
-    Each iteration: classify every point to its nearest centre (GEMM distances), give empty
-    clusters the worst-approximated points (``repair_empty``), move centres to the weighted
-    means. Converged when no label changes, or when the total squared centre shift is
-    ≤ tol · mean per-dimension variance of X (scikit-learn's criterion). A final
-    classification makes labels consistent with the returned centres.
+    Each iteration: classify every point to its nearest centre (GEMM distances, only for the
+    points Hamerly's bounds cannot certify — module docstring), give empty clusters the
+    worst-approximated points (``repair_empty``), move centres to the weighted means.
+    Converged when no label changes, or when the total squared centre shift is ≤ tol · mean
+    per-dimension variance of X (scikit-learn's criterion). A final classification makes
+    labels consistent with the returned centres.
 
     Returns dict: ``centers [K, D] float64``, ``labels int64 [P]``, ``d2 [P]`` (X dtype),
-    ``inertia`` (Σ w d2, float64), ``n_iter``, ``converged``, ``repaired`` (total moves).
+    ``inertia`` (Σ w d2, float64), ``n_iter``, ``converged``, ``repaired`` (total moves),
+    ``distance_rows`` (full K-wide distance rows evaluated, in units of P: plain Lloyd
+    evaluates n_iter + 1).
     """
     K = C0.shape[0]
+    P = X.shape[0]
     if xx is None:
         xx = X.square().sum(1)
     wd = None if w is None else w.double()
-    mean_var = float(_weighted_var(X, wd).mean())
-    tol_abs = tol * mean_var
     C = C0.double().clone()
-    prev = None
+    eps = _ROUND.get(X.dtype, _ROUND[torch.float32])
+    xx64 = xx.double()
+    rows = 0
+
+    def full(idx):
+        """Exact labels and bounds of points ``idx`` (None: all) against all centres."""
+        nonlocal rows
+        Xs, xs = (X, xx) if idx is None else (X.index_select(0, idx), xx[idx])
+        lab, a2, b2 = assign(Xs, C, xs, second=True)
+        m = eps * ((xx64 if idx is None else xx64[idx]) + float(C.square().sum(1).max()))
+        rows += Xs.shape[0]
+        return lab, (a2.double() + m).sqrt(), (b2.double() - m).clamp_min(0).sqrt()
+
+    labels, u, low = full(None)
+    labels, moved = _repair_exact(X, C, labels, K, wd)
+    repaired = int(moved.numel())
+    u[moved] = math.inf  # moved points: bounds unknown, recomputed next iteration
+    low[moved] = 0
+    sums, ws = segment_sums(X, labels, K, wd)
+    # mean per-dimension variance of X from the sums (scikit-learn's tol scale)
+    tot = float(ws.sum())
+    mean_var = max(0.0, (float((xx64 * (wd if wd is not None else 1.0)).sum()) / tot
+                         - float((sums.sum(0) / tot).square().sum())) / X.shape[1])
+    tol_abs = tol * mean_var
+    changes, r = P, repaired
     converged = False
-    repaired = 0
-    it = 0
-    for it in range(1, max_iter + 1):
-        labels, d2 = assign(X, C, xx)
-        labels, d2, r = repair_empty(labels, d2, K, wd)
-        repaired += r
-        if prev is not None and r == 0 and torch.equal(labels, prev):
+    it = 1
+    while True:
+        if it > 1 and changes == 0 and r == 0:
             converged = True
             break
-        sums, ws = segment_sums(X, labels, K, wd)
         newC = torch.where(ws[:, None] > 0, sums / ws.clamp_min(1e-300)[:, None], C)
-        shift = float((newC - C).square().sum())
+        delta = (newC - C).square().sum(1)
+        shift = float(delta.sum())
         C = newC
-        prev = labels
         if shift <= tol_abs:
             converged = True
-            break
-    labels, d2 = assign(X, C, xx)
-    labels, d2, r = repair_empty(labels, d2, K, wd)
-    if r:  # moved points become their clusters' centres
-        sums, ws = segment_sums(X, labels, K, wd)
-        C = torch.where(ws[:, None] > 0, sums / ws.clamp_min(1e-300)[:, None], C)
+        labels, u, low, sums, ws, changes, r = _bounded_step(X, xx, C, labels, u, low, delta.sqrt(), sums, ws, wd,
+                                                             full, eps, xx64)
         repaired += r
+        if converged or it == max_iter:
+            break
+        it += 1
+    if r:  # moved points become their clusters' centres
+        C = torch.where(ws[:, None] > 0, sums / ws.clamp_min(1e-300)[:, None], C)
+    d2 = _residuals(X, C, labels)
     inertia = float((d2.double() * (wd if wd is not None else 1.0)).sum())
     return {"centers": C, "labels": labels, "d2": d2, "inertia": inertia, "n_iter": it,
-            "converged": converged, "repaired": repaired}
+            "converged": converged, "repaired": repaired, "distance_rows": rows / max(P, 1)}
 
 
-def _weighted_var(X: torch.Tensor, w: torch.Tensor | None) -> torch.Tensor:
-    """Per-dimension (weighted) variance of X, float64 ``[D]`` (chunked)."""
-    P, D = X.shape
-    s1 = torch.zeros(D, dtype=torch.float64)
-    s2 = torch.zeros(D, dtype=torch.float64)
-    tot = float(w.sum()) if w is not None else float(P)
-    step = row_chunk(D, 8)
-    for i in range(0, P, step):
-        xs = X[i:i + step].double()
-        ww = w[i:i + step, None] if w is not None else 1.0
-        s1 += (xs * ww).sum(0)
-        s2 += (xs.square() * ww).sum(0)
-    m = s1 / tot
-    return (s2 / tot - m.square()).clamp_min(0)
+def _residuals(X: torch.Tensor, C: torch.Tensor, labels: torch.Tensor, idx: torch.Tensor | None = None) -> torch.Tensor:
+    """``||x_p − c_{labels_p}||²`` in X's dtype from the differences themselves (not the GEMM
+    expansion), for all points or those in ``idx``; chunked. ``[P]`` or ``[len(idx)]``."""
+    Cx = C.to(X.dtype)
+    n = X.shape[0] if idx is None else idx.numel()
+    out = torch.empty(n, dtype=X.dtype)
+    step = row_chunk(X.shape[1], X.element_size())
+    for i in range(0, n, step):  # chunks bound the [rows, D] difference
+        if idx is None:
+            xs, lab = X[i:i + step], labels[i:i + step]
+        else:
+            rows = idx[i:i + step]
+            xs, lab = X.index_select(0, rows), labels.index_select(0, rows)
+        r = Cx.index_select(0, lab).sub_(xs)
+        out[i:i + step] = r.square_().sum(1)
+    return out
+
+
+def _repair_exact(X, C, labels, K, wd):
+    """``repair_empty`` on exact errors, computed only when a cluster is empty. Returns
+    (labels, indices of the moved points)."""
+    if int(torch.bincount(labels, minlength=K).min()) > 0:
+        return labels, torch.zeros(0, dtype=torch.long)
+    labels, _, moved = _repair(labels, _residuals(X, C, labels), K, wd)
+    return labels, moved
+
+
+def _bounded_step(X, xx, C, labels, u, low, delta, sums, ws, wd, full, eps, xx64):
+    """One Hamerly assignment after the centres moved by ``delta [K]`` (float64), with the
+    incremental update of the cluster sums. Returns the new (labels, u, low, sums, ws,
+    changes, repaired)."""
+    K = C.shape[0]
+    u = u + delta[labels]
+    if K > 1:
+        top2 = torch.topk(delta, 2)
+        low = (low - torch.where(labels == top2.indices[0], top2.values[1], top2.values[0])).clamp_min(0)
+        G = C @ C.T
+        cc = G.diagonal()
+        cd = (cc[:, None] + cc[None, :] - 2 * G).clamp_min(0)
+        cd.fill_diagonal_(math.inf)
+        s = 0.5 * cd.min(1).values.sqrt()
+        bound = torch.maximum(s[labels], low)
+    else:
+        bound = torch.full_like(u, math.inf)
+    idx = torch.nonzero(u > bound).flatten()
+    new_labels = labels
+    if idx.numel():
+        # tighten u to the exact distance to the own centre (one row per point)
+        e2 = _residuals(X, C, labels, idx).double()
+        ut = (e2 * (1 + 1e-5) + eps * (xx64[idx] + float(C.square().sum(1).max()))).sqrt()
+        u[idx] = ut
+        idx = idx[ut > bound[idx]]
+    if idx.numel():
+        lab, ua, la = full(idx)
+        new_labels = labels.clone()
+        new_labels[idx] = lab
+        u[idx] = ua
+        low[idx] = la
+    ch = torch.nonzero(new_labels != labels).flatten()
+    new_labels, moved = _repair_exact(X, C, new_labels, K, wd)
+    if moved.numel():
+        u[moved] = math.inf
+        low[moved] = 0
+        ch = torch.unique(torch.cat([ch, moved]))
+    if ch.numel():
+        old, new = labels[ch], new_labels[ch]
+        xs = X[ch].double()
+        if wd is not None:
+            xs = xs * wd[ch, None]
+            wc = wd[ch]
+        else:
+            wc = torch.ones(ch.numel(), dtype=torch.float64)
+        sums = sums.index_add(0, new, xs).index_add_(0, old, xs, alpha=-1.0)
+        ws = ws.index_add(0, new, wc).index_add_(0, old, wc, alpha=-1.0)
+        ws = torch.where(torch.bincount(new_labels, minlength=K) > 0, ws, torch.zeros_like(ws))
+    return new_labels, u, low, sums, ws, int((new_labels != labels).sum()), int(moved.numel())
