@@ -893,7 +893,11 @@ def _lm_batch(Tn, nonzero, dirs, sa, J, vn, N, beta, delta, sb, smin, smax, max_
         if beta <= 0:
             return None, None
         nbrs = base[sel, None] + vn[view_of[sel]]  # [b, R]
-        return mu[nbrs].mean(1), ls.exp()[nbrs].mean(1)
+        mn, sn = mu[nbrs], ls.exp()[nbrs]  # [b, R, N, 3], [b, R, N]
+        if mu.shape[1] > 1:  # lobe correspondence: lobe k of a view is aligned with the nearest lobe of each neighbour
+            k = torch.einsum("bnc,brmc->brnm", mu[sel], mn).argmax(-1)  # [b, R, N]
+            mn, sn = mn.gather(2, k[..., None].expand(-1, -1, -1, 3)), sn.gather(2, k)
+        return mn.mean(1), sn.mean(1)
 
     def zero_start(a, ls, mu):  # zero functions: weights 0, the mean starts at the view, then follows the neighbours
         if bool(z.any()):
