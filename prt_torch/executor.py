@@ -185,6 +185,7 @@ class RayExecutor(Executor):
         self.max_in_flight = None if max_in_flight is None else check_int("max_in_flight", max_in_flight, 1)
         self._started = False
         self._remote = None
+        self._shipped: tuple[Any, Any] | None = None  # (fn, its object ref): a fn mapped again is not re-sent
 
     def start(self) -> "RayExecutor":
         """Connect (or start a local Ray) now; idempotent. Raises :class:`ExecutorUnavailable`
@@ -219,7 +220,9 @@ class RayExecutor(Executor):
         if not items:
             return []
         task = self._remote.options(num_cpus=self.cpus_per_task, max_retries=self.max_retries, retry_exceptions=True)
-        fn_box = [ray.put(fn)]
+        if self._shipped is None or self._shipped[0] is not fn:  # e.g. the target search's one-setting maps
+            self._shipped = (fn, ray.put(fn))
+        fn_box = [self._shipped[1]]
         limit = self.max_in_flight or 2 * self.parallelism
         out: list[Any] = [None] * len(items)
         pending: dict[Any, int] = {}
@@ -245,8 +248,8 @@ class RayExecutor(Executor):
                     pending[task.remote(fn_box, items[j], self.threads)] = j
                     break
         except BaseException:
-            for ref in pending:  # Ctrl-C or a failing on_result: stop what is still queued or running
-                ray.cancel(ref, force=True)
+            for ref in pending:  # Ctrl-C or a failing on_result: drop what is queued, interrupt what runs
+                ray.cancel(ref, force=False)  # (KeyboardInterrupt in the task; its worker stays up for the next map)
             raise
         return out
 
@@ -257,6 +260,7 @@ class RayExecutor(Executor):
             ray.shutdown()
             self._started = False
         self._remote = None
+        self._shipped = None
 
 
 def make_executor(name: str = "local", address: str | None = None, **kwargs) -> Executor:
