@@ -403,3 +403,48 @@ def test_bench_report_has_a_mitsuba_validation_section(tmp_path):
     d = res["validation"]["report"]["direct"]
     assert 0.5 < d["ratio"] < 1.5 and d["ratio_se"] > 0  # 8 vertices, 64 spp: a coarse but independent check
     assert "## Validation against Mitsuba 3" in (run_dir / "report.md").read_text()
+
+
+PART = {"name": "g", "note": "Gaussians on their own transfer.", "scene": {"name": "convex", "size": "small"},
+        "transfer": {"type": "transport", "views": 1, "res": 4, "shadows": False, "brdf": {"type": "phong", "s": 4.0}},
+        "codecs": [{"type": "gaussian", "lobes": 1, "max_iter": 5}, {"type": "pca", "vectors": 2}], "render": {"enabled": False}}
+
+
+@pytest.mark.parametrize("part, match", [
+    ({"note": "x"}, r"parts\.0\.name"),
+    ({"name": "a/b"}, r"parts\.0\.name"),
+    ({"name": "g", "target": {"psnr": 30}}, r"parts\.0.*target"),
+    ({"name": "g", "codecs": [{"type": "gaussian", "lobes": 0}]}, r"parts\.0.*lobes"),
+    ({"name": "g", "transfer": {"type": "transport", "res": 0}}, r"parts\.0.*res"),
+])
+def test_invalid_parts_fail_naming_the_entry(tmp_path, part, match):
+    cfg = dict(TINY, parts=[part])
+    with pytest.raises(ValueError, match=match):
+        hc.load_config(str(write_cfg(tmp_path, cfg)))
+
+
+def test_part_runs_on_its_own_transfer_into_the_same_report(tmp_path):
+    """A config part (here: the Gaussian codec on transport tables) runs as a benchmark of its
+    own under parts/<name>/ and lands as a section of the parent report with its scene, note
+    and table; its figures equal those of the same config run on its own."""
+    from prt_torch.harness.run import run_benchmark
+
+    cfg = hc.load_config(str(write_cfg(tmp_path, dict(TINY, codecs=[{"type": "pca", "vectors": 2}], render={"enabled": False},
+                                                       parts=[PART]))))
+    run_dir = run_benchmark(cfg, progress=False, log=lambda s: None)
+    res = json.loads((run_dir / "results.json").read_text())
+    (part,) = res["parts"]
+    assert part["name"] == "g" and part["dir"] == "parts/g"
+    assert (run_dir / "parts" / "g" / "report.md").is_file()
+    assert {r["codec"] for r in part["results"]["records"]} == {"gaussian", "pca"}
+    assert part["results"]["transfer"]["kind"] == "transport" and res["transfer"]["kind"] == "diffuse"
+    md = (run_dir / "report.md").read_text()
+    assert "## Part `g`" in md and "Gaussians on their own transfer." in md and "| gaussian | lobes=1" in md
+    alone = dict(PART, output_dir=str(tmp_path / "alone"), cache_dir=str(tmp_path / "cache"))
+    alone.pop("note")
+    alone.update({k: TINY[k] for k in ("lights", "metrics")})
+    solo = run_benchmark(hc.load_config(str(write_cfg(tmp_path, alone))), progress=False, log=lambda s: None)
+    ref = {r["setting_id"]: r for r in json.loads((solo / "results.json").read_text())["records"]}
+    for r in part["results"]["records"]:
+        assert r["se"] == pytest.approx(ref[r["setting_id"]]["se"], rel=1e-6)
+        assert r["psnr_lights_db"] == pytest.approx(ref[r["setting_id"]]["psnr_lights_db"], abs=1e-6)

@@ -56,7 +56,7 @@ def executor_from_args(args: argparse.Namespace):
 def run(args: argparse.Namespace) -> int:
     import json
 
-    from ..harness.config import expand_codecs, expand_runs, load_config
+    from ..harness.config import expand_codecs, expand_runs, load_config, part_configs
     from ..harness.run import run_benchmark
 
     overrides = list(args.overrides)
@@ -80,9 +80,12 @@ def run(args: argparse.Namespace) -> int:
         from ..harness.run import load_mesh_within_budget
 
         for c in runs:
-            load_mesh_within_budget(c)  # the memory estimate the real run refuses on
-            print(json.dumps({k: v for k, v in c.items() if not k.startswith("_")}, indent=2))
-            print(f"# {len(expand_codecs(c['codecs']))} codec settings")
+            for sub in [c] + part_configs(c):
+                load_mesh_within_budget(sub)  # the memory estimate the real run refuses on
+                if sub is not c:
+                    print(f"# part {sub['name']!r}: {sub['_part']['note']}")
+                print(json.dumps({k: v for k, v in sub.items() if not k.startswith("_")}, indent=2))
+                print(f"# {len(expand_codecs(sub['codecs']))} codec settings")
         return 0
     failed = 0
     with executor:

@@ -44,7 +44,8 @@ import yaml
 
 from ..params import Boolean, Interval, Options, Predicate, check_param, parse_value
 
-__all__ = ["DEFAULTS", "load_config", "apply_override", "expand_runs", "expand_codecs", "validate", "resolve_config_path", "config_hash"]
+__all__ = ["DEFAULTS", "load_config", "apply_override", "expand_runs", "expand_codecs", "validate", "resolve_config_path", "config_hash",
+           "part_configs", "PART_KEYS"]
 
 #: The schema: every accepted key with its default. ``None`` defaults accept any type.
 DEFAULTS: dict[str, Any] = {
@@ -64,10 +65,11 @@ DEFAULTS: dict[str, Any] = {
     "validation": {"enabled": False, "vertices": 24, "spp": 256},  # engine vs Mitsuba 3 (prt_torch.validate)
     "ablation": None,  # a swept key (transfer.<param> or codecs.<i>.<param>): one combined report
     "ablation_reference": None,  # the value the others are compared with (default: the last)
+    "parts": [],  # further benchmarks in the same report, each on its own scene/transfer (part_configs)
 }
 
 #: Keys whose value is itself a list (so a list there is not a sweep).
-LIST_KEYS = {"lights", "codecs"}
+LIST_KEYS = {"lights", "codecs", "parts"}
 #: Keys whose value is a typed object: its keys are the parameters of its ``type``, validated
 #: by that type's registry rather than by this schema.
 FREE_KEYS = {"transfer"}
@@ -285,15 +287,57 @@ def _no_empty_lists(node: Any, path: str) -> None:
         for k, v in node.items():
             _no_empty_lists(v, f"{path}{k}.")
     elif isinstance(node, list):
-        if not node and path.rstrip(".") not in ("transfer.drop_out", "transfer.vertices"):
+        if not node and path.rstrip(".") not in ("transfer.drop_out", "transfer.vertices", "parts"):
             raise ValueError(f"config key {path.rstrip('.')!r} is an empty list; accepted: a value, or a non-empty list (a sweep)")
         for i, v in enumerate(node):
             _no_empty_lists(v, f"{path}{i}.")
 
 
+#: What a part of a benchmark may set (each replaces the parent's section, filled from DEFAULTS);
+#: what it does not set (seed, lights, views, metrics, render, cache, codecs) is the parent's.
+PART_KEYS = {"scene", "transfer", "codecs", "lights", "views", "metrics", "render", "validation"}
+
+
+def part_configs(cfg: dict) -> list[dict]:
+    """The configs of ``cfg['parts']``: further benchmarks reported with this one, each with its
+    own scene and transfer (e.g. a codec family that needs another transfer kind, on a smaller
+    scene). Entry: ``{name: ID, note: TEXT, <PART_KEYS>...}``; the part runs into
+    ``<output_dir>/<name>/parts/<ID>/`` with the parent's seed, lights, views, metrics, cache
+    and codecs unless it sets them. Raises ValueError naming the entry."""
+    out = []
+    seen = set()
+    for i, part in enumerate(cfg.get("parts") or []):
+        where = f"config key 'parts.{i}'"
+        field = f"config key 'parts.{i}.{{}}'".format
+        if not isinstance(part, dict):
+            raise ValueError(f"{where} = {part!r}; accepted: a mapping {{name: ID, note: TEXT, {', '.join(sorted(PART_KEYS))}}}")
+        name = part.get("name")
+        if not isinstance(name, str) or not name or "/" in name or name in seen:
+            raise ValueError(f"{field('name')} = {name!r}; accepted: a unique run name without '/'")
+        seen.add(name)
+        if not isinstance(part.get("note", ""), str):
+            raise ValueError(f"{field('note')} = {part['note']!r}; accepted: a sentence saying what differs from the main run")
+        extra = set(part) - PART_KEYS - {"name", "note"}
+        if extra:
+            raise ValueError(f"{where} sets {sorted(extra)}; accepted keys in a part: name, note, {', '.join(sorted(PART_KEYS))}")
+        raw = {k: copy.deepcopy(cfg[k]) for k in ("seed", "lights", "views", "metrics", "render", "validation", "cache_dir", "codecs")}
+        raw.update({k: copy.deepcopy(v) for k, v in part.items() if k in PART_KEYS})
+        raw["name"] = name
+        raw["output_dir"] = str(Path(cfg["output_dir"]) / str(cfg["name"]) / "parts")
+        try:
+            sub = _merge(DEFAULTS, raw)
+        except ValueError as e:
+            raise ValueError(f"{where}: {e}") from None
+        sub["_source"] = cfg.get("_source")
+        sub["_part"] = {"of": cfg["name"], "note": part.get("note", "")}
+        out.append(sub)
+    return out
+
+
 def validate(cfg: dict) -> None:
     """Types of schema keys; the transfer, codec and light specs through their registries; the
-    scene. Raises ValueError naming the key, before any work."""
+    scene; the parts (each validated as a config of its own). Raises ValueError naming the key,
+    before any work."""
     _no_empty_lists({k: v for k, v in cfg.items() if not k.startswith("_")}, "")
 
     def walk(node: dict, schema: dict, path: str):
@@ -334,6 +378,11 @@ def validate(cfg: dict) -> None:
     for s in scene_names:
         if s not in list_builtins() and not Path(str(s)).is_file():
             raise FileNotFoundError(f"config key 'scene.name' = {s!r}: not a built-in scene ({list_builtins()}) nor an existing mesh file")
+    for i, sub in enumerate(part_configs(cfg)):
+        try:
+            validate(sub)
+        except (ValueError, FileNotFoundError) as e:
+            raise type(e)(f"config key 'parts.{i}' ({sub['name']}): {e}") from None
 
 
 def _validate_ablation(cfg: dict) -> None:

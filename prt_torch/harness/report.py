@@ -341,20 +341,11 @@ def markdown(results: dict, figures: list[str], renders: list[str]) -> str:
         "Of bound: the time of reading the encoded data (and the view) once and writing the output once (a copy_ and a fill_ "
         "of those byte counts, paired in the same run) over the relighting time — 1 is the memory-bandwidth bound.",
         "",
-        "| codec | setting | B/vertex | ratio | SE | rel. SE | PSNR rand (dB) | PSNR lights (dB) | Mvert/s | fps | of bound "
-        "| vs uncompr. | encode (s) |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
-    for x in sorted(r["records"], key=lambda x: (x["codec"], x["bytes_per_vertex"])):
-        lines.append(
-            f"| {x['codec']} | {_setting(x)} | {x['bytes_per_vertex']:.1f} | {_fmt(x['compression_ratio'])} | {_fmt(x['se'])} | "
-            f"{_fmt(x['relative_se'])} | {_fmt(x['psnr_random_db'])} | {_fmt(x['psnr_lights_db'])} | {x['vertices_per_s'] / 1e6:.2f} "
-            f"(±{x['relight_spread']:.0%}) | {_fmt(x['fps'])} | {_bound(x)} | {_speedup(x)} | {_fmt(x['encode_s'])} |"
-        )
-    pts = [(min(x["psnr_lights_db"], 1e9), x["fps"]) for x in r["records"]]
-    front = [r["records"][i]["setting_id"] for i in pareto_front(pts)]
-    lines += ["", f"Pareto front (PSNR vs fps): {', '.join(front)}.", ""]
+    lines += _records_table(r["records"])
     lines += _contention_note(r["records"])
+    for part in r.get("parts") or []:
+        lines += part_lines(part)
     lines += executor_lines(r)
     lines += scene_required(r)
     if r.get("validation"):
@@ -396,6 +387,43 @@ def markdown(results: dict, figures: list[str], renders: list[str]) -> str:
                          f"{'yes' if g['same_mask'] else 'NO'} | {g['glsl_fps']:.1f} | {cpu} |")
         lines.append("")
     return "\n".join(lines)
+
+
+def _records_table(records: list[dict]) -> list[str]:
+    """The PSNR / fps table of a run's records and its Pareto front (PSNR vs fps)."""
+    lines = [
+        "| codec | setting | B/vertex | ratio | SE | rel. SE | PSNR rand (dB) | PSNR lights (dB) | Mvert/s | fps | of bound "
+        "| vs uncompr. | encode (s) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for x in sorted(records, key=lambda x: (x["codec"], x["bytes_per_vertex"])):
+        lines.append(
+            f"| {x['codec']} | {_setting(x)} | {x['bytes_per_vertex']:.1f} | {_fmt(x['compression_ratio'])} | {_fmt(x['se'])} | "
+            f"{_fmt(x['relative_se'])} | {_fmt(x['psnr_random_db'])} | {_fmt(x['psnr_lights_db'])} | {x['vertices_per_s'] / 1e6:.2f} "
+            f"(±{x['relight_spread']:.0%}) | {_fmt(x['fps'])} | {_bound(x)} | {_speedup(x)} | {_fmt(x['encode_s'])} |"
+        )
+    pts = [(min(x["psnr_lights_db"], 1e9), x["fps"]) for x in records]
+    front = [records[i]["setting_id"] for i in pareto_front(pts)]
+    return lines + ["", f"Pareto front (PSNR vs fps): {', '.join(front)}.", ""]
+
+
+def part_lines(part: dict) -> list[str]:
+    """A part of the benchmark (config ``parts``): what differs, its own scene/transfer, its
+    uncompressed peer and its PSNR / fps table; its full report is in ``part['dir']``."""
+    r = part["results"]
+    unc = r["uncompressed"]
+    lines = [f"## Part `{part['name']}`", ""]
+    if part.get("note"):
+        lines += [part["note"], ""]
+    lines += [
+        f"Scene **{r['scene']['name']}** ({r['scene']['vertices']} vertices), transfer **{r['transfer']['kind']}** "
+        f"{tuple(r['transfer']['shape'])} ({r['transfer']['raw_bytes'] / 2**20:.2f} MiB float32). Uncompressed relighting "
+        f"(this part's peer): {unc['vertices_per_s'] / 1e6:.2f} M vertices/s, {unc['fps']:.1f} fps. Full report, plots: "
+        f"[{part['dir']}/report.md]({part['dir']}/report.md).",
+        "",
+    ]
+    lines += _records_table(r["records"])
+    return lines + _contention_note(r["records"])
 
 
 def write_outputs(run_dir: Path, results: dict, log: Callable[[str], None] = print) -> None:

@@ -38,11 +38,11 @@ import torch
 from .. import codecs, io
 from ..executor import Executor, LocalExecutor, TaskFailure
 from ..transfer import Transfer
-from .config import config_hash, expand_codecs
+from .config import config_hash, expand_codecs, part_configs
 from .evaluate import Evaluator, camera_positions
 from .metrics import psnr_vs_reference, random_light_psnr, random_light_psnr_analytic, squared_error
 from .renders import render_best
-from .report import write_outputs
+from .report import load_results, write_outputs
 from .target import find_smallest, search_families
 from .timing import io_bound_fn, machine_info, measure, measure_paired
 
@@ -455,6 +455,11 @@ def run_benchmark(cfg: dict, resume: bool = True, progress: bool = True, log: Ca
         except Exception as e:  # rendering must not lose a finished benchmark; say why
             log(f"[bench] renders skipped: {type(e).__name__}: {e}")
             results["render_error"] = f"{type(e).__name__}: {e}"
+    for sub in part_configs(cfg):  # further benchmarks of the same report, on their own scene/transfer
+        log(f"[bench] part {sub['name']!r}: {sub['_part']['note']}")
+        part_dir = run_benchmark(sub, resume=resume, progress=progress, log=log, executor=executor)
+        results.setdefault("parts", []).append({"name": sub["name"], "note": sub["_part"]["note"],
+                                                "dir": str(part_dir.relative_to(run_dir)), "results": load_results(part_dir)})
     write_outputs(run_dir, results, log=log)
     return run_dir
 
