@@ -32,6 +32,9 @@ from .. import io
 from ..params import Boolean, Interval, Options
 from .base import (Codec, Encoded, check_light, check_matrix_shape, check_signal, check_view, check_weights)
 from .kmeans import row_chunk
+from .relight_kernels import affine_dense, affine_rows, affine_taps, native
+from .relight_kernels import constants as kernel_constants
+from .relight_kernels import fits as kernel_fits
 from .segment import from_tiles, segment_matmul, tile_layout, tiles_bmm, to_tiles
 
 __all__ = ["AffineCodec", "label_dtype"]
@@ -286,16 +289,31 @@ class AffineCodec(Codec):
     # ----------------------------------------------------------------- relight
     def cluster_constants(self, light: torch.Tensor, n: int | None = None) -> torch.Tensor:
         """Per-cluster constants M_i l (Sloan 2003 §6): ``[K, J, n_out, C] float32`` for a light
-        ``[n_in, C]`` (J = n+1 with the mean term M_0 l, n without)."""
+        ``[n_in, C]`` (J = n+1 with the mean term M_0 l, n without). One GEMM over the mean rows
+        and one over the basis rows, read in place (no copy of the K·J·D model)."""
         self._require_fitted()
         n_out, n_in = self.matrix_shape_ or (1, self.D_)
         L = check_light(light, n_in)
-        reps = self._representatives(self._n_eff(n))
-        K, J, _ = reps.shape
-        return (reps.reshape(K * J * n_out, n_in) @ L).view(K, J, n_out, L.shape[1])
+        n = self._n_eff(n)
+        K, C = self.K_, L.shape[1]
+        parts = []
+        if self.means_ is not None:
+            parts.append((self.means_.reshape(K * n_out, n_in) @ L).view(K, 1, n_out, C))
+        if n:
+            nmax = self.basis_.shape[1]  # one GEMM over the whole stored basis (a view), then the first n
+            parts.append((self.basis_.reshape(K * nmax * n_out, n_in) @ L).view(K, nmax, n_out, C)[:, :n])
+        if not parts:
+            return torch.zeros(K, 0, n_out, C)
+        return parts[0].contiguous() if len(parts) == 1 else torch.cat(parts, 1)
 
     def relight(self, enc: Encoded, light: torch.Tensor, view: Any = None, n_vectors: int | None = None) -> torch.Tensor:
         """Radiance straight from the compressed form (Sloan 2003 §6; Lehtinen & Kautz 2003 eq. (13)).
+
+        Per light, the per-cluster constants M_i l (``cluster_constants``); per point, one pass
+        over its codes: ``e_p = M_0 l + Σ_i w_p^i M_i l`` and, with a view, ``y(v_p)·e_p`` (dense)
+        or the tent sum of eq. (13) (taps) folded in before any ``[P, n_out, C]`` exists — the
+        fused kernels of ``relight_kernels`` where a C compiler is available, else the torch
+        formulation below (same results to float32 rounding).
 
         Args:
             light: ``[n_in, C]`` SH light (n_in = D for vector signals).
@@ -309,11 +327,24 @@ class AffineCodec(Codec):
         n_out, n_in = self.matrix_shape_ or (1, self.D_)
         if self.matrix_shape_ is None and view is not None:
             raise ValueError("view was given but this codec was fitted on vectors (no matrix_shape); accepted: view=None")
-        view = check_view(view, P, n_out) if self.matrix_shape_ is not None else None
         n = self._n_eff(n_vectors)
+        lib = native()
+        if lib is not None:
+            # structure now; the view's values are checked inside the kernel (a flag), and only
+            # a flagged call pays for the full check that names the bad value
+            v = check_view(view, P, n_out, values=False) if self.matrix_shape_ is not None else None
+            out = self._relight_native(lib, enc, light, v, n)
+            if out is not None:
+                res, flag = out
+                if flag:
+                    check_view(view, P, n_out)  # raises with the offending value; else the data overflowed
+                return res
+        view = check_view(view, P, n_out) if self.matrix_shape_ is not None else None
         consts = self.cluster_constants(light, n)  # [K, J, n_out, C]
         K, J, _, C = consts.shape
         W = self._weights1(enc, n)  # [P, J]
+        if J == 0:  # no mean and no vectors kept: x̃ = 0
+            return torch.zeros(P, C) if view is not None or self.matrix_shape_ is None else torch.zeros(P, n_out, C)
         if isinstance(view, tuple):
             # sparse view (MRT tents): gather only the k tapped rows of each point's cluster
             # constants (one fused gather-sum), then J multiply-adds per colour
@@ -330,11 +361,63 @@ class AffineCodec(Codec):
         out = out.view(P, n_out, C)
         if view is None:
             return out[:, 0] if self.matrix_shape_ is None else out
-        if isinstance(view, tuple):
-            idx, w = view
-            taps = torch.gather(out, 1, idx[:, :, None].expand(-1, -1, C))
-            return torch.einsum("pt,ptc->pc", w, taps)
         return torch.einsum("po,poc->pc", view, out)
+
+    def _relight_native(self, lib, enc: Encoded, light, view, n: int):
+        """The fused-kernel path of ``relight``: ``(out, flag)``, or None where the kernels' buffers
+        are too small (``relight_kernels.fits``). Per light, the constants straight into the
+        layout the kernel reads (one pass over the model); per point, one pass over the codes."""
+        n_out, n_in = self.matrix_shape_ or (1, self.D_)
+        L = check_light(light, n_in)
+        C = L.shape[1]
+        J = (1 if self.means_ is not None else 0) + n
+        if not kernel_fits(J, n_out, C) or (isinstance(view, tuple) and view[0].shape[1] > 64):
+            return None
+        codes = self._native_codes(enc, n)
+        kind = "rows" if view is None else ("taps" if isinstance(view, tuple) else "dense")
+        T = kernel_constants(lib, self.means_, self.basis_, n, n_out, n_in, L, kind)
+        if view is None:
+            out = affine_rows(lib, T, J, n_out, C, *codes, P=enc.points)
+            return (out if self.matrix_shape_ is None else out.view(-1, n_out, C)), 0
+        if isinstance(view, tuple):
+            return affine_taps(lib, T, J, n_out, C, *codes, view[0].contiguous(), view[1].contiguous())
+        return affine_dense(lib, T, J, n_out, C, *codes, view.contiguous())
+
+    def _native_codes(self, enc: Encoded, n: int) -> tuple:
+        """The codes as the kernels read them, in place: ``(labels or None, weights or None, row
+        stride, packed offsets or None, n_k or None, n, has_mean)``. Labels are range-checked
+        and packed offsets built once per encoding (cached); the kernels index with them."""
+        labels = enc.tensors.get("labels") if self.K_ > 1 else None
+        if labels is not None:
+            key = ("labels_checked", labels._version, labels.data_ptr())
+            if key not in enc.cache:
+                if labels.dtype not in (torch.uint8, torch.int16, torch.int32):
+                    labels = labels.to(torch.int32 if self.K_ > 32768 else torch.int16)
+                labels = labels.contiguous()
+                lo, hi = torch.aminmax(labels.to(torch.int32)) if labels.numel() else (torch.tensor(0), torch.tensor(0))
+                if labels.shape != (enc.points,) or int(lo) < 0 or int(hi) >= self.K_:
+                    raise ValueError(f"enc labels have shape {tuple(labels.shape)} and span [{int(lo)}, {int(hi)}]; "
+                                     f"accepted: [{enc.points}] in [0, {self.K_})")
+                enc.cache = {k: v for k, v in enc.cache.items() if not (isinstance(k, tuple) and k[0] == "labels_checked")}
+                enc.cache[key] = labels
+            labels = enc.cache[key]
+        nmax = self.basis_.shape[1]
+        mean = self.means_ is not None
+        if n == 0 or nmax == 0:
+            return labels, None, 0, None, None, 0, mean
+        c = enc.tensors["coeffs"]
+        if not enc.meta.get("packed"):
+            if c.shape != (enc.points, nmax) or c.dtype != torch.float32:
+                raise ValueError(f"enc coeffs have shape {tuple(c.shape)} ({c.dtype}); accepted: [{enc.points}, {nmax}] float32")
+            return labels, c.contiguous(), nmax, None, None, n, mean
+        if "coeff_offsets" not in enc.cache:
+            counts = self.n_vectors_[self.labels_of(enc)]
+            off = torch.cumsum(counts, 0) - counts
+            if c.ndim != 1 or int(counts.sum()) != c.numel() or c.dtype != torch.float32:
+                raise ValueError(f"enc packed coeffs have shape {tuple(c.shape)} ({c.dtype}); accepted: "
+                                 f"[{int(counts.sum())}] float32 (Σ_p n_k(p))")
+            enc.cache["coeff_offsets"] = off.contiguous()
+        return labels, c.contiguous(), 0, enc.cache["coeff_offsets"], self.n_vectors_.contiguous(), n, mean
 
     # ----------------------------------------------------------------- storage
     def storage(self, enc: Encoded) -> dict[str, Any]:

@@ -320,8 +320,15 @@ def check_light(light: Any, n_in: int) -> torch.Tensor:
     return light.to(torch.float32)
 
 
-def check_view(view: Any, P: int, n_out: int):
-    """None, dense ``[P, n_out]`` or sparse taps ``(idx [P, k] int, w [P, k] float)``."""
+def check_view(view: Any, P: int, n_out: int, values: bool = True):
+    """None, dense ``[P, n_out]`` or sparse taps ``(idx [P, k] int, w [P, k] float)``; returns the
+    view as relighting reads it (float32 weights, int64 indices).
+
+    ``values=True`` also checks the values — finite weights, tap indices in [0, n_out) — in one
+    fused reduction each (a sum that is non-finite only if some weight is, then the full check
+    that names it; ``aminmax`` of the indices), so the check reads the view once.
+    ``values=False`` checks only types and shapes, for a caller whose kernel flags bad values
+    itself and calls this again with ``values=True`` to raise the error naming them."""
     if view is None:
         return None
     if isinstance(view, (tuple, list)):
@@ -335,16 +342,27 @@ def check_view(view: Any, P: int, n_out: int):
         if idx.is_floating_point() or idx.dtype == torch.bool:
             raise TypeError(f"view tap indices have dtype {idx.dtype}; accepted: an integer dtype")
         idx = idx.long()
-        if idx.numel() and (int(idx.min()) < 0 or int(idx.max()) >= n_out):
-            raise ValueError(f"view tap indices span [{int(idx.min())}, {int(idx.max())}]; accepted: [0, n_out) = [0, {n_out})")
-        check_finite("view weights", w)
+        if values:
+            if idx.numel():
+                lo, hi = (int(x) for x in torch.aminmax(idx))
+                if lo < 0 or hi >= n_out:
+                    raise ValueError(f"view tap indices span [{lo}, {hi}]; accepted: [0, n_out) = [0, {n_out})")
+            _check_finite_fast("view weights", w)
         return idx, w.to(torch.float32)
     if not isinstance(view, torch.Tensor):
         raise TypeError(f"view must be None, a tensor [P, n_out] or a tuple (idx, w); got {_describe(view)}")
     if view.shape != (P, n_out):
         raise ValueError(f"view has shape {tuple(view.shape)}; accepted: [P, n_out] = [{P}, {n_out}]")
-    check_finite("view", view)
+    if values:
+        _check_finite_fast("view", view)
     return view.to(torch.float32)
+
+
+def _check_finite_fast(name: str, t: torch.Tensor) -> None:
+    """``check_finite`` at the cost of one sum: NaN/Inf anywhere make the sum non-finite; only
+    then (or on a float overflow of the sum) the full check runs and names the first bad value."""
+    if t.is_floating_point() and t.numel() and not math.isfinite(float(t.sum(dtype=torch.float64 if t.dtype == torch.float64 else torch.float32))):
+        check_finite(name, t)
 
 
 # ----------------------------------------------------------------------------------------

@@ -1,0 +1,226 @@
+"""Relighting straight from every compressed form against its memory-bandwidth bound (issue 15).
+
+For every piecewise-affine codec (VQ 256, PCA 8, CPCA static / iterative / adaptive 256×8 on a
+50 000-point 24×25 transfer-like signal, ``codecs.synthetic.transfer_like``; MRT-PCA with 16
+vectors on a 50 000-point 49×25 MRT-like signal) and every view mode (none; dense ``[P, n_out]``;
+MRT's four tent taps, Lehtinen & Kautz 2003 eq. (13)), one light per call ``[25, 3]``:
+
+* **fraction of the bound** = bound time / relight time (1.0: at the bound; the goal is ≥ 0.5),
+  where the bound is ``harness.timing.io_bound_fn(bytes read, bytes written)`` — a plain
+  ``copy_`` of the bytes a relight must read once (the codec's stored bytes, model and codes,
+  ``storage()['bytes_total']``, plus the view) and a ``fill_`` of the output's bytes — timed
+  interleaved with the relight in the same run (``measure_paired``: median of per-repeat ratios);
+* **vs uncompressed** = time of the reference path on the decoded matrices
+  (``relight.apply_dense`` / ``apply_taps``, or ``M @ l`` without a view) / relight time, also paired;
+* the same fraction for the torch formulation (``PRT_TORCH_NATIVE=0``: no compiled kernels),
+  the path taken on a machine without a C compiler.
+
+The codecs are fitted on the first 8 000 points and then encode all 50 000 (relighting cost
+depends on P, K, n_k and the shapes, not on the fitted values; a full 50k × 600 iterative fit
+takes minutes). Fits are cached in ``--cache`` (default: a directory in the system temp dir).
+The Gaussian codec (Green 2006) is not included: it needs transport tables of a scene and a
+prefiltered environment (see benchmarks/bench_gaussian.py), not the SH light used here.
+
+Threads: ``--threads`` (default 2, the project's target machine); ``OMP_WAIT_POLICY=PASSIVE``
+unless set. The load average is recorded before and after, and each paired measurement
+records its contention (``trusted`` false: busy machine).
+
+Run: .venv/bin/python benchmarks/bench_relight.py   (a few minutes; --quick: 5 000 points, prints only)
+Writes reports/benchmarks/relight.md and relight.json.
+"""
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import argparse  # noqa: E402
+import hashlib  # noqa: E402
+import json  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import torch  # noqa: E402
+
+from prt_torch import codecs, relight  # noqa: E402
+from prt_torch.codecs.relight_kernels import native_status  # noqa: E402
+from prt_torch.codecs.synthetic import tent_taps_random, transfer_like  # noqa: E402
+from prt_torch.harness.timing import io_bound_fn, machine_info, measure_paired  # noqa: E402
+from prt_torch.io import atomic_write_json, atomic_write_text  # noqa: E402
+
+OUT = Path(__file__).resolve().parent.parent / "reports" / "benchmarks"
+FIT_POINTS = 8000
+
+
+def settings(quick: bool) -> list[tuple[str, str, dict, str]]:
+    """(label, codec name, parameters, signal) of every codec benchmarked."""
+    K = 64 if quick else 256
+    return [
+        (f"vq {K}", "vq", {"clusters": K, "max_iter": 10}, "glossy"),
+        ("pca 8", "pca", {"vectors": 8}, "glossy"),
+        (f"cpca static {K}x8", "cpca_static", {"clusters": K, "vectors": 8, "max_iter": 10}, "glossy"),
+        (f"cpca iterative {K}x8", "cpca_iterative", {"clusters": K, "vectors": 8, "max_iter": 10, "iterations": 3}, "glossy"),
+        (f"cpca adaptive {K}x8", "cpca_adaptive",
+         {"clusters": K, "vectors": 8, "max_iter": 10, "iterations": 3, "adapt_iters": 2}, "glossy"),
+        ("mrt_pca 16", "mrt_pca", {"vectors": 16}, "mrt"),
+    ]
+
+
+def fitted(name: str, params: dict, X: torch.Tensor, ms: tuple, cache: Path) -> tuple:
+    """Fit on the first FIT_POINTS points, encode all; cached by (codec, params, signal hash)."""
+    key = hashlib.sha256(json.dumps([name, params, list(X.shape), float(X[:64].double().sum()), FIT_POINTS]).encode()).hexdigest()[:16]
+    path = cache / f"{name}-{key}.prt"
+    if path.exists():
+        return (*codecs.load(path), True)
+    c = codecs.get(name, **params)
+    c.fit(X[:FIT_POINTS], matrix_shape=ms)
+    enc = c.encode(X)
+    c.save(path, enc, overwrite=True)
+    return c, enc, False
+
+
+def view_bytes(view) -> int:
+    if view is None:
+        return 0
+    if isinstance(view, tuple):
+        return sum(t.numel() * t.element_size() for t in view)
+    return view.numel() * view.element_size()
+
+
+def row(label, c, enc, light, view, mode, unc, repeats) -> dict:
+    P = enc.points
+    fn = lambda: c.relight(enc, light, view=view)  # noqa: E731
+    out = fn()
+    st = c.storage(enc)
+    rb = st["bytes_total"] + view_bytes(view)
+    wb = out.numel() * out.element_size()
+    bound = io_bound_fn(rb, wb)
+    b = measure_paired(fn, bound, repeats=repeats, warmup=2)
+    u = measure_paired(fn, unc, repeats=repeats, warmup=1)
+    prev = os.environ.get("PRT_TORCH_NATIVE")
+    os.environ["PRT_TORCH_NATIVE"] = "0"
+    try:
+        ft = measure_paired(fn, bound, repeats=max(3, repeats // 2), warmup=1)
+        ref_torch = fn()
+    finally:
+        if prev is None:
+            del os.environ["PRT_TORCH_NATIVE"]
+        else:
+            os.environ["PRT_TORCH_NATIVE"] = prev
+    return {"codec": label, "view": mode, "points": P, "bytes_read": rb, "bytes_written": wb,
+            "bytes_model": st["bytes_model"], "bytes_codes": st["bytes_codes"],
+            "relight_ms": 1e3 * b.test.median, "bound_ms": 1e3 * b.peer.median,
+            "fraction_of_bound": b.ratio.median, "fraction_q1_q3": [b.ratio.q1, b.ratio.q3],
+            "uncompressed_ms": 1e3 * u.peer.median, "speedup_vs_uncompressed": u.ratio.median,
+            "torch_path_ms": 1e3 * ft.test.median, "torch_path_fraction_of_bound": ft.ratio.median,
+            "native_vs_torch_max_abs_diff": float((out - ref_torch).abs().max()),
+            "output_max_abs": float(out.abs().max()),
+            "contention": b.contention, "timing": b.as_dict()}
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--quick", action="store_true", help="5 000 points, 64 clusters; print, write nothing")
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--repeats", type=int, default=9)
+    ap.add_argument("--cache", default=os.path.join(tempfile.gettempdir(), "prt_bench_relight"))
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+    load0 = os.getloadavg()
+    t_all = time.perf_counter()
+    cache = Path(args.cache)
+    cache.mkdir(parents=True, exist_ok=True)
+    P = 5000 if args.quick else 50000
+    X = transfer_like(P, 24, 25, seed=0)
+    Mm = 7
+    A = transfer_like(P, Mm * Mm, 25, seed=3)
+    signals = {"glossy": (X, (24, 25)), "mrt": (A, (Mm * Mm, 25))}
+    g = torch.Generator().manual_seed(0)
+    light = torch.randn(25, 3, generator=g) * torch.exp(-0.5 * torch.tensor([float(int(i ** 0.5)) for i in range(25)]))[:, None]
+    views = {"glossy": torch.randn(P, 24, generator=g), "mrt": torch.randn(P, Mm * Mm, generator=g)}
+    taps = tent_taps_random(P, Mm, seed=4)
+    result: dict = {"machine": machine_info(), "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
+                    "threads": args.threads, "load_average_before": load0, "points": P, "fit_points": FIT_POINTS,
+                    "native": native_status(), "quick": args.quick, "fits": [], "rows": []}
+    print("kernels:", result["native"]["detail"], flush=True)
+    for label, name, params, sig in settings(args.quick):
+        Xs, ms = signals[sig]
+        t0 = time.perf_counter()
+        c, enc, was_cached = fitted(name, params, Xs, ms, cache)
+        st = c.storage(enc)
+        result["fits"].append({"codec": label, "name": name, "params": params, "signal": sig, "cached": was_cached,
+                               "fit_encode_s": time.perf_counter() - t0, "clusters": c.K_,
+                               "n_vectors": [int(v) for v in c.n_vectors_.unique()],
+                               "vectors_mean_per_point": st["vectors_mean_per_point"], "bytes_total": st["bytes_total"],
+                               "compression_ratio": st["compression_ratio"]})
+        n_out, n_in = ms
+        M = c.decode(enc).view(P, n_out, n_in)  # the uncompressed reference reads the decoded matrices
+        Lc = light.T.contiguous()  # relight.* take lights as [C, n_in]
+        modes = [("none", None, lambda: (M.reshape(P * n_out, n_in) @ light).view(P, n_out, 3)),
+                 ("dense", views[sig], lambda: relight.apply_dense(M, Lc, views[sig]))]
+        if sig == "mrt":
+            modes.append(("taps", taps, lambda: relight.apply_taps(M, Lc, *taps)))
+        for mode, view, unc in modes:
+            r = row(label, c, enc, light, view, mode, unc, args.repeats)
+            result["rows"].append(r)
+            print(f"{label:22s} {mode:6s} relight {r['relight_ms']:7.3f} ms  bound {r['bound_ms']:6.3f} ms  "
+                  f"fraction {r['fraction_of_bound']:.2f}  torch path {r['torch_path_fraction_of_bound']:.2f}  "
+                  f"vs uncompressed {r['speedup_vs_uncompressed']:.1f}x  load {os.getloadavg()[0]:.1f}", flush=True)
+    result["seconds_total"] = time.perf_counter() - t_all
+    result["load_average_after"] = os.getloadavg()
+    text = report(result)
+    if args.quick:
+        print(text)
+        return 0
+    OUT.mkdir(parents=True, exist_ok=True)
+    atomic_write_json(OUT / "relight.json", result)
+    atomic_write_text(OUT / "relight.md", text)
+    print(f"wrote {OUT / 'relight.md'} in {result['seconds_total']:.0f} s")
+    return 0
+
+
+def report(r: dict) -> str:
+    m = r["machine"]
+    la = lambda t: tuple(round(x, 2) for x in t)  # noqa: E731
+    untrusted = [x for x in r["rows"] if not x["contention"]["trusted"]]
+    L = ["# Relighting from the compressed forms vs the memory-bandwidth bound", "",
+         f"Machine: {m.get('cpu')}, {m.get('cores')} cores, torch threads {r['threads']}, OMP_WAIT_POLICY={r['omp_wait_policy']}; "
+         f"load average before {la(r['load_average_before'])}, after {la(r['load_average_after'])}. "
+         f"Total {r['seconds_total']:.0f} s. Kernels: {r['native']['detail']}.", "",
+         "Reproduce: `.venv/bin/python benchmarks/bench_relight.py` (writes this file and relight.json).", "",
+         f"{r['points']} points, one SH light [25, 3] per call. Signals: `transfer_like(P, 24, 25)` (VQ, PCA, CPCA) and "
+         f"`transfer_like(P, 49, 25)` (MRT-PCA, 7×7 tents). Codecs fitted on the first {r['fit_points']} points, then "
+         "encoding all of them. **fraction** = bound / relight, where the bound is reading the stored bytes "
+         "(model + codes + view) once and writing the output once: a `copy_` of the bytes read plus a `fill_` of the "
+         "bytes written (`harness.timing.io_bound_fn`), timed interleaved with the relight in this run "
+         "(`measure_paired`, median of per-repeat ratios; IQR in brackets). 1.0 = at the bound, goal ≥ 0.5. "
+         "**vs uncompressed**: `relight.apply_dense` / `apply_taps` (or `M @ l`) on the decoded matrices, paired, "
+         "over relight (> 1: compressed faster). **torch path**: the same fraction without the compiled kernels "
+         "(`PRT_TORCH_NATIVE=0`, the path without a C compiler).", ""]
+    if untrusted:
+        L += [f"**{len(untrusted)} of {len(r['rows'])} rows were measured on a busy machine** (contention not trusted: "
+              + "; ".join(sorted({w for x in untrusted for w in x['contention']['why_not']}))[:400] + "): the ratios are paired, "
+              "but re-run on a quiet machine for final figures.", ""]
+    L += ["| codec | view | bytes read | bytes written | relight (ms) | bound (ms) | fraction of bound | torch path fraction "
+          "| vs uncompressed |", "|---|---|---|---|---|---|---|---|---|"]
+    for x in r["rows"]:
+        q1, q3 = x["fraction_q1_q3"]
+        L.append(f"| {x['codec']} | {x['view']} | {x['bytes_read']:,} | {x['bytes_written']:,} | {x['relight_ms']:.3f} | "
+                 f"{x['bound_ms']:.3f} | **{x['fraction_of_bound']:.2f}** [{q1:.2f}, {q3:.2f}] | "
+                 f"{x['torch_path_fraction_of_bound']:.2f} | {x['speedup_vs_uncompressed']:.1f}× |")
+    L += ["", "Fits (fit on the first points + encode all, or loaded from the cache):", "",
+          "| codec | clusters | n_k | mean weights per point | stored bytes | compression | fit+encode (s) |",
+          "|---|---|---|---|---|---|---|"]
+    for f in r["fits"]:
+        L.append(f"| {f['codec']} | {f['clusters']} | {f['n_vectors']} | {f['vectors_mean_per_point']:.2f} | {f['bytes_total']:,} | "
+                 f"{f['compression_ratio']:.1f} | {f['fit_encode_s']:.1f}{' (cached)' if f['cached'] else ''} |")
+    L += ["", "Cost model (Sloan 2003 §6; Lehtinen & Kautz 2003 eq. (13)): per light, the per-cluster constants M_i^k l "
+          "(K·J·n_out·C floats, one GEMM over the stored model); per point one pass over its codes — J·n_out·C "
+          "multiply-adds without a view or with a dense view (the view folded in before anything n_out·C-sized leaves "
+          "the core), t·J·C with t taps — in `prt_torch/codecs/relight_kernels.py`.", ""]
+    return "\n".join(L)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,466 @@
+"""Fused CPU kernels for relighting straight from the piecewise-affine codes (Sloan 2003 §6).
+
+Per point p of cluster k = k(p) with weights w_p (n_k of them) and per-cluster constants
+``T_k = [M_0^k l, M_1^k l, ...]`` (computed once per light by ``AffineCodec.cluster_constants``):
+
+* rows:  ``e_p = T_k[0] + Σ_{i<n_k} w_p^i T_k[1+i]``                 (no view, ``[P, n_out·C]``)
+* dense: ``o_p = Σ_r y_pr e_{p,r}``                                     (Sloan 2003 §3.1, ``[P, C]``)
+* taps:  ``o_p = Σ_t g_pt e_{p,idx_pt}``                                (Lehtinen & Kautz 2003 eq. (13))
+
+One pass over the codes (labels, weights, view), the constants table staying in cache: the
+view is folded in per point before anything of size n_out·C leaves the core, so a dense view
+costs J·n_out·C multiply-adds per point and no ``[P, n_out, C]`` intermediate (Sloan 2003's
+cost model). torch has no fused op for these small per-point contractions (a GEMM, gather or
+``embedding_bag`` each leave an intermediate as large as the view behind), so they are a few
+lines of C compiled on first use with the system C compiler (``cc``, OpenMP, about a second),
+cached on disk by a hash of the source, flags and CPU, and called through ctypes (the GIL is
+released). Without a compiler — or with ``PRT_TORCH_NATIVE=0`` — :func:`native` returns None
+and ``AffineCodec.relight`` uses its torch formulation, which gives the same results to
+float32 rounding (tests run both).
+
+Codes as stored by ``AffineCodec`` (no copies): labels ``[P]`` uint8/int16/int32 (absent when
+K = 1), weights ``[P, n_max]`` float32 (row stride n_max, the first n used) or packed (the
+n_{k(p)} weights of each point one after the other; ``offsets int64 [P]`` where each starts,
+``n_vectors int64 [K]``). Constants float32 contiguous: ``[K, J, n_out·C]`` (rows, dense) or
+``[K, n_out, J·C]`` (taps), J = (1 if a mean) + n.
+"""
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import os
+import platform
+import shutil
+import subprocess
+import tempfile
+import threading
+import weakref
+from pathlib import Path
+
+import torch
+
+__all__ = ["native", "native_status", "constants", "model_t", "affine_rows", "affine_dense", "affine_taps", "fits", "MAX_ROW"]
+
+#: largest per-point row (n_out·C for dense views, J·C for taps) the kernels hold on the stack
+MAX_ROW = 4096
+
+_SRC = r"""
+#include <stdint.h>
+#include <float.h>
+#include <math.h>
+typedef int64_t i64;
+/* 8 floats, unaligned loads/stores (GCC/Clang vector extensions; split into SSE where no AVX) */
+typedef float v8 __attribute__((vector_size(32), aligned(4)));
+
+static inline i64 lab_at(const void *L, int kind, i64 p) {
+    switch (kind) {
+    case 1: return ((const uint8_t *)L)[p];
+    case 2: return ((const int16_t *)L)[p];
+    case 3: return ((const int32_t *)L)[p];
+    default: return 0;
+    }
+}
+
+/* where the weights of point p start; *cnt = how many are used (n_k capped at nuse) */
+static inline const float *weights_of(const float *W, i64 wstride, const i64 *woff, const i64 *nk, i64 nuse,
+                                      i64 k, i64 p, i64 *cnt) {
+    i64 c = nuse;
+    if (nk && nk[k] < c) c = nk[k];
+    *cnt = W ? c : 0;
+    return W ? W + (woff ? woff[p] : p * wstride) : 0;
+}
+
+static inline float hsum(v8 a) {  /* a tree: three dependent adds, not eight */
+    return ((a[0] + a[4]) + (a[2] + a[6])) + ((a[1] + a[5]) + (a[3] + a[7]));
+}
+
+static inline float dot(const float *a, const float *b, i64 n) {
+    v8 acc = {0};
+    i64 i = 0;
+    for (; i + 8 <= n; i += 8) acc += *(const v8 *)(a + i) * *(const v8 *)(b + i);
+    float s = hsum(acc);
+    for (; i < n; i++) s += a[i] * b[i];
+    return s;
+}
+
+#define LD(p) (*(const v8 *)(p))
+#define ST(p, v) (*(v8 *)(p) = (v))
+
+/* e[0:F] = (mean ? T[0] : 0) + sum_{i<cnt} w[i] T[mean + i]  (rows of F floats, stride F).
+   64 (then 32, 8) outputs at a time stay in vector registers while the weights stream past;
+   eight independent accumulators keep both FMA pipes busy. */
+static inline void combine(i64 F, const float *T, int mean, const float *w, i64 cnt, float *e) {
+    i64 f0 = 0;
+    for (; f0 + 64 <= F; f0 += 64) {
+        const float *Tb = T + f0;
+        v8 a0 = {0}, a1 = {0}, a2 = {0}, a3 = {0}, a4 = {0}, a5 = {0}, a6 = {0}, a7 = {0};
+        if (mean) {
+            a0 = LD(Tb); a1 = LD(Tb + 8); a2 = LD(Tb + 16); a3 = LD(Tb + 24);
+            a4 = LD(Tb + 32); a5 = LD(Tb + 40); a6 = LD(Tb + 48); a7 = LD(Tb + 56);
+            Tb += F;
+        }
+        for (i64 i = 0; i < cnt; i++, Tb += F) {
+            float wi = w[i];
+            a0 += wi * LD(Tb); a1 += wi * LD(Tb + 8); a2 += wi * LD(Tb + 16); a3 += wi * LD(Tb + 24);
+            a4 += wi * LD(Tb + 32); a5 += wi * LD(Tb + 40); a6 += wi * LD(Tb + 48); a7 += wi * LD(Tb + 56);
+        }
+        ST(e + f0, a0); ST(e + f0 + 8, a1); ST(e + f0 + 16, a2); ST(e + f0 + 24, a3);
+        ST(e + f0 + 32, a4); ST(e + f0 + 40, a5); ST(e + f0 + 48, a6); ST(e + f0 + 56, a7);
+    }
+    for (; f0 + 32 <= F; f0 += 32) {
+        const float *Tb = T + f0;
+        v8 a0 = {0}, a1 = {0}, a2 = {0}, a3 = {0};
+        if (mean) { a0 = LD(Tb); a1 = LD(Tb + 8); a2 = LD(Tb + 16); a3 = LD(Tb + 24); Tb += F; }
+        for (i64 i = 0; i < cnt; i++, Tb += F) {
+            float wi = w[i];
+            a0 += wi * LD(Tb); a1 += wi * LD(Tb + 8); a2 += wi * LD(Tb + 16); a3 += wi * LD(Tb + 24);
+        }
+        ST(e + f0, a0); ST(e + f0 + 8, a1); ST(e + f0 + 16, a2); ST(e + f0 + 24, a3);
+    }
+    for (; f0 + 8 <= F; f0 += 8) {
+        const float *Tb = T + f0;
+        v8 a0 = {0}, a1 = {0};
+        if (mean) { a0 = LD(Tb); Tb += F; }
+        i64 i = 0;
+        for (; i + 2 <= cnt; i += 2, Tb += 2 * F) { a0 += w[i] * LD(Tb); a1 += w[i + 1] * LD(Tb + F); }
+        if (i < cnt) a0 += w[i] * LD(Tb);
+        ST(e + f0, a0 + a1);
+    }
+    for (; f0 < F; f0++) {
+        const float *Tb = T + f0;
+        float a = 0.0f;
+        if (mean) { a = *Tb; Tb += F; }
+        for (i64 i = 0; i < cnt; i++, Tb += F) a += w[i] * *Tb;
+        e[f0] = a;
+    }
+}
+
+/* e[0:R] = sum_{t<n} g[t] rows[t][0:R] */
+static inline void gather_sum(i64 R, const float *const *rows, const float *g, i64 n, float *e) {
+    i64 f0 = 0;
+    for (; f0 + 32 <= R; f0 += 32) {
+        v8 a0 = {0}, a1 = {0}, a2 = {0}, a3 = {0};
+        for (i64 t = 0; t < n; t++) {
+            const float *r = rows[t] + f0;
+            float gt = g[t];
+            a0 += gt * *(const v8 *)r; a1 += gt * *(const v8 *)(r + 8); a2 += gt * *(const v8 *)(r + 16); a3 += gt * *(const v8 *)(r + 24);
+        }
+        *(v8 *)(e + f0) = a0; *(v8 *)(e + f0 + 8) = a1; *(v8 *)(e + f0 + 16) = a2; *(v8 *)(e + f0 + 24) = a3;
+    }
+    for (; f0 + 8 <= R; f0 += 8) {
+        v8 a0 = {0};
+        for (i64 t = 0; t < n; t++) a0 += g[t] * *(const v8 *)(rows[t] + f0);
+        *(v8 *)(e + f0) = a0;
+    }
+    for (; f0 < R; f0++) {
+        float a = 0.0f;
+        for (i64 t = 0; t < n; t++) a += g[t] * rows[t][f0];
+        e[f0] = a;
+    }
+}
+
+/* Per-cluster constants T = M l (Sloan 2003 §6) from the model cached "column-major":
+   Mt [K, Jmax, n_in, n_pad] (the representatives x_0, x_1.. of each cluster as n_out x n_in
+   matrices, transposed, rows zero-padded to n_pad); L [n_in, C]. Writes
+   out[k*sk + j*sj + o*so + c*sc] = sum_i Mt[k, j, i, o] L[i, c] for j < J, o < n_out: every
+   layout a kernel below reads, directly. 8 outputs o per vector, L broadcast: no reductions. */
+int prt_constants(i64 K, i64 J, i64 Jmax, i64 n_in, i64 n_out, i64 n_pad, i64 C, const float *Mt, const float *L,
+                  float *out, i64 sk, i64 sj, i64 so, i64 sc, int nthreads) {
+    i64 nb = n_pad / 8, blocks = K * J * nb;
+    #pragma omp parallel for schedule(static) num_threads(nthreads)
+    for (i64 b = 0; b < blocks; b++) {
+        i64 k = b / (J * nb), j = (b / nb) % J, ob = b % nb;
+        const float *src = Mt + ((k * Jmax + j) * n_in) * n_pad + ob * 8;
+        v8 a[16];
+        for (i64 c = 0; c < C; c++) a[c] = (v8){0};
+        if (C == 3) {  /* RGB: three accumulators in registers */
+            v8 a0 = {0}, a1 = {0}, a2 = {0};
+            for (i64 i = 0; i < n_in; i++) {
+                v8 x = LD(src + i * n_pad);
+                a0 += x * L[3 * i]; a1 += x * L[3 * i + 1]; a2 += x * L[3 * i + 2];
+            }
+            a[0] = a0; a[1] = a1; a[2] = a2;
+        } else {
+            for (i64 i = 0; i < n_in; i++) {
+                v8 x = LD(src + i * n_pad);
+                const float *li = L + i * C;
+                for (i64 c = 0; c < C; c++) a[c] += x * li[c];
+            }
+        }
+        float *dst = out + k * sk + j * sj;
+        for (i64 l = 0; l < 8 && ob * 8 + l < n_out; l++)
+            for (i64 c = 0; c < C; c++) dst[(ob * 8 + l) * so + c * sc] = a[c][l];
+    }
+    return 0;
+}
+
+/* no view: out[p, 0:Fo] = e_p; constants T [K, J, F], rows zero-padded from Fo to F floats */
+int prt_affine_rows(i64 P, i64 F, i64 Fo, const void *lab, int lab_kind, const float *W, i64 wstride, const i64 *woff,
+                    const i64 *nk, i64 nuse, int mean, const float *T, i64 J, float *out, int nthreads) {
+    #pragma omp parallel for schedule(static) num_threads(nthreads)
+    for (i64 p = 0; p < P; p++) {
+        i64 k = lab_at(lab, lab_kind, p), cnt;
+        const float *w = weights_of(W, wstride, woff, nk, nuse, k, p, &cnt);
+        if (F == Fo) {
+            combine(F, T + k * J * F, mean, w, cnt, out + p * Fo);
+        } else {
+            float e[4096];
+            combine(F, T + k * J * F, mean, w, cnt, e);
+            for (i64 f = 0; f < Fo; f++) out[p * Fo + f] = e[f];
+        }
+    }
+    return 0;
+}
+
+/* dense view: constants colour-major T [K, J, C, n_pad] (rows zero-padded from n_out to n_pad);
+   e_p [C, n_pad]; out[p, c] = y_p . e_p[c, 0:n_out]. Returns 2 if an output is not finite. */
+int prt_affine_dense(i64 P, i64 n_out, i64 n_pad, i64 C, const void *lab, int lab_kind, const float *W, i64 wstride,
+                     const i64 *woff, const i64 *nk, i64 nuse, int mean, const float *T, i64 J,
+                     const float *y, float *out, int nthreads) {
+    i64 F = n_pad * C;
+    int flag = 0;
+    #pragma omp parallel for schedule(static) num_threads(nthreads) reduction(|:flag)
+    for (i64 p = 0; p < P; p++) {
+        float e[4096];
+        i64 k = lab_at(lab, lab_kind, p), cnt;
+        const float *w = weights_of(W, wstride, woff, nk, nuse, k, p, &cnt);
+        combine(F, T + k * J * F, mean, w, cnt, e);
+        const float *yp = y + p * n_out;
+        for (i64 c = 0; c < C; c++) {
+            float o = dot(yp, e + c * n_pad, n_out);
+            out[p * C + c] = o;
+            if (!(fabsf(o) <= FLT_MAX)) flag |= 2;
+        }
+    }
+    return flag;
+}
+
+/* taps: constants T [K, n_out, C, Jp] (J terms zero-padded to Jp); s = sum_t g[p, t] T[k, idx[p, t]] ([C, Jp]);
+   out[p, c] = (mean ? s[c, 0] : 0) + w_p . s[c, mean:mean+cnt].
+   Returns 1 if a tap index is outside [0, n_out) (that tap is skipped), 2 if an output is not finite. */
+int prt_affine_taps(i64 P, i64 n_out, i64 C, const void *lab, int lab_kind, const float *W, i64 wstride,
+                    const i64 *woff, const i64 *nk, i64 nuse, int mean, const float *T, i64 J,
+                    i64 ntap, const i64 *idx, const float *g, float *out, int nthreads) {
+    i64 R = J * C;  /* J here is the padded Jp */
+    int flag = 0;
+    #pragma omp parallel for schedule(static) num_threads(nthreads) reduction(|:flag)
+    for (i64 p = 0; p < P; p++) {
+        float s[4096];
+        const float *rows[64];
+        float gs[64];
+        i64 k = lab_at(lab, lab_kind, p), cnt, nt = 0;
+        const float *w = weights_of(W, wstride, woff, nk, nuse, k, p, &cnt);
+        const float *Tk = T + k * n_out * R;
+        for (i64 t = 0; t < ntap; t++) {
+            i64 r = idx[p * ntap + t];
+            if (r < 0 || r >= n_out) { flag |= 1; continue; }
+            rows[nt] = Tk + r * R;
+            gs[nt++] = g[p * ntap + t];
+        }
+        gather_sum(R, rows, gs, nt, s);
+        for (i64 c = 0; c < C; c++) {
+            const float *sc = s + c * J;
+            float o = (mean ? sc[0] : 0.0f) + dot(w, sc + mean, cnt);
+            out[p * C + c] = o;
+            if (!(fabsf(o) <= FLT_MAX)) flag |= 2;
+        }
+    }
+    return flag;
+}
+"""
+
+_FLAGS = ["-O3", "-march=native", "-fopenmp", "-shared", "-fPIC", "-std=c99"]
+_lock = threading.Lock()
+_state: dict = {}
+
+
+def _cpu_id() -> str:
+    try:
+        with open("/proc/cpuinfo") as f:
+            lines = [ln for ln in f if ln.startswith(("model name", "flags"))][:2]
+        return "".join(lines)
+    except OSError:
+        return platform.processor() or platform.machine()
+
+
+def _cache_dir() -> Path:
+    root = os.environ.get("PRT_TORCH_CACHE") or os.path.join(os.environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache"), "prt_torch")
+    return Path(root) / "kernels"
+
+
+def _compile() -> tuple[ctypes.CDLL | None, str]:
+    cc = os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc")
+    if not cc:
+        return None, "no C compiler (cc/gcc) on PATH"
+    try:
+        version = subprocess.run([cc, "--version"], capture_output=True, text=True, timeout=30).stdout
+    except (OSError, subprocess.SubprocessError) as e:
+        return None, f"C compiler {cc!r} did not run: {e}"
+    key = hashlib.sha256("\0".join([_SRC, " ".join(_FLAGS), version, _cpu_id(), platform.platform()]).encode()).hexdigest()[:16]
+    d = _cache_dir()
+    so = d / f"relight-{key}.so"
+    if not so.exists():
+        try:
+            d.mkdir(parents=True, exist_ok=True)
+            with tempfile.TemporaryDirectory(dir=d) as tmp:
+                src = Path(tmp) / "relight.c"
+                src.write_text(_SRC)
+                out = Path(tmp) / "relight.so"
+                r = subprocess.run([cc, *_FLAGS, str(src), "-o", str(out), "-lm"], capture_output=True, text=True, timeout=120)
+                if r.returncode != 0:
+                    return None, f"compiling the relight kernels failed ({cc}): {r.stderr.strip()[-400:]}"
+                os.replace(out, so)  # atomic: concurrent processes see the whole file or none
+        except (OSError, subprocess.SubprocessError) as e:
+            return None, f"compiling the relight kernels failed: {e}"
+    try:
+        lib = ctypes.CDLL(str(so))
+    except OSError as e:
+        return None, f"loading {so} failed: {e}"
+    i64, vp, ci = ctypes.c_int64, ctypes.c_void_p, ctypes.c_int
+    common = [vp, ci, vp, i64, vp, vp, i64, ci, vp, i64]
+    lib.prt_affine_rows.argtypes = [i64, i64, i64, *common, vp, ci]
+    lib.prt_affine_dense.argtypes = [i64, i64, i64, i64, *common, vp, vp, ci]
+    lib.prt_affine_taps.argtypes = [i64, i64, i64, *common, i64, vp, vp, vp, ci]
+    lib.prt_constants.argtypes = [i64] * 7 + [vp, vp, vp] + [i64] * 4 + [ci]
+    for f in (lib.prt_affine_rows, lib.prt_affine_dense, lib.prt_affine_taps, lib.prt_constants):
+        f.restype = ci
+    return lib, f"compiled with {cc} ({' '.join(_FLAGS)}), {so}"
+
+
+def native() -> ctypes.CDLL | None:
+    """The compiled kernels (compiled on the first call of a process, then cached on disk), or
+    None: no C compiler, a failed compile, or ``PRT_TORCH_NATIVE=0``."""
+    if os.environ.get("PRT_TORCH_NATIVE", "1") == "0":
+        return None
+    if "lib" not in _state:
+        with _lock:
+            if "lib" not in _state:
+                _state["lib"], _state["why"] = _compile()
+    return _state["lib"]
+
+
+def native_status() -> dict:
+    """``{'native': bool, 'detail': str}``: whether relighting uses the compiled kernels and why (not)."""
+    if os.environ.get("PRT_TORCH_NATIVE", "1") == "0":
+        return {"native": False, "detail": "disabled by PRT_TORCH_NATIVE=0"}
+    lib = native()
+    return {"native": lib is not None, "detail": _state.get("why", "")}
+
+
+_LAB_KIND = {torch.uint8: 1, torch.int16: 2, torch.int32: 3}
+
+
+def _ptr(t: torch.Tensor | None):
+    return None if t is None else t.data_ptr()
+
+
+def _codes(labels, W, wstride, woff, nk, nuse, mean):
+    """The common argument block: labels (None: K = 1), weights ``W`` (None: no weights), row
+    stride or per-point offsets ``woff int64 [P]`` with ``nk int64 [K]`` (packed), n used, mean."""
+    if labels is not None and labels.dtype not in _LAB_KIND:
+        raise TypeError(f"labels have dtype {labels.dtype}; accepted: uint8, int16, int32")
+    for name, t, dt in (("labels", labels, None), ("weights", W, torch.float32), ("offsets", woff, torch.int64),
+                        ("n_vectors", nk, torch.int64)):
+        if t is not None and (not t.is_contiguous() or (dt is not None and t.dtype != dt)):
+            raise ValueError(f"{name} must be contiguous{'' if dt is None else f' {dt}'}; got {t.dtype}, strides {t.stride()}")
+    kind = 0 if labels is None else _LAB_KIND[labels.dtype]
+    return [_ptr(labels), kind, _ptr(W), int(wstride), _ptr(woff), _ptr(nk), int(nuse), int(bool(mean))]
+
+
+def _pad8(n: int) -> int:
+    return (n + 7) // 8 * 8
+
+
+_MODEL_T: dict[int, tuple] = {}  # id(basis) -> (weak reference to basis, key, Mt); dropped when basis dies
+
+
+def model_t(means: torch.Tensor | None, basis: torch.Tensor, n_out: int, n_in: int) -> torch.Tensor:
+    """The representatives as the constants kernel reads them: ``[K, Jmax, n_in, n_pad]``
+    float32 (x_0 first when ``means`` is given, then the basis rows; each n_out×n_in matrix
+    transposed, n_out zero-padded to a multiple of 8). Built once per model and kept while
+    ``basis`` lives (keyed by the tensor and its version: refits and in-place edits rebuild)."""
+    key = (basis._version, None if means is None else (id(means), means._version), n_out, n_in)
+    hit = _MODEL_T.get(id(basis))
+    if hit is not None and hit[0]() is basis and hit[1] == key:
+        return hit[2]
+    K = basis.shape[0]
+    reps = basis.reshape(K, -1, n_out, n_in)
+    if means is not None:
+        reps = torch.cat([means.reshape(K, 1, n_out, n_in), reps], 1)
+    n_pad = _pad8(n_out)
+    Mt = torch.zeros(K, reps.shape[1], n_in, n_pad, dtype=torch.float32)
+    Mt[..., :n_out] = reps.transpose(2, 3)
+    if hit is None or hit[0]() is not basis:
+        weakref.finalize(basis, _MODEL_T.pop, id(basis), None)
+    _MODEL_T[id(basis)] = (weakref.ref(basis), key, Mt)
+    return Mt
+
+
+#: where element (k, j, o, c) of the constants sits, per layout: (sizes of the padded tensor, strides k, j, o, c)
+def _layout(kind: str, K: int, J: int, n_out: int, C: int) -> tuple[tuple, tuple]:
+    if kind == "rows":  # [K, J, F8]: a point's row e_p in output order (o, c)
+        F = _pad8(n_out * C)
+        return (K, J, F), (J * F, F, C, 1)
+    if kind == "dense":  # [K, J, C, n8]: colour-major, each colour a dot with the view
+        n8 = _pad8(n_out)
+        return (K, J, C, n8), (J * C * n8, C * n8, 1, n8)
+    Jp = _pad8(J)  # taps: [K, n_out, C, J8]: a tapped row holds every term of every colour
+    return (K, n_out, C, Jp), (n_out * C * Jp, 1, C * Jp, Jp)
+
+
+def constants(lib, means, basis, n: int, n_out: int, n_in: int, L: torch.Tensor, kind: str) -> torch.Tensor:
+    """Per-cluster constants M_i^k l (Sloan 2003 §6) for ``light L [n_in, C]`` float32, the
+    first ``n`` basis rows (and the mean), laid out for kernel ``kind`` ('rows', 'dense',
+    'taps'), zero-padded; one pass over the model (:func:`model_t`)."""
+    Mt = model_t(means, basis, n_out, n_in)
+    K, Jmax = Mt.shape[:2]
+    J = (1 if means is not None else 0) + n
+    C = L.shape[1]
+    size, (sk, sj, so, sc) = _layout(kind, K, J, n_out, C)
+    out = torch.zeros(size, dtype=torch.float32)
+    Lc = L.to(torch.float32).contiguous()
+    lib.prt_constants(K, J, Jmax, n_in, n_out, Mt.shape[3], C, Mt.data_ptr(), Lc.data_ptr(), out.data_ptr(),
+                      sk, sj, so, sc, torch.get_num_threads())
+    return out
+
+
+def affine_rows(lib, T: torch.Tensor, J: int, n_out: int, C: int, labels, W, wstride, woff, nk, nuse, mean, P: int) -> torch.Tensor:
+    """No view: ``e_p`` for every point, ``[P, n_out·C] float32``, from the constants ``T``
+    of layout 'rows'."""
+    Fo = n_out * C
+    out = torch.empty(P, Fo, dtype=torch.float32)
+    lib.prt_affine_rows(P, T.shape[2], Fo, *_codes(labels, W, wstride, woff, nk, nuse, mean), T.data_ptr(), J,
+                        out.data_ptr(), torch.get_num_threads())
+    return out
+
+
+def affine_dense(lib, T: torch.Tensor, J: int, n_out: int, C: int, labels, W, wstride, woff, nk, nuse, mean,
+                 y: torch.Tensor) -> tuple[torch.Tensor, int]:
+    """Dense view ``y [P, n_out]`` float32 contiguous: ``[P, C]`` from the constants ``T`` of
+    layout 'dense', and a flag (2: a non-finite output)."""
+    if not y.is_contiguous() or y.dtype != torch.float32 or y.shape[1] != n_out:
+        raise ValueError(f"affine_dense: the view must be contiguous float32 [P, {n_out}]")
+    P = y.shape[0]
+    out = torch.empty(P, C, dtype=torch.float32)
+    flag = lib.prt_affine_dense(P, n_out, T.shape[3], C, *_codes(labels, W, wstride, woff, nk, nuse, mean), T.data_ptr(), J,
+                                y.data_ptr(), out.data_ptr(), torch.get_num_threads())
+    return out, int(flag)
+
+
+def affine_taps(lib, T: torch.Tensor, J: int, n_out: int, C: int, labels, W, wstride, woff, nk, nuse, mean,
+                idx: torch.Tensor, g: torch.Tensor) -> tuple[torch.Tensor, int]:
+    """Taps ``(idx int64 [P, t], g float32 [P, t])`` contiguous, t ≤ 64: ``[P, C]`` from the
+    constants ``T`` of layout 'taps', and a flag (1: a tap index outside [0, n_out); 2: a
+    non-finite output)."""
+    if idx.dtype != torch.int64 or g.dtype != torch.float32 or not idx.is_contiguous() or not g.is_contiguous() or idx.shape[1] > 64:
+        raise ValueError("affine_taps: taps must be contiguous (idx int64, g float32), at most 64 per point")
+    P, t = idx.shape
+    out = torch.empty(P, C, dtype=torch.float32)
+    flag = lib.prt_affine_taps(P, n_out, C, *_codes(labels, W, wstride, woff, nk, nuse, mean), T.data_ptr(), T.shape[3],
+                               t, idx.data_ptr(), g.data_ptr(), out.data_ptr(), torch.get_num_threads())
+    return out, int(flag)
+
+
+def fits(J: int, n_out: int, C: int) -> bool:
+    """Whether the kernels' per-point buffers hold these sizes (else the torch path is used)."""
+    return C <= 16 and max(_pad8(n_out * C), C * _pad8(n_out), C * _pad8(J)) <= MAX_ROW

@@ -1,0 +1,234 @@
+"""Relighting straight from the compressed forms (``AffineCodec.relight``: the compiled kernels of
+``codecs.relight_kernels`` and the torch path used without a C compiler) against decode-then-relight
+through the uncompressed reference (``prt_torch.relight.apply_dense`` / ``apply_taps``, float64):
+every codec family × view mode (none, dense, taps) × K = 1 / K > 1 × with / without a mean ×
+n_vectors prefixes × per-cluster n_k (adaptive, packed codes) × label dtypes × colours."""
+import math
+import warnings
+
+import pytest
+import torch
+
+from prt_torch import codecs, relight
+from prt_torch.codecs import relight_kernels
+from prt_torch.codecs.synthetic import tent_taps_random, transfer_like
+
+EPS = torch.finfo(torch.float32).eps
+
+
+@pytest.fixture(params=["native", "torch"])
+def path(request, monkeypatch):
+    """Run a test through the compiled kernels and through the torch formulation."""
+    if request.param == "torch":
+        monkeypatch.setenv("PRT_TORCH_NATIVE", "0")
+    elif relight_kernels.native() is None:
+        pytest.skip(f"no compiled kernels: {relight_kernels.native_status()['detail']}")
+    return request.param
+
+
+def _without_mean(c, enc):
+    """A fitted K > 1 codec made linear (x̃ = Σ w_i x_i, no x_0): decode and relight both read
+    the same (labels, weights, basis), so they must still agree (the encoding's cached plans,
+    built with the mean, are dropped)."""
+    c.means_ = None
+    enc.cache.clear()
+
+
+# (label, codec, params, (n_out, n_in), P, edit)
+CASES = [
+    ("vq K>1", "vq", {"clusters": 7, "max_iter": 5}, (9, 4), 200, None),
+    ("vq K=1", "vq", {"clusters": 1}, (9, 4), 100, None),
+    ("vq int16 labels", "vq", {"clusters": 300, "max_iter": 2, "init": "random"}, (5, 3), 600, None),
+    ("pca mean", "pca", {"vectors": 5}, (9, 4), 200, None),
+    ("pca no mean", "pca", {"vectors": 5, "center": False}, (9, 4), 200, None),
+    ("cpca static", "cpca_static", {"clusters": 6, "vectors": 3, "max_iter": 5}, (9, 4), 250, None),
+    ("cpca iterative n_out=16", "cpca_iterative", {"clusters": 5, "vectors": 4, "iterations": 2, "max_iter": 5}, (16, 3), 250, None),
+    ("cpca adaptive (packed)", "cpca_adaptive",  # n_k = 0..3 per cluster on this signal
+     {"clusters": 8, "vectors": 2, "budget": 2.0, "max_vectors": 5, "iterations": 2, "adapt_iters": 2, "max_iter": 5}, (9, 4), 300,
+     None),
+    ("cpca no mean", "cpca_static", {"clusters": 6, "vectors": 3, "max_iter": 5}, (9, 4), 250, _without_mean),
+    ("mrt_pca", "mrt_pca", {"vectors": 7}, (16, 9), 200, None),
+    ("mrt_pca mean", "mrt_pca", {"vectors": 7, "center": True}, (16, 9), 200, None),
+]
+
+
+def _fit(name, params, ms, P, edit, seed=2):
+    n_out, n_in = ms
+    if name == "cpca_adaptive":  # a signal whose clusters differ in complexity: per-cluster n_k vary
+        X = transfer_like(P, n_out, n_in, seed=1, regions=12, noise=0.05)
+    else:
+        X = transfer_like(P, n_out, n_in, seed=seed, regions=12)
+    c = codecs.get(name, **params)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # short fits of tiny signals may not converge
+        enc = c.fit_encode(X, matrix_shape=ms)
+    if edit is not None:
+        edit(c, enc)
+    return c, enc
+
+
+def _reference(M, L, view):
+    """Decode-then-relight through the uncompressed reference in float64, and the same with
+    absolute values (the scale of float32 rounding)."""
+    Md, Ld = M.double(), L.double()
+    if view is None:
+        return Md @ Ld, Md.abs() @ Ld.abs()
+    if isinstance(view, tuple):
+        idx, w = view
+        return (relight.apply_taps(Md, Ld.T, idx, w.double()), relight.apply_taps(Md.abs(), Ld.abs().T, idx, w.double().abs()))
+    return relight.apply_dense(Md, Ld.T, view.double()), relight.apply_dense(Md.abs(), Ld.abs().T, view.double().abs())
+
+
+def _check(out, ref, scale, J, what):
+    tol = 8 * (J + 8) * EPS * (scale + 1e-6 * float(scale.max()))
+    assert out.dtype == torch.float32 and out.shape == ref.shape, (what, out.shape, ref.shape)
+    err = (out.double() - ref).abs()
+    assert bool((err <= tol).all()), (what, float(err.max()), float((err / tol).max()))
+
+
+@pytest.mark.parametrize("case", CASES, ids=[c[0] for c in CASES])
+def test_relight_equals_decode_then_reference(case, path):
+    label, name, params, ms, P, edit = case
+    n_out, n_in = ms
+    c, enc = _fit(name, params, ms, P, edit)
+    assert enc.meta["packed"] == ("packed" in label), label  # the packed layout is exercised
+    g = torch.Generator().manual_seed(5)
+    nmax = c.basis_.shape[1]
+    prefixes = sorted({None, 0, 1, max(0, nmax - 1)} - ({1} if nmax < 1 else set()), key=lambda v: -1 if v is None else v)
+    side = math.isqrt(n_out)
+    views = [None, torch.randn(P, n_out, generator=g)]
+    if side * side == n_out:
+        views.append(tent_taps_random(P, side, seed=3))
+    views.append((torch.randint(0, n_out, (P, 2), generator=g), torch.randn(P, 2, generator=g)))  # 2 arbitrary taps
+    for C, ns in ((3, prefixes), (1, [None]), (5, [None])):
+        L = torch.randn(n_in, C, generator=g)
+        for n in ns:
+            M = c.decode(enc, n_vectors=n).view(P, n_out, n_in)
+            J = (nmax if n is None else min(n, nmax)) + 1
+            for view in views:
+                out = c.relight(enc, L, view=view, n_vectors=n)
+                ref, scale = _reference(M, L, view)
+                _check(out, ref, scale, J * n_out, (label, path, C, n, None if view is None else type(view).__name__))
+
+
+@pytest.mark.parametrize("name, params", [("vq", {"clusters": 5}), ("pca", {"vectors": 3}),
+                                          ("cpca_adaptive", {"clusters": 4, "vectors": 2, "budget": 2.0, "max_vectors": 4})])
+def test_vector_codecs(name, params, path):
+    """Vectors (no matrix_shape): ``[P, C]`` = x̃_p · l."""
+    X = transfer_like(200, 1, 12, seed=4, regions=8)
+    c = codecs.get(name, **params)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        enc = c.fit_encode(X)
+    L = torch.randn(12, 3)
+    ref = c.decode(enc).double() @ L.double()
+    _check(c.relight(enc, L), ref, c.decode(enc).double().abs() @ L.double().abs(), 12 * 8, (name, path))
+    with pytest.raises(ValueError, match="fitted on vectors"):
+        c.relight(enc, L, view=torch.zeros(200, 1))
+
+
+def test_view_dtypes_and_layouts(path):
+    """float64 / non-contiguous views and int32 tap indices give the float32 view's result."""
+    c, enc = _fit("cpca_static", {"clusters": 4, "vectors": 2}, (9, 4), 200, None)
+    g = torch.Generator().manual_seed(1)
+    L = torch.randn(4, 3, generator=g)
+    y = torch.randn(200, 9, generator=g)
+    base = c.relight(enc, L, view=y)
+    assert torch.allclose(c.relight(enc, L, view=y.double()), base, rtol=1e-6, atol=1e-6)
+    yt = torch.randn(9, 200, generator=g).T  # non-contiguous
+    assert torch.allclose(c.relight(enc, L, view=yt), c.relight(enc, L, view=yt.contiguous()), rtol=1e-6, atol=1e-6)
+    idx, w = tent_taps_random(200, 3, seed=2)
+    assert torch.allclose(c.relight(enc, L, view=(idx.int(), w.double())), c.relight(enc, L, view=(idx, w)), rtol=1e-6, atol=1e-6)
+
+
+def test_bad_views_are_refused_naming_the_value(path):
+    c, enc = _fit("mrt_pca", {"vectors": 4}, (16, 9), 150, None)
+    L = torch.randn(9, 3)
+    y = torch.randn(150, 16)
+    y[7, 3] = float("nan")
+    with pytest.raises(ValueError, match=r"view has 1 non-finite value\(s\).*index \(7, 3\)"):
+        c.relight(enc, L, view=y)
+    y[7, 3] = float("inf")
+    with pytest.raises(ValueError, match="view has 1 non-finite"):
+        c.relight(enc, L, view=y)
+    idx, w = tent_taps_random(150, 4, seed=1)
+    bad = idx.clone()
+    bad[3, 1] = 16
+    with pytest.raises(ValueError, match=r"view tap indices span \[0, 16\]; accepted: \[0, n_out\) = \[0, 16\)"):
+        c.relight(enc, L, view=(bad, w))
+    bad[3, 1] = -1
+    with pytest.raises(ValueError, match=r"view tap indices span \[-1, 15\]"):
+        c.relight(enc, L, view=(bad, w))
+    w2 = w.clone()
+    w2[5, 0] = float("nan")
+    with pytest.raises(ValueError, match=r"view weights has 1 non-finite value\(s\).*index \(5, 0\)"):
+        c.relight(enc, L, view=(idx, w2))
+    # finite data whose result overflows float32 is not an input error
+    big = torch.full((150, 16), 3e38)
+    out = c.relight(enc, L * 1e30, view=big)
+    assert out.shape == (150, 3)
+
+
+def test_corrupt_codes_are_refused_before_any_kernel_reads_them():
+    c, enc = _fit("cpca_static", {"clusters": 4, "vectors": 2}, (9, 4), 200, None)
+    L = torch.randn(4, 3)
+    bad = codecs.Encoded(enc.codec, dict(enc.tensors), dict(enc.meta))
+    lab = bad.tensors["labels"].clone()
+    lab[10] = 9  # cluster 9 of 4
+    bad.tensors["labels"] = lab
+    if relight_kernels.native() is not None:
+        with pytest.raises(ValueError, match=r"enc labels .* span \[0, 9\]; accepted: \[200\] in \[0, 4\)"):
+            c.relight(bad, L)
+    packed = next(x for x in CASES if "packed" in x[0])
+    ad, enc2 = _fit(*packed[1:])
+    assert enc2.meta["packed"]
+    short = codecs.Encoded(enc2.codec, {**enc2.tensors, "coeffs": enc2.tensors["coeffs"][:-3]}, dict(enc2.meta))
+    if relight_kernels.native() is not None:
+        with pytest.raises(ValueError, match=r"enc packed coeffs have shape \(\d+,\)"):
+            ad.relight(short, L)
+
+
+def test_model_edits_and_refits_are_seen():
+    """The kernels read a per-model cache of the representatives: an in-place edit of the basis
+    and a refit must both show up in the next relight."""
+    c, enc = _fit("cpca_static", {"clusters": 4, "vectors": 2}, (9, 4), 200, None)
+    L = torch.randn(4, 3)
+    y = torch.randn(200, 9)
+    c.relight(enc, L, view=y)
+    with torch.no_grad():
+        c.basis_.mul_(2.0)
+        if c.means_ is not None:
+            c.means_.mul_(2.0)
+    M = c.decode(enc).view(200, 9, 4)
+    ref, scale = _reference(M, L, y)
+    _check(c.relight(enc, L, view=y), ref, scale, 3 * 9, "after in-place edit")
+    X2 = transfer_like(200, 9, 4, seed=9, regions=5)
+    enc2 = c.fit_encode(X2, matrix_shape=(9, 4))
+    ref, scale = _reference(c.decode(enc2).view(200, 9, 4), L, y)
+    _check(c.relight(enc2, L, view=y), ref, scale, 3 * 9, "after refit")
+
+
+def test_kernel_constants_match_cluster_constants():
+    """Every layout the constants kernel writes holds M_i^k l of ``cluster_constants``."""
+    lib = relight_kernels.native()
+    if lib is None:
+        pytest.skip("no compiled kernels")
+    c, enc = _fit("cpca_static", {"clusters": 5, "vectors": 3}, (9, 4), 300, None)
+    L = torch.randn(4, 3)
+    for n in (3, 1):
+        ref = c.cluster_constants(L, n)  # [K, J, n_out, C]
+        K, J, n_out, C = ref.shape
+        rows = relight_kernels.constants(lib, c.means_, c.basis_, n, n_out, 4, L, "rows")
+        assert torch.allclose(rows[..., : n_out * C].reshape(K, J, n_out, C), ref, atol=1e-5)
+        assert not rows[..., n_out * C:].any()
+        dense = relight_kernels.constants(lib, c.means_, c.basis_, n, n_out, 4, L, "dense")
+        assert torch.allclose(dense[..., :n_out].permute(0, 1, 3, 2), ref, atol=1e-5) and not dense[..., n_out:].any()
+        taps = relight_kernels.constants(lib, c.means_, c.basis_, n, n_out, 4, L, "taps")
+        assert torch.allclose(taps[..., :J].permute(0, 3, 1, 2), ref, atol=1e-5) and not taps[..., J:].any()
+
+
+def test_native_status_reports_the_path(monkeypatch):
+    st = relight_kernels.native_status()
+    assert isinstance(st["native"], bool) and st["detail"]
+    monkeypatch.setenv("PRT_TORCH_NATIVE", "0")
+    assert relight_kernels.native() is None and relight_kernels.native_status() == {"native": False, "detail": "disabled by PRT_TORCH_NATIVE=0"}
