@@ -31,7 +31,7 @@ import torch
 from .. import io
 from ..params import Boolean, Interval, Options
 from .base import (Codec, Encoded, check_light, check_matrix_shape, check_signal, check_view, check_weights)
-from .kmeans import row_chunk
+from .kmeans import CACHE_BLOCK_BYTES, row_chunk
 from .relight_kernels import affine_dense, affine_rows, affine_taps, native
 from .relight_kernels import constants as kernel_constants
 from .relight_kernels import fits as kernel_fits
@@ -95,12 +95,14 @@ class AffineCodec(Codec):
         t0 = time.perf_counter()
         dtype = self._fit_dtype(P, D, p.get("fit_dtype", "auto"))
         centred = bool(p.get("center", self.centered))
-        if centred:
-            offset = (X.double() * (w[:, None] if w is not None else 1.0)).sum(0) / (float(w.sum()) if w is not None else P)
-        else:
-            offset = torch.zeros(D, dtype=torch.float64)
-        Xc = torch.empty(P, D, dtype=dtype)
         step = row_chunk(D, 8)
+        offset = torch.zeros(D, dtype=torch.float64)
+        if centred:
+            for i in range(0, P, step):  # chunks bound the float64 temporary
+                xs = X[i:i + step].double()
+                offset += (xs * w[i:i + step, None].double() if w is not None else xs).sum(0)
+            offset /= float(w.sum()) if w is not None else P
+        Xc = torch.empty(P, D, dtype=dtype)
         for i in range(0, P, step):  # chunks bound the float64 temporary
             Xc[i:i + step] = (X[i:i + step].double() - offset).to(dtype)
         w64 = None if w is None else w.double()
@@ -502,32 +504,43 @@ def classify_all(Xc: torch.Tensor, xx: torch.Tensor, means: torch.Tensor | None,
 
         e_k(x) = ||x − x_0^k||² − Σ_i ((x − x_0^k)·x_i^k)²
 
-    by one GEMM against all representatives per chunk of points (``[P, D] @ [D, K(1+n)]``).
-    Returns ``(labels int64 [P], e_min [P], top_k int64 [P, top] or None)``.
+    by one GEMM against all representatives per block of points, with the constant terms as
+    the GEMM's bias (``addmm``): columns ``[−2 x_0^k, x_i^k]`` and bias ``[||x_0^k||², −x_i^k·x_0^k]``
+    give ``−2 x·x_0 + ||x_0||²`` and the projections ``(x − x_0)·x_i`` directly; ``||x||²`` is
+    added to the minimum only. Blocks of ``[rows, K(1+n)]`` sized to stay in cache.
+    ``Xc [P, D]``, ``xx [P]`` = ``||x_p||²`` (Xc's dtype), ``means [K, D]`` or None,
+    ``basis [K, n, D]`` (float64). Returns ``(labels int64 [P], e_min [P], top_k int64 [P, top]
+    or None)``.
     """
     P, D = Xc.shape
     K, n, _ = basis.shape
     dt = Xc.dtype
     if means is None:
         means = torch.zeros(K, D, dtype=torch.float64)
-    W = torch.cat([means[:, None], basis], 1).to(dt).reshape(K * (1 + n), D)
-    mm = means.square().sum(1).to(dt)
-    mb = torch.einsum("knd,kd->kn", basis, means).to(dt)
+    W = torch.cat([-2.0 * means[:, None], basis], 1).to(dt).reshape(K * (1 + n), D)
+    bias = torch.cat([means.square().sum(1)[:, None], -torch.einsum("knd,kd->kn", basis, means)], 1)
+    bias = bias.to(dt).reshape(1, K * (1 + n))
     labels = torch.empty(P, dtype=torch.long)
     emin = torch.empty(P, dtype=dt)
     tops = torch.empty(P, min(top, K), dtype=torch.long) if top else None  # fewer clusters than candidates
-    step = row_chunk(K * (1 + n), Xc.element_size())
-    for i in range(0, P, step):  # chunks bound the [rows, K(1+n)] block
-        G = (Xc[i:i + step] @ W.T).view(-1, K, 1 + n)
-        e = xx[i:i + step, None] - 2 * G[..., 0] + mm
+    step = min(P, row_chunk(K * (1 + n), Xc.element_size(), CACHE_BLOCK_BYTES))
+    for i in range(0, P, step):  # blocks bound the [rows, K(1+n)] temporary
+        G = torch.addmm(bias, Xc[i:i + step], W.T).view(-1, K, 1 + n)
         if n:
-            e -= (G[..., 1:] - mb).square().sum(-1)
-        m = e.min(1)
-        labels[i:i + step] = m.indices
-        emin[i:i + step] = m.values.clamp_min(0)
+            e = G[..., 0] - G[..., 1:].square_().sum(-1)
+        else:
+            e = G[..., 0]
         if top:
-            tops[i:i + step] = torch.topk(e, min(top, K), dim=1, largest=False).indices
-    return labels, emin, tops
+            v, j = torch.topk(e, min(top, K), dim=1, largest=False)
+            tops[i:i + step] = j
+            labels[i:i + step] = j[:, 0]
+            emin[i:i + step] = v[:, 0]
+        else:
+            m = e.min(1)
+            labels[i:i + step] = m.indices
+            emin[i:i + step] = m.values
+    emin += xx
+    return labels, emin.clamp_min_(0), tops
 
 
 def _total_energy(Xc: torch.Tensor, w, centred: bool) -> float:

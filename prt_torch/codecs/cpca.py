@@ -69,7 +69,8 @@ _DOC_VQ = """
 _DOC_PCA = """
     solver : {'auto', 'eigh', 'svd', 'randomized'}, default='auto'
         eigh: Sloan 2003 §4.1 normal form (CᵀC or CCᵀ by shape); svd; randomized: subspace
-        iteration; auto: eigh when K·D³ is small, else randomized.
+        iteration; auto: eigh when K·D³ is small, else randomized (one-cluster PCA: randomized
+        for signals of more than 2^23 values with n' + oversample ≤ D/4).
     oversample : int in [0, 256], default=8
         Extra columns of the randomized subspace.
     power_iters : int in [0, 50], default=3
@@ -116,11 +117,17 @@ class _Work:
         ones = torch.ones(self.P, dtype=self.dt) if self.sw is None else self.sw
         self.swt = to_tiles(lay, ones)  # [NT, T]; zero on padding rows
         self.xxt = to_tiles(lay, self.xx)
+        used = torch.zeros(lay.NT * self.T, dtype=torch.bool)
+        used[lay.pos] = True
+        self.pad_rows = torch.nonzero(~used).flatten()  # flat tile rows that hold no point
 
     def means(self) -> torch.Tensor:
         """Weighted cluster means [K, D] float64 (x_0, Sloan 2003 §4.1); empty clusters: 0."""
         w2 = self.swt.square()
-        s = torch.bmm(w2[:, None, :], self.Xt).squeeze(1).double()
+        if self.sw is None:  # padding rows are zero: a plain per-tile sum
+            s = self.Xt.sum(1).double()
+        else:
+            s = torch.bmm(w2[:, None, :], self.Xt).squeeze(1).double()
         sums = torch.zeros(self.K, self.D, dtype=torch.float64).index_add_(0, self.tc, s)
         ws = torch.zeros(self.K, dtype=torch.float64).index_add_(0, self.tc, w2.sum(1).double())
         return sums / ws.clamp_min(1e-300)[:, None]
@@ -129,10 +136,16 @@ class _Work:
         """Means, top-n PCA vectors and squared error of the current clusters (Sloan 2003 §4.1)."""
         means = self.means() if self.centred else None
         Yt = self._y[: self.Xt.shape[0] * self.T].view_as(self.Xt)
-        Yt.copy_(self.Xt)
-        if means is not None:
-            Yt -= means.to(self.dt)[self.tc][:, None, :]
-        Yt *= self.swt[..., None]
+        if means is not None:  # Yt = sqrt(w) (x - x_0), zero on padding rows
+            torch.sub(self.Xt, means.to(self.dt)[self.tc][:, None, :], out=Yt)
+            if self.sw is None:
+                Yt.view(-1, self.D).index_fill_(0, self.pad_rows, 0)
+            else:
+                Yt *= self.swt[..., None]
+        else:
+            Yt.copy_(self.Xt)
+            if self.sw is not None:
+                Yt *= self.swt[..., None]
         pi = power_iters if init is None or init.shape[1] == 0 else 1
         basis, evals = cluster_pca(self.layout, Yt, n, solver, gen=gen, init=init,
                                    oversample=oversample, power_iters=pi, cache=self.cache)
@@ -143,24 +156,25 @@ class _Work:
     def classify_candidates(self, st: dict, cand: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Least reconstruction error among each cluster's candidate clusters ``cand [K, L]``
         (own cluster first), in tile order: one tile-GEMM against the candidates' stacked
-        representatives. Returns (labels [P], e_min [P])."""
+        representatives ``[−2 x_0, x_i]`` with the constants ``[||x_0||², −x_i·x_0]`` added after
+        (as ``classify_all``). Returns (labels [P], e_min [P])."""
         means, basis = st["means"], st["basis"]
         K, n, D = basis.shape
         L = cand.shape[1]
         if means is None:
             means = torch.zeros(K, D, dtype=torch.float64)
-        Wall = torch.cat([means[:, None], basis], 1)  # [K, 1+n, D]
-        Wc = Wall[cand].permute(0, 3, 1, 2).reshape(K, D, L * (1 + n)).to(self.dt)
-        E = tiles_bmm(self.layout, self.Xt, Wc).view(*self.Xt.shape[:2], L, 1 + n)
-        mm = means.square().sum(1)[cand].to(self.dt)  # [K, L]
-        e = self.xxt[..., None] - 2 * E[..., 0] + mm[self.tc][:, None, :]
-        if n:
-            mb = torch.einsum("knd,kd->kn", basis, means)[cand].to(self.dt)  # [K, L, n]
-            e -= (E[..., 1:] - mb[self.tc][:, None]).square().sum(-1)
+        Wall = torch.cat([-2.0 * means[:, None], basis], 1).to(self.dt)  # [K, 1+n, D]
+        Wc = Wall[cand].reshape(K, L * (1 + n), D).transpose(1, 2)  # [K, D, L(1+n)], a view
+        bias = torch.cat([means.square().sum(1)[:, None], -torch.einsum("knd,kd->kn", basis, means)], 1)
+        bc = bias[cand].reshape(K, L * (1 + n)).to(self.dt)  # [K, L(1+n)]
+        E = tiles_bmm(self.layout, self.Xt, Wc)
+        E += bc[self.tc][:, None, :]
+        E = E.view(*self.Xt.shape[:2], L, 1 + n)
+        e = E[..., 0] - E[..., 1:].square_().sum(-1) if n else E[..., 0]
         m = e.min(-1)
         lab_t = torch.gather(cand[self.tc][:, None, :].expand(-1, self.T, -1), 2, m.indices[..., None]).squeeze(-1)
         labels = from_tiles(self.layout, lab_t[..., None]).squeeze(-1)
-        emin = from_tiles(self.layout, m.values.clamp_min(0)[..., None]).squeeze(-1)
+        emin = from_tiles(self.layout, (m.values + self.xxt).clamp_min(0)[..., None]).squeeze(-1)
         return labels, emin
 
 
@@ -308,7 +322,10 @@ class PCA(AffineCodec):
         P, D = Xc.shape
         p = self.params
         n = p["vectors"]
-        solver = _resolve_solver(p["solver"], 1, D, 4e8)
+        solver = p["solver"]
+        if solver == "auto":  # big signals: subspace iteration by GEMMs over the data, not the D×D scatter
+            big = P * D > 2**23 and P >= 4 * D and n + p["oversample"] <= D // 4
+            solver = "randomized" if big else _resolve_solver("auto", 1, D, 4e8)
         work = _Work(Xc, w, 1, centred=p["center"])
         work.set_labels(torch.zeros(P, dtype=torch.long))
         st = work.refit(n, solver, gen, oversample=p["oversample"], power_iters=p["power_iters"])
@@ -331,6 +348,9 @@ class CPCA(_VQMixin, AffineCodec):
         Classify/refit rounds per added PCA vector (Sloan 2003: 10-20).
     candidates : int, default=8
         Clusters compared per point between exact passes (0: all, every round).
+    stage_tol : float, default=5e-3
+        Iterative: a stage before the last ends once a round lowers the SE by less than this
+        fraction (0: always ``iterations`` rounds); the last stage runs ``iterations`` rounds.
     budget : float or None, default=None
         Adaptive: mean per-point PCA weights Σ m_k n_k / P (default: vectors).
     max_vectors : int or None, default=None
@@ -344,6 +364,7 @@ class CPCA(_VQMixin, AffineCodec):
         "method": [Options("static", "iterative", "adaptive")],
         "iterations": [Interval(int, 1, None)],
         "candidates": [Interval(int, 0, None)],
+        "stage_tol": [Interval(float, 0, None)],
         "budget": [Interval(float, 0, None), None],
         "max_vectors": [Interval(int, 1, None), None],
         "adapt_iters": [Interval(int, 1, None)],
@@ -351,7 +372,8 @@ class CPCA(_VQMixin, AffineCodec):
 
     def __init__(self, *, clusters=64, max_iter=20, tol=1e-4, n_init=1, init="k-means++", init_sample=None,
                  vectors=8, solver="auto", oversample=8, power_iters=3, method="iterative", iterations=10,
-                 candidates=8, budget=None, max_vectors=None, adapt_iters=5, seed=0, fit_dtype="auto", strict=False):
+                 candidates=8, stage_tol=5e-3, budget=None, max_vectors=None, adapt_iters=5, seed=0, fit_dtype="auto",
+                 strict=False):
         self.clusters = clusters
         self.max_iter = max_iter
         self.tol = tol
@@ -365,6 +387,7 @@ class CPCA(_VQMixin, AffineCodec):
         self.method = method
         self.iterations = iterations
         self.candidates = candidates
+        self.stage_tol = stage_tol
         self.budget = budget
         self.max_vectors = max_vectors
         self.adapt_iters = adapt_iters
@@ -425,13 +448,15 @@ class CPCA(_VQMixin, AffineCodec):
                 "n_vectors": best["n_vectors"], "info": info}
 
     # -- Sloan 2003 §4.2 ------------------------------------------------------------------
-    def _rounds(self, work, st, n, solver, gen, kw, rounds, L):
-        """Generalised LBG rounds at fixed n: [classify, refit] × rounds; first classification
-        exact over all clusters, later ones among candidate sets (L > 0). Returns the best state
-        and the number of label changes per round."""
+    def _rounds(self, work, st, n, solver, gen, kw, rounds, L, cand=None, rtol=0.0):
+        """Generalised LBG rounds at fixed n: [classify, refit] × rounds. The first
+        classification is exact over all clusters unless candidate sets ``cand [K, L]`` are
+        given; later ones are among the candidate sets (L > 0) built from that exact pass.
+        Stops when no label changes, or (``rtol`` > 0) when a round lowers the SE by less than
+        ``rtol`` of it. Returns the best state, the label changes per round and the
+        candidate sets."""
         changes = []
         best = st
-        cand = None
         for r in range(rounds):
             if cand is None:
                 labels, emin, top = classify_all(work.X, work.xx, st["means"], st["basis"], top=L if L else 0)
@@ -445,33 +470,44 @@ class CPCA(_VQMixin, AffineCodec):
             work.set_labels(labels)
             if L and cand is None:
                 cand = _candidate_sets(labels, top, work.K, L)
+            prev = st["se"]
             st = work.refit(n, solver, gen, init=st["basis"], **kw)
             if st["se"] < best["se"]:
                 best = st
-        return best, changes
+            if prev - st["se"] < rtol * prev:  # the stage has stalled
+                break
+        return best, changes, cand
 
     def _iterative(self, work, vq, static, solver, gen, kw, info):
+        """Sloan 2003 §4.2: PCA vectors added one at a time, ``iterations`` rounds per vector.
+
+        Speed: the stages before the last stop once a round gains less than ``stage_tol``
+        (they only steer the clusters away from poor local minima); exact classification at
+        the first and last stage, candidate sets in between; and when the incremental path
+        reaches n vectors with more error than the static fit, the last stage continues from
+        the static fit instead (the rounds never increase error, so the result is never worse
+        than static)."""
         p = self.params
         n, L = p["vectors"], p["candidates"]
         st = {"labels": vq["labels"], "basis": torch.zeros(work.K, 0, work.D, dtype=torch.float64)}
         stages = []
         work.set_labels(vq["labels"])
+        cand = None
         for j in range(1, n + 1):  # add PCA vectors one at a time (Sloan 2003 §4.2)
             st = work.refit(j, solver, gen, init=st["basis"], **kw)
-            st, changes = self._rounds(work, st, j, solver, gen, kw, p["iterations"], L)
+            last = j == n
+            if last and st["se"] > static["se"]:
+                info["restarted_from_static"] = {"incremental_se": st["se"], "static_se": static["se"]}
+                work.set_labels(static["labels"])
+                st = static
+            exact = j == 1 or last or not L
+            st, changes, cand = self._rounds(work, st, j, solver, gen, kw, p["iterations"], L,
+                                             cand=None if exact else cand, rtol=0.0 if last else p["stage_tol"])
             if not torch.equal(work.labels, st["labels"]):
                 work.set_labels(st["labels"])
             stages.append({"vectors": j, "se": st["se"], "changes": changes})
         info["stages"] = stages
         info["iterative_se"] = st["se"]
-        if st["se"] > static["se"]:
-            # the incremental path ended above the static fit: continue from the static one
-            # instead (its rounds never increase error), and keep the better of the two
-            work.set_labels(static["labels"])
-            st2, changes = self._rounds(work, static, n, solver, gen, kw, p["iterations"], L)
-            info["restarted_from_static"] = {"se": st2["se"], "changes": changes}
-            if st2["se"] < st["se"]:
-                st = st2
         return st
 
     # -- Sloan 2003 §4.3 ------------------------------------------------------------------

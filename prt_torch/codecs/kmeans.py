@@ -28,19 +28,22 @@ import math
 
 import torch
 
-__all__ = ["row_chunk", "sq_dists", "assign", "kmeans_pp", "lloyd", "repair_empty", "segment_sums"]
+__all__ = ["BLOCK_BYTES", "CACHE_BLOCK_BYTES", "row_chunk", "sq_dists", "assign", "kmeans_pp", "lloyd", "repair_empty", "segment_sums"]
 
 #: Bytes of one [rows, K] distance block.
 BLOCK_BYTES = 64 * 2**20
+#: Bytes of a distance block that is reduced (min / top-k) right after its GEMM: small enough
+#: to stay in the cache between the GEMM and the reduction (faiss's blocked assignment).
+CACHE_BLOCK_BYTES = 4 * 2**20
 
 #: Relative float32/float64 rounding margin of a GEMM squared distance ``xx − 2x·c + cc``: the
 #: bounds of ``lloyd`` and ``kmeans_pp`` widen by ``_ROUND[dtype]·(||x||² + max ||c||²)``.
 _ROUND = {torch.float32: 64 * 2.0 ** -24, torch.float64: 64 * 2.0 ** -53}
 
 
-def row_chunk(cols: int, itemsize: int = 4) -> int:
-    """Rows per chunk so that a [rows, cols] temporary stays near BLOCK_BYTES."""
-    return max(256, BLOCK_BYTES // max(1, cols * itemsize))
+def row_chunk(cols: int, itemsize: int = 4, block_bytes: int = BLOCK_BYTES) -> int:
+    """Rows per chunk so that a [rows, cols] temporary stays near ``block_bytes``."""
+    return max(256, block_bytes // max(1, cols * itemsize))
 
 
 def sq_dists(X: torch.Tensor, C: torch.Tensor, xx: torch.Tensor | None = None, cc: torch.Tensor | None = None) -> torch.Tensor:
@@ -70,7 +73,7 @@ def assign(X: torch.Tensor, C: torch.Tensor, xx: torch.Tensor | None = None,
     labels = torch.empty(P, dtype=torch.long)
     d2 = torch.empty(P, dtype=X.dtype)
     d2b = torch.full((P,), math.inf, dtype=X.dtype) if second else None
-    step = row_chunk(K, X.element_size())
+    step = row_chunk(K, X.element_size(), CACHE_BLOCK_BYTES)
     for i in range(0, P, step):  # chunks bound the [rows, K] block
         d = torch.addmm(cc, X[i:i + step], C.T, beta=1.0, alpha=-2.0)
         if second and K > 1:

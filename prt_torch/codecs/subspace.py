@@ -29,6 +29,22 @@ from .segment import TileLayout, tiles_accumulate, tiles_bmm
 __all__ = ["cluster_pca", "total_variance", "orthonormalize"]
 
 
+def _bmm(layout: TileLayout, Yt: torch.Tensor, W: torch.Tensor) -> torch.Tensor:
+    """``tiles_bmm``; one cluster (global PCA): a single GEMM over all rows ``[NT·T, D] @ [D, r]``."""
+    if layout.K != 1:
+        return tiles_bmm(layout, Yt, W)
+    NT, T, D = Yt.shape
+    return (Yt.reshape(NT * T, D) @ W[0].to(Yt.dtype)).view(NT, T, -1)
+
+
+def _accumulate(layout: TileLayout, At: torch.Tensor, Bt: torch.Tensor) -> torch.Tensor:
+    """``tiles_accumulate`` (float64 ``[K, D, r]``); one cluster: a single GEMM ``Aᵀ B``."""
+    if layout.K != 1:
+        return tiles_accumulate(layout, At, Bt)
+    D, r = At.shape[2], Bt.shape[2]
+    return (At.reshape(-1, D).T @ Bt.reshape(-1, r).to(At.dtype)).double()[None]
+
+
 def total_variance(layout: TileLayout, Yt: torch.Tensor) -> torch.Tensor:
     """``Σ_{p∈k} ||y_p||²`` per cluster, float64 ``[K]`` (no temporary of Yt's size)."""
     per_tile = torch.linalg.vector_norm(Yt, dim=(1, 2)).double().square()
@@ -80,7 +96,7 @@ def _eigh_normal_form(layout, Yt, n):
     # clusters with m_k >= D: C^T C (D x D), eigenvectors = PCA vectors (Sloan 2003 §4.1)
     ka = torch.nonzero(big).flatten()
     if ka.numel():
-        S = tiles_accumulate(layout, Yt, Yt)[ka]
+        S = _accumulate(layout, Yt, Yt)[ka]
         lam, V = torch.linalg.eigh(0.5 * (S + S.transpose(1, 2)))
         lam, V = _top(lam, V, n)
         basis[ka] = V.transpose(1, 2)
@@ -138,15 +154,15 @@ def _randomized(layout, Yt, n, gen, init, oversample, power_iters, cache):
     if warm is None:
         Q = orthonormalize(g)
         for _ in range(max(1, power_iters)):  # power steps (each: 2 tile-GEMMs + a small orth)
-            Q = orthonormalize(tiles_accumulate(layout, Yt, tiles_bmm(layout, Yt, Q)))
+            Q = orthonormalize(_accumulate(layout, Yt, _bmm(layout, Yt, Q)))
     else:
         # one power step on [warm, random], then Rayleigh-Ritz on span([warm, S [warm, random]]):
         # the warm basis stays in the span, so the captured variance cannot drop
         Q0 = torch.cat([warm, g], 2)
-        SQ = tiles_accumulate(layout, Yt, tiles_bmm(layout, Yt, Q0))
+        SQ = _accumulate(layout, Yt, _bmm(layout, Yt, Q0))
         Q = orthonormalize(torch.cat([warm, SQ], 2)[..., :D])
-    Z = tiles_bmm(layout, Yt, Q)
-    H = tiles_accumulate(layout, Z, Z)
+    Z = _bmm(layout, Yt, Q)
+    H = _accumulate(layout, Z, Z)
     lam, U = torch.linalg.eigh(0.5 * (H + H.transpose(1, 2)))
     nb = min(n, lam.shape[1])
     lam, U = _top(lam, U, nb)
