@@ -23,9 +23,13 @@ Fit (Green eq. 2.2): for all functions of a batch of vertices at once, minimise
 vertex to unit peak energy so the weights β, γ, δ are relative). Optimiser: batched
 Levenberg–Marquardt — each function has 4N unknowns (log w, log σ and two tangent-plane
 coordinates of μ, re-centred every step: constraints by reparameterisation), so the normal
-equations are 4N×4N and one batched Cholesky solve per iteration serves thousands of
-functions; Gauss–Newton converges in a few tens of steps on these near-Gaussian lobes, where
-first-order L-BFGS needed hundreds (Green reports "several hundred" fmincon iterations). The
+equations are 4N×4N (assembled from per-texel moments, :meth:`_Problem.normal_equations`) and
+one batched Cholesky solve per iteration serves thousands of functions; Gauss–Newton converges
+in a few tens of steps on these near-Gaussian lobes (Green reports "several hundred" fmincon
+iterations). ``optimizer='lbfgs'`` (torch's L-BFGS on the batch's summed objective) is kept as
+the measured alternative: on the same functions and start it ends at a higher error with 5×
+the iterations (reports/benchmarks/gaussian.md). Widths and weights at their bounds are
+handled as an active set (frozen for a step when the gradient points outward). The
 view terms M, V couple a function to its R = 6 nearest views; they enter each iteration with
 the neighbours' parameters of the previous iterate as fixed targets (a block-Jacobi splitting
 of eq. 2.2, which keeps the solves per function). The spatial term S uses the already fitted
