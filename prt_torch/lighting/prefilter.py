@@ -129,6 +129,13 @@ class PrefilteredEnvironment:
         return (f"PrefilteredEnvironment(levels={self.levels.shape[0]}, C={self.channels}, res={self.res}, "
                 f"sigma=[{float(self.sigmas[0]):.3g}, {float(self.sigmas[-1]):.3g}])")
 
+    def _flat(self) -> torch.Tensor:
+        """The pyramid as rows ``[L·6·r·r, C]`` float32 (built once)."""
+        if getattr(self, "_flat_levels", None) is None:
+            L = self.levels.shape[0]
+            self._flat_levels = self.levels.permute(0, 2, 3, 4, 1).reshape(L * 6 * self.res * self.res, self.channels).float().contiguous()
+        return self._flat_levels
+
     def lookup(self, mu: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
         """E_σ(μ): ``mu [..., 3]`` unit directions, ``sigma [...]`` widths → ``[..., C]`` float32.
         Bilinear in the face (clamped at face edges), linear in log σ between the two levels
@@ -154,16 +161,16 @@ class PrefilteredEnvironment:
             a = ((ls - ladder[lo]) / (ladder[hi] - ladder[lo])).clamp(0, 1)
         else:
             a = torch.zeros_like(ls)
-        flat = self.levels.permute(0, 2, 3, 4, 1).reshape(L * 6 * r * r, self.channels)  # [L·6·r·r, C]
-
-        def tex(li, tt, ss):
-            return flat[((li * 6 + face) * r + tt) * r + ss]
-
-        def bil(li):
-            return ((1 - ft)[:, None] * ((1 - fs)[:, None] * tex(li, t0, s0) + fs[:, None] * tex(li, t0, s1))
-                    + ft[:, None] * ((1 - fs)[:, None] * tex(li, t1, s0) + fs[:, None] * tex(li, t1, s1)))
-
-        out = (1 - a)[:, None] * bil(lo) + a[:, None] * bil(hi)
+        # the 8 texels (2 levels × 2×2 in the face) and their trilinear weights, summed by one
+        # fused gather-weighted-sum over the flattened pyramid
+        base = (face * r + t0) * r + s0  # [M] texel (t0, s0) of the face, level 0
+        ds, dt = s1 - s0, (t1 - t0) * r  # 0 where the neighbour is the texel itself (r = 1)
+        tex4 = base[:, None] + torch.stack([torch.zeros_like(ds), ds, dt, dt + ds], 1)  # (t0,s0), (t0,s1), (t1,s0), (t1,s1)
+        w4 = torch.stack([(1 - ft) * (1 - fs), (1 - ft) * fs, ft * (1 - fs), ft * fs], 1)  # [M, 4]
+        lvl = 6 * r * r
+        idx = torch.cat([tex4 + (lo * lvl)[:, None], tex4 + (hi * lvl)[:, None]], 1)  # [M, 8]
+        wts = torch.cat([w4 * (1 - a)[:, None], w4 * a[:, None]], 1)
+        out = torch.nn.functional.embedding_bag(idx, self._flat(), per_sample_weights=wts.contiguous(), mode="sum")
         return out.reshape(*shape, self.channels)
 
     def brute_force(self, mu: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
