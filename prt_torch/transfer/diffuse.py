@@ -149,7 +149,9 @@ class DiffuseSampler:
             self.dirs, _ = uniform_sphere(samples, seed)  # [N,3] float64, weights 4π/N
             self.Y = eval_sh(self.dirs, bands)  # [N, n²], shared by every vertex
             self.weight = 4.0 / samples  # (4π/N)·(1/π)
-            self.dirs32 = np.ascontiguousarray(self.dirs.numpy(), np.float32)
+            self.dirs_np = np.ascontiguousarray(self.dirs.numpy())
+            self.dirs32 = self.dirs_np.astype(np.float32)
+            self.Y_np = np.ascontiguousarray(self.Y.numpy())
         else:
             self.dirs = cosine_hemisphere(samples, seed)  # local frame
             self.Y = None
@@ -167,10 +169,13 @@ class DiffuseSampler:
         """
         o_v = offset_origins(points.numpy(), normals.numpy(), eps, None if nudge is None else nudge.numpy()).astype(np.float32)
         if self.sampling == "uniform":
-            cos = (normals @ self.dirs.T).numpy()  # [k,N] float64
+            cos = normals.numpy() @ self.dirs_np.T  # [k,N] float64
             up = cos > 0
-            i, j = np.nonzero(up)  # row-major: rays grouped by vertex
-            o = np.repeat(o_v, up.sum(1), axis=0)  # == o_v[i], without a gather
+            counts = up.sum(1)
+            # row-major: rays grouped by vertex (np.nonzero's order; flatnonzero + repeat is ~5x faster)
+            i = np.repeat(np.arange(up.shape[0]), counts)
+            j = np.flatnonzero(up) - i * up.shape[1]
+            o = np.repeat(o_v, counts, axis=0)  # == o_v[i], without a gather
             return i, j, o, np.take(self.dirs32, j, axis=0), np.maximum(cos, 0.0, out=cos)
         k = normals.shape[0]
         world = to_world(self.dirs, frames).reshape(-1, 3).numpy()  # [k·N,3]
@@ -344,8 +349,8 @@ def _chunk(caster: RayCaster, sampler: DiffuseSampler, points: torch.Tensor, nor
     out: dict[str, torch.Tensor] = {"rays": torch.tensor([i.shape[0]], dtype=torch.int64)}
     if sampler.sampling == "uniform":
         W = cos * sampler.weight  # [k,N]; zero below the horizon
-        W[i[hit], j[hit]] = 0.0  # blocked directions
-        out["T"] = torch.from_numpy(W) @ sampler.Y  # one GEMM per chunk
+        W.reshape(-1)[(i * W.shape[1] + j)[hit]] = 0.0  # blocked directions
+        out["T"] = torch.from_numpy(W @ sampler.Y_np)  # one GEMM per chunk (numpy's float64 GEMM: 3x torch's here)
         w_ray = W.dtype.type(sampler.weight) * cos[i, j] if record_hits else None
     else:
         vis = ~hit
