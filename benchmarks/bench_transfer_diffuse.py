@@ -89,6 +89,8 @@ def main(argv=None) -> int:
     ap.add_argument("--workers", type=int, default=None, help="default: all cores")
     ap.add_argument("--quick", action="store_true", help="bumpy_sphere:medium, 256 samples (smoke run)")
     ap.add_argument("--out", default=str(ROOT / "reports" / "benchmarks" / "transfer_diffuse"))
+    ap.add_argument("--pairs", type=int, default=3,
+                    help="paired repeats: the bounces=0 precompute and the bare call on the workers, back to back")
     args = ap.parse_args(argv)
     if args.quick:
         args.scene, args.samples = "bumpy_sphere:medium", 256
@@ -117,6 +119,18 @@ def main(argv=None) -> int:
     with RayCaster(mesh, workers=workers, min_parallel_rays=1) as wc:
         wc.trace(np.zeros((4, 3), np.float32), np.ones((4, 3), np.float32) / np.sqrt(3), "occluded")  # start workers
         bare_w_t, _ = bare_occlusion(mesh, caster, sampler, chunk, workers_caster=wc)
+        # paired repeats: precompute (bounces 0) then the bare call on the same workers, back to
+        # back, so a machine whose load changes slows both sides of each ratio
+        pairs = []
+        for _ in range(args.pairs):
+            t = time.perf_counter()
+            precompute_diffuse(mesh, args.bands, args.samples, 0, seed=0, shadows="always", run=RunOptions(workers=workers))
+            tp = time.perf_counter() - t
+            tb, _ = bare_occlusion(mesh, caster, sampler, chunk, workers_caster=wc)
+            pairs.append({"precompute_s": tp, "bare_workers_s": tb, "ratio": tb / tp, "load": os.getloadavg()[0]})
+            print(f"pair: precompute {tp:.2f} s, bare on workers {tb:.2f} s, ratio {tb / tp:.2f}", flush=True)
+    ratios = sorted(p["ratio"] for p in pairs)
+    paired = {"pairs": pairs, "median_ratio": ratios[len(ratios) // 2] if ratios else None}
     o, d = next(regenerate_rays(mesh, caster, sampler, chunk))
     gil_one, gil_two = gil_probe(caster, o, d)
     bare_rps = bare_rays / bare_t
@@ -137,6 +151,7 @@ def main(argv=None) -> int:
                 "verdict": "embreex holds the GIL (threads do not scale); processes used" if gil_one / gil_two < 1.3
                 else "threads scale"},
         "runs": runs,
+        "paired": paired,
     }
     out = Path(args.out)
     io.atomic_write_json(out.with_suffix(".json"), result)
@@ -159,6 +174,10 @@ def main(argv=None) -> int:
         f"| bare `EmbreeScene.run(OCCLUDED)`, 1 core | {bare_rays} | {bare_t:.2f} | {bare_rps / 1e6:.2f} | 1.00 | | |",
         f"| bare occluded split over {workers} processes | {bare_rays} | {bare_w_t:.2f} | {bare_w_rps / 1e6:.2f} | "
         f"{bare_w_rps / bare_rps:.2f} | 1.00 | |",
+        "",
+        f"Paired (bounces=0 precompute, then the bare occluded call on the same {workers} worker processes, back to back, "
+        f"{len(pairs)} times): rate ratio precompute / bare = median **{paired['median_ratio']:.2f}** "
+        f"({', '.join('%.2f' % p['ratio'] for p in pairs)}; goal ≥ 0.8).",
         "",
         f"GIL: the bare call on {o.shape[0]} rays takes {gil_one:.3f} s on one thread and {gil_two:.3f} s on two threads "
         f"(speedup {gil_one / gil_two:.2f}): {result['gil']['verdict']}.",
