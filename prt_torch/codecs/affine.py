@@ -373,6 +373,10 @@ class AffineCodec(Codec):
         L = check_light(light, n_in)
         C = L.shape[1]
         J = (1 if self.means_ is not None else 0) + n
+        if J == 0:  # no mean and no vectors kept: x̃ = 0 (the view's values still checked)
+            check_view(view, enc.points, n_out)
+            return (torch.zeros(enc.points, C) if view is not None or self.matrix_shape_ is None
+                    else torch.zeros(enc.points, n_out, C)), 0
         if not kernel_fits(J, n_out, C) or (isinstance(view, tuple) and view[0].shape[1] > 64):
             return None
         codes = self._native_codes(enc, n)

@@ -70,9 +70,18 @@ static inline const float *weights_of(const float *W, i64 wstride, const i64 *wo
     return W ? W + (woff ? woff[p] : p * wstride) : 0;
 }
 
-static inline float hsum(v8 a) {  /* a tree: three dependent adds, not eight */
-    return ((a[0] + a[4]) + (a[2] + a[6])) + ((a[1] + a[5]) + (a[3] + a[7]));
+typedef float v4 __attribute__((vector_size(16)));
+#if defined(__clang__) || (defined(__GNUC__) && __GNUC__ >= 12)
+#define SHUF(a, ...) __builtin_shufflevector(a, a, __VA_ARGS__)
+static inline float hsum(v8 a) {  /* a tree in registers: halves, pairs, lanes */
+    v4 s = SHUF(a, 0, 1, 2, 3) + SHUF(a, 4, 5, 6, 7);
+    s += SHUF(s, 2, 3, 0, 1);
+    s += SHUF(s, 1, 0, 3, 2);
+    return s[0];
 }
+#else
+static inline float hsum(v8 a) { return ((a[0] + a[4]) + (a[2] + a[6])) + ((a[1] + a[5]) + (a[3] + a[7])); }
+#endif
 
 static inline float dot(const float *a, const float *b, i64 n) {
     v8 acc = {0};
@@ -86,52 +95,39 @@ static inline float dot(const float *a, const float *b, i64 n) {
 #define LD(p) (*(const v8 *)(p))
 #define ST(p, v) (*(v8 *)(p) = (v))
 
-/* e[0:F] = (mean ? T[0] : 0) + sum_{i<cnt} w[i] T[mean + i]  (rows of F floats, stride F).
-   64 (then 32, 8) outputs at a time stay in vector registers while the weights stream past;
-   eight independent accumulators keep both FMA pipes busy. */
+/* a[b] = (mean ? Tc[8b..] : 0) + sum_{i<cnt} w[i] Tc[(mean + i) F + 8b..], b < NB: NB independent
+   accumulators (NB >= 8 keeps both FMA pipes busy) while the weights stream past. */
+#define ACCUMULATE(NB)                                                                           \
+    v8 a[NB];                                                                                    \
+    for (int b = 0; b < NB; b++) a[b] = mean ? LD(Tc + 8 * b) : (v8){0};                         \
+    const float *Tb = Tc + (mean ? F : 0);                                                       \
+    for (i64 i = 0; i < cnt; i++, Tb += F) {                                                     \
+        float wi = w[i];                                                                         \
+        for (int b = 0; b < NB; b++) a[b] += wi * LD(Tb + 8 * b);                                \
+    }
+
+/* rows: ec[8b..] = a[b] */
+#define ROWS_CHUNK(NB)                                                                           \
+static inline void rows_chunk_##NB(const float *Tc, i64 F, int mean, const float *w, i64 cnt, float *ec) { \
+    ACCUMULATE(NB)                                                                               \
+    for (int b = 0; b < NB; b++) ST(ec + 8 * b, a[b]);                                           \
+}
+#define CHUNKS(X) X(1) X(2) X(3) X(4) X(5) X(6) X(7) X(8) X(9) X(10) X(11) X(12)
+CHUNKS(ROWS_CHUNK)
+#define MAXNB 12
+#define CASE_ROWS(NB) case NB: rows_chunk_##NB(Tc, F, mean, w, cnt, ec); break;
+
+/* nv vectors in ceil(nv / 12) nearly equal chunks: the size of one */
+static inline i64 chunk_size(i64 nv) { i64 n = (nv + MAXNB - 1) / MAXNB; return n ? (nv + n - 1) / n : 1; }
+
+/* e[0:F] = (mean ? T[0] : 0) + sum_{i<cnt} w[i] T[mean + i]  (rows of F floats, stride F; F % 8 == 0) */
 static inline void combine(i64 F, const float *T, int mean, const float *w, i64 cnt, float *e) {
-    i64 f0 = 0;
-    for (; f0 + 64 <= F; f0 += 64) {
-        const float *Tb = T + f0;
-        v8 a0 = {0}, a1 = {0}, a2 = {0}, a3 = {0}, a4 = {0}, a5 = {0}, a6 = {0}, a7 = {0};
-        if (mean) {
-            a0 = LD(Tb); a1 = LD(Tb + 8); a2 = LD(Tb + 16); a3 = LD(Tb + 24);
-            a4 = LD(Tb + 32); a5 = LD(Tb + 40); a6 = LD(Tb + 48); a7 = LD(Tb + 56);
-            Tb += F;
-        }
-        for (i64 i = 0; i < cnt; i++, Tb += F) {
-            float wi = w[i];
-            a0 += wi * LD(Tb); a1 += wi * LD(Tb + 8); a2 += wi * LD(Tb + 16); a3 += wi * LD(Tb + 24);
-            a4 += wi * LD(Tb + 32); a5 += wi * LD(Tb + 40); a6 += wi * LD(Tb + 48); a7 += wi * LD(Tb + 56);
-        }
-        ST(e + f0, a0); ST(e + f0 + 8, a1); ST(e + f0 + 16, a2); ST(e + f0 + 24, a3);
-        ST(e + f0 + 32, a4); ST(e + f0 + 40, a5); ST(e + f0 + 48, a6); ST(e + f0 + 56, a7);
-    }
-    for (; f0 + 32 <= F; f0 += 32) {
-        const float *Tb = T + f0;
-        v8 a0 = {0}, a1 = {0}, a2 = {0}, a3 = {0};
-        if (mean) { a0 = LD(Tb); a1 = LD(Tb + 8); a2 = LD(Tb + 16); a3 = LD(Tb + 24); Tb += F; }
-        for (i64 i = 0; i < cnt; i++, Tb += F) {
-            float wi = w[i];
-            a0 += wi * LD(Tb); a1 += wi * LD(Tb + 8); a2 += wi * LD(Tb + 16); a3 += wi * LD(Tb + 24);
-        }
-        ST(e + f0, a0); ST(e + f0 + 8, a1); ST(e + f0 + 16, a2); ST(e + f0 + 24, a3);
-    }
-    for (; f0 + 8 <= F; f0 += 8) {
-        const float *Tb = T + f0;
-        v8 a0 = {0}, a1 = {0};
-        if (mean) { a0 = LD(Tb); Tb += F; }
-        i64 i = 0;
-        for (; i + 2 <= cnt; i += 2, Tb += 2 * F) { a0 += w[i] * LD(Tb); a1 += w[i + 1] * LD(Tb + F); }
-        if (i < cnt) a0 += w[i] * LD(Tb);
-        ST(e + f0, a0 + a1);
-    }
-    for (; f0 < F; f0++) {
-        const float *Tb = T + f0;
-        float a = 0.0f;
-        if (mean) { a = *Tb; Tb += F; }
-        for (i64 i = 0; i < cnt; i++, Tb += F) a += w[i] * *Tb;
-        e[f0] = a;
+    i64 nv = F / 8, cs = chunk_size(nv);
+    for (i64 b0 = 0; b0 < nv; b0 += cs) {
+        int nb = (int)(nv - b0 < cs ? nv - b0 : cs);
+        const float *Tc = T + 8 * b0;
+        float *ec = e + 8 * b0;
+        switch (nb) { CHUNKS(CASE_ROWS) default: break; }
     }
 }
 
@@ -195,10 +191,9 @@ int prt_constants(i64 K, i64 J, i64 Jmax, i64 n_in, i64 n_out, i64 n_pad, i64 C,
 }
 
 /* no view: out[p, 0:Fo] = e_p; constants T [K, J, F], rows zero-padded from Fo to F floats */
-int prt_affine_rows(i64 P, i64 F, i64 Fo, const void *lab, int lab_kind, const float *W, i64 wstride, const i64 *woff,
-                    const i64 *nk, i64 nuse, int mean, const float *T, i64 J, float *out, int nthreads) {
-    #pragma omp parallel for schedule(static) num_threads(nthreads)
-    for (i64 p = 0; p < P; p++) {
+static int prt_affine_rows_range(i64 p0, i64 p1, i64 P, i64 F, i64 Fo, const void *lab, int lab_kind, const float *W, i64 wstride, const i64 *woff,
+                    const i64 *nk, i64 nuse, int mean, const float *T, i64 J, float *out) {
+    for (i64 p = p0; p < p1; p++) {
         i64 k = lab_at(lab, lab_kind, p), cnt;
         const float *w = weights_of(W, wstride, woff, nk, nuse, k, p, &cnt);
         if (F == Fo) {
@@ -212,40 +207,156 @@ int prt_affine_rows(i64 P, i64 F, i64 Fo, const void *lab, int lab_kind, const f
     return 0;
 }
 
-/* dense view: constants colour-major T [K, J, C, n_pad] (rows zero-padded from n_out to n_pad);
-   e_p [C, n_pad]; out[p, c] = y_p . e_p[c, 0:n_out]. Returns 2 if an output is not finite. */
-int prt_affine_dense(i64 P, i64 n_out, i64 n_pad, i64 C, const void *lab, int lab_kind, const float *W, i64 wstride,
-                     const i64 *woff, const i64 *nk, i64 nuse, int mean, const float *T, i64 J,
-                     const float *y, float *out, int nthreads) {
-    i64 F = n_pad * C;
+int prt_affine_rows(i64 P, i64 F, i64 Fo, const void *lab, int lab_kind, const float *W, i64 wstride, const i64 *woff,
+        const i64 *nk, i64 nuse, int mean, const float *T, i64 J, float *out, int nthreads) {
+    /* one contiguous range of points per thread; the range function sees every
+       argument as a local (an OpenMP-outlined loop body reloads shared ones per point) */
     int flag = 0;
-    #pragma omp parallel for schedule(static) num_threads(nthreads) reduction(|:flag)
-    for (i64 p = 0; p < P; p++) {
-        float e[4096];
+    i64 nth = nthreads > 0 ? nthreads : 1;
+    #pragma omp parallel for schedule(static, 1) num_threads(nth) reduction(|:flag)
+    for (i64 t = 0; t < nth; t++) flag |= prt_affine_rows_range(P * t / nth, P * (t + 1) / nth, P, F, Fo, lab, lab_kind,
+            W, wstride, woff, nk, nuse, mean, T, J, out);
+    return flag;
+}
+
+/* dense: sums y . e[c, o0 : o0 + 8 NBS] for one colour (DENSE1) or three (DENSE3), every index a
+   compile-time constant so the accumulators stay in registers. Tc points at e-row (c, o0) of the
+   mean term; colours are n_pad floats apart; yc at y[o0]. */
+#define DENSE1(NBS)                                                                              \
+static inline float dense1_##NBS(const float *Tc, i64 F, int mean, const float *w, i64 cnt, const float *yc) { \
+    ACCUMULATE(NBS)                                                                              \
+    v8 r = a[0] * LD(yc);                                                                        \
+    for (int b = 1; b < NBS; b++) r += a[b] * LD(yc + 8 * b);                                    \
+    return hsum(r);                                                                              \
+}
+#define DENSE3(NBS)                                                                              \
+static inline void dense3_##NBS(const float *T0, i64 n_pad, i64 F, int mean, const float *w, i64 cnt, \
+                                const float *yc, float *o) {                                     \
+    v8 a0[NBS], a1[NBS], a2[NBS];                                                                \
+    const float *T1 = T0 + n_pad, *T2 = T0 + 2 * n_pad;                                          \
+    for (int b = 0; b < NBS; b++) {                                                              \
+        a0[b] = mean ? LD(T0 + 8 * b) : (v8){0};                                                 \
+        a1[b] = mean ? LD(T1 + 8 * b) : (v8){0};                                                 \
+        a2[b] = mean ? LD(T2 + 8 * b) : (v8){0};                                                 \
+    }                                                                                            \
+    i64 s = mean ? F : 0;                                                                        \
+    for (i64 i = 0; i < cnt; i++, s += F) {                                                      \
+        float wi = w[i];                                                                         \
+        for (int b = 0; b < NBS; b++) {                                                          \
+            a0[b] += wi * LD(T0 + s + 8 * b);                                                    \
+            a1[b] += wi * LD(T1 + s + 8 * b);                                                    \
+            a2[b] += wi * LD(T2 + s + 8 * b);                                                    \
+        }                                                                                        \
+    }                                                                                            \
+    v8 r0 = a0[0] * LD(yc), r1 = a1[0] * LD(yc), r2 = a2[0] * LD(yc);                           \
+    for (int b = 1; b < NBS; b++) {                                                              \
+        v8 yb = LD(yc + 8 * b);                                                                  \
+        r0 += a0[b] * yb; r1 += a1[b] * yb; r2 += a2[b] * yb;                                    \
+    }                                                                                            \
+    o[0] += hsum(r0); o[1] += hsum(r1); o[2] += hsum(r2);                                        \
+}
+CHUNKS(DENSE1)
+DENSE3(1) DENSE3(2) DENSE3(3) DENSE3(4)
+#define CASE_DENSE1(NB) case NB: return dense1_##NB(Tc, F, mean, w, cnt, yc);
+
+static inline float dense1(int nbs, const float *Tc, i64 F, int mean, const float *w, i64 cnt, const float *yc) {
+    switch (nbs) { CHUNKS(CASE_DENSE1) default: return 0.0f; }
+}
+
+/* dense view: constants colour-major T [K, J, C, n_pad] (rows zero-padded from n_out to n_pad,
+   a multiple of 8); out[p, c] = y_p . e_p[c], e_p accumulated in registers chunk by chunk and
+   dotted with the view as it is formed (RGB with n_pad <= 32: all three colours in one pass).
+   The view row is copied into a zero-padded buffer when n_out is not a multiple of 8.
+   Returns 2 if an output is not finite. */
+static int prt_affine_dense_range(i64 p0, i64 p1, i64 P, i64 n_out, i64 n_pad, i64 C, const void *lab, int lab_kind, const float *W, i64 wstride,
+                     const i64 *woff, const i64 *nk, i64 nuse, int mean, const float *T, i64 J,
+                     const float *y, float *out) {
+    i64 F = n_pad * C, nbt = n_pad / 8, cs = chunk_size(nbt);
+    int flag = 0;
+    for (i64 p = p0; p < p1; p++) {
+        float yb[4096];
+        float o[16];
         i64 k = lab_at(lab, lab_kind, p), cnt;
         const float *w = weights_of(W, wstride, woff, nk, nuse, k, p, &cnt);
-        combine(F, T + k * J * F, mean, w, cnt, e);
         const float *yp = y + p * n_out;
+        if (n_out != n_pad) {
+            for (i64 q = 0; q < n_out; q++) yb[q] = yp[q];
+            for (i64 q = n_out; q < n_pad; q++) yb[q] = 0.0f;
+            yp = yb;
+        }
+        const float *Tk = T + k * J * F;
+        for (i64 c = 0; c < C; c++) o[c] = 0.0f;
+        if (C == 3 && nbt <= 4) {
+            switch (nbt) {
+            case 1: dense3_1(Tk, n_pad, F, mean, w, cnt, yp, o); break;
+            case 2: dense3_2(Tk, n_pad, F, mean, w, cnt, yp, o); break;
+            case 3: dense3_3(Tk, n_pad, F, mean, w, cnt, yp, o); break;
+            default: dense3_4(Tk, n_pad, F, mean, w, cnt, yp, o); break;
+            }
+        } else {
+            for (i64 c = 0; c < C; c++)
+                for (i64 b0 = 0; b0 < nbt; b0 += cs) {
+                    int nb = (int)(nbt - b0 < cs ? nbt - b0 : cs);
+                    o[c] += dense1(nb, Tk + c * n_pad + 8 * b0, F, mean, w, cnt, yp + 8 * b0);
+                }
+        }
         for (i64 c = 0; c < C; c++) {
-            float o = dot(yp, e + c * n_pad, n_out);
-            out[p * C + c] = o;
-            if (!(fabsf(o) <= FLT_MAX)) flag |= 2;
+            out[p * C + c] = o[c];
+            if (!(fabsf(o[c]) <= FLT_MAX)) flag |= 2;
         }
     }
     return flag;
 }
 
-/* taps: constants T [K, n_out, C, Jp] (J terms zero-padded to Jp); s = sum_t g[p, t] T[k, idx[p, t]] ([C, Jp]);
-   out[p, c] = (mean ? s[c, 0] : 0) + w_p . s[c, mean:mean+cnt].
-   Returns 1 if a tap index is outside [0, n_out) (that tap is skipped), 2 if an output is not finite. */
-int prt_affine_taps(i64 P, i64 n_out, i64 C, const void *lab, int lab_kind, const float *W, i64 wstride,
-                    const i64 *woff, const i64 *nk, i64 nuse, int mean, const float *T, i64 J,
-                    i64 ntap, const i64 *idx, const float *g, float *out, int nthreads) {
-    i64 R = J * C;  /* J here is the padded Jp */
+int prt_affine_dense(i64 P, i64 n_out, i64 n_pad, i64 C, const void *lab, int lab_kind, const float *W, i64 wstride,
+        const i64 *woff, const i64 *nk, i64 nuse, int mean, const float *T, i64 J, const float *y, float *out,
+        int nthreads) {
+    /* one contiguous range of points per thread; the range function sees every
+       argument as a local (an OpenMP-outlined loop body reloads shared ones per point) */
     int flag = 0;
-    #pragma omp parallel for schedule(static) num_threads(nthreads) reduction(|:flag)
-    for (i64 p = 0; p < P; p++) {
+    i64 nth = nthreads > 0 ? nthreads : 1;
+    #pragma omp parallel for schedule(static, 1) num_threads(nth) reduction(|:flag)
+    for (i64 t = 0; t < nth; t++) flag |= prt_affine_dense_range(P * t / nth, P * (t + 1) / nth, P, n_out, n_pad, C, lab,
+            lab_kind, W, wstride, woff, nk, nuse, mean, T, J, y, out);
+    return flag;
+}
+
+/* taps, RGB, Jp = 8 NBJ terms: s[c] = sum_t g_t T[k, idx_t, c, :] in registers (three colours x
+   NBJ vectors), then out[c] = s[c] . wv (wv = [1 if mean, w_0 .. w_{cnt-1}, 0 ..]). */
+#define TAPS3(NBJ)                                                                               \
+static inline void taps3_##NBJ(const float *const *rows, const float *gs, i64 nt, i64 Jp, const float *wv, float *o) { \
+    v8 a0[NBJ], a1[NBJ], a2[NBJ];                                                                \
+    for (int b = 0; b < NBJ; b++) { a0[b] = (v8){0}; a1[b] = (v8){0}; a2[b] = (v8){0}; }         \
+    for (i64 t = 0; t < nt; t++) {                                                               \
+        const float *r = rows[t];                                                                \
+        float gt = gs[t];                                                                        \
+        for (int b = 0; b < NBJ; b++) {                                                          \
+            a0[b] += gt * LD(r + 8 * b);                                                         \
+            a1[b] += gt * LD(r + Jp + 8 * b);                                                    \
+            a2[b] += gt * LD(r + 2 * Jp + 8 * b);                                                \
+        }                                                                                        \
+    }                                                                                            \
+    v8 r0 = a0[0] * LD(wv), r1 = a1[0] * LD(wv), r2 = a2[0] * LD(wv);                           \
+    for (int b = 1; b < NBJ; b++) {                                                              \
+        v8 x = LD(wv + 8 * b);                                                                   \
+        r0 += a0[b] * x; r1 += a1[b] * x; r2 += a2[b] * x;                                       \
+    }                                                                                            \
+    o[0] = hsum(r0); o[1] = hsum(r1); o[2] = hsum(r2);                                           \
+}
+TAPS3(1) TAPS3(2) TAPS3(3) TAPS3(4)
+
+/* taps: constants T [K, n_out, C, Jp] (J terms zero-padded to Jp, a multiple of 8);
+   s = sum_t g[p, t] T[k, idx[p, t]] ([C, Jp]); out[p, c] = (mean ? s[c, 0] : 0) + w_p . s[c, mean:mean+cnt].
+   Returns 1 if a tap index is outside [0, n_out) (that tap is skipped), 2 if an output is not finite. */
+static int prt_affine_taps_range(i64 p0, i64 p1, i64 P, i64 n_out, i64 C, const void *lab, int lab_kind, const float *W, i64 wstride,
+                    const i64 *woff, const i64 *nk, i64 nuse, int mean, const float *T, i64 Jp,
+                    i64 ntap, const i64 *idx, const float *g, float *out) {
+    i64 R = Jp * C;
+    int flag = 0;
+    for (i64 p = p0; p < p1; p++) {
         float s[4096];
+        float wv[4096];
+        float o[16];
         const float *rows[64];
         float gs[64];
         i64 k = lab_at(lab, lab_kind, p), cnt, nt = 0;
@@ -257,14 +368,40 @@ int prt_affine_taps(i64 P, i64 n_out, i64 C, const void *lab, int lab_kind, cons
             rows[nt] = Tk + r * R;
             gs[nt++] = g[p * ntap + t];
         }
-        gather_sum(R, rows, gs, nt, s);
+        i64 j = 0;
+        if (mean) wv[j++] = 1.0f;
+        for (i64 i = 0; i < cnt; i++) wv[j++] = w[i];
+        for (; j < Jp; j++) wv[j] = 0.0f;
+        i64 nbj = Jp / 8;
+        if (C == 3 && nbj <= 4) {
+            switch (nbj) {
+            case 1: taps3_1(rows, gs, nt, Jp, wv, o); break;
+            case 2: taps3_2(rows, gs, nt, Jp, wv, o); break;
+            case 3: taps3_3(rows, gs, nt, Jp, wv, o); break;
+            default: taps3_4(rows, gs, nt, Jp, wv, o); break;
+            }
+        } else {
+            gather_sum(R, rows, gs, nt, s);
+            for (i64 c = 0; c < C; c++) o[c] = dot(wv, s + c * Jp, Jp);
+        }
         for (i64 c = 0; c < C; c++) {
-            const float *sc = s + c * J;
-            float o = (mean ? sc[0] : 0.0f) + dot(w, sc + mean, cnt);
-            out[p * C + c] = o;
-            if (!(fabsf(o) <= FLT_MAX)) flag |= 2;
+            out[p * C + c] = o[c];
+            if (!(fabsf(o[c]) <= FLT_MAX)) flag |= 2;
         }
     }
+    return flag;
+}
+
+int prt_affine_taps(i64 P, i64 n_out, i64 C, const void *lab, int lab_kind, const float *W, i64 wstride, const i64 *woff,
+        const i64 *nk, i64 nuse, int mean, const float *T, i64 Jp, i64 ntap, const i64 *idx, const float *g, float *out,
+        int nthreads) {
+    /* one contiguous range of points per thread; the range function sees every
+       argument as a local (an OpenMP-outlined loop body reloads shared ones per point) */
+    int flag = 0;
+    i64 nth = nthreads > 0 ? nthreads : 1;
+    #pragma omp parallel for schedule(static, 1) num_threads(nth) reduction(|:flag)
+    for (i64 t = 0; t < nth; t++) flag |= prt_affine_taps_range(P * t / nth, P * (t + 1) / nth, P, n_out, C, lab,
+            lab_kind, W, wstride, woff, nk, nuse, mean, T, Jp, ntap, idx, g, out);
     return flag;
 }
 """
