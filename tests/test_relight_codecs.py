@@ -4,6 +4,7 @@ through the uncompressed reference (``prt_torch.relight.apply_dense`` / ``apply_
 every codec family × view mode (none, dense, taps) × K = 1 / K > 1 × with / without a mean ×
 n_vectors prefixes × per-cluster n_k (adaptive, packed codes) × label dtypes × colours."""
 import math
+import shutil
 import warnings
 
 import pytest
@@ -230,5 +231,30 @@ def test_kernel_constants_match_cluster_constants():
 def test_native_status_reports_the_path(monkeypatch):
     st = relight_kernels.native_status()
     assert isinstance(st["native"], bool) and st["detail"]
+    if shutil.which("cc") or shutil.which("gcc"):  # with a compiler the kernels must build (a failure is a bug, not a skip)
+        assert st["native"], st["detail"]
     monkeypatch.setenv("PRT_TORCH_NATIVE", "0")
     assert relight_kernels.native() is None and relight_kernels.native_status() == {"native": False, "detail": "disabled by PRT_TORCH_NATIVE=0"}
+
+
+def test_kernels_visit_points_in_any_order():
+    """The kernels' optional visiting order (a permutation, e.g. by cluster) changes nothing."""
+    lib = relight_kernels.native()
+    if lib is None:
+        pytest.skip("no compiled kernels")
+    c, enc = _fit("cpca_static", {"clusters": 5, "vectors": 3, "max_iter": 5}, (9, 4), 250, None)
+    L = torch.randn(4, 3)
+    codes = c._native_codes(enc, 3)
+    order = torch.argsort(c.labels_of(enc), stable=True).to(torch.int32)
+    y = torch.randn(250, 9)
+    taps = (torch.randint(0, 9, (250, 4)), torch.rand(250, 4))
+    T = {k: relight_kernels.constants(lib, c.means_, c.basis_, 3, 9, 4, L, k) for k in ("rows", "dense", "taps")}
+    for o in (order, torch.randperm(250).to(torch.int32)):
+        assert torch.equal(relight_kernels.affine_rows(lib, T["rows"], 4, 9, 3, *codes, P=250, order=o),
+                           relight_kernels.affine_rows(lib, T["rows"], 4, 9, 3, *codes, P=250))
+        assert torch.equal(relight_kernels.affine_dense(lib, T["dense"], 4, 9, 3, *codes, y, order=o)[0],
+                           relight_kernels.affine_dense(lib, T["dense"], 4, 9, 3, *codes, y)[0])
+        assert torch.equal(relight_kernels.affine_taps(lib, T["taps"], 4, 9, 3, *codes, *taps, order=o)[0],
+                           relight_kernels.affine_taps(lib, T["taps"], 4, 9, 3, *codes, *taps)[0])
+    with pytest.raises(ValueError, match="order must be a contiguous int32 permutation"):
+        relight_kernels.affine_rows(lib, T["rows"], 4, 9, 3, *codes, P=250, order=order.long())

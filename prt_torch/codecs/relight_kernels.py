@@ -70,6 +70,19 @@ static inline const float *weights_of(const float *W, i64 wstride, const i64 *wo
     return W ? W + (woff ? woff[p] : p * wstride) : 0;
 }
 
+/* Points may be visited in cluster order (order != NULL: a permutation of 0..P-1 sorted by
+   cluster), so that consecutive points read the same cluster's constants from L1; their codes,
+   views and outputs are then scattered, and are prefetched PF_AHEAD points ahead. */
+#define PF_AHEAD 16
+#define PREFETCH_CODES(pp) do {                                                                  \
+        if (lab) __builtin_prefetch((const char *)lab + (pp) * (lab_kind == 1 ? 1 : lab_kind == 2 ? 2 : 4)); \
+        if (W) __builtin_prefetch(W + (woff ? woff[pp] : (pp) * wstride));                       \
+    } while (0)
+#define PREFETCH_ROW(ptr, n, rw) do {                                                            \
+        const float *pr_ = (ptr);                                                                \
+        for (i64 f_ = 0; f_ < (n); f_ += 16) __builtin_prefetch(pr_ + f_, rw);                   \
+    } while (0)
+
 typedef float v4 __attribute__((vector_size(16)));
 #if defined(__clang__) || (defined(__GNUC__) && __GNUC__ >= 12)
 #define SHUF(a, ...) __builtin_shufflevector(a, a, __VA_ARGS__)
@@ -160,40 +173,57 @@ static inline void gather_sum(i64 R, const float *const *rows, const float *g, i
    matrices, transposed, rows zero-padded to n_pad); L [n_in, C]. Writes
    out[k*sk + j*sj + o*so + c*sc] = sum_i Mt[k, j, i, o] L[i, c] for j < J, o < n_out: every
    layout a kernel below reads, directly. 8 outputs o per vector, L broadcast: no reductions. */
+static void constants_range(i64 k0, i64 k1, i64 J, i64 Jmax, i64 n_in, i64 n_out, i64 n_pad, i64 C, const float *Mt,
+                            const float *L, float *out, i64 sk, i64 sj, i64 so, i64 sc) {
+    i64 nb = n_pad / 8;
+    for (i64 k = k0; k < k1; k++)
+        for (i64 j = 0; j < J; j++)
+            for (i64 ob = 0; ob < nb; ob++) {
+                const float *src = Mt + ((k * Jmax + j) * n_in) * n_pad + ob * 8;
+                v8 a[16];
+                if (C == 3) {  /* RGB: even and odd terms in separate registers (six independent chains) */
+                    v8 a0 = {0}, a1 = {0}, a2 = {0}, b0 = {0}, b1 = {0}, b2 = {0};
+                    i64 i = 0;
+                    for (; i + 2 <= n_in; i += 2) {
+                        v8 x = LD(src + i * n_pad), z = LD(src + (i + 1) * n_pad);
+                        a0 += x * L[3 * i]; a1 += x * L[3 * i + 1]; a2 += x * L[3 * i + 2];
+                        b0 += z * L[3 * i + 3]; b1 += z * L[3 * i + 4]; b2 += z * L[3 * i + 5];
+                    }
+                    if (i < n_in) {
+                        v8 x = LD(src + i * n_pad);
+                        a0 += x * L[3 * i]; a1 += x * L[3 * i + 1]; a2 += x * L[3 * i + 2];
+                    }
+                    a[0] = a0 + b0; a[1] = a1 + b1; a[2] = a2 + b2;
+                } else {
+                    for (i64 c = 0; c < C; c++) a[c] = (v8){0};
+                    for (i64 i = 0; i < n_in; i++) {
+                        v8 x = LD(src + i * n_pad);
+                        const float *li = L + i * C;
+                        for (i64 c = 0; c < C; c++) a[c] += x * li[c];
+                    }
+                }
+                float *dst = out + k * sk + j * sj;
+                for (i64 l = 0; l < 8 && ob * 8 + l < n_out; l++)
+                    for (i64 c = 0; c < C; c++) dst[(ob * 8 + l) * so + c * sc] = a[c][l];
+            }
+}
+
 int prt_constants(i64 K, i64 J, i64 Jmax, i64 n_in, i64 n_out, i64 n_pad, i64 C, const float *Mt, const float *L,
                   float *out, i64 sk, i64 sj, i64 so, i64 sc, int nthreads) {
-    i64 nb = n_pad / 8, blocks = K * J * nb;
-    #pragma omp parallel for schedule(static) num_threads(nthreads)
-    for (i64 b = 0; b < blocks; b++) {
-        i64 k = b / (J * nb), j = (b / nb) % J, ob = b % nb;
-        const float *src = Mt + ((k * Jmax + j) * n_in) * n_pad + ob * 8;
-        v8 a[16];
-        for (i64 c = 0; c < C; c++) a[c] = (v8){0};
-        if (C == 3) {  /* RGB: three accumulators in registers */
-            v8 a0 = {0}, a1 = {0}, a2 = {0};
-            for (i64 i = 0; i < n_in; i++) {
-                v8 x = LD(src + i * n_pad);
-                a0 += x * L[3 * i]; a1 += x * L[3 * i + 1]; a2 += x * L[3 * i + 2];
-            }
-            a[0] = a0; a[1] = a1; a[2] = a2;
-        } else {
-            for (i64 i = 0; i < n_in; i++) {
-                v8 x = LD(src + i * n_pad);
-                const float *li = L + i * C;
-                for (i64 c = 0; c < C; c++) a[c] += x * li[c];
-            }
-        }
-        float *dst = out + k * sk + j * sj;
-        for (i64 l = 0; l < 8 && ob * 8 + l < n_out; l++)
-            for (i64 c = 0; c < C; c++) dst[(ob * 8 + l) * so + c * sc] = a[c][l];
-    }
+    i64 nth = nthreads > 0 ? nthreads : 1;
+    #pragma omp parallel for schedule(static, 1) num_threads(nth)
+    for (i64 t = 0; t < nth; t++)
+        constants_range(K * t / nth, K * (t + 1) / nth, J, Jmax, n_in, n_out, n_pad, C, Mt, L, out, sk, sj, so, sc);
     return 0;
 }
 
 /* no view: out[p, 0:Fo] = e_p; constants T [K, J, F], rows zero-padded from Fo to F floats */
-static int prt_affine_rows_range(i64 p0, i64 p1, i64 P, i64 F, i64 Fo, const void *lab, int lab_kind, const float *W, i64 wstride, const i64 *woff,
+static int prt_affine_rows_range(const int32_t *order, i64 p0, i64 p1, i64 P, i64 F, i64 Fo, const void *lab,
+        int lab_kind, const float *W, i64 wstride, const i64 *woff,
                     const i64 *nk, i64 nuse, int mean, const float *T, i64 J, float *out) {
-    for (i64 p = p0; p < p1; p++) {
+    for (i64 q = p0; q < p1; q++) {
+        i64 p = order ? order[q] : q;
+        if (order && q + PF_AHEAD < p1) { i64 pp = order[q + PF_AHEAD]; PREFETCH_CODES(pp); PREFETCH_ROW(out + pp * Fo, Fo, 1); }
         i64 k = lab_at(lab, lab_kind, p), cnt;
         const float *w = weights_of(W, wstride, woff, nk, nuse, k, p, &cnt);
         if (F == Fo) {
@@ -208,13 +238,13 @@ static int prt_affine_rows_range(i64 p0, i64 p1, i64 P, i64 F, i64 Fo, const voi
 }
 
 int prt_affine_rows(i64 P, i64 F, i64 Fo, const void *lab, int lab_kind, const float *W, i64 wstride, const i64 *woff,
-        const i64 *nk, i64 nuse, int mean, const float *T, i64 J, float *out, int nthreads) {
+        const i64 *nk, i64 nuse, int mean, const float *T, i64 J, float *out, const int32_t *order, int nthreads) {
     /* one contiguous range of points per thread; the range function sees every
        argument as a local (an OpenMP-outlined loop body reloads shared ones per point) */
     int flag = 0;
     i64 nth = nthreads > 0 ? nthreads : 1;
     #pragma omp parallel for schedule(static, 1) num_threads(nth) reduction(|:flag)
-    for (i64 t = 0; t < nth; t++) flag |= prt_affine_rows_range(P * t / nth, P * (t + 1) / nth, P, F, Fo, lab, lab_kind,
+    for (i64 t = 0; t < nth; t++) flag |= prt_affine_rows_range(order, P * t / nth, P * (t + 1) / nth, P, F, Fo, lab, lab_kind,
             W, wstride, woff, nk, nuse, mean, T, J, out);
     return flag;
 }
@@ -268,12 +298,15 @@ static inline float dense1(int nbs, const float *Tc, i64 F, int mean, const floa
    dotted with the view as it is formed (RGB with n_pad <= 32: all three colours in one pass).
    The view row is copied into a zero-padded buffer when n_out is not a multiple of 8.
    Returns 2 if an output is not finite. */
-static int prt_affine_dense_range(i64 p0, i64 p1, i64 P, i64 n_out, i64 n_pad, i64 C, const void *lab, int lab_kind, const float *W, i64 wstride,
+static int prt_affine_dense_range(const int32_t *order, i64 p0, i64 p1, i64 P, i64 n_out, i64 n_pad, i64 C,
+        const void *lab, int lab_kind, const float *W, i64 wstride,
                      const i64 *woff, const i64 *nk, i64 nuse, int mean, const float *T, i64 J,
                      const float *y, float *out) {
     i64 F = n_pad * C, nbt = n_pad / 8, cs = chunk_size(nbt);
     int flag = 0;
-    for (i64 p = p0; p < p1; p++) {
+    for (i64 q = p0; q < p1; q++) {
+        i64 p = order ? order[q] : q;
+        if (order && q + PF_AHEAD < p1) { i64 pp = order[q + PF_AHEAD]; PREFETCH_CODES(pp); PREFETCH_ROW(y + pp * n_out, n_out, 0); }
         float yb[4096];
         float o[16];
         i64 k = lab_at(lab, lab_kind, p), cnt;
@@ -310,13 +343,13 @@ static int prt_affine_dense_range(i64 p0, i64 p1, i64 P, i64 n_out, i64 n_pad, i
 
 int prt_affine_dense(i64 P, i64 n_out, i64 n_pad, i64 C, const void *lab, int lab_kind, const float *W, i64 wstride,
         const i64 *woff, const i64 *nk, i64 nuse, int mean, const float *T, i64 J, const float *y, float *out,
-        int nthreads) {
+        const int32_t *order, int nthreads) {
     /* one contiguous range of points per thread; the range function sees every
        argument as a local (an OpenMP-outlined loop body reloads shared ones per point) */
     int flag = 0;
     i64 nth = nthreads > 0 ? nthreads : 1;
     #pragma omp parallel for schedule(static, 1) num_threads(nth) reduction(|:flag)
-    for (i64 t = 0; t < nth; t++) flag |= prt_affine_dense_range(P * t / nth, P * (t + 1) / nth, P, n_out, n_pad, C, lab,
+    for (i64 t = 0; t < nth; t++) flag |= prt_affine_dense_range(order, P * t / nth, P * (t + 1) / nth, P, n_out, n_pad, C, lab,
             lab_kind, W, wstride, woff, nk, nuse, mean, T, J, y, out);
     return flag;
 }
@@ -348,12 +381,20 @@ TAPS3(1) TAPS3(2) TAPS3(3) TAPS3(4)
 /* taps: constants T [K, n_out, C, Jp] (J terms zero-padded to Jp, a multiple of 8);
    s = sum_t g[p, t] T[k, idx[p, t]] ([C, Jp]); out[p, c] = (mean ? s[c, 0] : 0) + w_p . s[c, mean:mean+cnt].
    Returns 1 if a tap index is outside [0, n_out) (that tap is skipped), 2 if an output is not finite. */
-static int prt_affine_taps_range(i64 p0, i64 p1, i64 P, i64 n_out, i64 C, const void *lab, int lab_kind, const float *W, i64 wstride,
+static int prt_affine_taps_range(const int32_t *order, i64 p0, i64 p1, i64 P, i64 n_out, i64 C, const void *lab,
+        int lab_kind, const float *W, i64 wstride,
                     const i64 *woff, const i64 *nk, i64 nuse, int mean, const float *T, i64 Jp,
                     i64 ntap, const i64 *idx, const float *g, float *out) {
     i64 R = Jp * C;
     int flag = 0;
-    for (i64 p = p0; p < p1; p++) {
+    for (i64 q = p0; q < p1; q++) {
+        i64 p = order ? order[q] : q;
+        if (order && q + PF_AHEAD < p1) {
+            i64 pp = order[q + PF_AHEAD];
+            PREFETCH_CODES(pp);
+            __builtin_prefetch(idx + pp * ntap);
+            __builtin_prefetch(g + pp * ntap);
+        }
         float s[4096];
         float wv[4096];
         float o[16];
@@ -394,13 +435,13 @@ static int prt_affine_taps_range(i64 p0, i64 p1, i64 P, i64 n_out, i64 C, const 
 
 int prt_affine_taps(i64 P, i64 n_out, i64 C, const void *lab, int lab_kind, const float *W, i64 wstride, const i64 *woff,
         const i64 *nk, i64 nuse, int mean, const float *T, i64 Jp, i64 ntap, const i64 *idx, const float *g, float *out,
-        int nthreads) {
+        const int32_t *order, int nthreads) {
     /* one contiguous range of points per thread; the range function sees every
        argument as a local (an OpenMP-outlined loop body reloads shared ones per point) */
     int flag = 0;
     i64 nth = nthreads > 0 ? nthreads : 1;
     #pragma omp parallel for schedule(static, 1) num_threads(nth) reduction(|:flag)
-    for (i64 t = 0; t < nth; t++) flag |= prt_affine_taps_range(P * t / nth, P * (t + 1) / nth, P, n_out, C, lab,
+    for (i64 t = 0; t < nth; t++) flag |= prt_affine_taps_range(order, P * t / nth, P * (t + 1) / nth, P, n_out, C, lab,
             lab_kind, W, wstride, woff, nk, nuse, mean, T, Jp, ntap, idx, g, out);
     return flag;
 }
@@ -455,9 +496,9 @@ def _compile() -> tuple[ctypes.CDLL | None, str]:
         return None, f"loading {so} failed: {e}"
     i64, vp, ci = ctypes.c_int64, ctypes.c_void_p, ctypes.c_int
     common = [vp, ci, vp, i64, vp, vp, i64, ci, vp, i64]
-    lib.prt_affine_rows.argtypes = [i64, i64, i64, *common, vp, ci]
-    lib.prt_affine_dense.argtypes = [i64, i64, i64, i64, *common, vp, vp, ci]
-    lib.prt_affine_taps.argtypes = [i64, i64, i64, *common, i64, vp, vp, vp, ci]
+    lib.prt_affine_rows.argtypes = [i64, i64, i64, *common, vp, vp, ci]
+    lib.prt_affine_dense.argtypes = [i64, i64, i64, i64, *common, vp, vp, vp, ci]
+    lib.prt_affine_taps.argtypes = [i64, i64, i64, *common, i64, vp, vp, vp, vp, ci]
     lib.prt_constants.argtypes = [i64] * 7 + [vp, vp, vp] + [i64] * 4 + [ci]
     for f in (lib.prt_affine_rows, lib.prt_affine_dense, lib.prt_affine_taps, lib.prt_constants):
         f.restype = ci
@@ -561,18 +602,32 @@ def constants(lib, means, basis, n: int, n_out: int, n_in: int, L: torch.Tensor,
     return out
 
 
-def affine_rows(lib, T: torch.Tensor, J: int, n_out: int, C: int, labels, W, wstride, woff, nk, nuse, mean, P: int) -> torch.Tensor:
+def _order(order, P: int):
+    """The visiting order: None (point order) or a permutation ``int32 [P]`` (cluster order)."""
+    if order is None:
+        return None
+    if order.dtype != torch.int32 or order.shape != (P,) or not order.is_contiguous():
+        raise ValueError(f"order must be a contiguous int32 permutation [{P}]; got {order.dtype} {tuple(order.shape)}")
+    lo, hi = (int(x) for x in torch.aminmax(order)) if P else (0, -1)
+    if P and (lo < 0 or hi >= P):
+        raise ValueError(f"order spans [{lo}, {hi}]; accepted: a permutation of 0..{P - 1}")
+    return order.data_ptr()
+
+
+def affine_rows(lib, T: torch.Tensor, J: int, n_out: int, C: int, labels, W, wstride, woff, nk, nuse, mean, P: int,
+                order: torch.Tensor | None = None) -> torch.Tensor:
     """No view: ``e_p`` for every point, ``[P, n_out·C] float32``, from the constants ``T``
-    of layout 'rows'."""
+    of layout 'rows'; ``order`` (a permutation ``int32 [P]``, e.g. by cluster) is the order the
+    points are visited in (None: 0..P-1)."""
     Fo = n_out * C
     out = torch.empty(P, Fo, dtype=torch.float32)
     lib.prt_affine_rows(P, T.shape[2], Fo, *_codes(labels, W, wstride, woff, nk, nuse, mean), T.data_ptr(), J,
-                        out.data_ptr(), torch.get_num_threads())
+                        out.data_ptr(), _order(order, P), torch.get_num_threads())
     return out
 
 
 def affine_dense(lib, T: torch.Tensor, J: int, n_out: int, C: int, labels, W, wstride, woff, nk, nuse, mean,
-                 y: torch.Tensor) -> tuple[torch.Tensor, int]:
+                 y: torch.Tensor, order: torch.Tensor | None = None) -> tuple[torch.Tensor, int]:
     """Dense view ``y [P, n_out]`` float32 contiguous: ``[P, C]`` from the constants ``T`` of
     layout 'dense', and a flag (2: a non-finite output)."""
     if not y.is_contiguous() or y.dtype != torch.float32 or y.shape[1] != n_out:
@@ -580,12 +635,12 @@ def affine_dense(lib, T: torch.Tensor, J: int, n_out: int, C: int, labels, W, ws
     P = y.shape[0]
     out = torch.empty(P, C, dtype=torch.float32)
     flag = lib.prt_affine_dense(P, n_out, T.shape[3], C, *_codes(labels, W, wstride, woff, nk, nuse, mean), T.data_ptr(), J,
-                                y.data_ptr(), out.data_ptr(), torch.get_num_threads())
+                                y.data_ptr(), out.data_ptr(), _order(order, P), torch.get_num_threads())
     return out, int(flag)
 
 
 def affine_taps(lib, T: torch.Tensor, J: int, n_out: int, C: int, labels, W, wstride, woff, nk, nuse, mean,
-                idx: torch.Tensor, g: torch.Tensor) -> tuple[torch.Tensor, int]:
+                idx: torch.Tensor, g: torch.Tensor, order: torch.Tensor | None = None) -> tuple[torch.Tensor, int]:
     """Taps ``(idx int64 [P, t], g float32 [P, t])`` contiguous, t ≤ 64: ``[P, C]`` from the
     constants ``T`` of layout 'taps', and a flag (1: a tap index outside [0, n_out); 2: a
     non-finite output)."""
@@ -594,7 +649,7 @@ def affine_taps(lib, T: torch.Tensor, J: int, n_out: int, C: int, labels, W, wst
     P, t = idx.shape
     out = torch.empty(P, C, dtype=torch.float32)
     flag = lib.prt_affine_taps(P, n_out, C, *_codes(labels, W, wstride, woff, nk, nuse, mean), T.data_ptr(), T.shape[3],
-                               t, idx.data_ptr(), g.data_ptr(), out.data_ptr(), torch.get_num_threads())
+                               t, idx.data_ptr(), g.data_ptr(), out.data_ptr(), _order(order, P), torch.get_num_threads())
     return out, int(flag)
 
 
