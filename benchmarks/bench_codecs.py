@@ -9,9 +9,8 @@
      static 6 m 34 s, iterative 3 h 43 m).
    Ratios: paper time / ours (the paper took 1–4.5 h per encode), and static CPCA / VQ / PCA
    against scikit-learn (KMeans, KMeans + per-cluster PCA, PCA) on the same data.
-2. Relighting throughput from the compressed forms (vertices/s) against the memory-bandwidth
-   bound of reading the encoded bytes once (a plain tensor copy of the same number of bytes,
-   measured here), and against uncompressed relighting.
+2. (Relighting throughput against the memory-bandwidth bound moved to benchmarks/bench_relight.py:
+   every codec × view mode at 50 000 points, each a paired ratio to the bound measured in its run.)
 3. Rate–distortion in the spirit of Sloan 2003 Fig. 10 on the glossy scene: VQ (m_c = 1792),
    PCA (n' = 20), CPCA static / iterative (256 × 8) and adaptive — the paper's settings of
    matched rendering cost — with squared error, PSNR of relit exit radiance under random SH
@@ -40,8 +39,8 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from prt_torch import codecs  # noqa: E402
-from prt_torch.codecs.synthetic import tent_taps_random, transfer_like  # noqa: E402
-from prt_torch.harness.timing import io_bound_fn, machine_info, measure  # noqa: E402
+from prt_torch.codecs.synthetic import transfer_like  # noqa: E402
+from prt_torch.harness.timing import machine_info, measure  # noqa: E402
 from prt_torch.io import atomic_write_json, atomic_write_text  # noqa: E402
 
 OUT = Path(__file__).resolve().parent.parent / "reports" / "benchmarks"
@@ -119,32 +118,6 @@ def encode_section(label: str, X: torch.Tensor, ms, quick: bool, sk: bool) -> di
     return out
 
 
-def copy_bound(nbytes: int, repeats: int) -> float:
-    src = torch.empty(nbytes, dtype=torch.uint8).random_(0, 255)
-    dst = torch.empty_like(src)
-    return measure(lambda: dst.copy_(src), repeats=repeats, warmup=2).median
-
-
-def relight_row(label, codec, enc, light, view, uncompressed, repeats, P):
-    t = measure(lambda: codec.relight(enc, light, view=view), repeats=repeats, warmup=2)
-    st = codec.storage(enc)
-    nbytes = st["bytes_total"]
-    if isinstance(view, torch.Tensor):
-        nbytes += view.numel() * 4
-    elif isinstance(view, tuple):
-        nbytes += view[0].numel() * 8 + view[1].numel() * 4
-    tb = copy_bound(nbytes, repeats)
-    out = codec.relight(enc, light, view=view)
-    obytes = out.numel() * out.element_size()
-    tio = measure(io_bound_fn(nbytes, obytes), repeats=repeats, warmup=2).median
-    tu = measure(uncompressed, repeats=repeats, warmup=2).median
-    return {"codec": label, "view": "none" if view is None else ("taps" if isinstance(view, tuple) else "dense"),
-            "relight_s": t.median, "spread": t.spread, "vertices_per_s": P / t.median, "bytes_read": nbytes,
-            "bytes_written": obytes, "copy_bound_s": tb, "relight_over_copy_bound": t.median / tb,
-            "io_bound_s": tio, "relight_over_io_bound": t.median / tio,
-            "uncompressed_s": tu, "speedup_vs_uncompressed": tu / t.median}
-
-
 def rd_section(X: torch.Tensor, ms, fits: dict, quick: bool, lights: int = 4) -> list[dict]:
     P = X.shape[0]
     n_out, n_in = ms
@@ -185,17 +158,11 @@ def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--quick", action="store_true", help="small sizes (smoke test)")
     ap.add_argument("--no-glossy", action="store_true", help="skip the built-in glossy scene")
-    ap.add_argument("--relight-only", action="store_true",
-                    help="re-measure only the relight section (static CPCA stands in for the CPCA fits) and merge it "
-                         "into the existing codecs.json")
     args = ap.parse_args()
-    if args.relight_only:
-        return relight_only()
     torch.set_num_threads(2)
     load0 = os.getloadavg()
     t_all = time.perf_counter()
     P = 5000 if args.quick else 50000
-    rep = 3 if args.quick else 7
     result: dict = {"machine": machine_info(), "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
                     "load_average_before": load0, "quick": args.quick}
 
@@ -238,8 +205,6 @@ def main() -> int:
     for r in result["rate_distortion"]["rows"]:
         print("rd:", r["codec"], r["params"], f"SE {r['se']:.4g} PSNR {r['psnr_db_mean']:.2f} dB")
 
-    # ---- 2. relight throughput vs the bandwidth bound and vs uncompressed
-    result["relight"] = relight_section(rd_X, rd_ms, rd_fits, rep, rd_label, args.quick)
     result["seconds_total"] = time.perf_counter() - t_all
     result["load_average_after"] = os.getloadavg()
     if args.quick:  # smoke test: print, do not overwrite the report
@@ -250,62 +215,6 @@ def main() -> int:
     atomic_write_text(OUT / "codecs.md", report(result))
     print(f"wrote {OUT / 'codecs.md'} in {result['seconds_total']:.0f} s")
     return 0
-
-
-def relight_only() -> int:
-    import json
-
-    from prt_torch import brdf as B
-    from prt_torch.scene import builtin
-    from prt_torch.transfer.glossy import precompute_glossy
-
-    torch.set_num_threads(2)
-    path = OUT / "codecs.json"
-    result = json.loads(path.read_text())
-    load0 = os.getloadavg()
-    tr = precompute_glossy(builtin("bumpy_sphere", "large"), bands=5, samples=256, seed=0, workers=2,
-                           brdf=B.AshikhminShirley(40, 10, rs=0.05, rd=0.3), drop_out=[(1, 0)])
-    X, ms = tr.signal(), tuple(tr.meta["matrix_shape"])
-    c, enc, _ = fit("cpca_static", X, ms, clusters=256, vectors=8)
-    result["relight"] = relight_section(X, ms, {"cpca 256x8 (static fit)": (c, enc)}, 7, "glossy bumpy_sphere (built-in scene)")
-    result["relight"]["load_average_before"] = load0
-    result["relight"]["load_average_after"] = os.getloadavg()
-    atomic_write_json(path, result)
-    atomic_write_text(OUT / "codecs.md", report(result))
-    print(report(result))
-    return 0
-
-
-def relight_section(X, ms, fits, rep, label, quick=False) -> dict:
-    P, (n_out, n_in) = X.shape[0], ms
-    Mx = X.view(P, n_out, n_in)
-    light = torch.randn(n_in, 3)
-    yv = torch.randn(P, n_out)
-    rows = []
-    for name, (c, enc) in fits.items():
-        rows.append(relight_row(name, c, enc, light, None, lambda: torch.matmul(Mx, light), rep, P))
-        rows.append(relight_row(name, c, enc, light, yv,
-                                lambda: torch.einsum("po,poc->pc", yv, torch.matmul(Mx, light)), rep, P))
-    for name, params in (("vq", {"clusters": 224 if quick else 1792}), ("pca", {"vectors": 20})):
-        c, enc, _ = fit(name, X, ms, **params)
-        rows.append(relight_row(f"{name} {params}", c, enc, light, None, lambda: torch.matmul(Mx, light), rep, P))
-    # MRT-PCA on an MRT-like signal: A_p [M*M=49, 25], K = 16, four tent taps (Lehtinen & Kautz eq. 13)
-    M, Pm = 7, 5000 if quick else 50000
-    A = transfer_like(Pm, M * M, 25, seed=3)
-    taps = tent_taps_random(Pm, M, seed=4)
-    mp, emp, t_mp = fit("mrt_pca", A, (M * M, 25), vectors=16)
-    Am = A.view(Pm, M * M, 25)
-    lm = torch.randn(25, 3)
-
-    def mrt_uncompressed():
-        rows_ = torch.gather(Am, 1, taps[0][:, :, None].expand(-1, -1, 25))
-        return torch.einsum("pt,pti->pi", taps[1], rows_) @ lm
-
-    rows.append(relight_row("mrt_pca K=16 (eq. 13, 4 taps)", mp, emp, lm, taps, mrt_uncompressed, rep, Pm))
-    rows.append(relight_row("mrt_pca K=16 (dense view)", mp, emp, lm, torch.randn(Pm, M * M),
-                            lambda: torch.matmul(Am, lm), rep, Pm))
-    return {"signal": label, "rows": rows, "mrt": {"points": Pm, "M": M, "fit_s": t_mp,
-                                                   "se_relative": mp.fit_info_["se_relative"]}}
 
 
 def _f(v, nd=3):
@@ -382,22 +291,8 @@ def report(r: dict) -> str:
           "CPCA 256×8 SE 294.4 (different model and sampling; compare the ordering and the ratios). "
           "The adaptive row's bytes include its basis stored padded to max_vectors (zero rows); its Sloan float count "
           "is the packed size.", ""]
-    rl = r["relight"]
-    L += ["## Relighting throughput from the compressed form", "",
-          f"Signal: {rl['signal']}; MRT rows: synthetic MRT-like A_p [{rl['mrt']['M']}²=49, 25] × {rl['mrt']['points']} points, "
-          f"K=16 (fit {rl['mrt']['fit_s']:.1f} s, relative SE {_f(rl['mrt']['se_relative'])}). Bound: a plain `copy_` of "
-          "the same number of bytes as the encoded data (+ the view) — reading them once. ratio = relight time / copy time "
-          "(1 = at the memory-bandwidth bound). Uncompressed: relighting the float32 transfer directly.", "",
-          "A second bound adds writing the output once (a `fill_` of the output's bytes): without a view the output "
-          "(n_out×3 floats per vertex) is larger than the codes, so writing it dominates.", "",
-          "| codec | view | relight (ms) | Mvert/s | bytes read | bytes written | read bound (ms) | relight / read bound "
-          "| read+write bound (ms) | relight / r+w bound | vs uncompressed |",
-          "|---|---|---|---|---|---|---|---|---|---|---|"]
-    for x in rl["rows"]:
-        L.append(f"| {x['codec']} | {x['view']} | {1e3 * x['relight_s']:.2f} (±{x['spread']:.0%}) | {x['vertices_per_s'] / 1e6:.1f} | "
-                 f"{x['bytes_read']} | {x['bytes_written']} | {1e3 * x['copy_bound_s']:.2f} | {x['relight_over_copy_bound']:.1f}× | "
-                 f"{1e3 * x['io_bound_s']:.2f} | {x['relight_over_io_bound']:.1f}× | {x['speedup_vs_uncompressed']:.1f}× faster |")
-    L.append("")
+    L += ["Relighting throughput against the memory-bandwidth bound: benchmarks/bench_relight.py "
+          "(reports/benchmarks/relight.md).", ""]
     return "\n".join(L)
 
 
