@@ -378,8 +378,11 @@ def test_paired_timing_gives_the_work_ratio_and_reports_contention():
         for _ in range(k):
             a @ a
 
-    p = measure_paired(lambda: work(4), lambda: work(8), repeats=9, warmup=1, min_sample_time=0.01)
+    p = measure_paired(lambda: work(4), lambda: work(8), repeats=9, warmup=1, min_sample_time=0.01, floor_pairs=20)
     assert 1.3 < p.ratio.median < 3.0
+    assert 1.3 < p.speedup < 3.0 and p.floor["pairs"] == 20  # the fastest tenth of short samples: the same work ratio
+    q = measure_paired(lambda: work(1), lambda: work(2), repeats=3)
+    assert q.speedup == q.ratio.median and q.floor is None  # without the floor phase: the median per-pair ratio
     c = p.contention
     assert {"involuntary_switches_per_s", "cpu_over_wall", "load_average_1min", "trusted", "why_not"} <= set(c)
     assert c["trusted"] == (not c["why_not"])

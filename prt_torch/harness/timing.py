@@ -94,10 +94,14 @@ class Paired:
     peer: Timing
     ratio: Timing
     contention: dict
+    #: the speed-up estimate to report: peer/test of the fastest tenth of many short interleaved
+    #: samples (``floor_pairs`` of :func:`measure_paired`), else the median per-repeat ratio
+    speedup: float = float("nan")
+    floor: dict | None = None
 
     def as_dict(self) -> dict[str, Any]:
         return {"test": self.test.as_dict(), "peer": self.peer.as_dict(), "ratio": self.ratio.as_dict(),
-                "contention": dict(self.contention)}
+                "contention": dict(self.contention), "speedup": self.speedup, "floor": self.floor}
 
 
 def _quantiles(xs: list[float], warmup: int, inner: int = 1) -> Timing:
@@ -114,7 +118,8 @@ def _inner(fn: Callable[[], Any], min_sample_time: float) -> int:
 
 
 def measure_paired(test: Callable[[], Any], peer: Callable[[], Any], repeats: int = 7, warmup: int = 1,
-                   min_sample_time: float = 0.02, max_switch_rate: float = 50.0, max_spread: float = 0.5) -> Paired:
+                   min_sample_time: float = 0.02, max_switch_rate: float = 50.0, max_spread: float = 0.5,
+                   floor_pairs: int = 0, floor_sample_time: float = 0.002, floor_quantile: float = 0.1) -> Paired:
     """Time ``test`` and its ``peer`` interleaved: every repeat times one sample of each, back to
     back (the order alternating), and the speed-up is the median of the per-repeat ratios
     peer/test — a paired estimate that a busy machine slows down on both sides at once.
@@ -122,7 +127,15 @@ def measure_paired(test: Callable[[], Any], peer: Callable[[], Any], repeats: in
     Contention is measured, not assumed: involuntary context switches per second of timing
     (``getrusage``), process CPU time over wall time, and the 1-minute load average against
     the core count. ``trusted`` is false when switches exceed ``max_switch_rate`` per second,
-    the load exceeds the cores, or the ratio's relative spread exceeds ``max_spread``."""
+    the load exceeds the cores, or the ratio's relative spread exceeds ``max_spread``.
+
+    ``floor_pairs`` > 0 adds a second interleaved phase of that many pairs of short samples
+    (of equal duration on both sides, ≥ ``floor_sample_time``) and sets ``speedup`` to the ratio of the two sides'
+    ``floor_quantile`` quantiles: on a busy machine most samples are stretched by other processes
+    taking the cores, but the fastest tenth of short samples of each side ran (nearly)
+    undisturbed, so their ratio stays the work ratio an idle machine shows, where a median of
+    per-pair ratios drifts with how each side's parallel regions stall (measured:
+    reports/benchmarks/timing_trust.md)."""
     import resource
 
     repeats = check_int("repeats", repeats, 1)
@@ -165,7 +178,29 @@ def measure_paired(test: Callable[[], Any], peer: Callable[[], Any], repeats: in
         reasons.append(f"speed-up spread {ratio.spread:.0%} (> {max_spread:.0%})")
     contention = {"involuntary_switches_per_s": switches, "cpu_over_wall": cpu / max(wall, 1e-9), "load_average_1min": load,
                   "cores": cores, "torch_threads": torch.get_num_threads(), "trusted": not reasons, "why_not": reasons}
-    return Paired(_quantiles(tt, warmup, n_t), _quantiles(tp, warmup, n_p), ratio, contention)
+    speedup, floor = ratio.median, None
+    if floor_pairs > 0:
+        # equal sample durations on both sides (≥ floor_sample_time): a longer sample is less often
+        # undisturbed, which would bias the ratio of the fastest samples
+        c_t, c_p = statistics.median(tt), statistics.median(tp)  # per-call times of the first phase
+        target = max(floor_sample_time, c_t, c_p)
+        f_t, f_p = (max(1, min(10_000, round(target / max(c, 1e-9)))) for c in (c_t, c_p))
+        st: list[float] = []
+        sp: list[float] = []
+        for i in range(floor_pairs):
+            for name in (("test", "peer") if i % 2 == 0 else ("peer", "test")):
+                fn, n, out = (test, f_t, st) if name == "test" else (peer, f_p, sp)
+                t0 = time.perf_counter()
+                for _ in range(n):
+                    fn()
+                out.append((time.perf_counter() - t0) / n)
+        st.sort()
+        sp.sort()
+        k = min(len(st) - 1, int(floor_quantile * len(st)))
+        speedup = sp[k] / st[k] if st[k] > 0 else float("inf")
+        floor = {"pairs": floor_pairs, "quantile": floor_quantile, "test_s": st[k], "peer_s": sp[k],
+                 "inner_test": f_t, "inner_peer": f_p}
+    return Paired(_quantiles(tt, warmup, n_t), _quantiles(tp, warmup, n_p), ratio, contention, speedup, floor)
 
 
 def io_bound_fn(bytes_read: int, bytes_written: int) -> Callable[[], Any]:
