@@ -336,8 +336,9 @@ def markdown(results: dict, figures: list[str], renders: list[str]) -> str:
         "",
         "PSNR (lights) is against the uncompressed result, averaged over lights × views; PSNR (rand) is MRT eq. 11 over "
         "random norm-1 lighting vectors (Monte Carlo; closed form in results.json). Throughput: median of repeats after "
-        "warm-up; spread = IQR/median; speed-up = median of paired ratios, each codec sample timed back to back with one "
-        "of the uncompressed relighting (interleaved, same run), with its spread; ⚠ = measured under contention. "
+        "warm-up; spread = IQR/median; speed-up = the uncompressed relighting's time over the codec's, from 40 pairs of short, "
+        "equal-length samples timed back to back (interleaved, same run), the ratio of each side's fastest tenth — robust to "
+        "other processes taking the cores; ± = the spread of per-pair ratios; ⚠ = measured under contention. "
         "Of bound: the time of reading the encoded data (and the view) once and writing the output once (a copy_ and a fill_ "
         "of those byte counts, paired in the same run) over the relighting time — 1 is the memory-bandwidth bound.",
         "",
