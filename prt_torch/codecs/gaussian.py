@@ -63,6 +63,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import os
 import time
 import warnings
 import weakref
@@ -229,12 +230,14 @@ def flood_fill_order(faces: torch.Tensor | None, V: int) -> tuple[torch.Tensor, 
 
 @contextlib.contextmanager
 def _threads_for(work: int, small: int = 1 << 25):
-    """One thread for batches below ``small`` texel·lobe evaluations: on the shared 2-core
-    machine the per-op thread hand-off of the many mid-sized tensors of an LM step cost more
-    than it gained (200 functions: 0.4 s on 1 thread vs 3–9 s on 2; 4600 functions × 2 lobes:
-    17 s vs 62 s, load average 5–7)."""
+    """One thread for batches below ``small`` texel·lobe evaluations when other processes held
+    the cores at import (``OMP_WAIT_POLICY=PASSIVE``, chosen by :mod:`prt_torch` from the
+    runnable-process count): there the per-op thread hand-off of the many mid-sized tensors of
+    an LM step cost more than it gained (200 functions: 0.4 s on 1 thread vs 3–9 s on 2;
+    4600 functions × 2 lobes: 17 s vs 62 s, load average 5–7). On an idle machine all threads."""
     n = torch.get_num_threads()
-    if work < small and n > 1:
+    busy = os.environ.get("OMP_WAIT_POLICY", "").upper() == "PASSIVE"
+    if busy and work < small and n > 1:
         torch.set_num_threads(1)
     try:
         yield
