@@ -26,6 +26,10 @@ def _setting(r: dict) -> str:
     return ", ".join(x for x in parts if x)
 
 
+def _params(r: dict) -> str:
+    return ", ".join(f"{k} {v}" for k, v in r["params"].items())
+
+
 def paragraph(res: dict) -> str:
     """The generated text for one results dict (``prt bench`` output)."""
     recs = res["records"]
@@ -58,6 +62,14 @@ def paragraph(res: dict) -> str:
         same = all(v.get("same_mask", True) for v in g.values())
         extra += (f" The GLSL decoders ({', '.join(sorted(g))}) reproduce the CPU engine's images "
                   + (f"at ≥ {min(db):.0f} dB" if db else "bit for bit") + (" with identical pixel coverage." if same else "."))
+    for part in res.get("parts") or []:
+        pr = part["results"]
+        rows = sorted(pr["records"], key=lambda r: (r["codec"], r["bytes_per_vertex"]))
+        desc = "; ".join(f"{r['codec']} {_params(r)}: {r['psnr_lights_db']:.1f} dB at {r['bytes_per_vertex']:.0f} B/vertex, "
+                         f"{r['speedup_vs_uncompressed']:.1f}× the uncompressed rate" for r in rows)
+        extra += (f" Part `{part['name']}` ({pr['transfer']['kind']} tables of the {pr['scene']['name']}, "
+                  f"{pr['scene']['vertices']} vertices, {pr['transfer']['matrix_shape'][0]} views × "
+                  f"{pr['transfer']['matrix_shape'][1]} texels): {desc}.")
     return (
         f"`reports/baseline/report.md` is the committed output of the first command (load average "
         f"{m.get('load_average_1min', float('nan')):.1f} on {m.get('cores')} cores): {t['kind']} transfer of the built-in "
