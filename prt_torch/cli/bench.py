@@ -94,7 +94,8 @@ def run(args: argparse.Namespace) -> int:
                                 "run the same command again to continue (they are not recomputed)")
             out = run_benchmark(c, resume=not args.no_resume, progress=not args.quiet, executor=executor)
             print(f"report: {out / 'report.md'}")
-            fails = json.loads((out / "results.json").read_text()).get("failures") or []
+            res = json.loads((out / "results.json").read_text())
+            fails = list(res.get("failures") or []) + [f for part in res.get("parts") or [] for f in part["results"].get("failures") or []]
             for f in fails:
                 print(f"prt bench: setting {f['setting_id']} failed after {f['attempts']} attempt(s): {f['error']}", file=sys.stderr)
             failed += len(fails)
