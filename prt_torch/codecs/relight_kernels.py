@@ -231,7 +231,10 @@ static int prt_affine_rows_range(const int32_t *order, i64 p0, i64 p1, i64 P, i6
         } else {
             float e[4096];
             combine(F, T + k * J * F, mean, w, cnt, e);
-            for (i64 f = 0; f < Fo; f++) out[p * Fo + f] = e[f];
+            float *op = out + p * Fo;
+            i64 f = 0;
+            for (; f + 8 <= Fo; f += 8) ST(op + f, LD(e + f));
+            for (; f < Fo; f++) op[f] = e[f];
         }
     }
     return 0;
