@@ -179,10 +179,11 @@ def main() -> int:
         try:
             from prt_torch import brdf as B
             from prt_torch.scene import builtin
+            from prt_torch.transfer.base import RunOptions
             from prt_torch.transfer.glossy import precompute_glossy
 
             mesh = builtin("bumpy_sphere", "small" if args.quick else "large")
-            tr, t_pre = timed(lambda: precompute_glossy(mesh, bands=5, samples=256, seed=0, workers=2,
+            tr, t_pre = timed(lambda: precompute_glossy(mesh, bands=5, samples=256, seed=0, run=RunOptions(workers=2),
                                                         brdf=B.AshikhminShirley(40, 10, rs=0.05, rd=0.3), drop_out=[(1, 0)]))
             glossy = (tr.signal(), tuple(tr.meta["matrix_shape"]))
             result["glossy_scene"] = {"scene": "bumpy_sphere", "vertices": mesh.num_vertices, "matrix_shape": list(glossy[1]),

@@ -167,6 +167,9 @@ def kmeans_pp(X: torch.Tensor, K: int, gen: torch.Generator, w: torch.Tensor | N
     chosen[0] = torch.multinomial(wd / wd.sum(), 1, generator=gen)[0]
     d2 = sq_dists(X, X[chosen[0]][None], xx, xx[chosen[0]][None]).flatten().double()
     near = torch.zeros(P, dtype=torch.long)  # index into chosen of each point's nearest centre
+    Csel = torch.empty(K, X.shape[1], dtype=X.dtype)  # the chosen centres and their norms, in order
+    ccsel = torch.empty(K, dtype=xx.dtype)
+    Csel[0], ccsel[0] = X[chosen[0]], xx[chosen[0]]
     # rounding margin of a GEMM squared distance (both sides of the pruning test)
     margin = 2 * _ROUND.get(X.dtype, _ROUND[torch.float32]) * (xx.double() + float(xx.max()))
     for i in range(1, K):
@@ -177,14 +180,15 @@ def kmeans_pp(X: torch.Tensor, K: int, gen: torch.Generator, w: torch.Tensor | N
             s = float(p.sum())
         cand = torch.multinomial(p / s, trials, replacement=True, generator=gen)
         # ||c_near − cand||² ≥ 4 d2 (with rounding margin): the candidate cannot come closer
-        cc = sq_dists(X[chosen[:i]], X[cand], xx[chosen[:i]], xx[cand]).double()  # [i, trials]
-        need = (cc[near] < 4.0 * (d2 + 2 * margin)[:, None]).any(1)
+        Xcand = X.index_select(0, cand)
+        cc = sq_dists(Csel[:i], Xcand, ccsel[:i], xx[cand]).min(1).values.double()  # [i]: nearest candidate
+        need = cc[near] < 4.0 * (d2 + 2 * margin)
         S = torch.nonzero(need).flatten()
         if S.numel() > P // 2:  # most points: no gather
             S = None
-        XS, xxS = (X, xx) if S is None else (X[S], xx[S])
+        XS, xxS = (X, xx) if S is None else (X.index_select(0, S), xx[S])
         dS, wS = (d2, wd) if S is None else (d2[S], wd[S])
-        dc = sq_dists(XS, X[cand], xxS, xx[cand]).double()  # [|S|, trials]
+        dc = sq_dists(XS, Xcand, xxS, xx[cand]).double()  # [|S|, trials]
         new = torch.minimum(dS[:, None], dc)
         best = int(torch.argmin((wS[:, None] * new).sum(0)))
         moved = dc[:, best] < dS
@@ -195,6 +199,8 @@ def kmeans_pp(X: torch.Tensor, K: int, gen: torch.Generator, w: torch.Tensor | N
             d2[S] = new[:, best]
             near[S[moved]] = i
         chosen[i] = cand[best]
+        Csel[i] = Xcand[best]
+        ccsel[i] = xx[cand[best]]
     return chosen
 
 
