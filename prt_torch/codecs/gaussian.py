@@ -963,7 +963,6 @@ def _lm_batch(Tn, nonzero, dirs, sa, J, vn, N, beta, delta, sb, smin, smax, max_
         others = ((a[bi].exp() * sg_normaliser(lam) * keep)[..., None]
                   * torch.exp(lam[..., None] * (torch.einsum("bnc,pc->bnp", mu[bi], dirs) - 1))).sum(1)
         w1, m1, s1 = _init_lobes((Tn[bi] - others).clamp_min(0), dirs, sa, 1, smin, smax)
-        rows = torch.arange(bi.numel())
         a2[bi, k] = w1[:, 0].clamp_min(1e-10).log()
         mu2[bi, k] = m1[:, 0]
         ls2[bi, k] = s1[:, 0].log()
@@ -972,7 +971,6 @@ def _lm_batch(Tn, nonzero, dirs, sa, J, vn, N, beta, delta, sb, smin, smax, max_
         better = E2 < E[bi]
         gi = bi[better]
         a[gi], ls[gi], mu[gi], conv[gi], E[gi] = a2[gi], ls2[gi], mu2[gi], conv2[gi], E2[better]
-        del rows
         it += it2
     w = a.exp()
     w[z] = 0.0
