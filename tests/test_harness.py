@@ -11,7 +11,7 @@ import yaml
 
 from prt_torch.harness import config as hc
 from prt_torch.harness import metrics as hm
-from prt_torch.harness.timing import measure
+from prt_torch.harness.timing import measure, torch_threads
 
 TINY = {
     "name": "tiny",
@@ -157,6 +157,18 @@ def test_measure_reports_median_and_spread():
     assert t2.inner > 1 and len(fast) == 1 + 3 * t2.inner  # timeit-style inner loop for fast functions
     assert 0.0019 < t.median < 0.5 and t.min <= t.q1 <= t.median <= t.q3 <= t.max
     assert t.spread >= 0 and t.rate(10) == pytest.approx(10 / t.median)
+
+
+def test_torch_threads_sets_and_restores_the_count_even_on_error():
+    before = torch.get_num_threads()
+    seen = []
+    with pytest.raises(RuntimeError):
+        with torch_threads(1):
+            seen.append(torch.get_num_threads())
+            raise RuntimeError("inside")
+    assert seen == [1] and torch.get_num_threads() == before
+    with pytest.raises(ValueError, match="threads"):
+        torch_threads(0)
 
 
 # ------------------------------------------------------------------ end to end

@@ -337,8 +337,10 @@ def markdown(results: dict, figures: list[str], renders: list[str]) -> str:
         "PSNR (lights) is against the uncompressed result, averaged over lights × views; PSNR (rand) is MRT eq. 11 over "
         "random norm-1 lighting vectors (Monte Carlo; closed form in results.json). Throughput: median of repeats after "
         "warm-up; spread = IQR/median; speed-up = the uncompressed relighting's time over the codec's, from 40 pairs of short, "
-        "equal-length samples timed back to back (interleaved, same run), the ratio of each side's fastest tenth — robust to "
-        "other processes taking the cores; ± = the spread of per-pair ratios; ⚠ = measured under contention. "
+        "equal-length samples timed back to back (interleaved, same run) in one thread, the ratio of each side's fastest tenth — "
+        "the ratio of the work, which other processes taking the cores or OpenMP's wait policy do not move (measured: "
+        "reports/benchmarks/timing_trust.md; the same ratio at the process's thread count is `speedup_parallel` in "
+        "results.json); ± = the spread of per-pair ratios; ⚠ = measured under contention. "
         "Of bound: the time of reading the encoded data (and the view) once and writing the output once (a copy_ and a fill_ "
         "of those byte counts, paired in the same run) over the relighting time — 1 is the memory-bandwidth bound.",
         "",

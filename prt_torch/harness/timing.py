@@ -20,7 +20,7 @@ import torch
 
 from .._checks import check_int
 
-__all__ = ["Timing", "Paired", "measure", "measure_paired", "io_bound_fn", "machine_info"]
+__all__ = ["Timing", "Paired", "measure", "measure_paired", "torch_threads", "io_bound_fn", "machine_info"]
 
 
 @dataclass
@@ -201,6 +201,30 @@ def measure_paired(test: Callable[[], Any], peer: Callable[[], Any], repeats: in
         floor = {"pairs": floor_pairs, "quantile": floor_quantile, "test_s": st[k], "peer_s": sp[k],
                  "inner_test": f_t, "inner_peer": f_p}
     return Paired(_quantiles(tt, warmup, n_t), _quantiles(tp, warmup, n_p), ratio, contention, speedup, floor)
+
+
+class torch_threads:
+    """``with torch_threads(n):`` runs the block with ``torch.set_num_threads(n)`` (which the
+    relighting kernels follow too), restoring the previous count after.
+
+    Why speed-ups are timed in one thread (reports/benchmarks/timing_trust.md): a ratio of two
+    multi-threaded timings moves with the machine's load and with OpenMP's wait policy — each
+    parallel region pays a wake-up or a barrier stall that a busy machine stretches, and short
+    calls run many regions per unit of work (measured on 2 cores: PASSIVE alone halved the
+    fastest codec's speed-up on an idle machine, 30× → 14×). One thread has no regions to
+    wait on, so the paired ratio is the ratio of the work itself."""
+
+    def __init__(self, n: int):
+        self.n = check_int("threads", n, 1)
+        self.prev = None
+
+    def __enter__(self) -> "torch_threads":
+        self.prev = torch.get_num_threads()
+        torch.set_num_threads(self.n)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        torch.set_num_threads(self.prev)
 
 
 def io_bound_fn(bytes_read: int, bytes_written: int) -> Callable[[], Any]:
