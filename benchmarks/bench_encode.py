@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import os
 
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+import prt_torch  # noqa: F401  (first: it chooses OpenMP's wait policy from the machine's load, as for any user)
 
 import argparse  # noqa: E402
 import json  # noqa: E402
@@ -262,7 +262,7 @@ def main() -> int:
         print(faiss_note)
     load0 = os.getloadavg()
     t_all = time.perf_counter()
-    result: dict = {"machine": machine_info(), "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"), "threads": args.threads,
+    result: dict = {"machine": machine_info(), "omp_wait_policy": prt_torch.OMP_POLICY_CHOICE, "threads": args.threads,
                     "faiss": faiss_note, "load_average_before": load0, "quick": args.quick, "before": before_figures()}
     P = 5000 if args.quick else 50000
     result["synthetic"] = dataset("synthetic", transfer_like(P, 25, 25, seed=0), (25, 25), args, faiss)
@@ -304,9 +304,10 @@ def report(r: dict) -> str:
     la, lb = r["load_average_before"], r["load_average_after"]
     L = ["# Encode benchmarks (issue 15)", "",
          f"Machine: {m.get('cpu')}, {m.get('cores')} cores; threads {r['threads']} for torch, faiss and scikit-learn "
-         f"(threadpoolctl); OMP_WAIT_POLICY={r.get('omp_wait_policy')}; {r['faiss']}. Load average before "
-         f"{tuple(round(x, 2) for x in la)}, after {tuple(round(x, 2) for x in lb)} — other jobs shared the machine, so "
-         "absolute times are inflated; every ratio compares measurements of the same run (paired ones interleaved, "
+         f"(threadpoolctl); OpenMP: {r.get('omp_wait_policy')}; {r['faiss']}. Load average before "
+         f"{tuple(round(x, 2) for x in la)}, after {tuple(round(x, 2) for x in lb)} (the run's own threads add about "
+         f"{r['threads']}; more means other jobs shared the machine and absolute times are inflated); every ratio compares "
+         "measurements of the same run (paired ones interleaved, "
          f"median of per-repeat ratios). Total {r['seconds_total']:.0f} s.", "",
          "Reproduce: `.venv/bin/python benchmarks/bench_encode.py` (faiss-cpu needed for the faiss rows: "
          "`.venv/bin/pip install faiss-cpu`).", ""]

@@ -98,13 +98,18 @@ class AffineCodec(Codec):
         step = row_chunk(D, 8)
         offset = torch.zeros(D, dtype=torch.float64)
         if centred:
+            if w is None:
+                offset = X.sum(0, dtype=torch.float64) / P  # accumulated in float64, no float64 copy
+            else:
+                for i in range(0, P, step):  # chunks bound the float64 temporary
+                    offset += (X[i:i + step].double() * w[i:i + step, None].double()).sum(0)
+                offset /= float(w.sum())
+        if dtype == X.dtype == torch.float32:
+            Xc = X - offset.to(torch.float32)  # one pass (the offset rounded once to float32)
+        else:
+            Xc = torch.empty(P, D, dtype=dtype)
             for i in range(0, P, step):  # chunks bound the float64 temporary
-                xs = X[i:i + step].double()
-                offset += (xs * w[i:i + step, None].double() if w is not None else xs).sum(0)
-            offset /= float(w.sum()) if w is not None else P
-        Xc = torch.empty(P, D, dtype=dtype)
-        for i in range(0, P, step):  # chunks bound the float64 temporary
-            Xc[i:i + step] = (X[i:i + step].double() - offset).to(dtype)
+                Xc[i:i + step] = (X[i:i + step].double() - offset).to(dtype)
         w64 = None if w is None else w.double()
         gen = torch.Generator().manual_seed(int(p.get("seed", 0)))
         res = self._fit_model(Xc, w64, gen)

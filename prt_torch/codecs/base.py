@@ -202,7 +202,11 @@ class Codec(BaseEstimator):
         Xh = self.decode(enc)
         se = 0.0
         for i in range(0, X.shape[0], 8192):  # chunks bound the float64 temporaries
-            r = (X[i:i + 8192].double() - Xh[i:i + 8192].double()).square().sum(1)
+            xs, hs = X[i:i + 8192], Xh[i:i + 8192]
+            # float32 operands: the difference is taken in float32 (exact within a factor of 2,
+            # Sterbenz; else one rounding of the difference itself), its squares summed in float64
+            d = (xs - hs) if xs.dtype == hs.dtype == torch.float32 else (xs.double() - hs.double())
+            r = d.double().square().sum(1)
             if weights is not None:
                 r = r * weights[i:i + 8192].double()
             se += float(r.sum())
