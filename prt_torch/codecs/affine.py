@@ -556,6 +556,9 @@ def classify_all(Xc: torch.Tensor, xx: torch.Tensor, means: torch.Tensor | None,
 
 
 def _total_energy(Xc: torch.Tensor, w, centred: bool) -> float:
+    """Σ_p w_p ||x_p||² in float64 (one read-only pass when unweighted)."""
+    if w is None:
+        return float(torch.linalg.vector_norm(Xc, dtype=torch.float64)) ** 2
     s = 0.0
     for i in range(0, Xc.shape[0], 8192):
         r = Xc[i:i + 8192].double().square().sum(1)

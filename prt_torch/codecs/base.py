@@ -206,10 +206,10 @@ class Codec(BaseEstimator):
             # float32 operands: the difference is taken in float32 (exact within a factor of 2,
             # Sterbenz; else one rounding of the difference itself), its squares summed in float64
             d = (xs - hs) if xs.dtype == hs.dtype == torch.float32 else (xs.double() - hs.double())
-            r = d.double().square().sum(1)
-            if weights is not None:
-                r = r * weights[i:i + 8192].double()
-            se += float(r.sum())
+            if weights is None:
+                se += float(torch.linalg.vector_norm(d, dtype=torch.float64)) ** 2
+            else:
+                se += float((d.double().square().sum(1) * weights[i:i + 8192].double()).sum())
         return se
 
     # -- persistence -------------------------------------------------------------------
