@@ -98,8 +98,10 @@ class AffineCodec(Codec):
         step = row_chunk(D, 8)
         offset = torch.zeros(D, dtype=torch.float64)
         if centred:
-            if w is None:
-                offset = X.sum(0, dtype=torch.float64) / P  # accumulated in float64, no float64 copy
+            if w is None:  # column sums of row blocks in X's dtype (fast), the blocks' sums in float64
+                for i in range(0, P, 1024):
+                    offset += X[i:i + 1024].sum(0).double()
+                offset /= P
             else:
                 for i in range(0, P, step):  # chunks bound the float64 temporary
                     offset += (X[i:i + step].double() * w[i:i + step, None].double()).sum(0)
@@ -556,9 +558,10 @@ def classify_all(Xc: torch.Tensor, xx: torch.Tensor, means: torch.Tensor | None,
 
 
 def _total_energy(Xc: torch.Tensor, w, centred: bool) -> float:
-    """Σ_p w_p ||x_p||² in float64 (one read-only pass when unweighted)."""
+    """Σ_p w_p ||x_p||², rows' norms in Xc's dtype, their squares summed in float64 (the
+    denominator of ``se_relative`` only)."""
     if w is None:
-        return float(torch.linalg.vector_norm(Xc, dtype=torch.float64)) ** 2
+        return float(torch.linalg.vector_norm(Xc, dim=1).double().square().sum())
     s = 0.0
     for i in range(0, Xc.shape[0], 8192):
         r = Xc[i:i + 8192].double().square().sum(1)

@@ -79,11 +79,14 @@ _DOC_PCA = """
         Extra random columns of a cold randomized start (warm starts: at most 2).
     power_iters : int in [0, 50], default=3
         Power steps of a cold randomized start (warm starts use 1)."""
-#: One global subspace (pca, mrt_pca): 6 power steps reach scikit-learn's randomized PCA error
-#: (7 iterations) — glossy transfer 50k × 600, n' = 8: SE 10435.85 vs 10439.32 with 3, in
-#: 0.8 s against scikit-learn's 0.9–1.2 s (reports/benchmarks/encode.md)
+#: One global subspace (pca, mrt_pca): 6 power steps with 16 extra columns reach scikit-learn's
+#: randomized-PCA error (7 iterations, 10 extra columns) — n' = 8 on 50k × 625 synthetic transfer:
+#: SE 300156.24 vs scikit-learn's 300156.28 (3 steps, 8 columns: 300562.59), in 0.75 s against its
+#: 1.0 s; glossy 50k × 600: 10435.84 vs 10435.85 (reports/benchmarks/encode.md)
 _PCA_POWER_ITERS = 6
-_DOC_PCA_GLOBAL = _DOC_PCA.replace("power_iters : int in [0, 50], default=3", f"power_iters : int in [0, 50], default={_PCA_POWER_ITERS}")
+_PCA_OVERSAMPLE = 16
+_DOC_PCA_GLOBAL = (_DOC_PCA.replace("power_iters : int in [0, 50], default=3", f"power_iters : int in [0, 50], default={_PCA_POWER_ITERS}")
+                   .replace("oversample : int in [0, 256], default=8", f"oversample : int in [0, 256], default={_PCA_OVERSAMPLE}"))
 _DOC_COMMON = """
     seed : int, default=0
         Random seed (k-means++ draws, random subspace starts); results are deterministic per seed.
@@ -322,7 +325,7 @@ class PCA(AffineCodec):
     codec_name = "pca"
     _parameter_constraints = {**AffineCodec._parameter_constraints, **_PCA_CONSTRAINTS, "center": [Boolean()]}
 
-    def __init__(self, *, vectors=8, center=True, solver="auto", oversample=8, power_iters=_PCA_POWER_ITERS,
+    def __init__(self, *, vectors=8, center=True, solver="auto", oversample=_PCA_OVERSAMPLE, power_iters=_PCA_POWER_ITERS,
                  seed=0, fit_dtype="auto", strict=False):
         self.vectors = vectors
         self.center = center
@@ -591,7 +594,7 @@ class MRTPCA(PCA):
     codec_name = "mrt_pca"
     _parameter_constraints = {**PCA._parameter_constraints, "vectors": [Interval(int, 1, None)]}
 
-    def __init__(self, *, vectors=25, center=False, solver="auto", oversample=8, power_iters=_PCA_POWER_ITERS,
+    def __init__(self, *, vectors=25, center=False, solver="auto", oversample=_PCA_OVERSAMPLE, power_iters=_PCA_POWER_ITERS,
                  seed=0, fit_dtype="auto", strict=False):
         super().__init__(vectors=vectors, center=center, solver=solver, oversample=oversample,
                          power_iters=power_iters, seed=seed, fit_dtype=fit_dtype, strict=strict)
