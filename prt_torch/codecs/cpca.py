@@ -35,7 +35,7 @@ import torch
 from .affine import AffineCodec, classify_all
 from ..params import Boolean, Interval, Options
 from .base import register
-from .kmeans import kmeans_pp, lloyd, repair_empty
+from .kmeans import kmeans_pp, lloyd, repair_empty, seed_space
 from .segment import choose_tile, from_tiles, tile_layout, tiles_bmm, to_tiles
 from .subspace import cluster_pca, total_variance
 
@@ -48,6 +48,7 @@ _VQ_CONSTRAINTS = {
     "n_init": [Interval(int, 1, None)],
     "init": [Options("k-means++", "random")],
     "init_sample": [Interval(int, 1, None), None],
+    "init_dims": [Interval(int, 1, None), None],
 }
 _PCA_CONSTRAINTS = {
     "vectors": [Interval(int, 0, None)],
@@ -69,7 +70,14 @@ _DOC_VQ = """
     init_sample : int or None, default=None
         k-means++ draws its seeds from a random subset of this many points (default
         64·clusters, all points when fewer; each seed costs one pass over the subset — faiss
-        likewise trains on a subsample)."""
+        likewise trains on a subsample).
+    init_dims : int or None, default=64 (vq), None (cpca)
+        k-means++ measures distances in the top ``init_dims`` principal directions of its
+        sample (``kmeans.seed_space``; the seeds are still data points, Lloyd then works in
+        full dimension); None, or D ≤ 2·init_dims: full dimension. Each seed then reads
+        init_dims instead of D floats per sampled point: on glossy transfer (50k × 600, 256
+        clusters) seeding took 0.5 instead of 1.6 s and the final SE was 3509.9 instead of
+        3518.5 (synthetic 25×25: 32517 instead of 31930; faiss's random seeds: 40310)."""
 _DOC_PCA = """
     solver : {'auto', 'eigh', 'svd', 'randomized'}, default='auto'
         eigh: Sloan 2003 §4.1 normal form (CᵀC or CCᵀ by shape); svd; randomized: subspace
@@ -253,11 +261,14 @@ class _VQMixin:
         for r in range(p["n_init"]):  # restarts: a handful, each a full batched fit
             if p["init"] == "k-means++":
                 m = p["init_sample"] or 64 * K
+                d = p.get("init_dims")
                 if m < Xc.shape[0]:
                     sub = torch.randperm(Xc.shape[0], generator=gen)[:m]
-                    idx = sub[kmeans_pp(Xc[sub], K, gen, None if w is None else w[sub], xx=xx[sub])]
+                    Z = seed_space(Xc[sub], d, gen)
+                    idx = sub[kmeans_pp(Z, K, gen, None if w is None else w[sub], xx=xx[sub] if Z.shape[1] == Xc.shape[1] else None)]
                 else:
-                    idx = kmeans_pp(Xc, K, gen, w, xx=xx)
+                    Z = seed_space(Xc, d, gen)
+                    idx = kmeans_pp(Z, K, gen, w, xx=xx if Z.shape[1] == Xc.shape[1] else None)
             else:
                 pw = torch.ones(Xc.shape[0], dtype=torch.float64) if w is None else w.double()
                 idx = torch.multinomial(pw / pw.sum(), K, replacement=False, generator=gen)
@@ -282,13 +293,14 @@ class VQ(_VQMixin, AffineCodec):
     _parameter_constraints = {**AffineCodec._parameter_constraints, **_VQ_CONSTRAINTS}
 
     def __init__(self, *, clusters=64, max_iter=50, tol=1e-4, n_init=1, init="k-means++", init_sample=None,
-                 seed=0, fit_dtype="auto", strict=False):
+                 init_dims=64, seed=0, fit_dtype="auto", strict=False):
         self.clusters = clusters
         self.max_iter = max_iter
         self.tol = tol
         self.n_init = n_init
         self.init = init
         self.init_sample = init_sample
+        self.init_dims = init_dims
         self.seed = seed
         self.fit_dtype = fit_dtype
         self.strict = strict
@@ -396,7 +408,7 @@ class CPCA(_VQMixin, AffineCodec):
         "adapt_iters": [Interval(int, 1, None)],
     }
 
-    def __init__(self, *, clusters=64, max_iter=20, tol=1e-4, n_init=1, init="k-means++", init_sample=None,
+    def __init__(self, *, clusters=64, max_iter=20, tol=1e-4, n_init=1, init="k-means++", init_sample=None, init_dims=None,
                  vectors=8, solver="auto", oversample=8, power_iters=3, method="iterative", iterations=10,
                  candidates=8, stage_tol=5e-3, budget=None, max_vectors=None, adapt_iters=5, seed=0, fit_dtype="auto",
                  strict=False):
@@ -406,6 +418,7 @@ class CPCA(_VQMixin, AffineCodec):
         self.n_init = n_init
         self.init = init
         self.init_sample = init_sample
+        self.init_dims = init_dims
         self.vectors = vectors
         self.solver = solver
         self.oversample = oversample

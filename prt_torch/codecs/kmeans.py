@@ -32,7 +32,8 @@ import math
 
 import torch
 
-__all__ = ["BLOCK_BYTES", "CACHE_BLOCK_BYTES", "row_chunk", "sq_dists", "assign", "kmeans_pp", "lloyd", "repair_empty", "segment_sums"]
+__all__ = ["BLOCK_BYTES", "CACHE_BLOCK_BYTES", "row_chunk", "sq_dists", "assign", "kmeans_pp", "seed_space", "lloyd", "repair_empty",
+           "segment_sums"]
 
 #: Bytes of one [rows, K] distance block.
 BLOCK_BYTES = 64 * 2**20
@@ -211,6 +212,22 @@ def kmeans_pp(X: torch.Tensor, K: int, gen: torch.Generator, w: torch.Tensor | N
         Csel[i] = Xcand[best]
         ccsel[i] = xx[cand[best]]
     return chosen
+
+
+def seed_space(X: torch.Tensor, dims: int | None, gen: torch.Generator, power_iters: int = 2) -> torch.Tensor:
+    """``X [m, D]`` in (an estimate of) its top-``dims`` principal subspace: ``X Q`` ``[m, dims]``
+    (X's dtype), Q ``[D, dims]`` orthonormal from a randomized range finder (Halko et al. 2011,
+    Alg. 4.3: a Gaussian start and ``power_iters`` steps of XᵀX); X itself when ``dims`` is
+    None or D ≤ 2·dims. Where k-means++ seeds: distances between points of a signal whose
+    energy sits in few directions (transfer) are kept to within the discarded energy, and each
+    seed reads dims instead of D floats per point."""
+    D = X.shape[1]
+    if dims is None or D <= 2 * dims:
+        return X
+    Q = torch.randn(D, dims, generator=gen, dtype=torch.float64).to(X.dtype)
+    for _ in range(max(1, power_iters)):
+        Q = torch.linalg.qr(X.T @ (X @ Q)).Q
+    return X @ Q
 
 
 def lloyd(X: torch.Tensor, C0: torch.Tensor, max_iter: int, tol: float, w: torch.Tensor | None = None,
