@@ -77,7 +77,8 @@ def paragraph(res: dict) -> str:
         f"under {len(res['lights'])} lights ({', '.join(res['lights'])}) and {max(1, len(res['views']))} views. "
         f"At about {budget:.0f} B/vertex, PSNR against the uncompressed result: {'; '.join(at_budget)}. "
         f"Relighting speed relative to the uncompressed path measured in the same run "
-        f"({unc['vertices_per_s'] / 1e6:.2f} M vertices/s): {', '.join(speed)}." + extra
+        f"({unc['vertices_per_s'] / 1e6:.2f} M vertices/s), paired and in one thread (the ratio of the work, which "
+        f"the machine's load does not move): {', '.join(speed)}." + extra
     )
 
 
