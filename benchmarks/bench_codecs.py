@@ -16,10 +16,9 @@
    matched rendering cost — with squared error, PSNR of relit exit radiance under random SH
    lights, bytes, and measured relight time.
 
-Threads: 2 (``torch.set_num_threads(2)``). ``OMP_WAIT_POLICY=PASSIVE`` is set unless already
-set: on a shared machine the default spinning OpenMP barriers made every batched kernel
-several times slower when other processes held the cores (measured 74 s vs 24 s for the
-same fit). The machine's load average is recorded before and after.
+Threads: 2 (``torch.set_num_threads(2)``). OpenMP's wait policy is the package's choice
+(``import prt_torch`` first: PASSIVE only when other processes already hold the cores, as for
+any user; README "OpenMP wait policy"). The machine's load average is recorded before and after.
 
 Run: .venv/bin/python benchmarks/bench_codecs.py   (about 10 minutes; --quick: a smoke test that prints)
 Writes reports/benchmarks/codecs.md and codecs.json.
@@ -28,7 +27,7 @@ from __future__ import annotations
 
 import os
 
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+import prt_torch  # noqa: E402,F401  (first: it chooses OpenMP's wait policy from the machine's load, as for any user)
 
 import argparse  # noqa: E402
 import math  # noqa: E402
@@ -163,7 +162,7 @@ def main() -> int:
     load0 = os.getloadavg()
     t_all = time.perf_counter()
     P = 5000 if args.quick else 50000
-    result: dict = {"machine": machine_info(), "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
+    result: dict = {"machine": machine_info(), "omp_wait_policy": prt_torch.OMP_POLICY_CHOICE,
                     "load_average_before": load0, "quick": args.quick}
 
     # ---- 1. encode on the synthetic 50k x 625 signal
@@ -232,7 +231,7 @@ def report(r: dict) -> str:
     m = r["machine"]
     L = ["# Codec benchmarks", "",
          f"Machine: {m.get('cpu')}, {m.get('cores')} cores, torch threads {m.get('torch_threads')}, "
-         f"OMP_WAIT_POLICY={r.get('omp_wait_policy')}; load average before {tuple(round(x, 2) for x in r['load_average_before'])}, "
+         f"OpenMP: {r.get('omp_wait_policy')}; load average before {tuple(round(x, 2) for x in r['load_average_before'])}, "
          f"after {tuple(round(x, 2) for x in r['load_average_after'])} (other jobs share this machine; "
          "every ratio below compares two measurements of the same run). Total {:.0f} s.".format(r["seconds_total"]),
          "", "Reproduce: `.venv/bin/python benchmarks/bench_codecs.py` (writes this file and codecs.json).", ""]

@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import os
 
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+import prt_torch  # noqa: E402,F401  (first: it chooses OpenMP's wait policy from the machine's load, as for any user)
 
 import argparse  # noqa: E402
 import copy  # noqa: E402

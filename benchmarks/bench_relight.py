@@ -21,8 +21,8 @@ takes minutes). Fits are cached in ``--cache`` (default: a directory in the syst
 The Gaussian codec (Green 2006) is not included: it needs transport tables of a scene and a
 prefiltered environment (see benchmarks/bench_gaussian.py), not the SH light used here.
 
-Threads: ``--threads`` (default 2, the project's target machine); ``OMP_WAIT_POLICY=PASSIVE``
-unless set. The load average is recorded before and after, and each paired measurement
+Threads: ``--threads`` (default 2, the project's target machine); OpenMP's wait policy is the
+package's choice (``import prt_torch`` first, as for any user). The load average is recorded before and after, and each paired measurement
 records its contention (``trusted`` false: busy machine).
 
 Run: .venv/bin/python benchmarks/bench_relight.py   (a few minutes; --quick: 5 000 points, prints only)
@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import os
 
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+import prt_torch  # noqa: E402,F401  (first: it chooses OpenMP's wait policy from the machine's load, as for any user)
 
 import argparse  # noqa: E402
 import hashlib  # noqa: E402
@@ -156,7 +156,7 @@ def main() -> int:
     light = torch.randn(25, 3, generator=g) * torch.exp(-0.5 * torch.tensor([float(int(i ** 0.5)) for i in range(25)]))[:, None]
     views = {"glossy": torch.randn(P, 24, generator=g), "mrt": torch.randn(P, Mm * Mm, generator=g)}
     taps = tent_taps_random(P, Mm, seed=4)
-    result: dict = {"machine": machine_info(), "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
+    result: dict = {"machine": machine_info(), "omp_wait_policy": prt_torch.OMP_POLICY_CHOICE,
                     "threads": threads, "load_average_before": load0, "points": P, "fit_points": FIT_POINTS,
                     "native": native_status(), "quick": args.quick, "fits": [], "rows": []}
     print("kernels:", result["native"]["detail"], flush=True)
@@ -205,7 +205,7 @@ def report(r: dict) -> str:
     la = lambda t: tuple(round(x, 2) for x in t)  # noqa: E731
     untrusted = [x for x in r["rows"] if not x["contention"]["trusted"]]
     L = ["# Relighting from the compressed forms vs the memory-bandwidth bound", "",
-         f"Machine: {m.get('cpu')}, {m.get('cores')} cores, threads {r['threads']}, OMP_WAIT_POLICY={r['omp_wait_policy']}; "
+         f"Machine: {m.get('cpu')}, {m.get('cores')} cores, threads {r['threads']}, OpenMP: {r['omp_wait_policy']}; "
          f"load average before {la(r['load_average_before'])}, after {la(r['load_average_after'])}. "
          f"Total {r['seconds_total']:.0f} s. Kernels: {r['native']['detail']}.", "",
          "Reproduce: `.venv/bin/python benchmarks/bench_relight.py` (writes this file and relight.json).", "",
