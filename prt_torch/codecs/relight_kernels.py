@@ -134,8 +134,8 @@ CHUNKS(ROWS_CHUNK)
 static inline i64 chunk_size(i64 nv) { i64 n = (nv + MAXNB - 1) / MAXNB; return n ? (nv + n - 1) / n : 1; }
 
 /* e[0:F] = (mean ? T[0] : 0) + sum_{i<cnt} w[i] T[mean + i]  (rows of F floats, stride F; F % 8 == 0) */
-static inline void combine(i64 F, const float *T, int mean, const float *w, i64 cnt, float *e) {
-    i64 nv = F / 8, cs = chunk_size(nv);
+static inline void combine(i64 F, i64 cs, const float *T, int mean, const float *w, i64 cnt, float *e) {
+    i64 nv = F / 8;  /* cs = chunk_size(nv), computed once per call by the caller (two divisions) */
     for (i64 b0 = 0; b0 < nv; b0 += cs) {
         int nb = (int)(nv - b0 < cs ? nv - b0 : cs);
         const float *Tc = T + 8 * b0;
@@ -221,16 +221,17 @@ int prt_constants(i64 K, i64 J, i64 Jmax, i64 n_in, i64 n_out, i64 n_pad, i64 C,
 static int prt_affine_rows_range(const int32_t *order, i64 p0, i64 p1, i64 P, i64 F, i64 Fo, const void *lab,
         int lab_kind, const float *W, i64 wstride, const i64 *woff,
                     const i64 *nk, i64 nuse, int mean, const float *T, i64 J, float *out) {
+    const i64 cs = chunk_size(F / 8);
     for (i64 q = p0; q < p1; q++) {
         i64 p = order ? order[q] : q;
         if (order && q + PF_AHEAD < p1) { i64 pp = order[q + PF_AHEAD]; PREFETCH_CODES(pp); PREFETCH_ROW(out + pp * Fo, Fo, 1); }
         i64 k = lab_at(lab, lab_kind, p), cnt;
         const float *w = weights_of(W, wstride, woff, nk, nuse, k, p, &cnt);
         if (F == Fo) {
-            combine(F, T + k * J * F, mean, w, cnt, out + p * Fo);
+            combine(F, cs, T + k * J * F, mean, w, cnt, out + p * Fo);
         } else {
             float e[4096];
-            combine(F, T + k * J * F, mean, w, cnt, e);
+            combine(F, cs, T + k * J * F, mean, w, cnt, e);
             float *op = out + p * Fo;
             i64 f = 0;
             for (; f + 8 <= Fo; f += 8) ST(op + f, LD(e + f));
