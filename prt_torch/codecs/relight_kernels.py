@@ -86,14 +86,26 @@ static inline const float *weights_of(const float *W, i64 wstride, const i64 *wo
 typedef float v4 __attribute__((vector_size(16)));
 #if defined(__clang__) || (defined(__GNUC__) && __GNUC__ >= 12)
 #define SHUF(a, ...) __builtin_shufflevector(a, a, __VA_ARGS__)
-static inline float hsum(v8 a) {  /* a tree in registers: halves, pairs, lanes */
-    v4 s = SHUF(a, 0, 1, 2, 3) + SHUF(a, 4, 5, 6, 7);
-    s += SHUF(s, 2, 3, 0, 1);
-    s += SHUF(s, 1, 0, 3, 2);
-    return s[0];
+/* ((a0 + a1) + (a2 + a3)) + ((a4 + a5) + (a6 + a7)): the association hsum8 uses for each of its
+   8 sums, so a point's result does not depend on whether it was reduced alone or in a block of 8
+   (nor, therefore, on how the points were split between threads) */
+static inline float hsum(v8 a) {
+    v4 s = SHUF(a, 0, 2, 4, 6) + SHUF(a, 1, 3, 5, 7);
+    return (s[0] + s[1]) + (s[2] + s[3]);
+}
+/* lane i = the sum of a[i]'s lanes, for 8 vectors at once: three rounds of adding the even and
+   odd lanes of neighbouring pairs (7 shuffle pairs for 8 sums, where 8 hsums take 24) */
+#define EVEN2(a, b) __builtin_shufflevector(a, b, 0, 2, 4, 6, 8, 10, 12, 14)
+#define ODD2(a, b) __builtin_shufflevector(a, b, 1, 3, 5, 7, 9, 11, 13, 15)
+static inline v8 hsum8(const v8 *a) {
+    v8 t0 = EVEN2(a[0], a[1]) + ODD2(a[0], a[1]), t1 = EVEN2(a[2], a[3]) + ODD2(a[2], a[3]);
+    v8 t2 = EVEN2(a[4], a[5]) + ODD2(a[4], a[5]), t3 = EVEN2(a[6], a[7]) + ODD2(a[6], a[7]);
+    v8 u0 = EVEN2(t0, t1) + ODD2(t0, t1), u1 = EVEN2(t2, t3) + ODD2(t2, t3);
+    return EVEN2(u0, u1) + ODD2(u0, u1);
 }
 #else
-static inline float hsum(v8 a) { return ((a[0] + a[4]) + (a[2] + a[6])) + ((a[1] + a[5]) + (a[3] + a[7])); }
+static inline float hsum(v8 a) { return ((a[0] + a[1]) + (a[2] + a[3])) + ((a[4] + a[5]) + (a[6] + a[7])); }
+static inline v8 hsum8(const v8 *a) { v8 r; for (int i = 0; i < 8; i++) r[i] = hsum(a[i]); return r; }
 #endif
 
 static inline float dot(const float *a, const float *b, i64 n) {
@@ -289,8 +301,36 @@ static inline void dense3_##NBS(const float *T0, i64 n_pad, i64 F, int mean, con
     }                                                                                            \
     o[0] += hsum(r0); o[1] += hsum(r1); o[2] += hsum(r2);                                        \
 }
+/* the same, leaving the three colours' lane sums to the caller (rv[0..2]; hsum8 over 8 points) */
+#define DENSE3V(NBS)                                                                             \
+static inline void dense3v_##NBS(const float *T0, i64 n_pad, i64 F, int mean, const float *w, i64 cnt, \
+                                 const float *yc, v8 *rv) {                                      \
+    v8 a0[NBS], a1[NBS], a2[NBS];                                                                \
+    const float *T1 = T0 + n_pad, *T2 = T0 + 2 * n_pad;                                          \
+    for (int b = 0; b < NBS; b++) {                                                              \
+        a0[b] = mean ? LD(T0 + 8 * b) : (v8){0};                                                 \
+        a1[b] = mean ? LD(T1 + 8 * b) : (v8){0};                                                 \
+        a2[b] = mean ? LD(T2 + 8 * b) : (v8){0};                                                 \
+    }                                                                                            \
+    i64 s = mean ? F : 0;                                                                        \
+    for (i64 i = 0; i < cnt; i++, s += F) {                                                      \
+        float wi = w[i];                                                                         \
+        for (int b = 0; b < NBS; b++) {                                                          \
+            a0[b] += wi * LD(T0 + s + 8 * b);                                                    \
+            a1[b] += wi * LD(T1 + s + 8 * b);                                                    \
+            a2[b] += wi * LD(T2 + s + 8 * b);                                                    \
+        }                                                                                        \
+    }                                                                                            \
+    v8 r0 = a0[0] * LD(yc), r1 = a1[0] * LD(yc), r2 = a2[0] * LD(yc);                           \
+    for (int b = 1; b < NBS; b++) {                                                              \
+        v8 yb = LD(yc + 8 * b);                                                                  \
+        r0 += a0[b] * yb; r1 += a1[b] * yb; r2 += a2[b] * yb;                                    \
+    }                                                                                            \
+    rv[0] = r0; rv[8] = r1; rv[16] = r2;                                                         \
+}
 CHUNKS(DENSE1)
 DENSE3(1) DENSE3(2) DENSE3(3) DENSE3(4)
+DENSE3V(1) DENSE3V(2) DENSE3V(3) DENSE3V(4)
 #define CASE_DENSE1(NB) case NB: return dense1_##NB(Tc, F, mean, w, cnt, yc);
 
 static inline float dense1(int nbs, const float *Tc, i64 F, int mean, const float *w, i64 cnt, const float *yc) {
@@ -308,7 +348,38 @@ static int prt_affine_dense_range(const int32_t *order, i64 p0, i64 p1, i64 P, i
                      const float *y, float *out) {
     i64 F = n_pad * C, nbt = n_pad / 8, cs = chunk_size(nbt);
     int flag = 0;
-    for (i64 q = p0; q < p1; q++) {
+    i64 q = p0;
+    if (C == 3 && nbt <= 4 && !order) {
+        /* RGB, points in order: 8 points at a time, their 24 dot products reduced together */
+        v8 R[24];
+        float yb[32];
+        for (; q + 8 <= p1; q += 8) {
+            for (int l = 0; l < 8; l++) {
+                i64 p = q + l, k = lab_at(lab, lab_kind, p), cnt;
+                const float *w = weights_of(W, wstride, woff, nk, nuse, k, p, &cnt);
+                const float *yp = y + p * n_out;
+                if (n_out != n_pad) {
+                    for (i64 r = 0; r < n_out; r++) yb[r] = yp[r];
+                    for (i64 r = n_out; r < n_pad; r++) yb[r] = 0.0f;
+                    yp = yb;
+                }
+                const float *Tk = T + k * J * F;
+                switch (nbt) {
+                case 1: dense3v_1(Tk, n_pad, F, mean, w, cnt, yp, R + l); break;
+                case 2: dense3v_2(Tk, n_pad, F, mean, w, cnt, yp, R + l); break;
+                case 3: dense3v_3(Tk, n_pad, F, mean, w, cnt, yp, R + l); break;
+                default: dense3v_4(Tk, n_pad, F, mean, w, cnt, yp, R + l); break;
+                }
+            }
+            v8 s0 = hsum8(R), s1 = hsum8(R + 8), s2 = hsum8(R + 16);
+            float *op = out + q * 3;
+            for (int l = 0; l < 8; l++) {
+                op[3 * l] = s0[l]; op[3 * l + 1] = s1[l]; op[3 * l + 2] = s2[l];
+                if (!(fabsf(s0[l]) <= FLT_MAX && fabsf(s1[l]) <= FLT_MAX && fabsf(s2[l]) <= FLT_MAX)) flag |= 2;
+            }
+        }
+    }
+    for (; q < p1; q++) {
         i64 p = order ? order[q] : q;
         if (order && q + PF_AHEAD < p1) { i64 pp = order[q + PF_AHEAD]; PREFETCH_CODES(pp); PREFETCH_ROW(y + pp * n_out, n_out, 0); }
         float yb[4096];
