@@ -260,8 +260,8 @@ def test_kernels_visit_points_in_any_order():
         relight_kernels.affine_rows(lib, T["rows"], 4, 9, 3, *codes, P=250, order=order.long())
 
 
-def test_dense_kernel_result_does_not_depend_on_the_thread_split():
-    """The dense kernel reduces RGB points 8 at a time (hsum8) and the rest one by one (hsum),
+def test_dense_and_taps_kernels_do_not_depend_on_the_thread_split():
+    """The dense and taps kernels reduce RGB points 8 at a time (hsum8) and the rest one by one (hsum),
     with the same association: a point's result is the same whichever way the threads split
     the points (P = 251: ranges that are not multiples of 8), and equals the visiting-order path."""
     lib = relight_kernels.native()
@@ -281,4 +281,16 @@ def test_dense_kernel_result_does_not_depend_on_the_thread_split():
     finally:
         torch.set_num_threads(before)
     ordered = relight_kernels.affine_dense(lib, T, 4, 9, 3, *codes, y, order=torch.arange(251, dtype=torch.int32))[0]
+    assert all(torch.equal(o, outs[0]) for o in outs[1:]) and torch.equal(ordered, outs[0])
+    # the taps kernel reduces the same way
+    Tt = relight_kernels.constants(lib, c.means_, c.basis_, 3, 9, 4, L, "taps")
+    taps = (torch.randint(0, 9, (251, 4)), torch.rand(251, 4))
+    try:
+        outs = []
+        for n in (1, 2, 3):
+            torch.set_num_threads(n)
+            outs.append(relight_kernels.affine_taps(lib, Tt, 4, 9, 3, *codes, *taps)[0])
+    finally:
+        torch.set_num_threads(before)
+    ordered = relight_kernels.affine_taps(lib, Tt, 4, 9, 3, *codes, *taps, order=torch.arange(251, dtype=torch.int32))[0]
     assert all(torch.equal(o, outs[0]) for o in outs[1:]) and torch.equal(ordered, outs[0])

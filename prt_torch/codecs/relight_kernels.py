@@ -451,7 +451,29 @@ static inline void taps3_##NBJ(const float *const *rows, const float *gs, i64 nt
     }                                                                                            \
     o[0] = hsum(r0); o[1] = hsum(r1); o[2] = hsum(r2);                                           \
 }
+/* the same, leaving the three colours' lane sums to the caller (rv[0], rv[8], rv[16]; hsum8) */
+#define TAPS3V(NBJ)                                                                              \
+static inline void taps3v_##NBJ(const float *const *rows, const float *gs, i64 nt, i64 Jp, const float *wv, v8 *rv) { \
+    v8 a0[NBJ], a1[NBJ], a2[NBJ];                                                                \
+    for (int b = 0; b < NBJ; b++) { a0[b] = (v8){0}; a1[b] = (v8){0}; a2[b] = (v8){0}; }         \
+    for (i64 t = 0; t < nt; t++) {                                                               \
+        const float *r = rows[t];                                                                \
+        float gt = gs[t];                                                                        \
+        for (int b = 0; b < NBJ; b++) {                                                          \
+            a0[b] += gt * LD(r + 8 * b);                                                         \
+            a1[b] += gt * LD(r + Jp + 8 * b);                                                    \
+            a2[b] += gt * LD(r + 2 * Jp + 8 * b);                                                \
+        }                                                                                        \
+    }                                                                                            \
+    v8 r0 = a0[0] * LD(wv), r1 = a1[0] * LD(wv), r2 = a2[0] * LD(wv);                           \
+    for (int b = 1; b < NBJ; b++) {                                                              \
+        v8 x = LD(wv + 8 * b);                                                                   \
+        r0 += a0[b] * x; r1 += a1[b] * x; r2 += a2[b] * x;                                       \
+    }                                                                                            \
+    rv[0] = r0; rv[8] = r1; rv[16] = r2;                                                         \
+}
 TAPS3(1) TAPS3(2) TAPS3(3) TAPS3(4)
+TAPS3V(1) TAPS3V(2) TAPS3V(3) TAPS3V(4)
 
 /* taps: constants T [K, n_out, C, Jp] (J terms zero-padded to Jp, a multiple of 8);
    s = sum_t g[p, t] T[k, idx[p, t]] ([C, Jp]); out[p, c] = (mean ? s[c, 0] : 0) + w_p . s[c, mean:mean+cnt].
@@ -462,7 +484,44 @@ static int prt_affine_taps_range(const int32_t *order, i64 p0, i64 p1, i64 P, i6
                     i64 ntap, const i64 *idx, const float *g, float *out) {
     i64 R = Jp * C;
     int flag = 0;
-    for (i64 q = p0; q < p1; q++) {
+    i64 q = p0;
+    if (C == 3 && Jp / 8 <= 4 && !order) {
+        /* RGB, points in order: 8 points at a time, their 24 dot products reduced together */
+        v8 Rv[24];
+        const float *rows[64];
+        float gs[64];
+        float wv[32];
+        for (; q + 8 <= p1; q += 8) {
+            for (int l = 0; l < 8; l++) {
+                i64 p = q + l, k = lab_at(lab, lab_kind, p), cnt, nt = 0;
+                const float *w = weights_of(W, wstride, woff, nk, nuse, k, p, &cnt);
+                const float *Tk = T + k * n_out * R;
+                for (i64 t = 0; t < ntap; t++) {
+                    i64 r = idx[p * ntap + t];
+                    if (r < 0 || r >= n_out) { flag |= 1; continue; }
+                    rows[nt] = Tk + r * R;
+                    gs[nt++] = g[p * ntap + t];
+                }
+                i64 j = 0;
+                if (mean) wv[j++] = 1.0f;
+                for (i64 i = 0; i < cnt; i++) wv[j++] = w[i];
+                for (; j < Jp; j++) wv[j] = 0.0f;
+                switch (Jp / 8) {
+                case 1: taps3v_1(rows, gs, nt, Jp, wv, Rv + l); break;
+                case 2: taps3v_2(rows, gs, nt, Jp, wv, Rv + l); break;
+                case 3: taps3v_3(rows, gs, nt, Jp, wv, Rv + l); break;
+                default: taps3v_4(rows, gs, nt, Jp, wv, Rv + l); break;
+                }
+            }
+            v8 s0 = hsum8(Rv), s1 = hsum8(Rv + 8), s2 = hsum8(Rv + 16);
+            float *op = out + q * 3;
+            for (int l = 0; l < 8; l++) {
+                op[3 * l] = s0[l]; op[3 * l + 1] = s1[l]; op[3 * l + 2] = s2[l];
+                if (!(fabsf(s0[l]) <= FLT_MAX && fabsf(s1[l]) <= FLT_MAX && fabsf(s2[l]) <= FLT_MAX)) flag |= 2;
+            }
+        }
+    }
+    for (; q < p1; q++) {
         i64 p = order ? order[q] : q;
         if (order && q + PF_AHEAD < p1) {
             i64 pp = order[q + PF_AHEAD];
