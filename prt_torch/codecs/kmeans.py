@@ -356,10 +356,9 @@ def _bounded_step(X, xx, C, labels, u, low, delta, sums, ws, wd, full, eps, xx64
         lab, u, low = full(None)
         new_labels = lab
         idx = idx[:0]
-    elif idx.numel() > TIGHTEN_FRACTION * P:
-        pass  # many candidates: the tightening pass (a gather per point) would cost more than it prunes
-    elif idx.numel():
-        # tighten u to the exact distance to the own centre (one row per point)
+    elif 0 < idx.numel() <= TIGHTEN_FRACTION * P:
+        # few candidates: tighten u to the exact distance to the own centre (one row per point);
+        # with more, this gather per point would cost more than it prunes
         e2 = _residuals(X, C, labels, idx).double()
         ut = (e2 * (1 + 1e-5) + eps * (xx64[idx] + float(C.square().sum(1).max()))).sqrt()
         u[idx] = ut

@@ -275,33 +275,8 @@ static inline float dense1_##NBS(const float *Tc, i64 F, int mean, const float *
     for (int b = 1; b < NBS; b++) r += a[b] * LD(yc + 8 * b);                                    \
     return hsum(r);                                                                              \
 }
-#define DENSE3(NBS)                                                                              \
-static inline void dense3_##NBS(const float *T0, i64 n_pad, i64 F, int mean, const float *w, i64 cnt, \
-                                const float *yc, float *o) {                                     \
-    v8 a0[NBS], a1[NBS], a2[NBS];                                                                \
-    const float *T1 = T0 + n_pad, *T2 = T0 + 2 * n_pad;                                          \
-    for (int b = 0; b < NBS; b++) {                                                              \
-        a0[b] = mean ? LD(T0 + 8 * b) : (v8){0};                                                 \
-        a1[b] = mean ? LD(T1 + 8 * b) : (v8){0};                                                 \
-        a2[b] = mean ? LD(T2 + 8 * b) : (v8){0};                                                 \
-    }                                                                                            \
-    i64 s = mean ? F : 0;                                                                        \
-    for (i64 i = 0; i < cnt; i++, s += F) {                                                      \
-        float wi = w[i];                                                                         \
-        for (int b = 0; b < NBS; b++) {                                                          \
-            a0[b] += wi * LD(T0 + s + 8 * b);                                                    \
-            a1[b] += wi * LD(T1 + s + 8 * b);                                                    \
-            a2[b] += wi * LD(T2 + s + 8 * b);                                                    \
-        }                                                                                        \
-    }                                                                                            \
-    v8 r0 = a0[0] * LD(yc), r1 = a1[0] * LD(yc), r2 = a2[0] * LD(yc);                           \
-    for (int b = 1; b < NBS; b++) {                                                              \
-        v8 yb = LD(yc + 8 * b);                                                                  \
-        r0 += a0[b] * yb; r1 += a1[b] * yb; r2 += a2[b] * yb;                                    \
-    }                                                                                            \
-    o[0] += hsum(r0); o[1] += hsum(r1); o[2] += hsum(r2);                                        \
-}
-/* the same, leaving the three colours' lane sums to the caller (rv[0..2]; hsum8 over 8 points) */
+/* RGB: the three colours' lane vectors of one point into rv[0], rv[8], rv[16] (so 8 points fill
+   three hsum8 inputs); every index a compile-time constant, the accumulators in registers */
 #define DENSE3V(NBS)                                                                             \
 static inline void dense3v_##NBS(const float *T0, i64 n_pad, i64 F, int mean, const float *w, i64 cnt, \
                                  const float *yc, v8 *rv) {                                      \
@@ -328,9 +303,17 @@ static inline void dense3v_##NBS(const float *T0, i64 n_pad, i64 F, int mean, co
     }                                                                                            \
     rv[0] = r0; rv[8] = r1; rv[16] = r2;                                                         \
 }
+/* one point: the three colours' sums straight into o */
+#define DENSE3(NBS)                                                                              \
+static inline void dense3_##NBS(const float *T0, i64 n_pad, i64 F, int mean, const float *w, i64 cnt, \
+                                const float *yc, float *o) {                                     \
+    v8 rv[17];                                                                                   \
+    dense3v_##NBS(T0, n_pad, F, mean, w, cnt, yc, rv);                                           \
+    o[0] += hsum(rv[0]); o[1] += hsum(rv[8]); o[2] += hsum(rv[16]);                              \
+}
 CHUNKS(DENSE1)
-DENSE3(1) DENSE3(2) DENSE3(3) DENSE3(4)
 DENSE3V(1) DENSE3V(2) DENSE3V(3) DENSE3V(4)
+DENSE3(1) DENSE3(2) DENSE3(3) DENSE3(4)
 #define CASE_DENSE1(NB) case NB: return dense1_##NB(Tc, F, mean, w, cnt, yc);
 
 static inline float dense1(int nbs, const float *Tc, i64 F, int mean, const float *w, i64 cnt, const float *yc) {
@@ -430,28 +413,8 @@ int prt_affine_dense(i64 P, i64 n_out, i64 n_pad, i64 C, const void *lab, int la
 }
 
 /* taps, RGB, Jp = 8 NBJ terms: s[c] = sum_t g_t T[k, idx_t, c, :] in registers (three colours x
-   NBJ vectors), then out[c] = s[c] . wv (wv = [1 if mean, w_0 .. w_{cnt-1}, 0 ..]). */
-#define TAPS3(NBJ)                                                                               \
-static inline void taps3_##NBJ(const float *const *rows, const float *gs, i64 nt, i64 Jp, const float *wv, float *o) { \
-    v8 a0[NBJ], a1[NBJ], a2[NBJ];                                                                \
-    for (int b = 0; b < NBJ; b++) { a0[b] = (v8){0}; a1[b] = (v8){0}; a2[b] = (v8){0}; }         \
-    for (i64 t = 0; t < nt; t++) {                                                               \
-        const float *r = rows[t];                                                                \
-        float gt = gs[t];                                                                        \
-        for (int b = 0; b < NBJ; b++) {                                                          \
-            a0[b] += gt * LD(r + 8 * b);                                                         \
-            a1[b] += gt * LD(r + Jp + 8 * b);                                                    \
-            a2[b] += gt * LD(r + 2 * Jp + 8 * b);                                                \
-        }                                                                                        \
-    }                                                                                            \
-    v8 r0 = a0[0] * LD(wv), r1 = a1[0] * LD(wv), r2 = a2[0] * LD(wv);                           \
-    for (int b = 1; b < NBJ; b++) {                                                              \
-        v8 x = LD(wv + 8 * b);                                                                   \
-        r0 += a0[b] * x; r1 += a1[b] * x; r2 += a2[b] * x;                                       \
-    }                                                                                            \
-    o[0] = hsum(r0); o[1] = hsum(r1); o[2] = hsum(r2);                                           \
-}
-/* the same, leaving the three colours' lane sums to the caller (rv[0], rv[8], rv[16]; hsum8) */
+   NBJ vectors), then out[c] = s[c] . wv (wv = [1 if mean, w_0 .. w_{cnt-1}, 0 ..]); the lane
+   vectors of one point go to rv[0], rv[8], rv[16] (so 8 points fill three hsum8 inputs). */
 #define TAPS3V(NBJ)                                                                              \
 static inline void taps3v_##NBJ(const float *const *rows, const float *gs, i64 nt, i64 Jp, const float *wv, v8 *rv) { \
     v8 a0[NBJ], a1[NBJ], a2[NBJ];                                                                \
@@ -472,8 +435,15 @@ static inline void taps3v_##NBJ(const float *const *rows, const float *gs, i64 n
     }                                                                                            \
     rv[0] = r0; rv[8] = r1; rv[16] = r2;                                                         \
 }
-TAPS3(1) TAPS3(2) TAPS3(3) TAPS3(4)
 TAPS3V(1) TAPS3V(2) TAPS3V(3) TAPS3V(4)
+/* one point: the three colours' sums into o */
+#define TAPS3(NBJ)                                                                               \
+static inline void taps3_##NBJ(const float *const *rows, const float *gs, i64 nt, i64 Jp, const float *wv, float *o) { \
+    v8 rv[17];                                                                                   \
+    taps3v_##NBJ(rows, gs, nt, Jp, wv, rv);                                                      \
+    o[0] = hsum(rv[0]); o[1] = hsum(rv[8]); o[2] = hsum(rv[16]);                                 \
+}
+TAPS3(1) TAPS3(2) TAPS3(3) TAPS3(4)
 
 /* taps: constants T [K, n_out, C, Jp] (J terms zero-padded to Jp, a multiple of 8);
    s = sum_t g[p, t] T[k, idx[p, t]] ([C, Jp]); out[p, c] = (mean ? s[c, 0] : 0) + w_p . s[c, mean:mean+cnt].
