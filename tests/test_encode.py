@@ -213,3 +213,17 @@ def test_iterative_schedule_never_above_static(seed):
 def test_stage_tol_is_validated():
     with pytest.raises(ValueError, match="stage_tol"):
         codecs.get("cpca_iterative", stage_tol=-1.0).fit(transfer_like(200, 2, 4, seed=0))
+
+
+def test_linear_is_the_gemm_with_bias_whichever_kernel_the_machine_chose():
+    """kmeans.linear = X Wᵀ + b (oneDNN's linear or addmm, chosen by measurement) against a
+    float64 product, for a large product (the chosen kernel) and a small one (addmm)."""
+    g = torch.Generator().manual_seed(3)
+    choice = km.gemm_choice()
+    assert choice["backend"] in ("onednn", "mkl") and choice["how"]
+    for m in (4096, 16):
+        X, W, b = torch.randn(m, 640, generator=g), torch.randn(96, 640, generator=g), torch.randn(96, generator=g)
+        ref = X.double() @ W.double().T + b.double()
+        out = km.linear(X, W, b)
+        assert out.shape == (m, 96) and out.dtype == torch.float32
+        assert torch.allclose(out.double(), ref, rtol=1e-5, atol=1e-4)

@@ -31,7 +31,7 @@ import torch
 from .. import io
 from ..params import Boolean, Interval, Options
 from .base import (Codec, Encoded, check_light, check_matrix_shape, check_signal, check_view, check_weights)
-from .kmeans import CACHE_BLOCK_BYTES, row_chunk
+from .kmeans import CACHE_BLOCK_BYTES, linear, row_chunk
 from .relight_kernels import affine_dense, affine_rows, affine_taps, native
 from .relight_kernels import constants as kernel_constants
 from .relight_kernels import fits as kernel_fits
@@ -538,8 +538,10 @@ def classify_all(Xc: torch.Tensor, xx: torch.Tensor, means: torch.Tensor | None,
     emin = torch.empty(P, dtype=dt)
     tops = torch.empty(P, min(top, K), dtype=torch.long) if top else None  # fewer clusters than candidates
     step = min(P, row_chunk(K * (1 + n), Xc.element_size(), CACHE_BLOCK_BYTES))
+    W = W.contiguous()
+    bias = bias.reshape(-1)
     for i in range(0, P, step):  # blocks bound the [rows, K(1+n)] temporary
-        G = torch.addmm(bias, Xc[i:i + step], W.T).view(-1, K, 1 + n)
+        G = linear(Xc[i:i + step].contiguous(), W, bias).view(-1, K, 1 + n)  # GEMM with bias (kmeans.linear)
         if n:
             e = G[..., 0] - G[..., 1:].square_().sum(-1)
         else:

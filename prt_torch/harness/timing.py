@@ -270,6 +270,9 @@ def machine_info() -> dict[str, Any]:
 
         info["prt_torch"] = prt_torch.__version__
         info["omp_wait_policy"] = prt_torch.OMP_POLICY_CHOICE
+        from ..codecs.kmeans import gemm_choice
+
+        info["encode_gemm"] = gemm_choice()["how"]  # MKL addmm or oneDNN linear, measured (codecs.kmeans)
     except Exception:  # pragma: no cover
         pass
     return info
