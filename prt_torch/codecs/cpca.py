@@ -76,8 +76,9 @@ _DOC_VQ = """
         sample (``kmeans.seed_space``; the seeds are still data points, Lloyd then works in
         full dimension); None, or D ≤ 2·init_dims: full dimension. Each seed then reads
         init_dims instead of D floats per sampled point: on glossy transfer (50k × 600, 256
-        clusters) seeding took 0.5 instead of 1.6 s and the final SE was 3509.9 instead of
-        3518.5 (synthetic 25×25: 32517 instead of 31930; faiss's random seeds: 40310)."""
+        clusters, 20 Lloyd iterations) seeding took 0.4 instead of 1.6 s, and the final SE was
+        3510–3524 over seeds 1–3 (full-dimension seeds: 3498–3522 over seeds 0–2; faiss's
+        random seeds: 3567–3583), i.e. within seeding luck (reports/benchmarks/encode.md)."""
 _DOC_PCA = """
     solver : {'auto', 'eigh', 'svd', 'randomized'}, default='auto'
         eigh: Sloan 2003 §4.1 normal form (CᵀC or CCᵀ by shape); svd; randomized: subspace
