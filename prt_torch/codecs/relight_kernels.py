@@ -445,6 +445,28 @@ static inline void taps3_##NBJ(const float *const *rows, const float *gs, i64 nt
 }
 TAPS3(1) TAPS3(2) TAPS3(3) TAPS3(4)
 
+/* one point's taps: its valid tapped rows of its cluster's constants (rows, gs; *flag |= 1 for a
+   tap outside [0, n_out), which is skipped) and its term weights wv = [1 if mean, w.., 0..] (Jp);
+   returns how many taps were kept */
+static inline i64 taps_point(i64 p, const void *lab, int lab_kind, const float *W, i64 wstride, const i64 *woff, const i64 *nk,
+                             i64 nuse, int mean, const float *T, i64 Jp, i64 R, i64 n_out, i64 ntap, const i64 *idx,
+                             const float *g, const float **rows, float *gs, float *wv, int *flag) {
+    i64 k = lab_at(lab, lab_kind, p), cnt, nt = 0;
+    const float *w = weights_of(W, wstride, woff, nk, nuse, k, p, &cnt);
+    const float *Tk = T + k * n_out * R;
+    for (i64 t = 0; t < ntap; t++) {
+        i64 r = idx[p * ntap + t];
+        if (r < 0 || r >= n_out) { *flag |= 1; continue; }
+        rows[nt] = Tk + r * R;
+        gs[nt++] = g[p * ntap + t];
+    }
+    i64 j = 0;
+    if (mean) wv[j++] = 1.0f;
+    for (i64 i = 0; i < cnt; i++) wv[j++] = w[i];
+    for (; j < Jp; j++) wv[j] = 0.0f;
+    return nt;
+}
+
 /* taps: constants T [K, n_out, C, Jp] (J terms zero-padded to Jp, a multiple of 8);
    s = sum_t g[p, t] T[k, idx[p, t]] ([C, Jp]); out[p, c] = (mean ? s[c, 0] : 0) + w_p . s[c, mean:mean+cnt].
    Returns 1 if a tap index is outside [0, n_out) (that tap is skipped), 2 if an output is not finite. */
@@ -463,19 +485,8 @@ static int prt_affine_taps_range(const int32_t *order, i64 p0, i64 p1, i64 P, i6
         float wv[32];
         for (; q + 8 <= p1; q += 8) {
             for (int l = 0; l < 8; l++) {
-                i64 p = q + l, k = lab_at(lab, lab_kind, p), cnt, nt = 0;
-                const float *w = weights_of(W, wstride, woff, nk, nuse, k, p, &cnt);
-                const float *Tk = T + k * n_out * R;
-                for (i64 t = 0; t < ntap; t++) {
-                    i64 r = idx[p * ntap + t];
-                    if (r < 0 || r >= n_out) { flag |= 1; continue; }
-                    rows[nt] = Tk + r * R;
-                    gs[nt++] = g[p * ntap + t];
-                }
-                i64 j = 0;
-                if (mean) wv[j++] = 1.0f;
-                for (i64 i = 0; i < cnt; i++) wv[j++] = w[i];
-                for (; j < Jp; j++) wv[j] = 0.0f;
+                i64 nt = taps_point(q + l, lab, lab_kind, W, wstride, woff, nk, nuse, mean, T, Jp, R, n_out, ntap, idx, g,
+                                    rows, gs, wv, &flag);
                 switch (Jp / 8) {
                 case 1: taps3v_1(rows, gs, nt, Jp, wv, Rv + l); break;
                 case 2: taps3v_2(rows, gs, nt, Jp, wv, Rv + l); break;
@@ -504,19 +515,7 @@ static int prt_affine_taps_range(const int32_t *order, i64 p0, i64 p1, i64 P, i6
         float o[16];
         const float *rows[64];
         float gs[64];
-        i64 k = lab_at(lab, lab_kind, p), cnt, nt = 0;
-        const float *w = weights_of(W, wstride, woff, nk, nuse, k, p, &cnt);
-        const float *Tk = T + k * n_out * R;
-        for (i64 t = 0; t < ntap; t++) {
-            i64 r = idx[p * ntap + t];
-            if (r < 0 || r >= n_out) { flag |= 1; continue; }
-            rows[nt] = Tk + r * R;
-            gs[nt++] = g[p * ntap + t];
-        }
-        i64 j = 0;
-        if (mean) wv[j++] = 1.0f;
-        for (i64 i = 0; i < cnt; i++) wv[j++] = w[i];
-        for (; j < Jp; j++) wv[j] = 0.0f;
+        i64 nt = taps_point(p, lab, lab_kind, W, wstride, woff, nk, nuse, mean, T, Jp, R, n_out, ntap, idx, g, rows, gs, wv, &flag);
         i64 nbj = Jp / 8;
         if (C == 3 && nbj <= 4) {
             switch (nbj) {
