@@ -237,18 +237,23 @@ def test_native_status_reports_the_path(monkeypatch):
     assert relight_kernels.native() is None and relight_kernels.native_status() == {"native": False, "detail": "disabled by PRT_TORCH_NATIVE=0"}
 
 
-def test_kernels_visit_points_in_any_order():
-    """The kernels' optional visiting order (a permutation, e.g. by cluster) changes nothing."""
+def _kernel_case(P: int):
+    """A small CPCA encoding (5 clusters × 3 vectors, 9×4 matrices) with its native codes,
+    constants of every layout, a dense view and taps, for the kernel tests below."""
     lib = relight_kernels.native()
     if lib is None:
         pytest.skip("no compiled kernels")
-    c, enc = _fit("cpca_static", {"clusters": 5, "vectors": 3, "max_iter": 5}, (9, 4), 250, None)
+    c, enc = _fit("cpca_static", {"clusters": 5, "vectors": 3, "max_iter": 5}, (9, 4), P, None)
     L = torch.randn(4, 3)
-    codes = c._native_codes(enc, 3)
-    order = torch.argsort(c.labels_of(enc), stable=True).to(torch.int32)
-    y = torch.randn(250, 9)
-    taps = (torch.randint(0, 9, (250, 4)), torch.rand(250, 4))
     T = {k: relight_kernels.constants(lib, c.means_, c.basis_, 3, 9, 4, L, k) for k in ("rows", "dense", "taps")}
+    taps = (torch.randint(0, 9, (P, 4)), torch.rand(P, 4))
+    return lib, c.labels_of(enc), c._native_codes(enc, 3), T, torch.randn(P, 9), taps
+
+
+def test_kernels_visit_points_in_any_order():
+    """The kernels' optional visiting order (a permutation, e.g. by cluster) changes nothing."""
+    lib, labels, codes, T, y, taps = _kernel_case(250)
+    order = torch.argsort(labels, stable=True).to(torch.int32)
     for o in (order, torch.randperm(250).to(torch.int32)):
         assert torch.equal(relight_kernels.affine_rows(lib, T["rows"], 4, 9, 3, *codes, P=250, order=o),
                            relight_kernels.affine_rows(lib, T["rows"], 4, 9, 3, *codes, P=250))
@@ -264,33 +269,17 @@ def test_dense_and_taps_kernels_do_not_depend_on_the_thread_split():
     """The dense and taps kernels reduce RGB points 8 at a time (hsum8) and the rest one by one (hsum),
     with the same association: a point's result is the same whichever way the threads split
     the points (P = 251: ranges that are not multiples of 8), and equals the visiting-order path."""
-    lib = relight_kernels.native()
-    if lib is None:
-        pytest.skip("no compiled kernels")
-    c, enc = _fit("cpca_static", {"clusters": 5, "vectors": 3, "max_iter": 5}, (9, 4), 251, None)
-    L = torch.randn(4, 3)
-    codes = c._native_codes(enc, 3)
-    y = torch.randn(251, 9)
-    T = relight_kernels.constants(lib, c.means_, c.basis_, 3, 9, 4, L, "dense")
+    lib, _, codes, T, y, taps = _kernel_case(251)
+    runs = {"dense": lambda **kw: relight_kernels.affine_dense(lib, T["dense"], 4, 9, 3, *codes, y, **kw)[0],
+            "taps": lambda **kw: relight_kernels.affine_taps(lib, T["taps"], 4, 9, 3, *codes, *taps, **kw)[0]}
     before = torch.get_num_threads()
-    try:
-        outs = []
-        for n in (1, 2, 3):
-            torch.set_num_threads(n)
-            outs.append(relight_kernels.affine_dense(lib, T, 4, 9, 3, *codes, y)[0])
-    finally:
-        torch.set_num_threads(before)
-    ordered = relight_kernels.affine_dense(lib, T, 4, 9, 3, *codes, y, order=torch.arange(251, dtype=torch.int32))[0]
-    assert all(torch.equal(o, outs[0]) for o in outs[1:]) and torch.equal(ordered, outs[0])
-    # the taps kernel reduces the same way
-    Tt = relight_kernels.constants(lib, c.means_, c.basis_, 3, 9, 4, L, "taps")
-    taps = (torch.randint(0, 9, (251, 4)), torch.rand(251, 4))
-    try:
-        outs = []
-        for n in (1, 2, 3):
-            torch.set_num_threads(n)
-            outs.append(relight_kernels.affine_taps(lib, Tt, 4, 9, 3, *codes, *taps)[0])
-    finally:
-        torch.set_num_threads(before)
-    ordered = relight_kernels.affine_taps(lib, Tt, 4, 9, 3, *codes, *taps, order=torch.arange(251, dtype=torch.int32))[0]
-    assert all(torch.equal(o, outs[0]) for o in outs[1:]) and torch.equal(ordered, outs[0])
+    for name, run in runs.items():
+        try:
+            outs = []
+            for n in (1, 2, 3):
+                torch.set_num_threads(n)
+                outs.append(run())
+        finally:
+            torch.set_num_threads(before)
+        ordered = run(order=torch.arange(251, dtype=torch.int32))
+        assert all(torch.equal(o, outs[0]) for o in outs[1:]) and torch.equal(ordered, outs[0]), name

@@ -108,6 +108,18 @@ static inline float hsum(v8 a) { return ((a[0] + a[1]) + (a[2] + a[3])) + ((a[4]
 static inline v8 hsum8(const v8 *a) { v8 r; for (int i = 0; i < 8; i++) r[i] = hsum(a[i]); return r; }
 #endif
 
+/* 8 RGB points: colour c of point l is the lane sum of R[8c + l]; written to op[3l + c].
+   Returns 2 if an output is not finite. */
+static inline int store8_rgb(const v8 *R, float *op) {
+    v8 s0 = hsum8(R), s1 = hsum8(R + 8), s2 = hsum8(R + 16);
+    int flag = 0;
+    for (int l = 0; l < 8; l++) {
+        op[3 * l] = s0[l]; op[3 * l + 1] = s1[l]; op[3 * l + 2] = s2[l];
+        if (!(fabsf(s0[l]) <= FLT_MAX && fabsf(s1[l]) <= FLT_MAX && fabsf(s2[l]) <= FLT_MAX)) flag |= 2;
+    }
+    return flag;
+}
+
 static inline float dot(const float *a, const float *b, i64 n) {
     v8 acc = {0};
     i64 i = 0;
@@ -354,12 +366,7 @@ static int prt_affine_dense_range(const int32_t *order, i64 p0, i64 p1, i64 P, i
                 default: dense3v_4(Tk, n_pad, F, mean, w, cnt, yp, R + l); break;
                 }
             }
-            v8 s0 = hsum8(R), s1 = hsum8(R + 8), s2 = hsum8(R + 16);
-            float *op = out + q * 3;
-            for (int l = 0; l < 8; l++) {
-                op[3 * l] = s0[l]; op[3 * l + 1] = s1[l]; op[3 * l + 2] = s2[l];
-                if (!(fabsf(s0[l]) <= FLT_MAX && fabsf(s1[l]) <= FLT_MAX && fabsf(s2[l]) <= FLT_MAX)) flag |= 2;
-            }
+            flag |= store8_rgb(R, out + q * 3);
         }
     }
     for (; q < p1; q++) {
@@ -494,12 +501,7 @@ static int prt_affine_taps_range(const int32_t *order, i64 p0, i64 p1, i64 P, i6
                 default: taps3v_4(rows, gs, nt, Jp, wv, Rv + l); break;
                 }
             }
-            v8 s0 = hsum8(Rv), s1 = hsum8(Rv + 8), s2 = hsum8(Rv + 16);
-            float *op = out + q * 3;
-            for (int l = 0; l < 8; l++) {
-                op[3 * l] = s0[l]; op[3 * l + 1] = s1[l]; op[3 * l + 2] = s2[l];
-                if (!(fabsf(s0[l]) <= FLT_MAX && fabsf(s1[l]) <= FLT_MAX && fabsf(s2[l]) <= FLT_MAX)) flag |= 2;
-            }
+            flag |= store8_rgb(Rv, out + q * 3);
         }
     }
     for (; q < p1; q++) {
