@@ -67,7 +67,7 @@ def _onednn_linear():
 
 
 def gemm_choice() -> dict:
-    """Which kernel :func:`linear` uses: ``{'backend': 'onednn'|'mkl', 'how': str}``, measured once
+    """Which kernel :func:`linear` uses: ``{'backend': 'onednn'|'mkl', 'how': str, 'op'}``, measured once
     per process (about 0.1 s). torch's float32 ``addmm`` goes to MKL, whose sgemm on the AMD EPYC
     of our benchmarks ran the k-means assignment GEMM ([50k, 600] @ [600, 256] in 4096-row
     blocks) in 135 ms, where torch's oneDNN linear kernel — the same OpenMP threads, so no second
@@ -101,9 +101,7 @@ def linear(X: torch.Tensor, W: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     machine (:func:`gemm_choice`: oneDNN's linear for large contiguous float32 products, else
     ``addmm`` — oneDNN builds a kernel per new shape, which small products of varying shape,
     as k-means++'s, would pay every call)."""
-    if X.shape[0] * W.shape[0] * X.shape[1] < 2**24:
-        return torch.addmm(b[None, :], X, W.T)
-    op = gemm_choice()["op"]
+    op = gemm_choice()["op"] if X.shape[0] * W.shape[0] * X.shape[1] >= 2**24 else None
     if op is not None and X.dtype == W.dtype == b.dtype == torch.float32 and X.is_contiguous() and W.is_contiguous():
         return op(X, W, b, "none", [], "")
     return torch.addmm(b[None, :], X, W.T)

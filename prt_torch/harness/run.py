@@ -182,17 +182,21 @@ def evaluate_setting(ev: Evaluator, setting: dict, lights: list[torch.Tensor], v
     # fps: at the process's thread count; the speed-up column: the same pairs in one thread, the
     # ratio of the work itself, which a busy machine or OpenMP's wait policy does not move
     # (timing.torch_threads; the multi-threaded ratio is kept as speedup_parallel)
-    pt = measure_paired(lambda: codec.relight(enc, L0, view=v0), lambda: ev.reference(lights[0], v0),
-                        repeats=m["repeats"], warmup=m["warmup"], floor_pairs=FLOOR_PAIRS)
+    def relit():
+        return codec.relight(enc, L0, view=v0)
+
+    def uncompressed():
+        return ev.reference(lights[0], v0)
+
+    pt = measure_paired(relit, uncompressed, repeats=m["repeats"], warmup=m["warmup"], floor_pairs=FLOOR_PAIRS)
     tm = pt.test
     with torch_threads(1):
-        pw = measure_paired(lambda: codec.relight(enc, L0, view=v0), lambda: ev.reference(lights[0], v0),
-                            repeats=m["repeats"], warmup=m["warmup"], floor_pairs=FLOOR_PAIRS)
+        pw = measure_paired(relit, uncompressed, repeats=m["repeats"], warmup=m["warmup"], floor_pairs=FLOOR_PAIRS)
     # its own bound: read the encoded data (and the view) once, write the output once
     view_bytes = 0 if v0 is None else (v0.numel() * v0.element_size() if isinstance(v0, torch.Tensor)
                                        else sum(t.numel() * t.element_size() for t in v0))
     out_bytes = ev.V * L0.shape[-1] * 4
-    pb = measure_paired(lambda: codec.relight(enc, L0, view=v0), io_bound_fn(int(storage["bytes_total"]) + view_bytes, out_bytes),
+    pb = measure_paired(relit, io_bound_fn(int(storage["bytes_total"]) + view_bytes, out_bytes),
                         repeats=m["repeats"], warmup=m["warmup"], floor_pairs=FLOOR_PAIRS)
     psnrs = [p["psnr_db"] for p in per]
     finite = [p for p in psnrs if math.isfinite(p)]
