@@ -283,3 +283,46 @@ def test_dense_and_taps_kernels_do_not_depend_on_the_thread_split():
             torch.set_num_threads(before)
         ordered = run(order=torch.arange(251, dtype=torch.int32))
         assert all(torch.equal(o, outs[0]) for o in outs[1:]) and torch.equal(ordered, outs[0]), name
+
+
+@pytest.mark.parametrize("name", ["cpca_static", "cpca_adaptive"])
+def test_cluster_sorted_visiting_changes_nothing(name, monkeypatch):
+    """Where a cluster's constants are large, ``relight`` visits points cluster by cluster from a
+    cached cluster-sorted copy of the codes (plain and packed); the results equal the point-order
+    kernels' bit for bit (same per-point arithmetic) for every view mode, any thread count, and
+    an in-place edit of the codes is seen (the copy is rebuilt)."""
+    from prt_torch.codecs import affine
+
+    if relight_kernels.native() is None:
+        pytest.skip("no compiled kernels")
+    params, (n_out, n_in) = ({"clusters": 6, "vectors": 4, "max_iter": 5}, (16, 9))
+    if name == "cpca_adaptive":
+        params, (n_out, n_in) = next(x for x in CASES if "packed" in x[0])[2:4]
+    c, enc = _fit(name, params, (n_out, n_in), 300, None)
+    assert enc.meta["packed"] == (name == "cpca_adaptive")
+    L = torch.randn(n_in, 3)
+    views = {"none": None, "dense": torch.randn(300, n_out), "taps": (torch.randint(0, n_out, (300, 4)), torch.rand(300, 4))}
+    before = torch.get_num_threads()
+
+    def run(view):
+        return c.relight(enc, L, view=view)
+
+    try:
+        for threads in (1, 2):
+            torch.set_num_threads(threads)
+            for mode, view in views.items():
+                monkeypatch.setattr(affine, "SORT_MIN_CLUSTER_BYTES", 0)
+                sorted_out = run(view)
+                assert "cluster_order" in enc.cache, mode
+                monkeypatch.setattr(affine, "SORT_MIN_CLUSTER_BYTES", 1 << 60)
+                assert torch.equal(sorted_out, run(view)), (mode, threads)
+    finally:
+        torch.set_num_threads(before)
+    labels = enc.tensors["labels"]
+    labels[:50] = (labels[:50].long() + 1).remainder(c.K_).to(labels.dtype)  # an in-place edit of the codes
+    if name == "cpca_adaptive":
+        return  # packed weights follow the labels' n_k: an edit of labels alone is not a valid encoding
+    monkeypatch.setattr(affine, "SORT_MIN_CLUSTER_BYTES", 0)
+    edited = run(views["dense"])
+    monkeypatch.setattr(affine, "SORT_MIN_CLUSTER_BYTES", 1 << 60)
+    assert torch.equal(edited, run(views["dense"]))

@@ -37,6 +37,12 @@ from .relight_kernels import constants as kernel_constants
 from .relight_kernels import fits as kernel_fits
 from .segment import from_tiles, segment_matmul, tile_layout, tiles_bmm, to_tiles
 
+#: relight visits points cluster by cluster (``AffineCodec._cluster_sorted_codes``) when one
+#: cluster's constants take at least this many bytes: CPCA 256×8 on 24×25 matrices (2.6 KB per
+#: cluster) relights 1.2-1.4× faster so, VQ 256 (288 B per cluster, the table L2-resident) 0.9×
+#: (paired, 50k points, 1 and 2 threads; benchmarks/bench_relight.py)
+SORT_MIN_CLUSTER_BYTES = 1024
+
 __all__ = ["AffineCodec", "label_dtype"]
 
 
@@ -389,15 +395,52 @@ class AffineCodec(Codec):
         codes = self._native_codes(enc, n)
         kind = "rows" if view is None else ("taps" if isinstance(view, tuple) else "dense")
         T = kernel_constants(lib, self.means_, self.basis_, n, n_out, n_in, L, kind)
-        # points in their stored order: visiting them by cluster (kernels' ``order``) keeps a
-        # cluster's constants in L1 but scatters the codes, views and outputs; measured slower
-        # here (0.5-0.8x at 50k points, K = 256, random labels; benchmarks/bench_relight.py)
+        # Where a cluster's constants are large (CPCA: J·n_out·C floats, 2.6 KB at 9×24×3), points
+        # are visited cluster by cluster within blocks, from a cluster-sorted copy of the codes
+        # (Sloan 2003 §6: per-cluster work over cluster-sorted storage), so T_k is read from L1
+        # instead of L2 for every point; only the view rows and outputs are scattered, within a
+        # block. Same arithmetic per point, so the same results bit for bit.
+        order = None
+        if codes[0] is not None and T[0].numel() * T.element_size() >= SORT_MIN_CLUSTER_BYTES:
+            order, codes = self._cluster_sorted_codes(enc, codes)
+        kw = {"order": order, "codes_sorted": order is not None}
         if view is None:
-            out = affine_rows(lib, T, J, n_out, C, *codes, P=enc.points)
+            out = affine_rows(lib, T, J, n_out, C, *codes, P=enc.points, **kw)
             return (out if self.matrix_shape_ is None else out.view(-1, n_out, C)), 0
         if isinstance(view, tuple):
-            return affine_taps(lib, T, J, n_out, C, *codes, view[0].contiguous(), view[1].contiguous())
-        return affine_dense(lib, T, J, n_out, C, *codes, view.contiguous())
+            return affine_taps(lib, T, J, n_out, C, *codes, view[0].contiguous(), view[1].contiguous(), **kw)
+        return affine_dense(lib, T, J, n_out, C, *codes, view.contiguous(), **kw)
+
+    def _cluster_sorted_codes(self, enc: Encoded, codes: tuple) -> tuple[torch.Tensor, tuple]:
+        """The visiting order ``int32 [P]`` — points sorted by cluster within consecutive blocks of
+        B = clamp(32 K, 2048, 16384) points (stable: point order within a cluster) — and the codes
+        (``_native_codes``' tuple) stored in that order; built once per encoding and cached
+        (a second copy of the labels and weights: the CPU counterpart of Sloan's per-cluster vertex
+        buffers). A block keeps the scattered view rows and outputs close together; 32 points per
+        cluster and block on average amortise loading T_k (measured: benchmarks/bench_relight.py)."""
+        labels, W, wstride, woff, nk, n, mean = codes
+        key = (labels.data_ptr(), labels._version) + ((W.data_ptr(), W._version) if W is not None else ())
+        hit = enc.cache.get("cluster_order")
+        if hit is not None and hit[0] == key:
+            order, lab_s, W_s, woff_s = hit[1]
+            return order, (lab_s, W_s, wstride, woff_s, nk, n, mean)
+        P, K = enc.points, self.K_
+        B = min(max(32 * K, 2048), 16384)
+        lab = labels.long()
+        order = torch.argsort(torch.arange(P) // B * K + lab, stable=True)
+        lab_s = labels[order].contiguous()
+        if W is None:
+            W_s, woff_s = None, None
+        elif woff is None:
+            W_s, woff_s = W[order].contiguous(), None
+        else:  # packed: each point's n_k weights, re-packed in the new order
+            cnt = nk[lab_s.long()]
+            woff_s = (torch.cumsum(cnt, 0) - cnt).contiguous()
+            src = torch.repeat_interleave(woff[order] - woff_s, cnt) + torch.arange(int(cnt.sum()))
+            W_s = W[src].contiguous()
+        order = order.to(torch.int32).contiguous()
+        enc.cache["cluster_order"] = (key, (order, lab_s, W_s, woff_s))
+        return order, (lab_s, W_s, wstride, woff_s, nk, n, mean)
 
     def _native_codes(self, enc: Encoded, n: int) -> tuple:
         """The codes as the kernels read them, in place: ``(labels or None, weights or None, row

@@ -108,13 +108,14 @@ static inline float hsum(v8 a) { return ((a[0] + a[1]) + (a[2] + a[3])) + ((a[4]
 static inline v8 hsum8(const v8 *a) { v8 r; for (int i = 0; i < 8; i++) r[i] = hsum(a[i]); return r; }
 #endif
 
-/* 8 RGB points: colour c of point l is the lane sum of R[8c + l]; written to op[3l + c].
+/* 8 RGB points: colour c of point l is the lane sum of R[8c + l]; written to out[3 pl[l] + c].
    Returns 2 if an output is not finite. */
-static inline int store8_rgb(const v8 *R, float *op) {
+static inline int store8_rgb(const v8 *R, float *out, const i64 *pl) {
     v8 s0 = hsum8(R), s1 = hsum8(R + 8), s2 = hsum8(R + 16);
     int flag = 0;
     for (int l = 0; l < 8; l++) {
-        op[3 * l] = s0[l]; op[3 * l + 1] = s1[l]; op[3 * l + 2] = s2[l];
+        float *op = out + 3 * pl[l];
+        op[0] = s0[l]; op[1] = s1[l]; op[2] = s2[l];
         if (!(fabsf(s0[l]) <= FLT_MAX && fabsf(s1[l]) <= FLT_MAX && fabsf(s2[l]) <= FLT_MAX)) flag |= 2;
     }
     return flag;
@@ -242,15 +243,19 @@ int prt_constants(i64 K, i64 J, i64 Jmax, i64 n_in, i64 n_out, i64 n_pad, i64 C,
 }
 
 /* no view: out[p, 0:Fo] = e_p; constants T [K, J, F], rows zero-padded from Fo to F floats */
-static int prt_affine_rows_range(const int32_t *order, i64 p0, i64 p1, i64 P, i64 F, i64 Fo, const void *lab,
+static int prt_affine_rows_range(const int32_t *order, int csort, i64 p0, i64 p1, i64 P, i64 F, i64 Fo, const void *lab,
         int lab_kind, const float *W, i64 wstride, const i64 *woff,
                     const i64 *nk, i64 nuse, int mean, const float *T, i64 J, float *out) {
     const i64 cs = chunk_size(F / 8);
     for (i64 q = p0; q < p1; q++) {
-        i64 p = order ? order[q] : q;
-        if (order && q + PF_AHEAD < p1) { i64 pp = order[q + PF_AHEAD]; PREFETCH_CODES(pp); PREFETCH_ROW(out + pp * Fo, Fo, 1); }
-        i64 k = lab_at(lab, lab_kind, p), cnt;
-        const float *w = weights_of(W, wstride, woff, nk, nuse, k, p, &cnt);
+        i64 p = order ? order[q] : q, pc = csort ? q : p;
+        if (order && q + PF_AHEAD < p1) {
+            i64 pp = order[q + PF_AHEAD];
+            if (!csort) PREFETCH_CODES(pp);
+            PREFETCH_ROW(out + pp * Fo, Fo, 1);
+        }
+        i64 k = lab_at(lab, lab_kind, pc), cnt;
+        const float *w = weights_of(W, wstride, woff, nk, nuse, k, pc, &cnt);
         if (F == Fo) {
             combine(F, cs, T + k * J * F, mean, w, cnt, out + p * Fo);
         } else {
@@ -266,13 +271,13 @@ static int prt_affine_rows_range(const int32_t *order, i64 p0, i64 p1, i64 P, i6
 }
 
 int prt_affine_rows(i64 P, i64 F, i64 Fo, const void *lab, int lab_kind, const float *W, i64 wstride, const i64 *woff,
-        const i64 *nk, i64 nuse, int mean, const float *T, i64 J, float *out, const int32_t *order, int nthreads) {
+        const i64 *nk, i64 nuse, int mean, const float *T, i64 J, float *out, const int32_t *order, int csort, int nthreads) {
     /* one contiguous range of points per thread; the range function sees every
        argument as a local (an OpenMP-outlined loop body reloads shared ones per point) */
     int flag = 0;
     i64 nth = nthreads > 0 ? nthreads : 1;
     #pragma omp parallel for schedule(static, 1) num_threads(nth) reduction(|:flag)
-    for (i64 t = 0; t < nth; t++) flag |= prt_affine_rows_range(order, P * t / nth, P * (t + 1) / nth, P, F, Fo, lab, lab_kind,
+    for (i64 t = 0; t < nth; t++) flag |= prt_affine_rows_range(order, csort, P * t / nth, P * (t + 1) / nth, P, F, Fo, lab, lab_kind,
             W, wstride, woff, nk, nuse, mean, T, J, out);
     return flag;
 }
@@ -337,21 +342,27 @@ static inline float dense1(int nbs, const float *Tc, i64 F, int mean, const floa
    dotted with the view as it is formed (RGB with n_pad <= 32: all three colours in one pass).
    The view row is copied into a zero-padded buffer when n_out is not a multiple of 8.
    Returns 2 if an output is not finite. */
-static int prt_affine_dense_range(const int32_t *order, i64 p0, i64 p1, i64 P, i64 n_out, i64 n_pad, i64 C,
+static int prt_affine_dense_range(const int32_t *order, int csort, i64 p0, i64 p1, i64 P, i64 n_out, i64 n_pad, i64 C,
         const void *lab, int lab_kind, const float *W, i64 wstride,
                      const i64 *woff, const i64 *nk, i64 nuse, int mean, const float *T, i64 J,
                      const float *y, float *out) {
     i64 F = n_pad * C, nbt = n_pad / 8, cs = chunk_size(nbt);
     int flag = 0;
     i64 q = p0;
-    if (C == 3 && nbt <= 4 && !order) {
-        /* RGB, points in order: 8 points at a time, their 24 dot products reduced together */
+    if (C == 3 && nbt <= 4) {
+        /* RGB: 8 points at a time, their 24 dot products reduced together */
         v8 R[24];
         float yb[32];
+        i64 pl[8];
         for (; q + 8 <= p1; q += 8) {
             for (int l = 0; l < 8; l++) {
-                i64 p = q + l, k = lab_at(lab, lab_kind, p), cnt;
-                const float *w = weights_of(W, wstride, woff, nk, nuse, k, p, &cnt);
+                i64 p = pl[l] = order ? order[q + l] : q + l, pc = csort ? q + l : p, k = lab_at(lab, lab_kind, pc), cnt;
+                if (order && q + l + PF_AHEAD < p1) {
+                    i64 pp = order[q + l + PF_AHEAD];
+                    if (!csort) PREFETCH_CODES(pp);
+                    PREFETCH_ROW(y + pp * n_out, n_out, 0);
+                }
+                const float *w = weights_of(W, wstride, woff, nk, nuse, k, pc, &cnt);
                 const float *yp = y + p * n_out;
                 if (n_out != n_pad) {
                     for (i64 r = 0; r < n_out; r++) yb[r] = yp[r];
@@ -366,16 +377,20 @@ static int prt_affine_dense_range(const int32_t *order, i64 p0, i64 p1, i64 P, i
                 default: dense3v_4(Tk, n_pad, F, mean, w, cnt, yp, R + l); break;
                 }
             }
-            flag |= store8_rgb(R, out + q * 3);
+            flag |= store8_rgb(R, out, pl);
         }
     }
     for (; q < p1; q++) {
-        i64 p = order ? order[q] : q;
-        if (order && q + PF_AHEAD < p1) { i64 pp = order[q + PF_AHEAD]; PREFETCH_CODES(pp); PREFETCH_ROW(y + pp * n_out, n_out, 0); }
+        i64 p = order ? order[q] : q, pc = csort ? q : p;
+        if (order && q + PF_AHEAD < p1) {
+            i64 pp = order[q + PF_AHEAD];
+            if (!csort) PREFETCH_CODES(pp);
+            PREFETCH_ROW(y + pp * n_out, n_out, 0);
+        }
         float yb[4096];
         float o[16];
-        i64 k = lab_at(lab, lab_kind, p), cnt;
-        const float *w = weights_of(W, wstride, woff, nk, nuse, k, p, &cnt);
+        i64 k = lab_at(lab, lab_kind, pc), cnt;
+        const float *w = weights_of(W, wstride, woff, nk, nuse, k, pc, &cnt);
         const float *yp = y + p * n_out;
         if (n_out != n_pad) {
             for (i64 q = 0; q < n_out; q++) yb[q] = yp[q];
@@ -408,13 +423,13 @@ static int prt_affine_dense_range(const int32_t *order, i64 p0, i64 p1, i64 P, i
 
 int prt_affine_dense(i64 P, i64 n_out, i64 n_pad, i64 C, const void *lab, int lab_kind, const float *W, i64 wstride,
         const i64 *woff, const i64 *nk, i64 nuse, int mean, const float *T, i64 J, const float *y, float *out,
-        const int32_t *order, int nthreads) {
+        const int32_t *order, int csort, int nthreads) {
     /* one contiguous range of points per thread; the range function sees every
        argument as a local (an OpenMP-outlined loop body reloads shared ones per point) */
     int flag = 0;
     i64 nth = nthreads > 0 ? nthreads : 1;
     #pragma omp parallel for schedule(static, 1) num_threads(nth) reduction(|:flag)
-    for (i64 t = 0; t < nth; t++) flag |= prt_affine_dense_range(order, P * t / nth, P * (t + 1) / nth, P, n_out, n_pad, C, lab,
+    for (i64 t = 0; t < nth; t++) flag |= prt_affine_dense_range(order, csort, P * t / nth, P * (t + 1) / nth, P, n_out, n_pad, C, lab,
             lab_kind, W, wstride, woff, nk, nuse, mean, T, J, y, out);
     return flag;
 }
@@ -455,11 +470,11 @@ TAPS3(1) TAPS3(2) TAPS3(3) TAPS3(4)
 /* one point's taps: its valid tapped rows of its cluster's constants (rows, gs; *flag |= 1 for a
    tap outside [0, n_out), which is skipped) and its term weights wv = [1 if mean, w.., 0..] (Jp);
    returns how many taps were kept */
-static inline i64 taps_point(i64 p, const void *lab, int lab_kind, const float *W, i64 wstride, const i64 *woff, const i64 *nk,
+static inline i64 taps_point(i64 p, i64 pc, const void *lab, int lab_kind, const float *W, i64 wstride, const i64 *woff, const i64 *nk,
                              i64 nuse, int mean, const float *T, i64 Jp, i64 R, i64 n_out, i64 ntap, const i64 *idx,
                              const float *g, const float **rows, float *gs, float *wv, int *flag) {
-    i64 k = lab_at(lab, lab_kind, p), cnt, nt = 0;
-    const float *w = weights_of(W, wstride, woff, nk, nuse, k, p, &cnt);
+    i64 k = lab_at(lab, lab_kind, pc), cnt, nt = 0;
+    const float *w = weights_of(W, wstride, woff, nk, nuse, k, pc, &cnt);
     const float *Tk = T + k * n_out * R;
     for (i64 t = 0; t < ntap; t++) {
         i64 r = idx[p * ntap + t];
@@ -477,22 +492,30 @@ static inline i64 taps_point(i64 p, const void *lab, int lab_kind, const float *
 /* taps: constants T [K, n_out, C, Jp] (J terms zero-padded to Jp, a multiple of 8);
    s = sum_t g[p, t] T[k, idx[p, t]] ([C, Jp]); out[p, c] = (mean ? s[c, 0] : 0) + w_p . s[c, mean:mean+cnt].
    Returns 1 if a tap index is outside [0, n_out) (that tap is skipped), 2 if an output is not finite. */
-static int prt_affine_taps_range(const int32_t *order, i64 p0, i64 p1, i64 P, i64 n_out, i64 C, const void *lab,
+static int prt_affine_taps_range(const int32_t *order, int csort, i64 p0, i64 p1, i64 P, i64 n_out, i64 C, const void *lab,
         int lab_kind, const float *W, i64 wstride,
                     const i64 *woff, const i64 *nk, i64 nuse, int mean, const float *T, i64 Jp,
                     i64 ntap, const i64 *idx, const float *g, float *out) {
     i64 R = Jp * C;
     int flag = 0;
     i64 q = p0;
-    if (C == 3 && Jp / 8 <= 4 && !order) {
-        /* RGB, points in order: 8 points at a time, their 24 dot products reduced together */
+    if (C == 3 && Jp / 8 <= 4) {
+        /* RGB: 8 points at a time, their 24 dot products reduced together */
         v8 Rv[24];
         const float *rows[64];
         float gs[64];
         float wv[32];
+        i64 pl[8];
         for (; q + 8 <= p1; q += 8) {
             for (int l = 0; l < 8; l++) {
-                i64 nt = taps_point(q + l, lab, lab_kind, W, wstride, woff, nk, nuse, mean, T, Jp, R, n_out, ntap, idx, g,
+                pl[l] = order ? order[q + l] : q + l;
+                if (order && q + l + PF_AHEAD < p1) {
+                    i64 pp = order[q + l + PF_AHEAD];
+                    if (!csort) PREFETCH_CODES(pp);
+                    __builtin_prefetch(idx + pp * ntap);
+                    __builtin_prefetch(g + pp * ntap);
+                }
+                i64 nt = taps_point(pl[l], csort ? q + l : pl[l], lab, lab_kind, W, wstride, woff, nk, nuse, mean, T, Jp, R, n_out, ntap, idx, g,
                                     rows, gs, wv, &flag);
                 switch (Jp / 8) {
                 case 1: taps3v_1(rows, gs, nt, Jp, wv, Rv + l); break;
@@ -501,14 +524,14 @@ static int prt_affine_taps_range(const int32_t *order, i64 p0, i64 p1, i64 P, i6
                 default: taps3v_4(rows, gs, nt, Jp, wv, Rv + l); break;
                 }
             }
-            flag |= store8_rgb(Rv, out + q * 3);
+            flag |= store8_rgb(Rv, out, pl);
         }
     }
     for (; q < p1; q++) {
         i64 p = order ? order[q] : q;
         if (order && q + PF_AHEAD < p1) {
             i64 pp = order[q + PF_AHEAD];
-            PREFETCH_CODES(pp);
+            if (!csort) PREFETCH_CODES(pp);
             __builtin_prefetch(idx + pp * ntap);
             __builtin_prefetch(g + pp * ntap);
         }
@@ -517,7 +540,7 @@ static int prt_affine_taps_range(const int32_t *order, i64 p0, i64 p1, i64 P, i6
         float o[16];
         const float *rows[64];
         float gs[64];
-        i64 nt = taps_point(p, lab, lab_kind, W, wstride, woff, nk, nuse, mean, T, Jp, R, n_out, ntap, idx, g, rows, gs, wv, &flag);
+        i64 nt = taps_point(p, csort ? q : p, lab, lab_kind, W, wstride, woff, nk, nuse, mean, T, Jp, R, n_out, ntap, idx, g, rows, gs, wv, &flag);
         i64 nbj = Jp / 8;
         if (C == 3 && nbj <= 4) {
             switch (nbj) {
@@ -540,13 +563,13 @@ static int prt_affine_taps_range(const int32_t *order, i64 p0, i64 p1, i64 P, i6
 
 int prt_affine_taps(i64 P, i64 n_out, i64 C, const void *lab, int lab_kind, const float *W, i64 wstride, const i64 *woff,
         const i64 *nk, i64 nuse, int mean, const float *T, i64 Jp, i64 ntap, const i64 *idx, const float *g, float *out,
-        const int32_t *order, int nthreads) {
+        const int32_t *order, int csort, int nthreads) {
     /* one contiguous range of points per thread; the range function sees every
        argument as a local (an OpenMP-outlined loop body reloads shared ones per point) */
     int flag = 0;
     i64 nth = nthreads > 0 ? nthreads : 1;
     #pragma omp parallel for schedule(static, 1) num_threads(nth) reduction(|:flag)
-    for (i64 t = 0; t < nth; t++) flag |= prt_affine_taps_range(order, P * t / nth, P * (t + 1) / nth, P, n_out, C, lab,
+    for (i64 t = 0; t < nth; t++) flag |= prt_affine_taps_range(order, csort, P * t / nth, P * (t + 1) / nth, P, n_out, C, lab,
             lab_kind, W, wstride, woff, nk, nuse, mean, T, Jp, ntap, idx, g, out);
     return flag;
 }
@@ -638,9 +661,9 @@ def _compile() -> tuple[ctypes.CDLL | None, str]:
         return None, f"loading {so} failed: {e}"
     i64, vp, ci = ctypes.c_int64, ctypes.c_void_p, ctypes.c_int
     common = [vp, ci, vp, i64, vp, vp, i64, ci, vp, i64]
-    lib.prt_affine_rows.argtypes = [i64, i64, i64, *common, vp, vp, ci]
-    lib.prt_affine_dense.argtypes = [i64, i64, i64, i64, *common, vp, vp, vp, ci]
-    lib.prt_affine_taps.argtypes = [i64, i64, i64, *common, i64, vp, vp, vp, vp, ci]
+    lib.prt_affine_rows.argtypes = [i64, i64, i64, *common, vp, vp, ci, ci]
+    lib.prt_affine_dense.argtypes = [i64, i64, i64, i64, *common, vp, vp, vp, ci, ci]
+    lib.prt_affine_taps.argtypes = [i64, i64, i64, *common, i64, vp, vp, vp, vp, ci, ci]
     lib.prt_constants.argtypes = [i64] * 7 + [vp, vp, vp] + [i64] * 4 + [ci]
     for f in (lib.prt_affine_rows, lib.prt_affine_dense, lib.prt_affine_taps, lib.prt_constants):
         f.restype = ci
@@ -756,20 +779,28 @@ def _order(order, P: int):
     return order.data_ptr()
 
 
+def _csort(order, codes_sorted: bool) -> int:
+    """1 when the codes are stored in visiting order (the q-th point visited reads the q-th code
+    and writes output row ``order[q]``), 0 when they are in point order."""
+    if codes_sorted and order is None:
+        raise ValueError("codes_sorted=True needs an order (the permutation the codes were sorted by)")
+    return int(bool(codes_sorted))
+
+
 def affine_rows(lib, T: torch.Tensor, J: int, n_out: int, C: int, labels, W, wstride, woff, nk, nuse, mean, P: int,
-                order: torch.Tensor | None = None) -> torch.Tensor:
+                order: torch.Tensor | None = None, codes_sorted: bool = False) -> torch.Tensor:
     """No view: ``e_p`` for every point, ``[P, n_out·C] float32``, from the constants ``T``
     of layout 'rows'; ``order`` (a permutation ``int32 [P]``, e.g. by cluster) is the order the
     points are visited in (None: 0..P-1)."""
     Fo = n_out * C
     out = torch.empty(P, Fo, dtype=torch.float32)
     lib.prt_affine_rows(P, T.shape[2], Fo, *_codes(labels, W, wstride, woff, nk, nuse, mean), T.data_ptr(), J,
-                        out.data_ptr(), _order(order, P), torch.get_num_threads())
+                        out.data_ptr(), _order(order, P), _csort(order, codes_sorted), torch.get_num_threads())
     return out
 
 
 def affine_dense(lib, T: torch.Tensor, J: int, n_out: int, C: int, labels, W, wstride, woff, nk, nuse, mean,
-                 y: torch.Tensor, order: torch.Tensor | None = None) -> tuple[torch.Tensor, int]:
+                 y: torch.Tensor, order: torch.Tensor | None = None, codes_sorted: bool = False) -> tuple[torch.Tensor, int]:
     """Dense view ``y [P, n_out]`` float32 contiguous: ``[P, C]`` from the constants ``T`` of
     layout 'dense', and a flag (2: a non-finite output)."""
     if not y.is_contiguous() or y.dtype != torch.float32 or y.shape[1] != n_out:
@@ -777,12 +808,13 @@ def affine_dense(lib, T: torch.Tensor, J: int, n_out: int, C: int, labels, W, ws
     P = y.shape[0]
     out = torch.empty(P, C, dtype=torch.float32)
     flag = lib.prt_affine_dense(P, n_out, T.shape[3], C, *_codes(labels, W, wstride, woff, nk, nuse, mean), T.data_ptr(), J,
-                                y.data_ptr(), out.data_ptr(), _order(order, P), torch.get_num_threads())
+                                y.data_ptr(), out.data_ptr(), _order(order, P), _csort(order, codes_sorted), torch.get_num_threads())
     return out, int(flag)
 
 
 def affine_taps(lib, T: torch.Tensor, J: int, n_out: int, C: int, labels, W, wstride, woff, nk, nuse, mean,
-                idx: torch.Tensor, g: torch.Tensor, order: torch.Tensor | None = None) -> tuple[torch.Tensor, int]:
+                idx: torch.Tensor, g: torch.Tensor, order: torch.Tensor | None = None,
+                codes_sorted: bool = False) -> tuple[torch.Tensor, int]:
     """Taps ``(idx int64 [P, t], g float32 [P, t])`` contiguous, t ≤ 64: ``[P, C]`` from the
     constants ``T`` of layout 'taps', and a flag (1: a tap index outside [0, n_out); 2: a
     non-finite output)."""
@@ -791,7 +823,8 @@ def affine_taps(lib, T: torch.Tensor, J: int, n_out: int, C: int, labels, W, wst
     P, t = idx.shape
     out = torch.empty(P, C, dtype=torch.float32)
     flag = lib.prt_affine_taps(P, n_out, C, *_codes(labels, W, wstride, woff, nk, nuse, mean), T.data_ptr(), T.shape[3],
-                               t, idx.data_ptr(), g.data_ptr(), out.data_ptr(), _order(order, P), torch.get_num_threads())
+                               t, idx.data_ptr(), g.data_ptr(), out.data_ptr(), _order(order, P), _csort(order, codes_sorted),
+                               torch.get_num_threads())
     return out, int(flag)
 
 
