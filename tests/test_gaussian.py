@@ -252,6 +252,10 @@ def test_relight_from_gaussians_matches_integral_of_decoded_tables(cube):
     j = torch.tensor([3] * V)
     taps = (torch.stack([j, (j + 1) % J, (j + 2) % J], 1), torch.tensor([[1.0, 0.0, 0.0]] * V))
     assert torch.allclose(c.relight(enc, pe, view=taps), out[:, 3], atol=1e-5)
+    buf = torch.full_like(out, float("nan"))  # out=: written in place, returned; a wrong shape refused
+    assert c.relight(enc, pe, out=buf) is buf and torch.equal(buf, out)
+    with pytest.raises(ValueError, match="accepted: a contiguous float32 tensor of shape"):
+        c.relight(enc, pe, out=torch.empty(V, J))
 
 
 def test_interpolation_across_views_and_triangles(cube):

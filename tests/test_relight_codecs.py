@@ -326,3 +326,33 @@ def test_cluster_sorted_visiting_changes_nothing(name, monkeypatch):
     edited = run(views["dense"])
     monkeypatch.setattr(affine, "SORT_MIN_CLUSTER_BYTES", 1 << 60)
     assert torch.equal(edited, run(views["dense"]))
+
+
+@pytest.mark.parametrize("mode", ["none", "dense", "taps", "vector"])
+def test_relight_into_out(mode, path):
+    """``relight(..., out=)`` writes the same values into the given tensor and returns it; a wrong
+    shape, dtype, a non-contiguous tensor or one aliasing the view is refused, naming what is accepted."""
+    ms = None if mode == "vector" else (9, 4)
+    c = codecs.get("cpca_static", clusters=4, vectors=2, max_iter=5)
+    X = transfer_like(120, 9, 4, seed=5)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        enc = c.fit_encode(X, matrix_shape=ms)
+    L = torch.randn(36 if ms is None else 4, 3)
+    view = {"none": None, "vector": None, "dense": torch.randn(120, 9),
+            "taps": (torch.randint(0, 9, (120, 4)), torch.rand(120, 4))}[mode]
+    ref = c.relight(enc, L, view=view)
+    out = torch.full_like(ref, float("nan"))
+    got = c.relight(enc, L, view=view, out=out)
+    assert got is out and torch.equal(out, ref)
+    with pytest.raises(ValueError, match=r"out has shape .*accepted: a contiguous float32 tensor of shape"):
+        c.relight(enc, L, view=view, out=torch.empty(ref.shape[0] + 1, *ref.shape[1:]))
+    with pytest.raises(ValueError, match="accepted: a contiguous float32"):
+        c.relight(enc, L, view=view, out=ref.double())
+    with pytest.raises(ValueError, match="not contiguous"):
+        c.relight(enc, L, view=view, out=torch.empty(ref.shape[::-1]).T)
+    with pytest.raises(TypeError, match="out must be None or a float32 tensor"):
+        c.relight(enc, L, view=view, out=[0.0])
+    if mode == "dense":
+        with pytest.raises(ValueError, match="out shares memory with an input"):
+            c.relight(enc, L, view=view, out=view.view(-1)[:360].view(120, 3))  # the view's own memory

@@ -30,7 +30,7 @@ import torch
 
 from .. import io
 from ..params import Boolean, Interval, Options
-from .base import (Codec, Encoded, check_light, check_matrix_shape, check_signal, check_view, check_weights)
+from .base import (Codec, Encoded, check_light, check_matrix_shape, check_out, check_signal, check_view, check_weights)
 from .kmeans import CACHE_BLOCK_BYTES, linear, row_chunk
 from .relight_kernels import affine_dense, affine_rows, affine_taps, native
 from .relight_kernels import constants as kernel_constants
@@ -321,7 +321,8 @@ class AffineCodec(Codec):
             return torch.zeros(K, 0, n_out, C)
         return parts[0].contiguous() if len(parts) == 1 else torch.cat(parts, 1)
 
-    def relight(self, enc: Encoded, light: torch.Tensor, view: Any = None, n_vectors: int | None = None) -> torch.Tensor:
+    def relight(self, enc: Encoded, light: torch.Tensor, view: Any = None, n_vectors: int | None = None,
+                out: torch.Tensor | None = None) -> torch.Tensor:
         """Radiance straight from the compressed form (Sloan 2003 §6; Lehtinen & Kautz 2003 eq. (13)).
 
         Per light, the per-cluster constants M_i l (``cluster_constants``); per point, one pass
@@ -335,7 +336,12 @@ class AffineCodec(Codec):
             view: None; dense ``[P, n_out]`` (e.g. y(v_p) in the local frame); or taps
                 ``(idx int64 [P, k], w [P, k])`` (MRT tent basis, k = 4).
             n_vectors: use only the first n PCA vectors of each cluster (None: all).
-        Returns: ``[P, C]`` float32 (vectors, or matrices with a view), else ``[P, n_out, C]``.
+            out: None, or the result tensor to write (contiguous float32 of the result's shape;
+                ``base.check_out``): a render loop reusing one avoids a fresh allocation per frame
+                — without a view ``[P, n_out, C]`` is large, and its first-touch page faults cost
+                more than the kernel (reports/benchmarks/relight.md).
+        Returns: ``[P, C]`` float32 (vectors, or matrices with a view), else ``[P, n_out, C]``
+        (``out`` when given).
         """
         self._check_enc(enc)
         P = enc.points
@@ -343,18 +349,29 @@ class AffineCodec(Codec):
         if self.matrix_shape_ is None and view is not None:
             raise ValueError("view was given but this codec was fitted on vectors (no matrix_shape); accepted: view=None")
         n = self._n_eff(n_vectors)
+        if out is not None:
+            C = check_light(light, n_in).shape[1]
+            shape = (P, C) if view is not None or self.matrix_shape_ is None else (P, n_out, C)
+            out = check_out(out, shape, view, light)
         lib = native()
         if lib is not None:
             # structure now; the view's values are checked inside the kernel (a flag), and only
             # a flagged call pays for the full check that names the bad value
             v = check_view(view, P, n_out, values=False) if self.matrix_shape_ is not None else None
-            out = self._relight_native(lib, enc, light, v, n)
-            if out is not None:
-                res, flag = out
+            got = self._relight_native(lib, enc, light, v, n, out)
+            if got is not None:
+                res, flag = got
                 if flag:
                     check_view(view, P, n_out)  # raises with the offending value; else the data overflowed
                 return res
         view = check_view(view, P, n_out) if self.matrix_shape_ is not None else None
+        res = self._relight_torch(enc, light, view, n)
+        return res if out is None else out.copy_(res)
+
+    def _relight_torch(self, enc: Encoded, light, view, n: int) -> torch.Tensor:
+        """The torch formulation of ``relight`` (no compiled kernels), on a checked view."""
+        P = enc.points
+        n_out = self.matrix_shape_[0] if self.matrix_shape_ else 1
         consts = self.cluster_constants(light, n)  # [K, J, n_out, C]
         K, J, _, C = consts.shape
         W = self._weights1(enc, n)  # [P, J]
@@ -378,16 +395,19 @@ class AffineCodec(Codec):
             return out[:, 0] if self.matrix_shape_ is None else out
         return torch.einsum("po,poc->pc", view, out)
 
-    def _relight_native(self, lib, enc: Encoded, light, view, n: int):
+    def _relight_native(self, lib, enc: Encoded, light, view, n: int, out: torch.Tensor | None = None):
         """The fused-kernel path of ``relight``: ``(out, flag)``, or None where the kernels' buffers
         are too small (``relight_kernels.fits``). Per light, the constants straight into the
-        layout the kernel reads (one pass over the model); per point, one pass over the codes."""
+        layout the kernel reads (one pass over the model); per point, one pass over the codes,
+        writing into ``out`` (checked by ``relight``) when given."""
         n_out, n_in = self.matrix_shape_ or (1, self.D_)
         L = check_light(light, n_in)
         C = L.shape[1]
         J = (1 if self.means_ is not None else 0) + n
         if J == 0:  # no mean and no vectors kept: x̃ = 0 (the view's values still checked)
             check_view(view, enc.points, n_out)
+            if out is not None:
+                return out.zero_(), 0
             return (torch.zeros(enc.points, C) if view is not None or self.matrix_shape_ is None
                     else torch.zeros(enc.points, n_out, C)), 0
         if not kernel_fits(J, n_out, C) or (isinstance(view, tuple) and view[0].shape[1] > 64):
@@ -403,10 +423,10 @@ class AffineCodec(Codec):
         order = None
         if codes[0] is not None and T[0].numel() * T.element_size() >= SORT_MIN_CLUSTER_BYTES:
             order, codes = self._cluster_sorted_codes(enc, codes)
-        kw = {"order": order, "codes_sorted": order is not None}
+        kw = {"order": order, "codes_sorted": order is not None, "out": out}
         if view is None:
-            out = affine_rows(lib, T, J, n_out, C, *codes, P=enc.points, **kw)
-            return (out if self.matrix_shape_ is None else out.view(-1, n_out, C)), 0
+            res = affine_rows(lib, T, J, n_out, C, *codes, P=enc.points, **kw)
+            return (res if out is not None or self.matrix_shape_ is None else res.view(-1, n_out, C)), 0
         if isinstance(view, tuple):
             return affine_taps(lib, T, J, n_out, C, *codes, view[0].contiguous(), view[1].contiguous(), **kw)
         return affine_dense(lib, T, J, n_out, C, *codes, view.contiguous(), **kw)

@@ -165,7 +165,10 @@ class Codec(BaseEstimator):
     def decode(self, enc: Encoded) -> torch.Tensor:
         raise NotImplementedError
 
-    def relight(self, enc: Encoded, light: torch.Tensor, view: Any = None) -> torch.Tensor:
+    def relight(self, enc: Encoded, light: torch.Tensor, view: Any = None, out: torch.Tensor | None = None) -> torch.Tensor:
+        """Radiance straight from the compressed form for one light; ``out``: an optional result
+        tensor (float32, contiguous, the result's shape) written in place and returned, so a render
+        loop does not pay for a fresh allocation per frame (:func:`check_out`)."""
         raise NotImplementedError
 
     def score(self, X, y=None) -> float:
@@ -363,6 +366,25 @@ def check_view(view: Any, P: int, n_out: int, values: bool = True):
     if values:
         _check_finite_fast("view", view)
     return view.to(torch.float32)
+
+
+def check_out(out: Any, shape: tuple[int, ...], *inputs: Any) -> torch.Tensor | None:
+    """None, or ``out`` as ``relight`` writes into it: a contiguous float32 tensor of exactly
+    ``shape`` that shares no memory with ``inputs`` (tensors or tuples of tensors the result is
+    computed from, e.g. the view: writing one while reading it would corrupt the result)."""
+    if out is None:
+        return None
+    if not isinstance(out, torch.Tensor):
+        raise TypeError(f"out must be None or a float32 tensor {list(shape)}; got {_describe(out)}")
+    if tuple(out.shape) != tuple(shape) or out.dtype != torch.float32 or not out.is_contiguous():
+        raise ValueError(f"out has shape {tuple(out.shape)}, dtype {out.dtype}{'' if out.is_contiguous() else ', not contiguous'}; "
+                         f"accepted: a contiguous float32 tensor of shape {list(shape)}")
+    mine = out.untyped_storage().data_ptr()
+    for t in inputs:
+        for x in (t if isinstance(t, (tuple, list)) else (t,)):
+            if isinstance(x, torch.Tensor) and x.numel() and x.untyped_storage().data_ptr() == mine:
+                raise ValueError("out shares memory with an input of relight (the view or the light); accepted: a separate tensor")
+    return out
 
 
 def _check_finite_fast(name: str, t: torch.Tensor) -> None:

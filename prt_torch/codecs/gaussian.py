@@ -73,7 +73,7 @@ import torch
 
 from ..lighting.prefilter import PrefilteredEnvironment, cube_map_directions, sg_normaliser
 from ..params import Boolean, Interval, Options
-from .base import Codec, Encoded, check_signal, register
+from .base import Codec, Encoded, check_out, check_signal, register
 
 __all__ = ["GaussianCodec", "resolvable_sigma", "relative_l2", "sh_truncation", "haar_truncation",
            "fibonacci_directions", "default_views", "view_neighbours", "view_taps",
@@ -803,15 +803,20 @@ class GaussianCodec(Codec):
             raise ValueError(f"view tap indices span [{int(idx.min())}, {int(idx.max())}]; accepted: 0..{J - 1}")
         return idx, a
 
-    def relight(self, enc: Encoded, light: PrefilteredEnvironment, view: Any = None) -> torch.Tensor:
+    def relight(self, enc: Encoded, light: PrefilteredEnvironment, view: Any = None, out: torch.Tensor | None = None) -> torch.Tensor:
         """Exit radiance from the Gaussian form (Green eq. 2.7: Σ_k w_k E_{σ_k}(μ_k)).
 
         ``light``: :class:`PrefilteredEnvironment`. ``view``: None → every stored view,
         ``[V, J, C]``; taps ``(idx int64 [V, k], w [V, k])`` over the stored views (weights zero
         below the horizon, e.g. from :func:`view_taps`) → ``[V, C]`` with the lobes interpolated
         across the tapped views (§2.3); a tensor ``[V, 3]`` of global view directions → the
-        three nearest views' taps, ``[V, C]``. float32.
+        three nearest views' taps, ``[V, C]``. float32. ``out``: an optional result tensor of
+        that shape (``base.check_out``), written and returned.
         """
+        res = self._relight(enc, light, view)
+        return res if out is None else check_out(out, tuple(res.shape), view).copy_(res)
+
+    def _relight(self, enc: Encoded, light: PrefilteredEnvironment, view: Any) -> torch.Tensor:
         self._require_fitted()
         light = self._check_light(light)
         w, mu, sg = enc.tensors["weights"], enc.tensors["mu"], enc.tensors["sigma"]

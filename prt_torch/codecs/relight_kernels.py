@@ -779,6 +779,16 @@ def _order(order, P: int):
     return order.data_ptr()
 
 
+def _out(out: torch.Tensor | None, numel: int, shape: tuple) -> torch.Tensor:
+    """The kernels' result tensor: ``out`` (contiguous float32 with ``numel`` elements, any shape
+    of them) or a new ``[shape]``."""
+    if out is None:
+        return torch.empty(shape, dtype=torch.float32)
+    if out.dtype != torch.float32 or not out.is_contiguous() or out.numel() != numel:
+        raise ValueError(f"out must be contiguous float32 with {numel} elements; got {out.dtype} {tuple(out.shape)}")
+    return out
+
+
 def _csort(order, codes_sorted: bool) -> int:
     """1 when the codes are stored in visiting order (the q-th point visited reads the q-th code
     and writes output row ``order[q]``), 0 when they are in point order."""
@@ -788,25 +798,27 @@ def _csort(order, codes_sorted: bool) -> int:
 
 
 def affine_rows(lib, T: torch.Tensor, J: int, n_out: int, C: int, labels, W, wstride, woff, nk, nuse, mean, P: int,
-                order: torch.Tensor | None = None, codes_sorted: bool = False) -> torch.Tensor:
-    """No view: ``e_p`` for every point, ``[P, n_out·C] float32``, from the constants ``T``
-    of layout 'rows'; ``order`` (a permutation ``int32 [P]``, e.g. by cluster) is the order the
-    points are visited in (None: 0..P-1)."""
+                order: torch.Tensor | None = None, codes_sorted: bool = False, out: torch.Tensor | None = None) -> torch.Tensor:
+    """No view: ``e_p`` for every point, ``[P, n_out·C] float32`` (into ``out``, contiguous
+    float32 of P·n_out·C elements, when given), from the constants ``T`` of layout 'rows';
+    ``order`` (a permutation ``int32 [P]``, e.g. by cluster) is the order the points are visited
+    in (None: 0..P-1); ``codes_sorted``: the codes are stored in that order."""
     Fo = n_out * C
-    out = torch.empty(P, Fo, dtype=torch.float32)
+    out = _out(out, P * Fo, (P, Fo))
     lib.prt_affine_rows(P, T.shape[2], Fo, *_codes(labels, W, wstride, woff, nk, nuse, mean), T.data_ptr(), J,
                         out.data_ptr(), _order(order, P), _csort(order, codes_sorted), torch.get_num_threads())
     return out
 
 
 def affine_dense(lib, T: torch.Tensor, J: int, n_out: int, C: int, labels, W, wstride, woff, nk, nuse, mean,
-                 y: torch.Tensor, order: torch.Tensor | None = None, codes_sorted: bool = False) -> tuple[torch.Tensor, int]:
+                 y: torch.Tensor, order: torch.Tensor | None = None, codes_sorted: bool = False,
+                 out: torch.Tensor | None = None) -> tuple[torch.Tensor, int]:
     """Dense view ``y [P, n_out]`` float32 contiguous: ``[P, C]`` from the constants ``T`` of
     layout 'dense', and a flag (2: a non-finite output)."""
     if not y.is_contiguous() or y.dtype != torch.float32 or y.shape[1] != n_out:
         raise ValueError(f"affine_dense: the view must be contiguous float32 [P, {n_out}]")
     P = y.shape[0]
-    out = torch.empty(P, C, dtype=torch.float32)
+    out = _out(out, P * C, (P, C))
     flag = lib.prt_affine_dense(P, n_out, T.shape[3], C, *_codes(labels, W, wstride, woff, nk, nuse, mean), T.data_ptr(), J,
                                 y.data_ptr(), out.data_ptr(), _order(order, P), _csort(order, codes_sorted), torch.get_num_threads())
     return out, int(flag)
@@ -814,14 +826,14 @@ def affine_dense(lib, T: torch.Tensor, J: int, n_out: int, C: int, labels, W, ws
 
 def affine_taps(lib, T: torch.Tensor, J: int, n_out: int, C: int, labels, W, wstride, woff, nk, nuse, mean,
                 idx: torch.Tensor, g: torch.Tensor, order: torch.Tensor | None = None,
-                codes_sorted: bool = False) -> tuple[torch.Tensor, int]:
+                codes_sorted: bool = False, out: torch.Tensor | None = None) -> tuple[torch.Tensor, int]:
     """Taps ``(idx int64 [P, t], g float32 [P, t])`` contiguous, t ≤ 64: ``[P, C]`` from the
     constants ``T`` of layout 'taps', and a flag (1: a tap index outside [0, n_out); 2: a
     non-finite output)."""
     if idx.dtype != torch.int64 or g.dtype != torch.float32 or not idx.is_contiguous() or not g.is_contiguous() or idx.shape[1] > 64:
         raise ValueError("affine_taps: taps must be contiguous (idx int64, g float32), at most 64 per point")
     P, t = idx.shape
-    out = torch.empty(P, C, dtype=torch.float32)
+    out = _out(out, P * C, (P, C))
     flag = lib.prt_affine_taps(P, n_out, C, *_codes(labels, W, wstride, woff, nk, nuse, mean), T.data_ptr(), T.shape[3],
                                t, idx.data_ptr(), g.data_ptr(), out.data_ptr(), _order(order, P), _csort(order, codes_sorted),
                                torch.get_num_threads())
