@@ -235,6 +235,22 @@ static void constants_range(i64 k0, i64 k1, i64 J, i64 Jmax, i64 n_in, i64 n_out
                     }
                 }
                 float *dst = out + k * sk + j * sj;
+                if (so == 1 && ob * 8 + 8 <= n_out) {  /* colour-major layouts: 8 outputs in one store */
+                    for (i64 c = 0; c < C; c++) ST(dst + ob * 8 + c * sc, a[c]);
+                    continue;
+                }
+#ifdef SHUF
+                if (C == 3 && so == 3 && sc == 1 && ob * 8 + 8 <= n_out) {  /* rows layout, RGB: (o, c) interleaved */
+                    v8 t0 = __builtin_shufflevector(a[0], a[1], 0, 8, 0, 1, 9, 0, 2, 10);
+                    v8 t1 = __builtin_shufflevector(a[0], a[1], 0, 3, 11, 0, 4, 12, 0, 5);
+                    v8 t2 = __builtin_shufflevector(a[0], a[1], 13, 0, 6, 14, 0, 7, 15, 0);
+                    float *d = dst + ob * 24;
+                    ST(d, __builtin_shufflevector(t0, a[2], 0, 1, 8, 3, 4, 9, 6, 7));
+                    ST(d + 8, __builtin_shufflevector(t1, a[2], 10, 1, 2, 11, 4, 5, 12, 7));
+                    ST(d + 16, __builtin_shufflevector(t2, a[2], 0, 13, 2, 3, 14, 5, 6, 15));
+                    continue;
+                }
+#endif
                 for (i64 l = 0; l < 8 && ob * 8 + l < n_out; l++)
                     for (i64 c = 0; c < C; c++) dst[(ob * 8 + l) * so + c * sc] = a[c][l];
             }
