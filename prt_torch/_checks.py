@@ -84,7 +84,7 @@ def check_finite(name: str, t: torch.Tensor) -> torch.Tensor:
             # fast path, one read-only pass in the tensor's own dtype: a NaN or Inf makes the sum
             # non-finite; a finite sum proves every value finite (an overflowing sum of finite
             # values falls through to the exact check below)
-            if bool(torch.isfinite(t.sum())):
+            if math.isfinite(float(t.sum())):
                 return t
         bad = ~torch.isfinite(t)
         n = int(bad.sum())

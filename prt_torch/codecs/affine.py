@@ -349,8 +349,9 @@ class AffineCodec(Codec):
         if self.matrix_shape_ is None and view is not None:
             raise ValueError("view was given but this codec was fitted on vectors (no matrix_shape); accepted: view=None")
         n = self._n_eff(n_vectors)
+        L = check_light(light, n_in)
         if out is not None:
-            C = check_light(light, n_in).shape[1]
+            C = L.shape[1]
             shape = (P, C) if view is not None or self.matrix_shape_ is None else (P, n_out, C)
             out = check_out(out, shape, view, light)
         lib = native()
@@ -358,7 +359,7 @@ class AffineCodec(Codec):
             # structure now; the view's values are checked inside the kernel (a flag), and only
             # a flagged call pays for the full check that names the bad value
             v = check_view(view, P, n_out, values=False) if self.matrix_shape_ is not None else None
-            got = self._relight_native(lib, enc, light, v, n, out)
+            got = self._relight_native(lib, enc, L, v, n, out)
             if got is not None:
                 res, flag = got
                 if flag:
@@ -395,13 +396,12 @@ class AffineCodec(Codec):
             return out[:, 0] if self.matrix_shape_ is None else out
         return torch.einsum("po,poc->pc", view, out)
 
-    def _relight_native(self, lib, enc: Encoded, light, view, n: int, out: torch.Tensor | None = None):
+    def _relight_native(self, lib, enc: Encoded, L: torch.Tensor, view, n: int, out: torch.Tensor | None = None):
         """The fused-kernel path of ``relight``: ``(out, flag)``, or None where the kernels' buffers
         are too small (``relight_kernels.fits``). Per light, the constants straight into the
         layout the kernel reads (one pass over the model); per point, one pass over the codes,
-        writing into ``out`` (checked by ``relight``) when given."""
+        writing into ``out`` (checked by ``relight``) when given; ``L`` is the checked light."""
         n_out, n_in = self.matrix_shape_ or (1, self.D_)
-        L = check_light(light, n_in)
         C = L.shape[1]
         J = (1 if self.means_ is not None else 0) + n
         if J == 0:  # no mean and no vectors kept: x̃ = 0 (the view's values still checked)
