@@ -50,6 +50,7 @@ CASES = [
     ("cpca no mean", "cpca_static", {"clusters": 6, "vectors": 3, "max_iter": 5}, (9, 4), 250, _without_mean),
     ("mrt_pca", "mrt_pca", {"vectors": 7}, (16, 9), 200, None),
     ("mrt_pca mean", "mrt_pca", {"vectors": 7, "center": True}, (16, 9), 200, None),
+    ("mrt_pca n_out=49", "mrt_pca", {"vectors": 5}, (49, 4), 123, None),  # 7×7 tents: the 7-vector RGB path, a tail
 ]
 
 

@@ -353,8 +353,8 @@ static inline void dense3_##NBS(const float *T0, i64 n_pad, i64 F, int mean, con
     o[0] += hsum(rv[0]); o[1] += hsum(rv[8]); o[2] += hsum(rv[16]);                              \
 }
 CHUNKS(DENSE1)
-DENSE3V(1) DENSE3V(2) DENSE3V(3) DENSE3V(4)
-DENSE3(1) DENSE3(2) DENSE3(3) DENSE3(4)
+DENSE3V(1) DENSE3V(2) DENSE3V(3) DENSE3V(4) DENSE3V(5) DENSE3V(6) DENSE3V(7)
+DENSE3(1) DENSE3(2) DENSE3(3) DENSE3(4) DENSE3(5) DENSE3(6) DENSE3(7)
 #define CASE_DENSE1(NB) case NB: return dense1_##NB(Tc, F, mean, w, cnt, yc);
 
 static inline float dense1(int nbs, const float *Tc, i64 F, int mean, const float *w, i64 cnt, const float *yc) {
@@ -363,7 +363,8 @@ static inline float dense1(int nbs, const float *Tc, i64 F, int mean, const floa
 
 /* dense view: constants colour-major T [K, J, C, n_pad] (rows zero-padded from n_out to n_pad,
    a multiple of 8); out[p, c] = y_p . e_p[c], e_p accumulated in registers chunk by chunk and
-   dotted with the view as it is formed (RGB with n_pad <= 32: all three colours in one pass).
+   dotted with the view as it is formed (RGB with n_pad <= 56: all three colours in one pass, 8
+   points reduced together; measured on MRT's 49 rows, 1.5x faster than colour by colour).
    The view row is copied into a zero-padded buffer when n_out is not a multiple of 8.
    Returns 2 if an output is not finite. */
 static int prt_affine_dense_range(const int32_t *order, int csort, i64 p0, i64 p1, i64 P, i64 n_out, i64 n_pad, i64 C,
@@ -373,10 +374,10 @@ static int prt_affine_dense_range(const int32_t *order, int csort, i64 p0, i64 p
     i64 F = n_pad * C, nbt = n_pad / 8, cs = chunk_size(nbt);
     int flag = 0;
     i64 q = p0;
-    if (C == 3 && nbt <= 4) {
+    if (C == 3 && nbt <= 7) {
         /* RGB: 8 points at a time, their 24 dot products reduced together */
         v8 R[24];
-        float yb[32];
+        float yb[56];
         i64 pl[8];
         for (; q + 8 <= p1; q += 8) {
             for (int l = 0; l < 8; l++) {
@@ -398,7 +399,10 @@ static int prt_affine_dense_range(const int32_t *order, int csort, i64 p0, i64 p
                 case 1: dense3v_1(Tk, n_pad, F, mean, w, cnt, yp, R + l); break;
                 case 2: dense3v_2(Tk, n_pad, F, mean, w, cnt, yp, R + l); break;
                 case 3: dense3v_3(Tk, n_pad, F, mean, w, cnt, yp, R + l); break;
-                default: dense3v_4(Tk, n_pad, F, mean, w, cnt, yp, R + l); break;
+                case 4: dense3v_4(Tk, n_pad, F, mean, w, cnt, yp, R + l); break;
+                case 5: dense3v_5(Tk, n_pad, F, mean, w, cnt, yp, R + l); break;
+                case 6: dense3v_6(Tk, n_pad, F, mean, w, cnt, yp, R + l); break;
+                default: dense3v_7(Tk, n_pad, F, mean, w, cnt, yp, R + l); break;
                 }
             }
             flag |= store8_rgb(R, out, pl);
@@ -423,12 +427,15 @@ static int prt_affine_dense_range(const int32_t *order, int csort, i64 p0, i64 p
         }
         const float *Tk = T + k * J * F;
         for (i64 c = 0; c < C; c++) o[c] = 0.0f;
-        if (C == 3 && nbt <= 4) {
+        if (C == 3 && nbt <= 7) {
             switch (nbt) {
             case 1: dense3_1(Tk, n_pad, F, mean, w, cnt, yp, o); break;
             case 2: dense3_2(Tk, n_pad, F, mean, w, cnt, yp, o); break;
             case 3: dense3_3(Tk, n_pad, F, mean, w, cnt, yp, o); break;
-            default: dense3_4(Tk, n_pad, F, mean, w, cnt, yp, o); break;
+            case 4: dense3_4(Tk, n_pad, F, mean, w, cnt, yp, o); break;
+            case 5: dense3_5(Tk, n_pad, F, mean, w, cnt, yp, o); break;
+            case 6: dense3_6(Tk, n_pad, F, mean, w, cnt, yp, o); break;
+            default: dense3_7(Tk, n_pad, F, mean, w, cnt, yp, o); break;
             }
         } else {
             for (i64 c = 0; c < C; c++)
