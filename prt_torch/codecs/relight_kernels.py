@@ -469,12 +469,15 @@ int prt_affine_dense(i64 P, i64 n_out, i64 n_pad, i64 C, const void *lab, int la
    NBJ vectors), then out[c] = s[c] . wv (wv = [1 if mean, w_0 .. w_{cnt-1}, 0 ..]); the lane
    vectors of one point go to rv[0], rv[8], rv[16] (so 8 points fill three hsum8 inputs). */
 #define TAPS3V(NBJ)                                                                              \
-static inline void taps3v_##NBJ(const float *const *rows, const float *gs, i64 nt, i64 Jp, const float *wv, v8 *rv) { \
+static inline void taps3v_##NBJ(const float *Tk, i64 R, i64 n_out, const i64 *ix, const float *gg, i64 ntap, i64 Jp, \
+                                const float *wv, v8 *rv, int *flag) {                            \
     v8 a0[NBJ], a1[NBJ], a2[NBJ];                                                                \
     for (int b = 0; b < NBJ; b++) { a0[b] = (v8){0}; a1[b] = (v8){0}; a2[b] = (v8){0}; }         \
-    for (i64 t = 0; t < nt; t++) {                                                               \
-        const float *r = rows[t];                                                                \
-        float gt = gs[t];                                                                        \
+    for (i64 t = 0; t < ntap; t++) {                                                             \
+        i64 ri = ix[t];                                                                          \
+        if ((uint64_t)ri >= (uint64_t)n_out) { *flag |= 1; continue; }  /* skipped, flagged */    \
+        const float *r = Tk + ri * R;                                                            \
+        float gt = gg[t];                                                                        \
         for (int b = 0; b < NBJ; b++) {                                                          \
             a0[b] += gt * LD(r + 8 * b);                                                         \
             a1[b] += gt * LD(r + Jp + 8 * b);                                                    \
@@ -491,9 +494,10 @@ static inline void taps3v_##NBJ(const float *const *rows, const float *gs, i64 n
 TAPS3V(1) TAPS3V(2) TAPS3V(3) TAPS3V(4)
 /* one point: the three colours' sums into o */
 #define TAPS3(NBJ)                                                                               \
-static inline void taps3_##NBJ(const float *const *rows, const float *gs, i64 nt, i64 Jp, const float *wv, float *o) { \
+static inline void taps3_##NBJ(const float *Tk, i64 R, i64 n_out, const i64 *ix, const float *gg, i64 ntap, i64 Jp,     \
+                               const float *wv, float *o, int *flag) {                           \
     v8 rv[17];                                                                                   \
-    taps3v_##NBJ(rows, gs, nt, Jp, wv, rv);                                                      \
+    taps3v_##NBJ(Tk, R, n_out, ix, gg, ntap, Jp, wv, rv, flag);                                  \
     o[0] = hsum(rv[0]); o[1] = hsum(rv[8]); o[2] = hsum(rv[16]);                                 \
 }
 TAPS3(1) TAPS3(2) TAPS3(3) TAPS3(4)
@@ -501,22 +505,29 @@ TAPS3(1) TAPS3(2) TAPS3(3) TAPS3(4)
 /* one point's taps: its valid tapped rows of its cluster's constants (rows, gs; *flag |= 1 for a
    tap outside [0, n_out), which is skipped) and its term weights wv = [1 if mean, w.., 0..] (Jp);
    returns how many taps were kept */
+/* a point's term weights wv = [1 if mean, w.., 0..] (Jp); returns its cluster's constants T_k */
+static inline const float *taps_weights(i64 pc, const void *lab, int lab_kind, const float *W, i64 wstride, const i64 *woff,
+                                        const i64 *nk, i64 nuse, int mean, const float *T, i64 Jp, i64 R, i64 n_out, float *wv) {
+    i64 k = lab_at(lab, lab_kind, pc), cnt;
+    const float *w = weights_of(W, wstride, woff, nk, nuse, k, pc, &cnt);
+    i64 j = 0;
+    if (mean) wv[j++] = 1.0f;
+    for (i64 i = 0; i < cnt; i++) wv[j++] = w[i];
+    for (; j < Jp; j++) wv[j] = 0.0f;
+    return T + k * n_out * R;
+}
+
 static inline i64 taps_point(i64 p, i64 pc, const void *lab, int lab_kind, const float *W, i64 wstride, const i64 *woff, const i64 *nk,
                              i64 nuse, int mean, const float *T, i64 Jp, i64 R, i64 n_out, i64 ntap, const i64 *idx,
                              const float *g, const float **rows, float *gs, float *wv, int *flag) {
-    i64 k = lab_at(lab, lab_kind, pc), cnt, nt = 0;
-    const float *w = weights_of(W, wstride, woff, nk, nuse, k, pc, &cnt);
-    const float *Tk = T + k * n_out * R;
+    const float *Tk = taps_weights(pc, lab, lab_kind, W, wstride, woff, nk, nuse, mean, T, Jp, R, n_out, wv);
+    i64 nt = 0;
     for (i64 t = 0; t < ntap; t++) {
         i64 r = idx[p * ntap + t];
         if (r < 0 || r >= n_out) { *flag |= 1; continue; }
         rows[nt] = Tk + r * R;
         gs[nt++] = g[p * ntap + t];
     }
-    i64 j = 0;
-    if (mean) wv[j++] = 1.0f;
-    for (i64 i = 0; i < cnt; i++) wv[j++] = w[i];
-    for (; j < Jp; j++) wv[j] = 0.0f;
     return nt;
 }
 
@@ -533,8 +544,6 @@ static int prt_affine_taps_range(const int32_t *order, int csort, i64 p0, i64 p1
     if (C == 3 && Jp / 8 <= 4) {
         /* RGB: 8 points at a time, their 24 dot products reduced together */
         v8 Rv[24];
-        const float *rows[64];
-        float gs[64];
         float wv[32];
         i64 pl[8];
         for (; q + 8 <= p1; q += 8) {
@@ -546,13 +555,15 @@ static int prt_affine_taps_range(const int32_t *order, int csort, i64 p0, i64 p1
                     __builtin_prefetch(idx + pp * ntap);
                     __builtin_prefetch(g + pp * ntap);
                 }
-                i64 nt = taps_point(pl[l], csort ? q + l : pl[l], lab, lab_kind, W, wstride, woff, nk, nuse, mean, T, Jp, R, n_out, ntap, idx, g,
-                                    rows, gs, wv, &flag);
+                const float *Tk = taps_weights(csort ? q + l : pl[l], lab, lab_kind, W, wstride, woff, nk, nuse, mean, T, Jp, R,
+                                               n_out, wv);
+                const i64 *ix = idx + pl[l] * ntap;
+                const float *gg = g + pl[l] * ntap;
                 switch (Jp / 8) {
-                case 1: taps3v_1(rows, gs, nt, Jp, wv, Rv + l); break;
-                case 2: taps3v_2(rows, gs, nt, Jp, wv, Rv + l); break;
-                case 3: taps3v_3(rows, gs, nt, Jp, wv, Rv + l); break;
-                default: taps3v_4(rows, gs, nt, Jp, wv, Rv + l); break;
+                case 1: taps3v_1(Tk, R, n_out, ix, gg, ntap, Jp, wv, Rv + l, &flag); break;
+                case 2: taps3v_2(Tk, R, n_out, ix, gg, ntap, Jp, wv, Rv + l, &flag); break;
+                case 3: taps3v_3(Tk, R, n_out, ix, gg, ntap, Jp, wv, Rv + l, &flag); break;
+                default: taps3v_4(Tk, R, n_out, ix, gg, ntap, Jp, wv, Rv + l, &flag); break;
                 }
             }
             flag |= store8_rgb(Rv, out, pl);
@@ -571,16 +582,20 @@ static int prt_affine_taps_range(const int32_t *order, int csort, i64 p0, i64 p1
         float o[16];
         const float *rows[64];
         float gs[64];
-        i64 nt = taps_point(p, csort ? q : p, lab, lab_kind, W, wstride, woff, nk, nuse, mean, T, Jp, R, n_out, ntap, idx, g, rows, gs, wv, &flag);
         i64 nbj = Jp / 8;
         if (C == 3 && nbj <= 4) {
+            const float *Tk = taps_weights(csort ? q : p, lab, lab_kind, W, wstride, woff, nk, nuse, mean, T, Jp, R, n_out, wv);
+            const i64 *ix = idx + p * ntap;
+            const float *gg = g + p * ntap;
             switch (nbj) {
-            case 1: taps3_1(rows, gs, nt, Jp, wv, o); break;
-            case 2: taps3_2(rows, gs, nt, Jp, wv, o); break;
-            case 3: taps3_3(rows, gs, nt, Jp, wv, o); break;
-            default: taps3_4(rows, gs, nt, Jp, wv, o); break;
+            case 1: taps3_1(Tk, R, n_out, ix, gg, ntap, Jp, wv, o, &flag); break;
+            case 2: taps3_2(Tk, R, n_out, ix, gg, ntap, Jp, wv, o, &flag); break;
+            case 3: taps3_3(Tk, R, n_out, ix, gg, ntap, Jp, wv, o, &flag); break;
+            default: taps3_4(Tk, R, n_out, ix, gg, ntap, Jp, wv, o, &flag); break;
             }
         } else {
+            i64 nt = taps_point(p, csort ? q : p, lab, lab_kind, W, wstride, woff, nk, nuse, mean, T, Jp, R, n_out, ntap, idx, g, rows,
+                                gs, wv, &flag);
             gather_sum(R, rows, gs, nt, s);
             for (i64 c = 0; c < C; c++) o[c] = dot(wv, s + c * Jp, Jp);
         }
