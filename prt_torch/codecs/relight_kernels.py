@@ -505,11 +505,19 @@ TAPS3(1) TAPS3(2) TAPS3(3) TAPS3(4)
 /* one point's taps: its valid tapped rows of its cluster's constants (rows, gs; *flag |= 1 for a
    tap outside [0, n_out), which is skipped) and its term weights wv = [1 if mean, w.., 0..] (Jp);
    returns how many taps were kept */
-/* a point's term weights wv = [1 if mean, w.., 0..] (Jp); returns its cluster's constants T_k */
+/* a point's term weights *wv = [1 if mean, w.., 0..] (Jp floats: the stored weights themselves
+   when they are exactly that, else copied into buf); returns its cluster's constants T_k */
 static inline const float *taps_weights(i64 pc, const void *lab, int lab_kind, const float *W, i64 wstride, const i64 *woff,
-                                        const i64 *nk, i64 nuse, int mean, const float *T, i64 Jp, i64 R, i64 n_out, float *wv) {
+                                        const i64 *nk, i64 nuse, int mean, const float *T, i64 Jp, i64 R, i64 n_out,
+                                        float *buf, const float **wvp) {
     i64 k = lab_at(lab, lab_kind, pc), cnt;
     const float *w = weights_of(W, wstride, woff, nk, nuse, k, pc, &cnt);
+    if (!mean && cnt == Jp) {  /* e.g. MRT-PCA with 16 vectors: no copy */
+        *wvp = w;
+        return T + k * n_out * R;
+    }
+    float *wv = buf;
+    *wvp = buf;
     i64 j = 0;
     if (mean) wv[j++] = 1.0f;
     for (i64 i = 0; i < cnt; i++) wv[j++] = w[i];
@@ -520,7 +528,10 @@ static inline const float *taps_weights(i64 pc, const void *lab, int lab_kind, c
 static inline i64 taps_point(i64 p, i64 pc, const void *lab, int lab_kind, const float *W, i64 wstride, const i64 *woff, const i64 *nk,
                              i64 nuse, int mean, const float *T, i64 Jp, i64 R, i64 n_out, i64 ntap, const i64 *idx,
                              const float *g, const float **rows, float *gs, float *wv, int *flag) {
-    const float *Tk = taps_weights(pc, lab, lab_kind, W, wstride, woff, nk, nuse, mean, T, Jp, R, n_out, wv);
+    const float *wq;
+    const float *Tk = taps_weights(pc, lab, lab_kind, W, wstride, woff, nk, nuse, mean, T, Jp, R, n_out, wv, &wq);
+    if (wq != wv)
+        for (i64 j = 0; j < Jp; j++) wv[j] = wq[j];
     i64 nt = 0;
     for (i64 t = 0; t < ntap; t++) {
         i64 r = idx[p * ntap + t];
@@ -555,15 +566,16 @@ static int prt_affine_taps_range(const int32_t *order, int csort, i64 p0, i64 p1
                     __builtin_prefetch(idx + pp * ntap);
                     __builtin_prefetch(g + pp * ntap);
                 }
+                const float *wq;
                 const float *Tk = taps_weights(csort ? q + l : pl[l], lab, lab_kind, W, wstride, woff, nk, nuse, mean, T, Jp, R,
-                                               n_out, wv);
+                                               n_out, wv, &wq);
                 const i64 *ix = idx + pl[l] * ntap;
                 const float *gg = g + pl[l] * ntap;
                 switch (Jp / 8) {
-                case 1: taps3v_1(Tk, R, n_out, ix, gg, ntap, Jp, wv, Rv + l, &flag); break;
-                case 2: taps3v_2(Tk, R, n_out, ix, gg, ntap, Jp, wv, Rv + l, &flag); break;
-                case 3: taps3v_3(Tk, R, n_out, ix, gg, ntap, Jp, wv, Rv + l, &flag); break;
-                default: taps3v_4(Tk, R, n_out, ix, gg, ntap, Jp, wv, Rv + l, &flag); break;
+                case 1: taps3v_1(Tk, R, n_out, ix, gg, ntap, Jp, wq, Rv + l, &flag); break;
+                case 2: taps3v_2(Tk, R, n_out, ix, gg, ntap, Jp, wq, Rv + l, &flag); break;
+                case 3: taps3v_3(Tk, R, n_out, ix, gg, ntap, Jp, wq, Rv + l, &flag); break;
+                default: taps3v_4(Tk, R, n_out, ix, gg, ntap, Jp, wq, Rv + l, &flag); break;
                 }
             }
             flag |= store8_rgb(Rv, out, pl);
@@ -584,14 +596,15 @@ static int prt_affine_taps_range(const int32_t *order, int csort, i64 p0, i64 p1
         float gs[64];
         i64 nbj = Jp / 8;
         if (C == 3 && nbj <= 4) {
-            const float *Tk = taps_weights(csort ? q : p, lab, lab_kind, W, wstride, woff, nk, nuse, mean, T, Jp, R, n_out, wv);
+            const float *wq;
+            const float *Tk = taps_weights(csort ? q : p, lab, lab_kind, W, wstride, woff, nk, nuse, mean, T, Jp, R, n_out, wv, &wq);
             const i64 *ix = idx + p * ntap;
             const float *gg = g + p * ntap;
             switch (nbj) {
-            case 1: taps3_1(Tk, R, n_out, ix, gg, ntap, Jp, wv, o, &flag); break;
-            case 2: taps3_2(Tk, R, n_out, ix, gg, ntap, Jp, wv, o, &flag); break;
-            case 3: taps3_3(Tk, R, n_out, ix, gg, ntap, Jp, wv, o, &flag); break;
-            default: taps3_4(Tk, R, n_out, ix, gg, ntap, Jp, wv, o, &flag); break;
+            case 1: taps3_1(Tk, R, n_out, ix, gg, ntap, Jp, wq, o, &flag); break;
+            case 2: taps3_2(Tk, R, n_out, ix, gg, ntap, Jp, wq, o, &flag); break;
+            case 3: taps3_3(Tk, R, n_out, ix, gg, ntap, Jp, wq, o, &flag); break;
+            default: taps3_4(Tk, R, n_out, ix, gg, ntap, Jp, wq, o, &flag); break;
             }
         } else {
             i64 nt = taps_point(p, csort ? q : p, lab, lab_kind, W, wstride, woff, nk, nuse, mean, T, Jp, R, n_out, ntap, idx, g, rows,
