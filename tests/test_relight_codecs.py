@@ -51,6 +51,7 @@ CASES = [
     ("mrt_pca", "mrt_pca", {"vectors": 7}, (16, 9), 200, None),
     ("mrt_pca mean", "mrt_pca", {"vectors": 7, "center": True}, (16, 9), 200, None),
     ("mrt_pca n_out=49", "mrt_pca", {"vectors": 5}, (49, 4), 123, None),  # 7×7 tents: the 7-vector RGB path, a tail
+    ("mrt_pca 8 vectors", "mrt_pca", {"vectors": 8}, (16, 9), 150, None),  # taps read the 8 stored weights in place
 ]
 
 
