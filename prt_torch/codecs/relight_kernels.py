@@ -512,8 +512,13 @@ static inline const float *taps_weights(i64 pc, const void *lab, int lab_kind, c
                                         float *buf, const float **wvp) {
     i64 k = lab_at(lab, lab_kind, pc), cnt;
     const float *w = weights_of(W, wstride, woff, nk, nuse, k, pc, &cnt);
+    static const float mean_only[32] = {1.0f};  /* [1, 0, ..]: VQ, or no weights kept */
     if (!mean && cnt == Jp) {  /* e.g. MRT-PCA with 16 vectors: no copy */
         *wvp = w;
+        return T + k * n_out * R;
+    }
+    if (mean && cnt == 0 && Jp <= 32) {
+        *wvp = mean_only;
         return T + k * n_out * R;
     }
     float *wv = buf;
