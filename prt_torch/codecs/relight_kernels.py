@@ -108,11 +108,35 @@ static inline float hsum(v8 a) { return ((a[0] + a[1]) + (a[2] + a[3])) + ((a[4]
 static inline v8 hsum8(const v8 *a) { v8 r; for (int i = 0; i < 8; i++) r[i] = hsum(a[i]); return r; }
 #endif
 
+#ifdef SHUF
+/* d[3l + c] = a_c[l] for l < 8: three colour vectors interleaved into 24 floats (6 shuffles) */
+static inline void interleave3(v8 a0, v8 a1, v8 a2, float *d) {
+    v8 t0 = __builtin_shufflevector(a0, a1, 0, 8, 0, 1, 9, 0, 2, 10);
+    v8 t1 = __builtin_shufflevector(a0, a1, 0, 3, 11, 0, 4, 12, 0, 5);
+    v8 t2 = __builtin_shufflevector(a0, a1, 13, 0, 6, 14, 0, 7, 15, 0);
+    *(v8 *)d = __builtin_shufflevector(t0, a2, 0, 1, 8, 3, 4, 9, 6, 7);
+    *(v8 *)(d + 8) = __builtin_shufflevector(t1, a2, 10, 1, 2, 11, 4, 5, 12, 7);
+    *(v8 *)(d + 16) = __builtin_shufflevector(t2, a2, 0, 13, 2, 3, 14, 5, 6, 15);
+}
+#endif
+
 /* 8 RGB points: colour c of point l is the lane sum of R[8c + l]; written to out[3 pl[l] + c].
    Returns 2 if an output is not finite. */
-static inline int store8_rgb(const v8 *R, float *out, const i64 *pl) {
+static inline int store8_rgb(const v8 *R, float *out, const i64 *pl, int seq) {
     v8 s0 = hsum8(R), s1 = hsum8(R + 8), s2 = hsum8(R + 16);
     int flag = 0;
+#ifdef SHUF
+    if (seq) {  /* consecutive points (pl[l] = pl[0] + l): 24 contiguous floats, three vector stores */
+        typedef int32_t v8i __attribute__((vector_size(32)));
+        const v8i absmask = {0x7fffffff, 0x7fffffff, 0x7fffffff, 0x7fffffff, 0x7fffffff, 0x7fffffff, 0x7fffffff, 0x7fffffff};
+        const v8i maxbits = {0x7f7fffff, 0x7f7fffff, 0x7f7fffff, 0x7f7fffff, 0x7f7fffff, 0x7f7fffff, 0x7f7fffff, 0x7f7fffff};
+        v8i bad = (((v8i)s0 & absmask) > maxbits) | (((v8i)s1 & absmask) > maxbits) | (((v8i)s2 & absmask) > maxbits);
+        interleave3(s0, s1, s2, out + 3 * pl[0]);
+        int any = 0;
+        for (int l = 0; l < 8; l++) any |= bad[l];
+        return any ? 2 : 0;
+    }
+#endif
     for (int l = 0; l < 8; l++) {
         float *op = out + 3 * pl[l];
         op[0] = s0[l]; op[1] = s1[l]; op[2] = s2[l];
@@ -241,13 +265,7 @@ static void constants_range(i64 k0, i64 k1, i64 J, i64 Jmax, i64 n_in, i64 n_out
                 }
 #ifdef SHUF
                 if (C == 3 && so == 3 && sc == 1 && ob * 8 + 8 <= n_out) {  /* rows layout, RGB: (o, c) interleaved */
-                    v8 t0 = __builtin_shufflevector(a[0], a[1], 0, 8, 0, 1, 9, 0, 2, 10);
-                    v8 t1 = __builtin_shufflevector(a[0], a[1], 0, 3, 11, 0, 4, 12, 0, 5);
-                    v8 t2 = __builtin_shufflevector(a[0], a[1], 13, 0, 6, 14, 0, 7, 15, 0);
-                    float *d = dst + ob * 24;
-                    ST(d, __builtin_shufflevector(t0, a[2], 0, 1, 8, 3, 4, 9, 6, 7));
-                    ST(d + 8, __builtin_shufflevector(t1, a[2], 10, 1, 2, 11, 4, 5, 12, 7));
-                    ST(d + 16, __builtin_shufflevector(t2, a[2], 0, 13, 2, 3, 14, 5, 6, 15));
+                    interleave3(a[0], a[1], a[2], dst + ob * 24);
                     continue;
                 }
 #endif
@@ -405,7 +423,7 @@ static int prt_affine_dense_range(const int32_t *order, int csort, i64 p0, i64 p
                 default: dense3v_7(Tk, n_pad, F, mean, w, cnt, yp, R + l); break;
                 }
             }
-            flag |= store8_rgb(R, out, pl);
+            flag |= store8_rgb(R, out, pl, !order);
         }
     }
     for (; q < p1; q++) {
@@ -583,7 +601,7 @@ static int prt_affine_taps_range(const int32_t *order, int csort, i64 p0, i64 p1
                 default: taps3v_4(Tk, R, n_out, ix, gg, ntap, Jp, wq, Rv + l, &flag); break;
                 }
             }
-            flag |= store8_rgb(Rv, out, pl);
+            flag |= store8_rgb(Rv, out, pl, !order);
         }
     }
     for (; q < p1; q++) {
