@@ -379,6 +379,30 @@ static inline float dense1(int nbs, const float *Tc, i64 F, int mean, const floa
     switch (nbs) { CHUNKS(CASE_DENSE1) default: return 0.0f; }
 }
 
+/* one visited point q (point p) of the dense kernel: prefetches PF_AHEAD visits ahead (visiting
+   order), its weights (*w, *cnt) and view row (*yp: copied zero-padded into yb when n_out is not a
+   multiple of 8); returns its cluster's constants */
+static inline const float *dense_point(const int32_t *order, int csort, i64 q, i64 p1, i64 p, i64 n_out, i64 n_pad, i64 F, i64 J,
+                                       const void *lab, int lab_kind, const float *W, i64 wstride, const i64 *woff, const i64 *nk,
+                                       i64 nuse, const float *T, const float *y, float *yb, const float **w, i64 *cnt, const float **yp) {
+    i64 pc = csort ? q : p;
+    if (order && q + PF_AHEAD < p1) {
+        i64 pp = order[q + PF_AHEAD];
+        if (!csort) PREFETCH_CODES(pp);
+        PREFETCH_ROW(y + pp * n_out, n_out, 0);
+    }
+    i64 k = lab_at(lab, lab_kind, pc);
+    *w = weights_of(W, wstride, woff, nk, nuse, k, pc, cnt);
+    const float *yr = y + p * n_out;
+    if (n_out != n_pad) {
+        for (i64 r = 0; r < n_out; r++) yb[r] = yr[r];
+        for (i64 r = n_out; r < n_pad; r++) yb[r] = 0.0f;
+        yr = yb;
+    }
+    *yp = yr;
+    return T + k * J * F;
+}
+
 /* dense view: constants colour-major T [K, J, C, n_pad] (rows zero-padded from n_out to n_pad,
    a multiple of 8); out[p, c] = y_p . e_p[c], e_p accumulated in registers chunk by chunk and
    dotted with the view as it is formed (RGB with n_pad <= 56: all three colours in one pass, 8
@@ -399,20 +423,11 @@ static int prt_affine_dense_range(const int32_t *order, int csort, i64 p0, i64 p
         i64 pl[8];
         for (; q + 8 <= p1; q += 8) {
             for (int l = 0; l < 8; l++) {
-                i64 p = pl[l] = order ? order[q + l] : q + l, pc = csort ? q + l : p, k = lab_at(lab, lab_kind, pc), cnt;
-                if (order && q + l + PF_AHEAD < p1) {
-                    i64 pp = order[q + l + PF_AHEAD];
-                    if (!csort) PREFETCH_CODES(pp);
-                    PREFETCH_ROW(y + pp * n_out, n_out, 0);
-                }
-                const float *w = weights_of(W, wstride, woff, nk, nuse, k, pc, &cnt);
-                const float *yp = y + p * n_out;
-                if (n_out != n_pad) {
-                    for (i64 r = 0; r < n_out; r++) yb[r] = yp[r];
-                    for (i64 r = n_out; r < n_pad; r++) yb[r] = 0.0f;
-                    yp = yb;
-                }
-                const float *Tk = T + k * J * F;
+                const float *w, *yp;
+                i64 cnt;
+                pl[l] = order ? order[q + l] : q + l;
+                const float *Tk = dense_point(order, csort, q + l, p1, pl[l], n_out, n_pad, F, J, lab, lab_kind, W, wstride, woff, nk,
+                                              nuse, T, y, yb, &w, &cnt, &yp);
                 switch (nbt) {
                 case 1: dense3v_1(Tk, n_pad, F, mean, w, cnt, yp, R + l); break;
                 case 2: dense3v_2(Tk, n_pad, F, mean, w, cnt, yp, R + l); break;
@@ -427,23 +442,12 @@ static int prt_affine_dense_range(const int32_t *order, int csort, i64 p0, i64 p
         }
     }
     for (; q < p1; q++) {
-        i64 p = order ? order[q] : q, pc = csort ? q : p;
-        if (order && q + PF_AHEAD < p1) {
-            i64 pp = order[q + PF_AHEAD];
-            if (!csort) PREFETCH_CODES(pp);
-            PREFETCH_ROW(y + pp * n_out, n_out, 0);
-        }
+        i64 p = order ? order[q] : q, cnt;
         float yb[4096];
         float o[16];
-        i64 k = lab_at(lab, lab_kind, pc), cnt;
-        const float *w = weights_of(W, wstride, woff, nk, nuse, k, pc, &cnt);
-        const float *yp = y + p * n_out;
-        if (n_out != n_pad) {
-            for (i64 q = 0; q < n_out; q++) yb[q] = yp[q];
-            for (i64 q = n_out; q < n_pad; q++) yb[q] = 0.0f;
-            yp = yb;
-        }
-        const float *Tk = T + k * J * F;
+        const float *w, *yp;
+        const float *Tk = dense_point(order, csort, q, p1, p, n_out, n_pad, F, J, lab, lab_kind, W, wstride, woff, nk, nuse, T, y, yb,
+                                      &w, &cnt, &yp);
         for (i64 c = 0; c < C; c++) o[c] = 0.0f;
         if (C == 3 && nbt <= 7) {
             switch (nbt) {
