@@ -338,8 +338,8 @@ class AffineCodec(Codec):
             n_vectors: use only the first n PCA vectors of each cluster (None: all).
             out: None, or the result tensor to write (contiguous float32 of the result's shape;
                 ``base.check_out``): a render loop reusing one avoids a fresh allocation per frame
-                — without a view ``[P, n_out, C]`` is large, and its first-touch page faults cost
-                more than the kernel (reports/benchmarks/relight.md).
+                — without a view ``[P, n_out, C]`` is large, and its first-touch page faults are a
+                large share of the call (reports/benchmarks/relight.md, "new output").
         Returns: ``[P, C]`` float32 (vectors, or matrices with a view), else ``[P, n_out, C]``
         (``out`` when given).
         """
