@@ -229,6 +229,34 @@ def test_prefiltered_lookup_equals_brute_force_integral():
     assert torch.allclose(pe.lookup(m, s).double(), pe.brute_force(m, s), atol=1e-5)
 
 
+@pytest.mark.parametrize("res,levels,C", [(16, 16, 3), (8, 1, 3), (1, 4, 3), (4, 5, 1), (4, 5, 4)])
+def test_fused_lobe_sum_equals_lookup(res, levels, C, monkeypatch):
+    """``gaussian.lobe_sum`` — the fused kernel of ``relight_kernels.sg_lookup_sum`` — equals the
+    torch formulation (``PrefilteredEnvironment.lookup`` and a sum over the lobes) to float32
+    rounding, over face ties and edges, widths below and above the ladder, one level, a 1×1 cube
+    and 1, 3 or 4 channels."""
+    from prt_torch.codecs import relight_kernels
+    from prt_torch.codecs.gaussian import lobe_sum
+
+    if relight_kernels.native() is None:
+        pytest.skip("no compiled kernels")
+    light = lambda x: torch.stack([1 + x[..., 0], 2 + x[..., 1] * x[..., 2], (x[..., 2] > 0.7).double(), 0.5 + x[..., 1]][:C], -1)  # noqa: E731
+    pe = prefilter_environment(light, res=res, levels=levels)
+    g = torch.Generator().manual_seed(3)
+    mu = torch.nn.functional.normalize(torch.randn(200, 3, 3, generator=g), dim=-1)
+    mu[0, 0] = torch.tensor([1.0, 1.0, 0.0]) / 2 ** 0.5  # ties between faces, an axis, an edge-corner
+    mu[0, 1] = torch.tensor([0.0, 0.0, -1.0])
+    mu[0, 2] = torch.tensor([-1.0, 1.0, 1.0]) / 3 ** 0.5
+    sig = torch.exp(torch.randn(200, 3, generator=g) * 2)
+    sig[1] = torch.tensor([1e-14, 1e-6, 1e3])  # below, far below and above the ladder
+    w = torch.rand(200, 3, generator=g)
+    got = lobe_sum(pe, w, mu, sig)
+    monkeypatch.setenv("PRT_TORCH_NATIVE", "0")
+    ref = lobe_sum(pe, w, mu, sig)
+    assert got.shape == ref.shape == (200, C) and got.dtype == torch.float32
+    assert torch.allclose(got, ref, rtol=1e-5, atol=1e-6 * float(ref.abs().max()))
+
+
 def test_relight_from_gaussians_matches_integral_of_decoded_tables(cube):
     """Green eq. 2.7: Σ_k w_k E_{σ_k}(μ_k) equals ∫ T̃ L dω of the decoded mixture; with taps on a
     single stored view it is that view's radiance; a diffuse SH part adds t·l."""

@@ -74,10 +74,11 @@ import torch
 from ..lighting.prefilter import PrefilteredEnvironment, cube_map_directions, sg_normaliser
 from ..params import Boolean, Interval, Options
 from .base import Codec, Encoded, check_out, check_signal, register
+from .relight_kernels import native, sg_lookup_sum
 
 __all__ = ["GaussianCodec", "resolvable_sigma", "relative_l2", "sh_truncation", "haar_truncation",
            "fibonacci_directions", "default_views", "view_neighbours", "view_taps",
-           "views_cover_sphere", "mixture", "blend_lobes", "flood_fill_order", "MAX_LOBES"]
+           "views_cover_sphere", "mixture", "blend_lobes", "lobe_sum", "flood_fill_order", "MAX_LOBES"]
 
 #: the largest lobe count accepted (Green uses 1–3, plots up to 10)
 MAX_LOBES = 16
@@ -454,6 +455,17 @@ class _Problem:
         return a2, ls2, m2 / m2.norm(dim=-1, keepdim=True).clamp_min(1e-12)
 
 
+def lobe_sum(light: PrefilteredEnvironment, w: torch.Tensor, mu: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
+    """Σ over the lobes (last axis of ``w [..., N]``) of w · E_σ(μ) — Green 2005 eq. 2.7 with
+    ``mu [..., N, 3]``, ``sigma [..., N]`` → ``[..., C]`` float32: one fused pass per lobe
+    (``relight_kernels.sg_lookup_sum``) where the kernels are compiled, else
+    ``light.lookup`` and a sum (the same values to float32 rounding; tests compare them)."""
+    lib = native()
+    if lib is not None and light.channels <= 16:
+        return sg_lookup_sum(lib, light.table(), light.log_sigmas, light.res, mu, sigma, w)
+    return (w[..., None] * light.lookup(mu, sigma)).sum(-2)
+
+
 @register("gaussian")
 class GaussianCodec(Codec):
     """Green 2005: per vertex and view, a sum of spherical Gaussians fitted to transport tables; relit from a Gaussian-prefiltered environment.
@@ -822,7 +834,7 @@ class GaussianCodec(Codec):
         w, mu, sg = enc.tensors["weights"], enc.tensors["mu"], enc.tensors["sigma"]
         V, J, N = w.shape
         if view is None:
-            out = (w[..., None] * light.lookup(mu, sg)).sum(2)
+            out = lobe_sum(light, w, mu, sg)
             if "diffuse" in enc.tensors:
                 out = out + self._diffuse(enc, light)[:, None, :] * enc.tensors["has_data"].float()[..., None]
             return out
@@ -832,7 +844,7 @@ class GaussianCodec(Codec):
         tot = a.sum(1, keepdim=True)
         an = a / tot.clamp_min(1e-12)
         wb, mb, sgb = blend_lobes(w[rows, idx], mu[rows, idx], sg[rows, idx], an)
-        out = (wb[..., None] * light.lookup(mb, sgb)).sum(1) * tot
+        out = lobe_sum(light, wb, mb, sgb) * tot
         if "diffuse" in enc.tensors:
             hd = enc.tensors["has_data"].float()[rows, idx]
             out = out + self._diffuse(enc, light) * (a * hd).sum(1, keepdim=True)
@@ -857,7 +869,7 @@ class GaussianCodec(Codec):
         wv, mv, sv = blend_lobes(w[vv, jj].reshape(M * 3, k, N), mu[vv, jj].reshape(M * 3, k, N, 3),
                                  sg[vv, jj].reshape(M * 3, k, N), aa)
         wb, mb, sgb = blend_lobes(wv.reshape(M, 3, N), mv.reshape(M, 3, N, 3), sv.reshape(M, 3, N), bary.float())
-        out = (wb[..., None] * light.lookup(mb, sgb)).sum(1)
+        out = lobe_sum(light, wb, mb, sgb)
         if "diffuse" in enc.tensors:
             d = self._diffuse(enc, light)[vid]  # [M, 3, C]
             hd = enc.tensors["has_data"].float()[vv, jj]  # [M, 3, k]

@@ -117,7 +117,7 @@ class PrefilteredEnvironment:
         self.sh = sh
         self.res = int(levels.shape[-1])
         self.channels = int(levels.shape[1])
-        self._log_sigmas = sigmas.log().to(torch.float32)
+        self.log_sigmas = sigmas.log().to(torch.float32)  # [n_levels] float32: the ladder lookups search
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -129,8 +129,9 @@ class PrefilteredEnvironment:
         return (f"PrefilteredEnvironment(levels={self.levels.shape[0]}, C={self.channels}, res={self.res}, "
                 f"sigma=[{float(self.sigmas[0]):.3g}, {float(self.sigmas[-1]):.3g}])")
 
-    def _flat(self) -> torch.Tensor:
-        """The pyramid as rows ``[L·6·r·r, C]`` float32 (built once)."""
+    def table(self) -> torch.Tensor:
+        """The pyramid as rows ``[L·6·r·r, C]`` float32 (built once): texel (level l, face f,
+        row t, column s) is row ``((l·6 + f)·r + t)·r + s``."""
         if getattr(self, "_flat_levels", None) is None:
             L = self.levels.shape[0]
             self._flat_levels = self.levels.permute(0, 2, 3, 4, 1).reshape(L * 6 * self.res * self.res, self.channels).float().contiguous()
@@ -154,7 +155,7 @@ class PrefilteredEnvironment:
         s1 = (s0 + 1).clamp(max=r - 1)
         t1 = (t0 + 1).clamp(max=r - 1)
         L = self.levels.shape[0]
-        ladder = self._log_sigmas
+        ladder = self.log_sigmas
         hi = torch.searchsorted(ladder, ls.contiguous()).clamp(1, L - 1) if L > 1 else torch.zeros_like(face)
         lo = (hi - 1).clamp_min(0)
         if L > 1:
@@ -170,7 +171,7 @@ class PrefilteredEnvironment:
         lvl = 6 * r * r
         idx = torch.cat([tex4 + (lo * lvl)[:, None], tex4 + (hi * lvl)[:, None]], 1)  # [M, 8]
         wts = torch.cat([w4 * (1 - a)[:, None], w4 * a[:, None]], 1)
-        out = torch.nn.functional.embedding_bag(idx, self._flat(), per_sample_weights=wts.contiguous(), mode="sum")
+        out = torch.nn.functional.embedding_bag(idx, self.table(), per_sample_weights=wts.contiguous(), mode="sum")
         return out.reshape(*shape, self.channels)
 
     def brute_force(self, mu: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
