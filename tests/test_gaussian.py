@@ -257,7 +257,7 @@ def test_fused_lobe_sum_equals_lookup(res, levels, C, monkeypatch):
     assert torch.allclose(got, ref, rtol=1e-5, atol=1e-6 * float(ref.abs().max()))
 
 
-def test_relight_from_gaussians_matches_integral_of_decoded_tables(cube):
+def test_relight_from_gaussians_matches_integral_of_decoded_tables(cube, monkeypatch):
     """Green eq. 2.7: Σ_k w_k E_{σ_k}(μ_k) equals ∫ T̃ L dω of the decoded mixture; with taps on a
     single stored view it is that view's radiance; a diffuse SH part adds t·l."""
     d, sa = cube
@@ -284,6 +284,22 @@ def test_relight_from_gaussians_matches_integral_of_decoded_tables(cube):
     assert c.relight(enc, pe, out=buf) is buf and torch.equal(buf, out)
     with pytest.raises(ValueError, match="accepted: a contiguous float32 tensor of shape"):
         c.relight(enc, pe, out=torch.empty(V, J))
+    # the fused kernels (relight_kernels.sg_lookup_sum / sg_taps) equal the torch formulation
+    # (gaussian.blend_lobes, PrefilteredEnvironment.lookup) to float32 rounding: every stored
+    # view, and taps blending three views with unequal weights, one of them zero (below the horizon)
+    from prt_torch.codecs import relight_kernels
+
+    if relight_kernels.native() is not None:
+        idx = torch.randint(0, J, (V, 3), generator=g)
+        a = torch.rand(V, 3, generator=g)
+        a[0, 1] = 0.0
+        a[1] = 0.0  # no view above the horizon: radiance 0
+        native = (c.relight(enc, pe), c.relight(enc, pe, view=(idx, a)))
+        monkeypatch.setenv("PRT_TORCH_NATIVE", "0")
+        ref_t = (c.relight(enc, pe), c.relight(enc, pe, view=(idx, a)))
+        for got, want in zip(native, ref_t):
+            assert torch.allclose(got, want, rtol=1e-5, atol=1e-6 * float(want.abs().max()))
+        assert float(native[1][1].abs().max()) == 0.0
 
 
 def test_interpolation_across_views_and_triangles(cube):

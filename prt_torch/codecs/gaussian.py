@@ -74,7 +74,7 @@ import torch
 from ..lighting.prefilter import PrefilteredEnvironment, cube_map_directions, sg_normaliser
 from ..params import Boolean, Interval, Options
 from .base import Codec, Encoded, check_out, check_signal, register
-from .relight_kernels import native, sg_lookup_sum
+from .relight_kernels import native, sg_lookup_sum, sg_taps
 
 __all__ = ["GaussianCodec", "resolvable_sigma", "relative_l2", "sh_truncation", "haar_truncation",
            "fibonacci_directions", "default_views", "view_neighbours", "view_taps",
@@ -841,10 +841,13 @@ class GaussianCodec(Codec):
         idx, a = self.checked_taps(view, V, J)
         rows = torch.arange(V)[:, None]
         a = a.float()
-        tot = a.sum(1, keepdim=True)
-        an = a / tot.clamp_min(1e-12)
-        wb, mb, sgb = blend_lobes(w[rows, idx], mu[rows, idx], sg[rows, idx], an)
-        out = lobe_sum(light, wb, mb, sgb) * tot
+        lib = native()
+        if lib is not None and light.channels <= 16:  # blend, look up and sum in one fused pass per vertex
+            out = sg_taps(lib, light.table(), light.log_sigmas, light.res, w, mu, sg, idx, a)
+        else:
+            tot = a.sum(1, keepdim=True)
+            wb, mb, sgb = blend_lobes(w[rows, idx], mu[rows, idx], sg[rows, idx], a / tot.clamp_min(1e-12))
+            out = lobe_sum(light, wb, mb, sgb) * tot
         if "diffuse" in enc.tensors:
             hd = enc.tensors["has_data"].float()[rows, idx]
             out = out + self._diffuse(enc, light) * (a * hd).sum(1, keepdim=True)

@@ -39,8 +39,8 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["native", "native_status", "constants", "model_t", "affine_rows", "affine_dense", "affine_taps", "sg_lookup_sum", "fits",
-           "MAX_ROW"]
+__all__ = ["native", "native_status", "constants", "model_t", "affine_rows", "affine_dense", "affine_taps", "sg_lookup_sum", "sg_taps",
+           "fits", "MAX_ROW"]
 
 #: largest per-point row (n_out·C for dense views, J·C for taps) the kernels hold on the stack
 MAX_ROW = 4096
@@ -661,72 +661,74 @@ int prt_affine_taps(i64 P, i64 n_out, i64 C, const void *lab, int lab_kind, cons
     return flag;
 }
 
-/* Green 2005 eq. 2.7 from a prefiltered cube-map pyramid (``PrefilteredEnvironment.lookup``, one
-   lobe at a time, fused): out[g, c] = sum_{n<N} w[g N + n] E_{sigma}(mu)[c], E bilinear in the face
-   (clamped at its edges) and linear in log sigma between the two bracketing levels (clamped to the
-   ladder); OpenGL face order. table [L 6 r r, C]; ladder [L] = log sigma_l increasing. The same
-   float32 operations as the torch formulation, summed in another order. */
-static void sg_range(i64 g0, i64 g1, i64 N, const float *mu, const float *sigma, const float *w, const float *table, i64 r,
-                     i64 L, const float *ladder, i64 C, float *out) {
+/* Green 2005 eq. 2.7 from a prefiltered cube-map pyramid (``PrefilteredEnvironment.lookup``, fused):
+   acc[c] += wl E_sigma(x, y, z)[c], E bilinear in the face (clamped at its edges) and linear in
+   log sigma between the two bracketing levels (clamped to the ladder); OpenGL face order.
+   table [L 6 r r, C]; ladder [L] = log sigma_l increasing. The same float32 operations as the
+   torch formulation (the sums in another order). */
+static inline void sg_lookup(float x, float y, float z, float sigma, float wl, const float *table, i64 r, i64 L,
+                             const float *ladder, i64 C, float *acc) {
     const float half = (float)r * 0.5f;
     const i64 lvl = 6 * r * r, rmax = r > 1 ? r - 2 : 0;
-    for (i64 g = g0; g < g1; g++) {
-        float acc[16] = {0}, r0 = 0, r1 = 0, r2 = 0;
-        for (i64 n = 0; n < N; n++) {
-            i64 m = g * N + n;
-            float x = mu[3 * m], y = mu[3 * m + 1], z = mu[3 * m + 2];
-            float ax = fabsf(x), ay = fabsf(y), az = fabsf(z), sc, tc, mm;
-            i64 face;
-            if (ax >= ay && ax >= az) { mm = ax; face = x < 0; sc = x >= 0 ? -z : z; tc = -y; }
-            else if (ay >= az) { mm = ay; face = 2 + (y < 0); sc = x; tc = y >= 0 ? z : -z; }
-            else { mm = az; face = 4 + (z < 0); sc = z >= 0 ? x : -x; tc = -y; }
-            if (mm < 1e-30f) mm = 1e-30f;
-            sc /= mm; tc /= mm;
-            float s = (sc + 1) * half - 0.5f, t = (tc + 1) * half - 0.5f;
-            s = s < 0 ? 0 : (s > r - 1 ? r - 1 : s);
-            t = t < 0 ? 0 : (t > r - 1 ? r - 1 : t);
-            float sf = floorf(s), tf = floorf(t);
-            i64 s0 = (i64)(sf > rmax ? rmax : sf), t0 = (i64)(tf > rmax ? rmax : tf);
-            float fs = s - (float)s0, ft = t - (float)t0;
-            fs = fs < 0 ? 0 : (fs > 1 ? 1 : fs);
-            ft = ft < 0 ? 0 : (ft > 1 ? 1 : ft);
-            i64 s1 = s0 + 1 > r - 1 ? r - 1 : s0 + 1, t1 = t0 + 1 > r - 1 ? r - 1 : t0 + 1;
-            float sg = sigma[m] < 1e-12f ? 1e-12f : sigma[m], ls = logf(sg), a = 0.0f;
-            i64 lo = 0, hi = 0;
-            if (L > 1) {
-                /* searchsorted (left): the first ladder entry >= ls, by a branch-free binary search */
-                i64 b = 0, len = L;
-                while (len > 1) {
-                    i64 h = len / 2;
-                    b = ladder[b + h - 1] < ls ? b + h : b;
-                    len -= h;
-                }
-                hi = b + (ladder[b] < ls);
-                hi = hi < 1 ? 1 : (hi > L - 1 ? L - 1 : hi);
-                lo = hi - 1;
-                a = (ls - ladder[lo]) / (ladder[hi] - ladder[lo]);
-                a = a < 0 ? 0 : (a > 1 ? 1 : a);
-            }
-            i64 base = (face * r + t0) * r + s0, ds = s1 - s0, dt = (t1 - t0) * r;
-            i64 tex[4] = {base, base + ds, base + dt, base + dt + ds};
-            float w4[4] = {(1 - ft) * (1 - fs), (1 - ft) * fs, ft * (1 - fs), ft * fs};
-            float wl = w[m];
-            if (C == 3) {  /* RGB: the sums in registers (an array would chain through the stack) */
-                for (int i = 0; i < 8; i++) {
-                    const float *tr = table + (tex[i & 3] + (i < 4 ? lo : hi) * lvl) * 3;
-                    float wt = w4[i & 3] * (i < 4 ? 1 - a : a) * wl;
-                    r0 += wt * tr[0]; r1 += wt * tr[1]; r2 += wt * tr[2];
-                }
-                continue;
-            }
-            for (int i = 0; i < 8; i++) {
-                i64 row = tex[i & 3] + (i < 4 ? lo : hi) * lvl;
-                float wt = w4[i & 3] * (i < 4 ? 1 - a : a) * wl;
-                const float *tr = table + row * C;
-                for (i64 c = 0; c < C; c++) acc[c] += wt * tr[c];
-            }
+    float ax = fabsf(x), ay = fabsf(y), az = fabsf(z), sc, tc, mm;
+    i64 face;
+    if (ax >= ay && ax >= az) { mm = ax; face = x < 0; sc = x >= 0 ? -z : z; tc = -y; }
+    else if (ay >= az) { mm = ay; face = 2 + (y < 0); sc = x; tc = y >= 0 ? z : -z; }
+    else { mm = az; face = 4 + (z < 0); sc = z >= 0 ? x : -x; tc = -y; }
+    if (mm < 1e-30f) mm = 1e-30f;
+    sc /= mm; tc /= mm;
+    float s = (sc + 1) * half - 0.5f, t = (tc + 1) * half - 0.5f;
+    s = s < 0 ? 0 : (s > r - 1 ? r - 1 : s);
+    t = t < 0 ? 0 : (t > r - 1 ? r - 1 : t);
+    float sf = floorf(s), tf = floorf(t);
+    i64 s0 = (i64)(sf > rmax ? rmax : sf), t0 = (i64)(tf > rmax ? rmax : tf);
+    float fs = s - (float)s0, ft = t - (float)t0;
+    fs = fs < 0 ? 0 : (fs > 1 ? 1 : fs);
+    ft = ft < 0 ? 0 : (ft > 1 ? 1 : ft);
+    i64 s1 = s0 + 1 > r - 1 ? r - 1 : s0 + 1, t1 = t0 + 1 > r - 1 ? r - 1 : t0 + 1;
+    float ls = logf(sigma < 1e-12f ? 1e-12f : sigma), a = 0.0f;
+    i64 lo = 0, hi = 0;
+    if (L > 1) {
+        /* searchsorted (left): the first ladder entry >= ls, by a branch-free binary search */
+        i64 b = 0, len = L;
+        while (len > 1) {
+            i64 h = len / 2;
+            b = ladder[b + h - 1] < ls ? b + h : b;
+            len -= h;
         }
-        if (C == 3) { acc[0] = r0; acc[1] = r1; acc[2] = r2; }
+        hi = b + (ladder[b] < ls);
+        hi = hi < 1 ? 1 : (hi > L - 1 ? L - 1 : hi);
+        lo = hi - 1;
+        a = (ls - ladder[lo]) / (ladder[hi] - ladder[lo]);
+        a = a < 0 ? 0 : (a > 1 ? 1 : a);
+    }
+    i64 base = (face * r + t0) * r + s0, ds = s1 - s0, dt = (t1 - t0) * r;
+    i64 tex[4] = {base, base + ds, base + dt, base + dt + ds};
+    float w4[4] = {(1 - ft) * (1 - fs), (1 - ft) * fs, ft * (1 - fs), ft * fs};
+    if (C == 3) {  /* RGB: the sums in registers (an array would chain through the stack) */
+        float r0 = 0, r1 = 0, r2 = 0;
+        for (int i = 0; i < 8; i++) {
+            const float *tr = table + (tex[i & 3] + (i < 4 ? lo : hi) * lvl) * 3;
+            float wt = w4[i & 3] * (i < 4 ? 1 - a : a) * wl;
+            r0 += wt * tr[0]; r1 += wt * tr[1]; r2 += wt * tr[2];
+        }
+        acc[0] += r0; acc[1] += r1; acc[2] += r2;
+        return;
+    }
+    for (int i = 0; i < 8; i++) {
+        const float *tr = table + (tex[i & 3] + (i < 4 ? lo : hi) * lvl) * C;
+        float wt = w4[i & 3] * (i < 4 ? 1 - a : a) * wl;
+        for (i64 c = 0; c < C; c++) acc[c] += wt * tr[c];
+    }
+}
+
+/* out[g, c] = sum_{n<N} w[g N + n] E_{sigma[g N + n]}(mu[g N + n])[c] */
+static void sg_range(i64 g0, i64 g1, i64 N, const float *mu, const float *sigma, const float *w, const float *table, i64 r,
+                     i64 L, const float *ladder, i64 C, float *out) {
+    for (i64 g = g0; g < g1; g++) {
+        float acc[16] = {0};
+        for (i64 m = g * N; m < (g + 1) * N; m++)
+            sg_lookup(mu[3 * m], mu[3 * m + 1], mu[3 * m + 2], sigma[m], w[m], table, r, L, ladder, C, acc);
         for (i64 c = 0; c < C; c++) out[g * C + c] = acc[c];
     }
 }
@@ -736,6 +738,42 @@ int prt_sg_lookup_sum(i64 G, i64 N, const float *mu, const float *sigma, const f
     i64 nth = nthreads > 0 ? nthreads : 1;
     #pragma omp parallel for schedule(static, 1) num_threads(nth)
     for (i64 t = 0; t < nth; t++) sg_range(G * t / nth, G * (t + 1) / nth, N, mu, sigma, w, table, r, L, ladder, C, out);
+    return 0;
+}
+
+/* Relighting with view taps (Green §2.3): per vertex v, the lobes of its k tapped views blended
+   (weights and widths linearly, means as the normalised weighted sum; gaussian.blend_lobes) with
+   a_t / sum(a), looked up, summed over the N lobes and scaled by sum(a). w [V, J, N],
+   mu [V, J, N, 3], sigma [V, J, N]; idx [V, k] (in [0, J), checked by the caller), a [V, k]. */
+static void sg_taps_range(i64 v0, i64 v1, i64 J, i64 N, i64 k, const float *w, const float *mu, const float *sigma,
+                          const i64 *idx, const float *av, const float *table, i64 r, i64 L, const float *ladder, i64 C,
+                          float *out) {
+    for (i64 v = v0; v < v1; v++) {
+        float acc[16] = {0}, tot = 0;
+        for (i64 t = 0; t < k; t++) tot += av[v * k + t];
+        float inv = 1.0f / (tot > 1e-12f ? tot : 1e-12f);
+        for (i64 n = 0; n < N; n++) {
+            float wb = 0, sb = 0, mx = 0, my = 0, mz = 0;
+            for (i64 t = 0; t < k; t++) {
+                float an = av[v * k + t] * inv;
+                i64 m = (v * J + idx[v * k + t]) * N + n;
+                wb += an * w[m]; sb += an * sigma[m];
+                mx += an * mu[3 * m]; my += an * mu[3 * m + 1]; mz += an * mu[3 * m + 2];
+            }
+            float nm = sqrtf(mx * mx + my * my + mz * mz);
+            nm = nm > 1e-12f ? nm : 1e-12f;
+            sg_lookup(mx / nm, my / nm, mz / nm, sb > 1e-6f ? sb : 1e-6f, wb, table, r, L, ladder, C, acc);
+        }
+        for (i64 c = 0; c < C; c++) out[v * C + c] = acc[c] * tot;
+    }
+}
+
+int prt_sg_taps(i64 V, i64 J, i64 N, i64 k, const float *w, const float *mu, const float *sigma, const i64 *idx, const float *av,
+                const float *table, i64 r, i64 L, const float *ladder, i64 C, float *out, int nthreads) {
+    i64 nth = nthreads > 0 ? nthreads : 1;
+    #pragma omp parallel for schedule(static, 1) num_threads(nth)
+    for (i64 t = 0; t < nth; t++)
+        sg_taps_range(V * t / nth, V * (t + 1) / nth, J, N, k, w, mu, sigma, idx, av, table, r, L, ladder, C, out);
     return 0;
 }
 """
@@ -831,7 +869,8 @@ def _compile() -> tuple[ctypes.CDLL | None, str]:
     lib.prt_affine_taps.argtypes = [i64, i64, i64, *common, i64, vp, vp, vp, vp, ci, ci]
     lib.prt_constants.argtypes = [i64] * 7 + [vp, vp, vp] + [i64] * 4 + [ci]
     lib.prt_sg_lookup_sum.argtypes = [i64, i64, vp, vp, vp, vp, i64, i64, vp, i64, vp, ci]
-    for f in (lib.prt_affine_rows, lib.prt_affine_dense, lib.prt_affine_taps, lib.prt_constants, lib.prt_sg_lookup_sum):
+    lib.prt_sg_taps.argtypes = [i64, i64, i64, i64, vp, vp, vp, vp, vp, vp, i64, i64, vp, i64, vp, ci]
+    for f in (lib.prt_affine_rows, lib.prt_affine_dense, lib.prt_affine_taps, lib.prt_constants, lib.prt_sg_lookup_sum, lib.prt_sg_taps):
         f.restype = ci
     return lib, f"compiled with {cc} ({' '.join(flags)}), {so}"
 
@@ -1026,6 +1065,27 @@ def sg_lookup_sum(lib, table: torch.Tensor, log_sigmas: torch.Tensor, res: int, 
     lib.prt_sg_lookup_sum(G, N, mu.data_ptr(), sigma.data_ptr(), w.data_ptr(), table.data_ptr(), int(res), ladder.numel(),
                           ladder.data_ptr(), C, out.data_ptr(), torch.get_num_threads())
     return out.reshape(*lead, C)
+
+
+def sg_taps(lib, table: torch.Tensor, log_sigmas: torch.Tensor, res: int, w: torch.Tensor, mu: torch.Tensor, sigma: torch.Tensor,
+            idx: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+    """Gaussian relighting with view taps (Green 2005 §2.3, eq. 2.7), fused per vertex: the lobes
+    of the tapped views blended with ``a / Σa`` (``gaussian.blend_lobes``), looked up in the
+    pyramid (as :func:`sg_lookup_sum`), summed over the lobes and scaled by Σa. ``w [V, J, N]``,
+    ``mu [V, J, N, 3]``, ``sigma [V, J, N]``, ``idx int64 [V, k]`` in [0, J) (checked by the
+    caller), ``a [V, k]`` → ``[V, C]`` float32."""
+    V, J, N = w.shape
+    k = idx.shape[1]
+    C = table.shape[1]
+    if C > 16:
+        raise ValueError(f"sg_taps: {C} channels; accepted: at most 16")
+    f32 = lambda t: t.to(torch.float32).contiguous()  # noqa: E731
+    w, mu, sigma, a, table, ladder = f32(w), f32(mu), f32(sigma), f32(a), f32(table), f32(log_sigmas)
+    idx = idx.to(torch.int64).contiguous()
+    out = torch.empty(V, C, dtype=torch.float32)
+    lib.prt_sg_taps(V, J, N, k, w.data_ptr(), mu.data_ptr(), sigma.data_ptr(), idx.data_ptr(), a.data_ptr(), table.data_ptr(),
+                    int(res), ladder.numel(), ladder.data_ptr(), C, out.data_ptr(), torch.get_num_threads())
+    return out
 
 
 def fits(J: int, n_out: int, C: int) -> bool:
