@@ -400,6 +400,12 @@ def test_paired_timing_gives_the_work_ratio_and_reports_contention():
     assert c["trusted"] == (not c["why_not"])
     strict = measure_paired(lambda: work(1), lambda: work(1), repeats=3, max_switch_rate=-1.0)
     assert not strict.contention["trusted"] and "context switches" in strict.contention["why_not"][0]
+    # adaptive floor phase: more batches of pairs while its even and odd pairs disagree, up to the cap
+    # (floor_agree < 0: never agree; a huge floor_agree: always)
+    grown = measure_paired(lambda: work(1), lambda: work(2), repeats=3, floor_pairs=6, floor_max_pairs=20, floor_agree=-1.0)
+    assert grown.floor["pairs"] == 18 and len(grown.floor["halves"]) == 2  # 6, 12, 18; a fourth batch would pass 20
+    once = measure_paired(lambda: work(1), lambda: work(2), repeats=3, floor_pairs=6, floor_max_pairs=20, floor_agree=1e9)
+    assert once.floor["pairs"] == 6
 
 
 def test_bench_report_has_a_mitsuba_validation_section(tmp_path):

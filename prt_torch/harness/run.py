@@ -52,6 +52,9 @@ RESULTS_VERSION = 1
 #: short interleaved sample pairs behind each speed-up and bound fraction (timing.measure_paired:
 #: the ratio of the fastest tenth of each side, robust to other processes taking the cores)
 FLOOR_PAIRS = 40
+#: the speed-up column's floor phase adds batches of FLOOR_PAIRS pairs, up to this many, while its even and odd
+#: pairs' estimates differ by more than 10% (a busy machine: reports/benchmarks/timing_trust.md)
+FLOOR_MAX_PAIRS = 160
 
 
 # --------------------------------------------------------------------------- transfer
@@ -191,7 +194,8 @@ def evaluate_setting(ev: Evaluator, setting: dict, lights: list[torch.Tensor], v
     pt = measure_paired(relit, uncompressed, repeats=m["repeats"], warmup=m["warmup"], floor_pairs=FLOOR_PAIRS)
     tm = pt.test
     with torch_threads(1):
-        pw = measure_paired(relit, uncompressed, repeats=m["repeats"], warmup=m["warmup"], floor_pairs=FLOOR_PAIRS)
+        pw = measure_paired(relit, uncompressed, repeats=m["repeats"], warmup=m["warmup"], floor_pairs=FLOOR_PAIRS,
+                            floor_max_pairs=FLOOR_MAX_PAIRS)
     # its own bound: read the encoded data (and the view) once, write the output once
     view_bytes = 0 if v0 is None else (v0.numel() * v0.element_size() if isinstance(v0, torch.Tensor)
                                        else sum(t.numel() * t.element_size() for t in v0))

@@ -119,7 +119,8 @@ def _inner(fn: Callable[[], Any], min_sample_time: float) -> int:
 
 def measure_paired(test: Callable[[], Any], peer: Callable[[], Any], repeats: int = 7, warmup: int = 1,
                    min_sample_time: float = 0.02, max_switch_rate: float = 50.0, max_spread: float = 0.5,
-                   floor_pairs: int = 0, floor_sample_time: float = 0.002, floor_quantile: float = 0.1) -> Paired:
+                   floor_pairs: int = 0, floor_sample_time: float = 0.002, floor_quantile: float = 0.1,
+                   floor_max_pairs: int = 0, floor_agree: float = 0.1) -> Paired:
     """Time ``test`` and its ``peer`` interleaved: every repeat times one sample of each, back to
     back (the order alternating), and the speed-up is the median of the per-repeat ratios
     peer/test — a paired estimate that a busy machine slows down on both sides at once.
@@ -135,7 +136,12 @@ def measure_paired(test: Callable[[], Any], peer: Callable[[], Any], repeats: in
     taking the cores, but the fastest tenth of short samples of each side ran (nearly)
     undisturbed, so their ratio stays the work ratio an idle machine shows, where a median of
     per-pair ratios drifts with how each side's parallel regions stall (measured:
-    reports/benchmarks/timing_trust.md)."""
+    reports/benchmarks/timing_trust.md).
+
+    ``floor_max_pairs`` > ``floor_pairs`` makes that phase adaptive: while the estimates from its
+    even and its odd pairs differ by more than ``floor_agree`` (relative), another
+    ``floor_pairs`` pairs are timed, up to ``floor_max_pairs`` — a noisy machine gets more
+    samples, a quiet one no more time."""
     import resource
 
     repeats = check_int("repeats", repeats, 1)
@@ -187,19 +193,29 @@ def measure_paired(test: Callable[[], Any], peer: Callable[[], Any], repeats: in
         f_t, f_p = (max(1, min(10_000, round(target / max(c, 1e-9)))) for c in (c_t, c_p))
         st: list[float] = []
         sp: list[float] = []
-        for i in range(floor_pairs):
-            for name in (("test", "peer") if i % 2 == 0 else ("peer", "test")):
-                fn, n, out = (test, f_t, st) if name == "test" else (peer, f_p, sp)
-                t0 = time.perf_counter()
-                for _ in range(n):
-                    fn()
-                out.append((time.perf_counter() - t0) / n)
-        st.sort()
-        sp.sort()
-        k = min(len(st) - 1, int(floor_quantile * len(st)))
-        speedup = sp[k] / st[k] if st[k] > 0 else float("inf")
-        floor = {"pairs": floor_pairs, "quantile": floor_quantile, "test_s": st[k], "peer_s": sp[k],
-                 "inner_test": f_t, "inner_peer": f_p}
+
+        def estimate(a: list[float], b: list[float]) -> tuple[float, float, float]:
+            a, b = sorted(a), sorted(b)
+            k = min(len(a) - 1, int(floor_quantile * len(a)))
+            return (b[k] / a[k] if a[k] > 0 else float("inf")), a[k], b[k]
+
+        cap = max(floor_pairs, floor_max_pairs)
+        halves = (float("nan"), float("nan"))
+        while True:
+            for i in range(len(st), len(st) + floor_pairs):
+                for name in (("test", "peer") if i % 2 == 0 else ("peer", "test")):
+                    fn, n, out = (test, f_t, st) if name == "test" else (peer, f_p, sp)
+                    t0 = time.perf_counter()
+                    for _ in range(n):
+                        fn()
+                    out.append((time.perf_counter() - t0) / n)
+            halves = (estimate(st[0::2], sp[0::2])[0], estimate(st[1::2], sp[1::2])[0])
+            agree = abs(halves[0] - halves[1]) <= floor_agree * max(min(halves), 1e-12)
+            if agree or len(st) + floor_pairs > cap:
+                break
+        speedup, t_k, p_k = estimate(st, sp)
+        floor = {"pairs": len(st), "quantile": floor_quantile, "test_s": t_k, "peer_s": p_k,
+                 "inner_test": f_t, "inner_peer": f_p, "halves": list(halves)}
     return Paired(_quantiles(tt, warmup, n_t), _quantiles(tp, warmup, n_p), ratio, contention, speedup, floor)
 
 
