@@ -12,7 +12,7 @@ view is folded in per point before anything of size n_out·C leaves the core, so
 costs J·n_out·C multiply-adds per point and no ``[P, n_out, C]`` intermediate (Sloan 2003's
 cost model). torch has no fused op for these small per-point contractions (a GEMM, gather or
 ``embedding_bag`` each leave an intermediate as large as the view behind), so they are a few
-lines of C compiled on first use with the system C compiler (``cc``, OpenMP, about a second),
+lines of C compiled on first use with the system C compiler (``cc``, OpenMP, about 2 s here),
 cached on disk by a hash of the source, flags and CPU, and called through ctypes (the GIL is
 released). Without a compiler — or with ``PRT_TORCH_NATIVE=0`` — :func:`native` returns None
 and ``AffineCodec.relight`` uses its torch formulation, which gives the same results to
