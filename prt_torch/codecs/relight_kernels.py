@@ -1,4 +1,4 @@
-"""Fused CPU kernels for relighting straight from the piecewise-affine codes (Sloan 2003 §6).
+"""Fused CPU kernels for relighting straight from the compressed forms (Sloan 2003 §6; Green 2005).
 
 Per point p of cluster k = k(p) with weights w_p (n_k of them) and per-cluster constants
 ``T_k = [M_0^k l, M_1^k l, ...]`` (computed once per light by ``AffineCodec.cluster_constants``):
@@ -22,7 +22,15 @@ Codes as stored by ``AffineCodec`` (no copies): labels ``[P]`` uint8/int16/int32
 K = 1), weights ``[P, n_max]`` float32 (row stride n_max, the first n used) or packed (the
 n_{k(p)} weights of each point one after the other; ``offsets int64 [P]`` where each starts,
 ``n_vectors int64 [K]``). Constants float32 contiguous: ``[K, J, n_out·C]`` (rows, dense) or
-``[K, n_out, J·C]`` (taps), J = (1 if a mean) + n.
+``[K, n_out, J·C]`` (taps), J = (1 if a mean) + n. Points may be visited in a given order
+(CPCA: cluster by cluster within blocks, from codes stored in that order; ``AffineCodec``
+chooses), and the result written into a given tensor (``out``).
+
+The Gaussian codec's relighting (Green 2005 eq. 2.7 and §2.3) runs here too: per lobe, the
+prefiltered cube-map lookup (face, bilinear texels, linear in log σ between levels) and the
+weighted sum over the lobes (:func:`sg_lookup_sum`); with view taps, the blend of the tapped
+views' lobes as well (:func:`sg_taps`) — one pass per vertex instead of ~30 torch ops over
+lobe-sized intermediates.
 """
 from __future__ import annotations
 
