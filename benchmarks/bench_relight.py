@@ -9,7 +9,12 @@ MRT's four tent taps, Lehtinen & Kautz 2003 eq. (13)), one light per call ``[25,
   where the bound is ``harness.timing.io_bound_fn(bytes read, bytes written)`` — a plain
   ``copy_`` of the bytes a relight must read once (the codec's stored bytes, model and codes,
   ``storage()['bytes_total']``, plus the view) and a ``fill_`` of the output's bytes — timed
-  interleaved with the relight in the same run (``measure_paired``: median of per-repeat ratios);
+  interleaved with the relight in the same run (``measure_paired``: median of per-repeat ratios),
+  the relight writing into a reused result (``relight(..., out=)``, as a render loop does; the
+  allocating call is the **new output** column);
+* **compute floor** = the per-point multiply-adds at this machine's float32 rate, measured in the
+  same run (a cache-resident 256³ GEMM), and **roofline** = max(bound, floor) / relight: where the
+  floor is over twice the bound, no kernel meets the 0.5 goal on this CPU;
 * **vs uncompressed** = time of the reference path on the decoded matrices
   (``relight.apply_dense`` / ``apply_taps``, or ``M @ l`` without a view) / relight time, also paired;
 * the same fraction for the torch formulation (``PRT_TORCH_NATIVE=0``: no compiled kernels),
