@@ -964,16 +964,31 @@ def _layout(kind: str, K: int, J: int, n_out: int, C: int) -> tuple[tuple, tuple
     return (K, n_out, C, Jp), (n_out * C * Jp, 1, C * Jp, Jp)
 
 
-def constants(lib, means, basis, n: int, n_out: int, n_in: int, L: torch.Tensor, kind: str) -> torch.Tensor:
+_WORKSPACE = threading.local()  # per thread: {(kind, size): constants buffer} (see constants(scratch=True))
+
+
+def constants(lib, means, basis, n: int, n_out: int, n_in: int, L: torch.Tensor, kind: str, scratch: bool = False) -> torch.Tensor:
     """Per-cluster constants M_i^k l (Sloan 2003 §6) for ``light L [n_in, C]`` float32, the
     first ``n`` basis rows (and the mean), laid out for kernel ``kind`` ('rows', 'dense',
-    'taps'), zero-padded; one pass over the model (:func:`model_t`)."""
+    'taps'), zero-padded; one pass over the model (:func:`model_t`). ``scratch=True`` writes
+    into this thread's buffer of that layout, reused by its next call (its padding zeroed once,
+    the rest overwritten): for a caller that uses the result before calling again, as
+    ``AffineCodec.relight`` does — no allocation and no zeroing per light."""
     Mt = model_t(means, basis, n_out, n_in)
     K, Jmax = Mt.shape[:2]
     J = (1 if means is not None else 0) + n
     C = L.shape[1]
     size, (sk, sj, so, sc) = _layout(kind, K, J, n_out, C)
-    out = torch.zeros(size, dtype=torch.float32)
+    if scratch:
+        bufs = getattr(_WORKSPACE, "bufs", None)
+        if bufs is None:
+            bufs = _WORKSPACE.bufs = {}
+        out = bufs.get((kind, size))
+        if out is None:
+            bufs.clear()  # one buffer per thread: the latest layout
+            out = bufs[(kind, size)] = torch.zeros(size, dtype=torch.float32)
+    else:
+        out = torch.zeros(size, dtype=torch.float32)
     Lc = L.to(torch.float32).contiguous()
     lib.prt_constants(K, J, Jmax, n_in, n_out, Mt.shape[3], C, Mt.data_ptr(), Lc.data_ptr(), out.data_ptr(),
                       sk, sj, so, sc, torch.get_num_threads())
