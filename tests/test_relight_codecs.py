@@ -358,3 +358,30 @@ def test_relight_into_out(mode, path):
     if mode == "dense":
         with pytest.raises(ValueError, match="out shares memory with an input"):
             c.relight(enc, L, view=view, out=view.view(-1)[:360].view(120, 3))  # the view's own memory
+
+
+def test_relight_from_concurrent_threads():
+    """Relighting calls from several Python threads at once (the kernels release the GIL; each
+    thread has its own constants scratch buffer) give the results of serial calls."""
+    import threading
+
+    c, enc = _fit("cpca_static", {"clusters": 6, "vectors": 3, "max_iter": 5}, (9, 4), 250, None)
+    lights = [torch.randn(4, 3, generator=torch.Generator().manual_seed(i)) for i in range(6)]
+    views = [None, torch.randn(250, 9), (torch.randint(0, 9, (250, 4)), torch.rand(250, 4))]
+    want = {(i, v): c.relight(enc, L, view=views[v]) for i, L in enumerate(lights) for v in range(3)}
+    got, errors = {}, []
+
+    def work(i):
+        try:
+            for _ in range(20):
+                for v in range(3):
+                    got[(i, v)] = c.relight(enc, lights[i], view=views[v])
+        except Exception as e:  # pragma: no cover - reported below
+            errors.append(e)
+
+    threads = [threading.Thread(target=work, args=(i,)) for i in range(len(lights))]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors and all(torch.equal(got[k], want[k]) for k in want)
