@@ -265,6 +265,12 @@ def test_kernels_visit_points_in_any_order():
                            relight_kernels.affine_taps(lib, T["taps"], 4, 9, 3, *codes, *taps)[0])
     with pytest.raises(ValueError, match="order must be a contiguous int32 permutation"):
         relight_kernels.affine_rows(lib, T["rows"], 4, 9, 3, *codes, P=250, order=order.long())
+    # an order's range is checked once per tensor version: an in-place edit is checked again
+    bad = order.clone()
+    relight_kernels.affine_rows(lib, T["rows"], 4, 9, 3, *codes, P=250, order=bad)
+    bad[7] = 250
+    with pytest.raises(ValueError, match=r"order spans \[0, 250\]"):
+        relight_kernels.affine_rows(lib, T["rows"], 4, 9, 3, *codes, P=250, order=bad)
 
 
 def test_dense_and_taps_kernels_do_not_depend_on_the_thread_split():

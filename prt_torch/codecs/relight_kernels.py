@@ -995,15 +995,24 @@ def constants(lib, means, basis, n: int, n_out: int, n_in: int, L: torch.Tensor,
     return out
 
 
+_ORDERS_CHECKED: dict[int, tuple] = {}  # id(order) -> (weak reference, version): range already checked
+
+
 def _order(order, P: int):
-    """The visiting order: None (point order) or a permutation ``int32 [P]`` (cluster order)."""
+    """The visiting order: None (point order) or a permutation ``int32 [P]`` (cluster order).
+    Its range is checked once per tensor and version (a cached order is reused every call)."""
     if order is None:
         return None
     if order.dtype != torch.int32 or order.shape != (P,) or not order.is_contiguous():
         raise ValueError(f"order must be a contiguous int32 permutation [{P}]; got {order.dtype} {tuple(order.shape)}")
-    lo, hi = (int(x) for x in torch.aminmax(order)) if P else (0, -1)
-    if P and (lo < 0 or hi >= P):
-        raise ValueError(f"order spans [{lo}, {hi}]; accepted: a permutation of 0..{P - 1}")
+    hit = _ORDERS_CHECKED.get(id(order))
+    if hit is None or hit[0]() is not order or hit[1] != order._version:
+        lo, hi = (int(x) for x in torch.aminmax(order)) if P else (0, -1)
+        if P and (lo < 0 or hi >= P):
+            raise ValueError(f"order spans [{lo}, {hi}]; accepted: a permutation of 0..{P - 1}")
+        if hit is None or hit[0]() is not order:
+            weakref.finalize(order, _ORDERS_CHECKED.pop, id(order), None)
+        _ORDERS_CHECKED[id(order)] = (weakref.ref(order), order._version)
     return order.data_ptr()
 
 
