@@ -133,25 +133,24 @@ static inline void interleave3(v8 a0, v8 a1, v8 a2, float *d) {
    Returns 2 if an output is not finite. */
 static inline int store8_rgb(const v8 *R, float *out, const i64 *pl, int seq) {
     v8 s0 = hsum8(R), s1 = hsum8(R + 8), s2 = hsum8(R + 16);
-    int flag = 0;
+    /* non-finite: |x| above FLT_MAX as bits (NaN and Inf), all 24 lanes at once */
+    typedef int32_t v8i __attribute__((vector_size(32)));
+    const v8i absmask = {0x7fffffff, 0x7fffffff, 0x7fffffff, 0x7fffffff, 0x7fffffff, 0x7fffffff, 0x7fffffff, 0x7fffffff};
+    const v8i maxbits = {0x7f7fffff, 0x7f7fffff, 0x7f7fffff, 0x7f7fffff, 0x7f7fffff, 0x7f7fffff, 0x7f7fffff, 0x7f7fffff};
+    v8i bad = (((v8i)s0 & absmask) > maxbits) | (((v8i)s1 & absmask) > maxbits) | (((v8i)s2 & absmask) > maxbits);
+    int any = 0;
+    for (int l = 0; l < 8; l++) any |= bad[l];
 #ifdef SHUF
     if (seq) {  /* consecutive points (pl[l] = pl[0] + l): 24 contiguous floats, three vector stores */
-        typedef int32_t v8i __attribute__((vector_size(32)));
-        const v8i absmask = {0x7fffffff, 0x7fffffff, 0x7fffffff, 0x7fffffff, 0x7fffffff, 0x7fffffff, 0x7fffffff, 0x7fffffff};
-        const v8i maxbits = {0x7f7fffff, 0x7f7fffff, 0x7f7fffff, 0x7f7fffff, 0x7f7fffff, 0x7f7fffff, 0x7f7fffff, 0x7f7fffff};
-        v8i bad = (((v8i)s0 & absmask) > maxbits) | (((v8i)s1 & absmask) > maxbits) | (((v8i)s2 & absmask) > maxbits);
         interleave3(s0, s1, s2, out + 3 * pl[0]);
-        int any = 0;
-        for (int l = 0; l < 8; l++) any |= bad[l];
         return any ? 2 : 0;
     }
 #endif
     for (int l = 0; l < 8; l++) {
         float *op = out + 3 * pl[l];
         op[0] = s0[l]; op[1] = s1[l]; op[2] = s2[l];
-        if (!(fabsf(s0[l]) <= FLT_MAX && fabsf(s1[l]) <= FLT_MAX && fabsf(s2[l]) <= FLT_MAX)) flag |= 2;
     }
-    return flag;
+    return any ? 2 : 0;
 }
 
 static inline float dot(const float *a, const float *b, i64 n) {
