@@ -460,10 +460,16 @@ def lobe_sum(light: PrefilteredEnvironment, w: torch.Tensor, mu: torch.Tensor, s
     ``mu [..., N, 3]``, ``sigma [..., N]`` → ``[..., C]`` float32: one fused pass per lobe
     (``relight_kernels.sg_lookup_sum``) where the kernels are compiled, else
     ``light.lookup`` and a sum (the same values to float32 rounding; tests compare them)."""
-    lib = native()
-    if lib is not None and light.channels <= 16:
+    lib = _fused(light)
+    if lib is not None:
         return sg_lookup_sum(lib, light.table(), light.log_sigmas, light.res, mu, sigma, w)
     return (w[..., None] * light.lookup(mu, sigma)).sum(-2)
+
+
+def _fused(light: PrefilteredEnvironment):
+    """The compiled kernels when they take this light (≤ 16 channels), else None (torch path)."""
+    lib = native()
+    return lib if lib is not None and light.channels <= 16 else None
 
 
 @register("gaussian")
@@ -841,8 +847,8 @@ class GaussianCodec(Codec):
         idx, a = self.checked_taps(view, V, J)
         rows = torch.arange(V)[:, None]
         a = a.float()
-        lib = native()
-        if lib is not None and light.channels <= 16:  # blend, look up and sum in one fused pass per vertex
+        lib = _fused(light)
+        if lib is not None:  # blend, look up and sum in one fused pass per vertex
             out = sg_taps(lib, light.table(), light.log_sigmas, light.res, w, mu, sg, idx, a)
         else:
             tot = a.sum(1, keepdim=True)

@@ -200,7 +200,6 @@ def measure_paired(test: Callable[[], Any], peer: Callable[[], Any], repeats: in
             return (b[k] / a[k] if a[k] > 0 else float("inf")), a[k], b[k]
 
         cap = max(floor_pairs, floor_max_pairs)
-        halves = (float("nan"), float("nan"))
         while True:
             for i in range(len(st), len(st) + floor_pairs):
                 for name in (("test", "peer") if i % 2 == 0 else ("peer", "test")):
