@@ -91,6 +91,11 @@ def _check(out, ref, scale, J, what):
 
 @pytest.mark.parametrize("case", CASES, ids=[c[0] for c in CASES])
 def test_relight_equals_decode_then_reference(case, path):
+    _check_case(case, path)
+
+
+def _check_case(case, path):
+    """Every view mode, colour count and n_vectors prefix of one of CASES against the reference."""
     label, name, params, ms, P, edit = case
     n_out, n_in = ms
     c, enc = _fit(name, params, ms, P, edit)
@@ -112,6 +117,28 @@ def test_relight_equals_decode_then_reference(case, path):
                 out = c.relight(enc, L, view=view, n_vectors=n)
                 ref, scale = _reference(M, L, view)
                 _check(out, ref, scale, J * n_out, (label, path, C, n, None if view is None else type(view).__name__))
+
+
+@pytest.mark.parametrize("march", ["-march=x86-64-v3", None], ids=["avx2", "baseline"])
+def test_kernels_built_for_other_instruction_sets(march, monkeypatch, tmp_path):
+    """The kernels as built on machines unlike this one: AVX2 + FMA with 16 vector registers (the
+    rows kernel pairs points in fewer accumulators there) and the compiler's baseline ISA (the
+    fallback where -march=native is refused; 8-float vectors split in SSE halves), against the
+    float64 reference, every view mode (the default build is the native path of the test above)."""
+    import platform
+
+    if march is not None and platform.machine() not in ("x86_64", "AMD64"):
+        pytest.skip("x86-64 micro-architecture levels only")
+    flags = [f for f in relight_kernels._FLAGS if f != "-march=native"] + ([march] if march else [])
+    monkeypatch.setattr(relight_kernels, "_FLAGS", flags)
+    monkeypatch.setattr(relight_kernels, "_state", {})
+    monkeypatch.setenv("PRT_TORCH_CACHE", str(tmp_path))
+    if relight_kernels.native() is None:
+        pytest.skip(f"no compiled kernels: {relight_kernels.native_status()['detail']}")
+    assert " ".join(flags) in relight_kernels.native_status()["detail"]
+    for case in CASES:
+        if case[0] in ("pca mean", "cpca static", "cpca adaptive (packed)", "mrt_pca n_out=49"):
+            _check_case(case, "native " + (march or "baseline"))
 
 
 @pytest.mark.parametrize("name, params", [("vq", {"clusters": 5}), ("pca", {"vectors": 3}),

@@ -24,7 +24,9 @@ n_{k(p)} weights of each point one after the other; ``offsets int64 [P]`` where 
 ``n_vectors int64 [K]``). Constants float32 contiguous: ``[K, J, n_out·C]`` (rows, dense) or
 ``[K, n_out, J·C]`` (taps), J = (1 if a mean) + n. Points may be visited in a given order
 (CPCA: cluster by cluster within blocks, from codes stored in that order; ``AffineCodec``
-chooses), and the result written into a given tensor (``out``).
+chooses), and the result written into a given tensor (``out``). Without a view, two consecutive
+visits of one cluster with the same term count are combined together, each ``T_k`` load
+feeding both points' multiply-adds (each point's sums in the same order: same bits).
 
 The Gaussian codec's relighting (Green 2005 eq. 2.7 and §2.3) runs here too: per lobe, the
 prefiltered cube-map lookup (face, bilinear texels, linear in log σ between levels) and the
@@ -208,6 +210,56 @@ static inline __attribute__((always_inline)) void combine(i64 F, i64 cs, const f
     }
 }
 
+/* two points of one cluster with the same term count at once: each T load feeds both points'
+   FMAs (the rows kernel otherwise issues one load per FMA). Each point's sums are formed in the
+   same order as by ACCUMULATE, so a point's result does not depend on whether it was paired. */
+#define ACC2_INIT(b) v8 a##b = (b < NB_ && mean) ? LD(Tc + 8 * b) : (v8){0}; v8 c##b = a##b;
+#define ACC2_STEP(b) if (b < NB_) { v8 t_ = LD(Tb + 8 * b); a##b += wi * t_; c##b += ui * t_; }
+#define ACC2_STORE(b) if (b < NB_) { ST(ec + 8 * b, a##b); ST(fc + 8 * b, c##b); }
+#define ROWS2_CHUNK(NB)                                                                          \
+static inline void rows2_chunk_##NB(const float *Tc, i64 F, int mean, const float *w, const float *u, i64 cnt, \
+                                    float *ec, float *fc) {                                      \
+    enum { NB_ = NB };                                                                           \
+    EACH12(ACC2_INIT)                                                                            \
+    const float *Tb = Tc + (mean ? F : 0);                                                       \
+    for (i64 i = 0; i < cnt; i++, Tb += F) {                                                     \
+        float wi = w[i], ui = u[i];                                                              \
+        EACH12(ACC2_STEP)                                                                        \
+    }                                                                                            \
+    EACH12(ACC2_STORE)                                                                           \
+}
+/* 2 NB accumulators + a T vector + 2 weights must fit the vector registers: 32 with AVX-512VL,
+   else 16 */
+#if defined(__AVX512VL__)
+#define MAXNB2 12
+#define CHUNKS2(X) CHUNKS(X)
+#else
+#define MAXNB2 6
+#define CHUNKS2(X) X(1) X(2) X(3) X(4) X(5) X(6)
+#endif
+CHUNKS2(ROWS2_CHUNK)
+#define CASE_ROWS2(NB) case NB: rows2_chunk_##NB(Tc, F, mean, w, u, cnt, ec, fc); break;
+static inline i64 chunk_size2(i64 nv) { i64 n = (nv + MAXNB2 - 1) / MAXNB2; return n ? (nv + n - 1) / n : 1; }
+
+/* combine for two points sharing T: e = T-combination with weights w, f = with weights u */
+static inline __attribute__((always_inline)) void combine2(i64 F, i64 cs, const float *T, int mean, const float *w,
+                                                           const float *u, i64 cnt, float *e, float *f) {
+    i64 nv = F / 8;  /* cs = chunk_size2(nv) */
+    for (i64 b0 = 0; b0 < nv; b0 += cs) {
+        int nb = (int)(nv - b0 < cs ? nv - b0 : cs);
+        const float *Tc = T + 8 * b0;
+        float *ec = e + 8 * b0, *fc = f + 8 * b0;
+        switch (nb) { CHUNKS2(CASE_ROWS2) default: break; }
+    }
+}
+
+/* out[0:n] = e[0:n] */
+static inline void copy_row(float *out, const float *e, i64 n) {
+    i64 f = 0;
+    for (; f + 8 <= n; f += 8) ST(out + f, LD(e + f));
+    for (; f < n; f++) out[f] = e[f];
+}
+
 /* e[0:R] = sum_{t<n} g[t] rows[t][0:R] */
 static inline void gather_sum(i64 R, const float *const *rows, const float *g, i64 n, float *e) {
     i64 f0 = 0;
@@ -295,7 +347,8 @@ int prt_constants(i64 K, i64 J, i64 Jmax, i64 n_in, i64 n_out, i64 n_pad, i64 C,
 static int prt_affine_rows_range(const int32_t *order, int csort, i64 p0, i64 p1, i64 P, i64 F, i64 Fo, const void *lab,
         int lab_kind, const float *W, i64 wstride, const i64 *woff,
                     const i64 *nk, i64 nuse, int mean, const float *T, i64 J, float *out) {
-    const i64 cs = chunk_size(F / 8);
+    const i64 cs = chunk_size(F / 8), cs2 = chunk_size2(F / 8);
+    float e[4096], f[4096];  /* rows padded from Fo to F: combined here, then copied */
     for (i64 q = p0; q < p1; q++) {
         i64 p = order ? order[q] : q, pc = csort ? q : p;
         if (order && q + PF_AHEAD < p1) {
@@ -305,15 +358,34 @@ static int prt_affine_rows_range(const int32_t *order, int csort, i64 p0, i64 p1
         }
         i64 k = lab_at(lab, lab_kind, pc), cnt;
         const float *w = weights_of(W, wstride, woff, nk, nuse, k, pc, &cnt);
+        const float *Tk = T + k * J * F;
+        if (W && q + 1 < p1) {  /* the next visit: same cluster and term count (always for PCA; mostly
+                                   for CPCA, visited cluster by cluster) -> both at once */
+            i64 p2 = order ? order[q + 1] : q + 1, pc2 = csort ? q + 1 : p2, cnt2;
+            i64 k2 = lab_at(lab, lab_kind, pc2);
+            const float *u = weights_of(W, wstride, woff, nk, nuse, k2, pc2, &cnt2);
+            if (k2 == k && cnt2 == cnt) {
+                if (order && q + 1 + PF_AHEAD < p1) {
+                    i64 pp = order[q + 1 + PF_AHEAD];
+                    if (!csort) PREFETCH_CODES(pp);
+                    PREFETCH_ROW(out + pp * Fo, Fo, 1);
+                }
+                if (F == Fo) {
+                    combine2(F, cs2, Tk, mean, w, u, cnt, out + p * Fo, out + p2 * Fo);
+                } else {
+                    combine2(F, cs2, Tk, mean, w, u, cnt, e, f);
+                    copy_row(out + p * Fo, e, Fo);
+                    copy_row(out + p2 * Fo, f, Fo);
+                }
+                q++;
+                continue;
+            }
+        }
         if (F == Fo) {
-            combine(F, cs, T + k * J * F, mean, w, cnt, out + p * Fo);
+            combine(F, cs, Tk, mean, w, cnt, out + p * Fo);
         } else {
-            float e[4096];
-            combine(F, cs, T + k * J * F, mean, w, cnt, e);
-            float *op = out + p * Fo;
-            i64 f = 0;
-            for (; f + 8 <= Fo; f += 8) ST(op + f, LD(e + f));
-            for (; f < Fo; f++) op[f] = e[f];
+            combine(F, cs, Tk, mean, w, cnt, e);
+            copy_row(out + p * Fo, e, Fo);
         }
     }
     return 0;
