@@ -364,6 +364,13 @@ def test_storage_model():
     assert st["bytes_total"] == sum(st["bytes"].values())
     assert math.isclose(st["compression_ratio"], P * D * 4 / st["bytes_total"])
     assert codecs.label_dtype(300) == torch.int16 and codecs.label_dtype(40000) == torch.int32
+    assert st["relight_macs_per_point_per_channel"] == 4 + 1  # vectors: n' + 1 per point
+    # per-cluster n_k (adaptive): the cost model counts each point's own n_k, on average over the points
+    a = codecs.get("cpca_adaptive", clusters=8, vectors=2, budget=2.0, max_vectors=5, iterations=1, adapt_iters=2)
+    ea = a.fit_encode(X, matrix_shape=(5, 6))
+    nk = a.n_vectors_[a.labels_of(ea)].double()
+    assert nk.min() != nk.max()  # the clusters' n_k differ
+    assert math.isclose(a.storage(ea)["relight_macs_per_point_per_channel"], (float(nk.mean()) + 1) * 5)
 
 
 def test_weighted_pca_matches_weighted_covariance():

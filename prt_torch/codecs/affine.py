@@ -516,16 +516,16 @@ class AffineCodec(Codec):
             "vectors_mean_per_point": per_point / max(P, 1),
             "sloan_cost_floats": cost, "sloan_per_point_floats": per_point, "sloan_per_cluster_floats": per_cluster,
             "sloan_ratio": P * D / cost if cost else math.inf,
-            "relight_macs_per_point_per_channel": self._relight_cost(),
+            "relight_macs_per_point_per_channel": self._relight_cost(per_point / max(P, 1) + (1 if self.means_ is not None else 0)),
         })
         return out
 
-    def _relight_cost(self) -> float:
+    def _relight_cost(self, terms: float) -> float:
         """Multiply-adds per point per colour channel of the per-point stage (Sloan 2003 §6:
-        n'+1 per output; ×n_out for matrices without a view)."""
+        n'+1 per output; ×n_out for matrices without a view), for ``terms`` = n'+1 terms per point
+        on average (per-cluster n_k: the mean over the points, not the largest n_k)."""
         n_out = self.matrix_shape_[0] if self.matrix_shape_ else 1
-        J = self.basis_.shape[1] + (1 if self.means_ is not None else 0)
-        return float(J * n_out)
+        return float(terms * n_out)
 
     # ----------------------------------------------------------------- persistence
     def _state(self):

@@ -621,6 +621,7 @@ class MRTPCA(PCA):
             raise ValueError("mrt_pca needs matrix_shape=(M*M, n_in) (each row an MRT matrix A_p, Lehtinen & Kautz 2003 §6)")
         super()._check_data(P, D, ms)
 
-    def _relight_cost(self) -> float:
-        """4K multiply-adds per colour per vertex with the tent basis (eq. (13)); 4(K+1) with a mean."""
-        return 4.0 * (self.basis_.shape[1] + (1 if self.means_ is not None else 0))
+    def _relight_cost(self, terms: float) -> float:
+        """4K multiply-adds per colour per vertex with the tent basis (eq. (13)); 4(K+1) with a mean
+        (``terms`` = K, or K+1)."""
+        return 4.0 * terms
