@@ -40,6 +40,7 @@ CASES = [
     ("vq K>1", "vq", {"clusters": 7, "max_iter": 5}, (9, 4), 200, None),
     ("vq K=1", "vq", {"clusters": 1}, (9, 4), 100, None),
     ("vq int16 labels", "vq", {"clusters": 300, "max_iter": 2, "init": "random"}, (5, 3), 600, None),
+    ("vq n_out=16", "vq", {"clusters": 7, "max_iter": 5}, (16, 4), 203, None),  # rows a multiple of 8: the mean-only dense loop
     ("pca mean", "pca", {"vectors": 5}, (9, 4), 200, None),
     ("pca no mean", "pca", {"vectors": 5, "center": False}, (9, 4), 200, None),
     ("cpca static", "cpca_static", {"clusters": 6, "vectors": 3, "max_iter": 5}, (9, 4), 250, None),
@@ -137,7 +138,7 @@ def test_kernels_built_for_other_instruction_sets(march, monkeypatch, tmp_path):
         pytest.skip(f"no compiled kernels: {relight_kernels.native_status()['detail']}")
     assert " ".join(flags) in relight_kernels.native_status()["detail"]
     for case in CASES:
-        if case[0] in ("pca mean", "cpca static", "cpca adaptive (packed)", "mrt_pca n_out=49"):
+        if case[0] in ("vq n_out=16", "pca mean", "cpca static", "cpca adaptive (packed)", "mrt_pca n_out=49"):
             _check_case(case, "native " + (march or "baseline"))
 
 

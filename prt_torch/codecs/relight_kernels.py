@@ -483,6 +483,20 @@ static inline const float *dense_point(const int32_t *order, int csort, i64 q, i
     return T + k * J * F;
 }
 
+/* the mean-only RGB dense loop for NBS vectors per colour (prt_affine_dense_range) */
+#define VQ_DENSE_CASE(NBS)                                                                       \
+    case NBS:                                                                                    \
+        for (; q + 8 <= p1; q += 8) {                                                            \
+            for (int l = 0; l < 8; l++) {                                                        \
+                pl[l] = q + l;                                                                   \
+                dense3v_##NBS(T + lab_at(lab, lab_kind, q + l) * J * F, n_pad, F, 1, 0, 0, y + (q + l) * n_out, R + l); \
+            }                                                                                    \
+            flag |= store8_rgb(R, out, pl, 1);                                                   \
+        }                                                                                        \
+        break;
+#define VQ_DENSE_CASES VQ_DENSE_CASE(1) VQ_DENSE_CASE(2) VQ_DENSE_CASE(3) VQ_DENSE_CASE(4) VQ_DENSE_CASE(5) VQ_DENSE_CASE(6) \
+    VQ_DENSE_CASE(7)
+
 /* dense view: constants colour-major T [K, J, C, n_pad] (rows zero-padded from n_out to n_pad,
    a multiple of 8); out[p, c] = y_p . e_p[c], e_p accumulated in registers chunk by chunk and
    dotted with the view as it is formed (RGB with n_pad <= 56: all three colours in one pass, 8
@@ -501,6 +515,12 @@ static int prt_affine_dense_range(const int32_t *order, int csort, i64 p0, i64 p
         v8 R[24];
         float yb[56];
         i64 pl[8];
+        if (!W && mean && !order && n_out == n_pad) {
+            /* mean only (VQ): y_p . T_k per colour, points in order, view rows read in place; the
+               per-point bookkeeping of the general loop below (weights, order, prefetch, padding,
+               the switch on nbt) cost as much as the arithmetic (measured: 1.2x). Same sums. */
+            switch (nbt) { VQ_DENSE_CASES default: break; }
+        }
         for (; q + 8 <= p1; q += 8) {
             for (int l = 0; l < 8; l++) {
                 const float *w, *yp;
