@@ -698,7 +698,7 @@ static inline i64 taps_point(i64 p, i64 pc, const void *lab, int lab_kind, const
     return nt;
 }
 
-/* taps: constants T [K, n_out, C, Jp] (J terms zero-padded to Jp, a multiple of 8);
+/* taps: constants T [K, n_out, C, Jp] (J terms zero-padded to Jp, a multiple of 8; Jp = 1 for one term);
    s = sum_t g[p, t] T[k, idx[p, t]] ([C, Jp]); out[p, c] = (mean ? s[c, 0] : 0) + w_p . s[c, mean:mean+cnt].
    Returns 1 if a tap index is outside [0, n_out) (that tap is skipped), 2 if an output is not finite. */
 static int prt_affine_taps_range(const int32_t *order, int csort, i64 p0, i64 p1, i64 P, i64 n_out, i64 C, const void *lab,
@@ -708,6 +708,54 @@ static int prt_affine_taps_range(const int32_t *order, int csort, i64 p0, i64 p1
     i64 R = Jp * C;
     int flag = 0;
     i64 q = p0;
+    if (Jp == 1) {
+        /* one term (VQ: the mean alone; or one vector, no mean), constants unpadded [K, n_out, C]:
+           o_c = s_p sum_t g_t T[k, idx_t, c], s_p = 1 (mean) or w_p0 -- the same operations, in the
+           same order, as the vector path's lane 0 (its other lanes are zeros) */
+        for (; q < p1; q++) {
+            i64 p = order ? order[q] : q, pc = csort ? q : p, cnt;
+            if (order && q + PF_AHEAD < p1) {
+                i64 pp = order[q + PF_AHEAD];
+                if (!csort) PREFETCH_CODES(pp);
+                __builtin_prefetch(idx + pp * ntap);
+                __builtin_prefetch(g + pp * ntap);
+            }
+            i64 k = lab_at(lab, lab_kind, pc);
+            const float *w = weights_of(W, wstride, woff, nk, nuse, k, pc, &cnt);
+            const float sp = mean ? 1.0f : (cnt ? w[0] : 0.0f);
+            const float *Tk = T + k * n_out * C;
+            const i64 *ix = idx + p * ntap;
+            const float *gg = g + p * ntap;
+            if (C == 3) {
+                float o0 = 0.0f, o1 = 0.0f, o2 = 0.0f;
+                for (i64 t = 0; t < ntap; t++) {
+                    i64 ri = ix[t];
+                    if ((uint64_t)ri >= (uint64_t)n_out) { flag |= 1; continue; }  /* skipped, flagged */
+                    const float *r = Tk + ri * 3;
+                    float gt = gg[t];
+                    o0 += gt * r[0]; o1 += gt * r[1]; o2 += gt * r[2];
+                }
+                o0 *= sp; o1 *= sp; o2 *= sp;
+                out[p * 3] = o0; out[p * 3 + 1] = o1; out[p * 3 + 2] = o2;
+                if (!(fabsf(o0) <= FLT_MAX && fabsf(o1) <= FLT_MAX && fabsf(o2) <= FLT_MAX)) flag |= 2;
+                continue;
+            }
+            float o[16] = {0};
+            for (i64 t = 0; t < ntap; t++) {
+                i64 ri = ix[t];
+                if ((uint64_t)ri >= (uint64_t)n_out) { flag |= 1; continue; }
+                const float *r = Tk + ri * C;
+                float gt = gg[t];
+                for (i64 c = 0; c < C; c++) o[c] += gt * r[c];
+            }
+            for (i64 c = 0; c < C; c++) {
+                float v = o[c] * sp;
+                out[p * C + c] = v;
+                if (!(fabsf(v) <= FLT_MAX)) flag |= 2;
+            }
+        }
+        return flag;
+    }
     if (C == 3 && Jp / 8 <= 4) {
         /* RGB: 8 points at a time, their 24 dot products reduced together */
         v8 Rv[24];
@@ -1080,7 +1128,7 @@ def _layout(kind: str, K: int, J: int, n_out: int, C: int) -> tuple[tuple, tuple
     if kind == "dense":  # [K, J, C, n8]: colour-major, each colour a dot with the view
         n8 = _pad8(n_out)
         return (K, J, C, n8), (J * C * n8, C * n8, 1, n8)
-    Jp = _pad8(J)  # taps: [K, n_out, C, J8]: a tapped row holds every term of every colour
+    Jp = 1 if J == 1 else _pad8(J)  # taps: [K, n_out, C, J8]: a tapped row holds every term of every colour (one term: unpadded)
     return (K, n_out, C, Jp), (n_out * C * Jp, 1, C * Jp, Jp)
 
 
@@ -1242,4 +1290,4 @@ def sg_taps(lib, table: torch.Tensor, log_sigmas: torch.Tensor, res: int, w: tor
 
 def fits(J: int, n_out: int, C: int) -> bool:
     """Whether the kernels' per-point buffers hold these sizes (else the torch path is used)."""
-    return C <= 16 and max(_pad8(n_out * C), C * _pad8(n_out), C * _pad8(J)) <= MAX_ROW
+    return C <= 16 and max(_pad8(n_out * C), C * _pad8(n_out), C * _pad8(J)) <= MAX_ROW  # taps with J = 1: C floats
