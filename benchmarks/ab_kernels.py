@@ -1,0 +1,182 @@
+"""Paired A/B of two versions of the compiled relight kernels, on every codec and view mode.
+
+    .venv/bin/python benchmarks/ab_kernels.py                        # HEAD vs the working tree
+    .venv/bin/python benchmarks/ab_kernels.py --base 25850e2 --threads 1,2 --only cpca,vq
+    .venv/bin/python benchmarks/ab_kernels.py --base HEAD~1 --test HEAD --shape default
+
+Each version's C source (``relight_kernels._SRC``) comes from a git revision or from the working
+tree (``--test .``, the default). Both are compiled and cached by a hash of the source. The two
+libraries are then swapped under the same ``codec.relight(..., out=)`` calls, and samples of each
+are timed back to back in one process, in alternating order (``harness.timing.measure_paired``:
+median of the per-repeat ratios, with their IQR). A machine that speeds up or slows down mid-run
+therefore moves both sides of every ratio, and a change of a few per cent stays visible on a
+shared machine.
+
+Every comparison also reports ``maxdiff``, the largest absolute difference between the two
+versions' results, which must be 0 for a change meant to keep the arithmetic.
+
+Why a tool: code layout alone moves these kernels' speed. Adding a loop to one C function once
+slowed another loop in it by 15–27%, so a kernel change needs every row checked, not only the
+rows it targets.
+
+The A/B is refused when the two revisions differ outside ``_SRC``. The Python side decides the
+constants' layouts and the arguments the kernels read, so mixing one revision's Python with the
+other's C would compare different work.
+
+Shapes (``--shape``):
+* ``relight``: ``bench_relight``'s 50 000-point settings (VQ 256, PCA 8, CPCA 256×8 static,
+  iterative and adaptive; MRT-PCA 16), no view, dense view, and taps;
+* ``default``: the default benchmark's shape, 10 242 points of a 64×16 MRT-like signal with 4
+  tent taps and dense views (VQ 64, PCA 8, CPCA 16×4, MRT-PCA 8).
+
+Prints a markdown table; ``--out PATH`` also writes it (atomically).
+"""
+from __future__ import annotations
+
+import prt_torch  # noqa: F401  (first: it chooses OpenMP's wait policy from the machine's load, as for any user)
+
+import argparse  # noqa: E402
+import ast  # noqa: E402
+import os  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
+import tempfile  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import torch  # noqa: E402
+
+from prt_torch.codecs import relight_kernels  # noqa: E402
+from prt_torch.codecs.synthetic import tent_taps_random, transfer_like  # noqa: E402
+from prt_torch.harness.timing import machine_info, measure_paired  # noqa: E402
+from prt_torch.io import atomic_write_text  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import bench_relight  # noqa: E402
+
+ROOT = Path(__file__).resolve().parent.parent
+MODULE = "prt_torch/codecs/relight_kernels.py"
+
+
+def module_text(rev: str) -> str:
+    """The kernels module at a git revision, or in the working tree (``rev == '.'``)."""
+    if rev == ".":
+        return (ROOT / MODULE).read_text()
+    r = subprocess.run(["git", "-C", str(ROOT), "show", f"{rev}:{MODULE}"], capture_output=True, text=True)
+    if r.returncode != 0:
+        raise SystemExit(f"ab_kernels: cannot read {MODULE} at revision {rev!r}: {r.stderr.strip()}; "
+                         "accepted: a git revision of this repository, or '.' for the working tree")
+    return r.stdout
+
+
+def split_source(text: str, rev: str) -> tuple[str, str]:
+    """(the C source ``_SRC``, the module's text without it)."""
+    for node in ast.parse(text).body:
+        if isinstance(node, ast.Assign) and any(isinstance(t, ast.Name) and t.id == "_SRC" for t in node.targets):
+            seg = ast.get_source_segment(text, node)
+            return ast.literal_eval(node.value), text.replace(seg, "")
+    raise SystemExit(f"ab_kernels: {MODULE} at {rev!r} has no _SRC assignment; accepted: a revision with the compiled kernels")
+
+
+def compile_source(src: str, label: str):
+    """The kernels library compiled from ``src`` (``relight_kernels._compile``, cached by hash)."""
+    keep = relight_kernels._SRC
+    relight_kernels._SRC = src
+    try:
+        lib, why = relight_kernels._compile()
+    finally:
+        relight_kernels._SRC = keep
+    if lib is None:
+        raise SystemExit(f"ab_kernels: the kernels of {label} did not compile: {why}")
+    return lib
+
+
+def cases(shape: str, only: list[str], cache: Path):
+    """(label, codec, encoding, light, [(mode, view)]) for the chosen shape."""
+    g = torch.Generator().manual_seed(0)
+    if shape == "relight":
+        P = 50000
+        sig = {"glossy": (transfer_like(P, 24, 25, seed=0), (24, 25)), "mrt": (transfer_like(P, 49, 25, seed=3), (49, 25))}
+        views = {"glossy": [("none", None), ("dense", torch.randn(P, 24, generator=g))],
+                 "mrt": [("none", None), ("dense", torch.randn(P, 49, generator=g)), ("taps", tent_taps_random(P, 7, seed=4))]}
+        todo = bench_relight.settings(False)
+        light = torch.randn(25, 3, generator=g)
+    else:
+        P = 10242
+        sig = {"mrt": (transfer_like(P, 64, 16, seed=0), (64, 16))}
+        views = {"mrt": [("taps", tent_taps_random(P, 8, seed=1)), ("dense", torch.randn(P, 64, generator=g))]}
+        todo = [("vq 64", "vq", {"clusters": 64, "max_iter": 10}, "mrt"), ("pca 8", "pca", {"vectors": 8}, "mrt"),
+                ("cpca 16x4", "cpca_static", {"clusters": 16, "vectors": 4, "max_iter": 10}, "mrt"),
+                ("mrt_pca 8", "mrt_pca", {"vectors": 8}, "mrt")]
+        light = torch.randn(16, 3, generator=g)
+    for label, name, params, s in todo:
+        if only and not any(o in label for o in only):
+            continue
+        X, ms = sig[s]
+        c, enc, _ = bench_relight.fitted(name, params, X, ms, cache)
+        yield label, c, enc, light, views[s]
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--base", default="HEAD", help="git revision of the reference kernels (default HEAD)")
+    ap.add_argument("--test", default=".", help="git revision of the kernels under test, or '.' for the working tree (default)")
+    ap.add_argument("--shape", choices=["relight", "default"], default="relight")
+    ap.add_argument("--threads", default="1", help="comma list of thread counts (default 1)")
+    ap.add_argument("--only", default="", help="comma list of substrings of codec labels (default: all)")
+    ap.add_argument("--repeats", type=int, default=11)
+    ap.add_argument("--cache", default=os.path.join(tempfile.gettempdir(), "prt_bench_relight"))
+    ap.add_argument("--out", default=None, help="also write the table to this file")
+    args = ap.parse_args()
+    threads = [int(t) for t in args.threads.split(",")]
+    if any(t < 1 for t in threads):
+        raise SystemExit(f"ab_kernels: --threads {args.threads!r}; accepted: positive integers, comma-separated")
+    (src_a, rest_a), (src_b, rest_b) = (split_source(module_text(r), r) for r in (args.base, args.test))
+    _, rest_here = split_source(module_text("."), ".")
+    for rev, rest in ((args.base, rest_a), (args.test, rest_b)):
+        if rest != rest_here:  # this process runs the working tree's Python side
+            raise SystemExit(f"ab_kernels: {MODULE} differs between {rev!r} and the working tree outside _SRC (layouts, "
+                             "wrappers): the kernels would not do the work they were written for; accepted: revisions "
+                             "whose module differs from the working tree's in _SRC only")
+    if src_a == src_b:
+        print(f"note: {args.base!r} and {args.test!r} have the same kernel source; the ratios measure only the noise", file=sys.stderr)
+    lib_a, lib_b = compile_source(src_a, args.base), compile_source(src_b, args.test)
+    relight_kernels.native()  # the process's own library, restored after each pair
+    cache = Path(args.cache)
+    cache.mkdir(parents=True, exist_ok=True)
+    only = [o for o in args.only.split(",") if o]
+    lines = [f"# Kernel A/B: {args.base} (base) vs {args.test if args.test != '.' else 'working tree'} (test)", "",
+             f"Machine: {machine_info().get('cpu')}; shape {args.shape}; paired, {args.repeats} repeats; "
+             "ratio = base time / test time (> 1: test faster), median [IQR].", "",
+             "| codec | view | threads | base (ms) | test (ms) | ratio | maxdiff |", "|---|---|---|---|---|---|---|"]
+    print("\n".join(lines), flush=True)
+    own = relight_kernels._state.get("lib")
+    try:
+        for label, c, enc, light, views in cases(args.shape, only, cache):
+            for mode, view in views:
+                buf = torch.empty_like(c.relight(enc, light, view=view))
+
+                def on(lib):
+                    def call():
+                        relight_kernels._state["lib"] = lib
+                        return c.relight(enc, light, view=view, out=buf)
+                    return call
+
+                fa, fb = on(lib_a), on(lib_b)
+                ra, rb = fa().clone(), fb().clone()
+                diff = float((ra - rb).abs().max()) if ra.numel() else 0.0
+                for nt in threads:
+                    torch.set_num_threads(nt)
+                    p = measure_paired(fb, fa, repeats=args.repeats, warmup=2)
+                    row = (f"| {label} | {mode} | {nt} | {1e3 * p.peer.median:.3f} | {1e3 * p.test.median:.3f} | "
+                           f"**{p.ratio.median:.3f}** [{p.ratio.q1:.3f}, {p.ratio.q3:.3f}] | {diff:.1e} |")
+                    lines.append(row)
+                    print(row, flush=True)
+    finally:
+        relight_kernels._state["lib"] = own
+    if args.out:
+        atomic_write_text(Path(args.out), "\n".join(lines) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
