@@ -408,6 +408,31 @@ def test_paired_timing_gives_the_work_ratio_and_reports_contention():
     assert once.floor["pairs"] == 6
 
 
+def test_cold_paired_timing_alternates_single_calls_after_an_eviction():
+    """measure_paired_cold: each side called warmup + repeats times, one call per sample, the
+    order swapped every repeat; the per-pair ratio is the work ratio (a peer doing twice the
+    test's work: ~2, the estimator, not a speed goal); the eviction buffer defaults to 4x the
+    last-level cache, at least 64 MiB."""
+    from prt_torch.harness.timing import last_level_cache_bytes, measure_paired_cold
+
+    a = torch.randn(192, 192, dtype=torch.float64)
+    calls = []
+
+    def work(name, k):
+        calls.append(name)
+        for _ in range(k):
+            a @ a
+
+    p = measure_paired_cold(lambda: work("t", 4), lambda: work("p", 8), repeats=7, warmup=1, evict_bytes=1 << 20)
+    assert calls == ["t", "p"] + ["t", "p", "p", "t"] * 3 + ["t", "p"]
+    assert p.ratio.repeats == 7 and p.test.inner == 1 and p.speedup == p.ratio.median
+    assert 1.3 < p.ratio.median < 3.0
+    assert {"involuntary_switches_per_s", "trusted", "why_not"} <= set(p.contention)
+    assert last_level_cache_bytes() >= 1 << 16
+    with pytest.raises(ValueError, match="repeats"):
+        measure_paired_cold(lambda: None, lambda: None, repeats=0)
+
+
 def test_bench_report_has_a_mitsuba_validation_section(tmp_path):
     import os
 

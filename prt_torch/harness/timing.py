@@ -20,7 +20,8 @@ import torch
 
 from .._checks import check_int
 
-__all__ = ["Timing", "Paired", "measure", "measure_paired", "torch_threads", "io_bound_fn", "machine_info"]
+__all__ = ["Timing", "Paired", "measure", "measure_paired", "measure_paired_cold", "last_level_cache_bytes", "torch_threads",
+           "io_bound_fn", "machine_info"]
 
 
 @dataclass
@@ -166,24 +167,8 @@ def measure_paired(test: Callable[[], Any], peer: Callable[[], Any], repeats: in
         tt.append(pair["test"])
         tp.append(pair["peer"])
         ratios.append(pair["peer"] / pair["test"] if pair["test"] > 0 else float("inf"))
-    wall, cpu = time.perf_counter() - w0, time.process_time() - c0
-    r1 = resource.getrusage(resource.RUSAGE_SELF)
-    switches = (r1.ru_nivcsw - r0.ru_nivcsw) / max(wall, 1e-9)
-    try:
-        load = os.getloadavg()[0]
-    except OSError:  # pragma: no cover
-        load = float("nan")
-    cores = os.cpu_count() or 1
     ratio = _quantiles(ratios, warmup)
-    reasons = []
-    if switches > max_switch_rate:
-        reasons.append(f"{switches:.0f} involuntary context switches/s (> {max_switch_rate:g})")
-    if load > cores:
-        reasons.append(f"load average {load:.1f} > {cores} cores")
-    if ratio.spread > max_spread:
-        reasons.append(f"speed-up spread {ratio.spread:.0%} (> {max_spread:.0%})")
-    contention = {"involuntary_switches_per_s": switches, "cpu_over_wall": cpu / max(wall, 1e-9), "load_average_1min": load,
-                  "cores": cores, "torch_threads": torch.get_num_threads(), "trusted": not reasons, "why_not": reasons}
+    contention = _contention(r0, c0, w0, ratio, max_switch_rate, max_spread)
     speedup, floor = ratio.median, None
     if floor_pairs > 0:
         # equal sample durations on both sides (≥ floor_sample_time): a longer sample is less often
@@ -216,6 +201,93 @@ def measure_paired(test: Callable[[], Any], peer: Callable[[], Any], repeats: in
         floor = {"pairs": len(st), "quantile": floor_quantile, "test_s": t_k, "peer_s": p_k,
                  "inner_test": f_t, "inner_peer": f_p, "halves": list(halves)}
     return Paired(_quantiles(tt, warmup, n_t), _quantiles(tp, warmup, n_p), ratio, contention, speedup, floor)
+
+
+def _contention(r0, c0: float, w0: float, ratio: Timing, max_switch_rate: float, max_spread: float) -> dict:
+    """What the process saw since ``getrusage`` ``r0``, process time ``c0`` and wall time ``w0``
+    (:func:`measure_paired`): involuntary context switches per second, CPU over wall time, the
+    1-minute load against the cores, and ``trusted`` with the reasons it is not."""
+    import resource
+
+    wall, cpu = time.perf_counter() - w0, time.process_time() - c0
+    r1 = resource.getrusage(resource.RUSAGE_SELF)
+    switches = (r1.ru_nivcsw - r0.ru_nivcsw) / max(wall, 1e-9)
+    try:
+        load = os.getloadavg()[0]
+    except OSError:  # pragma: no cover
+        load = float("nan")
+    cores = os.cpu_count() or 1
+    reasons = []
+    if switches > max_switch_rate:
+        reasons.append(f"{switches:.0f} involuntary context switches/s (> {max_switch_rate:g})")
+    if load > cores:
+        reasons.append(f"load average {load:.1f} > {cores} cores")
+    if ratio.spread > max_spread:
+        reasons.append(f"speed-up spread {ratio.spread:.0%} (> {max_spread:.0%})")
+    return {"involuntary_switches_per_s": switches, "cpu_over_wall": cpu / max(wall, 1e-9), "load_average_1min": load,
+            "cores": cores, "torch_threads": torch.get_num_threads(), "trusted": not reasons, "why_not": reasons}
+
+
+def last_level_cache_bytes() -> int:
+    """This CPU's largest cache in bytes (Linux sysfs), else 32 MiB."""
+    best = 0
+    base = "/sys/devices/system/cpu/cpu0/cache"
+    try:
+        for d in os.listdir(base):
+            try:
+                with open(os.path.join(base, d, "size")) as f:
+                    txt = f.read().strip().upper()
+            except OSError:
+                continue
+            mult = {"K": 1024, "M": 1024 ** 2, "G": 1024 ** 3}.get(txt[-1:], 1)
+            digits = txt.rstrip("KMG")
+            if digits.isdigit():
+                best = max(best, int(digits) * mult)
+    except OSError:
+        pass
+    return best or 32 * 1024 ** 2
+
+
+def measure_paired_cold(test: Callable[[], Any], peer: Callable[[], Any], repeats: int = 15, warmup: int = 1,
+                        evict_bytes: int | None = None, max_switch_rate: float = 50.0, max_spread: float = 0.5) -> Paired:
+    """:func:`measure_paired` from cold caches: every timed call is a single call, preceded by a
+    write of ``evict_bytes`` (default 4× the last-level cache, at least 64 MiB) that evicts what
+    the previous call left in the caches, so each side reads its inputs from memory and writes
+    its outputs back, as in a render loop whose other work between frames evicts them. The two
+    sides alternate (order swapped every repeat); ``ratio`` is the distribution of per-repeat
+    ratios peer/test, ``speedup`` its median.
+
+    Where the data fit in the last-level cache, :func:`measure_paired`'s back-to-back repeats
+    measure an L3-bandwidth bound; this one measures the memory-bandwidth bound
+    (reports/benchmarks/relight.md, "cold")."""
+    import resource
+
+    repeats = check_int("repeats", repeats, 1)
+    warmup = check_int("warmup", warmup, 0)
+    nbytes = evict_bytes if evict_bytes is not None else max(64 * 1024 ** 2, 4 * last_level_cache_bytes())
+    junk = torch.empty(max(1, int(nbytes) // 4), dtype=torch.float32)
+    for _ in range(warmup):
+        test()
+        peer()
+    tt: list[float] = []
+    tp: list[float] = []
+    ratios: list[float] = []
+    r0 = resource.getrusage(resource.RUSAGE_SELF)
+    c0, w0 = time.process_time(), time.perf_counter()
+    for i in range(repeats):
+        pair = {}
+        for name in (("test", "peer") if i % 2 == 0 else ("peer", "test")):
+            fn = test if name == "test" else peer
+            junk.fill_(float(i))
+            t0 = time.perf_counter()
+            fn()
+            pair[name] = time.perf_counter() - t0
+        tt.append(pair["test"])
+        tp.append(pair["peer"])
+        ratios.append(pair["peer"] / pair["test"] if pair["test"] > 0 else float("inf"))
+    ratio = _quantiles(ratios, warmup)
+    contention = _contention(r0, c0, w0, ratio, max_switch_rate, max_spread)
+    return Paired(_quantiles(tt, warmup), _quantiles(tp, warmup), ratio, contention, ratio.median, None)
 
 
 class torch_threads:
