@@ -263,7 +263,7 @@ def report(r: dict) -> str:
          "the share of the peak rate the kernel sustains (the MACs are the cost model's; the per-light constants are "
          "not counted); **goal needs** = compute floor / (2 × bound), the share it would have to sustain for "
          "fraction 0.5 (over 1: unreachable on this CPU). **cold** = the same fraction from cold caches "
-         "(`harness.timing.measure_paired_cold`: each call, relight or bound, timed alone after writing 4× the "
+         "(`harness.timing.measure_paired_cold`: each call, relight or bound, timed alone after reading 4× the "
          "last-level cache, pairs alternating; median of per-pair ratios [IQR]): the bound is then the "
          "memory-bandwidth bound proper, while the back-to-back repeats of the main column keep either side's data "
          "(20–50 MB here) largely in the L3 and measure an L3-bandwidth bound. "

@@ -251,9 +251,10 @@ def last_level_cache_bytes() -> int:
 def measure_paired_cold(test: Callable[[], Any], peer: Callable[[], Any], repeats: int = 15, warmup: int = 1,
                         evict_bytes: int | None = None, max_switch_rate: float = 50.0, max_spread: float = 0.5) -> Paired:
     """:func:`measure_paired` from cold caches: every timed call is a single call, preceded by a
-    write of ``evict_bytes`` (default 4× the last-level cache, at least 64 MiB) that evicts what
-    the previous call left in the caches, so each side reads its inputs from memory and writes
-    its outputs back, as in a render loop whose other work between frames evicts them. The two
+    read of ``evict_bytes`` (default 4× the last-level cache, at least 64 MiB) that evicts what
+    the previous call left in the caches (a read: the lines it leaves are clean, so no write-back
+    lands in the timed call), so each side reads its inputs from memory and writes its outputs
+    back, as in a render loop whose other work between frames evicts them. The two
     sides alternate (order swapped every repeat); ``ratio`` is the distribution of per-repeat
     ratios peer/test, ``speedup`` its median.
 
@@ -265,7 +266,7 @@ def measure_paired_cold(test: Callable[[], Any], peer: Callable[[], Any], repeat
     repeats = check_int("repeats", repeats, 1)
     warmup = check_int("warmup", warmup, 0)
     nbytes = evict_bytes if evict_bytes is not None else max(64 * 1024 ** 2, 4 * last_level_cache_bytes())
-    junk = torch.empty(max(1, int(nbytes) // 4), dtype=torch.float32)
+    junk = torch.ones(max(1, int(nbytes) // 4), dtype=torch.float32)
     for _ in range(warmup):
         test()
         peer()
@@ -278,7 +279,7 @@ def measure_paired_cold(test: Callable[[], Any], peer: Callable[[], Any], repeat
         pair = {}
         for name in (("test", "peer") if i % 2 == 0 else ("peer", "test")):
             fn = test if name == "test" else peer
-            junk.fill_(float(i))
+            junk.sum()
             t0 = time.perf_counter()
             fn()
             pair[name] = time.perf_counter() - t0
