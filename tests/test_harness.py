@@ -196,6 +196,7 @@ def test_tiny_sweep_end_to_end_and_consistent_numbers(tmp_path):
         assert r["fps"] == pytest.approx(1 / r["relight_s"]) and r["vertices_per_s"] == pytest.approx(V / r["relight_s"])
         assert r["relight_timing"]["repeats"] >= 3
         assert 0 < r["fraction_of_bound"] < 2  # the bound is a lower bound on the time (noise aside)
+        assert 0 < r["fraction_of_bound_cold"] < 3 and r["bound_cold"]["bound_s"] > 0  # the same from cold caches
         assert len(r["psnr_per_light_view"]) == 2
         assert r["psnr_lights_db"] == pytest.approx(sum(p["psnr_db"] for p in r["psnr_per_light_view"]) / 2)
     vq = sorted((r for r in res["records"] if r["codec"] == "vq"), key=lambda r: r["params"]["clusters"])
