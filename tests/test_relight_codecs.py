@@ -386,7 +386,7 @@ def test_relight_into_out(mode, path):
     with pytest.raises(ValueError, match="accepted: a contiguous float32"):
         c.relight(enc, L, view=view, out=ref.double())
     with pytest.raises(ValueError, match="not contiguous"):
-        c.relight(enc, L, view=view, out=torch.empty(ref.shape[::-1]).T)
+        c.relight(enc, L, view=view, out=torch.empty(ref.shape[::-1]).permute(*range(ref.ndim - 1, -1, -1)))  # reversed strides
     with pytest.raises(TypeError, match="out must be None or a float32 tensor"):
         c.relight(enc, L, view=view, out=[0.0])
     if mode == "dense":
