@@ -18,7 +18,7 @@ TINY = {
     "scene": {"name": "convex", "size": "small"},
     "transfer": {"type": "diffuse", "bands": 3, "samples": 64},
     "lights": ["sky", "directional:direction=0.3,0.2,1;intensity=2"],
-    "metrics": {"random_lights": 256, "repeats": 3, "warmup": 1},
+    "metrics": {"random_lights": 256, "repeats": 3, "warmup": 1, "cold_pairs": 3},
     "codecs": [
         {"type": "vq", "clusters": [4, 16]},
         {"type": "pca", "vectors": [2]},

@@ -55,7 +55,7 @@ DEFAULTS: dict[str, Any] = {
     "transfer": {"type": "diffuse", "bands": 4, "samples": 256},  # + any parameter of that type
     "lights": ["sky", "studio"],
     "views": {"count": 3, "elevation": 30.0, "azimuth0": 20.0},
-    "metrics": {"random_lights": 64, "repeats": 5, "warmup": 1, "max_memory_gb": 16.0},
+    "metrics": {"random_lights": 64, "repeats": 5, "warmup": 1, "max_memory_gb": 16.0, "cold_pairs": 9},
     "codecs": [],
     "render": {"enabled": True, "width": 256, "height": 256},
     "target": {"psnr": None, "codec": None, "param": None, "lo": 1, "hi": 64, "hi_clusters": 256, "metric": "psnr_lights_db",
@@ -213,6 +213,7 @@ CONSTRAINTS: dict[str, list] = {
     "metrics.random_lights": [Interval(int, 1, None)],
     "metrics.repeats": [Interval(int, 1, None)],
     "metrics.warmup": [Interval(int, 0, None)],
+    "metrics.cold_pairs": [Interval(int, 0, None)],
     "metrics.max_memory_gb": [Interval(float, 0, None, closed="neither")],
     "render.enabled": [Boolean()],
     "render.width": [Interval(int, 1, 8192)],

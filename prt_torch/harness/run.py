@@ -55,8 +55,6 @@ FLOOR_PAIRS = 40
 #: the speed-up column's floor phase adds batches of FLOOR_PAIRS pairs, up to this many, while its even and odd
 #: pairs' estimates differ by more than 10% (a busy machine: reports/benchmarks/timing_trust.md)
 FLOOR_MAX_PAIRS = 160
-#: single-call pairs, each after evicting the caches, behind the cold bound fraction (timing.measure_paired_cold)
-COLD_PAIRS = 9
 
 
 # --------------------------------------------------------------------------- transfer
@@ -209,7 +207,9 @@ def evaluate_setting(ev: Evaluator, setting: dict, lights: list[torch.Tensor], v
                         floor_pairs=FLOOR_PAIRS)
     # the same pair from cold caches (each call alone after evicting them): back to back, both
     # sides' data stay in the L2/L3 at these sizes, so the above is a cache-bandwidth bound
-    pc = measure_paired_cold(lambda: codec.relight(enc, L0, view=v0, out=buf), bound, repeats=max(COLD_PAIRS, m["repeats"]))
+    # (metrics.cold_pairs single-call pairs; 0: not measured)
+    pc = (measure_paired_cold(lambda: codec.relight(enc, L0, view=v0, out=buf), bound, repeats=m["cold_pairs"])
+          if m.get("cold_pairs", 0) > 0 else None)
     psnrs = [p["psnr_db"] for p in per]
     finite = [p for p in psnrs if math.isfinite(p)]
     mean_psnr = (sum(finite) / len(finite)) if len(finite) == len(psnrs) else float("inf")
@@ -238,8 +238,6 @@ def evaluate_setting(ev: Evaluator, setting: dict, lights: list[torch.Tensor], v
         "fps": 1.0 / tm.median if tm.median > 0 else float("inf"),
         "fraction_of_bound": pb.speedup,  # t_bound / t_relight(out=), paired: 1 = at the bandwidth bound
         "relight_into_s": pb.test.median,  # relight(..., out=reused result), the render-loop form
-        "fraction_of_bound_cold": pc.speedup,  # the same from cold caches: the memory-bandwidth bound proper
-        "bound_cold": {"relight_s": pc.test.median, "bound_s": pc.peer.median, "q1": pc.ratio.q1, "q3": pc.ratio.q3},
         "bound_bytes": {"read": int(storage["bytes_total"]) + view_bytes, "written": out_bytes},
         "speedup_vs_uncompressed": pw.speedup,  # one thread: the work ratio (timing.torch_threads)
         "speedup_threads": 1,
@@ -251,6 +249,9 @@ def evaluate_setting(ev: Evaluator, setting: dict, lights: list[torch.Tensor], v
         "contention": pt.contention,
         "contention_one_thread": pw.contention,
     }
+    if pc is not None:  # the same from cold caches: the memory-bandwidth bound proper
+        rec["fraction_of_bound_cold"] = pc.speedup
+        rec["bound_cold"] = {"relight_s": pc.test.median, "bound_s": pc.peer.median, "q1": pc.ratio.q1, "q3": pc.ratio.q3}
     return rec, codec, enc
 
 
