@@ -245,8 +245,9 @@ def test_kernel_constants_match_cluster_constants():
     if lib is None:
         pytest.skip("no compiled kernels")
     c, enc = _fit("cpca_static", {"clusters": 5, "vectors": 3}, (9, 4), 300, None)
+    wide, _ = _fit("cpca_static", {"clusters": 3, "vectors": 10}, (9, 4), 300, None)
     L = torch.randn(4, 3)
-    for n in (3, 1, 0):  # J = 4, 2, 1 (the mean alone: taps unpadded)
+    for c, n in ((c, 3), (c, 1), (c, 0), (wide, 10)):  # J = 4, 2, 1 (the mean alone: taps unpadded), 11 (two blocks of 8 terms)
         ref = c.cluster_constants(L, n)  # [K, J, n_out, C]
         K, J, n_out, C = ref.shape
         rows = relight_kernels.constants(lib, c.means_, c.basis_, n, n_out, 4, L, "rows")
@@ -256,7 +257,7 @@ def test_kernel_constants_match_cluster_constants():
         assert torch.allclose(dense[..., :n_out].permute(0, 1, 3, 2), ref, atol=1e-5) and not dense[..., n_out:].any()
         taps = relight_kernels.constants(lib, c.means_, c.basis_, n, n_out, 4, L, "taps")
         assert torch.allclose(taps[..., :J].permute(0, 3, 1, 2), ref, atol=1e-5) and not taps[..., J:].any()
-        assert taps.shape[-1] == (1 if J == 1 else 8)
+        assert taps.shape[-1] == (1 if J == 1 else 8 if J <= 8 else 16)
 
 
 def test_native_status_reports_the_path(monkeypatch):

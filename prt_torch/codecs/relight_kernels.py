@@ -129,6 +129,24 @@ static inline void interleave3(v8 a0, v8 a1, v8 a2, float *d) {
     *(v8 *)(d + 8) = __builtin_shufflevector(t1, a2, 10, 1, 2, 11, 4, 5, 12, 7);
     *(v8 *)(d + 16) = __builtin_shufflevector(t2, a2, 0, 13, 2, 3, 14, 5, 6, 15);
 }
+
+/* r[0..7] <- its 8x8 transpose (r[i][l] -> r[l][i]): unpack pairs, then quads, then halves */
+static inline void transpose8(v8 *r) {
+    v8 t[8], q[8];
+    for (int i = 0; i < 8; i += 2) {
+        t[i] = __builtin_shufflevector(r[i], r[i + 1], 0, 8, 1, 9, 4, 12, 5, 13);
+        t[i + 1] = __builtin_shufflevector(r[i], r[i + 1], 2, 10, 3, 11, 6, 14, 7, 15);
+    }
+    for (int i = 0; i < 8; i += 4)
+        for (int h = 0; h < 2; h++) {
+            q[i + 2 * h] = __builtin_shufflevector(t[i + h], t[i + h + 2], 0, 1, 8, 9, 4, 5, 12, 13);
+            q[i + 2 * h + 1] = __builtin_shufflevector(t[i + h], t[i + h + 2], 2, 3, 10, 11, 6, 7, 14, 15);
+        }
+    for (int i = 0; i < 4; i++) {
+        r[i] = __builtin_shufflevector(q[i], q[i + 4], 0, 1, 2, 3, 8, 9, 10, 11);
+        r[i + 4] = __builtin_shufflevector(q[i], q[i + 4], 4, 5, 6, 7, 12, 13, 14, 15);
+    }
+}
 #endif
 
 /* 8 RGB points: colour c of point l is the lane sum of R[8c + l]; written to out[3 pl[l] + c].
@@ -343,6 +361,42 @@ static inline void store_block(float *dst, i64 ob, const v8 *a, i64 C, i64 n_out
 static void constants_range(i64 k0, i64 k1, i64 J, i64 Jmax, i64 n_in, i64 n_out, i64 n_pad, i64 C, const float *Mt,
                             const float *L, float *out, i64 sk, i64 sj, i64 so, i64 sc) {
     i64 nb = n_pad / 8;
+#ifdef SHUF
+    if (C == 3 && sj == 1 && sc > 1 && sc % 8 == 0 && so == 3 * sc) {
+        /* taps layout [K, n_out, 3, Jp]: a row's terms are contiguous, so compute 8 terms of a block
+           of 8 outputs, transpose each colour's 8x8 and store whole vectors (element stores at
+           stride 3 Jp: measured 2x slower). Same sums (const_group_1 per term and block). */
+        for (i64 k = k0; k < k1; k++)
+            for (i64 ob0 = 0; ob0 < nb; ob0 += CGMAX)
+                for (i64 j0 = 0; j0 < J; j0 += 8) {
+                    i64 G = nb - ob0 < CGMAX ? nb - ob0 : CGMAX;
+                    v8 T3[3 * CGMAX][8];  /* [3 g + c][term] */
+                    for (i64 jj = 0; jj < 8; jj++) {
+                        v8 A[3 * CGMAX];
+                        for (int x = 0; x < 3 * CGMAX; x++) A[x] = (v8){0};
+                        const float *src = Mt + ((k * Jmax + j0 + jj) * n_in) * n_pad + ob0 * 8;
+                        if (j0 + jj < J) {
+                            switch (G) {
+                            case 1: const_group_1(src, n_in, n_pad, L, A); break;
+#if CGMAX >= 3
+                            case 2: const_group_2(src, n_in, n_pad, L, A); break;
+                            default: const_group_3(src, n_in, n_pad, L, A); break;
+#endif
+                            }
+                        }
+                        for (int x = 0; x < 3 * CGMAX; x++) T3[x][jj] = A[x];
+                    }
+                    for (i64 g = 0; g < G; g++)
+                        for (int c = 0; c < 3; c++) {
+                            v8 *t = T3[3 * g + c];
+                            transpose8(t);
+                            for (i64 l = 0; l < 8 && (ob0 + g) * 8 + l < n_out; l++)
+                                ST(out + k * sk + ((ob0 + g) * 8 + l) * so + c * sc + j0, t[l]);
+                        }
+                }
+        return;
+    }
+#endif
     for (i64 k = k0; k < k1; k++)
         for (i64 j = 0; j < J; j++) {
             const float *src = Mt + ((k * Jmax + j) * n_in) * n_pad;
