@@ -15,6 +15,11 @@ MRT's four tent taps, Lehtinen & Kautz 2003 eq. (13)), one light per call ``[25,
 * **compute floor** = the per-point multiply-adds at this machine's float32 rate, measured in the
   same run (a cache-resident 256³ GEMM), and **roofline** = max(bound, floor) / relight: where the
   floor is over twice the bound, no kernel meets the 0.5 goal on this CPU;
+* **cold** = the same fraction with both sides from cold caches (``measure_paired_cold``: each
+  call timed alone after reading 4× the last-level cache): the memory-bandwidth bound proper,
+  where the back-to-back repeats above keep the 20–50 MB of a row largely in the L3;
+* **of peak** / **goal needs** = compute floor / relight, and compute floor / (2 × bound): the
+  share of the peak rate the kernel sustains, and the share the 0.5 goal would need;
 * **vs uncompressed** = time of the reference path on the decoded matrices
   (``relight.apply_dense`` / ``apply_taps``, or ``M @ l`` without a view) / relight time, also paired;
 * the same fraction for the torch formulation (``PRT_TORCH_NATIVE=0``: no compiled kernels),
