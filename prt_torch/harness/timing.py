@@ -151,22 +151,9 @@ def measure_paired(test: Callable[[], Any], peer: Callable[[], Any], repeats: in
         test()
         peer()
     n_t, n_p = _inner(test, min_sample_time), _inner(peer, min_sample_time)
-    tt: list[float] = []
-    tp: list[float] = []
-    ratios: list[float] = []
     r0 = resource.getrusage(resource.RUSAGE_SELF)
     c0, w0 = time.process_time(), time.perf_counter()
-    for i in range(repeats):
-        pair = {}
-        for name in (("test", "peer") if i % 2 == 0 else ("peer", "test")):
-            fn, n = (test, n_t) if name == "test" else (peer, n_p)
-            t0 = time.perf_counter()
-            for _ in range(n):
-                fn()
-            pair[name] = (time.perf_counter() - t0) / n
-        tt.append(pair["test"])
-        tp.append(pair["peer"])
-        ratios.append(pair["peer"] / pair["test"] if pair["test"] > 0 else float("inf"))
+    tt, tp, ratios = _alternate(test, peer, repeats, n_t, n_p)
     ratio = _quantiles(ratios, warmup)
     contention = _contention(r0, c0, w0, ratio, max_switch_rate, max_spread)
     speedup, floor = ratio.median, None
@@ -201,6 +188,30 @@ def measure_paired(test: Callable[[], Any], peer: Callable[[], Any], repeats: in
         floor = {"pairs": len(st), "quantile": floor_quantile, "test_s": t_k, "peer_s": p_k,
                  "inner_test": f_t, "inner_peer": f_p, "halves": list(halves)}
     return Paired(_quantiles(tt, warmup, n_t), _quantiles(tp, warmup, n_p), ratio, contention, speedup, floor)
+
+
+def _alternate(test: Callable[[], Any], peer: Callable[[], Any], repeats: int, n_t: int, n_p: int,
+               before: Callable[[], Any] | None = None) -> tuple[list[float], list[float], list[float]]:
+    """``repeats`` pairs of samples, back to back, the order swapped every repeat: a sample of
+    ``test`` is ``n_t`` calls in a row (of ``peer``, ``n_p``), preceded by ``before()`` untimed
+    when given. Returns the per-call times of each side and the per-pair ratios peer/test."""
+    tt: list[float] = []
+    tp: list[float] = []
+    ratios: list[float] = []
+    for i in range(repeats):
+        pair = {}
+        for name in (("test", "peer") if i % 2 == 0 else ("peer", "test")):
+            fn, n = (test, n_t) if name == "test" else (peer, n_p)
+            if before is not None:
+                before()
+            t0 = time.perf_counter()
+            for _ in range(n):
+                fn()
+            pair[name] = (time.perf_counter() - t0) / n
+        tt.append(pair["test"])
+        tp.append(pair["peer"])
+        ratios.append(pair["peer"] / pair["test"] if pair["test"] > 0 else float("inf"))
+    return tt, tp, ratios
 
 
 def _contention(r0, c0: float, w0: float, ratio: Timing, max_switch_rate: float, max_spread: float) -> dict:
@@ -270,22 +281,9 @@ def measure_paired_cold(test: Callable[[], Any], peer: Callable[[], Any], repeat
     for _ in range(warmup):
         test()
         peer()
-    tt: list[float] = []
-    tp: list[float] = []
-    ratios: list[float] = []
     r0 = resource.getrusage(resource.RUSAGE_SELF)
     c0, w0 = time.process_time(), time.perf_counter()
-    for i in range(repeats):
-        pair = {}
-        for name in (("test", "peer") if i % 2 == 0 else ("peer", "test")):
-            fn = test if name == "test" else peer
-            junk.sum()
-            t0 = time.perf_counter()
-            fn()
-            pair[name] = time.perf_counter() - t0
-        tt.append(pair["test"])
-        tp.append(pair["peer"])
-        ratios.append(pair["peer"] / pair["test"] if pair["test"] > 0 else float("inf"))
+    tt, tp, ratios = _alternate(test, peer, repeats, 1, 1, before=junk.sum)
     ratio = _quantiles(ratios, warmup)
     contention = _contention(r0, c0, w0, ratio, max_switch_rate, max_spread)
     return Paired(_quantiles(tt, warmup), _quantiles(tp, warmup), ratio, contention, ratio.median, None)
