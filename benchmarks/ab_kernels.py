@@ -4,7 +4,7 @@
     .venv/bin/python benchmarks/ab_kernels.py --base 25850e2 --threads 1,2 --only cpca,vq
     .venv/bin/python benchmarks/ab_kernels.py --base HEAD~1 --test HEAD --shape default
 
-Each version's C source (``relight_kernels._SRC``) comes from a git revision or from the working
+Each version's C source and compiler flags (``relight_kernels._SRC``, ``_FLAGS``) come from a git revision or from the working
 tree (``--test .``, the default). Both are compiled and cached by a hash of the source. The two
 libraries are then swapped under the same ``codec.relight(..., out=)`` calls, and samples of each
 are timed back to back in one process, in alternating order (``harness.timing.measure_paired``:
@@ -19,7 +19,7 @@ Why a tool: code layout alone moves these kernels' speed. Adding a loop to one C
 slowed another loop in it by 15–27%, so a kernel change needs every row checked, not only the
 rows it targets.
 
-The A/B is refused when the two revisions differ outside ``_SRC``. The Python side decides the
+The A/B is refused when the two revisions differ outside ``_SRC`` and ``_FLAGS``. The Python side decides the
 constants' layouts and the arguments the kernels read, so mixing one revision's Python with the
 other's C would compare different work.
 
@@ -68,23 +68,30 @@ def module_text(rev: str) -> str:
     return r.stdout
 
 
-def split_source(text: str, rev: str) -> tuple[str, str]:
-    """(the C source ``_SRC``, the module's text without it)."""
+def split_source(text: str, rev: str) -> tuple[tuple[str, list[str]], str]:
+    """((the C source ``_SRC``, the compiler flags ``_FLAGS``), the module's text without them)."""
+    found = {}
+    rest = text
     for node in ast.parse(text).body:
-        if isinstance(node, ast.Assign) and any(isinstance(t, ast.Name) and t.id == "_SRC" for t in node.targets):
-            seg = ast.get_source_segment(text, node)
-            return ast.literal_eval(node.value), text.replace(seg, "")
-    raise SystemExit(f"ab_kernels: {MODULE} at {rev!r} has no _SRC assignment; accepted: a revision with the compiled kernels")
+        if isinstance(node, ast.Assign) and len(node.targets) == 1 and isinstance(node.targets[0], ast.Name) \
+                and node.targets[0].id in ("_SRC", "_FLAGS"):
+            found[node.targets[0].id] = ast.literal_eval(node.value)
+            rest = rest.replace(ast.get_source_segment(text, node), "")
+    if set(found) != {"_SRC", "_FLAGS"}:
+        raise SystemExit(f"ab_kernels: {MODULE} at {rev!r} has no literal _SRC and _FLAGS assignments; accepted: a revision "
+                         "with the compiled kernels")
+    return (found["_SRC"], found["_FLAGS"]), rest
 
 
-def compile_source(src: str, label: str):
-    """The kernels library compiled from ``src`` (``relight_kernels._compile``, cached by hash)."""
-    keep = relight_kernels._SRC
-    relight_kernels._SRC = src
+def compile_source(kernels: tuple[str, list[str]], label: str):
+    """The kernels library compiled from ``(source, flags)`` (``relight_kernels._compile``, cached
+    by a hash of both)."""
+    keep = relight_kernels._SRC, relight_kernels._FLAGS
+    relight_kernels._SRC, relight_kernels._FLAGS = kernels
     try:
         lib, why = relight_kernels._compile()
     finally:
-        relight_kernels._SRC = keep
+        relight_kernels._SRC, relight_kernels._FLAGS = keep
     if lib is None:
         raise SystemExit(f"ab_kernels: the kernels of {label} did not compile: {why}")
     return lib
@@ -134,11 +141,11 @@ def main() -> int:
     _, rest_here = split_source(module_text("."), ".")
     for rev, rest in ((args.base, rest_a), (args.test, rest_b)):
         if rest != rest_here:  # this process runs the working tree's Python side
-            raise SystemExit(f"ab_kernels: {MODULE} differs between {rev!r} and the working tree outside _SRC (layouts, "
+            raise SystemExit(f"ab_kernels: {MODULE} differs between {rev!r} and the working tree outside _SRC and _FLAGS (layouts, "
                              "wrappers): the kernels would not do the work they were written for; accepted: revisions "
-                             "whose module differs from the working tree's in _SRC only")
+                             "whose module differs from the working tree's in _SRC and _FLAGS only")
     if src_a == src_b:
-        print(f"note: {args.base!r} and {args.test!r} have the same kernel source; the ratios measure only the noise", file=sys.stderr)
+        print(f"note: {args.base!r} and {args.test!r} have the same kernel source and flags; the ratios measure only the noise", file=sys.stderr)
     lib_a, lib_b = compile_source(src_a, args.base), compile_source(src_b, args.test)
     relight_kernels.native()  # the process's own library, restored after each pair
     cache = Path(args.cache)

@@ -44,6 +44,9 @@ CASES = [
     ("pca mean", "pca", {"vectors": 5}, (9, 4), 200, None),
     ("pca no mean", "pca", {"vectors": 5, "center": False}, (9, 4), 200, None),
     ("cpca static", "cpca_static", {"clusters": 6, "vectors": 3, "max_iter": 5}, (9, 4), 250, None),
+    # dense views pair two points of one cluster per pass: 3 blocks of 8 rows with AVX-512VL, 1 with 16 registers
+    ("cpca static n_out=24", "cpca_static", {"clusters": 4, "vectors": 3, "max_iter": 5}, (24, 4), 230, None),
+    ("pca n_out=8", "pca", {"vectors": 3}, (8, 4), 117, None),
     ("cpca iterative n_out=16", "cpca_iterative", {"clusters": 5, "vectors": 4, "iterations": 2, "max_iter": 5}, (16, 3), 250, None),
     ("cpca adaptive (packed)", "cpca_adaptive",  # n_k = 0..3 per cluster on this signal
      {"clusters": 8, "vectors": 2, "budget": 2.0, "max_vectors": 5, "iterations": 2, "adapt_iters": 2, "max_iter": 5}, (9, 4), 300,
@@ -125,7 +128,8 @@ def test_kernels_built_for_other_instruction_sets(march, monkeypatch, tmp_path):
     """The kernels as built on machines unlike this one: AVX2 + FMA with 16 vector registers (the
     rows kernel pairs points in fewer accumulators there) and the compiler's baseline ISA (the
     fallback where -march=native is refused; 8-float vectors split in SSE halves), against the
-    float64 reference, every view mode (the default build is the native path of the test above)."""
+    float64 reference, every view mode (the default build is the native path of the test above);
+    the dense kernel's paired points: n_out = 8 with 16 registers, 24 with AVX-512VL."""
     import platform
 
     if march is not None and platform.machine() not in ("x86_64", "AMD64"):
@@ -138,7 +142,8 @@ def test_kernels_built_for_other_instruction_sets(march, monkeypatch, tmp_path):
         pytest.skip(f"no compiled kernels: {relight_kernels.native_status()['detail']}")
     assert " ".join(flags) in relight_kernels.native_status()["detail"]
     for case in CASES:
-        if case[0] in ("vq n_out=16", "pca mean", "cpca static", "cpca adaptive (packed)", "mrt_pca n_out=49"):
+        if case[0] in ("vq n_out=16", "pca mean", "pca n_out=8", "cpca static", "cpca static n_out=24", "cpca adaptive (packed)",
+                       "mrt_pca n_out=49"):
             _check_case(case, "native " + (march or "baseline"))
 
 
