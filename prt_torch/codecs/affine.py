@@ -414,7 +414,8 @@ class AffineCodec(Codec):
             return None
         codes = self._native_codes(enc, n)
         kind = "rows" if view is None else ("taps" if isinstance(view, tuple) else "dense")
-        T = kernel_constants(lib, self.means_, self.basis_, n, n_out, n_in, L, kind, scratch=True)  # used before this thread's next call
+        # used before this thread's next call; per cluster only the terms its points read (n_k: CPCA adaptive)
+        T = kernel_constants(lib, self.means_, self.basis_, n, n_out, n_in, L, kind, scratch=True, nk=codes[4])
         # Where a cluster's constants are large (CPCA: J·n_out·C floats, 2.6 KB at 9×24×3), points
         # are visited cluster by cluster within blocks, from a cluster-sorted copy of the codes
         # (Sloan 2003 §6: per-cluster work over cluster-sorted storage), so T_k is read from L1

@@ -361,10 +361,14 @@ static inline void store_block(float *dst, i64 ob, const v8 *a, i64 C, i64 n_out
    matrices, transposed, rows zero-padded to n_pad); L [n_in, C]. Writes
    out[k*sk + j*sj + o*so + c*sc] = sum_i Mt[k, j, i, o] L[i, c] for j < J, o < n_out: every
    layout a kernel below reads, directly. 8 outputs o per vector, L broadcast: no reductions.
-   RGB: up to CGMAX blocks of 8 outputs per pass (measured, CPCA 256x8 at 24x25: 0.195 -> 0.145 ms). */
+   RGB: up to CGMAX blocks of 8 outputs per pass (measured, CPCA 256x8 at 24x25: 0.195 -> 0.145 ms).
+   nk (optional, int64 [K]): cluster k's terms are only its first Jk = min(J, mean + nk[k]) (CPCA
+   adaptive: n_k of up to n vectors), the only ones a kernel reads (taps: zeros beyond, since it
+   reads 8 terms at a time); the rest of its rows are left as they were. */
 static void constants_range(i64 k0, i64 k1, i64 J, i64 Jmax, i64 n_in, i64 n_out, i64 n_pad, i64 C, const float *Mt,
-                            const float *L, float *out, i64 sk, i64 sj, i64 so, i64 sc) {
+                            const float *L, float *out, i64 sk, i64 sj, i64 so, i64 sc, const i64 *nk, int mean) {
     i64 nb = n_pad / 8;
+#define TERMS_OF(k) (nk && mean + nk[k] < J ? mean + nk[k] : J)
 #ifdef SHUF
     if (C == 3 && sj == 1 && sc > 1 && sc % 8 == 0 && so == 3 * sc) {
         /* taps layout [K, n_out, 3, Jp]: a row's terms are contiguous, so compute 8 terms of a block
@@ -372,14 +376,14 @@ static void constants_range(i64 k0, i64 k1, i64 J, i64 Jmax, i64 n_in, i64 n_out
            stride 3 Jp: measured 2x slower). Same sums (const_group_1 per term and block). */
         for (i64 k = k0; k < k1; k++)
             for (i64 ob0 = 0; ob0 < nb; ob0 += CGMAX)
-                for (i64 j0 = 0; j0 < J; j0 += 8) {
+                for (i64 j0 = 0, Jk = TERMS_OF(k); j0 < J; j0 += 8) {
                     i64 G = nb - ob0 < CGMAX ? nb - ob0 : CGMAX;
                     v8 T3[3 * CGMAX][8];  /* [3 g + c][term] */
                     for (i64 jj = 0; jj < 8; jj++) {
                         v8 A[3 * CGMAX];
                         for (int x = 0; x < 3 * CGMAX; x++) A[x] = (v8){0};
                         const float *src = Mt + ((k * Jmax + j0 + jj) * n_in) * n_pad + ob0 * 8;
-                        if (j0 + jj < J) {
+                        if (j0 + jj < Jk) {
                             switch (G) {
                             case 1: const_group_1(src, n_in, n_pad, L, A); break;
 #if CGMAX >= 3
@@ -402,7 +406,7 @@ static void constants_range(i64 k0, i64 k1, i64 J, i64 Jmax, i64 n_in, i64 n_out
     }
 #endif
     for (i64 k = k0; k < k1; k++)
-        for (i64 j = 0; j < J; j++) {
+        for (i64 j = 0, Jk = TERMS_OF(k); j < Jk; j++) {
             const float *src = Mt + ((k * Jmax + j) * n_in) * n_pad;
             float *dst = out + k * sk + j * sj;
             if (C == 3) {
@@ -434,11 +438,11 @@ static void constants_range(i64 k0, i64 k1, i64 J, i64 Jmax, i64 n_in, i64 n_out
 }
 
 int prt_constants(i64 K, i64 J, i64 Jmax, i64 n_in, i64 n_out, i64 n_pad, i64 C, const float *Mt, const float *L,
-                  float *out, i64 sk, i64 sj, i64 so, i64 sc, int nthreads) {
+                  float *out, i64 sk, i64 sj, i64 so, i64 sc, const i64 *nk, int mean, int nthreads) {
     i64 nth = nthreads > 0 ? nthreads : 1;
     #pragma omp parallel for schedule(static, 1) num_threads(nth)
     for (i64 t = 0; t < nth; t++)
-        constants_range(K * t / nth, K * (t + 1) / nth, J, Jmax, n_in, n_out, n_pad, C, Mt, L, out, sk, sj, so, sc);
+        constants_range(K * t / nth, K * (t + 1) / nth, J, Jmax, n_in, n_out, n_pad, C, Mt, L, out, sk, sj, so, sc, nk, mean);
     return 0;
 }
 
@@ -1207,7 +1211,7 @@ def _compile() -> tuple[ctypes.CDLL | None, str]:
     lib.prt_affine_rows.argtypes = [i64, i64, i64, *common, vp, vp, ci, ci]
     lib.prt_affine_dense.argtypes = [i64, i64, i64, i64, *common, vp, vp, vp, ci, ci]
     lib.prt_affine_taps.argtypes = [i64, i64, i64, *common, i64, vp, vp, vp, vp, ci, ci]
-    lib.prt_constants.argtypes = [i64] * 7 + [vp, vp, vp] + [i64] * 4 + [ci]
+    lib.prt_constants.argtypes = [i64] * 7 + [vp, vp, vp] + [i64] * 4 + [vp, ci, ci]
     lib.prt_sg_lookup_sum.argtypes = [i64, i64, vp, vp, vp, vp, i64, i64, vp, i64, vp, ci]
     lib.prt_sg_taps.argtypes = [i64, i64, i64, i64, vp, vp, vp, vp, vp, vp, i64, i64, vp, i64, vp, ci]
     for f in (lib.prt_affine_rows, lib.prt_affine_dense, lib.prt_affine_taps, lib.prt_constants, lib.prt_sg_lookup_sum, lib.prt_sg_taps):
@@ -1299,13 +1303,17 @@ def _layout(kind: str, K: int, J: int, n_out: int, C: int) -> tuple[tuple, tuple
 _WORKSPACE = threading.local()  # per thread: {(kind, size): constants buffer} (see constants(scratch=True))
 
 
-def constants(lib, means, basis, n: int, n_out: int, n_in: int, L: torch.Tensor, kind: str, scratch: bool = False) -> torch.Tensor:
+def constants(lib, means, basis, n: int, n_out: int, n_in: int, L: torch.Tensor, kind: str, scratch: bool = False,
+              nk: torch.Tensor | None = None) -> torch.Tensor:
     """Per-cluster constants M_i^k l (Sloan 2003 §6) for ``light L [n_in, C]`` float32, the
     first ``n`` basis rows (and the mean), laid out for kernel ``kind`` ('rows', 'dense',
     'taps'), zero-padded; one pass over the model (:func:`model_t`). ``scratch=True`` writes
     into this thread's buffer of that layout, reused by its next call (its padding zeroed once,
     the rest overwritten): for a caller that uses the result before calling again, as
-    ``AffineCodec.relight`` does — no allocation and no zeroing per light."""
+    ``AffineCodec.relight`` does — no allocation and no zeroing per light. ``nk`` (contiguous
+    int64 ``[K]``, optional: the vectors each cluster keeps, CPCA adaptive) computes cluster k's
+    first (mean) + min(n, nk[k]) terms only, the ones the kernels read with that ``nk``: the
+    rest of its rows are undefined ('rows', 'dense') or zero ('taps')."""
     Mt = model_t(means, basis, n_out, n_in)
     K, Jmax = Mt.shape[:2]
     J = (1 if means is not None else 0) + n
@@ -1323,7 +1331,7 @@ def constants(lib, means, basis, n: int, n_out: int, n_in: int, L: torch.Tensor,
         out = torch.zeros(size, dtype=torch.float32)
     Lc = L.to(torch.float32).contiguous()
     lib.prt_constants(K, J, Jmax, n_in, n_out, Mt.shape[3], C, Mt.data_ptr(), Lc.data_ptr(), out.data_ptr(),
-                      sk, sj, so, sc, torch.get_num_threads())
+                      sk, sj, so, sc, _ptr(nk), int(means is not None), torch.get_num_threads())
     return out
 
 
