@@ -19,9 +19,10 @@ Why a tool: code layout alone moves these kernels' speed. Adding a loop to one C
 slowed another loop in it by 15–27%, so a kernel change needs every row checked, not only the
 rows it targets.
 
-The A/B is refused when the two revisions differ outside ``_SRC`` and ``_FLAGS``. The Python side decides the
-constants' layouts and the arguments the kernels read, so mixing one revision's Python with the
-other's C would compare different work.
+The A/B is refused when the two revisions' code differs outside ``_SRC`` and ``_FLAGS`` (comments
+and docstrings may differ). The Python side decides the constants' layouts and the arguments
+the kernels read, so mixing one revision's Python with the other's C would compare different
+work.
 
 Shapes (``--shape``):
 * ``relight``: ``bench_relight``'s 50 000-point settings (VQ 256, PCA 8, CPCA 256×8 static,
@@ -69,18 +70,27 @@ def module_text(rev: str) -> str:
 
 
 def split_source(text: str, rev: str) -> tuple[tuple[str, list[str]], str]:
-    """((the C source ``_SRC``, the compiler flags ``_FLAGS``), the module's text without them)."""
+    """((the C source ``_SRC``, the compiler flags ``_FLAGS``), the rest of the module as code:
+    its syntax tree without them and without docstrings, so that comments and docs may differ)."""
     found = {}
-    rest = text
-    for node in ast.parse(text).body:
+    tree = ast.parse(text)
+    body = []
+    for node in tree.body:
         if isinstance(node, ast.Assign) and len(node.targets) == 1 and isinstance(node.targets[0], ast.Name) \
                 and node.targets[0].id in ("_SRC", "_FLAGS"):
             found[node.targets[0].id] = ast.literal_eval(node.value)
-            rest = rest.replace(ast.get_source_segment(text, node), "")
+        else:
+            body.append(node)
     if set(found) != {"_SRC", "_FLAGS"}:
         raise SystemExit(f"ab_kernels: {MODULE} at {rev!r} has no literal _SRC and _FLAGS assignments; accepted: a revision "
                          "with the compiled kernels")
-    return (found["_SRC"], found["_FLAGS"]), rest
+    tree.body = body
+    for node in ast.walk(tree):
+        b = getattr(node, "body", None)
+        if isinstance(b, list) and b and isinstance(b[0], ast.Expr) and isinstance(b[0].value, ast.Constant) \
+                and isinstance(b[0].value.value, str):
+            node.body = b[1:] or [ast.Pass()]
+    return (found["_SRC"], found["_FLAGS"]), ast.dump(tree)
 
 
 def compile_source(kernels: tuple[str, list[str]], label: str):
