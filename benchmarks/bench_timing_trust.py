@@ -3,7 +3,9 @@ busy processes, same commit, same seed — its speed-up column compared setting 
 
 The harness times every codec's relighting paired with the uncompressed peer (interleaved, back
 to back: ``prt_torch.harness.timing.measure_paired``), in one thread (``timing.torch_threads``),
-and reports the ratio of the fastest tenth of each side's short samples as "vs uncompressed".
+each sample timed in the thread's CPU time (``clock=time.thread_time``: the time other processes
+held the core is in neither side), and reports the ratio of the fastest tenth of each side's
+short samples as "vs uncompressed".
 Issue 15's goal: that column agrees within 1.5× between an idle run and a run beside two busy
 processes, for every setting; the 2-thread ratio and the absolute rates (fps) are shown next
 to it to say how far the machine's load moved them.
@@ -101,7 +103,8 @@ def main(argv=None) -> int:
           "same commit and seed: idle, then beside two `while True: pass` processes (2 cores). \"vs uncompressed\" is the "
           "harness's speed-up column: the uncompressed relighting's time over the codec's, from interleaved pairs of short, "
           "equal-length samples (the ratio of each side's fastest tenth of 40 pairs, `timing.measure_paired(floor_pairs=40)`) "
-          "timed in one thread (`timing.torch_threads(1)`), so it is the ratio of the work. agreement = max(idle/busy, "
+          "timed in one thread (`timing.torch_threads(1)`) and in its CPU time (`clock=time.thread_time`), so it is the ratio of "
+          "the work. agreement = max(idle/busy, "
           f"busy/idle); goal ≤ {GOAL}×. For contrast: the same estimator at the process's thread count (2; results.json "
           "`speedup_parallel`) and the fps, both of which the load moves.", "",
           f"Idle run: {runs['idle']['seconds']:.0f} s, load {runs['idle']['load_before'][0]:.1f} → {runs['idle']['load_after'][0]:.1f}, "

@@ -380,6 +380,28 @@ def test_codec_parameter_ablation_tags_records(tmp_path):
         hc.load_config(str(write_cfg(tmp_path, dict(cfg, ablation="codecs.0.clusters"))))  # not a list
 
 
+def test_paired_timing_in_cpu_time_leaves_out_time_off_the_core():
+    """measure_paired(clock=time.thread_time): a side that spends its time off the CPU (sleeping,
+    as when other processes hold the core) costs its CPU time only; in wall time the two sides
+    below are equal (2 ms each), in CPU time the sleeping one is nearly free."""
+    import time
+
+    from prt_torch.harness.timing import measure_paired
+
+    def spin():
+        t0 = time.perf_counter()
+        while time.perf_counter() - t0 < 0.002:
+            pass
+
+    def sleep():
+        time.sleep(0.002)
+
+    wall = measure_paired(sleep, spin, repeats=5, warmup=1, min_sample_time=0.004, floor_pairs=10)
+    cpu = measure_paired(sleep, spin, repeats=5, warmup=1, min_sample_time=0.004, floor_pairs=10, clock=time.thread_time)
+    assert 0.5 < wall.speedup < 1.2  # sleep overshoots a little: wall ratio spin/sleep just under 1
+    assert cpu.speedup > 10 and cpu.ratio.median > 10  # both phases timed in CPU time
+
+
 def test_paired_timing_gives_the_work_ratio_and_reports_contention():
     """measure_paired: a peer doing exactly twice the test's work comes out ~2x slower (the
     estimator, not a speed goal), and the contention record names its evidence."""

@@ -50,7 +50,8 @@ __all__ = ["run_benchmark", "compute_transfer", "evaluate_setting", "RESULTS_VER
 
 RESULTS_VERSION = 1
 #: short interleaved sample pairs behind each speed-up and bound fraction (timing.measure_paired:
-#: the ratio of the fastest tenth of each side, robust to other processes taking the cores)
+#: the ratio of the fastest tenth of each side, robust to other processes taking the cores; the one-thread
+#: speed-up's samples are timed in the thread's CPU time)
 FLOOR_PAIRS = 40
 #: the speed-up column's floor phase adds batches of FLOOR_PAIRS pairs, up to this many, while its even and odd
 #: pairs' estimates differ by more than 10% (a busy machine: reports/benchmarks/timing_trust.md)
@@ -184,7 +185,8 @@ def evaluate_setting(ev: Evaluator, setting: dict, lights: list[torch.Tensor], v
     # paired with the uncompressed peer, interleaved: the speed-up comes from back-to-back samples.
     # fps: at the process's thread count; the speed-up column: the same pairs in one thread, the
     # ratio of the work itself, which a busy machine or OpenMP's wait policy does not move
-    # (timing.torch_threads; the multi-threaded ratio is kept as speedup_parallel)
+    # (timing.torch_threads; the multi-threaded ratio is kept as speedup_parallel), each sample timed
+    # in this thread's CPU time, so time other processes held the core is in neither side
     def relit():
         return codec.relight(enc, L0, view=v0)
 
@@ -195,7 +197,7 @@ def evaluate_setting(ev: Evaluator, setting: dict, lights: list[torch.Tensor], v
     tm = pt.test
     with torch_threads(1):
         pw = measure_paired(relit, uncompressed, repeats=m["repeats"], warmup=m["warmup"], floor_pairs=FLOOR_PAIRS,
-                            floor_max_pairs=FLOOR_MAX_PAIRS)
+                            floor_max_pairs=FLOOR_MAX_PAIRS, clock=time.thread_time)
     # its own bound: read the encoded data (and the view) once, write the output once
     view_bytes = 0 if v0 is None else (v0.numel() * v0.element_size() if isinstance(v0, torch.Tensor)
                                        else sum(t.numel() * t.element_size() for t in v0))
@@ -242,6 +244,7 @@ def evaluate_setting(ev: Evaluator, setting: dict, lights: list[torch.Tensor], v
         "speedup_vs_uncompressed": pw.speedup,  # one thread: the work ratio (timing.torch_threads)
         "speedup_threads": 1,
         "speedup_median_pair": pw.ratio.median,
+        "speedup_floor": pw.floor,  # its floor phase: pairs, the quantile's per-call CPU times, even/odd halves
         "speedup_spread": pw.ratio.spread,
         "speedup_parallel": pt.speedup,  # the same, at the process's thread count (moves with load)
         "speedup_parallel_spread": pt.ratio.spread,

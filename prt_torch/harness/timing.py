@@ -121,7 +121,8 @@ def _inner(fn: Callable[[], Any], min_sample_time: float) -> int:
 def measure_paired(test: Callable[[], Any], peer: Callable[[], Any], repeats: int = 7, warmup: int = 1,
                    min_sample_time: float = 0.02, max_switch_rate: float = 50.0, max_spread: float = 0.5,
                    floor_pairs: int = 0, floor_sample_time: float = 0.002, floor_quantile: float = 0.1,
-                   floor_max_pairs: int = 0, floor_agree: float = 0.1) -> Paired:
+                   floor_max_pairs: int = 0, floor_agree: float = 0.1,
+                   clock: Callable[[], float] = time.perf_counter) -> Paired:
     """Time ``test`` and its ``peer`` interleaved: every repeat times one sample of each, back to
     back (the order alternating), and the speed-up is the median of the per-repeat ratios
     peer/test — a paired estimate that a busy machine slows down on both sides at once.
@@ -142,7 +143,14 @@ def measure_paired(test: Callable[[], Any], peer: Callable[[], Any], repeats: in
     ``floor_max_pairs`` > ``floor_pairs`` makes that phase adaptive: while the estimates from its
     even and its odd pairs differ by more than ``floor_agree`` (relative), another
     ``floor_pairs`` pairs are timed, up to ``floor_max_pairs`` — a noisy machine gets more
-    samples, a quiet one no more time."""
+    samples, a quiet one no more time.
+
+    ``clock`` times every sample: ``time.perf_counter`` (wall time, the default), or
+    ``time.thread_time`` (this thread's CPU time) for a pairing run in one thread
+    (:class:`torch_threads`), where all the work is on the calling thread: the time other
+    processes held the core is then not in either side's samples at all, where the floor phase
+    can only hope some samples escaped it (measured: reports/benchmarks/timing_trust.md, where
+    the wall-clock floor once read 11.7× beside two busy processes for a 24.9× idle ratio)."""
     import resource
 
     repeats = check_int("repeats", repeats, 1)
@@ -153,7 +161,7 @@ def measure_paired(test: Callable[[], Any], peer: Callable[[], Any], repeats: in
     n_t, n_p = _inner(test, min_sample_time), _inner(peer, min_sample_time)
     r0 = resource.getrusage(resource.RUSAGE_SELF)
     c0, w0 = time.process_time(), time.perf_counter()
-    tt, tp, ratios = _alternate(test, peer, repeats, n_t, n_p)
+    tt, tp, ratios = _alternate(test, peer, repeats, n_t, n_p, clock=clock)
     ratio = _quantiles(ratios, warmup)
     contention = _contention(r0, c0, w0, ratio, max_switch_rate, max_spread)
     speedup, floor = ratio.median, None
@@ -176,10 +184,10 @@ def measure_paired(test: Callable[[], Any], peer: Callable[[], Any], repeats: in
             for i in range(len(st), len(st) + floor_pairs):
                 for name in (("test", "peer") if i % 2 == 0 else ("peer", "test")):
                     fn, n, out = (test, f_t, st) if name == "test" else (peer, f_p, sp)
-                    t0 = time.perf_counter()
+                    t0 = clock()
                     for _ in range(n):
                         fn()
-                    out.append((time.perf_counter() - t0) / n)
+                    out.append((clock() - t0) / n)
             halves = (estimate(st[0::2], sp[0::2])[0], estimate(st[1::2], sp[1::2])[0])
             agree = abs(halves[0] - halves[1]) <= floor_agree * max(min(halves), 1e-12)
             if agree or len(st) + floor_pairs > cap:
@@ -191,10 +199,12 @@ def measure_paired(test: Callable[[], Any], peer: Callable[[], Any], repeats: in
 
 
 def _alternate(test: Callable[[], Any], peer: Callable[[], Any], repeats: int, n_t: int, n_p: int,
-               before: Callable[[], Any] | None = None) -> tuple[list[float], list[float], list[float]]:
+               before: Callable[[], Any] | None = None,
+               clock: Callable[[], float] = time.perf_counter) -> tuple[list[float], list[float], list[float]]:
     """``repeats`` pairs of samples, back to back, the order swapped every repeat: a sample of
     ``test`` is ``n_t`` calls in a row (of ``peer``, ``n_p``), preceded by ``before()`` untimed
-    when given. Returns the per-call times of each side and the per-pair ratios peer/test."""
+    when given, timed by ``clock``. Returns the per-call times of each side and the per-pair
+    ratios peer/test."""
     tt: list[float] = []
     tp: list[float] = []
     ratios: list[float] = []
@@ -204,10 +214,10 @@ def _alternate(test: Callable[[], Any], peer: Callable[[], Any], repeats: int, n
             fn, n = (test, n_t) if name == "test" else (peer, n_p)
             if before is not None:
                 before()
-            t0 = time.perf_counter()
+            t0 = clock()
             for _ in range(n):
                 fn()
-            pair[name] = (time.perf_counter() - t0) / n
+            pair[name] = (clock() - t0) / n
         tt.append(pair["test"])
         tp.append(pair["peer"])
         ratios.append(pair["peer"] / pair["test"] if pair["test"] > 0 else float("inf"))
