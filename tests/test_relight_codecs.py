@@ -188,13 +188,15 @@ def test_bad_views_are_refused_naming_the_value(path):
     with pytest.raises(ValueError, match="view has 1 non-finite"):
         c.relight(enc, L, view=y)
     idx, w = tent_taps_random(150, 4, seed=1)
-    bad = idx.clone()
-    bad[3, 1] = 16
-    with pytest.raises(ValueError, match=r"view tap indices span \[0, 16\]; accepted: \[0, n_out\) = \[0, 16\)"):
-        c.relight(enc, L, view=(bad, w))
-    bad[3, 1] = -1
-    with pytest.raises(ValueError, match=r"view tap indices span \[-1, 15\]"):
-        c.relight(enc, L, view=(bad, w))
+    vq, vq_enc = _fit("vq", {"clusters": 5, "max_iter": 3}, (16, 9), 150, None)  # one term: the kernel's scalar tap path
+    for codec, e in ((c, enc), (vq, vq_enc)):
+        bad = idx.clone()
+        bad[3, 1] = 16
+        with pytest.raises(ValueError, match=r"view tap indices span \[0, 16\]; accepted: \[0, n_out\) = \[0, 16\)"):
+            codec.relight(e, L, view=(bad, w))
+        bad[3, 1] = -1
+        with pytest.raises(ValueError, match=r"view tap indices span \[-1, 15\]"):
+            codec.relight(e, L, view=(bad, w))
     w2 = w.clone()
     w2[5, 0] = float("nan")
     with pytest.raises(ValueError, match=r"view weights has 1 non-finite value\(s\).*index \(5, 0\)"):

@@ -878,8 +878,8 @@ static int prt_affine_taps_range(const int32_t *order, int csort, i64 p0, i64 p1
     i64 q = p0;
     if (Jp == 1) {
         /* one term (VQ: the mean alone; or one vector, no mean), constants unpadded [K, n_out, C]:
-           o_c = s_p sum_t g_t T[k, idx_t, c], s_p = 1 (mean) or w_p0 -- the same operations, in the
-           same order, as the vector path's lane 0 (its other lanes are zeros) */
+           o_c = s_p sum_t g_t T[k, idx_t, c], s_p = 1 (mean) or w_p0 (RGB with four valid taps: the
+           sum taken pairwise) */
         for (; q < p1; q++) {
             i64 p = order ? order[q] : q, pc = csort ? q : p, cnt;
             if (order && q + PF_AHEAD < p1) {
@@ -896,12 +896,23 @@ static int prt_affine_taps_range(const int32_t *order, int csort, i64 p0, i64 p1
             const float *gg = g + p * ntap;
             if (C == 3) {
                 float o0 = 0.0f, o1 = 0.0f, o2 = 0.0f;
-                for (i64 t = 0; t < ntap; t++) {
-                    i64 ri = ix[t];
-                    if ((uint64_t)ri >= (uint64_t)n_out) { flag |= 1; continue; }  /* skipped, flagged */
-                    const float *r = Tk + ri * 3;
-                    float gt = gg[t];
-                    o0 += gt * r[0]; o1 += gt * r[1]; o2 += gt * r[2];
+                if (ntap == 4 && (uint64_t)ix[0] < (uint64_t)n_out && (uint64_t)ix[1] < (uint64_t)n_out
+                    && (uint64_t)ix[2] < (uint64_t)n_out && (uint64_t)ix[3] < (uint64_t)n_out) {
+                    /* four valid taps (MRT's bilinear tents), summed pairwise: two short chains
+                       instead of one of four (measured, VQ 64 at 10k vertices: 1.12-1.16x) */
+                    const float *r0 = Tk + ix[0] * 3, *r1 = Tk + ix[1] * 3, *r2 = Tk + ix[2] * 3, *r3 = Tk + ix[3] * 3;
+                    float g0 = gg[0], g1 = gg[1], g2 = gg[2], g3 = gg[3];
+                    o0 = (g0 * r0[0] + g1 * r1[0]) + (g2 * r2[0] + g3 * r3[0]);
+                    o1 = (g0 * r0[1] + g1 * r1[1]) + (g2 * r2[1] + g3 * r3[1]);
+                    o2 = (g0 * r0[2] + g1 * r1[2]) + (g2 * r2[2] + g3 * r3[2]);
+                } else {
+                    for (i64 t = 0; t < ntap; t++) {
+                        i64 ri = ix[t];
+                        if ((uint64_t)ri >= (uint64_t)n_out) { flag |= 1; continue; }  /* skipped, flagged */
+                        const float *r = Tk + ri * 3;
+                        float gt = gg[t];
+                        o0 += gt * r[0]; o1 += gt * r[1]; o2 += gt * r[2];
+                    }
                 }
                 o0 *= sp; o1 *= sp; o2 *= sp;
                 out[p * 3] = o0; out[p * 3 + 1] = o1; out[p * 3 + 2] = o2;
