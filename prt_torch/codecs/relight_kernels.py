@@ -26,8 +26,9 @@ n_{k(p)} weights of each point one after the other; ``offsets int64 [P]`` where 
 (CPCA: cluster by cluster within blocks, from codes stored in that order; ``AffineCodec``
 chooses), and the result written into a given tensor (``out``). Without a view, and with a
 dense view of up to 24 rows (8 with 16 vector registers), two consecutive visits of one cluster
-with the same term count are combined together, each ``T_k`` load feeding both points'
-multiply-adds (each point's sums in the same order: same bits). Compiled with
+with the same term count are combined in one pass over ``T_k`` (with a dense view each load
+kept in a register for both points' multiply-adds; each point's sums in the same order: same
+bits). Compiled with
 ``-ffp-contract=fast``: each ``a += w·t`` is one fused multiply-add where the CPU has them
 (measured, paired: dense views 3–15% faster; results differ from separate rounding by float32
 rounding only, and a point's bits still do not depend on pairing, order or threads).
@@ -188,6 +189,16 @@ static inline float dot(const float *a, const float *b, i64 n) {
 
 #define LD(p) (*(const v8 *)(p))
 #define ST(p, v) (*(v8 *)(p) = (v))
+/* x stays in a register: a vector loaded once for two points' FMAs is not folded into both as a
+   memory operand (GCC does that, loading it twice). Used by the paired dense kernel (measured,
+   paired: dense views of 24 rows 1.03-1.16x); in the rows kernel it made CPCA 1.13x faster but
+   PCA 0.72-0.87x at one thread (cause not established), so that one keeps the folded loads.
+   No code is emitted; the baseline ISA (SSE halves) has no such register. */
+#if defined(__AVX__)
+#define IN_REG(x) __asm__("" : "+v"(x))
+#else
+#define IN_REG(x) (void)0
+#endif
 
 /* a_b = (mean ? Tc[8b..] : 0) + sum_{i<cnt} w[i] Tc[(mean + i) F + 8b..], b < NB: NB independent
    accumulators (NB >= 8 keeps both FMA pipes busy) while the weights stream past. Named
@@ -232,9 +243,10 @@ static inline __attribute__((always_inline)) void combine(i64 F, i64 cs, const f
     }
 }
 
-/* two points of one cluster with the same term count at once: each T load feeds both points'
-   FMAs (the rows kernel otherwise issues one load per FMA). Each point's sums are formed in the
-   same order as by ACCUMULATE, so a point's result does not depend on whether it was paired. */
+/* two points of one cluster with the same term count at once: one pass over T for both points'
+   FMAs (GCC still loads each T vector twice, as memory operands; see IN_REG). Each point's sums are
+   formed in the same order as by ACCUMULATE, so a point's result does not depend on whether it
+   was paired. */
 #define ACC2_INIT(b) v8 a##b = (b < NB_ && mean) ? LD(Tc + 8 * b) : (v8){0}; v8 c##b = a##b;
 #define ACC2_STEP(b) if (b < NB_) { v8 t_ = LD(Tb + 8 * b); a##b += wi * t_; c##b += ui * t_; }
 #define ACC2_STORE(b) if (b < NB_) { ST(ec + 8 * b, a##b); ST(fc + 8 * b, c##b); }
@@ -571,6 +583,7 @@ static inline void dense3v2_##NBS(const float *T0, i64 n_pad, i64 F, int mean, c
         float wi = w[i], ui = u[i];                                                              \
         for (int b = 0; b < NBS; b++) {                                                          \
             v8 t0 = LD(T0 + s + 8 * b), t1 = LD(T1 + s + 8 * b), t2 = LD(T2 + s + 8 * b);        \
+            IN_REG(t0); IN_REG(t1); IN_REG(t2);                                                  \
             a0[b] += wi * t0; a1[b] += wi * t1; a2[b] += wi * t2;                                \
             c0[b] += ui * t0; c1[b] += ui * t1; c2[b] += ui * t2;                                \
         }                                                                                        \
