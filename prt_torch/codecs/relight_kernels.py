@@ -322,9 +322,9 @@ static inline void gather_sum(i64 R, const float *const *rows, const float *g, i
    step shared by the G blocks), even and odd terms in separate registers: A[3g + c] = block g,
    colour c. The same sums in the same order for every G. */
 #define CG_DECL(g) v8 a##g##0 = {0}, a##g##1 = {0}, a##g##2 = {0}, b##g##0 = {0}, b##g##1 = {0}, b##g##2 = {0};
-#define CG_STEP(g) if (g < G_) { v8 x = LD(s0 + 8 * g), z = LD(s1 + 8 * g);                          \
+#define CG_STEP(g) if (g < G_) { v8 x = LD(s0 + 8 * g), z = LD(s1 + 8 * g); IN_REG(x); IN_REG(z);  \
         a##g##0 += x * l0; a##g##1 += x * l1; a##g##2 += x * l2; b##g##0 += z * m0; b##g##1 += z * m1; b##g##2 += z * m2; }
-#define CG_TAIL(g) if (g < G_) { v8 x = LD(s0 + 8 * g); a##g##0 += x * l0; a##g##1 += x * l1; a##g##2 += x * l2; }
+#define CG_TAIL(g) if (g < G_) { v8 x = LD(s0 + 8 * g); IN_REG(x); a##g##0 += x * l0; a##g##1 += x * l1; a##g##2 += x * l2; }
 #define CG_OUT(g) if (g < G_) { A[3 * g] = a##g##0 + b##g##0; A[3 * g + 1] = a##g##1 + b##g##1; A[3 * g + 2] = a##g##2 + b##g##2; }
 #define EACH3(X) X(0) X(1) X(2)
 #define CONST_GROUP(G)                                                                           \
