@@ -550,9 +550,12 @@ static inline void dense3v_##NBS(const float *T0, i64 n_pad, i64 F, int mean, co
             a2[b] += wi * LD(T2 + s + 8 * b);                                                    \
         }                                                                                        \
     }                                                                                            \
-    v8 r0 = a0[0] * LD(yc), r1 = a1[0] * LD(yc), r2 = a2[0] * LD(yc);                           \
+    v8 y0 = LD(yc);                                                                              \
+    IN_REG(y0);                                                                                  \
+    v8 r0 = a0[0] * y0, r1 = a1[0] * y0, r2 = a2[0] * y0;                                        \
     for (int b = 1; b < NBS; b++) {                                                              \
         v8 yb = LD(yc + 8 * b);                                                                  \
+        IN_REG(yb);                                                                              \
         r0 += a0[b] * yb; r1 += a1[b] * yb; r2 += a2[b] * yb;                                    \
     }                                                                                            \
     rv[0] = r0; rv[8] = r1; rv[16] = r2;                                                         \
@@ -588,10 +591,13 @@ static inline void dense3v2_##NBS(const float *T0, i64 n_pad, i64 F, int mean, c
             c0[b] += ui * t0; c1[b] += ui * t1; c2[b] += ui * t2;                                \
         }                                                                                        \
     }                                                                                            \
-    v8 r0 = a0[0] * LD(yc), r1 = a1[0] * LD(yc), r2 = a2[0] * LD(yc);                           \
-    v8 q0 = c0[0] * LD(zc), q1 = c1[0] * LD(zc), q2 = c2[0] * LD(zc);                           \
+    v8 y0 = LD(yc), z0 = LD(zc);                                                                 \
+    IN_REG(y0); IN_REG(z0);                                                                      \
+    v8 r0 = a0[0] * y0, r1 = a1[0] * y0, r2 = a2[0] * y0;                                        \
+    v8 q0 = c0[0] * z0, q1 = c1[0] * z0, q2 = c2[0] * z0;                                        \
     for (int b = 1; b < NBS; b++) {                                                              \
         v8 yb = LD(yc + 8 * b), zb = LD(zc + 8 * b);                                             \
+        IN_REG(yb); IN_REG(zb);                                                                  \
         r0 += a0[b] * yb; r1 += a1[b] * yb; r2 += a2[b] * yb;                                    \
         q0 += c0[b] * zb; q1 += c1[b] * zb; q2 += c2[b] * zb;                                    \
     }                                                                                            \
