@@ -386,7 +386,7 @@ def test_paired_timing_in_cpu_time_leaves_out_time_off_the_core():
     below are equal (2 ms each), in CPU time the sleeping one is nearly free."""
     import time
 
-    from prt_torch.harness.timing import measure_paired
+    from prt_torch.harness.timing import measure_paired, torch_threads
 
     def spin():
         t0 = time.perf_counter()
@@ -397,9 +397,13 @@ def test_paired_timing_in_cpu_time_leaves_out_time_off_the_core():
         time.sleep(0.002)
 
     wall = measure_paired(sleep, spin, repeats=5, warmup=1, min_sample_time=0.004, floor_pairs=10)
-    cpu = measure_paired(sleep, spin, repeats=5, warmup=1, min_sample_time=0.004, floor_pairs=10, clock=time.thread_time)
+    with torch_threads(1):
+        cpu = measure_paired(sleep, spin, repeats=5, warmup=1, min_sample_time=0.004, floor_pairs=10, clock=time.thread_time)
     assert 0.5 < wall.speedup < 1.2  # sleep overshoots a little: wall ratio spin/sleep just under 1
     assert cpu.speedup > 10 and cpu.ratio.median > 10  # both phases timed in CPU time
+    # CPU time of the calling thread only: refused while torch would run its work on others too
+    with torch_threads(2), pytest.raises(ValueError, match="counts only the calling thread's CPU time, and torch runs 2"):
+        measure_paired(sleep, spin, repeats=1, clock=time.thread_time)
 
 
 def test_paired_timing_gives_the_work_ratio_and_reports_contention():

@@ -266,22 +266,28 @@ def test_kernel_constants_match_cluster_constants():
         assert torch.allclose(taps[..., :J].permute(0, 3, 1, 2), ref, atol=1e-5) and not taps[..., J:].any()
         assert taps.shape[-1] == (1 if J == 1 else 8 if J <= 8 else 16)
     # per-cluster term counts (CPCA adaptive's n_k): cluster k's first 1 + min(n, n_k) terms as
-    # above; taps zero beyond them (read 8 at a time), whatever the buffer held before
+    # above; taps zero beyond them (read 8 at a time), whatever the buffer held before (a scratch
+    # buffer filled with NaN first; RGB and one colour: both code paths of the kernel)
     c, n = wide, 10
-    ref = c.cluster_constants(L, n)
-    K, J, n_out, C = ref.shape
     nk = torch.tensor([0, 4, 12], dtype=torch.int64)
-    for kind in ("rows", "dense", "taps"):
-        full = relight_kernels.constants(lib, c.means_, c.basis_, n, n_out, 4, L, kind)
-        raw = relight_kernels.constants(lib, c.means_, c.basis_, n, n_out, 4, L, kind, nk=nk)
-        assert not torch.equal(raw, full), kind  # the terms no point reads were skipped
-        got = {"rows": lambda t: t[..., : n_out * C].reshape(K, J, n_out, C), "dense": lambda t: t[..., :n_out].permute(0, 1, 3, 2),
-               "taps": lambda t: t[..., :J].permute(0, 3, 1, 2)}[kind](raw)
-        for k in range(K):
-            jk = 1 + min(n, int(nk[k]))
-            assert torch.allclose(got[k, :jk], ref[k, :jk], atol=1e-5), (kind, k)
-            if kind == "taps":
-                assert not got[k, jk:].any(), k
+    for C in (3, 1):
+        Lc = L[:, :C].contiguous()
+        ref = c.cluster_constants(Lc, n)
+        K, J, n_out, _ = ref.shape
+        for kind in ("rows", "dense", "taps"):
+            full = relight_kernels.constants(lib, c.means_, c.basis_, n, n_out, 4, Lc, kind)
+            relight_kernels.constants(lib, c.means_, c.basis_, n, n_out, 4, Lc, kind, scratch=True).fill_(float("nan"))
+            raw = relight_kernels.constants(lib, c.means_, c.basis_, n, n_out, 4, Lc, kind, scratch=True, nk=nk)
+            assert not torch.equal(raw, full), kind  # the terms no point reads were skipped
+            got = {"rows": lambda t: t[..., : n_out * C].reshape(K, J, n_out, C), "dense": lambda t: t[..., :n_out].permute(0, 1, 3, 2),
+                   "taps": lambda t: t[..., :J].permute(0, 3, 1, 2)}[kind](raw)
+            for k in range(K):
+                jk = 1 + min(n, int(nk[k]))
+                assert torch.allclose(got[k, :jk], ref[k, :jk], atol=1e-5), (kind, C, k)
+                if kind == "taps":
+                    assert torch.equal(got[k, jk:], torch.zeros_like(got[k, jk:])), (C, k)
+    with pytest.raises(ValueError, match=r"nk is torch.int32 \(3,\); accepted: contiguous int64 \[K\] = \[3\]"):
+        relight_kernels.constants(lib, c.means_, c.basis_, n, n_out, 4, L, "taps", nk=nk.int())
 
 
 def test_native_status_reports_the_path(monkeypatch):

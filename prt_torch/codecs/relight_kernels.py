@@ -24,14 +24,14 @@ n_{k(p)} weights of each point one after the other; ``offsets int64 [P]`` where 
 ``n_vectors int64 [K]``). Constants float32 contiguous: ``[K, J, n_out·C]`` (rows, dense) or
 ``[K, n_out, J·C]`` (taps), J = (1 if a mean) + n. Points may be visited in a given order
 (CPCA: cluster by cluster within blocks, from codes stored in that order; ``AffineCodec``
-chooses), and the result written into a given tensor (``out``). Without a view, and with a
-dense view of up to 24 rows (8 with 16 vector registers), two consecutive visits of one cluster
-with the same term count are combined in one pass over ``T_k`` (with a dense view each load
-kept in a register for both points' multiply-adds; each point's sums in the same order: same
-bits). Compiled with
-``-ffp-contract=fast``: each ``a += w·t`` is one fused multiply-add where the CPU has them
-(measured, paired: dense views 3–15% faster; results differ from separate rounding by float32
-rounding only, and a point's bits still do not depend on pairing, order or threads).
+chooses), and the result written into a given tensor (``out``). Without a view, and with an
+RGB dense view of up to 24 rows (8 with 16 vector registers; two points within one block of 8),
+two consecutive visits of one cluster with the same term count are combined in one pass over
+``T_k`` (with a dense view each load kept in a register for both points' multiply-adds; each
+point's sums in the same order: same bits). Compiled with ``-ffp-contract=fast``: each
+``a += w·t`` is one fused multiply-add where the CPU has them (measured, paired: dense views
+3–15% faster; results differ from separate rounding by float32 rounding only, and a point's
+bits still do not depend on pairing, order or threads).
 
 The Gaussian codec's relighting (Green 2005 eq. 2.7 and §2.3) runs here too: per lobe, the
 prefiltered cube-map lookup (face, bilinear texels, linear in log σ between levels) and the
@@ -189,11 +189,13 @@ static inline float dot(const float *a, const float *b, i64 n) {
 
 #define LD(p) (*(const v8 *)(p))
 #define ST(p, v) (*(v8 *)(p) = (v))
-/* x stays in a register: a vector loaded once for two points' FMAs is not folded into both as a
-   memory operand (GCC does that, loading it twice). Used by the paired dense kernel (measured,
-   paired: dense views of 24 rows 1.03-1.16x); in the rows kernel it made CPCA 1.13x faster but
-   PCA 0.72-0.87x at one thread (cause not established), so that one keeps the folded loads.
-   No code is emitted; the baseline ISA (SSE halves) has no such register. */
+/* x stays in a register: a vector loaded once for several FMAs is not folded into each as a
+   memory operand (GCC does that, loading it two or three times). Used where one load feeds
+   several FMAs: the paired dense kernel (measured, paired: dense views of 24 rows 1.03-1.16x),
+   the view in the dense dot (VQ dense 1.06-1.08x) and the model vector of the constants kernel
+   (CPCA constants 1.09-1.29x). In the rows kernel it made CPCA 1.13x faster but PCA 0.72-0.87x at
+   one thread (cause not established), so that one keeps the folded loads. No code is emitted;
+   the baseline ISA (SSE halves) has no such register. */
 #if defined(__AVX__)
 #define IN_REG(x) __asm__("" : "+v"(x))
 #else
@@ -447,6 +449,12 @@ static void constants_range(i64 k0, i64 k1, i64 J, i64 Jmax, i64 n_in, i64 n_out
                 store_block(dst, ob, a, C, n_out, so, sc);
             }
         }
+    if (nk && sj == 1)  /* taps layout: zeros for the terms past a cluster's own (read, times zero weights) */
+        for (i64 k = k0; k < k1; k++)
+            for (i64 j = TERMS_OF(k); j < J; j++)
+                for (i64 o = 0; o < n_out; o++)
+                    for (i64 c = 0; c < C; c++) out[k * sk + j + o * so + c * sc] = 0.0f;
+#undef TERMS_OF
 }
 
 int prt_constants(i64 K, i64 J, i64 Jmax, i64 n_in, i64 n_out, i64 n_pad, i64 C, const float *Mt, const float *L,
@@ -697,23 +705,23 @@ static int prt_affine_dense_range(const int32_t *order, int csort, i64 p0, i64 p
                 pl[l] = order ? order[q + l] : q + l;
                 const float *Tk = dense_point(order, csort, q + l, p1, pl[l], n_out, n_pad, F, J, lab, lab_kind, W, wstride, woff, nk,
                                               nuse, T, y, yb, &w, &cnt, &yp);
-                if (W && nbt <= MAXNBS2 && l < 7) {  /* the next visit in the same cluster, same term count: both at once */
+                if (W && nbt <= MAXNBS2 && l < 7
+                    && T + lab_at(lab, lab_kind, csort ? q + l + 1 : (order ? order[q + l + 1] : q + l + 1)) * J * F == Tk) {
+                    /* the next visit is in the same cluster (so the same term count): both at once */
                     const float *u, *zp;
                     i64 cnt2;
                     pl[l + 1] = order ? order[q + l + 1] : q + l + 1;
-                    const float *Tk2 = dense_point(order, csort, q + l + 1, p1, pl[l + 1], n_out, n_pad, F, J, lab, lab_kind, W, wstride,
-                                                   woff, nk, nuse, T, y, zb, &u, &cnt2, &zp);
-                    if (Tk2 == Tk && cnt2 == cnt) {
-                        switch (nbt) {
-                        case 1: dense3v2_1(Tk, n_pad, F, mean, w, u, cnt, yp, zp, R + l); break;
+                    dense_point(order, csort, q + l + 1, p1, pl[l + 1], n_out, n_pad, F, J, lab, lab_kind, W, wstride, woff, nk, nuse, T, y,
+                                zb, &u, &cnt2, &zp);
+                    switch (nbt) {
+                    case 1: dense3v2_1(Tk, n_pad, F, mean, w, u, cnt, yp, zp, R + l); break;
 #if MAXNBS2 >= 3
-                        case 2: dense3v2_2(Tk, n_pad, F, mean, w, u, cnt, yp, zp, R + l); break;
-                        default: dense3v2_3(Tk, n_pad, F, mean, w, u, cnt, yp, zp, R + l); break;
+                    case 2: dense3v2_2(Tk, n_pad, F, mean, w, u, cnt, yp, zp, R + l); break;
+                    default: dense3v2_3(Tk, n_pad, F, mean, w, u, cnt, yp, zp, R + l); break;
 #endif
-                        }
-                        l++;
-                        continue;
                     }
+                    l++;
+                    continue;
                 }
                 switch (nbt) {
                 case 1: dense3v_1(Tk, n_pad, F, mean, w, cnt, yp, R + l); break;
@@ -1346,6 +1354,9 @@ def constants(lib, means, basis, n: int, n_out: int, n_in: int, L: torch.Tensor,
     rest of its rows are undefined ('rows', 'dense') or zero ('taps')."""
     Mt = model_t(means, basis, n_out, n_in)
     K, Jmax = Mt.shape[:2]
+    if nk is not None and (nk.dtype != torch.int64 or nk.shape != (K,) or not nk.is_contiguous()):
+        raise ValueError(f"constants: nk is {nk.dtype} {tuple(nk.shape)}{'' if nk.is_contiguous() else ', not contiguous'}; "
+                         f"accepted: contiguous int64 [K] = [{K}] (the kernel indexes it per cluster)")
     J = (1 if means is not None else 0) + n
     C = L.shape[1]
     size, (sk, sj, so, sc) = _layout(kind, K, J, n_out, C)

@@ -147,7 +147,7 @@ def measure_paired(test: Callable[[], Any], peer: Callable[[], Any], repeats: in
 
     ``clock`` times every sample: ``time.perf_counter`` (wall time, the default), or
     ``time.thread_time`` (this thread's CPU time) for a pairing run in one thread
-    (:class:`torch_threads`), where all the work is on the calling thread: the time other
+    (:class:`torch_threads`; refused otherwise), where all the work is on the calling thread: the time other
     processes held the core is then not in either side's samples at all, where the floor phase
     can only hope some samples escaped it (measured: reports/benchmarks/timing_trust.md, where
     the wall-clock floor once read 11.7× beside two busy processes for a 24.9× idle ratio)."""
@@ -155,6 +155,9 @@ def measure_paired(test: Callable[[], Any], peer: Callable[[], Any], repeats: in
 
     repeats = check_int("repeats", repeats, 1)
     warmup = check_int("warmup", warmup, 0)
+    if clock is time.thread_time and torch.get_num_threads() != 1:
+        raise ValueError(f"measure_paired: clock=time.thread_time counts only the calling thread's CPU time, and torch runs "
+                         f"{torch.get_num_threads()} threads; accepted: one thread (with timing.torch_threads(1): ...)")
     for _ in range(warmup):
         test()
         peer()
