@@ -145,6 +145,7 @@ def test_kernels_built_for_other_instruction_sets(march, monkeypatch, tmp_path):
         if case[0] in ("vq n_out=16", "pca mean", "pca n_out=8", "cpca static", "cpca static n_out=24", "cpca adaptive (packed)",
                        "mrt_pca n_out=49"):
             _check_case(case, "native " + (march or "baseline"))
+    test_kernels_visit_points_in_any_order()  # and the same bits whichever order (so pairing) the points are visited in
 
 
 @pytest.mark.parametrize("name, params", [("vq", {"clusters": 5}), ("pca", {"vectors": 3}),
