@@ -204,13 +204,16 @@ def evaluate_setting(ev: Evaluator, setting: dict, lights: list[torch.Tensor], v
     out_bytes = ev.V * L0.shape[-1] * 4
     # as a render loop calls it, into a reused result, as the bound writes into a reused buffer
     buf = torch.empty_like(relit())
+
+    def relit_into():
+        return codec.relight(enc, L0, view=v0, out=buf)
+
     bound = io_bound_fn(int(storage["bytes_total"]) + view_bytes, out_bytes)
-    pb = measure_paired(lambda: codec.relight(enc, L0, view=v0, out=buf), bound, repeats=m["repeats"], warmup=m["warmup"],
-                        floor_pairs=FLOOR_PAIRS)
+    pb = measure_paired(relit_into, bound, repeats=m["repeats"], warmup=m["warmup"], floor_pairs=FLOOR_PAIRS)
     # the same pair from cold caches (each call alone after evicting them): back to back, both
     # sides' data stay in the L2/L3 at these sizes, so the above is a cache-bandwidth bound
     # (metrics.cold_pairs single-call pairs; 0: not measured)
-    pc = (measure_paired_cold(lambda: codec.relight(enc, L0, view=v0, out=buf), bound, repeats=m["cold_pairs"])
+    pc = (measure_paired_cold(relit_into, bound, repeats=m["cold_pairs"])
           if m.get("cold_pairs", 0) > 0 else None)
     psnrs = [p["psnr_db"] for p in per]
     finite = [p for p in psnrs if math.isfinite(p)]

@@ -184,13 +184,9 @@ def measure_paired(test: Callable[[], Any], peer: Callable[[], Any], repeats: in
 
         cap = max(floor_pairs, floor_max_pairs)
         while True:
-            for i in range(len(st), len(st) + floor_pairs):
-                for name in (("test", "peer") if i % 2 == 0 else ("peer", "test")):
-                    fn, n, out = (test, f_t, st) if name == "test" else (peer, f_p, sp)
-                    t0 = clock()
-                    for _ in range(n):
-                        fn()
-                    out.append((clock() - t0) / n)
+            a, b, _ = _alternate(test, peer, floor_pairs, f_t, f_p, clock=clock)
+            st += a
+            sp += b
             halves = (estimate(st[0::2], sp[0::2])[0], estimate(st[1::2], sp[1::2])[0])
             agree = abs(halves[0] - halves[1]) <= floor_agree * max(min(halves), 1e-12)
             if agree or len(st) + floor_pairs > cap:
