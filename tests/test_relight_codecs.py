@@ -334,6 +334,34 @@ def test_kernels_visit_points_in_any_order():
         relight_kernels.affine_rows(lib, T["rows"], 4, 9, 3, *codes, P=250, order=bad)
 
 
+@pytest.mark.parametrize("dtype", [torch.uint8, torch.int16, torch.int32])
+def test_mean_only_rows_gather_each_label_dtype(dtype):
+    """VQ without a view (the mean-only rows loop, one per label dtype): out[p] = T[label_p],
+    against plain indexing, for every label width the codecs store, 1 and 2 threads, and rows
+    that are not a multiple of 8 floats (the general loop: padded rows copied)."""
+    lib = relight_kernels.native()
+    if lib is None:
+        pytest.skip("no compiled kernels")
+    g = torch.Generator().manual_seed(3)
+    P, K = 301, {torch.uint8: 200, torch.int16: 3000, torch.int32: 40000}[dtype]
+    labels = torch.randint(0, K, (P,), generator=g).to(dtype)
+    labels[:3] = torch.tensor([0, K - 1, K // 2]).to(dtype)
+    for n_out, C in ((16, 3), (8, 1), (5, 3)):
+        Fo = n_out * C
+        F = (Fo + 7) // 8 * 8
+        T = torch.randn(K, 1, F, generator=g)
+        T[..., Fo:] = 0.0
+        ref = T[labels.long(), 0, :Fo]
+        before = torch.get_num_threads()
+        try:
+            for threads in (1, 2):
+                torch.set_num_threads(threads)
+                got = relight_kernels.affine_rows(lib, T, 1, n_out, C, labels, None, 0, None, None, 0, 1, P=P)
+                assert torch.equal(got, ref), (dtype, n_out, C, threads)
+        finally:
+            torch.set_num_threads(before)
+
+
 def test_dense_and_taps_kernels_do_not_depend_on_the_thread_split():
     """The dense and taps kernels reduce RGB points 8 at a time (hsum8) and the rest one by one (hsum),
     with the same association: a point's result is the same whichever way the threads split

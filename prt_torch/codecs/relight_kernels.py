@@ -466,12 +466,34 @@ int prt_constants(i64 K, i64 J, i64 Jmax, i64 n_in, i64 n_out, i64 n_pad, i64 C,
     return 0;
 }
 
+/* mean only (VQ), no view, rows unpadded (F == Fo, a multiple of 8), points in order: out[p] =
+   T[lab_p], one plain row copy per point, the label kind fixed per loop. Without the general
+   loop's per-point bookkeeping (weights, pairing test, chunk switch, order). */
+#define VQ_ROWS_LOOP(TY)                                                                         \
+    for (i64 p = p0; p < p1; p++) {                                                              \
+        const float *s = T + (i64)((const TY *)lab)[p] * F;                                      \
+        float *d = out + p * F;                                                                  \
+        for (i64 f = 0; f < F; f += 8) ST(d + f, LD(s + f));                                     \
+    }
+static __attribute__((noinline)) void vq_rows_range(i64 p0, i64 p1, i64 F, const void *lab, int lab_kind, const float *T,
+                                                    float *out) {
+    switch (lab_kind) {
+    case 1: VQ_ROWS_LOOP(uint8_t) break;
+    case 2: VQ_ROWS_LOOP(int16_t) break;
+    default: VQ_ROWS_LOOP(int32_t) break;
+    }
+}
+
 /* no view: out[p, 0:Fo] = e_p; constants T [K, J, F], rows zero-padded from Fo to F floats */
 static int prt_affine_rows_range(const int32_t *order, int csort, i64 p0, i64 p1, i64 P, i64 F, i64 Fo, const void *lab,
         int lab_kind, const float *W, i64 wstride, const i64 *woff,
                     const i64 *nk, i64 nuse, int mean, const float *T, i64 J, float *out) {
     const i64 cs = chunk_size(F / 8), cs2 = chunk_size2(F / 8);
     float e[4096], f[4096];  /* rows padded from Fo to F: combined here, then copied */
+    if (!W && mean && lab && !order && F == Fo) {
+        vq_rows_range(p0, p1, F, lab, lab_kind, T, out);
+        return 0;
+    }
     for (i64 q = p0; q < p1; q++) {
         i64 p = order ? order[q] : q, pc = csort ? q : p;
         if (order && q + PF_AHEAD < p1) {
