@@ -208,6 +208,27 @@ def test_bad_views_are_refused_naming_the_value(path):
     assert out.shape == (150, 3)
 
 
+def test_bad_lights_are_refused_naming_the_value(path):
+    """A NaN or Inf in the light is refused naming it, on every path: the compiled kernels check
+    it as the constants kernel reads it, the torch path before it starts; every view mode, a
+    float64 light, and the J = 0 shortcut (no mean, no vectors kept) that computes no constants."""
+    c, enc = _fit("mrt_pca", {"vectors": 4}, (16, 9), 150, None)
+    vq, vq_enc = _fit("vq", {"clusters": 5, "max_iter": 3}, (16, 9), 150, None)
+    views = (None, torch.randn(150, 16), tent_taps_random(150, 4, seed=1))
+    for dtype in (torch.float32, torch.float64):
+        L = torch.randn(9, 3, dtype=dtype)
+        L[4, 2] = float("nan")
+        for codec, e in ((c, enc), (vq, vq_enc)):
+            for view in views:
+                with pytest.raises(ValueError, match=r"light has 1 non-finite value\(s\).*index \(4, 2\)"):
+                    codec.relight(e, L, view=view)
+        L[4, 2] = float("-inf")
+        with pytest.raises(ValueError, match=r"light has 1 non-finite value\(s\).*index \(4, 2\)"):
+            c.relight(enc, L, view=views[1], out=torch.empty(150, 3))
+        with pytest.raises(ValueError, match=r"light has 1 non-finite value\(s\).*index \(4, 2\)"):
+            c.relight(enc, L, n_vectors=0)  # mrt_pca keeps no mean: J = 0
+
+
 def test_corrupt_codes_are_refused_before_any_kernel_reads_them():
     c, enc = _fit("cpca_static", {"clusters": 4, "vectors": 2}, (9, 4), 200, None)
     L = torch.randn(4, 3)

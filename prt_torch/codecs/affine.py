@@ -29,6 +29,7 @@ from typing import Any
 import torch
 
 from .. import io
+from .._checks import check_finite
 from ..params import Boolean, Interval, Options
 from .base import (Codec, Encoded, check_light, check_matrix_shape, check_out, check_signal, check_view, check_weights)
 from .kmeans import CACHE_BLOCK_BYTES, linear, row_chunk
@@ -349,15 +350,16 @@ class AffineCodec(Codec):
         if self.matrix_shape_ is None and view is not None:
             raise ValueError("view was given but this codec was fitted on vectors (no matrix_shape); accepted: view=None")
         n = self._n_eff(n_vectors)
-        L = check_light(light, n_in)
+        lib = native()
+        # with the kernels, structure only: the light's values are checked by the constants
+        # kernel and the view's inside the point kernels (a flag); only a bad call pays for the
+        # full check that names the value
+        L = check_light(light, n_in, values=lib is None)
         if out is not None:
             C = L.shape[1]
             shape = (P, C) if view is not None or self.matrix_shape_ is None else (P, n_out, C)
             out = check_out(out, shape, view, light)
-        lib = native()
         if lib is not None:
-            # structure now; the view's values are checked inside the kernel (a flag), and only
-            # a flagged call pays for the full check that names the bad value
             v = check_view(view, P, n_out, values=False) if self.matrix_shape_ is not None else None
             got = self._relight_native(lib, enc, L, v, n, out)
             if got is not None:
@@ -365,6 +367,7 @@ class AffineCodec(Codec):
                 if flag:
                     check_view(view, P, n_out)  # raises with the offending value; else the data overflowed
                 return res
+            check_finite("light", L)  # the torch formulation below
         view = check_view(view, P, n_out) if self.matrix_shape_ is not None else None
         res = self._relight_torch(enc, light, view, n)
         return res if out is None else out.copy_(res)
@@ -404,7 +407,8 @@ class AffineCodec(Codec):
         n_out, n_in = self.matrix_shape_ or (1, self.D_)
         C = L.shape[1]
         J = (1 if self.means_ is not None else 0) + n
-        if J == 0:  # no mean and no vectors kept: x̃ = 0 (the view's values still checked)
+        if J == 0:  # no mean and no vectors kept: x̃ = 0 (the light's and view's values still checked)
+            check_finite("light", L)
             check_view(view, enc.points, n_out)
             if out is not None:
                 return out.zero_(), 0
@@ -422,7 +426,7 @@ class AffineCodec(Codec):
         # instead of L2 for every point; only the view rows and outputs are scattered, within a
         # block. Same arithmetic per point, so the same results bit for bit.
         order = None
-        if codes[0] is not None and T[0].numel() * T.element_size() >= SORT_MIN_CLUSTER_BYTES:
+        if codes[0] is not None and T.stride(0) * 4 >= SORT_MIN_CLUSTER_BYTES:
             order, codes = self._cluster_sorted_codes(enc, codes)
         kw = {"order": order, "codes_sorted": order is not None, "out": out}
         if view is None:

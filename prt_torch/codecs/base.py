@@ -319,15 +319,19 @@ def check_matrix_shape(matrix_shape: Any, D: int) -> tuple[int, int] | None:
     return n_out, n_in
 
 
-def check_light(light: Any, n_in: int) -> torch.Tensor:
+def check_light(light: Any, n_in: int, values: bool = True) -> torch.Tensor:
+    """``light [n_in, C]`` as relighting reads it (float32). ``values=False`` checks only its
+    type and shape, for a caller whose kernel checks the values (``relight_kernels.constants``
+    raises on NaN/Inf, naming the value)."""
     if not isinstance(light, torch.Tensor):
         raise TypeError(f"light must be a torch.Tensor [n_in, C] = [{n_in}, C], got {_describe(light)}")
     if light.ndim != 2 or light.shape[0] != n_in:
         raise ValueError(f"light has shape {tuple(light.shape)}; accepted: [n_in, C] = [{n_in}, C] (SH coefficients on rows, colours on columns)")
     if not light.is_floating_point():
         raise TypeError(f"light has dtype {light.dtype}; accepted: a float tensor")
-    check_finite("light", light)
-    return light.to(torch.float32)
+    if values:
+        check_finite("light", light)
+    return light if light.dtype == torch.float32 else light.to(torch.float32)
 
 
 def check_view(view: Any, P: int, n_out: int, values: bool = True):
@@ -351,21 +355,21 @@ def check_view(view: Any, P: int, n_out: int, values: bool = True):
             raise ValueError(f"view taps have shapes {tuple(idx.shape)}, {tuple(w.shape)}; accepted: idx [P, k], w [P, k] with P={P}")
         if idx.is_floating_point() or idx.dtype == torch.bool:
             raise TypeError(f"view tap indices have dtype {idx.dtype}; accepted: an integer dtype")
-        idx = idx.long()
+        idx = idx if idx.dtype == torch.int64 else idx.long()
         if values:
             if idx.numel():
                 lo, hi = (int(x) for x in torch.aminmax(idx))
                 if lo < 0 or hi >= n_out:
                     raise ValueError(f"view tap indices span [{lo}, {hi}]; accepted: [0, n_out) = [0, {n_out})")
             _check_finite_fast("view weights", w)
-        return idx, w.to(torch.float32)
+        return idx, (w if w.dtype == torch.float32 else w.to(torch.float32))
     if not isinstance(view, torch.Tensor):
         raise TypeError(f"view must be None, a tensor [P, n_out] or a tuple (idx, w); got {_describe(view)}")
     if view.shape != (P, n_out):
         raise ValueError(f"view has shape {tuple(view.shape)}; accepted: [P, n_out] = [{P}, {n_out}]")
     if values:
         _check_finite_fast("view", view)
-    return view.to(torch.float32)
+    return view if view.dtype == torch.float32 else view.to(torch.float32)
 
 
 def check_out(out: Any, shape: tuple[int, ...], *inputs: Any) -> torch.Tensor | None:

@@ -54,6 +54,8 @@ from pathlib import Path
 
 import torch
 
+from .._checks import check_finite
+
 __all__ = ["native", "native_status", "constants", "model_t", "affine_rows", "affine_dense", "affine_taps", "sg_lookup_sum", "sg_taps",
            "fits", "MAX_ROW"]
 
@@ -457,8 +459,13 @@ static void constants_range(i64 k0, i64 k1, i64 J, i64 Jmax, i64 n_in, i64 n_out
 #undef TERMS_OF
 }
 
+/* returns 1 (and computes nothing) if the light L [n_in, C] holds a NaN or an infinity: the
+   caller's check, here where L is read anyway (names the value only on that path) */
 int prt_constants(i64 K, i64 J, i64 Jmax, i64 n_in, i64 n_out, i64 n_pad, i64 C, const float *Mt, const float *L,
                   float *out, i64 sk, i64 sj, i64 so, i64 sc, const i64 *nk, int mean, int nthreads) {
+    int bad = 0;
+    for (i64 i = 0; i < n_in * C; i++) bad |= !(fabsf(L[i]) <= FLT_MAX);
+    if (bad) return 1;
     i64 nth = nthreads > 0 ? nthreads : 1;
     #pragma omp parallel for schedule(static, 1) num_threads(nth)
     for (i64 t = 0; t < nth; t++)
@@ -1309,14 +1316,17 @@ def _ptr(t: torch.Tensor | None):
 def _codes(labels, W, wstride, woff, nk, nuse, mean):
     """The common argument block: labels (None: K = 1), weights ``W`` (None: no weights), row
     stride or per-point offsets ``woff int64 [P]`` with ``nk int64 [K]`` (packed), n used, mean."""
-    if labels is not None and labels.dtype not in _LAB_KIND:
-        raise TypeError(f"labels have dtype {labels.dtype}; accepted: uint8, int16, int32")
-    for name, t, dt in (("labels", labels, None), ("weights", W, torch.float32), ("offsets", woff, torch.int64),
-                        ("n_vectors", nk, torch.int64)):
-        if t is not None and (not t.is_contiguous() or (dt is not None and t.dtype != dt)):
-            raise ValueError(f"{name} must be contiguous{'' if dt is None else f' {dt}'}; got {t.dtype}, strides {t.stride()}")
-    kind = 0 if labels is None else _LAB_KIND[labels.dtype]
-    return [_ptr(labels), kind, _ptr(W), int(wstride), _ptr(woff), _ptr(nk), int(nuse), int(bool(mean))]
+    kind = 0
+    if labels is not None:
+        kind = _LAB_KIND.get(labels.dtype, 0)
+        if not kind:
+            raise TypeError(f"labels have dtype {labels.dtype}; accepted: uint8, int16, int32")
+        if not labels.is_contiguous():
+            raise ValueError(f"labels must be contiguous; got {labels.dtype}, strides {labels.stride()}")
+    for name, t, dt in (("weights", W, torch.float32), ("offsets", woff, torch.int64), ("n_vectors", nk, torch.int64)):
+        if t is not None and (t.dtype != dt or not t.is_contiguous()):
+            raise ValueError(f"{name} must be contiguous {dt}; got {t.dtype}, strides {t.stride()}")
+    return [labels.data_ptr() if kind else None, kind, _ptr(W), int(wstride), _ptr(woff), _ptr(nk), int(nuse), int(bool(mean))]
 
 
 def _pad8(n: int) -> int:
@@ -1367,9 +1377,11 @@ def constants(lib, means, basis, n: int, n_out: int, n_in: int, L: torch.Tensor,
               nk: torch.Tensor | None = None) -> torch.Tensor:
     """Per-cluster constants M_i^k l (Sloan 2003 §6) for ``light L [n_in, C]`` float32, the
     first ``n`` basis rows (and the mean), laid out for kernel ``kind`` ('rows', 'dense',
-    'taps'), zero-padded; one pass over the model (:func:`model_t`). ``scratch=True`` writes
-    into this thread's buffer of that layout, reused by its next call (its padding zeroed once,
-    the rest overwritten): for a caller that uses the result before calling again, as
+    'taps'), zero-padded; one pass over the model (:func:`model_t`). A light holding NaN or
+    Inf raises ``ValueError`` naming the first one (the kernel checks it as it reads it).
+    ``scratch=True`` writes into this thread's buffer of that layout, reused by its next call
+    (its padding zeroed once, the rest overwritten): for a caller that uses the result before
+    calling again, as
     ``AffineCodec.relight`` does — no allocation and no zeroing per light. ``nk`` (contiguous
     int64 ``[K]``, optional: the vectors each cluster keeps, CPCA adaptive) computes cluster k's
     first (mean) + min(n, nk[k]) terms only, the ones the kernels read with that ``nk``: the
@@ -1392,9 +1404,10 @@ def constants(lib, means, basis, n: int, n_out: int, n_in: int, L: torch.Tensor,
             out = bufs[(kind, size)] = torch.zeros(size, dtype=torch.float32)
     else:
         out = torch.zeros(size, dtype=torch.float32)
-    Lc = L.to(torch.float32).contiguous()
-    lib.prt_constants(K, J, Jmax, n_in, n_out, Mt.shape[3], C, Mt.data_ptr(), Lc.data_ptr(), out.data_ptr(),
-                      sk, sj, so, sc, _ptr(nk), int(means is not None), torch.get_num_threads())
+    Lc = L if L.dtype == torch.float32 and L.is_contiguous() else L.to(torch.float32).contiguous()
+    if lib.prt_constants(K, J, Jmax, n_in, n_out, Mt.shape[3], C, Mt.data_ptr(), Lc.data_ptr(), out.data_ptr(),
+                         sk, sj, so, sc, _ptr(nk), int(means is not None), torch.get_num_threads()):
+        check_finite("light", L)  # the kernel found a non-finite value: name it
     return out
 
 
