@@ -227,6 +227,38 @@ def test_bad_lights_are_refused_naming_the_value(path):
             c.relight(enc, L, view=views[1], out=torch.empty(150, 3))
         with pytest.raises(ValueError, match=r"light has 1 non-finite value\(s\).*index \(4, 2\)"):
             c.relight(enc, L, n_vectors=0)  # mrt_pca keeps no mean: J = 0
+    # finite as given, but beyond float32's range (relighting computes in float32)
+    L = torch.randn(9, 3, dtype=torch.float64)
+    L[4, 2] = 1e39
+    for view in views:
+        with pytest.raises(ValueError, match=r"light \(converted to float32.*has 1 non-finite.*index \(4, 2\)"):
+            c.relight(enc, L, view=view)
+    lib = relight_kernels.native()
+    if lib is not None:  # the constants kernel names it too, and never returns a table it did not compute
+        with pytest.raises(ValueError, match=r"light \(converted to float32.*index \(4, 2\)"):
+            relight_kernels.constants(lib, c.means_, c.basis_, 4, 16, 9, L, "dense", scratch=True)
+
+
+def test_mean_only_fast_path_needs_one_term():
+    """CPCA adaptive whose encoded points all sit in clusters keeping no vectors (n_k = 0): the
+    packed weights are empty (no weights pointer) although J = 1 + n > 1, so the VQ no-view loop
+    (one term per cluster) must not take it; rows of 16·3 floats (a multiple of 8: that loop's
+    shape) and 4·3 (padded), against decode-then-relight."""
+    X = transfer_like(300, 16, 4, seed=1, regions=12, noise=0.05)
+    c = codecs.get("cpca_adaptive", clusters=8, vectors=1, budget=1.0, max_vectors=2, iterations=2, adapt_iters=2, max_iter=5)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        enc = c.fit_encode(X, matrix_shape=(16, 4))
+    nk, lab = c.n_vectors_, c.labels_of(enc).long()
+    assert bool((nk == 0).any()) and c.basis_.shape[1] >= 1, nk  # the case exists on this signal
+    k = int((nk == 0).nonzero()[0, 0])
+    e = c.encode(X[lab == k])
+    assert e.tensors["coeffs"].numel() == 0 and e.points > 0
+    g = torch.Generator().manual_seed(1)
+    for C in (3, 1):
+        L = torch.randn(4, C, generator=g)
+        ref = c.decode(e).view(-1, 16, 4).double() @ L.double()
+        assert torch.allclose(c.relight(e, L).double(), ref, atol=1e-5), C
 
 
 def test_corrupt_codes_are_refused_before_any_kernel_reads_them():

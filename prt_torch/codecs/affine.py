@@ -351,10 +351,10 @@ class AffineCodec(Codec):
             raise ValueError("view was given but this codec was fitted on vectors (no matrix_shape); accepted: view=None")
         n = self._n_eff(n_vectors)
         lib = native()
-        # with the kernels, structure only: the light's values are checked by the constants
+        # with the kernels, structure only: a float32 light's values are checked by the constants
         # kernel and the view's inside the point kernels (a flag); only a bad call pays for the
-        # full check that names the value
-        L = check_light(light, n_in, values=lib is None)
+        # full check that names the value (another dtype is checked here, as given and as float32)
+        L = check_light(light, n_in, values=lib is None or getattr(light, "dtype", None) != torch.float32)
         if out is not None:
             C = L.shape[1]
             shape = (P, C) if view is not None or self.matrix_shape_ is None else (P, n_out, C)

@@ -320,18 +320,22 @@ def check_matrix_shape(matrix_shape: Any, D: int) -> tuple[int, int] | None:
 
 
 def check_light(light: Any, n_in: int, values: bool = True) -> torch.Tensor:
-    """``light [n_in, C]`` as relighting reads it (float32). ``values=False`` checks only its
-    type and shape, for a caller whose kernel checks the values (``relight_kernels.constants``
-    raises on NaN/Inf, naming the value)."""
+    """``light [n_in, C]`` as relighting reads it (float32): NaN/Inf refused naming the value, and
+    so is a value beyond float32's range (relighting computes in float32). ``values=False``
+    checks only its type and shape, for a caller whose kernel checks the float32 values
+    (``relight_kernels.constants`` raises as this does)."""
     if not isinstance(light, torch.Tensor):
         raise TypeError(f"light must be a torch.Tensor [n_in, C] = [{n_in}, C], got {_describe(light)}")
     if light.ndim != 2 or light.shape[0] != n_in:
         raise ValueError(f"light has shape {tuple(light.shape)}; accepted: [n_in, C] = [{n_in}, C] (SH coefficients on rows, colours on columns)")
     if not light.is_floating_point():
         raise TypeError(f"light has dtype {light.dtype}; accepted: a float tensor")
+    L = light if light.dtype == torch.float32 else light.to(torch.float32)
     if values:
         check_finite("light", light)
-    return light if light.dtype == torch.float32 else light.to(torch.float32)
+        if L is not light:  # finite as given, but relighting computes in float32
+            check_finite("light (converted to float32: a value beyond ±3.4e38 became Inf)", L)
+    return L
 
 
 def check_view(view: Any, P: int, n_out: int, values: bool = True):

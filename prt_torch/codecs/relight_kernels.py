@@ -497,7 +497,8 @@ static int prt_affine_rows_range(const int32_t *order, int csort, i64 p0, i64 p1
                     const i64 *nk, i64 nuse, int mean, const float *T, i64 J, float *out) {
     const i64 cs = chunk_size(F / 8), cs2 = chunk_size2(F / 8);
     float e[4096], f[4096];  /* rows padded from Fo to F: combined here, then copied */
-    if (!W && mean && lab && !order && F == Fo) {
+    if (J == 1 && !W && mean && lab && !order && F == Fo) {  /* J == 1: no weights can also be an empty packed
+                                                                   block (every point's n_k = 0) with J > 1 */
         vq_rows_range(p0, p1, F, lab, lab_kind, T, out);
         return 0;
     }
@@ -1407,7 +1408,11 @@ def constants(lib, means, basis, n: int, n_out: int, n_in: int, L: torch.Tensor,
     Lc = L if L.dtype == torch.float32 and L.is_contiguous() else L.to(torch.float32).contiguous()
     if lib.prt_constants(K, J, Jmax, n_in, n_out, Mt.shape[3], C, Mt.data_ptr(), Lc.data_ptr(), out.data_ptr(),
                          sk, sj, so, sc, _ptr(nk), int(means is not None), torch.get_num_threads()):
-        check_finite("light", L)  # the kernel found a non-finite value: name it
+        # the kernel found a non-finite value in the float32 light it read: name it (as given, else
+        # as converted: a float64 value beyond float32's range)
+        check_finite("light", L)
+        check_finite("light (converted to float32: a value beyond ±3.4e38 became Inf)", Lc)
+        raise RuntimeError("prt_constants flagged the light but no value of it is NaN or Inf")  # pragma: no cover
     return out
 
 
