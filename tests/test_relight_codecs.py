@@ -435,6 +435,34 @@ def test_dense_and_taps_kernels_do_not_depend_on_the_thread_split():
         assert all(torch.equal(o, outs[0]) for o in outs[1:]) and torch.equal(ordered, outs[0]), name
 
 
+def test_rows_kernel_padded_rows_at_any_thread_split():
+    """Without a view, rows whose Fo floats are padded to F (a multiple of 8) are combined padded
+    and copied out unpadded: against e_p = T_k0 + Σ_i w_i T_k,1+i in float64, for padding shorter
+    and longer than a row (Fo = 27, 9, 3 floats in rows of 32, 16, 8; nothing may land in a
+    neighbour's row), 1-3 threads (ranges not multiples of 2: the paired and single paths at
+    their ends), and the same bits in point and visiting order."""
+    lib, labels, codes, _, _, _ = _kernel_case(251)
+    W = codes[1]
+    g = torch.Generator().manual_seed(4)
+    before = torch.get_num_threads()
+    for Fo in (27, 9, 3):
+        F = (Fo + 7) // 8 * 8
+        T = torch.randn(5, 4, F, generator=g)
+        T[..., Fo:] = 0.0
+        Td = T.double()[labels.long()]  # [P, J, F]
+        ref = (Td[:, 0] + (W.double()[:, :, None] * Td[:, 1:]).sum(1))[:, :Fo]
+        try:
+            outs = []
+            for n in (1, 2, 3):
+                torch.set_num_threads(n)
+                outs.append(relight_kernels.affine_rows(lib, T, 4, Fo, 1, *codes, P=251))
+        finally:
+            torch.set_num_threads(before)
+        ordered = relight_kernels.affine_rows(lib, T, 4, Fo, 1, *codes, P=251, order=torch.arange(251, dtype=torch.int32))
+        assert all(torch.equal(o, outs[0]) for o in outs[1:]) and torch.equal(ordered, outs[0]), Fo
+        assert torch.allclose(outs[0].double(), ref, atol=1e-5), Fo
+
+
 @pytest.mark.parametrize("name", ["cpca_static", "cpca_adaptive"])
 def test_cluster_sorted_visiting_changes_nothing(name, monkeypatch):
     """Where a cluster's constants are large, ``relight`` visits points cluster by cluster from a
