@@ -16,6 +16,7 @@ __all__ = [
     "check_float",
     "check_choice",
     "check_finite",
+    "check_finite_float32",
     "check_shape",
     "check_unit_vectors",
     "check_float_dtype",
@@ -96,6 +97,18 @@ def check_finite(name: str, t: torch.Tensor) -> torch.Tensor:
             )
     return t
 
+
+
+def check_finite_float32(name: str, t: torch.Tensor, t32: torch.Tensor | None = None) -> torch.Tensor:
+    """:func:`check_finite` of ``t`` as given, then of its float32 conversion ``t32`` (computed
+    here when not given): a finite float64 value beyond float32's range (±3.4e38) is refused
+    too, for a computation in float32. Returns ``t32``."""
+    check_finite(name, t)
+    if t32 is None:
+        t32 = t if t.dtype == torch.float32 else t.to(torch.float32)
+    if t32 is not t:
+        check_finite(f"{name} (converted to float32: a value beyond ±3.4e38 became Inf)", t32)
+    return t32
 
 def check_shape(name: str, t: torch.Tensor, *, ndim: int | None = None, last: tuple[int, ...] | None = None) -> torch.Tensor:
     """Check the number of dimensions and/or the trailing dimensions of ``t``."""

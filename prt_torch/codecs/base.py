@@ -42,7 +42,7 @@ import torch
 from sklearn.base import BaseEstimator
 
 from .. import io
-from .._checks import check_finite, check_shape, describe as _describe
+from .._checks import check_finite, check_finite_float32, check_shape, describe as _describe
 from ..params import Options, validate_params
 
 __all__ = [
@@ -332,9 +332,7 @@ def check_light(light: Any, n_in: int, values: bool = True) -> torch.Tensor:
         raise TypeError(f"light has dtype {light.dtype}; accepted: a float tensor")
     L = light if light.dtype == torch.float32 else light.to(torch.float32)
     if values:
-        check_finite("light", light)
-        if L is not light:  # finite as given, but relighting computes in float32
-            check_finite("light (converted to float32: a value beyond ±3.4e38 became Inf)", L)
+        check_finite_float32("light", light, L)
     return L
 
 

@@ -54,7 +54,7 @@ from pathlib import Path
 
 import torch
 
-from .._checks import check_finite
+from .._checks import check_finite_float32
 
 __all__ = ["native", "native_status", "constants", "model_t", "affine_rows", "affine_dense", "affine_taps", "sg_lookup_sum", "sg_taps",
            "fits", "MAX_ROW"]
@@ -1379,10 +1379,10 @@ def constants(lib, means, basis, n: int, n_out: int, n_in: int, L: torch.Tensor,
     """Per-cluster constants M_i^k l (Sloan 2003 §6) for ``light L [n_in, C]`` float32, the
     first ``n`` basis rows (and the mean), laid out for kernel ``kind`` ('rows', 'dense',
     'taps'), zero-padded; one pass over the model (:func:`model_t`). A light holding NaN or
-    Inf raises ``ValueError`` naming the first one (the kernel checks it as it reads it).
-    ``scratch=True`` writes into this thread's buffer of that layout, reused by its next call
-    (its padding zeroed once, the rest overwritten): for a caller that uses the result before
-    calling again, as
+    Inf, or a value beyond float32's range, raises ``ValueError`` naming the first one (the
+    kernel checks the float32 light as it reads it). ``scratch=True`` writes into this thread's
+    buffer of that layout, reused by its next call (its padding zeroed once, the rest
+    overwritten): for a caller that uses the result before calling again, as
     ``AffineCodec.relight`` does — no allocation and no zeroing per light. ``nk`` (contiguous
     int64 ``[K]``, optional: the vectors each cluster keeps, CPCA adaptive) computes cluster k's
     first (mean) + min(n, nk[k]) terms only, the ones the kernels read with that ``nk``: the
@@ -1410,8 +1410,7 @@ def constants(lib, means, basis, n: int, n_out: int, n_in: int, L: torch.Tensor,
                          sk, sj, so, sc, _ptr(nk), int(means is not None), torch.get_num_threads()):
         # the kernel found a non-finite value in the float32 light it read: name it (as given, else
         # as converted: a float64 value beyond float32's range)
-        check_finite("light", L)
-        check_finite("light (converted to float32: a value beyond ±3.4e38 became Inf)", Lc)
+        check_finite_float32("light", L, Lc)
         raise RuntimeError("prt_constants flagged the light but no value of it is NaN or Inf")  # pragma: no cover
     return out
 
