@@ -13,6 +13,7 @@ import torch
 from prt_torch import codecs, relight
 from prt_torch.codecs import relight_kernels
 from prt_torch.codecs.synthetic import tent_taps_random, transfer_like
+from prt_torch.harness.timing import torch_threads
 
 EPS = torch.finfo(torch.float32).eps
 
@@ -405,14 +406,10 @@ def test_mean_only_rows_gather_each_label_dtype(dtype):
         T = torch.randn(K, 1, F, generator=g)
         T[..., Fo:] = 0.0
         ref = T[labels.long(), 0, :Fo]
-        before = torch.get_num_threads()
-        try:
-            for threads in (1, 2):
-                torch.set_num_threads(threads)
+        for threads in (1, 2):
+            with torch_threads(threads):
                 got = relight_kernels.affine_rows(lib, T, 1, n_out, C, labels, None, 0, None, None, 0, 1, P=P)
-                assert torch.equal(got, ref), (dtype, n_out, C, threads)
-        finally:
-            torch.set_num_threads(before)
+            assert torch.equal(got, ref), (dtype, n_out, C, threads)
 
 
 def test_dense_and_taps_kernels_do_not_depend_on_the_thread_split():
@@ -422,15 +419,11 @@ def test_dense_and_taps_kernels_do_not_depend_on_the_thread_split():
     lib, _, codes, T, y, taps = _kernel_case(251)
     runs = {"dense": lambda **kw: relight_kernels.affine_dense(lib, T["dense"], 4, 9, 3, *codes, y, **kw)[0],
             "taps": lambda **kw: relight_kernels.affine_taps(lib, T["taps"], 4, 9, 3, *codes, *taps, **kw)[0]}
-    before = torch.get_num_threads()
     for name, run in runs.items():
-        try:
-            outs = []
-            for n in (1, 2, 3):
-                torch.set_num_threads(n)
+        outs = []
+        for n in (1, 2, 3):
+            with torch_threads(n):
                 outs.append(run())
-        finally:
-            torch.set_num_threads(before)
         ordered = run(order=torch.arange(251, dtype=torch.int32))
         assert all(torch.equal(o, outs[0]) for o in outs[1:]) and torch.equal(ordered, outs[0]), name
 
@@ -444,20 +437,16 @@ def test_rows_kernel_padded_rows_at_any_thread_split():
     lib, labels, codes, _, _, _ = _kernel_case(251)
     W = codes[1]
     g = torch.Generator().manual_seed(4)
-    before = torch.get_num_threads()
     for Fo in (27, 9, 3):
         F = (Fo + 7) // 8 * 8
         T = torch.randn(5, 4, F, generator=g)
         T[..., Fo:] = 0.0
         Td = T.double()[labels.long()]  # [P, J, F]
         ref = (Td[:, 0] + (W.double()[:, :, None] * Td[:, 1:]).sum(1))[:, :Fo]
-        try:
-            outs = []
-            for n in (1, 2, 3):
-                torch.set_num_threads(n)
+        outs = []
+        for n in (1, 2, 3):
+            with torch_threads(n):
                 outs.append(relight_kernels.affine_rows(lib, T, 4, Fo, 1, *codes, P=251))
-        finally:
-            torch.set_num_threads(before)
         ordered = relight_kernels.affine_rows(lib, T, 4, Fo, 1, *codes, P=251, order=torch.arange(251, dtype=torch.int32))
         assert all(torch.equal(o, outs[0]) for o in outs[1:]) and torch.equal(ordered, outs[0]), Fo
         assert torch.allclose(outs[0].double(), ref, atol=1e-5), Fo
@@ -480,22 +469,18 @@ def test_cluster_sorted_visiting_changes_nothing(name, monkeypatch):
     assert enc.meta["packed"] == (name == "cpca_adaptive")
     L = torch.randn(n_in, 3)
     views = {"none": None, "dense": torch.randn(300, n_out), "taps": (torch.randint(0, n_out, (300, 4)), torch.rand(300, 4))}
-    before = torch.get_num_threads()
 
     def run(view):
         return c.relight(enc, L, view=view)
 
-    try:
-        for threads in (1, 2):
-            torch.set_num_threads(threads)
+    for threads in (1, 2):
+        with torch_threads(threads):
             for mode, view in views.items():
                 monkeypatch.setattr(affine, "SORT_MIN_CLUSTER_BYTES", 0)
                 sorted_out = run(view)
                 assert "cluster_order" in enc.cache, mode
                 monkeypatch.setattr(affine, "SORT_MIN_CLUSTER_BYTES", 1 << 60)
                 assert torch.equal(sorted_out, run(view)), (mode, threads)
-    finally:
-        torch.set_num_threads(before)
     labels = enc.tensors["labels"]
     labels[:50] = (labels[:50].long() + 1).remainder(c.K_).to(labels.dtype)  # an in-place edit of the codes
     if name == "cpca_adaptive":
