@@ -302,6 +302,48 @@ def test_relight_from_gaussians_matches_integral_of_decoded_tables(cube, monkeyp
         assert float(native[1][1].abs().max()) == 0.0
 
 
+@pytest.mark.parametrize("threads", [1, 2])
+def test_fused_kernels_in_blocks_of_16_equal_the_torch_formulation(cube, threads, monkeypatch):
+    """The compiled kernels take 16 vertices (or lobe groups) at a time where the CPU has AVX-512
+    (the rest one by one, each thread's range split anywhere): with and without taps, 37 vertices
+    of varied lobes (widths below, inside and above the ladder; a vertex with no view above the
+    horizon), they equal the torch formulation to float32 rounding and write into ``out=``."""
+    from prt_torch.codecs import relight_kernels
+    from prt_torch.harness.timing import torch_threads
+
+    if relight_kernels.native() is None:
+        pytest.skip("no compiled kernels")
+    d, _ = cube
+    g = torch.Generator().manual_seed(7)
+    J, N, V = 12, 2, 37
+    mu = torch.nn.functional.normalize(torch.randn(3 * J, N, 3, generator=g, dtype=torch.float64), dim=-1)
+    T = mixture(d, torch.ones(3 * J, N, dtype=torch.float64), mu, torch.full((3 * J, N), 0.5, dtype=torch.float64))
+    c = codecs.get("gaussian", lobes=N)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        enc = c.fit_encode(T.reshape(3, -1).float(), matrix_shape=(J, d.shape[0]))
+    enc.tensors = {"weights": torch.rand(V, J, N, generator=g),
+                   "mu": torch.nn.functional.normalize(torch.randn(V, J, N, 3, generator=g), dim=-1),
+                   "sigma": torch.exp(torch.randn(V, J, N, generator=g) * 2)}
+    enc.meta["points"] = V
+    light = lambda x: torch.stack([1.5 + x[..., 0], 1 + 0.5 * x[..., 2], (x[..., 1] > 0.3).double()], -1)  # noqa: E731
+    pe = prefilter_environment(light, res=8, levels=12)
+    idx = torch.randint(0, J, (V, 3), generator=g)
+    a = torch.rand(V, 3, generator=g)
+    a[20] = 0.0
+    with torch_threads(threads):
+        bufs = (torch.full((V, J, 3), float("nan")), torch.full((V, 3), float("nan")))
+        native = (c.relight(enc, pe, out=bufs[0]), c.relight(enc, pe, view=(idx, a), out=bufs[1]))
+        assert native[0] is bufs[0] and native[1] is bufs[1]
+        monkeypatch.setenv("PRT_TORCH_NATIVE", "0")
+        ref = (c.relight(enc, pe), c.relight(enc, pe, view=(idx, a)))
+    for got, want in zip(native, ref):
+        assert torch.allclose(got, want, rtol=1e-5, atol=1e-6 * float(want.abs().max()))
+    assert float(native[1][20].abs().max()) == 0.0
+    with pytest.raises(ValueError, match="shares memory"):  # out= over the encoding it reads
+        c.relight(enc, pe, view=(idx, a), out=enc.tensors["weights"].view(-1)[: V * 3].view(V, 3))
+
+
 def test_interpolation_across_views_and_triangles(cube):
     """§2.3: at a stored view the taps select it alone; at a triangle corner the surface relight
     equals the vertex relight; halfway between two views the mean moves (no cross-fade)."""

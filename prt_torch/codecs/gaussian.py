@@ -455,15 +455,18 @@ class _Problem:
         return a2, ls2, m2 / m2.norm(dim=-1, keepdim=True).clamp_min(1e-12)
 
 
-def lobe_sum(light: PrefilteredEnvironment, w: torch.Tensor, mu: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
+def lobe_sum(light: PrefilteredEnvironment, w: torch.Tensor, mu: torch.Tensor, sigma: torch.Tensor,
+             out: torch.Tensor | None = None) -> torch.Tensor:
     """Σ over the lobes (last axis of ``w [..., N]``) of w · E_σ(μ) — Green 2005 eq. 2.7 with
     ``mu [..., N, 3]``, ``sigma [..., N]`` → ``[..., C]`` float32: one fused pass per lobe
     (``relight_kernels.sg_lookup_sum``) where the kernels are compiled, else
-    ``light.lookup`` and a sum (the same values to float32 rounding; tests compare them)."""
+    ``light.lookup`` and a sum (the same values to float32 rounding; tests compare them).
+    ``out``: an optional contiguous float32 result of that shape, written and returned."""
     lib = _fused(light)
     if lib is not None:
-        return sg_lookup_sum(lib, light.table(), light.log_sigmas, light.res, mu, sigma, w)
-    return (w[..., None] * light.lookup(mu, sigma)).sum(-2)
+        return sg_lookup_sum(lib, light.table(), light.log_sigmas, light.res, mu, sigma, w, out=out)
+    res = (w[..., None] * light.lookup(mu, sigma)).sum(-2)
+    return res if out is None else out.copy_(res)
 
 
 def _fused(light: PrefilteredEnvironment):
@@ -831,33 +834,42 @@ class GaussianCodec(Codec):
         three nearest views' taps, ``[V, C]``. float32. ``out``: an optional result tensor of
         that shape (``base.check_out``), written and returned.
         """
-        res = self._relight(enc, light, view)
-        return res if out is None else check_out(out, tuple(res.shape), view).copy_(res)
-
-    def _relight(self, enc: Encoded, light: PrefilteredEnvironment, view: Any) -> torch.Tensor:
         self._require_fitted()
         light = self._check_light(light)
+        w = enc.tensors["weights"]
+        V, J, _ = w.shape
+        if view is not None:
+            view = self.checked_taps(view, V, J)
+        if out is not None:  # the fused kernels write into it (no result-sized temporary and copy)
+            out = check_out(out, (V, light.channels) if view is not None else (V, J, light.channels), view,
+                            tuple(enc.tensors.values()), light.table())
+        return self._relight(enc, light, view, out)
+
+    def _relight(self, enc: Encoded, light: PrefilteredEnvironment, view: tuple | None, out: torch.Tensor | None = None
+                 ) -> torch.Tensor:
+        """``view``: None or checked taps; ``out``: None or a checked result buffer."""
         w, mu, sg = enc.tensors["weights"], enc.tensors["mu"], enc.tensors["sigma"]
         V, J, N = w.shape
-        if view is None:
-            out = lobe_sum(light, w, mu, sg)
-            if "diffuse" in enc.tensors:
-                out = out + self._diffuse(enc, light)[:, None, :] * enc.tensors["has_data"].float()[..., None]
-            return out
-        idx, a = self.checked_taps(view, V, J)
-        rows = torch.arange(V)[:, None]
-        a = a.float()
         lib = _fused(light)
+        if view is None:
+            res = lobe_sum(light, w, mu, sg, out=out)
+            if "diffuse" in enc.tensors:
+                res += self._diffuse(enc, light)[:, None, :] * enc.tensors["has_data"].float()[..., None]
+            return res
+        idx, a = view
+        a = a.float()
         if lib is not None:  # blend, look up and sum in one fused pass per vertex
-            out = sg_taps(lib, light.table(), light.log_sigmas, light.res, w, mu, sg, idx, a)
+            res = sg_taps(lib, light.table(), light.log_sigmas, light.res, w, mu, sg, idx, a, out=out)
         else:
+            rows = torch.arange(V)[:, None]
             tot = a.sum(1, keepdim=True)
             wb, mb, sgb = blend_lobes(w[rows, idx], mu[rows, idx], sg[rows, idx], a / tot.clamp_min(1e-12))
-            out = lobe_sum(light, wb, mb, sgb) * tot
+            res = lobe_sum(light, wb, mb, sgb) * tot
+            res = res if out is None else out.copy_(res)
         if "diffuse" in enc.tensors:
-            hd = enc.tensors["has_data"].float()[rows, idx]
-            out = out + self._diffuse(enc, light) * (a * hd).sum(1, keepdim=True)
-        return out
+            hd = enc.tensors["has_data"].float()[torch.arange(V)[:, None], idx]
+            res += self._diffuse(enc, light) * (a * hd).sum(1, keepdim=True)
+        return res
 
     def relight_surface(self, enc: Encoded, light: PrefilteredEnvironment, faces: torch.Tensor, face_index: torch.Tensor,
                         bary: torch.Tensor, view_dirs: torch.Tensor) -> torch.Tensor:

@@ -1134,9 +1134,155 @@ static inline void sg_lookup(float x, float y, float z, float sigma, float wl, c
     }
 }
 
+#if defined(__AVX512F__)
+#include <immintrin.h>
+/* 16 lookups at once (RGB tables), lane by lane the float32 operations of sg_lookup: the face, texel
+   and level addressing in vector registers, the 8 texels x 3 channels by gathers. The log of the
+   width is Cephes' logf (range reduction to [sqrt(1/2), sqrt(2)), a degree-8 polynomial: within
+   about 1 ulp of logf; NaN and +Inf pass through as logf's). Table offsets are int32: the caller
+   takes this path only for tables under 2^31 floats. */
+static inline __m512 log16(__m512 x) {
+    const __m512 one = _mm512_set1_ps(1.0f);
+    __m512i xi = _mm512_castps_si512(x);
+    __m512 e = _mm512_cvtepi32_ps(_mm512_sub_epi32(_mm512_srli_epi32(xi, 23), _mm512_set1_epi32(126)));
+    __m512 m = _mm512_castsi512_ps(_mm512_or_si512(_mm512_and_si512(xi, _mm512_set1_epi32(0x807fffff)),
+                                                   _mm512_set1_epi32(0x3f000000)));  /* [0.5, 1) */
+    __mmask16 lo = _mm512_cmp_ps_mask(m, _mm512_set1_ps(0.707106781186547524f), _CMP_LT_OQ);
+    e = _mm512_mask_sub_ps(e, lo, e, one);
+    m = _mm512_sub_ps(_mm512_mask_add_ps(m, lo, m, m), one);
+    __m512 z = _mm512_mul_ps(m, m);
+    __m512 y = _mm512_set1_ps(7.0376836292E-2f);
+    y = _mm512_fmadd_ps(y, m, _mm512_set1_ps(-1.1514610310E-1f));
+    y = _mm512_fmadd_ps(y, m, _mm512_set1_ps(1.1676998740E-1f));
+    y = _mm512_fmadd_ps(y, m, _mm512_set1_ps(-1.2420140846E-1f));
+    y = _mm512_fmadd_ps(y, m, _mm512_set1_ps(1.4249322787E-1f));
+    y = _mm512_fmadd_ps(y, m, _mm512_set1_ps(-1.6668057665E-1f));
+    y = _mm512_fmadd_ps(y, m, _mm512_set1_ps(2.0000714765E-1f));
+    y = _mm512_fmadd_ps(y, m, _mm512_set1_ps(-2.4999993993E-1f));
+    y = _mm512_fmadd_ps(y, m, _mm512_set1_ps(3.3333331174E-1f));
+    y = _mm512_mul_ps(_mm512_mul_ps(y, m), z);
+    y = _mm512_fmadd_ps(e, _mm512_set1_ps(-2.12194440e-4f), y);
+    y = _mm512_fnmadd_ps(_mm512_set1_ps(0.5f), z, y);
+    __m512 res = _mm512_fmadd_ps(e, _mm512_set1_ps(0.693359375f), _mm512_add_ps(m, y));
+    __mmask16 fin = _mm512_cmp_ps_mask(x, _mm512_set1_ps(INFINITY), _CMP_LT_OQ);  /* NaN, +Inf: as given */
+    return _mm512_mask_blend_ps(fin, x, res);
+}
+
+static inline __m512 clamp16(__m512 v, __m512 lo, __m512 hi) {  /* v < lo ? lo : (v > hi ? hi : v) */
+    v = _mm512_mask_blend_ps(_mm512_cmp_ps_mask(v, hi, _CMP_GT_OQ), v, hi);
+    return _mm512_mask_blend_ps(_mm512_cmp_ps_mask(v, lo, _CMP_LT_OQ), v, lo);
+}
+
+/* acc{r,g,b} += wl E_sigma(x, y, z), 16 lanes; table [L 6 r r, 3], ladder [L] increasing */
+static inline void sg_lookup16(__m512 x, __m512 y, __m512 z, __m512 sigma, __m512 wl, const float *table, i64 r, i64 L,
+                               const float *ladder, __m128 *acc) {
+    const __m512 zero = _mm512_setzero_ps(), one = _mm512_set1_ps(1.0f);
+    const __m512 signbit = _mm512_set1_ps(-0.0f);
+    __m512 ax = _mm512_andnot_ps(signbit, x), ay = _mm512_andnot_ps(signbit, y), az = _mm512_andnot_ps(signbit, z);
+    __m512 nx = _mm512_xor_ps(x, signbit), ny = _mm512_xor_ps(y, signbit), nz = _mm512_xor_ps(z, signbit);
+    __mmask16 mx = _mm512_cmp_ps_mask(ax, ay, _CMP_GE_OQ) & _mm512_cmp_ps_mask(ax, az, _CMP_GE_OQ);
+    __mmask16 my = ~mx & _mm512_cmp_ps_mask(ay, az, _CMP_GE_OQ);
+    __mmask16 xneg = _mm512_cmp_ps_mask(x, zero, _CMP_LT_OQ), yneg = _mm512_cmp_ps_mask(y, zero, _CMP_LT_OQ);
+    __mmask16 zneg = _mm512_cmp_ps_mask(z, zero, _CMP_LT_OQ);
+    __mmask16 xge = _mm512_cmp_ps_mask(x, zero, _CMP_GE_OQ), yge = _mm512_cmp_ps_mask(y, zero, _CMP_GE_OQ);
+    __mmask16 zge = _mm512_cmp_ps_mask(z, zero, _CMP_GE_OQ);
+    /* z face (the default), then y, then x overwrite their lanes */
+    __m512 mm = az, sc = _mm512_mask_blend_ps(zge, nx, x), tc = ny;
+    __m512i face = _mm512_mask_blend_epi32(zneg, _mm512_set1_epi32(4), _mm512_set1_epi32(5));
+    mm = _mm512_mask_blend_ps(my, mm, ay);
+    sc = _mm512_mask_blend_ps(my, sc, x);
+    tc = _mm512_mask_blend_ps(my, tc, _mm512_mask_blend_ps(yge, nz, z));
+    face = _mm512_mask_blend_epi32(my, face, _mm512_mask_blend_epi32(yneg, _mm512_set1_epi32(2), _mm512_set1_epi32(3)));
+    mm = _mm512_mask_blend_ps(mx, mm, ax);
+    sc = _mm512_mask_blend_ps(mx, sc, _mm512_mask_blend_ps(xge, z, nz));
+    tc = _mm512_mask_blend_ps(mx, tc, ny);
+    face = _mm512_mask_blend_epi32(mx, face, _mm512_mask_blend_epi32(xneg, _mm512_setzero_si512(), _mm512_set1_epi32(1)));
+    mm = _mm512_mask_blend_ps(_mm512_cmp_ps_mask(mm, _mm512_set1_ps(1e-30f), _CMP_LT_OQ), mm, _mm512_set1_ps(1e-30f));
+    sc = _mm512_div_ps(sc, mm);
+    tc = _mm512_div_ps(tc, mm);
+    const __m512 half = _mm512_set1_ps((float)r * 0.5f), p5 = _mm512_set1_ps(0.5f), rm1 = _mm512_set1_ps((float)(r - 1));
+    __m512 s = _mm512_fmsub_ps(_mm512_add_ps(sc, one), half, p5), t = _mm512_fmsub_ps(_mm512_add_ps(tc, one), half, p5);
+    s = clamp16(s, zero, rm1);
+    t = clamp16(t, zero, rm1);
+    const __m512 rmax = _mm512_set1_ps((float)(r > 1 ? r - 2 : 0));
+    __m512 sf = _mm512_roundscale_ps(s, _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC);
+    __m512 tf = _mm512_roundscale_ps(t, _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC);
+    sf = _mm512_mask_blend_ps(_mm512_cmp_ps_mask(sf, rmax, _CMP_GT_OQ), sf, rmax);
+    tf = _mm512_mask_blend_ps(_mm512_cmp_ps_mask(tf, rmax, _CMP_GT_OQ), tf, rmax);
+    __m512i s0 = _mm512_cvttps_epi32(sf), t0 = _mm512_cvttps_epi32(tf);
+    __m512 fs = clamp16(_mm512_sub_ps(s, sf), zero, one), ft = clamp16(_mm512_sub_ps(t, tf), zero, one);
+    const __m512i ri = _mm512_set1_epi32((int)r), rm1i = _mm512_set1_epi32((int)(r - 1)), onei = _mm512_set1_epi32(1);
+    __m512i ds = _mm512_sub_epi32(_mm512_min_epi32(_mm512_add_epi32(s0, onei), rm1i), s0);
+    __m512i dt = _mm512_mullo_epi32(_mm512_sub_epi32(_mm512_min_epi32(_mm512_add_epi32(t0, onei), rm1i), t0), ri);
+    __m512 ls = log16(_mm512_mask_blend_ps(_mm512_cmp_ps_mask(sigma, _mm512_set1_ps(1e-12f), _CMP_LT_OQ), sigma,
+                                           _mm512_set1_ps(1e-12f)));
+    __m512 a = zero;
+    __m512i lo = _mm512_setzero_si512(), hi = lo;
+    if (L > 1) {  /* searchsorted (left) = the number of ladder entries below ls */
+        for (i64 l = 0; l < L; l++)
+            hi = _mm512_mask_add_epi32(hi, _mm512_cmp_ps_mask(_mm512_set1_ps(ladder[l]), ls, _CMP_LT_OQ), hi, onei);
+        hi = _mm512_min_epi32(_mm512_max_epi32(hi, onei), _mm512_set1_epi32((int)(L - 1)));
+        lo = _mm512_sub_epi32(hi, onei);
+        __m512 llo = _mm512_i32gather_ps(lo, ladder, 4), lhi = _mm512_i32gather_ps(hi, ladder, 4);
+        a = clamp16(_mm512_div_ps(_mm512_sub_ps(ls, llo), _mm512_sub_ps(lhi, llo)), zero, one);
+    }
+    const __m512i lvl = _mm512_set1_epi32((int)(6 * r * r));
+    __m512i base = _mm512_add_epi32(_mm512_mullo_epi32(_mm512_add_epi32(_mm512_mullo_epi32(face, ri), t0), ri), s0);
+    __m512i tex[4] = {base, _mm512_add_epi32(base, ds), _mm512_add_epi32(base, dt),
+                      _mm512_add_epi32(_mm512_add_epi32(base, dt), ds)};
+    __m512 gs = _mm512_sub_ps(one, fs), gt = _mm512_sub_ps(one, ft);
+    __m512 w4[4] = {_mm512_mul_ps(gt, gs), _mm512_mul_ps(gt, fs), _mm512_mul_ps(ft, gs), _mm512_mul_ps(ft, fs)};
+    __m512i off[2] = {_mm512_mullo_epi32(lo, lvl), _mm512_mullo_epi32(hi, lvl)};
+    __m512 la[2] = {_mm512_sub_ps(one, a), a};
+    /* the 8 texels x 3 channels per lane: a masked 3-float load per texel (no gathers: Zen 4 and
+       older cores gather at about one element per cycle) */
+    int32_t ix[8][16] __attribute__((aligned(64)));
+    float wt[8][16] __attribute__((aligned(64)));
+    const __m512i three = _mm512_set1_epi32(3);
+    for (int i = 0; i < 8; i++) {
+        _mm512_store_si512(ix[i], _mm512_mullo_epi32(_mm512_add_epi32(tex[i & 3], off[i >> 2]), three));
+        _mm512_store_ps(wt[i], _mm512_mul_ps(_mm512_mul_ps(w4[i & 3], la[i >> 2]), wl));
+    }
+    for (int l = 0; l < 16; l++) {
+        __m128 s4 = _mm_setzero_ps();
+        for (int i = 0; i < 8; i++) s4 = _mm_fmadd_ps(_mm_set1_ps(wt[i][l]), _mm_maskz_loadu_ps(7, table + ix[i][l]), s4);
+        acc[l] = _mm_add_ps(acc[l], s4);
+    }
+}
+
+/* out[3 l + c] = acc[l][c] scale[l] for 16 lanes */
+static inline void store16_rgb(float *out, const __m128 *acc, const float *scale) {
+    for (int l = 0; l < 16; l++) {
+        float t[4];
+        _mm_storeu_ps(t, _mm_mul_ps(acc[l], _mm_set1_ps(scale ? scale[l] : 1.0f)));
+        out[3 * l] = t[0]; out[3 * l + 1] = t[1]; out[3 * l + 2] = t[2];
+    }
+}
+#define SG16 1
+#endif
+
 /* out[g, c] = sum_{n<N} w[g N + n] E_{sigma[g N + n]}(mu[g N + n])[c] */
 static void sg_range(i64 g0, i64 g1, i64 N, const float *mu, const float *sigma, const float *w, const float *table, i64 r,
-                     i64 L, const float *ladder, i64 C, float *out) {
+                     i64 L, const float *ladder, i64 C, int vec, float *out) {
+#ifdef SG16
+    if (vec) {  /* 16 groups at a time (lane l: group g + l), the rest below */
+        const __m512i lane = _mm512_set_epi32(15, 14, 13, 12, 11, 10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 0);
+        for (; g0 + 16 <= g1; g0 += 16) {
+            __m128 acc[16];
+            for (int l = 0; l < 16; l++) acc[l] = _mm_setzero_ps();
+            for (i64 n = 0; n < N; n++) {
+                __m512i m = _mm512_add_epi32(_mm512_mullo_epi32(_mm512_add_epi32(lane, _mm512_set1_epi32((int)g0)),
+                                                                _mm512_set1_epi32((int)N)), _mm512_set1_epi32((int)n));
+                __m512i m3 = _mm512_mullo_epi32(m, _mm512_set1_epi32(3));
+                sg_lookup16(_mm512_i32gather_ps(m3, mu, 4), _mm512_i32gather_ps(m3, mu + 1, 4), _mm512_i32gather_ps(m3, mu + 2, 4),
+                            _mm512_i32gather_ps(m, sigma, 4), _mm512_i32gather_ps(m, w, 4), table, r, L, ladder, acc);
+            }
+            store16_rgb(out + 3 * g0, acc, NULL);
+        }
+    }
+#else
+    (void)vec;
+#endif
     for (i64 g = g0; g < g1; g++) {
         float acc[16] = {0};
         for (i64 m = g * N; m < (g + 1) * N; m++)
@@ -1145,11 +1291,17 @@ static void sg_range(i64 g0, i64 g1, i64 N, const float *mu, const float *sigma,
     }
 }
 
+/* the 16-lane path: RGB, and every gather offset (3 G N into mu, L 6 r r 3 into the table) in int32 */
+static inline int sg_vec(i64 elems, i64 L, i64 r, i64 C) {
+    return C == 3 && 3 * elems < ((i64)1 << 31) - 64 && L * 6 * r * r * 3 < ((i64)1 << 31) - 64;
+}
+
 int prt_sg_lookup_sum(i64 G, i64 N, const float *mu, const float *sigma, const float *w, const float *table, i64 r, i64 L,
                       const float *ladder, i64 C, float *out, int nthreads) {
     i64 nth = nthreads > 0 ? nthreads : 1;
+    int vec = sg_vec(G * N, L, r, C);
     #pragma omp parallel for schedule(static, 1) num_threads(nth)
-    for (i64 t = 0; t < nth; t++) sg_range(G * t / nth, G * (t + 1) / nth, N, mu, sigma, w, table, r, L, ladder, C, out);
+    for (i64 t = 0; t < nth; t++) sg_range(G * t / nth, G * (t + 1) / nth, N, mu, sigma, w, table, r, L, ladder, C, vec, out);
     return 0;
 }
 
@@ -1159,7 +1311,51 @@ int prt_sg_lookup_sum(i64 G, i64 N, const float *mu, const float *sigma, const f
    mu [V, J, N, 3], sigma [V, J, N]; idx [V, k] (in [0, J), checked by the caller), a [V, k]. */
 static void sg_taps_range(i64 v0, i64 v1, i64 J, i64 N, i64 k, const float *w, const float *mu, const float *sigma,
                           const i64 *idx, const float *av, const float *table, i64 r, i64 L, const float *ladder, i64 C,
-                          float *out) {
+                          int vec, float *out) {
+#ifdef SG16
+    if (vec && k <= 8) {  /* 16 vertices at a time (lane l: vertex v + l), the rest below */
+        for (; v0 + 16 <= v1; v0 += 16) {
+            int32_t mb[8][16];  /* per tap and lane: the lobe index (v J + idx) N of lobe 0 */
+            float at[8][16];
+            for (i64 t = 0; t < k; t++)
+                for (int l = 0; l < 16; l++) {
+                    mb[t][l] = (int32_t)(((v0 + l) * J + idx[(v0 + l) * k + t]) * N);
+                    at[t][l] = av[(v0 + l) * k + t];
+                }
+            __m512 tot = _mm512_setzero_ps();
+            for (i64 t = 0; t < k; t++) tot = _mm512_add_ps(tot, _mm512_loadu_ps(at[t]));
+            const __m512 tiny = _mm512_set1_ps(1e-12f);
+            __m512 inv = _mm512_div_ps(_mm512_set1_ps(1.0f),
+                                       _mm512_mask_blend_ps(_mm512_cmp_ps_mask(tot, tiny, _CMP_GT_OQ), tiny, tot));
+            __m128 acc[16];
+            for (int l = 0; l < 16; l++) acc[l] = _mm_setzero_ps();
+            for (i64 n = 0; n < N; n++) {
+                __m512 wb = _mm512_setzero_ps(), sb = wb, mx = wb, my = wb, mz = wb;
+                for (i64 t = 0; t < k; t++) {
+                    __m512 an = _mm512_mul_ps(_mm512_loadu_ps(at[t]), inv);
+                    __m512i m = _mm512_add_epi32(_mm512_loadu_si512(mb[t]), _mm512_set1_epi32((int)n));
+                    __m512i m3 = _mm512_mullo_epi32(m, _mm512_set1_epi32(3));
+                    wb = _mm512_fmadd_ps(an, _mm512_i32gather_ps(m, w, 4), wb);
+                    sb = _mm512_fmadd_ps(an, _mm512_i32gather_ps(m, sigma, 4), sb);
+                    mx = _mm512_fmadd_ps(an, _mm512_i32gather_ps(m3, mu, 4), mx);
+                    my = _mm512_fmadd_ps(an, _mm512_i32gather_ps(m3, mu + 1, 4), my);
+                    mz = _mm512_fmadd_ps(an, _mm512_i32gather_ps(m3, mu + 2, 4), mz);
+                }
+                __m512 nm = _mm512_sqrt_ps(_mm512_fmadd_ps(mz, mz, _mm512_fmadd_ps(my, my, _mm512_mul_ps(mx, mx))));
+                nm = _mm512_mask_blend_ps(_mm512_cmp_ps_mask(nm, tiny, _CMP_GT_OQ), tiny, nm);
+                const __m512 smin = _mm512_set1_ps(1e-6f);
+                sg_lookup16(_mm512_div_ps(mx, nm), _mm512_div_ps(my, nm), _mm512_div_ps(mz, nm),
+                            _mm512_mask_blend_ps(_mm512_cmp_ps_mask(sb, smin, _CMP_GT_OQ), smin, sb), wb, table, r, L, ladder,
+                            acc);
+            }
+            float tt[16];
+            _mm512_storeu_ps(tt, tot);
+            store16_rgb(out + 3 * v0, acc, tt);
+        }
+    }
+#else
+    (void)vec;
+#endif
     for (i64 v = v0; v < v1; v++) {
         float acc[16] = {0}, tot = 0;
         for (i64 t = 0; t < k; t++) tot += av[v * k + t];
@@ -1183,9 +1379,10 @@ static void sg_taps_range(i64 v0, i64 v1, i64 J, i64 N, i64 k, const float *w, c
 int prt_sg_taps(i64 V, i64 J, i64 N, i64 k, const float *w, const float *mu, const float *sigma, const i64 *idx, const float *av,
                 const float *table, i64 r, i64 L, const float *ladder, i64 C, float *out, int nthreads) {
     i64 nth = nthreads > 0 ? nthreads : 1;
+    int vec = sg_vec(V * J * N, L, r, C);
     #pragma omp parallel for schedule(static, 1) num_threads(nth)
     for (i64 t = 0; t < nth; t++)
-        sg_taps_range(V * t / nth, V * (t + 1) / nth, J, N, k, w, mu, sigma, idx, av, table, r, L, ladder, C, out);
+        sg_taps_range(V * t / nth, V * (t + 1) / nth, J, N, k, w, mu, sigma, idx, av, table, r, L, ladder, C, vec, out);
     return 0;
 }
 """
@@ -1498,11 +1695,12 @@ def affine_taps(lib, T: torch.Tensor, J: int, n_out: int, C: int, labels, W, wst
 
 
 def sg_lookup_sum(lib, table: torch.Tensor, log_sigmas: torch.Tensor, res: int, mu: torch.Tensor, sigma: torch.Tensor,
-                  w: torch.Tensor) -> torch.Tensor:
+                  w: torch.Tensor, out: torch.Tensor | None = None) -> torch.Tensor:
     """Σ over the last axis of ``w [..., N]`` of w · E_σ(μ) (Green 2005 eq. 2.7) from a prefiltered
     pyramid ``table [L·6·r·r, C]`` float32 (``PrefilteredEnvironment.table``) with ladder
     ``log_sigmas [L]``: ``mu [..., N, 3]``, ``sigma [..., N]`` → ``[..., C]`` float32, one fused
-    pass per lobe (the torch formulation builds ~30 lobe-sized intermediates)."""
+    pass per lobe (the torch formulation builds ~30 lobe-sized intermediates). ``out``: an
+    optional contiguous float32 result ``[..., C]`` (checked by the caller), written and returned."""
     lead, N = tuple(w.shape[:-1]), w.shape[-1]
     G = w.numel() // max(N, 1)
     C = table.shape[1]
@@ -1513,19 +1711,20 @@ def sg_lookup_sum(lib, table: torch.Tensor, log_sigmas: torch.Tensor, res: int, 
     w = w.reshape(G * N).to(torch.float32).contiguous()
     table = table.to(torch.float32).contiguous()
     ladder = log_sigmas.to(torch.float32).contiguous()
-    out = torch.empty(G, C, dtype=torch.float32)
+    given = out
+    out = _out(out, G * C, (G, C))
     lib.prt_sg_lookup_sum(G, N, mu.data_ptr(), sigma.data_ptr(), w.data_ptr(), table.data_ptr(), int(res), ladder.numel(),
                           ladder.data_ptr(), C, out.data_ptr(), torch.get_num_threads())
-    return out.reshape(*lead, C)
+    return given if given is not None else out.reshape(*lead, C)
 
 
 def sg_taps(lib, table: torch.Tensor, log_sigmas: torch.Tensor, res: int, w: torch.Tensor, mu: torch.Tensor, sigma: torch.Tensor,
-            idx: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+            idx: torch.Tensor, a: torch.Tensor, out: torch.Tensor | None = None) -> torch.Tensor:
     """Gaussian relighting with view taps (Green 2005 §2.3, eq. 2.7), fused per vertex: the lobes
     of the tapped views blended with ``a / Σa`` (``gaussian.blend_lobes``), looked up in the
     pyramid (as :func:`sg_lookup_sum`), summed over the lobes and scaled by Σa. ``w [V, J, N]``,
     ``mu [V, J, N, 3]``, ``sigma [V, J, N]``, ``idx int64 [V, k]`` in [0, J) (checked by the
-    caller), ``a [V, k]`` → ``[V, C]`` float32."""
+    caller), ``a [V, k]`` → ``[V, C]`` float32 (into ``out`` when given, checked by the caller)."""
     V, J, N = w.shape
     k = idx.shape[1]
     C = table.shape[1]
@@ -1534,7 +1733,7 @@ def sg_taps(lib, table: torch.Tensor, log_sigmas: torch.Tensor, res: int, w: tor
     f32 = lambda t: t.to(torch.float32).contiguous()  # noqa: E731
     w, mu, sigma, a, table, ladder = f32(w), f32(mu), f32(sigma), f32(a), f32(table), f32(log_sigmas)
     idx = idx.to(torch.int64).contiguous()
-    out = torch.empty(V, C, dtype=torch.float32)
+    out = _out(out, V * C, (V, C))
     lib.prt_sg_taps(V, J, N, k, w.data_ptr(), mu.data_ptr(), sigma.data_ptr(), idx.data_ptr(), a.data_ptr(), table.data_ptr(),
                     int(res), ladder.numel(), ladder.data_ptr(), C, out.data_ptr(), torch.get_num_threads())
     return out
