@@ -26,7 +26,8 @@ work.
 
 Shapes (``--shape``):
 * ``relight``: ``bench_relight``'s 50 000-point settings (VQ 256, PCA 8, CPCA 256×8 static,
-  iterative and adaptive; MRT-PCA 16), no view, dense view, and taps;
+  iterative and adaptive; MRT-PCA 16; the Gaussian codec with 1 and 3 lobes), no view, dense
+  view, and taps;
 * ``default``: the default benchmark's shape, 10 242 points of a 64×16 MRT-like signal with 4
   tent taps and dense views (VQ 64, PCA 8, CPCA 16×4, MRT-PCA 8).
 
@@ -131,6 +132,14 @@ def cases(shape: str, only: list[str], cache: Path):
         X, ms = sig[s]
         c, enc, _ = bench_relight.fitted(name, params, X, ms, cache)
         yield label, c, enc, light, views[s]
+    if shape == "relight":  # bench_relight's Gaussian rows: every stored view, and camera taps
+        pe = bench_relight.prefilter_environment(light.T.contiguous().double(), res=16)
+        for lobes in (1, 3):
+            label = f"gaussian {lobes}"
+            if only and not any(o in label for o in only):
+                continue
+            c, enc = bench_relight.gaussian_fitted(lobes, P)
+            yield label, c, enc, pe, [("none", None), ("taps", bench_relight.gaussian_view(c, P))]
 
 
 def main() -> int:
