@@ -458,7 +458,8 @@ def report(r: dict) -> str:
           "tapped views' lobes (5 floats each) and a normalisation. Bytes read: no view, the whole encoding; taps, only the "
           "tapped views' lobes and the taps (the other 89 views are never read). The work is address arithmetic and "
           "scattered table reads, which neither the copy bound nor the multiply-add floor captures; the fraction says how "
-          "far the lookup is from the bytes it must move.", ""]
+          "far the lookup is from the bytes it must move. In the fits table, a Gaussian row's n_k is its lobes per "
+          "function and its mean weights per point its lobes per vertex (92 views × N).", ""]
     return "\n".join(L)
 
 
