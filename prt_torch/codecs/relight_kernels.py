@@ -1602,7 +1602,7 @@ def constants(lib, means, basis, n: int, n_out: int, n_in: int, L: torch.Tensor,
             out = bufs[(kind, size)] = torch.zeros(size, dtype=torch.float32)
     else:
         out = torch.zeros(size, dtype=torch.float32)
-    Lc = L if L.dtype == torch.float32 and L.is_contiguous() else L.to(torch.float32).contiguous()
+    Lc = _as(L, torch.float32)
     if lib.prt_constants(K, J, Jmax, n_in, n_out, Mt.shape[3], C, Mt.data_ptr(), Lc.data_ptr(), out.data_ptr(),
                          sk, sj, so, sc, _ptr(nk), int(means is not None), torch.get_num_threads()):
         # the kernel found a non-finite value in the float32 light it read: name it (as given, else
@@ -1631,6 +1631,12 @@ def _order(order, P: int):
             weakref.finalize(order, _ORDERS_CHECKED.pop, id(order), None)
         _ORDERS_CHECKED[id(order)] = (weakref.ref(order), order._version)
     return order.data_ptr()
+
+
+def _as(t: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+    """``t`` as a contiguous tensor of ``dtype``: itself when it already is (a ``.to()`` and a
+    ``.contiguous()`` cost about a microsecond each even when they copy nothing)."""
+    return t if t.dtype == dtype and t.is_contiguous() else t.to(dtype).contiguous()
 
 
 def _out(out: torch.Tensor | None, numel: int, shape: tuple) -> torch.Tensor:
@@ -1706,11 +1712,8 @@ def sg_lookup_sum(lib, table: torch.Tensor, log_sigmas: torch.Tensor, res: int, 
     C = table.shape[1]
     if C > 16:
         raise ValueError(f"sg_lookup_sum: {C} channels; accepted: at most 16")
-    mu = mu.reshape(G * N, 3).to(torch.float32).contiguous()
-    sigma = sigma.reshape(G * N).to(torch.float32).contiguous()
-    w = w.reshape(G * N).to(torch.float32).contiguous()
-    table = table.to(torch.float32).contiguous()
-    ladder = log_sigmas.to(torch.float32).contiguous()
+    mu, sigma, w = _as(mu.reshape(G * N, 3), torch.float32), _as(sigma.reshape(G * N), torch.float32), _as(w.reshape(G * N), torch.float32)
+    table, ladder = _as(table, torch.float32), _as(log_sigmas, torch.float32)
     given = out
     out = _out(out, G * C, (G, C))
     lib.prt_sg_lookup_sum(G, N, mu.data_ptr(), sigma.data_ptr(), w.data_ptr(), table.data_ptr(), int(res), ladder.numel(),
@@ -1730,9 +1733,8 @@ def sg_taps(lib, table: torch.Tensor, log_sigmas: torch.Tensor, res: int, w: tor
     C = table.shape[1]
     if C > 16:
         raise ValueError(f"sg_taps: {C} channels; accepted: at most 16")
-    f32 = lambda t: t.to(torch.float32).contiguous()  # noqa: E731
-    w, mu, sigma, a, table, ladder = f32(w), f32(mu), f32(sigma), f32(a), f32(table), f32(log_sigmas)
-    idx = idx.to(torch.int64).contiguous()
+    w, mu, sigma, a, table, ladder = (_as(t, torch.float32) for t in (w, mu, sigma, a, table, log_sigmas))
+    idx = _as(idx, torch.int64)
     out = _out(out, V * C, (V, C))
     lib.prt_sg_taps(V, J, N, k, w.data_ptr(), mu.data_ptr(), sigma.data_ptr(), idx.data_ptr(), a.data_ptr(), table.data_ptr(),
                     int(res), ladder.numel(), ladder.data_ptr(), C, out.data_ptr(), torch.get_num_threads())
