@@ -190,9 +190,7 @@ def relight_rate(quick: bool) -> dict:
     fn = lambda: c.relight(enc, pe, view=view, out=out)  # noqa: E731  (a render loop's reused result)
     # the copy bound (bench_relight's): read the tapped views' lobes (k · N · 5 floats) and the taps
     # once, write the output once; and the uncompressed taps — both paired with the relight
-    N = enc.tensors["weights"].shape[2]
-    rb = V * view[0].shape[1] * N * 5 * 4 + sum(t.numel() * t.element_size() for t in view)
-    pb = measure_paired(fn, io_bound_fn(rb, out.numel() * 4), repeats=15, warmup=2)
+    pb = measure_paired(fn, io_bound_fn(c.relight_bytes(enc, view), out.numel() * 4), repeats=15, warmup=2)
     pu = measure_paired(fn, lambda: relight.apply_taps(A, Lm, *view), repeats=15, warmup=2)
     tg, tu = pb.test.median, pu.peer.median
     return {"vertices": V, "prefilter_s": prefilter_s, "gaussian_s": tg, "uncompressed_s": tu,

@@ -96,14 +96,6 @@ def fitted(name: str, params: dict, X: torch.Tensor, ms: tuple, cache: Path) -> 
     return c, enc, False
 
 
-def view_bytes(view) -> int:
-    if view is None:
-        return 0
-    if isinstance(view, tuple):
-        return sum(t.numel() * t.element_size() for t in view)
-    return view.numel() * view.element_size()
-
-
 def peak_macs_per_s(repeats: int = 15) -> float:
     """The machine's float32 multiply-add rate at the current thread count, measured here: a
     cache-resident 256×256×256 GEMM (MKL, near the FMA units' peak), the fastest of ``repeats``
@@ -179,7 +171,7 @@ def row(label, c, enc, light, view, mode, unc, repeats) -> dict:
     buf = torch.empty_like(out)
     fn = lambda: c.relight(enc, light, view=view, out=buf)  # noqa: E731  (a render loop's reused result)
     st = c.storage(enc)
-    rb = st["bytes_total"] + view_bytes(view)
+    rb = c.relight_bytes(enc, view)  # the stored bytes (model + codes) and the view's
     wb = out.numel() * out.element_size()
     n_out = c.matrix_shape_[0] if c.matrix_shape_ else 1
     # terms per point: the mean and the weights actually stored (CPCA adaptive: n_k of the point's
@@ -239,23 +231,18 @@ def gaussian_view(c, P: int) -> tuple:
 
 
 def gaussian_row(label, c, enc, pe, view, mode, repeats) -> dict:
-    """One Gaussian row. Bytes read: without a view every stored lobe (``storage()``); with taps
-    only the tapped views' lobes (k·N·5 floats per vertex: the other views' are never touched, so
-    the whole encoding would be a bound 30× too loose) and the taps. MACs: per lobe the trilinear
-    lookup (8 texels × C), with taps also the blend (5 floats × k)."""
+    """One Gaussian row. Bytes read (``GaussianCodec.relight_bytes``): without a view every stored
+    lobe; with taps only the tapped views' lobes (k·N·5 floats per vertex: the other views' are
+    never touched, so the whole encoding would be a bound 30× too loose) and the taps. MACs: per
+    lobe the trilinear lookup (8 texels × C), with taps also the blend (5 floats × k)."""
     P, J, N = enc.tensors["weights"].shape
     fresh_fn = lambda: c.relight(enc, pe, view=view)  # noqa: E731
     out = fresh_fn()
     buf = torch.empty_like(out)
     fn = lambda: c.relight(enc, pe, view=view, out=buf)  # noqa: E731
     C = pe.channels
-    if view is None:
-        rb = c.storage(enc)["bytes_total"]
-        macs = J * N * 8 * C
-    else:
-        k = view[0].shape[1]
-        rb = P * k * N * 5 * 4 + view_bytes(view)
-        macs = N * (8 * C + 5 * k)
+    rb = c.relight_bytes(enc, view)
+    macs = J * N * 8 * C if view is None else N * (8 * C + 5 * view[0].shape[1])
     wb = out.numel() * out.element_size()
     return {"codec": label, "view": mode, "points": P, "macs_per_point": macs, "bytes_per_point": (rb + wb) / P,
             "bytes_model": c.storage(enc)["bytes_model"], "bytes_codes": c.storage(enc)["bytes_codes"],

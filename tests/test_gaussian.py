@@ -344,6 +344,34 @@ def test_fused_kernels_in_blocks_of_16_equal_the_torch_formulation(cube, threads
         c.relight(enc, pe, view=(idx, a), out=enc.tensors["weights"].view(-1)[: V * 3].view(V, 3))
 
 
+def test_relight_bytes_count_only_the_tapped_views(cube):
+    """The copy bound's byte count: every stored lobe without a view; with taps the lobes of the
+    tapped views alone (counted here by indexing them out) and the taps; directions read three
+    views' lobes. An affine codec reads its whole encoding and the view."""
+    d, _ = cube
+    g = torch.Generator().manual_seed(8)
+    J, N, V = 12, 2, 4
+    mu = torch.nn.functional.normalize(torch.randn(V * J, N, 3, generator=g, dtype=torch.float64), dim=-1)
+    T = mixture(d, torch.ones(V * J, N, dtype=torch.float64), mu, torch.full((V * J, N), 0.5, dtype=torch.float64))
+    c = codecs.get("gaussian", lobes=N)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        enc = c.fit_encode(T.reshape(V, -1).float(), matrix_shape=(J, d.shape[0]))
+    assert c.relight_bytes(enc) == c.storage(enc)["bytes_total"]
+    idx = torch.randint(0, J, (V, 3), generator=g)
+    a = torch.rand(V, 3, generator=g)
+    rows = torch.arange(V)[:, None]
+    tapped = sum(t[rows, idx].numel() * 4 for t in (enc.tensors["weights"], enc.tensors["mu"], enc.tensors["sigma"]))
+    assert c.relight_bytes(enc, (idx, a)) == tapped + idx.numel() * 8 + a.numel() * 4 < c.storage(enc)["bytes_total"] / 3
+    dirs = torch.randn(V, 3, generator=g)
+    assert c.relight_bytes(enc, dirs) == tapped + dirs.numel() * 4
+    X = torch.randn(50, 6, generator=g)
+    p = codecs.get("pca", vectors=2).fit(X, matrix_shape=(2, 3))
+    e = p.encode(X)
+    view = torch.randn(50, 2, generator=g)
+    assert p.relight_bytes(e, view) == p.storage(e)["bytes_total"] + view.numel() * 4
+
+
 def test_interpolation_across_views_and_triangles(cube):
     """§2.3: at a stored view the taps select it alone; at a triangle corner the surface relight
     equals the vertex relight; halfway between two views the mean moves (no cross-fade)."""

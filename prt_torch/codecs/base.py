@@ -178,6 +178,13 @@ class Codec(BaseEstimator):
         X = check_signal("X", X)
         return -self.squared_error(X, self.encode(X)) / X.shape[0]
 
+    def relight_bytes(self, enc: Encoded, view: Any = None) -> int:
+        """The bytes a relight from ``enc`` with ``view`` must read once: the memory-bandwidth
+        bound's byte count (``harness.timing.io_bound_fn``, with the output's bytes written). By
+        default the stored bytes (model and codes, :meth:`storage`) and the view's; a codec whose
+        view selects part of the codes (the Gaussian codec's taps) counts only that part."""
+        return int(self.storage(enc)["bytes_total"]) + view_nbytes(view)
+
     def storage(self, enc: Encoded) -> dict[str, Any]:
         """Sizes: per-tensor bytes (model and codes), totals, raw float32 size, ratios.
         Subclasses add Sloan 2003's float count ``sloan_cost_floats``."""
@@ -372,6 +379,15 @@ def check_view(view: Any, P: int, n_out: int, values: bool = True):
     if values:
         _check_finite_fast("view", view)
     return view if view.dtype == torch.float32 else view.to(torch.float32)
+
+
+def view_nbytes(view: Any) -> int:
+    """Bytes of a view: None, a tensor, or a tuple/list of tensors (taps)."""
+    if view is None:
+        return 0
+    if isinstance(view, (tuple, list)):
+        return sum(int(t.numel() * t.element_size()) for t in view if isinstance(t, torch.Tensor))
+    return int(view.numel() * view.element_size()) if isinstance(view, torch.Tensor) else 0
 
 
 def check_out(out: Any, shape: tuple[int, ...], *inputs: Any) -> torch.Tensor | None:

@@ -73,7 +73,7 @@ import torch
 
 from ..lighting.prefilter import PrefilteredEnvironment, cube_map_directions, sg_normaliser
 from ..params import Boolean, Interval, Options
-from .base import Codec, Encoded, check_out, check_signal, register
+from .base import Codec, Encoded, check_out, check_signal, register, view_nbytes
 from .relight_kernels import native, sg_lookup_sum, sg_taps
 
 __all__ = ["GaussianCodec", "resolvable_sigma", "relative_l2", "sh_truncation", "haar_truncation",
@@ -898,6 +898,18 @@ class GaussianCodec(Codec):
         return out
 
     # ------------------------------------------------------------------ storage / state
+    def relight_bytes(self, enc: Encoded, view: Any = None) -> int:
+        """Without a view every stored lobe (and the diffuse part) is read; with taps ``(idx [V, k],
+        a [V, k])`` only the k tapped views' lobes of each vertex (5 floats each), its diffuse part
+        and the taps — the other views are never touched, so the whole encoding would be a bound
+        J/k times too loose. A view of directions ``[V, 3]`` reads three views' lobes."""
+        if view is None:
+            return super().relight_bytes(enc)
+        V, J, N = enc.tensors["weights"].shape
+        k = min(3, J) if isinstance(view, torch.Tensor) else int(torch.as_tensor(view[0]).shape[-1])
+        diffuse = enc.tensors["diffuse"][0].numel() * 4 + k if "diffuse" in enc.tensors else 0  # and k has_data flags
+        return V * (k * N * 5 * 4 + diffuse) + view_nbytes(view)
+
     def storage(self, enc: Encoded) -> dict[str, Any]:
         st = super().storage(enc)
         V, J, N = enc.tensors["weights"].shape
