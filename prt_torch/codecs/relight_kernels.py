@@ -495,6 +495,7 @@ static __attribute__((noinline)) void vq_rows_range(i64 p0, i64 p1, i64 F, const
 static int prt_affine_rows_range(const int32_t *order, int csort, i64 p0, i64 p1, i64 P, i64 F, i64 Fo, const void *lab,
         int lab_kind, const float *W, i64 wstride, const i64 *woff,
                     const i64 *nk, i64 nuse, int mean, const float *T, i64 J, float *out) {
+    (void)P;  /* the callers' point count: the range [p0, p1) is what is read */
     const i64 cs = chunk_size(F / 8), cs2 = chunk_size2(F / 8);
     float e[4096], f[4096];  /* rows padded from Fo to F: combined here, then copied */
     if (J == 1 && !W && mean && lab && !order && F == Fo) {  /* J == 1: no weights can also be an empty packed
@@ -719,6 +720,7 @@ static int prt_affine_dense_range(const int32_t *order, int csort, i64 p0, i64 p
         const void *lab, int lab_kind, const float *W, i64 wstride,
                      const i64 *woff, const i64 *nk, i64 nuse, int mean, const float *T, i64 J,
                      const float *y, float *out) {
+    (void)P;  /* the callers' point count: the range [p0, p1) is what is read */
     i64 F = n_pad * C, nbt = n_pad / 8, cs = chunk_size(nbt);
     int flag = 0;
     i64 q = p0;
@@ -930,6 +932,7 @@ static int prt_affine_taps_range(const int32_t *order, int csort, i64 p0, i64 p1
         int lab_kind, const float *W, i64 wstride,
                     const i64 *woff, const i64 *nk, i64 nuse, int mean, const float *T, i64 Jp,
                     i64 ntap, const i64 *idx, const float *g, float *out) {
+    (void)P;  /* the callers' point count: the range [p0, p1) is what is read */
     i64 R = Jp * C;
     int flag = 0;
     i64 q = p0;
