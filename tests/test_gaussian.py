@@ -344,6 +344,49 @@ def test_fused_kernels_in_blocks_of_16_equal_the_torch_formulation(cube, threads
         c.relight(enc, pe, view=(idx, a), out=enc.tensors["weights"].view(-1)[: V * 3].view(V, 3))
 
 
+def test_relight_survives_non_finite_lobes_and_refuses_bad_views_before_writing(cube):
+    """A NaN lobe mean (a corrupt encoding) gives NaN in that vertex's radiance only, in the
+    16-lane blocks and the one-by-one tail, and reads nothing outside the light's table (the 16-lane lookup once
+    turned a NaN coordinate into an index 2^31 below it: a crash). Non-finite tap weights, an
+    ``out=`` over the light's width ladder, and an SH diffuse part with a light without SH
+    coefficients are refused before ``out`` is written."""
+    d, _ = cube
+    g = torch.Generator().manual_seed(9)
+    J, N, V = 12, 1, 40
+    mu = torch.nn.functional.normalize(torch.randn(3 * J, N, 3, generator=g, dtype=torch.float64), dim=-1)
+    T = mixture(d, torch.ones(3 * J, N, dtype=torch.float64), mu, torch.full((3 * J, N), 0.5, dtype=torch.float64))
+    c = codecs.get("gaussian", lobes=N)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        enc = c.fit_encode(T.reshape(3, -1).float(), matrix_shape=(J, d.shape[0]))
+    enc.tensors = {"weights": torch.rand(V, J, N, generator=g),
+                   "mu": torch.nn.functional.normalize(torch.randn(V, J, N, 3, generator=g), dim=-1),
+                   "sigma": torch.rand(V, J, N, generator=g) + 0.1}
+    enc.meta["points"] = V
+    pe = prefilter_environment(lambda x: 1.5 + x[..., :3], res=8, levels=12)
+    enc.tensors["mu"][3, 2, 0] = torch.tensor([float("nan"), 0.2, 0.3])  # in a block of 16
+    enc.tensors["mu"][37, 5, 0] = torch.tensor([0.1, 0.2, float("nan")])  # in the tail
+    idx = torch.stack([torch.full((V,), 2), torch.full((V,), 5), torch.full((V,), 7)], 1)
+    a = torch.rand(V, 3, generator=g) + 0.1
+    every, taps = c.relight(enc, pe), c.relight(enc, pe, view=(idx, a))
+    bad = torch.zeros(V, J, dtype=torch.bool)
+    bad[3, 2] = bad[37, 5] = True
+    assert bool(every[bad].isnan().all()) and bool(torch.isfinite(every[~bad]).all())
+    assert bool(taps[[3, 37]].isnan().all()) and int(torch.isfinite(taps).all(1).sum()) == V - 2
+    buf = torch.full((V, 3), 7.0)
+    a[4, 1] = float("nan")
+    with pytest.raises(ValueError, match=r"view tap weights has 1 non-finite value\(s\).*\(4, 1\)"):
+        c.relight(enc, pe, view=(idx, a), out=buf)
+    ladder = prefilter_environment(lambda x: 1.5 + x[..., :3], res=2, levels=3 * V)  # a ladder the size of the result
+    with pytest.raises(ValueError, match="shares memory"):
+        c.relight(enc, ladder, view=(idx, a.nan_to_num(0.5)), out=ladder.log_sigmas.view(V, 3))
+    enc.tensors["diffuse"] = torch.rand(V, 9, generator=g)
+    enc.tensors["has_data"] = torch.ones(V, J, dtype=torch.bool)
+    with pytest.raises(ValueError, match="SH diffuse part"):
+        c.relight(enc, pe, view=(idx, a.nan_to_num(0.5)), out=buf)
+    assert bool((buf == 7.0).all())  # nothing written
+
+
 def test_relight_bytes_count_only_the_tapped_views(cube):
     """The copy bound's byte count: every stored lobe without a view; with taps the lobes of the
     tapped views alone (counted here by indexing them out) and the taps; directions read three
@@ -363,6 +406,7 @@ def test_relight_bytes_count_only_the_tapped_views(cube):
     rows = torch.arange(V)[:, None]
     tapped = sum(t[rows, idx].numel() * 4 for t in (enc.tensors["weights"], enc.tensors["mu"], enc.tensors["sigma"]))
     assert c.relight_bytes(enc, (idx, a)) == tapped + idx.numel() * 8 + a.numel() * 4 < c.storage(enc)["bytes_total"] / 3
+    assert c.relight_bytes(enc, (idx.numpy(), a.numpy())) == c.relight_bytes(enc, (idx, a))  # taps as numpy arrays
     dirs = torch.randn(V, 3, generator=g)
     assert c.relight_bytes(enc, dirs) == tapped + dirs.numel() * 4
     X = torch.randn(50, 6, generator=g)

@@ -382,12 +382,14 @@ def check_view(view: Any, P: int, n_out: int, values: bool = True):
 
 
 def view_nbytes(view: Any) -> int:
-    """Bytes of a view: None, a tensor, or a tuple/list of tensors (taps)."""
+    """Bytes of a view: None, a tensor or array, or a tuple/list of them (taps)."""
     if view is None:
         return 0
     if isinstance(view, (tuple, list)):
-        return sum(int(t.numel() * t.element_size()) for t in view if isinstance(t, torch.Tensor))
-    return int(view.numel() * view.element_size()) if isinstance(view, torch.Tensor) else 0
+        return sum(view_nbytes(t) for t in view)
+    if isinstance(view, torch.Tensor):
+        return int(view.numel() * view.element_size())
+    return int(getattr(view, "nbytes", 0))  # numpy arrays
 
 
 def check_out(out: Any, shape: tuple[int, ...], *inputs: Any) -> torch.Tensor | None:

@@ -71,6 +71,7 @@ from typing import Any
 
 import torch
 
+from .._checks import check_finite
 from ..lighting.prefilter import PrefilteredEnvironment, cube_map_directions, sg_normaliser
 from ..params import Boolean, Interval, Options
 from .base import Codec, Encoded, check_out, check_signal, register, view_nbytes
@@ -822,7 +823,7 @@ class GaussianCodec(Codec):
         idx = idx.long()
         if idx.numel() and (int(idx.min()) < 0 or int(idx.max()) >= J):
             raise ValueError(f"view tap indices span [{int(idx.min())}, {int(idx.max())}]; accepted: 0..{J - 1}")
-        return idx, a
+        return idx, check_finite("view tap weights", a)
 
     def relight(self, enc: Encoded, light: PrefilteredEnvironment, view: Any = None, out: torch.Tensor | None = None) -> torch.Tensor:
         """Exit radiance from the Gaussian form (Green eq. 2.7: Σ_k w_k E_{σ_k}(μ_k)).
@@ -840,9 +841,11 @@ class GaussianCodec(Codec):
         V, J, _ = w.shape
         if view is not None:
             view = self.checked_taps(view, V, J)
+        if "diffuse" in enc.tensors and light.sh is None:  # refused before anything is written into out
+            self._diffuse(enc, light)
         if out is not None:  # the fused kernels write into it (no result-sized temporary and copy)
             out = check_out(out, (V, light.channels) if view is not None else (V, J, light.channels), view,
-                            tuple(enc.tensors.values()), light.table())
+                            tuple(enc.tensors.values()), light.table(), light.log_sigmas)
         return self._relight(enc, light, view, out)
 
     def _relight(self, enc: Encoded, light: PrefilteredEnvironment, view: tuple | None, out: torch.Tensor | None = None

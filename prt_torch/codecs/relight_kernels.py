@@ -1137,7 +1137,7 @@ static inline void sg_lookup(float x, float y, float z, float sigma, float wl, c
     }
 }
 
-#if defined(__AVX512F__)
+#if defined(__AVX512F__) && defined(__AVX512VL__)
 #include <immintrin.h>
 /* 16 lookups at once (RGB tables), lane by lane the float32 operations of sg_lookup: the face, texel
    and level addressing in vector registers, the 8 texels x 3 channels by gathers. The log of the
@@ -1212,7 +1212,11 @@ static inline void sg_lookup16(__m512 x, __m512 y, __m512 z, __m512 sigma, __m51
     __m512 tf = _mm512_roundscale_ps(t, _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC);
     sf = _mm512_mask_blend_ps(_mm512_cmp_ps_mask(sf, rmax, _CMP_GT_OQ), sf, rmax);
     tf = _mm512_mask_blend_ps(_mm512_cmp_ps_mask(tf, rmax, _CMP_GT_OQ), tf, rmax);
-    __m512i s0 = _mm512_cvttps_epi32(sf), t0 = _mm512_cvttps_epi32(tf);
+    /* a NaN coordinate (a non-finite direction) survives the compare-and-blend clamps and converts
+       to INT_MIN: the unsigned minimum puts it on a texel inside the face, so the lane reads the
+       table and its result is NaN, as in the scalar loop, instead of reading 8 GiB before it */
+    const __m512i rmaxi = _mm512_set1_epi32((int)(r > 1 ? r - 2 : 0));
+    __m512i s0 = _mm512_min_epu32(_mm512_cvttps_epi32(sf), rmaxi), t0 = _mm512_min_epu32(_mm512_cvttps_epi32(tf), rmaxi);
     __m512 fs = clamp16(_mm512_sub_ps(s, sf), zero, one), ft = clamp16(_mm512_sub_ps(t, tf), zero, one);
     const __m512i ri = _mm512_set1_epi32((int)r), rm1i = _mm512_set1_epi32((int)(r - 1)), onei = _mm512_set1_epi32(1);
     __m512i ds = _mm512_sub_epi32(_mm512_min_epi32(_mm512_add_epi32(s0, onei), rm1i), s0);
