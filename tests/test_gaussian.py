@@ -302,6 +302,22 @@ def test_relight_from_gaussians_matches_integral_of_decoded_tables(cube, monkeyp
         assert float(native[1][1].abs().max()) == 0.0
 
 
+def _random_lobes(d, V, J, N, g, sigma):
+    """A Gaussian codec fitted on 3 vertices of J views (texel directions ``d``), and an encoding of
+    V vertices with random lobes (weights in [0, 1), unit means) of widths ``sigma [V, J, N]``:
+    the relight paths do not depend on how the lobes were found."""
+    mu = torch.nn.functional.normalize(torch.randn(3 * J, N, 3, generator=g, dtype=torch.float64), dim=-1)
+    T = mixture(d, torch.ones(3 * J, N, dtype=torch.float64), mu, torch.full((3 * J, N), 0.5, dtype=torch.float64))
+    c = codecs.get("gaussian", lobes=N)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        enc = c.fit_encode(T.reshape(3, -1).float(), matrix_shape=(J, d.shape[0]))
+    enc.tensors = {"weights": torch.rand(V, J, N, generator=g),
+                   "mu": torch.nn.functional.normalize(torch.randn(V, J, N, 3, generator=g), dim=-1), "sigma": sigma}
+    enc.meta["points"] = V
+    return c, enc
+
+
 @pytest.mark.parametrize("threads", [1, 2])
 def test_fused_kernels_in_blocks_of_16_equal_the_torch_formulation(cube, threads, monkeypatch):
     """The compiled kernels take 16 vertices (or lobe groups) at a time where the CPU has AVX-512
@@ -313,19 +329,9 @@ def test_fused_kernels_in_blocks_of_16_equal_the_torch_formulation(cube, threads
 
     if relight_kernels.native() is None:
         pytest.skip("no compiled kernels")
-    d, _ = cube
     g = torch.Generator().manual_seed(7)
     J, N, V = 12, 2, 37
-    mu = torch.nn.functional.normalize(torch.randn(3 * J, N, 3, generator=g, dtype=torch.float64), dim=-1)
-    T = mixture(d, torch.ones(3 * J, N, dtype=torch.float64), mu, torch.full((3 * J, N), 0.5, dtype=torch.float64))
-    c = codecs.get("gaussian", lobes=N)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        enc = c.fit_encode(T.reshape(3, -1).float(), matrix_shape=(J, d.shape[0]))
-    enc.tensors = {"weights": torch.rand(V, J, N, generator=g),
-                   "mu": torch.nn.functional.normalize(torch.randn(V, J, N, 3, generator=g), dim=-1),
-                   "sigma": torch.exp(torch.randn(V, J, N, generator=g) * 2)}
-    enc.meta["points"] = V
+    c, enc = _random_lobes(cube[0], V, J, N, g, torch.exp(torch.randn(V, J, N, generator=g) * 2))
     light = lambda x: torch.stack([1.5 + x[..., 0], 1 + 0.5 * x[..., 2], (x[..., 1] > 0.3).double()], -1)  # noqa: E731
     pe = prefilter_environment(light, res=8, levels=12)
     idx = torch.randint(0, J, (V, 3), generator=g)
@@ -350,19 +356,9 @@ def test_relight_survives_non_finite_lobes_and_refuses_bad_views_before_writing(
     turned a NaN coordinate into an index 2^31 below it: a crash). Non-finite tap weights, an
     ``out=`` over the light's width ladder, and an SH diffuse part with a light without SH
     coefficients are refused before ``out`` is written."""
-    d, _ = cube
     g = torch.Generator().manual_seed(9)
     J, N, V = 12, 1, 40
-    mu = torch.nn.functional.normalize(torch.randn(3 * J, N, 3, generator=g, dtype=torch.float64), dim=-1)
-    T = mixture(d, torch.ones(3 * J, N, dtype=torch.float64), mu, torch.full((3 * J, N), 0.5, dtype=torch.float64))
-    c = codecs.get("gaussian", lobes=N)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        enc = c.fit_encode(T.reshape(3, -1).float(), matrix_shape=(J, d.shape[0]))
-    enc.tensors = {"weights": torch.rand(V, J, N, generator=g),
-                   "mu": torch.nn.functional.normalize(torch.randn(V, J, N, 3, generator=g), dim=-1),
-                   "sigma": torch.rand(V, J, N, generator=g) + 0.1}
-    enc.meta["points"] = V
+    c, enc = _random_lobes(cube[0], V, J, N, g, torch.rand(V, J, N, generator=g) + 0.1)
     pe = prefilter_environment(lambda x: 1.5 + x[..., :3], res=8, levels=12)
     enc.tensors["mu"][3, 2, 0] = torch.tensor([float("nan"), 0.2, 0.3])  # in a block of 16
     enc.tensors["mu"][37, 5, 0] = torch.tensor([0.1, 0.2, float("nan")])  # in the tail
