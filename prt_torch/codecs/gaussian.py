@@ -853,7 +853,6 @@ class GaussianCodec(Codec):
         """``view``: None or checked taps; ``out``: None or a checked result buffer."""
         w, mu, sg = enc.tensors["weights"], enc.tensors["mu"], enc.tensors["sigma"]
         V, J, N = w.shape
-        lib = _fused(light)
         if view is None:
             res = lobe_sum(light, w, mu, sg, out=out)
             if "diffuse" in enc.tensors:
@@ -861,6 +860,7 @@ class GaussianCodec(Codec):
             return res
         idx, a = view
         a = a.float()
+        lib = _fused(light)
         if lib is not None:  # blend, look up and sum in one fused pass per vertex
             res = sg_taps(lib, light.table(), light.log_sigmas, light.res, w, mu, sg, idx, a, out=out)
         else:
