@@ -229,12 +229,12 @@ def test_prefiltered_lookup_equals_brute_force_integral():
     assert torch.allclose(pe.lookup(m, s).double(), pe.brute_force(m, s), atol=1e-5)
 
 
-@pytest.mark.parametrize("res,levels,C", [(16, 16, 3), (8, 1, 3), (1, 4, 3), (4, 5, 1), (4, 5, 4)])
+@pytest.mark.parametrize("res,levels,C", [(16, 16, 3), (8, 1, 3), (1, 4, 3), (4, 40, 3), (4, 5, 1), (4, 5, 4)])
 def test_fused_lobe_sum_equals_lookup(res, levels, C, monkeypatch):
     """``gaussian.lobe_sum`` — the fused kernel of ``relight_kernels.sg_lookup_sum`` — equals the
     torch formulation (``PrefilteredEnvironment.lookup`` and a sum over the lobes) to float32
-    rounding, over face ties and edges, widths below and above the ladder, one level, a 1×1 cube
-    and 1, 3 or 4 channels."""
+    rounding, over face ties and edges, widths below and above the ladder, one level, a ladder
+    longer than the kernels' two-register copy (40 levels), a 1×1 cube and 1, 3 or 4 channels."""
     from prt_torch.codecs import relight_kernels
     from prt_torch.codecs.gaussian import lobe_sum
 
@@ -318,19 +318,20 @@ def _random_lobes(d, V, J, N, g, sigma):
     return c, enc
 
 
-@pytest.mark.parametrize("threads", [1, 2])
-def test_fused_kernels_in_blocks_of_16_equal_the_torch_formulation(cube, threads, monkeypatch):
+@pytest.mark.parametrize("threads,N", [(1, 1), (2, 1), (1, 2), (2, 2)])
+def test_fused_kernels_in_blocks_of_16_equal_the_torch_formulation(cube, threads, N, monkeypatch):
     """The compiled kernels take 16 vertices (or lobe groups) at a time where the CPU has AVX-512
     (the rest one by one, each thread's range split anywhere): with and without taps, 37 vertices
     of varied lobes (widths below, inside and above the ladder; a vertex with no view above the
-    horizon), they equal the torch formulation to float32 rounding and write into ``out=``."""
+    horizon; one lobe, whose 16 means load contiguously, or two), they equal the torch
+    formulation to float32 rounding and write into ``out=``."""
     from prt_torch.codecs import relight_kernels
     from prt_torch.harness.timing import torch_threads
 
     if relight_kernels.native() is None:
         pytest.skip("no compiled kernels")
     g = torch.Generator().manual_seed(7)
-    J, N, V = 12, 2, 37
+    J, V = 12, 37
     c, enc = _random_lobes(cube[0], V, J, N, g, torch.exp(torch.randn(V, J, N, generator=g) * 2))
     light = lambda x: torch.stack([1.5 + x[..., 0], 1 + 0.5 * x[..., 2], (x[..., 1] > 0.3).double()], -1)  # noqa: E731
     pe = prefilter_environment(light, res=8, levels=12)

@@ -1178,7 +1178,7 @@ static inline __m512 clamp16(__m512 v, __m512 lo, __m512 hi) {  /* v < lo ? lo :
 
 /* acc{r,g,b} += wl E_sigma(x, y, z), 16 lanes; table [L 6 r r, 3], ladder [L] increasing */
 static inline void sg_lookup16(__m512 x, __m512 y, __m512 z, __m512 sigma, __m512 wl, const float *table, i64 r, i64 L,
-                               const float *ladder, __m128 *acc) {
+                               const float *ladder, const __m512 *lad, __m128 *acc) {
     const __m512 zero = _mm512_setzero_ps(), one = _mm512_set1_ps(1.0f);
     const __m512 signbit = _mm512_set1_ps(-0.0f);
     __m512 ax = _mm512_andnot_ps(signbit, x), ay = _mm512_andnot_ps(signbit, y), az = _mm512_andnot_ps(signbit, z);
@@ -1230,7 +1230,14 @@ static inline void sg_lookup16(__m512 x, __m512 y, __m512 z, __m512 sigma, __m51
             hi = _mm512_mask_add_epi32(hi, _mm512_cmp_ps_mask(_mm512_set1_ps(ladder[l]), ls, _CMP_LT_OQ), hi, onei);
         hi = _mm512_min_epi32(_mm512_max_epi32(hi, onei), _mm512_set1_epi32((int)(L - 1)));
         lo = _mm512_sub_epi32(hi, onei);
-        __m512 llo = _mm512_i32gather_ps(lo, ladder, 4), lhi = _mm512_i32gather_ps(hi, ladder, 4);
+        __m512 llo, lhi;
+        if (L <= 32) {  /* the ladder in two registers: a permute, not a gather */
+            llo = _mm512_permutex2var_ps(lad[0], lo, lad[1]);
+            lhi = _mm512_permutex2var_ps(lad[0], hi, lad[1]);
+        } else {
+            llo = _mm512_i32gather_ps(lo, ladder, 4);
+            lhi = _mm512_i32gather_ps(hi, ladder, 4);
+        }
         a = clamp16(_mm512_div_ps(_mm512_sub_ps(ls, llo), _mm512_sub_ps(lhi, llo)), zero, one);
     }
     const __m512i lvl = _mm512_set1_epi32((int)(6 * r * r));
@@ -1258,6 +1265,21 @@ static inline void sg_lookup16(__m512 x, __m512 y, __m512 z, __m512 sigma, __m51
 }
 
 /* out[3 l + c] = acc[l][c] scale[l] for 16 lanes */
+/* the first 32 ladder entries in two registers (zeros beyond L) */
+static inline void ladder32(const float *ladder, i64 L, __m512 *lad) {
+    float lt[32] = {0};
+    for (i64 l = 0; l < L && l < 32; l++) lt[l] = ladder[l];
+    lad[0] = _mm512_loadu_ps(lt);
+    lad[1] = _mm512_loadu_ps(lt + 16);
+}
+
+/* elements ix (0..47) of the 48 floats a, b, c (16 each) */
+static inline __m512 deint3(__m512 a, __m512 b, __m512 c, __m512i ix) {
+    __m512 ab = _mm512_permutex2var_ps(a, ix, b);  /* ix < 32 */
+    __m512 cc = _mm512_permutexvar_ps(_mm512_sub_epi32(ix, _mm512_set1_epi32(32)), c);
+    return _mm512_mask_blend_ps(_mm512_cmpge_epi32_mask(ix, _mm512_set1_epi32(32)), ab, cc);
+}
+
 static inline void store16_rgb(float *out, const __m128 *acc, const float *scale) {
     for (int l = 0; l < 16; l++) {
         float t[4];
@@ -1274,6 +1296,8 @@ static void sg_range(i64 g0, i64 g1, i64 N, const float *mu, const float *sigma,
 #ifdef SG16
     if (vec) {  /* 16 groups at a time (lane l: group g + l), the rest below */
         const __m512i lane = _mm512_set_epi32(15, 14, 13, 12, 11, 10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 0);
+        __m512 lad[2];
+        ladder32(ladder, L, lad);
         for (; g0 + 16 <= g1; g0 += 16) {
             __m128 acc[16];
             for (int l = 0; l < 16; l++) acc[l] = _mm_setzero_ps();
@@ -1281,8 +1305,21 @@ static void sg_range(i64 g0, i64 g1, i64 N, const float *mu, const float *sigma,
                 __m512i m = _mm512_add_epi32(_mm512_mullo_epi32(_mm512_add_epi32(lane, _mm512_set1_epi32((int)g0)),
                                                                 _mm512_set1_epi32((int)N)), _mm512_set1_epi32((int)n));
                 __m512i m3 = _mm512_mullo_epi32(m, _mm512_set1_epi32(3));
-                sg_lookup16(_mm512_i32gather_ps(m3, mu, 4), _mm512_i32gather_ps(m3, mu + 1, 4), _mm512_i32gather_ps(m3, mu + 2, 4),
-                            _mm512_i32gather_ps(m, sigma, 4), _mm512_i32gather_ps(m, w, 4), table, r, L, ladder, acc);
+                __m512 X, Y, Z, S, W;
+                if (N == 1) {  /* 16 consecutive lobes: mu is 48 contiguous floats, deinterleaved by permutes */
+                    const float *p = mu + 3 * g0;
+                    __m512 a = _mm512_loadu_ps(p), b = _mm512_loadu_ps(p + 16), c = _mm512_loadu_ps(p + 32);
+                    const __m512i ix = _mm512_set_epi32(45, 42, 39, 36, 33, 30, 27, 24, 21, 18, 15, 12, 9, 6, 3, 0);
+                    X = deint3(a, b, c, ix);
+                    Y = deint3(a, b, c, _mm512_add_epi32(ix, _mm512_set1_epi32(1)));
+                    Z = deint3(a, b, c, _mm512_add_epi32(ix, _mm512_set1_epi32(2)));
+                    S = _mm512_loadu_ps(sigma + g0);
+                    W = _mm512_loadu_ps(w + g0);
+                } else {
+                    X = _mm512_i32gather_ps(m3, mu, 4); Y = _mm512_i32gather_ps(m3, mu + 1, 4); Z = _mm512_i32gather_ps(m3, mu + 2, 4);
+                    S = _mm512_i32gather_ps(m, sigma, 4); W = _mm512_i32gather_ps(m, w, 4);
+                }
+                sg_lookup16(X, Y, Z, S, W, table, r, L, ladder, lad, acc);
             }
             store16_rgb(out + 3 * g0, acc, NULL);
         }
@@ -1321,6 +1358,8 @@ static void sg_taps_range(i64 v0, i64 v1, i64 J, i64 N, i64 k, const float *w, c
                           int vec, float *out) {
 #ifdef SG16
     if (vec && k <= 8) {  /* 16 vertices at a time (lane l: vertex v + l), the rest below */
+        __m512 lad[2];
+        ladder32(ladder, L, lad);
         for (; v0 + 16 <= v1; v0 += 16) {
             int32_t mb[8][16];  /* per tap and lane: the lobe index (v J + idx) N of lobe 0 */
             float at[8][16];
@@ -1353,7 +1392,7 @@ static void sg_taps_range(i64 v0, i64 v1, i64 J, i64 N, i64 k, const float *w, c
                 const __m512 smin = _mm512_set1_ps(1e-6f);
                 sg_lookup16(_mm512_div_ps(mx, nm), _mm512_div_ps(my, nm), _mm512_div_ps(mz, nm),
                             _mm512_mask_blend_ps(_mm512_cmp_ps_mask(sb, smin, _CMP_GT_OQ), smin, sb), wb, table, r, L, ladder,
-                            acc);
+                            lad, acc);
             }
             float tt[16];
             _mm512_storeu_ps(tt, tot);
