@@ -354,7 +354,7 @@ def test_fused_kernels_in_blocks_of_16_equal_the_torch_formulation(cube, threads
 def test_relight_survives_non_finite_lobes_and_refuses_bad_views_before_writing(cube):
     """A NaN lobe mean (a corrupt encoding) gives NaN in that vertex's radiance only, in the
     16-lane blocks and the one-by-one tail, and reads nothing outside the light's table (the 16-lane lookup once
-    turned a NaN coordinate into an index 2^31 below it: a crash). Non-finite tap weights, an
+    turned a NaN coordinate into an index 2^31 below it: a crash). Non-finite or negative tap weights, an
     ``out=`` over the light's width ladder, and an SH diffuse part with a light without SH
     coefficients are refused before ``out`` is written."""
     g = torch.Generator().manual_seed(9)
@@ -374,13 +374,17 @@ def test_relight_survives_non_finite_lobes_and_refuses_bad_views_before_writing(
     a[4, 1] = float("nan")
     with pytest.raises(ValueError, match=r"view tap weights has 1 non-finite value\(s\).*\(4, 1\)"):
         c.relight(enc, pe, view=(idx, a), out=buf)
+    a[4, 1] = -0.25  # the blend is convex: a negative weight is refused, not blended (the kernels and the
+    with pytest.raises(ValueError, match=r"negative value -0.25 at index \(4, 1\); accepted: weights >= 0"):
+        c.relight(enc, pe, view=(idx, a), out=buf)  # torch formulation gave different answers to it)
+    a[4, 1] = 0.5
     ladder = prefilter_environment(lambda x: 1.5 + x[..., :3], res=2, levels=3 * V)  # a ladder the size of the result
     with pytest.raises(ValueError, match="shares memory"):
-        c.relight(enc, ladder, view=(idx, a.nan_to_num(0.5)), out=ladder.log_sigmas.view(V, 3))
+        c.relight(enc, ladder, view=(idx, a), out=ladder.log_sigmas.view(V, 3))
     enc.tensors["diffuse"] = torch.rand(V, 9, generator=g)
     enc.tensors["has_data"] = torch.ones(V, J, dtype=torch.bool)
     with pytest.raises(ValueError, match="SH diffuse part"):
-        c.relight(enc, pe, view=(idx, a.nan_to_num(0.5)), out=buf)
+        c.relight(enc, pe, view=(idx, a), out=buf)
     assert bool((buf == 7.0).all())  # nothing written
 
 

@@ -823,7 +823,12 @@ class GaussianCodec(Codec):
         idx = idx.long()
         if idx.numel() and (int(idx.min()) < 0 or int(idx.max()) >= J):
             raise ValueError(f"view tap indices span [{int(idx.min())}, {int(idx.max())}]; accepted: 0..{J - 1}")
-        return idx, check_finite("view tap weights", a)
+        a = check_finite("view tap weights", a)
+        if a.numel() and bool((a < 0).any()):  # the blend (§2.3) is convex: a negative weight has no meaning
+            first = tuple(int(i) for i in torch.nonzero(a < 0)[0])
+            raise ValueError(f"view tap weights has a negative value {float(a[first]):g} at index {first}; accepted: "
+                             "weights >= 0 (barycentric, as view_taps gives them)")
+        return idx, a
 
     def relight(self, enc: Encoded, light: PrefilteredEnvironment, view: Any = None, out: torch.Tensor | None = None) -> torch.Tensor:
         """Exit radiance from the Gaussian form (Green eq. 2.7: Σ_k w_k E_{σ_k}(μ_k)).
