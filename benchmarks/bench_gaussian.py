@@ -33,6 +33,7 @@ import prt_torch  # noqa: E402,F401  (first: it chooses OpenMP's wait policy fro
 import argparse  # noqa: E402
 import json  # noqa: E402
 import math  # noqa: E402
+import sys  # noqa: E402
 import time  # noqa: E402
 import warnings  # noqa: E402
 from pathlib import Path  # noqa: E402
@@ -47,6 +48,9 @@ from prt_torch.lighting import load_light, prefilter_environment  # noqa: E402
 from prt_torch.lighting.prefilter import cube_map_directions  # noqa: E402
 from prt_torch.scene import load_scene  # noqa: E402
 from prt_torch.transfer import RunOptions, precompute_transport  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_relight import tile_encoding  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "reports" / "benchmarks"
@@ -177,9 +181,7 @@ def relight_rate(quick: bool) -> dict:
     Vs = 40 if quick else 200
     c = codecs.get("gaussian", lobes=1)
     enc, _ = fit(c, ev.X[:Vs].contiguous(), ev.matrix_shape, tr)
-    rep = math.ceil(V / Vs)
-    enc.tensors = {k: v.repeat(rep, *[1] * (v.ndim - 1))[:V].contiguous() for k, v in enc.tensors.items()}
-    enc.meta["points"] = V
+    enc = tile_encoding(enc, V)
     t0 = time.perf_counter()
     pe = prefilter_environment(L.to(torch.float64), res=16)
     prefilter_s = time.perf_counter() - t0

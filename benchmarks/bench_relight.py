@@ -127,10 +127,15 @@ def with_peak(r: dict, macs_per_s: float) -> dict:
     return r
 
 
-def measure(fn, fresh_fn, rb: int, wb: int, unc, repeats: int) -> dict:
-    """The paired measurements of one row: ``fn`` relights into a reused result, ``fresh_fn``
-    allocates it; ``rb``/``wb`` the bytes the bound reads and writes; ``unc`` the uncompressed
-    peer (None: not measured here)."""
+def measure(c, enc, light, view, unc, repeats: int) -> dict:
+    """The paired measurements of one row: the relight into a reused result (as a render loop
+    calls it) and allocating it, against the bound — ``c.relight_bytes(enc, view)`` read, the
+    output written — and against ``unc``, the uncompressed peer (None: not measured here)."""
+    fresh_fn = lambda: c.relight(enc, light, view=view)  # noqa: E731
+    buf = torch.empty_like(fresh_fn())
+    fn = lambda: c.relight(enc, light, view=view, out=buf)  # noqa: E731  (a render loop's reused result)
+    rb, wb = c.relight_bytes(enc, view), buf.numel() * buf.element_size()
+    st = c.storage(enc)
     bound = io_bound_fn(rb, wb)
     b = measure_paired(fn, bound, repeats=repeats, warmup=2)
     # the same pair from cold caches (each call after an eviction): the memory-bandwidth bound
@@ -151,7 +156,8 @@ def measure(fn, fresh_fn, rb: int, wb: int, unc, repeats: int) -> dict:
             del os.environ["PRT_TORCH_NATIVE"]
         else:
             os.environ["PRT_TORCH_NATIVE"] = prev
-    return {"bytes_read": rb, "bytes_written": wb,
+    return {"bytes_read": rb, "bytes_written": wb, "bytes_per_point": (rb + wb) / enc.points,
+            "bytes_model": st["bytes_model"], "bytes_codes": st["bytes_codes"],
             "relight_ms": 1e3 * b.test.median, "bound_ms": 1e3 * b.peer.median,
             "fraction_of_bound": b.ratio.median, "fraction_q1_q3": [b.ratio.q1, b.ratio.q3],
             "relight_new_output_ms": 1e3 * fresh.test.median, "fraction_new_output": fresh.ratio.median,
@@ -165,14 +171,7 @@ def measure(fn, fresh_fn, rb: int, wb: int, unc, repeats: int) -> dict:
 
 
 def row(label, c, enc, light, view, mode, unc, repeats) -> dict:
-    P = enc.points
-    fresh_fn = lambda: c.relight(enc, light, view=view)  # noqa: E731
-    out = fresh_fn()
-    buf = torch.empty_like(out)
-    fn = lambda: c.relight(enc, light, view=view, out=buf)  # noqa: E731  (a render loop's reused result)
     st = c.storage(enc)
-    rb = c.relight_bytes(enc, view)  # the stored bytes (model + codes) and the view's
-    wb = out.numel() * out.element_size()
     n_out = c.matrix_shape_[0] if c.matrix_shape_ else 1
     # terms per point: the mean and the weights actually stored (CPCA adaptive: n_k of the point's
     # cluster, 8.05 on average here, not the largest n_k)
@@ -182,9 +181,8 @@ def row(label, c, enc, light, view, mode, unc, repeats) -> dict:
         macs = (view[0].shape[1] + 1) * J * C
     else:  # e_p (J·n_out·C), then the view's dot (n_out·C)
         macs = J * n_out * C + (n_out * C if mode == "dense" else 0)
-    return {"codec": label, "view": mode, "points": P, "macs_per_point": macs, "bytes_per_point": (rb + wb) / P,
-            "bytes_model": st["bytes_model"], "bytes_codes": st["bytes_codes"],
-            **measure(fn, fresh_fn, rb, wb, unc, repeats)}
+    return {"codec": label, "view": mode, "points": enc.points, "macs_per_point": macs,
+            **measure(c, enc, light, view, unc, repeats)}
 
 
 GAUSS_VIEWS, GAUSS_RES, GAUSS_FIT = 92, 8, 64
@@ -212,10 +210,16 @@ def gaussian_fitted(lobes: int, P: int) -> tuple:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         enc = c.fit_encode(T, matrix_shape=(GAUSS_VIEWS, d.shape[0]))
-    rep = -(-P // GAUSS_FIT)
+    return c, tile_encoding(enc, P)
+
+
+def tile_encoding(enc, P: int):
+    """``enc`` with its per-vertex tensors repeated to ``P`` vertices (relighting cost does not
+    depend on the values; shared with benchmarks/bench_gaussian.py)."""
+    rep = -(-P // enc.points)
     enc.tensors = {k: v.repeat(rep, *[1] * (v.ndim - 1))[:P].contiguous() for k, v in enc.tensors.items()}
     enc.meta["points"] = P
-    return c, enc
+    return enc
 
 
 def gaussian_view(c, P: int) -> tuple:
@@ -236,17 +240,17 @@ def gaussian_row(label, c, enc, pe, view, mode, repeats) -> dict:
     never touched, so the whole encoding would be a bound 30× too loose) and the taps. MACs: per
     lobe the trilinear lookup (8 texels × C), with taps also the blend (5 floats × k)."""
     P, J, N = enc.tensors["weights"].shape
-    fresh_fn = lambda: c.relight(enc, pe, view=view)  # noqa: E731
-    out = fresh_fn()
-    buf = torch.empty_like(out)
-    fn = lambda: c.relight(enc, pe, view=view, out=buf)  # noqa: E731
     C = pe.channels
-    rb = c.relight_bytes(enc, view)
     macs = J * N * 8 * C if view is None else N * (8 * C + 5 * view[0].shape[1])
-    wb = out.numel() * out.element_size()
-    return {"codec": label, "view": mode, "points": P, "macs_per_point": macs, "bytes_per_point": (rb + wb) / P,
-            "bytes_model": c.storage(enc)["bytes_model"], "bytes_codes": c.storage(enc)["bytes_codes"],
-            **measure(fn, fresh_fn, rb, wb, None, repeats)}
+    return {"codec": label, "view": mode, "points": P, "macs_per_point": macs, **measure(c, enc, pe, view, None, repeats)}
+
+
+def print_row(r: dict) -> None:
+    u = r["speedup_vs_uncompressed"]
+    print(f"{r['codec']:22s} {r['view']:6s} {r['threads']} thr  relight {r['relight_ms']:7.3f} ms  bound {r['bound_ms']:6.3f} ms  "
+          f"fraction {r['fraction_of_bound']:.2f} (cold {r['fraction_cold']:.2f}, new output {r['fraction_new_output']:.2f}, "
+          f"roofline {r['fraction_of_roofline']:.2f})  torch path {r['torch_path_fraction_of_bound']:.2f}"
+          + (f"  vs uncompressed {u:.1f}x" if u is not None else "") + f"  load {os.getloadavg()[0]:.1f}", flush=True)
 
 
 def main() -> int:
@@ -303,10 +307,7 @@ def main() -> int:
                 r = with_peak(row(label, c, enc, light, view, mode, unc, args.repeats), peak)
                 r["threads"] = nt
                 result["rows"].append(r)
-                print(f"{label:22s} {mode:6s} {nt} thr  relight {r['relight_ms']:7.3f} ms  bound {r['bound_ms']:6.3f} ms  "
-                      f"fraction {r['fraction_of_bound']:.2f} (new output {r['fraction_new_output']:.2f}, roofline {r['fraction_of_roofline']:.2f})  "
-                      f"torch path {r['torch_path_fraction_of_bound']:.2f}  vs uncompressed {r['speedup_vs_uncompressed']:.1f}x  "
-                      f"load {os.getloadavg()[0]:.1f}", flush=True)
+                print_row(r)
     # the Gaussian codec (Green 2005): lobes looked up in a prefiltered environment of the same light
     pe = prefilter_environment(light.T.contiguous().double(), res=16)
     for lobes in (1, 3):
@@ -328,9 +329,7 @@ def main() -> int:
                 r = with_peak(gaussian_row(label, c, enc, pe, view, mode, args.repeats), peak)
                 r["threads"] = nt
                 result["rows"].append(r)
-                print(f"{label:22s} {mode:6s} {nt} thr  relight {r['relight_ms']:7.3f} ms  bound {r['bound_ms']:6.3f} ms  "
-                      f"fraction {r['fraction_of_bound']:.2f} (cold {r['fraction_cold']:.2f}, roofline {r['fraction_of_roofline']:.2f})  "
-                      f"torch path {r['torch_path_fraction_of_bound']:.2f}  load {os.getloadavg()[0]:.1f}", flush=True)
+                print_row(r)
     # the peak again at the end, the faster of the two kept: a busy moment during one measurement
     # lowers it (a run once showed kernels at 1.38 "of peak"), and a capability is its best showing
     for nt in threads:
