@@ -795,13 +795,18 @@ class GaussianCodec(Codec):
                             f"got {type(light).__name__}")
         return light
 
+    @staticmethod
+    def _check_diffuse_light(enc, light):
+        """An encoding with an SH diffuse part needs a light with SH coefficients."""
+        if "diffuse" in enc.tensors and light.sh is None:
+            raise ValueError(f"this encoding has an SH diffuse part of {enc.tensors['diffuse'].shape[1]} coefficients; accepted: "
+                             "a PrefilteredEnvironment with SH coefficients (an SH light, or prefilter_environment(..., sh_bands=))")
+
     def _diffuse(self, enc, light):
         """t·l per vertex ``[V, C]`` (Green §3.1's SH diffuse part); an SH light with fewer
         coefficients is zero beyond them."""
         t = enc.tensors["diffuse"]
-        if light.sh is None:
-            raise ValueError(f"this encoding has an SH diffuse part of {t.shape[1]} coefficients; accepted: a "
-                             "PrefilteredEnvironment with SH coefficients (an SH light, or prefilter_environment(..., sh_bands=))")
+        self._check_diffuse_light(enc, light)
         L = torch.zeros(light.channels, t.shape[1])
         k = min(t.shape[1], light.sh.shape[1])
         L[:, :k] = light.sh[:, :k].float()
@@ -846,8 +851,7 @@ class GaussianCodec(Codec):
         V, J, _ = w.shape
         if view is not None:
             view = self.checked_taps(view, V, J)
-        if "diffuse" in enc.tensors and light.sh is None:  # refused before anything is written into out
-            self._diffuse(enc, light)
+        self._check_diffuse_light(enc, light)  # refused before anything is written into out
         if out is not None:  # the fused kernels write into it (no result-sized temporary and copy)
             out = check_out(out, (V, light.channels) if view is not None else (V, J, light.channels), view,
                             tuple(enc.tensors.values()), light.table(), light.log_sigmas)
