@@ -42,19 +42,14 @@ lobe-sized intermediates.
 from __future__ import annotations
 
 import ctypes
-import hashlib
 import os
-import platform
-import shutil
-import subprocess
-import tempfile
 import threading
 import weakref
-from pathlib import Path
 
 import torch
 
 from .._checks import check_finite_float32
+from .._native import compile_library
 
 __all__ = ["native", "native_status", "constants", "model_t", "affine_rows", "affine_dense", "affine_taps", "sg_lookup_sum", "sg_taps",
            "fits", "MAX_ROW"]
@@ -1438,96 +1433,19 @@ _lock = threading.Lock()
 _state: dict = {}
 
 
-def _cpu_id() -> str:
-    try:
-        with open("/proc/cpuinfo") as f:
-            lines = [ln for ln in f if ln.startswith(("model name", "flags"))][:2]
-        return "".join(lines)
-    except OSError:
-        return platform.processor() or platform.machine()
-
-
-def _cache_dirs() -> list[Path]:
-    """Where compiled kernels are kept: ``$PRT_TORCH_CACHE`` or ``$XDG_CACHE_HOME/prt_torch`` (default
-    ``~/.cache/prt_torch``), then a per-user directory in the system temp dir (read-only homes)."""
-    root = os.environ.get("PRT_TORCH_CACHE") or os.path.join(os.environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache"), "prt_torch")
-    user = getattr(os, "getuid", lambda: "user")()
-    return [Path(root) / "kernels", Path(tempfile.gettempdir()) / f"prt_torch-kernels-{user}"]
-
-
-def _private(d: Path) -> bool:
-    """``d`` (created 0700 if missing) belongs to this user and no one else can write to it."""
-    try:
-        d.mkdir(mode=0o700, parents=True, exist_ok=True)
-        st = d.stat()
-    except OSError:
-        return False
-    return not hasattr(os, "getuid") or (st.st_uid == os.getuid() and not st.st_mode & 0o022)
-
-
-def _build(cc: str, flags: list[str], so: Path) -> str | None:
-    """Compile the kernels into ``so`` (atomically); the compiler's complaint, or None."""
-    so.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory(dir=so.parent) as tmp:
-        src = Path(tmp) / "relight.c"
-        src.write_text(_SRC)
-        out = Path(tmp) / "relight.so"
-        r = subprocess.run([cc, *flags, str(src), "-o", str(out), "-lm"], capture_output=True, text=True, timeout=120)
-        if r.returncode != 0:
-            return r.stderr.strip()[-400:]
-        os.replace(out, so)  # atomic: concurrent processes see the whole file or none
-    return None
-
-
 def _compile() -> tuple[ctypes.CDLL | None, str]:
-    cc = os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc")
-    if not cc:
-        return None, "no C compiler (cc/gcc) on PATH"
-    try:
-        version = subprocess.run([cc, "--version"], capture_output=True, text=True, timeout=30).stdout
-    except (OSError, subprocess.SubprocessError) as e:
-        return None, f"C compiler {cc!r} did not run: {e}"
-    errors = []
-    so = flags = None
-    for flags in (_FLAGS, [f for f in _FLAGS if f != "-march=native"]):  # a compiler without -march=native: baseline ISA
-        key = hashlib.sha256("\0".join([_SRC, " ".join(flags), version, _cpu_id(), platform.platform()]).encode()).hexdigest()[:16]
-        for d in _cache_dirs():
-            so = d / f"relight-{key}.so"
-            if not _private(d):  # never load a library from a directory another user can write
-                errors.append(f"{d}: not a directory of this user only")
-                so = None
-                continue
-            if so.exists():
-                break
-            try:
-                err = _build(cc, flags, so)
-            except (OSError, subprocess.SubprocessError) as e:  # unwritable directory: try the next
-                errors.append(f"{d}: {e}")
-                continue
-            if err is None:
-                break
-            errors.append(f"{cc} {' '.join(flags)}: {err}")
-            so = None
-            break  # the compiler refused: the next flags, not the next directory
-        if so is not None and so.exists():
-            break
-    if so is None or not so.exists():
-        return None, "compiling the relight kernels failed: " + " | ".join(errors)
-    try:
-        lib = ctypes.CDLL(str(so))
-    except OSError as e:
-        return None, f"loading {so} failed: {e}"
+    """The library built from the module's current ``_SRC`` and ``_FLAGS`` (read at call time:
+    ``benchmarks/ab_kernels.py`` swaps them to build another revision's kernels)."""
     i64, vp, ci = ctypes.c_int64, ctypes.c_void_p, ctypes.c_int
     common = [vp, ci, vp, i64, vp, vp, i64, ci, vp, i64]
-    lib.prt_affine_rows.argtypes = [i64, i64, i64, *common, vp, vp, ci, ci]
-    lib.prt_affine_dense.argtypes = [i64, i64, i64, i64, *common, vp, vp, vp, ci, ci]
-    lib.prt_affine_taps.argtypes = [i64, i64, i64, *common, i64, vp, vp, vp, vp, ci, ci]
-    lib.prt_constants.argtypes = [i64] * 7 + [vp, vp, vp] + [i64] * 4 + [vp, ci, ci]
-    lib.prt_sg_lookup_sum.argtypes = [i64, i64, vp, vp, vp, vp, i64, i64, vp, i64, vp, ci]
-    lib.prt_sg_taps.argtypes = [i64, i64, i64, i64, vp, vp, vp, vp, vp, vp, i64, i64, vp, i64, vp, ci]
-    for f in (lib.prt_affine_rows, lib.prt_affine_dense, lib.prt_affine_taps, lib.prt_constants, lib.prt_sg_lookup_sum, lib.prt_sg_taps):
-        f.restype = ci
-    return lib, f"compiled with {cc} ({' '.join(flags)}), {so}"
+    return compile_library("relight", _SRC, _FLAGS, {
+        "prt_affine_rows": [i64, i64, i64, *common, vp, vp, ci, ci],
+        "prt_affine_dense": [i64, i64, i64, i64, *common, vp, vp, vp, ci, ci],
+        "prt_affine_taps": [i64, i64, i64, *common, i64, vp, vp, vp, vp, ci, ci],
+        "prt_constants": [i64] * 7 + [vp, vp, vp] + [i64] * 4 + [vp, ci, ci],
+        "prt_sg_lookup_sum": [i64, i64, vp, vp, vp, vp, i64, i64, vp, i64, vp, ci],
+        "prt_sg_taps": [i64, i64, i64, i64, vp, vp, vp, vp, vp, vp, i64, i64, vp, i64, vp, ci],
+    })
 
 
 def native() -> ctypes.CDLL | None:

@@ -49,6 +49,7 @@ from .._checks import check_choice, check_float, check_int
 from ..scene import Mesh, RayCaster, default_workers
 from ..sh import clamped_cosine, eval_sh, rotate_zonal
 from .base import RunOptions, Transfer, remove_state, run_chunks
+from .ray_kernels import upper_rays
 from .sampling import cosine_hemisphere, to_world, uniform_sphere
 
 __all__ = [
@@ -152,13 +153,14 @@ class DiffuseSampler:
             self.dirs_np = np.ascontiguousarray(self.dirs.numpy())
             self.dirs32 = self.dirs_np.astype(np.float32)
             self.Y_np = np.ascontiguousarray(self.Y.numpy())
+            self._work: dict = {}  # ray buffers of rays(reuse=True)
         else:
             self.dirs = cosine_hemisphere(samples, seed)  # local frame
             self.Y = None
             self.weight = 1.0 / samples
 
     def rays(self, points: torch.Tensor, normals: torch.Tensor, frames: torch.Tensor | None, eps: float,
-             nudge: torch.Tensor | None = None):
+             nudge: torch.Tensor | None = None, reuse: bool = False):
         """Ray set of a chunk of k vertices (numpy, ready for Embree).
 
         Returns ``(i [R] vertex index, j [R] sample index, origins float32 [R,3],
@@ -166,17 +168,24 @@ class DiffuseSampler:
         points' :func:`boundary_nudge` rows, or None). For uniform
         sampling only directions above the tangent plane are traced and ``cos`` is the
         ``[k,N]`` matrix max(n·s, 0); for cosine sampling ``cos`` is None and dirs are per vertex.
+        ``reuse``: the uniform rays are written into buffers this sampler keeps (views of them are
+        returned, overwritten by its next call with ``reuse``), not into fresh memory.
         """
         o_v = offset_origins(points.numpy(), normals.numpy(), eps, None if nudge is None else nudge.numpy()).astype(np.float32)
         if self.sampling == "uniform":
             cos = normals.numpy() @ self.dirs_np.T  # [k,N] float64
-            up = cos > 0
-            counts = up.sum(1)
-            # row-major: rays grouped by vertex (np.nonzero's order; flatnonzero + repeat is ~5x faster)
-            i = np.repeat(np.arange(up.shape[0]), counts)
-            j = np.flatnonzero(up) - i * up.shape[1]
-            o = np.repeat(o_v, counts, axis=0)  # == o_v[i], without a gather
-            return i, j, o, np.take(self.dirs32, j, axis=0), np.maximum(cos, 0.0, out=cos)
+            fused = upper_rays(cos, o_v, self.dirs32, work=self._work if reuse else None)  # one compiled pass (same arrays as below)
+            if fused is not None:
+                i, j, o, d = fused
+            else:
+                up = cos > 0
+                counts = up.sum(1)
+                # row-major: rays grouped by vertex (np.nonzero's order; flatnonzero + repeat is ~5x faster)
+                i = np.repeat(np.arange(up.shape[0]), counts)
+                j = np.flatnonzero(up) - i * up.shape[1]
+                o = np.repeat(o_v, counts, axis=0)  # == o_v[i], without a gather
+                d = np.take(self.dirs32, j, axis=0)
+            return i, j, o, d, np.maximum(cos, 0.0, out=cos)
         k = normals.shape[0]
         world = to_world(self.dirs, frames).reshape(-1, 3).numpy()  # [k·N,3]
         i = np.repeat(np.arange(k), self.samples)
@@ -340,7 +349,7 @@ def _chunk(caster: RayCaster, sampler: DiffuseSampler, points: torch.Tensor, nor
     ``TB [k, terms, C, n²]`` (ρ_p kept out, ρ_q in).
     """
     k = points.shape[0]
-    i, j, o, d, cos = sampler.rays(points, normals, frames, caster.eps, nudge)
+    i, j, o, d, cos = sampler.rays(points, normals, frames, caster.eps, nudge, reuse=True)  # consumed within this chunk
     if record_hits:
         prim, bu, bv, _ = caster.trace(o, d, "intersect")
         hit = prim != -1
