@@ -9,7 +9,10 @@ kernels themselves on cache-resident data, as a program of its own: each revisio
 (``relight_kernels._SRC`` and ``_FLAGS``, as ab_kernels reads them) is compiled with a small
 ``main`` that calls ``prt_sg_lookup_sum`` (16 384 one-lobe lookups, the RGB 20-level 6×16×16
 pyramid of ``prefilter_environment``'s defaults) and ``prt_sg_taps`` (2 048 vertices of 92 views,
-3 taps) on one thread and prints the best of ``--reps`` calls. The two programs run in
+3 taps) on one thread and prints the best of ``--reps`` calls. Kernels that read the lobes as
+records ``[..., 5]`` (w, μ, σ; the codec's stored form since they exist) get the data that way
+(``-DSTRIDED``, chosen from the source's signature), older ones as three arrays: the same values,
+so the same checksums. The two programs run in
 alternation, ``--rounds`` times each; the report gives each side's median of those best times,
 the median and range of the round-by-round ratios (base / test: > 1, test faster), and whether
 the two results' checksums agree (they must, for a change meant to keep the arithmetic). Run it
@@ -37,10 +40,25 @@ MAIN = r"""
 #include <math.h>
 #include <stdint.h>
 typedef int64_t i64;
+#ifdef STRIDED  /* kernels that read lobe records [..., 5] (w, mu, sigma) in place: the codec's stored form */
+int prt_sg_lookup_sum(i64 G, i64 N, const float *mu, const float *sigma, const float *w, i64 sw, i64 sm, i64 ss, const float *table,
+                      i64 r, i64 L, const float *ladder, i64 C, float *out, int nthreads);
+int prt_sg_taps(i64 V, i64 J, i64 N, i64 k, const float *w, const float *mu, const float *sigma, i64 sw, i64 sm, i64 ss,
+                const i64 *idx, const float *av, const float *table, i64 r, i64 L, const float *ladder, i64 C, float *out, int nthreads);
+#define STRIDES , 5, 5, 5
+#define W_AT(g) rec[5 * (g)]
+#define MU_AT(g, c) rec[5 * (g) + 1 + (c)]
+#define SG_AT(g) rec[5 * (g) + 4]
+#else  /* separate arrays */
 int prt_sg_lookup_sum(i64 G, i64 N, const float *mu, const float *sigma, const float *w, const float *table, i64 r, i64 L,
                       const float *ladder, i64 C, float *out, int nthreads);
 int prt_sg_taps(i64 V, i64 J, i64 N, i64 k, const float *w, const float *mu, const float *sigma, const i64 *idx,
                 const float *av, const float *table, i64 r, i64 L, const float *ladder, i64 C, float *out, int nthreads);
+#define STRIDES
+#define W_AT(g) w[g]
+#define MU_AT(g, c) mu[3 * (g) + (c)]
+#define SG_AT(g) sg[g]
+#endif
 static double now(void) { struct timespec t; clock_gettime(CLOCK_MONOTONIC, &t); return t.tv_sec + 1e-9 * t.tv_nsec; }
 static unsigned long long s = 88172645463325252ULL;
 static float rnd(void) { s ^= s << 13; s ^= s >> 7; s ^= s << 17; return (float)(s >> 40) / (float)(1ULL << 24); }
@@ -48,14 +66,15 @@ int main(int argc, char **argv) {
     i64 G = atol(argv[1]), V = atol(argv[2]); int reps = atoi(argv[3]);
     const i64 r = 16, L = 20, C = 3, J = 92, k = 3, M = G > V * J ? G : V * J;
     float *mu = malloc(M * 3 * 4), *sg = malloc(M * 4), *w = malloc(M * 4), *out = malloc((G > V ? G : V) * 3 * 4);
+    float *rec = malloc(M * 5 * 4);
     float *table = malloc(L * 6 * r * r * C * 4), *a = malloc(V * k * 4), ladder[20];
     i64 *idx = malloc(V * k * 8);
     for (i64 i = 0; i < L * 6 * r * r * C; i++) table[i] = rnd();
     for (int l = 0; l < L; l++) ladder[l] = logf(0.02f) + l * (logf(4.0f) - logf(0.02f)) / (L - 1);
     for (i64 g = 0; g < M; g++) {
         float x = rnd() - 0.5f, y = rnd() - 0.5f, z = rnd() - 0.5f, n = sqrtf(x * x + y * y + z * z) + 1e-6f;
-        mu[3 * g] = x / n; mu[3 * g + 1] = y / n; mu[3 * g + 2] = z / n;
-        sg[g] = 0.05f + 1.5f * rnd(); w[g] = rnd();
+        MU_AT(g, 0) = x / n; MU_AT(g, 1) = y / n; MU_AT(g, 2) = z / n;
+        SG_AT(g) = 0.05f + 1.5f * rnd(); W_AT(g) = rnd();
     }
     for (i64 v = 0; v < V; v++)
         for (i64 t = 0; t < k; t++) { idx[v * k + t] = (i64)(rnd() * (J - 1)); a[v * k + t] = rnd(); }
@@ -64,8 +83,13 @@ int main(int argc, char **argv) {
         i64 n = which == 0 ? G : V;
         for (int q = 0; q <= reps; q++) {
             double t = now();
+#ifdef STRIDED
+            if (which == 0) prt_sg_lookup_sum(G, 1, rec + 1, rec + 4, rec STRIDES, table, r, L, ladder, C, out, 1);
+            else prt_sg_taps(V, J, 1, k, rec, rec + 1, rec + 4 STRIDES, idx, a, table, r, L, ladder, C, out, 1);
+#else
             if (which == 0) prt_sg_lookup_sum(G, 1, mu, sg, w, table, r, L, ladder, C, out, 1);
             else prt_sg_taps(V, J, 1, k, w, mu, sg, idx, a, table, r, L, ladder, C, out, 1);
+#endif
             t = now() - t;
             if (q > 0 && t < best) best = t;  /* the first call warms the caches */
         }
@@ -86,6 +110,8 @@ def build(src: str, flags: list[str], work: Path, name: str) -> Path:
     (work / "main.c").write_text(MAIN)
     exe = work / name
     fl = [f for f in flags if f not in ("-shared", "-fPIC")]
+    if re.search(r"int prt_sg_taps\([^)]*i64 sw, i64 sm, i64 ss", src):  # the kernels read lobe records in place
+        fl.append("-DSTRIDED")
     r = subprocess.run([cc, *fl, str(work / f"{name}.c"), str(work / "main.c"), "-o", str(exe), "-lm"],
                        capture_output=True, text=True)
     if r.returncode != 0:

@@ -239,7 +239,7 @@ def gaussian_row(label, c, enc, pe, view, mode, repeats) -> dict:
     lobe; with taps only the tapped views' lobes (k·N·5 floats per vertex: the other views' are
     never touched, so the whole encoding would be a bound 30× too loose) and the taps. MACs: per
     lobe the trilinear lookup (8 texels × C), with taps also the blend (5 floats × k)."""
-    P, J, N = enc.tensors["weights"].shape
+    P, J, N = c.lobes_of(enc)[0].shape
     C = pe.channels
     macs = J * N * 8 * C if view is None else N * (8 * C + 5 * view[0].shape[1])
     return {"codec": label, "view": mode, "points": P, "macs_per_point": macs, **measure(c, enc, pe, view, None, repeats)}

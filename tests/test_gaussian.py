@@ -74,7 +74,7 @@ def test_recovers_known_mixture_from_perturbed_start(cube, lobes, sigmas):
     init = ((w * 0.7)[:, None].float(), mu0[:, None].float(), (sg * 1.25)[:, None].float())
     assert float(_angle_deg(mu0, mu).min()) > 5.9
     c, enc = _fit(T, lobes, init=init)
-    fw, fmu, fs = enc.tensors["weights"][:, 0].double(), enc.tensors["mu"][:, 0].double(), enc.tensors["sigma"][:, 0].double()
+    fw, fmu, fs = (t[:, 0].double() for t in c.lobes_of(enc))
     assert float(_angle_deg(fmu, mu).max()) < 0.05
     assert torch.allclose(fs, sg, rtol=2e-3) and torch.allclose(fw, w, rtol=2e-3)
     assert c.fit_info_["relative_l2"] < 1e-3
@@ -110,9 +110,9 @@ def test_lbfgs_alternative_recovers_a_known_lobe(cube):
     init = ((w * 0.7)[:, None].float(), mu0[:, None].float(), (sg * 1.25)[:, None].float())
     c, enc = _fit(T, 1, init=init, optimizer="lbfgs", max_iter=200)
     assert c.fit_info_["optimiser"].startswith("L-BFGS")
-    assert float(_angle_deg(enc.tensors["mu"][0, 0, 0].double(), mu[0, 0])) < 0.5
-    assert float(enc.tensors["sigma"][0, 0, 0]) == pytest.approx(0.3, rel=2e-2)
-    assert float(enc.tensors["weights"][0, 0, 0]) == pytest.approx(1.3, rel=2e-2)
+    assert float(_angle_deg(c.lobes_of(enc)[1][0, 0, 0].double(), mu[0, 0])) < 0.5
+    assert float(c.lobes_of(enc)[2][0, 0, 0]) == pytest.approx(0.3, rel=2e-2)
+    assert float(c.lobes_of(enc)[0][0, 0, 0]) == pytest.approx(1.3, rel=2e-2)
 
 
 @pytest.mark.parametrize("case, mu, sigma", [
@@ -126,9 +126,9 @@ def test_extremes_fit_from_peaks_and_moments(cube, case, mu, sigma):
     T = mixture(d, torch.tensor([[2.0]], dtype=torch.float64), mu[None, None], torch.tensor([[sigma]], dtype=torch.float64))
     c, enc = _fit(T, 1)
     assert c.fit_info_["relative_l2"] < 2e-3, case
-    assert float(_angle_deg(enc.tensors["mu"][0, 0, 0].double(), mu)) < 0.2, case
-    assert float(enc.tensors["sigma"][0, 0, 0]) == pytest.approx(sigma, rel=1e-2), case
-    assert float(enc.tensors["weights"][0, 0, 0]) == pytest.approx(2.0, rel=1e-2), case
+    assert float(_angle_deg(c.lobes_of(enc)[1][0, 0, 0].double(), mu)) < 0.2, case
+    assert float(c.lobes_of(enc)[2][0, 0, 0]) == pytest.approx(sigma, rel=1e-2), case
+    assert float(c.lobes_of(enc)[0][0, 0, 0]) == pytest.approx(2.0, rel=1e-2), case
 
 
 @pytest.mark.filterwarnings("ignore::DeprecationWarning")  # torch.jit inside autograd.functional
@@ -175,7 +175,7 @@ def test_all_zero_function_gives_zero_weights_and_no_nan(cube):
     c, enc = _fit(T, 2)
     for t in enc.tensors.values():
         assert bool(torch.isfinite(t.float()).all())
-    assert float(enc.tensors["weights"][[0, 2]].abs().max()) == 0.0
+    assert float(c.lobes_of(enc)[0][[0, 2]].abs().max()) == 0.0
     assert float(c.decode(enc)[[0, 2]].abs().max()) == 0.0
     assert c.fit_info_["relative_l2"] < 1e-2
 
@@ -302,29 +302,35 @@ def test_relight_from_gaussians_matches_integral_of_decoded_tables(cube, monkeyp
         assert float(native[1][1].abs().max()) == 0.0
 
 
-def _random_lobes(d, V, J, N, g, sigma):
+def _random_lobes(d, V, J, N, g, sigma, layout="records"):
     """A Gaussian codec fitted on 3 vertices of J views (texel directions ``d``), and an encoding of
     V vertices with random lobes (weights in [0, 1), unit means) of widths ``sigma [V, J, N]``:
-    the relight paths do not depend on how the lobes were found."""
+    the relight paths do not depend on how the lobes were found. ``layout``: the codec's lobe
+    records ``lobes [V, J, N, 5]``, or ``'separate'`` arrays (encodings saved before the records)."""
     mu = torch.nn.functional.normalize(torch.randn(3 * J, N, 3, generator=g, dtype=torch.float64), dim=-1)
     T = mixture(d, torch.ones(3 * J, N, dtype=torch.float64), mu, torch.full((3 * J, N), 0.5, dtype=torch.float64))
     c = codecs.get("gaussian", lobes=N)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         enc = c.fit_encode(T.reshape(3, -1).float(), matrix_shape=(J, d.shape[0]))
-    enc.tensors = {"weights": torch.rand(V, J, N, generator=g),
-                   "mu": torch.nn.functional.normalize(torch.randn(V, J, N, 3, generator=g), dim=-1), "sigma": sigma}
+    w, mu = torch.rand(V, J, N, generator=g), torch.nn.functional.normalize(torch.randn(V, J, N, 3, generator=g), dim=-1)
+    if layout == "separate":
+        enc.tensors = {"weights": w, "mu": mu, "sigma": sigma}
+    else:
+        enc.tensors = {"lobes": torch.cat([w[..., None], mu, sigma[..., None]], -1)}
     enc.meta["points"] = V
     return c, enc
 
 
+@pytest.mark.parametrize("layout", ["records", "separate"])
 @pytest.mark.parametrize("threads,N", [(1, 1), (2, 1), (1, 2), (2, 2)])
-def test_fused_kernels_in_blocks_of_16_equal_the_torch_formulation(cube, threads, N, monkeypatch):
+def test_fused_kernels_in_blocks_of_16_equal_the_torch_formulation(cube, threads, N, layout, monkeypatch):
     """The compiled kernels take 16 vertices (or lobe groups) at a time where the CPU has AVX-512
     (the rest one by one, each thread's range split anywhere): with and without taps, 37 vertices
     of varied lobes (widths below, inside and above the ladder; a vertex with no view above the
-    horizon; one lobe, whose 16 means load contiguously, or two), they equal the torch
-    formulation to float32 rounding and write into ``out=``."""
+    horizon; one lobe, whose 16 records or means load contiguously and are deinterleaved, or two),
+    they equal the torch formulation to float32 rounding and write into ``out=``; the lobe
+    records are read in place, and separate arrays (encodings saved before them) still work."""
     from prt_torch.codecs import relight_kernels
     from prt_torch.harness.timing import torch_threads
 
@@ -332,7 +338,8 @@ def test_fused_kernels_in_blocks_of_16_equal_the_torch_formulation(cube, threads
         pytest.skip("no compiled kernels")
     g = torch.Generator().manual_seed(7)
     J, V = 12, 37
-    c, enc = _random_lobes(cube[0], V, J, N, g, torch.exp(torch.randn(V, J, N, generator=g) * 2))
+    c, enc = _random_lobes(cube[0], V, J, N, g, torch.exp(torch.randn(V, J, N, generator=g) * 2), layout)
+    assert relight_kernels.lobe_layout(*c.lobes_of(enc))[3:] == ((5, 5, 5) if layout == "records" else (1, 3, 1))
     light = lambda x: torch.stack([1.5 + x[..., 0], 1 + 0.5 * x[..., 2], (x[..., 1] > 0.3).double()], -1)  # noqa: E731
     pe = prefilter_environment(light, res=8, levels=12)
     idx = torch.randint(0, J, (V, 3), generator=g)
@@ -348,7 +355,7 @@ def test_fused_kernels_in_blocks_of_16_equal_the_torch_formulation(cube, threads
         assert torch.allclose(got, want, rtol=1e-5, atol=1e-6 * float(want.abs().max()))
     assert float(native[1][20].abs().max()) == 0.0
     with pytest.raises(ValueError, match="shares memory"):  # out= over the encoding it reads
-        c.relight(enc, pe, view=(idx, a), out=enc.tensors["weights"].view(-1)[: V * 3].view(V, 3))
+        c.relight(enc, pe, view=(idx, a), out=next(iter(enc.tensors.values())).view(-1)[: V * 3].view(V, 3))
 
 
 def test_relight_survives_non_finite_lobes_and_refuses_bad_views_before_writing(cube):
@@ -361,8 +368,8 @@ def test_relight_survives_non_finite_lobes_and_refuses_bad_views_before_writing(
     J, N, V = 12, 1, 40
     c, enc = _random_lobes(cube[0], V, J, N, g, torch.rand(V, J, N, generator=g) + 0.1)
     pe = prefilter_environment(lambda x: 1.5 + x[..., :3], res=8, levels=12)
-    enc.tensors["mu"][3, 2, 0] = torch.tensor([float("nan"), 0.2, 0.3])  # in a block of 16
-    enc.tensors["mu"][37, 5, 0] = torch.tensor([0.1, 0.2, float("nan")])  # in the tail
+    c.lobes_of(enc)[1][3, 2, 0] = torch.tensor([float("nan"), 0.2, 0.3])  # in a block of 16
+    c.lobes_of(enc)[1][37, 5, 0] = torch.tensor([0.1, 0.2, float("nan")])  # in the tail
     idx = torch.stack([torch.full((V,), 2), torch.full((V,), 5), torch.full((V,), 7)], 1)
     a = torch.rand(V, 3, generator=g) + 0.1
     every, taps = c.relight(enc, pe), c.relight(enc, pe, view=(idx, a))
@@ -405,7 +412,7 @@ def test_relight_bytes_count_only_the_tapped_views(cube):
     idx = torch.randint(0, J, (V, 3), generator=g)
     a = torch.rand(V, 3, generator=g)
     rows = torch.arange(V)[:, None]
-    tapped = sum(t[rows, idx].numel() * 4 for t in (enc.tensors["weights"], enc.tensors["mu"], enc.tensors["sigma"]))
+    tapped = sum(t[rows, idx].numel() * 4 for t in c.lobes_of(enc))
     assert c.relight_bytes(enc, (idx, a)) == tapped + idx.numel() * 8 + a.numel() * 4 < c.storage(enc)["bytes_total"] / 3
     assert c.relight_bytes(enc, (idx.numpy(), a.numpy())) == c.relight_bytes(enc, (idx, a))  # taps as numpy arrays
     dirs = torch.randn(V, 3, generator=g)
@@ -540,7 +547,7 @@ def test_cli_compress_transport_dir_json_and_info(tiny_table, tmp_path, capsys):
     assert 0 < s["relative_l2"] < 0.2 and s["codec"] == "gaussian" and s["matrix_shape"] == [12, 384]
     assert main(["info", str(out)]) == 0
     text = capsys.readouterr().out
-    assert "codec/gaussian" in text and "codes.mu" in text
+    assert "codec/gaussian" in text and "codes.lobes" in text
 
 
 def test_cli_compress_refuses_other_transfer_kinds_for_gaussian(tmp_path):
@@ -584,3 +591,26 @@ def test_harness_evaluates_transport_with_gaussian_and_pca(tiny_table):
         out = ev.finish(c.relight(enc, light, view=(idx1, w1)))
         assert out.shape == ref1.shape and psnr_vs_reference(ref1, out) > {"gaussian": 25, "pca": 8}[name], name
         assert bool(torch.isfinite(ev.finish(c.relight(enc, light, view=view))).all())
+
+
+def test_encodings_saved_before_the_lobe_records_load_and_relight_the_same(cube, tmp_path):
+    """An encoding stored as three arrays (``weights``, ``mu``, ``sigma``: files written before the
+    ``lobes [V, J, N, 5]`` records) saves, loads and relights, every view and with taps, to the
+    same values as the records; ``lobes_of`` names what a non-Gaussian encoding lacks."""
+    g = torch.Generator().manual_seed(11)
+    J, N, V = 12, 2, 20
+    c, enc = _random_lobes(cube[0], V, J, N, g, torch.rand(V, J, N, generator=g) + 0.05)
+    w, mu, sg = c.lobes_of(enc)
+    assert enc.tensors["lobes"].shape == (V, J, N, 5) and bool((w == enc.tensors["lobes"][..., 0]).all())
+    old = codecs.Encoded(codec=enc.codec, tensors={"weights": w.clone(), "mu": mu.clone(), "sigma": sg.clone()}, meta=dict(enc.meta))
+    c.save(tmp_path / "old.prt", old)
+    c2, loaded = codecs.load(tmp_path / "old.prt")
+    assert sorted(loaded.tensors) == ["mu", "sigma", "weights"]
+    pe = prefilter_environment(lambda x: 1.2 + x[..., :3], res=8, levels=12)
+    idx = torch.randint(0, J, (V, 3), generator=g)
+    a = torch.rand(V, 3, generator=g)
+    for view in (None, (idx, a)):
+        assert torch.equal(c2.relight(loaded, pe, view), c.relight(enc, pe, view))
+    assert torch.equal(c2.decode(loaded), c.decode(enc))
+    with pytest.raises(ValueError, match=r"not a gaussian encoding: no tensor 'lobes' \(nor 'mu', 'sigma'\)"):
+        c.lobes_of(codecs.Encoded(codec="gaussian", tensors={"weights": w}, meta={}))

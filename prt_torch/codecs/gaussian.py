@@ -624,7 +624,7 @@ class GaussianCodec(Codec):
                 raise ValueError(f"faces must be [F, 3] vertex indices in [0, {X.shape[0]})")
         if init is not None:
             if isinstance(init, Encoded):
-                init = (init.tensors["weights"], init.tensors["mu"], init.tensors["sigma"])
+                init = self.lobes_of(init)
             init = tuple(torch.as_tensor(t, dtype=torch.float32) for t in init)
             want = [(X.shape[0], J, p["lobes"]), (X.shape[0], J, p["lobes"], 3), (X.shape[0], J, p["lobes"])]
             if len(init) != 3 or [tuple(t.shape) for t in init] != want or not all(bool(torch.isfinite(t).all()) for t in init):
@@ -684,7 +684,7 @@ class GaussianCodec(Codec):
             enc_t["diffuse"] = t
             enc_t["has_data"] = has.to(torch.uint8)
         w, mu, sg, info = self._fit_all(T, p, init)
-        enc_t.update({"weights": w, "mu": mu, "sigma": sg})
+        enc_t["lobes"] = torch.cat([w[..., None], mu, sg[..., None]], -1).contiguous()  # [V, J, N, 5]
         enc = Encoded(codec=self.codec_name, tensors=enc_t,
                       meta={"points": V, "dim": J * P, "matrix_shape": [J, P], "lobes": N, "layout": self.layout_,
                             "diffuse_bands": nb})
@@ -769,11 +769,35 @@ class GaussianCodec(Codec):
         return W, MU, SG, info
 
     # ------------------------------------------------------------------ decode / relight
+    @staticmethod
+    def lobes_of(enc: Encoded) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``(w [V, J, N], mu [V, J, N, 3], sigma [V, J, N])`` of an encoding: views of its lobe
+        records ``lobes [V, J, N, 5]`` = (w, μx, μy, μz, σ) float32, one run of 20·N bytes per
+        vertex and view (a camera's taps read 3 of the 92 views: 3 runs, where three separate
+        arrays took 9; the kernels read the records in place). Encodings saved before the records
+        (separate ``weights``, ``mu``, ``sigma``) are returned as they are."""
+        t = enc.tensors
+        if "lobes" in t:
+            rec = t["lobes"]
+            hit = enc.cache.get("lobe_views")
+            if hit is not None and hit[0] is rec:  # three views cost ~12 µs a call, a sixth of a small relight
+                return hit[1]
+            if rec.ndim != 4 or rec.shape[-1] != 5:
+                raise ValueError(f"encoding tensor 'lobes' has shape {tuple(rec.shape)}; accepted: [V, J, N, 5]")
+            views = (rec.select(-1, 0), rec.narrow(-1, 1, 3), rec.select(-1, 4))
+            enc.cache["lobe_views"] = (rec, views)
+            return views
+        missing = [k for k in ("weights", "mu", "sigma") if k not in t]
+        if missing:
+            raise ValueError(f"not a gaussian encoding: no tensor 'lobes' (nor {', '.join(map(repr, missing))}); "
+                             f"it has {sorted(t)}")
+        return t["weights"], t["mu"], t["sigma"]
+
     def decode(self, enc: Encoded) -> torch.Tensor:
         """The fitted tables ``[V, J·P]`` float32 (Green eq. 2.1 at the texel directions, plus
         the SH diffuse part where the view has data)."""
         self._require_fitted()
-        w, mu, sg = enc.tensors["weights"], enc.tensors["mu"], enc.tensors["sigma"]
+        w, mu, sg = self.lobes_of(enc)
         V, J, N = w.shape
         out = torch.empty(V, J, self.P_)
         step = max(1, 65536 // max(1, J))
@@ -847,20 +871,21 @@ class GaussianCodec(Codec):
         """
         self._require_fitted()
         light = self._check_light(light)
-        w = enc.tensors["weights"]
-        V, J, _ = w.shape
+        lobes = self.lobes_of(enc)
+        V, J, _ = lobes[0].shape
         if view is not None:
             view = self.checked_taps(view, V, J)
         self._check_diffuse_light(enc, light)  # refused before anything is written into out
         if out is not None:  # the fused kernels write into it (no result-sized temporary and copy)
             out = check_out(out, (V, light.channels) if view is not None else (V, J, light.channels), view,
                             tuple(enc.tensors.values()), light.table(), light.log_sigmas)
-        return self._relight(enc, light, view, out)
+        return self._relight(enc, light, view, out, lobes)
 
-    def _relight(self, enc: Encoded, light: PrefilteredEnvironment, view: tuple | None, out: torch.Tensor | None = None
-                 ) -> torch.Tensor:
-        """``view``: None or checked taps; ``out``: None or a checked result buffer."""
-        w, mu, sg = enc.tensors["weights"], enc.tensors["mu"], enc.tensors["sigma"]
+    def _relight(self, enc: Encoded, light: PrefilteredEnvironment, view: tuple | None, out: torch.Tensor | None = None,
+                 lobes: tuple | None = None) -> torch.Tensor:
+        """``view``: None or checked taps; ``out``: None or a checked result buffer; ``lobes``:
+        ``lobes_of(enc)`` when the caller has them."""
+        w, mu, sg = lobes if lobes is not None else self.lobes_of(enc)
         V, J, N = w.shape
         if view is None:
             res = lobe_sum(light, w, mu, sg, out=out)
@@ -891,7 +916,7 @@ class GaussianCodec(Codec):
         ``face_index [M]``, ``bary [M, 3]``, global ``view_dirs [M, 3]`` → ``[M, C]`` float32."""
         self._require_fitted()
         light = self._check_light(light)
-        w, mu, sg = enc.tensors["weights"], enc.tensors["mu"], enc.tensors["sigma"]
+        w, mu, sg = self.lobes_of(enc)
         N = w.shape[2]
         vid = torch.as_tensor(faces).long()[face_index.long()]  # [M, 3]
         idx, a = view_taps(self.views_, view_dirs / view_dirs.norm(dim=-1, keepdim=True))
@@ -917,14 +942,14 @@ class GaussianCodec(Codec):
         J/k times too loose. A view of directions ``[V, 3]`` reads three views' lobes."""
         if view is None:
             return super().relight_bytes(enc)
-        V, J, N = enc.tensors["weights"].shape
+        V, J, N = self.lobes_of(enc)[0].shape
         k = min(3, J) if isinstance(view, torch.Tensor) else int(torch.as_tensor(view[0]).shape[-1])
         diffuse = enc.tensors["diffuse"][0].numel() * 4 + k if "diffuse" in enc.tensors else 0  # and k has_data flags
         return V * (k * N * 5 * 4 + diffuse) + view_nbytes(view)
 
     def storage(self, enc: Encoded) -> dict[str, Any]:
         st = super().storage(enc)
-        V, J, N = enc.tensors["weights"].shape
+        V, J, N = self.lobes_of(enc)[0].shape
         per_fn = N * 5
         floats = V * J * per_fn + (enc.tensors["diffuse"].numel() if "diffuse" in enc.tensors else 0)
         st.update({"sloan_cost_floats": floats, "floats_per_function": per_fn, "floats_per_lobe": 5,

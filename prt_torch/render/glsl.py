@@ -562,7 +562,7 @@ def gaussian_view_lobes(codec, enc, light, view) -> tuple:
     if not isinstance(light, PrefilteredEnvironment):
         raise TypeError(f"light is {type(light).__name__}; accepted: a PrefilteredEnvironment "
                         "(prt_torch.lighting.prefilter_environment; the gaussian codec's light kind 'prefiltered')")
-    w, mu, sg = enc.tensors["weights"], enc.tensors["mu"], enc.tensors["sigma"]
+    w, mu, sg = codec.lobes_of(enc)
     V, J, N = w.shape
     if view is None:
         raise ValueError("the gaussian decoder needs a view: taps (idx [V, k], w [V, k]) or directions [V, 3] "
