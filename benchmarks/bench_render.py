@@ -48,7 +48,8 @@ from scipy.ndimage import binary_erosion
 
 from prt_torch.render import Camera, PRTScene, Renderer, glsl_vs_cpu, psnr  # sets PYOPENGL_PLATFORM=egl first
 
-from prt_torch.harness.timing import machine_info, measure  # noqa: E402
+from prt_torch.codecs.base import view_nbytes  # noqa: E402
+from prt_torch.harness.timing import io_bound_fn, machine_info, measure, measure_paired  # noqa: E402
 from prt_torch import codecs  # noqa: E402
 from prt_torch.codecs.synthetic import transfer_like  # noqa: E402
 from prt_torch.io import atomic_write_json, atomic_write_text  # noqa: E402
@@ -78,6 +79,12 @@ GLSL_PATHS = {  # transfer -> [(codec or None, params)]
     "glossy": [(None, {}), ("vq", dict(clusters=256)), ("cpca", dict(clusters=32, vectors=8))],
     "mrt": [(None, {}), ("mrt_pca", dict(vectors=16)), ("cpca", dict(clusters=32, vectors=8))],
 }
+
+
+def bound_fraction(fn, bytes_read: int, bytes_written: int, repeats: int) -> float:
+    """t_bound / t_relight, paired (``measure_paired``): the bound reads ``bytes_read`` once and
+    writes ``bytes_written`` once (``io_bound_fn``, as bench_relight and the default benchmark)."""
+    return measure_paired(fn, io_bound_fn(bytes_read, bytes_written), repeats=repeats, warmup=1).speedup
 
 
 def glsl_rows(r: Renderer, size: str, res: int, repeats: int, quick: bool) -> list[dict]:
@@ -113,12 +120,21 @@ def glsl_rows(r: Renderer, size: str, res: int, repeats: int, quick: bool) -> li
             t_cpu = measure(lambda: sc.cpu_radiance(light, view, codec, enc), repeats=repeats, warmup=1)
             t_cpu_frame = measure(lambda: r.render_radiance(sc.mesh, sc.cpu_radiance(light, view, codec, enc), cam, res, res),
                                   repeats=repeats, warmup=1)
+            v = view if sc.needs_view else None
+            if codec is not None:  # the relight call alone, against the bytes it must move
+                fn = lambda: codec.relight(enc, Lm, view=v)  # noqa: E731
+                read = codec.relight_bytes(enc, v)
+            else:
+                fn = lambda: sc.cpu_radiance(light, view)  # noqa: E731
+                read = sc.rows.numel() * 4 + view_nbytes(v)
+            frac = bound_fraction(fn, read, fn().numel() * 4, repeats)
             rows.append({
                 "transfer": kind, "shape": list(sc.transfer.data.shape), "synthetic": kind != "diffuse",
                 "codec": name or "uncompressed", "params": params, "vertices": V, "pixels": res * res,
                 "psnr_glsl_vs_cpu_db": None if math.isinf(chk.psnr_db) else chk.psnr_db, "same_mask": chk.same_mask,
                 "max_abs_diff": chk.max_abs, "glsl_fps": 1 / t_glsl.median, "glsl_spread": t_glsl.spread,
                 "cpu_relight_per_s": 1 / t_cpu.median, "cpu_relight_spread": t_cpu.spread,
+                "cpu_relight_fraction_of_bound": frac, "bytes_read": read,
                 "cpu_frame_fps": 1 / t_cpu_frame.median, "cpu_frame_spread": t_cpu_frame.spread,
                 "glsl_fps_over_cpu_relight": t_cpu.median / t_glsl.median,
                 "glsl_fps_over_cpu_frame": t_cpu_frame.median / t_glsl.median,
@@ -187,6 +203,8 @@ def gaussian_row(r: Renderer, size: str, res: int, repeats: int) -> dict:
     t_cpu = measure(lambda: codec.relight(enc, pe, view=taps()), repeats=repeats, warmup=1)
     t_cpu_frame = measure(lambda: r.render_radiance(mesh, codec.relight(enc, pe, view=taps()), cam, res, res),
                           repeats=repeats, warmup=1)
+    read = codec.relight_bytes(enc, t0)
+    frac = bound_fraction(lambda: codec.relight(enc, pe, view=t0), read, cpu.numel() * 4, repeats)
     row = {
         "transfer": "transport", "shape": list(tr.data.shape), "synthetic": False, "codec": "gaussian",
         "params": params, "vertices": V, "pixels": res * res,
@@ -194,6 +212,7 @@ def gaussian_row(r: Renderer, size: str, res: int, repeats: int) -> dict:
         "max_abs_diff": float(np.abs(img_g[m].astype(np.float64) - img_c[m]).max()),
         "glsl_fps": 1 / t_glsl.median, "glsl_spread": t_glsl.spread,
         "cpu_relight_per_s": 1 / t_cpu.median, "cpu_relight_spread": t_cpu.spread,
+        "cpu_relight_fraction_of_bound": frac, "bytes_read": read,
         "cpu_frame_fps": 1 / t_cpu_frame.median, "cpu_frame_spread": t_cpu_frame.spread,
         "glsl_fps_over_cpu_relight": t_cpu.median / t_glsl.median,
         "glsl_fps_over_cpu_frame": t_cpu_frame.median / t_glsl.median,
@@ -216,6 +235,12 @@ def glsl_md(rows: list[dict], load: tuple[float, float]) -> list[str]:
           "as an engine does).",
           "* CPU relight/s: the torch engine's per-vertex radiance for the same light and view (`codec.relight` / "
           "`relight.*`), no image; CPU frame fps: that plus drawing the per-vertex radiance (the `--decode cpu` frame).",
+          "* of bound: the CPU relight's fraction of its copy bound, t_bound / t_relight, paired in this run "
+          "(`measure_paired`; the bound reads the bytes the relight must read once — `codec.relight_bytes`: the "
+          "encoding and the view, for the Gaussian codec only the tapped views' lobes; uncompressed: the transfer rows and "
+          "the view — and writes the radiance once, `io_bound_fn`). The codec call alone (`codec.relight(enc, light, "
+          "view)`); uncompressed rows time the CPU relight column's call. benchmarks/bench_relight.py has every codec at "
+          "50 000 points, with the compute floor.",
           "* transport (gaussian): Green 2005's Gaussian codec (`GaussianDecoder`) on a REAL transport table "
           "(bumpy_sphere, Phong s=12, 12 views, 8×8 cube faces, unshadowed; 2 lobes, 5 LM iterations) relit from the "
           "'sky' light prefiltered on 16×16 faces, 20 widths. Its frame is a new CAMERA (the per-light work, the "
@@ -228,14 +253,16 @@ def glsl_md(rows: list[dict], load: tuple[float, float]) -> list[str]:
           f"{load[1]:.1f} after, on 2 cores); absolute rates are indicative, ratios are from the same run. A spread "
           "above 50% marks a figure disturbed by those jobs (a load average above 2 means they competed for the "
           "cores during the timing); re-run on an idle machine for absolute rates.", "",
-          "| transfer | codec | GLSL vs CPU | same mask | GLSL fps | CPU relight/s | CPU frame fps | GLSL fps / CPU relight/s | GLSL / CPU frame |",
-          "|---|---|---|---|---:|---:|---:|---:|---:|"]
+          "| transfer | codec | GLSL vs CPU | same mask | GLSL fps | CPU relight/s | of bound | CPU frame fps | "
+          "GLSL fps / CPU relight/s | GLSL / CPU frame |",
+          "|---|---|---|---|---:|---:|---:|---:|---:|---:|"]
     for x in rows:
         db = "inf" if x["psnr_glsl_vs_cpu_db"] is None else f"{x['psnr_glsl_vs_cpu_db']:.1f}"
         params = ", ".join(f"{k}={v}" for k, v in x["params"].items())
         md.append(f"| {x['transfer']} {tuple(x['shape'][1:])}{' (synthetic)' if x['synthetic'] else ''} | "
                   f"{x['codec']}{f' ({params})' if params else ''} | GLSL vs CPU: {db} dB | {'yes' if x['same_mask'] else 'NO'} | "
                   f"{x['glsl_fps']:.1f} (±{x['glsl_spread']:.0%}) | {x['cpu_relight_per_s']:.1f} (±{x['cpu_relight_spread']:.0%}) | "
+                  f"{x['cpu_relight_fraction_of_bound']:.2f} | "
                   f"{x['cpu_frame_fps']:.1f} | {x['glsl_fps_over_cpu_relight']:.2f} | {x['glsl_fps_over_cpu_frame']:.2f} |")
     md += [""]
     return md
