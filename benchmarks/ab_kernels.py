@@ -28,6 +28,8 @@ Shapes (``--shape``):
 * ``relight``: ``bench_relight``'s 50 000-point settings (VQ 256, PCA 8, CPCA 256×8 static,
   iterative and adaptive; MRT-PCA 16; the Gaussian codec with 1 and 3 lobes), no view, dense
   view, and taps;
+* ``diffuse``: vectors, 50 000 points of 16 SH coefficients, an RGB result per point (VQ 256,
+  PCA 8, CPCA 64×4, no view): the shape of diffuse PRT, 12 bytes out per point;
 * ``default``: the default benchmark's shape, 10 242 points of a 64×16 MRT-like signal with 4
   tent taps and dense views (VQ 64, PCA 8, CPCA 16×4, MRT-PCA 8).
 
@@ -118,6 +120,13 @@ def cases(shape: str, only: list[str], cache: Path):
                  "mrt": [("none", None), ("dense", torch.randn(P, 49, generator=g)), ("taps", tent_taps_random(P, 7, seed=4))]}
         todo = bench_relight.settings(False)
         light = torch.randn(25, 3, generator=g)
+    elif shape == "diffuse":  # vectors: 16 SH coefficients per point, an RGB result [P, 3]
+        P = 50000
+        sig = {"diffuse": (transfer_like(P, 1, 16, seed=5), None)}
+        views = {"diffuse": [("none", None)]}
+        todo = [("vq 256", "vq", {"clusters": 256, "max_iter": 10}, "diffuse"), ("pca 8", "pca", {"vectors": 8}, "diffuse"),
+                ("cpca 64x4", "cpca_static", {"clusters": 64, "vectors": 4, "max_iter": 10}, "diffuse")]
+        light = torch.randn(16, 3, generator=g)
     else:
         P = 10242
         sig = {"mrt": (transfer_like(P, 64, 16, seed=0), (64, 16))}
@@ -146,7 +155,7 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--base", default="HEAD", help="git revision of the reference kernels (default HEAD)")
     ap.add_argument("--test", default=".", help="git revision of the kernels under test, or '.' for the working tree (default)")
-    ap.add_argument("--shape", choices=["relight", "default"], default="relight")
+    ap.add_argument("--shape", choices=["relight", "default", "diffuse"], default="relight")
     ap.add_argument("--threads", default="1", help="comma list of thread counts (default 1)")
     ap.add_argument("--only", default="", help="comma list of substrings of codec labels (default: all)")
     ap.add_argument("--repeats", type=int, default=11)

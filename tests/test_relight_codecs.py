@@ -147,6 +147,7 @@ def test_kernels_built_for_other_instruction_sets(march, monkeypatch, tmp_path):
                        "mrt_pca n_out=49"):
             _check_case(case, "native " + (march or "baseline"))
     test_kernels_visit_points_in_any_order()  # and the same bits whichever order (so pairing) the points are visited in
+    test_rows_of_one_vector_stay_in_their_rows()  # rows of <= 8 floats: scalar stores and FMA without AVX-512VL
 
 
 @pytest.mark.parametrize("name, params", [("vq", {"clusters": 5}), ("pca", {"vectors": 3}),
@@ -450,6 +451,42 @@ def test_rows_kernel_padded_rows_at_any_thread_split():
         ordered = relight_kernels.affine_rows(lib, T, 4, Fo, 1, *codes, P=251, order=torch.arange(251, dtype=torch.int32))
         assert all(torch.equal(o, outs[0]) for o in outs[1:]) and torch.equal(ordered, outs[0]), Fo
         assert torch.allclose(outs[0].double(), ref, atol=1e-5), Fo
+
+
+def test_rows_of_one_vector_stay_in_their_rows():
+    """Rows of Fo <= 8 floats (F = 8: diffuse RGB, Fo = 3) take the 8-points-per-pass kernel, VQ's
+    and PCA's by whole-vector stores that overlap the next rows (each overwritten by the next
+    point's): against the FMA chain e_p = T_k0 + w_0 T_k1 + ... in float64 (to float32 rounding),
+    for VQ (labels, no weights), PCA (one cluster), CPCA (labels and weights), ranges of 1-3
+    threads, with and without a visiting order, the same bits; nothing written past the last row
+    (sentinels after it) and every row written (NaN-filled buffers)."""
+    lib = relight_kernels.native()
+    if lib is None:
+        pytest.skip("no compiled kernels")
+    g = torch.Generator().manual_seed(12)
+    for P in (1, 7, 9, 23, 250):
+        for Fo in (1, 2, 3, 5, 8):
+            for kind in ("vq", "pca", "cpca"):
+                K, J = {"vq": (6, 1), "pca": (1, 4), "cpca": (5, 4)}[kind]
+                T = torch.randn(K, J, 8, generator=g)
+                T[..., Fo:] = 0.0
+                labels = None if K == 1 else torch.randint(0, K, (P,), generator=g).to(torch.uint8)
+                W = None if J == 1 else torch.randn(P, J - 1, generator=g)
+                codes = (labels, W, J - 1, None, None, J - 1, True)
+                lab = torch.zeros(P, dtype=torch.long) if labels is None else labels.long()
+                Td = T.double()[lab]  # [P, J, 8]
+                ref = Td[:, 0, :Fo] + (0 if W is None else (W.double()[:, :, None] * Td[:, 1:, :Fo]).sum(1))
+                outs = []
+                for n in (1, 2, 3):
+                    for order in (None, torch.randperm(P, generator=g).to(torch.int32)):
+                        buf = torch.full((P * Fo + 16,), float("nan"))
+                        buf[P * Fo:] = 7.0
+                        with torch_threads(n):
+                            relight_kernels.affine_rows(lib, T, J, Fo, 1, *codes, P=P, order=order, out=buf[:P * Fo])
+                        assert bool((buf[P * Fo:] == 7.0).all()), (P, Fo, kind, n)
+                        outs.append(buf[:P * Fo].view(P, Fo).clone())
+                assert all(torch.equal(o, outs[0]) for o in outs[1:]), (P, Fo, kind)
+                assert torch.allclose(outs[0].double(), ref, atol=1e-5), (P, Fo, kind)
 
 
 @pytest.mark.parametrize("name", ["cpca_static", "cpca_adaptive"])
