@@ -80,6 +80,10 @@ def settings(quick: bool) -> list[tuple[str, str, dict, str]]:
         (f"cpca adaptive {K}x8", "cpca_adaptive",
          {"clusters": K, "vectors": 8, "max_iter": 10, "iterations": 3, "adapt_iters": 2}, "glossy"),
         ("mrt_pca 16", "mrt_pca", {"vectors": 16}, "mrt"),
+        # diffuse PRT: vectors of 16 SH coefficients, an RGB result per point (12 bytes out)
+        (f"vq {K} (diffuse)", "vq", {"clusters": K, "max_iter": 10}, "diffuse"),
+        ("pca 8 (diffuse)", "pca", {"vectors": 8}, "diffuse"),
+        ("cpca static 64x4 (diffuse)", "cpca_static", {"clusters": 64, "vectors": 4, "max_iter": 10}, "diffuse"),
     ]
 
 
@@ -271,7 +275,7 @@ def main() -> int:
     X = transfer_like(P, 24, 25, seed=0)
     Mm = 7
     A = transfer_like(P, Mm * Mm, 25, seed=3)
-    signals = {"glossy": (X, (24, 25)), "mrt": (A, (Mm * Mm, 25))}
+    signals = {"glossy": (X, (24, 25)), "mrt": (A, (Mm * Mm, 25)), "diffuse": (transfer_like(P, 1, 16, seed=5), None)}
     g = torch.Generator().manual_seed(0)
     light = torch.randn(25, 3, generator=g) * torch.exp(-0.5 * torch.tensor([float(int(i ** 0.5)) for i in range(25)]))[:, None]
     views = {"glossy": torch.randn(P, 24, generator=g), "mrt": torch.randn(P, Mm * Mm, generator=g)}
@@ -293,18 +297,22 @@ def main() -> int:
                                "n_vectors": [int(v) for v in c.n_vectors_.unique()],
                                "vectors_mean_per_point": st["vectors_mean_per_point"], "bytes_total": st["bytes_total"],
                                "compression_ratio": st["compression_ratio"]})
-        n_out, n_in = ms
+        n_out, n_in = ms or (1, Xs.shape[1])
         M = c.decode(enc).view(P, n_out, n_in)  # the uncompressed reference reads the decoded matrices
-        Lc = light.T.contiguous()  # relight.* take lights as [C, n_in]
-        modes = [("none", None, lambda: (M.reshape(P * n_out, n_in) @ light).view(P, n_out, 3)),
-                 ("dense", views[sig], lambda: relight.apply_dense(M, Lc, views[sig]))]
+        Ls = light[:n_in]
+        Lc = Ls.T.contiguous()  # relight.* take lights as [C, n_in]
+        modes = [("none", None, lambda: (M.reshape(P * n_out, n_in) @ Ls).view(P, n_out, 3))]
+        if ms is None:  # vectors: [P, C], no view
+            modes = [("none", None, lambda: M.view(P, n_in) @ Ls)]
+        else:
+            modes.append(("dense", views[sig], lambda: relight.apply_dense(M, Lc, views[sig])))
         if sig == "mrt":
             modes.append(("taps", taps, lambda: relight.apply_taps(M, Lc, *taps)))
         for nt in threads:
             torch.set_num_threads(nt)
             peak = peaks.setdefault(nt, peak_macs_per_s())
             for mode, view, unc in modes:
-                r = with_peak(row(label, c, enc, light, view, mode, unc, args.repeats), peak)
+                r = with_peak(row(label, c, enc, Ls, view, mode, unc, args.repeats), peak)
                 r["threads"] = nt
                 result["rows"].append(r)
                 print_row(r)
