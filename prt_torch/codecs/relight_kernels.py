@@ -549,6 +549,17 @@ static __attribute__((noinline)) void small_rows_range(const int32_t *order, int
         default: for (; q * Fo + 8 <= p1 * Fo; q++) ST(out + q * Fo, LD(T + ((const int32_t *)lab)[q] * J * 8)); break;
         }
     }
+    if (lab && W && !order) {  /* one point at a time, whole-vector stores while they end inside the range: the
+                                 out-of-order core overlaps consecutive points' chains */
+        for (; q * Fo + 8 <= p1 * Fo; q++) {
+            i64 k = lab_at(lab, lab_kind, q), cnt;
+            const float *w = weights_of(W, wstride, woff, nk, nuse, k, q, &cnt), *t = T + k * J * 8;
+            v8 a = mean ? LD(t) : (v8){0};
+            const float *b = t + (mean ? 8 : 0);
+            for (i64 i = 0; i < cnt; i++) a = FMA8(w[i], LD(b + 8 * i), a);
+            ST(out + q * Fo, a);
+        }
+    }
 #if HAVE_K1_RGB8
     if (!lab && !order && !woff && W && Fo == 3) {
         i64 cnt;
