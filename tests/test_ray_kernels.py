@@ -64,3 +64,7 @@ def test_sampler_rays_same_with_and_without_the_compiled_pass(monkeypatch):
     plain = s.rays(p, n, None, 1e-4, reuse=True)
     for a, b, c in zip(fused, kept, plain):
         assert a.dtype == c.dtype and np.array_equal(a, c) and np.array_equal(b, c)
+    import pickle
+
+    s2 = pickle.loads(pickle.dumps(s))  # a sampler sent to a Ray task: without its kept buffers
+    assert s._work and s2._work == {} and np.array_equal(s2.dirs32, s.dirs32)

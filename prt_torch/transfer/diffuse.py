@@ -159,6 +159,12 @@ class DiffuseSampler:
             self.Y = None
             self.weight = 1.0 / samples
 
+    def __getstate__(self):  # the kept ray buffers (tens of MB) do not travel with a pickled sampler (Ray tasks)
+        st = dict(self.__dict__)
+        if "_work" in st:
+            st["_work"] = {}
+        return st
+
     def rays(self, points: torch.Tensor, normals: torch.Tensor, frames: torch.Tensor | None, eps: float,
              nudge: torch.Tensor | None = None, reuse: bool = False):
         """Ray set of a chunk of k vertices (numpy, ready for Embree).
