@@ -614,3 +614,10 @@ def test_encodings_saved_before_the_lobe_records_load_and_relight_the_same(cube,
     assert torch.equal(c2.decode(loaded), c.decode(enc))
     with pytest.raises(ValueError, match=r"not a gaussian encoding: no tensor 'lobes' \(nor 'mu', 'sigma'\)"):
         c.lobes_of(codecs.Encoded(codec="gaussian", tensors={"weights": w}, meta={}))
+    bad = codecs.Encoded(codec=enc.codec, tensors={"weights": w.clone(), "mu": mu[:, :, :1].clone(), "sigma": sg.clone()},
+                         meta=dict(enc.meta))  # a corrupt old file: mu of one lobe for two
+    with pytest.raises(ValueError, match=r"mu \(20, 12, 1, 3\) and sigma \(20, 12, 2\) do not match w \(20, 12, 2\)"):
+        c.relight(bad, pe)
+    rec = enc.tensors["lobes"]
+    rec.data = torch.ones(V, J, N, 5)  # the same tensor object, new storage: the cached views follow it
+    assert float(c.lobes_of(enc)[0].sum()) == V * J * N

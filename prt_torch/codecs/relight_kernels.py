@@ -501,7 +501,10 @@ static __attribute__((noinline)) void vq_rows_range(i64 p0, i64 p1, i64 F, const
 #if defined(__FMA__)
 #include <immintrin.h>
 #define FMA8(w, x, a) ((v8)_mm256_fmadd_ps(_mm256_set1_ps(w), (__m256)(x), (__m256)(a)))
-#else
+#elif defined(__ARM_FEATURE_FMA) || defined(__FP_FAST_FMAF)  /* FMA without __FMA__: written out lane by lane */
+static inline v8 fma8_(float w, v8 x, v8 a) { v8 r; for (int i = 0; i < 8; i++) r[i] = __builtin_fmaf(w, x[i], a[i]); return r; }
+#define FMA8(w, x, a) fma8_((w), (x), (a))
+#else  /* no FMA instruction: nothing to contract into */
 #define FMA8(w, x, a) ((a) + (w) * (x))
 #endif
 #define S8_INIT(j) v8 a##j = mean ? LD(t[j]) : (v8){0}; const float *b##j = t[j] + (mean ? 8 : 0), *w##j = w[j];
@@ -516,7 +519,9 @@ static __attribute__((noinline)) void vq_rows_range(i64 p0, i64 p1, i64 F, const
    pass keeps 16 and spills them. */
 static inline void k1_rgb8(const float *Tk, int mean, const float *wq, i64 ws, i64 cnt, float *d) {
     v8 a0 = {0}, a1 = {0}, a2 = {0};
-    if (mean) { a0 += Tk[0]; a1 += Tk[1]; a2 += Tk[2]; }
+    if (mean) {  /* set, not added to zero: 0 + (-0) is +0, and the other paths keep the mean's -0 */
+        a0 = (v8)_mm256_set1_ps(Tk[0]); a1 = (v8)_mm256_set1_ps(Tk[1]); a2 = (v8)_mm256_set1_ps(Tk[2]);
+    }
     const float *b = Tk + (mean ? 8 : 0);
     for (i64 i0 = 0; i0 < cnt; i0 += 8) {
         i64 m = cnt - i0 < 8 ? cnt - i0 : 8;
@@ -1793,6 +1798,8 @@ def affine_rows(lib, T: torch.Tensor, J: int, n_out: int, C: int, labels, W, wst
     ``order`` (a permutation ``int32 [P]``, e.g. by cluster) is the order the points are visited
     in (None: 0..P-1); ``codes_sorted``: the codes are stored in that order."""
     Fo = n_out * C
+    if Fo > T.shape[2]:
+        raise ValueError(f"affine_rows: rows of n_out·C = {Fo} floats from constants of {T.shape[2]}; accepted: n_out·C <= T.shape[2]")
     out = _out(out, P * Fo, (P, Fo))
     lib.prt_affine_rows(P, T.shape[2], Fo, *_codes(labels, W, wstride, woff, nk, nuse, mean), T.data_ptr(), J,
                         out.data_ptr(), _order(order, P), _csort(order, codes_sorted), torch.get_num_threads())
@@ -1854,6 +1861,9 @@ def lobe_layout(w: torch.Tensor, mu: torch.Tensor, sigma: torch.Tensor) -> tuple
         if (w.stride() == st and sigma.stride() == st and mu.stride() == (*st, 1) and mu.dtype == sigma.dtype == torch.float32
                 and mu.shape == (*w.shape, 3) and sigma.shape == w.shape):
             return w, mu, sigma, 5, 5, 5
+    if tuple(mu.shape) != (*w.shape, 3) or tuple(sigma.shape) != tuple(w.shape):  # the kernels read w.numel() lobes of each
+        raise ValueError(f"lobes: mu {tuple(mu.shape)} and sigma {tuple(sigma.shape)} do not match w {tuple(w.shape)}; "
+                         f"accepted: mu {(*w.shape, 3)}, sigma {tuple(w.shape)}")
     shape = tuple(w.shape)
     if (all(t.dtype == torch.float32 for t in (w, mu, sigma)) and tuple(mu.shape) == (*shape, 3) and tuple(sigma.shape) == shape
             and mu.data_ptr() == w.data_ptr() + 4 and sigma.data_ptr() == w.data_ptr() + 16 and mu.stride(-1) == 1
