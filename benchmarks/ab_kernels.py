@@ -28,8 +28,8 @@ Shapes (``--shape``):
 * ``relight``: ``bench_relight``'s 50 000-point settings (VQ 256, PCA 8, CPCA 256×8 static,
   iterative and adaptive; MRT-PCA 16; the Gaussian codec with 1 and 3 lobes), no view, dense
   view, and taps;
-* ``diffuse``: vectors, 50 000 points of 16 SH coefficients, an RGB result per point (VQ 256,
-  PCA 8, CPCA 64×4, no view): the shape of diffuse PRT, 12 bytes out per point;
+* ``diffuse``: ``bench_relight``'s diffuse rows: vectors, 50 000 points of 16 SH coefficients, an
+  RGB result per point (VQ 256, PCA 8, CPCA 64×4, no view), 12 bytes out per point;
 * ``default``: the default benchmark's shape, 10 242 points of a 64×16 MRT-like signal with 4
   tent taps and dense views (VQ 64, PCA 8, CPCA 16×4, MRT-PCA 8).
 
@@ -113,20 +113,15 @@ def compile_source(kernels: tuple[str, list[str]], label: str):
 def cases(shape: str, only: list[str], cache: Path):
     """(label, codec, encoding, light, [(mode, view)]) for the chosen shape."""
     g = torch.Generator().manual_seed(0)
-    if shape == "relight":
+    if shape in ("relight", "diffuse"):  # bench_relight's settings; "diffuse": its vector rows only
         P = 50000
-        sig = {"glossy": (transfer_like(P, 24, 25, seed=0), (24, 25)), "mrt": (transfer_like(P, 49, 25, seed=3), (49, 25))}
+        sig = {"glossy": (transfer_like(P, 24, 25, seed=0), (24, 25)), "mrt": (transfer_like(P, 49, 25, seed=3), (49, 25)),
+               "diffuse": (transfer_like(P, 1, 16, seed=5), None)}  # vectors: 16 SH coefficients, an RGB result [P, 3]
         views = {"glossy": [("none", None), ("dense", torch.randn(P, 24, generator=g))],
-                 "mrt": [("none", None), ("dense", torch.randn(P, 49, generator=g)), ("taps", tent_taps_random(P, 7, seed=4))]}
-        todo = bench_relight.settings(False)
+                 "mrt": [("none", None), ("dense", torch.randn(P, 49, generator=g)), ("taps", tent_taps_random(P, 7, seed=4))],
+                 "diffuse": [("none", None)]}
+        todo = [t for t in bench_relight.settings(False) if (t[3] == "diffuse") == (shape == "diffuse")]
         light = torch.randn(25, 3, generator=g)
-    elif shape == "diffuse":  # vectors: 16 SH coefficients per point, an RGB result [P, 3]
-        P = 50000
-        sig = {"diffuse": (transfer_like(P, 1, 16, seed=5), None)}
-        views = {"diffuse": [("none", None)]}
-        todo = [("vq 256", "vq", {"clusters": 256, "max_iter": 10}, "diffuse"), ("pca 8", "pca", {"vectors": 8}, "diffuse"),
-                ("cpca 64x4", "cpca_static", {"clusters": 64, "vectors": 4, "max_iter": 10}, "diffuse")]
-        light = torch.randn(16, 3, generator=g)
     else:
         P = 10242
         sig = {"mrt": (transfer_like(P, 64, 16, seed=0), (64, 16))}
@@ -140,7 +135,7 @@ def cases(shape: str, only: list[str], cache: Path):
             continue
         X, ms = sig[s]
         c, enc, _ = bench_relight.fitted(name, params, X, ms, cache)
-        yield label, c, enc, light, views[s]
+        yield label, c, enc, light[:ms[1] if ms else X.shape[1]], views[s]
     if shape == "relight":  # bench_relight's Gaussian rows: every stored view, and camera taps
         pe = bench_relight.prefilter_environment(light.T.contiguous().double(), res=16)
         for lobes in (1, 3):

@@ -489,15 +489,15 @@ static __attribute__((noinline)) void vq_rows_range(i64 p0, i64 p1, i64 F, const
 /* v[0:n] to p, n <= 8 (a row of n_out C <= 8 floats: diffuse RGB, 3) */
 #define ST_FO(p, v, n) do { v8 v_ = (v); if ((n) == 8) ST(p, v_); else for (i64 i_ = 0; i_ < (n); i_++) (p)[i_] = v_[i_]; } while (0)
 
-/* no view, rows of one vector (F == 8, Fo <= 8: diffuse transfer, n_out C = 3): 8 visits per pass
-   with one accumulator each (8 independent chains of cnt FMAs, where one point at a time waits on
-   its chain's latency), any clusters, the same term count; the tail and mixed term counts one at a
-   time, by the same chain (a point's bits depend on neither its block, the order nor the threads).
-   VQ (no weights): the mean row's first Fo floats. Rows of Fo < 8 floats are written by scalar
-   stores: masked vector stores of consecutive 12-byte rows ran at a third of the speed (Zen 4). */
-#define EACH8(X) X(0) X(1) X(2) X(3) X(4) X(5) X(6) X(7)
+/* no view, rows of one vector (F == 8, Fo <= 8: diffuse transfer, n_out C = 3), where the general
+   pass spends its time on per-point bookkeeping: VQ copies the cluster's row, PCA (one cluster,
+   RGB) takes 8 points in lanes (k1_rgb8), the rest one point at a time. Every path computes a
+   point by the same FMA chain, so its bits depend on neither the path, the order nor the threads.
+   Whole 8-float vectors are stored where rows are consecutive (the next points' stores overwrite
+   the lanes past Fo) and the store ends inside the thread's range; otherwise Fo scalar stores
+   (masked vector stores of consecutive 12-byte rows ran at a third of the speed on Zen 4). */
 /* a + w x, one rounding where the CPU has FMA: written out, not left to contraction, which GCC
-   applied in the 8-point pass but not in the one-at-a-time loop (their bits differed) */
+   applied in one of this pass's loops and not in another (their bits differed) */
 #if defined(__FMA__)
 #include <immintrin.h>
 #define FMA8(w, x, a) ((v8)_mm256_fmadd_ps(_mm256_set1_ps(w), (__m256)(x), (__m256)(a)))
@@ -507,16 +507,12 @@ static inline v8 fma8_(float w, v8 x, v8 a) { v8 r; for (int i = 0; i < 8; i++) 
 #else  /* no FMA instruction: nothing to contract into */
 #define FMA8(w, x, a) ((a) + (w) * (x))
 #endif
-#define S8_INIT(j) v8 a##j = mean ? LD(t[j]) : (v8){0}; const float *b##j = t[j] + (mean ? 8 : 0), *w##j = w[j];
-#define S8_STEP(j) a##j = FMA8(w##j[i], LD(b##j + 8 * i), a##j);
-#define S8_STORE(j) ST_FO(out + pv[j] * Fo, a##j, Fo);
-#define S8_STORE_SEQ(j) ST(out + (q + j) * Fo, a##j);
 #if defined(SHUF) && defined(__AVX512VL__)
 /* 8 consecutive points of one cluster (K = 1: PCA), RGB rows (Fo = 3), points in lanes: the 8
    points' weights transposed 8 at a time (r[i] = weight i of each point), then per colour c
    acc_c = T_0[c] + sum_i r[i] T_{1+i}[c] by the same FMA chain per point and colour as the
-   one-row pass (same bits), written as 24 contiguous floats. No pointer per point: the one-row
-   pass keeps 16 and spills them. */
+   one-point loop (same bits), written as 24 contiguous floats: paired, 4-5x the one-point loop,
+   which waits on each point's chain of weight loads and multiply-adds. */
 static inline void k1_rgb8(const float *Tk, int mean, const float *wq, i64 ws, i64 cnt, float *d) {
     v8 a0 = {0}, a1 = {0}, a2 = {0};
     if (mean) {  /* set, not added to zero: 0 + (-0) is +0, and the other paths keep the mean's -0 */
@@ -554,17 +550,6 @@ static __attribute__((noinline)) void small_rows_range(const int32_t *order, int
         default: for (; q * Fo + 8 <= p1 * Fo; q++) ST(out + q * Fo, LD(T + ((const int32_t *)lab)[q] * J * 8)); break;
         }
     }
-    if (lab && W && !order) {  /* one point at a time, whole-vector stores while they end inside the range: the
-                                 out-of-order core overlaps consecutive points' chains */
-        for (; q * Fo + 8 <= p1 * Fo; q++) {
-            i64 k = lab_at(lab, lab_kind, q), cnt;
-            const float *w = weights_of(W, wstride, woff, nk, nuse, k, q, &cnt), *t = T + k * J * 8;
-            v8 a = mean ? LD(t) : (v8){0};
-            const float *b = t + (mean ? 8 : 0);
-            for (i64 i = 0; i < cnt; i++) a = FMA8(w[i], LD(b + 8 * i), a);
-            ST(out + q * Fo, a);
-        }
-    }
 #if HAVE_K1_RGB8
     if (!lab && !order && !woff && W && Fo == 3) {
         i64 cnt;
@@ -572,38 +557,24 @@ static __attribute__((noinline)) void small_rows_range(const int32_t *order, int
         for (; q + 8 <= p1; q += 8) k1_rgb8(T, mean, W + q * wstride, wstride, cnt, out + 3 * q);
     }
 #endif
-    for (; q < p1; q += 8) {
-        const float *t[8], *w[8];
-        i64 cnt[8], pv[8], n = p1 - q < 8 ? p1 - q : 8;
-        int same = n == 8;
-        for (i64 j = 0; j < n; j++) {
-            i64 p = order ? order[q + j] : q + j, pc = csort ? q + j : p;
-            i64 k = lab_at(lab, lab_kind, pc);
-            w[j] = weights_of(W, wstride, woff, nk, nuse, k, pc, &cnt[j]);
-            t[j] = T + k * J * 8;
-            pv[j] = p;
-            same &= cnt[j] == cnt[0];
+    /* the rest (CPCA, other row lengths, a visiting order, the tails): one point at a time. The out-of-order core
+       overlaps consecutive points' chains; an 8-point pass, with a pointer per point, spilled them (CPCA 1.5x slower).
+       Consecutive rows with whole-vector stores while they end inside the range, then Fo floats per point. */
+#define ONE_ROW(pc) i64 k = lab_at(lab, lab_kind, pc), cnt;                                                          \
+        const float *w = weights_of(W, wstride, woff, nk, nuse, k, pc, &cnt), *t = T + k * J * 8, *b = t + (mean ? 8 : 0); \
+        v8 a = mean ? LD(t) : (v8){0};                                                                             \
+        for (i64 i = 0; i < cnt; i++) a = FMA8(w[i], LD(b + 8 * i), a);
+    if (!order)
+        for (; q * Fo + 8 <= p1 * Fo; q++) {
+            ONE_ROW(q)
+            ST(out + q * Fo, a);
         }
-        if (same) {
-            const i64 c = cnt[0];
-            EACH8(S8_INIT)
-            for (i64 i = 0; i < c; i++) { EACH8(S8_STEP) }
-            if (!order && (q + 7) * Fo + 8 <= p1 * Fo) {  /* consecutive rows, whole vectors in order: each one's lanes
-                                                            past Fo are overwritten by the next points' stores, and
-                                                            the last ends inside the range */
-                EACH8(S8_STORE_SEQ)
-            } else {
-                EACH8(S8_STORE)
-            }
-            continue;
-        }
-        for (i64 j = 0; j < n; j++) {  /* a tail, or mixed term counts (CPCA adaptive): one at a time */
-            v8 a = mean ? LD(t[j]) : (v8){0};
-            const float *b = t[j] + (mean ? 8 : 0);
-            for (i64 i = 0; i < cnt[j]; i++) a = FMA8(w[j][i], LD(b + 8 * i), a);
-            ST_FO(out + pv[j] * Fo, a, Fo);
-        }
+    for (; q < p1; q++) {
+        i64 p = order ? order[q] : q;
+        ONE_ROW(csort ? q : p)
+        ST_FO(out + p * Fo, a, Fo);
     }
+#undef ONE_ROW
 }
 
 /* no view: out[p, 0:Fo] = e_p; constants T [K, J, F], rows zero-padded from Fo to F floats */
