@@ -33,7 +33,8 @@ Shapes (``--shape``):
 * ``default``: the default benchmark's shape, 10 242 points of a 64×16 MRT-like signal with 4
   tent taps and dense views (VQ 64, PCA 8, CPCA 16×4, MRT-PCA 8).
 
-Prints a markdown table; ``--out PATH`` also writes it (atomically).
+``--points N`` replaces the shape's point count (a quick check of the tool: tests/test_ab_kernels.py
+runs it at 1000 points). Prints a markdown table; ``--out PATH`` also writes it (atomically).
 """
 from __future__ import annotations
 
@@ -110,11 +111,12 @@ def compile_source(kernels: tuple[str, list[str]], label: str):
     return lib
 
 
-def cases(shape: str, only: list[str], cache: Path):
-    """(label, codec, encoding, light, [(mode, view)]) for the chosen shape."""
+def cases(shape: str, only: list[str], cache: Path, points: int | None = None):
+    """(label, codec, encoding, light, [(mode, view)]) for the chosen shape (``points``: instead of
+    its point count, for a quick check of the tool itself)."""
     g = torch.Generator().manual_seed(0)
     if shape in ("relight", "diffuse"):  # bench_relight's settings; "diffuse": its vector rows only
-        P = 50000
+        P = points or 50000
         sig = {"glossy": (transfer_like(P, 24, 25, seed=0), (24, 25)), "mrt": (transfer_like(P, 49, 25, seed=3), (49, 25)),
                "diffuse": (transfer_like(P, 1, 16, seed=5), None)}  # vectors: 16 SH coefficients, an RGB result [P, 3]
         views = {"glossy": [("none", None), ("dense", torch.randn(P, 24, generator=g))],
@@ -123,7 +125,7 @@ def cases(shape: str, only: list[str], cache: Path):
         todo = [t for t in bench_relight.settings(False) if (t[3] == "diffuse") == (shape == "diffuse")]
         light = torch.randn(25, 3, generator=g)
     else:
-        P = 10242
+        P = points or 10242
         sig = {"mrt": (transfer_like(P, 64, 16, seed=0), (64, 16))}
         views = {"mrt": [("taps", tent_taps_random(P, 8, seed=1)), ("dense", torch.randn(P, 64, generator=g))]}
         todo = [("vq 64", "vq", {"clusters": 64, "max_iter": 10}, "mrt"), ("pca 8", "pca", {"vectors": 8}, "mrt"),
@@ -154,12 +156,17 @@ def main() -> int:
     ap.add_argument("--threads", default="1", help="comma list of thread counts (default 1)")
     ap.add_argument("--only", default="", help="comma list of substrings of codec labels (default: all)")
     ap.add_argument("--repeats", type=int, default=11)
+    ap.add_argument("--points", type=int, default=None, help="points per setting instead of the shape's (a quick check)")
     ap.add_argument("--cache", default=os.path.join(tempfile.gettempdir(), "prt_bench_relight"))
     ap.add_argument("--out", default=None, help="also write the table to this file")
     args = ap.parse_args()
     threads = [int(t) for t in args.threads.split(",")]
     if any(t < 1 for t in threads):
         raise SystemExit(f"ab_kernels: --threads {args.threads!r}; accepted: positive integers, comma-separated")
+    for name in ("repeats", "points"):
+        v = getattr(args, name)
+        if v is not None and v < (3 if name == "repeats" else 64):
+            raise SystemExit(f"ab_kernels: --{name} {v}; accepted: an integer >= {3 if name == 'repeats' else 64}")
     (src_a, rest_a), (src_b, rest_b) = (split_source(module_text(r), r) for r in (args.base, args.test))
     _, rest_here = split_source(module_text("."), ".")
     for rev, rest in ((args.base, rest_a), (args.test, rest_b)):
@@ -181,7 +188,7 @@ def main() -> int:
     print("\n".join(lines), flush=True)
     own = relight_kernels._state.get("lib")
     try:
-        for label, c, enc, light, views in cases(args.shape, only, cache):
+        for label, c, enc, light, views in cases(args.shape, only, cache, args.points):
             for mode, view in views:
                 buf = torch.empty_like(c.relight(enc, light, view=view))
 

@@ -1,0 +1,38 @@
+"""benchmarks/ab_kernels.py, the paired A/B of two revisions' relight kernels: at a small point
+count it builds the kernels, measures every view mode of the chosen settings and reports equal
+results (maxdiff 0) and finite ratios for equal sources; bad options are refused, naming them."""
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+TOOL = ROOT / "benchmarks" / "ab_kernels.py"
+
+
+def _run(*args, tmp):
+    return subprocess.run([sys.executable, str(TOOL), "--base", ".", "--test", ".", "--points", "1000", "--repeats", "3",
+                           "--cache", str(tmp), *args], capture_output=True, text=True, cwd=ROOT, timeout=600)
+
+
+@pytest.mark.skipif(shutil.which("cc") is None and shutil.which("gcc") is None, reason="no C compiler")
+@pytest.mark.skipif(not (ROOT / ".git").exists(), reason="not a git checkout")
+@pytest.mark.parametrize("shape, only, rows", [("relight", "mrt_pca,gaussian 1", 5), ("diffuse", "pca 8", 1)])
+def test_each_shape_measures_its_settings(shape, only, rows, tmp_path):
+    r = _run("--shape", shape, "--only", only, tmp=tmp_path)
+    assert r.returncode == 0, r.stderr
+    table = [line for line in r.stdout.splitlines() if line.startswith("| ") and "**" in line]
+    assert len(table) == rows, r.stdout
+    for line in table:
+        cells = [c.strip() for c in line.strip("|").split("|")]
+        assert cells[-1] == "0.0e+00", line  # the same source: the same bits
+        assert 0.2 < float(cells[-2].split("**")[1]) < 5, line  # a measured ratio, not a placeholder
+
+
+def test_bad_options_are_refused_naming_them(tmp_path):
+    r = subprocess.run([sys.executable, str(TOOL), "--points", "10"], capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert r.returncode != 0 and "--points 10; accepted: an integer >= 64" in r.stderr
+    r = subprocess.run([sys.executable, str(TOOL), "--threads", "0"], capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert r.returncode != 0 and "--threads '0'; accepted: positive integers" in r.stderr
