@@ -1848,8 +1848,10 @@ def sg_lookup_sum(lib, table: torch.Tensor, log_sigmas: torch.Tensor, res: int, 
     """Σ over the last axis of ``w [..., N]`` of w · E_σ(μ) (Green 2005 eq. 2.7) from a prefiltered
     pyramid ``table [L·6·r·r, C]`` float32 (``PrefilteredEnvironment.table``) with ladder
     ``log_sigmas [L]``: ``mu [..., N, 3]``, ``sigma [..., N]`` → ``[..., C]`` float32, one fused
-    pass per lobe (the torch formulation builds ~30 lobe-sized intermediates). ``out``: an
-    optional contiguous float32 result ``[..., C]`` (checked by the caller), written and returned."""
+    pass per lobe (the torch formulation builds ~30 lobe-sized intermediates). The three may be
+    views of one record array ``[..., N, 5]`` (read in place, :func:`lobe_layout`) or any tensors
+    of those shapes (else ``ValueError``). ``out``: an optional contiguous float32 result
+    ``[..., C]`` (checked by the caller), written and returned."""
     lead, N = tuple(w.shape[:-1]), w.shape[-1]
     G = w.numel() // max(N, 1)
     C = table.shape[1]
@@ -1869,8 +1871,10 @@ def sg_taps(lib, table: torch.Tensor, log_sigmas: torch.Tensor, res: int, w: tor
     """Gaussian relighting with view taps (Green 2005 §2.3, eq. 2.7), fused per vertex: the lobes
     of the tapped views blended with ``a / Σa`` (``gaussian.blend_lobes``), looked up in the
     pyramid (as :func:`sg_lookup_sum`), summed over the lobes and scaled by Σa. ``w [V, J, N]``,
-    ``mu [V, J, N, 3]``, ``sigma [V, J, N]``, ``idx int64 [V, k]`` in [0, J) (checked by the
-    caller), ``a [V, k]`` → ``[V, C]`` float32 (into ``out`` when given, checked by the caller)."""
+    ``mu [V, J, N, 3]``, ``sigma [V, J, N]`` (views of the codec's records ``lobes [V, J, N, 5]``
+    are read in place: a camera's three taps read three runs of 20·N bytes), ``idx int64 [V, k]``
+    in [0, J) (checked by the caller), ``a [V, k]`` → ``[V, C]`` float32 (into ``out`` when given,
+    checked by the caller)."""
     V, J, N = w.shape
     k = idx.shape[1]
     C = table.shape[1]
