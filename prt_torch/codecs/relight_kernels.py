@@ -1371,33 +1371,14 @@ static inline __m512 deint3(__m512 a, __m512 b, __m512 c, __m512i ix) {
 }
 
 /* 5-way deinterleave of 80 floats r[0..4] (16 lobe records w, mu_x, mu_y, mu_z, sigma): field f of
-   lane l is float 5 l + f, in register (5 l + f) / 16, lane (5 l + f) % 16. Per field: a permute of
-   registers 0-1, one of 2-3, one of 4 and two blends; the index vectors are constants (DEINT5_*[f]
-   lane l: the lane to take, + 16 for the second register of a pair), read from memory by the permutes. */
-static const int32_t DEINT5_01[5][16] __attribute__((aligned(64))) = {
-    {0, 5, 10, 15, 20, 25, 30, 3, 8, 13, 2, 7, 12, 1, 6, 11},
-    {1, 6, 11, 16, 21, 26, 31, 4, 9, 14, 3, 8, 13, 2, 7, 12},
-    {2, 7, 12, 17, 22, 27, 0, 5, 10, 15, 4, 9, 14, 3, 8, 13},
-    {3, 8, 13, 18, 23, 28, 1, 6, 11, 0, 5, 10, 15, 4, 9, 14},
-    {4, 9, 14, 19, 24, 29, 2, 7, 12, 1, 6, 11, 0, 5, 10, 15}};
-static const int32_t DEINT5_23[5][16] __attribute__((aligned(64))) = {
-    {0, 5, 10, 15, 4, 9, 14, 3, 8, 13, 18, 23, 28, 1, 6, 11},
-    {1, 6, 11, 0, 5, 10, 15, 4, 9, 14, 19, 24, 29, 2, 7, 12},
-    {2, 7, 12, 1, 6, 11, 0, 5, 10, 15, 20, 25, 30, 3, 8, 13},
-    {3, 8, 13, 2, 7, 12, 1, 6, 11, 16, 21, 26, 31, 4, 9, 14},
-    {4, 9, 14, 3, 8, 13, 2, 7, 12, 17, 22, 27, 0, 5, 10, 15}};
-static const int32_t DEINT5_4[5][16] __attribute__((aligned(64))) = {
-    {0, 5, 10, 15, 4, 9, 14, 3, 8, 13, 2, 7, 12, 1, 6, 11},
-    {1, 6, 11, 0, 5, 10, 15, 4, 9, 14, 3, 8, 13, 2, 7, 12},
-    {2, 7, 12, 1, 6, 11, 0, 5, 10, 15, 4, 9, 14, 3, 8, 13},
-    {3, 8, 13, 2, 7, 12, 1, 6, 11, 0, 5, 10, 15, 4, 9, 14},
-    {4, 9, 14, 3, 8, 13, 2, 7, 12, 1, 6, 11, 0, 5, 10, 15}};
-static const __mmask16 DEINT5_K23[5] = {0x1f80, 0x1f80, 0x1fc0, 0x1fc0, 0xfc0};
-static const __mmask16 DEINT5_K4[5] = {0xe000, 0xe000, 0xe000, 0xe000, 0xf000};
+   lane l is float p = 5 l + f, in register p / 16. One index vector p serves every permute (they
+   read its low 5 or 4 bits): registers 0-1 for p < 32, 2-3 for p < 64, 4 beyond, as deint3 does. */
 static inline __m512 deint5(const __m512 *r, int f) {
-    __m512 o = _mm512_mask_blend_ps(DEINT5_K23[f], _mm512_permutex2var_ps(r[0], _mm512_load_si512(DEINT5_01[f]), r[1]),
-                                    _mm512_permutex2var_ps(r[2], _mm512_load_si512(DEINT5_23[f]), r[3]));
-    return _mm512_mask_blend_ps(DEINT5_K4[f], o, _mm512_permutexvar_ps(_mm512_load_si512(DEINT5_4[f]), r[4]));
+    const __m512i p = _mm512_add_epi32(_mm512_set_epi32(75, 70, 65, 60, 55, 50, 45, 40, 35, 30, 25, 20, 15, 10, 5, 0),
+                                       _mm512_set1_epi32(f));
+    __m512 o = _mm512_mask_blend_ps(_mm512_cmpge_epi32_mask(p, _mm512_set1_epi32(32)), _mm512_permutex2var_ps(r[0], p, r[1]),
+                                    _mm512_permutex2var_ps(r[2], p, r[3]));
+    return _mm512_mask_blend_ps(_mm512_cmpge_epi32_mask(p, _mm512_set1_epi32(64)), o, _mm512_permutexvar_ps(p, r[4]));
 }
 
 static inline void store16_rgb(float *out, const __m128 *acc, const float *scale) {
