@@ -148,6 +148,7 @@ def test_kernels_built_for_other_instruction_sets(march, monkeypatch, tmp_path):
             _check_case(case, "native " + (march or "baseline"))
     test_kernels_visit_points_in_any_order()  # and the same bits whichever order (so pairing) the points are visited in
     test_rows_of_one_vector_stay_in_their_rows()  # rows of <= 8 floats: scalar stores and FMA without AVX-512VL
+    test_rows_of_one_vector_by_term_count_and_label_kind()  # weights broadcast by permutes (AVX2) or from memory
 
 
 @pytest.mark.parametrize("name, params", [("vq", {"clusters": 5}), ("pca", {"vectors": 3}),
@@ -493,6 +494,43 @@ def test_rows_of_one_vector_stay_in_their_rows():
                 assert torch.allclose(outs[0].double(), ref, atol=1e-5), (P, Fo, kind)
                 if kind == "pca":
                     assert bool(torch.signbit(outs[0][:, 0]).all()), (P, Fo)
+
+
+def test_rows_of_one_vector_by_term_count_and_label_kind():
+    """The one-vector rows pass specialises points in order by term count (1-8), label kind and
+    row stride of the weights (loaded 8 at a time where the stride allows): every combination
+    gives the bits of the generic one-point chain (the same points visited in a random order take
+    it), for 1-3 threads, with weights rows wider than the terms used, and agrees with float64."""
+    lib = relight_kernels.native()
+    if lib is None:
+        pytest.skip("no compiled kernels")
+    g = torch.Generator().manual_seed(13)
+    for nuse in (1, 2, 4, 5, 8, 9):
+        for extra in (0, 3):
+            ws = nuse + extra
+            for lab_dtype in (None, torch.uint8, torch.int16, torch.int32):
+                for P, Fo in ((5, 3), (37, 3), (37, 1), (37, 8)):
+                    K, J = (1 if lab_dtype is None else 7), nuse + 1
+                    T = torch.randn(K, J, 8, generator=g)
+                    T[..., Fo:] = 0.0
+                    labels = None if lab_dtype is None else torch.randint(0, K, (P,), generator=g).to(lab_dtype)
+                    W = torch.randn(P, ws, generator=g)
+                    codes = (labels, W, ws, None, None, nuse, True)
+                    lab = torch.zeros(P, dtype=torch.long) if labels is None else labels.long()
+                    Td = T.double()[lab]
+                    ref = Td[:, 0, :Fo] + (W.double()[:, :nuse, None] * Td[:, 1:, :Fo]).sum(1)
+                    outs = []
+                    for n in (1, 2, 3):
+                        for order in (None, torch.randperm(P, generator=g).to(torch.int32)):
+                            buf = torch.full((P * Fo + 16,), float("nan"))
+                            buf[P * Fo:] = 7.0
+                            with torch_threads(n):
+                                relight_kernels.affine_rows(lib, T, J, Fo, 1, *codes, P=P, order=order, out=buf[:P * Fo])
+                            assert bool((buf[P * Fo:] == 7.0).all()), (nuse, ws, lab_dtype, P, Fo, n)
+                            outs.append(buf[:P * Fo].view(P, Fo).clone())
+                    case = (nuse, ws, lab_dtype, P, Fo)
+                    assert all(torch.equal(o.view(torch.int32), outs[0].view(torch.int32)) for o in outs[1:]), case
+                    assert torch.allclose(outs[0].double(), ref, atol=1e-5), case
 
 
 @pytest.mark.parametrize("name", ["cpca_static", "cpca_adaptive"])

@@ -97,6 +97,7 @@ static inline const float *weights_of(const float *W, i64 wstride, const i64 *wo
     } while (0)
 
 typedef float v4 __attribute__((vector_size(16)));
+typedef float v4u __attribute__((vector_size(16), aligned(4)));  /* unaligned loads of 4 floats */
 #if defined(__clang__) || (defined(__GNUC__) && __GNUC__ >= 12)
 #define SHUF(a, ...) __builtin_shufflevector(a, a, __VA_ARGS__)
 /* ((a0 + a1) + (a2 + a3)) + ((a4 + a5) + (a6 + a7)): the association hsum8 uses for each of its
@@ -498,14 +499,19 @@ static __attribute__((noinline)) void vq_rows_range(i64 p0, i64 p1, i64 F, const
    (masked vector stores of consecutive 12-byte rows ran at a third of the speed on Zen 4). */
 /* a + w x, one rounding where the CPU has FMA: written out, not left to contraction, which GCC
    applied in one of this pass's loops and not in another (their bits differed) */
+/* FMA8V: the same with w a vector */
+static inline v8 splat8(float x) { return (v8){x, x, x, x, x, x, x, x}; }
 #if defined(__FMA__)
 #include <immintrin.h>
 #define FMA8(w, x, a) ((v8)_mm256_fmadd_ps(_mm256_set1_ps(w), (__m256)(x), (__m256)(a)))
+#define FMA8V(w, x, a) ((v8)_mm256_fmadd_ps((__m256)(w), (__m256)(x), (__m256)(a)))
 #elif defined(__ARM_FEATURE_FMA) || defined(__FP_FAST_FMAF)  /* FMA without __FMA__: written out lane by lane */
-static inline v8 fma8_(float w, v8 x, v8 a) { v8 r; for (int i = 0; i < 8; i++) r[i] = __builtin_fmaf(w, x[i], a[i]); return r; }
-#define FMA8(w, x, a) fma8_((w), (x), (a))
+static inline v8 fma8v_(v8 w, v8 x, v8 a) { v8 r; for (int i = 0; i < 8; i++) r[i] = __builtin_fmaf(w[i], x[i], a[i]); return r; }
+#define FMA8(w, x, a) fma8v_(splat8(w), (x), (a))
+#define FMA8V(w, x, a) fma8v_((w), (x), (a))
 #else  /* no FMA instruction: nothing to contract into */
 #define FMA8(w, x, a) ((a) + (w) * (x))
+#define FMA8V(w, x, a) ((a) + (w) * (x))
 #endif
 #if defined(SHUF) && defined(__AVX512VL__)
 /* 8 consecutive points of one cluster (K = 1: PCA), RGB rows (Fo = 3), points in lanes: the 8
@@ -538,10 +544,55 @@ static inline void k1_rgb8(const float *Tk, int mean, const float *wq, i64 ws, i
 #else
 #define HAVE_K1_RGB8 0
 #endif
+#ifdef SHUF
+/* 8 VQ points, RGB: the first 3 floats of each cluster row, packed as 24 contiguous floats */
+#define VQ_RGB8(TY) {                                                                                             \
+        const TY *l_ = (const TY *)lab + q;                                                                       \
+        v8 r01 = __builtin_shufflevector(*(const v4u *)(T + l_[0] * J * 8), *(const v4u *)(T + l_[1] * J * 8), 0, 1, 2, 3, 4, 5, 6, 7); \
+        v8 r23 = __builtin_shufflevector(*(const v4u *)(T + l_[2] * J * 8), *(const v4u *)(T + l_[3] * J * 8), 0, 1, 2, 3, 4, 5, 6, 7); \
+        v8 r45 = __builtin_shufflevector(*(const v4u *)(T + l_[4] * J * 8), *(const v4u *)(T + l_[5] * J * 8), 0, 1, 2, 3, 4, 5, 6, 7); \
+        v8 r67 = __builtin_shufflevector(*(const v4u *)(T + l_[6] * J * 8), *(const v4u *)(T + l_[7] * J * 8), 0, 1, 2, 3, 4, 5, 6, 7); \
+        float *d_ = out + 3 * q;                                                                                  \
+        ST(d_, __builtin_shufflevector(r01, r23, 0, 1, 2, 4, 5, 6, 8, 9));                                        \
+        ST(d_ + 8, __builtin_shufflevector(r23, r45, 2, 4, 5, 6, 8, 9, 10, 12));                                  \
+        ST(d_ + 16, __builtin_shufflevector(r45, r67, 5, 6, 8, 9, 10, 12, 13, 14));                               \
+    }
+#endif
+/* points q.. in order, n terms each after the mean, weights in rows of ws >= n floats, the label kind fixed: each
+   point by the one-point chain a = T_k[0] + sum_i w_i T_k[1+i] below (same FMAs, same bits), specialised so that
+   neither the label kind, nor the weights' addressing, nor the term count is decided per point. The point's first 8
+   weights are one load (lanes permuted where the CPU has AVX2), so the loop stops where that load or a whole-vector
+   store would end past the range. Returns where it stopped. */
+static inline __attribute__((always_inline)) i64 rows_fixed(i64 q, i64 p1, i64 Fo, const void *lab, const int lab_kind,
+        const float *W, i64 ws, const int n, const float *T, i64 J, float *out) {
+    const i64 back_o = (8 + Fo - 1) / Fo, back_w = (8 + ws - 1) / ws, last = p1 - (back_o > back_w ? back_o : back_w);
+    for (; q <= last; q++) {
+        const float *t = T + lab_at(lab, lab_kind, q) * J * 8, *w = W + q * ws;
+        v8 a = LD(t);
+#if defined(__AVX2__)
+        const __m256 wv = _mm256_loadu_ps(w);
+        for (int i = 0; i < n; i++) a = FMA8V((v8)_mm256_permutevar8x32_ps(wv, _mm256_set1_epi32(i)), LD(t + 8 + 8 * i), a);
+#else
+        for (int i = 0; i < n; i++) a = FMA8(w[i], LD(t + 8 + 8 * i), a);
+#endif
+        ST(out + q * Fo, a);
+    }
+    return q;
+}
 static __attribute__((noinline)) void small_rows_range(const int32_t *order, int csort, i64 p0, i64 p1, i64 Fo, const void *lab,
         int lab_kind, const float *W, i64 wstride, const i64 *woff, const i64 *nk, i64 nuse, int mean, const float *T, i64 J,
         float *out) {
     i64 q = p0;
+#ifdef SHUF
+    if (!W && !order && lab && mean && Fo == 3) {  /* VQ, RGB: 8 points' rows packed into 24 floats (3 stores where one
+                                                     store per point crosses a cache line every other point; 2x, bare C) */
+        switch (lab_kind) {
+        case 1: for (; q + 8 <= p1; q += 8) VQ_RGB8(uint8_t) break;
+        case 2: for (; q + 8 <= p1; q += 8) VQ_RGB8(int16_t) break;
+        default: for (; q + 8 <= p1; q += 8) VQ_RGB8(int32_t) break;
+        }
+    }
+#endif
     if (!W && !order && lab && mean) {  /* VQ: the row of the point's cluster; whole vectors in order as above while
                                           they end inside the range, the rest below */
         switch (lab_kind) {
@@ -560,6 +611,25 @@ static __attribute__((noinline)) void small_rows_range(const int32_t *order, int
     /* the rest (CPCA, other row lengths, a visiting order, the tails): one point at a time. The out-of-order core
        overlaps consecutive points' chains; an 8-point pass, with a pointer per point, spilled them (CPCA 1.5x slower).
        Consecutive rows with whole-vector stores while they end inside the range, then Fo floats per point. */
+    if (!order && W && !woff && !nk && mean && nuse >= 1 && nuse <= 8) {  /* CPCA, PCA: fixed term count, rows of weights */
+#define FIXED(n) switch (lab_kind) {                                                                                \
+        case 0: q = rows_fixed(q, p1, Fo, lab, 0, W, wstride, n, T, J, out); break;                          \
+        case 1: q = rows_fixed(q, p1, Fo, lab, 1, W, wstride, n, T, J, out); break;                          \
+        case 2: q = rows_fixed(q, p1, Fo, lab, 2, W, wstride, n, T, J, out); break;                          \
+        default: q = rows_fixed(q, p1, Fo, lab, 3, W, wstride, n, T, J, out); break;                         \
+        }
+        switch (nuse) {
+        case 1: FIXED(1) break;
+        case 2: FIXED(2) break;
+        case 3: FIXED(3) break;
+        case 4: FIXED(4) break;
+        case 5: FIXED(5) break;
+        case 6: FIXED(6) break;
+        case 7: FIXED(7) break;
+        default: FIXED(8) break;
+        }
+#undef FIXED
+    }
 #define ONE_ROW(pc) i64 k = lab_at(lab, lab_kind, pc), cnt;                                                          \
         const float *w = weights_of(W, wstride, woff, nk, nuse, k, pc, &cnt), *t = T + k * J * 8, *b = t + (mean ? 8 : 0); \
         v8 a = mean ? LD(t) : (v8){0};                                                                             \
