@@ -149,6 +149,8 @@ def test_kernels_built_for_other_instruction_sets(march, monkeypatch, tmp_path):
     test_kernels_visit_points_in_any_order()  # and the same bits whichever order (so pairing) the points are visited in
     test_rows_of_one_vector_stay_in_their_rows()  # rows of <= 8 floats: scalar stores and FMA without AVX-512VL
     test_rows_of_one_vector_by_term_count_and_label_kind()  # weights broadcast by permutes (AVX2) or from memory
+    if march is not None:  # FMA: the constants' bits are the FMA chain's (the baseline ISA rounds products apart)
+        test_vector_constants_eight_clusters_per_vector()
 
 
 @pytest.mark.parametrize("name, params", [("vq", {"clusters": 5}), ("pca", {"vectors": 3}),
@@ -345,6 +347,51 @@ def test_kernel_constants_match_cluster_constants():
                     assert torch.equal(got[k, jk:], torch.zeros_like(got[k, jk:])), (C, k)
     with pytest.raises(ValueError, match=r"nk is torch.int32 \(3,\); accepted: contiguous int64 \[K\] = \[3\]"):
         relight_kernels.constants(lib, c.means_, c.basis_, n, n_out, 4, L, "taps", nk=nk.int())
+
+
+def test_vector_constants_eight_clusters_per_vector():
+    """Vectors (n_out = 1), layout 'rows': the constants kernel puts 8 clusters in a vector's
+    lanes (``prt_constants_lanes``, model ``model_t(lanes=True)``). Against float64 M l for
+    cluster counts around multiples of 8, 1/3/4 colours, with and without a mean, any prefix of
+    the vectors, 1 and 2 threads (K = 1500: enough work for both); bit for bit the chain of fused
+    multiply-adds over the SH index (RGB: even and odd indices in two chains, then added), as
+    float64 steps rounded to float32 (exact products, one rounding per step), and zero padding."""
+
+    def fma_chain(x, l, parts):  # x [K, J, n_in], l [n_in, C] -> [K, J, C] float32
+        acc = [torch.zeros(x.shape[0], x.shape[1], l.shape[1], dtype=torch.float32) for _ in range(parts)]
+        n2 = x.shape[2] - x.shape[2] % 2 if parts == 2 else 0
+        for i in range(x.shape[2]):
+            p = i % 2 if i < n2 else 0
+            acc[p] = (x[:, :, i, None].double() * l[i].double() + acc[p].double()).float()
+        return acc[0] if parts == 1 else acc[0] + acc[1]
+
+    lib = relight_kernels.native()
+    if lib is None:
+        pytest.skip("no compiled kernels")
+    g = torch.Generator().manual_seed(21)
+    for K, n_in, nmax, mean in ((1, 16, 8, True), (5, 9, 3, True), (8, 16, 0, True), (9, 4, 2, False), (20, 16, 4, True),
+                                (1500, 16, 3, True)):
+        means = torch.randn(K, n_in, generator=g) if mean else None
+        basis = torch.randn(K, nmax, n_in, generator=g)
+        for C in (1, 3, 4):
+            L = torch.randn(n_in, C, generator=g)
+            for n in sorted({0, nmax // 2, nmax}):
+                J = (1 if mean else 0) + n
+                if J == 0:
+                    continue
+                reps = basis[:, :n] if means is None else torch.cat([means[:, None], basis[:, :n]], 1)  # [K, J, n_in]
+                ref = reps.double() @ L.double()  # [K, J, C]
+                chain = fma_chain(reps, L, 2 if C == 3 else 1)
+                for threads in (1, 2):
+                    with torch_threads(threads):
+                        got = relight_kernels.constants(lib, means, basis, n, 1, n_in, L, "rows")
+                    case = (K, n_in, n, mean, C, threads)
+                    assert got.shape == (K, J, relight_kernels._pad8(C)), case
+                    assert torch.allclose(got[..., :C].double(), ref, atol=1e-5 * n_in), case
+                    assert not got[..., C:].any(), case
+                    assert torch.equal(got[..., :C].view(torch.int32), chain.view(torch.int32)), case
+    with pytest.raises(ValueError, match="lanes=True lays out vectors"):
+        relight_kernels.model_t(None, torch.zeros(2, 1, 6), 2, 3, lanes=True)
 
 
 def test_native_status_reports_the_path(monkeypatch):

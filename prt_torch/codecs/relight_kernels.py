@@ -187,6 +187,22 @@ static inline float dot(const float *a, const float *b, i64 n) {
 
 #define LD(p) (*(const v8 *)(p))
 #define ST(p, v) (*(v8 *)(p) = (v))
+/* a + w x, one rounding where the CPU has FMA: written out, not left to contraction, which GCC
+   applied in one of this pass's loops and not in another (their bits differed) */
+/* FMA8V: the same with w a vector */
+static inline v8 splat8(float x) { return (v8){x, x, x, x, x, x, x, x}; }
+#if defined(__FMA__)
+#include <immintrin.h>
+#define FMA8(w, x, a) ((v8)_mm256_fmadd_ps(_mm256_set1_ps(w), (__m256)(x), (__m256)(a)))
+#define FMA8V(w, x, a) ((v8)_mm256_fmadd_ps((__m256)(w), (__m256)(x), (__m256)(a)))
+#elif defined(__ARM_FEATURE_FMA) || defined(__FP_FAST_FMAF)  /* FMA without __FMA__: written out lane by lane */
+static inline v8 fma8v_(v8 w, v8 x, v8 a) { v8 r; for (int i = 0; i < 8; i++) r[i] = __builtin_fmaf(w[i], x[i], a[i]); return r; }
+#define FMA8(w, x, a) fma8v_(splat8(w), (x), (a))
+#define FMA8V(w, x, a) fma8v_((w), (x), (a))
+#else  /* no FMA instruction: nothing to contract into */
+#define FMA8(w, x, a) ((a) + (w) * (x))
+#define FMA8V(w, x, a) ((a) + (w) * (x))
+#endif
 /* x stays in a register: a vector loaded once for several FMAs is not folded into each as a
    memory operand (GCC does that, loading it two or three times). Used where one load feeds
    several FMAs: the paired dense kernel (measured, paired: dense views of 24 rows 1.03-1.16x),
@@ -469,6 +485,50 @@ int prt_constants(i64 K, i64 J, i64 Jmax, i64 n_in, i64 n_out, i64 n_pad, i64 C,
     return 0;
 }
 
+/* n_out = 1 (vector codecs: VQ, PCA, CPCA of diffuse transfer), rows layout: 8 clusters in the lanes, from the model
+   cached as Mv [ceil(K/8), Jmax, n_in, 8] (cluster 8b + l in lane l, zero past K), where the per-cluster pass above
+   computes 8 lanes of which one is used. Cluster k's sums are those of constants_range (RGB: even and odd terms
+   apart, then added; else one chain): the same values, 8 clusters at a time. */
+static void constants_lanes_range(i64 b0, i64 b1, i64 K, i64 J, i64 Jmax, i64 n_in, i64 C, const float *Mv,
+                                  const float *L, float *out, i64 sk, i64 sj) {
+    for (i64 b = b0; b < b1; b++)
+        for (i64 j = 0; j < J; j++) {
+            const float *src = Mv + (b * Jmax + j) * n_in * 8;
+            for (i64 c = 0; c < C; c++) {
+                v8 a = {0}, z = {0};
+                i64 i = 0;
+                if (C == 3)
+                    for (; i + 2 <= n_in; i += 2) {
+                        a = FMA8(L[3 * i + c], LD(src + 8 * i), a);
+                        z = FMA8(L[3 * i + 3 + c], LD(src + 8 * i + 8), z);
+                    }
+                for (; i < n_in; i++) a = FMA8(L[i * C + c], LD(src + 8 * i), a);
+                if (C == 3) a = a + z;
+                for (i64 l = 0; l < 8 && b * 8 + l < K; l++) out[(b * 8 + l) * sk + j * sj + c] = a[l];
+            }
+        }
+}
+
+/* prt_constants for n_out = 1, rows layout, from Mv (above); returns 1 if L holds a NaN or an infinity */
+int prt_constants_lanes(i64 K, i64 J, i64 Jmax, i64 n_in, i64 C, const float *Mv, const float *L, float *out,
+                        i64 sk, i64 sj, int nthreads) {
+    int bad = 0;
+    for (i64 i = 0; i < n_in * C; i++) bad |= !(fabsf(L[i]) <= FLT_MAX);
+    if (bad) return 1;
+    i64 nb = (K + 7) / 8, nth = nthreads > 0 ? nthreads : 1;
+    if (nb * J * n_in * C < 32768) nth = 1;  /* under ~10 us of work: a parallel region costs more than it saves
+                                                (measured: VQ 256 of 16 coefficients 2.9 us at 1 thread, 4.5 at 2) */
+    if (nth > nb) nth = nb > 0 ? nb : 1;
+    if (nth == 1) {
+        constants_lanes_range(0, nb, K, J, Jmax, n_in, C, Mv, L, out, sk, sj);
+        return 0;
+    }
+    #pragma omp parallel for schedule(static, 1) num_threads(nth)
+    for (i64 t = 0; t < nth; t++)
+        constants_lanes_range(nb * t / nth, nb * (t + 1) / nth, K, J, Jmax, n_in, C, Mv, L, out, sk, sj);
+    return 0;
+}
+
 /* mean only (VQ), no view, rows unpadded (F == Fo, a multiple of 8), points in order: out[p] =
    T[lab_p], one plain row copy per point, the label kind fixed per loop. Without the general
    loop's per-point bookkeeping (weights, pairing test, chunk switch, order). */
@@ -497,22 +557,6 @@ static __attribute__((noinline)) void vq_rows_range(i64 p0, i64 p1, i64 F, const
    Whole 8-float vectors are stored where rows are consecutive (the next points' stores overwrite
    the lanes past Fo) and the store ends inside the thread's range; otherwise Fo scalar stores
    (masked vector stores of consecutive 12-byte rows ran at a third of the speed on Zen 4). */
-/* a + w x, one rounding where the CPU has FMA: written out, not left to contraction, which GCC
-   applied in one of this pass's loops and not in another (their bits differed) */
-/* FMA8V: the same with w a vector */
-static inline v8 splat8(float x) { return (v8){x, x, x, x, x, x, x, x}; }
-#if defined(__FMA__)
-#include <immintrin.h>
-#define FMA8(w, x, a) ((v8)_mm256_fmadd_ps(_mm256_set1_ps(w), (__m256)(x), (__m256)(a)))
-#define FMA8V(w, x, a) ((v8)_mm256_fmadd_ps((__m256)(w), (__m256)(x), (__m256)(a)))
-#elif defined(__ARM_FEATURE_FMA) || defined(__FP_FAST_FMAF)  /* FMA without __FMA__: written out lane by lane */
-static inline v8 fma8v_(v8 w, v8 x, v8 a) { v8 r; for (int i = 0; i < 8; i++) r[i] = __builtin_fmaf(w[i], x[i], a[i]); return r; }
-#define FMA8(w, x, a) fma8v_(splat8(w), (x), (a))
-#define FMA8V(w, x, a) fma8v_((w), (x), (a))
-#else  /* no FMA instruction: nothing to contract into */
-#define FMA8(w, x, a) ((a) + (w) * (x))
-#define FMA8V(w, x, a) ((a) + (w) * (x))
-#endif
 #if defined(SHUF) && defined(__AVX512VL__)
 /* 8 consecutive points of one cluster (K = 1: PCA), RGB rows (Fo = 3), points in lanes: the 8
    points' weights transposed 8 at a time (r[i] = weight i of each point), then per colour c
@@ -1635,6 +1679,7 @@ def _compile() -> tuple[ctypes.CDLL | None, str]:
         "prt_affine_dense": [i64, i64, i64, i64, *common, vp, vp, vp, ci, ci],
         "prt_affine_taps": [i64, i64, i64, *common, i64, vp, vp, vp, vp, ci, ci],
         "prt_constants": [i64] * 7 + [vp, vp, vp] + [i64] * 4 + [vp, ci, ci],
+        "prt_constants_lanes": [i64] * 5 + [vp, vp, vp] + [i64] * 2 + [ci],
         "prt_sg_lookup_sum": [i64, i64, vp, vp, vp, i64, i64, i64, vp, i64, i64, vp, i64, vp, ci],
         "prt_sg_taps": [i64, i64, i64, i64, vp, vp, vp, i64, i64, i64, vp, vp, vp, i64, i64, vp, i64, vp, ci],
     })
@@ -1690,12 +1735,14 @@ def _pad8(n: int) -> int:
 _MODEL_T: dict[int, tuple] = {}  # id(basis) -> (weak reference to basis, key, Mt); dropped when basis dies
 
 
-def model_t(means: torch.Tensor | None, basis: torch.Tensor, n_out: int, n_in: int) -> torch.Tensor:
+def model_t(means: torch.Tensor | None, basis: torch.Tensor, n_out: int, n_in: int, lanes: bool = False) -> torch.Tensor:
     """The representatives as the constants kernel reads them: ``[K, Jmax, n_in, n_pad]``
     float32 (x_0 first when ``means`` is given, then the basis rows; each n_out×n_in matrix
-    transposed, n_out zero-padded to a multiple of 8). Built once per model and kept while
-    ``basis`` lives (keyed by the tensor and its version: refits and in-place edits rebuild)."""
-    key = (basis._version, None if means is None else (id(means), means._version), n_out, n_in)
+    transposed, n_out zero-padded to a multiple of 8); ``lanes=True`` (n_out = 1 only):
+    ``[ceil(K/8), Jmax, n_in, 8]``, cluster 8b + l in lane l of block b (zero past K), as
+    ``prt_constants_lanes`` reads them. Built once per model and layout and kept while ``basis``
+    lives (keyed by the tensor and its version: refits and in-place edits rebuild)."""
+    key = (basis._version, None if means is None else (id(means), means._version), n_out, n_in, lanes)
     hit = _MODEL_T.get(id(basis))
     if hit is not None and hit[0]() is basis and hit[1] == key:
         return hit[2]
@@ -1703,9 +1750,15 @@ def model_t(means: torch.Tensor | None, basis: torch.Tensor, n_out: int, n_in: i
     reps = basis.reshape(K, -1, n_out, n_in)
     if means is not None:
         reps = torch.cat([means.reshape(K, 1, n_out, n_in), reps], 1)
-    n_pad = _pad8(n_out)
-    Mt = torch.zeros(K, reps.shape[1], n_in, n_pad, dtype=torch.float32)
-    Mt[..., :n_out] = reps.transpose(2, 3)
+    if lanes:
+        if n_out != 1:
+            raise ValueError(f"model_t: lanes=True lays out vectors (n_out = 1); got n_out = {n_out}")
+        Mt = torch.zeros(_pad8(K), reps.shape[1], n_in, dtype=torch.float32)
+        Mt[:K] = reps[:, :, 0]
+        Mt = Mt.view(-1, 8, reps.shape[1], n_in).permute(0, 2, 3, 1).contiguous()
+    else:
+        Mt = torch.zeros(K, reps.shape[1], n_in, _pad8(n_out), dtype=torch.float32)
+        Mt[..., :n_out] = reps.transpose(2, 3)
     if hit is None or hit[0]() is not basis:
         weakref.finalize(basis, _MODEL_T.pop, id(basis), None)
     _MODEL_T[id(basis)] = (weakref.ref(basis), key, Mt)
@@ -1740,8 +1793,9 @@ def constants(lib, means, basis, n: int, n_out: int, n_in: int, L: torch.Tensor,
     int64 ``[K]``, optional: the vectors each cluster keeps, CPCA adaptive) computes cluster k's
     first (mean) + min(n, nk[k]) terms only, the ones the kernels read with that ``nk``: the
     rest of its rows are undefined ('rows', 'dense') or zero ('taps')."""
-    Mt = model_t(means, basis, n_out, n_in)
-    K, Jmax = Mt.shape[:2]
+    lanes = n_out == 1 and kind == "rows"  # vectors: 8 clusters per vector (prt_constants_lanes)
+    Mt = model_t(means, basis, n_out, n_in, lanes)
+    K, Jmax = basis.shape[0], Mt.shape[1]
     if nk is not None and (nk.dtype != torch.int64 or nk.shape != (K,) or not nk.is_contiguous()):
         raise ValueError(f"constants: nk is {nk.dtype} {tuple(nk.shape)}{'' if nk.is_contiguous() else ', not contiguous'}; "
                          f"accepted: contiguous int64 [K] = [{K}] (the kernel indexes it per cluster)")
@@ -1759,8 +1813,13 @@ def constants(lib, means, basis, n: int, n_out: int, n_in: int, L: torch.Tensor,
     else:
         out = torch.zeros(size, dtype=torch.float32)
     Lc = _as(L, torch.float32)
-    if lib.prt_constants(K, J, Jmax, n_in, n_out, Mt.shape[3], C, Mt.data_ptr(), Lc.data_ptr(), out.data_ptr(),
-                         sk, sj, so, sc, _ptr(nk), int(means is not None), torch.get_num_threads()):
+    if lanes:  # every term of every cluster: the rows past a cluster's n_k are never read
+        bad = lib.prt_constants_lanes(K, J, Jmax, n_in, C, Mt.data_ptr(), Lc.data_ptr(), out.data_ptr(), sk, sj,
+                                      torch.get_num_threads())
+    else:
+        bad = lib.prt_constants(K, J, Jmax, n_in, n_out, Mt.shape[3], C, Mt.data_ptr(), Lc.data_ptr(), out.data_ptr(),
+                                sk, sj, so, sc, _ptr(nk), int(means is not None), torch.get_num_threads())
+    if bad:
         # the kernel found a non-finite value in the float32 light it read: name it (as given, else
         # as converted: a float64 value beyond float32's range)
         check_finite_float32("light", L, Lc)
