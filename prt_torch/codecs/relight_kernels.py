@@ -605,8 +605,8 @@ static inline void k1_rgb8(const float *Tk, int mean, const float *wq, i64 ws, i
 /* points q.. in order, n terms each after the mean, weights in rows of ws >= n floats, the label kind fixed: each
    point by the one-point chain a = T_k[0] + sum_i w_i T_k[1+i] below (same FMAs, same bits), specialised so that
    neither the label kind, nor the weights' addressing, nor the term count is decided per point. The point's first 8
-   weights are one load (lanes permuted where the CPU has AVX2), so the loop stops where that load or a whole-vector
-   store would end past the range. Returns where it stopped. */
+   weights are one load (4 floats for up to 4 terms; lanes permuted where the CPU has AVX2), so the loop stops where
+   that load or a whole-vector store would end past the range. Returns where it stopped. */
 static inline __attribute__((always_inline)) i64 rows_fixed(i64 q, i64 p1, i64 Fo, const void *lab, const int lab_kind,
         const float *W, i64 ws, const int n, const float *T, i64 J, float *out) {
     const i64 back_o = (8 + Fo - 1) / Fo, back_w = (8 + ws - 1) / ws, last = p1 - (back_o > back_w ? back_o : back_w);
@@ -614,7 +614,8 @@ static inline __attribute__((always_inline)) i64 rows_fixed(i64 q, i64 p1, i64 F
         const float *t = T + lab_at(lab, lab_kind, q) * J * 8, *w = W + q * ws;
         v8 a = LD(t);
 #if defined(__AVX2__)
-        const __m256 wv = _mm256_loadu_ps(w);
+        __m256 wv = n <= 4 ? _mm256_castps128_ps256(_mm_loadu_ps(w)) : _mm256_loadu_ps(w);
+        IN_REG(wv);  /* one load: GCC otherwise folds it into every permute (n loads, 1.3x slower, bare C) */
         for (int i = 0; i < n; i++) a = FMA8V((v8)_mm256_permutevar8x32_ps(wv, _mm256_set1_epi32(i)), LD(t + 8 + 8 * i), a);
 #else
         for (int i = 0; i < n; i++) a = FMA8(w[i], LD(t + 8 + 8 * i), a);
