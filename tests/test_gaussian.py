@@ -395,6 +395,45 @@ def test_relight_survives_non_finite_lobes_and_refuses_bad_views_before_writing(
     assert bool((buf == 7.0).all())  # nothing written
 
 
+@pytest.mark.parametrize("native", [True, False], ids=["kernel", "torch"])
+def test_bad_taps_are_refused_by_name_before_anything_is_written(cube, native, monkeypatch):
+    """The fused kernel checks the taps itself (one pass, each thread over its vertices, before
+    any thread writes), the torch formulation before it starts: an index outside [0, J), a
+    negative, NaN or infinite weight, or a float64 weight beyond float32's range is refused naming
+    the value, at 1 and 2 threads (the bad tap in the second thread's half), ``out`` untouched;
+    integer weights and float indices are refused by type."""
+    from prt_torch.harness.timing import torch_threads
+
+    if not native:
+        monkeypatch.setenv("PRT_TORCH_NATIVE", "0")
+    g = torch.Generator().manual_seed(19)
+    J, N, V = 12, 2, 40
+    c, enc = _random_lobes(cube[0], V, J, N, g, torch.rand(V, J, N, generator=g) + 0.1)
+    pe = prefilter_environment(lambda x: 1.5 + x[..., :3], res=8, levels=12)
+    idx = torch.randint(0, J, (V, 3), generator=g)
+    a = torch.rand(V, 3, generator=g, dtype=torch.float64) + 0.1
+    good = c.relight(enc, pe, view=(idx, a))
+    cases = [("idx", J, r"view tap indices span \[0, 12\]; accepted: 0..11"), ("idx", -1, r"span \[-1, 11\]"),
+             ("a", -0.5, r"negative value -0.5 at index \(37, 1\)"), ("a", float("nan"), r"non-finite.*\(37, 1\)"),
+             ("a", float("inf"), r"non-finite.*\(37, 1\)"), ("a", 1e39, r"converted to float32.*\(37, 1\)")]
+    for threads in (1, 2):
+        for which, value, message in cases:
+            i2, a2 = idx.clone(), a.clone()
+            (i2 if which == "idx" else a2)[37, 1] = value
+            buf = torch.full((V, 3), 7.0)
+            with torch_threads(threads), pytest.raises(ValueError, match=message):
+                c.relight(enc, pe, view=(i2, a2), out=buf)
+            assert bool((buf == 7.0).all()), (which, value, threads)
+        buf = torch.full((V, 3), 7.0)
+        with torch_threads(threads):
+            assert c.relight(enc, pe, view=(idx, a), out=buf) is buf
+        assert torch.allclose(buf, good)
+    with pytest.raises(TypeError, match="view tap weights have dtype torch.int64; accepted: a float dtype"):
+        c.relight(enc, pe, view=(idx, torch.ones(V, 3, dtype=torch.int64)))
+    with pytest.raises(TypeError, match="view tap indices have dtype torch.float32; accepted: an integer dtype"):
+        c.relight(enc, pe, view=(idx.float(), a))
+
+
 def test_relight_bytes_count_only_the_tapped_views(cube):
     """The copy bound's byte count: every stored lobe without a view; with taps the lobes of the
     tapped views alone (counted here by indexing them out) and the taps; directions read three

@@ -71,7 +71,7 @@ from typing import Any
 
 import torch
 
-from .._checks import check_finite
+from .._checks import check_finite_float32
 from ..lighting.prefilter import PrefilteredEnvironment, cube_map_directions, sg_normaliser
 from ..params import Boolean, Interval, Options
 from .base import Codec, Encoded, check_out, check_signal, register, view_nbytes
@@ -837,10 +837,13 @@ class GaussianCodec(Codec):
         L[:, :k] = light.sh[:, :k].float()
         return t @ L.T  # [V, C]
 
-    def checked_taps(self, view: Any, V: int, J: int) -> tuple[torch.Tensor, torch.Tensor]:
+    def checked_taps(self, view: Any, V: int, J: int, values: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
         """A view as taps over the stored views: ``(idx int64 [V, k], w [V, k])`` as given, or
         the three nearest views of global directions ``[V, 3]`` (:func:`view_taps`). Refuses
-        other shapes and indices outside 0..J-1 (shared by :meth:`relight` and the GLSL decoder)."""
+        other shapes, indices outside 0..J-1 and weights that are negative or not finite (also
+        once converted to float32), naming the first (shared by :meth:`relight` and the GLSL
+        decoder). ``values=False`` checks types and shapes only, for a caller whose kernel flags
+        bad values itself (``relight_kernels.sg_taps``) and then calls this to raise."""
         if isinstance(view, torch.Tensor):
             if view.shape != (V, 3):
                 raise ValueError(f"view has shape {tuple(view.shape)}; accepted: taps (idx, w) or global directions [V, 3]")
@@ -850,10 +853,16 @@ class GaussianCodec(Codec):
         idx, a = (torch.as_tensor(v) for v in view)
         if idx.ndim != 2 or idx.shape[0] != V or a.shape != idx.shape:
             raise ValueError(f"view taps have shapes {tuple(idx.shape)}, {tuple(a.shape)}; accepted: [V, k] with V={V}")
+        if idx.is_floating_point() or idx.dtype == torch.bool:
+            raise TypeError(f"view tap indices have dtype {idx.dtype}; accepted: an integer dtype")
+        if not a.is_floating_point():
+            raise TypeError(f"view tap weights have dtype {a.dtype}; accepted: a float dtype")
         idx = idx.long()
+        if not values:
+            return idx, a
         if idx.numel() and (int(idx.min()) < 0 or int(idx.max()) >= J):
             raise ValueError(f"view tap indices span [{int(idx.min())}, {int(idx.max())}]; accepted: 0..{J - 1}")
-        a = check_finite("view tap weights", a)
+        check_finite_float32("view tap weights", a)
         if a.numel() and bool((a < 0).any()):  # the blend (§2.3) is convex: a negative weight has no meaning
             first = tuple(int(i) for i in torch.nonzero(a < 0)[0])
             raise ValueError(f"view tap weights has a negative value {float(a[first]):g} at index {first}; accepted: "
@@ -874,8 +883,8 @@ class GaussianCodec(Codec):
         light = self._check_light(light)
         lobes = self.lobes_of(enc)
         V, J, _ = lobes[0].shape
-        if view is not None:
-            view = self.checked_taps(view, V, J)
+        if view is not None:  # values: by the fused kernel as it reads them (it flags bad ones), else in _relight
+            view = self.checked_taps(view, V, J, values=False)
         self._check_diffuse_light(enc, light)  # refused before anything is written into out
         if out is not None:  # the fused kernels write into it (no result-sized temporary and copy)
             out = check_out(out, (V, light.channels) if view is not None else (V, J, light.channels), view,
@@ -893,11 +902,15 @@ class GaussianCodec(Codec):
             if "diffuse" in enc.tensors:
                 res += self._diffuse(enc, light)[:, None, :] * enc.tensors["has_data"].float()[..., None]
             return res
-        idx, a = view
-        a = a.float()
         lib = _fused(light)
+        # the taps' values: checked by the fused kernel as it reads them (it flags a bad one), else here
+        idx, a = view if lib is not None else self.checked_taps(view, V, J)
+        a = a.float()
         if lib is not None:  # blend, look up and sum in one fused pass per vertex
-            res = sg_taps(lib, light.table(), light.log_sigmas, light.res, w, mu, sg, idx, a, out=out)
+            res, flag = sg_taps(lib, light.table(), light.log_sigmas, light.res, w, mu, sg, idx, a, out=out)
+            if flag:  # a bad tap (nothing computed or written): raise naming it
+                self.checked_taps(view, V, J)
+                raise RuntimeError("prt_sg_taps flagged the taps but none is out of range, negative or non-finite")  # pragma: no cover
         else:
             rows = torch.arange(V)[:, None]
             tot = a.sum(1, keepdim=True)

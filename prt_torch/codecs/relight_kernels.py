@@ -61,6 +61,9 @@ _SRC = r"""
 #include <stdint.h>
 #include <float.h>
 #include <math.h>
+#ifdef _OPENMP
+#include <omp.h>
+#endif
 typedef int64_t i64;
 /* 8 floats, unaligned loads/stores (GCC/Clang vector extensions; split into SSE where no AVX) */
 typedef float v8 __attribute__((vector_size(32), aligned(4)));
@@ -1585,6 +1588,14 @@ int prt_sg_lookup_sum(i64 G, i64 N, const float *mu, const float *sigma, const f
    (weights and widths linearly, means as the normalised weighted sum; gaussian.blend_lobes) with
    a_t / sum(a), looked up, summed over the N lobes and scaled by sum(a). w [V, J, N],
    mu [V, J, N, 3], sigma [V, J, N]; idx [V, k] (in [0, J), checked by the caller), a [V, k]. */
+/* 1 if a tap among taps [t0, t1) has an index outside [0, J) or a weight that is negative or not finite (Green
+   2005 §2.3: the blend is convex), else 0: one branch-free pass */
+static int taps_bad(i64 t0, i64 t1, const i64 *idx, const float *av, i64 J) {
+    int bad = 0;
+    for (i64 t = t0; t < t1; t++) bad |= ((uint64_t)idx[t] >= (uint64_t)J) | !(av[t] >= 0.0f && av[t] <= FLT_MAX);
+    return bad;
+}
+
 static void sg_taps_range(i64 v0, i64 v1, i64 J, i64 N, i64 k, const float *w, const float *mu, const float *sigma,
                           i64 sw, i64 sm, i64 ss, const i64 *idx, const float *av, const float *table, i64 r, i64 L, const float *ladder, i64 C,
                           int vec, float *out) {
@@ -1654,14 +1665,32 @@ static void sg_taps_range(i64 v0, i64 v1, i64 J, i64 N, i64 k, const float *w, c
     }
 }
 
+/* returns 1, writing nothing, if a tap is bad (taps_bad): each thread checks its vertices' taps, then all compute
+   only if none found one */
 int prt_sg_taps(i64 V, i64 J, i64 N, i64 k, const float *w, const float *mu, const float *sigma, i64 sw, i64 sm, i64 ss,
                 const i64 *idx, const float *av, const float *table, i64 r, i64 L, const float *ladder, i64 C, float *out, int nthreads) {
     i64 nth = nthreads > 0 ? nthreads : 1;
-    int vec = sg_vec(V * J * N, L, r, C);
-    #pragma omp parallel for schedule(static, 1) num_threads(nth)
-    for (i64 t = 0; t < nth; t++)
-        sg_taps_range(V * t / nth, V * (t + 1) / nth, J, N, k, w, mu, sigma, sw, sm, ss, idx, av, table, r, L, ladder, C, vec, out);
-    return 0;
+    int vec = sg_vec(V * J * N, L, r, C), bad = 0;
+    #pragma omp parallel num_threads(nth)
+    {
+#ifdef _OPENMP
+        i64 t = omp_get_thread_num(), n = omp_get_num_threads();
+#else
+        i64 t = 0, n = 1;
+        (void)nth;
+#endif
+        i64 v0 = V * t / n, v1 = V * (t + 1) / n;
+        if (taps_bad(v0 * k, v1 * k, idx, av, J)) {
+            #pragma omp atomic write
+            bad = 1;
+        }
+        #pragma omp barrier
+        int any;
+        #pragma omp atomic read
+        any = bad;
+        if (!any) sg_taps_range(v0, v1, J, N, k, w, mu, sigma, sw, sm, ss, idx, av, table, r, L, ladder, C, vec, out);
+    }
+    return bad;
 }
 """
 
@@ -1983,9 +2012,11 @@ def sg_taps(lib, table: torch.Tensor, log_sigmas: torch.Tensor, res: int, w: tor
     of the tapped views blended with ``a / Σa`` (``gaussian.blend_lobes``), looked up in the
     pyramid (as :func:`sg_lookup_sum`), summed over the lobes and scaled by Σa. ``w [V, J, N]``,
     ``mu [V, J, N, 3]``, ``sigma [V, J, N]`` (views of the codec's records ``lobes [V, J, N, 5]``
-    are read in place: a camera's three taps read three runs of 20·N bytes), ``idx int64 [V, k]``
-    in [0, J) (checked by the caller), ``a [V, k]`` → ``[V, C]`` float32 (into ``out`` when given,
-    checked by the caller)."""
+    are read in place: a camera's three taps read three runs of 20·N bytes), ``idx int64 [V, k]``,
+    ``a [V, k]`` → ``([V, C]`` float32 (into ``out`` when given, checked by the caller), flag``):
+    flag 1, with nothing computed or written, when a tap has an index outside [0, J) or a
+    negative or non-finite weight (one pass over the taps in the kernel, where torch's checks
+    took four; the caller raises naming it)."""
     V, J, N = w.shape
     k = idx.shape[1]
     C = table.shape[1]
@@ -1995,9 +2026,9 @@ def sg_taps(lib, table: torch.Tensor, log_sigmas: torch.Tensor, res: int, w: tor
     a, table, ladder = (_as(t, torch.float32) for t in (a, table, log_sigmas))
     idx = _as(idx, torch.int64)
     out = _out(out, V * C, (V, C))
-    lib.prt_sg_taps(V, J, N, k, w.data_ptr(), mu.data_ptr(), sigma.data_ptr(), sw, sm, ss, idx.data_ptr(), a.data_ptr(), table.data_ptr(),
-                    int(res), ladder.numel(), ladder.data_ptr(), C, out.data_ptr(), torch.get_num_threads())
-    return out
+    flag = lib.prt_sg_taps(V, J, N, k, w.data_ptr(), mu.data_ptr(), sigma.data_ptr(), sw, sm, ss, idx.data_ptr(), a.data_ptr(),
+                           table.data_ptr(), int(res), ladder.numel(), ladder.data_ptr(), C, out.data_ptr(), torch.get_num_threads())
+    return out, int(flag)
 
 
 def fits(J: int, n_out: int, C: int) -> bool:
