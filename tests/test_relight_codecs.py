@@ -349,6 +349,46 @@ def test_kernel_constants_match_cluster_constants():
         relight_kernels.constants(lib, c.means_, c.basis_, n, n_out, 4, L, "taps", nk=nk.int())
 
 
+def test_rows_of_one_vector_read_no_weight_past_the_last_used():
+    """The fixed-term loop loads 4 or 8 weights per point at once; it stops where that load would
+    pass the last weight the one-point chain reads, so weights ending right there (at a page the
+    process may not read: a read past it is a crash) work for any row stride — 0 (one row for
+    every point), below 4, 5-7, 8 and more — and give the float64 chain's values."""
+    import ctypes
+    import sys
+
+    lib = relight_kernels.native()
+    if lib is None or not sys.platform.startswith("linux"):
+        pytest.skip("compiled kernels on Linux (mmap/mprotect guard page)")
+    libc = ctypes.CDLL(None)
+    libc.mmap.restype, libc.mmap.argtypes = ctypes.c_void_p, [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int, ctypes.c_int,
+                                                              ctypes.c_int, ctypes.c_long]
+    libc.mprotect.argtypes = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int]
+    libc.munmap.argtypes = [ctypes.c_void_p, ctypes.c_size_t]
+    page = 4096
+    base = libc.mmap(None, 2 * page, 3, 0x22, -1, 0)  # PROT_READ | PROT_WRITE, MAP_PRIVATE | MAP_ANONYMOUS
+    assert base not in (None, ctypes.c_void_p(-1).value) and libc.mprotect(base + page, page, 0) == 0
+    g = torch.Generator().manual_seed(31)
+    try:
+        for ws, nuse in ((0, 4), (0, 8), (2, 2), (3, 3), (6, 5), (8, 8), (11, 2), (11, 7)):
+            for P, Fo in ((1, 3), (9, 3), (40, 3), (40, 8)):
+                n = (P - 1) * ws + nuse  # the weights the chain reads, ending at the guard page
+                W = torch.frombuffer((ctypes.c_float * n).from_address(base + page - 4 * n), dtype=torch.float32)
+                W.copy_(torch.randn(n, generator=g))
+                T = torch.randn(3, nuse + 1, 8, generator=g)
+                T[..., Fo:] = 0.0
+                labels = torch.randint(0, 3, (P,), generator=g).to(torch.uint8)
+                rows = torch.stack([W[p * ws:p * ws + nuse] for p in range(P)]).double()
+                Td = T.double()[labels.long()]
+                ref = Td[:, 0, :Fo] + (rows[:, :, None] * Td[:, 1:, :Fo]).sum(1)
+                for threads in (1, 2):
+                    with torch_threads(threads):
+                        got = relight_kernels.affine_rows(lib, T, nuse + 1, Fo, 1, labels, W, ws, None, None, nuse, True, P=P)
+                    assert torch.allclose(got.double(), ref, atol=1e-5), (ws, nuse, P, Fo, threads)
+    finally:
+        libc.munmap(base, 2 * page)
+
+
 def test_vector_constants_eight_clusters_per_vector():
     """Vectors (n_out = 1), layout 'rows': the constants kernel puts 8 clusters in a vector's
     lanes (``prt_constants_lanes``, model ``model_t(lanes=True)``). Against float64 M l for
@@ -392,6 +432,13 @@ def test_vector_constants_eight_clusters_per_vector():
                     assert torch.equal(got[..., :C].view(torch.int32), chain.view(torch.int32)), case
     with pytest.raises(ValueError, match="lanes=True lays out vectors"):
         relight_kernels.model_t(None, torch.zeros(2, 1, 6), 2, 3, lanes=True)
+    # one basis relit as vectors and as 1-row matrices with a view keeps both layouts (no rebuild per call)
+    basis = torch.randn(5, 2, 4, generator=g)
+    lanes, plain = relight_kernels.model_t(None, basis, 1, 4, lanes=True), relight_kernels.model_t(None, basis, 1, 4)
+    assert relight_kernels.model_t(None, basis, 1, 4, lanes=True) is lanes and relight_kernels.model_t(None, basis, 1, 4) is plain
+    basis.mul_(2.0)  # an in-place edit rebuilds both
+    assert torch.equal(relight_kernels.model_t(None, basis, 1, 4, lanes=True), 2 * lanes)
+    assert torch.equal(relight_kernels.model_t(None, basis, 1, 4), 2 * plain)
 
 
 def test_native_status_reports_the_path(monkeypatch):

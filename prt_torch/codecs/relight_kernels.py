@@ -190,8 +190,8 @@ static inline float dot(const float *a, const float *b, i64 n) {
 
 #define LD(p) (*(const v8 *)(p))
 #define ST(p, v) (*(v8 *)(p) = (v))
-/* a + w x, one rounding where the CPU has FMA: written out, not left to contraction, which GCC
-   applied in one of this pass's loops and not in another (their bits differed) */
+/* a + w x, one rounding where the CPU has FMA: written out, not left to contraction, which GCC applied in one loop
+   of the one-vector rows pass (small_rows_range) and not in another (their bits differed) */
 /* FMA8V: the same with w a vector */
 static inline v8 splat8(float x) { return (v8){x, x, x, x, x, x, x, x}; }
 #if defined(__FMA__)
@@ -490,8 +490,9 @@ int prt_constants(i64 K, i64 J, i64 Jmax, i64 n_in, i64 n_out, i64 n_pad, i64 C,
 
 /* n_out = 1 (vector codecs: VQ, PCA, CPCA of diffuse transfer), rows layout: 8 clusters in the lanes, from the model
    cached as Mv [ceil(K/8), Jmax, n_in, 8] (cluster 8b + l in lane l, zero past K), where the per-cluster pass above
-   computes 8 lanes of which one is used. Cluster k's sums are those of constants_range (RGB: even and odd terms
-   apart, then added; else one chain): the same values, 8 clusters at a time. */
+   computes 8 lanes of which one is used. Cluster k's sums are the FMA chains of constants_range's RGB pass (even and
+   odd terms apart, then added; other colour counts one chain): for RGB its values bit for bit, 8 clusters at a
+   time; for other colour counts within float32 rounding of its per-cluster loop, whose contraction GCC decides. */
 static void constants_lanes_range(i64 b0, i64 b1, i64 K, i64 J, i64 Jmax, i64 n_in, i64 C, const float *Mv,
                                   const float *L, float *out, i64 sk, i64 sj) {
     for (i64 b = b0; b < b1; b++)
@@ -608,11 +609,13 @@ static inline void k1_rgb8(const float *Tk, int mean, const float *wq, i64 ws, i
 /* points q.. in order, n terms each after the mean, weights in rows of ws >= n floats, the label kind fixed: each
    point by the one-point chain a = T_k[0] + sum_i w_i T_k[1+i] below (same FMAs, same bits), specialised so that
    neither the label kind, nor the weights' addressing, nor the term count is decided per point. The point's first 8
-   weights are one load (4 floats for up to 4 terms; lanes permuted where the CPU has AVX2), so the loop stops where
-   that load or a whole-vector store would end past the range. Returns where it stopped. */
-static inline __attribute__((always_inline)) i64 rows_fixed(i64 q, i64 p1, i64 Fo, const void *lab, const int lab_kind,
+   weights are one load (4 floats for up to 4 terms; lanes permuted where the CPU has AVX2), so the loop stops at
+   the caller's `last`: where that load would end past the last weight the one-point chain reads (any row stride, 0
+   included) or a whole-vector store past the range. Returns where it stopped. On builds without AVX2 the compiler may order a
+   multiply-add's operands differently here and in the one-point loop: where both are NaN, the NaN's payload bits
+   can then depend on the path (every result is the same otherwise). */
+static inline __attribute__((always_inline)) i64 rows_fixed(i64 q, i64 last, i64 Fo, const void *lab, const int lab_kind,
         const float *W, i64 ws, const int n, const float *T, i64 J, float *out) {
-    const i64 back_o = (8 + Fo - 1) / Fo, back_w = (8 + ws - 1) / ws, last = p1 - (back_o > back_w ? back_o : back_w);
     for (; q <= last; q++) {
         const float *t = T + lab_at(lab, lab_kind, q) * J * 8, *w = W + q * ws;
         v8 a = LD(t);
@@ -660,11 +663,17 @@ static __attribute__((noinline)) void small_rows_range(const int32_t *order, int
        overlaps consecutive points' chains; an 8-point pass, with a pointer per point, spilled them (CPCA 1.5x slower).
        Consecutive rows with whole-vector stores while they end inside the range, then Fo floats per point. */
     if (!order && W && !woff && !nk && mean && nuse >= 1 && nuse <= 8) {  /* CPCA, PCA: fixed term count, rows of weights */
+        /* the last point whose load of wl weights ends within the range's last used one, (p1 - 1) ws + nuse (row
+           stride 0: every point or none), and whose 8-float store ends within the range (computed here: inside
+           rows_fixed the same bound made GCC's CPCA loop 1.7x slower) */
+        const i64 wl = nuse <= 4 ? 4 : 8, last_o = p1 - (8 + Fo - 1) / Fo;
+        const i64 last_w = wstride > 0 ? p1 - 1 - (wl - nuse + wstride - 1) / wstride : (wl <= nuse ? p1 - 1 : q - 1);
+        const i64 last = last_o < last_w ? last_o : last_w;
 #define FIXED(n) switch (lab_kind) {                                                                                \
-        case 0: q = rows_fixed(q, p1, Fo, lab, 0, W, wstride, n, T, J, out); break;                          \
-        case 1: q = rows_fixed(q, p1, Fo, lab, 1, W, wstride, n, T, J, out); break;                          \
-        case 2: q = rows_fixed(q, p1, Fo, lab, 2, W, wstride, n, T, J, out); break;                          \
-        default: q = rows_fixed(q, p1, Fo, lab, 3, W, wstride, n, T, J, out); break;                         \
+        case 0: q = rows_fixed(q, last, Fo, lab, 0, W, wstride, n, T, J, out); break;                        \
+        case 1: q = rows_fixed(q, last, Fo, lab, 1, W, wstride, n, T, J, out); break;                        \
+        case 2: q = rows_fixed(q, last, Fo, lab, 2, W, wstride, n, T, J, out); break;                        \
+        default: q = rows_fixed(q, last, Fo, lab, 3, W, wstride, n, T, J, out); break;                       \
         }
         switch (nuse) {
         case 1: FIXED(1) break;
@@ -1762,7 +1771,7 @@ def _pad8(n: int) -> int:
     return (n + 7) // 8 * 8
 
 
-_MODEL_T: dict[int, tuple] = {}  # id(basis) -> (weak reference to basis, key, Mt); dropped when basis dies
+_MODEL_T: dict[tuple, tuple] = {}  # (id(basis), lanes) -> (weak reference to basis, key, Mt); dropped when basis dies
 
 
 def model_t(means: torch.Tensor | None, basis: torch.Tensor, n_out: int, n_in: int, lanes: bool = False) -> torch.Tensor:
@@ -1770,10 +1779,12 @@ def model_t(means: torch.Tensor | None, basis: torch.Tensor, n_out: int, n_in: i
     float32 (x_0 first when ``means`` is given, then the basis rows; each n_out×n_in matrix
     transposed, n_out zero-padded to a multiple of 8); ``lanes=True`` (n_out = 1 only):
     ``[ceil(K/8), Jmax, n_in, 8]``, cluster 8b + l in lane l of block b (zero past K), as
-    ``prt_constants_lanes`` reads them. Built once per model and layout and kept while ``basis``
-    lives (keyed by the tensor and its version: refits and in-place edits rebuild)."""
+    ``prt_constants_lanes`` reads them. Built once per model and kept while ``basis`` lives, one
+    entry per basis and layout (keyed by the tensor and its version: refits and in-place edits
+    rebuild; a codec of n_out = 1 relit with and without a view keeps both layouts)."""
     key = (basis._version, None if means is None else (id(means), means._version), n_out, n_in, lanes)
-    hit = _MODEL_T.get(id(basis))
+    slot = (id(basis), bool(lanes))
+    hit = _MODEL_T.get(slot)
     if hit is not None and hit[0]() is basis and hit[1] == key:
         return hit[2]
     K = basis.shape[0]
@@ -1790,8 +1801,8 @@ def model_t(means: torch.Tensor | None, basis: torch.Tensor, n_out: int, n_in: i
         Mt = torch.zeros(K, reps.shape[1], n_in, _pad8(n_out), dtype=torch.float32)
         Mt[..., :n_out] = reps.transpose(2, 3)
     if hit is None or hit[0]() is not basis:
-        weakref.finalize(basis, _MODEL_T.pop, id(basis), None)
-    _MODEL_T[id(basis)] = (weakref.ref(basis), key, Mt)
+        weakref.finalize(basis, _MODEL_T.pop, slot, None)
+    _MODEL_T[slot] = (weakref.ref(basis), key, Mt)
     return Mt
 
 
@@ -1820,9 +1831,10 @@ def constants(lib, means, basis, n: int, n_out: int, n_in: int, L: torch.Tensor,
     buffer of that layout, reused by its next call (its padding zeroed once, the rest
     overwritten): for a caller that uses the result before calling again, as
     ``AffineCodec.relight`` does — no allocation and no zeroing per light. ``nk`` (contiguous
-    int64 ``[K]``, optional: the vectors each cluster keeps, CPCA adaptive) computes cluster k's
-    first (mean) + min(n, nk[k]) terms only, the ones the kernels read with that ``nk``: the
-    rest of its rows are undefined ('rows', 'dense') or zero ('taps')."""
+    int64 ``[K]``, optional: the vectors each cluster keeps, CPCA adaptive): the kernels read
+    cluster k's first (mean) + min(n, nk[k]) terms only; the rest of its rows are undefined
+    ('rows', 'dense': vectors, whose constants take 8 clusters at a time, compute them all) or
+    zero ('taps')."""
     lanes = n_out == 1 and kind == "rows"  # vectors: 8 clusters per vector (prt_constants_lanes)
     Mt = model_t(means, basis, n_out, n_in, lanes)
     K, Jmax = basis.shape[0], Mt.shape[1]
