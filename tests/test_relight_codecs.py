@@ -548,6 +548,22 @@ def test_rows_kernel_padded_rows_at_any_thread_split():
         assert torch.allclose(outs[0].double(), ref, atol=1e-5), Fo
 
 
+def _rows_every_split(lib, T, J, Fo, codes, P, g, case) -> list:
+    """``affine_rows`` of one-vector rows at 1-3 threads, in point order and in a random visiting
+    order, each into a NaN-filled buffer with sentinels after the last row (checked untouched):
+    the six results ``[P, Fo]``."""
+    outs = []
+    for n in (1, 2, 3):
+        for order in (None, torch.randperm(P, generator=g).to(torch.int32)):
+            buf = torch.full((P * Fo + 16,), float("nan"))
+            buf[P * Fo:] = 7.0
+            with torch_threads(n):
+                relight_kernels.affine_rows(lib, T, J, Fo, 1, *codes, P=P, order=order, out=buf[:P * Fo])
+            assert bool((buf[P * Fo:] == 7.0).all()), (case, n)
+            outs.append(buf[:P * Fo].view(P, Fo).clone())
+    return outs
+
+
 def test_rows_of_one_vector_stay_in_their_rows():
     """Rows of Fo <= 8 floats (F = 8: diffuse RGB, Fo = 3) take the 8-points-per-pass kernel, VQ's
     and PCA's by whole-vector stores that overlap the next rows (each overwritten by the next
@@ -575,15 +591,7 @@ def test_rows_of_one_vector_stay_in_their_rows():
                 lab = torch.zeros(P, dtype=torch.long) if labels is None else labels.long()
                 Td = T.double()[lab]  # [P, J, 8]
                 ref = Td[:, 0, :Fo] + (0 if W is None else (W.double()[:, :, None] * Td[:, 1:, :Fo]).sum(1))
-                outs = []
-                for n in (1, 2, 3):
-                    for order in (None, torch.randperm(P, generator=g).to(torch.int32)):
-                        buf = torch.full((P * Fo + 16,), float("nan"))
-                        buf[P * Fo:] = 7.0
-                        with torch_threads(n):
-                            relight_kernels.affine_rows(lib, T, J, Fo, 1, *codes, P=P, order=order, out=buf[:P * Fo])
-                        assert bool((buf[P * Fo:] == 7.0).all()), (P, Fo, kind, n)
-                        outs.append(buf[:P * Fo].view(P, Fo).clone())
+                outs = _rows_every_split(lib, T, J, Fo, codes, P, g, (P, Fo, kind))
                 assert all(torch.equal(o.view(torch.int32), outs[0].view(torch.int32)) for o in outs[1:]), (P, Fo, kind)
                 assert torch.allclose(outs[0].double(), ref, atol=1e-5), (P, Fo, kind)
                 if kind == "pca":
@@ -613,16 +621,8 @@ def test_rows_of_one_vector_by_term_count_and_label_kind():
                     lab = torch.zeros(P, dtype=torch.long) if labels is None else labels.long()
                     Td = T.double()[lab]
                     ref = Td[:, 0, :Fo] + (W.double()[:, :nuse, None] * Td[:, 1:, :Fo]).sum(1)
-                    outs = []
-                    for n in (1, 2, 3):
-                        for order in (None, torch.randperm(P, generator=g).to(torch.int32)):
-                            buf = torch.full((P * Fo + 16,), float("nan"))
-                            buf[P * Fo:] = 7.0
-                            with torch_threads(n):
-                                relight_kernels.affine_rows(lib, T, J, Fo, 1, *codes, P=P, order=order, out=buf[:P * Fo])
-                            assert bool((buf[P * Fo:] == 7.0).all()), (nuse, ws, lab_dtype, P, Fo, n)
-                            outs.append(buf[:P * Fo].view(P, Fo).clone())
                     case = (nuse, ws, lab_dtype, P, Fo)
+                    outs = _rows_every_split(lib, T, J, Fo, codes, P, g, case)
                     assert all(torch.equal(o.view(torch.int32), outs[0].view(torch.int32)) for o in outs[1:]), case
                     assert torch.allclose(outs[0].double(), ref, atol=1e-5), case
 
