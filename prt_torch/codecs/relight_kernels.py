@@ -193,6 +193,9 @@ static inline float dot(const float *a, const float *b, i64 n) {
 /* a + w x, one rounding where the CPU has FMA: written out, not left to contraction, which GCC applied in one loop
    of the one-vector rows pass (small_rows_range) and not in another (their bits differed) */
 /* FMA8V: the same with w a vector */
+#if defined(__AVX__)
+#include <immintrin.h>
+#endif
 static inline v8 splat8(float x) { return (v8){x, x, x, x, x, x, x, x}; }
 #if defined(__FMA__)
 #include <immintrin.h>
@@ -606,7 +609,7 @@ static inline void k1_rgb8(const float *Tk, int mean, const float *wq, i64 ws, i
         ST(d_ + 16, __builtin_shufflevector(r45, r67, 5, 6, 8, 9, 10, 12, 13, 14));                               \
     }
 #endif
-/* points q.. in order, n terms each after the mean, weights in rows of ws >= n floats, the label kind fixed: each
+/* points q.. in order, n terms each after the mean, weights in rows of stride ws, the label kind fixed: each
    point by the one-point chain a = T_k[0] + sum_i w_i T_k[1+i] below (same FMAs, same bits), specialised so that
    neither the label kind, nor the weights' addressing, nor the term count is decided per point. The point's first 8
    weights are one load (4 floats for up to 4 terms; lanes permuted where the CPU has AVX2), so the loop stops at
