@@ -7,6 +7,8 @@ import math
 import shutil
 import warnings
 
+from pathlib import Path
+
 import pytest
 import torch
 
@@ -137,7 +139,7 @@ def test_kernels_built_for_other_instruction_sets(march, monkeypatch, tmp_path):
     if march is not None and platform.machine() not in ("x86_64", "AMD64"):
         pytest.skip("x86-64 micro-architecture levels only")
     try:
-        cpu_flags = set(open("/proc/cpuinfo").read().split())
+        cpu_flags = set(Path("/proc/cpuinfo").read_text().split())
     except OSError:
         cpu_flags = None
     if march is not None and cpu_flags is not None and not {"avx2", "fma", "bmi2", "movbe"} <= cpu_flags:
