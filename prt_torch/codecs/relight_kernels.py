@@ -190,15 +190,14 @@ static inline float dot(const float *a, const float *b, i64 n) {
 
 #define LD(p) (*(const v8 *)(p))
 #define ST(p, v) (*(v8 *)(p) = (v))
-/* a + w x, one rounding where the CPU has FMA: written out, not left to contraction, which GCC applied in one loop
-   of the one-vector rows pass (small_rows_range) and not in another (their bits differed) */
-/* FMA8V: the same with w a vector */
 #if defined(__AVX__)
 #include <immintrin.h>
 #endif
+/* FMA8: a + w x, one rounding where the CPU has FMA: written out, not left to contraction, which GCC applied in one
+   loop of the one-vector rows pass (small_rows_range) and not in another (their bits differed); FMA8V: the same
+   with w a vector */
 static inline v8 splat8(float x) { return (v8){x, x, x, x, x, x, x, x}; }
 #if defined(__FMA__)
-#include <immintrin.h>
 #define FMA8(w, x, a) ((v8)_mm256_fmadd_ps(_mm256_set1_ps(w), (__m256)(x), (__m256)(a)))
 #define FMA8V(w, x, a) ((v8)_mm256_fmadd_ps((__m256)(w), (__m256)(x), (__m256)(a)))
 #elif defined(__ARM_FEATURE_FMA) || defined(__FP_FAST_FMAF)  /* FMA without __FMA__: written out lane by lane */
