@@ -11,8 +11,9 @@ kernels themselves on cache-resident data, as a program of its own: each revisio
 pyramid of ``prefilter_environment``'s defaults) and ``prt_sg_taps`` (2 048 vertices of 92 views,
 3 taps) on one thread and prints the best of ``--reps`` calls. Kernels that read the lobes as
 records ``[..., 5]`` (w, μ, σ; the codec's stored form since they exist) get the data that way
-(``-DSTRIDED``, chosen from the source's signature), older ones as three arrays: the same values,
-so the same checksums. The two programs run in
+(``-DSTRIDED``, chosen from the source's signature), older ones as three arrays; kernels that take
+the records' layout (``-DLAYOUT``: view-major records since 2026-11-24) get vertex-major records:
+the same values, so the same checksums. The two programs run in
 alternation, ``--rounds`` times each; the report gives each side's median of those best times,
 the median and range of the round-by-round ratios (base / test: > 1, test faster), and whether
 the two results' checksums agree (they must, for a change meant to keep the arithmetic). Run it
@@ -40,11 +41,26 @@ MAIN = r"""
 #include <math.h>
 #include <stdint.h>
 typedef int64_t i64;
+#ifdef LAYOUT  /* kernels that also read view-major records (the lobe index of (v, j) given): called vertex-major */
+int prt_sg_lookup_sum(i64 G, i64 B, i64 fb, i64 N, const float *mu, const float *sigma, const float *w, i64 sw, i64 sm, i64 ss,
+                      const float *table, i64 r, i64 L, const float *ladder, i64 C, float *out, int nthreads);
+int prt_sg_taps(i64 V, i64 J, i64 N, i64 k, i64 fv, i64 fj, const float *w, const float *mu, const float *sigma, i64 sw, i64 sm,
+                i64 ss, const i64 *idx, const float *av, const float *table, i64 r, i64 L, const float *ladder, i64 C, float *out,
+                int nthreads);
+#define STRIDED
+#define G_ARGS(G) G, 1, 0
+#define V_ARGS(V, J) V, J, 1, 3, J, 1
+#else
+#define G_ARGS(G) G
+#define V_ARGS(V, J) V, J, 1, 3
+#endif
 #ifdef STRIDED  /* kernels that read lobe records [..., 5] (w, mu, sigma) in place: the codec's stored form */
+#ifndef LAYOUT
 int prt_sg_lookup_sum(i64 G, i64 N, const float *mu, const float *sigma, const float *w, i64 sw, i64 sm, i64 ss, const float *table,
                       i64 r, i64 L, const float *ladder, i64 C, float *out, int nthreads);
 int prt_sg_taps(i64 V, i64 J, i64 N, i64 k, const float *w, const float *mu, const float *sigma, i64 sw, i64 sm, i64 ss,
                 const i64 *idx, const float *av, const float *table, i64 r, i64 L, const float *ladder, i64 C, float *out, int nthreads);
+#endif
 #define STRIDES , 5, 5, 5
 #define W_AT(g) rec[5 * (g)]
 #define MU_AT(g, c) rec[5 * (g) + 1 + (c)]
@@ -84,8 +100,8 @@ int main(int argc, char **argv) {
         for (int q = 0; q <= reps; q++) {
             double t = now();
 #ifdef STRIDED
-            if (which == 0) prt_sg_lookup_sum(G, 1, rec + 1, rec + 4, rec STRIDES, table, r, L, ladder, C, out, 1);
-            else prt_sg_taps(V, J, 1, k, rec, rec + 1, rec + 4 STRIDES, idx, a, table, r, L, ladder, C, out, 1);
+            if (which == 0) prt_sg_lookup_sum(G_ARGS(G), 1, rec + 1, rec + 4, rec STRIDES, table, r, L, ladder, C, out, 1);
+            else prt_sg_taps(V_ARGS(V, J), rec, rec + 1, rec + 4 STRIDES, idx, a, table, r, L, ladder, C, out, 1);
 #else
             if (which == 0) prt_sg_lookup_sum(G, 1, mu, sg, w, table, r, L, ladder, C, out, 1);
             else prt_sg_taps(V, J, 1, k, w, mu, sg, idx, a, table, r, L, ladder, C, out, 1);
@@ -110,7 +126,9 @@ def build(src: str, flags: list[str], work: Path, name: str) -> Path:
     (work / "main.c").write_text(MAIN)
     exe = work / name
     fl = [f for f in flags if f not in ("-shared", "-fPIC")]
-    if re.search(r"int prt_sg_taps\([^)]*i64 sw, i64 sm, i64 ss", src):  # the kernels read lobe records in place
+    if re.search(r"int prt_sg_taps\([^)]*i64 fv, i64 fj", src):  # and view-major ones (given vertex-major data here)
+        fl.append("-DLAYOUT")
+    elif re.search(r"int prt_sg_taps\([^)]*i64 sw, i64 sm, i64 ss", src):  # the kernels read lobe records in place
         fl.append("-DSTRIDED")
     r = subprocess.run([cc, *fl, str(work / f"{name}.c"), str(work / "main.c"), "-o", str(exe), "-lm"],
                        capture_output=True, text=True)

@@ -221,7 +221,10 @@ def tile_encoding(enc, P: int):
     """``enc`` with its per-vertex tensors repeated to ``P`` vertices (relighting cost does not
     depend on the values; shared with benchmarks/bench_gaussian.py)."""
     rep = -(-P // enc.points)
-    enc.tensors = {k: v.repeat(rep, *[1] * (v.ndim - 1))[:P].contiguous() for k, v in enc.tensors.items()}
+    axis = {"lobes_by_view": 1}  # the vertex axis of view-major records [J, V, N, 5]; 0 for the rest
+    enc.tensors = {k: v.repeat(*[rep if d == axis.get(k, 0) else 1 for d in range(v.ndim)]).narrow(axis.get(k, 0), 0, P).contiguous()
+                   for k, v in enc.tensors.items()}
+    enc.cache.clear()
     enc.meta["points"] = P
     return enc
 

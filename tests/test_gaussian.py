@@ -302,11 +302,13 @@ def test_relight_from_gaussians_matches_integral_of_decoded_tables(cube, monkeyp
         assert float(native[1][1].abs().max()) == 0.0
 
 
-def _random_lobes(d, V, J, N, g, sigma, layout="records"):
+def _random_lobes(d, V, J, N, g, sigma, layout="by_view"):
     """A Gaussian codec fitted on 3 vertices of J views (texel directions ``d``), and an encoding of
     V vertices with random lobes (weights in [0, 1), unit means) of widths ``sigma [V, J, N]``:
-    the relight paths do not depend on how the lobes were found. ``layout``: the codec's lobe
-    records ``lobes [V, J, N, 5]``, or ``'separate'`` arrays (encodings saved before the records)."""
+    the relight paths do not depend on how the lobes were found. ``layout``: the codec's
+    view-major lobe records ``lobes_by_view [J, V, N, 5]``; ``'records'``, vertex-major ``lobes
+    [V, J, N, 5]`` (encodings saved before 2026-11-24); or ``'separate'`` arrays (saved before the
+    records)."""
     mu = torch.nn.functional.normalize(torch.randn(3 * J, N, 3, generator=g, dtype=torch.float64), dim=-1)
     T = mixture(d, torch.ones(3 * J, N, dtype=torch.float64), mu, torch.full((3 * J, N), 0.5, dtype=torch.float64))
     c = codecs.get("gaussian", lobes=N)
@@ -314,15 +316,19 @@ def _random_lobes(d, V, J, N, g, sigma, layout="records"):
         warnings.simplefilter("ignore")
         enc = c.fit_encode(T.reshape(3, -1).float(), matrix_shape=(J, d.shape[0]))
     w, mu = torch.rand(V, J, N, generator=g), torch.nn.functional.normalize(torch.randn(V, J, N, 3, generator=g), dim=-1)
+    rec = torch.cat([w[..., None], mu, sigma[..., None]], -1)
     if layout == "separate":
         enc.tensors = {"weights": w, "mu": mu, "sigma": sigma}
+    elif layout == "records":
+        enc.tensors = {"lobes": rec}
     else:
-        enc.tensors = {"lobes": torch.cat([w[..., None], mu, sigma[..., None]], -1)}
+        assert layout == "by_view" and set(enc.tensors) == {"lobes_by_view"}  # what the codec writes
+        enc.tensors = {"lobes_by_view": rec.transpose(0, 1).contiguous()}
     enc.meta["points"] = V
     return c, enc
 
 
-@pytest.mark.parametrize("layout", ["records", "separate"])
+@pytest.mark.parametrize("layout", ["by_view", "records", "separate"])
 @pytest.mark.parametrize("threads,N", [(1, 1), (2, 1), (1, 2), (2, 2)])
 def test_fused_kernels_in_blocks_of_16_equal_the_torch_formulation(cube, threads, N, layout, monkeypatch):
     """The compiled kernels take 16 vertices (or lobe groups) at a time where the CPU has AVX-512
@@ -330,7 +336,10 @@ def test_fused_kernels_in_blocks_of_16_equal_the_torch_formulation(cube, threads
     of varied lobes (widths below, inside and above the ladder; a vertex with no view above the
     horizon; one lobe, whose 16 records or means load contiguously and are deinterleaved, or two),
     they equal the torch formulation to float32 rounding and write into ``out=``; the lobe
-    records are read in place, and separate arrays (encodings saved before them) still work."""
+    records are read in place, view-major (16 vertices of one view at a time) as vertex-major (with
+    taps the same bits), and separate arrays (encodings saved before the records) still work."""
+    import copy
+
     from prt_torch.codecs import relight_kernels
     from prt_torch.harness.timing import torch_threads
 
@@ -339,7 +348,8 @@ def test_fused_kernels_in_blocks_of_16_equal_the_torch_formulation(cube, threads
     g = torch.Generator().manual_seed(7)
     J, V = 12, 37
     c, enc = _random_lobes(cube[0], V, J, N, g, torch.exp(torch.randn(V, J, N, generator=g) * 2), layout)
-    assert relight_kernels.lobe_layout(*c.lobes_of(enc))[3:] == ((5, 5, 5) if layout == "records" else (1, 3, 1))
+    assert relight_kernels.lobe_layout(*c.lobes_of(enc))[3:] == {"by_view": (5, 5, 5, V * N), "records": (5, 5, 5, 0),
+                                                                 "separate": (1, 3, 1, 0)}[layout]
     light = lambda x: torch.stack([1.5 + x[..., 0], 1 + 0.5 * x[..., 2], (x[..., 1] > 0.3).double()], -1)  # noqa: E731
     pe = prefilter_environment(light, res=8, levels=12)
     idx = torch.randint(0, J, (V, 3), generator=g)
@@ -349,6 +359,15 @@ def test_fused_kernels_in_blocks_of_16_equal_the_torch_formulation(cube, threads
         bufs = (torch.full((V, J, 3), float("nan")), torch.full((V, 3), float("nan")))
         native = (c.relight(enc, pe, out=bufs[0]), c.relight(enc, pe, view=(idx, a), out=bufs[1]))
         assert native[0] is bufs[0] and native[1] is bufs[1]
+        if layout == "by_view":  # the same lobes vertex-major: taps the same bits (the same vertices in blocks of 16)
+            enc_v = copy.copy(enc)
+            enc_v.tensors, enc_v.cache = {"lobes": enc.tensors["lobes_by_view"].transpose(0, 1).contiguous()}, {}
+            assert relight_kernels.lobe_layout(*c.lobes_of(enc_v))[6] == 0
+            assert torch.equal(c.relight(enc_v, pe, view=(idx, a)), native[1])
+            # every view: the functions past the last block of 16 differ (vertex-major: the last J·V mod 16
+            # functions; view-major: the last V mod 16 vertices), and the one-by-one tail's logf and the
+            # 16 lanes' log agree to about an ulp
+            assert torch.allclose(c.relight(enc_v, pe), native[0], rtol=5e-7, atol=0)
         monkeypatch.setenv("PRT_TORCH_NATIVE", "0")
         ref = (c.relight(enc, pe), c.relight(enc, pe, view=(idx, a)))
     for got, want in zip(native, ref):
@@ -633,30 +652,37 @@ def test_harness_evaluates_transport_with_gaussian_and_pca(tiny_table):
 
 
 def test_encodings_saved_before_the_lobe_records_load_and_relight_the_same(cube, tmp_path):
-    """An encoding stored as three arrays (``weights``, ``mu``, ``sigma``: files written before the
-    ``lobes [V, J, N, 5]`` records) saves, loads and relights, every view and with taps, to the
-    same values as the records; ``lobes_of`` names what a non-Gaussian encoding lacks."""
+    """Encodings in the earlier formats — three arrays (``weights``, ``mu``, ``sigma``) and
+    vertex-major records ``lobes [V, J, N, 5]`` — save, load and relight, every view and with taps,
+    to the values of today's view-major ``lobes_by_view [J, V, N, 5]`` (taps the same bits; every
+    view to an ulp: the one-by-one tail covers other functions), and decode to the same bits;
+    ``lobes_of`` names what a non-Gaussian encoding lacks."""
     g = torch.Generator().manual_seed(11)
     J, N, V = 12, 2, 20
     c, enc = _random_lobes(cube[0], V, J, N, g, torch.rand(V, J, N, generator=g) + 0.05)
     w, mu, sg = c.lobes_of(enc)
-    assert enc.tensors["lobes"].shape == (V, J, N, 5) and bool((w == enc.tensors["lobes"][..., 0]).all())
-    old = codecs.Encoded(codec=enc.codec, tensors={"weights": w.clone(), "mu": mu.clone(), "sigma": sg.clone()}, meta=dict(enc.meta))
-    c.save(tmp_path / "old.prt", old)
-    c2, loaded = codecs.load(tmp_path / "old.prt")
-    assert sorted(loaded.tensors) == ["mu", "sigma", "weights"]
+    assert enc.tensors["lobes_by_view"].shape == (J, V, N, 5) and bool((w == enc.tensors["lobes_by_view"][..., 0].transpose(0, 1)).all())
     pe = prefilter_environment(lambda x: 1.2 + x[..., :3], res=8, levels=12)
     idx = torch.randint(0, J, (V, 3), generator=g)
     a = torch.rand(V, 3, generator=g)
-    for view in (None, (idx, a)):
-        assert torch.equal(c2.relight(loaded, pe, view), c.relight(enc, pe, view))
-    assert torch.equal(c2.decode(loaded), c.decode(enc))
-    with pytest.raises(ValueError, match=r"not a gaussian encoding: no tensor 'lobes' \(nor 'mu', 'sigma'\)"):
+    for name, tensors in (("arrays", {"weights": w.clone(), "mu": mu.clone(), "sigma": sg.clone()}),
+                          ("vertex-major", {"lobes": torch.cat([w[..., None], mu, sg[..., None]], -1)})):
+        old = codecs.Encoded(codec=enc.codec, tensors=tensors, meta=dict(enc.meta))
+        c.save(tmp_path / f"{name}.prt", old)
+        c2, loaded = codecs.load(tmp_path / f"{name}.prt")
+        assert sorted(loaded.tensors) == sorted(tensors), name
+        assert torch.equal(c2.relight(loaded, pe, (idx, a)), c.relight(enc, pe, (idx, a))), name
+        assert torch.allclose(c2.relight(loaded, pe), c.relight(enc, pe), rtol=5e-7, atol=0), name
+        assert torch.equal(c2.decode(loaded), c.decode(enc)), name
+    c.save(tmp_path / "now.prt", enc)
+    c3, now = codecs.load(tmp_path / "now.prt")
+    assert sorted(now.tensors) == ["lobes_by_view"] and torch.equal(c3.relight(now, pe), c.relight(enc, pe))
+    with pytest.raises(ValueError, match=r"not a gaussian encoding: no tensor 'lobes_by_view' \(nor 'lobes', nor 'mu', 'sigma'\)"):
         c.lobes_of(codecs.Encoded(codec="gaussian", tensors={"weights": w}, meta={}))
     bad = codecs.Encoded(codec=enc.codec, tensors={"weights": w.clone(), "mu": mu[:, :, :1].clone(), "sigma": sg.clone()},
                          meta=dict(enc.meta))  # a corrupt old file: mu of one lobe for two
     with pytest.raises(ValueError, match=r"mu \(20, 12, 1, 3\) and sigma \(20, 12, 2\) do not match w \(20, 12, 2\)"):
         c.relight(bad, pe)
-    rec = enc.tensors["lobes"]
-    rec.data = torch.ones(V, J, N, 5)  # the same tensor object, new storage: the cached views follow it
+    rec = enc.tensors["lobes_by_view"]
+    rec.data = torch.ones(J, V, N, 5)  # the same tensor object, new storage: the cached views follow it
     assert float(c.lobes_of(enc)[0].sum()) == V * J * N

@@ -1510,11 +1510,13 @@ static inline __m512 deint5(const __m512 *r, int f) {
     return _mm512_mask_blend_ps(_mm512_cmpge_epi32_mask(p, _mm512_set1_epi32(64)), o, _mm512_permutexvar_ps(p, r[4]));
 }
 
-static inline void store16_rgb(float *out, const __m128 *acc, const float *scale) {
+/* lane l's RGB (times scale[l] when given) to out[3 rs l + c] */
+static inline void store16_rgb(float *out, i64 rs, const __m128 *acc, const float *scale) {
     for (int l = 0; l < 16; l++) {
         float t[4];
         _mm_storeu_ps(t, _mm_mul_ps(acc[l], _mm_set1_ps(scale ? scale[l] : 1.0f)));
-        out[3 * l] = t[0]; out[3 * l + 1] = t[1]; out[3 * l + 2] = t[2];
+        float *o = out + 3 * rs * l;
+        o[0] = t[0]; o[1] = t[1]; o[2] = t[2];
     }
 }
 #define SG16 1
@@ -1525,39 +1527,46 @@ static inline void store16_rgb(float *out, const __m128 *acc, const float *scale
    view's lobes are one run of 20 N bytes. */
 #define IS_RECORD (sw == 5 && sm == 5 && ss == 5 && mu == w + 1 && sigma == w + 4)
 
-/* out[g, c] = sum_{n<N} w_m E_{sigma_m}(mu_m)[c], m = g N + n */
-static void sg_range(i64 g0, i64 g1, i64 N, const float *mu, const float *sigma, const float *w, i64 sw, i64 sm, i64 ss,
-                     const float *table, i64 r, i64 L, const float *ladder, i64 C, int vec, float *out) {
+/* out[a B + b, c] = sum_{n<N} w_m E_{sigma_m}(mu_m)[c], m = a N + b fb + n, for a in [g0, g1), b < B:
+   functions (a, b) written in a-major order, their lobes consecutive in a. G functions in order: B = 1 (fb
+   unused); the Gaussian codec's view-major records [J, V, N, 5]: (a, b) = (vertex, view), fb = V N. */
+static inline __attribute__((always_inline)) void sg_range_(i64 g0, i64 g1, i64 B, i64 fb, i64 N, const float *mu,
+        const float *sigma, const float *w, i64 sw, i64 sm, i64 ss, const float *table, i64 r, i64 L, const float *ladder, i64 C,
+        int vec, float *out) {
 #ifdef SG16
-    if (vec) {  /* 16 groups at a time (lane l: group g + l), the rest below */
+    if (vec) {  /* 16 functions at a time (lane l: function (g + l, b)), the rest below */
         const __m512i lane = _mm512_set_epi32(15, 14, 13, 12, 11, 10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 0);
         __m512 lad[2];
         ladder32(ladder, L, lad);
         const int rec = IS_RECORD, sep = sw == 1 && sm == 3 && ss == 1;
-        for (; g0 + 16 <= g1; g0 += 16) {
+        for (; g0 + 16 <= g1; g0 += 16)
+          for (i64 b = 0; b < B; b++) {  /* B > 1: the block's rows (16 B C floats) stay in L1 over its B functions */
             __m128 acc[16];
+            const i64 mb = b * fb;
             for (int l = 0; l < 16; l++) acc[l] = _mm_setzero_ps();
-            if (rec && g0 + 16 * 9 <= g1)  /* the records 8 blocks ahead (measured: the hardware prefetcher alone left
-                                              every-view lookups 0.84x as fast as from separate arrays; with this 0.98-1.01x) */
+            if (rec && B == 1 && g0 + 16 * 9 <= g1)  /* the records 8 blocks ahead (measured: the hardware prefetcher alone left
+                                                        every-view lookups 0.84x as fast as from separate arrays; with this 0.98-1.01x) */
                 for (i64 f = 0; f < 5 * N; f++) _mm_prefetch((const char *)(w + 5 * N * (g0 + 16 * 8) + 16 * f), _MM_HINT_T0);
+            else if (rec && B > 1 && g0 + 32 <= g1)  /* B streams, one per b: the next block's records of this b */
+                for (i64 f = 0; f < 5 * N; f++) _mm_prefetch((const char *)(w + 5 * (N * (g0 + 16) + mb) + 16 * f), _MM_HINT_T0);
             for (i64 n = 0; n < N; n++) {
                 __m512i m = _mm512_add_epi32(_mm512_mullo_epi32(_mm512_add_epi32(lane, _mm512_set1_epi32((int)g0)),
-                                                                _mm512_set1_epi32((int)N)), _mm512_set1_epi32((int)n));
+                                                                _mm512_set1_epi32((int)N)), _mm512_set1_epi32((int)(n + mb)));
                 __m512 X, Y, Z, S, W;
                 if (N == 1 && rec) {  /* 16 consecutive records: 80 contiguous floats, deinterleaved by permutes */
-                    const float *p = w + 5 * g0;
+                    const float *p = w + 5 * (g0 + mb);
                     __m512 q[5] = {_mm512_loadu_ps(p), _mm512_loadu_ps(p + 16), _mm512_loadu_ps(p + 32), _mm512_loadu_ps(p + 48),
                                    _mm512_loadu_ps(p + 64)};
                     W = deint5(q, 0); X = deint5(q, 1); Y = deint5(q, 2); Z = deint5(q, 3); S = deint5(q, 4);
                 } else if (N == 1 && sep) {  /* 16 consecutive lobes: mu is 48 contiguous floats, deinterleaved by permutes */
-                    const float *p = mu + 3 * g0;
+                    const float *p = mu + 3 * (g0 + mb);
                     __m512 a = _mm512_loadu_ps(p), b = _mm512_loadu_ps(p + 16), c = _mm512_loadu_ps(p + 32);
                     const __m512i ix = _mm512_set_epi32(45, 42, 39, 36, 33, 30, 27, 24, 21, 18, 15, 12, 9, 6, 3, 0);
                     X = deint3(a, b, c, ix);
                     Y = deint3(a, b, c, _mm512_add_epi32(ix, _mm512_set1_epi32(1)));
                     Z = deint3(a, b, c, _mm512_add_epi32(ix, _mm512_set1_epi32(2)));
-                    S = _mm512_loadu_ps(sigma + g0);
-                    W = _mm512_loadu_ps(w + g0);
+                    S = _mm512_loadu_ps(sigma + g0 + mb);
+                    W = _mm512_loadu_ps(w + g0 + mb);
                 } else {
                     __m512i mm = _mm512_mullo_epi32(m, _mm512_set1_epi32((int)sm));
                     X = _mm512_i32gather_ps(mm, mu, 4); Y = _mm512_i32gather_ps(mm, mu + 1, 4); Z = _mm512_i32gather_ps(mm, mu + 2, 4);
@@ -1566,18 +1575,26 @@ static void sg_range(i64 g0, i64 g1, i64 N, const float *mu, const float *sigma,
                 }
                 sg_lookup16(X, Y, Z, S, W, table, r, L, ladder, lad, acc);
             }
-            store16_rgb(out + 3 * g0, acc, NULL);
-        }
+            store16_rgb(out + 3 * (g0 * B + b), B, acc, NULL);
+          }
     }
 #else
     (void)vec;
 #endif
-    for (i64 g = g0; g < g1; g++) {
-        float acc[16] = {0};
-        for (i64 m = g * N; m < (g + 1) * N; m++)
-            sg_lookup(mu[sm * m], mu[sm * m + 1], mu[sm * m + 2], sigma[ss * m], w[sw * m], table, r, L, ladder, C, acc);
-        for (i64 c = 0; c < C; c++) out[g * C + c] = acc[c];
-    }
+    for (i64 g = g0; g < g1; g++)
+        for (i64 b = 0; b < B; b++) {
+            float acc[16] = {0};
+            for (i64 m = g * N + b * fb; m < g * N + b * fb + N; m++)
+                sg_lookup(mu[sm * m], mu[sm * m + 1], mu[sm * m + 2], sigma[ss * m], w[sw * m], table, r, L, ladder, C, acc);
+            for (i64 c = 0; c < C; c++) out[(g * B + b) * C + c] = acc[c];
+        }
+}
+
+/* B = 1 compiled apart (measured in ab_sg_micro: the general loop cost one-lobe lookups in order 8%) */
+static void sg_range(i64 g0, i64 g1, i64 B, i64 fb, i64 N, const float *mu, const float *sigma, const float *w, i64 sw, i64 sm,
+                     i64 ss, const float *table, i64 r, i64 L, const float *ladder, i64 C, int vec, float *out) {
+    if (B == 1) sg_range_(g0, g1, 1, 0, N, mu, sigma, w, sw, sm, ss, table, r, L, ladder, C, vec, out);
+    else sg_range_(g0, g1, B, fb, N, mu, sigma, w, sw, sm, ss, table, r, L, ladder, C, vec, out);
 }
 
 /* the 16-lane path: RGB, and every gather offset (5 G N into the lobes, L 6 r r 3 into the table) in int32 */
@@ -1585,20 +1602,23 @@ static inline int sg_vec(i64 elems, i64 L, i64 r, i64 C) {
     return C == 3 && 5 * elems < ((i64)1 << 31) - 64 && L * 6 * r * r * 3 < ((i64)1 << 31) - 64;
 }
 
-int prt_sg_lookup_sum(i64 G, i64 N, const float *mu, const float *sigma, const float *w, i64 sw, i64 sm, i64 ss, const float *table,
-                      i64 r, i64 L, const float *ladder, i64 C, float *out, int nthreads) {
+/* G x B functions (sg_range), the G split between the threads */
+int prt_sg_lookup_sum(i64 G, i64 B, i64 fb, i64 N, const float *mu, const float *sigma, const float *w, i64 sw, i64 sm, i64 ss,
+                      const float *table, i64 r, i64 L, const float *ladder, i64 C, float *out, int nthreads) {
     i64 nth = nthreads > 0 ? nthreads : 1;
-    int vec = sg_vec(G * N, L, r, C);
+    int vec = sg_vec(G * B * N, L, r, C);
     #pragma omp parallel for schedule(static, 1) num_threads(nth)
     for (i64 t = 0; t < nth; t++)
-        sg_range(G * t / nth, G * (t + 1) / nth, N, mu, sigma, w, sw, sm, ss, table, r, L, ladder, C, vec, out);
+        sg_range(G * t / nth, G * (t + 1) / nth, B, fb, N, mu, sigma, w, sw, sm, ss, table, r, L, ladder, C, vec, out);
     return 0;
 }
 
 /* Relighting with view taps (Green §2.3): per vertex v, the lobes of its k tapped views blended
    (weights and widths linearly, means as the normalised weighted sum; gaussian.blend_lobes) with
-   a_t / sum(a), looked up, summed over the N lobes and scaled by sum(a). w [V, J, N],
-   mu [V, J, N, 3], sigma [V, J, N]; idx [V, k] (in [0, J), checked by the caller), a [V, k]. */
+   a_t / sum(a), looked up, summed over the N lobes and scaled by sum(a). Lobe n of vertex v and view j
+   has lobe index m = v fv + j fj + n (w[sw m], ...): (fv, fj) = (J N, N) vertex-major, (N, V N) for
+   the view-major records [J, V, N, 5], where a camera's taps read a few runs along the vertices;
+   idx [V, k] (in [0, J), checked by the caller), a [V, k]. */
 /* 1 if a tap among taps [t0, t1) has an index outside [0, J) or a weight that is negative or not finite (Green
    2005 §2.3: the blend is convex), else 0: one branch-free pass */
 static int taps_bad(i64 t0, i64 t1, const i64 *idx, const float *av, i64 J) {
@@ -1607,7 +1627,7 @@ static int taps_bad(i64 t0, i64 t1, const i64 *idx, const float *av, i64 J) {
     return bad;
 }
 
-static void sg_taps_range(i64 v0, i64 v1, i64 J, i64 N, i64 k, const float *w, const float *mu, const float *sigma,
+static void sg_taps_range(i64 v0, i64 v1, i64 fv, i64 fj, i64 N, i64 k, const float *w, const float *mu, const float *sigma,
                           i64 sw, i64 sm, i64 ss, const i64 *idx, const float *av, const float *table, i64 r, i64 L, const float *ladder, i64 C,
                           int vec, float *out) {
 #ifdef SG16
@@ -1615,11 +1635,11 @@ static void sg_taps_range(i64 v0, i64 v1, i64 J, i64 N, i64 k, const float *w, c
         __m512 lad[2];
         ladder32(ladder, L, lad);
         for (; v0 + 16 <= v1; v0 += 16) {
-            int32_t mb[8][16];  /* per tap and lane: the lobe index (v J + idx) N of lobe 0 */
+            int32_t mb[8][16];  /* per tap and lane: the lobe index v fv + idx fj of lobe 0 */
             float at[8][16];
             for (i64 t = 0; t < k; t++)
                 for (int l = 0; l < 16; l++) {
-                    mb[t][l] = (int32_t)(((v0 + l) * J + idx[(v0 + l) * k + t]) * N);
+                    mb[t][l] = (int32_t)((v0 + l) * fv + idx[(v0 + l) * k + t] * fj);
                     at[t][l] = av[(v0 + l) * k + t];
                 }
             __m512 tot = _mm512_setzero_ps();
@@ -1650,7 +1670,7 @@ static void sg_taps_range(i64 v0, i64 v1, i64 J, i64 N, i64 k, const float *w, c
             }
             float tt[16];
             _mm512_storeu_ps(tt, tot);
-            store16_rgb(out + 3 * v0, acc, tt);
+            store16_rgb(out + 3 * v0, 1, acc, tt);
         }
     }
 #else
@@ -1664,7 +1684,7 @@ static void sg_taps_range(i64 v0, i64 v1, i64 J, i64 N, i64 k, const float *w, c
             float wb = 0, sb = 0, mx = 0, my = 0, mz = 0;
             for (i64 t = 0; t < k; t++) {
                 float an = av[v * k + t] * inv;
-                i64 m = (v * J + idx[v * k + t]) * N + n;
+                i64 m = v * fv + idx[v * k + t] * fj + n;
                 wb += an * w[sw * m]; sb += an * sigma[ss * m];
                 mx += an * mu[sm * m]; my += an * mu[sm * m + 1]; mz += an * mu[sm * m + 2];
             }
@@ -1678,7 +1698,7 @@ static void sg_taps_range(i64 v0, i64 v1, i64 J, i64 N, i64 k, const float *w, c
 
 /* returns 1, writing nothing, if a tap is bad (taps_bad): each thread checks its vertices' taps, then all compute
    only if none found one */
-int prt_sg_taps(i64 V, i64 J, i64 N, i64 k, const float *w, const float *mu, const float *sigma, i64 sw, i64 sm, i64 ss,
+int prt_sg_taps(i64 V, i64 J, i64 N, i64 k, i64 fv, i64 fj, const float *w, const float *mu, const float *sigma, i64 sw, i64 sm, i64 ss,
                 const i64 *idx, const float *av, const float *table, i64 r, i64 L, const float *ladder, i64 C, float *out, int nthreads) {
     i64 nth = nthreads > 0 ? nthreads : 1;
     int vec = sg_vec(V * J * N, L, r, C), bad = 0;
@@ -1699,7 +1719,7 @@ int prt_sg_taps(i64 V, i64 J, i64 N, i64 k, const float *w, const float *mu, con
         int any;
         #pragma omp atomic read
         any = bad;
-        if (!any) sg_taps_range(v0, v1, J, N, k, w, mu, sigma, sw, sm, ss, idx, av, table, r, L, ladder, C, vec, out);
+        if (!any) sg_taps_range(v0, v1, fv, fj, N, k, w, mu, sigma, sw, sm, ss, idx, av, table, r, L, ladder, C, vec, out);
     }
     return bad;
 }
@@ -1721,8 +1741,8 @@ def _compile() -> tuple[ctypes.CDLL | None, str]:
         "prt_affine_taps": [i64, i64, i64, *common, i64, vp, vp, vp, vp, ci, ci],
         "prt_constants": [i64] * 7 + [vp, vp, vp] + [i64] * 4 + [vp, ci, ci],
         "prt_constants_lanes": [i64] * 5 + [vp, vp, vp] + [i64] * 2 + [ci],
-        "prt_sg_lookup_sum": [i64, i64, vp, vp, vp, i64, i64, i64, vp, i64, i64, vp, i64, vp, ci],
-        "prt_sg_taps": [i64, i64, i64, i64, vp, vp, vp, i64, i64, i64, vp, vp, vp, i64, i64, vp, i64, vp, ci],
+        "prt_sg_lookup_sum": [i64, i64, i64, i64, vp, vp, vp, i64, i64, i64, vp, i64, i64, vp, i64, vp, ci],
+        "prt_sg_taps": [i64, i64, i64, i64, i64, i64, vp, vp, vp, i64, i64, i64, vp, vp, vp, i64, i64, vp, i64, vp, ci],
     })
 
 
@@ -1972,20 +1992,28 @@ def _strides_are(t: torch.Tensor, shape: tuple, step: int) -> bool:
 
 
 def lobe_layout(w: torch.Tensor, mu: torch.Tensor, sigma: torch.Tensor) -> tuple:
-    """``(w, mu, sigma, sw, sm, ss)`` for the kernels: lobe m's parameters at ``w[sw·m]``,
+    """``(w, mu, sigma, sw, sm, ss, fb)`` for the kernels: lobe m's parameters at ``w[sw·m]``,
     ``mu[sm·m + c]``, ``sigma[ss·m]``. Views of one record array ``rec [..., 5]`` = (w, μx, μy,
     μz, σ) (``rec[..., 0]``, ``rec[..., 1:4]``, ``rec[..., 4]``, as the Gaussian codec stores its
     lobes) are read in place, strides (5, 5, 5); anything else as contiguous float32 arrays,
-    strides (1, 3, 1)."""
+    strides (1, 3, 1). ``fb``: 0 where the lobes are in the order of ``w [..., N]``'s elements
+    (m = g·N + n for function g); ``V·N`` for ``w [V, J, N]`` viewing view-major records
+    ``[J, V, N, 5]`` permuted (the Gaussian codec's ``lobes_by_view``): m = v·N + j·V·N + n."""
     if w.dtype == torch.float32 and mu.data_ptr() == w.data_ptr() + 4 and sigma.data_ptr() == w.data_ptr() + 16:
         st, step = [], 5  # the views rec[..., 0], rec[..., 1:4], rec[..., 4] of a contiguous rec [..., 5]: exact strides
         for d in reversed(w.shape):
             st.append(step)
             step *= d
         st = tuple(reversed(st))
+        if w.ndim == 3:  # or of a view-major rec [J, V, N, 5] permuted to [V, J, N, 5]
+            V, J, N = w.shape
+            vm = (5 * N, 5 * V * N, 5)
+            if (V > 1 and J > 1 and w.stride() == vm and sigma.stride() == vm and mu.stride() == (*vm, 1)
+                    and mu.dtype == sigma.dtype == torch.float32 and mu.shape == (*w.shape, 3) and sigma.shape == w.shape):
+                return w, mu, sigma, 5, 5, 5, V * N
         if (w.stride() == st and sigma.stride() == st and mu.stride() == (*st, 1) and mu.dtype == sigma.dtype == torch.float32
                 and mu.shape == (*w.shape, 3) and sigma.shape == w.shape):
-            return w, mu, sigma, 5, 5, 5
+            return w, mu, sigma, 5, 5, 5, 0
     if tuple(mu.shape) != (*w.shape, 3) or tuple(sigma.shape) != tuple(w.shape):  # the kernels read w.numel() lobes of each
         raise ValueError(f"lobes: mu {tuple(mu.shape)} and sigma {tuple(sigma.shape)} do not match w {tuple(w.shape)}; "
                          f"accepted: mu {(*w.shape, 3)}, sigma {tuple(w.shape)}")
@@ -1993,8 +2021,8 @@ def lobe_layout(w: torch.Tensor, mu: torch.Tensor, sigma: torch.Tensor) -> tuple
     if (all(t.dtype == torch.float32 for t in (w, mu, sigma)) and tuple(mu.shape) == (*shape, 3) and tuple(sigma.shape) == shape
             and mu.data_ptr() == w.data_ptr() + 4 and sigma.data_ptr() == w.data_ptr() + 16 and mu.stride(-1) == 1
             and _strides_are(w, shape, 5) and _strides_are(sigma, shape, 5) and _strides_are(mu, shape, 5)):
-        return w, mu, sigma, 5, 5, 5
-    return _as(w, torch.float32), _as(mu, torch.float32), _as(sigma, torch.float32), 1, 3, 1
+        return w, mu, sigma, 5, 5, 5, 0
+    return _as(w, torch.float32), _as(mu, torch.float32), _as(sigma, torch.float32), 1, 3, 1, 0
 
 
 def sg_lookup_sum(lib, table: torch.Tensor, log_sigmas: torch.Tensor, res: int, mu: torch.Tensor, sigma: torch.Tensor,
@@ -2003,19 +2031,22 @@ def sg_lookup_sum(lib, table: torch.Tensor, log_sigmas: torch.Tensor, res: int, 
     pyramid ``table [L·6·r·r, C]`` float32 (``PrefilteredEnvironment.table``) with ladder
     ``log_sigmas [L]``: ``mu [..., N, 3]``, ``sigma [..., N]`` → ``[..., C]`` float32, one fused
     pass per lobe (the torch formulation builds ~30 lobe-sized intermediates). The three may be
-    views of one record array ``[..., N, 5]`` (read in place, :func:`lobe_layout`) or any tensors
-    of those shapes (else ``ValueError``). ``out``: an optional contiguous float32 result
+    views of one record array ``[..., N, 5]``, or of view-major records ``[J, V, N, 5]`` permuted
+    to ``[V, J, N, 5]`` (read in place, :func:`lobe_layout`; the latter a block of 16 vertices
+    at a time, every view of each, its rows of the result staying in L1), or any tensors of
+    those shapes (else ``ValueError``). ``out``: an optional contiguous float32 result
     ``[..., C]`` (checked by the caller), written and returned."""
     lead, N = tuple(w.shape[:-1]), w.shape[-1]
     G = w.numel() // max(N, 1)
     C = table.shape[1]
     if C > 16:
         raise ValueError(f"sg_lookup_sum: {C} channels; accepted: at most 16")
-    w, mu, sigma, sw, sm, ss = lobe_layout(w, mu, sigma)
+    w, mu, sigma, sw, sm, ss, fb = lobe_layout(w, mu, sigma)
+    A, B = (w.shape[0], w.shape[1]) if fb else (G, 1)  # view-major records: vertex blocks, every view of each
     table, ladder = _as(table, torch.float32), _as(log_sigmas, torch.float32)
     given = out
     out = _out(out, G * C, (G, C))
-    lib.prt_sg_lookup_sum(G, N, mu.data_ptr(), sigma.data_ptr(), w.data_ptr(), sw, sm, ss, table.data_ptr(), int(res), ladder.numel(),
+    lib.prt_sg_lookup_sum(A, B, fb, N, mu.data_ptr(), sigma.data_ptr(), w.data_ptr(), sw, sm, ss, table.data_ptr(), int(res), ladder.numel(),
                           ladder.data_ptr(), C, out.data_ptr(), torch.get_num_threads())
     return given if given is not None else out.reshape(*lead, C)
 
@@ -2025,8 +2056,10 @@ def sg_taps(lib, table: torch.Tensor, log_sigmas: torch.Tensor, res: int, w: tor
     """Gaussian relighting with view taps (Green 2005 §2.3, eq. 2.7), fused per vertex: the lobes
     of the tapped views blended with ``a / Σa`` (``gaussian.blend_lobes``), looked up in the
     pyramid (as :func:`sg_lookup_sum`), summed over the lobes and scaled by Σa. ``w [V, J, N]``,
-    ``mu [V, J, N, 3]``, ``sigma [V, J, N]`` (views of the codec's records ``lobes [V, J, N, 5]``
-    are read in place: a camera's three taps read three runs of 20·N bytes), ``idx int64 [V, k]``,
+    ``mu [V, J, N, 3]``, ``sigma [V, J, N]`` (views of the codec's records are read in place,
+    :func:`lobe_layout`: view-major ``lobes_by_view [J, V, N, 5]``, where a camera's taps, a few
+    views shared by neighbouring vertices, read a few runs along the vertices; or vertex-major
+    ``lobes [V, J, N, 5]``, three runs of 20·N bytes per vertex), ``idx int64 [V, k]``,
     ``a [V, k]`` → ``([V, C]`` float32 (into ``out`` when given, checked by the caller), flag``):
     flag 1, with nothing computed or written, when a tap has an index outside [0, J) or a
     negative or non-finite weight (one pass over the taps in the kernel, where torch's checks
@@ -2036,11 +2069,12 @@ def sg_taps(lib, table: torch.Tensor, log_sigmas: torch.Tensor, res: int, w: tor
     C = table.shape[1]
     if C > 16:
         raise ValueError(f"sg_taps: {C} channels; accepted: at most 16")
-    w, mu, sigma, sw, sm, ss = lobe_layout(w, mu, sigma)
+    w, mu, sigma, sw, sm, ss, fb = lobe_layout(w, mu, sigma)
+    fv, fj = (N, fb) if fb else (J * N, N)  # lobe index of (v, j, 0): view-major records, else in order
     a, table, ladder = (_as(t, torch.float32) for t in (a, table, log_sigmas))
     idx = _as(idx, torch.int64)
     out = _out(out, V * C, (V, C))
-    flag = lib.prt_sg_taps(V, J, N, k, w.data_ptr(), mu.data_ptr(), sigma.data_ptr(), sw, sm, ss, idx.data_ptr(), a.data_ptr(),
+    flag = lib.prt_sg_taps(V, J, N, k, fv, fj, w.data_ptr(), mu.data_ptr(), sigma.data_ptr(), sw, sm, ss, idx.data_ptr(), a.data_ptr(),
                            table.data_ptr(), int(res), ladder.numel(), ladder.data_ptr(), C, out.data_ptr(), torch.get_num_threads())
     return out, int(flag)
 
