@@ -734,3 +734,77 @@ def test_relight_from_concurrent_threads():
     for t in threads:
         t.join()
     assert not errors and all(torch.equal(got[k], want[k]) for k in want)
+
+
+@pytest.mark.parametrize("name,params,ms", [("vq", {"clusters": 5}, None), ("cpca_static", {"clusters": 4, "vectors": 3}, (9, 4)),
+                                            ("pca", {"vectors": 3}, (9, 4))])
+def test_relight_plans_follow_the_encoding_and_the_model(name, params, ms, monkeypatch):
+    """``relight`` runs a per-encoding plan (``relight_kernels.plan``: the kernels' arguments
+    built once, one ``prt_relight_plan`` call per light). Its results equal the two kernels called
+    one by one (``constants``, then ``affine_rows`` / ``affine_dense`` / ``affine_taps``) bit for
+    bit, for every view mode; an in-place edit of the codes or of the model, a replaced codes
+    tensor and a refit are each seen by the next relight (the plan is rebuilt) — and by ``decode``
+    and the torch path, whose per-encoding caches (tile plan, padded weights) once kept the codes
+    they were built from — and a non-finite light is refused naming the value after a plan exists."""
+    lib = relight_kernels.native()
+    if lib is None:
+        pytest.skip("no compiled kernels")
+    P = 150
+    c, enc = _fit(name, params, ms or (1, 16), P, None) if ms else (None, None)
+    if ms is None:
+        c = codecs.get(name, **params)
+        enc = c.fit_encode(transfer_like(P, 1, 16, seed=3))
+    n_out, n_in = ms or (1, 16)
+    g = torch.Generator().manual_seed(4)
+    L = torch.randn(n_in, 3, generator=g)
+    views = {"rows": None}
+    if ms:
+        views.update({"dense": torch.randn(P, n_out, generator=g),
+                      "taps": (torch.randint(0, n_out, (P, 4), generator=g), torch.rand(P, 4, generator=g))})
+
+    def by_kernels(kind, view):  # the two kernels one by one, points in order
+        codes = c._native_codes(enc, c._n_eff(None))
+        J = (1 if c.means_ is not None else 0) + codes[5]
+        T = relight_kernels.constants(lib, c.means_, c.basis_, codes[5], n_out, n_in, L, kind, nk=codes[4])
+        if kind == "rows":
+            return relight_kernels.affine_rows(lib, T, J, n_out, 3, *codes, P=P).view(c.relight(enc, L).shape)
+        if kind == "dense":
+            return relight_kernels.affine_dense(lib, T, J, n_out, 3, *codes, view)[0]
+        return relight_kernels.affine_taps(lib, T, J, n_out, 3, *codes, *view)[0]
+
+    def check(what):
+        for kind, view in views.items():
+            got = c.relight(enc, L, view=view)
+            assert torch.equal(got, by_kernels(kind, view)), (what, kind)
+            assert any(k[1] == kind for k in enc.cache["kernel_plans"]), (what, kind)
+            ref, scale = _reference(c.decode(enc).view(P, n_out, n_in), L, view)
+            _check(got.view(ref.shape), ref, scale, 3 * n_out, (what, kind, "decode"))
+            monkeypatch.setenv("PRT_TORCH_NATIVE", "0")
+            _check(c.relight(enc, L, view=view).view(ref.shape), ref, scale, 3 * n_out, (what, kind, "torch path"))
+            monkeypatch.delenv("PRT_TORCH_NATIVE")
+
+    check("first")
+    before = c.relight(enc, L)
+    W = enc.tensors.get("coeffs")
+    if W is not None:
+        W.mul_(-0.5)  # the codes edited in place
+        check("coeffs edited")
+    with torch.no_grad():
+        c.basis_.mul_(1.5)  # the model edited in place
+        if c.means_ is not None:
+            c.means_.add_(0.25)
+    check("model edited")
+    assert not torch.equal(c.relight(enc, L), before)
+    if "labels" in enc.tensors:
+        lab = enc.tensors["labels"]
+        enc.tensors["labels"] = (lab.long() + 1).remainder(c.K_).to(lab.dtype)  # a replaced tensor
+        check("labels replaced")
+    X2 = transfer_like(P, n_out, n_in, seed=8, regions=6)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        enc = c.fit_encode(X2.view(P, -1), matrix_shape=ms)  # a refit (a new encoding too)
+    check("refit")
+    bad = L.clone()
+    bad[2, 1] = float("nan")
+    with pytest.raises(ValueError, match=r"light has 1 non-finite value\(s\).*\(2, 1\)"):
+        c.relight(enc, bad, view=views.get("dense"))

@@ -33,9 +33,10 @@ from .._checks import check_finite
 from ..params import Boolean, Interval, Options
 from .base import (Codec, Encoded, check_light, check_matrix_shape, check_out, check_signal, check_view, check_weights)
 from .kmeans import CACHE_BLOCK_BYTES, linear, row_chunk
-from .relight_kernels import affine_dense, affine_rows, affine_taps, native
-from .relight_kernels import constants as kernel_constants
+from .relight_kernels import constants_layout as kernel_layout
 from .relight_kernels import fits as kernel_fits
+from .relight_kernels import native, run_plan
+from .relight_kernels import plan as kernel_plan
 from .segment import from_tiles, segment_matmul, tile_layout, tiles_bmm, to_tiles
 
 #: relight visits points cluster by cluster (``AffineCodec._cluster_sorted_codes``) when one
@@ -43,6 +44,13 @@ from .segment import from_tiles, segment_matmul, tile_layout, tiles_bmm, to_tile
 #: cluster) relights 1.2-1.4× faster so, VQ 256 (288 B per cluster, the table L2-resident) 0.9×
 #: (paired, 50k points, 1 and 2 threads; benchmarks/bench_relight.py)
 SORT_MIN_CLUSTER_BYTES = 1024
+
+
+def _codes_state(enc: Encoded) -> tuple:
+    """What the per-encoding caches (tile plan, packed offsets, kernel plans) are keyed by: each
+    codes tensor's id, storage address and version — a replaced tensor or an in-place edit changes
+    it. A cache entry holds the tensors it was built from, so their ids stay unique while it lives."""
+    return tuple((k, id(t), t.data_ptr(), t._version) for k, t in enc.tensors.items())
 
 __all__ = ["AffineCodec", "label_dtype"]
 
@@ -214,13 +222,15 @@ class AffineCodec(Codec):
         c = enc.tensors["coeffs"]
         if not enc.meta.get("packed"):
             return c
-        if "coeffs_padded" not in enc.cache:
+        key = _codes_state(enc)
+        hit = enc.cache.get("coeffs_padded")
+        if hit is None or hit[0] != key:  # rebuilt when the codes change
             lab = self.labels_of(enc)
             mask = torch.arange(nmax)[None, :] < self.n_vectors_[lab][:, None]
             full = torch.zeros(P, nmax, dtype=torch.float32)
             full[mask] = c
-            enc.cache["coeffs_padded"] = full
-        return enc.cache["coeffs_padded"]
+            enc.cache["coeffs_padded"] = hit = (key, full, tuple(enc.tensors.values()))
+        return hit[1]
 
     # ----------------------------------------------------------------- encode
     def encode(self, X: torch.Tensor) -> Encoded:
@@ -284,23 +294,28 @@ class AffineCodec(Codec):
         return torch.cat([self.means_[:, None], B], 1)
 
     def _weights1(self, enc: Encoded, n: int) -> torch.Tensor:
-        """``[P, J]``: (1,) w_p^1..w_p^n (cached)."""
-        key = ("W1", n)
-        if key not in enc.cache:
+        """``[P, J]``: (1,) w_p^1..w_p^n (cached while the codes are the same: ``_codes_state``)."""
+        key, state = ("W1", n, self.means_ is not None), _codes_state(enc)
+        hit = enc.cache.get(key)
+        if hit is None or hit[0] != state:
             c = self.coeffs_of(enc)[:, :n]
             if self.means_ is not None:
                 c = torch.cat([torch.ones(c.shape[0], 1), c], 1)
-            enc.cache[key] = c.contiguous()
-        return enc.cache[key]
+            enc.cache[key] = hit = (state, c.contiguous(), tuple(enc.tensors.values()))
+        return hit[1]
 
     def _plan(self, enc: Encoded) -> dict:
         """Tile layout of the points by cluster and the weights in tile order, built once per
-        encoding (the CPU counterpart of uploading per-cluster vertex buffers)."""
-        if "plan" not in enc.cache:
+        encoding (the CPU counterpart of uploading per-cluster vertex buffers) and rebuilt when
+        its codes change (a replaced tensor or an in-place edit: ``_codes_state``)."""
+        key = _codes_state(enc)
+        hit = enc.cache.get("plan")
+        if hit is None or hit.get("key") != key:
             layout = tile_layout(self.labels_of(enc), self.K_)
             W1 = self._weights1(enc, self.basis_.shape[1])
-            enc.cache["plan"] = {"layout": layout, "W1t": to_tiles(layout, W1).contiguous()}
-        return enc.cache["plan"]
+            enc.cache["plan"] = hit = {"layout": layout, "W1t": to_tiles(layout, W1).contiguous(), "key": key,
+                                       "codes": tuple(enc.tensors.values())}  # held: their ids stay unique
+        return hit
 
     # ----------------------------------------------------------------- relight
     def cluster_constants(self, light: torch.Tensor, n: int | None = None) -> torch.Tensor:
@@ -414,27 +429,45 @@ class AffineCodec(Codec):
                 return out.zero_(), 0
             return (torch.zeros(enc.points, C) if view is not None or self.matrix_shape_ is None
                     else torch.zeros(enc.points, n_out, C)), 0
-        if not kernel_fits(J, n_out, C) or (isinstance(view, tuple) and view[0].shape[1] > 64):
+        ntap = view[0].shape[1] if isinstance(view, tuple) else 0
+        if not kernel_fits(J, n_out, C) or ntap > 64:
             return None
-        codes = self._native_codes(enc, n)
         kind = "rows" if view is None else ("taps" if isinstance(view, tuple) else "dense")
-        # used before this thread's next call; per cluster only the terms its points read (n_k: CPCA adaptive)
-        T = kernel_constants(lib, self.means_, self.basis_, n, n_out, n_in, L, kind, scratch=True, nk=codes[4])
+        res, flag = run_plan(lib, self._kernel_plan(lib, enc, n, kind, C, ntap), L, view, out)
+        if view is None:
+            return (res if out is not None or self.matrix_shape_ is None else res.view(-1, n_out, C)), 0
+        return res, flag
+
+    def _kernel_plan(self, lib, enc: Encoded, n: int, kind: str, C: int, ntap: int):
+        """This encoding's ``relight_kernels.Plan`` for ``n`` vectors, view ``kind``, C colours
+        and ``ntap`` taps, built once and cached in ``enc.cache`` while the model and the codes
+        are the same tensors at the same versions (a refit, an in-place edit or a replaced
+        tensor rebuilds it; the plan holds them, so their ids stay unique while it lives)."""
+        basis, means = self.basis_, self.means_
+        state = (id(basis), basis._version, id(means), None if means is None else means._version, enc.points, _codes_state(enc))
+        plans = enc.cache.get("kernel_plans")
+        if plans is None:
+            plans = enc.cache["kernel_plans"] = {}
+        key = (n, kind, C, ntap, SORT_MIN_CLUSTER_BYTES)  # (the module's threshold: benchmarks and tests set it)
+        hit = plans.get(key)
+        if hit is not None and hit[0] == state:
+            return hit[1]
+        n_out, n_in = self.matrix_shape_ or (1, self.D_)
+        codes = self._native_codes(enc, n)
         # Where a cluster's constants are large (CPCA: J·n_out·C floats, 2.6 KB at 9×24×3), points
         # are visited cluster by cluster within blocks, from a cluster-sorted copy of the codes
         # (Sloan 2003 §6: per-cluster work over cluster-sorted storage), so T_k is read from L1
         # instead of L2 for every point; only the view rows and outputs are scattered, within a
         # block. Same arithmetic per point, so the same results bit for bit.
         order = None
-        if codes[0] is not None and T.stride(0) * 4 >= SORT_MIN_CLUSTER_BYTES:
+        J = (1 if means is not None else 0) + n
+        if codes[0] is not None and kernel_layout(kind, self.K_, J, n_out, C)[1][0] * 4 >= SORT_MIN_CLUSTER_BYTES:
             order, codes = self._cluster_sorted_codes(enc, codes)
-        kw = {"order": order, "codes_sorted": order is not None, "out": out}
-        if view is None:
-            res = affine_rows(lib, T, J, n_out, C, *codes, P=enc.points, **kw)
-            return (res if out is not None or self.matrix_shape_ is None else res.view(-1, n_out, C)), 0
-        if isinstance(view, tuple):
-            return affine_taps(lib, T, J, n_out, C, *codes, view[0].contiguous(), view[1].contiguous(), **kw)
-        return affine_dense(lib, T, J, n_out, C, *codes, view.contiguous(), **kw)
+        # per cluster only the terms its points read (n_k: CPCA adaptive)
+        pl = kernel_plan(lib, means, basis, n, n_out, n_in, C, kind, *codes, P=enc.points, order=order,
+                         codes_sorted=order is not None, ntap=ntap)
+        plans[key] = (state, pl, (basis, means, tuple(enc.tensors.values())))
+        return pl
 
     def _cluster_sorted_codes(self, enc: Encoded, codes: tuple) -> tuple[torch.Tensor, tuple]:
         """The visiting order ``int32 [P]`` — points sorted by cluster within consecutive blocks of
@@ -494,14 +527,16 @@ class AffineCodec(Codec):
             if c.shape != (enc.points, nmax) or c.dtype != torch.float32:
                 raise ValueError(f"enc coeffs have shape {tuple(c.shape)} ({c.dtype}); accepted: [{enc.points}, {nmax}] float32")
             return labels, c.contiguous(), nmax, None, None, n, mean
-        if "coeff_offsets" not in enc.cache:
+        key = _codes_state(enc)
+        hit = enc.cache.get("coeff_offsets")
+        if hit is None or hit[0] != key:  # per encoding, rebuilt when its codes change
             counts = self.n_vectors_[self.labels_of(enc)]
             off = torch.cumsum(counts, 0) - counts
             if c.ndim != 1 or int(counts.sum()) != c.numel() or c.dtype != torch.float32:
                 raise ValueError(f"enc packed coeffs have shape {tuple(c.shape)} ({c.dtype}); accepted: "
                                  f"[{int(counts.sum())}] float32 (Σ_p n_k(p))")
-            enc.cache["coeff_offsets"] = off.contiguous()
-        return labels, c.contiguous(), 0, enc.cache["coeff_offsets"], self.n_vectors_.contiguous(), n, mean
+            enc.cache["coeff_offsets"] = hit = (key, off.contiguous(), tuple(enc.tensors.values()))
+        return labels, c.contiguous(), 0, hit[1], self.n_vectors_.contiguous(), n, mean
 
     # ----------------------------------------------------------------- storage
     def storage(self, enc: Encoded) -> dict[str, Any]:

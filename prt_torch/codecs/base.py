@@ -75,14 +75,19 @@ class Encoded:
         tensors: name -> tensor, the per-point data (e.g. ``labels [P]`` uint8/int16/int32,
             ``coeffs [P, n'] float32``); the per-cluster representatives live in the codec.
         meta: JSON-able facts (``points``, ``dim``, ``matrix_shape``, layout flags).
-    Relighting plans (tile layouts, built once per encoding) are cached in ``cache`` and are
-    never saved.
+    Relighting plans (tile layouts, kernel arguments; built once per encoding) are cached in
+    ``cache`` and are never saved, pickled or copied.
     """
 
     codec: str
     tensors: dict[str, torch.Tensor]
     meta: dict[str, Any]
     cache: dict[str, Any] = dataclasses.field(default_factory=dict, repr=False, compare=False)
+
+    def __getstate__(self) -> dict:
+        """Pickled and copied without ``cache``: its entries point into this process's tensors
+        (``AffineCodec``'s kernel plans hold raw addresses) and are rebuilt on first use."""
+        return {**self.__dict__, "cache": {}}
 
     @property
     def points(self) -> int:

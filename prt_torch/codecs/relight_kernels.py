@@ -51,8 +51,8 @@ import torch
 from .._checks import check_finite_float32
 from .._native import compile_library
 
-__all__ = ["native", "native_status", "constants", "model_t", "affine_rows", "affine_dense", "affine_taps", "sg_lookup_sum", "sg_taps", "lobe_layout",
-           "fits", "MAX_ROW"]
+__all__ = ["native", "native_status", "constants", "constants_layout", "model_t", "affine_rows", "affine_dense", "affine_taps",
+           "plan", "run_plan", "Plan", "sg_lookup_sum", "sg_taps", "lobe_layout", "fits", "MAX_ROW"]
 
 #: largest per-point row (n_out·C for dense views, J·C for taps) the kernels hold on the stack
 MAX_ROW = 4096
@@ -1295,6 +1295,41 @@ int prt_affine_taps(i64 P, i64 n_out, i64 C, const void *lab, int lab_kind, cons
     return flag;
 }
 
+/* One relight from a plan (relight_kernels.plan, AffineCodec's per-encoding cache): the per-cluster
+   constants into T (prt_constants_lanes or prt_constants), then the per-point kernel (rows, dense or taps)
+   — the arguments that do not change between lights read from a[] (PL_ fields, _PLAN_FIELDS in Python),
+   one call where two ctypes calls of 11-19 converted arguments each cost about 4 us of a small relight.
+   y0, y1: the view (dense: y [P, n_out] float32; taps: idx int64 [P, t], g float32 [P, t]). Returns
+   16 (nothing computed past the check) if L holds a NaN or an infinity, else the point kernel's flag. */
+enum { PL_KIND, PL_LANES, PL_K, PL_J, PL_JMAX, PL_NIN, PL_NOUT, PL_NPAD, PL_C, PL_MT, PL_SK, PL_SJ, PL_SO, PL_SC, PL_NKC,
+       PL_MEAN, PL_P, PL_X, PL_FO, PL_LAB, PL_LABKIND, PL_W, PL_WSTRIDE, PL_WOFF, PL_NK, PL_NUSE, PL_ORDER, PL_CSORT,
+       PL_NTAP, PL_N };
+#define PL_PTR(i, T) ((T)(intptr_t)a[i])
+int prt_relight_plan(const i64 *a, const float *L, float *T, float *out, const void *y0, const void *y1, int nthreads) {
+    int bad = a[PL_LANES]
+        ? prt_constants_lanes(a[PL_K], a[PL_J], a[PL_JMAX], a[PL_NIN], a[PL_C], PL_PTR(PL_MT, const float *), L, T, a[PL_SK],
+                              a[PL_SJ], nthreads)
+        : prt_constants(a[PL_K], a[PL_J], a[PL_JMAX], a[PL_NIN], a[PL_NOUT], a[PL_NPAD], a[PL_C], PL_PTR(PL_MT, const float *),
+                        L, T, a[PL_SK], a[PL_SJ], a[PL_SO], a[PL_SC], PL_PTR(PL_NKC, const i64 *), (int)a[PL_MEAN], nthreads);
+    if (bad) return 16;
+    const void *lab = PL_PTR(PL_LAB, const void *);
+    const float *W = PL_PTR(PL_W, const float *);
+    const i64 *woff = PL_PTR(PL_WOFF, const i64 *), *nk = PL_PTR(PL_NK, const i64 *);
+    const int32_t *order = PL_PTR(PL_ORDER, const int32_t *);
+    const int lk = (int)a[PL_LABKIND], mean = (int)a[PL_MEAN], csort = (int)a[PL_CSORT];
+    switch (a[PL_KIND]) {
+    case 0:
+        return prt_affine_rows(a[PL_P], a[PL_X], a[PL_FO], lab, lk, W, a[PL_WSTRIDE], woff, nk, a[PL_NUSE], mean, T, a[PL_J], out,
+                               order, csort, nthreads);
+    case 1:
+        return prt_affine_dense(a[PL_P], a[PL_FO], a[PL_X], a[PL_C], lab, lk, W, a[PL_WSTRIDE], woff, nk, a[PL_NUSE], mean, T,
+                                a[PL_J], (const float *)y0, out, order, csort, nthreads);
+    default:
+        return prt_affine_taps(a[PL_P], a[PL_FO], a[PL_C], lab, lk, W, a[PL_WSTRIDE], woff, nk, a[PL_NUSE], mean, T, a[PL_X],
+                               a[PL_NTAP], (const i64 *)y0, (const float *)y1, out, order, csort, nthreads);
+    }
+}
+
 /* Green 2005 eq. 2.7 from a prefiltered cube-map pyramid (``PrefilteredEnvironment.lookup``, fused):
    acc[c] += wl E_sigma(x, y, z)[c], E bilinear in the face (clamped at its edges) and linear in
    log sigma between the two bracketing levels (clamped to the ladder); OpenGL face order.
@@ -1741,6 +1776,7 @@ def _compile() -> tuple[ctypes.CDLL | None, str]:
         "prt_affine_taps": [i64, i64, i64, *common, i64, vp, vp, vp, vp, ci, ci],
         "prt_constants": [i64] * 7 + [vp, vp, vp] + [i64] * 4 + [vp, ci, ci],
         "prt_constants_lanes": [i64] * 5 + [vp, vp, vp] + [i64] * 2 + [ci],
+        "prt_relight_plan": [vp, vp, vp, vp, vp, vp, ci],
         "prt_sg_lookup_sum": [i64, i64, i64, i64, vp, vp, vp, i64, i64, i64, vp, i64, i64, vp, i64, vp, ci],
         "prt_sg_taps": [i64, i64, i64, i64, i64, i64, vp, vp, vp, i64, i64, i64, vp, vp, vp, i64, i64, vp, i64, vp, ci],
     })
@@ -1829,7 +1865,7 @@ def model_t(means: torch.Tensor | None, basis: torch.Tensor, n_out: int, n_in: i
 
 
 #: where element (k, j, o, c) of the constants sits, per layout: (sizes of the padded tensor, strides k, j, o, c)
-def _layout(kind: str, K: int, J: int, n_out: int, C: int) -> tuple[tuple, tuple]:
+def constants_layout(kind: str, K: int, J: int, n_out: int, C: int) -> tuple[tuple, tuple]:
     if kind == "rows":  # [K, J, F8]: a point's row e_p in output order (o, c)
         F = _pad8(n_out * C)
         return (K, J, F), (J * F, F, C, 1)
@@ -1841,6 +1877,41 @@ def _layout(kind: str, K: int, J: int, n_out: int, C: int) -> tuple[tuple, tuple
 
 
 _WORKSPACE = threading.local()  # per thread: {(kind, size): constants buffer} (see constants(scratch=True))
+
+
+def _model_args(means, basis, n: int, n_out: int, n_in: int, C: int, kind: str, nk: torch.Tensor | None) -> tuple:
+    """The constants kernel's view of the model (shared by :func:`constants` and :func:`plan`):
+    ``(lanes, Mt, K, J, Jmax, size, strides)`` — the layout's padded sizes and (k, j, o, c)
+    strides (:func:`constants_layout`); ``nk`` checked."""
+    lanes = n_out == 1 and kind == "rows"  # vectors: 8 clusters per vector (prt_constants_lanes)
+    Mt = model_t(means, basis, n_out, n_in, lanes)
+    K, Jmax = basis.shape[0], Mt.shape[1]
+    if nk is not None and (nk.dtype != torch.int64 or nk.shape != (K,) or not nk.is_contiguous()):
+        raise ValueError(f"constants: nk is {nk.dtype} {tuple(nk.shape)}{'' if nk.is_contiguous() else ', not contiguous'}; "
+                         f"accepted: contiguous int64 [K] = [{K}] (the kernel indexes it per cluster)")
+    J = (1 if means is not None else 0) + n
+    size, strides = constants_layout(kind, K, J, n_out, C)
+    return lanes, Mt, K, J, Jmax, size, strides
+
+
+def _scratch(kind: str, size: tuple) -> torch.Tensor:
+    """This thread's constants buffer of layout ``kind`` and padded ``size``, reused by its next
+    call (zeroed once, when made: the kernels overwrite all but the padding)."""
+    bufs = getattr(_WORKSPACE, "bufs", None)
+    if bufs is None:
+        bufs = _WORKSPACE.bufs = {}
+    out = bufs.get((kind, size))
+    if out is None:
+        bufs.clear()  # one buffer per thread: the latest layout
+        out = bufs[(kind, size)] = torch.zeros(size, dtype=torch.float32)
+    return out
+
+
+def _light_flagged(L: torch.Tensor, Lc: torch.Tensor) -> None:
+    """Raise naming the light's first non-finite value (as given, else as converted to float32:
+    a float64 value beyond its range), after a kernel flagged the float32 light it read."""
+    check_finite_float32("light", L, Lc)
+    raise RuntimeError("prt_constants flagged the light but no value of it is NaN or Inf")  # pragma: no cover
 
 
 def constants(lib, means, basis, n: int, n_out: int, n_in: int, L: torch.Tensor, kind: str, scratch: bool = False,
@@ -1857,25 +1928,9 @@ def constants(lib, means, basis, n: int, n_out: int, n_in: int, L: torch.Tensor,
     cluster k's first (mean) + min(n, nk[k]) terms only; the rest of its rows are undefined
     ('rows', 'dense': vectors, whose constants take 8 clusters at a time, compute them all) or
     zero ('taps')."""
-    lanes = n_out == 1 and kind == "rows"  # vectors: 8 clusters per vector (prt_constants_lanes)
-    Mt = model_t(means, basis, n_out, n_in, lanes)
-    K, Jmax = basis.shape[0], Mt.shape[1]
-    if nk is not None and (nk.dtype != torch.int64 or nk.shape != (K,) or not nk.is_contiguous()):
-        raise ValueError(f"constants: nk is {nk.dtype} {tuple(nk.shape)}{'' if nk.is_contiguous() else ', not contiguous'}; "
-                         f"accepted: contiguous int64 [K] = [{K}] (the kernel indexes it per cluster)")
-    J = (1 if means is not None else 0) + n
     C = L.shape[1]
-    size, (sk, sj, so, sc) = _layout(kind, K, J, n_out, C)
-    if scratch:
-        bufs = getattr(_WORKSPACE, "bufs", None)
-        if bufs is None:
-            bufs = _WORKSPACE.bufs = {}
-        out = bufs.get((kind, size))
-        if out is None:
-            bufs.clear()  # one buffer per thread: the latest layout
-            out = bufs[(kind, size)] = torch.zeros(size, dtype=torch.float32)
-    else:
-        out = torch.zeros(size, dtype=torch.float32)
+    lanes, Mt, K, J, Jmax, size, (sk, sj, so, sc) = _model_args(means, basis, n, n_out, n_in, C, kind, nk)
+    out = _scratch(kind, size) if scratch else torch.zeros(size, dtype=torch.float32)
     Lc = _as(L, torch.float32)
     if lanes:  # every term of every cluster: the rows past a cluster's n_k are never read
         bad = lib.prt_constants_lanes(K, J, Jmax, n_in, C, Mt.data_ptr(), Lc.data_ptr(), out.data_ptr(), sk, sj,
@@ -1884,11 +1939,85 @@ def constants(lib, means, basis, n: int, n_out: int, n_in: int, L: torch.Tensor,
         bad = lib.prt_constants(K, J, Jmax, n_in, n_out, Mt.shape[3], C, Mt.data_ptr(), Lc.data_ptr(), out.data_ptr(),
                                 sk, sj, so, sc, _ptr(nk), int(means is not None), torch.get_num_threads())
     if bad:
-        # the kernel found a non-finite value in the float32 light it read: name it (as given, else
-        # as converted: a float64 value beyond float32's range)
-        check_finite_float32("light", L, Lc)
-        raise RuntimeError("prt_constants flagged the light but no value of it is NaN or Inf")  # pragma: no cover
+        _light_flagged(L, Lc)
     return out
+
+
+#: ``prt_relight_plan``'s argument array, in its PL_ order (the C enum)
+_PLAN_FIELDS = ("kind", "lanes", "K", "J", "Jmax", "n_in", "n_out", "n_pad", "C", "Mt", "sk", "sj", "so", "sc", "nk_c", "mean",
+                "P", "x", "Fo", "lab", "lab_kind", "W", "wstride", "woff", "nk", "nuse", "order", "csort", "ntap")
+
+
+class Plan:
+    """One encoding's relighting, ready to run per light (:func:`plan`, :func:`run_plan`): the
+    kernels' arguments that do not change between lights, as one int64 array, and the tensors
+    they point into (kept alive with it)."""
+
+    __slots__ = ("args", "keep", "kind", "size", "n_in", "C", "P", "n_out", "ntap", "shape", "numel")
+
+
+def plan(lib, means, basis, n: int, n_out: int, n_in: int, C: int, kind: str, labels, W, wstride, woff, nk, nuse, mean,
+         P: int, order: torch.Tensor | None = None, codes_sorted: bool = False, ntap: int = 0) -> Plan:
+    """A :class:`Plan` of one relighting — :func:`constants` (into this thread's scratch buffer)
+    then :func:`affine_rows`, :func:`affine_dense` or :func:`affine_taps` (``kind``; ``ntap``
+    taps per point), with the same arguments and checks, run by :func:`run_plan` in one ctypes
+    call (``prt_relight_plan``): the same kernels, so the same bits. For a caller that relights
+    one encoding under many lights (``AffineCodec`` caches one per encoding): the two calls'
+    argument conversion and checks, ~10 µs of a small relight, are paid once."""
+    lanes, Mt, K, J, Jmax, size, (sk, sj, so, sc) = _model_args(means, basis, n, n_out, n_in, C, kind, nk)
+    code = _codes(labels, W, wstride, woff, nk, nuse, mean)
+    if kind == "rows":
+        x, Fo = size[2], n_out * C
+    elif kind in ("dense", "taps"):
+        x, Fo = size[3], n_out
+    else:
+        raise ValueError(f"plan: kind {kind!r}; accepted: 'rows', 'dense', 'taps'")
+    if kind == "taps" and not 1 <= ntap <= 64:
+        raise ValueError(f"plan: {ntap} taps per point; accepted: 1..64")
+    vals = {"kind": {"rows": 0, "dense": 1, "taps": 2}[kind], "lanes": int(lanes), "K": K, "J": J, "Jmax": Jmax, "n_in": n_in,
+            "n_out": n_out, "n_pad": Mt.shape[3] if not lanes else 8, "C": C, "Mt": Mt.data_ptr(), "sk": sk, "sj": sj, "so": so,
+            "sc": sc, "nk_c": _ptr(nk) or 0, "mean": int(means is not None), "P": P, "x": x, "Fo": Fo,
+            "lab": code[0] or 0, "lab_kind": code[1], "W": code[2] or 0, "wstride": code[3], "woff": code[4] or 0,
+            "nk": code[5] or 0, "nuse": code[6], "order": _order(order, P) or 0, "csort": _csort(order, codes_sorted),
+            "ntap": ntap}
+    pl = Plan()
+    pl.args = torch.tensor([vals[f] for f in _PLAN_FIELDS], dtype=torch.int64)
+    pl.keep = (Mt, labels, W, woff, nk, order)
+    pl.kind, pl.size, pl.n_in, pl.C, pl.P, pl.n_out, pl.ntap = kind, size, n_in, C, P, n_out, ntap
+    pl.shape = (P, Fo) if kind == "rows" else (P, C)
+    pl.numel = P * pl.shape[1]
+    return pl
+
+
+def run_plan(lib, pl: Plan, L: torch.Tensor, view=None, out: torch.Tensor | None = None) -> tuple[torch.Tensor, int]:
+    """Relight under ``L [n_in, C]`` by plan ``pl``: ``(result, flag)`` as the kernel of its kind
+    returns them (rows: ``[P, n_out·C]``; dense, taps: ``[P, C]``; into ``out`` when given).
+    ``view``: dense ``y [P, n_out]`` float32, taps ``(idx int64 [P, t], g float32 [P, t])``, or
+    None (rows). A non-finite light raises naming the value, as :func:`constants` does."""
+    Lc = _as(L, torch.float32)
+    if Lc.shape != (pl.n_in, pl.C):
+        raise ValueError(f"run_plan: light {tuple(Lc.shape)}; accepted: [{pl.n_in}, {pl.C}] (the plan's)")
+    y0 = y1 = None
+    if pl.kind == "dense":
+        if view.dtype != torch.float32 or view.shape != (pl.P, pl.n_out):
+            raise ValueError(f"run_plan: dense view {view.dtype} {tuple(view.shape)}; accepted: float32 [{pl.P}, {pl.n_out}]")
+        view = view if view.is_contiguous() else view.contiguous()
+        y0 = view.data_ptr()
+    elif pl.kind == "taps":
+        idx, g = view
+        if idx.dtype != torch.int64 or g.dtype != torch.float32 or idx.shape != (pl.P, pl.ntap) or g.shape != idx.shape:
+            raise ValueError(f"run_plan: taps {idx.dtype} {tuple(idx.shape)}, {g.dtype} {tuple(g.shape)}; accepted: int64 and "
+                             f"float32 [{pl.P}, {pl.ntap}]")
+        idx, g = _as(idx, torch.int64), _as(g, torch.float32)
+        y0, y1 = idx.data_ptr(), g.data_ptr()
+    elif view is not None:
+        raise ValueError("run_plan: a view for a plan of kind 'rows'; accepted: None")
+    out = _out(out, pl.numel, pl.shape)
+    T = _scratch(pl.kind, pl.size)
+    flag = lib.prt_relight_plan(pl.args.data_ptr(), Lc.data_ptr(), T.data_ptr(), out.data_ptr(), y0, y1, torch.get_num_threads())
+    if flag & 16:
+        _light_flagged(L, Lc)
+    return out, int(flag)
 
 
 _ORDERS_CHECKED: dict[int, tuple] = {}  # id(order) -> (weak reference, version): range already checked
