@@ -686,3 +686,23 @@ def test_encodings_saved_before_the_lobe_records_load_and_relight_the_same(cube,
     rec = enc.tensors["lobes_by_view"]
     rec.data = torch.ones(J, V, N, 5)  # the same tensor object, new storage: the cached views follow it
     assert float(c.lobes_of(enc)[0].sum()) == V * J * N
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_cached_lobe_layout_follows_in_place_edits(cube, dtype):
+    """The codec keeps each encoding's lobe views and their kernel layout (float32 records are
+    read in place); an in-place edit of the records is seen by the next relight, every view and
+    with taps — also for float64 records, which the kernels read through a float32 copy that is
+    therefore never kept."""
+    g = torch.Generator().manual_seed(21)
+    J, N, V = 12, 1, 20
+    c, enc = _random_lobes(cube[0], V, J, N, g, torch.rand(V, J, N, generator=g) + 0.1)
+    enc.tensors["lobes_by_view"] = enc.tensors["lobes_by_view"].to(dtype)
+    pe = prefilter_environment(lambda x: 1.2 + x[..., :3], res=8, levels=12)
+    idx = torch.randint(0, J, (V, 3), generator=g)
+    a = torch.rand(V, 3, generator=g) + 0.1
+    before = (c.relight(enc, pe), c.relight(enc, pe, (idx, a)))
+    enc.tensors["lobes_by_view"][..., 0].mul_(2.0)  # every weight doubled: radiance doubles
+    after = (c.relight(enc, pe), c.relight(enc, pe, (idx, a)))
+    for b, x in zip(before, after):
+        assert torch.allclose(x, 2 * b, rtol=1e-6, atol=0)

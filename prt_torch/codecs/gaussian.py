@@ -75,7 +75,7 @@ from .._checks import check_finite_float32
 from ..lighting.prefilter import PrefilteredEnvironment, cube_map_directions, sg_normaliser
 from ..params import Boolean, Interval, Options
 from .base import Codec, Encoded, check_out, check_signal, register, view_nbytes
-from .relight_kernels import native, sg_lookup_sum, sg_taps
+from .relight_kernels import lobe_layout, native, sg_lookup_sum, sg_taps
 
 __all__ = ["GaussianCodec", "resolvable_sigma", "relative_l2", "sh_truncation", "haar_truncation",
            "fibonacci_directions", "default_views", "view_neighbours", "view_taps",
@@ -457,15 +457,16 @@ class _Problem:
 
 
 def lobe_sum(light: PrefilteredEnvironment, w: torch.Tensor, mu: torch.Tensor, sigma: torch.Tensor,
-             out: torch.Tensor | None = None) -> torch.Tensor:
+             out: torch.Tensor | None = None, layout: tuple | None = None) -> torch.Tensor:
     """Σ over the lobes (last axis of ``w [..., N]``) of w · E_σ(μ) — Green 2005 eq. 2.7 with
     ``mu [..., N, 3]``, ``sigma [..., N]`` → ``[..., C]`` float32: one fused pass per lobe
     (``relight_kernels.sg_lookup_sum``) where the kernels are compiled, else
     ``light.lookup`` and a sum (the same values to float32 rounding; tests compare them).
-    ``out``: an optional contiguous float32 result of that shape, written and returned."""
+    ``out``: an optional contiguous float32 result of that shape, written and returned;
+    ``layout``: ``relight_kernels.lobe_layout(w, mu, sigma)`` where the caller keeps it."""
     lib = _fused(light)
     if lib is not None:
-        return sg_lookup_sum(lib, light.table(), light.log_sigmas, light.res, mu, sigma, w, out=out)
+        return sg_lookup_sum(lib, light.table(), light.log_sigmas, light.res, mu, sigma, w, out=out, layout=layout)
     res = (w[..., None] * light.lookup(mu, sigma)).sum(-2)
     return res if out is None else out.copy_(res)
 
@@ -795,13 +796,22 @@ class GaussianCodec(Codec):
                 raise ValueError(f"encoding tensor {name!r} has shape {tuple(rec.shape)}; accepted: {shape}")
             r = rec.transpose(0, 1) if name == "lobes_by_view" else rec  # [V, J, N, 5]
             views = (r.select(-1, 0), r.narrow(-1, 1, 3), r.select(-1, 4))
-            enc.cache["lobe_views"] = (rec, key, views)
+            lay = lobe_layout(*views)  # kept only where it reads the records in place (float32): no copy to go stale
+            enc.cache["lobe_views"] = (rec, key, views, lay if lay[0] is views[0] else None)
             return views
         missing = [k for k in ("weights", "mu", "sigma") if k not in t]
         if missing:
             raise ValueError(f"not a gaussian encoding: no tensor 'lobes_by_view' (nor 'lobes', nor {', '.join(map(repr, missing))}); "
                              f"it has {sorted(t)}")
         return t["weights"], t["mu"], t["sigma"]
+
+    @classmethod
+    def _lobes_and_layout(cls, enc: Encoded) -> tuple[tuple, tuple | None]:
+        """``(lobes_of(enc), their relight_kernels.lobe_layout)``, the layout kept with the cached
+        views (records; None for separate arrays, whose layout the kernels work out per call)."""
+        views = cls.lobes_of(enc)
+        hit = enc.cache.get("lobe_views")
+        return views, (hit[3] if hit is not None and hit[2] is views else None)
 
     def decode(self, enc: Encoded) -> torch.Tensor:
         """The fitted tables ``[V, J·P]`` float32 (Green eq. 2.1 at the texel directions, plus
@@ -890,8 +900,8 @@ class GaussianCodec(Codec):
         """
         self._require_fitted()
         light = self._check_light(light)
-        lobes = self.lobes_of(enc)
-        V, J, _ = lobes[0].shape
+        lobes = self._lobes_and_layout(enc)
+        V, J, _ = lobes[0][0].shape
         if view is not None:  # values: by the fused kernel as it reads them (it flags bad ones), else in _relight
             view = self.checked_taps(view, V, J, values=False)
         self._check_diffuse_light(enc, light)  # refused before anything is written into out
@@ -903,11 +913,11 @@ class GaussianCodec(Codec):
     def _relight(self, enc: Encoded, light: PrefilteredEnvironment, view: tuple | None, out: torch.Tensor | None = None,
                  lobes: tuple | None = None) -> torch.Tensor:
         """``view``: None or checked taps; ``out``: None or a checked result buffer; ``lobes``:
-        ``lobes_of(enc)`` when the caller has them."""
-        w, mu, sg = lobes if lobes is not None else self.lobes_of(enc)
+        ``_lobes_and_layout(enc)`` when the caller has them."""
+        (w, mu, sg), layout = lobes if lobes is not None else self._lobes_and_layout(enc)
         V, J, N = w.shape
         if view is None:
-            res = lobe_sum(light, w, mu, sg, out=out)
+            res = lobe_sum(light, w, mu, sg, out=out, layout=layout)
             if "diffuse" in enc.tensors:
                 res += self._diffuse(enc, light)[:, None, :] * enc.tensors["has_data"].float()[..., None]
             return res
@@ -916,7 +926,7 @@ class GaussianCodec(Codec):
         idx, a = view if lib is not None else self.checked_taps(view, V, J)
         a = a.float()
         if lib is not None:  # blend, look up and sum in one fused pass per vertex
-            res, flag = sg_taps(lib, light.table(), light.log_sigmas, light.res, w, mu, sg, idx, a, out=out)
+            res, flag = sg_taps(lib, light.table(), light.log_sigmas, light.res, w, mu, sg, idx, a, out=out, layout=layout)
             if flag:  # a bad tap (nothing computed or written): raise naming it
                 self.checked_taps(view, V, J)
                 raise RuntimeError("prt_sg_taps flagged the taps but none is out of range, negative or non-finite")  # pragma: no cover

@@ -2155,7 +2155,7 @@ def lobe_layout(w: torch.Tensor, mu: torch.Tensor, sigma: torch.Tensor) -> tuple
 
 
 def sg_lookup_sum(lib, table: torch.Tensor, log_sigmas: torch.Tensor, res: int, mu: torch.Tensor, sigma: torch.Tensor,
-                  w: torch.Tensor, out: torch.Tensor | None = None) -> torch.Tensor:
+                  w: torch.Tensor, out: torch.Tensor | None = None, layout: tuple | None = None) -> torch.Tensor:
     """Σ over the last axis of ``w [..., N]`` of w · E_σ(μ) (Green 2005 eq. 2.7) from a prefiltered
     pyramid ``table [L·6·r·r, C]`` float32 (``PrefilteredEnvironment.table``) with ladder
     ``log_sigmas [L]``: ``mu [..., N, 3]``, ``sigma [..., N]`` → ``[..., C]`` float32, one fused
@@ -2164,13 +2164,14 @@ def sg_lookup_sum(lib, table: torch.Tensor, log_sigmas: torch.Tensor, res: int, 
     to ``[V, J, N, 5]`` (read in place, :func:`lobe_layout`; the latter a block of 16 vertices
     at a time, every view of each, its rows of the result staying in L1), or any tensors of
     those shapes (else ``ValueError``). ``out``: an optional contiguous float32 result
-    ``[..., C]`` (checked by the caller), written and returned."""
+    ``[..., C]`` (checked by the caller), written and returned. ``layout``: ``lobe_layout(w, mu,
+    sigma)`` where the caller keeps it (the Gaussian codec, per encoding: ~2 µs a call)."""
     lead, N = tuple(w.shape[:-1]), w.shape[-1]
     G = w.numel() // max(N, 1)
     C = table.shape[1]
     if C > 16:
         raise ValueError(f"sg_lookup_sum: {C} channels; accepted: at most 16")
-    w, mu, sigma, sw, sm, ss, fb = lobe_layout(w, mu, sigma)
+    w, mu, sigma, sw, sm, ss, fb = layout or lobe_layout(w, mu, sigma)
     A, B = (w.shape[0], w.shape[1]) if fb else (G, 1)  # view-major records: vertex blocks, every view of each
     table, ladder = _as(table, torch.float32), _as(log_sigmas, torch.float32)
     given = out
@@ -2181,7 +2182,7 @@ def sg_lookup_sum(lib, table: torch.Tensor, log_sigmas: torch.Tensor, res: int, 
 
 
 def sg_taps(lib, table: torch.Tensor, log_sigmas: torch.Tensor, res: int, w: torch.Tensor, mu: torch.Tensor, sigma: torch.Tensor,
-            idx: torch.Tensor, a: torch.Tensor, out: torch.Tensor | None = None) -> torch.Tensor:
+            idx: torch.Tensor, a: torch.Tensor, out: torch.Tensor | None = None, layout: tuple | None = None) -> torch.Tensor:
     """Gaussian relighting with view taps (Green 2005 §2.3, eq. 2.7), fused per vertex: the lobes
     of the tapped views blended with ``a / Σa`` (``gaussian.blend_lobes``), looked up in the
     pyramid (as :func:`sg_lookup_sum`), summed over the lobes and scaled by Σa. ``w [V, J, N]``,
@@ -2192,13 +2193,13 @@ def sg_taps(lib, table: torch.Tensor, log_sigmas: torch.Tensor, res: int, w: tor
     ``a [V, k]`` → ``([V, C]`` float32 (into ``out`` when given, checked by the caller), flag``):
     flag 1, with nothing computed or written, when a tap has an index outside [0, J) or a
     negative or non-finite weight (one pass over the taps in the kernel, where torch's checks
-    took four; the caller raises naming it)."""
+    took four; the caller raises naming it). ``layout``: as for :func:`sg_lookup_sum`."""
     V, J, N = w.shape
     k = idx.shape[1]
     C = table.shape[1]
     if C > 16:
         raise ValueError(f"sg_taps: {C} channels; accepted: at most 16")
-    w, mu, sigma, sw, sm, ss, fb = lobe_layout(w, mu, sigma)
+    w, mu, sigma, sw, sm, ss, fb = layout or lobe_layout(w, mu, sigma)
     fv, fj = (N, fb) if fb else (J * N, N)  # lobe index of (v, j, 0): view-major records, else in order
     a, table, ladder = (_as(t, torch.float32) for t in (a, table, log_sigmas))
     idx = _as(idx, torch.int64)
