@@ -45,14 +45,14 @@ from .segment import from_tiles, segment_matmul, tile_layout, tiles_bmm, to_tile
 #: (paired, 50k points, 1 and 2 threads; benchmarks/bench_relight.py)
 SORT_MIN_CLUSTER_BYTES = 1024
 
+__all__ = ["AffineCodec", "label_dtype"]
+
 
 def _codes_state(enc: Encoded) -> tuple:
     """What the per-encoding caches (tile plan, packed offsets, kernel plans) are keyed by: each
     codes tensor's id, storage address and version — a replaced tensor or an in-place edit changes
     it. A cache entry holds the tensors it was built from, so their ids stay unique while it lives."""
     return tuple((k, id(t), t.data_ptr(), t._version) for k, t in enc.tensors.items())
-
-__all__ = ["AffineCodec", "label_dtype"]
 
 
 def label_dtype(K: int) -> torch.dtype:

@@ -18,6 +18,12 @@ released). Without a compiler — or with ``PRT_TORCH_NATIVE=0`` — :func:`nati
 and ``AffineCodec.relight`` uses its torch formulation, which gives the same results to
 float32 rounding (tests run both).
 
+Per light, ``AffineCodec.relight`` runs a :class:`Plan` of its encoding (:func:`plan`, built once
+and cached; :func:`run_plan`): the arguments of the constants kernel and of the point kernel
+that do not change between lights, as one int64 array, handed to ``prt_relight_plan`` — one
+ctypes call, the same kernels as :func:`constants` followed by :func:`affine_rows`,
+:func:`affine_dense` or :func:`affine_taps` (tests hold them to the same bits).
+
 Codes as stored by ``AffineCodec`` (no copies): labels ``[P]`` uint8/int16/int32 (absent when
 K = 1), weights ``[P, n_max]`` float32 (row stride n_max, the first n used) or packed (the
 n_{k(p)} weights of each point one after the other; ``offsets int64 [P]`` where each starts,
