@@ -48,11 +48,20 @@ SORT_MIN_CLUSTER_BYTES = 1024
 __all__ = ["AffineCodec", "label_dtype"]
 
 
-def _codes_state(enc: Encoded) -> tuple:
-    """What the per-encoding caches (tile plan, packed offsets, kernel plans) are keyed by: each
-    codes tensor's id, storage address and version — a replaced tensor or an in-place edit changes
-    it. A cache entry holds the tensors it was built from, so their ids stay unique while it lives."""
-    return tuple((k, id(t), t.data_ptr(), t._version) for k, t in enc.tensors.items())
+def _memo(enc: Encoded, name: Any, build, model: tuple = ()) -> Any:
+    """``build()``, kept in ``enc.cache[name]`` while the codes are the same tensors at the same
+    versions (each one's id, storage address and version: a replaced tensor or an in-place edit
+    rebuilds it) and ``model`` (tensors the value also depends on, e.g. the basis) likewise. The
+    entry holds those tensors, so their ids stay unique while it lives. For the per-encoding caches
+    of relighting and ``decode`` (tile plan, weights, packed offsets, kernel plans)."""
+    held = (*enc.tensors.values(), *model)
+    state = [enc.meta.get("points")]
+    for t in held:  # (a loop: ~1 µs here, against 2 for a generator into a tuple)
+        state += (None,) if t is None else (id(t), t.data_ptr(), t._version)
+    hit = enc.cache.get(name)
+    if hit is None or hit[0] != state:
+        hit = enc.cache[name] = (state, build(), held)
+    return hit[1]
 
 
 def label_dtype(K: int) -> torch.dtype:
@@ -222,15 +231,14 @@ class AffineCodec(Codec):
         c = enc.tensors["coeffs"]
         if not enc.meta.get("packed"):
             return c
-        key = _codes_state(enc)
-        hit = enc.cache.get("coeffs_padded")
-        if hit is None or hit[0] != key:  # rebuilt when the codes change
-            lab = self.labels_of(enc)
-            mask = torch.arange(nmax)[None, :] < self.n_vectors_[lab][:, None]
+
+        def build():
+            mask = torch.arange(nmax)[None, :] < self.n_vectors_[self.labels_of(enc)][:, None]
             full = torch.zeros(P, nmax, dtype=torch.float32)
             full[mask] = c
-            enc.cache["coeffs_padded"] = hit = (key, full, tuple(enc.tensors.values()))
-        return hit[1]
+            return full
+
+        return _memo(enc, "coeffs_padded", build)
 
     # ----------------------------------------------------------------- encode
     def encode(self, X: torch.Tensor) -> Encoded:
@@ -294,28 +302,26 @@ class AffineCodec(Codec):
         return torch.cat([self.means_[:, None], B], 1)
 
     def _weights1(self, enc: Encoded, n: int) -> torch.Tensor:
-        """``[P, J]``: (1,) w_p^1..w_p^n (cached while the codes are the same: ``_codes_state``)."""
-        key, state = ("W1", n, self.means_ is not None), _codes_state(enc)
-        hit = enc.cache.get(key)
-        if hit is None or hit[0] != state:
+        """``[P, J]``: (1,) w_p^1..w_p^n (cached while the codes are the same: ``_memo``)."""
+
+        def build():
             c = self.coeffs_of(enc)[:, :n]
             if self.means_ is not None:
                 c = torch.cat([torch.ones(c.shape[0], 1), c], 1)
-            enc.cache[key] = hit = (state, c.contiguous(), tuple(enc.tensors.values()))
-        return hit[1]
+            return c.contiguous()
+
+        return _memo(enc, ("W1", n, self.means_ is not None), build)
 
     def _plan(self, enc: Encoded) -> dict:
         """Tile layout of the points by cluster and the weights in tile order, built once per
         encoding (the CPU counterpart of uploading per-cluster vertex buffers) and rebuilt when
-        its codes change (a replaced tensor or an in-place edit: ``_codes_state``)."""
-        key = _codes_state(enc)
-        hit = enc.cache.get("plan")
-        if hit is None or hit.get("key") != key:
+        its codes change (a replaced tensor or an in-place edit: ``_memo``)."""
+
+        def build():
             layout = tile_layout(self.labels_of(enc), self.K_)
-            W1 = self._weights1(enc, self.basis_.shape[1])
-            enc.cache["plan"] = hit = {"layout": layout, "W1t": to_tiles(layout, W1).contiguous(), "key": key,
-                                       "codes": tuple(enc.tensors.values())}  # held: their ids stay unique
-        return hit
+            return {"layout": layout, "W1t": to_tiles(layout, self._weights1(enc, self.basis_.shape[1])).contiguous()}
+
+        return _memo(enc, "plan", build)
 
     # ----------------------------------------------------------------- relight
     def cluster_constants(self, light: torch.Tensor, n: int | None = None) -> torch.Tensor:
@@ -443,15 +449,11 @@ class AffineCodec(Codec):
         and ``ntap`` taps, built once and cached in ``enc.cache`` while the model and the codes
         are the same tensors at the same versions (a refit, an in-place edit or a replaced
         tensor rebuilds it; the plan holds them, so their ids stay unique while it lives)."""
+        key = ("kernel_plan", n, kind, C, ntap, SORT_MIN_CLUSTER_BYTES)  # (the module's threshold: benchmarks and tests set it)
+        return _memo(enc, key, lambda: self._build_kernel_plan(lib, enc, n, kind, C, ntap), model=(self.basis_, self.means_))
+
+    def _build_kernel_plan(self, lib, enc: Encoded, n: int, kind: str, C: int, ntap: int):
         basis, means = self.basis_, self.means_
-        state = (id(basis), basis._version, id(means), None if means is None else means._version, enc.points, _codes_state(enc))
-        plans = enc.cache.get("kernel_plans")
-        if plans is None:
-            plans = enc.cache["kernel_plans"] = {}
-        key = (n, kind, C, ntap, SORT_MIN_CLUSTER_BYTES)  # (the module's threshold: benchmarks and tests set it)
-        hit = plans.get(key)
-        if hit is not None and hit[0] == state:
-            return hit[1]
         n_out, n_in = self.matrix_shape_ or (1, self.D_)
         codes = self._native_codes(enc, n)
         # Where a cluster's constants are large (CPCA: J·n_out·C floats, 2.6 KB at 9×24×3), points
@@ -464,10 +466,8 @@ class AffineCodec(Codec):
         if codes[0] is not None and kernel_layout(kind, self.K_, J, n_out, C)[1][0] * 4 >= SORT_MIN_CLUSTER_BYTES:
             order, codes = self._cluster_sorted_codes(enc, codes)
         # per cluster only the terms its points read (n_k: CPCA adaptive)
-        pl = kernel_plan(lib, means, basis, n, n_out, n_in, C, kind, *codes, P=enc.points, order=order,
-                         codes_sorted=order is not None, ntap=ntap)
-        plans[key] = (state, pl, (basis, means, tuple(enc.tensors.values())))
-        return pl
+        return kernel_plan(lib, means, basis, n, n_out, n_in, C, kind, *codes, P=enc.points, order=order,
+                           codes_sorted=order is not None, ntap=ntap)
 
     def _cluster_sorted_codes(self, enc: Encoded, codes: tuple) -> tuple[torch.Tensor, tuple]:
         """The visiting order ``int32 [P]`` — points sorted by cluster within consecutive blocks of
@@ -527,16 +527,15 @@ class AffineCodec(Codec):
             if c.shape != (enc.points, nmax) or c.dtype != torch.float32:
                 raise ValueError(f"enc coeffs have shape {tuple(c.shape)} ({c.dtype}); accepted: [{enc.points}, {nmax}] float32")
             return labels, c.contiguous(), nmax, None, None, n, mean
-        key = _codes_state(enc)
-        hit = enc.cache.get("coeff_offsets")
-        if hit is None or hit[0] != key:  # per encoding, rebuilt when its codes change
+
+        def offsets():  # per encoding, rebuilt when its codes change
             counts = self.n_vectors_[self.labels_of(enc)]
-            off = torch.cumsum(counts, 0) - counts
             if c.ndim != 1 or int(counts.sum()) != c.numel() or c.dtype != torch.float32:
                 raise ValueError(f"enc packed coeffs have shape {tuple(c.shape)} ({c.dtype}); accepted: "
                                  f"[{int(counts.sum())}] float32 (Σ_p n_k(p))")
-            enc.cache["coeff_offsets"] = hit = (key, off.contiguous(), tuple(enc.tensors.values()))
-        return labels, c.contiguous(), 0, hit[1], self.n_vectors_.contiguous(), n, mean
+            return (torch.cumsum(counts, 0) - counts).contiguous()
+
+        return labels, c.contiguous(), 0, _memo(enc, "coeff_offsets", offsets), self.n_vectors_.contiguous(), n, mean
 
     # ----------------------------------------------------------------- storage
     def storage(self, enc: Encoded) -> dict[str, Any]:
