@@ -808,3 +808,59 @@ def test_relight_plans_follow_the_encoding_and_the_model(name, params, ms, monke
     bad[2, 1] = float("nan")
     with pytest.raises(ValueError, match=r"light has 1 non-finite value\(s\).*\(2, 1\)"):
         c.relight(enc, bad, view=views.get("dense"))
+
+
+def test_caches_follow_a_refit_a_second_codec_and_fresh_copies_of_the_codes(monkeypatch):
+    """Every per-encoding cache is keyed by the codec's model too (``affine._memo``): after a refit
+    that changes CPCA adaptive's per-cluster term counts, the old encoding is refused by its
+    packed-size check instead of read past its coefficients; a second codec object (here without a
+    mean) relighting and decoding an encoding another one has cached gets its own results; and
+    non-contiguous codes edited in place — whose contiguous copy is a fresh tensor every call — are
+    seen by the cluster-sorted copy of the codes. (Found by a review with AddressSanitizer.)"""
+    import copy
+
+    from prt_torch.codecs import affine
+
+    L = torch.randn(4, 3, generator=torch.Generator().manual_seed(3))
+    params = {"clusters": 8, "vectors": 2, "budget": 2.0, "max_vectors": 5, "iterations": 2, "adapt_iters": 2, "max_iter": 5}
+    c = codecs.get("cpca_adaptive", **params)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        enc = c.fit_encode(transfer_like(300, 9, 4, seed=1, regions=12, noise=0.05), matrix_shape=(9, 4))
+        c.relight(enc, L)
+        c.decode(enc)
+        for seed in range(2, 40):  # a refit whose per-cluster counts no longer add up to the stored weights
+            c.fit(transfer_like(300, 9, 4, seed=seed, regions=12, noise=0.3), matrix_shape=(9, 4))
+            if int(c.n_vectors_[c.labels_of(enc).long()].sum()) != enc.tensors["coeffs"].numel():
+                break
+        else:  # pragma: no cover - the search is deterministic
+            pytest.fail("no refit changed the per-cluster counts")
+    if relight_kernels.native() is not None:
+        with pytest.raises(ValueError, match=r"enc packed coeffs have shape"):
+            c.relight(enc, L)
+    with pytest.raises((ValueError, RuntimeError)):
+        c.decode(enc)
+
+    P, ms = 250, (9, 4)
+    c, enc = _fit("cpca_static", {"clusters": 6, "vectors": 3, "max_iter": 5}, ms, P, None)
+    c.relight(enc, L)
+    c.decode(enc)
+    c2 = copy.deepcopy(c)
+    c2.means_ = None  # a second codec object: the same basis, no mean
+    want = c2.decode(copy.copy(enc))  # a copy carries no cache
+    assert torch.equal(c2.decode(enc), want)
+    monkeypatch.setenv("PRT_TORCH_NATIVE", "0")
+    ref, scale = _reference(want.view(P, *ms), L, None)
+    _check(c2.relight(enc, L), ref, scale, 3 * 9, "second codec, torch path")
+    monkeypatch.delenv("PRT_TORCH_NATIVE")
+    _check(c2.relight(enc, L), ref, scale, 3 * 9, "second codec, kernels")
+
+    monkeypatch.setattr(affine, "SORT_MIN_CLUSTER_BYTES", 0)  # visit cluster by cluster, from a sorted copy
+    c, enc = _fit("cpca_static", {"clusters": 4, "vectors": 3, "max_iter": 5}, (24, 4), 230, None)
+    W = enc.tensors["coeffs"]
+    enc.tensors["coeffs"] = Wt = torch.empty(W.shape[1], W.shape[0]).t().copy_(W)  # non-contiguous codes
+    for i in range(6):
+        ref, scale = _reference(c.decode(enc).view(230, 24, 4), L, None)
+        _check(c.relight(enc, L), ref, scale, 3 * 24, f"edit {i}")
+        assert "cluster_order" in enc.cache or relight_kernels.native() is None
+        Wt.mul_(2.0)  # an in-place edit

@@ -51,7 +51,7 @@ __all__ = ["AffineCodec", "label_dtype"]
 def _memo(enc: Encoded, name: Any, build, model: tuple = ()) -> Any:
     """``build()``, kept in ``enc.cache[name]`` while the codes are the same tensors at the same
     versions (each one's id, storage address and version: a replaced tensor or an in-place edit
-    rebuilds it) and ``model`` (tensors the value also depends on, e.g. the basis) likewise. The
+    rebuilds it) and ``model`` (the codec's tensors the value also depends on, ``_model_tensors``) likewise. The
     entry holds those tensors, so their ids stay unique while it lives. For the per-encoding caches
     of relighting and ``decode`` (tile plan, weights, packed offsets, kernel plans)."""
     held = (*enc.tensors.values(), *model)
@@ -238,7 +238,7 @@ class AffineCodec(Codec):
             full[mask] = c
             return full
 
-        return _memo(enc, "coeffs_padded", build)
+        return _memo(enc, "coeffs_padded", build, model=self._model_tensors())
 
     # ----------------------------------------------------------------- encode
     def encode(self, X: torch.Tensor) -> Encoded:
@@ -310,7 +310,7 @@ class AffineCodec(Codec):
                 c = torch.cat([torch.ones(c.shape[0], 1), c], 1)
             return c.contiguous()
 
-        return _memo(enc, ("W1", n, self.means_ is not None), build)
+        return _memo(enc, ("W1", n), build, model=self._model_tensors())
 
     def _plan(self, enc: Encoded) -> dict:
         """Tile layout of the points by cluster and the weights in tile order, built once per
@@ -321,7 +321,7 @@ class AffineCodec(Codec):
             layout = tile_layout(self.labels_of(enc), self.K_)
             return {"layout": layout, "W1t": to_tiles(layout, self._weights1(enc, self.basis_.shape[1])).contiguous()}
 
-        return _memo(enc, "plan", build)
+        return _memo(enc, "plan", build, model=self._model_tensors())
 
     # ----------------------------------------------------------------- relight
     def cluster_constants(self, light: torch.Tensor, n: int | None = None) -> torch.Tensor:
@@ -450,7 +450,7 @@ class AffineCodec(Codec):
         are the same tensors at the same versions (a refit, an in-place edit or a replaced
         tensor rebuilds it; the plan holds them, so their ids stay unique while it lives)."""
         key = ("kernel_plan", n, kind, C, ntap, SORT_MIN_CLUSTER_BYTES)  # (the module's threshold: benchmarks and tests set it)
-        return _memo(enc, key, lambda: self._build_kernel_plan(lib, enc, n, kind, C, ntap), model=(self.basis_, self.means_))
+        return _memo(enc, key, lambda: self._build_kernel_plan(lib, enc, n, kind, C, ntap), model=self._model_tensors())
 
     def _build_kernel_plan(self, lib, enc: Encoded, n: int, kind: str, C: int, ntap: int):
         basis, means = self.basis_, self.means_
@@ -469,6 +469,13 @@ class AffineCodec(Codec):
         return kernel_plan(lib, means, basis, n, n_out, n_in, C, kind, *codes, P=enc.points, order=order,
                            codes_sorted=order is not None, ntap=ntap)
 
+    def _model_tensors(self) -> tuple:
+        """The fitted model's tensors every per-encoding cache depends on (``_memo``'s ``model``):
+        a refit replaces them, an in-place edit bumps their versions, and a codec without a mean
+        (``means_`` None) keys apart from one with it — each rebuilds the caches (per-cluster
+        term counts decide packed offsets and padded weights; the mean decides the weights' ones)."""
+        return (self.basis_, self.means_, self.n_vectors_)
+
     def _cluster_sorted_codes(self, enc: Encoded, codes: tuple) -> tuple[torch.Tensor, tuple]:
         """The visiting order ``int32 [P]`` — points sorted by cluster within consecutive blocks of
         B = clamp(32 K, 2048, 16384) points (stable: point order within a cluster) — and the codes
@@ -477,27 +484,24 @@ class AffineCodec(Codec):
         buffers). A block keeps the scattered view rows and outputs close together; 32 points per
         cluster and block on average amortise loading T_k (measured: benchmarks/bench_relight.py)."""
         labels, W, wstride, woff, nk, n, mean = codes
-        key = (labels.data_ptr(), labels._version) + ((W.data_ptr(), W._version) if W is not None else ())
-        hit = enc.cache.get("cluster_order")
-        if hit is not None and hit[0] == key:
-            order, lab_s, W_s, woff_s = hit[1]
-            return order, (lab_s, W_s, wstride, woff_s, nk, n, mean)
-        P, K = enc.points, self.K_
-        B = min(max(32 * K, 2048), 16384)
-        lab = labels.long()
-        order = torch.argsort(torch.arange(P) // B * K + lab, stable=True)
-        lab_s = labels[order].contiguous()
-        if W is None:
-            W_s, woff_s = None, None
-        elif woff is None:
-            W_s, woff_s = W[order].contiguous(), None
-        else:  # packed: each point's n_k weights, re-packed in the new order
-            cnt = nk[lab_s.long()]
-            woff_s = (torch.cumsum(cnt, 0) - cnt).contiguous()
-            src = torch.repeat_interleave(woff[order] - woff_s, cnt) + torch.arange(int(cnt.sum()))
-            W_s = W[src].contiguous()
-        order = order.to(torch.int32).contiguous()
-        enc.cache["cluster_order"] = (key, (order, lab_s, W_s, woff_s))
+
+        def build():  # from the codes as read now (a stored tensor's contiguous() may be a fresh copy: _memo keys the stored ones)
+            P, K = enc.points, self.K_
+            B = min(max(32 * K, 2048), 16384)
+            order = torch.argsort(torch.arange(P) // B * K + labels.long(), stable=True)
+            lab_s = labels[order].contiguous()
+            if W is None:
+                W_s, woff_s = None, None
+            elif woff is None:
+                W_s, woff_s = W[order].contiguous(), None
+            else:  # packed: each point's n_k weights, re-packed in the new order
+                cnt = nk[lab_s.long()]
+                woff_s = (torch.cumsum(cnt, 0) - cnt).contiguous()
+                src = torch.repeat_interleave(woff[order] - woff_s, cnt) + torch.arange(int(cnt.sum()))
+                W_s = W[src].contiguous()
+            return order.to(torch.int32).contiguous(), lab_s, W_s, woff_s
+
+        order, lab_s, W_s, woff_s = _memo(enc, "cluster_order", build, model=self._model_tensors())
         return order, (lab_s, W_s, wstride, woff_s, nk, n, mean)
 
     def _native_codes(self, enc: Encoded, n: int) -> tuple:
@@ -535,7 +539,8 @@ class AffineCodec(Codec):
                                  f"[{int(counts.sum())}] float32 (Σ_p n_k(p))")
             return (torch.cumsum(counts, 0) - counts).contiguous()
 
-        return labels, c.contiguous(), 0, _memo(enc, "coeff_offsets", offsets), self.n_vectors_.contiguous(), n, mean
+        return (labels, c.contiguous(), 0, _memo(enc, "coeff_offsets", offsets, model=self._model_tensors()),
+                self.n_vectors_.contiguous(), n, mean)
 
     # ----------------------------------------------------------------- storage
     def storage(self, enc: Encoded) -> dict[str, Any]:

@@ -1356,7 +1356,9 @@ static inline void sg_lookup(float x, float y, float z, float sigma, float wl, c
     s = s < 0 ? 0 : (s > r - 1 ? r - 1 : s);
     t = t < 0 ? 0 : (t > r - 1 ? r - 1 : t);
     float sf = floorf(s), tf = floorf(t);
-    i64 s0 = (i64)(sf > rmax ? rmax : sf), t0 = (i64)(tf > rmax ? rmax : tf);
+    /* a NaN coordinate (a non-finite direction) fails every compare above: texel 0 of the face, whose
+       lookup is NaN through fs, ft (converting NaN to an integer is undefined behaviour) */
+    i64 s0 = sf >= 0 ? (i64)(sf > rmax ? rmax : sf) : 0, t0 = tf >= 0 ? (i64)(tf > rmax ? rmax : tf) : 0;
     float fs = s - (float)s0, ft = t - (float)t0;
     fs = fs < 0 ? 0 : (fs > 1 ? 1 : fs);
     ft = ft < 0 ? 0 : (ft > 1 ? 1 : ft);
