@@ -816,7 +816,8 @@ def test_caches_follow_a_refit_a_second_codec_and_fresh_copies_of_the_codes(monk
     packed-size check instead of read past its coefficients; a second codec object (here without a
     mean) relighting and decoding an encoding another one has cached gets its own results; and
     non-contiguous codes edited in place — whose contiguous copy is a fresh tensor every call — are
-    seen by the cluster-sorted copy of the codes. (Found by a review with AddressSanitizer.)"""
+    seen by the cluster-sorted copy of the codes, and labels corrupted in place are range-checked
+    again. (Found by a review with AddressSanitizer.)"""
     import copy
 
     from prt_torch.codecs import affine
@@ -854,6 +855,10 @@ def test_caches_follow_a_refit_a_second_codec_and_fresh_copies_of_the_codes(monk
     _check(c2.relight(enc, L), ref, scale, 3 * 9, "second codec, torch path")
     monkeypatch.delenv("PRT_TORCH_NATIVE")
     _check(c2.relight(enc, L), ref, scale, 3 * 9, "second codec, kernels")
+    if relight_kernels.native() is not None:  # labels corrupted in place after plans exist: checked again, refused
+        enc.tensors["labels"][5] = c.K_ + 3
+        with pytest.raises(ValueError, match=r"enc labels have shape \(250,\) and span \[0, 9\]"):
+            c.relight(enc, L)
 
     monkeypatch.setattr(affine, "SORT_MIN_CLUSTER_BYTES", 0)  # visit cluster by cluster, from a sorted copy
     c, enc = _fit("cpca_static", {"clusters": 4, "vectors": 3, "max_iter": 5}, (24, 4), 230, None)

@@ -510,18 +510,19 @@ class AffineCodec(Codec):
         and packed offsets built once per encoding (cached); the kernels index with them."""
         labels = enc.tensors.get("labels") if self.K_ > 1 else None
         if labels is not None:
-            key = ("labels_checked", labels._version, labels.data_ptr())
-            if key not in enc.cache:
-                if labels.dtype not in (torch.uint8, torch.int16, torch.int32):
-                    labels = labels.to(torch.int32 if self.K_ > 32768 else torch.int16)
-                labels = labels.contiguous()
-                lo, hi = torch.aminmax(labels.to(torch.int32)) if labels.numel() else (torch.tensor(0), torch.tensor(0))
-                if labels.shape != (enc.points,) or int(lo) < 0 or int(hi) >= self.K_:
-                    raise ValueError(f"enc labels have shape {tuple(labels.shape)} and span [{int(lo)}, {int(hi)}]; "
+            stored = labels
+
+            def checked():  # once per encoding and model (_memo): the range check, and a dtype the kernels read
+                lab = stored if stored.dtype in (torch.uint8, torch.int16, torch.int32) else stored.to(
+                    torch.int32 if self.K_ > 32768 else torch.int16)
+                lab = lab.contiguous()
+                lo, hi = torch.aminmax(lab.to(torch.int32)) if lab.numel() else (torch.tensor(0), torch.tensor(0))
+                if lab.shape != (enc.points,) or int(lo) < 0 or int(hi) >= self.K_:
+                    raise ValueError(f"enc labels have shape {tuple(lab.shape)} and span [{int(lo)}, {int(hi)}]; "
                                      f"accepted: [{enc.points}] in [0, {self.K_})")
-                enc.cache = {k: v for k, v in enc.cache.items() if not (isinstance(k, tuple) and k[0] == "labels_checked")}
-                enc.cache[key] = labels
-            labels = enc.cache[key]
+                return lab
+
+            labels = _memo(enc, "labels_checked", checked, model=self._model_tensors())
         nmax = self.basis_.shape[1]
         mean = self.means_ is not None
         if n == 0 or nmax == 0:
