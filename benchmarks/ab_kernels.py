@@ -108,6 +108,10 @@ def compile_source(kernels: tuple[str, list[str]], label: str):
         relight_kernels._SRC, relight_kernels._FLAGS = keep
     if lib is None:
         raise SystemExit(f"ab_kernels: the kernels of {label} did not compile: {why}")
+    if f"({' '.join(kernels[1])})" not in why:  # built only by the fallback without -march=native: another ISA
+        raise SystemExit(f"ab_kernels: the kernels of {label} compiled only with other flags than {' '.join(kernels[1])} "
+                         f"({why}): the A/B would compare another instruction set; accepted: a source that compiles with "
+                         "its flags (compile it by hand to see the error)")
     return lib
 
 

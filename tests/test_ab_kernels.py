@@ -36,3 +36,28 @@ def test_bad_options_are_refused_naming_them(tmp_path):
     assert r.returncode != 0 and "--points 10; accepted: an integer >= 64" in r.stderr
     r = subprocess.run([sys.executable, str(TOOL), "--threads", "0"], capture_output=True, text=True, cwd=ROOT, timeout=120)
     assert r.returncode != 0 and "--threads '0'; accepted: positive integers" in r.stderr
+
+
+def _cpu_has(flag: str) -> bool:
+    try:
+        return any(line.startswith("flags") and f" {flag} " in line + " " for line in Path("/proc/cpuinfo").read_text().splitlines())
+    except OSError:
+        return False
+
+
+@pytest.mark.skipif(shutil.which("cc") is None and shutil.which("gcc") is None, reason="no C compiler")
+@pytest.mark.skipif(not _cpu_has("avx"), reason="needs an x86-64 CPU with AVX (-march=native then differs from the baseline ISA)")
+def test_a_source_built_only_by_the_fallback_flags_is_refused(monkeypatch, tmp_path):
+    """A kernel source that fails under its own flags but compiles without ``-march=native`` (the library's
+    fallback for users) must not be A/B'd: it would time another instruction set (this once hid a
+    typo in a macro behind a 6x "slow-down")."""
+    monkeypatch.setenv("PRT_TORCH_CACHE", str(tmp_path))  # a fresh kernel cache: build, don't load
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        import ab_kernels
+        from prt_torch.codecs import relight_kernels as rk
+        src = rk._SRC + "\n#ifdef __AVX__\n#error built with -march=native\n#endif\n"
+        with pytest.raises(SystemExit, match="compiled only with other flags"):
+            ab_kernels.compile_source((src, list(rk._FLAGS)), "broken")
+    finally:
+        sys.path.remove(str(ROOT / "benchmarks"))
