@@ -490,6 +490,10 @@ int prt_constants(i64 K, i64 J, i64 Jmax, i64 n_in, i64 n_out, i64 n_pad, i64 C,
     for (i64 i = 0; i < n_in * C; i++) bad |= !(fabsf(L[i]) <= FLT_MAX);
     if (bad) return 1;
     i64 nth = nthreads > 0 ? nthreads : 1;
+    if (nth == 1) {  /* no parallel region: entering one, even of one thread, costs ~0.5 us (libgomp) */
+        constants_range(0, K, J, Jmax, n_in, n_out, n_pad, C, Mt, L, out, sk, sj, so, sc, nk, mean);
+        return 0;
+    }
     #pragma omp parallel for schedule(static, 1) num_threads(nth)
     for (i64 t = 0; t < nth; t++)
         constants_range(K * t / nth, K * (t + 1) / nth, J, Jmax, n_in, n_out, n_pad, C, Mt, L, out, sk, sj, so, sc, nk, mean);
@@ -506,6 +510,36 @@ static void constants_lanes_range(i64 b0, i64 b1, i64 K, i64 J, i64 Jmax, i64 n_
     for (i64 b = b0; b < b1; b++)
         for (i64 j = 0; j < J; j++) {
             const float *src = Mv + (b * Jmax + j) * n_in * 8;
+            if (C == 3) {  /* the three colours' chains at once, each as below (same bits): 6 independent chains
+                              where one colour's two waited on the multiply-add latency (VQ 256 of 16: 3x) */
+                v8 a0 = {0}, a1 = {0}, a2 = {0}, z0 = {0}, z1 = {0}, z2 = {0};
+                i64 i = 0;
+                for (; i + 2 <= n_in; i += 2) {
+                    const v8 s = LD(src + 8 * i), t = LD(src + 8 * i + 8);
+                    a0 = FMA8(L[3 * i], s, a0);
+                    a1 = FMA8(L[3 * i + 1], s, a1);
+                    a2 = FMA8(L[3 * i + 2], s, a2);
+                    z0 = FMA8(L[3 * i + 3], t, z0);
+                    z1 = FMA8(L[3 * i + 4], t, z1);
+                    z2 = FMA8(L[3 * i + 5], t, z2);
+                }
+                for (; i < n_in; i++) {
+                    const v8 s = LD(src + 8 * i);
+                    a0 = FMA8(L[3 * i], s, a0);
+                    a1 = FMA8(L[3 * i + 1], s, a1);
+                    a2 = FMA8(L[3 * i + 2], s, a2);
+                }
+                a0 = a0 + z0;
+                a1 = a1 + z1;
+                a2 = a2 + z2;
+                for (i64 l = 0; l < 8 && b * 8 + l < K; l++) {
+                    float *o = out + (b * 8 + l) * sk + j * sj;
+                    o[0] = a0[l];
+                    o[1] = a1[l];
+                    o[2] = a2[l];
+                }
+                continue;
+            }
             for (i64 c = 0; c < C; c++) {
                 v8 a = {0}, z = {0};
                 i64 i = 0;
@@ -791,6 +825,9 @@ int prt_affine_rows(i64 P, i64 F, i64 Fo, const void *lab, int lab_kind, const f
        argument as a local (an OpenMP-outlined loop body reloads shared ones per point) */
     int flag = 0;
     i64 nth = nthreads > 0 ? nthreads : 1;
+    /* one thread: no parallel region (as in prt_constants) */
+    if (nth == 1) return prt_affine_rows_range(order, csort, 0, P, P, F, Fo, lab, lab_kind,
+            W, wstride, woff, nk, nuse, mean, T, J, out);
     #pragma omp parallel for schedule(static, 1) num_threads(nth) reduction(|:flag)
     for (i64 t = 0; t < nth; t++) flag |= prt_affine_rows_range(order, csort, P * t / nth, P * (t + 1) / nth, P, F, Fo, lab, lab_kind,
             W, wstride, woff, nk, nuse, mean, T, J, out);
@@ -1048,6 +1085,9 @@ int prt_affine_dense(i64 P, i64 n_out, i64 n_pad, i64 C, const void *lab, int la
        argument as a local (an OpenMP-outlined loop body reloads shared ones per point) */
     int flag = 0;
     i64 nth = nthreads > 0 ? nthreads : 1;
+    /* one thread: no parallel region (as in prt_constants) */
+    if (nth == 1) return prt_affine_dense_range(order, csort, 0, P, P, n_out, n_pad, C, lab, lab_kind,
+            W, wstride, woff, nk, nuse, mean, T, J, y, out);
     #pragma omp parallel for schedule(static, 1) num_threads(nth) reduction(|:flag)
     for (i64 t = 0; t < nth; t++) flag |= prt_affine_dense_range(order, csort, P * t / nth, P * (t + 1) / nth, P, n_out, n_pad, C, lab,
             lab_kind, W, wstride, woff, nk, nuse, mean, T, J, y, out);
@@ -1310,6 +1350,9 @@ int prt_affine_taps(i64 P, i64 n_out, i64 C, const void *lab, int lab_kind, cons
        argument as a local (an OpenMP-outlined loop body reloads shared ones per point) */
     int flag = 0;
     i64 nth = nthreads > 0 ? nthreads : 1;
+    /* one thread: no parallel region (as in prt_constants) */
+    if (nth == 1) return prt_affine_taps_range(order, csort, 0, P, P, n_out, C, lab, lab_kind, W,
+            wstride, woff, nk, nuse, mean, T, Jp, ntap, idx, g, out);
     #pragma omp parallel for schedule(static, 1) num_threads(nth) reduction(|:flag)
     for (i64 t = 0; t < nth; t++) flag |= prt_affine_taps_range(order, csort, P * t / nth, P * (t + 1) / nth, P, n_out, C, lab,
             lab_kind, W, wstride, woff, nk, nuse, mean, T, Jp, ntap, idx, g, out);
