@@ -4,6 +4,7 @@ through the uncompressed reference (``prt_torch.relight.apply_dense`` / ``apply_
 every codec family × view mode (none, dense, taps) × K = 1 / K > 1 × with / without a mean ×
 n_vectors prefixes × per-cluster n_k (adaptive, packed codes) × label dtypes × colours."""
 import math
+import re
 import shutil
 import warnings
 
@@ -869,3 +870,108 @@ def test_caches_follow_a_refit_a_second_codec_and_fresh_copies_of_the_codes(monk
         _check(c.relight(enc, L), ref, scale, 3 * 24, f"edit {i}")
         assert "cluster_order" in enc.cache or relight_kernels.native() is None
         Wt.mul_(2.0)  # an in-place edit
+
+
+@pytest.mark.parametrize("name,params,ms", [("vq", {"clusters": 5}, None), ("cpca_static", {"clusters": 4, "vectors": 3}, (9, 4)),
+                                            ("cpca_adaptive", {"clusters": 4, "vectors": 2, "budget": 2.0, "max_vectors": 4,
+                                                               "iterations": 2, "adapt_iters": 2, "max_iter": 5}, (9, 4))])
+def test_relighter_gives_relights_bits_and_sees_every_change(name, params, ms, path, monkeypatch):
+    """``codec.relighter(enc, view)`` then ``r(light, out=)`` per light (a render loop's form, which
+    skips relight's per-call checks while nothing changed): the same bits as ``relight``, with and
+    without ``out``, for every view mode, kernels or torch path; a view updated in place, codes and
+    model edited in place, a replaced codes tensor, a refit (an old encoding then refused, as relight
+    refuses it), another ``out``, another light shape and a float64 view (converted, so relit through
+    ``relight``) are each seen by the next call; bad lights, a NaN written into the view and an
+    ``out`` that overlaps the light are refused naming them."""
+    P = 150
+    n_out, n_in = ms or (1, 16)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        c = codecs.get(name, **params)
+        enc = c.fit_encode(transfer_like(P, n_out, n_in, seed=3, regions=6).view(P, -1), matrix_shape=ms)
+    g = torch.Generator().manual_seed(4)
+    L = torch.randn(n_in, 3, generator=g)
+    views = {"rows": None}
+    if ms:
+        views.update({"dense": torch.randn(P, n_out, generator=g),
+                      "taps": (torch.randint(0, n_out, (P, 4), generator=g), torch.rand(P, 4, generator=g))})
+    rs = {k: c.relighter(enc, v) for k, v in views.items()}
+    bufs = {k: torch.empty_like(c.relight(enc, L, view=v)) for k, v in views.items()}
+
+    last: dict = {}
+
+    def check(what, light=L, e=None):
+        for k, v in views.items():
+            # first as the previous call was made (so that it may take the fast path) and before relight,
+            # which would rebuild caches the relighter reads
+            prev = last.get(k)
+            got = rs[k](light, out=prev if prev is not None and prev.shape[-1] == light.shape[1] else None).clone()
+            want = c.relight(e or enc, light, view=v)
+            assert torch.equal(got, want), (what, k)
+            buf = bufs[k] if bufs[k].shape == want.shape else torch.empty_like(want)
+            for _ in range(2):  # the first call checks in full, the second takes the fast path
+                assert torch.equal(rs[k](light), want), (what, k)
+                assert rs[k](light, out=buf) is buf and torch.equal(buf, want), (what, k)
+            last[k] = buf
+
+    check("first")
+    check("another light", torch.randn(n_in, 3, generator=g))
+    check("two colours", torch.randn(n_in, 2, generator=g))
+    if ms:
+        views["dense"].mul_(-2.0)  # the view updated in place: read at each call
+        views["taps"][1].mul_(0.5)
+        check("view edited")
+    W = enc.tensors.get("coeffs")
+    if W is not None:
+        W.mul_(-0.5)
+        check("codes edited")
+    with torch.no_grad():
+        c.basis_.mul_(1.5)
+        if c.means_ is not None:
+            c.means_.add_(0.25)
+    check("model edited")
+    if "labels" in enc.tensors:
+        lab = enc.tensors["labels"]
+        enc.tensors["labels"] = (lab.long() + 1).remainder(c.K_).to(lab.dtype)
+        check("labels replaced")
+    bufs = {k: b.clone() for k, b in bufs.items()}  # other out tensors
+    check("another out")
+    if ms:
+        v64 = views["dense"].double()
+        r64 = c.relighter(enc, v64)
+        assert torch.equal(r64(L), c.relight(enc, L, view=v64))
+        v64.mul_(3.0)  # a converted view is relit through relight, so its edits are seen too
+        assert torch.equal(r64(L), c.relight(enc, L, view=v64))
+    for k in views:
+        bad = L.clone()
+        bad[2, 1] = float("nan")
+        rs[k](L)
+        with pytest.raises(ValueError, match=r"light has 1 non-finite value\(s\).*\(2, 1\)"):
+            rs[k](bad)
+        with pytest.raises(ValueError, match=r"light has shape \(3, 3\); accepted"):
+            rs[k](torch.randn(3, 3))
+        with pytest.raises(TypeError, match="light must be a torch.Tensor"):
+            rs[k]([[1.0, 2.0, 3.0]])
+        rs[k](L, out=bufs[k])
+        if k == "rows" and not ms:  # a light inside out (vectors: out [P, 3], the light [16, 3] fits in it)
+            with pytest.raises(ValueError, match="out shares memory with an input"):
+                rs[k](bufs[k][:16], out=bufs[k])
+    if ms:
+        views["dense"][7, 2] = float("nan")
+        with pytest.raises(ValueError, match=r"view.*non-finite.*\(7, 2\)"):
+            rs["dense"](L, out=bufs["dense"])
+        views["dense"][7, 2] = 0.0
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        c.fit(transfer_like(P, n_out, n_in, seed=8, regions=6).view(P, -1), matrix_shape=ms)  # a refit
+    for k, v in views.items():
+        try:
+            want = c.relight(enc, L, view=v)
+        except ValueError as e:  # the old encoding refused (CPCA adaptive: another packed size): by both
+            with pytest.raises(ValueError, match=re.escape(str(e)[:40])):
+                rs[k](L)
+        else:
+            assert torch.equal(rs[k](L), want), k
+    enc2 = c.encode(transfer_like(P, n_out, n_in, seed=9, regions=6).view(P, -1))
+    rs = {k: c.relighter(enc2, v) for k, v in views.items()}
+    check("refit, new encoding", e=enc2)

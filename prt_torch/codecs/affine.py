@@ -31,7 +31,8 @@ import torch
 from .. import io
 from .._checks import check_finite
 from ..params import Boolean, Interval, Options
-from .base import (Codec, Encoded, check_light, check_matrix_shape, check_out, check_signal, check_view, check_weights)
+from .base import (Codec, Encoded, Relighter, check_light, check_matrix_shape, check_out, check_signal, check_view,
+                   check_weights)
 from .kmeans import CACHE_BLOCK_BYTES, linear, row_chunk
 from .relight_kernels import constants_layout as kernel_layout
 from .relight_kernels import fits as kernel_fits
@@ -48,6 +49,14 @@ SORT_MIN_CLUSTER_BYTES = 1024
 __all__ = ["AffineCodec", "label_dtype"]
 
 
+def _state_of(enc: Encoded, held: tuple) -> list:
+    """What ``_memo`` keys an entry by: the point count and each held tensor's id, address and version."""
+    state = [enc.meta.get("points")]
+    for t in held:  # (a loop: ~1 µs here, against 2 for a generator into a tuple)
+        state += (None,) if t is None else (id(t), t.data_ptr(), t._version)
+    return state
+
+
 def _memo(enc: Encoded, name: Any, build, model: tuple = ()) -> Any:
     """``build()``, kept in ``enc.cache[name]`` while the codes are the same tensors at the same
     versions (each one's id, storage address and version: a replaced tensor or an in-place edit
@@ -55,9 +64,7 @@ def _memo(enc: Encoded, name: Any, build, model: tuple = ()) -> Any:
     entry holds those tensors, so their ids stay unique while it lives. For the per-encoding caches
     of relighting and ``decode`` (tile plan, weights, packed offsets, kernel plans)."""
     held = (*enc.tensors.values(), *model)
-    state = [enc.meta.get("points")]
-    for t in held:  # (a loop: ~1 µs here, against 2 for a generator into a tuple)
-        state += (None,) if t is None else (id(t), t.data_ptr(), t._version)
+    state = _state_of(enc, held)
     hit = enc.cache.get(name)
     if hit is None or hit[0] != state:
         hit = enc.cache[name] = (state, build(), held)
@@ -393,6 +400,16 @@ class AffineCodec(Codec):
         res = self._relight_torch(enc, light, view, n)
         return res if out is None else out.copy_(res)
 
+    def relighter(self, enc: Encoded, view: Any = None, n_vectors: int | None = None) -> "AffineRelighter":
+        """A prepared relighting (``base.Relighter``): ``r = codec.relighter(enc, view)``, then
+        ``r(light, out=buf)`` per light, the same bits as ``relight(enc, light, view, n_vectors,
+        out=buf)``. Everything ``relight`` checks per call is checked here once (the view's values
+        in full); per call only the light's type and shape, ``out`` (in full when it is another
+        tensor than the last call's), and whether the codes and the model are the same tensors at
+        the same versions, then one kernel call: ~4 µs less per light than ``relight``, what a
+        small relight costs (reports/benchmarks/relight.md, "prepared")."""
+        return AffineRelighter(self, enc, view, n_vectors)
+
     def _relight_torch(self, enc: Encoded, light, view, n: int) -> torch.Tensor:
         """The torch formulation of ``relight`` (no compiled kernels), on a checked view."""
         P = enc.points
@@ -684,3 +701,83 @@ def _total_energy(Xc: torch.Tensor, w, centred: bool) -> float:
 def _key(X: torch.Tensor) -> tuple:
     return (X.data_ptr(), tuple(X.shape), X.dtype, X._version, tuple(X.stride()))
 
+
+
+class AffineRelighter(Relighter):
+    """``AffineCodec.relighter``: ``relight`` with the encoding, the view and ``n_vectors`` bound
+    and checked once. Per call: a float32 contiguous light ``[n_in, C]`` (another light, no
+    compiled kernels, or a view ``check_view`` had to convert go through ``relight``), the
+    encoding still this codec's (``_check_enc``), ``out`` checked in full when it is not the
+    tensor of the last call (else its address and shape, and that the light is not in it), and the
+    cached kernel plan (``_kernel_plan``: rebuilt after an in-place edit, a replaced tensor or a
+    refit), then ``run_plan``, which checks the view's type and shape and whose kernels check the
+    light's and the view's values (a flagged one raises naming it, as ``relight`` does)."""
+
+    __slots__ = ("_direct", "_out_seen", "_fits", "_hot")
+
+    def __init__(self, codec: AffineCodec, enc: Encoded, view: Any = None, n_vectors: int | None = None):
+        codec._check_enc(enc)
+        P = enc.points
+        n_out = codec.matrix_shape_[0] if codec.matrix_shape_ else 1
+        if codec.matrix_shape_ is None and view is not None:
+            raise ValueError("view was given but this codec was fitted on vectors (no matrix_shape); accepted: view=None")
+        codec._n_eff(n_vectors)  # refused here, not at the first light
+        checked = check_view(view, P, n_out) if codec.matrix_shape_ is not None else None  # the values too, once
+        super().__init__(codec, enc, view, {"n_vectors": n_vectors})
+        # the kernels read the view the caller holds (updated in place between lights) only where
+        # the check converted nothing (a float64 view, say, would be a stale copy: relight converts per call)
+        same = checked is view if not isinstance(view, (tuple, list)) else all(a is b for a, b in zip(checked, view))
+        self._direct = same
+        self._out_seen: tuple | None = None  # (out, address, shape) of the last out checked in full
+        self._fits: dict = {}
+        # the last call's checked setting: (light shape, out, its address and shape, state of the codes
+        # and model (_state_of), held tensors, plan); a call with the same light shape and out whose
+        # codes and model are unchanged goes straight to run_plan
+        self._hot: tuple | None = None
+
+    def __call__(self, light: Any, out: torch.Tensor | None = None) -> torch.Tensor:
+        codec, enc, view = self.codec, self.enc, self.view
+        lib = native()
+        hot = self._hot
+        if (hot is not None and lib is not None and type(light) is torch.Tensor and light.dtype == torch.float32
+                and light.shape == hot[0] and light.is_contiguous() and out is hot[1]
+                and (out is None or (out.data_ptr() == hot[2] and out.shape == hot[3]
+                                     and light.untyped_storage().data_ptr() != hot[6]))):
+            held = (*enc.tensors.values(), *codec._model_tensors())
+            if _state_of(enc, held) == hot[4]:
+                res, flag = run_plan(lib, hot[5], light, view, out)
+                if flag:
+                    check_view(view, enc.points, hot[7])  # raises with the offending value
+                return res if out is not None or hot[8] is None else res.view(hot[8])
+        self._hot = None
+        if (lib is None or not self._direct or type(light) is not torch.Tensor or light.dtype != torch.float32
+                or light.ndim != 2 or not light.is_contiguous()):
+            return codec.relight(enc, light, view, out=out, **self.kwargs)
+        codec._check_enc(enc)  # (a refit to another shape or cluster count)
+        n_out, n_in = codec.matrix_shape_ or (1, codec.D_)
+        n, C, P = codec._n_eff(self.kwargs["n_vectors"]), light.shape[1], enc.points
+        J = (1 if codec.means_ is not None else 0) + n
+        ntap = view[0].shape[1] if isinstance(view, tuple) else 0
+        ok = self._fits.get((J, C, ntap))
+        if ok is None:
+            ok = self._fits[(J, C, ntap)] = J > 0 and kernel_fits(J, n_out, C) and ntap <= 64
+        if light.shape[0] != n_in or not ok:
+            return codec.relight(enc, light, view, out=out, **self.kwargs)
+        if out is not None:
+            seen = self._out_seen
+            shape = (P, C) if view is not None or codec.matrix_shape_ is None else (P, n_out, C)
+            if seen is None or seen[0] is not out or out.data_ptr() != seen[1] or out.shape != shape:
+                check_out(out, shape, view, light)
+                self._out_seen = seen = (out, out.data_ptr(), shape, out.untyped_storage().data_ptr())
+            elif light.untyped_storage().data_ptr() == seen[3]:
+                check_out(out, shape, view, light)  # raises naming the overlap
+        kind = "rows" if view is None else ("taps" if ntap else "dense")
+        pl = codec._kernel_plan(lib, enc, n, kind, C, ntap)
+        res, flag = run_plan(lib, pl, light, view, out)
+        if flag and view is not None:
+            check_view(view, P, n_out)  # raises with the offending value
+        shape = (P, n_out, C) if view is None and codec.matrix_shape_ is not None else None
+        held = (*enc.tensors.values(), *codec._model_tensors())
+        self._hot = (light.shape, out, None if out is None else out.data_ptr(), None if out is None else out.shape,
+                     _state_of(enc, held), pl, None if out is None else self._out_seen[3], n_out, shape, held)
+        return res if out is not None or shape is None else res.view(shape)

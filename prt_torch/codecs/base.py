@@ -176,6 +176,15 @@ class Codec(BaseEstimator):
         loop does not pay for a fresh allocation per frame (:func:`check_out`)."""
         raise NotImplementedError
 
+    def relighter(self, enc: Encoded, view: Any = None, **kwargs: Any) -> "Relighter":
+        """A prepared relighting of ``enc`` with ``view`` for a render loop: ``r = codec.relighter(enc,
+        view)`` once, then ``r(light, out=buf)`` per light, the same result as ``relight(enc, light,
+        view, out=buf, **kwargs)``. The encoding, the view and the options are checked once here
+        (the view's values again by the kernels as they read them); a codec whose relight has a
+        per-call cost worth saving (``AffineCodec``) skips the rest of the per-call checks."""
+        self._require_fitted()
+        return Relighter(self, enc, view, kwargs)
+
     def score(self, X, y=None) -> float:
         """Minus the mean per-point squared reconstruction error, ``-(1/P) Σ_p ||x_p − x̃_p||²``
         (unweighted, float64) of ``X`` encoded by this fitted codec: higher is better, 0 is
@@ -414,6 +423,24 @@ def check_out(out: Any, shape: tuple[int, ...], *inputs: Any) -> torch.Tensor | 
             if isinstance(x, torch.Tensor) and x.numel() and x.untyped_storage().data_ptr() == mine:
                 raise ValueError("out shares memory with an input of relight (the view or the light); accepted: a separate tensor")
     return out
+
+
+class Relighter:
+    """``codec.relight(enc, light, view, out=out, **kwargs)`` with ``enc``, ``view`` and ``kwargs``
+    bound (:meth:`Codec.relighter`): call it with a light (and an optional ``out``) per frame.
+    The view may be updated in place between calls (its values are read, and checked, at each
+    call); a replaced view needs a new relighter."""
+
+    __slots__ = ("codec", "enc", "view", "kwargs")
+
+    def __init__(self, codec: Codec, enc: Encoded, view: Any, kwargs: dict[str, Any]):
+        self.codec, self.enc, self.view, self.kwargs = codec, enc, view, kwargs
+
+    def __call__(self, light: Any, out: torch.Tensor | None = None) -> torch.Tensor:
+        return self.codec.relight(self.enc, light, self.view, out=out, **self.kwargs)
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({type(self.codec).__name__}, {self.enc!r}, view={type(self.view).__name__})"
 
 
 def _check_finite_fast(name: str, t: torch.Tensor) -> None:
