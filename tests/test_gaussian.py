@@ -377,6 +377,63 @@ def test_fused_kernels_in_blocks_of_16_equal_the_torch_formulation(cube, threads
         c.relight(enc, pe, view=(idx, a), out=next(iter(enc.tensors.values())).view(-1)[: V * 3].view(V, 3))
 
 
+@pytest.mark.parametrize("N,layout", [(1, "by_view"), (2, "by_view"), (1, "records")])
+def test_relighter_gives_relights_bits_and_prepares_again_when_anything_changes(cube, N, layout):
+    """``codec.relighter(enc)``: every view from the lobes' addressing prepared at the first light
+    (``relight_kernels.sg_prepare``), then only the texel reads — relight's bits at 1-3 threads,
+    into ``out=`` too, over blocks of 16 and the tail; the prepared addressing is kept for another
+    light of the same pyramid and computed again for another resolution or width ladder, after an
+    in-place edit of the lobes and for a replaced lobes tensor; a one-channel light, taps and a
+    wrong light go through ``relight``. And relight's every-view results no longer depend on the
+    thread count (the threads' ranges are whole blocks of 16)."""
+    from prt_torch.codecs import relight_kernels
+    from prt_torch.harness.timing import torch_threads
+
+    if relight_kernels.native() is None:
+        pytest.skip("no compiled kernels")
+    g = torch.Generator().manual_seed(11)
+    J, V = 12, 37
+    c, enc = _random_lobes(cube[0], V, J, N, g, torch.exp(torch.randn(V, J, N, generator=g) * 2), layout)
+    pe = prefilter_environment(lambda x: torch.stack([1.5 + x[..., 0], 1 + 0.5 * x[..., 2], (x[..., 1] > 0.3).double()], -1),
+                               res=8, levels=12)
+    r = c.relighter(enc)
+    with torch_threads(1):
+        one = c.relight(enc, pe)
+    for th in (1, 2, 3):
+        with torch_threads(th):
+            want = c.relight(enc, pe)
+            assert torch.equal(want, one), th  # relight itself: the same bits at any thread count
+            for _ in range(2):  # the first call prepares, the second reuses
+                assert torch.equal(r(pe), want), th
+            buf = torch.full_like(want, float("nan"))
+            assert r(pe, out=buf) is buf and torch.equal(buf, want), th
+    kept = r._prep[1]
+    blocks = (V // 16) * J if layout == "by_view" else V * J // 16  # 16 vertices of a view, or 16 functions in order
+    assert kept is not None and kept.dtype == torch.int32 and kept.numel() == blocks * N * 96
+
+    def same(light, what):
+        got = r(light)  # before relight: nothing it caches is what the relighter reads
+        assert torch.equal(got, c.relight(enc, light)), what
+
+    pe2 = prefilter_environment(lambda x: 0.5 + x[..., :3].abs(), res=8, levels=12)
+    same(pe2, "another light, the same pyramid")
+    assert r._prep[1] is kept
+    same(prefilter_environment(lambda x: 0.5 + x[..., :3].abs(), res=6, levels=12), "another resolution")
+    same(prefilter_environment(lambda x: 0.5 + x[..., :3].abs(), res=8, levels=9), "another ladder")
+    same(pe, "back")
+    c.lobes_of(enc)[1][4, 3, 0] = torch.tensor([0.3, -0.2, 0.9])  # a lobe's mean edited in place, in a block of 16
+    c.lobes_of(enc)[2][0, 7, 0] = 7.5  # and a width
+    same(pe, "lobes edited in place")
+    name = next(iter(enc.tensors))
+    enc.tensors[name] = enc.tensors[name].flip(1 if name == "lobes_by_view" else 0).contiguous()  # a replaced tensor
+    same(pe, "lobes replaced")
+    same(prefilter_environment(lambda x: 1 + x[..., :1], res=8, levels=12), "one channel")
+    idx, a = torch.randint(0, J, (V, 3), generator=g), torch.rand(V, 3, generator=g)
+    assert torch.equal(c.relighter(enc, (idx, a))(pe), c.relight(enc, pe, view=(idx, a)))
+    with pytest.raises(TypeError, match="relights from a Gaussian-prefiltered environment"):
+        r(torch.randn(25, 3))
+
+
 def test_relight_survives_non_finite_lobes_and_refuses_bad_views_before_writing(cube):
     """A NaN lobe mean (a corrupt encoding) gives NaN in that vertex's radiance only, in the
     16-lane blocks and the one-by-one tail, and reads nothing outside the light's table (the 16-lane lookup once

@@ -32,7 +32,7 @@ from .. import io
 from .._checks import check_finite
 from ..params import Boolean, Interval, Options
 from .base import (Codec, Encoded, Relighter, check_light, check_matrix_shape, check_out, check_signal, check_view,
-                   check_weights)
+                   check_weights, encoding_state)
 from .kmeans import CACHE_BLOCK_BYTES, linear, row_chunk
 from .relight_kernels import constants_layout as kernel_layout
 from .relight_kernels import fits as kernel_fits
@@ -49,14 +49,6 @@ SORT_MIN_CLUSTER_BYTES = 1024
 __all__ = ["AffineCodec", "label_dtype"]
 
 
-def _state_of(enc: Encoded, held: tuple) -> list:
-    """What ``_memo`` keys an entry by: the point count and each held tensor's id, address and version."""
-    state = [enc.meta.get("points")]
-    for t in held:  # (a loop: ~1 µs here, against 2 for a generator into a tuple)
-        state += (None,) if t is None else (id(t), t.data_ptr(), t._version)
-    return state
-
-
 def _memo(enc: Encoded, name: Any, build, model: tuple = ()) -> Any:
     """``build()``, kept in ``enc.cache[name]`` while the codes are the same tensors at the same
     versions (each one's id, storage address and version: a replaced tensor or an in-place edit
@@ -64,7 +56,7 @@ def _memo(enc: Encoded, name: Any, build, model: tuple = ()) -> Any:
     entry holds those tensors, so their ids stay unique while it lives. For the per-encoding caches
     of relighting and ``decode`` (tile plan, weights, packed offsets, kernel plans)."""
     held = (*enc.tensors.values(), *model)
-    state = _state_of(enc, held)
+    state = encoding_state(enc, held)
     hit = enc.cache.get(name)
     if hit is None or hit[0] != state:
         hit = enc.cache[name] = (state, build(), held)
@@ -731,7 +723,7 @@ class AffineRelighter(Relighter):
         self._out_seen: tuple | None = None  # (out, address, shape) of the last out checked in full
         self._fits: dict = {}
         # the last call's checked setting: (light shape, out, its address and shape, state of the codes
-        # and model (_state_of), held tensors, plan); a call with the same light shape and out whose
+        # and model (encoding_state), held tensors, plan); a call with the same light shape and out whose
         # codes and model are unchanged goes straight to run_plan
         self._hot: tuple | None = None
 
@@ -744,7 +736,7 @@ class AffineRelighter(Relighter):
                 and (out is None or (out.data_ptr() == hot[2] and out.shape == hot[3]
                                      and light.untyped_storage().data_ptr() != hot[6]))):
             held = (*enc.tensors.values(), *codec._model_tensors())
-            if _state_of(enc, held) == hot[4]:
+            if encoding_state(enc, held) == hot[4]:
                 res, flag = run_plan(lib, hot[5], light, view, out)
                 if flag:
                     check_view(view, enc.points, hot[7])  # raises with the offending value
@@ -779,5 +771,5 @@ class AffineRelighter(Relighter):
         shape = (P, n_out, C) if view is None and codec.matrix_shape_ is not None else None
         held = (*enc.tensors.values(), *codec._model_tensors())
         self._hot = (light.shape, out, None if out is None else out.data_ptr(), None if out is None else out.shape,
-                     _state_of(enc, held), pl, None if out is None else self._out_seen[3], n_out, shape, held)
+                     encoding_state(enc, held), pl, None if out is None else self._out_seen[3], n_out, shape, held)
         return res if out is not None or shape is None else res.view(shape)

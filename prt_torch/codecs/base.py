@@ -425,6 +425,16 @@ def check_out(out: Any, shape: tuple[int, ...], *inputs: Any) -> torch.Tensor | 
     return out
 
 
+def encoding_state(enc: Encoded, held: tuple) -> list:
+    """The point count of ``enc`` and each of ``held``'s tensors' id, address and version (None for
+    None): what a cache derived from them is keyed by (``affine._memo``, the relighters). Equal
+    states mean the same tensors, unedited, while the cache holds them (so their ids are not reused)."""
+    state = [enc.meta.get("points")]
+    for t in held:  # (a loop: ~1 µs here, against 2 for a generator into a tuple)
+        state += (None,) if t is None else (id(t), t.data_ptr(), t._version)
+    return state
+
+
 class Relighter:
     """``codec.relight(enc, light, view, out=out, **kwargs)`` with ``enc``, ``view`` and ``kwargs``
     bound (:meth:`Codec.relighter`): call it with a light (and an optional ``out``) per frame.

@@ -74,8 +74,8 @@ import torch
 from .._checks import check_finite_float32
 from ..lighting.prefilter import PrefilteredEnvironment, cube_map_directions, sg_normaliser
 from ..params import Boolean, Interval, Options
-from .base import Codec, Encoded, check_out, check_signal, register, view_nbytes
-from .relight_kernels import lobe_layout, native, sg_lookup_sum, sg_taps
+from .base import Codec, Encoded, Relighter, check_out, check_signal, encoding_state, register, view_nbytes
+from .relight_kernels import lobe_layout, native, sg_lookup_prepared, sg_lookup_sum, sg_prepare, sg_taps
 
 __all__ = ["GaussianCodec", "resolvable_sigma", "relative_l2", "sh_truncation", "haar_truncation",
            "fibonacci_directions", "default_views", "view_neighbours", "view_taps",
@@ -457,15 +457,19 @@ class _Problem:
 
 
 def lobe_sum(light: PrefilteredEnvironment, w: torch.Tensor, mu: torch.Tensor, sigma: torch.Tensor,
-             out: torch.Tensor | None = None, layout: tuple | None = None) -> torch.Tensor:
+             out: torch.Tensor | None = None, layout: tuple | None = None, prepared: torch.Tensor | None = None) -> torch.Tensor:
     """Σ over the lobes (last axis of ``w [..., N]``) of w · E_σ(μ) — Green 2005 eq. 2.7 with
     ``mu [..., N, 3]``, ``sigma [..., N]`` → ``[..., C]`` float32: one fused pass per lobe
     (``relight_kernels.sg_lookup_sum``) where the kernels are compiled, else
     ``light.lookup`` and a sum (the same values to float32 rounding; tests compare them).
     ``out``: an optional contiguous float32 result of that shape, written and returned;
-    ``layout``: ``relight_kernels.lobe_layout(w, mu, sigma)`` where the caller keeps it."""
+    ``layout``: ``relight_kernels.lobe_layout(w, mu, sigma)`` where the caller keeps it;
+    ``prepared``: ``relight_kernels.sg_prepare``'s addressing of these lobes for this light's
+    resolution and width ladder (``GaussianRelighter``), the same bits read faster."""
     lib = _fused(light)
     if lib is not None:
+        if prepared is not None:
+            return sg_lookup_prepared(lib, prepared, light.table(), light.log_sigmas, light.res, w, mu, sigma, out=out, layout=layout)
         return sg_lookup_sum(lib, light.table(), light.log_sigmas, light.res, mu, sigma, w, out=out, layout=layout)
     res = (w[..., None] * light.lookup(mu, sigma)).sum(-2)
     return res if out is None else out.copy_(res)
@@ -898,6 +902,11 @@ class GaussianCodec(Codec):
         three nearest views' taps, ``[V, C]``. float32. ``out``: an optional result tensor of
         that shape (``base.check_out``), written and returned.
         """
+        return self._relight_checked(enc, light, view, out)
+
+    def _relight_checked(self, enc: Encoded, light, view: Any, out, prepare=None) -> torch.Tensor:
+        """``relight``'s checks, then ``_relight``; ``prepare(light, lobes)``: the prepared
+        addressing to read (``GaussianRelighter``), or None."""
         self._require_fitted()
         light = self._check_light(light)
         lobes = self._lobes_and_layout(enc)
@@ -908,16 +917,30 @@ class GaussianCodec(Codec):
         if out is not None:  # the fused kernels write into it (no result-sized temporary and copy)
             out = check_out(out, (V, light.channels) if view is not None else (V, J, light.channels), view,
                             tuple(enc.tensors.values()), light.table(), light.log_sigmas)
-        return self._relight(enc, light, view, out, lobes)
+        prepared = prepare(light, lobes) if prepare is not None and view is None else None
+        return self._relight(enc, light, view, out, lobes, prepared)
+
+    def relighter(self, enc: Encoded, view: Any = None) -> "GaussianRelighter":
+        """A prepared relighting (``base.Relighter``): ``r = codec.relighter(enc)``, then ``r(light,
+        out=buf)`` per light, the same bits as ``relight(enc, light, out=buf)``. Without a view,
+        the addressing of every lobe in the pyramid (face, texel and level, and their fractions:
+        most of a lookup's arithmetic, and independent of the light's values) is computed at the
+        first light and kept, 24 bytes per lobe, while the lobes and the light's resolution and
+        width ladder stay the same; each light then costs only the texel reads
+        (reports/benchmarks/relight.md, "prepared"). With taps (the lobes blended per vertex
+        first) it relights as ``relight`` does."""
+        self._require_fitted()
+        return GaussianRelighter(self, enc, view, {})
 
     def _relight(self, enc: Encoded, light: PrefilteredEnvironment, view: tuple | None, out: torch.Tensor | None = None,
-                 lobes: tuple | None = None) -> torch.Tensor:
+                 lobes: tuple | None = None, prepared: torch.Tensor | None = None) -> torch.Tensor:
         """``view``: None or checked taps; ``out``: None or a checked result buffer; ``lobes``:
-        ``_lobes_and_layout(enc)`` when the caller has them."""
+        ``_lobes_and_layout(enc)`` when the caller has them; ``prepared``: ``sg_prepare``'s
+        addressing of these lobes for this light (every view only)."""
         (w, mu, sg), layout = lobes if lobes is not None else self._lobes_and_layout(enc)
         V, J, N = w.shape
         if view is None:
-            res = lobe_sum(light, w, mu, sg, out=out, layout=layout)
+            res = lobe_sum(light, w, mu, sg, out=out, layout=layout, prepared=prepared)
             if "diffuse" in enc.tensors:
                 res += self._diffuse(enc, light)[:, None, :] * enc.tensors["has_data"].float()[..., None]
             return res
@@ -1192,3 +1215,35 @@ def _lbfgs_loop(prob, a, ls, mu, conv, z, targets, sb, max_iter, tol, smin, smax
         mu[act] = p_m.detach() / p_m.detach().norm(dim=-1, keepdim=True).clamp_min(1e-12)
     conv[act] = it < max_iter
     return a, ls, mu, conv, it
+
+
+class GaussianRelighter(Relighter):
+    """``GaussianCodec.relighter``: every-view relighting from the lobes' prepared addressing
+    (``relight_kernels.sg_prepare``), kept with the state it was computed from — the light's
+    resolution and width ladder, and the lobe tensors' ids, addresses and versions
+    (``base.encoding_state``): an edit of the lobes, a replaced tensor or a light of another
+    pyramid computes it again. Lights of other channel counts than 3, taps, or no compiled
+    kernels relight as ``relight`` does."""
+
+    __slots__ = ("_prep",)
+
+    def __init__(self, codec: GaussianCodec, enc: Encoded, view: Any, kwargs: dict):
+        super().__init__(codec, enc, view, kwargs)
+        self._prep: tuple | None = None  # (key, prepared, held tensors)
+
+    def __call__(self, light: Any, out: torch.Tensor | None = None) -> torch.Tensor:
+        return self.codec._relight_checked(self.enc, light, self.view, out, prepare=self._prepared)
+
+    def _prepared(self, light: PrefilteredEnvironment, lobes: tuple) -> torch.Tensor | None:
+        lib = _fused(light)
+        (w, mu, sg), layout = lobes
+        if lib is None or light.channels != 3 or layout is None:
+            return None
+        held = tuple(self.enc.tensors.values())
+        ladder = light.log_sigmas
+        key = (light.res, ladder.dtype, ladder.numpy().tobytes(), encoding_state(self.enc, held))
+        hit = self._prep
+        if hit is None or hit[0] != key:
+            self._prep = None  # (freed before the next one is made)
+            hit = self._prep = (key, sg_prepare(lib, ladder, light.res, w, mu, sg, layout), held)
+        return hit[1]

@@ -1504,8 +1504,14 @@ static inline __m512 clamp16(__m512 v, __m512 lo, __m512 hi) {  /* v < lo ? lo :
 }
 
 /* acc{r,g,b} += wl E_sigma(x, y, z), 16 lanes; table [L 6 r r, 3], ladder [L] increasing */
-static inline void sg_lookup16(__m512 x, __m512 y, __m512 z, __m512 sigma, __m512 wl, const float *table, i64 r, i64 L,
-                               const float *ladder, const __m512 *lad, __m128 *acc) {
+/* a lookup's addressing (face, texel, level) and its texel reads, in two parts: sg_lookup16 runs both, a prepared
+   relight (prt_sg_prepare, prt_sg_lookup_prepared) keeps the first's result per lobe. The texel index of lane l's
+   first texel on the lower level i0 = base + lo 6 r^2, its flags (bit 0: the second texel column is one on, bit 1:
+   the second row is, bit 2: the upper level is the next one), and the bilinear and level fractions fs, ft, a: the
+   integers the eight texel indices are sums of, and the floats their weights are products of, so both paths give
+   the same bits. */
+static inline void sg_address16(__m512 x, __m512 y, __m512 z, __m512 sigma, i64 r, i64 L, const float *ladder,
+                                const __m512 *lad, __m512i *i0_, __m512i *flags_, __m512 *fs_, __m512 *ft_, __m512 *a_) {
     const __m512 zero = _mm512_setzero_ps(), one = _mm512_set1_ps(1.0f);
     const __m512 signbit = _mm512_set1_ps(-0.0f);
     __m512 ax = _mm512_andnot_ps(signbit, x), ay = _mm512_andnot_ps(signbit, y), az = _mm512_andnot_ps(signbit, z);
@@ -1569,11 +1575,24 @@ static inline void sg_lookup16(__m512 x, __m512 y, __m512 z, __m512 sigma, __m51
     }
     const __m512i lvl = _mm512_set1_epi32((int)(6 * r * r));
     __m512i base = _mm512_add_epi32(_mm512_mullo_epi32(_mm512_add_epi32(_mm512_mullo_epi32(face, ri), t0), ri), s0);
-    __m512i tex[4] = {base, _mm512_add_epi32(base, ds), _mm512_add_epi32(base, dt),
-                      _mm512_add_epi32(_mm512_add_epi32(base, dt), ds)};
+    *i0_ = _mm512_add_epi32(base, _mm512_mullo_epi32(lo, lvl));
+    *flags_ = _mm512_or_epi32(_mm512_or_epi32(ds, _mm512_slli_epi32(_mm512_min_epi32(dt, onei), 1)),
+                              _mm512_slli_epi32(_mm512_sub_epi32(hi, lo), 2));
+    *fs_ = fs;
+    *ft_ = ft;
+    *a_ = a;
+}
+/* the eight texels of sg_address16's lanes, weighted by wl, added to acc (RGB) */
+static inline void sg_texels16(__m512i i0, __m512i flags, __m512 fs, __m512 ft, __m512 a, __m512 wl, const float *table, i64 r,
+                               __m128 *acc) {
+    const __m512 one = _mm512_set1_ps(1.0f);
+    const __m512i onei = _mm512_set1_epi32(1);
+    const __m512i ds = _mm512_and_si512(flags, onei);
+    const __m512i dt = _mm512_mullo_epi32(_mm512_and_si512(_mm512_srli_epi32(flags, 1), onei), _mm512_set1_epi32((int)r));
+    const __m512i dl = _mm512_mullo_epi32(_mm512_srli_epi32(flags, 2), _mm512_set1_epi32((int)(6 * r * r)));
+    __m512i tex[4] = {i0, _mm512_add_epi32(i0, ds), _mm512_add_epi32(i0, dt), _mm512_add_epi32(_mm512_add_epi32(i0, dt), ds)};
     __m512 gs = _mm512_sub_ps(one, fs), gt = _mm512_sub_ps(one, ft);
     __m512 w4[4] = {_mm512_mul_ps(gt, gs), _mm512_mul_ps(gt, fs), _mm512_mul_ps(ft, gs), _mm512_mul_ps(ft, fs)};
-    __m512i off[2] = {_mm512_mullo_epi32(lo, lvl), _mm512_mullo_epi32(hi, lvl)};
     __m512 la[2] = {_mm512_sub_ps(one, a), a};
     /* the 8 texels x 3 channels per lane: a masked 3-float load per texel (no gathers: Zen 4 and
        older cores gather at about one element per cycle) */
@@ -1581,7 +1600,7 @@ static inline void sg_lookup16(__m512 x, __m512 y, __m512 z, __m512 sigma, __m51
     float wt[8][16] __attribute__((aligned(64)));
     const __m512i three = _mm512_set1_epi32(3);
     for (int i = 0; i < 8; i++) {
-        _mm512_store_si512(ix[i], _mm512_mullo_epi32(_mm512_add_epi32(tex[i & 3], off[i >> 2]), three));
+        _mm512_store_si512(ix[i], _mm512_mullo_epi32(i < 4 ? tex[i & 3] : _mm512_add_epi32(tex[i & 3], dl), three));
         _mm512_store_ps(wt[i], _mm512_mul_ps(_mm512_mul_ps(w4[i & 3], la[i >> 2]), wl));
     }
     for (int l = 0; l < 16; l++) {
@@ -1589,6 +1608,13 @@ static inline void sg_lookup16(__m512 x, __m512 y, __m512 z, __m512 sigma, __m51
         for (int i = 0; i < 8; i++) s4 = _mm_fmadd_ps(_mm_set1_ps(wt[i][l]), _mm_maskz_loadu_ps(7, table + ix[i][l]), s4);
         acc[l] = _mm_add_ps(acc[l], s4);
     }
+}
+static inline void sg_lookup16(__m512 x, __m512 y, __m512 z, __m512 sigma, __m512 wl, const float *table, i64 r, i64 L,
+                               const float *ladder, const __m512 *lad, __m128 *acc) {
+    __m512i i0, flags;
+    __m512 fs, ft, a;
+    sg_address16(x, y, z, sigma, r, L, ladder, lad, &i0, &flags, &fs, &ft, &a);
+    sg_texels16(i0, flags, fs, ft, a, wl, table, r, acc);
 }
 
 /* out[3 l + c] = acc[l][c] scale[l] for 16 lanes */
@@ -1638,12 +1664,40 @@ static inline void store16_rgb(float *out, i64 rs, const __m128 *acc, const floa
 /* out[a B + b, c] = sum_{n<N} w_m E_{sigma_m}(mu_m)[c], m = a N + b fb + n, for a in [g0, g1), b < B:
    functions (a, b) written in a-major order, their lobes consecutive in a. G functions in order: B = 1 (fb
    unused); the Gaussian codec's view-major records [J, V, N, 5]: (a, b) = (vertex, view), fb = V N. */
+#ifdef SG16
+/* lobe n of functions (g0 + l, b) for the 16 lanes l, mb = b fb (lobe m = (g0 + l) N + n + mb): its weight, mean and width */
+static inline __attribute__((always_inline)) void sg_load16(i64 g0, i64 mb, i64 n, i64 N, const float *mu, const float *sigma,
+        const float *w, i64 sw, i64 sm, i64 ss, int rec, int sep, __m512 *X, __m512 *Y, __m512 *Z, __m512 *S, __m512 *W) {
+    if (N == 1 && rec) {  /* 16 consecutive records: 80 contiguous floats, deinterleaved by permutes */
+        const float *p = w + 5 * (g0 + mb);
+        __m512 q[5] = {_mm512_loadu_ps(p), _mm512_loadu_ps(p + 16), _mm512_loadu_ps(p + 32), _mm512_loadu_ps(p + 48),
+                       _mm512_loadu_ps(p + 64)};
+        *W = deint5(q, 0); *X = deint5(q, 1); *Y = deint5(q, 2); *Z = deint5(q, 3); *S = deint5(q, 4);
+    } else if (N == 1 && sep) {  /* 16 consecutive lobes: mu is 48 contiguous floats, deinterleaved by permutes */
+        const float *p = mu + 3 * (g0 + mb);
+        __m512 a = _mm512_loadu_ps(p), b = _mm512_loadu_ps(p + 16), c = _mm512_loadu_ps(p + 32);
+        const __m512i ix = _mm512_set_epi32(45, 42, 39, 36, 33, 30, 27, 24, 21, 18, 15, 12, 9, 6, 3, 0);
+        *X = deint3(a, b, c, ix);
+        *Y = deint3(a, b, c, _mm512_add_epi32(ix, _mm512_set1_epi32(1)));
+        *Z = deint3(a, b, c, _mm512_add_epi32(ix, _mm512_set1_epi32(2)));
+        *S = _mm512_loadu_ps(sigma + g0 + mb);
+        *W = _mm512_loadu_ps(w + g0 + mb);
+    } else {
+        const __m512i lane = _mm512_set_epi32(15, 14, 13, 12, 11, 10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 0);
+        __m512i m = _mm512_add_epi32(_mm512_mullo_epi32(_mm512_add_epi32(lane, _mm512_set1_epi32((int)g0)),
+                                                        _mm512_set1_epi32((int)N)), _mm512_set1_epi32((int)(n + mb)));
+        __m512i mm = _mm512_mullo_epi32(m, _mm512_set1_epi32((int)sm));
+        *X = _mm512_i32gather_ps(mm, mu, 4); *Y = _mm512_i32gather_ps(mm, mu + 1, 4); *Z = _mm512_i32gather_ps(mm, mu + 2, 4);
+        *S = _mm512_i32gather_ps(_mm512_mullo_epi32(m, _mm512_set1_epi32((int)ss)), sigma, 4);
+        *W = _mm512_i32gather_ps(_mm512_mullo_epi32(m, _mm512_set1_epi32((int)sw)), w, 4);
+    }
+}
+#endif
 static inline __attribute__((always_inline)) void sg_range_(i64 g0, i64 g1, i64 B, i64 fb, i64 N, const float *mu,
         const float *sigma, const float *w, i64 sw, i64 sm, i64 ss, const float *table, i64 r, i64 L, const float *ladder, i64 C,
         int vec, float *out) {
 #ifdef SG16
     if (vec) {  /* 16 functions at a time (lane l: function (g + l, b)), the rest below */
-        const __m512i lane = _mm512_set_epi32(15, 14, 13, 12, 11, 10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 0);
         __m512 lad[2];
         ladder32(ladder, L, lad);
         const int rec = IS_RECORD, sep = sw == 1 && sm == 3 && ss == 1;
@@ -1658,29 +1712,8 @@ static inline __attribute__((always_inline)) void sg_range_(i64 g0, i64 g1, i64 
             else if (rec && B > 1 && g0 + 32 <= g1)  /* B streams, one per b: the next block's records of this b */
                 for (i64 f = 0; f < 5 * N; f++) _mm_prefetch((const char *)(w + 5 * (N * (g0 + 16) + mb) + 16 * f), _MM_HINT_T0);
             for (i64 n = 0; n < N; n++) {
-                __m512i m = _mm512_add_epi32(_mm512_mullo_epi32(_mm512_add_epi32(lane, _mm512_set1_epi32((int)g0)),
-                                                                _mm512_set1_epi32((int)N)), _mm512_set1_epi32((int)(n + mb)));
                 __m512 X, Y, Z, S, W;
-                if (N == 1 && rec) {  /* 16 consecutive records: 80 contiguous floats, deinterleaved by permutes */
-                    const float *p = w + 5 * (g0 + mb);
-                    __m512 q[5] = {_mm512_loadu_ps(p), _mm512_loadu_ps(p + 16), _mm512_loadu_ps(p + 32), _mm512_loadu_ps(p + 48),
-                                   _mm512_loadu_ps(p + 64)};
-                    W = deint5(q, 0); X = deint5(q, 1); Y = deint5(q, 2); Z = deint5(q, 3); S = deint5(q, 4);
-                } else if (N == 1 && sep) {  /* 16 consecutive lobes: mu is 48 contiguous floats, deinterleaved by permutes */
-                    const float *p = mu + 3 * (g0 + mb);
-                    __m512 a = _mm512_loadu_ps(p), b = _mm512_loadu_ps(p + 16), c = _mm512_loadu_ps(p + 32);
-                    const __m512i ix = _mm512_set_epi32(45, 42, 39, 36, 33, 30, 27, 24, 21, 18, 15, 12, 9, 6, 3, 0);
-                    X = deint3(a, b, c, ix);
-                    Y = deint3(a, b, c, _mm512_add_epi32(ix, _mm512_set1_epi32(1)));
-                    Z = deint3(a, b, c, _mm512_add_epi32(ix, _mm512_set1_epi32(2)));
-                    S = _mm512_loadu_ps(sigma + g0 + mb);
-                    W = _mm512_loadu_ps(w + g0 + mb);
-                } else {
-                    __m512i mm = _mm512_mullo_epi32(m, _mm512_set1_epi32((int)sm));
-                    X = _mm512_i32gather_ps(mm, mu, 4); Y = _mm512_i32gather_ps(mm, mu + 1, 4); Z = _mm512_i32gather_ps(mm, mu + 2, 4);
-                    S = _mm512_i32gather_ps(_mm512_mullo_epi32(m, _mm512_set1_epi32((int)ss)), sigma, 4);
-                    W = _mm512_i32gather_ps(_mm512_mullo_epi32(m, _mm512_set1_epi32((int)sw)), w, 4);
-                }
+                sg_load16(g0, mb, n, N, mu, sigma, w, sw, sm, ss, rec, sep, &X, &Y, &Z, &S, &W);
                 sg_lookup16(X, Y, Z, S, W, table, r, L, ladder, lad, acc);
             }
             store16_rgb(out + 3 * (g0 * B + b), B, acc, NULL);
@@ -1711,14 +1744,87 @@ static inline int sg_vec(i64 elems, i64 L, i64 r, i64 C) {
 }
 
 /* G x B functions (sg_range), the G split between the threads */
+/* thread t's functions: whole blocks of 16, the last thread also the tail, so that which lanes take the 16-lane
+   lookup (whose logarithm differs from logf's by up to an ulp) depends on G only, not on the thread count */
+#define SPLIT16(G, t, nth) (((G) / 16) * (t) / (nth) * 16)
+#define SPLIT16_END(G, t, nth) ((t) + 1 == (nth) ? (G) : SPLIT16(G, (t) + 1, nth))
 int prt_sg_lookup_sum(i64 G, i64 B, i64 fb, i64 N, const float *mu, const float *sigma, const float *w, i64 sw, i64 sm, i64 ss,
                       const float *table, i64 r, i64 L, const float *ladder, i64 C, float *out, int nthreads) {
     i64 nth = nthreads > 0 ? nthreads : 1;
     int vec = sg_vec(G * B * N, L, r, C);
     #pragma omp parallel for schedule(static, 1) num_threads(nth)
     for (i64 t = 0; t < nth; t++)
-        sg_range(G * t / nth, G * (t + 1) / nth, B, fb, N, mu, sigma, w, sw, sm, ss, table, r, L, ladder, C, vec, out);
+        sg_range(SPLIT16(G, t, nth), SPLIT16_END(G, t, nth), B, fb, N, mu, sigma, w, sw, sm, ss, table, r, L, ladder, C, vec, out);
     return 0;
+}
+
+/* A prepared relight of every view (GaussianCodec.relighter): the addressing of each lobe of the whole blocks of 16
+   functions (sg_address16: face, texel, level; a third of a lookup's time, and independent of the light's values)
+   kept as P [G / 16, B, N, 6, 16] int32 (per lane: i0, flags, then fs, ft, a, w as float bits), then per light only
+   the texel reads (sg_texels16); the tail functions (G mod 16) look up from the records as sg_range does. Same
+   arithmetic, so the same bits as prt_sg_lookup_sum. Return 1 (nothing done) without the 16-lane kernels or for a
+   shape they do not take (sg_vec). */
+#define PREP_AT(P, blk, b, n, B, N) ((P) + (((blk) * (B) + (b)) * (N) + (n)) * 96)
+int prt_sg_prepare(i64 G, i64 B, i64 fb, i64 N, const float *mu, const float *sigma, const float *w, i64 sw, i64 sm, i64 ss,
+                   i64 r, i64 L, const float *ladder, int32_t *P, int nthreads) {
+#ifdef SG16
+    if (!sg_vec(G * B * N, L, r, 3)) return 1;
+    i64 nth = nthreads > 0 ? nthreads : 1, nb = G / 16;
+    const int rec = IS_RECORD, sep = sw == 1 && sm == 3 && ss == 1;
+    #pragma omp parallel for schedule(static, 1) num_threads(nth)
+    for (i64 t = 0; t < nth; t++) {
+        __m512 lad[2];
+        ladder32(ladder, L, lad);
+        for (i64 blk = nb * t / nth; blk < nb * (t + 1) / nth; blk++)
+            for (i64 b = 0; b < B; b++)
+                for (i64 n = 0; n < N; n++) {
+                    __m512 X, Y, Z, S, W, fs, ft, a;
+                    __m512i i0, flags;
+                    sg_load16(16 * blk, b * fb, n, N, mu, sigma, w, sw, sm, ss, rec, sep, &X, &Y, &Z, &S, &W);
+                    sg_address16(X, Y, Z, S, r, L, ladder, lad, &i0, &flags, &fs, &ft, &a);
+                    int32_t *q = PREP_AT(P, blk, b, n, B, N);
+                    _mm512_storeu_si512(q, i0);
+                    _mm512_storeu_si512(q + 16, flags);
+                    _mm512_storeu_ps(q + 32, fs);
+                    _mm512_storeu_ps(q + 48, ft);
+                    _mm512_storeu_ps(q + 64, a);
+                    _mm512_storeu_ps(q + 80, W);
+                }
+    }
+    return 0;
+#else
+    (void)G; (void)B; (void)fb; (void)N; (void)mu; (void)sigma; (void)w; (void)sw; (void)sm; (void)ss; (void)r; (void)L;
+    (void)ladder; (void)P; (void)nthreads;
+    return 1;
+#endif
+}
+int prt_sg_lookup_prepared(i64 G, i64 B, i64 fb, i64 N, const float *mu, const float *sigma, const float *w, i64 sw, i64 sm,
+                           i64 ss, const int32_t *P, const float *table, i64 r, i64 L, const float *ladder, float *out, int nthreads) {
+#ifdef SG16
+    if (!sg_vec(G * B * N, L, r, 3)) return 1;
+    i64 nth = nthreads > 0 ? nthreads : 1, nb = G / 16;
+    #pragma omp parallel for schedule(static, 1) num_threads(nth)
+    for (i64 t = 0; t < nth; t++) {
+        for (i64 blk = nb * t / nth; blk < nb * (t + 1) / nth; blk++)
+            for (i64 b = 0; b < B; b++) {  /* B > 1: the block's rows (16 B C floats) stay in L1 over its B functions */
+                __m128 acc[16];
+                for (int l = 0; l < 16; l++) acc[l] = _mm_setzero_ps();
+                for (i64 n = 0; n < N; n++) {
+                    const int32_t *q = PREP_AT(P, blk, b, n, B, N);
+                    sg_texels16(_mm512_loadu_si512(q), _mm512_loadu_si512(q + 16), _mm512_loadu_ps(q + 32), _mm512_loadu_ps(q + 48),
+                                _mm512_loadu_ps(q + 64), _mm512_loadu_ps(q + 80), table, r, acc);
+                }
+                store16_rgb(out + 3 * (16 * blk * B + b), B, acc, NULL);
+            }
+        if (t + 1 == nth)  /* the tail: from the records, as sg_range's scalar loop */
+            sg_range(16 * nb, G, B, fb, N, mu, sigma, w, sw, sm, ss, table, r, L, ladder, 3, 0, out);
+    }
+    return 0;
+#else
+    (void)G; (void)B; (void)fb; (void)N; (void)mu; (void)sigma; (void)w; (void)sw; (void)sm; (void)ss; (void)P; (void)table;
+    (void)r; (void)L; (void)ladder; (void)out; (void)nthreads;
+    return 1;
+#endif
 }
 
 /* Relighting with view taps (Green §2.3): per vertex v, the lobes of its k tapped views blended
@@ -1851,6 +1957,8 @@ def _compile() -> tuple[ctypes.CDLL | None, str]:
         "prt_constants_lanes": [i64] * 5 + [vp, vp, vp] + [i64] * 2 + [ci],
         "prt_relight_plan": [vp, vp, vp, vp, vp, vp, ci],
         "prt_sg_lookup_sum": [i64, i64, i64, i64, vp, vp, vp, i64, i64, i64, vp, i64, i64, vp, i64, vp, ci],
+        "prt_sg_prepare": [i64, i64, i64, i64, vp, vp, vp, i64, i64, i64, i64, i64, vp, vp, ci],
+        "prt_sg_lookup_prepared": [i64, i64, i64, i64, vp, vp, vp, i64, i64, i64, vp, vp, i64, i64, vp, vp, ci],
         "prt_sg_taps": [i64, i64, i64, i64, i64, i64, vp, vp, vp, i64, i64, i64, vp, vp, vp, i64, i64, vp, i64, vp, ci],
     })
 
@@ -2253,19 +2361,65 @@ def sg_lookup_sum(lib, table: torch.Tensor, log_sigmas: torch.Tensor, res: int, 
     those shapes (else ``ValueError``). ``out``: an optional contiguous float32 result
     ``[..., C]`` (checked by the caller), written and returned. ``layout``: ``lobe_layout(w, mu,
     sigma)`` where the caller keeps it (the Gaussian codec, per encoding: ~2 µs a call)."""
-    lead, N = tuple(w.shape[:-1]), w.shape[-1]
-    G = w.numel() // max(N, 1)
     C = table.shape[1]
     if C > 16:
         raise ValueError(f"sg_lookup_sum: {C} channels; accepted: at most 16")
-    w, mu, sigma, sw, sm, ss, fb = layout or lobe_layout(w, mu, sigma)
-    A, B = (w.shape[0], w.shape[1]) if fb else (G, 1)  # view-major records: vertex blocks, every view of each
+    lead, N, G, A, B, lay = _sg_args(w, mu, sigma, layout)
+    w, mu, sigma, sw, sm, ss, fb = lay
     table, ladder = _as(table, torch.float32), _as(log_sigmas, torch.float32)
     given = out
     out = _out(out, G * C, (G, C))
     lib.prt_sg_lookup_sum(A, B, fb, N, mu.data_ptr(), sigma.data_ptr(), w.data_ptr(), sw, sm, ss, table.data_ptr(), int(res), ladder.numel(),
                           ladder.data_ptr(), C, out.data_ptr(), torch.get_num_threads())
     return given if given is not None else out.reshape(*lead, C)
+
+
+def _sg_args(w: torch.Tensor, mu: torch.Tensor, sigma: torch.Tensor, layout: tuple | None) -> tuple:
+    """``(lead, N, G, A, B, layout)`` of lobes ``w [..., N]``: G functions, which the kernels take
+    as A × B (view-major records: A vertices in blocks of 16, every one of the B views of each; else
+    G × 1), and the lobes' :func:`lobe_layout`."""
+    lead, N = tuple(w.shape[:-1]), w.shape[-1]
+    G = w.numel() // max(N, 1)
+    lay = layout or lobe_layout(w, mu, sigma)
+    A, B = (lay[0].shape[0], lay[0].shape[1]) if lay[6] else (G, 1)
+    return lead, N, G, A, B, lay
+
+
+def sg_prepare(lib, log_sigmas: torch.Tensor, res: int, w: torch.Tensor, mu: torch.Tensor, sigma: torch.Tensor,
+               layout: tuple | None = None) -> torch.Tensor | None:
+    """The addressing of every lobe in the pyramid of resolution ``res`` and width ladder
+    ``log_sigmas`` (face, texel, level and their fractions: ``prt_sg_prepare``, the part of a
+    lookup that does not depend on the light's values), for :func:`sg_lookup_prepared`:
+    ``int32 [⌊A/16⌋·B·N·96]`` (24 bytes per lobe), or None where the 16-lane kernels do not take
+    this shape (no AVX-512, or sizes past their int32 indices: relight as usual)."""
+    _, N, _, A, B, (w, mu, sigma, sw, sm, ss, fb) = _sg_args(w, mu, sigma, layout)
+    ladder = _as(log_sigmas, torch.float32)
+    P = torch.empty((A // 16) * B * N * 96, dtype=torch.int32)
+    if lib.prt_sg_prepare(A, B, fb, N, mu.data_ptr(), sigma.data_ptr(), w.data_ptr(), sw, sm, ss, int(res), ladder.numel(),
+                          ladder.data_ptr(), P.data_ptr(), torch.get_num_threads()):
+        return None
+    return P
+
+
+def sg_lookup_prepared(lib, prepared: torch.Tensor, table: torch.Tensor, log_sigmas: torch.Tensor, res: int, w: torch.Tensor,
+                       mu: torch.Tensor, sigma: torch.Tensor, out: torch.Tensor | None = None,
+                       layout: tuple | None = None) -> torch.Tensor:
+    """:func:`sg_lookup_sum` of RGB lights (``table [L·6·r·r, 3]``) from :func:`sg_prepare`'s
+    addressing of these lobes for this ``res`` and ``log_sigmas`` (the caller keeps it valid: the
+    same lobes, unchanged): per lobe only the 8 texel reads, the tail of fewer than 16 functions
+    from the records. The same bits as :func:`sg_lookup_sum`."""
+    lead, N, G, A, B, (w, mu, sigma, sw, sm, ss, fb) = _sg_args(w, mu, sigma, layout)
+    if table.shape[1] != 3 or prepared.numel() != (A // 16) * B * N * 96:
+        raise ValueError(f"sg_lookup_prepared: table {tuple(table.shape)}, prepared {prepared.numel()} values; accepted: "
+                         f"[rows, 3] and {(A // 16) * B * N * 96} (sg_prepare of these lobes)")
+    table, ladder = _as(table, torch.float32), _as(log_sigmas, torch.float32)
+    given = out
+    out = _out(out, G * 3, (G, 3))
+    if lib.prt_sg_lookup_prepared(A, B, fb, N, mu.data_ptr(), sigma.data_ptr(), w.data_ptr(), sw, sm, ss, prepared.data_ptr(),
+                                  table.data_ptr(), int(res), ladder.numel(), ladder.data_ptr(), out.data_ptr(),
+                                  torch.get_num_threads()):
+        raise RuntimeError("prt_sg_lookup_prepared refused a shape sg_prepare took")  # pragma: no cover
+    return given if given is not None else out.reshape(*lead, 3)
 
 
 def sg_taps(lib, table: torch.Tensor, log_sigmas: torch.Tensor, res: int, w: torch.Tensor, mu: torch.Tensor, sigma: torch.Tensor,
