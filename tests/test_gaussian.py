@@ -409,7 +409,7 @@ def test_relighter_gives_relights_bits_and_prepares_again_when_anything_changes(
             assert r(pe, out=buf) is buf and torch.equal(buf, want), th
     kept = r._prep[1]
     blocks = (V // 16) * J if layout == "by_view" else V * J // 16  # 16 vertices of a view, or 16 functions in order
-    assert kept is not None and kept.dtype == torch.int32 and kept.numel() == blocks * N * 96
+    assert kept is not None and kept.dtype == torch.int32 and kept.numel() == blocks * N * 80
 
     def same(light, what):
         got = r(light)  # before relight: nothing it caches is what the relighter reads

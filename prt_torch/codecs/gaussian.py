@@ -925,8 +925,8 @@ class GaussianCodec(Codec):
         out=buf)`` per light, the same bits as ``relight(enc, light, out=buf)``. Without a view,
         the addressing of every lobe in the pyramid (face, texel and level, and their fractions:
         most of a lookup's arithmetic, and independent of the light's values) is computed at the
-        first light and kept, 24 bytes per lobe, while the lobes and the light's resolution and
-        width ladder stay the same; each light then costs only the texel reads
+        first light and kept while the lobes and the light's resolution and
+        width ladder stay the same (20 bytes per lobe); each light then costs only the texel reads
         (reports/benchmarks/relight.md, "prepared"). With taps (the lobes blended per vertex
         first) it relights as ``relight`` does."""
         self._require_fitted()

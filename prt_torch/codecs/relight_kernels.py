@@ -1594,11 +1594,38 @@ static inline void sg_texels16(__m512i i0, __m512i flags, __m512 fs, __m512 ft, 
     __m512 gs = _mm512_sub_ps(one, fs), gt = _mm512_sub_ps(one, ft);
     __m512 w4[4] = {_mm512_mul_ps(gt, gs), _mm512_mul_ps(gt, fs), _mm512_mul_ps(ft, gs), _mm512_mul_ps(ft, fs)};
     __m512 la[2] = {_mm512_sub_ps(one, a), a};
+    const __m512i three = _mm512_set1_epi32(3);
+    if (r > 1) {  /* the texel's neighbour along s is the next one (ds = 1): one masked 6-float load per pair of texels,
+                     weighted [wa wa wa wb wb wb] (the two weights one 8-byte load, spread by a permute), where the
+                     per-texel loop below took twice the loads and multiply-adds */
+        int32_t ix[4][16] __attribute__((aligned(64)));
+        float wp[4][32] __attribute__((aligned(64)));  /* per pair of texels: (wa, wb) of lane l at 2 l */
+        const __m512i lo8 = _mm512_set_epi32(23, 7, 22, 6, 21, 5, 20, 4, 19, 3, 18, 2, 17, 1, 16, 0);
+        const __m512i hi8 = _mm512_add_epi32(lo8, _mm512_set1_epi32(8));
+        for (int p = 0; p < 4; p++) {  /* p: row (t0, t1) = p & 1, level (lo, hi) = p >> 1 */
+            const __m512i t = tex[2 * (p & 1)];
+            _mm512_store_si512(ix[p], _mm512_mullo_epi32(p < 2 ? t : _mm512_add_epi32(t, dl), three));
+            const __m512 wa = _mm512_mul_ps(_mm512_mul_ps(w4[2 * (p & 1)], la[p >> 1]), wl);
+            const __m512 wb = _mm512_mul_ps(_mm512_mul_ps(w4[2 * (p & 1) + 1], la[p >> 1]), wl);
+            _mm512_store_ps(wp[p], _mm512_permutex2var_ps(wa, lo8, wb));
+            _mm512_store_ps(wp[p] + 16, _mm512_permutex2var_ps(wa, hi8, wb));
+        }
+        const __m256i spread = _mm256_set_epi32(1, 1, 1, 1, 1, 0, 0, 0), fold = _mm256_set_epi32(7, 7, 7, 7, 7, 5, 4, 3);
+        for (int l = 0; l < 16; l++) {
+            __m256 s8 = _mm256_setzero_ps();
+            for (int p = 0; p < 4; p++) {
+                const __m256 w2 = _mm256_permutexvar_ps(spread, _mm256_castps128_ps256(_mm_castpd_ps(_mm_load_sd((const double *)(wp[p] + 2 * l)))));
+                s8 = _mm256_fmadd_ps(w2, _mm256_maskz_loadu_ps(0x3f, table + ix[p][l]), s8);
+            }
+            const __m128 s4 = _mm_add_ps(_mm256_castps256_ps128(s8), _mm256_castps256_ps128(_mm256_permutexvar_ps(fold, s8)));
+            acc[l] = _mm_add_ps(acc[l], s4);
+        }
+        return;
+    }
     /* the 8 texels x 3 channels per lane: a masked 3-float load per texel (no gathers: Zen 4 and
        older cores gather at about one element per cycle) */
     int32_t ix[8][16] __attribute__((aligned(64)));
     float wt[8][16] __attribute__((aligned(64)));
-    const __m512i three = _mm512_set1_epi32(3);
     for (int i = 0; i < 8; i++) {
         _mm512_store_si512(ix[i], _mm512_mullo_epi32(i < 4 ? tex[i & 3] : _mm512_add_epi32(tex[i & 3], dl), three));
         _mm512_store_ps(wt[i], _mm512_mul_ps(_mm512_mul_ps(w4[i & 3], la[i >> 2]), wl));
@@ -1760,15 +1787,16 @@ int prt_sg_lookup_sum(i64 G, i64 B, i64 fb, i64 N, const float *mu, const float 
 
 /* A prepared relight of every view (GaussianCodec.relighter): the addressing of each lobe of the whole blocks of 16
    functions (sg_address16: face, texel, level; a third of a lookup's time, and independent of the light's values)
-   kept as P [G / 16, B, N, 6, 16] int32 (per lane: i0, flags, then fs, ft, a, w as float bits), then per light only
-   the texel reads (sg_texels16); the tail functions (G mod 16) look up from the records as sg_range does. Same
-   arithmetic, so the same bits as prt_sg_lookup_sum. Return 1 (nothing done) without the 16-lane kernels or for a
-   shape they do not take (sg_vec). */
-#define PREP_AT(P, blk, b, n, B, N) ((P) + (((blk) * (B) + (b)) * (N) + (n)) * 96)
+   kept as P [G / 16, B, N, 5, 16] int32 (per lane: i0, then fs, ft, a, w as float bits: 20 bytes per lobe; the flags
+   are 7 for every lane where the pyramid has more than one texel per side and more than one width), then per light
+   only the texel reads (sg_texels16); the tail functions (G mod 16) look up from the records as sg_range does. Same
+   arithmetic, so the same bits as prt_sg_lookup_sum. Return 1 (nothing done) without the 16-lane kernels, for a
+   shape they do not take (sg_vec), or a pyramid of one texel per side or one width. */
+#define PREP_AT(P, blk, b, n, B, N) ((P) + (((blk) * (B) + (b)) * (N) + (n)) * 80)
 int prt_sg_prepare(i64 G, i64 B, i64 fb, i64 N, const float *mu, const float *sigma, const float *w, i64 sw, i64 sm, i64 ss,
                    i64 r, i64 L, const float *ladder, int32_t *P, int nthreads) {
 #ifdef SG16
-    if (!sg_vec(G * B * N, L, r, 3)) return 1;
+    if (!sg_vec(G * B * N, L, r, 3) || r < 2 || L < 2) return 1;
     i64 nth = nthreads > 0 ? nthreads : 1, nb = G / 16;
     const int rec = IS_RECORD, sep = sw == 1 && sm == 3 && ss == 1;
     #pragma omp parallel for schedule(static, 1) num_threads(nth)
@@ -1783,12 +1811,12 @@ int prt_sg_prepare(i64 G, i64 B, i64 fb, i64 N, const float *mu, const float *si
                     sg_load16(16 * blk, b * fb, n, N, mu, sigma, w, sw, sm, ss, rec, sep, &X, &Y, &Z, &S, &W);
                     sg_address16(X, Y, Z, S, r, L, ladder, lad, &i0, &flags, &fs, &ft, &a);
                     int32_t *q = PREP_AT(P, blk, b, n, B, N);
+                    (void)flags;  /* 7 in every lane (r > 1, L > 1) */
                     _mm512_storeu_si512(q, i0);
-                    _mm512_storeu_si512(q + 16, flags);
-                    _mm512_storeu_ps(q + 32, fs);
-                    _mm512_storeu_ps(q + 48, ft);
-                    _mm512_storeu_ps(q + 64, a);
-                    _mm512_storeu_ps(q + 80, W);
+                    _mm512_storeu_ps(q + 16, fs);
+                    _mm512_storeu_ps(q + 32, ft);
+                    _mm512_storeu_ps(q + 48, a);
+                    _mm512_storeu_ps(q + 64, W);
                 }
     }
     return 0;
@@ -1801,8 +1829,9 @@ int prt_sg_prepare(i64 G, i64 B, i64 fb, i64 N, const float *mu, const float *si
 int prt_sg_lookup_prepared(i64 G, i64 B, i64 fb, i64 N, const float *mu, const float *sigma, const float *w, i64 sw, i64 sm,
                            i64 ss, const int32_t *P, const float *table, i64 r, i64 L, const float *ladder, float *out, int nthreads) {
 #ifdef SG16
-    if (!sg_vec(G * B * N, L, r, 3)) return 1;
+    if (!sg_vec(G * B * N, L, r, 3) || r < 2 || L < 2) return 1;
     i64 nth = nthreads > 0 ? nthreads : 1, nb = G / 16;
+    const __m512i flags = _mm512_set1_epi32(7);
     #pragma omp parallel for schedule(static, 1) num_threads(nth)
     for (i64 t = 0; t < nth; t++) {
         for (i64 blk = nb * t / nth; blk < nb * (t + 1) / nth; blk++)
@@ -1811,8 +1840,8 @@ int prt_sg_lookup_prepared(i64 G, i64 B, i64 fb, i64 N, const float *mu, const f
                 for (int l = 0; l < 16; l++) acc[l] = _mm_setzero_ps();
                 for (i64 n = 0; n < N; n++) {
                     const int32_t *q = PREP_AT(P, blk, b, n, B, N);
-                    sg_texels16(_mm512_loadu_si512(q), _mm512_loadu_si512(q + 16), _mm512_loadu_ps(q + 32), _mm512_loadu_ps(q + 48),
-                                _mm512_loadu_ps(q + 64), _mm512_loadu_ps(q + 80), table, r, acc);
+                    sg_texels16(_mm512_loadu_si512(q), flags, _mm512_loadu_ps(q + 16), _mm512_loadu_ps(q + 32),
+                                _mm512_loadu_ps(q + 48), _mm512_loadu_ps(q + 64), table, r, acc);
                 }
                 store16_rgb(out + 3 * (16 * blk * B + b), B, acc, NULL);
             }
@@ -2390,11 +2419,12 @@ def sg_prepare(lib, log_sigmas: torch.Tensor, res: int, w: torch.Tensor, mu: tor
     """The addressing of every lobe in the pyramid of resolution ``res`` and width ladder
     ``log_sigmas`` (face, texel, level and their fractions: ``prt_sg_prepare``, the part of a
     lookup that does not depend on the light's values), for :func:`sg_lookup_prepared`:
-    ``int32 [⌊A/16⌋·B·N·96]`` (24 bytes per lobe), or None where the 16-lane kernels do not take
-    this shape (no AVX-512, or sizes past their int32 indices: relight as usual)."""
+    ``int32 [⌊A/16⌋·B·N·80]`` (20 bytes per lobe), or None where the 16-lane kernels do not take
+    this shape (no AVX-512, sizes past their int32 indices, a pyramid of one texel per side or
+    one width: relight as usual)."""
     _, N, _, A, B, (w, mu, sigma, sw, sm, ss, fb) = _sg_args(w, mu, sigma, layout)
     ladder = _as(log_sigmas, torch.float32)
-    P = torch.empty((A // 16) * B * N * 96, dtype=torch.int32)
+    P = torch.empty((A // 16) * B * N * 80, dtype=torch.int32)
     if lib.prt_sg_prepare(A, B, fb, N, mu.data_ptr(), sigma.data_ptr(), w.data_ptr(), sw, sm, ss, int(res), ladder.numel(),
                           ladder.data_ptr(), P.data_ptr(), torch.get_num_threads()):
         return None
@@ -2409,9 +2439,9 @@ def sg_lookup_prepared(lib, prepared: torch.Tensor, table: torch.Tensor, log_sig
     same lobes, unchanged): per lobe only the 8 texel reads, the tail of fewer than 16 functions
     from the records. The same bits as :func:`sg_lookup_sum`."""
     lead, N, G, A, B, (w, mu, sigma, sw, sm, ss, fb) = _sg_args(w, mu, sigma, layout)
-    if table.shape[1] != 3 or prepared.numel() != (A // 16) * B * N * 96:
+    if table.shape[1] != 3 or prepared.numel() != (A // 16) * B * N * 80:
         raise ValueError(f"sg_lookup_prepared: table {tuple(table.shape)}, prepared {prepared.numel()} values; accepted: "
-                         f"[rows, 3] and {(A // 16) * B * N * 96} (sg_prepare of these lobes)")
+                         f"[rows, 3] and {(A // 16) * B * N * 80} (sg_prepare of these lobes)")
     table, ladder = _as(table, torch.float32), _as(log_sigmas, torch.float32)
     given = out
     out = _out(out, G * 3, (G, 3))
