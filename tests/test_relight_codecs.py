@@ -975,3 +975,49 @@ def test_relighter_gives_relights_bits_and_sees_every_change(name, params, ms, p
     enc2 = c.encode(transfer_like(P, n_out, n_in, seed=9, regions=6).view(P, -1))
     rs = {k: c.relighter(enc2, v) for k, v in views.items()}
     check("refit, new encoding", e=enc2)
+
+
+def test_relighter_after_changes_behind_its_back_refuses_and_converts_as_relight():
+    """What a review found in the relighter's fast path, each now as relight does: a refit to another
+    matrix shape with the same D (the kernels' buffer sizes checked again: once a write past a stack
+    buffer), a view whose storage is swapped to the output's (refused as overlapping), taps given as a
+    list, an encoding whose meta no longer matches the codec (refused), and a view turned float64
+    through ``.data`` (converted, as relight converts it)."""
+    g = torch.Generator().manual_seed(21)
+    c = codecs.get("pca", vectors=2)
+    X = torch.randn(64, 300, generator=g)
+    enc = c.fit_encode(X, matrix_shape=(60, 5))
+    r = c.relighter(enc)
+    r(torch.randn(5, 15, generator=g))
+    c.fit(X, matrix_shape=(300, 1))  # D and K unchanged: enc is still accepted, n_out 60 -> 300
+    L = torch.randn(1, 15, generator=g)
+    assert torch.equal(r(L), c.relight(enc, L))
+
+    P = 40
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        c = codecs.get("cpca_static", clusters=4, vectors=3)
+        enc = c.fit_encode(transfer_like(P, 3, 4, seed=2, regions=4).view(P, -1), matrix_shape=(3, 4))
+    L = torch.randn(4, 3, generator=g)
+    y, buf = torch.randn(P, 3, generator=g), torch.empty(P, 3)
+    r = c.relighter(enc, y)
+    r(L, out=buf)
+    r(L, out=buf)
+    y.data = buf  # the view now is the output
+    with pytest.raises(ValueError, match="out shares memory with an input"):
+        c.relight(enc, L, view=y, out=buf)
+    with pytest.raises(ValueError, match="out shares memory with an input"):
+        r(L, out=buf)
+    idx, w = torch.randint(0, 3, (P, 4), generator=g), torch.rand(P, 4, generator=g)
+    assert torch.equal(c.relighter(enc, [idx, w])(L), c.relight(enc, L, view=[idx, w]))
+    y2 = torch.randn(P, 3, generator=g)
+    r = c.relighter(enc, y2)
+    r(L)
+    y2.data = y2.data.double()
+    assert torch.equal(r(L), c.relight(enc, L, view=y2))
+    r(L)
+    enc.meta["clusters"] = 99
+    with pytest.raises(ValueError, match="was not produced by this codec"):
+        c.relight(enc, L, view=y2)
+    with pytest.raises(ValueError, match="was not produced by this codec"):
+        r(L)

@@ -697,35 +697,35 @@ def _key(X: torch.Tensor) -> tuple:
 
 class AffineRelighter(Relighter):
     """``AffineCodec.relighter``: ``relight`` with the encoding, the view and ``n_vectors`` bound
-    and checked once. Per call: a float32 contiguous light ``[n_in, C]`` (another light, no
-    compiled kernels, or a view ``check_view`` had to convert go through ``relight``), the
-    encoding still this codec's (``_check_enc``), ``out`` checked in full when it is not the
-    tensor of the last call (else its address and shape, and that the light is not in it), and the
-    cached kernel plan (``_kernel_plan``: rebuilt after an in-place edit, a replaced tensor or a
-    refit), then ``run_plan``, which checks the view's type and shape and whose kernels check the
-    light's and the view's values (a flagged one raises naming it, as ``relight`` does)."""
+    and checked once (the view's values too). A call takes the fast path when everything the last
+    full call checked is unchanged: a float32 contiguous light of the same shape, the same ``out``
+    at the same address, shape and contiguity, the view's tensors at the same addresses, the
+    encoding still this codec's (``_check_enc``) and its codes and the model the same tensors at
+    the same versions (``encoding_state``); then only the light's and the view's values are
+    checked, by the kernels as they read them (a flagged one raises naming it, as ``relight``
+    does). Otherwise a full call: ``relight``'s checks of the view's structure, ``out`` and the
+    kernels' buffer sizes, the cached kernel plan (``_kernel_plan``: rebuilt after an edit, a
+    replaced tensor or a refit), or ``relight`` itself where it would convert the light or the
+    view or not use the kernels."""
 
-    __slots__ = ("_direct", "_out_seen", "_fits", "_hot")
+    __slots__ = ("_hot",)
 
     def __init__(self, codec: AffineCodec, enc: Encoded, view: Any = None, n_vectors: int | None = None):
         codec._check_enc(enc)
-        P = enc.points
         n_out = codec.matrix_shape_[0] if codec.matrix_shape_ else 1
         if codec.matrix_shape_ is None and view is not None:
             raise ValueError("view was given but this codec was fitted on vectors (no matrix_shape); accepted: view=None")
         codec._n_eff(n_vectors)  # refused here, not at the first light
-        checked = check_view(view, P, n_out) if codec.matrix_shape_ is not None else None  # the values too, once
-        super().__init__(codec, enc, view, {"n_vectors": n_vectors})
-        # the kernels read the view the caller holds (updated in place between lights) only where
-        # the check converted nothing (a float64 view, say, would be a stale copy: relight converts per call)
-        same = checked is view if not isinstance(view, (tuple, list)) else all(a is b for a, b in zip(checked, view))
-        self._direct = same
-        self._out_seen: tuple | None = None  # (out, address, shape) of the last out checked in full
-        self._fits: dict = {}
-        # the last call's checked setting: (light shape, out, its address and shape, state of the codes
-        # and model (encoding_state), held tensors, plan); a call with the same light shape and out whose
-        # codes and model are unchanged goes straight to run_plan
+        if codec.matrix_shape_ is not None:
+            check_view(view, enc.points, n_out)  # the values too, once
+        super().__init__(codec, enc, tuple(view) if isinstance(view, list) else view, {"n_vectors": n_vectors})
+        # the last full call's checked setting: (light shape, out, out's address and shape, the view's
+        # addresses, encoding_state of the codes and model, plan, n_out, result shape, held tensors)
         self._hot: tuple | None = None
+
+    def _view_ptrs(self) -> tuple:
+        v = self.view
+        return () if v is None else ((v[0].data_ptr(), v[1].data_ptr()) if isinstance(v, tuple) else (v.data_ptr(),))
 
     def __call__(self, light: Any, out: torch.Tensor | None = None) -> torch.Tensor:
         codec, enc, view = self.codec, self.enc, self.view
@@ -733,43 +733,40 @@ class AffineRelighter(Relighter):
         hot = self._hot
         if (hot is not None and lib is not None and type(light) is torch.Tensor and light.dtype == torch.float32
                 and light.shape == hot[0] and light.is_contiguous() and out is hot[1]
-                and (out is None or (out.data_ptr() == hot[2] and out.shape == hot[3]
-                                     and light.untyped_storage().data_ptr() != hot[6]))):
+                and (out is None or (out.data_ptr() == hot[2] and out.shape == hot[3] and out.is_contiguous()
+                                     and light.untyped_storage().data_ptr() != out.untyped_storage().data_ptr()))
+                and self._view_ptrs() == hot[4]):
+            codec._check_enc(enc)
             held = (*enc.tensors.values(), *codec._model_tensors())
-            if encoding_state(enc, held) == hot[4]:
-                res, flag = run_plan(lib, hot[5], light, view, out)
+            if encoding_state(enc, held) == hot[5]:
+                res, flag = run_plan(lib, hot[6], light, view, out)
                 if flag:
                     check_view(view, enc.points, hot[7])  # raises with the offending value
                 return res if out is not None or hot[8] is None else res.view(hot[8])
         self._hot = None
-        if (lib is None or not self._direct or type(light) is not torch.Tensor or light.dtype != torch.float32
-                or light.ndim != 2 or not light.is_contiguous()):
+        if lib is None or type(light) is not torch.Tensor or light.dtype != torch.float32 or light.ndim != 2 or not light.is_contiguous():
             return codec.relight(enc, light, view, out=out, **self.kwargs)
         codec._check_enc(enc)  # (a refit to another shape or cluster count)
         n_out, n_in = codec.matrix_shape_ or (1, codec.D_)
         n, C, P = codec._n_eff(self.kwargs["n_vectors"]), light.shape[1], enc.points
         J = (1 if codec.means_ is not None else 0) + n
+        if codec.matrix_shape_ is not None:
+            checked = check_view(view, P, n_out, values=False)  # relight's refusals of a resized or retyped view
+            if (checked is not view) if not isinstance(view, tuple) else any(a is not b for a, b in zip(checked, view)):
+                return codec.relight(enc, light, view, out=out, **self.kwargs)  # converted: relight converts per call
         ntap = view[0].shape[1] if isinstance(view, tuple) else 0
-        ok = self._fits.get((J, C, ntap))
-        if ok is None:
-            ok = self._fits[(J, C, ntap)] = J > 0 and kernel_fits(J, n_out, C) and ntap <= 64
-        if light.shape[0] != n_in or not ok:
+        if light.shape[0] != n_in or J == 0 or not kernel_fits(J, n_out, C) or ntap > 64:
             return codec.relight(enc, light, view, out=out, **self.kwargs)
+        shape = (P, n_out, C) if view is None and codec.matrix_shape_ is not None else None
         if out is not None:
-            seen = self._out_seen
-            shape = (P, C) if view is not None or codec.matrix_shape_ is None else (P, n_out, C)
-            if seen is None or seen[0] is not out or out.data_ptr() != seen[1] or out.shape != shape:
-                check_out(out, shape, view, light)
-                self._out_seen = seen = (out, out.data_ptr(), shape, out.untyped_storage().data_ptr())
-            elif light.untyped_storage().data_ptr() == seen[3]:
-                check_out(out, shape, view, light)  # raises naming the overlap
+            check_out(out, shape or (P, C), view, light)
+        vptrs = self._view_ptrs()
         kind = "rows" if view is None else ("taps" if ntap else "dense")
         pl = codec._kernel_plan(lib, enc, n, kind, C, ntap)
         res, flag = run_plan(lib, pl, light, view, out)
         if flag and view is not None:
             check_view(view, P, n_out)  # raises with the offending value
-        shape = (P, n_out, C) if view is None and codec.matrix_shape_ is not None else None
         held = (*enc.tensors.values(), *codec._model_tensors())
-        self._hot = (light.shape, out, None if out is None else out.data_ptr(), None if out is None else out.shape,
-                     encoding_state(enc, held), pl, None if out is None else self._out_seen[3], n_out, shape, held)
+        self._hot = (light.shape, out, None if out is None else out.data_ptr(), None if out is None else out.shape, vptrs,
+                     encoding_state(enc, held), pl, n_out, shape, held)
         return res if out is not None or shape is None else res.view(shape)
