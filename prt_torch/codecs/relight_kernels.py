@@ -1875,6 +1875,7 @@ static void sg_taps_range(i64 v0, i64 v1, i64 fv, i64 fj, i64 N, i64 k, const fl
                           int vec, float *out) {
 #ifdef SG16
     if (vec && k <= 8) {  /* 16 vertices at a time (lane l: vertex v + l), the rest below */
+        const int rec = IS_RECORD;
         __m512 lad[2];
         ladder32(ladder, L, lad);
         for (; v0 + 16 <= v1; v0 += 16) {
@@ -1892,17 +1893,33 @@ static void sg_taps_range(i64 v0, i64 v1, i64 fv, i64 fj, i64 N, i64 k, const fl
                                        _mm512_mask_blend_ps(_mm512_cmp_ps_mask(tot, tiny, _CMP_GT_OQ), tiny, tot));
             __m128 acc[16];
             for (int l = 0; l < 16; l++) acc[l] = _mm_setzero_ps();
+            float an[8][16] __attribute__((aligned(64)));
+            for (i64 t = 0; t < k; t++) _mm512_store_ps(an[t], _mm512_mul_ps(_mm512_loadu_ps(at[t]), inv));
             for (i64 n = 0; n < N; n++) {
                 __m512 wb = _mm512_setzero_ps(), sb = wb, mx = wb, my = wb, mz = wb;
+                if (rec) {  /* records: per lane, the k tapped records (w, mu, sigma: 5 floats, one masked load each)
+                               blended by the same multiply-adds as the gathers below, each 5 floats into a row of 16
+                               blended records, deinterleaved as sg_range's (15 gathers of 16 per lobe cost more) */
+                    float bl[16 * 5 + 8] __attribute__((aligned(64)));
+                    for (int l = 0; l < 16; l++) {
+                        __m256 b = _mm256_setzero_ps();
+                        for (i64 t = 0; t < k; t++)
+                            b = _mm256_fmadd_ps(_mm256_set1_ps(an[t][l]), _mm256_maskz_loadu_ps(0x1f, w + 5 * ((i64)mb[t][l] + n)), b);
+                        _mm256_storeu_ps(bl + 5 * l, b);
+                    }
+                    __m512 q[5] = {_mm512_load_ps(bl), _mm512_load_ps(bl + 16), _mm512_load_ps(bl + 32), _mm512_load_ps(bl + 48),
+                                   _mm512_load_ps(bl + 64)};
+                    wb = deint5(q, 0); mx = deint5(q, 1); my = deint5(q, 2); mz = deint5(q, 3); sb = deint5(q, 4);
+                } else
                 for (i64 t = 0; t < k; t++) {
-                    __m512 an = _mm512_mul_ps(_mm512_loadu_ps(at[t]), inv);
+                    __m512 an_ = _mm512_load_ps(an[t]);
                     __m512i m = _mm512_add_epi32(_mm512_loadu_si512(mb[t]), _mm512_set1_epi32((int)n));
                     __m512i m3 = _mm512_mullo_epi32(m, _mm512_set1_epi32((int)sm));
-                    wb = _mm512_fmadd_ps(an, _mm512_i32gather_ps(_mm512_mullo_epi32(m, _mm512_set1_epi32((int)sw)), w, 4), wb);
-                    sb = _mm512_fmadd_ps(an, _mm512_i32gather_ps(_mm512_mullo_epi32(m, _mm512_set1_epi32((int)ss)), sigma, 4), sb);
-                    mx = _mm512_fmadd_ps(an, _mm512_i32gather_ps(m3, mu, 4), mx);
-                    my = _mm512_fmadd_ps(an, _mm512_i32gather_ps(m3, mu + 1, 4), my);
-                    mz = _mm512_fmadd_ps(an, _mm512_i32gather_ps(m3, mu + 2, 4), mz);
+                    wb = _mm512_fmadd_ps(an_, _mm512_i32gather_ps(_mm512_mullo_epi32(m, _mm512_set1_epi32((int)sw)), w, 4), wb);
+                    sb = _mm512_fmadd_ps(an_, _mm512_i32gather_ps(_mm512_mullo_epi32(m, _mm512_set1_epi32((int)ss)), sigma, 4), sb);
+                    mx = _mm512_fmadd_ps(an_, _mm512_i32gather_ps(m3, mu, 4), mx);
+                    my = _mm512_fmadd_ps(an_, _mm512_i32gather_ps(m3, mu + 1, 4), my);
+                    mz = _mm512_fmadd_ps(an_, _mm512_i32gather_ps(m3, mu + 2, 4), mz);
                 }
                 __m512 nm = _mm512_sqrt_ps(_mm512_fmadd_ps(mz, mz, _mm512_fmadd_ps(my, my, _mm512_mul_ps(mx, mx))));
                 nm = _mm512_mask_blend_ps(_mm512_cmp_ps_mask(nm, tiny, _CMP_GT_OQ), tiny, nm);
