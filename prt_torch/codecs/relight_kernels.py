@@ -2194,7 +2194,7 @@ class Plan:
     kernels' arguments that do not change between lights, as one int64 array, and the tensors
     they point into (kept alive with it)."""
 
-    __slots__ = ("args", "keep", "kind", "size", "n_in", "C", "P", "n_out", "ntap", "shape", "numel")
+    __slots__ = ("args", "args_ptr", "keep", "kind", "size", "n_in", "C", "P", "n_out", "ntap", "shape", "numel")
 
 
 def plan(lib, means, basis, n: int, n_out: int, n_in: int, C: int, kind: str, labels, W, wstride, woff, nk, nuse, mean,
@@ -2223,6 +2223,7 @@ def plan(lib, means, basis, n: int, n_out: int, n_in: int, C: int, kind: str, la
             "ntap": ntap}
     pl = Plan()
     pl.args = torch.tensor([vals[f] for f in _PLAN_FIELDS], dtype=torch.int64)
+    pl.args_ptr = pl.args.data_ptr()
     pl.keep = (Mt, labels, W, woff, nk, order)
     pl.kind, pl.size, pl.n_in, pl.C, pl.P, pl.n_out, pl.ntap = kind, size, n_in, C, P, n_out, ntap
     pl.shape = (P, Fo) if kind == "rows" else (P, C)
@@ -2254,11 +2255,19 @@ def run_plan(lib, pl: Plan, L: torch.Tensor, view=None, out: torch.Tensor | None
     elif view is not None:
         raise ValueError("run_plan: a view for a plan of kind 'rows'; accepted: None")
     out = _out(out, pl.numel, pl.shape)
+    return out, run_checked(lib, pl, L, Lc, y0, y1, out)
+
+
+def run_checked(lib, pl: Plan, L: torch.Tensor, Lc: torch.Tensor, y0, y1, out: torch.Tensor) -> int:
+    """The kernel call of :func:`run_plan`, after its checks (``Lc``: the light as float32
+    contiguous ``[n_in, C]``; ``y0``, ``y1``: the view's addresses; ``out``: contiguous float32 of
+    the plan's size) — for a caller that has checked them (``AffineRelighter``'s fast path):
+    the kernels' flag, after raising for a flagged light."""
     T = _scratch(pl.kind, pl.size)
-    flag = lib.prt_relight_plan(pl.args.data_ptr(), Lc.data_ptr(), T.data_ptr(), out.data_ptr(), y0, y1, torch.get_num_threads())
+    flag = lib.prt_relight_plan(pl.args_ptr, Lc.data_ptr(), T.data_ptr(), out.data_ptr(), y0, y1, torch.get_num_threads())
     if flag & 16:
         _light_flagged(L, Lc)
-    return out, int(flag)
+    return int(flag)
 
 
 _ORDERS_CHECKED: dict[int, tuple] = {}  # id(order) -> (weak reference, version): range already checked
