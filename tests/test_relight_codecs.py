@@ -948,6 +948,9 @@ def test_relighter_gives_relights_bits_and_sees_every_change(name, params, ms, p
         rs[k](L)
         with pytest.raises(ValueError, match=r"light has 1 non-finite value\(s\).*\(2, 1\)"):
             rs[k](bad)
+        rs[k](L, out=bufs[k])  # the fast path into out (no view: straight to the kernel call)
+        with pytest.raises(ValueError, match=r"light has 1 non-finite value\(s\).*\(2, 1\)"):
+            rs[k](bad, out=bufs[k])
         with pytest.raises(ValueError, match=r"light has shape \(3, 3\); accepted"):
             rs[k](torch.randn(3, 3))
         with pytest.raises(TypeError, match="light must be a torch.Tensor"):
