@@ -6,6 +6,7 @@ scikit-learn estimator (``get_params``/``set_params``/``clone``, ``fit`` returns
     >>> codec = codecs.get("cpca", clusters=64, vectors=8)          # validated, no work yet
     >>> enc = codec.fit_encode(X, matrix_shape=(n_out, n_in))         # X [P, D] float32
     >>> out = codec.relight(enc, light, view=y_local)                 # straight from the codes
+    >>> r = codec.relighter(enc, view=y_local); r(light, out=out)     # a render loop: checks done once
     >>> codec.storage(enc)["compression_ratio"]
     >>> codec.save("out.prt", enc); codec2, enc2 = codecs.load("out.prt")
 
