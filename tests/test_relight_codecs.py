@@ -737,6 +737,18 @@ def test_relight_from_concurrent_threads():
     assert not errors and all(torch.equal(got[k], want[k]) for k in want)
 
 
+def _light_and_views(P: int, n_out: int, n_in: int, ms):
+    """A light [n_in, 3] and the view modes of a codec fitted on vectors (``ms`` None: rows only) or
+    on matrices (rows, dense [P, n_out], 4 taps), and the generator that drew them."""
+    g = torch.Generator().manual_seed(4)
+    L = torch.randn(n_in, 3, generator=g)
+    views = {"rows": None}
+    if ms:
+        views.update({"dense": torch.randn(P, n_out, generator=g),
+                      "taps": (torch.randint(0, n_out, (P, 4), generator=g), torch.rand(P, 4, generator=g))})
+    return L, views, g
+
+
 @pytest.mark.parametrize("name,params,ms", [("vq", {"clusters": 5}, None), ("cpca_static", {"clusters": 4, "vectors": 3}, (9, 4)),
                                             ("pca", {"vectors": 3}, (9, 4))])
 def test_relight_plans_follow_the_encoding_and_the_model(name, params, ms, monkeypatch):
@@ -756,12 +768,7 @@ def test_relight_plans_follow_the_encoding_and_the_model(name, params, ms, monke
         c = codecs.get(name, **params)
         enc = c.fit_encode(transfer_like(P, 1, 16, seed=3))
     n_out, n_in = ms or (1, 16)
-    g = torch.Generator().manual_seed(4)
-    L = torch.randn(n_in, 3, generator=g)
-    views = {"rows": None}
-    if ms:
-        views.update({"dense": torch.randn(P, n_out, generator=g),
-                      "taps": (torch.randint(0, n_out, (P, 4), generator=g), torch.rand(P, 4, generator=g))})
+    L, views, g = _light_and_views(P, n_out, n_in, ms)
 
     def by_kernels(kind, view):  # the two kernels one by one, points in order
         codes = c._native_codes(enc, c._n_eff(None))
@@ -889,12 +896,7 @@ def test_relighter_gives_relights_bits_and_sees_every_change(name, params, ms, p
         warnings.simplefilter("ignore")
         c = codecs.get(name, **params)
         enc = c.fit_encode(transfer_like(P, n_out, n_in, seed=3, regions=6).view(P, -1), matrix_shape=ms)
-    g = torch.Generator().manual_seed(4)
-    L = torch.randn(n_in, 3, generator=g)
-    views = {"rows": None}
-    if ms:
-        views.update({"dense": torch.randn(P, n_out, generator=g),
-                      "taps": (torch.randint(0, n_out, (P, 4), generator=g), torch.rand(P, 4, generator=g))})
+    L, views, g = _light_and_views(P, n_out, n_in, ms)
     rs = {k: c.relighter(enc, v) for k, v in views.items()}
     bufs = {k: torch.empty_like(c.relight(enc, L, view=v)) for k, v in views.items()}
 
