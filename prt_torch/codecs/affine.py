@@ -694,7 +694,6 @@ def _key(X: torch.Tensor) -> tuple:
     return (X.data_ptr(), tuple(X.shape), X.dtype, X._version, tuple(X.stride()))
 
 
-
 class AffineRelighter(Relighter):
     """``AffineCodec.relighter``: ``relight`` with the encoding, the view and ``n_vectors`` bound
     and checked once (the view's values too). A call takes the fast path when everything the last
