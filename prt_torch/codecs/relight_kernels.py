@@ -1905,12 +1905,15 @@ static void sg_taps_range(i64 v0, i64 v1, i64 fv, i64 fj, i64 N, i64 k, const fl
                                blended by the same multiply-adds as the gathers below, each 5 floats into a row of 16
                                blended records, deinterleaved as sg_range's (15 gathers of 16 per lobe cost more) */
                     float bl[16 * 5 + 8] __attribute__((aligned(64)));
-                    for (int l = 0; l < 16; l++) {
-                        __m256 b = _mm256_setzero_ps();
-                        for (i64 t = 0; t < k; t++)
-                            b = _mm256_fmadd_ps(_mm256_set1_ps(an[t][l]), _mm256_maskz_loadu_ps(0x1f, w + 5 * ((i64)mb[t][l] + n)), b);
-                        _mm256_storeu_ps(bl + 5 * l, b);
+#define BLEND_LANES(K) for (int l = 0; l < 16; l++) {                                                                   \
+                        __m256 b = _mm256_setzero_ps();                                                                 \
+                        for (i64 t = 0; t < (K); t++)                                                                   \
+                            b = _mm256_fmadd_ps(_mm256_set1_ps(an[t][l]), _mm256_maskz_loadu_ps(0x1f, w + 5 * ((i64)mb[t][l] + n)), b); \
+                        _mm256_storeu_ps(bl + 5 * l, b);                                                                \
                     }
+                    if (k == 3) BLEND_LANES(3)  /* the usual three taps: unrolled (1.0x-1.1x) */
+                    else BLEND_LANES(k)
+#undef BLEND_LANES
                     __m512 q[5] = {_mm512_load_ps(bl), _mm512_load_ps(bl + 16), _mm512_load_ps(bl + 32), _mm512_load_ps(bl + 48),
                                    _mm512_load_ps(bl + 64)};
                     wb = deint5(q, 0); mx = deint5(q, 1); my = deint5(q, 2); mz = deint5(q, 3); sb = deint5(q, 4);
