@@ -442,18 +442,18 @@ def test_cold_paired_timing_alternates_single_calls_after_an_eviction():
     last-level cache, at least 64 MiB."""
     from prt_torch.harness.timing import last_level_cache_bytes, measure_paired_cold
 
-    a = torch.randn(192, 192, dtype=torch.float64)
+    import time
+
     calls = []
 
-    def work(name, k):
+    def work(name, k):  # waits, not arithmetic: the ratio is the estimator's, whatever else the machine runs
         calls.append(name)
-        for _ in range(k):
-            a @ a
+        time.sleep(0.002 * k)  # (matrix products here once read 7x for 2x the work on a busy machine)
 
-    p = measure_paired_cold(lambda: work("t", 4), lambda: work("p", 8), repeats=7, warmup=1, evict_bytes=1 << 20)
+    p = measure_paired_cold(lambda: work("t", 1), lambda: work("p", 2), repeats=7, warmup=1, evict_bytes=1 << 20)
     assert calls == ["t", "p"] + ["t", "p", "p", "t"] * 3 + ["t", "p"]
     assert p.ratio.repeats == 7 and p.test.inner == 1 and p.speedup == p.ratio.median
-    assert 1.3 < p.ratio.median < 3.0
+    assert 1.5 < p.ratio.median < 2.5
     assert {"involuntary_switches_per_s", "trusted", "why_not"} <= set(p.contention)
     assert last_level_cache_bytes() >= 1 << 16
     with pytest.raises(ValueError, match="repeats"):
