@@ -1026,3 +1026,31 @@ def test_relighter_after_changes_behind_its_back_refuses_and_converts_as_relight
         c.relight(enc, L, view=y2)
     with pytest.raises(ValueError, match="was not produced by this codec"):
         r(L)
+
+
+def test_tensors_off_the_cpu_are_refused_naming_them():
+    """A light, a view or an out on another device (here 'meta': no memory at all) is refused by
+    name before any kernel reads it — its address would be read as CPU memory (a meta light once
+    crashed relight) — by relight and by the relighter's first and later calls."""
+    P = 40
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        c = codecs.get("cpca_static", clusters=4, vectors=3)
+        enc = c.fit_encode(transfer_like(P, 3, 4, seed=2, regions=4).view(P, -1), matrix_shape=(3, 4))
+    L, y, buf = torch.randn(4, 3), torch.randn(P, 3), torch.empty(P, 3)
+    meta = lambda t: torch.empty(t.shape, dtype=t.dtype, device="meta")  # noqa: E731
+    r = c.relighter(enc, y)
+    r(L, out=buf)
+    for call in (lambda: c.relight(enc, meta(L), view=y), lambda: r(meta(L), out=buf), lambda: r(meta(L))):
+        with pytest.raises(ValueError, match="light is on device meta; accepted: a CPU tensor"):
+            call()
+    with pytest.raises(ValueError, match="view is on device meta"):
+        c.relight(enc, L, view=meta(y))
+    with pytest.raises(ValueError, match="view is on device meta"):
+        c.relighter(enc, meta(y))
+    with pytest.raises(ValueError, match="view taps is on device meta"):
+        c.relight(enc, L, view=(meta(torch.zeros(P, 4, dtype=torch.long)), torch.rand(P, 4)))
+    with pytest.raises(ValueError, match="out is on device meta"):
+        c.relight(enc, L, view=y, out=meta(buf))
+    with pytest.raises(ValueError, match="out is on device meta"):
+        r(L, out=meta(buf))

@@ -731,7 +731,7 @@ class AffineRelighter(Relighter):
         lib = native()
         hot = self._hot
         if (hot is not None and lib is not None and type(light) is torch.Tensor and light.dtype == torch.float32
-                and light.shape == hot[0] and light.is_contiguous() and out is hot[1]
+                and light.shape == hot[0] and light.is_contiguous() and light.is_cpu and out is hot[1]
                 and (out is None or (out.data_ptr() == hot[2] and out.shape == hot[3] and out.is_contiguous()
                                      and light.untyped_storage().data_ptr() != out.untyped_storage().data_ptr()))
                 and self._view_ptrs() == hot[4]):
@@ -746,7 +746,8 @@ class AffineRelighter(Relighter):
                     check_view(view, enc.points, hot[7])  # raises with the offending value
                 return res if out is not None or hot[8] is None else res.view(hot[8])
         self._hot = None
-        if lib is None or type(light) is not torch.Tensor or light.dtype != torch.float32 or light.ndim != 2 or not light.is_contiguous():
+        if (lib is None or type(light) is not torch.Tensor or light.dtype != torch.float32 or light.ndim != 2 or not light.is_contiguous()
+                or not light.is_cpu):
             return codec.relight(enc, light, view, out=out, **self.kwargs)
         codec._check_enc(enc)  # (a refit to another shape or cluster count)
         n_out, n_in = codec.matrix_shape_ or (1, codec.D_)

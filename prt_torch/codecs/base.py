@@ -347,6 +347,7 @@ def check_light(light: Any, n_in: int, values: bool = True) -> torch.Tensor:
     (``relight_kernels.constants`` raises as this does)."""
     if not isinstance(light, torch.Tensor):
         raise TypeError(f"light must be a torch.Tensor [n_in, C] = [{n_in}, C], got {_describe(light)}")
+    check_cpu("light", light)
     if light.ndim != 2 or light.shape[0] != n_in:
         raise ValueError(f"light has shape {tuple(light.shape)}; accepted: [n_in, C] = [{n_in}, C] (SH coefficients on rows, colours on columns)")
     if not light.is_floating_point():
@@ -374,6 +375,7 @@ def check_view(view: Any, P: int, n_out: int, values: bool = True):
         idx, w = view
         if not isinstance(idx, torch.Tensor) or not isinstance(w, torch.Tensor):
             raise TypeError("view taps must be tensors (idx int64 [P, k], w float [P, k])")
+        check_cpu("view taps", idx, w)
         if idx.ndim != 2 or idx.shape[0] != P or w.shape != idx.shape:
             raise ValueError(f"view taps have shapes {tuple(idx.shape)}, {tuple(w.shape)}; accepted: idx [P, k], w [P, k] with P={P}")
         if idx.is_floating_point() or idx.dtype == torch.bool:
@@ -388,6 +390,7 @@ def check_view(view: Any, P: int, n_out: int, values: bool = True):
         return idx, (w if w.dtype == torch.float32 else w.to(torch.float32))
     if not isinstance(view, torch.Tensor):
         raise TypeError(f"view must be None, a tensor [P, n_out] or a tuple (idx, w); got {_describe(view)}")
+    check_cpu("view", view)
     if view.shape != (P, n_out):
         raise ValueError(f"view has shape {tuple(view.shape)}; accepted: [P, n_out] = [{P}, {n_out}]")
     if values:
@@ -414,6 +417,7 @@ def check_out(out: Any, shape: tuple[int, ...], *inputs: Any) -> torch.Tensor | 
         return None
     if not isinstance(out, torch.Tensor):
         raise TypeError(f"out must be None or a float32 tensor {list(shape)}; got {_describe(out)}")
+    check_cpu("out", out)
     if tuple(out.shape) != tuple(shape) or out.dtype != torch.float32 or not out.is_contiguous():
         raise ValueError(f"out has shape {tuple(out.shape)}, dtype {out.dtype}{'' if out.is_contiguous() else ', not contiguous'}; "
                          f"accepted: a contiguous float32 tensor of shape {list(shape)}")
@@ -423,6 +427,14 @@ def check_out(out: Any, shape: tuple[int, ...], *inputs: Any) -> torch.Tensor | 
             if isinstance(x, torch.Tensor) and x.numel() and x.untyped_storage().data_ptr() == mine:
                 raise ValueError("out shares memory with an input of relight (the view or the light); accepted: a separate tensor")
     return out
+
+
+def check_cpu(name: str, *ts: torch.Tensor) -> None:
+    """Refuse tensors not in CPU memory: relighting runs on the CPU, and the compiled kernels read
+    their addresses (a meta or GPU tensor's would be read as CPU memory: a crash)."""
+    for t in ts:
+        if not t.is_cpu:
+            raise ValueError(f"{name} is on device {t.device}; accepted: a CPU tensor (relighting runs on the CPU: .cpu())")
 
 
 def encoding_state(enc: Encoded, held: tuple) -> list:

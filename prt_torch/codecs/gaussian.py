@@ -74,7 +74,7 @@ import torch
 from .._checks import check_finite_float32
 from ..lighting.prefilter import PrefilteredEnvironment, cube_map_directions, sg_normaliser
 from ..params import Boolean, Interval, Options
-from .base import Codec, Encoded, Relighter, check_out, check_signal, encoding_state, register, view_nbytes
+from .base import Codec, Encoded, Relighter, check_cpu, check_out, check_signal, encoding_state, register, view_nbytes
 from .relight_kernels import lobe_layout, native, sg_lookup_prepared, sg_lookup_sum, sg_prepare, sg_taps
 
 __all__ = ["GaussianCodec", "resolvable_sigma", "relative_l2", "sh_truncation", "haar_truncation",
@@ -874,6 +874,7 @@ class GaussianCodec(Codec):
         if not (isinstance(view, (tuple, list)) and len(view) == 2):
             raise TypeError("view must be taps (idx int64 [V, k], w [V, k]) or directions [V, 3]")
         idx, a = (torch.as_tensor(v) for v in view)
+        check_cpu("view taps", idx, a)
         if idx.ndim != 2 or idx.shape[0] != V or a.shape != idx.shape:
             raise ValueError(f"view taps have shapes {tuple(idx.shape)}, {tuple(a.shape)}; accepted: [V, k] with V={V}")
         if idx.is_floating_point() or idx.dtype == torch.bool:
