@@ -472,6 +472,50 @@ def test_relight_survives_non_finite_lobes_and_refuses_bad_views_before_writing(
 
 
 @pytest.mark.parametrize("native", [True, False], ids=["kernel", "torch"])
+def test_a_light_whose_levels_and_ladder_disagree_is_refused_naming_them(cube, native, monkeypatch):
+    """A ``PrefilteredEnvironment`` whose levels, width ladder, cube or SH coefficients disagree is
+    refused, naming the field and the shape accepted — at construction and, since the attributes
+    can be reassigned, by every relight (every view, taps, the relighter) before ``out`` is
+    written. The kernels take the level count from the ladder: two levels under an eight-width
+    ladder read past the pyramid's table (found by an ASan review: heap-use-after-free)."""
+    from prt_torch.lighting import PrefilteredEnvironment
+
+    if not native:
+        monkeypatch.setenv("PRT_TORCH_NATIVE", "0")
+    g = torch.Generator().manual_seed(5)
+    J, N, V = 12, 1, 20
+    c, enc = _random_lobes(cube[0], V, J, N, g, torch.rand(V, J, N, generator=g) + 0.1)
+    pe = prefilter_environment(lambda x: 1.5 + x[..., :3], res=4, levels=8)
+    with pytest.raises(ValueError, match=r"sigmas: expected one width per level, shape \(2,\), got \(8,\)"):
+        PrefilteredEnvironment(pe.levels[:2].clone(), pe.sigmas, pe.cube)
+    with pytest.raises(ValueError, match=r"sigmas: expected finite positive widths increasing"):
+        PrefilteredEnvironment(pe.levels, pe.sigmas.flip(0), pe.cube)
+    with pytest.raises(ValueError, match=r"cube: expected \[C, 6, r, r\] = \(3, 6, 4, 4\), got \(1, 6, 4, 4\)"):
+        PrefilteredEnvironment(pe.levels, pe.sigmas, pe.cube[:1])
+    with pytest.raises(ValueError, match=r"levels: expected a float tensor \[n_levels, C, 6, r, r\]"):
+        PrefilteredEnvironment(pe.levels[..., :3], pe.sigmas, pe.cube)
+    with pytest.raises(ValueError, match=r"sh: expected None or \[C, n²\] with C=3, got \(3, 5\)"):
+        PrefilteredEnvironment(pe.levels, pe.sigmas, pe.cube, torch.zeros(3, 5))
+    idx, a = torch.randint(0, J, (V, 3), generator=g), torch.rand(V, 3, generator=g)
+    want = c.relight(enc, pe)
+    r = c.relighter(enc)
+    assert torch.equal(r(pe), want)
+    for field, value, msg in [("levels", pe.levels[:2].clone(), r"sigmas: expected one width per level, shape \(2,\)"),
+                              ("sigmas", pe.sigmas[:3].clone(), r"sigmas: expected one width per level, shape \(8,\)"),
+                              ("sigmas", pe.sigmas * 2, "log_sigmas no longer matches sigmas"),
+                              ("levels", pe.levels[..., :2, :2], r"res=4, channels=3 do not match levels")]:
+        bad = prefilter_environment(lambda x: 1.5 + x[..., :3], res=4, levels=8)
+        setattr(bad, field, value)
+        for call, shape in [(lambda o: c.relight(enc, bad, out=o), (V, J, 3)), (lambda o: r(bad, out=o), (V, J, 3)),
+                            (lambda o: c.relight(enc, bad, view=(idx, a), out=o), (V, 3))]:
+            buf = torch.full(shape, 7.0)
+            with pytest.raises(ValueError, match=msg):
+                call(buf)
+            assert bool((buf == 7.0).all()), field  # nothing written
+    assert torch.equal(r(pe), want)  # the relighter still relights a good light
+
+
+@pytest.mark.parametrize("native", [True, False], ids=["kernel", "torch"])
 def test_bad_taps_are_refused_by_name_before_anything_is_written(cube, native, monkeypatch):
     """The fused kernel checks the taps itself (one pass, each thread over its vertices, before
     any thread writes), the torch formulation before it starts: an index outside [0, J), a

@@ -841,7 +841,7 @@ class GaussianCodec(Codec):
             raise TypeError(f"codec {self.codec_name!r} relights from a Gaussian-prefiltered environment "
                             "(light_kind 'prefiltered': prt_torch.lighting.prefilter_environment(light)); "
                             f"got {type(light).__name__}")
-        return light
+        return light.check()  # the kernels size the pyramid from its ladder: a mismatch would read past it
 
     @staticmethod
     def _check_diffuse_light(enc, light):

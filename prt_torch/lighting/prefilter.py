@@ -115,9 +115,57 @@ class PrefilteredEnvironment:
         self.sigmas = sigmas
         self.cube = cube
         self.sh = sh
+        if not isinstance(levels, torch.Tensor) or levels.dim() != 5:
+            raise ValueError(f"PrefilteredEnvironment levels: expected a tensor [n_levels, C, 6, r, r], got "
+                             f"{tuple(levels.shape) if isinstance(levels, torch.Tensor) else type(levels).__name__}")
         self.res = int(levels.shape[-1])
         self.channels = int(levels.shape[1])
+        if not isinstance(sigmas, torch.Tensor):
+            raise ValueError(f"PrefilteredEnvironment sigmas: expected a tensor [n_levels], got {type(sigmas).__name__}")
         self.log_sigmas = sigmas.log().to(torch.float32)  # [n_levels] float32: the ladder lookups search
+        self.check()
+
+    def check(self) -> "PrefilteredEnvironment":
+        """Raise ``ValueError`` naming the field and its value unless the levels, the width
+        ladder, the cube and the SH coefficients agree (the kernels read ``n_levels`` from the
+        ladder and the texels from ``table()``: a mismatch would read past the table). Run at
+        construction and by every relight, since the attributes can be reassigned (a light
+        checked before and unchanged since, by identity and version counter, passes at once)."""
+        fields = (self.levels, self.sigmas, self.log_sigmas, self.cube, self.sh)
+        key = (self.res, self.channels) + tuple((id(t), t._version) if isinstance(t, torch.Tensor) else id(t) for t in fields)
+        hit = getattr(self, "_checked", None)
+        if hit is not None and hit[0] == key:
+            return self
+        lv, sig = self.levels, self.sigmas
+        if not isinstance(lv, torch.Tensor) or lv.dim() != 5 or lv.shape[2] != 6 or lv.shape[3] != lv.shape[4] \
+                or min(lv.shape) < 1 or not lv.is_floating_point():
+            raise ValueError(f"PrefilteredEnvironment levels: expected a float tensor [n_levels, C, 6, r, r] with r ≥ 1, got "
+                             f"{(lv.dtype, tuple(lv.shape)) if isinstance(lv, torch.Tensor) else type(lv).__name__}")
+        L, C, _, r, _ = lv.shape
+        if (self.res, self.channels) != (r, C):
+            raise ValueError(f"PrefilteredEnvironment res={self.res}, channels={self.channels} do not match levels "
+                             f"{tuple(lv.shape)}; accepted: res={r}, channels={C} (build a new PrefilteredEnvironment)")
+        if not isinstance(sig, torch.Tensor) or sig.shape != (L,):
+            raise ValueError(f"PrefilteredEnvironment sigmas: expected one width per level, shape ({L},), got "
+                             f"{tuple(sig.shape) if isinstance(sig, torch.Tensor) else type(sig).__name__}")
+        if not (bool(torch.isfinite(sig).all()) and bool((sig > 0).all()) and (L == 1 or bool((sig[1:] > sig[:-1]).all()))):
+            raise ValueError(f"PrefilteredEnvironment sigmas: expected finite positive widths increasing with the level, "
+                             f"got {sig.tolist()}")
+        ls = self.log_sigmas
+        if not isinstance(ls, torch.Tensor) or ls.shape != (L,) or ls.dtype != torch.float32 \
+                or not torch.equal(ls, sig.log().to(torch.float32)):
+            raise ValueError("PrefilteredEnvironment log_sigmas no longer matches sigmas (sigmas was reassigned); accepted: "
+                             "log_sigmas = sigmas.log().float(), or a new PrefilteredEnvironment")
+        if not isinstance(self.cube, torch.Tensor) or self.cube.shape != (C, 6, r, r):
+            raise ValueError(f"PrefilteredEnvironment cube: expected [C, 6, r, r] = {(C, 6, r, r)}, got "
+                             f"{tuple(self.cube.shape) if isinstance(self.cube, torch.Tensor) else type(self.cube).__name__}")
+        sh = self.sh
+        if sh is not None and (not isinstance(sh, torch.Tensor) or sh.dim() != 2 or sh.shape[0] != C
+                               or int(round(sh.shape[1] ** 0.5)) ** 2 != sh.shape[1]):
+            raise ValueError(f"PrefilteredEnvironment sh: expected None or [C, n²] with C={C}, got "
+                             f"{tuple(sh.shape) if isinstance(sh, torch.Tensor) else type(sh).__name__}")
+        self._checked = (key, fields)  # the checked objects held: their ids cannot be reused while the key lives
+        return self
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -132,9 +180,11 @@ class PrefilteredEnvironment:
     def table(self) -> torch.Tensor:
         """The pyramid as rows ``[L·6·r·r, C]`` float32 (built once): texel (level l, face f,
         row t, column s) is row ``((l·6 + f)·r + t)·r + s``."""
-        if getattr(self, "_flat_levels", None) is None:
+        key = (id(self.levels), self.levels._version)  # rebuilt after an in-place edit of the levels
+        if getattr(self, "_flat_levels", None) is None or self._flat_key != key:
             L = self.levels.shape[0]
             self._flat_levels = self.levels.permute(0, 2, 3, 4, 1).reshape(L * 6 * self.res * self.res, self.channels).float().contiguous()
+            self._flat_key = key
         return self._flat_levels
 
     def lookup(self, mu: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
