@@ -377,6 +377,65 @@ def test_fused_kernels_in_blocks_of_16_equal_the_torch_formulation(cube, threads
         c.relight(enc, pe, view=(idx, a), out=next(iter(enc.tensors.values())).view(-1)[: V * 3].view(V, 3))
 
 
+@pytest.mark.parametrize("layout", ["by_view", "records"])
+def test_every_view_kernels_from_the_quad_table_equal_the_torch_formulation(cube, layout, monkeypatch):
+    """Every-view relighting reads the pyramid's 2×2 texel footprints (``PrefilteredEnvironment.quads``,
+    one line per level) where it makes enough lookups per texel (``relight_kernels.sg_quads_worth``;
+    forced here): the quads equal the table's texels (brute force), the result equals the torch
+    formulation to float32 rounding and the table path's to a few ulps, at 1-3 threads with the
+    same bits, through ``relight`` and the relighter alike. A view-major result over 16 MiB is
+    written by streaming stores from a staged block: its rows equal those of a small encoding of
+    the same vertices, bit for bit."""
+    from prt_torch.codecs import relight_kernels
+    from prt_torch.harness.timing import torch_threads
+    from prt_torch.lighting import PrefilteredEnvironment
+
+    if relight_kernels.native() is None:
+        pytest.skip("no compiled kernels")
+    g = torch.Generator().manual_seed(17)
+    J, V, N = 12, 37, 2
+    c, enc = _random_lobes(cube[0], V, J, N, g, torch.exp(torch.randn(V, J, N, generator=g) * 2), layout)
+    light = lambda x: torch.stack([1.5 + x[..., 0], 1 + 0.5 * x[..., 2], (x[..., 1] > 0.3).double()], -1)  # noqa: E731
+    pe = prefilter_environment(light, res=8, levels=12)
+    Q, T, r = pe.quads(), pe.table(), pe.res
+    i = torch.arange(T.shape[0])
+    s1 = torch.where(i % r < r - 1, i + 1, i)
+    t1 = torch.where((i // r) % r < r - 1, i + r, i)
+    st = torch.where(i % r < r - 1, t1 + 1, t1)
+    assert torch.equal(Q, torch.cat([T[i], T[s1], T[t1], T[st], torch.zeros(len(i), 4)], 1))
+    table_path = c.relight(enc, pe)  # too few lookups per texel: the table
+    used = []
+    real = PrefilteredEnvironment.quads
+    monkeypatch.setattr(PrefilteredEnvironment, "quads", lambda self: used.append(1) or real(self))
+    monkeypatch.setattr(relight_kernels, "SG_QUADS_MIN_LOOKUPS_PER_ROW", 0)
+    r_ = c.relighter(enc)
+    with torch_threads(1):
+        one = c.relight(enc, pe)
+    assert used and torch.allclose(one, table_path, rtol=1e-6, atol=0) and not torch.equal(one, table_path)
+    for th in (1, 2, 3):
+        with torch_threads(th):
+            assert torch.equal(c.relight(enc, pe), one), th
+            assert torch.equal(r_(pe), one) and torch.equal(r_(pe), one), th
+    monkeypatch.setenv("PRT_TORCH_NATIVE", "0")
+    ref = c.relight(enc, pe)
+    monkeypatch.delenv("PRT_TORCH_NATIVE")
+    assert torch.allclose(one, ref, rtol=1e-5, atol=1e-6 * float(ref.abs().max()))
+    if layout != "by_view":
+        return
+    d92, _ = cube_map_directions(4)  # 96 texel directions; 92 views as the codec's default
+    J, V = 92, 16 * 1000  # V J 12 bytes = 17.7 MB: over the streaming threshold
+    c, big = _random_lobes(d92.reshape(-1, 3), V, J, 1, g, torch.rand(V, J, 1, generator=g) + 0.1)
+    assert V * J * 12 >= 16 << 20
+    pick = torch.cat([torch.arange(32), torch.arange(V - 32, V)])  # whole blocks of 16: the same lanes
+    small = type(big)(big.codec, {"lobes_by_view": big.tensors["lobes_by_view"][:, pick].contiguous()},
+                      dict(big.meta, points=len(pick)))
+    for th in (1, 2):
+        with torch_threads(th):
+            got = c.relighter(big)(pe)
+            assert torch.equal(got[pick], c.relight(small, pe)), th
+            assert torch.equal(c.relight(big, pe)[pick], got[pick]), th
+
+
 @pytest.mark.parametrize("N,layout", [(1, "by_view"), (2, "by_view"), (1, "records")])
 def test_relighter_gives_relights_bits_and_prepares_again_when_anything_changes(cube, N, layout):
     """``codec.relighter(enc)``: every view from the lobes' addressing prepared at the first light

@@ -75,7 +75,7 @@ from .._checks import check_finite_float32
 from ..lighting.prefilter import PrefilteredEnvironment, cube_map_directions, sg_normaliser
 from ..params import Boolean, Interval, Options
 from .base import Codec, Encoded, Relighter, check_cpu, check_out, check_signal, encoding_state, register, view_nbytes
-from .relight_kernels import lobe_layout, native, sg_lookup_prepared, sg_lookup_sum, sg_prepare, sg_taps
+from .relight_kernels import lobe_layout, native, sg_lookup_prepared, sg_lookup_sum, sg_prepare, sg_quads_worth, sg_taps
 
 __all__ = ["GaussianCodec", "resolvable_sigma", "relative_l2", "sh_truncation", "haar_truncation",
            "fibonacci_directions", "default_views", "view_neighbours", "view_taps",
@@ -468,9 +468,12 @@ def lobe_sum(light: PrefilteredEnvironment, w: torch.Tensor, mu: torch.Tensor, s
     resolution and width ladder (``GaussianRelighter``), the same bits read faster."""
     lib = _fused(light)
     if lib is not None:
+        table = light.table()
+        quads = light.quads() if sg_quads_worth(table.shape[0], light.channels, light.res, w.numel()) else None
         if prepared is not None:
-            return sg_lookup_prepared(lib, prepared, light.table(), light.log_sigmas, light.res, w, mu, sigma, out=out, layout=layout)
-        return sg_lookup_sum(lib, light.table(), light.log_sigmas, light.res, mu, sigma, w, out=out, layout=layout)
+            return sg_lookup_prepared(lib, prepared, table, light.log_sigmas, light.res, w, mu, sigma, out=out, layout=layout,
+                                      quads=quads)
+        return sg_lookup_sum(lib, table, light.log_sigmas, light.res, mu, sigma, w, out=out, layout=layout, quads=quads)
     res = (w[..., None] * light.lookup(mu, sigma)).sum(-2)
     return res if out is None else out.copy_(res)
 

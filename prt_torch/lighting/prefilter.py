@@ -187,6 +187,27 @@ class PrefilteredEnvironment:
             self._flat_key = key
         return self._flat_levels
 
+    def quads(self) -> torch.Tensor:
+        """The pyramid as 2×2 texel footprints ``[L·6·r·r, 16]`` float32 (built once per levels,
+        as :meth:`table`): row i of texel (l, f, t, s) = the channels of texels (t, s), (t, s+1),
+        (t+1, s), (t+1, s+1) of that face and level (clamped at the face's last row and column),
+        then zeros to 16 floats — for RGB, one 64-byte line per bilinear lookup, read by the
+        Gaussian codec's every-view kernels (``relight_kernels.sg_lookup_sum``'s ``quads``)."""
+        key = (id(self.levels), self.levels._version)
+        if getattr(self, "_quads", None) is None or self._quads_key != key:
+            C, r = self.channels, self.res
+            if 4 * C > 16:
+                raise ValueError(f"PrefilteredEnvironment.quads: {C} channels; accepted: at most 4")
+            T = self.levels.permute(0, 2, 3, 4, 1).float()  # [L, 6, r(t), r(s), C]
+            nxt = torch.arange(1, r + 1).clamp(max=r - 1)
+            down = T[:, :, nxt]  # row t + 1
+            Q = torch.zeros(*T.shape[:4], 16)
+            for k, part in enumerate((T, T[:, :, :, nxt], down, down[:, :, :, nxt])):
+                Q[..., k * C:(k + 1) * C] = part
+            self._quads = Q.reshape(-1, 16)
+            self._quads_key = key
+        return self._quads
+
     def lookup(self, mu: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
         """E_σ(μ): ``mu [..., 3]`` unit directions, ``sigma [...]`` widths → ``[..., C]`` float32.
         Bilinear in the face (clamped at face edges), linear in log σ between the two levels
