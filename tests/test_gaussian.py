@@ -579,7 +579,8 @@ def test_bad_taps_are_refused_by_name_before_anything_is_written(cube, native, m
     """The fused kernel checks the taps itself (one pass, each thread over its vertices, before
     any thread writes), the torch formulation before it starts: an index outside [0, J), a
     negative, NaN or infinite weight, or a float64 weight beyond float32's range is refused naming
-    the value, at 1 and 2 threads (the bad tap in the second thread's half), ``out`` untouched;
+    the value, at 1 and 2 threads (the bad tap in the second thread's half, or the first's; in the
+    kernel's one-by-one tail of the taps, or its steps of 16), ``out`` untouched;
     integer weights and float indices are refused by type."""
     from prt_torch.harness.timing import torch_threads
 
@@ -593,16 +594,17 @@ def test_bad_taps_are_refused_by_name_before_anything_is_written(cube, native, m
     a = torch.rand(V, 3, generator=g, dtype=torch.float64) + 0.1
     good = c.relight(enc, pe, view=(idx, a))
     cases = [("idx", J, r"view tap indices span \[0, 12\]; accepted: 0..11"), ("idx", -1, r"span \[-1, 11\]"),
-             ("a", -0.5, r"negative value -0.5 at index \(37, 1\)"), ("a", float("nan"), r"non-finite.*\(37, 1\)"),
-             ("a", float("inf"), r"non-finite.*\(37, 1\)"), ("a", 1e39, r"converted to float32.*\(37, 1\)")]
-    for threads in (1, 2):
+             ("a", -0.5, r"negative value -0.5 at index \(R, 1\)"), ("a", float("nan"), r"non-finite.*\(R, 1\)"),
+             ("a", float("inf"), r"non-finite.*\(R, 1\)"), ("a", 1e39, r"converted to float32.*\(R, 1\)")]
+    for threads, row in ((1, 37), (2, 37), (1, 5), (2, 5)):  # tap 112: the kernel's scalar tail; tap 16: its 16-tap steps
         for which, value, message in cases:
+            message = message.replace("R", str(row))
             i2, a2 = idx.clone(), a.clone()
-            (i2 if which == "idx" else a2)[37, 1] = value
+            (i2 if which == "idx" else a2)[row, 1] = value
             buf = torch.full((V, 3), 7.0)
             with torch_threads(threads), pytest.raises(ValueError, match=message):
                 c.relight(enc, pe, view=(i2, a2), out=buf)
-            assert bool((buf == 7.0).all()), (which, value, threads)
+            assert bool((buf == 7.0).all()), (which, value, threads, row)
         buf = torch.full((V, 3), 7.0)
         with torch_threads(threads):
             assert c.relight(enc, pe, view=(idx, a), out=buf) is buf
