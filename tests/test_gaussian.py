@@ -443,8 +443,8 @@ def test_relighter_gives_relights_bits_and_prepares_again_when_anything_changes(
     into ``out=`` too, over blocks of 16 and the tail; the prepared addressing is kept for another
     light of the same pyramid and computed again for another resolution or width ladder, after an
     in-place edit of the lobes and for a replaced lobes tensor; a one-channel light, taps and a
-    wrong light go through ``relight``. And relight's every-view results no longer depend on the
-    thread count (the threads' ranges are whole blocks of 16)."""
+    wrong light go through ``relight``. And relight's results, every view and with taps, no longer
+    depend on the thread count (the threads' ranges are whole blocks of 16)."""
     from prt_torch.codecs import relight_kernels
     from prt_torch.harness.timing import torch_threads
 
@@ -458,10 +458,14 @@ def test_relighter_gives_relights_bits_and_prepares_again_when_anything_changes(
     r = c.relighter(enc)
     with torch_threads(1):
         one = c.relight(enc, pe)
+    idx, a = torch.randint(0, J, (V, 3), generator=g), torch.rand(V, 3, generator=g)
+    with torch_threads(1):
+        taps = c.relight(enc, pe, view=(idx, a))
     for th in (1, 2, 3):
         with torch_threads(th):
             want = c.relight(enc, pe)
             assert torch.equal(want, one), th  # relight itself: the same bits at any thread count
+            assert torch.equal(c.relight(enc, pe, view=(idx, a)), taps), th  # with taps too
             for _ in range(2):  # the first call prepares, the second reuses
                 assert torch.equal(r(pe), want), th
             buf = torch.full_like(want, float("nan"))

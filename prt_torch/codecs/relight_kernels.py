@@ -2127,7 +2127,7 @@ int prt_sg_taps(i64 V, i64 J, i64 N, i64 k, i64 fv, i64 fj, const float *w, cons
         i64 t = 0, n = 1;
         (void)nth;
 #endif
-        i64 v0 = V * t / n, v1 = V * (t + 1) / n;
+        i64 v0 = SPLIT16(V, t, n), v1 = SPLIT16_END(V, t, n);  /* whole blocks of 16: bits independent of the thread count */
         if (taps_bad(v0 * k, v1 * k, idx, av, J)) {
             #pragma omp atomic write
             bad = 1;
