@@ -21,6 +21,8 @@ __all__ = [
     "check_unit_vectors",
     "check_float_dtype",
     "describe",
+    "tensor_version",
+    "tensor_state",
 ]
 
 
@@ -150,3 +152,19 @@ def check_unit_vectors(name: str, dirs: torch.Tensor, tol: float | None = None) 
                 f"(tolerance {tol:g}); accepted: |d| = 1, normalise with d / d.norm(dim=-1, keepdim=True)"
             )
     return dirs
+
+
+def tensor_version(t: torch.Tensor) -> Any:
+    """``t._version`` (bumped by every in-place edit), for cache keys; an inference tensor
+    (``torch.inference_mode``) tracks none, so it gets a new object each call: a key holding it
+    never matches, and whatever it keys is recomputed every time instead of raising."""
+    return object() if t.is_inference() else t._version
+
+
+def tensor_state(t: torch.Tensor) -> tuple:
+    """What a cache keyed on a tensor must compare: its identity, storage address, shape, stride,
+    dtype, device and version (:func:`tensor_version`). ``t.data = other`` keeps the identity
+    and the version but not the address or the shape; the caller holds ``t`` with the key, so
+    its id cannot be reused by another tensor while the key lives."""
+    return (id(t), t.data_ptr() if t.device.type != "meta" else None, tuple(t.shape), t.stride(), t.dtype, t.device,
+            tensor_version(t))

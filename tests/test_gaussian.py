@@ -578,6 +578,50 @@ def test_a_light_whose_levels_and_ladder_disagree_is_refused_naming_them(cube, n
     assert torch.equal(r(pe), want)  # the relighter still relights a good light
 
 
+def test_a_light_changed_through_data_or_moved_off_the_cpu_is_refused_or_rebuilt(cube):
+    """A light edited through ``.data`` keeps its tensors' ids and versions: its check and its
+    table and quad caches key on the storage address and shape too (a 64-width ladder assigned
+    through ``.data`` over a 2-level table had read past it; a review, under ASan), and the
+    kernels' wrappers check the table's rows against the ladder and resolution at each call. A
+    light wholly replaced through ``.data`` relights as the light it now is; levels on another
+    device are refused; lights and encodings made under ``torch.inference_mode`` (tensors without a
+    version counter) relight as others do."""
+    from prt_torch.codecs import relight_kernels
+    from prt_torch.lighting import PrefilteredEnvironment
+
+    g = torch.Generator().manual_seed(23)
+    J, N, V = 12, 1, 37
+    c, enc = _random_lobes(cube[0], V, J, N, g, torch.rand(V, J, N, generator=g) * 3, "records")
+    f = lambda x: 1 + x[..., :3].abs()  # noqa: E731
+    pe = prefilter_environment(f, res=4, levels=2)
+    c.relight(enc, pe)
+    pe.log_sigmas.data = torch.linspace(-4, 3, 64)
+    with pytest.raises(ValueError, match="log_sigmas no longer matches sigmas"):
+        c.relight(enc, pe)
+    pe = prefilter_environment(f, res=4, levels=2)
+    c.relight(enc, pe)
+    big = prefilter_environment(lambda x: 2 + x[..., :3], res=8, levels=20)
+    pe.levels.data = big.levels  # the same tensor object, another shape and storage
+    pe.sigmas, pe.log_sigmas, pe.res, pe.cube = big.sigmas, big.log_sigmas, 8, big.cube
+    assert torch.equal(c.relight(enc, pe), c.relight(enc, big))  # the table rebuilt, not read past
+    assert torch.equal(pe.quads(), big.quads())
+    with pytest.raises(ValueError, match=r"sg_lookup_sum: a pyramid table \(192, 3\) for 20 levels of 6×8×8; accepted: 7680 rows"):
+        relight_kernels.sg_lookup_sum(relight_kernels.native() or pytest.skip("no compiled kernels"),
+                                      prefilter_environment(f, res=4, levels=2).table(), big.log_sigmas, 8, *c.lobes_of(enc)[1:],
+                                      c.lobes_of(enc)[0])
+    meta = PrefilteredEnvironment.__new__(PrefilteredEnvironment)
+    meta.__dict__.update(prefilter_environment(f, res=4, levels=2).__dict__)
+    meta.levels = meta.levels.to("meta")
+    with pytest.raises(ValueError, match="levels is on meta; accepted: CPU tensors"):
+        c.relight(enc, meta)
+    want = c.relight(enc, prefilter_environment(f, res=4, levels=3))
+    with torch.inference_mode():
+        inf = prefilter_environment(f, res=4, levels=3)
+        assert torch.equal(c.relight(enc, inf), want) and torch.equal(c.relighter(enc)(inf), want)
+        enc_i = type(enc)(enc.codec, {k: v.clone() for k, v in enc.tensors.items()}, dict(enc.meta))
+        assert torch.equal(c.relight(enc_i, inf), want)
+
+
 @pytest.mark.parametrize("native", [True, False], ids=["kernel", "torch"])
 def test_bad_taps_are_refused_by_name_before_anything_is_written(cube, native, monkeypatch):
     """The fused kernel checks the taps itself (one pass, each thread over its vertices, before

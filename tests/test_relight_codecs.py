@@ -1028,6 +1028,27 @@ def test_relighter_after_changes_behind_its_back_refuses_and_converts_as_relight
         r(L)
 
 
+@pytest.mark.parametrize("name, params", [("vq", {"clusters": 8}), ("cpca_static", {"clusters": 4, "vectors": 3}),
+                                          ("cpca_adaptive", {"clusters": 4, "vectors": 3})])
+def test_models_and_encodings_made_under_inference_mode_relight(name, params):
+    """Tensors made under ``torch.inference_mode`` track no version counter, which the per-encoding
+    caches and the relighter's state key on (reading it raised): such an encoding relights, through
+    ``relight`` and the relighter, in and out of inference mode, to the same values as one made
+    normally (its caches are then rebuilt at each call instead of kept)."""
+    X = transfer_like(600, 1, 16, seed=3)
+    L = torch.randn(16, 3, generator=torch.Generator().manual_seed(1))
+    c = codecs.get(name, max_iter=5, seed=0, **params)
+    enc = c.fit(X).encode(X)
+    want = c.relight(enc, L)
+    with torch.inference_mode():
+        c_i = codecs.get(name, max_iter=5, seed=0, **params)
+        enc_i = c_i.fit(X).encode(X)
+        r = c_i.relighter(enc_i)
+        for got in (c_i.relight(enc_i, L), r(L), r(L)):
+            assert torch.allclose(got, want, rtol=1e-5, atol=1e-5)
+    assert torch.allclose(c_i.relight(enc_i, L), want, rtol=1e-5, atol=1e-5)
+
+
 def test_tensors_off_the_cpu_are_refused_naming_them():
     """A light, a view or an out on another device (here 'meta': no memory at all) is refused by
     name before any kernel reads it — its address would be read as CPU memory (a meta light once

@@ -29,7 +29,7 @@ from typing import Any
 import torch
 
 from .. import io
-from .._checks import check_finite
+from .._checks import check_finite, tensor_version
 from ..params import Boolean, Interval, Options
 from .base import (Codec, Encoded, Relighter, check_light, check_matrix_shape, check_out, check_signal, check_view,
                    check_weights, encoding_state)
@@ -691,7 +691,7 @@ def _total_energy(Xc: torch.Tensor, w, centred: bool) -> float:
 
 
 def _key(X: torch.Tensor) -> tuple:
-    return (X.data_ptr(), tuple(X.shape), X.dtype, X._version, tuple(X.stride()))
+    return (X.data_ptr(), tuple(X.shape), X.dtype, tensor_version(X), tuple(X.stride()))
 
 
 class AffineRelighter(Relighter):

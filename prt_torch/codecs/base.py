@@ -42,7 +42,7 @@ import torch
 from sklearn.base import BaseEstimator
 
 from .. import io
-from .._checks import check_finite, check_finite_float32, check_shape, describe as _describe
+from .._checks import check_finite, check_finite_float32, check_shape, tensor_version, describe as _describe
 from ..params import Options, validate_params
 
 __all__ = [
@@ -443,7 +443,7 @@ def encoding_state(enc: Encoded, held: tuple) -> list:
     states mean the same tensors, unedited, while the cache holds them (so their ids are not reused)."""
     state = [enc.meta.get("points")]
     for t in held:  # (a loop: ~1 µs here, against 2 for a generator into a tuple)
-        state += (None,) if t is None else (id(t), t.data_ptr(), t._version)
+        state += (None,) if t is None else (id(t), t.data_ptr(), tensor_version(t))
     return state
 
 

@@ -71,7 +71,7 @@ from typing import Any
 
 import torch
 
-from .._checks import check_finite_float32
+from .._checks import check_finite_float32, tensor_version
 from ..lighting.prefilter import PrefilteredEnvironment, cube_map_directions, sg_normaliser
 from ..params import Boolean, Interval, Options
 from .base import Codec, Encoded, Relighter, check_cpu, check_out, check_signal, encoding_state, register, view_nbytes
@@ -643,7 +643,7 @@ class GaussianCodec(Codec):
         self.faces_ = faces
         self.fitted_ = True
         enc, info = self._encode(X, p, init)
-        self._train = ((X.data_ptr(), tuple(X.shape), X.dtype, X._version), weakref.ref(X_in), enc)
+        self._train = ((X.data_ptr(), tuple(X.shape), X.dtype, tensor_version(X)), weakref.ref(X_in), enc)
         self.fit_info_ = info
         if info.get("lobes_at_resolution_limit", 0.0) > 0.25:
             warnings.warn(
@@ -668,7 +668,7 @@ class GaussianCodec(Codec):
         if X.shape[1] != self.J_ * self.P_:
             raise ValueError(f"X has D={X.shape[1]}; this codec was fitted with D={self.J_ * self.P_}")
         train = getattr(self, "_train", None)
-        if train is not None and train[0] == (X.data_ptr(), tuple(X.shape), X.dtype, X._version) and train[1]() is not None:
+        if train is not None and train[0] == (X.data_ptr(), tuple(X.shape), X.dtype, tensor_version(X)) and train[1]() is not None:
             return train[2]
         return self._encode(X, self.params)[0]
 

@@ -54,7 +54,7 @@ import weakref
 
 import torch
 
-from .._checks import check_finite_float32
+from .._checks import check_finite_float32, tensor_version
 from .._native import compile_library
 
 __all__ = ["native", "native_status", "constants", "constants_layout", "model_t", "affine_rows", "affine_dense", "affine_taps",
@@ -1851,12 +1851,17 @@ static inline int sg_nt(i64 G, i64 B, const float *out) {
     return 0;
 #endif
 }
+/* whether sg_quads16 takes this pyramid: RGB, more than one texel per side, and its int32 float offsets (16 per row)
+   within range (sg_vec bounds the table's 3 per row) */
+static inline int sg_quads_fit(i64 L, i64 r, i64 C) {
+    return C == 3 && r >= 2 && 16 * L * 6 * r * r < ((i64)1 << 31) - 64;
+}
 /* quads: NULL, or PrefilteredEnvironment.quads() of this table (C = 3, r > 1; read by sg_quads16) */
 int prt_sg_lookup_sum_q(i64 G, i64 B, i64 fb, i64 N, const float *mu, const float *sigma, const float *w, i64 sw, i64 sm, i64 ss,
                         const float *table, const float *quads, i64 r, i64 L, const float *ladder, i64 C, float *out, int nthreads) {
     i64 nth = nthreads > 0 ? nthreads : 1;
     int vec = sg_vec(G * B * N, L, r, C), nt = vec && sg_nt(G, B, out);
-    if (!vec || C != 3 || r < 2) quads = NULL;
+    if (!vec || !sg_quads_fit(L, r, C)) quads = NULL;
     #pragma omp parallel for schedule(static, 1) num_threads(nth)
     for (i64 t = 0; t < nth; t++)
         sg_range(SPLIT16(G, t, nth), SPLIT16_END(G, t, nth), B, fb, N, mu, sigma, w, sw, sm, ss, table, quads, r, L, ladder, C,
@@ -1917,6 +1922,7 @@ int prt_sg_lookup_prepared(i64 G, i64 B, i64 fb, i64 N, const float *mu, const f
     i64 nth = nthreads > 0 ? nthreads : 1, nb = G / 16;
     const __m512i flags = _mm512_set1_epi32(7);
     const int nt = sg_nt(G, B, out);
+    if (!sg_quads_fit(L, r, 3)) quads = NULL;
     const i64 dl = 16 * 6 * r * r;
     #pragma omp parallel for schedule(static, 1) num_threads(nth)
     for (i64 t = 0; t < nth; t++) {
@@ -2239,7 +2245,7 @@ def model_t(means: torch.Tensor | None, basis: torch.Tensor, n_out: int, n_in: i
     ``prt_constants_lanes`` reads them. Built once per model and kept while ``basis`` lives, one
     entry per basis and layout (keyed by the tensor and its version: refits and in-place edits
     rebuild; a codec of n_out = 1 relit with and without a view keeps both layouts)."""
-    key = (basis._version, None if means is None else (id(means), means._version), n_out, n_in, lanes)
+    key = (tensor_version(basis), None if means is None else (id(means), tensor_version(means)), n_out, n_in, lanes)
     slot = (id(basis), bool(lanes))
     hit = _MODEL_T.get(slot)
     if hit is not None and hit[0]() is basis and hit[1] == key:
@@ -2439,13 +2445,13 @@ def _order(order, P: int):
     if order.dtype != torch.int32 or order.shape != (P,) or not order.is_contiguous():
         raise ValueError(f"order must be a contiguous int32 permutation [{P}]; got {order.dtype} {tuple(order.shape)}")
     hit = _ORDERS_CHECKED.get(id(order))
-    if hit is None or hit[0]() is not order or hit[1] != order._version:
+    if hit is None or hit[0]() is not order or hit[1] != tensor_version(order):
         lo, hi = (int(x) for x in torch.aminmax(order)) if P else (0, -1)
         if P and (lo < 0 or hi >= P):
             raise ValueError(f"order spans [{lo}, {hi}]; accepted: a permutation of 0..{P - 1}")
         if hit is None or hit[0]() is not order:
             weakref.finalize(order, _ORDERS_CHECKED.pop, id(order), None)
-        _ORDERS_CHECKED[id(order)] = (weakref.ref(order), order._version)
+        _ORDERS_CHECKED[id(order)] = (weakref.ref(order), tensor_version(order))
     return order.data_ptr()
 
 
@@ -2453,6 +2459,21 @@ def _as(t: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
     """``t`` as a contiguous tensor of ``dtype``: itself when it already is (a ``.to()`` and a
     ``.contiguous()`` cost about a microsecond each even when they copy nothing)."""
     return t if t.dtype == dtype and t.is_contiguous() else t.to(dtype).contiguous()
+
+
+def _pyramid(fn: str, table: torch.Tensor, ladder: torch.Tensor, res: int, quads: torch.Tensor | None = None) -> None:
+    """Refuse, before a kernel reads them, a pyramid whose rows are not ``L·6·r·r`` for the
+    ladder's L levels and resolution r, a quad table of other rows, or tensors off the CPU: the
+    kernels size their reads from the ladder and r (a light's own check can be got around by
+    assigning through ``.data``; this one is at the call, in O(1))."""
+    off = [(n, t.device) for n, t in (("table", table), ("ladder", ladder), ("quads", quads)) if t is not None and t.device.type != "cpu"]
+    if off:
+        raise ValueError(f"{fn}: the pyramid's {off[0][0]} is on {off[0][1]}; accepted: CPU tensors")
+    rows = ladder.numel() * 6 * int(res) * int(res)
+    if table.dim() != 2 or table.shape[0] != rows or (quads is not None and quads.shape[0] != rows):
+        raise ValueError(f"{fn}: a pyramid table {tuple(table.shape)}"
+                         f"{'' if quads is None else f' and quad table {tuple(quads.shape)}'} for {ladder.numel()} levels "
+                         f"of 6×{res}×{res}; accepted: {rows} rows (levels · 6 · res²)")
 
 
 def _out(out: torch.Tensor | None, numel: int, shape: tuple) -> torch.Tensor:
@@ -2598,6 +2619,7 @@ def sg_lookup_sum(lib, table: torch.Tensor, log_sigmas: torch.Tensor, res: int, 
         raise ValueError(f"sg_lookup_sum: {C} channels; accepted: at most 16")
     lead, N, G, A, B, lay = _sg_args(w, mu, sigma, layout)
     w, mu, sigma, sw, sm, ss, fb = lay
+    _pyramid("sg_lookup_sum", table, log_sigmas, res, quads)
     table, ladder = _as(table, torch.float32), _as(log_sigmas, torch.float32)
     given = out
     out = _out(out, G * C, (G, C))
@@ -2656,6 +2678,7 @@ def sg_lookup_prepared(lib, prepared: torch.Tensor, table: torch.Tensor, log_sig
     if table.shape[1] != 3 or prepared.numel() != (A // 16) * B * N * 80:
         raise ValueError(f"sg_lookup_prepared: table {tuple(table.shape)}, prepared {prepared.numel()} values; accepted: "
                          f"[rows, 3] and {(A // 16) * B * N * 80} (sg_prepare of these lobes)")
+    _pyramid("sg_lookup_prepared", table, log_sigmas, res, quads)
     table, ladder = _as(table, torch.float32), _as(log_sigmas, torch.float32)
     given = out
     out = _out(out, G * 3, (G, 3))
@@ -2686,6 +2709,7 @@ def sg_taps(lib, table: torch.Tensor, log_sigmas: torch.Tensor, res: int, w: tor
         raise ValueError(f"sg_taps: {C} channels; accepted: at most 16")
     w, mu, sigma, sw, sm, ss, fb = layout or lobe_layout(w, mu, sigma)
     fv, fj = (N, fb) if fb else (J * N, N)  # lobe index of (v, j, 0): view-major records, else in order
+    _pyramid("sg_taps", table, log_sigmas, res)
     a, table, ladder = (_as(t, torch.float32) for t in (a, table, log_sigmas))
     idx = _as(idx, torch.int64)
     out = _out(out, V * C, (V, C))

@@ -27,7 +27,7 @@ from typing import Any
 
 import torch
 
-from .._checks import check_int, describe
+from .._checks import check_int, describe, tensor_state
 
 __all__ = ["sg_normaliser", "spherical_gaussian", "cube_map_directions", "cube_map_lookup_coords",
            "PrefilteredEnvironment", "prefilter_environment", "SIGMA_MIN", "SIGMA_MAX"]
@@ -132,7 +132,7 @@ class PrefilteredEnvironment:
         construction and by every relight, since the attributes can be reassigned (a light
         checked before and unchanged since, by identity and version counter, passes at once)."""
         fields = (self.levels, self.sigmas, self.log_sigmas, self.cube, self.sh)
-        key = (self.res, self.channels) + tuple((id(t), t._version) if isinstance(t, torch.Tensor) else id(t) for t in fields)
+        key = (self.res, self.channels) + tuple(tensor_state(t) if isinstance(t, torch.Tensor) else id(t) for t in fields)
         hit = getattr(self, "_checked", None)
         if hit is not None and hit[0] == key:
             return self
@@ -142,6 +142,10 @@ class PrefilteredEnvironment:
             raise ValueError(f"PrefilteredEnvironment levels: expected a float tensor [n_levels, C, 6, r, r] with r ≥ 1, got "
                              f"{(lv.dtype, tuple(lv.shape)) if isinstance(lv, torch.Tensor) else type(lv).__name__}")
         L, C, _, r, _ = lv.shape
+        off = [(n, t.device) for n, t in (("levels", lv), ("sigmas", sig), ("cube", self.cube), ("sh", self.sh))
+               if isinstance(t, torch.Tensor) and t.device.type != "cpu"]
+        if off:
+            raise ValueError(f"PrefilteredEnvironment {off[0][0]} is on {off[0][1]}; accepted: CPU tensors (.cpu())")
         if (self.res, self.channels) != (r, C):
             raise ValueError(f"PrefilteredEnvironment res={self.res}, channels={self.channels} do not match levels "
                              f"{tuple(lv.shape)}; accepted: res={r}, channels={C} (build a new PrefilteredEnvironment)")
@@ -180,12 +184,12 @@ class PrefilteredEnvironment:
     def table(self) -> torch.Tensor:
         """The pyramid as rows ``[L·6·r·r, C]`` float32 (built once): texel (level l, face f,
         row t, column s) is row ``((l·6 + f)·r + t)·r + s``."""
-        key = (id(self.levels), self.levels._version)  # rebuilt after an in-place edit of the levels
-        if getattr(self, "_flat_levels", None) is None or self._flat_key != key:
-            L = self.levels.shape[0]
-            self._flat_levels = self.levels.permute(0, 2, 3, 4, 1).reshape(L * 6 * self.res * self.res, self.channels).float().contiguous()
-            self._flat_key = key
-        return self._flat_levels
+        key = tensor_state(self.levels)  # rebuilt after an edit of the levels, in place or through .data
+        hit = getattr(self, "_flat", None)
+        if hit is None or hit[0] != key:
+            L, r, C = self.levels.shape[0], self.levels.shape[-1], self.levels.shape[1]
+            self._flat = hit = (key, self.levels, self.levels.permute(0, 2, 3, 4, 1).reshape(L * 6 * r * r, C).float().contiguous())
+        return hit[2]
 
     def quads(self) -> torch.Tensor:
         """The pyramid as 2×2 texel footprints ``[L·6·r·r, 16]`` float32 (built once per levels,
@@ -193,9 +197,10 @@ class PrefilteredEnvironment:
         (t+1, s), (t+1, s+1) of that face and level (clamped at the face's last row and column),
         then zeros to 16 floats — for RGB, one 64-byte line per bilinear lookup, read by the
         Gaussian codec's every-view kernels (``relight_kernels.sg_lookup_sum``'s ``quads``)."""
-        key = (id(self.levels), self.levels._version)
-        if getattr(self, "_quads", None) is None or self._quads_key != key:
-            C, r = self.channels, self.res
+        key = tensor_state(self.levels)
+        hit = getattr(self, "_quads", None)
+        if hit is None or hit[0] != key:
+            C, r = self.levels.shape[1], self.levels.shape[-1]
             if 4 * C > 16:
                 raise ValueError(f"PrefilteredEnvironment.quads: {C} channels; accepted: at most 4")
             T = self.levels.permute(0, 2, 3, 4, 1).float()  # [L, 6, r(t), r(s), C]
@@ -204,9 +209,8 @@ class PrefilteredEnvironment:
             Q = torch.zeros(*T.shape[:4], 16)
             for k, part in enumerate((T, T[:, :, :, nxt], down, down[:, :, :, nxt])):
                 Q[..., k * C:(k + 1) * C] = part
-            self._quads = Q.reshape(-1, 16)
-            self._quads_key = key
-        return self._quads
+            self._quads = hit = (key, self.levels, Q.reshape(-1, 16))
+        return hit[2]
 
     def lookup(self, mu: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
         """E_σ(μ): ``mu [..., 3]`` unit directions, ``sigma [...]`` widths → ``[..., C]`` float32.
