@@ -130,7 +130,8 @@ class PrefilteredEnvironment:
         ladder, the cube and the SH coefficients agree (the kernels read ``n_levels`` from the
         ladder and the texels from ``table()``: a mismatch would read past the table). Run at
         construction and by every relight, since the attributes can be reassigned (a light
-        checked before and unchanged since, by identity and version counter, passes at once)."""
+        checked before and unchanged since — each field's identity, address, shape and version,
+        ``_checks.tensor_state`` — passes at once: 3.6 µs)."""
         fields = (self.levels, self.sigmas, self.log_sigmas, self.cube, self.sh)
         key = (self.res, self.channels) + tuple(tensor_state(t) if isinstance(t, torch.Tensor) else id(t) for t in fields)
         hit = getattr(self, "_checked", None)
