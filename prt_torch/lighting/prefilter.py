@@ -172,6 +172,11 @@ class PrefilteredEnvironment:
         self._checked = (key, fields)  # the checked objects held: their ids cannot be reused while the key lives
         return self
 
+    def __getstate__(self) -> dict:
+        """Pickled (for a worker, a cache file) without the derived tables and the check's memo:
+        rebuilt on first use (the quad table alone is 4× the levels)."""
+        return {k: v for k, v in self.__dict__.items() if k not in ("_checked", "_flat", "_quads")}
+
     @property
     def shape(self) -> tuple[int, int]:
         """``(rows, C)``: the table as a light matrix (all levels' texels × channels), so code
