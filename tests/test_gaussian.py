@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import pickle
 import warnings
 
 import pytest
@@ -605,7 +606,6 @@ def test_a_light_changed_through_data_or_moved_off_the_cpu_is_refused_or_rebuilt
     pe.sigmas, pe.log_sigmas, pe.res, pe.cube = big.sigmas, big.log_sigmas, 8, big.cube
     assert torch.equal(c.relight(enc, pe), c.relight(enc, big))  # the table rebuilt, not read past
     assert torch.equal(pe.quads(), big.quads())
-    import pickle
     back = pickle.loads(pickle.dumps(pe))  # without the derived tables, rebuilt on use
     assert not {"_checked", "_flat", "_quads"} & set(vars(back)) and torch.equal(c.relight(enc, back), c.relight(enc, big))
     with pytest.raises(ValueError, match=r"sg_lookup_sum: a pyramid table \(192, 3\) for 20 levels of 6×8×8; accepted: 7680 rows"):
