@@ -501,7 +501,8 @@ def test_relighter_gives_relights_bits_and_prepares_again_when_anything_changes(
 def test_relight_survives_non_finite_lobes_and_refuses_bad_views_before_writing(cube):
     """A NaN lobe mean (a corrupt encoding) gives NaN in that vertex's radiance only, in the
     16-lane blocks and the one-by-one tail, and reads nothing outside the light's table (the 16-lane lookup once
-    turned a NaN coordinate into an index 2^31 below it: a crash). Non-finite or negative tap weights, an
+    turned a NaN coordinate into an index 2^31 below it: a crash); the torch formulation gives NaN in the same
+    places (it raised an index error). Non-finite or negative tap weights, an
     ``out=`` over the light's width ladder, and an SH diffuse part with a light without SH
     coefficients are refused before ``out`` is written."""
     g = torch.Generator().manual_seed(9)
@@ -517,6 +518,11 @@ def test_relight_survives_non_finite_lobes_and_refuses_bad_views_before_writing(
     bad[3, 2] = bad[37, 5] = True
     assert bool(every[bad].isnan().all()) and bool(torch.isfinite(every[~bad]).all())
     assert bool(taps[[3, 37]].isnan().all()) and int(torch.isfinite(taps).all(1).sum()) == V - 2
+    with pytest.MonkeyPatch.context() as m:  # the torch formulation: NaN in the same places (it raised an index error)
+        m.setenv("PRT_TORCH_NATIVE", "0")
+        for native, ref in ((every, c.relight(enc, pe)), (taps, c.relight(enc, pe, view=(idx, a)))):
+            assert torch.equal(ref.isnan(), native.isnan())
+            assert torch.allclose(ref.nan_to_num(0), native.nan_to_num(0), rtol=1e-5, atol=1e-6 * float(native.nan_to_num(0).abs().max()))
     buf = torch.full((V, 3), 7.0)
     a[4, 1] = float("nan")
     with pytest.raises(ValueError, match=r"view tap weights has 1 non-finite value\(s\).*\(4, 1\)"):

@@ -229,8 +229,10 @@ class PrefilteredEnvironment:
         face, s, t = cube_map_lookup_coords(mu, r)
         s = s.clamp(0, r - 1)
         t = t.clamp(0, r - 1)
-        s0 = s.floor().clamp(max=r - 2 if r > 1 else 0).long()
-        t0 = t.floor().clamp(max=r - 2 if r > 1 else 0).long()
+        # a non-finite direction's NaN coordinates: texel 0 for the indices (a NaN converts to an
+        # index far outside the table), NaN weights for the value (NaN, as the kernels give)
+        s0 = s.nan_to_num(0.0).floor().clamp(max=r - 2 if r > 1 else 0).long()
+        t0 = t.nan_to_num(0.0).floor().clamp(max=r - 2 if r > 1 else 0).long()
         fs = (s - s0).clamp(0, 1)
         ft = (t - t0).clamp(0, 1)
         s1 = (s0 + 1).clamp(max=r - 1)
