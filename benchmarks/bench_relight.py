@@ -437,31 +437,25 @@ def report(r: dict) -> str:
     ok = [x for x in r["rows"] if x["fraction_of_bound"] >= 0.5]
     L += ["", f"Rows at ≥ 0.5 of the bound: {len(ok)} of {len(r['rows'])}"
           + (" (" + ", ".join(f"{x['codec']} {x['view']} {x['threads']} thr" for x in ok) + ")" if ok else "") + "."]
-    okp = [x for x in r["rows"] if x["fraction_relighter"] >= 0.5]
-    L += [f"Prepared (`codec.relighter`), rows at ≥ 0.5 of the bound: {len(okp)} of {len(r['rows'])}"
-          + (" (not: " + ", ".join(f"{x['codec']} {x['view']} {x['threads']} thr {x['fraction_relighter']:.2f}"
-                                  for x in r["rows"] if x["fraction_relighter"] < 0.5) + ")" if len(okp) < len(r["rows"]) else "") + "."]
-    okc = [x for x in r["rows"] if x["fraction_cold"] >= 0.5]
-    L += [f"From cold caches (the cold column): {len(okc)} of {len(r['rows'])} rows at ≥ 0.5 of the memory-bandwidth bound"
-          + (" (not: " + ", ".join(f"{x['codec']} {x['view']} {x['threads']} thr" for x in r["rows"] if x["fraction_cold"] < 0.5) + ")"
-             if len(okc) < len(r["rows"]) else "") + "."]
+
+    def tally(key: str, text: str, values: bool = True) -> str:
+        """``text`` with {n} of {N} rows whose ``key`` is ≥ 0.5, then the others named (and their values)."""
+        short = [x for x in r["rows"] if x[key] < 0.5]
+        names = ", ".join(f"{x['codec']} {x['view']} {x['threads']} thr" + (f" {x[key]:.2f}" if values else "") for x in short)
+        return text.format(n=len(r["rows"]) - len(short), N=len(r["rows"])) + (f" (not: {names})" if short else "") + "."
+
+    L += [tally("fraction_relighter", "Prepared (`codec.relighter`), rows at ≥ 0.5 of the bound: {n} of {N}"),
+          tally("fraction_cold", "From cold caches (the cold column): {n} of {N} rows at ≥ 0.5 of the memory-bandwidth bound",
+                values=False)]
     capped = [x for x in r["rows"] if x["compute_floor_ms"] > 2 * x["bound_ms"]]
     okr = [x for x in r["rows"] if x["fraction_of_roofline"] >= 0.5]
     L += [f"Rows whose compute floor is over twice the bound (the 0.5 goal unreachable at this CPU's peak): {len(capped)}"
           + (" (" + ", ".join(f"{x['codec']} {x['view']} {x['threads']} thr" for x in capped) + ")" if capped else "") + ".",
           f"Rows at ≥ 0.5 of the roofline: {len(okr)} of {len(r['rows'])}."]
-    okrc = [x for x in r["rows"] if x["fraction_of_roofline_cold"] >= 0.5]
-    L += [f"From cold caches, against max(cold bound, compute floor) (the memory-bandwidth bound, or the arithmetic "
-          f"where it dominates): {len(okrc)} of {len(r['rows'])} rows at ≥ 0.5"
-          + (" (not: " + ", ".join(f"{x['codec']} {x['view']} {x['threads']} thr {x['fraction_of_roofline_cold']:.2f}"
-                                  for x in r["rows"] if x["fraction_of_roofline_cold"] < 0.5) + ")"
-             if len(okrc) < len(r["rows"]) else "") + "."]
-    okpc = [x for x in r["rows"] if x["fraction_of_roofline_cold_relighter"] >= 0.5]
-    L += [f"Prepared (`codec.relighter`), from cold caches, against max(cold bound, compute floor): {len(okpc)} of "
-          f"{len(r['rows'])} rows at ≥ 0.5"
-          + (" (not: " + ", ".join(f"{x['codec']} {x['view']} {x['threads']} thr {x['fraction_of_roofline_cold_relighter']:.2f}"
-                                  for x in r["rows"] if x["fraction_of_roofline_cold_relighter"] < 0.5) + ")"
-             if len(okpc) < len(r["rows"]) else "") + "."]
+    L += [tally("fraction_of_roofline_cold", "From cold caches, against max(cold bound, compute floor) (the memory-bandwidth "
+                "bound, or the arithmetic where it dominates): {n} of {N} rows at ≥ 0.5"),
+          tally("fraction_of_roofline_cold_relighter", "Prepared (`codec.relighter`), from cold caches, against max(cold bound, "
+                "compute floor): {n} of {N} rows at ≥ 0.5")]
     need = sorted(x["peak_fraction_goal_needs"] for x in r["rows"] if x["fraction_of_bound"] < 0.5)
     got = sorted(x["peak_fraction"] for x in r["rows"])
     if need:
