@@ -1845,7 +1845,7 @@ static inline int sg_vec(i64 elems, i64 L, i64 r, i64 C) {
 #define SG_STREAM_BYTES ((i64)16 << 20)
 static inline int sg_nt(i64 G, i64 B, const float *out) {
 #ifdef SG16
-    return B > 1 && G * B * 12 >= SG_STREAM_BYTES && 48 * B <= SG_STAGE && (B * 48 * 4) % 64 == 0 && ((uintptr_t)out & 63) == 0;
+    return B > 1 && G * B * 12 >= SG_STREAM_BYTES && 48 * B <= SG_STAGE && ((uintptr_t)out & 63) == 0;  /* 48 B floats: whole lines */
 #else
     (void)G; (void)B; (void)out;
     return 0;
@@ -2461,19 +2461,19 @@ def _as(t: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
     return t if t.dtype == dtype and t.is_contiguous() else t.to(dtype).contiguous()
 
 
-def _pyramid(fn: str, table: torch.Tensor, ladder: torch.Tensor, res: int, quads: torch.Tensor | None = None) -> None:
+def _pyramid(fn: str, table: torch.Tensor, ladder: torch.Tensor, res: int) -> None:
     """Refuse, before a kernel reads them, a pyramid whose rows are not ``L·6·r·r`` for the
-    ladder's L levels and resolution r, a quad table of other rows, or tensors off the CPU: the
-    kernels size their reads from the ladder and r (a light's own check can be got around by
-    assigning through ``.data``; this one is at the call, in O(1))."""
-    off = [(n, t.device) for n, t in (("table", table), ("ladder", ladder), ("quads", quads)) if t is not None and t.device.type != "cpu"]
+    ladder's L levels and resolution r, or a table or ladder off the CPU: the kernels size their
+    reads from the ladder and r (a light's own check can be got around by assigning through
+    ``.data``; this one is at the call, in O(1)). A quad table is checked against the table by
+    :func:`_quads_ptr`."""
+    off = [(n, t.device) for n, t in (("table", table), ("ladder", ladder)) if t.device.type != "cpu"]
     if off:
         raise ValueError(f"{fn}: the pyramid's {off[0][0]} is on {off[0][1]}; accepted: CPU tensors")
     rows = ladder.numel() * 6 * int(res) * int(res)
-    if table.dim() != 2 or table.shape[0] != rows or (quads is not None and quads.shape[0] != rows):
-        raise ValueError(f"{fn}: a pyramid table {tuple(table.shape)}"
-                         f"{'' if quads is None else f' and quad table {tuple(quads.shape)}'} for {ladder.numel()} levels "
-                         f"of 6×{res}×{res}; accepted: {rows} rows (levels · 6 · res²)")
+    if table.dim() != 2 or table.shape[0] != rows:
+        raise ValueError(f"{fn}: a pyramid table {tuple(table.shape)} for {ladder.numel()} levels of 6×{res}×{res}; "
+                         f"accepted: {rows} rows (levels · 6 · res²)")
 
 
 def _out(out: torch.Tensor | None, numel: int, shape: tuple) -> torch.Tensor:
@@ -2619,7 +2619,7 @@ def sg_lookup_sum(lib, table: torch.Tensor, log_sigmas: torch.Tensor, res: int, 
         raise ValueError(f"sg_lookup_sum: {C} channels; accepted: at most 16")
     lead, N, G, A, B, lay = _sg_args(w, mu, sigma, layout)
     w, mu, sigma, sw, sm, ss, fb = lay
-    _pyramid("sg_lookup_sum", table, log_sigmas, res, quads)
+    _pyramid("sg_lookup_sum", table, log_sigmas, res)
     table, ladder = _as(table, torch.float32), _as(log_sigmas, torch.float32)
     given = out
     out = _out(out, G * C, (G, C))
@@ -2633,9 +2633,10 @@ def _quads_ptr(quads: torch.Tensor | None, table: torch.Tensor) -> int | None:
     """The address of a quad table of ``table`` for the kernels (None: read the table itself)."""
     if quads is None:
         return None
-    if quads.dtype != torch.float32 or not quads.is_contiguous() or quads.shape != (table.shape[0], 16) or table.shape[1] != 3:
-        raise ValueError(f"quads: {quads.dtype} {tuple(quads.shape)} for a table {tuple(table.shape)}; accepted: contiguous "
-                         f"float32 [{table.shape[0]}, 16] of an RGB table (PrefilteredEnvironment.quads())")
+    if quads.dtype != torch.float32 or not quads.is_contiguous() or quads.shape != (table.shape[0], 16) or table.shape[1] != 3 \
+            or quads.device.type != "cpu":
+        raise ValueError(f"quads: {quads.dtype} {tuple(quads.shape)} on {quads.device} for a table {tuple(table.shape)}; accepted: "
+                         f"contiguous float32 [{table.shape[0]}, 16] on the CPU, of an RGB table (PrefilteredEnvironment.quads())")
     return quads.data_ptr()
 
 
@@ -2678,7 +2679,7 @@ def sg_lookup_prepared(lib, prepared: torch.Tensor, table: torch.Tensor, log_sig
     if table.shape[1] != 3 or prepared.numel() != (A // 16) * B * N * 80:
         raise ValueError(f"sg_lookup_prepared: table {tuple(table.shape)}, prepared {prepared.numel()} values; accepted: "
                          f"[rows, 3] and {(A // 16) * B * N * 80} (sg_prepare of these lobes)")
-    _pyramid("sg_lookup_prepared", table, log_sigmas, res, quads)
+    _pyramid("sg_lookup_prepared", table, log_sigmas, res)
     table, ladder = _as(table, torch.float32), _as(log_sigmas, torch.float32)
     given = out
     out = _out(out, G * 3, (G, 3))
