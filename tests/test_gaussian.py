@@ -443,8 +443,8 @@ def test_relighter_gives_relights_bits_and_prepares_again_when_anything_changes(
     (``relight_kernels.sg_prepare``), then only the texel reads — relight's bits at 1-3 threads,
     into ``out=`` too, over blocks of 16 and the tail; the prepared addressing is kept for another
     light of the same pyramid and computed again for another resolution or width ladder, after an
-    in-place edit of the lobes and for a replaced lobes tensor; a one-channel light, taps and a
-    wrong light go through ``relight``. And relight's results, every view and with taps, no longer
+    in-place edit of the lobes and for a replaced lobes tensor; a one-channel light and a wrong
+    light go through ``relight`` (taps: the next test). And relight's results, every view and with taps, no longer
     depend on the thread count (the threads' ranges are whole blocks of 16)."""
     from prt_torch.codecs import relight_kernels
     from prt_torch.harness.timing import torch_threads
@@ -496,6 +496,82 @@ def test_relighter_gives_relights_bits_and_prepares_again_when_anything_changes(
     assert torch.equal(c.relighter(enc, (idx, a))(pe), c.relight(enc, pe, view=(idx, a)))
     with pytest.raises(TypeError, match="relights from a Gaussian-prefiltered environment"):
         r(torch.randn(25, 3))
+
+
+@pytest.mark.parametrize("N,layout", [(1, "by_view"), (3, "by_view"), (2, "records"), (2, "separate")])
+def test_relighter_with_taps_keeps_the_blend_and_gives_relights_bits(cube, N, layout):
+    """``codec.relighter(enc, taps)``: the lobes blended across the taps, normalised and addressed
+    once (``relight_kernels.sg_taps_prepare``), then per light only the texel reads — relight's
+    bits at 1-3 threads, into ``out=`` too, over blocks of 16 and the tail, and the torch
+    formulation's values to float32 rounding; the kept blend is reused for another light of the
+    same pyramid and made again for another ladder, after in-place edits of the taps or the
+    lobes; a bad tap edited in (in a block or in the tail) is refused naming it, ``out``
+    untouched; a view of directions keeps its taps while the directions are unchanged. Separate
+    lobe arrays (saved before the records) relight as ``relight`` does."""
+    from prt_torch.codecs import relight_kernels
+    from prt_torch.harness.timing import torch_threads
+
+    if relight_kernels.native() is None:
+        pytest.skip("no compiled kernels")
+    g = torch.Generator().manual_seed(12)
+    J, V = 12, 37  # two blocks of 16 and a tail of 5
+    c, enc = _random_lobes(cube[0], V, J, N, g, torch.exp(torch.randn(V, J, N, generator=g) * 2), layout)
+    pe = prefilter_environment(lambda x: torch.stack([1.5 + x[..., 0], 1 + 0.5 * x[..., 2], (x[..., 1] > 0.3).double()], -1),
+                               res=8, levels=12)
+    idx, a = torch.randint(0, J, (V, 3), generator=g), torch.rand(V, 3, generator=g)
+    r = c.relighter(enc, (idx, a))
+    with torch_threads(1):
+        want = c.relight(enc, pe, view=(idx, a))
+    for th in (1, 2, 3):
+        with torch_threads(th):
+            for _ in range(2):  # the first call prepares, the second reuses
+                assert torch.equal(r(pe), want), th
+            buf = torch.full_like(want, float("nan"))
+            assert r(pe, out=buf) is buf and torch.equal(buf, want), th
+    if layout == "separate":  # arrays saved before the records: relit as relight does, nothing kept
+        assert r._prep is None
+        return
+    P, tot = kept = r._prep[1]
+    assert P.dtype == torch.int32 and P.numel() == (V // 16) * N * 80
+    assert torch.allclose(tot, a[:32].sum(1))  # sum(a) of the whole blocks' vertices
+    with pytest.MonkeyPatch.context() as m:  # against the torch formulation (gathers, blend_lobes, lobe_sum)
+        m.setenv("PRT_TORCH_NATIVE", "0")
+        ref = c.relight(enc, pe, view=(idx, a))
+    assert torch.allclose(want, ref, rtol=1e-5, atol=1e-6 * float(ref.abs().max()))
+
+    def same(light, what):
+        got = r(light)
+        assert torch.equal(got, c.relight(enc, light, view=(idx, a))), what
+
+    same(prefilter_environment(lambda x: 0.5 + x[..., :3].abs(), res=8, levels=12), "another light, the same pyramid")
+    assert r._prep[1] is kept
+    same(prefilter_environment(lambda x: 0.5 + x[..., :3].abs(), res=8, levels=9), "another ladder")
+    a[3, 1] *= 0.25  # a weight edited in place, in a block
+    same(pe, "a tap weight edited")
+    idx[20, 2] = (idx[20, 2] + 5) % J  # an index, in the second block
+    same(pe, "a tap index edited")
+    c.lobes_of(enc)[1][20, int(idx[20, 0]), 0] = torch.tensor([0.3, -0.2, 0.9])  # a tapped lobe's mean
+    same(pe, "lobes edited in place")
+    for at, bad in (((5, 0), J), ((34, 2), -1)):  # an index out of range, in a block and in the tail
+        old = int(idx[at])
+        idx[at] = bad
+        out = torch.full((V, 3), 7.0)
+        with pytest.raises(ValueError, match=r"view tap indices span"):
+            r(pe, out=out)
+        assert bool((out == 7).all())
+        idx[at] = old
+    a[33, 0] = float("nan")  # a weight, in the tail
+    with pytest.raises(ValueError, match=r"view tap weights has 1 non-finite value\(s\).*\(33, 0\)"):
+        r(pe)
+    a[33, 0] = 0.5
+    same(pe, "mended")
+    dirs = torch.nn.functional.normalize(torch.randn(V, 3, generator=g), dim=-1)
+    rd = c.relighter(enc, dirs)
+    assert torch.equal(rd(pe), c.relight(enc, pe, view=dirs))
+    taps = rd._taps[1]
+    assert torch.equal(rd(pe), c.relight(enc, pe, view=dirs)) and rd._taps[1] is taps
+    dirs[7] = -dirs[7]
+    assert torch.equal(rd(pe), c.relight(enc, pe, view=dirs)) and rd._taps[1] is not taps
 
 
 def test_relight_survives_non_finite_lobes_and_refuses_bad_views_before_writing(cube):

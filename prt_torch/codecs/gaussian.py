@@ -71,11 +71,12 @@ from typing import Any
 
 import torch
 
-from .._checks import check_finite_float32, tensor_version
+from .._checks import check_finite_float32, tensor_state, tensor_version
 from ..lighting.prefilter import PrefilteredEnvironment, cube_map_directions, sg_normaliser
 from ..params import Boolean, Interval, Options
 from .base import Codec, Encoded, Relighter, check_cpu, check_out, check_signal, encoding_state, register, view_nbytes
-from .relight_kernels import lobe_layout, native, sg_lookup_prepared, sg_lookup_sum, sg_prepare, sg_quads_worth, sg_taps
+from .relight_kernels import (lobe_layout, native, sg_lookup_prepared, sg_lookup_sum, sg_prepare, sg_quads_worth, sg_taps, sg_taps_prepare,
+                              sg_taps_prepared)
 
 __all__ = ["GaussianCodec", "resolvable_sigma", "relative_l2", "sh_truncation", "haar_truncation",
            "fibonacci_directions", "default_views", "view_neighbours", "view_taps",
@@ -909,7 +910,7 @@ class GaussianCodec(Codec):
         return self._relight_checked(enc, light, view, out)
 
     def _relight_checked(self, enc: Encoded, light, view: Any, out, prepare=None) -> torch.Tensor:
-        """``relight``'s checks, then ``_relight``; ``prepare(light, lobes)``: the prepared
+        """``relight``'s checks, then ``_relight``; ``prepare(light, lobes, taps)``: the prepared
         addressing to read (``GaussianRelighter``), or None."""
         self._require_fitted()
         light = self._check_light(light)
@@ -921,7 +922,7 @@ class GaussianCodec(Codec):
         if out is not None:  # the fused kernels write into it (no result-sized temporary and copy)
             out = check_out(out, (V, light.channels) if view is not None else (V, J, light.channels), view,
                             tuple(enc.tensors.values()), light.table(), light.log_sigmas)
-        prepared = prepare(light, lobes) if prepare is not None and view is None else None
+        prepared = prepare(light, lobes, view) if prepare is not None else None
         return self._relight(enc, light, view, out, lobes, prepared)
 
     def relighter(self, enc: Encoded, view: Any = None) -> "GaussianRelighter":
@@ -931,8 +932,11 @@ class GaussianCodec(Codec):
         most of a lookup's arithmetic, and independent of the light's values) is computed at the
         first light and kept while the lobes and the light's resolution and
         width ladder stay the same (20 bytes per lobe); each light then costs only the texel reads
-        (reports/benchmarks/relight.md, "prepared"). With taps (the lobes blended per vertex
-        first) it relights as ``relight`` does."""
+        (reports/benchmarks/relight.md, "prepared"). With taps, the same for the lobes blended
+        across each vertex's taps (the blend and its normalisation kept too: 20 bytes per blended
+        lobe and Σa per vertex), kept while the taps are also unchanged (edited in place, replaced
+        or converted: another int64 ``idx`` or another ``a`` prepares again); a view of global
+        directions ``[V, 3]`` keeps its taps (:func:`view_taps`) while the directions are unchanged."""
         self._require_fitted()
         return GaussianRelighter(self, enc, view, {})
 
@@ -940,7 +944,8 @@ class GaussianCodec(Codec):
                  lobes: tuple | None = None, prepared: torch.Tensor | None = None) -> torch.Tensor:
         """``view``: None or checked taps; ``out``: None or a checked result buffer; ``lobes``:
         ``_lobes_and_layout(enc)`` when the caller has them; ``prepared``: ``sg_prepare``'s
-        addressing of these lobes for this light (every view only)."""
+        addressing of these lobes for this light (every view), or ``sg_taps_prepare``'s of these
+        lobes blended by these taps (taps)."""
         (w, mu, sg), layout = lobes if lobes is not None else self._lobes_and_layout(enc)
         V, J, N = w.shape
         if view is None:
@@ -952,7 +957,10 @@ class GaussianCodec(Codec):
         # the taps' values: checked by the fused kernel as it reads them (it flags a bad one), else here
         idx, a = view if lib is not None else self.checked_taps(view, V, J)
         a = a.float()
-        if lib is not None:  # blend, look up and sum in one fused pass per vertex
+        if lib is not None and prepared is not None:  # the blend and addressing kept: per vertex only the texel reads
+            res, flag = sg_taps_prepared(lib, prepared, light.table(), light.log_sigmas, light.res, w, mu, sg, idx, a, out=out,
+                                         layout=layout)
+        elif lib is not None:  # blend, look up and sum in one fused pass per vertex
             res, flag = sg_taps(lib, light.table(), light.log_sigmas, light.res, w, mu, sg, idx, a, out=out, layout=layout)
             if flag:  # a bad tap (nothing computed or written): raise naming it
                 self.checked_taps(view, V, J)
@@ -1222,23 +1230,33 @@ def _lbfgs_loop(prob, a, ls, mu, conv, z, targets, sb, max_iter, tol, smin, smax
 
 
 class GaussianRelighter(Relighter):
-    """``GaussianCodec.relighter``: every-view relighting from the lobes' prepared addressing
-    (``relight_kernels.sg_prepare``), kept with the state it was computed from — the light's
-    resolution and width ladder, and the lobe tensors' ids, addresses and versions
-    (``base.encoding_state``): an edit of the lobes, a replaced tensor or a light of another
-    pyramid computes it again. Lights of other channel counts than 3, taps, or no compiled
-    kernels relight as ``relight`` does."""
+    """``GaussianCodec.relighter``: relighting from the lobes' prepared addressing
+    (``relight_kernels.sg_prepare``; with taps ``sg_taps_prepare``, of the lobes blended across
+    the taps), kept with the state it was computed from — the light's resolution and width
+    ladder, the lobe tensors' ids, addresses and versions (``base.encoding_state``) and the
+    taps' (``_checks.tensor_state``): an edit of the lobes or taps, a replaced tensor or a light
+    of another pyramid computes it again. Lights of other channel counts than 3, or no compiled
+    kernels, relight as ``relight`` does. Edits that bypass torch's version counter (through
+    numpy) are not seen."""
 
-    __slots__ = ("_prep",)
+    __slots__ = ("_prep", "_taps")
 
     def __init__(self, codec: GaussianCodec, enc: Encoded, view: Any, kwargs: dict):
         super().__init__(codec, enc, view, kwargs)
         self._prep: tuple | None = None  # (key, prepared, held tensors)
+        self._taps: tuple | None = None  # a view of directions: (key, its taps, the directions)
 
     def __call__(self, light: Any, out: torch.Tensor | None = None) -> torch.Tensor:
-        return self.codec._relight_checked(self.enc, light, self.view, out, prepare=self._prepared)
+        view = self.view
+        if isinstance(view, torch.Tensor):  # global directions [V, 3]: their three nearest views' taps, kept
+            hit, key = self._taps, tensor_state(view)
+            if hit is None or hit[0] != key:
+                V, J, _ = self.codec.lobes_of(self.enc)[0].shape
+                hit = self._taps = (key, self.codec.checked_taps(view, V, J, values=False), view)
+            view = hit[1]
+        return self.codec._relight_checked(self.enc, light, view, out, prepare=self._prepared)
 
-    def _prepared(self, light: PrefilteredEnvironment, lobes: tuple) -> torch.Tensor | None:
+    def _prepared(self, light: PrefilteredEnvironment, lobes: tuple, taps: tuple | None) -> tuple | torch.Tensor | None:
         lib = _fused(light)
         (w, mu, sg), layout = lobes
         if lib is None or light.channels != 3 or layout is None:
@@ -1246,8 +1264,18 @@ class GaussianRelighter(Relighter):
         held = tuple(self.enc.tensors.values())
         ladder = light.log_sigmas
         key = (light.res, ladder.dtype, ladder.numpy().tobytes(), encoding_state(self.enc, held))
+        if taps is not None:
+            key += (tensor_state(taps[0]), tensor_state(taps[1]))
+            held += tuple(taps)
         hit = self._prep
         if hit is None or hit[0] != key:
             self._prep = None  # (freed before the next one is made)
-            hit = self._prep = (key, sg_prepare(lib, ladder, light.res, w, mu, sg, layout), held)
+            if taps is None:
+                prep = sg_prepare(lib, ladder, light.res, w, mu, sg, layout)
+            else:
+                prep, flag = sg_taps_prepare(lib, ladder, light.res, w, mu, sg, taps[0], taps[1].float(), layout=layout)
+                if flag:  # a bad tap (nothing kept): raise naming it
+                    self.codec.checked_taps(taps, w.shape[0], w.shape[1])
+                    raise RuntimeError("prt_sg_taps_prepare flagged the taps but none is out of range, negative or non-finite")  # pragma: no cover
+            hit = self._prep = (key, prep, held)
         return hit[1]

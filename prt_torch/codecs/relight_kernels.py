@@ -1987,9 +1987,12 @@ static int taps_bad(i64 t0, i64 t1, const i64 *idx, const float *av, i64 J) {
     return bad;
 }
 
-static void sg_taps_range(i64 v0, i64 v1, i64 fv, i64 fj, i64 N, i64 k, const float *w, const float *mu, const float *sigma,
-                          i64 sw, i64 sm, i64 ss, const i64 *idx, const float *av, const float *table, i64 r, i64 L, const float *ladder, i64 C,
-                          int vec, float *out) {
+/* P == NULL: relight vertices [v0, v1) into out. P != NULL (prt_sg_taps_prepare; v0 a multiple of 16): instead of the
+   lookups, keep each whole block of 16 vertices' blended lobes' addressing at PREP_AT(P, v0 / 16, 0, n, 1, N) (as
+   prt_sg_prepare's, the weight being the blended one) and their sum(a) at tot + v0; the tail is not prepared */
+static inline __attribute__((always_inline)) void sg_taps_range_(i64 v0, i64 v1, i64 fv, i64 fj, i64 N, i64 k, const float *w,
+        const float *mu, const float *sigma, i64 sw, i64 sm, i64 ss, const i64 *idx, const float *av, const float *table, i64 r,
+        i64 L, const float *ladder, i64 C, int vec, float *out, int32_t *P, float *totp) {
 #ifdef SG16
     if (vec && k <= 8) {  /* 16 vertices at a time (lane l: vertex v + l), the rest below */
         const int rec = IS_RECORD;
@@ -2087,9 +2090,25 @@ static void sg_taps_range(i64 v0, i64 v1, i64 fv, i64 fj, i64 N, i64 k, const fl
                 __m512 nm = _mm512_sqrt_ps(_mm512_fmadd_ps(mz, mz, _mm512_fmadd_ps(my, my, _mm512_mul_ps(mx, mx))));
                 nm = _mm512_mask_blend_ps(_mm512_cmp_ps_mask(nm, tiny, _CMP_GT_OQ), tiny, nm);
                 const __m512 smin = _mm512_set1_ps(1e-6f);
-                sg_lookup16(_mm512_div_ps(mx, nm), _mm512_div_ps(my, nm), _mm512_div_ps(mz, nm),
-                            _mm512_mask_blend_ps(_mm512_cmp_ps_mask(sb, smin, _CMP_GT_OQ), smin, sb), wb, table, r, L, ladder,
-                            lad, acc);
+                const __m512 X = _mm512_div_ps(mx, nm), Y = _mm512_div_ps(my, nm), Z = _mm512_div_ps(mz, nm);
+                const __m512 S = _mm512_mask_blend_ps(_mm512_cmp_ps_mask(sb, smin, _CMP_GT_OQ), smin, sb);
+                if (P) {  /* sg_lookup16's first part, kept */
+                    __m512i i0, flags;
+                    __m512 fs, ft, a;
+                    sg_address16(X, Y, Z, S, r, L, ladder, lad, &i0, &flags, &fs, &ft, &a);
+                    (void)flags;  /* 7 in every lane (r > 1, L > 1) */
+                    int32_t *q = PREP_AT(P, v0 / 16, 0, n, 1, N);
+                    _mm512_storeu_si512(q, i0);
+                    _mm512_storeu_ps(q + 16, fs);
+                    _mm512_storeu_ps(q + 32, ft);
+                    _mm512_storeu_ps(q + 48, a);
+                    _mm512_storeu_ps(q + 64, wb);
+                } else
+                    sg_lookup16(X, Y, Z, S, wb, table, r, L, ladder, lad, acc);
+            }
+            if (P) {
+                _mm512_storeu_ps(totp + v0, tot);
+                continue;
             }
             float tt[16];
             _mm512_storeu_ps(tt, tot);
@@ -2099,6 +2118,7 @@ static void sg_taps_range(i64 v0, i64 v1, i64 fv, i64 fj, i64 N, i64 k, const fl
 #else
     (void)vec;
 #endif
+    if (P) return;
     for (i64 v = v0; v < v1; v++) {
         float acc[16] = {0}, tot = 0;
         for (i64 t = 0; t < k; t++) tot += av[v * k + t];
@@ -2117,6 +2137,11 @@ static void sg_taps_range(i64 v0, i64 v1, i64 fv, i64 fj, i64 N, i64 k, const fl
         }
         for (i64 c = 0; c < C; c++) out[v * C + c] = acc[c] * tot;
     }
+}
+static void sg_taps_range(i64 v0, i64 v1, i64 fv, i64 fj, i64 N, i64 k, const float *w, const float *mu, const float *sigma,
+                          i64 sw, i64 sm, i64 ss, const i64 *idx, const float *av, const float *table, i64 r, i64 L, const float *ladder,
+                          i64 C, int vec, float *out) {
+    sg_taps_range_(v0, v1, fv, fj, N, k, w, mu, sigma, sw, sm, ss, idx, av, table, r, L, ladder, C, vec, out, NULL, NULL);
 }
 
 /* returns 1, writing nothing, if a tap is bad (taps_bad): each thread checks its vertices' taps, then all compute
@@ -2146,6 +2171,79 @@ int prt_sg_taps(i64 V, i64 J, i64 N, i64 k, i64 fv, i64 fj, const float *w, cons
     }
     return bad;
 }
+
+/* A prepared relight with taps (GaussianCodec.relighter(enc, taps)): the blend and the addressing of each whole block of
+   16 vertices' lobes (everything but the texel reads: they depend on the lobes, the taps and the pyramid's shape, not on
+   the light's values) kept as P [V / 16, N, 5, 16] int32 (prt_sg_prepare's layout with B = 1, the blended weight in
+   place of w) and tot [V / 16 * 16] = sum(a); per light only the texel reads, and the tail of fewer than 16 vertices
+   from the records and taps as prt_sg_taps. The same arithmetic, so the same bits as prt_sg_taps. Returns 1 (nothing
+   written) if a tap is bad (taps_bad; the prepare checks them all, each light the tail's, the only taps it reads), 2
+   (nothing done) without the 16-lane kernels, for a shape they do not take (sg_vec, k > 8), or a pyramid of one texel
+   per side or one width. */
+int prt_sg_taps_prepare(i64 V, i64 J, i64 N, i64 k, i64 fv, i64 fj, const float *w, const float *mu, const float *sigma, i64 sw,
+                        i64 sm, i64 ss, const i64 *idx, const float *av, i64 r, i64 L, const float *ladder, int32_t *P, float *tot,
+                        int nthreads) {
+#ifdef SG16
+    if (!sg_vec(V * J * N, L, r, 3) || r < 2 || L < 2 || k > 8) return 2;
+    i64 nth = nthreads > 0 ? nthreads : 1, nb = V / 16;
+    int bad = 0;
+    #pragma omp parallel num_threads(nth)
+    {
+#ifdef _OPENMP
+        i64 t = omp_get_thread_num(), n = omp_get_num_threads();
+#else
+        i64 t = 0, n = 1;
+#endif
+        i64 v0 = SPLIT16(V, t, n), v1 = SPLIT16_END(V, t, n);
+        if (taps_bad(v0 * k, v1 * k, idx, av, J)) {
+            #pragma omp atomic write
+            bad = 1;
+        }
+        #pragma omp barrier
+        int any;
+        #pragma omp atomic read
+        any = bad;
+        if (!any)
+            sg_taps_range_(v0, v1 < 16 * nb ? v1 : 16 * nb, fv, fj, N, k, w, mu, sigma, sw, sm, ss, idx, av, NULL, r, L, ladder, 3,
+                           1, NULL, P, tot);
+    }
+    return bad;
+#else
+    (void)V; (void)J; (void)N; (void)k; (void)fv; (void)fj; (void)w; (void)mu; (void)sigma; (void)sw; (void)sm; (void)ss;
+    (void)idx; (void)av; (void)r; (void)L; (void)ladder; (void)P; (void)tot; (void)nthreads;
+    return 2;
+#endif
+}
+int prt_sg_taps_prepared(i64 V, i64 J, i64 N, i64 k, i64 fv, i64 fj, const float *w, const float *mu, const float *sigma, i64 sw,
+                         i64 sm, i64 ss, const i64 *idx, const float *av, const int32_t *P, const float *tot, const float *table,
+                         i64 r, i64 L, const float *ladder, float *out, int nthreads) {
+#ifdef SG16
+    if (!sg_vec(V * J * N, L, r, 3) || r < 2 || L < 2 || k > 8) return 2;
+    i64 nth = nthreads > 0 ? nthreads : 1, nb = V / 16;
+    if (taps_bad(16 * nb * k, V * k, idx, av, J)) return 1;
+    const __m512i flags = _mm512_set1_epi32(7);
+    #pragma omp parallel for schedule(static, 1) num_threads(nth)
+    for (i64 t = 0; t < nth; t++) {
+        for (i64 blk = nb * t / nth; blk < nb * (t + 1) / nth; blk++) {
+            __m128 acc[16];
+            for (int l = 0; l < 16; l++) acc[l] = _mm_setzero_ps();
+            for (i64 n = 0; n < N; n++) {
+                const int32_t *q = PREP_AT(P, blk, 0, n, 1, N);
+                sg_texels16(_mm512_loadu_si512(q), flags, _mm512_loadu_ps(q + 16), _mm512_loadu_ps(q + 32), _mm512_loadu_ps(q + 48),
+                            _mm512_loadu_ps(q + 64), table, r, acc);
+            }
+            store16_rgb(out + 48 * blk, 1, acc, tot + 16 * blk);
+        }
+        if (t + 1 == nth)  /* the tail: from the records and taps, as prt_sg_taps's last thread */
+            sg_taps_range(16 * nb, V, fv, fj, N, k, w, mu, sigma, sw, sm, ss, idx, av, table, r, L, ladder, 3, 1, out);
+    }
+    return 0;
+#else
+    (void)V; (void)J; (void)N; (void)k; (void)fv; (void)fj; (void)w; (void)mu; (void)sigma; (void)sw; (void)sm; (void)ss;
+    (void)idx; (void)av; (void)P; (void)tot; (void)table; (void)r; (void)L; (void)ladder; (void)out; (void)nthreads;
+    return 2;
+#endif
+}
 """
 
 _FLAGS = ["-O3", "-march=native", "-ffp-contract=fast", "-fopenmp", "-shared", "-fPIC", "-std=c99"]
@@ -2170,6 +2268,8 @@ def _compile() -> tuple[ctypes.CDLL | None, str]:
         "prt_sg_prepare": [i64, i64, i64, i64, vp, vp, vp, i64, i64, i64, i64, i64, vp, vp, ci],
         "prt_sg_lookup_prepared": [i64, i64, i64, i64, vp, vp, vp, i64, i64, i64, vp, vp, vp, i64, i64, vp, vp, ci],
         "prt_sg_taps": [i64, i64, i64, i64, i64, i64, vp, vp, vp, i64, i64, i64, vp, vp, vp, i64, i64, vp, i64, vp, ci],
+        "prt_sg_taps_prepare": [i64, i64, i64, i64, i64, i64, vp, vp, vp, i64, i64, i64, vp, vp, i64, i64, vp, vp, vp, ci],
+        "prt_sg_taps_prepared": [i64, i64, i64, i64, i64, i64, vp, vp, vp, i64, i64, i64, vp, vp, vp, vp, vp, i64, i64, vp, vp, ci],
     })
 
 
@@ -2703,19 +2803,75 @@ def sg_taps(lib, table: torch.Tensor, log_sigmas: torch.Tensor, res: int, w: tor
     flag 1, with nothing computed or written, when a tap has an index outside [0, J) or a
     negative or non-finite weight (one pass over the taps in the kernel, where torch's checks
     took four; the caller raises naming it). ``layout``: as for :func:`sg_lookup_sum`."""
-    V, J, N = w.shape
-    k = idx.shape[1]
     C = table.shape[1]
     if C > 16:
         raise ValueError(f"sg_taps: {C} channels; accepted: at most 16")
+    args, _held = _taps_args(w, mu, sigma, idx, a, layout)
+    _pyramid("sg_taps", table, log_sigmas, res)
+    table, ladder = _as(table, torch.float32), _as(log_sigmas, torch.float32)
+    out = _out(out, args[0] * C, (args[0], C))
+    flag = lib.prt_sg_taps(*args, table.data_ptr(), int(res), ladder.numel(), ladder.data_ptr(), C, out.data_ptr(),
+                           torch.get_num_threads())
+    return out, int(flag)
+
+
+def _taps_args(w: torch.Tensor, mu: torch.Tensor, sigma: torch.Tensor, idx: torch.Tensor, a: torch.Tensor, layout: tuple | None):
+    """``prt_sg_taps*``'s shape and lobe arguments ``[V, J, N, k, fv, fj, w, mu, sigma, sw, sm, ss, idx, a]``
+    (pointers for the tensors) and the tensors they point into (kept alive by the caller)."""
+    V, J, N = w.shape
+    k = idx.shape[1]
     w, mu, sigma, sw, sm, ss, fb = layout or lobe_layout(w, mu, sigma)
     fv, fj = (N, fb) if fb else (J * N, N)  # lobe index of (v, j, 0): view-major records, else in order
-    _pyramid("sg_taps", table, log_sigmas, res)
-    a, table, ladder = (_as(t, torch.float32) for t in (a, table, log_sigmas))
-    idx = _as(idx, torch.int64)
-    out = _out(out, V * C, (V, C))
-    flag = lib.prt_sg_taps(V, J, N, k, fv, fj, w.data_ptr(), mu.data_ptr(), sigma.data_ptr(), sw, sm, ss, idx.data_ptr(), a.data_ptr(),
-                           table.data_ptr(), int(res), ladder.numel(), ladder.data_ptr(), C, out.data_ptr(), torch.get_num_threads())
+    a, idx = _as(a, torch.float32), _as(idx, torch.int64)
+    held = (w, mu, sigma, idx, a)
+    return [V, J, N, k, fv, fj, w.data_ptr(), mu.data_ptr(), sigma.data_ptr(), sw, sm, ss, idx.data_ptr(), a.data_ptr()], held
+
+
+def sg_taps_prepare(lib, log_sigmas: torch.Tensor, res: int, w: torch.Tensor, mu: torch.Tensor, sigma: torch.Tensor,
+                    idx: torch.Tensor, a: torch.Tensor, layout: tuple | None = None) -> tuple:
+    """The part of :func:`sg_taps` that does not depend on the light's values, for
+    :func:`sg_taps_prepared`: each whole block of 16 vertices' lobes blended across the taps
+    (``prt_sg_taps_prepare``), normalised and addressed in the pyramid of resolution ``res`` and
+    width ladder ``log_sigmas`` (face, texel, level and their fractions, as :func:`sg_prepare`).
+    Arguments as :func:`sg_taps`. → ``((P int32 [⌊V/16⌋·N·80], tot float32 [⌊V/16⌋·16]), flag)``:
+    20 bytes per blended lobe and Σa per vertex; ``(None, 0)`` where the 16-lane kernels do not
+    take this shape (no AVX-512, sizes past their int32 indices, more than 8 taps, a pyramid of
+    one texel per side or one width); ``(None, 1)`` with a bad tap (as :func:`sg_taps`' flag)."""
+    args, _held = _taps_args(w, mu, sigma, idx, a, layout)
+    V, N = args[0], args[2]
+    ladder = _as(log_sigmas, torch.float32)
+    P = torch.empty((V // 16) * N * 80, dtype=torch.int32)
+    tot = torch.empty((V // 16) * 16, dtype=torch.float32)
+    flag = lib.prt_sg_taps_prepare(*args, int(res), ladder.numel(), ladder.data_ptr(), P.data_ptr(), tot.data_ptr(),
+                                   torch.get_num_threads())
+    if flag == 2:
+        return None, 0
+    return (None, 1) if flag else ((P, tot), 0)
+
+
+def sg_taps_prepared(lib, prepared: tuple, table: torch.Tensor, log_sigmas: torch.Tensor, res: int, w: torch.Tensor,
+                     mu: torch.Tensor, sigma: torch.Tensor, idx: torch.Tensor, a: torch.Tensor, out: torch.Tensor | None = None,
+                     layout: tuple | None = None) -> tuple[torch.Tensor, int]:
+    """:func:`sg_taps` of RGB lights (``table [L·6·r·r, 3]``) from :func:`sg_taps_prepare`'s
+    blend and addressing of these lobes and taps for this ``res`` and ``log_sigmas`` (the caller
+    keeps it valid: the same lobes and taps, unchanged): per blended lobe only the 8 texel reads,
+    the tail of fewer than 16 vertices from the records and taps. The same bits as
+    :func:`sg_taps`. → ``([V, 3]`` float32, flag``)``: flag 1, nothing written, when a tap of the
+    tail (the only taps read) is bad."""
+    args, _held = _taps_args(w, mu, sigma, idx, a, layout)
+    V, N = args[0], args[2]
+    P, tot = prepared
+    if (table.shape[1] != 3 or P.numel() != (V // 16) * N * 80 or tot.numel() != (V // 16) * 16 or P.dtype != torch.int32
+            or tot.dtype != torch.float32 or not (P.is_contiguous() and tot.is_contiguous())):
+        raise ValueError(f"sg_taps_prepared: table {tuple(table.shape)}, prepared {P.numel()} and {tot.numel()} values; accepted: "
+                         f"[rows, 3], {(V // 16) * N * 80} int32 and {(V // 16) * 16} float32 (sg_taps_prepare of these lobes and taps)")
+    _pyramid("sg_taps_prepared", table, log_sigmas, res)
+    table, ladder = _as(table, torch.float32), _as(log_sigmas, torch.float32)
+    out = _out(out, V * 3, (V, 3))
+    flag = lib.prt_sg_taps_prepared(*args, P.data_ptr(), tot.data_ptr(), table.data_ptr(), int(res), ladder.numel(),
+                                    ladder.data_ptr(), out.data_ptr(), torch.get_num_threads())
+    if flag == 2:
+        raise RuntimeError("prt_sg_taps_prepared refused a shape sg_taps_prepare took")  # pragma: no cover
     return out, int(flag)
 
 
