@@ -498,7 +498,7 @@ def test_relighter_gives_relights_bits_and_prepares_again_when_anything_changes(
         r(torch.randn(25, 3))
 
 
-@pytest.mark.parametrize("N,layout", [(1, "by_view"), (3, "by_view"), (2, "records"), (2, "separate")])
+@pytest.mark.parametrize("N,layout", [(1, "by_view"), (3, "by_view"), (5, "by_view"), (2, "records"), (2, "separate")])
 def test_relighter_with_taps_keeps_the_blend_and_gives_relights_bits(cube, N, layout):
     """``codec.relighter(enc, taps)``: the lobes blended across the taps, normalised and addressed
     once (``relight_kernels.sg_taps_prepare``), then per light only the texel reads — relight's

@@ -1587,44 +1587,63 @@ static inline void sg_address16(__m512 x, __m512 y, __m512 z, __m512 sigma, i64 
     *ft_ = ft;
     *a_ = a;
 }
+/* sg_texels16 where r > 1: per pair of texels p (row (t0, t1) = p & 1, level (lo, hi) = p >> 1) of lane l, the float
+   offset ix[p][l] of the first texel in the table and the weights (wa, wb) at wp[p][2 l] */
+static inline void sg_pairs16(const __m512i *tex, __m512i dl, const __m512 *w4, const __m512 *la, __m512 wl, int32_t ix[4][16],
+                              float wp[4][32]) {
+    const __m512i three = _mm512_set1_epi32(3);
+    const __m512i lo8 = _mm512_set_epi32(23, 7, 22, 6, 21, 5, 20, 4, 19, 3, 18, 2, 17, 1, 16, 0);
+    const __m512i hi8 = _mm512_add_epi32(lo8, _mm512_set1_epi32(8));
+    for (int p = 0; p < 4; p++) {
+        const __m512i t = tex[2 * (p & 1)];
+        _mm512_store_si512(ix[p], _mm512_mullo_epi32(p < 2 ? t : _mm512_add_epi32(t, dl), three));
+        const __m512 wa = _mm512_mul_ps(_mm512_mul_ps(w4[2 * (p & 1)], la[p >> 1]), wl);
+        const __m512 wb = _mm512_mul_ps(_mm512_mul_ps(w4[2 * (p & 1) + 1], la[p >> 1]), wl);
+        _mm512_store_ps(wp[p], _mm512_permutex2var_ps(wa, lo8, wb));
+        _mm512_store_ps(wp[p] + 16, _mm512_permutex2var_ps(wa, hi8, wb));
+    }
+}
+/* lane l's RGB (and a 4th float) from sg_pairs16's offsets and weights: one masked 6-float load per pair weighted
+   [wa wa wa wb wb wb], the four multiply-adds in order, then the two texels' RGB added */
+static inline __m128 sg_pair_sum(const float *table, int32_t ix[4][16], float wp[4][32], int l) {
+    const __m256i spread = _mm256_set_epi32(1, 1, 1, 1, 1, 0, 0, 0), fold = _mm256_set_epi32(7, 7, 7, 7, 7, 5, 4, 3);
+    __m256 s8 = _mm256_setzero_ps();
+    for (int p = 0; p < 4; p++) {
+        const __m256 w2 = _mm256_permutexvar_ps(spread, _mm256_castps128_ps256(_mm_castpd_ps(_mm_load_sd((const double *)(wp[p] + 2 * l)))));
+        s8 = _mm256_fmadd_ps(w2, _mm256_maskz_loadu_ps(0x3f, table + ix[p][l]), s8);
+    }
+    return _mm_add_ps(_mm256_castps256_ps128(s8), _mm256_castps256_ps128(_mm256_permutexvar_ps(fold, s8)));
+}
+/* the texel indices, bilinear and level weights of sg_address16's lanes */
+#define SG_TEXEL_SETUP                                                                                                      \
+    const __m512 one = _mm512_set1_ps(1.0f);                                                                                \
+    const __m512i onei = _mm512_set1_epi32(1);                                                                              \
+    const __m512i ds = _mm512_and_si512(flags, onei);                                                                       \
+    const __m512i dt = _mm512_mullo_epi32(_mm512_and_si512(_mm512_srli_epi32(flags, 1), onei), _mm512_set1_epi32((int)r));  \
+    const __m512i dl = _mm512_mullo_epi32(_mm512_srli_epi32(flags, 2), _mm512_set1_epi32((int)(6 * r * r)));                \
+    __m512i tex[4] = {i0, _mm512_add_epi32(i0, ds), _mm512_add_epi32(i0, dt), _mm512_add_epi32(_mm512_add_epi32(i0, dt), ds)}; \
+    __m512 gs = _mm512_sub_ps(one, fs), gt = _mm512_sub_ps(one, ft);                                                        \
+    __m512 w4[4] = {_mm512_mul_ps(gt, gs), _mm512_mul_ps(gt, fs), _mm512_mul_ps(ft, gs), _mm512_mul_ps(ft, fs)};            \
+    __m512 la[2] = {_mm512_sub_ps(one, a), a};
+/* sg_texels16's offsets and weights (r > 1) */
+static inline void sg_pairs_of(__m512i i0, __m512i flags, __m512 fs, __m512 ft, __m512 a, __m512 wl, i64 r, int32_t ix[4][16],
+                               float wp[4][32]) {
+    SG_TEXEL_SETUP
+    (void)tex[1]; (void)tex[3];
+    sg_pairs16(tex, dl, w4, la, wl, ix, wp);
+}
 /* the eight texels of sg_address16's lanes, weighted by wl, added to acc (RGB) */
 static inline void sg_texels16(__m512i i0, __m512i flags, __m512 fs, __m512 ft, __m512 a, __m512 wl, const float *table, i64 r,
                                __m128 *acc) {
-    const __m512 one = _mm512_set1_ps(1.0f);
-    const __m512i onei = _mm512_set1_epi32(1);
-    const __m512i ds = _mm512_and_si512(flags, onei);
-    const __m512i dt = _mm512_mullo_epi32(_mm512_and_si512(_mm512_srli_epi32(flags, 1), onei), _mm512_set1_epi32((int)r));
-    const __m512i dl = _mm512_mullo_epi32(_mm512_srli_epi32(flags, 2), _mm512_set1_epi32((int)(6 * r * r)));
-    __m512i tex[4] = {i0, _mm512_add_epi32(i0, ds), _mm512_add_epi32(i0, dt), _mm512_add_epi32(_mm512_add_epi32(i0, dt), ds)};
-    __m512 gs = _mm512_sub_ps(one, fs), gt = _mm512_sub_ps(one, ft);
-    __m512 w4[4] = {_mm512_mul_ps(gt, gs), _mm512_mul_ps(gt, fs), _mm512_mul_ps(ft, gs), _mm512_mul_ps(ft, fs)};
-    __m512 la[2] = {_mm512_sub_ps(one, a), a};
+    SG_TEXEL_SETUP
     const __m512i three = _mm512_set1_epi32(3);
     if (r > 1) {  /* the texel's neighbour along s is the next one (ds = 1): one masked 6-float load per pair of texels,
                      weighted [wa wa wa wb wb wb] (the two weights one 8-byte load, spread by a permute), where the
                      per-texel loop below took twice the loads and multiply-adds */
         int32_t ix[4][16] __attribute__((aligned(64)));
-        float wp[4][32] __attribute__((aligned(64)));  /* per pair of texels: (wa, wb) of lane l at 2 l */
-        const __m512i lo8 = _mm512_set_epi32(23, 7, 22, 6, 21, 5, 20, 4, 19, 3, 18, 2, 17, 1, 16, 0);
-        const __m512i hi8 = _mm512_add_epi32(lo8, _mm512_set1_epi32(8));
-        for (int p = 0; p < 4; p++) {  /* p: row (t0, t1) = p & 1, level (lo, hi) = p >> 1 */
-            const __m512i t = tex[2 * (p & 1)];
-            _mm512_store_si512(ix[p], _mm512_mullo_epi32(p < 2 ? t : _mm512_add_epi32(t, dl), three));
-            const __m512 wa = _mm512_mul_ps(_mm512_mul_ps(w4[2 * (p & 1)], la[p >> 1]), wl);
-            const __m512 wb = _mm512_mul_ps(_mm512_mul_ps(w4[2 * (p & 1) + 1], la[p >> 1]), wl);
-            _mm512_store_ps(wp[p], _mm512_permutex2var_ps(wa, lo8, wb));
-            _mm512_store_ps(wp[p] + 16, _mm512_permutex2var_ps(wa, hi8, wb));
-        }
-        const __m256i spread = _mm256_set_epi32(1, 1, 1, 1, 1, 0, 0, 0), fold = _mm256_set_epi32(7, 7, 7, 7, 7, 5, 4, 3);
-        for (int l = 0; l < 16; l++) {
-            __m256 s8 = _mm256_setzero_ps();
-            for (int p = 0; p < 4; p++) {
-                const __m256 w2 = _mm256_permutexvar_ps(spread, _mm256_castps128_ps256(_mm_castpd_ps(_mm_load_sd((const double *)(wp[p] + 2 * l)))));
-                s8 = _mm256_fmadd_ps(w2, _mm256_maskz_loadu_ps(0x3f, table + ix[p][l]), s8);
-            }
-            const __m128 s4 = _mm_add_ps(_mm256_castps256_ps128(s8), _mm256_castps256_ps128(_mm256_permutexvar_ps(fold, s8)));
-            acc[l] = _mm_add_ps(acc[l], s4);
-        }
+        float wp[4][32] __attribute__((aligned(64)));
+        sg_pairs16(tex, dl, w4, la, wl, ix, wp);
+        for (int l = 0; l < 16; l++) acc[l] = _mm_add_ps(acc[l], sg_pair_sum(table, ix, wp, l));
         return;
     }
     /* the 8 texels x 3 channels per lane: a masked 3-float load per texel (no gathers: Zen 4 and
@@ -2225,6 +2244,27 @@ int prt_sg_taps_prepared(i64 V, i64 J, i64 N, i64 k, i64 fv, i64 fj, const float
     #pragma omp parallel for schedule(static, 1) num_threads(nth)
     for (i64 t = 0; t < nth; t++) {
         for (i64 blk = nb * t / nth; blk < nb * (t + 1) / nth; blk++) {
+            if (N <= 4) {  /* the lanes outer, the lobes' sums in a register, the 16 rows staged and stored as 3 lines */
+                int32_t ix[4][4][16] __attribute__((aligned(64)));
+                float wp[4][4][32] __attribute__((aligned(64)));
+                float st[52] __attribute__((aligned(64)));
+                for (i64 n = 0; n < N; n++) {
+                    const int32_t *q = PREP_AT(P, blk, 0, n, 1, N);
+                    sg_pairs_of(_mm512_loadu_si512(q), flags, _mm512_loadu_ps(q + 16), _mm512_loadu_ps(q + 32), _mm512_loadu_ps(q + 48),
+                                _mm512_loadu_ps(q + 64), r, ix[n], wp[n]);
+                }
+                const float *tb = tot + 16 * blk;
+                for (int l = 0; l < 16; l++) {
+                    __m128 acc = _mm_setzero_ps();
+                    for (i64 n = 0; n < N; n++) acc = _mm_add_ps(acc, sg_pair_sum(table, ix[n], wp[n], l));
+                    _mm_storeu_ps(st + 3 * l, _mm_mul_ps(acc, _mm_set1_ps(tb[l])));
+                }
+                float *o = out + 48 * blk;
+                _mm512_storeu_ps(o, _mm512_load_ps(st));
+                _mm512_storeu_ps(o + 16, _mm512_load_ps(st + 16));
+                _mm512_storeu_ps(o + 32, _mm512_load_ps(st + 32));
+                continue;
+            }
             __m128 acc[16];
             for (int l = 0; l < 16; l++) acc[l] = _mm_setzero_ps();
             for (i64 n = 0; n < N; n++) {
