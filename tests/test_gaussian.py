@@ -531,7 +531,7 @@ def test_relighter_with_taps_keeps_the_blend_and_gives_relights_bits(cube, N, la
     if layout == "separate":  # arrays saved before the records: relit as relight does, nothing kept
         assert r._prep is None
         return
-    P, tot = kept = r._prep[1]
+    P, tot = (kept := r._prep[1])[:2]
     assert P.dtype == torch.int32 and P.numel() == (V // 16) * N * 80
     assert torch.allclose(tot, a[:32].sum(1))  # sum(a) of the whole blocks' vertices
     with pytest.MonkeyPatch.context() as m:  # against the torch formulation (gathers, blend_lobes, lobe_sum)

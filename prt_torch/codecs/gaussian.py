@@ -958,8 +958,7 @@ class GaussianCodec(Codec):
         idx, a = view if lib is not None else self.checked_taps(view, V, J)
         a = a.float()
         if lib is not None and prepared is not None:  # the blend and addressing kept: per vertex only the texel reads
-            res, flag = sg_taps_prepared(lib, prepared, light.table(), light.log_sigmas, light.res, w, mu, sg, idx, a, out=out,
-                                         layout=layout)
+            res, flag = sg_taps_prepared(lib, prepared, light.table(), light.log_sigmas, light.res, out=out)
         elif lib is not None:  # blend, look up and sum in one fused pass per vertex
             res, flag = sg_taps(lib, light.table(), light.log_sigmas, light.res, w, mu, sg, idx, a, out=out, layout=layout)
             if flag:  # a bad tap (nothing computed or written): raise naming it

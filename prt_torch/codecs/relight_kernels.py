@@ -2931,11 +2931,12 @@ def sg_taps_prepare(lib, log_sigmas: torch.Tensor, res: int, w: torch.Tensor, mu
     :func:`sg_taps_prepared`: each whole block of 16 vertices' lobes blended across the taps
     (``prt_sg_taps_prepare``), normalised and addressed in the pyramid of resolution ``res`` and
     width ladder ``log_sigmas`` (face, texel, level and their fractions, as :func:`sg_prepare`).
-    Arguments as :func:`sg_taps`. → ``((P int32 [⌊V/16⌋·N·80], tot float32 [⌊V/16⌋·16]), flag)``:
+    Arguments as :func:`sg_taps`. → ``(prepared, flag)``: prepared = ``(P int32 [⌊V/16⌋·N·80],
+    tot float32 [⌊V/16⌋·16], the kernels' lobe and taps arguments, the tensors they point into)``,
     20 bytes per blended lobe and Σa per vertex; ``(None, 0)`` where the 16-lane kernels do not
     take this shape (no AVX-512, sizes past their int32 indices, more than 8 taps, a pyramid of
     one texel per side or one width); ``(None, 1)`` with a bad tap (as :func:`sg_taps`' flag)."""
-    args, _held = _taps_args(w, mu, sigma, idx, a, layout)
+    args, held = _taps_args(w, mu, sigma, idx, a, layout)
     V, N = args[0], args[2]
     ladder = _as(log_sigmas, torch.float32)
     P = torch.empty((V // 16) * N * 80, dtype=torch.int32)
@@ -2944,21 +2945,19 @@ def sg_taps_prepare(lib, log_sigmas: torch.Tensor, res: int, w: torch.Tensor, mu
                                    torch.get_num_threads())
     if flag == 2:
         return None, 0
-    return (None, 1) if flag else ((P, tot), 0)
+    return (None, 1) if flag else ((P, tot, tuple(args), held), 0)
 
 
-def sg_taps_prepared(lib, prepared: tuple, table: torch.Tensor, log_sigmas: torch.Tensor, res: int, w: torch.Tensor,
-                     mu: torch.Tensor, sigma: torch.Tensor, idx: torch.Tensor, a: torch.Tensor, out: torch.Tensor | None = None,
-                     layout: tuple | None = None) -> tuple[torch.Tensor, int]:
+def sg_taps_prepared(lib, prepared: tuple, table: torch.Tensor, log_sigmas: torch.Tensor, res: int,
+                     out: torch.Tensor | None = None) -> tuple[torch.Tensor, int]:
     """:func:`sg_taps` of RGB lights (``table [L·6·r·r, 3]``) from :func:`sg_taps_prepare`'s
-    blend and addressing of these lobes and taps for this ``res`` and ``log_sigmas`` (the caller
-    keeps it valid: the same lobes and taps, unchanged): per blended lobe only the 8 texel reads,
-    the tail of fewer than 16 vertices from the records and taps. The same bits as
-    :func:`sg_taps`. → ``([V, 3]`` float32, flag``)``: flag 1, nothing written, when a tap of the
-    tail (the only taps read) is bad."""
-    args, _held = _taps_args(w, mu, sigma, idx, a, layout)
+    blend and addressing of its lobes and taps for this ``res`` and ``log_sigmas`` (the caller
+    keeps it valid: the same lobes and taps, unchanged, and the same ``res`` and ladder): per
+    blended lobe only the 8 texel reads, the tail of fewer than 16 vertices from the records and
+    taps. The same bits as :func:`sg_taps`. → ``([V, 3]`` float32, flag``)``: flag 1, nothing
+    written, when a tap of the tail (the only taps read) is bad."""
+    P, tot, args, _held = prepared
     V, N = args[0], args[2]
-    P, tot = prepared
     if (table.shape[1] != 3 or P.numel() != (V // 16) * N * 80 or tot.numel() != (V // 16) * 16 or P.dtype != torch.int32
             or tot.dtype != torch.float32 or not (P.is_contiguous() and tot.is_contiguous())):
         raise ValueError(f"sg_taps_prepared: table {tuple(table.shape)}, prepared {P.numel()} and {tot.numel()} values; accepted: "
