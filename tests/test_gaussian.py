@@ -539,27 +539,45 @@ def test_relighter_with_taps_keeps_the_blend_and_gives_relights_bits(cube, N, la
         ref = c.relight(enc, pe, view=(idx, a))
     assert torch.allclose(want, ref, rtol=1e-5, atol=1e-6 * float(ref.abs().max()))
 
-    def same(light, what):
-        got = r(light)
-        assert torch.equal(got, c.relight(enc, light, view=(idx, a))), what
+    buf = torch.empty(V, 3)
+
+    def same(light, what):  # after a change, a full call (which it must see), then the fast path
+        for _ in range(2):
+            assert r(light, out=buf) is buf and torch.equal(buf, c.relight(enc, light, view=(idx, a))), what
+            assert r._hot is not None and r._hot[0] is light and r._hot[1] is buf, what
+
+    assert torch.equal(r(pe), want) and r._hot[1] is None  # without out: fast too
+    assert torch.equal(r(pe), want) and r._hot[1] is None
 
     same(prefilter_environment(lambda x: 0.5 + x[..., :3].abs(), res=8, levels=12), "another light, the same pyramid")
     assert r._prep[1] is kept
     same(prefilter_environment(lambda x: 0.5 + x[..., :3].abs(), res=8, levels=9), "another ladder")
-    a[3, 1] *= 0.25  # a weight edited in place, in a block
+    same(pe, "back")
+    a[3, 1] *= 0.25  # a weight edited in place, in a block (each edit below follows a fast call with pe)
     same(pe, "a tap weight edited")
     idx[20, 2] = (idx[20, 2] + 5) % J  # an index, in the second block
     same(pe, "a tap index edited")
     c.lobes_of(enc)[1][20, int(idx[20, 0]), 0] = torch.tensor([0.3, -0.2, 0.9])  # a tapped lobe's mean
     same(pe, "lobes edited in place")
+    pe.levels.mul_(1.5)  # the light's texels, in place
+    same(pe, "the light's levels edited in place")
+    sig = pe.sigmas
+    pe.sigmas = sig[:-1]  # a ladder that no longer matches the levels: refused, out untouched
+    buf.fill_(7.0)
+    with pytest.raises(ValueError, match="PrefilteredEnvironment sigmas: expected one width per level"):
+        r(pe, out=buf)
+    assert bool((buf == 7).all())
+    pe.sigmas = sig
+    same(pe, "the ladder restored")
     for at, bad in (((5, 0), J), ((34, 2), -1)):  # an index out of range, in a block and in the tail
         old = int(idx[at])
         idx[at] = bad
-        out = torch.full((V, 3), 7.0)
+        buf.data.fill_(7.0)  # (.data: not bumping buf's version, so only the taps' edit can stop the fast path)
         with pytest.raises(ValueError, match=r"view tap indices span"):
-            r(pe, out=out)
-        assert bool((out == 7).all())
+            r(pe, out=buf)
+        assert bool((buf == 7).all())
         idx[at] = old
+        same(pe, "mended")
     a[33, 0] = float("nan")  # a weight, in the tail
     with pytest.raises(ValueError, match=r"view tap weights has 1 non-finite value\(s\).*\(33, 0\)"):
         r(pe)
