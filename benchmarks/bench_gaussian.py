@@ -192,12 +192,20 @@ def relight_rate(quick: bool) -> dict:
     fn = lambda: c.relight(enc, pe, view=view, out=out)  # noqa: E731  (a render loop's reused result)
     # the copy bound (bench_relight's): read the tapped views' lobes (k · N · 5 floats) and the taps
     # once, write the output once; and the uncompressed taps — both paired with the relight
-    pb = measure_paired(fn, io_bound_fn(c.relight_bytes(enc, view), out.numel() * 4), repeats=15, warmup=2)
+    bound = io_bound_fn(c.relight_bytes(enc, view), out.numel() * 4)
+    pb = measure_paired(fn, bound, repeats=15, warmup=2)
     pu = measure_paired(fn, lambda: relight.apply_taps(A, Lm, *view), repeats=15, warmup=2)
+    # a render loop's prepared form: the blend across the taps and its addressing kept (the same bits)
+    r = c.relighter(enc, view)
+    pp = measure_paired(lambda: r(pe, out=out), bound, repeats=15, warmup=2)
+    pq = measure_paired(lambda: r(pe, out=out), lambda: relight.apply_taps(A, Lm, *view), repeats=15, warmup=2)
     tg, tu = pb.test.median, pu.peer.median
     return {"vertices": V, "prefilter_s": prefilter_s, "gaussian_s": tg, "uncompressed_s": tu,
             "bound_s": pb.peer.median, "fraction_of_bound": pb.ratio.median, "speedup_vs_uncompressed": pu.ratio.median,
-            "trusted": bool(pb.contention["trusted"] and pu.contention["trusted"]),
+            "prepared_s": pp.test.median, "prepared_fraction_of_bound": pp.ratio.median,
+            "prepared_speedup_vs_uncompressed": pq.ratio.median,
+            "trusted": bool(pb.contention["trusted"] and pu.contention["trusted"] and pp.contention["trusted"]
+                            and pq.contention["trusted"]),
             "gaussian_vertices_per_s": V / tg, "uncompressed_vertices_per_s": V / tu,
             "gaussian_fps_10k": V / tg / 10_000, "uncompressed_fps_10k": V / tu / 10_000,
             "bytes_per_vertex_gaussian": sum(t[:1].numel() * t.element_size() for t in enc.tensors.values()),
@@ -306,7 +314,10 @@ def report(r: dict) -> str:
               f"{rl['uncompressed_s'] * 1e3:.2f} ms ({rl['uncompressed_vertices_per_s'] / 1e6:.2f} Mvert/s, "
               f"{rl['uncompressed_fps_10k']:.0f} fps at 10k); paired, the Gaussian form is {rl['speedup_vs_uncompressed']:.1f}× "
               f"faster, at {rl['fraction_of_bound']:.2f} of its copy bound (reading the tapped views' lobes and the taps once, "
-              f"writing the output once: {rl['bound_s'] * 1e3:.3f} ms; benchmarks/bench_relight.py has it at 50 000 vertices)"
+              f"writing the output once: {rl['bound_s'] * 1e3:.3f} ms; benchmarks/bench_relight.py has it at 50 000 vertices). "
+              f"Prepared (`r = codec.relighter(enc, view)`, then `r(light, out=buf)`: the blend across the taps and its "
+              f"addressing kept, the same bits): {rl['prepared_s'] * 1e6:.1f} µs, {rl['prepared_speedup_vs_uncompressed']:.1f}× "
+              f"the uncompressed taps and {rl['prepared_fraction_of_bound']:.2f} of the copy bound, paired"
               f"{'' if rl['trusted'] else ' — measured on a busy machine'}. Bytes per vertex: {rl['bytes_per_vertex_gaussian']} vs "
               f"{rl['bytes_per_vertex_uncompressed']}. Prefiltering the light (20 levels, 6×16×16): {rl['prefilter_s']:.2f} s "
               f"once per light. Load {rl['load']}.", ""]
