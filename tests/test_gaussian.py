@@ -499,7 +499,7 @@ def test_relighter_gives_relights_bits_and_prepares_again_when_anything_changes(
 
 
 @pytest.mark.parametrize("N,layout", [(1, "by_view"), (3, "by_view"), (5, "by_view"), (2, "records"), (2, "separate")])
-def test_relighter_with_taps_keeps_the_blend_and_gives_relights_bits(cube, N, layout):
+def test_relighter_with_taps_keeps_the_blend_and_gives_relights_bits(cube, N, layout, monkeypatch):
     """``codec.relighter(enc, taps)``: the lobes blended across the taps, normalised and addressed
     once (``relight_kernels.sg_taps_prepare``), then per light only the texel reads — relight's
     bits at 1-3 threads, into ``out=`` too, over blocks of 16 and the tail, and the torch
@@ -519,9 +519,14 @@ def test_relighter_with_taps_keeps_the_blend_and_gives_relights_bits(cube, N, la
     pe = prefilter_environment(lambda x: torch.stack([1.5 + x[..., 0], 1 + 0.5 * x[..., 2], (x[..., 1] > 0.3).double()], -1),
                                res=8, levels=12)
     idx, a = torch.randint(0, J, (V, 3), generator=g), torch.rand(V, 3, generator=g)
+
+    def plain(light, view=None):  # relight without the blend it keeps in enc.cache from a second call on
+        enc.cache.pop("taps_prepared", None)
+        return c.relight(enc, light, view=(idx, a) if view is None else view)
+
     r = c.relighter(enc, (idx, a))
     with torch_threads(1):
-        want = c.relight(enc, pe, view=(idx, a))
+        want = plain(pe)
     for th in (1, 2, 3):
         with torch_threads(th):
             for _ in range(2):  # the first call prepares, the second reuses
@@ -531,19 +536,42 @@ def test_relighter_with_taps_keeps_the_blend_and_gives_relights_bits(cube, N, la
     if layout == "separate":  # arrays saved before the records: relit as relight does, nothing kept
         assert r._prep is None
         return
+    from prt_torch.codecs import gaussian as gm
+
+    monkeypatch.setattr(gm, "TAPS_CACHE_MIN_LOOKUPS", V * N + 1)  # fewer lookups: relight keeps nothing
+    for _ in range(3):
+        assert torch.equal(c.relight(enc, pe, view=(idx, a)), want) and "taps_prepared" not in enc.cache
+    monkeypatch.setattr(gm, "TAPS_CACHE_MIN_LOOKUPS", V * N)
+    for th in (1, 2):  # relight itself keeps the blend in enc.cache from the second call with the same taps on
+        with torch_threads(th):
+            enc.cache.pop("taps_prepared", None)
+            assert torch.equal(c.relight(enc, pe, view=(idx, a)), want) and not enc.cache["taps_prepared"][3]  # seen once
+            assert torch.equal(c.relight(enc, pe, view=(idx, a)), want) and enc.cache["taps_prepared"][1] is not None  # made
+            kept_r = enc.cache["taps_prepared"][1]
+            assert torch.equal(c.relight(enc, pe, view=(idx, a)), want) and enc.cache["taps_prepared"][1] is kept_r  # read
+    other = (idx.flip(0).contiguous(), a.flip(0).contiguous())
+    got = c.relight(enc, pe, view=other)  # other taps: relit without it, seen once
+    assert not enc.cache["taps_prepared"][3] and torch.equal(got, plain(pe, other))
+    for _ in range(3):
+        c.relight(enc, pe, view=(idx, a))
+    a[1, 2] *= 0.5  # an edit of the taps it was made for
+    got = c.relight(enc, pe, view=(idx, a))
+    assert torch.equal(got, plain(pe)) and not torch.equal(got, want)
+    a[1, 2] *= 2.0  # (restored: the relighter prepares again, its version having changed)
+    assert torch.equal(r(pe), want)
     P, tot = (kept := r._prep[1])[:2]
     assert P.dtype == torch.int32 and P.numel() == (V // 16) * N * 80
     assert torch.allclose(tot, a[:32].sum(1))  # sum(a) of the whole blocks' vertices
     with pytest.MonkeyPatch.context() as m:  # against the torch formulation (gathers, blend_lobes, lobe_sum)
         m.setenv("PRT_TORCH_NATIVE", "0")
-        ref = c.relight(enc, pe, view=(idx, a))
+        ref = plain(pe)
     assert torch.allclose(want, ref, rtol=1e-5, atol=1e-6 * float(ref.abs().max()))
 
     buf = torch.empty(V, 3)
 
     def same(light, what):  # after a change, a full call (which it must see), then the fast path
         for _ in range(2):
-            assert r(light, out=buf) is buf and torch.equal(buf, c.relight(enc, light, view=(idx, a))), what
+            assert r(light, out=buf) is buf and torch.equal(buf, plain(light)), what
             assert r._hot is not None and r._hot[0] is light and r._hot[1] is buf, what
 
     assert torch.equal(r(pe), want) and r._hot[1] is None  # without out: fast too
@@ -585,11 +613,11 @@ def test_relighter_with_taps_keeps_the_blend_and_gives_relights_bits(cube, N, la
     same(pe, "mended")
     dirs = torch.nn.functional.normalize(torch.randn(V, 3, generator=g), dim=-1)
     rd = c.relighter(enc, dirs)
-    assert torch.equal(rd(pe), c.relight(enc, pe, view=dirs))
+    assert torch.equal(rd(pe), plain(pe, dirs))
     taps = rd._taps[1]
-    assert torch.equal(rd(pe), c.relight(enc, pe, view=dirs)) and rd._taps[1] is taps
+    assert torch.equal(rd(pe), plain(pe, dirs)) and rd._taps[1] is taps
     dirs[7] = -dirs[7]
-    assert torch.equal(rd(pe), c.relight(enc, pe, view=dirs)) and rd._taps[1] is not taps
+    assert torch.equal(rd(pe), plain(pe, dirs)) and rd._taps[1] is not taps
 
 
 def test_relight_survives_non_finite_lobes_and_refuses_bad_views_before_writing(cube):
