@@ -1306,11 +1306,10 @@ class GaussianRelighter(Relighter):
         self._taps: tuple | None = None  # a view of directions: (key, its taps, the directions)
         self._hot: tuple | None = None  # taps: (light, out, _hot_key, lib, prepared, table, held)
 
-    def _hot_key(self, light: PrefilteredEnvironment, out: torch.Tensor | None, held: tuple) -> list | None:
+    def _hot_key(self, light: PrefilteredEnvironment, out: torch.Tensor | None) -> list | None:
         """What the fast path compares: the states of the light's fields, ``out``'s, the view's
-        and the encoding's tensors (``held``: the codec's views and the light's fields, kept with
-        the key so that no id is reused), the light's sizes and the codec's view count; None
-        where the view is not tensors."""
+        and the encoding's tensors, the light's sizes and the codec's views (the tensors are held
+        with the key in ``_hot``, so that no id is reused); None where the view is not tensors."""
         view = self.view
         vt = view if isinstance(view, tuple) else (view,)
         if not all(isinstance(t, torch.Tensor) for t in vt):
@@ -1322,7 +1321,7 @@ class GaussianRelighter(Relighter):
 
     def __call__(self, light: Any, out: torch.Tensor | None = None) -> torch.Tensor:
         hot = self._hot
-        if hot is not None and light is hot[0] and out is hot[1] and self._hot_key(light, out, hot[6]) == hot[2]:
+        if hot is not None and light is hot[0] and out is hot[1] and self._hot_key(light, out) == hot[2]:
             res, flag = sg_taps_prepared(hot[3], hot[4], hot[5], light.log_sigmas, light.res, out=out)
             if not flag:
                 return res
@@ -1332,7 +1331,7 @@ class GaussianRelighter(Relighter):
         if (self.view is not None and isinstance(light, PrefilteredEnvironment) and prep is not None and prep[1] is not None
                 and "diffuse" not in self.enc.tensors and _fused(light) is not None and light.channels == 3):
             held = (self.codec.views_, light.levels, light.sigmas, light.log_sigmas, light.cube, light.sh, out, prep[2])
-            key = self._hot_key(light, out, held)
+            key = self._hot_key(light, out)
             if key is not None:
                 self._hot = (light, out, key, _fused(light), prep[1], light.table(), held)
         return res
