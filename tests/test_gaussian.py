@@ -620,6 +620,88 @@ def test_relighter_with_taps_keeps_the_blend_and_gives_relights_bits(cube, N, la
     assert torch.equal(rd(pe), plain(pe, dirs)) and rd._taps[1] is not taps
 
 
+def test_relighter_with_taps_sees_changes_that_keep_ids_or_addresses(cube):
+    """The review's cases (helper-19) that the prepared taps and the fast path first missed: lobes
+    replaced by separate arrays (which are not prepared: the fast path was armed from the last
+    preparation, reading its lobes' freed storage under ASan), lobes narrowed through ``.data``
+    (same address and version, another shape), the same records renamed to the vertex-major
+    layout, the codec's views edited or refitted under a view of directions, a light field
+    reassigned to a non-tensor, and ``PRT_TORCH_NATIVE=0`` between calls: each relights as
+    ``relight`` does (or raises as it does)."""
+    from prt_torch.codecs import relight_kernels
+
+    if relight_kernels.native() is None:
+        pytest.skip("no compiled kernels")
+    J, V, N = 12, 37, 2
+    pe = prefilter_environment(lambda x: 1.5 + x[..., :3], res=8, levels=12)
+
+    def fresh(seed, n=N, v=V):
+        g = torch.Generator().manual_seed(seed)
+        c, enc = _random_lobes(cube[0], v, J, n, g, torch.exp(torch.randn(v, J, n, generator=g)))
+        return c, enc, (torch.randint(0, J, (v, 3), generator=g), torch.rand(v, 3, generator=g))
+
+    def fast(r):  # two calls: the second is a fast one
+        for _ in range(2):
+            r(pe)
+        assert r._hot is not None
+
+    def check(r, c, enc, view, what):
+        for _ in range(2):  # a full call, then (where it can) a fast one
+            enc.cache.clear()
+            assert torch.equal(r(pe), c.relight(enc, pe, view=view)), what
+
+    c, enc, taps = fresh(1)
+    r = c.relighter(enc, taps)
+    fast(r)
+    w, mu, sg = (t.clone() for t in c.lobes_of(enc))
+    enc.tensors = {"weights": w * 2, "mu": mu, "sigma": sg}
+    check(r, c, enc, taps, "lobes replaced by separate arrays")
+    assert r._hot is None and r._prep is None
+
+    c, enc, taps = fresh(2)
+    r = c.relighter(enc, taps)
+    fast(r)
+    rec = enc.tensors["lobes_by_view"]
+    rec.data = rec.data[:, :, :1]  # one lobe of two: the same address and version
+    check(r, c, enc, taps, "lobes narrowed through .data")
+
+    c, enc, taps = fresh(3, n=1, v=J)
+    r = c.relighter(enc, taps)
+    fast(r)
+    enc.tensors = {"lobes": enc.tensors["lobes_by_view"]}  # the same tensor read vertex-major (V = J)
+    check(r, c, enc, taps, "records renamed")
+
+    c, enc, _ = fresh(4)
+    dirs = torch.nn.functional.normalize(torch.randn(V, 3, generator=torch.Generator().manual_seed(5)), dim=-1)
+    r = c.relighter(enc, dirs)
+    fast(r)
+    old = c.views_.clone()
+    c.views_.copy_(-old)  # the codec's views edited in place
+    check(r, c, enc, dirs, "views edited")
+    c.views_ = old @ torch.linalg.qr(torch.randn(3, 3, generator=torch.Generator().manual_seed(6)))[0].T.to(old.dtype)
+    check(r, c, enc, dirs, "views replaced (as a refit does)")
+
+    c, enc, taps = fresh(7)
+    for field, bad in (("sh", [[0.0] * 9] * 3), ("cube", "x")):
+        light = prefilter_environment(lambda x: 1.5 + x[..., :3], res=8, levels=12)
+        r = c.relighter(enc, taps)
+        for _ in range(2):
+            r(light)
+        setattr(light, field, bad)
+        with pytest.raises(ValueError, match=f"PrefilteredEnvironment {field}"):
+            r(light)
+
+    c, enc, taps = fresh(8)
+    r = c.relighter(enc, taps)
+    fast(r)
+    with pytest.MonkeyPatch.context() as m:  # the kernels switched off between calls: the torch path
+        m.setenv("PRT_TORCH_NATIVE", "0")
+        got = r(pe)
+        assert r._hot is None
+        ref = c.relight(enc, pe, view=taps)
+    assert torch.equal(got, ref)
+
+
 def test_relight_survives_non_finite_lobes_and_refuses_bad_views_before_writing(cube):
     """A NaN lobe mean (a corrupt encoding) gives NaN in that vertex's radiance only, in the
     16-lane blocks and the one-by-one tail, and reads nothing outside the light's table (the 16-lane lookup once

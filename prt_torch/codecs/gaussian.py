@@ -74,7 +74,7 @@ import torch
 from .._checks import check_finite_float32, tensor_state, tensor_version
 from ..lighting.prefilter import PrefilteredEnvironment, cube_map_directions, sg_normaliser
 from ..params import Boolean, Interval, Options
-from .base import Codec, Encoded, Relighter, check_cpu, check_out, check_signal, encoding_state, register, view_nbytes
+from .base import Codec, Encoded, Relighter, check_cpu, check_out, check_signal, register, view_nbytes
 from .relight_kernels import (lobe_layout, native, sg_lookup_prepared, sg_lookup_sum, sg_prepare, sg_quads_worth, sg_taps, sg_taps_prepare,
                               sg_taps_prepared)
 
@@ -954,7 +954,7 @@ class GaussianCodec(Codec):
             return None, None
         held = tuple(enc.tensors.values())
         ladder = light.log_sigmas
-        key = (light.res, ladder.dtype, ladder.numpy().tobytes(), encoding_state(enc, held))
+        key = (light.res, ladder.dtype, ladder.numpy().tobytes(), _lobes_state(enc))
         if taps is not None:
             key += (tensor_state(taps[0]), tensor_state(taps[1]))
             held += tuple(taps)
@@ -1274,6 +1274,14 @@ def _lbfgs_loop(prob, a, ls, mu, conv, z, targets, sb, max_iter, tol, smin, smax
     return a, ls, mu, conv, it
 
 
+def _lobes_state(enc: Encoded) -> tuple:
+    """What a cache derived from a Gaussian encoding's lobes compares: its point count, its tensors'
+    names (the layout: view-major ``lobes_by_view`` or vertex-major ``lobes``) and each one's
+    ``_checks.tensor_state`` (address, shape and strides too: ``t.data = t[..., :1]`` keeps the
+    address and the version; ``base.encoding_state`` keys only identity, address and version)."""
+    return (enc.meta.get("points"), tuple(enc.tensors), *(tensor_state(t) for t in enc.tensors.values()))
+
+
 # relight with taps keeps their blend and its addressing (GaussianCodec._prepare) from the second
 # call with the same taps on where they make at least this many lookups (V·N): its key costs about
 # 4 µs a call, which taps that change at every call (a moving camera) pay for nothing — under 10%
@@ -1285,7 +1293,7 @@ class GaussianRelighter(Relighter):
     """``GaussianCodec.relighter``: relighting from the lobes' prepared addressing
     (``relight_kernels.sg_prepare``; with taps ``sg_taps_prepare``, of the lobes blended across
     the taps), kept with the state it was computed from — the light's resolution and width
-    ladder, the lobe tensors' ids, addresses and versions (``base.encoding_state``) and the
+    ladder, the lobe tensors' names and states (``_lobes_state``) and the
     taps' (``_checks.tensor_state``): an edit of the lobes or taps, a replaced tensor or a light
     of another pyramid computes it again. Lights of other channel counts than 3, or no compiled
     kernels, relight as ``relight`` does. Edits that bypass torch's version counter (through
@@ -1295,7 +1303,8 @@ class GaussianRelighter(Relighter):
     checked has changed since: the same light object with the same fields at the same states
     (``_checks.tensor_state``: what ``PrefilteredEnvironment.check`` memoises), the same ``out``
     at the same address and layout, the same taps and lobes at the same states, the codec not
-    refitted, and no SH diffuse part. Then only the prepared kernel runs (relight's checks cost
+    refitted (its views at the same state), the kernels not switched off (``PRT_TORCH_NATIVE``),
+    and no SH diffuse part. Then only the prepared kernel runs (relight's checks cost
     about 25 µs a call: a tenth of a one-lobe relight of 50 000 vertices at 2 threads)."""
 
     __slots__ = ("_prep", "_taps", "_hot")
@@ -1303,7 +1312,7 @@ class GaussianRelighter(Relighter):
     def __init__(self, codec: GaussianCodec, enc: Encoded, view: Any, kwargs: dict):
         super().__init__(codec, enc, view, kwargs)
         self._prep: tuple | None = None  # GaussianCodec._prepare's entry: (key, prepared, held tensors, made)
-        self._taps: tuple | None = None  # a view of directions: (key, its taps, the directions)
+        self._taps: tuple | None = None  # a view of directions: (key, its taps, the directions, the codec's views)
         self._hot: tuple | None = None  # taps: (light, out, _hot_key, lib, prepared, table, held)
 
     def _hot_key(self, light: PrefilteredEnvironment, out: torch.Tensor | None) -> list | None:
@@ -1314,14 +1323,15 @@ class GaussianRelighter(Relighter):
         vt = view if isinstance(view, tuple) else (view,)
         if not all(isinstance(t, torch.Tensor) for t in vt):
             return None
-        key = [light.res, light.channels, self.codec.J_, id(self.codec.views_)]
-        for t in (light.levels, light.sigmas, light.log_sigmas, light.cube, light.sh, out, *vt):
-            key.append(None if t is None else tensor_state(t))
-        return key + encoding_state(self.enc, tuple(self.enc.tensors.values()))
+        key = [light.res, light.channels, self.codec.J_, _lobes_state(self.enc)]
+        for t in (self.codec.views_, light.levels, light.sigmas, light.log_sigmas, light.cube, light.sh, out, *vt):
+            key.append(tensor_state(t) if isinstance(t, torch.Tensor) else id(t))  # (a reassigned non-tensor: checked on the full path)
+        return key
 
     def __call__(self, light: Any, out: torch.Tensor | None = None) -> torch.Tensor:
         hot = self._hot
-        if hot is not None and light is hot[0] and out is hot[1] and self._hot_key(light, out) == hot[2]:
+        if (hot is not None and light is hot[0] and out is hot[1] and native() is hot[3]
+                and self._hot_key(light, out) == hot[2]):
             res, flag = sg_taps_prepared(hot[3], hot[4], hot[5], light.log_sigmas, light.res, out=out)
             if not flag:
                 return res
@@ -1339,10 +1349,10 @@ class GaussianRelighter(Relighter):
     def _full(self, light: Any, out: torch.Tensor | None) -> torch.Tensor:
         view = self.view
         if isinstance(view, torch.Tensor):  # global directions [V, 3]: their three nearest views' taps, kept
-            hit, key = self._taps, tensor_state(view)
+            hit, key = self._taps, (tensor_state(view), tensor_state(self.codec.views_))  # (a refit replaces the views)
             if hit is None or hit[0] != key:
                 V, J, _ = self.codec.lobes_of(self.enc)[0].shape
-                hit = self._taps = (key, self.codec.checked_taps(view, V, J, values=False), view)
+                hit = self._taps = (key, self.codec.checked_taps(view, V, J, values=False), view, self.codec.views_)
             view = hit[1]
         return self.codec._relight_checked(self.enc, light, view, out, prepare=self._prepared)
 
