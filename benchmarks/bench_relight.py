@@ -474,7 +474,11 @@ def report(r: dict) -> str:
           "tapped views' lobes (5 floats each) and a normalisation. Bytes read: no view, the whole encoding; taps, only the "
           "tapped views' lobes and the taps (the other 89 views are never read). The work is address arithmetic and "
           "scattered table reads, which neither the copy bound nor the multiply-add floor captures; the fraction says how "
-          "far the lookup is from the bytes it must move. In the fits table, a Gaussian row's n_k is its lobes per "
+          "far the lookup is from the bytes it must move. Prepared (`codec.relighter`), the addressing is kept per lobe "
+          "(every view) or, with taps, the blend across the taps and its addressing (20 bytes per blended lobe and 4 per "
+          "vertex); `relight` with taps keeps the same in `enc.cache` from its second call with the same taps (these "
+          "rows' repeats): both then read derived data that is smaller than the bound's bytes, so a fraction above 1 "
+          "means that, not a faster memory. In the fits table, a Gaussian row's n_k is its lobes per "
           "function and its mean weights per point its lobes per vertex (92 views × N).", ""]
     return "\n".join(L)
 
