@@ -1028,6 +1028,29 @@ def test_relighter_after_changes_behind_its_back_refuses_and_converts_as_relight
         r(L)
 
 
+@pytest.mark.parametrize("name, params, key, cut", [("pca", {"vectors": 4}, "coeffs", lambda t: t[:, :3]),
+                                                    ("vq", {"clusters": 16}, "labels", lambda t: t[: t.numel() // 2]),
+                                                    ("cpca_static", {"clusters": 8, "vectors": 4}, "labels", lambda t: t[:100])])
+def test_codes_narrowed_through_data_are_refused_by_relight_and_the_relighter(name, params, key, cut):
+    """``t.data = t[:k]`` keeps the tensor's id, address and version: the per-encoding caches and
+    the relighter's fast path, keyed on those alone, kept relighting the old codes (found by the
+    review of the Gaussian relighter, helper-19). The key has the shape too now: both refuse the
+    codes, naming them, as for codes of that shape given anew."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        c = codecs.get(name, **params)
+        enc = c.fit_encode(transfer_like(2000, 1, 16, seed=1))
+    L = torch.randn(16, 3, generator=torch.Generator().manual_seed(2))
+    r = c.relighter(enc)
+    for _ in range(2):
+        r(L), c.relight(enc, L)  # the caches made, the fast path armed
+    t = enc.tensors[key]
+    t.data = cut(t.data)
+    for f in (lambda: c.relight(enc, L), lambda: r(L)):
+        with pytest.raises(ValueError, match=f"enc {key} have shape"):
+            f()
+
+
 @pytest.mark.parametrize("name, params", [("vq", {"clusters": 8}), ("cpca_static", {"clusters": 4, "vectors": 3}),
                                           ("cpca_adaptive", {"clusters": 4, "vectors": 3})])
 def test_models_and_encodings_made_under_inference_mode_relight(name, params):

@@ -438,12 +438,22 @@ def check_cpu(name: str, *ts: torch.Tensor) -> None:
 
 
 def encoding_state(enc: Encoded, held: tuple) -> list:
-    """The point count of ``enc`` and each of ``held``'s tensors' id, address and version (None for
-    None): what a cache derived from them is keyed by (``affine._memo``, the relighters). Equal
-    states mean the same tensors, unedited, while the cache holds them (so their ids are not reused)."""
+    """The point count of ``enc`` and each of ``held``'s tensors' id, address, shape and version
+    (None for None): what a cache derived from them is keyed by (``affine._memo``, the relighters).
+    Equal states mean the same tensors, unedited, while the cache holds them (so their ids are not
+    reused); the shape sees ``t.data = t[:k]``, which keeps the address and the version (a change
+    of strides alone through ``.data``, e.g. a square transpose, is not seen: the kernels then read
+    the same storage as before)."""
     state = [enc.meta.get("points")]
     for t in held:  # (a loop: ~1 µs here, against 2 for a generator into a tuple)
-        state += (None,) if t is None else (id(t), t.data_ptr(), tensor_version(t))
+        if t is None:
+            state.append(None)
+            continue
+        try:  # tensor_version, inline (a call per tensor is ~10% of this)
+            v = t._version
+        except RuntimeError:
+            v = tensor_version(t)
+        state += (id(t), t.data_ptr(), t.shape, v)
     return state
 
 
