@@ -76,7 +76,7 @@ from ..lighting.prefilter import PrefilteredEnvironment, cube_map_directions, sg
 from ..params import Boolean, Interval, Options
 from .base import Codec, Encoded, Relighter, check_cpu, check_out, check_signal, register, view_nbytes
 from .relight_kernels import (lobe_layout, native, sg_lookup_prepared, sg_lookup_sum, sg_prepare, sg_quads_worth, sg_taps, sg_taps_prepare,
-                              sg_taps_prepared)
+                              sg_taps_prepared, sg_taps_prepared_call)
 
 __all__ = ["GaussianCodec", "resolvable_sigma", "relative_l2", "sh_truncation", "haar_truncation",
            "fibonacci_directions", "default_views", "view_neighbours", "view_taps",
@@ -1313,7 +1313,7 @@ class GaussianRelighter(Relighter):
         super().__init__(codec, enc, view, kwargs)
         self._prep: tuple | None = None  # GaussianCodec._prepare's entry: (key, prepared, held tensors, made)
         self._taps: tuple | None = None  # a view of directions: (key, its taps, the directions, the codec's views)
-        self._hot: tuple | None = None  # taps: (light, out, _hot_key, lib, prepared, table, held)
+        self._hot: tuple | None = None  # taps: (light, out, _hot_key, lib, prepared, table, held, the kernel's arguments)
 
     def _hot_key(self, light: PrefilteredEnvironment, out: torch.Tensor | None) -> list | None:
         """What the fast path compares: the states of the light's fields, ``out``'s, the view's
@@ -1332,9 +1332,13 @@ class GaussianRelighter(Relighter):
         hot = self._hot
         if (hot is not None and light is hot[0] and out is hot[1] and native() is hot[3]
                 and self._hot_key(light, out) == hot[2]):
-            res, flag = sg_taps_prepared(hot[3], hot[4], hot[5], light.log_sigmas, light.res, out=out)
-            if not flag:
-                return res
+            if out is not None:  # the kernel's arguments as the full call checked them (all unchanged since)
+                if not hot[3].prt_sg_taps_prepared(*hot[7], torch.get_num_threads()):
+                    return out
+            else:
+                res, flag = sg_taps_prepared(hot[3], hot[4], hot[5], light.log_sigmas, light.res)
+                if not flag:
+                    return res
         self._hot = None  # a full call (which raises for a bad tap), then the fast path again where it can
         res = self._full(light, out)
         prep = self._prep
@@ -1343,7 +1347,9 @@ class GaussianRelighter(Relighter):
             held = (self.codec.views_, light.levels, light.sigmas, light.log_sigmas, light.cube, light.sh, out, prep[2])
             key = self._hot_key(light, out)
             if key is not None:
-                self._hot = (light, out, key, _fused(light), prep[1], light.table(), held)
+                table = light.table()
+                call = None if out is None else sg_taps_prepared_call(prep[1], table, light.log_sigmas, light.res, out)[1]
+                self._hot = (light, out, key, _fused(light), prep[1], table, held, call)
         return res
 
     def _full(self, light: Any, out: torch.Tensor | None) -> torch.Tensor:

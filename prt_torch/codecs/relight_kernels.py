@@ -2956,6 +2956,18 @@ def sg_taps_prepared(lib, prepared: tuple, table: torch.Tensor, log_sigmas: torc
     blended lobe only the 8 texel reads, the tail of fewer than 16 vertices from the records and
     taps. The same bits as :func:`sg_taps`. → ``([V, 3]`` float32, flag``)``: flag 1, nothing
     written, when a tap of the tail (the only taps read) is bad."""
+    out, call = sg_taps_prepared_call(prepared, table, log_sigmas, res, out)
+    flag = lib.prt_sg_taps_prepared(*call, torch.get_num_threads())
+    if flag == 2:
+        raise RuntimeError("prt_sg_taps_prepared refused a shape sg_taps_prepare took")  # pragma: no cover
+    return out, int(flag)
+
+
+def sg_taps_prepared_call(prepared: tuple, table: torch.Tensor, log_sigmas: torch.Tensor, res: int,
+                          out: torch.Tensor | None = None) -> tuple[torch.Tensor, tuple]:
+    """:func:`sg_taps_prepared`'s checks, then ``(out, the arguments of prt_sg_taps_prepared but
+    the thread count)``: what a caller that keeps ``prepared``, the pyramid and ``out`` unchanged
+    (``GaussianRelighter``'s fast path) may pass again without the checks."""
     P, tot, args, _held = prepared
     V, N = args[0], args[2]
     if (table.shape[1] != 3 or P.numel() != (V // 16) * N * 80 or tot.numel() != (V // 16) * 16 or P.dtype != torch.int32
@@ -2965,11 +2977,7 @@ def sg_taps_prepared(lib, prepared: tuple, table: torch.Tensor, log_sigmas: torc
     _pyramid("sg_taps_prepared", table, log_sigmas, res)
     table, ladder = _as(table, torch.float32), _as(log_sigmas, torch.float32)
     out = _out(out, V * 3, (V, 3))
-    flag = lib.prt_sg_taps_prepared(*args, P.data_ptr(), tot.data_ptr(), table.data_ptr(), int(res), ladder.numel(),
-                                    ladder.data_ptr(), out.data_ptr(), torch.get_num_threads())
-    if flag == 2:
-        raise RuntimeError("prt_sg_taps_prepared refused a shape sg_taps_prepare took")  # pragma: no cover
-    return out, int(flag)
+    return out, (*args, P.data_ptr(), tot.data_ptr(), table.data_ptr(), int(res), ladder.numel(), ladder.data_ptr(), out.data_ptr())
 
 
 def fits(J: int, n_out: int, C: int) -> bool:
