@@ -538,6 +538,49 @@ def test_dense_and_taps_kernels_do_not_depend_on_the_thread_split():
         assert all(torch.equal(o, outs[0]) for o in outs[1:]) and torch.equal(ordered, outs[0]), name
 
 
+def test_dense_kernel_of_25_to_64_rows_any_layout_split_and_order():
+    """RGB dense views of 25-64 rows (MRT's 7x7 = 49 tents) with weights: where the kernels are
+    built with AVX-512 they sum 16 rows per vector from a layout padded to 16 floats
+    (``dense_pad``), the last vector masked in a layout padded to 8 only, and the view row read
+    in place, masked to its n_out floats. Against y_p · (M_p l) in float64 from the decoded
+    matrices (to float32 rounding), with and without a mean (CPCA, MRT-PCA), ranges of 1-3
+    threads (P = 251: the paired and single points at the ranges' ends), a random visiting
+    order, and both paddings: the same bits throughout; NaNs after the view's last row are
+    never read."""
+    lib = relight_kernels.native()
+    if lib is None:
+        pytest.skip("no compiled kernels")
+    g = torch.Generator().manual_seed(21)
+    P = 251
+    for n_out in (25, 40, 49, 64):
+        pad = relight_kernels.dense_pad(n_out)
+        assert pad % 8 == 0 and n_out <= pad <= n_out + 15, (n_out, pad)
+        for name, params in (("cpca_static", {"clusters": 5, "vectors": 3, "max_iter": 5}), ("mrt_pca", {"vectors": 4})):
+            c, enc = _fit(name, params, (n_out, 6), P, None)
+            n = int(c.n_vectors_.max())
+            codes = c._native_codes(enc, n)
+            L = torch.randn(6, 3, generator=g)
+            ybuf = torch.full((P * n_out + 16,), float("nan"))  # NaN past the view: a read beyond its rows would show
+            y = ybuf[:P * n_out].view(P, n_out)
+            y.copy_(torch.randn(P, n_out, generator=g))
+            J = n + (1 if c.means_ is not None else 0)
+            T = relight_kernels.constants(lib, c.means_, c.basis_, n, n_out, 6, L, "dense")
+            assert T.shape[3] == pad, (n_out, T.shape)
+            T8 = torch.zeros(*T.shape[:3], relight_kernels._pad8(n_out))  # the same constants padded to 8 floats only
+            T8[..., :n_out] = T[..., :n_out]
+            ref = torch.einsum("po,poi,ic->pc", y.double(), c.decode(enc).double().view(P, n_out, 6), L.double())
+            outs = []
+            for threads in (1, 2, 3):
+                with torch_threads(threads):
+                    for Tl in (T, T8):
+                        outs.append(relight_kernels.affine_dense(lib, Tl, J, n_out, 3, *codes, y)[0])
+            outs.append(relight_kernels.affine_dense(lib, T, J, n_out, 3, *codes, y, order=torch.randperm(P, generator=g).to(torch.int32))[0])
+            case = (n_out, name)
+            assert all(torch.equal(o.view(torch.int32), outs[0].view(torch.int32)) for o in outs[1:]), case
+            scale = torch.einsum("po,poi,ic->pc", y.double().abs(), c.decode(enc).double().abs().view(P, n_out, 6), L.double().abs())
+            assert bool(((outs[0].double() - ref).abs() <= 1e-5 * scale + 1e-6).all()), case
+
+
 def test_rows_kernel_padded_rows_at_any_thread_split():
     """Without a view, rows whose Fo floats are padded to F (a multiple of 8) are combined padded
     and copied out unpadded: against e_p = T_k0 + Σ_i w_i T_k,1+i in float64, for padding shorter

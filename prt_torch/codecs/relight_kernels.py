@@ -942,6 +942,135 @@ DENSE3V2(1) DENSE3V2(2) DENSE3V2(3)
 DENSE3V2(1)
 #endif
 DENSE3(1) DENSE3(2) DENSE3(3) DENSE3(4) DENSE3(5) DENSE3(6) DENSE3(7)
+/* dense, RGB, 4 <= n_pad / 8 <= 8 (n_out 25..64: MRT's 7x7 tents), with AVX-512: dense3v's sums
+   16 outputs per vector, NB = ceil(n_pad / 16) vectors per colour, the last one masked to ml's
+   lanes (n_pad's last 8 when n_pad is an odd number of 8s: the next colour's row is not read),
+   and the view row read in place, masked to its n_out floats (no zero-padded copy). Each colour's
+   16-lane dot is folded to 8 lanes (low + high half) for store8_rgb / hsum, the same association
+   whether a point is reduced alone, in a block of 8 or paired (dense3w2). Half the instructions of
+   the 8-lane kernel, whose FMA loop ran at a third of the peak rate on an Intel Xeon. */
+#if defined(__AVX512F__)
+#define HAVE_DENSE16 1
+#define PAIR16 1
+static inline v8 fold16(__m512 r) {
+    return (v8)_mm256_add_ps(_mm512_castps512_ps256(r), _mm256_castpd_ps(_mm512_extractf64x4_pd(_mm512_castps_pd(r), 1)));
+}
+static inline __mmask16 lanes16(i64 n) { return n >= 16 ? (__mmask16)0xFFFF : n <= 0 ? (__mmask16)0 : (__mmask16)((1u << n) - 1u); }
+#define MLD(b, p) (b == NB_ - 1 ? _mm512_maskz_loadu_ps(ml, (p)) : _mm512_loadu_ps(p))
+#define DENSE3W(NB)                                                                              \
+static inline void dense3w_##NB(const float *T0, i64 n_pad, i64 F, int mean, const float *w, i64 cnt, \
+                                const float *yr, i64 n_out, __mmask16 ml, v8 *rv) {              \
+    enum { NB_ = NB };                                                                           \
+    __m512 a0[NB], a1[NB], a2[NB];                                                               \
+    const float *T1 = T0 + n_pad, *T2 = T0 + 2 * n_pad;                                          \
+    for (int b = 0; b < NB; b++) {                                                               \
+        a0[b] = mean ? MLD(b, T0 + 16 * b) : _mm512_setzero_ps();                                \
+        a1[b] = mean ? MLD(b, T1 + 16 * b) : _mm512_setzero_ps();                                \
+        a2[b] = mean ? MLD(b, T2 + 16 * b) : _mm512_setzero_ps();                                \
+    }                                                                                            \
+    i64 s = mean ? F : 0;                                                                        \
+    for (i64 i = 0; i < cnt; i++, s += F) {                                                      \
+        __m512 wi = _mm512_set1_ps(w[i]);                                                        \
+        for (int b = 0; b < NB; b++) {                                                           \
+            a0[b] = _mm512_fmadd_ps(wi, MLD(b, T0 + s + 16 * b), a0[b]);                         \
+            a1[b] = _mm512_fmadd_ps(wi, MLD(b, T1 + s + 16 * b), a1[b]);                         \
+            a2[b] = _mm512_fmadd_ps(wi, MLD(b, T2 + s + 16 * b), a2[b]);                         \
+        }                                                                                        \
+    }                                                                                            \
+    __m512 y0 = _mm512_maskz_loadu_ps(lanes16(n_out), yr);                                       \
+    __m512 r0 = _mm512_mul_ps(a0[0], y0), r1 = _mm512_mul_ps(a1[0], y0), r2 = _mm512_mul_ps(a2[0], y0); \
+    for (int b = 1; b < NB; b++) {                                                               \
+        __m512 yb = _mm512_maskz_loadu_ps(lanes16(n_out - 16 * b), yr + 16 * b);                 \
+        r0 = _mm512_fmadd_ps(a0[b], yb, r0); r1 = _mm512_fmadd_ps(a1[b], yb, r1); r2 = _mm512_fmadd_ps(a2[b], yb, r2); \
+    }                                                                                            \
+    rv[0] = fold16(r0); rv[8] = fold16(r1); rv[16] = fold16(r2);                                 \
+}
+/* two points of one cluster (weights w, u; view rows yr, zr): each T load feeds both points' FMAs,
+   each point's sums in dense3w's order. Blocks B0 .. B0 + NBC - 1 (NBC <= 2) of each colour, over
+   every term, then their share of the dot, r (point 1) and q (point 2) running across the chunks:
+   12 accumulators at a time, where all 4 blocks' 24 left GCC spilling in the loop (0.8x unpaired). */
+static inline __attribute__((always_inline)) void dense3w2_chunk(const int B0, const int NBC, const int NB, const float *T0,
+        i64 n_pad, i64 F, int mean, const float *w, const float *u, i64 cnt, const float *yr, const float *zr, i64 n_out,
+        __mmask16 ml, __m512 *r, __m512 *q) {
+    const int NB_ = NB;
+    const float *T1 = T0 + n_pad, *T2 = T0 + 2 * n_pad;
+    /* named accumulators (colour c, block B0 + k: a<c><k> point 1, c<c><k> point 2): GCC kept arrays of them on the stack */
+#define W2_INIT(k) __m512 a0##k, a1##k, a2##k, c0##k, c1##k, c2##k;                                          \
+    if (k < NBC) {                                                                                          \
+        const int b = B0 + k;                                                                               \
+        a0##k = c0##k = mean ? MLD(b, T0 + 16 * b) : _mm512_setzero_ps();                                   \
+        a1##k = c1##k = mean ? MLD(b, T1 + 16 * b) : _mm512_setzero_ps();                                   \
+        a2##k = c2##k = mean ? MLD(b, T2 + 16 * b) : _mm512_setzero_ps();                                   \
+    } else a0##k = a1##k = a2##k = c0##k = c1##k = c2##k = _mm512_setzero_ps();
+#define W2_STEP(k) if (k < NBC) {                                                                           \
+        const int b = B0 + k;                                                                               \
+        __m512 t0 = MLD(b, T0 + s + 16 * b), t1 = MLD(b, T1 + s + 16 * b), t2 = MLD(b, T2 + s + 16 * b);    \
+        IN_REG(t0); IN_REG(t1); IN_REG(t2);                                                                 \
+        a0##k = _mm512_fmadd_ps(wi, t0, a0##k); a1##k = _mm512_fmadd_ps(wi, t1, a1##k); a2##k = _mm512_fmadd_ps(wi, t2, a2##k); \
+        c0##k = _mm512_fmadd_ps(ui, t0, c0##k); c1##k = _mm512_fmadd_ps(ui, t1, c1##k); c2##k = _mm512_fmadd_ps(ui, t2, c2##k); \
+    }
+#define W2_DOT(k) if (k < NBC) {                                                                            \
+        const int b = B0 + k;                                                                               \
+        __mmask16 mb = lanes16(n_out - 16 * b);                                                             \
+        __m512 yb = _mm512_maskz_loadu_ps(mb, yr + 16 * b), zb = _mm512_maskz_loadu_ps(mb, zr + 16 * b);    \
+        if (b == 0) {                                                                                       \
+            r[0] = _mm512_mul_ps(a0##k, yb); r[1] = _mm512_mul_ps(a1##k, yb); r[2] = _mm512_mul_ps(a2##k, yb); \
+            q[0] = _mm512_mul_ps(c0##k, zb); q[1] = _mm512_mul_ps(c1##k, zb); q[2] = _mm512_mul_ps(c2##k, zb); \
+        } else {                                                                                            \
+            r[0] = _mm512_fmadd_ps(a0##k, yb, r[0]); r[1] = _mm512_fmadd_ps(a1##k, yb, r[1]); r[2] = _mm512_fmadd_ps(a2##k, yb, r[2]); \
+            q[0] = _mm512_fmadd_ps(c0##k, zb, q[0]); q[1] = _mm512_fmadd_ps(c1##k, zb, q[1]); q[2] = _mm512_fmadd_ps(c2##k, zb, q[2]); \
+        }                                                                                                   \
+    }
+    W2_INIT(0) W2_INIT(1)
+    i64 s = mean ? F : 0;
+    for (i64 i = 0; i < cnt; i++, s += F) {
+        __m512 wi = _mm512_set1_ps(w[i]), ui = _mm512_set1_ps(u[i]);
+        W2_STEP(0) W2_STEP(1)
+    }
+    W2_DOT(0) W2_DOT(1)
+#undef W2_INIT
+#undef W2_STEP
+#undef W2_DOT
+}
+#define DENSE3W2(NB)                                                                             \
+static inline void dense3w2_##NB(const float *T0, i64 n_pad, i64 F, int mean, const float *w, const float *u, \
+                                 i64 cnt, const float *yr, const float *zr, i64 n_out, __mmask16 ml, v8 *rv) { \
+    __m512 r[3], q[3];                                                                           \
+    dense3w2_chunk(0, 2, NB, T0, n_pad, F, mean, w, u, cnt, yr, zr, n_out, ml, r, q);           \
+    if (NB > 2) dense3w2_chunk(2, NB - 2, NB, T0, n_pad, F, mean, w, u, cnt, yr, zr, n_out, ml, r, q); \
+    rv[0] = fold16(r[0]); rv[8] = fold16(r[1]); rv[16] = fold16(r[2]);                           \
+    rv[1] = fold16(q[0]); rv[9] = fold16(q[1]); rv[17] = fold16(q[2]);                           \
+}
+DENSE3W(2) DENSE3W(3) DENSE3W(4) DENSE3W2(2) DENSE3W2(3) DENSE3W2(4)
+#undef MLD
+/* one point (as dense3w) or two of one cluster (as dense3w2, when u is not NULL) into rv */
+static inline void dense3w(i64 nb, const float *T0, i64 n_pad, i64 F, int mean, const float *w, const float *u, i64 cnt,
+                           const float *yr, const float *zr, i64 n_out, __mmask16 ml, v8 *rv) {
+    if (u) {
+        switch (nb) {
+        case 2: dense3w2_2(T0, n_pad, F, mean, w, u, cnt, yr, zr, n_out, ml, rv); break;
+        case 3: dense3w2_3(T0, n_pad, F, mean, w, u, cnt, yr, zr, n_out, ml, rv); break;
+        default: dense3w2_4(T0, n_pad, F, mean, w, u, cnt, yr, zr, n_out, ml, rv); break;
+        }
+        return;
+    }
+    switch (nb) {
+    case 2: dense3w_2(T0, n_pad, F, mean, w, cnt, yr, n_out, ml, rv); break;
+    case 3: dense3w_3(T0, n_pad, F, mean, w, cnt, yr, n_out, ml, rv); break;
+    default: dense3w_4(T0, n_pad, F, mean, w, cnt, yr, n_out, ml, rv); break;
+    }
+}
+#else
+#define HAVE_DENSE16 0
+#endif
+/* the colour stride (n_out rows zero-padded) the dense kernel should be given: a multiple of 16
+   floats where its 16-lane kernel runs (25 to 64 rows, AVX-512), so that each colour's and each
+   term's rows start on a 64-byte line (at a stride of 56 floats, the 16-float loads of every other
+   row straddled two lines: the kernel ran at 0.6 of its aligned speed); else a multiple of 8 */
+int prt_dense_pad(i64 n_out) {
+    i64 n8 = (n_out + 7) / 8 * 8;
+    return (int)(HAVE_DENSE16 && n8 >= 32 && n8 <= 64 ? (n_out + 15) / 16 * 16 : n8);
+}
 #define CASE_DENSE1(NB) case NB: return dense1_##NB(Tc, F, mean, w, cnt, yc);
 
 static inline float dense1(int nbs, const float *Tc, i64 F, int mean, const float *w, i64 cnt, const float *yc) {
@@ -950,7 +1079,7 @@ static inline float dense1(int nbs, const float *Tc, i64 F, int mean, const floa
 
 /* one visited point q (point p) of the dense kernel: prefetches PF_AHEAD visits ahead (visiting
    order), its weights (*w, *cnt) and view row (*yp: copied zero-padded into yb when n_out is not a
-   multiple of 8); returns its cluster's constants */
+   multiple of 8, unless yb is NULL: the row itself); returns its cluster's constants */
 static inline const float *dense_point(const int32_t *order, int csort, i64 q, i64 p1, i64 p, i64 n_out, i64 n_pad, i64 F, i64 J,
                                        const void *lab, int lab_kind, const float *W, i64 wstride, const i64 *woff, const i64 *nk,
                                        i64 nuse, const float *T, const float *y, float *yb, const float **w, i64 *cnt, const float **yp) {
@@ -963,7 +1092,7 @@ static inline const float *dense_point(const int32_t *order, int csort, i64 q, i
     i64 k = lab_at(lab, lab_kind, pc);
     *w = weights_of(W, wstride, woff, nk, nuse, k, pc, cnt);
     const float *yr = y + p * n_out;
-    if (n_out != n_pad) {
+    if (n_out != n_pad && yb) {
         for (i64 r = 0; r < n_out; r++) yb[r] = yr[r];
         for (i64 r = n_out; r < n_pad; r++) yb[r] = 0.0f;
         yr = yb;
@@ -1013,7 +1142,15 @@ static int prt_affine_dense_range(const int32_t *order, int csort, i64 p0, i64 p
     i64 F = n_pad * C, nbt = n_pad / 8, cs = chunk_size(nbt);
     int flag = 0;
     i64 q = p0;
-    if (C == 3 && nbt <= 7) {
+#if HAVE_DENSE16
+    /* weights (PCA, CPCA, MRT-PCA), RGB, 32 to 64 rows: 16 rows per vector (dense3w) for every point of the call */
+    const int wide = C == 3 && W && nbt >= 4 && nbt <= 8;
+    const i64 nb16 = (n_pad + 15) / 16;
+    const __mmask16 ml = lanes16(n_pad - 16 * (nb16 - 1));
+#else
+    const int wide = 0;
+#endif
+    if (C == 3 && (nbt <= 7 || wide)) {
         /* RGB: 8 points at a time, their 24 dot products reduced together */
         v8 R[24];
         float yb[56], zb[56];
@@ -1025,7 +1162,21 @@ static int prt_affine_dense_range(const int32_t *order, int csort, i64 p0, i64 p
                 i64 cnt;
                 pl[l] = order ? order[q + l] : q + l;
                 const float *Tk = dense_point(order, csort, q + l, p1, pl[l], n_out, n_pad, F, J, lab, lab_kind, W, wstride, woff, nk,
-                                              nuse, T, y, yb, &w, &cnt, &yp);
+                                              nuse, T, y, wide ? NULL : yb, &w, &cnt, &yp);
+#if HAVE_DENSE16
+                if (wide) {
+                    const float *u = NULL, *zp = NULL;
+                    i64 cnt2;
+                    if (PAIR16 && l < 7 && T + lab_at(lab, lab_kind, csort ? q + l + 1 : (order ? order[q + l + 1] : q + l + 1)) * J * F == Tk) {
+                        pl[l + 1] = order ? order[q + l + 1] : q + l + 1;  /* the next visit, same cluster: both at once */
+                        dense_point(order, csort, q + l + 1, p1, pl[l + 1], n_out, n_pad, F, J, lab, lab_kind, W, wstride, woff, nk, nuse,
+                                    T, y, NULL, &u, &cnt2, &zp);
+                    }
+                    dense3w(nb16, Tk, n_pad, F, mean, w, u, cnt, yp, zp, n_out, ml, R + l);
+                    if (u) l++;
+                    continue;
+                }
+#endif
                 if (W && nbt <= MAXNBS2 && l < 7
                     && T + lab_at(lab, lab_kind, csort ? q + l + 1 : (order ? order[q + l + 1] : q + l + 1)) * J * F == Tk) {
                     /* the next visit is in the same cluster (so the same term count): both at once */
@@ -1062,9 +1213,16 @@ static int prt_affine_dense_range(const int32_t *order, int csort, i64 p0, i64 p
         float yb[4096];
         float o[16];
         const float *w, *yp;
-        const float *Tk = dense_point(order, csort, q, p1, p, n_out, n_pad, F, J, lab, lab_kind, W, wstride, woff, nk, nuse, T, y, yb,
-                                      &w, &cnt, &yp);
+        const float *Tk = dense_point(order, csort, q, p1, p, n_out, n_pad, F, J, lab, lab_kind, W, wstride, woff, nk, nuse, T, y,
+                                      wide ? NULL : yb, &w, &cnt, &yp);
         for (i64 c = 0; c < C; c++) o[c] = 0.0f;
+#if HAVE_DENSE16
+        if (wide) {
+            v8 rv[17];
+            dense3w(nb16, Tk, n_pad, F, mean, w, NULL, cnt, yp, NULL, n_out, ml, rv);
+            o[0] += hsum(rv[0]); o[1] += hsum(rv[8]); o[2] += hsum(rv[16]);
+        } else
+#endif
         if (C == 3 && nbt <= 7) {
             switch (nbt) {
             case 1: dense3_1(Tk, n_pad, F, mean, w, cnt, yp, o); break;
@@ -2361,6 +2519,7 @@ def _compile() -> tuple[ctypes.CDLL | None, str]:
         "prt_constants": [i64] * 7 + [vp, vp, vp] + [i64] * 4 + [vp, ci, ci],
         "prt_constants_lanes": [i64] * 5 + [vp, vp, vp] + [i64] * 2 + [ci],
         "prt_relight_plan": [vp, vp, vp, vp, vp, vp, ci],
+        "prt_dense_pad": [i64],
         "prt_sg_lookup_sum": [i64, i64, i64, i64, vp, vp, vp, i64, i64, i64, vp, i64, i64, vp, i64, vp, ci],
         "prt_sg_lookup_sum_q": [i64, i64, i64, i64, vp, vp, vp, i64, i64, i64, vp, vp, i64, i64, vp, i64, vp, ci],
         "prt_sg_prepare": [i64, i64, i64, i64, vp, vp, vp, i64, i64, i64, i64, i64, vp, vp, ci],
@@ -2467,13 +2626,20 @@ def model_t(means: torch.Tensor | None, basis: torch.Tensor, n_out: int, n_in: i
     return Mt
 
 
+def dense_pad(n_out: int) -> int:
+    """The dense layout's colour stride for ``n_out`` rows: what the compiled kernels ask for
+    (``prt_dense_pad``: 16-float lines for their 16-lane kernel), else ``n_out`` padded to 8."""
+    lib = native()
+    return int(lib.prt_dense_pad(n_out)) if lib is not None else _pad8(n_out)
+
+
 #: where element (k, j, o, c) of the constants sits, per layout: (sizes of the padded tensor, strides k, j, o, c)
 def constants_layout(kind: str, K: int, J: int, n_out: int, C: int) -> tuple[tuple, tuple]:
     if kind == "rows":  # [K, J, F8]: a point's row e_p in output order (o, c)
         F = _pad8(n_out * C)
         return (K, J, F), (J * F, F, C, 1)
-    if kind == "dense":  # [K, J, C, n8]: colour-major, each colour a dot with the view
-        n8 = _pad8(n_out)
+    if kind == "dense":  # [K, J, C, n8]: colour-major, each colour a dot with the view (n8: dense_pad)
+        n8 = dense_pad(n_out)
         return (K, J, C, n8), (J * C * n8, C * n8, 1, n8)
     Jp = 1 if J == 1 else _pad8(J)  # taps: [K, n_out, C, J8]: a tapped row holds every term of every colour (one term: unpadded)
     return (K, n_out, C, Jp), (n_out * C * Jp, 1, C * Jp, Jp)
