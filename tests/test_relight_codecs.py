@@ -605,6 +605,46 @@ def test_rows_kernel_padded_rows_at_any_thread_split():
         assert torch.allclose(outs[0].double(), ref, atol=1e-5), Fo
 
 
+def test_rows_kernel_of_long_rows_gives_the_eight_lane_bits():
+    """Without a view, rows of >= 97 floats with weights (MRT's 49 x 3 = 147): where the kernels
+    are built with AVX-512, the constants are laid out padded to 16 floats (``rows_pad``) and a
+    point's row is summed 16 floats per vector, two points per load, and stored straight into
+    the unpadded output under a mask. Each float is the same FMA chain, so the result equals the
+    8-lane pass's (the same constants padded to 8 floats) bit for bit, and y_p = M_p l in float64
+    to float32 rounding; for CPCA (a mean, clusters) and MRT-PCA (no mean, one cluster), 1-3
+    threads, a random visiting order; nothing written past the last row, every row written."""
+    lib = relight_kernels.native()
+    if lib is None:
+        pytest.skip("no compiled kernels")
+    g = torch.Generator().manual_seed(23)
+    P = 251
+    for n_out in (33, 49):
+        Fo = 3 * n_out
+        for name, params in (("cpca_static", {"clusters": 5, "vectors": 3, "max_iter": 5}), ("mrt_pca", {"vectors": 5})):
+            c, enc = _fit(name, params, (n_out, 6), P, None)
+            n = int(c.n_vectors_.max())
+            codes = c._native_codes(enc, n)
+            J = n + (1 if c.means_ is not None else 0)
+            L = torch.randn(6, 3, generator=g)
+            T = relight_kernels.constants(lib, c.means_, c.basis_, n, n_out, 6, L, "rows")
+            assert T.shape[2] == relight_kernels.rows_pad(Fo, J) and T.shape[2] % 8 == 0 and Fo <= T.shape[2] < Fo + 16
+            T8 = torch.zeros(*T.shape[:2], relight_kernels._pad8(Fo))  # the same constants padded to 8 floats only
+            T8[..., :Fo] = T[..., :Fo]
+            ref = torch.einsum("poi,ic->poc", c.decode(enc).double().view(P, n_out, 6), L.double()).reshape(P, Fo)
+            outs = []
+            for threads in (1, 2, 3):
+                for Tl, order in ((T, None), (T8, None), (T, torch.randperm(P, generator=g).to(torch.int32))):
+                    buf = torch.full((P * Fo + 16,), float("nan"))
+                    buf[P * Fo:] = 7.0
+                    with torch_threads(threads):
+                        relight_kernels.affine_rows(lib, Tl, J, n_out, 3, *codes, P=P, order=order, out=buf[:P * Fo])
+                    assert bool((buf[P * Fo:] == 7.0).all()), (n_out, name, threads)
+                    outs.append(buf[:P * Fo].view(P, Fo).clone())
+            case = (n_out, name)
+            assert all(torch.equal(o.view(torch.int32), outs[0].view(torch.int32)) for o in outs[1:]), case
+            assert bool(((outs[0].double() - ref).abs() <= 1e-5 * (1 + ref.abs())).all()), case
+
+
 def _rows_every_split(lib, T, J, Fo, codes, P, g, case) -> list:
     """``affine_rows`` of one-vector rows at 1-3 threads, in point order and in a random visiting
     order, each into a NaN-filled buffer with sentinels after the last row (checked untouched):

@@ -228,6 +228,19 @@ static inline v8 fma8v_(v8 w, v8 x, v8 a) { v8 r; for (int i = 0; i < 8; i++) r[
 #define IN_REG(x) (void)0
 #endif
 
+/* 16 floats per vector (AVX-512): the dense kernel's and the rows kernel's wide paths */
+#if defined(__AVX512F__)
+#define HAVE_W16 1
+/* a 16-lane vector's two halves added, as 8 lanes (the dense kernel's per-colour dot, for hsum / store8_rgb) */
+static inline v8 fold16(__m512 r) {
+    return (v8)_mm256_add_ps(_mm512_castps512_ps256(r), _mm256_castpd_ps(_mm512_extractf64x4_pd(_mm512_castps_pd(r), 1)));
+}
+/* the first n lanes (0 <= n, all 16 from n = 16 on) */
+static inline __mmask16 lanes16(i64 n) { return n >= 16 ? (__mmask16)0xFFFF : n <= 0 ? (__mmask16)0 : (__mmask16)((1u << n) - 1u); }
+#else
+#define HAVE_W16 0
+#endif
+
 /* a_b = (mean ? Tc[8b..] : 0) + sum_{i<cnt} w[i] Tc[(mean + i) F + 8b..], b < NB: NB independent
    accumulators (NB >= 8 keeps both FMA pipes busy) while the weights stream past. Named
    variables a0..a11, not an array: GCC keeps an array of vectors on the stack and copies it out
@@ -773,6 +786,90 @@ static __attribute__((noinline)) void small_rows_range(const int32_t *order, int
 #undef ONE_ROW
 }
 
+/* no view, rows of many floats (MRT's 49 x 3 = 147) with weights, AVX-512: the rows layout padded
+   to 16 floats (prt_rows_pad), e_p summed 16 floats per vector in chunks of up to 6 vectors, two
+   points of one cluster per load of the constants, and written straight into the unpadded output
+   rows under a mask (the 8-lane pass combines into a padded buffer, then copies it out). Each
+   float is the same FMA chain as in the 8-lane pass, so the same bits. */
+#define ROWS16_MIN 97  /* Fo from which the wide pass runs: for glossy 24 x 3 = 72 it was slower (PCA 8 at 50k points, 1 thread: 0.66 -> 0.75 ms) */
+#if HAVE_W16
+static inline __attribute__((always_inline)) void rows16_chunk(const int NBC, const int two, const float *Tc, i64 F, int mean,
+        const float *w, const float *u, i64 cnt, float *o1, float *o2, i64 nrem) {
+#define R16_INIT(k) __m512 a##k = _mm512_setzero_ps(), c##k = _mm512_setzero_ps();                              \
+    if (k < NBC && mean) { a##k = _mm512_loadu_ps(Tc + 16 * k); c##k = a##k; }
+#define R16_STEP(k) if (k < NBC) {                                                                              \
+        __m512 t_ = _mm512_loadu_ps(Tb + 16 * k);                                                               \
+        IN_REG(t_);                                                                                             \
+        a##k = _mm512_fmadd_ps(wi, t_, a##k);                                                                   \
+        if (two) c##k = _mm512_fmadd_ps(ui, t_, c##k);                                                          \
+    }
+#define R16_STORE(k) if (k < NBC) {                                                                             \
+        __mmask16 m_ = lanes16(nrem - 16 * k);                                                                  \
+        _mm512_mask_storeu_ps(o1 + 16 * k, m_, a##k);                                                           \
+        if (two) _mm512_mask_storeu_ps(o2 + 16 * k, m_, c##k);                                                  \
+    }
+#define EACH6(X) X(0) X(1) X(2) X(3) X(4) X(5)
+    EACH6(R16_INIT)
+    const float *Tb = Tc + (mean ? F : 0);
+    for (i64 i = 0; i < cnt; i++, Tb += F) {
+        __m512 wi = _mm512_set1_ps(w[i]), ui = two ? _mm512_set1_ps(u[i]) : wi;
+        EACH6(R16_STEP)
+    }
+    EACH6(R16_STORE)
+#undef R16_INIT
+#undef R16_STEP
+#undef R16_STORE
+#undef EACH6
+}
+#define R16_CASE(n) case n: if (u) rows16_chunk(n, 1, Tc, F, mean, w, u, cnt, o1, o2c, nrem);                    \
+                            else rows16_chunk(n, 0, Tc, F, mean, w, u, cnt, o1, o2c, nrem); break;
+static void rows16_range(const int32_t *order, int csort, i64 p0, i64 p1, i64 F, i64 Fo, const void *lab, int lab_kind,
+                         const float *W, i64 wstride, const i64 *woff, const i64 *nk, i64 nuse, int mean, const float *T, i64 J,
+                         float *out) {
+    const i64 nv = F / 16, nch = (nv + 5) / 6, cs = (nv + nch - 1) / nch;  /* nearly equal chunks of <= 6 vectors */
+    for (i64 q = p0; q < p1; q++) {
+        i64 p = order ? order[q] : q, pc = csort ? q : p;
+        if (order && q + PF_AHEAD < p1) {
+            i64 pp = order[q + PF_AHEAD];
+            if (!csort) PREFETCH_CODES(pp);
+            PREFETCH_ROW(out + pp * Fo, Fo, 1);
+        }
+        i64 k = lab_at(lab, lab_kind, pc), cnt;
+        const float *w = weights_of(W, wstride, woff, nk, nuse, k, pc, &cnt), *u = NULL;
+        const float *Tk = T + k * J * F;
+        float *o2 = NULL;  /* the paired point's row */
+        if (q + 1 < p1) {  /* the next visit: same cluster and term count (always for PCA) -> both at once */
+            i64 p2 = order ? order[q + 1] : q + 1, pc2 = csort ? q + 1 : p2, cnt2;
+            i64 k2 = lab_at(lab, lab_kind, pc2);
+            const float *u2 = weights_of(W, wstride, woff, nk, nuse, k2, pc2, &cnt2);
+            if (k2 == k && cnt2 == cnt) {
+                if (order && q + 1 + PF_AHEAD < p1) {
+                    i64 pp = order[q + 1 + PF_AHEAD];
+                    if (!csort) PREFETCH_CODES(pp);
+                    PREFETCH_ROW(out + pp * Fo, Fo, 1);
+                }
+                u = u2;
+                o2 = out + p2 * Fo;
+                q++;
+            }
+        }
+        for (i64 b0 = 0; b0 < nv; b0 += cs) {
+            const i64 nb = nv - b0 < cs ? nv - b0 : cs, nrem = Fo - 16 * b0;
+            const float *Tc = Tk + 16 * b0;
+            float *o1 = out + p * Fo + 16 * b0, *o2c = o2 ? o2 + 16 * b0 : NULL;
+            switch (nb) { R16_CASE(1) R16_CASE(2) R16_CASE(3) R16_CASE(4) R16_CASE(5) default: R16_CASE(6) }
+        }
+    }
+}
+#undef R16_CASE
+#endif
+/* the row stride of the rows layout for rows of Fo floats and J terms: a multiple of 16 floats
+   where the wide pass runs them (rows16_range), else of 8 */
+int prt_rows_pad(i64 Fo, i64 J) {
+    i64 f8 = (Fo + 7) / 8 * 8;
+    return (int)(HAVE_W16 && J >= 2 && Fo >= ROWS16_MIN ? (Fo + 15) / 16 * 16 : f8);
+}
+
 /* no view: out[p, 0:Fo] = e_p; constants T [K, J, F], rows zero-padded from Fo to F floats */
 static int prt_affine_rows_range(const int32_t *order, int csort, i64 p0, i64 p1, i64 P, i64 F, i64 Fo, const void *lab,
         int lab_kind, const float *W, i64 wstride, const i64 *woff,
@@ -789,6 +886,12 @@ static int prt_affine_rows_range(const int32_t *order, int csort, i64 p0, i64 p1
         small_rows_range(order, csort, p0, p1, Fo, lab, lab_kind, W, wstride, woff, nk, nuse, mean, T, J, out);
         return 0;
     }
+#if HAVE_W16
+    if (W && F % 16 == 0 && F == prt_rows_pad(Fo, J)) {
+        rows16_range(order, csort, p0, p1, F, Fo, lab, lab_kind, W, wstride, woff, nk, nuse, mean, T, J, out);
+        return 0;
+    }
+#endif
     for (i64 q = p0; q < p1; q++) {
         i64 p = order ? order[q] : q, pc = csort ? q : p;
         if (order && q + PF_AHEAD < p1) {
@@ -949,13 +1052,8 @@ DENSE3(1) DENSE3(2) DENSE3(3) DENSE3(4) DENSE3(5) DENSE3(6) DENSE3(7)
    16-lane dot is folded to 8 lanes (low + high half) for store8_rgb / hsum, the same association
    whether a point is reduced alone, in a block of 8 or paired (dense3w2). Half the instructions of
    the 8-lane kernel, whose FMA loop ran at a third of the peak rate on an Intel Xeon. */
-#if defined(__AVX512F__)
+#if HAVE_W16
 #define HAVE_DENSE16 1
-#define PAIR16 1
-static inline v8 fold16(__m512 r) {
-    return (v8)_mm256_add_ps(_mm512_castps512_ps256(r), _mm256_castpd_ps(_mm512_extractf64x4_pd(_mm512_castps_pd(r), 1)));
-}
-static inline __mmask16 lanes16(i64 n) { return n >= 16 ? (__mmask16)0xFFFF : n <= 0 ? (__mmask16)0 : (__mmask16)((1u << n) - 1u); }
 #define MLD(b, p) (b == NB_ - 1 ? _mm512_maskz_loadu_ps(ml, (p)) : _mm512_loadu_ps(p))
 #define DENSE3W(NB)                                                                              \
 static inline void dense3w_##NB(const float *T0, i64 n_pad, i64 F, int mean, const float *w, i64 cnt, \
@@ -1167,7 +1265,7 @@ static int prt_affine_dense_range(const int32_t *order, int csort, i64 p0, i64 p
                 if (wide) {
                     const float *u = NULL, *zp = NULL;
                     i64 cnt2;
-                    if (PAIR16 && l < 7 && T + lab_at(lab, lab_kind, csort ? q + l + 1 : (order ? order[q + l + 1] : q + l + 1)) * J * F == Tk) {
+                    if (l < 7 && T + lab_at(lab, lab_kind, csort ? q + l + 1 : (order ? order[q + l + 1] : q + l + 1)) * J * F == Tk) {
                         pl[l + 1] = order ? order[q + l + 1] : q + l + 1;  /* the next visit, same cluster: both at once */
                         dense_point(order, csort, q + l + 1, p1, pl[l + 1], n_out, n_pad, F, J, lab, lab_kind, W, wstride, woff, nk, nuse,
                                     T, y, NULL, &u, &cnt2, &zp);
@@ -2520,6 +2618,7 @@ def _compile() -> tuple[ctypes.CDLL | None, str]:
         "prt_constants_lanes": [i64] * 5 + [vp, vp, vp] + [i64] * 2 + [ci],
         "prt_relight_plan": [vp, vp, vp, vp, vp, vp, ci],
         "prt_dense_pad": [i64],
+        "prt_rows_pad": [i64, i64],
         "prt_sg_lookup_sum": [i64, i64, i64, i64, vp, vp, vp, i64, i64, i64, vp, i64, i64, vp, i64, vp, ci],
         "prt_sg_lookup_sum_q": [i64, i64, i64, i64, vp, vp, vp, i64, i64, i64, vp, vp, i64, i64, vp, i64, vp, ci],
         "prt_sg_prepare": [i64, i64, i64, i64, vp, vp, vp, i64, i64, i64, i64, i64, vp, vp, ci],
@@ -2633,10 +2732,17 @@ def dense_pad(n_out: int) -> int:
     return int(lib.prt_dense_pad(n_out)) if lib is not None else _pad8(n_out)
 
 
+def rows_pad(Fo: int, J: int) -> int:
+    """The rows layout's row stride for rows of ``Fo`` floats and ``J`` terms: what the compiled
+    kernels ask for (``prt_rows_pad``: 16-float lines for their wide pass), else ``Fo`` padded to 8."""
+    lib = native()
+    return int(lib.prt_rows_pad(Fo, J)) if lib is not None else _pad8(Fo)
+
+
 #: where element (k, j, o, c) of the constants sits, per layout: (sizes of the padded tensor, strides k, j, o, c)
 def constants_layout(kind: str, K: int, J: int, n_out: int, C: int) -> tuple[tuple, tuple]:
-    if kind == "rows":  # [K, J, F8]: a point's row e_p in output order (o, c)
-        F = _pad8(n_out * C)
+    if kind == "rows":  # [K, J, F8]: a point's row e_p in output order (o, c) (F8: rows_pad)
+        F = rows_pad(n_out * C, J)
         return (K, J, F), (J * F, F, C, 1)
     if kind == "dense":  # [K, J, C, n8]: colour-major, each colour a dot with the view (n8: dense_pad)
         n8 = dense_pad(n_out)
