@@ -541,12 +541,12 @@ def test_dense_and_taps_kernels_do_not_depend_on_the_thread_split():
 def test_dense_kernel_of_25_to_64_rows_any_layout_split_and_order():
     """RGB dense views of 25-64 rows (MRT's 7x7 = 49 tents) with weights: where the kernels are
     built with AVX-512 they sum 16 rows per vector from a layout padded to 16 floats
-    (``dense_pad``), the last vector masked in a layout padded to 8 only, and the view row read
-    in place, masked to its n_out floats. Against y_p · (M_p l) in float64 from the decoded
-    matrices (to float32 rounding), with and without a mean (CPCA, MRT-PCA), ranges of 1-3
-    threads (P = 251: the paired and single points at the ranges' ends), a random visiting
-    order, and both paddings: the same bits throughout; NaNs after the view's last row are
-    never read."""
+    (``dense_pad``), rows past the whole blocks (49 = 3 x 16 + 1) from a table with the terms in
+    lanes, the last vector masked in a layout padded to 8 only, and the view row read in place,
+    masked to its n_out floats. Against y_p · (M_p l) in float64 from the decoded matrices (to
+    float32 rounding), with and without a mean (CPCA, MRT-PCA), ranges of 1-3 threads (P = 251:
+    the paired and single points at the ranges' ends) and a random visiting order: the same bits
+    for each layout; NaNs after the view's last row are never read."""
     lib = relight_kernels.native()
     if lib is None:
         pytest.skip("no compiled kernels")
@@ -569,16 +569,17 @@ def test_dense_kernel_of_25_to_64_rows_any_layout_split_and_order():
             T8 = torch.zeros(*T.shape[:3], relight_kernels._pad8(n_out))  # the same constants padded to 8 floats only
             T8[..., :n_out] = T[..., :n_out]
             ref = torch.einsum("po,poi,ic->pc", y.double(), c.decode(enc).double().view(P, n_out, 6), L.double())
-            outs = []
-            for threads in (1, 2, 3):
-                with torch_threads(threads):
-                    for Tl in (T, T8):
-                        outs.append(relight_kernels.affine_dense(lib, Tl, J, n_out, 3, *codes, y)[0])
-            outs.append(relight_kernels.affine_dense(lib, T, J, n_out, 3, *codes, y, order=torch.randperm(P, generator=g).to(torch.int32))[0])
-            case = (n_out, name)
-            assert all(torch.equal(o.view(torch.int32), outs[0].view(torch.int32)) for o in outs[1:]), case
             scale = torch.einsum("po,poi,ic->pc", y.double().abs(), c.decode(enc).double().abs().view(P, n_out, 6), L.double().abs())
-            assert bool(((outs[0].double() - ref).abs() <= 1e-5 * scale + 1e-6).all()), case
+            for Tl in (T, T8):
+                outs = []
+                for threads in (1, 2, 3):
+                    with torch_threads(threads):
+                        outs.append(relight_kernels.affine_dense(lib, Tl, J, n_out, 3, *codes, y)[0])
+                order = torch.randperm(P, generator=g).to(torch.int32)
+                outs.append(relight_kernels.affine_dense(lib, Tl, J, n_out, 3, *codes, y, order=order)[0])
+                case = (n_out, name, Tl.shape[3])
+                assert all(torch.equal(o.view(torch.int32), outs[0].view(torch.int32)) for o in outs[1:]), case
+                assert bool(((outs[0].double() - ref).abs() <= 1e-5 * scale + 1e-6).all()), case
 
 
 def test_rows_kernel_padded_rows_at_any_thread_split():

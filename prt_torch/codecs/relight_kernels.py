@@ -65,6 +65,7 @@ MAX_ROW = 4096
 
 _SRC = r"""
 #include <stddef.h>
+#include <stdlib.h>
 #include <stdint.h>
 #include <float.h>
 #include <math.h>
@@ -821,8 +822,10 @@ static inline __attribute__((always_inline)) void rows16_chunk(const int NBC, co
 #undef R16_STORE
 #undef EACH6
 }
-#define R16_CASE(n) case n: if (u) rows16_chunk(n, 1, Tc, F, mean, w, u, cnt, o1, o2c, nrem);                    \
-                            else rows16_chunk(n, 0, Tc, F, mean, w, u, cnt, o1, o2c, nrem); break;
+#define R16_CASE(n) case n:                                                                                    \
+        if (u) rows16_chunk(n, 1, Tc, F, mean, w, u, cnt, o1, o2c, nrem);                                          \
+        else rows16_chunk(n, 0, Tc, F, mean, w, u, cnt, o1, o2c, nrem);                                            \
+        break;
 static void rows16_range(const int32_t *order, int csort, i64 p0, i64 p1, i64 F, i64 Fo, const void *lab, int lab_kind,
                          const float *W, i64 wstride, const i64 *woff, const i64 *nk, i64 nuse, int mean, const float *T, i64 J,
                          float *out) {
@@ -1054,11 +1057,13 @@ DENSE3(1) DENSE3(2) DENSE3(3) DENSE3(4) DENSE3(5) DENSE3(6) DENSE3(7)
    the 8-lane kernel, whose FMA loop ran at a third of the peak rate on an Intel Xeon. */
 #if HAVE_W16
 #define HAVE_DENSE16 1
-#define MLD(b, p) (b == NB_ - 1 ? _mm512_maskz_loadu_ps(ml, (p)) : _mm512_loadu_ps(p))
-#define DENSE3W(NB)                                                                              \
-static inline void dense3w_##NB(const float *T0, i64 n_pad, i64 F, int mean, const float *w, i64 cnt, \
-                                const float *yr, i64 n_out, __mmask16 ml, v8 *rv) {              \
-    enum { NB_ = NB };                                                                           \
+/* the last block under ml where M (a masked last block) is set: a zero-masking load costs an extra ALU uop
+   on Intel, on the FMA ports (measured: the masked chunk's loop took 1.5x the unmasked one's time) */
+#define MLD(b, p) (MK_ && b == NB_ - 1 ? _mm512_maskz_loadu_ps(ml, (p)) : _mm512_loadu_ps(p))
+#define DENSE3W(NB, M)                                                                           \
+static inline void dense3w_##NB##_##M(const float *T0, i64 n_pad, i64 F, int mean, const float *w, i64 cnt, \
+                                      const float *yr, i64 n_out, __mmask16 ml, __m512 *r3) {    \
+    enum { NB_ = NB, MK_ = M };                                                                  \
     __m512 a0[NB], a1[NB], a2[NB];                                                               \
     const float *T1 = T0 + n_pad, *T2 = T0 + 2 * n_pad;                                          \
     for (int b = 0; b < NB; b++) {                                                               \
@@ -1081,13 +1086,13 @@ static inline void dense3w_##NB(const float *T0, i64 n_pad, i64 F, int mean, con
         __m512 yb = _mm512_maskz_loadu_ps(lanes16(n_out - 16 * b), yr + 16 * b);                 \
         r0 = _mm512_fmadd_ps(a0[b], yb, r0); r1 = _mm512_fmadd_ps(a1[b], yb, r1); r2 = _mm512_fmadd_ps(a2[b], yb, r2); \
     }                                                                                            \
-    rv[0] = fold16(r0); rv[8] = fold16(r1); rv[16] = fold16(r2);                                 \
+    r3[0] = r0; r3[1] = r1; r3[2] = r2;                                                          \
 }
 /* two points of one cluster (weights w, u; view rows yr, zr): each T load feeds both points' FMAs,
    each point's sums in dense3w's order. Blocks B0 .. B0 + NBC - 1 (NBC <= 2) of each colour, over
    every term, then their share of the dot, r (point 1) and q (point 2) running across the chunks:
    12 accumulators at a time, where all 4 blocks' 24 left GCC spilling in the loop (0.8x unpaired). */
-static inline __attribute__((always_inline)) void dense3w2_chunk(const int B0, const int NBC, const int NB, const float *T0,
+static inline __attribute__((always_inline)) void dense3w2_chunk(const int B0, const int NBC, const int NB, const int MK_, const float *T0,
         i64 n_pad, i64 F, int mean, const float *w, const float *u, i64 cnt, const float *yr, const float *zr, i64 n_out,
         __mmask16 ml, __m512 *r, __m512 *q) {
     const int NB_ = NB;
@@ -1130,33 +1135,49 @@ static inline __attribute__((always_inline)) void dense3w2_chunk(const int B0, c
 #undef W2_STEP
 #undef W2_DOT
 }
-#define DENSE3W2(NB)                                                                             \
-static inline void dense3w2_##NB(const float *T0, i64 n_pad, i64 F, int mean, const float *w, const float *u, \
-                                 i64 cnt, const float *yr, const float *zr, i64 n_out, __mmask16 ml, v8 *rv) { \
-    __m512 r[3], q[3];                                                                           \
-    dense3w2_chunk(0, 2, NB, T0, n_pad, F, mean, w, u, cnt, yr, zr, n_out, ml, r, q);           \
-    if (NB > 2) dense3w2_chunk(2, NB - 2, NB, T0, n_pad, F, mean, w, u, cnt, yr, zr, n_out, ml, r, q); \
-    rv[0] = fold16(r[0]); rv[8] = fold16(r[1]); rv[16] = fold16(r[2]);                           \
-    rv[1] = fold16(q[0]); rv[9] = fold16(q[1]); rv[17] = fold16(q[2]);                           \
+#define DENSE3W2(NB, M)                                                                          \
+static inline void dense3w2_##NB##_##M(const float *T0, i64 n_pad, i64 F, int mean, const float *w, const float *u, \
+                                 i64 cnt, const float *yr, const float *zr, i64 n_out, __mmask16 ml, __m512 *r, __m512 *q) { \
+    dense3w2_chunk(0, 2, NB, M, T0, n_pad, F, mean, w, u, cnt, yr, zr, n_out, ml, r, q);        \
+    if (NB > 2) dense3w2_chunk(2, NB - 2, NB, M, T0, n_pad, F, mean, w, u, cnt, yr, zr, n_out, ml, r, q); \
 }
-DENSE3W(2) DENSE3W(3) DENSE3W(4) DENSE3W2(2) DENSE3W2(3) DENSE3W2(4)
+DENSE3W(2, 0) DENSE3W(3, 0) DENSE3W(4, 0) DENSE3W2(2, 0) DENSE3W2(3, 0) DENSE3W2(4, 0)
+DENSE3W(2, 1) DENSE3W(3, 1) DENSE3W(4, 1) DENSE3W2(2, 1) DENSE3W2(3, 1) DENSE3W2(4, 1)
 #undef MLD
-/* one point (as dense3w) or two of one cluster (as dense3w2, when u is not NULL) into rv */
+/* a point's term weights in lanes: [1 if mean, w_0 .. w_{cnt-1}, 0 ..] (mean + cnt <= 16) */
+static inline __m512 term16(const float *w, i64 cnt, int mean) {
+    __m512 v = w ? _mm512_maskz_expandloadu_ps((__mmask16)(lanes16(mean + cnt) & ~lanes16(mean)), w) : _mm512_setzero_ps();
+    return mean ? _mm512_mask_mov_ps(v, (__mmask16)1, _mm512_set1_ps(1.0f)) : v;
+}
+/* the tail rows' share of a point's colour sums: r[c] += (y_o w) . tl[c, o] over the rt rows o past the
+   nb 16-row blocks, terms in lanes (tl: the cluster's block of dense_tail's table) */
+static inline void dense_tail(__m512 *r, const float *tl, i64 rt, const float *yt, __m512 wv) {
+    for (i64 o = 0; o < rt; o++) {
+        __m512 vy = _mm512_mul_ps(_mm512_set1_ps(yt[o]), wv);
+        r[0] = _mm512_fmadd_ps(vy, _mm512_loadu_ps(tl + 16 * o), r[0]);
+        r[1] = _mm512_fmadd_ps(vy, _mm512_loadu_ps(tl + 16 * (rt + o)), r[1]);
+        r[2] = _mm512_fmadd_ps(vy, _mm512_loadu_ps(tl + 16 * (2 * rt + o)), r[2]);
+    }
+}
+/* one point (as dense3w) or two of one cluster (as dense3w2, when u is not NULL) into rv: nb blocks of 16 rows,
+   then, with a tail table (tl), its rt rows */
 static inline void dense3w(i64 nb, const float *T0, i64 n_pad, i64 F, int mean, const float *w, const float *u, i64 cnt,
-                           const float *yr, const float *zr, i64 n_out, __mmask16 ml, v8 *rv) {
-    if (u) {
-        switch (nb) {
-        case 2: dense3w2_2(T0, n_pad, F, mean, w, u, cnt, yr, zr, n_out, ml, rv); break;
-        case 3: dense3w2_3(T0, n_pad, F, mean, w, u, cnt, yr, zr, n_out, ml, rv); break;
-        default: dense3w2_4(T0, n_pad, F, mean, w, u, cnt, yr, zr, n_out, ml, rv); break;
-        }
-        return;
+                           const float *yr, const float *zr, i64 n_out, __mmask16 ml, const float *tl, i64 rt, v8 *rv) {
+    __m512 r[3], q[3] = {_mm512_setzero_ps(), _mm512_setzero_ps(), _mm512_setzero_ps()};  /* q: only with u */
+#define W_CASE(n, m) case 2 * n + m:                                                                            \
+        if (u) dense3w2_##n##_##m(T0, n_pad, F, mean, w, u, cnt, yr, zr, n_out, ml, r, q);                      \
+        else dense3w_##n##_##m(T0, n_pad, F, mean, w, cnt, yr, n_out, ml, r);                                   \
+        break;
+    switch (2 * nb + (ml != (__mmask16)0xFFFF)) {
+    W_CASE(2, 0) W_CASE(2, 1) W_CASE(3, 0) W_CASE(3, 1) W_CASE(4, 0) default: W_CASE(4, 1)
     }
-    switch (nb) {
-    case 2: dense3w_2(T0, n_pad, F, mean, w, cnt, yr, n_out, ml, rv); break;
-    case 3: dense3w_3(T0, n_pad, F, mean, w, cnt, yr, n_out, ml, rv); break;
-    default: dense3w_4(T0, n_pad, F, mean, w, cnt, yr, n_out, ml, rv); break;
+#undef W_CASE
+    if (tl) {
+        dense_tail(r, tl, rt, yr + 16 * nb, term16(w, cnt, mean));
+        if (u) dense_tail(q, tl, rt, zr + 16 * nb, term16(u, cnt, mean));
     }
+    rv[0] = fold16(r[0]); rv[8] = fold16(r[1]); rv[16] = fold16(r[2]);
+    if (u) { rv[1] = fold16(q[0]); rv[9] = fold16(q[1]); rv[17] = fold16(q[2]); }
 }
 #else
 #define HAVE_DENSE16 0
@@ -1177,10 +1198,10 @@ static inline float dense1(int nbs, const float *Tc, i64 F, int mean, const floa
 
 /* one visited point q (point p) of the dense kernel: prefetches PF_AHEAD visits ahead (visiting
    order), its weights (*w, *cnt) and view row (*yp: copied zero-padded into yb when n_out is not a
-   multiple of 8, unless yb is NULL: the row itself); returns its cluster's constants */
+   multiple of 8, unless yb is NULL: the row itself) and cluster (*kp); returns its cluster's constants */
 static inline const float *dense_point(const int32_t *order, int csort, i64 q, i64 p1, i64 p, i64 n_out, i64 n_pad, i64 F, i64 J,
                                        const void *lab, int lab_kind, const float *W, i64 wstride, const i64 *woff, const i64 *nk,
-                                       i64 nuse, const float *T, const float *y, float *yb, const float **w, i64 *cnt, const float **yp) {
+                                       i64 nuse, const float *T, const float *y, float *yb, const float **w, i64 *cnt, const float **yp, i64 *kp) {
     i64 pc = csort ? q : p;
     if (order && q + PF_AHEAD < p1) {
         i64 pp = order[q + PF_AHEAD];
@@ -1188,6 +1209,7 @@ static inline const float *dense_point(const int32_t *order, int csort, i64 q, i
         PREFETCH_ROW(y + pp * n_out, n_out, 0);
     }
     i64 k = lab_at(lab, lab_kind, pc);
+    *kp = k;
     *w = weights_of(W, wstride, woff, nk, nuse, k, pc, cnt);
     const float *yr = y + p * n_out;
     if (n_out != n_pad && yb) {
@@ -1235,7 +1257,7 @@ static __attribute__((noinline)) i64 vq_dense_range(i64 p0, i64 p1, i64 n_out, c
 static int prt_affine_dense_range(const int32_t *order, int csort, i64 p0, i64 p1, i64 P, i64 n_out, i64 n_pad, i64 C,
         const void *lab, int lab_kind, const float *W, i64 wstride,
                      const i64 *woff, const i64 *nk, i64 nuse, int mean, const float *T, i64 J,
-                     const float *y, float *out) {
+                     const float *y, float *out, const float *tail, i64 rt) {
     (void)P;  /* the callers' point count: the range [p0, p1) is what is read */
     i64 F = n_pad * C, nbt = n_pad / 8, cs = chunk_size(nbt);
     int flag = 0;
@@ -1243,10 +1265,12 @@ static int prt_affine_dense_range(const int32_t *order, int csort, i64 p0, i64 p
 #if HAVE_DENSE16
     /* weights (PCA, CPCA, MRT-PCA), RGB, 32 to 64 rows: 16 rows per vector (dense3w) for every point of the call */
     const int wide = C == 3 && W && nbt >= 4 && nbt <= 8;
-    const i64 nb16 = (n_pad + 15) / 16;
-    const __mmask16 ml = lanes16(n_pad - 16 * (nb16 - 1));
+    /* blocks of 16 rows: all of them, the last under ml; or, with a tail table, the whole ones before the tail rows */
+    const i64 nbw = tail ? n_out / 16 : (n_pad + 15) / 16;
+    const __mmask16 ml = tail ? (__mmask16)0xFFFF : lanes16(n_pad - 16 * (nbw - 1));
 #else
     const int wide = 0;
+    (void)tail; (void)rt;
 #endif
     if (C == 3 && (nbt <= 7 || wide)) {
         /* RGB: 8 points at a time, their 24 dot products reduced together */
@@ -1259,8 +1283,9 @@ static int prt_affine_dense_range(const int32_t *order, int csort, i64 p0, i64 p
                 const float *w, *yp;
                 i64 cnt;
                 pl[l] = order ? order[q + l] : q + l;
+                i64 k;
                 const float *Tk = dense_point(order, csort, q + l, p1, pl[l], n_out, n_pad, F, J, lab, lab_kind, W, wstride, woff, nk,
-                                              nuse, T, y, wide ? NULL : yb, &w, &cnt, &yp);
+                                              nuse, T, y, wide ? NULL : yb, &w, &cnt, &yp, &k);
 #if HAVE_DENSE16
                 if (wide) {
                     const float *u = NULL, *zp = NULL;
@@ -1268,9 +1293,9 @@ static int prt_affine_dense_range(const int32_t *order, int csort, i64 p0, i64 p
                     if (l < 7 && T + lab_at(lab, lab_kind, csort ? q + l + 1 : (order ? order[q + l + 1] : q + l + 1)) * J * F == Tk) {
                         pl[l + 1] = order ? order[q + l + 1] : q + l + 1;  /* the next visit, same cluster: both at once */
                         dense_point(order, csort, q + l + 1, p1, pl[l + 1], n_out, n_pad, F, J, lab, lab_kind, W, wstride, woff, nk, nuse,
-                                    T, y, NULL, &u, &cnt2, &zp);
+                                    T, y, NULL, &u, &cnt2, &zp, &k);
                     }
-                    dense3w(nb16, Tk, n_pad, F, mean, w, u, cnt, yp, zp, n_out, ml, R + l);
+                    dense3w(nbw, Tk, n_pad, F, mean, w, u, cnt, yp, zp, n_out, ml, tail ? tail + k * 3 * rt * 16 : NULL, rt, R + l);
                     if (u) l++;
                     continue;
                 }
@@ -1282,7 +1307,7 @@ static int prt_affine_dense_range(const int32_t *order, int csort, i64 p0, i64 p
                     i64 cnt2;
                     pl[l + 1] = order ? order[q + l + 1] : q + l + 1;
                     dense_point(order, csort, q + l + 1, p1, pl[l + 1], n_out, n_pad, F, J, lab, lab_kind, W, wstride, woff, nk, nuse, T, y,
-                                zb, &u, &cnt2, &zp);
+                                zb, &u, &cnt2, &zp, &k);
                     switch (nbt) {
                     case 1: dense3v2_1(Tk, n_pad, F, mean, w, u, cnt, yp, zp, R + l); break;
 #if MAXNBS2 >= 3
@@ -1311,13 +1336,14 @@ static int prt_affine_dense_range(const int32_t *order, int csort, i64 p0, i64 p
         float yb[4096];
         float o[16];
         const float *w, *yp;
+        i64 k;
         const float *Tk = dense_point(order, csort, q, p1, p, n_out, n_pad, F, J, lab, lab_kind, W, wstride, woff, nk, nuse, T, y,
-                                      wide ? NULL : yb, &w, &cnt, &yp);
+                                      wide ? NULL : yb, &w, &cnt, &yp, &k);
         for (i64 c = 0; c < C; c++) o[c] = 0.0f;
 #if HAVE_DENSE16
         if (wide) {
             v8 rv[17];
-            dense3w(nb16, Tk, n_pad, F, mean, w, NULL, cnt, yp, NULL, n_out, ml, rv);
+            dense3w(nbw, Tk, n_pad, F, mean, w, NULL, cnt, yp, NULL, n_out, ml, tail ? tail + k * 3 * rt * 16 : NULL, rt, rv);
             o[0] += hsum(rv[0]); o[1] += hsum(rv[8]); o[2] += hsum(rv[16]);
         } else
 #endif
@@ -1346,19 +1372,51 @@ static int prt_affine_dense_range(const int32_t *order, int csort, i64 p0, i64 p
     return flag;
 }
 
-int prt_affine_dense(i64 P, i64 n_out, i64 n_pad, i64 C, const void *lab, int lab_kind, const float *W, i64 wstride,
+/* the tail table of dense3w (AVX-512, RGB, weights): for n_out = 16 m + rt rows, 1 <= rt <= 8, m >= 2, in a layout
+   padded to 16 and at most 16 terms, the rt rows past the m whole blocks as [K, 3, rt, 16], terms in lanes (zero past
+   J): a point's share of them is rt FMAs per colour (dense_tail), where a zero-padded 16-row block took J per colour
+   (MRT's 49 = 3 x 16 + 1 rows: 16 terms x 3 colours x 4 blocks of FMAs -> x 3 blocks + 3). Returns NULL (no table: the
+   padded block) where that does not apply or the allocation fails; else the table, to free. */
+static float *dense_tail_table(i64 K, i64 n_out, i64 n_pad, i64 C, const float *W, const float *T, i64 J, i64 *rt) {
+    *rt = 0;
+#if HAVE_DENSE16
+    i64 r = n_out % 16, F = n_pad * C;
+    if (!(C == 3 && W && n_pad % 16 == 0 && n_pad >= 32 && n_pad <= 64 && n_out >= 32 && r >= 1 && r <= 8 && J <= 16 && K >= 1))
+        return NULL;
+    float *tab = (float *)malloc((size_t)(K * 3 * r * 16) * sizeof(float));
+    if (!tab) return NULL;
+    for (i64 k = 0; k < K; k++)
+        for (i64 c = 0; c < 3; c++)
+            for (i64 o = 0; o < r; o++) {
+                float *d = tab + ((k * 3 + c) * r + o) * 16;
+                for (i64 j = 0; j < 16; j++) d[j] = j < J ? T[k * J * F + j * F + c * n_pad + (n_out - r) + o] : 0.0f;
+            }
+    *rt = r;
+    return tab;
+#else
+    (void)K; (void)n_out; (void)n_pad; (void)C; (void)W; (void)T; (void)J;
+    return NULL;
+#endif
+}
+
+int prt_affine_dense(i64 K, i64 P, i64 n_out, i64 n_pad, i64 C, const void *lab, int lab_kind, const float *W, i64 wstride,
         const i64 *woff, const i64 *nk, i64 nuse, int mean, const float *T, i64 J, const float *y, float *out,
         const int32_t *order, int csort, int nthreads) {
     /* one contiguous range of points per thread; the range function sees every
        argument as a local (an OpenMP-outlined loop body reloads shared ones per point) */
     int flag = 0;
-    i64 nth = nthreads > 0 ? nthreads : 1;
+    i64 nth = nthreads > 0 ? nthreads : 1, rt;
+    float *tail = dense_tail_table(K, n_out, n_pad, C, W, T, J, &rt);
     /* one thread: no parallel region (as in prt_constants) */
-    if (nth == 1) return prt_affine_dense_range(order, csort, 0, P, P, n_out, n_pad, C, lab, lab_kind,
-            W, wstride, woff, nk, nuse, mean, T, J, y, out);
-    #pragma omp parallel for schedule(static, 1) num_threads(nth) reduction(|:flag)
-    for (i64 t = 0; t < nth; t++) flag |= prt_affine_dense_range(order, csort, P * t / nth, P * (t + 1) / nth, P, n_out, n_pad, C, lab,
-            lab_kind, W, wstride, woff, nk, nuse, mean, T, J, y, out);
+    if (nth == 1) {
+        flag = prt_affine_dense_range(order, csort, 0, P, P, n_out, n_pad, C, lab, lab_kind, W, wstride, woff, nk, nuse, mean, T, J, y,
+                                      out, tail, rt);
+    } else {
+        #pragma omp parallel for schedule(static, 1) num_threads(nth) reduction(|:flag)
+        for (i64 t = 0; t < nth; t++) flag |= prt_affine_dense_range(order, csort, P * t / nth, P * (t + 1) / nth, P, n_out, n_pad, C,
+                lab, lab_kind, W, wstride, woff, nk, nuse, mean, T, J, y, out, tail, rt);
+    }
+    free(tail);
     return flag;
 }
 
@@ -1654,7 +1712,7 @@ int prt_relight_plan(const i64 *a, const float *L, float *T, float *out, const v
         return prt_affine_rows(a[PL_P], a[PL_X], a[PL_FO], lab, lk, W, a[PL_WSTRIDE], woff, nk, a[PL_NUSE], mean, T, a[PL_J], out,
                                order, csort, nthreads);
     case 1:
-        return prt_affine_dense(a[PL_P], a[PL_FO], a[PL_X], a[PL_C], lab, lk, W, a[PL_WSTRIDE], woff, nk, a[PL_NUSE], mean, T,
+        return prt_affine_dense(a[PL_K], a[PL_P], a[PL_FO], a[PL_X], a[PL_C], lab, lk, W, a[PL_WSTRIDE], woff, nk, a[PL_NUSE], mean, T,
                                 a[PL_J], (const float *)y0, out, order, csort, nthreads);
     default:
         return prt_affine_taps(a[PL_P], a[PL_FO], a[PL_C], lab, lk, W, a[PL_WSTRIDE], woff, nk, a[PL_NUSE], mean, T, a[PL_X],
@@ -2612,7 +2670,7 @@ def _compile() -> tuple[ctypes.CDLL | None, str]:
     common = [vp, ci, vp, i64, vp, vp, i64, ci, vp, i64]
     return compile_library("relight", _SRC, _FLAGS, {
         "prt_affine_rows": [i64, i64, i64, *common, vp, vp, ci, ci],
-        "prt_affine_dense": [i64, i64, i64, i64, *common, vp, vp, vp, ci, ci],
+        "prt_affine_dense": [i64, i64, i64, i64, i64, *common, vp, vp, vp, ci, ci],
         "prt_affine_taps": [i64, i64, i64, *common, i64, vp, vp, vp, vp, ci, ci],
         "prt_constants": [i64] * 7 + [vp, vp, vp] + [i64] * 4 + [vp, ci, ci],
         "prt_constants_lanes": [i64] * 5 + [vp, vp, vp] + [i64] * 2 + [ci],
@@ -2988,7 +3046,7 @@ def affine_dense(lib, T: torch.Tensor, J: int, n_out: int, C: int, labels, W, ws
         raise ValueError(f"affine_dense: the view must be contiguous float32 [P, {n_out}]")
     P = y.shape[0]
     out = _out(out, P * C, (P, C))
-    flag = lib.prt_affine_dense(P, n_out, T.shape[3], C, *_codes(labels, W, wstride, woff, nk, nuse, mean), T.data_ptr(), J,
+    flag = lib.prt_affine_dense(T.shape[0], P, n_out, T.shape[3], C, *_codes(labels, W, wstride, woff, nk, nuse, mean), T.data_ptr(), J,
                                 y.data_ptr(), out.data_ptr(), _order(order, P), _csort(order, codes_sorted), torch.get_num_threads())
     return out, int(flag)
 
