@@ -59,6 +59,10 @@ CASES = [
     ("mrt_pca", "mrt_pca", {"vectors": 7}, (16, 9), 200, None),
     ("mrt_pca mean", "mrt_pca", {"vectors": 7, "center": True}, (16, 9), 200, None),
     ("mrt_pca n_out=49", "mrt_pca", {"vectors": 5}, (49, 4), 123, None),  # 7×7 tents: the 7-vector RGB path, a tail
+    # 49 rows with clusters and packed weights: with AVX-512, the 16-lane dense (a tail row) and no-view paths
+    ("cpca adaptive n_out=49 (packed)", "cpca_adaptive",
+     {"clusters": 6, "vectors": 2, "budget": 3.0, "max_vectors": 5, "iterations": 2, "adapt_iters": 2, "max_iter": 5}, (49, 4), 300,
+     None),
     ("mrt_pca 8 vectors", "mrt_pca", {"vectors": 8}, (16, 9), 150, None),  # taps read the 8 stored weights in place
 ]
 
@@ -538,6 +542,10 @@ def test_dense_and_taps_kernels_do_not_depend_on_the_thread_split():
         assert all(torch.equal(o, outs[0]) for o in outs[1:]) and torch.equal(ordered, outs[0]), name
 
 
+# per-cluster term counts 2-4 at 25-49 rows of 251 points: packed weights
+_ADAPTIVE_49 = {"clusters": 6, "vectors": 2, "budget": 3.0, "max_vectors": 5, "iterations": 2, "adapt_iters": 2, "max_iter": 5}
+
+
 def test_dense_kernel_of_25_to_64_rows_any_layout_split_and_order():
     """RGB dense views of 25-64 rows (MRT's 7x7 = 49 tents) with weights: where the kernels are
     built with AVX-512 they sum 16 rows per vector from a layout padded to 16 floats
@@ -555,7 +563,8 @@ def test_dense_kernel_of_25_to_64_rows_any_layout_split_and_order():
     for n_out in (25, 40, 49, 64):
         pad = relight_kernels.dense_pad(n_out)
         assert pad % 8 == 0 and n_out <= pad <= n_out + 15, (n_out, pad)
-        for name, params in (("cpca_static", {"clusters": 5, "vectors": 3, "max_iter": 5}), ("mrt_pca", {"vectors": 4})):
+        for name, params in (("cpca_static", {"clusters": 5, "vectors": 3, "max_iter": 5}), ("mrt_pca", {"vectors": 4}),
+                             ("cpca_adaptive", _ADAPTIVE_49)):
             c, enc = _fit(name, params, (n_out, 6), P, None)
             n = int(c.n_vectors_.max())
             codes = c._native_codes(enc, n)
@@ -612,8 +621,9 @@ def test_rows_kernel_of_long_rows_gives_the_eight_lane_bits():
     point's row is summed 16 floats per vector, two points per load, and stored straight into
     the unpadded output under a mask. Each float is the same FMA chain, so the result equals the
     8-lane pass's (the same constants padded to 8 floats) bit for bit, and y_p = M_p l in float64
-    to float32 rounding; for CPCA (a mean, clusters) and MRT-PCA (no mean, one cluster), 1-3
-    threads, a random visiting order; nothing written past the last row, every row written."""
+    to float32 rounding; for CPCA (a mean, clusters; static, and adaptive with packed weights of
+    per-cluster term counts) and MRT-PCA (no mean, one cluster), 1-3 threads, a random visiting
+    order; nothing written past the last row, every row written."""
     lib = relight_kernels.native()
     if lib is None:
         pytest.skip("no compiled kernels")
@@ -621,7 +631,8 @@ def test_rows_kernel_of_long_rows_gives_the_eight_lane_bits():
     P = 251
     for n_out in (33, 49):
         Fo = 3 * n_out
-        for name, params in (("cpca_static", {"clusters": 5, "vectors": 3, "max_iter": 5}), ("mrt_pca", {"vectors": 5})):
+        for name, params in (("cpca_static", {"clusters": 5, "vectors": 3, "max_iter": 5}), ("mrt_pca", {"vectors": 5}),
+                             ("cpca_adaptive", _ADAPTIVE_49)):
             c, enc = _fit(name, params, (n_out, 6), P, None)
             n = int(c.n_vectors_.max())
             codes = c._native_codes(enc, n)
