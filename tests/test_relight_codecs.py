@@ -554,7 +554,8 @@ def test_dense_kernel_of_25_to_64_rows_any_layout_split_and_order():
     masked to its n_out floats. Against y_p · (M_p l) in float64 from the decoded matrices (to
     float32 rounding), with and without a mean (CPCA, MRT-PCA), ranges of 1-3 threads (P = 251:
     the paired and single points at the ranges' ends) and a random visiting order: the same bits
-    for each layout; NaNs after the view's last row are never read."""
+    for each layout; NaNs after the view's last row, and in a packed cluster's rows past its own
+    term count (which the constants kernel leaves from earlier lights), are never read."""
     lib = relight_kernels.native()
     if lib is None:
         pytest.skip("no compiled kernels")
@@ -589,6 +590,12 @@ def test_dense_kernel_of_25_to_64_rows_any_layout_split_and_order():
                 case = (n_out, name, Tl.shape[3])
                 assert all(torch.equal(o.view(torch.int32), outs[0].view(torch.int32)) for o in outs[1:]), case
                 assert bool(((outs[0].double() - ref).abs() <= 1e-5 * scale + 1e-6).all()), case
+                if codes[4] is not None:  # packed: cluster k's rows past its own J_k terms are never read (NaN there)
+                    Tp = Tl.clone()
+                    for k, nk in enumerate(codes[4].tolist()):
+                        Tp[k, (1 if c.means_ is not None else 0) + nk:] = float("nan")
+                    got = relight_kernels.affine_dense(lib, Tp, J, n_out, 3, *codes, y)[0]
+                    assert torch.equal(got.view(torch.int32), outs[0].view(torch.int32)), case
 
 
 def test_rows_kernel_padded_rows_at_any_thread_split():

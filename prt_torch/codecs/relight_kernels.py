@@ -1150,13 +1150,15 @@ static inline __m512 term16(const float *w, i64 cnt, int mean) {
     return mean ? _mm512_mask_mov_ps(v, (__mmask16)1, _mm512_set1_ps(1.0f)) : v;
 }
 /* the tail rows' share of a point's colour sums: r[c] += (y_o w) . tl[c, o] over the rt rows o past the
-   nb 16-row blocks, terms in lanes (tl: the cluster's block of dense_tail's table) */
-static inline void dense_tail(__m512 *r, const float *tl, i64 rt, const float *yt, __m512 wv) {
+   nb 16-row blocks, terms in lanes (tl: the cluster's block of dense_tail's table), only in the lanes m of the
+   point's terms: a cluster's rows past its own term count (CPCA adaptive) are left from earlier lights by the
+   constants kernel, and a non-finite value there times a zero weight would be NaN */
+static inline void dense_tail(__m512 *r, const float *tl, i64 rt, const float *yt, __m512 wv, __mmask16 m) {
     for (i64 o = 0; o < rt; o++) {
         __m512 vy = _mm512_mul_ps(_mm512_set1_ps(yt[o]), wv);
-        r[0] = _mm512_fmadd_ps(vy, _mm512_loadu_ps(tl + 16 * o), r[0]);
-        r[1] = _mm512_fmadd_ps(vy, _mm512_loadu_ps(tl + 16 * (rt + o)), r[1]);
-        r[2] = _mm512_fmadd_ps(vy, _mm512_loadu_ps(tl + 16 * (2 * rt + o)), r[2]);
+        r[0] = _mm512_mask3_fmadd_ps(vy, _mm512_loadu_ps(tl + 16 * o), r[0], m);
+        r[1] = _mm512_mask3_fmadd_ps(vy, _mm512_loadu_ps(tl + 16 * (rt + o)), r[1], m);
+        r[2] = _mm512_mask3_fmadd_ps(vy, _mm512_loadu_ps(tl + 16 * (2 * rt + o)), r[2], m);
     }
 }
 /* one point (as dense3w) or two of one cluster (as dense3w2, when u is not NULL) into rv: nb blocks of 16 rows,
@@ -1173,8 +1175,9 @@ static inline void dense3w(i64 nb, const float *T0, i64 n_pad, i64 F, int mean, 
     }
 #undef W_CASE
     if (tl) {
-        dense_tail(r, tl, rt, yr + 16 * nb, term16(w, cnt, mean));
-        if (u) dense_tail(q, tl, rt, zr + 16 * nb, term16(u, cnt, mean));
+        const __mmask16 m = lanes16(mean + cnt);
+        dense_tail(r, tl, rt, yr + 16 * nb, term16(w, cnt, mean), m);
+        if (u) dense_tail(q, tl, rt, zr + 16 * nb, term16(u, cnt, mean), m);
     }
     rv[0] = fold16(r[0]); rv[8] = fold16(r[1]); rv[16] = fold16(r[2]);
     if (u) { rv[1] = fold16(q[0]); rv[9] = fold16(q[1]); rv[17] = fold16(q[2]); }
