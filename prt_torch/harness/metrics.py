@@ -17,6 +17,8 @@ import math
 
 import torch
 
+from .timing import torch_threads
+
 __all__ = ["squared_error", "psnr_from_mse", "psnr_vs_reference", "random_unit_vectors", "random_light_psnr", "random_light_psnr_analytic"]
 
 
@@ -64,9 +66,12 @@ def random_light_psnr(x: torch.Tensor, x_hat: torch.Tensor, n_in: int, n_lights:
     """
     P = x.shape[0]
     d = (x.double() - x_hat.double()).reshape(-1, n_in)  # [P·n_out, n_in]
-    G = d.T @ d
     L = random_unit_vectors(n_lights, n_in, seed)
-    mse = float(torch.einsum("li,ij,lj->l", L, G, L).mean()) / P
+    # in one thread: MKL splits the GEMM's long P·n_out reduction between threads on some CPUs (an Intel
+    # Xeon here), so G's last bits, and the figure's, depended on the thread count (a Ray worker runs one)
+    with torch_threads(1):
+        G = d.T @ d
+        mse = float(torch.einsum("li,ij,lj->l", L, G, L).mean()) / P
     return psnr_from_mse(mse)
 
 
