@@ -554,8 +554,9 @@ def test_dense_kernel_of_25_to_64_rows_any_layout_split_and_order():
     masked to its n_out floats. Against y_p · (M_p l) in float64 from the decoded matrices (to
     float32 rounding), with and without a mean (CPCA, MRT-PCA), ranges of 1-3 threads (P = 251:
     the paired and single points at the ranges' ends) and a random visiting order: the same bits
-    for each layout; NaNs after the view's last row, and in a packed cluster's rows past its own
-    term count (which the constants kernel leaves from earlier lights), are never read."""
+    for each layout, and for a call of the first 17 points alone; NaNs after the view's last row,
+    and in a packed cluster's rows past its own term count (which the constants kernel leaves from
+    earlier lights), are never read."""
     lib = relight_kernels.native()
     if lib is None:
         pytest.skip("no compiled kernels")
@@ -590,6 +591,10 @@ def test_dense_kernel_of_25_to_64_rows_any_layout_split_and_order():
                 case = (n_out, name, Tl.shape[3])
                 assert all(torch.equal(o.view(torch.int32), outs[0].view(torch.int32)) for o in outs[1:]), case
                 assert bool(((outs[0].double() - ref).abs() <= 1e-5 * scale + 1e-6).all()), case
+                if codes[3] is None:  # a call of the first 17 points alone (no tail table: the tail rows gathered)
+                    sub = (None if codes[0] is None else codes[0][:17], codes[1][:17], *codes[2:])
+                    got = relight_kernels.affine_dense(lib, Tl, J, n_out, 3, *sub, y[:17])[0]
+                    assert torch.equal(got.view(torch.int32), outs[0][:17].view(torch.int32)), case
                 if codes[4] is not None:  # packed: cluster k's rows past its own J_k terms are never read (NaN there)
                     Tp = Tl.clone()
                     for k, nk in enumerate(codes[4].tolist()):
@@ -620,6 +625,26 @@ def test_rows_kernel_padded_rows_at_any_thread_split():
         ordered = relight_kernels.affine_rows(lib, T, 4, Fo, 1, *codes, P=251, order=torch.arange(251, dtype=torch.int32))
         assert all(torch.equal(o, outs[0]) for o in outs[1:]) and torch.equal(ordered, outs[0]), Fo
         assert torch.allclose(outs[0].double(), ref, atol=1e-5), Fo
+
+
+def test_dense_kernel_keeps_the_sign_of_zero_at_any_split():
+    """A result of -0.0 (a negative mean seen through an all-zero view row) stays -0.0 whether its
+    point is reduced in a block of 8 or alone at a range's end (1-3 threads, 9 points): the single
+    point's sums are assigned, not added to 0.0f, which turned -0 into +0 (the 8-lane and the
+    16-lane kernels: 24, 40, 49 and 64 rows)."""
+    lib = relight_kernels.native()
+    if lib is None:
+        pytest.skip("no compiled kernels")
+    g = torch.Generator().manual_seed(5)
+    for n_out in (24, 40, 49, 64):
+        T = -(torch.rand(1, 3, 3, relight_kernels.dense_pad(n_out), generator=g) + 0.1)
+        T[..., n_out:] = 0.0
+        codes = (None, torch.zeros(9, 2), 2, None, None, 2, 1)
+        y = torch.zeros(9, n_out)
+        for threads in (1, 2, 3):
+            with torch_threads(threads):
+                out = relight_kernels.affine_dense(lib, T, 3, n_out, 3, *codes, y)[0]
+            assert bool(torch.signbit(out).all()) and bool((out == 0).all()), (n_out, threads)
 
 
 def test_rows_kernel_of_long_rows_gives_the_eight_lane_bits():

@@ -994,13 +994,14 @@ static inline void dense3v_##NBS(const float *T0, i64 n_pad, i64 F, int mean, co
     }                                                                                            \
     rv[0] = r0; rv[8] = r1; rv[16] = r2;                                                         \
 }
-/* one point: the three colours' sums straight into o */
+/* one point: the three colours' sums straight into o (assigned: 0 + -0 would be +0, where store8_rgb keeps the
+   -0 of a point reduced in a block of 8, and a point's bits would depend on the thread split) */
 #define DENSE3(NBS)                                                                              \
 static inline void dense3_##NBS(const float *T0, i64 n_pad, i64 F, int mean, const float *w, i64 cnt, \
                                 const float *yc, float *o) {                                     \
     v8 rv[17];                                                                                   \
     dense3v_##NBS(T0, n_pad, F, mean, w, cnt, yc, rv);                                           \
-    o[0] += hsum(rv[0]); o[1] += hsum(rv[8]); o[2] += hsum(rv[16]);                              \
+    o[0] = hsum(rv[0]); o[1] = hsum(rv[8]); o[2] = hsum(rv[16]);                                 \
 }
 /* two points of one cluster with the same term count (weights w, u; views yc, zc): each T load
    feeds both points' FMAs; each point's sums in dense3v's order (the same bits, paired or not).
@@ -1347,7 +1348,7 @@ static int prt_affine_dense_range(const int32_t *order, int csort, i64 p0, i64 p
         if (wide) {
             v8 rv[17];
             dense3w(nbw, Tk, n_pad, F, mean, w, NULL, cnt, yp, NULL, n_out, ml, tail ? tail + k * 3 * rt * 16 : NULL, rt, rv);
-            o[0] += hsum(rv[0]); o[1] += hsum(rv[8]); o[2] += hsum(rv[16]);
+            o[0] = hsum(rv[0]); o[1] = hsum(rv[8]); o[2] = hsum(rv[16]);  /* assigned, as in dense3_N */
         } else
 #endif
         if (C == 3 && nbt <= 7) {
@@ -1379,15 +1380,16 @@ static int prt_affine_dense_range(const int32_t *order, int csort, i64 p0, i64 p
    padded to 16 and at most 16 terms, the rt rows past the m whole blocks as [K, 3, rt, 16], terms in lanes (zero past
    J): a point's share of them is rt FMAs per colour (dense_tail), where a zero-padded 16-row block took J per colour
    (MRT's 49 = 3 x 16 + 1 rows: 16 terms x 3 colours x 4 blocks of FMAs -> x 3 blocks + 3). Returns NULL (no table: the
-   padded block) where that does not apply, where the table would cost more than the points save (fewer than
-   16 K rt points: its 48 K rt copies per call against ~3 J FMAs saved per point), or the allocation fails; else the
-   table, to free. */
-static float *dense_tail_table(i64 K, i64 P, i64 n_out, i64 n_pad, i64 C, const float *W, const float *T, i64 J, i64 *rt) {
+   padded block) where that does not apply, where the table would pass 64 KiB (K rt > 341: its 48 K rt copies are
+   paid by every call, however few its points), or the allocation fails; else the table, to free. Decided by the
+   shapes alone, never by the number of points, so a point's bits do not depend on the size of the call (with a
+   threshold on P they did: a review's finding). */
+static float *dense_tail_table(i64 K, i64 n_out, i64 n_pad, i64 C, const float *W, const float *T, i64 J, i64 *rt) {
     *rt = 0;
 #if HAVE_DENSE16
     i64 r = n_out % 16, F = n_pad * C;
     if (!(C == 3 && W && n_pad % 16 == 0 && n_pad >= 32 && n_pad <= 64 && n_out >= 32 && r >= 1 && r <= 8 && J <= 16 && K >= 1
-          && P >= 16 * K * r))
+          && K * r <= 341))
         return NULL;
     float *tab = (float *)malloc((size_t)(K * 3 * r * 16) * sizeof(float));
     if (!tab) return NULL;
@@ -1400,7 +1402,7 @@ static float *dense_tail_table(i64 K, i64 P, i64 n_out, i64 n_pad, i64 C, const 
     *rt = r;
     return tab;
 #else
-    (void)K; (void)P; (void)n_out; (void)n_pad; (void)C; (void)W; (void)T; (void)J;
+    (void)K; (void)n_out; (void)n_pad; (void)C; (void)W; (void)T; (void)J;
     return NULL;
 #endif
 }
@@ -1412,7 +1414,7 @@ int prt_affine_dense(i64 K, i64 P, i64 n_out, i64 n_pad, i64 C, const void *lab,
        argument as a local (an OpenMP-outlined loop body reloads shared ones per point) */
     int flag = 0;
     i64 nth = nthreads > 0 ? nthreads : 1, rt;
-    float *tail = dense_tail_table(K, P, n_out, n_pad, C, W, T, J, &rt);
+    float *tail = dense_tail_table(K, n_out, n_pad, C, W, T, J, &rt);
     /* one thread: no parallel region (as in prt_constants) */
     if (nth == 1) {
         flag = prt_affine_dense_range(order, csort, 0, P, P, n_out, n_pad, C, lab, lab_kind, W, wstride, woff, nk, nuse, mean, T, J, y,
