@@ -787,6 +787,29 @@ static __attribute__((noinline)) void small_rows_range(const int32_t *order, int
 #undef ONE_ROW
 }
 
+/* the no-view kernels' visits (rows16_range, prt_affine_rows_range): visit q's point *p, prefetching the codes and the
+   output row PF_AHEAD visits ahead in a visiting order; returns the codes' index (q where they are cluster-sorted) */
+static inline __attribute__((always_inline)) i64 rows_visit(const int32_t *order, int csort, i64 q, i64 p1, const void *lab,
+        int lab_kind, const float *W, i64 wstride, const i64 *woff, const float *out, i64 Fo, i64 *p) {
+    *p = order ? order[q] : q;
+    if (order && q + PF_AHEAD < p1) {
+        i64 pp = order[q + PF_AHEAD];
+        if (!csort) PREFETCH_CODES(pp);
+        PREFETCH_ROW(out + pp * Fo, Fo, 1);
+    }
+    return csort ? q : *p;
+}
+/* the next visit (q + 1 < p1) when it is in cluster k with cnt terms (always for PCA; mostly for CPCA, visited cluster
+   by cluster), to combine both at once: its weights, its point in *p2 (prefetching as rows_visit); else NULL */
+static inline __attribute__((always_inline)) const float *rows_pair(const int32_t *order, int csort, i64 q, i64 p1, const void *lab,
+        int lab_kind, const float *W, i64 wstride, const i64 *woff, const i64 *nk, i64 nuse, i64 k, i64 cnt, const float *out,
+        i64 Fo, i64 *p2) {
+    i64 pc2 = rows_visit(order, csort, q + 1, p1, lab, lab_kind, W, wstride, woff, out, Fo, p2), cnt2;
+    i64 k2 = lab_at(lab, lab_kind, pc2);
+    const float *u = weights_of(W, wstride, woff, nk, nuse, k2, pc2, &cnt2);
+    return k2 == k && cnt2 == cnt ? u : NULL;
+}
+
 /* no view, rows of many floats (MRT's 49 x 3 = 147) with weights, AVX-512: the rows layout padded
    to 16 floats (prt_rows_pad), e_p summed 16 floats per vector in chunks of up to 6 vectors, two
    points of one cluster per load of the constants, and written straight into the unpadded output
@@ -831,30 +854,14 @@ static void rows16_range(const int32_t *order, int csort, i64 p0, i64 p1, i64 F,
                          float *out) {
     const i64 nv = F / 16, nch = (nv + 5) / 6, cs = (nv + nch - 1) / nch;  /* nearly equal chunks of <= 6 vectors */
     for (i64 q = p0; q < p1; q++) {
-        i64 p = order ? order[q] : q, pc = csort ? q : p;
-        if (order && q + PF_AHEAD < p1) {
-            i64 pp = order[q + PF_AHEAD];
-            if (!csort) PREFETCH_CODES(pp);
-            PREFETCH_ROW(out + pp * Fo, Fo, 1);
-        }
-        i64 k = lab_at(lab, lab_kind, pc), cnt;
+        i64 p, pc = rows_visit(order, csort, q, p1, lab, lab_kind, W, wstride, woff, out, Fo, &p);
+        i64 k = lab_at(lab, lab_kind, pc), cnt, p2;
         const float *w = weights_of(W, wstride, woff, nk, nuse, k, pc, &cnt), *u = NULL;
         const float *Tk = T + k * J * F;
         float *o2 = NULL;  /* the paired point's row */
-        if (q + 1 < p1) {  /* the next visit: same cluster and term count (always for PCA) -> both at once */
-            i64 p2 = order ? order[q + 1] : q + 1, pc2 = csort ? q + 1 : p2, cnt2;
-            i64 k2 = lab_at(lab, lab_kind, pc2);
-            const float *u2 = weights_of(W, wstride, woff, nk, nuse, k2, pc2, &cnt2);
-            if (k2 == k && cnt2 == cnt) {
-                if (order && q + 1 + PF_AHEAD < p1) {
-                    i64 pp = order[q + 1 + PF_AHEAD];
-                    if (!csort) PREFETCH_CODES(pp);
-                    PREFETCH_ROW(out + pp * Fo, Fo, 1);
-                }
-                u = u2;
-                o2 = out + p2 * Fo;
-                q++;
-            }
+        if (q + 1 < p1 && (u = rows_pair(order, csort, q, p1, lab, lab_kind, W, wstride, woff, nk, nuse, k, cnt, out, Fo, &p2))) {
+            o2 = out + p2 * Fo;
+            q++;
         }
         for (i64 b0 = 0; b0 < nv; b0 += cs) {
             const i64 nb = nv - b0 < cs ? nv - b0 : cs, nrem = Fo - 16 * b0;
@@ -896,26 +903,12 @@ static int prt_affine_rows_range(const int32_t *order, int csort, i64 p0, i64 p1
     }
 #endif
     for (i64 q = p0; q < p1; q++) {
-        i64 p = order ? order[q] : q, pc = csort ? q : p;
-        if (order && q + PF_AHEAD < p1) {
-            i64 pp = order[q + PF_AHEAD];
-            if (!csort) PREFETCH_CODES(pp);
-            PREFETCH_ROW(out + pp * Fo, Fo, 1);
-        }
-        i64 k = lab_at(lab, lab_kind, pc), cnt;
-        const float *w = weights_of(W, wstride, woff, nk, nuse, k, pc, &cnt);
+        i64 p, pc = rows_visit(order, csort, q, p1, lab, lab_kind, W, wstride, woff, out, Fo, &p);
+        i64 k = lab_at(lab, lab_kind, pc), cnt, p2;
+        const float *w = weights_of(W, wstride, woff, nk, nuse, k, pc, &cnt), *u;
         const float *Tk = T + k * J * F;
-        if (W && q + 1 < p1) {  /* the next visit: same cluster and term count (always for PCA; mostly
-                                   for CPCA, visited cluster by cluster) -> both at once */
-            i64 p2 = order ? order[q + 1] : q + 1, pc2 = csort ? q + 1 : p2, cnt2;
-            i64 k2 = lab_at(lab, lab_kind, pc2);
-            const float *u = weights_of(W, wstride, woff, nk, nuse, k2, pc2, &cnt2);
-            if (k2 == k && cnt2 == cnt) {
-                if (order && q + 1 + PF_AHEAD < p1) {
-                    i64 pp = order[q + 1 + PF_AHEAD];
-                    if (!csort) PREFETCH_CODES(pp);
-                    PREFETCH_ROW(out + pp * Fo, Fo, 1);
-                }
+        if (W && q + 1 < p1) {  /* the next visit in the same cluster with the same term count: both at once */
+            if ((u = rows_pair(order, csort, q, p1, lab, lab_kind, W, wstride, woff, nk, nuse, k, cnt, out, Fo, &p2))) {
                 if (F == Fo) {
                     combine2(F, cs2, Tk, mean, w, u, cnt, out + p * Fo, out + p2 * Fo);
                 } else {
