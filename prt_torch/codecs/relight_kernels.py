@@ -1050,7 +1050,6 @@ DENSE3(1) DENSE3(2) DENSE3(3) DENSE3(4) DENSE3(5) DENSE3(6) DENSE3(7)
    whether a point is reduced alone, in a block of 8 or paired (dense3w2). Half the instructions of
    the 8-lane kernel, whose FMA loop ran at a third of the peak rate on an Intel Xeon. */
 #if HAVE_W16
-#define HAVE_DENSE16 1
 /* the last block under ml where M (a masked last block) is set: a zero-masking load costs an extra ALU uop
    on Intel, on the FMA ports (measured: the masked chunk's loop took 1.5x the unmasked one's time) */
 #define MLD(b, p) (MK_ && b == NB_ - 1 ? _mm512_maskz_loadu_ps(ml, (p)) : _mm512_loadu_ps(p))
@@ -1176,8 +1175,6 @@ static inline void dense3w(i64 nb, const float *T0, i64 n_pad, i64 F, int mean, 
     rv[0] = fold16(r[0]); rv[8] = fold16(r[1]); rv[16] = fold16(r[2]);
     if (u) { rv[1] = fold16(q[0]); rv[9] = fold16(q[1]); rv[17] = fold16(q[2]); }
 }
-#else
-#define HAVE_DENSE16 0
 #endif
 /* the colour stride (n_out rows zero-padded) the dense kernel should be given: a multiple of 16
    floats where its 16-lane kernel runs (25 to 64 rows, AVX-512), so that each colour's and each
@@ -1185,7 +1182,7 @@ static inline void dense3w(i64 nb, const float *T0, i64 n_pad, i64 F, int mean, 
    row straddled two lines: the kernel ran at 0.6 of its aligned speed); else a multiple of 8 */
 int prt_dense_pad(i64 n_out) {
     i64 n8 = (n_out + 7) / 8 * 8;
-    return (int)(HAVE_DENSE16 && n8 >= 32 && n8 <= 64 ? (n_out + 15) / 16 * 16 : n8);
+    return (int)(HAVE_W16 && n8 >= 32 && n8 <= 64 ? (n_out + 15) / 16 * 16 : n8);
 }
 #define CASE_DENSE1(NB) case NB: return dense1_##NB(Tc, F, mean, w, cnt, yc);
 
@@ -1259,7 +1256,7 @@ static int prt_affine_dense_range(const int32_t *order, int csort, i64 p0, i64 p
     i64 F = n_pad * C, nbt = n_pad / 8, cs = chunk_size(nbt);
     int flag = 0;
     i64 q = p0;
-#if HAVE_DENSE16
+#if HAVE_W16
     /* weights (PCA, CPCA, MRT-PCA), RGB, 32 to 64 rows: 16 rows per vector (dense3w) for every point of the call */
     const int wide = C == 3 && W && nbt >= 4 && nbt <= 8;
     /* blocks of 16 rows: all of them, the last under ml; or, with a tail table, the whole ones before the tail rows */
@@ -1283,7 +1280,7 @@ static int prt_affine_dense_range(const int32_t *order, int csort, i64 p0, i64 p
                 i64 k;
                 const float *Tk = dense_point(order, csort, q + l, p1, pl[l], n_out, n_pad, F, J, lab, lab_kind, W, wstride, woff, nk,
                                               nuse, T, y, wide ? NULL : yb, &w, &cnt, &yp, &k);
-#if HAVE_DENSE16
+#if HAVE_W16
                 if (wide) {
                     const float *u = NULL, *zp = NULL;
                     i64 cnt2;
@@ -1337,7 +1334,7 @@ static int prt_affine_dense_range(const int32_t *order, int csort, i64 p0, i64 p
         const float *Tk = dense_point(order, csort, q, p1, p, n_out, n_pad, F, J, lab, lab_kind, W, wstride, woff, nk, nuse, T, y,
                                       wide ? NULL : yb, &w, &cnt, &yp, &k);
         for (i64 c = 0; c < C; c++) o[c] = 0.0f;
-#if HAVE_DENSE16
+#if HAVE_W16
         if (wide) {
             v8 rv[17];
             dense3w(nbw, Tk, n_pad, F, mean, w, NULL, cnt, yp, NULL, n_out, ml, tail ? tail + k * 3 * rt * 16 : NULL, rt, rv);
@@ -1379,7 +1376,7 @@ static int prt_affine_dense_range(const int32_t *order, int csort, i64 p0, i64 p
    threshold on P they did: a review's finding). */
 static float *dense_tail_table(i64 K, i64 n_out, i64 n_pad, i64 C, const float *W, const float *T, i64 J, i64 *rt) {
     *rt = 0;
-#if HAVE_DENSE16
+#if HAVE_W16
     i64 r = n_out % 16, F = n_pad * C;
     if (!(C == 3 && W && n_pad % 16 == 0 && n_pad >= 32 && n_pad <= 64 && n_out >= 32 && r >= 1 && r <= 8 && J <= 16 && K >= 1
           && K * r <= 341))
