@@ -1,0 +1,97 @@
+"""The stored views of a Gaussian encoding (Green 2005 §2.2.1, §2.3): the view set a J-view table
+uses, each view's nearest other views (r(v) of the view terms M and V, eq. 2.4–2.5), whether a
+view set covers the sphere, the three nearest views of a direction with barycentric weights
+(§2.3: "interpolate the parameters from the three closest views"), and the interpolation of
+corresponding lobes across views or triangle vertices (§2.3).
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+
+__all__ = ["fibonacci_directions", "default_views", "view_neighbours", "views_cover_sphere", "view_taps", "blend_lobes"]
+
+
+def fibonacci_directions(n: int) -> torch.Tensor:
+    """``[n, 3]`` float64 near-uniform unit directions (Fibonacci lattice); n = 1: +z."""
+    if n == 1:
+        return torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64)
+    i = torch.arange(n, dtype=torch.float64) + 0.5
+    z = 1 - 2 * i / n
+    phi = i * math.pi * (3 - math.sqrt(5))
+    rho = (1 - z * z).clamp_min(0).sqrt()
+    return torch.stack([rho * torch.cos(phi), rho * torch.sin(phi), z], -1)
+
+
+def default_views(J: int) -> torch.Tensor:
+    """The view set a J-view table is assumed to use: the icosphere of frequency f when
+    J = 10 f² + 2 (f = 3: Green's 92 views; :func:`transfer.transport.icosphere_directions`),
+    else a Fibonacci lattice. ``[J, 3]`` float64."""
+    f = math.isqrt(max(0, (J - 2) // 10))
+    if J >= 12 and 10 * f * f + 2 == J:
+        from ...transfer.transport import icosphere_directions
+
+        return icosphere_directions(f)
+    return fibonacci_directions(J)
+
+
+def view_neighbours(views: torch.Tensor, k: int = 6) -> torch.Tensor:
+    """Indices ``[J, min(k, J−1)]`` int64 of each view's nearest other views (r(v) of eq. 2.4)."""
+    J = views.shape[0]
+    k = min(k, J - 1)
+    if k <= 0:
+        return torch.zeros(J, 0, dtype=torch.long)
+    c = views @ views.T
+    c.fill_diagonal_(-2.0)
+    return c.topk(k, dim=1).indices
+
+
+def views_cover_sphere(views: torch.Tensor, max_angle_deg: float = 75.0) -> tuple[bool, float]:
+    """Whether every direction has a stored view within ``max_angle_deg`` (so each vertex's
+    hemisphere of views is covered and three nearest views bracket any view). Returns
+    (ok, the largest angle to the nearest view in degrees, over 4096 test directions)."""
+    test = fibonacci_directions(4096)
+    v = views.to(torch.float64)
+    v = v / v.norm(dim=-1, keepdim=True)
+    worst = math.degrees(math.acos(float((test @ v.T).amax(1).min().clamp(-1, 1))))
+    return worst <= max_angle_deg, worst
+
+
+def view_taps(views: torch.Tensor, dirs: torch.Tensor, k: int = 3) -> tuple[torch.Tensor, torch.Tensor]:
+    """The three nearest stored views of each direction and barycentric weights (Green §2.3:
+    "interpolate the parameters from the three closest views"). ``views [J, 3]``, ``dirs
+    [M, 3]`` unit → ``(idx int64 [M, k], w float32 [M, k])``, weights ≥ 0 summing to 1 (the
+    barycentric coordinates of the direction in the triangle of the three views, clamped)."""
+    J = views.shape[0]
+    k = min(k, J)
+    d = dirs.to(torch.float64)
+    vv = views.to(torch.float64)
+    c = d @ vv.T
+    idx = c.topk(k, dim=1).indices
+    if k < 3:
+        w = c.gather(1, idx).clamp_min(0) + 1e-12
+        return idx, (w / w.sum(1, keepdim=True)).to(torch.float32)
+    B = vv[idx].transpose(1, 2)  # [M, 3, 3] columns = the three views
+    det = torch.linalg.det(B)
+    ok = det.abs() > 1e-9
+    Bs = torch.where(ok[:, None, None], B, torch.eye(3, dtype=B.dtype).expand_as(B))
+    b = torch.linalg.solve(Bs, d[..., None])[..., 0].clamp_min(0)
+    fallback = c.gather(1, idx).clamp_min(0) + 1e-12
+    b = torch.where(ok[:, None] & (b.sum(1, keepdim=True) > 0), b, fallback)
+    return idx, (b / b.sum(1, keepdim=True)).to(torch.float32)
+
+
+def blend_lobes(w: torch.Tensor, mu: torch.Tensor, sigma: torch.Tensor, a: torch.Tensor
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Interpolate corresponding lobes (Green §2.3; barycentric across views or triangle
+    vertices): ``w [M, T, N]``, ``mu [M, T, N, 3]``, ``sigma [M, T, N]``, weights ``a [M, T]``
+    → ``(w [M, N], mu [M, N, 3] unit, sigma [M, N])``. Weights and widths blend linearly, means
+    as the normalised weighted sum (the non-linear interpolation that moves a highlight instead
+    of cross-fading it)."""
+    a = a.to(w.dtype)
+    wb = torch.einsum("mt,mtn->mn", a, w)
+    sb = torch.einsum("mt,mtn->mn", a, sigma)
+    mb = torch.einsum("mt,mtnc->mnc", a, mu)
+    mb = mb / mb.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    return wb, mb, sb.clamp_min(1e-6)
