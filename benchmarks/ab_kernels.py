@@ -4,8 +4,10 @@
     .venv/bin/python benchmarks/ab_kernels.py --base 25850e2 --threads 1,2 --only cpca,vq
     .venv/bin/python benchmarks/ab_kernels.py --base HEAD~1 --test HEAD --shape default
 
-Each version's C source and compiler flags (``relight_kernels._SRC``, ``_FLAGS``) come from a git revision or from the working
-tree (``--test .``, the default). Both are compiled and cached by a hash of the source. The two
+Each version's C sources and compiler flags (the files ``prt_torch/kernels/*`` that
+``_native.LIBRARIES['relight']`` lists, and its flags; before they moved there, the module's
+string ``_SRC`` and ``_FLAGS``) come from a git revision or from the working tree (``--test .``,
+the default). Both are compiled and cached by a hash of the source. The two
 libraries are then swapped under the same ``codec.relight(..., out=)`` calls, and samples of each
 are timed back to back in one process, in alternating order (``harness.timing.measure_paired``:
 median of the per-repeat ratios, with their IQR). A machine that speeds up or slows down mid-run
@@ -19,10 +21,10 @@ Why a tool: code layout alone moves these kernels' speed. Adding a loop to one C
 slowed another loop in it by 15–27%, so a kernel change needs every row checked, not only the
 rows it targets.
 
-The A/B is refused when the two revisions' code differs outside ``_SRC`` and ``_FLAGS`` (comments
-and docstrings may differ). The Python side decides the constants' layouts and the arguments
-the kernels read, so mixing one revision's Python with the other's C would compare different
-work.
+The A/B is refused when the two revisions' Python differs outside how the sources are found
+(``_SRC``/``_SOURCES``, ``_FLAGS``, ``_compile``; comments and docstrings may differ). The
+Python side decides the constants' layouts and the arguments the kernels read, so mixing one
+revision's Python with the other's C would compare different work.
 
 Shapes (``--shape``):
 * ``relight``: ``bench_relight``'s 50 000-point settings (VQ 256, PCA 8, CPCA 256×8 static,
@@ -60,33 +62,65 @@ import bench_relight  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 MODULE = "prt_torch/codecs/relight_kernels.py"
+NATIVE = "prt_torch/_native.py"
+KERNELS = "prt_torch/kernels"
 
 
-def module_text(rev: str) -> str:
-    """The kernels module at a git revision, or in the working tree (``rev == '.'``)."""
+def git_text(rev: str, path: str) -> str:
+    """A file of the repository at a git revision, or in the working tree (``rev == '.'``)."""
     if rev == ".":
-        return (ROOT / MODULE).read_text()
-    r = subprocess.run(["git", "-C", str(ROOT), "show", f"{rev}:{MODULE}"], capture_output=True, text=True)
+        return (ROOT / path).read_text()
+    r = subprocess.run(["git", "-C", str(ROOT), "show", f"{rev}:{path}"], capture_output=True, text=True)
     if r.returncode != 0:
-        raise SystemExit(f"ab_kernels: cannot read {MODULE} at revision {rev!r}: {r.stderr.strip()}; "
+        raise SystemExit(f"ab_kernels: cannot read {path} at revision {rev!r}: {r.stderr.strip()}; "
                          "accepted: a git revision of this repository, or '.' for the working tree")
     return r.stdout
 
 
-def split_source(text: str, rev: str) -> tuple[tuple[str, list[str]], str]:
-    """((the C source ``_SRC``, the compiler flags ``_FLAGS``), the rest of the module as code:
-    its syntax tree without them and without docstrings, so that comments and docs may differ)."""
+def module_text(rev: str) -> str:
+    """The kernels module at a git revision, or in the working tree (``rev == '.'``)."""
+    return git_text(rev, MODULE)
+
+
+def _libraries(rev: str) -> dict:
+    """``_native.LIBRARIES`` at ``rev`` (a literal dict: {name: (sources, flags)})."""
+    for node in ast.parse(git_text(rev, NATIVE)).body:
+        target = node.target if isinstance(node, ast.AnnAssign) else node.targets[0] if isinstance(node, ast.Assign) else None
+        if isinstance(target, ast.Name) and target.id == "LIBRARIES":
+            return ast.literal_eval(node.value)
+    raise SystemExit(f"ab_kernels: {NATIVE} at {rev!r} has no literal LIBRARIES; accepted: a revision with the compiled kernels")
+
+
+def split_source(text: str, rev: str) -> tuple[tuple[dict[str, str], list[str]], str]:
+    """((the C sources ``{file name: text}``, the compiler flags), the rest of the module as code:
+    its syntax tree without them, without ``_compile`` and the import of ``_native`` (how the sources
+    are found), and without docstrings, so that comments and docs may differ). A revision from
+    before the kernels moved to ``prt_torch/kernels/`` holds its source in the literal ``_SRC``: it
+    is one file, ``relight.c``."""
     found = {}
     tree = ast.parse(text)
     body = []
     for node in tree.body:
-        if isinstance(node, ast.Assign) and len(node.targets) == 1 and isinstance(node.targets[0], ast.Name) \
-                and node.targets[0].id in ("_SRC", "_FLAGS"):
-            found[node.targets[0].id] = ast.literal_eval(node.value)
+        names = [t.id for t in getattr(node, "targets", []) if isinstance(t, ast.Name)] + \
+            [e.id for t in getattr(node, "targets", []) if isinstance(t, ast.Tuple) for e in t.elts if isinstance(e, ast.Name)]
+        if isinstance(node, ast.Assign) and set(names) & {"_SRC", "_FLAGS", "_SOURCES"}:
+            if names in (["_SRC"], ["_FLAGS"]):
+                found[names[0]] = ast.literal_eval(node.value)
+            else:
+                found["_SOURCES"] = True
+        elif isinstance(node, ast.FunctionDef) and node.name == "_compile":
+            continue
+        elif isinstance(node, ast.ImportFrom) and node.module == "_native":
+            continue
         else:
             body.append(node)
-    if set(found) != {"_SRC", "_FLAGS"}:
-        raise SystemExit(f"ab_kernels: {MODULE} at {rev!r} has no literal _SRC and _FLAGS assignments; accepted: a revision "
+    if "_SRC" in found and "_FLAGS" in found:
+        kernels = ({"relight.c": found["_SRC"]}, list(found["_FLAGS"]))
+    elif "_SOURCES" in found:
+        names, flags = _libraries(rev)["relight"]
+        kernels = ({n: git_text(rev, f"{KERNELS}/{n}") for n in names}, list(flags))
+    else:
+        raise SystemExit(f"ab_kernels: {MODULE} at {rev!r} has neither a literal _SRC and _FLAGS nor _SOURCES; accepted: a revision "
                          "with the compiled kernels")
     tree.body = body
     for node in ast.walk(tree):
@@ -94,18 +128,13 @@ def split_source(text: str, rev: str) -> tuple[tuple[str, list[str]], str]:
         if isinstance(b, list) and b and isinstance(b[0], ast.Expr) and isinstance(b[0].value, ast.Constant) \
                 and isinstance(b[0].value.value, str):
             node.body = b[1:] or [ast.Pass()]
-    return (found["_SRC"], found["_FLAGS"]), ast.dump(tree)
+    return kernels, ast.dump(tree)
 
 
-def compile_source(kernels: tuple[str, list[str]], label: str):
-    """The kernels library compiled from ``(source, flags)`` (``relight_kernels._compile``, cached
+def compile_source(kernels: tuple[dict[str, str], list[str]], label: str):
+    """The kernels library compiled from ``(sources, flags)`` (``relight_kernels._compile``, cached
     by a hash of both)."""
-    keep = relight_kernels._SRC, relight_kernels._FLAGS
-    relight_kernels._SRC, relight_kernels._FLAGS = kernels
-    try:
-        lib, why = relight_kernels._compile()
-    finally:
-        relight_kernels._SRC, relight_kernels._FLAGS = keep
+    lib, why = relight_kernels._compile(*kernels)
     if lib is None:
         raise SystemExit(f"ab_kernels: the kernels of {label} did not compile: {why}")
     if f"({' '.join(kernels[1])})" not in why:  # built only by the fallback without -march=native: another ISA
@@ -175,9 +204,9 @@ def main() -> int:
     _, rest_here = split_source(module_text("."), ".")
     for rev, rest in ((args.base, rest_a), (args.test, rest_b)):
         if rest != rest_here:  # this process runs the working tree's Python side
-            raise SystemExit(f"ab_kernels: {MODULE} differs between {rev!r} and the working tree outside _SRC and _FLAGS (layouts, "
-                             "wrappers): the kernels would not do the work they were written for; accepted: revisions "
-                             "whose module differs from the working tree's in _SRC and _FLAGS only")
+            raise SystemExit(f"ab_kernels: {MODULE} differs between {rev!r} and the working tree outside its kernel sources and flags "
+                             "(layouts, wrappers): the kernels would not do the work they were written for; accepted: revisions "
+                             "whose module differs from the working tree's in _SRC/_SOURCES, _FLAGS and _compile only")
     if src_a == src_b:
         print(f"note: {args.base!r} and {args.test!r} have the same kernel source and flags; the ratios measure only the noise", file=sys.stderr)
     lib_a, lib_b = compile_source(src_a, args.base), compile_source(src_b, args.test)

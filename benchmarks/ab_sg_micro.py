@@ -6,7 +6,7 @@
 ``benchmarks/ab_kernels.py`` times whole ``relight`` calls at 50 000 vertices, where the
 machine's memory traffic moves a Gaussian row by 10–30% between samples. This tool times the two
 kernels themselves on cache-resident data, as a program of its own: each revision's C source
-(``relight_kernels._SRC`` and ``_FLAGS``, as ab_kernels reads them) is compiled with a small
+(the files of ``prt_torch/kernels/`` and their flags, as ab_kernels reads them) is compiled with a small
 ``main`` that calls ``prt_sg_lookup_sum`` (16 384 one-lobe lookups, the RGB 20-level 6×16×16
 pyramid of ``prefilter_environment``'s defaults) and ``prt_sg_taps`` (2 048 vertices of 92 views,
 3 taps) on one thread and prints the best of ``--reps`` calls. Kernels that read the lobes as
@@ -117,12 +117,18 @@ int main(int argc, char **argv) {
 """
 
 
-def build(src: str, flags: list[str], work: Path, name: str) -> Path:
-    """An executable of the kernels ``src`` (their compile flags, as a program) and ``MAIN``."""
+def build(sources: dict[str, str], flags: list[str], work: Path, name: str) -> Path:
+    """An executable of the kernels ``sources`` (``{file name: C text}``; their compile flags, as a
+    program) and ``MAIN``."""
     cc = shutil.which("cc") or shutil.which("gcc")
     if cc is None:
         raise SystemExit("ab_sg_micro: no C compiler (cc or gcc) on PATH; accepted: a machine where the kernels compile")
-    (work / f"{name}.c").write_text(src)
+    d = work / name
+    d.mkdir()
+    for n, text in sources.items():
+        (d / n).write_text(text)
+    units = [str(d / n) for n in sources if n.endswith(".c")]
+    src = "\n".join(sources.values())
     (work / "main.c").write_text(MAIN)
     exe = work / name
     fl = [f for f in flags if f not in ("-shared", "-fPIC")]
@@ -130,7 +136,7 @@ def build(src: str, flags: list[str], work: Path, name: str) -> Path:
         fl.append("-DLAYOUT")
     elif re.search(r"int prt_sg_taps\([^)]*i64 sw, i64 sm, i64 ss", src):  # the kernels read lobe records in place
         fl.append("-DSTRIDED")
-    r = subprocess.run([cc, *fl, str(work / f"{name}.c"), str(work / "main.c"), "-o", str(exe), "-lm"],
+    r = subprocess.run([cc, *fl, f"-I{d}", *units, str(work / "main.c"), "-o", str(exe), "-lm"],
                        capture_output=True, text=True)
     if r.returncode != 0:
         raise SystemExit(f"ab_sg_micro: the kernels of {name} did not compile: {r.stderr.strip()[-800:]}")

@@ -2,19 +2,30 @@
 
 Used where torch has no fused op for a hot loop: the relight kernels
 (:mod:`prt_torch.codecs.relight_kernels`) and the ray generation of the diffuse precompute
-(:mod:`prt_torch.transfer.ray_kernels`). A library is compiled once per source, flags, compiler,
-CPU and platform (a hash of them names the file), kept on disk in
+(:mod:`prt_torch.transfer.ray_kernels`). Their C sources are files of their own, shipped as package
+data in ``prt_torch/kernels/`` (:data:`LIBRARIES` lists which files and flags make each library);
+a compile error names the file and line there. A library is compiled once per source, flags,
+compiler, CPU and platform (a hash of them names the file), kept on disk in
 ``$PRT_TORCH_CACHE`` or ``$XDG_CACHE_HOME/prt_torch`` (default ``~/.cache/prt_torch``), else in a
 per-user directory of the system temp dir, and written atomically (concurrent processes see the
 whole file or none). A library is never loaded from a directory another user can write.
 
 Without a compiler, or when the compile fails, :func:`compile_library` returns ``(None, why)``
 and the caller takes its torch or numpy path.
+
+Ahead of time: ``pip install .`` (a non-editable install) builds each library when the build
+machine has a compiler (``setup.py``'s build step calls :func:`prebuild`) into
+``prt_torch/kernels/prebuilt/`` with a manifest of what it was built from. At run time a prebuilt
+library is used only when its sources and flags are the ones asked for and this CPU has every
+instruction-set flag of the CPU that built it (so a wheel carried to an older CPU compiles at run
+time instead of faulting); otherwise, and with ``PRT_TORCH_PREBUILT=0``, the run-time compile
+above runs as before.
 """
 from __future__ import annotations
 
 import ctypes
 import hashlib
+import json
 import os
 import platform
 import shutil
@@ -22,7 +33,34 @@ import subprocess
 import tempfile
 from pathlib import Path
 
-__all__ = ["compile_library", "cache_dirs"]
+__all__ = ["compile_library", "cache_dirs", "kernel_sources", "prebuild", "LIBRARIES", "KERNELS_DIR"]
+
+#: where the C sources live (package data)
+KERNELS_DIR = Path(__file__).resolve().parent / "kernels"
+
+#: each library: (its sources in :data:`KERNELS_DIR`, headers first, then the files compiled together, in
+#: this order; the compiler flags). ``relight_kernels`` and ``ray_kernels`` read theirs from here, and so does
+#: ``setup.py``'s ahead-of-time build (this module imports nothing outside the standard library).
+LIBRARIES: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
+    "relight": (("prt_kernels.h", "vec.h", "affine.h", "sg_texels.h", "affine_constants.c", "affine_rows.c", "affine_dense.c",
+                 "affine_taps.c", "relight_plan.c", "sg_lookup.c"),
+                ("-O3", "-march=native", "-ffp-contract=fast", "-fopenmp", "-shared", "-fPIC", "-std=c99")),
+    "raygen": (("raygen.c",), ("-O3", "-march=native", "-fopenmp", "-shared", "-fPIC", "-std=c99")),
+}
+
+
+def kernel_sources(names, root: Path | None = None) -> dict[str, str]:
+    """``{file name: its text}`` of the C sources ``names`` in ``root`` (default :data:`KERNELS_DIR`), in
+    the given order."""
+    root = KERNELS_DIR if root is None else Path(root)
+    out = {}
+    for n in names:
+        try:
+            out[n] = (root / n).read_text()
+        except OSError as e:
+            raise FileNotFoundError(f"the C kernel source {root / n} is missing ({e.strerror}); accepted: an installation "
+                                    f"of prt_torch with its package data (prt_torch/kernels/*.c, *.h)") from e
+    return out
 
 
 def _cpu_id() -> str:
@@ -52,36 +90,137 @@ def _private(d: Path) -> bool:
     return not hasattr(os, "getuid") or (st.st_uid == os.getuid() and not st.st_mode & 0o022)
 
 
-def _build(cc: str, flags: list[str], src_text: str, name: str, so: Path) -> str | None:
-    """Compile ``src_text`` into ``so`` (atomically); the compiler's complaint, or None."""
+def _complaint(stderr: str, tmp: Path, origin: Path | None) -> str:
+    """The compiler's message with the temporary directory's paths replaced by the sources' own
+    (``origin``), its first errors first: ``affine_rows.c:123:5: error: ...`` names a line a C programmer
+    can open."""
+    if origin is not None:
+        stderr = stderr.replace(str(tmp) + os.sep, str(origin) + os.sep)
+    lines = stderr.strip().splitlines()
+    errors = [ln for ln in lines if ": error:" in ln or ": fatal error:" in ln]
+    head = "\n".join(errors[:5])
+    rest = "\n".join(lines)
+    return (head + ("\n..." if head else "") + "\n" + rest[-600:]) if head else rest[-800:]
+
+
+def _key(name: str, sources: dict[str, str], flags: list[str], extra: list[str]) -> str:
+    parts = [name] + [f"{n}\0{t}" for n, t in sources.items()] + [" ".join(flags)] + extra
+    return hashlib.sha256("\0".join(parts).encode()).hexdigest()[:16]
+
+
+def _build(cc: str, flags: list[str], sources: dict[str, str], name: str, so: Path, origin: Path | None) -> str | None:
+    """Compile ``sources`` (file name → text; the ``.c`` files compiled and linked together, the
+    headers found beside them) into ``so`` (atomically); the compiler's complaint, or None."""
     so.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(dir=so.parent) as tmp:
-        src = Path(tmp) / f"{name}.c"
-        src.write_text(src_text)
-        out = Path(tmp) / f"{name}.so"
-        r = subprocess.run([cc, *flags, str(src), "-o", str(out), "-lm"], capture_output=True, text=True, timeout=120)
+        tmp = Path(tmp)
+        for n, text in sources.items():
+            (tmp / n).write_text(text)
+        units = [str(tmp / n) for n in sources if n.endswith(".c")]
+        out = tmp / f"{name}.so"
+        r = subprocess.run([cc, *flags, f"-I{tmp}", *units, "-o", str(out), "-lm"], capture_output=True, text=True, timeout=300)
         if r.returncode != 0:
-            return r.stderr.strip()[-400:]
+            return _complaint(r.stderr, tmp, origin)
         os.replace(out, so)  # atomic: concurrent processes see the whole file or none
     return None
 
 
-def compile_library(name: str, src: str, flags: list[str], signatures: dict[str, list]) -> tuple[ctypes.CDLL | None, str]:
-    """``(library, how)`` or ``(None, why not)``: ``src`` compiled with ``flags`` (then without
-    ``-march=native``, for a compiler that refuses it: the baseline ISA), cached on disk as
-    ``<name>-<hash>.so``. ``signatures``: function name → ctypes argument types; each returns
-    a C ``int``."""
+def _compiler() -> tuple[str | None, str]:
+    """``(cc, its --version text)`` or ``(None, why not)``."""
     cc = os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc")
     if not cc:
         return None, "no C compiler (cc/gcc) on PATH"
     try:
-        version = subprocess.run([cc, "--version"], capture_output=True, text=True, timeout=30).stdout
+        return cc, subprocess.run([cc, "--version"], capture_output=True, text=True, timeout=30).stdout
     except (OSError, subprocess.SubprocessError) as e:
         return None, f"C compiler {cc!r} did not run: {e}"
+
+
+def _isa_flags() -> set[str]:
+    """This CPU's instruction-set flags (``/proc/cpuinfo``'s flags line; empty where there is none)."""
+    cpu = _cpu_id()
+    for ln in cpu.splitlines():
+        if ln.startswith("flags"):
+            return set(ln.split(":", 1)[1].split())
+    return set()
+
+
+def _sources_of(name: str, src) -> dict[str, str]:
+    return {f"{name}.c": src} if isinstance(src, str) else dict(src)
+
+
+def _load(so: Path, signatures: dict[str, list]) -> ctypes.CDLL:
+    lib = ctypes.CDLL(str(so))
+    for fn, argtypes in signatures.items():
+        f = getattr(lib, fn)
+        f.argtypes = argtypes
+        f.restype = ctypes.c_int
+    return lib
+
+
+def _prebuilt(name: str, sources: dict[str, str], flags: list[str]) -> Path | None:
+    """The library ``setup.py`` built at install time for exactly these sources and flags, if this CPU
+    runs it (has every ISA flag of the CPU that built it) and ``PRT_TORCH_PREBUILT`` is not ``0``."""
+    if os.environ.get("PRT_TORCH_PREBUILT", "1") == "0":
+        return None
+    d = KERNELS_DIR / "prebuilt"
+    try:
+        man = json.loads((d / f"{name}.json").read_text())
+    except (OSError, ValueError):
+        return None
+    if man.get("key") != _key(name, sources, flags, []) or man.get("machine") != platform.machine():
+        return None
+    if not set(man.get("isa", [])) <= _isa_flags():
+        return None
+    so = d / man.get("file", "")
+    return so if so.is_file() else None
+
+
+def prebuild(name: str, out_dir: Path, root: Path | None = None) -> str:
+    """Build library ``name`` of :data:`LIBRARIES` from the sources in ``root`` (default
+    :data:`KERNELS_DIR`) into ``out_dir`` as ``<name>.so`` with its manifest ``<name>.json`` (the
+    sources' and flags' key, this CPU's ISA flags, the compiler): what ``pip install .`` runs. Returns
+    what it did, or raises ``RuntimeError`` naming the compiler's complaint."""
+    names, flags = LIBRARIES[name]
+    sources = kernel_sources(names, root)
+    cc, version = _compiler()
+    if cc is None:
+        raise RuntimeError(version)
+    out_dir = Path(out_dir)
+    err = _build(cc, list(flags), sources, name, out_dir / f"{name}.so", KERNELS_DIR if root is None else Path(root))
+    if err is not None:
+        raise RuntimeError(f"compiling the {name} kernels failed: {err}")
+    man = {"key": _key(name, sources, list(flags), []), "file": f"{name}.so", "machine": platform.machine(),
+           "isa": sorted(_isa_flags()), "compiler": version.splitlines()[0] if version else cc, "flags": list(flags)}
+    tmp = out_dir / f".{name}.json.tmp"
+    tmp.write_text(json.dumps(man, indent=1))
+    os.replace(tmp, out_dir / f"{name}.json")
+    return f"built {out_dir / (name + '.so')} with {man['compiler']}"
+
+
+def compile_library(name: str, src, flags: list[str], signatures: dict[str, list],
+                    origin: Path | None = KERNELS_DIR) -> tuple[ctypes.CDLL | None, str]:
+    """``(library, how)`` or ``(None, why not)``: ``src`` (``{file name: text}``: headers and ``.c``
+    files, the ``.c`` ones compiled and linked together; or one C source as a string) compiled with
+    ``flags`` (then without ``-march=native``, for a compiler that refuses it: the baseline ISA), cached
+    on disk as ``<name>-<hash>.so``; or the library ``pip install`` built ahead of time for the same
+    sources and flags (:func:`prebuild`). ``origin``: the directory the sources' file names are
+    reported in (compiler errors as ``origin/file.c:line``). ``signatures``: function name → ctypes
+    argument types; each returns a C ``int``."""
+    sources = _sources_of(name, src)
+    pre = _prebuilt(name, sources, list(flags))
+    if pre is not None:
+        try:
+            return _load(pre, signatures), f"prebuilt at install time ({' '.join(flags)}), {pre}"
+        except (OSError, AttributeError):
+            pass  # not loadable here (or missing a symbol): compile at run time
+    cc, version = _compiler()
+    if cc is None:
+        return None, version
     errors = []
     so = used = None
     for used in (flags, [f for f in flags if f != "-march=native"]):
-        key = hashlib.sha256("\0".join([src, " ".join(used), version, _cpu_id(), platform.platform()]).encode()).hexdigest()[:16]
+        key = _key(name, sources, used, [version, _cpu_id(), platform.platform()])
         for d in cache_dirs():
             so = d / f"{name}-{key}.so"
             if not _private(d):  # never load a library from a directory another user can write
@@ -91,7 +230,7 @@ def compile_library(name: str, src: str, flags: list[str], signatures: dict[str,
             if so.exists():
                 break
             try:
-                err = _build(cc, used, src, name, so)
+                err = _build(cc, used, sources, name, so, origin)
             except (OSError, subprocess.SubprocessError) as e:  # unwritable directory: try the next
                 errors.append(f"{d}: {e}")
                 continue
@@ -105,11 +244,7 @@ def compile_library(name: str, src: str, flags: list[str], signatures: dict[str,
     if so is None or not so.exists():
         return None, f"compiling the {name} kernels failed: " + " | ".join(errors)
     try:
-        lib = ctypes.CDLL(str(so))
+        lib = _load(so, signatures)
     except OSError as e:
         return None, f"loading {so} failed: {e}"
-    for fn, argtypes in signatures.items():
-        f = getattr(lib, fn)
-        f.argtypes = argtypes
-        f.restype = ctypes.c_int
     return lib, f"compiled with {cc} ({' '.join(used)}), {so}"

@@ -55,8 +55,10 @@ def test_a_source_built_only_by_the_fallback_flags_is_refused(monkeypatch, tmp_p
     sys.path.insert(0, str(ROOT / "benchmarks"))
     try:
         import ab_kernels
+        from prt_torch._native import kernel_sources
         from prt_torch.codecs import relight_kernels as rk
-        src = rk._SRC + "\n#ifdef __AVX__\n#error built with -march=native\n#endif\n"
+        src = kernel_sources(rk._SOURCES)
+        src["relight_plan.c"] += "\n#ifdef __AVX__\n#error built with -march=native\n#endif\n"
         with pytest.raises(SystemExit, match="compiled only with other flags"):
             ab_kernels.compile_source((src, list(rk._FLAGS)), "broken")
     finally:

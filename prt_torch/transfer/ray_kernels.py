@@ -7,7 +7,7 @@ over k·N-sized arrays (``repeat``, ``flatnonzero``, a subtraction, ``repeat`` o
 ``take`` of the directions): 21 ms for 2048 vertices × 1024 directions here, about a tenth of the
 precompute's time, during which the ray-casting workers wait. :func:`upper_rays` writes the four
 ray arrays in one pass per thread over ``cos`` (same values, same order, so the same bits as the
-numpy path: tests compare them). Built by :mod:`prt_torch._native`; without a C compiler, or
+numpy path: tests compare them). The C is ``prt_torch/kernels/raygen.c``, built by :mod:`prt_torch._native`; without a C compiler, or
 with ``PRT_TORCH_NATIVE=0``, :func:`upper_rays` returns None and the caller keeps numpy.
 """
 from __future__ import annotations
@@ -18,60 +18,12 @@ import threading
 
 import numpy as np
 
-from .._native import compile_library
+from .._native import LIBRARIES, compile_library, kernel_sources
 
 __all__ = ["upper_rays"]
 
-_SRC = r"""
-#include <stdint.h>
-typedef int64_t i64;
-
-/* counts[v] = #{s : cos[v, s] > 0} for v in [v0, v1) */
-static void count_range(i64 v0, i64 v1, i64 N, const double *cos, i64 *counts) {
-    for (i64 v = v0; v < v1; v++) {
-        const double *c = cos + v * N;
-        i64 n = 0;
-        for (i64 s = 0; s < N; s++) n += c[s] > 0.0;
-        counts[v] = n;
-    }
-}
-
-/* the rays of vertices [v0, v1), from position r0: i = v, j = s, o = ov[v], d = dirs[s] */
-static void fill_range(i64 v0, i64 v1, i64 r0, i64 N, const double *cos, const float *ov, const float *dirs,
-                       i64 *I, i64 *J, float *O, float *D) {
-    i64 r = r0;
-    for (i64 v = v0; v < v1; v++) {
-        const double *c = cos + v * N;
-        float ox = ov[3 * v], oy = ov[3 * v + 1], oz = ov[3 * v + 2];
-        for (i64 s = 0; s < N; s++) {
-            if (!(c[s] > 0.0)) continue;
-            I[r] = v; J[r] = s;
-            O[3 * r] = ox; O[3 * r + 1] = oy; O[3 * r + 2] = oz;
-            D[3 * r] = dirs[3 * s]; D[3 * r + 1] = dirs[3 * s + 1]; D[3 * r + 2] = dirs[3 * s + 2];
-            r++;
-        }
-    }
-}
-
-int prt_count_up(i64 k, i64 N, const double *cos, i64 *counts, int nthreads) {
-    i64 nth = nthreads > 0 ? nthreads : 1;
-    #pragma omp parallel for schedule(static, 1) num_threads(nth)
-    for (i64 t = 0; t < nth; t++) count_range(k * t / nth, k * (t + 1) / nth, N, cos, counts);
-    return 0;
-}
-
-/* starts[v] = where vertex v's rays begin (exclusive prefix sum of the counts) */
-int prt_fill_up(i64 k, i64 N, const double *cos, const i64 *starts, const float *ov, const float *dirs, i64 *I, i64 *J,
-                float *O, float *D, int nthreads) {
-    i64 nth = nthreads > 0 ? nthreads : 1;
-    #pragma omp parallel for schedule(static, 1) num_threads(nth)
-    for (i64 t = 0; t < nth; t++) {
-        i64 v0 = k * t / nth, v1 = k * (t + 1) / nth;
-        if (v0 < v1) fill_range(v0, v1, starts[v0], N, cos, ov, dirs, I, J, O, D);
-    }
-    return 0;
-}
-"""
+#: the C source (prt_torch/kernels/raygen.c) and compiler flags
+_SOURCES, _FLAGS = LIBRARIES["raygen"][0], list(LIBRARIES["raygen"][1])
 
 _FLAGS = ["-O3", "-march=native", "-fopenmp", "-shared", "-fPIC", "-std=c99"]
 _lock = threading.Lock()
@@ -85,7 +37,7 @@ def _lib() -> ctypes.CDLL | None:
         with _lock:
             if "lib" not in _state:
                 i64, vp, ci = ctypes.c_int64, ctypes.c_void_p, ctypes.c_int
-                _state["lib"], _state["why"] = compile_library("raygen", _SRC, _FLAGS, {
+                _state["lib"], _state["why"] = compile_library("raygen", kernel_sources(_SOURCES), _FLAGS, {
                     "prt_count_up": [i64, i64, vp, vp, ci],
                     "prt_fill_up": [i64, i64, vp, vp, vp, vp, vp, vp, vp, vp, ci],
                 })

@@ -1,0 +1,42 @@
+/* relight_plan.c: one relight from a plan (relight_kernels.plan, AffineCodec's per-encoding
+ * cache): the constants (affine_constants.c), then the point kernel of the plan's kind (rows,
+ * dense or taps), with the arguments that do not change between lights read from one int64 array
+ * (PL_ fields; _PLAN_FIELDS on the Python side): one ctypes call per light. */
+
+#include "prt_kernels.h"
+
+/* One relight from a plan (relight_kernels.plan, AffineCodec's per-encoding cache): the per-cluster
+   constants into T (prt_constants_lanes or prt_constants), then the per-point kernel (rows, dense or taps)
+   — the arguments that do not change between lights read from a[] (PL_ fields, _PLAN_FIELDS in Python),
+   one call where two ctypes calls of 11-19 converted arguments each cost about 4 us of a small relight.
+   y0, y1: the view (dense: y [P, n_out] float32; taps: idx int64 [P, t], g float32 [P, t]). Returns
+   16 (nothing computed past the check) if L holds a NaN or an infinity, else the point kernel's flag. */
+enum { PL_KIND, PL_LANES, PL_K, PL_J, PL_JMAX, PL_NIN, PL_NOUT, PL_NPAD, PL_C, PL_MT, PL_SK, PL_SJ, PL_SO, PL_SC, PL_NKC,
+       PL_MEAN, PL_P, PL_X, PL_FO, PL_LAB, PL_LABKIND, PL_W, PL_WSTRIDE, PL_WOFF, PL_NK, PL_NUSE, PL_ORDER, PL_CSORT,
+       PL_NTAP, PL_N };
+#define PL_PTR(i, T) ((T)(intptr_t)a[i])
+int prt_relight_plan(const i64 *a, const float *L, float *T, float *out, const void *y0, const void *y1, int nthreads) {
+    int bad = a[PL_LANES]
+        ? prt_constants_lanes(a[PL_K], a[PL_J], a[PL_JMAX], a[PL_NIN], a[PL_C], PL_PTR(PL_MT, const float *), L, T, a[PL_SK],
+                              a[PL_SJ], nthreads)
+        : prt_constants(a[PL_K], a[PL_J], a[PL_JMAX], a[PL_NIN], a[PL_NOUT], a[PL_NPAD], a[PL_C], PL_PTR(PL_MT, const float *),
+                        L, T, a[PL_SK], a[PL_SJ], a[PL_SO], a[PL_SC], PL_PTR(PL_NKC, const i64 *), (int)a[PL_MEAN], nthreads);
+    if (bad) return 16;
+    const void *lab = PL_PTR(PL_LAB, const void *);
+    const float *W = PL_PTR(PL_W, const float *);
+    const i64 *woff = PL_PTR(PL_WOFF, const i64 *), *nk = PL_PTR(PL_NK, const i64 *);
+    const int32_t *order = PL_PTR(PL_ORDER, const int32_t *);
+    const int lk = (int)a[PL_LABKIND], mean = (int)a[PL_MEAN], csort = (int)a[PL_CSORT];
+    switch (a[PL_KIND]) {
+    case 0:
+        return prt_affine_rows(a[PL_P], a[PL_X], a[PL_FO], lab, lk, W, a[PL_WSTRIDE], woff, nk, a[PL_NUSE], mean, T, a[PL_J], out,
+                               order, csort, nthreads);
+    case 1:
+        return prt_affine_dense(a[PL_K], a[PL_P], a[PL_FO], a[PL_X], a[PL_C], lab, lk, W, a[PL_WSTRIDE], woff, nk, a[PL_NUSE], mean, T,
+                                a[PL_J], (const float *)y0, out, order, csort, nthreads);
+    default:
+        return prt_affine_taps(a[PL_P], a[PL_FO], a[PL_C], lab, lk, W, a[PL_WSTRIDE], woff, nk, a[PL_NUSE], mean, T, a[PL_X],
+                               a[PL_NTAP], (const i64 *)y0, (const float *)y1, out, order, csort, nthreads);
+    }
+}
+
