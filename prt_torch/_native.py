@@ -33,10 +33,12 @@ import subprocess
 import tempfile
 from pathlib import Path
 
-__all__ = ["compile_library", "cache_dirs", "kernel_sources", "prebuild", "LIBRARIES", "KERNELS_DIR"]
+__all__ = ["compile_library", "cache_dirs", "kernel_sources", "prebuild", "LIBRARIES", "KERNELS_DIR", "PREBUILT_DIR"]
 
 #: where the C sources live (package data)
 KERNELS_DIR = Path(__file__).resolve().parent / "kernels"
+#: where ``pip install`` leaves the libraries it built ahead of time (:func:`prebuild`)
+PREBUILT_DIR = KERNELS_DIR / "prebuilt"
 
 #: each library: (its sources in :data:`KERNELS_DIR`, headers first, then the files compiled together, in
 #: this order; the compiler flags). ``relight_kernels`` and ``ray_kernels`` read theirs from here, and so does
@@ -163,7 +165,7 @@ def _prebuilt(name: str, sources: dict[str, str], flags: list[str]) -> Path | No
     runs it (has every ISA flag of the CPU that built it) and ``PRT_TORCH_PREBUILT`` is not ``0``."""
     if os.environ.get("PRT_TORCH_PREBUILT", "1") == "0":
         return None
-    d = KERNELS_DIR / "prebuilt"
+    d = PREBUILT_DIR
     try:
         man = json.loads((d / f"{name}.json").read_text())
     except (OSError, ValueError):
