@@ -13,6 +13,12 @@ Encoded codes: ``labels [P]`` (uint8 / int16 / int32, the smallest that holds K;
 K = 1) and ``coeffs`` — ``[P, n']`` float32, or, when n_k varies, packed: the n_{k(p)}
 weights of each point one after the other, in point order (meta ``packed: true``).
 
+As one array (``transform``, ``inverse_transform``): ``[P, n_max]`` float32 weights, names
+``<codec>0 .. <codec>{n_max-1}``; a codec with a ``clusters`` parameter (VQ, CPCA) puts the
+cluster index k(p) first, as a float (exact up to 2^24 clusters), named ``<codec>_cluster``:
+``[P, 1 + n_max]``. Weights past a point's n_k (adaptive CPCA) are zeros, and are ignored by
+``inverse_transform``.
+
 Relighting from the compressed form (Sloan 2003 §6, Lehtinen & Kautz 2003 eq. (13)): the
 per-cluster constants ``M_i l`` (``[K, 1+n, n_out, C]``) are computed once per light, then
 every point takes its weighted sum ``e_p = (M_0 l) + Σ_i w_p^i (M_i l)`` as one batched GEMM
@@ -23,7 +29,6 @@ from __future__ import annotations
 
 import math
 import time
-import weakref
 from typing import Any
 
 import torch
@@ -31,8 +36,8 @@ import torch
 from .. import io
 from .._checks import check_finite, tensor_version
 from ..params import Boolean, Interval, Options
-from .base import (Codec, Encoded, Relighter, check_light, check_matrix_shape, check_out, check_signal, check_view,
-                   check_weights, encoding_state)
+from .base import (Codec, Encoded, Relighter, array_type, as_array_type, check_light, check_matrix_shape, check_out,
+                   check_signal, check_view, check_weights, encoding_state, input_ref, typed, typed_relighter, view_tensors)
 from .kmeans import CACHE_BLOCK_BYTES, linear, row_chunk
 from .relight_kernels import constants_layout as kernel_layout
 from .relight_kernels import fits as kernel_fits
@@ -155,8 +160,9 @@ class AffineCodec(Codec):
         # training encoding, with the fit's float64 model (coefficients = B_k (x_p - x_0^k))
         coeffs = self._project(Xc, labels, res["means"], basis, dtype)
         enc = self._make_encoded(labels, coeffs)
+        enc.array_type = array_type(X_in)
         # the training encoding, returned by encode(X) while X (the object passed in) is alive
-        self._train = (_key(X), weakref.ref(X_in), enc)
+        self._train = (_key(X), input_ref(X_in), enc)
         info = dict(res.get("info", {}))
         info["seconds"] = time.perf_counter() - t0
         info["fit_dtype"] = str(dtype).replace("torch.", "")
@@ -243,21 +249,55 @@ class AffineCodec(Codec):
     def encode(self, X: torch.Tensor) -> Encoded:
         """Codes of ``X [P, D]``: each point to the cluster of least reconstruction error
         (Sloan 2003 §4.2), weights by projection onto that cluster's vectors (§4.1). The
-        training signal's encoding is returned from the fit without recomputation."""
+        training signal's encoding is returned from the fit without recomputation (a copy
+        sharing its tensors where X is the same data as another type: ``Encoded.array_type``)."""
         self._require_fitted()
+        kind = array_type(X)
         X = check_signal("X", X)
-        if X.shape[1] != self.D_:
-            raise ValueError(f"X has D={X.shape[1]}; this codec was fitted with D={self.D_}")
+        self._check_features(X)
         train = getattr(self, "_train", None)
         if train is not None and train[0] == _key(X) and train[1]() is not None:
-            return train[2]
+            return typed(train[2], kind)
         dtype = torch.float64 if X.dtype == torch.float64 else torch.float32
         off = self.means_.double().mean(0) if self.means_ is not None else torch.zeros(self.D_, dtype=torch.float64)
         Xc = (X.double() - off).to(dtype)
         means = None if self.means_ is None else (self.means_.double() - off)
         basis = self.basis_.double()
         labels = self._classify(Xc, means, basis)
-        return self._make_encoded(labels, self._project(Xc, labels, means, basis, dtype))
+        enc = self._make_encoded(labels, self._project(Xc, labels, means, basis, dtype))
+        enc.array_type = kind
+        return enc
+
+    # ----------------------------------------------------------------- codes as one array
+    @property
+    def _clustered(self) -> bool:
+        """Whether ``transform`` has a cluster column: the codec has a ``clusters`` parameter
+        (VQ, CPCA; a fixed layout per codec, whatever K the fit found)."""
+        return "clusters" in self.get_params(deep=False)
+
+    def _code_columns(self) -> list[str]:
+        self._require_fitted()
+        return (["_cluster"] if self._clustered else []) + [str(i) for i in range(self.basis_.shape[1])]
+
+    def _codes_to_array(self, enc: Encoded) -> torch.Tensor:
+        """``[P, (1 +) n_max]`` float32: (the cluster index as a float,) the weights padded to n_max."""
+        self._check_enc(enc)
+        W = self.coeffs_of(enc)
+        if not self._clustered:
+            return W
+        return torch.cat([self.labels_of(enc).to(torch.float32)[:, None], W], 1)
+
+    def _codes_from_array(self, Z: torch.Tensor) -> Encoded:
+        """The encoding of ``Z`` (``_codes_to_array``'s layout): cluster indices must be integers
+        in [0, K); weights past a point's n_k are dropped."""
+        if not self._clustered:
+            return self._make_encoded(torch.zeros(Z.shape[0], dtype=torch.long), Z.contiguous())
+        lab = Z[:, 0]
+        bad = (lab != lab.round()) | (lab < 0) | (lab >= self.K_)
+        if bool(bad.any()):
+            i = int(torch.nonzero(bad)[0])
+            raise ValueError(f"Z[{i}, 0] = {float(lab[i])!r} is not a cluster index; accepted: integers in [0, {self.K_})")
+        return self._make_encoded(lab.long(), Z[:, 1:].contiguous())
 
     def _classify(self, Xc, means, basis) -> torch.Tensor:
         """argmin_k ||x − x_0^k||² − Σ_i ((x − x_0^k)·x_i^k)² over all clusters (Sloan 2003 §4.2),
@@ -279,19 +319,21 @@ class AffineCodec(Codec):
 
     def decode(self, enc: Encoded, n_vectors: int | None = None) -> torch.Tensor:
         """x̃_p ``[P, D] float32`` (Sloan 2003 §3.3); ``n_vectors`` keeps only a prefix of each
-        cluster's PCA vectors (run-time quality knob, Lehtinen & Kautz 2003 §6)."""
+        cluster's PCA vectors (run-time quality knob, Lehtinen & Kautz 2003 §6). A tensor, or a
+        numpy array for an encoding of numpy data (``Encoded.array_type``)."""
         self._check_enc(enc)
         n = self._n_eff(n_vectors)
         reps = self._representatives(n)  # [K, J, D]
         W = self._weights1(enc, n)  # [P, J]
         K = self.K_
         if K == 1:
-            return W @ reps[0]
-        if reps.shape[1] == 1 and self.means_ is not None:
-            return reps[:, 0][self.labels_of(enc)]
-        plan = self._plan(enc)
-        out_t = tiles_bmm(plan["layout"], plan["W1t"][..., : reps.shape[1]], reps)
-        return from_tiles(plan["layout"], out_t)
+            out = W @ reps[0]
+        elif reps.shape[1] == 1 and self.means_ is not None:
+            out = reps[:, 0][self.labels_of(enc)]
+        else:
+            plan = self._plan(enc)
+            out = from_tiles(plan["layout"], tiles_bmm(plan["layout"], plan["W1t"][..., : reps.shape[1]], reps))
+        return as_array_type(out, enc.array_type)
 
     def _representatives(self, n: int) -> torch.Tensor:
         """``[K, J, D] float32``: (x_0,) x_1..x_n — J = n+1 with a mean, n without."""
@@ -362,7 +404,8 @@ class AffineCodec(Codec):
                 — without a view ``[P, n_out, C]`` is large, and its first-touch page faults are a
                 large share of the call (reports/benchmarks/relight.md, "new output").
         Returns: ``[P, C]`` float32 (vectors, or matrices with a view), else ``[P, n_out, C]``
-        (``out`` when given).
+        (``out`` when given); a tensor, or a numpy array for an encoding of numpy data
+        (``Encoded.array_type``; the light and the view may be numpy arrays too).
         """
         self._check_enc(enc)
         P = enc.points
@@ -386,11 +429,11 @@ class AffineCodec(Codec):
                 res, flag = got
                 if flag:
                     check_view(view, P, n_out)  # raises with the offending value; else the data overflowed
-                return res
+                return res if out is not None or enc.array_type == "torch" else res.numpy()
             check_finite("light", L)  # the torch formulation below
         view = check_view(view, P, n_out) if self.matrix_shape_ is not None else None
         res = self._relight_torch(enc, light, view, n)
-        return res if out is None else out.copy_(res)
+        return as_array_type(res, enc.array_type) if out is None else out.copy_(res)
 
     def relighter(self, enc: Encoded, view: Any = None, n_vectors: int | None = None) -> "AffineRelighter":
         """A prepared relighting (``base.Relighter``): ``r = codec.relighter(enc, view)``, then
@@ -400,7 +443,7 @@ class AffineCodec(Codec):
         tensor than the last call's), and whether the codes and the model are the same tensors at
         the same versions, then one kernel call: ~4 µs less per light than ``relight``, what a
         small relight costs (reports/benchmarks/relight.md, "prepared")."""
-        return AffineRelighter(self, enc, view, n_vectors)
+        return typed_relighter(AffineRelighter(self, enc, view, n_vectors))
 
     def _relight_torch(self, enc: Encoded, light, view, n: int) -> torch.Tensor:
         """The torch formulation of ``relight`` (no compiled kernels), on a checked view."""
@@ -717,6 +760,7 @@ class AffineRelighter(Relighter):
         codec._n_eff(n_vectors)  # refused here, not at the first light
         if codec.matrix_shape_ is not None:
             check_view(view, enc.points, n_out)  # the values too, once
+        view = view_tensors(view)  # numpy arrays as tensors sharing their memory (edits in place are seen)
         super().__init__(codec, enc, tuple(view) if isinstance(view, list) else view, {"n_vectors": n_vectors})
         # the last full call's checked setting: (light shape, out, out's address and shape, the view's
         # addresses, encoding_state of the codes and model, plan, n_out, result shape, held tensors)

@@ -12,6 +12,9 @@ reconstruction error. Then
 * ``encode(X) -> Encoded``            per-point codes (weights, cluster indices, ...);
 * ``decode(enc) -> [P, D] float32``    the approximation x̃_p;
 * ``relight(enc, light, view=None)``  radiance from the compressed form (Sloan 2003 §6);
+* ``transform(X) -> [P, F] float32``   the codes as one array (a scikit-learn transformer:
+  ``inverse_transform``, ``fit_transform``, ``get_feature_names_out``; the columns per codec
+  in docs/codecs.md);
 * ``storage(enc) -> dict``            Sloan's float count and the actual bytes;
 * ``save(path, enc)`` / ``load(path)`` the project's format (prt_torch.io, no pickle).
 
@@ -20,6 +23,11 @@ tensors, ``linear`` says whether relighting commutes with decoding, and ``light_
 what ``relight`` takes as a light (``'sh'``: an SH coefficient matrix ``[n_in, C]``), so a
 non-linear fit such as Green 2005's per-vertex sums of spherical Gaussians (lighting from a
 prefiltered environment map) fits behind the same registry.
+
+Array types: a torch tensor in gives a tensor out, a numpy array (or any other array-like:
+lists, memmaps) a numpy array, for ``transform`` and ``inverse_transform`` (the type of their
+argument) and for ``decode`` and ``relight`` (the type of the data the encoding was made from,
+``Encoded.array_type``). Results are float32 whatever the input's float dtype.
 
 Registry: ``register(name)`` (a class decorator; with ``preset={...}`` it registers a small
 subclass whose parameters are fixed to those values), ``get(name, **params)`` (unknown names,
@@ -34,12 +42,15 @@ import math
 import os
 import re
 import warnings
+import weakref
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
-from sklearn.base import BaseEstimator
+from sklearn.base import BaseEstimator, TransformerMixin
+from sklearn.exceptions import NotFittedError
+from sklearn.utils import check_array
 
 from .. import io
 from .._checks import check_finite, check_finite_float32, check_shape, tensor_version, describe as _describe
@@ -75,6 +86,9 @@ class Encoded:
         tensors: name -> tensor, the per-point data (e.g. ``labels [P]`` uint8/int16/int32,
             ``coeffs [P, n'] float32``); the per-cluster representatives live in the codec.
         meta: JSON-able facts (``points``, ``dim``, ``matrix_shape``, layout flags).
+        array_type: ``'torch'`` or ``'numpy'``, the type of the data it was made from (``encode``
+            of a tensor, or of a numpy array or other array-like; ``inverse_transform``'s codes):
+            ``decode`` and ``relight`` return that type. Not saved: a loaded encoding is ``'torch'``.
     Relighting plans (tile layouts, kernel arguments; built once per encoding) are cached in
     ``cache`` and are never saved, pickled or copied.
     """
@@ -83,6 +97,7 @@ class Encoded:
     tensors: dict[str, torch.Tensor]
     meta: dict[str, Any]
     cache: dict[str, Any] = dataclasses.field(default_factory=dict, repr=False, compare=False)
+    array_type: str = dataclasses.field(default="torch", compare=False)
 
     def __getstate__(self) -> dict:
         """Pickled and copied without ``cache``: its entries point into this process's tensors
@@ -106,8 +121,8 @@ class Encoded:
 # the interface
 # ----------------------------------------------------------------------------------------
 
-class Codec(BaseEstimator):
-    """Base class of every codec: a scikit-learn estimator.
+class Codec(TransformerMixin, BaseEstimator):
+    """Base class of every codec: a scikit-learn estimator and transformer.
 
     Subclasses write an explicit ``__init__`` with keyword parameters that only stores each
     argument as the attribute of the same name, document the parameters in a numpydoc
@@ -122,6 +137,14 @@ class Codec(BaseEstimator):
     ``[P, n_out]`` weights (e.g. y(v_p), Sloan 2003 §6) or sparse taps ``(idx int64 [P, k],
     w [P, k])`` (Lehtinen & Kautz 2003 eq. (13)). ``relight`` returns ``[P, C]`` for vectors or
     with a view, ``[P, n_out, C]`` for matrices without one.
+
+    As a transformer (generic here, on ``encode``/``decode``): ``transform(X)`` is the codes of
+    ``X`` as one float32 array ``[P, F]`` whose columns :meth:`get_feature_names_out` names,
+    ``inverse_transform(Z)`` decodes such an array (``inverse_transform(transform(X))`` equals
+    ``decode(encode(X))``), ``fit_transform``. A codec provides the layout with three hooks:
+    ``_code_columns()`` (the column names' suffixes), ``_codes_to_array(enc)`` and
+    ``_codes_from_array(Z)``. Tensors in give tensors out, numpy arrays or other array-likes
+    give numpy arrays (``Encoded.array_type`` for ``decode`` and ``relight``).
     """
 
     #: registry name, written into saved files and ``Encoded.codec`` (set by ``register``).
@@ -155,6 +178,11 @@ class Codec(BaseEstimator):
     def __sklearn_is_fitted__(self) -> bool:
         return bool(getattr(self, "fitted_", False))
 
+    def __sklearn_tags__(self):
+        tags = super().__sklearn_tags__()
+        tags.transformer_tags.preserves_dtype = ["float32"]  # codes and decodings are float32
+        return tags
+
     # -- the interface -------------------------------------------------------------------
     def fit(self, X, y=None, weights=None, matrix_shape=None) -> "Codec":
         """Fit on ``X [P, D]`` (``y`` is ignored: scikit-learn convention). Returns self."""
@@ -170,6 +198,62 @@ class Codec(BaseEstimator):
     def decode(self, enc: Encoded) -> torch.Tensor:
         raise NotImplementedError
 
+    # -- scikit-learn transformer ------------------------------------------------------------
+    def transform(self, X) -> Any:
+        """The codes of ``X [P, D]`` as one array ``[P, F]`` float32 (``encode``, then the
+        codec's layout; columns named by :meth:`get_feature_names_out`, docs/codecs.md): a
+        tensor for a tensor ``X``, else a numpy array. The training signal's codes come from the
+        fit without recomputation."""
+        Z = self._codes_to_array(self.encode(X))
+        return Z if isinstance(X, torch.Tensor) else Z.numpy()
+
+    def fit_transform(self, X, y=None, **fit_params) -> Any:
+        """``fit(X, y, **fit_params)`` then ``transform(X)`` (the training encoding, reused)."""
+        return self.fit(X, y, **fit_params).transform(X)
+
+    def inverse_transform(self, Z) -> Any:
+        """The reconstruction ``[P, D]`` float32 from codes ``Z [P, F]`` in ``transform``'s
+        layout (``decode`` of the encoding they describe): a tensor for a tensor ``Z``, else a
+        numpy array. ``inverse_transform(transform(X))`` equals ``decode(encode(X))``."""
+        self._require_fitted()
+        kind = array_type(Z)
+        Zt = check_signal("Z", Z, min_features=0)
+        F = len(self._code_columns())
+        if Zt.shape[1] != F:
+            raise ValueError(f"Z has {Zt.shape[1]} columns; accepted: [P, {F}], the layout of transform "
+                             f"({', '.join(self.get_feature_names_out()[:4])}{', ...' if F > 4 else ''})")
+        enc = self._codes_from_array(Zt if Zt.dtype == torch.float32 else Zt.to(torch.float32))
+        enc.array_type = kind
+        return self.decode(enc)
+
+    def get_feature_names_out(self, input_features=None) -> np.ndarray:
+        """Names of ``transform``'s columns (object array of str), the registry name as prefix:
+        ``pca0, pca1, ...``; clustered codecs ``cpca_cluster, cpca0, ...``. ``input_features``
+        (names of X's D columns, or None) is only checked for its length."""
+        self._require_fitted()
+        if input_features is not None and len(input_features) != self.n_features_in_:
+            raise ValueError(f"input_features has {len(input_features)} names; accepted: n_features_in_ = {self.n_features_in_}")
+        return np.asarray([f"{self.codec_name}{c}" for c in self._code_columns()], dtype=object)
+
+    def _code_columns(self) -> list[str]:
+        """Suffixes of ``transform``'s column names (after the registry name), one per column."""
+        raise NotImplementedError(f"codec {self.codec_name!r} has no array layout of its codes")
+
+    def _codes_to_array(self, enc: Encoded) -> torch.Tensor:
+        """``enc``'s codes as ``[P, F]`` float32 in the layout of ``_code_columns``."""
+        raise NotImplementedError(f"codec {self.codec_name!r} has no array layout of its codes")
+
+    def _codes_from_array(self, Z: torch.Tensor) -> Encoded:
+        """The encoding that ``Z [P, F]`` float32 (``_codes_to_array``'s layout) describes;
+        raise ValueError naming a value the layout cannot hold."""
+        raise NotImplementedError(f"codec {self.codec_name!r} has no array layout of its codes")
+
+    def _check_features(self, X: torch.Tensor) -> None:
+        """``X``'s column count against the fit's (scikit-learn's wording, then ours)."""
+        if X.shape[1] != self.n_features_in_:
+            raise ValueError(f"X has {X.shape[1]} features, but {type(self).__name__} is expecting {self.n_features_in_} "
+                             f"features as input (X has D={X.shape[1]}; this codec was fitted with D={self.n_features_in_})")
+
     def relight(self, enc: Encoded, light: torch.Tensor, view: Any = None, out: torch.Tensor | None = None) -> torch.Tensor:
         """Radiance straight from the compressed form for one light; ``out``: an optional result
         tensor (float32, contiguous, the result's shape) written in place and returned, so a render
@@ -183,7 +267,7 @@ class Codec(BaseEstimator):
         (the view's values again by the kernels as they read them); a codec whose relight has a
         per-call cost worth saving (``AffineCodec``) skips the rest of the per-call checks."""
         self._require_fitted()
-        return Relighter(self, enc, view, kwargs)
+        return typed_relighter(Relighter(self, enc, view, kwargs))
 
     def score(self, X, y=None) -> float:
         """Minus the mean per-point squared reconstruction error, ``-(1/P) Σ_p ||x_p − x̃_p||²``
@@ -224,7 +308,7 @@ class Codec(BaseEstimator):
         """Σ_p w_p ||x_p − x̃_p||² (Sloan 2003 Table 1's "SE", weights default 1): rows' norms in
         the signal's dtype, their squares summed in float64."""
         X = _as_tensor(X)
-        Xh = self.decode(enc)
+        Xh = _as_tensor(self.decode(enc))
         se = 0.0
         for i in range(0, X.shape[0], 8192):  # chunks bound the float64 temporaries
             xs, hs = X[i:i + 8192], Xh[i:i + 8192]
@@ -272,8 +356,8 @@ class Codec(BaseEstimator):
 
     # -- helpers -----------------------------------------------------------------------
     def _require_fitted(self) -> None:
-        if not getattr(self, "fitted_", False):
-            raise ValueError(f"codec {self.codec_name!r} is not fitted; call fit(X) first (or load a saved codec)")
+        if not getattr(self, "fitted_", False):  # NotFittedError is a ValueError (and an AttributeError)
+            raise NotFittedError(f"codec {self.codec_name!r} is not fitted; call fit(X) first (or load a saved codec)")
 
     def _warn_or_raise(self, message: str) -> None:
         if getattr(self, "strict", False):
@@ -289,24 +373,60 @@ def _nbytes(t: torch.Tensor) -> int:
 # input validation shared by codecs
 # ----------------------------------------------------------------------------------------
 
-def _as_tensor(X: Any) -> Any:
-    """numpy arrays become tensors (float32 stays float32, other dtypes become float64)."""
-    if isinstance(X, np.ndarray):
-        X = np.ascontiguousarray(X if X.dtype in (np.float32, np.float64) else X.astype(np.float64))
-        return torch.from_numpy(X)
-    return X
+def array_type(X: Any) -> str:
+    """``'torch'`` for a tensor, else ``'numpy'`` (numpy arrays and other array-likes): the type
+    a codec's results take (``Encoded.array_type``)."""
+    return "torch" if isinstance(X, torch.Tensor) else "numpy"
 
 
-def check_signal(name: str, X: Any) -> torch.Tensor:
-    """``X`` must be a finite float tensor or numpy array [P, D] with P, D >= 1."""
-    X = _as_tensor(X)
+def as_array_type(t: Any, kind: str) -> Any:
+    """The tensor ``t`` as ``kind`` (``array_type``): itself, or a numpy view of it (no copy)."""
+    return t.numpy() if kind == "numpy" and isinstance(t, torch.Tensor) else t
+
+
+def typed(enc: Encoded, kind: str) -> Encoded:
+    """``enc`` if its ``array_type`` is ``kind``, else a copy that shares its tensors, meta and
+    cache (so relighting plans built for one serve both) with ``array_type = kind``."""
+    return enc if enc.array_type == kind else dataclasses.replace(enc, array_type=kind)
+
+
+def input_ref(X: Any):
+    """A weak reference to ``X`` (what a codec keeps of its training signal, to know it again),
+    or for an object that takes none (a list: converted afresh at every call, so never the same
+    data again) a reference that is always dead."""
+    try:
+        return weakref.ref(X)
+    except TypeError:
+        return lambda: None
+
+
+def _as_tensor(X: Any, name: str = "X", min_features: int = 1) -> Any:
+    """numpy arrays and other array-likes (lists, memmaps; scikit-learn's ``check_array``: 2-D,
+    dense, real, numeric; its messages for sparse, complex or 1-D input) become tensors, sharing
+    memory where they can: float32 stays float32, other dtypes become float64. Tensors and
+    None pass unchanged; the values are checked by the caller."""
+    if isinstance(X, torch.Tensor) or X is None:
+        return X
+    X = check_array(X, accept_sparse=False, dtype=[np.float64, np.float32], order="C", ensure_all_finite=False,
+                    ensure_min_samples=0, ensure_min_features=min_features, input_name=name)
+    if not X.flags.writeable:  # read-only (a memmap): shared, never written (torch warns that it could be)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)
+            return torch.from_numpy(X)
+    return torch.from_numpy(X)
+
+
+def check_signal(name: str, X: Any, min_features: int = 1) -> torch.Tensor:
+    """``X`` must be a finite float tensor, numpy array or array-like [P, D] with P >= 1 and D >=
+    ``min_features``; returned as a tensor (a numpy array's memory shared)."""
+    X = _as_tensor(X, name, min_features)
     if not isinstance(X, torch.Tensor):
         raise TypeError(f"{name} must be a torch.Tensor or numpy array [P, D], got {_describe(X)}")
     check_shape(name, X, ndim=2)
     if X.dtype not in (torch.float32, torch.float64):
         raise TypeError(f"{name} has dtype {X.dtype}; accepted: torch.float32 or torch.float64")
-    if X.shape[0] < 1 or X.shape[1] < 1:
-        raise ValueError(f"{name} has shape {tuple(X.shape)}; accepted: [P, D] with P >= 1 and D >= 1")
+    if X.shape[0] < 1 or X.shape[1] < min_features:
+        raise ValueError(f"{name} has shape {tuple(X.shape)}; accepted: [P, D] with P >= 1 and D >= {min_features}")
     check_finite(name, X)
     return X
 
@@ -345,8 +465,10 @@ def check_light(light: Any, n_in: int, values: bool = True) -> torch.Tensor:
     so is a value beyond float32's range (relighting computes in float32). ``values=False``
     checks only its type and shape, for a caller whose kernel checks the float32 values
     (``relight_kernels.constants`` raises as this does)."""
+    if isinstance(light, np.ndarray):
+        light = torch.from_numpy(light)
     if not isinstance(light, torch.Tensor):
-        raise TypeError(f"light must be a torch.Tensor [n_in, C] = [{n_in}, C], got {_describe(light)}")
+        raise TypeError(f"light must be a torch.Tensor or numpy array [n_in, C] = [{n_in}, C], got {_describe(light)}")
     check_cpu("light", light)
     if light.ndim != 2 or light.shape[0] != n_in:
         raise ValueError(f"light has shape {tuple(light.shape)}; accepted: [n_in, C] = [{n_in}, C] (SH coefficients on rows, colours on columns)")
@@ -369,6 +491,7 @@ def check_view(view: Any, P: int, n_out: int, values: bool = True):
     itself and calls this again with ``values=True`` to raise the error naming them."""
     if view is None:
         return None
+    view = view_tensors(view)
     if isinstance(view, (tuple, list)):
         if len(view) != 2:
             raise ValueError(f"view as a tuple must be (idx [P, k], w [P, k]); got {len(view)} items")
@@ -396,6 +519,16 @@ def check_view(view: Any, P: int, n_out: int, values: bool = True):
     if values:
         _check_finite_fast("view", view)
     return view if view.dtype == torch.float32 else view.to(torch.float32)
+
+
+def view_tensors(view: Any) -> Any:
+    """``view`` with numpy arrays as tensors sharing their memory (a tuple of taps stays a
+    tuple); anything else unchanged, for ``check_view`` to judge."""
+    if isinstance(view, np.ndarray):
+        return torch.from_numpy(view)
+    if isinstance(view, (tuple, list)) and any(isinstance(t, np.ndarray) for t in view):
+        return tuple(torch.from_numpy(t) if isinstance(t, np.ndarray) else t for t in view)
+    return view
 
 
 def view_nbytes(view: Any) -> int:
@@ -473,6 +606,27 @@ class Relighter:
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}({type(self.codec).__name__}, {self.enc!r}, view={type(self.view).__name__})"
+
+
+class NumpyRelighter(Relighter):
+    """A relighter of an encoding made from numpy data (``Encoded.array_type``): the tensor
+    relighter ``inner``'s results as numpy arrays (views of the tensors, no copy); a numpy light
+    is handed on as a tensor sharing its memory. With ``out``, ``out`` itself is returned."""
+
+    __slots__ = ("inner",)
+
+    def __init__(self, inner: Relighter):
+        super().__init__(inner.codec, inner.enc, inner.view, inner.kwargs)
+        self.inner = inner
+
+    def __call__(self, light: Any, out: torch.Tensor | None = None) -> Any:
+        res = self.inner(torch.from_numpy(light) if isinstance(light, np.ndarray) else light, out)
+        return res if out is not None else as_array_type(res, "numpy")
+
+
+def typed_relighter(r: Relighter) -> Relighter:
+    """``r``, or for an encoding made from numpy data a :class:`NumpyRelighter` around it."""
+    return r if r.enc.array_type == "torch" else NumpyRelighter(r)
 
 
 def _check_finite_fast(name: str, t: torch.Tensor) -> None:

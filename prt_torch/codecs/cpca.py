@@ -253,6 +253,15 @@ def _mask_basis(st: dict, nvec: torch.Tensor) -> dict:
 # ----------------------------------------------------------------------------------------
 
 class _VQMixin:
+    @property
+    def n_iter_(self) -> int:
+        """LBG/Lloyd iterations of the fit's clustering (CPCA: of its initial VQ), as scikit-learn's
+        ``KMeans.n_iter_``; ``fit_info_['lloyd_iterations']``."""
+        try:
+            return int(self.fit_info_["lloyd_iterations"])
+        except (AttributeError, KeyError):
+            raise AttributeError(f"{type(self).__name__} has no n_iter_ before a fit") from None
+
     def _run_vq(self, Xc, w, gen, K, final):
         """LBG from k-means++ (or random) seeds; ``final``: the clustering is the codec's result,
         so stopping at max_iter warns (CPCA records it in fit_info_ and warns only if strict)."""
@@ -309,7 +318,7 @@ class VQ(_VQMixin, AffineCodec):
     def _check_data(self, P, D, ms):
         K = self.params["clusters"]
         if K > P:
-            raise ValueError(f"clusters={K} exceeds the number of points P={P}; accepted: 1..{P}")
+            raise ValueError(f"clusters={K} exceeds the number of points P={P} (n_samples = {P}); accepted: 1..{P}")
 
     def _fit_model(self, Xc, w, gen):
         K = self.params["clusters"]
@@ -354,8 +363,8 @@ class PCA(AffineCodec):
         n = p["vectors"]
         hi = D if not p["center"] else D - 1
         if n > hi:
-            raise ValueError(f"vectors={n} must be < D={D} (n' < n, Sloan 2003 §3.3)" if p["center"]
-                             else f"vectors={n} exceeds D={D}; accepted: 0..{D}")
+            raise ValueError(f"vectors={n} must be < D={D} (n_features = {D}; n' < n, Sloan 2003 §3.3)" if p["center"]
+                             else f"vectors={n} exceeds D={D} (n_features = {D}); accepted: 0..{D}")
 
     def _fit_model(self, Xc, w, gen):
         P, D = Xc.shape
@@ -453,9 +462,9 @@ class CPCA(_VQMixin, AffineCodec):
     def _check_data(self, P, D, ms):
         p = self.params
         if p["clusters"] > P:
-            raise ValueError(f"clusters={p['clusters']} exceeds the number of points P={P}; accepted: 1..{P}")
+            raise ValueError(f"clusters={p['clusters']} exceeds the number of points P={P} (n_samples = {P}); accepted: 1..{P}")
         if p["vectors"] >= D:
-            raise ValueError(f"vectors={p['vectors']} must be < D={D} (n' < n, Sloan 2003 §3.3); accepted: 0..{D - 1}")
+            raise ValueError(f"vectors={p['vectors']} must be < D={D} (n_features = {D}; n' < n, Sloan 2003 §3.3); accepted: 0..{D - 1}")
         if p["method"] == "adaptive":
             mv = p["max_vectors"] if p["max_vectors"] is not None else min(D - 1, max(1, 2 * p["vectors"]))
             if mv >= D:

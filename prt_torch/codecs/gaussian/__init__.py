@@ -30,13 +30,18 @@ nearest stored views (barycentric weights; μ renormalised) and, on a surface, a
 triangle's vertices; each lobe is one lookup w_k E_{σ_k}(μ_k) into a
 :class:`PrefilteredEnvironment`. An optional view-independent part (per texel the minimum over a vertex's views with data) is kept in SH
 (``diffuse_bands``; Green §3.1) and relit as t·l.
+
+As one array (``transform``, ``inverse_transform``), a row per vertex, float32: its J·N lobe
+records in view-then-lobe order, 5 columns each (w, μx, μy, μz, σ), named
+``gaussian_v{j}_l{k}_{w,mux,muy,muz,sigma}``; with ``diffuse_bands`` = n > 0 then its n² SH
+diffuse coefficients (``gaussian_diffuse{i}``) and its J has-data flags as 0/1
+(``gaussian_has_data_v{j}``).
 """
 from __future__ import annotations
 
 import math
 import time
 import warnings
-import weakref
 from typing import Any
 
 import torch
@@ -44,7 +49,8 @@ import torch
 from ..._checks import check_finite_float32, tensor_state, tensor_version
 from ...lighting.prefilter import PrefilteredEnvironment, cube_map_directions
 from ...params import Boolean, Interval, Options
-from ..base import Codec, Encoded, check_cpu, check_out, check_signal, register, view_nbytes
+from ..base import (Codec, Encoded, array_type, as_array_type, check_cpu, check_out, check_signal, input_ref, register, typed,
+                    typed_relighter, view_nbytes, view_tensors)
 from ..relight_kernels import lobe_layout, sg_prepare, sg_taps, sg_taps_prepare, sg_taps_prepared
 from .compare import haar_truncation, relative_l2, sh_truncation
 from .fit import RESOLVE_FACTOR, fit_all, flood_fill_order, mixture, prob_pairs, resolvable_sigma  # noqa: F401 (importable here as before)
@@ -225,7 +231,8 @@ class GaussianCodec(Codec):
         self.faces_ = faces
         self.fitted_ = True
         enc, info = self._encode(X, p, init)
-        self._train = ((X.data_ptr(), tuple(X.shape), X.dtype, tensor_version(X)), weakref.ref(X_in), enc)
+        enc.array_type = array_type(X_in)
+        self._train = ((X.data_ptr(), tuple(X.shape), X.dtype, tensor_version(X)), input_ref(X_in), enc)
         self.fit_info_ = info
         if info.get("lobes_at_resolution_limit", 0.0) > 0.25:
             warnings.warn(
@@ -244,15 +251,17 @@ class GaussianCodec(Codec):
 
     def encode(self, X) -> Encoded:
         """Fit the Gaussian parameters of ``X [V, J·P]`` with the fitted geometry (the training
-        signal's encoding is returned without refitting)."""
+        signal's encoding is returned without refitting; ``Encoded.array_type``: X's)."""
         self._require_fitted()
+        kind = array_type(X)
         X = check_signal("X", X)
-        if X.shape[1] != self.J_ * self.P_:
-            raise ValueError(f"X has D={X.shape[1]}; this codec was fitted with D={self.J_ * self.P_}")
+        self._check_features(X)
         train = getattr(self, "_train", None)
         if train is not None and train[0] == (X.data_ptr(), tuple(X.shape), X.dtype, tensor_version(X)) and train[1]() is not None:
-            return train[2]
-        return self._encode(X, self.params)[0]
+            return typed(train[2], kind)
+        enc = self._encode(X, self.params)[0]
+        enc.array_type = kind
+        return enc
 
     def _encode(self, X: torch.Tensor, p: dict, init=None) -> tuple[Encoded, dict]:
         t0 = time.perf_counter()
@@ -277,9 +286,7 @@ class GaussianCodec(Codec):
         # view-major records [J, V, N, 5] (lobes_of): a camera's taps, a few views shared by neighbouring
         # vertices, read runs along the vertices (vertex-major [V, J, N, 5]: three scattered runs per vertex)
         enc_t["lobes_by_view"] = torch.cat([w[..., None], mu, sg[..., None]], -1).transpose(0, 1).contiguous()
-        enc = Encoded(codec=self.codec_name, tensors=enc_t,
-                      meta={"points": V, "dim": J * P, "matrix_shape": [J, P], "lobes": N, "layout": self.layout_,
-                            "diffuse_bands": nb})
+        enc = self._encoded(enc_t, V, N, nb)
         Xh = self.decode(enc).reshape(V, J, P).double()
         T0 = X.reshape(V, J, P).double()
         sa64 = sa.double()
@@ -296,6 +303,64 @@ class GaussianCodec(Codec):
         info["se_relative"] = info["se"] / max(1e-300, float(T0.square().sum()))
         info["functions_per_s"] = V * J / max(info["seconds"], 1e-9)
         return enc, info
+
+    def _encoded(self, tensors: dict[str, torch.Tensor], V: int, N: int, nb: int) -> Encoded:
+        """An encoding of ``V`` vertices with ``N`` lobes and ``nb`` diffuse bands (meta from the fitted geometry)."""
+        return Encoded(codec=self.codec_name, tensors=tensors,
+                       meta={"points": V, "dim": self.J_ * self.P_, "matrix_shape": [self.J_, self.P_], "lobes": N,
+                             "layout": self.layout_, "diffuse_bands": nb})
+
+    @property
+    def n_iter_(self) -> int:
+        """Optimiser iterations of the fit: the most any batch ran (``fit_info_['batches']``)."""
+        try:
+            return max((int(b["iterations"]) for b in self.fit_info_["batches"]), default=0)
+        except (AttributeError, KeyError):
+            raise AttributeError(f"{type(self).__name__} has no n_iter_ before a fit") from None
+
+    # ------------------------------------------------------------------ codes as one array
+    def _code_layout(self) -> tuple[int, int, int]:
+        """``(J, N, n²)``: views, lobes (the ``lobes`` parameter) and SH diffuse coefficients per vertex."""
+        self._require_fitted()
+        p = self.params
+        return self.J_, int(p["lobes"]), int(p["diffuse_bands"]) ** 2
+
+    def _code_columns(self) -> list[str]:
+        J, N, nd = self._code_layout()
+        cols = [f"_v{j}_l{k}_{f}" for j in range(J) for k in range(N) for f in ("w", "mux", "muy", "muz", "sigma")]
+        if nd:
+            cols += [f"_diffuse{i}" for i in range(nd)] + [f"_has_data_v{j}" for j in range(J)]
+        return cols
+
+    def _codes_to_array(self, enc: Encoded) -> torch.Tensor:
+        """``[V, J·N·5 (+ n² + J)]`` float32: the lobe records vertex-major (``lobes_of``), then the
+        diffuse part and the has-data flags."""
+        self._require_fitted()
+        w, mu, sg = self.lobes_of(enc)
+        V = w.shape[0]
+        parts = [torch.cat([w[..., None], mu, sg[..., None]], -1).reshape(V, -1).float()]
+        if "diffuse" in enc.tensors:
+            parts += [enc.tensors["diffuse"].float(), enc.tensors["has_data"].float()]
+        out = torch.cat(parts, 1)
+        if out.shape[1] != len(self._code_columns()):
+            raise ValueError(f"this encoding has {out.shape[1]} values per vertex; this codec's layout has "
+                             f"{len(self._code_columns())} (lobes and diffuse_bands as when it was encoded?)")
+        return out
+
+    def _codes_from_array(self, Z: torch.Tensor) -> Encoded:
+        """The encoding of ``Z`` (``_codes_to_array``'s layout); has-data flags must be 0 or 1."""
+        J, N, nd = self._code_layout()
+        V, nl = Z.shape[0], J * N * 5
+        tensors = {"lobes_by_view": Z[:, :nl].reshape(V, J, N, 5).transpose(0, 1).contiguous()}
+        if nd:
+            has = Z[:, nl + nd:]
+            bad = (has != 0) & (has != 1)
+            if bool(bad.any()):
+                v, j = (int(i) for i in torch.nonzero(bad)[0])
+                raise ValueError(f"Z[{v}, {nl + nd + j}] = {float(has[v, j])!r} is a has-data flag; accepted: 0 or 1")
+            tensors["diffuse"] = Z[:, nl:nl + nd].contiguous()
+            tensors["has_data"] = has.to(torch.uint8)
+        return self._encoded(tensors, V, N, int(self.params["diffuse_bands"]))
 
     # ------------------------------------------------------------------ decode / relight
     @staticmethod
@@ -341,7 +406,8 @@ class GaussianCodec(Codec):
 
     def decode(self, enc: Encoded) -> torch.Tensor:
         """The fitted tables ``[V, J·P]`` float32 (Green eq. 2.1 at the texel directions, plus
-        the SH diffuse part where the view has data)."""
+        the SH diffuse part where the view has data): a tensor, or a numpy array for an encoding of
+        numpy data (``Encoded.array_type``)."""
         self._require_fitted()
         w, mu, sg = self.lobes_of(enc)
         V, J, N = w.shape
@@ -356,7 +422,7 @@ class GaussianCodec(Codec):
 
             Y = eval_sh(self.directions_.double(), int(enc.meta["diffuse_bands"]), check=False).float()
             out += (enc.tensors["diffuse"] @ Y.T)[:, None, :] * enc.tensors["has_data"].float()[..., None]
-        return out.reshape(V, -1)
+        return as_array_type(out.reshape(V, -1), enc.array_type)
 
     def _check_light(self, light):
         if not isinstance(light, PrefilteredEnvironment):
@@ -389,6 +455,7 @@ class GaussianCodec(Codec):
         once converted to float32), naming the first (shared by :meth:`relight` and the GLSL
         decoder). ``values=False`` checks types and shapes only, for a caller whose kernel flags
         bad values itself (``relight_kernels.sg_taps``) and then calls this to raise."""
+        view = view_tensors(view)  # numpy arrays as tensors sharing their memory
         if isinstance(view, torch.Tensor):
             if view.shape != (V, 3):
                 raise ValueError(f"view has shape {tuple(view.shape)}; accepted: taps (idx, w) or global directions [V, 3]")
@@ -422,8 +489,9 @@ class GaussianCodec(Codec):
         ``[V, J, C]``; taps ``(idx int64 [V, k], w [V, k])`` over the stored views (weights zero
         below the horizon, e.g. from :func:`view_taps`) → ``[V, C]`` with the lobes interpolated
         across the tapped views (§2.3); a tensor ``[V, 3]`` of global view directions → the
-        three nearest views' taps, ``[V, C]``. float32. ``out``: an optional result tensor of
-        that shape (``base.check_out``), written and returned.
+        three nearest views' taps, ``[V, C]``. float32: a tensor, or a numpy array for an
+        encoding of numpy data (``Encoded.array_type``; the view may be numpy arrays too).
+        ``out``: an optional result tensor of that shape (``base.check_out``), written and returned.
 
         With taps of at least ``TAPS_CACHE_MIN_LOOKUPS`` lookups (V·N), the second call with the
         same taps tensors, unchanged, and a light of the same pyramid keeps their blend and its
@@ -431,7 +499,8 @@ class GaussianCodec(Codec):
         later such calls read only the texels: the same bits (a static camera under changing
         light; :meth:`relighter` keeps it from the first call).
         """
-        return self._relight_checked(enc, light, view, out)
+        res = self._relight_checked(enc, light, view, out)
+        return res if out is not None else as_array_type(res, enc.array_type)
 
     def _relight_checked(self, enc: Encoded, light, view: Any, out, prepare=None) -> torch.Tensor:
         """``relight``'s checks, then ``_relight``; ``prepare(light, lobes, taps)``: the prepared
@@ -502,7 +571,7 @@ class GaussianCodec(Codec):
         or converted: another int64 ``idx`` or another ``a`` prepares again); a view of global
         directions ``[V, 3]`` keeps its taps (:func:`view_taps`) while the directions are unchanged."""
         self._require_fitted()
-        return GaussianRelighter(self, enc, view, {})
+        return typed_relighter(GaussianRelighter(self, enc, view_tensors(view), {}))
 
     def _relight(self, enc: Encoded, light: PrefilteredEnvironment, view: tuple | None, out: torch.Tensor | None = None,
                  lobes: tuple | None = None, prepared: torch.Tensor | None = None) -> torch.Tensor:
@@ -544,7 +613,8 @@ class GaussianCodec(Codec):
         """Radiance at surface points inside triangles (Green §2.3): at each of the triangle's
         three vertices the lobes of the three nearest views are blended, then the three
         vertices' lobes are blended with the barycentric weights. ``faces [F, 3]``,
-        ``face_index [M]``, ``bary [M, 3]``, global ``view_dirs [M, 3]`` → ``[M, C]`` float32."""
+        ``face_index [M]``, ``bary [M, 3]``, global ``view_dirs [M, 3]`` → ``[M, C]`` float32 (a
+        numpy array for an encoding of numpy data)."""
         self._require_fitted()
         light = self._check_light(light)
         w, mu, sg = self.lobes_of(enc)
@@ -563,7 +633,7 @@ class GaussianCodec(Codec):
             d = self._diffuse(enc, light)[vid]  # [M, 3, C]
             hd = enc.tensors["has_data"].float()[vv, jj]  # [M, 3, k]
             out = out + (bary.float()[..., None] * d * (hd * a[:, None, :]).sum(-1, keepdim=True)).sum(1)
-        return out
+        return as_array_type(out, enc.array_type)
 
     # ------------------------------------------------------------------ storage / state
     def relight_bytes(self, enc: Encoded, view: Any = None) -> int:
