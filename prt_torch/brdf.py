@@ -20,6 +20,11 @@ parameters for ``[V, N, 3]`` directions, or call :meth:`BRDF.view`):
   diffuse); N_u ≠ N_v gives anisotropy. The model both MRT and CPCA use.
 * :class:`Ward` — Ward 1992 anisotropic Gaussian: ρd/π + ρs exp(-tan²θh (cos²φh/αx² +
   sin²φh/αy²)) / (4π αx αy sqrt(cos θi cos θo)).
+* :class:`Microfacet` — Ramamoorthi 2002's simplified microfacet model, eq. 5.34: the
+  cosine-weighted BRDF f_r cos θi = ks exp(-(θh/σ)²)/(4πσ²), θh = ∠(n, h).
+
+:attr:`BRDF.isotropic` says whether a model (with its parameters) is isotropic: Ashikhmin–Shirley
+with N_u ≠ N_v and Ward with αx ≠ αy are not.
 
 SH forms:
 
@@ -63,6 +68,7 @@ __all__ = [
     "BlinnPhong",
     "AshikhminShirley",
     "Ward",
+    "Microfacet",
     "MODELS",
     "make_brdf",
     "from_spec",
@@ -206,6 +212,12 @@ class BRDF:
     def sharpness(self) -> float:
         """An equivalent Phong exponent of the sharpest lobe (≥ 0), used to size quadratures."""
         return 0.0
+
+    @property
+    def isotropic(self) -> bool:
+        """True when f_r depends on the azimuths only through φo - φi for every parameter set
+        (rotating the tangent frame changes nothing)."""
+        return True
 
     def lobes(self, bands: int) -> list[tuple[str, torch.Tensor]]:
         """Radially symmetric lobes of the cosine-weighted BRDF as ``[(axis, h)]`` with
@@ -375,6 +387,11 @@ class AshikhminShirley(BRDF):
     def sharpness(self):
         return float(torch.maximum(self.nu, self.nv).max()) / 4.0
 
+    @property
+    def isotropic(self) -> bool:
+        """N_u = N_v everywhere."""
+        return bool(torch.equal(*torch.broadcast_tensors(self.nu, self.nv)))
+
 
 class Ward(BRDF):
     """Ward 1992 anisotropic Gaussian BRDF:
@@ -404,6 +421,52 @@ class Ward(BRDF):
         a = float(torch.minimum(self.ax, self.ay).min())
         return 1.0 / (2.0 * a * a)
 
+    @property
+    def isotropic(self) -> bool:
+        """αx = αy everywhere."""
+        return bool(torch.equal(*torch.broadcast_tensors(self.ax, self.ay)))
+
+
+class Microfacet(BRDF):
+    """Ramamoorthi 2002's simplified microfacet model (eq. 5.34; eq. 3.42 without its 1/cos θo,
+    Fresnel and shadowing): the cosine-weighted BRDF (the thesis' transfer function ρ̂)
+
+        f_r cos θi = ks exp(-(θh/σ)²) / (4πσ²),   θh = arccos(n·h), h = (wi + wo)/|wi + wo|,
+
+    so f_r = ks exp(-(θh/σ)²) / (4πσ² cos θi). ``sigma`` > 0 is the roughness in radians
+    (about unit energy at normal exitance for small σ), ``ks`` ≥ 0 a scale. Isotropic.
+    """
+
+    name = "microfacet"
+    param_names = ("sigma", "ks")
+
+    def __init__(self, sigma=0.2, ks=1.0):
+        self.sigma = _param("sigma (microfacet roughness)", sigma, 0.0, lo_open=True, hi=2.0)
+        self.ks = _param("ks", ks, 0.0)
+
+    def _lobe(self, wi, wo, p):
+        h = wi + wo
+        h = h / h.norm(dim=-1, keepdim=True).clamp_min(1e-300)
+        th = torch.arccos(h[..., 2].clamp(-1, 1))
+        return p["ks"] * torch.exp(-((th / p["sigma"]) ** 2)) / (4 * math.pi * p["sigma"] ** 2)
+
+    def _eval(self, wi, wo, p):
+        return self._lobe(wi, wo, p) / wi[..., 2].clamp_min(1e-300)
+
+    def cosine_weighted(self, wi, wo):
+        """eq. 5.34 itself, zero where wi or wo is below the surface (no division by cos θi)."""
+        _check_dirs(wi, wo)
+        dtype = torch.promote_types(wi.dtype, wo.dtype)
+        wi, wo = wi.to(dtype), wo.to(dtype)
+        p = {k: v.to(dtype) for k, v in self.params.items()}
+        up = (wi[..., 2] > 0) & (wo[..., 2] > 0)
+        return torch.where(up, self._lobe(wi, wo, p), torch.zeros((), dtype=dtype))
+
+    @property
+    def sharpness(self):
+        """exp(-(θh/σ)²) with θh ≈ θ/2 about the reflected view is cos^s θ for s = 1/(2σ²)."""
+        return 1.0 / (2.0 * float(self.sigma.min()) ** 2)
+
 
 MODELS: dict[str, type[BRDF]] = {
     "lambertian": Lambertian,
@@ -411,6 +474,7 @@ MODELS: dict[str, type[BRDF]] = {
     "blinn_phong": BlinnPhong,
     "ashikhmin_shirley": AshikhminShirley,
     "ward": Ward,
+    "microfacet": Microfacet,
 }
 _ALIASES = {"as": "ashikhmin_shirley", "blinn": "blinn_phong", "blinnphong": "blinn_phong", "lambert": "lambertian", "diffuse": "lambertian"}
 
