@@ -3,14 +3,21 @@ calls the library modules.
 
 A subcommand module defines ``register(subparsers)``, which adds its parser and sets
 ``func=run`` on it via ``set_defaults``. ``run(args) -> int`` returns the exit status. Bad
-input ends with one line and status 2; Ctrl-C ends quietly with status 130 and, where the
-command set ``args.resume_hint`` before its long work, says what was kept and how to continue.
+input ends with one line and status 2; Ctrl-C ends quietly with status 130, SIGTERM (what
+``timeout``, batch schedulers and ``kill`` send) with 143, and both, where the command set
+``args.resume_hint`` before its long work, say what was kept and how to continue. A warning is
+one line, ``prt <command>: warning: ...`` (the library keeps raising Python warnings for library
+users). Options may come anywhere: ``key=value`` overrides after an option still count as
+overrides (``prt bench CONFIG --dry-run key=value``).
 """
 from __future__ import annotations
 
 import argparse
 import importlib
+import signal
 import sys
+import threading
+import warnings
 
 # Order here is the order in ``prt --help``.
 COMMANDS = ["bench", "precompute", "compress", "light", "info", "render", "plot", "validate"]
@@ -33,33 +40,65 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised in the main thread where Ctrl-C would raise KeyboardInterrupt: the same
+    clean ending (temporary files removed by the ``finally`` blocks on the way, the resume hint)."""
+
+
+def _on_sigterm(signum, frame):  # noqa: ARG001 (signal handler signature)
+    raise Terminated()
+
+
+def _one_line_warning(command: str):
+    """A ``warnings.showwarning`` printing ``prt <command>: warning: <message>`` on one line, without
+    the file, line number and source line Python's format adds (they name the library's code, not
+    anything the user typed)."""
+    def show(message, category, filename, lineno, file=None, line=None):  # noqa: ARG001
+        text = " ".join(str(message).split())
+        print(f"prt {command}: warning: {text}", file=file or sys.stderr)
+    return show
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args, extra = parser.parse_known_args(argv)
+    if extra:  # options between the positionals: `prt bench CONFIG --dry-run key=value`
+        if any(a.startswith("-") for a in extra) or not hasattr(args, "overrides"):
+            parser.error(f"unrecognized arguments: {' '.join(extra)}")
+        args.overrides = [*(args.overrides or []), *extra]
     if getattr(args, "func", None) is None:
         if args.command is None and "bench" in parser._subparsers._group_actions[0].choices:  # type: ignore[union-attr]
             # `prt` alone behaves as `prt bench` (the default benchmark).
             return main(["bench", *(argv or [])])
         parser.print_help()
         return 2
+    main_thread = threading.current_thread() is threading.main_thread()
+    old_term = signal.signal(signal.SIGTERM, _on_sigterm) if main_thread else None
     try:
-        return int(args.func(args) or 0)
+        with warnings.catch_warnings():
+            warnings.showwarning = _one_line_warning(args.command)
+            return int(args.func(args) or 0)
     except BrokenPipeError:  # `prt ... | head`: the reader left; not an error
         import os
 
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as e:
         if getattr(args, "debug", False):
             raise
         hint = getattr(args, "resume_hint", None)
-        print(f"prt {args.command}: interrupted" + (f"; {hint}" if hint else ""), file=sys.stderr)
-        return 130
+        how = "terminated (SIGTERM)" if isinstance(e, Terminated) else "interrupted"
+        print(f"prt {args.command}: {how}" + (f"; {hint}" if hint else ""), file=sys.stderr)
+        return 143 if isinstance(e, Terminated) else 130
     except (ValueError, FileNotFoundError, FileExistsError, TypeError, OSError) as e:
         if getattr(args, "debug", False):
             raise
-        print(f"prt {args.command}: error: {e}", file=sys.stderr)
+        hint = getattr(args, "resume_hint", None) if isinstance(e, ChildProcessError) else None  # a worker died mid-run
+        print(f"prt {args.command}: error: {e}" + (f"; {hint}" if hint else ""), file=sys.stderr)
         return 2
+    finally:
+        if main_thread:
+            signal.signal(signal.SIGTERM, old_term if old_term is not None else signal.SIG_DFL)
 
 
 if __name__ == "__main__":  # pragma: no cover

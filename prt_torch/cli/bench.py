@@ -77,11 +77,12 @@ def run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config, overrides)
     runs = expand_runs(cfg)
     if args.dry_run:
-        from ..harness.run import load_mesh_within_budget
+        from ..harness.run import ablation_values, load_mesh_within_budget
 
         for c in runs:
             for sub in [c] + part_configs(c):
-                load_mesh_within_budget(sub)  # the memory estimate the real run refuses on
+                for _, one in ablation_values(sub):  # each value of a transfer ablation is its own transfer
+                    load_mesh_within_budget(one)  # the memory estimate the real run refuses on
                 if sub is not c:
                     print(f"# part {sub['name']!r}: {sub['_part']['note']}")
                 print(json.dumps({k: v for k, v in sub.items() if not k.startswith("_")}, indent=2))

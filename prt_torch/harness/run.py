@@ -556,6 +556,22 @@ def _put(cfg: dict, path: str, value: Any) -> None:
         node[ks[-1]] = value
 
 
+def ablation_values(cfg: dict) -> list[tuple[Any, dict]]:
+    """``[(value, config with the ablation's key set to that value)]`` for a ``transfer.<param>``
+    ablation (one transfer per value: what :func:`run_ablation` runs, and what ``--dry-run`` checks
+    value by value); ``[(None, cfg)]`` otherwise (no ablation, or a codec key: one transfer, the
+    codec entry's grid)."""
+    key = cfg.get("ablation")
+    if not key or not key.startswith("transfer."):
+        return [(None, cfg)]
+    out = []
+    for v in _get(cfg, key):
+        sub = copy.deepcopy(cfg)
+        _put(sub, key, v)
+        out.append((v, sub))
+    return out
+
+
 def run_ablation(cfg: dict, resume: bool = True, progress: bool = True, log: Callable[[str], None] = print,
                  executor: Executor | None = None) -> Path:
     """One modelling choice swept, one combined report (reports/<name>/).
@@ -576,9 +592,7 @@ def run_ablation(cfg: dict, resume: bool = True, progress: bool = True, log: Cal
     if key.startswith("transfer."):
         ref_value = values[-1] if cfg.get("ablation_reference") is None else cfg["ablation_reference"]
         states = []
-        for v in values:
-            sub = copy.deepcopy(cfg)
-            _put(sub, key, v)
+        for v, sub in ablation_values(cfg):
             st = evaluate_run(sub, run_dir, resume, progress, log, label=f"{leaf}{v}", executor=executor)
             for r in st.records:
                 r["ablation"] = {"key": key, "value": v}

@@ -119,6 +119,15 @@ def _serve(inp, out) -> None:
 
 
 if __name__ == "__main__":  # pragma: no cover - runs in the worker process
+    import signal
     import sys
 
-    _serve(sys.stdin.buffer, sys.stdout.buffer)
+    # Any signal ends the worker quietly: Ctrl-C reaches the whole process group (the parent says what
+    # was kept and how to resume; a traceback from here would only bury that), SIGTERM/SIGHUP by default.
+    for sig in ("SIGINT", "SIGTERM", "SIGHUP"):
+        if hasattr(signal, sig) and signal.getsignal(getattr(signal, sig)) is not signal.SIG_IGN:  # ignored stays ignored,
+            signal.signal(getattr(signal, sig), signal.SIG_DFL)  # as the parent's (a background job's SIGINT, nohup's SIGHUP)
+    try:
+        _serve(sys.stdin.buffer, sys.stdout.buffer)
+    except (BrokenPipeError, ConnectionError, EOFError):  # the parent went away mid-request: nothing to report to
+        sys.exit(1)

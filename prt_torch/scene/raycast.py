@@ -21,9 +21,11 @@ traces one share itself.
 from __future__ import annotations
 
 import os
+import signal
 import struct
 import subprocess
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -53,6 +55,22 @@ def _as_np3(name: str, x: Any) -> np.ndarray:
     if a.ndim != 2 or a.shape[1] != 3:
         raise ValueError(f"{name} has shape {a.shape}; accepted: [R, 3]")
     return a
+
+
+def _ended_by_signal(pool: list) -> str | None:
+    """The name of the signal that ended one of the worker processes ``pool``, if one did (waiting
+    briefly for a dying one), else None."""
+    for p in pool:
+        try:
+            rc = p.wait(timeout=0.2)
+        except subprocess.TimeoutExpired:
+            continue
+        if rc is not None and rc < 0:
+            try:
+                return signal.Signals(-rc).name
+            except ValueError:
+                return f"signal {-rc}"
+    return None
 
 
 class RayCaster:
@@ -179,8 +197,13 @@ class RayCaster:
             for w, p in enumerate(pool, start=1):
                 parts.append(decode_reply(p.stdout, op, int(bounds[w + 1] - bounds[w])))
         except (EOFError, BrokenPipeError, OSError) as err:
+            ended_by = _ended_by_signal(pool)
             self.close()
-            raise RuntimeError(f"a ray-casting worker process failed ({err!r}); retry with workers=1") from None
+            if ended_by:  # Ctrl-C or kill to the process group: this process was signalled too; let its handler raise
+                time.sleep(0.5)  # (KeyboardInterrupt, or the CLI's SIGTERM) instead of reporting the worker's end as a failure
+                raise ChildProcessError(f"a ray-casting worker process was ended by {ended_by} (not this process); "
+                                   "retry, or with workers=1") from None
+            raise ChildProcessError(f"a ray-casting worker process failed ({err!r}); retry with workers=1") from None
         if query == "occluded":
             return np.concatenate(parts)
         return tuple(np.concatenate([p[k] for p in parts]) for k in range(4))
