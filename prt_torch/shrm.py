@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from functools import lru_cache
 from typing import Any
 
 import numpy as np
@@ -152,9 +153,14 @@ def rho_hat(brdf: BRDF, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
     return brdf.cosine_weighted(local(wi), local(wo)).to(torch.float64)
 
 
+@lru_cache(maxsize=64)
+def _leggauss(n: int) -> tuple[np.ndarray, np.ndarray]:
+    return np.polynomial.legendre.leggauss(n)  # an n x n eigenproblem: cached
+
+
 def _gl(n: int, a: float, b: float) -> tuple[torch.Tensor, torch.Tensor]:
     """Gauss–Legendre nodes and weights on [a, b] (float64)."""
-    x, w = np.polynomial.legendre.leggauss(int(n))
+    x, w = _leggauss(int(n))
     return (torch.tensor(a + (x + 1) * (b - a) / 2, dtype=torch.float64),
             torch.tensor(w * (b - a) / 2, dtype=torch.float64))
 
@@ -193,7 +199,7 @@ def brdf_coefficients(brdf: Any, F: int, P: int, *, n_theta: int | None = None, 
     """
     brdf = check_brdf(brdf)
     F = check_int("F", F, 0, MAX_BANDS - 1)
-    P = check_int("P", P, 0, F)
+    P = check_int("P", P, 0, MAX_BANDS - 1)
     rho = torch.zeros(F + 1, P + 1, P + 1, dtype=torch.float64)
     if is_radial(brdf):
         axis, h = [(a, h) for a, h in brdf.lobes(F + 1) if bool((h != 0).any())][0]
@@ -272,7 +278,8 @@ def residual_bound(rho: torch.Tensor, rho_total: float, L: torch.Tensor, light_t
     energies are of the coefficients Λ_l L_lm ρ_lpq of eq. 2.55, so Λ enters squared on both sides.
     ``L [C, ≥ (F+1)²]``. Returns ε_B (float)."""
     l, _ = lm_of(F + 1)
-    Lf = L.to(torch.float64)[..., : (F + 1) ** 2]
+    Lf = L.to(torch.float64)
+    Lf = torch.nn.functional.pad(Lf, (0, max(0, (F + 1) ** 2 - Lf.shape[-1])))[..., : (F + 1) ** 2]
     lam2 = band_factor(F + 2) ** 2
     E = energy_table(rho[: F + 1, : P + 1, : P + 1])
     eps_rho = max(0.0, 1 - float(E[F, P]) / rho_total) if rho_total > 0 else 0.0
@@ -308,7 +315,7 @@ def choose_orders(brdf: Any, epsilon: float, light: Any = None, *, F_max: int | 
     F_try = F_max or min(F_cap, int(math.ceil(6 * math.sqrt(1.0 + brdf.sharpness))) + 8)
     P_try = 0 if radial else check_int("P_max", P_max, 0, MAX_P)
     while True:
-        rho, total = brdf_coefficients(brdf, F_try, min(P_try, F_try))
+        rho, total = brdf_coefficients(brdf, F_try, P_try)
         E = energy_table(rho) / total
         ok_P = torch.nonzero(E[-1] >= 1 - eps)
         if ok_P.numel():
@@ -448,7 +455,7 @@ def prefilter_frequency(L: torch.Tensor, rho: torch.Tensor, F: int, P: int, heig
         maps ``[C, (P+1)², H, W]`` float64: B_pq at the texel centres (:func:`latlong_angles`).
     """
     F = check_int("F", F, 0, MAX_BANDS - 1)
-    P = check_int("P", P, 0, F)
+    P = check_int("P", P, 0, MAX_BANDS - 1)
     height = check_int("height", height, 1)
     width = 2 * height if width is None else check_int("width", width, 1)
     nF, nP = (F + 1) ** 2, (P + 1) ** 2
@@ -613,7 +620,7 @@ class SHRM:
     Attributes:
         light: ``[C, (F_B+1)²]`` float64 SH coefficients L_lm of the environment.
         rho: ``[F_B+1, P_B+1, P_B+1]`` float64 BRDF coefficients ρ_{l p |q|}.
-        F_B, P_B: maximum orders (l ≤ F_B, p ≤ P_B).
+        F_B, P_B: maximum orders (l ≤ F_B, p ≤ P_B; P_B may exceed F_B, ρ_lpq needs |q| ≤ min(l, p)).
         axis: ``"reflection"`` (R = 2(n·v)n - v) or ``"normal"`` (Lambertian).
         maps: ``[C, (P_B+1)², H, W]`` float32 local SHRM B_pq(α, β) on the lat-long grid, or None.
         meta: JSON-able provenance (brdf, light, ε, energy, reason, timings).
@@ -761,9 +768,9 @@ def build_shrm(brdf: Any, light: Any, *, epsilon: float | None = 0.03, orders: t
         width = 2 * height if width is None else check_int("width", width, 1, 16384)
     if orders is not None:
         if not (isinstance(orders, (tuple, list)) and len(orders) == 2):
-            raise ValueError(f"orders={orders!r}; accepted: a pair (F_B, P_B) of integers, 0 ≤ P_B ≤ F_B ≤ {MAX_BANDS - 1}")
+            raise ValueError(f"orders={orders!r}; accepted: a pair (F_B, P_B) of integers in [0, {MAX_BANDS - 1}]")
         F_B = check_int("orders F_B", orders[0], 0, MAX_BANDS - 1)
-        P_B = check_int("orders P_B", orders[1], 0, F_B)
+        P_B = check_int("orders P_B", orders[1], 0, MAX_BANDS - 1)
         if is_radial(brdf):
             P_B = 0
         need = estimate_memory(F_B, P_B, height or 1, width or 1, C)
