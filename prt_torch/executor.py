@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import os
 import traceback
 from typing import Any, Callable, Iterable, Sequence
 
@@ -189,9 +190,12 @@ class RayExecutor(Executor):
 
     def start(self) -> "RayExecutor":
         """Connect (or start a local Ray) now; idempotent. Raises :class:`ExecutorUnavailable`
-        without Ray."""
+        without Ray, ``ConnectionError`` naming the address when nothing answers there within
+        ``$PRT_TORCH_RAY_TIMEOUT`` seconds (default 10; Ray itself would retry for minutes)."""
         ray = require_ray()
         if not ray.is_initialized():
+            if self.address is not None:
+                probe_address(self.address, float(os.environ.get("PRT_TORCH_RAY_TIMEOUT", "10")))
             kw: dict[str, Any] = {"include_dashboard": False, "log_to_driver": True}
             if self.address is None:
                 kw["num_cpus"] = self.num_cpus
@@ -261,6 +265,25 @@ class RayExecutor(Executor):
             self._started = False
         self._remote = None
         self._shipped = None
+
+
+def probe_address(address: str, timeout: float) -> None:
+    """Refuse, within ``timeout`` seconds, a Ray address ``HOST:PORT`` (or ``ray://HOST:PORT``) where
+    nothing accepts a TCP connection: ``ConnectionError`` naming it. ``auto`` and other forms are left
+    to Ray (it refuses them at once when no cluster is found)."""
+    import socket
+
+    hostport = address[len("ray://"):] if address.startswith("ray://") else address
+    host, sep, port = hostport.rpartition(":")
+    if not sep or not port.isdigit():
+        return
+    try:
+        with socket.create_connection((host.strip("[]") or "127.0.0.1", int(port)), timeout=timeout):
+            pass
+    except OSError as e:
+        raise ConnectionError(f"--ray-address {address!r}: no Ray cluster answers there ({e.strerror or e}; waited up to {timeout:g} s); "
+                              "accepted: the address `ray start --head` printed, of a cluster that is running "
+                              "(PRT_TORCH_RAY_TIMEOUT sets the wait)") from None
 
 
 def make_executor(name: str = "local", address: str | None = None, **kwargs) -> Executor:

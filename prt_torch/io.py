@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 from pathlib import Path
 from typing import Any, Callable, Iterator
@@ -31,7 +32,7 @@ FORMAT = "prt_torch"
 FORMAT_VERSION = 1
 
 __all__ = ["save", "load", "load_meta", "atomic_path", "atomic_write_text", "atomic_write_json", "jsonable", "check_writable",
-           "describe", "register_check", "format_bytes", "FORMAT_VERSION"]
+           "check_outputs", "strict_json", "describe", "register_check", "format_bytes", "FORMAT_VERSION"]
 
 
 @contextlib.contextmanager
@@ -103,6 +104,48 @@ def check_writable(path: str | os.PathLike, what: str = "output", directory: boo
     return path
 
 
+def _identity(path: Path):
+    """What names one file: (device, inode) of an existing path (links followed), else its resolved path."""
+    try:
+        st = path.stat()
+        return (st.st_dev, st.st_ino)
+    except OSError:
+        return str(path.resolve())
+
+
+def check_outputs(outputs: dict[str, Any], inputs: dict[str, Any] | None = None, overwrite: bool = False,
+                  directories: tuple[str, ...] = ()) -> None:
+    """Refuse, before any work, outputs that would destroy a file: ``outputs`` and ``inputs`` map
+    the option that names each (``"-o"``, ``"--compare"``, ``"TRANSFER"``) to its path (None: not
+    given; a list: several). An output may never be an input or another output of the same command
+    (the same file by any name: links followed), every output must be writable
+    (:func:`check_writable`; the options in ``directories`` name directories), and an existing
+    output is replaced only with ``overwrite`` (the command's ``--overwrite``). Raises ValueError or
+    FileExistsError naming the options and paths."""
+    def items(d):
+        for opt, v in (d or {}).items():
+            for x in (v if isinstance(v, (list, tuple)) else [v]):
+                if x is not None and str(x) != "":
+                    yield opt, Path(x)
+
+    ins = [(opt, p, _identity(p)) for opt, p in items(inputs) if p.exists()]
+    seen: dict = {}
+    for opt, p in items(outputs):
+        ident = _identity(p)
+        for iopt, ip, iid in ins:
+            if ident == iid:
+                raise ValueError(f"{opt} {str(p)!r} is the input {iopt} {str(ip)!r}: writing it would destroy the input; "
+                                 "accepted: an output path that is not one of the command's inputs")
+        if ident in seen:
+            o2, p2 = seen[ident]
+            raise ValueError(f"{opt} {str(p)!r} and {o2} {str(p2)!r} are the same file: one output would replace the other; "
+                             "accepted: distinct output paths")
+        seen[ident] = (opt, p)
+        check_writable(p, opt, directory=opt in directories)
+        if p.exists() and not overwrite:
+            raise FileExistsError(f"{opt} {str(p)!r} exists; pass --overwrite to replace it")
+
+
 def atomic_write_text(path: str | os.PathLike, text: str) -> None:
     """Write ``text`` to ``path`` atomically."""
     with atomic_path(path) as tmp:
@@ -118,6 +161,21 @@ def jsonable(obj: Any) -> Any:
     """``obj`` as plain JSON types (tensors and arrays to lists, paths and other objects to
     strings): what metadata and result files store."""
     return json.loads(json.dumps(obj, default=lambda o: _json_default(o, strict=False)))
+
+
+def strict_json(obj: Any) -> Any:
+    """``obj`` as plain JSON types (:func:`jsonable`) with every NaN or infinity replaced by ``null``:
+    what ``json.dumps(..., allow_nan=False)`` accepts (JSON has no NaN; Python's ``NaN`` token is not
+    read by other parsers)."""
+    def walk(o):
+        if isinstance(o, float) and not math.isfinite(o):
+            return None
+        if isinstance(o, dict):
+            return {k: walk(v) for k, v in o.items()}
+        if isinstance(o, list):
+            return [walk(v) for v in o]
+        return o
+    return walk(jsonable(obj))
 
 
 def _json_default(o: Any, strict: bool = True) -> Any:

@@ -4,6 +4,7 @@ long run ends cleanly on SIGINT (to the process group, as Ctrl-C sends it), SIGT
 ``timeout``, schedulers and ``kill`` send) and SIGKILL, of the main process or of a ray-casting
 worker: the exit status, one line naming what happened and how to continue, no traceback, no
 output file half-written, no worker left behind."""
+import json
 import os
 import signal
 import subprocess
@@ -12,6 +13,7 @@ import time
 from pathlib import Path
 
 import pytest
+import torch
 
 from prt_torch.cli import main as cli_main
 from prt_torch.harness.config import builtin_configs
@@ -129,3 +131,120 @@ def test_a_killed_main_process_leaves_no_worker_and_no_output(tmp_path):
     assert not [w for w in workers if Path(f"/proc/{w}").exists()], "a worker outlived its killed parent"
     assert not (tmp_path / "t.prt").exists()
     assert list((tmp_path / "t.prt.state").glob("chunk_*.prt"))  # what --resume continues from
+
+
+# ------------------------------------------------------------------ data loss: outputs that would destroy files
+
+@pytest.fixture(scope="module")
+def small_transfer(tmp_path_factory):
+    d = tmp_path_factory.mktemp("tr")
+    src = d / "t.prt"
+    assert cli_main(["precompute", "convex", "--samples", "16", "--bands", "3", "--no-progress", "-o", str(src)]) == 0
+    return src
+
+
+def _refused(argv, capsys, *names):
+    """The command ends with status 2 and one line on stderr naming each of ``names``."""
+    assert cli_main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"prt {argv[0]}: error: "), err
+    for n in names:
+        assert n in err[0], err
+    return err[0]
+
+
+def _snapshot(d: Path) -> dict:
+    return {p: (p.stat().st_mtime_ns, p.read_bytes()) for p in sorted(d.rglob("*")) if p.is_file()}
+
+
+def test_render_refuses_a_comparison_onto_its_own_output(small_transfer, tmp_path, capsys):
+    out = tmp_path / "x.png"
+    out.write_bytes(b"an earlier render")
+    before = _snapshot(tmp_path)
+    _refused(["render", str(small_transfer), "-o", str(out), "--compare", str(out), "--overwrite"], capsys, "--compare", "same file")
+    assert _snapshot(tmp_path) == before
+
+
+def test_render_refuses_to_write_over_its_input(small_transfer, tmp_path, capsys):
+    link = tmp_path / "same.png"  # another name of the transfer file: the same file
+    link.symlink_to(small_transfer)
+    before = small_transfer.read_bytes()
+    _refused(["render", str(small_transfer), "-o", str(link), "--overwrite"], capsys, "TRANSFER", "destroy the input")
+    assert small_transfer.read_bytes() == before
+
+
+def test_compress_refuses_to_replace_its_own_input(small_transfer, capsys):
+    before = (small_transfer.stat().st_mtime_ns, small_transfer.read_bytes())
+    _refused(["compress", str(small_transfer), "--codec", "pca", "--vectors", "2", "-o", str(small_transfer), "--overwrite"], capsys,
+             "-o/--output", "TRANSFER")
+    assert (small_transfer.stat().st_mtime_ns, small_transfer.read_bytes()) == before
+
+
+def test_precompute_refuses_to_replace_its_mesh(tmp_path, capsys):
+    import trimesh
+
+    mesh = tmp_path / "m.ply"
+    trimesh.creation.icosphere(subdivisions=1).export(mesh)
+    before = mesh.read_bytes()
+    _refused(["precompute", str(mesh), "--samples", "8", "--no-progress", "-o", str(mesh), "--overwrite"], capsys, "MESH_OR_BUILTIN")
+    assert mesh.read_bytes() == before and not (tmp_path / "m.ply.state").exists()
+
+
+def test_light_refuses_a_preview_over_its_image(tmp_path, capsys):
+    from prt_torch.lighting import write_image
+
+    img = tmp_path / "env.png"
+    write_image(img, torch.rand(16, 32, 3))
+    before = img.read_bytes()
+    _refused(["light", str(img), "--preview", str(img), "--overwrite"], capsys, "--preview", "LIGHT")
+    assert img.read_bytes() == before
+
+
+def test_plot_needs_overwrite_for_existing_plots(tmp_path, capsys):
+    res = {"version": 1, "records": []}
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / "results.json").write_text(json.dumps(res))
+    out = tmp_path / "plots"
+    out.mkdir()
+    (out / "rd.png").write_bytes(b"kept")
+    _refused(["plot", str(tmp_path / "run"), "-o", str(out)], capsys, "rd.png", "--overwrite")
+    assert (out / "rd.png").read_bytes() == b"kept" and not (out / "speed_accuracy.png").exists()
+
+
+def test_validate_refuses_impossible_sampling_and_its_json_over_an_input(small_transfer, tmp_path, capsys):
+    for opt, val, name in (("--spp", "0", "spp"), ("--vertices", "0", "vertices"), ("--batches", "0", "batches"),
+                           ("--view-deg", "nan", "view_deg")):
+        _refused(["validate", str(small_transfer), "--light", "sky", opt, val], capsys, name)
+    _refused(["validate", str(small_transfer), "--light", "sky", "--json", str(small_transfer), "--overwrite"], capsys, "--json", "TRANSFER")
+    (tmp_path / "r.json").write_text("{}")
+    _refused(["validate", str(small_transfer), "--light", "sky", "--json", str(tmp_path / "r.json")], capsys, "--overwrite")
+
+
+def test_strict_json_has_no_nan():
+    from prt_torch.io import strict_json
+
+    obj = {"a": float("nan"), "b": [1.0, float("inf"), {"c": -float("inf")}], "d": torch.tensor([1.0, float("nan")])}
+    text = json.dumps(strict_json(obj), allow_nan=False)
+    assert json.loads(text) == {"a": None, "b": [1.0, None, {"c": None}], "d": [1.0, None]}
+
+
+# ------------------------------------------------------------------ hangs: an unreachable Ray address
+
+@pytest.mark.parametrize("cmd", [["precompute", "convex", "--samples", "8", "--no-progress", "-o", "out.prt"],
+                                 ["bench", "default", "--no-render"]])
+def test_an_unreachable_ray_address_is_refused_in_time_creating_nothing(cmd, tmp_path):
+    pytest.importorskip("ray")
+    import socket
+
+    with socket.socket() as s:  # a port nothing listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    env = {**os.environ, "PRT_TORCH_RAY_TIMEOUT": "3"}
+    t0 = time.monotonic()
+    r = subprocess.run([*PRT, *cmd, "--executor", "ray", "--ray-address", f"127.0.0.1:{port}"], cwd=tmp_path, env=env,
+                       capture_output=True, text=True, timeout=120)
+    assert time.monotonic() - t0 < 60
+    assert r.returncode == 2, r.stderr
+    err = r.stderr.strip().splitlines()
+    assert len(err) == 1 and f"127.0.0.1:{port}" in err[0] and "Traceback" not in r.stderr, r.stderr
+    assert list(tmp_path.iterdir()) == []  # no output, no state directory, no reports or cache

@@ -43,14 +43,18 @@ def add_executor_args(p, what: str) -> None:
                         "default: start a local Ray with every core")
 
 
-def executor_from_args(args: argparse.Namespace):
-    """The executor ``--executor``/``--ray-address`` ask for; checks that Ray is installed
-    before any work (it connects on first use)."""
+def executor_from_args(args: argparse.Namespace, connect: bool = True):
+    """The executor ``--executor``/``--ray-address`` ask for; checks that Ray is installed and
+    (``connect``) connects to it before any work, so that an unreachable address is refused,
+    naming it, before anything is created."""
     from ..executor import make_executor
 
     if args.ray_address is not None and args.executor != "ray":
         raise ValueError(f"--ray-address {args.ray_address!r} needs --executor ray (got --executor {args.executor})")
-    return make_executor(args.executor, args.ray_address)
+    ex = make_executor(args.executor, args.ray_address)
+    if connect and hasattr(ex, "start"):
+        ex.start()
+    return ex
 
 
 def run(args: argparse.Namespace) -> int:
@@ -73,7 +77,7 @@ def run(args: argparse.Namespace) -> int:
         overrides.append(f"target.codec={args.target_codec}")
     if args.target_param:
         overrides.append(f"target.param={args.target_param}")
-    executor = executor_from_args(args)
+    executor = executor_from_args(args, connect=not args.dry_run)
     cfg = load_config(args.config, overrides)
     runs = expand_runs(cfg)
     if args.dry_run:

@@ -115,13 +115,10 @@ def run(args) -> int:
         raise ValueError("prt compress needs TRANSFER (input file) and -o OUTPUT (or --list / --describe NAME)")
     params = _params(args)
     codec = codecs.get(args.codec, **params)  # validates name and parameters before any work
-    from pathlib import Path
 
-    from ..io import check_writable
+    from ..io import check_outputs
 
-    check_writable(args.output, "output")  # before the fit
-    if Path(args.output).exists() and not args.overwrite:
-        raise FileExistsError(f"output {args.output!r} exists; pass --overwrite to replace it")
+    check_outputs({"-o/--output": args.output}, {"TRANSFER": args.transfer}, args.overwrite)  # before the fit
     X, ms, meta, geometry = load_input(args.transfer, codec)
     t0 = time.perf_counter()
     try:

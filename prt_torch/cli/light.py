@@ -63,6 +63,12 @@ def _tonemap(img: torch.Tensor) -> torch.Tensor:
 
 
 def run(args: argparse.Namespace) -> int:
+    from ..io import check_outputs
+
+    faces = [args.irradiance_map.format(face=f) for f in ("px", "nx", "py", "ny", "pz", "nz")] \
+        if args.irradiance_map and "{face}" in args.irradiance_map else args.irradiance_map
+    light_files = [args.light.format(face=f) for f in ("px", "nx", "py", "ny", "pz", "nz")] if "{face}" in args.light else args.light
+    check_outputs({"--irradiance-map": faces, "--preview": args.preview}, {"LIGHT": light_files}, args.overwrite)  # before any work
     env: Environment | None = None
     spec = args.light
     if spec in list_builtin_environments():

@@ -166,11 +166,10 @@ def _run(args, executor) -> int:
     params = params_from_args(args.kind, args)
     kind.validate(params, where=f"prt precompute --kind {args.kind}")
     out = Path(args.output)
-    from ..io import check_writable
+    from ..io import check_outputs
 
-    check_writable(out, "output", directory=kind.output == "directory")  # before any work
-    if out.exists() and not args.overwrite:
-        raise FileExistsError(f"output {str(out)!r} exists; pass --overwrite to replace it")
+    check_outputs({"-o/--output": out}, {"MESH_OR_BUILTIN": args.scene, "--light": args.light}, args.overwrite,
+                  directories=("-o/--output",) if kind.output == "directory" else ())  # before any work
     state = default_state_dir(out)
     if state.exists() and not args.resume:
         if args.overwrite:

@@ -128,13 +128,10 @@ def run(args) -> int:
     cmp_png = Path(args.compare) if args.compare else None
     if cmp_png is not None and cmp_png.suffix.lower() != ".png":
         raise ValueError(f"--compare {args.compare!r}; accepted: a .png path (the linear EXR goes next to it)")
-    outputs = [out] + ([cmp_png, cmp_png.with_suffix(".exr")] if cmp_png else [])
-    from ..io import check_writable
+    from ..io import check_outputs
 
-    for o in outputs:
-        check_writable(o, "output")  # before any rendering
-        if o.exists() and not args.overwrite:
-            raise FileExistsError(f"output {str(o)!r} exists; pass --overwrite to replace it")
+    check_outputs({"-o/--output": out, "--compare": cmp_png, "--compare (its linear EXR)": cmp_png and cmp_png.with_suffix(".exr")},
+                  {"TRANSFER": args.transfer, "--codec-file": args.codec_file, "--light": args.light}, args.overwrite)  # before any rendering
     if args.exposure != "auto":
         try:
             float(args.exposure)

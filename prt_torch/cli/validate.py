@@ -36,7 +36,9 @@ def register(subparsers) -> None:
     p.add_argument("--mesh", help="glossy transfer of a vertex subset: the full mesh it was computed on (built-in name or file)")
     p.add_argument("--view-deg", type=float, default=60.0,
                    help="glossy: views drawn within this angle of each vertex normal (default 60)")
-    p.add_argument("--json", metavar="PATH", help="also write the full report (per-vertex values) as JSON")
+    p.add_argument("--json", metavar="PATH", help="also write the full report (per-vertex values) as strict JSON "
+                                                  "(a non-finite value as null)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --json file")
     p.add_argument("--debug", action="store_true", help="show tracebacks")
     p.set_defaults(func=run)
 
@@ -44,8 +46,12 @@ def register(subparsers) -> None:
 def run(args) -> int:
     from ..validate import ValidatorUnavailable, format_report, validate
 
+    from ..io import atomic_write_text, check_outputs, strict_json
+
     if not Path(args.transfer).exists():
         raise FileNotFoundError(f"transfer file {args.transfer!r} does not exist")
+    check_outputs({"--json": args.json}, {"TRANSFER": args.transfer, "--codec-file": args.codec_file, "--light": args.light,
+                                          "--mesh": args.mesh}, args.overwrite)  # before any work
     mesh = None
     if args.mesh:
         from ..scene import load_scene
@@ -60,5 +66,5 @@ def run(args) -> int:
         return 3
     print(format_report(rep))
     if args.json:
-        Path(args.json).write_text(json.dumps(rep, indent=1))
+        atomic_write_text(args.json, json.dumps(strict_json(rep), indent=1, allow_nan=False))
     return 0

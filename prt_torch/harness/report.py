@@ -25,7 +25,10 @@ from typing import Any, Callable
 
 from .. import io
 
-__all__ = ["write_outputs", "pareto_front", "plot_results", "CSV_COLUMNS", "load_results"]
+__all__ = ["write_outputs", "pareto_front", "plot_results", "CSV_COLUMNS", "load_results", "PLOT_FILES"]
+
+#: the files :func:`plot_results` writes into its directory
+PLOT_FILES = ("rd.png", "speed_accuracy.png")
 
 CSV_COLUMNS = [
     "setting_id", "codec", "params", "encode_s", "bytes_total", "bytes_per_vertex", "compression_ratio",
@@ -128,7 +131,7 @@ def plot_results(results_list: list[dict], out_dir: Path, labels: list[str] | No
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    paths.append(_save_figure(fig, out_dir / "rd.png"))
+    paths.append(_save_figure(fig, out_dir / PLOT_FILES[0]))
 
     fig, ax = plt.subplots(figsize=(6.4, 4.4))
     allpts = []
@@ -151,7 +154,7 @@ def plot_results(results_list: list[dict], out_dir: Path, labels: list[str] | No
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    paths.append(_save_figure(fig, out_dir / "speed_accuracy.png"))
+    paths.append(_save_figure(fig, out_dir / PLOT_FILES[1]))
     return paths
 
 

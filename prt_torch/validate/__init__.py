@@ -27,7 +27,7 @@ from typing import Any
 
 import torch
 
-from .._checks import check_choice
+from .._checks import check_choice, check_float, check_int
 from ..lighting import load_light
 from ..scene import Mesh
 from ..transfer import Transfer
@@ -98,11 +98,19 @@ def validate(transfer: Transfer | str | os.PathLike, light: Any, *, vertices: in
         if codec_file is not None:
             raise ValueError("codec_file with a glossy transfer: codec comparison is for diffuse transfer; accepted: no codec_file")
     check_choice("light_source", light_source, ["sh", "image"])
+    vertices = check_int("vertices", vertices, 1, transfer.data.shape[0])
+    batches = check_int("batches", batches, 1, 4096)
+    spp = check_int("spp", spp, batches, 1 << 24)  # every batch renders at least one sample
+    seed = check_int("seed", seed, 0, 2**63 - 1)
+    check_float("view_deg", view_deg, 0.0, 90.0, lo_open=True)
+    check_float("sharp_deg", sharp_deg, 0.0, 180.0)
     bands = int(transfer.meta["bands"])
     name = light_name or (str(light) if not isinstance(light, torch.Tensor) else "SH tensor")
     L = light if isinstance(light, torch.Tensor) else load_light(light, bands)
     L = torch.as_tensor(L, dtype=torch.float64)
     L = L[None] if L.ndim == 1 else L
+    if not bool(torch.isfinite(L).all()):
+        raise ValueError(f"light {name!r} has non-finite SH coefficients; accepted: a light with finite values")
     if L.shape[1] != bands * bands:
         raise ValueError(f"light {name!r} has {L.shape[1]} SH coefficients; accepted: {bands * bands} (the transfer's {bands} bands)")
     src_img = None
@@ -121,6 +129,11 @@ def validate(transfer: Transfer | str | os.PathLike, light: Any, *, vertices: in
         from .. import codecs
 
         codec = codecs.load(codec_file)
+        enc_points = int(codec[1].meta.get("points", -1))
+        if enc_points != transfer.data.shape[0] or getattr(codec[0], "D_", None) != transfer.data[0].numel():
+            raise ValueError(f"codec file {str(codec_file)!r} encodes {enc_points} points of dimension {getattr(codec[0], 'D_', None)}, "
+                             f"but the transfer has {transfer.data.shape[0]} vertices of {transfer.data[0].numel()}: the codec "
+                             "file does not belong to this transfer; accepted: prt compress output of this transfer file")
     require_mitsuba()
     if transfer.kind == "glossy":
         rep = validate_glossy(transfer, L, name, sh_img if src_img is None else src_img, mesh=mesh, vertices=vertices, spp=spp,
