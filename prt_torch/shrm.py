@@ -41,8 +41,10 @@ straight from the coefficients) and saves/loads it (``kind: "shrm"``).
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass, field
 from functools import lru_cache
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -51,6 +53,7 @@ import torch
 from . import io
 from ._checks import check_float, check_int, check_shape, check_unit_vectors
 from .brdf import BRDF, from_spec as brdf_from_spec
+from .lighting import builtin_environment, list_builtin_environments, load_environment, load_light, parse_light_spec
 from .sh import MAX_BANDS, band_factor, eval_sh, lm_of, rotate, rotation_blocks
 
 __all__ = [
@@ -733,6 +736,20 @@ class SHRM:
         return io.save(path, tensors, kind="shrm", meta=meta, overwrite=overwrite)
 
 
+def _resolve_light(light: Any) -> Any:
+    """A built-in environment name or an image file -> its Environment (pixels give eq. 5.15's
+    total); analytic specs (str or dict), environments and coefficient tensors pass through."""
+    if isinstance(light, str) and light in list_builtin_environments():
+        return builtin_environment(light)
+    if isinstance(light, (str, os.PathLike)) and (not isinstance(light, str) or parse_light_spec(light) is None):
+        if "{face}" not in str(light) and not Path(light).exists():
+            raise FileNotFoundError(
+                f"light {str(light)!r} is neither an existing file, a built-in environment "
+                f"({', '.join(list_builtin_environments())}) nor an analytic spec (e.g. 'directional:direction=0,0,1')")
+        return load_environment(light)
+    return light
+
+
 def load_shrm(path) -> SHRM:
     """Read a file written by :meth:`SHRM.save`."""
     t, meta = io.load(path, expect_kind="shrm")
@@ -746,8 +763,10 @@ def build_shrm(brdf: Any, light: Any, *, epsilon: float | None = 0.03, orders: t
 
     Args:
         brdf: isotropic model or spec (:func:`check_brdf`).
-        light: SH coefficients ``[C, n²]`` (then n² ≥ (F_B+1)²; missing bands count as zero) or an
-            environment (``Environment``: projected to F_B by its own quadrature).
+        light: SH coefficients ``[C, n²]`` (missing bands count as zero), an ``Environment``
+            (projected to F_B by its own quadrature; its pixels give ε_L), a built-in environment
+            name or image file (loaded as an Environment), or an analytic spec (``lighting.load_light``
+            at F_B + 1 bands; no ε_L, its total is not known).
         epsilon: in (0, 1): orders by :func:`choose_orders`; ignored when ``orders`` is given.
         orders: ``(F_B, P_B)`` explicitly (meta reason says so).
         height, width: map grid (lat-long; width default 2·height), or height None for no maps.
@@ -756,8 +775,12 @@ def build_shrm(brdf: Any, light: Any, *, epsilon: float | None = 0.03, orders: t
         :class:`SHRM` with maps (float32) unless ``height`` is None.
     """
     brdf = check_brdf(brdf)
+    light = _resolve_light(light)
+    analytic = isinstance(light, (str, dict))
     C = 3
-    if not hasattr(light, "project"):
+    if analytic:
+        C = load_light(light, 1).shape[0]
+    elif not hasattr(light, "project"):
         lt = torch.as_tensor(light, dtype=torch.float64)
         check_shape("light", lt, ndim=2)
         C = lt.shape[0]
@@ -787,7 +810,7 @@ def build_shrm(brdf: Any, light: Any, *, epsilon: float | None = 0.03, orders: t
         if epsilon is None:
             raise ValueError("give epsilon in (0, 1) or orders=(F_B, P_B)")
         eps = check_float("epsilon", epsilon, 0.0, 1.0, lo_open=True, hi_open=True)
-        F_B, P_B, info = choose_orders(brdf, eps, light)
+        F_B, P_B, info = choose_orders(brdf, eps, None if analytic else light)
         need = estimate_memory(F_B, P_B, height or 1, width or 1, C)
         if need > max_memory:
             raise ValueError(
@@ -795,7 +818,9 @@ def build_shrm(brdf: Any, light: Any, *, epsilon: float | None = 0.03, orders: t
                 f"{need / 2**30:.2f} GiB; accepted: at most max_memory={max_memory / 2**30:.2f} GiB: a larger epsilon "
                 "or a smaller map")
         rho, _ = brdf_coefficients(brdf, F_B, P_B)
-    if hasattr(light, "project"):
+    if analytic:
+        L = load_light(light, F_B + 1)
+    elif hasattr(light, "project"):
         L = light.project(F_B + 1)
     else:
         L = torch.as_tensor(light, dtype=torch.float64)

@@ -207,3 +207,27 @@ def test_refuses_orders_too_large_for_memory_before_work(light6):
         S.build_shrm(Microfacet(0.3), light6, orders=(4, -1), height=8)
     with pytest.raises(ValueError, match="orders F_B"):
         S.build_shrm(Microfacet(0.3), light6, orders=(400, 2), height=8)
+
+
+def test_cli_shrm_json_and_file(tmp_path, capsys):
+    """`prt shrm ... --json` prints F_B, P_B and the energy; the file loads back. σ = 0.3 at ε = 0.03
+    is the thesis' (7, 2) (Table 5.5)."""
+    import json
+
+    from prt_torch.cli import main
+
+    out = tmp_path / "m.prt"
+    rc = main(["shrm", "--brdf", "microfacet", "--brdf-param", "sigma=0.3", "--light", "studio", "--epsilon", "0.03",
+               "--size", "16", "-o", str(out), "--json"])
+    assert rc == 0
+    info = json.loads(capsys.readouterr().out)
+    assert (info["F_B"], info["P_B"]) == (7, 2) and 0.97 <= info["energy"] < 1
+    m = S.load_shrm(out)
+    assert (m.F_B, m.P_B) == (7, 2) and tuple(m.maps.shape) == (3, 9, 16, 32)
+    assert main(["shrm", "--brdf", "microfacet", "--light", "studio", "--size", "8", "-o", str(out)]) == 2  # exists
+    assert "--overwrite" in capsys.readouterr().err
+    assert main(["shrm", "--brdf", "ward", "--brdf-param", "ax=0.1", "--brdf-param", "ay=0.3", "--light", "studio",
+                 "-o", str(tmp_path / "w.prt")]) == 2
+    assert "anisotropic" in capsys.readouterr().err
+    assert main(["shrm", "--brdf", "phong", "--light", "sky", "--orders", "3", "-o", str(tmp_path / "p.prt")]) == 2
+    assert "--orders='3'; accepted: two integers F,P" in capsys.readouterr().err
