@@ -105,20 +105,36 @@ def _complaint(stderr: str, tmp: Path, origin: Path | None) -> str:
     return (head + ("\n..." if head else "") + "\n" + rest[-600:]) if head else rest[-800:]
 
 
+#: how :func:`_build` compiles (part of every library's key: a change of method rebuilds)
+_BUILD = "one translation unit of the .c files in order"
+
+
 def _key(name: str, sources: dict[str, str], flags: list[str], extra: list[str]) -> str:
-    parts = [name] + [f"{n}\0{t}" for n, t in sources.items()] + [" ".join(flags)] + extra
+    parts = [name, _BUILD] + [f"{n}\0{t}" for n, t in sources.items()] + [" ".join(flags)] + extra
     return hashlib.sha256("\0".join(parts).encode()).hexdigest()[:16]
 
 
 def _build(cc: str, flags: list[str], sources: dict[str, str], name: str, so: Path, origin: Path | None) -> str | None:
-    """Compile ``sources`` (file name → text; the ``.c`` files compiled and linked together, the
-    headers found beside them) into ``so`` (atomically); the compiler's complaint, or None."""
+    """Compile ``sources`` (file name → text; the headers found beside the ``.c`` files) into ``so``
+    (atomically); the compiler's complaint, or None.
+
+    Several ``.c`` files are compiled as one translation unit, each ``#include``d in the given order
+    by a generated ``<name>.unity.c``: the compiler then sees what it saw when the kernels were one
+    source (the relight library's machine code is byte-identical to the former single string's,
+    objdump-checked), so it inlines across files and lays the code out as before — these kernels'
+    speed moves by a few per cent with code placement alone (docs/codecs.md). Each file still
+    compiles on its own (tests/test_kernel_sources.py), and an error names the file and line."""
     so.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(dir=so.parent) as tmp:
         tmp = Path(tmp)
         for n, text in sources.items():
             (tmp / n).write_text(text)
-        units = [str(tmp / n) for n in sources if n.endswith(".c")]
+        units = [n for n in sources if n.endswith(".c")]
+        if len(units) > 1:
+            unity = tmp / f"{name}.unity.c"
+            unity.write_text("".join(f'#include "{n}"\n' for n in units))
+            units = [unity.name]
+        units = [str(tmp / n) for n in units]
         out = tmp / f"{name}.so"
         r = subprocess.run([cc, *flags, f"-I{tmp}", *units, "-o", str(out), "-lm"], capture_output=True, text=True, timeout=300)
         if r.returncode != 0:

@@ -65,6 +65,21 @@ def test_a_compile_error_names_the_source_file_and_line(tmp_path, monkeypatch):
 
 
 @needs_cc
+def test_an_error_in_one_file_of_a_multi_file_library_names_that_file(tmp_path, monkeypatch):
+    """The relight library compiles its .c files as one translation unit; an error still names the
+    file it is in, not the generated unit that includes it."""
+    monkeypatch.setenv("PRT_TORCH_CACHE", str(tmp_path / "cache"))
+    names, flags = LIBRARIES["relight"]
+    src = kernel_sources(names)
+    n_lines = src["affine_taps.c"].count("\n")
+    src["affine_taps.c"] += "int broken(void) { return undeclared_name; }\n"
+    lib, why = compile_library("relight", src, list(flags), {})
+    assert lib is None
+    first = next(ln for ln in why.splitlines() if ": error:" in ln)
+    assert f"{KERNELS_DIR / 'affine_taps.c'}:{n_lines + 1}:" in first and "undeclared_name" in first, why
+
+
+@needs_cc
 def test_a_prebuilt_library_is_used_only_for_its_sources_flags_and_a_cpu_that_runs_it(tmp_path, monkeypatch):
     pre = tmp_path / "prebuilt"
     assert "built" in prebuild("raygen", pre)
