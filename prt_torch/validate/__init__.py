@@ -98,7 +98,7 @@ def validate(transfer: Transfer | str | os.PathLike, light: Any, *, vertices: in
         if codec_file is not None:
             raise ValueError("codec_file with a glossy transfer: codec comparison is for diffuse transfer; accepted: no codec_file")
     check_choice("light_source", light_source, ["sh", "image"])
-    vertices = check_int("vertices", vertices, 1, transfer.data.shape[0])
+    vertices = check_int("vertices", vertices, 1)
     batches = check_int("batches", batches, 1, 4096)
     spp = check_int("spp", spp, batches, 1 << 24)  # every batch renders at least one sample
     seed = check_int("seed", seed, 0, 2**63 - 1)
