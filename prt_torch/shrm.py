@@ -43,18 +43,16 @@ from __future__ import annotations
 import math
 import os
 from dataclasses import dataclass, field
-from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 
 from . import io
 from ._checks import check_float, check_int, check_shape, check_unit_vectors
 from .brdf import BRDF, from_spec as brdf_from_spec
 from .lighting import builtin_environment, list_builtin_environments, load_environment, load_light, parse_light_spec
-from .sh import MAX_BANDS, band_factor, eval_sh, lm_of, rotate, rotation_blocks
+from .sh import MAX_BANDS, band_factor, eval_sh, gauss_legendre, latlong_grid, lm_of, rotate, rotation_blocks
 
 __all__ = [
     "SHRM",
@@ -156,18 +154,6 @@ def rho_hat(brdf: BRDF, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
     return brdf.cosine_weighted(local(wi), local(wo)).to(torch.float64)
 
 
-@lru_cache(maxsize=64)
-def _leggauss(n: int) -> tuple[np.ndarray, np.ndarray]:
-    return np.polynomial.legendre.leggauss(n)  # an n x n eigenproblem: cached
-
-
-def _gl(n: int, a: float, b: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """Gauss–Legendre nodes and weights on [a, b] (float64)."""
-    x, w = _leggauss(int(n))
-    return (torch.tensor(a + (x + 1) * (b - a) / 2, dtype=torch.float64),
-            torch.tensor(w * (b - a) / 2, dtype=torch.float64))
-
-
 def _k_table(theta: torch.Tensor, F: int, P: int) -> torch.Tensor:
     """K_lq(θ) = y_lq(θ, φ = 0) for q = 0..min(l, P): ``[N, F+1, P+1]`` float64 (zero for q > l);
     y_l,±q(θ, φ) = K_lq(θ) cos(qφ) / sin(qφ)."""
@@ -209,19 +195,19 @@ def brdf_coefficients(brdf: Any, F: int, P: int, *, n_theta: int | None = None, 
         rho[:, 0, 0] = math.sqrt(4 * math.pi) * h.to(torch.float64)
         width = 1.0 / math.sqrt(1.0 + brdf.sharpness)
         c0 = math.cos(min(math.pi / 2, 8 * width))
-        t = torch.cat([_gl(256, -1.0, 0.0)[0], _gl(512, 0.0, c0)[0], _gl(512, c0, 1.0)[0]])
-        w = torch.cat([_gl(256, -1.0, 0.0)[1], _gl(512, 0.0, c0)[1], _gl(512, c0, 1.0)[1]])
+        t = torch.cat([gauss_legendre(256, -1.0, 0.0)[0], gauss_legendre(512, 0.0, c0)[0], gauss_legendre(512, c0, 1.0)[0]])
+        w = torch.cat([gauss_legendre(256, -1.0, 0.0)[1], gauss_legendre(512, 0.0, c0)[1], gauss_legendre(512, c0, 1.0)[1]])
         total = 4 * math.pi * 2 * math.pi * float((w * _profile(brdf, t) ** 2).sum())
         return rho, total
     width = 1.0 / math.sqrt(1.0 + brdf.sharpness)
     a = min(math.pi / 2, 8 * width)
     n_t = n_theta or max(48, F + 24)
-    t1, w1 = _gl(n_t, 0.0, a)
-    t2, w2 = _gl(n_t, a, math.pi)
+    t1, w1 = gauss_legendre(n_t, 0.0, a)
+    t2, w2 = gauss_legendre(n_t, a, math.pi)
     ti = torch.cat([t1, t2])
     wi_w = torch.cat([w1, w2]) * torch.sin(ti)
     n_v = n_view or max(40, 2 * P + 24)
-    co, wo_w = _gl(n_v, -1.0, 1.0)
+    co, wo_w = gauss_legendre(n_v, -1.0, 1.0)
     to = torch.arccos(co)
     phi = torch.arange(n_phi, dtype=torch.float64) * (2 * math.pi / n_phi)
     si = torch.sin(ti)[:, None, None]
@@ -408,8 +394,7 @@ def project_latlong(image: torch.Tensor, bands: int) -> torch.Tensor:
     H, W, C = image.shape
     F = bands - 1
     theta, phi = latlong_angles(H, W)
-    t0 = torch.arange(H, dtype=torch.float64) * (math.pi / H)
-    wrow = (torch.cos(t0) - torch.cos(t0 + math.pi / H)) * (2 * math.pi / W)  # [H] solid angle per pixel
+    wrow = latlong_grid(H, W)[1][:, 0]  # [H] solid angle of a pixel in each row
     tr = _trig(phi, F)  # [2F+1, W]
     Lm = torch.einsum("hwc,kw->chk", image.to(torch.float64), tr) * wrow[None, :, None]  # [C, H, 2F+1]
     K = _k_table(theta, F, F)  # [H, l, |m|], y_l,±m = K cos / sin
@@ -564,11 +549,8 @@ def prefilter_angular(image: torch.Tensor, brdf: Any, height: int, views: torch.
     views = torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64) if views is None else views.to(torch.float64)
     check_shape("views", views, ndim=2, last=(3,))
     V = views.shape[0]
-    th, ph = latlong_angles(HL, W)
-    t0 = torch.arange(HL, dtype=torch.float64) * (math.pi / HL)
-    omega = (torch.cos(t0) - torch.cos(t0 + math.pi / HL)) * (2 * math.pi / W)
-    st = torch.sin(th)[:, None]
-    dirs = torch.stack(torch.broadcast_tensors(st * torch.cos(ph), st * torch.sin(ph), torch.cos(th)[:, None]), -1)
+    dirs, om = latlong_grid(HL, W)  # pixel centres [HL, W, 3], exact solid angles
+    omega = om[:, 0]
     alpha, beta = latlong_angles(height, W)
     Lflat = image.to(torch.float64).reshape(HL * W, C)
     cos_cone = math.cos(cone)

@@ -11,7 +11,7 @@ import torch
 from prt_torch import shrm as S
 from prt_torch.brdf import AshikhminShirley, BlinnPhong, Lambertian, Microfacet, Phong, Ward
 from prt_torch.lighting import builtin_environment, irradiance, irradiance_map, load_light
-from prt_torch.sh import eval_sh, gauss_sphere
+from prt_torch.sh import eval_sh, gauss_sphere, latlong_grid
 
 
 @pytest.fixture(scope="module")
@@ -26,9 +26,7 @@ def _unit(n, seed):
 
 
 def _grid_dirs(H, W):
-    a, b = S.latlong_angles(H, W)
-    return torch.stack(torch.broadcast_tensors(torch.sin(a)[:, None] * torch.cos(b), torch.sin(a)[:, None] * torch.sin(b),
-                                               torch.cos(a)[:, None]), -1)
+    return latlong_grid(H, W)[0]
 
 
 def _brute_force(brdf, L, normals, view, extended=False, quad_bands=120):

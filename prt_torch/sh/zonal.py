@@ -33,6 +33,7 @@ __all__ = [
     "phong",
     "microfacet",
     "zonal_project",
+    "gauss_legendre",
     "rotate_zonal",
     "convolve",
     "window",
@@ -122,6 +123,13 @@ def microfacet(sigma: float, bands: int, exact: bool = False, dtype: torch.dtype
 def _leggauss(n: int) -> tuple[np.ndarray, np.ndarray]:
     # numpy solves an n×n eigenproblem for the nodes: cache it.
     return np.polynomial.legendre.leggauss(n)
+
+
+def gauss_legendre(n: int, a: float = -1.0, b: float = 1.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """``n``-point Gauss–Legendre nodes and weights on [a, b], ``([n], [n])`` float64 (nodes cached)."""
+    x, w = _leggauss(check_int("n", n, 1, 100_000))
+    return (torch.tensor(a + (x + 1) * (b - a) / 2, dtype=torch.float64),
+            torch.tensor(w * (b - a) / 2, dtype=torch.float64))
 
 
 def zonal_project(fn, bands: int, lower: float = -1.0, n: int = 512) -> torch.Tensor:
