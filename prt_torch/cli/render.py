@@ -62,8 +62,13 @@ def register(subparsers) -> None:
     p.add_argument("transfer", metavar="TRANSFER.prt")
     p.add_argument("--light", default="sky", help="built-in environment, analytic spec or image file (default: sky)")
     p.add_argument("--codec-file", default=None, help="render from this compressed transfer (prt compress output)")
-    p.add_argument("--decode", default="glsl", choices=["glsl", "cpu"],
-                   help="glsl: decode in the vertex shader (default); cpu: per-vertex radiance from the torch engine")
+    p.add_argument("--decode", default=None, choices=["glsl", "cpu"],
+                   help="glsl: decode in the vertex shader (default for transfers); cpu: per-vertex radiance from the "
+                        "torch engine (the only decode of an SHRM)")
+    p.add_argument("--mesh", default=None, metavar="MESH",
+                   help="SHRM files (prt shrm output) only: the convex object to shade, a built-in scene name or a mesh "
+                        "file (default: the built-in 'convex'); each vertex is shaded from the SHRM's maps for its normal "
+                        "and its view towards the camera")
     p.add_argument("-o", "--output", required=True, help="output image (.png, .exr, .pfm, .hdr, .tif)")
     p.add_argument("--compare", default=None, metavar="OUT.png",
                    help="also write uncompressed (CPU) | this render | relative-error heat map (OUT.png and OUT.exr)")
@@ -139,7 +144,16 @@ def run(args) -> int:
             raise ValueError(f"--exposure {args.exposure!r}; accepted: a number of stops or 'auto'") from None
 
     if Path(args.transfer).is_dir():  # Green 2005 transport tables (a directory): gaussian or other codec files
+        args.decode = args.decode or "glsl"
         return _run_transport(args, out, cmp_png)
+    from ..io import load_meta
+
+    if load_meta(args.transfer).get("kind") == "shrm":
+        return _run_shrm(args, out, cmp_png)
+    if args.mesh is not None:
+        raise ValueError(f"--mesh {args.mesh!r} applies to SHRM files (prt shrm output); {args.transfer!r} is a transfer, "
+                         "which carries its own mesh")
+    args.decode = args.decode or "glsl"
     transfer = Transfer.load(args.transfer)
     scene = PRTScene(transfer)  # refuses kinds it cannot relight, naming the accepted ones
     codec = enc = None
@@ -204,6 +218,52 @@ def _write_outputs(args, out: Path, cmp_png: Path | None, img, mask, ref_img, ot
         print(f"wrote {cmp_png} and {cmp_png.with_suffix('.exr')} (linear: reference | render | |error|), "
               f"PSNR vs uncompressed {db:.1f} dB")
     return status
+
+
+def _run_shrm(args, out: Path, cmp_png: Path | None) -> int:
+    """``prt render SHRM.prt [--mesh MESH]``: a convex object shaded from a spherical harmonic
+    reflection map (Ramamoorthi 2002 eq. 5.10): per vertex, the SHRM's maps at the vertex normal's
+    axis (reflected view, or the normal for a Lambertian) and its view towards the camera eye
+    (orthographic: the camera's direction), decoded on the CPU (``shrm.SHRM.radiance``). The light
+    and BRDF are those the SHRM was computed for; ``--light`` is ignored."""
+    import torch
+
+    from ..render import Camera, Renderer, RenderUnavailable
+    from ..scene import builtin, list_builtins, load_mesh
+    from ..shrm import load_shrm
+
+    if args.decode == "glsl":
+        raise ValueError("an SHRM has no GLSL decoder yet; accepted: --decode cpu (the default for SHRM files)")
+    if args.codec_file or cmp_png is not None or args.validate:
+        raise ValueError("--codec-file, --compare and --validate apply to transfers; accepted for an SHRM: -o, --mesh, "
+                         "the camera and image options")
+    args.decode = "cpu"
+    m = load_shrm(args.transfer)
+    if m.maps is None:
+        raise ValueError(f"SHRM {args.transfer!r} has no maps; accepted: a file written by prt shrm")
+    name = args.mesh or "convex"
+    mesh = builtin(name, size="small") if name in list_builtins() else load_mesh(name)
+    cam = Camera.fit(mesh, azimuth=args.azimuth, elevation=args.elevation, fov=args.fov,
+                     projection="orthographic" if args.orthographic else "perspective", aspect=args.width / args.height)
+    pos = mesh.vertices.to(torch.float64)
+    eye = torch.as_tensor(np.asarray(cam.eye, np.float64))
+    if args.orthographic:
+        d = eye - torch.as_tensor(np.asarray(cam.target, np.float64))
+        views = (d / d.norm()).expand_as(pos)
+    else:
+        views = eye - pos
+        views = views / views.norm(dim=-1, keepdim=True)
+    n = mesh.normals.to(torch.float64)
+    n = n / n.norm(dim=-1, keepdim=True)
+    rad = m.radiance(n, views, method="map").to(torch.float32)
+    try:
+        with Renderer(args.width, args.height) as r:
+            img, mask = r.render_radiance(mesh, rad, cam, background=args.background, supersample=args.supersample)
+    except RenderUnavailable as e:
+        print(f"prt render: error: {e}", file=sys.stderr)
+        return 3
+    what = f"SHRM F_B={m.F_B} P_B={m.P_B} on {name}"
+    return _write_outputs(args, out, None, img, mask, None, None, what)
 
 
 def _run_transport(args, out: Path, cmp_png: Path | None) -> int:
