@@ -349,6 +349,37 @@ def test_same_type_out_as_in_for_decode_and_relight():
     assert isinstance(c.decode(loaded), torch.Tensor)
 
 
+def test_same_type_out_as_in_for_the_gaussian_codec():
+    from prt_torch.lighting import prefilter_environment
+
+    rng = np.random.default_rng(17)
+    V, J, P = 7, 12, 24
+    X = (np.abs(rng.normal(size=(V, J * P))) + 0.1).astype(np.float32)
+    c = codecs.get("gaussian", lobes=1, max_iter=3).fit(X, matrix_shape=(J, P))
+    e_np, e_t = c.encode(X), c.encode(torch.from_numpy(X))
+    pe = prefilter_environment(lambda x: torch.stack([1.5 + x[..., 0], 1 + 0.5 * x[..., 2], (x[..., 1] > 0.3).double()], -1),
+                               res=8, levels=12)
+    dirs = rng.normal(size=(V, 3)).astype(np.float32)
+    idx = rng.integers(0, J, (V, 3))
+    a = rng.uniform(size=(V, 3)).astype(np.float32)
+    assert isinstance(c.decode(e_np), np.ndarray) and np.array_equal(c.decode(e_np), c.decode(e_t).numpy())
+    for view_np, view_t in ((None, None), (dirs, torch.from_numpy(dirs)), ((idx, a), (torch.from_numpy(idx), torch.from_numpy(a)))):
+        ref = c.relight(e_t, pe, view=view_t)
+        assert isinstance(ref, torch.Tensor)
+        for enc, kind in ((e_np, np.ndarray), (e_t, torch.Tensor)):
+            got = c.relight(enc, pe, view=view_np)  # numpy views accepted: the result's type is the encoding's
+            assert isinstance(got, kind) and np.array_equal(np.asarray(got), ref.numpy())
+            r = c.relighter(enc, view=view_t)
+            for _ in range(2):
+                got = r(pe)
+                assert isinstance(got, kind) and np.array_equal(np.asarray(got), ref.numpy())
+    faces = torch.tensor([[0, 1, 2], [2, 3, 4]])
+    bary = torch.full((2, 3), 1 / 3)
+    s_np = c.relight_surface(e_np, pe, faces, torch.tensor([0, 1]), bary, torch.from_numpy(dirs[:2]))
+    s_t = c.relight_surface(e_t, pe, faces, torch.tensor([0, 1]), bary, torch.from_numpy(dirs[:2]))
+    assert isinstance(s_np, np.ndarray) and np.array_equal(s_np, s_t.numpy())
+
+
 def test_array_likes_and_dtypes():
     X = _signal(P=50, D=6, seed=12, dtype=np.float64)
     c = codecs.get("pca", vectors=2).fit(X)

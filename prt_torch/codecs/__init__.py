@@ -11,7 +11,8 @@ scikit-learn estimator (``get_params``/``set_params``/``clone``, ``fit`` returns
     >>> codec.save("out.prt", enc); codec2, enc2 = codecs.load("out.prt")
 
 Names: ``codecs.available()``; parameters of one: ``codecs.describe(name)``. File layout and
-use from other pipelines (numpy arrays, GridSearchCV): docs/codecs.md.
+use from other pipelines (numpy arrays in, numpy arrays out; ``transform``/``inverse_transform``
+in a scikit-learn ``Pipeline``; GridSearchCV): docs/codecs.md.
 """
 from .base import (CODEC_FORMAT_VERSION, Codec, ConvergenceError, ConvergenceWarning, Encoded, available,
                    describe, get, load, register)

@@ -491,13 +491,14 @@ def check_view(view: Any, P: int, n_out: int, values: bool = True):
     itself and calls this again with ``values=True`` to raise the error naming them."""
     if view is None:
         return None
-    view = view_tensors(view)
     if isinstance(view, (tuple, list)):
         if len(view) != 2:
             raise ValueError(f"view as a tuple must be (idx [P, k], w [P, k]); got {len(view)} items")
         idx, w = view
         if not isinstance(idx, torch.Tensor) or not isinstance(w, torch.Tensor):
-            raise TypeError("view taps must be tensors (idx int64 [P, k], w float [P, k])")
+            idx, w = view_tensors(view)  # numpy taps as tensors sharing their memory (tensors pay nothing here)
+            if not isinstance(idx, torch.Tensor) or not isinstance(w, torch.Tensor):
+                raise TypeError("view taps must be tensors or numpy arrays (idx int64 [P, k], w float [P, k])")
         check_cpu("view taps", idx, w)
         if idx.ndim != 2 or idx.shape[0] != P or w.shape != idx.shape:
             raise ValueError(f"view taps have shapes {tuple(idx.shape)}, {tuple(w.shape)}; accepted: idx [P, k], w [P, k] with P={P}")
@@ -511,8 +512,10 @@ def check_view(view: Any, P: int, n_out: int, values: bool = True):
                     raise ValueError(f"view tap indices span [{lo}, {hi}]; accepted: [0, n_out) = [0, {n_out})")
             _check_finite_fast("view weights", w)
         return idx, (w if w.dtype == torch.float32 else w.to(torch.float32))
+    if isinstance(view, np.ndarray):
+        view = torch.from_numpy(view)
     if not isinstance(view, torch.Tensor):
-        raise TypeError(f"view must be None, a tensor [P, n_out] or a tuple (idx, w); got {_describe(view)}")
+        raise TypeError(f"view must be None, a tensor or numpy array [P, n_out] or a tuple (idx, w); got {_describe(view)}")
     check_cpu("view", view)
     if view.shape != (P, n_out):
         raise ValueError(f"view has shape {tuple(view.shape)}; accepted: [P, n_out] = [{P}, {n_out}]")
@@ -526,8 +529,10 @@ def view_tensors(view: Any) -> Any:
     tuple); anything else unchanged, for ``check_view`` to judge."""
     if isinstance(view, np.ndarray):
         return torch.from_numpy(view)
-    if isinstance(view, (tuple, list)) and any(isinstance(t, np.ndarray) for t in view):
-        return tuple(torch.from_numpy(t) if isinstance(t, np.ndarray) else t for t in view)
+    if isinstance(view, (tuple, list)):
+        for t in view:  # (a loop, not any() over a generator: this runs at every relight with taps)
+            if isinstance(t, np.ndarray):
+                return tuple(torch.from_numpy(u) if isinstance(u, np.ndarray) else u for u in view)
     return view
 
 

@@ -455,7 +455,8 @@ class GaussianCodec(Codec):
         once converted to float32), naming the first (shared by :meth:`relight` and the GLSL
         decoder). ``values=False`` checks types and shapes only, for a caller whose kernel flags
         bad values itself (``relight_kernels.sg_taps``) and then calls this to raise."""
-        view = view_tensors(view)  # numpy arrays as tensors sharing their memory
+        if not isinstance(view, (torch.Tensor, tuple, list)):
+            view = view_tensors(view)  # numpy directions as a tensor sharing their memory (taps: torch.as_tensor below)
         if isinstance(view, torch.Tensor):
             if view.shape != (V, 3):
                 raise ValueError(f"view has shape {tuple(view.shape)}; accepted: taps (idx, w) or global directions [V, 3]")
