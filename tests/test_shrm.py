@@ -254,5 +254,10 @@ def test_render_shrm_constant_light_gives_albedo(tmp_path, capsys):
     inp.close()
     covered = img[:, :, 0] != -1
     assert covered.sum() > 200 and np.abs(img[covered] - 0.8).max() < 1e-4
+    assert "warning" not in capsys.readouterr().err  # convex: no self-occlusion
     assert main(["render", str(m), "--decode", "glsl", "-o", str(tmp_path / "g.png")]) == 2
     assert "no GLSL decoder" in capsys.readouterr().err
+    assert main(["render", str(m), "--mesh", "sphere_on_plane", "-o", str(tmp_path / "s.png"), "--width", "24",
+                 "--height", "24"]) == 0
+    err = capsys.readouterr().err
+    assert "prt render: warning: mesh 'sphere_on_plane' is not convex" in err and "ignores visibility" in err

@@ -90,6 +90,9 @@ def register(subparsers) -> None:
 
 
 VALIDATE_DB = 50.0
+#: occluded fraction of the diffuse energy above which `prt render SHRM --mesh` warns (the
+#: transfer precomputes' ``probe_tol``: a convex tessellation's grazing rays stay below it)
+SHRM_PROBE_TOL = 1e-3
 
 
 def _bands(transfer) -> int:
@@ -228,9 +231,12 @@ def _run_shrm(args, out: Path, cmp_png: Path | None) -> int:
     and BRDF are those the SHRM was computed for; ``--light`` is ignored."""
     import torch
 
+    import warnings
+
     from ..render import Camera, Renderer, RenderUnavailable
-    from ..scene import builtin, list_builtins, load_mesh
+    from ..scene import RayCaster, builtin, list_builtins, load_mesh
     from ..shrm import load_shrm
+    from ..transfer.diffuse import probe_self_occlusion
 
     if args.decode == "glsl":
         raise ValueError("an SHRM has no GLSL decoder yet; accepted: --decode cpu (the default for SHRM files)")
@@ -243,6 +249,15 @@ def _run_shrm(args, out: Path, cmp_png: Path | None) -> int:
         raise ValueError(f"SHRM {args.transfer!r} has no maps; accepted: a file written by prt shrm")
     name = args.mesh or "convex"
     mesh = builtin(name, size="small") if name in list_builtins() else load_mesh(name)
+    caster = RayCaster(mesh, workers=1)
+    try:  # an SHRM has no visibility (§5.3): say how much a non-convex mesh shadows itself
+        probe = probe_self_occlusion(caster, mesh)
+    finally:
+        caster.close()
+    if probe["occluded_fraction"] > SHRM_PROBE_TOL:
+        warnings.warn(f"mesh {name!r} is not convex: the self-occlusion probe finds {probe['occluded_fraction']:.3g} of the "
+                      f"diffuse energy shadowed ({probe['occluded_rays']} of {probe['rays']} rays); an SHRM ignores "
+                      "visibility (Ramamoorthi 2002 §5.3), so shadowed regions are shaded as if unoccluded")
     cam = Camera.fit(mesh, azimuth=args.azimuth, elevation=args.elevation, fov=args.fov,
                      projection="orthographic" if args.orthographic else "perspective", aspect=args.width / args.height)
     pos = mesh.vertices.to(torch.float64)
