@@ -261,3 +261,33 @@ def test_render_shrm_constant_light_gives_albedo(tmp_path, capsys):
                  "--height", "24"]) == 0
     err = capsys.readouterr().err
     assert "prt render: warning: mesh 'sphere_on_plane' is not convex" in err and "ignores visibility" in err
+
+
+def test_matches_mitsuba_on_a_sphere():
+    """Against an independent renderer: Mitsuba 3 path-traces the engine's Phong (modified form, its
+    own BRDF code as a Mitsuba BSDF, validate.scenes) on probes of a unit sphere under a band-limited
+    environment (4-band overcast sky as Mitsuba's envmap); the SHRM's map radiance agrees within 2%
+    relative RMS (Mitsuba's own standard error is reported beside it)."""
+    pytest.importorskip("mitsuba")
+    from prt_torch.validate.lights import check_expressible
+    from prt_torch.validate.scenes import mitsuba_glossy_exit
+
+    L = load_light("overcast", bands=4)
+    img = check_expressible(L, "overcast", height=64)
+    brdf = Phong(6.0)
+    m = S.build_shrm(brdf, L, epsilon=0.001, height=64)
+    N = 4
+    g = torch.Generator().manual_seed(3)
+    n = torch.randn(N, 3, generator=g, dtype=torch.float64)
+    n = n / n.norm(dim=-1, keepdim=True)
+    a = torch.randn(N, 3, generator=g, dtype=torch.float64)
+    a = a - (a * n).sum(-1, keepdim=True) * n
+    a = a / a.norm(dim=-1, keepdim=True)
+    th = torch.rand(N, generator=g, dtype=torch.float64) * math.radians(60)
+    v = torch.cos(th)[:, None] * n + torch.sin(th)[:, None] * a  # views within 60° of the normal
+    frames = torch.stack([a, torch.linalg.cross(n, a), n], -2)
+    r = mitsuba_glossy_exit(None, n, frames, v, [brdf] * N, img, spp=8192, batches=4)
+    mi = r["radiance"]
+    err = float((m.radiance(n, v, "map") - mi).norm() / mi.norm())
+    se = float(r["radiance_se"].norm() / mi.norm())
+    assert err < 0.02, (err, se)
