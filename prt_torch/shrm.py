@@ -646,23 +646,14 @@ class SHRM:
             return normals
         return 2 * (normals * views).sum(-1, keepdim=True) * normals - views
 
-    def radiance(self, normals: torch.Tensor, views: torch.Tensor, method: str = "map", chunk: int = 1024) -> torch.Tensor:
-        """Reflected radiance B for surface normals and view directions (eq. 5.10, 5.3).
-
-        ω'o = R_αβᵀ v in the frame of the point's axis (:func:`local_frames`), then
-        B = Σ_pq B_pq(α, β) y_pq(ω'o) with B_pq either bilinearly interpolated from the maps
-        (``method="map"``: the rendering path, wrap-around in β) or summed from the coefficients
-        (``method="coeffs"``: eq. 5.9 with the rotation blocks of each point's frame, exact up to
-        the orders; ``chunk`` points at a time). Points facing away (n·v ≤ 0) get 0.
-
-        Args: ``normals [N, 3]``, ``views [N, 3]`` or ``[3]`` (towards the viewer), unit, float.
-        Returns: ``[N, C]`` in the dtype of ``normals`` (float64 computation).
-        """
+    def view_terms(self, normals: torch.Tensor, views: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """What a point's view contributes (eq. 5.3, 5.10): its axis (R or n, unit), its frame
+        R_αβ (:func:`local_frames`) and the SH weights y_pq(ω'o) of ω'o = R_αβᵀ v, zero where the
+        point faces away (n·v ≤ 0). ``normals [N, 3]``, ``views [N, 3]`` or ``[3]`` ->
+        (``[N, 3]``, ``[N, 3, 3]``, ``[N, (P_B+1)²]``) float64."""
         check_unit_vectors("normals", normals)
         views = views.expand_as(normals) if views.ndim == 1 else views
         check_unit_vectors("views", views)
-        if method not in ("map", "coeffs"):
-            raise ValueError(f"method={method!r}; accepted: 'map', 'coeffs'")
         n = normals.to(torch.float64)
         v = views.to(torch.float64)
         ax = self.axes(n, v)
@@ -671,20 +662,36 @@ class SHRM:
         wo = (v[:, :, None] * Rf).sum(1)  # ω'o = Rᵀ v  [N, 3]
         wo = wo / wo.norm(dim=-1, keepdim=True).clamp_min(1e-300)
         y = eval_sh(wo, self.P_B + 1, check=False)  # [N, nP]
+        facing = (n * v).sum(-1) > 0
+        return ax, Rf, torch.where(facing[:, None], y, torch.zeros((), dtype=torch.float64))
+
+    def radiance(self, normals: torch.Tensor, views: torch.Tensor, method: str = "map", chunk: int = 1024) -> torch.Tensor:
+        """Reflected radiance B for surface normals and view directions (eq. 5.10, 5.3).
+
+        ω'o = R_αβᵀ v in the frame of the point's axis (:meth:`view_terms`), then
+        B = Σ_pq B_pq(α, β) y_pq(ω'o) with B_pq either bilinearly interpolated from the maps
+        (``method="map"``: the rendering path, wrap-around in β) or summed from the coefficients
+        (``method="coeffs"``: eq. 5.9 with the rotation blocks of each point's frame, exact up to
+        the orders; ``chunk`` points at a time). Points facing away (n·v ≤ 0) get 0.
+
+        Args: ``normals [N, 3]``, ``views [N, 3]`` or ``[3]`` (towards the viewer), unit, float.
+        Returns: ``[N, C]`` in the dtype of ``normals`` (float64 computation).
+        """
+        if method not in ("map", "coeffs"):
+            raise ValueError(f"method={method!r}; accepted: 'map', 'coeffs'")
+        ax, Rf, y = self.view_terms(normals, views)
         if method == "map":
             Bpq = self._lookup(ax)
         else:
             M = _rho_matrix(self.rho, self.F_B, self.P_B)
             Lf = self.light[:, : (self.F_B + 1) ** 2].to(torch.float64)
             parts = []
-            for s0 in range(0, n.shape[0], chunk):  # bounded memory: blocks are O(F³) per point
+            for s0 in range(0, ax.shape[0], chunk):  # bounded memory: blocks are O(F³) per point
                 Fr = Rf[s0 : s0 + chunk].transpose(1, 2)  # rows e'x, e'y, e'z: D(Rᵀ) L = local light
                 G = rotate(Lf[None], Fr[:, None])  # [n, C, nF]
                 parts.append(G @ M)
             Bpq = torch.cat(parts) if parts else torch.zeros(0, Lf.shape[0], M.shape[1], dtype=torch.float64)
-        out = (Bpq * y[:, None, :]).sum(-1)
-        facing = (n * v).sum(-1) > 0
-        return torch.where(facing[:, None], out, torch.zeros((), dtype=torch.float64)).to(normals.dtype)
+        return (Bpq * y[:, None, :]).sum(-1).to(normals.dtype)
 
     def _lookup(self, dirs: torch.Tensor) -> torch.Tensor:
         """Bilinear lookup of the maps at axis directions ``[N, 3]`` -> ``[N, C, nP]`` float64."""

@@ -63,8 +63,7 @@ def register(subparsers) -> None:
     p.add_argument("--light", default="sky", help="built-in environment, analytic spec or image file (default: sky)")
     p.add_argument("--codec-file", default=None, help="render from this compressed transfer (prt compress output)")
     p.add_argument("--decode", default=None, choices=["glsl", "cpu"],
-                   help="glsl: decode in the vertex shader (default for transfers); cpu: per-vertex radiance from the "
-                        "torch engine (the only decode of an SHRM)")
+                   help="glsl: decode in the vertex shader (default); cpu: per-vertex radiance from the torch engine")
     p.add_argument("--mesh", default=None, metavar="MESH",
                    help="SHRM files (prt shrm output) only: the convex object to shade, a built-in scene name or a mesh "
                         "file (default: the built-in 'convex'); each vertex is shaded from the SHRM's maps for its normal "
@@ -227,23 +226,23 @@ def _run_shrm(args, out: Path, cmp_png: Path | None) -> int:
     """``prt render SHRM.prt [--mesh MESH]``: a convex object shaded from a spherical harmonic
     reflection map (Ramamoorthi 2002 eq. 5.10): per vertex, the SHRM's maps at the vertex normal's
     axis (reflected view, or the normal for a Lambertian) and its view towards the camera eye
-    (orthographic: the camera's direction), decoded on the CPU (``shrm.SHRM.radiance``). The light
-    and BRDF are those the SHRM was computed for; ``--light`` is ignored."""
+    (orthographic: the camera's direction), decoded in GLSL (``render.shrm.SHRMDecoder``, default)
+    or on the CPU (``shrm.SHRM.radiance``); ``--validate`` renders both and prints their PSNR. The
+    light and BRDF are those the SHRM was computed for; ``--light`` is ignored."""
     import torch
 
     import warnings
 
     from ..render import Camera, Renderer, RenderUnavailable
+    from ..render.shrm import SHRMDecoder
     from ..scene import RayCaster, builtin, list_builtins, load_mesh
     from ..shrm import load_shrm
     from ..transfer.diffuse import probe_self_occlusion
 
-    if args.decode == "glsl":
-        raise ValueError("an SHRM has no GLSL decoder yet; accepted: --decode cpu (the default for SHRM files)")
-    if args.codec_file or cmp_png is not None or args.validate:
-        raise ValueError("--codec-file, --compare and --validate apply to transfers; accepted for an SHRM: -o, --mesh, "
-                         "the camera and image options")
-    args.decode = "cpu"
+    if args.codec_file or cmp_png is not None:
+        raise ValueError("--codec-file and --compare apply to transfers; accepted for an SHRM: -o, --mesh, --decode, "
+                         "--validate, the camera and image options")
+    args.decode = args.decode or "glsl"
     m = load_shrm(args.transfer)
     if m.maps is None:
         raise ValueError(f"SHRM {args.transfer!r} has no maps; accepted: a file written by prt shrm")
@@ -270,15 +269,21 @@ def _run_shrm(args, out: Path, cmp_png: Path | None) -> int:
         views = views / views.norm(dim=-1, keepdim=True)
     n = mesh.normals.to(torch.float64)
     n = n / n.norm(dim=-1, keepdim=True)
-    rad = m.radiance(n, views, method="map").to(torch.float32)
+    rs = dict(background=args.background, supersample=args.supersample)
     try:
         with Renderer(args.width, args.height) as r:
-            img, mask = r.render_radiance(mesh, rad, cam, background=args.background, supersample=args.supersample)
+            def draw(decode):
+                if decode == "glsl":
+                    return r.render(mesh, SHRMDecoder(m, n, views), cam, **rs)
+                return r.render_radiance(mesh, m.radiance(n, views, method="map").to(torch.float32), cam, **rs)
+
+            img, mask = draw(args.decode)
+            other = draw("cpu" if args.decode == "glsl" else "glsl") if args.validate else None
     except RenderUnavailable as e:
         print(f"prt render: error: {e}", file=sys.stderr)
         return 3
     what = f"SHRM F_B={m.F_B} P_B={m.P_B} on {name}"
-    return _write_outputs(args, out, None, img, mask, None, None, what)
+    return _write_outputs(args, out, None, img, mask, None, other, what)
 
 
 def _run_transport(args, out: Path, cmp_png: Path | None) -> int:
