@@ -307,3 +307,46 @@ def test_glsl_decoder_matches_cpu(tmp_path, capsys):
     assert rc == 0, out.err
     line = next(x for x in out.out.splitlines() if x.startswith("GLSL vs CPU"))
     assert "same coverage: yes" in line and float(line.split()[3]) >= 50.0, line
+
+
+def test_sphere_matches_unshadowed_glossy_prt_within_both_truncations():
+    """The SHRM and unshadowed glossy PRT (Sloan 2003 §3.1, exit matrices with the zero-hemisphere
+    projection) of one microfacet BRDF under one 5-band light, on a sphere seen from one eye. Each
+    truncation is predicted from its own energies: the SHRM's ε_S (eq. 5.18) and the PRT's
+    ε_P = 1 - ‖B‖²_F / ∫∫ f*² (the BRDF energy its 5 × 5-band matrix keeps, Parseval, the
+    integral by product Gauss quadrature); the two radiances agree within (√ε_S + √ε_P)²."""
+    import tempfile
+    from pathlib import Path
+
+    import numpy as np
+    import trimesh
+
+    from prt_torch import relight
+    from prt_torch.brdf import brdf_matrix
+    from prt_torch.scene import load_mesh
+    from prt_torch.scene.builtins import geodesic_sphere
+    from prt_torch.sh import gauss_hemisphere
+    from prt_torch.transfer import precompute_glossy
+
+    v, f = geodesic_sphere(4)
+    with tempfile.TemporaryDirectory() as d:
+        p = Path(d) / "sphere.ply"
+        trimesh.Trimesh(np.asarray(v), np.asarray(f), process=False).export(p)
+        mesh = load_mesh(p)
+    n, brdf = 5, Microfacet(0.4)
+    L = load_light("studio", bands=n, size=32)
+    g = precompute_glossy(mesh, n, n, brdf=brdf, projection="zero", shadows="never", samples=4096, seed=0, quad_bands=16)
+    eye = torch.tensor([4.0, -3.0, 3.0], dtype=torch.float64)
+    prt = relight.glossy(g.data.double(), L, relight.local_view(mesh.frames(), mesh.vertices, eye), g.meta.get("out_index"))
+    views = eye - mesh.vertices
+    views = views / views.norm(dim=-1, keepdim=True)
+    facing = (views * mesh.normals).sum(-1) > 0.05
+    m = S.build_shrm(brdf, L, epsilon=0.01, height=64)
+    ours = m.radiance(mesh.normals, views, "map")
+    B = brdf_matrix(brdf, n, n, projection="zero", quad_bands=16)
+    dirs, w = gauss_hemisphere(30)
+    total = float(torch.einsum("v,vs,s->", w, brdf.cosine_weighted(dirs[None], dirs[:, None]) ** 2, w))
+    eps_p = 1 - float((B ** 2).sum()) / total
+    eps_s = 1 - m.meta["energy"]
+    assert 0 < eps_p < 0.2 and 0 < eps_s <= 0.01
+    assert _rel_sq(ours[facing], prt[facing]) <= (math.sqrt(eps_s) + math.sqrt(eps_p)) ** 2
