@@ -86,7 +86,13 @@ def run(args: argparse.Namespace) -> int:
         for c in runs:
             for sub in [c] + part_configs(c):
                 for _, one in ablation_values(sub):  # each value of a transfer ablation is its own transfer
-                    load_mesh_within_budget(one)  # the memory estimate the real run refuses on
+                    mesh, mem = load_mesh_within_budget(one)  # the memory estimate the real run refuses on
+                if sub["target"].get("psnr") is not None:
+                    from ..harness.target import search_cost
+
+                    cost = search_cost(sub, mesh.num_vertices, mem["D"])
+                    print(f"# target search: at most {cost.pop('total')} fits ("
+                          + ", ".join(f"{k} {v}" for k, v in cost.items()) + "; fewer with branch and bound on bytes)")
                 if sub is not c:
                     print(f"# part {sub['name']!r}: {sub['_part']['note']}")
                 print(json.dumps({k: v for k, v in sub.items() if not k.startswith("_")}, indent=2))

@@ -479,7 +479,7 @@ def run_benchmark(cfg: dict, resume: bool = True, progress: bool = True, log: Ca
         if cfg["target"].get("codec"):
             target = find_smallest(cfg, run_setting)
         else:
-            target = search_families(cfg, run_setting, ev.V, ev.X.shape[1])
+            target = search_families(cfg, run_setting, ev.V, ev.X.shape[1], log=log)
             log(f"[bench] target {target['goal_db']} dB: " + (
                 f"{target['winner']['setting_id']} ({target['winner']['bytes_per_vertex']:.1f} B/vertex, "
                 f"{target['winner']['fps']:.0f} fps) after {target['evaluated']} evaluations" if target["met"] else target["note"]))

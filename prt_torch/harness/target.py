@@ -15,13 +15,21 @@ Both assume the target metric grows with each size parameter (nested subspaces f
 more clusters or lobes fit at least as well), the premise of CompressAI's ``find_close``. The
 searches only call ``run_setting(setting) -> record`` (harness.run evaluates, caches and
 saves), so every evaluated setting is also in the results.
+
+Branch and bound (``by='bytes'``): a setting's bytes per vertex have a floor known before any
+fit (:func:`bytes_floor`: the weights and basis vectors it must store), so on CPCA's front a
+cluster count is searched only over the vector counts whose floor is below the family's cheapest
+setting found so far, and the walk stops at the first cluster count whose floor is not. The
+result is the same as without the bound (a setting it skips costs at least what was found), and
+the fits it saves are the expensive ones (many clusters, many vectors). :func:`search_cost`
+gives the most fits a search can make (``--dry-run`` prints it).
 """
 from __future__ import annotations
 
 import time
 from typing import Any, Callable
 
-__all__ = ["find_smallest", "search_families", "size_axes", "SIZE_AXES"]
+__all__ = ["find_smallest", "search_families", "size_axes", "SIZE_AXES", "bytes_floor", "search_cost"]
 
 #: The size parameters of each codec family (registry name -> parameters, in search order).
 SIZE_AXES: dict[str, tuple[str, ...]] = {
@@ -37,6 +45,56 @@ def size_axes(codec: str) -> tuple[str, ...]:
 
     cls = type(codecs.get(codec))
     return tuple(getattr(cls, "size_params", SIZE_AXES.get(codec, ())))
+
+
+#: codecs whose stored size has the floor of :func:`bytes_floor` (fixed vectors per point and cluster)
+_AFFINE_FIXED = ("pca", "mrt_pca", "cpca", "cpca_static", "cpca_iterative")
+
+
+def bytes_floor(setting: dict, points: int, dim: int) -> float:
+    """A lower bound of the bytes per vertex a setting ``{type, clusters, vectors, ...}`` will store,
+    known before its fit: the float32 weights of every point (``P·n``) and basis vectors of every
+    cluster (``K·n·D``) of the affine codecs with a fixed vector count, the codebook (``K·D``) of VQ;
+    labels, means and per-cluster counts are left out (so it never exceeds the real size), and 0
+    for a codec it does not know (adaptive CPCA, Gaussians: no bound, nothing pruned)."""
+    name = setting["type"]
+    K = min(int(setting.get("clusters", 1)), points)
+    if name == "vq":
+        return 4.0 * K * dim / points
+    if name in _AFFINE_FIXED:
+        n = int(setting.get("vectors", 0))
+        return 4.0 * (points * n + K * n * dim) / points
+    return 0.0
+
+
+def _steps(n: int) -> int:
+    """Most evaluations of :func:`_bisect` over ``n`` values (the top first, then halving)."""
+    return 0 if n <= 0 else 1 + max(0, (n - 1).bit_length())
+
+
+def search_cost(cfg: dict, points: int, dim: int) -> dict:
+    """``{family: most fits its search can make}`` and ``total``, without any fit (the bound on
+    CPCA's front is the walk without pruning: every cluster count, a bisection of the vectors)."""
+    t = cfg["target"]
+    lo, hi = int(t["lo"]), int(t["hi"])
+    if t.get("codec"):
+        return {t["codec"]: _steps(hi - lo + 1), "total": _steps(hi - lo + 1)}
+    n_clusters = len([c for c in (2 ** i for i in range(0, 31)) if c <= min(int(t["hi_clusters"]), points)])
+    out: dict[str, int] = {}
+    for codec in dict.fromkeys(e["type"] for e in cfg["codecs"]):
+        axes = size_axes(codec)
+        base = _base(cfg, codec)
+        vec_hi = min(hi, dim - 1 if base.get("center", True) else dim)
+        if axes == ("clusters",):
+            out[codec] = _steps(n_clusters)
+        elif axes in (("vectors",), ("lobes",)):
+            out[codec] = _steps((vec_hi if axes[0] == "vectors" else hi) - lo + 1)
+        elif axes == ("clusters", "vectors"):
+            out[codec] = n_clusters * _steps(vec_hi - lo + 1)
+        else:
+            out[codec] = 0
+    out["total"] = sum(out.values())
+    return out
 
 
 def _bisect(lo: int, hi: int, ok: Callable[[int], bool]) -> int | None:
@@ -89,7 +147,8 @@ def _summary(r: dict, metric: str) -> dict:
             "bytes_per_vertex": r["bytes_per_vertex"], "fps": r["fps"]}
 
 
-def search_families(cfg: dict, run_setting: Callable[[dict], dict], points: int, dim: int) -> dict:
+def search_families(cfg: dict, run_setting: Callable[[dict], dict], points: int, dim: int,
+                    log: Callable[[str], None] | None = None) -> dict:
     """Search every codec family of ``cfg['codecs']`` for its cheapest setting reaching
     ``target.psnr`` (module docstring); ``points``/``dim`` bound clusters (≤ P) and vectors (< D).
     Returns the JSON-able search record (``_records``: every record evaluated)."""
@@ -101,9 +160,15 @@ def search_families(cfg: dict, run_setting: Callable[[dict], dict], points: int,
     families: dict[str, Any] = {}
     t_start = time.perf_counter()
 
+    cost = search_cost(cfg, points, dim)
+    pruned: list[str] = []  # what branch and bound skipped, said in the record
+
     def evaluate(base: dict, **size) -> dict:
         r = run_setting({**base, **size})
         tried.append(r)
+        if log is not None:
+            log(f"[target] {len(tried)} of at most {cost['total']}: {r['setting_id']} {r[metric]:.2f} dB "
+                f"({'meets' if r[metric] >= goal else 'below'} {goal:g}), {r['bytes_per_vertex']:.1f} B/vertex")
         return r
 
     for codec in dict.fromkeys(e["type"] for e in cfg["codecs"]):  # one search per family, config order
@@ -124,8 +189,18 @@ def search_families(cfg: dict, run_setting: Callable[[dict], dict], points: int,
             v = _bisect(lo, top, lambda k: meets(evaluate(base, **{ax: k})))
             found = [] if v is None else [next(r for r in tried[n0:] if r["params"][ax] == v)]
         elif axes == ("clusters", "vectors"):
-            for c in clusters:  # the Pareto front: fewest vectors per cluster count
-                v = _bisect(lo, vec_hi, lambda k: meets(evaluate(base, clusters=c, vectors=k)))
+            for i, c in enumerate(clusters):  # the Pareto front: fewest vectors per cluster count
+                top = vec_hi
+                if by == "bytes" and found:  # branch and bound: only vector counts that could cost less
+                    best = min(r["bytes_per_vertex"] for r in found)
+                    while top >= lo and bytes_floor({**base, "clusters": c, "vectors": top}, points, dim) >= best:
+                        top -= 1
+                    if top < lo:  # the floor grows with the clusters too: no larger count can cost less
+                        pruned.append(f"{codec} clusters {clusters[i:]}: every vector count's floor >= {best:.1f} B/vertex")
+                        break
+                    if top < vec_hi:
+                        pruned.append(f"{codec} clusters={c}: vectors {top + 1}..{vec_hi} (floor >= {best:.1f} B/vertex)")
+                v = _bisect(lo, top, lambda k: meets(evaluate(base, clusters=c, vectors=k)))
                 if v is not None:
                     found.append(next(r for r in tried[n0:] if r["params"]["clusters"] == c and r["params"]["vectors"] == v))
         else:
@@ -145,6 +220,7 @@ def search_families(cfg: dict, run_setting: Callable[[dict], dict], points: int,
     key = (lambda s: s["bytes_per_vertex"]) if by == "bytes" else (lambda s: -s["fps"])
     out = {"mode": "families", "met": bool(bests), "goal_db": goal, "metric": metric, "by": by, "families": families,
            "evaluated": len(tried), "distinct_settings": len({r["setting_id"] for r in tried}),
+           "most_fits": cost["total"], "pruned": pruned,
            "seconds": time.perf_counter() - t_start, "_records": tried}
     if bests:
         out["winner"] = min(bests, key=key)

@@ -1,0 +1,72 @@
+"""The cross-family target search's branch and bound (harness.target): the bytes floor known before
+a fit never exceeds what a fitted codec stores, and the pruned search finds what brute force over
+the same grid finds, with fewer fits; the dry run's cost bound holds."""
+import math
+import warnings
+
+import pytest
+import torch
+
+from prt_torch import codecs
+from prt_torch.harness.target import bytes_floor, search_cost, search_families
+
+
+@pytest.mark.parametrize("setting", [
+    {"type": "vq", "clusters": 7}, {"type": "vq", "clusters": 300},
+    {"type": "pca", "vectors": 3}, {"type": "pca", "vectors": 5, "center": False},
+    {"type": "mrt_pca", "vectors": 4},
+    {"type": "cpca", "clusters": 4, "vectors": 3}, {"type": "cpca_static", "clusters": 300, "vectors": 2},
+    {"type": "cpca_iterative", "clusters": 8, "vectors": 2, "iterations": 1},
+])
+def test_the_floor_never_exceeds_the_stored_bytes(setting):
+    X = torch.randn(500, 48, generator=torch.Generator().manual_seed(0))
+    params = {k: v for k, v in setting.items() if k != "type"}
+    c = codecs.get(setting["type"], **params)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        enc = c.fit_encode(X, **({"matrix_shape": (16, 3)} if setting["type"] == "mrt_pca" else {}))
+    stored = c.storage(enc)["bytes_total"] / 500
+    floor = bytes_floor(setting, 500, 48)
+    assert 0 < floor <= stored, (floor, stored)
+    assert floor >= 0.5 * stored or setting["type"] == "vq"  # a bound with teeth: the weights and basis are most of it
+
+
+def _fake_run(calls, points, dim):
+    """A codec family whose PSNR grows with clusters and vectors (the search's premise), stored
+    bytes above the floor (labels and means added), evaluated without any fit."""
+    def run_setting(s):
+        calls.append(s)
+        K, n = s.get("clusters", 1), s.get("vectors", 0)
+        psnr = 20 + 6 * math.log2(1 + n) + 2.5 * math.log2(K)
+        b = bytes_floor(s, points, dim) + (1 if K > 1 else 0) + 4.0 * K * dim / points
+        sid = f"{s['type']}-" + "-".join(f"{k}{v}" for k, v in sorted(s.items()) if k != "type")
+        return {"setting_id": sid, "codec": s["type"], "params": {k: v for k, v in s.items() if k != "type"},
+                "psnr_lights_db": psnr, "bytes_per_vertex": b, "fps": 1.0}
+    return run_setting
+
+
+def _cfg(goal):
+    return {"codecs": [{"type": "vq"}, {"type": "pca"}, {"type": "cpca"}],
+            "target": {"psnr": goal, "metric": "psnr_lights_db", "by": "bytes", "lo": 1, "hi": 32, "hi_clusters": 256}}
+
+
+@pytest.mark.parametrize("goal", [38.0, 44.0, 50.0])
+def test_branch_and_bound_finds_the_brute_force_cheapest_with_fewer_fits(goal):
+    P, D = 10242, 1024
+    calls: list = []
+    out = search_families(_cfg(goal), _fake_run(calls, P, D), P, D)
+    grid = [{"type": "vq", "clusters": 2 ** i} for i in range(9)] + [{"type": "pca", "vectors": n} for n in range(1, 33)] + \
+        [{"type": "cpca", "clusters": 2 ** i, "vectors": n} for i in range(9) for n in range(1, 33)]
+    everything = [_fake_run([], P, D)(s) for s in grid]
+    meeting = [r for r in everything if r["psnr_lights_db"] >= goal]
+    assert out["met"] == bool(meeting)
+    if meeting:
+        assert out["winner"]["bytes_per_vertex"] == pytest.approx(min(r["bytes_per_vertex"] for r in meeting))
+        for fam, f in out["families"].items():
+            mine = [r for r in meeting if r["codec"] == fam]
+            assert bool(mine) == bool(f.get("best"))
+            if mine:
+                assert f["best"]["bytes_per_vertex"] == pytest.approx(min(r["bytes_per_vertex"] for r in mine))
+    cost = search_cost(_cfg(goal), P, D)
+    assert len(calls) <= cost["total"]
+    assert out["pruned"], "the bound cut nothing on a front where large cluster counts cost more"
