@@ -82,6 +82,7 @@ def test_lambertian_through_the_general_quadrature(light6):
 @pytest.mark.parametrize("brdf,eps,extended", [
     (Microfacet(0.3), 0.03, False),
     (Phong(32.0, form="reflection"), 0.01, True),
+    (BlinnPhong(16.0), 0.03, False),
 ])
 def test_sphere_matches_brute_force_within_epsilon(light6, brdf, eps, extended):
     """A sphere seen from one distant view: SHRM radiance against a brute-force integral per
