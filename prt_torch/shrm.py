@@ -71,6 +71,7 @@ __all__ = [
     "prefilter_angular",
     "angular_cone",
     "local_frames",
+    "reference_radiance",
     "estimate_memory",
     "build_shrm",
     "load_shrm",
@@ -575,6 +576,36 @@ def prefilter_angular(image: torch.Tensor, brdf: Any, height: int, views: torch.
         gidx = a_idx[:, None] * W + (b_idx[:, None] + cols[None, :]) % W  # [T, W]
         vals = Lflat[gidx]  # [T, W, C]
         out[:, :, i, :] = torch.einsum("tv,twc->vcw", k, vals)
+    return out
+
+
+def reference_radiance(brdf: Any, dirs: torch.Tensor, light: torch.Tensor, normals: torch.Tensor, views: torch.Tensor,
+                       chunk: int = 64) -> torch.Tensor:
+    """Angular-space reference for a convex surface point (eq. 5.1 with no visibility): per point,
+    Σ_k light_k f_r(ω_k, v) max(n·ω_k, 0) over a quadrature of the sphere, in a tangent frame of the
+    point's normal (any: the model is isotropic) — the BRDF's own definition, nothing of the SHRM.
+
+    Args:
+        brdf: an isotropic model; dirs: ``[Q, 3]`` quadrature directions; light: ``[Q, C]`` radiance
+            times quadrature weight (e.g. an environment's pixels times their solid angles);
+        normals: ``[N, 3]`` unit; views: ``[N, 3]`` or ``[3]`` unit, towards the viewer.
+    Returns: ``[N, C]`` float64 (``chunk`` points at a time).
+    """
+    brdf = check_brdf(brdf)
+    n = normals.to(torch.float64)
+    v = (views.expand_as(normals) if views.ndim == 1 else views).to(torch.float64)
+    helper = torch.tensor([0.31, 0.17, 0.93], dtype=torch.float64).expand_as(n)
+    t = torch.linalg.cross(n, helper)
+    t = t / t.norm(dim=-1, keepdim=True)
+    fr = torch.stack([t, torch.linalg.cross(n, t), n], -2)  # rows: tangent, bitangent, normal
+    d = dirs.to(torch.float64)
+    Lw = light.to(torch.float64)
+    out = torch.zeros(n.shape[0], Lw.shape[1], dtype=torch.float64)
+    for a in range(0, n.shape[0], chunk):  # chunks bound the [chunk, Q] kernel
+        f_ = fr[a : a + chunk]
+        wi = torch.einsum("vij,qj->vqi", f_, d)
+        wo = torch.einsum("vij,vj->vi", f_, v[a : a + chunk])[:, None, :].expand_as(wi)
+        out[a : a + chunk] = brdf.cosine_weighted(wi, wo) @ Lw
     return out
 
 

@@ -351,3 +351,21 @@ def test_sphere_matches_unshadowed_glossy_prt_within_both_truncations():
     eps_s = 1 - m.meta["energy"]
     assert 0 < eps_p < 0.2 and 0 < eps_s <= 0.01
     assert _rel_sq(ours[facing], prt[facing]) <= (math.sqrt(eps_s) + math.sqrt(eps_p)) ** 2
+
+
+def test_reference_radiance_analytic():
+    """shrm.reference_radiance (the benchmarks' brute force): a Lambertian under uniform radiance 1
+    reflects kd, and a microfacet's reflected radiance is its directional albedo, the same for every
+    normal at the same n·v."""
+    dirs, w = gauss_sphere(60)
+    n = _unit(20, 9)
+    v = _unit(20, 10)
+    v = torch.where(((v * n).sum(-1) > 0)[:, None], v, -v)  # views above each surface
+    out = S.reference_radiance(Lambertian(0.7), dirs, w[:, None], n, v)
+    assert torch.allclose(out, torch.full_like(out, 0.7), atol=1e-3)
+    z = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+    v = torch.tensor([0.6, 0.0, 0.8], dtype=torch.float64)
+    R = S.local_frames(n)  # rotations taking +z to each normal: the same configuration everywhere
+    a = S.reference_radiance(Microfacet(0.3), dirs, w[:, None], n, R @ v)
+    b = S.reference_radiance(Microfacet(0.3), dirs, w[:, None], z[None], v)
+    assert torch.allclose(a, b.expand_as(a), rtol=5e-3)  # the product rule is not rotation invariant
