@@ -55,21 +55,15 @@ def meshes(quick: bool):
 
 
 def reference(brdf, env, mesh, eye) -> tuple[torch.Tensor, torch.Tensor]:
-    """Brute force per vertex over the environment's pixels: ``([V, C] radiance, [V] facing mask)``."""
+    """Brute force per vertex over the environment's pixels (``shrm.reference_radiance``):
+    ``([V, C] radiance, [V] facing mask)``."""
     dirs = env.directions().reshape(-1, 3)
-    om = env.solid_angles().reshape(-1)
-    Lpix = env.image.reshape(-1, env.channels).to(torch.float64) * om[:, None]
-    fr = mesh.frames()  # rows t, b, n
+    Lw = env.image.reshape(-1, env.channels).to(torch.float64) * env.solid_angles().reshape(-1)[:, None]
     v = eye[None] - mesh.vertices
     v = v / v.norm(dim=-1, keepdim=True)
     facing = (v * mesh.normals).sum(-1) > 0.02
-    out = torch.zeros(mesh.vertices.shape[0], env.channels, dtype=torch.float64)
-    for a in range(0, out.shape[0], 64):  # chunks of vertices bound the [chunk, pixels] kernel
-        f_ = fr[a : a + 64]
-        wi = torch.einsum("vij,pj->vpi", f_, dirs)
-        wo = torch.einsum("vij,vj->vi", f_, v[a : a + 64])[:, None, :].expand_as(wi)
-        out[a : a + 64] = brdf.cosine_weighted(wi, wo) @ Lpix
-    return out, facing
+    n = mesh.normals / mesh.normals.norm(dim=-1, keepdim=True)
+    return S.reference_radiance(brdf, dirs, Lw, n, v), facing
 
 
 def main(argv=None) -> int:

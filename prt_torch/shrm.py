@@ -650,6 +650,12 @@ class SHRM:
     maps: torch.Tensor | None = None
     meta: dict = field(default_factory=dict)
 
+    def __post_init__(self):
+        """The light to exactly (F_B+1)² coefficients (missing bands are zero)."""
+        L = torch.as_tensor(self.light, dtype=torch.float64)
+        nF = (self.F_B + 1) ** 2
+        self.light = torch.nn.functional.pad(L, (0, max(0, nF - L.shape[-1])))[..., :nF]
+
     @property
     def coefficients(self) -> torch.Tensor:
         """B_lmpq = L_lm ρ_{l p |q|} (eq. 5.7 without Λ_l, §5.6.2 step 2): ``[C, (F_B+1)², (P_B+1)²]``
