@@ -248,3 +248,41 @@ def test_an_unreachable_ray_address_is_refused_in_time_creating_nothing(cmd, tmp
     err = r.stderr.strip().splitlines()
     assert len(err) == 1 and f"127.0.0.1:{port}" in err[0] and "Traceback" not in r.stderr, r.stderr
     assert list(tmp_path.iterdir()) == []  # no output, no state directory, no reports or cache
+
+
+# ------------------------------------------------------------------ silent acceptance: one check per file kind
+
+def _corrupt(src: Path, dst: Path, how: str) -> Path:
+    """A copy of a transfer file with one defect the engine must refuse wherever it reads the file."""
+    from prt_torch import io
+
+    tensors, meta = io.load(src)
+    kind = meta.pop("kind")
+    meta = {k: v for k, v in meta.items() if k not in ("format", "format_version", "prt_torch_version")}
+    t = {k: v.clone() for k, v in tensors.items()}
+    if how == "nan":
+        t["data"].view(-1)[5] = float("nan")
+    elif how == "overflow":
+        t["data"] *= 1e38
+    elif how == "faces":
+        t["mesh.faces"].view(-1)[0] = 10 ** 6
+    elif how == "vertices":
+        t["mesh.vertices"].view(-1)[0] = float("inf")
+    elif how == "kind":
+        kind = "transfer/glossy"
+    io.save(dst, t, kind=kind, meta=meta)
+    return dst
+
+
+@pytest.mark.parametrize("how, says", [("nan", "non-finite"), ("overflow", "beyond"), ("faces", "mesh.faces"),
+                                       ("vertices", "mesh.vertices"), ("kind", "labelled kind=transfer/glossy")])
+def test_every_command_refuses_a_corrupt_transfer_file_alike(how, says, small_transfer, tmp_path, capsys):
+    bad = _corrupt(small_transfer, tmp_path / f"{how}.prt", how)
+    lines = []
+    for argv in (["info", str(bad)],
+                 ["compress", str(bad), "--codec", "pca", "--vectors", "2", "-o", str(tmp_path / "c.prt")],
+                 ["render", str(bad), "--decode", "cpu", "-o", str(tmp_path / "r.png")],
+                 ["validate", str(bad), "--light", "sky", "--vertices", "2", "--spp", "8", "--batches", "1"]):
+        lines.append(_refused(argv, capsys, str(bad), says))
+    assert len({ln.split(": error: ", 1)[1] for ln in lines}) == 1  # the same check, the same words, in every command
+    assert sorted(p.name for p in tmp_path.iterdir()) == [bad.name]  # nothing written

@@ -54,9 +54,10 @@ def load_signal(path):
 
     from .. import io
 
+    from ..transfer import check_transfer_values
+
     tensors, meta = io.load(path, expect_kind="transfer/")
-    if "data" not in tensors:
-        raise ValueError(f"{str(path)!r} has no 'data' tensor; accepted: a transfer file written by Transfer.save")
+    check_transfer_values(path, tensors, meta)  # what render and validate refuse, refused here too
     data = tensors["data"]
     if data.ndim < 2:
         raise ValueError(f"{str(path)!r}: data has shape {tuple(data.shape)}; accepted: [V, ...]")

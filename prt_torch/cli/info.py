@@ -26,10 +26,17 @@ def _short(v, limit: int = 8):
 
 def describe_file(path) -> dict:
     """``{'meta': {...}, 'tensors': {name: {'shape': [...], 'dtype': str}}}`` of a prt_torch file,
-    after its kind's consistency check (``prt_torch.io.describe``)."""
+    after its kind's consistency check (``prt_torch.io.describe``; a transfer file's values too:
+    ``transfer.check_transfer_values``)."""
     from .. import io
 
-    return io.describe(path)
+    d = io.describe(path)
+    kind = str(d["meta"].get("kind", ""))
+    if kind.startswith("transfer/") and kind.split("/", 1)[1] not in ("chunk", "transport_chunk", "transport_views"):
+        from ..transfer import check_transfer_values
+
+        check_transfer_values(path, io.load(path)[0], d["meta"])  # the values too: what render refuses, info refuses
+    return d
 
 
 def run(args) -> int:

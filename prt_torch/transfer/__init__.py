@@ -12,7 +12,8 @@
 * ``registry``: every kind by name, with its precompute function and parameter constraints
   (:func:`get_kind`, :func:`kinds`) — what ``prt precompute``, configs and the harness use.
 """
-from .base import KINDS, TRANSFER_VERSION, ChunkInterrupt, RunOptions, Transfer, default_state_dir, remove_state, run_chunks
+from .base import (KINDS, TRANSFER_VERSION, ChunkInterrupt, RunOptions, Transfer, check_transfer_values, default_state_dir,
+                   remove_state, run_chunks)
 from .diffuse import precompute_diffuse, unshadowed_transfer
 from .glossy import precompute_glossy
 from .mrt import precompute_mrt
@@ -22,6 +23,6 @@ from .transport import TransportTable, precompute_transport
 
 __all__ = [
     "Transfer", "KINDS", "TRANSFER_VERSION", "RunOptions", "run_chunks", "ChunkInterrupt", "default_state_dir",
-    "remove_state", "precompute_diffuse", "unshadowed_transfer", "precompute_glossy",
+    "remove_state", "check_transfer_values", "precompute_diffuse", "unshadowed_transfer", "precompute_glossy",
     "precompute_mrt", "MRTBasis", "precompute_transport", "TransportTable", "TransferKind", "get_kind", "kinds",
 ]

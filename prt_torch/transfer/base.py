@@ -21,7 +21,7 @@ import os
 import shutil
 import time
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable
 
 import torch
 
@@ -31,7 +31,7 @@ from ..executor import Executor, LocalExecutor, TaskFailure
 from ..scene import Mesh, RayCaster
 
 __all__ = ["Transfer", "KINDS", "TRANSFER_VERSION", "RunOptions", "run_chunks", "ChunkInterrupt", "default_state_dir",
-           "remove_state"]
+           "remove_state", "check_transfer_values", "MAX_ABS_TRANSFER"]
 
 KINDS = ("diffuse", "glossy", "mrt", "transport")
 TRANSFER_VERSION = 1
@@ -151,12 +151,7 @@ class Transfer:
         """Load a file written by ``save``; checks kind, shapes and the mesh hash."""
         tensors, meta = io.load(path, expect_kind="transfer/")
         kind = meta["kind"].split("/", 1)[1]
-        if "data" not in tensors:
-            raise ValueError(f"{str(path)!r} has no 'data' tensor; accepted: a file written by Transfer.save")
-        mesh = Mesh.from_tensors(tensors, name=meta.get("mesh_name", "mesh"), meta=meta.get("mesh_meta"))
-        h = mesh.content_hash()
-        if meta.get("mesh_hash") not in (None, h):
-            raise ValueError(f"{str(path)!r}: stored mesh hash {meta.get('mesh_hash')} does not match its arrays ({h}); the file is corrupt")
+        mesh = check_transfer_values(path, tensors, meta)
         for k in ("format", "format_version", "kind", "transfer_version", "transfer_kind", "mesh_name", "mesh_hash",
                   "data_shape", "mesh_meta"):
             meta.pop(k, None)
@@ -194,6 +189,47 @@ def check_transfer_file(path: Path, meta: dict, shapes: dict[str, list[int]]) ->
 
 
 io.register_check("transfer/", check_transfer_file)
+
+#: the largest |value| a transfer file may hold: squares and sums over a row stay finite in float32
+#: (radiance transfer is of order 1; a value beyond this is a corrupt or mis-scaled file)
+MAX_ABS_TRANSFER = 1e15
+
+
+def check_transfer_values(path: Any, tensors: dict[str, torch.Tensor], meta: dict) -> Mesh:
+    """The value-level half of a transfer file's consistency check, run by every command that
+    reads one (``prt info``, ``compress``, ``render``, ``validate``; :meth:`Transfer.load`), after
+    :func:`check_transfer_file` (metadata against shapes): the data's rank for its kind, finite
+    data within ±:data:`MAX_ABS_TRANSFER`, face indices within the vertices, finite vertices, and
+    the stored mesh hash. Returns the mesh. Raises ValueError naming the file and what is wrong."""
+    kind = str(meta.get("kind", "")).split("/", 1)[-1]
+    name = str(path)
+    if "data" not in tensors:
+        raise ValueError(f"{name!r} has no 'data' tensor; accepted: a file written by Transfer.save")
+    data = tensors["data"]
+    ranks = {"diffuse": (2, 3), "glossy": (3,), "mrt": (3,)}.get(kind)
+    if ranks is not None and data.ndim not in ranks:
+        shape = "[V, n²] or [V, C, n²]" if kind == "diffuse" else "[V, rows, n²]"
+        raise ValueError(f"{name!r} is labelled kind=transfer/{kind} but its data has shape {tuple(data.shape)} (rank {data.ndim}); "
+                         f"accepted for {kind}: rank {' or '.join(map(str, ranks))} ({shape})")
+    bad = ~torch.isfinite(data)
+    if bool(bad.any()):
+        i = tuple(int(v) for v in torch.nonzero(bad)[0])
+        raise ValueError(f"{name!r}: data holds {int(bad.sum())} non-finite value(s), first at {i}; accepted: finite values")
+    top = float(data.abs().max()) if data.numel() else 0.0
+    if top > MAX_ABS_TRANSFER:
+        raise ValueError(f"{name!r}: data reaches |{top:.3g}|, beyond ±{MAX_ABS_TRANSFER:g} (float32 products would overflow); "
+                         "accepted: a transfer of physical scale (values of order 1)")
+    mesh = Mesh.from_tensors(tensors, name=meta.get("mesh_name", "mesh"), meta=meta.get("mesh_meta"))
+    V = mesh.vertices.shape[0]
+    f = mesh.faces
+    if f.numel() and (int(f.min()) < 0 or int(f.max()) >= V):
+        raise ValueError(f"{name!r}: mesh.faces index vertices {int(f.min())}..{int(f.max())}; accepted: 0..{V - 1} (the file is corrupt)")
+    if not bool(torch.isfinite(mesh.vertices).all()):
+        raise ValueError(f"{name!r}: mesh.vertices hold non-finite coordinates; accepted: finite vertices (the file is corrupt)")
+    h = mesh.content_hash()
+    if meta.get("mesh_hash") not in (None, h):
+        raise ValueError(f"{name!r}: stored mesh hash {meta.get('mesh_hash')} does not match its arrays ({h}); the file is corrupt")
+    return mesh
 
 
 # ----------------------------------------------------------------------------------------
