@@ -286,3 +286,20 @@ def test_every_command_refuses_a_corrupt_transfer_file_alike(how, says, small_tr
         lines.append(_refused(argv, capsys, str(bad), says))
     assert len({ln.split(": error: ", 1)[1] for ln in lines}) == 1  # the same check, the same words, in every command
     assert sorted(p.name for p in tmp_path.iterdir()) == [bad.name]  # nothing written
+
+
+# ------------------------------------------------------------------ numeric options: finite, in their units
+
+@pytest.mark.parametrize("argv, names", [
+    (["light", "sky", "--rotate", "nan,0,0"], ["rotation", "finite"]),
+    (["light", "sky", "--rotate", "10,0,inf"], ["rotation", "finite"]),
+    (["precompute", "convex", "--samples", "8", "--no-progress", "-o", "{tmp}/p.prt", "--memory-limit", "nan"], ["--memory-limit", "GiB"]),
+    (["precompute", "convex", "--samples", "8", "--no-progress", "-o", "{tmp}/p.prt", "--memory-limit", "inf"], ["--memory-limit", "GiB"]),
+    (["precompute", "convex", "--samples", "8", "--no-progress", "-o", "{tmp}/p.prt", "--memory-limit", "-1"], ["--memory-limit", "GiB"]),
+    (["render", "{transfer}", "-o", "{tmp}/r.png", "--azimuth", "nan"], ["azimuth"]),
+    (["validate", "{transfer}", "--light", "sky", "--view-deg", "inf"], ["view_deg"]),
+])
+def test_numeric_options_are_finite_and_in_their_units(argv, names, small_transfer, tmp_path, capsys):
+    argv = [a.format(tmp=tmp_path, transfer=small_transfer) for a in argv]
+    _refused(argv, capsys, *names)
+    assert list(tmp_path.iterdir()) == []

@@ -15,6 +15,7 @@ an option a kind does not take is refused. Unset options take the kind's default
 from __future__ import annotations
 
 import argparse
+import math
 import shlex
 import shutil
 import sys
@@ -163,6 +164,8 @@ def _run(args, executor) -> int:
     from ..transfer import RunOptions, default_state_dir, get_kind
 
     kind = get_kind(args.kind)
+    if args.memory_limit is not None and not (math.isfinite(args.memory_limit) and 0 < args.memory_limit <= 1 << 20):
+        raise ValueError(f"--memory-limit {args.memory_limit!r} GiB; accepted: a finite number of GiB in (0, 1048576]")
     params = params_from_args(args.kind, args)
     kind.validate(params, where=f"prt precompute --kind {args.kind}")
     out = Path(args.output)

@@ -390,6 +390,8 @@ def resolve_rotation(rotation: Any = None, up: str = "z") -> torch.Tensor:
         rotation = vals
     R = torch.as_tensor(rotation, dtype=torch.float64)
     if R.shape == (3,):
+        if not bool(torch.isfinite(R).all()):
+            raise ValueError(f"rotation={R.tolist()}: Euler angles must be finite; accepted: three finite angles in degrees (x, y, z)")
         return euler_matrix(R.tolist()) @ Rup
     if R.shape != (3, 3):
         raise ValueError(f"rotation has shape {tuple(R.shape)}; accepted: a 3x3 matrix or 3 Euler angles (degrees)")
