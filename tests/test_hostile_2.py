@@ -303,3 +303,19 @@ def test_numeric_options_are_finite_and_in_their_units(argv, names, small_transf
     argv = [a.format(tmp=tmp_path, transfer=small_transfer) for a in argv]
     _refused(argv, capsys, *names)
     assert list(tmp_path.iterdir()) == []
+
+
+# ------------------------------------------------------------------ late refusals: what a dry run can know, it checks
+
+@pytest.mark.parametrize("override, names", [
+    ("codecs.0.clusters=100000", ["vq-clusters100000", "clusters=100000", "10242"]),
+    ("codecs.1.vectors=5000", ["pca-vectors5000", "vectors=5000", "D=1024"]),
+    ("lights=[{bad}]", ["lights.0", "cannot read image"]),
+])
+def test_dry_run_refuses_data_dependent_sizes_and_unreadable_lights(override, names, tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "bad.hdr").write_bytes(b"bad")
+    before = sorted(p.name for p in tmp_path.iterdir())
+    for extra in (["--dry-run"], []):  # the real run refuses the same, before any precompute
+        _refused(["bench", "default", override.format(bad=tmp_path / "bad.hdr"), *extra], capsys, *names)
+        assert sorted(p.name for p in tmp_path.iterdir()) == before

@@ -175,6 +175,18 @@ class Codec(TransformerMixin, BaseEstimator):
     def _check_params(self, p: dict[str, Any]) -> None:
         """Cross-parameter checks on the validated ``p`` (subclasses); raise ValueError naming them."""
 
+    def check_data_shape(self, points: int, dim: int | None = None, matrix_shape: Any = None) -> None:
+        """Refuse, before any data exists, parameters that data of ``points`` rows (and, when known,
+        ``dim`` columns holding ``matrix_shape`` matrices) would refuse at ``fit``: what a dry run can
+        know. ``dim=None``: only the point count is checked (clusters ≤ points)."""
+        p = self._validate()
+        k = p.get("clusters")
+        if isinstance(k, int) and not isinstance(k, bool) and k > points:
+            raise ValueError(f"{self.codec_name}: clusters={k} exceeds the number of points P={points}; accepted: 1..{points}")
+        check = getattr(self, "_check_data", None)
+        if dim is not None and check is not None:
+            check(points, dim, check_matrix_shape(matrix_shape, dim))
+
     def __sklearn_is_fitted__(self) -> bool:
         return bool(getattr(self, "fitted_", False))
 

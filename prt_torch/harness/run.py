@@ -72,6 +72,48 @@ def transfer_params(cfg: dict) -> dict:
     return p
 
 
+def signal_shape(cfg: dict) -> tuple[int, tuple[int, int]] | None:
+    """``(D, matrix_shape)`` of the codec signal ``cfg``'s transfer will give, where the config fixes
+    it (glossy and MRT with integer bands, tents; transport tables), else None (diffuse: grey or
+    RGB rows depend on the albedo; ``auto`` sizes depend on the data)."""
+    from ..transfer import get_kind
+
+    t = cfg["transfer"]
+    p = {**get_kind(t["type"]).defaults(), **transfer_params(cfg)}
+    if any(p.get(k) == "auto" for k in ("bands", "bands_out", "M")):
+        return None
+    n2 = int(p.get("bands", 1)) ** 2
+    if t["type"] == "glossy":
+        ms = (int(p["bands_out"] or p["bands"]) ** 2, n2)
+    elif t["type"] == "mrt":
+        ms = (int(p["M"]) ** 2, n2)
+    elif t["type"] == "transport":
+        v = p["views"]
+        ms = (10 * int(v) ** 2 + 2 if isinstance(v, int) else len(v), 6 * int(p["res"]) ** 2)
+    else:
+        return None
+    return ms[0] * ms[1], ms
+
+
+def check_settings(cfg: dict, num_vertices: int) -> None:
+    """Refuse, before any work, a codec setting that the data's shape will refuse at its fit:
+    clusters beyond the vertices, vectors beyond the signal's dimension where the config fixes it
+    (:func:`signal_shape`). What ``--dry-run`` and the real run both check before the precompute."""
+    shape = signal_shape(cfg)
+    for s in expand_codecs(cfg["codecs"]):
+        params = {k: v for k, v in s.items() if k != "type"}
+        c = codecs.get(s["type"], **params)
+        try:
+            if shape is None:
+                c.check_data_shape(num_vertices)
+            else:
+                c.check_data_shape(num_vertices, shape[0], shape[1])
+        except ValueError as e:
+            raise ValueError(f"codec setting {setting_id(s)} on {num_vertices} vertices"
+                             + (f" of dimension {shape[0]} ({shape[1][0]}x{shape[1][1]} matrices)" if shape else "")
+                             + f": {e}") from None
+
+
 def estimate_memory(cfg: dict, num_vertices: int) -> dict:
     """Rough peak bytes: the transfer signal (float32) a few times over (signal, decoded copy,
     float64 error pass) plus the largest codec workspace (per-cluster covariances in float64)."""
@@ -301,6 +343,14 @@ def load_mesh_within_budget(cfg: dict):
     check_codecs_for_kind(cfg["transfer"]["type"], sorted({s["type"] for s in expand_codecs(cfg["codecs"])}))
     sc = cfg["scene"]
     mesh = load_scene(sc["name"], size=sc["size"], up=sc["up"], albedo=sc["albedo"])
+    check_settings(cfg, mesh.num_vertices)  # the data-dependent sizes, before any precompute
+    from ..lighting import load_light
+
+    for i, spec in enumerate(cfg["lights"]):  # a light file's contents (not only its name), before any precompute
+        try:
+            load_light(spec, bands=2)
+        except (ValueError, OSError) as e:
+            raise ValueError(f"config key 'lights.{i}' = {spec!r}: {e}") from None
     mem = estimate_memory(cfg, mesh.num_vertices)
     if mem["estimated_peak_bytes"] > float(cfg["metrics"]["max_memory_gb"]) * 2**30:
         fb = io.format_bytes
