@@ -319,3 +319,10 @@ def test_dry_run_refuses_data_dependent_sizes_and_unreadable_lights(override, na
     for extra in (["--dry-run"], []):  # the real run refuses the same, before any precompute
         _refused(["bench", "default", override.format(bad=tmp_path / "bad.hdr"), *extra], capsys, *names)
         assert sorted(p.name for p in tmp_path.iterdir()) == before
+
+
+def test_a_sweeps_later_point_is_refused_before_the_first_runs(tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    _refused(["bench", "default", "transfer.M=[4,64]", "metrics.max_memory_gb=1", "--no-render"], capsys, "sweep point", "M64",
+             "max_memory_gb")
+    assert list(tmp_path.iterdir()) == []  # the first point (M=4) did not run: no cache, no report

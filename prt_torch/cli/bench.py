@@ -98,6 +98,16 @@ def run(args: argparse.Namespace) -> int:
                 print(json.dumps({k: v for k, v in sub.items() if not k.startswith("_")}, indent=2))
                 print(f"# {len(expand_codecs(sub['codecs']))} codec settings")
         return 0
+    if len(runs) > 1:  # a sweep: every point's checks before the first point runs
+        from ..harness.run import ablation_values, load_mesh_within_budget
+
+        for c in runs[1:]:
+            for sub in [c] + part_configs(c):
+                for _, one in ablation_values(sub):
+                    try:
+                        load_mesh_within_budget(one)
+                    except ValueError as e:
+                        raise ValueError(f"sweep point {c['name']!r}: {e}") from None
     failed = 0
     with executor:
         for c in runs:
