@@ -412,10 +412,12 @@ def _records_table(records: list[dict]) -> list[str]:
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for x in sorted(records, key=lambda x: (x["codec"], x["bytes_per_vertex"])):
+        warn = " ⚠" if x.get("timing_trusted") is False else ""  # the rates themselves marked, not only the footnote
         lines.append(
             f"| {x['codec']} | {_setting(x)} | {x['bytes_per_vertex']:.1f} | {_fmt(x['compression_ratio'])} | {_fmt(x['se'])} | "
             f"{_fmt(x['relative_se'])} | {_fmt(x['psnr_random_db'])} | {_fmt(x['psnr_lights_db'])} | {x['vertices_per_s'] / 1e6:.2f} "
-            f"(±{x['relight_spread']:.0%}) | {_fmt(x['fps'])} | {_bound(x)} | {_bound_cold(x)} | {_speedup(x)} | {_fmt(x['encode_s'])} |"
+            f"(±{x['relight_spread']:.0%}){warn} | {_fmt(x['fps'])}{warn} | {_bound(x)} | {_bound_cold(x)} | {_speedup(x)} | "
+            f"{_fmt(x['encode_s'])} |"
         )
     pts = [(min(x["psnr_lights_db"], 1e9), x["fps"]) for x in records]
     front = [records[i]["setting_id"] for i in pareto_front(pts)]
