@@ -326,3 +326,20 @@ def test_a_sweeps_later_point_is_refused_before_the_first_runs(tmp_path, capsys,
     _refused(["bench", "default", "transfer.M=[4,64]", "metrics.max_memory_gb=1", "--no-render"], capsys, "sweep point", "M64",
              "max_memory_gb")
     assert list(tmp_path.iterdir()) == []  # the first point (M=4) did not run: no cache, no report
+
+
+def test_a_transport_table_larger_than_the_free_disk_is_refused_before_any_ray(tmp_path, capsys, monkeypatch):
+    import collections
+    import shutil
+
+    import prt_torch.transfer.transport as T
+
+    monkeypatch.setattr(T, "decide_shadows", lambda *a, **k: pytest.fail("rays were traced before the disk check"))
+    usage = collections.namedtuple("usage", "total used free")
+    monkeypatch.setattr(shutil, "disk_usage", lambda p: usage(2**40, 2**40 - 2**30, 2**30))  # 1 GiB free
+    out = tmp_path / "tables"
+    assert cli_main(["precompute", "convex", "--kind", "transport", "--views", "3", "--cube-res", "32", "--no-progress",
+                     "-o", str(out)]) == 2
+    last = capsys.readouterr().err.strip().splitlines()[-1]  # after the mesh's one-line summary
+    assert last.startswith("prt precompute: error: ") and "GiB" in last and "free" in last and "fewer views" in last, last
+    assert list(tmp_path.iterdir()) == []

@@ -41,7 +41,7 @@ from ..scene import Mesh, RayCaster
 from .base import RunOptions
 from .glossy import check_frames, decide_shadows
 
-__all__ = [
+__all__ = ["check_disk_space",
     "icosphere_directions",
     "cube_directions",
     "precompute_transport",
@@ -100,6 +100,26 @@ def _chunk_transport(caster, brdf, points, normals, frames, texels, views, mat_i
     return f * W[:, None, :]
 
 
+def check_disk_space(out: str | Path, V: int, views: torch.Tensor | int, res: int, dtype: str) -> int:
+    """The bytes the tables of ``V`` vertices will take (``V·J·6r²`` values of ``dtype``), refused with
+    ValueError (before any work) when the disk holding ``out`` has less free space than that plus
+    5%. Returns the estimate."""
+    import shutil
+
+    J = (10 * int(views) ** 2 + 2) if isinstance(views, int) else int(torch.as_tensor(views).shape[0])
+    need = int(V) * J * 6 * int(res) ** 2 * (4 if dtype == "float32" else 2)
+    anc = Path(out).resolve()
+    while not anc.exists() and anc != anc.parent:
+        anc = anc.parent
+    have = sum(f.stat().st_size for f in Path(out).glob("*.prt")) if Path(out).is_dir() else 0  # chunks kept for a resume
+    free = shutil.disk_usage(anc).free
+    if need - have > 0.95 * free:
+        raise ValueError(f"transport tables of {V} vertices x {J} views x 6x{res}x{res} texels ({dtype}) need "
+                         f"{(need - have) / 2**30:.2f} GiB at {str(out)!r}, where {free / 2**30:.2f} GiB are free; accepted: "
+                         "fewer views, a smaller res, dtype float16, a smaller mesh, or an output on a disk with room")
+    return need
+
+
 def precompute_transport(
     mesh: Mesh,
     out: str | Path,
@@ -138,6 +158,7 @@ def precompute_transport(
     res = check_int("res", res, 1, MAX_CUBE_RES)
     check_choice("dtype", dtype, ["float32", "float16"])
     offset, resume = run.offset, run.resume
+    check_disk_space(out, mesh.num_vertices, views, res, dtype)  # an absurd table is refused before any ray
     shadows, shadow_meta = decide_shadows(mesh, shadows, 0, run)
     brdf = AshikhminShirley(40.0, 40.0, rs=0.05, rd=0.0) if brdf is None else brdf
     if not isinstance(brdf, BRDF):
