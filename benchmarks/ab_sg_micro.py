@@ -123,11 +123,15 @@ def build(sources: dict[str, str], flags: list[str], work: Path, name: str) -> P
     cc = shutil.which("cc") or shutil.which("gcc")
     if cc is None:
         raise SystemExit("ab_sg_micro: no C compiler (cc or gcc) on PATH; accepted: a machine where the kernels compile")
-    d = work / name
+    d = work / f"{name}-src"
     d.mkdir()
     for n, text in sources.items():
         (d / n).write_text(text)
-    units = [str(d / n) for n in sources if n.endswith(".c")]
+    units = [n for n in sources if n.endswith(".c")]
+    if len(units) > 1:  # one translation unit, as the library is built (_native._build)
+        (d / "unity.c").write_text("".join(f'#include "{n}"\n' for n in units))
+        units = ["unity.c"]
+    units = [str(d / n) for n in units]
     src = "\n".join(sources.values())
     (work / "main.c").write_text(MAIN)
     exe = work / name
