@@ -152,6 +152,8 @@ class Transfer:
         tensors, meta = io.load(path, expect_kind="transfer/")
         kind = meta["kind"].split("/", 1)[1]
         mesh = check_transfer_values(path, tensors, meta)
+        if mesh is None:  # names the missing arrays
+            mesh = Mesh.from_tensors(tensors, name=meta.get("mesh_name", "mesh"), meta=meta.get("mesh_meta"))
         for k in ("format", "format_version", "kind", "transfer_version", "transfer_kind", "mesh_name", "mesh_hash",
                   "data_shape", "mesh_meta"):
             meta.pop(k, None)
@@ -195,12 +197,13 @@ io.register_check("transfer/", check_transfer_file)
 MAX_ABS_TRANSFER = 1e15
 
 
-def check_transfer_values(path: Any, tensors: dict[str, torch.Tensor], meta: dict) -> Mesh:
+def check_transfer_values(path: Any, tensors: dict[str, torch.Tensor], meta: dict) -> Mesh | None:
     """The value-level half of a transfer file's consistency check, run by every command that
     reads one (``prt info``, ``compress``, ``render``, ``validate``; :meth:`Transfer.load`), after
     :func:`check_transfer_file` (metadata against shapes): the data's rank for its kind, finite
     data within ±:data:`MAX_ABS_TRANSFER`, face indices within the vertices, finite vertices, and
-    the stored mesh hash. Returns the mesh. Raises ValueError naming the file and what is wrong."""
+    the stored mesh hash. Returns the mesh (None for a file without mesh arrays: data only). Raises
+    ValueError naming the file and what is wrong."""
     kind = str(meta.get("kind", "")).split("/", 1)[-1]
     name = str(path)
     if "data" not in tensors:
@@ -219,6 +222,8 @@ def check_transfer_values(path: Any, tensors: dict[str, torch.Tensor], meta: dic
     if top > MAX_ABS_TRANSFER:
         raise ValueError(f"{name!r}: data reaches |{top:.3g}|, beyond ±{MAX_ABS_TRANSFER:g} (float32 products would overflow); "
                          "accepted: a transfer of physical scale (values of order 1)")
+    if not any(k.startswith("mesh.") for k in tensors):  # a data-only file (compress reads it; render needs the mesh)
+        return None
     mesh = Mesh.from_tensors(tensors, name=meta.get("mesh_name", "mesh"), meta=meta.get("mesh_meta"))
     V = mesh.vertices.shape[0]
     f = mesh.faces
