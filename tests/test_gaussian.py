@@ -96,7 +96,7 @@ def test_warns_when_the_tables_do_not_resolve_the_lobes(cube):
         assert bool(hit) == expect, sigma
         assert (c.fit_info_["lobes_at_resolution_limit"] == 1.0) == expect
         if expect:
-            assert "--res" in str(hit[0].message)
+            assert "--cube-res" in str(hit[0].message)  # the option that exists (--res meant --resume)
 
 
 def test_lbfgs_alternative_recovers_a_known_lobe(cube):

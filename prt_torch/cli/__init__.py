@@ -37,6 +37,8 @@ def build_parser() -> argparse.ArgumentParser:
                 continue
             raise
         mod.register(sub)
+    for p in [parser, *sub.choices.values()]:  # no prefix matching: `--res 64` must not mean `--resume` and a stray 64
+        p.allow_abbrev = False
     return parser
 
 
