@@ -14,7 +14,6 @@ bit. Each side's sources and flags are read as ``ab_kernels`` reads them (the fi
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 import warnings
 from pathlib import Path
@@ -28,7 +27,6 @@ import ab_kernels  # noqa: E402
 import test_relight_codecs as T  # noqa: E402
 
 from prt_torch.codecs import relight_kernels  # noqa: E402
-from prt_torch.codecs.synthetic import tent_taps_random  # noqa: E402
 
 
 def main() -> int:
@@ -54,14 +52,7 @@ def main() -> int:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
                 c, enc = T._fit(name, params, ms, P, edit)
-            g = torch.Generator().manual_seed(5)
-            nmax = c.basis_.shape[1]
-            prefixes = sorted({None, 0, 1, max(0, nmax - 1)} - ({1} if nmax < 1 else set()), key=lambda v: -1 if v is None else v)
-            side = math.isqrt(n_out)
-            views = [None, torch.randn(P, n_out, generator=g)]
-            if side * side == n_out:
-                views.append(tent_taps_random(P, side, seed=3))
-            views.append((torch.randint(0, n_out, (P, 2), generator=g), torch.randn(P, 2, generator=g)))
+            g, prefixes, views = T.case_inputs(c, P, n_out)
             for C, ns in ((3, prefixes), (1, [None]), (5, [None])):
                 L = torch.randn(n_in, C, generator=g)
                 for n in ns:

@@ -106,12 +106,9 @@ def test_relight_equals_decode_then_reference(case, path):
     _check_case(case, path)
 
 
-def _check_case(case, path):
-    """Every view mode, colour count and n_vectors prefix of one of CASES against the reference."""
-    label, name, params, ms, P, edit = case
-    n_out, n_in = ms
-    c, enc = _fit(name, params, ms, P, edit)
-    assert enc.meta["packed"] == ("packed" in label), label  # the packed layout is exercised
+def case_inputs(c, P: int, n_out: int):
+    """``(generator, n_vectors prefixes, views)`` a fitted CASES codec is relit with: no view, a dense
+    view, tent taps where n_out is a square, 2 arbitrary taps (benchmarks/ab_bits.py uses the same)."""
     g = torch.Generator().manual_seed(5)
     nmax = c.basis_.shape[1]
     prefixes = sorted({None, 0, 1, max(0, nmax - 1)} - ({1} if nmax < 1 else set()), key=lambda v: -1 if v is None else v)
@@ -120,6 +117,17 @@ def _check_case(case, path):
     if side * side == n_out:
         views.append(tent_taps_random(P, side, seed=3))
     views.append((torch.randint(0, n_out, (P, 2), generator=g), torch.randn(P, 2, generator=g)))  # 2 arbitrary taps
+    return g, prefixes, views
+
+
+def _check_case(case, path):
+    """Every view mode, colour count and n_vectors prefix of one of CASES against the reference."""
+    label, name, params, ms, P, edit = case
+    n_out, n_in = ms
+    c, enc = _fit(name, params, ms, P, edit)
+    assert enc.meta["packed"] == ("packed" in label), label  # the packed layout is exercised
+    nmax = c.basis_.shape[1]
+    g, prefixes, views = case_inputs(c, P, n_out)
     for C, ns in ((3, prefixes), (1, [None]), (5, [None])):
         L = torch.randn(n_in, C, generator=g)
         for n in ns:
