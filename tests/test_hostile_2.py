@@ -343,3 +343,19 @@ def test_a_transport_table_larger_than_the_free_disk_is_refused_before_any_ray(t
     last = capsys.readouterr().err.strip().splitlines()[-1]  # after the mesh's one-line summary
     assert last.startswith("prt precompute: error: ") and "GiB" in last and "free" in last and "fewer views" in last, last
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_broken_pipe_to_another_process_is_an_error_not_a_closed_stdout(monkeypatch, capfd):
+    """`prt ... | head` ends quietly (the reader left); a BrokenPipeError from any other pipe (a worker's)
+    is an error with status 2, and standard output stays open for what follows."""
+    import prt_torch.cli.info as info
+
+    def broken(args):
+        raise BrokenPipeError(32, "Broken pipe")
+
+    monkeypatch.setattr(info, "run", broken)
+    assert cli_main(["info", "x.prt"]) == 2
+    out, err = capfd.readouterr()
+    assert err.strip().startswith("prt info: error: a pipe to another process broke"), err
+    print("stdout still open")
+    assert "stdout still open" in capfd.readouterr().out

@@ -61,6 +61,20 @@ def _one_line_warning(command: str):
     return show
 
 
+def _stdout_reader_left() -> bool:
+    """Whether standard output is a pipe whose reader has closed it (``prt ... | head``): its write
+    end polls as an error. A BrokenPipeError from any other pipe must not silence standard output."""
+    import select
+
+    try:
+        fd = sys.stdout.fileno()
+        p = select.poll()
+        p.register(fd, select.POLLOUT)
+        return any(ev & select.POLLERR for _, ev in p.poll(0))
+    except (OSError, ValueError, AttributeError):  # no poll (Windows) or no real stdout: assume the usual case
+        return True
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args, extra = parser.parse_known_args(argv)
@@ -80,8 +94,13 @@ def main(argv: list[str] | None = None) -> int:
         with warnings.catch_warnings():
             warnings.showwarning = _one_line_warning(args.command)
             return int(args.func(args) or 0)
-    except BrokenPipeError:  # `prt ... | head`: the reader left; not an error
-        import os
+    except BrokenPipeError:
+        if not _stdout_reader_left():  # another pipe broke (a worker's, a child's): an error, not `| head`
+            if getattr(args, "debug", False):
+                raise
+            print(f"prt {args.command}: error: a pipe to another process broke (BrokenPipeError)", file=sys.stderr)
+            return 2
+        import os  # `prt ... | head`: the reader left; not an error
 
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
