@@ -227,14 +227,15 @@ def compile_library(name: str, src, flags: list[str], signatures: dict[str, list
     argument types; each returns a C ``int``."""
     sources = _sources_of(name, src)
     pre = _prebuilt(name, sources, list(flags))
+    skipped = ""
     if pre is not None:
         try:
             return _load(pre, signatures), f"prebuilt at install time ({' '.join(flags)}), {pre}"
-        except (OSError, AttributeError):
-            pass  # not loadable here (or missing a symbol): compile at run time
+        except (OSError, AttributeError) as e:  # not loadable here (or missing a symbol): compile at run time, saying so
+            skipped = f" (the prebuilt {pre} did not load: {e})"
     cc, version = _compiler()
     if cc is None:
-        return None, version
+        return None, version + skipped
     errors = []
     so = used = None
     for used in (flags, [f for f in flags if f != "-march=native"]):
@@ -265,4 +266,4 @@ def compile_library(name: str, src, flags: list[str], signatures: dict[str, list
         lib = _load(so, signatures)
     except OSError as e:
         return None, f"loading {so} failed: {e}"
-    return lib, f"compiled with {cc} ({' '.join(used)}), {so}"
+    return lib, f"compiled with {cc} ({' '.join(used)}), {so}{skipped}"
