@@ -67,11 +67,16 @@ __all__ = [
     "DiffuseSampler",
     "MAX_DIFFUSE_BANDS",
     "MAX_SAMPLES",
+    "SAMPLINGS",
+    "ESTIMATORS",
+    "qmc_rays",
 ]
 
 MAX_DIFFUSE_BANDS = 32
 MAX_SAMPLES = 1 << 20
 MAX_BOUNCES = 64
+SAMPLINGS = ("qmc", "uniform", "cosine")
+ESTIMATORS = ("control", "plain")
 
 
 def unshadowed_transfer(normals: torch.Tensor, bands: int, albedo: torch.Tensor | None = None) -> torch.Tensor:
@@ -142,10 +147,29 @@ def offset_origins(points: Any, normals: Any, eps: float, nudge: Any = None) -> 
 
 
 class DiffuseSampler:
-    """The direction set of one run, with SH values evaluated once where they are shared."""
+    """The direction set of one run, with SH values evaluated once where they are shared.
 
-    def __init__(self, bands: int, samples: int, seed: int, sampling: str):
-        self.bands, self.samples, self.sampling = bands, samples, sampling
+    ``sampling``:
+
+    * ``'uniform'``: one jittered stratified set of N directions over the sphere shared by every
+      vertex (weights 4π/N; about N/2 above a tangent plane are traced), SH evaluated once.
+    * ``'cosine'``: N stratified cosine-weighted directions over each vertex's hemisphere.
+    * ``'qmc'``: M = ⌈N/2⌉ directions per vertex (the rays 'uniform' traces) from a Hammersley set
+      over the vertex's hemisphere, uniform in solid angle (z = cos θ uniform), Cranley–Patterson
+      rotated per vertex by :func:`_hash_uniform` of (seed, vertex id) so that every vertex has its
+      own randomised low-discrepancy set and the numbers depend on neither chunking nor executor:
+      (1/π) ∫ f max(n·s, 0) ds ≈ (2/M) Σ_m z_m f(s_m). Measured (benchmarks/bench_precompute_error.py)
+      with 0.25-0.3x the relative RMS error of 'uniform' at equal rays with the control variate.
+
+    ``estimator``: ``'plain'`` sums the visible directions, t = Σ_j w_j V_j y(s_j); ``'control'``
+    (issue 42) uses the exact unshadowed transfer as a control variate and samples only what is
+    blocked, t = t_unshadowed − Σ_j w_j (1 − V_j) y(s_j) — unbiased, exact for an unoccluded
+    vertex, and its error is that of the occluded part alone.
+    """
+
+    def __init__(self, bands: int, samples: int, seed: int, sampling: str, estimator: str = "control"):
+        self.bands, self.samples, self.sampling, self.seed = bands, samples, sampling, int(seed)
+        self.estimator = check_choice("estimator", estimator, ESTIMATORS)
         if sampling == "uniform":
             self.dirs, _ = uniform_sphere(samples, seed)  # [N,3] float64, weights 4π/N
             self.Y = eval_sh(self.dirs, bands)  # [N, n²], shared by every vertex
@@ -154,10 +178,20 @@ class DiffuseSampler:
             self.dirs32 = self.dirs_np.astype(np.float32)
             self.Y_np = np.ascontiguousarray(self.Y.numpy())
             self._work: dict = {}  # ray buffers of rays(reuse=True)
+        elif sampling == "qmc":
+            self.M = qmc_rays(samples)
+            self.base = _hammersley(self.M)  # [M, 2] in [0,1)², rotated per vertex
+            self.Y = None
+            self.weight = 2.0 / self.M  # (2π/M)·(1/π), times z per ray
         else:
             self.dirs = cosine_hemisphere(samples, seed)  # local frame
             self.Y = None
             self.weight = 1.0 / samples
+
+    @property
+    def per_vertex(self) -> int:
+        """Directions each vertex's estimate averages over (the N of its 1/N)."""
+        return self.M if self.sampling == "qmc" else self.samples
 
     def __getstate__(self):  # the kept ray buffers (tens of MB) do not travel with a pickled sampler (Ray tasks)
         st = dict(self.__dict__)
@@ -166,14 +200,17 @@ class DiffuseSampler:
         return st
 
     def rays(self, points: torch.Tensor, normals: torch.Tensor, frames: torch.Tensor | None, eps: float,
-             nudge: torch.Tensor | None = None, reuse: bool = False):
+             nudge: torch.Tensor | None = None, reuse: bool = False, ids: np.ndarray | None = None):
         """Ray set of a chunk of k vertices (numpy, ready for Embree).
 
         Returns ``(i [R] vertex index, j [R] sample index, origins float32 [R,3],
         dirs float32 [R,3], cos)`` with origins by :func:`offset_origins` (``nudge``: the
         points' :func:`boundary_nudge` rows, or None). For uniform
         sampling only directions above the tangent plane are traced and ``cos`` is the
-        ``[k,N]`` matrix max(n·s, 0); for cosine sampling ``cos`` is None and dirs are per vertex.
+        ``[k,N]`` matrix max(n·s, 0); for cosine sampling ``cos`` is None and dirs are per vertex;
+        for qmc ``cos`` is the ``[R]`` float64 cosine of each ray and dirs are per vertex (in the
+        frame :func:`~prt_torch.scene.mesh.tangent_frames` gives the normal; ``frames`` is not used;
+        ``ids`` ``[k]`` the vertices' global ids, the keys of their rotations; None: 0..k-1).
         ``reuse``: the uniform rays are written into buffers this sampler keeps (views of them are
         returned, overwritten by its next call with ``reuse``), not into fresh memory.
         """
@@ -193,10 +230,49 @@ class DiffuseSampler:
                 d = np.take(self.dirs32, j, axis=0)
             return i, j, o, d, np.maximum(cos, 0.0, out=cos)
         k = normals.shape[0]
+        if self.sampling == "qmc":
+            M = self.M
+            keys = np.arange(k, dtype=np.int64) if ids is None else np.asarray(ids, np.int64)
+            zero = np.zeros_like(keys)
+            u1 = _hash_uniform(self.seed, keys, zero, 1 << 20)[:, None]  # streams apart from the hit estimator's
+            u2 = _hash_uniform(self.seed, keys, zero, (1 << 20) + 1)[:, None]
+            z = (self.base[None, :, 0] + u1) % 1.0  # [k,M] uniform in cos θ: uniform over the hemisphere
+            phi = 2 * math.pi * ((self.base[None, :, 1] + u2) % 1.0)
+            z = np.maximum(z, 1e-12)  # every ray leaves the tangent plane (measure-zero horizon)
+            r = np.sqrt(1.0 - z * z)
+            from ..scene.mesh import tangent_frames
+
+            t, b = tangent_frames(normals.numpy())  # the module rule from the normals alone, whatever frames the mesh has
+            F = np.stack([t, b, normals.numpy().astype(np.float64)], 1)  # [k,3,3] rows (t, b, n)
+            x, y = r * np.cos(phi), r * np.sin(phi)
+            d = x[..., None] * F[:, None, 0] + y[..., None] * F[:, None, 1] + z[..., None] * F[:, None, 2]  # [k,M,3]
+            i = np.repeat(np.arange(k), M)
+            j = np.tile(np.arange(M), k)
+            return i, j, np.repeat(o_v, M, axis=0), d.reshape(-1, 3).astype(np.float32), z.reshape(-1)
         world = to_world(self.dirs, frames).reshape(-1, 3).numpy()  # [k·N,3]
         i = np.repeat(np.arange(k), self.samples)
         j = np.tile(np.arange(self.samples), k)
         return i, j, o_v[i], world, None
+
+    def ray_weights(self, i: np.ndarray, j: np.ndarray, cos: Any) -> np.ndarray:
+        """``[R]`` float64 w_j of each ray in t = Σ_j w_j V_j y(s_j) (ρ = 1)."""
+        if self.sampling == "uniform":
+            return self.weight * cos[i, j]
+        if self.sampling == "qmc":
+            return self.weight * cos
+        return np.full(i.shape[0], self.weight)
+
+
+def rays_per_vertex(samples: int, sampling: str) -> int:
+    """Rays a vertex traces for a ``samples`` setting: about N/2 ('uniform': the sphere set's
+    directions above the tangent plane; 'qmc': :func:`qmc_rays`) or N ('cosine')."""
+    return {"uniform": int(samples) // 2, "qmc": qmc_rays(samples)}.get(sampling, int(samples))
+
+
+def qmc_rays(samples: int) -> int:
+    """Rays per vertex of ``sampling='qmc'`` for a ``samples`` setting: ⌈N/2⌉, the rays the
+    uniform sphere set traces above a tangent plane on average (``samples`` keeps one meaning)."""
+    return max(1, (int(samples) + 1) // 2)
 
 
 _M1, _M2, _M3 = np.uint64(0x9E3779B97F4A7C15), np.uint64(0xBF58476D1CE4E5B9), np.uint64(0x94D049BB133111EB)
@@ -346,7 +422,10 @@ def _chunk(caster: RayCaster, sampler: DiffuseSampler, points: torch.Tensor, nor
     """Shadowed transfer (ρ = 1) of a chunk of k points, and (optionally) its bounce entries.
 
     Uniform sampling: T = (4/N) · (V ⊙ max(n·s,0)) @ Y — one masked GEMM per chunk
-    (course notes 2005, "Precomputation"). Cosine sampling: T = (1/N) Σ_j V y(s_j).
+    (course notes 2005, "Precomputation"). Cosine sampling: T = (1/N) Σ_j V y(s_j); qmc:
+    T = (2/M) Σ_j z_j V y(s_j). With ``sampler.estimator == 'control'`` the same rays give
+    T = T_unshadowed − Σ_j w_j (1 − V_j) y(s_j) instead (:class:`DiffuseSampler`): only the
+    blocked rays' SH values are needed.
     Bounce entries (rows of S): ``hit_columns='faces'`` puts a front hit's weight on the hit
     face's column (``n_vertices`` is then the face count), ``'corners'`` on the hit face's three
     corner points by barycentrics, ``'vertices'`` on the hit face's vertices by barycentrics.
@@ -355,24 +434,31 @@ def _chunk(caster: RayCaster, sampler: DiffuseSampler, points: torch.Tensor, nor
     ``TB [k, terms, C, n²]`` (ρ_p kept out, ρ_q in).
     """
     k = points.shape[0]
-    i, j, o, d, cos = sampler.rays(points, normals, frames, caster.eps, nudge, reuse=True)  # consumed within this chunk
+    keys = (first_id + np.arange(k)) if ids is None else np.asarray(ids)
+    i, j, o, d, cos = sampler.rays(points, normals, frames, caster.eps, nudge, reuse=True, ids=keys)  # consumed within this chunk
     if record_hits:
         prim, bu, bv, _ = caster.trace(o, d, "intersect")
         hit = prim != -1
     else:
         hit = caster.trace(o, d, "occluded")
     out: dict[str, torch.Tensor] = {"rays": torch.tensor([i.shape[0]], dtype=torch.int64)}
-    if sampler.sampling == "uniform":
+    control = sampler.estimator == "control"
+    if sampler.sampling == "uniform" and not control:
         W = cos * sampler.weight  # [k,N]; zero below the horizon
         W.reshape(-1)[(i * W.shape[1] + j)[hit]] = 0.0  # blocked directions
         out["T"] = torch.from_numpy(W @ sampler.Y_np)  # one GEMM per chunk (numpy's float64 GEMM: 3x torch's here)
-        w_ray = W.dtype.type(sampler.weight) * cos[i, j] if record_hits else None
     else:
-        vis = ~hit
-        Y = eval_sh(torch.from_numpy(d[vis]).to(torch.float64), sampler.bands, check=False)  # per-vertex directions
-        out["T"] = torch.zeros(k, Y.shape[1], dtype=torch.float64).index_add_(0, torch.from_numpy(i[vis]), Y * sampler.weight)
-        w_ray = np.full(i.shape[0], sampler.weight) if record_hits else None
+        sel = hit if control else ~hit
+        w_sel = sampler.ray_weights(i[sel], j[sel], cos if sampler.sampling == "uniform" else
+                                    (cos[sel] if cos is not None else None))
+        if sampler.sampling == "uniform":
+            Y = torch.from_numpy(sampler.Y_np[j[sel]])  # [R_sel, n²] rows of the shared table
+        else:
+            Y = eval_sh(torch.from_numpy(d[sel]).to(torch.float64), sampler.bands, check=False)  # per-vertex directions
+        S = torch.zeros(k, Y.shape[1], dtype=torch.float64).index_add_(0, torch.from_numpy(i[sel]), Y * torch.from_numpy(w_sel)[:, None])
+        out["T"] = unshadowed_transfer(normals.to(torch.float64), sampler.bands) - S if control else S
     if record_hits:
+        w_ray = sampler.ray_weights(i, j, cos)
         h = np.nonzero(hit)[0]
         tri = prim[h].astype(np.int64)
         dh = d[h].astype(np.float64)
@@ -418,19 +504,24 @@ def _hit_bounces(caster: RayCaster, hits: HitBounce, k: int, rows: np.ndarray, d
 
 
 def transfer_at_points(caster: RayCaster, points: Any, normals: Any, bands: int, samples: int, seed: int = 0,
-                       sampling: str = "uniform", nudge: Any = None) -> torch.Tensor:
+                       sampling: str = "qmc", nudge: Any = None, ids: Any = None,
+                       estimator: str = "control") -> torch.Tensor:
     """Shadowed diffuse transfer (ρ = 1, no interreflection) at arbitrary surface points.
 
     Args:
         caster: ``RayCaster`` of the occluding geometry.
         points, normals: ``[P,3]``.
         nudge: optional ``[P,3]`` :func:`boundary_nudge` rows (mesh vertices: the precompute's origins).
+        sampling, estimator: as :func:`precompute_diffuse`.
+        ids: ``[P]`` int keys of the points' per-vertex rotations (qmc); the mesh's vertex ids
+            reproduce the precompute's numbers for those vertices. None: 0..P-1.
     Returns:
         ``[P, n²] float64`` — course notes 2005 t⁰ with ρ = 1 (Monte Carlo, see module docstring).
     """
     bands = check_int("bands", bands, 1, MAX_DIFFUSE_BANDS)
     samples = check_int("samples", samples, 1, MAX_SAMPLES)
-    check_choice("sampling", sampling, ["uniform", "cosine"])
+    check_choice("sampling", sampling, SAMPLINGS)
+    check_choice("estimator", estimator, ESTIMATORS)
     p, n = _check_points(points, normals)
     from ..scene.mesh import tangent_frames
 
@@ -439,7 +530,9 @@ def transfer_at_points(caster: RayCaster, points: Any, normals: Any, bands: int,
         t, b = tangent_frames(n.numpy())
         frames = torch.stack([torch.from_numpy(t), torch.from_numpy(b), n], dim=-2)
     nd = None if nudge is None else torch.as_tensor(nudge, dtype=torch.float64)
-    return _chunk(caster, DiffuseSampler(bands, samples, seed, sampling), p, n, frames, None, None, 0, False, nudge=nd)["T"]
+    keys = None if ids is None else np.asarray(torch.as_tensor(ids, dtype=torch.int64).numpy())
+    return _chunk(caster, DiffuseSampler(bands, samples, seed, sampling, estimator), p, n, frames, None, None, 0, False,
+                  nudge=nd, ids=keys)["T"]
 
 
 def probe_self_occlusion(caster: RayCaster, mesh: Mesh, seed: int = 0, vertices: int = 1024,
@@ -471,7 +564,8 @@ def precompute_diffuse(
     bounces: int = 0,
     seed: int = 0,
     *,
-    sampling: str = "uniform",
+    sampling: str = "qmc",
+    estimator: str = "control",
     shadows: str = "auto",
     fold_albedo: bool | None = None,
     bounce_tol: float = 1e-3,
@@ -489,8 +583,13 @@ def precompute_diffuse(
             half of them traced; cosine: over the hemisphere).
         bounces: interreflection bounces B in [0, 64] after the direct (shadowed) pass.
         seed: direction-set seed; the same seed gives the same result.
-        sampling: 'uniform' (one global stratified set, SH evaluated once) or 'cosine'
-            (stratified cosine-weighted hemisphere per vertex frame).
+        sampling: 'qmc' (default: a Hammersley set over each vertex's hemisphere,
+            Cranley–Patterson rotated per vertex, ⌈N/2⌉ rays), 'uniform' (one global stratified
+            sphere set, SH evaluated once) or 'cosine' (stratified cosine-weighted hemisphere per
+            vertex frame, N rays). :class:`DiffuseSampler`.
+        estimator: 'control' (default: the exact unshadowed transfer minus the blocked rays'
+            part — exact for an unoccluded vertex) or 'plain' (the sum over visible rays).
+            benchmarks/bench_precompute_error.py measures both with every sampling.
         shadows: 'auto' (probe; trace only if shadowing removes more than ``probe_tol`` of the
             energy), 'always', or 'never' (unshadowed analytic transfer, no interreflection).
         fold_albedo: None = fold only when needed (coloured albedo with interreflection),
@@ -520,7 +619,8 @@ def precompute_diffuse(
     samples = check_int("samples", samples, 1, MAX_SAMPLES)
     bounces = check_int("bounces", bounces, 0, MAX_BOUNCES)
     seed = check_int("seed", seed, 0, 2**63 - 1)
-    check_choice("sampling", sampling, ["uniform", "cosine"])
+    check_choice("sampling", sampling, SAMPLINGS)
+    check_choice("estimator", estimator, ESTIMATORS)
     check_choice("shadows", shadows, ["auto", "always", "never"])
     check_choice("fold_albedo", fold_albedo, [None, True, False])
     check_choice("bounce_points", bounce_points, ["hits", "faces", "corners", "vertices"])
@@ -532,7 +632,8 @@ def precompute_diffuse(
         raise ValueError("fold_albedo=False with coloured albedo and bounces > 0: interreflection bleeds colour, so the albedo "
                          "cannot be kept separate; accepted: fold_albedo=None/True, or bounces=0, or a grey albedo")
     meta: dict[str, Any] = {
-        "bands": bands, "samples": samples, "seed": seed, "sampling": sampling, "bounces_requested": bounces,
+        "bands": bands, "samples": samples, "seed": seed, "sampling": sampling, "estimator": estimator,
+        "bounces_requested": bounces,
         "bounce_tol": bounce_tol, "shadows": shadows, "offset": run.offset,
         "bounce_points": bounce_points if bounces > 0 else None,
         "normalisation": "exit radiance L_out[v,c] = sum_i data[v,(c),i] * l[c,i] (times mesh.albedo[v,c] when "
@@ -551,9 +652,11 @@ def precompute_diffuse(
             hits = _hit_tables(caster, mesh, bands, samples, seed, sampling, bounces, hit_samples, run, meta)
         if traced:
             hit_columns = bounce_points if bounces > 0 else "vertices"
-            T0, S = _trace_direct(caster, mesh, bands, samples, seed, sampling, bounces > 0, run, meta, hit_columns, hits)
+            T0, S = _trace_direct(caster, mesh, bands, samples, seed, sampling, bounces > 0, run, meta, hit_columns, hits,
+                                  estimator)
             if bounces > 0 and bounce_points in ("faces", "corners"):
-                faces = _trace_faces(caster, mesh, bands, samples, seed, sampling, bounces > 1, run, meta, bounce_points)
+                faces = _trace_faces(caster, mesh, bands, samples, seed, sampling, bounces > 1, run, meta, bounce_points,
+                                     estimator)
         else:
             T0, S = unshadowed_transfer(mesh.normals, bands), None  # [V, n²] float64, exact
             meta["rays_traced"] = 0
@@ -577,7 +680,7 @@ def _workers(run: RunOptions, mesh: Mesh, samples: int, sampling: str) -> int:
     only for long runs (pool start ~0.5 s)."""
     if run.workers is not None:
         return run.workers
-    est = mesh.num_vertices * (samples // 2 if sampling == "uniform" else samples)
+    est = mesh.num_vertices * rays_per_vertex(samples, sampling)
     return default_workers() if est >= 4_000_000 else 1
 
 
@@ -610,14 +713,14 @@ def _hit_tables(caster: RayCaster, mesh: Mesh, bands: int, samples: int, seed: i
 
 def _trace_direct(caster: RayCaster, mesh: Mesh, bands: int, samples: int, seed: int, sampling: str,
                   record_hits: bool, run: RunOptions, meta: dict, hit_columns: str = "vertices",
-                  hits: HitBounce | None = None) -> tuple[torch.Tensor, Any]:
+                  hits: HitBounce | None = None, estimator: str = "plain") -> tuple[torch.Tensor, Any]:
     """Step 2: shadowed transfer t⁰ ``[V, n²]`` float64 over resumable chunks, and (when
     ``record_hits``) the bounce matrix S of the same rays (scipy CSR): ``[V, V]`` for
     ``hit_columns='vertices'``, ``[V, F]`` for ``'faces'``."""
     V = mesh.num_vertices
-    sampler = DiffuseSampler(bands, samples, seed, sampling)
-    rays_per_vertex = samples // 2 if sampling == "uniform" else samples
-    chunk_size = check_int("chunk_size", run.chunks(int(min(max(16, (1 << 20) // max(1, rays_per_vertex)), 16384))), 1)
+    sampler = DiffuseSampler(bands, samples, seed, sampling, estimator)
+    rpv = rays_per_vertex(samples, sampling)
+    chunk_size = check_int("chunk_size", run.chunks(int(min(max(16, (1 << 20) // max(1, rpv)), 16384))), 1)
     frames = mesh.frames() if sampling == "cosine" else None
     faces_np = mesh.faces.numpy()
     tri = mesh.vertices.numpy()[faces_np]
@@ -634,6 +737,8 @@ def _trace_direct(caster: RayCaster, mesh: Mesh, bands: int, samples: int, seed:
 
     fingerprint = {"mesh_hash": mesh.content_hash(), "bands": bands, "samples": samples, "seed": seed,
                    "sampling": sampling, "record_hits": record_hits, "offset": run.offset, "kind": "diffuse"}
+    if estimator != "plain":
+        fingerprint["estimator"] = estimator
     if record_hits and hit_columns != "vertices":
         fingerprint["hit_columns"] = hit_columns
     if hits is not None:
@@ -675,7 +780,8 @@ def face_state_dir(run: RunOptions) -> str | None:
 
 
 def _trace_faces(caster: RayCaster, mesh: Mesh, bands: int, samples: int, seed: int, sampling: str,
-                 record_hits: bool, run: RunOptions, meta: dict, points: str = "faces") -> dict[str, Any]:
+                 record_hits: bool, run: RunOptions, meta: dict, points: str = "faces",
+                 estimator: str = "plain") -> dict[str, Any]:
     """Step 2b (bounces with ``bounce_points`` 'faces' or 'corners'): the shadowed transfer x⁰
     of the reflector points over their face's own hemisphere (the same direction set and ray
     offset rule as the vertices) — ``[F, n²]`` at the face centroids, or ``[3F, n²]`` at each
@@ -688,8 +794,8 @@ def _trace_faces(caster: RayCaster, mesh: Mesh, bands: int, samples: int, seed: 
         fn = fn.repeat_interleave(3, 0)
         rho_f = mesh.albedo.to(torch.float64)[f].reshape(-1, 3)
     F = c.shape[0]
-    sampler = DiffuseSampler(bands, samples, seed, sampling)
-    rays_per_point = samples // 2 if sampling == "uniform" else samples
+    sampler = DiffuseSampler(bands, samples, seed, sampling, estimator)
+    rays_per_point = rays_per_vertex(samples, sampling)
     chunk_size = check_int("chunk_size", run.chunks(int(min(max(16, (1 << 20) // max(1, rays_per_point)), 16384))), 1)
     frames = None
     if sampling == "cosine":
@@ -702,10 +808,12 @@ def _trace_faces(caster: RayCaster, mesh: Mesh, bands: int, samples: int, seed: 
 
     def compute(a: int, b: int) -> dict[str, torch.Tensor]:
         return _chunk(caster, sampler, c[a:b], fn[a:b], None if frames is None else frames[a:b], faces_np, fn_np, F,
-                      record_hits, points)
+                      record_hits, points, first_id=a)
 
     fingerprint = {"mesh_hash": mesh.content_hash(), "bands": bands, "samples": samples, "seed": seed,
                    "sampling": sampling, "record_hits": record_hits, "offset": run.offset, "kind": f"diffuse_{points}"}
+    if estimator != "plain":
+        fingerprint["estimator"] = estimator
     state = face_state_dir(run)
     if state is not None and not run.resume and os.path.exists(state):
         if os.path.exists(run.state_dir):  # an interrupted run: refused as the vertex pass would refuse it
@@ -728,7 +836,8 @@ def _trace_faces(caster: RayCaster, mesh: Mesh, bands: int, samples: int, seed: 
 
 
 def vertex_transfer(mesh: Mesh, idx: Any, bands: int, samples: int, seed: int, bounces: int = 0, *,
-                    sampling: str = "uniform", offset: float = 1e-4, hit_samples: int = 8) -> tuple[torch.Tensor, torch.Tensor | None]:
+                    sampling: str = "qmc", offset: float = 1e-4, hit_samples: int = 8,
+                    estimator: str = "control") -> tuple[torch.Tensor, torch.Tensor | None]:
     """What ``precompute_diffuse(..., bounce_points='hits')`` computes for the vertices ``idx``
     alone (the same rays, keys and offsets): ``(t⁰ [k, n²], TB [k, B, C, n²] or None)`` float64,
     ρ_p kept out. Cheap for a few vertices (no pass over the mesh): the validator uses it to
@@ -740,7 +849,7 @@ def vertex_transfer(mesh: Mesh, idx: Any, bands: int, samples: int, seed: int, b
     with RayCaster(mesh, workers=_workers(run, mesh, samples, sampling), offset=offset) as caster:
         hits = HitBounce(mesh, bands, hit_samples, seed, bounces, 1 if mesh.is_grey() else 3) if bounces > 0 else None
         faces_np = mesh.faces.numpy()
-        out = _chunk(caster, DiffuseSampler(bands, samples, seed, sampling), mesh.vertices[idx], mesh.normals[idx], frames,
+        out = _chunk(caster, DiffuseSampler(bands, samples, seed, sampling, estimator), mesh.vertices[idx], mesh.normals[idx], frames,
                      faces_np, face_points(mesh)[1].numpy(), faces_np.shape[0], bounces > 0, "hits" if bounces else "vertices",
                      hits, 0, nudge, idx.numpy())
     return out["T"].to(torch.float64), out.get("TB")

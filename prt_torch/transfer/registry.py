@@ -217,14 +217,19 @@ register_kind(TransferKind(
     "(Sloan 2002; course notes 2005)",
     constraints={
         "bands": [Interval(int, 1, MAX_DIFFUSE_BANDS), _AUTO], "samples": [Interval(int, 1, MAX_SAMPLES)],
-        "bounces": [Interval(int, 0, MAX_BOUNCES)], "seed": _SEED, "sampling": [Options("uniform", "cosine")],
-        "shadows": _SHADOWS, "fold_albedo": [Boolean(), None], "bounce_tol": [Interval(float, 0, 1, closed="left")],
+        "bounces": [Interval(int, 0, MAX_BOUNCES)], "seed": _SEED, "sampling": [Options("qmc", "uniform", "cosine")],
+        "estimator": [Options("control", "plain")], "shadows": _SHADOWS, "fold_albedo": [Boolean(), None],
+        "bounce_tol": [Interval(float, 0, 1, closed="left")],
         "probe_tol": [Interval(float, 0, 1, closed="left")],
         "bounce_points": [Options("hits", "vertices")], "hit_samples": [Interval(int, 1, 1024)],
     },
     args=_args("bands", "samples", "bounces", "seed", "shadows") + (
-        Arg("--sampling", "sampling", "uniform sphere set (SH evaluated once) or cosine-weighted hemisphere per vertex",
-            values={"uniform": "uniform", "cosine": "cosine"}),
+        Arg("--sampling", "sampling", "direction set: a randomised Hammersley set over each vertex's hemisphere (qmc, "
+            "default), one stratified sphere set for all vertices (uniform) or cosine-weighted per vertex (cosine)",
+            values={"qmc": "qmc", "uniform": "uniform", "cosine": "cosine"}),
+        Arg("--estimator", "estimator", "control: exact unshadowed transfer minus the sampled blocked part (default; "
+            "exact where nothing is blocked); plain: the sum over visible rays",
+            values={"control": "control", "plain": "plain"}),
         Arg("--fold-albedo", "fold_albedo", "store [V,3,n²] with albedo folded (yes), [V,n²] without (no), or as needed (auto)",
             values={"auto": None, "yes": True, "no": False}),
         Arg("--bounce-tol", "bounce_tol", "stop adding bounces below this energy fraction"),

@@ -74,7 +74,8 @@ def engine_parts(transfer: Transfer, L: torch.Tensor, idx: torch.Tensor, data: t
     mesh, meta = transfer.mesh, transfer.meta
     bands = int(meta["bands"])
     samples, seed = int(meta.get("samples", 1024)), int(meta.get("seed", 0))
-    sampling = meta.get("sampling", "uniform")
+    sampling = meta.get("sampling", "uniform")  # files before the qmc default say so
+    estimator = meta.get("estimator", "plain")  # ... and before the control variate used the plain sum
     offset = float(meta.get("offset", 1e-4))
     hit_samples = int(meta.get("hit_samples", 8))
     L = torch.as_tensor(L, dtype=torch.float64)
@@ -94,7 +95,8 @@ def engine_parts(transfer: Transfer, L: torch.Tensor, idx: torch.Tensor, data: t
         return {"total": total, "direct": direct, "inter": zero, "direct_se": zero, "inter_se": zero,
                 "direct_sum_se": 0.0, "inter_sum_se": 0.0, "noise": "none (analytic unshadowed transfer)"}
     with RayCaster(mesh, offset=offset) as caster:
-        t0 = transfer_at_points(caster, p, n, bands, samples, seed, sampling, nudge=boundary_nudge(mesh)[idx])  # [k, n²], ρ = 1
+        t0 = transfer_at_points(caster, p, n, bands, samples, seed, sampling, nudge=boundary_nudge(mesh)[idx],
+                                ids=idx, estimator=estimator)  # [k, n²], ρ = 1
         direct = rho * (t0 @ L3.T)
         hits_mode = bounces > 0 and meta.get("bounce_points") == "hits"
         if bounces > 0 and not hits_mode:
@@ -104,7 +106,7 @@ def engine_parts(transfer: Transfer, L: torch.Tensor, idx: torch.Tensor, data: t
     D, I = [], []
     for r in range(int(replicas)):  # a loop over replica seeds; each one batched over the vertices
         T0r, TBr = vertex_transfer(mesh, idx, bands, samples, seed + 7919 * (r + 1), bounces if hits_mode else 0,
-                                   sampling=sampling, offset=offset, hit_samples=hit_samples)
+                                   sampling=sampling, offset=offset, hit_samples=hit_samples, estimator=estimator)
         D.append(rho * (T0r @ L3.T))
         if TBr is not None:
             tb = TBr.sum(1)  # [k, C, n²]
@@ -143,18 +145,20 @@ def _ray_noise(caster: RayCaster, mesh: Mesh, p: torch.Tensor, n: torch.Tensor, 
     same with (1 − V) and the hit's exit radiance: with ``hits`` the engine's own per-hit
     estimate — same keys, so its hit-sampling noise is included —, else the stored total
     interpolated at the hit)."""
-    sampler = DiffuseSampler(bands, samples, seed, sampling)
+    sampler = DiffuseSampler(bands, samples, seed, sampling, "plain")
     frames = None
     if sampling == "cosine":
         from ..scene import tangent_frames
 
         t, b = tangent_frames(n.numpy())
         frames = torch.stack([torch.from_numpy(t), torch.from_numpy(b), n], dim=-2)
-    i, j, o, d, cos = sampler.rays(p, n, frames, caster.eps, boundary_nudge(mesh)[idx])
+    i, j, o, d, cos = sampler.rays(p, n, frames, caster.eps, boundary_nudge(mesh)[idx],
+                                   ids=None if idx is None else idx.numpy())
     prim, bu, bv, _ = caster.trace(o, d, "intersect")
     hit = prim != -1
     k = p.shape[0]
-    w = (4.0 * cos[i, j]) if sampling == "uniform" else np.ones(i.shape[0])
+    Ns = sampler.per_vertex  # the estimator averages over all its directions (zeros below the horizon)
+    w = sampler.ray_weights(i, j, cos) * Ns  # per-sample values: w_j N
     Ld = eval_sh(torch.from_numpy(d).to(torch.float64), bands, check=False) @ L3.T  # [R, 3]
     f_dir = torch.from_numpy(w * ~hit)[:, None] * Ld
     f = mesh.faces.numpy()
@@ -170,7 +174,6 @@ def _ray_noise(caster: RayCaster, mesh: Mesh, p: torch.Tensor, n: torch.Tensor, 
     else:
         Lh = (beta[:, :, None] * total_all[torch.from_numpy(f[tri])]).sum(1)  # [R, 3]
     f_ind = torch.from_numpy(w * front)[:, None] * Lh
-    Ns = samples  # the estimator averages over all N directions (zeros below the horizon)
     ii = torch.from_numpy(i)
 
     def se(x: torch.Tensor) -> torch.Tensor:
