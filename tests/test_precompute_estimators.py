@@ -127,3 +127,62 @@ def test_bad_choices_name_the_parameter():
         precompute_diffuse(m, 2, 16, estimator="cv")
     with pytest.raises(ValueError, match="sampling='sobol'"):
         precompute_diffuse(m, 2, 16, sampling="sobol")
+
+
+# ------------------------------------------------------------------ glossy / MRT transferred radiance T_p
+def test_unshadowed_transferred_is_the_hemisphere_integral():
+    """D_pᵀ A D_p against a brute-force sum over a dense spherical-Fibonacci set (no rotation,
+    no Gram matrix): (T_p)_ij = ∫_{n·s>0} y_i y_j ds."""
+    from prt_torch.sh import eval_sh, fibonacci_sphere
+    from prt_torch.transfer.glossy import unshadowed_transferred
+
+    n = torch.tensor([[0, 0, 1.0], [0.3, -0.5, 0.81], [-1.0, 0, 0], [0.1, 0.2, -0.97]], dtype=torch.float64)
+    n = n / n.norm(dim=1, keepdim=True)
+    T = unshadowed_transferred(n, 4)  # [4, 16, 16]
+    dirs, w = fibonacci_sphere(400_000)
+    Y = eval_sh(dirs, 4)
+    for k in range(4):
+        up = (dirs @ n[k] > 0).to(torch.float64) * w
+        ref = (Y * up[:, None]).T @ Y
+        torch.testing.assert_close(T[k], ref, atol=2e-4, rtol=0)
+
+
+@pytest.mark.parametrize("estimator", ESTIMATORS)
+def test_transferred_radiance_unbiased_and_exact_when_open(sphere_caster, estimator):
+    """T_00 on the ground beside the sphere = Y00² · visible solid angle = Y00² 2π cos α
+    (the sphere's cap, sin α = r/√(d² + r²), lies wholly above the horizon); an open point's
+    control-variate T_p is the exact D_pᵀ A D_p."""
+    from prt_torch.transfer.glossy import _Directions, transferred_radiance, unshadowed_transferred
+
+    d = torch.tensor([0.7, 1.5], dtype=torch.float64)
+    pts, n = _ground(d)
+    runs = torch.stack([transferred_radiance(sphere_caster, pts, n, _Directions(3, 64, s), estimator=estimator)[0][:, 0, 0]
+                        for s in range(40)])  # [S, 2]
+    mean, se = runs.mean(0), runs.std(0) / math.sqrt(runs.shape[0])
+    cos_a = d / torch.sqrt(d * d + 1.0)
+    ref = Y00 ** 2 * 2 * math.pi * cos_a
+    assert ((mean - ref).abs() <= 3 * se + 2e-3 * ref).all(), (mean, ref, se)
+    open_p = torch.tensor([[0.0, 0.0, 3.0]], dtype=torch.float64)
+    open_n = torch.tensor([[0.0, 0.6, 0.8]], dtype=torch.float64)
+    T, _ = transferred_radiance(sphere_caster, open_p, open_n, _Directions(3, 64, 0), estimator=estimator)
+    exact = unshadowed_transferred(open_n, 3)
+    if estimator == "control":
+        torch.testing.assert_close(T, exact, atol=1e-12, rtol=0)
+    else:
+        assert float((T - exact).abs().max()) > 1e-4
+
+
+def test_glossy_and_mrt_record_the_estimator():
+    from prt_torch.transfer.glossy import precompute_glossy
+    from prt_torch.transfer.mrt import precompute_mrt
+
+    m = builtin("sphere_on_plane")
+    sel = torch.tensor([0, 900, 1500])
+    g = precompute_glossy(m, 3, samples=64, vertices=sel)
+    assert g.meta["estimator"] == "control"
+    gp = precompute_glossy(m, 3, samples=64, vertices=sel, estimator="plain")
+    assert gp.meta["estimator"] == "plain" and not torch.equal(g.data, gp.data)
+    mr = precompute_mrt(m, 3, 3, 3, samples=64, vertices=sel, estimator="plain")
+    assert mr.meta["estimator"] == "plain"
+    with pytest.raises(ValueError, match="estimator='x'"):
+        precompute_mrt(m, 3, 3, 3, samples=64, vertices=sel, estimator="x")

@@ -38,9 +38,9 @@ import torch
 from .._checks import check_choice, check_int, describe
 from ..brdf import BRDF, AshikhminShirley, brdf_matrices, output_index
 from ..scene import Mesh, RayCaster, default_workers
-from ..sh import eval_sh, rotation_blocks
+from ..sh import blocks_to_dense, eval_sh, hemisphere_gram, rotation_blocks
 from .base import RunOptions, Transfer
-from .diffuse import HitBounce, boundary_nudge, hit_bounce, offset_origins
+from .diffuse import ESTIMATORS, HitBounce, boundary_nudge, hit_bounce, offset_origins
 from .sampling import uniform_sphere
 
 __all__ = [
@@ -53,6 +53,7 @@ __all__ = [
     "default_chunk",
     "estimate_memory",
     "transferred_radiance",
+    "unshadowed_transferred",
     "rotate_rows",
     "run_exit_transfer",
     "submesh",
@@ -122,9 +123,25 @@ class _Directions:
         self.n2 = bands * bands
 
 
+def unshadowed_transferred(normals: torch.Tensor, bands: int) -> torch.Tensor:
+    """The exact unshadowed T_p: (T_p)_ij = ∫_{n_p·s > 0} y_i(s) y_j(s) ds, ``[k, n², n²]``
+    float64, as D_pᵀ A D_p with A the hemisphere Gram matrix over z ≥ 0 (Sloan 2003 Appendix
+    §9.1, :func:`prt_torch.sh.hemisphere_gram`) and D_p the SH rotation into a frame whose third
+    axis is n_p (y(s) = D_pᵀ y(F_p s); A is invariant under rotations about z, so any tangent
+    frame serves). The control variate of :func:`transferred_radiance`."""
+    from ..scene.mesh import tangent_frames
+
+    n = normals.to(torch.float64)
+    t, b = tangent_frames(n.numpy())
+    F = torch.stack([torch.from_numpy(t), torch.from_numpy(b), n], dim=-2)  # [k,3,3] rows (t, b, n)
+    D = blocks_to_dense(rotation_blocks(F, bands))  # [k, n², n²]
+    return D.transpose(1, 2) @ hemisphere_gram(bands) @ D
+
+
 def transferred_radiance(caster: RayCaster | None, points: torch.Tensor, normals: torch.Tensor,
                          directions: _Directions, bounce: "Bounce | None" = None,
-                         ids: torch.Tensor | None = None, nudge: torch.Tensor | None = None) -> tuple[torch.Tensor, int]:
+                         ids: torch.Tensor | None = None, nudge: torch.Tensor | None = None,
+                         estimator: str = "plain") -> tuple[torch.Tensor, int]:
     """T_p for a chunk of points (module docstring): ``[k, n², n²]`` float64 and rays traced.
     ``caster=None`` skips visibility (unshadowed: only the tangent-plane cut).
 
@@ -136,7 +153,11 @@ def transferred_radiance(caster: RayCaster | None, points: torch.Tensor, normals
     the backs of triangles are black (as in the diffuse bounces). Ray origins follow
     :func:`~prt_torch.transfer.diffuse.offset_origins`. So
     T_p = Σ_s w_s [V(p,s) y(s) y(s)ᵀ + (1 - V(p,s)) y(s) t_q(s)ᵀ] over n·s > 0
-    (Sloan et al. 2002 §5's interreflected transfer, with diffuse reflectors)."""
+    (Sloan et al. 2002 §5's interreflected transfer, with diffuse reflectors).
+
+    ``estimator='control'`` (issue 42): the first term as the exact unshadowed T_p
+    (:func:`unshadowed_transferred`) minus Σ_s w_s (1 − V(p,s)) y(s) y(s)ᵀ over the blocked
+    directions — the same rays, unbiased, exact where nothing is blocked; 'plain': the sum."""
     cos = normals.to(torch.float64) @ directions.dirs.T  # [k, N]
     i, j = torch.nonzero(cos > 0, as_tuple=True)
     W = torch.zeros_like(cos)
@@ -163,10 +184,15 @@ def transferred_radiance(caster: RayCaster | None, points: torch.Tensor, normals
             A = torch.zeros(cos.shape[0], cos.shape[1], t_hit.shape[1], dtype=torch.float64)
             A[i[h], j[h]] = t_hit  # [k, N, n²]: radiance transfer arriving along each blocked direction
             T_ind = torch.matmul((directions.Y * directions.weight).T, A)  # [k, n², n²], one batched GEMM
-        W[i[vis], j[vis]] = directions.weight
+        if estimator == "control":
+            W[i[~vis], j[~vis]] = directions.weight  # the blocked directions, subtracted below
+        else:
+            W[i[vis], j[vis]] = directions.weight
     else:
         W[i, j] = directions.weight
     T = (W @ directions.YY).reshape(-1, directions.n2, directions.n2)
+    if caster is not None and estimator == "control":
+        T = unshadowed_transferred(normals, int(round(math.sqrt(directions.n2)))) - T
     if T_ind is not None:
         T += T_ind
     return T, int(i.numel()) if caster is not None else 0
@@ -218,6 +244,7 @@ def check_brdf(mesh: Mesh, brdf: BRDF | None) -> BRDF:
 def run_exit_transfer(
     kind: str, mesh: Mesh, left: torch.Tensor, index: torch.Tensor, bands: int, samples: int, seed: int,
     shadows: bool, run: RunOptions, fingerprint: dict, vertices: torch.Tensor | None, bounces: int = 0,
+    estimator: str = "plain",
 ) -> tuple[torch.Tensor, dict]:
     """Shared driver of glossy and MRT: data[p] = left[index[p]] @ R_p T_p over chunks of
     vertices (``left``: ``[U, n_out, n²]`` float64, e.g. B or G⁻¹CB; empty = identity, the
@@ -232,7 +259,7 @@ def run_exit_transfer(
     need = check_memory(kind, V, n_out, n2, samples, chunk_size, run.max_memory)
     directions = _Directions(bands, samples, seed)
     caster = None
-    meta: dict[str, Any] = {"estimated_bytes": need, "chunk_size": chunk_size}
+    meta: dict[str, Any] = {"estimated_bytes": need, "chunk_size": chunk_size, "estimator": estimator}
     t0 = time.perf_counter()
     try:
         if shadows:
@@ -254,7 +281,7 @@ def run_exit_transfer(
         def compute(a: int, b: int) -> dict[str, torch.Tensor]:
             idx = sel[a:b]
             T, rays = transferred_radiance(caster, mesh.vertices[idx], mesh.normals[idx], directions, bounce, ids=idx,
-                                           nudge=None if nudge is None else nudge[idx])
+                                           nudge=None if nudge is None else nudge[idx], estimator=estimator)
             if left.numel():
                 out = left[index[idx]] @ rotate_rows(T, rotation_blocks(F_all[idx], bands))  # B_p R_p T_p
             else:
@@ -386,6 +413,7 @@ def precompute_glossy(
     shadows: bool | str = True,
     bounces: int = 0,
     vertices: torch.Tensor | None = None,
+    estimator: str = "control",
     run: RunOptions | None = None,
 ) -> Transfer:
     """Glossy transfer for every vertex (or the subset ``vertices``) of ``mesh``.
@@ -406,6 +434,8 @@ def precompute_glossy(
             the exit radiance of the diffuse surface they hit, from a diffuse transfer with
             ``bounces - 1`` bounces (see :func:`transferred_radiance`); coloured albedo is
             reduced to luminance since the glossy matrices are shared by the colour channels.
+        estimator: 'control' (default: the exact unshadowed T_p minus the blocked directions'
+            part, :func:`transferred_radiance`) or 'plain' (the sum over visible directions).
         run: how it runs (:class:`RunOptions`: chunks, workers, ray offset, memory limit —
             refused up front when the estimate exceeds it —, resumable state, progress).
     Returns:
@@ -415,6 +445,7 @@ def precompute_glossy(
     run = RunOptions() if run is None else run
     bands, samples, seed = check_common(bands, samples, seed)
     bounces = check_int("bounces", bounces, 0, 16)
+    check_choice("estimator", estimator, ESTIMATORS)
     bands_out = bands if bands_out is None else check_int("bands_out", bands_out, 1, MAX_GLOSSY_BANDS)
     brdf = check_brdf(mesh, brdf)
     check_frames(mesh)
@@ -442,8 +473,10 @@ def precompute_glossy(
           "rcond": rcond, "window": window, "window_width": window_width, "samples": samples, "seed": seed,
           "shadows": shadows, "bounces": bounces, "offset": run.offset, "quad_bands": quad_bands,
           "vertices": None if sel is None else sel.tolist()}
+    if estimator != "plain":
+        fp["estimator"] = estimator
     data, run_meta = run_exit_transfer("glossy", mesh, B, index, bands, samples, seed, shadows, run, fp, sel,
-                                       bounces=bounces)
+                                       bounces=bounces, estimator=estimator)
     meta = {**shadow_meta, **run_meta, **rcond_meta}
     meta.update(
         bands=bands, bands_in=bands, bands_out=bands_out, samples=samples, seed=seed, shadows=shadows, bounces=bounces,

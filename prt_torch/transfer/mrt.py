@@ -14,10 +14,11 @@ import time
 
 import torch
 
-from .._checks import check_int
+from .._checks import check_choice, check_int
 from ..brdf import BRDF, brdf_matrices
 from ..scene import Mesh
 from .base import RunOptions, Transfer
+from .diffuse import ESTIMATORS
 from .glossy import (MAX_GLOSSY_BANDS, check_brdf, check_common, check_frames, check_memory, decide_shadows,
                      run_exit_transfer, submesh)
 from .tents import MAX_TENTS, MRTBasis
@@ -40,6 +41,7 @@ def precompute_mrt(
     shadows: bool | str = True,
     bounces: int = 0,
     vertices: torch.Tensor | None = None,
+    estimator: str = "control",
     run: RunOptions | None = None,
 ) -> Transfer:
     """Matrix radiance transfer A_p = G⁻¹ C B_p R_p T_p (Lehtinen & Kautz 2003 eq. 9).
@@ -48,8 +50,8 @@ def precompute_mrt(
     exit radiance over the hemisphere only, so no hemispherical SH projection is needed on the
     output side. Defaults follow the paper: n = 5, m = 8, M = 11 (windowing optional).
 
-    ``brdf``, ``window``, ``quad_bands``, ``samples``, ``shadows``, ``bounces``, ``vertices`` and
-    ``run`` are as in :func:`prt_torch.transfer.glossy.precompute_glossy`.
+    ``brdf``, ``window``, ``quad_bands``, ``samples``, ``shadows``, ``bounces``, ``vertices``,
+    ``estimator`` and ``run`` are as in :func:`prt_torch.transfer.glossy.precompute_glossy`.
 
     Returns ``Transfer(kind='mrt')``, data float32 ``[V, M², n²]``, meta with ``M``,
     ``bands_out`` (m), ``cond_G`` and ``matrix_shape``.
@@ -57,6 +59,7 @@ def precompute_mrt(
     run = RunOptions() if run is None else run
     bands, samples, seed = check_common(bands, samples, seed)
     bounces = check_int("bounces", bounces, 0, 16)
+    check_choice("estimator", estimator, ESTIMATORS)
     bands_out = check_int("bands_out", bands_out, 1, MAX_GLOSSY_BANDS)
     M = check_int("M (tents per side)", M, 2, MAX_TENTS)
     brdf = check_brdf(mesh, brdf)
@@ -77,8 +80,10 @@ def precompute_mrt(
           "brdf": brdf.meta(), "window": window, "window_width": window_width, "samples": samples, "seed": seed,
           "shadows": shadows, "bounces": bounces, "offset": run.offset, "quad_bands": quad_bands,
           "vertices": None if sel is None else sel.tolist()}
+    if estimator != "plain":
+        fp["estimator"] = estimator
     data, run_meta = run_exit_transfer("mrt", mesh, W, index, bands, samples, seed, shadows, run, fp, sel,
-                                       bounces=bounces)
+                                       bounces=bounces, estimator=estimator)
     meta = {**shadow_meta, **run_meta}
     meta.update(
         bands=bands, bands_in=bands, bands_out=bands_out, M=M, cond_G=basis.cond_G_, samples=samples, seed=seed,

@@ -204,6 +204,8 @@ _SHARED_ARGS = {a.param: a for a in (
     Arg("--window", "window", "window the exit-radiance bands against ringing",
         values={"hanning": "hanning", "lanczos": "lanczos"}),
     Arg("--window-width", "window_width", "window width in bands"),
+    Arg("--estimator", "estimator", "control: the exact unshadowed transfer minus the sampled blocked part (default; "
+        "exact where nothing is blocked); plain: the sum over visible rays", values={"control": "control", "plain": "plain"}),
     Arg("--quad-bands", "quad_bands", "BRDF double-projection quadrature size (default from the lobe's sharpness)"),
 )}
 
@@ -223,13 +225,10 @@ register_kind(TransferKind(
         "probe_tol": [Interval(float, 0, 1, closed="left")],
         "bounce_points": [Options("hits", "vertices")], "hit_samples": [Interval(int, 1, 1024)],
     },
-    args=_args("bands", "samples", "bounces", "seed", "shadows") + (
+    args=_args("bands", "samples", "bounces", "seed", "shadows", "estimator") + (
         Arg("--sampling", "sampling", "direction set: a randomised Hammersley set over each vertex's hemisphere (qmc, "
             "default), one stratified sphere set for all vertices (uniform) or cosine-weighted per vertex (cosine)",
             values={"qmc": "qmc", "uniform": "uniform", "cosine": "cosine"}),
-        Arg("--estimator", "estimator", "control: exact unshadowed transfer minus the sampled blocked part (default; "
-            "exact where nothing is blocked); plain: the sum over visible rays",
-            values={"control": "control", "plain": "plain"}),
         Arg("--fold-albedo", "fold_albedo", "store [V,3,n²] with albedo folded (yes), [V,n²] without (no), or as needed (auto)",
             values={"auto": None, "yes": True, "no": False}),
         Arg("--bounce-tol", "bounce_tol", "stop adding bounces below this energy fraction"),
@@ -244,6 +243,7 @@ _GLOSSY_COMMON = {
     "brdf": _BRDF, "window": _WINDOW, "window_width": _OPT_INT, "quad_bands": _OPT_INT,
     "samples": [Interval(int, 1, MAX_GLOSSY_SAMPLES)], "seed": _SEED,
     "shadows": [Boolean()] + _SHADOWS, "bounces": [Interval(int, 0, 16)], "vertices": _VERTICES,
+    "estimator": [Options("control", "plain")],
 }
 
 register_kind(TransferKind(
@@ -256,7 +256,7 @@ register_kind(TransferKind(
         **_GLOSSY_COMMON,
     },
     args=_args("bands", "bands_out", "brdf", "samples", "seed", "shadows", "bounces", "window", "window_width",
-               "quad_bands") + (
+               "quad_bands", "estimator") + (
         Arg("--projection", "projection", "hemispherical SH projection of B (Sloan 2003 eq. 1)",
             values={k: k for k in ("zero", "least_squares", "odd", "even")}),
         Arg("--drop-10", "drop_out", "drop the (1,0) exit basis function: N_r = m²-1 (Sloan 2003 §6.1)", const=[[1, 0]]),
@@ -274,7 +274,7 @@ register_kind(TransferKind(
         "M": [Interval(int, 2, MAX_TENTS), _AUTO], **_GLOSSY_COMMON,
     },
     args=_args("bands", "bands_out", "brdf", "samples", "seed", "shadows", "bounces", "window", "window_width",
-               "quad_bands") + (
+               "quad_bands", "estimator") + (
         Arg("--tents", "M", "M, the M×M tent basis over the hemisphere"),
     ),
 ))

@@ -107,6 +107,12 @@ def engine_glossy(transfer: Transfer, L: torch.Tensor, idx: torch.Tensor, view_l
     for r in range(int(replicas)):  # the precompute's estimator with other seeds: the engine's noise
         sets[f"replica_{r}"] = uniform_sphere(samples, seed + 7919 * (r + 1))[0]
     reps = []
+    control = meta.get("estimator", "plain") == "control"  # files before the control variate summed the visible rays
+    if control:  # ∫_{n·s>0} h(s) L(s) ds = hvᵀ A (D_p l): the exact unshadowed part, per vertex [k, 3]
+        from ..sh import hemisphere_gram, rotate
+
+        l_loc = rotate(L3[:, None, :].expand(-1, idx.numel(), -1), F)  # [3, k, n²]: D_p l, the light in each local frame
+        U = torch.einsum("kj,ji,cki->kc", hv, hemisphere_gram(bands), l_loc)
     with RayCaster(mesh, offset=eps / diag) as caster:
         for name, dirs in sets.items():
             Ld = eval_sh(dirs, bands, check=False) @ L3.T  # [N, 3]
@@ -121,7 +127,12 @@ def engine_glossy(transfer: Transfer, L: torch.Tensor, idx: torch.Tensor, view_l
                 h = eval_sh(s_loc, bands, check=False) @ hv[k]
                 w = torch.zeros(N, dtype=torch.float64)
                 w[up] = 4 * math.pi * torch.from_numpy(vis.astype(np.float64))
-                x_sh = (w * torch.zeros(N, dtype=torch.float64).index_put_((up,), h))[:, None] * Ld  # [N, 3]
+                if control and name != "dense":  # the precompute's control variate: exact open part minus the blocked rays
+                    wb = torch.zeros(N, dtype=torch.float64)
+                    wb[up] = 4 * math.pi * torch.from_numpy((~vis).astype(np.float64))
+                    x_sh = U[k] - (wb * torch.zeros(N, dtype=torch.float64).index_put_((up,), h))[:, None] * Ld  # [N, 3]
+                else:
+                    x_sh = (w * torch.zeros(N, dtype=torch.float64).index_put_((up,), h))[:, None] * Ld  # [N, 3]
                 if name == "engine":
                     res["recomputed"][k] = x_sh.mean(0)
                     res["se"][k] = x_sh.std(0) / math.sqrt(N)
