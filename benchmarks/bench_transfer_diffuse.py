@@ -45,7 +45,8 @@ def regenerate_rays(mesh, caster, sampler, chunk_size):
     V = mesh.num_vertices
     for a in range(0, V, chunk_size):
         b = min(V, a + chunk_size)
-        _, _, o, d, _ = sampler.rays(mesh.vertices[a:b], mesh.normals[a:b], None, caster.eps)
+        frames = mesh.frames()[a:b] if sampler.sampling == "cosine" else None
+        _, _, o, d, _ = sampler.rays(mesh.vertices[a:b], mesh.normals[a:b], frames, caster.eps, ids=np.arange(a, b))
         yield np.ascontiguousarray(o), np.ascontiguousarray(d)
 
 
@@ -86,6 +87,9 @@ def main(argv=None) -> int:
     ap.add_argument("--samples", type=int, default=1024)
     ap.add_argument("--bands", type=int, default=5)
     ap.add_argument("--bounces", type=int, nargs="+", default=[0, 2])
+    ap.add_argument("--sampling", default="qmc", choices=["qmc", "uniform", "cosine"],
+                    help="the precompute's direction set (the bare call traces the same rays)")
+    ap.add_argument("--estimator", default="control", choices=["control", "plain"])
     ap.add_argument("--workers", type=int, default=None, help="default: all cores")
     ap.add_argument("--quick", action="store_true", help="bumpy_sphere:medium, 256 samples (smoke run)")
     ap.add_argument("--out", default=str(ROOT / "reports" / "benchmarks" / "transfer_diffuse"))
@@ -96,14 +100,15 @@ def main(argv=None) -> int:
         args.scene, args.samples = "bumpy_sphere:medium", 256
     workers = args.workers or default_workers()
     mesh = builtin(args.scene)
-    sampler = DiffuseSampler(args.bands, args.samples, 0, "uniform")
+    sampler = DiffuseSampler(args.bands, args.samples, 0, args.sampling, args.estimator)
+    kw = {"sampling": args.sampling, "estimator": args.estimator}
     load0 = os.getloadavg()
     runs = []
     for B in args.bounces:
         rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
         t = time.perf_counter()
         tr = precompute_diffuse(mesh, args.bands, args.samples, B, seed=0, shadows="always",
-                                run=RunOptions(workers=workers))
+                                run=RunOptions(workers=workers), **kw)
         wall = time.perf_counter() - t
         rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
         child = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
@@ -124,7 +129,7 @@ def main(argv=None) -> int:
         pairs = []
         for _ in range(args.pairs):
             t = time.perf_counter()
-            precompute_diffuse(mesh, args.bands, args.samples, 0, seed=0, shadows="always", run=RunOptions(workers=workers))
+            precompute_diffuse(mesh, args.bands, args.samples, 0, seed=0, shadows="always", run=RunOptions(workers=workers), **kw)
             tp = time.perf_counter() - t
             tb, _ = bare_occlusion(mesh, caster, sampler, chunk, workers_caster=wc)
             pairs.append({"precompute_s": tp, "bare_workers_s": tb, "ratio": tb / tp, "load": os.getloadavg()[0]})
@@ -158,8 +163,9 @@ def main(argv=None) -> int:
     lines = [
         "# Diffuse transfer precompute vs bare Embree",
         "",
-        f"Scene `{args.scene}`: {mesh.num_vertices} vertices, {mesh.num_faces} faces; {args.samples} uniform stratified",
-        f"directions per vertex (only those above the tangent plane are traced), bands {args.bands}; {workers} ray-casting",
+        f"Scene `{args.scene}`: {mesh.num_vertices} vertices, {mesh.num_faces} faces; {args.samples} samples "
+        f"(sampling `{args.sampling}`, estimator `{args.estimator}`; about half that many rays traced per vertex), "
+        f"bands {args.bands}; {workers} ray-casting",
         f"processes on {os.cpu_count()} cores. Load average before/after: {load0[0]:.1f} / {load1[0]:.1f}",
         "(other jobs shared the machine; the ratios below are taken in the same run).",
         "",

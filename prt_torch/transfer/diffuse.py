@@ -315,13 +315,16 @@ class HitBounce:
     chunking nor which tracer asks): x⁰(q) = (1/M) Σ_m V(q,s_m) y(s_m) and, recursively,
     x^k(q) = (1/M) Σ_m [front hit q'] ρ_{q'} x^{k-1}(q'). M = ``hit_samples`` at the first hit
     and a quarter of it per further level (at least 1): an unbiased path-traced estimate of
-    every bounce, no per-vertex or per-face table.
+    every bounce, no per-vertex or per-face table. ``estimator='control'`` (issue 42): x⁰(q) =
+    t_unshadowed(n_f) − (1/M) Σ_m (1 − V(q,s_m)) y(s_m), exact where the hit's hemisphere is open.
     """
 
-    def __init__(self, mesh: Mesh, bands: int, hit_samples: int, seed: int, terms: int, channels: int):
+    def __init__(self, mesh: Mesh, bands: int, hit_samples: int, seed: int, terms: int, channels: int,
+                 estimator: str = "plain"):
         from ..scene.mesh import tangent_frames
 
         self.bands, self.M, self.seed, self.C = bands, int(hit_samples), int(seed), channels
+        self.control = check_choice("estimator", estimator, ESTIMATORS) == "control"
         self.terms = int(terms)
         _, fn, _ = face_points(mesh)
         self.face_normals = fn
@@ -388,9 +391,12 @@ class HitBounce:
             hit = prim != -1
         else:
             hit = caster.trace(o, d.astype(np.float32), "occluded")
-        vis = ~hit
-        Y = eval_sh(torch.from_numpy(d[vis]), self.bands, check=False) / M  # [R_vis, n²]
-        out[:, 0] = torch.zeros(H, n2, dtype=torch.float64).index_add_(0, torch.from_numpy(row[vis]), Y)[:, None, :]
+        sel = hit if self.control else ~hit
+        Y = eval_sh(torch.from_numpy(d[sel]), self.bands, check=False) / M  # [R_sel, n²]
+        x0 = torch.zeros(H, n2, dtype=torch.float64).index_add_(0, torch.from_numpy(row[sel]), Y)
+        if self.control:  # the exact unshadowed transfer of the face's hemisphere minus its blocked rays
+            x0 = unshadowed_transfer(torch.from_numpy(n), self.bands) - x0
+        out[:, 0] = x0[:, None, :]
         if depth > 1:
             hh = np.nonzero(hit)[0]
             t2 = prim[hh].astype(np.int64)
@@ -649,7 +655,7 @@ def precompute_diffuse(
         faces = None
         hits = None
         if traced and bounces > 0 and bounce_points == "hits":
-            hits = _hit_tables(caster, mesh, bands, samples, seed, sampling, bounces, hit_samples, run, meta)
+            hits = _hit_tables(caster, mesh, bands, samples, seed, sampling, bounces, hit_samples, run, meta, estimator)
         if traced:
             hit_columns = bounce_points if bounces > 0 else "vertices"
             T0, S = _trace_direct(caster, mesh, bands, samples, seed, sampling, bounces > 0, run, meta, hit_columns, hits,
@@ -704,11 +710,11 @@ def _decide_shadows(caster: RayCaster | None, mesh: Mesh, shadows: str, seed: in
 
 
 def _hit_tables(caster: RayCaster, mesh: Mesh, bands: int, samples: int, seed: int, sampling: str, bounces: int,
-                hit_samples: int, run: RunOptions, meta: dict) -> HitBounce:
+                hit_samples: int, run: RunOptions, meta: dict, estimator: str = "plain") -> HitBounce:
     """Step 2a (``bounce_points='hits'``): the :class:`HitBounce` estimator of this run (it
     needs no table: every bounce is estimated at its own hit point)."""
     meta["hit_samples"] = hit_samples
-    return HitBounce(mesh, bands, hit_samples, seed, bounces, 1 if mesh.is_grey() else 3)
+    return HitBounce(mesh, bands, hit_samples, seed, bounces, 1 if mesh.is_grey() else 3, estimator)
 
 
 def _trace_direct(caster: RayCaster, mesh: Mesh, bands: int, samples: int, seed: int, sampling: str,
@@ -847,7 +853,7 @@ def vertex_transfer(mesh: Mesh, idx: Any, bands: int, samples: int, seed: int, b
     nudge = boundary_nudge(mesh)[idx]
     run = RunOptions(offset=offset)
     with RayCaster(mesh, workers=_workers(run, mesh, samples, sampling), offset=offset) as caster:
-        hits = HitBounce(mesh, bands, hit_samples, seed, bounces, 1 if mesh.is_grey() else 3) if bounces > 0 else None
+        hits = HitBounce(mesh, bands, hit_samples, seed, bounces, 1 if mesh.is_grey() else 3, estimator) if bounces > 0 else None
         faces_np = mesh.faces.numpy()
         out = _chunk(caster, DiffuseSampler(bands, samples, seed, sampling, estimator), mesh.vertices[idx], mesh.normals[idx], frames,
                      faces_np, face_points(mesh)[1].numpy(), faces_np.shape[0], bounces > 0, "hits" if bounces else "vertices",
@@ -856,14 +862,14 @@ def vertex_transfer(mesh: Mesh, idx: Any, bands: int, samples: int, seed: int, b
 
 
 def hit_bounce(mesh: Mesh, bands: int, samples: int, seed: int, bounces: int, offset: float = 1e-4,
-               hit_samples: int = 8, sampling: str = "uniform") -> HitBounce:
+               hit_samples: int = 8, sampling: str = "uniform", estimator: str = "plain") -> HitBounce:
     """The :class:`HitBounce` a diffuse precompute with ``bounces`` ≥ 1 uses (its face tables
     traced here): a glossy/MRT vertex with ``bounces`` bounces reads the same hit values, so
     its interreflection equals the diffuse one."""
     bounces = check_int("bounces", bounces, 1, MAX_BOUNCES)
     run = RunOptions(offset=offset)
     with RayCaster(mesh, workers=_workers(run, mesh, samples, sampling), offset=offset) as caster:
-        return _hit_tables(caster, mesh, bands, samples, seed, sampling, bounces, hit_samples, run, {})
+        return _hit_tables(caster, mesh, bands, samples, seed, sampling, bounces, hit_samples, run, {}, estimator)
 
 
 def face_transfer(mesh: Mesh, bands: int, samples: int, seed: int, bounces: int, offset: float = 1e-4,

@@ -211,11 +211,12 @@ class Bounce:
 _LUMA = torch.tensor([0.2126, 0.7152, 0.0722], dtype=torch.float64)
 
 
-def bounce_table(mesh: Mesh, bands: int, samples: int, seed: int, bounces: int, offset: float) -> Bounce:
+def bounce_table(mesh: Mesh, bands: int, samples: int, seed: int, bounces: int, offset: float,
+                 estimator: str = "plain") -> Bounce:
     """What a blocked direction brings (the hit point's diffuse transfer with ``bounces - 1``
     bounces), via :func:`prt_torch.transfer.diffuse.hit_bounce` — the estimator the diffuse
     bounces use (coloured albedo becomes luminance: one matrix per vertex)."""
-    return Bounce(hits=hit_bounce(mesh, bands, samples, seed, bounces, offset=offset))
+    return Bounce(hits=hit_bounce(mesh, bands, samples, seed, bounces, offset=offset, estimator=estimator))
 
 
 def rotate_rows(T: torch.Tensor, blocks: list[torch.Tensor]) -> torch.Tensor:
@@ -275,7 +276,7 @@ def run_exit_transfer(
             if not shadows:
                 raise ValueError("bounces > 0 needs shadows traced (interreflected light arrives along blocked directions)")
             tb = time.perf_counter()
-            bounce = bounce_table(mesh, bands, samples, seed, bounces, run.offset)
+            bounce = bounce_table(mesh, bands, samples, seed, bounces, run.offset, estimator)
             meta["bounce_table_seconds"] = time.perf_counter() - tb
 
         def compute(a: int, b: int) -> dict[str, torch.Tensor]:

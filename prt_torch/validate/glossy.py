@@ -156,7 +156,8 @@ def engine_glossy(transfer: Transfer, L: torch.Tensor, idx: torch.Tensor, view_l
 
         def total(sd: int) -> torch.Tensor:
             data, _ = run_exit_transfer("glossy", mesh, B.to(torch.float64), mat, bands, samples, sd, True,
-                                        RunOptions(offset=eps / diag), {}, idx, bounces=bounces)
+                                        RunOptions(offset=eps / diag), {}, idx, bounces=bounces,
+                                        estimator=meta.get("estimator", "plain"))
             return relight_glossy(data.to(torch.float64), L3, view_local, out_index)
 
         res["total_check"] = total(seed)
