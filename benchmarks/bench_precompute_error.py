@@ -44,8 +44,7 @@ from prt_torch.transfer import RunOptions  # noqa: E402
 from prt_torch.transfer.diffuse import precompute_diffuse  # noqa: E402
 
 TODAY = ("uniform", "plain")  # the estimator before issue 42
-METHODS = [("uniform", "plain"), ("uniform", "control"), ("cosine", "plain"), ("cosine", "control"),
-           ("qmc", "plain"), ("qmc", "control")]
+METHODS = [(s, e) for s in ("uniform", "cosine", "qmc") for e in ("plain", "control", "blend")]
 REF_SEED = 1_000_003
 
 
@@ -82,6 +81,7 @@ def main(argv=None):
     ap.add_argument("--seeds", type=int, default=2)
     ap.add_argument("--ref-factor", type=int, default=64)
     ap.add_argument("--bands", type=int, default=5)
+    ap.add_argument("--ref-cache", default=None, help="a .pt file keeping the references between runs (same settings)")
     ap.add_argument("--out", default=str(ROOT / "reports" / "benchmarks" / "precompute_error"))
     args = ap.parse_args(argv)
     torch.set_num_threads(max(1, os.cpu_count() or 1))
@@ -91,11 +91,18 @@ def main(argv=None):
     ref_n = args.ref_factor * max(args.samples)
     print(f"[bench] {args.scene}:{args.size} V={V}; reference {ref_n} samples (x{args.ref_factor})", flush=True)
     t0 = time.perf_counter()
-    ref0, _, _ = run(mesh, args.bands, ref_n, REF_SEED, "qmc", "control", 0)
-    ref0_check, _, _ = run(mesh, args.bands, ref_n, REF_SEED + 1, "uniform", "plain", 0)
-    ref1, _, _ = run(mesh, args.bands, ref_n, REF_SEED, "qmc", "control", 1)
+    key = {"scene": args.scene, "size": args.size, "bands": args.bands, "ref_n": ref_n, "mesh": mesh.content_hash()}
+    cached = torch.load(args.ref_cache) if args.ref_cache and os.path.exists(args.ref_cache) else None
+    if cached is not None and cached["key"] == key:
+        ref0, ref0_check, ref1, t_ref = cached["ref0"], cached["ref0_check"], cached["ref1"], cached["seconds"]
+    else:
+        ref0, _, _ = run(mesh, args.bands, ref_n, REF_SEED, "qmc", "control", 0)
+        ref0_check, _, _ = run(mesh, args.bands, ref_n, REF_SEED + 1, "uniform", "plain", 0)
+        ref1, _, _ = run(mesh, args.bands, ref_n, REF_SEED, "qmc", "control", 1)
+        t_ref = time.perf_counter() - t0
+        if args.ref_cache:
+            torch.save({"key": key, "ref0": ref0, "ref0_check": ref0_check, "ref1": ref1, "seconds": t_ref}, args.ref_cache)
     ref_inter = ref1 - ref0
-    t_ref = time.perf_counter() - t0
     ref_self = rel(ref0_check, ref0)
     print(f"[bench] references in {t_ref:.0f} s; qmc+control vs uniform+plain reference: {ref_self:.2e}", flush=True)
     occl = float(1 - (ref0[:, 0] / precompute_diffuse(mesh, args.bands, 16, shadows="never", fold_albedo=False)
@@ -145,7 +152,7 @@ def write(res, out: Path):
     for ax, (key, title) in zip(axes, keys):
         for sampling, estimator in METHODS:
             x, y, _ = by(rows, sampling, estimator, key)
-            ax.loglog(x, y, "o-" if estimator == "control" else "s--", label=f"{sampling} + {estimator}")
+            ax.loglog(x, y, {"control": "o-", "blend": "^-", "plain": "s--"}[estimator], label=f"{sampling} + {estimator}")
         x, y, _ = by(rows, *TODAY, key)
         ax.loglog(x, y[0] * np.sqrt(x[0] / x), "k:", lw=1, label="1/√N")
         ax.set_xlabel("rays traced per vertex")
@@ -186,10 +193,10 @@ def write(res, out: Path):
             f"{x['err_direct'] / t['err_direct']:.2f} | {x['err_bounce1_total']:.4f} | "
             f"{x['err_bounce1_total'] / t['err_bounce1_total']:.2f} | {x['err_bounce1_inter']:.4f} | "
             f"{x['err_bounce1_inter'] / t['err_bounce1_inter']:.2f} | {x['seconds_direct']:.2f} |")
-    d = next((x for x in rows if (x["sampling"], x["estimator"]) == ("qmc", "control") and x["samples"] == 1024), None)
+    d = next((x for x in rows if (x["sampling"], x["estimator"]) == ("qmc", "blend") and x["samples"] == 1024), None)
     if d is not None:
         t = today[1024]
-        lines += ["", f"At the default N = 1024 the default (qmc + control) has **{d['err_direct'] / t['err_direct']:.2f}×** "
+        lines += ["", f"At the default N = 1024 the default (qmc + blend) has **{d['err_direct'] / t['err_direct']:.2f}×** "
                   f"today's error for the shadowed transfer and **{d['err_bounce1_total'] / t['err_bounce1_total']:.2f}×** "
                   f"for the total with one bounce ({d['err_bounce1_inter'] / t['err_bounce1_inter']:.2f}× for the "
                   "interreflected part alone); goal ≤ 0.5×."]

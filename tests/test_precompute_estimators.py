@@ -14,6 +14,7 @@ import torch
 
 from prt_torch.scene import RayCaster, builtin, geodesic_sphere, make_mesh, sphere_on_plane_visibility
 from prt_torch.transfer import RunOptions
+from prt_torch.transfer.glossy import ESTIMATORS as GLOSSY_ESTIMATORS
 from prt_torch.transfer.diffuse import (
     ESTIMATORS,
     SAMPLINGS,
@@ -42,13 +43,14 @@ def _ground(d):
 
 
 @pytest.mark.parametrize("sampling", SAMPLINGS)
-def test_control_variate_is_exact_where_nothing_is_blocked(sphere_caster, sampling):
+@pytest.mark.parametrize("estimator", ["control", "blend"])
+def test_control_variate_is_exact_where_nothing_is_blocked(sphere_caster, sampling, estimator):
     # points above the sphere looking up, and one beside it looking away: no ray meets the mesh
     pts = torch.tensor([[0, 0, 2.5], [0.3, -0.2, 4.0], [3.0, 0, 1.0]], dtype=torch.float64)
     n = torch.tensor([[0, 0, 1.0], [0.3, 0.1, 0.9], [1.0, 0, 0]], dtype=torch.float64)
     n = n / n.norm(dim=1, keepdim=True)
     exact = unshadowed_transfer(n, 4)
-    t = transfer_at_points(sphere_caster, pts, n, 4, 64, seed=3, sampling=sampling, estimator="control")
+    t = transfer_at_points(sphere_caster, pts, n, 4, 64, seed=3, sampling=sampling, estimator=estimator)
     torch.testing.assert_close(t, exact, atol=1e-13, rtol=0)
     plain = transfer_at_points(sphere_caster, pts, n, 4, 64, seed=3, sampling=sampling, estimator="plain")
     assert float((plain - exact).abs().max()) > 1e-4  # the plain sum carries its sampling error there
@@ -94,7 +96,7 @@ def test_qmc_rotations_depend_on_neither_chunking_nor_subset():
     m = builtin("sphere_on_plane")
     a = precompute_diffuse(m, 3, 64, seed=2, shadows="always", fold_albedo=False, run=RunOptions(chunk_size=97))
     b = precompute_diffuse(m, 3, 64, seed=2, shadows="always", fold_albedo=False, run=RunOptions(chunk_size=1000))
-    assert a.meta["sampling"] == "qmc" and a.meta["estimator"] == "control"  # the defaults
+    assert a.meta["sampling"] == "qmc" and a.meta["estimator"] == "blend"  # the defaults
     assert torch.equal(a.data, b.data)
     idx = torch.tensor([5, 700, 1200, 3])
     from prt_torch.transfer.diffuse import boundary_nudge
@@ -147,7 +149,7 @@ def test_unshadowed_transferred_is_the_hemisphere_integral():
         torch.testing.assert_close(T[k], ref, atol=2e-4, rtol=0)
 
 
-@pytest.mark.parametrize("estimator", ESTIMATORS)
+@pytest.mark.parametrize("estimator", GLOSSY_ESTIMATORS)
 def test_transferred_radiance_unbiased_and_exact_when_open(sphere_caster, estimator):
     """T_00 on the ground beside the sphere = Y00² · visible solid angle = Y00² 2π cos α
     (the sphere's cap, sin α = r/√(d² + r²), lies wholly above the horizon); an open point's
@@ -186,3 +188,16 @@ def test_glossy_and_mrt_record_the_estimator():
     assert mr.meta["estimator"] == "plain"
     with pytest.raises(ValueError, match="estimator='x'"):
         precompute_mrt(m, 3, 3, 3, samples=64, vertices=sel, estimator="x")
+
+
+@pytest.mark.parametrize("sampling", SAMPLINGS)
+def test_blend_is_exact_for_an_enclosed_point_where_control_is_not(sampling):
+    """Inside a closed box every ray is blocked: the true transfer is 0. 'blend' (β = 0) and
+    'plain' give exactly 0; 'control' keeps the direction set's error of the unshadowed integral."""
+    v, f = geodesic_sphere(6)
+    with RayCaster(make_mesh(v * 3.0, f[:, ::-1].copy())) as rc:  # a sphere of radius 3, inward-facing
+        p = torch.tensor([[0.0, 0.0, 0.0], [0.5, -0.2, 1.0]], dtype=torch.float64)
+        n = torch.tensor([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]], dtype=torch.float64)
+        t = {e: transfer_at_points(rc, p, n, 3, 64, seed=1, sampling=sampling, estimator=e) for e in ESTIMATORS}
+    assert torch.equal(t["blend"], torch.zeros_like(t["blend"])) and torch.equal(t["plain"], torch.zeros_like(t["plain"]))
+    assert float(t["control"].abs().max()) > 0

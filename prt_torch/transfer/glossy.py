@@ -40,11 +40,12 @@ from ..brdf import BRDF, AshikhminShirley, brdf_matrices, output_index
 from ..scene import Mesh, RayCaster, default_workers
 from ..sh import blocks_to_dense, eval_sh, hemisphere_gram, rotation_blocks
 from .base import RunOptions, Transfer
-from .diffuse import ESTIMATORS, HitBounce, boundary_nudge, hit_bounce, offset_origins
+from .diffuse import HitBounce, boundary_nudge, hit_bounce, offset_origins
 from .sampling import uniform_sphere
 
 __all__ = [
     "MAX_GLOSSY_BANDS",
+    "ESTIMATORS",
     "check_frames",
     "check_brdf",
     "check_memory",
@@ -62,6 +63,7 @@ __all__ = [
 
 MAX_GLOSSY_BANDS = 16
 MAX_SAMPLES = 1 << 18
+ESTIMATORS = ("control", "plain")  # T_p's: the exact unshadowed T_p minus the blocked directions, or the visible sum
 
 
 def _available_memory() -> int:

@@ -18,8 +18,7 @@ from .._checks import check_choice, check_int
 from ..brdf import BRDF, brdf_matrices
 from ..scene import Mesh
 from .base import RunOptions, Transfer
-from .diffuse import ESTIMATORS
-from .glossy import (MAX_GLOSSY_BANDS, check_brdf, check_common, check_frames, check_memory, decide_shadows,
+from .glossy import (ESTIMATORS, MAX_GLOSSY_BANDS, check_brdf, check_common, check_frames, check_memory, decide_shadows,
                      run_exit_transfer, submesh)
 from .tents import MAX_TENTS, MRTBasis
 
