@@ -2,7 +2,7 @@
 and estimator (issue 42, part 1: "the same error with fewer rays").
 
     .venv/bin/python benchmarks/bench_precompute_error.py [--scene bumpy_sphere] [--size small]
-        [--samples 64 256 1024 4096] [--seeds 2] [--ref-factor 64] [--bands 5]
+        [--samples 64 256 1024] [--seeds 2] [--ref-factor 64] [--bands 5] [--ref-cache F.pt]
 
 For each (sampling, estimator) in {uniform, qmc, cosine} × {plain, control} and each sample
 count N, the precompute (``precompute_diffuse``, shadows traced, ρ kept out) runs with ``--seeds``
@@ -77,7 +77,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--scene", default="bumpy_sphere")
     ap.add_argument("--size", default="small")
-    ap.add_argument("--samples", type=int, nargs="+", default=[64, 256, 1024, 4096])
+    ap.add_argument("--samples", type=int, nargs="+", default=[64, 256, 1024])
     ap.add_argument("--seeds", type=int, default=2)
     ap.add_argument("--ref-factor", type=int, default=64)
     ap.add_argument("--bands", type=int, default=5)
@@ -200,8 +200,9 @@ def write(res, out: Path):
                   f"today's error for the shadowed transfer and **{d['err_bounce1_total'] / t['err_bounce1_total']:.2f}×** "
                   f"for the total with one bounce ({d['err_bounce1_inter'] / t['err_bounce1_inter']:.2f}× for the "
                   "interreflected part alone); goal ≤ 0.5×."]
-    lines += ["", "Reproduce: `.venv/bin/python benchmarks/bench_precompute_error.py` "
-              "(the defaults; `--scene/--size` for another mesh)."]
+    lines += ["", "Reproduce: `.venv/bin/python benchmarks/bench_precompute_error.py --seeds 2 --ref-factor 64 "
+              f"--samples {' '.join(str(n) for n in sorted(today))}` (`--scene/--size` for another mesh; "
+              "`--ref-cache F.pt` keeps the references between runs)."]
     with io.atomic_path(out.with_suffix(".md")) as tmp:
         Path(tmp).write_text("\n".join(lines) + "\n")
     with io.atomic_path(out.with_suffix(".json")) as tmp:
