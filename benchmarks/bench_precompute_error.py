@@ -44,7 +44,7 @@ from prt_torch.transfer import RunOptions  # noqa: E402
 from prt_torch.transfer.diffuse import precompute_diffuse  # noqa: E402
 
 TODAY = ("uniform", "plain")  # the estimator before issue 42
-METHODS = [(s, e) for s in ("uniform", "cosine", "qmc") for e in ("plain", "control", "blend")]
+METHODS = [(s, e) for s in ("uniform", "cosine", "qmc") for e in ("plain", "control", "auto")]
 REF_SEED = 1_000_003
 
 
@@ -152,7 +152,7 @@ def write(res, out: Path):
     for ax, (key, title) in zip(axes, keys):
         for sampling, estimator in METHODS:
             x, y, _ = by(rows, sampling, estimator, key)
-            ax.loglog(x, y, {"control": "o-", "blend": "^-", "plain": "s--"}[estimator], label=f"{sampling} + {estimator}")
+            ax.loglog(x, y, {"control": "o-", "auto": "^-", "plain": "s--"}[estimator], label=f"{sampling} + {estimator}")
         x, y, _ = by(rows, *TODAY, key)
         ax.loglog(x, y[0] * np.sqrt(x[0] / x), "k:", lw=1, label="1/√N")
         ax.set_xlabel("rays traced per vertex")
@@ -193,10 +193,10 @@ def write(res, out: Path):
             f"{x['err_direct'] / t['err_direct']:.2f} | {x['err_bounce1_total']:.4f} | "
             f"{x['err_bounce1_total'] / t['err_bounce1_total']:.2f} | {x['err_bounce1_inter']:.4f} | "
             f"{x['err_bounce1_inter'] / t['err_bounce1_inter']:.2f} | {x['seconds_direct']:.2f} |")
-    d = next((x for x in rows if (x["sampling"], x["estimator"]) == ("qmc", "blend") and x["samples"] == 1024), None)
+    d = next((x for x in rows if (x["sampling"], x["estimator"]) == ("qmc", "auto") and x["samples"] == 1024), None)
     if d is not None:
         t = today[1024]
-        lines += ["", f"At the default N = 1024 the default (qmc + blend) has **{d['err_direct'] / t['err_direct']:.2f}×** "
+        lines += ["", f"At the default N = 1024 the default (qmc + auto) has **{d['err_direct'] / t['err_direct']:.2f}×** "
                   f"today's error for the shadowed transfer and **{d['err_bounce1_total'] / t['err_bounce1_total']:.2f}×** "
                   f"for the total with one bounce ({d['err_bounce1_inter'] / t['err_bounce1_inter']:.2f}× for the "
                   "interreflected part alone); goal ≤ 0.5×."]

@@ -43,7 +43,7 @@ def _ground(d):
 
 
 @pytest.mark.parametrize("sampling", SAMPLINGS)
-@pytest.mark.parametrize("estimator", ["control", "blend"])
+@pytest.mark.parametrize("estimator", ["control", "auto"])
 def test_control_variate_is_exact_where_nothing_is_blocked(sphere_caster, sampling, estimator):
     # points above the sphere looking up, and one beside it looking away: no ray meets the mesh
     pts = torch.tensor([[0, 0, 2.5], [0.3, -0.2, 4.0], [3.0, 0, 1.0]], dtype=torch.float64)
@@ -96,7 +96,7 @@ def test_qmc_rotations_depend_on_neither_chunking_nor_subset():
     m = builtin("sphere_on_plane")
     a = precompute_diffuse(m, 3, 64, seed=2, shadows="always", fold_albedo=False, run=RunOptions(chunk_size=97))
     b = precompute_diffuse(m, 3, 64, seed=2, shadows="always", fold_albedo=False, run=RunOptions(chunk_size=1000))
-    assert a.meta["sampling"] == "qmc" and a.meta["estimator"] == "blend"  # the defaults
+    assert a.meta["sampling"] == "qmc" and a.meta["estimator"] == "auto"  # the defaults
     assert torch.equal(a.data, b.data)
     idx = torch.tensor([5, 700, 1200, 3])
     from prt_torch.transfer.diffuse import boundary_nudge
@@ -191,13 +191,13 @@ def test_glossy_and_mrt_record_the_estimator():
 
 
 @pytest.mark.parametrize("sampling", SAMPLINGS)
-def test_blend_is_exact_for_an_enclosed_point_where_control_is_not(sampling):
-    """Inside a closed box every ray is blocked: the true transfer is 0. 'blend' (β = 0) and
+def test_auto_is_exact_for_an_enclosed_point_where_control_is_not(sampling):
+    """Inside a closed box every ray is blocked: the true transfer is 0. 'auto' (the plain sum there) and
     'plain' give exactly 0; 'control' keeps the direction set's error of the unshadowed integral."""
     v, f = geodesic_sphere(6)
     with RayCaster(make_mesh(v * 3.0, f[:, ::-1].copy())) as rc:  # a sphere of radius 3, inward-facing
         p = torch.tensor([[0.0, 0.0, 0.0], [0.5, -0.2, 1.0]], dtype=torch.float64)
         n = torch.tensor([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]], dtype=torch.float64)
         t = {e: transfer_at_points(rc, p, n, 3, 64, seed=1, sampling=sampling, estimator=e) for e in ESTIMATORS}
-    assert torch.equal(t["blend"], torch.zeros_like(t["blend"])) and torch.equal(t["plain"], torch.zeros_like(t["plain"]))
+    assert torch.equal(t["auto"], torch.zeros_like(t["auto"])) and torch.equal(t["plain"], torch.zeros_like(t["plain"]))
     assert float(t["control"].abs().max()) > 0

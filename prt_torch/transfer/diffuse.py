@@ -76,7 +76,7 @@ MAX_DIFFUSE_BANDS = 32
 MAX_SAMPLES = 1 << 20
 MAX_BOUNCES = 64
 SAMPLINGS = ("qmc", "uniform", "cosine")
-ESTIMATORS = ("blend", "control", "plain")
+ESTIMATORS = ("auto", "control", "plain")
 
 
 def unshadowed_transfer(normals: torch.Tensor, bands: int, albedo: torch.Tensor | None = None) -> torch.Tensor:
@@ -164,15 +164,16 @@ class DiffuseSampler:
     ``estimator``: ``'plain'`` sums the visible directions, P = Σ_j w_j V_j y(s_j); ``'control'``
     (issue 42) uses the exact unshadowed transfer as a control variate and samples only what is
     blocked, t = t_unshadowed − Σ_j w_j (1 − V_j) y(s_j) — unbiased, exact for an unoccluded
-    vertex, and its error is that of the occluded part alone; ``'blend'`` (default) is the
-    control variate with its coefficient per vertex, t = P + β (t_unshadowed − Σ_j w_j y(s_j))
-    = β·control + (1 − β)·plain with β the vertex's visible (cosine-weighted) fraction among its
-    rays: exact both for an open vertex (β = 1) and for an enclosed one (β = 0, where 'control'
-    keeps the direction set's error of the unshadowed integral). β is read from the same rays, a
-    regression estimator whose bias is second order (below 3σ over 48 seeds in the tests).
+    vertex, and its error is that of the occluded part alone; ``'auto'`` (default) chooses per
+    vertex: 'control' where at least half of its (cosine-weighted) rays are open, 'plain'
+    elsewhere — each vertex samples the smaller of its open and blocked parts, so it is exact both
+    for an open vertex and for an enclosed one (where 'control' keeps the direction set's error of
+    the unshadowed integral), and only those rays' SH values are evaluated. The choice is read
+    from the same rays; both branches are unbiased and they differ by the set's error of the
+    unshadowed integral alone, so its bias is second order (below 3σ over 48 seeds in the tests).
     """
 
-    def __init__(self, bands: int, samples: int, seed: int, sampling: str, estimator: str = "blend"):
+    def __init__(self, bands: int, samples: int, seed: int, sampling: str, estimator: str = "auto"):
         self.bands, self.samples, self.sampling, self.seed = bands, samples, sampling, int(seed)
         self.estimator = check_choice("estimator", estimator, ESTIMATORS)
         if sampling == "uniform":
@@ -436,7 +437,7 @@ def _chunk(caster: RayCaster, sampler: DiffuseSampler, points: torch.Tensor, nor
     (course notes 2005, "Precomputation"). Cosine sampling: T = (1/N) Σ_j V y(s_j); qmc:
     T = (2/M) Σ_j z_j V y(s_j). With ``sampler.estimator == 'control'`` the same rays give
     T = T_unshadowed − Σ_j w_j (1 − V_j) y(s_j) instead (:class:`DiffuseSampler`): only the
-    blocked rays' SH values are needed; 'blend' weighs the two per vertex.
+    blocked rays' SH values are needed; 'auto' chooses per vertex.
     Bounce entries (rows of S): ``hit_columns='faces'`` puts a front hit's weight on the hit
     face's column (``n_vertices`` is then the face count), ``'corners'`` on the hit face's three
     corner points by barycentrics, ``'vertices'`` on the hit face's vertices by barycentrics.
@@ -459,27 +460,23 @@ def _chunk(caster: RayCaster, sampler: DiffuseSampler, points: torch.Tensor, nor
         W.reshape(-1)[(i * W.shape[1] + j)[hit]] = 0.0  # blocked directions
         out["T"] = torch.from_numpy(W @ sampler.Y_np)  # one GEMM per chunk (numpy's float64 GEMM: 3x torch's here)
     else:
-        # only the rays the estimator reads: blocked ('control'), visible ('plain') or all ('blend')
-        sel = {"control": hit, "plain": ~hit}.get(est, np.ones_like(hit))
-        w = sampler.ray_weights(i[sel], j[sel], cos if sampler.sampling == "uniform" else
-                                (cos[sel] if cos is not None else None))
+        w_all = sampler.ray_weights(i, j, cos)  # [R]
+        if est == "auto":  # per vertex: the control variate where at least half of the (cosine-weighted) rays are open
+            w_open = np.bincount(i, weights=np.where(hit, 0.0, w_all), minlength=k)
+            open_v = w_open >= 0.5 * np.bincount(i, weights=w_all, minlength=k)  # [k]
+            sel = hit == open_v[i]  # the blocked rays of open vertices, the visible rays of the others
+        else:
+            open_v = np.full(k, est == "control")
+            sel = hit if est == "control" else ~hit  # only the rays the estimator reads
         if sampler.sampling == "uniform":
             Y = torch.from_numpy(sampler.Y_np[j[sel]])  # [R_sel, n²] rows of the shared table
         else:
             Y = eval_sh(torch.from_numpy(d[sel]).to(torch.float64), sampler.bands, check=False)  # per-vertex directions
-        Yw = Y * torch.from_numpy(w)[:, None]
-        rows = torch.from_numpy(i[sel])
-        if est == "blend":
-            blocked = torch.from_numpy(hit[sel])
-            Bk = torch.zeros(k, Y.shape[1], dtype=torch.float64).index_add_(0, rows[blocked], Yw[blocked])
-            P = torch.zeros(k, Y.shape[1], dtype=torch.float64).index_add_(0, rows[~blocked], Yw[~blocked])
-            w_all = torch.zeros(k, dtype=torch.float64).index_add_(0, rows, torch.from_numpy(w))
-            w_vis = torch.zeros(k, dtype=torch.float64).index_add_(0, rows[~blocked], torch.from_numpy(w)[~blocked])
-            beta = (w_vis / w_all.clamp_min(1e-300))[:, None]  # the vertex's visible (cosine-weighted) fraction
-            out["T"] = beta * (unshadowed_transfer(normals.to(torch.float64), sampler.bands) - Bk) + (1 - beta) * P
-        else:
-            S = torch.zeros(k, Y.shape[1], dtype=torch.float64).index_add_(0, rows, Yw)
-            out["T"] = unshadowed_transfer(normals.to(torch.float64), sampler.bands) - S if est == "control" else S
+        S = torch.zeros(k, Y.shape[1], dtype=torch.float64).index_add_(0, torch.from_numpy(i[sel]), Y * torch.from_numpy(w_all[sel])[:, None])
+        if open_v.any():
+            ov = torch.from_numpy(open_v)
+            S[ov] = unshadowed_transfer(normals.to(torch.float64)[ov], sampler.bands) - S[ov]
+        out["T"] = S
     if record_hits:
         w_ray = sampler.ray_weights(i, j, cos)
         h = np.nonzero(hit)[0]
@@ -528,7 +525,7 @@ def _hit_bounces(caster: RayCaster, hits: HitBounce, k: int, rows: np.ndarray, d
 
 def transfer_at_points(caster: RayCaster, points: Any, normals: Any, bands: int, samples: int, seed: int = 0,
                        sampling: str = "qmc", nudge: Any = None, ids: Any = None,
-                       estimator: str = "blend") -> torch.Tensor:
+                       estimator: str = "auto") -> torch.Tensor:
     """Shadowed diffuse transfer (ρ = 1, no interreflection) at arbitrary surface points.
 
     Args:
@@ -588,7 +585,7 @@ def precompute_diffuse(
     seed: int = 0,
     *,
     sampling: str = "qmc",
-    estimator: str = "blend",
+    estimator: str = "auto",
     shadows: str = "auto",
     fold_albedo: bool | None = None,
     bounce_tol: float = 1e-3,
@@ -610,7 +607,7 @@ def precompute_diffuse(
             Cranley–Patterson rotated per vertex, ⌈N/2⌉ rays), 'uniform' (one global stratified
             sphere set, SH evaluated once) or 'cosine' (stratified cosine-weighted hemisphere per
             vertex frame, N rays). :class:`DiffuseSampler`.
-        estimator: 'blend' (default), 'control' (the exact unshadowed transfer minus the blocked
+        estimator: 'auto' (default), 'control' (the exact unshadowed transfer minus the blocked
             rays' part — exact for an unoccluded vertex) or 'plain' (the sum over visible rays);
             :class:`DiffuseSampler`.
             benchmarks/bench_precompute_error.py measures both with every sampling.
@@ -862,7 +859,7 @@ def _trace_faces(caster: RayCaster, mesh: Mesh, bands: int, samples: int, seed: 
 
 def vertex_transfer(mesh: Mesh, idx: Any, bands: int, samples: int, seed: int, bounces: int = 0, *,
                     sampling: str = "qmc", offset: float = 1e-4, hit_samples: int = 8,
-                    estimator: str = "blend") -> tuple[torch.Tensor, torch.Tensor | None]:
+                    estimator: str = "auto") -> tuple[torch.Tensor, torch.Tensor | None]:
     """What ``precompute_diffuse(..., bounce_points='hits')`` computes for the vertices ``idx``
     alone (the same rays, keys and offsets): ``(t⁰ [k, n²], TB [k, B, C, n²] or None)`` float64,
     ρ_p kept out. Cheap for a few vertices (no pass over the mesh): the validator uses it to

@@ -220,15 +220,16 @@ register_kind(TransferKind(
     constraints={
         "bands": [Interval(int, 1, MAX_DIFFUSE_BANDS), _AUTO], "samples": [Interval(int, 1, MAX_SAMPLES)],
         "bounces": [Interval(int, 0, MAX_BOUNCES)], "seed": _SEED, "sampling": [Options("qmc", "uniform", "cosine")],
-        "estimator": [Options("blend", "control", "plain")], "shadows": _SHADOWS, "fold_albedo": [Boolean(), None],
+        "estimator": [Options("auto", "control", "plain")], "shadows": _SHADOWS, "fold_albedo": [Boolean(), None],
         "bounce_tol": [Interval(float, 0, 1, closed="left")],
         "probe_tol": [Interval(float, 0, 1, closed="left")],
         "bounce_points": [Options("hits", "vertices")], "hit_samples": [Interval(int, 1, 1024)],
     },
     args=_args("bands", "samples", "bounces", "seed", "shadows") + (
-        Arg("--estimator", "estimator", "blend (default): the control variate weighed by each vertex's visible fraction, "
-            "exact for open and for enclosed vertices; control: the exact unshadowed transfer minus the sampled blocked "
-            "part; plain: the sum over visible rays", values={"blend": "blend", "control": "control", "plain": "plain"}),
+        Arg("--estimator", "estimator", "auto (default): per vertex the control variate where at least half its rays are "
+            "open, the plain sum elsewhere (exact for open and for enclosed vertices); control: the exact unshadowed "
+            "transfer minus the sampled blocked part; plain: the sum over visible rays",
+            values={"auto": "auto", "control": "control", "plain": "plain"}),
         Arg("--sampling", "sampling", "direction set: a randomised Hammersley set over each vertex's hemisphere (qmc, "
             "default), one stratified sphere set for all vertices (uniform) or cosine-weighted per vertex (cosine)",
             values={"qmc": "qmc", "uniform": "uniform", "cosine": "cosine"}),
