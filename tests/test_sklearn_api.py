@@ -32,6 +32,7 @@ SMALL = {
     "cpca_adaptive": {"clusters": 2, "vectors": 1, "iterations": 2, "max_iter": 5, "adapt_iters": 2},
     "mrt_pca": {"vectors": 1},
     "gaussian": {"lobes": 1, "max_iter": 3, "batch_size": 64},
+    "neural": {"latent": 1, "features": 3, "width": 4, "depth": 1, "epochs": 5, "encode_iters": 3},
 }
 
 

@@ -402,11 +402,9 @@ class NeuralCodec(Codec):
         scale = scale if scale > 0 else 1.0
         head, bias = self.head_, self.bias_
         zc = (z / scale).clone().requires_grad_(True)  # (codes in the scaled units the fit used for steps)
-        m = torch.zeros_like(zc)
-        v = torch.zeros_like(zc)
+        opt = _Adam([zc], lr)
         best = z.clone()
         best_err = None
-        b1, b2, eps = 0.9, 0.999, 1e-8
         for t in range(1, iters + 2):
             zz = zc * scale
             err = (X - self._head(self._features(zz), labels, head, bias)).square().sum(1)
@@ -420,11 +418,8 @@ class NeuralCodec(Codec):
                     best_err = torch.where(better, e, best_err)
             if t == iters + 1:
                 break
-            g, = torch.autograd.grad(err.sum() / scale ** 2, zc)
-            with torch.no_grad():
-                m.mul_(b1).add_(g, alpha=1 - b1)
-                v.mul_(b2).addcmul_(g, g, value=1 - b2)
-                zc -= lr * (m / (1 - b1 ** t)) / ((v / (1 - b2 ** t)).sqrt() + eps)
+            zc.grad, = torch.autograd.grad(err.sum() / scale ** 2, zc)
+            opt.step()
         return best
 
     def decode(self, enc: Encoded) -> Any:
@@ -766,18 +761,12 @@ class _Trainer:
         dec = [st["head"], st["bias"], *[t for pair in st["layers"] for t in pair]]
         for t in dec:
             t.requires_grad_(True)
-        opt = torch.optim.Adam(dec, lr=lr)
+        opt = _Adam(dec, lr)
         z = st["z"]
-        zm, zv, zt = torch.zeros_like(z), torch.zeros_like(z), torch.zeros(z.shape[0], 1, dtype=z.dtype)
-        b1, b2, eps = 0.9, 0.999, 1e-8
+        zopt = _Adam([z], lr, rows=True)
 
         def code_step(idx, g):  # Adam on the rows idx of the codes (each row its own step count)
-            zt[idx] += 1
-            zm[idx] = b1 * zm[idx] + (1 - b1) * g
-            zv[idx] = b2 * zv[idx] + (1 - b2) * g * g
-            mh = zm[idx] / (1 - b1 ** zt[idx])
-            vh = zv[idx] / (1 - b2 ** zt[idx])
-            z[idx] = z[idx] - lr * mh / (vh.sqrt() + eps)
+            zopt.step_rows(idx, g)
 
         B = min(p["batch_size"], max(1, train.numel()))
         nt = train.numel()
@@ -802,7 +791,8 @@ class _Trainer:
                         diverged = f"the loss became {lv} at epoch {ep}"
                         break
                     tot += lv * idx.numel()
-                    opt.zero_grad(set_to_none=True)
+                    for t in dec:
+                        t.grad = None
                     loss.backward()
                     opt.step()
                     with torch.no_grad():
@@ -851,11 +841,9 @@ class _Trainer:
         decoder without training it (DeepSDF §4's inference, a few steps per epoch)."""
         if not hold.numel():
             return
-        lr = self.p["lr"]
         z = st["z"]
-        if not hasattr(self, "_hm"):
-            self._hm, self._hv, self._ht = torch.zeros(hold.numel(), z.shape[1], dtype=z.dtype), torch.zeros(
-                hold.numel(), z.shape[1], dtype=z.dtype), 0
+        if getattr(self, "_hold_opt", None) is None:
+            self._hold_opt = _Adam([z], self.p["lr"], rows=True)
         dec = [st["head"], st["bias"], *[t for pair in st["layers"] for t in pair]]
         req = [t.requires_grad for t in dec]
         for t in dec:
@@ -865,11 +853,7 @@ class _Trainer:
                 zb = z[hold].detach().requires_grad_(True)
                 loss = self._loss_rows(st, hold, zb).sum() / hold.numel()
                 g, = torch.autograd.grad(loss, zb)
-                self._ht += 1
-                with torch.no_grad():
-                    self._hm.mul_(0.9).add_(g, alpha=0.1)
-                    self._hv.mul_(0.999).addcmul_(g, g, value=0.001)
-                    z[hold] = zb - lr * (self._hm / (1 - 0.9 ** self._ht)) / ((self._hv / (1 - 0.999 ** self._ht)).sqrt() + 1e-8)
+                self._hold_opt.step_rows(hold, g)
         finally:
             for t, r in zip(dec, req):
                 t.requires_grad_(r)
@@ -904,7 +888,7 @@ class _Trainer:
 
         try:
             for ep in range(1, p["epochs"] + 1):
-                train_loss = float(opt.step(closure))
+                train_loss = float(opt.step(closure).detach())
                 with torch.no_grad():
                     z[train] = zt.detach()
                 diverged = None
@@ -949,6 +933,41 @@ class _Trainer:
         stop.update({"epochs": len(hist), "best_epoch": best_epoch, "best_criterion": best_crit,
                      "criterion": "holdout" if crit_hold else "train"})
         return best, stop, hist
+
+
+class _Adam:
+    """Adam (Kingma & Ba 2015, Algorithm 1) on a list of tensors updated in place, without
+    ``torch.optim`` (whose first use imports torch's compiler stack: ~5 s). ``rows=True``: one
+    tensor whose rows are updated only when present in a minibatch, each row with its own step
+    count (lazy Adam for the per-point codes of an auto-decoder)."""
+
+    def __init__(self, params: list, lr: float, rows: bool = False, betas=(0.9, 0.999), eps: float = 1e-8):
+        self.params, self.lr, self.b1, self.b2, self.eps = params, lr, betas[0], betas[1], eps
+        self.m = [torch.zeros_like(t) for t in params]
+        self.v = [torch.zeros_like(t) for t in params]
+        self.t = torch.zeros(params[0].shape[0], 1, dtype=params[0].dtype) if rows else 0
+
+    @torch.no_grad()
+    def step(self) -> None:
+        self.t += 1
+        c1, c2 = 1 - self.b1 ** self.t, 1 - self.b2 ** self.t
+        for x, m, v in zip(self.params, self.m, self.v):
+            if x.grad is None:
+                continue
+            g = x.grad
+            m.mul_(self.b1).add_(g, alpha=1 - self.b1)
+            v.mul_(self.b2).addcmul_(g, g, value=1 - self.b2)
+            x.sub_(self.lr * (m / c1) / ((v / c2).sqrt_() + self.eps))
+
+    @torch.no_grad()
+    def step_rows(self, idx: torch.Tensor, g: torch.Tensor) -> None:
+        x, m, v, t = self.params[0], self.m[0], self.v[0], self.t
+        t[idx] += 1
+        mi = m[idx].mul_(self.b1).add_(g, alpha=1 - self.b1)
+        vi = v[idx].mul_(self.b2).addcmul_(g, g, value=1 - self.b2)
+        m[idx], v[idx] = mi, vi
+        ti = t[idx]
+        x[idx] = x[idx] - self.lr * (mi / (1 - self.b1 ** ti)) / ((vi / (1 - self.b2 ** ti)).sqrt_() + self.eps)
 
 
 def _bar(enabled: bool, total: int):
