@@ -72,6 +72,11 @@ GAUSSIAN_BATCH = ("gaussian's encode is a non-linear fit (Green 2005) run in bat
                   "whole batch converges or max_iter, so a vertex fitted alone stops at another iteration than in a "
                   "batch: its lobes agree to the fit's tolerance (tol=1e-4 of the objective), not to rtol=1e-4")
 
+AUTO_DECODER = ("neural is an auto-decoder (DeepSDF §4): the training points' codes are optimised jointly with the decoder "
+                "and returned by transform of the training X, while any other input (a subset, a permutation, an "
+                "unpickled codec without the training cache) gets codes optimised for the fixed decoder from other starts: "
+                "close in reconstruction, not equal codes (tests/test_neural.py tests the reconstruction of new data)")
+
 
 def expected_failed_checks(est) -> dict[str, str]:
     """The checks that cannot pass for a codec, each with its reason. Run as xfails, not strict:
@@ -79,6 +84,9 @@ def expected_failed_checks(est) -> dict[str, str]:
     (mrt_pca's sample-order check passes here), so a pass shows as XPASS."""
     name = est.codec_name
     out = {}
+    if name == "neural":
+        return {c: AUTO_DECODER for c in ("check_estimators_pickle", "check_methods_sample_order_invariance",
+                                          "check_methods_subset_invariance")}
     if name not in ("vq", "gaussian"):  # VQ's codes are cluster indices only: no float rounding
         out["check_estimators_pickle"] = ROUNDING
         out["check_methods_sample_order_invariance"] = ROUNDING
