@@ -196,3 +196,35 @@ def test_cli_compress_neural(tmp_path, capsys):
     assert main(["compress", str(src), "--codec", "neural", "--param", "latent=0", "-o", str(bad)]) == 2
     err = capsys.readouterr().err
     assert "latent=0" in err and len(err.strip().splitlines()) == 1 and not bad.exists()
+
+
+def test_early_stopping_on_held_out_points():
+    """Noise has nothing to learn beyond PCA: the held-out loss stops falling and the fit stops
+    `patience` epochs after its best, keeping the best epoch's state."""
+    g = torch.Generator().manual_seed(11)
+    X = torch.randn(300, 10, generator=g)
+    c = codecs.get("neural", latent=2, features=8, width=16, depth=1, epochs=300, patience=5, holdout=0.2, lr=1e-2,
+                   encode_iters=0).fit(X)
+    fi = c.fit_info_
+    assert fi["holdout_points"] == 60 and fi["train_points"] == 240 and fi["criterion"] == "holdout"
+    assert fi["stopped"] == "early_stop" and fi["epochs"] == fi["best_epoch"] + 5 < 300
+    hold = [h[1] for h in fi["history"]]  # epochs 1.. (epoch 0: the PCA start, its criterion the first best)
+    assert min(hold[fi["best_epoch"]:]) >= fi["best_criterion"]
+    assert fi["best_epoch"] == 0 or hold[fi["best_epoch"] - 1] == fi["best_criterion"]
+
+
+def test_point_weights_decide_what_is_fitted():
+    """The loss is Σ w_p ||x_p − x̃_p||², as for the other codecs: points of weight ~0 (large noise
+    here) stop pulling the decoder away from the weighted points' curve."""
+    X1 = rotating_lobe(200)
+    g = torch.Generator().manual_seed(2)
+    X = torch.cat([X1, 3.0 * torch.randn(200, 25, generator=g)])
+    w = torch.cat([torch.ones(200), torch.full((200,), 1e-6)])
+    kw = dict(latent=2, features=8, width=16, depth=1, epochs=80, encode_iters=0)
+    plain = codecs.get("neural", **kw)
+    weighted = codecs.get("neural", **kw)
+    e_plain, e_weighted = plain.fit_encode(X), weighted.fit_encode(X, weights=w)
+    err = [float((c.decode(e)[:200].double() - X1.double()).square().sum()) for c, e in ((plain, e_plain), (weighted, e_weighted))]
+    assert err[1] < 0.1 * err[0]
+    assert weighted.fit_info_["se"] == pytest.approx(float(((weighted.decode(e_weighted).double() - X.double()).square().sum(1)
+                                                            * w.double()).sum()), rel=1e-6)
