@@ -272,6 +272,7 @@ def test_neural_codec_sweep_on_ray(ray_ex, tmp_path):
     ra, rb = a["records"][0], b["records"][0]
     assert ra["bytes_total"] == rb["bytes_total"] and ra["storage"]["runtime_bytes"] == rb["storage"]["runtime_bytes"]
     assert rb["relative_se"] == pytest.approx(ra["relative_se"], rel=1e-3)
+    assert "Stored vs run-time size" in (loc / "report.md").read_text()  # the cached features' bytes, apart
     c, enc = codecs.load(rd / "records" / f"{rb['setting_id']}.prt")
     assert c.codec_name == "neural" and enc.tensors["z"].shape[1] == 2
     L = torch.randn(c.D_, 3)

@@ -773,7 +773,8 @@ class _Trainer:
         crit_hold = hold.numel() > 0
         best = self._clone(st)
         best_crit = self._hold_loss(st, hold) if crit_hold else self.full_loss(st)
-        best_train = float(self._loss_rows(st, train).detach().double().sum()) / max(1, nt)  # the start's (PCA)
+        with torch.no_grad():
+            best_train = float(self._loss_rows(st, train).double().sum()) / max(1, nt)  # the start's (PCA)
         best_epoch, bad, stop, hist = 0, 0, {"stopped": "max_epochs"}, []
         bar = _bar(p["progress"], p["epochs"])
         try:
