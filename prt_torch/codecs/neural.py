@@ -94,7 +94,7 @@ class NeuralCodec(Codec):
         Learning rate (Adam), or initial step (L-BFGS), in the units of the signal scaled to unit RMS norm.
     epochs : int, default=300
         Most passes over the training points (L-BFGS: outer steps of 20 iterations).
-    batch_size : int, default=4096
+    batch_size : int, default=512
         Points per Adam minibatch (in a fixed order drawn from ``seed`` each epoch).
     patience : int, default=20
         Early stopping: epochs without a lower held-out loss before stopping.
@@ -139,7 +139,7 @@ class NeuralCodec(Codec):
     }
 
     def __init__(self, *, latent=4, features=16, width=32, depth=2, activation="silu", clusters=1, optimizer="adam",
-                 lr=0.003, epochs=300, batch_size=4096, patience=20, holdout=0.1, encode_iters=100, code_dtype="float32",
+                 lr=0.003, epochs=300, batch_size=512, patience=20, holdout=0.1, encode_iters=100, code_dtype="float32",
                  init="pca", fit_dtype="float32", progress=False, seed=0, strict=False):
         self.latent = latent
         self.features = features
