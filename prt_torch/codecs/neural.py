@@ -66,6 +66,8 @@ _ACTIVATIONS = {
 DIVERGENCE_FACTOR = 4.0
 #: training codes kept with the decoder (``model.code_samples``): the starts of ``encode`` for new data
 CODE_SAMPLES = 256
+#: elements of the [rows, D] temporaries of encoding new data, per chunk of points
+CHUNK_ELEMENTS = 1 << 21
 #: codes-only Adam steps of the held-out points per epoch (they follow the decoder)
 HOLDOUT_STEPS = 3
 
@@ -379,19 +381,25 @@ class NeuralCodec(Codec):
         # the stored training codes as starts too: each point's nearest decoded sample, where it is
         # nearer than the least-squares start (the decoder is not convex in z)
         zs, ls = self.code_samples_, self.code_sample_labels_.long()
+        rows = max(1, CHUNK_ELEMENTS // self.D_)
         if zs.numel():
             with torch.no_grad():
                 Xs = self._head(self._features(zs), ls if self.K_ > 1 else None, self.head_, self.bias_).double()
-                e0 = (X.double() - self._head(self._features(z), labels, self.head_, self.bias_).double()).square().sum(1)
-                d = (X.double().square().sum(1)[:, None] - 2 * X.double() @ Xs.T + Xs.square().sum(1)[None]).clamp_min(0)
-                ds, js = d.min(1)
-                use = ds < e0
-                z[use] = zs[js[use]]
-                if labels is not None:
-                    labels[use] = ls[js[use]]
+                ss = Xs.square().sum(1)
+                for i in range(0, P, rows):  # chunks bound the [rows, D] decodes
+                    xb, zb = X[i:i + rows].double(), z[i:i + rows]
+                    lb = None if labels is None else labels[i:i + rows]
+                    e0 = (xb - self._head(self._features(zb), lb, self.head_, self.bias_).double()).square().sum(1)
+                    ds, js = (xb.square().sum(1)[:, None] - 2 * xb @ Xs.T + ss[None]).clamp_min(0).min(1)
+                    use = ds < e0
+                    zb[use] = zs[js[use]]
+                    if lb is not None:
+                        lb[use] = ls[js[use]]
         iters = p["encode_iters"]
         if iters:
-            z = self._refine_codes(X, z, labels, iters, p["lr"])
+            for i in range(0, P, rows):  # per chunk of points (each point's steps are its own)
+                z[i:i + rows] = self._refine_codes(X[i:i + rows], z[i:i + rows], None if labels is None else labels[i:i + rows],
+                                                   iters, p["lr"])
         return z, labels
 
     def _refine_codes(self, X: torch.Tensor, z: torch.Tensor, labels, iters: int, lr: float) -> torch.Tensor:
@@ -722,16 +730,22 @@ class _Trainer:
         normal equations per cluster, accumulated over the tile layout; a tiny ridge for
         rank-deficient features, e.g. constant data)."""
         with torch.no_grad():
-            F = torch.cat([torch.ones(self.P, 1, dtype=torch.float64), self._feat(st).double()], 1)  # [P, 1+H]
-            Y = self.Y.double()
-            if self.w is not None:
-                sw = self.w.double().sqrt()[:, None]
-                F, Y = F * sw, Y * sw
-            lab = self.labels if self.labels is not None else torch.zeros(self.P, dtype=torch.long)
-            layout = tile_layout(lab, self.K)
-            Ft, Yt = to_tiles(layout, F), to_tiles(layout, Y)
-            G = tiles_accumulate(layout, Ft, Ft)
-            R = tiles_accumulate(layout, Ft, Yt)
+            H1 = st["head"].shape[1] + 1
+            G = torch.zeros(self.K, H1, H1, dtype=torch.float64)
+            R = torch.zeros(self.K, H1, self.D, dtype=torch.float64)
+            lab_all = self.labels if self.labels is not None else torch.zeros(self.P, dtype=torch.long)
+            rows = max(1, CHUNK_ELEMENTS // self.D)
+            for i in range(0, self.P, rows):  # chunks of points bound the float64 [rows, D] copies
+                z = st["z"][i:i + rows]
+                F = torch.cat([torch.ones(z.shape[0], 1, dtype=torch.float64), self._feat({**st, "z": z}).double()], 1)
+                Y = self.Y[i:i + rows].double()
+                if self.w is not None:
+                    sw = self.w[i:i + rows].double().sqrt()[:, None]
+                    F, Y = F * sw, Y * sw
+                layout = tile_layout(lab_all[i:i + rows], self.K)
+                Ft = to_tiles(layout, F)
+                G += tiles_accumulate(layout, Ft, Ft)
+                R += tiles_accumulate(layout, Ft, to_tiles(layout, Y))
             tr = G.diagonal(dim1=1, dim2=2).sum(-1).clamp_min(1e-300)
             G = G + (1e-10 * tr)[:, None, None] * torch.eye(G.shape[1], dtype=torch.float64)
             try:
