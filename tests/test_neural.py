@@ -228,3 +228,21 @@ def test_point_weights_decide_what_is_fitted():
     assert err[1] < 0.1 * err[0]
     assert weighted.fit_info_["se"] == pytest.approx(float(((weighted.decode(e_weighted).double() - X.double()).square().sum(1)
                                                             * w.double()).sum()), rel=1e-6)
+
+
+def test_report_lists_the_run_time_bytes_apart():
+    """The harness report's "Stored vs run-time size" table: the cached features' bytes per vertex
+    next to the stored ones, only for codecs that report them."""
+    from prt_torch.harness.report import runtime_lines
+
+    X = rotating_lobe(120)
+    c = codecs.get("neural", latent=2, features=6, **TINY)
+    st = c.storage(c.fit_encode(X))
+    rec = {"codec": "neural", "setting_id": "neural-latent2", "params": {"latent": 2}, "bytes_per_vertex": st["bytes_per_point"],
+           "storage": st, "psnr_lights_db": 30.0, "encode_s": 1.0}
+    pca = {**rec, "codec": "pca", "setting_id": "pca-vectors2", "storage": {"bytes_total": 10}}
+    lines = runtime_lines([pca, rec])
+    row = [ln for ln in lines if ln.startswith("| neural")]
+    assert len(row) == 1 and not any(ln.startswith("| pca") for ln in lines)
+    assert f"| {(120 * 6 * 4 + (6 + 1) * 25 * 4) / 120:.1f} |" in row[0]  # features [P, H] + head and bias, float32
+    assert runtime_lines([pca]) == []
