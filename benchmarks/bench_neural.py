@@ -111,7 +111,8 @@ def report(res: dict) -> str:
         "",
         "Settings: neural latent k ∈ {2, 4, 8} (H = 16 features, 2 hidden layers of 32, SiLU; Adam, lr 3e-3, at most "
         "300 epochs, early stopping on 10% held-out points), k = 4 with float16 codes, and k = 4 with 16 clusters; PCA 2-16 vectors; CPCA 16/64 "
-        "clusters x 2/4/8 vectors; on the transport tables Gaussians with 1-2 lobes.",
+        "clusters x 2/4/8 vectors; on the glossy transfer (small bumpy sphere) neural k = 2, 4, PCA 2-16 and CPCA 16 x 2/4; "
+        "on the transport tables neural k = 4, PCA 4-16 and Gaussians with 1-2 lobes.",
         "",
         "| part | codec | setting | stored B/vertex | run-time B/vertex | PSNR lights (dB) | rel. SE | relight (ms) | "
         "vs uncompr. | encode (s) |",
@@ -178,7 +179,8 @@ def main() -> None:
     res = load_results(run_dir)
     table = rows(res, "MRT, medium bumpy sphere")
     for p in res.get("parts") or []:
-        table += rows(p["results"], f"transport tables, small bumpy sphere ({p['name']})")
+        kind = {"transport": "transport tables", "glossy": "glossy transfer"}.get(p["name"], p["name"])
+        table += rows(p["results"], f"{kind}, small bumpy sphere")
     out = {"machine": machine_info(), "load_before": load_before, "load_after": os.getloadavg()[0], "quick": a.quick,
            "overrides": shown, "run_dir": str(Path(run_dir).relative_to(ROOT)) if str(run_dir).startswith(str(ROOT)) else str(run_dir),
            "table": table}
