@@ -109,8 +109,8 @@ def report(res: dict) -> str:
         f"(= `prt bench neural{' ' + ' '.join(res['overrides']) if res['overrides'] else ''}`; the harness's own report: "
         f"`{res['run_dir']}/report.md`).",
         "",
-        "Settings: neural latent k ∈ {2, 4, 8} (H = 16 features, 2 hidden layers of 32, SiLU; Adam, lr 3e-3, at most "
-        "300 epochs, early stopping on 10% held-out points), k = 4 with float16 codes, and k = 4 with 16 clusters; PCA 2-16 vectors; CPCA 16/64 "
+        "Settings: neural latent k ∈ {2, 4, 8} (H = 16 features, 2 hidden layers of 32, SiLU; Adam, lr 3e-3, minibatches "
+        "of 512, at most 300 epochs, early stopping on 10% held-out points), k = 4 with float16 codes, and k = 4 with 16 clusters; PCA 2-16 vectors; CPCA 16/64 "
         "clusters x 2/4/8 vectors; on the glossy transfer (small bumpy sphere) neural k = 2, 4, PCA 2-16 and CPCA 16 x 2/4; "
         "on the transport tables neural k = 4, PCA 4-16 and Gaussians with 1-2 lobes.",
         "",
