@@ -106,12 +106,14 @@ def report(res: dict) -> str:
         "(four other engineers' tests and benchmarks), so absolute times and encode (training) times are inflated; the "
         "speed-up column is the harness's paired one-thread ratio against the uncompressed relight of the same run.",
         f"Reproduce: `.venv/bin/python benchmarks/bench_neural.py{' --quick' if res['quick'] else ''}` "
-        f"(= `prt bench neural{' ' + ' '.join(res['overrides']) if res['overrides'] else ''}`; the harness's own report: "
+        f"(the config of `prt bench neural{' ' + ' '.join(res['overrides']) if res['overrides'] else ''}`, outputs under "
+        f"cache/bench_neural/; the harness's own report: "
         f"`{res['run_dir']}/report.md`).",
         "",
         "Settings: neural latent k ∈ {2, 4, 8} (H = 16 features, 2 hidden layers of 32, SiLU; Adam, lr 3e-3, minibatches "
-        "of 512, at most 300 epochs, early stopping on 10% held-out points), k = 4 with float16 codes, and k = 4 with 16 clusters; PCA 2-16 vectors; CPCA 16/64 "
-        "clusters x 2/4/8 vectors; on the glossy transfer (small bumpy sphere) neural k = 2, 4, PCA 2-16 and CPCA 16 x 2/4; "
+        "of 512, at most 300 epochs, early stopping on 10% held-out points), k = 4 with float16 codes, and k = 4 "
+        "with 16 clusters; PCA 2-16 vectors; CPCA 16/64 clusters x 2/4/8 vectors; on the glossy transfer (small bumpy "
+        "sphere) neural k = 2, 4, PCA 2-16 and CPCA 16 x 2/4; "
         "on the transport tables neural k = 4, PCA 4-16 and Gaussians with 1-2 lobes.",
         "",
         "| part | codec | setting | stored B/vertex | run-time B/vertex | PSNR lights (dB) | rel. SE | relight (ms) | "
@@ -126,6 +128,15 @@ def report(res: dict) -> str:
             f"{r['speedup_vs_uncompressed']:.2f}x | {r['encode_s']:.1f} |")
     lines += ["", "⚠: the harness measured these rates under contention.", ""]
     lines += ["## Where it wins and where it does not", ""] + res.get("findings", []) + [""]
+    if res.get("glsl"):
+        lines += ["## GLSL decode vs CPU", "", "The harness renders the best setting of each codec (MRT part, first light and "
+                  "view, 256x256, Mesa llvmpipe) decoded in the vertex shader and as the CPU engine's radiance; the neural "
+                  "codec's shader is the affine one on the cached features h(z_p) (render.NeuralDecoder). PSNR of GLSL "
+                  "against CPU (inf: identical):", "", "| codec | setting | GLSL vs CPU (dB) | same coverage |", "|---|---|---|---|"]
+        for k, g in sorted(res["glsl"].items()):
+            db = "not decoded: " + str(g["error"]) if g.get("error") else ("inf" if g.get("psnr_db") is None else f"{g['psnr_db']:.1f}")
+            lines.append(f"| {k} | {g.get('setting_id') or '(uncompressed)'} | {db} | {'yes' if g.get('same_mask') else 'no'} |")
+        lines.append("")
     lines += ["## Figures", ""] + [f"![{f}]({f})" for f in res["figures"]] + [""]
     return "\n".join(lines)
 
@@ -167,7 +178,7 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="fewer settings (a smoke run)")
     ap.add_argument("--no-resume", action="store_true")
     a = ap.parse_args()
-    overrides = [f"output_dir={WORK / 'reports'}", f"cache_dir={WORK / 'cache'}", "render.enabled=false"]
+    overrides = [f"output_dir={WORK / 'reports'}", f"cache_dir={WORK / 'cache'}"]
     shown = []
     if a.quick:
         q = ["codecs.0.latent=[2]", "codecs.2.clusters=[4]"]
@@ -185,6 +196,7 @@ def main() -> None:
            "overrides": shown, "run_dir": str(Path(run_dir).relative_to(ROOT)) if str(run_dir).startswith(str(ROOT)) else str(run_dir),
            "table": table}
     out["findings"] = findings(table)
+    out["glsl"] = {k: {f: v.get(f) for f in ("setting_id", "psnr_db", "same_mask", "error")} for k, v in (res.get("glsl") or {}).items()}
     OUT.mkdir(parents=True, exist_ok=True)
     out["figures"] = plot(table, OUT)
     with io.atomic_path(OUT / "neural.json") as tmp:
