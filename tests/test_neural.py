@@ -246,3 +246,27 @@ def test_report_lists_the_run_time_bytes_apart():
     assert len(row) == 1 and not any(ln.startswith("| pca") for ln in lines)
     assert f"| {(120 * 6 * 4 + (6 + 1) * 25 * 4) / 120:.1f} |" in row[0]  # features [P, H] + head and bias, float32
     assert runtime_lines([pca]) == []
+
+
+def test_clustered_decoder_encodes_new_data_in_the_right_cluster():
+    """With ``clusters`` > 1 each cluster has its own last layer; new points are coded in the
+    cluster whose decoder reconstructs them best: three well separated copies of the lobe's curve
+    (offsets of 20 along different axes) keep their points together, and new points are
+    reconstructed about as well as the training points."""
+    offsets = 20.0 * torch.eye(25)[:3]
+
+    def data(P, seed):
+        lab = torch.randint(0, 3, (P,), generator=torch.Generator().manual_seed(seed))
+        return rotating_lobe(P, seed=seed) + offsets[lab], lab
+
+    X, lab = data(450, 1)
+    c = codecs.get("neural", latent=2, features=8, clusters=3, **TINY)
+    enc = c.fit_encode(X)
+    Y, lab_y = data(150, 2)
+    ey = c.encode(Y)
+    got = c.labels_of(ey)
+    mapping = {int(t): int(got[lab_y == t].mode().values) for t in range(3)}
+    assert sorted(mapping.values()) == [0, 1, 2] and all(bool((got[lab_y == t] == k).all()) for t, k in mapping.items())
+    rel_train = c.squared_error(X, enc) / float((X - X.mean(0)).square().sum())
+    rel_new = c.squared_error(Y, ey) / float((Y - Y.mean(0)).square().sum())
+    assert rel_new < 3 * rel_train + 1e-4, (rel_new, rel_train)
