@@ -254,3 +254,26 @@ def test_interrupted_sweep_resumes_without_recomputing(ray_ex, tmp_path):
     assert any("resumed: 1 finished setting(s)" in s for s in logs)
     assert sum("B/vertex" in s for s in logs) == 1  # only the other one ran
     assert len(json.loads((rd / "results.json").read_text())["records"]) == 2
+
+
+@needs_ray
+def test_neural_codec_sweep_on_ray(ray_ex, tmp_path):
+    """The learned codec (issue 43) as a Ray task: fitted in a worker, pickled back (codec and
+    encoding), the same figures as the local run to float32 rounding (a worker's thread count may
+    differ from this process's, and the fit's GEMMs round by it) and a file that loads and relights."""
+    from prt_torch import codecs
+    from prt_torch.harness.run import run_benchmark
+
+    over = {"codecs": [{"type": "neural", "latent": 2, "features": 4, "width": 4, "depth": 1, "epochs": 10}]}
+    loc = run_benchmark(_cfg(tmp_path, "nlocal", **over), progress=False, log=lambda s: None)
+    rd = run_benchmark(_cfg(tmp_path, "nray", **over), progress=False, log=lambda s: None, executor=ray_ex)
+    a, b = (json.loads((d / "results.json").read_text()) for d in (loc, rd))
+    assert b["failures"] == [] and [r["setting_id"] for r in b["records"]] == [r["setting_id"] for r in a["records"]]
+    ra, rb = a["records"][0], b["records"][0]
+    assert ra["bytes_total"] == rb["bytes_total"] and ra["storage"]["runtime_bytes"] == rb["storage"]["runtime_bytes"]
+    assert rb["relative_se"] == pytest.approx(ra["relative_se"], rel=1e-3)
+    assert "Stored vs run-time size" in (loc / "report.md").read_text()  # the cached features' bytes, apart
+    c, enc = codecs.load(rd / "records" / f"{rb['setting_id']}.prt")
+    assert c.codec_name == "neural" and enc.tensors["z"].shape[1] == 2
+    L = torch.randn(c.D_, 3)
+    assert torch.allclose(c.relight(enc, L), c.decode(enc) @ L, rtol=1e-4, atol=1e-4)

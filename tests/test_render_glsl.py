@@ -79,11 +79,13 @@ CODECS = {  # small, cheap fits: the decode is under test, not the fit
     "cpca": dict(clusters=6, vectors=4, max_iter=3, iterations=2),
     "cpca_adaptive": dict(clusters=6, vectors=4, max_iter=3, iterations=2, adapt_iters=1),
     "mrt_pca": dict(vectors=8),
+    "neural": dict(latent=3, features=8, width=8, depth=1, clusters=2, epochs=10, encode_iters=5),
 }
 _FITS: dict = {}
 PATHS = ([(k, None) for k in ("diffuse", "diffuse_rgb", "glossy", "mrt")]
          + [(k, c) for k in ("diffuse", "diffuse_rgb", "glossy", "mrt") for c in ("vq", "pca", "cpca", "cpca_adaptive")]
-         + [("mrt", "mrt_pca"), ("glossy", "mrt_pca")])
+         + [("mrt", "mrt_pca"), ("glossy", "mrt_pca")]
+         + [(k, "neural") for k in ("diffuse", "diffuse_rgb", "glossy", "mrt")])
 
 
 def _fit(tr, name):
@@ -190,7 +192,7 @@ def test_codec_that_does_not_belong_is_refused(transfers, mesh):
 
 def test_decoder_registry_by_codec_name(transfers, light):
     reg = codec_decoders()
-    for name in ("vq", "pca", "cpca", "cpca_static", "cpca_iterative", "cpca_adaptive", "mrt_pca"):
+    for name in ("vq", "pca", "cpca", "cpca_static", "cpca_iterative", "cpca_adaptive", "mrt_pca", "neural"):
         assert issubclass(reg[name], AffineDecoder)
     sc, cd, enc = _fit(transfers["diffuse"], "vq")
     assert type(codec_decoder(cd, enc, sc.light_matrix(light))).__name__ == "VQDecoder"

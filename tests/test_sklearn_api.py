@@ -32,6 +32,7 @@ SMALL = {
     "cpca_adaptive": {"clusters": 2, "vectors": 1, "iterations": 2, "max_iter": 5, "adapt_iters": 2},
     "mrt_pca": {"vectors": 1},
     "gaussian": {"lobes": 1, "max_iter": 3, "batch_size": 64},
+    "neural": {"latent": 1, "features": 3, "width": 4, "depth": 1, "epochs": 5, "encode_iters": 3},
 }
 
 
@@ -71,6 +72,11 @@ GAUSSIAN_BATCH = ("gaussian's encode is a non-linear fit (Green 2005) run in bat
                   "whole batch converges or max_iter, so a vertex fitted alone stops at another iteration than in a "
                   "batch: its lobes agree to the fit's tolerance (tol=1e-4 of the objective), not to rtol=1e-4")
 
+AUTO_DECODER = ("neural is an auto-decoder (DeepSDF §4): the training points' codes are optimised jointly with the decoder "
+                "and returned by transform of the training X, while any other input (a subset, a permutation, an "
+                "unpickled codec without the training cache) gets codes optimised for the fixed decoder from other starts: "
+                "close in reconstruction, not equal codes (tests/test_neural.py tests the reconstruction of new data)")
+
 
 def expected_failed_checks(est) -> dict[str, str]:
     """The checks that cannot pass for a codec, each with its reason. Run as xfails, not strict:
@@ -78,6 +84,9 @@ def expected_failed_checks(est) -> dict[str, str]:
     (mrt_pca's sample-order check passes here), so a pass shows as XPASS."""
     name = est.codec_name
     out = {}
+    if name == "neural":
+        return {c: AUTO_DECODER for c in ("check_estimators_pickle", "check_methods_sample_order_invariance",
+                                          "check_methods_subset_invariance")}
     if name not in ("vq", "gaussian"):  # VQ's codes are cluster indices only: no float rounding
         out["check_estimators_pickle"] = ROUNDING
         out["check_methods_sample_order_invariance"] = ROUNDING
@@ -236,6 +245,9 @@ def test_transform_invariances_at_float32_tolerance():
         c = codecs.get(name, **SMALL[name]).fit(X, matrix_shape=(2, 5) if name == "mrt_pca" else None)
         tol = dict(rtol=1e-5, atol=1e-5 * float(np.abs(c.transform(X)).max()))
         back = pickle.loads(pickle.dumps(c))
+        if name == "neural":  # AUTO_DECODER: only new data's codes are a function of the fitted decoder alone
+            np.testing.assert_array_equal(back.transform(Y), c.transform(Y))
+            continue
         np.testing.assert_allclose(back.transform(X), c.transform(X), **tol)  # the fit encoding against a fresh one
         np.testing.assert_array_equal(back.transform(Y), c.transform(Y))
         perm = np.random.default_rng(0).permutation(X.shape[0])

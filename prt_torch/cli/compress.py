@@ -17,6 +17,7 @@ Gaussian codec; √(relative SE) for the others).
 from __future__ import annotations
 
 import json
+import sys
 import time
 
 
@@ -115,6 +116,8 @@ def run(args) -> int:
     if not args.transfer or not args.output:
         raise ValueError("prt compress needs TRANSFER (input file) and -o OUTPUT (or --list / --describe NAME)")
     params = _params(args)
+    if "progress" not in params and "progress" in codecs.describe(args.codec)["params"] and sys.stderr.isatty():
+        params["progress"] = True  # a codec with a progress bar (the learned codec's loss) shows it on a terminal
     codec = codecs.get(args.codec, **params)  # validates name and parameters before any work
 
     from ..io import check_outputs

@@ -19,9 +19,10 @@ from .base import (CODEC_FORMAT_VERSION, Codec, ConvergenceError, ConvergenceWar
 from .affine import AffineCodec, label_dtype
 from .cpca import CPCA, MRTPCA, PCA, VQ, CPCAAdaptive, CPCAIterative, CPCAStatic
 from .gaussian import GaussianCodec
+from .neural import NeuralCodec
 
 __all__ = [
-    "Codec", "Encoded", "AffineCodec", "VQ", "PCA", "CPCA", "CPCAStatic", "CPCAIterative", "CPCAAdaptive", "MRTPCA", "GaussianCodec",
+    "Codec", "Encoded", "AffineCodec", "VQ", "PCA", "CPCA", "CPCAStatic", "CPCAIterative", "CPCAAdaptive", "MRTPCA", "GaussianCodec", "NeuralCodec",
     "register", "get", "available", "describe", "load", "label_dtype",
     "ConvergenceWarning", "ConvergenceError", "CODEC_FORMAT_VERSION",
 ]

@@ -51,7 +51,7 @@ from .segment import from_tiles, segment_matmul, tile_layout, tiles_bmm, to_tile
 #: (paired, 50k points, 1 and 2 threads; benchmarks/bench_relight.py)
 SORT_MIN_CLUSTER_BYTES = 1024
 
-__all__ = ["AffineCodec", "label_dtype"]
+__all__ = ["AffineCodec", "label_dtype", "signal_key"]
 
 
 def _memo(enc: Encoded, name: Any, build, model: tuple = ()) -> Any:
@@ -162,7 +162,7 @@ class AffineCodec(Codec):
         enc = self._make_encoded(labels, coeffs)
         enc.array_type = array_type(X_in)
         # the training encoding, returned by encode(X) while X (the object passed in) is alive
-        self._train = (_key(X), input_ref(X_in), enc)
+        self._train = (signal_key(X), input_ref(X_in), enc)
         info = dict(res.get("info", {}))
         info["seconds"] = time.perf_counter() - t0
         info["fit_dtype"] = str(dtype).replace("torch.", "")
@@ -256,7 +256,7 @@ class AffineCodec(Codec):
         X = check_signal("X", X)
         self._check_features(X)
         train = getattr(self, "_train", None)
-        if train is not None and train[0] == _key(X) and train[1]() is not None:
+        if train is not None and train[0] == signal_key(X) and train[1]() is not None:
             return typed(train[2], kind)
         dtype = torch.float64 if X.dtype == torch.float64 else torch.float32
         off = self.means_.double().mean(0) if self.means_ is not None else torch.zeros(self.D_, dtype=torch.float64)
@@ -733,7 +733,9 @@ def _total_energy(Xc: torch.Tensor, w, centred: bool) -> float:
     return s
 
 
-def _key(X: torch.Tensor) -> tuple:
+def signal_key(X: torch.Tensor) -> tuple:
+    """What identifies a signal tensor as the same data again (address, shape, dtype, version,
+    strides): the key of a codec's cached training encoding (``encode`` of the training X)."""
     return (X.data_ptr(), tuple(X.shape), X.dtype, tensor_version(X), tuple(X.stride()))
 
 

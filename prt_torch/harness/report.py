@@ -359,6 +359,7 @@ def markdown(results: dict, figures: list[str], renders: list[str]) -> str:
     ]
     lines += _records_table(r["records"])
     lines += _contention_note(r["records"])
+    lines += runtime_lines(r["records"])
     for part in r.get("parts") or []:
         lines += part_lines(part)
     lines += executor_lines(r)
@@ -424,6 +425,23 @@ def _records_table(records: list[dict]) -> list[str]:
     return lines + ["", f"Pareto front (PSNR vs fps): {', '.join(front)}.", ""]
 
 
+def runtime_lines(records: list[dict]) -> list[str]:
+    """"Stored vs run-time size" for the records of codecs that relight from a cached form larger
+    than what they store (``storage['runtime_bytes']``: the learned codec's features h(z_p)), with
+    the encode (training) time; nothing when no record has one."""
+    rows = [x for x in records if (x.get("storage") or {}).get("runtime_bytes") is not None]
+    if not rows:
+        return []
+    lines = ["Stored vs run-time size: these codecs relight from a cached form (the neural codec's features h(z_p), "
+             "float32, and its last layer), built once per encoding, larger than what they store.", "",
+             "| codec | setting | stored B/vertex | run-time B/vertex | PSNR lights (dB) | encode (s) |", "|---|---|---|---|---|---|"]
+    for x in sorted(rows, key=lambda x: (x["codec"], x["bytes_per_vertex"])):
+        st = x["storage"]
+        lines.append(f"| {x['codec']} | {_setting(x)} | {x['bytes_per_vertex']:.1f} | {st['runtime_bytes'] / max(1, st['points']):.1f} | "
+                     f"{_fmt(x['psnr_lights_db'])} | {_fmt(x['encode_s'])} |")
+    return lines + [""]
+
+
 def part_lines(part: dict) -> list[str]:
     """A part of the benchmark (config ``parts``): what differs, its own scene/transfer, its
     uncompressed peer and its PSNR / fps table; its full report is in ``part['dir']``."""
@@ -440,7 +458,7 @@ def part_lines(part: dict) -> list[str]:
         "",
     ]
     lines += _records_table(r["records"])
-    return lines + _contention_note(r["records"])
+    return lines + _contention_note(r["records"]) + runtime_lines(r["records"])
 
 
 def write_outputs(run_dir: Path, results: dict, log: Callable[[str], None] = print) -> None:

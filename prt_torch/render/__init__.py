@@ -46,6 +46,7 @@ from .glsl import (  # noqa: E402
     AffineDecoder,
     CPCADecoder,
     MRTPCADecoder,
+    NeuralDecoder,
     PCADecoder,
     TransferDecoder,
     VQDecoder,
@@ -65,7 +66,7 @@ __all__ = [
     "Attribute", "ShaderProgram", "GLProgram", "FloatTexture", "FloatBuffer",
     "error_map", "error_heatmap", "auto_exposure", "tonemap", "to_display", "srgb_encode", "srgb_decode",
     "save_png", "save_exr", "side_by_side",
-    "TransferDecoder", "AffineDecoder", "VQDecoder", "PCADecoder", "CPCADecoder", "MRTPCADecoder",
+    "TransferDecoder", "AffineDecoder", "VQDecoder", "PCADecoder", "CPCADecoder", "MRTPCADecoder", "NeuralDecoder",
     "register_codec_decoder", "codec_decoder", "codec_decoders",
     "PRTScene", "glsl_vs_cpu", "GLSLCheck", "check_codec_file", "psnr", "frame_rate",
 ]

@@ -31,7 +31,8 @@ Rows:
   vertex's cluster (int attribute), w_p its PCA weights (``vec4`` attributes, or a texture
   buffer when there are more than fit the attribute budget) and the per-cluster constants
   M_k^i l computed per light on the CPU (``codec.cluster_constants``) into a float table
-  indexed by cluster id.
+  indexed by cluster id. :class:`NeuralDecoder` (the learned codec) is the same program on the
+  cached features h(z_p) and the constants W_k^T l.
 
 * :class:`GaussianDecoder` (Green 2005 eq. 2.7, §2.3): Σ_k w_k E_{σ_k}(μ_k) with the lobes
   interpolated across the three nearest stored views on the CPU once per camera
@@ -53,7 +54,7 @@ from .decoders import Decoder, DrawInputs, TableData
 from .program import Attribute, ShaderProgram
 
 __all__ = ["VIEW_MODES", "TransferDecoder", "AffineDecoder", "VQDecoder", "PCADecoder", "CPCADecoder",
-           "MRTPCADecoder", "register_codec_decoder", "codec_decoder", "codec_decoders", "transfer_program",
+           "MRTPCADecoder", "NeuralDecoder", "register_codec_decoder", "codec_decoder", "codec_decoders", "transfer_program",
            "affine_program", "MAX_WEIGHT_ATTRIBUTES", "GaussianDecoder", "gaussian_program", "gaussian_view_lobes",
            "MAX_LOBE_ATTRIBUTES"]
 
@@ -403,6 +404,19 @@ class MRTPCADecoder(AffineDecoder):
     uncentred basis A_k relit per light on the CPU."""
 
 
+class NeuralDecoder(AffineDecoder):
+    """The learned codec (``codecs.neural``, issue 43): x̃_p = b_k + W_k h(z_p) with a linear last
+    layer, so after caching the features h(z_p) ``[V, H]`` once (``NeuralCodec.affine_form``) it
+    is CPCA with H vectors — the features as vertex attributes (or a texture buffer), the
+    per-cluster constants b_k^T l and W_k^T l as the per-light uniform table (Sloan 2003 §6.2
+    eq. (4)). The decoder MLP never runs in the shader."""
+
+    @classmethod
+    def from_codec(cls, codec, enc, light, mode: str = "none", view=None, albedo=None, **kw) -> "NeuralDecoder":
+        inner, aenc = codec.affine_form(enc)
+        return super().from_codec(inner, aenc, light, mode=mode, view=view, albedo=albedo, **kw)
+
+
 _CODEC_DECODERS: dict[str, type] = {}
 
 
@@ -422,6 +436,7 @@ register_codec_decoder("vq")(VQDecoder)
 register_codec_decoder("pca")(PCADecoder)
 register_codec_decoder("cpca", "cpca_static", "cpca_iterative", "cpca_adaptive")(CPCADecoder)
 register_codec_decoder("mrt_pca")(MRTPCADecoder)
+register_codec_decoder("neural")(NeuralDecoder)
 
 
 def codec_decoders() -> dict[str, type]:
