@@ -11,6 +11,12 @@ around in β. (α_p, β_p) are computed in GLSL from the vertex's axis (the refl
 normal for a Lambertian SHRM), an attribute; the view's SH weights y_j(ω'o,p) (zero where the
 vertex faces away) are computed per camera on the CPU (``SHRM.view_terms``) and read from a
 texture buffer, as the glossy decoder's view weights are (``render.glsl``, view mode 'dense').
+
+:func:`render_shrm` draws an SHRM on a mesh either way (``shading="vertex"``: that decoder, or the
+CPU's per-vertex radiance, interpolated across triangles) or per pixel (``shading="pixel"``:
+deferred — the rasteriser interpolates only the vertex normals and positions, and every sample is
+shaded on the CPU from its own normal and view by ``SHRM.radiance``, as the thesis' renderer does
+per pixel, §5.7.5).
 """
 from __future__ import annotations
 
@@ -20,10 +26,11 @@ import numpy as np
 import torch
 
 from ..shrm import SHRM
+from .camera import Camera
 from .decoders import Decoder, DrawInputs, TableData
 from .program import Attribute, ShaderProgram
 
-__all__ = ["SHRMDecoder", "shrm_program"]
+__all__ = ["SHRMDecoder", "shrm_program", "render_shrm", "camera_views"]
 
 _FRAGMENT = """
 in vec3 v_radiance;
@@ -121,3 +128,68 @@ class SHRMDecoder(Decoder):
         if num_vertices != self.num_vertices:
             raise ValueError(f"decoder holds {self.num_vertices} vertices but the mesh has {num_vertices}")
         return DrawInputs(attributes=self._attrs, uniforms={}, tables=self._tables)
+
+
+def camera_views(camera: Camera, points: torch.Tensor) -> torch.Tensor:
+    """Unit directions from ``points [N, 3]`` towards ``camera``'s eye (perspective) or along its
+    axis towards the eye (orthographic): ``[N, 3]`` float64."""
+    eye = torch.as_tensor(np.asarray(camera.eye, np.float64))
+    pts = torch.as_tensor(points).to(torch.float64)
+    if camera.projection == "orthographic":
+        d = eye - torch.as_tensor(np.asarray(camera.target, np.float64))
+        return (d / d.norm()).expand_as(pts).contiguous()
+    v = eye - pts
+    return v / v.norm(dim=-1, keepdim=True).clamp_min(1e-300)
+
+
+def render_shrm(renderer, shrm: SHRM, mesh, camera: Camera, *, decode: str = "glsl", shading: str = "vertex",
+                width: int | None = None, height: int | None = None, background: float = 0.0,
+                supersample: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """A convex ``mesh`` shaded from ``shrm`` (Ramamoorthi 2002 eq. 5.10) seen by ``camera``.
+
+    ``shading="vertex"``: each vertex's radiance for its normal and its view towards the eye,
+    decoded in GLSL (``decode="glsl"``, :class:`SHRMDecoder`) or on the CPU (``"cpu"``,
+    ``SHRM.radiance(method="map")``), interpolated across triangles. ``shading="pixel"`` (CPU
+    decode only): a G-buffer of the interpolated vertex normals and positions at
+    ``supersample``² samples per pixel, each covered sample shaded from its own (normalised)
+    normal and its view towards the eye, covered samples averaged.
+
+    Args: ``renderer``: an open :class:`~prt_torch.render.Renderer`; ``mesh``: a ``scene.Mesh``.
+    Returns: (image ``[H, W, 3]`` float32, mask ``[H, W]`` bool), as ``Renderer.render``.
+    """
+    if shading not in ("vertex", "pixel"):
+        raise ValueError(f"shading={shading!r}; accepted: 'vertex', 'pixel'")
+    if decode not in ("glsl", "cpu"):
+        raise ValueError(f"decode={decode!r}; accepted: 'glsl', 'cpu'")
+    if shading == "pixel" and decode != "cpu":
+        raise ValueError("shading='pixel' is decoded on the CPU (deferred); accepted: decode='cpu', or shading='vertex'")
+    n = mesh.normals.to(torch.float64)
+    n = n / n.norm(dim=-1, keepdim=True)
+    pos = mesh.vertices.to(torch.float64)
+    if shading == "vertex":
+        views = camera_views(camera, pos)
+        if decode == "glsl":
+            return renderer.render(mesh, SHRMDecoder(shrm, n, views), camera, width, height, background, supersample)
+        rad = shrm.radiance(n, views, method="map").to(torch.float32)
+        return renderer.render_radiance(mesh, rad, camera, width, height, background, supersample)
+    W = renderer.width if width is None else int(width)
+    H = renderer.height if height is None else int(height)
+    s = int(supersample)
+    gn, cov = renderer.render_radiance(mesh, n.to(torch.float32), camera, W * s, H * s, float("nan"), 1)
+    gp, _ = renderer.render_radiance(mesh, pos.to(torch.float32), camera, W * s, H * s, float("nan"), 1)
+    idx = np.flatnonzero(cov.reshape(-1))
+    pn = torch.from_numpy(gn.reshape(-1, 3)[idx]).to(torch.float64)
+    pn = pn / pn.norm(dim=-1, keepdim=True).clamp_min(1e-300)
+    pv = camera_views(camera, torch.from_numpy(gp.reshape(-1, 3)[idx]))
+    rad = shrm.radiance(pn, pv, method="map").to(torch.float64)
+    C = rad.shape[1]
+    samples = np.zeros((H * s * W * s, 3), np.float64)
+    samples[idx] = rad.expand(-1, 3).numpy() if C == 1 else rad.numpy()
+    blk = samples.reshape(H, s, W, s, 3)
+    c = cov.reshape(H, s, W, s).astype(np.float64)
+    cnt = c.sum(axis=(1, 3))
+    mask = cnt > 0
+    img = np.divide((blk * c[..., None]).sum(axis=(1, 3)), cnt[..., None], out=np.zeros((H, W, 3)), where=mask[..., None])
+    img = img.astype(np.float32)
+    img[~mask] = background
+    return img, mask
