@@ -77,7 +77,9 @@ def test_rendered_pixels_match_brute_force_within_epsilon(light6, sphere, brdf, 
     W = H = 32
     cam = Camera.fit(sphere, azimuth=30.0, elevation=20.0)
     with _renderer_or_skip(W, H) as r:
-        img, mask = render_shrm(r, m, sphere, cam, decode="cpu", shading="pixel", supersample=1, background=float("nan"))
+        img, mask = render_shrm(r, m, sphere, cam, decode="cpu", shading="pixel", supersample=1, background=float("nan"),
+                                clamp=False)  # the series itself: what eq. 5.18's ε bounds
+        img_c, mask_c = render_shrm(r, m, sphere, cam, decode="cpu", shading="pixel", supersample=1, clamp=True)
     hit, n, v = _pixel_rays_on_unit_sphere(cam, W, H)
     sel = mask & hit & ((n * v).sum(-1) > 0.05)
     assert sel.sum() > 400 and (mask & ~hit).sum() <= 0.05 * mask.sum()  # the image is the sphere
@@ -87,6 +89,12 @@ def test_rendered_pixels_match_brute_force_within_epsilon(light6, sphere, brdf, 
     ours = torch.from_numpy(img[sel]).double()
     rel = float(((ours - ref) ** 2).sum() / (ref ** 2).sum())
     assert rel <= eps, (rel, eps)
+    # clamped at 0 (the renderer's default): never negative, and wherever the truth is not negative (a
+    # 6-band light itself rings below 0 in places) never farther from it than the series
+    ours_c = torch.from_numpy(img_c[sel]).double()
+    assert np.array_equal(mask, mask_c) and float(img_c[mask_c].min()) >= 0 and float(ours.min()) < 0
+    pos = ref >= 0
+    assert bool(((ours_c - ref).abs()[pos] <= (ours - ref).abs()[pos] + 1e-6).all())
 
 
 def test_pixel_and_vertex_shading_of_a_uniform_light_give_the_albedo(tmp_path, capsys):
@@ -157,6 +165,8 @@ def test_shrm_options_refused_for_a_transfer(tmp_path, capsys):
     assert "--brdf, --epsilon: only with --method shrm" in capsys.readouterr().err
     assert cli(["render", str(t), "--shading", "pixel", "-o", str(tmp_path / "x.png")]) == 2
     assert "--shading pixel applies to SHRMs" in capsys.readouterr().err
+    assert cli(["render", str(t), "--no-clamp", "-o", str(tmp_path / "x.png")]) == 2
+    assert "--no-clamp applies to SHRMs" in capsys.readouterr().err
 
 
 # --------------------------------------------------------------------------- the harness's convex section

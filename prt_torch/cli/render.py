@@ -82,6 +82,8 @@ def register(subparsers) -> None:
     p.add_argument("--orders", default=None, metavar="F,P", help="--method shrm: the orders F_B,P_B instead of --epsilon")
     p.add_argument("--map-size", type=_pixels("--map-size"), default=64,
                    help="--method shrm: map height H of the lat-long maps H x 2H (default 64)")
+    p.add_argument("--no-clamp", action="store_true",
+                   help="SHRMs: keep the truncated series' negative radiance (ringing) instead of clamping it at 0")
     p.add_argument("--shading", default="vertex", choices=["vertex", "pixel"],
                    help="SHRMs: vertex (each vertex's normal and view, interpolated; default) or pixel (each pixel's "
                         "interpolated normal and its view, shaded on the CPU: --decode cpu)")
@@ -213,10 +215,10 @@ def run(args) -> int:
 
     if args.method == "shrm":
         return _run_shrm(args, out, cmp_png)
-    shading_error = ValueError("--shading pixel applies to SHRMs (a file from prt shrm, or --method shrm); accepted for "
-                               "transfers: the default (--shading vertex)")
+    shading_error = ValueError(f"{'--shading pixel' if args.shading != 'vertex' else '--no-clamp'} applies to SHRMs (a file "
+                               "from prt shrm, or --method shrm); accepted for transfers: neither --shading pixel nor --no-clamp")
     if Path(args.transfer).is_dir():  # Green 2005 transport tables (a directory): gaussian or other codec files
-        if args.shading != "vertex":
+        if args.shading != "vertex" or args.no_clamp:
             raise shading_error
         args.decode = args.decode or "glsl"
         return _run_transport(args, out, cmp_png)
@@ -224,7 +226,7 @@ def run(args) -> int:
 
     if load_meta(args.transfer).get("kind") == "shrm":
         return _run_shrm(args, out, cmp_png)
-    if args.shading != "vertex":
+    if args.shading != "vertex" or args.no_clamp:
         raise shading_error
     if args.mesh is not None:
         raise ValueError(f"--mesh {args.mesh!r} applies to SHRM files (prt shrm output); {args.transfer!r} is a transfer, "
@@ -350,13 +352,15 @@ def _run_shrm(args, out: Path, cmp_png: Path | None) -> int:
     rs = dict(background=args.background, supersample=args.supersample)
     try:
         with Renderer(args.width, args.height) as r:
+            rs["clamp"] = not args.no_clamp
             img, mask = render_shrm(r, m, mesh, cam, decode=args.decode, shading=args.shading, **rs)
             other = (render_shrm(r, m, mesh, cam, decode="cpu" if args.decode == "glsl" else "glsl", **rs)
                      if args.validate else None)
     except RenderUnavailable as e:
         print(f"prt render: error: {e}", file=sys.stderr)
         return 3
-    what = f"SHRM F_B={m.F_B} P_B={m.P_B} (energy {m.meta['energy']:.4f}) on {name}, {args.shading} shading"
+    what = (f"SHRM F_B={m.F_B} P_B={m.P_B} (energy {m.meta['energy']:.4f}) on {name}, {args.shading} shading, "
+            + ("unclamped" if args.no_clamp else "clamped at 0"))
     return _write_outputs(args, out, None, img, mask, None, other, what)
 
 

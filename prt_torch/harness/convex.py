@@ -20,7 +20,8 @@ other built-in scene or mesh file as it is) and every camera of ``views``:
 
 Measured: PSNR of each against the reference over the vertices facing the camera (n·v > 0.02;
 peak = the reference's maximum; mean over cameras), the same over grazing vertices only
-(0.02 < n·v < cos 75°), the most negative radiance each produces (truncation ringing), bytes
+(0.02 < n·v < cos 75°), the same with the radiance clamped at 0 (what ``prt render`` shows by
+default), the most negative radiance each produces (truncation ringing), bytes
 (the SHRM file, per object; the exit matrices, float32, per vertex), precompute time (the SHRM's
 build; the transfer's own ``meta['seconds']``, also on a cache hit) and per-frame time — the
 radiance of every vertex for a new view — as a paired ratio (interleaved, one thread, CPU time:
@@ -192,7 +193,7 @@ def run_convex(cfg: dict, transfer_fn: Callable[[Any], tuple[Any, dict]], out_di
             prt = ev.reference(L, w).to(torch.float64)
 
             def stats(rad):
-                return {"psnr": psnr_vs_reference(ref, rad, facing),
+                return {"psnr": psnr_vs_reference(ref, rad, facing), "clamped": psnr_vs_reference(ref, rad.clamp_min(0), facing),
                         "grazing": psnr_vs_reference(ref[grazing], rad[grazing]) if grazing.any() else float("nan"),
                         "min": float(rad[facing].min()), "facing": int(facing.sum()), "grazing_n": int(grazing.sum())}
 
@@ -210,7 +211,7 @@ def run_convex(cfg: dict, transfer_fn: Callable[[Any], tuple[Any, dict]], out_di
         V = mesh.num_vertices
         raw = ev.raw_bytes
         prt_row = {"bands": ev.bands_in, "bands_out": math.isqrt(ev.matrix_shape[0]), "samples": tr.meta.get("samples"),
-                   "psnr_db": mean(acc["prt"], "psnr"),
+                   "psnr_db": mean(acc["prt"], "psnr"), "psnr_clamped_db": mean(acc["prt"], "clamped"),
                    "psnr_grazing_db": mean(acc["prt"], "grazing"), "min_radiance": min(x["min"] for x in acc["prt"]),
                    "bytes": raw, "bytes_per_vertex": raw / V, "precompute_s": float(tr.meta.get("seconds", tinfo["seconds"])),
                    "cache": tinfo["cache"]}
@@ -224,7 +225,7 @@ def run_convex(cfg: dict, transfer_fn: Callable[[Any], tuple[Any, dict]], out_di
                 pr = measure_paired(lambda: m.radiance(n, v0, "map"), lambda: ev.reference(L, w0),
                                     repeats=m_cfg["repeats"], warmup=m_cfg["warmup"], clock=time.thread_time)
             xs = acc["shrm"][k]
-            shrm_rows.append({**info, "bytes_per_vertex": info["bytes"] / V, "psnr_db": mean(xs, "psnr"),
+            shrm_rows.append({**info, "bytes_per_vertex": info["bytes"] / V, "psnr_db": mean(xs, "psnr"), "psnr_clamped_db": mean(xs, "clamped"),
                               "psnr_grazing_db": mean(xs, "grazing"), "min_radiance": min(x["min"] for x in xs),
                               "vs_prt_psnr_db": mean(xs, "vs_prt"), "frame_s": pr.test.median, "prt_frame_s": pr.peer.median,
                               "frame_ratio_prt_over_shrm": pr.ratio.median, "frame_ratio_spread": pr.ratio.spread,

@@ -421,10 +421,11 @@ def convex_lines(c: dict, machine: dict | None = None) -> list[str]:
         f"{c['map_height']}×{2 * c['map_height']} maps, radiance by map lookup; files in `{c.get('dir', 'convex')}/`. "
         "Glossy PRT (Sloan 2003 §3.1): this run's glossy transfer with shadows never, relit by the harness's "
         "uncompressed path. PSNR over the vertices facing each camera (n·v > 0.02), peak = the reference's maximum, mean "
-        "over cameras; grazing: 0.02 < n·v < cos 75° only; min: the most negative radiance (truncation ringing).", "",
-        "| mesh | vertices (facing, grazing) | method | orders / bands | PSNR vs reference | grazing PSNR | min radiance | bytes "
-        "| bytes / vertex | precompute (s) | per frame (ms) |",
-        "|---|---:|---|---|---:|---:|---:|---:|---:|---:|---:|",
+        "over cameras; clamped: the radiance clamped at 0 first (radiance is never negative; what `prt render` shows); grazing: "
+        "0.02 < n·v < cos 75° only; min: the most negative radiance (truncation ringing).", "",
+        "| mesh | vertices (facing, grazing) | method | orders / bands | PSNR vs reference | clamped ≥ 0 | grazing PSNR | min radiance "
+        "| bytes | bytes / vertex | precompute (s) | per frame (ms) |",
+        "|---|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in c["rows"]:
         p = r["prt"]
@@ -434,6 +435,7 @@ def convex_lines(c: dict, machine: dict | None = None) -> list[str]:
                          f"{s_['psnr_grazing_db']:.1f} dB | {s_['min_radiance']:.3g} | {s_['bytes']} | {s_['bytes_per_vertex']:.0f} | "
                          f"{s_['precompute_s']:.2f} | {1e3 * s_['frame_s']:.2f} |")
         lines.append(f"| | | glossy PRT | n = {p['bands']}, m = {p['bands_out']}, {p['samples']} samples | {p['psnr_db']:.1f} dB | "
+                     f"{p['psnr_clamped_db']:.1f} dB | "
                      f"{p['psnr_grazing_db']:.1f} dB | {p['min_radiance']:.3g} | {p['bytes']} | {p['bytes_per_vertex']:.0f} | "
                      f"{p['precompute_s']:.2f} ({p['cache']}) | {1e3 * p['frame_s']:.2f} |")
     cpu = f" on {machine['cpu']}" if machine else ""

@@ -41,8 +41,9 @@ void main() {
 
 
 @functools.lru_cache(maxsize=None)
-def shrm_program(n_p: int, height: int, width: int) -> ShaderProgram:
-    """The SHRM vertex program for (P_B+1)² = ``n_p`` maps of ``height`` × ``width`` texels.
+def shrm_program(n_p: int, height: int, width: int, clamp: bool = False) -> ShaderProgram:
+    """The SHRM vertex program for (P_B+1)² = ``n_p`` maps of ``height`` × ``width`` texels
+    (``clamp``: the radiance clamped at 0, as ``SHRM.radiance(clamp=True)``).
 
     Attribute ``axis`` (vec3); tables ``maps`` (sampler2D, RGBA32F ``[H, W·n_p]``) and
     ``view_weights`` (samplerBuffer, R32F ``[V·n_p]``)."""
@@ -86,11 +87,11 @@ void main() {{
                + ty * ((1.0 - tx) * texel(y1, x0, j) + tx * texel(y1, x1, j));
         s += w * b;
     }}
-    v_radiance = s;
+    v_radiance = {"max(s, vec3(0.0))" if clamp else "s"};
     gl_Position = prt_mvp * vec4(position, 1.0);
 }}
 """
-    return ShaderProgram(f"shrm_p{n_p}_{height}x{width}", (Attribute("axis", 3),), body, _FRAGMENT)
+    return ShaderProgram(f"shrm_p{n_p}_{height}x{width}{'_clamp' if clamp else ''}", (Attribute("axis", 3),), body, _FRAGMENT)
 
 
 class SHRMDecoder(Decoder):
@@ -100,9 +101,10 @@ class SHRMDecoder(Decoder):
         shrm: an :class:`~prt_torch.shrm.SHRM` with maps (RGB: C = 3, or C = 1 replicated).
         normals: ``[V, 3]`` unit vertex normals; views: ``[V, 3]`` or ``[3]`` unit directions
             towards the viewer (per camera).
+        clamp: the radiance clamped at 0 (``SHRM.radiance(clamp=True)``).
     """
 
-    def __init__(self, shrm: SHRM, normals, views):
+    def __init__(self, shrm: SHRM, normals, views, clamp: bool = False):
         if shrm.maps is None:
             raise ValueError("the SHRM has no maps; accepted: one computed with a map size (SHRM.prefilter)")
         C, nP, H, W = shrm.maps.shape
@@ -119,7 +121,7 @@ class SHRMDecoder(Decoder):
         yw.setflags(write=False)
         ax32 = np.ascontiguousarray(ax.to(torch.float32).numpy())
         ax32.setflags(write=False)
-        self.program = shrm_program(nP, H, W)
+        self.program = shrm_program(nP, H, W, bool(clamp))
         self.num_vertices = int(n.shape[0])
         self._attrs = {"axis": ax32}
         self._tables = {"maps": TableData(tex, "2d"), "view_weights": TableData(yw, "buffer")}
@@ -144,7 +146,7 @@ def camera_views(camera: Camera, points: torch.Tensor) -> torch.Tensor:
 
 def render_shrm(renderer, shrm: SHRM, mesh, camera: Camera, *, decode: str = "glsl", shading: str = "vertex",
                 width: int | None = None, height: int | None = None, background: float = 0.0,
-                supersample: int = 1) -> tuple[np.ndarray, np.ndarray]:
+                supersample: int = 1, clamp: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """A convex ``mesh`` shaded from ``shrm`` (Ramamoorthi 2002 eq. 5.10) seen by ``camera``.
 
     ``shading="vertex"``: each vertex's radiance for its normal and its view towards the eye,
@@ -152,7 +154,8 @@ def render_shrm(renderer, shrm: SHRM, mesh, camera: Camera, *, decode: str = "gl
     ``SHRM.radiance(method="map")``), interpolated across triangles. ``shading="pixel"`` (CPU
     decode only): a G-buffer of the interpolated vertex normals and positions at
     ``supersample``² samples per pixel, each covered sample shaded from its own (normalised)
-    normal and its view towards the eye, covered samples averaged.
+    normal and its view towards the eye, covered samples averaged. ``clamp`` (default): radiance
+    clamped at 0 in either decode (``SHRM.radiance(clamp=True)``: the series' ringing below 0).
 
     Args: ``renderer``: an open :class:`~prt_torch.render.Renderer`; ``mesh``: a ``scene.Mesh``.
     Returns: (image ``[H, W, 3]`` float32, mask ``[H, W]`` bool), as ``Renderer.render``.
@@ -169,8 +172,8 @@ def render_shrm(renderer, shrm: SHRM, mesh, camera: Camera, *, decode: str = "gl
     if shading == "vertex":
         views = camera_views(camera, pos)
         if decode == "glsl":
-            return renderer.render(mesh, SHRMDecoder(shrm, n, views), camera, width, height, background, supersample)
-        rad = shrm.radiance(n, views, method="map").to(torch.float32)
+            return renderer.render(mesh, SHRMDecoder(shrm, n, views, clamp), camera, width, height, background, supersample)
+        rad = shrm.radiance(n, views, method="map", clamp=clamp).to(torch.float32)
         return renderer.render_radiance(mesh, rad, camera, width, height, background, supersample)
     W = renderer.width if width is None else int(width)
     H = renderer.height if height is None else int(height)
@@ -181,7 +184,7 @@ def render_shrm(renderer, shrm: SHRM, mesh, camera: Camera, *, decode: str = "gl
     pn = torch.from_numpy(gn.reshape(-1, 3)[idx]).to(torch.float64)
     pn = pn / pn.norm(dim=-1, keepdim=True).clamp_min(1e-300)
     pv = camera_views(camera, torch.from_numpy(gp.reshape(-1, 3)[idx]))
-    rad = shrm.radiance(pn, pv, method="map").to(torch.float64)
+    rad = shrm.radiance(pn, pv, method="map", clamp=clamp).to(torch.float64)
     C = rad.shape[1]
     samples = np.zeros((H * s * W * s, 3), np.float64)
     samples[idx] = rad.expand(-1, 3).numpy() if C == 1 else rad.numpy()
