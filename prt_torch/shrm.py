@@ -76,6 +76,7 @@ __all__ = [
     "build_shrm",
     "load_shrm",
     "DEFAULT_MAX_MEMORY",
+    "CONVEX_PROBE_TOL",
 ]
 
 ACCEPTED_BRDFS = ("isotropic BRDFs: lambertian, phong (either form), blinn_phong, microfacet, "
@@ -86,6 +87,12 @@ DEFAULT_MAX_MEMORY = 4 * 2**30
 
 #: Largest orders :func:`choose_orders` tries before refusing an ε.
 MAX_P = 16
+
+#: Occluded fraction of the diffuse energy (``transfer.diffuse.probe_self_occlusion``) above which a
+#: mesh counts as not convex for an SHRM, which ignores visibility (§5.3): warned about by ``prt render``
+#: and the harness's convex section (the transfer precomputes' ``probe_tol``: a convex tessellation's
+#: grazing rays stay below it).
+CONVEX_PROBE_TOL = 1e-3
 
 
 # ----------------------------------------------------------------------------------------

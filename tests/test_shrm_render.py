@@ -218,6 +218,26 @@ def test_convex_section_under_uniform_light_gives_the_albedo(tmp_path):
         assert s["frame_s"] > 0 and s["prt_frame_s"] > 0
     text = "\n".join(convex_lines(res))
     assert "## Convex objects: SHRM vs unshadowed glossy PRT" in text and text.count("| glossy PRT |") == 2
+    assert all(r["occluded_fraction"] <= S.CONVEX_PROBE_TOL for r in res["rows"]) and "not convex" not in text
+
+
+def test_convex_section_warns_about_a_mesh_that_shadows_itself(tmp_path):
+    """A non-convex mesh in convex.meshes: a one-line warning with the shadowed fraction the probe finds
+    (no method of the section has visibility), recorded in the row and the report."""
+    from prt_torch.harness.report import convex_lines
+    from prt_torch.harness.run import convex_results
+    from prt_torch.lighting import write_image
+
+    env = tmp_path / "white.exr"
+    write_image(env, np.ones((16, 32, 3), np.float32))
+    logs = []
+    cfg = _convex_cfg(tmp_path, str(env), ["convex.meshes=[sphere_on_plane]", "transfer.samples=64"])
+    res = convex_results(cfg, tmp_path / "run", log=logs.append, progress=False)
+    (row,) = res["rows"]
+    assert row["occluded_fraction"] > 0.05  # the sphere shadows the plane
+    warn = [x for x in logs if "warning" in x]
+    assert len(warn) == 1 and "'sphere_on_plane' is not convex" in warn[0] and f"{row['occluded_fraction']:.3g}" in warn[0]
+    assert "sphere_on_plane" in "\n".join(convex_lines(res)) and "⚠ not convex" in "\n".join(convex_lines(res))
 
 
 @pytest.mark.parametrize("over,words", [

@@ -115,9 +115,6 @@ def register(subparsers) -> None:
 
 
 VALIDATE_DB = 50.0
-#: occluded fraction of the diffuse energy above which `prt render SHRM --mesh` warns (the
-#: transfer precomputes' ``probe_tol``: a convex tessellation's grazing rays stay below it)
-SHRM_PROBE_TOL = 1e-3
 
 
 def _bands(transfer) -> int:
@@ -343,7 +340,7 @@ def _run_shrm(args, out: Path, cmp_png: Path | None) -> int:
         probe = probe_self_occlusion(caster, mesh)
     finally:
         caster.close()
-    if probe["occluded_fraction"] > SHRM_PROBE_TOL:
+    if probe["occluded_fraction"] > S.CONVEX_PROBE_TOL:
         warnings.warn(f"mesh {name!r} is not convex: the self-occlusion probe finds {probe['occluded_fraction']:.3g} of the "
                       f"diffuse energy shadowed ({probe['occluded_rays']} of {probe['rays']} rays); an SHRM ignores "
                       "visibility (Ramamoorthi 2002 §5.3), so shadowed regions are shaded as if unoccluded")

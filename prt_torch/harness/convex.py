@@ -21,7 +21,9 @@ other built-in scene or mesh file as it is) and every camera of ``views``:
 Measured: PSNR of each against the reference over the vertices facing the camera (n·v > 0.02;
 peak = the reference's maximum; mean over cameras), the same over grazing vertices only
 (0.02 < n·v < cos 75°), the same with the radiance clamped at 0 (what ``prt render`` shows by
-default), the most negative radiance each produces (truncation ringing), bytes
+default), the most negative radiance each produces (truncation ringing), the share of diffuse energy
+the self-occlusion probe finds shadowed (a warning above ``shrm.CONVEX_PROBE_TOL``: nothing here has
+visibility), bytes
 (the SHRM file, per object; the exit matrices, float32, per vertex), precompute time (the SHRM's
 build; the transfer's own ``meta['seconds']``, also on a cache hit) and per-frame time — the
 radiance of every vertex for a new view — as a paired ratio (interleaved, one thread, CPU time:
@@ -42,6 +44,8 @@ import torch
 from .. import shrm as S
 from ..brdf import from_spec as brdf_from_spec
 from ..lighting import builtin_environment, list_builtin_environments, load_environment, parse_light_spec
+from ..scene import RayCaster
+from ..transfer.diffuse import probe_self_occlusion
 from .evaluate import Evaluator, camera_positions
 from .metrics import psnr_vs_reference
 from .timing import measure_paired, torch_threads
@@ -173,6 +177,15 @@ def run_convex(cfg: dict, transfer_fn: Callable[[Any], tuple[Any, dict]], out_di
     rows = []
     for spec in c["meshes"]:
         mesh = load_convex_mesh(spec, c["size"])
+        caster = RayCaster(mesh, workers=1)
+        try:  # no method here has visibility: say how much a non-convex mesh shadows itself
+            probe = probe_self_occlusion(caster, mesh)
+        finally:
+            caster.close()
+        if probe["occluded_fraction"] > S.CONVEX_PROBE_TOL:
+            log(f"[bench] convex: warning: mesh {mesh.name!r} is not convex: the self-occlusion probe finds "
+                f"{probe['occluded_fraction']:.3g} of the diffuse energy shadowed; the SHRM, the PRT (shadows never) and the "
+                "reference all ignore visibility")
         tr, tinfo = transfer_fn(mesh)
         ev = Evaluator(tr)
         L = env.project(ev.bands_in)  # [C, n²]: the PRT's light, the environment's own projection
@@ -231,7 +244,8 @@ def run_convex(cfg: dict, transfer_fn: Callable[[Any], tuple[Any, dict]], out_di
                               "frame_ratio_prt_over_shrm": pr.ratio.median, "frame_ratio_spread": pr.ratio.spread,
                               "trusted": bool(pr.contention.get("trusted", False))})
         prt_row["frame_s"] = shrm_rows[0]["prt_frame_s"]
-        rows.append({"mesh": mesh.name, "spec": spec, "vertices": V, "facing": acc["prt"][0]["facing"],
+        rows.append({"mesh": mesh.name, "spec": spec, "vertices": V, "occluded_fraction": probe["occluded_fraction"],
+                     "facing": acc["prt"][0]["facing"],
                      "grazing": acc["prt"][0]["grazing_n"], "prt": prt_row, "shrm": shrm_rows})
         log(f"[bench] convex: {mesh.name} ({V} vertices): PRT {prt_row['psnr_db']:.1f} dB, SHRM "
             + ", ".join(f"eps {x['epsilon']:g} {x['psnr_db']:.1f} dB" for x in shrm_rows))

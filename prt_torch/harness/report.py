@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from .. import io
+from ..shrm import CONVEX_PROBE_TOL
 
 __all__ = ["write_outputs", "pareto_front", "plot_results", "CSV_COLUMNS", "load_results", "PLOT_FILES", "convex_lines"]
 
@@ -441,6 +442,11 @@ def convex_lines(c: dict, machine: dict | None = None) -> list[str]:
     cpu = f" on {machine['cpu']}" if machine else ""
     load = f", load {machine.get('load_average_1min', float('nan')):.1f}" if machine else ""
     lines += [
+        "",
+        "Self-occlusion probe (share of the diffuse energy shadowed; none of the three has visibility, so only a convex "
+        "mesh compares them fairly): " + "; ".join(
+            f"{r['mesh']} {r['occluded_fraction']:.2g}" + (" ⚠ not convex" if r["occluded_fraction"] > CONVEX_PROBE_TOL else "")
+            for r in c["rows"] if "occluded_fraction" in r) + ".",
         "",
         f"Per frame: the radiance of every vertex for the first camera, timed interleaved with the PRT relighting in one "
         f"thread and its CPU time (median of per-pair ratios{cpu}{load}; ⚠ = contention seen). PRT time / SHRM time: "
