@@ -61,8 +61,10 @@ def register(subparsers) -> None:
             "Relight TRANSFER (a .prt file from `prt precompute`: diffuse, glossy or mrt) with LIGHT, optionally from "
             "a compressed form (--codec-file, from `prt compress`), and render it through pyrender's EGL context into "
             "a float framebuffer, decoded in GLSL (--decode glsl) or on the CPU (--decode cpu). The output format "
-            "follows the extension: .png (tone-mapped 8-bit sRGB) or .exr/.pfm/.hdr/.tif (linear float). Needs EGL: "
-            "PYOPENGL_PLATFORM=egl and the Debian packages libegl1 libegl-mesa0 libgl1-mesa-dri."
+            "follows the extension: .png (tone-mapped 8-bit sRGB) or .exr/.pfm/.hdr/.tif (linear float). An SHRM file "
+            "(`prt shrm`) shades a convex --mesh instead; --method shrm [MESH] --light L --brdf TYPE [--epsilon E | --orders "
+            "F,P] builds the spherical harmonic reflection map (Ramamoorthi 2002 ch. 5) on the fly and shades MESH from it. "
+            "Needs EGL: PYOPENGL_PLATFORM=egl and the Debian packages libegl1 libegl-mesa0 libgl1-mesa-dri."
         ),
     )
     p.add_argument("transfer", metavar="TRANSFER.prt|MESH", nargs="?", default=None,
