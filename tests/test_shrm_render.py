@@ -218,6 +218,8 @@ def test_convex_section_under_uniform_light_gives_the_albedo(tmp_path):
         assert s["frame_s"] > 0 and s["prt_frame_s"] > 0
     text = "\n".join(convex_lines(res))
     assert "## Convex objects: SHRM vs unshadowed glossy PRT" in text and text.count("| glossy PRT |") == 2
+    table = [x for x in text.splitlines() if x.startswith("|")]
+    assert len(table) == 2 + 2 * 2 and len({x.count("|") for x in table}) == 1  # every row has the header's cells
     assert all(r["occluded_fraction"] <= S.CONVEX_PROBE_TOL for r in res["rows"]) and "not convex" not in text
 
 

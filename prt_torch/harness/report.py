@@ -433,7 +433,8 @@ def convex_lines(c: dict, machine: dict | None = None) -> list[str]:
         for k, s_ in enumerate(r["shrm"]):
             head = f"| {r['mesh']} | {r['vertices']} ({r['facing']}, {r['grazing']})" if k == 0 else "| |"
             lines.append(f"{head} | SHRM ε = {s_['epsilon']:g} | F_B={s_['F_B']}, P_B={s_['P_B']} | {s_['psnr_db']:.1f} dB | "
-                         f"{s_['psnr_grazing_db']:.1f} dB | {s_['min_radiance']:.3g} | {s_['bytes']} | {s_['bytes_per_vertex']:.0f} | "
+                         f"{s_['psnr_clamped_db']:.1f} dB | {s_['psnr_grazing_db']:.1f} dB | {s_['min_radiance']:.3g} | "
+                         f"{s_['bytes']} | {s_['bytes_per_vertex']:.0f} | "
                          f"{s_['precompute_s']:.2f} | {1e3 * s_['frame_s']:.2f} |")
         lines.append(f"| | | glossy PRT | n = {p['bands']}, m = {p['bands_out']}, {p['samples']} samples | {p['psnr_db']:.1f} dB | "
                      f"{p['psnr_clamped_db']:.1f} dB | "
