@@ -270,3 +270,47 @@ def test_convex_dry_run_and_disabled_by_default(tmp_path, capsys, monkeypatch):
     assert main(["bench", "convex", "--dry-run"]) == 0
     assert '"convex"' in capsys.readouterr().out and not (tmp_path / "reports").exists()
     assert load_config("default")["convex"]["enabled"] is False
+
+
+# --------------------------------------------------------------------------- the global SHRM (eq. 5.11-5.14)
+
+def test_global_shrm_equals_the_local_one_at_texel_centres(light6):
+    """Eq. 5.14 (B̂_p = D^p(R_αβ) B_p per texel) is an identity: for a point whose axis is a texel
+    centre, the distant view's reflection map at that texel equals the local SHRM's radiance (eq.
+    5.10, no interpolation at a texel centre), for several views and texels."""
+    m = S.build_shrm(Microfacet(0.3), light6, orders=(7, 3), height=24)
+    G = m.global_maps()
+    C, nP, H, W = m.maps.shape
+    a, b = S.latlong_angles(H, W)
+    g = torch.Generator().manual_seed(4)
+    i = torch.randint(0, H, (200,), generator=g)
+    j = torch.randint(0, W, (200,), generator=g)
+    R = torch.stack([torch.sin(a[i]) * torch.cos(b[j]), torch.sin(a[i]) * torch.sin(b[j]), torch.cos(a[i])], -1)
+    for v in ([0.3, -0.5, 0.81], [0.0, 0.0, 1.0], [-0.9, 0.1, -0.2]):
+        v = torch.tensor(v, dtype=torch.float64)
+        v = v / v.norm()
+        n = R + v
+        keep = n.norm(dim=-1) > 0.2  # the axis and the view not opposite: a normal exists
+        n = n[keep] / n[keep].norm(dim=-1, keepdim=True)  # reflects v into R
+        local = m.radiance(n, v, "map")
+        E = m.reflection_map(v, G)
+        assert torch.allclose(E[:, i[keep], j[keep]].T.double(), local, rtol=1e-5, atol=1e-5)
+
+
+def test_global_shrm_of_a_distant_view_matches_brute_force(light6):
+    """A sphere seen by a distant viewer, rendered from one dynamic reflection map (eq. 5.11,
+    SHRM.radiance_distant: one 2-D lookup per point): against ∫ L f_r max(n·ω, 0) dω per normal
+    (product Gauss rule, nothing of the SHRM) within the predicted ε."""
+    brdf, eps = Microfacet(0.3), 0.03
+    m = S.build_shrm(brdf, light6, epsilon=eps, height=64)
+    view = torch.tensor([0.3, -0.5, 0.81], dtype=torch.float64)
+    view = view / view.norm()
+    g = torch.Generator().manual_seed(5)
+    n = torch.randn(600, 3, generator=g, dtype=torch.float64)
+    n = n / n.norm(dim=-1, keepdim=True)
+    n = n[(n @ view) > 0.05][:250]
+    dirs, w = gauss_sphere(40)
+    ref = S.reference_radiance(brdf, dirs, (eval_sh(dirs, 6) @ light6.T) * w[:, None], n, view)
+    ours = m.radiance_distant(n, view)
+    assert float(((ours - ref) ** 2).sum() / (ref ** 2).sum()) <= eps
+    assert float(m.radiance_distant(-view[None], view).abs().max()) == 0.0  # facing away
