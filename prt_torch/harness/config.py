@@ -363,7 +363,7 @@ def validate(cfg: dict) -> None:
     _validate_transfer(cfg)
     _validate_lights(cfg["lights"])
     _validate_codecs(cfg["codecs"])
-    if cfg["convex"]["enabled"] is True:
+    if (cfg.get("convex") or {}).get("enabled") is True:
         from .convex import check_convex
 
         check_convex(cfg)

@@ -541,7 +541,7 @@ def run_benchmark(cfg: dict, resume: bool = True, progress: bool = True, log: Ca
     results = _results(cfg, st, records, target)
     if cfg["validation"]["enabled"]:
         results["validation"] = run_validation(st, cfg, log)
-    if cfg["convex"]["enabled"]:
+    if (cfg.get("convex") or {}).get("enabled"):
         results["convex"] = convex_results(cfg, run_dir, log, progress)
     if cfg["render"]["enabled"]:
         try:
