@@ -303,12 +303,9 @@ def test_global_shrm_of_a_distant_view_matches_brute_force(light6):
     (product Gauss rule, nothing of the SHRM) within the predicted ε."""
     brdf, eps = Microfacet(0.3), 0.03
     m = S.build_shrm(brdf, light6, epsilon=eps, height=64)
-    view = torch.tensor([0.3, -0.5, 0.81], dtype=torch.float64)
-    view = view / view.norm()
-    g = torch.Generator().manual_seed(5)
-    n = torch.randn(600, 3, generator=g, dtype=torch.float64)
-    n = n / n.norm(dim=-1, keepdim=True)
-    n = n[(n @ view) > 0.05][:250]
+    view = torch.nn.functional.normalize(torch.tensor([0.3, -0.5, 0.81], dtype=torch.float64), dim=0)
+    n = torch.nn.functional.normalize(torch.randn(600, 3, generator=torch.Generator().manual_seed(5), dtype=torch.float64), dim=-1)
+    n = n[(n @ view) > 0.05][:250]  # facing the viewer, above 3° of grazing
     dirs, w = gauss_sphere(40)
     ref = S.reference_radiance(brdf, dirs, (eval_sh(dirs, 6) @ light6.T) * w[:, None], n, view)
     ours = m.radiance_distant(n, view)
