@@ -221,6 +221,8 @@ def test_convex_section_under_uniform_light_gives_the_albedo(tmp_path):
     table = [x for x in text.splitlines() if x.startswith("|")]
     assert len(table) == 2 + 2 * 2 and len({x.count("|") for x in table}) == 1  # every row has the header's cells
     assert all(r["occluded_fraction"] <= S.CONVEX_PROBE_TOL for r in res["rows"]) and "not convex" not in text
+    assert res["renders"] == ["renders/convex-sphere.png", "renders/convex-convex_hull.png"]  # render.enabled
+    assert all((tmp_path / "run" / p).is_file() for p in res["renders"]) and "![convex-sphere]" in text
 
 
 def test_convex_section_warns_about_a_mesh_that_shadows_itself(tmp_path):

@@ -150,11 +150,13 @@ def convex_environment(spec: str, size: int):
 
 
 def run_convex(cfg: dict, transfer_fn: Callable[[Any], tuple[Any, dict]], out_dir: Path,
-               log: Callable[[str], None] = print) -> dict:
+               log: Callable[[str], None] = print, shots: list | None = None) -> dict:
     """The convex-objects comparison of ``cfg`` (module docstring): returns a JSON-able dict
     ``{brdf, light, light_pixels, map_height, epsilons, views, shrms: [...], rows: [per mesh: {mesh,
     vertices, facing, prt: {...}, shrm: [per ε: {...}]}], seconds}``; writes the SHRM files under
-    ``out_dir``. ``transfer_fn(mesh) -> (glossy Transfer, info)`` gives the PRT peer."""
+    ``out_dir``. ``transfer_fn(mesh) -> (glossy Transfer, info)`` gives the PRT peer. ``shots`` (a
+    list) receives, per mesh, the first camera's per-vertex radiance of the reference, each SHRM and
+    the PRT (``{"mesh", "eye", "panels": [(label, [V, C])]}``, for ``harness.renders.render_convex``)."""
     t_start = time.perf_counter()
     c = cfg["convex"]
     brdf = S.check_brdf(brdf_from_spec(cfg["transfer"].get("brdf") or {"type": "phong"}))
@@ -211,11 +213,16 @@ def run_convex(cfg: dict, transfer_fn: Callable[[Any], tuple[Any, dict]], out_di
                         "min": float(rad[facing].min()), "facing": int(facing.sum()), "grazing_n": int(grazing.sum())}
 
             acc["prt"].append(stats(prt))
+            panels = [("reference", ref)]
             for k, (m, _) in enumerate(shrms):
                 rad = m.radiance(n, v, "map")
                 s_ = stats(rad)
                 s_["vs_prt"] = psnr_vs_reference(prt, rad, facing)
                 acc["shrm"][k].append(s_)
+                panels.append((f"SHRM {s_['psnr']:.1f} dB", rad))
+            if shots is not None and len(acc["prt"]) == 1:  # the first camera's pictures
+                shots.append({"mesh": mesh, "eye": cam,
+                              "panels": panels + [(f"PRT {acc['prt'][0]['psnr']:.1f} dB", prt)]})
 
         def mean(xs, key):
             vals = [x[key] for x in xs if math.isfinite(x[key])]

@@ -461,6 +461,12 @@ def convex_lines(c: dict, machine: dict | None = None) -> list[str]:
         "without recomputation. The PRT precompute time is the transfer's own (also on a cache hit).",
         "",
     ]
+    if c.get("renders"):
+        lines += ["First camera, per-vertex radiance clamped at 0, one exposure per picture: reference | SHRM at each ε "
+                  "(in the order above) | glossy PRT, each with its PSNR from that camera.",
+                  ""] + [f"![{Path(f).stem}]({f})" for f in c["renders"]] + [""]
+    elif c.get("render_error"):
+        lines += [f"Pictures not made: {c['render_error']}", ""]
     return lines
 
 

@@ -42,7 +42,7 @@ from .config import config_hash, expand_codecs, part_configs
 from .convex import run_convex
 from .evaluate import Evaluator, camera_positions
 from .metrics import psnr_vs_reference, random_light_psnr, random_light_psnr_analytic, squared_error
-from .renders import render_best
+from .renders import render_best, render_convex
 from .report import load_results, write_outputs
 from .target import find_smallest, search_families
 from .timing import io_bound_fn, machine_info, measure, measure_paired, measure_paired_cold, torch_threads
@@ -565,11 +565,20 @@ def convex_results(cfg: dict, run_dir: Path, log: Callable[[str], None] = print,
     """The config's ``convex`` section (:func:`prt_torch.harness.convex.run_convex`): SHRM vs
     unshadowed glossy PRT on each of ``convex.meshes``, the PRT peer being the run's glossy transfer
     with ``shadows: never`` from the transfer cache (:func:`compute_transfer`); SHRM files under
-    ``run_dir/convex/``. Returns the section's dict (results.json ``convex``)."""
+    ``run_dir/convex/``; with ``render.enabled`` one picture per mesh (reference | SHRMs | PRT,
+    ``renders.render_convex``). Returns the section's dict (results.json ``convex``)."""
     sub = copy.deepcopy(cfg)
     sub["transfer"]["shadows"] = "never"  # unshadowed: a convex object has no self-occlusion to trace
-    return run_convex(sub, lambda mesh: compute_transfer(sub, mesh, Path(cfg["cache_dir"]), progress=progress),
-                      Path(run_dir) / "convex", log)
+    shots: list = []
+    res = run_convex(sub, lambda mesh: compute_transfer(sub, mesh, Path(cfg["cache_dir"]), progress=progress),
+                     Path(run_dir) / "convex", log, shots=shots if cfg["render"]["enabled"] else None)
+    if shots:
+        try:  # pictures must not lose the section; say why
+            res["renders"] = render_convex(run_dir, shots, cfg["render"])
+        except Exception as e:
+            log(f"[bench] convex renders skipped: {type(e).__name__}: {e}")
+            res["render_error"] = f"{type(e).__name__}: {e}"
+    return res
 
 
 # --------------------------------------------------------------------------- validation
