@@ -159,6 +159,18 @@ def test_render_method_shrm_refuses_bad_input_in_one_line(tmp_path, capsys, argv
     assert not out.exists()
 
 
+def test_a_saved_shrm_refuses_another_light(tmp_path, capsys):
+    """An SHRM file carries its light: --light on it is refused (it was silently ignored)."""
+    m = tmp_path / "lam.prt"
+    assert main(["shrm", "--brdf", "lambertian", "--light", "constant:value=1", "--orders", "2,0", "--size", "8",
+                 "-o", str(m)]) == 0
+    capsys.readouterr()
+    assert main(["render", str(m), "--light", "studio", "-o", str(tmp_path / "x.png")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "carries the light it was computed for" in err[0]
+    assert not (tmp_path / "x.png").exists()
+
+
 def test_shrm_options_refused_for_a_transfer(tmp_path, capsys):
     from prt_torch.cli import main as cli
 

@@ -73,7 +73,8 @@ def register(subparsers) -> None:
     p.add_argument("--method", default="transfer", choices=["transfer", "shrm"],
                    help="transfer: render TRANSFER.prt (default); shrm: build a spherical harmonic reflection map "
                         "(Ramamoorthi 2002 ch. 5) of --brdf under --light on the fly and shade MESH from it")
-    p.add_argument("--light", default="sky", help="built-in environment, analytic spec or image file (default: sky)")
+    p.add_argument("--light", default=None,
+                   help="built-in environment, analytic spec or image file (default: sky); an SHRM file carries its own")
     p.add_argument("--brdf", default=None, metavar="TYPE",
                    help="--method shrm: the isotropic reflectance model (lambertian, phong, blinn_phong, microfacet, "
                         "ashikhmin_shirley, ward)")
@@ -236,7 +237,7 @@ def run(args) -> int:
     codec = enc = None
     if args.codec_file:
         codec, enc = check_codec_file(args.codec_file, scene)
-    light = load_light(args.light, bands=_bands(transfer))
+    light = load_light(args.light or "sky", bands=_bands(transfer))
     mesh = transfer.mesh
     cam = Camera.fit(mesh, azimuth=args.azimuth, elevation=args.elevation, fov=args.fov,
                      projection="orthographic" if args.orthographic else "perspective",
@@ -299,7 +300,7 @@ def _write_outputs(args, out: Path, cmp_png: Path | None, img, mask, ref_img, ot
 
 def _run_shrm(args, out: Path, cmp_png: Path | None) -> int:
     """A convex object shaded from a spherical harmonic reflection map (Ramamoorthi 2002 eq. 5.10):
-    ``prt render SHRM.prt [--mesh MESH]`` (a saved SHRM; ``--light`` ignored, the SHRM carries its
+    ``prt render SHRM.prt [--mesh MESH]`` (a saved SHRM; ``--light`` refused, the SHRM carries its
     light) or ``prt render --method shrm [MESH] --light L --brdf TYPE [--brdf-param k=v]
     [--epsilon E | --orders F,P]`` (built on the fly, ``shrm.build_shrm``). Per vertex (its normal's
     axis and its view towards the eye; orthographic: the camera's direction), decoded in GLSL
@@ -321,6 +322,9 @@ def _run_shrm(args, out: Path, cmp_png: Path | None) -> int:
     if args.method != "shrm" and (args.codec_file or cmp_png is not None):
         raise ValueError("--codec-file and --compare apply to transfers; accepted for an SHRM: -o, --mesh, --decode, "
                          "--shading, --validate, the camera and image options")
+    if args.method != "shrm" and args.light is not None:
+        raise ValueError(f"--light {args.light!r}: the SHRM {args.transfer!r} carries the light it was computed for; accepted: "
+                         "no --light, or --method shrm --brdf TYPE --light L to build one under another light")
     _check_shading(args)
     name = (args.transfer if args.method == "shrm" else None) or args.mesh or "convex"
     if args.method == "shrm":  # every check of the SHRM's inputs before the mesh, the probe or the build
@@ -331,7 +335,7 @@ def _run_shrm(args, out: Path, cmp_png: Path | None) -> int:
                                 "existing mesh file")
     mesh = builtin(name, size="small") if name in list_builtins() else load_mesh(name)
     if args.method == "shrm":
-        m = S.build_shrm(brdf, args.light, epsilon=args.epsilon if args.epsilon is not None else 0.03, orders=orders,
+        m = S.build_shrm(brdf, args.light or "sky", epsilon=args.epsilon if args.epsilon is not None else 0.03, orders=orders,
                          height=args.map_size)
     else:
         m = S.load_shrm(args.transfer)
@@ -387,7 +391,7 @@ def _run_transport(args, out: Path, cmp_png: Path | None) -> int:
     if args.decode == "glsl" and codec is None:
         raise ValueError("uncompressed transport tables have no GLSL decoder; accepted: --decode cpu, or --codec-file "
                          "with a codec that has one (e.g. gaussian)")
-    light = load_light(args.light, bands=ev.bands_in)
+    light = load_light(args.light or "sky", bands=ev.bands_in)
     mesh = tr.mesh
     cam = Camera.fit(mesh, azimuth=args.azimuth, elevation=args.elevation, fov=args.fov,
                      projection="orthographic" if args.orthographic else "perspective", aspect=args.width / args.height)
