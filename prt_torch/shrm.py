@@ -76,6 +76,7 @@ __all__ = [
     "build_shrm",
     "load_shrm",
     "DEFAULT_MAX_MEMORY",
+    "CONVEX_PROBE_TOL",
 ]
 
 ACCEPTED_BRDFS = ("isotropic BRDFs: lambertian, phong (either form), blinn_phong, microfacet, "
@@ -86,6 +87,12 @@ DEFAULT_MAX_MEMORY = 4 * 2**30
 
 #: Largest orders :func:`choose_orders` tries before refusing an ε.
 MAX_P = 16
+
+#: Occluded fraction of the diffuse energy (``transfer.diffuse.probe_self_occlusion``) above which a
+#: mesh counts as not convex for an SHRM, which ignores visibility (§5.3): warned about by ``prt render``
+#: and the harness's convex section (the transfer precomputes' ``probe_tol``: a convex tessellation's
+#: grazing rays stay below it).
+CONVEX_PROBE_TOL = 1e-3
 
 
 # ----------------------------------------------------------------------------------------
@@ -702,7 +709,8 @@ class SHRM:
         facing = (n * v).sum(-1) > 0
         return ax, Rf, torch.where(facing[:, None], y, torch.zeros((), dtype=torch.float64))
 
-    def radiance(self, normals: torch.Tensor, views: torch.Tensor, method: str = "map", chunk: int = 1024) -> torch.Tensor:
+    def radiance(self, normals: torch.Tensor, views: torch.Tensor, method: str = "map", chunk: int = 1024,
+                 clamp: bool = False) -> torch.Tensor:
         """Reflected radiance B for surface normals and view directions (eq. 5.10, 5.3).
 
         ω'o = R_αβᵀ v in the frame of the point's axis (:meth:`view_terms`), then
@@ -710,6 +718,13 @@ class SHRM:
         (``method="map"``: the rendering path, wrap-around in β) or summed from the coefficients
         (``method="coeffs"``: eq. 5.9 with the rotation blocks of each point's frame, exact up to
         the orders; ``chunk`` points at a time). Points facing away (n·v ≤ 0) get 0.
+
+        ``clamp``: max(B, 0). The truncated series rings below zero where the true radiance is
+        small (studio light, microfacet σ = 0.3: 17% of random surface points at ε = 0.03, down to
+        −0.17 for a peak of 4.5; reports/benchmarks/shrm_grazing.md); radiance is never negative,
+        so the clamped value is never farther from the true one than the series (its squared error
+        there fell 1–3% in that measurement). The renderer clamps by default; the series itself,
+        unclamped, is what the ε of eq. 5.18 bounds.
 
         Args: ``normals [N, 3]``, ``views [N, 3]`` or ``[3]`` (towards the viewer), unit, float.
         Returns: ``[N, C]`` in the dtype of ``normals`` (float64 computation).
@@ -728,13 +743,58 @@ class SHRM:
                 G = rotate(Lf[None], Fr[:, None])  # [n, C, nF]
                 parts.append(G @ M)
             Bpq = torch.cat(parts) if parts else torch.zeros(0, Lf.shape[0], M.shape[1], dtype=torch.float64)
-        return (Bpq * y[:, None, :]).sum(-1).to(normals.dtype)
+        out = (Bpq * y[:, None, :]).sum(-1)
+        return (out.clamp_min(0) if clamp else out).to(normals.dtype)
 
-    def _lookup(self, dirs: torch.Tensor) -> torch.Tensor:
-        """Bilinear lookup of the maps at axis directions ``[N, 3]`` -> ``[N, C, nP]`` float64."""
+    def global_maps(self) -> torch.Tensor:
+        """The global SHRM B̂_pq(α, β) (eq. 5.11–5.14), for a distant viewer: at every texel the local
+        coefficients B_p turned into the world frame, B̂_p = D^p(R_αβ) B_p — eq. 5.14's
+        Σ_s D^p_sq(−α) e^{−iqβ} B_ps in the engine's real SH, since y(R_αβᵀ v) = D(R_αβ)ᵀ y(v) — so
+        that B = Σ_pq B̂_pq(α, β) y_pq(v) with the world view v itself (eq. 5.11).
+        Returns ``[C, (P_B+1)², H, W]`` float32 (float64 rotation)."""
         if self.maps is None:
-            raise ValueError("method='map' needs maps; accepted: call prefilter(height) first, or method='coeffs'")
+            raise ValueError("this SHRM has no maps; accepted: call prefilter(height) first")
         C, nP, H, W = self.maps.shape
+        a, b = latlong_angles(H, W)
+        ax = torch.stack([torch.sin(a)[:, None] * torch.cos(b)[None], torch.sin(a)[:, None] * torch.sin(b)[None],
+                          torch.cos(a)[:, None].expand(H, W)], -1)  # texel-centre axes [H, W, 3]
+        Rf = local_frames(ax)  # [H, W, 3, 3], columns e'x, e'y, e'z: R_αβ
+        B = self.maps.to(torch.float64).permute(2, 3, 0, 1)  # [H, W, C, nP]
+        return rotate(B, Rf[:, :, None]).permute(2, 3, 0, 1).to(torch.float32)
+
+    def reflection_map(self, view: torch.Tensor, global_maps: torch.Tensor | None = None) -> torch.Tensor:
+        """The dynamic reflection map of one distant view (eq. 5.11, §5.7.5): Σ_pq B̂_pq(α, β) y_pq(v)
+        at every texel, ``[C, H, W]`` float32 — a point with normal n then reflects B at the texel of
+        its axis R = 2(n·v)n − v (:meth:`radiance_distant`). ``view [3]`` unit, towards the viewer;
+        ``global_maps`` from :meth:`global_maps` (computed when None)."""
+        check_unit_vectors("view", view.reshape(1, 3))
+        G = self.global_maps() if global_maps is None else global_maps
+        y = eval_sh(view.reshape(1, 3).to(torch.float64), self.P_B + 1)[0]
+        return torch.einsum("j,cjhw->chw", y, G.to(torch.float64)).to(torch.float32)
+
+    def radiance_distant(self, normals: torch.Tensor, view: torch.Tensor, reflection_map: torch.Tensor | None = None,
+                         clamp: bool = False) -> torch.Tensor:
+        """Reflected radiance for a distant viewer (one view ``[3]`` for every point) from the
+        reflection map of that view (:meth:`reflection_map`, eq. 5.11): a bilinear lookup at each
+        point's axis (R, or n for a Lambertian SHRM), 0 where n·v ≤ 0, ``clamp`` as in :meth:`radiance`.
+        ``normals [N, 3]`` unit -> ``[N, C]`` in the dtype of ``normals``."""
+        check_unit_vectors("normals", normals)
+        v = view.reshape(1, 3).to(torch.float64)
+        n = normals.to(torch.float64)
+        E = self.reflection_map(view) if reflection_map is None else reflection_map
+        ax = self.axes(n, v.expand_as(n))
+        ax = ax / ax.norm(dim=-1, keepdim=True).clamp_min(1e-300)
+        out = self._lookup(ax, E[:, None])[..., 0]
+        out = torch.where(((n * v).sum(-1) > 0)[:, None], out, torch.zeros((), dtype=torch.float64))
+        return (out.clamp_min(0) if clamp else out).to(normals.dtype)
+
+    def _lookup(self, dirs: torch.Tensor, maps: torch.Tensor | None = None) -> torch.Tensor:
+        """Bilinear lookup of ``maps`` (default: the SHRM's, ``[C, nP, H, W]``) at axis directions
+        ``[N, 3]`` -> ``[N, C, nP]`` float64."""
+        if maps is None and self.maps is None:
+            raise ValueError("method='map' needs maps; accepted: call prefilter(height) first, or method='coeffs'")
+        maps = self.maps if maps is None else maps
+        C, nP, H, W = maps.shape
         alpha = torch.arccos(dirs[:, 2].clamp(-1, 1))
         beta = torch.remainder(torch.atan2(dirs[:, 1], dirs[:, 0]), 2 * math.pi)
         fy = (alpha * (H / math.pi) - 0.5).clamp(0, H - 1)
@@ -746,7 +806,7 @@ class SHRM:
         x1 = torch.remainder(x0 + 1, W)
         ty = (fy - y0.to(fy.dtype))[:, None, None]
         tx = (fx - x0f)[:, None, None]
-        m = self.maps.to(torch.float64).permute(2, 3, 0, 1)  # [H, W, C, nP]
+        m = maps.to(torch.float64).permute(2, 3, 0, 1)  # [H, W, C, nP]
         return ((1 - ty) * ((1 - tx) * m[y0, x0] + tx * m[y0, x1]) + ty * ((1 - tx) * m[y1, x0] + tx * m[y1, x1]))
 
     # -- files ---------------------------------------------------------------------------

@@ -10,6 +10,12 @@ eye gives each vertex its local view direction (``relight.local_view`` with the 
 ``--codec-file`` renders from a compressed transfer (refused when it belongs to another
 transfer); ``--compare OUT.png`` also writes uncompressed (CPU) | this render | error heat map,
 as PNG and as linear EXR (OUT.exr); ``--validate`` renders both decodes and prints their PSNR.
+
+``prt render --method shrm [MESH] --light L --brdf TYPE [--brdf-param k=v] [--epsilon E | --orders
+F,P]`` builds a spherical harmonic reflection map (Ramamoorthi 2002 ch. 5, ``shrm.build_shrm``) on
+the fly and renders the convex MESH (built-in scene or mesh file; default ``convex``) from it, as
+``prt render SHRM.prt --mesh MESH`` renders a saved one; ``--shading pixel`` shades every pixel
+from its own normal and view (deferred, CPU decode).
 """
 from __future__ import annotations
 
@@ -55,12 +61,35 @@ def register(subparsers) -> None:
             "Relight TRANSFER (a .prt file from `prt precompute`: diffuse, glossy or mrt) with LIGHT, optionally from "
             "a compressed form (--codec-file, from `prt compress`), and render it through pyrender's EGL context into "
             "a float framebuffer, decoded in GLSL (--decode glsl) or on the CPU (--decode cpu). The output format "
-            "follows the extension: .png (tone-mapped 8-bit sRGB) or .exr/.pfm/.hdr/.tif (linear float). Needs EGL: "
-            "PYOPENGL_PLATFORM=egl and the Debian packages libegl1 libegl-mesa0 libgl1-mesa-dri."
+            "follows the extension: .png (tone-mapped 8-bit sRGB) or .exr/.pfm/.hdr/.tif (linear float). An SHRM file "
+            "(`prt shrm`) shades a convex --mesh instead; --method shrm [MESH] --light L --brdf TYPE [--epsilon E | --orders "
+            "F,P] builds the spherical harmonic reflection map (Ramamoorthi 2002 ch. 5) on the fly and shades MESH from it. "
+            "Needs EGL: PYOPENGL_PLATFORM=egl and the Debian packages libegl1 libegl-mesa0 libgl1-mesa-dri."
         ),
     )
-    p.add_argument("transfer", metavar="TRANSFER.prt")
-    p.add_argument("--light", default="sky", help="built-in environment, analytic spec or image file (default: sky)")
+    p.add_argument("transfer", metavar="TRANSFER.prt|MESH", nargs="?", default=None,
+                   help="a transfer or SHRM file; with --method shrm the convex mesh to shade (built-in scene or mesh "
+                        "file, default: the built-in 'convex')")
+    p.add_argument("--method", default="transfer", choices=["transfer", "shrm"],
+                   help="transfer: render TRANSFER.prt (default); shrm: build a spherical harmonic reflection map "
+                        "(Ramamoorthi 2002 ch. 5) of --brdf under --light on the fly and shade MESH from it")
+    p.add_argument("--light", default=None,
+                   help="built-in environment, analytic spec or image file (default: sky); an SHRM file carries its own")
+    p.add_argument("--brdf", default=None, metavar="TYPE",
+                   help="--method shrm: the isotropic reflectance model (lambertian, phong, blinn_phong, microfacet, "
+                        "ashikhmin_shirley, ward)")
+    p.add_argument("--brdf-param", action="append", default=[], metavar="NAME=VALUE",
+                   help="--method shrm: a model parameter, repeatable (sigma=0.2, s=32 form=reflection, kd=0.8)")
+    p.add_argument("--epsilon", type=_finite("--epsilon"), default=None,
+                   help="--method shrm: accepted BRDF energy loss in (0, 1), orders by eq. 5.18 (default 0.03)")
+    p.add_argument("--orders", default=None, metavar="F,P", help="--method shrm: the orders F_B,P_B instead of --epsilon")
+    p.add_argument("--map-size", type=_pixels("--map-size"), default=64,
+                   help="--method shrm: map height H of the lat-long maps H x 2H (default 64)")
+    p.add_argument("--no-clamp", action="store_true",
+                   help="SHRMs: keep the truncated series' negative radiance (ringing) instead of clamping it at 0")
+    p.add_argument("--shading", default="vertex", choices=["vertex", "pixel"],
+                   help="SHRMs: vertex (each vertex's normal and view, interpolated; default) or pixel (each pixel's "
+                        "interpolated normal and its view, shaded on the CPU: --decode cpu)")
     p.add_argument("--codec-file", default=None, help="render from this compressed transfer (prt compress output)")
     p.add_argument("--decode", default=None, choices=["glsl", "cpu"],
                    help="glsl: decode in the vertex shader (default); cpu: per-vertex radiance from the torch engine")
@@ -89,9 +118,6 @@ def register(subparsers) -> None:
 
 
 VALIDATE_DB = 50.0
-#: occluded fraction of the diffuse energy above which `prt render SHRM --mesh` warns (the
-#: transfer precomputes' ``probe_tol``: a convex tessellation's grazing rays stay below it)
-SHRM_PROBE_TOL = 1e-3
 
 
 def _bands(transfer) -> int:
@@ -123,11 +149,51 @@ def _linear_composite(panels: list[np.ndarray], gap: int = 4) -> np.ndarray:
     return np.concatenate(parts, 1)
 
 
+SHRM_ONLY = ("--brdf", "--brdf-param", "--epsilon", "--orders", "--map-size")
+
+
+def _check_method(args) -> None:
+    """Options that belong to the other method, refused before any work (one line each)."""
+    given = {"--brdf": args.brdf is not None, "--brdf-param": bool(args.brdf_param), "--epsilon": args.epsilon is not None,
+             "--orders": args.orders is not None, "--map-size": args.map_size != 64}
+    if args.method != "shrm":
+        if args.transfer is None:
+            raise ValueError("TRANSFER.prt is missing; accepted: a transfer or SHRM file, or --method shrm [MESH] --brdf TYPE")
+        extra = [k for k in SHRM_ONLY if given[k]]
+        if extra:
+            raise ValueError(f"{', '.join(extra)}: only with --method shrm (an SHRM built on the fly); accepted for "
+                             f"{args.transfer!r}: drop them, or add --method shrm with a mesh")
+        return
+    if args.brdf is None:
+        raise ValueError("--method shrm needs --brdf TYPE (e.g. --brdf microfacet --brdf-param sigma=0.2)")
+    if args.epsilon is not None and args.orders is not None:
+        raise ValueError(f"--epsilon {args.epsilon:g} and --orders {args.orders!r} both given; accepted: one of them")
+    if args.epsilon is not None and not 0 < args.epsilon < 1:
+        raise ValueError(f"--epsilon {args.epsilon:g}; accepted: a number in (0, 1) (the BRDF energy the SHRM may lose)")
+    if args.codec_file or args.compare:
+        raise ValueError("--codec-file and --compare apply to transfers; accepted with --method shrm: -o, --light, --brdf, "
+                         "--brdf-param, --epsilon/--orders, --map-size, --shading, --decode, --validate, camera and image options")
+    if args.transfer is not None and args.mesh is not None:
+        raise ValueError(f"the mesh given twice (MESH {args.transfer!r} and --mesh {args.mesh!r}); accepted: one of them")
+
+
+def _check_shading(args) -> None:
+    if args.shading == "pixel":
+        if args.decode == "glsl":
+            raise ValueError("--shading pixel is shaded on the CPU (deferred, per pixel); accepted: --decode cpu, or "
+                             "--shading vertex for the GLSL decoder")
+        if args.validate:
+            raise ValueError("--validate compares the GLSL and CPU vertex decodes; accepted with --shading vertex")
+        args.decode = "cpu"
+    args.decode = args.decode or "glsl"
+
+
 def run(args) -> int:
     from ..lighting.spec import load_light
     from ..render import (Camera, PRTScene, Renderer, RenderUnavailable, check_codec_file)
     from ..transfer import Transfer
 
+    _check_method(args)
     out = Path(args.output)
     ext = out.suffix.lower()
     if ext not in (".png",) + EXTS_FLOAT:
@@ -138,20 +204,30 @@ def run(args) -> int:
     from ..io import check_outputs
 
     check_outputs({"-o/--output": out, "--compare": cmp_png, "--compare (its linear EXR)": cmp_png and cmp_png.with_suffix(".exr")},
-                  {"TRANSFER": args.transfer, "--codec-file": args.codec_file, "--light": args.light}, args.overwrite)  # before any rendering
+                  {"TRANSFER": args.transfer if args.method != "shrm" else None, "MESH": args.transfer if args.method == "shrm" else None,
+                   "--mesh": args.mesh, "--codec-file": args.codec_file, "--light": args.light},
+                  args.overwrite)  # before any rendering
     if args.exposure != "auto":
         try:
             float(args.exposure)
         except ValueError:
             raise ValueError(f"--exposure {args.exposure!r}; accepted: a number of stops or 'auto'") from None
 
+    if args.method == "shrm":
+        return _run_shrm(args, out, cmp_png)
+    shading_error = ValueError(f"{'--shading pixel' if args.shading != 'vertex' else '--no-clamp'} applies to SHRMs (a file "
+                               "from prt shrm, or --method shrm); accepted for transfers: neither --shading pixel nor --no-clamp")
     if Path(args.transfer).is_dir():  # Green 2005 transport tables (a directory): gaussian or other codec files
+        if args.shading != "vertex" or args.no_clamp:
+            raise shading_error
         args.decode = args.decode or "glsl"
         return _run_transport(args, out, cmp_png)
     from ..io import load_meta
 
     if load_meta(args.transfer).get("kind") == "shrm":
         return _run_shrm(args, out, cmp_png)
+    if args.shading != "vertex" or args.no_clamp:
+        raise shading_error
     if args.mesh is not None:
         raise ValueError(f"--mesh {args.mesh!r} applies to SHRM files (prt shrm output); {args.transfer!r} is a transfer, "
                          "which carries its own mesh")
@@ -161,7 +237,7 @@ def run(args) -> int:
     codec = enc = None
     if args.codec_file:
         codec, enc = check_codec_file(args.codec_file, scene)
-    light = load_light(args.light, bands=_bands(transfer))
+    light = load_light(args.light or "sky", bands=_bands(transfer))
     mesh = transfer.mesh
     cam = Camera.fit(mesh, azimuth=args.azimuth, elevation=args.elevation, fov=args.fov,
                      projection="orthographic" if args.orthographic else "perspective",
@@ -223,66 +299,71 @@ def _write_outputs(args, out: Path, cmp_png: Path | None, img, mask, ref_img, ot
 
 
 def _run_shrm(args, out: Path, cmp_png: Path | None) -> int:
-    """``prt render SHRM.prt [--mesh MESH]``: a convex object shaded from a spherical harmonic
-    reflection map (Ramamoorthi 2002 eq. 5.10): per vertex, the SHRM's maps at the vertex normal's
-    axis (reflected view, or the normal for a Lambertian) and its view towards the camera eye
-    (orthographic: the camera's direction), decoded in GLSL (``render.shrm.SHRMDecoder``, default)
-    or on the CPU (``shrm.SHRM.radiance``); ``--validate`` renders both and prints their PSNR. The
-    light and BRDF are those the SHRM was computed for; ``--light`` is ignored."""
-    import torch
-
+    """A convex object shaded from a spherical harmonic reflection map (Ramamoorthi 2002 eq. 5.10):
+    ``prt render SHRM.prt [--mesh MESH]`` (a saved SHRM; ``--light`` refused, the SHRM carries its
+    light) or ``prt render --method shrm [MESH] --light L --brdf TYPE [--brdf-param k=v]
+    [--epsilon E | --orders F,P]`` (built on the fly, ``shrm.build_shrm``). Per vertex (its normal's
+    axis and its view towards the eye; orthographic: the camera's direction), decoded in GLSL
+    (``render.shrm.SHRMDecoder``, default) or on the CPU (``SHRM.radiance``); ``--shading pixel``:
+    per pixel from the interpolated normal and the pixel's view (CPU, ``render.shrm.render_shrm``).
+    ``--validate`` renders both vertex decodes and prints their PSNR. A mesh the self-occlusion
+    probe finds shadowed gets a one-line warning (an SHRM ignores visibility)."""
     import warnings
 
+    from .. import shrm as S
+    from ..brdf import from_spec
+    from ..params import parse_assignments
     from ..render import Camera, Renderer, RenderUnavailable
-    from ..render.shrm import SHRMDecoder
+    from ..render.shrm import render_shrm
     from ..scene import RayCaster, builtin, list_builtins, load_mesh
-    from ..shrm import load_shrm
     from ..transfer.diffuse import probe_self_occlusion
+    from .shrm import parse_orders
 
-    if args.codec_file or cmp_png is not None:
+    if args.method != "shrm" and (args.codec_file or cmp_png is not None):
         raise ValueError("--codec-file and --compare apply to transfers; accepted for an SHRM: -o, --mesh, --decode, "
-                         "--validate, the camera and image options")
-    args.decode = args.decode or "glsl"
-    m = load_shrm(args.transfer)
-    if m.maps is None:
-        raise ValueError(f"SHRM {args.transfer!r} has no maps; accepted: a file written by prt shrm")
-    name = args.mesh or "convex"
+                         "--shading, --validate, the camera and image options")
+    if args.method != "shrm" and args.light is not None:
+        raise ValueError(f"--light {args.light!r}: the SHRM {args.transfer!r} carries the light it was computed for; accepted: "
+                         "no --light, or --method shrm --brdf TYPE --light L to build one under another light")
+    _check_shading(args)
+    name = (args.transfer if args.method == "shrm" else None) or args.mesh or "convex"
+    if args.method == "shrm":  # every check of the SHRM's inputs before the mesh, the probe or the build
+        brdf = S.check_brdf(from_spec({"type": args.brdf, **parse_assignments(args.brdf_param, what="--brdf-param")}))
+        orders = parse_orders(args.orders) if args.orders is not None else None
+    if name not in list_builtins() and not Path(name).is_file():
+        raise FileNotFoundError(f"mesh {name!r} is neither a built-in scene ({', '.join(list_builtins())}) nor an "
+                                "existing mesh file")
     mesh = builtin(name, size="small") if name in list_builtins() else load_mesh(name)
+    if args.method == "shrm":
+        m = S.build_shrm(brdf, args.light or "sky", epsilon=args.epsilon if args.epsilon is not None else 0.03, orders=orders,
+                         height=args.map_size)
+    else:
+        m = S.load_shrm(args.transfer)
+        if m.maps is None:
+            raise ValueError(f"SHRM {args.transfer!r} has no maps; accepted: a file written by prt shrm")
     caster = RayCaster(mesh, workers=1)
     try:  # an SHRM has no visibility (§5.3): say how much a non-convex mesh shadows itself
         probe = probe_self_occlusion(caster, mesh)
     finally:
         caster.close()
-    if probe["occluded_fraction"] > SHRM_PROBE_TOL:
+    if probe["occluded_fraction"] > S.CONVEX_PROBE_TOL:
         warnings.warn(f"mesh {name!r} is not convex: the self-occlusion probe finds {probe['occluded_fraction']:.3g} of the "
                       f"diffuse energy shadowed ({probe['occluded_rays']} of {probe['rays']} rays); an SHRM ignores "
                       "visibility (Ramamoorthi 2002 §5.3), so shadowed regions are shaded as if unoccluded")
     cam = Camera.fit(mesh, azimuth=args.azimuth, elevation=args.elevation, fov=args.fov,
                      projection="orthographic" if args.orthographic else "perspective", aspect=args.width / args.height)
-    pos = mesh.vertices.to(torch.float64)
-    eye = torch.as_tensor(np.asarray(cam.eye, np.float64))
-    if args.orthographic:
-        d = eye - torch.as_tensor(np.asarray(cam.target, np.float64))
-        views = (d / d.norm()).expand_as(pos)
-    else:
-        views = eye - pos
-        views = views / views.norm(dim=-1, keepdim=True)
-    n = mesh.normals.to(torch.float64)
-    n = n / n.norm(dim=-1, keepdim=True)
     rs = dict(background=args.background, supersample=args.supersample)
     try:
         with Renderer(args.width, args.height) as r:
-            def draw(decode):
-                if decode == "glsl":
-                    return r.render(mesh, SHRMDecoder(m, n, views), cam, **rs)
-                return r.render_radiance(mesh, m.radiance(n, views, method="map").to(torch.float32), cam, **rs)
-
-            img, mask = draw(args.decode)
-            other = draw("cpu" if args.decode == "glsl" else "glsl") if args.validate else None
+            rs["clamp"] = not args.no_clamp
+            img, mask = render_shrm(r, m, mesh, cam, decode=args.decode, shading=args.shading, **rs)
+            other = (render_shrm(r, m, mesh, cam, decode="cpu" if args.decode == "glsl" else "glsl", **rs)
+                     if args.validate else None)
     except RenderUnavailable as e:
         print(f"prt render: error: {e}", file=sys.stderr)
         return 3
-    what = f"SHRM F_B={m.F_B} P_B={m.P_B} on {name}"
+    what = (f"SHRM F_B={m.F_B} P_B={m.P_B} (energy {m.meta['energy']:.4f}) on {name}, {args.shading} shading, "
+            + ("unclamped" if args.no_clamp else "clamped at 0"))
     return _write_outputs(args, out, None, img, mask, None, other, what)
 
 
@@ -310,7 +391,7 @@ def _run_transport(args, out: Path, cmp_png: Path | None) -> int:
     if args.decode == "glsl" and codec is None:
         raise ValueError("uncompressed transport tables have no GLSL decoder; accepted: --decode cpu, or --codec-file "
                          "with a codec that has one (e.g. gaussian)")
-    light = load_light(args.light, bands=ev.bands_in)
+    light = load_light(args.light or "sky", bands=ev.bands_in)
     mesh = tr.mesh
     cam = Camera.fit(mesh, azimuth=args.azimuth, elevation=args.elevation, fov=args.fov,
                      projection="orthographic" if args.orthographic else "perspective", aspect=args.width / args.height)

@@ -44,14 +44,14 @@ def register(subparsers) -> None:
     p.set_defaults(func=run)
 
 
-def _orders(text: str) -> tuple[int, int]:
+def parse_orders(text: str, flag: str = "--orders") -> tuple[int, int]:
     parts = [t.strip() for t in text.split(",")]
     try:
         if len(parts) != 2:
             raise ValueError
         return int(parts[0]), int(parts[1])
     except ValueError:
-        raise ValueError(f"--orders={text!r}; accepted: two integers F,P (e.g. 12,2)") from None
+        raise ValueError(f"{flag}={text!r}; accepted: two integers F,P (e.g. 12,2)") from None
 
 
 def run(args: argparse.Namespace) -> int:
@@ -60,7 +60,7 @@ def run(args: argparse.Namespace) -> int:
         raise FileExistsError(f"output {args.output!r} exists; pass --overwrite to replace it")
     params = parse_assignments(args.brdf_param, what="--brdf-param")
     brdf = from_spec({"type": args.brdf, **params})
-    orders = _orders(args.orders) if args.orders is not None else None
+    orders = parse_orders(args.orders) if args.orders is not None else None
     eps = args.epsilon if args.epsilon is not None else 0.03
     if args.max_memory <= 0:
         raise ValueError(f"--max-memory={args.max_memory!r}; accepted: a positive number of GiB")

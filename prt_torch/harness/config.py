@@ -66,10 +66,13 @@ DEFAULTS: dict[str, Any] = {
     "ablation": None,  # a swept key (transfer.<param> or codecs.<i>.<param>): one combined report
     "ablation_reference": None,  # the value the others are compared with (default: the last)
     "parts": [],  # further benchmarks in the same report, each on its own scene/transfer (part_configs)
+    # convex objects: SHRM vs unshadowed glossy PRT, same BRDF and light (harness.convex; shipped config 'convex')
+    "convex": {"enabled": False, "meshes": ["sphere", "hull:bumpy_sphere"], "size": "small", "epsilons": [0.03, 0.01],
+               "map_height": 64, "light_size": 64},
 }
 
 #: Keys whose value is itself a list (so a list there is not a sweep).
-LIST_KEYS = {"lights", "codecs", "parts"}
+LIST_KEYS = {"lights", "codecs", "parts", "convex.meshes", "convex.epsilons"}
 #: Keys whose value is a typed object: its keys are the parameters of its ``type``, validated
 #: by that type's registry rather than by this schema.
 FREE_KEYS = {"transfer"}
@@ -234,6 +237,10 @@ CONSTRAINTS: dict[str, list] = {
     "ablation": [Predicate(lambda v: isinstance(v, str) and v.startswith(("transfer.", "codecs.")),
                            "a swept key: transfer.<param> or codecs.<i>.<param>"), None],
     "ablation_reference": [Predicate(lambda v: isinstance(v, (str, int, float, bool)), "one of the ablation's values"), None],
+    "convex.enabled": [Boolean()],
+    "convex.size": [Options("small", "medium", "large")],
+    "convex.map_height": [Interval(int, 4, 1024)],
+    "convex.light_size": [Interval(int, 8, 1024)],
 }
 
 
@@ -356,6 +363,10 @@ def validate(cfg: dict) -> None:
     _validate_transfer(cfg)
     _validate_lights(cfg["lights"])
     _validate_codecs(cfg["codecs"])
+    if (cfg.get("convex") or {}).get("enabled") is True:
+        from .convex import check_convex
+
+        check_convex(cfg)
     t = cfg["target"]
     if t["lo"] > t["hi"]:
         raise ValueError(f"config key 'target': lo={t['lo']} > hi={t['hi']}; accepted: lo <= hi")

@@ -23,7 +23,7 @@ from .. import codecs, render
 from .evaluate import Evaluator
 from .timing import measure
 
-__all__ = ["render_best", "best_per_codec", "glsl_check"]
+__all__ = ["render_best", "best_per_codec", "glsl_check", "render_convex"]
 
 
 def best_per_codec(records: list[dict]) -> dict[str, dict]:
@@ -99,3 +99,32 @@ def render_best(run_dir: Path, records: list[dict], ev: Evaluator, light: torch.
             g.update(setting_id=x["setting_id"], cpu_fps=x.get("fps"))
             glsl[name] = g
     return {"images": paths, "glsl": glsl}
+
+
+def render_convex(run_dir: Path, shots: list[dict], opts: dict) -> list[str]:
+    """The convex-objects section's pictures (:mod:`prt_torch.harness.convex`): per mesh, seen from
+    its first camera, the brute-force reference | each SHRM | the glossy PRT, per-vertex radiance
+    clamped at 0, one exposure for all panels, each labelled with its PSNR.
+
+    ``shots``: ``[{"mesh": Mesh, "eye": [3] tensor, "panels": [(label, [V, C] radiance), ...]}]``
+    with the reference first; ``opts``: the config's ``render`` section (width, height).
+    Returns the composite paths relative to ``run_dir`` (``renders/convex-<mesh>.png``)."""
+    out_dir = Path(run_dir) / "renders"
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths = []
+    with render.Renderer(opts["width"], opts["height"]) as rd:
+        for shot in shots:
+            mesh, eye = shot["mesh"], shot["eye"].to(torch.float64)
+            pts = mesh.vertices.to(torch.float64)
+            center = pts.mean(0)
+            radius = float((pts - center).norm(dim=-1).max())
+            dist = float((eye - center).norm())
+            fov = 2 * math.degrees(math.asin(min(0.99, 1.08 * radius / dist)))
+            cam = render.Camera(eye=eye.numpy(), target=center.numpy(), fov=fov, near=max(1e-3, dist - 1.5 * radius),
+                                far=dist + 1.5 * radius)
+            imgs = [rd.render_radiance(mesh, rad.clamp_min(0).to(torch.float32), camera=cam)[0] for _, rad in shot["panels"]]
+            expo = render.auto_exposure(imgs[0])
+            p = out_dir / f"convex-{mesh.name}.png"
+            render.side_by_side(imgs, [label for label, _ in shot["panels"]], exposure=expo, path=p)
+            paths.append(f"renders/{p.name}")
+    return paths

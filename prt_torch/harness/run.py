@@ -39,14 +39,15 @@ from .. import codecs, io
 from ..executor import Executor, LocalExecutor, TaskFailure
 from ..transfer import Transfer
 from .config import config_hash, expand_codecs, part_configs
+from .convex import run_convex
 from .evaluate import Evaluator, camera_positions
 from .metrics import psnr_vs_reference, random_light_psnr, random_light_psnr_analytic, squared_error
-from .renders import render_best
+from .renders import render_best, render_convex
 from .report import load_results, write_outputs
 from .target import find_smallest, search_families
 from .timing import io_bound_fn, machine_info, measure, measure_paired, measure_paired_cold, torch_threads
 
-__all__ = ["run_benchmark", "compute_transfer", "evaluate_setting", "RESULTS_VERSION"]
+__all__ = ["run_benchmark", "compute_transfer", "evaluate_setting", "convex_results", "RESULTS_VERSION"]
 
 RESULTS_VERSION = 1
 #: short interleaved sample pairs behind each speed-up and bound fraction (timing.measure_paired:
@@ -540,6 +541,8 @@ def run_benchmark(cfg: dict, resume: bool = True, progress: bool = True, log: Ca
     results = _results(cfg, st, records, target)
     if cfg["validation"]["enabled"]:
         results["validation"] = run_validation(st, cfg, log)
+    if (cfg.get("convex") or {}).get("enabled"):
+        results["convex"] = convex_results(cfg, run_dir, log, progress)
     if cfg["render"]["enabled"]:
         try:
             rendered = render_best(run_dir, records, ev, lights[0], views[0], cams[0], cfg["render"])
@@ -554,6 +557,28 @@ def run_benchmark(cfg: dict, resume: bool = True, progress: bool = True, log: Ca
                                                 "dir": str(part_dir.relative_to(run_dir)), "results": load_results(part_dir)})
     write_outputs(run_dir, results, log=log)
     return run_dir
+
+
+# --------------------------------------------------------------------------- convex objects
+
+def convex_results(cfg: dict, run_dir: Path, log: Callable[[str], None] = print, progress: bool = True) -> dict:
+    """The config's ``convex`` section (:func:`prt_torch.harness.convex.run_convex`): SHRM vs
+    unshadowed glossy PRT on each of ``convex.meshes``, the PRT peer being the run's glossy transfer
+    with ``shadows: never`` from the transfer cache (:func:`compute_transfer`); SHRM files under
+    ``run_dir/convex/``; with ``render.enabled`` one picture per mesh (reference | SHRMs | PRT,
+    ``renders.render_convex``). Returns the section's dict (results.json ``convex``)."""
+    sub = copy.deepcopy(cfg)
+    sub["transfer"]["shadows"] = "never"  # unshadowed: a convex object has no self-occlusion to trace
+    shots: list = []
+    res = run_convex(sub, lambda mesh: compute_transfer(sub, mesh, Path(cfg["cache_dir"]), progress=progress),
+                     Path(run_dir) / "convex", log, shots=shots if cfg["render"]["enabled"] else None)
+    if shots:
+        try:  # pictures must not lose the section; say why
+            res["renders"] = render_convex(run_dir, shots, cfg["render"])
+        except Exception as e:
+            log(f"[bench] convex renders skipped: {type(e).__name__}: {e}")
+            res["render_error"] = f"{type(e).__name__}: {e}"
+    return res
 
 
 # --------------------------------------------------------------------------- validation

@@ -11,6 +11,12 @@ around in β. (α_p, β_p) are computed in GLSL from the vertex's axis (the refl
 normal for a Lambertian SHRM), an attribute; the view's SH weights y_j(ω'o,p) (zero where the
 vertex faces away) are computed per camera on the CPU (``SHRM.view_terms``) and read from a
 texture buffer, as the glossy decoder's view weights are (``render.glsl``, view mode 'dense').
+
+:func:`render_shrm` draws an SHRM on a mesh either way (``shading="vertex"``: that decoder, or the
+CPU's per-vertex radiance, interpolated across triangles) or per pixel (``shading="pixel"``:
+deferred — the rasteriser interpolates only the vertex normals and positions, and every sample is
+shaded on the CPU from its own normal and view by ``SHRM.radiance``, as the thesis' renderer does
+per pixel, §5.7.5).
 """
 from __future__ import annotations
 
@@ -20,10 +26,11 @@ import numpy as np
 import torch
 
 from ..shrm import SHRM
+from .camera import Camera
 from .decoders import Decoder, DrawInputs, TableData
 from .program import Attribute, ShaderProgram
 
-__all__ = ["SHRMDecoder", "shrm_program"]
+__all__ = ["SHRMDecoder", "shrm_program", "render_shrm", "camera_views"]
 
 _FRAGMENT = """
 in vec3 v_radiance;
@@ -34,8 +41,9 @@ void main() {
 
 
 @functools.lru_cache(maxsize=None)
-def shrm_program(n_p: int, height: int, width: int) -> ShaderProgram:
-    """The SHRM vertex program for (P_B+1)² = ``n_p`` maps of ``height`` × ``width`` texels.
+def shrm_program(n_p: int, height: int, width: int, clamp: bool = False) -> ShaderProgram:
+    """The SHRM vertex program for (P_B+1)² = ``n_p`` maps of ``height`` × ``width`` texels
+    (``clamp``: the radiance clamped at 0, as ``SHRM.radiance(clamp=True)``).
 
     Attribute ``axis`` (vec3); tables ``maps`` (sampler2D, RGBA32F ``[H, W·n_p]``) and
     ``view_weights`` (samplerBuffer, R32F ``[V·n_p]``)."""
@@ -79,11 +87,11 @@ void main() {{
                + ty * ((1.0 - tx) * texel(y1, x0, j) + tx * texel(y1, x1, j));
         s += w * b;
     }}
-    v_radiance = s;
+    v_radiance = {"max(s, vec3(0.0))" if clamp else "s"};
     gl_Position = prt_mvp * vec4(position, 1.0);
 }}
 """
-    return ShaderProgram(f"shrm_p{n_p}_{height}x{width}", (Attribute("axis", 3),), body, _FRAGMENT)
+    return ShaderProgram(f"shrm_p{n_p}_{height}x{width}{'_clamp' if clamp else ''}", (Attribute("axis", 3),), body, _FRAGMENT)
 
 
 class SHRMDecoder(Decoder):
@@ -93,9 +101,10 @@ class SHRMDecoder(Decoder):
         shrm: an :class:`~prt_torch.shrm.SHRM` with maps (RGB: C = 3, or C = 1 replicated).
         normals: ``[V, 3]`` unit vertex normals; views: ``[V, 3]`` or ``[3]`` unit directions
             towards the viewer (per camera).
+        clamp: the radiance clamped at 0 (``SHRM.radiance(clamp=True)``).
     """
 
-    def __init__(self, shrm: SHRM, normals, views):
+    def __init__(self, shrm: SHRM, normals, views, clamp: bool = False):
         if shrm.maps is None:
             raise ValueError("the SHRM has no maps; accepted: one computed with a map size (SHRM.prefilter)")
         C, nP, H, W = shrm.maps.shape
@@ -112,7 +121,7 @@ class SHRMDecoder(Decoder):
         yw.setflags(write=False)
         ax32 = np.ascontiguousarray(ax.to(torch.float32).numpy())
         ax32.setflags(write=False)
-        self.program = shrm_program(nP, H, W)
+        self.program = shrm_program(nP, H, W, bool(clamp))
         self.num_vertices = int(n.shape[0])
         self._attrs = {"axis": ax32}
         self._tables = {"maps": TableData(tex, "2d"), "view_weights": TableData(yw, "buffer")}
@@ -121,3 +130,69 @@ class SHRMDecoder(Decoder):
         if num_vertices != self.num_vertices:
             raise ValueError(f"decoder holds {self.num_vertices} vertices but the mesh has {num_vertices}")
         return DrawInputs(attributes=self._attrs, uniforms={}, tables=self._tables)
+
+
+def camera_views(camera: Camera, points: torch.Tensor) -> torch.Tensor:
+    """Unit directions from ``points [N, 3]`` towards ``camera``'s eye (perspective) or along its
+    axis towards the eye (orthographic): ``[N, 3]`` float64."""
+    eye = torch.as_tensor(np.asarray(camera.eye, np.float64))
+    pts = torch.as_tensor(points).to(torch.float64)
+    if camera.projection == "orthographic":
+        d = eye - torch.as_tensor(np.asarray(camera.target, np.float64))
+        return (d / d.norm()).expand_as(pts).contiguous()
+    v = eye - pts
+    return v / v.norm(dim=-1, keepdim=True).clamp_min(1e-300)
+
+
+def render_shrm(renderer, shrm: SHRM, mesh, camera: Camera, *, decode: str = "glsl", shading: str = "vertex",
+                width: int | None = None, height: int | None = None, background: float = 0.0,
+                supersample: int = 1, clamp: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """A convex ``mesh`` shaded from ``shrm`` (Ramamoorthi 2002 eq. 5.10) seen by ``camera``.
+
+    ``shading="vertex"``: each vertex's radiance for its normal and its view towards the eye,
+    decoded in GLSL (``decode="glsl"``, :class:`SHRMDecoder`) or on the CPU (``"cpu"``,
+    ``SHRM.radiance(method="map")``), interpolated across triangles. ``shading="pixel"`` (CPU
+    decode only): a G-buffer of the interpolated vertex normals and positions at
+    ``supersample``² samples per pixel, each covered sample shaded from its own (normalised)
+    normal and its view towards the eye, covered samples averaged. ``clamp`` (default): radiance
+    clamped at 0 in either decode (``SHRM.radiance(clamp=True)``: the series' ringing below 0).
+
+    Args: ``renderer``: an open :class:`~prt_torch.render.Renderer`; ``mesh``: a ``scene.Mesh``.
+    Returns: (image ``[H, W, 3]`` float32, mask ``[H, W]`` bool), as ``Renderer.render``.
+    """
+    if shading not in ("vertex", "pixel"):
+        raise ValueError(f"shading={shading!r}; accepted: 'vertex', 'pixel'")
+    if decode not in ("glsl", "cpu"):
+        raise ValueError(f"decode={decode!r}; accepted: 'glsl', 'cpu'")
+    if shading == "pixel" and decode != "cpu":
+        raise ValueError("shading='pixel' is decoded on the CPU (deferred); accepted: decode='cpu', or shading='vertex'")
+    n = mesh.normals.to(torch.float64)
+    n = n / n.norm(dim=-1, keepdim=True)
+    pos = mesh.vertices.to(torch.float64)
+    if shading == "vertex":
+        views = camera_views(camera, pos)
+        if decode == "glsl":
+            return renderer.render(mesh, SHRMDecoder(shrm, n, views, clamp), camera, width, height, background, supersample)
+        rad = shrm.radiance(n, views, method="map", clamp=clamp).to(torch.float32)
+        return renderer.render_radiance(mesh, rad, camera, width, height, background, supersample)
+    W = renderer.width if width is None else int(width)
+    H = renderer.height if height is None else int(height)
+    s = int(supersample)
+    gn, cov = renderer.render_radiance(mesh, n.to(torch.float32), camera, W * s, H * s, float("nan"), 1)
+    gp, _ = renderer.render_radiance(mesh, pos.to(torch.float32), camera, W * s, H * s, float("nan"), 1)
+    idx = np.flatnonzero(cov.reshape(-1))
+    pn = torch.from_numpy(gn.reshape(-1, 3)[idx]).to(torch.float64)
+    pn = pn / pn.norm(dim=-1, keepdim=True).clamp_min(1e-300)
+    pv = camera_views(camera, torch.from_numpy(gp.reshape(-1, 3)[idx]))
+    rad = shrm.radiance(pn, pv, method="map", clamp=clamp).to(torch.float64)
+    C = rad.shape[1]
+    samples = np.zeros((H * s * W * s, 3), np.float64)
+    samples[idx] = rad.expand(-1, 3).numpy() if C == 1 else rad.numpy()
+    blk = samples.reshape(H, s, W, s, 3)
+    c = cov.reshape(H, s, W, s).astype(np.float64)
+    cnt = c.sum(axis=(1, 3))
+    mask = cnt > 0
+    img = np.divide((blk * c[..., None]).sum(axis=(1, 3)), cnt[..., None], out=np.zeros((H, W, 3)), where=mask[..., None])
+    img = img.astype(np.float32)
+    img[~mask] = background
+    return img, mask

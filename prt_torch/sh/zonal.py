@@ -121,8 +121,12 @@ def microfacet(sigma: float, bands: int, exact: bool = False, dtype: torch.dtype
 
 @lru_cache(maxsize=32)
 def _leggauss(n: int) -> tuple[np.ndarray, np.ndarray]:
-    # numpy solves an n×n eigenproblem for the nodes: cache it.
-    return np.polynomial.legendre.leggauss(n)
+    # scipy's roots_legendre: Golub-Welsch below 150 nodes, an O(n) asymptotic expansion with Newton
+    # polishing above; numpy's leggauss solves an n×n eigenproblem (O(n³): 2048 nodes took 23 s, scipy
+    # 0.3 s, the same nodes within 1e-16 and weights within 1e-13 at 5..2048 nodes). Cached.
+    from scipy.special import roots_legendre
+
+    return roots_legendre(n)
 
 
 def gauss_legendre(n: int, a: float = -1.0, b: float = 1.0) -> tuple[torch.Tensor, torch.Tensor]:
