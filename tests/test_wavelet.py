@@ -1,0 +1,183 @@
+"""Haar-wavelet PRT on cube maps (issue 39; Ng, Ramamoorthi & Hanrahan 2003): the transform, the
+wavelet transfer kind, light approximation, sparse relighting, and their refusals."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from prt_torch import relight
+from prt_torch.cli import main as cli_main
+from prt_torch.lighting import layouts as L
+from prt_torch.lighting import load_light
+from prt_torch.lighting.haar import cube_geometry, cube_light, haar2d, ihaar2d, select_terms, support_solid_angles
+from prt_torch.scene import RayCaster, builtin
+from prt_torch.transfer import RunOptions, Transfer, get_kind, unshadowed_transfer
+from prt_torch.transfer.diffuse import offset_origins
+from prt_torch.transfer.wavelet import dense_wavelet_transfer, dequantise, precompute_wavelet, quantise
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return builtin("occluder_over_plane", "small")
+
+
+@pytest.fixture(scope="module")
+def full8(scene):
+    """All 6·8² terms, float32 values: the exact pixel-basis transfer at R = 8."""
+    return precompute_wavelet(scene, res=8, terms=384, bits=32, shadows="always", run=RunOptions(workers=1))
+
+
+# ------------------------------------------------------------------------------ the transform
+def test_haar_is_orthonormal_and_exactly_invertible():
+    R = 8
+    eye = torch.eye(R * R, dtype=torch.float64).reshape(R * R, R, R)
+    H = haar2d(eye).reshape(R * R, R * R)  # row i: the transform of basis image i
+    assert torch.allclose(H @ H.T, torch.eye(R * R, dtype=torch.float64), atol=1e-12, rtol=0)
+    x = torch.randn(2, 6, 32, 32, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
+    assert (ihaar2d(haar2d(x)) - x).abs().max() < 1e-12
+    assert (haar2d(ihaar2d(x)) - x).abs().max() < 1e-12
+    # independent values: the scaling coefficient is the face sum / R (orthonormal box of height 1/R);
+    # the coarsest horizontal detail is (left half - right half) / R
+    y = haar2d(x)
+    assert torch.allclose(y[..., 0, 0], x.sum((-1, -2)) / 32, atol=1e-12)
+    assert torch.allclose(y[..., 0, 1], (x[..., :, :16].sum((-1, -2)) - x[..., :, 16:].sum((-1, -2))) / 32, atol=1e-12)
+
+
+def test_haar_support_areas_and_refusals():
+    sa = support_solid_angles(4)
+    assert torch.allclose(sa[:, 0, 0], torch.full((6,), 4 * math.pi / 6, dtype=torch.float64))
+    _, om = cube_geometry(4)
+    assert float(sa[0, 3, 3]) == pytest.approx(float(om[0, 2:4, 2:4].sum()))  # level 1, block (1, 1): 2x2 texels
+    assert float(sa[2, 1, 0]) == pytest.approx(float(om[2].sum()))  # coarsest details: the whole face
+    assert float(sa[5, 0, 2]) == pytest.approx(float(om[5, 0:2, 0:2].sum()))
+    with pytest.raises(ValueError, match="power of two"):
+        haar2d(torch.zeros(6, 12, 12))
+    with pytest.raises(ValueError, match="terms"):
+        select_terms(torch.ones(3, 24), 0)
+
+
+# ------------------------------------------------------------------------------ lights
+def test_cube_light_conserves_power():
+    _, om = cube_geometry(16)
+    for spec, power in (("cap:direction=0,0.3,1;half_angle_deg=20;radiance=2", 2 * 2 * math.pi * (1 - math.cos(math.radians(20)))),
+                        ("directional:direction=1,1,1;intensity=1", math.pi),
+                        ("constant:value=0.5", 0.5 * 4 * math.pi)):
+        c, rec = cube_light(spec, 16)
+        assert (c * om).sum((1, 2, 3)).tolist() == pytest.approx([power] * 3, rel=1e-9)
+
+
+def test_light_image_below_res_warns_upsampled():
+    from prt_torch.lighting import builtin_environment
+
+    env = builtin_environment("overcast", layout="latlong", size=8)  # 128 pixels < 6·16² texels
+    _, rec = cube_light(env, 16)
+    assert rec["upsampled"] and "upsampled" in rec["warning"]
+    _, rec = cube_light(builtin_environment("overcast", layout="latlong", size=64), 16)
+    assert not rec["upsampled"]
+
+
+# ------------------------------------------------------------------------------ transfer and relighting
+def test_one_texel_light_relights_with_that_texels_transfer(scene, full8):
+    r = relight.WaveletRelighter(full8)
+    pix = dense_wavelet_transfer(scene, 8, shadows=True, haar=False).reshape(scene.num_vertices, -1)  # [V, P]
+    for f, i, j in ((4, 3, 5), (0, 7, 0)):
+        cube = torch.zeros(1, 6, 8, 8, dtype=torch.float64)
+        cube[0, f, i, j] = 1.0
+        H = haar2d(cube).reshape(1, -1)
+        out = r(torch.arange(384), H, albedo=False)[:, 0]
+        assert torch.allclose(out.double(), pix[:, f * 64 + i * 8 + j], atol=2e-6)
+    assert float(pix.max()) > 0
+
+
+def test_all_terms_equal_the_brute_force_texel_sum(scene, full8):
+    """Σ_texels L · V · max(n·s, 0) · dω / π, traced here with the layout's directions and solid angles."""
+    idx = torch.tensor([0, 37, 800, 1200, scene.num_vertices - 1])
+    d = L.pixel_directions("faces", 8, 48).reshape(-1, 3)  # [8·48, 3] row-major over the strip
+    om = L.solid_angles("faces", 8, 48).reshape(-1)
+    spec = "cap:direction=0.2,0.1,1;half_angle_deg=25;radiance=1"
+    cube, _ = cube_light(spec, 8)
+    Lstrip = cube[0].permute(1, 0, 2).reshape(-1)  # faces side by side, as the strip's pixels
+    p, n = scene.vertices[idx].double(), scene.normals[idx].double()
+    cos = (n @ d.T).clamp_min(0)
+    ii, jj = torch.nonzero(cos > 0, as_tuple=True)
+    with RayCaster(scene, workers=1) as c:
+        o = offset_origins(p[ii].numpy(), n[ii].numpy(), c.eps)
+        occ = torch.from_numpy(c.trace(o.astype(np.float32), d[jj].numpy().astype(np.float32), "occluded"))
+    Vis = torch.zeros_like(cos)
+    Vis[ii, jj] = (~occ).double()
+    brute = (Vis * cos * om * Lstrip).sum(1) / math.pi * scene.albedo[idx, 0].double()
+    r = relight.WaveletRelighter(full8)
+    li, lv, _ = r.light(spec)
+    out = r(li, lv)[idx, 0].double()
+    assert torch.allclose(out, brute, rtol=1e-5, atol=1e-7)
+    assert float(brute.min()) < 0.9 * float(brute.max())  # some vertex is in the blocker's shadow
+
+
+def test_unshadowed_vertex_matches_the_sh_path():
+    """A convex object, a smooth light: wavelets with all terms vs the SH path (8 bands; the
+    irradiance's SH truncation beyond 8 bands is below 0.1%); the cube's quadrature at R = 32 too."""
+    m = builtin("convex", "small")
+    spec = "sky_gradient"
+    tr = precompute_wavelet(m, res=32, terms=6 * 32 * 32, bits=32, shadows="never")
+    r = relight.WaveletRelighter(tr)
+    li, lv, _ = r.light(spec)
+    out = r(li, lv).double()
+    sh = unshadowed_transfer(m.normals.double(), 8) @ load_light(spec, bands=8).T * m.albedo.double()
+    rel = (out - sh).norm() / sh.norm()
+    assert rel < 0.01, rel
+
+
+def test_sparse_kernel_equals_dense_reference_and_quantisation_is_bounded(scene):
+    tr = precompute_wavelet(scene, res=8, terms=40, bits=8, shadows="always")
+    r = relight.WaveletRelighter(tr)
+    for sel in ("magnitude", "area", "transport"):
+        li, lv, _ = r.light("studio", terms=30, selection=sel)
+        dense = relight.wavelet_dense(r.values.double(), r.index, li, lv, r.P) * tr.mesh.albedo[:, :3].double()
+        assert torch.allclose(r(li, lv).double(), dense, rtol=1e-5, atol=1e-6)
+        assert r.touched(li) <= tr.num_vertices * 40
+    # quantisation: |q·scale - c| <= scale/2 per kept value (plus the float32 product's rounding,
+    # |c|·2^-24), on values of an independent draw
+    c = torch.randn(50, 40, dtype=torch.float64, generator=torch.Generator().manual_seed(3))
+    for bits in (8, 16):
+        q, s = quantise(c, bits)
+        err = (dequantise(q, s).double() - c).abs()
+        assert bool((err <= s.double()[:, None] / 2 + c.abs() * 2.0 ** -24 + 1e-12).all())
+        assert float(s[0]) == pytest.approx(float(c[0].abs().max()) / ((1 << (bits - 1)) - 1), rel=1e-6)
+    assert tr.meta["bytes_per_vertex"] == 40 * (1 + 2) + 4
+    # relative L2 of the quantisation per vertex: at most sqrt(K)·(scale/2) / max|c| = sqrt(K) / 254
+    assert 0 < tr.meta["quantisation_rel_l2_max"] <= math.sqrt(40) / 254
+
+
+def test_save_load_keeps_the_quantised_values(tmp_path, scene):
+    tr = precompute_wavelet(scene, res=4, terms=10, bits=16, shadows="always")
+    tr.save(tmp_path / "w.prt")
+    t2 = Transfer.load(tmp_path / "w.prt")
+    assert t2.data.dtype == torch.int16 and torch.equal(t2.data, tr.data)
+    assert torch.equal(t2.aux["index"], tr.aux["index"]) and torch.equal(t2.aux["scale"], tr.aux["scale"])
+
+
+# ------------------------------------------------------------------------------ refusals
+def test_bad_input_refused_before_work(tmp_path, capsys):
+    k = get_kind("wavelet")
+    with pytest.raises(ValueError, match="power of two"):
+        k.validate({"res": 24})
+    with pytest.raises(ValueError, match="terms"):
+        k.validate({"terms": 0})
+    with pytest.raises(ValueError, match="budget"):
+        precompute_wavelet(builtin("convex", "small"), res=64, terms=100, run=RunOptions(max_memory=1 << 20))
+    rc = cli_main(["precompute", "convex", "--kind", "wavelet", "--res", "12", "-o", str(tmp_path / "w.prt")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and "power of two" in err[0]
+    assert not (tmp_path / "w.prt").exists()
+
+
+def test_res_auto_from_the_lights():
+    from prt_torch.transfer.auto import choose_haar_res
+
+    r_wide, kept, why = choose_haar_res(["constant"], 0.99)
+    assert r_wide == 1 and kept == pytest.approx(1.0)
+    r_small, kept, _ = choose_haar_res(["cap:direction=0,0,1;half_angle_deg=3;radiance=1"], 0.99)
+    assert r_small > 16 and kept >= 0.99
