@@ -181,3 +181,38 @@ def test_res_auto_from_the_lights():
     assert r_wide == 1 and kept == pytest.approx(1.0)
     r_small, kept, _ = choose_haar_res(["cap:direction=0,0,1;half_angle_deg=3;radiance=1"], 0.99)
     assert r_small > 16 and kept >= 0.99
+
+
+# ------------------------------------------------------------------------------ prt relight
+def test_cli_relight_every_kind(tmp_path, capsys):
+    """Constant radiance 1 on an unshadowed convex object exits its albedo (diffuse SH, a lossless
+    codec of it (t_00 is constant: mean + 8 vectors are exact), and wavelets with the cube's exact solid angles); PLY carries every vertex."""
+    import trimesh
+
+    d, dc, w = tmp_path / "d.prt", tmp_path / "d.pca.prt", tmp_path / "w.prt"
+    assert cli_main(["precompute", "convex", "--kind", "diffuse", "--bands", "3", "--shadows", "never", "-o", str(d),
+                     "--no-progress"]) == 0
+    assert cli_main(["compress", str(d), "--codec", "pca", "--vectors", "8", "-o", str(dc)]) == 0
+    assert cli_main(["precompute", "convex", "--kind", "wavelet", "--res", "16", "--terms", "1536", "--bits", "32",
+                     "--shadows", "never", "-o", str(w), "--no-progress"]) == 0
+    albedo = builtin("convex", "small").albedo.numpy()
+    for src, tol in ((d, 1e-5), (dc, 1e-4), (w, 2e-3)):
+        out = tmp_path / f"{src.stem}.npy"
+        assert cli_main(["relight", str(src), "--light", "constant:value=1", "-o", str(out)]) == 0
+        rad = np.load(out)
+        assert rad.shape == (albedo.shape[0], 3) and rad.dtype == np.float32
+        assert np.abs(rad - albedo).max() < tol, (src, np.abs(rad - albedo).max())
+    ply = tmp_path / "w.ply"
+    assert cli_main(["relight", str(w), "--light", "sky", "--terms", "100", "-o", str(ply)]) == 0
+    tm = trimesh.load(ply, process=False)
+    assert tm.vertices.shape[0] == albedo.shape[0] and tm.visual.vertex_colors.shape[0] == albedo.shape[0]
+    capsys.readouterr()
+    for argv, what in ((["relight", str(w), "--light", "sky", "--terms", "0", "-o", str(tmp_path / "x.npy")], "--terms"),
+                       (["relight", str(d), "--light", "sky", "--terms", "5", "-o", str(tmp_path / "x.npy")], "--terms"),
+                       (["relight", str(d), "--light", "sky", "--view", "1,2,3", "-o", str(tmp_path / "x.npy")], "--view"),
+                       (["relight", str(d), "--light", "sky", "-o", str(tmp_path / "x.png")], ".npy"),
+                       (["compress", str(w), "--codec", "pca", "-o", str(tmp_path / "x.prt")], "wavelet transfer")):
+        assert cli_main(argv) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and what in err[0], err
+    assert not (tmp_path / "x.npy").exists() and not (tmp_path / "x.prt").exists()
