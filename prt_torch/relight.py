@@ -291,6 +291,24 @@ class WaveletRelighter:
         if transfer.meta.get("albedo_folded"):
             self.albedo = torch.ones_like(self.albedo)
         self.values, self.index = vals, index
+        # the kernel's layout: the stored (quantised) values in column order, the scale applied per vertex
+        q = transfer.data.reshape(-1)[src]
+        self.qvals = q.contiguous() if q.dtype in (torch.int8, torch.int16) else self.vals
+        self.scale = transfer.aux["scale"].to(torch.float32) if q.dtype in (torch.int8, torch.int16) else torch.ones(V)
+        self._f: dict = {}
+        self._acc = torch.empty(V, 4, dtype=torch.float32)  # the kernel's scratch sums (16-byte rows)
+
+    @property
+    def bytes_per_entry(self) -> int:
+        """Bytes the kernel reads per transfer coefficient: an int32 row and the stored value."""
+        return 4 + self.qvals.element_size()
+
+    def _factor(self, C: int, albedo: bool) -> torch.Tensor:
+        key = (C, albedo)
+        if key not in self._f:
+            a = (self.albedo[:, :C] if C > 1 else self.albedo[:, :1]) if albedo else torch.ones(self.V, C)
+            self._f[key] = (a * self.scale[:, None]).contiguous()
+        return self._f[key]
 
     def touched(self, light_idx: torch.Tensor) -> int:
         """Transfer coefficients a light with these kept terms reads (Σ_n nnz(column n))."""
@@ -311,16 +329,47 @@ class WaveletRelighter:
         if li.numel() and (int(li.min()) < 0 or int(li.max()) >= self.P):
             raise ValueError(f"light indices span {int(li.min())}..{int(li.max())}; accepted: 0..{self.P - 1} (6R², R={self.res})")
         C = lv.shape[0]
-        o = torch.zeros(self.V, C, dtype=torch.float32) if out is None else out.zero_()
+        o = torch.empty(self.V, C, dtype=torch.float32) if out is None else out
+        if o.shape != (self.V, C) or o.dtype != torch.float32 or not o.is_contiguous():
+            raise ValueError(f"out {tuple(o.shape)} {o.dtype}; accepted: a contiguous float32 [{self.V}, {C}]")
+        f = self._factor(C, albedo)
+        lib = _wavelet_lib() if C <= 4 else None
+        if lib is not None:
+            li = li.contiguous()
+            lvT = lv.T.contiguous()  # [N, C]
+            fn = {torch.int8: lib.prt_wavelet_relight_i8, torch.int16: lib.prt_wavelet_relight_i16}.get(
+                self.qvals.dtype, lib.prt_wavelet_relight_f32)
+            fn(li.numel(), li.data_ptr(), lvT.data_ptr(), C, self.colptr.data_ptr(), self.rows.data_ptr(),
+               self.qvals.data_ptr(), self.V, f.data_ptr(), o.data_ptr(), self._acc.data_ptr())
+            return o
+        o.zero_()
         starts = self.colptr[li]
         cnt = self.colptr[li + 1] - starts
         total = int(cnt.sum())
-        if total:
+        if total:  # the torch path (no compiler, or PRT_TORCH_NATIVE=0): gather the columns, one index_add
             seg = torch.repeat_interleave(torch.arange(li.numel()), cnt)
             first = torch.cumsum(cnt, 0) - cnt
             pos = starts[seg] + torch.arange(total) - first[seg]
-            o.index_add_(0, self.rows[pos].long(), self.vals[pos, None] * lv.T[seg])
-        if albedo:
-            a = self.albedo[:, :C] if C > 1 else self.albedo[:, :1]
-            o.mul_(a)
-        return o
+            o.index_add_(0, self.rows[pos].long(), self.qvals[pos, None].to(torch.float32) * lv.T[seg])
+        return o.mul_(f)
+
+
+_WAVELET: dict = {}
+
+
+def _wavelet_lib():
+    """The compiled sparse relighting kernel (``prt_torch/kernels/wavelet.c``), or None (torch path)."""
+    import ctypes
+    import os
+
+    if os.environ.get("PRT_TORCH_NATIVE", "1") == "0":
+        return None
+    if "lib" not in _WAVELET:
+        from ._native import LIBRARIES, compile_library, kernel_sources
+
+        names, flags = LIBRARIES["wavelet"]
+        i64, vp = ctypes.c_int64, ctypes.c_void_p
+        sig = [i64, vp, vp, i64, vp, vp, vp, i64, vp, vp, vp]
+        _WAVELET["lib"], _WAVELET["why"] = compile_library("wavelet", kernel_sources(names), list(flags), {
+            "prt_wavelet_relight_f32": sig, "prt_wavelet_relight_i8": sig, "prt_wavelet_relight_i16": sig})
+    return _WAVELET["lib"]
