@@ -216,3 +216,17 @@ def test_cli_relight_every_kind(tmp_path, capsys):
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and what in err[0], err
     assert not (tmp_path / "x.npy").exists() and not (tmp_path / "x.prt").exists()
+
+
+def test_bench_runs_a_wavelet_transfer(tmp_path):
+    """prt bench with a wavelet transfer: the exact sparse relighting is the run's reference (the
+    shipped allfrequency config, shrunk); an SH codec on it is refused before any work."""
+    import json
+
+    base = ["bench", "allfrequency", "transfer.res=8", "transfer.terms=64", "render.enabled=false",
+            f"output_dir={tmp_path / 'r'}", f"cache_dir={tmp_path / 'c'}", "metrics.repeats=1", "name=t"]
+    assert cli_main(base + ["lights=[sky]"]) == 0
+    res = json.loads((tmp_path / "r" / "t" / "results.json").read_text())
+    assert res["transfer"]["kind"] == "wavelet" and res["uncompressed"]["bytes_per_vertex"] == 64 * 3 + 4
+    assert cli_main(base + ["codecs=[{type: pca, vectors: 4}]", "name=t2"]) == 2
+    assert not (tmp_path / "r" / "t2").exists()

@@ -44,7 +44,7 @@ from .diffuse import boundary_nudge, offset_origins
 from .glossy import decide_shadows, format_bytes, memory_budget
 from .ray_kernels import upper_rays
 
-__all__ = ["precompute_wavelet", "estimate_wavelet_memory", "dense_wavelet_transfer", "quantise", "dequantise",
+__all__ = ["precompute_wavelet", "estimate_wavelet_memory", "dense_wavelet_transfer", "sparsify", "quantise", "dequantise",
            "wavelet_values", "MAX_WAVELET_TERMS", "BITS"]
 
 MAX_WAVELET_TERMS = 6 * MAX_HAAR_RES * MAX_HAAR_RES
@@ -102,6 +102,23 @@ def wavelet_values(tr: Transfer) -> torch.Tensor:
     if tr.kind != "wavelet":
         raise ValueError(f"transfer kind {tr.kind!r}; accepted: 'wavelet'")
     return dequantise(tr.data, tr.aux["scale"])
+
+
+def sparsify(H: torch.Tensor, terms: int, bits: int, threshold: float = 0.0) -> dict[str, torch.Tensor]:
+    """Rows of Haar coefficients ``H [k, P]`` (float64) → their ``terms`` largest in magnitude,
+    those below ``threshold`` × the row's largest zeroed, quantised (:func:`quantise`): ``q [k, K]``,
+    ``index [k, K]`` (int16 for P < 2¹⁵, else int32), ``scale [k]``, and per row ``total`` (Σ H²),
+    ``dropped`` (Σ of the dropped H²), ``qerr`` (Σ of the squared quantisation errors), ``nnz``."""
+    P = H.shape[1]
+    total = H.square().sum(1)
+    top = H.abs().topk(terms, dim=1)
+    kept = H.gather(1, top.indices)
+    if threshold > 0:
+        kept = torch.where(kept.abs() >= threshold * top.values[:, :1], kept, torch.zeros_like(kept))
+    q, scale = quantise(kept, bits)
+    err = (kept - dequantise(q, scale).to(H.dtype)).square().sum(1)
+    return {"q": q, "index": top.indices.to(_index_dtype(P)), "scale": scale, "total": total,
+            "dropped": (total - kept.square().sum(1)).clamp_min(0), "qerr": err, "nnz": (q != 0).sum(1).to(torch.int32)}
 
 
 def _pixel_transfer(caster: RayCaster | None, points: torch.Tensor, normals: torch.Tensor, nudge: torch.Tensor | None,
@@ -218,7 +235,6 @@ def precompute_wavelet(
     omega_f = np.ascontiguousarray(om.reshape(-1).numpy())
     nudge = boundary_nudge(mesh)
     nudge = nudge if bool(nudge.any()) else None
-    idx_dtype = _index_dtype(P)
     points, normals = mesh.vertices.to(torch.float64), mesh.normals.to(torch.float64)
     caster = RayCaster(mesh, workers=_workers(run, V, P * s * s), offset=run.offset) if traced else None
     work: dict = {}
@@ -226,17 +242,9 @@ def precompute_wavelet(
     def compute(a: int, b: int) -> dict[str, torch.Tensor]:
         T, rays = _pixel_transfer(caster, points[a:b], normals[a:b], None if nudge is None else nudge[a:b],
                                   dirs_f, dirs32, omega_f, res, s, 0.0 if caster is None else caster.eps, work)
-        H = haar2d(T).reshape(b - a, P)
-        total = H.square().sum(1)
-        top = H.abs().topk(terms, dim=1)
-        kept = H.gather(1, top.indices)
-        if threshold > 0:
-            kept = torch.where(kept.abs() >= threshold * top.values[:, :1], kept, torch.zeros_like(kept))
-        q, scale = quantise(kept, bits)
-        err = (kept - dequantise(q, scale).to(torch.float64)).square().sum(1)
-        return {"q": q, "index": top.indices.to(idx_dtype), "scale": scale, "total": total,
-                "dropped": (total - kept.square().sum(1)).clamp_min(0), "qerr": err,
-                "nnz": (q != 0).sum(1).to(torch.int32), "rays": torch.tensor([rays], dtype=torch.int64)}
+        out = sparsify(haar2d(T).reshape(b - a, P), terms, bits, threshold)
+        out["rays"] = torch.tensor([rays], dtype=torch.int64)
+        return out
 
     fingerprint = {"kind": "wavelet", "mesh_hash": mesh.content_hash(), "res": res, "terms": terms, "bits": bits,
                    "threshold": threshold, "supersample": s, "shadows": traced, "offset": run.offset}
@@ -256,7 +264,7 @@ def precompute_wavelet(
         "bounce_decision": "no interreflection: the wavelet kind is direct (shadowed) transfer only",
         "bytes_per_vertex": bytes_per_vertex(terms, bits, P),
         "bytes_per_vertex_dense": P * 4,
-        "index_dtype": str(idx_dtype).replace("torch.", ""),
+        "index_dtype": str(_index_dtype(P)).replace("torch.", ""),
         "nonzero_per_vertex": float(cat["nnz"].float().mean()),
         "truncation_rel_l2_mean": float(rel(dropped)[lit].mean()) if bool(lit.any()) else 0.0,
         "truncation_rel_l2_max": float(rel(dropped)[lit].max()) if bool(lit.any()) else 0.0,
