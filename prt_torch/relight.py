@@ -216,7 +216,7 @@ def kautz(T: torch.Tensor | None, rot_blocks: list[torch.Tensor], B: torch.Tenso
 # --------------------------------------------------------------------------------------------
 # all-frequency relighting: sparse Haar light x sparse Haar transfer (Ng et al. 2003)
 
-def wavelet_light(spec, res: int, terms: int | None = None, selection: str = "area",
+def wavelet_light(spec, res: int, terms: int | None = None, selection: str = "transport",
                   weights: torch.Tensor | None = None, supersample: int = 4) -> tuple[torch.Tensor, torch.Tensor, dict]:
     """A light's non-linear wavelet approximation (Ng 2003 §5): the light on the ``faces`` cube at
     ``res`` (:func:`prt_torch.lighting.haar.cube_light`, not band-limited), its Haar coefficients
@@ -315,7 +315,7 @@ class WaveletRelighter:
         li = light_idx.long()
         return int((self.colptr[li + 1] - self.colptr[li]).sum())
 
-    def light(self, spec, terms: int | None = None, selection: str = "area", supersample: int = 4):
+    def light(self, spec, terms: int | None = None, selection: str = "transport", supersample: int = 4):
         """:func:`wavelet_light` at this transfer's resolution (``'transport'`` uses :attr:`weights`)."""
         return wavelet_light(spec, self.res, terms, selection, self.weights if selection == "transport" else None,
                              supersample)

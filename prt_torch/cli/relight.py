@@ -47,8 +47,8 @@ def register(subparsers) -> None:
     p.add_argument("--light", required=True, help="built-in environment, analytic spec or image file")
     p.add_argument("--terms", type=int, default=None,
                    help="wavelet transfers: the light's N largest Haar terms (default: all 6R², exact)")
-    p.add_argument("--selection", default="area", choices=["magnitude", "area", "transport"],
-                   help="wavelet transfers: how the N terms are chosen (Ng 2003 §5; default area, measured in "
+    p.add_argument("--selection", default="transport", choices=["magnitude", "area", "transport"],
+                   help="wavelet transfers: how the N terms are chosen (Ng 2003 §5; default transport-weighted, measured in "
                         "reports/benchmarks/wavelet.md)")
     p.add_argument("--transfer", dest="source", default=None, metavar="TRANSFER.prt",
                    help="codec files: the transfer it was compressed from (default: the path the codec file records)")
@@ -86,7 +86,7 @@ def _load(args):
     return Transfer.load(args.transfer), None, None
 
 
-def radiance(transfer, light: str, codec=None, enc=None, terms: int | None = None, selection: str = "area",
+def radiance(transfer, light: str, codec=None, enc=None, terms: int | None = None, selection: str = "transport",
              view=None):
     """Per-vertex exit radiance ``[V, 3]`` float32 and a one-line description (module docstring)."""
     import torch

@@ -27,12 +27,15 @@ from .._checks import check_choice, check_int, describe
 from . import layouts as L
 
 __all__ = ["haar2d", "ihaar2d", "check_res", "cube_geometry", "support_solid_angles", "cube_light",
-           "select_terms", "SELECTIONS", "MAX_HAAR_RES"]
+           "select_terms", "SELECTIONS", "DEFAULT_SELECTION", "MAX_HAAR_RES"]
 
 #: largest face resolution accepted (6·128² = 98 304 texels)
 MAX_HAAR_RES = 128
 #: the non-linear approximations of a light (Ng 2003 §5): which N coefficients to keep
 SELECTIONS = ("magnitude", "area", "transport")
+#: the default selection, chosen by measurement (reports/benchmarks/wavelet.md: the lowest mean error
+#: over the blocker scene's five lights, three budgets and N = 10..2000)
+DEFAULT_SELECTION = "transport"
 _S = 1.0 / math.sqrt(2.0)
 
 
@@ -46,44 +49,65 @@ def check_res(res: Any, name: str = "res") -> int:
     return r
 
 
+def _step(n: int, dtype: torch.dtype) -> torch.Tensor:
+    """The one-level orthonormal Haar matrix ``[n, n]``: rows 0..n/2-1 the averages
+    (e_2i + e_2i+1)/√2, rows n/2.. the differences (e_2i - e_2i+1)/√2."""
+    key = (n, dtype)
+    if key not in _STEPS:
+        h = n // 2
+        H = torch.zeros(n, n, dtype=torch.float64)
+        i = torch.arange(h)
+        H[i, 2 * i] = _S
+        H[i, 2 * i + 1] = _S
+        H[h + i, 2 * i] = _S
+        H[h + i, 2 * i + 1] = -_S
+        _STEPS[key] = H.to(dtype)
+    return _STEPS[key]
+
+
+_STEPS: dict = {}
+
+
+def _both(a: torch.Tensor, M: torch.Tensor) -> torch.Tensor:
+    """Mᵀ A M for every trailing ``[n, n]`` block of ``a``, as two flat GEMMs (rows of all blocks
+    at once, then columns), not a batch of small ones."""
+    n = a.shape[-1]
+    lead = a.shape[:-2]
+    z = (a.reshape(-1, n) @ M).reshape(*lead, n, n)  # A M: every row of every block
+    return (z.transpose(-1, -2).reshape(-1, n) @ M).reshape(*lead, n, n).transpose(-1, -2)  # Mᵀ (A M)
+
+
+def _check_faces(x: torch.Tensor, what: str) -> int:
+    r = x.shape[-1]
+    if x.ndim < 2 or x.shape[-2] != r:
+        raise ValueError(f"{what}: input of shape {tuple(x.shape)}; accepted: [..., R, R] square faces")
+    check_res(r, "face size R")
+    return r
+
+
 def haar2d(x: torch.Tensor) -> torch.Tensor:
     """Orthonormal 2-D non-standard Haar transform of every face: ``x [..., R, R]`` (R a power of
     two; any float dtype, any leading batch shape such as ``[B, 6]``) → the same shape and dtype
-    (module docstring; Ng 2003 §4). Exactly inverted by :func:`ihaar2d`."""
-    r = x.shape[-1]
-    if x.ndim < 2 or x.shape[-2] != r:
-        raise ValueError(f"haar2d: input of shape {tuple(x.shape)}; accepted: [..., R, R] square faces")
-    check_res(r, "face size R")
+    (module docstring; Ng 2003 §4). Level by level on the low-pass block A (n × n, n = R, R/2,
+    ..., 2): A ← H_n A H_nᵀ with H_n the one-level Haar matrix (rows then columns), as batched
+    GEMMs. Exactly inverted by :func:`ihaar2d`."""
+    r = _check_faces(x, "haar2d")
     y = x.clone()
     n = r
-    while n > 1:  # one level per pass (log2 R passes), each batched over every face
-        a = y[..., :n, :n]
-        p, q = a[..., 0::2, :], a[..., 1::2, :]
-        rows = torch.cat([(p + q) * _S, (p - q) * _S], -2)
-        p, q = rows[..., :, 0::2], rows[..., :, 1::2]
-        y[..., :n, :n] = torch.cat([(p + q) * _S, (p - q) * _S], -1)
+    while n > 1:  # one level per pass (log2 R passes), each two GEMMs over every face at once
+        y[..., :n, :n] = _both(y[..., :n, :n], _step(n, y.dtype).T)
         n //= 2
     return y
 
 
 def ihaar2d(y: torch.Tensor) -> torch.Tensor:
-    """Inverse of :func:`haar2d` (its transpose): ``[..., R, R]`` → ``[..., R, R]``, same dtype."""
-    r = y.shape[-1]
-    if y.ndim < 2 or y.shape[-2] != r:
-        raise ValueError(f"ihaar2d: input of shape {tuple(y.shape)}; accepted: [..., R, R] square faces")
-    check_res(r, "face size R")
+    """Inverse of :func:`haar2d` (its transpose: A ← H_nᵀ A H_n from the coarsest level up):
+    ``[..., R, R]`` → ``[..., R, R]``, same dtype."""
+    r = _check_faces(y, "ihaar2d")
     x = y.clone()
     n = 2
     while n <= r:
-        a = x[..., :n, :n]
-        h = n // 2
-        lo, hi = a[..., :, :h], a[..., :, h:]
-        cols = torch.empty_like(a)
-        cols[..., :, 0::2], cols[..., :, 1::2] = (lo + hi) * _S, (lo - hi) * _S
-        lo, hi = cols[..., :h, :], cols[..., h:, :]
-        out = torch.empty_like(a)
-        out[..., 0::2, :], out[..., 1::2, :] = (lo + hi) * _S, (lo - hi) * _S
-        x[..., :n, :n] = out
+        x[..., :n, :n] = _both(x[..., :n, :n], _step(n, x.dtype))
         n *= 2
     return x
 
@@ -282,7 +306,7 @@ def _analytic_cube(kind: str, d: dict, res: int, s: int, dirs: torch.Tensor, ome
     raise ValueError(f"light type {kind!r}; accepted: cap, directional, constant, hemisphere, sky_gradient")
 
 
-def select_terms(coeffs: torch.Tensor, terms: int, selection: str = "area",
+def select_terms(coeffs: torch.Tensor, terms: int, selection: str = DEFAULT_SELECTION,
                  weights: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """The non-linear N-term approximation of a light (Ng 2003 §5): the ``terms`` wavelet
     coefficients of largest importance.
