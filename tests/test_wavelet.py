@@ -230,3 +230,25 @@ def test_bench_runs_a_wavelet_transfer(tmp_path):
     assert res["transfer"]["kind"] == "wavelet" and res["uncompressed"]["bytes_per_vertex"] == 64 * 3 + 4
     assert cli_main(base + ["codecs=[{type: pca, vectors: 4}]", "name=t2"]) == 2
     assert not (tmp_path / "r" / "t2").exists()
+
+
+def test_cli_render_a_wavelet_transfer(tmp_path, capsys):
+    """prt render draws the sparse relighting per vertex (CPU decode): constant radiance 1 on an
+    unshadowed convex object renders its albedo; the GLSL decode is refused in one line."""
+    import OpenImageIO as oiio
+
+    w = tmp_path / "w.prt"
+    tr = precompute_wavelet(builtin("convex", "small"), res=8, terms=384, bits=32, shadows="never")
+    tr.save(w)
+    out = tmp_path / "w.exr"
+    rc = cli_main(["render", str(w), "--light", "constant:value=1", "--width", "64", "--height", "64", "-o", str(out)])
+    if rc == 3:
+        pytest.skip("no EGL context on this machine")
+    assert rc == 0
+    img = oiio.ImageBuf(str(out)).get_pixels(oiio.FLOAT)[..., :3]
+    covered = img.sum(-1) > 0
+    assert covered.sum() > 100 and np.allclose(img[covered], 0.8, atol=0.01)  # the convex scene's albedo 0.8
+    capsys.readouterr()
+    assert cli_main(["render", str(w), "--light", "sky", "--decode", "glsl", "-o", str(tmp_path / "g.png")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "cpu only" in err[0]
