@@ -179,8 +179,10 @@ def test_res_auto_from_the_lights():
 
     r_wide, kept, why = choose_haar_res(["constant"], 0.99)
     assert r_wide == 1 and kept == pytest.approx(1.0)
-    r_small, kept, _ = choose_haar_res(["cap:direction=0,0,1;half_angle_deg=3;radiance=1"], 0.99)
-    assert r_small > 16 and kept >= 0.99
+    r_small, kept, why = choose_haar_res(["cap:direction=0,0,1;half_angle_deg=3;radiance=1"], 0.99)
+    assert r_small == 64 and kept < 0.99 and "largest" in why  # a sharp edge loses energy at every level
+    r_mid, kept, _ = choose_haar_res(["overcast"], 0.99)  # smooth sky, a horizon edge: a coarse cube
+    assert 2 <= r_mid <= 16 and kept >= 0.99
 
 
 # ------------------------------------------------------------------------------ prt relight
