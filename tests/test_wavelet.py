@@ -280,3 +280,22 @@ def test_validate_against_mitsuba_with_the_original_image():
         validate(tr, "overcast", light_source="sh", idx=idx)
     with pytest.raises(ValueError, match="no environment image"):
         validate(tr, "cap:direction=0,0,1;half_angle_deg=10;intensity=1", light_source="image", idx=idx)
+
+
+def test_precompute_resumes_to_the_same_result(tmp_path, scene):
+    """An interrupted wavelet precompute (state directory kept) resumed gives the uninterrupted result."""
+    from prt_torch.transfer import ChunkInterrupt
+
+    def stop(i, n):
+        if i == 1:
+            raise ChunkInterrupt("stop")
+
+    kw = dict(res=4, terms=20, bits=8, shadows="always")
+    full = precompute_wavelet(scene, **kw, run=RunOptions(chunk_size=500))
+    state = tmp_path / "w.state"
+    with pytest.raises(ChunkInterrupt):
+        precompute_wavelet(scene, **kw, run=RunOptions(chunk_size=500, state_dir=state, callback=stop))
+    assert state.exists()
+    again = precompute_wavelet(scene, **kw, run=RunOptions(chunk_size=500, state_dir=state, resume=True))
+    assert torch.equal(again.data, full.data) and torch.equal(again.aux["index"], full.aux["index"])
+    assert not state.exists()

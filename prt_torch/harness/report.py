@@ -331,7 +331,7 @@ def markdown(results: dict, figures: list[str], renders: list[str]) -> str:
         f"# Benchmark `{r['name']}`",
         "",
         f"Scene **{r['scene']['name']}** ({r['scene']['vertices']} vertices), transfer **{r['transfer']['kind']}** "
-        f"{tuple(r['transfer']['shape'])} ({r['transfer']['raw_bytes'] / 2**20:.2f} MiB float32), "
+        f"{tuple(r['transfer']['shape'])} ({r['transfer']['raw_bytes'] / 2**20:.2f} MiB {'stored, sparse' if r['transfer']['kind'] == 'wavelet' else 'float32'}), "
         f"lights: {', '.join(r['lights'])}; {max(1, len(r['views']))} view(s).",
         f"Machine: {m['cpu']}, {m['cores']} cores, torch {m['torch']} with {m['torch_threads']} threads, "
         f"load average {m.get('load_average_1min', float('nan')):.1f} at the start"
@@ -434,7 +434,7 @@ def part_lines(part: dict) -> list[str]:
         lines += [part["note"], ""]
     lines += [
         f"Scene **{r['scene']['name']}** ({r['scene']['vertices']} vertices), transfer **{r['transfer']['kind']}** "
-        f"{tuple(r['transfer']['shape'])} ({r['transfer']['raw_bytes'] / 2**20:.2f} MiB float32). Uncompressed relighting "
+        f"{tuple(r['transfer']['shape'])} ({r['transfer']['raw_bytes'] / 2**20:.2f} MiB {'stored, sparse' if r['transfer']['kind'] == 'wavelet' else 'float32'}). Uncompressed relighting "
         f"(this part's peer): {unc['vertices_per_s'] / 1e6:.2f} M vertices/s, {unc['fps']:.1f} fps. Full report, plots: "
         f"[{part['dir']}/report.md]({part['dir']}/report.md).",
         "",
