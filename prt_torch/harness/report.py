@@ -64,6 +64,11 @@ def pareto_front(points: list[tuple[float, float]]) -> list[int]:
     return idx
 
 
+def _stored(r: dict) -> str:
+    """What a transfer's raw size counts: a wavelet transfer's stored sparse bytes, else float32."""
+    return "stored, sparse" if r["transfer"]["kind"] == "wavelet" else "float32"
+
+
 def _fmt(v: Any, digits: int = 3) -> str:
     if isinstance(v, float):
         if math.isinf(v):
@@ -331,7 +336,7 @@ def markdown(results: dict, figures: list[str], renders: list[str]) -> str:
         f"# Benchmark `{r['name']}`",
         "",
         f"Scene **{r['scene']['name']}** ({r['scene']['vertices']} vertices), transfer **{r['transfer']['kind']}** "
-        f"{tuple(r['transfer']['shape'])} ({r['transfer']['raw_bytes'] / 2**20:.2f} MiB {'stored, sparse' if r['transfer']['kind'] == 'wavelet' else 'float32'}), "
+        f"{tuple(r['transfer']['shape'])} ({r['transfer']['raw_bytes'] / 2**20:.2f} MiB {_stored(r)}), "
         f"lights: {', '.join(r['lights'])}; {max(1, len(r['views']))} view(s).",
         f"Machine: {m['cpu']}, {m['cores']} cores, torch {m['torch']} with {m['torch_threads']} threads, "
         f"load average {m.get('load_average_1min', float('nan')):.1f} at the start"
@@ -434,7 +439,7 @@ def part_lines(part: dict) -> list[str]:
         lines += [part["note"], ""]
     lines += [
         f"Scene **{r['scene']['name']}** ({r['scene']['vertices']} vertices), transfer **{r['transfer']['kind']}** "
-        f"{tuple(r['transfer']['shape'])} ({r['transfer']['raw_bytes'] / 2**20:.2f} MiB {'stored, sparse' if r['transfer']['kind'] == 'wavelet' else 'float32'}). Uncompressed relighting "
+        f"{tuple(r['transfer']['shape'])} ({r['transfer']['raw_bytes'] / 2**20:.2f} MiB {_stored(r)}). Uncompressed relighting "
         f"(this part's peer): {unc['vertices_per_s'] / 1e6:.2f} M vertices/s, {unc['fps']:.1f} fps. Full report, plots: "
         f"[{part['dir']}/report.md]({part['dir']}/report.md).",
         "",
