@@ -226,10 +226,15 @@ def test_bench_runs_a_wavelet_transfer(tmp_path):
     import json
 
     base = ["bench", "allfrequency", "transfer.res=8", "transfer.terms=64", "render.enabled=false",
-            f"output_dir={tmp_path / 'r'}", f"cache_dir={tmp_path / 'c'}", "metrics.repeats=1", "name=t"]
+            f"output_dir={tmp_path / 'r'}", f"cache_dir={tmp_path / 'c'}", "metrics.repeats=1", "name=t",
+            "trade.terms=[10, 384]", "trade.bands=[3, 5]"]
     assert cli_main(base + ["lights=[sky]"]) == 0
     res = json.loads((tmp_path / "r" / "t" / "results.json").read_text())
     assert res["transfer"]["kind"] == "wavelet" and res["uncompressed"]["bytes_per_vertex"] == 64 * 3 + 4
+    rows = res["trade"]["rows"]
+    assert {(x["method"], x.get("N", x.get("bands"))) for x in rows} == {("wavelet", 10), ("wavelet", 384), ("sh", 3), ("sh", 5)}
+    assert next(x for x in rows if x.get("N") == 384)["error"] < 1e-5  # every term of the light: the exact result
+    assert "SH vs wavelets" in (tmp_path / "r" / "t" / "report.md").read_text()
     assert cli_main(base + ["codecs=[{type: pca, vectors: 4}]", "name=t2"]) == 2
     assert not (tmp_path / "r" / "t2").exists()
 

@@ -66,10 +66,13 @@ DEFAULTS: dict[str, Any] = {
     "ablation": None,  # a swept key (transfer.<param> or codecs.<i>.<param>): one combined report
     "ablation_reference": None,  # the value the others are compared with (default: the last)
     "parts": [],  # further benchmarks in the same report, each on its own scene/transfer (part_configs)
+    # a wavelet transfer's all-frequency trade (harness.trade): its lights cut to N Haar terms against SH at n
+    # bands projected from the same visibility, each against the exact result (every term)
+    "trade": {"terms": [10, 30, 100, 300, 1000, 2000], "bands": [3, 4, 5, 6, 7, 8, 9, 10], "selection": "transport"},
 }
 
 #: Keys whose value is itself a list (so a list there is not a sweep).
-LIST_KEYS = {"lights", "codecs", "parts"}
+LIST_KEYS = {"lights", "codecs", "parts", "trade.terms", "trade.bands"}
 #: Keys whose value is a typed object: its keys are the parameters of its ``type``, validated
 #: by that type's registry rather than by this schema.
 FREE_KEYS = {"transfer"}
@@ -215,6 +218,7 @@ CONSTRAINTS: dict[str, list] = {
     "metrics.warmup": [Interval(int, 0, None)],
     "metrics.cold_pairs": [Interval(int, 0, None)],
     "metrics.max_memory_gb": [Interval(float, 0, None, closed="neither")],
+    "trade.selection": [Options("magnitude", "area", "transport")],
     "render.enabled": [Boolean()],
     "render.width": [Interval(int, 1, 8192)],
     "render.height": [Interval(int, 1, 8192)],
@@ -354,6 +358,12 @@ def validate(cfg: dict) -> None:
                 _check_value(key, node[k])
 
     walk(cfg, DEFAULTS, "")
+    for key, hi in (("terms", None), ("bands", 32)):  # lists, not sweeps
+        v = cfg.get("trade", {}).get(key)
+        if v is not None and not (isinstance(v, list) and v and all(isinstance(x, int) and not isinstance(x, bool) and x >= 1
+                                                                      and (hi is None or x <= hi) for x in v)):
+            raise ValueError(f"config key 'trade.{key}' = {v!r}; accepted: a non-empty list of integers >= 1"
+                             + (f" and <= {hi}" if hi else ""))
     _validate_ablation(cfg)
     _validate_transfer(cfg)
     _validate_lights(cfg["lights"])

@@ -540,6 +540,10 @@ def run_benchmark(cfg: dict, resume: bool = True, progress: bool = True, log: Ca
                 records.append(r)
 
     results = _results(cfg, st, records, target)
+    if ev.kind == "wavelet":  # SH vs N wavelet terms, each against the exact result (harness.trade)
+        from .trade import wavelet_trade
+
+        results["trade"] = wavelet_trade(ev, lights, cfg, log)
     if cfg["validation"]["enabled"]:
         results["validation"] = run_validation(st, cfg, log)
     if cfg["render"]["enabled"]:
