@@ -182,9 +182,9 @@ def cube_light(spec: Any, res: int, supersample: int = 4, channels: int = 3) -> 
     radiance functions averaged over ``supersample``² sub-texel directions); a dict of the same;
     or an SH light ``[C, n²]`` tensor (evaluated at the sub-texel directions). An image
     resampled to the cube: each source pixel's power L·Ω lands in the cube texel holding its
-    centre (energy-conserving) when the image has at least as many pixels per texel; below that
-    the cube is point-sampled at sub-texel directions and ``record['upsampled']`` says so (the
-    caller warns).
+    centre (energy-conserving) when every texel holds at least one pixel centre; otherwise the
+    image is coarser than the cube somewhere, the cube is point-sampled at sub-texel directions
+    and ``record['upsampled']`` / ``record['warning']`` say so (the caller warns).
     """
     from .environment import Environment, load_environment
     from .spec import ANALYTIC_KINDS, parse_light_spec
@@ -233,19 +233,19 @@ def cube_light(spec: Any, res: int, supersample: int = 4, channels: int = 3) -> 
     else:
         raise TypeError(f"light spec {describe(spec)}; accepted: a built-in name, an analytic spec, a file, an "
                         "Environment or an SH light [C, n²]")
-    texels_per_pixel = 6 * res * res / float(env.mask().sum())
     rec["source"] = f"image {env.name!r} ({env.layout} {env.shape[1]}x{env.shape[0]})"
-    if texels_per_pixel > 1.0:  # fewer pixels than texels: point samples (upsampled)
-        rec["upsampled"] = True
-        rec["warning"] = (f"light {env.name!r} has {int(env.mask().sum())} pixels, fewer than the cube's "
-                          f"{6 * res * res} texels at R={res}: upsampled (point samples), not filtered")
-        img = averaged(lambda dd: env.sample(dd))
-        return img.permute(3, 0, 1, 2).contiguous(), rec
     dd, om, idx = env.directions().reshape(-1, 3), env.solid_angles().reshape(-1), env.mask().reshape(-1)
-    vals = env.image.reshape(-1, env.channels).to(torch.float64)[idx] * om[idx, None]  # power per pixel
     y, x = L.dir_to_pixel("faces", res, 6 * res, dd[idx])
     col = x.long()
     lin = (col // res) * res * res + y.long() * res + col % res
+    empty = int((torch.bincount(lin, minlength=6 * res * res) == 0).sum())
+    if empty:  # some texel holds no pixel centre: the image is coarser than the cube there (point samples)
+        rec["upsampled"] = True
+        rec["warning"] = (f"light {env.name!r} ({env.shape[1]}x{env.shape[0]} {env.layout}) is coarser than the cube at "
+                          f"R={res}: {empty} of {6 * res * res} texels hold no pixel; upsampled (point samples), not filtered")
+        img = averaged(lambda d: env.sample(d))
+        return img.permute(3, 0, 1, 2).contiguous(), rec
+    vals = env.image.reshape(-1, env.channels).to(torch.float64)[idx] * om[idx, None]  # power per pixel
     acc = torch.zeros(6 * res * res, env.channels, dtype=torch.float64).index_add_(0, lin, vals)
     img = acc.reshape(6, res, res, -1) / om_R[..., None]
     return img.permute(3, 0, 1, 2).contiguous(), rec
