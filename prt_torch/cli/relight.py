@@ -9,12 +9,14 @@ for the whole mesh, ``--exposure``) for a mesh viewer. Every kind:
 * a codec file (``prt compress`` output): relit from the compressed form (``codec.relight``),
   its mesh, frames and albedo from the transfer it was compressed from (``--transfer``, default
   the path the codec file records; refused when it does not belong to it);
+* transport tables (``prt precompute --kind transport``, a directory) and their codec files (the
+  Gaussian codec): relit toward the camera through the harness's evaluator, as ``prt render``;
 * a wavelet transfer (``prt precompute --kind wavelet``): the light on the cube at the transfer's
   R (not band-limited), its ``--terms`` N largest Haar coefficients by ``--selection`` (default:
   all 6R², the exact pixel-basis result), sparse light × sparse transfer
   (:class:`prt_torch.relight.WaveletRelighter`; Ng et al. 2003).
 
-View-dependent kinds (glossy, MRT) take the camera position ``--view X,Y,Z`` (default: the
+View-dependent kinds (glossy, MRT, transport tables) take the camera position ``--view X,Y,Z`` (default: the
 camera ``prt render`` places by default); view-independent ones refuse it.
 """
 from __future__ import annotations
@@ -61,6 +63,35 @@ def register(subparsers) -> None:
     p.set_defaults(func=run)
 
 
+def _transport(table: str, light: str, view, codec_file: str | None = None):
+    """Green 2005 transport tables (a directory) relit toward the camera ``view`` (default: prt
+    render's), uncompressed or from a codec file (e.g. the Gaussian codec), through the harness's
+    evaluator as ``prt render`` does: ``([V, 3] float32, description)``."""
+    import torch
+
+    from .. import codecs
+    from ..harness.evaluate import Evaluator, load_directory_transfer
+    from ..lighting import load_light
+    from ..render import Camera
+
+    tr = load_directory_transfer(table)
+    ev = Evaluator(tr)
+    eye = torch.tensor(view, dtype=torch.float64) if view is not None else torch.as_tensor(Camera.fit(tr.mesh).eye).double()
+    vw = ev.view_weights(eye)
+    L = load_light(light, bands=ev.bands_in)
+    if codec_file is None:
+        out, what = ev.reference(L, vw), "transport tables"
+    else:
+        codec, enc = codecs.load(codec_file)
+        if enc.points != ev.V or enc.meta.get("dim") != ev.X.shape[1]:
+            raise ValueError(f"codec file {codec_file!r} ({enc.points} points x {enc.meta.get('dim')}) does not belong to the "
+                             f"transport table {table!r} ({ev.V} vertices x {ev.X.shape[1]}); accepted: a codec file compressed "
+                             "from this table (--transfer TABLE_DIR)")
+        out, what = ev.finish(codec.relight(enc, ev.codec_light(codec, L), view=vw)), f"transport tables, codec {codec.codec_name}"
+    out = out.to(torch.float32)
+    return (out.expand(-1, 3) if out.shape[1] == 1 else out).contiguous(), what
+
+
 def _load(args):
     """(transfer, codec or None, encoding or None) for the input file."""
     from .. import io
@@ -72,6 +103,8 @@ def _load(args):
 
         meta = io.load_meta(args.transfer)
         src = args.source or (meta.get("extra") or {}).get("source")
+        if src and Path(src).is_dir():  # compressed transport tables (e.g. the Gaussian codec)
+            return src, "transport", None
         if not src or not Path(src).is_file():
             raise FileNotFoundError(f"codec file {args.transfer!r}: its transfer {src!r} is not a file; accepted: "
                                     "--transfer TRANSFER.prt, the file it was compressed from (its mesh, frames and albedo)")
@@ -160,8 +193,20 @@ def run(args) -> int:
             raise ValueError(f"--exposure {args.exposure!r}; accepted: a number of stops or 'auto'") from None
     io.check_outputs({"-o/--output": out}, {"TRANSFER_OR_CODEC": args.transfer, "--transfer": args.source,
                                             "--light": args.light}, args.overwrite)
-    transfer, codec, enc = _load(args)
-    rad, what = radiance(transfer, args.light, codec, enc, args.terms, args.selection, args.view)
+    if Path(args.transfer).is_dir():  # Green 2005 transport tables
+        if args.terms is not None:
+            raise ValueError(f"--terms {args.terms} applies to wavelet transfers; transport tables take the light in SH")
+        rad, what = _transport(args.transfer, args.light, args.view)
+        transfer = None
+    else:
+        transfer, codec, enc = _load(args)
+        if codec == "transport":  # a codec file of transport tables: transfer is the table's directory
+            if args.terms is not None:
+                raise ValueError(f"--terms {args.terms} applies to wavelet transfers; transport tables take the light in SH")
+            rad, what = _transport(transfer, args.light, args.view, args.transfer)
+            transfer = None
+        else:
+            rad, what = radiance(transfer, args.light, codec, enc, args.terms, args.selection, args.view)
     rgb = rad.numpy().astype(np.float32)
     if out.suffix.lower() == ".npy":
         with io.atomic_path(out, overwrite=args.overwrite) as tmp:
@@ -170,6 +215,13 @@ def run(args) -> int:
         print(f"wrote {out} ([{rgb.shape[0]}, {rgb.shape[1]}] float32; {what}; radiance range "
               f"[{float(rgb.min()):.4g}, {float(rgb.max()):.4g}])")
     else:
-        ev = _write_ply(out, transfer.mesh, rgb, args.exposure, args.overwrite)
+        if transfer is None:
+            from ..transfer import TransportTable
+
+            src = args.transfer if Path(args.transfer).is_dir() else (io.load_meta(args.transfer).get("extra") or {})["source"]
+            mesh = TransportTable(src).mesh()
+        else:
+            mesh = transfer.mesh
+        ev = _write_ply(out, mesh, rgb, args.exposure, args.overwrite)
         print(f"wrote {out} ({rgb.shape[0]} vertices with colours at exposure {ev:+.2f} EV; {what})")
     return 0
