@@ -249,8 +249,10 @@ def test_cli_render_a_wavelet_transfer(tmp_path, capsys):
     tr.save(w)
     out = tmp_path / "w.exr"
     rc = cli_main(["render", str(w), "--light", "constant:value=1", "--width", "64", "--height", "64", "-o", str(out)])
-    if rc == 3:
-        pytest.skip("no EGL context on this machine")
+    import os
+
+    if rc == 3 and os.environ.get("PRT_SKIP_GL") == "1" and os.environ.get("CI", "").lower() != "true":
+        pytest.skip("PRT_SKIP_GL=1 and no GL (conftest's rule: in CI this fails)")
     assert rc == 0
     img = oiio.ImageBuf(str(out)).get_pixels(oiio.FLOAT)[..., :3]
     covered = img.sum(-1) > 0
