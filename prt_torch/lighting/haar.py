@@ -187,7 +187,7 @@ def cube_light(spec: Any, res: int, supersample: int = 4, channels: int = 3) -> 
     and ``record['upsampled']`` / ``record['warning']`` say so (the caller warns).
     """
     from .environment import Environment, load_environment
-    from .spec import ANALYTIC_KINDS, parse_light_spec
+    from .spec import analytic_params, parse_light_spec
     from .builtin import builtin_environment, list_builtin_environments
 
     res = check_res(res)
@@ -218,12 +218,7 @@ def cube_light(spec: Any, res: int, supersample: int = 4, channels: int = 3) -> 
         return img.permute(3, 0, 1, 2).contiguous(), rec
     d = spec if isinstance(spec, dict) else (parse_light_spec(spec) if isinstance(spec, str) else None)
     if d is not None:
-        d = dict(d)
-        kind = d.pop("type", None)
-        if kind not in ANALYTIC_KINDS:
-            raise ValueError(f"light type {kind!r}; accepted: {sorted(ANALYTIC_KINDS)}")
-        if "half_angle_deg" in d:
-            d["half_angle"] = math.radians(d.pop("half_angle_deg"))
+        kind, d = analytic_params(d)
         rec["source"] = f"analytic {kind} rasterised at R={res}"
         return _analytic_cube(kind, d, res, s, dirs, omega).permute(3, 0, 1, 2).contiguous(), rec
     if isinstance(spec, Environment):
