@@ -326,8 +326,10 @@ class WaveletRelighter:
         lv = torch.as_tensor(light_vals).to(torch.float32)
         if lv.ndim != 2 or lv.shape[1] != li.numel():
             raise ValueError(f"light values {tuple(lv.shape)} for {li.numel()} indices; accepted: [C, N]")
-        if li.numel() and (int(li.min()) < 0 or int(li.max()) >= self.P):
-            raise ValueError(f"light indices span {int(li.min())}..{int(li.max())}; accepted: 0..{self.P - 1} (6R², R={self.res})")
+        if li.numel():
+            lo, hi = (int(v) for v in torch.aminmax(li))  # one pass
+            if lo < 0 or hi >= self.P:
+                raise ValueError(f"light indices span {lo}..{hi}; accepted: 0..{self.P - 1} (6R², R={self.res})")
         C = lv.shape[0]
         o = torch.empty(self.V, C, dtype=torch.float32) if out is None else out
         if o.shape != (self.V, C) or o.dtype != torch.float32 or not o.is_contiguous():
