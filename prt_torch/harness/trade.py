@@ -46,14 +46,18 @@ def wavelet_trade(ev: Evaluator, lights: list[torch.Tensor], cfg: dict, log: Cal
     r = ev.relighter
     V, P, R = ev.V, r.P, r.res
     sel = t["selection"]
-    H = torch.zeros(V, P, dtype=torch.float64).scatter_(1, r.index, r.values.double())  # the stored transfer, dense
-    T = ihaar2d(H.reshape(V, 6, R, R)).reshape(V, P)  # back in the pixel basis
     d, om = cube_geometry(R)
     dirs, om = d.reshape(-1, 3), om.reshape(-1)
     bands = sorted(set(int(b) for b in t["bands"]))
     Y = eval_sh(dirs, max(bands), check=False)  # [P, n²]
-    t_sh = {n: (T @ Y[:, : n * n]).to(torch.float32).contiguous() for n in bands}
-    del H, T
+    nb = max(bands) ** 2
+    t_all = torch.empty(V, nb, dtype=torch.float64)
+    step = max(1, (64 << 20) // (P * 8))  # chunks of vertices: the dense rows stay ~64 MB at any V and R
+    for a in range(0, V, step):  # the stored transfer, dense, back in the pixel basis, projected
+        H = torch.zeros(min(step, V - a), P, dtype=torch.float64).scatter_(1, r.index[a:a + step], r.values[a:a + step].double())
+        t_all[a:a + step] = ihaar2d(H.reshape(-1, 6, R, R)).reshape(-1, P) @ Y
+    t_sh = {n: t_all[:, : n * n].to(torch.float32).contiguous() for n in bands}
+    del t_all
     albedo = r.albedo
     rows: list[dict] = []
     head: list[dict] = []
