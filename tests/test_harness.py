@@ -97,7 +97,8 @@ def test_shipped_configs_validate():
     assert {"default", "glossy", "diffuse"} <= set(names)
     for n in names:
         cfg = hc.load_config(n)
-        assert hc.expand_codecs(cfg["codecs"])
+        # a wavelet transfer is relit sparse as it is: its config (allfrequency) has no SH codecs
+        assert hc.expand_codecs(cfg["codecs"]) or cfg["transfer"]["type"] == "wavelet"
 
 
 @pytest.mark.parametrize("entry, where", [

@@ -94,6 +94,12 @@ def load_input(path, codec):
         kind = io.load_meta(path).get("kind")
         raise ValueError(f"codec {codec.codec_name!r} fits transport tables; {str(path)!r} holds {kind!r}; accepted: a "
                          "transport table directory (prt precompute --kind transport -o DIR)")
+    kind = io.load_meta(path).get("kind")
+    if kind == "transfer/wavelet":
+        raise ValueError(f"{str(path)!r} is a wavelet transfer (sparse Haar coefficients, Ng 2003), which codec "
+                         f"{codec.codec_name!r} cannot take (it compresses SH transfer rows); accepted: an SH transfer "
+                         "(diffuse, glossy, mrt); a wavelet transfer is already sparse: relight it with prt relight or "
+                         "prt bench")
     X, ms, meta = load_signal(path)
     return X, ms, meta, {}
 

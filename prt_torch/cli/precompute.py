@@ -196,7 +196,8 @@ def _run(args, executor) -> int:
     if args.light:
         from ..lighting import load_light
 
-        lights = [load_light(spec, bands=32) for spec in args.light]
+        # wavelet res auto measures the lights themselves on the cube (not band-limited)
+        lights = list(args.light) if kind.name == "wavelet" else [load_light(spec, bands=32) for spec in args.light]
     tr = kind.precompute(mesh, params, run=opts, lights=lights)
     tr.save(out, overwrite=args.overwrite)
     m = tr.meta

@@ -231,8 +231,10 @@ def run(args) -> int:
     if args.mesh is not None:
         raise ValueError(f"--mesh {args.mesh!r} applies to SHRM files (prt shrm output); {args.transfer!r} is a transfer, "
                          "which carries its own mesh")
-    args.decode = args.decode or "glsl"
     transfer = Transfer.load(args.transfer)
+    if transfer.kind == "wavelet":
+        return _run_wavelet(args, transfer, out)
+    args.decode = args.decode or "glsl"
     scene = PRTScene(transfer)  # refuses kinds it cannot relight, naming the accepted ones
     codec = enc = None
     if args.codec_file:
@@ -259,6 +261,31 @@ def run(args) -> int:
         return 3
     what = f"{transfer.kind} transfer" + (f", codec {codec.codec_name}" if codec is not None else "")
     return _write_outputs(args, out, cmp_png, img, mask, ref_img, other, what)
+
+
+def _run_wavelet(args, transfer, out: Path) -> int:
+    """``prt render WAVELET.prt --light SPEC``: the exit radiance of the sparse Haar relighting
+    (every term of the light, rasterised on the transfer's cube; ``prt relight`` for fewer terms)
+    drawn per vertex. CPU decode only: the terms a light keeps change with every light, which Ng
+    et al. 2003 leave to the CPU (course notes 2005: "not well-suited to hardware rendering")."""
+    from .relight import radiance
+    from ..render import Camera, Renderer, RenderUnavailable
+
+    if args.decode == "glsl" or args.validate or args.codec_file or args.compare:
+        raise ValueError("a wavelet transfer renders with --decode cpu only (no GLSL decoder: the light's terms change "
+                         "with every light, Ng et al. 2003); --codec-file, --compare and --validate do not apply")
+    args.decode = "cpu"
+    rad, what = radiance(transfer, args.light)
+    mesh = transfer.mesh
+    cam = Camera.fit(mesh, azimuth=args.azimuth, elevation=args.elevation, fov=args.fov,
+                     projection="orthographic" if args.orthographic else "perspective", aspect=args.width / args.height)
+    try:
+        with Renderer(args.width, args.height) as r:
+            img, mask = r.render_radiance(mesh, rad, cam, background=args.background, supersample=args.supersample)
+    except RenderUnavailable as e:
+        print(f"prt render: error: {e}", file=sys.stderr)
+        return 3
+    return _write_outputs(args, out, None, img, mask, None, None, what)
 
 
 def _write_outputs(args, out: Path, cmp_png: Path | None, img, mask, ref_img, other, what: str) -> int:

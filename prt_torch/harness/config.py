@@ -69,10 +69,13 @@ DEFAULTS: dict[str, Any] = {
     # convex objects: SHRM vs unshadowed glossy PRT, same BRDF and light (harness.convex; shipped config 'convex')
     "convex": {"enabled": False, "meshes": ["sphere", "hull:bumpy_sphere"], "size": "small", "epsilons": [0.03, 0.01],
                "map_height": 64, "light_size": 64},
+    # a wavelet transfer's all-frequency trade (harness.trade): its lights cut to N Haar terms against SH at n
+    # bands projected from the same visibility, each against the exact result (every term)
+    "trade": {"terms": [10, 30, 100, 300, 1000, 2000], "bands": [3, 4, 5, 6, 7, 8, 9, 10], "selection": "transport"},
 }
 
 #: Keys whose value is itself a list (so a list there is not a sweep).
-LIST_KEYS = {"lights", "codecs", "parts", "convex.meshes", "convex.epsilons"}
+LIST_KEYS = {"lights", "codecs", "parts", "convex.meshes", "convex.epsilons", "trade.terms", "trade.bands"}
 #: Keys whose value is a typed object: its keys are the parameters of its ``type``, validated
 #: by that type's registry rather than by this schema.
 FREE_KEYS = {"transfer"}
@@ -218,6 +221,7 @@ CONSTRAINTS: dict[str, list] = {
     "metrics.warmup": [Interval(int, 0, None)],
     "metrics.cold_pairs": [Interval(int, 0, None)],
     "metrics.max_memory_gb": [Interval(float, 0, None, closed="neither")],
+    "trade.selection": [Options("magnitude", "area", "transport")],
     "render.enabled": [Boolean()],
     "render.width": [Interval(int, 1, 8192)],
     "render.height": [Interval(int, 1, 8192)],
@@ -346,7 +350,9 @@ def validate(cfg: dict) -> None:
     """Types of schema keys; the transfer, codec and light specs through their registries; the
     scene; the parts (each validated as a config of its own). Raises ValueError naming the key,
     before any work."""
-    _no_empty_lists({k: v for k, v in cfg.items() if not k.startswith("_")}, "")
+    # a wavelet transfer is relit sparse as it is (no SH codec takes it): its run may have no codecs
+    wavelet = isinstance(cfg.get("transfer"), dict) and cfg["transfer"].get("type") == "wavelet"
+    _no_empty_lists({k: v for k, v in cfg.items() if not k.startswith("_") and not (wavelet and k == "codecs")}, "")
 
     def walk(node: dict, schema: dict, path: str):
         for k, d in schema.items():
@@ -359,10 +365,17 @@ def validate(cfg: dict) -> None:
                 _check_value(key, node[k])
 
     walk(cfg, DEFAULTS, "")
+    for key, hi in (("terms", None), ("bands", 32)):  # lists, not sweeps
+        v = cfg.get("trade", {}).get(key)
+        if v is not None and not (isinstance(v, list) and v and all(isinstance(x, int) and not isinstance(x, bool) and x >= 1
+                                                                      and (hi is None or x <= hi) for x in v)):
+            raise ValueError(f"config key 'trade.{key}' = {v!r}; accepted: a non-empty list of integers >= 1"
+                             + (f" and <= {hi}" if hi else ""))
     _validate_ablation(cfg)
     _validate_transfer(cfg)
     _validate_lights(cfg["lights"])
-    _validate_codecs(cfg["codecs"])
+    if not (wavelet and cfg["codecs"] == []):
+        _validate_codecs(cfg["codecs"])
     if (cfg.get("convex") or {}).get("enabled") is True:
         from .convex import check_convex
 

@@ -17,7 +17,12 @@ camera position into per-vertex view weights over the n_out outputs:
   three stored views nearest the global view direction (barycentric taps, zero below the
   horizon) — the uncompressed reference; linear codecs take that ``[P, C]`` light, the
   ``gaussian`` codec (light kind 'prefiltered') a Gaussian-prefiltered environment of the same
-  light (``codec_light``) and interpolates its lobes at the same taps (Green §2.3).
+  light (``codec_light``) and interpolates its lobes at the same taps (Green §2.3);
+* wavelet ``[V, K]`` sparse Haar transfer on a 6×R×R cube (Ng et al. 2003): no view; the light
+  is not band-limited — each config light rasterised on the cube at R and Haar-transformed
+  (:meth:`Evaluator.load_light`, ``[C, 6R²]``), relit exactly (all its terms) by
+  :class:`prt_torch.relight.WaveletRelighter`, the sparse kernel — the reference. SH codecs
+  do not take it (:func:`check_codecs_for_kind`).
 
 View weights are dense ``[V, n_out]`` (glossy) or sparse taps ``(idx [V, k], w [V, k])`` (MRT),
 zero below each vertex's horizon, from :mod:`prt_torch.relight` (the project's one uncompressed
@@ -39,7 +44,7 @@ __all__ = ["Evaluator", "camera_positions", "KINDS", "load_directory_transfer", 
            "TRANSPORT_LIGHT_BANDS"]
 
 #: transfer kinds the harness can relight
-KINDS = ("diffuse", "glossy", "mrt", "transport")
+KINDS = ("diffuse", "glossy", "mrt", "transport", "wavelet")
 #: SH bands of the lights of a transport benchmark (evaluated on the cube texels / prefiltered)
 TRANSPORT_LIGHT_BANDS = 10
 
@@ -68,6 +73,10 @@ def check_codecs_for_kind(kind: str, names: list[str]) -> None:
     codec, light kind 'prefiltered', fits transport tables only)."""
     from .. import codecs
 
+    if kind == "wavelet" and names:
+        raise ValueError(f"codec {names[0]!r} compresses SH transfer rows; the config's transfer type is 'wavelet' (sparse "
+                         "Haar coefficients, relit sparse as they are); accepted: codecs: [] for a wavelet transfer "
+                         "(benchmarks/bench_wavelet.py compares it with SH)")
     for name in names:
         lk = getattr(codecs.get(name), "light_kind", "sh")
         if lk == "prefiltered" and kind != "transport":
@@ -116,12 +125,21 @@ class Evaluator:
             d, sa = cube_map_directions(self.res)
             self.texels, self.solid_angles = d.reshape(-1, 3), sa.reshape(-1)
             self._prefiltered: dict[int, Any] = {}
+        elif t.kind == "wavelet":
+            from ..relight import WaveletRelighter
+
+            self.relighter = WaveletRelighter(t)
+            self.res = self.relighter.res
+            self.matrix_shape = None
+            self.n_in = self.relighter.P
+            self.bytes_per_vertex = int(t.meta.get("bytes_per_vertex", 0)) or (t.data.element_size() * t.data.shape[1]
+                                                                               + t.aux["index"].element_size() * t.data.shape[1] + 4)
         elif t.kind in KINDS:
             self.matrix_shape = tuple(int(v) for v in t.meta.get("matrix_shape", data.shape[1:3]))
             self.n_in = self.matrix_shape[1]
         else:
             raise ValueError(f"transfer kind {t.kind!r} is not supported by the harness; accepted: {', '.join(KINDS)}")
-        self.bands_in = (TRANSPORT_LIGHT_BANDS if self.kind == "transport"
+        self.bands_in = (TRANSPORT_LIGHT_BANDS if self.kind == "transport" else None if self.kind == "wavelet"
                          else sh.band_of_coeffs(self.n_in, "transfer input coefficients"))
         self.frames = t.mesh.frames().to(torch.float64)  # [V, 3, 3] rows (t, b, n)
         self.points = torch.as_tensor(t.mesh.vertices).to(torch.float64)  # [V, 3]
@@ -132,12 +150,34 @@ class Evaluator:
 
     @property
     def raw_bytes(self) -> int:
+        if self.kind == "wavelet":
+            return self.V * self.bytes_per_vertex
         return self.X.numel() * 4
+
+    def load_light(self, spec: Any) -> torch.Tensor:
+        """A config light as this kind relights it: SH ``[C, n²]`` at :attr:`bands_in`
+        (:func:`prt_torch.lighting.load_light`), or for a wavelet transfer the Haar coefficients
+        ``[C, 6R²]`` float32 of the light on the cube at R (not band-limited; a light below R
+        warned as upsampled)."""
+        if self.kind != "wavelet":
+            from ..lighting import load_light
+
+            return load_light(spec, bands=self.bands_in)
+        import warnings
+
+        from ..lighting.haar import cube_light, haar2d
+
+        cube, rec = cube_light(spec, self.res)
+        if rec.get("upsampled"):
+            warnings.warn(rec["warning"])
+        return haar2d(cube).reshape(cube.shape[0], -1).to(torch.float32)
 
     def light_matrix(self, light: torch.Tensor) -> torch.Tensor:
         """SH light ``[C, n²]`` (any bands) -> ``[n_in, C]`` float32, truncated or zero-padded.
         Transport: the light's radiance at the texel centres (2×2 sub-texel average) times the
         texel solid angles, ``[P, C]`` (Green eq. 1.1 as a sum over texels)."""
+        if self.kind == "wavelet":
+            return light.T.to(torch.float32)  # [6R², C] Haar coefficients
         if self.kind == "transport":
             from ..lighting.prefilter import cube_map_directions
 
@@ -201,12 +241,14 @@ class Evaluator:
             if self.matrix_shape is None:
                 return out * self.albedo[:, : out.shape[1]]
             return torch.diagonal(out, dim1=1, dim2=2)  # [V, 3, C] -> [V, C]
-        return out
+        return out  # wavelet: the relighter applies the albedo
 
     def reference(self, light: torch.Tensor, view: Any) -> torch.Tensor:
         """Uncompressed relighting through :mod:`prt_torch.relight`: the peer every codec is
         compared against. ``light [C, n²]`` (any bands; truncated or zero-padded), ``view``
         from :meth:`view_weights`. Returns ``[V, C]`` float32."""
+        if self.kind == "wavelet":  # every term of the light: the exact pixel-basis result (Ng 2003 eq. 2)
+            return self.relighter(torch.arange(self.n_in), light)
         L = self.light_matrix(light).T  # [C, n_in]
         if self.kind == "diffuse":
             data = self.X if self.matrix_shape is None else self.X.view(self.V, *self.matrix_shape)

@@ -77,14 +77,16 @@ def render_best(run_dir: Path, records: list[dict], ev: Evaluator, light: torch.
     Lm = ev.light_matrix(light)
     paths = []
     glsl: dict[str, dict] = {}
-    scene = render.PRTScene(ev.transfer)
+    # a wavelet transfer has no GLSL decoder (Ng 2003: the terms change with every light; a CPU method)
+    scene = render.PRTScene(ev.transfer) if ev.kind != "wavelet" else None
     with render.Renderer(opts["width"], opts["height"]) as rd:
         img_ref, mask = rd.render_radiance(mesh, ref, camera=cam)
         expo = render.auto_exposure(img_ref, mask)  # stops, shared by every panel
         render.save_png(out_dir / "uncompressed.png", img_ref, exposure=expo)
         render.save_exr(out_dir / "uncompressed.exr", img_ref)
         vmax = float(max(1e-12, abs(img_ref[mask]).max())) * 0.1 if mask.any() else None
-        glsl["uncompressed"] = glsl_check(rd, scene, light, cam)
+        if scene is not None:
+            glsl["uncompressed"] = glsl_check(rd, scene, light, cam)
         for name, x in sorted(best_per_codec(records).items()):
             codec, enc = codecs.load(Path(run_dir) / "records" / f"{x['setting_id']}.prt")
             out = ev.finish(codec.relight(enc, Lm, view=view)).clamp_min(0)

@@ -65,6 +65,11 @@ def pareto_front(points: list[tuple[float, float]]) -> list[int]:
     return idx
 
 
+def _stored(r: dict) -> str:
+    """What a transfer's raw size counts: a wavelet transfer's stored sparse bytes, else float32."""
+    return "stored, sparse" if r["transfer"]["kind"] == "wavelet" else "float32"
+
+
 def _fmt(v: Any, digits: int = 3) -> str:
     if isinstance(v, float):
         if math.isinf(v):
@@ -261,6 +266,65 @@ def ablation_lines(res: dict) -> list[str]:
     return out
 
 
+def _ms(x: float) -> str:
+    return f"{x * 1e3:.3f} ms"
+
+
+def trade_lines(t: dict) -> list[str]:
+    """The all-frequency trade of a wavelet transfer (harness.trade): the headline "relight time
+    to reach 5% and 1% error, SH vs wavelets" per light, then every row."""
+    L = ["## SH vs wavelets: the all-frequency trade", "",
+         f"Each light cut to N Haar terms ({t['selection']} selection; R = {t['res']}, the stored transfer, "
+         f"{t['bytes_per_vertex']} B/vertex) and SH at n bands projected from the same visibility (n² floats per vertex), "
+         "each against the exact result (every term of the light): relative L2 over vertices and RGB. Times: median per "
+         "relight in one process; SH/wavelet: the two settings timed paired in this run (> 1: wavelets faster; ⚠: "
+         "contention).", "",
+         "| light | SH to 5% | wavelets to 5% | SH/wavelet | SH to 1% | wavelets to 1% | SH/wavelet | best SH | best wavelets |",
+         "|---|---|---|---|---|---|---|---|---|"]
+    for h in t["headline"]:
+        cells = [h["light"]]
+        for tgt in (0.05, 0.01):
+            s, w, q = h.get(f"sh_{tgt}"), h.get(f"wavelet_{tgt}"), h.get(f"ratio_{tgt}")
+            cells.append("not reached" if s is None else f"{s['bands']} bands, {_ms(s['relight_s'])}")
+            cells.append("not reached" if w is None else f"N={w['N']}, {_ms(w['relight_s'])}")
+            cells.append(f"{q['sh_over_wavelet']:.2f}{'' if q['trusted'] else ' ⚠'}" if q else "—")
+        cells += [f"{h['sh_best_error']:.4f}", f"{h['wavelet_best_error']:.4f}"]
+        L.append("| " + " | ".join(cells) + " |")
+    L += ["", "| light | method | N or bands | error | relight | fps | B/vertex |", "|---|---|---|---|---|---|---|"]
+    for x in t["rows"]:
+        size = x["N"] if x["method"] == "wavelet" else x["bands"]
+        L.append(f"| {x['light']} | {x['method']} | {size} | {x['error']:.4f} | {_ms(x['relight_s'])} | {x['fps']:.0f} | "
+                 f"{x['bytes_per_vertex']} |")
+    return L + [""]
+
+
+def plot_trade(t: dict, out_dir: Path) -> Path:
+    """trade.png: error vs terms (N light terms; n² SH coefficients) and error vs relight time, per light."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(1, 2, figsize=(11.0, 4.2))
+    for i, h in enumerate(t["headline"]):
+        w = [x for x in t["rows"] if x["light"] == h["light"] and x["method"] == "wavelet"]
+        s = [x for x in t["rows"] if x["light"] == h["light"] and x["method"] == "sh"]
+        c = f"C{i % 10}"
+        ax[0].loglog([x["N"] for x in w], [max(x["error"], 1e-6) for x in w], "-o", color=c, label=f"{h['light'][:28]} wavelets")
+        ax[0].loglog([x["bands"] ** 2 for x in s], [max(x["error"], 1e-6) for x in s], "--s", color=c, label="SH")
+        ax[1].loglog([x["relight_s"] * 1e3 for x in w], [max(x["error"], 1e-6) for x in w], "-o", color=c)
+        ax[1].loglog([x["relight_s"] * 1e3 for x in s], [max(x["error"], 1e-6) for x in s], "--s", color=c)
+    ax[0].set_xlabel("terms (wavelets: N; SH: n²)")
+    ax[1].set_xlabel("relight time (ms)")
+    for a in ax:
+        a.set_ylabel("relative L2 error vs exact")
+        for y in (0.05, 0.01):
+            a.axhline(y, color="grey", lw=0.5)
+    ax[0].legend(fontsize=6)
+    fig.tight_layout()
+    return _save_figure(fig, Path(out_dir) / "trade.png")
+
+
 def plot_ablation(res: dict, out_dir: Path) -> Path:
     """ablation.png: PSNR (each codec setting, and for transfer keys the model PSNR) and
     relighting rate across the swept values."""
@@ -332,7 +396,7 @@ def markdown(results: dict, figures: list[str], renders: list[str]) -> str:
         f"# Benchmark `{r['name']}`",
         "",
         f"Scene **{r['scene']['name']}** ({r['scene']['vertices']} vertices), transfer **{r['transfer']['kind']}** "
-        f"{tuple(r['transfer']['shape'])} ({r['transfer']['raw_bytes'] / 2**20:.2f} MiB float32), "
+        f"{tuple(r['transfer']['shape'])} ({r['transfer']['raw_bytes'] / 2**20:.2f} MiB {_stored(r)}), "
         f"lights: {', '.join(r['lights'])}; {max(1, len(r['views']))} view(s).",
         f"Machine: {m['cpu']}, {m['cores']} cores, torch {m['torch']} with {m['torch_threads']} threads, "
         f"load average {m.get('load_average_1min', float('nan')):.1f} at the start"
@@ -374,6 +438,8 @@ def markdown(results: dict, figures: list[str], renders: list[str]) -> str:
         lines += convex_lines(r["convex"], r.get("machine"))
     if r.get("ablation"):
         lines += ablation_lines(r)
+    if r.get("trade"):
+        lines += trade_lines(r["trade"])
     t = r.get("target")
     if t and t.get("mode") == "families":
         lines += target_lines(t)
@@ -518,7 +584,7 @@ def part_lines(part: dict) -> list[str]:
         lines += [part["note"], ""]
     lines += [
         f"Scene **{r['scene']['name']}** ({r['scene']['vertices']} vertices), transfer **{r['transfer']['kind']}** "
-        f"{tuple(r['transfer']['shape'])} ({r['transfer']['raw_bytes'] / 2**20:.2f} MiB float32). Uncompressed relighting "
+        f"{tuple(r['transfer']['shape'])} ({r['transfer']['raw_bytes'] / 2**20:.2f} MiB {_stored(r)}). Uncompressed relighting "
         f"(this part's peer): {unc['vertices_per_s'] / 1e6:.2f} M vertices/s, {unc['fps']:.1f} fps. Full report, plots: "
         f"[{part['dir']}/report.md]({part['dir']}/report.md).",
         "",
@@ -537,6 +603,8 @@ def write_outputs(run_dir: Path, results: dict, log: Callable[[str], None] = pri
     figs = [p.name for p in plot_results([results], run_dir)]
     if results.get("ablation"):
         figs.append(plot_ablation(results, run_dir).name)
+    if results.get("trade"):
+        figs.append(plot_trade(results["trade"], run_dir).name)
     renders = list(results.get("renders") or [])
     io.atomic_write_text(run_dir / "report.md", markdown(results, figs, renders))
     log(f"[bench] wrote {run_dir}/report.md, results.json, results.csv, {', '.join(figs)}" + (f", {len(renders)} render(s)" if renders else ""))

@@ -133,6 +133,8 @@ def estimate_memory(cfg: dict, num_vertices: int) -> dict:
     elif t["type"] == "transport":
         v = p["views"]
         D = (10 * int(v) ** 2 + 2 if isinstance(v, int) else len(v)) * 6 * int(p["res"]) ** 2
+    elif t["type"] == "wavelet":
+        D = 2 * int(p["terms"])  # values and indices, a few times over (the relighter's CSC copy)
     else:
         D = int(p["M"]) ** 2 * n2
     signal = num_vertices * D * 4
@@ -165,7 +167,8 @@ def compute_transfer(cfg: dict, mesh, cache_dir: Path, progress: bool = True,
     lights = None
     keyed: dict[str, Any] = {"kind": kind, "params": params, "mesh": mesh.content_hash()}
     if "auto" in params.values():
-        lights = [load_light(spec, bands=32) for spec in cfg["lights"]]
+        # wavelet res: auto measures the lights themselves on the cube (not band-limited)
+        lights = list(cfg["lights"]) if kind == "wavelet" else [load_light(spec, bands=32) for spec in cfg["lights"]]
         _, decisions = get_kind(kind).resolve(params, lights)
         keyed["auto"] = {k: d["value"] for k, d in decisions.items()}
     key = config_hash(keyed)
@@ -408,7 +411,6 @@ def evaluate_run(cfg: dict, run_dir: Path, resume: bool = True, progress: bool =
     are written here as it finishes (atomic, so an interruption keeps every finished setting and
     a re-run skips it). With a ``RayExecutor`` a setting whose task fails on every attempt is
     listed in ``RunState.failures`` (setting, error, attempts) while the others finish."""
-    from ..lighting import load_light
 
     executor = LocalExecutor() if executor is None else executor
     rec_dir = run_dir / "records"
@@ -418,7 +420,7 @@ def evaluate_run(cfg: dict, run_dir: Path, resume: bool = True, progress: bool =
     tr, tinfo = compute_transfer(cfg, mesh, Path(cfg["cache_dir"]), progress=progress, executor=executor)
     log(f"[bench] transfer {tuple(tr.data.shape)} ({tinfo['cache']}, {tinfo['seconds']:.1f} s)")
     ev = Evaluator(tr)
-    lights = [load_light(spec, bands=ev.bands_in) for spec in cfg["lights"]]
+    lights = [ev.load_light(spec) for spec in cfg["lights"]]
     center = ev.points.mean(0)
     radius = float((ev.points - center).norm(dim=-1).max())
     cams = camera_positions(center, radius, cfg["views"]["count"], cfg["views"]["elevation"], cfg["views"]["azimuth0"])
@@ -539,6 +541,10 @@ def run_benchmark(cfg: dict, resume: bool = True, progress: bool = True, log: Ca
                 records.append(r)
 
     results = _results(cfg, st, records, target)
+    if ev.kind == "wavelet":  # SH vs N wavelet terms, each against the exact result (harness.trade)
+        from .trade import wavelet_trade
+
+        results["trade"] = wavelet_trade(ev, lights, cfg, log)
     if cfg["validation"]["enabled"]:
         results["validation"] = run_validation(st, cfg, log)
     if (cfg.get("convex") or {}).get("enabled"):

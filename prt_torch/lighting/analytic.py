@@ -34,7 +34,7 @@ import torch
 from .._checks import check_float, check_int, describe
 from ..sh import MAX_BANDS, eval_sh, rotate_zonal, zonal_project
 
-__all__ = ["directional", "cap", "cap_zonal", "sky_gradient", "hemisphere", "constant", "color"]
+__all__ = ["unit_direction", "directional", "cap", "cap_zonal", "sky_gradient", "hemisphere", "constant", "color"]
 
 
 def color(value: Any, name: str = "intensity") -> torch.Tensor:
@@ -54,6 +54,12 @@ def _dir(direction: Any, name: str = "direction") -> torch.Tensor:
     if d.shape != (3,) or not torch.isfinite(d).all() or float(d.norm()) == 0:
         raise ValueError(f"{name}={describe(direction)}; accepted: a non-zero 3-vector (normalised here)")
     return d / d.norm()
+
+
+def unit_direction(direction: Any, name: str = "direction") -> torch.Tensor:
+    """``direction`` checked (a finite non-zero 3-vector) and normalised, ``[3]`` float64: the
+    rule every light here applies to its direction (public for the cube rasteriser)."""
+    return _dir(direction, name)
 
 
 def directional(direction: Any, intensity: Any = 1.0, bands: int = 3) -> torch.Tensor:

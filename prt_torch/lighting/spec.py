@@ -26,7 +26,7 @@ from . import analytic
 from .builtin import BUILTIN_SIZE, builtin_environment, list_builtin_environments
 from .environment import Environment, expand_window, load_environment, window_factors
 
-__all__ = ["load_light", "parse_light_spec", "ANALYTIC_KINDS"]
+__all__ = ["load_light", "parse_light_spec", "analytic_params", "ANALYTIC_KINDS"]
 
 ANALYTIC_KINDS = {
     "directional": analytic.directional,
@@ -53,13 +53,20 @@ def parse_light_spec(spec: str) -> dict | None:
     return out
 
 
-def _analytic(d: dict, bands: int) -> torch.Tensor:
+def analytic_params(d: dict) -> tuple[str, dict]:
+    """``(kind, keyword arguments)`` of an analytic light spec ``{'type': kind, ...}``: the kind
+    checked against :data:`ANALYTIC_KINDS`, ``half_angle_deg`` turned into ``half_angle`` (radians)."""
     d = dict(d)
     kind = d.pop("type", None)
     if kind not in ANALYTIC_KINDS:
         raise ValueError(f"light type {kind!r}; accepted: {sorted(ANALYTIC_KINDS)}")
     if "half_angle_deg" in d:
         d["half_angle"] = math.radians(d.pop("half_angle_deg"))
+    return kind, d
+
+
+def _analytic(d: dict, bands: int) -> torch.Tensor:
+    kind, d = analytic_params(d)
     try:
         return ANALYTIC_KINDS[kind](bands=bands, **d)
     except TypeError as e:

@@ -34,7 +34,7 @@ from ..brdf import BRDF, Lambertian
 from ..sh import band_factor, clamped_cosine, hemisphere_gram, phong
 from .tents import MAX_TENTS, error_matrix
 
-__all__ = ["AUTO", "DEFAULT_ENERGY", "lobe_filter", "light_spectrum", "choose_bands", "choose_tents", "resolve_auto"]
+__all__ = ["AUTO", "DEFAULT_ENERGY", "lobe_filter", "light_spectrum", "choose_bands", "choose_tents", "choose_haar_res", "resolve_auto"]
 
 AUTO = "auto"
 DEFAULT_ENERGY = 0.99
@@ -105,6 +105,50 @@ def choose_tents(bands_out: int, energy: float, max_tents: int = 24) -> tuple[in
     return min(max_tents, MAX_TENTS), kept
 
 
+#: the finest cube resolution ``res: auto`` chooses (the lights are measured at twice it: what a
+#: sharp edge keeps losing level by level beyond it is then part of the figure)
+AUTO_HAAR_MAX_RES = 64
+#: ``res: auto`` without lights
+AUTO_HAAR_DEFAULT_RES = 32
+
+
+def choose_haar_res(lights: list | None, energy: float, max_res: int = AUTO_HAAR_MAX_RES) -> tuple[int, float, str]:
+    """``res: auto`` of the wavelet kind: the smallest cube face resolution R ≤ ``max_res`` whose
+    Haar levels keep ``energy`` of each light's energy (Σ L̂² over the coefficients coarser than R
+    of the light's cube at 2·``max_res``, each light normalised to unit energy and summed, as for
+    bands): what the dropped finer levels hold is the light's detail a coarser cube cannot place;
+    ``max_res`` with the fraction it keeps when even that is short. Lights: SH
+    tensors ``[C, n²]`` or specs (:func:`prt_torch.lighting.haar.cube_light`). Returns
+    (R, fraction kept, reason); without lights R = :data:`AUTO_HAAR_DEFAULT_RES`."""
+    from ..lighting.haar import cube_light, haar2d
+
+    if not lights:
+        return AUTO_HAAR_DEFAULT_RES, float("nan"), f"no lights given: the default R={AUTO_HAAR_DEFAULT_RES}"
+    r = 2 * max_res
+    m = torch.arange(r)
+    level = torch.maximum(m[:, None], m[None, :])  # coefficient (i, j) belongs to resolution > max(i, j)
+    per_res = torch.zeros(r.bit_length(), dtype=torch.float64)  # energy first resolved at R = 2^k
+    for spec in lights:  # a few lights
+        cube, _ = cube_light(spec, r, supersample=2)
+        e = haar2d(cube).square().sum((0, 1))  # [R, R] summed over channels and faces
+        tot = float(e.sum())
+        if tot <= 0:
+            continue
+        for k in range(r.bit_length()):  # log2 R + 1 levels
+            lo, hi = (0, 1) if k == 0 else (1 << (k - 1), 1 << k)
+            per_res[k] += float(e[(level >= lo) & (level < hi)].sum()) / tot
+    cum = torch.cumsum(per_res, 0) / per_res.sum().clamp_min(1e-300)
+    ok = torch.nonzero(cum >= energy - 1e-12).flatten()
+    top = max_res.bit_length() - 1
+    if ok.numel() and int(ok[0]) <= top:
+        k = int(ok[0])
+        return 1 << k, float(cum[k]), (f"smallest cube face resolution whose Haar levels keep {energy:g} of the energy of "
+                                       f"{len(lights)} light(s) (each normalised, measured at R={r})")
+    return max_res, float(cum[top]), (f"R={max_res}, the largest res: auto chooses, keeps {float(cum[top]):.4f} < {energy:g} of "
+                                      f"the energy of {len(lights)} light(s) (each normalised, measured at R={r}): sharper "
+                                      "than the cube resolves; pass --res 128 for more")
+
+
 def resolve_auto(kind: str, params: dict[str, Any], lights: list[torch.Tensor] | None, brdf: BRDF | None,
                  max_bands: int) -> tuple[dict[str, Any], dict[str, Any]]:
     """Replace ``'auto'`` in ``params`` (bands, bands_out, M) by the chosen values.
@@ -115,6 +159,10 @@ def resolve_auto(kind: str, params: dict[str, Any], lights: list[torch.Tensor] |
     p = dict(params)
     energy = check_float("energy", p.pop("energy", DEFAULT_ENERGY), 0.0, 1.0, lo_open=True)
     decisions: dict[str, Any] = {}
+    if kind == "wavelet" and p.get("res") == AUTO:
+        r, kept, why = choose_haar_res(lights, energy)
+        p["res"] = r
+        decisions["res"] = {"value": r, "energy_kept": kept, "target": energy, "reason": why}
     if not any(p.get(k) == AUTO for k in ("bands", "bands_out", "M")):
         return p, decisions
     lobe, lobe_why = lobe_filter(None if kind == "diffuse" else brdf)

@@ -8,7 +8,10 @@ under ``mesh.*`` (vertices, faces, normals, tangents, bitangents, albedo), and m
 
 Shapes of ``data`` (interfaces.md): diffuse ``[V, n²]`` (albedo kept separate, in
 ``mesh.albedo``) or ``[V, 3, n²]`` (RGB, albedo folded); glossy ``[V, n_out, n_in]``
-(``meta['matrix_shape'] = [n_out, n_in]``); MRT ``[V, M*M, n²]``; transport as its module says.
+(``meta['matrix_shape'] = [n_out, n_in]``); MRT ``[V, M*M, n²]``; transport as its module says;
+wavelet ``[V, K]`` quantised Haar coefficients (int8/int16/float32) with ``aux.index [V, K]`` and
+``aux.scale [V]`` (:mod:`prt_torch.transfer.wavelet`). ``Transfer.aux`` tensors are saved as
+``aux.<name>``.
 """
 from __future__ import annotations
 
@@ -33,7 +36,7 @@ from ..scene import Mesh, RayCaster
 __all__ = ["Transfer", "KINDS", "TRANSFER_VERSION", "RunOptions", "run_chunks", "ChunkInterrupt", "default_state_dir",
            "remove_state", "check_transfer_values", "MAX_ABS_TRANSFER"]
 
-KINDS = ("diffuse", "glossy", "mrt", "transport")
+KINDS = ("diffuse", "glossy", "mrt", "transport", "wavelet")
 TRANSFER_VERSION = 1
 
 
@@ -109,16 +112,20 @@ class Transfer:
     """Per-vertex transfer of one kind over one mesh.
 
     Attributes:
-        kind: 'diffuse' | 'glossy' | 'mrt' | 'transport'.
-        data: ``float32 [V, ...]`` (see module docstring for the shapes of each kind).
+        kind: 'diffuse' | 'glossy' | 'mrt' | 'transport' | 'wavelet'.
+        data: ``float32 [V, ...]`` (see module docstring for the shapes of each kind; a wavelet
+            transfer's quantised values keep their integer dtype).
         mesh: the ``Mesh`` it was computed for (frames, albedo).
         meta: bands, samples, seed, bounces, mesh hash, choices made, timings ...
+        aux: further per-vertex tensors of the kind (wavelet: ``index [V, K]``, ``scale [V]``),
+            saved as ``aux.<name>`` with their dtypes.
     """
 
     kind: str
     data: torch.Tensor
     mesh: Mesh
     meta: dict = dataclasses.field(default_factory=dict)
+    aux: dict = dataclasses.field(default_factory=dict)
 
     def __post_init__(self):
         check_choice("kind", self.kind, KINDS)
@@ -142,7 +149,9 @@ class Transfer:
         meta.update(transfer_version=TRANSFER_VERSION, transfer_kind=self.kind, mesh_name=self.mesh.name,
                     mesh_hash=self.mesh.content_hash(), data_shape=list(self.data.shape),
                     mesh_meta=io.jsonable(self.mesh.meta))
-        tensors = {"data": self.data.to(torch.float32)}
+        keep = not self.data.is_floating_point()  # quantised wavelet values keep their integer dtype
+        tensors = {"data": self.data if keep else self.data.to(torch.float32)}
+        tensors.update({f"aux.{k}": v.contiguous() for k, v in self.aux.items()})
         tensors.update(self.mesh.to_tensors("mesh."))
         return io.save(path, tensors, kind=f"transfer/{self.kind}", meta=meta, overwrite=overwrite)
 
@@ -157,7 +166,8 @@ class Transfer:
         for k in ("format", "format_version", "kind", "transfer_version", "transfer_kind", "mesh_name", "mesh_hash",
                   "data_shape", "mesh_meta"):
             meta.pop(k, None)
-        return cls(kind=kind, data=tensors["data"], mesh=mesh, meta=meta)
+        aux = {k[4:]: v for k, v in tensors.items() if k.startswith("aux.")}
+        return cls(kind=kind, data=tensors["data"], mesh=mesh, meta=meta, aux=aux)
 
     def __repr__(self) -> str:
         return f"Transfer(kind={self.kind!r}, data={tuple(self.data.shape)}, mesh={self.mesh!r})"
@@ -209,9 +219,9 @@ def check_transfer_values(path: Any, tensors: dict[str, torch.Tensor], meta: dic
     if "data" not in tensors:
         raise ValueError(f"{name!r} has no 'data' tensor; accepted: a file written by Transfer.save")
     data = tensors["data"]
-    ranks = {"diffuse": (2, 3), "glossy": (3,), "mrt": (3,)}.get(kind)
+    ranks = {"diffuse": (2, 3), "glossy": (3,), "mrt": (3,), "wavelet": (2,)}.get(kind)
     if ranks is not None and data.ndim not in ranks:
-        shape = "[V, n²] or [V, C, n²]" if kind == "diffuse" else "[V, rows, n²]"
+        shape = {"diffuse": "[V, n²] or [V, C, n²]", "wavelet": "[V, K]"}.get(kind, "[V, rows, n²]")
         raise ValueError(f"{name!r} is labelled kind=transfer/{kind} but its data has shape {tuple(data.shape)} (rank {data.ndim}); "
                          f"accepted for {kind}: rank {' or '.join(map(str, ranks))} ({shape})")
     bad = ~torch.isfinite(data)

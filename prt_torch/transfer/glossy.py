@@ -104,6 +104,16 @@ def estimate_memory(vertices: int, n_out: int, n_in: int, samples: int, chunk_si
     return int(result + chunk + table)
 
 
+def memory_budget(max_memory: int | None) -> int:
+    """The byte budget of a precompute: ``max_memory``, or (None) 60% of the machine's RAM."""
+    return int(0.6 * _available_memory()) if max_memory is None else int(max_memory)
+
+
+def format_bytes(b: float) -> str:
+    """``b`` bytes as text with a binary unit (``'1.5 GiB'``)."""
+    return _fmt_bytes(b)
+
+
 def _fmt_bytes(b: float) -> str:
     for unit in ("B", "KiB", "MiB", "GiB", "TiB"):
         if b < 1024 or unit == "TiB":

@@ -32,7 +32,7 @@ from ..lighting import load_light
 from ..scene import Mesh
 from ..transfer import Transfer
 from .compare import format_report, sample_vertices
-from .diffuse import engine_parts, sharp_vertices, validate_diffuse
+from .diffuse import engine_parts, sharp_vertices, validate_diffuse, validate_wavelet
 from .glossy import engine_glossy, glossy_brdf, validate_glossy
 from .lights import check_expressible, light_image, mitsuba_envmap_directions, source_image
 from .lights import source_image as _source_image  # noqa: F401 (the name tests/test_validate.py uses)
@@ -52,6 +52,7 @@ __all__ = [
     "engine_parts",
     "validate",
     "validate_diffuse",
+    "validate_wavelet",
     "format_report",
     "BSDF_PLUGIN",
     "engine_bsdf",
@@ -69,9 +70,10 @@ def validate(transfer: Transfer | str | os.PathLike, light: Any, *, vertices: in
     """Engine vs Mitsuba 3 at ``vertices`` sampled vertices (docs/validate.md); no scale fit.
 
     Args:
-        transfer: a diffuse or glossy (exit) :class:`Transfer` or its file; glossy goes
+        transfer: a diffuse, glossy (exit) or wavelet :class:`Transfer` or its file; glossy goes
             to :func:`validate_glossy` (``mesh``: the full mesh of a vertex-subset transfer;
-            ``view_deg``: the views' largest angle from the normal).
+            ``view_deg``: the views' largest angle from the normal); wavelet to
+            :func:`validate_wavelet` (``light_source='image'`` only: the kind is not band-limited).
         light: anything :func:`prt_torch.lighting.load_light` takes, or an SH tensor ``[C, n²]``.
         spp, batches: Mitsuba samples per vertex and depth, split into independent batches (noise).
         codec_file: also compare a codec's reconstruction of this transfer (total and
@@ -90,9 +92,24 @@ def validate(transfer: Transfer | str | os.PathLike, light: Any, *, vertices: in
     """
     if not isinstance(transfer, Transfer):
         transfer = Transfer.load(transfer)
+    if transfer.kind == "wavelet":  # not band-limited: Mitsuba sees the original image
+        name = light_name or str(light)
+        if light_source != "image" or codec_file is not None:
+            raise ValueError("a wavelet transfer is validated under the environment's original image; accepted: "
+                             "light_source='image' (CLI --light-source image) and no codec file")
+        vertices = check_int("vertices", vertices, 1)
+        batches = check_int("batches", batches, 2, 4096)
+        spp = check_int("spp", spp, batches, 1 << 24)
+        seed = check_int("seed", seed, 0, 2**63 - 1)
+        src_img = None if isinstance(light, torch.Tensor) else source_image(light, image_height)
+        if src_img is None:
+            raise ValueError(f"light {name!r}: no environment image behind it; accepted for a wavelet transfer: an "
+                             "environment file or a built-in environment name")
+        require_mitsuba()
+        return validate_wavelet(transfer, light, name, src_img, vertices=vertices, spp=spp, batches=batches, seed=seed, idx=idx)
     if transfer.kind not in ("diffuse", "glossy"):
-        raise ValueError(f"transfer kind {transfer.kind!r}: the validator expresses diffuse and glossy exit transfer; "
-                         "accepted: prt precompute --kind diffuse or --kind glossy")
+        raise ValueError(f"transfer kind {transfer.kind!r}: the validator expresses diffuse, glossy exit and wavelet transfer; "
+                         "accepted: prt precompute --kind diffuse, glossy or wavelet")
     if transfer.kind == "glossy":
         glossy_brdf(transfer)  # a BRDF, quantity or bounces it cannot express: refused before any work
         if codec_file is not None:

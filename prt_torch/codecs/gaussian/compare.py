@@ -34,35 +34,15 @@ def sh_truncation(T: torch.Tensor, dirs: torch.Tensor, solid_angles: torch.Tenso
 
 def haar_truncation(T: torch.Tensor, k: int) -> torch.Tensor:
     """Non-linear Haar approximation on the cube map (Ng et al. 2003, as Green §3.3): the
-    orthonormal 2D (non-standard) Haar transform of each face, keep the ``k`` largest
-    coefficients over all six faces, invert. ``T [B, 6, r, r]`` (r a power of 2) → same shape,
-    float64."""
+    orthonormal 2D (non-standard) Haar transform of each face
+    (:func:`prt_torch.lighting.haar.haar2d`), keep the ``k`` largest coefficients over all six
+    faces, invert. ``T [B, 6, r, r]`` (r a power of 2) → same shape, float64."""
+    from ...lighting.haar import haar2d, ihaar2d
+
     B, F, r, _ = T.shape
     if r & (r - 1):
         raise ValueError(f"Haar needs a power-of-two face size; got r={r}")
-    x = T.double().clone()
-    n = r
-    while n > 1:  # forward, one level per step (log2 r levels, batched over functions and faces)
-        a = x[..., :n, :n]
-        p, q = a[..., 0::2, :], a[..., 1::2, :]
-        lo, hi = (p + q) / math.sqrt(2), (p - q) / math.sqrt(2)
-        rows = torch.cat([lo, hi], -2)
-        p, q = rows[..., :, 0::2], rows[..., :, 1::2]
-        x[..., :n, :n] = torch.cat([(p + q) / math.sqrt(2), (p - q) / math.sqrt(2)], -1)
-        n //= 2
-    flat = x.reshape(B, -1)
+    flat = haar2d(T.double()).reshape(B, -1)
     keep = flat.abs().topk(min(k, flat.shape[1]), dim=1).indices
     y = torch.zeros_like(flat).scatter_(1, keep, flat.gather(1, keep)).reshape(B, F, r, r)
-    n = 2
-    while n <= r:  # inverse
-        a = y[..., :n, :n]
-        h = n // 2
-        lo, hi = a[..., :, :h], a[..., :, h:]
-        cols = torch.empty_like(a)
-        cols[..., :, 0::2], cols[..., :, 1::2] = (lo + hi) / math.sqrt(2), (lo - hi) / math.sqrt(2)
-        lo, hi = cols[..., :h, :], cols[..., h:, :]
-        out = torch.empty_like(a)
-        out[..., 0::2, :], out[..., 1::2, :] = (lo + hi) / math.sqrt(2), (lo - hi) / math.sqrt(2)
-        y[..., :n, :n] = out
-        n *= 2
-    return y
+    return ihaar2d(y)

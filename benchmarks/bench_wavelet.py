@@ -1,0 +1,397 @@
+"""All-frequency relighting with Haar wavelets on cube maps against SH (issue 39; Ng, Ramamoorthi &
+Hanrahan 2003; course notes 2005 "PRT with Haar Wavelets" and its blocker-over-plane figure).
+
+Scene: the built-in ``occluder_over_plane`` (small: a receiver plane and a blocker slab, the
+course's scene). Lights, not band-limited, rasterised onto the cube at R (lighting.haar.cube_light):
+caps of 0.5°, 20° and 40° half-angle from above (tilted), and the built-in environments ``sky``
+(a real-size sun) and ``studio`` (three disk softboxes) — two images with sharp features.
+
+1. Precompute: ``precompute_wavelet`` (R = 32, K = 256, 8 bits) against bare Embree tracing the
+   same rays (the same chunks' rays, ``RayCaster.trace`` alone), one worker each, paired.
+2. The exact result per light: the full pixel-basis transfer (all 6R² terms, float64) · the cube
+   light; every error below is the relative L2 over vertices and channels against it (same R).
+3. Wavelets: per-vertex budgets K (8-bit values, 16-bit indices), light terms N = 10 … 2000 by
+   each selection (magnitude, area-weighted, transport-weighted): error, relight time (the C
+   kernel), bytes/vertex. The default selection is the one with the lowest mean error.
+4. SH at 3–10 bands projected from the same visibility (t_lm = Σ_j T_j y_lm(d_j) of the
+   pixel-basis transfer; the light projected from its cube, L_lm = Σ_j L_j y_lm(d_j) Ω_j), relit
+   by ``relight.diffuse``: error, time, bytes/vertex (n² float32).
+5. Headline: per light, the relight time to reach 5% and 1% error, SH vs wavelets.
+6. Bytes/vertex vs error at R = 16, 32, 64 and several K (all light terms), also against the
+   R = 64 exact result (what a coarser cube cannot place).
+7. Relight time vs N, against the kernel's read-once/write-once bound (the transfer coefficients
+   it touches — int32 row + stored value — and the output), ``timing.io_bound_fn``, paired.
+
+Run: .venv/bin/python benchmarks/bench_wavelet.py [--quick]   (about 5 minutes on 2 cores)
+Writes reports/benchmarks/wavelet.{md,json,png}.
+"""
+from __future__ import annotations
+
+import prt_torch  # noqa: F401  (first: it chooses OpenMP's wait policy from the machine's load)
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import math  # noqa: E402
+import os  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+from prt_torch import relight  # noqa: E402
+from prt_torch.harness.timing import io_bound_fn, machine_info, measure, measure_paired  # noqa: E402
+from prt_torch.lighting.haar import cube_geometry, cube_light, haar2d  # noqa: E402
+from prt_torch.scene import RayCaster, builtin  # noqa: E402
+from prt_torch.sh import eval_sh  # noqa: E402
+from prt_torch.transfer import RunOptions, Transfer  # noqa: E402
+from prt_torch.transfer.diffuse import offset_origins  # noqa: E402
+from prt_torch.transfer.ray_kernels import upper_rays  # noqa: E402
+from prt_torch.transfer.wavelet import bytes_per_vertex, dense_wavelet_transfer, precompute_wavelet, sparsify  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+OUT = ROOT / "reports" / "benchmarks"
+D = "0.3,0.2,1"
+LIGHTS = {
+    "cap 0.5°": f"cap:direction={D};half_angle_deg=0.5;intensity=1",
+    "cap 20°": f"cap:direction={D};half_angle_deg=20;intensity=1",
+    "cap 40°": f"cap:direction={D};half_angle_deg=40;intensity=1",
+    "sky (sun)": "sky",
+    "studio": "studio",
+}
+TERMS = [10, 30, 100, 300, 1000, 2000]
+BANDS = list(range(3, 11))
+SELECTIONS = ("magnitude", "area", "transport")
+#: stored precision of the transfers of sections 3, 5 and 7 (8 bits floors the error near 1.7%: section 6)
+BITS = 16
+
+
+def load() -> float:
+    return os.getloadavg()[0]
+
+
+def dense(mesh, res: int, chunk: int = 256) -> torch.Tensor:
+    """Pixel-basis transfer ``[V, 6R²]`` float64 (all terms), chunk by chunk (bounded memory)."""
+    V = mesh.num_vertices
+    out = torch.empty(V, 6 * res * res, dtype=torch.float64)
+    for a in range(0, V, chunk):  # chunks of vertices, each one traced batch
+        idx = torch.arange(a, min(V, a + chunk))
+        out[idx] = dense_wavelet_transfer(mesh, res, vertices=idx, haar=False).reshape(idx.numel(), -1)
+    return out
+
+
+def rel(x: torch.Tensor, ref: torch.Tensor) -> float:
+    return float((x.double() - ref).norm() / ref.norm().clamp_min(1e-300))
+
+
+def wavelet_transfer(mesh, H: torch.Tensor, res: int, K: int, bits: int = 8) -> Transfer:
+    s = sparsify(H, K, bits)
+    return Transfer("wavelet", s["q"], mesh, {"res": res, "terms": K, "bits": bits, "albedo_folded": False},
+                    aux={"index": s["index"], "scale": s["scale"]})
+
+
+def precompute_vs_bare(mesh, res: int, K: int) -> dict:
+    """Paired: the whole wavelet precompute and bare Embree tracing its rays (one worker each)."""
+    d, om = cube_geometry(res)
+    dirs = np.ascontiguousarray(d.reshape(-1, 3).numpy())
+    d32 = dirs.astype(np.float32)
+    caster = RayCaster(mesh, workers=1)
+    rays = []
+    chunk = 4096 * 256 // (6 * res * res)
+    for a in range(0, mesh.num_vertices, chunk):  # the same rays, built once, outside the timing
+        p, n = mesh.vertices[a:a + chunk].double(), mesh.normals[a:a + chunk].double()
+        cos = n.numpy() @ dirs.T
+        o_v = offset_origins(p.numpy(), n.numpy(), caster.eps).astype(np.float32)
+        _, _, o, dd = upper_rays(cos, o_v, d32)
+        rays.append((o.copy(), dd.copy()))
+    n_rays = sum(o.shape[0] for o, _ in rays)
+    pre = lambda: precompute_wavelet(mesh, res=res, terms=K, bits=8, shadows="always", run=RunOptions(workers=1))  # noqa: E731
+    bare = lambda: [caster.trace(o, dd, "occluded") for o, dd in rays]  # noqa: E731
+    p = measure_paired(pre, bare, repeats=3, warmup=0, min_sample_time=0.0)
+    t_pre = measure(pre, repeats=1, warmup=0).median
+    caster.close()
+    return {"res": res, "terms": K, "rays": n_rays, "precompute_s": t_pre, "bare_over_precompute": p.speedup,
+            "spread": (p.ratio.q3 - p.ratio.q1) / p.ratio.median if p.ratio.median else float("nan"), "trusted": bool(p.contention.get("trusted"))}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--quick", action="store_true", help="R = 16 and 32 only, fewer budgets")
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    torch.manual_seed(0)
+    res_list = [16, 32] if args.quick else [16, 32, 64]
+    mesh = builtin("occluder_over_plane", "small")
+    V = mesh.num_vertices
+    alb = mesh.albedo.double()
+    info = machine_info()
+    loads = [load()]
+    results: dict = {"machine": info, "scene": {"name": mesh.name, "vertices": V}, "lights": LIGHTS}
+    print(f"[wavelet] {mesh.name}: {V} vertices; load {loads[0]:.1f}", flush=True)
+
+    # 1. precompute vs bare Embree
+    results["precompute"] = precompute_vs_bare(mesh, 32, 256)
+    print(f"[wavelet] precompute {results['precompute']}", flush=True)
+
+    # 2-4 at R = 32 (the main resolution), 6 at every R
+    pix: dict[int, torch.Tensor] = {}
+    t0 = time.perf_counter()
+    for r in res_list:
+        pix[r] = dense(mesh, r)
+    results["dense_seconds"] = time.perf_counter() - t0
+    R = 32
+    T = pix[R]
+    P = T.shape[1]
+    H = haar2d(T.reshape(V, 6, R, R)).reshape(V, P)
+    cubes = {name: cube_light(spec, R)[0] for name, spec in LIGHTS.items()}  # [C, 6, R, R]
+    exact = {name: (T @ c.reshape(c.shape[0], -1).T) * alb[:, :c.shape[0]] for name, c in cubes.items()}
+
+    # 3. wavelets: K budgets x N x selection
+    budgets = [64, 256] if args.quick else [64, 256, 1024]
+    wav_rows = []
+    relighters = {}
+    for K in budgets:
+        tr = wavelet_transfer(mesh, H, R, K, BITS)
+        rl = relight.WaveletRelighter(tr)
+        relighters[K] = rl
+        for name, spec in LIGHTS.items():
+            for sel in SELECTIONS:
+                for N in TERMS:
+                    li, lv, rec = rl.light(spec, N, sel)
+                    out = rl(li, lv)
+                    row = {"K": K, "bytes_per_vertex": bytes_per_vertex(K, BITS, P), "light": name,
+                           "selection": sel, "N": N, "error": rel(out, exact[name]), "touched": rl.touched(li),
+                           "relight_s": measure(lambda: rl(li, lv, out=out), repeats=5, warmup=1).median}
+                    wav_rows.append(row)
+        print(f"[wavelet] K={K} done; load {load():.1f}", flush=True)
+    results["wavelet"] = wav_rows
+    mean_err = {s: float(np.mean([math.log(max(r["error"], 1e-9)) for r in wav_rows if r["selection"] == s]))
+                for s in SELECTIONS}
+    default_sel = min(mean_err, key=mean_err.get)
+    results["selection_mean_log_error"] = mean_err
+    results["selection_default"] = default_sel
+
+    # 4. SH projected from the same visibility
+    d, om = cube_geometry(R)
+    dirs, om = d.reshape(-1, 3), om.reshape(-1)
+    Y = eval_sh(dirs, max(BANDS), check=False)  # [P, n²]
+    sh_rows = []
+    for n in BANDS:
+        t_sh = (T @ Y[:, : n * n]).to(torch.float32)  # [V, n²]
+        for name, c in cubes.items():
+            Lsh = (c.reshape(c.shape[0], -1) * om) @ Y[:, : n * n]  # [C, n²]
+            out = relight.diffuse(t_sh, Lsh.to(torch.float32)) * mesh.albedo[:, : c.shape[0]]
+            ts = measure(lambda: relight.diffuse(t_sh, Lsh.to(torch.float32)), repeats=5, warmup=1).median
+            sh_rows.append({"bands": n, "bytes_per_vertex": n * n * 4, "light": name, "error": rel(out, exact[name]),
+                            "relight_s": ts})
+    results["sh"] = sh_rows
+    print(f"[wavelet] SH done; load {load():.1f}", flush=True)
+
+    # 5. headline: time to reach 5% and 1%, the two relightings timed paired (interleaved, same run)
+    K_head = budgets[-1]
+    rl_head = relighters[K_head]
+    sh_fns = {}
+    for n in BANDS:
+        t_sh = (T @ Y[:, : n * n]).to(torch.float32)
+        sh_fns[n] = t_sh
+    head = []
+    for name in LIGHTS:
+        row = {"light": name}
+        for tgt in (0.05, 0.01):
+            shs = [r for r in sh_rows if r["light"] == name and r["error"] <= tgt]
+            wvs = [r for r in wav_rows if r["light"] == name and r["K"] == K_head and r["selection"] == default_sel
+                   and r["error"] <= tgt]
+            s = min(shs, key=lambda r: r["bands"]) if shs else None
+            w = min(wvs, key=lambda r: r["N"]) if wvs else None
+            row[f"sh_{tgt}"] = None if s is None else {"bands": s["bands"], "relight_s": s["relight_s"], "error": s["error"]}
+            row[f"wavelet_{tgt}"] = None if w is None else {"N": w["N"], "relight_s": w["relight_s"], "error": w["error"]}
+            if s is not None and w is not None:  # paired: SH's time over the wavelets' (> 1: wavelets faster)
+                c = cubes[name]
+                Lsh = ((c.reshape(c.shape[0], -1) * om) @ Y[:, : s["bands"] ** 2]).to(torch.float32)
+                t_sh = sh_fns[s["bands"]]
+                li, lv, _ = rl_head.light(LIGHTS[name], w["N"], default_sel)
+                buf = torch.empty(V, 3)
+                p = measure_paired(lambda: rl_head(li, lv, out=buf), lambda: relight.diffuse(t_sh, Lsh), repeats=7, warmup=1,
+                                   floor_pairs=40)
+                row[f"paired_{tgt}"] = {"sh_over_wavelet": p.speedup, "trusted": bool(p.contention.get("trusted"))}
+        row["sh_best_error"] = min(r["error"] for r in sh_rows if r["light"] == name)
+        row["wavelet_best_error"] = min(r["error"] for r in wav_rows if r["light"] == name and r["K"] == K_head
+                                        and r["selection"] == default_sel)
+        head.append(row)
+    results["headline"] = head
+
+    # 6. bytes/vertex vs error over R and K (all light terms)
+    ref64 = max(res_list)
+    bve = []
+    for r in res_list:
+        Tr = pix[r]
+        Hr = haar2d(Tr.reshape(V, 6, r, r)).reshape(V, -1)
+        cub = {name: cube_light(spec, r)[0] for name, spec in LIGHTS.items()}
+        ex = {name: (Tr @ c.reshape(c.shape[0], -1).T) * alb[:, :c.shape[0]] for name, c in cub.items()}
+        exf = {name: (pix[ref64] @ cube_light(spec, ref64)[0].reshape(3, -1).T) * alb for name, spec in LIGHTS.items()}
+        for K in [16, 64, 256, 1024, 6 * r * r]:
+            if K > 6 * r * r:
+                continue
+            for bits in (8, 16, 32):
+                tr = wavelet_transfer(mesh, Hr, r, K, bits)
+                rl = relight.WaveletRelighter(tr)
+                errs, errs_f = [], []
+                for name, spec in LIGHTS.items():
+                    li, lv, _ = rl.light(spec, None, "area")
+                    out = rl(li, lv)
+                    errs.append(rel(out, ex[name]))
+                    errs_f.append(rel(out, exf[name]))
+                bve.append({"res": r, "K": K, "bits": bits, "bytes_per_vertex": bytes_per_vertex(K, bits, 6 * r * r),
+                            "error_mean": float(np.mean(errs)), "error_max": float(np.max(errs)),
+                            f"error_vs_R{ref64}_mean": float(np.mean(errs_f)), "per_light": dict(zip(LIGHTS, errs))})
+        print(f"[wavelet] R={r} bytes/error done; load {load():.1f}", flush=True)
+    results["bytes_vs_error"] = bve
+
+    # 7. relight time vs N against the bound (paired), studio, K = 256
+    rl = relighters[256]
+    bound_rows = []
+    for N in TERMS + [6 * R * R]:
+        li, lv, _ = rl.light("studio", N, results["selection_default"])
+        out = torch.empty(V, 3)
+        E = rl.touched(li)
+        bound = io_bound_fn(E * rl.bytes_per_entry, V * 3 * 4)
+        p = measure_paired(lambda: rl(li, lv, out=out), bound, repeats=7, warmup=1, floor_pairs=40)
+        t = measure(lambda: rl(li, lv, out=out), repeats=7, warmup=1).median
+        os.environ["PRT_TORCH_NATIVE"] = "0"
+        tt = measure(lambda: rl(li, lv, out=out), repeats=3, warmup=1).median
+        os.environ.pop("PRT_TORCH_NATIVE")
+        bound_rows.append({"N": N, "touched": E, "bytes": E * rl.bytes_per_entry + V * 12, "relight_s": t,
+                           "torch_relight_s": tt, "of_bound": p.speedup, "trusted": bool(p.contention.get("trusted"))})
+    results["kernel"] = bound_rows
+    loads.append(load())
+    results["load_average"] = loads
+    OUT.mkdir(parents=True, exist_ok=True)
+    (OUT / "wavelet.json").write_text(json.dumps(results, indent=1, default=str))
+    plot(results)
+    write_md(results, args.quick)
+    print(f"[wavelet] wrote {OUT / 'wavelet.md'}", flush=True)
+
+
+def plot(res: dict) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    K = max(r["K"] for r in res["wavelet"])
+    fig, ax = plt.subplots(1, 2, figsize=(11, 4))
+    for i, name in enumerate(res["lights"]):
+        w = [r for r in res["wavelet"] if r["light"] == name and r["K"] == K and r["selection"] == res["selection_default"]]
+        s = [r for r in res["sh"] if r["light"] == name]
+        c = f"C{i}"
+        ax[0].loglog([r["N"] for r in w], [r["error"] for r in w], "-o", color=c, label=f"{name} wavelets")
+        ax[0].loglog([r["bands"] ** 2 for r in s], [r["error"] for r in s], "--s", color=c, label=f"{name} SH")
+        ax[1].loglog([r["relight_s"] * 1e3 for r in w], [r["error"] for r in w], "-o", color=c)
+        ax[1].loglog([r["relight_s"] * 1e3 for r in s], [r["error"] for r in s], "--s", color=c)
+    ax[0].set_xlabel("terms (wavelets: N light terms; SH: n² coefficients)")
+    ax[1].set_xlabel("relight time per light (ms, one thread)")
+    for a in ax:
+        a.set_ylabel("relative L2 error vs exact")
+        a.axhline(0.05, color="grey", lw=0.5)
+        a.axhline(0.01, color="grey", lw=0.5)
+    ax[0].legend(fontsize=6)
+    fig.suptitle(f"occluder_over_plane, R=32, K={K}, {BITS}-bit (solid: wavelets, {res['selection_default']}; dashed: SH 3-10 bands)")
+    fig.tight_layout()
+    fig.savefig(OUT / "wavelet.png", dpi=90)
+
+
+def _ms(x: float) -> str:
+    return f"{x * 1e3:.3f} ms"
+
+
+def write_md(res: dict, quick: bool) -> None:
+    m = res["machine"]
+    la = res["load_average"]
+    K = max(r["K"] for r in res["wavelet"])
+    L = []
+    L.append("# All-frequency relighting: Haar wavelets on cube maps vs SH (issue 39)\n")
+    L.append(f"`benchmarks/bench_wavelet.py{' --quick' if quick else ''}` on {m['cpu']} ({m['cores']} cores), torch "
+             f"{m['torch']}, one torch thread; load average {la[0]:.1f} before and {la[-1]:.1f} after (the machine was "
+             f"shared with other jobs: absolute times are inflated, ratios measured in the same run are what to read). "
+             f"Scene `{res['scene']['name']}` (small, {res['scene']['vertices']} vertices: the course's blocker over a "
+             "receiver plane). Lights rasterised onto the cube (not band-limited): "
+             + ", ".join(f"{k} (`{v}`)" for k, v in res["lights"].items()) + ". Errors: relative L2 over vertices and "
+             "RGB against the exact pixel-basis result at the same R (all 6R² terms, float64).\n")
+    h = res["headline"]
+    L.append(f"## Headline: relight time to reach 5% and 1% error, SH vs wavelets (R = 32, K = {K}, {BITS}-bit values, "
+             f"{res['selection_default']} selection)\n")
+    L.append("Times: medians of separate runs (inflated on the busy machine); the ratio columns are SH's time over the "
+             "wavelets' for those two settings, timed paired in the same run (interleaved short samples, fastest tenth of "
+             "each; > 1: wavelets faster; ⚠: measured under contention).\n")
+    L.append("| light | SH to 5% | wavelets to 5% | SH/wavelet (paired) | SH to 1% | wavelets to 1% | SH/wavelet (paired) | "
+             "best SH error (10 bands) | best wavelet error |")
+    L.append("|---|---|---|---|---|---|---|---|---|")
+    for r in h:
+        cells = [r["light"]]
+        for tgt in (0.05, 0.01):
+            s, w = r[f"sh_{tgt}"], r[f"wavelet_{tgt}"]
+            cells.append("not reached" if s is None else f"{s['bands']} bands, {_ms(s['relight_s'])}")
+            cells.append("not reached" if w is None else f"N={w['N']}, {_ms(w['relight_s'])}")
+            pr = r.get(f"paired_{tgt}")
+            cells.append(f"{pr['sh_over_wavelet']:.2f}{'' if pr['trusted'] else ' ⚠'}" if pr else "—")
+        cells += [f"{r['sh_best_error']:.3f}", f"{r['wavelet_best_error']:.3f}"]
+        L.append("| " + " | ".join(cells) + " |")
+    L.append("")
+    L.append("![error vs terms and vs relight time](wavelet.png)\n")
+    L.append("## Light-term selection (Ng 2003 §5)\n")
+    L.append("Mean of log(error) over every light, K and N per selection: "
+             + ", ".join(f"{s} {v:.3f}" for s, v in res["selection_mean_log_error"].items())
+             + f" → default **{res['selection_default']}** (`select_terms`, `prt relight --selection`).\n")
+    L.append("| light | K | N | magnitude | area | transport |")
+    L.append("|---|---|---|---|---|---|")
+    for name in res["lights"]:
+        for N in TERMS:
+            cells = [name, str(K), str(N)]
+            for s in SELECTIONS:
+                r = [x for x in res["wavelet"] if x["light"] == name and x["K"] == K and x["N"] == N and x["selection"] == s]
+                cells.append(f"{r[0]['error']:.4f}" if r else "—")
+            L.append("| " + " | ".join(cells) + " |")
+    L.append("")
+    L.append(f"## Wavelets: error, relight time and bytes per vertex ({res['selection_default']} selection, {BITS}-bit values)\n")
+    L.append("| light | K | bytes/vertex | N | error | relight | coefficients read |")
+    L.append("|---|---|---|---|---|---|---|")
+    for r in res["wavelet"]:
+        if r["selection"] == res["selection_default"]:
+            L.append(f"| {r['light']} | {r['K']} | {r['bytes_per_vertex']} | {r['N']} | {r['error']:.4f} | "
+                     f"{_ms(r['relight_s'])} | {r['touched']} |")
+    L.append("")
+    L.append("## SH at 3–10 bands, projected from the same visibility\n")
+    L.append("| light | bands | bytes/vertex | error | relight |")
+    L.append("|---|---|---|---|---|")
+    for r in res["sh"]:
+        L.append(f"| {r['light']} | {r['bands']} | {r['bytes_per_vertex']} | {r['error']:.4f} | {_ms(r['relight_s'])} |")
+    L.append("")
+    L.append("## Bytes per vertex vs error (all light terms: the transfer's truncation and quantisation alone)\n")
+    ref = max(r["res"] for r in res["bytes_vs_error"])
+    L.append(f"| R | K | bits | bytes/vertex | mean error (same R) | max error (same R) | mean error vs R={ref} exact |")
+    L.append("|---|---|---|---|---|---|---|")
+    for r in res["bytes_vs_error"]:
+        L.append(f"| {r['res']} | {r['K']} | {r['bits']} | {r['bytes_per_vertex']} | {r['error_mean']:.4f} | "
+                 f"{r['error_max']:.4f} | {r[f'error_vs_R{ref}_mean']:.4f} |")
+    L.append("")
+    p = res["precompute"]
+    L.append("## Precompute against bare Embree\n")
+    L.append(f"R = {p['res']}, K = {p['terms']}, 8 bits, {p['rays']} rays, one worker: the whole precompute "
+             f"{p['precompute_s']:.2f} s; bare Embree tracing the same rays runs at **{p['bare_over_precompute']:.2f}** "
+             f"of the precompute's time (paired, spread {p['spread']:.2f}{'' if p['trusted'] else ', ⚠ contention'}): "
+             "the rest is ray generation, the Haar transform, top-K and quantisation.\n")
+    L.append(f"## Relight time vs N against the kernel's bound (studio, R = 32, K = 256, {BITS}-bit)\n")
+    L.append(f"Bound: read each touched transfer coefficient once (int32 row + int{BITS} value) and write the output once "
+             "(`timing.io_bound_fn`: a copy of the bytes read and a fill of the output), paired with the kernel "
+             "(fastest tenth of interleaved short samples).\n")
+    L.append("| N | coefficients read | bytes | C kernel | of bound | torch path | C / torch speed-up |")
+    L.append("|---|---|---|---|---|---|---|")
+    for r in res["kernel"]:
+        L.append(f"| {r['N']} | {r['touched']} | {r['bytes']} | {_ms(r['relight_s'])} | {r['of_bound']:.2f}"
+                 f"{'' if r['trusted'] else ' ⚠'} | {_ms(r['torch_relight_s'])} | {r['torch_relight_s'] / r['relight_s']:.1f}× |")
+    L.append("")
+    (OUT / "wavelet.md").write_text("\n".join(L) + "\n")
+
+
+if __name__ == "__main__":
+    main()

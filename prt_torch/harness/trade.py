@@ -1,0 +1,101 @@
+"""The all-frequency trade of a wavelet transfer (issue 39; Ng, Ramamoorthi & Hanrahan 2003; the
+course notes' blocker-over-plane comparison): what SH gives and what N wavelet terms give, each
+against the exact result, per light, with the relighting time and bytes per vertex.
+
+For a run whose transfer is kind ``wavelet`` (the config's ``trade`` section):
+
+* **exact**: every Haar term of the light on the cube (``Evaluator.reference``; the stored
+  transfer, so the trade isolates the light's approximation);
+* **wavelets, N terms**: the light's N most important terms (``trade.selection``,
+  :func:`prt_torch.lighting.haar.select_terms`), sparse light × sparse transfer
+  (:class:`prt_torch.relight.WaveletRelighter`);
+* **SH, n bands, from the same visibility**: the stored transfer back in the pixel basis
+  (``ihaar2d``), projected t_lm = Σ_j T_j y_lm(d_j), the light projected from its cube
+  L_lm = Σ_j L_j y_lm(d_j) Ω_j, relit by :func:`prt_torch.relight.diffuse` (n² floats per vertex).
+
+Error: relative L2 over vertices and RGB against the exact result. Times: median per relight in
+this process; the headline's SH/wavelet ratio is timed paired (interleaved, same run).
+"""
+from __future__ import annotations
+
+from typing import Any, Callable
+
+import torch
+
+from .. import relight
+from .evaluate import Evaluator
+from .timing import measure, measure_paired
+
+__all__ = ["wavelet_trade", "TARGETS"]
+
+#: the headline's error targets (relative L2)
+TARGETS = (0.05, 0.01)
+
+
+def _rel(x: torch.Tensor, ref: torch.Tensor) -> float:
+    return float((x.double() - ref.double()).norm() / ref.double().norm().clamp_min(1e-300))
+
+
+def wavelet_trade(ev: Evaluator, lights: list[torch.Tensor], cfg: dict, log: Callable[[str], None] = print) -> dict[str, Any]:
+    """The trade's rows and headline (module docstring) for the run's lights (Haar coefficients
+    ``[C, 6R²]`` from :meth:`Evaluator.load_light`). Returns a JSON-able dict."""
+    from ..lighting.haar import cube_geometry, ihaar2d, select_terms
+    from ..sh import eval_sh
+
+    t = cfg["trade"]
+    r = ev.relighter
+    V, P, R = ev.V, r.P, r.res
+    sel = t["selection"]
+    d, om = cube_geometry(R)
+    dirs, om = d.reshape(-1, 3), om.reshape(-1)
+    bands = sorted(set(int(b) for b in t["bands"]))
+    Y = eval_sh(dirs, max(bands), check=False)  # [P, n²]
+    nb = max(bands) ** 2
+    t_all = torch.empty(V, nb, dtype=torch.float64)
+    step = max(1, (64 << 20) // (P * 8))  # chunks of vertices: the dense rows stay ~64 MB at any V and R
+    for a in range(0, V, step):  # the stored transfer, dense, back in the pixel basis, projected
+        H = torch.zeros(min(step, V - a), P, dtype=torch.float64).scatter_(1, r.index[a:a + step], r.values[a:a + step].double())
+        t_all[a:a + step] = ihaar2d(H.reshape(-1, 6, R, R)).reshape(-1, P) @ Y
+    t_sh = {n: t_all[:, : n * n].to(torch.float32).contiguous() for n in bands}
+    del t_all
+    albedo = r.albedo
+    rows: list[dict] = []
+    head: list[dict] = []
+    for li, (spec, Lhat) in enumerate(zip(cfg["lights"], lights)):  # a few lights
+        C = Lhat.shape[0]
+        ref = ev.reference(Lhat, None)
+        cube = ihaar2d(Lhat.double().reshape(C, 6, R, R)).reshape(C, P)
+        out = torch.empty(V, C)
+        wav, shr = [], []
+        for N in sorted(set(int(n) for n in t["terms"])):
+            idx, vals = select_terms(Lhat.double(), N, sel, r.weights if sel == "transport" else None)
+            o = r(idx, vals, out=out)
+            e = _rel(o, ref)
+            s = measure(lambda: r(idx, vals, out=out), repeats=5, warmup=1).median
+            wav.append({"light": str(spec), "method": "wavelet", "N": int(idx.numel()), "error": e, "relight_s": s,
+                        "fps": 1.0 / s, "bytes_per_vertex": ev.bytes_per_vertex, "coefficients_read": r.touched(idx)})
+        for n in bands:
+            Lsh = ((cube * om) @ Y[:, : n * n]).to(torch.float32)  # [C, n²]
+            o = relight.diffuse(t_sh[n], Lsh) * albedo[:, :C]
+            e = _rel(o, ref)
+            s = measure(lambda: relight.diffuse(t_sh[n], Lsh), repeats=5, warmup=1).median
+            shr.append({"light": str(spec), "method": "sh", "bands": n, "error": e, "relight_s": s, "fps": 1.0 / s,
+                        "bytes_per_vertex": n * n * 4})
+        rows += wav + shr
+        h: dict[str, Any] = {"light": str(spec), "sh_best_error": min(x["error"] for x in shr),
+                             "wavelet_best_error": min(x["error"] for x in wav)}
+        for tgt in TARGETS:
+            s = next((x for x in shr if x["error"] <= tgt), None)
+            w = next((x for x in wav if x["error"] <= tgt), None)
+            h[f"sh_{tgt}"], h[f"wavelet_{tgt}"] = s, w
+            if s is not None and w is not None:  # paired: SH's relighting time over the wavelets'
+                idx, vals = select_terms(Lhat.double(), w["N"], sel, r.weights if sel == "transport" else None)
+                Lsh = ((cube * om) @ Y[:, : s["bands"] ** 2]).to(torch.float32)
+                tn = t_sh[s["bands"]]
+                p = measure_paired(lambda: r(idx, vals, out=out), lambda: relight.diffuse(tn, Lsh), repeats=5, warmup=1,
+                                   floor_pairs=40)
+                h[f"ratio_{tgt}"] = {"sh_over_wavelet": p.speedup, "trusted": bool(p.contention.get("trusted"))}
+        head.append(h)
+        log(f"[bench] trade {spec}: best SH {h['sh_best_error']:.4f}, best wavelets {h['wavelet_best_error']:.4f}")
+    return {"selection": sel, "res": R, "terms": list(t["terms"]), "bands": bands, "rows": rows, "headline": head,
+            "bytes_per_vertex": ev.bytes_per_vertex}

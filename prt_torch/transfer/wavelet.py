@@ -1,0 +1,295 @@
+"""All-frequency diffuse transfer in a Haar basis on a cube map (Ng, Ramamoorthi & Hanrahan 2003;
+course notes 2005, "PRT with Haar Wavelets").
+
+Per vertex p, the shadowed diffuse transfer in the *pixel basis* of a 6 × R × R cube map
+(:mod:`prt_torch.lighting.haar`: the ``faces`` layout, exact texel solid angles) is
+
+    T_p[j] = (1/π) ∫_{texel j} V(p, s) max(n_p·s, 0) ds  ≈ (1/π) Σ_{sub-texels} V max(n·s, 0) Ω_sub
+
+(texel centres, ``supersample`` = 1, or an s × s grid of sub-texels each with its exact solid
+angle), so that exit radiance under a cube light of radiance L_j per texel is
+
+    L_out(p) = ρ_p Σ_j T_p[j] L_j = ρ_p Σ_k T̂_p[k] L̂_k                  (Ng 2003 eq. 1–2)
+
+the second sum over the orthonormal Haar coefficients of both (per face, non-standard). The
+albedo ρ_p is kept out (``mesh.albedo``), as in the grey diffuse kind. Of the 6R² coefficients a
+vertex keeps its ``terms`` largest in magnitude (a per-row non-linear approximation of the
+transport matrix, Ng 2003 §6), optionally dropping those below ``threshold`` times the row's
+largest, quantised as Ng does (§6: a few bits per value with a per-row scale, 16-bit indices):
+``bits`` = 8 or 16 gives signed integers q with value = q · scale_p (scale_p = max|T̂_p| / (2^(b-1) - 1),
+so the quantisation error of a kept value is at most scale_p / 2, plus the float32 rounding of
+the product); ``bits`` = 32 stores float32.
+
+Stored (``Transfer(kind='wavelet')``): ``data [V, K]`` (int8 / int16 / float32 values),
+``aux['index'] [V, K]`` (int16 where 6R² < 2¹⁵, else int32: flat index f·R² + i·R + j of the
+Haar coefficient), ``aux['scale'] [V]`` float32; ``meta['bytes_per_vertex']`` the stored size.
+No interreflection: the bounce machinery of the diffuse kind works in SH (its hit tables are SH
+vectors); a wavelet bounce would need the hit points' full pixel-basis transfer, which this kind
+does not compute.
+"""
+from __future__ import annotations
+
+import math
+import time
+from typing import Any
+
+import numpy as np
+import torch
+
+from .._checks import check_choice, check_float, check_int, describe
+from ..lighting.haar import MAX_HAAR_RES, check_res, cube_geometry, haar2d
+from ..scene import Mesh, RayCaster
+from .base import RunOptions, Transfer
+from .diffuse import boundary_nudge, offset_origins
+from .glossy import decide_shadows, format_bytes, memory_budget
+from .ray_kernels import upper_rays
+
+__all__ = ["precompute_wavelet", "estimate_wavelet_memory", "dense_wavelet_transfer", "sparsify", "quantise", "dequantise",
+           "wavelet_values", "MAX_WAVELET_TERMS", "BITS"]
+
+MAX_WAVELET_TERMS = 6 * MAX_HAAR_RES * MAX_HAAR_RES
+#: stored precisions: signed integers of 8 or 16 bits with a per-vertex scale, or float32
+BITS = (8, 16, 32)
+
+
+def _index_dtype(P: int) -> torch.dtype:
+    return torch.int16 if P <= 32767 else torch.int32
+
+
+def bytes_per_vertex(terms: int, bits: int, P: int) -> int:
+    """Stored bytes of one vertex: K values of ``bits``, K indices (2 or 4 bytes), one float32 scale."""
+    return terms * (bits // 8 + (2 if P <= 32767 else 4)) + 4
+
+
+def estimate_wavelet_memory(V: int, res: int, terms: int, bits: int, supersample: int, chunk: int) -> int:
+    """Bytes a wavelet precompute holds at its peak: the stored result twice (chunk list and
+    assembled tensors) plus one chunk's working set (float64 cosines and weights, float32 rays
+    with their indices, at the sub-texel resolution; float64 Haar coefficients and top-K)."""
+    P = 6 * res * res
+    Pf = P * supersample * supersample
+    result = 2 * V * bytes_per_vertex(terms, bits, P)
+    work = chunk * (Pf * (8 + 8 + 12 + 12 + 16 + 1) + P * 8 * 3 + terms * 16)
+    return int(result + work + Pf * 40)
+
+
+def _default_chunk(res: int, supersample: int) -> int:
+    rays = 3 * res * res * supersample * supersample  # about half the sub-texels are above the horizon
+    return int(min(max(8, (1 << 20) // rays), 8192))
+
+
+def quantise(c: torch.Tensor, bits: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Quantise rows of kept coefficients ``c [V, K]`` (float) with one scale per row:
+    ``(q [V, K] int8/int16 — float32 for bits=32, scale [V] float32)``, value = q · scale,
+    scale = max|c| / (2^(bits-1) - 1); |q·scale - c| ≤ scale / 2 (Ng 2003 §6), plus |c|·2⁻²⁴ once
+    the product is formed in float32 (:func:`dequantise`)."""
+    bits = check_choice("bits", bits, BITS)
+    if bits == 32:
+        return c.to(torch.float32), torch.ones(c.shape[0], dtype=torch.float32)
+    qmax = (1 << (bits - 1)) - 1
+    top = c.abs().amax(1).to(torch.float64)
+    scale = torch.where(top > 0, top / qmax, torch.ones_like(top)).to(torch.float32)
+    q = torch.round(c.to(torch.float64) / scale.to(torch.float64)[:, None]).clamp_(-qmax, qmax)
+    return q.to(torch.int8 if bits == 8 else torch.int16), scale
+
+
+def dequantise(q: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
+    """``q [V, K]`` (any dtype) times ``scale [V]`` → float32 ``[V, K]``."""
+    return q.to(torch.float32) * scale.to(torch.float32)[:, None]
+
+
+def wavelet_values(tr: Transfer) -> torch.Tensor:
+    """The dequantised Haar coefficients of a wavelet transfer, ``[V, K]`` float32 (albedo out)."""
+    if tr.kind != "wavelet":
+        raise ValueError(f"transfer kind {tr.kind!r}; accepted: 'wavelet'")
+    return dequantise(tr.data, tr.aux["scale"])
+
+
+def sparsify(H: torch.Tensor, terms: int, bits: int, threshold: float = 0.0) -> dict[str, torch.Tensor]:
+    """Rows of Haar coefficients ``H [k, P]`` (float64) → their ``terms`` largest in magnitude,
+    those below ``threshold`` × the row's largest zeroed, quantised (:func:`quantise`): ``q [k, K]``,
+    ``index [k, K]`` (int16 for P < 2¹⁵, else int32), ``scale [k]``, and per row ``total`` (Σ H²),
+    ``dropped`` (Σ of the dropped H²), ``qerr`` (Σ of the squared quantisation errors), ``nnz``."""
+    P = H.shape[1]
+    total = H.double().square().sum(1)
+    top = H.abs().topk(terms, dim=1)
+    kept = H.gather(1, top.indices).double()
+    if threshold > 0:
+        kept = torch.where(kept.abs() >= threshold * top.values[:, :1].double(), kept, torch.zeros_like(kept))
+    q, scale = quantise(kept, bits)
+    err = (kept - dequantise(q, scale).double()).square().sum(1)
+    return {"q": q, "index": top.indices.to(_index_dtype(P)), "scale": scale, "total": total,
+            "dropped": (total - kept.square().sum(1)).clamp_min(0), "qerr": err, "nnz": (q != 0).sum(1).to(torch.int32)}
+
+
+def _pixel_transfer(caster: RayCaster | None, points: torch.Tensor, normals: torch.Tensor, nudge: torch.Tensor | None,
+                    dirs_f: np.ndarray, dirs32: np.ndarray, omega_f: np.ndarray, res: int, s: int,
+                    eps: float, work: dict) -> tuple[torch.Tensor, int]:
+    """Pixel-basis transfer of k vertices, ``[k, 6, R, R]`` float64 (module docstring), and the
+    number of rays traced. One masked pass per chunk: cosines ``[k, Pf]``, the rays above each
+    tangent plane (:func:`prt_torch.transfer.ray_kernels.upper_rays`), one occlusion batch."""
+    k = points.shape[0]
+    cos = normals.numpy() @ dirs_f.T  # [k, Pf] float64
+    rays = 0
+    if caster is not None:
+        o_v = offset_origins(points.numpy(), normals.numpy(), eps,
+                             None if nudge is None else nudge.numpy()).astype(np.float32)
+        fused = upper_rays(cos, o_v, dirs32, work=work)
+        if fused is not None:
+            i, j, o, d = fused
+        else:
+            up = cos > 0
+            counts = up.sum(1)
+            i = np.repeat(np.arange(k), counts)
+            j = np.flatnonzero(up) - i * up.shape[1]
+            o = np.repeat(o_v, counts, axis=0)
+            d = np.take(dirs32, j, axis=0)
+        hit = caster.trace(o, d, "occluded")
+        rays = int(i.shape[0])
+    W = np.maximum(cos, 0.0, out=cos)
+    W *= omega_f[None, :] * (1.0 / math.pi)
+    if caster is not None:
+        W.reshape(-1)[(i * W.shape[1] + j)[hit]] = 0.0  # blocked directions
+    T = torch.from_numpy(W).reshape(k, 6, res, s, res, s).sum((3, 5)) if s > 1 else torch.from_numpy(W).reshape(k, 6, res, res)
+    return T, rays
+
+
+def dense_wavelet_transfer(mesh: Mesh, res: int, *, supersample: int = 1, shadows: bool = True, offset: float = 1e-4,
+                           vertices: Any = None, haar: bool = True) -> torch.Tensor:
+    """The full (all 6R² terms, unquantised) transfer of the vertices ``vertices`` (default all),
+    ``[k, 6, R, R]`` float64 — Haar coefficients (``haar``) or the pixel basis; the same rays as
+    :func:`precompute_wavelet`. For references and tests on a few vertices."""
+    res = check_res(res)
+    idx = torch.arange(mesh.num_vertices) if vertices is None else torch.as_tensor(vertices, dtype=torch.int64)
+    d, om = cube_geometry(res, supersample)
+    dirs_f = np.ascontiguousarray(d.reshape(-1, 3).numpy())
+    nudge = boundary_nudge(mesh)[idx]
+    caster = RayCaster(mesh, workers=1, offset=offset) if shadows else None
+    try:
+        T, _ = _pixel_transfer(caster, mesh.vertices[idx].to(torch.float64), mesh.normals[idx].to(torch.float64),
+                               nudge if bool(nudge.any()) else None, dirs_f, dirs_f.astype(np.float32),
+                               np.ascontiguousarray(om.reshape(-1).numpy()), res, supersample,
+                               0.0 if caster is None else caster.eps, {})
+    finally:
+        if caster is not None:
+            caster.close()
+    return haar2d(T) if haar else T
+
+
+def precompute_wavelet(
+    mesh: Mesh,
+    res: int = 32,
+    terms: int = 256,
+    bits: int = 8,
+    *,
+    threshold: float = 0.0,
+    supersample: int = 1,
+    shadows: bool | str = "auto",
+    probe_tol: float = 1e-3,
+    seed: int = 0,
+    run: RunOptions | None = None,
+) -> Transfer:
+    """Sparse Haar-wavelet diffuse transfer of every vertex (module docstring; Ng 2003).
+
+    Args:
+        mesh: the scene.
+        res: cube face resolution R, a power of two in [1, 128] (6R² texels).
+        terms: K, coefficients kept per vertex (the largest in magnitude), in [1, 6R²].
+        bits: stored precision of the kept values: 8 or 16 (integers with a per-vertex scale,
+            Ng 2003 §6) or 32 (float32).
+        threshold: also drop kept coefficients below ``threshold`` × the vertex's largest
+            (stored as zeros; ``meta['nonzero_per_vertex']``), in [0, 1).
+        supersample: s, visibility and cosine on an s × s grid of sub-texels per texel (each
+            with its exact solid angle); 1 = texel centres.
+        shadows: 'auto' (probe self-occlusion first), 'always'/True, 'never'/False.
+        seed: the probe's seed.
+        run: :class:`RunOptions` (chunks — default about 2²⁰ rays —, workers, offset, memory
+            limit, resumable state, progress, executor).
+    Returns:
+        ``Transfer(kind='wavelet')``: ``data [V, K]``, ``aux['index'] [V, K]``, ``aux['scale'] [V]``.
+    Raises:
+        ValueError before any ray: R not a power of two, K out of range, or the memory estimate
+        (:func:`estimate_wavelet_memory`) above ``run.max_memory`` (default 60% of RAM).
+    """
+    if not isinstance(mesh, Mesh):
+        raise TypeError(f"mesh must be a prt_torch.scene.Mesh, got {describe(mesh)}")
+    run = RunOptions() if run is None else run
+    res = check_res(res)
+    P = 6 * res * res
+    terms = check_int("terms", terms, 1, P)
+    bits = check_choice("bits", bits, BITS)
+    threshold = check_float("threshold", threshold, 0.0, 1.0, hi_open=True)
+    s = check_int("supersample", supersample, 1, 16)
+    V = mesh.num_vertices
+    chunk_size = run.chunks(_default_chunk(res, s))
+    need = estimate_wavelet_memory(V, res, terms, bits, s, min(chunk_size, max(V, 1)))
+    budget = memory_budget(run.max_memory)
+    if need > budget:
+        raise ValueError(f"wavelet transfer of {V} vertices at res={res} (6x{res}x{res} texels, supersample {s}) with "
+                         f"{terms} terms needs about {format_bytes(need)}, more than the budget {format_bytes(budget)}; "
+                         "accepted: a smaller res, fewer terms, a smaller chunk_size or mesh, or a larger memory limit")
+    t0 = time.perf_counter()
+    traced, shadow_meta = decide_shadows(mesh, shadows, seed, run, probe_tol)
+    d, om = cube_geometry(res, s)
+    dirs_f = np.ascontiguousarray(d.reshape(-1, 3).numpy())
+    dirs32 = dirs_f.astype(np.float32)
+    omega_f = np.ascontiguousarray(om.reshape(-1).numpy())
+    nudge = boundary_nudge(mesh)
+    nudge = nudge if bool(nudge.any()) else None
+    points, normals = mesh.vertices.to(torch.float64), mesh.normals.to(torch.float64)
+    caster = RayCaster(mesh, workers=_workers(run, V, P * s * s), offset=run.offset) if traced else None
+    work: dict = {}
+
+    def compute(a: int, b: int) -> dict[str, torch.Tensor]:
+        T, rays = _pixel_transfer(caster, points[a:b], normals[a:b], None if nudge is None else nudge[a:b],
+                                  dirs_f, dirs32, omega_f, res, s, 0.0 if caster is None else caster.eps, work)
+        # Haar in float32: the stored values carry at most 16 bits (float32 for bits=32), the
+        # transform's rounding (~1e-7 relative) is far below; half the memory traffic of float64
+        out = sparsify(haar2d(T.to(torch.float32)).reshape(b - a, P), terms, bits, threshold)
+        out["rays"] = torch.tensor([rays], dtype=torch.int64)
+        return out
+
+    fingerprint = {"kind": "wavelet", "mesh_hash": mesh.content_hash(), "res": res, "terms": terms, "bits": bits,
+                   "threshold": threshold, "supersample": s, "shadows": traced, "offset": run.offset}
+    try:
+        parts = run.run_chunks(V, chunk_size, compute, fingerprint=fingerprint, desc=f"wavelet {mesh.name}",
+                               rays_of=lambda r: int(r["rays"].sum()))
+    finally:
+        if caster is not None:
+            caster.close()
+    cat = {k: torch.cat([p[k] for p in parts]) for k in parts[0]} if parts else {}
+    total, dropped, qerr = cat["total"], cat["dropped"], cat["qerr"]
+    rel = lambda e: (e / total.clamp_min(1e-300)).sqrt()  # noqa: E731 - relative L2 per vertex
+    lit = total > 0
+    meta: dict[str, Any] = {
+        "res": res, "texels": P, "terms": terms, "bits": bits, "threshold": threshold, "supersample": s,
+        "offset": run.offset, "albedo_folded": False, "channels": 1, "bounces_used": 0,
+        "bounce_decision": "no interreflection: the wavelet kind is direct (shadowed) transfer only",
+        "bytes_per_vertex": bytes_per_vertex(terms, bits, P),
+        "bytes_per_vertex_dense": P * 4,
+        "index_dtype": str(_index_dtype(P)).replace("torch.", ""),
+        "nonzero_per_vertex": float(cat["nnz"].float().mean()),
+        "truncation_rel_l2_mean": float(rel(dropped)[lit].mean()) if bool(lit.any()) else 0.0,
+        "truncation_rel_l2_max": float(rel(dropped)[lit].max()) if bool(lit.any()) else 0.0,
+        "quantisation_rel_l2_max": float(rel(qerr)[lit].max()) if bool(lit.any()) else 0.0,
+        "quantisation_bound": "per kept value |error| <= scale/2 + |value| 2^-24 (aux.scale per vertex)",
+        "rays_traced": int(cat["rays"].sum()), "chunk_size": chunk_size, "memory_estimate_bytes": need,
+        "layout": "Haar coefficients of the faces cube (+x,-x,+y,-y,+z,-z), index f*R*R + i*R + j after haar2d per face",
+        "normalisation": "exit radiance L_out[v] = albedo[v] * sum_k data[v,k]*scale[v] * Lhat[index[v,k]], Lhat = haar2d of "
+                         "the cube light's radiance per texel; T[j] = (1/pi) int_texel V max(n.s,0) ds",
+        **shadow_meta, "shadows_traced": traced,
+    }
+    meta["seconds"] = time.perf_counter() - t0
+    meta["rays_per_second"] = meta["rays_traced"] / meta["seconds"] if meta["rays_traced"] else 0.0
+    run.finish()
+    return Transfer("wavelet", cat["q"].contiguous(), mesh, meta,
+                    aux={"index": cat["index"].contiguous(), "scale": cat["scale"].contiguous()})
+
+
+def _workers(run: RunOptions, V: int, Pf: int) -> int:
+    """``run.workers``, or (None) all cores when the run traces ≥ 4M rays."""
+    from ..scene import default_workers
+
+    if run.workers is not None:
+        return run.workers
+    return default_workers() if V * Pf // 2 >= 4_000_000 else 1
+
