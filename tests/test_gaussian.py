@@ -412,7 +412,10 @@ def test_every_view_kernels_from_the_quad_table_equal_the_torch_formulation(cube
     r_ = c.relighter(enc)
     with torch_threads(1):
         one = c.relight(enc, pe)
-    assert used and torch.allclose(one, table_path, rtol=1e-6, atol=0) and not torch.equal(one, table_path)
+    # ``used``: the quads path ran. Its bits may equal the table path's: they differed on the AVX-512
+    # machines this was written on and are equal on an AVX2-only AMD EPYC (Zen 3), where both
+    # paths round alike; a bit difference is no sign of which path ran.
+    assert used and torch.allclose(one, table_path, rtol=1e-6, atol=0)
     for th in (1, 2, 3):
         with torch_threads(th):
             assert torch.equal(c.relight(enc, pe), one), th
