@@ -12,6 +12,9 @@ Each exercises what PRT is for:
                           and interreflection.
 * ``cornell_box``       — an open-front box (white floor/ceiling/back, red left (−x) wall,
                           green right (+x) wall) with two white blocks: concave, colour bleeding.
+* ``scan_blob``         — a scan-like mesh (``scene.scan.scan_like``): an organic blob decimated
+                          by vertex clustering, with holes in its base, non-manifold fins,
+                          slivers and scanner noise — where a real scan is hard for a ray tracer.
 
 Sizes: ``small`` (~1-3k vertices, for tests), ``medium`` (~10k), ``large`` (~50k).
 Flat parts are built as separate grids (no shared vertices across sharp edges), so normals stay
@@ -191,12 +194,20 @@ def _cornell_box(size: str):
     return parts, {"box": [[-1, -1, 0], [1, 1, 2]], "open_side": "-y", "left": "red", "right": "green"}
 
 
+def _scan_blob(size: str):
+    from .scan import scan_like
+
+    m = scan_like(_TARGET[size])
+    return [(m.vertices.numpy(), m.faces.numpy(), (0.8, 0.8, 0.8))], m.meta["scan"]
+
+
 _BUILDERS = {
     "convex": _convex,
     "sphere_on_plane": _sphere_on_plane,
     "occluder_over_plane": _occluder_over_plane,
     "bumpy_sphere": _bumpy_sphere,
     "cornell_box": _cornell_box,
+    "scan_blob": _scan_blob,
 }
 
 

@@ -22,8 +22,9 @@ can pin how the engine behaves on each (docs/validate.md):
 5. **Slivers** — ``slivers`` manifold edges split at a point 2% along them in both of their
    faces: each face becomes a sliver and a fat triangle (no crack).
 
-:func:`mesh_features` counts what a mesh has (boundary, non-manifold edges and vertices, slivers,
-folded vertex normals); the validator reports its errors per class of vertex.
+:func:`prt_torch.scene.mesh_features` counts what a mesh has (boundary and non-manifold edges,
+slivers, vertices of each class); the validator reports its errors per class of vertex
+(:func:`prt_torch.scene.vertex_classes`).
 """
 from __future__ import annotations
 
@@ -32,9 +33,9 @@ import math
 import numpy as np
 
 from .._checks import check_float, check_int
-from .mesh import Mesh, make_mesh
+from .mesh import Mesh, make_mesh, mesh_features
 
-__all__ = ["scan_like", "mesh_features", "edge_face_counts", "SCAN_FEATURES"]
+__all__ = ["scan_like", "SCAN_FEATURES"]
 
 #: the artefacts :func:`scan_like` can add, each switchable
 SCAN_FEATURES = ("decimate", "holes", "fins", "slivers", "noise")
@@ -214,63 +215,3 @@ def scan_like(vertices: int = 2000, *, seed: int = 0, features: tuple[str, ...] 
     mesh.meta["scan"] = {"seed": seed, "features": list(features), "holes": holes, "noise": noise, "bumps": bumps,
                          "counts": mesh_features(mesh)}
     return mesh
-
-
-def edge_face_counts(faces: np.ndarray, num_vertices: int) -> tuple[np.ndarray, np.ndarray]:
-    """Unique undirected edges ``[E, 2] int64`` and the number of faces on each ``[E] int64``
-    (1: boundary, 2: manifold, ≥ 3: non-manifold)."""
-    e = _edges(np.asarray(faces, np.int64))
-    key = e[:, 0] * int(num_vertices) + e[:, 1]
-    uk, cnt = np.unique(key, return_counts=True)
-    return np.stack([uk // num_vertices, uk % num_vertices], 1), cnt
-
-
-def mesh_features(mesh: Mesh, sharp_deg: float = 18.0, sliver_ratio: float = 0.05) -> dict:
-    """What makes a mesh hard for a ray tracer, counted: boundary and non-manifold edges, the
-    vertices on them, sliver faces (inradius/circumradius·2 below ``sliver_ratio``; 1 for an
-    equilateral triangle), vertices whose normal is ≥ ``sharp_deg`` from an adjacent face's
-    normal and ≥ 90° (folded: a face seen from behind). Plain ints (JSON-able)."""
-    cls = vertex_classes(mesh, sharp_deg)
-    e, cnt = edge_face_counts(mesh.faces.numpy(), mesh.num_vertices)
-    q = _sliver_quality(mesh.vertices.numpy(), mesh.faces.numpy())
-    return {"vertices": mesh.num_vertices, "faces": mesh.num_faces, "boundary_edges": int((cnt == 1).sum()),
-            "nonmanifold_edges": int((cnt >= 3).sum()), "sliver_faces": int((q < sliver_ratio).sum()),
-            **{f"{k}_vertices": int(m.sum()) for k, m in cls.items()}}
-
-
-def _sliver_quality(v: np.ndarray, f: np.ndarray) -> np.ndarray:
-    """``[F]`` 2·inradius/circumradius (1 equilateral, 0 degenerate)."""
-    t = v[f]
-    a = np.linalg.norm(t[:, 1] - t[:, 2], axis=1)
-    b = np.linalg.norm(t[:, 2] - t[:, 0], axis=1)
-    c = np.linalg.norm(t[:, 0] - t[:, 1], axis=1)
-    s = 0.5 * (a + b + c)
-    area = np.sqrt(np.maximum(s * (s - a) * (s - b) * (s - c), 0.0))
-    return np.where(a * b * c > 0, 8 * area * area / np.maximum(a * b * c * s, 1e-300), 0.0)
-
-
-def vertex_classes(mesh: Mesh, sharp_deg: float = 18.0) -> dict[str, np.ndarray]:
-    """Boolean ``[V]`` masks of the vertex classes the validator reports apart: 'boundary' (on
-    an edge with one face), 'nonmanifold' (on an edge with three or more faces), 'sharp' (an
-    adjacent face's normal ≥ ``sharp_deg`` from the vertex normal), 'folded' (≥ 90°: the
-    vertex's own offset point is behind one of its faces), 'sliver' (a corner of a sliver face).
-    A vertex may be in several classes."""
-    V = mesh.num_vertices
-    f = mesh.faces.numpy().astype(np.int64)
-    v = mesh.vertices.numpy()
-    e, cnt = edge_face_counts(f, V)
-    boundary = np.zeros(V, bool)
-    boundary[e[cnt == 1].reshape(-1)] = True
-    nonman = np.zeros(V, bool)
-    nonman[e[cnt >= 3].reshape(-1)] = True
-    t = v[f]
-    fn = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
-    nrm = np.linalg.norm(fn, axis=1, keepdims=True)
-    fn = np.divide(fn, nrm, out=np.zeros_like(fn), where=nrm > 0)
-    cosang = np.einsum("fkj,fj->fk", mesh.normals.numpy()[f], fn)  # [F,3]
-    worst = np.ones(V)
-    np.minimum.at(worst, f.reshape(-1), cosang.reshape(-1))
-    sliver = np.zeros(V, bool)
-    sliver[f[_sliver_quality(v, f) < 0.05].reshape(-1)] = True
-    return {"boundary": boundary, "nonmanifold": nonman, "sharp": worst <= math.cos(math.radians(sharp_deg)),
-            "folded": worst <= 0.0, "sliver": sliver}

@@ -46,7 +46,7 @@ import scipy.sparse
 import torch
 
 from .._checks import check_choice, check_float, check_int
-from ..scene import Mesh, RayCaster, default_workers
+from ..scene import Mesh, RayCaster, default_workers, edge_face_counts
 from ..sh import clamped_cosine, eval_sh, rotate_zonal
 from .base import RunOptions, Transfer, remove_state, run_chunks
 from .ray_kernels import upper_rays
@@ -106,10 +106,8 @@ def boundary_nudge(mesh: Mesh) -> torch.Tensor:
     from it leave. Closed-surface and interior vertices are not moved."""
     f = mesh.faces.numpy().astype(np.int64)
     V = mesh.num_vertices
-    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
-    key = e[:, 0] * V + e[:, 1]
-    _, inv, cnt = np.unique(key, return_inverse=True, return_counts=True)
-    border = e[cnt[inv.reshape(-1)] == 1].reshape(-1)
+    e, cnt = edge_face_counts(f, V)
+    border = e[cnt == 1].reshape(-1)
     out = torch.zeros(V, 3, dtype=torch.float64)
     if border.size == 0:
         return out
