@@ -73,6 +73,7 @@ def engine_parts(transfer: Transfer, L: torch.Tensor, idx: torch.Tensor, data: t
     sampling = meta.get("sampling", "uniform")
     offset = float(meta.get("offset", 1e-4))
     hit_samples = int(meta.get("hit_samples", 8))
+    hit_offset = float(meta.get("hit_offset", offset))  # files from before issue 37: hit rays left at the ray offset
     L = torch.as_tensor(L, dtype=torch.float64)
     L3 = L.expand(3, -1) if L.shape[0] == 1 else L  # [3, n²]
     tr = transfer if data is None else Transfer(kind="diffuse", data=_scatter_rows(transfer, idx, data), mesh=mesh, meta=meta)
@@ -100,7 +101,7 @@ def engine_parts(transfer: Transfer, L: torch.Tensor, idx: torch.Tensor, data: t
     D, I = [], []
     for r in range(int(replicas)):  # a loop over replica seeds; each one batched over the vertices
         T0r, TBr = vertex_transfer(mesh, idx, bands, samples, seed + 7919 * (r + 1), bounces if hits_mode else 0,
-                                   sampling=sampling, offset=offset, hit_samples=hit_samples)
+                                   sampling=sampling, offset=offset, hit_samples=hit_samples, hit_offset=hit_offset)
         D.append(rho * (T0r @ L3.T))
         if TBr is not None:
             tb = TBr.sum(1)  # [k, C, n²]
