@@ -33,6 +33,7 @@ import math
 import numpy as np
 
 from .._checks import check_float, check_int
+from .geodesic import geodesic_sphere
 from .mesh import Mesh, make_mesh, mesh_features
 
 __all__ = ["scan_like", "SCAN_FEATURES"]
@@ -43,8 +44,6 @@ SCAN_FEATURES = ("decimate", "holes", "fins", "slivers", "noise")
 
 def _blob(freq: int, rng: np.random.Generator, bumps: int, noise: float) -> tuple[np.ndarray, np.ndarray]:
     """Dense organic surface ``(vertices [V,3] float64, faces [F,3] int64)``, closed, outward CCW."""
-    from .builtins import geodesic_sphere
-
     v, f = geodesic_sphere(freq)
     c = rng.standard_normal((bumps, 3))
     c /= np.linalg.norm(c, axis=1, keepdims=True)
