@@ -243,6 +243,8 @@ def cls_cell(c: dict, part: str = "inter") -> str:
     if part not in c:
         return f"{c['sampled']}/{c['mesh']}"
     r = c[part]
+    if not math.isfinite(r["ratio"]):
+        return f"{c['sampled']}/{c['mesh']}: — (Mitsuba's sum {r['mitsuba']:.2g})"
     return f"{c['sampled']}/{c['mesh']}: {r['ratio']:.3f} ± {r['ratio_se']:.3f}"
 
 

@@ -62,7 +62,8 @@ def class_lines(rep: dict[str, Any]) -> list[str]:
         for part in ("direct", "inter"):
             if part in c:
                 r = c[part]
-                s += f"  {part} {r['ratio']:.4f} ± {r['ratio_se']:.4f}"
+                s += (f"  {part} {r['ratio']:.4f} ± {r['ratio_se']:.4f}" if math.isfinite(r["ratio"])
+                      else f"  {part} — (Mitsuba's sum {r['mitsuba']:.3g})")
         out.append(s)
     return out
 
