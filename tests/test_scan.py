@@ -143,3 +143,23 @@ def test_hit_rays_do_not_leak_through_a_narrow_fold(hit_offset, leaks):
         np.testing.assert_allclose(x0, y00, rtol=1e-6)
     else:
         assert float(np.abs(x0).max()) < 0.02 * y00
+
+
+@pytest.mark.parametrize("value", ["nan", "0.5", "-1e-6"])
+def test_cli_refuses_a_bad_hit_offset(value, tmp_path, capsys):
+    from prt_torch.cli import main as cli_main
+
+    out = tmp_path / "t.prt"
+    assert cli_main(["precompute", "bumpy_sphere", "--bounces", "1", "--samples", "8", "--no-progress", f"--hit-offset={value}",
+                     "-o", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "hit_offset" in err[0] and value in err[0], err
+    assert not out.exists()
+
+
+def test_precompute_records_its_hit_offset():
+    from prt_torch.transfer import precompute_diffuse
+
+    m = scan_like(300)
+    tr = precompute_diffuse(m, 2, 64, bounces=1, shadows="always", hit_offset=3e-6)
+    assert tr.meta["hit_offset"] == 3e-6 and tr.meta["hit_eps"] == pytest.approx(hit_ray_eps(m, 3e-6))

@@ -51,9 +51,10 @@ def mitsuba_frame(mesh: Mesh | None, frame: str = "normalized") -> tuple[np.ndar
     diagonal: 2e-5 for a 0.2-unit scan), so in a small mesh's own units Mitsuba sees through
     surfaces within a few engine eps of a vertex — fins, folds and non-manifold sheets next to
     it; in large units it darkens. Measured on ``scan_like`` (200 vertices, B = 2;
-    reports/benchmarks/scan_validate.md): interreflected engine/Mitsuba 1.141 at 0.08× the
-    mesh's size, 1.013 at 1×, 1.000 at 10× in its own units; normalised to a diagonal of 3:
-    1.030, 10 and 30: 0.993, 100: 1.005, 1000: 1.045 (direct 1.011). 'normalized' centres the
+    reports/benchmarks/scan_validate.md): interreflected engine/Mitsuba 1.092 at 0.08× the
+    mesh's size, 1.023 at 1×, 1.002 at 10× in its own units, 1.004 / 1.001 / 1.001 normalised;
+    normalised to a diagonal of 3: 1.030, 10 and 30: 0.993, 100: 1.005, 1000: 1.045 (direct
+    1.011; docs/validate.md). 'normalized' centres the
     mesh's bounding box and scales its diagonal to :data:`MITSUBA_DIAGONAL` (20, the plateau):
     the probe's blind distance is then 5% of the engine's default eps and coordinates stay
     below 10 units, whatever the mesh's units. Irradiance and radiance are unchanged by a
