@@ -6,7 +6,10 @@ Public API (imported lazily, PEP 562, so that ray-casting worker processes impor
 ``prt_torch.scene._embree_worker`` start without torch):
 
 * ``Mesh``, ``make_mesh``, ``load_mesh``, ``vertex_normals``, ``tangent_frames`` (mesh.py)
+* ``edge_face_counts``, ``normal_face_angles``, ``vertex_classes``, ``mesh_features``, ``VERTEX_CLASSES``
+  (mesh.py: where a mesh is hard — boundary, non-manifold, sharp, folded, sliver vertices)
 * ``builtin``, ``list_builtins``, ``SIZES``, ``geodesic_sphere``, ``sphere_on_plane_visibility`` (builtins.py)
+* ``scan_like``, ``SCAN_FEATURES`` (scan.py: scan-like meshes, each artefact switchable)
 * ``RayCaster``, ``default_workers`` (raycast.py)
 * ``load_scene(name_or_path, size='small', up='z', albedo=None)``
 """
@@ -19,7 +22,9 @@ from typing import TYPE_CHECKING, Any
 
 _LAZY = {
     "Mesh": "mesh", "make_mesh": "mesh", "load_mesh": "mesh", "vertex_normals": "mesh", "tangent_frames": "mesh",
-    "MESH_SUFFIXES": "mesh", "face_areas": "mesh",
+    "MESH_SUFFIXES": "mesh", "face_areas": "mesh", "edge_face_counts": "mesh", "normal_face_angles": "mesh",
+    "vertex_classes": "mesh", "mesh_features": "mesh", "VERTEX_CLASSES": "mesh",
+    "scan_like": "scan", "SCAN_FEATURES": "scan",
     "builtin": "builtins", "list_builtins": "builtins", "SIZES": "builtins", "geodesic_sphere": "builtins",
     "sphere_on_plane_visibility": "builtins",
     "RayCaster": "raycast", "default_workers": "raycast",
@@ -29,7 +34,9 @@ __all__ = sorted(_LAZY) + ["load_scene"]
 
 if TYPE_CHECKING:  # pragma: no cover
     from .builtins import SIZES, builtin, geodesic_sphere, list_builtins, sphere_on_plane_visibility  # noqa: F401
-    from .mesh import MESH_SUFFIXES, Mesh, face_areas, load_mesh, make_mesh, tangent_frames, vertex_normals  # noqa: F401
+    from .mesh import (MESH_SUFFIXES, VERTEX_CLASSES, Mesh, edge_face_counts, face_areas, load_mesh, make_mesh,  # noqa: F401
+                       mesh_features, normal_face_angles, tangent_frames, vertex_classes, vertex_normals)
+    from .scan import SCAN_FEATURES, scan_like  # noqa: F401
     from .raycast import RayCaster, default_workers  # noqa: F401
 
 

@@ -12,6 +12,9 @@ Each exercises what PRT is for:
                           and interreflection.
 * ``cornell_box``       — an open-front box (white floor/ceiling/back, red left (−x) wall,
                           green right (+x) wall) with two white blocks: concave, colour bleeding.
+* ``scan_blob``         — a scan-like mesh (``scene.scan.scan_like``): an organic blob decimated
+                          by vertex clustering, with holes in its base, non-manifold fins,
+                          slivers and scanner noise — where a real scan is hard for a ray tracer.
 
 Sizes: ``small`` (~1-3k vertices, for tests), ``medium`` (~10k), ``large`` (~50k).
 Flat parts are built as separate grids (no shared vertices across sharp edges), so normals stay
@@ -24,7 +27,9 @@ import math
 import numpy as np
 
 from .._checks import check_choice
+from .geodesic import geodesic_sphere
 from .mesh import Mesh, make_mesh
+from .scan import scan_like
 
 __all__ = ["builtin", "list_builtins", "SIZES", "geodesic_sphere", "sphere_on_plane_visibility"]
 
@@ -33,57 +38,6 @@ SIZES = ("small", "medium", "large")
 WHITE = (0.75, 0.75, 0.75)
 RED = (0.75, 0.12, 0.10)
 GREEN = (0.12, 0.70, 0.12)
-
-
-def geodesic_sphere(freq: int) -> tuple[np.ndarray, np.ndarray]:
-    """Unit geodesic sphere: each icosahedron face split into freq² triangles, projected.
-
-    Returns ``(vertices [10 f² + 2, 3] float64, faces [20 f², 3] int64)``, outward CCW winding.
-    """
-    freq = int(freq)
-    t = (1 + 5 ** 0.5) / 2
-    ico_v = np.array([[-1, t, 0], [1, t, 0], [-1, -t, 0], [1, -t, 0], [0, -1, t], [0, 1, t], [0, -1, -t], [0, 1, -t],
-                      [t, 0, -1], [t, 0, 1], [-t, 0, -1], [-t, 0, 1]], dtype=np.float64)
-    ico_f = np.array([[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11], [1, 5, 9], [5, 11, 4], [11, 10, 2],
-                      [10, 7, 6], [7, 1, 8], [3, 9, 4], [3, 4, 2], [3, 2, 6], [3, 6, 8], [3, 8, 9], [4, 9, 5],
-                      [2, 4, 11], [6, 2, 10], [8, 6, 7], [9, 8, 1]])
-    # barycentric lattice of one face: points (i, j) with i + j <= f
-    ii, jj = np.meshgrid(np.arange(freq + 1), np.arange(freq + 1), indexing="ij")
-    keep = ii + jj <= freq
-    i, j = ii[keep], jj[keep]
-    idx = -np.ones((freq + 1, freq + 1), np.int64)
-    idx[i, j] = np.arange(i.shape[0])
-    # small triangles of the lattice (upward and downward)
-    a_i, a_j = np.meshgrid(np.arange(freq), np.arange(freq), indexing="ij")
-    up = a_i + a_j <= freq - 1
-    tri_up = np.stack([idx[a_i[up], a_j[up]], idx[a_i[up] + 1, a_j[up]], idx[a_i[up], a_j[up] + 1]], 1)
-    dn = a_i + a_j <= freq - 2
-    tri_dn = np.stack([idx[a_i[dn] + 1, a_j[dn]], idx[a_i[dn] + 1, a_j[dn] + 1], idx[a_i[dn], a_j[dn] + 1]], 1)
-    local_f = np.concatenate([tri_up, tri_dn])
-    A, B, C = ico_v[ico_f[:, 0]], ico_v[ico_f[:, 1]], ico_v[ico_f[:, 2]]  # [20,3]
-    w_b = i / freq
-    w_c = j / freq
-    w_a = 1 - w_b - w_c
-    pts = w_a[None, :, None] * A[:, None] + w_b[None, :, None] * B[:, None] + w_c[None, :, None] * C[:, None]
-    pts = pts / np.linalg.norm(pts, axis=-1, keepdims=True)
-    P = pts.shape[1]
-    faces = (local_f[None] + (np.arange(20) * P)[:, None, None]).reshape(-1, 3)
-    flat = pts.reshape(-1, 3)
-    # merge the lattice points shared by neighbouring icosahedron faces
-    key = np.round(flat * 1e9).astype(np.int64)
-    _, first, inv = np.unique(key, axis=0, return_index=True, return_inverse=True)
-    inv = inv.reshape(-1)
-    order = np.argsort(first)
-    rank = np.empty_like(order)
-    rank[order] = np.arange(order.shape[0])
-    verts = flat[first[order]]
-    faces = rank[inv][faces]
-    # orient outward
-    tri = verts[faces]
-    nrm = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    flip = np.einsum("ij,ij->i", nrm, tri.mean(1)) < 0
-    faces[flip] = faces[flip][:, ::-1]
-    return verts, faces
 
 
 def _freq_for(vertices: int) -> int:
@@ -191,12 +145,18 @@ def _cornell_box(size: str):
     return parts, {"box": [[-1, -1, 0], [1, 1, 2]], "open_side": "-y", "left": "red", "right": "green"}
 
 
+def _scan_blob(size: str):
+    m = scan_like(_TARGET[size])
+    return [(m.vertices.numpy(), m.faces.numpy(), (0.8, 0.8, 0.8))], m.meta["scan"]
+
+
 _BUILDERS = {
     "convex": _convex,
     "sphere_on_plane": _sphere_on_plane,
     "occluder_over_plane": _occluder_over_plane,
     "bumpy_sphere": _bumpy_sphere,
     "cornell_box": _cornell_box,
+    "scan_blob": _scan_blob,
 }
 
 

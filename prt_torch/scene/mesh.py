@@ -42,6 +42,11 @@ __all__ = [
     "tangent_frames",
     "face_areas",
     "MESH_SUFFIXES",
+    "edge_face_counts",
+    "normal_face_angles",
+    "vertex_classes",
+    "mesh_features",
+    "VERTEX_CLASSES",
 ]
 
 MESH_SUFFIXES = (".obj", ".ply", ".stl", ".off", ".glb", ".gltf")
@@ -171,7 +176,11 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray, weighting: str = "an
     """Unit vertex normals ``[V,3] float64``.
 
     ``'angle'``: Σ_f α_{f,v} n̂_f (Thürmer & Wüthrich 1998), ``'area'``: Σ_f A_f n̂_f.
-    Vertices whose weighted sum vanishes fall back to the area-weighted, then to +z.
+    A vertex whose weighted sum cancels (its length at most 1e-9 of the sum of the weights: a
+    vertex only on a face and the same face reversed, as a topology-breaking decimation of a
+    scan makes) falls back to the area-weighted sum under the same test, then to the normal of
+    its largest face (the first of those within 1e-6 of the largest), then (no face) to +z — a choice that depends on
+    neither rounding nor the mesh's units (the sum's rounding residue pointed anywhere).
     """
     check_choice("normal_weighting", weighting, ["angle", "area"])
     v = np.asarray(vertices, np.float64)
@@ -180,30 +189,124 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray, weighting: str = "an
     cr = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # 2A n̂
     V = v.shape[0]
     area_sum = np.zeros((V, 3))
+    nrm = np.linalg.norm(cr, axis=1, keepdims=True)
+    area_w = np.zeros(V)
     for k in range(3):  # 3 corners: a fixed tiny loop, vectorised over faces
         np.add.at(area_sum, f[:, k], cr)
+        np.add.at(area_w, f[:, k], nrm[:, 0])
     if weighting == "area":
-        acc = area_sum
+        acc, w = area_sum, area_w
     else:
-        nrm = np.linalg.norm(cr, axis=1, keepdims=True)
         nhat = np.divide(cr, nrm, out=np.zeros_like(cr), where=nrm > 0)
         acc = np.zeros((V, 3))
+        w = np.zeros(V)
         for k in range(3):
             e1 = tri[:, (k + 1) % 3] - tri[:, k]
             e2 = tri[:, (k + 2) % 3] - tri[:, k]
             c = np.einsum("ij,ij->i", e1, e2)
             s = np.linalg.norm(np.cross(e1, e2), axis=1)
-            ang = np.arctan2(s, c)
+            ang = np.where(nrm[:, 0] > 0, np.arctan2(s, c), 0.0)
             np.add.at(acc, f[:, k], nhat * ang[:, None])
+            np.add.at(w, f[:, k], ang)
     n = np.linalg.norm(acc, axis=1, keepdims=True)
-    bad = n[:, 0] <= 1e-300
+    bad = n[:, 0] <= 1e-9 * w
     if bad.any():
         acc[bad] = area_sum[bad]
         n[bad] = np.linalg.norm(area_sum[bad], axis=1, keepdims=True)
-        still = n[:, 0] <= 1e-300
-        acc[still] = (0.0, 0.0, 1.0)
-        n[still] = 1.0
+        still = bad & (n[:, 0] <= 1e-9 * area_w)
+        if still.any():  # the first (lowest index) of the vertex's largest faces (areas within 1e-6 count as equal)
+            amax = np.zeros(V)
+            for k in range(3):
+                np.maximum.at(amax, f[:, k], nrm[:, 0])
+            big = np.full(V, f.shape[0])
+            for k in range(3):
+                ok = nrm[:, 0] >= (1 - 1e-6) * amax[f[:, k]]
+                np.minimum.at(big, f[ok, k], np.nonzero(ok)[0])
+            has = still & (big < f.shape[0]) & (amax > 0)
+            big = np.minimum(big, f.shape[0] - 1)
+            acc[has] = cr[big[has]]
+            n[has] = nrm[big[has]]
+            none = still & ~has
+            acc[none] = (0.0, 0.0, 1.0)
+            n[none] = 1.0
     return acc / n
+
+
+def edge_face_counts(faces: Any, num_vertices: int) -> tuple[np.ndarray, np.ndarray]:
+    """Unique undirected edges ``[E, 2] int64`` (sorted pairs) and the number of faces on each
+    ``[E] int64`` (1: boundary, 2: manifold, ≥ 3: non-manifold)."""
+    f = np.asarray(faces, np.int64)
+    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    key = e[:, 0] * int(num_vertices) + e[:, 1]
+    uk, cnt = np.unique(key, return_counts=True)
+    return np.stack([uk // num_vertices, uk % num_vertices], 1), cnt
+
+
+def normal_face_angles(mesh: "Mesh") -> np.ndarray:
+    """``[V]`` float64: the largest angle (degrees) between a vertex normal and the geometric
+    (winding) normals of its adjacent faces — 0 on flat parts, large at sharp and concave
+    vertices, ≥ 90° where a face is seen from behind from the vertex's normal side."""
+    v = mesh.vertices.to(torch.float64).numpy()
+    f = mesh.faces.numpy().astype(np.int64)
+    t = v[f]
+    fn = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+    nrm = np.linalg.norm(fn, axis=1, keepdims=True)
+    fn = np.divide(fn, nrm, out=np.zeros_like(fn), where=nrm > 0)
+    fn[nrm[:, 0] == 0] = (0.0, 0.0, 1.0)
+    cosang = np.clip(np.einsum("fkj,fj->fk", mesh.normals.to(torch.float64).numpy()[f], fn), -1.0, 1.0)  # [F,3]
+    worst = np.ones(mesh.num_vertices)
+    np.minimum.at(worst, f.reshape(-1), cosang.reshape(-1))
+    return np.degrees(np.arccos(worst))
+
+
+def _sliver_quality(v: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """``[F]`` 2·inradius/circumradius = 8 A² / (s·abc) (1 equilateral, 0 degenerate)."""
+    t = v[f]
+    a = np.linalg.norm(t[:, 1] - t[:, 2], axis=1)
+    b = np.linalg.norm(t[:, 2] - t[:, 0], axis=1)
+    c = np.linalg.norm(t[:, 0] - t[:, 1], axis=1)
+    s = 0.5 * (a + b + c)
+    area2 = np.maximum(s * (s - a) * (s - b) * (s - c), 0.0)
+    return np.where(a * b * c > 0, 8 * area2 / np.maximum(a * b * c * s, 1e-300), 0.0)
+
+
+#: the vertex classes :func:`vertex_classes` returns, in report order ('regular': none of the others)
+VERTEX_CLASSES = ("boundary", "nonmanifold", "sharp", "folded", "sliver", "regular")
+
+
+def vertex_classes(mesh: "Mesh", sharp_deg: float = 18.0, sliver_ratio: float = 0.05) -> dict[str, np.ndarray]:
+    """Boolean ``[V]`` masks of the vertex classes where a mesh is hard (:data:`VERTEX_CLASSES`):
+    'boundary' (on an edge with one face: holes, open rims), 'nonmanifold' (on an edge with three
+    or more faces), 'sharp' (an adjacent face's normal ≥ ``sharp_deg`` from the vertex normal,
+    :func:`normal_face_angles`), 'folded' (≥ 90°: a face of the vertex is seen from behind),
+    'sliver' (a corner of a face whose 2·inradius/circumradius is below ``sliver_ratio``) and
+    'regular' (none of these). A vertex may be in several of the first five."""
+    V = mesh.num_vertices
+    f = mesh.faces.numpy().astype(np.int64)
+    e, cnt = edge_face_counts(f, V)
+    boundary = np.zeros(V, bool)
+    boundary[e[cnt == 1].reshape(-1)] = True
+    nonman = np.zeros(V, bool)
+    nonman[e[cnt >= 3].reshape(-1)] = True
+    ang = normal_face_angles(mesh)
+    sliver = np.zeros(V, bool)
+    sliver[f[_sliver_quality(mesh.vertices.to(torch.float64).numpy(), f) < sliver_ratio].reshape(-1)] = True
+    out = {"boundary": boundary, "nonmanifold": nonman, "sharp": ang >= sharp_deg, "folded": ang >= 90.0, "sliver": sliver}
+    out["regular"] = ~np.logical_or.reduce(list(out.values()))
+    return out
+
+
+def mesh_features(mesh: "Mesh", sharp_deg: float = 18.0, sliver_ratio: float = 0.05) -> dict[str, int]:
+    """What makes a mesh hard for a ray tracer, counted (plain ints, JSON-able): vertices, faces,
+    boundary edges (one face), non-manifold edges (three or more), sliver faces
+    (2·inradius/circumradius below ``sliver_ratio``) and the vertices of each of
+    :func:`vertex_classes`."""
+    e, cnt = edge_face_counts(mesh.faces.numpy(), mesh.num_vertices)
+    q = _sliver_quality(mesh.vertices.to(torch.float64).numpy(), mesh.faces.numpy().astype(np.int64))
+    cls = vertex_classes(mesh, sharp_deg, sliver_ratio)
+    return {"vertices": mesh.num_vertices, "faces": mesh.num_faces, "boundary_edges": int((cnt == 1).sum()),
+            "nonmanifold_edges": int((cnt >= 3).sum()), "sliver_faces": int((q < sliver_ratio).sum()),
+            **{f"{k}_vertices": int(m.sum()) for k, m in cls.items()}}
 
 
 def tangent_frames(normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

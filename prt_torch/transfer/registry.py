@@ -225,6 +225,7 @@ register_kind(TransferKind(
         "bounce_tol": [Interval(float, 0, 1, closed="left")],
         "probe_tol": [Interval(float, 0, 1, closed="left")],
         "bounce_points": [Options("hits", "vertices")], "hit_samples": [Interval(int, 1, 1024)],
+        "hit_offset": [Interval(float, 0, 0.1)],
     },
     args=_args("bands", "samples", "bounces", "seed", "shadows") + (
         Arg("--estimator", "estimator", "auto (default): per vertex the control variate where at least half its rays are "
@@ -241,6 +242,8 @@ register_kind(TransferKind(
             "(hits; unbiased near sharp vertices) or interpolated from the hit face's vertices (vertices; faster)",
             values={"hits": "hits", "vertices": "vertices"}),
         Arg("--hit-samples", "hit_samples", "rays per bounce hit point (bounce_points=hits)"),
+        Arg("--hit-offset", "hit_offset", "offset of the rays leaving a bounce hit point, as a fraction of the bounding-box "
+            "diagonal (default 1e-6, floored at 16 float32 ulps; 1e-4 was the rule before issue 37)"),
     ),
 ))
 

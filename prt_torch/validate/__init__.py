@@ -36,8 +36,8 @@ from .diffuse import engine_parts, sharp_vertices, validate_diffuse, validate_wa
 from .glossy import engine_glossy, glossy_brdf, validate_glossy
 from .lights import check_expressible, light_image, mitsuba_envmap_directions, source_image
 from .lights import source_image as _source_image  # noqa: F401 (the name tests/test_validate.py uses)
-from .scenes import (BSDF_PLUGIN, INSTALL_HINT, VARIANT, ValidatorUnavailable, engine_bsdf, mitsuba_exit_radiance,  # noqa: F401 (VARIANT)
-                     mitsuba_glossy_exit, require_mitsuba)
+from .scenes import (BSDF_PLUGIN, INSTALL_HINT, MITSUBA_DIAGONAL, MITSUBA_FRAMES, VARIANT, ValidatorUnavailable,  # noqa: F401 (VARIANT)
+                     engine_bsdf, mitsuba_exit_radiance, mitsuba_frame, mitsuba_glossy_exit, require_mitsuba)
 
 __all__ = [
     "ValidatorUnavailable",
@@ -49,6 +49,9 @@ __all__ = [
     "sample_vertices",
     "sharp_vertices",
     "mitsuba_exit_radiance",
+    "mitsuba_frame",
+    "MITSUBA_DIAGONAL",
+    "MITSUBA_FRAMES",
     "engine_parts",
     "validate",
     "validate_diffuse",
@@ -66,7 +69,7 @@ __all__ = [
 def validate(transfer: Transfer | str | os.PathLike, light: Any, *, vertices: int = 32, spp: int = 1024, batches: int = 8,
              seed: int = 0, codec_file: str | os.PathLike | None = None, light_source: str = "sh", light_name: str | None = None,
              sharp_deg: float = 18.0, image_height: int = 128, idx: torch.Tensor | None = None, mesh: Mesh | None = None,
-             view_deg: float = 60.0) -> dict[str, Any]:
+             view_deg: float = 60.0, mitsuba_frame: str = "normalized") -> dict[str, Any]:
     """Engine vs Mitsuba 3 at ``vertices`` sampled vertices (docs/validate.md); no scale fit.
 
     Args:
@@ -82,6 +85,11 @@ def validate(transfer: Transfer | str | os.PathLike, light: Any, *, vertices: in
             (Mitsuba sees the original environment; the report adds the SH-truncation effect).
         sharp_deg: vertices whose adjacent faces tilt at least this far from the vertex normal
             are reported separately.
+        mitsuba_frame: 'normalized' (default: Mitsuba sees the mesh centred and scaled to a
+            diagonal of :data:`MITSUBA_DIAGONAL`, so that its absolute ray epsilons are negligible
+            against the engine's, whatever the mesh's units; :func:`mitsuba_frame`) or 'as_is'
+            (the mesh's own units: Mitsuba then sees through surfaces within ~1e-4 units of a
+            probe, which on a small mesh is several engine offsets — issue 37).
     Returns:
         a JSON-able dict: ``direct``/``inter``/``total`` ratios (engine/Mitsuba of summed
         luminance, with 1σ noise and z), the same over the sharp vertices, per-vertex arrays,
@@ -121,6 +129,7 @@ def validate(transfer: Transfer | str | os.PathLike, light: Any, *, vertices: in
     seed = check_int("seed", seed, 0, 2**63 - 1)
     check_float("view_deg", view_deg, 0.0, 90.0, lo_open=True)
     check_float("sharp_deg", sharp_deg, 0.0, 180.0)
+    check_choice("mitsuba_frame", mitsuba_frame, list(MITSUBA_FRAMES))
     bands = int(transfer.meta["bands"])
     name = light_name or (str(light) if not isinstance(light, torch.Tensor) else "SH tensor")
     L = light if isinstance(light, torch.Tensor) else load_light(light, bands)
@@ -154,8 +163,9 @@ def validate(transfer: Transfer | str | os.PathLike, light: Any, *, vertices: in
     require_mitsuba()
     if transfer.kind == "glossy":
         rep = validate_glossy(transfer, L, name, sh_img if src_img is None else src_img, mesh=mesh, vertices=vertices, spp=spp,
-                              batches=batches, seed=seed, view_deg=view_deg, idx=idx)
+                              batches=batches, seed=seed, view_deg=view_deg, idx=idx, mitsuba_frame=mitsuba_frame)
         rep["light_source"] = light_source
         return rep
     return validate_diffuse(transfer, L, name, sh_img, src_img, light_source=light_source, codec=codec, codec_file=codec_file,
-                            vertices=vertices, spp=spp, batches=batches, seed=seed, sharp_deg=sharp_deg, idx=idx)
+                            vertices=vertices, spp=spp, batches=batches, seed=seed, sharp_deg=sharp_deg, idx=idx,
+                            mitsuba_frame=mitsuba_frame)

@@ -13,7 +13,7 @@ import torch
 from .._checks import check_int
 from ..scene import Mesh
 
-__all__ = ["LUMA", "sample_vertices", "ratio", "rms_rel", "format_report"]
+__all__ = ["LUMA", "sample_vertices", "ratio", "rms_rel", "class_lines", "format_report"]
 
 #: Rec. 709 luminance weights of an RGB radiance
 LUMA = torch.tensor([0.2126, 0.7152, 0.0722], dtype=torch.float64)
@@ -48,6 +48,26 @@ def rms_rel(e: torch.Tensor, m: torch.Tensor) -> float:
     return float(((lum_e - lum_m).pow(2).mean().sqrt()) / lum_m.abs().mean().clamp_min(1e-300))
 
 
+def class_lines(rep: dict[str, Any]) -> list[str]:
+    """The report's per-class lines (``rep['classes']``, :func:`prt_torch.validate.diffuse.class_report`):
+    the mesh's hard features counted, then each vertex class's count and its direct and
+    interreflected engine/Mitsuba ratios ± 1σ."""
+    if "classes" not in rep:
+        return []
+    f = rep.get("mesh_features", {})
+    out = [f"  mesh: {f.get('boundary_edges', 0)} boundary edges, {f.get('nonmanifold_edges', 0)} non-manifold edges; "
+           "vertex classes (in the mesh / compared):"]
+    for name, c in rep["classes"].items():
+        s = f"    {name:<12} {c['mesh']:>6} / {c['sampled']:<4}"
+        for part in ("direct", "inter"):
+            if part in c:
+                r = c[part]
+                s += (f"  {part} {r['ratio']:.4f} ± {r['ratio_se']:.4f}" if math.isfinite(r["ratio"])
+                      else f"  {part} — (Mitsuba's sum {r['mitsuba']:.3g})")
+        out.append(s)
+    return out
+
+
 def format_report(rep: dict[str, Any]) -> str:
     """A few lines of text: each part's engine/Mitsuba ratio with its noise."""
     def line(label: str, r: dict) -> str:
@@ -73,6 +93,7 @@ def format_report(rep: dict[str, Any]) -> str:
         if k in rep:
             out.append(line(label, rep[k]))
     out.append(line("total", rep["total"]))
+    out += class_lines(rep)
     if "codec" in rep:
         out.append(line("codec total", rep["codec"]["total"]))
         if "inter" in rep["codec"]:

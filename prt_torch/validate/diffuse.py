@@ -34,25 +34,21 @@ import numpy as np
 import torch
 
 from ..relight import diffuse_transfer
-from ..scene import Mesh, RayCaster
+from ..scene import VERTEX_CLASSES, Mesh, RayCaster, edge_face_counts, normal_face_angles, vertex_classes
 from ..sh import eval_sh
 from ..transfer import Transfer
 from ..transfer.diffuse import DiffuseSampler, HitBounce, boundary_nudge, face_points, transfer_at_points, vertex_transfer
 from .compare import LUMA, ratio, rms_rel, sample_vertices
 from .scenes import VARIANT, mitsuba_exit_radiance
 
-__all__ = ["sharp_vertices", "engine_parts", "validate_diffuse"]
+__all__ = ["sharp_vertices", "engine_parts", "class_report", "validate_diffuse"]
 
 
 def sharp_vertices(mesh: Mesh) -> torch.Tensor:
     """``[V]`` float64: the largest angle (degrees) between a vertex normal and the geometric
-    normals of its adjacent faces (0 on flat parts; large at sharp and concave vertices)."""
-    _, fn, _ = face_points(mesh)
-    f = mesh.faces.to(torch.int64)
-    cosang = (mesh.normals.to(torch.float64)[f] * fn[:, None, :]).sum(-1).clamp(-1, 1)  # [F,3]
-    worst = torch.full((mesh.num_vertices,), 1.0, dtype=torch.float64)
-    worst = worst.scatter_reduce(0, f.reshape(-1), cosang.reshape(-1), reduce="amin")
-    return torch.rad2deg(torch.arccos(worst))
+    normals of its adjacent faces (0 on flat parts; large at sharp and concave vertices;
+    :func:`prt_torch.scene.normal_face_angles`)."""
+    return torch.from_numpy(normal_face_angles(mesh))
 
 
 def engine_parts(transfer: Transfer, L: torch.Tensor, idx: torch.Tensor, data: torch.Tensor | None = None,
@@ -78,6 +74,7 @@ def engine_parts(transfer: Transfer, L: torch.Tensor, idx: torch.Tensor, data: t
     estimator = meta.get("estimator", "plain")  # ... and before the control variate used the plain sum
     offset = float(meta.get("offset", 1e-4))
     hit_samples = int(meta.get("hit_samples", 8))
+    hit_offset = float(meta.get("hit_offset", offset))  # files from before issue 37: hit rays left at the ray offset
     L = torch.as_tensor(L, dtype=torch.float64)
     L3 = L.expand(3, -1) if L.shape[0] == 1 else L  # [3, n²]
     tr = transfer if data is None else Transfer(kind="diffuse", data=_scatter_rows(transfer, idx, data), mesh=mesh, meta=meta)
@@ -106,7 +103,8 @@ def engine_parts(transfer: Transfer, L: torch.Tensor, idx: torch.Tensor, data: t
     D, I = [], []
     for r in range(int(replicas)):  # a loop over replica seeds; each one batched over the vertices
         T0r, TBr = vertex_transfer(mesh, idx, bands, samples, seed + 7919 * (r + 1), bounces if hits_mode else 0,
-                                   sampling=sampling, offset=offset, hit_samples=hit_samples, estimator=estimator)
+                                   sampling=sampling, offset=offset, hit_samples=hit_samples, hit_offset=hit_offset,
+                                   estimator=estimator)
         D.append(rho * (T0r @ L3.T))
         if TBr is not None:
             tb = TBr.sum(1)  # [k, C, n²]
@@ -185,10 +183,41 @@ def _ray_noise(caster: RayCaster, mesh: Mesh, p: torch.Tensor, n: torch.Tensor, 
     return se(f_dir), se(f_ind)
 
 
+def class_report(mesh: Mesh, idx: torch.Tensor, eng: dict[str, Any], m_dir: torch.Tensor, m_dir_se: torch.Tensor,
+                 m_int: torch.Tensor | None, m_int_se: torch.Tensor | None, sharp_deg: float = 18.0) -> tuple[dict, dict]:
+    """Where the mesh is hard, and the error there (issue 37): ``(features, classes)``.
+
+    ``features``: the mesh's boundary / non-manifold edges and the vertices of each class of
+    :func:`prt_torch.scene.vertex_classes` (boundary, non-manifold, sharp, folded, sliver,
+    regular), counted over the whole mesh. ``classes[name]``: ``mesh`` (vertices of the class
+    in the mesh), ``sampled`` (among the ``idx`` ``[k]`` compared) and, where any was
+    sampled, the engine/Mitsuba ratios of the class's summed luminance — ``direct`` and (with
+    ``m_int`` ``[k, 3]``) ``inter`` — with both sides' noise (the engine's from its replica
+    seeds where :func:`engine_parts` measured them, ``eng['direct_reps']`` / ``['inter_reps']``)."""
+    cls = vertex_classes(mesh, sharp_deg)
+    e, cnt = edge_face_counts(mesh.faces.numpy(), mesh.num_vertices)
+    features = {"vertices": mesh.num_vertices, "faces": mesh.num_faces, "boundary_edges": int((cnt == 1).sum()),
+                "nonmanifold_edges": int((cnt >= 3).sum()), **{f"{k}_vertices": int(cls[k].sum()) for k in VERTEX_CLASSES}}
+    ii = idx.numpy()
+    out: dict[str, dict] = {}
+    for name in VERTEX_CLASSES:  # a loop over six classes, each batched over its vertices
+        sel = torch.from_numpy(cls[name][ii])
+        entry: dict[str, Any] = {"mesh": int(cls[name].sum()), "sampled": int(sel.sum())}
+        if bool(sel.any()):
+            for part, m, m_se in (("direct", m_dir, m_dir_se), ("inter", m_int, m_int_se)):
+                if m is None:
+                    continue
+                reps = eng.get(f"{part}_reps")
+                sum_se = None if reps is None else float((reps[:, sel] @ LUMA).sum(1).std())
+                entry[part] = ratio(eng[part][sel], eng[f"{part}_se"][sel], m[sel], m_se[sel], sum_se)
+        out[name] = entry
+    return features, out
+
+
 def validate_diffuse(transfer: Transfer, L: torch.Tensor, name: str, sh_img: np.ndarray | None, src_img: np.ndarray | None, *,
                      light_source: str = "sh", codec: tuple | None = None, codec_file: Any = None, vertices: int = 32,
                      spp: int = 1024, batches: int = 8, seed: int = 0, sharp_deg: float = 18.0,
-                     idx: torch.Tensor | None = None) -> dict[str, Any]:
+                     idx: torch.Tensor | None = None, mitsuba_frame: str = "normalized") -> dict[str, Any]:
     """Diffuse exit radiance, engine vs Mitsuba (:func:`prt_torch.validate.validate` for kind
     'diffuse', after its checks): direct, and with bounces B > 0 interreflected and total, at
     ``vertices`` sampled vertices (or ``idx``); the same over the sharp vertices (``sharp_deg``).
@@ -210,7 +239,8 @@ def validate_diffuse(transfer: Transfer, L: torch.Tensor, name: str, sh_img: np.
     rho = mesh.albedo.to(torch.float64)[idx]
     p, n = mesh.vertices[idx], mesh.normals[idx]
     nudge = boundary_nudge(mesh)[idx]
-    mit = mitsuba_exit_radiance(mesh, p, n, sh_img if src_img is None else src_img, depths, spp, batches, eps, seed, rho, nudge)
+    mit = mitsuba_exit_radiance(mesh, p, n, sh_img if src_img is None else src_img, depths, spp, batches, eps, seed, rho, nudge,
+                               mitsuba_frame)
     m_dir, m_dir_se = mit["radiance"][0], mit["radiance_se"][0]
     if bounces:
         m_tot, m_tot_se = mit["radiance"][1], mit["radiance_se"][1]
@@ -225,7 +255,7 @@ def validate_diffuse(transfer: Transfer, L: torch.Tensor, name: str, sh_img: np.
         "scene": mesh.name, "vertices": int(idx.numel()), "bounces": bounces, "bands": bands, "light": name,
         "light_source": light_source, "spp": int(spp), "batches": int(batches), "samples": int(transfer.meta.get("samples", 0)),
         "bounce_points": transfer.meta.get("bounce_points"), "sharp_deg": sharp_deg, "sharp_vertices": int(sharp.sum()),
-        "mitsuba_variant": VARIANT, "eps": eps,
+        "mitsuba_variant": VARIANT, "mitsuba_frame": mitsuba_frame, "eps": eps,
         "direct": ratio(eng["direct"], eng["direct_se"], m_dir, m_dir_se, eng["direct_sum_se"]),
         "total": ratio(eng["total"], tot_se, m_tot, m_tot_se, tot_sum_se),
         "engine_noise": eng["noise"],
@@ -238,6 +268,8 @@ def validate_diffuse(transfer: Transfer, L: torch.Tensor, name: str, sh_img: np.
                 reps = eng.get("inter_reps")
                 sum_se = None if reps is None else float((reps[:, sel] @ LUMA).sum(1).std())
                 rep[key] = ratio(eng["inter"][sel], eng["inter_se"][sel], m_int[sel], m_int_se[sel], sum_se)
+    rep["mesh_features"], rep["classes"] = class_report(mesh, idx, eng, m_dir, m_dir_se, m_int if bounces else None,
+                                                        m_int_se if bounces else None, sharp_deg)
     if codec is not None:
         c, enc = codec
         rows = c.decode(enc).to(torch.float64)
@@ -248,7 +280,7 @@ def validate_diffuse(transfer: Transfer, L: torch.Tensor, name: str, sh_img: np.
         if bounces:
             rep["codec"]["inter"] = ratio(ce["total"] - eng["direct"], eng["inter_se"], m_int, m_int_se, eng["inter_sum_se"])
     if src_img is not None and sh_img is not None:  # Mitsuba under the band-limited light / under the image
-        msh = mitsuba_exit_radiance(mesh, p, n, sh_img, depths, spp, batches, eps, seed, rho, nudge)
+        msh = mitsuba_exit_radiance(mesh, p, n, sh_img, depths, spp, batches, eps, seed, rho, nudge, mitsuba_frame)
         rep["sh_truncation"] = ratio(msh["radiance"][-1], msh["radiance_se"][-1], m_tot, m_tot_se)
     rep["per_vertex"] = {
         "index": idx.tolist(), "sharp": sharp.tolist(),

@@ -179,7 +179,7 @@ def engine_glossy(transfer: Transfer, L: torch.Tensor, idx: torch.Tensor, view_l
 
 def validate_glossy(transfer: Transfer, L: torch.Tensor, name: str, image: np.ndarray, *, mesh: Mesh | None = None,
                     vertices: int = 16, spp: int = 4096, batches: int = 8, seed: int = 0, view_deg: float = 60.0,
-                    idx: torch.Tensor | None = None, dense: int = 1 << 14) -> dict[str, Any]:
+                    idx: torch.Tensor | None = None, dense: int = 1 << 14, mitsuba_frame: str = "normalized") -> dict[str, Any]:
     """Glossy exit radiance, engine vs Mitsuba (:func:`validate` for kind 'glossy'): direct, and
     with bounces B > 0 interreflected (Mitsuba max_depth B+2 minus 2, mesh at its luminance
     albedo) and total.
@@ -219,7 +219,7 @@ def validate_glossy(transfer: Transfer, L: torch.Tensor, name: str, image: np.nd
     # the engine's reflectors are grey (luminance albedo: one glossy matrix for all channels)
     grey = dataclasses.replace(mesh, albedo=(mesh.albedo.to(torch.float64) @ LUMA)[:, None].expand(-1, 3).contiguous())
     mit = mitsuba_glossy_exit(grey, mesh.vertices[idx], F, vw, brdfs, image, spp, batches, eps, seed, boundary_nudge(mesh)[idx],
-                              depths=[2, bounces + 2] if bounces else [2])
+                              depths=[2, bounces + 2] if bounces else [2], frame=mitsuba_frame)
     m, m_se = mit["radiance"][0], mit["radiance_se"][0]
     lum = lambda x: float((x @ LUMA).sum())  # noqa: E731
     M = lum(m)
@@ -227,7 +227,7 @@ def validate_glossy(transfer: Transfer, L: torch.Tensor, name: str, image: np.nd
         "kind": "glossy", "scene": mesh.name, "vertices": int(idx.numel()), "bounces": bounces, "bands": int(meta["bands"]),
         "bands_out": int(meta.get("bands_out", meta["bands"])), "brdf": meta.get("brdf"), "projection": meta.get("projection"),
         "light": name, "spp": int(spp), "batches": int(batches), "samples": int(meta.get("samples", 0)), "view_deg": view_deg,
-        "mitsuba_variant": VARIANT, "eps": eps, "dense": int(dense),
+        "mitsuba_variant": VARIANT, "mitsuba_frame": mitsuba_frame, "eps": eps, "dense": int(dense),
         "direct": ratio(eng["recomputed"] if bounces else eng["stored"], eng["se"], m, m_se, eng["sum_se"]),
         "direct_unprojected": ratio(eng["exact"], eng["exact_se"], m, m_se),
         "sh_truncation": lum(eng["truncation"]) / M if M > 0 else float("nan"),

@@ -25,10 +25,50 @@ from ..scene import Mesh
 from ..transfer.diffuse import offset_origins
 
 __all__ = ["ValidatorUnavailable", "INSTALL_HINT", "VARIANT", "require_mitsuba", "mitsuba_exit_radiance", "BSDF_PLUGIN", "engine_bsdf",
-           "mitsuba_glossy_exit"]
+           "mitsuba_glossy_exit", "MITSUBA_DIAGONAL", "MITSUBA_FRAMES", "mitsuba_frame", "MITSUBA_PROBE_TMIN"]
 
 INSTALL_HINT = "prt validate needs Mitsuba 3: pip install 'prt-torch[validate]' (or: pip install 'mitsuba>=3.5')"
 VARIANT = "scalar_rgb"
+
+
+#: the bounding-box diagonal of the scene as Mitsuba is given it (``frame='normalized'``)
+MITSUBA_DIAGONAL = 20.0
+#: how Mitsuba is given the scene: 'normalized' (centred, scaled to :data:`MITSUBA_DIAGONAL`) or
+#: 'as_is' (the mesh's own units; what the validator did before issue 37)
+MITSUBA_FRAMES = ("normalized", "as_is")
+#: measured (tests/test_validate.py::test_mitsuba_probe_blind_distance): Mitsuba 3 (``scalar_rgb``) does
+#: not see a surface closer than about this many scene units to an ``irradiancemeter`` disk, wherever the disk is
+MITSUBA_PROBE_TMIN = 1e-4
+
+
+def mitsuba_frame(mesh: Mesh | None, frame: str = "normalized") -> tuple[np.ndarray, float]:
+    """``(centre [3] float64, scale)``: Mitsuba sees the point x at ``(x − centre)·scale``.
+
+    Mitsuba's epsilons are absolute, in scene units: rays leaving an ``irradiancemeter`` disk
+    ignore surfaces closer than :data:`MITSUBA_PROBE_TMIN` (~1e-4 units), and the disk's own
+    rays hit it again once its coordinates are large enough that their float32 rounding
+    exceeds that. The engine's ray offset is relative (eps = ``offset`` × the bounding-box
+    diagonal: 2e-5 for a 0.2-unit scan), so in a small mesh's own units Mitsuba sees through
+    surfaces within a few engine eps of a vertex — fins, folds and non-manifold sheets next to
+    it; in large units it darkens. Measured on ``scan_like`` (200 vertices, B = 2;
+    reports/benchmarks/scan_validate.md): interreflected engine/Mitsuba 1.092 at 0.08× the
+    mesh's size, 1.023 at 1×, 1.002 at 10× in its own units, 1.004 / 1.001 / 1.001 normalised;
+    normalised to a diagonal of 3: 1.030, 10 and 30: 0.993, 100: 1.005, 1000: 1.045 (direct
+    1.011; docs/validate.md). 'normalized' centres the
+    mesh's bounding box and scales its diagonal to :data:`MITSUBA_DIAGONAL` (20, the plateau):
+    the probe's blind distance is then 5% of the engine's default eps and coordinates stay
+    below 10 units, whatever the mesh's units. Irradiance and radiance are unchanged by a
+    similarity transform (the environment is at infinity). 'as_is' (or no mesh) gives the
+    identity."""
+    from .._checks import check_choice
+
+    check_choice("mitsuba_frame", frame, list(MITSUBA_FRAMES))
+    if mesh is None or frame == "as_is":
+        return np.zeros(3), 1.0
+    v = mesh.vertices.to(torch.float64).numpy()
+    lo, hi = v.min(0), v.max(0)
+    diag = float(np.linalg.norm(hi - lo))
+    return 0.5 * (lo + hi), (MITSUBA_DIAGONAL / diag if diag > 0 else 1.0)
 
 
 class ValidatorUnavailable(RuntimeError):
@@ -47,8 +87,8 @@ def require_mitsuba():
     return mi
 
 
-def _write_ply(path: Path, mesh: Mesh) -> None:
-    v = mesh.vertices.numpy().astype("<f4")
+def _write_ply(path: Path, mesh: Mesh, centre: np.ndarray, scale: float) -> None:
+    v = ((mesh.vertices.to(torch.float64).numpy() - centre) * scale).astype("<f4")
     c = mesh.albedo.numpy().astype("<f4")
     f = mesh.faces.numpy()
     hdr = ("ply\nformat binary_little_endian 1.0\n"
@@ -63,13 +103,14 @@ def _write_ply(path: Path, mesh: Mesh) -> None:
         fh.write(fd.tobytes())
 
 
-def _base_scene(mi, image: np.ndarray, mesh: Mesh | None, tmp: Path) -> dict[str, Any]:
+def _base_scene(mi, image: np.ndarray, mesh: Mesh | None, tmp: Path, centre: np.ndarray, scale: float) -> dict[str, Any]:
     """The Mitsuba scene both measurements share: the light image as ``envmap`` and (if given)
-    the mesh, flat-shaded, one-sided Lambertian with its vertex albedo (written to ``tmp``)."""
+    the mesh, flat-shaded, one-sided Lambertian with its vertex albedo (written to ``tmp``), in
+    the frame of :func:`mitsuba_frame` (``centre``, ``scale``)."""
     scene: dict[str, Any] = {"type": "scene", "env": {"type": "envmap", "bitmap": mi.Bitmap(np.ascontiguousarray(image, np.float32))}}
     if mesh is not None:
         ply = tmp / "mesh.ply"
-        _write_ply(ply, mesh)
+        _write_ply(ply, mesh, centre, scale)
         scene["mesh"] = {"type": "ply", "filename": str(ply), "face_normals": True,
                          "bsdf": {"type": "diffuse", "reflectance": {"type": "mesh_attribute", "name": "vertex_color"}}}
     return scene
@@ -87,7 +128,7 @@ def _probe(mi, p: np.ndarray, n: np.ndarray, radius: float, spp: int) -> dict:
 
 def mitsuba_exit_radiance(mesh: Mesh | None, points: Any, normals: Any, image: np.ndarray, depths: list[int], spp: int = 1024,
                           batches: int = 8, eps: float = 1e-4, seed: int = 0, albedo: Any = None,
-                          nudge: Any = None) -> dict[str, torch.Tensor]:
+                          nudge: Any = None, frame: str = "normalized") -> dict[str, torch.Tensor]:
     """Mitsuba 3 path-traced irradiance at probe points (:mod:`prt_torch.validate.diffuse`).
 
     Args:
@@ -101,6 +142,9 @@ def mitsuba_exit_radiance(mesh: Mesh | None, points: Any, normals: Any, image: n
         spp: samples per probe and depth, split over ``batches`` independent renders.
         albedo: ``[P, C]`` exit albedo of the probes (exit radiance = albedo/π × irradiance);
             None = 1.
+        frame: the units Mitsuba is given the scene in (:func:`mitsuba_frame`; 'normalized':
+            centred, diagonal :data:`MITSUBA_DIAGONAL`, so that Mitsuba's absolute epsilons
+            are negligible whatever the mesh's units).
     Returns:
         ``{'irradiance': [D, P, 3], 'irradiance_se': [D, P, 3], 'radiance': [D, P, 3],
         'radiance_se': [D, P, 3]}`` float64 (standard errors of the batch means), and
@@ -110,12 +154,13 @@ def mitsuba_exit_radiance(mesh: Mesh | None, points: Any, normals: Any, image: n
     P = torch.as_tensor(points, dtype=torch.float64).numpy()
     N = torch.as_tensor(normals, dtype=torch.float64)
     N = (N / N.norm(dim=-1, keepdim=True)).numpy()
-    C = offset_origins(P, N, eps, None if nudge is None else torch.as_tensor(nudge, dtype=torch.float64).numpy())
+    centre, scale = mitsuba_frame(mesh, frame)
+    C = (offset_origins(P, N, eps, None if nudge is None else torch.as_tensor(nudge, dtype=torch.float64).numpy()) - centre) * scale
     batches = check_int("batches", batches, 2)
     per = max(1, int(spp) // batches)
-    radius = max(eps * 1e-2, 1e-7)
+    radius = max(eps * scale * 1e-2, 1e-7)
     with tempfile.TemporaryDirectory() as tmp:
-        scene = _base_scene(mi, image, mesh, Path(tmp))
+        scene = _base_scene(mi, image, mesh, Path(tmp), centre, scale)
         for k in range(P.shape[0]):  # scene description, one probe per vertex (Mitsuba builds the scene once)
             scene[f"probe_{k:06d}"] = _probe(mi, C[k], N[k], radius, per)
         sc = mi.load_dict(scene)
@@ -225,7 +270,7 @@ def _frame_transform(mi, frame: np.ndarray, centre: np.ndarray, scale: float):
 
 def mitsuba_glossy_exit(mesh: Mesh | None, points: Any, frames: Any, views: Any, brdfs: list, image: np.ndarray, spp: int = 1024,
                         batches: int = 8, eps: float = 1e-4, seed: int = 0, nudge: Any = None,
-                        max_depth: int = 2, depths: list[int] | None = None) -> dict[str, torch.Tensor]:
+                        max_depth: int = 2, depths: list[int] | None = None, frame: str = "normalized") -> dict[str, torch.Tensor]:
     """Mitsuba 3 exit radiance of the engine's BRDF at probe points towards world views.
 
     Each probe is a one-sided disk (radius ``1e-2·eps``) centred at the engine's ray origin
@@ -233,7 +278,8 @@ def mitsuba_glossy_exit(mesh: Mesh | None, points: Any, frames: Any, views: Any,
     :func:`engine_bsdf` ``brdfs[k]``; a ``radiancemeter`` at distance eps along ``views[k]``
     looks back at its centre. ``max_depth`` 2: the disk plus one segment to the environment
     (direct light; the mesh only occludes); ``depths`` = [2, B+2] adds B bounces off the mesh
-    (one-sided Lambertian, ``mesh.albedo``). Returns ``{'radiance': [P, 3], 'radiance_se': [P, 3]}``
+    (one-sided Lambertian, ``mesh.albedo``). ``frame``: the units Mitsuba is given the scene in
+    (:func:`mitsuba_frame`). Returns ``{'radiance': [P, 3], 'radiance_se': [P, 3]}``
     float64 (standard error of the mean of ``batches`` renders) for ``max_depth``; with ``depths``
     ``[D, P, 3]`` each and ``'diff_se'`` (depth d minus the first, same seeds)."""
     mi = require_mitsuba()
@@ -241,16 +287,17 @@ def mitsuba_glossy_exit(mesh: Mesh | None, points: Any, frames: Any, views: Any,
     F = torch.as_tensor(frames, dtype=torch.float64).numpy()
     Vw = torch.as_tensor(views, dtype=torch.float64)
     Vw = (Vw / Vw.norm(dim=-1, keepdim=True)).numpy()
-    C = offset_origins(P, F[:, 2], eps, None if nudge is None else torch.as_tensor(nudge, dtype=torch.float64).numpy())
+    centre, scale = mitsuba_frame(mesh, frame)
+    C = (offset_origins(P, F[:, 2], eps, None if nudge is None else torch.as_tensor(nudge, dtype=torch.float64).numpy()) - centre) * scale
     batches = check_int("batches", batches, 2)
     per = max(1, int(spp) // batches)
-    radius = max(eps * 1e-2, 1e-7)
+    radius = max(eps * scale * 1e-2, 1e-7)
     with tempfile.TemporaryDirectory() as tmp:
-        scene = _base_scene(mi, image, mesh, Path(tmp))
+        scene = _base_scene(mi, image, mesh, Path(tmp), centre, scale)
         for k in range(P.shape[0]):
             scene[f"probe_{k:06d}"] = {"type": "disk", "to_world": _frame_transform(mi, F[k], C[k], radius),
                                        "bsdf": engine_bsdf(brdfs[k], F[k])}
-            o = C[k] + eps * Vw[k]
+            o = C[k] + eps * scale * Vw[k]
             up = F[k, 0] if abs(float(F[k, 0] @ Vw[k])) < 0.9 else F[k, 1]
             scene[f"sensor_{k:06d}"] = {
                 "type": "radiancemeter",
