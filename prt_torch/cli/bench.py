@@ -91,8 +91,14 @@ def run(args: argparse.Namespace) -> int:
                     from ..harness.target import search_cost
 
                     cost = search_cost(sub, mesh.num_vertices, mem["D"])
+                    if sub["target"].get("codec"):
+                        timed = "untimed, then the setting found timed"
+                    elif sub["target"]["by"] == "fps":
+                        timed = "every probe timed (target.by: fps)"
+                    else:
+                        timed = f"untimed, then the winner and each family's best timed (at most {len(cost) - 1})"
                     print(f"# target search: at most {cost.pop('total')} fits ("
-                          + ", ".join(f"{k} {v}" for k, v in cost.items()) + "; fewer with branch and bound on bytes)")
+                          + ", ".join(f"{k} {v}" for k, v in cost.items()) + f"; fewer with branch and bound on bytes), {timed}")
                 if sub is not c:
                     print(f"# part {sub['name']!r}: {sub['_part']['note']}")
                 print(json.dumps({k: v for k, v in sub.items() if not k.startswith("_")}, indent=2))
