@@ -213,8 +213,12 @@ def _contention_note(records: list[dict]) -> list[str]:
     if not bad:
         return []
     why = sorted({w for r in bad for w in r.get("contention", {}).get("why_not", [])})[:4]
+    redone = sum(1 for r in bad if (r.get("rate_policy") or {}).get("redecided"))
     return [f"⚠ {len(bad)} of {len(records)} settings were timed under contention ({'; '.join(why)}): their rates are "
-            "not to be trusted; their speed-ups, paired ratios of interleaved samples, are more robust but wider.", ""]
+            "not to be trusted; their speed-ups, paired ratios of interleaved samples, are more robust but wider."
+            + (f" {redone} of them were re-timed when the contention was seen, in one thread and at the run's thread count "
+               "(spinning OpenMP threads stall when other processes take the cores after import; harness.timing.rate_policy): "
+               "their Mvert/s and fps are the faster, with the thread count in the cell." if redone else ""), ""]
 
 
 def executor_lines(res: dict) -> list[str]:
@@ -413,6 +417,8 @@ def _records_table(records: list[dict]) -> list[str]:
     ]
     for x in sorted(records, key=lambda x: (x["codec"], x["bytes_per_vertex"])):
         warn = " ⚠" if x.get("timing_trusted") is False else ""  # the rates themselves marked, not only the footnote
+        if (x.get("rate_policy") or {}).get("redecided"):  # re-timed under contention (timing.rate_policy): at which threads
+            warn += f" ({x['rate_threads']} thr)"
         lines.append(
             f"| {x['codec']} | {_setting(x)} | {x['bytes_per_vertex']:.1f} | {_fmt(x['compression_ratio'])} | {_fmt(x['se'])} | "
             f"{_fmt(x['relative_se'])} | {_fmt(x['psnr_random_db'])} | {_fmt(x['psnr_lights_db'])} | {x['vertices_per_s'] / 1e6:.2f} "
