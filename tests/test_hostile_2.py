@@ -288,6 +288,66 @@ def test_every_command_refuses_a_corrupt_transfer_file_alike(how, says, small_tr
     assert sorted(p.name for p in tmp_path.iterdir()) == [bad.name]  # nothing written
 
 
+def _corrupt_codec(src: Path, dst: Path, how: str) -> Path:
+    """A copy of a CPCA codec file with one defect every reader must refuse alike."""
+    from prt_torch import io
+
+    tensors, meta = io.load(src)
+    kind = meta.pop("kind")
+    meta = {k: v for k, v in meta.items() if k not in ("format", "format_version", "prt_torch_version")}
+    t = {k: v.clone() for k, v in tensors.items()}
+    if how == "nan":
+        t["model.basis"].view(-1)[3] = float("nan")
+    elif how == "overflow":
+        t["codes.coeffs"] *= 1e30
+    elif how == "labels":
+        t["codes.labels"][7] = 9
+    elif how == "kind":
+        kind = "codec/vq"
+    elif how == "clusters":
+        meta["model"]["clusters"] = meta["encoded"]["clusters"] = 5
+    io.save(dst, t, kind=kind, meta=meta)
+    return dst
+
+
+@pytest.fixture(scope="module")
+def small_codec(small_transfer, tmp_path_factory):
+    d = tmp_path_factory.mktemp("codec")
+    out = d / "t.cpca.prt"
+    assert cli_main(["compress", str(small_transfer), "--codec", "cpca", "--clusters", "4", "--vectors", "2", "-o", str(out)]) == 0
+    return out
+
+
+@pytest.mark.parametrize("how, says", [("nan", "model.basis holds 1 non-finite"), ("overflow", "codes.coeffs reaches"),
+                                       ("labels", "codes.labels name clusters 0..9; accepted: 0..3"),
+                                       ("kind", "labelled kind=codec/vq but holds codec 'cpca'"),
+                                       ("clusters", "model.clusters=5 but model.basis has 4 rows"), ("mesh", "another mesh")])
+def test_every_command_refuses_a_corrupt_codec_file_alike(how, says, small_transfer, small_codec, tmp_path, capsys):
+    """One consistency check for codec files, as for transfer files: info, render --codec-file and
+    validate --codec-file refuse with the same line; a codec file of another mesh by the two that
+    know the transfer."""
+    if how == "mesh":  # a sound codec file of another transfer (another mesh)
+        other = tmp_path / "o.prt"
+        assert cli_main(["precompute", "bumpy_sphere:small", "--samples", "8", "--bands", "3", "--no-progress", "-o", str(other)]) == 0
+        bad = tmp_path / "mesh.prt"
+        assert cli_main(["compress", str(other), "--codec", "cpca", "--clusters", "4", "--vectors", "2", "-o", str(bad)]) == 0
+        other.unlink()
+        says = "was compressed from a mesh with hash"
+    else:
+        bad = _corrupt_codec(small_codec, tmp_path / f"{how}.prt", how)
+    capsys.readouterr()
+    lines = []
+    readers = [["render", str(small_transfer), "--codec-file", str(bad), "--decode", "cpu", "-o", str(tmp_path / "r.png")],
+               ["validate", str(small_transfer), "--light", "constant", "--codec-file", str(bad), "--vertices", "2", "--spp", "8",
+                "--batches", "1"]]
+    if how != "mesh":
+        readers.insert(0, ["info", str(bad)])
+    for argv in readers:
+        lines.append(_refused(argv, capsys, str(bad), says))
+    assert len({ln.split(": error: ", 1)[1] for ln in lines}) == 1  # the same check, the same words, in every command
+    assert sorted(p.name for p in tmp_path.iterdir()) == [bad.name]  # nothing written
+
+
 # ------------------------------------------------------------------ numeric options: finite, in their units
 
 @pytest.mark.parametrize("argv, names", [
