@@ -52,6 +52,15 @@ def load_results(path: str | Path) -> dict:
         raise ValueError(f"{str(p)!r} is not valid JSON ({e})") from None
     if data.get("format") != "prt_torch.results":
         raise ValueError(f"{str(p)!r} is not a prt_torch results file (format={data.get('format')!r})")
+    # what the tables and plots read, checked here (a hand-made or truncated file reached a KeyError before)
+    missing = [k for k in ("name", "records") if k not in data]
+    if missing or not isinstance(data.get("records"), list):
+        raise ValueError(f"{str(p)!r} lacks {', '.join(missing) or 'a list of records'}; accepted: a results.json written by prt bench")
+    need = ("setting_id", "codec", "bytes_per_vertex", "psnr_lights_db", "fps")
+    for i, r in enumerate(data["records"]):
+        gone = [k for k in need if not isinstance(r, dict) or k not in r]
+        if gone:
+            raise ValueError(f"{str(p)!r}: records[{i}] lacks {', '.join(gone)}; accepted: a results.json written by prt bench")
     return data
 
 
