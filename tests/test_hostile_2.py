@@ -212,8 +212,8 @@ def test_plot_needs_overwrite_for_existing_plots(tmp_path, capsys):
 
 
 def test_validate_refuses_impossible_sampling_and_its_json_over_an_input(small_transfer, tmp_path, capsys):
-    for opt, val, name in (("--spp", "0", "spp"), ("--vertices", "0", "vertices"), ("--batches", "0", "batches"),
-                           ("--view-deg", "nan", "view_deg")):
+    for opt, val, name in (("--spp", "0", "--spp"), ("--vertices", "0", "--vertices"), ("--batches", "0", "--batches"),
+                           ("--view-deg", "nan", "--view-deg")):
         _refused(["validate", str(small_transfer), "--light", "sky", opt, val], capsys, name)
     _refused(["validate", str(small_transfer), "--light", "sky", "--json", str(small_transfer), "--overwrite"], capsys, "--json", "TRANSFER")
     (tmp_path / "r.json").write_text("{}")
@@ -357,7 +357,8 @@ def test_every_command_refuses_a_corrupt_codec_file_alike(how, says, small_trans
     (["precompute", "convex", "--samples", "8", "--no-progress", "-o", "{tmp}/p.prt", "--memory-limit", "inf"], ["--memory-limit", "GiB"]),
     (["precompute", "convex", "--samples", "8", "--no-progress", "-o", "{tmp}/p.prt", "--memory-limit", "-1"], ["--memory-limit", "GiB"]),
     (["render", "{transfer}", "-o", "{tmp}/r.png", "--azimuth", "nan"], ["azimuth"]),
-    (["validate", "{transfer}", "--light", "sky", "--view-deg", "inf"], ["view_deg"]),
+    (["validate", "{transfer}", "--light", "sky", "--view-deg", "inf"], ["--view-deg"]),
+    (["shrm", "--brdf", "phong", "--light", "sky", "-o", "{tmp}/s.prt", "--max-memory", "nan"], ["--max-memory", "GiB"]),
 ])
 def test_numeric_options_are_finite_and_in_their_units(argv, names, small_transfer, tmp_path, capsys):
     argv = [a.format(tmp=tmp_path, transfer=small_transfer) for a in argv]
@@ -419,3 +420,60 @@ def test_a_broken_pipe_to_another_process_is_an_error_not_a_closed_stdout(monkey
     assert err.strip().startswith("prt info: error: a pipe to another process broke"), err
     print("stdout still open")
     assert "stdout still open" in capfd.readouterr().out
+
+
+# ------------------------------------------------------------------ weak messages: in the words the user typed
+
+@pytest.mark.parametrize("argv, names, not_in", [
+    # a library parameter name where the user typed an option (quad_bands, chunk_size, up=)
+    (["precompute", "convex", "--no-progress", "-o", "{tmp}/a.prt", "--kind", "mrt", "--quad-bands", "0"],
+     ["--quad-bands", "unset"], ["quad_bands", "None"]),
+    (["precompute", "convex", "--no-progress", "-o", "{tmp}/a.prt", "--chunk", "0"], ["--chunk"], ["chunk_size"]),
+    (["light", "sky", "--up", "q"], ["--up", "'q'"], []),  # a built-in environment ignored --up before, whatever it said
+    # Python's call-signature texts (missing positional argument, unexpected keyword argument)
+    (["light", "directional:foo=1"], ["unknown parameter 'foo'", "accepted: direction (required), intensity"], ["keyword"]),
+    (["light", "cap:half_angle_deg=20"], ["needs 'direction'", "half_angle_deg"], ["positional", "half_angle,"]),
+    (["shrm", "--brdf", "phong", "--light", "sky", "-o", "{tmp}/s.prt", "--brdf-param", "q=1"], ["unknown parameter 'q'", "accepted: s"],
+     ["__init__", "keyword"]),
+    # a progress line before the refusal: the light is read before the scene is announced
+    (["precompute", "convex", "--no-progress", "-o", "{tmp}/a.prt", "--bands", "auto", "--light", "nosuch"], ["--light", "nosuch"],
+     ["vertices"]),
+    # a results file without records reached a KeyError traceback in prt plot
+    (["plot", "{tmp}/r.json", "-o", "{tmp}/p"], ["r.json", "records"], ["KeyError"]),
+])
+def test_messages_name_what_the_user_typed(argv, names, not_in, tmp_path, capsys):
+    (tmp_path / "r.json").write_text(json.dumps({"format": "prt_torch.results"}))
+    before = _snapshot(tmp_path)
+    line = _refused([a.format(tmp=tmp_path) for a in argv], capsys, *names)
+    for w in not_in:
+        assert w not in line, line
+    assert _snapshot(tmp_path) == before  # nothing created or changed
+
+
+def test_an_os_error_is_one_line_without_its_errno(monkeypatch, tmp_path, capsys):
+    """A raw OSError text ('[Errno 13] Permission denied: ...') is said as the file and the reason."""
+    from prt_torch.cli import info
+
+    def denied(path):
+        raise PermissionError(13, "Permission denied", str(path))
+
+    monkeypatch.setattr(info, "describe_file", denied)
+    line = _refused(["info", str(tmp_path / "x.prt")], capsys, "x.prt", "Permission denied")
+    assert "Errno" not in line
+
+
+def test_the_glsl_decoder_names_the_light_constants_not_an_internal_name():
+    import numpy as np
+
+    from prt_torch.render.glsl import AffineDecoder
+
+    with pytest.raises(ValueError, match="per-cluster light constants"):
+        AffineDecoder(np.zeros(4, np.int64), np.zeros((4, 2), np.float32), np.zeros((1, 2, 1, 3), np.float32))
+
+
+def test_shrm_orders_with_no_fourier_terms_build(tmp_path, capsys):
+    """--orders 0,P (F_B = 0: the constant row of the Fourier basis alone) reached a RuntimeError
+    traceback (a reshape of zero elements); now the file is written."""
+    out = tmp_path / "s.prt"
+    assert cli_main(["shrm", "--brdf", "phong", "--light", "constant", "--orders", "0,1", "--size", "8", "-o", str(out)]) == 0
+    assert out.is_file() and "Traceback" not in capsys.readouterr().err
