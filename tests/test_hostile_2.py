@@ -477,3 +477,20 @@ def test_shrm_orders_with_no_fourier_terms_build(tmp_path, capsys):
     out = tmp_path / "s.prt"
     assert cli_main(["shrm", "--brdf", "phong", "--light", "constant", "--orders", "0,1", "--size", "8", "-o", str(out)]) == 0
     assert out.is_file() and "Traceback" not in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("flags, says", [([], "run the same command again to continue"),
+                                         (["--no-resume"], "run the same command again without --no-resume")])
+def test_an_interrupted_bench_says_the_flags_that_continue_it(flags, says, tmp_path, capsys, monkeypatch):
+    """The resume hint names what continues the run: with --no-resume, the same command would
+    recompute every finished setting, so the hint says to drop that flag."""
+    from prt_torch.harness import run as hr
+
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(hr, "run_benchmark", interrupted)
+    assert cli_main(["bench", "default", "--no-render", *flags]) == 130
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("prt bench: interrupted; finished settings are kept in") and says in err[0], err

@@ -117,8 +117,10 @@ def run(args: argparse.Namespace) -> int:
     failed = 0
     with executor:
         for c in runs:
+            again = ("run the same command again without --no-resume to continue" if args.no_resume
+                     else "run the same command again to continue")  # --no-resume again would recompute them all
             args.resume_hint = (f"finished settings are kept in {str(Path(c['output_dir']) / c['name'] / 'records')!r}; "
-                                "run the same command again to continue (they are not recomputed)")
+                                f"{again} (they are not recomputed)")
             out = run_benchmark(c, resume=not args.no_resume, progress=not args.quiet, executor=executor)
             print(f"report: {out / 'report.md'}")
             res = json.loads((out / "results.json").read_text())
