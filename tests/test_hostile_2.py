@@ -494,3 +494,13 @@ def test_an_interrupted_bench_says_the_flags_that_continue_it(flags, says, tmp_p
     assert cli_main(["bench", "default", "--no-render", *flags]) == 130
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("prt bench: interrupted; finished settings are kept in") and says in err[0], err
+
+
+def test_library_names_become_the_options_typed_but_a_named_option_is_left_alone():
+    from prt_torch.cli import _in_cli_words, build_parser
+
+    p = build_parser()
+    assert _in_cli_words(p, "validate", "spp=0 is out of range") == "--spp 0 is out of range"
+    kept = "output 'x' exists; pass overwrite=True (CLI: --overwrite) to replace it"
+    assert _in_cli_words(p, "precompute", kept) == kept
+    assert _in_cli_words(p, "bench", "config key 'seed' seed=-1") == "config key 'seed' seed=-1"  # bench speaks config keys
