@@ -504,3 +504,10 @@ def test_library_names_become_the_options_typed_but_a_named_option_is_left_alone
     kept = "output 'x' exists; pass overwrite=True (CLI: --overwrite) to replace it"
     assert _in_cli_words(p, "precompute", kept) == kept
     assert _in_cli_words(p, "bench", "config key 'seed' seed=-1") == "config key 'seed' seed=-1"  # bench speaks config keys
+
+
+def test_resume_without_an_interrupted_run_says_so(tmp_path, capsys):
+    out = tmp_path / "a.prt"
+    assert cli_main(["precompute", "convex", "--samples", "8", "--no-progress", "-o", str(out), "--resume"]) == 0
+    warns = [ln for ln in capsys.readouterr().err.splitlines() if "warning" in ln]
+    assert warns == [f"prt precompute: warning: --resume: no interrupted run in {str(out) + '.state'!r}; starting from the beginning"]

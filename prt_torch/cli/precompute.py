@@ -179,6 +179,10 @@ def _run(args, executor) -> int:
     check_outputs({"-o/--output": out}, {"MESH_OR_BUILTIN": args.scene, "--light": args.light}, args.overwrite,
                   directories=("-o/--output",) if kind.output == "directory" else ())  # before any work
     state = default_state_dir(out)
+    if args.resume and not state.exists():  # said, not silently a fresh run
+        import warnings
+
+        warnings.warn(f"--resume: no interrupted run in {str(state)!r}; starting from the beginning", stacklevel=1)
     if state.exists() and not args.resume:
         if args.overwrite:
             shutil.rmtree(state)
