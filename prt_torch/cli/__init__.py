@@ -95,7 +95,7 @@ def _in_cli_words(parser: argparse.ArgumentParser, command: str, message: str, n
     for name, flag in pairs.items():
         if re.search(rf"(?<![\w-]){re.escape(flag)}(?![\w-])", message):  # the message names the option already
             continue  # ("pass overwrite=True (CLI: --overwrite)")
-        message = re.sub(rf"(?<![\w'\"./:-]){re.escape(name)}=", f"{flag} ", message)
+        message = re.sub(rf"(?<![\w'\"./:-]){re.escape(name)}= ?", f"{flag} ", message)
     return re.sub(r"(accepted: [^;]*?) or None\b", r"\1 or unset", message)
 
 
