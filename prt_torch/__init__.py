@@ -18,7 +18,7 @@ import os as _os
 __version__ = "0.1.0"
 
 
-def _others_running(samples: int = 5) -> int | None:
+def others_running(samples: int = 5) -> int | None:
     """Runnable processes other than this one right now (median of a few reads of /proc/loadavg's
     running count; the load *average* would count this package's own recent work)."""
     import time
@@ -38,13 +38,23 @@ def _others_running(samples: int = 5) -> int | None:
 def _choose_omp_wait_policy() -> str:
     if "OMP_WAIT_POLICY" in _os.environ:
         return f"user: OMP_WAIT_POLICY={_os.environ['OMP_WAIT_POLICY']}"
-    others, cores = _others_running(), _os.cpu_count() or 1
+    others, cores = others_running(), _os.cpu_count() or 1
     if others is None:
         return "default spinning threads (no /proc/loadavg)"
-    if others >= max(1, round(0.75 * cores)):
+    if busy_now(others):
         _os.environ["OMP_WAIT_POLICY"] = "PASSIVE"
         return f"PASSIVE ({others} other runnable processes on {cores} cores at import)"
     return f"default spinning threads ({others} other runnable processes on {cores} cores at import)"
 
 
+def busy_now(others: int | None = None) -> bool:
+    """Whether other processes occupy at least 0.75 × the cores right now (``others``: runnable
+    processes besides this one; default :func:`others_running`): the rule the import-time wait
+    policy follows, which ``harness.timing.rate_policy`` re-applies where rates are measured."""
+    others = others_running() if others is None else others
+    return others is not None and others >= max(1, round(0.75 * (_os.cpu_count() or 1)))
+
+
 OMP_POLICY_CHOICE = _choose_omp_wait_policy()
+#: whether this process's OpenMP threads spin while waiting (the policy is fixed when torch loads OpenMP)
+OMP_SPINNING = _os.environ.get("OMP_WAIT_POLICY", "").upper() != "PASSIVE"

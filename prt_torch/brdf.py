@@ -48,6 +48,7 @@ import numpy as np
 import torch
 
 from ._checks import check_choice, check_int, check_shape, check_float_dtype, describe
+from .params import check_kwargs
 from .sh import (
     MAX_BANDS,
     band_factor,
@@ -486,6 +487,7 @@ def make_brdf(model: str, **params) -> BRDF:
     cls = MODELS.get(key)
     if cls is None:
         raise ValueError(f"BRDF model={model!r} is not known; accepted: {sorted(MODELS)} (aliases {sorted(_ALIASES)})")
+    check_kwargs(cls, params, f"BRDF model {key!r}")  # unknown or missing parameters named, with the accepted ones
     try:
         return cls(**params)
     except TypeError as e:

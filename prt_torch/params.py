@@ -31,7 +31,7 @@ from ._checks import describe
 __all__ = [
     "Interval", "Options", "Boolean", "Predicate", "Constraint",
     "check_param", "validate_params", "invalid_values", "describe_constraints",
-    "parse_value", "parse_assignments",
+    "parse_value", "parse_assignments", "check_kwargs",
 ]
 
 
@@ -209,6 +209,33 @@ def invalid_values(constraints: list[Any]) -> list[Any]:
 # ----------------------------------------------------------------------------------------
 # text -> values: the one key=value parser
 # ----------------------------------------------------------------------------------------
+
+def check_kwargs(fn: Any, kwargs: dict[str, Any], what: str, hidden: Iterable[str] = (),
+                 shown: dict[str, str] | None = None) -> None:
+    """Refuse keyword arguments ``fn`` does not take, or a required one missing, before calling it,
+    naming them in the words a user typed (not Python's ``f() got an unexpected keyword argument``).
+    ``what``: how the message starts (e.g. ``"light spec 'directional:foo=1'"``); ``hidden``:
+    parameters filled in by the caller (left out of the list of accepted ones); ``shown``: how to
+    name a parameter the user writes differently (e.g. ``{'half_angle': 'half_angle_deg'}``)."""
+    import inspect
+
+    shown = shown or {}
+    try:
+        sig = inspect.signature(fn)
+    except (TypeError, ValueError):  # a builtin without a signature: let the call decide
+        return
+    ps = sig.parameters
+    if any(p.kind is p.VAR_KEYWORD for p in ps.values()):
+        return
+    names = [n for n, p in ps.items() if n not in hidden and n != "self" and p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)]
+    accepted = ", ".join(shown.get(n, n) + (" (required)" if ps[n].default is inspect.Parameter.empty else "") for n in names)
+    unknown = [k for k in kwargs if k not in ps or k in hidden]
+    if unknown:
+        raise ValueError(f"{what}: unknown parameter {', '.join(repr(shown.get(k, k)) for k in unknown)}; accepted: {accepted}")
+    missing = [n for n in names if ps[n].default is inspect.Parameter.empty and n not in kwargs]
+    if missing:
+        raise ValueError(f"{what}: needs {', '.join(repr(shown.get(n, n)) for n in missing)}; accepted: {accepted}")
+
 
 def parse_value(text: str) -> Any:
     """A value typed as text: YAML scalars and lists (``3``, ``0.5``, ``true``, ``null``,

@@ -379,7 +379,8 @@ def _trig(beta: torch.Tensor, F: int) -> torch.Tensor:
     """Real Fourier basis in β: rows [1, cos β, sin β, cos 2β, sin 2β, ...], ``[2F+1, W]``."""
     k = torch.arange(1, F + 1, dtype=torch.float64)[:, None]
     c, s = torch.cos(k * beta[None]), torch.sin(k * beta[None])
-    return torch.cat([torch.ones(1, beta.shape[0], dtype=torch.float64), torch.stack([c, s], 1).reshape(2 * F, -1)])
+    rows = torch.stack([c, s], 1).reshape(2 * F, beta.shape[0])  # F = 0: none (the constant row alone)
+    return torch.cat([torch.ones(1, beta.shape[0], dtype=torch.float64), rows])
 
 
 def _m_slots(F: int) -> tuple[torch.Tensor, torch.Tensor]:

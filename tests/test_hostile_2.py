@@ -212,8 +212,8 @@ def test_plot_needs_overwrite_for_existing_plots(tmp_path, capsys):
 
 
 def test_validate_refuses_impossible_sampling_and_its_json_over_an_input(small_transfer, tmp_path, capsys):
-    for opt, val, name in (("--spp", "0", "spp"), ("--vertices", "0", "vertices"), ("--batches", "0", "batches"),
-                           ("--view-deg", "nan", "view_deg")):
+    for opt, val, name in (("--spp", "0", "--spp"), ("--vertices", "0", "--vertices"), ("--batches", "0", "--batches"),
+                           ("--view-deg", "nan", "--view-deg")):
         _refused(["validate", str(small_transfer), "--light", "sky", opt, val], capsys, name)
     _refused(["validate", str(small_transfer), "--light", "sky", "--json", str(small_transfer), "--overwrite"], capsys, "--json", "TRANSFER")
     (tmp_path / "r.json").write_text("{}")
@@ -288,6 +288,66 @@ def test_every_command_refuses_a_corrupt_transfer_file_alike(how, says, small_tr
     assert sorted(p.name for p in tmp_path.iterdir()) == [bad.name]  # nothing written
 
 
+def _corrupt_codec(src: Path, dst: Path, how: str) -> Path:
+    """A copy of a CPCA codec file with one defect every reader must refuse alike."""
+    from prt_torch import io
+
+    tensors, meta = io.load(src)
+    kind = meta.pop("kind")
+    meta = {k: v for k, v in meta.items() if k not in ("format", "format_version", "prt_torch_version")}
+    t = {k: v.clone() for k, v in tensors.items()}
+    if how == "nan":
+        t["model.basis"].view(-1)[3] = float("nan")
+    elif how == "overflow":
+        t["codes.coeffs"] *= 1e30
+    elif how == "labels":
+        t["codes.labels"][7] = 9
+    elif how == "kind":
+        kind = "codec/vq"
+    elif how == "clusters":
+        meta["model"]["clusters"] = meta["encoded"]["clusters"] = 5
+    io.save(dst, t, kind=kind, meta=meta)
+    return dst
+
+
+@pytest.fixture(scope="module")
+def small_codec(small_transfer, tmp_path_factory):
+    d = tmp_path_factory.mktemp("codec")
+    out = d / "t.cpca.prt"
+    assert cli_main(["compress", str(small_transfer), "--codec", "cpca", "--clusters", "4", "--vectors", "2", "-o", str(out)]) == 0
+    return out
+
+
+@pytest.mark.parametrize("how, says", [("nan", "model.basis holds 1 non-finite"), ("overflow", "codes.coeffs reaches"),
+                                       ("labels", "codes.labels name clusters 0..9; accepted: 0..3"),
+                                       ("kind", "labelled kind=codec/vq but holds codec 'cpca'"),
+                                       ("clusters", "model.clusters=5 but model.basis has 4 rows"), ("mesh", "another mesh")])
+def test_every_command_refuses_a_corrupt_codec_file_alike(how, says, small_transfer, small_codec, tmp_path, capsys):
+    """One consistency check for codec files, as for transfer files: info, render --codec-file and
+    validate --codec-file refuse with the same line; a codec file of another mesh by the two that
+    know the transfer."""
+    if how == "mesh":  # a sound codec file of another transfer (another mesh)
+        other = tmp_path / "o.prt"
+        assert cli_main(["precompute", "bumpy_sphere:small", "--samples", "8", "--bands", "3", "--no-progress", "-o", str(other)]) == 0
+        bad = tmp_path / "mesh.prt"
+        assert cli_main(["compress", str(other), "--codec", "cpca", "--clusters", "4", "--vectors", "2", "-o", str(bad)]) == 0
+        other.unlink()
+        says = "was compressed from a mesh with hash"
+    else:
+        bad = _corrupt_codec(small_codec, tmp_path / f"{how}.prt", how)
+    capsys.readouterr()
+    lines = []
+    readers = [["render", str(small_transfer), "--codec-file", str(bad), "--decode", "cpu", "-o", str(tmp_path / "r.png")],
+               ["validate", str(small_transfer), "--light", "constant", "--codec-file", str(bad), "--vertices", "2", "--spp", "8",
+                "--batches", "1"]]
+    if how != "mesh":
+        readers.insert(0, ["info", str(bad)])
+    for argv in readers:
+        lines.append(_refused(argv, capsys, str(bad), says))
+    assert len({ln.split(": error: ", 1)[1] for ln in lines}) == 1  # the same check, the same words, in every command
+    assert sorted(p.name for p in tmp_path.iterdir()) == [bad.name]  # nothing written
+
+
 # ------------------------------------------------------------------ numeric options: finite, in their units
 
 @pytest.mark.parametrize("argv, names", [
@@ -297,7 +357,8 @@ def test_every_command_refuses_a_corrupt_transfer_file_alike(how, says, small_tr
     (["precompute", "convex", "--samples", "8", "--no-progress", "-o", "{tmp}/p.prt", "--memory-limit", "inf"], ["--memory-limit", "GiB"]),
     (["precompute", "convex", "--samples", "8", "--no-progress", "-o", "{tmp}/p.prt", "--memory-limit", "-1"], ["--memory-limit", "GiB"]),
     (["render", "{transfer}", "-o", "{tmp}/r.png", "--azimuth", "nan"], ["azimuth"]),
-    (["validate", "{transfer}", "--light", "sky", "--view-deg", "inf"], ["view_deg"]),
+    (["validate", "{transfer}", "--light", "sky", "--view-deg", "inf"], ["--view-deg"]),
+    (["shrm", "--brdf", "phong", "--light", "sky", "-o", "{tmp}/s.prt", "--max-memory", "nan"], ["--max-memory", "GiB"]),
 ])
 def test_numeric_options_are_finite_and_in_their_units(argv, names, small_transfer, tmp_path, capsys):
     argv = [a.format(tmp=tmp_path, transfer=small_transfer) for a in argv]
@@ -359,3 +420,94 @@ def test_a_broken_pipe_to_another_process_is_an_error_not_a_closed_stdout(monkey
     assert err.strip().startswith("prt info: error: a pipe to another process broke"), err
     print("stdout still open")
     assert "stdout still open" in capfd.readouterr().out
+
+
+# ------------------------------------------------------------------ weak messages: in the words the user typed
+
+@pytest.mark.parametrize("argv, names, not_in", [
+    # a library parameter name where the user typed an option (quad_bands, chunk_size, up=)
+    (["precompute", "convex", "--no-progress", "-o", "{tmp}/a.prt", "--kind", "mrt", "--quad-bands", "0"],
+     ["--quad-bands", "unset"], ["quad_bands", "None"]),
+    (["precompute", "convex", "--no-progress", "-o", "{tmp}/a.prt", "--chunk", "0"], ["--chunk"], ["chunk_size"]),
+    (["light", "sky", "--up", "q"], ["--up", "'q'"], []),  # a built-in environment ignored --up before, whatever it said
+    # Python's call-signature texts (missing positional argument, unexpected keyword argument)
+    (["light", "directional:foo=1"], ["unknown parameter 'foo'", "accepted: direction (required), intensity"], ["keyword"]),
+    (["light", "cap:half_angle_deg=20"], ["needs 'direction'", "half_angle_deg"], ["positional", "half_angle,"]),
+    (["shrm", "--brdf", "phong", "--light", "sky", "-o", "{tmp}/s.prt", "--brdf-param", "q=1"], ["unknown parameter 'q'", "accepted: s"],
+     ["__init__", "keyword"]),
+    # a progress line before the refusal: the light is read before the scene is announced
+    (["precompute", "convex", "--no-progress", "-o", "{tmp}/a.prt", "--bands", "auto", "--light", "nosuch"], ["--light", "nosuch"],
+     ["vertices"]),
+    # a results file without records reached a KeyError traceback in prt plot
+    (["plot", "{tmp}/r.json", "-o", "{tmp}/p"], ["r.json", "records"], ["KeyError"]),
+])
+def test_messages_name_what_the_user_typed(argv, names, not_in, tmp_path, capsys):
+    (tmp_path / "r.json").write_text(json.dumps({"format": "prt_torch.results"}))
+    before = _snapshot(tmp_path)
+    line = _refused([a.format(tmp=tmp_path) for a in argv], capsys, *names)
+    for w in not_in:
+        assert w not in line, line
+    assert _snapshot(tmp_path) == before  # nothing created or changed
+
+
+def test_an_os_error_is_one_line_without_its_errno(monkeypatch, tmp_path, capsys):
+    """A raw OSError text ('[Errno 13] Permission denied: ...') is said as the file and the reason."""
+    from prt_torch.cli import info
+
+    def denied(path):
+        raise PermissionError(13, "Permission denied", str(path))
+
+    monkeypatch.setattr(info, "describe_file", denied)
+    line = _refused(["info", str(tmp_path / "x.prt")], capsys, "x.prt", "Permission denied")
+    assert "Errno" not in line
+
+
+def test_the_glsl_decoder_names_the_light_constants_not_an_internal_name():
+    import numpy as np
+
+    from prt_torch.render.glsl import AffineDecoder
+
+    with pytest.raises(ValueError, match="per-cluster light constants"):
+        AffineDecoder(np.zeros(4, np.int64), np.zeros((4, 2), np.float32), np.zeros((1, 2, 1, 3), np.float32))
+
+
+def test_shrm_orders_with_no_fourier_terms_build(tmp_path, capsys):
+    """--orders 0,P (F_B = 0: the constant row of the Fourier basis alone) reached a RuntimeError
+    traceback (a reshape of zero elements); now the file is written."""
+    out = tmp_path / "s.prt"
+    assert cli_main(["shrm", "--brdf", "phong", "--light", "constant", "--orders", "0,1", "--size", "8", "-o", str(out)]) == 0
+    assert out.is_file() and "Traceback" not in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("flags, says", [([], "run the same command again to continue"),
+                                         (["--no-resume"], "run the same command again without --no-resume")])
+def test_an_interrupted_bench_says_the_flags_that_continue_it(flags, says, tmp_path, capsys, monkeypatch):
+    """The resume hint names what continues the run: with --no-resume, the same command would
+    recompute every finished setting, so the hint says to drop that flag."""
+    from prt_torch.harness import run as hr
+
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(hr, "run_benchmark", interrupted)
+    assert cli_main(["bench", "default", "--no-render", *flags]) == 130
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("prt bench: interrupted; finished settings are kept in") and says in err[0], err
+
+
+def test_library_names_become_the_options_typed_but_a_named_option_is_left_alone():
+    from prt_torch.cli import _in_cli_words, build_parser
+
+    p = build_parser()
+    assert _in_cli_words(p, "validate", "spp=0 is out of range") == "--spp 0 is out of range"
+    kept = "output 'x' exists; pass overwrite=True (CLI: --overwrite) to replace it"
+    assert _in_cli_words(p, "precompute", kept) == kept
+    assert _in_cli_words(p, "bench", "config key 'seed' seed=-1") == "config key 'seed' seed=-1"  # bench speaks config keys
+
+
+def test_resume_without_an_interrupted_run_says_so(tmp_path, capsys):
+    out = tmp_path / "a.prt"
+    assert cli_main(["precompute", "convex", "--samples", "8", "--no-progress", "-o", str(out), "--resume"]) == 0
+    warns = [ln for ln in capsys.readouterr().err.splitlines() if "warning" in ln]
+    assert warns == [f"prt precompute: warning: --resume: no interrupted run in {str(out) + '.state'!r}; starting from the beginning"]

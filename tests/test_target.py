@@ -70,3 +70,55 @@ def test_branch_and_bound_finds_the_brute_force_cheapest_with_fewer_fits(goal):
     cost = search_cost(_cfg(goal), P, D)
     assert len(calls) <= cost["total"]
     assert out["pruned"], "the bound cut nothing on a front where large cluster counts cost more"
+
+
+class _State:
+    """What harness.run.run_target reads of a run: V, X's width and run_setting(s, timed)."""
+
+    def __init__(self, points, dim):
+        import types
+
+        self.calls: list = []
+        self.ev = types.SimpleNamespace(V=points, X=torch.empty(0, dim))
+        fake = _fake_run([], points, dim)
+
+        def run_setting(s, timed=True):
+            self.calls.append((dict(s), timed))
+            r = fake(s)
+            return {**r, "timed": timed, "fps": 100.0 if timed else None}
+        self.run_setting = run_setting
+
+
+@pytest.mark.parametrize("by", ["bytes", "fps"])
+def test_probes_are_untimed_and_only_the_finalists_are_timed(by):
+    """Search on the error alone: every probe asks for no timing, then exactly the winner and each
+    family's best are timed (and carry their fps); with by=fps, the rate is the criterion, so
+    every probe is timed."""
+    from prt_torch.harness.run import run_target
+
+    P, D = 10242, 1024
+    st = _State(P, D)
+    cfg = _cfg(44.0)
+    cfg["target"]["by"] = by
+    out = run_target(cfg, st, log=lambda s: None)
+    probes = [c for c in st.calls[:out["evaluated"]]]
+    finals = st.calls[out["evaluated"]:]
+    bests = [f["best"] for f in out["families"].values() if f.get("best")]
+    assert bests and out["winner"] in bests
+    if by == "bytes":
+        assert all(not timed for _, timed in probes)
+        assert sorted(s["type"] for s, _ in finals) == sorted(b["codec"] for b in bests) and all(t for _, t in finals)
+    else:
+        assert all(timed for _, timed in probes)
+    assert all(b["fps"] == 100.0 for b in bests)  # what the report prints for each family's best was timed
+
+
+def test_cpca_at_one_cluster_reuses_pcas_probes():
+    """CPCA's single-cluster bisection reads PCA's outcomes at the same vector counts (the same fit)
+    and fits once, at the vector count found, for its bytes."""
+    P, D = 10242, 1024
+    calls: list = []
+    out = search_families(_cfg(44.0), _fake_run(calls, P, D), P, D)
+    one = [c for c in calls if c["type"] == "cpca" and c.get("clusters") == 1]
+    pca_v = out["families"]["pca"]["best"]["params"]["vectors"]
+    assert [c["vectors"] for c in one] == [pca_v] and out["reused"]

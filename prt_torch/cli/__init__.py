@@ -75,6 +75,30 @@ def _stdout_reader_left() -> bool:
         return True
 
 
+def _in_cli_words(parser: argparse.ArgumentParser, command: str, message: str, names: dict[str, str] | None = None) -> str:
+    """An error message in the words the user typed: a library parameter written ``name=value``
+    (``quad_bands=0``, ``view_deg=nan``, ``up='q'``) whose name is an option of this subcommand
+    (``--quad-bands``) is named by that option, and a Python ``None`` in "accepted" as "unset".
+    ``prt bench`` messages keep their config keys (what its user types)."""
+    import re
+
+    if command == "bench":
+        return message
+    sub = parser._subparsers._group_actions[0].choices.get(command) if parser._subparsers else None  # type: ignore[union-attr]
+    pairs = dict(names or {})  # library name -> option (a command's own, e.g. precompute's kind parameters)
+    for a in getattr(sub, "_actions", []):
+        if not a.option_strings or a.dest in ("help", "debug"):
+            continue
+        flag = max(a.option_strings, key=len)
+        for name in (a.dest, flag.lstrip("-").replace("-", "_")):
+            pairs.setdefault(name, flag)
+    for name, flag in pairs.items():
+        if re.search(rf"(?<![\w-]){re.escape(flag)}(?![\w-])", message):  # the message names the option already
+            continue  # ("pass overwrite=True (CLI: --overwrite)")
+        message = re.sub(rf"(?<![\w'\"./:-]){re.escape(name)}= ?", f"{flag} ", message)
+    return re.sub(r"(accepted: [^;]*?) or None\b", r"\1 or unset", message)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args, extra = parser.parse_known_args(argv)
@@ -115,7 +139,11 @@ def main(argv: list[str] | None = None) -> int:
         if getattr(args, "debug", False):
             raise
         hint = getattr(args, "resume_hint", None) if isinstance(e, ChildProcessError) else None  # a worker died mid-run
-        print(f"prt {args.command}: error: {e}" + (f"; {hint}" if hint else ""), file=sys.stderr)
+        if isinstance(e, OSError) and e.strerror and e.filename is not None and "Errno" in str(e):  # not "[Errno 20] ..."
+            e = OSError(f"{str(e.filename)!r}: {e.strerror}"
+                        + (f" (and {str(e.filename2)!r})" if e.filename2 is not None else ""))
+        text = _in_cli_words(parser, args.command, " ".join(str(e).split()), getattr(args, "cli_names", None))  # one line
+        print(f"prt {args.command}: error: {text}" + (f"; {hint}" if hint else ""), file=sys.stderr)
         return 2
     finally:
         if main_thread:

@@ -91,8 +91,14 @@ def run(args: argparse.Namespace) -> int:
                     from ..harness.target import search_cost
 
                     cost = search_cost(sub, mesh.num_vertices, mem["D"])
+                    if sub["target"].get("codec"):
+                        timed = "untimed, then the setting found timed"
+                    elif sub["target"]["by"] == "fps":
+                        timed = "every probe timed (target.by: fps)"
+                    else:
+                        timed = f"untimed, then the winner and each family's best timed (at most {len(cost) - 1})"
                     print(f"# target search: at most {cost.pop('total')} fits ("
-                          + ", ".join(f"{k} {v}" for k, v in cost.items()) + "; fewer with branch and bound on bytes)")
+                          + ", ".join(f"{k} {v}" for k, v in cost.items()) + f"; fewer with branch and bound on bytes), {timed}")
                 if sub is not c:
                     print(f"# part {sub['name']!r}: {sub['_part']['note']}")
                 print(json.dumps({k: v for k, v in sub.items() if not k.startswith("_")}, indent=2))
@@ -111,8 +117,10 @@ def run(args: argparse.Namespace) -> int:
     failed = 0
     with executor:
         for c in runs:
+            again = ("run the same command again without --no-resume to continue" if args.no_resume
+                     else "run the same command again to continue")  # --no-resume again would recompute them all
             args.resume_hint = (f"finished settings are kept in {str(Path(c['output_dir']) / c['name'] / 'records')!r}; "
-                                "run the same command again to continue (they are not recomputed)")
+                                f"{again} (they are not recomputed)")
             out = run_benchmark(c, resume=not args.no_resume, progress=not args.quiet, executor=executor)
             print(f"report: {out / 'report.md'}")
             res = json.loads((out / "results.json").read_text())

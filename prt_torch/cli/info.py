@@ -27,7 +27,7 @@ def _short(v, limit: int = 8):
 def describe_file(path) -> dict:
     """``{'meta': {...}, 'tensors': {name: {'shape': [...], 'dtype': str}}}`` of a prt_torch file,
     after its kind's consistency check (``prt_torch.io.describe``; a transfer file's values too:
-    ``transfer.check_transfer_values``)."""
+    ``transfer.check_transfer_values``, a codec file's: ``codecs.base.check_codec_values``)."""
     from .. import io
 
     d = io.describe(path)
@@ -36,6 +36,10 @@ def describe_file(path) -> dict:
         from ..transfer import check_transfer_values
 
         check_transfer_values(path, io.load(path)[0], d["meta"])  # the values too: what render refuses, info refuses
+    elif kind.startswith("codec/"):
+        from ..codecs.base import check_codec_values
+
+        check_codec_values(path, io.load(path)[0], d["meta"])  # the same check render --codec-file and validate run
     return d
 
 

@@ -72,7 +72,8 @@ def run(args: argparse.Namespace) -> int:
     env: Environment | None = None
     spec = args.light
     if spec in list_builtin_environments():
-        env = builtin_environment(spec, size=args.size, rotation=args.rotate)
+        # --up too (a built-in's frame is +z up; --up y reads it as a y-up file would be): checked, never ignored
+        env = builtin_environment(spec, size=args.size, rotation=resolve_rotation(args.rotate, args.up))
     elif parse_light_spec(spec) is None:
         env = load_environment(spec, layout=args.layout, rotation=args.rotate, up=args.up, clamp=args.clamp)
     if env is not None:

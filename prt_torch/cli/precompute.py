@@ -21,6 +21,7 @@ import shutil
 import sys
 from pathlib import Path
 
+from .._checks import check_int
 from .bench import add_executor_args, executor_from_args
 
 
@@ -166,20 +167,38 @@ def _run(args, executor) -> int:
     kind = get_kind(args.kind)
     if args.memory_limit is not None and not (math.isfinite(args.memory_limit) and 0 < args.memory_limit <= 1 << 20):
         raise ValueError(f"--memory-limit {args.memory_limit!r} GiB; accepted: a finite number of GiB in (0, 1048576]")
+    args.cli_names = {a.param: a.flag for a in kind.args}  # errors name --quad-bands, not quad_bands
+    for opt, v in (("--chunk", args.chunk), ("--workers", args.workers)):  # before the scene is read and announced
+        if v is not None:
+            check_int(opt, v, 1)
     params = params_from_args(args.kind, args)
-    kind.validate(params, where=f"prt precompute --kind {args.kind}")
+    kind.validate(params, where=f"--kind {args.kind}")
     out = Path(args.output)
     from ..io import check_outputs
 
     check_outputs({"-o/--output": out}, {"MESH_OR_BUILTIN": args.scene, "--light": args.light}, args.overwrite,
                   directories=("-o/--output",) if kind.output == "directory" else ())  # before any work
     state = default_state_dir(out)
+    if args.resume and not state.exists():  # said, not silently a fresh run
+        import warnings
+
+        warnings.warn(f"--resume: no interrupted run in {str(state)!r}; starting from the beginning", stacklevel=1)
     if state.exists() and not args.resume:
         if args.overwrite:
             shutil.rmtree(state)
         else:
             raise FileExistsError(f"{str(state)!r} holds an interrupted run for this output; pass --resume to continue it "
                                   "or --overwrite to start again")
+    lights = None
+    if args.light:  # read before the scene is announced: a bad light is one line, before any work
+        from ..lighting import load_light
+
+        lights = []
+        for spec in args.light:
+            try:
+                lights.append(load_light(spec, bands=32))
+            except (ValueError, OSError) as e:
+                raise ValueError(f"--light {spec!r}: {e}") from None
     mesh = load_scene(args.scene, size=args.size, up=args.up, albedo=args.albedo)
     print(f"prt precompute: {mesh.name}: {mesh.num_vertices} vertices, {mesh.num_faces} faces", file=sys.stderr)
     args.resume_hint = (f"finished chunks are kept in {str(state)!r}; continue with: "
@@ -192,12 +211,8 @@ def _run(args, executor) -> int:
         _TableDir(table).save(out, overwrite=args.overwrite)
         print(f"prt precompute: wrote {out}/ kind={kind.name} ({table!r})", file=sys.stderr)
         return 0
-    lights = None
-    if args.light:
-        from ..lighting import load_light
-
-        # wavelet res auto measures the lights themselves on the cube (not band-limited)
-        lights = list(args.light) if kind.name == "wavelet" else [load_light(spec, bands=32) for spec in args.light]
+    if lights is not None and kind.name == "wavelet":  # wavelet res auto measures the lights themselves on the cube
+        lights = list(args.light)
     tr = kind.precompute(mesh, params, run=opts, lights=lights)
     tr.save(out, overwrite=args.overwrite)
     m = tr.meta

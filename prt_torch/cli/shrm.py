@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import time
 
 from .. import shrm as S
@@ -62,8 +63,8 @@ def run(args: argparse.Namespace) -> int:
     brdf = from_spec({"type": args.brdf, **params})
     orders = parse_orders(args.orders) if args.orders is not None else None
     eps = args.epsilon if args.epsilon is not None else 0.03
-    if args.max_memory <= 0:
-        raise ValueError(f"--max-memory={args.max_memory!r}; accepted: a positive number of GiB")
+    if not (math.isfinite(args.max_memory) and args.max_memory > 0):  # NaN compared false and reached int(NaN)
+        raise ValueError(f"--max-memory={args.max_memory!r} GiB; accepted: a finite positive number of GiB")
     t0 = time.perf_counter()
     m = S.build_shrm(brdf, args.light, epsilon=eps, orders=orders, height=args.size,
                      max_memory=int(args.max_memory * 2**30))

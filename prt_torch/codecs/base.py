@@ -788,12 +788,35 @@ def describe(name: str) -> dict[str, Any]:
 
 
 def check_codec_file(path: Path, meta: dict, shapes: dict[str, list[int]]) -> None:
-    """Consistency of a codec file (``io.register_check('codec/')``): the codes' rows against
-    ``encoded.points``, the model's dimension against ``encoded.dim``. Raises ValueError naming
-    the file and the disagreement."""
+    """Consistency of a codec file (``io.register_check('codec/')``; metadata against shapes, the
+    tensors are not read): the kind against the codec named inside, the codes' rows against
+    ``encoded.points``, the model's dimension against ``encoded.dim``, the cluster count of the
+    model's metadata against its basis and means and the encoding's, the vectors per cluster
+    against the basis. Raises ValueError naming the file and the disagreement (:func:`check_codec_values`
+    is the value-level half)."""
     enc = meta.get("encoded") or {}
     P, D = enc.get("points"), enc.get("dim")
+    kind, name = str(meta.get("kind", "")), meta.get("codec")
+    if name is not None and kind != f"codec/{name}":
+        raise ValueError(f"{str(path)!r} is labelled kind={kind} but holds codec {name!r}; accepted: a file written by "
+                         "Codec.save (kind codec/<its codec>)")
     problems = []
+    model = meta.get("model") or {}
+    K = model.get("clusters")
+    for tname in ("model.basis", "model.means", "model.n_vectors"):
+        sh = shapes.get(tname)
+        if isinstance(K, int) and sh and sh[0] != K:
+            problems.append(f"model.clusters={K} but {tname} has {sh[0]} rows")
+    if isinstance(K, int) and isinstance(enc.get("clusters"), int) and enc["clusters"] != K:
+        problems.append(f"encoded.clusters={enc['clusters']} but model.clusters={K}")
+    if isinstance(model.get("dim"), int) and isinstance(D, int) and model["dim"] != D:
+        problems.append(f"encoded.dim={D} but model.dim={model['dim']}")
+    basis = shapes.get("model.basis")
+    if basis is not None and len(basis) != 3:
+        problems.append(f"model.basis has shape {basis}; accepted: [clusters, vectors, dim]")
+    n_max = enc.get("n_max")
+    if basis is not None and len(basis) == 3 and isinstance(n_max, int) and n_max > basis[1]:
+        problems.append(f"encoded.n_max={n_max} but model.basis holds {basis[1]} vectors per cluster")
     lab = shapes.get("codes.labels")
     if isinstance(P, int) and lab is not None and lab[0] != P:
         problems.append(f"encoded.points={P} but codes.labels has {lab[0]} rows")
@@ -814,18 +837,92 @@ def check_codec_file(path: Path, meta: dict, shapes: dict[str, list[int]]) -> No
 io.register_check("codec/", check_codec_file)
 
 
+def check_codec_values(path: Any, tensors: dict[str, torch.Tensor], meta: dict) -> None:
+    """The value-level half of a codec file's consistency check, run by every command that reads
+    one (:func:`load`: ``prt render --codec-file``, ``prt validate --codec-file``, ``prt bench``'s
+    records; ``prt info``), after :func:`check_codec_file` (metadata against shapes), as
+    ``transfer.check_transfer_values`` is for transfer files: every floating tensor finite and
+    within ±``transfer.MAX_ABS_TRANSFER`` (``model.*`` ``[K, n, D]``/``[K, D]``, ``codes.coeffs``
+    ``[P, n]``), cluster labels (``codes.labels [P]``, any integer dtype) within 0..clusters-1,
+    vectors per cluster (``model.n_vectors [K]``) within 0..the basis's vectors. Raises ValueError
+    naming the file, the tensor and what is wrong."""
+    from ..transfer.base import MAX_ABS_TRANSFER
+
+    name = str(path)
+    for k, t in tensors.items():
+        if not t.is_floating_point() or not t.numel():
+            continue
+        bad = ~torch.isfinite(t)
+        if bool(bad.any()):
+            i = tuple(int(v) for v in torch.nonzero(bad)[0])
+            raise ValueError(f"{name!r}: {k} holds {int(bad.sum())} non-finite value(s), first at {i}; accepted: finite values "
+                             "(the file is corrupt)")
+        top = float(t.abs().max())
+        if top > MAX_ABS_TRANSFER:
+            raise ValueError(f"{name!r}: {k} reaches |{top:.3g}|, beyond ±{MAX_ABS_TRANSFER:g} (float32 products would overflow); "
+                             "accepted: values of physical scale (the file is corrupt)")
+    K = (meta.get("model") or {}).get("clusters")
+    lab = tensors.get("codes.labels")
+    if lab is not None and isinstance(K, int) and lab.numel():
+        lo, hi = int(lab.min()), int(lab.max())
+        if lo < 0 or hi >= K:
+            raise ValueError(f"{name!r}: codes.labels name clusters {lo}..{hi}; accepted: 0..{K - 1} (model.clusters={K}; "
+                             "the file is corrupt)")
+    nv, basis = tensors.get("model.n_vectors"), tensors.get("model.basis")
+    if nv is not None and basis is not None and basis.ndim == 3 and nv.numel():
+        lo, hi = int(nv.min()), int(nv.max())
+        if lo < 0 or hi > basis.shape[1]:
+            raise ValueError(f"{name!r}: model.n_vectors holds {lo}..{hi}; accepted: 0..{basis.shape[1]} (the basis's vectors "
+                             "per cluster; the file is corrupt)")
+
+
+def check_codec_matches(source: str, codec: "Codec", enc: Encoded, meta: dict | None, *, mesh_hash: str | None,
+                        points: int, dim: int, matrix_shape: tuple[int, int] | None, n_in: int, kind: str) -> None:
+    """Refuse a codec file that does not belong to a transfer (one check for ``prt render`` and
+    ``prt validate``): the mesh it was compressed from (``extra.mesh_hash``, when the file records
+    it), the points it encodes against the transfer's vertices ``points``, the signal dimension
+    against ``dim`` (= n_out·n_in), the matrix shape (``[n_out, n_in]``, None for grey diffuse
+    vectors of ``n_in``). Raises ValueError starting with ``source``."""
+    got = ((meta or {}).get("extra") or {}).get("mesh_hash")
+    if got is not None and mesh_hash is not None and got != mesh_hash:
+        raise ValueError(f"{source} was compressed from a mesh with hash {got}, but the transfer's mesh has hash {mesh_hash}: "
+                         "the codec file does not belong to this transfer; accepted: prt compress output of this transfer file")
+    P = int(enc.meta.get("points", -1))
+    if P != points:
+        raise ValueError(f"{source} encodes {P} points but the transfer has {points} vertices: the codec file does not belong "
+                         "to this transfer; accepted: prt compress output of this transfer file")
+    D = getattr(codec, "D_", None)
+    if D != dim:
+        raise ValueError(f"{source} has signal dimension {D} but the transfer's rows have {dim}: the codec file does not "
+                         "belong to this transfer; accepted: prt compress output of this transfer file")
+    ms = getattr(codec, "matrix_shape_", None)
+    if matrix_shape is None and ms not in (None, (1, n_in)):
+        raise ValueError(f"{source} was fitted on matrices {tuple(ms)} but the transfer holds vectors of {n_in}")
+    if matrix_shape is not None and ms is not None and tuple(ms) != tuple(matrix_shape):
+        raise ValueError(f"{source} has matrix shape {tuple(ms)} but the transfer's is {tuple(matrix_shape)}")
+    if matrix_shape is not None and ms is None:
+        raise ValueError(f"{source} was fitted on vectors (no matrix_shape) but the {kind} transfer holds "
+                         f"{tuple(matrix_shape)} matrices; accepted: prt compress of this transfer file (it keeps the matrix shape)")
+
+
 def load(path: str | os.PathLike) -> tuple[Codec, Encoded]:
     """Load ``(codec, enc)`` from a codec file (``Codec.save``); layout in docs/codecs.md."""
     tensors, meta = io.load(path, expect_kind="codec/")
+    check_codec_values(path, tensors, meta)
     version = meta.get("codec_format_version")
     if not isinstance(version, int) or version > CODEC_FORMAT_VERSION:
         raise ValueError(f"{str(path)!r} has codec_format_version={version!r}; this prt_torch reads 1..{CODEC_FORMAT_VERSION}")
     name = meta.get("codec")
     if name not in _REGISTRY:
         raise ValueError(f"{str(path)!r} holds codec {name!r}, which is not registered here; accepted: {available()}")
-    codec = get(name, **meta.get("params", {}))
     model = {k[len("model."):]: v for k, v in tensors.items() if k.startswith("model.")}
     codes = {k[len("codes."):]: v for k, v in tensors.items() if k.startswith("codes.")}
-    codec._set_state(model, meta.get("model", {}))
+    try:  # the parameters and the model state it records, refused naming the file (not a raw KeyError)
+        codec = get(name, **(meta.get("params") or {}))
+        codec._set_state(model, meta.get("model") or {})
+    except KeyError as e:
+        raise ValueError(f"{str(path)!r} lacks {e} of codec {name!r}; accepted: a file written by Codec.save") from None
+    except (ValueError, TypeError) as e:
+        raise ValueError(f"{str(path)!r}: {e}") from None
     codec.fitted_ = True
     return codec, Encoded(codec=name, tensors=codes, meta=meta.get("encoded", {}))

@@ -53,6 +53,15 @@ def load_results(path: str | Path) -> dict:
         raise ValueError(f"{str(p)!r} is not valid JSON ({e})") from None
     if data.get("format") != "prt_torch.results":
         raise ValueError(f"{str(p)!r} is not a prt_torch results file (format={data.get('format')!r})")
+    # what the tables and plots read, checked here (a hand-made or truncated file reached a KeyError before)
+    missing = [k for k in ("name", "records") if k not in data]
+    if missing or not isinstance(data.get("records"), list):
+        raise ValueError(f"{str(p)!r} lacks {', '.join(missing) or 'a list of records'}; accepted: a results.json written by prt bench")
+    need = ("setting_id", "codec", "bytes_per_vertex", "psnr_lights_db", "fps")
+    for i, r in enumerate(data["records"]):
+        gone = [k for k in need if not isinstance(r, dict) or k not in r]
+        if gone:
+            raise ValueError(f"{str(p)!r}: records[{i}] lacks {', '.join(gone)}; accepted: a results.json written by prt bench")
     return data
 
 
@@ -219,8 +228,12 @@ def _contention_note(records: list[dict]) -> list[str]:
     if not bad:
         return []
     why = sorted({w for r in bad for w in r.get("contention", {}).get("why_not", [])})[:4]
+    redone = sum(1 for r in bad if (r.get("rate_policy") or {}).get("redecided"))
     return [f"⚠ {len(bad)} of {len(records)} settings were timed under contention ({'; '.join(why)}): their rates are "
-            "not to be trusted; their speed-ups, paired ratios of interleaved samples, are more robust but wider.", ""]
+            "not to be trusted; their speed-ups, paired ratios of interleaved samples, are more robust but wider."
+            + (f" {redone} of them were re-timed when the contention was seen, in one thread and at the run's thread count "
+               "(spinning OpenMP threads stall when other processes take the cores after import; harness.timing.rate_policy): "
+               "their Mvert/s and fps are the faster, with the thread count in the cell." if redone else ""), ""]
 
 
 def executor_lines(res: dict) -> list[str]:
@@ -546,6 +559,8 @@ def _records_table(records: list[dict]) -> list[str]:
     ]
     for x in sorted(records, key=lambda x: (x["codec"], x["bytes_per_vertex"])):
         warn = " ⚠" if x.get("timing_trusted") is False else ""  # the rates themselves marked, not only the footnote
+        if (x.get("rate_policy") or {}).get("redecided"):  # re-timed under contention (timing.rate_policy): at which threads
+            warn += f" ({x['rate_threads']} thr)"
         lines.append(
             f"| {x['codec']} | {_setting(x)} | {x['bytes_per_vertex']:.1f} | {_fmt(x['compression_ratio'])} | {_fmt(x['se'])} | "
             f"{_fmt(x['relative_se'])} | {_fmt(x['psnr_random_db'])} | {_fmt(x['psnr_lights_db'])} | {x['vertices_per_s'] / 1e6:.2f} "

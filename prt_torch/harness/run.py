@@ -45,7 +45,7 @@ from .metrics import psnr_vs_reference, random_light_psnr, random_light_psnr_ana
 from .renders import render_best, render_convex
 from .report import load_results, write_outputs
 from .target import find_smallest, search_families
-from .timing import io_bound_fn, machine_info, measure, measure_paired, measure_paired_cold, torch_threads
+from .timing import io_bound_fn, machine_info, measure, measure_paired, measure_paired_cold, rate_policy, torch_threads
 
 __all__ = ["run_benchmark", "compute_transfer", "evaluate_setting", "convex_results", "RESULTS_VERSION"]
 
@@ -202,9 +202,14 @@ def setting_id(setting: dict) -> str:
 
 
 def evaluate_setting(ev: Evaluator, setting: dict, lights: list[torch.Tensor], views: list[Any], cfg: dict,
-                     ref_cache: dict) -> tuple[dict, Any, Any]:
+                     ref_cache: dict, timed: bool = True) -> tuple[dict, Any, Any]:
     """Fit, encode and measure one codec setting ``{type: NAME, <param>: value}``.
-    Returns (the record, JSON-able; the fitted codec; its encoding)."""
+    Returns (the record, JSON-able; the fitted codec; its encoding).
+
+    ``timed=False``: the error, bytes and PSNR only (what a target search decides on), no
+    relighting rate; the record carries ``timed: False`` and its rate fields are absent, so it
+    stays out of the PSNR / fps tables (:func:`time_setting` adds them later from the same
+    codec and encoding, without a refit)."""
     params = dict(setting)
     name = params.pop("type")
     codec = codecs.get(name, **params)
@@ -225,6 +230,39 @@ def evaluate_setting(ev: Evaluator, setting: dict, lights: list[torch.Tensor], v
             ref = ref_cache[(li, vi)]
             out = ev.finish(codec.relight(enc, Lm, view=view))
             per.append({"light": li, "view": vi, "psnr_db": psnr_vs_reference(ref, out)})
+    psnrs = [p["psnr_db"] for p in per]
+    finite = [p for p in psnrs if math.isfinite(p)]
+    mean_psnr = (sum(finite) / len(finite)) if len(finite) == len(psnrs) else float("inf")
+    bytes_total = int(storage["bytes_total"])
+    rec = {
+        "setting_id": setting_id(setting),
+        "codec": name,
+        "params": params,
+        "encode_s": encode_s,
+        "bytes_total": bytes_total,
+        "bytes_per_vertex": bytes_total / ev.V,
+        "compression_ratio": ev.raw_bytes / bytes_total if bytes_total else float("inf"),
+        "sloan_cost_floats": storage.get("sloan_cost_floats"),
+        "storage": storage,
+        "se": se,
+        "relative_se": rel,
+        "psnr_random_db": psnr_rand,
+        "psnr_random_closed_form_db": psnr_rand_closed,
+        "psnr_lights_db": mean_psnr,
+        "psnr_lights_min_db": min(psnrs),
+        "psnr_per_light_view": per,
+        "timed": False,
+    }
+    if timed:
+        rec.update(time_setting(ev, codec, enc, lights, views, cfg))
+    return rec, codec, enc
+
+
+def time_setting(ev: Evaluator, codec, enc, lights: list[torch.Tensor], views: list[Any], cfg: dict) -> dict:
+    """The relighting-rate fields of a fitted setting's record (``timed: True``, ``relight_s``,
+    ``vertices_per_s``, ``fps``, the paired speed-ups and bound fractions, the contention seen;
+    docs/harness.md), measured on ``codec``'s encoding ``enc`` relighting the first light and view."""
+    m = cfg["metrics"]
     # throughput: relight one light (and view) from the compressed form; median of repeats
     L0 = ev.codec_light(codec, lights[0])
     v0 = views[0]
@@ -240,7 +278,8 @@ def evaluate_setting(ev: Evaluator, setting: dict, lights: list[torch.Tensor], v
         return ev.reference(lights[0], v0)
 
     pt = measure_paired(relit, uncompressed, repeats=m["repeats"], warmup=m["warmup"], floor_pairs=FLOOR_PAIRS)
-    tm = pt.test
+    # contention that started after import: re-decided here (timing.rate_policy: re-timed, in one thread too)
+    tm, policy = rate_policy(relit, pt.test, pt.contention, repeats=m["repeats"], warmup=m["warmup"])
     with torch_threads(1):
         pw = measure_paired(relit, uncompressed, repeats=m["repeats"], warmup=m["warmup"], floor_pairs=FLOOR_PAIRS,
                             floor_max_pairs=FLOOR_MAX_PAIRS, clock=time.thread_time)
@@ -263,27 +302,8 @@ def evaluate_setting(ev: Evaluator, setting: dict, lights: list[torch.Tensor], v
     # (metrics.cold_pairs single-call pairs; 0: not measured)
     pc = (measure_paired_cold(relit_into, bound, repeats=m["cold_pairs"])
           if m.get("cold_pairs", 0) > 0 else None)
-    psnrs = [p["psnr_db"] for p in per]
-    finite = [p for p in psnrs if math.isfinite(p)]
-    mean_psnr = (sum(finite) / len(finite)) if len(finite) == len(psnrs) else float("inf")
-    bytes_total = int(storage["bytes_total"])
     rec = {
-        "setting_id": setting_id(setting),
-        "codec": name,
-        "params": params,
-        "encode_s": encode_s,
-        "bytes_total": bytes_total,
-        "bytes_per_vertex": bytes_total / ev.V,
-        "compression_ratio": ev.raw_bytes / bytes_total if bytes_total else float("inf"),
-        "sloan_cost_floats": storage.get("sloan_cost_floats"),
-        "storage": storage,
-        "se": se,
-        "relative_se": rel,
-        "psnr_random_db": psnr_rand,
-        "psnr_random_closed_form_db": psnr_rand_closed,
-        "psnr_lights_db": mean_psnr,
-        "psnr_lights_min_db": min(psnrs),
-        "psnr_per_light_view": per,
+        "timed": True,
         "relight_s": tm.median,
         "relight_spread": tm.spread,
         "relight_timing": tm.as_dict(),
@@ -300,13 +320,15 @@ def evaluate_setting(ev: Evaluator, setting: dict, lights: list[torch.Tensor], v
         "speedup_parallel": pt.speedup,  # the same, at the process's thread count (moves with load)
         "speedup_parallel_spread": pt.ratio.spread,
         "timing_trusted": pt.contention["trusted"] and pw.contention["trusted"],
+        "rate_threads": policy["threads"],  # the thread count behind relight_s, vertices_per_s, fps
+        "rate_policy": policy,
         "contention": pt.contention,
         "contention_one_thread": pw.contention,
     }
     if pc is not None:  # the same from cold caches: the memory-bandwidth bound proper
         rec["fraction_of_bound_cold"] = pc.speedup
         rec["bound_cold"] = {"relight_s": pc.test.median, "bound_s": pc.peer.median, "q1": pc.ratio.q1, "q3": pc.ratio.q3}
-    return rec, codec, enc
+    return rec
 
 
 class SettingTask:
@@ -314,11 +336,13 @@ class SettingTask:
     (evaluator, lights, views, config, reference radiance) bound — what :func:`evaluate_run`
     hands its executor (for Ray, pickled once and shared by every setting's task)."""
 
-    def __init__(self, ev: Evaluator, lights: list[torch.Tensor], views: list[Any], cfg: dict, ref_cache: dict):
+    def __init__(self, ev: Evaluator, lights: list[torch.Tensor], views: list[Any], cfg: dict, ref_cache: dict,
+                 timed: bool = True):
         self.ev, self.lights, self.views, self.cfg, self.ref_cache = ev, lights, views, cfg, ref_cache
+        self.timed = timed
 
     def __call__(self, setting: dict) -> tuple[dict, Any, Any]:
-        return evaluate_setting(self.ev, setting, self.lights, self.views, self.cfg, self.ref_cache)
+        return evaluate_setting(self.ev, setting, self.lights, self.views, self.cfg, self.ref_cache, timed=self.timed)
 
 
 # --------------------------------------------------------------------------- the run
@@ -394,7 +418,7 @@ class RunState:
     refs: dict
     uncompressed: dict
     records: list
-    run_setting: Callable[[dict], dict]
+    run_setting: Callable[..., dict]  # (setting, timed=True) -> record
     failures: list = dataclasses.field(default_factory=list)
     executor: dict = dataclasses.field(default_factory=lambda: LocalExecutor().describe())
 
@@ -432,6 +456,8 @@ def evaluate_run(cfg: dict, run_dir: Path, resume: bool = True, progress: bool =
     context_key = config_hash({"transfer": tinfo["key"], "lights": cfg["lights"], "views": cfg["views"],
                                "metrics": cfg["metrics"], "seed": cfg["seed"]})
     task = SettingTask(ev, lights, views, cfg, ref_cache)
+    probe = SettingTask(ev, lights, views, cfg, ref_cache, timed=False)  # a target search's probes: no timing
+    fitted: dict[str, tuple[Any, Any]] = {}  # key -> (codec, encoding) of the untimed settings fitted here
 
     def key_of(s: dict) -> str:
         return config_hash({"setting": s, "context": context_key})
@@ -439,23 +465,35 @@ def evaluate_run(cfg: dict, run_dir: Path, resume: bool = True, progress: bool =
     def save(s: dict, result: tuple[dict, Any, Any]) -> dict:
         rec, codec, enc = result
         rec["key"] = key_of(s)
-        if label:
+        if label and not rec["setting_id"].startswith(f"{label}-"):
             rec["setting_id"] = f"{label}-{rec['setting_id']}"
+        if not rec.get("timed", True):
+            fitted[rec["key"]] = (codec, enc)
         codec.save(rec_dir / f"{rec['setting_id']}.prt", enc, overwrite=True)  # before the record: a record implies its encoding
         io.atomic_write_json(rec_dir / f"{rec['setting_id']}.json", rec)
         done[rec["key"]] = rec
         return rec
 
-    def run_setting(s: dict) -> dict:
-        """One setting (the target search's probes): from the records, else evaluated on the executor."""
-        if key_of(s) in done:
-            return done[key_of(s)]
-        (res,) = executor.map(task, [s])
+    def run_setting(s: dict, timed: bool = True) -> dict:
+        """One setting (the target search's probes): from the records, else evaluated on the executor.
+        ``timed=False``: error, bytes and PSNR only (:func:`evaluate_setting`); a later timed call of
+        the same setting times its saved codec and encoding (:func:`time_setting`) without a refit."""
+        k = key_of(s)
+        if k in done and (done[k].get("timed", True) or not timed):
+            return done[k]
+        if k in done:  # fitted untimed: time it now, in this process
+            codec, enc = fitted.get(k) or codecs.load(rec_dir / f"{done[k]['setting_id']}.prt")
+            rec = {**done[k], **time_setting(ev, codec, enc, lights, views, cfg)}
+            return save(s, (rec, codec, enc))
+        (res,) = executor.map(task if timed else probe, [s])
         if isinstance(res, TaskFailure):
             raise RuntimeError(f"codec setting {setting_id(s)} failed {res.attempts} time(s): {res.error}")
         return save(s, res)
 
-    todo = [s for s in settings if key_of(s) not in done]
+    def finished_timed(s: dict) -> bool:  # a record from an earlier run, with its rates (not a search's probe)
+        return key_of(s) in done and done[key_of(s)].get("timed", True)
+
+    todo = [s for s in settings if not finished_timed(s)]
     skipped = len(settings) - len(todo)
     bar = None
     if progress and todo:
@@ -481,7 +519,7 @@ def evaluate_run(cfg: dict, run_dir: Path, resume: bool = True, progress: bool =
             sid = f"{label}-{setting_id(f.item)}" if label else setting_id(f.item)
             failures.append({"setting_id": sid, "setting": f.item, "error": f.error, "attempts": f.attempts})
             log(f"[bench] FAILED {sid} after {f.attempts} attempt(s): {f.error}")
-    records = [done[key_of(s)] for s in settings if key_of(s) in done]
+    records = [done[key_of(s)] for s in settings if finished_timed(s)]
     if skipped:
         log(f"[bench] resumed: {skipped} finished setting(s) reused from {rec_dir}")
     return RunState(cfg, mesh, mem, tr, tinfo, ev, lights, cams, views, ref_cache, uncompressed, records, run_setting,
@@ -513,6 +551,42 @@ def _results(cfg: dict, st: RunState, records: list[dict], target: dict | None) 
     }
 
 
+def run_target(cfg: dict, st: "RunState", log: Callable[[str], None] = print) -> dict:
+    """The target search of ``cfg['target']`` on a run's state (:mod:`harness.target`), searching
+    on the error alone: its probes are fitted and scored untimed (``run_setting(s, timed=False)``),
+    then only what a user reads is timed — the found setting (``target.codec``), or the winner and
+    each family's best — from their saved encodings, without a refit. With ``target.by: fps`` the
+    rate is what the search minimises, so every probe is timed. Returns the search record with
+    ``_records`` (every record it made, timed or not) and ``timing_s`` (the finalists' timing)."""
+    t = cfg["target"]
+    timed_probes = t.get("by") == "fps" and not t.get("codec")  # one codec's bisection decides on dB alone
+
+    def probe(s: dict) -> dict:
+        return st.run_setting(s, timed=timed_probes)
+
+    if t.get("codec"):
+        target = find_smallest(cfg, probe)
+        finalists = [target] if target["met"] else []
+    else:
+        target = search_families(cfg, probe, st.ev.V, st.ev.X.shape[1], log=log)
+        finalists = [f["best"] for f in target["families"].values() if f.get("best")]
+    t0 = time.perf_counter()
+    if finalists and not timed_probes:
+        log(f"[target] timing {len(finalists)} setting(s): " + ", ".join(f["setting_id"] for f in finalists))
+    for f in finalists:  # in place: the winner and runners-up are these same summaries
+        params = f["params"] if "params" in f else {f["param"]: f["value"]}
+        base = next(r for r in target["_records"] if r["setting_id"] == f["setting_id"])
+        rec = st.run_setting({"type": base["codec"], **base["params"], **params}, timed=True)
+        f["fps"] = rec["fps"]
+        target["_records"].append(rec)
+    target["timing_s"] = time.perf_counter() - t0
+    if not t.get("codec"):
+        log(f"[bench] target {target['goal_db']} dB: " + (
+            f"{target['winner']['setting_id']} ({target['winner']['bytes_per_vertex']:.1f} B/vertex, "
+            f"{target['winner']['fps']:.0f} fps) after {target['evaluated']} evaluations" if target["met"] else target["note"]))
+    return target
+
+
 def run_benchmark(cfg: dict, resume: bool = True, progress: bool = True, log: Callable[[str], None] = print,
                   executor: Executor | None = None) -> Path:
     """Run one benchmark config end to end; returns the run directory reports/<name>/.
@@ -525,19 +599,13 @@ def run_benchmark(cfg: dict, resume: bool = True, progress: bool = True, log: Ca
         return run_ablation(cfg, resume=resume, progress=progress, log=log, executor=executor)
     run_dir = Path(cfg["output_dir"]) / cfg["name"]
     st = evaluate_run(cfg, run_dir, resume, progress, log, executor=executor)
-    ev, lights, views, cams, records, run_setting = st.ev, st.lights, st.views, st.cams, list(st.records), st.run_setting
+    ev, lights, views, cams, records = st.ev, st.lights, st.views, st.cams, list(st.records)
 
     target = None
     if cfg["target"].get("psnr") is not None:
-        if cfg["target"].get("codec"):
-            target = find_smallest(cfg, run_setting)
-        else:
-            target = search_families(cfg, run_setting, ev.V, ev.X.shape[1], log=log)
-            log(f"[bench] target {target['goal_db']} dB: " + (
-                f"{target['winner']['setting_id']} ({target['winner']['bytes_per_vertex']:.1f} B/vertex, "
-                f"{target['winner']['fps']:.0f} fps) after {target['evaluated']} evaluations" if target["met"] else target["note"]))
-        for r in target.pop("_records"):
-            if r["setting_id"] not in {x["setting_id"] for x in records}:
+        target = run_target(cfg, st, log)
+        for r in target.pop("_records"):  # the timed ones: a search's untimed probes stay out of the tables
+            if r.get("timed", True) and r["setting_id"] not in {x["setting_id"] for x in records}:
                 records.append(r)
 
     results = _results(cfg, st, records, target)

@@ -143,8 +143,14 @@ def find_smallest(cfg: dict, run_setting: Callable[[dict], dict]) -> dict:
 
 
 def _summary(r: dict, metric: str) -> dict:
+    """A search result's entry; ``fps`` is None for a probe searched untimed (harness.run.run_target
+    times the finalists)."""
     return {"setting_id": r["setting_id"], "codec": r["codec"], "params": r["params"], "achieved_db": r[metric],
-            "bytes_per_vertex": r["bytes_per_vertex"], "fps": r["fps"]}
+            "bytes_per_vertex": r["bytes_per_vertex"], "fps": r.get("fps")}
+
+
+#: codecs whose single-cluster fit is a PCA fit: their ``clusters=1`` outcomes are PCA's (same ``center``)
+_ONE_CLUSTER_IS_PCA = ("cpca", "cpca_static", "cpca_iterative")
 
 
 def search_families(cfg: dict, run_setting: Callable[[dict], dict], points: int, dim: int,
@@ -162,14 +168,32 @@ def search_families(cfg: dict, run_setting: Callable[[dict], dict], points: int,
 
     cost = search_cost(cfg, points, dim)
     pruned: list[str] = []  # what branch and bound skipped, said in the record
+    reused: list[str] = []  # probes answered by another family's fits
+
+    fits: list[float] = []  # seconds of each probe run here (a record reused from an earlier run costs none)
 
     def evaluate(base: dict, **size) -> dict:
+        t0 = time.perf_counter()
         r = run_setting({**base, **size})
+        fits.append(time.perf_counter() - t0)
         tried.append(r)
-        if log is not None:
+        if log is not None:  # progress with an estimate: the bound's remaining fits at the mean cost so far
+            left = cost["total"] - len(tried)
             log(f"[target] {len(tried)} of at most {cost['total']}: {r['setting_id']} {r[metric]:.2f} dB "
-                f"({'meets' if r[metric] >= goal else 'below'} {goal:g}), {r['bytes_per_vertex']:.1f} B/vertex")
+                f"({'meets' if r[metric] >= goal else 'below'} {goal:g}), {r['bytes_per_vertex']:.1f} B/vertex; "
+                f"{time.perf_counter() - t_start:.0f} s so far, at most ~{left * sum(fits) / len(fits):.0f} s more")
         return r
+
+    def from_pca(codec: str, base: dict, vectors: int) -> bool | None:
+        """Whether ``codec`` at clusters=1 and ``vectors`` meets the goal, from a PCA probe of the same
+        vectors and centring already made (one cluster's fit is that PCA fit), else None."""
+        if codec not in _ONE_CLUSTER_IS_PCA:
+            return None
+        center = base.get("center", True)
+        for r in tried:
+            if r["codec"] == "pca" and r["params"].get("vectors") == vectors and r["params"].get("center", True) == center:
+                return r[metric] >= goal
+        return None
 
     for codec in dict.fromkeys(e["type"] for e in cfg["codecs"]):  # one search per family, config order
         base = _base(cfg, codec)
@@ -200,9 +224,22 @@ def search_families(cfg: dict, run_setting: Callable[[dict], dict], points: int,
                         break
                     if top < vec_hi:
                         pruned.append(f"{codec} clusters={c}: vectors {top + 1}..{vec_hi} (floor >= {best:.1f} B/vertex)")
-                v = _bisect(lo, top, lambda k: meets(evaluate(base, clusters=c, vectors=k)))
+                def ok(k: int, c: int = c) -> bool:
+                    known = from_pca(codec, base, k) if c == 1 else None
+                    return known if known is not None else meets(evaluate(base, clusters=c, vectors=k))
+
+                v = _bisect(lo, top, ok)
+                hit = [r for r in tried[n0:] if r["params"]["clusters"] == c and r["params"]["vectors"] == v]
+                if v is not None and not hit:  # decided by PCA's probes: one fit for its bytes, which must agree
+                    r = evaluate(base, clusters=c, vectors=v)
+                    if meets(r):
+                        hit = [r]
+                        reused.append(f"{codec} clusters=1: bisected on PCA's probes of the same vectors, one fit (vectors={v})")
+                    else:  # the fits disagree at the threshold: bisect on this codec's own fits
+                        v = _bisect(lo, top, lambda k: meets(evaluate(base, clusters=c, vectors=k)))
+                        hit = [r for r in tried[n0:] if r["params"]["clusters"] == c and r["params"]["vectors"] == v]
                 if v is not None:
-                    found.append(next(r for r in tried[n0:] if r["params"]["clusters"] == c and r["params"]["vectors"] == v))
+                    found.append(hit[0])
         else:
             families[codec] = {"searched": False, "note": f"codec {codec!r} declares no size parameter"}
             continue
@@ -220,7 +257,7 @@ def search_families(cfg: dict, run_setting: Callable[[dict], dict], points: int,
     key = (lambda s: s["bytes_per_vertex"]) if by == "bytes" else (lambda s: -s["fps"])
     out = {"mode": "families", "met": bool(bests), "goal_db": goal, "metric": metric, "by": by, "families": families,
            "evaluated": len(tried), "distinct_settings": len({r["setting_id"] for r in tried}),
-           "most_fits": cost["total"], "pruned": pruned,
+           "most_fits": cost["total"], "pruned": pruned, "reused": reused,
            "seconds": time.perf_counter() - t_start, "_records": tried}
     if bests:
         out["winner"] = min(bests, key=key)

@@ -21,7 +21,7 @@ import torch
 from .._checks import check_int
 
 __all__ = ["Timing", "Paired", "measure", "measure_paired", "measure_paired_cold", "last_level_cache_bytes", "torch_threads",
-           "io_bound_fn", "machine_info"]
+           "io_bound_fn", "machine_info", "rate_policy"]
 
 
 @dataclass
@@ -246,6 +246,48 @@ def _contention(r0, c0: float, w0: float, ratio: Timing, max_switch_rate: float,
         reasons.append(f"speed-up spread {ratio.spread:.0%} (> {max_spread:.0%})")
     return {"involuntary_switches_per_s": switches, "cpu_over_wall": cpu / max(wall, 1e-9), "load_average_1min": load,
             "cores": cores, "torch_threads": torch.get_num_threads(), "trusted": not reasons, "why_not": reasons}
+
+
+def rate_policy(fn: Callable[[], Any], first: Timing, contention: dict, repeats: int = 7, warmup: int = 1,
+                busy: bool | None = None) -> tuple[Timing, dict]:
+    """Re-decide, where a rate is measured, what the import-time OpenMP wait policy decided.
+
+    ``prt_torch`` chooses spinning or PASSIVE OpenMP threads once, at import, from the load it
+    sees then; the policy is fixed once torch has loaded OpenMP. When other processes take the
+    cores later, spinning threads stall on descheduled peers (2-thread relighting measured at
+    0.64 M vertices/s for settings that run at 100–160 M idle; reports/benchmarks/threads.md).
+    ``first`` is ``fn``'s timing at the process's thread count and ``contention`` what
+    :func:`measure_paired` saw while taking it. When that figure is untrusted, or the machine is
+    busy now (``prt_torch.busy_now``, the import-time rule; ``busy`` overrides it) while this
+    process spins with more than one thread, ``fn`` is timed again: in one thread (no parallel
+    region, so no thread to wait for: the one policy choice still open at run time) and at the
+    process's thread count. The fastest median is the rate reported — what the machine gives
+    now with the better choice — and the decision record says why, what each candidate measured
+    and which thread count (``threads``) the reported rate used.
+
+    Returns ``(timing to report, {'redecided', 'why', 'threads', 'spinning', 'busy_now', 'candidates'})``."""
+    import prt_torch
+
+    threads = torch.get_num_threads()
+    busy = prt_torch.busy_now() if busy is None else bool(busy)
+    why = []
+    if not contention.get("trusted", True):
+        why.append("untrusted: " + "; ".join(contention.get("why_not") or ["contention"]))
+    if busy and prt_torch.OMP_SPINNING and threads > 1:
+        why.append(f"other processes took the cores after import ({prt_torch.OMP_POLICY_CHOICE}) and {threads} threads spin")
+    out = {"redecided": bool(why), "why": why, "threads": threads, "spinning": prt_torch.OMP_SPINNING, "busy_now": busy,
+           "candidates": {f"{threads} threads (first)": first.median}}
+    if not why:
+        return first, out
+    cands = [(first, threads)]
+    if threads > 1:
+        with torch_threads(1):
+            cands.append((measure(fn, repeats=repeats, warmup=warmup), 1))
+        out["candidates"]["1 thread"] = cands[-1][0].median
+    cands.append((measure(fn, repeats=repeats, warmup=warmup), threads))
+    out["candidates"][f"{threads} threads (again)"] = cands[-1][0].median
+    best, out["threads"] = min(cands, key=lambda c: c[0].median)
+    return best, out
 
 
 def last_level_cache_bytes() -> int:

@@ -21,7 +21,7 @@ from typing import Any
 
 import torch
 
-from ..params import parse_assignments
+from ..params import check_kwargs, parse_assignments
 from . import analytic
 from .builtin import BUILTIN_SIZE, builtin_environment, list_builtin_environments
 from .environment import Environment, expand_window, load_environment, window_factors
@@ -67,10 +67,12 @@ def analytic_params(d: dict) -> tuple[str, dict]:
 
 def _analytic(d: dict, bands: int) -> torch.Tensor:
     kind, d = analytic_params(d)
+    # its parameters in the spec's words (half_angle_deg, not the radians the function takes)
+    check_kwargs(ANALYTIC_KINDS[kind], d, f"light {kind!r}", hidden=("bands",), shown={"half_angle": "half_angle_deg"})
     try:
         return ANALYTIC_KINDS[kind](bands=bands, **d)
-    except TypeError as e:
-        raise ValueError(f"light spec for {kind!r}: {e}") from None
+    except TypeError as e:  # a value of the wrong type (a list for a number)
+        raise ValueError(f"light {kind!r}: {e}") from None
 
 
 def load_light(spec: Any, bands: int = 3, window: Any = None, size: int = BUILTIN_SIZE, **load_kw) -> torch.Tensor:

@@ -319,18 +319,19 @@ class AffineDecoder(Decoder):
         V = lab.shape[0]
         W = W.reshape(V, -1)
         if c.ndim != 4 or c.shape[3] not in (1, 3):
-            raise ValueError(f"consts have shape {c.shape}; accepted: [K, J, n_out, C] with C = 1 or 3")
+            raise ValueError(f"the per-cluster light constants (consts, M_k^j l) have shape {c.shape}; accepted: [K, J, n_out, C] with C = 1 or 3")
         K, J, n_out, C = c.shape
         n = W.shape[1]
         if J != n + (1 if centred else 0):
-            raise ValueError(f"consts have J={J} terms per cluster but the weights have n={n} columns "
+            raise ValueError(f"the per-cluster light constants (consts) have J={J} terms per cluster but the PCA weights have n={n} columns "
                              f"({'centred: J = n+1' if centred else 'uncentred: J = n'})")
         if V and (lab.min() < 0 or lab.max() >= K):
-            raise ValueError(f"labels span [{lab.min()}, {lab.max()}]; accepted: 0..{K - 1} (clusters)")
+            raise ValueError(f"cluster labels span [{lab.min()}, {lab.max()}]; accepted: 0..{K - 1} (clusters)")
         if mode not in VIEW_MODES:
             raise ValueError(f"mode={mode!r}; accepted: {', '.join(VIEW_MODES)}")
         if mode == "none" and n_out != 1 or mode == "diagonal" and n_out != 3:
-            raise ValueError(f"mode {mode!r} needs n_out = {1 if mode == 'none' else 3}; consts have {n_out}")
+            raise ValueError(f"view mode {mode!r} needs n_out = {1 if mode == 'none' else 3} outputs; "
+                             f"the per-cluster light constants (consts) have {n_out}")
         m4 = -(-n // 4)
         if weights_in == "auto":
             weights_in = "attributes" if m4 <= MAX_WEIGHT_ATTRIBUTES else "buffer"
@@ -356,7 +357,8 @@ class AffineDecoder(Decoder):
         (uploaded on the next draw; the per-vertex data stays resident)."""
         c = _np("consts", consts, np.float32)
         if c.ndim != 4 or c.shape[:3] != self.consts_shape or c.shape[3] not in (1, 3):
-            raise ValueError(f"consts have shape {c.shape}; accepted: [{', '.join(map(str, self.consts_shape))}, 1 or 3]")
+            raise ValueError(f"the per-cluster light constants (consts) have shape {c.shape}; accepted: "
+                             f"[{', '.join(map(str, self.consts_shape))}, 1 or 3] (clusters, terms, outputs, colour channels)")
         rows = int(np.prod(self.consts_shape))
         tab = np.ones((rows, 4), np.float32)
         tab[:, :3] = np.broadcast_to(c.reshape(rows, -1), (rows, 3))

@@ -121,29 +121,12 @@ class PRTScene:
 
     def check_codec(self, codec, enc, source: str = "codec", meta: dict | None = None) -> None:
         """Refuse a codec/encoding that does not belong to this transfer: mesh hash (when the
-        file records one), number of points, signal dimension and matrix shape."""
-        want = self.mesh.content_hash()
-        extra = (meta or {}).get("extra") or {}
-        got = extra.get("mesh_hash")
-        if got is not None and got != want:
-            raise ValueError(f"{source} was compressed from a mesh with hash {got}, but the transfer's mesh "
-                             f"{self.mesh.name!r} has hash {want}: the codec file does not belong to this transfer")
-        P = int(enc.meta.get("points", -1)) if hasattr(enc, "meta") else -1
-        if P != self.V:
-            raise ValueError(f"{source} encodes {P} points but the transfer has {self.V} vertices: the codec file "
-                             "does not belong to this transfer")
-        dim = getattr(codec, "D_", None)
-        if dim != self.D:
-            raise ValueError(f"{source} has signal dimension {dim} but the transfer's rows have "
-                             f"{self.n_out}x{self.n_in} = {self.D}: the codec file does not belong to this transfer")
-        ms = getattr(codec, "matrix_shape_", None)
-        if self.matrix_shape is None and ms not in (None, (1, self.n_in)):
-            raise ValueError(f"{source} was fitted on matrices {ms} but the transfer holds vectors of {self.n_in}")
-        if self.matrix_shape is not None and ms is not None and tuple(ms) != self.matrix_shape:
-            raise ValueError(f"{source} has matrix shape {tuple(ms)} but the transfer's is {self.matrix_shape}")
-        if self.matrix_shape is not None and ms is None:
-            raise ValueError(f"{source} was fitted on vectors (no matrix_shape) but the {self.kind} transfer holds "
-                             f"{self.matrix_shape} matrices; compress it with its matrix shape")
+        file records one), number of points, signal dimension and matrix shape
+        (``codecs.check_codec_matches``, the check ``prt validate`` runs too)."""
+        from ..codecs.base import check_codec_matches
+
+        check_codec_matches(source, codec, enc, meta, mesh_hash=self.mesh.content_hash(), points=self.V, dim=self.D,
+                            matrix_shape=self.matrix_shape, n_in=self.n_in, kind=self.kind)
 
     def cpu_radiance(self, light: torch.Tensor, view: Any = None, codec=None, enc=None) -> torch.Tensor:
         """The torch engine's exit radiance ``[V, 3]`` float32 under ``light [C, n²]``.

@@ -122,6 +122,18 @@ def validate(transfer: Transfer | str | os.PathLike, light: Any, *, vertices: in
         glossy_brdf(transfer)  # a BRDF, quantity or bounces it cannot express: refused before any work
         if codec_file is not None:
             raise ValueError("codec_file with a glossy transfer: codec comparison is for diffuse transfer; accepted: no codec_file")
+    codec = None
+    if codec_file is not None:
+        from .. import codecs, io
+        from ..codecs.base import check_codec_matches
+
+        codec = codecs.load(codec_file)  # the codec file's own checks (codecs.check_codec_values)
+        d = transfer.data  # diffuse: [V, n²] grey vectors or [V, 3, n²] RGB matrices
+        check_codec_matches(f"codec file {str(codec_file)!r}", *codec, io.load_meta(codec_file),
+                            mesh_hash=transfer.mesh.content_hash() if transfer.mesh is not None else None,
+                            points=int(d.shape[0]), dim=int(d[0].numel()),
+                            matrix_shape=tuple(int(x) for x in d.shape[1:]) if d.ndim == 3 else None,
+                            n_in=int(d.shape[-1]), kind=transfer.kind)
     check_choice("light_source", light_source, ["sh", "image"])
     vertices = check_int("vertices", vertices, 1)
     batches = check_int("batches", batches, 1, 4096)
@@ -150,16 +162,6 @@ def validate(transfer: Transfer | str | os.PathLike, light: Any, *, vertices: in
         if isinstance(light, torch.Tensor) or (src_img := source_image(light, image_height)) is None:
             raise ValueError(f"light_source='image' with light {name!r}: no environment image behind it; accepted: an "
                              "environment file or a built-in environment name, or light_source='sh'")
-    codec = None
-    if codec_file is not None:
-        from .. import codecs
-
-        codec = codecs.load(codec_file)
-        enc_points = int(codec[1].meta.get("points", -1))
-        if enc_points != transfer.data.shape[0] or getattr(codec[0], "D_", None) != transfer.data[0].numel():
-            raise ValueError(f"codec file {str(codec_file)!r} encodes {enc_points} points of dimension {getattr(codec[0], 'D_', None)}, "
-                             f"but the transfer has {transfer.data.shape[0]} vertices of {transfer.data[0].numel()}: the codec "
-                             "file does not belong to this transfer; accepted: prt compress output of this transfer file")
     require_mitsuba()
     if transfer.kind == "glossy":
         rep = validate_glossy(transfer, L, name, sh_img if src_img is None else src_img, mesh=mesh, vertices=vertices, spp=spp,
