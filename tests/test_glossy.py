@@ -137,7 +137,7 @@ def test_lambertian_exit_transfer_equals_diffuse_transfer(scene):
     vids = _test_vertices(mesh)
     tr = precompute_glossy(mesh, 3, 2, brdf=B.Lambertian(1.0), samples=2048, seed=3, vertices=vids)
     sub = dataclasses.replace(mesh)
-    diff = precompute_diffuse(sub, 3, 2048, seed=3, shadows="always", sampling="uniform")  # glossy's shared sphere set
+    diff = precompute_diffuse(sub, 3, 2048, seed=3, shadows="always", sampling="uniform", estimator="control")
     g = torch.Generator().manual_seed(7)
     L = torch.randn(1, 9, generator=g, dtype=torch.float64)
     e = relight.glossy(tr.data.double(), L, _views(vids.numel(), 3), tr.meta["out_index"])
@@ -238,7 +238,7 @@ def test_glossy_interreflection_equals_diffuse_bounces(scene):
         tr = precompute_glossy(mesh, 3, 2, brdf=B.Lambertian(0.8), samples=1024, seed=3, vertices=vids, bounces=bounces)
         assert tr.meta["bounces"] == bounces
         diff = precompute_diffuse(mesh, 3, 1024, seed=3, shadows="always", bounces=bounces, bounce_tol=0.0,
-                                  sampling="uniform")  # glossy's shared sphere set and keys
+                                  sampling="uniform", estimator="control")  # glossy: its set, keys, estimator
         assert diff.meta["bounces_used"] == bounces and diff.data.ndim == 2  # grey: albedo kept separate
         e = relight.glossy(tr.data.double(), L, _views(vids.numel(), 3), tr.meta["out_index"])
         d = relight.diffuse(diff.data.double()[vids] * 0.8, L)
