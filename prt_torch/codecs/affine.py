@@ -51,7 +51,19 @@ from .segment import from_tiles, segment_matmul, tile_layout, tiles_bmm, to_tile
 #: (paired, 50k points, 1 and 2 threads; benchmarks/bench_relight.py)
 SORT_MIN_CLUSTER_BYTES = 1024
 
-__all__ = ["AffineCodec", "label_dtype", "signal_key"]
+__all__ = ["AffineCodec", "check_enc_origin", "label_dtype", "signal_key"]
+
+
+def check_enc_origin(codec: Any, enc: Encoded) -> None:
+    """Refuse ``enc`` unless it is an :class:`Encoded` of this fitted ``codec``'s name, signal
+    dimension ``D_`` and cluster count ``K_`` (the affine codecs and the neural codec, whose
+    relighting form is affine)."""
+    codec._require_fitted()
+    if not isinstance(enc, Encoded):
+        raise TypeError(f"enc must be an Encoded (from encode/load), got {type(enc).__name__}")
+    if enc.codec != codec.codec_name or enc.meta.get("dim") != codec.D_ or enc.meta.get("clusters") != codec.K_:
+        raise ValueError(f"enc (codec {enc.codec!r}, dim {enc.meta.get('dim')}, clusters {enc.meta.get('clusters')}) "
+                         f"was not produced by this codec ({codec.codec_name!r}, dim {codec.D_}, clusters {codec.K_})")
 
 
 def _memo(enc: Encoded, name: Any, build, model: tuple = ()) -> Any:
@@ -214,12 +226,7 @@ class AffineCodec(Codec):
         return Encoded(codec=self.codec_name, tensors=tensors, meta=meta)
 
     def _check_enc(self, enc: Encoded) -> None:
-        self._require_fitted()
-        if not isinstance(enc, Encoded):
-            raise TypeError(f"enc must be an Encoded (from encode/load), got {type(enc).__name__}")
-        if enc.codec != self.codec_name or enc.meta.get("dim") != self.D_ or enc.meta.get("clusters") != self.K_:
-            raise ValueError(f"enc (codec {enc.codec!r}, dim {enc.meta.get('dim')}, clusters {enc.meta.get('clusters')}) "
-                             f"was not produced by this codec ({self.codec_name!r}, dim {self.D_}, clusters {self.K_})")
+        check_enc_origin(self, enc)
 
     def labels_of(self, enc: Encoded) -> torch.Tensor:
         """Cluster index of every point, ``int64 [P]``."""

@@ -47,7 +47,7 @@ import torch
 from .. import io
 from .._checks import check_finite
 from ..params import Boolean, Interval, Options
-from .affine import label_dtype, signal_key
+from .affine import check_enc_origin, label_dtype, signal_key
 from .cpca import CPCA, PCA, CPCAStatic
 from .base import (Codec, Encoded, Relighter, array_type, check_matrix_shape, check_signal, check_weights,
                    encoding_state, input_ref, register, typed, view_nbytes)
@@ -261,12 +261,7 @@ class NeuralCodec(Codec):
         return Encoded(codec=self.codec_name, tensors=tensors, meta=meta)
 
     def _check_enc(self, enc: Encoded) -> None:
-        self._require_fitted()
-        if not isinstance(enc, Encoded):
-            raise TypeError(f"enc must be an Encoded (from encode/load), got {type(enc).__name__}")
-        if enc.codec != self.codec_name or enc.meta.get("dim") != self.D_ or enc.meta.get("clusters") != self.K_:
-            raise ValueError(f"enc (codec {enc.codec!r}, dim {enc.meta.get('dim')}, clusters {enc.meta.get('clusters')}) "
-                             f"was not produced by this codec ({self.codec_name!r}, dim {self.D_}, clusters {self.K_})")
+        check_enc_origin(self, enc)
         z = enc.tensors.get("z")
         k = self.latent_size
         if z is None or z.ndim != 2 or z.shape != (enc.points, k) or not z.is_floating_point():
