@@ -29,7 +29,6 @@ H.mkdir(parents=True, exist_ok=True)
 def _prepare() -> None:
     """The inputs: t.prt (convex, diffuse, 3 bands), its PCA/CPCA/VQ codec files, u.prt (another
     mesh) and its CPCA file, and corrupt copies of t.cpca.prt (bad_<how>.prt)."""
-    from prt_torch import io
     from prt_torch.cli import main as cli
 
     if not (H / "t.prt").exists():
@@ -39,25 +38,11 @@ def _prepare() -> None:
                 cli(["compress", str(H / "t.prt"), "--codec", c, *extra, "-o", str(H / f"t.{c}.prt")])
             cli(["precompute", "bumpy_sphere:small", "--samples", "16", "--bands", "3", "--no-progress", "-o", str(H / "u.prt")])
             cli(["compress", str(H / "u.prt"), "--codec", "cpca", "--clusters", "4", "--vectors", "2", "-o", str(H / "u.cpca.prt")])
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+    from test_hostile_2 import corrupt_codec  # the suite's corrupt copies, one definition
+
     for how in ("nan", "overflow", "labels", "kind", "clusters", "nvec"):
-        t, m = io.load(H / "t.cpca.prt")
-        kind = m.pop("kind")
-        m = {k: v for k, v in m.items() if k not in ("format", "format_version", "prt_torch_version")}
-        t = {k: v.clone() for k, v in t.items()}
-        if how == "nan":
-            t["model.basis"].view(-1)[3] = float("nan")
-        elif how == "overflow":
-            t["codes.coeffs"] *= 1e30
-        elif how == "labels":
-            t["codes.labels"][7] = 9
-        elif how == "kind":
-            kind = "codec/vq"
-        elif how == "clusters":
-            m["model"]["clusters"] = 5
-            m["encoded"]["clusters"] = 5
-        elif how == "nvec":
-            t["model.n_vectors"][0] = 7
-        io.save(H / f"bad_{how}.prt", t, kind=kind, meta=m, overwrite=True)
+        corrupt_codec(H / "t.cpca.prt", H / f"bad_{how}.prt", how)
 
 
 _prepare()

@@ -288,8 +288,9 @@ def test_every_command_refuses_a_corrupt_transfer_file_alike(how, says, small_tr
     assert sorted(p.name for p in tmp_path.iterdir()) == [bad.name]  # nothing written
 
 
-def _corrupt_codec(src: Path, dst: Path, how: str) -> Path:
-    """A copy of a CPCA codec file with one defect every reader must refuse alike."""
+def corrupt_codec(src: Path, dst: Path, how: str) -> Path:
+    """A copy of a CPCA codec file with one defect every reader must refuse alike (also the
+    corrupt inputs of scripts/hostile_pass.py). `how`: nan, overflow, labels, kind, clusters, nvec."""
     from prt_torch import io
 
     tensors, meta = io.load(src)
@@ -306,7 +307,11 @@ def _corrupt_codec(src: Path, dst: Path, how: str) -> Path:
         kind = "codec/vq"
     elif how == "clusters":
         meta["model"]["clusters"] = meta["encoded"]["clusters"] = 5
-    io.save(dst, t, kind=kind, meta=meta)
+    elif how == "nvec":
+        t["model.n_vectors"][0] = 7
+    else:
+        raise ValueError(f"corrupt_codec: how={how!r}; accepted: nan, overflow, labels, kind, clusters, nvec")
+    io.save(dst, t, kind=kind, meta=meta, overwrite=True)
     return dst
 
 
@@ -334,7 +339,7 @@ def test_every_command_refuses_a_corrupt_codec_file_alike(how, says, small_trans
         other.unlink()
         says = "was compressed from a mesh with hash"
     else:
-        bad = _corrupt_codec(small_codec, tmp_path / f"{how}.prt", how)
+        bad = corrupt_codec(small_codec, tmp_path / f"{how}.prt", how)
     capsys.readouterr()
     lines = []
     readers = [["render", str(small_transfer), "--codec-file", str(bad), "--decode", "cpu", "-o", str(tmp_path / "r.png")],
