@@ -795,20 +795,10 @@ class _Trainer:
             t.requires_grad_(True)
         opt = _Adam(dec, lr)
         z = st["z"]
-        zopt = _Adam([z], lr, rows=True)
-
-        def code_step(idx, g):  # Adam on the rows idx of the codes (each row its own step count)
-            zopt.step_rows(idx, g)
-
+        zopt = _Adam([z], lr, rows=True)  # Adam on the rows of each minibatch (each row its own step count)
         B = min(p["batch_size"], max(1, train.numel()))
         nt = train.numel()
-        crit_hold = hold.numel() > 0
-        best = self._clone(st)
-        best_crit = self._hold_loss(st, hold) if crit_hold else self.full_loss(st)
-        with torch.no_grad():
-            best_train = float(self._loss_rows(st, train).double().sum()) / max(1, nt)  # the start's (PCA)
-        best_epoch, bad, stop, hist = 0, 0, {"stopped": "max_epochs"}, []
-        bar = _bar(p["progress"], p["epochs"])
+        es = _EarlyStop(self, st, train, hold, "epoch")
         try:
             for ep in range(1, p["epochs"] + 1):
                 order = train[torch.randperm(nt, generator=gen)]
@@ -817,8 +807,7 @@ class _Trainer:
                 for i in range(0, nt, B):
                     idx = order[i:i + B]
                     zb = z[idx].detach().requires_grad_(True)
-                    loss_rows = self._loss_rows(st, idx, zb)
-                    loss = loss_rows.sum() / idx.numel()
+                    loss = self._loss_rows(st, idx, zb).sum() / idx.numel()
                     lv = float(loss.detach())
                     if not math.isfinite(lv):
                         diverged = f"the loss became {lv} at epoch {ep}"
@@ -829,45 +818,14 @@ class _Trainer:
                     loss.backward()
                     opt.step()
                     with torch.no_grad():
-                        code_step(idx, zb.grad)
-                if diverged is None:
-                    train_loss = tot / max(1, nt)
-                    if best_train is not None and train_loss > DIVERGENCE_FACTOR * max(best_train, 1e-30):
-                        diverged = (f"the training loss rose to {train_loss:.4g} at epoch {ep}, above {DIVERGENCE_FACTOR:g}x "
-                                    f"its best {best_train:.4g}")
-                    else:
-                        best_train = train_loss if best_train is None else min(best_train, train_loss)
-                if diverged is None and crit_hold:
-                    self._hold_steps(st, hold)
-                    crit = self._hold_loss(st, hold)
-                elif diverged is None:
-                    crit = train_loss
-                if diverged is None and not math.isfinite(crit):
-                    diverged = f"the held-out loss became {crit} at epoch {ep}"
-                if diverged is not None:
-                    stop = {"stopped": "diverged", "diverged": diverged}
-                    self.codec._warn_or_raise(
-                        f"{self.codec.codec_name}: training diverged ({diverged}; lr={lr:g}); kept the last good state "
-                        f"(epoch {best_epoch}); accepted: a smaller lr (e.g. {lr / 10:g})")
+                        zopt.step_rows(idx, zb.grad)
+                if es.epoch(st, ep, tot / max(1, nt), diverged):
                     break
-                hist.append([train_loss, crit])
-                bar.update(1)
-                bar.set_postfix(loss=f"{train_loss:.3e}", holdout=f"{crit:.3e}" if crit_hold else "-")
-                if crit < best_crit * (1 - 1e-7):
-                    best_crit, best_epoch, bad = crit, ep, 0
-                    best = self._clone(st)
-                else:
-                    bad += 1
-                    if bad >= p["patience"]:
-                        stop = {"stopped": "early_stop"}
-                        break
         finally:
-            bar.close()
+            es.close()
             for t in dec:
                 t.requires_grad_(False)
-        stop.update({"epochs": len(hist), "best_epoch": best_epoch, "best_criterion": best_crit,
-                     "criterion": "holdout" if crit_hold else "train"})
-        return best, stop, hist
+        return es.result()
 
     def _hold_steps(self, st, hold):
         """Codes-only Adam steps of the held-out points (the decoder fixed): they follow the
@@ -906,12 +864,7 @@ class _Trainer:
         opt = torch.optim.LBFGS([zt, *dec], lr=p["lr"], max_iter=20, history_size=20, line_search_fn="strong_wolfe",
                                 tolerance_grad=0.0, tolerance_change=0.0)
         nt = train.numel()
-        crit_hold = hold.numel() > 0
-        best_crit = self._hold_loss(st, hold) if crit_hold else self.full_loss(st)
-        best, best_epoch, bad, stop, hist = self._clone(st), 0, 0, {"stopped": "max_epochs"}, []
-        with torch.no_grad():
-            best_train = float(self._loss_rows(st, train).double().sum()) / max(1, nt)  # the start's (PCA)
-        bar = _bar(p["progress"], p["epochs"])
+        es = _EarlyStop(self, st, train, hold, "step")
 
         def closure():
             opt.zero_grad(set_to_none=True)
@@ -924,48 +877,78 @@ class _Trainer:
                 train_loss = float(opt.step(closure).detach())
                 with torch.no_grad():
                     z[train] = zt.detach()
-                diverged = None
-                if not math.isfinite(train_loss):
-                    diverged = f"the loss became {train_loss} at step {ep}"
-                elif best_train is not None and train_loss > DIVERGENCE_FACTOR * max(best_train, 1e-30):
-                    diverged = f"the training loss rose to {train_loss:.4g} at step {ep}, above {DIVERGENCE_FACTOR:g}x its best {best_train:.4g}"
-                if diverged is None:
-                    best_train = train_loss if best_train is None else min(best_train, train_loss)
-                    if crit_hold:
-                        for t in dec:
-                            t.requires_grad_(False)
-                        self._hold_steps(st, hold)
-                        for t in dec:
-                            t.requires_grad_(True)
-                        crit = self._hold_loss(st, hold)
-                    else:
-                        crit = train_loss
-                    if not math.isfinite(crit):
-                        diverged = f"the held-out loss became {crit} at step {ep}"
-                if diverged is not None:
-                    stop = {"stopped": "diverged", "diverged": diverged}
-                    self.codec._warn_or_raise(
-                        f"{self.codec.codec_name}: training diverged ({diverged}; lr={p['lr']:g}); kept the last good state "
-                        f"(step {best_epoch}); accepted: a smaller lr (e.g. {p['lr'] / 10:g})")
+                if es.epoch(st, ep, train_loss, None):
                     break
-                hist.append([train_loss, crit])
-                bar.update(1)
-                bar.set_postfix(loss=f"{train_loss:.3e}")
-                if crit < best_crit * (1 - 1e-7):
-                    best_crit, best_epoch, bad = crit, ep, 0
-                    best = self._clone(st)
-                else:
-                    bad += 1
-                    if bad >= p["patience"]:
-                        stop = {"stopped": "early_stop"}
-                        break
         finally:
-            bar.close()
+            es.close()
             for t in dec:
                 t.requires_grad_(False)
-        stop.update({"epochs": len(hist), "best_epoch": best_epoch, "best_criterion": best_crit,
-                     "criterion": "holdout" if crit_hold else "train"})
-        return best, stop, hist
+        return es.result()
+
+
+class _EarlyStop:
+    """The per-epoch bookkeeping both optimisers of :class:`_Trainer` share: divergence (a non-finite
+    loss, or a training loss above ``DIVERGENCE_FACTOR`` × the best so far, the PCA start's
+    included) → stop with the last good state and a warning; the criterion (the held-out points'
+    loss after their codes-only steps, or the training loss without a holdout); the best state, the
+    patience count, the history ``[[train, criterion], ...]`` and the progress bar. ``unit``:
+    'epoch' (Adam) or 'step' (L-BFGS), as the messages say."""
+
+    def __init__(self, tr: "_Trainer", st: dict, train: torch.Tensor, hold: torch.Tensor, unit: str):
+        self.tr, self.hold, self.unit = tr, hold, unit
+        self.crit_hold = hold.numel() > 0
+        self.best_crit = tr._hold_loss(st, hold) if self.crit_hold else tr.full_loss(st)
+        self.best = tr._clone(st)
+        with torch.no_grad():
+            self.best_train = float(tr._loss_rows(st, train).double().sum()) / max(1, train.numel())  # the start's (PCA)
+        self.best_epoch, self.bad, self.stop, self.hist = 0, 0, {"stopped": "max_epochs"}, []
+        self.bar = _bar(tr.p["progress"], tr.p["epochs"])
+
+    def epoch(self, st: dict, ep: int, train_loss: float, diverged: str | None) -> bool:
+        """After epoch ``ep`` (training loss ``train_loss``; ``diverged``: a reason found during it):
+        the divergence checks, the held-out codes' steps and criterion, the best state and patience.
+        Returns True when the fit stops (diverged or out of patience)."""
+        u, p = self.unit, self.tr.p
+        if diverged is None and not math.isfinite(train_loss):
+            diverged = f"the loss became {train_loss} at {u} {ep}"
+        elif diverged is None and train_loss > DIVERGENCE_FACTOR * max(self.best_train, 1e-30):
+            diverged = (f"the training loss rose to {train_loss:.4g} at {u} {ep}, above {DIVERGENCE_FACTOR:g}x "
+                        f"its best {self.best_train:.4g}")
+        crit = train_loss
+        if diverged is None:
+            self.best_train = min(self.best_train, train_loss)
+            if self.crit_hold:
+                self.tr._hold_steps(st, self.hold)
+                crit = self.tr._hold_loss(st, self.hold)
+            if not math.isfinite(crit):
+                diverged = f"the held-out loss became {crit} at {u} {ep}"
+        if diverged is not None:
+            self.stop = {"stopped": "diverged", "diverged": diverged}
+            self.tr.codec._warn_or_raise(
+                f"{self.tr.codec.codec_name}: training diverged ({diverged}; lr={p['lr']:g}); kept the last good state "
+                f"({u} {self.best_epoch}); accepted: a smaller lr (e.g. {p['lr'] / 10:g})")
+            return True
+        self.hist.append([train_loss, crit])
+        self.bar.update(1)
+        self.bar.set_postfix(loss=f"{train_loss:.3e}", holdout=f"{crit:.3e}" if self.crit_hold else "-")
+        if crit < self.best_crit * (1 - 1e-7):
+            self.best_crit, self.best_epoch, self.bad = crit, ep, 0
+            self.best = self.tr._clone(st)
+            return False
+        self.bad += 1
+        if self.bad >= p["patience"]:
+            self.stop = {"stopped": "early_stop"}
+            return True
+        return False
+
+    def close(self) -> None:
+        self.bar.close()
+
+    def result(self) -> tuple[dict, dict, list]:
+        """``(best state, stop record, history)``."""
+        stop = dict(self.stop, epochs=len(self.hist), best_epoch=self.best_epoch, best_criterion=self.best_crit,
+                    criterion="holdout" if self.crit_hold else "train")
+        return self.best, stop, self.hist
 
 
 class _Adam:
