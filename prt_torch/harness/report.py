@@ -614,7 +614,8 @@ def codec_rows(results: dict, where: str, codecs: tuple[str, ...] | None = None)
             continue
         st = x.get("storage") or {}
         prm = x["params"]
-        family = x["codec"] + "".join(f" {k}={prm[k]}" for k in ("clusters", "code_dtype") if x["codec"] == "neural" and k in prm)
+        family = x["codec"] + "".join(f" {k}={prm[k]}" for k in ("clusters", "cluster_decoder", "code_dtype")
+                                      if x["codec"] == "neural" and k in prm)
         sp = x.get("speedup_vs_uncompressed")
         out.append({
             "part": where, "codec": x["codec"], "family": family, "setting": x["setting_id"], "params": prm,
