@@ -791,14 +791,12 @@ class _Trainer:
         p = self.p
         lr = p["lr"]
         dec = [st["head"], st["bias"], *[t for pair in st["layers"] for t in pair]]
-        for t in dec:
-            t.requires_grad_(True)
+        es = _EarlyStop(self, st, train, hold, "epoch", dec)
         opt = _Adam(dec, lr)
         z = st["z"]
         zopt = _Adam([z], lr, rows=True)  # Adam on the rows of each minibatch (each row its own step count)
         B = min(p["batch_size"], max(1, train.numel()))
         nt = train.numel()
-        es = _EarlyStop(self, st, train, hold, "epoch")
         try:
             for ep in range(1, p["epochs"] + 1):
                 order = train[torch.randperm(nt, generator=gen)]
@@ -823,8 +821,6 @@ class _Trainer:
                     break
         finally:
             es.close()
-            for t in dec:
-                t.requires_grad_(False)
         return es.result()
 
     def _hold_steps(self, st, hold):
@@ -859,12 +855,10 @@ class _Trainer:
         z = st["z"]
         zt = z[train].clone().requires_grad_(True)
         dec = [st["head"], st["bias"], *[t for pair in st["layers"] for t in pair]]
-        for t in dec:
-            t.requires_grad_(True)
+        es = _EarlyStop(self, st, train, hold, "step", dec)
         opt = torch.optim.LBFGS([zt, *dec], lr=p["lr"], max_iter=20, history_size=20, line_search_fn="strong_wolfe",
                                 tolerance_grad=0.0, tolerance_change=0.0)
         nt = train.numel()
-        es = _EarlyStop(self, st, train, hold, "step")
 
         def closure():
             opt.zero_grad(set_to_none=True)
@@ -881,8 +875,6 @@ class _Trainer:
                     break
         finally:
             es.close()
-            for t in dec:
-                t.requires_grad_(False)
         return es.result()
 
 
@@ -892,10 +884,13 @@ class _EarlyStop:
     included) → stop with the last good state and a warning; the criterion (the held-out points'
     loss after their codes-only steps, or the training loss without a holdout); the best state, the
     patience count, the history ``[[train, criterion], ...]`` and the progress bar. ``unit``:
-    'epoch' (Adam) or 'step' (L-BFGS), as the messages say."""
+    'epoch' (Adam) or 'step' (L-BFGS), as the messages say; ``dec``: the decoder's tensors, which
+    require gradients from here until :meth:`close`."""
 
-    def __init__(self, tr: "_Trainer", st: dict, train: torch.Tensor, hold: torch.Tensor, unit: str):
-        self.tr, self.hold, self.unit = tr, hold, unit
+    def __init__(self, tr: "_Trainer", st: dict, train: torch.Tensor, hold: torch.Tensor, unit: str, dec: list):
+        self.tr, self.hold, self.unit, self.dec = tr, hold, unit, dec
+        for t in dec:
+            t.requires_grad_(True)
         self.crit_hold = hold.numel() > 0
         self.best_crit = tr._hold_loss(st, hold) if self.crit_hold else tr.full_loss(st)
         self.best = tr._clone(st)
@@ -942,7 +937,10 @@ class _EarlyStop:
         return False
 
     def close(self) -> None:
+        """The bar closed, the decoder's tensors back to no gradient."""
         self.bar.close()
+        for t in self.dec:
+            t.requires_grad_(False)
 
     def result(self) -> tuple[dict, dict, list]:
         """``(best state, stop record, history)``."""
