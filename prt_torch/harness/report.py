@@ -726,8 +726,9 @@ def learned_lines(table: list[dict], figure: str | None = None) -> list[str]:
         lines.append(f"| {r['part']} | {r['codec']} | {r['setting']} | {r['stored_B_per_vertex']:.1f} | {r['runtime_B_per_vertex']:.1f} | "
                      f"{_fmt(r['psnr_lights_db'])} | {r['relight_vs_uncompressed']:.3f}{warn} | {r['relight_ms']:.3f} | "
                      f"{_fmt(r['encode_s'])} |")
-    lines += ["", "Where the learned codec wins and where it does not (computed from the rows above: within a neural "
-              "setting's stored bytes, its run-time bytes and its relight time, the best setting of each other family):", ""]
+    lines += ["", "Where the learned codec wins and where it does not (computed from the rows above, so against the settings "
+              "run here only: within a neural setting's stored bytes, its run-time bytes and its relight time, the best setting "
+              "of each other family):", ""]
     lines += learned_summary(table) + [""] + learned_findings(table) + [""]
     if figure:
         lines += [f"![{Path(figure).stem}]({figure})", ""]
