@@ -351,6 +351,27 @@ def test_target_search_across_families_matches_brute_force(tmp_path):
             assert not mine
 
 
+def test_target_search_reaches_the_learned_codec(tmp_path):
+    """`--target-psnr` searches the learned codec on its code size (harness.target: bisection on
+    latent): its family's best is the smallest latent meeting the goal — checked against every
+    latent of the range, whose fits the bisection leaves in records/ (3, then 2, then 1)."""
+    from prt_torch.harness.run import run_benchmark
+
+    neural = {"type": "neural", "features": 4, "width": 8, "depth": 1, "epochs": 10, "encode_iters": 0}
+    base = dict(TINY, render={"enabled": False}, metrics={"random_lights": 8, "repeats": 1, "warmup": 0}, codecs=[neural])
+    goal = 18.0  # measured: latent 1, 2, 3 give 16.5, 19.8, 20.1 dB here (10 epochs)
+    over = [f"target.psnr={goal}", "target.lo=1", "target.hi=3"]
+    run_dir = run_benchmark(hc.load_config(str(write_cfg(tmp_path, base)), over), progress=False, log=lambda s: None)
+    f = json.loads((run_dir / "results.json").read_text())["target"]["families"]["neural"]
+    assert f["searched"] and f["axes"] == ["latent"] and f["evaluated"] == 3
+    recs = [json.loads(p.read_text()) for p in (run_dir / "records").glob("*.json")]
+    by_k = {r["params"]["latent"]: r["psnr_lights_db"] for r in recs if "latent" in r["params"]}  # (the entry's own, default k)
+    assert sorted(by_k) == [1, 2, 3]
+    meeting = sorted(k for k, v in by_k.items() if v >= goal)
+    assert meeting and meeting[0] > 1, by_k  # within reach, and not at the range's first value
+    assert f["best"]["params"]["latent"] == meeting[0], (by_k, f)
+
+
 def test_unreachable_target_says_the_best_found(tmp_path):
     from prt_torch.harness.run import run_benchmark
 

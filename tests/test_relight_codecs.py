@@ -635,14 +635,13 @@ def test_rows_kernel_padded_rows_at_any_thread_split():
         assert torch.allclose(outs[0].double(), ref, atol=1e-5), Fo
 
 
-@pytest.mark.xfail(" avx512f" not in open("/proc/cpuinfo").read(), strict=False,
-                   reason="known: on an AVX2-only CPU (AMD EPYC Zen 3) the 8-lane dense kernel turns -0.0 into +0.0 at "
-                          "49 output rows, 1 thread (seen at f73f3c5 too); the AVX-512 kernels keep it")
 def test_dense_kernel_keeps_the_sign_of_zero_at_any_split():
     """A result of -0.0 (a negative mean seen through an all-zero view row) stays -0.0 whether its
     point is reduced in a block of 8 or alone at a range's end (1-3 threads, 9 points): the single
     point's sums are assigned, not added to 0.0f, which turned -0 into +0 (the 8-lane and the
-    16-lane kernels: 24, 40, 49 and 64 rows)."""
+    16-lane kernels: 24, 40, 49 and 64 rows). On the 8-lane path (no AVX-512) 49 rows are padded to
+    56 with a -0 view (a +0 pad row added +0 to every lane) and 64 rows (8 blocks, colour by colour)
+    assign their first chunk's sum: both lost the sign for every point before (AMD EPYC Zen 3)."""
     lib = relight_kernels.native()
     if lib is None:
         pytest.skip("no compiled kernels")

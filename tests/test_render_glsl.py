@@ -80,12 +80,16 @@ CODECS = {  # small, cheap fits: the decode is under test, not the fit
     "cpca_adaptive": dict(clusters=6, vectors=4, max_iter=3, iterations=2, adapt_iters=1),
     "mrt_pca": dict(vectors=8),
     "neural": dict(latent=3, features=8, width=8, depth=1, clusters=2, epochs=10, encode_iters=5),
+    "neural_full": dict(latent=3, features=8, width=8, depth=1, clusters=2, cluster_decoder="full", epochs=10, encode_iters=5),
 }
+#: the codec each CODECS entry fits (where the key is not the codec's name)
+CODEC_OF = {"neural_full": "neural"}
 _FITS: dict = {}
 PATHS = ([(k, None) for k in ("diffuse", "diffuse_rgb", "glossy", "mrt")]
          + [(k, c) for k in ("diffuse", "diffuse_rgb", "glossy", "mrt") for c in ("vq", "pca", "cpca", "cpca_adaptive")]
          + [("mrt", "mrt_pca"), ("glossy", "mrt_pca")]
-         + [(k, "neural") for k in ("diffuse", "diffuse_rgb", "glossy", "mrt")])
+         + [(k, "neural") for k in ("diffuse", "diffuse_rgb", "glossy", "mrt")]
+         + [(k, "neural_full") for k in ("glossy", "mrt")])  # one whole decoder per cluster
 
 
 def _fit(tr, name):
@@ -94,7 +98,7 @@ def _fit(tr, name):
     if key not in _FITS:
         sc = PRTScene(tr)
         X = tr.signal()
-        codec = codecs.get(name, **CODECS[name]).fit(X, matrix_shape=sc.matrix_shape)
+        codec = codecs.get(CODEC_OF.get(name, name), **CODECS[name]).fit(X, matrix_shape=sc.matrix_shape)
         _FITS[key] = (tr, sc, codec, codec.encode(X))
     return _FITS[key][1:]
 

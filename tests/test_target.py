@@ -122,3 +122,54 @@ def test_cpca_at_one_cluster_reuses_pcas_probes():
     one = [c for c in calls if c["type"] == "cpca" and c.get("clusters") == 1]
     pca_v = out["families"]["pca"]["best"]["params"]["vectors"]
     assert [c["vectors"] for c in one] == [pca_v] and out["reused"]
+
+
+@pytest.mark.parametrize("setting", [
+    {"type": "neural", "latent": 2, "features": 6, "width": 8, "depth": 1},
+    {"type": "neural", "latent": 3, "features": 8, "width": 8, "depth": 2, "code_dtype": "float16"},
+    {"type": "neural", "latent": 2, "features": 6, "width": 8, "depth": 1, "clusters": 3},
+    {"type": "neural", "latent": 2, "features": 6, "width": 8, "depth": 1, "clusters": 3, "cluster_decoder": "full"},
+    {"type": "neural", "latent": 4},  # the codec's defaults for the rest (H = 16, width 32, depth 2)
+])
+def test_the_neural_floor_is_what_a_fitted_codec_stores_but_its_labels(setting):
+    """The learned codec's floor (codes, last layers, φ, code samples; from the setting and the codec's
+    defaults, before any fit) equals the stored bytes of a fit less its labels (int8 per point with
+    clusters, int32 per code sample): never above, with teeth."""
+    X = torch.randn(300, 20, generator=torch.Generator().manual_seed(1))
+    params = {k: v for k, v in setting.items() if k != "type"}
+    c = codecs.get("neural", epochs=2, encode_iters=0, **params)
+    enc = c.fit_encode(X)
+    st = c.storage(enc)
+    labels = st["bytes"].get("codes.labels", 0) + st["bytes"]["model.code_sample_labels"]
+    floor = bytes_floor(setting, 300, 20)
+    assert floor * 300 == pytest.approx(st["bytes_total"] - labels, rel=1e-12), (floor, st["bytes"])
+
+
+def test_neural_latent_search_bisects_and_prunes_what_cannot_be_cheaper():
+    """The learned codec is searched on its code size k (bisection on [lo, min(hi, D - 1, H)]): a
+    fake family whose PSNR grows with k finds the smallest k meeting the target; and after a cheaper
+    family, by bytes, code sizes whose floor is above it are not fitted (pruned, said)."""
+    P, D = 2000, 256
+    calls: list = []
+
+    def run_setting(s):
+        calls.append(dict(s))
+        if s["type"] == "neural":
+            psnr, b = 20 + 3 * s["latent"], bytes_floor(s, P, D) + 1
+        else:
+            psnr, b = 20 + 6 * math.log2(1 + s["vectors"]), bytes_floor(s, P, D)
+        sid = f"{s['type']}-" + "-".join(f"{k}{v}" for k, v in sorted(s.items()) if k != "type")
+        return {"setting_id": sid, "codec": s["type"], "params": {k: v for k, v in s.items() if k != "type"},
+                "psnr_lights_db": psnr, "bytes_per_vertex": b, "fps": 1.0}
+
+    cfg = {"codecs": [{"type": "neural", "features": 16}],
+           "target": {"psnr": 38.0, "metric": "psnr_lights_db", "by": "bytes", "lo": 1, "hi": 64, "hi_clusters": 16}}
+    out = search_families(cfg, run_setting, P, D)
+    assert out["families"]["neural"]["best"]["params"]["latent"] == 6  # 20 + 3k >= 38
+    assert all(s["latent"] <= 16 for s in calls) and len(calls) <= search_cost(cfg, P, D)["total"] == 5
+    calls.clear()
+    cfg["codecs"] = [{"type": "pca"}, {"type": "neural", "features": 16}]
+    out = search_families(cfg, run_setting, P, D)
+    pca_b = out["families"]["pca"]["best"]["bytes_per_vertex"]
+    assert all(bytes_floor(s, P, D) < pca_b for s in calls if s["type"] == "neural")
+    assert any(x.startswith("neural latent") for x in out["pruned"])

@@ -7,8 +7,9 @@ auto-decoder: codes and decoder optimised jointly, no encoder network):
     x̃_p = g_{k(p)}(z_p) = b_{k(p)} + W_{k(p)} h(z_p),     h(z) = [z, φ(z)] ∈ R^H        (1)
 
 φ is a multilayer perceptron R^k → R^{H−k} (``depth`` hidden layers of ``width`` units, an
-activation after every layer), shared by all clusters; W_k ``[D, H]`` and b_k ``[D]`` are the
-last, linear layer of cluster k (k(p) = 0 without clustering). Because the last layer is
+activation after every layer), shared by all clusters (``cluster_decoder='head'``) or one φ_k per
+cluster (``'full'``: a whole decoder per CPCA cluster, h(z_p) = [z_p, φ_{k(p)}(z_p)]); W_k
+``[D, H]`` and b_k ``[D]`` are the last, linear layer of cluster k (k(p) = 0 without clustering). Because the last layer is
 linear, relighting keeps PRT's structure (Sloan 2003 §6): per light the constants W_k^T l
 and b_k^T l (``[K, 1+H, n_out, C]``, like CPCA's per-cluster M_i l), per point the features
 h(z_p) dotted with them. Once h(z_p) is computed and cached (``NeuralCodec.affine_form``),
@@ -30,7 +31,8 @@ codes only: a least-squares start on the skip columns (each cluster's, the best 
 chosen), then Adam steps, each point keeping its best code.
 
 Stored: ``codes.z [P, k]`` (float32 or float16: ``code_dtype``), ``codes.labels [P]`` (K > 1),
-the decoder's ``model.layer{i}.weight/bias`` (φ), ``model.head [K, H, D]`` (W_k^T) and
+the decoder's ``model.layer{i}.weight/bias`` (φ: ``[out, in]``, ``[out]``; one per cluster:
+``[K, out, in]``, ``[K, out]``), ``model.head [K, H, D]`` (W_k^T) and
 ``model.bias [K, D]``. Run time (``storage``: ``runtime_bytes``): the cached features
 ``[P, H]`` float32 with the head — larger than the stored codes when H > k, the point of the
 comparison in reports/benchmarks/neural.md.
@@ -72,6 +74,38 @@ CHUNK_ELEMENTS = 1 << 21
 HOLDOUT_STEPS = 3
 
 
+def _cluster_affine(x: torch.Tensor, labels: torch.Tensor | None, layout, w_t: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """b_k + x W_k per point: ``x [N, a]``, ``w_t [K, a, o]`` (W_k^T), ``b [K, o]``, cluster ``labels [N]``
+    and their ``layout`` (``segment.tile_layout``; None with K = 1) -> ``[N, o]``: one GEMM, or one
+    batched GEMM per tile group (differentiable: index_copy, bmm, index_select)."""
+    K = w_t.shape[0]
+    if K == 1 or labels is None:
+        return torch.addmm(b[0], x, w_t[0])
+    xt = to_tiles(layout, x)
+    Ws = w_t.index_select(0, layout.corder)
+    parts = [torch.bmm(xt[t0:t1], Ws[: t1 - t0]) for t0, t1 in layout.groups]  # one bmm per tile row
+    out = from_tiles(layout, torch.cat(parts, 0) if parts else xt.new_zeros(0, layout.T, w_t.shape[2]))
+    return out + b[labels]
+
+
+def _phi_features(z: torch.Tensor, labels: torch.Tensor | None, layers: list, act, layout=None) -> torch.Tensor:
+    """h(z) = [z, φ(z)] ``[N, H]`` (eq. (1)) in z's dtype: ``layers`` [(weight, bias)] of φ, each
+    ``weight [o, a]``, ``bias [o]`` (one φ for every point) or ``[K, o, a]``, ``[K, o]`` (one φ per
+    cluster, ``cluster_decoder='full'``: point p through φ_{k(p)}, ``labels [N]`` required)."""
+    if not layers:
+        return z
+    a = z
+    for w, b in layers:
+        w, b = w.to(z.dtype), b.to(z.dtype)
+        if w.ndim == 2:
+            a = act(torch.nn.functional.linear(a, w, b))
+        else:
+            if layout is None:
+                layout = tile_layout(labels, w.shape[0])
+            a = act(_cluster_affine(a, labels, layout, w.transpose(1, 2), b))
+    return torch.cat([z, a], 1)
+
+
 @register("neural")
 class NeuralCodec(Codec):
     """Learned auto-decoder codec: a latent code per point and a shared MLP decoder whose last layer is linear (relit as PCA with H vectors).
@@ -89,7 +123,10 @@ class NeuralCodec(Codec):
     activation : {'silu', 'tanh', 'relu', 'linear'}, default='silu'
         Activation after each layer of φ; 'linear' makes h, and the codec, linear in z.
     clusters : int, default=1
-        One last layer (W_k, b_k) per cluster of a static CPCA of the signal (Sloan 2003 §4.1); φ is shared.
+        One last layer (W_k, b_k) per cluster of a static CPCA of the signal (Sloan 2003 §4.1).
+    cluster_decoder : {'head', 'full'}, default='head'
+        With ``clusters`` > 1: 'head' shares φ and gives each cluster its own last layer; 'full' gives each
+        cluster a whole decoder of its own (φ_k and W_k, b_k: K times φ's weights stored).
     optimizer : {'adam', 'lbfgs'}, default='adam'
         Adam on minibatches (codes updated per row) or full-batch L-BFGS (strong Wolfe line search).
     lr : float, default=0.003
@@ -125,6 +162,7 @@ class NeuralCodec(Codec):
         "depth": [Interval(int, 0, 16)],
         "activation": [Options(*_ACTIVATIONS)],
         "clusters": [Interval(int, 1, None)],
+        "cluster_decoder": [Options("head", "full")],
         "optimizer": [Options("adam", "lbfgs")],
         "lr": [Interval(float, 0, 10, closed="right")],
         "epochs": [Interval(int, 1, 100000)],
@@ -140,7 +178,7 @@ class NeuralCodec(Codec):
         "strict": [Boolean()],
     }
 
-    def __init__(self, *, latent=4, features=16, width=32, depth=2, activation="silu", clusters=1, optimizer="adam",
+    def __init__(self, *, latent=4, features=16, width=32, depth=2, activation="silu", clusters=1, cluster_decoder="head", optimizer="adam",
                  lr=0.003, epochs=300, batch_size=512, patience=20, holdout=0.1, encode_iters=100, code_dtype="float32",
                  init="pca", fit_dtype="float32", progress=False, seed=0, strict=False):
         self.latent = latent
@@ -149,6 +187,7 @@ class NeuralCodec(Codec):
         self.depth = depth
         self.activation = activation
         self.clusters = clusters
+        self.cluster_decoder = cluster_decoder
         self.optimizer = optimizer
         self.lr = lr
         self.epochs = epochs
@@ -182,31 +221,17 @@ class NeuralCodec(Codec):
     def _act(self):
         return _ACTIVATIONS[self.params_["activation"]]
 
-    def _features(self, z: torch.Tensor, layers: list | None = None) -> torch.Tensor:
-        """h(z) = [z, φ(z)] ``[N, H]`` in z's dtype (eq. (1)); ``layers``: [(weight, bias)] of φ
-        (default the fitted ``layers_``)."""
-        layers = self.layers_ if layers is None else layers
-        if not layers:
-            return z
-        act = self._act
-        a = z
-        for w, b in layers:
-            a = act(torch.nn.functional.linear(a, w.to(z.dtype), b.to(z.dtype)))
-        return torch.cat([z, a], 1)
+    def _features(self, z: torch.Tensor, labels: torch.Tensor | None = None) -> torch.Tensor:
+        """h(z) = [z, φ(z)] ``[N, H]`` in z's dtype (eq. (1)) of the fitted φ; ``labels [N]``: the
+        points' clusters (needed with one φ per cluster, ``cluster_decoder='full'``)."""
+        return _phi_features(z, labels, self.layers_, self._act)
 
     def _head(self, F: torch.Tensor, labels: torch.Tensor | None, head: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
         """b_k + W_k h ``[N, D]`` for features ``F [N, H]``, cluster ``labels [N]`` (None: K = 1),
         ``head [K, H, D]``, ``bias [K, D]``: one GEMM, or with clusters the tile layout's batched
         GEMMs (``segment``; differentiable: index_copy, bmm, index_select)."""
         K = head.shape[0]
-        if K == 1 or labels is None:
-            return torch.addmm(bias[0], F, head[0])
-        layout = tile_layout(labels, K)
-        Ft = to_tiles(layout, F)
-        Ws = head.index_select(0, layout.corder)
-        parts = [torch.bmm(Ft[t0:t1], Ws[: t1 - t0]) for t0, t1 in layout.groups]  # one bmm per tile row
-        out = from_tiles(layout, torch.cat(parts, 0) if parts else Ft.new_zeros(0, layout.T, head.shape[2]))
-        return out + bias[labels]
+        return _cluster_affine(F, labels, None if K == 1 or labels is None else tile_layout(labels, K), head, bias)
 
     # ------------------------------------------------------------------ fit
     def fit(self, X, y=None, weights=None, matrix_shape=None) -> "NeuralCodec":
@@ -274,7 +299,7 @@ class NeuralCodec(Codec):
     @property
     def latent_size(self) -> int:
         """k, the code size of the fitted model."""
-        return int(self.head_.shape[1]) - (int(self.layers_[-1][0].shape[0]) if self.layers_ else 0)
+        return int(self.head_.shape[1]) - (int(self.layers_[-1][0].shape[-2]) if self.layers_ else 0)
 
     def labels_of(self, enc: Encoded) -> torch.Tensor:
         """Cluster index of every point, ``int64 [P]`` (zeros without clusters)."""
@@ -315,8 +340,9 @@ class NeuralCodec(Codec):
             check_finite("enc codes z", z)
             F = torch.empty(enc.points, int(self.head_.shape[1]), dtype=torch.float32)
             with torch.no_grad():
+                lab = self.labels_of(enc) if self.K_ > 1 else None
                 for i in range(0, enc.points, 65536):  # chunks bound φ's temporaries
-                    F[i:i + 65536] = self._features(z[i:i + 65536].to(torch.float32))
+                    F[i:i + 65536] = self._features(z[i:i + 65536].to(torch.float32), None if lab is None else lab[i:i + 65536])
             tensors = {"coeffs": F}
             if self.K_ > 1:
                 tensors["labels"] = enc.tensors["labels"]
@@ -379,12 +405,13 @@ class NeuralCodec(Codec):
         rows = max(1, CHUNK_ELEMENTS // self.D_)
         if zs.numel():
             with torch.no_grad():
-                Xs = self._head(self._features(zs), ls if self.K_ > 1 else None, self.head_, self.bias_).double()
+                Xs = self._head(self._features(zs, ls if self.K_ > 1 else None), ls if self.K_ > 1 else None, self.head_,
+                                self.bias_).double()
                 ss = Xs.square().sum(1)
                 for i in range(0, P, rows):  # chunks bound the [rows, D] decodes
                     xb, zb = X[i:i + rows].double(), z[i:i + rows]
                     lb = None if labels is None else labels[i:i + rows]
-                    e0 = (xb - self._head(self._features(zb), lb, self.head_, self.bias_).double()).square().sum(1)
+                    e0 = (xb - self._head(self._features(zb, lb), lb, self.head_, self.bias_).double()).square().sum(1)
                     ds, js = (xb.square().sum(1)[:, None] - 2 * xb @ Xs.T + ss[None]).clamp_min(0).min(1)
                     use = ds < e0
                     zb[use] = zs[js[use]]
@@ -410,7 +437,7 @@ class NeuralCodec(Codec):
         best_err = None
         for t in range(1, iters + 2):
             zz = zc * scale
-            err = (X - self._head(self._features(zz), labels, head, bias)).square().sum(1)
+            err = (X - self._head(self._features(zz, labels), labels, head, bias)).square().sum(1)
             with torch.no_grad():
                 e = err.detach()
                 if best_err is None:
@@ -434,8 +461,8 @@ class NeuralCodec(Codec):
         out = torch.empty(enc.points, self.D_, dtype=torch.float32)
         with torch.no_grad():
             for i in range(0, enc.points, 16384):
-                out[i:i + 16384] = self._head(self._features(z[i:i + 16384].to(torch.float32)),
-                                              None if labels is None else labels[i:i + 16384], self.head_, self.bias_)
+                lb = None if labels is None else labels[i:i + 16384]
+                out[i:i + 16384] = self._head(self._features(z[i:i + 16384].to(torch.float32), lb), lb, self.head_, self.bias_)
         return out.numpy() if enc.array_type == "numpy" else out
 
     # ------------------------------------------------------------------ transform layout
@@ -529,6 +556,9 @@ class NeuralCodec(Codec):
         self.n_features_in_ = self.D_
         self.fit_info_ = meta.get("fit_info", {})
         self.params_ = self.params
+        if any(w.ndim == 3 and (w.shape[0] != self.K_ or b.shape[0] != self.K_) for w, b in self.layers_):
+            raise ValueError(f"codec file: a per-cluster layer of φ has {tuple(self.layers_[0][0].shape)} weights, not one per "
+                             f"cluster of clusters={self.K_}")
         if self.head_.shape[0] != self.K_ or self.head_.shape[2] != self.D_ or self.bias_.shape != (self.K_, self.D_):
             raise ValueError(f"codec file: head {tuple(self.head_.shape)} / bias {tuple(self.bias_.shape)} do not match "
                              f"clusters={self.K_}, dim={self.D_}")
@@ -630,25 +660,23 @@ class _Trainer:
         layers = []
         if H > k:
             dims = [k] + [p["width"]] * p["depth"] + [H - k]
+            per = Kf if (p["cluster_decoder"] == "full" and Kf > 1) else 0  # one φ per cluster: [K, o, a] weights
             for a, b in zip(dims[:-1], dims[1:]):
-                lin = torch.nn.Linear(a, b, dtype=torch.float64)  # default init, from the seeded generator
-                layers.append((lin.weight.detach().clone(), lin.bias.detach().clone()))
+                lins = [torch.nn.Linear(a, b, dtype=torch.float64) for _ in range(max(1, per))]  # default init, seeded
+                wgt = torch.stack([lin.weight.detach() for lin in lins]) if per else lins[0].weight.detach().clone()
+                bia = torch.stack([lin.bias.detach() for lin in lins]) if per else lins[0].bias.detach().clone()
+                layers.append((wgt, bia))
         self.labels = labels
         self.K = Kf
         return {"z": z.to(dt), "head": head.to(dt), "bias": means.to(dt), "layers": [(a.to(dt), b.to(dt)) for a, b in layers]}
 
     def _pred(self, st, idx=None, z=None):
-        c = self.codec
         z = st["z"] if z is None else z
         zb = z if idx is None or z is not st["z"] else z[idx]
         lab = None if self.labels is None else (self.labels if idx is None else self.labels[idx])
-        act = _ACTIVATIONS[self.p["activation"]]
-        a, F = zb, zb
-        if st["layers"]:
-            for wgt, b in st["layers"]:
-                a = act(torch.nn.functional.linear(a, wgt, b))
-            F = torch.cat([zb, a], 1)
-        return c._head(F, lab, st["head"], st["bias"])
+        layout = None if lab is None else tile_layout(lab, self.K)  # one layout for φ_k and the last layer
+        F = _phi_features(zb, lab, st["layers"], _ACTIVATIONS[self.p["activation"]], layout)
+        return _cluster_affine(F, lab, layout, st["head"], st["bias"])
 
     def _loss_rows(self, st, idx=None, z=None) -> torch.Tensor:
         """Per-row weighted squared error of the scaled signal (rows ``idx``, or all)."""
@@ -732,7 +760,8 @@ class _Trainer:
             rows = max(1, CHUNK_ELEMENTS // self.D)
             for i in range(0, self.P, rows):  # chunks of points bound the float64 [rows, D] copies
                 z = st["z"][i:i + rows]
-                F = torch.cat([torch.ones(z.shape[0], 1, dtype=torch.float64), self._feat({**st, "z": z}).double()], 1)
+                lab_c = lab_all[i:i + rows] if self.labels is not None else None
+                F = torch.cat([torch.ones(z.shape[0], 1, dtype=torch.float64), self._feat({**st, "z": z}, lab_c).double()], 1)
                 Y = self.Y[i:i + rows].double()
                 if self.w is not None:
                     sw = self.w[i:i + rows].double().sqrt()[:, None]
@@ -753,39 +782,21 @@ class _Trainer:
             out["bias"], out["head"] = sol[:, 0].to(self.dt), sol[:, 1:].to(self.dt).contiguous()
             return out
 
-    def _feat(self, st):
-        act = _ACTIVATIONS[self.p["activation"]]
-        z = st["z"]
-        if not st["layers"]:
-            return z
-        a = z
-        for wgt, b in st["layers"]:
-            a = act(torch.nn.functional.linear(a, wgt, b))
-        return torch.cat([z, a], 1)
+    def _feat(self, st, labels):
+        """h(z) of the state's codes ``st['z']`` with their clusters ``labels`` (None: K = 1)."""
+        return _phi_features(st["z"], labels, st["layers"], _ACTIVATIONS[self.p["activation"]])
 
     # -- Adam on minibatches
     def _adam(self, st, train, hold, gen):
         p = self.p
         lr = p["lr"]
         dec = [st["head"], st["bias"], *[t for pair in st["layers"] for t in pair]]
-        for t in dec:
-            t.requires_grad_(True)
+        es = _EarlyStop(self, st, train, hold, "epoch", dec)
         opt = _Adam(dec, lr)
         z = st["z"]
-        zopt = _Adam([z], lr, rows=True)
-
-        def code_step(idx, g):  # Adam on the rows idx of the codes (each row its own step count)
-            zopt.step_rows(idx, g)
-
+        zopt = _Adam([z], lr, rows=True)  # Adam on the rows of each minibatch (each row its own step count)
         B = min(p["batch_size"], max(1, train.numel()))
         nt = train.numel()
-        crit_hold = hold.numel() > 0
-        best = self._clone(st)
-        best_crit = self._hold_loss(st, hold) if crit_hold else self.full_loss(st)
-        with torch.no_grad():
-            best_train = float(self._loss_rows(st, train).double().sum()) / max(1, nt)  # the start's (PCA)
-        best_epoch, bad, stop, hist = 0, 0, {"stopped": "max_epochs"}, []
-        bar = _bar(p["progress"], p["epochs"])
         try:
             for ep in range(1, p["epochs"] + 1):
                 order = train[torch.randperm(nt, generator=gen)]
@@ -794,8 +805,7 @@ class _Trainer:
                 for i in range(0, nt, B):
                     idx = order[i:i + B]
                     zb = z[idx].detach().requires_grad_(True)
-                    loss_rows = self._loss_rows(st, idx, zb)
-                    loss = loss_rows.sum() / idx.numel()
+                    loss = self._loss_rows(st, idx, zb).sum() / idx.numel()
                     lv = float(loss.detach())
                     if not math.isfinite(lv):
                         diverged = f"the loss became {lv} at epoch {ep}"
@@ -806,45 +816,12 @@ class _Trainer:
                     loss.backward()
                     opt.step()
                     with torch.no_grad():
-                        code_step(idx, zb.grad)
-                if diverged is None:
-                    train_loss = tot / max(1, nt)
-                    if best_train is not None and train_loss > DIVERGENCE_FACTOR * max(best_train, 1e-30):
-                        diverged = (f"the training loss rose to {train_loss:.4g} at epoch {ep}, above {DIVERGENCE_FACTOR:g}x "
-                                    f"its best {best_train:.4g}")
-                    else:
-                        best_train = train_loss if best_train is None else min(best_train, train_loss)
-                if diverged is None and crit_hold:
-                    self._hold_steps(st, hold)
-                    crit = self._hold_loss(st, hold)
-                elif diverged is None:
-                    crit = train_loss
-                if diverged is None and not math.isfinite(crit):
-                    diverged = f"the held-out loss became {crit} at epoch {ep}"
-                if diverged is not None:
-                    stop = {"stopped": "diverged", "diverged": diverged}
-                    self.codec._warn_or_raise(
-                        f"{self.codec.codec_name}: training diverged ({diverged}; lr={lr:g}); kept the last good state "
-                        f"(epoch {best_epoch}); accepted: a smaller lr (e.g. {lr / 10:g})")
+                        zopt.step_rows(idx, zb.grad)
+                if es.epoch(st, ep, tot / max(1, nt), diverged):
                     break
-                hist.append([train_loss, crit])
-                bar.update(1)
-                bar.set_postfix(loss=f"{train_loss:.3e}", holdout=f"{crit:.3e}" if crit_hold else "-")
-                if crit < best_crit * (1 - 1e-7):
-                    best_crit, best_epoch, bad = crit, ep, 0
-                    best = self._clone(st)
-                else:
-                    bad += 1
-                    if bad >= p["patience"]:
-                        stop = {"stopped": "early_stop"}
-                        break
         finally:
-            bar.close()
-            for t in dec:
-                t.requires_grad_(False)
-        stop.update({"epochs": len(hist), "best_epoch": best_epoch, "best_criterion": best_crit,
-                     "criterion": "holdout" if crit_hold else "train"})
-        return best, stop, hist
+            es.close()
+        return es.result()
 
     def _hold_steps(self, st, hold):
         """Codes-only Adam steps of the held-out points (the decoder fixed): they follow the
@@ -878,17 +855,10 @@ class _Trainer:
         z = st["z"]
         zt = z[train].clone().requires_grad_(True)
         dec = [st["head"], st["bias"], *[t for pair in st["layers"] for t in pair]]
-        for t in dec:
-            t.requires_grad_(True)
+        es = _EarlyStop(self, st, train, hold, "step", dec)
         opt = torch.optim.LBFGS([zt, *dec], lr=p["lr"], max_iter=20, history_size=20, line_search_fn="strong_wolfe",
                                 tolerance_grad=0.0, tolerance_change=0.0)
         nt = train.numel()
-        crit_hold = hold.numel() > 0
-        best_crit = self._hold_loss(st, hold) if crit_hold else self.full_loss(st)
-        best, best_epoch, bad, stop, hist = self._clone(st), 0, 0, {"stopped": "max_epochs"}, []
-        with torch.no_grad():
-            best_train = float(self._loss_rows(st, train).double().sum()) / max(1, nt)  # the start's (PCA)
-        bar = _bar(p["progress"], p["epochs"])
 
         def closure():
             opt.zero_grad(set_to_none=True)
@@ -901,48 +871,82 @@ class _Trainer:
                 train_loss = float(opt.step(closure).detach())
                 with torch.no_grad():
                     z[train] = zt.detach()
-                diverged = None
-                if not math.isfinite(train_loss):
-                    diverged = f"the loss became {train_loss} at step {ep}"
-                elif best_train is not None and train_loss > DIVERGENCE_FACTOR * max(best_train, 1e-30):
-                    diverged = f"the training loss rose to {train_loss:.4g} at step {ep}, above {DIVERGENCE_FACTOR:g}x its best {best_train:.4g}"
-                if diverged is None:
-                    best_train = train_loss if best_train is None else min(best_train, train_loss)
-                    if crit_hold:
-                        for t in dec:
-                            t.requires_grad_(False)
-                        self._hold_steps(st, hold)
-                        for t in dec:
-                            t.requires_grad_(True)
-                        crit = self._hold_loss(st, hold)
-                    else:
-                        crit = train_loss
-                    if not math.isfinite(crit):
-                        diverged = f"the held-out loss became {crit} at step {ep}"
-                if diverged is not None:
-                    stop = {"stopped": "diverged", "diverged": diverged}
-                    self.codec._warn_or_raise(
-                        f"{self.codec.codec_name}: training diverged ({diverged}; lr={p['lr']:g}); kept the last good state "
-                        f"(step {best_epoch}); accepted: a smaller lr (e.g. {p['lr'] / 10:g})")
+                if es.epoch(st, ep, train_loss, None):
                     break
-                hist.append([train_loss, crit])
-                bar.update(1)
-                bar.set_postfix(loss=f"{train_loss:.3e}")
-                if crit < best_crit * (1 - 1e-7):
-                    best_crit, best_epoch, bad = crit, ep, 0
-                    best = self._clone(st)
-                else:
-                    bad += 1
-                    if bad >= p["patience"]:
-                        stop = {"stopped": "early_stop"}
-                        break
         finally:
-            bar.close()
-            for t in dec:
-                t.requires_grad_(False)
-        stop.update({"epochs": len(hist), "best_epoch": best_epoch, "best_criterion": best_crit,
-                     "criterion": "holdout" if crit_hold else "train"})
-        return best, stop, hist
+            es.close()
+        return es.result()
+
+
+class _EarlyStop:
+    """The per-epoch bookkeeping both optimisers of :class:`_Trainer` share: divergence (a non-finite
+    loss, or a training loss above ``DIVERGENCE_FACTOR`` × the best so far, the PCA start's
+    included) → stop with the last good state and a warning; the criterion (the held-out points'
+    loss after their codes-only steps, or the training loss without a holdout); the best state, the
+    patience count, the history ``[[train, criterion], ...]`` and the progress bar. ``unit``:
+    'epoch' (Adam) or 'step' (L-BFGS), as the messages say; ``dec``: the decoder's tensors, which
+    require gradients from here until :meth:`close`."""
+
+    def __init__(self, tr: "_Trainer", st: dict, train: torch.Tensor, hold: torch.Tensor, unit: str, dec: list):
+        self.tr, self.hold, self.unit, self.dec = tr, hold, unit, dec
+        for t in dec:
+            t.requires_grad_(True)
+        self.crit_hold = hold.numel() > 0
+        self.best_crit = tr._hold_loss(st, hold) if self.crit_hold else tr.full_loss(st)
+        self.best = tr._clone(st)
+        with torch.no_grad():
+            self.best_train = float(tr._loss_rows(st, train).double().sum()) / max(1, train.numel())  # the start's (PCA)
+        self.best_epoch, self.bad, self.stop, self.hist = 0, 0, {"stopped": "max_epochs"}, []
+        self.bar = _bar(tr.p["progress"], tr.p["epochs"])
+
+    def epoch(self, st: dict, ep: int, train_loss: float, diverged: str | None) -> bool:
+        """After epoch ``ep`` (training loss ``train_loss``; ``diverged``: a reason found during it):
+        the divergence checks, the held-out codes' steps and criterion, the best state and patience.
+        Returns True when the fit stops (diverged or out of patience)."""
+        u, p = self.unit, self.tr.p
+        if diverged is None and not math.isfinite(train_loss):
+            diverged = f"the loss became {train_loss} at {u} {ep}"
+        elif diverged is None and train_loss > DIVERGENCE_FACTOR * max(self.best_train, 1e-30):
+            diverged = (f"the training loss rose to {train_loss:.4g} at {u} {ep}, above {DIVERGENCE_FACTOR:g}x "
+                        f"its best {self.best_train:.4g}")
+        crit = train_loss
+        if diverged is None:
+            self.best_train = min(self.best_train, train_loss)
+            if self.crit_hold:
+                self.tr._hold_steps(st, self.hold)
+                crit = self.tr._hold_loss(st, self.hold)
+            if not math.isfinite(crit):
+                diverged = f"the held-out loss became {crit} at {u} {ep}"
+        if diverged is not None:
+            self.stop = {"stopped": "diverged", "diverged": diverged}
+            self.tr.codec._warn_or_raise(
+                f"{self.tr.codec.codec_name}: training diverged ({diverged}; lr={p['lr']:g}); kept the last good state "
+                f"({u} {self.best_epoch}); accepted: a smaller lr (e.g. {p['lr'] / 10:g})")
+            return True
+        self.hist.append([train_loss, crit])
+        self.bar.update(1)
+        self.bar.set_postfix(loss=f"{train_loss:.3e}", holdout=f"{crit:.3e}" if self.crit_hold else "-")
+        if crit < self.best_crit * (1 - 1e-7):
+            self.best_crit, self.best_epoch, self.bad = crit, ep, 0
+            self.best = self.tr._clone(st)
+            return False
+        self.bad += 1
+        if self.bad >= p["patience"]:
+            self.stop = {"stopped": "early_stop"}
+            return True
+        return False
+
+    def close(self) -> None:
+        """The bar closed, the decoder's tensors back to no gradient."""
+        self.bar.close()
+        for t in self.dec:
+            t.requires_grad_(False)
+
+    def result(self) -> tuple[dict, dict, list]:
+        """``(best state, stop record, history)``."""
+        stop = dict(self.stop, epochs=len(self.hist), best_epoch=self.best_epoch, best_criterion=self.best_crit,
+                    criterion="holdout" if self.crit_hold else "train")
+        return self.best, stop, self.hist
 
 
 class _Adam:

@@ -26,7 +26,8 @@ from typing import Any, Callable
 from .. import io
 from ..shrm import CONVEX_PROBE_TOL
 
-__all__ = ["write_outputs", "pareto_front", "plot_results", "CSV_COLUMNS", "load_results", "PLOT_FILES", "convex_lines"]
+__all__ = ["write_outputs", "pareto_front", "plot_results", "CSV_COLUMNS", "load_results", "PLOT_FILES", "convex_lines",
+           "codec_rows", "learned_table", "learned_findings", "learned_summary", "learned_verdicts", "learned_lines", "plot_learned", "where_label"]
 
 #: the files :func:`plot_results` writes into its directory
 PLOT_FILES = ("rd.png", "speed_accuracy.png")
@@ -440,6 +441,7 @@ def markdown(results: dict, figures: list[str], renders: list[str]) -> str:
     lines += runtime_lines(r["records"])
     for part in r.get("parts") or []:
         lines += part_lines(part)
+    lines += learned_lines(learned_table(r), LEARNED_PLOT if LEARNED_PLOT in figures else None)
     lines += executor_lines(r)
     lines += scene_required(r)
     if r.get("validation"):
@@ -465,7 +467,7 @@ def markdown(results: dict, figures: list[str], renders: list[str]) -> str:
             lines.append(f"{t['codec']}: not met — {t['note']}.")
         lines.append("")
     if figures:
-        lines += ["## Plots", ""] + [f"![{Path(f).stem}]({f})" for f in figures] + [""]
+        lines += ["## Plots", ""] + [f"![{Path(f).stem}]({f})" for f in figures if f != LEARNED_PLOT] + [""]
     if renders:
         lines += ["## Renders", "", "Left to right: uncompressed, compressed, |error| heat map (first light, first view).", ""]
         lines += [f"![{Path(f).stem}]({f})" for f in renders] + [""]
@@ -589,6 +591,181 @@ def runtime_lines(records: list[dict]) -> list[str]:
     return lines + [""]
 
 
+#: the families the learned codec is compared with (issue 43): PCA, CPCA and its fits, Green 2005's Gaussians
+LEARNED_PEERS = ("pca", "cpca", "cpca_static", "cpca_iterative", "cpca_adaptive", "gaussian")
+#: the file :func:`plot_learned` writes into a run directory
+LEARNED_PLOT = "learned.png"
+
+
+def where_label(results: dict) -> str:
+    """'mrt on bumpy_sphere (10242 vertices)': what a run's (or a part's) records were measured on."""
+    return f"{results['transfer']['kind']} on {results['scene']['name']} ({results['scene']['vertices']} vertices)"
+
+
+def codec_rows(results: dict, where: str, codecs: tuple[str, ...] | None = None) -> list[dict]:
+    """One plain row per record of ``results`` (of ``codecs`` only, when given) for the learned-vs-classic
+    comparison: stored and run-time bytes per vertex (``storage['runtime_bytes']``: the neural codec's
+    cached features; else the stored bytes), PSNR over lights × views, the relight time as the paired
+    one-thread fraction of the uncompressed relight's (``1 / speedup_vs_uncompressed``) and in ms, the
+    encode (training) time. ``where`` labels the run (:func:`where_label`)."""
+    out = []
+    for x in results["records"]:
+        if codecs is not None and x["codec"] not in codecs:
+            continue
+        st = x.get("storage") or {}
+        prm = x["params"]
+        family = x["codec"] + "".join(f" {k}={prm[k]}" for k in ("clusters", "cluster_decoder", "code_dtype")
+                                      if x["codec"] == "neural" and k in prm)
+        sp = x.get("speedup_vs_uncompressed")
+        out.append({
+            "part": where, "codec": x["codec"], "family": family, "setting": x["setting_id"], "params": prm,
+            "stored_B_per_vertex": x["bytes_per_vertex"],
+            "runtime_B_per_vertex": (st["runtime_bytes"] / max(1, st["points"])) if st.get("runtime_bytes") is not None
+            else x["bytes_per_vertex"],
+            "psnr_lights_db": x["psnr_lights_db"], "psnr_random_db": x.get("psnr_random_db"), "relative_se": x.get("relative_se"),
+            "relight_ms": 1e3 * x["relight_s"], "relight_spread": x.get("relight_spread", 0.0),
+            "speedup_vs_uncompressed": sp, "encode_s": x["encode_s"],
+            "relight_vs_uncompressed": 1.0 / sp if sp else math.inf,
+            "timing_trusted": x.get("timing_trusted"),
+        })
+    return out
+
+
+def learned_table(results: dict) -> list[dict]:
+    """:func:`codec_rows` of the neural codec and its peers (``LEARNED_PEERS``) in the main run and
+    in every part that has a neural record; empty when no run has one."""
+    runs = [results] + [p["results"] for p in results.get("parts") or []]
+    table: list[dict] = []
+    for r in runs:
+        if any(x["codec"] == "neural" for x in r["records"]):
+            table += codec_rows(r, where_label(r), ("neural",) + LEARNED_PEERS)
+    return table
+
+
+#: the budgets a neural setting is compared within: (name, the peers' key, the neural row's key)
+LEARNED_BUDGETS = (("stored bytes", "stored_B_per_vertex", "stored_B_per_vertex"),
+                   ("run-time bytes", "stored_B_per_vertex", "runtime_B_per_vertex"),
+                   ("relight time", "relight_vs_uncompressed", "relight_vs_uncompressed"))
+
+
+def learned_verdicts(table: list[dict]) -> list[dict]:
+    """Per neural row of ``table`` (:func:`codec_rows`), within each of ``LEARNED_BUDGETS`` (its stored
+    bytes, its run-time bytes, its relight time): the best setting of each other family of the same
+    part that fits the budget (``best``), and whether the neural setting ``wins`` (a higher PSNR than
+    all of them, or none fits) with its ``margin_db`` over the best (negative: it loses)."""
+    out = []
+    for part in dict.fromkeys(r["part"] for r in table):
+        sub = [r for r in table if r["part"] == part]
+        others = [r for r in sub if r["codec"] != "neural"]
+        for n in sorted((r for r in sub if r["codec"] == "neural"), key=lambda r: r["stored_B_per_vertex"]):
+            v = {"row": n, "budgets": {}}
+            for what, key, mine in LEARNED_BUDGETS:
+                best = []
+                for fam in sorted({r["codec"] for r in others}):
+                    fit = [r for r in others if r["codec"] == fam and r[key] <= n[mine] * 1.001]
+                    if fit:
+                        best.append(max(fit, key=lambda r: r["psnr_lights_db"]))
+                top = max((b["psnr_lights_db"] for b in best), default=None)
+                margin = None if top is None else n["psnr_lights_db"] - top
+                v["budgets"][what] = {"key": key, "best": best, "wins": margin is None or margin > 0, "margin_db": margin}
+            out.append(v)
+    return out
+
+
+def learned_findings(table: list[dict]) -> list[str]:
+    """Plain statements from :func:`learned_verdicts`: per neural setting and budget, the verdict —
+    wins (higher PSNR than every other family's best within the budget, or nothing fits it) or loses
+    (by how much) — and the peers' best settings within it."""
+    out = []
+    for v in learned_verdicts(table):
+        n, said = v["row"], []
+        for what, b in v["budgets"].items():
+            verdict = ("wins (nothing else fits)" if b["margin_db"] is None else
+                       f"**wins** by {b['margin_db']:.2f} dB" if b["wins"] else f"**loses** by {-b['margin_db']:.2f} dB")
+            unit = ((lambda r: f"{r['relight_vs_uncompressed']:.3f}") if b["key"] == "relight_vs_uncompressed"
+                    else (lambda r: f"{r['stored_B_per_vertex']:.0f} B"))
+            peers = ", ".join(f"{r['codec']} {r['psnr_lights_db']:.2f} dB: {r['setting']}, {unit(r)}" for r in b["best"])
+            said.append(f"at no more {what} {verdict}" + (f" ({peers})" if peers else ""))
+        out.append(f"- {n['part']}, {n['setting']}: {n['psnr_lights_db']:.2f} dB at {n['stored_B_per_vertex']:.1f} stored / "
+                   f"{n['runtime_B_per_vertex']:.1f} run-time B/vertex, relight {n['relight_vs_uncompressed']:.3f} of the "
+                   f"uncompressed relight's (paired), trained in {n['encode_s']:.0f} s. " + "; ".join(said) + ".")
+    return out
+
+
+def learned_summary(table: list[dict]) -> list[str]:
+    """One line per part: how many of its neural settings win within their stored bytes, their
+    run-time bytes and their relight time (:func:`learned_verdicts`)."""
+    out = []
+    vs = learned_verdicts(table)
+    for part in dict.fromkeys(v["row"]["part"] for v in vs):
+        mine = [v for v in vs if v["row"]["part"] == part]
+        wins = {what: [v["row"]["setting"] for v in mine if v["budgets"][what]["wins"]] for what, _, _ in LEARNED_BUDGETS}
+        out.append(f"- **{part}**: of {len(mine)} neural setting(s), "
+                   + "; ".join(f"{len(w)} win at equal {what}" + (f" ({', '.join(w)})" if w else "") for what, w in wins.items())
+                   + ".")
+    return out
+
+
+def learned_lines(table: list[dict], figure: str | None = None) -> list[str]:
+    """The report's "Learned vs classic codecs" section (issue 43) from :func:`learned_table`: one
+    row per setting (stored and run-time bytes, PSNR, relight time, encode/training time), the
+    verdicts of :func:`learned_findings`, and the figure; nothing for an empty table."""
+    if not table:
+        return []
+    lines = ["## Learned vs classic codecs", "",
+             "The learned codec (`neural`: a latent code per vertex and a shared decoder whose last layer is linear, "
+             "docs/codecs.md) next to PCA, CPCA and, on transport tables, Gaussians, on the same data, error metric and "
+             "relighting clock. Stored: what the codec file keeps (codes + decoder); run-time: what relighting reads (the "
+             "neural codec's cached features h(z_p), float32; the others relight from what they store). Relight: the "
+             "paired one-thread time as a fraction of the uncompressed relight's (the work; the load does not move it), "
+             "and the median in ms. Encode: wall-clock of the fit — the neural codec's is its training.", "",
+             "| run | codec | setting | stored B/vertex | run-time B/vertex | PSNR lights (dB) | relight / uncompr. | relight (ms) "
+             "| encode (s) |", "|---|---|---|---|---|---|---|---|---|"]
+    for r in sorted(table, key=lambda r: (r["part"], r["codec"], r["stored_B_per_vertex"])):
+        warn = " ⚠" if r["timing_trusted"] is False else ""
+        lines.append(f"| {r['part']} | {r['codec']} | {r['setting']} | {r['stored_B_per_vertex']:.1f} | {r['runtime_B_per_vertex']:.1f} | "
+                     f"{_fmt(r['psnr_lights_db'])} | {r['relight_vs_uncompressed']:.3f}{warn} | {r['relight_ms']:.3f} | "
+                     f"{_fmt(r['encode_s'])} |")
+    lines += ["", "Where the learned codec wins and where it does not (computed from the rows above, so against the settings "
+              "run here only: within a neural setting's stored bytes, its run-time bytes and its relight time, the best setting "
+              "of each other family):", ""]
+    lines += learned_summary(table) + [""] + learned_findings(table) + [""]
+    if figure:
+        lines += [f"![{Path(figure).stem}]({figure})", ""]
+    return lines
+
+
+def plot_learned(table: list[dict], path: Path) -> Path:
+    """PSNR vs stored bytes per vertex (top; the neural codec also at its run-time bytes, hollow) and
+    PSNR vs relight time as a fraction of the uncompressed relight's (bottom), one column per run."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    parts = list(dict.fromkeys(r["part"] for r in table))
+    fig, axes = plt.subplots(2, len(parts), figsize=(5.6 * len(parts), 7.6), squeeze=False)
+    for col, part in enumerate(parts):
+        sub = [r for r in table if r["part"] == part]
+        for row, (key, xlabel) in enumerate((("stored_B_per_vertex", "stored bytes per vertex"),
+                                             ("relight_vs_uncompressed", "relight time / uncompressed (paired, 1 thread)"))):
+            ax = axes[row][col]
+            for fam in sorted({r["family"] for r in sub}):
+                pts = sorted(((r[key], min(r["psnr_lights_db"], 120.0), r) for r in sub if r["family"] == fam), key=lambda p: p[0])
+                (ln,) = ax.plot([p[0] for p in pts], [p[1] for p in pts], "o-" if row == 0 else "o", label=fam)
+                if fam.startswith("neural") and row == 0:
+                    ax.plot([p[2]["runtime_B_per_vertex"] for p in pts], [p[1] for p in pts], "o", mfc="none",
+                            color=ln.get_color(), label=f"{fam} (run-time bytes)")
+            ax.set_xscale("log")
+            ax.set_xlabel(xlabel)
+            ax.set_ylabel("PSNR, lights (dB)")
+            ax.set_title(part, fontsize=9)
+            ax.grid(True, alpha=0.3)
+            ax.legend(fontsize=7)
+    fig.tight_layout()
+    return _save_figure(fig, Path(path))
+
+
 def part_lines(part: dict) -> list[str]:
     """A part of the benchmark (config ``parts``): what differs, its own scene/transfer, its
     uncompressed peer and its PSNR / fps table; its full report is in ``part['dir']``."""
@@ -620,6 +797,9 @@ def write_outputs(run_dir: Path, results: dict, log: Callable[[str], None] = pri
         figs.append(plot_ablation(results, run_dir).name)
     if results.get("trade"):
         figs.append(plot_trade(results["trade"], run_dir).name)
+    learned = learned_table(results)
+    if learned:
+        figs.append(plot_learned(learned, run_dir / LEARNED_PLOT).name)
     renders = list(results.get("renders") or [])
     io.atomic_write_text(run_dir / "report.md", markdown(results, figs, renders))
     log(f"[bench] wrote {run_dir}/report.md, results.json, results.csv, {', '.join(figs)}" + (f", {len(renders)} render(s)" if renders else ""))

@@ -5,7 +5,8 @@
 * :func:`search_families` — every codec family of the config (``target.codec`` unset): each
   family's size parameters are searched on their own monotone axes — ``vectors`` and ``lobes``
   by bisection on integers in [lo, hi], ``clusters`` on powers of two in [1, hi_clusters]
-  (bisection over that list); CPCA, with two size parameters, walks its Pareto front: for every
+  (bisection over that list), the learned codec's ``latent`` by bisection on [lo, min(hi, D − 1,
+  features)]; CPCA, with two size parameters, walks its Pareto front: for every
   cluster count, the fewest vectors that reach the target, then the cheapest of those points.
   The winner is the setting with the fewest bytes per vertex (``by='bytes'``) or the highest
   relighting rate (``by='fps'``) among the settings found; each family's best is reported as its
@@ -35,7 +36,7 @@ __all__ = ["find_smallest", "search_families", "size_axes", "SIZE_AXES", "bytes_
 SIZE_AXES: dict[str, tuple[str, ...]] = {
     "vq": ("clusters",), "pca": ("vectors",), "mrt_pca": ("vectors",), "cpca": ("clusters", "vectors"),
     "cpca_static": ("clusters", "vectors"), "cpca_iterative": ("clusters", "vectors"),
-    "cpca_adaptive": ("clusters", "vectors"), "gaussian": ("lobes",),
+    "cpca_adaptive": ("clusters", "vectors"), "gaussian": ("lobes",), "neural": ("latent",),
 }
 
 
@@ -55,12 +56,26 @@ def bytes_floor(setting: dict, points: int, dim: int) -> float:
     """A lower bound of the bytes per vertex a setting ``{type, clusters, vectors, ...}`` will store,
     known before its fit: the float32 weights of every point (``P·n``) and basis vectors of every
     cluster (``K·n·D``) of the affine codecs with a fixed vector count, the codebook (``K·D``) of VQ;
-    labels, means and per-cluster counts are left out (so it never exceeds the real size), and 0
-    for a codec it does not know (adaptive CPCA, Gaussians: no bound, nothing pruned)."""
+    labels, means and per-cluster counts are left out (so it never exceeds the real size); for the
+    learned codec (``neural``) the codes (``P·k`` in ``code_dtype``) and the decoder's float32 weights:
+    the last layer of every cluster (``K·H·D`` and ``K·D``), φ's layers (``k → width^depth → H − k``,
+    one set per cluster with ``cluster_decoder='full'``) and the stored code samples (``min(P, 256)·k``),
+    the codec's defaults for what the setting leaves out; 0 for a codec it does not know (adaptive
+    CPCA, Gaussians: no bound, nothing pruned)."""
     name = setting["type"]
     K = min(int(setting.get("clusters", 1)), points)
     if name == "vq":
         return 4.0 * K * dim / points
+    if name == "neural":
+        from ..codecs import neural
+
+        d = neural.NeuralCodec().get_params()
+        prm = {**d, **{k: v for k, v in setting.items() if k in d}}
+        k, H = int(prm["latent"]), int(prm["features"])
+        dims = [k] + [int(prm["width"])] * int(prm["depth"]) + [H - k] if H > k else []
+        phi = sum(a * b + b for a, b in zip(dims[:-1], dims[1:])) * (K if prm["cluster_decoder"] == "full" and K > 1 else 1)
+        code = 2 if prm["code_dtype"] == "float16" else 4
+        return (code * points * k + 4.0 * (K * H * dim + K * dim + phi + min(points, neural.CODE_SAMPLES) * k)) / points
     if name in _AFFINE_FIXED:
         n = int(setting.get("vectors", 0))
         return 4.0 * (points * n + K * n * dim) / points
@@ -89,12 +104,22 @@ def search_cost(cfg: dict, points: int, dim: int) -> dict:
             out[codec] = _steps(n_clusters)
         elif axes in (("vectors",), ("lobes",)):
             out[codec] = _steps((vec_hi if axes[0] == "vectors" else hi) - lo + 1)
+        elif axes == ("latent",):
+            out[codec] = _steps(_latent_hi(base, hi, dim) - lo + 1)
         elif axes == ("clusters", "vectors"):
             out[codec] = n_clusters * _steps(vec_hi - lo + 1)
         else:
             out[codec] = 0
     out["total"] = sum(out.values())
     return out
+
+
+def _latent_hi(base: dict, hi: int, dim: int) -> int:
+    """The largest latent size k of a ``neural`` search: ≤ ``hi``, < D (the codes start as PCA with k
+    vectors) and ≤ its feature size H (h(z) = [z, φ(z)])."""
+    from ..codecs import neural
+
+    return min(hi, dim - 1, int(base.get("features", neural.NeuralCodec().features)))
 
 
 def _bisect(lo: int, hi: int, ok: Callable[[int], bool]) -> int | None:
@@ -212,6 +237,21 @@ def search_families(cfg: dict, run_setting: Callable[[dict], dict], points: int,
             top = vec_hi if ax == "vectors" else hi
             v = _bisect(lo, top, lambda k: meets(evaluate(base, **{ax: k})))
             found = [] if v is None else [next(r for r in tried[n0:] if r["params"][ax] == v)]
+        elif axes == ("latent",):  # the learned codec: bisection on its code size (its training is the costly fit)
+            top = _latent_hi(base, hi, dim)
+            cheapest = min((f["best"]["bytes_per_vertex"] for f in families.values() if f.get("best")), default=None)
+            if by == "bytes" and cheapest is not None:  # branch and bound: only code sizes that could cost less
+                full = top
+                while top >= lo and bytes_floor({**base, "latent": top}, points, dim) >= cheapest:
+                    top -= 1
+                if top < full:
+                    pruned.append(f"{codec} latent {top + 1}..{full}: floor >= {cheapest:.1f} B/vertex (the cheapest found)")
+                if top < lo:
+                    families[codec] = {"searched": False, "note": f"pruned: every latent size's bytes floor is >= {cheapest:.1f} "
+                                                                  "B/vertex, the cheapest setting already found"}
+                    continue
+            v = _bisect(lo, top, lambda k: meets(evaluate(base, latent=k)))
+            found = [] if v is None else [next(r for r in tried[n0:] if r["params"]["latent"] == v)]
         elif axes == ("clusters", "vectors"):
             for i, c in enumerate(clusters):  # the Pareto front: fewest vectors per cluster count
                 top = vec_hi

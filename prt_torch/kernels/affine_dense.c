@@ -274,7 +274,10 @@ static inline const float *dense_point(const int32_t *order, int csort, i64 q, i
     const float *yr = y + p * n_out;
     if (n_out != n_pad && yb) {
         for (i64 r = 0; r < n_out; r++) yb[r] = yr[r];
-        for (i64 r = n_out; r < n_pad; r++) yb[r] = 0.0f;
+        /* -0.0f, not 0.0f: a pad row's product (a constant's +0 pad times this) is then -0, the additive identity
+           (x + -0 = x for every x, -0 included), where +0 turned a point's -0 sum into +0 (MRT's 49 rows padded to
+           56 on the 8-lane path); every other sum keeps its bits */
+        for (i64 r = n_out; r < n_pad; r++) yb[r] = -0.0f;
         yr = yb;
     }
     *yp = yr;
@@ -418,11 +421,16 @@ static int prt_affine_dense_range(const int32_t *order, int csort, i64 p0, i64 p
             default: dense3_7(Tk, n_pad, F, mean, w, cnt, yp, o); break;
             }
         } else {
-            for (i64 c = 0; c < C; c++)
-                for (i64 b0 = 0; b0 < nbt; b0 += cs) {
+            /* the first chunk's sum assigned, the others added: 0.0f + -0 would be +0 (a -0 result lost at 64 rows on
+               the 8-lane path, where 8 blocks take this loop); 0 + x = x otherwise, so every other sum keeps its bits */
+            for (i64 c = 0; c < C; c++) {
+                int nb0 = (int)(nbt < cs ? nbt : cs);
+                o[c] = dense1(nb0, Tk + c * n_pad, F, mean, w, cnt, yp);
+                for (i64 b0 = cs; b0 < nbt; b0 += cs) {
                     int nb = (int)(nbt - b0 < cs ? nbt - b0 : cs);
                     o[c] += dense1(nb, Tk + c * n_pad + 8 * b0, F, mean, w, cnt, yp + 8 * b0);
                 }
+            }
         }
         for (i64 c = 0; c < C; c++) {
             out[p * C + c] = o[c];
