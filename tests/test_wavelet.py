@@ -152,6 +152,51 @@ def test_sparse_kernel_equals_dense_reference_and_quantisation_is_bounded(scene)
     assert 0 < tr.meta["quantisation_rel_l2_max"] <= math.sqrt(40) / 254
 
 
+@pytest.mark.parametrize("dtype", [torch.int8, torch.int16, torch.float32])
+def test_kernel_dense_and_sparse_columns_equal_the_dense_gather(scene, dtype, monkeypatch):
+    """The relighting kernel's two column forms (dense 32-vertex blocks, padded CSC; kernels/wavelet.c)
+    against an independent float64 gather of the same stored values (:func:`relight.wavelet_dense`),
+    for every stored dtype, C = 1, 3, 4, every column dense, every column sparse and the mix, the C
+    kernel and the torch path; a bad light index is refused naming the accepted range."""
+    g = torch.Generator().manual_seed(7)
+    V, res, K = scene.num_vertices, 8, 24
+    P = 6 * res * res
+    # skewed draws: the first 16 coefficients kept by most vertices (dense columns), the rest rarely
+    pick = torch.rand(V, P, generator=g) * torch.where(torch.arange(P) < 16, 50.0, 1.0)
+    index = pick.topk(K, dim=1).indices
+    if dtype == torch.float32:
+        q = torch.randn(V, K, generator=g)
+    else:
+        hi = 127 if dtype == torch.int8 else 32767
+        q = torch.randint(-hi, hi + 1, (V, K), generator=g).to(dtype)
+    q[::5, ::3] = 0  # stored zeros (thresholded values) are dropped from the columns
+    scale = torch.rand(V, generator=g) + 0.5 if dtype != torch.float32 else torch.ones(V)
+    tr = Transfer("wavelet", q, scene, {"res": res, "terms": K, "bits": 32 if dtype == torch.float32 else 8 * q.element_size()},
+                  aux={"index": index.to(torch.int16), "scale": scale})
+    vals = q.double() * scale.double()[:, None]
+    alb = scene.albedo.double()
+    forms = {}
+    for dense_min in (None, 2.0, 0.0):  # the default mix, every column sparse, every column dense
+        r = relight.WaveletRelighter(tr, dense_min=dense_min)
+        forms[dense_min] = r.Pd
+        for C, N in ((3, 60), (1, P), (4, 7), (3, 0)):
+            li = torch.randperm(P, generator=g)[:N]
+            lv = torch.randn(C, N, generator=g, dtype=torch.float64)
+            ref = relight.wavelet_dense(vals, index, li, lv, P)
+            if C != 4:  # the mesh albedo has three channels: C = 4 is compared without it
+                ref = ref * (alb[:, :C] if C > 1 else alb[:, :1])
+            tol = 1e-5 * float(ref.abs().max()) + 1e-6
+            got = r(li, lv.float(), albedo=C != 4).double()
+            assert (got - ref).abs().max() <= tol, (dense_min, C, N)
+            monkeypatch.setenv("PRT_TORCH_NATIVE", "0")
+            assert (r(li, lv.float(), albedo=C != 4).double() - ref).abs().max() <= tol, ("torch", dense_min, C, N)
+            monkeypatch.delenv("PRT_TORCH_NATIVE")
+            assert r.touched(li) == int(torch.bincount(index[q != 0], minlength=P)[li].sum())
+        with pytest.raises(ValueError, match=f"accepted: 0..{P - 1}"):
+            r(torch.tensor([0, P]), torch.ones(3, 2))
+    assert forms[2.0] == 0 and 0 < forms[None] < forms[0.0]
+
+
 def test_save_load_keeps_the_quantised_values(tmp_path, scene):
     tr = precompute_wavelet(scene, res=4, terms=10, bits=16, shadows="always")
     tr.save(tmp_path / "w.prt")
