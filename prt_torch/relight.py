@@ -286,6 +286,7 @@ class WaveletRelighter:
             raise ValueError(f"WaveletRelighter needs a transfer of kind 'wavelet'; got {getattr(transfer, 'kind', describe(transfer))!r}")
         vals = wavelet_values(transfer)  # [V, K] float32
         index = transfer.aux["index"].long()
+        self.transfer = transfer
         V, K = vals.shape
         self.V, self.K = V, K
         self.res = int(transfer.meta["res"])
@@ -383,10 +384,12 @@ class WaveletRelighter:
                 return None
             fn = {torch.int8: lib.prt_wavelet_relight_i8, torch.int16: lib.prt_wavelet_relight_i16}.get(
                 self.qvals.dtype, lib.prt_wavelet_relight_f32)
-            static = (self.P, self.colptr.data_ptr(), self.offs.data_ptr(), self.qvals.data_ptr(), self.dslot.data_ptr(),
-                      self.dense.shape[1], self.dense.data_ptr(), self.V)
-            scratch = (self._acc.data_ptr(), self._wk.data_ptr(), self._lw.data_ptr())
-            self._native = lambda N, sel, lv, C, f, out: fn(N, sel, lv, C, *static, f, out, *scratch)
+            # kernels/wavelet.c's wavelet_layout: the arrays' addresses, built once (kept alive by self)
+            self._layout = torch.tensor([self.P, self.dense.shape[1], self.V, self.colptr.data_ptr(), self.offs.data_ptr(),
+                                         self.qvals.data_ptr(), self.dslot.data_ptr(), self.dense.data_ptr(),
+                                         self._acc.data_ptr(), self._wk.data_ptr(), self._lw.data_ptr()], dtype=torch.int64)
+            lay = self._layout.data_ptr()
+            self._native = lambda N, sel, lv, C, f, out: fn(lay, N, sel, lv, C, f, out)
         return self._native
 
     def __call__(self, light_idx: torch.Tensor, light_vals: torch.Tensor, out: torch.Tensor | None = None,
@@ -457,7 +460,7 @@ def _wavelet_lib():
 
         names, flags = LIBRARIES["wavelet"]
         i64, vp = ctypes.c_int64, ctypes.c_void_p
-        sig = [i64, vp, vp, i64, i64, vp, vp, vp, vp, i64, vp, i64, vp, vp, vp, vp, vp]
+        sig = [vp, i64, vp, vp, i64, vp, vp]
         _WAVELET["lib"], _WAVELET["why"] = compile_library("wavelet", kernel_sources(names), list(flags), {
             "prt_wavelet_relight_f32": sig, "prt_wavelet_relight_i8": sig, "prt_wavelet_relight_i16": sig})
     return _WAVELET["lib"]
