@@ -6,8 +6,13 @@ Per vertex p, the shadowed diffuse transfer in the *pixel basis* of a 6 × R × 
 
     T_p[j] = (1/π) ∫_{texel j} V(p, s) max(n_p·s, 0) ds  ≈ (1/π) Σ_{sub-texels} V max(n·s, 0) Ω_sub
 
-(texel centres, ``supersample`` = 1, or an s × s grid of sub-texels each with its exact solid
-angle), so that exit radiance under a cube light of radiance L_j per texel is
+(``sampling='grid'``: texel centres, ``supersample`` = 1, or an s × s grid of sub-texels each with
+its exact solid angle; ``sampling='jittered'``: one uniformly random point in each of the s × s
+sub-texels, drawn anew for every vertex, weighted by the face's solid-angle density there,
+dω = da db / (1 + a² + b²)^{3/2} = |d_face|³ da db — an unbiased stratified estimate of the
+texel integral, whose error is noise that differs from vertex to vertex instead of the grid's
+deterministic aliasing of edges), so that exit radiance under a cube light of radiance L_j per
+texel is
 
     L_out(p) = ρ_p Σ_j T_p[j] L_j = ρ_p Σ_k T̂_p[k] L̂_k                  (Ng 2003 eq. 1–2)
 
@@ -38,6 +43,7 @@ import torch
 
 from .._checks import check_choice, check_float, check_int, describe
 from ..lighting.haar import MAX_HAAR_RES, check_res, cube_geometry, haar2d
+from ..lighting.layouts import pixel_to_dir
 from ..scene import Mesh, RayCaster
 from .base import RunOptions, Transfer
 from .diffuse import boundary_nudge, offset_origins
@@ -45,11 +51,19 @@ from .glossy import decide_shadows, format_bytes, memory_budget
 from .ray_kernels import upper_rays
 
 __all__ = ["precompute_wavelet", "estimate_wavelet_memory", "dense_wavelet_transfer", "sparsify", "quantise", "dequantise",
-           "wavelet_values", "MAX_WAVELET_TERMS", "BITS"]
+           "wavelet_values", "MAX_WAVELET_TERMS", "BITS", "SAMPLINGS"]
 
 MAX_WAVELET_TERMS = 6 * MAX_HAAR_RES * MAX_HAAR_RES
 #: stored precisions: signed integers of 8 or 16 bits with a per-vertex scale, or float32
 BITS = (8, 16, 32)
+#: where the texel integrals are sampled: sub-texel centres, or one random point per sub-texel and vertex
+SAMPLINGS = ("grid", "jittered")
+
+
+def _jitter_seed(seed: int, start: int) -> int:
+    """The jitter's seed of the chunk starting at vertex ``start``: fixed by (seed, start), so a
+    resumed or re-chunked run draws the same points for the same chunk."""
+    return (int(seed) * 1_000_003 + int(start)) % (1 << 62)
 
 
 def _index_dtype(P: int) -> torch.dtype:
@@ -61,14 +75,16 @@ def bytes_per_vertex(terms: int, bits: int, P: int) -> int:
     return terms * (bits // 8 + (2 if P <= 32767 else 4)) + 4
 
 
-def estimate_wavelet_memory(V: int, res: int, terms: int, bits: int, supersample: int, chunk: int) -> int:
+def estimate_wavelet_memory(V: int, res: int, terms: int, bits: int, supersample: int, chunk: int,
+                            jittered: bool = False) -> int:
     """Bytes a wavelet precompute holds at its peak: the stored result twice (chunk list and
     assembled tensors) plus one chunk's working set (float64 cosines and weights, float32 rays
-    with their indices, at the sub-texel resolution; float64 Haar coefficients and top-K)."""
+    with their indices, at the sub-texel resolution; float64 Haar coefficients and top-K; jittered:
+    each vertex's own float64 directions, weights and their intermediates)."""
     P = 6 * res * res
     Pf = P * supersample * supersample
     result = 2 * V * bytes_per_vertex(terms, bits, P)
-    work = chunk * (Pf * (8 + 8 + 12 + 12 + 16 + 1) + P * 8 * 3 + terms * 16)
+    work = chunk * (Pf * (8 + 8 + 12 + 12 + 16 + 1 + (120 if jittered else 0)) + P * 8 * 3 + terms * 16)
     return int(result + work + Pf * 40)
 
 
@@ -121,19 +137,37 @@ def sparsify(H: torch.Tensor, terms: int, bits: int, threshold: float = 0.0) -> 
             "dropped": (total - kept.square().sum(1)).clamp_min(0), "qerr": err, "nnz": (q != 0).sum(1).to(torch.int32)}
 
 
+def _jittered_samples(res: int, s: int, k: int, gen: torch.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Per-vertex jittered samples (module docstring): one uniform point in each of the 6·(Rs)²
+    sub-texels of the ``faces`` cube for each of ``k`` vertices, in the texel order of
+    :func:`~prt_torch.lighting.haar.cube_geometry` — directions ``[k, Pf, 3]`` float64 and weights
+    ``[k, Pf]`` (the sub-texel's parameter area (2/(Rs))² times the solid-angle density |d_face|³)."""
+    r = res * s
+    u = torch.rand(k, 2, r, 6 * r, generator=gen, dtype=torch.float64)  # vertex by vertex: a vertex's points do not depend on k
+    y = torch.arange(r, dtype=torch.float64)[None, :, None] + u[:, 0]
+    x = torch.arange(6 * r, dtype=torch.float64)[None, None, :] + u[:, 1]
+    d, _ = pixel_to_dir("faces", r, 6 * r, y, x)  # [k, r, 6r, 3] (the faces strip: 6 tiles of r x r)
+    d = d.reshape(k, r, 6, r, 3).permute(0, 2, 1, 3, 4).reshape(k, -1, 3)
+    w = (2.0 / r) ** 2 * d.abs().amax(-1) ** 3
+    return d.contiguous().numpy(), w.numpy()
+
+
 def _pixel_transfer(caster: RayCaster | None, points: torch.Tensor, normals: torch.Tensor, nudge: torch.Tensor | None,
-                    dirs_f: np.ndarray, dirs32: np.ndarray, omega_f: np.ndarray, res: int, s: int,
+                    dirs_f: np.ndarray, dirs32: np.ndarray | None, omega_f: np.ndarray, res: int, s: int,
                     eps: float, work: dict) -> tuple[torch.Tensor, int]:
     """Pixel-basis transfer of k vertices, ``[k, 6, R, R]`` float64 (module docstring), and the
     number of rays traced. One masked pass per chunk: cosines ``[k, Pf]``, the rays above each
-    tangent plane (:func:`prt_torch.transfer.ray_kernels.upper_rays`), one occlusion batch."""
+    tangent plane (:func:`prt_torch.transfer.ray_kernels.upper_rays`), one occlusion batch.
+    ``dirs_f [Pf, 3]`` / ``omega_f [Pf]`` shared by every vertex (the grid), or per vertex
+    ``[k, Pf, 3]`` / ``[k, Pf]`` (jittered; ``dirs32`` None)."""
     k = points.shape[0]
-    cos = normals.numpy() @ dirs_f.T  # [k, Pf] float64
+    per_vertex = dirs_f.ndim == 3
+    cos = np.einsum("kd,kpd->kp", normals.numpy(), dirs_f) if per_vertex else normals.numpy() @ dirs_f.T  # [k, Pf] float64
     rays = 0
     if caster is not None:
         o_v = offset_origins(points.numpy(), normals.numpy(), eps,
                              None if nudge is None else nudge.numpy()).astype(np.float32)
-        fused = upper_rays(cos, o_v, dirs32, work=work)
+        fused = None if per_vertex else upper_rays(cos, o_v, dirs32, work=work)
         if fused is not None:
             i, j, o, d = fused
         else:
@@ -142,11 +176,11 @@ def _pixel_transfer(caster: RayCaster | None, points: torch.Tensor, normals: tor
             i = np.repeat(np.arange(k), counts)
             j = np.flatnonzero(up) - i * up.shape[1]
             o = np.repeat(o_v, counts, axis=0)
-            d = np.take(dirs32, j, axis=0)
+            d = dirs_f[i, j].astype(np.float32) if per_vertex else np.take(dirs32, j, axis=0)
         hit = caster.trace(o, d, "occluded")
         rays = int(i.shape[0])
     W = np.maximum(cos, 0.0, out=cos)
-    W *= omega_f[None, :] * (1.0 / math.pi)
+    W *= (omega_f if per_vertex else omega_f[None, :]) * (1.0 / math.pi)
     if caster is not None:
         W.reshape(-1)[(i * W.shape[1] + j)[hit]] = 0.0  # blocked directions
     T = torch.from_numpy(W).reshape(k, 6, res, s, res, s).sum((3, 5)) if s > 1 else torch.from_numpy(W).reshape(k, 6, res, res)
@@ -154,20 +188,26 @@ def _pixel_transfer(caster: RayCaster | None, points: torch.Tensor, normals: tor
 
 
 def dense_wavelet_transfer(mesh: Mesh, res: int, *, supersample: int = 1, shadows: bool = True, offset: float = 1e-4,
-                           vertices: Any = None, haar: bool = True) -> torch.Tensor:
+                           vertices: Any = None, haar: bool = True, sampling: str = "grid", seed: int = 0) -> torch.Tensor:
     """The full (all 6R² terms, unquantised) transfer of the vertices ``vertices`` (default all),
     ``[k, 6, R, R]`` float64 — Haar coefficients (``haar``) or the pixel basis; the same rays as
-    :func:`precompute_wavelet`. For references and tests on a few vertices."""
+    :func:`precompute_wavelet` (``sampling`` 'grid' or 'jittered' with ``seed``: the jitter of the
+    vertices' first chunk there). For references and tests on a few vertices."""
     res = check_res(res)
+    sampling = check_choice("sampling", sampling, SAMPLINGS)
     idx = torch.arange(mesh.num_vertices) if vertices is None else torch.as_tensor(vertices, dtype=torch.int64)
-    d, om = cube_geometry(res, supersample)
-    dirs_f = np.ascontiguousarray(d.reshape(-1, 3).numpy())
+    if sampling == "jittered":
+        dirs_f, om_f = _jittered_samples(res, supersample, idx.numel(), torch.Generator().manual_seed(_jitter_seed(seed, 0)))
+        dirs32 = None
+    else:
+        d, om = cube_geometry(res, supersample)
+        dirs_f = np.ascontiguousarray(d.reshape(-1, 3).numpy())
+        dirs32, om_f = dirs_f.astype(np.float32), np.ascontiguousarray(om.reshape(-1).numpy())
     nudge = boundary_nudge(mesh)[idx]
     caster = RayCaster(mesh, workers=1, offset=offset) if shadows else None
     try:
         T, _ = _pixel_transfer(caster, mesh.vertices[idx].to(torch.float64), mesh.normals[idx].to(torch.float64),
-                               nudge if bool(nudge.any()) else None, dirs_f, dirs_f.astype(np.float32),
-                               np.ascontiguousarray(om.reshape(-1).numpy()), res, supersample,
+                               nudge if bool(nudge.any()) else None, dirs_f, dirs32, om_f, res, supersample,
                                0.0 if caster is None else caster.eps, {})
     finally:
         if caster is not None:
@@ -183,6 +223,7 @@ def precompute_wavelet(
     *,
     threshold: float = 0.0,
     supersample: int = 1,
+    sampling: str = "grid",
     shadows: bool | str = "auto",
     probe_tol: float = 1e-3,
     seed: int = 0,
@@ -200,8 +241,10 @@ def precompute_wavelet(
             (stored as zeros; ``meta['nonzero_per_vertex']``), in [0, 1).
         supersample: s, visibility and cosine on an s × s grid of sub-texels per texel (each
             with its exact solid angle); 1 = texel centres.
+        sampling: 'grid' (sub-texel centres) or 'jittered' (one random point per sub-texel,
+            drawn per vertex from ``seed`` and the chunk; module docstring).
         shadows: 'auto' (probe self-occlusion first), 'always'/True, 'never'/False.
-        seed: the probe's seed.
+        seed: the probe's seed, and the jitter's.
         run: :class:`RunOptions` (chunks — default about 2²⁰ rays —, workers, offset, memory
             limit, resumable state, progress, executor).
     Returns:
@@ -219,9 +262,10 @@ def precompute_wavelet(
     bits = check_choice("bits", bits, BITS)
     threshold = check_float("threshold", threshold, 0.0, 1.0, hi_open=True)
     s = check_int("supersample", supersample, 1, 16)
+    sampling = check_choice("sampling", sampling, SAMPLINGS)
     V = mesh.num_vertices
     chunk_size = run.chunks(_default_chunk(res, s))
-    need = estimate_wavelet_memory(V, res, terms, bits, s, min(chunk_size, max(V, 1)))
+    need = estimate_wavelet_memory(V, res, terms, bits, s, min(chunk_size, max(V, 1)), sampling == "jittered")
     budget = memory_budget(run.max_memory)
     if need > budget:
         raise ValueError(f"wavelet transfer of {V} vertices at res={res} (6x{res}x{res} texels, supersample {s}) with "
@@ -240,8 +284,13 @@ def precompute_wavelet(
     work: dict = {}
 
     def compute(a: int, b: int) -> dict[str, torch.Tensor]:
+        if sampling == "jittered":
+            d_f, om_f = _jittered_samples(res, s, b - a, torch.Generator().manual_seed(_jitter_seed(seed, a)))
+            d32 = None
+        else:
+            d_f, d32, om_f = dirs_f, dirs32, omega_f
         T, rays = _pixel_transfer(caster, points[a:b], normals[a:b], None if nudge is None else nudge[a:b],
-                                  dirs_f, dirs32, omega_f, res, s, 0.0 if caster is None else caster.eps, work)
+                                  d_f, d32, om_f, res, s, 0.0 if caster is None else caster.eps, work)
         # Haar in float32: the stored values carry at most 16 bits (float32 for bits=32), the
         # transform's rounding (~1e-7 relative) is far below; half the memory traffic of float64
         out = sparsify(haar2d(T.to(torch.float32)).reshape(b - a, P), terms, bits, threshold)
@@ -249,7 +298,8 @@ def precompute_wavelet(
         return out
 
     fingerprint = {"kind": "wavelet", "mesh_hash": mesh.content_hash(), "res": res, "terms": terms, "bits": bits,
-                   "threshold": threshold, "supersample": s, "shadows": traced, "offset": run.offset}
+                   "threshold": threshold, "supersample": s, "sampling": sampling, "seed": seed if sampling == "jittered" else None,
+                   "shadows": traced, "offset": run.offset}
     try:
         parts = run.run_chunks(V, chunk_size, compute, fingerprint=fingerprint, desc=f"wavelet {mesh.name}",
                                rays_of=lambda r: int(r["rays"].sum()))
@@ -262,6 +312,7 @@ def precompute_wavelet(
     lit = total > 0
     meta: dict[str, Any] = {
         "res": res, "texels": P, "terms": terms, "bits": bits, "threshold": threshold, "supersample": s,
+        "sampling": sampling if sampling == "grid" else f"jittered (seed {seed}; one random point per sub-texel and vertex)",
         "offset": run.offset, "albedo_folded": False, "channels": 1, "bounces_used": 0,
         "bounce_decision": "no interreflection: the wavelet kind is direct (shadowed) transfer only",
         "bytes_per_vertex": bytes_per_vertex(terms, bits, P),
