@@ -41,13 +41,13 @@ import torch  # noqa: E402
 
 from prt_torch import relight  # noqa: E402
 from prt_torch.harness.timing import io_bound_fn, machine_info, measure, measure_paired  # noqa: E402
-from prt_torch.lighting.haar import cube_geometry, cube_light, haar2d  # noqa: E402
+from prt_torch.lighting.haar import cube_geometry, cube_light, haar2d, haar_levels  # noqa: E402
 from prt_torch.scene import RayCaster, builtin  # noqa: E402
 from prt_torch.sh import eval_sh  # noqa: E402
 from prt_torch.transfer import RunOptions, Transfer  # noqa: E402
 from prt_torch.transfer.diffuse import offset_origins  # noqa: E402
 from prt_torch.transfer.ray_kernels import upper_rays  # noqa: E402
-from prt_torch.transfer.wavelet import bytes_per_vertex, dense_wavelet_transfer, precompute_wavelet, sparsify  # noqa: E402
+from prt_torch.transfer.wavelet import bytes_per_vertex, dense_wavelet_transfer, dequantise, precompute_wavelet, quantise, sparsify  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "reports" / "benchmarks"
@@ -117,12 +117,12 @@ def precompute_vs_bare(mesh, res: int, K: int) -> dict:
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--quick", action="store_true", help="R = 16 and 32 only, fewer budgets")
-    ap.add_argument("--only", choices=["kernel", "sampling"], help="one section, its rows replaced in the existing wavelet.json")
+    ap.add_argument("--only", choices=["kernel", "sampling", "quant"], help="one section, its rows replaced in the existing wavelet.json")
     args = ap.parse_args()
     if args.only == "kernel":
         return kernel_only()
-    if args.only == "sampling":
-        return section_only("sampling")
+    if args.only in ("sampling", "quant"):
+        return section_only(args.only)
     torch.set_num_threads(1)
     torch.manual_seed(0)
     res_list = [16, 32] if args.quick else [16, 32, 64]
@@ -257,6 +257,7 @@ def main() -> None:
     results["kernel"] = bound_rows
     results["kernel_machine"] = machine_info()
     results["sampling"] = sampling_rows(mesh)
+    results["quant"] = quant_rows(mesh)
     loads.append(load())
     results["load_average"] = loads
     OUT.mkdir(parents=True, exist_ok=True)
@@ -329,13 +330,84 @@ def sampling_rows(mesh, R: int = 32, every: int = 15, chunk: int = 16) -> dict:
     return {"vertices": int(idx.numel()), "res": R, "rows": rows}
 
 
+def _minifloat_table(e_bits: int = 4, m_bits: int = 3) -> torch.Tensor:
+    """Magnitudes of an unsigned (e_bits, m_bits) minifloat relative to 1 (the largest normal = 2 − 2^-m ≈ 2
+    rescaled to 1): subnormals at exponent 0, float64, ascending."""
+    bias = (1 << e_bits) - 1
+    mags = [m / (1 << m_bits) * 2.0 ** (1 - bias) for m in range(1 << m_bits)]
+    mags += [(1 + m / (1 << m_bits)) * 2.0 ** (e - bias) for e in range(1, 1 << e_bits) for m in range(1 << m_bits)]
+    t = torch.tensor(sorted(set(mags)), dtype=torch.float64)
+    return t / t.max()
+
+
+def quantisers(res: int) -> dict:
+    """Candidate storage of the kept values ``kept [V, K]`` (float64, their flat indices ``idx``): each
+    returns (dequantised values, bytes per vertex for K terms with 16-bit indices)."""
+    lv = haar_levels(res)  # [6R²]
+    n_lev = int(lv.max()) + 1
+    table = _minifloat_table()
+
+    def uniform(bits):
+        def f(kept, idx):
+            q, sc = quantise(kept, bits)
+            return dequantise(q, sc).double(), kept.shape[1] * (bits // 8 + 2) + 4
+        return f
+
+    def per_level(kept, idx):  # 8 bits with one float32 scale per (vertex, Haar level): the library's scales='level'
+        q, sc = quantise(kept, 8, lv[idx], n_lev)
+        return dequantise(q, sc, lv[idx]).double(), kept.shape[1] * 3 + 4 * n_lev
+
+    def minifloat(kept, idx):  # 8 bits: sign + e4m3 magnitude relative to the vertex's largest (float32 scale)
+        top = kept.abs().amax(1, keepdim=True).clamp_min(1e-300)
+        x = kept.abs() / top
+        j = torch.searchsorted(table, x.contiguous()).clamp(1, table.numel() - 1)
+        lo, hi = table[j - 1], table[j]
+        mag = torch.where((x - lo) <= (hi - x), lo, hi)
+        return torch.sign(kept) * mag * top.to(torch.float32).double(), kept.shape[1] * 3 + 4
+
+    def half(kept, idx):  # IEEE float16, no scale
+        return kept.to(torch.float16).double(), kept.shape[1] * 4
+
+    return {"8-bit, scale per vertex": uniform(8), "16-bit, scale per vertex": uniform(16),
+            "8-bit, scale per vertex and level": per_level, "8-bit sign+e4m3, scale per vertex": minifloat,
+            "float16": half}
+
+
+def quant_rows(mesh, R: int = 32, budgets=(64, 128, 256, 512, 1024)) -> dict:
+    """Section 9: the stored values' precision. Each vertex keeps its K largest Haar coefficients
+    (the same ones for every scheme); exit radiance under every light, all light terms, against the
+    exact pixel-basis result (all 6R² terms, float64): relative L2, per scheme and K, with bytes/vertex."""
+    V = mesh.num_vertices
+    T = dense(mesh, R)
+    H = haar2d(T.reshape(V, 6, R, R)).reshape(V, -1)
+    alb = mesh.albedo.double()
+    cubes = {name: haar2d(cube_light(spec, R)[0]).reshape(3, -1) for name, spec in LIGHTS.items()}
+    exact = {name: (H @ c.T) * alb for name, c in cubes.items()}
+    rows = []
+    for K in budgets:
+        top = H.abs().topk(K, dim=1)
+        kept = H.gather(1, top.indices)
+        trunc = {name: rel(torch.einsum("vk,cvk->vc", kept, c[:, top.indices]) * alb, exact[name]) for name, c in cubes.items()}
+        for scheme, fq in quantisers(R).items():
+            vals, nbytes = fq(kept, top.indices)
+            errs = {name: rel(torch.einsum("vk,cvk->vc", vals, c[:, top.indices]) * alb, exact[name]) for name, c in cubes.items()}
+            rows.append({"K": K, "scheme": scheme, "bytes_per_vertex": nbytes, "per_light": errs,
+                         "mean_error": float(np.mean(list(errs.values()))), "truncation_mean_error": float(np.mean(list(trunc.values())))})
+            print(f"[wavelet] quant K={K} {scheme}: {nbytes} B, mean error {rows[-1]['mean_error']:.4f} "
+                  f"(truncation alone {rows[-1]['truncation_mean_error']:.4f})", flush=True)
+    return {"res": R, "rows": rows}
+
+
 def section_only(name: str) -> None:
-    """``--only sampling``: section 8 alone, added to the existing wavelet.json, the report rewritten."""
+    """``--only sampling`` / ``quant``: section 8 or 9 alone, added to the existing wavelet.json, the report rewritten."""
     torch.set_num_threads(1)
     res = json.loads((OUT / "wavelet.json").read_text())
     mesh = builtin("occluder_over_plane", "small")
     before = load()
-    res["sampling"] = dict(sampling_rows(mesh), load_before=before, load_after=load())
+    if name == "sampling":
+        res["sampling"] = dict(sampling_rows(mesh), load_before=before, load_after=load())
+    else:
+        res["quant"] = quant_rows(mesh)
     (OUT / "wavelet.json").write_text(json.dumps(res, indent=1, default=str))
     write_md(res, False)
     print(f"[wavelet] wrote {OUT / 'wavelet.md'} ({name})", flush=True)
@@ -505,6 +577,24 @@ def write_md(res: dict, quick: bool) -> None:
         for r in sm["rows"]:
             L.append(f"| {r['s']} | {r['sampling']} | {r['seconds']:.1f} s | " + " | ".join(
                 f"{r['per_light'][n]['error']:.4f} / {r['per_light'][n]['bias']:+.4f}" for n in names) + " |")
+        L.append("")
+    if "quant" in res:
+        qr = res["quant"]["rows"]
+        L.append(f"## Stored precision: the kept values' quantisation (R = {res['quant']['res']}, all light terms)\n")
+        L.append("Each vertex keeps its K largest Haar coefficients (the same ones for every scheme); exit radiance under "
+                 "the five lights against the exact pixel-basis result (all 6R² terms, float64): mean over lights of the "
+                 "relative L2 error, with the truncation's error alone (float64 values). Schemes: signed integers with "
+                 "one float32 scale per vertex (8 or 16 bits: the previous default, 8), 8-bit integers with one scale per "
+                 "vertex and Haar level (log2(R)+1 = 6 scales; `--scales level`), 8-bit sign + e4m3 minifloat relative to "
+                 "the vertex's largest value (measured here only), IEEE float16 without a scale (measured here only). "
+                 "Indices int16.\n")
+        schemes = list(dict.fromkeys(r["scheme"] for r in qr))
+        L.append("| K | truncation alone | " + " | ".join(schemes) + " |")
+        L.append("|---|---|" + "---|" * len(schemes))
+        for K in sorted({r["K"] for r in qr}):
+            rk = {r["scheme"]: r for r in qr if r["K"] == K}
+            L.append(f"| {K} | {rk[schemes[0]]['truncation_mean_error']:.4f} | " + " | ".join(
+                f"{rk[sc]['mean_error']:.4f} ({rk[sc]['bytes_per_vertex']} B)" for sc in schemes) + " |")
         L.append("")
     (OUT / "wavelet.md").write_text("\n".join(L) + "\n")
 

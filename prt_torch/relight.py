@@ -288,6 +288,17 @@ class WaveletRelighter:
         index = transfer.aux["index"].long()
         self.transfer = transfer
         V, K = vals.shape
+        # the kernel's values: the stored (quantised) integers, the scale applied per vertex at the end
+        qstore = transfer.data
+        quantised = qstore.dtype in (torch.int8, torch.int16)
+        self.scale = transfer.aux["scale"].to(torch.float32) if quantised else torch.ones(V)
+        if quantised and self.scale.ndim == 2:
+            # one scale per vertex and Haar level: the kernel applies one factor per vertex at the end, so the values are
+            # re-quantised to 16 bits with one scale per vertex (added error per value <= max|T̂_v| / 65534)
+            from .transfer.wavelet import dequantise, quantise
+
+            qstore, self.scale = quantise(vals, 16)
+            vals = dequantise(qstore, self.scale)  # the values relit with
         self.V, self.K = V, K
         self.res = int(transfer.meta["res"])
         self.P = P = 6 * self.res * self.res
@@ -304,11 +315,7 @@ class WaveletRelighter:
         if transfer.meta.get("albedo_folded"):
             self.albedo = torch.ones_like(self.albedo)
         self.values, self.index = vals, index
-        # the kernel's values: the stored (quantised) integers, the scale applied per vertex at the end
-        q = transfer.data.reshape(-1)
-        quantised = q.dtype in (torch.int8, torch.int16)
-        q = q if quantised else flat_val
-        self.scale = transfer.aux["scale"].to(torch.float32) if quantised else torch.ones(V)
+        q = qstore.reshape(-1) if quantised else flat_val
         b = q.element_size()
         self.dense_min = b / (4 + b) if dense_min is None else float(dense_min)
         is_dense = self.nnz >= max(self.dense_min * V, 1)

@@ -147,9 +147,50 @@ def test_sparse_kernel_equals_dense_reference_and_quantisation_is_bounded(scene)
         err = (dequantise(q, s).double() - c).abs()
         assert bool((err <= s.double()[:, None] / 2 + c.abs() * 2.0 ** -24 + 1e-12).all())
         assert float(s[0]) == pytest.approx(float(c[0].abs().max()) / ((1 << (bits - 1)) - 1), rel=1e-6)
-    assert tr.meta["bytes_per_vertex"] == 40 * (1 + 2) + 4
+    assert tr.meta["bytes_per_vertex"] == 40 * (1 + 2) + 4 * 4  # R = 8: a scale per vertex and each of 4 Haar levels
     # relative L2 of the quantisation per vertex: at most sqrt(K)·(scale/2) / max|c| = sqrt(K) / 254
     assert 0 < tr.meta["quantisation_rel_l2_max"] <= math.sqrt(40) / 254
+
+
+def test_quantisation_with_a_scale_per_haar_level():
+    """``scales='level'`` (the default): one scale per vertex and Haar level. Independent values:
+    the level of coefficient (i, j) is 0 for (0, 0), else floor(log2(max(i, j))) + 1; each value's
+    error is at most its level's scale / 2 = (the level's largest |c|) / 254 (plus the float32
+    product's rounding); a fine level's detail 1000× below the vertex's largest value keeps its
+    relative precision (one scale per vertex rounds it to zero)."""
+    from prt_torch.lighting.haar import haar_levels
+    from prt_torch.transfer.wavelet import sparsify
+
+    lev = haar_levels(8).reshape(6, 8, 8)
+    assert lev[0, 0, 0] == 0 and lev[3, 0, 1] == 1 and lev[3, 1, 1] == 1 and lev[0, 2, 3] == 2 and lev[5, 7, 4] == 3
+    assert lev[1, 4, 0] == 3 and int(lev.max()) == 3
+    g = torch.Generator().manual_seed(11)
+    H = torch.randn(30, 6 * 64, generator=g, dtype=torch.float64) * (10.0 ** -haar_levels(8).double())  # finer: smaller
+    s = sparsify(H, 100, 8, scales="level", res=8)
+    level = haar_levels(8)[s["index"].long()]
+    kept = H.gather(1, s["index"].long())
+    err = (dequantise(s["q"], s["scale"], level).double() - kept).abs()
+    top = torch.zeros(30, 4, dtype=torch.float64).scatter_reduce_(1, level, kept.abs(), "amax")
+    assert s["scale"].shape == (30, 4)
+    assert bool((err <= top.gather(1, level) / 254 + kept.abs() * 2.0 ** -24 + 1e-15).all())
+    fine = level == 3
+    rel_fine = (err[fine] / kept[fine].abs()).max()
+    s1 = sparsify(H, 100, 8, scales="vertex")
+    k1 = H.gather(1, s1["index"].long())
+    f1 = haar_levels(8)[s1["index"].long()] == 3
+    lost = (dequantise(s1["q"], s1["scale"]).double()[f1] == 0).float().mean()
+    assert rel_fine < 0.5 and lost > 0.9  # per level: every fine value within half its own level's step; per vertex: zeros
+    assert float((k1 - dequantise(s1["q"], s1["scale"]).double()).square().sum()) > 10 * float(err.square().sum())
+    # the relighter reads per-level files (widened to 16 bits per vertex: added error <= max|T̂_v| / 65534)
+    scene = builtin("occluder_over_plane", "small")
+    tr = precompute_wavelet(scene, res=4, terms=30, bits=8, shadows="always", run=RunOptions(workers=1))
+    assert tr.aux["scale"].shape == (scene.num_vertices, 3) and tr.meta["scales"] == "level"
+    r = relight.WaveletRelighter(tr)
+    li, lv, _ = r.light("studio", None)
+    vals = dequantise(tr.data, tr.aux["scale"], haar_levels(4)[tr.aux["index"].long()]).double()
+    ref = relight.wavelet_dense(vals, tr.aux["index"], li, lv, r.P) * scene.albedo.double()
+    bound = (vals.abs().amax(1, keepdim=True) / 65534 * 1.001) @ lv.abs().sum(1, keepdim=True).T * 30 * scene.albedo.double()
+    assert bool(((r(li, lv).double() - ref).abs() <= bound + 1e-6 * ref.abs().max()).all())
 
 
 @pytest.mark.parametrize("dtype", [torch.int8, torch.int16, torch.float32])

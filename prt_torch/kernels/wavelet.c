@@ -22,8 +22,8 @@
  *    share one 8-lane multiply-add (in-lane shuffles), the portable path takes one 4-float row per
  *    entry.
  * Only the columns of the light's terms are read. The index check (0 <= sel < P) runs before any
- * work (returns 2); C outside 1..4 returns 1. One thread. Scratch (the caller's): acc [V + 1, 4] float,
- * wk [N] int64, lw [N, 4] float. */
+ * work (returns 2); C outside 1..4 returns 1, N > P 3. One thread. Arguments: the layout (a struct, so
+ * that a call passes seven arguments), the light and the output. */
 
 #include <stdint.h>
 #include <string.h>
@@ -117,10 +117,29 @@ SCATTER(float)
 SCATTER(int8_t)
 SCATTER(int16_t)
 
+/* the transfer's layout and the scratch, built once per transfer (relight.py: an int64 tensor of
+ * these eleven fields in this order; pointers as integers) */
+typedef struct {
+    i64 P, Pd, V;               /* Haar coefficients 6R^2, dense columns, vertices */
+    const i64 *colptr;          /* [P+1] the sparse columns (dense ones empty) */
+    const int32_t *offs;        /* [E] byte offsets 16 * row */
+    const void *vals;           /* [E] stored values of the sparse columns */
+    const i64 *dslot;           /* [P] the column's dense slot, or -1 */
+    const void *dense;          /* [ceil(V/32), Pd, 32] stored values of the dense columns */
+    float *acc;                 /* scratch [V + 1, 4] */
+    i64 *wk;                    /* scratch [P] */
+    float *lw;                  /* scratch [P, 4] */
+} wavelet_layout;
+
 #define WAVELET_KERNEL(NAME, T)                                                                              \
-int NAME(i64 N, const i64 *sel, const float *lv, i64 C, i64 P, const i64 *colptr, const int32_t *offs,       \
-         const T *vals, const i64 *dslot, i64 Pd, const T *dense, i64 V, const float *f, float *out,           \
-         float *acc, i64 *wk, float *lw) {                                                                   \
+int NAME(const wavelet_layout *L, i64 N, const i64 *sel, const float *lv, i64 C, const float *f, float *out) { \
+    const i64 P = L->P, Pd = L->Pd, V = L->V;                                                                \
+    const i64 *colptr = L->colptr, *dslot = L->dslot;                                                        \
+    const int32_t *offs = L->offs;                                                                           \
+    const T *vals = (const T *)L->vals, *dense = (const T *)L->dense;                                        \
+    float *acc = L->acc, *lw = L->lw;                                                                        \
+    i64 *wk = L->wk;                                                                                         \
+    if (N > P) return 3;                                                                                     \
     if (C < 1 || C > 4) return 1;                                                                            \
     for (i64 n = 0; n < N; n++) if (sel[n] < 0 || sel[n] >= P) return 2;                                    \
     i64 nd = 0, ns = 0; /* dense terms from the front of wk / lw, sparse terms from the back */            \

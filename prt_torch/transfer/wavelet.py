@@ -20,14 +20,19 @@ the second sum over the orthonormal Haar coefficients of both (per face, non-sta
 albedo ρ_p is kept out (``mesh.albedo``), as in the grey diffuse kind. Of the 6R² coefficients a
 vertex keeps its ``terms`` largest in magnitude (a per-row non-linear approximation of the
 transport matrix, Ng 2003 §6), optionally dropping those below ``threshold`` times the row's
-largest, quantised as Ng does (§6: a few bits per value with a per-row scale, 16-bit indices):
-``bits`` = 8 or 16 gives signed integers q with value = q · scale_p (scale_p = max|T̂_p| / (2^(b-1) - 1),
-so the quantisation error of a kept value is at most scale_p / 2, plus the float32 rounding of
-the product); ``bits`` = 32 stores float32.
+largest, quantised as Ng does (§6: a few bits per value with float32 scales, 16-bit indices):
+``bits`` = 8 or 16 gives signed integers q with value = q · scale_{p,ℓ}, one scale per vertex and
+Haar level ℓ (``scales='level'``, the default: scale_{p,ℓ} = max over p's kept values at level ℓ
+of |T̂| / (2^(b-1) - 1); a level's small details no longer round to zero against the vertex's
+largest, coarse value) or one per vertex (``scales='vertex'``); the quantisation error of a kept
+value is at most its scale / 2, plus the float32 rounding of the product; ``bits`` = 32 stores
+float32.
 
 Stored (``Transfer(kind='wavelet')``): ``data [V, K]`` (int8 / int16 / float32 values),
 ``aux['index'] [V, K]`` (int16 where 6R² < 2¹⁵, else int32: flat index f·R² + i·R + j of the
-Haar coefficient), ``aux['scale'] [V]`` float32; ``meta['bytes_per_vertex']`` the stored size.
+Haar coefficient), ``aux['scale'] [V, log2(R)+1]`` float32 (one per vertex and Haar level,
+:func:`~prt_torch.lighting.haar.haar_levels`; ``scales='vertex'``: ``[V]``); ``meta['bytes_per_vertex']``
+the stored size.
 No interreflection: the bounce machinery of the diffuse kind works in SH (its hit tables are SH
 vectors); a wavelet bounce would need the hit points' full pixel-basis transfer, which this kind
 does not compute.
@@ -42,7 +47,7 @@ import numpy as np
 import torch
 
 from .._checks import check_choice, check_float, check_int, describe
-from ..lighting.haar import MAX_HAAR_RES, check_res, cube_geometry, haar2d
+from ..lighting.haar import MAX_HAAR_RES, check_res, cube_geometry, haar2d, haar_levels
 from ..lighting.layouts import pixel_to_dir
 from ..scene import Mesh, RayCaster
 from .base import RunOptions, Transfer
@@ -51,13 +56,16 @@ from .glossy import decide_shadows, format_bytes, memory_budget
 from .ray_kernels import upper_rays
 
 __all__ = ["precompute_wavelet", "estimate_wavelet_memory", "dense_wavelet_transfer", "sparsify", "quantise", "dequantise",
-           "wavelet_values", "MAX_WAVELET_TERMS", "BITS", "SAMPLINGS"]
+           "wavelet_values", "MAX_WAVELET_TERMS", "BITS", "SAMPLINGS", "SCALES"]
 
 MAX_WAVELET_TERMS = 6 * MAX_HAAR_RES * MAX_HAAR_RES
 #: stored precisions: signed integers of 8 or 16 bits with a per-vertex scale, or float32
 BITS = (8, 16, 32)
 #: where the texel integrals are sampled: sub-texel centres, or one random point per sub-texel and vertex
 SAMPLINGS = ("grid", "jittered")
+#: the integers' scales: one per vertex, or one per vertex and Haar level (the default: measured,
+#: reports/benchmarks/wavelet.md "Stored precision")
+SCALES = ("level", "vertex")
 
 
 def _jitter_seed(seed: int, start: int) -> int:
@@ -70,9 +78,9 @@ def _index_dtype(P: int) -> torch.dtype:
     return torch.int16 if P <= 32767 else torch.int32
 
 
-def bytes_per_vertex(terms: int, bits: int, P: int) -> int:
-    """Stored bytes of one vertex: K values of ``bits``, K indices (2 or 4 bytes), one float32 scale."""
-    return terms * (bits // 8 + (2 if P <= 32767 else 4)) + 4
+def bytes_per_vertex(terms: int, bits: int, P: int, scales: int = 1) -> int:
+    """Stored bytes of one vertex: K values of ``bits``, K indices (2 or 4 bytes), ``scales`` float32 scales."""
+    return terms * (bits // 8 + (2 if P <= 32767 else 4)) + 4 * scales
 
 
 def estimate_wavelet_memory(V: int, res: int, terms: int, bits: int, supersample: int, chunk: int,
@@ -93,23 +101,39 @@ def _default_chunk(res: int, supersample: int) -> int:
     return int(min(max(8, (1 << 20) // rays), 8192))
 
 
-def quantise(c: torch.Tensor, bits: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Quantise rows of kept coefficients ``c [V, K]`` (float) with one scale per row:
-    ``(q [V, K] int8/int16 — float32 for bits=32, scale [V] float32)``, value = q · scale,
-    scale = max|c| / (2^(bits-1) - 1); |q·scale - c| ≤ scale / 2 (Ng 2003 §6), plus |c|·2⁻²⁴ once
-    the product is formed in float32 (:func:`dequantise`)."""
+def quantise(c: torch.Tensor, bits: int, level: torch.Tensor | None = None, levels: int = 1) -> tuple[torch.Tensor, torch.Tensor]:
+    """Quantise rows of kept coefficients ``c [V, K]`` (float) to signed integers with one scale
+    per row — or, with ``level [V, K]`` (each value's Haar level, :func:`~prt_torch.lighting.haar.haar_levels`),
+    one per row and level (``levels`` of them): ``(q [V, K]`` int8/int16 — float32 for bits=32,
+    ``scale [V]`` or ``[V, levels]`` float32), value = q · scale, scale = max|c| (of the row, or of
+    its values at that level) / (2^(bits-1) - 1); |q·scale - c| ≤ scale / 2 (Ng 2003 §6), plus
+    |c|·2⁻²⁴ once the product is formed in float32 (:func:`dequantise`). A scale per level keeps
+    the fine levels' small details from rounding to zero against the vertex's largest value."""
     bits = check_choice("bits", bits, BITS)
     if bits == 32:
         return c.to(torch.float32), torch.ones(c.shape[0], dtype=torch.float32)
     qmax = (1 << (bits - 1)) - 1
-    top = c.abs().amax(1).to(torch.float64)
-    scale = torch.where(top > 0, top / qmax, torch.ones_like(top)).to(torch.float32)
-    q = torch.round(c.to(torch.float64) / scale.to(torch.float64)[:, None]).clamp_(-qmax, qmax)
-    return q.to(torch.int8 if bits == 8 else torch.int16), scale
+    a = c.abs().to(torch.float64)
+    if level is None:
+        top = a.amax(1)
+        sc = torch.where(top > 0, top / qmax, torch.ones_like(top)).to(torch.float32)
+        per = sc.to(torch.float64)[:, None]
+    else:
+        lev = level.long()
+        top = torch.zeros(c.shape[0], levels, dtype=torch.float64).scatter_reduce_(1, lev, a, "amax")
+        sc = torch.where(top > 0, top / qmax, torch.ones_like(top)).to(torch.float32)
+        per = sc.to(torch.float64).gather(1, lev)
+    q = torch.round(c.to(torch.float64) / per).clamp_(-qmax, qmax)
+    return q.to(torch.int8 if bits == 8 else torch.int16), sc
 
 
-def dequantise(q: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
-    """``q [V, K]`` (any dtype) times ``scale [V]`` → float32 ``[V, K]``."""
+def dequantise(q: torch.Tensor, scale: torch.Tensor, level: torch.Tensor | None = None) -> torch.Tensor:
+    """``q [V, K]`` (any dtype) times ``scale [V]`` — or ``scale [V, L]`` at each value's ``level
+    [V, K]`` — → float32 ``[V, K]``."""
+    if scale.ndim == 2:
+        if level is None:
+            raise ValueError("scale has one column per Haar level; pass level [V, K] (haar_levels of the indices)")
+        return q.to(torch.float32) * scale.to(torch.float32).gather(1, level.long())
     return q.to(torch.float32) * scale.to(torch.float32)[:, None]
 
 
@@ -117,22 +141,33 @@ def wavelet_values(tr: Transfer) -> torch.Tensor:
     """The dequantised Haar coefficients of a wavelet transfer, ``[V, K]`` float32 (albedo out)."""
     if tr.kind != "wavelet":
         raise ValueError(f"transfer kind {tr.kind!r}; accepted: 'wavelet'")
-    return dequantise(tr.data, tr.aux["scale"])
+    sc = tr.aux["scale"]
+    level = haar_levels(int(tr.meta["res"]))[tr.aux["index"].long()] if sc.ndim == 2 else None
+    return dequantise(tr.data, sc, level)
 
 
-def sparsify(H: torch.Tensor, terms: int, bits: int, threshold: float = 0.0) -> dict[str, torch.Tensor]:
+def sparsify(H: torch.Tensor, terms: int, bits: int, threshold: float = 0.0, scales: str = "vertex",
+             res: int | None = None) -> dict[str, torch.Tensor]:
     """Rows of Haar coefficients ``H [k, P]`` (float64) → their ``terms`` largest in magnitude,
-    those below ``threshold`` × the row's largest zeroed, quantised (:func:`quantise`): ``q [k, K]``,
-    ``index [k, K]`` (int16 for P < 2¹⁵, else int32), ``scale [k]``, and per row ``total`` (Σ H²),
-    ``dropped`` (Σ of the dropped H²), ``qerr`` (Σ of the squared quantisation errors), ``nnz``."""
+    those below ``threshold`` × the row's largest zeroed, quantised (:func:`quantise`, ``scales``
+    'vertex' or 'level' — this needs ``res``, the cube's face size): ``q [k, K]``, ``index [k, K]``
+    (int16 for P < 2¹⁵, else int32), ``scale [k]`` or ``[k, log2(R)+1]``, and per row ``total``
+    (Σ H²), ``dropped`` (Σ of the dropped H²), ``qerr`` (Σ of the squared quantisation errors), ``nnz``."""
     P = H.shape[1]
+    scales = check_choice("scales", scales, SCALES)
     total = H.double().square().sum(1)
     top = H.abs().topk(terms, dim=1)
     kept = H.gather(1, top.indices).double()
     if threshold > 0:
         kept = torch.where(kept.abs() >= threshold * top.values[:, :1].double(), kept, torch.zeros_like(kept))
-    q, scale = quantise(kept, bits)
-    err = (kept - dequantise(q, scale).double()).square().sum(1)
+    level, n_lev = None, 1
+    if scales == "level" and bits != 32:
+        if res is None:
+            raise ValueError("sparsify with scales='level' needs res (the cube's face size)")
+        lv = haar_levels(res)
+        level, n_lev = lv[top.indices], int(lv.max()) + 1
+    q, scale = quantise(kept, bits, level, n_lev)
+    err = (kept - dequantise(q, scale, level).double()).square().sum(1)
     return {"q": q, "index": top.indices.to(_index_dtype(P)), "scale": scale, "total": total,
             "dropped": (total - kept.square().sum(1)).clamp_min(0), "qerr": err, "nnz": (q != 0).sum(1).to(torch.int32)}
 
@@ -221,6 +256,7 @@ def precompute_wavelet(
     terms: int = 256,
     bits: int = 8,
     *,
+    scales: str = "level",
     threshold: float = 0.0,
     supersample: int = 1,
     sampling: str = "grid",
@@ -235,8 +271,11 @@ def precompute_wavelet(
         mesh: the scene.
         res: cube face resolution R, a power of two in [1, 128] (6R² texels).
         terms: K, coefficients kept per vertex (the largest in magnitude), in [1, 6R²].
-        bits: stored precision of the kept values: 8 or 16 (integers with a per-vertex scale,
+        bits: stored precision of the kept values: 8 or 16 (integers with float32 scales,
             Ng 2003 §6) or 32 (float32).
+        scales: the integers' scales: 'level' (one per vertex and Haar level, log2(R)+1 of them:
+            the default, measured — 8 bits then reach 0.55% where one scale per vertex floors at
+            1.8%, reports/benchmarks/wavelet.md) or 'vertex' (one per vertex).
         threshold: also drop kept coefficients below ``threshold`` × the vertex's largest
             (stored as zeros; ``meta['nonzero_per_vertex']``), in [0, 1).
         supersample: s, visibility and cosine on an s × s grid of sub-texels per texel (each
@@ -248,7 +287,7 @@ def precompute_wavelet(
         run: :class:`RunOptions` (chunks — default about 2²⁰ rays —, workers, offset, memory
             limit, resumable state, progress, executor).
     Returns:
-        ``Transfer(kind='wavelet')``: ``data [V, K]``, ``aux['index'] [V, K]``, ``aux['scale'] [V]``.
+        ``Transfer(kind='wavelet')``: ``data [V, K]``, ``aux['index'] [V, K]``, ``aux['scale'] [V, L]`` (or ``[V]``).
     Raises:
         ValueError before any ray: R not a power of two, K out of range, or the memory estimate
         (:func:`estimate_wavelet_memory`) above ``run.max_memory`` (default 60% of RAM).
@@ -260,6 +299,8 @@ def precompute_wavelet(
     P = 6 * res * res
     terms = check_int("terms", terms, 1, P)
     bits = check_choice("bits", bits, BITS)
+    scales = check_choice("scales", scales, SCALES)
+    n_scales = int(math.log2(res)) + 1 if scales == "level" and bits != 32 else 1
     threshold = check_float("threshold", threshold, 0.0, 1.0, hi_open=True)
     s = check_int("supersample", supersample, 1, 16)
     sampling = check_choice("sampling", sampling, SAMPLINGS)
@@ -293,11 +334,11 @@ def precompute_wavelet(
                                   d_f, d32, om_f, res, s, 0.0 if caster is None else caster.eps, work)
         # Haar in float32: the stored values carry at most 16 bits (float32 for bits=32), the
         # transform's rounding (~1e-7 relative) is far below; half the memory traffic of float64
-        out = sparsify(haar2d(T.to(torch.float32)).reshape(b - a, P), terms, bits, threshold)
+        out = sparsify(haar2d(T.to(torch.float32)).reshape(b - a, P), terms, bits, threshold, scales, res)
         out["rays"] = torch.tensor([rays], dtype=torch.int64)
         return out
 
-    fingerprint = {"kind": "wavelet", "mesh_hash": mesh.content_hash(), "res": res, "terms": terms, "bits": bits,
+    fingerprint = {"kind": "wavelet", "mesh_hash": mesh.content_hash(), "res": res, "terms": terms, "bits": bits, "scales": scales,
                    "threshold": threshold, "supersample": s, "sampling": sampling, "seed": seed if sampling == "jittered" else None,
                    "shadows": traced, "offset": run.offset}
     try:
@@ -315,14 +356,16 @@ def precompute_wavelet(
         "sampling": sampling if sampling == "grid" else f"jittered (seed {seed}; one random point per sub-texel and vertex)",
         "offset": run.offset, "albedo_folded": False, "channels": 1, "bounces_used": 0,
         "bounce_decision": "no interreflection: the wavelet kind is direct (shadowed) transfer only",
-        "bytes_per_vertex": bytes_per_vertex(terms, bits, P),
+        "scales": scales if bits != 32 else "none (float32 values)",
+        "bytes_per_vertex": bytes_per_vertex(terms, bits, P, n_scales),
         "bytes_per_vertex_dense": P * 4,
         "index_dtype": str(_index_dtype(P)).replace("torch.", ""),
         "nonzero_per_vertex": float(cat["nnz"].float().mean()),
         "truncation_rel_l2_mean": float(rel(dropped)[lit].mean()) if bool(lit.any()) else 0.0,
         "truncation_rel_l2_max": float(rel(dropped)[lit].max()) if bool(lit.any()) else 0.0,
         "quantisation_rel_l2_max": float(rel(qerr)[lit].max()) if bool(lit.any()) else 0.0,
-        "quantisation_bound": "per kept value |error| <= scale/2 + |value| 2^-24 (aux.scale per vertex)",
+        "quantisation_bound": "per kept value |error| <= scale/2 + |value| 2^-24 (aux.scale per vertex"
+                              + (", column = the value's Haar level)" if n_scales > 1 else ")"),
         "rays_traced": int(cat["rays"].sum()), "chunk_size": chunk_size, "memory_estimate_bytes": need,
         "layout": "Haar coefficients of the faces cube (+x,-x,+y,-y,+z,-z), index f*R*R + i*R + j after haar2d per face",
         "normalisation": "exit radiance L_out[v] = albedo[v] * sum_k data[v,k]*scale[v] * Lhat[index[v,k]], Lhat = haar2d of "
