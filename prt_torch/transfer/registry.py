@@ -316,10 +316,12 @@ register_kind(TransferKind(
         "res": [Predicate(_is_power_of_two, "a power of two in [1, 128]"), _AUTO],
         "terms": [Interval(int, 1, MAX_WAVELET_TERMS)], "bits": [Options(*BITS)], "scales": [Options(*SCALES)],
         "threshold": [Interval(float, 0, 1, closed="left")], "supersample": [Interval(int, 1, 16)],
-        "sampling": [Options(*SAMPLINGS)],
+        "sampling": [Options(*SAMPLINGS)], "bounces": [Interval(int, 0, 8)], "hit_samples": [Interval(int, 1, 4096)],
+        "hit_offset": [Interval(float, 0, 0.1)],
         "shadows": [Boolean()] + _SHADOWS, "probe_tol": [Interval(float, 0, 1, closed="left")], "seed": _SEED,
     },
-    args=_args("shadows", "seed") + (
+    args=_args("shadows", "seed", "bounces") + (
+        Arg("--hit-samples", "hit_samples", "rays per bounce hit point (cosine-weighted; a quarter per further bounce)"),
         Arg("--res", "res", "cube face resolution R, a power of two (6 R² texels), or auto (from the lights' energy "
             "above each wavelet level)"),
         Arg("--terms", "terms", "Haar coefficients kept per vertex (the largest), K <= 6 R²"),

@@ -33,9 +33,11 @@ Stored (``Transfer(kind='wavelet')``): ``data [V, K]`` (int8 / int16 / float32 v
 Haar coefficient), ``aux['scale'] [V, log2(R)+1]`` float32 (one per vertex and Haar level,
 :func:`~prt_torch.lighting.haar.haar_levels`; ``scales='vertex'``: ``[V]``); ``meta['bytes_per_vertex']``
 the stored size.
-No interreflection: the bounce machinery of the diffuse kind works in SH (its hit tables are SH
-vectors); a wavelet bounce would need the hit points' full pixel-basis transfer, which this kind
-does not compute.
+Interreflection (``bounces`` B > 0, grey meshes): a blocked ray of p (sub-texel j, weight
+w = max(n_p·s, 0) Ω/π) that meets the front of a triangle at q adds w ρ_q Σ_b x^b(q) to T_p,
+x(q) in the pixel basis estimated at q itself with M cosine-weighted rays — (1/M) Σ_m V(q, s_m)
+1[s_m ∈ texel] estimates (1/π)∫_texel V(q, s) cos ds, further bounces recursively — the diffuse
+kind's hit-point estimator (:meth:`prt_torch.transfer.diffuse.HitBounce.texel_values`).
 """
 from __future__ import annotations
 
@@ -48,10 +50,10 @@ import torch
 
 from .._checks import check_choice, check_float, check_int, describe
 from ..lighting.haar import MAX_HAAR_RES, check_res, cube_geometry, haar2d, haar_levels
-from ..lighting.layouts import pixel_to_dir
+from ..lighting.layouts import dir_to_pixel, pixel_to_dir
 from ..scene import Mesh, RayCaster
 from .base import RunOptions, Transfer
-from .diffuse import boundary_nudge, offset_origins
+from .diffuse import HIT_OFFSET, HitBounce, boundary_nudge, offset_origins
 from .glossy import decide_shadows, format_bytes, memory_budget
 from .ray_kernels import upper_rays
 
@@ -92,7 +94,7 @@ def estimate_wavelet_memory(V: int, res: int, terms: int, bits: int, supersample
     P = 6 * res * res
     Pf = P * supersample * supersample
     result = 2 * V * bytes_per_vertex(terms, bits, P)
-    work = chunk * (Pf * (8 + 8 + 12 + 12 + 16 + 1 + (120 if jittered else 0)) + P * 8 * 3 + terms * 16)
+    work = chunk * (Pf * (8 + 8 + 12 + 12 + 16 + 1 + (120 if jittered else 0)) + P * 8 * 4 + terms * 16)
     return int(result + work + Pf * 40)
 
 
@@ -187,14 +189,49 @@ def _jittered_samples(res: int, s: int, k: int, gen: torch.Generator) -> tuple[n
     return d.contiguous().numpy(), w.numpy()
 
 
+def _texel_of(res: int):
+    """Directions ``[R, 3]`` float64 → the flat index f·R² + i·R + j of the cube texel holding each
+    (the ``faces`` layout of :func:`~prt_torch.lighting.haar.cube_geometry`)."""
+    def f(d: np.ndarray) -> np.ndarray:
+        y, x = dir_to_pixel("faces", res, 6 * res, torch.from_numpy(d))
+        face = torch.div(x, res, rounding_mode="floor").long()
+        return (face * res * res + y.long() * res + (x.long() - face * res)).numpy()
+    return f
+
+
+def _bounce(caster: RayCaster, hits: HitBounce, k: int, res: int, i: np.ndarray, j: np.ndarray, d: np.ndarray,
+            prim: np.ndarray, bu: np.ndarray, bv: np.ndarray, w: np.ndarray, ids: np.ndarray) -> np.ndarray:
+    """Interreflected pixel-basis transfer of a chunk's k vertices, ``[k, 6R²]`` float64: every
+    primary ray (vertex row ``i``, sub-texel ``j``, direction ``d``, weight ``w`` = cos·Ω/π) that
+    meets the front of a triangle brings ρ_q Σ_b x^b(q) from its hit q in the pixel basis
+    (:meth:`~prt_torch.transfer.diffuse.HitBounce.texel_values`: the diffuse kind's hit-point
+    estimator, B = ``hits.terms`` bounces), in batches of about 2¹⁸ secondary rays."""
+    P = 6 * res * res
+    out = np.zeros(k * P)
+    hh = np.nonzero(prim != -1)[0]
+    tri = prim[hh].astype(np.int64)
+    front = np.einsum("ij,ij->i", hits.face_normals.numpy()[tri], d[hh].astype(np.float64)) < 0
+    hh, tri = hh[front], tri[front]
+    texel_of = _texel_of(res)
+    step = max(1, (1 << 18) // hits.M)
+    for a in range(0, hh.shape[0], step):  # a loop over hit batches, each one traced batch
+        h, t = hh[a:a + step], tri[a:a + step]
+        bary = np.stack([1 - bu[h] - bv[h], bu[h], bv[h]], 1).astype(np.float64)
+        r, tx, wt = hits.texel_values(caster, t, bary, ids[i[h]].astype(np.uint64), j[h].astype(np.uint64), texel_of)
+        rho = hits.albedo_at(t, bary)[:, 0].numpy()
+        np.add.at(out, i[h][r] * P + tx, w[h][r] * rho[r] * wt)
+    return out.reshape(k, P)
+
+
 def _pixel_transfer(caster: RayCaster | None, points: torch.Tensor, normals: torch.Tensor, nudge: torch.Tensor | None,
                     dirs_f: np.ndarray, dirs32: np.ndarray | None, omega_f: np.ndarray, res: int, s: int,
-                    eps: float, work: dict) -> tuple[torch.Tensor, int]:
+                    eps: float, work: dict, hits: HitBounce | None = None, ids: np.ndarray | None = None) -> tuple[torch.Tensor, int]:
     """Pixel-basis transfer of k vertices, ``[k, 6, R, R]`` float64 (module docstring), and the
     number of rays traced. One masked pass per chunk: cosines ``[k, Pf]``, the rays above each
     tangent plane (:func:`prt_torch.transfer.ray_kernels.upper_rays`), one occlusion batch.
     ``dirs_f [Pf, 3]`` / ``omega_f [Pf]`` shared by every vertex (the grid), or per vertex
-    ``[k, Pf, 3]`` / ``[k, Pf]`` (jittered; ``dirs32`` None)."""
+    ``[k, Pf, 3]`` / ``[k, Pf]`` (jittered; ``dirs32`` None). ``hits``: add the interreflected
+    light (:func:`_bounce`; ``ids`` the vertices' global ids, the bounce rays' keys)."""
     k = points.shape[0]
     per_vertex = dirs_f.ndim == 3
     cos = np.einsum("kd,kpd->kp", normals.numpy(), dirs_f) if per_vertex else normals.numpy() @ dirs_f.T  # [k, Pf] float64
@@ -212,22 +249,34 @@ def _pixel_transfer(caster: RayCaster | None, points: torch.Tensor, normals: tor
             j = np.flatnonzero(up) - i * up.shape[1]
             o = np.repeat(o_v, counts, axis=0)
             d = dirs_f[i, j].astype(np.float32) if per_vertex else np.take(dirs32, j, axis=0)
-        hit = caster.trace(o, d, "occluded")
+        if hits is not None:
+            prim, bu, bv, _ = caster.trace(o, d, "intersect")
+            hit = prim != -1
+        else:
+            hit = caster.trace(o, d, "occluded")
         rays = int(i.shape[0])
     W = np.maximum(cos, 0.0, out=cos)
     W *= (omega_f if per_vertex else omega_f[None, :]) * (1.0 / math.pi)
+    B = None
     if caster is not None:
-        W.reshape(-1)[(i * W.shape[1] + j)[hit]] = 0.0  # blocked directions
+        flat = i * W.shape[1] + j
+        if hits is not None:
+            B = _bounce(caster, hits, k, res, i, j, d, prim, bu, bv, W.reshape(-1)[flat], ids)
+        W.reshape(-1)[flat[hit]] = 0.0  # blocked directions
     T = torch.from_numpy(W).reshape(k, 6, res, s, res, s).sum((3, 5)) if s > 1 else torch.from_numpy(W).reshape(k, 6, res, res)
+    if B is not None:
+        T = T + torch.from_numpy(B).reshape(k, 6, res, res)
     return T, rays
 
 
 def dense_wavelet_transfer(mesh: Mesh, res: int, *, supersample: int = 1, shadows: bool = True, offset: float = 1e-4,
-                           vertices: Any = None, haar: bool = True, sampling: str = "grid", seed: int = 0) -> torch.Tensor:
+                           vertices: Any = None, haar: bool = True, sampling: str = "grid", seed: int = 0, bounces: int = 0,
+                           hit_samples: int = 16, hit_offset: float | None = HIT_OFFSET) -> torch.Tensor:
     """The full (all 6R² terms, unquantised) transfer of the vertices ``vertices`` (default all),
     ``[k, 6, R, R]`` float64 — Haar coefficients (``haar``) or the pixel basis; the same rays as
     :func:`precompute_wavelet` (``sampling`` 'grid' or 'jittered' with ``seed``: the jitter of the
-    vertices' first chunk there). For references and tests on a few vertices."""
+    vertices' first chunk there; ``bounces``, ``hit_samples``, ``hit_offset`` as there). For
+    references and tests on a few vertices."""
     res = check_res(res)
     sampling = check_choice("sampling", sampling, SAMPLINGS)
     idx = torch.arange(mesh.num_vertices) if vertices is None else torch.as_tensor(vertices, dtype=torch.int64)
@@ -239,11 +288,12 @@ def dense_wavelet_transfer(mesh: Mesh, res: int, *, supersample: int = 1, shadow
         dirs_f = np.ascontiguousarray(d.reshape(-1, 3).numpy())
         dirs32, om_f = dirs_f.astype(np.float32), np.ascontiguousarray(om.reshape(-1).numpy())
     nudge = boundary_nudge(mesh)[idx]
+    hits = _hit_bounce(mesh, bounces, hit_samples, hit_offset, seed) if shadows else None
     caster = RayCaster(mesh, workers=1, offset=offset) if shadows else None
     try:
         T, _ = _pixel_transfer(caster, mesh.vertices[idx].to(torch.float64), mesh.normals[idx].to(torch.float64),
                                nudge if bool(nudge.any()) else None, dirs_f, dirs32, om_f, res, supersample,
-                               0.0 if caster is None else caster.eps, {})
+                               0.0 if caster is None else caster.eps, {}, hits, idx.numpy())
     finally:
         if caster is not None:
             caster.close()
@@ -260,6 +310,9 @@ def precompute_wavelet(
     threshold: float = 0.0,
     supersample: int = 1,
     sampling: str = "grid",
+    bounces: int = 0,
+    hit_samples: int = 16,
+    hit_offset: float | None = HIT_OFFSET,
     shadows: bool | str = "auto",
     probe_tol: float = 1e-3,
     seed: int = 0,
@@ -282,6 +335,11 @@ def precompute_wavelet(
             with its exact solid angle); 1 = texel centres.
         sampling: 'grid' (sub-texel centres) or 'jittered' (one random point per sub-texel,
             drawn per vertex from ``seed`` and the chunk; module docstring).
+        bounces: B, interreflection: each blocked ray's front hit q brings ρ_q Σ_b x^b(q) in the
+            pixel basis, x estimated at q with ``hit_samples`` cosine-weighted rays (a quarter of
+            that per further bounce; :class:`~prt_torch.transfer.diffuse.HitBounce`, the diffuse
+            kind's hit-point estimator); rays leave q from ``hit_offset`` × the diagonal. Needs a
+            grey mesh (the transfer stays one channel, the albedo of p kept out). 0 = direct only.
         shadows: 'auto' (probe self-occlusion first), 'always'/True, 'never'/False.
         seed: the probe's seed, and the jitter's.
         run: :class:`RunOptions` (chunks — default about 2²⁰ rays —, workers, offset, memory
@@ -304,6 +362,8 @@ def precompute_wavelet(
     threshold = check_float("threshold", threshold, 0.0, 1.0, hi_open=True)
     s = check_int("supersample", supersample, 1, 16)
     sampling = check_choice("sampling", sampling, SAMPLINGS)
+    bounces = check_int("bounces", bounces, 0, 8)
+    hit_samples = check_int("hit_samples", hit_samples, 1, 4096)
     V = mesh.num_vertices
     chunk_size = run.chunks(_default_chunk(res, s))
     need = estimate_wavelet_memory(V, res, terms, bits, s, min(chunk_size, max(V, 1)), sampling == "jittered")
@@ -312,8 +372,9 @@ def precompute_wavelet(
         raise ValueError(f"wavelet transfer of {V} vertices at res={res} (6x{res}x{res} texels, supersample {s}) with "
                          f"{terms} terms needs about {format_bytes(need)}, more than the budget {format_bytes(budget)}; "
                          "accepted: a smaller res, fewer terms, a smaller chunk_size or mesh, or a larger memory limit")
+    hits = _hit_bounce(mesh, bounces, hit_samples, hit_offset, seed)  # refuses a coloured mesh before any ray
     t0 = time.perf_counter()
-    traced, shadow_meta = decide_shadows(mesh, shadows, seed, run, probe_tol)
+    traced, shadow_meta = decide_shadows(mesh, "always" if bounces else shadows, seed, run, probe_tol)
     d, om = cube_geometry(res, s)
     dirs_f = np.ascontiguousarray(d.reshape(-1, 3).numpy())
     dirs32 = dirs_f.astype(np.float32)
@@ -331,7 +392,7 @@ def precompute_wavelet(
         else:
             d_f, d32, om_f = dirs_f, dirs32, omega_f
         T, rays = _pixel_transfer(caster, points[a:b], normals[a:b], None if nudge is None else nudge[a:b],
-                                  d_f, d32, om_f, res, s, 0.0 if caster is None else caster.eps, work)
+                                  d_f, d32, om_f, res, s, 0.0 if caster is None else caster.eps, work, hits, np.arange(a, b))
         # Haar in float32: the stored values carry at most 16 bits (float32 for bits=32), the
         # transform's rounding (~1e-7 relative) is far below; half the memory traffic of float64
         out = sparsify(haar2d(T.to(torch.float32)).reshape(b - a, P), terms, bits, threshold, scales, res)
@@ -339,7 +400,8 @@ def precompute_wavelet(
         return out
 
     fingerprint = {"kind": "wavelet", "mesh_hash": mesh.content_hash(), "res": res, "terms": terms, "bits": bits, "scales": scales,
-                   "threshold": threshold, "supersample": s, "sampling": sampling, "seed": seed if sampling == "jittered" else None,
+                   "threshold": threshold, "supersample": s, "sampling": sampling, "seed": seed if sampling == "jittered" or bounces else None,
+                   "bounces": bounces, "hit_samples": hit_samples if bounces else None, "hit_offset": hit_offset if bounces else None,
                    "shadows": traced, "offset": run.offset}
     try:
         parts = run.run_chunks(V, chunk_size, compute, fingerprint=fingerprint, desc=f"wavelet {mesh.name}",
@@ -354,8 +416,10 @@ def precompute_wavelet(
     meta: dict[str, Any] = {
         "res": res, "texels": P, "terms": terms, "bits": bits, "threshold": threshold, "supersample": s,
         "sampling": sampling if sampling == "grid" else f"jittered (seed {seed}; one random point per sub-texel and vertex)",
-        "offset": run.offset, "albedo_folded": False, "channels": 1, "bounces_used": 0,
-        "bounce_decision": "no interreflection: the wavelet kind is direct (shadowed) transfer only",
+        "offset": run.offset, "albedo_folded": False, "channels": 1, "bounces_used": bounces,
+        "bounce_decision": (f"{bounces} bounce(s) estimated at each blocked ray's hit point with {hit_samples} cosine-weighted "
+                            "rays (HitBounce, pixel basis)") if bounces else "no interreflection (bounces=0): direct (shadowed) transfer",
+        "hit_samples": hit_samples if bounces else None, "hit_offset": hit_offset if bounces else None,
         "scales": scales if bits != 32 else "none (float32 values)",
         "bytes_per_vertex": bytes_per_vertex(terms, bits, P, n_scales),
         "bytes_per_vertex_dense": P * 4,
@@ -377,6 +441,17 @@ def precompute_wavelet(
     run.finish()
     return Transfer("wavelet", cat["q"].contiguous(), mesh, meta,
                     aux={"index": cat["index"].contiguous(), "scale": cat["scale"].contiguous()})
+
+
+def _hit_bounce(mesh: Mesh, bounces: int, hit_samples: int, hit_offset: float | None, seed: int) -> HitBounce | None:
+    """The diffuse kind's hit-point bounce estimator for ``bounces`` > 0 (grey meshes only: the
+    wavelet transfer is one channel with the albedo of p kept out), else None."""
+    if not bounces:
+        return None
+    if not mesh.is_grey():
+        raise ValueError(f"bounces={bounces} with the coloured mesh {mesh.name!r}: the wavelet transfer is one grey channel; "
+                         "accepted: bounces=0, or a grey mesh (equal albedo channels)")
+    return HitBounce(mesh, 1, hit_samples, seed, bounces, 1, hit_offset, "plain")
 
 
 def _workers(run: RunOptions, V: int, Pf: int) -> int:
