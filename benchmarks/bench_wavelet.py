@@ -565,9 +565,9 @@ def write_md(res: dict, quick: bool) -> None:
     if "sampling" in res:
         sm = res["sampling"]
         L.append(f"## Texel sampling: grid vs jittered (R = {sm['res']}, {sm['vertices']} vertices)\n")
-        L.append("Each texel's integral of visibility × cosine from s² rays: at the sub-texel centres (`--sampling grid`) "
+        L.append("Each texel's integral of visibility × cosine from s² rays: at the sub-texel centres (`--texel-sampling grid`) "
                  "or at one uniformly random point in each sub-texel, drawn anew per vertex and weighted by the face's "
-                 "solid-angle density there (`--sampling jittered`: unbiased). Exit radiance against the s = 8 grid "
+                 "solid-angle density there (`--texel-sampling jittered`: unbiased). Exit radiance against the s = 8 grid "
                  "(64 rays per texel): relative L2 error / mean signed error (bias), per light; time for these vertices "
                  "(one worker" + (f", load {sm['load_before']:.1f} → {sm['load_after']:.1f}" if "load_before" in sm else "")
                  + ").\n")

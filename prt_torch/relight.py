@@ -346,6 +346,8 @@ class WaveletRelighter:
         self._acc = torch.empty(V + 1, 4, dtype=torch.float32)  # the kernel's scratch: sums of sparse columns (16-byte rows; V: the padding's row)
         self._wk = torch.empty(P, dtype=torch.int64)  # the light's terms split into dense / sparse
         self._lw = torch.empty(P, 4, dtype=torch.float32)
+        self._ld = torch.empty(max(self.Pd, 1), 4, dtype=torch.float32)  # the light of each dense slot
+        self._mk = torch.empty(max(self.Pd, 1), dtype=torch.uint8)
         self._native = None
 
     @property
@@ -391,10 +393,11 @@ class WaveletRelighter:
                 return None
             fn = {torch.int8: lib.prt_wavelet_relight_i8, torch.int16: lib.prt_wavelet_relight_i16}.get(
                 self.qvals.dtype, lib.prt_wavelet_relight_f32)
-            # kernels/wavelet.c's wavelet_layout: the arrays' addresses, built once (kept alive by self)
+            # kernels/wavelet.c's wavelet_layout: the arrays' addresses, built once (kept alive by self); dense terms in slot order
             self._layout = torch.tensor([self.P, self.dense.shape[1], self.V, self.colptr.data_ptr(), self.offs.data_ptr(),
                                          self.qvals.data_ptr(), self.dslot.data_ptr(), self.dense.data_ptr(),
-                                         self._acc.data_ptr(), self._wk.data_ptr(), self._lw.data_ptr()], dtype=torch.int64)
+                                         self._acc.data_ptr(), self._wk.data_ptr(), self._lw.data_ptr(), self._ld.data_ptr(),
+                                         self._mk.data_ptr()], dtype=torch.int64)
             lay = self._layout.data_ptr()
             self._native = lambda N, sel, lv, C, f, out: fn(lay, N, sel, lv, C, f, out)
         return self._native

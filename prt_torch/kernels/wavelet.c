@@ -129,6 +129,8 @@ typedef struct {
     float *acc;                 /* scratch [V + 1, 4] */
     i64 *wk;                    /* scratch [P] */
     float *lw;                  /* scratch [P, 4] */
+    float *ld;                  /* scratch [Pd, 4]: the light of each dense slot */
+    unsigned char *mk;          /* scratch [Pd]: the slot is one of the light's terms */
 } wavelet_layout;
 
 #define WAVELET_KERNEL(NAME, T)                                                                              \
@@ -142,13 +144,31 @@ int NAME(const wavelet_layout *L, i64 N, const i64 *sel, const float *lv, i64 C,
     if (N > P) return 3;                                                                                     \
     if (C < 1 || C > 4) return 1;                                                                            \
     for (i64 n = 0; n < N; n++) if (sel[n] < 0 || sel[n] >= P) return 2;                                    \
-    i64 nd = 0, ns = 0; /* dense terms from the front of wk / lw, sparse terms from the back */            \
+    /* the dense terms in slot order (each block's values are then read front to back; a column listed twice    \
+     * adds its light values), the sparse terms from the back of wk / lw */                                  \
+    float *ld = L->ld;                                                                                       \
+    unsigned char *mk = L->mk;                                                                               \
+    memset(ld, 0, (size_t)(Pd * 4) * sizeof(float));                                                         \
+    memset(mk, 0, (size_t)Pd);                                                                               \
+    i64 ns = 0;                                                                                              \
     for (i64 n = 0; n < N; n++) {                                                                            \
         const i64 j = sel[n], s = dslot[j];                                                                  \
-        const i64 t = s >= 0 ? nd++ : N - 1 - ns++;                                                          \
-        wk[t] = s >= 0 ? s : j;                                                                              \
-        for (int c = 0; c < 4; c++) lw[4 * t + c] = c < C ? lv[c * N + n] : 0.0f;                            \
+        if (s >= 0) {                                                                                        \
+            mk[s] = 1;                                                                                       \
+            for (int c = 0; c < C; c++) ld[4 * s + c] += lv[c * N + n];                                      \
+        } else {                                                                                             \
+            const i64 t = N - 1 - ns++;                                                                      \
+            wk[t] = j;                                                                                       \
+            for (int c = 0; c < 4; c++) lw[4 * t + c] = c < C ? lv[c * N + n] : 0.0f;                        \
+        }                                                                                                    \
     }                                                                                                        \
+    i64 nd = 0;                                                                                              \
+    for (i64 s = 0; s < Pd; s++)                                                                             \
+        if (mk[s]) {                                                                                         \
+            wk[nd] = s;                                                                                      \
+            for (int c = 0; c < 4; c++) lw[4 * nd + c] = ld[4 * s + c];                                      \
+            nd++;                                                                                            \
+        }                                                                                                    \
     if (ns) {                                                                                                \
         memset(acc, 0, (size_t)((V + 1) * 4) * sizeof(float));                                                     \
         scatter_##T(ns, wk + N - ns, lw + 4 * (N - ns), colptr, offs, vals, acc);                            \

@@ -329,7 +329,7 @@ register_kind(TransferKind(
         Arg("--scales", "scales", "the integers' scales: level (one per vertex and Haar level; default) or vertex (one per vertex)"),
         Arg("--threshold", "threshold", "drop kept coefficients below this fraction of the vertex's largest"),
         Arg("--supersample", "supersample", "s x s sub-texel rays per texel (1: texel centres)"),
-        Arg("--sampling", "sampling", "grid (sub-texel centres) or jittered (one random point per sub-texel and vertex, "
-            "unbiased; seeded by --seed)"),
+        Arg("--texel-sampling", "sampling", "grid (sub-texel centres) or jittered (one random point per sub-texel and "
+            "vertex, unbiased; seeded by --seed)", values={"grid": "grid", "jittered": "jittered"}),
     ),
 ))
