@@ -238,7 +238,7 @@ def test_kernel_dense_and_sparse_columns_equal_the_dense_gather(scene, dtype, mo
     assert forms[2.0] == 0 and 0 < forms[None] < forms[0.0]
 
 
-def test_jittered_sampling_is_unbiased_where_the_grid_is_not(scene):
+def test_jittered_sampling_is_unbiased_where_the_grid_is_not(scene, tmp_path):
     """``sampling='jittered'``: one uniform point per sub-texel and vertex, weighted by the face's
     solid-angle density. Independent value: an unshadowed vertex's pixel-basis transfer sums to
     (1/π)∫ max(n·s, 0) ds = 1 exactly. The jittered totals scatter around 1 with a mean within 4
@@ -262,6 +262,13 @@ def test_jittered_sampling_is_unbiased_where_the_grid_is_not(scene):
     assert tr.meta["sampling"].startswith("jittered (seed 5")
     with pytest.raises(ValueError, match="sampling"):
         precompute_wavelet(scene, res=4, terms=16, sampling="random")
+    out = tmp_path / "j.prt"  # the CLI's flag (the diffuse kind owns --sampling)
+    base = ["precompute", "occluder_over_plane", "--kind", "wavelet", "--res", "4", "--terms", "16", "--no-progress", "-o", str(out)]
+    assert cli_main(base + ["--texel-sampling", "jittered"]) == 0
+    assert Transfer.load(out).meta["sampling"].startswith("jittered")
+    with pytest.raises(SystemExit) as e:  # argparse's choices: status 2, one line naming them
+        cli_main(base + ["--texel-sampling", "random", "--overwrite"])
+    assert e.value.code == 2
 
 
 def test_save_load_keeps_the_quantised_values(tmp_path, scene):
