@@ -238,6 +238,43 @@ def test_kernel_dense_and_sparse_columns_equal_the_dense_gather(scene, dtype, mo
     assert forms[2.0] == 0 and 0 < forms[None] < forms[0.0]
 
 
+def test_kernel_portable_path_without_avx2(scene):
+    """kernels/wavelet.c compiled for baseline x86-64 (no AVX2: the portable vector-extension
+    loads and the one-row-per-entry scatter, the path a CPU without AVX2 takes) on the
+    relighter's layout, against the float64 gather of the same stored values."""
+    import ctypes
+
+    from prt_torch._native import LIBRARIES, compile_library, kernel_sources
+
+    names, flags = LIBRARIES["wavelet"]
+    vp, i64 = ctypes.c_void_p, ctypes.c_int64
+    sig = [vp, i64, vp, vp, i64, vp, vp]
+    fl = [f for f in flags if not f.startswith("-march")] + ["-march=x86-64", "-Wno-psabi"]
+    lib, why = compile_library("wavelet_portable_test", kernel_sources(names), fl,
+                               {"prt_wavelet_relight_i8": sig, "prt_wavelet_relight_i16": sig, "prt_wavelet_relight_f32": sig})
+    if lib is None:
+        pytest.skip(f"no compiler for the baseline build: {why}")
+    g = torch.Generator().manual_seed(5)
+    V, res, K = scene.num_vertices, 8, 24
+    P = 6 * res * res
+    index = (torch.rand(V, P, generator=g) * torch.where(torch.arange(P) < 16, 50.0, 1.0)).topk(K, dim=1).indices
+    for dtype, fn in ((torch.int8, lib.prt_wavelet_relight_i8), (torch.int16, lib.prt_wavelet_relight_i16),
+                      (torch.float32, lib.prt_wavelet_relight_f32)):
+        q = torch.randn(V, K, generator=g) if dtype == torch.float32 else torch.randint(-100, 101, (V, K), generator=g).to(dtype)
+        tr = Transfer("wavelet", q, scene, {"res": res, "terms": K}, aux={"index": index.to(torch.int16), "scale": torch.ones(V)})
+        r = relight.WaveletRelighter(tr)
+        if r._kernel() is None:
+            pytest.skip("no native kernel here")
+        assert 0 < r.Pd < P  # both column forms in play
+        for C, N in ((3, 100), (1, P), (4, 9)):
+            li = torch.randperm(P, generator=g)[:N]
+            lv = torch.randn(C, N, generator=g)
+            out = torch.empty(V, C)
+            assert fn(r._layout.data_ptr(), N, li.data_ptr(), lv.data_ptr(), C, r._factor(C, False).data_ptr(), out.data_ptr()) == 0
+            ref = relight.wavelet_dense(q.double(), index, li, lv.double(), P)
+            assert (out.double() - ref).abs().max() <= 1e-5 * ref.abs().max() + 1e-6, (dtype, C, N)
+
+
 def test_jittered_sampling_is_unbiased_where_the_grid_is_not(scene, tmp_path):
     """``sampling='jittered'``: one uniform point per sub-texel and vertex, weighted by the face's
     solid-angle density. Independent value: an unshadowed vertex's pixel-basis transfer sums to
