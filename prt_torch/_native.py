@@ -48,7 +48,7 @@ LIBRARIES: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
                  "affine_taps.c", "relight_plan.c", "sg_lookup.c"),
                 ("-O3", "-march=native", "-ffp-contract=fast", "-fopenmp", "-shared", "-fPIC", "-std=c99")),
     "raygen": (("raygen.c",), ("-O3", "-march=native", "-fopenmp", "-shared", "-fPIC", "-std=c99")),
-    "wavelet": (("wavelet.c",), ("-O3", "-march=native", "-shared", "-fPIC", "-std=c99")),
+    "wavelet": (("wavelet.c",), ("-O3", "-march=native", "-ffp-contract=fast", "-shared", "-fPIC", "-std=c99")),
 }
 
 

@@ -253,55 +253,116 @@ class WaveletRelighter:
     """Sparse light × sparse transfer (Ng 2003 §6), the all-frequency relighting of a wavelet
     transfer (:mod:`prt_torch.transfer.wavelet`).
 
-    Built once per transfer: the kept coefficients re-ordered by wavelet index (a CSC matrix,
-    Ng's layout — one column of (vertex, value) pairs per Haar coefficient, zeros dropped):
-    ``colptr [P+1]`` int64, ``rows [E]`` int32, ``vals [E]`` float32 (dequantised). Per light,
-    only the columns of its N kept terms are read: ``out[rows[e], c] += vals[e] · L̂[c, n]``, so
-    the work is Σ_n nnz(column n), not V·K. ``weights`` ``[P]``: mean |T̂_vk| over vertices (for
-    the transport-weighted selection).
+    Built once per transfer: the kept coefficients re-ordered by wavelet index (Ng's layout —
+    per Haar coefficient the (vertex, value) pairs, zeros dropped), each column stored in the form
+    that reads fewer bytes (``prt_torch/kernels/wavelet.c``):
+
+    * **dense** — the columns at least ``dense_min`` × V vertices keep (default b/(4+b) for b-byte
+      values: a dense column of V values is then no larger than its (int32 row, value) pairs; in
+      practice the coarse Haar levels, which every vertex above the horizon keeps, and most of the
+      coefficients a light reads): ``dense [ceil(V/32), Pd, 32]`` in the stored dtype (blocks of 32
+      vertices, zeros where a vertex did not keep the coefficient), ``dslot [P]`` the column's slot
+      or -1. Relit as a register-blocked GEMV: no index read, no scatter.
+    * **sparse** — the rest, a CSC matrix: ``colptr [P+1]`` int64 (dense columns empty), ``offs [E]``
+      int32 (16 × the vertex: the byte offset of its accumulator row), ``qvals [E]`` the stored
+      values, each column padded to a multiple of 4 entries (value 0 on row V); scattered into
+      16-byte accumulator rows.
+
+    ``dense_min`` > 1 stores every column sparse (the plain CSC layout). Per light only the
+    columns of its N kept terms are read: :meth:`touched` nonzero coefficients, :meth:`bytes_read`
+    bytes. ``weights`` ``[P]``: mean |T̂_vk| over vertices (for the transport-weighted selection).
 
     ``relighter(light_idx [N], light_vals [C, N]) -> [V, C]`` float32 exit radiance, albedo
-    applied (``mesh.albedo``, the first C channels; grey C=1 takes channel 0).
+    applied (``mesh.albedo``, the first C channels; grey C=1 takes channel 0). The C kernel when
+    it compiles, else (and with ``PRT_TORCH_NATIVE=0``) the same two forms in torch.
     """
 
-    def __init__(self, transfer):
+    BLOCK = 32  # vertices per dense block (kernels/wavelet.c BV)
+
+    def __init__(self, transfer, dense_min: float | None = None):
         from .transfer.wavelet import wavelet_values
 
         if getattr(transfer, "kind", None) != "wavelet":
             raise ValueError(f"WaveletRelighter needs a transfer of kind 'wavelet'; got {getattr(transfer, 'kind', describe(transfer))!r}")
         vals = wavelet_values(transfer)  # [V, K] float32
         index = transfer.aux["index"].long()
+        self.transfer = transfer
         V, K = vals.shape
+        # the kernel's values: the stored (quantised) integers, the scale applied per vertex at the end
+        qstore = transfer.data
+        quantised = qstore.dtype in (torch.int8, torch.int16)
+        self.scale = transfer.aux["scale"].to(torch.float32) if quantised else torch.ones(V)
+        if quantised and self.scale.ndim == 2:
+            # one scale per vertex and Haar level: the kernel applies one factor per vertex at the end, so the values are
+            # re-quantised to 16 bits with one scale per vertex (added error per value <= max|T̂_v| / 65534)
+            from .transfer.wavelet import dequantise, quantise
+
+            qstore, self.scale = quantise(vals, 16)
+            vals = dequantise(qstore, self.scale)  # the values relit with
         self.V, self.K = V, K
         self.res = int(transfer.meta["res"])
-        self.P = 6 * self.res * self.res
+        self.P = P = 6 * self.res * self.res
         flat_idx = index.reshape(-1)
         flat_val = vals.reshape(-1)
         nz = flat_val != 0
         order = torch.argsort(flat_idx[nz], stable=True)
-        src = torch.nonzero(nz).flatten()[order]
-        self.rows = (src // K).to(torch.int32).contiguous()
-        self.vals = flat_val[src].contiguous()
-        counts = torch.bincount(flat_idx[src], minlength=self.P)
-        self.colptr = torch.zeros(self.P + 1, dtype=torch.int64)
-        self.colptr[1:] = torch.cumsum(counts, 0)
-        self.weights = torch.zeros(self.P, dtype=torch.float64).index_add_(
-            0, flat_idx[src], self.vals.abs().to(torch.float64)) / max(V, 1)
+        src = torch.nonzero(nz).flatten()[order]  # column-major order, rows ascending within a column
+        col = flat_idx[src]
+        self.nnz = torch.bincount(col, minlength=P)  # [P] nonzero coefficients per column
+        self.weights = torch.zeros(P, dtype=torch.float64).index_add_(
+            0, col, flat_val[src].abs().to(torch.float64)) / max(V, 1)
         self.albedo = transfer.mesh.albedo.to(torch.float32)
         if transfer.meta.get("albedo_folded"):
             self.albedo = torch.ones_like(self.albedo)
         self.values, self.index = vals, index
-        # the kernel's layout: the stored (quantised) values in column order, the scale applied per vertex
-        q = transfer.data.reshape(-1)[src]
-        self.qvals = q.contiguous() if q.dtype in (torch.int8, torch.int16) else self.vals
-        self.scale = transfer.aux["scale"].to(torch.float32) if q.dtype in (torch.int8, torch.int16) else torch.ones(V)
+        q = qstore.reshape(-1) if quantised else flat_val
+        b = q.element_size()
+        self.dense_min = b / (4 + b) if dense_min is None else float(dense_min)
+        is_dense = self.nnz >= max(self.dense_min * V, 1)
+        self.dslot = torch.full((P,), -1, dtype=torch.int64)
+        dcols = torch.nonzero(is_dense).flatten()
+        self.dslot[dcols] = torch.arange(dcols.numel())
+        self.Pd = Pd = int(dcols.numel())
+        in_dense = is_dense[col]
+        nb = -(-V // self.BLOCK)
+        dense = torch.zeros(nb, max(Pd, 1), self.BLOCK, dtype=q.dtype)
+        ds, dv = src[in_dense], src[in_dense] // K
+        dense[dv // self.BLOCK, self.dslot[flat_idx[ds]], dv % self.BLOCK] = q[ds]
+        self.dense = dense.contiguous()
+        # sparse columns padded to a multiple of 4 entries (zero values on the dummy row V): whole groups in the kernel
+        ss = src[~in_dense]
+        counts = torch.where(is_dense, 0, self.nnz)
+        padded = (counts + 3) // 4 * 4
+        self.colptr = torch.zeros(P + 1, dtype=torch.int64)
+        self.colptr[1:] = torch.cumsum(padded, 0)
+        cs = col[~in_dense]  # each entry's place: its column's start + its rank within the column
+        at = self.colptr[cs] + torch.arange(ss.numel()) - (torch.cumsum(counts, 0) - counts)[cs]
+        E = int(self.colptr[-1])
+        self.offs = torch.full((E,), 16 * V, dtype=torch.int32)  # byte offsets of the 16-byte accumulator rows
+        self.qvals = torch.zeros(E, dtype=q.dtype)
+        self.offs[at] = (ss // K * 16).to(torch.int32)
+        self.qvals[at] = q[ss]
         self._f: dict = {}
-        self._acc = torch.empty(V, 4, dtype=torch.float32)  # the kernel's scratch sums (16-byte rows)
+        self._acc = torch.empty(V + 1, 4, dtype=torch.float32)  # the kernel's scratch: sums of sparse columns (16-byte rows; V: the padding's row)
+        self._wk = torch.empty(P, dtype=torch.int64)  # the light's terms split into dense / sparse
+        self._lw = torch.empty(P, 4, dtype=torch.float32)
+        self._ld = torch.empty(max(self.Pd, 1), 4, dtype=torch.float32)  # the light of each dense slot
+        self._mk = torch.empty(max(self.Pd, 1), dtype=torch.uint8)
+        self._native = None
 
     @property
     def bytes_per_entry(self) -> int:
-        """Bytes the kernel reads per transfer coefficient: an int32 row and the stored value."""
+        """Bytes the kernel reads per sparse transfer coefficient: an int32 row offset and the stored value."""
         return 4 + self.qvals.element_size()
+
+    def bytes_read(self, light_idx: torch.Tensor) -> int:
+        """Transfer bytes a light with these kept terms reads: the selected dense columns (32-vertex
+        blocks, zeros included) and the selected sparse columns' (row, value) pairs (padding included)."""
+        li = light_idx.long()
+        d = self.dslot[li] >= 0
+        b = self.qvals.element_size()
+        ls = li[~d]
+        return int(d.sum()) * self.dense.shape[0] * self.BLOCK * b + int((self.colptr[ls + 1] - self.colptr[ls]).sum()) * (4 + b)
 
     def _factor(self, C: int, albedo: bool) -> torch.Tensor:
         key = (C, albedo)
@@ -311,49 +372,87 @@ class WaveletRelighter:
         return self._f[key]
 
     def touched(self, light_idx: torch.Tensor) -> int:
-        """Transfer coefficients a light with these kept terms reads (Σ_n nnz(column n))."""
-        li = light_idx.long()
-        return int((self.colptr[li + 1] - self.colptr[li]).sum())
+        """Nonzero transfer coefficients a light with these kept terms reads (Σ_n nnz(column n))."""
+        return int(self.nnz[light_idx.long()].sum())
 
     def light(self, spec, terms: int | None = None, selection: str = "transport", supersample: int = 4):
         """:func:`wavelet_light` at this transfer's resolution (``'transport'`` uses :attr:`weights`)."""
         return wavelet_light(spec, self.res, terms, selection, self.weights if selection == "transport" else None,
                              supersample)
 
+    def _kernel(self):
+        """The compiled kernel bound to this transfer's arrays: a function of (N, sel, lv, C, f, out)
+        pointers returning the kernel's status; None without a compiler or with PRT_TORCH_NATIVE=0."""
+        import os
+
+        if os.environ.get("PRT_TORCH_NATIVE", "1") == "0":
+            return None
+        if self._native is None:
+            lib = _wavelet_lib()
+            if lib is None:
+                return None
+            fn = {torch.int8: lib.prt_wavelet_relight_i8, torch.int16: lib.prt_wavelet_relight_i16}.get(
+                self.qvals.dtype, lib.prt_wavelet_relight_f32)
+            # kernels/wavelet.c's wavelet_layout: the arrays' addresses, built once (kept alive by self); dense terms in slot order
+            self._layout = torch.tensor([self.P, self.dense.shape[1], self.V, self.colptr.data_ptr(), self.offs.data_ptr(),
+                                         self.qvals.data_ptr(), self.dslot.data_ptr(), self.dense.data_ptr(),
+                                         self._acc.data_ptr(), self._wk.data_ptr(), self._lw.data_ptr(), self._ld.data_ptr(),
+                                         self._mk.data_ptr()], dtype=torch.int64)
+            lay = self._layout.data_ptr()
+            self._native = lambda N, sel, lv, C, f, out: fn(lay, N, sel, lv, C, f, out)
+        return self._native
+
     def __call__(self, light_idx: torch.Tensor, light_vals: torch.Tensor, out: torch.Tensor | None = None,
                  albedo: bool = True) -> torch.Tensor:
-        li = torch.as_tensor(light_idx).long()
-        lv = torch.as_tensor(light_vals).to(torch.float32)
-        if lv.ndim != 2 or lv.shape[1] != li.numel():
-            raise ValueError(f"light values {tuple(lv.shape)} for {li.numel()} indices; accepted: [C, N]")
-        if li.numel():
-            lo, hi = (int(v) for v in torch.aminmax(li))  # one pass
-            if lo < 0 or hi >= self.P:
-                raise ValueError(f"light indices span {lo}..{hi}; accepted: 0..{self.P - 1} (6R², R={self.res})")
+        li, lv = light_idx, light_vals  # no conversion on the fast path (int64 indices, float32 values)
+        if not (isinstance(li, torch.Tensor) and li.dtype == torch.int64):
+            li = torch.as_tensor(li).long()
+        if not (isinstance(lv, torch.Tensor) and lv.dtype == torch.float32):
+            lv = torch.as_tensor(lv).to(torch.float32)
+        N = li.numel()
+        if lv.ndim != 2 or lv.shape[1] != N or li.ndim != 1:
+            raise ValueError(f"light values {tuple(lv.shape)} for indices {tuple(li.shape)}; accepted: indices [N], values [C, N]")
         C = lv.shape[0]
         o = torch.empty(self.V, C, dtype=torch.float32) if out is None else out
         if o.shape != (self.V, C) or o.dtype != torch.float32 or not o.is_contiguous():
             raise ValueError(f"out {tuple(o.shape)} {o.dtype}; accepted: a contiguous float32 [{self.V}, {C}]")
         f = self._factor(C, albedo)
-        lib = _wavelet_lib() if C <= 4 else None
-        if lib is not None:
-            li = li.contiguous()
-            lvT = lv.T.contiguous()  # [N, C]
-            fn = {torch.int8: lib.prt_wavelet_relight_i8, torch.int16: lib.prt_wavelet_relight_i16}.get(
-                self.qvals.dtype, lib.prt_wavelet_relight_f32)
-            fn(li.numel(), li.data_ptr(), lvT.data_ptr(), C, self.colptr.data_ptr(), self.rows.data_ptr(),
-               self.qvals.data_ptr(), self.V, f.data_ptr(), o.data_ptr(), self._acc.data_ptr())
-            return o
-        o.zero_()
-        starts = self.colptr[li]
-        cnt = self.colptr[li + 1] - starts
+        kern = self._kernel() if C <= 4 else None
+        if kern is not None:
+            li, lv = li.contiguous(), lv.contiguous()
+            if kern(N, li.data_ptr(), lv.data_ptr(), C, f.data_ptr(), o.data_ptr()) == 0:
+                return o
+        self._check_indices(li)
+        return self._torch(li, lv, o).mul_(f)
+
+    def _check_indices(self, li: torch.Tensor) -> None:
+        if li.numel():
+            lo, hi = (int(v) for v in torch.aminmax(li))
+            if lo < 0 or hi >= self.P:
+                raise ValueError(f"light indices span {lo}..{hi}; accepted: 0..{self.P - 1} (6R², R={self.res})")
+
+    def _torch(self, li: torch.Tensor, lv: torch.Tensor, o: torch.Tensor) -> torch.Tensor:
+        """The torch path (no compiler, C > 4, or PRT_TORCH_NATIVE=0): the dense columns as one
+        batched GEMV over the 32-vertex blocks, the sparse ones gathered and added by index."""
+        slot = self.dslot[li]
+        d = slot >= 0
+        if bool(d.any()):
+            blocks = self.dense[:, slot[d]].to(torch.float32)  # [nb, Nd, 32]
+            o.copy_(torch.einsum("bnv,cn->bvc", blocks, lv[:, d]).reshape(-1, lv.shape[0])[:self.V])
+        else:
+            o.zero_()
+        ls, lvs = li[~d], lv[:, ~d]
+        starts = self.colptr[ls]
+        cnt = self.colptr[ls + 1] - starts
         total = int(cnt.sum())
-        if total:  # the torch path (no compiler, or PRT_TORCH_NATIVE=0): gather the columns, one index_add
-            seg = torch.repeat_interleave(torch.arange(li.numel()), cnt)
+        if total:  # gather the sparse columns, one index_add
+            seg = torch.repeat_interleave(torch.arange(ls.numel()), cnt)
             first = torch.cumsum(cnt, 0) - cnt
             pos = starts[seg] + torch.arange(total) - first[seg]
-            o.index_add_(0, self.rows[pos].long(), self.qvals[pos, None].to(torch.float32) * lv.T[seg])
-        return o.mul_(f)
+            r = self.offs[pos].long() // 16
+            keep = r < self.V  # not the padding
+            o.index_add_(0, r[keep], self.qvals[pos[keep], None].to(torch.float32) * lvs.T[seg[keep]])
+        return o
 
 
 _WAVELET: dict = {}
@@ -371,7 +470,7 @@ def _wavelet_lib():
 
         names, flags = LIBRARIES["wavelet"]
         i64, vp = ctypes.c_int64, ctypes.c_void_p
-        sig = [i64, vp, vp, i64, vp, vp, vp, i64, vp, vp, vp]
+        sig = [vp, i64, vp, vp, i64, vp, vp]
         _WAVELET["lib"], _WAVELET["why"] = compile_library("wavelet", kernel_sources(names), list(flags), {
             "prt_wavelet_relight_f32": sig, "prt_wavelet_relight_i8": sig, "prt_wavelet_relight_i16": sig})
     return _WAVELET["lib"]

@@ -26,7 +26,7 @@ import torch
 from .._checks import check_choice, check_int, describe
 from . import layouts as L
 
-__all__ = ["haar2d", "ihaar2d", "check_res", "cube_geometry", "support_solid_angles", "cube_light",
+__all__ = ["haar2d", "ihaar2d", "check_res", "cube_geometry", "support_solid_angles", "haar_levels", "cube_light",
            "select_terms", "SELECTIONS", "DEFAULT_SELECTION", "MAX_HAAR_RES"]
 
 #: largest face resolution accepted (6·128² = 98 304 texels)
@@ -121,6 +121,20 @@ def cube_geometry(res: int, supersample: int = 1) -> tuple[torch.Tensor, torch.T
     d = L.pixel_directions("faces", r, 6 * r)  # [r, 6r, 3]
     om = L.solid_angles("faces", r, 6 * r)  # [r, 6r]
     return d.reshape(r, 6, r, 3).permute(1, 0, 2, 3).contiguous(), om.reshape(r, 6, r).permute(1, 0, 2).contiguous()
+
+
+def haar_levels(res: int) -> torch.Tensor:
+    """The level of every Haar coefficient of the cube at face size ``res``, flat ``[6R²]`` int64
+    (index f·R² + i·R + j, the layout of :func:`haar2d`): 0 for the scaling coefficient of each face,
+    ℓ = floor(log2(max(i, j))) + 1 for the details (1 the coarsest, log2 R the finest): the
+    coefficient covers a block of (R / 2^(ℓ-1))² texels. log2(R) + 1 levels."""
+    res = check_res(res)
+    m = torch.arange(res)
+    m = torch.maximum(m[:, None], m[None, :]).reshape(-1)
+    lev = torch.zeros_like(m)
+    nz = m > 0
+    lev[nz] = torch.floor(torch.log2(m[nz].to(torch.float64))).to(torch.int64) + 1
+    return lev.repeat(6)
 
 
 def support_solid_angles(res: int) -> torch.Tensor:

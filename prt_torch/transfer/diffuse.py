@@ -395,16 +395,13 @@ class HitBounce:
             out[sl] = self.albedo_at(tri[sl], bary[sl])[:, :, None] * x
         return out
 
-    def values(self, caster: RayCaster, tri: np.ndarray, bary: np.ndarray, key_a: np.ndarray, key_b: np.ndarray,
-               level: int = 0) -> torch.Tensor:
-        """``[H, terms - level, C, n²]`` float64: x^k(q), k = 0 .. terms-level-1, for each hit
-        (ρ_q not applied) — the class docstring's estimates, one traced batch per level."""
-        H, depth = tri.shape[0], self.terms - level
+    def _rays(self, caster: RayCaster, tri: np.ndarray, bary: np.ndarray, key_a: np.ndarray, key_b: np.ndarray,
+              level: int, intersect: bool):
+        """The M = :meth:`samples_at` (level) cosine-weighted rays of each hit (class docstring), traced:
+        (directions ``[H·M, 3]`` float64, their hit's row ``[H·M]``, blocked ``bool [H·M]``, and for
+        ``intersect`` the Embree (prim, u, v) of each ray, else None)."""
+        H = tri.shape[0]
         M = self.samples_at(level)
-        n2 = self.bands * self.bands
-        out = torch.zeros(H, depth, self.C, n2, dtype=torch.float64)
-        if H == 0:
-            return out
         ft = self.faces[tri]
         vt = self.vertices
         q = bary[:, :1] * vt[ft[:, 0]] + bary[:, 1:2] * vt[ft[:, 1]] + bary[:, 2:3] * vt[ft[:, 2]]  # [H,3] hit points
@@ -420,29 +417,71 @@ class HitBounce:
         d = (local[..., :1] * fr[:, None, 0] + local[..., 1:2] * fr[:, None, 1] + local[..., 2:3] * fr[:, None, 2]).reshape(-1, 3)
         o = np.repeat(offset_origins(q, n, caster.eps if self.hit_eps is None else self.hit_eps), M, axis=0).astype(np.float32)
         row = np.repeat(np.arange(H), M)
-        if depth > 1:
+        if intersect:
             prim, bu, bv, _ = caster.trace(o, d.astype(np.float32), "intersect")
-            hit = prim != -1
-        else:
-            hit = caster.trace(o, d.astype(np.float32), "occluded")
+            return d, row, prim != -1, (prim, bu, bv)
+        return d, row, caster.trace(o, d.astype(np.float32), "occluded"), None
+
+    def _front_hits(self, d: np.ndarray, hit: np.ndarray, isect, key_a: np.ndarray, key_b: np.ndarray, row: np.ndarray, M: int):
+        """The rays of :meth:`_rays` that meet the front of a triangle, as the next level's hits:
+        (ray indices, triangles, barycentrics ``[R, 3]``, key_a, key_b)."""
+        prim, bu, bv = isect
+        hh = np.nonzero(hit)[0]
+        t2 = prim[hh].astype(np.int64)
+        front = np.einsum("ij,ij->i", self.face_normals.numpy()[t2], d[hh]) < 0
+        hh, t2 = hh[front], t2[front]
+        bary2 = np.stack([1 - bu[hh] - bv[hh], bu[hh], bv[hh]], 1).astype(np.float64)
+        kb2 = key_b[row[hh]].astype(np.uint64) * np.uint64(64) + (hh % M).astype(np.uint64)
+        return hh, t2, bary2, key_a[row[hh]], kb2
+
+    def values(self, caster: RayCaster, tri: np.ndarray, bary: np.ndarray, key_a: np.ndarray, key_b: np.ndarray,
+               level: int = 0) -> torch.Tensor:
+        """``[H, terms - level, C, n²]`` float64: x^k(q), k = 0 .. terms-level-1, for each hit
+        (ρ_q not applied) — the class docstring's estimates, one traced batch per level."""
+        H, depth = tri.shape[0], self.terms - level
+        M = self.samples_at(level)
+        n2 = self.bands * self.bands
+        out = torch.zeros(H, depth, self.C, n2, dtype=torch.float64)
+        if H == 0:
+            return out
+        d, row, hit, isect = self._rays(caster, tri, bary, key_a, key_b, level, depth > 1)
         sel = hit if self.control else ~hit
         Y = eval_sh(torch.from_numpy(d[sel]), self.bands, check=False) / M  # [R_sel, n²]
         x0 = torch.zeros(H, n2, dtype=torch.float64).index_add_(0, torch.from_numpy(row[sel]), Y)
         if self.control:  # the exact unshadowed transfer of the face's hemisphere minus its blocked rays
-            x0 = unshadowed_transfer(torch.from_numpy(n), self.bands) - x0
+            x0 = unshadowed_transfer(torch.from_numpy(self.face_normals.numpy()[tri]), self.bands) - x0
         out[:, 0] = x0[:, None, :]
         if depth > 1:
-            hh = np.nonzero(hit)[0]
-            t2 = prim[hh].astype(np.int64)
-            front = np.einsum("ij,ij->i", self.face_normals.numpy()[t2], d[hh]) < 0
-            hh, t2 = hh[front], t2[front]
-            bary2 = np.stack([1 - bu[hh] - bv[hh], bu[hh], bv[hh]], 1).astype(np.float64)
-            kb2 = key_b[row[hh]].astype(np.uint64) * np.uint64(64) + (hh % M).astype(np.uint64)
-            x2 = self.values(caster, t2, bary2, key_a[row[hh]], kb2, level + 1)  # [R, depth-1, C, n²]
+            hh, t2, bary2, ka2, kb2 = self._front_hits(d, hit, isect, key_a, key_b, row, M)
+            x2 = self.values(caster, t2, bary2, ka2, kb2, level + 1)  # [R, depth-1, C, n²]
             w2 = self.albedo_at(t2, bary2)[:, None, :, None] / M
             out[:, 1:] = torch.zeros(H, depth - 1, self.C, n2, dtype=torch.float64).index_add_(
                 0, torch.from_numpy(row[hh]), w2 * x2)
         return out
+
+    def texel_values(self, caster: RayCaster, tri: np.ndarray, bary: np.ndarray, key_a: np.ndarray, key_b: np.ndarray,
+                     texel_of, level: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The same estimate in a pixel basis (the wavelet kind's bounce; grey, C = 1, plain
+        estimator): Σ_k x^k(q) as sparse triplets (hit row ``[R]``, texel ``[R]``, weight ``[R]``),
+        duplicates to be summed. An open ray of a level-ℓ path adds the path's weight (Π of ρ/M
+        of its earlier hits, 1/M at the first) to the texel ``texel_of(direction)`` holds
+        (``texel_of``: ``[R, 3]`` float64 → int64 ``[R]``): (1/M) Σ_m V(q, s_m) 1[s_m ∈ texel] is
+        the cosine-sampled estimate of (1/π) ∫_texel V(q, s) cos ds."""
+        H, depth = tri.shape[0], self.terms - level
+        if H == 0:
+            e = np.zeros(0, np.int64)
+            return e, e, np.zeros(0)
+        M = self.samples_at(level)
+        d, row, hit, isect = self._rays(caster, tri, bary, key_a, key_b, level, depth > 1)
+        rows, texels, w = [row[~hit]], [texel_of(d[~hit])], [np.full(int((~hit).sum()), 1.0 / M)]
+        if depth > 1:
+            hh, t2, bary2, ka2, kb2 = self._front_hits(d, hit, isect, key_a, key_b, row, M)
+            r2, tx2, w2 = self.texel_values(caster, t2, bary2, ka2, kb2, texel_of, level + 1)
+            rho = self.albedo_at(t2, bary2)[:, 0].numpy()
+            rows.append(row[hh][r2])
+            texels.append(tx2)
+            w.append(w2 * rho[r2] / M)
+        return np.concatenate(rows), np.concatenate(texels), np.concatenate(w)
 
 
 def _check_points(points: Any, normals: Any) -> tuple[torch.Tensor, torch.Tensor]:

@@ -29,7 +29,7 @@ from .glossy import MAX_SAMPLES as MAX_GLOSSY_SAMPLES
 from .mrt import precompute_mrt
 from .tents import MAX_TENTS
 from .transport import MAX_CUBE_RES, precompute_transport
-from .wavelet import BITS, MAX_WAVELET_TERMS, precompute_wavelet
+from .wavelet import BITS, MAX_WAVELET_TERMS, SAMPLINGS, SCALES, precompute_wavelet
 
 __all__ = ["Arg", "TransferKind", "get_kind", "kinds", "register_kind"]
 
@@ -314,16 +314,22 @@ register_kind(TransferKind(
     doc="all-frequency shadowed diffuse transfer as sparse Haar wavelets on a 6xRxR cube (Ng et al. 2003)",
     constraints={
         "res": [Predicate(_is_power_of_two, "a power of two in [1, 128]"), _AUTO],
-        "terms": [Interval(int, 1, MAX_WAVELET_TERMS)], "bits": [Options(*BITS)],
+        "terms": [Interval(int, 1, MAX_WAVELET_TERMS)], "bits": [Options(*BITS)], "scales": [Options(*SCALES)],
         "threshold": [Interval(float, 0, 1, closed="left")], "supersample": [Interval(int, 1, 16)],
+        "sampling": [Options(*SAMPLINGS)], "bounces": [Interval(int, 0, 8)], "hit_samples": [Interval(int, 1, 4096)],
+        "hit_offset": [Interval(float, 0, 0.1)],
         "shadows": [Boolean()] + _SHADOWS, "probe_tol": [Interval(float, 0, 1, closed="left")], "seed": _SEED,
     },
-    args=_args("shadows", "seed") + (
+    args=_args("shadows", "seed", "bounces") + (
+        Arg("--hit-samples", "hit_samples", "rays per bounce hit point (cosine-weighted; a quarter per further bounce)"),
         Arg("--res", "res", "cube face resolution R, a power of two (6 R² texels), or auto (from the lights' energy "
             "above each wavelet level)"),
         Arg("--terms", "terms", "Haar coefficients kept per vertex (the largest), K <= 6 R²"),
-        Arg("--bits", "bits", "stored precision of the kept values: 8 or 16 (integers with a per-vertex scale) or 32 (float)"),
+        Arg("--bits", "bits", "stored precision of the kept values: 8 or 16 (integers with float32 scales) or 32 (float)"),
+        Arg("--scales", "scales", "the integers' scales: level (one per vertex and Haar level; default) or vertex (one per vertex)"),
         Arg("--threshold", "threshold", "drop kept coefficients below this fraction of the vertex's largest"),
         Arg("--supersample", "supersample", "s x s sub-texel rays per texel (1: texel centres)"),
+        Arg("--texel-sampling", "sampling", "grid (sub-texel centres) or jittered (one random point per sub-texel and "
+            "vertex, unbiased; seeded by --seed)", values={"grid": "grid", "jittered": "jittered"}),
     ),
 ))

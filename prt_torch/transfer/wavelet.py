@@ -6,8 +6,13 @@ Per vertex p, the shadowed diffuse transfer in the *pixel basis* of a 6 × R × 
 
     T_p[j] = (1/π) ∫_{texel j} V(p, s) max(n_p·s, 0) ds  ≈ (1/π) Σ_{sub-texels} V max(n·s, 0) Ω_sub
 
-(texel centres, ``supersample`` = 1, or an s × s grid of sub-texels each with its exact solid
-angle), so that exit radiance under a cube light of radiance L_j per texel is
+(``sampling='grid'``: texel centres, ``supersample`` = 1, or an s × s grid of sub-texels each with
+its exact solid angle; ``sampling='jittered'``: one uniformly random point in each of the s × s
+sub-texels, drawn anew for every vertex, weighted by the face's solid-angle density there,
+dω = da db / (1 + a² + b²)^{3/2} = |d_face|³ da db — an unbiased stratified estimate of the
+texel integral, whose error is noise that differs from vertex to vertex instead of the grid's
+deterministic aliasing of edges), so that exit radiance under a cube light of radiance L_j per
+texel is
 
     L_out(p) = ρ_p Σ_j T_p[j] L_j = ρ_p Σ_k T̂_p[k] L̂_k                  (Ng 2003 eq. 1–2)
 
@@ -15,17 +20,24 @@ the second sum over the orthonormal Haar coefficients of both (per face, non-sta
 albedo ρ_p is kept out (``mesh.albedo``), as in the grey diffuse kind. Of the 6R² coefficients a
 vertex keeps its ``terms`` largest in magnitude (a per-row non-linear approximation of the
 transport matrix, Ng 2003 §6), optionally dropping those below ``threshold`` times the row's
-largest, quantised as Ng does (§6: a few bits per value with a per-row scale, 16-bit indices):
-``bits`` = 8 or 16 gives signed integers q with value = q · scale_p (scale_p = max|T̂_p| / (2^(b-1) - 1),
-so the quantisation error of a kept value is at most scale_p / 2, plus the float32 rounding of
-the product); ``bits`` = 32 stores float32.
+largest, quantised as Ng does (§6: a few bits per value with float32 scales, 16-bit indices):
+``bits`` = 8 or 16 gives signed integers q with value = q · scale_{p,ℓ}, one scale per vertex and
+Haar level ℓ (``scales='level'``, the default: scale_{p,ℓ} = max over p's kept values at level ℓ
+of |T̂| / (2^(b-1) - 1); a level's small details no longer round to zero against the vertex's
+largest, coarse value) or one per vertex (``scales='vertex'``); the quantisation error of a kept
+value is at most its scale / 2, plus the float32 rounding of the product; ``bits`` = 32 stores
+float32.
 
 Stored (``Transfer(kind='wavelet')``): ``data [V, K]`` (int8 / int16 / float32 values),
 ``aux['index'] [V, K]`` (int16 where 6R² < 2¹⁵, else int32: flat index f·R² + i·R + j of the
-Haar coefficient), ``aux['scale'] [V]`` float32; ``meta['bytes_per_vertex']`` the stored size.
-No interreflection: the bounce machinery of the diffuse kind works in SH (its hit tables are SH
-vectors); a wavelet bounce would need the hit points' full pixel-basis transfer, which this kind
-does not compute.
+Haar coefficient), ``aux['scale'] [V, log2(R)+1]`` float32 (one per vertex and Haar level,
+:func:`~prt_torch.lighting.haar.haar_levels`; ``scales='vertex'``: ``[V]``); ``meta['bytes_per_vertex']``
+the stored size.
+Interreflection (``bounces`` B > 0, grey meshes): a blocked ray of p (sub-texel j, weight
+w = max(n_p·s, 0) Ω/π) that meets the front of a triangle at q adds w ρ_q Σ_b x^b(q) to T_p,
+x(q) in the pixel basis estimated at q itself with M cosine-weighted rays — (1/M) Σ_m V(q, s_m)
+1[s_m ∈ texel] estimates (1/π)∫_texel V(q, s) cos ds, further bounces recursively — the diffuse
+kind's hit-point estimator (:meth:`prt_torch.transfer.diffuse.HitBounce.texel_values`).
 """
 from __future__ import annotations
 
@@ -37,38 +49,52 @@ import numpy as np
 import torch
 
 from .._checks import check_choice, check_float, check_int, describe
-from ..lighting.haar import MAX_HAAR_RES, check_res, cube_geometry, haar2d
+from ..lighting.haar import MAX_HAAR_RES, check_res, cube_geometry, haar2d, haar_levels
+from ..lighting.layouts import dir_to_pixel, pixel_to_dir
 from ..scene import Mesh, RayCaster
 from .base import RunOptions, Transfer
-from .diffuse import boundary_nudge, offset_origins
+from .diffuse import HIT_OFFSET, HitBounce, boundary_nudge, offset_origins
 from .glossy import decide_shadows, format_bytes, memory_budget
 from .ray_kernels import upper_rays
 
 __all__ = ["precompute_wavelet", "estimate_wavelet_memory", "dense_wavelet_transfer", "sparsify", "quantise", "dequantise",
-           "wavelet_values", "MAX_WAVELET_TERMS", "BITS"]
+           "wavelet_values", "MAX_WAVELET_TERMS", "BITS", "SAMPLINGS", "SCALES"]
 
 MAX_WAVELET_TERMS = 6 * MAX_HAAR_RES * MAX_HAAR_RES
 #: stored precisions: signed integers of 8 or 16 bits with a per-vertex scale, or float32
 BITS = (8, 16, 32)
+#: where the texel integrals are sampled: sub-texel centres, or one random point per sub-texel and vertex
+SAMPLINGS = ("grid", "jittered")
+#: the integers' scales: one per vertex, or one per vertex and Haar level (the default: measured,
+#: reports/benchmarks/wavelet.md "Stored precision")
+SCALES = ("level", "vertex")
+
+
+def _jitter_seed(seed: int, start: int) -> int:
+    """The jitter's seed of the chunk starting at vertex ``start``: fixed by (seed, start), so a
+    resumed or re-chunked run draws the same points for the same chunk."""
+    return (int(seed) * 1_000_003 + int(start)) % (1 << 62)
 
 
 def _index_dtype(P: int) -> torch.dtype:
     return torch.int16 if P <= 32767 else torch.int32
 
 
-def bytes_per_vertex(terms: int, bits: int, P: int) -> int:
-    """Stored bytes of one vertex: K values of ``bits``, K indices (2 or 4 bytes), one float32 scale."""
-    return terms * (bits // 8 + (2 if P <= 32767 else 4)) + 4
+def bytes_per_vertex(terms: int, bits: int, P: int, scales: int = 1) -> int:
+    """Stored bytes of one vertex: K values of ``bits``, K indices (2 or 4 bytes), ``scales`` float32 scales."""
+    return terms * (bits // 8 + (2 if P <= 32767 else 4)) + 4 * scales
 
 
-def estimate_wavelet_memory(V: int, res: int, terms: int, bits: int, supersample: int, chunk: int) -> int:
+def estimate_wavelet_memory(V: int, res: int, terms: int, bits: int, supersample: int, chunk: int,
+                            jittered: bool = False) -> int:
     """Bytes a wavelet precompute holds at its peak: the stored result twice (chunk list and
     assembled tensors) plus one chunk's working set (float64 cosines and weights, float32 rays
-    with their indices, at the sub-texel resolution; float64 Haar coefficients and top-K)."""
+    with their indices, at the sub-texel resolution; float64 Haar coefficients and top-K; jittered:
+    each vertex's own float64 directions, weights and their intermediates)."""
     P = 6 * res * res
     Pf = P * supersample * supersample
     result = 2 * V * bytes_per_vertex(terms, bits, P)
-    work = chunk * (Pf * (8 + 8 + 12 + 12 + 16 + 1) + P * 8 * 3 + terms * 16)
+    work = chunk * (Pf * (8 + 8 + 12 + 12 + 16 + 1 + (120 if jittered else 0)) + P * 8 * 4 + terms * 16)
     return int(result + work + Pf * 40)
 
 
@@ -77,23 +103,39 @@ def _default_chunk(res: int, supersample: int) -> int:
     return int(min(max(8, (1 << 20) // rays), 8192))
 
 
-def quantise(c: torch.Tensor, bits: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Quantise rows of kept coefficients ``c [V, K]`` (float) with one scale per row:
-    ``(q [V, K] int8/int16 — float32 for bits=32, scale [V] float32)``, value = q · scale,
-    scale = max|c| / (2^(bits-1) - 1); |q·scale - c| ≤ scale / 2 (Ng 2003 §6), plus |c|·2⁻²⁴ once
-    the product is formed in float32 (:func:`dequantise`)."""
+def quantise(c: torch.Tensor, bits: int, level: torch.Tensor | None = None, levels: int = 1) -> tuple[torch.Tensor, torch.Tensor]:
+    """Quantise rows of kept coefficients ``c [V, K]`` (float) to signed integers with one scale
+    per row — or, with ``level [V, K]`` (each value's Haar level, :func:`~prt_torch.lighting.haar.haar_levels`),
+    one per row and level (``levels`` of them): ``(q [V, K]`` int8/int16 — float32 for bits=32,
+    ``scale [V]`` or ``[V, levels]`` float32), value = q · scale, scale = max|c| (of the row, or of
+    its values at that level) / (2^(bits-1) - 1); |q·scale - c| ≤ scale / 2 (Ng 2003 §6), plus
+    |c|·2⁻²⁴ once the product is formed in float32 (:func:`dequantise`). A scale per level keeps
+    the fine levels' small details from rounding to zero against the vertex's largest value."""
     bits = check_choice("bits", bits, BITS)
     if bits == 32:
         return c.to(torch.float32), torch.ones(c.shape[0], dtype=torch.float32)
     qmax = (1 << (bits - 1)) - 1
-    top = c.abs().amax(1).to(torch.float64)
-    scale = torch.where(top > 0, top / qmax, torch.ones_like(top)).to(torch.float32)
-    q = torch.round(c.to(torch.float64) / scale.to(torch.float64)[:, None]).clamp_(-qmax, qmax)
-    return q.to(torch.int8 if bits == 8 else torch.int16), scale
+    a = c.abs().to(torch.float64)
+    if level is None:
+        top = a.amax(1)
+        sc = torch.where(top > 0, top / qmax, torch.ones_like(top)).to(torch.float32)
+        per = sc.to(torch.float64)[:, None]
+    else:
+        lev = level.long()
+        top = torch.zeros(c.shape[0], levels, dtype=torch.float64).scatter_reduce_(1, lev, a, "amax")
+        sc = torch.where(top > 0, top / qmax, torch.ones_like(top)).to(torch.float32)
+        per = sc.to(torch.float64).gather(1, lev)
+    q = torch.round(c.to(torch.float64) / per).clamp_(-qmax, qmax)
+    return q.to(torch.int8 if bits == 8 else torch.int16), sc
 
 
-def dequantise(q: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
-    """``q [V, K]`` (any dtype) times ``scale [V]`` → float32 ``[V, K]``."""
+def dequantise(q: torch.Tensor, scale: torch.Tensor, level: torch.Tensor | None = None) -> torch.Tensor:
+    """``q [V, K]`` (any dtype) times ``scale [V]`` — or ``scale [V, L]`` at each value's ``level
+    [V, K]`` — → float32 ``[V, K]``."""
+    if scale.ndim == 2:
+        if level is None:
+            raise ValueError("scale has one column per Haar level; pass level [V, K] (haar_levels of the indices)")
+        return q.to(torch.float32) * scale.to(torch.float32).gather(1, level.long())
     return q.to(torch.float32) * scale.to(torch.float32)[:, None]
 
 
@@ -101,39 +143,103 @@ def wavelet_values(tr: Transfer) -> torch.Tensor:
     """The dequantised Haar coefficients of a wavelet transfer, ``[V, K]`` float32 (albedo out)."""
     if tr.kind != "wavelet":
         raise ValueError(f"transfer kind {tr.kind!r}; accepted: 'wavelet'")
-    return dequantise(tr.data, tr.aux["scale"])
+    sc = tr.aux["scale"]
+    level = haar_levels(int(tr.meta["res"]))[tr.aux["index"].long()] if sc.ndim == 2 else None
+    return dequantise(tr.data, sc, level)
 
 
-def sparsify(H: torch.Tensor, terms: int, bits: int, threshold: float = 0.0) -> dict[str, torch.Tensor]:
+def sparsify(H: torch.Tensor, terms: int, bits: int, threshold: float = 0.0, scales: str = "vertex",
+             res: int | None = None) -> dict[str, torch.Tensor]:
     """Rows of Haar coefficients ``H [k, P]`` (float64) → their ``terms`` largest in magnitude,
-    those below ``threshold`` × the row's largest zeroed, quantised (:func:`quantise`): ``q [k, K]``,
-    ``index [k, K]`` (int16 for P < 2¹⁵, else int32), ``scale [k]``, and per row ``total`` (Σ H²),
-    ``dropped`` (Σ of the dropped H²), ``qerr`` (Σ of the squared quantisation errors), ``nnz``."""
+    those below ``threshold`` × the row's largest zeroed, quantised (:func:`quantise`, ``scales``
+    'vertex' or 'level' — this needs ``res``, the cube's face size): ``q [k, K]``, ``index [k, K]``
+    (int16 for P < 2¹⁵, else int32), ``scale [k]`` or ``[k, log2(R)+1]``, and per row ``total``
+    (Σ H²), ``dropped`` (Σ of the dropped H²), ``qerr`` (Σ of the squared quantisation errors), ``nnz``."""
     P = H.shape[1]
+    scales = check_choice("scales", scales, SCALES)
     total = H.double().square().sum(1)
     top = H.abs().topk(terms, dim=1)
     kept = H.gather(1, top.indices).double()
     if threshold > 0:
         kept = torch.where(kept.abs() >= threshold * top.values[:, :1].double(), kept, torch.zeros_like(kept))
-    q, scale = quantise(kept, bits)
-    err = (kept - dequantise(q, scale).double()).square().sum(1)
+    level, n_lev = None, 1
+    if scales == "level" and bits != 32:
+        if res is None:
+            raise ValueError("sparsify with scales='level' needs res (the cube's face size)")
+        lv = haar_levels(res)
+        level, n_lev = lv[top.indices], int(lv.max()) + 1
+    q, scale = quantise(kept, bits, level, n_lev)
+    err = (kept - dequantise(q, scale, level).double()).square().sum(1)
     return {"q": q, "index": top.indices.to(_index_dtype(P)), "scale": scale, "total": total,
             "dropped": (total - kept.square().sum(1)).clamp_min(0), "qerr": err, "nnz": (q != 0).sum(1).to(torch.int32)}
 
 
+def _jittered_samples(res: int, s: int, k: int, gen: torch.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Per-vertex jittered samples (module docstring): one uniform point in each of the 6·(Rs)²
+    sub-texels of the ``faces`` cube for each of ``k`` vertices, in the texel order of
+    :func:`~prt_torch.lighting.haar.cube_geometry` — directions ``[k, Pf, 3]`` float64 and weights
+    ``[k, Pf]`` (the sub-texel's parameter area (2/(Rs))² times the solid-angle density |d_face|³)."""
+    r = res * s
+    u = torch.rand(k, 2, r, 6 * r, generator=gen, dtype=torch.float64)  # vertex by vertex: a vertex's points do not depend on k
+    y = torch.arange(r, dtype=torch.float64)[None, :, None] + u[:, 0]
+    x = torch.arange(6 * r, dtype=torch.float64)[None, None, :] + u[:, 1]
+    d, _ = pixel_to_dir("faces", r, 6 * r, y, x)  # [k, r, 6r, 3] (the faces strip: 6 tiles of r x r)
+    d = d.reshape(k, r, 6, r, 3).permute(0, 2, 1, 3, 4).reshape(k, -1, 3)
+    w = (2.0 / r) ** 2 * d.abs().amax(-1) ** 3
+    return d.contiguous().numpy(), w.numpy()
+
+
+def _texel_of(res: int):
+    """Directions ``[R, 3]`` float64 → the flat index f·R² + i·R + j of the cube texel holding each
+    (the ``faces`` layout of :func:`~prt_torch.lighting.haar.cube_geometry`)."""
+    def f(d: np.ndarray) -> np.ndarray:
+        y, x = dir_to_pixel("faces", res, 6 * res, torch.from_numpy(d))
+        face = torch.div(x, res, rounding_mode="floor").long()
+        return (face * res * res + y.long() * res + (x.long() - face * res)).numpy()
+    return f
+
+
+def _bounce(caster: RayCaster, hits: HitBounce, k: int, res: int, i: np.ndarray, j: np.ndarray, d: np.ndarray,
+            prim: np.ndarray, bu: np.ndarray, bv: np.ndarray, w: np.ndarray, ids: np.ndarray) -> np.ndarray:
+    """Interreflected pixel-basis transfer of a chunk's k vertices, ``[k, 6R²]`` float64: every
+    primary ray (vertex row ``i``, sub-texel ``j``, direction ``d``, weight ``w`` = cos·Ω/π) that
+    meets the front of a triangle brings ρ_q Σ_b x^b(q) from its hit q in the pixel basis
+    (:meth:`~prt_torch.transfer.diffuse.HitBounce.texel_values`: the diffuse kind's hit-point
+    estimator, B = ``hits.terms`` bounces), in batches of about 2¹⁸ secondary rays."""
+    P = 6 * res * res
+    out = np.zeros(k * P)
+    hh = np.nonzero(prim != -1)[0]
+    tri = prim[hh].astype(np.int64)
+    front = np.einsum("ij,ij->i", hits.face_normals.numpy()[tri], d[hh].astype(np.float64)) < 0
+    hh, tri = hh[front], tri[front]
+    texel_of = _texel_of(res)
+    step = max(1, (1 << 18) // hits.M)
+    for a in range(0, hh.shape[0], step):  # a loop over hit batches, each one traced batch
+        h, t = hh[a:a + step], tri[a:a + step]
+        bary = np.stack([1 - bu[h] - bv[h], bu[h], bv[h]], 1).astype(np.float64)
+        r, tx, wt = hits.texel_values(caster, t, bary, ids[i[h]].astype(np.uint64), j[h].astype(np.uint64), texel_of)
+        rho = hits.albedo_at(t, bary)[:, 0].numpy()
+        np.add.at(out, i[h][r] * P + tx, w[h][r] * rho[r] * wt)
+    return out.reshape(k, P)
+
+
 def _pixel_transfer(caster: RayCaster | None, points: torch.Tensor, normals: torch.Tensor, nudge: torch.Tensor | None,
-                    dirs_f: np.ndarray, dirs32: np.ndarray, omega_f: np.ndarray, res: int, s: int,
-                    eps: float, work: dict) -> tuple[torch.Tensor, int]:
+                    dirs_f: np.ndarray, dirs32: np.ndarray | None, omega_f: np.ndarray, res: int, s: int,
+                    eps: float, work: dict, hits: HitBounce | None = None, ids: np.ndarray | None = None) -> tuple[torch.Tensor, int]:
     """Pixel-basis transfer of k vertices, ``[k, 6, R, R]`` float64 (module docstring), and the
     number of rays traced. One masked pass per chunk: cosines ``[k, Pf]``, the rays above each
-    tangent plane (:func:`prt_torch.transfer.ray_kernels.upper_rays`), one occlusion batch."""
+    tangent plane (:func:`prt_torch.transfer.ray_kernels.upper_rays`), one occlusion batch.
+    ``dirs_f [Pf, 3]`` / ``omega_f [Pf]`` shared by every vertex (the grid), or per vertex
+    ``[k, Pf, 3]`` / ``[k, Pf]`` (jittered; ``dirs32`` None). ``hits``: add the interreflected
+    light (:func:`_bounce`; ``ids`` the vertices' global ids, the bounce rays' keys)."""
     k = points.shape[0]
-    cos = normals.numpy() @ dirs_f.T  # [k, Pf] float64
+    per_vertex = dirs_f.ndim == 3
+    cos = np.einsum("kd,kpd->kp", normals.numpy(), dirs_f) if per_vertex else normals.numpy() @ dirs_f.T  # [k, Pf] float64
     rays = 0
     if caster is not None:
         o_v = offset_origins(points.numpy(), normals.numpy(), eps,
                              None if nudge is None else nudge.numpy()).astype(np.float32)
-        fused = upper_rays(cos, o_v, dirs32, work=work)
+        fused = None if per_vertex else upper_rays(cos, o_v, dirs32, work=work)
         if fused is not None:
             i, j, o, d = fused
         else:
@@ -142,33 +248,52 @@ def _pixel_transfer(caster: RayCaster | None, points: torch.Tensor, normals: tor
             i = np.repeat(np.arange(k), counts)
             j = np.flatnonzero(up) - i * up.shape[1]
             o = np.repeat(o_v, counts, axis=0)
-            d = np.take(dirs32, j, axis=0)
-        hit = caster.trace(o, d, "occluded")
+            d = dirs_f[i, j].astype(np.float32) if per_vertex else np.take(dirs32, j, axis=0)
+        if hits is not None:
+            prim, bu, bv, _ = caster.trace(o, d, "intersect")
+            hit = prim != -1
+        else:
+            hit = caster.trace(o, d, "occluded")
         rays = int(i.shape[0])
     W = np.maximum(cos, 0.0, out=cos)
-    W *= omega_f[None, :] * (1.0 / math.pi)
+    W *= (omega_f if per_vertex else omega_f[None, :]) * (1.0 / math.pi)
+    B = None
     if caster is not None:
-        W.reshape(-1)[(i * W.shape[1] + j)[hit]] = 0.0  # blocked directions
+        flat = i * W.shape[1] + j
+        if hits is not None:
+            B = _bounce(caster, hits, k, res, i, j, d, prim, bu, bv, W.reshape(-1)[flat], ids)
+        W.reshape(-1)[flat[hit]] = 0.0  # blocked directions
     T = torch.from_numpy(W).reshape(k, 6, res, s, res, s).sum((3, 5)) if s > 1 else torch.from_numpy(W).reshape(k, 6, res, res)
+    if B is not None:
+        T = T + torch.from_numpy(B).reshape(k, 6, res, res)
     return T, rays
 
 
 def dense_wavelet_transfer(mesh: Mesh, res: int, *, supersample: int = 1, shadows: bool = True, offset: float = 1e-4,
-                           vertices: Any = None, haar: bool = True) -> torch.Tensor:
+                           vertices: Any = None, haar: bool = True, sampling: str = "grid", seed: int = 0, bounces: int = 0,
+                           hit_samples: int = 16, hit_offset: float | None = HIT_OFFSET) -> torch.Tensor:
     """The full (all 6R² terms, unquantised) transfer of the vertices ``vertices`` (default all),
     ``[k, 6, R, R]`` float64 — Haar coefficients (``haar``) or the pixel basis; the same rays as
-    :func:`precompute_wavelet`. For references and tests on a few vertices."""
+    :func:`precompute_wavelet` (``sampling`` 'grid' or 'jittered' with ``seed``: the jitter of the
+    vertices' first chunk there; ``bounces``, ``hit_samples``, ``hit_offset`` as there). For
+    references and tests on a few vertices."""
     res = check_res(res)
+    sampling = check_choice("sampling", sampling, SAMPLINGS)
     idx = torch.arange(mesh.num_vertices) if vertices is None else torch.as_tensor(vertices, dtype=torch.int64)
-    d, om = cube_geometry(res, supersample)
-    dirs_f = np.ascontiguousarray(d.reshape(-1, 3).numpy())
+    if sampling == "jittered":
+        dirs_f, om_f = _jittered_samples(res, supersample, idx.numel(), torch.Generator().manual_seed(_jitter_seed(seed, 0)))
+        dirs32 = None
+    else:
+        d, om = cube_geometry(res, supersample)
+        dirs_f = np.ascontiguousarray(d.reshape(-1, 3).numpy())
+        dirs32, om_f = dirs_f.astype(np.float32), np.ascontiguousarray(om.reshape(-1).numpy())
     nudge = boundary_nudge(mesh)[idx]
+    hits = _hit_bounce(mesh, bounces, hit_samples, hit_offset, seed) if shadows else None
     caster = RayCaster(mesh, workers=1, offset=offset) if shadows else None
     try:
         T, _ = _pixel_transfer(caster, mesh.vertices[idx].to(torch.float64), mesh.normals[idx].to(torch.float64),
-                               nudge if bool(nudge.any()) else None, dirs_f, dirs_f.astype(np.float32),
-                               np.ascontiguousarray(om.reshape(-1).numpy()), res, supersample,
-                               0.0 if caster is None else caster.eps, {})
+                               nudge if bool(nudge.any()) else None, dirs_f, dirs32, om_f, res, supersample,
+                               0.0 if caster is None else caster.eps, {}, hits, idx.numpy())
     finally:
         if caster is not None:
             caster.close()
@@ -181,8 +306,13 @@ def precompute_wavelet(
     terms: int = 256,
     bits: int = 8,
     *,
+    scales: str = "level",
     threshold: float = 0.0,
     supersample: int = 1,
+    sampling: str = "grid",
+    bounces: int = 0,
+    hit_samples: int = 16,
+    hit_offset: float | None = HIT_OFFSET,
     shadows: bool | str = "auto",
     probe_tol: float = 1e-3,
     seed: int = 0,
@@ -194,18 +324,28 @@ def precompute_wavelet(
         mesh: the scene.
         res: cube face resolution R, a power of two in [1, 128] (6R² texels).
         terms: K, coefficients kept per vertex (the largest in magnitude), in [1, 6R²].
-        bits: stored precision of the kept values: 8 or 16 (integers with a per-vertex scale,
+        bits: stored precision of the kept values: 8 or 16 (integers with float32 scales,
             Ng 2003 §6) or 32 (float32).
+        scales: the integers' scales: 'level' (one per vertex and Haar level, log2(R)+1 of them:
+            the default, measured — 8 bits then reach 0.55% where one scale per vertex floors at
+            1.8%, reports/benchmarks/wavelet.md) or 'vertex' (one per vertex).
         threshold: also drop kept coefficients below ``threshold`` × the vertex's largest
             (stored as zeros; ``meta['nonzero_per_vertex']``), in [0, 1).
         supersample: s, visibility and cosine on an s × s grid of sub-texels per texel (each
             with its exact solid angle); 1 = texel centres.
+        sampling: 'grid' (sub-texel centres) or 'jittered' (one random point per sub-texel,
+            drawn per vertex from ``seed`` and the chunk; module docstring).
+        bounces: B, interreflection: each blocked ray's front hit q brings ρ_q Σ_b x^b(q) in the
+            pixel basis, x estimated at q with ``hit_samples`` cosine-weighted rays (a quarter of
+            that per further bounce; :class:`~prt_torch.transfer.diffuse.HitBounce`, the diffuse
+            kind's hit-point estimator); rays leave q from ``hit_offset`` × the diagonal. Needs a
+            grey mesh (the transfer stays one channel, the albedo of p kept out). 0 = direct only.
         shadows: 'auto' (probe self-occlusion first), 'always'/True, 'never'/False.
-        seed: the probe's seed.
+        seed: the probe's seed, and the jitter's.
         run: :class:`RunOptions` (chunks — default about 2²⁰ rays —, workers, offset, memory
             limit, resumable state, progress, executor).
     Returns:
-        ``Transfer(kind='wavelet')``: ``data [V, K]``, ``aux['index'] [V, K]``, ``aux['scale'] [V]``.
+        ``Transfer(kind='wavelet')``: ``data [V, K]``, ``aux['index'] [V, K]``, ``aux['scale'] [V, L]`` (or ``[V]``).
     Raises:
         ValueError before any ray: R not a power of two, K out of range, or the memory estimate
         (:func:`estimate_wavelet_memory`) above ``run.max_memory`` (default 60% of RAM).
@@ -217,18 +357,24 @@ def precompute_wavelet(
     P = 6 * res * res
     terms = check_int("terms", terms, 1, P)
     bits = check_choice("bits", bits, BITS)
+    scales = check_choice("scales", scales, SCALES)
+    n_scales = int(math.log2(res)) + 1 if scales == "level" and bits != 32 else 1
     threshold = check_float("threshold", threshold, 0.0, 1.0, hi_open=True)
     s = check_int("supersample", supersample, 1, 16)
+    sampling = check_choice("sampling", sampling, SAMPLINGS)
+    bounces = check_int("bounces", bounces, 0, 8)
+    hit_samples = check_int("hit_samples", hit_samples, 1, 4096)
     V = mesh.num_vertices
     chunk_size = run.chunks(_default_chunk(res, s))
-    need = estimate_wavelet_memory(V, res, terms, bits, s, min(chunk_size, max(V, 1)))
+    need = estimate_wavelet_memory(V, res, terms, bits, s, min(chunk_size, max(V, 1)), sampling == "jittered")
     budget = memory_budget(run.max_memory)
     if need > budget:
         raise ValueError(f"wavelet transfer of {V} vertices at res={res} (6x{res}x{res} texels, supersample {s}) with "
                          f"{terms} terms needs about {format_bytes(need)}, more than the budget {format_bytes(budget)}; "
                          "accepted: a smaller res, fewer terms, a smaller chunk_size or mesh, or a larger memory limit")
+    hits = _hit_bounce(mesh, bounces, hit_samples, hit_offset, seed)  # refuses a coloured mesh before any ray
     t0 = time.perf_counter()
-    traced, shadow_meta = decide_shadows(mesh, shadows, seed, run, probe_tol)
+    traced, shadow_meta = decide_shadows(mesh, "always" if bounces else shadows, seed, run, probe_tol)
     d, om = cube_geometry(res, s)
     dirs_f = np.ascontiguousarray(d.reshape(-1, 3).numpy())
     dirs32 = dirs_f.astype(np.float32)
@@ -240,16 +386,23 @@ def precompute_wavelet(
     work: dict = {}
 
     def compute(a: int, b: int) -> dict[str, torch.Tensor]:
+        if sampling == "jittered":
+            d_f, om_f = _jittered_samples(res, s, b - a, torch.Generator().manual_seed(_jitter_seed(seed, a)))
+            d32 = None
+        else:
+            d_f, d32, om_f = dirs_f, dirs32, omega_f
         T, rays = _pixel_transfer(caster, points[a:b], normals[a:b], None if nudge is None else nudge[a:b],
-                                  dirs_f, dirs32, omega_f, res, s, 0.0 if caster is None else caster.eps, work)
+                                  d_f, d32, om_f, res, s, 0.0 if caster is None else caster.eps, work, hits, np.arange(a, b))
         # Haar in float32: the stored values carry at most 16 bits (float32 for bits=32), the
         # transform's rounding (~1e-7 relative) is far below; half the memory traffic of float64
-        out = sparsify(haar2d(T.to(torch.float32)).reshape(b - a, P), terms, bits, threshold)
+        out = sparsify(haar2d(T.to(torch.float32)).reshape(b - a, P), terms, bits, threshold, scales, res)
         out["rays"] = torch.tensor([rays], dtype=torch.int64)
         return out
 
-    fingerprint = {"kind": "wavelet", "mesh_hash": mesh.content_hash(), "res": res, "terms": terms, "bits": bits,
-                   "threshold": threshold, "supersample": s, "shadows": traced, "offset": run.offset}
+    fingerprint = {"kind": "wavelet", "mesh_hash": mesh.content_hash(), "res": res, "terms": terms, "bits": bits, "scales": scales,
+                   "threshold": threshold, "supersample": s, "sampling": sampling, "seed": seed if sampling == "jittered" or bounces else None,
+                   "bounces": bounces, "hit_samples": hit_samples if bounces else None, "hit_offset": hit_offset if bounces else None,
+                   "shadows": traced, "offset": run.offset}
     try:
         parts = run.run_chunks(V, chunk_size, compute, fingerprint=fingerprint, desc=f"wavelet {mesh.name}",
                                rays_of=lambda r: int(r["rays"].sum()))
@@ -262,16 +415,21 @@ def precompute_wavelet(
     lit = total > 0
     meta: dict[str, Any] = {
         "res": res, "texels": P, "terms": terms, "bits": bits, "threshold": threshold, "supersample": s,
-        "offset": run.offset, "albedo_folded": False, "channels": 1, "bounces_used": 0,
-        "bounce_decision": "no interreflection: the wavelet kind is direct (shadowed) transfer only",
-        "bytes_per_vertex": bytes_per_vertex(terms, bits, P),
+        "sampling": sampling if sampling == "grid" else f"jittered (seed {seed}; one random point per sub-texel and vertex)",
+        "offset": run.offset, "albedo_folded": False, "channels": 1, "bounces_used": bounces,
+        "bounce_decision": (f"{bounces} bounce(s) estimated at each blocked ray's hit point with {hit_samples} cosine-weighted "
+                            "rays (HitBounce, pixel basis)") if bounces else "no interreflection (bounces=0): direct (shadowed) transfer",
+        "hit_samples": hit_samples if bounces else None, "hit_offset": hit_offset if bounces else None,
+        "scales": scales if bits != 32 else "none (float32 values)",
+        "bytes_per_vertex": bytes_per_vertex(terms, bits, P, n_scales),
         "bytes_per_vertex_dense": P * 4,
         "index_dtype": str(_index_dtype(P)).replace("torch.", ""),
         "nonzero_per_vertex": float(cat["nnz"].float().mean()),
         "truncation_rel_l2_mean": float(rel(dropped)[lit].mean()) if bool(lit.any()) else 0.0,
         "truncation_rel_l2_max": float(rel(dropped)[lit].max()) if bool(lit.any()) else 0.0,
         "quantisation_rel_l2_max": float(rel(qerr)[lit].max()) if bool(lit.any()) else 0.0,
-        "quantisation_bound": "per kept value |error| <= scale/2 + |value| 2^-24 (aux.scale per vertex)",
+        "quantisation_bound": "per kept value |error| <= scale/2 + |value| 2^-24 (aux.scale per vertex"
+                              + (", column = the value's Haar level)" if n_scales > 1 else ")"),
         "rays_traced": int(cat["rays"].sum()), "chunk_size": chunk_size, "memory_estimate_bytes": need,
         "layout": "Haar coefficients of the faces cube (+x,-x,+y,-y,+z,-z), index f*R*R + i*R + j after haar2d per face",
         "normalisation": "exit radiance L_out[v] = albedo[v] * sum_k data[v,k]*scale[v] * Lhat[index[v,k]], Lhat = haar2d of "
@@ -283,6 +441,17 @@ def precompute_wavelet(
     run.finish()
     return Transfer("wavelet", cat["q"].contiguous(), mesh, meta,
                     aux={"index": cat["index"].contiguous(), "scale": cat["scale"].contiguous()})
+
+
+def _hit_bounce(mesh: Mesh, bounces: int, hit_samples: int, hit_offset: float | None, seed: int) -> HitBounce | None:
+    """The diffuse kind's hit-point bounce estimator for ``bounces`` > 0 (grey meshes only: the
+    wavelet transfer is one channel with the albedo of p kept out), else None."""
+    if not bounces:
+        return None
+    if not mesh.is_grey():
+        raise ValueError(f"bounces={bounces} with the coloured mesh {mesh.name!r}: the wavelet transfer is one grey channel; "
+                         "accepted: bounces=0, or a grey mesh (equal albedo channels)")
+    return HitBounce(mesh, 1, hit_samples, seed, bounces, 1, hit_offset, "plain")
 
 
 def _workers(run: RunOptions, V: int, Pf: int) -> int:

@@ -88,7 +88,8 @@ def format_report(rep: dict[str, Any]) -> str:
     out = [f"{rep['scene']}: {rep['vertices']} vertices ({rep['sharp_vertices']} sharp ≥ {rep['sharp_deg']:g}°), "
            f"bounces {rep['bounces']}, light {rep['light']} ({rep['light_source']}), Mitsuba {rep['spp']} spp, "
            f"engine {rep['samples']} directions, no scale fit"]
-    out.append(line("direct", rep["direct"]) + f"   rms rel {rep['direct_rms_rel']:.4f}")
+    if rep.get("direct") is not None:  # a wavelet transfer with bounces is compared in total only
+        out.append(line("direct", rep["direct"]) + f"   rms rel {rep['direct_rms_rel']:.4f}")
     for k, label in (("inter", "interreflected"), ("inter_sharp", "interreflected, sharp"), ("inter_smooth", "interreflected, rest")):
         if k in rep:
             out.append(line(label, rep[k]))

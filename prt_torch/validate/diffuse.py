@@ -297,9 +297,10 @@ def validate_wavelet(transfer: Transfer, light: Any, name: str, src_img: np.ndar
     """Shadowed diffuse exit radiance of a wavelet transfer (Ng et al. 2003; every Haar term of
     the light on the transfer's cube, :class:`prt_torch.relight.WaveletRelighter`) against
     Mitsuba 3 path tracing under the environment's *original* image ``src_img`` (not band-limited,
-    Mitsuba's lat-long grid), direct light only (the kind has no interreflection), at ``vertices``
-    sampled vertices (or ``idx``); no scale fit. The engine's error is the cube's: its R and the
-    transfer's kept terms and quantisation."""
+    Mitsuba's lat-long grid), at ``vertices`` sampled vertices (or ``idx``); no scale fit: direct
+    light only, or with the transfer's B bounces (``meta['bounces_used']``) against Mitsuba's path
+    depth 1 + B (``'total'``). The engine's error is the cube's (its R, the transfer's kept terms
+    and quantisation) and, with bounces, the hit-point estimator's noise."""
     from ..relight import WaveletRelighter
 
     mesh = transfer.mesh
@@ -312,17 +313,21 @@ def validate_wavelet(transfer: Transfer, light: Any, name: str, src_img: np.ndar
     eng = eng.expand(-1, 3) if eng.shape[1] == 1 else eng
     eps = float(transfer.meta.get("offset", 1e-4)) * float(np.linalg.norm(mesh.vertices.numpy().max(0) - mesh.vertices.numpy().min(0)))
     rho = mesh.albedo.to(torch.float64)[idx]
-    mit = mitsuba_exit_radiance(mesh, mesh.vertices[idx], mesh.normals[idx], src_img, [1], spp, batches, eps, seed, rho,
+    B = int(transfer.meta.get("bounces_used", 0) or 0)
+    mit = mitsuba_exit_radiance(mesh, mesh.vertices[idx], mesh.normals[idx], src_img, [1 + B], spp, batches, eps, seed, rho,
                                 boundary_nudge(mesh)[idx])
     m, m_se = mit["radiance"][0], mit["radiance_se"][0]
     zero = torch.zeros_like(eng)
-    direct = ratio(eng, zero, m, m_se, 0.0)
+    total = ratio(eng, zero, m, m_se, 0.0)
     return {
-        "scene": mesh.name, "kind": "wavelet", "vertices": int(idx.numel()), "bounces": 0, "bands": None, "light": name,
+        "scene": mesh.name, "kind": "wavelet", "vertices": int(idx.numel()), "bounces": B, "bands": None, "light": name,
         "light_source": "image", "spp": int(spp), "batches": int(batches), "samples": 6 * r.res * r.res,
         "res": r.res, "terms": int(transfer.meta.get("terms", transfer.data.shape[1])), "bits": transfer.meta.get("bits"),
         "light_record": rec, "sharp_deg": 0.0, "sharp_vertices": 0, "mitsuba_variant": VARIANT, "eps": eps,
-        "direct": direct, "total": direct, "direct_rms_rel": rms_rel(eng, m),
+        "mitsuba_max_depth": 1 + B,
+        # without bounces the whole result is the direct light; with B bounces Mitsuba's path depth 1 + B is the total
+        "direct": total if B == 0 else None, "total": total, "direct_rms_rel": rms_rel(eng, m) if B == 0 else None,
+        "total_rms_rel": rms_rel(eng, m),
         "per_vertex": {"index": idx.tolist(), "engine_direct": eng.tolist(), "mitsuba_direct": m.tolist(),
                        "mitsuba_direct_se": m_se.tolist()},
     }
