@@ -28,6 +28,8 @@ from .glossy import MAX_GLOSSY_BANDS, precompute_glossy
 from .glossy import MAX_SAMPLES as MAX_GLOSSY_SAMPLES
 from .mrt import precompute_mrt
 from .tents import MAX_TENTS
+from .subsurface import PRESETS as SSS_PRESETS
+from .subsurface import material_from_spec, precompute_subsurface
 from .transport import MAX_CUBE_RES, precompute_transport
 from .wavelet import BITS, MAX_WAVELET_TERMS, precompute_wavelet
 
@@ -325,5 +327,48 @@ register_kind(TransferKind(
         Arg("--bits", "bits", "stored precision of the kept values: 8 or 16 (integers with a per-vertex scale) or 32 (float)"),
         Arg("--threshold", "threshold", "drop kept coefficients below this fraction of the vertex's largest"),
         Arg("--supersample", "supersample", "s x s sub-texel rays per texel (1: texel centres)"),
+    ),
+))
+
+
+def _is_material(v: Any) -> bool:
+    material_from_spec(v)
+    return True
+
+
+def _is_rgb(v: Any) -> bool:
+    import math
+
+    vals = [v] if isinstance(v, (int, float)) and not isinstance(v, bool) else v
+    return (isinstance(vals, (list, tuple)) and len(vals) in (1, 3)
+            and all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) and x >= 0 for x in vals))
+
+
+_MATERIAL = [Predicate(_is_material, f"a measured material of Jensen et al. 2001 ({', '.join(sorted(SSS_PRESETS))}) or "
+                       "{sigma_a: [R,G,B], sigma_s: [R,G,B], eta: E} (mm^-1)"), None]
+_RGB = [Predicate(_is_rgb, "R,G,B (or one number), each finite and >= 0, in mm^-1"), None]
+
+register_kind(TransferKind(
+    name="subsurface", function=precompute_subsurface,
+    doc="subsurface scattering term alone (dipole of Jensen 2001, hierarchy of Jensen & Buhler 2002, SH lighting as "
+    "Sloan 2003 §3.1): diffuse transfer [V,3,n²], colour folded",
+    constraints={
+        "material": _MATERIAL, "scale": [Interval(float, 0, None, closed="neither")],
+        "bands": [Interval(int, 1, MAX_DIFFUSE_BANDS)], "samples": [Interval(int, 1, MAX_SAMPLES)],
+        "bounces": [Interval(int, 0, MAX_BOUNCES)], "seed": _SEED, "shadows": _SHADOWS,
+        "sigma_a": _RGB, "sigma_s": _RGB, "eta": [Interval(float, 0, None, closed="neither"), None],
+        "epsilon": [Interval(float, 0, None, closed="neither")], "fresnel": [Boolean()],
+        "method": [Options("hierarchical", "brute")],
+    },
+    args=_args("bands", "samples", "bounces", "seed", "shadows") + (
+        Arg("--material", "material", f"measured material (Jensen et al. 2001): {', '.join(sorted(SSS_PRESETS))}"),
+        Arg("--sigma-a", "sigma_a", "absorption coefficient R,G,B in mm^-1 (with --sigma-s; instead of --material)"),
+        Arg("--sigma-s", "sigma_s", "reduced scattering coefficient sigma_s' R,G,B in mm^-1 (with --sigma-a)"),
+        Arg("--eta", "eta", "relative index of refraction (with --sigma-a/--sigma-s; default 1.3)"),
+        Arg("--scale", "scale", "mm per mesh unit: the mesh's units decide how far light travels under the surface"),
+        Arg("--epsilon", "epsilon", "the hierarchy's solid-angle threshold A/d^2 (default 0.05: <= 1% from the O(V^2) sum)"),
+        Arg("--sss-method", "method", "hierarchical (Jensen & Buhler 2002, default) or brute (the O(V^2) sum)",
+            values={"hierarchical": "hierarchical", "brute": "brute"}),
+        Arg("--no-fresnel", "fresnel", "leave out the Fresnel transmittance F_dt at entry and exit", const=False),
     ),
 ))
