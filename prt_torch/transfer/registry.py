@@ -29,7 +29,7 @@ from .glossy import MAX_SAMPLES as MAX_GLOSSY_SAMPLES
 from .mrt import precompute_mrt
 from .tents import MAX_TENTS
 from .subsurface import PRESETS as SSS_PRESETS
-from .subsurface import material_from_spec, precompute_subsurface
+from .subsurface import check_term_spec, material_from_spec, precompute_subsurface
 from .transport import MAX_CUBE_RES, precompute_transport
 from .wavelet import BITS, MAX_WAVELET_TERMS, precompute_wavelet
 
@@ -228,6 +228,8 @@ register_kind(TransferKind(
         "probe_tol": [Interval(float, 0, 1, closed="left")],
         "bounce_points": [Options("hits", "vertices")], "hit_samples": [Interval(int, 1, 1024)],
         "hit_offset": [Interval(float, 0, 0.1)],
+        "subsurface": [Predicate(lambda v: _is_sss_term(v), "{material: NAME or {sigma_a, sigma_s, eta}, scale: MM_PER_UNIT} "
+                                 "(optional epsilon, fresnel)"), None],
     },
     args=_args("bands", "samples", "bounces", "seed", "shadows") + (
         Arg("--estimator", "estimator", "auto (default): per vertex the control variate where at least half its rays are "
@@ -329,6 +331,11 @@ register_kind(TransferKind(
         Arg("--supersample", "supersample", "s x s sub-texel rays per texel (1: texel centres)"),
     ),
 ))
+
+
+def _is_sss_term(v: Any) -> bool:
+    check_term_spec(v)
+    return True
 
 
 def _is_material(v: Any) -> bool:

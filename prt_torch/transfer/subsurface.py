@@ -61,7 +61,7 @@ from .base import RunOptions, Transfer
 __all__ = [
     "Material", "PRESETS", "material_from_spec", "resolve_material", "published_rd", "fresnel_dr", "vertex_areas", "dipole_rd", "dipole_rd_within",
     "SampleTree", "scatter_brute", "scatter_hierarchical", "subsurface_term", "precompute_subsurface",
-    "check_closed", "check_scale", "DEFAULT_EPSILON",
+    "check_closed", "check_scale", "check_term_spec", "add_term", "DEFAULT_EPSILON",
 ]
 
 #: default solid-angle threshold ΔΩ = A_node/d² of the hierarchy; measured against the O(V²)
@@ -279,7 +279,8 @@ def scatter_brute(receivers: torch.Tensor, points: torch.Tensor, areas: torch.Te
     p32 = p.to(torch.float32)
     for a in range(0, x.shape[0], chunk):  # chunks of receivers, each one batched GEMM
         xs = x[a:a + chunk]
-        K = dipole_rd(torch.cdist(xs.to(torch.float32), p32), m).to(torch.float64)  # [c, S, 3], kernel in float32 as the hierarchy's
+        # distances directly (not |x|²+|y|²−2x·y, which loses the near field to cancellation), kernel in float32 as the hierarchy's
+        K = dipole_rd(torch.cdist(xs.to(torch.float32), p32, compute_mode="donot_use_mm_for_euclid_dist"), m).to(torch.float64)
         if receiver_ids is not None:
             rid = receiver_ids[a:a + chunk].to(torch.int64)
             ok = torch.nonzero(rid >= 0).squeeze(1)
@@ -527,6 +528,43 @@ def subsurface_term(mesh: Mesh, irradiance_transfer: torch.Tensor, material: Any
                  "fresnel": "F_dt = 1 - F_dr at entry and exit (view-independent, Sloan 2003 §3.1)" if fresnel else "none",
                  "seconds_scatter": time.perf_counter() - t0,
                  "tree_nodes": tree.num_nodes if tree is not None else 0, **stats})
+    return L
+
+
+def check_term_spec(spec: Any, where: str = "subsurface") -> dict[str, Any]:
+    """The ``subsurface: {material: NAME | {sigma_a, sigma_s, eta}, scale: MM_PER_UNIT, epsilon:
+    ..., fresnel: ...}`` term of the diffuse and glossy kinds, validated: ``{material: Material,
+    scale, epsilon, fresnel}``. Unknown keys, a missing scale or material are refused."""
+    if not isinstance(spec, dict):
+        raise ValueError(f"{where}={spec!r}; accepted: {{material: NAME, scale: MM_PER_UNIT}} (optional epsilon, fresnel)")
+    extra = set(spec) - {"material", "scale", "epsilon", "fresnel"}
+    if extra or "scale" not in spec or "material" not in spec:
+        raise ValueError(f"{where}={spec!r}; accepted: {{material: NAME or {{sigma_a, sigma_s, eta}}, scale: MM_PER_UNIT}} "
+                         f"(optional epsilon, fresnel)" + (f"; unknown keys {sorted(extra)}" if extra else ""))
+    fresnel = spec.get("fresnel", True)
+    if not isinstance(fresnel, bool):
+        raise ValueError(f"{where}.fresnel={fresnel!r}; accepted: true or false")
+    return {"material": material_from_spec(spec["material"]),
+            "scale": check_float(f"{where}.scale", spec["scale"], 0.0, None, lo_open=True),
+            "epsilon": check_float(f"{where}.epsilon", spec.get("epsilon", DEFAULT_EPSILON), 0.0, None, lo_open=True),
+            "fresnel": fresnel}
+
+
+def add_term(mesh: Mesh, spec: Any, transfer: torch.Tensor, run: RunOptions, meta: dict) -> torch.Tensor:
+    """The subsurface term of ``spec`` (:func:`check_term_spec`) for a diffuse precompute whose
+    transfer (ρ kept out, ``[V, n²]`` or ``[V, C, n²]``: E = π t, channels averaged) is
+    ``transfer``; warns about holes and the scale; returns ``[V, 3, n²]`` float64 and records
+    ``meta['subsurface']``."""
+    sp = check_term_spec(spec)
+    for w in (check_closed(mesh), check_scale(mesh, sp["material"], sp["scale"])):
+        if w:
+            warnings.warn(w, stacklevel=3)
+    t = transfer.to(torch.float64)
+    t = t.mean(1) if t.ndim == 3 else t
+    sub: dict[str, Any] = {}
+    L = subsurface_term(mesh, t, sp["material"], sp["scale"], epsilon=sp["epsilon"], fresnel=sp["fresnel"],
+                        run=dataclasses.replace(run, state_dir=_sub_state(run, "subsurface")), meta=sub)
+    meta["subsurface"] = sub
     return L
 
 
