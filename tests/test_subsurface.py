@@ -186,7 +186,8 @@ def test_kind_constant_light_on_a_closed_sphere():
     m = PRESETS["skin2"]
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # closed, and the scale is sensible: no warning
-        tr = get_kind("subsurface").precompute(mesh, {"material": "skin2", "scale": 50.0, "shadows": "never", "bands": 2})
+        tr = get_kind("subsurface").precompute(mesh, {"material": "skin2", "scale": 50.0, "shadows": "never", "bands": 2,
+                                                      "spacing": 2.0})
     assert tr.kind == "diffuse" and tr.data.shape == (mesh.num_vertices, 3, 4) and tr.meta["albedo_folded"]
     L = tr.data[:, :, 0].double() * L00
     ref = (1 - m.F_dr) ** 2 * m.total_rd()
@@ -199,18 +200,18 @@ def test_diffuse_term_adds_the_subsurface_kind(blob):
     subsurface kind's data (same rays, same material)."""
     p = {"bands": 2, "samples": 16, "shadows": "never"}
     with pytest.warns(UserWarning, match="open: .* boundary edges"):
-        both = get_kind("diffuse").precompute(blob, {**p, "subsurface": {"material": "marble", "scale": 30.0}})
+        both = get_kind("diffuse").precompute(blob, {**p, "subsurface": {"material": "skin1", "scale": 10.0, "spacing": 4.0}})
     with pytest.warns(UserWarning, match="open"):
-        sub = get_kind("subsurface").precompute(blob, {**p, "material": "marble", "scale": 30.0})
+        sub = get_kind("subsurface").precompute(blob, {**p, "material": "skin1", "scale": 10.0, "spacing": 4.0})
     plain = get_kind("diffuse").precompute(blob, {**p, "fold_albedo": True})
     assert both.data.shape == sub.data.shape == plain.data.shape
     assert torch.allclose(both.data, plain.data + sub.data, atol=1e-6)
-    assert both.meta["subsurface"]["material"]["name"] == "marble"
+    assert both.meta["subsurface"]["material"]["name"] == "skin1"
 
 
 def test_resume_gives_the_same_result(tmp_path):
     mesh = _sphere(6)
-    p = {"material": "skin1", "scale": 40.0, "shadows": "never", "bands": 2}
+    p = {"material": "skin1", "scale": 40.0, "shadows": "never", "bands": 2, "spacing": 8.0}
     k = get_kind("subsurface")
     ref = k.precompute(mesh, p, run=RunOptions(chunk_size=100))
 
@@ -257,7 +258,7 @@ def test_cli(tmp_path, capsys):
 
     out = tmp_path / "s.prt"
     assert main(["precompute", "scan_blob", "--kind", "subsurface", "--sigma-a", "0.03,0.1,0.4", "--sigma-s", "0.8,0.9,1",
-                 "--eta", "1.4", "--scale", "20", "--samples", "16", "--bands", "2", "--no-progress", "-o", str(out)]) == 0
+                 "--eta", "1.4", "--scale", "5", "--spacing", "4", "--samples", "16", "--bands", "2", "--no-progress", "-o", str(out)]) == 0
     err = capsys.readouterr().err
     assert "warning: mesh 'scan_blob' is open" in err
     from prt_torch.transfer import Transfer
@@ -285,7 +286,8 @@ def test_codecs_and_glsl_decoder_render_it(renderer, blob):
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        tr = get_kind("subsurface").precompute(blob, {"material": "skin1", "scale": 30.0, "samples": 16, "bands": 3})
+        tr = get_kind("subsurface").precompute(blob, {"material": "skin1", "scale": 10.0, "samples": 16, "bands": 3,
+                                                      "spacing": 4.0})
         light = load_light("sky", bands=3)
         cam = Camera.fit(blob, azimuth=30, elevation=20, fov=40, aspect=80 / 64)
         sc = PRTScene(tr)

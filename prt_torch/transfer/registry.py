@@ -229,7 +229,7 @@ register_kind(TransferKind(
         "bounce_points": [Options("hits", "vertices")], "hit_samples": [Interval(int, 1, 1024)],
         "hit_offset": [Interval(float, 0, 0.1)],
         "subsurface": [Predicate(lambda v: _is_sss_term(v), "{material: NAME or {sigma_a, sigma_s, eta}, scale: MM_PER_UNIT} "
-                                 "(optional epsilon, fresnel)"), None],
+                                 "(optional epsilon, fresnel, spacing)"), None],
     },
     args=_args("bands", "samples", "bounces", "seed", "shadows") + (
         Arg("--estimator", "estimator", "auto (default): per vertex the control variate where at least half its rays are "
@@ -365,7 +365,7 @@ register_kind(TransferKind(
         "bounces": [Interval(int, 0, MAX_BOUNCES)], "seed": _SEED, "shadows": _SHADOWS,
         "sigma_a": _RGB, "sigma_s": _RGB, "eta": [Interval(float, 0, None, closed="neither"), None],
         "epsilon": [Interval(float, 0, None, closed="neither")], "fresnel": [Boolean()],
-        "method": [Options("hierarchical", "brute")],
+        "method": [Options("hierarchical", "brute")], "spacing": [Interval(float, 0, None, closed="neither")],
     },
     args=_args("bands", "samples", "bounces", "seed", "shadows") + (
         Arg("--material", "material", f"measured material (Jensen et al. 2001): {', '.join(sorted(SSS_PRESETS))}"),
@@ -376,6 +376,7 @@ register_kind(TransferKind(
         Arg("--epsilon", "epsilon", "the hierarchy's solid-angle threshold A/d^2 (default 0.05: <= 1% from the O(V^2) sum)"),
         Arg("--sss-method", "method", "hierarchical (Jensen & Buhler 2002, default) or brute (the O(V^2) sum)",
             values={"hierarchical": "hierarchical", "brute": "brute"}),
+        Arg("--spacing", "spacing", "irradiance samples at most this many smallest mean free paths apart (default 1)"),
         Arg("--no-fresnel", "fresnel", "leave out the Fresnel transmittance F_dt at entry and exit", const=False),
     ),
 ))

@@ -36,7 +36,10 @@ that cannot be accepted is summed sample by sample. The tree is arrays (Morton o
 walk goes level by level over (receiver, node) pairs with masks — no per-vertex Python loop —
 and its result is one sparse [R, nodes + samples] matrix per channel times the node/sample
 table. A receiver's own sample is integrated over its own disk of area A_i (P(ρ_i), ρ_i =
-√(A_i/π)), not evaluated at r = 0.
+√(A_i/π)), not evaluated at r = 0, and no sample weighs more than that: R_d is decreasing, so the
+mean of R_d over a disk of area A_j is largest for the disk centred on the receiver, and the
+weight of sample j is min(R_d(r), P(ρ_j)/A_j) · A_j (without the bound, two scan vertices a
+hair apart each see the other's whole area at R_d(0), ~1/z_r² — bright specks on scanned meshes).
 
 Presets: the measured materials of Jensen et al. 2001, Fig. 5 (σ'_s, σ_a in mm⁻¹ for R, G, B;
 η = 1.3 for foods and skin, 1.5 for marble as published; the table's diffuse reflectance R_d
@@ -61,12 +64,18 @@ from .base import RunOptions, Transfer
 __all__ = [
     "Material", "PRESETS", "material_from_spec", "resolve_material", "published_rd", "fresnel_dr", "vertex_areas", "dipole_rd", "dipole_rd_within",
     "SampleTree", "scatter_brute", "scatter_hierarchical", "subsurface_term", "precompute_subsurface",
-    "check_closed", "check_scale", "check_term_spec", "add_term", "DEFAULT_EPSILON",
+    "check_closed", "check_scale", "surface_samples", "DEFAULT_SPACING", "MAX_SAMPLES", "check_term_spec", "add_term", "DEFAULT_EPSILON",
 ]
 
 #: default solid-angle threshold ΔΩ = A_node/d² of the hierarchy; measured against the O(V²)
 #: sum on scan_blob (tests/test_subsurface.py, reports/benchmarks/subsurface.md): ≤ 1% relative error
 DEFAULT_EPSILON = 0.05
+#: irradiance samples at most this multiple of the smallest mean free path 1/σ'_t apart (a flat
+#: slab's reflectance with samples on a grid this far apart: ≤ 0.5% low at 0.5, ≤ 1.5% at 1,
+#: ~3-4% at 2, ~5% at 8 on marble, whole milk and skin1)
+DEFAULT_SPACING = 1.0
+#: the most irradiance samples a precompute spreads over the surface
+MAX_SAMPLES = 2_000_000
 _LEVELS = 10  # octree depth (1024 cells per axis at the finest level)
 
 # Jensen, Marschner, Levoy & Hanrahan 2001, Fig. 5: σ'_s [mm⁻¹], σ_a [mm⁻¹], diffuse reflectance R_d (R, G, B), η
@@ -281,6 +290,7 @@ def scatter_brute(receivers: torch.Tensor, points: torch.Tensor, areas: torch.Te
         xs = x[a:a + chunk]
         # distances directly (not |x|²+|y|²−2x·y, which loses the near field to cancellation), kernel in float32 as the hierarchy's
         K = dipole_rd(torch.cdist(xs.to(torch.float32), p32, compute_mode="donot_use_mm_for_euclid_dist"), m).to(torch.float64)
+        K = torch.minimum(K, selfw[None])  # a sample nearer than its own radius: at most its disk's mean (module docstring)
         if receiver_ids is not None:
             rid = receiver_ids[a:a + chunk].to(torch.int64)
             ok = torch.nonzero(rid >= 0).squeeze(1)
@@ -364,14 +374,12 @@ class SampleTree:
         child_count = torch.zeros(N, dtype=torch.int64)
         child_start = torch.zeros(N, dtype=torch.int64)
         start = counts[0].shape[0]
-        for lev in range(1, levels + 1):  # children of level lev-1 are contiguous in level lev
+        for lev in range(1, levels + 1):  # children of level lev-1 are contiguous in level lev (Morton order)
             par = parents[lev]
             n = par.shape[0]
-            child_count.index_add_(0, par, torch.ones(n, dtype=torch.int64))
-            first_child = torch.full((N,), -1, dtype=torch.int64)
-            first_child.scatter_reduce_(0, par, torch.arange(start, start + n), "amin", include_self=False)
-            sel = torch.unique(par)
-            child_start[sel] = first_child[sel]
+            up, cnt_c = torch.unique_consecutive(par, return_counts=True)
+            child_count[up] = cnt_c
+            child_start[up] = start + torch.cumsum(cnt_c, 0) - cnt_c
             start += n
         child_count[leaf] = 0
         return cls(points=p, areas=a, values=E, order=order, area=torch.cat(nodes_area), centre=torch.cat(nodes_c),
@@ -397,6 +405,7 @@ def scatter_hierarchical(receivers: torch.Tensor, tree: SampleTree, m: Material,
     N = tree.num_nodes
     centre, radius, area = tree.centre.to(torch.float32), tree.radius.to(torch.float32), tree.area.to(torch.float32)
     spts = tree.points.to(torch.float32)
+    sw_all = _self_weight(tree.areas, m)  # [S, 3] each sample's bound (its own disk's mean)
     rid_all = None if receiver_ids is None else receiver_ids.to(torch.int64)
     rows_l, cols_l, w_l = [], [], []
     r = torch.arange(R)
@@ -418,11 +427,12 @@ def scatter_hierarchical(receivers: torch.Tensor, tree: SampleTree, m: Material,
             rr = torch.repeat_interleave(rl, cnt)
             pos = torch.repeat_interleave(tree.first[nl] - torch.cumsum(cnt, 0) + cnt, cnt) + torch.arange(int(cnt.sum()))
             s = tree.order[pos]
-            w = dipole_rd((x[rr] - spts[s]).norm(dim=1), m).to(torch.float64) * tree.areas[s, None]
+            sw = sw_all[s]  # [P, 3]
+            w = torch.minimum(dipole_rd((x[rr] - spts[s]).norm(dim=1), m).to(torch.float64), sw)
             if rid_all is not None:
                 own = rid_all[rr] == s
-                if own.any():
-                    w[own] = _self_weight(tree.areas[s[own]], m) * tree.areas[s[own], None]
+                w[own] = sw[own]
+            w = w * tree.areas[s, None]
             rows_l.append(rr)
             cols_l.append(N + s)
             w_l.append(w)
@@ -445,6 +455,37 @@ def scatter_hierarchical(receivers: torch.Tensor, tree: SampleTree, m: Material,
         for c in range(3):
             out[:, c].index_add_(0, rows, g * w[:, c:c + 1])
     return out
+
+
+def surface_samples(mesh: Mesh, values: torch.Tensor, spacing: float, max_samples: int = 1_000_000,
+                    seed: int = 0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict]:
+    """Irradiance sample points over the surface about ``spacing`` apart (mesh units): each face
+    gets ⌈A_f / spacing²⌉ points (scaled down to at most ``max_samples`` in all), uniform in the
+    triangle (seeded), each with area A_f / n_f and the barycentric interpolation of the vertices'
+    ``values [V, D]``. Returns points ``[S, 3]``, areas ``[S]``, values ``[S, D]`` (float64) and
+    ``{'where', 'count', 'spacing', 'capped'}``."""
+    v = mesh.vertices.to(torch.float64)
+    f = mesh.faces.to(torch.int64)
+    fa = torch.from_numpy(face_areas(v.numpy(), f.numpy()))
+    want = float(fa.sum()) / (spacing * spacing)
+    k = min(1.0, max_samples / max(want, 1.0))
+    n = torch.ceil(fa / (spacing * spacing) * k).clamp_min(1).to(torch.int64)
+    capped = k < 1.0
+    if int(n.sum()) > max_samples:  # the ceil of many small faces: drop to one per face, then cap
+        n = torch.ones_like(n)
+        capped = True
+    fid = torch.repeat_interleave(torch.arange(f.shape[0]), n)
+    g = torch.Generator().manual_seed(int(seed) + 4111)
+    u = torch.rand(fid.numel(), generator=g, dtype=torch.float64)
+    w = torch.rand(fid.numel(), generator=g, dtype=torch.float64)
+    su = torch.sqrt(u)
+    b = torch.stack([1 - su, su * (1 - w), su * w], 1)  # uniform barycentrics
+    tri = f[fid]
+    pts = (b[:, :, None] * v[tri]).sum(1)
+    vals = (b[:, :, None] * values.to(torch.float64)[tri]).sum(1)
+    areas = (fa / n)[fid]
+    S = int(fid.numel())
+    return pts, areas, vals, {"where": "surface", "count": S, "spacing": math.sqrt(float(fa.sum()) / S), "capped": capped}
 
 
 # ----------------------------------------------------------------------------------------
@@ -486,9 +527,15 @@ def check_scale(mesh: Mesh, m: Material, scale: float) -> str | None:
 
 def subsurface_term(mesh: Mesh, irradiance_transfer: torch.Tensor, material: Any, scale: float, *,
                     epsilon: float = DEFAULT_EPSILON, fresnel: bool = True, method: str = "hierarchical",
+                    spacing: float = DEFAULT_SPACING, max_samples: int = MAX_SAMPLES, seed: int = 0,
                     run: RunOptions | None = None, meta: dict | None = None) -> torch.Tensor:
     """The subsurface exit transfer ``[V, 3, n²]`` float64 (module docstring's L_o) from the
     per-vertex diffuse transfer t (ρ = 1, ``[V, n²]``: E = π t) of the same mesh.
+
+    Irradiance samples (Jensen & Buhler 2002 §3.1: denser than the mean free path): the vertices
+    when their mean spacing is below ``spacing`` × the smallest 1/σ'_t, else
+    :func:`surface_samples` at that spacing (at most ``max_samples``; warned when capped), E
+    interpolated from the vertices. The receivers are the vertices.
 
     ``scale``: mm per mesh unit. ``method``: 'hierarchical' (Jensen & Buhler 2002) or 'brute'
     (the O(V²) sum). Receivers run in ``run`` chunks (resumable, any executor). ``meta``
@@ -499,29 +546,44 @@ def subsurface_term(mesh: Mesh, irradiance_transfer: torch.Tensor, material: Any
         raise ValueError(f"method={method!r}; accepted: 'hierarchical' or 'brute'")
     run = RunOptions() if run is None else run
     meta = {} if meta is None else meta
+    spacing = check_float("spacing", spacing, 0.0, None, lo_open=True)
+    max_samples = check_int("max_samples", max_samples, 1)
     t0 = time.perf_counter()
     V = mesh.num_vertices
     T = torch.as_tensor(irradiance_transfer, dtype=torch.float64).reshape(V, -1)
-    pts = mesh.vertices.to(torch.float64) * scale
-    areas = vertex_areas(mesh) * scale * scale
-    E = math.pi * T
+    recv = mesh.vertices.to(torch.float64) * scale
+    E_v = math.pi * T
+    target = spacing * float(m.z_r.min())  # mm between irradiance samples
+    varea = vertex_areas(mesh) * scale * scale
+    if float(varea.sum()) / V <= target * target:  # the vertices are dense enough: they are the samples
+        pts, areas, E, ids = recv, varea, E_v, torch.arange(V)
+        meta["samples"] = {"where": "vertices", "count": V, "spacing_mm": math.sqrt(float(varea.sum()) / V)}
+    else:
+        pts, areas, E, info = surface_samples(mesh, E_v, target / scale, max_samples, seed)
+        pts, areas, ids = pts * scale, areas * scale * scale, None
+        meta["samples"] = info | {"spacing_mm": info["spacing"] * scale}
+        if info["capped"]:
+            warnings.warn(f"subsurface: {info['count']} irradiance samples (max_samples) are {info['spacing'] * scale:.3g} mm "
+                          f"apart, above the {target:.3g} mm asked ({spacing:g} x the smallest mean free path "
+                          f"{float(m.z_r.min()):.3g} mm): the near field is under-resolved (a few % dark)", stacklevel=3)
     fdt = 1.0 - m.F_dr if fresnel else 1.0
     tree = SampleTree.build(pts, areas, E) if method == "hierarchical" else None
-    ids = torch.arange(V)
     stats: dict = {}
 
     def compute(a: int, b: int) -> dict[str, torch.Tensor]:
+        rid = None if ids is None else ids[a:b]
         if tree is None:
-            out = scatter_brute(pts[a:b], pts, areas, E, m, receiver_ids=ids[a:b])
+            out = scatter_brute(recv[a:b], pts, areas, E, m, receiver_ids=rid)
         else:
             st: dict = {}
-            out = scatter_hierarchical(pts[a:b], tree, m, epsilon, receiver_ids=ids[a:b], stats=st)
+            out = scatter_hierarchical(recv[a:b], tree, m, epsilon, receiver_ids=rid, stats=st)
             stats["node_terms"] = stats.get("node_terms", 0) + st["node_terms"]
             stats["sample_terms"] = stats.get("sample_terms", 0) + st["sample_terms"]
         return {"L": out * (fdt * fdt / math.pi)}
 
     fp = {"kind": "subsurface", "mesh": mesh.content_hash(), "material": m.describe(), "scale": scale, "epsilon": epsilon,
-          "fresnel": fresnel, "method": method, "T": float(T.abs().sum()), "shape": list(T.shape)}
+          "fresnel": fresnel, "method": method, "spacing": spacing, "max_samples": max_samples, "seed": seed,
+          "T": float(T.abs().sum()), "shape": list(T.shape)}
     chunks = run.run_chunks(V, run.chunks(2048), compute, fingerprint=fp, desc="subsurface")
     L = torch.cat([c["L"] for c in chunks])
     meta.update({"material": m.describe(), "scale_mm_per_unit": scale, "epsilon": epsilon, "method": method,
@@ -536,17 +598,18 @@ def check_term_spec(spec: Any, where: str = "subsurface") -> dict[str, Any]:
     ..., fresnel: ...}`` term of the diffuse and glossy kinds, validated: ``{material: Material,
     scale, epsilon, fresnel}``. Unknown keys, a missing scale or material are refused."""
     if not isinstance(spec, dict):
-        raise ValueError(f"{where}={spec!r}; accepted: {{material: NAME, scale: MM_PER_UNIT}} (optional epsilon, fresnel)")
-    extra = set(spec) - {"material", "scale", "epsilon", "fresnel"}
+        raise ValueError(f"{where}={spec!r}; accepted: {{material: NAME, scale: MM_PER_UNIT}} (optional epsilon, fresnel, spacing)")
+    extra = set(spec) - {"material", "scale", "epsilon", "fresnel", "spacing"}
     if extra or "scale" not in spec or "material" not in spec:
         raise ValueError(f"{where}={spec!r}; accepted: {{material: NAME or {{sigma_a, sigma_s, eta}}, scale: MM_PER_UNIT}} "
-                         f"(optional epsilon, fresnel)" + (f"; unknown keys {sorted(extra)}" if extra else ""))
+                         f"(optional epsilon, fresnel, spacing)" + (f"; unknown keys {sorted(extra)}" if extra else ""))
     fresnel = spec.get("fresnel", True)
     if not isinstance(fresnel, bool):
         raise ValueError(f"{where}.fresnel={fresnel!r}; accepted: true or false")
     return {"material": material_from_spec(spec["material"]),
             "scale": check_float(f"{where}.scale", spec["scale"], 0.0, None, lo_open=True),
             "epsilon": check_float(f"{where}.epsilon", spec.get("epsilon", DEFAULT_EPSILON), 0.0, None, lo_open=True),
+            "spacing": check_float(f"{where}.spacing", spec.get("spacing", DEFAULT_SPACING), 0.0, None, lo_open=True),
             "fresnel": fresnel}
 
 
@@ -563,7 +626,7 @@ def add_term(mesh: Mesh, spec: Any, transfer: torch.Tensor, run: RunOptions, met
     t = t.mean(1) if t.ndim == 3 else t
     sub: dict[str, Any] = {}
     L = subsurface_term(mesh, t, sp["material"], sp["scale"], epsilon=sp["epsilon"], fresnel=sp["fresnel"],
-                        run=dataclasses.replace(run, state_dir=_sub_state(run, "subsurface")), meta=sub)
+                        spacing=sp["spacing"], run=dataclasses.replace(run, state_dir=_sub_state(run, "subsurface")), meta=sub)
     meta["subsurface"] = sub
     return L
 
@@ -584,6 +647,7 @@ def precompute_subsurface(
     epsilon: float = DEFAULT_EPSILON,
     fresnel: bool = True,
     method: str = "hierarchical",
+    spacing: float = DEFAULT_SPACING,
     run: RunOptions | None = None,
 ) -> Transfer:
     """Transfer kind ``subsurface``: the subsurface scattering term alone (Sloan 2003 §3.1,
@@ -601,6 +665,8 @@ def precompute_subsurface(
         epsilon: the hierarchy's solid-angle threshold (default: ≤ 1% from the O(V²) sum).
         fresnel: F_dt at entry and exit (False: none, for the slab's closed form).
         method: 'hierarchical' or 'brute' (O(V²)).
+        spacing: irradiance samples at most this multiple of the smallest mean free path apart
+            (:func:`subsurface_term`; the vertices themselves when they are that dense).
         run: chunks, resume, executor (shared by both passes; the scatter's chunks are receivers).
     Returns:
         ``Transfer(kind='diffuse')``, data float32 ``[V, 3, n²]`` (``albedo_folded``: the
@@ -621,8 +687,8 @@ def precompute_subsurface(
                                 shadows=shadows, fold_albedo=False,
                                 run=dataclasses.replace(run, state_dir=_sub_state(run, "irradiance")))
     sub: dict[str, Any] = {}
-    L = subsurface_term(mesh, direct.data, m, scale, epsilon=epsilon, fresnel=fresnel, method=method,
-                        run=dataclasses.replace(run, state_dir=_sub_state(run, "scatter")), meta=sub)
+    L = subsurface_term(mesh, direct.data, m, scale, epsilon=epsilon, fresnel=fresnel, method=method, spacing=spacing,
+                        seed=seed, run=dataclasses.replace(run, state_dir=_sub_state(run, "scatter")), meta=sub)
     meta = dict(direct.meta)
     meta.update(albedo_folded=True, channels=3, transfer_kind_requested="subsurface", subsurface=sub,
                 normalisation="exit radiance L_out[v,c] = sum_i data[v,c,i] * l[c,i]; the subsurface term "
