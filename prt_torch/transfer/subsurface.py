@@ -16,11 +16,14 @@ and within radius ρ (the same antiderivative, used for a sample's own disk and 
 
 The BSSRDF of the diffusion term is S_d = (1/π) F_t(η, ω_i) R_d(‖x_i − x_o‖) F_t(η, ω_o)
 (Jensen 2001 eq. 5). Sloan 2003 makes it view-independent ("affects only the y_0 basis function
-of exiting radiance"); here both Fresnel factors are replaced by their cosine-weighted
-hemispherical mean F_dt = 1 − F_dr (exact for the entry under a uniform radiance field, and
-the view-independent exit Sloan uses), so with E(x_i) the SH transfer of *transferred
-irradiance* (E = π t of :mod:`~prt_torch.transfer.diffuse`, ρ = 1: shadowed, optionally
-interreflected)
+of exiting radiance"); here both Fresnel factors are replaced by their cosine-weighted mean over
+the outside hemisphere, F_dt = 1 − F_dr,ext: exact for the entry under a uniform radiance field,
+and the view-independent exit Sloan uses. Jensen's F_dr(η) (η > 1) is the *internal* diffuse
+reflectance (≈ 0.44 at η = 1.3, total internal reflection included; it sets A); the outside's
+follows from it by reciprocity of a diffuse field across the boundary (L_in = η² L_out):
+F_dt = 1 − F_dr,ext = η² (1 − F_dr(η)) (0.94 at η = 1.3, 0.91 at 1.5). So, with E(x_i) the SH
+transfer of *transferred irradiance* (E = π t of :mod:`~prt_torch.transfer.diffuse`, ρ = 1:
+shadowed, optionally interreflected)
 
     L_o(x_o)[c] = (F_dt² / π) Σ_i R_d,c(‖x_i − x_o‖) A_i E(x_i)      (c = R, G, B)
 
@@ -120,7 +123,7 @@ class Material:
     Refused: negative, NaN/Inf, σ_a + σ'_s = 0 in a channel, η ≤ 0 (ValueError naming the value).
 
     Derived (``[3]`` float64 tensors): ``sigma_t`` σ'_t, ``alpha`` α', ``sigma_tr`` σ_tr, ``z_r``,
-    ``z_v``; scalars ``F_dr``, ``A``; ``mean_free_path`` 1/σ'_t [mm]; :meth:`total_rd` (eq. 13).
+    ``z_v``; scalars ``F_dr``, ``F_dt``, ``A``; ``mean_free_path`` 1/σ'_t [mm]; :meth:`total_rd` (eq. 13).
     """
 
     sigma_a: tuple[float, float, float]
@@ -156,6 +159,11 @@ class Material:
         return fresnel_dr(self.eta)
 
     @property
+    def F_dt(self) -> float:
+        """The outside's diffuse Fresnel transmittance η² (1 − F_dr(η)) (module docstring)."""
+        return self.eta ** 2 * (1.0 - self.F_dr)
+
+    @property
     def A(self) -> float:
         return (1.0 + self.F_dr) / (1.0 - self.F_dr)
 
@@ -183,7 +191,7 @@ class Material:
         r = lambda t: [float(x) for x in t]  # noqa: E731
         return {"name": self.name, "sigma_a_per_mm": list(self.sigma_a), "sigma_s_reduced_per_mm": list(self.sigma_s),
                 "eta": self.eta, "sigma_tr_per_mm": r(self.sigma_tr), "alpha_prime": r(self.alpha), "z_r_mm": r(self.z_r),
-                "z_v_mm": r(self.z_v), "F_dr": self.F_dr, "A": self.A, "total_rd": r(self.total_rd())}
+                "z_v_mm": r(self.z_v), "F_dr": self.F_dr, "F_dt": self.F_dt, "A": self.A, "total_rd": r(self.total_rd())}
 
 
 #: Jensen 2001 Fig. 5 materials by name; ``published_rd`` is the table's R_d column.
@@ -566,7 +574,7 @@ def subsurface_term(mesh: Mesh, irradiance_transfer: torch.Tensor, material: Any
             warnings.warn(f"subsurface: {info['count']} irradiance samples (max_samples) are {info['spacing'] * scale:.3g} mm "
                           f"apart, above the {target:.3g} mm asked ({spacing:g} x the smallest mean free path "
                           f"{float(m.z_r.min()):.3g} mm): the near field is under-resolved (a few % dark)", stacklevel=3)
-    fdt = 1.0 - m.F_dr if fresnel else 1.0
+    fdt = m.F_dt if fresnel else 1.0
     tree = SampleTree.build(pts, areas, E) if method == "hierarchical" else None
     stats: dict = {}
 
@@ -587,7 +595,7 @@ def subsurface_term(mesh: Mesh, irradiance_transfer: torch.Tensor, material: Any
     chunks = run.run_chunks(V, run.chunks(2048), compute, fingerprint=fp, desc="subsurface")
     L = torch.cat([c["L"] for c in chunks])
     meta.update({"material": m.describe(), "scale_mm_per_unit": scale, "epsilon": epsilon, "method": method,
-                 "fresnel": "F_dt = 1 - F_dr at entry and exit (view-independent, Sloan 2003 §3.1)" if fresnel else "none",
+                 "fresnel": f"F_dt = eta^2 (1 - F_dr) = {m.F_dt:.4f} at entry and exit (view-independent, Sloan 2003 §3.1)" if fresnel else "none",
                  "seconds_scatter": time.perf_counter() - t0,
                  "tree_nodes": tree.num_nodes if tree is not None else 0, **stats})
     return L
