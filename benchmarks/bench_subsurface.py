@@ -10,7 +10,9 @@ hierarchy, Sloan 2003 §3.1).
    light (per vertex), and under the sky (relative to the channel's mean radiance).
 2. Images: scan_blob small under the sky, diffuse only (albedo 0.8) and the subsurface kind of
    three presets (marble, skin1, ketchup; 30 mm per unit), via ``prt render`` (GLSL decode).
-3. CPCA at equal bytes: the same CPCA (clusters, vectors) on diffuse-only [V,3,9] (albedo
+3. Against Mitsuba 3 (volpath): ``validate.subsurface.compare_sphere`` (a 20 mm sphere, σ_a 0.05,
+   σ'_s 1.0 mm⁻¹, η 1.3, 2-band light brighter above), 128 spp: engine / Mitsuba per view.
+4. CPCA at equal bytes: the same CPCA (clusters, vectors) on diffuse-only [V,3,9] (albedo
    folded) and on diffuse + subsurface term [V,3,9]: PSNR of the vertex radiance under the sky
    against each one's uncompressed radiance.
 
@@ -140,6 +142,11 @@ def main() -> int:
     hb = [hierarchy_vs_brute(s, 256 if a.quick else 512) for s in sizes]
     imgs = images(OUT / "subsurface")
     cp = cpca_equal_bytes(16, 4)
+    from prt_torch.validate.subsurface import compare_sphere
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        mits = [compare_sphere(res=32, spp=128, seed=s) for s in (3, 4)]
     load2 = os.getloadavg()
     lines = [
         "# Subsurface scattering (issue 41)", "",
@@ -163,6 +170,21 @@ def main() -> int:
               "| " + " | ".join(f"![{n}]({p})" for n, p in imgs) + " |", "",
               "Diffuse only is albedo 0.8 Lambertian; the others are the `subsurface` kind alone (30 mm per unit: the "
               "blob is ~10 cm across), no surface reflection.", "",
+              "## Against Mitsuba 3's volumetric path tracer", "",
+              "A sphere of 20 mm holding a homogeneous medium (σ_a 0.05, σ'_s = σ_s 1.0 mm⁻¹ with isotropic phase, α' 0.95, "
+              "η 1.3) in a smooth dielectric boundary, under radiance 1 + 0.8 z (2 SH bands), `volpath` (no depth limit), "
+              "32×32 orthographic views at 128 spp, the surface reflection removed by subtracting an absorbing sphere's "
+              "render. I(d) = ∫ L_o max(n·d, 0) dA; engine: the `subsurface` kind on a geodesic sphere of 5762 vertices.",
+              "", "| seed | view | engine I | Mitsuba I | engine / Mitsuba |", "|---|---|---|---|---|"]
+    for s_, r in zip((3, 4), mits):
+        for name, e, mm in zip(("above (+z)", "side (+x)", "below (-z)"), r["engine"][:, 0], r["mitsuba"][:, 0]):
+            lines.append(f"| {s_} | {name} | {e:.1f} | {mm:.1f} | {e / mm:.3f} |")
+    allr = [float(x) for r in mits for x in r["ratio"][:, 0]]
+    lines += ["", f"The dipole gives {min(allr):.3f}-{max(allr):.3f} of the path tracer's exit radiance from every side: "
+              "its known low bias (Jensen 2001 compares it with Monte Carlo), with single scattering (in Mitsuba, not in "
+              "the diffusion term), directional Fresnel (here replaced by F_dt, view-independent as Sloan 2003) and the "
+              "Euclidean distance over a curved surface in it. tests/test_subsurface.py holds the ratio within 0.05 of "
+              "0.79 at 16 spp.", "",
               "## CPCA at equal bytes (scan_blob medium, 16 clusters × 4 vectors, sky)", "",
               "| transfer | vertices | PSNR vs own uncompressed (dB) |", "|---|---|---|"]
     for r in cp:
