@@ -29,7 +29,8 @@ from .glossy import MAX_SAMPLES as MAX_GLOSSY_SAMPLES
 from .mrt import precompute_mrt
 from .tents import MAX_TENTS
 from .subsurface import PRESETS as SSS_PRESETS
-from .subsurface import check_term_spec, material_from_spec, precompute_subsurface
+from .subsurface import check_term_spec, material_from_spec
+from .subsurface_kind import precompute_subsurface
 from .transport import MAX_CUBE_RES, precompute_transport
 from .wavelet import BITS, MAX_WAVELET_TERMS, precompute_wavelet
 

@@ -26,7 +26,8 @@ import torch
 
 from .._checks import check_float, check_int
 from ..scene import geodesic_sphere, make_mesh
-from ..transfer.subsurface import Material, material_from_spec, precompute_subsurface, vertex_areas
+from ..transfer.subsurface import Material, material_from_spec, vertex_areas
+from ..transfer.subsurface_kind import precompute_subsurface
 from .lights import check_expressible
 from .scenes import require_mitsuba
 
