@@ -210,15 +210,14 @@ def test_kind_constant_light_on_a_closed_sphere():
     assert torch.allclose(L.mean(0), ref, rtol=0.08), (L.mean(0), ref)
 
 
-def test_diffuse_term_adds_the_subsurface_kind(blob):
+def test_diffuse_term_adds_the_subsurface_kind():
     """The diffuse kind's ``subsurface:`` term is the albedo-folded diffuse transfer plus the
-    subsurface kind's data (same rays, same material)."""
+    subsurface kind's data (same transfer, same material)."""
+    mesh = _sphere(8)
     p = {"bands": 2, "samples": 16, "shadows": "never"}
-    with pytest.warns(UserWarning, match="open: .* boundary edges"):
-        both = get_kind("diffuse").precompute(blob, {**p, "subsurface": {"material": "skin1", "scale": 10.0, "spacing": 4.0}})
-    with pytest.warns(UserWarning, match="open"):
-        sub = get_kind("subsurface").precompute(blob, {**p, "material": "skin1", "scale": 10.0, "spacing": 4.0})
-    plain = get_kind("diffuse").precompute(blob, {**p, "fold_albedo": True})
+    both = get_kind("diffuse").precompute(mesh, {**p, "subsurface": {"material": "skin1", "scale": 10.0, "spacing": 4.0}})
+    sub = get_kind("subsurface").precompute(mesh, {**p, "material": "skin1", "scale": 10.0, "spacing": 4.0})
+    plain = get_kind("diffuse").precompute(mesh, {**p, "fold_albedo": True})
     assert both.data.shape == sub.data.shape == plain.data.shape
     assert torch.allclose(both.data, plain.data + sub.data, atol=1e-6)
     assert both.meta["subsurface"]["material"]["name"] == "skin1"
@@ -292,7 +291,7 @@ def test_cli(tmp_path, capsys):
 RENDER_SIZE = (80, 64)
 
 
-def test_codecs_and_glsl_decoder_render_it(renderer, blob):
+def test_codecs_and_glsl_decoder_render_it(renderer):
     """Downstream unchanged: CPCA compresses the subsurface transfer and the GLSL decoders draw it
     (uncompressed and CPCA) as the CPU engine does (≥ 50 dB, the render tests' bound)."""
     from prt_torch import codecs
@@ -301,10 +300,11 @@ def test_codecs_and_glsl_decoder_render_it(renderer, blob):
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        tr = get_kind("subsurface").precompute(blob, {"material": "skin1", "scale": 10.0, "samples": 16, "bands": 3,
+        mesh = _sphere(10)
+        tr = get_kind("subsurface").precompute(mesh, {"material": "skin1", "scale": 10.0, "samples": 16, "bands": 3,
                                                       "spacing": 4.0})
         light = load_light("sky", bands=3)
-        cam = Camera.fit(blob, azimuth=30, elevation=20, fov=40, aspect=80 / 64)
+        cam = Camera.fit(mesh, azimuth=30, elevation=20, fov=40, aspect=80 / 64)
         sc = PRTScene(tr)
         c = glsl_vs_cpu(renderer, sc, light, cam)
         assert c.same_mask and c.psnr_db > 50 and np.abs(c.cpu[c.mask]).max() > 1e-3
