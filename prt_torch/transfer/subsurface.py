@@ -37,8 +37,11 @@ the receiver, ΔΩ = A_node / d², is below ``epsilon`` (and whose bounding sphe
 the receiver) contributes R_d(d) Σ A_i E_i as one sample; other nodes are opened, and a leaf
 that cannot be accepted is summed sample by sample. The tree is arrays (Morton order) and the
 walk goes level by level over (receiver, node) pairs with masks — no per-vertex Python loop —
-and its result is one sparse [R, nodes + samples] matrix per channel times the node/sample
-table. A receiver's own sample is integrated over its own disk of area A_i (P(ρ_i), ρ_i =
+each level's accepted pairs gathering rows of the node/sample table and scattering them
+(``index_add_``) to their receivers. When the vertices are sparser than the mean free path the
+samples are points spread over the faces (:func:`surface_samples`, Jensen & Buhler 2002 §3.1:
+samples denser than the mean free path), E interpolated from the vertices; the receivers are
+always the vertices. A receiver's own sample is integrated over its own disk of area A_i (P(ρ_i), ρ_i =
 √(A_i/π)), not evaluated at r = 0, and no sample weighs more than that: R_d is decreasing, so the
 mean of R_d over a disk of area A_j is largest for the disk centred on the receiver, and the
 weight of sample j is min(R_d(r), P(ρ_j)/A_j) · A_j (without the bound, two scan vertices a
