@@ -223,6 +223,26 @@ def test_diffuse_term_adds_the_subsurface_kind():
     assert both.meta["subsurface"]["material"]["name"] == "skin1"
 
 
+def test_glossy_term_is_the_constant_exit_coefficient():
+    """Glossy exit transfer with the term: only the y_00 row changes, by the subsurface kind's
+    luminance / y_00, so every view's exit radiance gains the (view-independent) term."""
+    mesh = _sphere(6)
+    p = {"bands": 2, "samples": 16, "shadows": False, "brdf": {"type": "phong", "s": 8}}
+    term = {"material": "skin1", "scale": 10.0, "spacing": 4.0}
+    g0 = get_kind("glossy").precompute(mesh, p)
+    g1 = get_kind("glossy").precompute(mesh, {**p, "subsurface": term})
+    sub = get_kind("subsurface").precompute(mesh, {"bands": 2, "shadows": "never", "material": "skin1", "scale": 10.0,
+                                                   "spacing": 4.0})
+    r0 = g0.meta["out_index"].index(0)
+    d = (g1.data - g0.data).double()
+    others = [r for r in range(d.shape[1]) if r != r0]
+    assert float(d[:, others].abs().max()) == 0.0
+    luma = torch.einsum("vcn,c->vn", sub.data.double(), torch.tensor([0.2126, 0.7152, 0.0722], dtype=torch.float64))
+    assert torch.allclose(d[:, r0] / L00, luma, atol=1e-6)
+    with pytest.raises(ValueError, match="constant exit coefficient"):
+        get_kind("glossy").precompute(mesh, {**p, "subsurface": term, "exit": False})
+
+
 def test_resume_gives_the_same_result(tmp_path):
     mesh = _sphere(6)
     p = {"material": "skin1", "scale": 40.0, "shadows": "never", "bands": 2, "spacing": 8.0}

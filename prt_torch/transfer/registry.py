@@ -266,6 +266,8 @@ register_kind(TransferKind(
         "bands": [Interval(int, 1, MAX_GLOSSY_BANDS), _AUTO], "bands_out": [Interval(int, 1, MAX_GLOSSY_BANDS), _AUTO, None],
         "exit": [Boolean()], "projection": [Options("zero", "least_squares", "odd", "even")],
         "drop_out": [Predicate(_is_pairs, "a list of (l, m) pairs"), None], "rcond": [Interval(float, 0, None), None],
+        "subsurface": [Predicate(lambda v: _is_sss_term(v), "{material: NAME or {sigma_a, sigma_s, eta}, scale: MM_PER_UNIT} "
+                                 "(optional epsilon, fresnel, spacing)"), None],
         **_GLOSSY_COMMON,
     },
     args=_args("bands", "bands_out", "brdf", "samples", "seed", "shadows", "bounces", "window", "window_width",
