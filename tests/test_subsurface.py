@@ -194,20 +194,20 @@ def _sphere(n=2):
 
 
 def test_kind_constant_light_on_a_closed_sphere():
-    """A sphere of radius 50 mm (large against skin's diffusion length) under constant light:
-    every vertex's exit radiance is close to F_dt² R_d (the slab's value; curvature and the
-    samples' spacing move it a few per cent) and never above 1."""
+    """A sphere of radius 50 mm (large against skin's diffusion length) under constant light, the
+    default sample spacing (the vertices are ~4.7 mm apart: samples on the faces): the mean exit
+    radiance is F_dt² R_d (the slab's value) within 4% (the samples' spacing leaves it 0.4-2.5%
+    low; curvature moves it a little) and no vertex exceeds 1."""
     mesh = _sphere(12)  # 1442 vertices, ~4.7 mm apart
     m = PRESETS["skin2"]
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # closed, and the scale is sensible: no warning
-        tr = get_kind("subsurface").precompute(mesh, {"material": "skin2", "scale": 50.0, "shadows": "never", "bands": 2,
-                                                      "spacing": 2.0})
-    assert tr.kind == "diffuse" and tr.data.shape == (mesh.num_vertices, 3, 4) and tr.meta["albedo_folded"]
+        tr = get_kind("subsurface").precompute(mesh, {"material": "skin2", "scale": 50.0, "shadows": "never", "bands": 1})
+    assert tr.kind == "diffuse" and tr.data.shape == (mesh.num_vertices, 3, 1) and tr.meta["albedo_folded"]
     L = tr.data[:, :, 0].double() * L00
     ref = m.F_dt ** 2 * m.total_rd()
     assert float(L.max()) <= 1.0
-    assert torch.allclose(L.mean(0), ref, rtol=0.08), (L.mean(0), ref)
+    assert torch.allclose(L.mean(0), ref, rtol=0.04), (L.mean(0), ref)  # measured 0.975-0.996 at spacing 1
 
 
 def test_diffuse_term_adds_the_subsurface_kind():
