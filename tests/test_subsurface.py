@@ -356,3 +356,20 @@ def test_against_mitsuba_volumetric_path_tracing():
     assert np.all(np.abs(ratio - MITSUBA_RATIO) < 0.05), ratio
     e, m = r["engine"][:, 0], r["mitsuba"][:, 0]
     assert (e[0] / e[2]) / (m[0] / m[2]) == pytest.approx(1.0, abs=0.05)
+
+
+def test_ray_executor_is_bit_identical():
+    """The scatter's chunks as Ray tasks: the same bits and the same pair counts as in process."""
+    pytest.importorskip("ray")
+    from prt_torch.executor import RayExecutor
+
+    mesh = _sphere(6)
+    p = {"material": "skin1", "scale": 40.0, "shadows": "never", "bands": 2, "spacing": 8.0}
+    a = get_kind("subsurface").precompute(mesh, p, run=RunOptions(chunk_size=100))
+    ex = RayExecutor(num_cpus=2, max_retries=1).start()
+    try:
+        b = get_kind("subsurface").precompute(mesh, p, run=RunOptions(chunk_size=100, executor=ex))
+    finally:
+        ex.close()
+    assert torch.equal(a.data, b.data)
+    assert a.meta["subsurface"]["node_terms"] == b.meta["subsurface"]["node_terms"] > 0

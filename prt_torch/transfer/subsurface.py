@@ -592,24 +592,25 @@ def subsurface_term(mesh: Mesh, irradiance_transfer: torch.Tensor, material: Any
                           f"{float(m.z_r.min()):.3g} mm): the near field is under-resolved (a few % dark)", stacklevel=3)
     fdt = m.F_dt if fresnel else 1.0
     tree = SampleTree.build(pts, areas, E) if method == "hierarchical" else None
-    stats: dict = {}
 
     def compute(a: int, b: int) -> dict[str, torch.Tensor]:
         rid = None if ids is None else ids[a:b]
+        st = {"node_terms": 0, "sample_terms": (b - a) * int(pts.shape[0])}
         if tree is None:
             out = scatter_brute(recv[a:b], pts, areas, E, m, receiver_ids=rid)
         else:
-            st: dict = {}
+            st["sample_terms"] = 0
             out = scatter_hierarchical(recv[a:b], tree, m, epsilon, receiver_ids=rid, stats=st)
-            stats["node_terms"] = stats.get("node_terms", 0) + st["node_terms"]
-            stats["sample_terms"] = stats.get("sample_terms", 0) + st["sample_terms"]
-        return {"L": out * (fdt * fdt / math.pi)}
+        # the pair counts travel with the chunk (a Ray task's side effects would not come back)
+        return {"L": out * (fdt * fdt / math.pi), "terms": torch.tensor([st["node_terms"], st["sample_terms"]])}
 
     fp = {"kind": "subsurface", "mesh": mesh.content_hash(), "material": m.describe(), "scale": scale, "epsilon": epsilon,
           "fresnel": fresnel, "method": method, "spacing": spacing, "max_samples": max_samples, "seed": seed,
           "T": float(T.abs().sum()), "shape": list(T.shape)}
     chunks = run.run_chunks(V, run.chunks(2048), compute, fingerprint=fp, desc="subsurface")
     L = torch.cat([c["L"] for c in chunks])
+    terms = torch.stack([c["terms"] for c in chunks]).sum(0)
+    stats = {"node_terms": int(terms[0]), "sample_terms": int(terms[1])}
     meta.update({"material": m.describe(), "scale_mm_per_unit": scale, "epsilon": epsilon, "method": method,
                  "fresnel": f"F_dt = eta^2 (1 - F_dr) = {m.F_dt:.4f} at entry and exit (view-independent, Sloan 2003 §3.1)" if fresnel else "none",
                  "seconds_scatter": time.perf_counter() - t0,
