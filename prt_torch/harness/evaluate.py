@@ -43,8 +43,8 @@ from ..transfer import Transfer
 __all__ = ["Evaluator", "camera_positions", "KINDS", "load_directory_transfer", "check_codecs_for_kind",
            "TRANSPORT_LIGHT_BANDS"]
 
-#: transfer kinds the harness can relight
-KINDS = ("diffuse", "glossy", "mrt", "transport", "wavelet")
+#: transfer kinds the harness can relight ('subsurface' precomputes a diffuse transfer: relit as one)
+KINDS = ("diffuse", "glossy", "mrt", "transport", "wavelet", "subsurface")
 #: SH bands of the lights of a transport benchmark (evaluated on the cube texels / prefiltered)
 TRANSPORT_LIGHT_BANDS = 10
 

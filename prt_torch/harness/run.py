@@ -126,7 +126,7 @@ def estimate_memory(cfg: dict, num_vertices: int) -> dict:
         if p.get(k) == "auto":
             p[k] = worst if t["type"] != "diffuse" else 32
     n2 = p.get("bands", 1) ** 2
-    if t["type"] == "diffuse":
+    if t["type"] in ("diffuse", "subsurface"):  # subsurface: a diffuse transfer [V, 3, n²]
         D = n2 * 3
     elif t["type"] == "glossy":
         D = int(p["bands_out"] or p["bands"]) ** 2 * n2

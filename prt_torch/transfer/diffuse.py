@@ -660,6 +660,7 @@ def precompute_diffuse(
     bounce_points: str = "hits",
     hit_samples: int = 8,
     hit_offset: float = HIT_OFFSET,
+    subsurface: dict | None = None,
     run: RunOptions | None = None,
 ) -> Transfer:
     """Diffuse PRT transfer vectors for every vertex of ``mesh`` (see module docstring).
@@ -698,6 +699,11 @@ def precompute_diffuse(
         hit_offset: offset of the rays leaving a hit point, as a fraction of the bounding-box
             diagonal (in [0, 0.1]; floored at a few float32 ulps, :func:`hit_ray_eps`). The
             vertices' own ray offset is ``run.offset``.
+        subsurface: ``{material: NAME | {sigma_a, sigma_s, eta}, scale: MM_PER_UNIT}`` (optional
+            ``epsilon``, ``fresnel``): add the subsurface scattering term of Sloan 2003 §3.1
+            (:mod:`~prt_torch.transfer.subsurface`: Jensen 2001's dipole over Jensen & Buhler
+            2002's hierarchy, from this transfer's irradiance); the data is then ``[V,3,n²]``
+            with the albedo folded in (``fold_albedo=False`` is refused).
         run: how it runs (:class:`RunOptions`: chunks — default ~2²⁰ traced rays each —,
             workers, ray offset, resumable state, progress).
     Returns:
@@ -755,7 +761,15 @@ def precompute_diffuse(
             T0, S = unshadowed_transfer(mesh.normals, bands), None  # [V, n²] float64, exact
             meta["rays_traced"] = 0
         total, C = _interreflect(T0, S, mesh, bounces, bounce_tol, meta, faces)
-        data = _store_albedo(total, mesh, C, fold_albedo, meta)
+        if subsurface is not None:
+            if fold_albedo is False:
+                raise ValueError("fold_albedo=False with a subsurface term: the term is coloured (R_d per channel); "
+                                 "accepted: fold_albedo=None/True")
+            from .subsurface import add_term
+
+            data = _store_albedo(total, mesh, C, True, meta) + add_term(mesh, subsurface, total, run, meta)
+        else:
+            data = _store_albedo(total, mesh, C, fold_albedo, meta)
         meta["seconds"] = time.perf_counter() - t_start
         meta["rays_per_second"] = meta["rays_traced"] / meta["seconds"] if meta["rays_traced"] else 0.0
         meta["workers"] = caster.workers if caster is not None else 1

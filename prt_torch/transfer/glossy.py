@@ -427,6 +427,7 @@ def precompute_glossy(
     bounces: int = 0,
     vertices: torch.Tensor | None = None,
     estimator: str = "control",
+    subsurface: dict | None = None,
     run: RunOptions | None = None,
 ) -> Transfer:
     """Glossy transfer for every vertex (or the subset ``vertices``) of ``mesh``.
@@ -449,6 +450,11 @@ def precompute_glossy(
             reduced to luminance since the glossy matrices are shared by the colour channels.
         estimator: 'control' (default: the exact unshadowed T_p minus the blocked directions'
             part, :func:`transferred_radiance`) or 'plain' (the sum over visible directions).
+        subsurface: ``{material, scale}`` (optional ``epsilon``, ``fresnel``, ``spacing``): add
+            the view-independent subsurface term of Sloan 2003 §3.1 to the constant exit
+            coefficient (row y_00; :mod:`~prt_torch.transfer.subsurface`, from the shadowed diffuse
+            transfer of the same bands, samples, seed, shadows and bounces), reduced to luminance
+            as coloured albedo is (one matrix per vertex). Exit transfer of every vertex only.
         run: how it runs (:class:`RunOptions`: chunks, workers, ray offset, memory limit —
             refused up front when the estimate exceeds it —, resumable state, progress).
     Returns:
@@ -460,6 +466,13 @@ def precompute_glossy(
     bounces = check_int("bounces", bounces, 0, 16)
     check_choice("estimator", estimator, ESTIMATORS)
     bands_out = bands if bands_out is None else check_int("bands_out", bands_out, 1, MAX_GLOSSY_BANDS)
+    if subsurface is not None:
+        from .subsurface import check_term_spec
+
+        check_term_spec(subsurface)
+        if not exit or vertices is not None or (0, 0) in [tuple(d) for d in (drop_out or [])]:
+            raise ValueError("subsurface: the term goes to the constant exit coefficient of every vertex; accepted: exit "
+                             "transfer (not --transferred), no vertex subset, (0,0) not dropped")
     brdf = check_brdf(mesh, brdf)
     check_frames(mesh)
     n_rows = (bands_out * bands_out - len(drop_out or [])) if exit else bands * bands
@@ -504,8 +517,30 @@ def precompute_glossy(
                        "transferred incident radiance coefficients (global frame) T_p @ l, zero below the tangent plane"),
         sh_convention="real SH, graphics convention, no Condon-Shortley phase, index l(l+1)+m",
     )
+    if subsurface is not None:
+        data = _add_subsurface(mesh, data, out_idx, subsurface, bands, samples, seed, shadows, bounces, run, meta)
     mesh_out = mesh if sel is None else submesh(mesh, sel)
     return Transfer(kind="glossy", data=data, mesh=mesh_out, meta=meta)
+
+
+def _add_subsurface(mesh: Mesh, data: torch.Tensor, out_idx: torch.Tensor, spec: dict, bands: int, samples: int,
+                    seed: int, shadows: bool, bounces: int, run: RunOptions, meta: dict) -> torch.Tensor:
+    """``data [V, N_r, n²]`` with the subsurface term's luminance (``[V, n²]``) added to the row of
+    y_00, divided by y_00 = 1/(2√π) so that the exit radiance gains exactly the term."""
+    import dataclasses
+
+    from .diffuse import precompute_diffuse
+    from .subsurface import add_term, sub_state
+
+    t = precompute_diffuse(mesh.with_albedo(1.0), bands=bands, samples=samples, bounces=bounces, seed=seed,
+                           shadows="always" if shadows else "never", fold_albedo=False,
+                           run=dataclasses.replace(run, state_dir=sub_state(run, "irradiance")))
+    L = add_term(mesh, spec, t.data, run, meta)  # [V, 3, n²]
+    r0 = int((out_idx == 0).nonzero()[0, 0])
+    out = data.clone()
+    out[:, r0] += (torch.einsum("vcn,c->vn", L, _LUMA) * (2 * math.sqrt(math.pi))).to(out.dtype)
+    meta["subsurface"]["glossy"] = "luminance (Rec. 709) added to the y_00 exit row"
+    return out
 
 
 def submesh(mesh: Mesh, sel: torch.Tensor) -> Mesh:

@@ -28,6 +28,9 @@ from .glossy import MAX_GLOSSY_BANDS, precompute_glossy
 from .glossy import MAX_SAMPLES as MAX_GLOSSY_SAMPLES
 from .mrt import precompute_mrt
 from .tents import MAX_TENTS
+from .subsurface import PRESETS as SSS_PRESETS
+from .subsurface import check_term_spec, material_from_spec
+from .subsurface_kind import precompute_subsurface
 from .transport import MAX_CUBE_RES, precompute_transport
 from .wavelet import BITS, MAX_WAVELET_TERMS, SAMPLINGS, SCALES, precompute_wavelet
 
@@ -226,6 +229,8 @@ register_kind(TransferKind(
         "probe_tol": [Interval(float, 0, 1, closed="left")],
         "bounce_points": [Options("hits", "vertices")], "hit_samples": [Interval(int, 1, 1024)],
         "hit_offset": [Interval(float, 0, 0.1)],
+        "subsurface": [Predicate(lambda v: _is_sss_term(v), "{material: NAME or {sigma_a, sigma_s, eta}, scale: MM_PER_UNIT} "
+                                 "(optional epsilon, fresnel, spacing)"), None],
     },
     args=_args("bands", "samples", "bounces", "seed", "shadows") + (
         Arg("--estimator", "estimator", "auto (default): per vertex the control variate where at least half its rays are "
@@ -261,6 +266,8 @@ register_kind(TransferKind(
         "bands": [Interval(int, 1, MAX_GLOSSY_BANDS), _AUTO], "bands_out": [Interval(int, 1, MAX_GLOSSY_BANDS), _AUTO, None],
         "exit": [Boolean()], "projection": [Options("zero", "least_squares", "odd", "even")],
         "drop_out": [Predicate(_is_pairs, "a list of (l, m) pairs"), None], "rcond": [Interval(float, 0, None), None],
+        "subsurface": [Predicate(lambda v: _is_sss_term(v), "{material: NAME or {sigma_a, sigma_s, eta}, scale: MM_PER_UNIT} "
+                                 "(optional epsilon, fresnel, spacing)"), None],
         **_GLOSSY_COMMON,
     },
     args=_args("bands", "bands_out", "brdf", "samples", "seed", "shadows", "bounces", "window", "window_width",
@@ -331,5 +338,54 @@ register_kind(TransferKind(
         Arg("--supersample", "supersample", "s x s sub-texel rays per texel (1: texel centres)"),
         Arg("--texel-sampling", "sampling", "grid (sub-texel centres) or jittered (one random point per sub-texel and "
             "vertex, unbiased; seeded by --seed)", values={"grid": "grid", "jittered": "jittered"}),
+    ),
+))
+
+
+def _is_sss_term(v: Any) -> bool:
+    check_term_spec(v)
+    return True
+
+
+def _is_material(v: Any) -> bool:
+    material_from_spec(v)
+    return True
+
+
+def _is_rgb(v: Any) -> bool:
+    import math
+
+    vals = [v] if isinstance(v, (int, float)) and not isinstance(v, bool) else v
+    return (isinstance(vals, (list, tuple)) and len(vals) in (1, 3)
+            and all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) and x >= 0 for x in vals))
+
+
+_MATERIAL = [Predicate(_is_material, f"a measured material of Jensen et al. 2001 ({', '.join(sorted(SSS_PRESETS))}) or "
+                       "{sigma_a: [R,G,B], sigma_s: [R,G,B], eta: E} (mm^-1)"), None]
+_RGB = [Predicate(_is_rgb, "R,G,B (or one number), each finite and >= 0, in mm^-1"), None]
+
+register_kind(TransferKind(
+    name="subsurface", function=precompute_subsurface,
+    doc="subsurface scattering term alone (dipole of Jensen 2001, hierarchy of Jensen & Buhler 2002, SH lighting as "
+    "Sloan 2003 §3.1): diffuse transfer [V,3,n²], colour folded",
+    constraints={
+        "material": _MATERIAL, "scale": [Interval(float, 0, None, closed="neither")],
+        "bands": [Interval(int, 1, MAX_DIFFUSE_BANDS)], "samples": [Interval(int, 1, MAX_SAMPLES)],
+        "bounces": [Interval(int, 0, MAX_BOUNCES)], "seed": _SEED, "shadows": _SHADOWS,
+        "sigma_a": _RGB, "sigma_s": _RGB, "eta": [Interval(float, 0, None, closed="neither"), None],
+        "epsilon": [Interval(float, 0, None, closed="neither")], "fresnel": [Boolean()],
+        "method": [Options("hierarchical", "brute")], "spacing": [Interval(float, 0, None, closed="neither")],
+    },
+    args=_args("bands", "samples", "bounces", "seed", "shadows") + (
+        Arg("--material", "material", f"measured material (Jensen et al. 2001): {', '.join(sorted(SSS_PRESETS))}"),
+        Arg("--sigma-a", "sigma_a", "absorption coefficient R,G,B in mm^-1 (with --sigma-s; instead of --material)"),
+        Arg("--sigma-s", "sigma_s", "reduced scattering coefficient sigma_s' R,G,B in mm^-1 (with --sigma-a)"),
+        Arg("--eta", "eta", "relative index of refraction (with --sigma-a/--sigma-s; default 1.3)"),
+        Arg("--scale", "scale", "mm per mesh unit: the mesh's units decide how far light travels under the surface"),
+        Arg("--epsilon", "epsilon", "the hierarchy's solid-angle threshold A/d^2 (default 0.05: <= 1% from the O(V^2) sum)"),
+        Arg("--sss-method", "method", "hierarchical (Jensen & Buhler 2002, default) or brute (the O(V^2) sum)",
+            values={"hierarchical": "hierarchical", "brute": "brute"}),
+        Arg("--spacing", "spacing", "irradiance samples at most this many smallest mean free paths apart (default 1)"),
+        Arg("--no-fresnel", "fresnel", "leave out the Fresnel transmittance F_dt at entry and exit", const=False),
     ),
 ))
