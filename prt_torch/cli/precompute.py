@@ -67,7 +67,8 @@ def register(subparsers) -> None:
     p.add_argument("-o", "--output", required=True, help="output .prt file (a directory for --kind transport)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output (and discard a stale state dir)")
     p.add_argument("--resume", action="store_true", help="continue an interrupted run from <output>.state/")
-    p.add_argument("--size", default="small", choices=["small", "medium", "large"], help="built-in scene size")
+    p.add_argument("--size", default="small", help="built-in scene size: small, medium, large; for convex and bumpy_sphere "
+                                                   "also xl (~1M vertices) or a vertex count")
     p.add_argument("--up", default="z", choices=["z", "-z", "y", "-y", "x", "-x"], help="up axis of the mesh file")
     p.add_argument("--albedo", type=_albedo_arg, default=None, help="uniform albedo: ρ or R,G,B (default: the scene's)")
     g = p.add_argument_group("run options (every kind)")
