@@ -802,8 +802,16 @@ def _trace_direct(caster: RayCaster, mesh: Mesh, bands: int, samples: int, seed:
         fingerprint.update(hit_samples=hits.M, hit_terms=hits.terms, hit_offset=hits.hit_offset)
     parts = run.run_chunks(V, chunk_size, compute, fingerprint=fingerprint, desc=f"diffuse {mesh.name}",
                            rays_of=lambda r: int(r["rays"].sum()))
-    T0 = torch.cat([p["T"] for p in parts]).to(torch.float64)
     meta["rays_traced"] = int(sum(int(p["rays"].sum()) for p in parts))
+    if record_hits:
+        T0 = torch.cat([p["T"] for p in parts]).to(torch.float64)
+    else:  # assembled releasing each chunk as it is copied: the transfer is never held twice
+        T0 = torch.empty(V, bands * bands, dtype=torch.float64)
+        o = 0
+        while parts:
+            t = parts.pop(0)["T"]
+            T0[o : o + t.shape[0]] = t
+            o += t.shape[0]
     meta["chunk_size"] = chunk_size
     meta["rays_per_vertex"] = rpv if sampling != "uniform" else f"about {rpv} (the sphere set's directions above each tangent plane)"
     if not record_hits:
@@ -961,6 +969,11 @@ def _interreflect(T0: torch.Tensor, S: Any, mesh: Mesh, bounces: int, bounce_tol
     V, n2 = T0.shape
     rho = mesh.albedo.to(torch.float64)
     C = 1 if (mesh.is_grey() or S is None) else 3
+    if bounces == 0 or S is None:  # no bounce term: t = t⁰ itself, not two copies of it
+        meta["bounces_used"], meta["bounce_energy_fraction"] = 0, []
+        if bounces > 0:
+            meta["bounce_decision"] = "no interreflection: shadow rays were not traced (no occluding geometry)"
+        return T0[:, None, :], 1
     rho_c = rho[:, :1] if C == 1 else rho  # [V,C]
     tb = T0[:, None, :].expand(V, C, n2).clone()  # t̃⁰ (ρ_p kept out)
     total = tb.clone()
