@@ -77,6 +77,9 @@ def register(subparsers) -> None:
     g.add_argument("--memory-limit", type=float, default=None, help="GiB; refuse a run estimated above it (default 60%% of RAM)")
     g.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_executor_args(g, "the chunks")
+    p.add_argument("--dry-run", action="store_true",
+                   help="build the mesh, then print each stage's memory and time (time from a probe of two small "
+                        "chunks) and whether it fits, and stop; a run that would not fit is refused up front anyway")
     p.add_argument("--debug", action="store_true", help="show tracebacks")
     g = p.add_argument_group("automatic choices ('auto' for --bands, --bands-out, --tents)")
     g.add_argument("--energy", type=float, default=None,
@@ -180,11 +183,11 @@ def _run(args, executor) -> int:
     check_outputs({"-o/--output": out}, {"MESH_OR_BUILTIN": args.scene, "--light": args.light}, args.overwrite,
                   directories=("-o/--output",) if kind.output == "directory" else ())  # before any work
     state = default_state_dir(out)
-    if args.resume and not state.exists():  # said, not silently a fresh run
+    if args.resume and not state.exists() and not args.dry_run:  # said, not silently a fresh run
         import warnings
 
         warnings.warn(f"--resume: no interrupted run in {str(state)!r}; starting from the beginning", stacklevel=1)
-    if state.exists() and not args.resume:
+    if state.exists() and not args.resume and not args.dry_run:  # a dry run removes nothing
         if args.overwrite:
             shutil.rmtree(state)
         else:
@@ -200,8 +203,25 @@ def _run(args, executor) -> int:
                 lights.append(load_light(spec, bands=32))
             except (ValueError, OSError) as e:
                 raise ValueError(f"--light {spec!r}: {e}") from None
+    import time
+
+    from ..transfer.estimate import check_fits, estimate, format_estimate
+
+    t_mesh = time.perf_counter()
     mesh = load_scene(args.scene, size=args.size, up=args.up, albedo=args.albedo)
+    t_mesh = time.perf_counter() - t_mesh
     print(f"prt precompute: {mesh.name}: {mesh.num_vertices} vertices, {mesh.num_faces} faces", file=sys.stderr)
+    plan = RunOptions(chunk_size=args.chunk, workers=args.workers, offset=RunOptions.offset,
+                      max_memory=None if args.memory_limit is None else int(args.memory_limit * (1 << 30)))
+    est = estimate(kind, mesh, params, plan, lights=lights, probe=args.dry_run, mesh_seconds=t_mesh)
+    if args.dry_run:
+        print(f"prt precompute: dry run, {kind.name} on {mesh.num_vertices} vertices: memory and time per stage", file=sys.stderr)
+        for line in format_estimate(est):
+            print(line, file=sys.stderr)
+        check_fits(est, "prt precompute:")
+        print("prt precompute: dry run: nothing written", file=sys.stderr)
+        return 0
+    check_fits(est, "prt precompute:")  # before any ray: what cannot fit even with its chunks on disk
     args.resume_hint = (f"finished chunks are kept in {str(state)!r}; continue with: "
                         f"prt {' '.join(shlex.quote(a) for a in _argv(args))} --resume")
     opts = RunOptions(chunk_size=args.chunk, workers=args.workers, state_dir=state, resume=args.resume,
