@@ -31,7 +31,7 @@ import torch
 
 from ..scene import Mesh
 from .base import ChunkInterrupt, RunOptions
-from .glossy import _fmt_bytes, default_chunk, estimate_memory, memory_budget
+from .glossy import default_chunk, estimate_memory, format_bytes, memory_budget
 
 __all__ = ["estimate", "check_fits", "format_estimate", "result_bytes_per_vertex", "BVH_BYTES_PER_FACE"]
 
@@ -147,12 +147,12 @@ def estimate(kind, mesh: Mesh, params: dict[str, Any], run: RunOptions | None = 
         {"stage": "mesh", "bytes": m_bytes, "seconds": mesh_seconds,
          "note": f"{V} vertices, {F} faces (held throughout)"},
         {"stage": "rays", "bytes": rays_stage, "seconds": seconds_rays,
-         "note": (f"ray-casting scene ~{_fmt_bytes(bvh)}, one chunk ~{_fmt_bytes(chunk)}, finished chunks "
-                  f"{_fmt_bytes(finished)} (also on disk in the state directory)"
+         "note": (f"ray-casting scene ~{format_bytes(bvh)}, one chunk ~{format_bytes(chunk)}, finished chunks "
+                  f"{format_bytes(finished)} (also on disk in the state directory)"
                   + (f"; time from {probe_info['note']}" if probe_info.get("note") else ""))},
         {"stage": "result", "bytes": result_stage, "seconds": None if seconds_rays is None else 0.0,
-         "note": (f"{_fmt_bytes(out_pv * V)} on disk, streamed per chunk (not held)" if kind.output == "directory" else
-                  f"{_fmt_bytes(out_pv)} per vertex stored ({_fmt_bytes(out_pv * V)}), {_fmt_bytes(held_pv)} per vertex "
+         "note": (f"{format_bytes(out_pv * V)} on disk, streamed per chunk (not held)" if kind.output == "directory" else
+                  f"{format_bytes(out_pv)} per vertex stored ({format_bytes(out_pv * V)}), {format_bytes(held_pv)} per vertex "
                   "held while assembling")},
     ]
     if seconds_rays is not None:
@@ -208,10 +208,10 @@ def format_estimate(e: Estimate) -> list[str]:
     lines = []
     for st in e.stages:
         sec = "time not measured" if st["seconds"] is None else f"~{st['seconds']:.1f} s"
-        lines.append(f"  {st['stage']:7s} {_fmt_bytes(st['bytes']):>10s}  {sec:>12s}  {st['note']}")
+        lines.append(f"  {st['stage']:7s} {format_bytes(st['bytes']):>10s}  {sec:>12s}  {st['note']}")
     tot = e.seconds
-    lines.append(f"  peak    {_fmt_bytes(e.peak_bytes):>10s}  {'' if tot is None else f'~{tot:.1f} s':>12s}  "
-                 f"mesh + the larger of rays and result; budget {_fmt_bytes(e.budget_bytes)} "
+    lines.append(f"  peak    {format_bytes(e.peak_bytes):>10s}  {'' if tot is None else f'~{tot:.1f} s':>12s}  "
+                 f"mesh + the larger of rays and result; budget {format_bytes(e.budget_bytes)} "
                  f"({'fits' if e.fits else 'does NOT fit'})")
     return lines
 
@@ -220,8 +220,8 @@ def check_fits(e: Estimate, what: str = "precompute") -> None:
     """Raise ValueError (one line, with every stage's estimate) when ``e`` exceeds its budget."""
     if e.fits:
         return
-    parts = ", ".join(f"{st['stage']} {_fmt_bytes(st['bytes'])}" for st in e.stages)
-    raise ValueError(f"{what} {e.kind} of {e.vertices} vertices needs about {_fmt_bytes(e.peak_bytes)} at its peak "
-                     f"({parts}; chunks are already streamed to disk) but the budget is {_fmt_bytes(e.budget_bytes)}; "
+    parts = ", ".join(f"{st['stage']} {format_bytes(st['bytes'])}" for st in e.stages)
+    raise ValueError(f"{what} {e.kind} of {e.vertices} vertices needs about {format_bytes(e.peak_bytes)} at its peak "
+                     f"({parts}; chunks are already streamed to disk) but the budget is {format_bytes(e.budget_bytes)}; "
                      "accepted: fewer bands (or tents, bands_out, terms), a smaller mesh, or a larger --memory-limit "
                      "(RunOptions.max_memory) on a machine that has it")
