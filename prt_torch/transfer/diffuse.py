@@ -305,6 +305,19 @@ def qmc_rays(samples: int) -> int:
     return max(1, (int(samples) + 1) // 2)
 
 
+def samples_rounding(samples: int, sampling: str) -> str | None:
+    """What a ``samples`` count becomes when the direction set cannot honour it exactly, or None.
+
+    ``'qmc'`` traces ⌈N/2⌉ rays per vertex (:func:`qmc_rays`): an odd N traces the rays of N + 1.
+    ``'uniform'`` and ``'cosine'`` take any N (their strata grid's leftover samples are uniform).
+    """
+    if sampling == "qmc" and int(samples) % 2:
+        M = qmc_rays(samples)
+        return (f"samples={int(samples)} with sampling='qmc' is rounded to {2 * M}: the Hammersley set over each "
+                f"vertex's hemisphere traces ⌈N/2⌉ = {M} rays per vertex; accepted exactly: an even count")
+    return None
+
+
 _M1, _M2, _M3 = np.uint64(0x9E3779B97F4A7C15), np.uint64(0xBF58476D1CE4E5B9), np.uint64(0x94D049BB133111EB)
 
 
@@ -681,6 +694,11 @@ def precompute_diffuse(
     hit_offset = check_float("hit_offset", hit_offset, 0.0, 0.1)
     bounce_tol = check_float("bounce_tol", bounce_tol, 0.0, 1.0, hi_open=True)
     probe_tol = check_float("probe_tol", probe_tol, 0.0, 1.0, hi_open=True)
+    rounding = samples_rounding(samples, sampling) if shadows != "never" else None
+    if rounding is not None:
+        import warnings
+
+        warnings.warn(rounding, stacklevel=2)
     t_start = time.perf_counter()
     if fold_albedo is False and bounces > 0 and not mesh.is_grey():
         raise ValueError("fold_albedo=False with coloured albedo and bounces > 0: interreflection bleeds colour, so the albedo "
