@@ -66,7 +66,9 @@ def result_bytes_per_vertex(kind: str, kw: dict[str, Any], mesh: Mesh) -> tuple[
         return out, out
     if kind == "wavelet":
         K = int(kw.get("terms", 256))
-        out = K * (int(kw.get("bits", 8)) // 8 + 4) + 4
+        res = kw.get("res", 32)
+        index = 2 if isinstance(res, int) and 6 * res * res <= 32767 else 4  # int16 / int32 (wavelet.index_dtype)
+        out = K * (int(kw.get("bits", 8)) // 8 + index) + 4
         return out, out + 8 * K
     if kind == "transport":
         views = kw.get("views", 3)
