@@ -31,7 +31,8 @@ import torch
 
 from ..scene import Mesh
 from .base import ChunkInterrupt, RunOptions
-from .glossy import default_chunk, estimate_memory, format_bytes, memory_budget
+from ..io import format_bytes
+from .glossy import default_chunk, estimate_memory, memory_budget
 
 __all__ = ["estimate", "check_fits", "format_estimate", "result_bytes_per_vertex", "BVH_BYTES_PER_FACE"]
 
