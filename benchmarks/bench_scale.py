@@ -60,6 +60,26 @@ def peak_rss() -> tuple[int, int]:
             resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * 1024)
 
 
+def reset_peak() -> bool:
+    """Reset this process's peak RSS (Linux: ``echo 5 > /proc/self/clear_refs``); False where
+    the kernel does not allow it."""
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+        return True
+    except OSError:
+        return False
+
+
+def vm_hwm() -> int:
+    """Peak RSS since the last :func:`reset_peak` (``VmHWM`` of ``/proc/self/status``), bytes."""
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) * 1024
+    return 0
+
+
 # ----------------------------------------------------------------------------------------------
 # the child: one stage, one size
 # ----------------------------------------------------------------------------------------------
@@ -75,12 +95,12 @@ def child(args) -> dict:
     from prt_torch import codecs
     from prt_torch.scene import load_scene
     from prt_torch.transfer import RunOptions, Transfer, get_kind
-    from prt_torch.transfer.diffuse import precompute_diffuse
 
-    base = max(rss_now(), peak_rss()[0])  # the imports' own peak is not the stage's
+    rss_imports = rss_now()
+    base = max(rss_imports, peak_rss()[0])  # the imports' own peak is not the stage's
     work, size, stage = Path(args.work), int(args.size), args.child
     p = _paths(work, size)
-    out: dict = {"stage": stage, "size": size, "rss_after_imports": base}
+    out: dict = {"stage": stage, "size": size, "rss_after_imports": base, "rss_now_after_imports": rss_imports}
     t0 = time.perf_counter()
     if stage == "embree":  # the peer: bare Embree occlusion rays from the mesh's own vertices
         import numpy as np
@@ -111,19 +131,25 @@ def child(args) -> dict:
         tm = time.perf_counter()
         mesh = load_scene(f"bumpy_sphere:{size}")
         out["mesh_seconds"] = time.perf_counter() - tm
-        t0 = time.perf_counter()  # the stage's time is the precompute and its save (the mesh: its own column)
         state = Path(str(p[stage]) + ".state")
         run = RunOptions(workers=1, state_dir=state, resume=state.exists())
-        if stage == "diffuse":
-            tr = precompute_diffuse(mesh, bands=args.bands, samples=args.samples, shadows="always", run=run)
-        else:
-            tr = get_kind("mrt").precompute(mesh, {"bands": args.mrt_bands, "M": args.mrt_tents, "samples": args.mrt_samples,
-                                                   "shadows": "always", "brdf": {"type": "phong", "s": 12.0}}, run=run)
+        params = ({"bands": args.bands, "samples": args.samples, "shadows": "always"} if stage == "diffuse" else
+                  {"bands": args.mrt_bands, "M": args.mrt_tents, "samples": args.mrt_samples, "shadows": "always",
+                   "brdf": {"type": "phong", "s": 12.0}})
+        from prt_torch.transfer.estimate import estimate
+
+        est = estimate(get_kind(stage), mesh, dict(params), run, probe=False)  # what --dry-run says, for comparison
+        out["estimated_peak_bytes"], out["estimated_stages"] = est.peak_bytes, {st["stage"]: st["bytes"] for st in est.stages}
+        out["rss_with_mesh"] = rss_now()
+        hwm_reset = reset_peak()  # the precompute's own peak from here (the mesh build's temporaries are not its)
+        t0 = time.perf_counter()  # the stage's time is the precompute and its save (the mesh: its own column)
+        tr = get_kind(stage).precompute(mesh, dict(params), run=run)
         out["compute_seconds"] = time.perf_counter() - t0
         ts = time.perf_counter()
         tr.save(p[stage], overwrite=True)
         out["save_seconds"] = time.perf_counter() - ts
         out["vertices"] = mesh.num_vertices
+        out["peak_after_mesh"] = vm_hwm() if hwm_reset else None  # bytes: the process's peak since the reset
         out["rays"] = int(tr.meta.get("rays_traced", 0))
         out["data_bytes"] = tr.data.numel() * tr.data.element_size()
     elif stage == "cpca":
@@ -292,6 +318,16 @@ def report(rows: list[dict], args, info: dict) -> str:
             b = emb[r["size"]]["bare_seconds_per_ray"]
             L.append(f"| {r['vertices']} | {b * 1e9:.0f} | {b / e0:.2f} | {r['compute_seconds']:.3g} | {r['rays'] * b:.3g} | "
                      f"{r['rays'] * b / r['compute_seconds']:.2f} |")
+    est = [r for r in rows if r.get("stage") in ("diffuse", "mrt") and r.get("peak_after_mesh")]
+    if est:
+        L += ["", "The `--dry-run` estimate (`transfer.estimate`, without its probe) against the measured peak, both "
+              "from the built mesh on (the child's peak RSS reset after the build: `/proc/self/clear_refs`, `VmHWM`; "
+              "measured = that peak less the RSS before the mesh was built, i.e. mesh + precompute + save):", "",
+              "| stage | vertices | estimated peak (MiB) | measured peak (MiB) | estimate / measured |", "|---|---:|---:|---:|---:|"]
+        for r in est:
+            meas = r["peak_after_mesh"] - r["rss_now_after_imports"]
+            L.append(f"| {r['stage']} | {r['vertices']} | {r['estimated_peak_bytes'] / 2**20:.0f} | {meas / 2**20:.0f} | "
+                     f"{r['estimated_peak_bytes'] / meas:.2f} |")
     pre = [r for r in rows if r.get("stage") in ("diffuse", "mrt") and "error" not in r]
     if pre:
         L += ["", "Precompute parts (seconds): mesh build, compute (chunks streamed to the state directory), save; "
@@ -315,11 +351,23 @@ def main(argv=None) -> int:
     ap.add_argument("--work", default=None, help="directory for the transfers (default: a temporary one, removed)")
     ap.add_argument("--quick", action="store_true", help="2k and 10k vertices, 16 samples: a CI-sized smoke")
     ap.add_argument("--out", default=str(ROOT / "reports" / "benchmarks" / "scale.md"))
+    ap.add_argument("--from-json", default=None, help="rewrite --out from an earlier run's .json (no measuring)")
     ap.add_argument("--child", choices=STAGES, help=argparse.SUPPRESS)
     ap.add_argument("--size", type=int, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.child:
         print(json.dumps(child(args)))
+        return 0
+    if args.from_json:
+        from prt_torch import io
+
+        saved = json.loads(Path(args.from_json).read_text())
+        for k, v in saved["args"].items():
+            if k not in ("out", "from_json"):
+                setattr(args, k, v)
+        with io.atomic_path(Path(args.out), overwrite=True) as t:
+            Path(t).write_text(report(saved["rows"], args, saved["machine"]))
+        print(f"wrote {args.out}")
         return 0
     if args.quick:
         args.sizes, args.samples, args.mrt_samples = [2_000, 10_000], 16, 16
