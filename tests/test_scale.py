@@ -261,3 +261,29 @@ def test_rounding_is_one_cli_line(tmp_path, capsys):
     assert lines == ["prt precompute: warning: samples=9 with sampling='qmc' is rounded to 10: the Hammersley set over each "
                      "vertex's hemisphere traces ⌈N/2⌉ = 5 rays per vertex; accepted exactly: an even count"]
     assert math.isfinite(float(Transfer.load(out).data.sum()))
+
+
+# ------------------------------------------------------------------------------ the benchmark
+def test_bench_scale_smoke(tmp_path):
+    """benchmarks/bench_scale.py end to end on two tiny sizes (each stage in its own child): every
+    row measured, the peer tables written, the json readable and the report rewritable from it."""
+    import importlib.util
+    import json
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_scale.py"
+    spec = importlib.util.spec_from_file_location("bench_scale", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    out = tmp_path / "scale.md"
+    assert mod.main(["--sizes", "300", "--stages", "diffuse", "cpca", "relight", "--samples", "8",
+                     "--work", str(tmp_path / "w"), "--out", str(out)]) == 0
+    rows = json.loads(out.with_suffix(".json").read_text())["rows"]
+    assert len(rows) == 3 and not any("error" in r for r in rows)
+    assert all(r["stage_peak_rss"] > 0 and r["vertices"] == 252 for r in rows)
+    text = out.read_text()
+    for part in ("| diffuse | 252 |", "bound / CPCA", "estimate / measured"):
+        assert part in text
+    again = tmp_path / "again.md"
+    assert mod.main(["--from-json", str(out.with_suffix(".json")), "--out", str(again)]) == 0
+    assert again.read_text() == text
