@@ -139,7 +139,8 @@ def estimate(kind, mesh: Mesh, params: dict[str, Any], run: RunOptions | None = 
     traced = kw.get("shadows", True) not in (False, "never")
     bvh = BVH_BYTES_PER_FACE * F if traced else 0
     chunk = _chunk_bytes(kind.name, kw, V, run.chunk_size)
-    finished = 0 if kind.output == "directory" else out_pv * V  # the chunk list, until assembled
+    # the chunk list, until assembled: float64 rows for diffuse (what the assembly copies into), the stored rows elsewhere
+    finished = 0 if kind.output == "directory" else (held_pv - out_pv if kind.name == "diffuse" else out_pv) * V
     rays_stage = bvh + chunk + finished
     result_stage = held_pv * V + (0 if kind.output == "directory" else out_pv * V // 4)  # + isfinite/scratch
     seconds_rays = None
