@@ -138,7 +138,8 @@ def child(args) -> dict:
                    "brdf": {"type": "phong", "s": 12.0}})
         from prt_torch.transfer.estimate import estimate
 
-        est = estimate(get_kind(stage), mesh, dict(params), run, probe=False)  # what --dry-run says, for comparison
+        est = estimate(get_kind(stage), mesh, dict(params), run, probe=False,  # what --dry-run says, for comparison
+                       mesh_rss=rss_now() - rss_imports)
         out["estimated_peak_bytes"], out["estimated_stages"] = est.peak_bytes, {st["stage"]: st["bytes"] for st in est.stages}
         out["rss_with_mesh"] = rss_now()
         hwm_reset = reset_peak()  # the precompute's own peak from here (the mesh build's temporaries are not its)

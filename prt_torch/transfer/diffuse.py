@@ -818,18 +818,21 @@ def _trace_direct(caster: RayCaster, mesh: Mesh, bands: int, samples: int, seed:
         fingerprint["hit_columns"] = hit_columns
     if hits is not None:
         fingerprint.update(hit_samples=hits.M, hit_terms=hits.terms, hit_offset=hits.hit_offset)
-    parts = run.run_chunks(V, chunk_size, compute, fingerprint=fingerprint, desc=f"diffuse {mesh.name}",
-                           rays_of=lambda r: int(r["rays"].sum()))
-    meta["rays_traced"] = int(sum(int(p["rays"].sum()) for p in parts))
     if record_hits:
+        parts = run.run_chunks(V, chunk_size, compute, fingerprint=fingerprint, desc=f"diffuse {mesh.name}",
+                               rays_of=lambda r: int(r["rays"].sum()))
+        meta["rays_traced"] = int(sum(int(p["rays"].sum()) for p in parts))
         T0 = torch.cat([p["T"] for p in parts]).to(torch.float64)
-    else:  # assembled releasing each chunk as it is copied: the transfer is never held twice
+    else:  # each chunk copied in as it finishes: the transfer is never held twice
         T0 = torch.empty(V, bands * bands, dtype=torch.float64)
-        o = 0
-        while parts:
-            t = parts.pop(0)["T"]
-            T0[o : o + t.shape[0]] = t
-            o += t.shape[0]
+        meta["rays_traced"] = 0
+
+        def sink(a: int, b: int, p: dict[str, torch.Tensor]) -> None:
+            T0[a:b] = p["T"]
+            meta["rays_traced"] += int(p["rays"].sum())
+
+        run.run_chunks(V, chunk_size, compute, fingerprint=fingerprint, desc=f"diffuse {mesh.name}",
+                       rays_of=lambda r: int(r["rays"].sum()), sink=sink)
     meta["chunk_size"] = chunk_size
     meta["rays_per_vertex"] = rpv if sampling != "uniform" else f"about {rpv} (the sphere set's directions above each tangent plane)"
     if not record_hits:

@@ -5,12 +5,13 @@ A precompute runs in three stages, each with its own memory:
 1. **mesh** — the validated mesh (vertices, faces, normals, frames, albedo), held throughout;
    its bytes and build time are measured (it is already built when the estimate is made).
 2. **rays** — the chunked pass (:func:`prt_torch.transfer.base.run_chunks`): the ray-casting
-   scene (Embree's BVH, about :data:`BVH_BYTES_PER_FACE` per face), one chunk's working set
-   (its rays, SH values and matrices) and the finished chunks, which are written to the state
-   directory as they finish (``<out>.state/``: an interrupted run resumes) and kept until the
-   result is assembled. Time: measured on a probe of two small chunks of the real run (the same
-   mesh, parameters and ray caster), the second chunk's time scaled to every vertex, plus the
-   set-up before the first chunk (ray-casting scene, BRDF projection, tables). One worker.
+   scene (Embree's BVH, at most :data:`BVH_BYTES_PER_FACE` per face), one chunk's working set
+   (its rays, SH values and matrices) and the result's rows filled so far: each chunk is written
+   to the state directory as it finishes (``<out>.state/``: an interrupted run resumes) and
+   copied into the assembled rows at once (``run_chunks(..., sink=)``), never kept as a list.
+   Time: measured on a probe of two small chunks of the real run (the same mesh, parameters
+   and ray caster), the second chunk's time scaled to every vertex, plus the set-up before the
+   first chunk (ray-casting scene, BRDF projection, tables). One worker.
 3. **result** — the assembled transfer (float32 rows, the kind's shape; the diffuse pass
    assembles in float64 first) and the write to the output file.
 
@@ -24,6 +25,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import time
 from typing import Any
 
@@ -34,12 +36,21 @@ from .base import ChunkInterrupt, RunOptions
 from ..io import format_bytes
 from .glossy import default_chunk, estimate_memory, memory_budget
 
-__all__ = ["estimate", "check_fits", "format_estimate", "result_bytes_per_vertex", "BVH_BYTES_PER_FACE"]
+__all__ = ["estimate", "check_fits", "format_estimate", "result_bytes_per_vertex", "rss_bytes", "BVH_BYTES_PER_FACE"]
 
 #: Embree's BVH over triangles, bytes per face (embreex's default build, measured as the RSS
-#: growth of building a RayCaster on bumpy_sphere:100000 — 200k faces: about 150 B each; a round
-#: upper figure)
-BVH_BYTES_PER_FACE = 192
+#: growth of building a RayCaster and tracing once: 48 B per face on bumpy_sphere:100000, 94 on
+#: bumpy_sphere:xl; a round upper figure)
+BVH_BYTES_PER_FACE = 128
+
+
+def rss_bytes() -> int:
+    """This process's resident set size now, bytes (``/proc/self/statm``; 0 where it is absent)."""
+    try:
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+    except (OSError, ValueError, IndexError):  # pragma: no cover - not Linux
+        return 0
 
 
 def mesh_bytes(mesh: Mesh) -> int:
@@ -119,7 +130,8 @@ class Estimate:
 
 
 def estimate(kind, mesh: Mesh, params: dict[str, Any], run: RunOptions | None = None, lights: list | None = None,
-             probe: bool = True, probe_vertices: int = 256, mesh_seconds: float | None = None) -> Estimate:
+             probe: bool = True, probe_vertices: int = 256, mesh_seconds: float | None = None,
+             mesh_rss: int | None = None) -> Estimate:
     """Per-stage memory and time of ``kind.precompute(mesh, params, run)`` (module docstring).
 
     Args:
@@ -128,6 +140,9 @@ def estimate(kind, mesh: Mesh, params: dict[str, Any], run: RunOptions | None = 
         probe: time two chunks of ``probe_vertices`` vertices of the real run (no state, no
             output; the result is discarded). Without it the seconds are None.
         mesh_seconds: how long the mesh took to build (measured by the caller).
+        mesh_rss: the process's RSS growth over the mesh build (measured by the caller): the
+            mesh stage counts the larger of it and the mesh's tensors (a build leaves freed heap
+            the allocator keeps: 378 MiB of RSS for 149 MiB of tensors at 1M vertices).
     Returns:
         :class:`Estimate`; ``peak_bytes`` = mesh + max(rays stage, result stage).
     """
@@ -135,11 +150,11 @@ def estimate(kind, mesh: Mesh, params: dict[str, Any], run: RunOptions | None = 
     kw, _ = kind.resolve(params, lights)
     V, F = mesh.num_vertices, mesh.num_faces
     out_pv, held_pv = result_bytes_per_vertex(kind.name, kw, mesh)
-    m_bytes = mesh_bytes(mesh)
+    m_bytes = max(mesh_bytes(mesh), int(mesh_rss or 0))
     traced = kw.get("shadows", True) not in (False, "never")
     bvh = BVH_BYTES_PER_FACE * F if traced else 0
     chunk = _chunk_bytes(kind.name, kw, V, run.chunk_size)
-    # the chunk list, until assembled: float64 rows for diffuse (what the assembly copies into), the stored rows elsewhere
+    # the assembled rows, filled as each chunk finishes (run_chunks' sink): float64 for diffuse, the stored rows elsewhere
     finished = 0 if kind.output == "directory" else (held_pv - out_pv if kind.name == "diffuse" else out_pv) * V
     rays_stage = bvh + chunk + finished
     result_stage = held_pv * V + (0 if kind.output == "directory" else out_pv * V // 4)  # + isfinite/scratch
@@ -151,8 +166,8 @@ def estimate(kind, mesh: Mesh, params: dict[str, Any], run: RunOptions | None = 
         {"stage": "mesh", "bytes": m_bytes, "seconds": mesh_seconds,
          "note": f"{V} vertices, {F} faces (held throughout)"},
         {"stage": "rays", "bytes": rays_stage, "seconds": seconds_rays,
-         "note": (f"ray-casting scene ~{format_bytes(bvh)}, one chunk ~{format_bytes(chunk)}, finished chunks "
-                  f"{format_bytes(finished)} (also on disk in the state directory)"
+         "note": (f"ray-casting scene ~{format_bytes(bvh)}, one chunk ~{format_bytes(chunk)}, the rows filled so far "
+                  f"{format_bytes(finished)} (each chunk also on disk in the state directory)"
                   + (f"; time from {probe_info['note']}" if probe_info.get("note") else ""))},
         {"stage": "result", "bytes": result_stage, "seconds": None if seconds_rays is None else 0.0,
          "note": (f"{format_bytes(out_pv * V)} on disk, streamed per chunk (not held)" if kind.output == "directory" else
