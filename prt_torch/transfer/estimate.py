@@ -15,7 +15,8 @@ A precompute runs in three stages, each with its own memory:
 3. **result** — the assembled transfer (float32 rows, the kind's shape; the diffuse pass
    assembles in float64 first) and the write to the output file.
 
-Peak memory is the mesh plus the larger of the last two stages. :func:`estimate` returns every
+Peak memory is the mesh plus the larger of the last two stages, each counted array sum times
+:data:`ALLOCATOR_SLACK` (what the allocator keeps of freed temporaries, measured). :func:`estimate` returns every
 figure; :func:`check_fits` refuses — before any ray — a run whose peak exceeds the budget
 (``RunOptions.max_memory``, else 60% of the machine's RAM), saying each stage's share. The
 transport kind streams its tables to a directory: its result is never held (stage 3 is its
@@ -36,7 +37,14 @@ from .base import ChunkInterrupt, RunOptions
 from ..io import format_bytes
 from .glossy import default_chunk, estimate_memory, memory_budget
 
-__all__ = ["estimate", "check_fits", "format_estimate", "result_bytes_per_vertex", "rss_bytes", "BVH_BYTES_PER_FACE"]
+__all__ = ["estimate", "check_fits", "format_estimate", "result_bytes_per_vertex", "rss_bytes", "BVH_BYTES_PER_FACE",
+           "ALLOCATOR_SLACK"]
+
+#: what the process holds beyond the counted arrays of the rays and result stages: freed
+#: temporaries the allocator keeps (heap fragments reused only by allocations that fit them). The
+#: counted sums were 0.71 (MRT) and 0.85 (diffuse) of the measured peaks at 1M vertices
+#: (reports/benchmarks/scale_precompute.md before this factor); 1.5 covers both.
+ALLOCATOR_SLACK = 1.5
 
 #: Embree's BVH over triangles, bytes per face (embreex's default build, measured as the RSS
 #: growth of building a RayCaster and tracing once: 48 B per face on bumpy_sphere:100000, 94 on
@@ -156,8 +164,8 @@ def estimate(kind, mesh: Mesh, params: dict[str, Any], run: RunOptions | None = 
     chunk = _chunk_bytes(kind.name, kw, V, run.chunk_size)
     # the assembled rows, filled as each chunk finishes (run_chunks' sink): float64 for diffuse, the stored rows elsewhere
     finished = 0 if kind.output == "directory" else (held_pv - out_pv if kind.name == "diffuse" else out_pv) * V
-    rays_stage = bvh + chunk + finished
-    result_stage = held_pv * V + (0 if kind.output == "directory" else out_pv * V // 4)  # + isfinite/scratch
+    rays_stage = int(ALLOCATOR_SLACK * (bvh + chunk + finished))
+    result_stage = int(ALLOCATOR_SLACK * (held_pv * V + (0 if kind.output == "directory" else out_pv * V // 4)))  # + scratch
     seconds_rays = None
     probe_info: dict[str, Any] = {}
     if probe:
