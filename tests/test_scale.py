@@ -287,3 +287,18 @@ def test_bench_scale_smoke(tmp_path):
     again = tmp_path / "again.md"
     assert mod.main(["--from-json", str(out.with_suffix(".json")), "--out", str(again)]) == 0
     assert again.read_text() == text
+
+
+def test_interruption_hint_says_what_was_kept(tmp_path):
+    """Stopped before the first chunk (a big mesh still building) the hint does not claim kept
+    chunks; with chunks on disk it counts them and gives the --resume command."""
+    from prt_torch.cli.precompute import ResumeHint
+
+    state = tmp_path / "t.prt.state"
+    h = ResumeHint(state, "prt precompute bumpy_sphere:xl -o t.prt")
+    assert str(h) == "no chunk had finished, nothing was kept; run it again: prt precompute bumpy_sphere:xl -o t.prt"
+    state.mkdir()
+    (state / "chunk_000000.prt").write_bytes(b"")
+    (state / "chunk_000001.prt").write_bytes(b"")
+    assert str(h) == (f"finished chunks (2) are kept in {str(state)!r}; continue with: "
+                      "prt precompute bumpy_sphere:xl -o t.prt --resume")

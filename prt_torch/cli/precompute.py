@@ -141,6 +141,21 @@ def params_from_args(kind: str, args: argparse.Namespace) -> dict:
     return params
 
 
+class ResumeHint:
+    """What an interrupted precompute says it kept, read when it is said: the state directory's
+    finished chunks and the ``--resume`` command, or (stopped before the first chunk finished —
+    a 1M-vertex mesh takes a while to build) that nothing was kept."""
+
+    def __init__(self, state: Path, command: str):
+        self.state, self.command = Path(state), command
+
+    def __str__(self) -> str:
+        n = len(list(self.state.glob("chunk_*.prt"))) if self.state.is_dir() else 0
+        if n or (self.state.is_dir() and any(self.state.iterdir())):
+            return (f"finished chunks ({n}) are kept in {str(self.state)!r}; continue with: {self.command} --resume")
+        return f"no chunk had finished, nothing was kept; run it again: {self.command}"
+
+
 class _TableDir:
     """Moves a finished transport table from the state directory to the output."""
 
@@ -224,8 +239,7 @@ def _run(args, executor) -> int:
         print("prt precompute: dry run: nothing written", file=sys.stderr)
         return 0
     check_fits(est, "prt precompute:")  # before any ray: what cannot fit even with its chunks on disk
-    args.resume_hint = (f"finished chunks are kept in {str(state)!r}; continue with: "
-                        f"prt {' '.join(shlex.quote(a) for a in _argv(args))} --resume")
+    args.resume_hint = ResumeHint(state, f"prt {' '.join(shlex.quote(a) for a in _argv(args))}")
     opts = RunOptions(chunk_size=args.chunk, workers=args.workers, state_dir=state, resume=args.resume,
                       progress=not args.no_progress, executor=executor,
                       max_memory=None if args.memory_limit is None else int(args.memory_limit * (1 << 30)))
