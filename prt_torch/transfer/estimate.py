@@ -138,7 +138,7 @@ class Estimate:
 
 
 def estimate(kind, mesh: Mesh, params: dict[str, Any], run: RunOptions | None = None, lights: list | None = None,
-             probe: bool = True, probe_vertices: int = 256, mesh_seconds: float | None = None,
+             probe: bool = True, probe_vertices: int = 1024, mesh_seconds: float | None = None,
              mesh_rss: int | None = None) -> Estimate:
     """Per-stage memory and time of ``kind.precompute(mesh, params, run)`` (module docstring).
 
