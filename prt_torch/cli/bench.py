@@ -6,6 +6,24 @@ import sys
 from pathlib import Path
 
 
+def stage_memory(cfg: dict, mesh, mem: dict) -> str:
+    """One line: the precompute's stages (:func:`prt_torch.transfer.estimate.estimate`, without
+    its timing probe: ``prt precompute --dry-run`` times it) and the benchmark's own peak
+    (signal, codec workspace, metrics: ``harness.run.estimate_memory``)."""
+    from ..harness.run import transfer_params
+    from ..io import format_bytes as fb
+    from ..transfer import get_kind
+    from ..transfer.estimate import estimate
+
+    if "auto" in transfer_params(cfg).values():
+        pre = "precompute: after its 'auto' choices (see prt precompute --dry-run)"
+    else:
+        e = estimate(get_kind(cfg["transfer"]["type"]), mesh, transfer_params(cfg), probe=False)
+        pre = "precompute " + ", ".join(f"{st['stage']} {fb(st['bytes'])}" for st in e.stages) + f", peak {fb(e.peak_bytes)}"
+    return (f"{pre}; benchmark peak {fb(mem['estimated_peak_bytes'])} (signal {fb(mem['signal_bytes'])}, codec workspace "
+            f"{fb(mem['codec_workspace_bytes'])}, metrics {fb(mem['metrics_bytes'])}); cached transfers are not recomputed")
+
+
 def register(sub) -> None:
     p = sub.add_parser(
         "bench",
@@ -87,6 +105,7 @@ def run(args: argparse.Namespace) -> int:
             for sub in [c] + part_configs(c):
                 for _, one in ablation_values(sub):  # each value of a transfer ablation is its own transfer
                     mesh, mem = load_mesh_within_budget(one)  # the memory estimate the real run refuses on
+                    print(f"# memory per stage, {mesh.name} ({mesh.num_vertices} vertices): " + stage_memory(one, mesh, mem))
                 if sub["target"].get("psnr") is not None:
                     from ..harness.target import search_cost
 

@@ -45,10 +45,11 @@ def describe_file(path) -> dict:
 
 def run(args) -> int:
     if args.builtins:
-        from ..scene import SIZES, list_builtins
+        from ..scene import GEODESIC, SIZES, list_builtins
 
         for name in list_builtins():
-            print(f"{name}  (sizes: {', '.join(SIZES)})")
+            sizes = ", ".join(SIZES) + ", or a vertex count" if name in GEODESIC else ", ".join(SIZES[:3])
+            print(f"{name}  (sizes: {sizes})")
         return 0
     if not args.file:
         raise ValueError("prt info needs FILE (a .prt file) or --builtins")

@@ -67,7 +67,8 @@ def register(subparsers) -> None:
     p.add_argument("-o", "--output", required=True, help="output .prt file (a directory for --kind transport)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output (and discard a stale state dir)")
     p.add_argument("--resume", action="store_true", help="continue an interrupted run from <output>.state/")
-    p.add_argument("--size", default="small", choices=["small", "medium", "large"], help="built-in scene size")
+    p.add_argument("--size", default="small", help="built-in scene size: small, medium, large; for convex and bumpy_sphere "
+                                                   "also xl (~1M vertices) or a vertex count")
     p.add_argument("--up", default="z", choices=["z", "-z", "y", "-y", "x", "-x"], help="up axis of the mesh file")
     p.add_argument("--albedo", type=_albedo_arg, default=None, help="uniform albedo: ρ or R,G,B (default: the scene's)")
     g = p.add_argument_group("run options (every kind)")
@@ -76,6 +77,9 @@ def register(subparsers) -> None:
     g.add_argument("--memory-limit", type=float, default=None, help="GiB; refuse a run estimated above it (default 60%% of RAM)")
     g.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_executor_args(g, "the chunks")
+    p.add_argument("--dry-run", action="store_true",
+                   help="build the mesh, then print each stage's memory and time (time from a probe of two small "
+                        "chunks) and whether it fits, and stop; a run that would not fit is refused up front anyway")
     p.add_argument("--debug", action="store_true", help="show tracebacks")
     g = p.add_argument_group("automatic choices ('auto' for --bands, --bands-out, --tents)")
     g.add_argument("--energy", type=float, default=None,
@@ -137,6 +141,21 @@ def params_from_args(kind: str, args: argparse.Namespace) -> dict:
     return params
 
 
+class ResumeHint:
+    """What an interrupted precompute says it kept, read when it is said: the state directory's
+    finished chunks and the ``--resume`` command, or (stopped before the first chunk finished —
+    a 1M-vertex mesh takes a while to build) that nothing was kept."""
+
+    def __init__(self, state: Path, command: str):
+        self.state, self.command = Path(state), command
+
+    def __str__(self) -> str:
+        n = len(list(self.state.glob("chunk_*.prt"))) if self.state.is_dir() else 0
+        if n or (self.state.is_dir() and any(self.state.iterdir())):
+            return (f"finished chunks ({n}) are kept in {str(self.state)!r}; continue with: {self.command} --resume")
+        return f"no chunk had finished, nothing was kept; run it again: {self.command}"
+
+
 class _TableDir:
     """Moves a finished transport table from the state directory to the output."""
 
@@ -179,11 +198,11 @@ def _run(args, executor) -> int:
     check_outputs({"-o/--output": out}, {"MESH_OR_BUILTIN": args.scene, "--light": args.light}, args.overwrite,
                   directories=("-o/--output",) if kind.output == "directory" else ())  # before any work
     state = default_state_dir(out)
-    if args.resume and not state.exists():  # said, not silently a fresh run
+    if args.resume and not state.exists() and not args.dry_run:  # said, not silently a fresh run
         import warnings
 
         warnings.warn(f"--resume: no interrupted run in {str(state)!r}; starting from the beginning", stacklevel=1)
-    if state.exists() and not args.resume:
+    if state.exists() and not args.resume and not args.dry_run:  # a dry run removes nothing
         if args.overwrite:
             shutil.rmtree(state)
         else:
@@ -199,10 +218,28 @@ def _run(args, executor) -> int:
                 lights.append(load_light(spec, bands=32))
             except (ValueError, OSError) as e:
                 raise ValueError(f"--light {spec!r}: {e}") from None
+    import time
+
+    from ..transfer.estimate import check_fits, estimate, format_estimate
+
+    from ..transfer.estimate import rss_bytes
+
+    t_mesh, rss0 = time.perf_counter(), rss_bytes()
     mesh = load_scene(args.scene, size=args.size, up=args.up, albedo=args.albedo)
+    t_mesh, mesh_rss = time.perf_counter() - t_mesh, rss_bytes() - rss0
     print(f"prt precompute: {mesh.name}: {mesh.num_vertices} vertices, {mesh.num_faces} faces", file=sys.stderr)
-    args.resume_hint = (f"finished chunks are kept in {str(state)!r}; continue with: "
-                        f"prt {' '.join(shlex.quote(a) for a in _argv(args))} --resume")
+    plan = RunOptions(chunk_size=args.chunk, workers=args.workers, offset=RunOptions.offset,
+                      max_memory=None if args.memory_limit is None else int(args.memory_limit * (1 << 30)))
+    est = estimate(kind, mesh, params, plan, lights=lights, probe=args.dry_run, mesh_seconds=t_mesh, mesh_rss=mesh_rss)
+    if args.dry_run:
+        print(f"prt precompute: dry run, {kind.name} on {mesh.num_vertices} vertices: memory and time per stage", file=sys.stderr)
+        for line in format_estimate(est):
+            print(line, file=sys.stderr)
+        check_fits(est, "prt precompute:")
+        print("prt precompute: dry run: nothing written", file=sys.stderr)
+        return 0
+    check_fits(est, "prt precompute:")  # before any ray: what cannot fit even with its chunks on disk
+    args.resume_hint = ResumeHint(state, f"prt {' '.join(shlex.quote(a) for a in _argv(args))}")
     opts = RunOptions(chunk_size=args.chunk, workers=args.workers, state_dir=state, resume=args.resume,
                       progress=not args.no_progress, executor=executor,
                       max_memory=None if args.memory_limit is None else int(args.memory_limit * (1 << 30)))

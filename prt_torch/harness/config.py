@@ -210,7 +210,7 @@ CONSTRAINTS: dict[str, list] = {
     "name": [Predicate(lambda v: isinstance(v, str) and v and "/" not in v, "a run name (no '/')")],
     "seed": [Interval(int, 0, None)],
     "scene.name": [Predicate(lambda v: isinstance(v, str) and v, "a built-in scene name or a mesh file path")],
-    "scene.size": [Options("small", "medium", "large")],
+    "scene.size": [Options("small", "medium", "large", "xl"), Interval(int, 12, 20_000_000)],
     "scene.up": [Options("z", "-z", "y", "-y", "x", "-x")],
     "scene.albedo": [Predicate(_is_albedo, "a reflectance in [0, 1] or [r, g, b]"), None],
     "views.count": [Interval(int, 1, 360)],

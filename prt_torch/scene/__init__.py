@@ -8,7 +8,8 @@ Public API (imported lazily, PEP 562, so that ray-casting worker processes impor
 * ``Mesh``, ``make_mesh``, ``load_mesh``, ``vertex_normals``, ``tangent_frames`` (mesh.py)
 * ``edge_face_counts``, ``normal_face_angles``, ``vertex_classes``, ``mesh_features``, ``VERTEX_CLASSES``
   (mesh.py: where a mesh is hard — boundary, non-manifold, sharp, folded, sliver vertices)
-* ``builtin``, ``list_builtins``, ``SIZES``, ``geodesic_sphere``, ``sphere_on_plane_visibility`` (builtins.py)
+* ``builtin``, ``list_builtins``, ``SIZES``, ``GEODESIC``, ``check_size``, ``geodesic_sphere``,
+  ``sphere_on_plane_visibility`` (builtins.py; ``bumpy_sphere:xl`` ~1M vertices, ``bumpy_sphere:100000``)
 * ``scan_like``, ``SCAN_FEATURES`` (scan.py: scan-like meshes, each artefact switchable)
 * ``RayCaster``, ``default_workers`` (raycast.py)
 * ``load_scene(name_or_path, size='small', up='z', albedo=None)``
@@ -26,14 +27,15 @@ _LAZY = {
     "vertex_classes": "mesh", "mesh_features": "mesh", "VERTEX_CLASSES": "mesh",
     "scan_like": "scan", "SCAN_FEATURES": "scan",
     "builtin": "builtins", "list_builtins": "builtins", "SIZES": "builtins", "geodesic_sphere": "builtins",
-    "sphere_on_plane_visibility": "builtins",
+    "sphere_on_plane_visibility": "builtins", "check_size": "builtins", "GEODESIC": "builtins",
     "RayCaster": "raycast", "default_workers": "raycast",
 }
 
 __all__ = sorted(_LAZY) + ["load_scene"]
 
 if TYPE_CHECKING:  # pragma: no cover
-    from .builtins import SIZES, builtin, geodesic_sphere, list_builtins, sphere_on_plane_visibility  # noqa: F401
+    from .builtins import (GEODESIC, SIZES, builtin, check_size, geodesic_sphere, list_builtins,  # noqa: F401
+                           sphere_on_plane_visibility)
     from .mesh import (MESH_SUFFIXES, VERTEX_CLASSES, Mesh, edge_face_counts, face_areas, load_mesh, make_mesh,  # noqa: F401
                        mesh_features, normal_face_angles, tangent_frames, vertex_classes, vertex_normals)
     from .scan import SCAN_FEATURES, scan_like  # noqa: F401

@@ -16,7 +16,10 @@ Each exercises what PRT is for:
                           by vertex clustering, with holes in its base, non-manifold fins,
                           slivers and scanner noise — where a real scan is hard for a ray tracer.
 
-Sizes: ``small`` (~1-3k vertices, for tests), ``medium`` (~10k), ``large`` (~50k).
+Sizes: ``small`` (~1-3k vertices, for tests), ``medium`` (~10k), ``large`` (~50k); the scenes
+made from a geodesic sphere (``convex``, ``bumpy_sphere``) also come at ``xl`` (~1M vertices: a
+finer level of the same surface, for the scale benchmark) and at any vertex count
+(``bumpy_sphere:100000`` is the nearest level, 10 f² + 2 vertices).
 Flat parts are built as separate grids (no shared vertices across sharp edges), so normals stay
 flat on them.
 """
@@ -31,9 +34,14 @@ from .geodesic import geodesic_sphere
 from .mesh import Mesh, make_mesh
 from .scan import scan_like
 
-__all__ = ["builtin", "list_builtins", "SIZES", "geodesic_sphere", "sphere_on_plane_visibility"]
+__all__ = ["builtin", "list_builtins", "SIZES", "GEODESIC", "check_size", "geodesic_sphere", "sphere_on_plane_visibility"]
 
-SIZES = ("small", "medium", "large")
+SIZES = ("small", "medium", "large", "xl")
+#: scenes built from a geodesic sphere: they take ``xl`` and a vertex count as their size
+GEODESIC = ("convex", "bumpy_sphere")
+#: the largest vertex count a size may ask for (a geodesic level of about 20M vertices, 2.4 GB of
+#: float64 coordinates and normals before any transfer)
+MAX_VERTICES = 20_000_000
 
 WHITE = (0.75, 0.75, 0.75)
 RED = (0.75, 0.12, 0.10)
@@ -85,11 +93,37 @@ def _assemble(parts: list[tuple[np.ndarray, np.ndarray, tuple]]) -> tuple[np.nda
 
 
 # target vertex counts per size
-_TARGET = {"small": 2000, "medium": 10000, "large": 50000}
+_TARGET = {"small": 2000, "medium": 10000, "large": 50000, "xl": 1_000_000}
+
+
+def check_size(name: str, size) -> str | int:
+    """The size of built-in scene ``name``: one of :data:`SIZES` (``xl`` only for the
+    :data:`GEODESIC` scenes), or for those a vertex count (an int, or its decimal text as in
+    ``"bumpy_sphere:100000"``) in [12, :data:`MAX_VERTICES`]. Returns the size (counts as int).
+    Raises ValueError naming the size and what is accepted."""
+    geo = name in GEODESIC
+    text = str(size).strip()
+    if not isinstance(size, bool) and (isinstance(size, int) or text.isdigit()):
+        if not geo:
+            raise ValueError(f"size={text} (a vertex count) is not accepted for {name!r}; accepted: one of "
+                             f"{list(SIZES[:3])} (vertex counts and 'xl' are offered for {list(GEODESIC)})")
+        n = int(text)
+        if not 12 <= n <= MAX_VERTICES:
+            raise ValueError(f"size={n} vertices for {name!r}; accepted: a count in [12, {MAX_VERTICES}] or one of {list(SIZES)}")
+        return n
+    if size == "xl" and not geo:
+        raise ValueError(f"size='xl' is not accepted for {name!r}; accepted: one of {list(SIZES[:3])} "
+                         f"('xl', ~1M vertices, is offered for {list(GEODESIC)})")
+    check_choice("size", size, list(SIZES))
+    return size
+
+
+def _target(size: str | int) -> int:
+    return int(size) if isinstance(size, int) else _TARGET[size]
 
 
 def _convex(size: str):
-    v, f = geodesic_sphere(_freq_for(_TARGET[size]))
+    v, f = geodesic_sphere(_freq_for(_target(size)))
     v = v * np.array([1.0, 0.8, 0.6])
     v[:, 2] -= v[:, 2].min()
     return [(v, f, (0.8, 0.8, 0.8))], {"shape": "ellipsoid", "semi_axes": [1.0, 0.8, 0.6], "center": [0, 0, 0.6]}
@@ -117,7 +151,7 @@ def _occluder_over_plane(size: str):
 
 
 def _bumpy_sphere(size: str):
-    v, f = geodesic_sphere(_freq_for(_TARGET[size]))
+    v, f = geodesic_sphere(_freq_for(_target(size)))
     x, y, z = v.T
     # deep valleys: r = 1 + a·b(v)² with b a product of sines (Lipschitz enough for the small size)
     bump = (np.sin(5 * x + 0.3) * np.sin(5 * y + 1.1) * np.sin(5 * z + 0.7))
@@ -170,14 +204,16 @@ def builtin(name: str, size: str = "small", albedo=None) -> Mesh:
 
     Args:
         name: one of ``list_builtins()``; ``"name:size"`` is accepted too.
-        size: 'small' (~1-3k vertices), 'medium' (~10k), 'large' (~50k).
+        size: 'small' (~1-3k vertices), 'medium' (~10k), 'large' (~50k); for ``convex`` and
+            ``bumpy_sphere`` also 'xl' (~1M) or a vertex count (the nearest geodesic level,
+            10 f² + 2 vertices; :func:`check_size`). 'xl' builds in about 5 s on one core (no cache needed).
         albedo: None keeps the scene's own albedo (coloured walls for cornell_box, 0.8 grey
             elsewhere); a float / RGB triple / ``[V,3]`` overrides it.
     """
     if isinstance(name, str) and ":" in name:
         name, size = name.split(":", 1)
     check_choice("scene", name, list(_BUILDERS))
-    check_choice("size", size, list(SIZES))
+    size = check_size(name, size)
     parts, params = _BUILDERS[name](size)
     v, f, c = _assemble(parts)
     # merge_duplicates=False: parts meeting at sharp edges keep their own vertices (flat normals)

@@ -188,26 +188,28 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray, weighting: str = "an
     tri = v[f]  # [F,3,3]
     cr = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # 2A n̂
     V = v.shape[0]
-    area_sum = np.zeros((V, 3))
     nrm = np.linalg.norm(cr, axis=1, keepdims=True)
-    area_w = np.zeros(V)
-    for k in range(3):  # 3 corners: a fixed tiny loop, vectorised over faces
-        np.add.at(area_sum, f[:, k], cr)
-        np.add.at(area_w, f[:, k], nrm[:, 0])
+    corner = f.T.reshape(-1)  # [3F]: every face's corner 0, then corner 1, then corner 2
+
+    def scatter(vals: np.ndarray) -> np.ndarray:  # Σ over the 3 corners in that order (np.add.at's sums, bit for bit)
+        return np.bincount(corner, weights=vals, minlength=V)
+
+    area_sum = np.stack([scatter(np.tile(cr[:, j], 3)) for j in range(3)], axis=1)
+    area_w = scatter(np.tile(nrm[:, 0], 3))
     if weighting == "area":
         acc, w = area_sum, area_w
     else:
         nhat = np.divide(cr, nrm, out=np.zeros_like(cr), where=nrm > 0)
-        acc = np.zeros((V, 3))
-        w = np.zeros(V)
-        for k in range(3):
+        angs = []
+        for k in range(3):  # 3 corners: a fixed tiny loop, vectorised over faces
             e1 = tri[:, (k + 1) % 3] - tri[:, k]
             e2 = tri[:, (k + 2) % 3] - tri[:, k]
             c = np.einsum("ij,ij->i", e1, e2)
             s = np.linalg.norm(np.cross(e1, e2), axis=1)
-            ang = np.where(nrm[:, 0] > 0, np.arctan2(s, c), 0.0)
-            np.add.at(acc, f[:, k], nhat * ang[:, None])
-            np.add.at(w, f[:, k], ang)
+            angs.append(np.where(nrm[:, 0] > 0, np.arctan2(s, c), 0.0))
+        ang = np.concatenate(angs)  # [3F] in the corner order of ``corner``
+        acc = np.stack([scatter(np.tile(nhat[:, j], 3) * ang) for j in range(3)], axis=1)
+        w = scatter(ang)
     n = np.linalg.norm(acc, axis=1, keepdims=True)
     bad = n[:, 0] <= 1e-9 * w
     if bad.any():

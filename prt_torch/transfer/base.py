@@ -95,11 +95,11 @@ class RunOptions:
         return default if self.chunk_size is None else int(self.chunk_size)
 
     def run_chunks(self, n_items: int, chunk_size: int, compute, *, fingerprint: dict, desc: str,
-                   rays_of=None) -> list[dict[str, torch.Tensor]]:
+                   rays_of=None, sink=None) -> list[dict[str, torch.Tensor]]:
         """:func:`run_chunks` with these options (state dir, resume, progress, callback)."""
         return run_chunks(n_items, chunk_size, compute, state_dir=self.state_dir, fingerprint=fingerprint,
                           resume=self.resume, progress=self.progress, desc=desc, rays_of=rays_of, callback=self.callback,
-                          executor=self.executor)
+                          executor=self.executor, sink=sink)
 
     def finish(self) -> None:
         """After a successful run: remove the state directory unless ``keep_state``."""
@@ -228,7 +228,11 @@ def check_transfer_values(path: Any, tensors: dict[str, torch.Tensor], meta: dic
     if bool(bad.any()):
         i = tuple(int(v) for v in torch.nonzero(bad)[0])
         raise ValueError(f"{name!r}: data holds {int(bad.sum())} non-finite value(s), first at {i}; accepted: finite values")
-    top = float(data.abs().max()) if data.numel() else 0.0
+    if data.numel():  # min and max in one pass, no |data| copy (a 1M-vertex file is not held twice)
+        lo, hi = torch.aminmax(data) if data.is_floating_point() else (data.min(), data.max())
+        top = max(abs(float(lo)), abs(float(hi)))
+    else:
+        top = 0.0
     if top > MAX_ABS_TRANSFER:
         raise ValueError(f"{name!r}: data reaches |{top:.3g}|, beyond ±{MAX_ABS_TRANSFER:g} (float32 products would overflow); "
                          "accepted: a transfer of physical scale (values of order 1)")
@@ -278,6 +282,7 @@ def run_chunks(
     rays_of: Callable[[dict[str, torch.Tensor]], int] | None = None,
     callback: Callable[[int, int], None] | None = None,
     executor: Executor | None = None,
+    sink: Callable[[int, int, dict[str, torch.Tensor]], None] | None = None,
 ) -> list[dict[str, torch.Tensor]]:
     """Run ``compute(start, stop)`` over ``[0, n_items)`` in chunks; return the chunk results in order.
 
@@ -298,6 +303,11 @@ def run_chunks(
             pickled with what it captures); chunks are saved here as they finish, in any order,
             so an interruption keeps every finished chunk. A chunk that fails on every attempt
             raises ``RuntimeError`` naming it after the other chunks finished (and were saved).
+        sink: ``sink(start, stop, result)`` takes each chunk's result as it finishes (saved first,
+            when there is a state directory) and the returned list holds None in its place: the
+            caller copies it into its assembled result at once, so a run never holds its result
+            twice (the chunk list and the assembled tensor; a freed chunk's heap is reused by the
+            next chunk).
     """
     n_items = check_int("n_items", n_items, 0)
     chunk_size = check_int("chunk_size", chunk_size, 1)
@@ -339,7 +349,10 @@ def run_chunks(
         start, stop = ranges[i]
         if fresh and paths[i] is not None:
             io.save(paths[i], res, kind="transfer/chunk", meta={"chunk": i, "start": start, "stop": stop})
-        results[i] = res
+        if sink is not None:
+            sink(start, stop, res)
+        else:
+            results[i] = res
         if bar is not None:
             if fresh and rays_of is not None:
                 rays_done += int(rays_of(res))

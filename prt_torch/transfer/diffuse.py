@@ -305,6 +305,19 @@ def qmc_rays(samples: int) -> int:
     return max(1, (int(samples) + 1) // 2)
 
 
+def samples_rounding(samples: int, sampling: str) -> str | None:
+    """What a ``samples`` count becomes when the direction set cannot honour it exactly, or None.
+
+    ``'qmc'`` traces ⌈N/2⌉ rays per vertex (:func:`qmc_rays`): an odd N traces the rays of N + 1.
+    ``'uniform'`` and ``'cosine'`` take any N (their strata grid's leftover samples are uniform).
+    """
+    if sampling == "qmc" and int(samples) % 2:
+        M = qmc_rays(samples)
+        return (f"samples={int(samples)} with sampling='qmc' is rounded to {2 * M}: the Hammersley set over each "
+                f"vertex's hemisphere traces ⌈N/2⌉ = {M} rays per vertex; accepted exactly: an even count")
+    return None
+
+
 _M1, _M2, _M3 = np.uint64(0x9E3779B97F4A7C15), np.uint64(0xBF58476D1CE4E5B9), np.uint64(0x94D049BB133111EB)
 
 
@@ -726,6 +739,11 @@ def precompute_diffuse(
     hit_offset = check_float("hit_offset", hit_offset, 0.0, 0.1)
     bounce_tol = check_float("bounce_tol", bounce_tol, 0.0, 1.0, hi_open=True)
     probe_tol = check_float("probe_tol", probe_tol, 0.0, 1.0, hi_open=True)
+    rounding = samples_rounding(samples, sampling) if shadows != "never" else None
+    if rounding is not None:
+        import warnings
+
+        warnings.warn(rounding, stacklevel=2)
     t_start = time.perf_counter()
     if fold_albedo is False and bounces > 0 and not mesh.is_grey():
         raise ValueError("fold_albedo=False with coloured albedo and bounces > 0: interreflection bleeds colour, so the albedo "
@@ -853,10 +871,21 @@ def _trace_direct(caster: RayCaster, mesh: Mesh, bands: int, samples: int, seed:
         fingerprint["hit_columns"] = hit_columns
     if hits is not None:
         fingerprint.update(hit_samples=hits.M, hit_terms=hits.terms, hit_offset=hits.hit_offset)
-    parts = run.run_chunks(V, chunk_size, compute, fingerprint=fingerprint, desc=f"diffuse {mesh.name}",
-                           rays_of=lambda r: int(r["rays"].sum()))
-    T0 = torch.cat([p["T"] for p in parts]).to(torch.float64)
-    meta["rays_traced"] = int(sum(int(p["rays"].sum()) for p in parts))
+    if record_hits:
+        parts = run.run_chunks(V, chunk_size, compute, fingerprint=fingerprint, desc=f"diffuse {mesh.name}",
+                               rays_of=lambda r: int(r["rays"].sum()))
+        meta["rays_traced"] = int(sum(int(p["rays"].sum()) for p in parts))
+        T0 = torch.cat([p["T"] for p in parts]).to(torch.float64)
+    else:  # each chunk copied in as it finishes: the transfer is never held twice
+        T0 = torch.empty(V, bands * bands, dtype=torch.float64)
+        meta["rays_traced"] = 0
+
+        def sink(a: int, b: int, p: dict[str, torch.Tensor]) -> None:
+            T0[a:b] = p["T"]
+            meta["rays_traced"] += int(p["rays"].sum())
+
+        run.run_chunks(V, chunk_size, compute, fingerprint=fingerprint, desc=f"diffuse {mesh.name}",
+                       rays_of=lambda r: int(r["rays"].sum()), sink=sink)
     meta["chunk_size"] = chunk_size
     meta["rays_per_vertex"] = rpv if sampling != "uniform" else f"about {rpv} (the sphere set's directions above each tangent plane)"
     if not record_hits:
@@ -1014,6 +1043,11 @@ def _interreflect(T0: torch.Tensor, S: Any, mesh: Mesh, bounces: int, bounce_tol
     V, n2 = T0.shape
     rho = mesh.albedo.to(torch.float64)
     C = 1 if (mesh.is_grey() or S is None) else 3
+    if bounces == 0 or S is None:  # no bounce term: t = t⁰ itself, not two copies of it
+        meta["bounces_used"], meta["bounce_energy_fraction"] = 0, []
+        if bounces > 0:
+            meta["bounce_decision"] = "no interreflection: shadow rays were not traced (no occluding geometry)"
+        return T0[:, None, :], 1
     rho_c = rho[:, :1] if C == 1 else rho  # [V,C]
     tb = T0[:, None, :].expand(V, C, n2).clone()  # t̃⁰ (ρ_p kept out)
     total = tb.clone()

@@ -301,16 +301,14 @@ def run_exit_transfer(
                 out = T  # the global transferred-radiance matrices (Sloan 2002)
             return {"data": out.to(torch.float32), "rays": torch.tensor([rays], dtype=torch.int64)}
 
-        parts = run.run_chunks(V, chunk_size, compute, fingerprint=fingerprint, desc=f"{kind} {mesh.name}",
-                               rays_of=lambda r: int(r["rays"].sum()))
         data = torch.empty(V, n_out, n2, dtype=torch.float32)
-        o = 0
-        while parts:  # assemble, releasing each chunk as it is copied (bounds the peak)
-            p = parts.pop(0)
-            k = p["data"].shape[0]
-            data[o : o + k] = p["data"]
+
+        def sink(a: int, b: int, p: dict[str, torch.Tensor]) -> None:  # each chunk copied in as it finishes
+            data[a:b] = p["data"]
             meta["rays_traced"] = meta.get("rays_traced", 0) + int(p["rays"].sum())
-            o += k
+
+        run.run_chunks(V, chunk_size, compute, fingerprint=fingerprint, desc=f"{kind} {mesh.name}",
+                       rays_of=lambda r: int(r["rays"].sum()), sink=sink)
     finally:
         if caster is not None:
             meta["workers"] = caster.workers
