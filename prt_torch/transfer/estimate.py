@@ -85,10 +85,12 @@ def result_bytes_per_vertex(kind: str, kw: dict[str, Any], mesh: Mesh) -> tuple[
         out = 4 * rows * n2
         return out, out
     if kind == "wavelet":
-        K = int(kw.get("terms", 256))
-        res = kw.get("res", 32)
-        index = 2 if isinstance(res, int) and 6 * res * res <= 32767 else 4  # int16 / int32 (wavelet.index_dtype)
-        out = K * (int(kw.get("bits", 8)) // 8 + index) + 4
+        from .wavelet import bytes_per_vertex as wavelet_bytes
+
+        K, bits = int(kw.get("terms", 256)), int(kw.get("bits", 8))
+        res = int(kw.get("res", 32))
+        n_scales = int(math.log2(res)) + 1 if kw.get("scales", "level") == "level" and bits != 32 else 1  # wavelet.precompute_wavelet
+        out = wavelet_bytes(K, bits, 6 * res * res, n_scales)
         return out, out + 8 * K
     if kind == "transport":
         views = kw.get("views", 3)
