@@ -195,6 +195,7 @@ def test_streamed_mrt_equals_in_memory(tmp_path):
     ("glossy", {"bands": 3, "bands_out": 2, "samples": 16, "shadows": "always", "brdf": {"type": "phong", "s": 4.0}},
      "bumpy_sphere:300"),
     ("wavelet", {"res": 4, "terms": 20, "bits": 8, "shadows": "always"}, "bumpy_sphere:300"),
+    ("subsurface", {"bands": 3, "samples": 16, "material": "marble", "scale": 10.0}, "bumpy_sphere:300"),
 ])
 def test_estimated_result_bytes_equal_the_result(kind, params, scene):
     """The estimate's stored bytes per vertex are those of the transfer the run returns (data

@@ -71,7 +71,8 @@ def result_bytes_per_vertex(kind: str, kw: dict[str, Any], mesh: Mesh) -> tuple[
     resolved precompute keywords ``kw`` of ``kind``. Diffuse: ``[V, (3,) n²]`` float32, assembled
     in float64 (with bounces, every bounce term and the sum too); glossy ``[V, m², n²]``, MRT
     ``[V, M², n²]`` float32 (chunks copied into it and released one by one); wavelet ``[V, K]``
-    values + index + a scale; transport: streamed, nothing held."""
+    values + index + a scale; transport: streamed, nothing held; subsurface ``[V, 3, n²]`` float32 after
+    a grey diffuse pass."""
     n2 = int(kw.get("bands", 5)) ** 2
     if kind == "diffuse":
         bounces = int(kw.get("bounces", 0))
@@ -97,7 +98,13 @@ def result_bytes_per_vertex(kind: str, kw: dict[str, Any], mesh: Mesh) -> tuple[
         J = 10 * int(views) ** 2 + 2 if isinstance(views, int) else len(views)
         res = int(kw.get("res", 8))
         return J * 6 * res * res * (2 if kw.get("dtype") == "float16" else 4), 0
-    raise ValueError(f"kind={kind!r}; accepted: diffuse, glossy, mrt, wavelet, transport")
+    if kind == "subsurface":  # a grey diffuse precompute, then the dipole term in colour (subsurface_kind)
+        _, work = result_bytes_per_vertex("diffuse", {**kw, "fold_albedo": False}, mesh)
+        out = 4 * 3 * n2
+        # + the colour term and the irradiance samples' SH rows (float64, about one sample per vertex
+        # where vertices are closer than the spacing; denser meshes of a thin medium hold more)
+        return out, work + out + 2 * 8 * 3 * n2
+    raise ValueError(f"kind={kind!r}; accepted: diffuse, glossy, mrt, wavelet, transport, subsurface")
 
 
 def _chunk_bytes(kind: str, kw: dict[str, Any], V: int, chunk_size: int | None) -> int:
@@ -108,7 +115,7 @@ def _chunk_bytes(kind: str, kw: dict[str, Any], V: int, chunk_size: int | None) 
         rows = int(kw.get("M", 11)) ** 2 if kind == "mrt" else int(kw.get("bands_out") or kw.get("bands", 5)) ** 2
         c = min(default_chunk(samples) if chunk_size is None else chunk_size, max(V, 1))
         return estimate_memory(0, rows, n2, samples, c)
-    if kind == "diffuse":
+    if kind in ("diffuse", "subsurface"):  # subsurface: its diffuse pass's rays
         from .diffuse import rays_per_vertex
 
         rpv = rays_per_vertex(samples, kw.get("sampling", "qmc"))
