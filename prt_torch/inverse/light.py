@@ -38,7 +38,7 @@ from .._checks import check_choice
 __all__ = ["design_matrix", "corner_rows", "solve_tikhonov", "LightFit", "fit_light", "well_posedness", "FLOAT32_EPS"]
 
 FLOAT32_EPS = 2.0 ** -24
-_GRID = 400  # candidate λ per decade range (log-spaced); the minimum is refined by golden section
+_GRID = 400  # candidate λ, log-spaced from the floor to s_max; the minimum is refined on two finer grids
 
 
 def corner_rows(scene, vid: torch.Tensor, to_eye: torch.Tensor) -> torch.Tensor:
@@ -72,22 +72,6 @@ def design_matrix(scene, obs) -> torch.Tensor:
     return (d.reshape(d.shape[0], P, 3, -1) * obs.bary[None, :, :, None]).sum(2)
 
 
-def _golden(f, a: float, b: float, iters: int = 60) -> float:
-    g = (math.sqrt(5) - 1) / 2
-    c, d = b - g * (b - a), a + g * (b - a)
-    fc, fd = f(c), f(d)
-    for _ in range(iters):
-        if fc < fd:
-            b, d, fd = d, c, fc
-            c = b - g * (b - a)
-            fc = f(c)
-        else:
-            a, c, fc = c, d, fd
-            d = a + g * (b - a)
-            fd = f(d)
-    return 0.5 * (a + b)
-
-
 def solve_tikhonov(A: torch.Tensor, b: torch.Tensor, method: str = "gcv", eps: float = FLOAT32_EPS) -> dict:
     """Tikhonov least squares ``min ‖A x − b‖² + λ²‖x‖²`` with λ from the data (module doc).
 
@@ -101,46 +85,49 @@ def solve_tikhonov(A: torch.Tensor, b: torch.Tensor, method: str = "gcv", eps: f
     """
     check_choice("method", method, ["gcv", "lcurve"])
     P, n = A.shape
-    U, s, Vh = torch.linalg.svd(A, full_matrices=False)
-    beta = U.T @ b
+    Q, Rq = torch.linalg.qr(A)  # thin QR first, then the SVD of the small R (the same factors, faster for P ≫ n)
+    Ur, s, Vh = torch.linalg.svd(Rq)
+    beta = Ur.T @ (Q.T @ b)
     r0 = max(float(b @ b - beta @ beta), 0.0)
     smax = float(s[0]) if s.numel() else 0.0
     lo = max(eps * smax, 1e-300)
     if smax == 0:
         raise ValueError("the design matrix is zero (no pixel responds to the light); accepted: views of a lit, visible surface")
 
-    def parts(lam: float):
-        f = s ** 2 / (s ** 2 + lam ** 2)
-        rss = float((((1 - f) * beta) ** 2).sum()) + r0
-        xn = float(((f * beta / s) ** 2).sum())
+    def curves(lt: torch.Tensor):
+        """Filter factors ``[G, n]``, ‖r‖² ``[G]`` and ‖x‖² ``[G]`` at log10 λ = ``lt [G]`` (one pass)."""
+        lam2 = (10.0 ** lt)[:, None] ** 2
+        f = s[None] ** 2 / (s[None] ** 2 + lam2)
+        rss = (((1 - f) * beta[None]) ** 2).sum(1) + r0
+        xn = ((f * beta[None] / s[None]) ** 2).sum(1)
         return f, rss, xn
 
-    def gcv(lt: float) -> float:
-        f, rss, _ = parts(10.0 ** lt)
-        dof = P - float(f.sum())
-        return P * rss / max(dof, 1e-300) ** 2
+    def gcv(lt: torch.Tensor) -> torch.Tensor:
+        f, rss, _ = curves(lt)
+        return P * rss / (P - f.sum(1)).clamp_min(1e-300) ** 2
 
-    grid = torch.linspace(math.log10(lo), math.log10(smax), _GRID).tolist()
+    grid = torch.linspace(math.log10(lo), math.log10(smax), _GRID, dtype=torch.float64)
     if method == "gcv":
-        vals = [gcv(t) for t in grid]
-        k = min(range(len(vals)), key=vals.__getitem__)
-        a, c = grid[max(k - 1, 0)], grid[min(k + 1, len(grid) - 1)]
-        lt = _golden(gcv, a, c) if c > a else grid[k]
-        lt = lt if gcv(lt) <= vals[k] else grid[k]
+        for _ in range(3):  # the grid, then two finer grids around its minimum
+            vals = gcv(grid)
+            k = int(torch.argmin(vals))
+            lt = float(grid[k])
+            a, c = grid[max(k - 1, 0)], grid[min(k + 1, len(grid) - 1)]
+            grid = torch.linspace(float(a), float(c), 64, dtype=torch.float64)
     else:
-        pts = [parts(10.0 ** t) for t in grid]
-        rho = torch.tensor([0.5 * math.log(max(p[1], 1e-300)) for p in pts], dtype=torch.float64)
-        eta = torch.tensor([0.5 * math.log(max(p[2], 1e-300)) for p in pts], dtype=torch.float64)
-        t = torch.tensor(grid, dtype=torch.float64)
-        dr, de = torch.gradient(rho, spacing=(t,))[0], torch.gradient(eta, spacing=(t,))[0]
-        ddr, dde = torch.gradient(dr, spacing=(t,))[0], torch.gradient(de, spacing=(t,))[0]
+        _, rss_g, xn_g = curves(grid)
+        rho, eta = 0.5 * torch.log(rss_g.clamp_min(1e-300)), 0.5 * torch.log(xn_g.clamp_min(1e-300))
+        dr, de = torch.gradient(rho, spacing=(grid,))[0], torch.gradient(eta, spacing=(grid,))[0]
+        ddr, dde = torch.gradient(dr, spacing=(grid,))[0], torch.gradient(de, spacing=(grid,))[0]
         kappa = (dr * dde - ddr * de) / (dr ** 2 + de ** 2).clamp_min(1e-300) ** 1.5
-        lt = grid[int(torch.argmax(kappa[2:-2])) + 2] if len(grid) > 4 else grid[0]
+        lt = float(grid[int(torch.argmax(kappa[2:-2])) + 2])
     lam = 10.0 ** lt
-    f, rss, _ = parts(lam)
+    f, rss, _ = curves(torch.tensor([lt], dtype=torch.float64))
+    f, rss = f[0], float(rss[0])
     x = Vh.T @ (f * beta / s)
     res = ((Vh.T ** 2) * f[None]).sum(1)  # diag(V F Vᵀ)
-    return {"x": x, "lam": lam, "s": s, "Vh": Vh, "filter": f, "resolution": res, "rss": rss, "gcv": gcv(lt),
+    return {"x": x, "lam": lam, "s": s, "Vh": Vh, "filter": f, "resolution": res, "rss": rss,
+            "gcv": float(gcv(torch.tensor([lt], dtype=torch.float64))[0]),
             "lam_floor": lo}
 
 

@@ -15,7 +15,7 @@ The model is linear in the light for fixed (k_d, k_s, s) — unknown light is eq
 (k_d, k_s) for fixed s: the non-linear fit (:func:`fit_phong`) starts from the best s of a
 log-spaced scan with (k_d, k_s) solved linearly at each (the thesis's nested procedure), then
 refines every parameter by Gauss–Newton / Levenberg–Marquardt on the autograd Jacobian
-(``torch.func.jacrev``), reporting standard errors from (JᵀJ)⁻¹ (how well the images determine each
+(``torch.func.jacfwd``: forward mode, one pass per parameter), reporting standard errors from (JᵀJ)⁻¹ (how well the images determine each
 parameter: ch. 2 §2.4.2, eq. 2.64 — ill-conditioned when the light lacks the lobe's frequencies).
 
 Both unknown (:func:`fit_both`, §6.4.4): the outer problem over (k_s/(k_d+k_s), s), the inner one the
@@ -184,7 +184,7 @@ def fit_phong(model: LobeModel, L: torch.Tensor, values: torch.Tensor, *, grey: 
     f = float(r @ r)
     it = 0
     for it in range(1, iterations + 1):  # Levenberg–Marquardt on a handful of parameters
-        J = torch.func.jacrev(resid)(theta)
+        J = torch.func.jacfwd(resid)(theta)
         g = J.T @ r
         H = J.T @ J
         step = torch.linalg.solve(H + mu * torch.diag(torch.diagonal(H).clamp_min(1e-300)), -g)
@@ -200,7 +200,7 @@ def fit_phong(model: LobeModel, L: torch.Tensor, values: torch.Tensor, *, grey: 
             mu *= 10
             if mu > 1e12:
                 break
-    J = torch.func.jacrev(resid)(theta)
+    J = torch.func.jacfwd(resid)(theta)
     dof = max(r.numel() - theta.numel(), 1)
     sigma2 = f / dof
     try:
