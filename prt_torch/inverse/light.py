@@ -85,9 +85,8 @@ def solve_tikhonov(A: torch.Tensor, b: torch.Tensor, method: str = "gcv", eps: f
     """
     check_choice("method", method, ["gcv", "lcurve"])
     P, n = A.shape
-    Q, Rq = torch.linalg.qr(A)  # thin QR first, then the SVD of the small R (the same factors, faster for P ≫ n)
-    Ur, s, Vh = torch.linalg.svd(Rq)
-    beta = Ur.T @ (Q.T @ b)
+    U, s, Vh = torch.linalg.svd(A, full_matrices=False)
+    beta = U.T @ b
     r0 = max(float(b @ b - beta @ beta), 0.0)
     smax = float(s[0]) if s.numel() else 0.0
     lo = max(eps * smax, 1e-300)

@@ -222,7 +222,7 @@ def fit_phong(model: LobeModel, L: torch.Tensor, values: torch.Tensor, *, grey: 
 
 
 def fit_both(model: LobeModel, values: torch.Tensor, *, method: str = "gcv", eps: float = 2.0 ** -24,
-             s_range: tuple[float, float] = (1.0, 2000.0), scan: int = 24) -> dict:
+             s_range: tuple[float, float] = (1.0, 2000.0), scan: int = 12) -> dict:
     """Light and reflection-form Phong both unknown (§6.4.4): for each candidate (w = k_s/(k_d+k_s),
     s) the light is solved linearly (GCV, :func:`~prt_torch.inverse.light.fit_light`) with
     k_d = 1 − w, k_s = w (grey), and the pair with the least residual is refined by golden sections
@@ -241,17 +241,17 @@ def fit_both(model: LobeModel, values: torch.Tensor, *, method: str = "gcv", eps
         fit = fit_light(rows, y, method, eps)
         return float(((fit.predicted - y) ** 2).sum()), fit
 
-    ws = np.linspace(0.0, 1.0, 11)
+    ws = np.linspace(0.0, 1.0, 6)
     ss = np.exp(np.linspace(math.log(s_range[0]), math.log(s_range[1]), scan))
     best = (math.inf, 0.0, 1.0)
-    for w in ws:  # a coarse grid over two parameters (11 × scan linear solves of n² unknowns)
+    for w in ws:  # a coarse grid over two parameters (6 × scan linear solves of n² unknowns)
         for s in ss:
             r = solve(float(w), float(s))[0]
             if r < best[0]:
                 best = (r, float(w), float(s))
     _, w, s = best
 
-    def golden(f, a, b, iters=30):
+    def golden(f, a, b, iters=14):
         g = (math.sqrt(5) - 1) / 2
         c, d = b - g * (b - a), a + g * (b - a)
         fc, fd = f(c), f(d)
@@ -266,7 +266,7 @@ def fit_both(model: LobeModel, values: torch.Tensor, *, method: str = "gcv", eps
                 fd = f(d)
         return 0.5 * (a + b)
 
-    step_w, step_ls = 0.1, math.log(ss[1] / ss[0])
+    step_w, step_ls = 0.2, math.log(ss[1] / ss[0])
     for _ in range(3):  # coordinate refinement
         w = golden(lambda t: solve(t, s)[0], max(w - step_w, 0.0), min(w + step_w, 1.0))
         ls = golden(lambda t: solve(w, math.exp(t))[0], math.log(s) - step_ls, math.log(s) + step_ls)
