@@ -98,7 +98,7 @@ def solve_tikhonov(A: torch.Tensor, b: torch.Tensor, method: str = "gcv", eps: f
         lam2 = (10.0 ** lt)[:, None] ** 2
         f = s[None] ** 2 / (s[None] ** 2 + lam2)
         rss = (((1 - f) * beta[None]) ** 2).sum(1) + r0
-        xn = ((f * beta[None] / s[None]) ** 2).sum(1)
+        xn = ((s[None] * beta[None] / (s[None] ** 2 + lam2)) ** 2).sum(1)  # f β / s, finite where s = 0
         return f, rss, xn
 
     def gcv(lt: torch.Tensor) -> torch.Tensor:
@@ -123,7 +123,7 @@ def solve_tikhonov(A: torch.Tensor, b: torch.Tensor, method: str = "gcv", eps: f
     lam = 10.0 ** lt
     f, rss, _ = curves(torch.tensor([lt], dtype=torch.float64))
     f, rss = f[0], float(rss[0])
-    x = Vh.T @ (f * beta / s)
+    x = Vh.T @ (s * beta / (s ** 2 + lam ** 2))  # = V F S⁻¹ Uᵀ b, finite where a singular value is 0
     res = ((Vh.T ** 2) * f[None]).sum(1)  # diag(V F Vᵀ)
     return {"x": x, "lam": lam, "s": s, "Vh": Vh, "filter": f, "resolution": res, "rss": rss,
             "gcv": float(gcv(torch.tensor([lt], dtype=torch.float64))[0]),
