@@ -420,7 +420,8 @@ class AffineCodec(Codec):
         if self.matrix_shape_ is None and view is not None:
             raise ValueError("view was given but this codec was fitted on vectors (no matrix_shape); accepted: view=None")
         n = self._n_eff(n_vectors)
-        if grad_required(light, *(view if isinstance(view, tuple) else (view,)), *enc.tensors.values(), *self._model_tensors()):
+        if torch.is_grad_enabled() and grad_required(light, *(view if isinstance(view, tuple) else (view,)), *enc.tensors.values(),
+                                                     *self._model_tensors()):
             if out is not None:
                 raise ValueError("out= with a light, view or codec tensor that requires grad; accepted: out=None (autograd "
                                  "cannot write into a reused buffer)")
