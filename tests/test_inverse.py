@@ -70,6 +70,37 @@ def shadowed():
     return mesh, precompute_diffuse(mesh, bands=3, samples=128, shadows="always", fold_albedo=False)
 
 
+def _write_views(d, renderer, mesh, rad):
+    """Engine renders (GL, RGBA32F, NaN background) as EXR with alpha, and their transforms.json."""
+    cams = _cams(mesh)
+    W, H = RENDER_SIZE
+    files = []
+    for k, cam in enumerate(cams):
+        img, m = renderer.render_radiance(mesh, rad, cam, W, H, background=float("nan"))
+        write_image(d / f"v{k}.exr", np.concatenate([img, m[..., None].astype(np.float32)], 2))
+        files.append(f"v{k}.exr")
+    return _transforms(d, cams, files, W, H)
+
+
+def test_cli_brdf_of_a_lambertian_object(tmp_path, renderer, shadowed):
+    """``--unknown brdf --brdf phong`` on engine renders of a Lambertian object of albedo
+    (0.9, 0.6, 0.3) under a known light: kd is that albedo, ks ≈ 0, and s — which such images
+    cannot determine — is reported with a huge standard error (ch. 2 eq. 2.64)."""
+    mesh, T = shadowed
+    L = load_light("sky", 3)
+    tj = _write_views(tmp_path, renderer, mesh, relight.diffuse_transfer(T, L))
+    T.save(tmp_path / "t.prt")
+    (tmp_path / "light.json").write_text(json.dumps(inverse.light_json(L, 3, "sky")))
+    out = tmp_path / "b.json"
+    assert main(["invert", "--mesh", "occluder_over_plane", "--albedo", "0.9,0.6,0.3", "--cameras", str(tj), "--unknown",
+                 "brdf", "--brdf", "phong", "--light", str(tmp_path / "light.json"), "--transfer", str(tmp_path / "t.prt"),
+                 "-o", str(out)]) == 0
+    fit = json.loads(out.read_text())["inverse"]["brdf_fit"]
+    assert np.allclose(fit["params"]["kd"], [0.9, 0.6, 0.3], rtol=1e-4)
+    assert abs(fit["params"]["ks"]) < 1e-4
+    assert fit["relative_stderr"]["s"] > 1
+
+
 def test_cli_round_trip_of_engine_renders(tmp_path, renderer, shadowed):
     """Images the engine renders (GL, Gouraud, RGBA32F) under a known light, written as EXR with
     alpha, are inverted by ``prt invert`` to that light. The framebuffer is float32 (relative
@@ -78,14 +109,7 @@ def test_cli_round_trip_of_engine_renders(tmp_path, renderer, shadowed):
     mesh, T = shadowed
     L = load_light("sky", 3)
     rad = relight.diffuse_transfer(T, L)
-    cams = _cams(mesh)
-    W, H = RENDER_SIZE
-    files = []
-    for k, cam in enumerate(cams):
-        img, m = renderer.render_radiance(mesh, rad, cam, W, H, background=float("nan"))
-        write_image(tmp_path / f"v{k}.exr", np.concatenate([img, m[..., None].astype(np.float32)], 2))
-        files.append(f"v{k}.exr")
-    tj = _transforms(tmp_path, cams, files, W, H)
+    tj = _write_views(tmp_path, renderer, mesh, rad)
     T.save(tmp_path / "t.prt")
     out = tmp_path / "r.json"
     assert main(["invert", "--mesh", "occluder_over_plane", "--albedo", "0.9,0.6,0.3", "--cameras", str(tj), "--unknown",

@@ -171,7 +171,9 @@ def fit_phong(model: LobeModel, L: torch.Tensor, values: torch.Tensor, *, grey: 
     def unpack(theta):
         kd = theta[:nk].expand(C) if grey else theta[:nk]
         ks = theta[nk]
-        s = torch.exp(theta[nk + 1]) if "s" not in fixed else torch.tensor(float(fixed["s"]), dtype=torch.float64)
+        # s kept inside s_range (a surface without a visible lobe leaves s free: ks → 0 and log s would run away)
+        s = torch.exp(theta[nk + 1].clamp(math.log(s_range[0]), math.log(s_range[1]))) if "s" not in fixed \
+            else torch.tensor(float(fixed["s"]), dtype=torch.float64)
         return kd, ks, s
 
     def resid(theta):
@@ -193,6 +195,8 @@ def fit_phong(model: LobeModel, L: torch.Tensor, values: torch.Tensor, *, grey: 
         if f_new < f:
             rel = (f - f_new) / max(f, 1e-300)
             theta, r, f = theta + step, r_new, f_new
+            if "s" not in fixed:
+                theta[nk + 1] = theta[nk + 1].clamp(math.log(s_range[0]), math.log(s_range[1]))
             mu = max(mu / 10, 1e-12)
             if rel < 1e-14 or float(step.abs().max()) < 1e-12:
                 break
