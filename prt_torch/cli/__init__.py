@@ -20,7 +20,7 @@ import threading
 import warnings
 
 # Order here is the order in ``prt --help``.
-COMMANDS = ["bench", "precompute", "compress", "light", "info", "render", "relight", "plot", "validate", "shrm"]
+COMMANDS = ["bench", "precompute", "compress", "light", "info", "render", "relight", "plot", "validate", "shrm", "invert"]
 
 
 def build_parser() -> argparse.ArgumentParser:

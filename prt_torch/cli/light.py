@@ -18,7 +18,7 @@ from ..lighting import (
     render_sh,
     write_image,
 )
-from ..lighting.spec import load_light
+from ..lighting.spec import SH_CONVENTION, load_light
 from ..lighting.layouts import resolve_rotation
 from ..sh import lm_of, rotate as sh_rotate
 
@@ -74,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
     if spec in list_builtin_environments():
         # --up too (a built-in's frame is +z up; --up y reads it as a y-up file would be): checked, never ignored
         env = builtin_environment(spec, size=args.size, rotation=resolve_rotation(args.rotate, args.up))
-    elif parse_light_spec(spec) is None:
+    elif parse_light_spec(spec) is None and not spec.lower().endswith(".json"):
         env = load_environment(spec, layout=args.layout, rotation=args.rotate, up=args.up, clamp=args.clamp)
     if env is not None:
         L = env.project(args.bands, args.window)
@@ -99,7 +99,7 @@ def run(args: argparse.Namespace) -> int:
             "light": spec,
             "bands": args.bands,
             "window": args.window,
-            "convention": "real SH, graphics convention (no Condon-Shortley), index l(l+1)+m, +z up",
+            "convention": SH_CONVENTION,
             "lm": [[int(a), int(b)] for a, b in zip(l, m)],
             "coeffs": L.tolist(),  # [C][n²]
         }

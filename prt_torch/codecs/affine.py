@@ -37,7 +37,7 @@ from .. import io
 from .._checks import check_finite, tensor_version
 from ..params import Boolean, Interval, Options
 from .base import (Codec, Encoded, Relighter, array_type, as_array_type, check_light, check_matrix_shape, check_out,
-                   check_signal, check_view, check_weights, encoding_state, input_ref, typed, typed_relighter, view_tensors)
+                   check_signal, check_view, check_weights, encoding_state, grad_required, input_ref, typed, typed_relighter, view_tensors)
 from .kmeans import CACHE_BLOCK_BYTES, linear, row_chunk
 from .relight_kernels import constants_layout as kernel_layout
 from .relight_kernels import fits as kernel_fits
@@ -420,6 +420,12 @@ class AffineCodec(Codec):
         if self.matrix_shape_ is None and view is not None:
             raise ValueError("view was given but this codec was fitted on vectors (no matrix_shape); accepted: view=None")
         n = self._n_eff(n_vectors)
+        if torch.is_grad_enabled() and grad_required(light, *(view if isinstance(view, tuple) else (view,)), *enc.tensors.values(),
+                                                     *self._model_tensors()):
+            if out is not None:
+                raise ValueError("out= with a light, view or codec tensor that requires grad; accepted: out=None (autograd "
+                                 "cannot write into a reused buffer)")
+            return self._relight_grad(enc, light, view, n)
         lib = native()
         # with the kernels, structure only: a float32 light's values are checked by the constants
         # kernel and the view's inside the point kernels (a flag); only a bad call pays for the
@@ -451,6 +457,38 @@ class AffineCodec(Codec):
         the same versions, then one kernel call: ~4 µs less per light than ``relight``, what a
         small relight costs (reports/benchmarks/relight.md, "prepared")."""
         return typed_relighter(AffineRelighter(self, enc, view, n_vectors))
+
+    def _relight_grad(self, enc: Encoded, light, view, n: int) -> torch.Tensor:
+        """``relight`` under autograd (the fused C kernels are forward-only): the same sums in torch,
+        in the light's dtype (float64 for ``torch.autograd.gradcheck``), differentiable with respect
+        to the light, the view weights and the codec's tensors (means, basis, per-point weights).
+        Sloan 2003 §6: e_p = M_0^k l + Σ_i w_p^i M_i^k l; with a view y(v_p)·e_p or eq. (13)'s taps."""
+        n_out, n_in = self.matrix_shape_ or (1, self.D_)
+        L = torch.as_tensor(light)
+        if L.ndim != 2 or L.shape[0] != n_in or not L.is_floating_point():
+            check_light(light, n_in)  # raises with the accepted shape
+        dt = torch.promote_types(L.dtype, torch.float32)
+        L = L.to(dt)
+        K, C, P = self.K_, L.shape[1], enc.points
+        parts = []
+        if self.means_ is not None:
+            parts.append((self.means_.to(dt).reshape(K * n_out, n_in) @ L).view(K, 1, n_out, C))
+        if n:
+            nb = self.basis_[:, :n].to(dt)
+            parts.append((nb.reshape(K * n * n_out, n_in) @ L).view(K, n, n_out, C))
+        if not parts:
+            return torch.zeros(P, C, dtype=dt) if view is not None or self.matrix_shape_ is None else torch.zeros(P, n_out, C, dtype=dt)
+        consts = torch.cat(parts, 1)  # [K, J, n_out, C]
+        c = self.coeffs_of(enc)[:, :n].to(dt)
+        W = torch.cat([torch.ones(P, 1, dtype=dt), c], 1) if self.means_ is not None else c  # [P, J]
+        if isinstance(view, tuple):
+            idx, g = view
+            return _taps_relight(consts, W, (torch.as_tensor(idx).long(), torch.as_tensor(g).to(dt)),
+                                 None if K == 1 else self.labels_of(enc))
+        e = torch.einsum("pj,pjoc->poc", W, consts[self.labels_of(enc)] if K > 1 else consts[0].expand(P, *consts.shape[1:]))
+        if view is None:
+            return e[:, 0] if self.matrix_shape_ is None else e
+        return torch.einsum("po,poc->pc", torch.as_tensor(view).to(dt), e)
 
     def _relight_torch(self, enc: Encoded, light, view, n: int) -> torch.Tensor:
         """The torch formulation of ``relight`` (no compiled kernels), on a checked view."""
@@ -781,6 +819,8 @@ class AffineRelighter(Relighter):
 
     def __call__(self, light: Any, out: torch.Tensor | None = None) -> torch.Tensor:
         codec, enc, view = self.codec, self.enc, self.view
+        if grad_required(light):  # the kernels are forward-only: relight's autograd path
+            return codec.relight(enc, light, view, out=out, **self.kwargs)
         lib = native()
         hot = self._hot
         if (hot is not None and lib is not None and type(light) is torch.Tensor and light.dtype == torch.float32

@@ -472,6 +472,13 @@ def check_matrix_shape(matrix_shape: Any, D: int) -> tuple[int, int] | None:
     return n_out, n_in
 
 
+def grad_required(*tensors: Any) -> bool:
+    """Whether autograd must see a result computed from ``tensors``: grad mode is on and one of them
+    (tensors only; None and arrays ignored) requires grad. The fused C kernels are forward-only, so
+    a codec's ``relight`` takes its torch path then (docs/inverse.md "Differentiable relighting")."""
+    return torch.is_grad_enabled() and any(isinstance(t, torch.Tensor) and t.requires_grad for t in tensors)
+
+
 def check_light(light: Any, n_in: int, values: bool = True) -> torch.Tensor:
     """``light [n_in, C]`` as relighting reads it (float32): NaN/Inf refused naming the value, and
     so is a value beyond float32's range (relighting computes in float32). ``values=False``

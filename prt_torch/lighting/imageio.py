@@ -83,23 +83,28 @@ def to_rgb(arr: np.ndarray, names: list[str] | None = None, source: str = "image
     return np.ascontiguousarray(arr[:, :, idx]).astype(np.float32), dropped
 
 
-def read_image(path: str | os.PathLike, clamp: bool = False) -> tuple[np.ndarray, dict]:
+def read_image(path: str | os.PathLike, clamp: bool = False, what: str = "environment map", check: bool = True) -> tuple[np.ndarray, dict]:
     """Read an image as linear float32 RGB ``[H, W, 3]`` (row 0 = top) plus an info dict.
 
     info: ``path``, ``format``, ``channels`` (in the file), ``dropped_channels``,
-    ``srgb_decoded`` (bool), ``clamped`` ({'nonfinite': n, 'negative': n} when clamp=True).
-    Raises FileNotFoundError for a missing file, ValueError for unreadable data or bad pixels.
+    ``srgb_decoded`` (bool), ``integer`` (bool: 8/16-bit data), ``alpha`` (``[H, W]`` float32
+    of a channel named A/alpha, or of the 2nd of 2 / 4th of 4 unnamed channels; else None),
+    ``clamped`` ({'nonfinite': n, 'negative': n} when clamp=True). ``what`` names the file in
+    messages ("environment map", "image"); ``check=False`` leaves NaN/Inf/negative values as they
+    are for the caller to judge (e.g. only where alpha > 0). Raises FileNotFoundError for a missing file,
+    ValueError for unreadable data or bad pixels.
     """
     path = Path(path)
     if not path.exists():
-        raise FileNotFoundError(f"environment map {str(path)!r} does not exist")
+        raise FileNotFoundError(f"{what} {str(path)!r} does not exist")
     if path.is_dir():
         raise ValueError(f"{str(path)!r} is a directory; accepted: an image file")
-    info: dict = {"path": str(path), "srgb_decoded": False}
+    info: dict = {"path": str(path), "srgb_decoded": False, "integer": False, "alpha": None}
     if path.suffix.lower() == ".pfm":
         arr = _read_pfm(path)
         info.update(format="pfm", channels=arr.shape[2])
         rgb, dropped = to_rgb(arr, None, str(path))
+        names = None
     else:
         import OpenImageIO as oiio
 
@@ -119,17 +124,27 @@ def read_image(path: str | os.PathLike, clamp: bool = False) -> tuple[np.ndarray
             inp.close()
         arr = np.asarray(arr, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels)
         rgb, dropped = to_rgb(arr, names, str(path))
+        info["integer"] = integer
         if integer and "srgb" in cs:
             rgb = _srgb_to_linear(rgb)
             info["srgb_decoded"] = True
     info["dropped_channels"] = dropped
+    if names is not None and dropped:
+        up = [n.upper() for n in names]
+        ia = next((i for i, n in enumerate(up) if n in ("A", "ALPHA")), None)
+        if ia is None and len(names) in (2, 4) and all(n.startswith("CHANNEL") for n in up):
+            ia = len(names) - 1
+        if ia is not None:
+            info["alpha"] = np.ascontiguousarray(arr[:, :, ia], dtype=np.float32)
+    if not check:
+        return rgb, info
     bad_nf = ~np.isfinite(rgb)
     n_nf = int(bad_nf.sum())
     n_neg = int((rgb < 0).sum())
     if n_nf or n_neg:
         if not clamp:
             raise ValueError(
-                f"environment map {str(path)!r} has {n_nf} NaN/Inf and {n_neg} negative channel value(s) "
+                f"{what} {str(path)!r} has {n_nf} NaN/Inf and {n_neg} negative channel value(s) "
                 f"(of {rgb.size}); radiance must be finite and ≥ 0. Fix the file, or load with clamp=True "
                 "(CLI: --clamp) to set them to 0"
             )

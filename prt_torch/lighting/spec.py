@@ -10,7 +10,11 @@ Accepted ``spec``:
   caps), e.g. ``directional:direction=0,0,1;intensity=2`` or
   ``cap:direction=1,0,1;half_angle_deg=10;intensity=1,0.8,0.6``;
 * a dict ``{"type": kind, **kwargs}`` of the same;
-* a file path, or a '{face}' pattern / list of six paths (see :func:`load_environment`).
+* a file path, or a '{face}' pattern / list of six paths (see :func:`load_environment`);
+* a ``.json`` file holding SH coefficients in the layout ``prt light --json`` prints (and ``prt
+  invert`` writes): ``coeffs`` ``[C][n²]`` (C = 1 or 3), ``bands`` n, and ``convention`` (must be
+  the graphics convention with +z up); asked for fewer bands it is truncated, for more it is
+  zero-padded (an SH light of n bands is exactly that).
 """
 from __future__ import annotations
 
@@ -26,7 +30,43 @@ from . import analytic
 from .builtin import BUILTIN_SIZE, builtin_environment, list_builtin_environments
 from .environment import Environment, expand_window, load_environment, window_factors
 
-__all__ = ["load_light", "parse_light_spec", "analytic_params", "ANALYTIC_KINDS"]
+__all__ = ["load_light", "parse_light_spec", "analytic_params", "ANALYTIC_KINDS", "load_light_json", "SH_CONVENTION"]
+
+SH_CONVENTION = "real SH, graphics convention (no Condon-Shortley), index l(l+1)+m, +z up"
+
+
+def load_light_json(path: str | os.PathLike, bands: int | None = None) -> torch.Tensor:
+    """SH light ``[C, n²]`` float64 from a JSON file in ``prt light --json``'s layout (module doc);
+    ``bands`` None keeps the file's. Refused, naming the file and key: not JSON, no ``coeffs``,
+    a ``coeffs`` that is not ``[C][bands²]`` finite numbers with C in (1, 3), another convention."""
+    import json
+
+    p = Path(path)
+    try:
+        doc = json.loads(p.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise ValueError(f"light {str(p)!r} is not JSON ({e}); accepted: the output of prt light --json or prt invert") from None
+    if not isinstance(doc, dict) or "coeffs" not in doc:
+        raise ValueError(f"light {str(p)!r} has no 'coeffs'; accepted: JSON with coeffs [C][n²], bands, convention "
+                         "(prt light --json's layout)")
+    conv = doc.get("convention", SH_CONVENTION)
+    if conv != SH_CONVENTION:
+        raise ValueError(f"light {str(p)!r}: convention={conv!r}; accepted: {SH_CONVENTION!r}")
+    try:
+        L = torch.tensor(doc["coeffs"], dtype=torch.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"light {str(p)!r}: coeffs is not a [C][n²] list of numbers") from None
+    n = doc.get("bands")
+    if L.ndim != 2 or L.shape[0] not in (1, 3) or not isinstance(n, int) or isinstance(n, bool) or n < 1 \
+            or L.shape[1] != n * n or not torch.isfinite(L).all():
+        raise ValueError(f"light {str(p)!r}: coeffs of shape {list(L.shape)} with bands={n!r}; accepted: finite [C][bands²], "
+                         "C = 1 or 3")
+    if bands is None or bands == n:
+        return L
+    out = torch.zeros(L.shape[0], bands * bands, dtype=torch.float64)
+    k = min(bands, n) ** 2
+    out[:, :k] = L[:, :k]
+    return out
 
 ANALYTIC_KINDS = {
     "directional": analytic.directional,
@@ -90,6 +130,8 @@ def load_light(spec: Any, bands: int = 3, window: Any = None, size: int = BUILTI
         return env.project(bands, window)
     elif isinstance(spec, str) and parse_light_spec(spec) is not None:
         L = _analytic(parse_light_spec(spec), bands)
+    elif isinstance(spec, (str, os.PathLike)) and str(spec).lower().endswith(".json") and Path(spec).is_file():
+        L = load_light_json(spec, bands)
     elif isinstance(spec, (str, os.PathLike, list, tuple)):
         if isinstance(spec, (str, os.PathLike)) and "{face}" not in str(spec) and not Path(spec).exists():
             raise FileNotFoundError(

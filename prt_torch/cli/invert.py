@@ -1,0 +1,243 @@
+"""``prt invert``: lighting, material or both from images of a known mesh (Ramamoorthi 2002 ch. 6),
+through the engine's transfer (shadows and interreflection included). docs/inverse.md."""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+UNKNOWNS = ("light", "brdf", "both")
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "invert",
+        help="recover SH lighting, BRDF parameters or both from images of a known mesh (Ramamoorthi 2002 ch. 6)",
+        description=(
+            "Inverse rendering. The images and their cameras come from a NeRF/Blender transforms.json (file_path "
+            "relative to it; camera_angle_x or fl_x/fl_y/cx/cy; 4x4 camera-to-world, OpenGL axes); pixels are traced "
+            "to the mesh with Embree, pixels off the mesh or with alpha 0 are masked. --unknown light: linear least "
+            "squares through the transfer (regularisation by GCV or the L-curve) and a well-posedness report per "
+            "band; brdf: reflection-form Phong kd/ks/s under --light (autograd Levenberg-Marquardt); both: light and "
+            "Phong with the ambiguities fixed (kd+ks=1, grey BRDF). The output JSON holds the light in prt light "
+            "--json's layout (usable as --light anywhere). docs/inverse.md."
+        ),
+    )
+    p.add_argument("--mesh", required=True, metavar="MESH", help="mesh file or built-in scene (the known geometry)")
+    p.add_argument("--cameras", required=True, metavar="transforms.json", help="NeRF/Blender cameras and image paths")
+    p.add_argument("--unknown", required=True, choices=UNKNOWNS, help="what to recover")
+    p.add_argument("--bands", type=int, default=3, help="SH bands of the light (n² unknowns per channel; default 3)")
+    p.add_argument("--albedo", default=None, metavar="A", help="known diffuse albedo: one value or r,g,b (default: the "
+                   "mesh's, 0.8 grey for built-ins)")
+    p.add_argument("--brdf", default="lambertian", metavar="TYPE",
+                   help="reflectance model: lambertian (default; the transfer's) or phong (reflection form, eq. 6.12)")
+    p.add_argument("--brdf-param", action="append", default=[], metavar="NAME=VALUE",
+                   help="a known BRDF parameter, repeatable: kd=0.5 ks=0.5 s=30 (phong); with --unknown brdf a given "
+                        "s is kept fixed")
+    p.add_argument("--light", default=None, metavar="SPEC", help="the known light (--unknown brdf): built-in, image, "
+                   "analytic spec or a light JSON (prt light --json / prt invert output)")
+    p.add_argument("--bounces", type=int, default=0, help="interreflection bounces in the precomputed transfer (default 0)")
+    p.add_argument("--samples", type=int, default=512, help="directions per vertex of the precomputed transfer")
+    p.add_argument("--transfer", default=None, metavar="T.prt", help="transfer of this mesh (else precomputed: diffuse, "
+                   "shadowed)")
+    p.add_argument("--regularizer", choices=("gcv", "lcurve"), default="gcv",
+                   help="how the Tikhonov weight is chosen from the data (default gcv)")
+    p.add_argument("--max-pixels", type=int, default=None, help="use a random subset of this many pixels")
+    p.add_argument("-o", "--output", required=True, metavar="RESULT.json")
+    p.add_argument("--report", default=None, metavar="DIR", help="write input | re-rendered | error images per view")
+    p.add_argument("--overwrite", action="store_true", help="replace existing outputs")
+    p.add_argument("--debug", action="store_true", help="show tracebacks")
+    p.set_defaults(func=run)
+
+
+def _albedo(text: str | None):
+    if text is None:
+        return None
+    from ..params import parse_value
+
+    v = parse_value(text)
+    vals = v if isinstance(v, list) else [v]
+    if len(vals) not in (1, 3) or not all(isinstance(x, (int, float)) and not isinstance(x, bool) and 0 <= x <= 1
+                                          and math.isfinite(x) for x in vals):
+        raise ValueError(f"--albedo {text!r}; accepted: one value or r,g,b in [0, 1]")
+    return vals[0] if len(vals) == 1 else vals
+
+
+def _brdf(args) -> dict:
+    from ..brdf import MODELS
+    from ..params import parse_assignments
+
+    name = args.brdf.lower()
+    if name not in ("lambertian", "phong"):
+        known = ", ".join(sorted(MODELS))
+        raise ValueError(f"--brdf {args.brdf!r}; accepted: lambertian, phong (inverse rendering fits these; the engine "
+                         f"knows {known})")
+    params = parse_assignments(args.brdf_param, what="--brdf-param")
+    allowed = {"lambertian": set(), "phong": {"kd", "ks", "s"}}[name]
+    for k, v in params.items():
+        if k not in allowed:
+            raise ValueError(f"--brdf-param {k}={v!r}; accepted for {name}: {', '.join(sorted(allowed)) or 'none'}")
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0 or (k == "s" and v <= 0):
+            raise ValueError(f"--brdf-param {k}={v!r}; accepted: a finite number ≥ 0 (s > 0)")
+    return {"type": name, **params}
+
+
+def _check_args(args, brdf: dict) -> None:
+    from .._checks import check_int
+
+    check_int("--bands", args.bands, 1, 16)
+    check_int("--bounces", args.bounces, 0, 16)
+    check_int("--samples", args.samples, 1, 1 << 20)
+    if args.max_pixels is not None:
+        check_int("--max-pixels", args.max_pixels, 1)
+    if args.unknown == "brdf":
+        if args.light is None:
+            raise ValueError("--unknown brdf needs the known light: --light SPEC")
+        if brdf["type"] != "phong":
+            raise ValueError(f"--unknown brdf with --brdf {brdf['type']}; accepted: --brdf phong (the fitted model)")
+    if args.unknown == "both" and brdf["type"] != "phong":
+        raise ValueError(f"--unknown both with --brdf {brdf['type']}; accepted: --brdf phong (a Lambertian object under "
+                         "unknown light is --unknown light with a known albedo)")
+    if args.unknown == "light" and args.light is not None:
+        raise ValueError("--light is the known light of --unknown brdf; with --unknown light it is what is recovered")
+    if args.unknown == "light" and brdf["type"] == "phong" and not {"kd", "ks", "s"} <= set(brdf):
+        raise ValueError("--unknown light with --brdf phong needs its parameters: --brdf-param kd=.. ks=.. s=..")
+
+
+def _transfer(args, mesh, brdf: dict):
+    from ..transfer import Transfer
+    from ..transfer.diffuse import precompute_diffuse
+
+    if args.transfer is not None:
+        tr = Transfer.load(args.transfer)
+        if tr.mesh.content_hash() != mesh.content_hash() and (tr.mesh.vertices.shape != mesh.vertices.shape
+                                                              or not torch.allclose(tr.mesh.vertices, mesh.vertices)):
+            raise ValueError(f"--transfer {args.transfer!r} was computed for another mesh than --mesh {args.mesh!r}; "
+                             "accepted: a transfer of that mesh")
+        n2 = tr.data.shape[-1]
+        if n2 < args.bands ** 2:
+            raise ValueError(f"--transfer {args.transfer!r} has {math.isqrt(n2)} bands; accepted: at least --bands {args.bands}")
+        if tr.kind not in ("diffuse", "glossy", "mrt"):
+            raise ValueError(f"--transfer {args.transfer!r} is of kind {tr.kind!r}; accepted: diffuse, glossy, mrt")
+        if brdf["type"] != "lambertian" and (tr.kind != "diffuse" or tr.data.ndim != 2):
+            raise ValueError(f"--brdf {brdf['type']} uses the shadowed irradiance of a grey diffuse transfer; --transfer "
+                             f"{args.transfer!r} is {tr.kind} {tuple(tr.data.shape)}")
+        return tr
+    return precompute_diffuse(mesh, bands=args.bands, samples=args.samples, bounces=args.bounces,
+                              shadows="auto", fold_albedo=False)
+
+
+def _truncate(tr, bands: int):
+    """The transfer restricted to the first bands² light coefficients (a diffuse or matrix transfer
+    of more bands answers fewer exactly: the light's higher coefficients are zero)."""
+    import dataclasses
+
+    n2 = bands * bands
+    if tr.data.shape[-1] == n2:
+        return tr
+    return dataclasses.replace(tr, data=tr.data[..., :n2].contiguous())
+
+
+def run(args: argparse.Namespace) -> int:
+    from .. import inverse
+    from ..io import atomic_write_json, check_outputs
+    from ..lighting.spec import load_light
+    from ..render.prt import PRTScene
+    from ..scene import RayCaster, load_scene
+
+    t0 = time.perf_counter()
+    brdf = _brdf(args)
+    _check_args(args, brdf)
+    if args.report is not None:
+        rep = Path(args.report)
+        if rep.exists() and not rep.is_dir():
+            raise ValueError(f"--report {args.report!r} is a file; accepted: a directory (created if missing)")
+    views = inverse.load_cameras(args.cameras)
+    check_outputs({"-o": args.output, **_report_names(args.report, len(views))},
+                  {"--cameras": args.cameras, "--transfer": args.transfer, "--light": args.light,
+                   "image": [str(v.file) for v in views]}, args.overwrite)  # before any work
+    mesh = load_scene(args.mesh, albedo=_albedo(args.albedo))
+    L_known = load_light(args.light, bands=args.bands) if args.light is not None else None
+    views, images, masks, infos = inverse.load_images(views)
+    unknowns = {"light": args.bands ** 2, "brdf": 5, "both": args.bands ** 2 + 2}[args.unknown]
+    eps = inverse.data_eps(infos)
+    with RayCaster(mesh, workers=1) as caster:
+        obs = inverse.observe(mesh, views, images, masks, unknowns=unknowns, max_pixels=args.max_pixels, caster=caster)
+        tr = _truncate(_transfer(args, mesh, brdf), args.bands)
+        model = None
+        if brdf["type"] == "phong":
+            model = inverse.material.lobe_model(mesh, tr, obs, args.bands, caster)
+    t_trace = time.perf_counter() - t0
+    out: dict = {}
+    inv: dict = {"unknown": args.unknown, "brdf": brdf, "views": len(views), "pixels": obs.P,
+                 "pixels_per_view": obs.counts, "data_eps": eps, "regularizer": args.regularizer,
+                 "transfer": {"kind": tr.kind, "bands": args.bands, "meta": {k: tr.meta.get(k) for k in
+                                                                           ("samples", "bounces", "shadows", "albedo_folded")}}}
+    if args.unknown == "light":
+        if model is None:
+            A = inverse.design_matrix(PRTScene(tr), obs)
+        else:
+            C = 3
+            A = model.light_rows(torch.full((C,), float(brdf["kd"]), dtype=torch.float64),
+                                 torch.tensor(float(brdf["ks"]), dtype=torch.float64), torch.tensor(float(brdf["s"]), dtype=torch.float64))
+        fit = inverse.fit_light(A, obs.values, args.regularizer, eps)
+        L, pred = fit.light, fit.predicted
+        inv["well_posedness"] = fit.report
+    elif args.unknown == "brdf":
+        fixed = {"s": brdf["s"]} if "s" in brdf else None
+        bf = inverse.material.fit_phong(model, L_known, obs.values, fixed=fixed)
+        L, pred = L_known, bf.predicted
+        inv["brdf_fit"] = {"params": bf.params, "stderr": bf.stderr, "relative_stderr": bf.relative_stderr,
+                           "iterations": bf.iterations}
+        inv["brdf"] = {"type": "phong", "form": "reflection", **bf.params}
+    else:
+        res = inverse.material.fit_both(model, obs.values, method=args.regularizer, eps=eps)
+        L, pred = res["light"], res["fit"].predicted
+        inv["well_posedness"] = res["fit"].report
+        inv["brdf"] = {"type": "phong", "form": "reflection", **res["params"]}
+        inv["ambiguities"] = res["ambiguities"]
+    resid = pred - obs.values
+    inv["residual"] = {"psnr_db": inverse.psnr(pred, obs.values), "rms": float(resid.pow(2).mean().sqrt()),
+                       "relative_rms": float(resid.norm() / obs.values.norm().clamp_min(1e-300))}
+    inv["seconds"] = {"trace_and_transfer": t_trace, "total": time.perf_counter() - t0}
+    out.update(inverse.light_json(L, args.bands, f"prt invert --unknown {args.unknown}"))
+    out["inverse"] = inv
+    atomic_write_json(args.output, out)
+    if args.report is not None:
+        _write_report(Path(args.report), obs, pred, args.overwrite)
+    w = inv.get("well_posedness")
+    msg = f"prt invert: {obs.P} pixels of {len(views)} views, PSNR {inv['residual']['psnr_db']:.2f} dB"
+    if w is not None:
+        msg += f", recoverable bands {w['recoverable_bands']}"
+    if args.unknown != "light":
+        msg += ", brdf " + json.dumps({k: v for k, v in inv["brdf"].items() if k in ("kd", "ks", "s")})
+    print(msg + f" -> {args.output}")
+    return 0
+
+
+def _report_names(d: str | None, n: int) -> dict:
+    if d is None:
+        return {}
+    return {f"--report (view {k})": [str(Path(d) / f"view_{k}.png"), str(Path(d) / f"view_{k}.exr")] for k in range(n)}
+
+
+def _write_report(d: Path, obs, pred: torch.Tensor, overwrite: bool) -> None:
+    """``view_K.png``: input | re-rendered | |error| (same exposure for the first two) and
+    ``view_K.exr``: the re-rendered image, linear."""
+    from ..lighting import write_image
+    from ..render.images import auto_exposure, error_heatmap, side_by_side
+
+    d.mkdir(parents=True, exist_ok=True)  # the paths were checked before any work (_report_names)
+    for k in range(len(obs.views)):
+        a = obs.image(obs.values, k)
+        b = obs.image(pred, k)
+        m = obs.image(torch.ones(obs.P, 1), k)[..., 0] > 0
+        ev = auto_exposure(a, m)
+        heat = error_heatmap(b, a, m, kind="abs")
+        side_by_side([a, b, heat], ["input", "re-rendered", "|error|"], exposure=[ev, ev, 0.0], path=d / f"view_{k}.png")
+        write_image(d / f"view_{k}.exr", np.asarray(b), overwrite=overwrite)

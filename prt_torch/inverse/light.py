@@ -1,0 +1,185 @@
+"""Unknown lighting, known BRDF (Ramamoorthi 2002 §6.4.3, eq. 6.16, with visibility and
+interreflection through the precomputed transfer).
+
+Every observed pixel p is linear in the SH light: B_p,c = a_p,c · L_c with the pixel's design row
+a_p,c = Σ_i β_pi d_c(v_pi, ω_o,p) — the barycentric blend (β, its triangle's corners v_pi) of the
+per-vertex rows the engine relights with: albedo_v,c T_v for diffuse transfer (Sloan 2002),
+y(ω_o)ᵀ M_v for glossy exit transfer (Sloan 2003 §3.1), the four tents' rows of A_v for MRT
+(Lehtinen & Kautz 2003 eq. 13), each with the pixel's own view direction in the vertex's frame.
+Engine images (Gouraud: per-vertex radiance interpolated at the pixel centre) are thus exactly in
+the model's range.
+
+The least-squares problem min ‖A_c L_c − b_c‖² + λ² ‖L_c‖² (Tikhonov) is solved per channel by
+the SVD A = U S Vᵀ with filter factors f_i = s_i²/(s_i² + λ²) (Hansen, *Rank-deficient and
+discrete ill-posed problems*, 1998, §4–7). λ is chosen from the data: by generalised
+cross-validation (Golub, Heath & Wahba 1979: GCV(λ) = P ‖r_λ‖² / (P − Σ f_i)²) or at the corner
+of the L-curve (maximum curvature of (log ‖r_λ‖, log ‖L_λ‖)), never a hand-set constant, above
+the data's own floor: λ ≥ ε·s_max with ε the unit roundoff of the stored observations and
+transfer (float32: 2⁻²⁴; 8-bit images: 1/255), below which a singular value is numerically zero
+(numpy's ``rcond``, the numerical rank of Hansen §3).
+
+Well-posedness (ch. 2 §2.4.2, eq. 2.65: a band the kernel annihilates cannot be recovered): the
+model resolution matrix R = V F Vᵀ maps the true light to the expected estimate; its diagonal,
+averaged over a band's 2l+1 coefficients, is 1 for a band the images determine and 0 for one they
+filter away. A band is *recoverable* when that mean is ≥ ½ in every channel. A convex Lambertian
+object determines bands 0–2 (odd bands ≥ 3 vanish, eq. 2.65's Λ_l ρ̂_l = 0); shadows and gloss
+recover more.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import torch
+
+from .. import relight
+from .._checks import check_choice
+
+__all__ = ["design_matrix", "corner_rows", "solve_tikhonov", "LightFit", "fit_light", "well_posedness", "FLOAT32_EPS"]
+
+FLOAT32_EPS = 2.0 ** -24
+_GRID = 400  # candidate λ, log-spaced from the floor to s_max; the minimum is refined on two finer grids
+
+
+def corner_rows(scene, vid: torch.Tensor, to_eye: torch.Tensor) -> torch.Tensor:
+    """Per-vertex design rows d_c(v, ω_o) of a :class:`prt_torch.render.prt.PRTScene`: exit radiance
+    of vertex ``vid [K]`` towards ``to_eye [K, 3]`` (world, unit) is ``d_c · L_c``.
+
+    Returns ``[C, K, n_in]`` float64 (C = 3): albedo_c T_v (diffuse, Sloan 2002), T_v,c (diffuse
+    RGB), y(ω_o,local)ᵀ M_v zero below the horizon (glossy, Sloan 2003 §3.1), or Σ_t g_t A_v[idx_t]
+    over the four tents (MRT, Lehtinen & Kautz 2003 eq. 13)."""
+    rows = scene.rows[vid].to(torch.float64)  # [K, R, n]
+    if scene.mode == "none":
+        return rows[:, 0][None] * scene.albedo[vid].T.to(torch.float64)[:, :, None]
+    if scene.mode == "diagonal":
+        return rows.permute(1, 0, 2).contiguous()
+    vl = relight.local_view(scene.frames[vid], direction=to_eye.to(torch.float64))
+    if scene.mode == "dense":
+        y = relight.glossy_view_weights(vl, scene.transfer.meta.get("out_index"), scene.n_out, torch.float64)
+        d = torch.einsum("kr,krn->kn", y, rows)
+    else:
+        idx, g = relight.mrt_view_taps(vl, math.isqrt(scene.n_out), torch.float64)
+        d = torch.einsum("kt,ktn->kn", g, torch.gather(rows, 1, idx[:, :, None].expand(-1, -1, rows.shape[2])))
+    return (d[None] * scene.albedo[vid].T.to(torch.float64)[:, :, None])
+
+
+def design_matrix(scene, obs) -> torch.Tensor:
+    """The linear map from the SH light to the observed pixels (module doc, eq. 6.16): ``[C, P, n_in]``
+    float64, row p of channel c the barycentric blend of its triangle's corner rows."""
+    P = obs.P
+    vid = obs.corners.reshape(-1)
+    d = corner_rows(scene, vid, obs.to_eye.repeat_interleave(3, 0))  # [C, 3P, n]
+    return (d.reshape(d.shape[0], P, 3, -1) * obs.bary[None, :, :, None]).sum(2)
+
+
+def solve_tikhonov(A: torch.Tensor, b: torch.Tensor, method: str = "gcv", eps: float = FLOAT32_EPS) -> dict:
+    """Tikhonov least squares ``min ‖A x − b‖² + λ²‖x‖²`` with λ from the data (module doc).
+
+    Args:
+        A: ``[P, n]`` float64; b: ``[P]`` float64.
+        method: 'gcv' (generalised cross-validation) or 'lcurve' (L-curve corner).
+        eps: relative precision of the data; λ ≥ eps·s_max.
+    Returns:
+        dict: x ``[n]`` float64, lam (float), s ``[n]`` singular values, Vh ``[n, n]``,
+        filter ``[n]`` factors f_i, resolution ``[n]`` diagonal of V F Vᵀ, rss (‖A x − b‖²), gcv.
+    """
+    check_choice("method", method, ["gcv", "lcurve"])
+    P, n = A.shape
+    U, s, Vh = torch.linalg.svd(A, full_matrices=False)
+    beta = U.T @ b
+    r0 = max(float(b @ b - beta @ beta), 0.0)
+    smax = float(s[0]) if s.numel() else 0.0
+    lo = max(eps * smax, 1e-300)
+    if smax == 0:
+        raise ValueError("the design matrix is zero (no pixel responds to the light); accepted: views of a lit, visible surface")
+
+    def curves(lt: torch.Tensor):
+        """Filter factors ``[G, n]``, ‖r‖² ``[G]`` and ‖x‖² ``[G]`` at log10 λ = ``lt [G]`` (one pass)."""
+        lam2 = (10.0 ** lt)[:, None] ** 2
+        f = s[None] ** 2 / (s[None] ** 2 + lam2)
+        rss = (((1 - f) * beta[None]) ** 2).sum(1) + r0
+        xn = ((s[None] * beta[None] / (s[None] ** 2 + lam2)) ** 2).sum(1)  # f β / s, finite where s = 0
+        return f, rss, xn
+
+    def gcv(lt: torch.Tensor) -> torch.Tensor:
+        f, rss, _ = curves(lt)
+        return P * rss / (P - f.sum(1)).clamp_min(1e-300) ** 2
+
+    grid = torch.linspace(math.log10(lo), math.log10(smax), _GRID, dtype=torch.float64)
+    if method == "gcv":
+        for _ in range(3):  # the grid, then two finer grids around its minimum
+            vals = gcv(grid)
+            k = int(torch.argmin(vals))
+            lt = float(grid[k])
+            a, c = grid[max(k - 1, 0)], grid[min(k + 1, len(grid) - 1)]
+            grid = torch.linspace(float(a), float(c), 64, dtype=torch.float64)
+    else:
+        _, rss_g, xn_g = curves(grid)
+        rho, eta = 0.5 * torch.log(rss_g.clamp_min(1e-300)), 0.5 * torch.log(xn_g.clamp_min(1e-300))
+        dr, de = torch.gradient(rho, spacing=(grid,))[0], torch.gradient(eta, spacing=(grid,))[0]
+        ddr, dde = torch.gradient(dr, spacing=(grid,))[0], torch.gradient(de, spacing=(grid,))[0]
+        kappa = (dr * dde - ddr * de) / (dr ** 2 + de ** 2).clamp_min(1e-300) ** 1.5
+        lt = float(grid[int(torch.argmax(kappa[2:-2])) + 2])
+    lam = 10.0 ** lt
+    f, rss, _ = curves(torch.tensor([lt], dtype=torch.float64))
+    f, rss = f[0], float(rss[0])
+    x = Vh.T @ (s * beta / (s ** 2 + lam ** 2))  # = V F S⁻¹ Uᵀ b, finite where a singular value is 0
+    res = ((Vh.T ** 2) * f[None]).sum(1)  # diag(V F Vᵀ)
+    return {"x": x, "lam": lam, "s": s, "Vh": Vh, "filter": f, "resolution": res, "rss": rss,
+            "gcv": float(gcv(torch.tensor([lt], dtype=torch.float64))[0]),
+            "lam_floor": lo}
+
+
+def well_posedness(fits: list[dict], bands: int, A: torch.Tensor) -> dict:
+    """Per-band conditioning (module doc, ch. 2 eq. 2.65) from the channel fits of :func:`fit_light`.
+
+    Returns a dict: ``recoverable_bands`` (list of l whose mean resolution ≥ ½ in every channel),
+    ``recoverable_up_to`` (largest l with every band ≤ l recoverable, −1 if none),
+    ``bands`` (per l: ``resolution`` per channel, ``singular_values`` of the band's own columns of
+    the channel-0 design relative to the largest singular value of the whole design,
+    ``filter_min``), ``singular_values`` (whole design, channel 0, relative), ``condition``
+    (s_max / s_min), ``lam`` per channel (relative to s_max), ``lam_floor`` (relative)."""
+    out_bands = []
+    rec = []
+    smax = float(fits[0]["s"][0])
+    for l in range(bands):
+        a, b = l * l, (l + 1) * (l + 1)
+        resl = [float(f["resolution"][a:b].mean()) for f in fits]
+        sv = torch.linalg.svdvals(A[0][:, a:b]) / smax
+        out_bands.append({"l": l, "resolution": resl, "singular_values": [float(v) for v in sv]})
+        if min(resl) >= 0.5:
+            rec.append(l)
+    upto = -1
+    while upto + 1 in rec:
+        upto += 1
+    s = fits[0]["s"]
+    return {"recoverable_bands": rec, "recoverable_up_to": upto, "bands": out_bands,
+            "singular_values": [float(v) / smax for v in s], "condition": float(s[0] / s[-1]) if float(s[-1]) > 0 else math.inf,
+            "lam": [f["lam"] / float(f["s"][0]) for f in fits], "lam_floor": fits[0]["lam_floor"] / smax,
+            "threshold": 0.5}
+
+
+@dataclasses.dataclass
+class LightFit:
+    """The recovered light and how well the images determine it.
+
+    Attributes:
+        light: ``[C, n²]`` float64 SH light (graphics convention, +z up).
+        report: :func:`well_posedness`'s dict.
+        predicted: ``[P, C]`` float64 re-rendered pixels; residual_rms: float.
+    """
+
+    light: torch.Tensor
+    report: dict
+    predicted: torch.Tensor
+    method: str
+
+
+def fit_light(A: torch.Tensor, values: torch.Tensor, method: str = "gcv", eps: float = FLOAT32_EPS) -> LightFit:
+    """Solve the light from the design ``A [C, P, n]`` and the observations ``values [P, C]``
+    (one :func:`solve_tikhonov` per channel, each with its own λ)."""
+    C, P, n = A.shape
+    fits = [solve_tikhonov(A[c], values[:, c].to(torch.float64), method, eps) for c in range(C)]
+    L = torch.stack([f["x"] for f in fits])
+    pred = torch.einsum("cpn,cn->pc", A, L)
+    return LightFit(L, well_posedness(fits, math.isqrt(n), A), pred, method)
