@@ -46,10 +46,11 @@ import scipy.sparse
 import torch
 
 from .._checks import check_choice, check_float, check_int
+from ..executor import torch_threads
 from ..scene import Mesh, RayCaster, default_workers, edge_face_counts
 from ..sh import clamped_cosine, eval_sh, rotate_zonal
 from .base import RunOptions, Transfer, remove_state, run_chunks
-from .ray_kernels import upper_rays
+from .ray_kernels import qmc_rays_native, select_rays, sh_accumulate, upper_rays
 from .sampling import cosine_hemisphere, to_world, uniform_sphere
 
 __all__ = [
@@ -211,6 +212,9 @@ class DiffuseSampler:
         elif sampling == "qmc":
             self.M = qmc_rays(samples)
             self.base = _hammersley(self.M)  # [M, 2] in [0,1)², rotated per vertex
+            self.base_a = np.ascontiguousarray(self.base[:, 0])
+            self.base_cb, self.base_sb = np.cos(2 * math.pi * self.base[:, 1]), np.sin(2 * math.pi * self.base[:, 1])
+            self._work = {}
             self.Y = None
             self.weight = 2.0 / self.M  # (2π/M)·(1/π), times z per ray
         else:
@@ -261,28 +265,51 @@ class DiffuseSampler:
             return i, j, o, d, np.maximum(cos, 0.0, out=cos)
         k = normals.shape[0]
         if self.sampling == "qmc":
+            o, d, z = self._qmc(o_v, normals, ids, self._work if reuse else None)
             M = self.M
-            keys = np.arange(k, dtype=np.int64) if ids is None else np.asarray(ids, np.int64)
-            zero = np.zeros_like(keys)
-            u1 = _hash_uniform(self.seed, keys, zero, 1 << 20)[:, None]  # streams apart from the hit estimator's
-            u2 = _hash_uniform(self.seed, keys, zero, (1 << 20) + 1)[:, None]
-            z = (self.base[None, :, 0] + u1) % 1.0  # [k,M] uniform in cos θ: uniform over the hemisphere
-            phi = 2 * math.pi * ((self.base[None, :, 1] + u2) % 1.0)
-            z = np.maximum(z, 1e-12)  # every ray leaves the tangent plane (measure-zero horizon)
-            r = np.sqrt(1.0 - z * z)
-            from ..scene.mesh import tangent_frames
-
-            t, b = tangent_frames(normals.numpy())  # the module rule from the normals alone, whatever frames the mesh has
-            F = np.stack([t, b, normals.numpy().astype(np.float64)], 1)  # [k,3,3] rows (t, b, n)
-            x, y = r * np.cos(phi), r * np.sin(phi)
-            d = x[..., None] * F[:, None, 0] + y[..., None] * F[:, None, 1] + z[..., None] * F[:, None, 2]  # [k,M,3]
-            i = np.repeat(np.arange(k), M)
-            j = np.tile(np.arange(M), k)
-            return i, j, np.repeat(o_v, M, axis=0), d.reshape(-1, 3).astype(np.float32), z.reshape(-1)
+            return np.repeat(np.arange(k), M), np.tile(np.arange(M), k), o, d, z
         world = to_world(self.dirs, frames).reshape(-1, 3).numpy()  # [k·N,3]
         i = np.repeat(np.arange(k), self.samples)
         j = np.tile(np.arange(self.samples), k)
         return i, j, o_v[i], world, None
+
+    def chunk_rays(self, points: torch.Tensor, normals: torch.Tensor, eps: float, nudge: torch.Tensor | None = None,
+                 ids: np.ndarray | None = None, reuse: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The ``'qmc'`` rays of a chunk of k vertices without the index arrays of :meth:`rays`:
+        ``(origins float32 [k·M, 3], dirs float32 [k·M, 3], z float64 [k·M])``, ray v·M + m the
+        m-th direction of vertex v, z its cosine (:meth:`_qmc`)."""
+        o_v = offset_origins(points.numpy(), normals.numpy(), eps, None if nudge is None else nudge.numpy()).astype(np.float32)
+        return self._qmc(o_v, normals, ids, self._work if reuse else None)
+
+    def _qmc(self, o_v: np.ndarray, normals: torch.Tensor, ids: np.ndarray | None, work: dict | None):
+        """The qmc direction set of k vertices (class docstring): the Hammersley set (a_m, b_m)
+        Cranley–Patterson rotated by the vertex's (u1, u2) = :func:`_hash_uniform` of (seed,
+        vertex id), z = max((a_m + u1) mod 1, 1e-12), φ = 2π((b_m + u2) mod 1), d = r cos φ t +
+        r sin φ b + z n (r = √(1 − z²), frame rows of :func:`~prt_torch.scene.mesh.tangent_frames`
+        from the normals alone). cos φ, sin φ by the angle sum of the set's 2πb_m and the vertex's
+        2πu2 (no libm call per ray). One compiled pass (``ray_kernels.qmc_rays_native``) or the same
+        float64 operations in numpy (same bits): ``(o float32 [k·M, 3], d float32 [k·M, 3], z float64 [k·M])``."""
+        from ..scene.mesh import tangent_frames
+
+        k = normals.shape[0]
+        keys = np.arange(k, dtype=np.int64) if ids is None else np.asarray(ids, np.int64)
+        zero = np.zeros_like(keys)
+        u1 = _hash_uniform(self.seed, keys, zero, 1 << 20)  # streams apart from the hit estimator's
+        u2 = 2 * math.pi * _hash_uniform(self.seed, keys, zero, (1 << 20) + 1)
+        cu, su = np.cos(u2), np.sin(u2)
+        n = normals.numpy().astype(np.float64)
+        t, b = tangent_frames(n)  # the module rule from the normals alone, whatever frames the mesh has
+        F = np.stack([t, b, n], 1)  # [k,3,3] rows (t, b, n)
+        fused = qmc_rays_native(F, o_v, u1, cu, su, self.base_a, self.base_cb, self.base_sb, work=work)
+        if fused is not None:
+            return fused
+        z = self.base_a[None, :] + u1[:, None]  # [k,M] uniform in cos θ: uniform over the hemisphere
+        z = np.maximum(np.where(z >= 1.0, z - 1.0, z), 1e-12)  # mod 1 (exact here); every ray leaves the tangent plane
+        r = np.sqrt(1.0 - z * z)
+        x = r * (self.base_cb[None, :] * cu[:, None] - self.base_sb[None, :] * su[:, None])
+        y = r * (self.base_sb[None, :] * cu[:, None] + self.base_cb[None, :] * su[:, None])
+        d = (x[..., None] * F[:, None, 0] + y[..., None] * F[:, None, 1]) + z[..., None] * F[:, None, 2]  # [k,M,3]
+        return np.repeat(o_v, self.M, axis=0), d.reshape(-1, 3).astype(np.float32), z.reshape(-1)
 
     def ray_weights(self, i: np.ndarray, j: np.ndarray, cos: Any) -> np.ndarray:
         """``[R]`` float64 w_j of each ray in t = Σ_j w_j V_j y(s_j) (ρ = 1)."""
@@ -475,19 +502,35 @@ def _chunk(caster: RayCaster, sampler: DiffuseSampler, points: torch.Tensor, nor
     """
     k = points.shape[0]
     keys = (first_id + np.arange(k)) if ids is None else np.asarray(ids)
-    i, j, o, d, cos = sampler.rays(points, normals, frames, caster.eps, nudge, reuse=True, ids=keys)  # consumed within this chunk
+    if sampler.sampling == "qmc":  # rays in blocks of M per vertex: the index arrays only where needed
+        o, d, cos = sampler.chunk_rays(points, normals, caster.eps, nudge, ids=keys, reuse=True)  # consumed within this chunk
+        i = j = None
+    else:
+        i, j, o, d, cos = sampler.rays(points, normals, frames, caster.eps, nudge, reuse=True, ids=keys)
     if record_hits:
         prim, bu, bv, _ = caster.trace(o, d, "intersect")
         hit = prim != -1
     else:
         hit = caster.trace(o, d, "occluded")
-    out: dict[str, torch.Tensor] = {"rays": torch.tensor([i.shape[0]], dtype=torch.int64)}
+    out: dict[str, torch.Tensor] = {"rays": torch.tensor([o.shape[0]], dtype=torch.int64)}
     est = sampler.estimator
-    if sampler.sampling == "uniform" and est == "plain":
+    picked = select_rays(cos, hit, sampler.M, sampler.weight, est) if i is None else None
+    if picked is not None:  # qmc: the estimator's rays chosen in one compiled pass (the same choice as below)
+        open_v, sel = picked
+        S = sh_accumulate(k, sampler.M, sel, d, cos, sampler.weight, sampler.bands)  # [k, n²], SH in the same pass
+        if open_v.any():  # a few small torch steps: one thread (on a busy machine each parallel region waits a scheduler tick)
+            with torch_threads(1):
+                S[open_v] = unshadowed_transfer(torch.from_numpy(normals.numpy()[open_v]).to(torch.float64), sampler.bands).numpy() - S[open_v]
+        out["T"] = torch.from_numpy(S)
+        if record_hits:
+            i, j = np.repeat(np.arange(k), sampler.M), np.tile(np.arange(sampler.M), k)
+    elif sampler.sampling == "uniform" and est == "plain":
         W = cos * sampler.weight  # [k,N]; zero below the horizon
         W.reshape(-1)[(i * W.shape[1] + j)[hit]] = 0.0  # blocked directions
         out["T"] = torch.from_numpy(W @ sampler.Y_np)  # one GEMM per chunk (numpy's float64 GEMM: 3x torch's here)
     else:
+        if i is None:  # qmc without the compiled pass
+            i, j = np.repeat(np.arange(k), sampler.M), np.tile(np.arange(sampler.M), k)
         w_all = sampler.ray_weights(i, j, cos)  # [R]
         if est == "auto":  # per vertex: the control variate where at least half of the (cosine-weighted) rays are open
             w_open = np.bincount(i, weights=np.where(hit, 0.0, w_all), minlength=k)
