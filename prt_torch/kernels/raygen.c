@@ -72,13 +72,15 @@ int prt_fill_up(i64 k, i64 N, const double *cos, const i64 *starts, const float 
  * (-std=c99): the same bits.
  *     F float64 [k, 3, 3]; ov float32 [k, 3]; u1, cu, su float64 [k]; a, cb, sb float64 [M]
  *     -> O, D float32 [k·M, 3] (origin = ov[v]), Z float64 [k·M] (z = n_v · d, the cosine)
- * Rays are grouped by vertex: ray v·M + m. */
+ * Rays are grouped by vertex: ray v·M + m.
+ * cosine = 1: the bounce estimator's cosine-weighted set at hit points instead (diffuse.HitBounce,
+ * Malley's method): with a = (a_m + u1_v) mod 1, r = sqrt(a), z = sqrt(max(1 − a, 1e-24)). */
 
 #include <math.h>
 
 static void qmc_range(i64 v0, i64 v1, i64 M, const double *F, const float *ov, const double *u1, const double *cu,
                       const double *su, const double *a, const double *cb, const double *sb, float *O, float *D,
-                      double *Z) {
+                      double *Z, int cosine) {
     for (i64 v = v0; v < v1; v++) {
         const double *f = F + 9 * v;
         const double tx = f[0], ty = f[1], tz = f[2], bx = f[3], by = f[4], bz = f[5], nx = f[6], ny = f[7], nz = f[8];
@@ -87,10 +89,16 @@ static void qmc_range(i64 v0, i64 v1, i64 M, const double *F, const float *ov, c
         float *o = O + 3 * v * M, *d = D + 3 * v * M;
         double *zz = Z + v * M;
         for (i64 m = 0; m < M; m++) {
-            double z = a[m] + uu;
+            double z = a[m] + uu, r;
             if (z >= 1.0) z -= 1.0;            /* exact for z in [1, 2) (Sterbenz): numpy's remainder */
-            if (!(z > 1e-12)) z = 1e-12;       /* np.maximum(z, 1e-12) */
-            const double r = sqrt(1.0 - z * z);
+            if (cosine) {
+                const double e = 1.0 - z;
+                r = sqrt(z);
+                z = sqrt(e > 1e-24 ? e : 1e-24);
+            } else {
+                if (!(z > 1e-12)) z = 1e-12;   /* np.maximum(z, 1e-12) */
+                r = sqrt(1.0 - z * z);
+            }
             const double x = r * (cb[m] * c - sb[m] * s), y = r * (sb[m] * c + cb[m] * s);
             d[3 * m] = (float)((x * tx + y * bx) + z * nx);
             d[3 * m + 1] = (float)((x * ty + y * by) + z * ny);
@@ -102,10 +110,10 @@ static void qmc_range(i64 v0, i64 v1, i64 M, const double *F, const float *ov, c
 }
 
 int prt_qmc_rays(i64 k, i64 M, const double *F, const float *ov, const double *u1, const double *cu, const double *su,
-                 const double *a, const double *cb, const double *sb, float *O, float *D, double *Z, int nthreads) {
+                 const double *a, const double *cb, const double *sb, float *O, float *D, double *Z, int cosine, int nthreads) {
     i64 nth = nthreads > 0 ? nthreads : 1;
     #pragma omp parallel for schedule(static, 1) num_threads(nth)
-    for (i64 t = 0; t < nth; t++) qmc_range(k * t / nth, k * (t + 1) / nth, M, F, ov, u1, cu, su, a, cb, sb, O, D, Z);
+    for (i64 t = 0; t < nth; t++) qmc_range(k * t / nth, k * (t + 1) / nth, M, F, ov, u1, cu, su, a, cb, sb, O, D, Z, cosine);
     return 0;
 }
 

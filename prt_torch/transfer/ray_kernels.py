@@ -40,7 +40,7 @@ def _lib() -> ctypes.CDLL | None:
                 _state["lib"], _state["why"] = compile_library("raygen", kernel_sources(_SOURCES), _FLAGS, {
                     "prt_count_up": [i64, i64, vp, vp, ci],
                     "prt_fill_up": [i64, i64, vp, vp, vp, vp, vp, vp, vp, vp, ci],
-                    "prt_qmc_rays": [i64, i64, vp, vp, vp, vp, vp, vp, vp, vp, vp, vp, vp, ci],
+                    "prt_qmc_rays": [i64, i64, vp, vp, vp, vp, vp, vp, vp, vp, vp, vp, vp, ci, ci],
                     "prt_select_rays": [i64, i64, vp, vp, ctypes.c_double, ci, vp, vp, vp],
                     "prt_sh_accumulate": [i64, vp, i64, vp, vp, ctypes.c_double, ci, vp, vp],
                 })
@@ -92,7 +92,8 @@ def upper_rays(cos: np.ndarray, origins: np.ndarray, dirs: np.ndarray, threads: 
 
 
 def qmc_rays_native(frames: np.ndarray, origins: np.ndarray, u1: np.ndarray, cu: np.ndarray, su: np.ndarray,
-                    a: np.ndarray, cb: np.ndarray, sb: np.ndarray, threads: int | None = None, work: dict | None = None):
+                    a: np.ndarray, cb: np.ndarray, sb: np.ndarray, threads: int | None = None, work: dict | None = None,
+                    cosine: bool = False):
     """The qmc diffuse precompute's rays of k vertices, M each, in one compiled pass, or None
     without the library (``kernels/raygen.c``, ``prt_qmc_rays``: the formulas and their order).
 
@@ -101,7 +102,8 @@ def qmc_rays_native(frames: np.ndarray, origins: np.ndarray, u1: np.ndarray, cu:
     azimuth shift 2πu2; ``a, cb, sb float64 [M]``: the Hammersley set's first coordinate and
     cos/sin 2π of its second. → ``(o float32 [k·M, 3], d float32 [k·M, 3], z float64 [k·M])``
     grouped by vertex (ray v·M + m), z = n_v · d (before rounding d to float32). ``work``: as
-    :func:`upper_rays`.
+    :func:`upper_rays`. ``cosine``: the bounce estimator's cosine-weighted set (``diffuse.HitBounce``:
+    r = √a, z = √(1 − a)) instead of the uniform one (z = a, r = √(1 − z²)).
     """
     lib = _lib()
     if lib is None:
@@ -118,7 +120,8 @@ def qmc_rays_native(frames: np.ndarray, origins: np.ndarray, u1: np.ndarray, cu:
     z = _buffer(work, "z", (R,), np.float64)
     F, u1, cu, su, a, cb, sb = f64
     lib.prt_qmc_rays(k, M, F.ctypes.data, ov.ctypes.data, u1.ctypes.data, cu.ctypes.data, su.ctypes.data, a.ctypes.data,
-                     cb.ctypes.data, sb.ctypes.data, o.ctypes.data, d.ctypes.data, z.ctypes.data, int(threads or 1))
+                     cb.ctypes.data, sb.ctypes.data, o.ctypes.data, d.ctypes.data, z.ctypes.data, int(bool(cosine)),
+                     int(threads or 1))
     return o, d, z
 
 
