@@ -40,6 +40,10 @@ from prt_torch.transfer.diffuse import DiffuseSampler, precompute_diffuse  # noq
 
 warnings.filterwarnings("ignore", message="Sparse")
 
+#: which compiled path the rows used (kernels/raygen.c has one path, built with -march=native)
+KERNEL_PATH = ("ray generation, choice and SH sums: kernels/raygen.c built -march=native, scalar code the compiler "
+               "vectorises for the CPU at hand — AVX2 on this Zen 3 (family 25 model 1); raygen has no AVX-512-specific path")
+
 
 def regenerate_rays(mesh, caster, sampler, chunk_size):
     """The precompute's rays, chunk by chunk (same generator as the precompute)."""
@@ -83,25 +87,27 @@ def gil_probe(caster, o, d):
 
 
 class RecordRays:
-    """``with RecordRays() as rec: <precompute>``: every ``RayCaster.trace`` call of the block
+    """``with RecordRays() as rec: <precompute>``: every ray-casting call of the block
     (query, origins, directions; copies) in ``rec.calls``; :meth:`replay` traces them again, bare,
     on a given caster and returns the seconds spent in its ``trace`` calls alone — the same number
     and kind of rays (occluded or intersect) in the same batches as the precompute traced."""
 
     def __enter__(self):
         self.calls = []
-        self._orig = RayCaster.trace
+        self._orig = RayCaster._dispatch  # every query (trace, occluded, intersect) goes through it
         rec = self
 
-        def trace(caster, origins, dirs, query="occluded", tfar=None):
-            rec.calls.append((query, np.array(origins, np.float32), np.array(dirs, np.float32)))
-            return rec._orig(caster, origins, dirs, query, tfar)
+        def dispatch(caster, query, o, d, tfar):
+            if tfar is not None:
+                raise ValueError("RecordRays replays rays without tfar; accepted: precomputes that trace to infinity")
+            rec.calls.append((query, np.array(o, np.float32), np.array(d, np.float32)))
+            return rec._orig(caster, query, o, d, tfar)
 
-        RayCaster.trace = trace
+        RayCaster._dispatch = dispatch
         return self
 
     def __exit__(self, *exc):
-        RayCaster.trace = self._orig
+        RayCaster._dispatch = self._orig
 
     @property
     def rays(self) -> dict:
@@ -302,7 +308,7 @@ def main(argv=None) -> int:
             f"Interleaved in one run, {len(rs)} times: the qmc + auto precompute, the bare occluded call on its rays, the "
             f"uniform + plain precompute, the bare call on its rays (the same {workers} worker processes; bare counts the "
             f"Embree calls only). Rays: qmc + auto {defaults['rays']['qmc+auto']}, uniform + plain "
-            f"{defaults['rays']['uniform+plain']}. CPU: {result['cpu']}; load average at each repeat: "
+            f"{defaults['rays']['uniform+plain']}. CPU: {result['cpu']} ({KERNEL_PATH}); load average at each repeat: "
             f"{', '.join('%.1f' % r['load'] for r in rs)}.",
             "",
             "| repeat | qmc + auto s | bare on its rays s | pace (bare / precompute) | uniform + plain s | bare on its rays s | pace "
@@ -328,7 +334,7 @@ def main(argv=None) -> int:
             "Every `trace` call of one precompute (the primary rays' first-hit queries and each hit point's secondary rays: "
             "intersect below the last level, occluded at it) recorded, then replayed bare on the same "
             f"{workers} worker processes, interleaved with the precompute {args.pairs} times (bare counts its `trace` calls only; "
-            f"load average at each repeat in the last column). CPU: {result['cpu']}.",
+            f"load average at each repeat in the last column). CPU: {result['cpu']} ({KERNEL_PATH}).",
             "",
             "| bounces (used) | rays intersect / occluded | trace calls | precompute s | bare replay s | pace (bare / precompute) | load |",
             "|---|---:|---:|---:|---:|---:|---:|",

@@ -784,6 +784,8 @@ def precompute_diffuse(
             caster = RayCaster(mesh, workers=_workers(run, mesh, samples, sampling), offset=run.offset)
             meta["ray_eps"] = caster.eps
         traced = _decide_shadows(caster, mesh, shadows, seed, probe_tol, meta)
+        if traced:
+            caster.start()  # the workers start while this process prepares the first chunk
         faces = None
         hits = None
         if traced and bounces > 0 and bounce_points == "hits":

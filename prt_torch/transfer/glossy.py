@@ -279,7 +279,7 @@ def run_exit_transfer(
             workers = run.workers
             if workers is None:
                 workers = default_workers() if V * rays_per_vertex >= 4_000_000 else 1
-            caster = RayCaster(mesh, workers=workers, offset=run.offset)
+            caster = RayCaster(mesh, workers=workers, offset=run.offset).start()
             meta["ray_eps"] = caster.eps
         nudge = boundary_nudge(mesh) if shadows else None  # the diffuse tracer's origins (offset_origins)
         nudge = nudge if nudge is not None and bool(nudge.any()) else None
