@@ -81,3 +81,20 @@ def test_hit_estimator_unbiased_and_exact_where_open(estimator):
         assert float((runs[:, 3] - open_ref).abs().max()) <= 1e-13
     else:
         assert ((mean[3] - open_ref).abs() <= 3 * se[3] + 1e-12).all()
+
+
+def test_raycaster_start_is_the_lazy_pool_started_early():
+    """start() runs the worker processes before the first batch: the same answers as tracing in
+    this process alone; a no-op with one worker."""
+    mesh = builtin("sphere_on_plane")
+    rng = np.random.default_rng(0)
+    o = (rng.random((3000, 3)) * [6, 6, 3] - [3, 3, 0]).astype(np.float32)
+    d = rng.standard_normal((3000, 3))
+    d = (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32)
+    with RayCaster(mesh, workers=1) as one:
+        assert one.start() is one and one._pool is None
+        ref = one.trace(o, d, "occluded")
+    with RayCaster(mesh, workers=2, min_parallel_rays=1) as two:
+        two.start()
+        assert two._pool is not None and len(two._pool) == 1
+        assert np.array_equal(two.trace(o, d, "occluded"), ref) and 0 < ref.mean() < 1
