@@ -49,6 +49,8 @@ def test_transport_chunk_equals_the_dense_grid():
         got = _chunk_transport(c, per_vertex, *args[1:], mi, True)
         ref = _dense_transport(*args[:1], per_vertex, *args[1:], mi)
         assert torch.equal(got == 0, ref == 0) and torch.allclose(got, ref, rtol=1e-13, atol=0)
+        half = _chunk_transport(c, per_vertex, *args[1:], mi, True, torch.float16)  # the stored dtype, rounded once
+        assert half.dtype == torch.float16 and torch.equal(half, got.to(torch.float16))
     frac = float((ref > 0).double().mean())
     assert 0.1 < frac < 0.4  # about a quarter of the grid is evaluated
 
