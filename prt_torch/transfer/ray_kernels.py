@@ -1,4 +1,6 @@
-"""Ray generation of the uniform-sampling diffuse precompute in one compiled pass.
+"""Compiled passes of the diffuse precompute: the uniform set's rays (below), the qmc set's
+rotated Hammersley rays per vertex or per hit (:func:`qmc_rays_native`), the estimators' choice of
+rays (:func:`select_rays`) and their SH sums per vertex (:func:`sh_accumulate`) — issue 42.
 
 For a chunk of k vertices and N shared sample directions, the rays traced are the pairs
 (vertex v, direction s) with n_v · s > 0, grouped by vertex in row-major order (course notes
