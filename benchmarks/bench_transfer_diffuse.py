@@ -33,11 +33,16 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from prt_torch import io  # noqa: E402
+from prt_torch.harness.timing import machine_info  # noqa: E402
 from prt_torch.scene import RayCaster, builtin, default_workers  # noqa: E402
 from prt_torch.transfer import RunOptions  # noqa: E402
 from prt_torch.transfer.diffuse import DiffuseSampler, precompute_diffuse  # noqa: E402
 
 warnings.filterwarnings("ignore", message="Sparse")
+
+#: which compiled path the rows used (kernels/raygen.c has one path, built with -march=native)
+KERNEL_PATH = ("ray generation, choice and SH sums: kernels/raygen.c built -march=native, scalar code the compiler "
+               "vectorises for the CPU at hand — AVX2 on this Zen 3 (family 25 model 1); raygen has no AVX-512-specific path")
 
 
 def regenerate_rays(mesh, caster, sampler, chunk_size):
@@ -81,18 +86,122 @@ def gil_probe(caster, o, d):
     return one, two
 
 
+class RecordRays:
+    """``with RecordRays() as rec: <precompute>``: every ray-casting call of the block
+    (query, origins, directions; copies) in ``rec.calls``; :meth:`replay` traces them again, bare,
+    on a given caster and returns the seconds spent in its ``trace`` calls alone — the same number
+    and kind of rays (occluded or intersect) in the same batches as the precompute traced."""
+
+    def __enter__(self):
+        self.calls = []
+        self._orig = RayCaster._dispatch  # every query (trace, occluded, intersect) goes through it
+        rec = self
+
+        def dispatch(caster, query, o, d, tfar):
+            if tfar is not None:
+                raise ValueError("RecordRays replays rays without tfar; accepted: precomputes that trace to infinity")
+            rec.calls.append((query, np.array(o, np.float32), np.array(d, np.float32)))
+            return rec._orig(caster, query, o, d, tfar)
+
+        RayCaster._dispatch = dispatch
+        return self
+
+    def __exit__(self, *exc):
+        RayCaster._dispatch = self._orig
+
+    @property
+    def rays(self) -> dict:
+        out = {}
+        for q, o, _ in self.calls:
+            out[q] = out.get(q, 0) + o.shape[0]
+        return out
+
+    def replay(self, caster) -> float:
+        t_total = 0.0
+        for q, o, d in self.calls:
+            t = time.perf_counter()
+            caster.trace(o, d, q)
+            t_total += time.perf_counter() - t
+        return t_total
+
+
+def paired_bounces(mesh, args, workers, wc, pairs: int, bounces: int):
+    """Issue 42 part 2 (2): diffuse with bounces (hit-point estimator, the defaults) against bare
+    Embree on exactly its rays: the first-hit (intersect) primary rays and every hit point's
+    secondary rays (intersect below the last level, occluded at it), recorded from one run and
+    replayed on the same worker processes; interleaved ``pairs`` times."""
+    kw = {"sampling": args.sampling, "estimator": args.estimator}
+    with RecordRays() as rec:
+        tr = precompute_diffuse(mesh, args.bands, args.samples, bounces, seed=0, shadows="always",
+                                run=RunOptions(workers=workers), **kw)
+    rows = []
+    for _ in range(pairs):
+        t = time.perf_counter()
+        precompute_diffuse(mesh, args.bands, args.samples, bounces, seed=0, shadows="always", run=RunOptions(workers=workers), **kw)
+        tp = time.perf_counter() - t
+        tb = rec.replay(wc)
+        rows.append({"precompute_s": tp, "bare_s": tb, "pace": tb / tp, "load": os.getloadavg()[0]})
+        print(f"bounces={bounces} pair: precompute {tp:.2f} s, bare replay {tb:.2f} s, pace {tb / tp:.2f}", flush=True)
+    paces = sorted(r["pace"] for r in rows)
+    res = {"bounces": bounces, "bounces_used": tr.meta["bounces_used"], "rays": rec.rays, "calls": len(rec.calls),
+           "rows": rows, "median_pace": paces[len(paces) // 2]}
+    rec.calls.clear()
+    return res
+
+
+def paired_defaults(mesh, args, workers, wc, caster, pairs: int):
+    """Issue 42 part 2 (1): the default (qmc + auto) against bare Embree on its own rays and
+    against the former default (uniform + plain), interleaved in one run: each repeat times the
+    qmc + auto precompute, the bare occluded call on the same rays (same worker processes), the
+    uniform + plain precompute and the bare call on its rays, back to back."""
+    confs = [("qmc", "auto"), ("uniform", "plain")]
+    samplers = {c: DiffuseSampler(args.bands, args.samples, 0, *c) for c in confs}
+    chunks = {}
+    for c in confs:  # the precompute's own chunk size (same rays per chunk as it traces)
+        tr = precompute_diffuse(mesh, args.bands, args.samples, 0, seed=0, shadows="always",
+                                run=RunOptions(workers=workers), sampling=c[0], estimator=c[1])
+        chunks[c] = (tr.meta["chunk_size"], tr.meta["rays_traced"])
+    rows = []
+    for _ in range(pairs):
+        row = {"load": os.getloadavg()[0]}
+        for c in confs:
+            t = time.perf_counter()
+            precompute_diffuse(mesh, args.bands, args.samples, 0, seed=0, shadows="always", run=RunOptions(workers=workers),
+                               sampling=c[0], estimator=c[1])
+            row[f"{c[0]}+{c[1]}"] = time.perf_counter() - t
+            row[f"bare {c[0]}"], _ = bare_occlusion(mesh, caster, samplers[c], chunks[c][0], workers_caster=wc)
+        rows.append(row)
+        print("defaults pair:", {k: round(v, 3) for k, v in row.items()}, flush=True)
+
+    def med(f):
+        v = sorted(f(r) for r in rows)
+        return v[len(v) // 2]
+
+    return {
+        "rays": {f"{c[0]}+{c[1]}": chunks[c][1] for c in confs},
+        "rows": rows,
+        "pace_default_vs_bare": med(lambda r: r["bare qmc"] / r["qmc+auto"]),
+        "pace_former_vs_bare": med(lambda r: r["bare uniform"] / r["uniform+plain"]),
+        "time_default_over_former": med(lambda r: r["qmc+auto"] / r["uniform+plain"]),
+    }
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scene", default="bumpy_sphere:large")
     ap.add_argument("--samples", type=int, default=1024)
     ap.add_argument("--bands", type=int, default=5)
-    ap.add_argument("--bounces", type=int, nargs="+", default=[0, 2])
+    ap.add_argument("--bounces", type=int, nargs="+", default=[0])
     ap.add_argument("--sampling", default="qmc", choices=["qmc", "uniform", "cosine"],
                     help="the precompute's direction set (the bare call traces the same rays)")
-    ap.add_argument("--estimator", default="control", choices=["control", "plain"])
+    ap.add_argument("--estimator", default="auto", choices=["auto", "control", "plain"])
     ap.add_argument("--workers", type=int, default=None, help="default: all cores")
     ap.add_argument("--quick", action="store_true", help="bumpy_sphere:medium, 256 samples (smoke run)")
     ap.add_argument("--out", default=str(ROOT / "reports" / "benchmarks" / "transfer_diffuse"))
+    ap.add_argument("--bounce-pairs", type=int, nargs="*", default=[1, 2],
+                    help="bounce counts whose precompute is paired with a bare replay of all its rays (none: skip)")
+    ap.add_argument("--no-defaults", action="store_true",
+                    help="skip the paired default (qmc + auto) vs bare vs former default (uniform + plain) section")
     ap.add_argument("--pairs", type=int, default=3,
                     help="paired repeats: the bounces=0 precompute and the bare call on the workers, back to back")
     args = ap.parse_args(argv)
@@ -134,6 +243,8 @@ def main(argv=None) -> int:
             tb, _ = bare_occlusion(mesh, caster, sampler, chunk, workers_caster=wc)
             pairs.append({"precompute_s": tp, "bare_workers_s": tb, "ratio": tb / tp, "load": os.getloadavg()[0]})
             print(f"pair: precompute {tp:.2f} s, bare on workers {tb:.2f} s, ratio {tb / tp:.2f}", flush=True)
+        defaults = None if args.no_defaults else paired_defaults(mesh, args, workers, wc, caster, args.pairs)
+        bounce_pairs = [paired_bounces(mesh, args, workers, wc, args.pairs, B) for B in args.bounce_pairs]
     ratios = sorted(p["ratio"] for p in pairs)
     paired = {"pairs": pairs, "median_ratio": ratios[len(ratios) // 2] if ratios else None}
     o, d = next(regenerate_rays(mesh, caster, sampler, chunk))
@@ -157,6 +268,9 @@ def main(argv=None) -> int:
                 else "threads scale"},
         "runs": runs,
         "paired": paired,
+        "cpu": machine_info()["cpu"],
+        "defaults": defaults,
+        "bounce_pairs": bounce_pairs,
     }
     out = Path(args.out)
     io.atomic_write_json(out.with_suffix(".json"), result)
@@ -185,6 +299,54 @@ def main(argv=None) -> int:
         f"{len(pairs)} times): rate ratio precompute / bare = median **{paired['median_ratio']:.2f}** "
         f"({', '.join('%.2f' % p['ratio'] for p in pairs)}; goal ≥ 0.8).",
         "",
+    ]
+    if defaults is not None:
+        rs = defaults["rows"]
+        lines += [
+            "## The default (qmc + auto) against bare Embree and against the former default (uniform + plain)",
+            "",
+            f"Interleaved in one run, {len(rs)} times: the qmc + auto precompute, the bare occluded call on its rays, the "
+            f"uniform + plain precompute, the bare call on its rays (the same {workers} worker processes; bare counts the "
+            f"Embree calls only). Rays: qmc + auto {defaults['rays']['qmc+auto']}, uniform + plain "
+            f"{defaults['rays']['uniform+plain']}. CPU: {result['cpu']} ({KERNEL_PATH}); load average at each repeat: "
+            f"{', '.join('%.1f' % r['load'] for r in rs)}.",
+            "",
+            "| repeat | qmc + auto s | bare on its rays s | pace (bare / precompute) | uniform + plain s | bare on its rays s | pace "
+            "| qmc + auto / uniform + plain time |",
+            "|---:|---:|---:|---:|---:|---:|---:|---:|",
+        ]
+        for n, r in enumerate(rs, 1):
+            lines.append(f"| {n} | {r['qmc+auto']:.2f} | {r['bare qmc']:.2f} | {r['bare qmc'] / r['qmc+auto']:.2f} | "
+                         f"{r['uniform+plain']:.2f} | {r['bare uniform']:.2f} | {r['bare uniform'] / r['uniform+plain']:.2f} | "
+                         f"{r['qmc+auto'] / r['uniform+plain']:.2f} |")
+        lines += [
+            "",
+            f"Medians: the default runs at **{defaults['pace_default_vs_bare']:.2f}×** bare Embree's pace on its rays "
+            f"(time {1 / defaults['pace_default_vs_bare']:.2f}× bare; goal ≤ ~1.1×), the former default at "
+            f"{defaults['pace_former_vs_bare']:.2f}×; the default takes **{defaults['time_default_over_former']:.2f}×** the "
+            "former default's time (1.98× before its directions, choice and SH sum were compiled).",
+            "",
+        ]
+    if bounce_pairs:
+        lines += [
+            "## Diffuse with bounces (hit-point estimator) against bare Embree on all its rays",
+            "",
+            "Every `trace` call of one precompute (the primary rays' first-hit queries and each hit point's secondary rays: "
+            "intersect below the last level, occluded at it) recorded, then replayed bare on the same "
+            f"{workers} worker processes, interleaved with the precompute {args.pairs} times (bare counts its `trace` calls only; "
+            f"load average at each repeat in the last column). CPU: {result['cpu']} ({KERNEL_PATH}).",
+            "",
+            "| bounces (used) | rays intersect / occluded | trace calls | precompute s | bare replay s | pace (bare / precompute) | load |",
+            "|---|---:|---:|---:|---:|---:|---:|",
+        ]
+        for bp in bounce_pairs:
+            for r in bp["rows"]:
+                lines.append(f"| {bp['bounces']} ({bp['bounces_used']}) | {bp['rays'].get('intersect', 0)} / "
+                             f"{bp['rays'].get('occluded', 0)} | {bp['calls']} | {r['precompute_s']:.2f} | {r['bare_s']:.2f} | "
+                             f"{r['pace']:.2f} | {r['load']:.1f} |")
+        lines += ["", "Median pace: " + ", ".join(f"bounces={bp['bounces']} **{bp['median_pace']:.2f}**" for bp in bounce_pairs)
+                  + " (goal ≥ 0.5).", ""]
+    lines += [
         f"GIL: the bare call on {o.shape[0]} rays takes {gil_one:.3f} s on one thread and {gil_two:.3f} s on two threads "
         f"(speedup {gil_one / gil_two:.2f}): {result['gil']['verdict']}.",
         "",

@@ -35,7 +35,7 @@ from typing import Any, Callable, Iterable, Sequence
 from ._checks import check_choice, check_int
 
 __all__ = ["Executor", "LocalExecutor", "RayExecutor", "TaskFailure", "ExecutorUnavailable", "EXECUTORS", "RAY_INSTALL_HINT",
-           "make_executor", "require_ray", "failures"]
+           "make_executor", "require_ray", "failures", "torch_threads"]
 
 EXECUTORS = ("local", "ray")
 RAY_INSTALL_HINT = "Ray is not installed; install it with: pip install 'prt-torch[ray]' (or pip install 'ray>=2.9')"
@@ -304,3 +304,32 @@ def make_executor(name: str = "local", address: str | None = None, **kwargs) -> 
 def failures(results: Iterable[Any]) -> list[TaskFailure]:
     """The :class:`TaskFailure` entries of a ``map`` result."""
     return [r for r in results if isinstance(r, TaskFailure)]
+
+
+class torch_threads:
+    """``with torch_threads(n):`` runs the block with ``torch.set_num_threads(n)`` (which the
+    relighting kernels follow too), restoring the previous count after.
+
+    Why speed-ups are timed in one thread (reports/benchmarks/timing_trust.md; the same holds for the
+    small torch steps of a precompute's chunk, issue 42: reports/benchmarks/transfer_diffuse.md): a ratio of two
+    multi-threaded timings moves with the machine's load and with OpenMP's wait policy — each
+    parallel region pays a wake-up or a barrier stall that a busy machine stretches, and short
+    calls run many regions per unit of work (measured on 2 cores: PASSIVE alone halved the
+    fastest codec's speed-up on an idle machine, 30× → 14×). One thread has no regions to
+    wait on, so the paired ratio is the ratio of the work itself."""
+
+    def __init__(self, n: int):
+        self.n = check_int("threads", n, 1)
+        self.prev = None
+
+    def __enter__(self) -> "torch_threads":
+        import torch
+
+        self.prev = torch.get_num_threads()
+        torch.set_num_threads(self.n)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        import torch
+
+        torch.set_num_threads(self.prev)

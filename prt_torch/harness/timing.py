@@ -19,6 +19,7 @@ from typing import Any, Callable
 import torch
 
 from .._checks import check_int
+from ..executor import torch_threads  # noqa: F401  (re-exported: where it lived before issue 42)
 
 __all__ = ["Timing", "Paired", "measure", "measure_paired", "measure_paired_cold", "last_level_cache_bytes", "torch_threads",
            "io_bound_fn", "machine_info", "rate_policy"]
@@ -338,30 +339,6 @@ def measure_paired_cold(test: Callable[[], Any], peer: Callable[[], Any], repeat
     ratio = _quantiles(ratios, warmup)
     contention = _contention(r0, c0, w0, ratio, max_switch_rate, max_spread)
     return Paired(_quantiles(tt, warmup), _quantiles(tp, warmup), ratio, contention, ratio.median, None)
-
-
-class torch_threads:
-    """``with torch_threads(n):`` runs the block with ``torch.set_num_threads(n)`` (which the
-    relighting kernels follow too), restoring the previous count after.
-
-    Why speed-ups are timed in one thread (reports/benchmarks/timing_trust.md): a ratio of two
-    multi-threaded timings moves with the machine's load and with OpenMP's wait policy — each
-    parallel region pays a wake-up or a barrier stall that a busy machine stretches, and short
-    calls run many regions per unit of work (measured on 2 cores: PASSIVE alone halved the
-    fastest codec's speed-up on an idle machine, 30× → 14×). One thread has no regions to
-    wait on, so the paired ratio is the ratio of the work itself."""
-
-    def __init__(self, n: int):
-        self.n = check_int("threads", n, 1)
-        self.prev = None
-
-    def __enter__(self) -> "torch_threads":
-        self.prev = torch.get_num_threads()
-        torch.set_num_threads(self.n)
-        return self
-
-    def __exit__(self, *exc) -> None:
-        torch.set_num_threads(self.prev)
 
 
 def io_bound_fn(bytes_read: int, bytes_written: int) -> Callable[[], Any]:

@@ -139,6 +139,14 @@ class RayCaster:
         except Exception:
             pass
 
+    def start(self) -> "RayCaster":
+        """Start the worker processes now rather than at the first large batch, so that their
+        start (interpreter, numpy, embreex, scene build: a few tenths of a second) overlaps the
+        caller's own set-up instead of delaying its first batch. No-op with ``workers=1``."""
+        if self.workers > 1:
+            self._get_pool()
+        return self
+
     def _get_pool(self) -> list:
         """Start ``workers - 1`` worker processes (each builds its own Embree scene once)."""
         if self._pool is None:

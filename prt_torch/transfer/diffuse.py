@@ -46,10 +46,11 @@ import scipy.sparse
 import torch
 
 from .._checks import check_choice, check_float, check_int
+from ..executor import torch_threads
 from ..scene import Mesh, RayCaster, default_workers, edge_face_counts
 from ..sh import clamped_cosine, eval_sh, rotate_zonal
 from .base import RunOptions, Transfer, remove_state, run_chunks
-from .ray_kernels import upper_rays
+from .ray_kernels import qmc_rays_native, select_rays, sh_accumulate, upper_rays
 from .sampling import cosine_hemisphere, to_world, uniform_sphere
 
 __all__ = [
@@ -211,6 +212,8 @@ class DiffuseSampler:
         elif sampling == "qmc":
             self.M = qmc_rays(samples)
             self.base = _hammersley(self.M)  # [M, 2] in [0,1)², rotated per vertex
+            self.base_tables = _hammersley_tables(self.base)
+            self._work = {}
             self.Y = None
             self.weight = 2.0 / self.M  # (2π/M)·(1/π), times z per ray
         else:
@@ -261,28 +264,42 @@ class DiffuseSampler:
             return i, j, o, d, np.maximum(cos, 0.0, out=cos)
         k = normals.shape[0]
         if self.sampling == "qmc":
+            o, d, z = self._qmc(o_v, normals, ids, self._work if reuse else None)
             M = self.M
-            keys = np.arange(k, dtype=np.int64) if ids is None else np.asarray(ids, np.int64)
-            zero = np.zeros_like(keys)
-            u1 = _hash_uniform(self.seed, keys, zero, 1 << 20)[:, None]  # streams apart from the hit estimator's
-            u2 = _hash_uniform(self.seed, keys, zero, (1 << 20) + 1)[:, None]
-            z = (self.base[None, :, 0] + u1) % 1.0  # [k,M] uniform in cos θ: uniform over the hemisphere
-            phi = 2 * math.pi * ((self.base[None, :, 1] + u2) % 1.0)
-            z = np.maximum(z, 1e-12)  # every ray leaves the tangent plane (measure-zero horizon)
-            r = np.sqrt(1.0 - z * z)
-            from ..scene.mesh import tangent_frames
-
-            t, b = tangent_frames(normals.numpy())  # the module rule from the normals alone, whatever frames the mesh has
-            F = np.stack([t, b, normals.numpy().astype(np.float64)], 1)  # [k,3,3] rows (t, b, n)
-            x, y = r * np.cos(phi), r * np.sin(phi)
-            d = x[..., None] * F[:, None, 0] + y[..., None] * F[:, None, 1] + z[..., None] * F[:, None, 2]  # [k,M,3]
-            i = np.repeat(np.arange(k), M)
-            j = np.tile(np.arange(M), k)
-            return i, j, np.repeat(o_v, M, axis=0), d.reshape(-1, 3).astype(np.float32), z.reshape(-1)
+            return np.repeat(np.arange(k), M), np.tile(np.arange(M), k), o, d, z
         world = to_world(self.dirs, frames).reshape(-1, 3).numpy()  # [k·N,3]
         i = np.repeat(np.arange(k), self.samples)
         j = np.tile(np.arange(self.samples), k)
         return i, j, o_v[i], world, None
+
+    def chunk_rays(self, points: torch.Tensor, normals: torch.Tensor, eps: float, nudge: torch.Tensor | None = None,
+                 ids: np.ndarray | None = None, reuse: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The ``'qmc'`` rays of a chunk of k vertices without the index arrays of :meth:`rays`:
+        ``(origins float32 [k·M, 3], dirs float32 [k·M, 3], z float64 [k·M])``, ray v·M + m the
+        m-th direction of vertex v, z its cosine (:meth:`_qmc`)."""
+        o_v = offset_origins(points.numpy(), normals.numpy(), eps, None if nudge is None else nudge.numpy()).astype(np.float32)
+        return self._qmc(o_v, normals, ids, self._work if reuse else None)
+
+    def _qmc(self, o_v: np.ndarray, normals: torch.Tensor, ids: np.ndarray | None, work: dict | None):
+        """The qmc direction set of k vertices (class docstring): the Hammersley set (a_m, b_m)
+        Cranley–Patterson rotated by the vertex's (u1, u2) = :func:`_hash_uniform` of (seed,
+        vertex id), z = max((a_m + u1) mod 1, 1e-12), φ = 2π((b_m + u2) mod 1), d = r cos φ t +
+        r sin φ b + z n (r = √(1 − z²), frame rows of :func:`~prt_torch.scene.mesh.tangent_frames`
+        from the normals alone). cos φ, sin φ by the angle sum of the set's 2πb_m and the vertex's
+        2πu2 (no libm call per ray). One compiled pass (``ray_kernels.qmc_rays_native``) or the same
+        float64 operations in numpy (same bits): ``(o float32 [k·M, 3], d float32 [k·M, 3], z float64 [k·M])``."""
+        from ..scene.mesh import tangent_frames
+
+        k = normals.shape[0]
+        keys = np.arange(k, dtype=np.int64) if ids is None else np.asarray(ids, np.int64)
+        zero = np.zeros_like(keys)
+        u1 = _hash_uniform(self.seed, keys, zero, 1 << 20)  # streams apart from the hit estimator's
+        u2 = 2 * math.pi * _hash_uniform(self.seed, keys, zero, (1 << 20) + 1)
+        cu, su = np.cos(u2), np.sin(u2)
+        n = normals.numpy().astype(np.float64)
+        t, b = tangent_frames(n)  # the module rule from the normals alone, whatever frames the mesh has
+        F = np.stack([t, b, n], 1)  # [k,3,3] rows (t, b, n)
+        return _rotated_rays(F, o_v, u1, cu, su, self.base_tables, False, work)
 
     def ray_weights(self, i: np.ndarray, j: np.ndarray, cos: Any) -> np.ndarray:
         """``[R]`` float64 w_j of each ray in t = Σ_j w_j V_j y(s_j) (ρ = 1)."""
@@ -346,6 +363,43 @@ def _hammersley(M: int) -> np.ndarray:
     return np.stack([(m + 0.5) / M, rad], 1)
 
 
+def _hammersley_tables(base: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(a, cos 2πb, sin 2πb)`` float64 ``[M]`` each of a ``[M, 2]`` point set (a, b): what
+    :func:`_rotated_rays` rotates."""
+    return np.ascontiguousarray(base[:, 0]), np.cos(2 * math.pi * base[:, 1]), np.sin(2 * math.pi * base[:, 1])
+
+
+def _rotated_rays(frames: np.ndarray, o_v: np.ndarray, u1: np.ndarray, cu: np.ndarray, su: np.ndarray,
+                  tables: tuple[np.ndarray, np.ndarray, np.ndarray], cosine: bool, work: dict | None = None):
+    """M directions over each of k hemispheres from one point set (a_m, b_m), Cranley–Patterson
+    rotated per hemisphere by (u1, u2) (cu, su = cos, sin 2πu2): a = (a_m + u1) mod 1, φ = 2π((b_m
+    + u2) mod 1) with cos φ, sin φ by the angle sum (a whole turn drops out), and
+
+    * ``cosine=False`` (the vertices' qmc set, uniform in solid angle): z = max(a, 1e-12), r = √(1 − z²);
+    * ``cosine=True`` (the bounce estimator's set at hit points, cosine-weighted, Malley's method):
+      r = √a, z = √max(1 − a, 1e-24);
+
+    d = r cos φ t + r sin φ b + z n with ``frames float64 [k, 3, 3]`` rows (t, b, n), origin the
+    hemisphere's ``o_v float32 [k, 3]``. One compiled pass (``ray_kernels.qmc_rays_native``), or the
+    same float64 operations in numpy (same bits). Returns ``(o float32 [k·M, 3], d float32 [k·M, 3],
+    z float64 [k·M])``, ray v·M + m; ``work``: kept buffers (:func:`ray_kernels.upper_rays`)."""
+    a, cb, sb = tables
+    fused = qmc_rays_native(frames, o_v, u1, cu, su, a, cb, sb, work=work, cosine=cosine)
+    if fused is not None:
+        return fused
+    z = a[None, :] + u1[:, None]  # [k,M]
+    z = np.where(z >= 1.0, z - 1.0, z)  # mod 1 (exact here)
+    if cosine:
+        r, z = np.sqrt(z), np.sqrt(np.maximum(1.0 - z, 1e-24))
+    else:
+        z = np.maximum(z, 1e-12)  # every ray leaves the tangent plane (measure-zero horizon)
+        r = np.sqrt(1.0 - z * z)
+    x = r * (cb[None, :] * cu[:, None] - sb[None, :] * su[:, None])
+    y = r * (sb[None, :] * cu[:, None] + cb[None, :] * su[:, None])
+    d = (x[..., None] * frames[:, None, 0] + y[..., None] * frames[:, None, 1]) + z[..., None] * frames[:, None, 2]  # [k,M,3]
+    return np.repeat(o_v, a.shape[0], axis=0), d.reshape(-1, 3).astype(np.float32), z.reshape(-1)
+
+
 class HitBounce:
     """Exit transfer at bounce-ray hit points, estimated at the hit point itself.
 
@@ -375,6 +429,9 @@ class HitBounce:
         self.terms = int(terms)
         _, fn, _ = face_points(mesh)
         self.face_normals = fn
+        self.face_normals_np = fn.numpy()
+        self._tables: dict = {}  # M -> the Hammersley set's tables (_hammersley_tables)
+        self._face_unshadowed = None
         t, b = tangent_frames(fn.numpy())
         self.frames = np.stack([t, b, fn.numpy()], 1)  # [F,3,3] rows (t, b, n)
         self.rho_vertices = mesh.albedo.to(torch.float64)
@@ -411,65 +468,68 @@ class HitBounce:
     def _rays(self, caster: RayCaster, tri: np.ndarray, bary: np.ndarray, key_a: np.ndarray, key_b: np.ndarray,
               level: int, intersect: bool):
         """The M = :meth:`samples_at` (level) cosine-weighted rays of each hit (class docstring), traced:
-        (directions ``[H·M, 3]`` float64, their hit's row ``[H·M]``, blocked ``bool [H·M]``, and for
-        ``intersect`` the Embree (prim, u, v) of each ray, else None)."""
-        H = tri.shape[0]
+        the Hammersley set Cranley–Patterson rotated per hit, in the hit face's frame, from the compiled
+        ray generator (:func:`_rotated_rays`). Returns (directions float32 ``[H·M, 3]``, ray h·M + m
+        of hit h; blocked ``bool [H·M]``; for ``intersect`` the Embree (prim, u, v) of each ray, else
+        None)."""
         M = self.samples_at(level)
         ft = self.faces[tri]
         vt = self.vertices
         q = bary[:, :1] * vt[ft[:, 0]] + bary[:, 1:2] * vt[ft[:, 1]] + bary[:, 2:3] * vt[ft[:, 2]]  # [H,3] hit points
-        n = self.face_normals.numpy()[tri]
-        u1 = _hash_uniform(self.seed, key_a, key_b, 2 * level + 1)[:, None]
-        u2 = _hash_uniform(self.seed, key_a, key_b, 2 * level + 2)[:, None]
-        base = _hammersley(M)
-        a = (base[None, :, 0] + u1) % 1.0  # [H,M] Cranley–Patterson rotation per hit
-        b = (base[None, :, 1] + u2) % 1.0
-        r, phi = np.sqrt(a), 2 * math.pi * b
-        local = np.stack([r * np.cos(phi), r * np.sin(phi), np.sqrt(np.maximum(1 - a, 1e-24))], -1)  # [H,M,3]
-        fr = self.frames[tri]  # [H,3,3] rows (t, b, n)
-        d = (local[..., :1] * fr[:, None, 0] + local[..., 1:2] * fr[:, None, 1] + local[..., 2:3] * fr[:, None, 2]).reshape(-1, 3)
-        o = np.repeat(offset_origins(q, n, caster.eps if self.hit_eps is None else self.hit_eps), M, axis=0).astype(np.float32)
-        row = np.repeat(np.arange(H), M)
+        n = self.face_normals_np[tri]
+        u1 = _hash_uniform(self.seed, key_a, key_b, 2 * level + 1)
+        u2 = 2 * math.pi * _hash_uniform(self.seed, key_a, key_b, 2 * level + 2)
+        o_h = offset_origins(q, n, caster.eps if self.hit_eps is None else self.hit_eps).astype(np.float32)
+        tables = self._tables.get(M)
+        if tables is None:
+            tables = self._tables[M] = _hammersley_tables(_hammersley(M))
+        o, d, _ = _rotated_rays(self.frames[tri], o_h, u1, np.cos(u2), np.sin(u2), tables, True)
         if intersect:
-            prim, bu, bv, _ = caster.trace(o, d.astype(np.float32), "intersect")
-            return d, row, prim != -1, (prim, bu, bv)
-        return d, row, caster.trace(o, d.astype(np.float32), "occluded"), None
+            prim, bu, bv, _ = caster.trace(o, d, "intersect")
+            return d, prim != -1, (prim, bu, bv)
+        return d, caster.trace(o, d, "occluded"), None
 
-    def _front_hits(self, d: np.ndarray, hit: np.ndarray, isect, key_a: np.ndarray, key_b: np.ndarray, row: np.ndarray, M: int):
+    def _front_hits(self, d: np.ndarray, hit: np.ndarray, isect, key_a: np.ndarray, key_b: np.ndarray, M: int):
         """The rays of :meth:`_rays` that meet the front of a triangle, as the next level's hits:
-        (ray indices, triangles, barycentrics ``[R, 3]``, key_a, key_b)."""
+        (their hit's row ``[R]``, triangles ``[R]``, barycentrics float64 ``[R, 3]``, key_a, key_b)."""
         prim, bu, bv = isect
-        hh = np.nonzero(hit)[0]
+        hh = np.flatnonzero(hit)
         t2 = prim[hh].astype(np.int64)
-        front = np.einsum("ij,ij->i", self.face_normals.numpy()[t2], d[hh]) < 0
+        front = np.einsum("ij,ij->i", self.face_normals_np[t2], d[hh].astype(np.float64)) < 0
         hh, t2 = hh[front], t2[front]
+        row = hh // M
         bary2 = np.stack([1 - bu[hh] - bv[hh], bu[hh], bv[hh]], 1).astype(np.float64)
-        kb2 = key_b[row[hh]].astype(np.uint64) * np.uint64(64) + (hh % M).astype(np.uint64)
-        return hh, t2, bary2, key_a[row[hh]], kb2
+        kb2 = key_b[row].astype(np.uint64) * np.uint64(64) + (hh % M).astype(np.uint64)
+        return row, t2, bary2, key_a[row], kb2
 
     def values(self, caster: RayCaster, tri: np.ndarray, bary: np.ndarray, key_a: np.ndarray, key_b: np.ndarray,
                level: int = 0) -> torch.Tensor:
         """``[H, terms - level, C, n²]`` float64: x^k(q), k = 0 .. terms-level-1, for each hit
         (ρ_q not applied) — the class docstring's estimates, one traced batch per level."""
         H, depth = tri.shape[0], self.terms - level
-        M = self.samples_at(level)
         n2 = self.bands * self.bands
+        M = self.samples_at(level)
         out = torch.zeros(H, depth, self.C, n2, dtype=torch.float64)
         if H == 0:
             return out
-        d, row, hit, isect = self._rays(caster, tri, bary, key_a, key_b, level, depth > 1)
-        sel = hit if self.control else ~hit
-        Y = eval_sh(torch.from_numpy(d[sel]), self.bands, check=False) / M  # [R_sel, n²]
-        x0 = torch.zeros(H, n2, dtype=torch.float64).index_add_(0, torch.from_numpy(row[sel]), Y)
+        d, hit, isect = self._rays(caster, tri, bary, key_a, key_b, level, depth > 1)
+        sel = np.flatnonzero(hit if self.control else ~hit)
+        x0 = sh_accumulate(H, M, sel, d, None, 1.0 / M, self.bands)  # [H, n²], SH summed in the pass
+        if x0 is None:  # without the compiled pass
+            Y = eval_sh(torch.from_numpy(d[sel]).to(torch.float64), self.bands, check=False) / M  # [R_sel, n²]
+            x0 = torch.zeros(H, n2, dtype=torch.float64).index_add_(0, torch.from_numpy(sel // M), Y).numpy()
+        x0 = torch.from_numpy(x0)
         if self.control:  # the exact unshadowed transfer of the face's hemisphere minus its blocked rays
-            x0 = unshadowed_transfer(torch.from_numpy(self.face_normals.numpy()[tri]), self.bands) - x0
+            if self._face_unshadowed is None:  # [F, n²], once per estimator: a hit reads its face's row
+                self._face_unshadowed = unshadowed_transfer(self.face_normals, self.bands)
+            x0 = self._face_unshadowed[torch.from_numpy(tri)] - x0
         out[:, 0] = x0[:, None, :]
         if depth > 1:
-            hh, t2, bary2, ka2, kb2 = self._front_hits(d, hit, isect, key_a, key_b, row, M)
+            row, t2, bary2, ka2, kb2 = self._front_hits(d, hit, isect, key_a, key_b, M)
             x2 = self.values(caster, t2, bary2, ka2, kb2, level + 1)  # [R, depth-1, C, n²]
             w2 = self.albedo_at(t2, bary2)[:, None, :, None] / M
             out[:, 1:] = torch.zeros(H, depth - 1, self.C, n2, dtype=torch.float64).index_add_(
-                0, torch.from_numpy(row[hh]), w2 * x2)
+                0, torch.from_numpy(row), w2 * x2)
         return out
 
     def texel_values(self, caster: RayCaster, tri: np.ndarray, bary: np.ndarray, key_a: np.ndarray, key_b: np.ndarray,
@@ -485,13 +545,14 @@ class HitBounce:
             e = np.zeros(0, np.int64)
             return e, e, np.zeros(0)
         M = self.samples_at(level)
-        d, row, hit, isect = self._rays(caster, tri, bary, key_a, key_b, level, depth > 1)
-        rows, texels, w = [row[~hit]], [texel_of(d[~hit])], [np.full(int((~hit).sum()), 1.0 / M)]
+        d, hit, isect = self._rays(caster, tri, bary, key_a, key_b, level, depth > 1)
+        op = np.flatnonzero(~hit)
+        rows, texels, w = [op // M], [texel_of(d[op].astype(np.float64))], [np.full(op.shape[0], 1.0 / M)]
         if depth > 1:
-            hh, t2, bary2, ka2, kb2 = self._front_hits(d, hit, isect, key_a, key_b, row, M)
+            row, t2, bary2, ka2, kb2 = self._front_hits(d, hit, isect, key_a, key_b, M)
             r2, tx2, w2 = self.texel_values(caster, t2, bary2, ka2, kb2, texel_of, level + 1)
             rho = self.albedo_at(t2, bary2)[:, 0].numpy()
-            rows.append(row[hh][r2])
+            rows.append(row[r2])
             texels.append(tx2)
             w.append(w2 * rho[r2] / M)
         return np.concatenate(rows), np.concatenate(texels), np.concatenate(w)
@@ -507,10 +568,19 @@ def _check_points(points: Any, normals: Any) -> tuple[torch.Tensor, torch.Tensor
     return p, n / n.norm(dim=-1, keepdim=True)
 
 
-def _chunk(caster: RayCaster, sampler: DiffuseSampler, points: torch.Tensor, normals: torch.Tensor,
-           frames: torch.Tensor | None, faces: np.ndarray | None, face_normals: np.ndarray | None,
-           n_vertices: int, record_hits: bool, hit_columns: str = "vertices", hits: HitBounce | None = None,
-           first_id: int = 0, nudge: torch.Tensor | None = None, ids: np.ndarray | None = None) -> dict[str, torch.Tensor]:
+def _chunk(*args, **kwargs) -> dict[str, torch.Tensor]:
+    """:func:`_chunk_work` with torch on one thread: the chunk's torch steps are small or
+    elementwise, and the cores are the ray-casting processes' (measured on 2 cores, 10k vertices,
+    one bounce: torch's second thread cost the calling process 2.6 s of CPU — spinning between
+    parallel regions — against 1.3 s of Embree work in it; reports/benchmarks/transfer_diffuse.md)."""
+    with torch_threads(1):
+        return _chunk_work(*args, **kwargs)
+
+
+def _chunk_work(caster: RayCaster, sampler: DiffuseSampler, points: torch.Tensor, normals: torch.Tensor,
+                frames: torch.Tensor | None, faces: np.ndarray | None, face_normals: np.ndarray | None,
+                n_vertices: int, record_hits: bool, hit_columns: str = "vertices", hits: HitBounce | None = None,
+                first_id: int = 0, nudge: torch.Tensor | None = None, ids: np.ndarray | None = None) -> dict[str, torch.Tensor]:
     """Shadowed transfer (ρ = 1) of a chunk of k points, and (optionally) its bounce entries.
 
     Uniform sampling: T = (4/N) · (V ⊙ max(n·s,0)) @ Y — one masked GEMM per chunk
@@ -527,19 +597,34 @@ def _chunk(caster: RayCaster, sampler: DiffuseSampler, points: torch.Tensor, nor
     """
     k = points.shape[0]
     keys = (first_id + np.arange(k)) if ids is None else np.asarray(ids)
-    i, j, o, d, cos = sampler.rays(points, normals, frames, caster.eps, nudge, reuse=True, ids=keys)  # consumed within this chunk
+    if sampler.sampling == "qmc":  # rays in blocks of M per vertex: the index arrays only where needed
+        o, d, cos = sampler.chunk_rays(points, normals, caster.eps, nudge, ids=keys, reuse=True)  # consumed within this chunk
+        i = j = None
+    else:
+        i, j, o, d, cos = sampler.rays(points, normals, frames, caster.eps, nudge, reuse=True, ids=keys)
     if record_hits:
         prim, bu, bv, _ = caster.trace(o, d, "intersect")
         hit = prim != -1
     else:
         hit = caster.trace(o, d, "occluded")
-    out: dict[str, torch.Tensor] = {"rays": torch.tensor([i.shape[0]], dtype=torch.int64)}
+    out: dict[str, torch.Tensor] = {"rays": torch.tensor([o.shape[0]], dtype=torch.int64)}
     est = sampler.estimator
-    if sampler.sampling == "uniform" and est == "plain":
+    picked = select_rays(cos, hit, sampler.M, sampler.weight, est) if i is None else None
+    if picked is not None:  # qmc: the estimator's rays chosen in one compiled pass (the same choice as below)
+        open_v, sel = picked
+        S = sh_accumulate(k, sampler.M, sel, d, cos, sampler.weight, sampler.bands)  # [k, n²], SH in the same pass
+        if open_v.any():
+            S[open_v] = unshadowed_transfer(torch.from_numpy(normals.numpy()[open_v]).to(torch.float64), sampler.bands).numpy() - S[open_v]
+        out["T"] = torch.from_numpy(S)
+        if record_hits:
+            i, j = np.repeat(np.arange(k), sampler.M), np.tile(np.arange(sampler.M), k)
+    elif sampler.sampling == "uniform" and est == "plain":
         W = cos * sampler.weight  # [k,N]; zero below the horizon
         W.reshape(-1)[(i * W.shape[1] + j)[hit]] = 0.0  # blocked directions
         out["T"] = torch.from_numpy(W @ sampler.Y_np)  # one GEMM per chunk (numpy's float64 GEMM: 3x torch's here)
     else:
+        if i is None:  # qmc without the compiled pass
+            i, j = np.repeat(np.arange(k), sampler.M), np.tile(np.arange(sampler.M), k)
         w_all = sampler.ray_weights(i, j, cos)  # [R]
         if est == "auto":  # per vertex: the control variate where at least half of the (cosine-weighted) rays are open
             w_open = np.bincount(i, weights=np.where(hit, 0.0, w_all), minlength=k)
@@ -763,6 +848,8 @@ def precompute_diffuse(
             caster = RayCaster(mesh, workers=_workers(run, mesh, samples, sampling), offset=run.offset)
             meta["ray_eps"] = caster.eps
         traced = _decide_shadows(caster, mesh, shadows, seed, probe_tol, meta)
+        if traced:
+            caster.start()  # the workers start while this process prepares the first chunk
         faces = None
         hits = None
         if traced and bounces > 0 and bounce_points == "hits":

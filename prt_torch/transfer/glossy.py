@@ -135,25 +135,29 @@ class _Directions:
         self.n2 = bands * bands
 
 
-def unshadowed_transferred(normals: torch.Tensor, bands: int) -> torch.Tensor:
+def unshadowed_transferred(normals: torch.Tensor, bands: int, blocks: list[torch.Tensor] | None = None) -> torch.Tensor:
     """The exact unshadowed T_p: (T_p)_ij = ∫_{n_p·s > 0} y_i(s) y_j(s) ds, ``[k, n², n²]``
     float64, as D_pᵀ A D_p with A the hemisphere Gram matrix over z ≥ 0 (Sloan 2003 Appendix
     §9.1, :func:`prt_torch.sh.hemisphere_gram`) and D_p the SH rotation into a frame whose third
     axis is n_p (y(s) = D_pᵀ y(F_p s); A is invariant under rotations about z, so any tangent
-    frame serves). The control variate of :func:`transferred_radiance`."""
+    frame serves). The control variate of :func:`transferred_radiance`. ``blocks``: the
+    points' :func:`~prt_torch.sh.rotation_blocks` into frames whose third axis is the normal, when
+    the caller has them already (the exit-transfer driver rotates its rows with the same blocks)."""
     from ..scene.mesh import tangent_frames
 
-    n = normals.to(torch.float64)
-    t, b = tangent_frames(n.numpy())
-    F = torch.stack([torch.from_numpy(t), torch.from_numpy(b), n], dim=-2)  # [k,3,3] rows (t, b, n)
-    D = blocks_to_dense(rotation_blocks(F, bands))  # [k, n², n²]
+    if blocks is None:
+        n = normals.to(torch.float64)
+        t, b = tangent_frames(n.numpy())
+        F = torch.stack([torch.from_numpy(t), torch.from_numpy(b), n], dim=-2)  # [k,3,3] rows (t, b, n)
+        blocks = rotation_blocks(F, bands)
+    D = blocks_to_dense(blocks)  # [k, n², n²]
     return D.transpose(1, 2) @ hemisphere_gram(bands) @ D
 
 
 def transferred_radiance(caster: RayCaster | None, points: torch.Tensor, normals: torch.Tensor,
                          directions: _Directions, bounce: "Bounce | None" = None,
                          ids: torch.Tensor | None = None, nudge: torch.Tensor | None = None,
-                         estimator: str = "plain") -> tuple[torch.Tensor, int]:
+                         estimator: str = "plain", blocks: list[torch.Tensor] | None = None) -> tuple[torch.Tensor, int]:
     """T_p for a chunk of points (module docstring): ``[k, n², n²]`` float64 and rays traced.
     ``caster=None`` skips visibility (unshadowed: only the tangent-plane cut).
 
@@ -204,7 +208,7 @@ def transferred_radiance(caster: RayCaster | None, points: torch.Tensor, normals
         W[i, j] = directions.weight
     T = (W @ directions.YY).reshape(-1, directions.n2, directions.n2)
     if caster is not None and estimator == "control":
-        T = unshadowed_transferred(normals, int(round(math.sqrt(directions.n2)))) - T
+        T = unshadowed_transferred(normals, int(round(math.sqrt(directions.n2))), blocks) - T
     if T_ind is not None:
         T += T_ind
     return T, int(i.numel()) if caster is not None else 0
@@ -279,7 +283,7 @@ def run_exit_transfer(
             workers = run.workers
             if workers is None:
                 workers = default_workers() if V * rays_per_vertex >= 4_000_000 else 1
-            caster = RayCaster(mesh, workers=workers, offset=run.offset)
+            caster = RayCaster(mesh, workers=workers, offset=run.offset).start()
             meta["ray_eps"] = caster.eps
         nudge = boundary_nudge(mesh) if shadows else None  # the diffuse tracer's origins (offset_origins)
         nudge = nudge if nudge is not None and bool(nudge.any()) else None
@@ -293,10 +297,11 @@ def run_exit_transfer(
 
         def compute(a: int, b: int) -> dict[str, torch.Tensor]:
             idx = sel[a:b]
+            blocks = rotation_blocks(F_all[idx], bands) if left.numel() or estimator == "control" else None  # once per chunk
             T, rays = transferred_radiance(caster, mesh.vertices[idx], mesh.normals[idx], directions, bounce, ids=idx,
-                                           nudge=None if nudge is None else nudge[idx], estimator=estimator)
+                                           nudge=None if nudge is None else nudge[idx], estimator=estimator, blocks=blocks)
             if left.numel():
-                out = left[index[idx]] @ rotate_rows(T, rotation_blocks(F_all[idx], bands))  # B_p R_p T_p
+                out = left[index[idx]] @ rotate_rows(T, blocks)  # B_p R_p T_p
             else:
                 out = T  # the global transferred-radiance matrices (Sloan 2002)
             return {"data": out.to(torch.float32), "rays": torch.tensor([rays], dtype=torch.int64)}

@@ -1,4 +1,6 @@
-"""Ray generation of the uniform-sampling diffuse precompute in one compiled pass.
+"""Compiled passes of the diffuse precompute: the uniform set's rays (below), the qmc set's
+rotated Hammersley rays per vertex or per hit (:func:`qmc_rays_native`), the estimators' choice of
+rays (:func:`select_rays`) and their SH sums per vertex (:func:`sh_accumulate`) — issue 42.
 
 For a chunk of k vertices and N shared sample directions, the rays traced are the pairs
 (vertex v, direction s) with n_v · s > 0, grouped by vertex in row-major order (course notes
@@ -13,6 +15,7 @@ with ``PRT_TORCH_NATIVE=0``, :func:`upper_rays` returns None and the caller keep
 from __future__ import annotations
 
 import ctypes
+import math
 import os
 import threading
 
@@ -20,12 +23,11 @@ import numpy as np
 
 from .._native import LIBRARIES, compile_library, kernel_sources
 
-__all__ = ["upper_rays"]
+__all__ = ["upper_rays", "qmc_rays_native", "select_rays", "sh_accumulate"]
 
 #: the C source (prt_torch/kernels/raygen.c) and compiler flags
 _SOURCES, _FLAGS = LIBRARIES["raygen"][0], list(LIBRARIES["raygen"][1])
 
-_FLAGS = ["-O3", "-march=native", "-fopenmp", "-shared", "-fPIC", "-std=c99"]
 _lock = threading.Lock()
 _state: dict = {}
 
@@ -40,6 +42,9 @@ def _lib() -> ctypes.CDLL | None:
                 _state["lib"], _state["why"] = compile_library("raygen", kernel_sources(_SOURCES), _FLAGS, {
                     "prt_count_up": [i64, i64, vp, vp, ci],
                     "prt_fill_up": [i64, i64, vp, vp, vp, vp, vp, vp, vp, vp, ci],
+                    "prt_qmc_rays": [i64, i64, vp, vp, vp, vp, vp, vp, vp, vp, vp, vp, vp, ci, ci],
+                    "prt_select_rays": [i64, i64, vp, vp, ctypes.c_double, ci, vp, vp, vp],
+                    "prt_sh_accumulate": [i64, vp, i64, vp, vp, ctypes.c_double, ci, vp, vp],
                 })
     return _state["lib"]
 
@@ -86,3 +91,114 @@ def upper_rays(cos: np.ndarray, origins: np.ndarray, dirs: np.ndarray, threads: 
     lib.prt_fill_up(k, N, cos.ctypes.data, starts.ctypes.data, origins.ctypes.data, dirs.ctypes.data, i.ctypes.data, j.ctypes.data,
                     o.ctypes.data, d.ctypes.data, nth)
     return i, j, o, d
+
+
+def qmc_rays_native(frames: np.ndarray, origins: np.ndarray, u1: np.ndarray, cu: np.ndarray, su: np.ndarray,
+                    a: np.ndarray, cb: np.ndarray, sb: np.ndarray, threads: int | None = None, work: dict | None = None,
+                    cosine: bool = False):
+    """The qmc diffuse precompute's rays of k vertices, M each, in one compiled pass, or None
+    without the library (``kernels/raygen.c``, ``prt_qmc_rays``: the formulas and their order).
+
+    ``frames float64 [k, 3, 3]`` rows (t, b, n); ``origins float32 [k, 3]`` (already offset);
+    ``u1, cu, su float64 [k]``: each vertex's Cranley–Patterson shift of z and cos/sin of its
+    azimuth shift 2πu2; ``a, cb, sb float64 [M]``: the Hammersley set's first coordinate and
+    cos/sin 2π of its second. → ``(o float32 [k·M, 3], d float32 [k·M, 3], z float64 [k·M])``
+    grouped by vertex (ray v·M + m), z = n_v · d (before rounding d to float32). ``work``: as
+    :func:`upper_rays`. ``cosine``: the bounce estimator's cosine-weighted set (``diffuse.HitBounce``:
+    r = √a, z = √(1 − a)) instead of the uniform one (z = a, r = √(1 − z²)).
+    """
+    lib = _lib()
+    if lib is None:
+        return None
+    k, M = frames.shape[0], a.shape[0]
+    if frames.shape != (k, 3, 3) or origins.shape != (k, 3) or any(x.shape != (k,) for x in (u1, cu, su)) \
+            or cb.shape != (M,) or sb.shape != (M,):
+        raise ValueError(f"qmc_rays_native: frames {frames.shape}, origins {origins.shape}, u1/cu/su {u1.shape}/{cu.shape}/"
+                         f"{su.shape}, a/cb/sb {a.shape}/{cb.shape}/{sb.shape}; accepted: [k,3,3], [k,3], [k] and [M]")
+    f64 = [np.ascontiguousarray(x, np.float64) for x in (frames, u1, cu, su, a, cb, sb)]
+    ov = np.ascontiguousarray(origins, np.float32)
+    R = k * M
+    o, d = _buffer(work, "o", (R, 3), np.float32), _buffer(work, "d", (R, 3), np.float32)
+    z = _buffer(work, "z", (R,), np.float64)
+    F, u1, cu, su, a, cb, sb = f64
+    lib.prt_qmc_rays(k, M, F.ctypes.data, ov.ctypes.data, u1.ctypes.data, cu.ctypes.data, su.ctypes.data, a.ctypes.data,
+                     cb.ctypes.data, sb.ctypes.data, o.ctypes.data, d.ctypes.data, z.ctypes.data, int(bool(cosine)),
+                     int(threads or 1))
+    return o, d, z
+
+
+#: ``mode`` of :func:`select_rays`
+SELECT_MODES = {"auto": 0, "control": 1, "plain": 2}
+
+
+def select_rays(z: np.ndarray, hit: np.ndarray, M: int, weight: float, estimator: str):
+    """The rays a diffuse estimator reads, for rays grouped by vertex in blocks of ``M`` with
+    weights ``weight · z`` (``kernels/raygen.c``, ``prt_select_rays``), or None without the library.
+
+    ``z float64 [k·M]``, ``hit bool [k·M]`` (blocked) → ``(open_v bool [k], sel int64 [S])``:
+    'auto' — open_v where Σ w z over visible rays ≥ half of Σ w z (sums in ray order, as
+    ``np.bincount``), sel the blocked rays of open vertices and the visible rays of the others;
+    'control' — every vertex open, sel the blocked rays; 'plain' — none open, sel the visible
+    rays. Ray indices ascending. What ``diffuse._chunk`` computes with two bincounts and a mask
+    over all R rays, in one pass.
+    """
+    lib = _lib()
+    if lib is None:
+        return None
+    R = z.shape[0]
+    if hit.shape != (R,) or M < 1 or R % M:
+        raise ValueError(f"select_rays: z {z.shape}, hit {hit.shape}, M={M}; accepted: equal [k·M] shapes, M >= 1")
+    k = R // M
+    z = np.ascontiguousarray(z, np.float64)
+    h = np.ascontiguousarray(hit, np.bool_).view(np.uint8)
+    open_v = np.empty(k, np.uint8)
+    sel = np.empty(R, np.int64)
+    n = np.zeros(1, np.int64)
+    lib.prt_select_rays(k, M, z.ctypes.data, h.ctypes.data, float(weight), SELECT_MODES[estimator], open_v.ctypes.data,
+                        sel.ctypes.data, n.ctypes.data)
+    return open_v.view(np.bool_), sel[:int(n[0])]
+
+
+def _sh_scale(bands: int) -> np.ndarray:
+    """``[bands²]`` float64 K_lm = √((2l+1)/(4π) (l−|m|)!/(l+|m|)!), times √2 for m ≠ 0, by flat
+    index l(l+1)+m (Ramamoorthi 2002 eq. 4.5's normalisation, graphics convention)."""
+    K = np.empty(bands * bands)
+    for l in range(bands):  # a loop over bands (at most 32²)
+        for m in range(-l, l + 1):
+            a = abs(m)
+            K[l * (l + 1) + m] = math.sqrt((2 * l + 1) / (4 * math.pi) * math.exp(math.lgamma(l - a + 1) - math.lgamma(l + a + 1)))
+            if m:
+                K[l * (l + 1) + m] *= math.sqrt(2.0)
+    return K
+
+
+def sh_accumulate(k: int, M: int, sel: np.ndarray, dirs: np.ndarray, z: np.ndarray | None, weight: float, bands: int):
+    """``S [k, bands²] float64``: Σ over the rays ``sel`` of ``weight · z_r · y(dirs_r)`` into the
+    row ``sel_r // M`` (rays grouped by vertex in blocks of M), the real SH y (graphics convention,
+    Ramamoorthi 2002 eq. 4.5, flat index l(l+1)+m) computed in the pass (``kernels/raygen.c``,
+    ``prt_sh_accumulate``) — never an ``[R, bands²]`` table; or None without the library.
+
+    ``sel int64 [S]`` ray indices; ``dirs float32 [R, 3]`` unit directions (normalised in float64
+    first, as eval_sh's sphericart backend does: float32 rounding leaves |d| = 1 ± 1e-7);
+    ``z float64 [R]`` per-ray factors or None (1). Equals ``index_add(sel // M, weight · z[sel] ·
+    eval_sh(dirs[sel]))`` to float64 rounding (the tests: 1e-13). bands in [1, 32].
+    """
+    lib = _lib()
+    if lib is None:
+        return None
+    if not 1 <= bands <= 32:
+        raise ValueError(f"sh_accumulate: bands={bands}; accepted: 1..32")
+    sel = np.ascontiguousarray(sel, np.int64)
+    d = np.ascontiguousarray(dirs, np.float32)
+    if d.ndim != 2 or d.shape[1] != 3 or (z is not None and z.shape != (d.shape[0],)):
+        raise ValueError(f"sh_accumulate: dirs {d.shape}, z {None if z is None else z.shape}; accepted: [R, 3] and [R]")
+    if sel.size and (int(sel.min()) < 0 or int(sel.max()) >= min(d.shape[0], k * M)):
+        raise ValueError(f"sh_accumulate: ray indices in [{int(sel.min())}, {int(sel.max())}]; accepted: [0, {min(d.shape[0], k * M)})")
+    key = ("K", bands)
+    if key not in _state:
+        _state[key] = _sh_scale(bands)
+    S = np.zeros((k, bands * bands), np.float64)
+    zz = None if z is None else np.ascontiguousarray(z, np.float64)
+    lib.prt_sh_accumulate(sel.shape[0], sel.ctypes.data, int(M), d.ctypes.data, None if zz is None else zz.ctypes.data,
+                          float(weight), int(bands), _state[key].ctypes.data, S.ctypes.data)
+    return S
