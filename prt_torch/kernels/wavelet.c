@@ -27,6 +27,9 @@
 
 #include <stdint.h>
 #include <string.h>
+/* Only static inline functions return vectors here; the ABI note GCC gives without AVX
+ * (-Wpsabi) is about calls across libraries, which these never are (as in vec.h). */
+#pragma GCC diagnostic ignored "-Wpsabi"
 typedef int64_t i64;
 typedef float v4f __attribute__((vector_size(16)));
 typedef float v8f __attribute__((vector_size(32)));
