@@ -315,3 +315,22 @@ def test_eight_bit_images_warn(dataset, tmp_path, capsys):
     with pytest.warns(UserWarning, match="decoded from sRGB"):
         _, imgs, _, infos = inverse.load_images(views)
     assert abs(float(imgs[0][0, 0, 0]) - 0.5) < 0.01 and inverse.data_eps(infos) == pytest.approx(1 / 255)
+
+
+def test_error_gain_is_the_row_norm_of_the_regularised_inverse():
+    """The report's per-band ``gain`` (light._gain: s_max ‖(V F S⁻¹)_j‖ from the SVD) equals
+    s_max times the row norms of the Tikhonov inverse (AᵀA + λ²I)⁻¹Aᵀ formed from the normal
+    equations: the largest change of coefficient j per unit pixel error. A convex Lambertian
+    object at 4 bands (band 3 filtered away: its gain is small, bands 0-2 modest)."""
+    convex = load_scene("convex")
+    T = precompute_diffuse(convex, bands=4, samples=64, shadows="never", fold_albedo=False)
+    L = load_light("studio", 4)
+    obs, sc = _synthetic(T, L)
+    A = inverse.design_matrix(sc, obs)[0]
+    f = inverse.solve_tikhonov(A, obs.values[:, 0])
+    G = torch.linalg.solve(A.T @ A + f["lam"] ** 2 * torch.eye(A.shape[1], dtype=torch.float64), A.T)  # [n, P]
+    want = float(torch.linalg.svdvals(A)[0]) * G.norm(dim=1)
+    rep = inverse.well_posedness([f], 4, A[None])
+    for l in range(4):
+        assert rep["bands"][l]["gain"] == pytest.approx(float(want[l * l:(l + 1) * (l + 1)].max()), rel=1e-6)
+    assert len(rep["weakest"]["coeffs"]) == 16 and abs(math.hypot(*rep["weakest"]["peak_direction"]) - 1) < 1e-2

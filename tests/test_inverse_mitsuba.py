@@ -78,6 +78,7 @@ def test_mitsuba_images_invert_to_their_light_within_3_percent(tmp_path):
         assert float((got[c] - L[c]).norm() / L[c].norm()) < 0.03
     wp = res["inverse"]["well_posedness"]
     assert wp["recoverable_bands"] == [0, 1, 2] and wp["condition"] < 10
+    assert max(b["gain"] for b in wp["bands"]) < 10  # a 1% model error moves no coefficient by more than 10% of ‖L‖
 
 
 def test_light_from_below_is_the_ill_posed_direction():
@@ -106,7 +107,12 @@ def test_light_from_below_is_the_ill_posed_direction():
     assert float(s[-1] / s[0]) < 0.01
     weak = Vh[-1]
     assert float(weak[[0, 2, 6]].norm()) > 0.999 and float(weak[2] * weak[0]) < 0  # zonal, pointing down (−z)
-    err = inverse.fit_light(A, obs.values).light - L
+    fit = inverse.fit_light(A, obs.values)
+    err = fit.light - L
+    rep = fit.report  # the report names the culprit: a large gain, the weakest combination peaking at −z
+    assert max(b["gain"] for b in rep["bands"]) > 100
+    assert rep["weakest"]["peak_direction"][2] < -0.95
+    assert rep["weakest"]["relative_singular_value"] < 0.01
     along = (err @ weak).norm()  # per channel, the error's component on the weakest direction
     print(f"sphere_on_plane from above: light rel L2 {float(err.norm() / L.norm()):.3f}, s_min/s_max {float(s[-1] / s[0]):.4f}, "
           f"share of the error on the weakest direction {float(along / err.norm()):.3f}")
