@@ -346,7 +346,8 @@ def mitsuba_views(mesh: Mesh, views: list, image: np.ndarray, spp: int = 64, max
     out = []
     with tempfile.TemporaryDirectory() as tmp:
         sd = _base_scene(mi, image, mesh, Path(tmp), centre, scale, face_normals=face_normals)
-        sd["integrator"] = {"type": "path", "max_depth": int(max_depth), "rr_depth": 1000}
+        # hide_emitters: the background is transparent, so alpha is the pixel's coverage of the mesh (else 1 everywhere)
+        sd["integrator"] = {"type": "path", "max_depth": int(max_depth), "rr_depth": 1000, "hide_emitters": True}
         sc = mi.load_dict(sd)
         for k, v in enumerate(views):
             if abs(v.fx - v.fy) > 1e-9 * v.fx or abs(v.cx - 0.5 * v.w) > 1e-9 * v.w or abs(v.cy - 0.5 * v.h) > 1e-9 * v.h:
