@@ -122,7 +122,7 @@ def test_light_from_below_is_the_ill_posed_direction():
     fit = inverse.fit_light(A, obs.values)
     err = fit.light - L
     rep = fit.report  # the report names the culprit: a large gain, the weakest combination peaking at −z
-    assert max(b["gain"] for b in rep["bands"]) > 100
+    assert max(b["gain"] for b in rep["bands"]) > 30  # measured 50-130 (GCV's λ moves with the noise); bumpy_sphere: 3.8
     assert rep["weakest"]["peak_direction"][2] < -0.95
     assert rep["weakest"]["relative_singular_value"] < 0.01
     along = (err @ weak).norm()  # per channel, the error's component on the weakest direction
