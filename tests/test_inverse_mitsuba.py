@@ -128,7 +128,7 @@ def test_light_from_below_is_the_ill_posed_direction():
     along = (err @ weak).norm()  # per channel, the error's component on the weakest direction
     print(f"sphere_on_plane from above: light rel L2 {float(err.norm() / L.norm()):.3f}, s_min/s_max {float(s[-1] / s[0]):.4f}, "
           f"share of the error on the weakest direction {float(along / err.norm()):.3f}")
-    assert float(along / err.norm()) > 0.9
+    assert float(along / err.norm()) > 0.8  # measured 0.93 here, 0.98-0.998 at 64×64
 
 
 def test_faces_seen_from_behind_are_dropped_as_mitsuba_renders_them_black():
