@@ -334,3 +334,19 @@ def test_error_gain_is_the_row_norm_of_the_regularised_inverse():
     for l in range(4):
         assert rep["bands"][l]["gain"] == pytest.approx(float(want[l * l:(l + 1) * (l + 1)].max()), rel=1e-6)
     assert len(rep["weakest"]["coeffs"]) == 16 and abs(math.hypot(*rep["weakest"]["peak_direction"]) - 1) < 1e-2
+
+
+def test_faces_seen_from_behind_are_dropped():
+    """From below its ground, sphere_on_plane shows mostly the plane's underside: those pixels are
+    dropped (``counts[k]['back']``; the transfer is the front side's), every kept pixel sees its
+    surface from the side its interpolated normal faces, and from above nothing is dropped."""
+    mesh = load_scene("sphere_on_plane")
+    W = 32
+    for el, expect_back in ((-10.0, True), (40.0, False)):
+        cams = [Camera.fit(mesh, azimuth=30 + 90 * k, elevation=el, fov=FOV) for k in range(2)]
+        views = [inverse.CameraView(None, np.linalg.inv(c.view_matrix()), None, None, None, None, W, W,
+                                    angle_x=math.radians(FOV)).resolve(W, W) for c in cams]
+        obs = inverse.observe(mesh, views, [np.zeros((W, W, 3))] * 2, [np.ones((W, W), bool)] * 2)
+        n = (mesh.normals.to(torch.float64)[obs.corners] * obs.bary[:, :, None]).sum(1)
+        assert bool(((n * obs.to_eye).sum(1) > 0).all())
+        assert all((c["back"] > c["hit"]) if expect_back else c["back"] == 0 for c in obs.counts)
