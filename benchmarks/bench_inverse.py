@@ -166,6 +166,9 @@ def main() -> None:
            "the same design (no regularisation, no report), timed in the same run.", "",
            "| bands | unknowns/channel | ours (ms) | numpy lstsq (ms) | ratio |", "|---|---|---|---|---|"]
     md += [f"| {b} | {n} | {a * 1e3:.1f} | {t * 1e3:.1f} | {a / t:.2f} |" for b, n, a, t in rows["time"]]
+    md += ["", "## Against Mitsuba 3", "", "Mitsuba's images of known geometry inverted to their light: "
+           "`benchmarks/bench_inverse_mitsuba.py` → [inverse_mitsuba.md](inverse_mitsuba.md); the test: "
+           "`tests/test_inverse_mitsuba.py`."]
     (out / "inverse.md").write_text("\n".join(md) + "\n")
     print("\n".join(md))
 

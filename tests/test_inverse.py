@@ -315,3 +315,38 @@ def test_eight_bit_images_warn(dataset, tmp_path, capsys):
     with pytest.warns(UserWarning, match="decoded from sRGB"):
         _, imgs, _, infos = inverse.load_images(views)
     assert abs(float(imgs[0][0, 0, 0]) - 0.5) < 0.01 and inverse.data_eps(infos) == pytest.approx(1 / 255)
+
+
+def test_error_gain_is_the_row_norm_of_the_regularised_inverse():
+    """The report's per-band ``gain`` (light._gain: s_max ‖(V F S⁻¹)_j‖ from the SVD) equals
+    s_max times the row norms of the Tikhonov inverse (AᵀA + λ²I)⁻¹Aᵀ formed from the normal
+    equations: the largest change of coefficient j per unit pixel error. A convex Lambertian
+    object at 4 bands (band 3 filtered away: its gain is small, bands 0-2 modest)."""
+    convex = load_scene("convex")
+    T = precompute_diffuse(convex, bands=4, samples=64, shadows="never", fold_albedo=False)
+    L = load_light("studio", 4)
+    obs, sc = _synthetic(T, L)
+    A = inverse.design_matrix(sc, obs)[0]
+    f = inverse.solve_tikhonov(A, obs.values[:, 0])
+    G = torch.linalg.solve(A.T @ A + f["lam"] ** 2 * torch.eye(A.shape[1], dtype=torch.float64), A.T)  # [n, P]
+    want = float(torch.linalg.svdvals(A)[0]) * G.norm(dim=1)
+    rep = inverse.well_posedness([f], 4, A[None])
+    for l in range(4):
+        assert rep["bands"][l]["gain"] == pytest.approx(float(want[l * l:(l + 1) * (l + 1)].max()), rel=1e-6)
+    assert len(rep["weakest"]["coeffs"]) == 16 and abs(math.hypot(*rep["weakest"]["peak_direction"]) - 1) < 1e-2
+
+
+def test_faces_seen_from_behind_are_dropped():
+    """From below its ground, sphere_on_plane shows mostly the plane's underside: those pixels are
+    dropped (``counts[k]['back']``; the transfer is the front side's), every kept pixel sees its
+    surface from the side its interpolated normal faces, and from above nothing is dropped."""
+    mesh = load_scene("sphere_on_plane")
+    W = 32
+    for el, expect_back in ((-10.0, True), (40.0, False)):
+        cams = [Camera.fit(mesh, azimuth=30 + 90 * k, elevation=el, fov=FOV) for k in range(2)]
+        views = [inverse.CameraView(None, np.linalg.inv(c.view_matrix()), None, None, None, None, W, W,
+                                    angle_x=math.radians(FOV)).resolve(W, W) for c in cams]
+        obs = inverse.observe(mesh, views, [np.zeros((W, W, 3))] * 2, [np.ones((W, W), bool)] * 2)
+        n = (mesh.normals.to(torch.float64)[obs.corners] * obs.bary[:, :, None]).sum(1)
+        assert bool(((n * obs.to_eye).sum(1) > 0).all())
+        assert all((c["back"] > c["hit"]) if expect_back else c["back"] == 0 for c in obs.counts)

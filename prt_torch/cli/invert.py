@@ -213,7 +213,8 @@ def run(args: argparse.Namespace) -> int:
     w = inv.get("well_posedness")
     msg = f"prt invert: {obs.P} pixels of {len(views)} views, PSNR {inv['residual']['psnr_db']:.2f} dB"
     if w is not None:
-        msg += f", recoverable bands {w['recoverable_bands']}"
+        msg += (f", recoverable bands {w['recoverable_bands']} (largest error gain {max(b['gain'] for b in w['bands']):.3g}; "
+                f"least determined: the light about {tuple(w['weakest']['peak_direction'])})")
     if args.unknown != "light":
         msg += ", brdf " + json.dumps({k: v for k, v in inv["brdf"].items() if k in ("kd", "ks", "s")})
     print(msg + f" -> {args.output}")

@@ -225,7 +225,8 @@ class Observations:
         values: ``[P, C]`` float64 linear radiance observed (C = 3).
         view: ``[P]`` int64 view index; pixel: ``[P]`` int64 flat index ``row·W + col`` in it.
         shapes: ``[(H, W)]`` per view; views: the resolved :class:`CameraView` list.
-        counts: per view, dict(masked=pixels with alpha > 0, hit=pixels that see the mesh).
+        counts: per view, dict(masked=pixels with alpha > 0, hit=pixels that see the front of the
+            mesh, back=pixels that see a face from behind, dropped).
     """
 
     tri: torch.Tensor
@@ -291,7 +292,11 @@ def observe(mesh, views: list[CameraView], images: list[np.ndarray], masks: list
     """Trace every valid pixel of every view to the mesh in one batched Embree query
     (:meth:`prt_torch.scene.RayCaster.intersect`: first hit, its triangle and barycentrics).
 
-    Pixels off the mesh or with alpha 0 are dropped. Checked before any ray is traced: each
+    Pixels off the mesh or with alpha 0 are dropped, and so are pixels whose ray meets its
+    triangle from behind (the side its vertex normals turn away from: the underside of an open
+    ground plane), since the transfer describes the front side only — a one-sided surface, as
+    Mitsuba renders it, is black there, a thin two-sided one lit otherwise (``counts``: ``back``
+    per view). Checked before any ray is traced: each
     view's frustum meets the mesh's bounding sphere ("covers none of the mesh"), and the valid
     pixels (alpha > 0) outnumber ``unknowns``; after tracing, a view that sees none of the mesh
     and fewer hit pixels than ``unknowns`` are refused too. ``max_pixels``: a uniform random
@@ -330,14 +335,25 @@ def observe(mesh, views: list[CameraView], images: list[np.ndarray], masks: list
         if own:
             caster.close()
     hit = np.asarray(hit, bool)
+    back = np.zeros_like(hit)
+    if hit.any():  # the transfer is the front side's: a ray that meets a face from behind sees the unmodelled back side
+        tri_h = np.asarray(tri, np.int64)[hit]
+        V = np.asarray(mesh.vertices, np.float64)
+        F = np.asarray(mesh.faces, np.int64)[tri_h]
+        ng = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
+        ns = np.asarray(mesh.normals, np.float64)[F].sum(1)  # the side the vertex normals (and the transfer) face
+        ng *= np.where(np.einsum("ij,ij->i", ng, ns) < 0, -1.0, 1.0)[:, None]
+        back[np.nonzero(hit)[0]] = np.einsum("ij,ij->i", ng, d[hit]) > 0
+    hit_front = hit & ~back
     counts = []
     for k, v in enumerate(views):
-        n_hit = int(hit[vid == k].sum())
-        counts.append({"masked": int((vid == k).sum()), "hit": n_hit})
+        n_hit = int(hit_front[vid == k].sum())
+        counts.append({"masked": int((vid == k).sum()), "hit": n_hit, "back": int(back[vid == k].sum())})
         if n_hit == 0:
-            raise ValueError(f"image {str(v.file)!r} covers none of the mesh (no pixel with alpha > 0 sees it); accepted: "
+            raise ValueError(f"image {str(v.file)!r} covers none of the mesh (no pixel with alpha > 0 sees its front side; "
+                             f"{counts[-1]['back']} see faces from behind); accepted: "
                              "views that show the object")
-    sel = np.nonzero(hit)[0]
+    sel = np.nonzero(hit_front)[0]
     if sel.size < unknowns:
         raise ValueError(f"{sel.size} pixels see the mesh for {unknowns} unknowns; accepted: more pixels than unknowns")
     if max_pixels is not None and sel.size > max_pixels:

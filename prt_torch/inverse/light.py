@@ -137,26 +137,52 @@ def well_posedness(fits: list[dict], bands: int, A: torch.Tensor) -> dict:
     ``recoverable_up_to`` (largest l with every band ≤ l recoverable, −1 if none),
     ``bands`` (per l: ``resolution`` per channel, ``singular_values`` of the band's own columns of
     the channel-0 design relative to the largest singular value of the whole design,
-    ``filter_min``), ``singular_values`` (whole design, channel 0, relative), ``condition``
+    ``gain``: the largest :func:`_gain` of the band's coefficients over the channels — a relative
+    pixel error ε moves them by at most gain·ε·‖L‖, so a band is determined *in practice* only
+    when gain × (noise + model error) ≪ 1), ``weakest`` (the least determined combination of
+    coefficients: its relative singular value, its ``coeffs`` ``[n²]`` and ``peak_direction``,
+    where on the sphere that combination of SH peaks — e.g. (0, 0, −1), light from below, for
+    an object on a plane seen from above), ``singular_values`` (whole design, channel 0, relative), ``condition``
     (s_max / s_min), ``lam`` per channel (relative to s_max), ``lam_floor`` (relative)."""
+    from ..sh import eval_sh
+    from ..sh.quadrature import fibonacci_sphere
+
     out_bands = []
     rec = []
     smax = float(fits[0]["s"][0])
+    gains = [_gain(f) for f in fits]  # [n] per channel
     for l in range(bands):
         a, b = l * l, (l + 1) * (l + 1)
         resl = [float(f["resolution"][a:b].mean()) for f in fits]
         sv = torch.linalg.svdvals(A[0][:, a:b]) / smax
-        out_bands.append({"l": l, "resolution": resl, "singular_values": [float(v) for v in sv]})
+        out_bands.append({"l": l, "resolution": resl, "singular_values": [float(v) for v in sv],
+                          "gain": max(float(g[a:b].max()) for g in gains)})
         if min(resl) >= 0.5:
             rec.append(l)
     upto = -1
     while upto + 1 in rec:
         upto += 1
     s = fits[0]["s"]
-    return {"recoverable_bands": rec, "recoverable_up_to": upto, "bands": out_bands,
+    w = fits[0]["Vh"][-1]  # the right singular vector of the smallest singular value (channel 0)
+    d, _ = fibonacci_sphere(2048)
+    k = int(torch.argmax((eval_sh(d, bands) @ w).abs()))
+    weakest = {"relative_singular_value": float(s[-1]) / smax, "coeffs": [float(v) for v in w],
+               "peak_direction": [round(float(v), 3) for v in d[k]]}
+    return {"recoverable_bands": rec, "recoverable_up_to": upto, "bands": out_bands, "weakest": weakest,
             "singular_values": [float(v) / smax for v in s], "condition": float(s[0] / s[-1]) if float(s[-1]) > 0 else math.inf,
             "lam": [f["lam"] / float(f["s"][0]) for f in fits], "lam_floor": fits[0]["lam_floor"] / smax,
             "threshold": 0.5}
+
+
+def _gain(fit: dict) -> torch.Tensor:
+    """``[n]`` float64: how far a data error moves each coefficient of a :func:`solve_tikhonov`
+    fit. The estimate is x = V F S⁻¹ Uᵀ b, so an error e of the pixels moves coefficient j by at
+    most ‖(V F S⁻¹)_j‖ ‖e‖; with ‖b‖ ≤ s_max ‖x‖, a relative error ‖e‖ = ε ‖b‖ (noise, or a
+    renderer that differs from the model by ε) moves it by at most gain_j · ε · ‖x‖, with
+    gain_j = s_max ‖(V F S⁻¹)_j‖ (the coefficient's condition number; Hansen 1998 §4)."""
+    s, lam = fit["s"], fit["lam"]
+    fs = s / (s ** 2 + lam ** 2)  # f_i / s_i, finite where s_i = 0
+    return float(s[0]) * ((fit["Vh"].T * fs[None]) ** 2).sum(1).sqrt()
 
 
 @dataclasses.dataclass

@@ -25,7 +25,7 @@ from ..scene import Mesh
 from ..transfer.diffuse import offset_origins
 
 __all__ = ["ValidatorUnavailable", "INSTALL_HINT", "VARIANT", "require_mitsuba", "mitsuba_exit_radiance", "BSDF_PLUGIN", "engine_bsdf",
-           "mitsuba_glossy_exit", "MITSUBA_DIAGONAL", "MITSUBA_FRAMES", "mitsuba_frame", "MITSUBA_PROBE_TMIN"]
+           "mitsuba_glossy_exit", "mitsuba_views", "MITSUBA_DIAGONAL", "MITSUBA_FRAMES", "mitsuba_frame", "MITSUBA_PROBE_TMIN"]
 
 INSTALL_HINT = "prt validate needs Mitsuba 3: pip install 'prt-torch[validate]' (or: pip install 'mitsuba>=3.5')"
 VARIANT = "scalar_rgb"
@@ -103,15 +103,17 @@ def _write_ply(path: Path, mesh: Mesh, centre: np.ndarray, scale: float) -> None
         fh.write(fd.tobytes())
 
 
-def _base_scene(mi, image: np.ndarray, mesh: Mesh | None, tmp: Path, centre: np.ndarray, scale: float) -> dict[str, Any]:
+def _base_scene(mi, image: np.ndarray, mesh: Mesh | None, tmp: Path, centre: np.ndarray, scale: float,
+                face_normals: bool = True) -> dict[str, Any]:
     """The Mitsuba scene both measurements share: the light image as ``envmap`` and (if given)
-    the mesh, flat-shaded, one-sided Lambertian with its vertex albedo (written to ``tmp``), in
-    the frame of :func:`mitsuba_frame` (``centre``, ``scale``)."""
+    the mesh, flat-shaded (``face_normals``; False: Mitsuba's interpolated vertex normals),
+    one-sided Lambertian with its vertex albedo (written to ``tmp``), in the frame of
+    :func:`mitsuba_frame` (``centre``, ``scale``)."""
     scene: dict[str, Any] = {"type": "scene", "env": {"type": "envmap", "bitmap": mi.Bitmap(np.ascontiguousarray(image, np.float32))}}
     if mesh is not None:
         ply = tmp / "mesh.ply"
         _write_ply(ply, mesh, centre, scale)
-        scene["mesh"] = {"type": "ply", "filename": str(ply), "face_normals": True,
+        scene["mesh"] = {"type": "ply", "filename": str(ply), "face_normals": bool(face_normals),
                          "bsdf": {"type": "diffuse", "reflectance": {"type": "mesh_attribute", "name": "vertex_color"}}}
     return scene
 
@@ -322,3 +324,44 @@ def mitsuba_glossy_exit(mesh: Mesh | None, points: Any, frames: Any, views: Any,
     if depths is None:
         return {"radiance": mean[0], "radiance_se": se[0]}
     return {"radiance": mean, "radiance_se": se, "diff_se": (R - R[:1]).std(1, unbiased=True) / math.sqrt(batches)}
+
+
+def mitsuba_views(mesh: Mesh, views: list, image: np.ndarray, spp: int = 64, max_depth: int = 2, seed: int = 0,
+                  face_normals: bool = False, frame: str = "normalized") -> list[np.ndarray]:
+    """Mitsuba 3 path-traced images of ``mesh`` (one-sided Lambertian, ``mesh.albedo``) under the
+    environment ``image`` ``[H, 2H, 3]`` (:func:`prt_torch.validate.lights.light_image`), seen by
+    resolved :class:`prt_torch.inverse.CameraView` s (``transforms.json``'s OpenGL camera-to-world
+    matrix, square pixels, centred principal point) — the independent renderer of the inverse
+    rendering tests (docs/inverse.md).
+
+    The camera is Mitsuba's ``perspective`` sensor looking from the view's eye down its −z with
+    its +y up, horizontal field of view 2·atan(w / 2 fx), box pixel filter (each pixel the mean
+    over its footprint; the engine's pixel is its centre: a second-order difference on smooth
+    shading). ``max_depth`` 2: direct light with shadows (the engine's ``bounces=0``); B + 2: B
+    bounces. Returns per view ``[h, w, 4]`` float32: linear RGB and the pixel's coverage of the
+    mesh (1 inside, fractional on silhouettes, 0 on the background; the env's radiance there).
+    """
+    mi = require_mitsuba()
+    centre, scale = mitsuba_frame(mesh, frame)
+    out = []
+    with tempfile.TemporaryDirectory() as tmp:
+        sd = _base_scene(mi, image, mesh, Path(tmp), centre, scale, face_normals=face_normals)
+        # hide_emitters: the background is transparent, so alpha is the pixel's coverage of the mesh (else 1 everywhere)
+        sd["integrator"] = {"type": "path", "max_depth": int(max_depth), "rr_depth": 1000, "hide_emitters": True}
+        sc = mi.load_dict(sd)
+        for k, v in enumerate(views):
+            if abs(v.fx - v.fy) > 1e-9 * v.fx or abs(v.cx - 0.5 * v.w) > 1e-9 * v.w or abs(v.cy - 0.5 * v.h) > 1e-9 * v.h:
+                raise ValueError(f"view {k}: fx={v.fx}, fy={v.fy}, cx={v.cx}, cy={v.cy} for {v.w}x{v.h}; accepted: square "
+                                 "pixels and a centred principal point (Mitsuba's perspective sensor)")
+            R = v.c2w[:3, :3]
+            eye = (v.eye - centre) * scale
+            sensor = mi.load_dict({
+                "type": "perspective", "fov": math.degrees(2 * math.atan(0.5 * v.w / v.fx)), "fov_axis": "x",
+                "near_clip": 1e-3, "far_clip": 1e4,
+                "to_world": mi.ScalarTransform4f().look_at(origin=mi.ScalarPoint3f(*eye), target=mi.ScalarPoint3f(*(eye - R[:, 2])),
+                                                           up=mi.ScalarVector3f(*R[:, 1])),
+                "film": {"type": "hdrfilm", "width": int(v.w), "height": int(v.h), "rfilter": {"type": "box"}, "pixel_format": "rgba"},
+                "sampler": {"type": "independent", "sample_count": int(spp)}})
+            sd_k = (int(seed) * 7919 + k * 1009) % (1 << 31)
+            out.append(np.asarray(mi.render(sc, sensor=sensor, spp=int(spp), seed=sd_k), dtype=np.float32))
+    return out
