@@ -27,7 +27,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -39,6 +38,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from prt_torch import io  # noqa: E402
+from prt_torch.harness.timing import machine_info  # noqa: E402
 from prt_torch.scene import builtin  # noqa: E402
 from prt_torch.transfer import RunOptions  # noqa: E402
 from prt_torch.transfer.diffuse import precompute_diffuse  # noqa: E402
@@ -46,16 +46,6 @@ from prt_torch.transfer.diffuse import precompute_diffuse  # noqa: E402
 TODAY = ("uniform", "plain")  # the estimator before issue 42
 METHODS = [(s, e) for s in ("uniform", "cosine", "qmc") for e in ("plain", "control", "auto")]
 REF_SEED = 1_000_003
-
-
-def cpu_name() -> str:
-    try:
-        for line in open("/proc/cpuinfo"):
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 def run(mesh, bands, samples, seed, sampling, estimator, bounces):
@@ -129,7 +119,7 @@ def main(argv=None):
     load1 = os.getloadavg()[0]
     res = {"scene": f"{args.scene}:{args.size}", "vertices": V, "bands": args.bands, "reference_samples": ref_n,
            "reference_seconds": t_ref, "reference_self_error": ref_self, "occluded_fraction_t00": occl,
-           "seeds": args.seeds, "rows": rows, "cpu": cpu_name(), "load": [load0, load1]}
+           "seeds": args.seeds, "rows": rows, "cpu": machine_info()["cpu"], "load": [load0, load1]}
     write(res, Path(args.out))
 
 
