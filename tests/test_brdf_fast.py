@@ -115,3 +115,27 @@ def test_isotropic_projection_against_brute_force():
     # second order: the fine grid's error is about err_mid / 3 (measured 1.0e-4 against 3.0e-4)
     assert float((got - fine).abs().max()) <= 0.6 * err_mid
     assert err_mid < 0.02 * float(fine.abs().max())
+
+
+def test_sphericart_first_used_on_one_thread_is_safe_later():
+    """The projection (and a precompute's chunk) run on one torch thread; an SH calculator first used
+    there and later on two threads corrupted the heap (sphericart-torch 2.0.4; the process died in a
+    later LAPACK call). In a subprocess, so a crash fails this test rather than the session."""
+    import subprocess
+    import sys
+
+    pytest.importorskip("sphericart.torch")
+    code = (
+        "import torch\n"
+        "from prt_torch.executor import torch_threads\n"
+        "from prt_torch.sh import eval_sh, hemisphere_projector\n"
+        "torch.set_num_threads(2)\n"
+        "d = torch.nn.functional.normalize(torch.randn(40000, 3, dtype=torch.float64), dim=1)\n"
+        "with torch_threads(1):\n"
+        "    eval_sh(d[:100], 10, check=False)\n"
+        "eval_sh(d, 10, check=False)\n"
+        "hemisphere_projector(10, 'least_squares', rcond=1e-14)\n"
+        "print('done')\n"
+    )
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0 and "done" in r.stdout, (r.returncode, r.stderr[-500:])
