@@ -76,4 +76,6 @@ def test_glossy_ten_bands_against_brute_force():
         errs[label] = float((out - ref).norm() / ref.norm())
         if label == "chosen":
             assert tr.meta["rcond_chosen"] is not None and "predicted error" in tr.meta["rcond_decision"]
-    assert errs["exact"] > 0.3 and errs["chosen"] < 0.03, errs
+    # the exact inverse's figure is rounding noise amplified by the Gram's condition (3e12 at 10 bands): a
+    # 8e-16 change in B (the isotropic projection, issue 42) moved it from above 0.3 to 0.275 — "tens of percent"
+    assert errs["exact"] > 0.2 and errs["chosen"] < 0.03, errs

@@ -125,9 +125,22 @@ def _legendre_q(z: torch.Tensor, bands: int) -> list[torch.Tensor]:
 
 @lru_cache(maxsize=None)
 def _sphericart_calculator(lmax: int):
+    """sphericart's calculator for ``lmax``, first run at the most threads this process may use.
+
+    sphericart-torch 2.0.4 sizes its per-thread buffers at the first ``compute``: created inside
+    ``torch_threads(1)`` (a precompute's chunk or BRDF setup) and used later with two OpenMP
+    threads, it wrote past them — heap corruption, seen as 'double free or corruption' in a later
+    LAPACK call (2 cores, 10 bands). Warming it at max(cores, current threads) avoids that."""
+    import os
+
     import sphericart.torch as sct  # optional compiled backend
 
-    return sct.SphericalHarmonics(lmax)
+    from ..executor import torch_threads
+
+    calc = sct.SphericalHarmonics(lmax)
+    with torch_threads(max(os.cpu_count() or 1, torch.get_num_threads())):
+        calc.compute(torch.tensor([[0.0, 0.0, 1.0]] * 64, dtype=torch.float64))
+    return calc
 
 
 def _have_sphericart() -> bool:

@@ -36,6 +36,7 @@ import numpy as np
 import torch
 
 from .._checks import check_choice, check_int, describe
+from ..executor import torch_threads
 from ..brdf import BRDF, AshikhminShirley, brdf_matrices, output_index
 from ..scene import Mesh, RayCaster, default_workers
 from ..sh import blocks_to_dense, eval_sh, hemisphere_gram, rotation_blocks
@@ -62,6 +63,8 @@ __all__ = [
 ]
 
 MAX_GLOSSY_BANDS = 16
+#: torch threads inside a glossy/MRT chunk (None: torch's default).
+CHUNK_THREADS: int | None = 1
 MAX_SAMPLES = 1 << 18
 ESTIMATORS = ("control", "plain")  # T_p's: the exact unshadowed T_p minus the blocked directions, or the visible sum
 
@@ -296,6 +299,12 @@ def run_exit_transfer(
             meta["bounce_table_seconds"] = time.perf_counter() - tb
 
         def compute(a: int, b: int) -> dict[str, torch.Tensor]:
+            if CHUNK_THREADS is None:
+                return chunk_work(a, b)
+            with torch_threads(CHUNK_THREADS):  # as the diffuse chunk: the cores are the ray-casting workers'
+                return chunk_work(a, b)
+
+        def chunk_work(a: int, b: int) -> dict[str, torch.Tensor]:
             idx = sel[a:b]
             blocks = rotation_blocks(F_all[idx], bands) if left.numel() or estimator == "control" else None  # once per chunk
             T, rays = transferred_radiance(caster, mesh.vertices[idx], mesh.normals[idx], directions, bounce, ids=idx,
@@ -487,8 +496,9 @@ def precompute_glossy(
     if exit and projection == "least_squares" and rcond is None:
         rcond, rcond_meta = _least_squares_rcond(brdf, bands_out, bands, samples, seed, drop_out, quad_bands)
     if exit:
-        B, index = brdf_matrices(brdf, bands_out, bands, projection=projection, drop_out=drop_out, rcond=rcond,
-                                 window=window, window_width=window_width, quad_bands=quad_bands)
+        with torch_threads(1):  # small steps: one thread is steady (0.05–0.1 s) where two spin (up to 0.9 s, 2 cores)
+            B, index = brdf_matrices(brdf, bands_out, bands, projection=projection, drop_out=drop_out, rcond=rcond,
+                                     window=window, window_width=window_width, quad_bands=quad_bands)
         if index.numel() == 1:
             index = index.expand(mesh.num_vertices)
         out_idx = output_index(bands_out, drop_out)

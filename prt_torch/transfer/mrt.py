@@ -16,6 +16,7 @@ import torch
 
 from .._checks import check_choice, check_int
 from ..brdf import BRDF, brdf_matrices
+from ..executor import torch_threads
 from ..scene import Mesh
 from .base import RunOptions, Transfer
 from .glossy import (ESTIMATORS, MAX_GLOSSY_BANDS, check_brdf, check_common, check_frames, check_memory, decide_shadows,
@@ -67,12 +68,13 @@ def precompute_mrt(
     check_memory("mrt", n_sel, M * M, bands * bands, samples, run.chunk_size, run.max_memory)
     shadows, shadow_meta = decide_shadows(mesh, shadows, seed, run)
     t0 = time.perf_counter()
-    basis = MRTBasis(M, bands_out)
-    B, index = brdf_matrices(brdf, bands_out, bands, projection="zero", window=window, window_width=window_width,
-                             quad_bands=quad_bands)
+    with torch_threads(1):  # small steps: one thread is steady (0.2–0.3 s) where two spin (up to 1 s, 2 cores)
+        basis = MRTBasis(M, bands_out)
+        B, index = brdf_matrices(brdf, bands_out, bands, projection="zero", window=window, window_width=window_width,
+                                 quad_bands=quad_bands)
+        W = basis.P_ @ B  # [U, M², n²]
     if index.numel() == 1:
         index = index.expand(mesh.num_vertices)
-    W = basis.P_ @ B  # [U, M², n²]
     t_brdf = time.perf_counter() - t0
     sel = None if vertices is None else torch.as_tensor(vertices, dtype=torch.int64)
     fp = {"kind": "mrt", "mesh_hash": mesh.content_hash(), "bands": bands, "bands_out": bands_out, "M": M,
