@@ -37,6 +37,7 @@ import torch
 
 from .._checks import check_choice, check_int, describe
 from ..executor import torch_threads
+from ..io import format_bytes
 from ..brdf import BRDF, AshikhminShirley, brdf_matrices, output_index
 from ..scene import Mesh, RayCaster, default_workers
 from ..sh import blocks_to_dense, eval_sh, hemisphere_gram, rotation_blocks
@@ -112,17 +113,6 @@ def memory_budget(max_memory: int | None) -> int:
     return int(0.6 * _available_memory()) if max_memory is None else int(max_memory)
 
 
-def format_bytes(b: float) -> str:
-    """``b`` bytes as text with a binary unit (``'1.5 GiB'``)."""
-    return _fmt_bytes(b)
-
-
-def _fmt_bytes(b: float) -> str:
-    for unit in ("B", "KiB", "MiB", "GiB", "TiB"):
-        if b < 1024 or unit == "TiB":
-            return f"{b:.3g} {unit}"
-        b /= 1024
-    return f"{b:.3g} TiB"  # pragma: no cover
 
 
 class _Directions:
@@ -371,8 +361,8 @@ def check_memory(kind: str, V: int, n_out: int, n2: int, samples: int, chunk_siz
     if need > budget:
         raise ValueError(
             f"{kind} transfer for {V} vertices with {n_out}×{n2} matrices and {samples} samples needs about "
-            f"{_fmt_bytes(need)} (result {_fmt_bytes(V * n_out * n2 * 4)} float32, held twice while assembling), "
-            f"more than the budget {_fmt_bytes(budget)}; accepted: fewer bands or tents, fewer samples / a smaller "
+            f"{format_bytes(need)} (result {format_bytes(V * n_out * n2 * 4)} float32, held twice while assembling), "
+            f"more than the budget {format_bytes(budget)}; accepted: fewer bands or tents, fewer samples / a smaller "
             "chunk_size, a vertex subset, or a larger max_memory"
         )
     return need

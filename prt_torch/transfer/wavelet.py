@@ -54,7 +54,8 @@ from ..lighting.layouts import dir_to_pixel, pixel_to_dir
 from ..scene import Mesh, RayCaster
 from .base import RunOptions, Transfer
 from .diffuse import HIT_OFFSET, HitBounce, boundary_nudge, offset_origins
-from .glossy import decide_shadows, format_bytes, memory_budget
+from ..io import format_bytes
+from .glossy import decide_shadows, memory_budget
 from .ray_kernels import upper_rays
 
 __all__ = ["precompute_wavelet", "estimate_wavelet_memory", "dense_wavelet_transfer", "sparsify", "quantise", "dequantise",
