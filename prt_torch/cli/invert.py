@@ -47,6 +47,10 @@ def register(subparsers) -> None:
                    "shadowed)")
     p.add_argument("--regularizer", choices=("gcv", "lcurve"), default="gcv",
                    help="how the Tikhonov weight is chosen from the data (default gcv)")
+    p.add_argument("--positive", action="store_true",
+                   help="constrain the recovered light's radiance to be >= 0 over the sphere (Ramamoorthi eq. 6.24, as hard "
+                        "constraints; same regularisation). Off by default: it helps when the light is smooth and the images "
+                        "filter bands away, and biases the fit when the light has detail beyond --bands (docs/inverse.md)")
     p.add_argument("--max-pixels", type=int, default=None, help="use a random subset of this many pixels")
     p.add_argument("-o", "--output", required=True, metavar="RESULT.json")
     p.add_argument("--report", default=None, metavar="DIR", help="write input | re-rendered | error images per view")
@@ -103,6 +107,9 @@ def _check_args(args, brdf: dict) -> None:
     if args.unknown == "both" and brdf["type"] != "phong":
         raise ValueError(f"--unknown both with --brdf {brdf['type']}; accepted: --brdf phong (a Lambertian object under "
                          "unknown light is --unknown light with a known albedo)")
+    if args.positive and args.unknown != "light":
+        raise ValueError(f"--positive with --unknown {args.unknown}; accepted: --unknown light (the constraint is on the "
+                         "recovered light)")
     if args.unknown == "light" and args.light is not None:
         raise ValueError("--light is the known light of --unknown brdf; with --unknown light it is what is recovered")
     if args.unknown == "light" and brdf["type"] == "phong" and not {"kd", "ks", "s"} <= set(brdf):
@@ -185,9 +192,10 @@ def run(args: argparse.Namespace) -> int:
             C = 3
             A = model.light_rows(torch.full((C,), float(brdf["kd"]), dtype=torch.float64),
                                  torch.tensor(float(brdf["ks"]), dtype=torch.float64), torch.tensor(float(brdf["s"]), dtype=torch.float64))
-        fit = inverse.fit_light(A, obs.values, args.regularizer, eps)
+        fit = inverse.fit_light(A, obs.values, args.regularizer, eps, positive=args.positive)
         L, pred = fit.light, fit.predicted
         inv["well_posedness"] = fit.report
+        inv["positivity"] = fit.positivity
     elif args.unknown == "brdf":
         fixed = {"s": brdf["s"]} if "s" in brdf else None
         bf = inverse.material.fit_phong(model, L_known, obs.values, fixed=fixed)
@@ -215,6 +223,11 @@ def run(args: argparse.Namespace) -> int:
     if w is not None:
         msg += (f", recoverable bands {w['recoverable_bands']} (largest error gain {max(b['gain'] for b in w['bands']):.3g}; "
                 f"least determined: the light about {tuple(w['weakest']['peak_direction'])})")
+    pos = inv.get("positivity")
+    if pos is not None:
+        u = pos["unconstrained"]
+        msg += (f", unconstrained light negative on {100 * max(u['negative_solid_angle']):.1f}% of the sphere (least radiance "
+                f"{min(u['min_relative']):.3g} x mean |radiance|)" + (", constrained >= 0" if pos["constrained"] else ""))
     if args.unknown != "light":
         msg += ", brdf " + json.dumps({k: v for k, v in inv["brdf"].items() if k in ("kd", "ks", "s")})
     print(msg + f" -> {args.output}")
