@@ -122,7 +122,8 @@ def main() -> None:
            "GCV search).", "",
            "**Reading.** Where the light is smooth and non-negative and the images filter bands away (A, `convex`: "
            "band 3 and 5 vanish for a convex Lambertian object), the unconstrained estimate dips below zero and the "
-           "constraint cuts the error several-fold; where the images determine every band, both agree noise-free, and with 1% noise the constraint still helps (e.g. `bumpy_sphere` 4 bands 1.2% → 0.8%). But a real "
+           "constraint cuts the error several-fold; where the images determine every band, both agree noise-free, and with 1% noise the "
+           "constraint still helps (e.g. `bumpy_sphere` 4 bands 1.2% → 0.8%). But a real "
            "light has detail beyond any fitted band count, and its n-band projection — what the images determine — "
            "is itself negative (B: down to −1.4 × the mean |radiance|); constraining the fit to ≥ 0 then moves it away "
            "from that projection (at 3 bands on `convex` / `bumpy_sphere`, which the images determine: error 3–9% → "
