@@ -99,6 +99,35 @@ def test_gradient_wrt_codec_tensors():
     assert _gc(lambda b, m: (setattr(c, "basis_", b), setattr(c, "means_", m), c.relight(enc, L))[-1], c.basis_, c.means_)
 
 
+@pytest.mark.parametrize("name,kw", AFFINE[:6] + [("mrt_pca", dict(vectors=3))], ids=[a for a, _ in AFFINE[:6]] + ["mrt_pca"])
+def test_affine_decode_gradcheck_wrt_codec_tensors(name, kw):
+    """``decode`` under autograd (issue 38: "affine decode too"): with respect to the means, the
+    basis and the per-point weights, against finite differences; its value is the tiled forward's
+    (float32 tolerance)."""
+    torch.manual_seed(5)
+    ms = (4, 9) if name == "mrt_pca" else None
+    c, enc = _fit(name, torch.randn(30, 36 if ms else 9), **kw, matrix_shape=ms)
+    ref = c.decode(enc)
+    names = ["basis_"] + (["means_"] if c.means_ is not None else [])  # (mrt_pca: no mean)
+    tensors = [getattr(c, k).double().requires_grad_(True) for k in names]
+    if "coeffs" in enc.tensors:
+        names.append("coeffs")
+        tensors.append(enc.tensors["coeffs"].double().requires_grad_(True))
+
+    def f(*ts):
+        for k, t in zip(names, ts):
+            if k == "coeffs":
+                enc.tensors["coeffs"] = t
+            else:
+                setattr(c, k, t)
+        return c.decode(enc)
+
+    assert _gc(f, *tensors)
+    got = f(*tensors)
+    assert got.requires_grad and got.dtype == torch.float64
+    assert torch.allclose(got.detach().float(), ref, rtol=1e-5, atol=1e-5 * float(ref.abs().max()))
+
+
 def test_relighter_falls_back_to_autograd_path():
     """A prepared relighter (the render loop form, straight to the kernels) takes the torch path when
     the light requires grad, and its gradient is the analytic one: ∂Σ out / ∂l = Σ_p e_p (PCA:
