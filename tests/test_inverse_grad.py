@@ -128,6 +128,32 @@ def test_affine_decode_gradcheck_wrt_codec_tensors(name, kw):
     assert torch.allclose(got.detach().float(), ref, rtol=1e-5, atol=1e-5 * float(ref.abs().max()))
 
 
+@pytest.mark.parametrize("kw", [dict(latent=3, epochs=5), dict(latent=3, epochs=5, clusters=2)], ids=["K1", "K2"])
+def test_neural_decode_gradcheck(kw):
+    """The neural codec's ``decode`` (eq. (1): head of [z, φ(z)]) under autograd, with respect to
+    the codes and the linear head, against finite differences; the value is the no-grad pass's."""
+    torch.manual_seed(6)
+    try:
+        c, enc = _fit("neural", torch.randn(30, 9), **kw)
+    except (TypeError, ValueError):  # parameter names of another version: its defaults
+        c, enc = _fit("neural", torch.randn(30, 9))
+    ref = c.decode(enc)
+    z = enc.tensors["z"].double().requires_grad_(True)
+    head = c.head_.double().requires_grad_(True)
+    bias = c.bias_.double().requires_grad_(True)
+
+    def f(zz, h, b):
+        enc.tensors["z"], c.head_, c.bias_ = zz, h, b
+        return c.decode(enc)
+
+    assert _gc(f, z, head, bias)
+    assert f(z, head, bias).dtype == torch.float64
+    # the value: the same pass as the no-grad one (float32 tensors that require grad: the same bits; float64 differs
+    # by the float32 pass's rounding, amplified here by a 5-epoch head with weights ~6e3)
+    got = f(*(t.detach().float().requires_grad_(True) for t in (z, head, bias)))
+    assert got.requires_grad and torch.allclose(got.detach(), ref, rtol=1e-6, atol=1e-7 * float(ref.abs().max()))
+
+
 def test_relighter_falls_back_to_autograd_path():
     """A prepared relighter (the render loop form, straight to the kernels) takes the torch path when
     the light requires grad, and its gradient is the analytic one: ∂Σ out / ∂l = Σ_p e_p (PCA:
