@@ -224,6 +224,29 @@ def test_gaussian_codec_gradcheck_through_the_prefilter(gaussian, view):
     assert _gc(f, L)
 
 
+def test_gaussian_relight_surface_gradcheck(gaussian):
+    """Surface points (Green §2.3: lobes blended across views and the triangle's vertices), with
+    respect to the SH light through the prefilter; the value equals the kernels' path's."""
+    from prt_torch.lighting.prefilter import prefilter_environment
+
+    c, enc, V, J = gaussian
+    g = torch.Generator().manual_seed(7)
+    faces = torch.tensor([[0, 1, 2], [2, 3, 4]])
+    fi = torch.tensor([0, 1, 1])
+    bary = torch.rand(3, 3, generator=g)
+    bary = bary / bary.sum(1, keepdim=True)
+    dirs = torch.nn.functional.normalize(torch.randn(3, 3, generator=g), dim=1)
+    L0 = load_light_sh().double()
+
+    def f(l):
+        return c.relight_surface(enc, prefilter_environment(l, res=4, levels=5), faces, fi, bary, dirs)
+
+    L = L0.clone().requires_grad_(True)
+    assert _gc(f, L)
+    ref = c.relight_surface(enc, prefilter_environment(L0, res=4, levels=5), faces, fi, bary, dirs)
+    assert torch.allclose(f(L).detach().float(), ref, rtol=1e-4, atol=1e-5 * float(ref.abs().max()))
+
+
 def test_gaussian_codec_gradcheck_wrt_levels_and_sh(gaussian):
     """With respect to the pyramid itself (levels) and the SH coefficients of the diffuse part."""
     from prt_torch.lighting.prefilter import PrefilteredEnvironment, prefilter_environment
