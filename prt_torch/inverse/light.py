@@ -37,6 +37,7 @@ solved exactly as a least-distance problem through non-negative least squares (L
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 
 import torch
@@ -255,18 +256,27 @@ def solve_positive(fit: dict, Y: torch.Tensor) -> dict:
     return {"x": x, "active": int((yx <= 1e-9 * scale).sum()), "objective_increase": float(z @ z)}
 
 
+@functools.lru_cache(maxsize=32)
+def _sphere_basis(bands: int, n: int) -> torch.Tensor:
+    """``[n, bands²]`` float64: the SH basis at ``n`` spherical-Fibonacci directions (cached: fit_light
+    reports negativity on every call, and ``material.fit_both`` calls it for each of ~150 BRDF
+    candidates). Read-only."""
+    from ..sh import eval_sh
+    from ..sh.quadrature import fibonacci_sphere
+
+    return eval_sh(fibonacci_sphere(n)[0], bands)
+
+
 def negativity(L: torch.Tensor, dirs: torch.Tensor | None = None) -> dict:
     """How negative the radiance f of an SH light ``L [C, n²]`` is over the sphere, per channel, at
     equal-area directions (spherical Fibonacci, ``dirs [D, 3]``, default 8192): ``min_relative``
     (the least radiance over the mean |f|), ``negative_solid_angle`` (the fraction of the sphere
     where f < 0) and ``negative_share`` (∫ max(−f, 0) / ∫ |f|). A light f ≡ 0 gives zeros."""
     from ..sh import eval_sh
-    from ..sh.quadrature import fibonacci_sphere
 
     bands = math.isqrt(L.shape[1])
-    if dirs is None:
-        dirs = fibonacci_sphere(8192)[0]
-    f = eval_sh(dirs, bands) @ L.to(torch.float64).T  # [D, C]
+    Y = _sphere_basis(bands, 8192) if dirs is None else eval_sh(dirs, bands)
+    f = Y @ L.to(torch.float64).T  # [D, C]
     mabs = f.abs().mean(0)
     nz = mabs > 0
     return {"min_relative": torch.where(nz, f.min(0).values / mabs.clamp_min(1e-300), 0.0).tolist(),
@@ -337,37 +347,48 @@ class LightFit:
         light: ``[C, n²]`` float64 SH light (graphics convention, +z up).
         report: :func:`well_posedness`'s dict.
         predicted: ``[P, C]`` float64 re-rendered pixels; residual_rms: float.
-        positivity: how negative the unconstrained estimate's radiance is (:func:`negativity`,
-            key ``unconstrained``), and with ``positive`` the constrained result's (``result``),
-            the active constraints per channel, the constrained directions.
+        unconstrained: ``[C, n²]`` float64, the Tikhonov estimate (= ``light`` unless constrained).
+        constraint: with ``positive``, the constrained directions, active constraints per
+            channel and objective increase; else None.
+        positivity (property, computed on first use): how negative the unconstrained estimate's
+            radiance is (:func:`negativity`, key ``unconstrained``), ``constrained``, and with
+            ``positive`` the constrained result's (``result``) and ``constraint``'s keys.
     """
 
     light: torch.Tensor
     report: dict
     predicted: torch.Tensor
     method: str
-    positivity: dict | None = None
+    unconstrained: torch.Tensor | None = None
+    constraint: dict | None = None
+
+    @functools.cached_property
+    def positivity(self) -> dict:
+        L0 = self.light if self.unconstrained is None else self.unconstrained
+        pos = {"constrained": self.constraint is not None, "unconstrained": negativity(L0)}
+        if self.constraint is not None:
+            pos.update(self.constraint)
+            pos["result"] = negativity(self.light)
+        return pos
 
 
 def fit_light(A: torch.Tensor, values: torch.Tensor, method: str = "gcv", eps: float = FLOAT32_EPS,
               positive: bool = False) -> LightFit:
     """Solve the light from the design ``A [C, P, n]`` float64 and the observations ``values [P, C]``
     (one :func:`solve_tikhonov` per channel, each with its own λ). ``positive``: the radiance
-    constrained ≥ 0 over the sphere (eq. 6.24, :func:`solve_positive`, same λ); the positivity
-    record says how negative the unconstrained estimate was either way."""
+    constrained ≥ 0 over the sphere (eq. 6.24, :func:`solve_positive`, same λ); the fit's
+    ``positivity`` says how negative the unconstrained estimate was either way."""
     C, P, n = A.shape
     bands = math.isqrt(n)
     fits = [solve_tikhonov(A[c], values[:, c].to(torch.float64), method, eps) for c in range(C)]
-    L = torch.stack([f["x"] for f in fits])
-    pos = {"constrained": bool(positive), "unconstrained": negativity(L)}
+    L0 = L = torch.stack([f["x"] for f in fits])
+    constraint = None
     if positive:
-        from ..sh import eval_sh
-
-        dirs = positive_directions(bands)
-        Y = eval_sh(dirs, bands)
+        D = positive_directions(bands).shape[0]
+        Y = _sphere_basis(bands, D)  # the SH basis at positive_directions(bands)
         sols = [solve_positive(f, Y) for f in fits]
         L = torch.stack([p["x"] for p in sols])
-        pos.update({"directions": int(dirs.shape[0]), "active": [p["active"] for p in sols],
-                    "objective_increase": [p["objective_increase"] for p in sols], "result": negativity(L)})
+        constraint = {"directions": D, "active": [p["active"] for p in sols],
+                      "objective_increase": [p["objective_increase"] for p in sols]}
     pred = torch.einsum("cpn,cn->pc", A, L)
-    return LightFit(L, well_posedness(fits, bands, A), pred, method, pos)
+    return LightFit(L, well_posedness(fits, bands, A), pred, method, L0, constraint)
