@@ -160,7 +160,7 @@ def _kind_params(args, brdf: dict) -> tuple[str, dict] | None:
         raise ValueError(f"--tents with --kind {kind}; accepted: --kind mrt")
     params: dict = {"bands": args.bands, "samples": args.samples, "bounces": args.bounces}
     if args.transfer_brdf is not None or args.transfer_brdf_param:
-        params["brdf"] = {"type": args.transfer_brdf or "phong",
+        params["brdf"] = {"type": args.transfer_brdf or "ashikhmin_shirley",  # the precompute's default model, as prt precompute
                           **parse_assignments(args.transfer_brdf_param, what="--transfer-brdf-param")}
     if args.bands_out is not None:
         params["bands_out"] = args.bands_out
