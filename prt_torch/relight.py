@@ -274,7 +274,8 @@ class WaveletRelighter:
 
     ``relighter(light_idx [N], light_vals [C, N]) -> [V, C]`` float32 exit radiance, albedo
     applied (``mesh.albedo``, the first C channels; grey C=1 takes channel 0). The C kernel when
-    it compiles, else (and with ``PRT_TORCH_NATIVE=0``) the same two forms in torch.
+    it compiles, else (and with ``PRT_TORCH_NATIVE=0``) the same two forms in torch; light values
+    that require grad take :meth:`relight_grad` (differentiable, for a fixed term selection).
     """
 
     BLOCK = 32  # vertices per dense block (kernels/wavelet.c BV)
@@ -404,6 +405,11 @@ class WaveletRelighter:
 
     def __call__(self, light_idx: torch.Tensor, light_vals: torch.Tensor, out: torch.Tensor | None = None,
                  albedo: bool = True) -> torch.Tensor:
+        if torch.is_grad_enabled() and isinstance(light_vals, torch.Tensor) and light_vals.requires_grad:
+            if out is not None:
+                raise ValueError("out= with light values that require grad; accepted: out=None (autograd cannot write "
+                                 "into a reused buffer)")
+            return self.relight_grad(light_idx, light_vals, albedo)
         li, lv = light_idx, light_vals  # no conversion on the fast path (int64 indices, float32 values)
         if not (isinstance(li, torch.Tensor) and li.dtype == torch.int64):
             li = torch.as_tensor(li).long()
@@ -425,6 +431,22 @@ class WaveletRelighter:
         self._check_indices(li)
         return self._torch(li, lv, o).mul_(f)
 
+    def relight_grad(self, light_idx: torch.Tensor, light_vals: torch.Tensor, albedo: bool = True) -> torch.Tensor:
+        """The relighting under autograd (the C kernel is forward-only; ``__call__`` comes here when
+        ``light_vals`` requires grad): Ng 2003 eq. 2 for a fixed term selection, :meth:`_sums`
+        (the torch path's dense GEMV and sparse gather, out of place) in the values' dtype (float64 for
+        gradcheck), differentiable with respect to ``light_vals [C, N]`` (not the indices: the
+        selection is piecewise constant). → ``[V, C]``, albedo and the quantisation scale applied
+        (float32 factors, so the values equal the kernel's to float32 rounding)."""
+        li = torch.as_tensor(light_idx).long()
+        lv = light_vals
+        if lv.ndim != 2 or li.ndim != 1 or lv.shape[1] != li.numel() or not lv.is_floating_point():
+            raise ValueError(f"light values {tuple(lv.shape)} {lv.dtype} for indices {tuple(li.shape)}; accepted: indices [N], "
+                             "float values [C, N]")
+        self._check_indices(li)
+        dt = torch.promote_types(lv.dtype, torch.float32)
+        return self._sums(li, lv, dt) * self._factor(lv.shape[0], albedo).to(dt)
+
     def _check_indices(self, li: torch.Tensor) -> None:
         if li.numel():
             lo, hi = (int(v) for v in torch.aminmax(li))
@@ -432,15 +454,19 @@ class WaveletRelighter:
                 raise ValueError(f"light indices span {lo}..{hi}; accepted: 0..{self.P - 1} (6R², R={self.res})")
 
     def _torch(self, li: torch.Tensor, lv: torch.Tensor, o: torch.Tensor) -> torch.Tensor:
-        """The torch path (no compiler, C > 4, or PRT_TORCH_NATIVE=0): the dense columns as one
-        batched GEMV over the 32-vertex blocks, the sparse ones gathered and added by index."""
+        """The torch path (no compiler, C > 4, or PRT_TORCH_NATIVE=0): :meth:`_sums` in float32, into ``o``."""
+        return o.copy_(self._sums(li, lv, torch.float32))
+
+    def _sums(self, li: torch.Tensor, lv: torch.Tensor, dt: torch.dtype) -> torch.Tensor:
+        """Σ_n L̂[c, n] T̂[v, n] over the light's terms ``li [N]``, ``lv [C, N]`` in ``dt`` (scale and
+        albedo not applied), out of place (differentiable with respect to ``lv``): the dense
+        columns as one batched GEMV over the 32-vertex blocks, the sparse ones gathered and added
+        by one ``index_add``. → ``[V, C]``."""
+        lv = lv.to(dt)
+        C = lv.shape[0]
         slot = self.dslot[li]
         d = slot >= 0
-        if bool(d.any()):
-            blocks = self.dense[:, slot[d]].to(torch.float32)  # [nb, Nd, 32]
-            o.copy_(torch.einsum("bnv,cn->bvc", blocks, lv[:, d]).reshape(-1, lv.shape[0])[:self.V])
-        else:
-            o.zero_()
+        o = torch.einsum("bnv,cn->bvc", self.dense[:, slot[d]].to(dt), lv[:, d]).reshape(-1, C)[:self.V]
         ls, lvs = li[~d], lv[:, ~d]
         starts = self.colptr[ls]
         cnt = self.colptr[ls + 1] - starts
@@ -451,7 +477,7 @@ class WaveletRelighter:
             pos = starts[seg] + torch.arange(total) - first[seg]
             r = self.offs[pos].long() // 16
             keep = r < self.V  # not the padding
-            o.index_add_(0, r[keep], self.qvals[pos[keep], None].to(torch.float32) * lvs.T[seg[keep]])
+            o = o.index_add(0, r[keep], self.qvals[pos[keep], None].to(dt) * lvs.T[seg[keep]])
         return o
 
 

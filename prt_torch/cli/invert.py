@@ -12,6 +12,7 @@ import numpy as np
 import torch
 
 UNKNOWNS = ("light", "brdf", "both")
+KINDS = ("diffuse", "glossy", "mrt")  # the transfer kinds --kind precomputes (the rows of inverse.light.corner_rows)
 
 
 def register(subparsers) -> None:
@@ -43,10 +44,26 @@ def register(subparsers) -> None:
                    "analytic spec or a light JSON (prt light --json / prt invert output)")
     p.add_argument("--bounces", type=int, default=0, help="interreflection bounces in the precomputed transfer (default 0)")
     p.add_argument("--samples", type=int, default=512, help="directions per vertex of the precomputed transfer")
-    p.add_argument("--transfer", default=None, metavar="T.prt", help="transfer of this mesh (else precomputed: diffuse, "
-                   "shadowed)")
+    p.add_argument("--transfer", default=None, metavar="T.prt", help="transfer of this mesh (else precomputed: --kind)")
+    p.add_argument("--kind", choices=KINDS, default=None,
+                   help="the transfer precomputed when no --transfer is given (--unknown light): diffuse (default; shadowed, "
+                        "--bounces), glossy (Sloan 2003 exit transfer) or mrt (Lehtinen & Kautz 2003), with the BRDF "
+                        "--transfer-brdf and --bands-out, --tents as prt precompute takes them")
+    p.add_argument("--transfer-brdf", default=None, metavar="TYPE",
+                   help="BRDF of a precomputed glossy/MRT transfer (prt precompute's --brdf: phong, blinn_phong, "
+                        "ashikhmin_shirley, ward, lambertian; default the kind's)")
+    p.add_argument("--transfer-brdf-param", action="append", default=[], metavar="NAME=VALUE",
+                   help="a parameter of --transfer-brdf, repeatable (e.g. s=16 ks=0.5 kd=0.5)")
+    p.add_argument("--bands-out", type=int, default=None, help="exit-radiance SH bands of a precomputed glossy/MRT "
+                   "transfer (default the kind's)")
+    p.add_argument("--tents", type=int, default=None, help="M, the MxM tent basis of a precomputed MRT transfer "
+                   "(default the kind's)")
     p.add_argument("--regularizer", choices=("gcv", "lcurve"), default="gcv",
                    help="how the Tikhonov weight is chosen from the data (default gcv)")
+    p.add_argument("--positive", action="store_true",
+                   help="constrain the recovered light's radiance to be >= 0 over the sphere (Ramamoorthi eq. 6.24, as hard "
+                        "constraints; same regularisation). Off by default: it helps when the light is smooth and the images "
+                        "filter bands away, and biases the fit when the light has detail beyond --bands (docs/inverse.md)")
     p.add_argument("--max-pixels", type=int, default=None, help="use a random subset of this many pixels")
     p.add_argument("-o", "--output", required=True, metavar="RESULT.json")
     p.add_argument("--report", default=None, metavar="DIR", help="write input | re-rendered | error images per view")
@@ -103,13 +120,65 @@ def _check_args(args, brdf: dict) -> None:
     if args.unknown == "both" and brdf["type"] != "phong":
         raise ValueError(f"--unknown both with --brdf {brdf['type']}; accepted: --brdf phong (a Lambertian object under "
                          "unknown light is --unknown light with a known albedo)")
+    if args.positive and args.unknown != "light":
+        raise ValueError(f"--positive with --unknown {args.unknown}; accepted: --unknown light (the constraint is on the "
+                         "recovered light)")
     if args.unknown == "light" and args.light is not None:
         raise ValueError("--light is the known light of --unknown brdf; with --unknown light it is what is recovered")
     if args.unknown == "light" and brdf["type"] == "phong" and not {"kd", "ks", "s"} <= set(brdf):
         raise ValueError("--unknown light with --brdf phong needs its parameters: --brdf-param kd=.. ks=.. s=..")
 
 
-def _transfer(args, mesh, brdf: dict):
+def _kind_params(args, brdf: dict) -> tuple[str, dict] | None:
+    """The precompute ``prt invert`` runs when no ``--transfer`` is given: (kind, parameters), the
+    parameters checked by the transfer registry (``TransferKind.validate``) before any work; None
+    with ``--transfer``. Options of another kind or a combination that does not apply: one line."""
+    from ..params import parse_assignments
+    from ..transfer import get_kind
+
+    glossy_opts = [f for f, v in (("--transfer-brdf", args.transfer_brdf), ("--transfer-brdf-param", args.transfer_brdf_param),
+                                  ("--bands-out", args.bands_out), ("--tents", args.tents)) if v not in (None, [])]
+    if args.transfer is not None:
+        if args.kind is not None or glossy_opts:
+            raise ValueError(f"{args.kind and '--kind ' + args.kind or glossy_opts[0]} with --transfer {args.transfer!r}; "
+                             "accepted: one of them (--kind and its options choose the transfer precomputed when no "
+                             "--transfer is given)")
+        return None
+    kind = args.kind or "diffuse"
+    if kind == "diffuse":
+        if glossy_opts:
+            raise ValueError(f"{glossy_opts[0]} with --kind diffuse; accepted: --kind glossy or mrt (options of the "
+                             "precomputed glossy/MRT transfer)")
+        return kind, {}
+    if args.unknown != "light":
+        raise ValueError(f"--kind {kind} with --unknown {args.unknown}; accepted: --unknown light (the BRDF fits use a "
+                         "diffuse transfer)")
+    if brdf["type"] != "lambertian":
+        raise ValueError(f"--kind {kind} with --brdf {brdf['type']}; accepted: --transfer-brdf for the BRDF of a {kind} "
+                         "transfer (--brdf phong fits eq. 6.12 on a diffuse one)")
+    if args.tents is not None and kind != "mrt":
+        raise ValueError(f"--tents with --kind {kind}; accepted: --kind mrt")
+    params: dict = {"bands": args.bands, "samples": args.samples, "bounces": args.bounces}
+    if args.transfer_brdf is not None or args.transfer_brdf_param:
+        params["brdf"] = {"type": args.transfer_brdf or "ashikhmin_shirley",  # the precompute's default model, as prt precompute
+                          **parse_assignments(args.transfer_brdf_param, what="--transfer-brdf-param")}
+    if args.bands_out is not None:
+        params["bands_out"] = args.bands_out
+    if args.tents is not None:
+        params["M"] = args.tents
+    names = {"M": "--tents", "bands_out": "--bands-out", "brdf": "--transfer-brdf", "samples": "--samples",
+             "bounces": "--bounces", "bands": "--bands"}
+    try:
+        get_kind(kind).validate(params, where=f"--kind {kind}")
+    except (ValueError, TypeError) as e:
+        msg = str(e)
+        for k, flag in names.items():
+            msg = msg.replace(f": {k}=", f": {flag} ", 1)
+        raise ValueError(msg) from None
+    return kind, params
+
+
+def _transfer(args, mesh, brdf: dict, kind_params: tuple[str, dict] | None = None):
     from ..transfer import Transfer
     from ..transfer.diffuse import precompute_diffuse
 
@@ -128,6 +197,11 @@ def _transfer(args, mesh, brdf: dict):
             raise ValueError(f"--brdf {brdf['type']} uses the shadowed irradiance of a grey diffuse transfer; --transfer "
                              f"{args.transfer!r} is {tr.kind} {tuple(tr.data.shape)}")
         return tr
+    if kind_params is not None and kind_params[0] != "diffuse":
+        from ..transfer import RunOptions, get_kind
+
+        kind, params = kind_params
+        return get_kind(kind).precompute(mesh, params, run=RunOptions(workers=1, progress=False))
     return precompute_diffuse(mesh, bands=args.bands, samples=args.samples, bounces=args.bounces,
                               shadows="auto", fold_albedo=False)
 
@@ -153,6 +227,7 @@ def run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     brdf = _brdf(args)
     _check_args(args, brdf)
+    kind_params = _kind_params(args, brdf)
     if args.report is not None:
         rep = Path(args.report)
         if rep.exists() and not rep.is_dir():
@@ -168,7 +243,7 @@ def run(args: argparse.Namespace) -> int:
     eps = inverse.data_eps(infos)
     with RayCaster(mesh, workers=1) as caster:
         obs = inverse.observe(mesh, views, images, masks, unknowns=unknowns, max_pixels=args.max_pixels, caster=caster)
-        tr = _truncate(_transfer(args, mesh, brdf), args.bands)
+        tr = _truncate(_transfer(args, mesh, brdf, kind_params), args.bands)
         model = None
         if brdf["type"] == "phong":
             model = inverse.material.lobe_model(mesh, tr, obs, args.bands, caster)
@@ -176,8 +251,9 @@ def run(args: argparse.Namespace) -> int:
     out: dict = {}
     inv: dict = {"unknown": args.unknown, "brdf": brdf, "views": len(views), "pixels": obs.P,
                  "pixels_per_view": obs.counts, "data_eps": eps, "regularizer": args.regularizer,
-                 "transfer": {"kind": tr.kind, "bands": args.bands, "meta": {k: tr.meta.get(k) for k in
-                                                                           ("samples", "bounces", "shadows", "albedo_folded")}}}
+                 "transfer": {"kind": tr.kind, "bands": args.bands, "precomputed": args.transfer is None,
+                              "meta": {k: tr.meta.get(k) for k in ("samples", "bounces", "shadows", "albedo_folded", "brdf",
+                                                                   "bands_out", "M") if k in tr.meta}}}
     if args.unknown == "light":
         if model is None:
             A = inverse.design_matrix(PRTScene(tr), obs)
@@ -185,9 +261,10 @@ def run(args: argparse.Namespace) -> int:
             C = 3
             A = model.light_rows(torch.full((C,), float(brdf["kd"]), dtype=torch.float64),
                                  torch.tensor(float(brdf["ks"]), dtype=torch.float64), torch.tensor(float(brdf["s"]), dtype=torch.float64))
-        fit = inverse.fit_light(A, obs.values, args.regularizer, eps)
+        fit = inverse.fit_light(A, obs.values, args.regularizer, eps, positive=args.positive)
         L, pred = fit.light, fit.predicted
         inv["well_posedness"] = fit.report
+        inv["positivity"] = fit.positivity
     elif args.unknown == "brdf":
         fixed = {"s": brdf["s"]} if "s" in brdf else None
         bf = inverse.material.fit_phong(model, L_known, obs.values, fixed=fixed)
@@ -215,6 +292,11 @@ def run(args: argparse.Namespace) -> int:
     if w is not None:
         msg += (f", recoverable bands {w['recoverable_bands']} (largest error gain {max(b['gain'] for b in w['bands']):.3g}; "
                 f"least determined: the light about {tuple(w['weakest']['peak_direction'])})")
+    pos = inv.get("positivity")
+    if pos is not None:
+        u = pos["unconstrained"]
+        msg += (f", unconstrained light negative on {100 * max(u['negative_solid_angle']):.1f}% of the sphere (least radiance "
+                f"{min(u['min_relative']):.3g} x mean |radiance|)" + (", constrained >= 0" if pos["constrained"] else ""))
     if args.unknown != "light":
         msg += ", brdf " + json.dumps({k: v for k, v in inv["brdf"].items() if k in ("kd", "ks", "s")})
     print(msg + f" -> {args.output}")

@@ -327,9 +327,13 @@ class AffineCodec(Codec):
     def decode(self, enc: Encoded, n_vectors: int | None = None) -> torch.Tensor:
         """x̃_p ``[P, D] float32`` (Sloan 2003 §3.3); ``n_vectors`` keeps only a prefix of each
         cluster's PCA vectors (run-time quality knob, Lehtinen & Kautz 2003 §6). A tensor, or a
-        numpy array for an encoding of numpy data (``Encoded.array_type``)."""
+        numpy array for an encoding of numpy data (``Encoded.array_type``). When the codec's
+        tensors (means, basis) or the encoding's (per-point weights) require grad: ``_decode_grad``,
+        differentiable, in their promoted dtype."""
         self._check_enc(enc)
         n = self._n_eff(n_vectors)
+        if grad_required(*enc.tensors.values(), *self._model_tensors()):
+            return self._decode_grad(enc, n)
         reps = self._representatives(n)  # [K, J, D]
         W = self._weights1(enc, n)  # [P, J]
         K = self.K_
@@ -341,6 +345,22 @@ class AffineCodec(Codec):
             plan = self._plan(enc)
             out = from_tiles(plan["layout"], tiles_bmm(plan["layout"], plan["W1t"][..., : reps.shape[1]], reps))
         return as_array_type(out, enc.array_type)
+
+    def _decode_grad(self, enc: Encoded, n: int) -> torch.Tensor:
+        """``decode`` under autograd (the tiled batched GEMM writes into buffers, which autograd
+        cannot follow, and caches the weights): x̃_p = x_0^k + Σ_i w_p^i x_i^k (Sloan 2003 §3.3)
+        gathered per point in the promoted dtype of the means, basis and weights (float64 for
+        gradcheck), with no cache. → ``[P, D]``."""
+        c = self.coeffs_of(enc)[:, :n]
+        B = self.basis_[:, :n]
+        dt = torch.promote_types(torch.promote_types(B.dtype, c.dtype), torch.float32)
+        if self.means_ is not None:
+            dt = torch.promote_types(dt, self.means_.dtype)
+        reps = torch.cat([self.means_.to(dt)[:, None], B.to(dt)], 1) if self.means_ is not None else B.to(dt)  # [K, J, D]
+        W = torch.cat([torch.ones(c.shape[0], 1, dtype=dt), c.to(dt)], 1) if self.means_ is not None else c.to(dt)  # [P, J]
+        if self.K_ == 1:
+            return W @ reps[0]
+        return torch.einsum("pj,pjd->pd", W, reps[self.labels_of(enc)])
 
     def _representatives(self, n: int) -> torch.Tensor:
         """``[K, J, D] float32``: (x_0,) x_1..x_n — J = n+1 with a mean, n without."""

@@ -52,7 +52,7 @@ from ..params import Boolean, Interval, Options
 from .affine import check_enc_origin, label_dtype, signal_key
 from .cpca import CPCA, PCA, CPCAStatic
 from .base import (Codec, Encoded, Relighter, array_type, check_matrix_shape, check_signal, check_weights,
-                   encoding_state, input_ref, register, typed, view_nbytes)
+                   encoding_state, grad_required, input_ref, register, typed, view_nbytes)
 from .segment import from_tiles, tile_layout, tiles_accumulate, to_tiles
 
 __all__ = ["NeuralCodec", "NeuralRelighter"]
@@ -454,10 +454,19 @@ class NeuralCodec(Codec):
 
     def decode(self, enc: Encoded) -> Any:
         """x̃_p ``[P, D]`` float32 by eq. (1) from the codes (the decoder's forward pass, not the
-        cached features); a tensor, or a numpy array for an encoding of numpy data."""
+        cached features); a tensor, or a numpy array for an encoding of numpy data. When the codes
+        or the decoder's tensors require grad: the same pass under autograd, differentiable, in
+        their promoted dtype (a tensor)."""
         self._check_enc(enc)
         z = enc.tensors["z"]
         labels = self.labels_of(enc) if self.K_ > 1 else None
+        dec = [self.head_, self.bias_, *[t for pair in self.layers_ for t in pair]]
+        if grad_required(z, *dec):  # under autograd: the same forward pass, in the promoted dtype, not chunked
+            dt = torch.promote_types(torch.float32, z.dtype)
+            for t in dec:
+                dt = torch.promote_types(dt, t.dtype)
+            F = self._features(z.to(dt), labels)
+            return self._head(F, labels, self.head_.to(dt), self.bias_.to(dt))
         out = torch.empty(enc.points, self.D_, dtype=torch.float32)
         with torch.no_grad():
             for i in range(0, enc.points, 16384):

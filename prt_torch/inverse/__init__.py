@@ -5,7 +5,8 @@ are part of the model, not an error: the thesis assumed convex objects).
 * :mod:`.inputs` — NeRF/Blender ``transforms.json`` cameras, linear images, pixels traced to
   surface points (Embree), masks.
 * :mod:`.light` — unknown lighting, known BRDF (§6.4.3): Tikhonov least squares with λ by GCV or
-  the L-curve, and the well-posedness report (ch. 2 §2.4.2).
+  the L-curve, optionally with the radiance constrained non-negative (eq. 6.24), and the
+  well-posedness report (ch. 2 §2.4.2).
 * :mod:`.material` — unknown BRDF, known lighting (§6.4.2: parametric by autograd non-linear least
   squares; the BRDF matrix by linear least squares) and both unknown (§6.4.4).
 
@@ -20,10 +21,12 @@ import torch
 
 from . import material
 from .inputs import CameraView, Observations, camera_from_view, load_cameras, load_images, observe, pixel_rays
-from .light import LightFit, corner_rows, design_matrix, fit_light, solve_tikhonov, well_posedness
+from .light import (LightFit, corner_rows, design_matrix, fit_light, negativity, nnls, positive_directions, solve_positive,
+                    solve_tikhonov, well_posedness)
 
 __all__ = ["material", "CameraView", "Observations", "load_cameras", "load_images", "observe", "pixel_rays", "camera_from_view",
            "LightFit", "corner_rows", "design_matrix", "fit_light", "solve_tikhonov", "well_posedness",
+           "nnls", "solve_positive", "positive_directions", "negativity",
            "psnr", "light_json", "data_eps"]
 
 

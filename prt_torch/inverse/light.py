@@ -24,10 +24,20 @@ averaged over a band's 2l+1 coefficients, is 1 for a band the images determine a
 filter away. A band is *recoverable* when that mean is ≥ ½ in every channel. A convex Lambertian
 object determines bands 0–2 (odd bands ≥ 3 vanish, eq. 2.65's Λ_l ρ̂_l = 0); shadows and gloss
 recover more.
+
+Positivity (eq. 6.24): radiance cannot be negative, but a least-squares SH estimate can be —
+where the light is dark, and in the bands the images filter away. Ramamoorthi adds a soft
+penalty (ν' = ν + λ(ν₀/κ₀)κ, κ the squared negative radiance, minimised by conjugate gradients);
+:func:`solve_positive` imposes it as hard linear constraints instead: the same Tikhonov objective
+(the same λ, chosen by GCV / the L-curve on the unconstrained problem) subject to Y x ≥ 0 at a
+dense set of directions (spherical Fibonacci, :func:`positive_directions`), a strictly convex QP
+solved exactly as a least-distance problem through non-negative least squares (Lawson & Hanson,
+*Solving least squares problems*, 1974, ch. 23, Algorithm LDP; NNLS ch. 23 §3).
 """
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 
 import torch
@@ -35,7 +45,8 @@ import torch
 from .. import relight
 from .._checks import check_choice
 
-__all__ = ["design_matrix", "corner_rows", "solve_tikhonov", "LightFit", "fit_light", "well_posedness", "FLOAT32_EPS"]
+__all__ = ["design_matrix", "corner_rows", "solve_tikhonov", "LightFit", "fit_light", "well_posedness", "FLOAT32_EPS",
+           "nnls", "solve_positive", "positive_directions", "negativity"]
 
 FLOAT32_EPS = 2.0 ** -24
 _GRID = 400  # candidate λ, log-spaced from the floor to s_max; the minimum is refined on two finer grids
@@ -130,6 +141,149 @@ def solve_tikhonov(A: torch.Tensor, b: torch.Tensor, method: str = "gcv", eps: f
             "lam_floor": lo}
 
 
+def nnls(E: torch.Tensor, f: torch.Tensor, max_iter: int | None = None) -> torch.Tensor:
+    """Non-negative least squares ``min ‖E u − f‖ s.t. u ≥ 0`` by the active-set method of Lawson &
+    Hanson (1974, ch. 23 §3, Algorithm NNLS), in torch float64.
+
+    Args:
+        E: ``[m, k]`` float64 (here m = n² + 1 ≪ k, the constraint directions).
+        f: ``[m]`` float64.
+        max_iter: inner iterations allowed (default 3k; each frees or fixes one variable).
+    Returns:
+        u ``[k]`` float64, u ≥ 0 (exactly 0 off the passive set).
+    Raises:
+        RuntimeError naming the iteration count when it does not converge (does not happen in
+        exact arithmetic: the method terminates finitely, L&H Theorem 23.10).
+    """
+    m, k = E.shape
+    dt = E.dtype
+    u = torch.zeros(k, dtype=dt)
+    passive = torch.zeros(k, dtype=torch.bool)
+    tol = 10 * torch.finfo(dt).eps * max(m, k) * float(E.abs().sum(0).max())  # L&H's dual-feasibility tolerance
+    max_iter = 3 * k if max_iter is None else int(max_iter)
+    it = 0
+    w = E.T @ (f - E @ u)  # the dual vector (negative gradient)
+    blocked = torch.zeros(k, dtype=torch.bool)  # a column whose entry came out ≤ 0 on entering (rounding): skipped once
+    while True:
+        cand = ~passive & ~blocked & (w > tol)
+        if not bool(cand.any()):
+            break
+        j = int(torch.argmax(torch.where(cand, w, torch.full_like(w, -math.inf))))
+        passive[j] = True
+        first = True
+        while True:
+            it += 1
+            if it > max_iter:
+                raise RuntimeError(f"nnls: no convergence in max_iter={max_iter} iterations ({int(passive.sum())} passive "
+                                   f"variables of {k}); accepted: a larger max_iter")
+            idx = torch.nonzero(passive).flatten()
+            sP = torch.linalg.lstsq(E[:, idx], f[:, None]).solution[:, 0]
+            if bool((sP > 0).all()):
+                u.zero_()
+                u[idx] = sP
+                blocked.zero_()
+                break
+            if first and bool((sP[idx == j] <= 0).any()):  # the entering column does not help (rounding): undo
+                passive[j] = False
+                blocked[j] = True
+                break
+            first = False
+            uP = u[idx]
+            neg = sP <= 0
+            alpha = float((uP[neg] / (uP[neg] - sP[neg])).min())
+            uP = uP + alpha * (sP - uP)
+            u.zero_()
+            u[idx] = uP
+            passive[idx] = uP > 0
+            u[~passive] = 0
+            if not bool(passive.any()):
+                break
+        w = E.T @ (f - E @ u)
+    return u
+
+
+def positive_directions(bands: int) -> torch.Tensor:
+    """``[D, 3]`` float64 spherical-Fibonacci directions where :func:`solve_positive` constrains the
+    radiance: D = max(1024, 32 n²), ~4.5° apart at 8 bands (a band-l harmonic's lobes are π/l
+    wide, so the radiance cannot dip far below 0 between samples)."""
+    from ..sh.quadrature import fibonacci_sphere
+
+    return fibonacci_sphere(max(1024, 32 * bands * bands))[0]
+
+
+def solve_positive(fit: dict, Y: torch.Tensor) -> dict:
+    """The Tikhonov problem of :func:`solve_tikhonov` with the light's radiance non-negative at the
+    directions of ``Y`` (eq. 6.24's positivity as hard constraints, module doc):
+    ``min ‖A x − b‖² + λ²‖x‖²  s.t.  Y x ≥ 0``, λ the unconstrained fit's (chosen from the data).
+
+    With A = U S Vᵀ the objective is ‖R (x − x_λ)‖² + const, R = diag(√(s² + λ²)) Vᵀ and x_λ the
+    unconstrained estimate; z = R (x − x_λ) turns it into the least-distance problem
+    min ‖z‖ s.t. G z ≥ h with G = Y R⁻¹, h = −Y x_λ (Lawson & Hanson ch. 23, Algorithm LDP), solved by
+    :func:`nnls` on ``[Gᵀ; hᵀ] u ≈ e_{n+1}``: z = −r[:n]/r[n] with r the NNLS residual. x = 0 is
+    feasible, so the problem always has a solution; it is unique (strictly convex for λ > 0).
+
+    Args:
+        fit: :func:`solve_tikhonov`'s dict (x, s, Vh, lam).
+        Y: ``[D, n]`` float64 SH basis at the constrained directions (``eval_sh``).
+    Returns:
+        dict: x ``[n]`` float64, active (constraints at equality, int), objective_increase
+        (‖z‖², the Tikhonov objective's rise over the unconstrained minimum).
+    """
+    x0, s, Vh, lam = fit["x"], fit["s"], fit["Vh"], float(fit["lam"])
+    n = x0.shape[0]
+    if Vh.shape[0] < n:  # fewer pixels than unknowns: complete V (singular values 0 there)
+        Q = torch.linalg.qr(Vh.T, mode="complete").Q
+        Vh = torch.cat([Vh, Q[:, Vh.shape[0]:].T], 0)
+        s = torch.cat([s, s.new_zeros(n - s.shape[0])])
+    d = (s ** 2 + lam ** 2).sqrt()
+    Rinv = Vh.T / d[None]  # [n, n]: R⁻¹ = V diag(1/d)
+    y0 = Y @ x0
+    scale = float(y0.abs().max()) if y0.numel() else 0.0
+    if scale == 0.0 or bool((y0 >= 0).all()):
+        return {"x": x0.clone(), "active": 0, "objective_increase": 0.0}
+    G, h = Y @ Rinv, -y0
+    E = torch.cat([G.T, h[None]], 0)  # [n + 1, D]: one column per constraint
+    E = E / E.norm(dim=0, keepdim=True).clamp_min(1e-300)  # each constraint scaled to unit norm (same feasible set)
+    f = torch.zeros(n + 1, dtype=E.dtype)
+    f[n] = 1.0
+    u = nnls(E, f)
+    r = E @ u - f
+    if abs(float(r[n])) < 1e-12:  # pragma: no cover (x = 0 is always feasible)
+        raise RuntimeError("solve_positive: the positivity constraints are infeasible (cannot happen: x = 0 satisfies them)")
+    z = -r[:n] / r[n]
+    x = x0 + Rinv @ z
+    yx = Y @ x
+    return {"x": x, "active": int((yx <= 1e-9 * scale).sum()), "objective_increase": float(z @ z)}
+
+
+@functools.lru_cache(maxsize=32)
+def _sphere_basis(bands: int, n: int) -> torch.Tensor:
+    """``[n, bands²]`` float64: the SH basis at ``n`` spherical-Fibonacci directions (cached: fit_light
+    reports negativity on every call, and ``material.fit_both`` calls it for each of ~150 BRDF
+    candidates). Read-only."""
+    from ..sh import eval_sh
+    from ..sh.quadrature import fibonacci_sphere
+
+    return eval_sh(fibonacci_sphere(n)[0], bands)
+
+
+def negativity(L: torch.Tensor, dirs: torch.Tensor | None = None) -> dict:
+    """How negative the radiance f of an SH light ``L [C, n²]`` is over the sphere, per channel, at
+    equal-area directions (spherical Fibonacci, ``dirs [D, 3]``, default 8192): ``min_relative``
+    (the least radiance over the mean |f|), ``negative_solid_angle`` (the fraction of the sphere
+    where f < 0) and ``negative_share`` (∫ max(−f, 0) / ∫ |f|). A light f ≡ 0 gives zeros."""
+    from ..sh import eval_sh
+
+    bands = math.isqrt(L.shape[1])
+    Y = _sphere_basis(bands, 8192) if dirs is None else eval_sh(dirs, bands)
+    f = Y @ L.to(torch.float64).T  # [D, C]
+    mabs = f.abs().mean(0)
+    nz = mabs > 0
+    return {"min_relative": torch.where(nz, f.min(0).values / mabs.clamp_min(1e-300), 0.0).tolist(),
+            "negative_solid_angle": (f < 0).double().mean(0).tolist(),
+            "negative_share": torch.where(nz, (-f).clamp_min(0).mean(0) / mabs.clamp_min(1e-300), 0.0).tolist()}
+
+
 def well_posedness(fits: list[dict], bands: int, A: torch.Tensor) -> dict:
     """Per-band conditioning (module doc, ch. 2 eq. 2.65) from the channel fits of :func:`fit_light`.
 
@@ -193,19 +347,48 @@ class LightFit:
         light: ``[C, n²]`` float64 SH light (graphics convention, +z up).
         report: :func:`well_posedness`'s dict.
         predicted: ``[P, C]`` float64 re-rendered pixels; residual_rms: float.
+        unconstrained: ``[C, n²]`` float64, the Tikhonov estimate (= ``light`` unless constrained).
+        constraint: with ``positive``, the constrained directions, active constraints per
+            channel and objective increase; else None.
+        positivity (property, computed on first use): how negative the unconstrained estimate's
+            radiance is (:func:`negativity`, key ``unconstrained``), ``constrained``, and with
+            ``positive`` the constrained result's (``result``) and ``constraint``'s keys.
     """
 
     light: torch.Tensor
     report: dict
     predicted: torch.Tensor
     method: str
+    unconstrained: torch.Tensor | None = None
+    constraint: dict | None = None
+
+    @functools.cached_property
+    def positivity(self) -> dict:
+        L0 = self.light if self.unconstrained is None else self.unconstrained
+        pos = {"constrained": self.constraint is not None, "unconstrained": negativity(L0)}
+        if self.constraint is not None:
+            pos.update(self.constraint)
+            pos["result"] = negativity(self.light)
+        return pos
 
 
-def fit_light(A: torch.Tensor, values: torch.Tensor, method: str = "gcv", eps: float = FLOAT32_EPS) -> LightFit:
-    """Solve the light from the design ``A [C, P, n]`` and the observations ``values [P, C]``
-    (one :func:`solve_tikhonov` per channel, each with its own λ)."""
+def fit_light(A: torch.Tensor, values: torch.Tensor, method: str = "gcv", eps: float = FLOAT32_EPS,
+              positive: bool = False) -> LightFit:
+    """Solve the light from the design ``A [C, P, n]`` float64 and the observations ``values [P, C]``
+    (one :func:`solve_tikhonov` per channel, each with its own λ). ``positive``: the radiance
+    constrained ≥ 0 over the sphere (eq. 6.24, :func:`solve_positive`, same λ); the fit's
+    ``positivity`` says how negative the unconstrained estimate was either way."""
     C, P, n = A.shape
+    bands = math.isqrt(n)
     fits = [solve_tikhonov(A[c], values[:, c].to(torch.float64), method, eps) for c in range(C)]
-    L = torch.stack([f["x"] for f in fits])
+    L0 = L = torch.stack([f["x"] for f in fits])
+    constraint = None
+    if positive:
+        D = positive_directions(bands).shape[0]
+        Y = _sphere_basis(bands, D)  # the SH basis at positive_directions(bands)
+        sols = [solve_positive(f, Y) for f in fits]
+        L = torch.stack([p["x"] for p in sols])
+        constraint = {"directions": D, "active": [p["active"] for p in sols],
+                      "objective_increase": [p["objective_increase"] for p in sols]}
     pred = torch.einsum("cpn,cn->pc", A, L)
-    return LightFit(L, well_posedness(fits, math.isqrt(n), A), pred, method)
+    return LightFit(L, well_posedness(fits, bands, A), pred, method, L0, constraint)

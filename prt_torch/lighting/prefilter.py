@@ -221,7 +221,9 @@ class PrefilteredEnvironment:
     def lookup(self, mu: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
         """E_σ(μ): ``mu [..., 3]`` unit directions, ``sigma [...]`` widths → ``[..., C]`` float32.
         Bilinear in the face (clamped at face edges), linear in log σ between the two levels
-        bracketing σ (clamped to the ladder). Green eq. 2.7, Fig. 3-2's texCUBElod."""
+        bracketing σ (clamped to the ladder). Green eq. 2.7, Fig. 3-2's texCUBElod. When the
+        levels require grad (grad mode on): ``[..., C]`` in the levels' dtype, differentiable with
+        respect to them (the torch formulation of the kernels' trilinear lookup)."""
         shape = sigma.shape
         mu = mu.reshape(-1, 3).to(torch.float32)
         ls = sigma.reshape(-1).to(torch.float32).clamp_min(1e-12).log()
@@ -254,6 +256,14 @@ class PrefilteredEnvironment:
         lvl = 6 * r * r
         idx = torch.cat([tex4 + (lo * lvl)[:, None], tex4 + (hi * lvl)[:, None]], 1)  # [M, 8]
         wts = torch.cat([w4 * (1 - a)[:, None], w4 * a[:, None]], 1)
+        if torch.is_grad_enabled() and self.levels.requires_grad:
+            # under autograd (docs/inverse.md "Differentiable relighting"): the same 8-texel trilinear sum as a
+            # gather from the levels in their own dtype (float64 for gradcheck), differentiable w.r.t. the levels
+            # (linear) and ``sigma``/``mu``'s weights; the texel addressing above is the kernels' (float32)
+            L_, C = self.levels.shape[0], self.channels
+            tab = self.levels.permute(0, 2, 3, 4, 1).reshape(L_ * lvl, C)
+            out = (tab[idx] * wts.to(tab.dtype)[..., None]).sum(1)
+            return out.reshape(*shape, C)
         out = torch.nn.functional.embedding_bag(idx, self.table(), per_sample_weights=wts.contiguous(), mode="sum")
         return out.reshape(*shape, self.channels)
 
@@ -313,7 +323,10 @@ def prefilter_environment(light: Any, *, res: int = 16, levels: int = 20, sigma_
             the cube when the light is not SH) for an SH diffuse part (Green §3.1).
         block: query texels per GEMM block (memory bound ``block × 6 r²`` floats).
     Returns:
-        :class:`PrefilteredEnvironment`. Cost: ``levels`` GEMMs of (6r²)² × C.
+        :class:`PrefilteredEnvironment`. Cost: ``levels`` GEMMs of (6r²)² × C. A light tensor
+        that requires grad (grad mode on) gives float64 levels, cube and SH differentiable with
+        respect to it (the same filter, linear in the light), for ``GaussianCodec.relight``'s
+        torch path (docs/inverse.md "Differentiable relighting").
     """
     res = check_int("res", res, 1, 256)
     levels = check_int("levels", levels, 1, 256)
@@ -321,14 +334,16 @@ def prefilter_environment(light: Any, *, res: int = 16, levels: int = 20, sigma_
         raise ValueError(f"sigma_min={sigma_min!r}, sigma_max={sigma_max!r}; accepted: 0 < sigma_min < sigma_max")
     cube, sh = _light_on_cube(light, res, supersample)
     C = cube.shape[0]
+    # under autograd (a light that requires grad): the same filter in float64, the slices written below tracked
+    dt = torch.float64 if torch.is_grad_enabled() and cube.requires_grad else torch.float32
     d, sa = cube_map_directions(res)
     dflat, saf = d.reshape(-1, 3), sa.reshape(-1)
     Lw = cube.reshape(C, -1).T  # [P, C]
     sig = torch.logspace(math.log10(sigma_min), math.log10(sigma_max), levels, dtype=torch.float64) if levels > 1 \
         else torch.tensor([sigma_min], dtype=torch.float64)
-    out = torch.empty(levels, C, 6 * res * res, dtype=torch.float32)
+    out = torch.empty(levels, C, 6 * res * res, dtype=dt)
     P = dflat.shape[0]
-    d32, sa32, L32 = dflat.to(torch.float32), saf.to(torch.float32), Lw.to(torch.float32)
+    d32, sa32, L32 = dflat.to(dt), saf.to(dt), Lw.to(dt)
     for a in range(0, P, block):  # blocks of query texels; one GEMM per block and level
         cosm = (d32[a:a + block] @ d32.T - 1).clamp_max(0)  # [b, P]
         for li in range(levels):
@@ -339,5 +354,6 @@ def prefilter_environment(light: Any, *, res: int = 16, levels: int = 20, sigma_
         from ..sh import eval_sh
 
         sh = torch.einsum("pk,pc->ck", eval_sh(dflat, int(sh_bands), check=False) * saf[:, None], Lw)
-    return PrefilteredEnvironment(out.reshape(levels, C, 6, res, res), sig, cube.to(torch.float32), sh)
+    return PrefilteredEnvironment(out.reshape(levels, C, 6, res, res), sig, cube.to(dt), sh)
+
 

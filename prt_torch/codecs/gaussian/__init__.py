@@ -49,8 +49,8 @@ import torch
 from ..._checks import check_finite_float32, tensor_state, tensor_version
 from ...lighting.prefilter import PrefilteredEnvironment, cube_map_directions
 from ...params import Boolean, Interval, Options
-from ..base import (Codec, Encoded, array_type, as_array_type, check_cpu, check_out, check_signal, input_ref, register, typed,
-                    typed_relighter, view_nbytes, view_tensors)
+from ..base import (Codec, Encoded, array_type, as_array_type, check_cpu, check_out, check_signal, grad_required, input_ref, register,
+                    typed, typed_relighter, view_nbytes, view_tensors)
 from ..relight_kernels import lobe_layout, sg_prepare, sg_taps, sg_taps_prepare, sg_taps_prepared
 from .compare import haar_truncation, relative_l2, sh_truncation
 from .fit import RESOLVE_FACTOR, fit_all, flood_fill_order, mixture, prob_pairs, resolvable_sigma  # noqa: F401 (importable here as before)
@@ -440,13 +440,14 @@ class GaussianCodec(Codec):
 
     def _diffuse(self, enc, light):
         """t·l per vertex ``[V, C]`` (Green §3.1's SH diffuse part); an SH light with fewer
-        coefficients is zero beyond them."""
+        coefficients is zero beyond them. Differentiable with respect to ``light.sh`` when it
+        requires grad (in its dtype)."""
         t = enc.tensors["diffuse"]
         self._check_diffuse_light(enc, light)
-        L = torch.zeros(light.channels, t.shape[1])
+        dt = light.sh.dtype if grad_required(light.sh) else torch.float32  # under autograd: the light's dtype
         k = min(t.shape[1], light.sh.shape[1])
-        L[:, :k] = light.sh[:, :k].float()
-        return t @ L.T  # [V, C]
+        L = torch.nn.functional.pad(light.sh[:, :k].to(dt), (0, t.shape[1] - k))
+        return t.to(dt) @ L.T  # [V, C]
 
     def checked_taps(self, view: Any, V: int, J: int, values: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
         """A view as taps over the stored views: ``(idx int64 [V, k], w [V, k])`` as given, or
@@ -494,6 +495,12 @@ class GaussianCodec(Codec):
         encoding of numpy data (``Encoded.array_type``; the view may be numpy arrays too).
         ``out``: an optional result tensor of that shape (``base.check_out``), written and returned.
 
+        Under autograd — the light's ``levels`` (e.g. ``prefilter_environment`` of an SH light
+        that requires grad) or its ``sh`` require grad — the fused kernels (forward-only) give
+        way to the torch lookups (``PrefilteredEnvironment.lookup``'s trilinear sum, in the
+        levels' dtype): the result is differentiable with respect to the light, the same values
+        to float32 rounding; ``out`` is refused then.
+
         With taps of at least ``TAPS_CACHE_MIN_LOOKUPS`` lookups (V·N), the second call with the
         same taps tensors, unchanged, and a light of the same pyramid keeps their blend and its
         addressing in ``enc.cache['taps_prepared']`` (20 bytes per lobe and 4 per vertex), and
@@ -513,6 +520,9 @@ class GaussianCodec(Codec):
         if view is not None:  # values: by the fused kernel as it reads them (it flags bad ones), else in _relight
             view = self.checked_taps(view, V, J, values=False)
         self._check_diffuse_light(enc, light)  # refused before anything is written into out
+        if out is not None and grad_required(light.levels, light.sh):
+            raise ValueError("out= with a light whose levels or SH coefficients require grad; accepted: out=None (autograd "
+                             "cannot write into a reused buffer)")
         if out is not None:  # the fused kernels write into it (no result-sized temporary and copy)
             out = check_out(out, (V, light.channels) if view is not None else (V, J, light.channels), view,
                             tuple(enc.tensors.values()), light.table(), light.log_sigmas)
@@ -585,7 +595,7 @@ class GaussianCodec(Codec):
         if view is None:
             res = lobe_sum(light, w, mu, sg, out=out, layout=layout, prepared=prepared)
             if "diffuse" in enc.tensors:
-                res += self._diffuse(enc, light)[:, None, :] * enc.tensors["has_data"].float()[..., None]
+                res = _add(res, self._diffuse(enc, light)[:, None, :] * enc.tensors["has_data"].float()[..., None])
             return res
         lib = fused(light)
         # the taps' values: checked by the fused kernel as it reads them (it flags a bad one), else here
@@ -606,7 +616,7 @@ class GaussianCodec(Codec):
             res = res if out is None else out.copy_(res)
         if "diffuse" in enc.tensors:
             hd = enc.tensors["has_data"].float()[torch.arange(V)[:, None], idx]
-            res += self._diffuse(enc, light) * (a * hd).sum(1, keepdim=True)
+            res = _add(res, self._diffuse(enc, light) * (a * hd).sum(1, keepdim=True))
         return res
 
     def relight_surface(self, enc: Encoded, light: PrefilteredEnvironment, faces: torch.Tensor, face_index: torch.Tensor,
@@ -667,3 +677,11 @@ class GaussianCodec(Codec):
         self.J_, self.P_, self.layout_ = int(meta["J"]), int(meta["P"]), meta["layout"]
         self.n_features_in_ = self.J_ * self.P_
         self.faces_ = None
+
+
+def _add(res: torch.Tensor, part: torch.Tensor) -> torch.Tensor:
+    """``res + part``: in place (``res`` may be the caller's ``out``) unless autograd tracks either,
+    then out of place in the promoted dtype (float64 for gradcheck)."""
+    if res.requires_grad or part.requires_grad:
+        return res + part
+    return res.add_(part)

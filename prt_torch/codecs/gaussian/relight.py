@@ -14,7 +14,7 @@ import torch
 
 from ..._checks import tensor_state
 from ...lighting.prefilter import PrefilteredEnvironment
-from ..base import Codec, Encoded, Relighter
+from ..base import Codec, Encoded, Relighter, grad_required
 from ..relight_kernels import native, sg_lookup_prepared, sg_lookup_sum, sg_quads_worth, sg_taps_prepared, sg_taps_prepared_call
 
 __all__ = ["lobe_sum", "fused", "lobes_state", "GaussianRelighter"]
@@ -29,7 +29,8 @@ def lobe_sum(light: PrefilteredEnvironment, w: torch.Tensor, mu: torch.Tensor, s
     ``out``: an optional contiguous float32 result of that shape, written and returned;
     ``layout``: ``relight_kernels.lobe_layout(w, mu, sigma)`` where the caller keeps it;
     ``prepared``: ``relight_kernels.sg_prepare``'s addressing of these lobes for this light's
-    resolution and width ladder (``GaussianRelighter``), the same bits read faster."""
+    resolution and width ladder (``GaussianRelighter``), the same bits read faster. Levels that
+    require grad: the torch lookup in their dtype, differentiable (``fused``)."""
     lib = fused(light)
     if lib is not None:
         table = light.table()
@@ -43,9 +44,12 @@ def lobe_sum(light: PrefilteredEnvironment, w: torch.Tensor, mu: torch.Tensor, s
 
 
 def fused(light: PrefilteredEnvironment):
-    """The compiled kernels when they take this light (≤ 16 channels), else None (torch path)."""
+    """The compiled kernels when they take this light (≤ 16 channels) and no gradient is required
+    of its levels, else None: the torch path (``PrefilteredEnvironment.lookup``), which under
+    autograd computes in the levels' dtype and is differentiable with respect to them (the
+    kernels are forward-only; docs/inverse.md "Differentiable relighting")."""
     lib = native()
-    return lib if lib is not None and light.channels <= 16 else None
+    return lib if lib is not None and light.channels <= 16 and not grad_required(light.levels) else None
 
 
 def lobes_state(enc: Encoded) -> tuple:
