@@ -94,12 +94,24 @@ def _ashikhmin_shirley(nu, nv, rs, rd):
     return f
 
 
+def _light(bands=8):
+    """A bright cap (the highlight that determines the lobe's width) over a sky, band-limited, lifted
+    by a constant until its radiance is ≥ 0 everywhere (images must be ≥ 0)."""
+    from prt_torch.sh import eval_sh
+
+    L = load_light("cap:direction=0.3,0.2,1;half_angle_deg=20;intensity=3", bands) + load_light("sky", bands)
+    d, _ = _fib(20000)
+    lo = float((eval_sh(torch.from_numpy(d), bands) @ L.T).min())
+    L[:, 0] += max(-lo, 0.0) / 0.28209479177387814
+    return L
+
+
 @pytest.fixture(scope="module")
 def scene():
     mesh = load_scene("convex")
-    L = load_light("cap:direction=0.3,0.2,1;half_angle_deg=20;intensity=3", 8) + load_light("sky", 8)
+    L = _light()
     obs = _observe(mesh, n_views=4, W=24, max_pixels=300)
-    sm = brdf_fit.slice_model(mesh, obs, L, visibility=False, quad_bands=20)
+    sm = brdf_fit.slice_model(mesh, obs, L, visibility=False, quad_bands=16)
     return mesh, L, obs, sm
 
 
@@ -129,3 +141,46 @@ def test_ashikhmin_shirley_against_brute_force(scene):
     assert abs(p["n"] - 60.0) < 0.05 * 60.0, p
     assert abs(p["rs"] - 0.3) < 0.03 * 0.3, p
     assert max(abs(v - 0.6) for v in p["rd"]) < 0.03 * 0.6, p
+
+
+def test_cli_microfacet_and_bad_input(tmp_path, capsys):
+    """``prt invert --unknown brdf --brdf microfacet`` on EXR images of brute-force pixels: σ, kd,
+    ks within 3 % with their standard errors in the output; bad --brdf options are one line, status 2."""
+    import json
+
+    from prt_torch.cli import main
+    from prt_torch.lighting import write_image
+
+    mesh = load_scene("convex")
+    L = _light()
+    W = 20
+    obs = _observe(mesh, n_views=3, W=W)
+    y = _brute_force(mesh, obs, L, _microfacet(0.4, 0.7, 0.25), n_dirs=20000)
+    frames = []
+    for k, v in enumerate(obs.views):
+        write_image(tmp_path / f"v{k}.exr", obs.image(y, k))
+        frames.append({"file_path": f"v{k}.exr", "transform_matrix": v.c2w.tolist()})
+    (tmp_path / "transforms.json").write_text(json.dumps({"camera_angle_x": math.radians(FOV), "frames": frames}))
+    (tmp_path / "light.json").write_text(json.dumps(inverse.light_json(L, 8, "test")))
+    base = ["invert", "--mesh", "convex", "--cameras", str(tmp_path / "transforms.json"), "--unknown", "brdf",
+            "--light", str(tmp_path / "light.json"), "--bands", "8"]
+    out = tmp_path / "mf.json"
+    assert main(base + ["--brdf", "microfacet", "--max-pixels", "300", "-o", str(out)]) == 0
+    res = json.loads(out.read_text())["inverse"]
+    p = res["brdf"]
+    assert p["type"] == "microfacet" and abs(p["sigma"] - 0.25) < 0.03 * 0.25 and abs(p["ks"] - 0.7) < 0.03 * 0.7
+    assert max(abs(v - 0.4) for v in p["kd"]) < 0.03 * 0.4
+    assert 0 < res["brdf_fit"]["stderr"]["sigma"] < 0.01 and res["pixels"] == 300
+    assert res["residual"]["psnr_db"] > 40
+    capsys.readouterr()
+    for extra, needle in [(["--brdf", "cook-torrance"], "--brdf 'cook-torrance'; accepted: lambertian, phong, microfacet"),
+                          (["--brdf", "microfacet", "--brdf-param", "s=3"], "--brdf-param s=3; accepted for microfacet: kd, ks, sigma"),
+                          (["--brdf", "microfacet", "--brdf-param", "sigma=0"], "--brdf-param sigma=0; accepted: a finite number in"),
+                          (["--brdf", "microfacet", "--brdf-bands", "3"], "--brdf-bands 3 with --brdf microfacet; accepted: --brdf sh only")]:
+        assert main(base + extra + ["-o", str(tmp_path / "x.json")]) == 2
+        err = capsys.readouterr().err.strip()
+        assert needle in err and len(err.splitlines()) == 1, err
+    assert main(["invert", "--mesh", "convex", "--cameras", str(tmp_path / "transforms.json"), "--unknown", "light",
+                 "--brdf", "ashikhmin-shirley", "-o", str(tmp_path / "x.json")]) == 2
+    assert "accepted: --unknown brdf" in capsys.readouterr().err
+    assert not (tmp_path / "x.json").exists()
