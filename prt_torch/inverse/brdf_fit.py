@@ -148,15 +148,16 @@ class SliceModel:
         return int(self.wo.shape[0])
 
     def cosine_weighted(self, brdf) -> torch.Tensor:
-        """``[P, Q]`` f*(s_q, ω_o,p) of a :class:`prt_torch.brdf.BRDF` with scalar parameters."""
+        """``[P, Q]`` f*(s_q, ω_o,p) of a :class:`prt_torch.brdf.BRDF` with scalar parameters
+        (``[B, P, Q]`` for parameters of shape ``[B, 1, 1]``)."""
         return brdf.cosine_weighted(self.wi if self.wi.ndim == 3 else self.wi[None], self.wo[:, None])
 
     def integrate(self, f: torch.Tensor) -> torch.Tensor:
-        """``[P, C]`` Σ_q f_pq W_pqc for ``f [P, Q]``."""
-        return torch.einsum("pq,pqc->pc", f, self.W)
+        """``[..., P, C]`` Σ_q f_pq W_pqc for ``f [..., P, Q]`` (a batch of parameter sets in front)."""
+        return torch.einsum("...pq,pqc->...pc", f, self.W)
 
     def render(self, brdf) -> torch.Tensor:
-        """``[P, C]`` pixels of a BRDF model (module doc)."""
+        """``[P, C]`` pixels of a BRDF model (module doc); ``[B, P, C]`` for a batch ``[B, 1, 1]``."""
         return self.integrate(self.cosine_weighted(brdf))
 
 
@@ -284,6 +285,7 @@ class _Separable:
         self.fixed = {k: torch.as_tensor(v, dtype=torch.float64) for k, v in fixed.items()}
         self.D = self.diffuse(sm)
         self.width = [k for k in _WIDTH[model] if k not in fixed]
+        self._rs10 = torch.tensor([1.0, 0.0], dtype=torch.float64).reshape(2, 1, 1)
 
     def diffuse(self, sm: SliceModel) -> torch.Tensor:
         """``[P, C]``: the Lambertian image of unit albedo (microfacet) or the Ashikhmin–Shirley
@@ -330,8 +332,9 @@ class _Separable:
                 names.append(("ks", None))
             return off, cols, names
         nu, nv = (w["n"], w["n"]) if self.model == "ashikhmin-shirley" else (w["nu"], w["nv"])
-        F1 = sm.render(AshikhminShirley(nu=nu, nv=nv, rs=1.0, diffuse=False))
-        F0 = sm.render(AshikhminShirley(nu=nu, nv=nv, rs=0.0, diffuse=False))
+        # rs = 1 (F = 1) and rs = 0 (F = (1 − k·h)⁵) as one batch of two parameter sets: the
+        # direction terms are computed once
+        F1, F0 = sm.render(AshikhminShirley(nu=nu, nv=nv, rs=self._rs10, diffuse=False)).unbind(0)
         if "rs" in fx and "rd" in fx:
             return F0 + fx["rs"] * (F1 - F0) + (fx["rd"].expand(C) * (1 - fx["rs"]))[None] * D, [], []
         if "rs" in fx:  # u_c = rd_c (1 − rs) linear
