@@ -141,6 +141,11 @@ def test_ashikhmin_shirley_against_brute_force(scene):
     assert abs(p["n"] - 60.0) < 0.05 * 60.0, p
     assert abs(p["rs"] - 0.3) < 0.03 * 0.3, p
     assert max(abs(v - 0.6) for v in p["rd"]) < 0.03 * 0.6, p
+    for held in ({"n": 60.0}, {"rd": 0.6}):  # a held width (no scan, no LM) and a held rd (rs alone linear)
+        h = brdf_fit.fit_parametric(sm, y, "ashikhmin-shirley", fixed=held)
+        k = next(iter(held))
+        assert h.stderr[k] in (0.0, [0.0] * 3) and abs(h.params["rs"] - 0.3) < 0.03 * 0.3, (held, h.params)
+        assert abs(h.params["n"] - 60.0) < 0.05 * 60.0, (held, h.params)
 
 
 def test_cli_microfacet_and_bad_input(tmp_path, capsys):
