@@ -185,7 +185,8 @@ def test_cli_microfacet_and_bad_input(tmp_path, capsys):
     for extra, needle in [(["--brdf", "cook-torrance"], "--brdf 'cook-torrance'; accepted: lambertian, phong, microfacet"),
                           (["--brdf", "microfacet", "--brdf-param", "s=3"], "--brdf-param s=3; accepted for microfacet: kd, ks, sigma"),
                           (["--brdf", "microfacet", "--brdf-param", "sigma=0"], "--brdf-param sigma=0; accepted: a finite number in"),
-                          (["--brdf", "microfacet", "--brdf-bands", "3"], "--brdf-bands 3 with --brdf microfacet; accepted: --brdf sh only")]:
+                          (["--brdf", "microfacet", "--brdf-bands", "3"], "--brdf-bands 3 with --brdf microfacet; accepted: --brdf sh only"),
+                          (["--brdf", "sh", "--bounces", "1"], "--bounces 1 with --brdf sh: that fit integrates")]:
         assert main(base + extra + ["-o", str(tmp_path / "x.json")]) == 2
         err = capsys.readouterr().err.strip()
         assert needle in err and len(err.splitlines()) == 1, err

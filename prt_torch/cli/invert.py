@@ -125,6 +125,10 @@ def _check_args(args, brdf: dict) -> None:
         if brdf["type"] != "sh":
             raise ValueError(f"--brdf-bands {args.brdf_bands} with --brdf {brdf['type']}; accepted: --brdf sh only")
     check_int("--brdf-quad", args.brdf_quad, 2, 128)
+    if brdf["type"] in QUADRATURE and (args.transfer is not None or args.bounces):
+        given = "--transfer" if args.transfer is not None else f"--bounces {args.bounces}"
+        raise ValueError(f"{given} with --brdf {brdf['type']}: that fit integrates each pixel's direct light itself (no "
+                         "transfer, no interreflection); accepted: without it, or --brdf phong")
     if args.unknown != "brdf" and brdf["type"] in QUADRATURE:
         raise ValueError(f"--unknown {args.unknown} with --brdf {brdf['type']}; accepted: --unknown brdf (the light "
                          "with a known BRDF or both unknown use --brdf lambertian or phong)")
