@@ -128,7 +128,8 @@ def test_microfacet_sigma_against_brute_force(scene):
     assert 0 < fit.relative_stderr["sigma"] < 0.05
     held = brdf_fit.fit_parametric(sm, y, "microfacet", fixed={"sigma": 0.2})  # a held parameter stays, error 0
     assert held.params["sigma"] == 0.2 and held.stderr["sigma"] == 0.0
-    assert abs(held.params["ks"] - truth["ks"]) < 0.02 * truth["ks"]
+    assert abs(held.params["ks"] - truth["ks"]) < 0.02 * truth["ks"] and held.out_of_range == []
+    assert brdf_fit.fit_parametric(sm, -y, "microfacet", fixed={"sigma": 0.2}).out_of_range == ["kd", "ks"]  # said, not hidden
 
 
 def test_ashikhmin_shirley_against_brute_force(scene):

@@ -239,7 +239,12 @@ def run(args: argparse.Namespace) -> int:
         bf = inverse.brdf_fit.fit_parametric(model, obs.values, brdf["type"], fixed=fixed)
         L, pred = L_known, bf.predicted
         inv["brdf_fit"] = {"params": bf.params, "stderr": bf.stderr, "relative_stderr": bf.relative_stderr,
-                           "iterations": bf.iterations, "fixed": sorted(fixed)}
+                           "iterations": bf.iterations, "fixed": sorted(fixed), "out_of_range": bf.out_of_range}
+        if bf.out_of_range:
+            import warnings
+
+            warnings.warn(f"fitted {', '.join(bf.out_of_range)} outside the {brdf['type']} model's range: the model does "
+                          "not fit these images (wrong light or model, or no visible highlight)", stacklevel=1)
         inv["brdf"] = {"type": brdf["type"], **bf.params}
     elif args.unknown == "brdf":
         fixed = {"s": brdf["s"]} if "s" in brdf else None

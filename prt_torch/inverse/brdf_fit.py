@@ -54,6 +54,9 @@ class BRDFFit:
         stderr: the same keys, standard errors from (JᵀJ)⁻¹ σ̂² at the optimum (σ̂² the residual
             variance; 0 for a parameter held fixed); ``relative_stderr`` likewise divided by the values.
         predicted: ``[P, C]`` float64; rss: residual sum of squares; iterations (Levenberg–Marquardt).
+        out_of_range: names of parameters outside the model's accepted range (the linear ones are
+            unconstrained least squares: a negative ks, or rs > 1, says the model does not fit the
+            images — wrong light, wrong model, or a surface without a visible highlight).
     """
 
     params: dict
@@ -62,6 +65,7 @@ class BRDFFit:
     predicted: torch.Tensor
     rss: float
     iterations: int
+    out_of_range: list = dataclasses.field(default_factory=list)
 
 
 # ----------------------------------------------------------------------------------------- fitting core
@@ -469,7 +473,9 @@ def fit_parametric(sm: SliceModel, values: torch.Tensor, model: str, *, fixed: d
         stderr[k] = [float(a) for a in e] if ch else float(e[0])
         r_ = [float(a) / abs(float(b)) if float(b) else math.inf for a, b in zip(e, v)]
         rel[k] = r_ if ch else r_[0]
-    return BRDFFit(params, stderr, rel, pred, rss, it)
+    bad = [k for (k, ch, lo, hi) in spec
+           if any(not lo <= v <= hi for v in (params[k] if ch else [params[k]]))]
+    return BRDFFit(params, stderr, rel, pred, rss, it, bad)
 
 
 # ----------------------------------------------------------------------------------------- SH BRDF
