@@ -81,6 +81,7 @@ __all__ = [
     "brdf_matrix",
     "brdf_matrices",
     "unique_params",
+    "split_hemisphere_rules",
     "PROJECTIONS",
 ]
 
@@ -556,13 +557,15 @@ def _quad(domain: str, bands: int) -> tuple[torch.Tensor, torch.Tensor]:
 def _split_hemisphere_rule(z0: float, nz: int, nphi: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Product rule on z ≥ 0 with the z-interval split at z0: Gauss-Legendre (nz nodes each) on
     [0, z0] and [z0, 1] × nphi uniform φ. Returns (dirs [2·nz·nphi, 3], w), Σw = 2π."""
-    d, w = _split_hemisphere_rules(torch.tensor([float(z0)], dtype=torch.float64), nz, nphi)
+    d, w = split_hemisphere_rules(torch.tensor([float(z0)], dtype=torch.float64), nz, nphi)
     return d[0], w[0]
 
 
-def _split_hemisphere_rules(z0: torch.Tensor, nz: int, nphi: int) -> tuple[torch.Tensor, torch.Tensor]:
+def split_hemisphere_rules(z0: torch.Tensor, nz: int, nphi: int) -> tuple[torch.Tensor, torch.Tensor]:
     """:func:`_split_hemisphere_rule` for every split point of ``z0 [R]`` float64 at once:
-    (dirs ``[R, 2·nz·nphi, 3]``, w ``[R, 2·nz·nphi]``) float64, row r split at z0[r]."""
+    (dirs ``[R, 2·nz·nphi, 3]``, w ``[R, 2·nz·nphi]``) float64, row r split at z0[r]. Public for
+    integrands with a kink along z = z0 (Ashikhmin–Shirley's max(n·k1, n·k2) at z_i = z_o), e.g.
+    the per-pixel rules of :func:`prt_torch.inverse.brdf_fit.slice_model`."""
     x, wz = (torch.from_numpy(a) for a in np.polynomial.legendre.leggauss(nz))
     zero, one = torch.zeros_like(z0), torch.ones_like(z0)
     lo, hi = torch.stack([zero, z0], 1), torch.stack([z0, one], 1)  # [R, 2] panels
@@ -686,7 +689,7 @@ def _double_project_isotropic(kernel, bands_out, bands_in, domain, quad_bands, b
     nz, nphi = L + 1, 2 * L + 1
     zv, wv = dirs[::nphi, 2], w[::nphi]  # the view rule's z rows and node weights (2π/n_φ included)
     if domain == "hemisphere" and split:  # one split light rule per view row, as double_project's
-        s_dirs, s_w = _split_hemisphere_rules(zv, (nz + 1) // 2 + 1, nphi)  # [nz, Ns, 3], [nz, Ns]
+        s_dirs, s_w = split_hemisphere_rules(zv, (nz + 1) // 2 + 1, nphi)  # [nz, Ns, 3], [nz, Ns]
     else:
         s_dirs, s_w = dirs[None].expand(nz, -1, -1), w[None].expand(nz, -1)
     Ns = s_dirs.shape[1]

@@ -13,6 +13,10 @@ import torch
 
 UNKNOWNS = ("light", "brdf", "both")
 KINDS = ("diffuse", "glossy", "mrt")  # the transfer kinds --kind precomputes (the rows of inverse.light.corner_rows)
+#: --brdf values; QUADRATURE: fitted through the per-pixel hemisphere quadrature (inverse.brdf_fit)
+BRDF_TYPES = ("lambertian", "phong", "microfacet", "ashikhmin-shirley", "ashikhmin-shirley-anisotropic", "sh")
+QUADRATURE = ("microfacet", "ashikhmin-shirley", "ashikhmin-shirley-anisotropic", "sh")
+MAX_PIXELS_QUADRATURE = 3000  # default pixel subset of the quadrature fits (P·(Q+1)(2Q+1) BRDF values per step)
 
 
 def register(subparsers) -> None:
@@ -36,10 +40,17 @@ def register(subparsers) -> None:
     p.add_argument("--albedo", default=None, metavar="A", help="known diffuse albedo: one value or r,g,b (default: the "
                    "mesh's, 0.8 grey for built-ins)")
     p.add_argument("--brdf", default="lambertian", metavar="TYPE",
-                   help="reflectance model: lambertian (default; the transfer's) or phong (reflection form, eq. 6.12)")
+                   help="reflectance model: lambertian (default; the transfer's), phong (reflection form, eq. 6.12); "
+                        "with --unknown brdf also microfacet (eq. 5.34 + Lambertian), ashikhmin-shirley (isotropic n), "
+                        "ashikhmin-shirley-anisotropic (nu, nv) or sh (SH BRDF coefficients by linear least squares)")
     p.add_argument("--brdf-param", action="append", default=[], metavar="NAME=VALUE",
-                   help="a known BRDF parameter, repeatable: kd=0.5 ks=0.5 s=30 (phong); with --unknown brdf a given "
-                        "s is kept fixed")
+                   help="a known BRDF parameter, repeatable, held fixed by --unknown brdf: kd ks s (phong); kd ks sigma "
+                        "(microfacet); rd rs n (ashikhmin-shirley); rd rs nu nv (-anisotropic)")
+    p.add_argument("--brdf-bands", type=int, default=None, metavar="N",
+                   help="--brdf sh: SH bands of the BRDF on the view and the light side (default --bands)")
+    p.add_argument("--brdf-quad", type=int, default=16, metavar="Q",
+                   help="microfacet, ashikhmin-shirley, sh: the per-pixel hemisphere rule gauss_hemisphere(Q), (Q+1)(2Q+1) "
+                        "directions (default 16)")
     p.add_argument("--light", default=None, metavar="SPEC", help="the known light (--unknown brdf): built-in, image, "
                    "analytic spec or a light JSON (prt light --json / prt invert output)")
     p.add_argument("--bounces", type=int, default=0, help="interreflection bounces in the precomputed transfer (default 0)")
@@ -89,18 +100,26 @@ def _brdf(args) -> dict:
     from ..brdf import MODELS
     from ..params import parse_assignments
 
+    from ..inverse.brdf_fit import PARAMETERS
+
     name = args.brdf.lower()
-    if name not in ("lambertian", "phong"):
+    if name not in BRDF_TYPES:
         known = ", ".join(sorted(MODELS))
-        raise ValueError(f"--brdf {args.brdf!r}; accepted: lambertian, phong (inverse rendering fits these; the engine "
-                         f"knows {known})")
+        raise ValueError(f"--brdf {args.brdf!r}; accepted: {', '.join(BRDF_TYPES)} (inverse rendering fits these; the "
+                         f"engine knows {known})")
     params = parse_assignments(args.brdf_param, what="--brdf-param")
-    allowed = {"lambertian": set(), "phong": {"kd", "ks", "s"}}[name]
+    allowed = {"lambertian": set(), "phong": {"kd", "ks", "s"}, "sh": set(),
+               **{k: {p[0] for p in v} for k, v in PARAMETERS.items()}}[name]
+    bounds = {p[0]: (p[2], p[3]) for v in PARAMETERS.values() for p in v}
     for k, v in params.items():
         if k not in allowed:
             raise ValueError(f"--brdf-param {k}={v!r}; accepted for {name}: {', '.join(sorted(allowed)) or 'none'}")
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0 or (k == "s" and v <= 0):
-            raise ValueError(f"--brdf-param {k}={v!r}; accepted: a finite number ≥ 0 (s > 0)")
+        lo, hi = bounds.get(k, (0.0, math.inf))
+        if k in ("s", "sigma", "n", "nu", "nv"):
+            lo = max(lo, 1e-300)  # a lobe width must be positive
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or not lo <= v <= hi:
+            raise ValueError(f"--brdf-param {k}={v!r}; accepted: a finite number in [{lo:g}, {hi:g}]"
+                             + (" (> 0)" if k in ("s", "sigma", "n", "nu", "nv") else ""))
     return {"type": name, **params}
 
 
@@ -115,8 +134,21 @@ def _check_args(args, brdf: dict) -> None:
     if args.unknown == "brdf":
         if args.light is None:
             raise ValueError("--unknown brdf needs the known light: --light SPEC")
-        if brdf["type"] != "phong":
-            raise ValueError(f"--unknown brdf with --brdf {brdf['type']}; accepted: --brdf phong (the fitted model)")
+        if brdf["type"] == "lambertian":
+            raise ValueError(f"--unknown brdf with --brdf {brdf['type']}; accepted: --brdf "
+                             f"{', '.join(t for t in BRDF_TYPES if t != 'lambertian')} (the fitted models)")
+    if args.brdf_bands is not None:
+        check_int("--brdf-bands", args.brdf_bands, 1, 8)
+        if brdf["type"] != "sh":
+            raise ValueError(f"--brdf-bands {args.brdf_bands} with --brdf {brdf['type']}; accepted: --brdf sh only")
+    check_int("--brdf-quad", args.brdf_quad, 2, 128)
+    if brdf["type"] in QUADRATURE and (args.transfer is not None or args.bounces):
+        given = "--transfer" if args.transfer is not None else f"--bounces {args.bounces}"
+        raise ValueError(f"{given} with --brdf {brdf['type']}: that fit integrates each pixel's direct light itself (no "
+                         "transfer, no interreflection); accepted: without it, or --brdf phong")
+    if args.unknown != "brdf" and brdf["type"] in QUADRATURE:
+        raise ValueError(f"--unknown {args.unknown} with --brdf {brdf['type']}; accepted: --unknown brdf (the light "
+                         "with a known BRDF or both unknown use --brdf lambertian or phong)")
     if args.unknown == "both" and brdf["type"] != "phong":
         raise ValueError(f"--unknown both with --brdf {brdf['type']}; accepted: --brdf phong (a Lambertian object under "
                          "unknown light is --unknown light with a known albedo)")
@@ -239,21 +271,29 @@ def run(args: argparse.Namespace) -> int:
     mesh = load_scene(args.mesh, albedo=_albedo(args.albedo))
     L_known = load_light(args.light, bands=args.bands) if args.light is not None else None
     views, images, masks, infos = inverse.load_images(views)
-    unknowns = {"light": args.bands ** 2, "brdf": 5, "both": args.bands ** 2 + 2}[args.unknown]
+    quad = brdf["type"] in QUADRATURE
+    unknowns = {"light": args.bands ** 2, "brdf": _brdf_unknowns(brdf, args), "both": args.bands ** 2 + 2}[args.unknown]
     eps = inverse.data_eps(infos)
+    max_pixels = args.max_pixels if args.max_pixels is not None or not quad else MAX_PIXELS_QUADRATURE
     with RayCaster(mesh, workers=1) as caster:
-        obs = inverse.observe(mesh, views, images, masks, unknowns=unknowns, max_pixels=args.max_pixels, caster=caster)
-        tr = _truncate(_transfer(args, mesh, brdf, kind_params), args.bands)
+        obs = inverse.observe(mesh, views, images, masks, unknowns=unknowns, max_pixels=max_pixels, caster=caster)
+        tr = None if quad else _truncate(_transfer(args, mesh, brdf, kind_params), args.bands)
         model = None
         if brdf["type"] == "phong":
             model = inverse.material.lobe_model(mesh, tr, obs, args.bands, caster)
+        elif quad:
+            model = inverse.brdf_fit.slice_model(mesh, obs, L_known, quad_bands=args.brdf_quad, caster=caster)
     t_trace = time.perf_counter() - t0
     out: dict = {}
     inv: dict = {"unknown": args.unknown, "brdf": brdf, "views": len(views), "pixels": obs.P,
-                 "pixels_per_view": obs.counts, "data_eps": eps, "regularizer": args.regularizer,
-                 "transfer": {"kind": tr.kind, "bands": args.bands, "precomputed": args.transfer is None,
-                              "meta": {k: tr.meta.get(k) for k in ("samples", "bounces", "shadows", "albedo_folded", "brdf",
-                                                                   "bands_out", "M") if k in tr.meta}}}
+                 "pixels_per_view": obs.counts, "data_eps": eps, "regularizer": args.regularizer}
+    if tr is not None:
+        inv["transfer"] = {"kind": tr.kind, "bands": args.bands, "precomputed": args.transfer is None,
+                           "meta": {k: tr.meta.get(k) for k in ("samples", "bounces", "shadows", "albedo_folded", "brdf",
+                                                                "bands_out", "M") if k in tr.meta}}
+    else:
+        inv["quadrature"] = {"quad_bands": args.brdf_quad, "directions": int(model.wi.shape[0]),
+                             "visible_fraction": model.visible, "max_pixels": max_pixels}
     if args.unknown == "light":
         if model is None:
             A = inverse.design_matrix(PRTScene(tr), obs)
@@ -265,6 +305,24 @@ def run(args: argparse.Namespace) -> int:
         L, pred = fit.light, fit.predicted
         inv["well_posedness"] = fit.report
         inv["positivity"] = fit.positivity
+    elif args.unknown == "brdf" and brdf["type"] == "sh":
+        nb = args.brdf_bands or args.bands
+        sh = inverse.brdf_fit.fit_sh_brdf(model, obs.values, nb, nb, method=args.regularizer, eps=eps)
+        L, pred = L_known, sh["predicted"]
+        inv["brdf"] = {"type": "sh", "bands_out": nb, "bands_in": nb}
+        inv["brdf_sh"] = _sh_report(sh)
+    elif args.unknown == "brdf" and quad:
+        fixed = {k: v for k, v in brdf.items() if k != "type"}
+        bf = inverse.brdf_fit.fit_parametric(model, obs.values, brdf["type"], fixed=fixed)
+        L, pred = L_known, bf.predicted
+        inv["brdf_fit"] = {"params": bf.params, "stderr": bf.stderr, "relative_stderr": bf.relative_stderr,
+                           "iterations": bf.iterations, "fixed": sorted(fixed), "out_of_range": bf.out_of_range}
+        if bf.out_of_range:
+            import warnings
+
+            warnings.warn(f"fitted {', '.join(bf.out_of_range)} outside the {brdf['type']} model's range: the model does "
+                          "not fit these images (wrong light or model, or no visible highlight)", stacklevel=1)
+        inv["brdf"] = {"type": brdf["type"], **bf.params}
     elif args.unknown == "brdf":
         fixed = {"s": brdf["s"]} if "s" in brdf else None
         bf = inverse.material.fit_phong(model, L_known, obs.values, fixed=fixed)
@@ -297,10 +355,37 @@ def run(args: argparse.Namespace) -> int:
         u = pos["unconstrained"]
         msg += (f", unconstrained light negative on {100 * max(u['negative_solid_angle']):.1f}% of the sphere (least radiance "
                 f"{min(u['min_relative']):.3g} x mean |radiance|)" + (", constrained >= 0" if pos["constrained"] else ""))
-    if args.unknown != "light":
-        msg += ", brdf " + json.dumps({k: v for k, v in inv["brdf"].items() if k in ("kd", "ks", "s")})
+    if args.unknown != "light" and brdf["type"] == "sh":
+        r = inv["brdf_sh"]
+        msg += f", SH BRDF {len(r['index'])} coefficients per channel, {len(r['undetermined'])} not determined by the images"
+    elif args.unknown != "light":
+        msg += ", brdf " + json.dumps({k: v for k, v in inv["brdf"].items() if k != "type"})
     print(msg + f" -> {args.output}")
     return 0
+
+
+def _brdf_unknowns(brdf: dict, args) -> int:
+    """Unknowns of --unknown brdf per channel block (the pixel-count check before tracing)."""
+    from ..inverse.brdf_fit import PARAMETERS, sh_brdf_index
+
+    if brdf["type"] == "sh":
+        nb = args.brdf_bands or args.bands
+        return int(sh_brdf_index(nb, nb).shape[0])
+    if brdf["type"] in PARAMETERS:
+        return sum(3 if ch else 1 for (k, ch, *_r) in PARAMETERS[brdf["type"]] if k not in brdf)
+    return 5
+
+
+def _sh_report(sh: dict) -> dict:
+    """The JSON of :func:`prt_torch.inverse.brdf_fit.fit_sh_brdf`: coefficients ρ̂_lpq with their
+    (l, p, q), and per coefficient its resolution, standard error and whether the images determine it."""
+    idx = sh["index"].tolist()
+    det = sh["determined"].tolist()
+    return {"index": idx, "coeffs": sh["coeffs"].tolist(), "stderr": sh["stderr"].tolist(),
+            "resolution": sh["resolution"].tolist(), "determined": det,
+            "undetermined": [i for i, d in zip(idx, det) if not d], "singular_values": sh["singular_values"],
+            "condition": sh["singular_values"][0] / sh["singular_values"][-1] if sh["singular_values"][-1] > 0 else math.inf,
+            "lam": sh["lam"], "threshold": 0.5}
 
 
 def _report_names(d: str | None, n: int) -> dict:

@@ -7,8 +7,11 @@ are part of the model, not an error: the thesis assumed convex objects).
 * :mod:`.light` — unknown lighting, known BRDF (§6.4.3): Tikhonov least squares with λ by GCV or
   the L-curve, optionally with the radiance constrained non-negative (eq. 6.24), and the
   well-posedness report (ch. 2 §2.4.2).
-* :mod:`.material` — unknown BRDF, known lighting (§6.4.2: parametric by autograd non-linear least
-  squares; the BRDF matrix by linear least squares) and both unknown (§6.4.4).
+* :mod:`.material` — unknown BRDF, known lighting (§6.4.2: the reflection-form Phong of eq. 6.12
+  by autograd non-linear least squares) and both unknown (§6.4.4).
+* :mod:`.brdf_fit` — unknown BRDF beyond Phong (§6.4.2): the microfacet σ of eq. 5.34 and
+  Ashikhmin–Shirley by autograd non-linear least squares, the SH BRDF ρ̂_lpq by linear least
+  squares, both through a per-pixel hemisphere quadrature of the engine's BRDF classes.
 
 ``prt invert`` (:mod:`prt_torch.cli.invert`) is the command; docs/inverse.md the guide.
 """
@@ -19,12 +22,12 @@ import math
 import numpy as np
 import torch
 
-from . import material
+from . import brdf_fit, material
 from .inputs import CameraView, Observations, camera_from_view, load_cameras, load_images, observe, pixel_rays
 from .light import (LightFit, corner_rows, design_matrix, fit_light, negativity, nnls, positive_directions, solve_positive,
                     solve_tikhonov, well_posedness)
 
-__all__ = ["material", "CameraView", "Observations", "load_cameras", "load_images", "observe", "pixel_rays", "camera_from_view",
+__all__ = ["brdf_fit", "material", "CameraView", "Observations", "load_cameras", "load_images", "observe", "pixel_rays", "camera_from_view",
            "LightFit", "corner_rows", "design_matrix", "fit_light", "solve_tikhonov", "well_posedness",
            "nnls", "solve_positive", "positive_directions", "negativity",
            "psnr", "light_json", "data_eps"]

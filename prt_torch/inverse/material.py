@@ -34,6 +34,7 @@ import numpy as np
 import torch
 
 from ..sh import band_factor, eval_sh, phong as phong_zonal
+from .brdf_fit import BRDFFit, covariance_stderr, levenberg_marquardt
 
 __all__ = ["LobeModel", "lobe_model", "fit_phong", "fit_both", "BRDFFit", "PARAMETRIC"]
 
@@ -110,25 +111,6 @@ def lobe_model(mesh, transfer, obs, bands: int, caster=None) -> LobeModel:
     return LobeModel(E, S, bands, vis)
 
 
-@dataclasses.dataclass
-class BRDFFit:
-    """Fitted reflection-form Phong parameters (eq. 6.12).
-
-    Attributes:
-        params: {'kd': [C] list, 'ks': float, 's': float}.
-        stderr: the same keys, standard errors from (JᵀJ)⁻¹ σ̂² at the optimum (σ̂² the residual
-            variance); ``relative_stderr`` likewise divided by the values.
-        predicted: ``[P, C]`` float64; rss: residual sum of squares; iterations.
-    """
-
-    params: dict
-    stderr: dict
-    relative_stderr: dict
-    predicted: torch.Tensor
-    rss: float
-    iterations: int
-
-
 def _linear_kd_ks(model: LobeModel, L: torch.Tensor, y: torch.Tensor, s: float, grey: bool):
     """(kd [C], ks, rss) minimising ‖kd_c e_c + ks sp_c − y_c‖² jointly over channels for fixed s."""
     e = model.E @ L.T  # [P, C]
@@ -181,37 +163,17 @@ def fit_phong(model: LobeModel, L: torch.Tensor, values: torch.Tensor, *, grey: 
         return (model.render(L, kd, ks, s) - y).reshape(-1)
 
     theta = torch.cat([kd0[:nk], ks0.reshape(1)] + ([torch.tensor([math.log(s_best)], dtype=torch.float64)] if "s" not in fixed else []))
-    mu = 1e-3
-    r = resid(theta)
-    f = float(r @ r)
-    it = 0
-    for it in range(1, iterations + 1):  # Levenberg–Marquardt on a handful of parameters
-        J = torch.func.jacfwd(resid)(theta)
-        g = J.T @ r
-        H = J.T @ J
-        step = torch.linalg.solve(H + mu * torch.diag(torch.diagonal(H).clamp_min(1e-300)), -g)
-        r_new = resid(theta + step)
-        f_new = float(r_new @ r_new)
-        if f_new < f:
-            rel = (f - f_new) / max(f, 1e-300)
-            theta, r, f = theta + step, r_new, f_new
-            if "s" not in fixed:
-                theta[nk + 1] = theta[nk + 1].clamp(math.log(s_range[0]), math.log(s_range[1]))
-            mu = max(mu / 10, 1e-12)
-            if rel < 1e-14 or float(step.abs().max()) < 1e-12:
-                break
-        else:
-            mu *= 10
-            if mu > 1e12:
-                break
-    J = torch.func.jacfwd(resid)(theta)
-    dof = max(r.numel() - theta.numel(), 1)
-    sigma2 = f / dof
-    try:
-        cov = torch.linalg.inv(J.T @ J) * sigma2
-        se = torch.sqrt(torch.diagonal(cov).clamp_min(0))
-    except RuntimeError:  # singular: a parameter the images do not determine
-        se = torch.full_like(theta, math.inf)
+
+    def project(t):
+        if "s" in fixed:
+            return t
+        t = t.clone()
+        t[nk + 1] = t[nk + 1].clamp(math.log(s_range[0]), math.log(s_range[1]))
+        return t
+
+    theta, r, f, J, it = levenberg_marquardt(resid, theta, iterations=iterations, project=project,
+                                             jacobian=lambda fn, t: torch.func.jacfwd(fn)(t))
+    se = covariance_stderr(J, f)
     kd, ks, s = unpack(theta)
     params = {"kd": [float(v) for v in kd], "ks": float(ks), "s": float(s)}
     se_kd = [float(se[0])] * C if grey else [float(v) for v in se[:nk]]

@@ -104,17 +104,17 @@ def _write_ply(path: Path, mesh: Mesh, centre: np.ndarray, scale: float) -> None
 
 
 def _base_scene(mi, image: np.ndarray, mesh: Mesh | None, tmp: Path, centre: np.ndarray, scale: float,
-                face_normals: bool = True) -> dict[str, Any]:
+                face_normals: bool = True, bsdf: dict | None = None) -> dict[str, Any]:
     """The Mitsuba scene both measurements share: the light image as ``envmap`` and (if given)
     the mesh, flat-shaded (``face_normals``; False: Mitsuba's interpolated vertex normals),
-    one-sided Lambertian with its vertex albedo (written to ``tmp``), in the frame of
-    :func:`mitsuba_frame` (``centre``, ``scale``)."""
+    one-sided Lambertian with its vertex albedo (written to ``tmp``) or the Mitsuba BSDF dict
+    ``bsdf``, in the frame of :func:`mitsuba_frame` (``centre``, ``scale``)."""
     scene: dict[str, Any] = {"type": "scene", "env": {"type": "envmap", "bitmap": mi.Bitmap(np.ascontiguousarray(image, np.float32))}}
     if mesh is not None:
         ply = tmp / "mesh.ply"
         _write_ply(ply, mesh, centre, scale)
         scene["mesh"] = {"type": "ply", "filename": str(ply), "face_normals": bool(face_normals),
-                         "bsdf": {"type": "diffuse", "reflectance": {"type": "mesh_attribute", "name": "vertex_color"}}}
+                         "bsdf": bsdf or {"type": "diffuse", "reflectance": {"type": "mesh_attribute", "name": "vertex_color"}}}
     return scene
 
 
@@ -327,7 +327,7 @@ def mitsuba_glossy_exit(mesh: Mesh | None, points: Any, frames: Any, views: Any,
 
 
 def mitsuba_views(mesh: Mesh, views: list, image: np.ndarray, spp: int = 64, max_depth: int = 2, seed: int = 0,
-                  face_normals: bool = False, frame: str = "normalized") -> list[np.ndarray]:
+                  face_normals: bool = False, frame: str = "normalized", bsdf: dict | None = None) -> list[np.ndarray]:
     """Mitsuba 3 path-traced images of ``mesh`` (one-sided Lambertian, ``mesh.albedo``) under the
     environment ``image`` ``[H, 2H, 3]`` (:func:`prt_torch.validate.lights.light_image`), seen by
     resolved :class:`prt_torch.inverse.CameraView` s (``transforms.json``'s OpenGL camera-to-world
@@ -338,14 +338,16 @@ def mitsuba_views(mesh: Mesh, views: list, image: np.ndarray, spp: int = 64, max
     its +y up, horizontal field of view 2·atan(w / 2 fx), box pixel filter (each pixel the mean
     over its footprint; the engine's pixel is its centre: a second-order difference on smooth
     shading). ``max_depth`` 2: direct light with shadows (the engine's ``bounces=0``); B + 2: B
-    bounces. Returns per view ``[h, w, 4]`` float32: linear RGB and the pixel's coverage of the
-    mesh (1 inside, fractional on silhouettes, 0 on the background; the env's radiance there).
+    bounces. ``bsdf``: a Mitsuba BSDF dict for the mesh instead of its Lambertian albedo (e.g. a
+    plugin registered with ``mi.register_bsdf``: tests/test_inverse_mitsuba_phong.py). Returns per
+    view ``[h, w, 4]`` float32: linear RGB and the pixel's coverage of the mesh (1 inside,
+    fractional on silhouettes, 0 on the background; the env's radiance there).
     """
     mi = require_mitsuba()
     centre, scale = mitsuba_frame(mesh, frame)
     out = []
     with tempfile.TemporaryDirectory() as tmp:
-        sd = _base_scene(mi, image, mesh, Path(tmp), centre, scale, face_normals=face_normals)
+        sd = _base_scene(mi, image, mesh, Path(tmp), centre, scale, face_normals=face_normals, bsdf=bsdf)
         # hide_emitters: the background is transparent, so alpha is the pixel's coverage of the mesh (else 1 everywhere)
         sd["integrator"] = {"type": "path", "max_depth": int(max_depth), "rr_depth": 1000, "hide_emitters": True}
         sc = mi.load_dict(sd)
