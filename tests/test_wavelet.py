@@ -248,7 +248,7 @@ def test_kernel_portable_path_without_avx2(scene):
 
     names, flags = LIBRARIES["wavelet"]
     vp, i64 = ctypes.c_void_p, ctypes.c_int64
-    sig = [vp, i64, vp, vp, i64, vp, vp]
+    sig = [vp, i64, vp, vp, i64, vp, vp, i64]
     fl = [f for f in flags if not f.startswith("-march")] + ["-march=x86-64", "-Wno-psabi"]
     lib, why = compile_library("wavelet_portable_test", kernel_sources(names), fl,
                                {"prt_wavelet_relight_i8": sig, "prt_wavelet_relight_i16": sig, "prt_wavelet_relight_f32": sig})
@@ -270,7 +270,7 @@ def test_kernel_portable_path_without_avx2(scene):
             li = torch.randperm(P, generator=g)[:N]
             lv = torch.randn(C, N, generator=g)
             out = torch.empty(V, C)
-            assert fn(r._layout.data_ptr(), N, li.data_ptr(), lv.data_ptr(), C, r._factor(C, False).data_ptr(), out.data_ptr()) == 0
+            assert fn(r._layout.data_ptr(), N, li.data_ptr(), lv.data_ptr(), C, r._factor(C, False).data_ptr(), out.data_ptr(), 1) == 0
             ref = relight.wavelet_dense(q.double(), index, li, lv.double(), P)
             assert (out.double() - ref).abs().max() <= 1e-5 * ref.abs().max() + 1e-6, (dtype, C, N)
 

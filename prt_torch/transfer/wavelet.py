@@ -140,12 +140,20 @@ def dequantise(q: torch.Tensor, scale: torch.Tensor, level: torch.Tensor | None 
 
 
 def wavelet_values(tr: Transfer) -> torch.Tensor:
-    """The dequantised Haar coefficients of a wavelet transfer, ``[V, K]`` float32 (albedo out)."""
+    """The dequantised Haar coefficients of a wavelet transfer, ``[V, K]`` float32 (albedo out), or
+    ``[V, 3, K]`` for a coloured one (one transfer per colour sharing the vertex's indices, albedo
+    folded in; its scales ``[V, 3, L]`` or ``[V, 3]``)."""
     if tr.kind != "wavelet":
         raise ValueError(f"transfer kind {tr.kind!r}; accepted: 'wavelet'")
-    sc = tr.aux["scale"]
-    level = haar_levels(int(tr.meta["res"]))[tr.aux["index"].long()] if sc.ndim == 2 else None
-    return dequantise(tr.data, sc, level)
+    sc, q, idx = tr.aux["scale"], tr.data, tr.aux["index"].long()
+    if q.ndim == 3:  # coloured: the channels as rows sharing the vertex's indices
+        V, C, K = q.shape
+        idx = idx[:, None, :].expand(V, C, K).reshape(V * C, K)
+        q, sc = q.reshape(V * C, K), sc.reshape(V * C, *sc.shape[2:])
+        level = haar_levels(int(tr.meta["res"]))[idx] if sc.ndim == 2 else None
+        return dequantise(q, sc, level).reshape(V, C, K)
+    level = haar_levels(int(tr.meta["res"]))[idx] if sc.ndim == 2 else None
+    return dequantise(q, sc, level)
 
 
 def sparsify(H: torch.Tensor, terms: int, bits: int, threshold: float = 0.0, scales: str = "vertex",
