@@ -288,7 +288,8 @@ class WaveletRelighter:
     BLOCK = 32  # vertices per dense block (kernels/wavelet.c BV)
     SUB = 8  # vertices per sparse block
 
-    def __init__(self, transfer, dense_min: float | None = None, tile: int | None = None, threads: int | None = None):
+    def __init__(self, transfer, dense_min: float | None = None, tile: int | None = None, threads: int | None = None,
+                 row_min: float | None = None):
         from .transfer.wavelet import dequantise, quantise, wavelet_values
 
         if getattr(transfer, "kind", None) != "wavelet":
@@ -363,6 +364,13 @@ class WaveletRelighter:
         self.bvals = bvals
         tile_b, col_b, blk_b = ukey // (P * nb8), (ukey // nb8) % P, ukey % nb8
         self.bofs = ((blk_b - tile_b * (TV // self.SUB)) * (4 * self.SUB * 4)).to(torch.int32)  # 4 channels x 8 floats
+        # the same blocks row-major (by 8-vertex block, then column): the pass a light holding most sparse blocks takes
+        order = torch.argsort(blk_b * P + col_b)
+        self.rcol = col_b[order].to(torch.int32).contiguous()
+        self.rvals = bvals[order].contiguous()
+        self.rptr = torch.zeros(4 * nb + 1, dtype=torch.int64)  # [4 ceil(V/32) + 1]: every dense block's four
+        self.rptr[1:] = torch.cumsum(torch.bincount(blk_b, minlength=4 * nb), 0)
+        self.row_min = 0.4 if row_min is None else float(row_min)
         cnt = torch.bincount(tile_b * P + col_b, minlength=self.NT * P).reshape(self.NT, P)
         self.tbase = torch.zeros(self.NT, dtype=torch.int64)
         self.tbase[1:] = torch.cumsum(cnt.sum(1), 0)[:-1]
@@ -375,23 +383,34 @@ class WaveletRelighter:
         self.MT = max(1, min(self.NT, os.cpu_count() or 1))
         self.threads = threads
         self._f: dict = {}
-        self._acc = torch.empty(self.MT, TV // self.SUB, 4, self.SUB, dtype=torch.float32)  # the kernel's scratch, per thread
+        self._acc = torch.empty(self.MT, TV // self.SUB, 4, self.SUB, dtype=torch.float32)  # the kernel's scratch, per thread (+ a dummy block)
         self._wk = torch.empty(P, dtype=torch.int64)  # the light's terms split into dense / sparse
         self._lw = torch.empty(P, 4, dtype=torch.float32)
-        self._ld = torch.empty(max(self.Pd, 1), 4, dtype=torch.float32)  # the light of each dense slot
-        self._mk = torch.empty(max(self.Pd, 1), dtype=torch.uint8)
+        self.dcol = dcols.contiguous()  # [Pd] the dense slot's column
+        self.cls = torch.where(is_dense, 2, (self.nnz > 0).to(torch.int64)).to(torch.uint8)  # [P] 0 empty, 1 sparse, 2 dense
+        self._mark = torch.empty(P, dtype=torch.uint8)  # the light's columns: 1 sparse, 2 dense
+        self._lp = torch.empty(P, 4, dtype=torch.float32)  # the light per column
+        self._lr = torch.empty(P, 4, dtype=torch.float32)  # the light per sparse column, zeros elsewhere (row-major pass)
         self._native = None
 
     def bytes_read(self, light_idx: torch.Tensor) -> int:
-        """Transfer bytes a light with these kept terms reads: the selected dense columns (32-vertex
-        blocks, zeros included), the selected sparse columns' blocks (int32 offset + 8·CT values,
-        zeros included) and per tile and sparse term its two block pointers (int32)."""
-        li = light_idx.long()
+        """Transfer bytes a light with these kept terms reads — the bound's byte count: the selected
+        dense columns (32-vertex blocks, zeros included) and, for the selected sparse columns that
+        any vertex keeps, either (column-major pass) their 8-vertex blocks (int32 offset + 8·CT
+        values, zeros included) and per tile and column its two int32 block pointers, or (row-major
+        pass, taken when they hold at least ``row_min`` of the sparse blocks) every sparse block
+        (int32 column + 8·CT values) and the int64 row pointers (kernels/wavelet.c's choice)."""
+        li = torch.unique(light_idx.long())
         d = self.dslot[li] >= 0
         b = self.bvals.element_size()
         ls = li[~d]
-        return (int(d.sum()) * self.dense.shape[0] * self.BLOCK * self.CT * b
-                + int(self.bcount[:, ls].sum()) * (4 + self.SUB * self.CT * b) + self.NT * int(ls.numel()) * 8)
+        ls = ls[self.nnz[ls] > 0]
+        dense = int(d.sum()) * self.dense.shape[0] * self.BLOCK * self.CT * b
+        sb = int(self.bcount[:, ls].sum())
+        NR = int(self.rcol.numel())
+        if ls.numel() and NR and self.row_min <= 1 and sb * 1000 >= min(int(round(self.row_min * 1000)), 1001) * NR:
+            return dense + NR * (4 + self.SUB * self.CT * b) + int(self.rptr.numel()) * 8
+        return dense + sb * (4 + self.SUB * self.CT * b) + self.NT * int(ls.numel()) * 8
 
     def _factor(self, C: int, albedo: bool) -> torch.Tensor:
         key = (C, albedo)
@@ -423,10 +442,12 @@ class WaveletRelighter:
             fn = {torch.int8: lib.prt_wavelet_relight_i8, torch.int16: lib.prt_wavelet_relight_i16}.get(
                 self.bvals.dtype, lib.prt_wavelet_relight_f32)
             # kernels/wavelet.c's wavelet_layout: the arrays' addresses, built once (kept alive by self)
-            self._layout = torch.tensor([self.P, self.dense.shape[1], self.V, self.CT, self.TV, self.NT, self.MT,
+            self._layout = torch.tensor([self.P, self.Pd, self.V, self.CT, self.TV, self.NT, self.MT,
                                          self.tptr.data_ptr(), self.tbase.data_ptr(), self.bofs.data_ptr(), self.bvals.data_ptr(),
                                          self.dslot.data_ptr(), self.dense.data_ptr(), self._acc.data_ptr(), self._wk.data_ptr(),
-                                         self._lw.data_ptr(), self._ld.data_ptr(), self._mk.data_ptr()], dtype=torch.int64)
+                                         self._lw.data_ptr(), self.dcol.data_ptr(), self.cls.data_ptr(), self._mark.data_ptr(), self._lp.data_ptr(),
+                                         self._lr.data_ptr(), self.rptr.data_ptr(), self.rcol.data_ptr(), self.rvals.data_ptr(),
+                                         self.rcol.numel(), min(int(round(self.row_min * 1000)), 1001)], dtype=torch.int64)
             lay = self._layout.data_ptr()
             self._native = functools.partial(fn, lay)
         return self._native

@@ -217,20 +217,23 @@ def test_kernel_dense_and_sparse_columns_equal_the_dense_gather(scene, dtype, mo
     vals = q.double() * scale.double()[:, None]
     alb = scene.albedo.double()
     forms = {}
-    for dense_min in (None, 2.0, 0.0):  # the default mix, every column sparse, every column dense
-        r = relight.WaveletRelighter(tr, dense_min=dense_min)
+    # the default mix, every column sparse (column-major pass; row-major pass; small tiles, two threads), every column dense
+    for dense_min, row_min, tile, threads in ((None, None, None, 1), (2.0, 2.0, None, 1), (2.0, 0.0, None, 1),
+                                              (2.0, 2.0, 64, 2), (None, 0.0, 64, 2), (0.0, None, None, 1)):
+        r = relight.WaveletRelighter(tr, dense_min=dense_min, row_min=row_min, tile=tile, threads=threads)
         forms[dense_min] = r.Pd
-        for C, N in ((3, 60), (1, P), (4, 7), (3, 0)):
-            li = torch.randperm(P, generator=g)[:N]
+        for C, N in ((3, 60), (1, P), (4, 7), (3, 0), (3, 2 * P)):  # 2P: every column listed twice (their light adds)
+            li = torch.randperm(P, generator=g)[:N] if N <= P else torch.randperm(P, generator=g).repeat(2)
             lv = torch.randn(C, N, generator=g, dtype=torch.float64)
-            ref = relight.wavelet_dense(vals, index, li, lv, P)
+            Lsum = torch.zeros(C, P, dtype=torch.float64).index_add_(1, li, lv)  # a column listed twice: its light adds
+            ref = relight.wavelet_dense(vals, index, torch.arange(P), Lsum, P)
             if C != 4:  # the mesh albedo has three channels: C = 4 is compared without it
                 ref = ref * (alb[:, :C] if C > 1 else alb[:, :1])
             tol = 1e-5 * float(ref.abs().max()) + 1e-6
             got = r(li, lv.float(), albedo=C != 4).double()
-            assert (got - ref).abs().max() <= tol, (dense_min, C, N)
+            assert (got - ref).abs().max() <= tol, (dense_min, row_min, tile, threads, C, N)
             monkeypatch.setenv("PRT_TORCH_NATIVE", "0")
-            assert (r(li, lv.float(), albedo=C != 4).double() - ref).abs().max() <= tol, ("torch", dense_min, C, N)
+            assert (r(li, lv.float(), albedo=C != 4).double() - ref).abs().max() <= tol, ("torch", dense_min, row_min, C, N)
             monkeypatch.delenv("PRT_TORCH_NATIVE")
             assert r.touched(li) == int(torch.bincount(index[q != 0], minlength=P)[li].sum())
         with pytest.raises(ValueError, match=f"accepted: 0..{P - 1}"):
