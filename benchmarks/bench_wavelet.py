@@ -569,14 +569,17 @@ def write_md(res: dict, quick: bool) -> None:
              "the rest is ray generation, the Haar transform, top-K and quantisation.\n")
     km = res.get("kernel_machine", m)
     L.append(f"## Relight time vs N against the kernel's bound (studio, R = 32, K = 256, {BITS}-bit)\n")
-    L.append(f"{km['cpu']}, {km['cores']} cores, one thread; the AVX2 path of `kernels/wavelet.c` (this CPU has no AVX-512; "
+    L.append(f"{km['cpu']}, {km['cores']} cores, one and two threads; the AVX2 path of `kernels/wavelet.c` (this CPU has no AVX-512; "
              f"an AVX-512 CPU takes the same AVX2 code), load average {km.get('load_before', la[-1]):.1f} → "
              f"{km.get('load_after', km.get('load_average_1min', la[-1])):.1f} (⚠: the pairing flagged contention). "
              "The kernel reads each Haar column of the light's terms in the form stored for it "
              "(`relight.WaveletRelighter`): *dense* (32-vertex blocks of the stored values, zeros included, no index: "
              "the columns most vertices keep, the coarse levels) or *block-sparse* (per tile of vertices and column, "
              "the 8-vertex blocks holding a value: an int32 offset and 8 values, zeros included; two int32 pointers "
-             "per tile and term). Paired (interleaved short samples, fastest tenth of each side) with its own bound "
+             "per tile and term — or, when the light's sparse terms hold at least 0.4 of all sparse blocks (here N = "
+             "2000 and all), the row-major copy: every sparse block, int32 column + 8 values, summed in registers). "
+             "Bytes read are that layout's and pass's, the output's included. Paired (interleaved short samples, "
+             "fastest tenth of each side) with its own bound "
              "— a copy of the bytes this layout reads and a fill of the output (`timing.io_bound_fn`), at the same "
              "torch thread count — and, at one thread, with the previous layout's bound (the same dense columns, "
              "the sparse ones as CSC (int32 offset, value) pairs padded to groups of 4: what the previous kernel "
