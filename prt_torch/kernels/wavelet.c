@@ -172,7 +172,6 @@ typedef struct {
 int NAME(const wavelet_layout *L, i64 N, const i64 *sel, const float *lv, i64 C, const float *f, float *out,  \
          i64 threads) {                                                                                      \
     const i64 P = L->P, Pd = L->Pd, V = L->V, CT = L->CT, TV = L->TV, NT = L->NT;                            \
-    const i64 *dslot = L->dslot;                                                                             \
     const T *dense = (const T *)L->dense, *bvals = (const T *)L->bvals;                                      \
     float *lw = L->lw;                                                                                       \
     i64 *wk = L->wk;                                                                                         \
