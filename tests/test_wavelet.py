@@ -638,3 +638,37 @@ def test_cli_coloured_bounce_precompute_relight(tmp_path):
     Lh = haar2d(cube).reshape(3, -1).double()  # [3, 96]
     ref = (tr.data.double() * tr.aux["scale"].double()[:, :, None] * Lh[:, tr.aux["index"].long()].permute(1, 0, 2)).sum(-1)
     assert float((got.double() - ref).abs().max()) <= 1e-5 * float(ref.abs().max())
+
+
+def test_sparsify_colour_shares_the_pattern_of_largest_energy():
+    """``sparsify`` of ``H [k, 3, P]``: each row keeps the K coefficients of largest Σ_c H_c² (the same
+    indices for its three channels, against a brute-force sort), each channel quantised with its own
+    per-level scales (error ≤ scale/2 per value); ``total``/``dropped`` sum the channels; a relighter
+    refuses a 2-channel light for it in one line."""
+    from prt_torch.lighting.haar import haar_levels
+    from prt_torch.transfer.wavelet import sparsify
+
+    g = torch.Generator().manual_seed(3)
+    R, K = 4, 20
+    P = 6 * R * R
+    H = torch.randn(5, 3, P, generator=g, dtype=torch.float64) * torch.rand(1, 3, P, generator=g, dtype=torch.float64)
+    s = sparsify(H, K, 8, scales="level", res=R)
+    e = H.square().sum(1)
+    for v in range(5):
+        assert set(s["index"][v].long().tolist()) == set(np.argsort(-e[v].numpy())[:K].tolist())
+    assert s["q"].shape == (5, 3, K) and s["scale"].shape == (5, 3, int(math.log2(R)) + 1)
+    kept = H.gather(2, s["index"].long()[:, None, :].expand(-1, 3, -1))
+    lev = haar_levels(R)[s["index"].long()]  # [5, K]
+    sc = s["scale"].double().gather(2, lev[:, None, :].expand(-1, 3, -1))
+    assert bool(((s["q"].double() * sc - kept).abs() <= sc / 2 + 1e-7 * kept.abs()).all())
+    assert torch.allclose(s["total"], H.square().sum((1, 2)))
+    assert torch.allclose(s["dropped"], H.square().sum((1, 2)) - kept.square().sum((1, 2)))
+    scene = builtin("occluder_over_plane", "small")
+    V = scene.num_vertices
+    idx = torch.randint(0, P, (V, K), generator=g).to(torch.int16)
+    tr = Transfer("wavelet", torch.randn(V, 3, K, generator=g), scene, {"res": R, "terms": K, "bits": 32, "albedo_folded": True},
+                  aux={"index": idx, "scale": torch.ones(V, 3)})
+    r = relight.WaveletRelighter(tr)
+    assert r(torch.arange(4), torch.ones(1, 4)).shape == (V, 3)  # a grey light on a coloured transfer: three channels
+    with pytest.raises(ValueError, match="accepted: 1 or 3"):
+        r(torch.arange(4), torch.ones(2, 4))
