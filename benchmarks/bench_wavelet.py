@@ -292,12 +292,15 @@ def kernel_rows(rl, selection: str) -> list[dict]:
         E = rl.touched(li)
         nbytes = rl.bytes_read(li)
         prev = previous_layout_bytes(rl, li)
-        f = lambda: rl(li, lv, out=out)  # noqa: E731
         row = {"N": N, "touched": E, "bytes": nbytes + V * 12, "previous_bytes": prev + V * 12}
         trusted = True
         for th in (1, 2):
             torch.set_num_threads(th)
             rl.threads = th
+            f = rl.prepared(li, lv, out)  # the render-loop form: checks and ctypes arguments once
+            if th == 1:  # the plain call's extra (its per-call checks), paired
+                pc = measure_paired(lambda: rl(li, lv, out=out), f, repeats=7, warmup=1, floor_pairs=40)  # noqa: B023
+                row["call_over_prepared"] = 1.0 / pc.speedup
             p = measure_paired(f, io_bound_fn(nbytes, V * 3 * 4), repeats=7, warmup=1, floor_pairs=40)
             row[f"of_bound_{th}"] = p.speedup
             row[f"relight_s_{th}"] = measure(f, repeats=7, warmup=1).median
@@ -309,7 +312,7 @@ def kernel_rows(rl, selection: str) -> list[dict]:
         torch.set_num_threads(1)
         rl.threads = None
         os.environ["PRT_TORCH_NATIVE"] = "0"
-        row["torch_relight_s"] = measure(f, repeats=3, warmup=1).median
+        row["torch_relight_s"] = measure(lambda: rl(li, lv, out=out), repeats=3, warmup=1).median
         os.environ.pop("PRT_TORCH_NATIVE")
         d = rl.dslot[li] >= 0
         row.update({"dense_terms": int(d.sum()), "dense_coefficients": int(rl.nnz[li[d]].sum()), "relight_s": row["relight_s_1"],
@@ -580,21 +583,25 @@ def write_md(res: dict, quick: bool) -> None:
              "2000 and all), the row-major copy: every sparse block, int32 column + 8 values, summed in registers). "
              "Bytes read are that layout's and pass's, the output's included. Paired (interleaved short samples, "
              "fastest tenth of each side) with its own bound "
+             "(the kernel timed through `WaveletRelighter.prepared`, the render-loop form whose per-call Python is one "
+             "call; `relighter(idx, vals)` adds its checks: the last column, paired) "
              "— a copy of the bytes this layout reads and a fill of the output (`timing.io_bound_fn`), at the same "
              "torch thread count — and, at one thread, with the previous layout's bound (the same dense columns, "
              "the sparse ones as CSC (int32 offset, value) pairs padded to groups of 4: what the previous kernel "
              "reached 0.27–0.35 of). Two threads: the tiles split between them (OpenMP).\n")
     L.append("| N | coefficients read | in dense columns | bytes read (this layout) | previous layout | 1 thread | of own bound "
-             "| of previous layout's bound | 2 threads | of own bound (2 threads) | torch path | C / torch | load |")
-    L.append("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+             "| of previous layout's bound | 2 threads | of own bound (2 threads) | torch path | C / torch | load "
+             "| plain call / prepared |")
+    L.append("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in res["kernel"]:
         flag = "" if r["trusted"] else " ⚠"
         if "of_bound_2" not in r:  # a report from before the block-sparse layout
             continue
+        cp = f"{r['call_over_prepared']:.2f}×{flag}" if "call_over_prepared" in r else "—"
         L.append(f"| {r['N']} | {r['touched']} | {r['dense_coefficients']} ({r['dense_terms']} terms) | {r['bytes']} | "
                  f"{r['previous_bytes']} | {_ms(r['relight_s_1'])} | {r['of_bound_1']:.2f}{flag} | {r['of_previous_bound']:.2f}{flag} | "
                  f"{_ms(r['relight_s_2'])} | {r['of_bound_2']:.2f}{flag} | {_ms(r['torch_relight_s'])} | "
-                 f"{r['torch_relight_s'] / r['relight_s']:.1f}× | {r['load']:.1f} |")
+                 f"{r['torch_relight_s'] / r['relight_s']:.1f}× | {r['load']:.1f} | {cp} |")
     L.append("")
     if "sampling" in res:
         sm = res["sampling"]

@@ -672,3 +672,19 @@ def test_sparsify_colour_shares_the_pattern_of_largest_energy():
     assert r(torch.arange(4), torch.ones(1, 4)).shape == (V, 3)  # a grey light on a coloured transfer: three channels
     with pytest.raises(ValueError, match="accepted: 1 or 3"):
         r(torch.arange(4), torch.ones(2, 4))
+
+
+def test_prepared_relighting_equals_the_call_and_sees_the_light_change(scene, full8):
+    """``WaveletRelighter.prepared(idx, vals, out)``: ``run()`` gives the plain call's result, follows
+    the light's values changed in place, and refuses an index changed out of range in one line."""
+    r = relight.WaveletRelighter(full8)
+    li, lv, _ = r.light("studio", 50)
+    lv = lv.float().contiguous()
+    out = torch.empty(r.V, 3)
+    run = r.prepared(li, lv, out)
+    assert run() is out and torch.equal(out, r(li, lv))
+    lv.mul_(2)
+    assert torch.allclose(run(), r(li, lv), rtol=0, atol=0)
+    li[0] = r.P
+    with pytest.raises(ValueError, match=f"accepted: 0..{r.P - 1}"):
+        run()
