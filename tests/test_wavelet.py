@@ -688,3 +688,19 @@ def test_prepared_relighting_equals_the_call_and_sees_the_light_change(scene, fu
     li[0] = r.P
     with pytest.raises(ValueError, match=f"accepted: 0..{r.P - 1}"):
         run()
+
+
+def test_bench_takes_a_coloured_interreflected_wavelet_transfer(tmp_path):
+    """prt bench on a coloured mesh with ``bounces``: the [V, 3, K] transfer is the run's reference,
+    every light term gives the exact result, and the trade's SH rows are projected per colour."""
+    import json
+
+    args = ["bench", "allfrequency", "scene.name=cornell_box", "transfer.res=4", "transfer.terms=32", "transfer.bounces=1",
+            "transfer.hit_samples=2", "render.enabled=false", f"output_dir={tmp_path / 'r'}", f"cache_dir={tmp_path / 'c'}",
+            "metrics.repeats=1", "name=t", "trade.terms=[10, 96]", "trade.bands=[3]", "lights=[overcast]"]
+    assert cli_main(args) == 0
+    res = json.loads((tmp_path / "r" / "t" / "results.json").read_text())
+    assert res["uncompressed"]["bytes_per_vertex"] == 32 * (3 + 2) + 4 * 3 * 3  # 8-bit x 3 colours, shared int16 index, 3 x 3 scales
+    rows = res["trade"]["rows"]
+    assert next(x for x in rows if x.get("N") == 96)["error"] < 1e-5
+    assert next(x for x in rows if x.get("bands") == 3)["error"] < 0.5
