@@ -274,6 +274,11 @@ class WaveletRelighter:
       vertex of the block did not keep it), ``tptr [NT, P+1]`` int32 each tile's column starts
       (relative to ``tbase [NT]``). One 8-lane multiply-add per block and output channel.
 
+    The same sparse blocks are also kept row-major (``rptr [4·ceil(V/32)+1]`` int64, ``rcol [NB]`` int32,
+    ``rvals [NB, CT, 8]``): when a light's sparse terms hold at least ``row_min`` (default 0.4; > 1:
+    never) of the sparse blocks, the kernel sums every block into the dense block's registers with
+    the light looked up per column instead of scattering the selected ones into scratch.
+
     ``dense_min`` > 1 stores every column sparse. Per light only the columns of its N kept terms
     are read: :meth:`touched` nonzero coefficients, :meth:`bytes_read` bytes. ``weights`` ``[P]``:
     mean |T̂_vk| over vertices and channels (for the transport-weighted selection).
