@@ -45,6 +45,9 @@ typedef int8_t v8b __attribute__((vector_size(8)));
 #include <immintrin.h>
 #endif
 #define BV 32 /* vertices per dense block: CO x 4 vectors of 8 sums */
+#ifndef PF
+#define PF 6 /* dense terms ahead the prefetch reads */
+#endif
 
 #ifdef __AVX2__ /* one 8-lane widening load (gcc splits __builtin_convertvector of 16-bit lanes into halves) */
 static inline v8f load8_int16_t(const int16_t *p) {
@@ -73,6 +76,9 @@ static inline __attribute__((always_inline)) void dense_block_##T(const int CT, 
     for (int c = 0; c < 4; c++) for (int k = 0; k < 4; k++) a[c][k] = (v8f){0};                             \
     for (i64 t = 0; t < nd; t++) {                                                                           \
         const T *p = blk + ds[t] * stride;                                                                   \
+        if (t + PF < nd) /* the selected slots are scattered in the block (N < all): no stream to prefetch */ \
+            for (i64 q = 0; q < stride * (i64)sizeof(T); q += 64)                                            \
+                __builtin_prefetch((const char *)(blk + ds[t + PF] * stride) + q);                           \
         v8f l[4];                                                                                            \
         for (int c = 0; c < CO; c++) l[c] = bc8(lw + 4 * t + c);                                             \
         for (int k = 0; k < 4; k++)                                                                          \
