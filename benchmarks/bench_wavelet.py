@@ -268,35 +268,56 @@ def main() -> None:
     print(f"[wavelet] wrote {OUT / 'wavelet.md'}", flush=True)
 
 
+def previous_layout_bytes(rl, li: torch.Tensor) -> int:
+    """The bytes the previous layout read for these terms (the same dense columns; each sparse column
+    a CSC list of (int32 row offset, value) pairs padded to groups of 4): the bound that kernel was
+    measured against (0.27-0.35)."""
+    d = rl.dslot[li] >= 0
+    b = rl.bvals.element_size()
+    return int(d.sum()) * rl.dense.shape[0] * rl.BLOCK * b + int(((rl.nnz[li[~d]] + 3) // 4 * 4).sum()) * (4 + b)
+
+
 def kernel_rows(rl, selection: str) -> list[dict]:
-    """Section 7: the C kernel per N (studio) paired with (a) its read-once/write-once bound — a copy
-    of the transfer bytes it reads (:meth:`WaveletRelighter.bytes_read`: dense columns' blocks,
-    sparse columns' (offset, value) pairs) and a fill of the output —, (b) the plain CSC layout
-    (every column sparse, ``dense_min`` > 1) and (c) that layout's bound (int32 row + value per
-    nonzero coefficient: the bound the previous kernel was measured against); and the torch path."""
+    """Section 7: the C kernel per N (studio) at one and two threads, each paired with its
+    read-once/write-once bound — a copy of the transfer bytes it reads (:meth:`WaveletRelighter.bytes_read`:
+    dense columns' blocks, the sparse 8-vertex blocks with their offsets and the per-tile pointers)
+    and a fill of the output, at the same thread count —, and at one thread with the previous
+    layout's bound (dense + CSC pairs: :func:`previous_layout_bytes`); and the torch path."""
     V = rl.V
-    csc = relight.WaveletRelighter(rl.transfer, dense_min=2.0)
     rows = []
     for N in TERMS + [rl.P]:
         li, lv, _ = rl.light("studio", N, selection)
         lv = lv.to(torch.float32).contiguous()
-        out, out2 = torch.empty(V, 3), torch.empty(V, 3)
+        out = torch.empty(V, 3)
         E = rl.touched(li)
         nbytes = rl.bytes_read(li)
-        csc_bytes = E * (4 + rl.qvals.element_size())
-        f = lambda: rl(li, lv, out=out)  # noqa: E731
-        p = measure_paired(f, io_bound_fn(nbytes, V * 3 * 4), repeats=7, warmup=1, floor_pairs=40)
-        pc = measure_paired(f, lambda: csc(li, lv, out=out2), repeats=7, warmup=1, floor_pairs=40)
-        pb = measure_paired(f, io_bound_fn(csc_bytes, V * 3 * 4), repeats=7, warmup=1, floor_pairs=40)
-        t = measure(f, repeats=7, warmup=1).median
+        prev = previous_layout_bytes(rl, li)
+        row = {"N": N, "touched": E, "bytes": nbytes + V * 12, "previous_bytes": prev + V * 12}
+        trusted = True
+        for th in (1, 2):
+            torch.set_num_threads(th)
+            rl.threads = th
+            f = rl.prepared(li, lv, out)  # the render-loop form: checks and ctypes arguments once
+            if th == 1:  # the plain call's extra (its per-call checks), paired
+                pc = measure_paired(lambda: rl(li, lv, out=out), f, repeats=7, warmup=1, floor_pairs=40)  # noqa: B023
+                row["call_over_prepared"] = 1.0 / pc.speedup
+            p = measure_paired(f, io_bound_fn(nbytes, V * 3 * 4), repeats=7, warmup=1, floor_pairs=40)
+            row[f"of_bound_{th}"] = p.speedup
+            row[f"relight_s_{th}"] = measure(f, repeats=7, warmup=1).median
+            trusted = trusted and bool(p.contention.get("trusted"))
+            if th == 1:
+                pb = measure_paired(f, io_bound_fn(prev, V * 3 * 4), repeats=7, warmup=1, floor_pairs=40)
+                row["of_previous_bound"] = pb.speedup
+                trusted = trusted and bool(pb.contention.get("trusted"))
+        torch.set_num_threads(1)
+        rl.threads = None
         os.environ["PRT_TORCH_NATIVE"] = "0"
-        tt = measure(f, repeats=3, warmup=1).median
+        row["torch_relight_s"] = measure(lambda: rl(li, lv, out=out), repeats=3, warmup=1).median
         os.environ.pop("PRT_TORCH_NATIVE")
         d = rl.dslot[li] >= 0
-        rows.append({"N": N, "touched": E, "dense_terms": int(d.sum()), "dense_coefficients": int(rl.nnz[li[d]].sum()),
-                     "bytes": nbytes + V * 12, "csc_bytes": csc_bytes + V * 12, "relight_s": t, "torch_relight_s": tt,
-                     "of_bound": p.speedup, "over_csc": pc.speedup, "of_csc_bound": pb.speedup,
-                     "trusted": bool(p.contention.get("trusted") and pc.contention.get("trusted") and pb.contention.get("trusted"))})
+        row.update({"dense_terms": int(d.sum()), "dense_coefficients": int(rl.nnz[li[d]].sum()), "relight_s": row["relight_s_1"],
+                    "of_bound": row["of_bound_1"], "trusted": trusted, "load": load()})
+        rows.append(row)
         print(f"[wavelet] kernel N={N}: {rows[-1]}", flush=True)
     return rows
 
@@ -424,9 +445,9 @@ def kernel_only() -> None:
     torch.set_num_threads(1)
     res = json.loads((OUT / "wavelet.json").read_text())
     res.setdefault("notes", [])
-    note = ("Section \"Relight time vs N against the kernel's bound\" was re-run alone (`--only kernel`) with the dense/sparse "
-            "kernel; the headline, selection and wavelet tables above it keep their relight times from the full run "
-            "(the plain CSC kernel, 1.8-2.2x slower in that section's paired comparison).")
+    note = ("Section \"Relight time vs N against the kernel's bound\" was re-run alone (`--only kernel`) with the dense / "
+            "block-sparse kernel; the headline, selection and wavelet tables above it keep their relight times from the full "
+            "run (the plain CSC kernel, 1.8-2.2x slower than the dense/CSC one that followed it).")
     if note not in res["notes"]:
         res["notes"].append(note)
     mesh = builtin("occluder_over_plane", "small")
@@ -551,29 +572,36 @@ def write_md(res: dict, quick: bool) -> None:
              "the rest is ray generation, the Haar transform, top-K and quantisation.\n")
     km = res.get("kernel_machine", m)
     L.append(f"## Relight time vs N against the kernel's bound (studio, R = 32, K = 256, {BITS}-bit)\n")
-    L.append(f"{km['cpu']}, {km['cores']} cores, one thread; the AVX2 path of `kernels/wavelet.c` (this CPU has no AVX-512; "
+    L.append(f"{km['cpu']}, {km['cores']} cores, one and two threads; the AVX2 path of `kernels/wavelet.c` (this CPU has no AVX-512; "
              f"an AVX-512 CPU takes the same AVX2 code), load average {km.get('load_before', la[-1]):.1f} → "
              f"{km.get('load_after', km.get('load_average_1min', la[-1])):.1f} (⚠: the pairing flagged contention). "
              "The kernel reads each Haar column of the light's terms in the form stored for it "
              "(`relight.WaveletRelighter`): *dense* (32-vertex blocks of the stored values, zeros included, no index: "
-             "the columns most vertices keep, the coarse levels) or *sparse* (int32 byte offset + value, "
-             "padded to groups of 4). Paired (interleaved short samples, fastest tenth of each side) with: its own "
-             "bound — a copy of the bytes it reads and a fill of the output (`timing.io_bound_fn`) —; the plain CSC "
-             "layout (every column sparse: the previous kernel's layout, with this kernel's scatter); and the CSC "
-             "layout's bound (int32 row + value per nonzero coefficient: what the previous kernel was measured "
-             "against, 0.10–0.24).\n")
-    L.append("| N | coefficients read | in dense columns | bytes read (own) | C kernel | of own bound | of CSC bound | "
-             "× plain CSC (paired) | torch path | C / torch |")
-    L.append("|---|---|---|---|---|---|---|---|---|---|")
+             "the columns most vertices keep, the coarse levels) or *block-sparse* (per tile of vertices and column, "
+             "the 8-vertex blocks holding a value: an int32 offset and 8 values, zeros included; two int32 pointers "
+             "per tile and term — or, when the light's sparse terms hold at least 0.4 of all sparse blocks (here N = "
+             "2000 and all), the row-major copy: every sparse block, int32 column + 8 values, summed in registers). "
+             "Bytes read are that layout's and pass's, the output's included. Paired (interleaved short samples, "
+             "fastest tenth of each side) with its own bound "
+             "(the kernel timed through `WaveletRelighter.prepared`, the render-loop form whose per-call Python is one "
+             "call; `relighter(idx, vals)` adds its checks: the last column, paired) "
+             "— a copy of the bytes this layout reads and a fill of the output (`timing.io_bound_fn`), at the same "
+             "torch thread count — and, at one thread, with the previous layout's bound (the same dense columns, "
+             "the sparse ones as CSC (int32 offset, value) pairs padded to groups of 4: what the previous kernel "
+             "reached 0.27–0.35 of). Two threads: the tiles split between them (OpenMP).\n")
+    L.append("| N | coefficients read | in dense columns | bytes read (this layout) | previous layout | 1 thread | of own bound "
+             "| of previous layout's bound | 2 threads | of own bound (2 threads) | torch path | C / torch | load "
+             "| plain call / prepared |")
+    L.append("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in res["kernel"]:
         flag = "" if r["trusted"] else " ⚠"
-        if "over_csc" not in r:  # a report from before the dense columns
-            L.append(f"| {r['N']} | {r['touched']} | — | {r['bytes']} | {_ms(r['relight_s'])} | {r['of_bound']:.2f}{flag} | "
-                     f"— | — | {_ms(r['torch_relight_s'])} | {r['torch_relight_s'] / r['relight_s']:.1f}× |")
+        if "of_bound_2" not in r:  # a report from before the block-sparse layout
             continue
+        cp = f"{r['call_over_prepared']:.2f}×{flag}" if "call_over_prepared" in r else "—"
         L.append(f"| {r['N']} | {r['touched']} | {r['dense_coefficients']} ({r['dense_terms']} terms) | {r['bytes']} | "
-                 f"{_ms(r['relight_s'])} | {r['of_bound']:.2f}{flag} | {r['of_csc_bound']:.2f}{flag} | {r['over_csc']:.2f}×{flag} | "
-                 f"{_ms(r['torch_relight_s'])} | {r['torch_relight_s'] / r['relight_s']:.1f}× |")
+                 f"{r['previous_bytes']} | {_ms(r['relight_s_1'])} | {r['of_bound_1']:.2f}{flag} | {r['of_previous_bound']:.2f}{flag} | "
+                 f"{_ms(r['relight_s_2'])} | {r['of_bound_2']:.2f}{flag} | {_ms(r['torch_relight_s'])} | "
+                 f"{r['torch_relight_s'] / r['relight_s']:.1f}× | {r['load']:.1f} | {cp} |")
     L.append("")
     if "sampling" in res:
         sm = res["sampling"]

@@ -49,7 +49,7 @@ LIBRARIES: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
                 ("-O3", "-march=native", "-ffp-contract=fast", "-fopenmp", "-shared", "-fPIC", "-std=c99")),
     "raygen": (("raygen.c",), ("-O3", "-march=native", "-ffp-contract=off", "-fno-math-errno", "-fopenmp", "-shared", "-fPIC",
                                 "-std=c99")),
-    "wavelet": (("wavelet.c",), ("-O3", "-march=native", "-ffp-contract=fast", "-shared", "-fPIC", "-std=c99")),
+    "wavelet": (("wavelet.c",), ("-O3", "-march=native", "-ffp-contract=fast", "-fopenmp", "-shared", "-fPIC", "-std=c99")),
 }
 
 

@@ -51,12 +51,15 @@ def wavelet_trade(ev: Evaluator, lights: list[torch.Tensor], cfg: dict, log: Cal
     bands = sorted(set(int(b) for b in t["bands"]))
     Y = eval_sh(dirs, max(bands), check=False)  # [P, n²]
     nb = max(bands) ** 2
-    t_all = torch.empty(V, nb, dtype=torch.float64)
-    step = max(1, (64 << 20) // (P * 8))  # chunks of vertices: the dense rows stay ~64 MB at any V and R
+    CT = r.CT  # 3: a coloured mesh's interreflection, one transfer per colour (albedo folded): SH per colour too
+    t_all = torch.empty(V, CT, nb, dtype=torch.float64)
+    step = max(1, (64 << 20) // (P * 8 * CT))  # chunks of vertices: the dense rows stay ~64 MB at any V and R
     for a in range(0, V, step):  # the stored transfer, dense, back in the pixel basis, projected
-        H = torch.zeros(min(step, V - a), P, dtype=torch.float64).scatter_(1, r.index[a:a + step], r.values[a:a + step].double())
-        t_all[a:a + step] = ihaar2d(H.reshape(-1, 6, R, R)).reshape(-1, P) @ Y
-    t_sh = {n: t_all[:, : n * n].to(torch.float32).contiguous() for n in bands}
+        k = min(step, V - a)
+        ind = r.index[a:a + step, None, :].expand(-1, CT, -1)
+        H = torch.zeros(k, CT, P, dtype=torch.float64).scatter_(2, ind, r.values[a:a + step].reshape(k, CT, -1).double())
+        t_all[a:a + step] = ihaar2d(H.reshape(-1, 6, R, R)).reshape(k, CT, P) @ Y
+    t_sh = {n: (t_all[:, 0, : n * n] if CT == 1 else t_all[:, :, : n * n]).to(torch.float32).contiguous() for n in bands}
     del t_all
     albedo = r.albedo
     rows: list[dict] = []
@@ -65,7 +68,7 @@ def wavelet_trade(ev: Evaluator, lights: list[torch.Tensor], cfg: dict, log: Cal
         C = Lhat.shape[0]
         ref = ev.reference(Lhat, None)
         cube = ihaar2d(Lhat.double().reshape(C, 6, R, R)).reshape(C, P)
-        out = torch.empty(V, C)
+        out = torch.empty(V, max(C, CT))
         wav, shr = [], []
         for N in sorted(set(int(n) for n in t["terms"])):
             idx, vals = select_terms(Lhat.double(), N, sel, r.weights if sel == "transport" else None)
@@ -76,7 +79,7 @@ def wavelet_trade(ev: Evaluator, lights: list[torch.Tensor], cfg: dict, log: Cal
                         "fps": 1.0 / s, "bytes_per_vertex": ev.bytes_per_vertex, "coefficients_read": r.touched(idx)})
         for n in bands:
             Lsh = ((cube * om) @ Y[:, : n * n]).to(torch.float32)  # [C, n²]
-            o = relight.diffuse(t_sh[n], Lsh) * albedo[:, :C]
+            o = relight.diffuse(t_sh[n], Lsh) * albedo[:, :max(C, CT)]
             e = _rel(o, ref)
             s = measure(lambda: relight.diffuse(t_sh[n], Lsh), repeats=5, warmup=1).median
             shr.append({"light": str(spec), "method": "sh", "bands": n, "error": e, "relight_s": s, "fps": 1.0 / s,

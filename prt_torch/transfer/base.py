@@ -10,7 +10,8 @@ Shapes of ``data`` (interfaces.md): diffuse ``[V, n²]`` (albedo kept separate, 
 ``mesh.albedo``) or ``[V, 3, n²]`` (RGB, albedo folded); glossy ``[V, n_out, n_in]``
 (``meta['matrix_shape'] = [n_out, n_in]``); MRT ``[V, M*M, n²]``; transport as its module says;
 wavelet ``[V, K]`` quantised Haar coefficients (int8/int16/float32) with ``aux.index [V, K]`` and
-``aux.scale [V]`` (:mod:`prt_torch.transfer.wavelet`). ``Transfer.aux`` tensors are saved as
+``aux.scale [V]`` or ``[V, L]``, or ``[V, 3, K]`` (a coloured mesh's interreflection, albedo folded)
+with ``aux.scale [V, 3, …]`` (:mod:`prt_torch.transfer.wavelet`). ``Transfer.aux`` tensors are saved as
 ``aux.<name>``.
 """
 from __future__ import annotations
@@ -219,9 +220,9 @@ def check_transfer_values(path: Any, tensors: dict[str, torch.Tensor], meta: dic
     if "data" not in tensors:
         raise ValueError(f"{name!r} has no 'data' tensor; accepted: a file written by Transfer.save")
     data = tensors["data"]
-    ranks = {"diffuse": (2, 3), "glossy": (3,), "mrt": (3,), "wavelet": (2,)}.get(kind)
+    ranks = {"diffuse": (2, 3), "glossy": (3,), "mrt": (3,), "wavelet": (2, 3)}.get(kind)
     if ranks is not None and data.ndim not in ranks:
-        shape = {"diffuse": "[V, n²] or [V, C, n²]", "wavelet": "[V, K]"}.get(kind, "[V, rows, n²]")
+        shape = {"diffuse": "[V, n²] or [V, C, n²]", "wavelet": "[V, K] or [V, 3, K]"}.get(kind, "[V, rows, n²]")
         raise ValueError(f"{name!r} is labelled kind=transfer/{kind} but its data has shape {tuple(data.shape)} (rank {data.ndim}); "
                          f"accepted for {kind}: rank {' or '.join(map(str, ranks))} ({shape})")
     bad = ~torch.isfinite(data)

@@ -534,24 +534,25 @@ class HitBounce:
 
     def texel_values(self, caster: RayCaster, tri: np.ndarray, bary: np.ndarray, key_a: np.ndarray, key_b: np.ndarray,
                      texel_of, level: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The same estimate in a pixel basis (the wavelet kind's bounce; grey, C = 1, plain
-        estimator): Σ_k x^k(q) as sparse triplets (hit row ``[R]``, texel ``[R]``, weight ``[R]``),
-        duplicates to be summed. An open ray of a level-ℓ path adds the path's weight (Π of ρ/M
-        of its earlier hits, 1/M at the first) to the texel ``texel_of(direction)`` holds
+        """The same estimate in a pixel basis (the wavelet kind's bounce; plain estimator): Σ_k x^k(q)
+        as sparse triplets (hit row ``[R]``, texel ``[R]``, weight ``[R, C]``, one per colour channel:
+        C = 1 grey, 3 for a coloured mesh, whose later bounces carry ρ per channel), duplicates to be
+        summed. An open ray of a level-ℓ path adds the path's weight (Π of ρ/M of its earlier hits,
+        per channel, 1/M at the first) to the texel ``texel_of(direction)`` holds
         (``texel_of``: ``[R, 3]`` float64 → int64 ``[R]``): (1/M) Σ_m V(q, s_m) 1[s_m ∈ texel] is
         the cosine-sampled estimate of (1/π) ∫_texel V(q, s) cos ds."""
         H, depth = tri.shape[0], self.terms - level
         if H == 0:
             e = np.zeros(0, np.int64)
-            return e, e, np.zeros(0)
+            return e, e, np.zeros((0, self.C))
         M = self.samples_at(level)
         d, hit, isect = self._rays(caster, tri, bary, key_a, key_b, level, depth > 1)
         op = np.flatnonzero(~hit)
-        rows, texels, w = [op // M], [texel_of(d[op].astype(np.float64))], [np.full(op.shape[0], 1.0 / M)]
+        rows, texels, w = [op // M], [texel_of(d[op].astype(np.float64))], [np.full((op.shape[0], self.C), 1.0 / M)]
         if depth > 1:
             row, t2, bary2, ka2, kb2 = self._front_hits(d, hit, isect, key_a, key_b, M)
             r2, tx2, w2 = self.texel_values(caster, t2, bary2, ka2, kb2, texel_of, level + 1)
-            rho = self.albedo_at(t2, bary2)[:, 0].numpy()
+            rho = self.albedo_at(t2, bary2).numpy()  # [R2, C]
             rows.append(row[r2])
             texels.append(tx2)
             w.append(w2 * rho[r2] / M)

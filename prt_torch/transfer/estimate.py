@@ -91,8 +91,9 @@ def result_bytes_per_vertex(kind: str, kw: dict[str, Any], mesh: Mesh) -> tuple[
         K, bits = int(kw.get("terms", 256)), int(kw.get("bits", 8))
         res = int(kw.get("res", 32))
         n_scales = int(math.log2(res)) + 1 if kw.get("scales", "level") == "level" and bits != 32 else 1  # wavelet.precompute_wavelet
-        out = wavelet_bytes(K, bits, 6 * res * res, n_scales)
-        return out, out + 8 * K
+        C = 3 if int(kw.get("bounces", 0) or 0) > 0 and not mesh.is_grey() else 1  # a coloured bounce: one transfer per colour
+        out = wavelet_bytes(K, bits, 6 * res * res, n_scales, C)
+        return out, out + 8 * K * C
     if kind == "transport":
         views = kw.get("views", 3)
         J = 10 * int(views) ** 2 + 2 if isinstance(views, int) else len(views)

@@ -33,11 +33,15 @@ Stored (``Transfer(kind='wavelet')``): ``data [V, K]`` (int8 / int16 / float32 v
 Haar coefficient), ``aux['scale'] [V, log2(R)+1]`` float32 (one per vertex and Haar level,
 :func:`~prt_torch.lighting.haar.haar_levels`; ``scales='vertex'``: ``[V]``); ``meta['bytes_per_vertex']``
 the stored size.
-Interreflection (``bounces`` B > 0, grey meshes): a blocked ray of p (sub-texel j, weight
+Interreflection (``bounces`` B > 0): a blocked ray of p (sub-texel j, weight
 w = max(n_p·s, 0) Ω/π) that meets the front of a triangle at q adds w ρ_q Σ_b x^b(q) to T_p,
 x(q) in the pixel basis estimated at q itself with M cosine-weighted rays — (1/M) Σ_m V(q, s_m)
 1[s_m ∈ texel] estimates (1/π)∫_texel V(q, s) cos ds, further bounces recursively — the diffuse
-kind's hit-point estimator (:meth:`prt_torch.transfer.diffuse.HitBounce.texel_values`).
+kind's hit-point estimator (:meth:`prt_torch.transfer.diffuse.HitBounce.texel_values`). On a
+coloured mesh ρ_q differs per colour, so the transfer becomes three, T_{p,c}, one per channel (as
+the SH diffuse kind's ``[V, 3, n²]``), stored with the albedo ρ_{p,c} folded in and one pattern
+per vertex — the K coefficients of largest Σ_c T̂_{p,c}² — shared by the channels, each channel
+quantised with its own scales (:func:`sparsify`): exit radiance L_out,c(p) = Σ_k T̂_{p,c}[k] L̂_c[k].
 """
 from __future__ import annotations
 
@@ -81,21 +85,23 @@ def _index_dtype(P: int) -> torch.dtype:
     return torch.int16 if P <= 32767 else torch.int32
 
 
-def bytes_per_vertex(terms: int, bits: int, P: int, scales: int = 1) -> int:
-    """Stored bytes of one vertex: K values of ``bits``, K indices (2 or 4 bytes), ``scales`` float32 scales."""
-    return terms * (bits // 8 + (2 if P <= 32767 else 4)) + 4 * scales
+def bytes_per_vertex(terms: int, bits: int, P: int, scales: int = 1, channels: int = 1) -> int:
+    """Stored bytes of one vertex: K indices (2 or 4 bytes) shared by its ``channels`` transfers
+    (3 for a coloured mesh's interreflection), each with K values of ``bits`` and ``scales`` float32 scales."""
+    return terms * (channels * bits // 8 + (2 if P <= 32767 else 4)) + 4 * scales * channels
 
 
 def estimate_wavelet_memory(V: int, res: int, terms: int, bits: int, supersample: int, chunk: int,
-                            jittered: bool = False) -> int:
+                            jittered: bool = False, channels: int = 1) -> int:
     """Bytes a wavelet precompute holds at its peak: the stored result twice (chunk list and
     assembled tensors) plus one chunk's working set (float64 cosines and weights, float32 rays
     with their indices, at the sub-texel resolution; float64 Haar coefficients and top-K; jittered:
-    each vertex's own float64 directions, weights and their intermediates)."""
+    each vertex's own float64 directions, weights and their intermediates; ``channels`` = 3: the
+    coloured bounce's three pixel-basis transfers and their Haar coefficients)."""
     P = 6 * res * res
     Pf = P * supersample * supersample
-    result = 2 * V * bytes_per_vertex(terms, bits, P)
-    work = chunk * (Pf * (8 + 8 + 12 + 12 + 16 + 1 + (120 if jittered else 0)) + P * 8 * 4 + terms * 16)
+    result = 2 * V * bytes_per_vertex(terms, bits, P, 1, channels)
+    work = chunk * (Pf * (8 + 8 + 12 + 12 + 16 + 1 + (120 if jittered else 0)) + channels * (P * 8 * 4 + terms * 16))
     return int(result + work + Pf * 40)
 
 
@@ -141,12 +147,20 @@ def dequantise(q: torch.Tensor, scale: torch.Tensor, level: torch.Tensor | None 
 
 
 def wavelet_values(tr: Transfer) -> torch.Tensor:
-    """The dequantised Haar coefficients of a wavelet transfer, ``[V, K]`` float32 (albedo out)."""
+    """The dequantised Haar coefficients of a wavelet transfer, ``[V, K]`` float32 (albedo out), or
+    ``[V, 3, K]`` for a coloured one (one transfer per colour sharing the vertex's indices, albedo
+    folded in; its scales ``[V, 3, L]`` or ``[V, 3]``)."""
     if tr.kind != "wavelet":
         raise ValueError(f"transfer kind {tr.kind!r}; accepted: 'wavelet'")
-    sc = tr.aux["scale"]
-    level = haar_levels(int(tr.meta["res"]))[tr.aux["index"].long()] if sc.ndim == 2 else None
-    return dequantise(tr.data, sc, level)
+    sc, q, idx = tr.aux["scale"], tr.data, tr.aux["index"].long()
+    if q.ndim == 3:  # coloured: the channels as rows sharing the vertex's indices
+        V, C, K = q.shape
+        idx = idx[:, None, :].expand(V, C, K).reshape(V * C, K)
+        q, sc = q.reshape(V * C, K), sc.reshape(V * C, *sc.shape[2:])
+        level = haar_levels(int(tr.meta["res"]))[idx] if sc.ndim == 2 else None
+        return dequantise(q, sc, level).reshape(V, C, K)
+    level = haar_levels(int(tr.meta["res"]))[idx] if sc.ndim == 2 else None
+    return dequantise(q, sc, level)
 
 
 def sparsify(H: torch.Tensor, terms: int, bits: int, threshold: float = 0.0, scales: str = "vertex",
@@ -155,24 +169,39 @@ def sparsify(H: torch.Tensor, terms: int, bits: int, threshold: float = 0.0, sca
     those below ``threshold`` × the row's largest zeroed, quantised (:func:`quantise`, ``scales``
     'vertex' or 'level' — this needs ``res``, the cube's face size): ``q [k, K]``, ``index [k, K]``
     (int16 for P < 2¹⁵, else int32), ``scale [k]`` or ``[k, log2(R)+1]``, and per row ``total``
-    (Σ H²), ``dropped`` (Σ of the dropped H²), ``qerr`` (Σ of the squared quantisation errors), ``nnz``."""
-    P = H.shape[1]
+    (Σ H²), ``dropped`` (Σ of the dropped H²), ``qerr`` (Σ of the squared quantisation errors), ``nnz``.
+
+    ``H [k, C, P]`` (a coloured mesh's C = 3 transfers per vertex): one pattern per vertex shared
+    by its channels — the K coefficients of largest energy Σ_c H_c² — each channel quantised as a
+    row of its own: ``q [k, C, K]``, ``index [k, K]``, ``scale [k, C]`` or ``[k, C, log2(R)+1]``;
+    ``total``, ``dropped``, ``qerr`` summed over the channels, ``nnz`` the coefficients kept in
+    any channel."""
+    P = H.shape[-1]
     scales = check_choice("scales", scales, SCALES)
-    total = H.double().square().sum(1)
-    top = H.abs().topk(terms, dim=1)
-    kept = H.gather(1, top.indices).double()
+    colour = H.ndim == 3
+    C = H.shape[1] if colour else 1
+    total = H.double().square().sum(-1).reshape(H.shape[0], -1).sum(1)
+    mag = H.double().square().sum(1).sqrt() if colour else H.abs()  # [k, P]
+    top = mag.topk(terms, dim=1)
+    gi = top.indices[:, None, :].expand(-1, C, -1) if colour else top.indices
+    kept = H.gather(-1, gi).double()
     if threshold > 0:
-        kept = torch.where(kept.abs() >= threshold * top.values[:, :1].double(), kept, torch.zeros_like(kept))
+        keep = top.values >= threshold * top.values[:, :1]
+        kept = torch.where(keep[:, None] if colour else keep, kept, torch.zeros_like(kept))
     level, n_lev = None, 1
     if scales == "level" and bits != 32:
         if res is None:
             raise ValueError("sparsify with scales='level' needs res (the cube's face size)")
         lv = haar_levels(res)
-        level, n_lev = lv[top.indices], int(lv.max()) + 1
-    q, scale = quantise(kept, bits, level, n_lev)
-    err = (kept - dequantise(q, scale, level).double()).square().sum(1)
+        level, n_lev = lv[gi].reshape(-1, terms), int(lv.max()) + 1
+    rows = kept.reshape(-1, terms)  # [k·C, K]: each channel a row of its own
+    q, scale = quantise(rows, bits, level, n_lev)
+    err = (rows - dequantise(q, scale, level).double()).square().sum(1).reshape(-1, C).sum(1)
+    nnz = (q != 0).reshape(H.shape[0], C, terms).any(1).sum(1).to(torch.int32)
+    if colour:
+        q, scale = q.reshape(-1, C, terms), scale.reshape(-1, C, *scale.shape[1:])
     return {"q": q, "index": top.indices.to(_index_dtype(P)), "scale": scale, "total": total,
-            "dropped": (total - kept.square().sum(1)).clamp_min(0), "qerr": err, "nnz": (q != 0).sum(1).to(torch.int32)}
+            "dropped": (total - kept.square().sum(-1).reshape(H.shape[0], -1).sum(1)).clamp_min(0), "qerr": err, "nnz": nnz}
 
 
 def _jittered_samples(res: int, s: int, k: int, gen: torch.Generator) -> tuple[np.ndarray, np.ndarray]:
@@ -202,13 +231,14 @@ def _texel_of(res: int):
 
 def _bounce(caster: RayCaster, hits: HitBounce, k: int, res: int, i: np.ndarray, j: np.ndarray, d: np.ndarray,
             prim: np.ndarray, bu: np.ndarray, bv: np.ndarray, w: np.ndarray, ids: np.ndarray) -> np.ndarray:
-    """Interreflected pixel-basis transfer of a chunk's k vertices, ``[k, 6R²]`` float64: every
-    primary ray (vertex row ``i``, sub-texel ``j``, direction ``d``, weight ``w`` = cos·Ω/π) that
-    meets the front of a triangle brings ρ_q Σ_b x^b(q) from its hit q in the pixel basis
+    """Interreflected pixel-basis transfer of a chunk's k vertices, ``[k, C, 6R²]`` float64 (C =
+    ``hits.C``: 1 grey, 3 per colour for a coloured mesh): every primary ray (vertex row ``i``,
+    sub-texel ``j``, direction ``d``, weight ``w`` = cos·Ω/π) that meets the front of a triangle
+    brings ρ_q Σ_b x^b(q) from its hit q in the pixel basis, per channel
     (:meth:`~prt_torch.transfer.diffuse.HitBounce.texel_values`: the diffuse kind's hit-point
     estimator, B = ``hits.terms`` bounces), in batches of about 2¹⁸ secondary rays."""
     P = 6 * res * res
-    out = np.zeros(k * P)
+    out = np.zeros((k * P, hits.C))
     hh = np.nonzero(prim != -1)[0]
     tri = prim[hh].astype(np.int64)
     front = np.einsum("ij,ij->i", hits.face_normals.numpy()[tri], d[hh].astype(np.float64)) < 0
@@ -219,15 +249,16 @@ def _bounce(caster: RayCaster, hits: HitBounce, k: int, res: int, i: np.ndarray,
         h, t = hh[a:a + step], tri[a:a + step]
         bary = np.stack([1 - bu[h] - bv[h], bu[h], bv[h]], 1).astype(np.float64)
         r, tx, wt = hits.texel_values(caster, t, bary, ids[i[h]].astype(np.uint64), j[h].astype(np.uint64), texel_of)
-        rho = hits.albedo_at(t, bary)[:, 0].numpy()
-        np.add.at(out, i[h][r] * P + tx, w[h][r] * rho[r] * wt)
-    return out.reshape(k, P)
+        rho = hits.albedo_at(t, bary).numpy()  # [H, C]
+        np.add.at(out, i[h][r] * P + tx, w[h][r][:, None] * rho[r] * wt)
+    return np.ascontiguousarray(out.reshape(k, P, hits.C).transpose(0, 2, 1))
 
 
 def _pixel_transfer(caster: RayCaster | None, points: torch.Tensor, normals: torch.Tensor, nudge: torch.Tensor | None,
                     dirs_f: np.ndarray, dirs32: np.ndarray | None, omega_f: np.ndarray, res: int, s: int,
                     eps: float, work: dict, hits: HitBounce | None = None, ids: np.ndarray | None = None) -> tuple[torch.Tensor, int]:
-    """Pixel-basis transfer of k vertices, ``[k, 6, R, R]`` float64 (module docstring), and the
+    """Pixel-basis transfer of k vertices, ``[k, 6, R, R]`` float64 (module docstring; ``[k, 3, 6,
+    R, R]`` with the bounce of a coloured mesh, ρ_p kept out: t̃ = t/ρ_p per channel), and the
     number of rays traced. One masked pass per chunk: cosines ``[k, Pf]``, the rays above each
     tangent plane (:func:`prt_torch.transfer.ray_kernels.upper_rays`), one occlusion batch.
     ``dirs_f [Pf, 3]`` / ``omega_f [Pf]`` shared by every vertex (the grid), or per vertex
@@ -266,7 +297,8 @@ def _pixel_transfer(caster: RayCaster | None, points: torch.Tensor, normals: tor
         W.reshape(-1)[flat[hit]] = 0.0  # blocked directions
     T = torch.from_numpy(W).reshape(k, 6, res, s, res, s).sum((3, 5)) if s > 1 else torch.from_numpy(W).reshape(k, 6, res, res)
     if B is not None:
-        T = T + torch.from_numpy(B).reshape(k, 6, res, res)
+        T = T[:, None] + torch.from_numpy(B).reshape(k, -1, 6, res, res)
+        T = T[:, 0] if T.shape[1] == 1 else T
     return T, rays
 
 
@@ -274,7 +306,8 @@ def dense_wavelet_transfer(mesh: Mesh, res: int, *, supersample: int = 1, shadow
                            vertices: Any = None, haar: bool = True, sampling: str = "grid", seed: int = 0, bounces: int = 0,
                            hit_samples: int = 16, hit_offset: float | None = HIT_OFFSET) -> torch.Tensor:
     """The full (all 6R² terms, unquantised) transfer of the vertices ``vertices`` (default all),
-    ``[k, 6, R, R]`` float64 — Haar coefficients (``haar``) or the pixel basis; the same rays as
+    ``[k, 6, R, R]`` float64 (``[k, 3, 6, R, R]`` with ``bounces`` on a coloured mesh: per colour,
+    ρ_p kept out — :func:`precompute_wavelet` folds it in) — Haar coefficients (``haar``) or the pixel basis; the same rays as
     :func:`precompute_wavelet` (``sampling`` 'grid' or 'jittered' with ``seed``: the jitter of the
     vertices' first chunk there; ``bounces``, ``hit_samples``, ``hit_offset`` as there). For
     references and tests on a few vertices."""
@@ -339,14 +372,17 @@ def precompute_wavelet(
         bounces: B, interreflection: each blocked ray's front hit q brings ρ_q Σ_b x^b(q) in the
             pixel basis, x estimated at q with ``hit_samples`` cosine-weighted rays (a quarter of
             that per further bounce; :class:`~prt_torch.transfer.diffuse.HitBounce`, the diffuse
-            kind's hit-point estimator); rays leave q from ``hit_offset`` × the diagonal. Needs a
-            grey mesh (the transfer stays one channel, the albedo of p kept out). 0 = direct only.
+            kind's hit-point estimator); rays leave q from ``hit_offset`` × the diagonal. A grey
+            mesh keeps one channel (the albedo of p kept out); a coloured one gets three, one per
+            colour (its bounces carry ρ_q per channel; the albedo of p folded in). 0 = direct only.
         shadows: 'auto' (probe self-occlusion first), 'always'/True, 'never'/False.
         seed: the probe's seed, and the jitter's.
         run: :class:`RunOptions` (chunks — default about 2²⁰ rays —, workers, offset, memory
             limit, resumable state, progress, executor).
     Returns:
-        ``Transfer(kind='wavelet')``: ``data [V, K]``, ``aux['index'] [V, K]``, ``aux['scale'] [V, L]`` (or ``[V]``).
+        ``Transfer(kind='wavelet')``: ``data [V, K]``, ``aux['index'] [V, K]``, ``aux['scale'] [V, L]`` (or ``[V]``);
+        with ``bounces`` on a coloured mesh ``data [V, 3, K]`` (one transfer per colour, the albedo folded
+        in: ``meta['albedo_folded']``, ``meta['channels']`` = 3), the indices shared, ``aux['scale'] [V, 3, L]``.
     Raises:
         ValueError before any ray: R not a power of two, K out of range, or the memory estimate
         (:func:`estimate_wavelet_memory`) above ``run.max_memory`` (default 60% of RAM).
@@ -367,13 +403,15 @@ def precompute_wavelet(
     hit_samples = check_int("hit_samples", hit_samples, 1, 4096)
     V = mesh.num_vertices
     chunk_size = run.chunks(_default_chunk(res, s))
-    need = estimate_wavelet_memory(V, res, terms, bits, s, min(chunk_size, max(V, 1)), sampling == "jittered")
+    C = 3 if bounces and not mesh.is_grey() else 1  # a coloured mesh's interreflection: one transfer per colour
+    need = estimate_wavelet_memory(V, res, terms, bits, s, min(chunk_size, max(V, 1)), sampling == "jittered", C)
     budget = memory_budget(run.max_memory)
     if need > budget:
         raise ValueError(f"wavelet transfer of {V} vertices at res={res} (6x{res}x{res} texels, supersample {s}) with "
                          f"{terms} terms needs about {format_bytes(need)}, more than the budget {format_bytes(budget)}; "
                          "accepted: a smaller res, fewer terms, a smaller chunk_size or mesh, or a larger memory limit")
-    hits = _hit_bounce(mesh, bounces, hit_samples, hit_offset, seed)  # refuses a coloured mesh before any ray
+    hits = _hit_bounce(mesh, bounces, hit_samples, hit_offset, seed)
+    rho = mesh.albedo.to(torch.float64)
     t0 = time.perf_counter()
     traced, shadow_meta = decide_shadows(mesh, "always" if bounces else shadows, seed, run, probe_tol)
     d, om = cube_geometry(res, s)
@@ -394,9 +432,12 @@ def precompute_wavelet(
             d_f, d32, om_f = dirs_f, dirs32, omega_f
         T, rays = _pixel_transfer(caster, points[a:b], normals[a:b], None if nudge is None else nudge[a:b],
                                   d_f, d32, om_f, res, s, 0.0 if caster is None else caster.eps, work, hits, np.arange(a, b))
+        if C == 3:  # coloured bounce: the albedo of p folded in per channel (as the SH diffuse kind stores [V, 3, n²])
+            T = T * rho[a:b, :, None, None, None]
         # Haar in float32: the stored values carry at most 16 bits (float32 for bits=32), the
         # transform's rounding (~1e-7 relative) is far below; half the memory traffic of float64
-        out = sparsify(haar2d(T.to(torch.float32)).reshape(b - a, P), terms, bits, threshold, scales, res)
+        H = haar2d(T.to(torch.float32))
+        out = sparsify(H.reshape(b - a, C, P) if C == 3 else H.reshape(b - a, P), terms, bits, threshold, scales, res)
         out["rays"] = torch.tensor([rays], dtype=torch.int64)
         return out
 
@@ -417,12 +458,12 @@ def precompute_wavelet(
     meta: dict[str, Any] = {
         "res": res, "texels": P, "terms": terms, "bits": bits, "threshold": threshold, "supersample": s,
         "sampling": sampling if sampling == "grid" else f"jittered (seed {seed}; one random point per sub-texel and vertex)",
-        "offset": run.offset, "albedo_folded": False, "channels": 1, "bounces_used": bounces,
+        "offset": run.offset, "albedo_folded": C == 3, "channels": C, "bounces_used": bounces,
         "bounce_decision": (f"{bounces} bounce(s) estimated at each blocked ray's hit point with {hit_samples} cosine-weighted "
                             "rays (HitBounce, pixel basis)") if bounces else "no interreflection (bounces=0): direct (shadowed) transfer",
         "hit_samples": hit_samples if bounces else None, "hit_offset": hit_offset if bounces else None,
         "scales": scales if bits != 32 else "none (float32 values)",
-        "bytes_per_vertex": bytes_per_vertex(terms, bits, P, n_scales),
+        "bytes_per_vertex": bytes_per_vertex(terms, bits, P, n_scales, C),
         "bytes_per_vertex_dense": P * 4,
         "index_dtype": str(_index_dtype(P)).replace("torch.", ""),
         "nonzero_per_vertex": float(cat["nnz"].float().mean()),
@@ -445,14 +486,11 @@ def precompute_wavelet(
 
 
 def _hit_bounce(mesh: Mesh, bounces: int, hit_samples: int, hit_offset: float | None, seed: int) -> HitBounce | None:
-    """The diffuse kind's hit-point bounce estimator for ``bounces`` > 0 (grey meshes only: the
-    wavelet transfer is one channel with the albedo of p kept out), else None."""
+    """The diffuse kind's hit-point bounce estimator for ``bounces`` > 0 (one channel for a grey
+    mesh, three for a coloured one: its bounces carry ρ_q per colour), else None."""
     if not bounces:
         return None
-    if not mesh.is_grey():
-        raise ValueError(f"bounces={bounces} with the coloured mesh {mesh.name!r}: the wavelet transfer is one grey channel; "
-                         "accepted: bounces=0, or a grey mesh (equal albedo channels)")
-    return HitBounce(mesh, 1, hit_samples, seed, bounces, 1, hit_offset, "plain")
+    return HitBounce(mesh, 1, hit_samples, seed, bounces, 1 if mesh.is_grey() else 3, hit_offset, "plain")
 
 
 def _workers(run: RunOptions, V: int, Pf: int) -> int:
