@@ -321,3 +321,24 @@ def test_wavelet_grad_path_value_equals_the_kernel(wavelet):
     assert torch.allclose(got.detach().float(), ref, rtol=1e-4, atol=1e-5 * float(ref.abs().max()))
     with pytest.raises(ValueError, match="require grad"):
         r(li, lv.double().requires_grad_(True), out=torch.empty(r.V, 3))
+
+
+def test_wavelet_grad_path_on_a_coloured_transfer():
+    """A coloured (interreflected, [V, 3, K]) wavelet transfer: the grad path's value equals the C
+    kernel's for a grey and an RGB light, gradcheck passes, and a 2-channel light is refused."""
+    from prt_torch.scene import builtin
+    from prt_torch.transfer.wavelet import precompute_wavelet
+
+    tr = precompute_wavelet(builtin("cornell_box", "small"), res=4, terms=40, bits=16, bounces=1, hit_samples=4)
+    r = relight.WaveletRelighter(tr)
+    assert r.CT == 3
+    li, lv, _ = r.light("studio", terms=30, selection="magnitude")
+    for L in (lv[:1], lv):  # grey, RGB
+        ref = r(li, L.float())
+        got = r(li, L.double().requires_grad_(True))
+        assert got.shape == ref.shape == (r.V, 3)
+        assert torch.allclose(got.detach().float(), ref, rtol=1e-4, atol=1e-5 * float(ref.abs().max()))
+    x = lv.double().clone().requires_grad_(True)
+    assert _gc(lambda v: r(li, v), x)
+    with pytest.raises(ValueError, match="colour channels"):
+        r(li, lv[:2].double().requires_grad_(True))
