@@ -327,7 +327,8 @@ def child_run(isa: str, args) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "run.json"
         cmd = [sys.executable, __file__, "--threads", str(args.threads), "--repeats", str(args.repeats), "--cache", args.cache,
-               "--only", args.only, "--child-json", str(out)] + (["--quick"] if args.quick else [])
+               "--only", args.only, "--child-json", str(out)] + (["--quick"] if args.quick else []) + (
+            ["--no-gaussian"] if args.no_gaussian else [])
         print(f"--- kernels built for {isa}: {' '.join(cmd)}", flush=True)
         subprocess.run(cmd, env={**os.environ, "PRT_TORCH_KERNEL_ISA": isa}, check=True)
         return json.loads(out.read_text())
@@ -343,6 +344,8 @@ def main() -> int:
     ap.add_argument("--isa", default="auto", help="kernel builds to measure, each in its own process: auto (this CPU's "
                     "native build, and also avx2 where native is AVX-512), or a comma list of native, avx2, avx512 "
                     "(PRT_TORCH_KERNEL_ISA; docs/codecs.md)")
+    ap.add_argument("--no-gaussian", action="store_true", help="skip the Gaussian codec's rows (without AVX-512 its lookups "
+                    "run one lobe at a time: 3 lobes at 50 000 points take seconds per call)")
     ap.add_argument("--child-json", default="", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child_json:  # one build's run for a parent (child_run): the result as JSON, nothing else written
@@ -440,7 +443,7 @@ def run(args) -> dict:
     pe = prefilter_environment(light.T.contiguous().double(), res=16)
     for lobes in (1, 3):
         label = f"gaussian {lobes} lobe{'s' if lobes > 1 else ''}"
-        if args.only not in label:
+        if args.only not in label or args.no_gaussian:
             continue
         t0 = time.perf_counter()
         c, enc = gaussian_fitted(lobes, P)
