@@ -387,7 +387,8 @@ def report(r: dict, level: int = 1) -> str:
     h = "#" * (level - 1)
     L = ["# Encode benchmarks (issue 15)" if level == 1 else f"## {cpu_label(m)}", "",
          f"Machine: {cpu_label(m)}, {m.get('cores')} cores; threads {r['threads']} for torch, faiss and scikit-learn "
-         f"(threadpoolctl); OpenMP: {r.get('omp_wait_policy')}; {r['faiss']}. Load average before "
+         f"(threadpoolctl); OpenMP: {r.get('omp_wait_policy')}; {r['faiss']}; our GEMM (`kmeans.gemm_choice`): "
+         f"{m.get('encode_gemm', 'not recorded')}. Load average before "
          f"{tuple(round(x, 2) for x in la)}, after {tuple(round(x, 2) for x in lb)} (the run's own threads add about "
          f"{r['threads']}; more means other jobs shared the machine and absolute times are inflated); every ratio compares "
          "measurements of the same run (paired ones interleaved, "
