@@ -40,7 +40,15 @@ Threads: ``--threads`` (default 2, the project's target machine); OpenMP's wait 
 package's choice (``import prt_torch`` first, as for any user). The load average is recorded before and after, and each paired measurement
 records its contention (``trusted`` false: busy machine).
 
-Run: .venv/bin/python benchmarks/bench_relight.py   (a few minutes; --quick: 5 000 points, prints only)
+Per CPU and kernel build (issue 42 §4): every row records the CPU (model name, family/model, widest vector
+ISA: ``harness.timing.cpu_label``) and the code it ran (``codec.kernel_path``: the build's ISA and the point
+kernel of its plan, from the kernels' own dispatch); at one thread it is also timed by the thread's CPU time
+(the column a shared machine cannot stretch). relight.json keeps one run per CPU and build, a new run
+replacing its own; ``--isa auto`` (default) also runs the ``avx2`` build (``PRT_TORCH_KERNEL_ISA``, in a
+child process) where the native one is AVX-512, and the report then puts both builds' fractions side by side.
+
+Run: .venv/bin/python benchmarks/bench_relight.py   (a few minutes; --quick: 5 000 points, prints only;
+--no-gaussian: skip the Gaussian rows, which take seconds per call without AVX-512)
 Writes reports/benchmarks/relight.md and relight.json.
 """
 from __future__ import annotations
