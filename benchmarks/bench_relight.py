@@ -44,8 +44,8 @@ Per CPU and kernel build (issue 42 §4): every row records the CPU (model name, 
 ISA: ``harness.timing.cpu_label``) and the code it ran (``codec.kernel_path``: the build's ISA and the point
 kernel of its plan, from the kernels' own dispatch); at one thread it is also timed by the thread's CPU time
 (the column a shared machine cannot stretch). relight.json keeps one run per CPU and build, a new run
-replacing its own; ``--isa auto`` (default) also runs the ``avx2`` build (``PRT_TORCH_KERNEL_ISA``, in a
-child process) where the native one is AVX-512, and the report then puts both builds' fractions side by side.
+replacing its own; ``--isa auto`` (default) also runs the ``avx512-256`` and ``avx2`` builds (``PRT_TORCH_KERNEL_ISA``, each in a
+child process) where the native one is AVX-512, and the report then puts the builds' fractions side by side.
 
 Run: .venv/bin/python benchmarks/bench_relight.py   (a few minutes; --quick: 5 000 points, prints only;
 --no-gaussian: skip the Gaussian rows, which take seconds per call without AVX-512)
@@ -310,13 +310,14 @@ def kernel_label(r: dict) -> str:
 
 def isa_runs(spec: str) -> list[str]:
     """The kernel builds a run measures, each in its own process (``PRT_TORCH_KERNEL_ISA`` is read once per
-    process): ``auto`` = this process's build, and also ``avx2`` where that build is AVX-512 (the alternative
-    issue 42 §4 asks to settle on AMD Zen 4); else a comma list of native, avx2, avx512 (the first in this
-    process). Each value is checked here (one line naming it and what this CPU accepts, status 2)."""
+    process): ``auto`` = this process's build, and also ``avx512-256`` (AVX-512VL without the 16-lane kernels)
+    and ``avx2`` where that build is AVX-512 (the alternatives issue 42 §4 asks to settle on AMD Zen 4); else a
+    comma list of native, avx2, avx512, avx512-256 (the first in this process). Each value is checked here
+    (one line naming it and what this CPU accepts, status 2)."""
     from prt_torch._native import kernel_isa
 
     if spec == "auto":
-        return ["", "avx2"] if kernel_path()["isa"] == "avx512" else [""]
+        return ["", "avx512-256", "avx2"] if kernel_path()["isa"] == "avx512" else [""]
     out = [v.strip() for v in spec.split(",") if v.strip()]
     prev = os.environ.get("PRT_TORCH_KERNEL_ISA")
     try:
@@ -354,8 +355,8 @@ def main() -> int:
     ap.add_argument("--only", default="", help="measure only codecs whose label contains this text (prints, writes nothing)")
     ap.add_argument("--cache", default=os.path.join(tempfile.gettempdir(), "prt_bench_relight"))
     ap.add_argument("--isa", default="auto", help="kernel builds to measure, each in its own process: auto (this CPU's "
-                    "native build, and also avx2 where native is AVX-512), or a comma list of native, avx2, avx512 "
-                    "(PRT_TORCH_KERNEL_ISA; docs/codecs.md)")
+                    "native build, and also avx512-256 and avx2 where native is AVX-512), or a comma list of native, avx2, "
+                    "avx512, avx512-256 (PRT_TORCH_KERNEL_ISA; docs/codecs.md)")
     ap.add_argument("--no-gaussian", action="store_true", help="skip the Gaussian codec's rows (without AVX-512 its lookups "
                     "run one lobe at a time: 3 lobes at 50 000 points take seconds per call)")
     ap.add_argument("--child-json", default="", help=argparse.SUPPRESS)
@@ -492,8 +493,8 @@ def report_all(runs: list[dict]) -> str:
     r = runs[0]
     L = ["# Relighting from the compressed forms vs the memory-bandwidth bound", "",
          "Reproduce: `.venv/bin/python benchmarks/bench_relight.py` (writes this file and relight.json; a run replaces the "
-         "section of its own CPU and kernel build and keeps the others; `--isa auto` also measures the AVX2 build where the "
-         "native one is AVX-512, `--isa native,avx2,avx512` names them). Sections: " + "; ".join(run_key(x) for x in runs)
+         "section of its own CPU and kernel build and keeps the others; `--isa auto` also measures the avx512-256 and avx2 "
+         "builds where the native one is AVX-512, `--isa native,avx2,avx512,avx512-256` names them). Sections: " + "; ".join(run_key(x) for x in runs)
          + ".", "",
          f"{r['points']} points, one SH light [25, 3] per call. Signals: `transfer_like(P, 24, 25)` (VQ, PCA, CPCA) and "
          f"`transfer_like(P, 49, 25)` (MRT-PCA, 7×7 tents). Codecs fitted on the first {r['fit_points']} points, then "

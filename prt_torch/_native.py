@@ -170,8 +170,12 @@ def _isa_flags() -> set[str]:
 #: (the default: every instruction set of this CPU, so AVX-512's 16-lane and k-mask paths where it has them),
 #: ``avx2`` (``-mno-avx512f``: the 8-lane AVX2 paths, also on an AVX-512 CPU: on AMD Zen 4, whose 512-bit
 #: operations are two 256-bit halves, the alternative to measure), ``avx512`` (the AVX-512 paths; refused on a
-#: CPU without avx512f and avx512vl, where native builds the AVX2 ones)
-KERNEL_ISAS: dict[str, tuple[str, ...]] = {"native": (), "avx2": ("-mno-avx512f",), "avx512": ()}
+#: CPU without avx512f and avx512vl, where native builds the AVX2 ones), ``avx512-256`` (AVX-512VL's 32
+#: registers and k-masks on 8-float vectors, without the 16-lane kernels (``PRT_NO_W16``: vec.h's HAVE_W16 and
+#: sg_texels.h's SG16 off) and with the compiler's own vectorisation at 256 bits: between the two, it tells
+#: the 512-bit kernels' share from the rest of AVX-512's)
+KERNEL_ISAS: dict[str, tuple[str, ...]] = {"native": (), "avx2": ("-mno-avx512f",), "avx512": (),
+                                            "avx512-256": ("-mprefer-vector-width=256", "-DPRT_NO_W16")}
 
 
 def cpu_isa() -> str:
@@ -194,13 +198,13 @@ def kernel_isa() -> tuple[str, tuple[str, ...]]:
     if v not in KERNEL_ISAS:
         raise ValueError(f"PRT_TORCH_KERNEL_ISA={raw!r}; accepted: native (the default: -march=native), avx2 (-march=native "
                          f"-mno-avx512f: the 8-lane AVX2 kernels), avx512 (the 16-lane AVX-512 kernels, on a CPU with avx512f "
-                         f"and avx512vl)")
+                         f"and avx512vl), avx512-256 (AVX-512VL on 8-float vectors, no 16-lane kernels)")
     have = cpu_isa()
-    need = {"avx512": ("avx512",), "avx2": ("avx512", "avx2")}.get(v)
+    need = {"avx512": ("avx512",), "avx512-256": ("avx512",), "avx2": ("avx512", "avx2")}.get(v)
     if need and have != "unknown" and have not in need:
         cpu = _cpu_id().splitlines()[0].split(":", 1)[-1].strip() if _cpu_id() else platform.machine()
         raise ValueError(f"PRT_TORCH_KERNEL_ISA={raw!r}, but this CPU ({cpu}) has {have} at most; accepted here: native"
-                         + (", avx2" if have == "avx512" or (v == "avx512" and have == "avx2") else ""))
+                         + (", avx2" if v.startswith("avx512") and have == "avx2" else ""))
     return v, KERNEL_ISAS[v]
 
 

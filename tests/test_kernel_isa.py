@@ -67,14 +67,15 @@ def _run(isa: str | None) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-c", _SCRIPT], capture_output=True, text=True, env=env, timeout=600)
 
 
-def _check_build(isa: str | None, want_isa: str) -> None:
+def _check_build(isa: str | None, want_isa: str, w16: bool | None = None) -> None:
     r = _run(isa)
     assert r.returncode == 0, r.stderr[-2000:]
     res = json.loads(r.stdout.strip().splitlines()[-1])
     b = res["build"]
     assert b["backend"] == "native" and b["isa"] == want_isa, b
     assert b["isa_choice"] == (isa or "native")
-    assert b["w16"] == (want_isa == "avx512")
+    w16 = (want_isa == "avx512") if w16 is None else w16
+    assert b["w16"] == w16 and b["sg16"] == w16
     for row in res["rows"]:
         # float32 rounding of sums of ~25 terms of O(scale): a few 1e-7 relative; 1e-5 fails on a wrong layout or branch
         assert row["err"] < 1e-5, row
@@ -82,8 +83,8 @@ def _check_build(isa: str | None, want_isa: str) -> None:
     paths = {(r["codec"], r["signal"], r["view"]): r["path"] for r in res["rows"]}
     assert paths[("vq", "matrix", "none")] == "rows: VQ row copy"  # the mean's row copied per point: no weights
     assert paths[("mrt_pca", "matrix", "taps")].startswith("taps:")
-    # the 16-lane kernels are the AVX-512 build's alone
-    assert any("16 lanes" in p for p in paths.values()) == (want_isa == "avx512"), paths
+    # the 16-lane kernels are the AVX-512 build's alone (not avx512-256's)
+    assert any("16 lanes" in p for p in paths.values()) == w16, paths
 
 
 def test_avx2_build_matches_float64_reference():
@@ -96,18 +97,19 @@ def test_native_build_names_this_cpus_isa():
     _check_build(None, _native.cpu_isa())
 
 
-def test_avx512_build_or_one_line_refusal():
+@pytest.mark.parametrize("isa", ["avx512", "avx512-256"])
+def test_avx512_builds_or_one_line_refusal(isa):
     if _native.cpu_isa() == "avx512":
-        _check_build("avx512", "avx512")
+        _check_build(isa, "avx512", w16=isa == "avx512")
         return
-    r = _run("avx512")
+    r = _run(isa)
     assert r.returncode != 0
     last = r.stderr.strip().splitlines()[-1]
-    assert last.startswith("ValueError: PRT_TORCH_KERNEL_ISA='avx512'") and "accepted here: native" in last, last
+    assert last.startswith(f"ValueError: PRT_TORCH_KERNEL_ISA='{isa}'") and "accepted here: native" in last, last
 
 
 def test_invalid_value_is_one_clear_line(monkeypatch):
-    for bad in ("sse9", "AVX-512", "512"):
+    for bad in ("sse9", "AVX-512", "512", "avx512-512"):
         monkeypatch.setenv("PRT_TORCH_KERNEL_ISA", bad)
         with pytest.raises(ValueError) as e:
             _native.kernel_isa()

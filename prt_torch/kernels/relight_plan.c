@@ -73,12 +73,15 @@ int prt_isa(void) {
     b |= 4;
 #endif
 #if defined(__AVX512F__)
-    b |= 8 | 32;  /* vec.h's HAVE_W16 is __AVX512F__ */
+    b |= 8;
+#endif
+#if defined(__AVX512F__) && !defined(PRT_NO_W16)
+    b |= 32;  /* vec.h's HAVE_W16, the same condition */
 #endif
 #if defined(__AVX512VL__)
     b |= 16;
 #endif
-#if defined(__AVX512F__) && defined(__AVX512VL__)
+#if defined(__AVX512F__) && defined(__AVX512VL__) && !defined(PRT_NO_W16)
     b |= 64;  /* the Gaussian codec's 16-lobe kernels (sg_texels.h's SG16, the same condition) */
 #endif
     return b;
