@@ -16,9 +16,16 @@ every figure a ratio to a peer or bound measured in the same run.
    against static CPCA (§4.1) in the same run; SE against the figures in
    reports/benchmarks/codecs.json (the code before issue 15, same data and seed).
 
-Data: synthetic ``transfer_like`` 50 000 × 625 (25×25), and glossy transfer of the built-in
-scene bumpy_sphere (large, 50 412 vertices), 24×25 exit matrices, Ashikhmin–Shirley — the
-signal of bench_codecs.py (no built-in scene has ~25k vertices; sizes are ~10k and ~50k).
+Data: synthetic ``transfer_like`` 50 000 × 625 (25×25), and glossy transfer, 24×25 exit matrices,
+Ashikhmin–Shirley, of ``--glossy-scene``: by default the scan-like mesh of the built-in scan_blob
+(``scene.scan.scan_like``: decimation, holes, fins, slivers) at 25 000 vertices, issue 42 §4's
+"real glossy transfer of a 25k-vertex scan" (no built-in size has ~25k vertices); before issue 42
+it was bumpy_sphere large (50 412 vertices), the signal of bench_codecs.py
+(``--glossy-scene bumpy_sphere:large``).
+
+Per CPU (issue 42 §4): every k-means row names the CPU (model name, family/model, widest vector
+ISA) and the code it ran (torch's GEMM choice and ISA, faiss's compile options, scikit-learn's
+OpenBLAS kernel); encode.json keeps one run per CPU, a new run replacing its own CPU's.
 
 Peers: faiss-cpu is a benchmark-only dependency (``.venv/bin/pip install faiss-cpu``); without
 it the faiss rows are skipped with a note. Threads: torch, faiss (``omp_set_num_threads``) and
@@ -47,7 +54,7 @@ from prt_torch import codecs  # noqa: E402
 from prt_torch.codecs import kmeans as km  # noqa: E402
 from prt_torch.codecs.affine import classify_all  # noqa: E402
 from prt_torch.codecs.synthetic import transfer_like  # noqa: E402
-from prt_torch.harness.timing import machine_info, measure, measure_paired  # noqa: E402
+from prt_torch.harness.timing import cpu_label, machine_info, measure, measure_paired  # noqa: E402
 from prt_torch.io import atomic_write_json, atomic_write_text  # noqa: E402
 
 OUT = Path(__file__).resolve().parent.parent / "reports" / "benchmarks"
@@ -103,13 +110,37 @@ def limits(threads: int):
 SEEDS = (1, 2, 3)
 
 
+def ours_path(threads: int) -> str:
+    """The code our k-means / CPCA / PCA rows ran (issue 42 §4): torch's GEMM choice (``kmeans.gemm_choice``:
+    MKL addmm or oneDNN linear, measured once per process), the ISA torch's kernels dispatch to on this CPU,
+    and the threads."""
+    g = km.gemm_choice()
+    return f"torch {g['backend']} GEMM ({torch.backends.cpu.get_cpu_capability()}), {threads} threads"
+
+
+def faiss_path(faiss, threads: int) -> str:
+    """Which faiss build ran: its compile options (the SIMD level of the module the loader picked for this CPU)."""
+    return f"faiss {faiss.__version__} ({faiss.get_compile_options().strip()}), {threads} threads"
+
+
+def sklearn_path(threads: int) -> str:
+    """scikit-learn's BLAS and OpenMP as threadpoolctl sees them (the OpenBLAS kernel architecture)."""
+    from threadpoolctl import threadpool_info
+
+    libs = [f"{i['internal_api']} {i.get('version') or ''} {i.get('architecture') or ''}".strip() for i in threadpool_info()
+            if i.get("internal_api") == "openblas" and "sklearn" in str(i.get("filepath", "")) + str(i.get("prefix", ""))]
+    return f"scikit-learn ({', '.join(libs) or 'BLAS: ' + ', '.join(sorted({i['internal_api'] for i in threadpool_info()}))}), {threads} threads"
+
+
 def kmeans_section(X: torch.Tensor, K: int, iters: int, repeats: int, threads: int, faiss, sk: bool) -> dict:
     """Ours and faiss over the same seeds (``SEEDS``: seeding luck moves either's SE by ~1%, so
     one seed each compares luck): per seed one interleaved pair of fits, timed back to back;
     reported: the mean time ratio and the mean SE of each."""
     P, D = X.shape
     Xn = np.ascontiguousarray(X.numpy())
-    out: dict = {"clusters": K, "iterations": iters, "seeds": list(SEEDS)}
+    out: dict = {"clusters": K, "iterations": iters, "seeds": list(SEEDS), "cpu": cpu_label(), "ours_path": ours_path(threads)}
+    if faiss is not None:
+        out["faiss_path"] = faiss_path(faiss, threads)
 
     def ours(seed=SEEDS[0]):
         return codecs.get("vq", clusters=K, max_iter=iters, tol=0.0, seed=seed).fit(X)
@@ -135,6 +166,20 @@ def kmeans_section(X: torch.Tensor, K: int, iters: int, repeats: int, threads: i
         out["paired"] = {"contention": per_seed[-1]["contention"]}
         out["time_faiss_over_ours"] = mean("ratio")
         out["se_ours_over_faiss"] = out["ours"]["se"] / out["faiss"]["se"]
+        # the same pair at one thread each, timed by this thread's CPU time (timing.measure_paired's clock): on a
+        # shared machine the time other processes held the core is in neither side (the 2-thread ratio above moves
+        # with the load); seed SEEDS[0]
+        from prt_torch.harness.timing import torch_threads
+
+        faiss.omp_set_num_threads(1)
+        try:
+            with torch_threads(1):
+                one = measure_paired(ours, peer, repeats=repeats, warmup=0, clock=time.thread_time)
+        finally:
+            faiss.omp_set_num_threads(threads)
+        out["one_thread_cpu_time"] = {"ours_s": one.test.median, "faiss_s": one.peer.median, "time_faiss_over_ours": one.ratio.median,
+                                      "q1_q3": [one.ratio.q1, one.ratio.q3], "seed": SEEDS[0],
+                                      "ours_path": ours_path(1), "faiss_path": faiss_path(faiss, 1)}
         f = peer()
         # the assignment kernel alone (one full classification against the faiss centroids)
         C = torch.from_numpy(f.centroids.copy())
@@ -155,7 +200,8 @@ def kmeans_section(X: torch.Tensor, K: int, iters: int, repeats: int, threads: i
         with limits(threads):
             skm, t_sk = timed(lambda: KMeans(n_clusters=K, init="k-means++", n_init=1, max_iter=iters, tol=0.0,
                                              algorithm="lloyd", random_state=0).fit(Xn))
-        out["sklearn"] = {"seconds": t_sk, "se": centre_se(X, skm.cluster_centers_), "iterations": int(skm.n_iter_)}
+        out["sklearn"] = {"seconds": t_sk, "se": centre_se(X, skm.cluster_centers_), "iterations": int(skm.n_iter_),
+                          "path": sklearn_path(threads)}
         out["time_sklearn_over_ours"] = t_sk / out["ours"]["seconds"]
         out["se_ours_over_sklearn"] = out["ours"]["se"] / out["sklearn"]["se"]
     return out
@@ -260,6 +306,11 @@ def main() -> int:
     ap.add_argument("--no-glossy", action="store_true", help="skip the built-in glossy scene")
     ap.add_argument("--no-sklearn-kmeans", action="store_true", help="skip scikit-learn's KMeans (the slowest peer)")
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--glossy-scene", default="scan_blob:25000",
+                    help="the glossy case's mesh: scan_blob:N (the scan-like mesh of the built-in scan_blob, "
+                         "scene.scan.scan_like, at about N vertices: issue 42 §4's ~25k-vertex scan) or a built-in NAME:SIZE "
+                         "(bumpy_sphere:large, 50 412 vertices, was the case before issue 42)")
+    ap.add_argument("--no-synthetic", action="store_true", help="skip the synthetic signal (the glossy case only)")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     try:
@@ -276,17 +327,17 @@ def main() -> int:
     result: dict = {"machine": machine_info(), "omp_wait_policy": prt_torch.OMP_POLICY_CHOICE, "threads": args.threads,
                     "faiss": faiss_note, "load_average_before": load0, "quick": args.quick, "before": before_figures()}
     P = 5000 if args.quick else 50000
-    result["synthetic"] = dataset("synthetic", transfer_like(P, 25, 25, seed=0), (25, 25), args, faiss)
+    if not args.no_synthetic:
+        result["synthetic"] = dataset("synthetic", transfer_like(P, 25, 25, seed=0), (25, 25), args, faiss)
     if not args.no_glossy:
         from prt_torch import brdf as B
-        from prt_torch.scene import builtin
         from prt_torch.transfer.base import RunOptions
         from prt_torch.transfer.glossy import precompute_glossy
 
-        mesh = builtin("bumpy_sphere", "small" if args.quick else "large")
+        scene, mesh = glossy_mesh(args.glossy_scene, args.quick)
         tr, t_pre = timed(lambda: precompute_glossy(mesh, bands=5, samples=256, seed=0, run=RunOptions(workers=2),
                                                     brdf=B.AshikhminShirley(40, 10, rs=0.05, rd=0.3), drop_out=[(1, 0)]))
-        result["glossy_scene"] = {"scene": "bumpy_sphere", "vertices": mesh.num_vertices,
+        result["glossy_scene"] = {"scene": scene, "vertices": mesh.num_vertices,
                                   "matrix_shape": list(tr.meta["matrix_shape"]),
                                   "brdf": "Ashikhmin-Shirley N_u=40 N_v=10 Rs=0.05 Rd=0.3", "samples": 256, "precompute_s": t_pre}
         result["glossy"] = dataset("glossy", tr.signal(), tuple(tr.meta["matrix_shape"]), args, faiss)
@@ -296,10 +347,30 @@ def main() -> int:
         print(report(result))
         return 0
     OUT.mkdir(parents=True, exist_ok=True)
-    atomic_write_json(OUT / "encode.json", result)
-    atomic_write_text(OUT / "encode.md", report(result))
+    runs = [result]  # one run per CPU: this one replaces its CPU's, the others' are kept (issue 42 §4)
+    if (OUT / "encode.json").exists():
+        old = json.loads((OUT / "encode.json").read_text())
+        runs += [x for x in old.get("runs", [old]) if cpu_label(x["machine"]) != cpu_label(result["machine"])]
+    atomic_write_json(OUT / "encode.json", {"runs": runs})
+    text = "\n\n".join(report(x, level=2) for x in runs)
+    atomic_write_text(OUT / "encode.md", "# Encode benchmarks (issue 15; per CPU: issue 42 §4)\n\n"
+                      f"Sections: {'; '.join(cpu_label(x['machine']) for x in runs)}. A run replaces its own CPU's section "
+                      "and keeps the others.\n\n" + text)
     print(report(result))
     return 0
+
+
+def glossy_mesh(spec: str, quick: bool):
+    """``(label, Mesh)`` of ``--glossy-scene``: ``scan_blob:N`` is the built-in scan_blob's generator
+    (``scene.scan.scan_like``) at about N vertices; any other ``NAME[:SIZE]`` a built-in scene."""
+    from prt_torch.scene import builtin
+    from prt_torch.scene.scan import scan_like
+
+    name, _, size = spec.partition(":")
+    if name == "scan_blob" and size.isdigit():
+        n = 2000 if quick else int(size)
+        return f"scan_blob at {n} vertices (scene.scan.scan_like({n}))", scan_like(n)
+    return f"{name}:{size or 'large'}", builtin(name, "small" if quick else (size or "large"))
 
 
 def _f(v, nd=4):
@@ -310,12 +381,14 @@ def _f(v, nd=4):
     return str(v)
 
 
-def report(r: dict) -> str:
+def report(r: dict, level: int = 1) -> str:
     m = r["machine"]
     la, lb = r["load_average_before"], r["load_average_after"]
-    L = ["# Encode benchmarks (issue 15)", "",
-         f"Machine: {m.get('cpu')}, {m.get('cores')} cores; threads {r['threads']} for torch, faiss and scikit-learn "
-         f"(threadpoolctl); OpenMP: {r.get('omp_wait_policy')}; {r['faiss']}. Load average before "
+    h = "#" * (level - 1)
+    L = ["# Encode benchmarks (issue 15)" if level == 1 else f"## {cpu_label(m)}", "",
+         f"Machine: {cpu_label(m)}, {m.get('cores')} cores; threads {r['threads']} for torch, faiss and scikit-learn "
+         f"(threadpoolctl); OpenMP: {r.get('omp_wait_policy')}; {r['faiss']}; our GEMM (`kmeans.gemm_choice`): "
+         f"{m.get('encode_gemm', 'not recorded')}. Load average before "
          f"{tuple(round(x, 2) for x in la)}, after {tuple(round(x, 2) for x in lb)} (the run's own threads add about "
          f"{r['threads']}; more means other jobs shared the machine and absolute times are inflated); every ratio compares "
          "measurements of the same run (paired ones interleaved, "
@@ -329,26 +402,34 @@ def report(r: dict) -> str:
         title = ("synthetic transfer_like 25×25" if key == "synthetic" else
                  f"glossy {r['glossy_scene']['scene']} ({r['glossy_scene']['vertices']} vertices, "
                  f"{r['glossy_scene']['brdf']}, {r['glossy_scene']['samples']} samples)")
-        L += [f"## {title}: {d['points']} × {d['dim']} float32", ""]
+        L += [f"{h}## {title}: {d['points']} × {d['dim']} float32", ""]
         k = d["kmeans"]
-        L += [f"### k-means, {k['clusters']} clusters, {k['iterations']} Lloyd iterations", "",
+        cpu, nr = k.get("cpu") or cpu_label(m), "not recorded (before issue 42 §4)"
+        L += [f"{h}### k-means, {k['clusters']} clusters, {k['iterations']} Lloyd iterations", "",
               "SE: Σ min_k ||x − c_k||² of each method's centres, computed here in float64. Time ratio > 1: ours faster; "
               f"SE ratio < 1: ours lower. Ours and faiss: means over seeds {k.get('seeds')} (seeding luck moves either's SE by "
               "about 1%), each seed's pair of fits timed back to back (interleaved).", "",
-              "| method | time (s) | SE | time peer / ours | SE ours / peer |", "|---|---|---|---|---|",
+              "| method | time (s) | SE | time peer / ours | SE ours / peer | CPU · kernel path |", "|---|---|---|---|---|---|",
               f"| ours (vq codec fit: k-means++ seeds in the sample's top-{k['ours'].get('init_dims')} principal directions "
-              f"+ bounded Lloyd) | {k['ours']['seconds']:.2f} | {_f(k['ours']['se'])} | | |"]
+              f"+ bounded Lloyd) | {k['ours']['seconds']:.2f} | {_f(k['ours']['se'])} | | | {cpu} · {k.get('ours_path', nr)} |"]
         if "faiss" in k:
             L.append(f"| faiss.Kmeans (niter={k['iterations']}) | {k['faiss']['seconds']:.2f} | {_f(k['faiss']['se'])} | "
-                     f"**{k['time_faiss_over_ours']:.2f}×** | **{k['se_ours_over_faiss']:.4f}** |")
+                     f"**{k['time_faiss_over_ours']:.2f}×** | **{k['se_ours_over_faiss']:.4f}** | {cpu} · {k.get('faiss_path', nr)} |")
+        else:
+            L.append("| faiss.Kmeans | skipped: faiss not installed | | | | |")
+        if "one_thread_cpu_time" in k:
+            o = k["one_thread_cpu_time"]
+            L.append(f"| same pair at 1 thread each, CPU time (seed {o['seed']}): ours / faiss | {o['ours_s']:.2f} / "
+                     f"{o['faiss_s']:.2f} | | **{o['time_faiss_over_ours']:.2f}×** [{o['q1_q3'][0]:.2f}, {o['q1_q3'][1]:.2f}] | | "
+                     f"{cpu} · {o['ours_path']}; {o['faiss_path']} |")
+        if "sklearn" in k:
+            L.append(f"| scikit-learn KMeans (k-means++, n_init=1, max_iter={k['iterations']}) | {k['sklearn']['seconds']:.2f} | "
+                     f"{_f(k['sklearn']['se'])} | {k['time_sklearn_over_ours']:.2f}× | {k['se_ours_over_sklearn']:.4f} | "
+                     f"{cpu} · {k['sklearn'].get('path', nr)} |")
+        if "per_seed" in k:
             L += ["", "Per seed (ours / faiss): " + "; ".join(
                 f"{r['seed']}: {r['ours_s']:.2f} / {r['faiss_s']:.2f} s, SE {_f(r['ours_se'])} / {_f(r['faiss_se'])}"
                 for r in k.get("per_seed", [])) + "."]
-        else:
-            L.append("| faiss.Kmeans | skipped: faiss not installed | | | |")
-        if "sklearn" in k:
-            L.append(f"| scikit-learn KMeans (k-means++, n_init=1, max_iter={k['iterations']}) | {k['sklearn']['seconds']:.2f} | "
-                     f"{_f(k['sklearn']['se'])} | {k['time_sklearn_over_ours']:.2f}× | {k['se_ours_over_sklearn']:.4f} |")
         if "assign" in k:
             a = k["assign"]
             L += ["", f"Assignment kernel alone (every point to its nearest of the faiss centroids): ours "
@@ -360,7 +441,9 @@ def report(r: dict) -> str:
                   f"involuntary switches/s, trusted: {c['trusted']}."]
         c = d["cpca"]
         b = r.get("before", {}).get(key)
-        L += ["", f"### Iterative CPCA (Sloan 2003 §4.2), {c['clusters']} clusters × {c['vectors']} vectors", "",
+        if key == "glossy" and not str(r["glossy_scene"]["scene"]).startswith("bumpy_sphere"):
+            b = None  # codecs.json's figures are of bumpy_sphere large: another signal
+        L += ["", f"{h}### Iterative CPCA (Sloan 2003 §4.2), {c['clusters']} clusters × {c['vectors']} vectors", "",
               "| fit | time (s) | SE |", "|---|---|---|",
               f"| iterative | **{c['iterative_s']:.1f}** | {_f(c['iterative_se'])} |",
               f"| static (§4.1) | {c['static_s']:.1f} | {_f(c['static_se'])} |"]
@@ -375,14 +458,14 @@ def report(r: dict) -> str:
                  f"> static {_f(c['restarted_from_static']['static_se'])}, so the last stage continued from the static fit."
                  if c["restarted_from_static"] else ".")]
         q = d["classify"]
-        L += ["", "### The CPCA classification step", "",
+        L += ["", f"{h}### The CPCA classification step", "",
               f"Exact: every point against all {q['clusters']} clusters × (1 + {q['vectors']}) representatives "
               f"(`classify_all`): {1e3 * q['exact_s']:.0f} ms; the bare GEMM of the same shape alone: {1e3 * q['gemm_s']:.0f} ms; "
               f"exact / GEMM bound = **{q['exact_over_gemm']:.2f}**. Candidate sets ({q['candidates']} clusters per cluster, "
               f"the rounds between exact passes): {1e3 * q['candidate_s']:.0f} ms, **{q['exact_over_candidate']:.1f}×** faster "
               f"than exact; same label for {q['candidate_label_agreement']:.2%} of the points on this model.", ""]
         p = d["pca"]
-        L += [f"### PCA, n' = {p['vectors']}", "",
+        L += [f"{h}### PCA, n' = {p['vectors']}", "",
               "| method | time (s) | SE | SE / optimum |", "|---|---|---|---|",
               f"| ours (pca codec fit, solver {p['solver']}) | {p['ours_s']:.3f} | {_f(p['se_ours'])} | {p['se_ours_over_optimal']:.6f} |",
               f"| scikit-learn PCA (randomized) | {p['sklearn_randomized_s']:.3f} | {_f(p['se_sklearn'])} | "

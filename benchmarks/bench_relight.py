@@ -40,7 +40,15 @@ Threads: ``--threads`` (default 2, the project's target machine); OpenMP's wait 
 package's choice (``import prt_torch`` first, as for any user). The load average is recorded before and after, and each paired measurement
 records its contention (``trusted`` false: busy machine).
 
-Run: .venv/bin/python benchmarks/bench_relight.py   (a few minutes; --quick: 5 000 points, prints only)
+Per CPU and kernel build (issue 42 §4): every row records the CPU (model name, family/model, widest vector
+ISA: ``harness.timing.cpu_label``) and the code it ran (``codec.kernel_path``: the build's ISA and the point
+kernel of its plan, from the kernels' own dispatch); at one thread it is also timed by the thread's CPU time
+(the column a shared machine cannot stretch). relight.json keeps one run per CPU and build, a new run
+replacing its own; ``--isa auto`` (default) also runs the ``avx512-256`` and ``avx2`` builds (``PRT_TORCH_KERNEL_ISA``, each in a
+child process) where the native one is AVX-512, and the report then puts the builds' fractions side by side.
+
+Run: .venv/bin/python benchmarks/bench_relight.py   (a few minutes; --quick: 5 000 points, prints only;
+--no-gaussian: skip the Gaussian rows, which take seconds per call without AVX-512)
 Writes reports/benchmarks/relight.md and relight.json.
 """
 from __future__ import annotations
@@ -52,6 +60,8 @@ import prt_torch  # noqa: E402,F401  (first: it chooses OpenMP's wait policy fro
 import argparse  # noqa: E402
 import hashlib  # noqa: E402
 import json  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
@@ -59,9 +69,9 @@ from pathlib import Path  # noqa: E402
 import torch  # noqa: E402
 
 from prt_torch import codecs, relight  # noqa: E402
-from prt_torch.codecs.relight_kernels import native_status  # noqa: E402
+from prt_torch.codecs.relight_kernels import kernel_path, native_status  # noqa: E402
 from prt_torch.codecs.synthetic import tent_taps_random, transfer_like  # noqa: E402
-from prt_torch.harness.timing import io_bound_fn, machine_info, measure_paired, measure_paired_cold  # noqa: E402
+from prt_torch.harness.timing import cpu_label, io_bound_fn, machine_info, measure_paired, measure_paired_cold  # noqa: E402
 from prt_torch.io import atomic_write_json, atomic_write_text  # noqa: E402
 from prt_torch.lighting import prefilter_environment  # noqa: E402
 
@@ -109,12 +119,16 @@ def peak_macs_per_s(repeats: int = 15) -> float:
     c = torch.empty(256, 256)
     for _ in range(3):
         torch.mm(a, b, out=c)
+    # at one thread by this thread's CPU time (as the rows' CPU-time column): on a shared machine the wall clock's
+    # fastest sample still held other processes' time (a load of 14 on 2 cores gave 10.6 GMAC/s for 46 idle,
+    # and rooflines above 1)
+    clock = time.thread_time if torch.get_num_threads() == 1 else time.perf_counter
     ts = []
     for _ in range(repeats):
-        t0 = time.perf_counter()
+        t0 = clock()
         for _ in range(20):
             torch.mm(a, b, out=c)
-        ts.append((time.perf_counter() - t0) / 20)
+        ts.append((clock() - t0) / 20)
     return 256 ** 3 / min(ts)
 
 
@@ -153,6 +167,10 @@ def measure(c, enc, light, view, unc, repeats: int) -> dict:
     rl = c.relighter(enc, view)
     prep = measure_paired(lambda: rl(light, out=buf), bound, repeats=repeats, warmup=2)
     prep_cold = measure_paired_cold(lambda: rl(light, out=buf), bound, repeats=max(15, repeats), warmup=1)
+    # at one thread, the same pair timed by this thread's CPU time (timing.measure_paired's clock): the time other
+    # processes held the core is in neither side, so on a shared machine this is the work ratio (the wall-clock
+    # column above moves with the load; reports/benchmarks/timing_trust.md)
+    cpu = measure_paired(fn, bound, repeats=repeats, warmup=1, clock=time.thread_time) if torch.get_num_threads() == 1 else None
     u = measure_paired(fresh_fn, unc, repeats=repeats, warmup=1) if unc is not None else None
     out = fn().clone()
     prev = os.environ.get("PRT_TORCH_NATIVE")
@@ -169,6 +187,8 @@ def measure(c, enc, light, view, unc, repeats: int) -> dict:
             "bytes_model": st["bytes_model"], "bytes_codes": st["bytes_codes"],
             "relight_ms": 1e3 * b.test.median, "bound_ms": 1e3 * b.peer.median,
             "fraction_of_bound": b.ratio.median, "fraction_q1_q3": [b.ratio.q1, b.ratio.q3],
+            "fraction_cpu_time": cpu.ratio.median if cpu else None,
+            "fraction_cpu_time_q1_q3": [cpu.ratio.q1, cpu.ratio.q3] if cpu else None,
             "relight_new_output_ms": 1e3 * fresh.test.median, "fraction_new_output": fresh.ratio.median,
             "relighter_ms": 1e3 * prep.test.median, "fraction_relighter": prep.ratio.median,
             "fraction_relighter_q1_q3": [prep.ratio.q1, prep.ratio.q3],
@@ -193,8 +213,8 @@ def row(label, c, enc, light, view, mode, unc, repeats) -> dict:
         macs = (view[0].shape[1] + 1) * J * C
     else:  # e_p (J·n_out·C), then the view's dot (n_out·C)
         macs = J * n_out * C + (n_out * C if mode == "dense" else 0)
-    return {"codec": label, "view": mode, "points": enc.points, "macs_per_point": macs,
-            **measure(c, enc, light, view, unc, repeats)}
+    return {"codec": label, "view": mode, "points": enc.points, "macs_per_point": macs, "cpu": cpu_label(),
+            "kernel": c.kernel_path(enc, view, C=C), **measure(c, enc, light, view, unc, repeats)}
 
 
 GAUSS_VIEWS, GAUSS_RES, GAUSS_FIT = 92, 8, 64
@@ -257,16 +277,74 @@ def gaussian_row(label, c, enc, pe, view, mode, repeats) -> dict:
     P, J, N = c.lobes_of(enc)[0].shape
     C = pe.channels
     macs = J * N * 8 * C if view is None else N * (8 * C + 5 * view[0].shape[1])
-    return {"codec": label, "view": mode, "points": P, "macs_per_point": macs, **measure(c, enc, pe, view, None, repeats)}
+    k = kernel_path()
+    if k["backend"] == "native":  # sg_lookup.c: 16 lobes per vector where sg_texels.h has SG16 (AVX-512F + VL)
+        k["path"] = ("sg: 16 lobes per vector (AVX-512)" if k.get("sg16") else "sg: one lobe at a time") + (
+            ", taps blended" if view is not None else "")
+    return {"codec": label, "view": mode, "points": P, "macs_per_point": macs, "cpu": cpu_label(), "kernel": k,
+            **measure(c, enc, pe, view, None, repeats)}
 
 
 def print_row(r: dict) -> None:
     u = r["speedup_vs_uncompressed"]
+    cpu = f" cpu-time {r['fraction_cpu_time']:.2f}" if r.get("fraction_cpu_time") is not None else ""
+    print(f"[{r['cpu']} | {kernel_label(r)}]{cpu}")
     print(f"{r['codec']:22s} {r['view']:6s} {r['threads']} thr  relight {r['relight_ms']:7.3f} ms  bound {r['bound_ms']:6.3f} ms  "
           f"fraction {r['fraction_of_bound']:.2f} (prepared {r['fraction_relighter']:.2f}, cold {r['fraction_cold']:.2f}, "
           f"new output {r['fraction_new_output']:.2f}, "
           f"roofline {r['fraction_of_roofline']:.2f})  torch path {r['torch_path_fraction_of_bound']:.2f}"
           + (f"  vs uncompressed {u:.1f}x" if u is not None else "") + f"  load {os.getloadavg()[0]:.1f}", flush=True)
+
+
+def kernel_label(r: dict) -> str:
+    """A row's kernel path in one line: the build's ISA and the point kernel it ran (rows of runs
+    before issue 42 §4 did not record it)."""
+    k = r.get("kernel")
+    if not k:
+        return "not recorded"
+    if k["backend"] != "native":
+        return f"torch ({k.get('why') or k.get('path')})"
+    build = k["isa"] + ("" if k.get("isa_choice", "native") == "native" else f" (PRT_TORCH_KERNEL_ISA={k['isa_choice']})")
+    return f"{build} build: {k.get('path', '?')}"
+
+
+def isa_runs(spec: str) -> list[str]:
+    """The kernel builds a run measures, each in its own process (``PRT_TORCH_KERNEL_ISA`` is read once per
+    process): ``auto`` = this process's build, and also ``avx512-256`` (AVX-512VL without the 16-lane kernels)
+    and ``avx2`` where that build is AVX-512 (the alternatives issue 42 §4 asks to settle on AMD Zen 4); else a
+    comma list of native, avx2, avx512, avx512-256 (the first in this process). Each value is checked here
+    (one line naming it and what this CPU accepts, status 2)."""
+    from prt_torch._native import kernel_isa
+
+    if spec == "auto":
+        return ["", "avx512-256", "avx2"] if kernel_path()["isa"] == "avx512" else [""]
+    out = [v.strip() for v in spec.split(",") if v.strip()]
+    prev = os.environ.get("PRT_TORCH_KERNEL_ISA")
+    try:
+        for v in out:
+            os.environ["PRT_TORCH_KERNEL_ISA"] = v
+            kernel_isa()
+    except ValueError as e:
+        print(f"bench_relight.py: --isa {spec}: {e}", file=sys.stderr)
+        raise SystemExit(2) from None
+    finally:
+        if prev is None:
+            os.environ.pop("PRT_TORCH_KERNEL_ISA", None)
+        else:
+            os.environ["PRT_TORCH_KERNEL_ISA"] = prev
+    return out
+
+
+def child_run(isa: str, args) -> dict:
+    """This benchmark in a child process with ``PRT_TORCH_KERNEL_ISA=isa``: its result."""
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "run.json"
+        cmd = [sys.executable, __file__, "--threads", str(args.threads), "--repeats", str(args.repeats), "--cache", args.cache,
+               "--only", args.only, "--child-json", str(out)] + (["--quick"] if args.quick else []) + (
+            ["--no-gaussian"] if args.no_gaussian else [])
+        print(f"--- kernels built for {isa}: {' '.join(cmd)}", flush=True)
+        subprocess.run(cmd, env={**os.environ, "PRT_TORCH_KERNEL_ISA": isa}, check=True)
+        return json.loads(out.read_text())
 
 
 def main() -> int:
@@ -276,7 +354,53 @@ def main() -> int:
     ap.add_argument("--repeats", type=int, default=9)
     ap.add_argument("--only", default="", help="measure only codecs whose label contains this text (prints, writes nothing)")
     ap.add_argument("--cache", default=os.path.join(tempfile.gettempdir(), "prt_bench_relight"))
+    ap.add_argument("--isa", default="auto", help="kernel builds to measure, each in its own process: auto (this CPU's "
+                    "native build, and also avx512-256 and avx2 where native is AVX-512), or a comma list of native, avx2, "
+                    "avx512, avx512-256 (PRT_TORCH_KERNEL_ISA; docs/codecs.md)")
+    ap.add_argument("--no-gaussian", action="store_true", help="skip the Gaussian codec's rows (without AVX-512 its lookups "
+                    "run one lobe at a time: 3 lobes at 50 000 points take seconds per call)")
+    ap.add_argument("--child-json", default="", help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.child_json:  # one build's run for a parent (child_run): the result as JSON, nothing else written
+        atomic_write_json(Path(args.child_json), run(args))
+        return 0
+    isas = isa_runs(args.isa)
+    if isas[0]:
+        os.environ["PRT_TORCH_KERNEL_ISA"] = isas[0]  # before the kernels are first loaded in this process
+    results = [run(args)] + [child_run(isa, args) for isa in isas[1:]]
+    text = report_all(results)
+    if args.quick or args.only:
+        print(text)
+        return 0
+    OUT.mkdir(parents=True, exist_ok=True)
+    runs = merge_runs(OUT / "relight.json", results)
+    atomic_write_json(OUT / "relight.json", {"runs": runs})
+    atomic_write_text(OUT / "relight.md", report_all(runs))
+    print(f"wrote {OUT / 'relight.md'}: {len(runs)} run(s) ({', '.join(run_key(r) for r in runs)})")
+    return 0
+
+
+def run_key(r: dict) -> str:
+    """A run's CPU and kernel build: a new run replaces a kept one of the same key."""
+    b = r.get("kernel_build") or {}
+    return cpu_label(r["machine"]) + (f", kernels {b.get('isa')}" + (f" (PRT_TORCH_KERNEL_ISA={b['isa_choice']})"
+                                      if b.get("isa_choice", "native") != "native" else "") if b else "")
+
+
+def merge_runs(path: Path, results: list[dict]) -> list[dict]:
+    """The runs kept in ``path`` (one run per CPU and kernel build; a file of one run from before issue 42 §4 is
+    that run) with ``results`` replacing those of the same key and the others appended."""
+    runs: list[dict] = []
+    if path.exists():
+        old = json.loads(path.read_text())
+        runs = old.get("runs", [old] if "rows" in old else [])
+    keys = [run_key(r) for r in results]
+    kept = [r for r in runs if run_key(r) not in keys]
+    return results + kept
+
+
+def run(args) -> dict:
+    """Every row of this process's kernel build: the result dict (rows, fits, machine, peaks, loads)."""
     threads = [int(t) for t in str(args.threads).split(",")]
     torch.set_num_threads(max(threads))
     load0 = os.getloadavg()
@@ -294,7 +418,7 @@ def main() -> int:
     taps = tent_taps_random(P, Mm, seed=4)
     result: dict = {"machine": machine_info(), "omp_wait_policy": prt_torch.OMP_POLICY_CHOICE,
                     "threads": threads, "load_average_before": load0, "points": P, "fit_points": FIT_POINTS,
-                    "native": native_status(), "quick": args.quick, "fits": [], "rows": []}
+                    "native": native_status(), "kernel_build": kernel_path(), "quick": args.quick, "fits": [], "rows": []}
     print("kernels:", result["native"]["detail"], flush=True)
     peaks: dict[int, float] = {}
     for label, name, params, sig in settings(args.quick):
@@ -332,7 +456,7 @@ def main() -> int:
     pe = prefilter_environment(light.T.contiguous().double(), res=16)
     for lobes in (1, 3):
         label = f"gaussian {lobes} lobe{'s' if lobes > 1 else ''}"
-        if args.only not in label:
+        if args.only not in label or args.no_gaussian:
             continue
         t0 = time.perf_counter()
         c, enc = gaussian_fitted(lobes, P)
@@ -360,26 +484,18 @@ def main() -> int:
     result["peak_macs_per_s"] = {str(k): v for k, v in peaks.items()}
     result["seconds_total"] = time.perf_counter() - t_all
     result["load_average_after"] = os.getloadavg()
-    text = report(result)
-    if args.quick or args.only:
-        print(text)
-        return 0
-    OUT.mkdir(parents=True, exist_ok=True)
-    atomic_write_json(OUT / "relight.json", result)
-    atomic_write_text(OUT / "relight.md", text)
-    print(f"wrote {OUT / 'relight.md'} in {result['seconds_total']:.0f} s")
-    return 0
+    return result
 
 
-def report(r: dict) -> str:
-    m = r["machine"]
-    la = lambda t: tuple(round(x, 2) for x in t)  # noqa: E731
-    untrusted = [x for x in r["rows"] if not x["contention"]["trusted"]]
+def report_all(runs: list[dict]) -> str:
+    """The report of every kept run: one section per CPU and kernel build (newest first), the definitions once,
+    and, where one CPU has runs of two builds, their fractions side by side."""
+    r = runs[0]
     L = ["# Relighting from the compressed forms vs the memory-bandwidth bound", "",
-         f"Machine: {m.get('cpu')}, {m.get('cores')} cores, threads {r['threads']}, OpenMP: {r['omp_wait_policy']}; "
-         f"load average before {la(r['load_average_before'])}, after {la(r['load_average_after'])}. "
-         f"Total {r['seconds_total']:.0f} s. Kernels: {r['native']['detail']}.", "",
-         "Reproduce: `.venv/bin/python benchmarks/bench_relight.py` (writes this file and relight.json).", "",
+         "Reproduce: `.venv/bin/python benchmarks/bench_relight.py` (writes this file and relight.json; a run replaces the "
+         "section of its own CPU and kernel build and keeps the others; `--isa auto` also measures the avx512-256 and avx2 "
+         "builds where the native one is AVX-512, `--isa native,avx2,avx512,avx512-256` names them). Sections: " + "; ".join(run_key(x) for x in runs)
+         + ".", "",
          f"{r['points']} points, one SH light [25, 3] per call. Signals: `transfer_like(P, 24, 25)` (VQ, PCA, CPCA) and "
          f"`transfer_like(P, 49, 25)` (MRT-PCA, 7×7 tents). Codecs fitted on the first {r['fit_points']} points, then "
          "encoding all of them. **fraction** = bound / relight, where the bound is reading the stored bytes "
@@ -395,8 +511,7 @@ def report(r: dict) -> str:
          "pyramid addressing for every-view relighting); its cold figures are in the summary below. **compute floor** = the per-point "
          "multiply-adds (MACs column) at this machine's "
          "peak float32 rate, measured in the same run at the same thread count (a cache-resident 256³ GEMM at the start and at "
-         "the end of the run, the faster kept: "
-         f"{', '.join(f'{float(v) / 1e9:.0f} GMAC/s at {k} thread(s)' for k, v in r['peak_macs_per_s'].items())}); "
+         "the end of the run, the faster kept: given in each section); "
          "**roofline** = max(bound, compute floor) / relight: where the floor exceeds the bound, no kernel can reach "
          "the bound on this CPU, and 2× the floor is the most the 0.5 goal can ask. **of peak** = compute floor / relight, "
          "the share of the peak rate the kernel sustains (the MACs are the cost model's; the per-light constants are "
@@ -408,15 +523,67 @@ def report(r: dict) -> str:
          "(20–50 MB here) largely in the L3 and measure an L3-bandwidth bound. "
          "**vs uncompressed**: `relight.apply_dense` / `apply_taps` (or `M @ l`) on the decoded matrices, paired, "
          "over relight (> 1: compressed faster; both allocate their results). **torch path**: the fraction without "
-         "the compiled kernels (`PRT_TORCH_NATIVE=0`, the path without a C compiler).", ""]
+         "the compiled kernels (`PRT_TORCH_NATIVE=0`, the path without a C compiler). "
+         "**CPU · kernel path** (issue 42 §4): the CPU (model name, family/model, widest ISA the kernels have paths "
+         "for) and the code the row ran, from the kernels' own dispatch (`relight_kernels.kernel_path`, `prt_plan_path`): "
+         "the build's instruction set (`prt_isa`: the `#if` branches compiled in) and the point kernel of the row's plan. "
+         "**1 thr CPU time**: at one thread, the same pair timed by the thread's CPU time (`measure_paired(clock="
+         "time.thread_time)`): the time other processes held the core is in neither side, so on a shared machine it is the "
+         "work ratio where the wall-clock fraction moves with the load.", ""]
+    L += compare_builds(runs)
+    for x in runs:
+        L += report(x)
+    L += COST_MODEL
+    return "\n".join(L)
+
+
+def compare_builds(runs: list[dict]) -> list[str]:
+    """Where one CPU has runs of two kernel builds (``--isa``): each row's fraction of the bound per build."""
+    out: list[str] = []
+    by_cpu: dict[str, list[dict]] = {}
+    for x in runs:
+        by_cpu.setdefault(cpu_label(x["machine"]), []).append(x)
+    for cpu, rs in by_cpu.items():
+        if len(rs) < 2 or not all(x.get("kernel_build") for x in rs):
+            continue
+        names = [kernel_label({"kernel": x["kernel_build"]}).replace(" build: ?", "") for x in rs]
+        out += [f"## {cpu}: the kernel builds side by side", "",
+                "Fraction of the bound (wall clock; at 1 thread also CPU time) per build, each paired with its own bound in "
+                "its own process (ratios of ratios: the bound is the same copy in both).", "",
+                "| codec | view | threads | " + " | ".join(names) + " |", "|---|---|---|" + "---|" * len(rs)]
+        index = [{(y["codec"], y["view"], y["threads"]): y for y in x["rows"]} for x in rs]
+        for key in index[0]:
+            cells = []
+            for ix in index:
+                y = ix.get(key)
+                ct = f" / {y['fraction_cpu_time']:.2f}" if y and y.get("fraction_cpu_time") is not None else ""
+                cells.append(f"{y['fraction_of_bound']:.2f}{ct} ({y['kernel'].get('path', '?')})" if y else "—")
+            out.append(f"| {key[0]} | {key[1]} | {key[2]} | " + " | ".join(cells) + " |")
+        out.append("")
+    return out
+
+
+def report(r: dict) -> list[str]:
+    """One run's section: its CPU and kernel build, machine state, rows, fits and tallies."""
+    m = r["machine"]
+    la = lambda t: tuple(round(x, 2) for x in t)  # noqa: E731
+    untrusted = [x for x in r["rows"] if not x["contention"]["trusted"]]
+    L = [f"## {run_key(r)}", "",
+         f"Machine: {cpu_label(m)}, {m.get('cores')} cores, threads {r['threads']}, OpenMP: {r['omp_wait_policy']}; "
+         f"load average before {la(r['load_average_before'])}, after {la(r['load_average_after'])}. "
+         f"Total {r['seconds_total']:.0f} s. Kernels: {r['native']['detail']}. Peak float32 rate (compute floor): "
+         f"{', '.join(f'{float(v) / 1e9:.0f} GMAC/s at {k} thread(s)' for k, v in r['peak_macs_per_s'].items())}.", ""]
+    if not r.get("kernel_build"):
+        L += ["This run is from before issue 42 §4: its rows did not record their kernel path or the CPU's family/model "
+              "(the library was built `-march=native` on this CPU, as its Kernels line says).", ""]
     if untrusted:
         L += [f"**{len(untrusted)} of {len(r['rows'])} rows were measured on a busy machine** (contention not trusted: "
               + "; ".join(sorted({w for x in untrusted for w in x['contention']['why_not']}))[:400] + "): the ratios are paired, "
               "but re-run on a quiet machine for final figures.", ""]
     L += ["| codec | view | threads | bytes read | bytes written | MACs / point | relight (ms) | bound (ms) | compute floor (ms) "
           "| fraction of bound | prepared | roofline | of peak | goal needs | cold (relight / bound ms) | new output | torch path "
-          "| vs uncompressed |",
-          "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+          "| vs uncompressed | 1 thr CPU time | CPU · kernel path |",
+          "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for x in r["rows"]:
         q1, q3 = x["fraction_q1_q3"]
         L.append(f"| {x['codec']} | {x['view']} | {x['threads']} | {x['bytes_read']:,} | {x['bytes_written']:,} | {x['macs_per_point']:.0f} | "
@@ -427,7 +594,10 @@ def report(r: dict) -> str:
                  f"{x['fraction_cold']:.2f} [{x['fraction_cold_q1_q3'][0]:.2f}, {x['fraction_cold_q1_q3'][1]:.2f}] "
                  f"({x['relight_cold_ms']:.2f} / {x['bound_cold_ms']:.2f}) | "
                  f"{x['fraction_new_output']:.2f} | {x['torch_path_fraction_of_bound']:.2f} | "
-                 + (f"{x['speedup_vs_uncompressed']:.1f}× |" if x["speedup_vs_uncompressed"] is not None else "— |"))
+                 + (f"{x['speedup_vs_uncompressed']:.1f}× |" if x["speedup_vs_uncompressed"] is not None else "— |")
+                 + (f" {x['fraction_cpu_time']:.2f} [{x['fraction_cpu_time_q1_q3'][0]:.2f}, {x['fraction_cpu_time_q1_q3'][1]:.2f}] |"
+                    if x.get("fraction_cpu_time") is not None else " — |")
+                 + f" {x.get('cpu') or cpu_label(m)} · {kernel_label(x)} |")
     L += ["", "Fits (fit on the first points + encode all, or loaded from the cache):", "",
           "| codec | clusters | n_k | mean weights per point | stored bytes | compression | fit+encode (s) |",
           "|---|---|---|---|---|---|---|"]
@@ -462,25 +632,28 @@ def report(r: dict) -> str:
         L += [f"Rows under 0.5: the goal would need {need[0]:.2f}–{need[-1]:.2f} of the peak float32 rate (median "
               f"{need[len(need) // 2]:.2f}); the kernels sustain {got[0]:.2f}–{got[-1]:.2f} of it (median {got[len(got) // 2]:.2f})."]
     L += [""]
-    L += ["", "Cost model (Sloan 2003 §6; Lehtinen & Kautz 2003 eq. (13)): per light, the per-cluster constants M_i^k l "
-          "(K·J·n_out·C floats, one GEMM over the stored model); per point one pass over its codes — J·n_out·C "
-          "multiply-adds without a view or with a dense view (the view folded in before anything n_out·C-sized leaves "
-          "the core), t·J·C with t taps — in `prt_torch/codecs/relight_kernels.py`. The MACs column is that per-point "
-          "arithmetic: where it is large against the bytes per point (MRT-PCA with a dense view: 16·49·3 MACs for 260 "
-          "bytes), the kernel is compute-bound and no relight reads-once-and-writes-once at the copy's speed.", "",
-          "Gaussian rows (Green 2005 eq. 2.7, §2.3): per lobe one trilinear lookup in the prefiltered pyramid "
-          "(8 texels × C multiply-adds, the MACs column, after the face, texel and level addressing: a cube-face "
-          "projection, a division, a logarithm and a search of the width ladder); with taps, first the blend of the k "
-          "tapped views' lobes (5 floats each) and a normalisation. Bytes read: no view, the whole encoding; taps, only the "
-          "tapped views' lobes and the taps (the other 89 views are never read). The work is address arithmetic and "
-          "scattered table reads, which neither the copy bound nor the multiply-add floor captures; the fraction says how "
-          "far the lookup is from the bytes it must move. Prepared (`codec.relighter`), the addressing is kept per lobe "
-          "(every view) or, with taps, the blend across the taps and its addressing (20 bytes per blended lobe and 4 per "
-          "vertex); `relight` with taps keeps the same in `enc.cache` from its second call with the same taps (these "
-          "rows' repeats): both then read derived data that is smaller than the bound's bytes, so a fraction above 1 "
-          "means that, not a faster memory. In the fits table, a Gaussian row's n_k is its lobes per "
-          "function and its mean weights per point its lobes per vertex (92 views × N).", ""]
-    return "\n".join(L)
+    return L
+
+
+#: the cost model and the Gaussian rows' reading, once per report
+COST_MODEL = ["", "Cost model (Sloan 2003 §6; Lehtinen & Kautz 2003 eq. (13)): per light, the per-cluster constants M_i^k l "
+    "(K·J·n_out·C floats, one GEMM over the stored model); per point one pass over its codes — J·n_out·C "
+    "multiply-adds without a view or with a dense view (the view folded in before anything n_out·C-sized leaves "
+    "the core), t·J·C with t taps — in `prt_torch/codecs/relight_kernels.py`. The MACs column is that per-point "
+    "arithmetic: where it is large against the bytes per point (MRT-PCA with a dense view: 16·49·3 MACs for 260 "
+    "bytes), the kernel is compute-bound and no relight reads-once-and-writes-once at the copy's speed.", "",
+    "Gaussian rows (Green 2005 eq. 2.7, §2.3): per lobe one trilinear lookup in the prefiltered pyramid "
+    "(8 texels × C multiply-adds, the MACs column, after the face, texel and level addressing: a cube-face "
+    "projection, a division, a logarithm and a search of the width ladder); with taps, first the blend of the k "
+    "tapped views' lobes (5 floats each) and a normalisation. Bytes read: no view, the whole encoding; taps, only the "
+    "tapped views' lobes and the taps (the other 89 views are never read). The work is address arithmetic and "
+    "scattered table reads, which neither the copy bound nor the multiply-add floor captures; the fraction says how "
+    "far the lookup is from the bytes it must move. Prepared (`codec.relighter`), the addressing is kept per lobe "
+    "(every view) or, with taps, the blend across the taps and its addressing (20 bytes per blended lobe and 4 per "
+    "vertex); `relight` with taps keeps the same in `enc.cache` from its second call with the same taps (these "
+    "rows' repeats): both then read derived data that is smaller than the bound's bytes, so a fraction above 1 "
+    "means that, not a faster memory. In the fits table, a Gaussian row's n_k is its lobes per "
+    "function and its mean weights per point its lobes per vertex (92 views × N).", ""]
 
 
 if __name__ == "__main__":

@@ -33,7 +33,8 @@ import subprocess
 import tempfile
 from pathlib import Path
 
-__all__ = ["compile_library", "cache_dirs", "kernel_sources", "prebuild", "LIBRARIES", "KERNELS_DIR", "PREBUILT_DIR"]
+__all__ = ["compile_library", "cache_dirs", "kernel_sources", "prebuild", "kernel_isa", "cpu_isa", "LIBRARIES", "KERNELS_DIR",
+           "PREBUILT_DIR", "KERNEL_ISAS"]
 
 #: where the C sources live (package data)
 KERNELS_DIR = Path(__file__).resolve().parent / "kernels"
@@ -163,6 +164,48 @@ def _isa_flags() -> set[str]:
         if ln.startswith("flags"):
             return set(ln.split(":", 1)[1].split())
     return set()
+
+
+#: the values of ``PRT_TORCH_KERNEL_ISA`` and the flags each adds after ``-march=native`` (issue 42 §4): ``native``
+#: (the default: every instruction set of this CPU, so AVX-512's 16-lane and k-mask paths where it has them),
+#: ``avx2`` (``-mno-avx512f``: the 8-lane AVX2 paths, also on an AVX-512 CPU: on AMD Zen 4, whose 512-bit
+#: operations are two 256-bit halves, the alternative to measure), ``avx512`` (the AVX-512 paths; refused on a
+#: CPU without avx512f and avx512vl, where native builds the AVX2 ones), ``avx512-256`` (AVX-512VL's 32
+#: registers and k-masks on 8-float vectors, without the 16-lane kernels (``PRT_NO_W16``: vec.h's HAVE_W16 and
+#: sg_texels.h's SG16 off) and with the compiler's own vectorisation at 256 bits: between the two, it tells
+#: the 512-bit kernels' share from the rest of AVX-512's)
+KERNEL_ISAS: dict[str, tuple[str, ...]] = {"native": (), "avx2": ("-mno-avx512f",), "avx512": (),
+                                            "avx512-256": ("-mprefer-vector-width=256", "-DPRT_NO_W16")}
+
+
+def cpu_isa() -> str:
+    """This CPU's widest vector instruction set the kernels have paths for: ``avx512`` (avx512f and avx512vl),
+    ``avx2``, ``avx``, else ``baseline`` (from ``/proc/cpuinfo``'s flags; ``unknown`` where there are none)."""
+    f = _isa_flags()
+    if not f:
+        return "unknown"
+    return ("avx512" if {"avx512f", "avx512vl"} <= f else "avx2" if {"avx2", "fma"} <= f else "avx" if "avx" in f
+            else "baseline")
+
+
+def kernel_isa() -> tuple[str, tuple[str, ...]]:
+    """``(choice, extra compiler flags)`` of ``PRT_TORCH_KERNEL_ISA`` (unset or empty: ``native``): which of the
+    kernels' instruction-set branches the relight library is built with (:data:`KERNEL_ISAS`). Raises
+    ``ValueError`` (one line naming the variable, its value and what is accepted) for another value, or for one
+    this CPU cannot run."""
+    raw = os.environ.get("PRT_TORCH_KERNEL_ISA", "")
+    v = raw.strip().lower() or "native"
+    if v not in KERNEL_ISAS:
+        raise ValueError(f"PRT_TORCH_KERNEL_ISA={raw!r}; accepted: native (the default: -march=native), avx2 (-march=native "
+                         f"-mno-avx512f: the 8-lane AVX2 kernels), avx512 (the 16-lane AVX-512 kernels, on a CPU with avx512f "
+                         f"and avx512vl), avx512-256 (AVX-512VL on 8-float vectors, no 16-lane kernels)")
+    have = cpu_isa()
+    need = {"avx512": ("avx512",), "avx512-256": ("avx512",), "avx2": ("avx512", "avx2")}.get(v)
+    if need and have != "unknown" and have not in need:
+        cpu = _cpu_id().splitlines()[0].split(":", 1)[-1].strip() if _cpu_id() else platform.machine()
+        raise ValueError(f"PRT_TORCH_KERNEL_ISA={raw!r}, but this CPU ({cpu}) has {have} at most; accepted here: native"
+                         + (", avx2" if v.startswith("avx512") and have == "avx2" else ""))
+    return v, KERNEL_ISAS[v]
 
 
 def _sources_of(name: str, src) -> dict[str, str]:

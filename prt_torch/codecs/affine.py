@@ -561,6 +561,26 @@ class AffineCodec(Codec):
             return (res if out is not None or self.matrix_shape_ is None else res.view(-1, n_out, C)), 0
         return res, flag
 
+    def kernel_path(self, enc: Encoded, view=None, C: int = 3, n_vectors: int | None = None) -> dict:
+        """Which code ``relight(enc, light [n_in, C], view)`` runs (``relight_kernels.kernel_path``:
+        backend, the compiled instruction set, threads and the point kernel of this encoding's
+        plan — the one ``relight`` builds and caches), for benchmarks to name per row (issue 42 §4).
+        Its shapes alone decide it, so no light is needed."""
+        from .relight_kernels import kernel_path
+
+        lib = native()
+        n = self._n_eff(n_vectors)
+        n_out = (self.matrix_shape_ or (1, self.D_))[0]
+        J = (1 if self.means_ is not None else 0) + n
+        ntap = view[0].shape[1] if isinstance(view, tuple) else 0
+        if lib is None or J == 0 or not kernel_fits(J, n_out, C) or ntap > 64:
+            info = kernel_path()
+            if lib is not None:
+                info.update(backend="torch", path="torch formulation (shapes past the kernels' buffers, or no terms)")
+            return info
+        kind = "rows" if view is None else ("taps" if isinstance(view, tuple) else "dense")
+        return kernel_path(self._kernel_plan(lib, enc, n, kind, C, ntap))
+
     def _kernel_plan(self, lib, enc: Encoded, n: int, kind: str, C: int, ntap: int):
         """This encoding's ``relight_kernels.Plan`` for ``n`` vectors, view ``kind``, C colours
         and ``ntap`` taps, built once and cached in ``enc.cache`` while the model and the codes

@@ -58,9 +58,9 @@ import weakref
 import torch
 
 from .._checks import check_finite_float32, tensor_version
-from .._native import LIBRARIES, compile_library, kernel_sources
+from .._native import LIBRARIES, compile_library, cpu_isa, kernel_isa, kernel_sources
 
-__all__ = ["native", "native_status", "constants", "constants_layout", "model_t", "affine_rows", "affine_dense", "affine_taps",
+__all__ = ["native", "native_status", "kernel_path", "constants", "constants_layout", "model_t", "affine_rows", "affine_dense", "affine_taps",
            "plan", "run_plan", "Plan", "sg_lookup_sum", "sg_taps", "lobe_layout", "fits", "MAX_ROW"]
 
 #: largest per-point row (n_out·C for dense views, J·C for taps) the kernels hold on the stack
@@ -68,8 +68,6 @@ MAX_ROW = 4096
 
 #: the kernels' C sources (files in prt_torch/kernels/, compiled together into one library) and compiler flags
 _SOURCES, _FLAGS = LIBRARIES["relight"][0], list(LIBRARIES["relight"][1])
-
-_FLAGS = ["-O3", "-march=native", "-ffp-contract=fast", "-fopenmp", "-shared", "-fPIC", "-std=c99"]
 _lock = threading.Lock()
 _state: dict = {}
 
@@ -77,10 +75,12 @@ _state: dict = {}
 def _compile(sources: dict[str, str] | None = None, flags: list[str] | None = None) -> tuple[ctypes.CDLL | None, str]:
     """The library built from ``sources`` (``{file name: C text}``; default: the files of ``_SOURCES``
     in prt_torch/kernels/) and ``flags`` (default: the module's ``_FLAGS``, read at call time: tests
-    patch it; ``benchmarks/ab_kernels.py`` passes another revision's sources and flags)."""
+    patch it; ``benchmarks/ab_kernels.py`` passes another revision's sources and flags), followed by what
+    ``PRT_TORCH_KERNEL_ISA`` adds (``_native.kernel_isa``: ``avx2`` builds the AVX2 paths on an AVX-512 CPU)."""
     i64, vp, ci = ctypes.c_int64, ctypes.c_void_p, ctypes.c_int
+    flags = list(_FLAGS if flags is None else flags) + list(kernel_isa()[1])
     common = [vp, ci, vp, i64, vp, vp, i64, ci, vp, i64]
-    return compile_library("relight", kernel_sources(_SOURCES) if sources is None else sources, _FLAGS if flags is None else flags, {
+    return compile_library("relight", kernel_sources(_SOURCES) if sources is None else sources, flags, {
         "prt_affine_rows": [i64, i64, i64, *common, vp, vp, ci, ci],
         "prt_affine_dense": [i64, i64, i64, i64, i64, *common, vp, vp, vp, ci, ci],
         "prt_affine_taps": [i64, i64, i64, *common, i64, vp, vp, vp, vp, ci, ci],
@@ -88,6 +88,8 @@ def _compile(sources: dict[str, str] | None = None, flags: list[str] | None = No
         "prt_constants_lanes": [i64] * 5 + [vp, vp, vp] + [i64] * 2 + [ci],
         "prt_relight_plan": [vp, vp, vp, vp, vp, vp, ci],
         "prt_dense_pad": [i64],
+        "prt_plan_path": [vp],
+        "prt_isa": [],
         "prt_rows_pad": [i64, i64],
         "prt_sg_lookup_sum": [i64, i64, i64, i64, vp, vp, vp, i64, i64, i64, vp, i64, i64, vp, i64, vp, ci],
         "prt_sg_lookup_sum_q": [i64, i64, i64, i64, vp, vp, vp, i64, i64, i64, vp, vp, i64, i64, vp, i64, vp, ci],
@@ -115,13 +117,18 @@ def _disabled() -> bool:
 
 def native() -> ctypes.CDLL | None:
     """The compiled kernels (compiled on the first call of a process, then cached on disk), or
-    None: no C compiler, a failed compile, or ``PRT_TORCH_NATIVE=0``."""
+    None: no C compiler, a failed compile, or ``PRT_TORCH_NATIVE=0``. ``PRT_TORCH_KERNEL_ISA``
+    (``native``, ``avx2``, ``avx512``: ``_native.kernel_isa``) is read at that first call, once per
+    process: plans and layouts (``dense_pad``, ``rows_pad``) are those of the library loaded then; a
+    value that is not accepted raises ``ValueError`` naming it."""
     if _disabled():
         return None
     if "lib" not in _state:
         with _lock:
             if "lib" not in _state:
+                isa, extra = kernel_isa()  # raises for a bad value before anything is compiled or cached
                 _state["lib"], _state["why"] = _compile()
+                _state["isa_choice"], _state["flags"] = isa, " ".join(list(_FLAGS) + list(extra))
     return _state["lib"]
 
 
@@ -131,6 +138,45 @@ def native_status() -> dict:
         return {"native": False, "detail": "disabled by PRT_TORCH_NATIVE=0"}
     lib = native()
     return {"native": lib is not None, "detail": _state.get("why", "")}
+
+
+#: prt_plan_path's codes (PRT_ROWS_*, PRT_DENSE_*, PRT_TAPS_* in kernels/prt_kernels.h, in that order): the point
+#: kernel a plan runs, as the kernels dispatch
+_PATH_NAMES = {1: "rows: VQ row copy", 2: "rows/1 vector: VQ RGB, 8 points packed", 3: "rows/1 vector: VQ row copy",
+               4: "rows/1 vector: PCA RGB, 8 points in lanes (AVX-512VL)", 5: "rows/1 vector: fixed term count (AVX2 permutes)",
+               6: "rows/1 vector: one point at a time", 7: "rows: 16 lanes (AVX-512)", 8: "rows: 8 lanes, two points per load",
+               9: "rows: 8 lanes", 10: "dense: VQ, 8 lanes, 8 points", 11: "dense: 16 lanes (AVX-512)",
+               12: "dense: 8 lanes, RGB, two points per load", 13: "dense: 8 lanes, RGB", 14: "dense: per colour, 8 lanes",
+               15: "taps: one term", 16: "taps: RGB, 8 points (8 lanes)", 17: "taps: general"}
+
+
+def _isa_name(bits: int) -> str:
+    return "avx512" if bits & 8 else "avx2" if bits & 2 and bits & 4 else "avx" if bits & 1 else "baseline"
+
+
+def kernel_path(pl: "Plan | None" = None) -> dict:
+    """Which compiled code runs (issue 42 §4: a benchmark row names its kernel path): ``backend``
+    (``native``, or ``torch`` with ``why``), the library's instruction set as its ``#if`` branches
+    saw it at compile time (``isa``: avx512 / avx2 / avx / baseline, from ``prt_isa``; ``w16``: the
+    16-lane AVX-512 affine kernels built; ``sg16``: the Gaussian codec's 16-lobe ones), the
+    ``PRT_TORCH_KERNEL_ISA`` choice, this CPU's own (``cpu_isa``), the compiler flags, the kernel
+    threads (torch's count, passed to every call) and, for a plan ``pl`` (:func:`plan`), the point
+    kernel it runs (``path``, from ``prt_plan_path``: the dispatch functions the kernels switch on,
+    not a guess from the CPU's flags)."""
+    lib = native()
+    out = {"backend": "native" if lib is not None else "torch", "cpu_isa": cpu_isa(), "threads": torch.get_num_threads()}
+    if lib is None:
+        out["why"] = native_status()["detail"]
+        out["path"] = "torch formulation"
+        return out
+    bits = int(lib.prt_isa())
+    out.update({"isa": _isa_name(bits), "w16": bool(bits & 32), "avx512vl": bool(bits & 16), "fma": bool(bits & 4), "sg16": bool(bits & 64),
+                "isa_choice": _state.get("isa_choice", "native"), "flags": _state.get("flags", "")})
+    if pl is not None:
+        code = int(lib.prt_plan_path(pl.args_ptr))
+        out["path_code"] = code
+        out["path"] = _PATH_NAMES.get(code, f"code {code}")
+    return out
 
 
 _LAB_KIND = {torch.uint8: 1, torch.int16: 2, torch.int32: 3}

@@ -22,7 +22,7 @@ from .._checks import check_int
 from ..executor import torch_threads  # noqa: F401  (re-exported: where it lived before issue 42)
 
 __all__ = ["Timing", "Paired", "measure", "measure_paired", "measure_paired_cold", "last_level_cache_bytes", "torch_threads",
-           "io_bound_fn", "machine_info", "rate_policy"]
+           "io_bound_fn", "machine_info", "cpu_label", "rate_policy"]
 
 
 @dataclass
@@ -351,23 +351,45 @@ def io_bound_fn(bytes_read: int, bytes_written: int) -> Callable[[], Any]:
     return lambda: (dst.copy_(src), out.fill_(1))
 
 
-def _cpu_name() -> str:
+def _cpu_field(name: str) -> str | None:
+    """The first ``name`` line of ``/proc/cpuinfo`` (None where there is none)."""
     try:
         with open("/proc/cpuinfo") as f:
             for line in f:
-                if line.startswith("model name"):
+                if line.split(":", 1)[0].strip() == name:
                     return line.split(":", 1)[1].strip()
     except OSError:
         pass
-    return platform.processor() or platform.machine()
+    return None
+
+
+def _cpu_name() -> str:
+    return _cpu_field("model name") or platform.processor() or platform.machine()
+
+
+def cpu_label(info: dict | None = None) -> str:
+    """One line naming a CPU for a report row: model name, family/model and the widest vector ISA the
+    kernels use on it (``machine_info``'s ``cpu``, ``cpu_family``, ``cpu_model``, ``cpu_isa``; older records
+    without the last three give the name alone), e.g. ``AMD EPYC (family 25 model 1, avx2)``."""
+    info = machine_info() if info is None else info
+    extra = [f"family {info['cpu_family']} model {info['cpu_model']}" if info.get("cpu_family") is not None else None,
+             info.get("cpu_isa")]
+    extra = [e for e in extra if e]
+    return f"{info.get('cpu')}" + (f" ({', '.join(extra)})" if extra else "")
 
 
 def machine_info() -> dict[str, Any]:
     """CPU, core and thread counts, Python/torch/numpy versions — recorded with every result."""
     import numpy
 
+    from .._native import cpu_isa
+
     info: dict[str, Any] = {
         "cpu": _cpu_name(),
+        "cpu_family": _cpu_field("cpu family"),
+        "cpu_model": _cpu_field("model"),
+        "cpu_isa": cpu_isa(),  # avx512 (avx512f + avx512vl) / avx2 / avx / baseline: the widest the kernels have paths for
+        "torch_cpu_capability": torch.backends.cpu.get_cpu_capability(),  # the ISA torch's own kernels (and GEMMs) dispatch to
         "cores": os.cpu_count(),
         "torch_threads": torch.get_num_threads(),
         "python": sys.version.split()[0],

@@ -311,6 +311,19 @@ static __attribute__((noinline)) i64 vq_dense_range(i64 p0, i64 p1, i64 n_out, c
     return q;
 }
 
+/* the path prt_affine_dense_range takes for these shapes and codes (PRT_DENSE_*, prt_kernels.h): the dispatch below
+   reads it, and prt_plan_path reports it (a benchmark row names the kernel it ran). Points past the last whole block
+   of 8 take the one-point form of the same path. */
+int prt_dense_path(i64 n_out, i64 n_pad, i64 C, const float *W, int mean, const int32_t *order) {
+    const i64 nbt = n_pad / 8;
+    if (HAVE_W16 && C == 3 && W && nbt >= 4 && nbt <= 8) return PRT_DENSE_W16;
+    if (C == 3 && nbt <= 7) {
+        if (!W && mean && !order && n_out == n_pad) return PRT_DENSE_VQ8;
+        return W && nbt <= MAXNBS2 ? PRT_DENSE_RGB8_PAIRS : PRT_DENSE_RGB8;
+    }
+    return PRT_DENSE_COLOUR;
+}
+
 /* dense view: constants colour-major T [K, J, C, n_pad] (rows zero-padded from n_out to n_pad,
    a multiple of 8); out[p, c] = y_p . e_p[c], e_p accumulated in registers chunk by chunk and
    dotted with the view as it is formed (RGB with n_pad <= 56: all three colours in one pass, 8
@@ -325,9 +338,10 @@ static int prt_affine_dense_range(const int32_t *order, int csort, i64 p0, i64 p
     i64 F = n_pad * C, nbt = n_pad / 8, cs = chunk_size(nbt);
     int flag = 0;
     i64 q = p0;
+    const int path = prt_dense_path(n_out, n_pad, C, W, mean, order);
 #if HAVE_W16
     /* weights (PCA, CPCA, MRT-PCA), RGB, 32 to 64 rows: 16 rows per vector (dense3w) for every point of the call */
-    const int wide = C == 3 && W && nbt >= 4 && nbt <= 8;
+    const int wide = path == PRT_DENSE_W16;
     /* blocks of 16 rows: all of them, the last under ml; or, with a tail table, the whole ones before the tail rows */
     const i64 nbw = tail ? n_out / 16 : (n_pad + 15) / 16;
     const __mmask16 ml = tail ? (__mmask16)0xFFFF : lanes16(n_pad - 16 * (nbw - 1));
@@ -340,7 +354,7 @@ static int prt_affine_dense_range(const int32_t *order, int csort, i64 p0, i64 p
         v8 R[24];
         float yb[56], zb[56];
         i64 pl[8];
-        if (!W && mean && !order && n_out == n_pad) q = vq_dense_range(q, p1, n_out, lab, lab_kind, T, J, y, out, &flag);
+        if (path == PRT_DENSE_VQ8) q = vq_dense_range(q, p1, n_out, lab, lab_kind, T, J, y, out, &flag);
         for (; q + 8 <= p1; q += 8) {
             for (int l = 0; l < 8; l++) {
                 const float *w, *yp;
@@ -363,7 +377,7 @@ static int prt_affine_dense_range(const int32_t *order, int csort, i64 p0, i64 p
                     continue;
                 }
 #endif
-                if (W && nbt <= MAXNBS2 && l < 7
+                if (path == PRT_DENSE_RGB8_PAIRS && l < 7
                     && T + lab_at(lab, lab_kind, csort ? q + l + 1 : (order ? order[q + l + 1] : q + l + 1)) * J * F == Tk) {
                     /* the next visit is in the same cluster (so the same term count): both at once */
                     const float *u, *zp;

@@ -145,12 +145,31 @@ static __attribute__((noinline)) i64 fixed_rows(i64 q, i64 last, i64 Fo, const v
 #undef FIXED
     return q;
 }
-static __attribute__((noinline)) void small_rows_range(const int32_t *order, int csort, i64 p0, i64 p1, i64 Fo, const void *lab,
-        int lab_kind, const float *W, i64 wstride, const i64 *woff, const i64 *nk, i64 nuse, int mean, const float *T, i64 J,
-        float *out) {
+/* the path prt_affine_rows_range takes for these shapes and codes (PRT_ROWS_*, prt_kernels.h): the dispatch below
+   switches on it, and prt_plan_path reports it, so a benchmark row names the kernel it ran (not one guessed from the
+   CPU's flags). Decided by the shapes and codes alone, never by the number of points. */
+int prt_rows_path(i64 F, i64 Fo, i64 J, const void *lab, const float *W, const i64 *woff, const i64 *nk, i64 nuse, int mean,
+                  const int32_t *order) {
+    if (J == 1 && !W && mean && lab && !order && F == Fo) return PRT_ROWS_VQ_COPY;  /* J == 1: no weights can also be an
+                                                                                     empty packed block with J > 1 */
+    if (F == 8) {
+#ifdef SHUF
+        if (!W && !order && lab && mean && Fo == 3) return PRT_ROWS_SMALL_VQ_RGB8;
+#endif
+        if (!W && !order && lab && mean) return PRT_ROWS_SMALL_VQ;
+        if (HAVE_K1_RGB8 && !lab && !order && !woff && W && Fo == 3) return PRT_ROWS_SMALL_K1_RGB8;
+        if (!order && W && !woff && !nk && mean && nuse >= 1 && nuse <= 8) return PRT_ROWS_SMALL_FIXED;
+        return PRT_ROWS_SMALL_ONE;
+    }
+    if (HAVE_W16 && W && F % 16 == 0 && F == prt_rows_pad(Fo, J)) return PRT_ROWS_W16;
+    return W ? PRT_ROWS_W8_PAIRS : PRT_ROWS_W8;
+}
+static __attribute__((noinline)) void small_rows_range(int path, const int32_t *order, int csort, i64 p0, i64 p1, i64 Fo,
+        const void *lab, int lab_kind, const float *W, i64 wstride, const i64 *woff, const i64 *nk, i64 nuse, int mean,
+        const float *T, i64 J, float *out) {
     i64 q = p0;
 #ifdef SHUF
-    if (!W && !order && lab && mean && Fo == 3) {  /* VQ, RGB: 8 points' rows packed into 24 floats (3 stores where one
+    if (path == PRT_ROWS_SMALL_VQ_RGB8) {  /* VQ, RGB: 8 points' rows packed into 24 floats (3 stores where one
                                                      store per point crosses a cache line every other point; 2x, bare C) */
         switch (lab_kind) {
         case 1:
@@ -163,7 +182,7 @@ static __attribute__((noinline)) void small_rows_range(const int32_t *order, int
         }
     }
 #endif
-    if (!W && !order && lab && mean) {  /* VQ: the row of the point's cluster; whole vectors in order as above while
+    if (path == PRT_ROWS_SMALL_VQ_RGB8 || path == PRT_ROWS_SMALL_VQ) {  /* VQ: the row of the point's cluster; whole vectors in order as above while
                                           they end inside the range, the rest below */
         switch (lab_kind) {
         case 1: for (; q * Fo + 8 <= p1 * Fo; q++) ST(out + q * Fo, LD(T + ((const uint8_t *)lab)[q] * J * 8)); break;
@@ -172,7 +191,7 @@ static __attribute__((noinline)) void small_rows_range(const int32_t *order, int
         }
     }
 #if HAVE_K1_RGB8
-    if (!lab && !order && !woff && W && Fo == 3) {
+    if (path == PRT_ROWS_SMALL_K1_RGB8) {
         i64 cnt;
         weights_of(W, wstride, woff, nk, nuse, 0, 0, &cnt);
         for (; q + 8 <= p1; q += 8) k1_rgb8(T, mean, W + q * wstride, wstride, cnt, out + 3 * q);
@@ -181,7 +200,7 @@ static __attribute__((noinline)) void small_rows_range(const int32_t *order, int
     /* the rest (CPCA, other row lengths, a visiting order, the tails): one point at a time. The out-of-order core
        overlaps consecutive points' chains; an 8-point pass, with a pointer per point, spilled them (CPCA 1.5x slower).
        Consecutive rows with whole-vector stores while they end inside the range, then Fo floats per point. */
-    if (!order && W && !woff && !nk && mean && nuse >= 1 && nuse <= 8) {  /* CPCA, PCA: fixed term count, rows of weights */
+    if (path == PRT_ROWS_SMALL_FIXED) {  /* CPCA, PCA: fixed term count, rows of weights */
         /* the last point whose load of wl weights ends within the range's last used one, (p1 - 1) ws + nuse (row
            stride 0: every point or none), and whose 8-float store ends within the range (computed here: inside
            rows_fixed the same bound made GCC's CPCA loop 1.7x slower) */
@@ -307,17 +326,17 @@ static int prt_affine_rows_range(const int32_t *order, int csort, i64 p0, i64 p1
     (void)P;  /* the callers' point count: the range [p0, p1) is what is read */
     const i64 cs = chunk_size(F / 8), cs2 = chunk_size2(F / 8);
     float e[4096], f[4096];  /* rows padded from Fo to F: combined here, then copied */
-    if (J == 1 && !W && mean && lab && !order && F == Fo) {  /* J == 1: no weights can also be an empty packed
-                                                                   block (every point's n_k = 0) with J > 1 */
+    const int path = prt_rows_path(F, Fo, J, lab, W, woff, nk, nuse, mean, order);
+    if (path == PRT_ROWS_VQ_COPY) {
         vq_rows_range(p0, p1, F, lab, lab_kind, T, out);
         return 0;
     }
     if (F == 8) {
-        small_rows_range(order, csort, p0, p1, Fo, lab, lab_kind, W, wstride, woff, nk, nuse, mean, T, J, out);
+        small_rows_range(path, order, csort, p0, p1, Fo, lab, lab_kind, W, wstride, woff, nk, nuse, mean, T, J, out);
         return 0;
     }
 #if HAVE_W16
-    if (W && F % 16 == 0 && F == prt_rows_pad(Fo, J)) {
+    if (path == PRT_ROWS_W16) {
         rows16_range(order, csort, p0, p1, F, Fo, lab, lab_kind, W, wstride, woff, nk, nuse, mean, T, J, out);
         return 0;
     }

@@ -157,6 +157,13 @@ static inline i64 taps_point(i64 p, i64 pc, const void *lab, int lab_kind, const
     return nt;
 }
 
+/* the path prt_affine_taps_range takes (PRT_TAPS_*, prt_kernels.h): one term (VQ), RGB with up to 32 terms (8 points
+   reduced together), or the general loop; the dispatch below reads it, prt_plan_path reports it */
+int prt_taps_path(i64 C, i64 Jp) {
+    if (Jp == 1) return PRT_TAPS_ONE_TERM;
+    return C == 3 && Jp / 8 <= 4 ? PRT_TAPS_RGB8 : PRT_TAPS_GENERAL;
+}
+
 /* taps: constants T [K, n_out, C, Jp] (J terms zero-padded to Jp, a multiple of 8; Jp = 1 for one term);
    s = sum_t g[p, t] T[k, idx[p, t]] ([C, Jp]); out[p, c] = (mean ? s[c, 0] : 0) + w_p . s[c, mean:mean+cnt].
    Returns 1 if a tap index is outside [0, n_out) (that tap is skipped), 2 if an output is not finite. */
@@ -168,7 +175,8 @@ static int prt_affine_taps_range(const int32_t *order, int csort, i64 p0, i64 p1
     i64 R = Jp * C;
     int flag = 0;
     i64 q = p0;
-    if (Jp == 1) {
+    const int path = prt_taps_path(C, Jp);
+    if (path == PRT_TAPS_ONE_TERM) {
         /* one term (VQ: the mean alone; or one vector, no mean), constants unpadded [K, n_out, C]:
            o_c = s_p sum_t g_t T[k, idx_t, c], s_p = 1 (mean) or w_p0 (RGB with four valid taps: the
            sum taken pairwise) */
@@ -227,7 +235,7 @@ static int prt_affine_taps_range(const int32_t *order, int csort, i64 p0, i64 p1
         }
         return flag;
     }
-    if (C == 3 && Jp / 8 <= 4) {
+    if (path == PRT_TAPS_RGB8) {
         /* RGB: 8 points at a time, their 24 dot products reduced together */
         v8 Rv[24];
         float wv[32];

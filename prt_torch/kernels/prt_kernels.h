@@ -27,6 +27,17 @@ int prt_affine_rows(i64 P, i64 F, i64 Fo, const void *lab, int lab_kind, const f
 int prt_dense_pad(i64 n_out);
 int prt_affine_dense(i64 K, i64 P, i64 n_out, i64 n_pad, i64 C, const void *lab, int lab_kind, const float *W, i64 wstride, const i64 *woff, const i64 *nk, i64 nuse, int mean, const float *T, i64 J, const float *y, float *out, const int32_t *order, int csort, int nthreads);
 int prt_affine_taps(i64 P, i64 n_out, i64 C, const void *lab, int lab_kind, const float *W, i64 wstride, const i64 *woff, const i64 *nk, i64 nuse, int mean, const float *T, i64 Jp, i64 ntap, const i64 *idx, const float *g, float *out, const int32_t *order, int csort, int nthreads);
+/* the point kernels' paths (prt_rows_path, prt_dense_path, prt_taps_path; prt_plan_path for a plan), as the kernels
+   dispatch on them: relight_kernels.kernel_path names them (_PATH_NAMES there, in this order) */
+enum { PRT_ROWS_VQ_COPY = 1, PRT_ROWS_SMALL_VQ_RGB8, PRT_ROWS_SMALL_VQ, PRT_ROWS_SMALL_K1_RGB8, PRT_ROWS_SMALL_FIXED,
+       PRT_ROWS_SMALL_ONE, PRT_ROWS_W16, PRT_ROWS_W8_PAIRS, PRT_ROWS_W8,
+       PRT_DENSE_VQ8, PRT_DENSE_W16, PRT_DENSE_RGB8_PAIRS, PRT_DENSE_RGB8, PRT_DENSE_COLOUR,
+       PRT_TAPS_ONE_TERM, PRT_TAPS_RGB8, PRT_TAPS_GENERAL };
+int prt_rows_path(i64 F, i64 Fo, i64 J, const void *lab, const float *W, const i64 *woff, const i64 *nk, i64 nuse, int mean, const int32_t *order);
+int prt_dense_path(i64 n_out, i64 n_pad, i64 C, const float *W, int mean, const int32_t *order);
+int prt_taps_path(i64 C, i64 Jp);
+int prt_plan_path(const i64 *a);
+int prt_isa(void);
 int prt_relight_plan(const i64 *a, const float *L, float *T, float *out, const void *y0, const void *y1, int nthreads);
 int prt_sg_lookup_sum_q(i64 G, i64 B, i64 fb, i64 N, const float *mu, const float *sigma, const float *w, i64 sw, i64 sm, i64 ss, const float *table, const float *quads, i64 r, i64 L, const float *ladder, i64 C, float *out, int nthreads);
 int prt_sg_lookup_sum(i64 G, i64 B, i64 fb, i64 N, const float *mu, const float *sigma, const float *w, i64 sw, i64 sm, i64 ss, const float *table, i64 r, i64 L, const float *ladder, i64 C, float *out, int nthreads);

@@ -40,3 +40,49 @@ int prt_relight_plan(const i64 *a, const float *L, float *T, float *out, const v
     }
 }
 
+
+/* the point kernel a plan runs (PRT_ROWS_* / PRT_DENSE_* / PRT_TAPS_*), from the dispatch functions the kernels
+   themselves switch on: what a benchmark row names as its kernel path */
+int prt_plan_path(const i64 *a) {
+    const void *lab = PL_PTR(PL_LAB, const void *);
+    const float *W = PL_PTR(PL_W, const float *);
+    const int32_t *order = PL_PTR(PL_ORDER, const int32_t *);
+    switch (a[PL_KIND]) {
+    case 0:
+        return prt_rows_path(a[PL_X], a[PL_FO], a[PL_J], lab, W, PL_PTR(PL_WOFF, const i64 *), PL_PTR(PL_NK, const i64 *), a[PL_NUSE],
+                             (int)a[PL_MEAN], order);
+    case 1:
+        return prt_dense_path(a[PL_FO], a[PL_X], a[PL_C], W, (int)a[PL_MEAN], order);
+    default:
+        return prt_taps_path(a[PL_C], a[PL_X]);
+    }
+}
+
+/* the instruction sets this library was compiled for, as the kernels' #if branches see them (bits: 1 AVX, 2 AVX2,
+   4 FMA, 8 AVX-512F, 16 AVX-512VL, 32 the 16-lane affine kernels built: vec.h's HAVE_W16, which is __AVX512F__; 64 the
+   Gaussian codec's 16-lobe ones) */
+int prt_isa(void) {
+    int b = 0;
+#if defined(__AVX__)
+    b |= 1;
+#endif
+#if defined(__AVX2__)
+    b |= 2;
+#endif
+#if defined(__FMA__)
+    b |= 4;
+#endif
+#if defined(__AVX512F__)
+    b |= 8;
+#endif
+#if defined(__AVX512F__) && !defined(PRT_NO_W16)
+    b |= 32;  /* vec.h's HAVE_W16, the same condition */
+#endif
+#if defined(__AVX512VL__)
+    b |= 16;
+#endif
+#if defined(__AVX512F__) && defined(__AVX512VL__) && !defined(PRT_NO_W16)
+    b |= 64;  /* the Gaussian codec's 16-lobe kernels (sg_texels.h's SG16, the same condition) */
+#endif
+    return b;
+}

@@ -77,7 +77,7 @@ static inline void sg_lookup(float x, float y, float z, float sigma, float wl, c
     }
 }
 
-#if defined(__AVX512F__) && defined(__AVX512VL__)
+#if defined(__AVX512F__) && defined(__AVX512VL__) && !defined(PRT_NO_W16)  /* PRT_NO_W16: vec.h */
 #include <immintrin.h>
 /* 16 lookups at once (RGB tables), lane by lane the float32 operations of sg_lookup: the face, texel
    and level addressing in vector registers, the 8 texels x 3 channels by gathers. The log of the

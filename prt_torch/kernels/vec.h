@@ -139,8 +139,9 @@ static inline v8 fma8v_(v8 w, v8 x, v8 a) { v8 r; for (int i = 0; i < 8; i++) r[
 #define IN_REG(x) (void)0
 #endif
 
-/* 16 floats per vector (AVX-512): the dense kernel's and the rows kernel's wide paths */
-#if defined(__AVX512F__)
+/* 16 floats per vector (AVX-512): the dense kernel's and the rows kernel's wide paths; off with PRT_NO_W16
+   (PRT_TORCH_KERNEL_ISA=avx512-256: AVX-512VL's 32 registers and k-masks on 8-float vectors, no 512-bit kernels) */
+#if defined(__AVX512F__) && !defined(PRT_NO_W16)
 #define HAVE_W16 1
 /* a 16-lane vector's two halves added, as 8 lanes (the dense kernel's per-colour dot, for hsum / store8_rgb) */
 static inline v8 fold16(__m512 r) {
