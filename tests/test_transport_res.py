@@ -139,3 +139,15 @@ def test_cli_bad_cube_res_one_line(tmp_path, capsys, value):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--cube-res" in err[0] and value in err[0] and "auto" in err[0], err
     assert not out.exists()
+
+
+def test_report_lists_the_res_decision():
+    """The report's "What the scene required" takes a decision without an energy target (the
+    transport res) next to those with one."""
+    from prt_torch.harness.report import scene_required
+
+    _, d = choose_cube_res(None)
+    lines = scene_required({"transfer": {"meta": {"auto": {"res": d, "bands": {"value": 4, "energy_kept": 0.995, "target": 0.99,
+                                                                                  "reason": "lobe"}}}}})
+    assert any(x.startswith(f"- res = {d['value']} (auto): smallest r") for x in lines)
+    assert any(x.startswith("- bands = 4 (auto): keeps 0.9950") for x in lines)
