@@ -11,8 +11,8 @@ kind cannot avoid is timed alone on the same chunk shapes:
   the rotation into each vertex frame (``rotate_rows``) and ``left [n_out, n²] @ R_p T_p``;
   the bound is bare Embree + these GEMMs; the BRDF projection (once per run, ``brdf_seconds``) is
   reported beside it;
-* transport: the BRDF evaluated on the (upper view, visible texel) pairs alone; the bound is
-  bare Embree + that.
+* transport: the BRDF evaluated on the (upper view, visible texel) pairs alone (the faster of one
+  call per chunk and the precompute's blocks of pairs); the bound is bare Embree + that.
 
 Then ``pairs`` times, interleaved: the precompute, the bare replay, the work alone. The pace is
 bound / precompute (goal ≥ 0.5). Writes reports/benchmarks/kinds.{md,json} atomically.
@@ -69,14 +69,19 @@ def gemms_alone(mesh, tr, bands: int, samples: int) -> float:
     return total
 
 
-def brdf_alone(mesh, brdf, views: int, res: int, chunk: int) -> float:
+def brdf_alone(mesh, brdf, views: int, res: int, chunk: int) -> tuple[float, float]:
     """Seconds of the transport table's BRDF evaluations alone, on the pairs (upper view, texel
-    above the tangent plane) of each chunk — the visible ones are fewer, so this is an upper floor."""
+    above the tangent plane) of each chunk — the visible ones are fewer, so this is an upper floor.
+    Timed two ways, (whole chunk in one call, in blocks of ``transport.PAIR_BLOCK`` pairs on one
+    torch thread as the precompute does); the bound uses the faster."""
+    from prt_torch.executor import torch_threads
+    from prt_torch.transfer.transport import PAIR_BLOCK
+
     texels, _ = cube_directions(res)
     texels = texels.reshape(-1, 3)
     vd = icosphere_directions(views)
     F = check_frames(mesh)
-    total = 0.0
+    whole = blocked = 0.0
     for a in range(0, mesh.num_vertices, chunk):  # a loop over chunks, as the precompute's
         b = min(mesh.num_vertices, a + chunk)
         wi = torch.einsum("kab,pb->kpa", F[a:b], texels)
@@ -85,8 +90,13 @@ def brdf_alone(mesh, brdf, views: int, res: int, chunk: int) -> float:
         x, y = wi[iv, pv], wo[iv, jv]
         t = time.perf_counter()
         brdf.eval(x, y)
-        total += time.perf_counter() - t
-    return total
+        whole += time.perf_counter() - t
+        t = time.perf_counter()
+        with torch_threads(1):
+            for s in range(0, x.shape[0], PAIR_BLOCK):  # blocks of pairs, as the precompute's
+                brdf.eval(x[s:s + PAIR_BLOCK], y[s:s + PAIR_BLOCK])
+        blocked += time.perf_counter() - t
+    return whole, blocked
 
 
 def main(argv=None) -> int:
@@ -125,12 +135,14 @@ def main(argv=None) -> int:
                     tp = time.perf_counter() - t
                     tb = rec.replay(wc)
                     if kind == "transport":
-                        work = brdf_alone(mesh, AshikhminShirley(40.0, 40.0, rs=0.05, rd=0.0), 3, 8, tr.meta["chunk_size"])
-                        setup = 0.0
+                        whole, blocked = brdf_alone(mesh, AshikhminShirley(40.0, 40.0, rs=0.05, rd=0.0), 3, 8, tr.meta["chunk_size"])
+                        work, setup = min(whole, blocked), 0.0
+                        extra = {"work_whole_s": whole, "work_blocked_s": blocked}
                     else:
                         work = gemms_alone(mesh, tr, 5, args.samples)
                         setup = float(tr.meta.get("brdf_seconds", 0.0))
-                    rows.append({"precompute_s": tp, "bare_s": tb, "work_s": work, "setup_s": setup,
+                        extra = {}
+                    rows.append({**extra, "precompute_s": tp, "bare_s": tb, "work_s": work, "setup_s": setup,
                                  "pace": (tb + work) / tp, "pace_without_setup": (tb + work) / max(tp - setup, 1e-9),
                                  "load": os.getloadavg()[0]})
                     print(kind, {k: round(v, 3) for k, v in rows[-1].items()}, flush=True)
@@ -156,7 +168,9 @@ def main(argv=None) -> int:
         "Bare: every ray-casting call of one precompute recorded and replayed bare on the same number of pre-started "
         "worker processes. Work alone: what the kind cannot avoid, timed alone on the same chunk shapes (glossy/MRT: "
         "`W @ YY`, the rotation into each vertex frame and `left @ R_p T_p`; transport: the BRDF on every (upper view, "
-        "texel above the tangent plane) pair). Pace = (bare + work alone) / precompute (goal ≥ 0.5); the glossy/MRT "
+        "texel above the tangent plane) pair, "
+        "the faster of one call per chunk and blocks of `PAIR_BLOCK` pairs on one torch thread). "
+        "Pace = (bare + work alone) / precompute (goal ≥ 0.5); the glossy/MRT "
         "precompute includes its once-per-run BRDF projection (column setup), the last pace column leaves it out.",
         "",
         "| kind | rays (occluded / intersect) | precompute s | setup s | bare Embree s | work alone s | pace | pace without setup | load |",

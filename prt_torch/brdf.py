@@ -217,6 +217,13 @@ class BRDF:
         """An equivalent Phong exponent of the sharpest lobe (≥ 0), used to size quadratures."""
         return 0.0
 
+    #: The axis of the model's lobe: 'half' (a function of the half vector h: Blinn-Phong,
+    #: Ashikhmin–Shirley, Ward, microfacet — narrower across the plane of incidence towards
+    #: grazing views), 'reflection' (radially symmetric about the reflected view: Phong) or
+    #: 'normal' (no view dependence: Lambertian). Sizes transport tables (``res: auto``); an
+    #: unknown model is taken as 'half', the narrower.
+    lobe_axis: str = "half"
+
     #: Whether the model's form depends on the azimuths only through φo − φi (a subclass says so;
     #: the default, False, keeps an unknown model off the isotropic paths).
     isotropic_form: bool = False
@@ -245,6 +252,7 @@ class Lambertian(BRDF):
     name = "lambertian"
     param_names = ("kd",)
     isotropic_form = True
+    lobe_axis = "normal"
 
     def __init__(self, kd=1.0):
         self.kd = _param("kd", kd, 0.0, hi=1.0)
@@ -277,6 +285,7 @@ class Phong(BRDF):
     name = "phong"
     param_names = ("s", "ks", "kd")
     isotropic_form = True
+    lobe_axis = "reflection"
 
     def __init__(self, s=32.0, ks=1.0, kd=0.0, form: str = "modified"):
         self.s = _param("s (Phong exponent)", s, 0.0)

@@ -73,6 +73,14 @@ def transfer_params(cfg: dict) -> dict:
     return p
 
 
+def transport_res(cfg: dict) -> int:
+    """The cube face resolution of ``cfg``'s transport tables: its ``res``, or the one ``res: auto``
+    (the default) chooses from its BRDF (``transfer.transport.choose_cube_res``)."""
+    from ..transfer import get_kind
+
+    return int(get_kind("transport").resolve(transfer_params(cfg))[0]["res"])
+
+
 def signal_shape(cfg: dict) -> tuple[int, tuple[int, int]] | None:
     """``(D, matrix_shape)`` of the codec signal ``cfg``'s transfer will give, where the config fixes
     it (glossy and MRT with integer bands, tents; transport tables), else None (diffuse: grey or
@@ -90,7 +98,7 @@ def signal_shape(cfg: dict) -> tuple[int, tuple[int, int]] | None:
         ms = (int(p["M"]) ** 2, n2)
     elif t["type"] == "transport":
         v = p["views"]
-        ms = (10 * int(v) ** 2 + 2 if isinstance(v, int) else len(v), 6 * int(p["res"]) ** 2)
+        ms = (10 * int(v) ** 2 + 2 if isinstance(v, int) else len(v), 6 * transport_res(cfg) ** 2)
     else:
         return None
     return ms[0] * ms[1], ms
@@ -132,7 +140,7 @@ def estimate_memory(cfg: dict, num_vertices: int) -> dict:
         D = int(p["bands_out"] or p["bands"]) ** 2 * n2
     elif t["type"] == "transport":
         v = p["views"]
-        D = (10 * int(v) ** 2 + 2 if isinstance(v, int) else len(v)) * 6 * int(p["res"]) ** 2
+        D = (10 * int(v) ** 2 + 2 if isinstance(v, int) else len(v)) * 6 * transport_res(cfg) ** 2
     elif t["type"] == "wavelet":
         D = 2 * int(p["terms"])  # values and indices, a few times over (the relighter's CSC copy)
     else:

@@ -151,7 +151,9 @@ def choose_haar_res(lights: list | None, energy: float, max_res: int = AUTO_HAAR
 
 def resolve_auto(kind: str, params: dict[str, Any], lights: list[torch.Tensor] | None, brdf: BRDF | None,
                  max_bands: int) -> tuple[dict[str, Any], dict[str, Any]]:
-    """Replace ``'auto'`` in ``params`` (bands, bands_out, M) by the chosen values.
+    """Replace ``'auto'`` in ``params`` (bands, bands_out, M; the wavelet kind's res; the transport
+    kind's res, 'auto' when absent: :func:`prt_torch.transfer.transport.choose_cube_res`) by the
+    chosen values.
 
     ``params['energy']`` (default 0.99, in (0, 1]) is the fraction kept; it is removed from the
     returned parameters. Returns (parameters for the precompute, decisions: per parameter
@@ -163,6 +165,10 @@ def resolve_auto(kind: str, params: dict[str, Any], lights: list[torch.Tensor] |
         r, kept, why = choose_haar_res(lights, energy)
         p["res"] = r
         decisions["res"] = {"value": r, "energy_kept": kept, "target": energy, "reason": why}
+    if kind == "transport" and p.get("res", AUTO) == AUTO:  # the kind's default is 'auto'
+        from .transport import choose_cube_res
+
+        p["res"], decisions["res"] = choose_cube_res(brdf)
     if not any(p.get(k) == AUTO for k in ("bands", "bands_out", "M")):
         return p, decisions
     lobe, lobe_why = lobe_filter(None if kind == "diffuse" else brdf)

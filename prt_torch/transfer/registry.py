@@ -109,7 +109,13 @@ class TransferKind:
         if self.output == "directory":
             if out is None:
                 raise ValueError(f"transfer type {self.name!r} streams its tables to a directory; pass out=")
-            return self.function(mesh, out, **kw, run=run)
+            table = self.function(mesh, out, **kw, run=run)
+            if decisions and hasattr(table, "meta") and hasattr(table, "path"):  # the manifest keeps the decisions too
+                from .. import io
+
+                table.meta["auto"] = {**table.meta.get("auto", {}), **decisions}
+                io.atomic_write_json(table.path / "manifest.json", table.meta)
+            return table
         tr = self.function(mesh, **kw, run=run)
         if decisions:
             tr.meta["auto"] = decisions
@@ -299,13 +305,14 @@ register_kind(TransferKind(
     doc="tabulated direct transport functions on cube maps for a set of views (Green 2005 §2.2.1), streamed to a directory",
     constraints={
         "brdf": _BRDF, "views": [Interval(int, 1, 16), Predicate(_is_directions, "view directions [J, 3]")],
-        "res": [Interval(int, 1, MAX_CUBE_RES)], "dtype": [Options("float32", "float16")],
+        "res": [Interval(int, 1, MAX_CUBE_RES), _AUTO], "dtype": [Options("float32", "float16")],
         "shadows": [Boolean()] + _SHADOWS,
         "max_chunks": _OPT_INT,
     },
     args=_args("brdf", "shadows") + (
         Arg("--views", "views", "icosphere frequency of the view set (3 -> 92 views)"),
-        Arg("--cube-res", "res", "cube-map face resolution r (6 r² texels)"),
+        Arg("--cube-res", "res", "cube-map face resolution r (6 r² texels), or auto (default): the smallest r where the "
+            "BRDF's narrowest lobe spans 2 texel spacings (the reason in the manifest's auto.res)"),
         Arg("--transport-dtype", "dtype", "stored precision", values={"float32": "float32", "float16": "float16"}),
     ),
 ))

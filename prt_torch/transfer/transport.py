@@ -36,12 +36,12 @@ import torch
 from .. import io
 from .._checks import check_choice, check_int, describe
 from ..brdf import BRDF, AshikhminShirley
-from ..executor import LocalExecutor, TaskFailure
+from ..executor import LocalExecutor, TaskFailure, torch_threads
 from ..scene import Mesh, RayCaster
 from .base import RunOptions
 from .glossy import check_frames, decide_shadows
 
-__all__ = ["check_disk_space",
+__all__ = ["check_disk_space", "choose_cube_res", "lobe_width", "texel_spacing",
     "icosphere_directions",
     "cube_directions",
     "precompute_transport",
@@ -51,6 +51,9 @@ __all__ = ["check_disk_space",
 ]
 
 MAX_CUBE_RES = 64
+#: torch threads in a transport chunk's own work (the BRDF on the pairs): the other core runs the
+#: ray-casting workers (measured in reports/benchmarks/kinds.md)
+CHUNK_THREADS = 1
 
 
 def icosphere_directions(frequency: int = 3) -> torch.Tensor:
@@ -84,15 +87,95 @@ def cube_directions(res: int) -> tuple[torch.Tensor, torch.Tensor]:
     return d, sa[None].expand(6, res, res).clone()
 
 
+#: ``res: auto`` (the default): the narrowest lobe's ±σ spans at least this many texel spacings
+AUTO_TEXELS_PER_LOBE = 2.0
+#: ``res: auto``: half-vector lobes are taken at this view angle from the normal (their width across
+#: the plane of incidence shrinks by cos θ_o towards grazing; views beyond it keep narrower lobes)
+AUTO_GRAZING_DEG = 60.0
+#: the range ``res: auto`` chooses from (below: Green's 6×8×8 indirect tables are already coarse;
+#: above: 10k vertices × 92 views would be tens of GB)
+AUTO_MIN_RES, AUTO_MAX_RES = 8, 32
+
+
+def texel_spacing(res: int) -> float:
+    """h(r) = √(largest texel solid angle) of a 6×r×r cube map (≈ 2/r rad, at a face centre): the
+    spacing the Gaussian fit's narrowest lobe is measured in (``codecs.gaussian.resolvable_sigma``
+    = 0.6 h)."""
+    return math.sqrt(float(cube_directions(res)[1].max()))
+
+
+def lobe_width(brdf: BRDF | None) -> tuple[float, str]:
+    """The angular standard deviation σ (radians) of the narrowest lobe of ``brdf``'s transport
+    functions T(ω_i) = f_r V max(n·ω_i, 0) over the light direction, and a one-line reason.
+
+    A lobe of equivalent Phong exponent s (``BRDF.sharpness``: cos^s θ ≈ exp(−sθ²/2)) has
+    σ = 1/√s about its axis: Phong s → 1/√s; Blinn-Phong and Ashikhmin–Shirley exponent N
+    (sharpness N/4) → 2/√N; Ramamoorthi's microfacet roughness σ_m (sharpness 1/(2σ_m²)) → √2 σ_m.
+    A lobe about the half vector h (``BRDF.lobe_axis == 'half'``) maps to the light direction
+    with dω_i = 4 (ω_o·h) dω_h, so across the plane of incidence it narrows by ω_o·h = cos θ_o
+    in the mirror configuration: it is taken at θ_o = :data:`AUTO_GRAZING_DEG`. A model without a
+    lobe (sharpness 0: Lambertian) has only the clamped cosine, σ = ∞."""
+    from ..brdf import AshikhminShirley
+
+    brdf = AshikhminShirley(40.0, 40.0, rs=0.05, rd=0.0) if brdf is None else brdf
+    s = float(brdf.sharpness)
+    if s <= 0:
+        return math.inf, f"{brdf.name}: no lobe (only the clamped cosine)"
+    sigma = 1.0 / math.sqrt(s)
+    why = f"{brdf.name}: equivalent Phong exponent {s:g}, lobe sigma = 1/sqrt(s) = {sigma:.3f} rad"
+    if getattr(brdf, "lobe_axis", "half") == "half":
+        c = math.cos(math.radians(AUTO_GRAZING_DEG))
+        sigma *= c
+        why += (f" about the half vector, x cos({AUTO_GRAZING_DEG:g} deg) = {sigma:.3f} rad across the plane of incidence "
+                f"at a view {AUTO_GRAZING_DEG:g} deg from the normal")
+    return sigma, why
+
+
+def choose_cube_res(brdf: BRDF | None, texels: float = AUTO_TEXELS_PER_LOBE, min_res: int = AUTO_MIN_RES,
+                    max_res: int = AUTO_MAX_RES) -> tuple[int, dict[str, Any]]:
+    """``res: auto``: the smallest cube face resolution r in [min_res, max_res] at which the
+    narrowest lobe of ``brdf`` (:func:`lobe_width`, σ) spans ``texels`` texel spacings over ±σ,
+    2σ ≥ texels · h(r) (:func:`texel_spacing`) — Green 2005 §2.2.1 tabulates direct glossy
+    transport on finer cube maps than the 6×8×8 of smooth indirect terms for this reason, and the
+    Gaussian fit cannot place a lobe narrower than 0.6 h. Returns (r, decision) with the decision
+    ``{'value', 'lobe_sigma', 'texel_spacing', 'texels_per_lobe', 'reason'}`` (what the manifest's
+    ``auto.res`` records); ``max_res`` with the reason when even that is short."""
+    texels = float(texels)
+    if not texels > 0:
+        raise ValueError(f"texels={texels!r}; accepted: a positive number of texel spacings per lobe")
+    sigma, why = lobe_width(brdf)
+    r = int(min_res)
+    while r < max_res and 2 * sigma < texels * texel_spacing(r):
+        r += 1
+    h = texel_spacing(r)
+    ok = 2 * sigma >= texels * h
+    reason = (f"smallest r in [{min_res}, {max_res}] where the narrowest lobe's 2 sigma spans >= {texels:g} texel spacings "
+              f"h(r) = sqrt(largest texel solid angle) ({why}): 2 sigma / h = {2 * sigma / h:.2f} at r = {r}"
+              if ok else
+              f"r = {max_res}, the largest res: auto chooses, where the narrowest lobe's 2 sigma spans {2 * sigma / h:.2f} < "
+              f"{texels:g} texel spacings ({why}): pass --cube-res up to {MAX_CUBE_RES} for more")
+    return r, {"value": r, "lobe_sigma": sigma, "texel_spacing": h, "texels_per_lobe": 2 * sigma / h, "reason": reason}
+
+
+#: (view, texel) pairs per BRDF block of a transport chunk (issue 42): the block's float64
+#: temporaries stay a few MB (heap reused from block to block, in cache) where one evaluation
+#: over the whole chunk's ~2M pairs made tens of fresh 16–48 MB arrays — page faults that were
+#: ~40% of a chunk's time
+PAIR_BLOCK = 1 << 16
+
+
 def _chunk_transport(caster, brdf, points, normals, frames, texels, views, mat_index, shadows,
-                     dtype: torch.dtype = torch.float64) -> torch.Tensor:
+                     dtype: torch.dtype = torch.float64, out: torch.Tensor | None = None) -> torch.Tensor:
     """T for k vertices: ``[k, J, P]`` (P = 6r² texels) in ``dtype`` (the values computed in
     float64 and rounded once: the stored dtype is written directly), Green 2005 eq. 1.2.
 
     T is zero for a view below the vertex's tangent plane (f_r is zero there) and for a texel
     below it or blocked (W = V max(n·ω_i, 0) is), so the BRDF is evaluated only on the pairs of
-    an upper view and a visible texel — about a quarter of k·J·P — gathered flat and scattered
-    back (issue 42: the BRDF evaluation is the table's cost, not the ~P/2 rays per vertex)."""
+    an upper view and a visible texel — about a quarter of k·J·P (issue 42: the BRDF evaluation
+    is the table's cost, not the ~P/2 rays per vertex). The pairs are taken a block of vertices
+    at a time (at most :data:`PAIR_BLOCK` pairs, at least one vertex) and scattered into their
+    rows, so every temporary is block-sized. ``out``: a buffer of at least ``k·J·P`` elements of
+    ``dtype`` to write into (zeroed here; the chunk loop reuses one), else a new one."""
     cos = normals @ texels.T  # [k, P]
     W = cos.clamp_min(0)
     if shadows:
@@ -103,13 +186,27 @@ def _chunk_transport(caster, brdf, points, normals, frames, texels, views, mat_i
     wi = torch.einsum("kab,pb->kpa", frames, texels)  # [k, P, 3] local light directions
     wo = torch.einsum("kab,jb->kja", frames, views)  # [k, J, 3] local views
     k, J, P = wo.shape[0], wo.shape[1], wi.shape[1]
+    if out is None:
+        T = torch.zeros(k, J * P, dtype=dtype)
+    else:
+        if out.dtype != dtype or out.numel() < k * J * P:
+            raise ValueError(f"out holds {out.numel()} {out.dtype} values; accepted: at least {k * J * P} of {dtype}")
+        T = out.view(-1)[:k * J * P].view(k, J * P).zero_()
     # the pairs where T can be non-zero: view above the tangent plane (wo_z > 0) and W > 0
-    iv, jv, pv = torch.nonzero((wo[:, :, None, 2] > 0) & (W[:, None, :] > 0), as_tuple=True)
-    b = brdf if mat_index is None else brdf.select(mat_index[iv])
-    f = b.eval(wi[iv, pv], wo[iv, jv])  # [N]
-    T = torch.zeros(k * J * P, dtype=dtype)
-    T[(iv * J + jv) * P + pv] = (f * W[iv, pv]).to(dtype)
-    return T.reshape(k, J, P)
+    up, vis = wo[:, :, 2] > 0, W > 0  # [k, J], [k, P]
+    per_vertex = int((up.sum(1) * vis.sum(1)).max()) if k else 0
+    step = max(1, PAIR_BLOCK // max(1, per_vertex))
+    for v0 in range(0, k, step):  # blocks of vertices (block-sized temporaries), not a loop per vertex
+        v1 = min(k, v0 + step)
+        mask = up[v0:v1, :, None] & vis[v0:v1, None, :]  # [b, J, P]
+        iv, jv, pv = torch.nonzero(mask, as_tuple=True)
+        if not iv.numel():
+            continue
+        iv += v0
+        b = brdf if mat_index is None else brdf.select(mat_index[iv])
+        f = b.eval(wi[iv, pv], wo[iv, jv])  # [N]
+        T[v0:v1].masked_scatter_(mask.view(v1 - v0, J * P), (f * W[iv, pv]).to(dtype))
+    return T.view(k, J, P)
 
 
 def check_disk_space(out: str | Path, V: int, views: torch.Tensor | int, res: int, dtype: str) -> int:
@@ -138,7 +235,7 @@ def precompute_transport(
     *,
     brdf: BRDF | None = None,
     views: torch.Tensor | int = 3,
-    res: int = 8,
+    res: int | str = "auto",
     dtype: str = "float32",
     shadows: bool | str = True,
     overwrite: bool = False,
@@ -151,7 +248,9 @@ def precompute_transport(
         brdf: reflectance (default isotropic Ashikhmin–Shirley N = 40); per-vertex ``[V]``
             parameters are allowed.
         views: global view directions ``[J, 3]``, or an icosphere frequency (3 → Green's 92).
-        res: cube-map face resolution r (6 r² texels per table).
+        res: cube-map face resolution r (6 r² texels per table), or 'auto' (default): the smallest
+            r at which the BRDF's narrowest lobe spans two texel spacings (:func:`choose_cube_res`;
+            the choice and its reason in ``manifest['auto']['res']``).
         dtype: stored precision, 'float32' or 'float16'.
         overwrite: remove an existing ``out`` first. Otherwise an existing ``out`` is refused
             unless ``run.resume`` (keep the chunk files already there, same fingerprint, and
@@ -167,14 +266,19 @@ def precompute_transport(
     if not isinstance(mesh, Mesh):
         raise TypeError(f"mesh must be a prt_torch.scene.Mesh, got {describe(mesh)}")
     run = RunOptions() if run is None else run
+    brdf = AshikhminShirley(40.0, 40.0, rs=0.05, rd=0.0) if brdf is None else brdf
+    if not isinstance(brdf, BRDF):
+        raise TypeError(f"brdf must be a prt_torch.brdf.BRDF, got {describe(brdf)}")
+    auto: dict[str, Any] = {}
+    if isinstance(res, str) and res == "auto":
+        res, auto["res"] = choose_cube_res(brdf)
+    elif isinstance(res, str) or isinstance(res, bool) or not isinstance(res, int):
+        raise ValueError(f"res={res!r}; accepted: an integer in [1, {MAX_CUBE_RES}] or 'auto'")
     res = check_int("res", res, 1, MAX_CUBE_RES)
     check_choice("dtype", dtype, ["float32", "float16"])
     offset, resume = run.offset, run.resume
     check_disk_space(out, mesh.num_vertices, views, res, dtype)  # an absurd table is refused before any ray
     shadows, shadow_meta = decide_shadows(mesh, shadows, 0, run)
-    brdf = AshikhminShirley(40.0, 40.0, rs=0.05, rd=0.0) if brdf is None else brdf
-    if not isinstance(brdf, BRDF):
-        raise TypeError(f"brdf must be a prt_torch.brdf.BRDF, got {describe(brdf)}")
     V = mesh.num_vertices
     bs = brdf.batch_shape
     mat_index = None
@@ -224,6 +328,8 @@ def precompute_transport(
         "normalisation": "L_o(x_v, views[j]) = sum over texels of data * L(texel dir) * solid_angle",
         "complete": False, **shadow_meta,
     }
+    if auto:
+        meta["auto"] = auto
     io.atomic_write_json(manifest_path, meta)
     io.save(out / "views.prt", {"views": view_dirs, "texels": texels, "solid_angles": solid}, kind="transfer/transport_views")
     io.save(out / "mesh.prt", mesh.to_tensors("mesh."), kind="scene/mesh", meta={"mesh_name": mesh.name})
@@ -238,16 +344,21 @@ def precompute_transport(
     t0, new = time.perf_counter(), 0
     ranges = [(c * chunk_size, min(V, (c + 1) * chunk_size)) for c in range(n_chunks)]
 
-    def compute(c: int) -> torch.Tensor:  # one chunk file's tables; a task of run.executor
-        a, b = ranges[c]
-        T = _chunk_transport(caster, brdf, mesh.vertices[a:b], mesh.normals[a:b], F[a:b], texels_flat,
-                             view_dirs, None if mat_index is None else mat_index[a:b], shadows, store)
-        return T.reshape(b - a, J, 6, res, res)
+    buffer: list[torch.Tensor] = []  # one chunk's table, reused: saved by finished() before the next compute
 
-    def finished(c: int, T: torch.Tensor | None) -> None:
-        if T is not None:
-            io.save(out / f"chunk_{c:06d}.prt", {"data": T}, kind="transfer/transport_chunk",
-                    meta={"chunk": c, "start": ranges[c][0], "stop": ranges[c][1]})
+    def compute(c: int) -> list[torch.Tensor]:  # one chunk file's tables (in a list finished() empties); a task of run.executor
+        a, b = ranges[c]
+        if not buffer:
+            buffer.append(torch.empty(chunk_size * J * P, dtype=store))
+        with torch_threads(CHUNK_THREADS):
+            T = _chunk_transport(caster, brdf, mesh.vertices[a:b], mesh.normals[a:b], F[a:b], texels_flat,
+                                 view_dirs, None if mat_index is None else mat_index[a:b], shadows, store, out=buffer[0])
+        return [T.reshape(b - a, J, 6, res, res)]
+
+    def finished(c: int, box: list[torch.Tensor] | None) -> None:
+        if box is not None:
+            io.save(out / f"chunk_{c:06d}.prt", {"data": box.pop()}, kind="transfer/transport_chunk",
+                    meta={"chunk": c, "start": ranges[c][0], "stop": ranges[c][1]})  # the executor's result list keeps no table
         if bar is not None:
             bar.update(ranges[c][1] - ranges[c][0])
         if run.callback is not None:

@@ -239,7 +239,8 @@ class GaussianCodec(Codec):
                 f"codec {self.codec_name!r}: {100 * info['lobes_at_resolution_limit']:.0f}% of the fitted lobes sit at the "
                 f"narrowest width the tables resolve (sigma = {info['sigma_resolvable']:.3f} rad, 0.6 texel spacings at "
                 f"{layout}): the transport is sharper than its texels, so those functions keep a large error whatever "
-                "the lobe count; tabulate with a finer cube map (prt precompute --kind transport --cube-res 16 or more)",
+                "the lobe count; tabulate with a finer cube map (prt precompute --kind transport with the default --cube-res auto, "
+                "which sizes it from the BRDF's lobe, or --cube-res 16 or more)",
                 UserWarning, stacklevel=2)
         if info["converged_fraction"] < 1.0:
             self._warn_or_raise(f"codec {self.codec_name!r}: {info['not_converged']} of {info['functions_fitted']} "

@@ -1,0 +1,92 @@
+"""Benchmark (issue 42 part 2, "defaults that work together"): what the transport table's cube
+resolution does to the Gaussian codec (Green 2005), split by the view's angle from the normal.
+
+    .venv/bin/python benchmarks/bench_transport_res.py [--scene scan_blob] [--res 8 13] [--lobes 1 2 3]
+        [--vertices 150] [--spread] [--brdf phong12]
+
+For each resolution: the transport tables of the scene (92 views, the default Ashikhmin–Shirley N = 40
+or Phong s = 12; ``--spread``: the whole mesh, then every (V // vertices)-th vertex fitted; else only
+the first chunks, the first ``vertices`` vertices), a Gaussian fit of N lobes (the codec's own fit,
+what ``prt compress --codec gaussian --param lobes=N`` runs) and its relative L2 error
+‖T̃ − T‖/‖T‖ (texel solid angles) over the whole table and over the functions whose view is 0–60°,
+60–80° and 80–90° from the vertex normal, with each band's share of Σ T² Δω; the fit's fraction of
+lobes at the narrowest resolvable width and whether it warned. One JSON line per fit on stdout
+(docs/precompute.md, "Transport tables: res: auto", has the tables of a run).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import sys
+import tempfile
+import time
+import warnings
+from pathlib import Path
+
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from prt_torch import brdf as B  # noqa: E402
+from prt_torch import codecs  # noqa: E402
+from prt_torch.scene import builtin, default_workers  # noqa: E402
+from prt_torch.transfer import RunOptions, precompute_transport  # noqa: E402
+
+BANDS = [(0, 60), (60, 80), (80, 90)]
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--scene", default="scan_blob")
+    ap.add_argument("--res", type=int, nargs="+", default=[8, 13])
+    ap.add_argument("--lobes", type=int, nargs="+", default=[1, 2, 3])
+    ap.add_argument("--vertices", type=int, default=150)
+    ap.add_argument("--spread", action="store_true", help="tabulate the whole mesh and fit vertices spread over it")
+    ap.add_argument("--brdf", choices=["default", "phong12"], default="default")
+    args = ap.parse_args(argv)
+    mesh = builtin(args.scene)
+    brdf = B.Phong(12.0, ks=0.7, kd=0.3) if args.brdf == "phong12" else None
+    tmp = Path(tempfile.mkdtemp(prefix="bench_transport_res_"))
+    try:
+        for r in args.res:
+            out = tmp / f"t{r}"
+            chunk = 60
+            kw = {} if args.spread else {"max_chunks": (args.vertices + chunk - 1) // chunk}
+            t = precompute_transport(mesh, out, brdf=brdf, views=3, res=r, run=RunOptions(workers=default_workers(), chunk_size=chunk), **kw)
+            T = torch.cat([c for _, _, c in t]).float()
+            idx = (torch.arange(0, T.shape[0], max(1, T.shape[0] // args.vertices)) if args.spread else torch.arange(T.shape[0]))[:args.vertices]
+            T = T[idx]
+            V, J = T.shape[:2]
+            X = T.reshape(V, -1)
+            sa = t.solid_angles.reshape(-1).double()
+            th = torch.rad2deg(torch.arccos((mesh.normals[idx].double() @ t.views.double().T).clamp(-1, 1)))  # [V, J]
+            Td = X.reshape(V, J, -1).double()
+            ref = (Td.square() * sa).sum(-1)
+            for n in args.lobes:
+                c = codecs.get("gaussian", lobes=n)
+                t0 = time.perf_counter()
+                with warnings.catch_warnings(record=True) as w:
+                    warnings.simplefilter("always")
+                    enc = c.fit_encode(X, matrix_shape=(J, X.shape[1] // J), views=t.views, faces=None, kind="transport")
+                secs = time.perf_counter() - t0
+                err = ((torch.as_tensor(c.decode(enc)).reshape(V, J, -1).double() - Td).square() * sa).sum(-1)
+                row = {"scene": args.scene, "brdf": args.brdf, "res": r, "vertices": V, "spread": args.spread, "lobes": n,
+                       "fit_s": round(secs, 1), "rel_l2_all": round(float(c.fit_info_["relative_l2"]), 4),
+                       "at_limit": round(float(c.fit_info_["lobes_at_resolution_limit"]), 3),
+                       "warns": any("narrowest" in str(x.message) for x in w), "load": os.getloadavg()[0]}
+                for lo, hi in BANDS:
+                    m = (th >= lo) & (th < hi)
+                    row[f"rel_l2_{lo}_{hi}"] = round(float((err[m].sum() / ref[m].sum().clamp_min(1e-300)).sqrt()), 4)
+                    row[f"energy_{lo}_{hi}"] = round(float(ref[m].sum() / ref.sum()), 3)
+                print(json.dumps(row), flush=True)
+            shutil.rmtree(out, ignore_errors=True)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
