@@ -1,0 +1,97 @@
+"""Where the wavelet kernel's one-thread time goes (issue 39): the studio light's terms split into
+its parts, each relit alone through the same kernel and paired with its own read-once/write-once
+bound (the transfer bytes that part reads, :meth:`WaveletRelighter.bytes_read`, plus the output).
+
+Parts, per N (the kernel section's transfer: occluder_over_plane small, R = 32, K = 256, 16 bits):
+  - all: the light's N terms (the kernel section's row);
+  - dense: its terms stored as dense columns alone (the register-blocked GEMV and the output pass);
+  - sparse: its block-sparse terms alone (the column-major pass into the tiles' scratch, or the
+    row-major pass when they hold >= row_min of the sparse blocks; then the output pass);
+  - output: one term of a column no vertex keeps (the light's set-up and the output pass alone:
+    the scratch's sums times the per-vertex factor, written once; bound: the output's fill).
+Each part's time includes the set-up and the output pass, so parts do not add up to "all".
+
+Writes reports/benchmarks/wavelet_parts.md (one thread; CPU, path and load average named).
+
+    .venv/bin/python benchmarks/bench_wavelet_parts.py
+"""
+
+from __future__ import annotations
+
+import prt_torch  # noqa: F401  (first: it chooses OpenMP's wait policy from the machine's load)
+
+import os  # noqa: E402
+import sys  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import torch  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_wavelet import BITS, OUT, load  # noqa: E402
+
+from prt_torch import relight  # noqa: E402
+from prt_torch.harness.timing import io_bound_fn, machine_info, measure, measure_paired  # noqa: E402
+from prt_torch.scene import builtin  # noqa: E402
+from prt_torch.transfer import RunOptions  # noqa: E402
+from prt_torch.transfer.wavelet import precompute_wavelet  # noqa: E402
+
+TERMS = (100, 1000)
+
+
+def part_row(rl, name: str, li: torch.Tensor, lv: torch.Tensor) -> dict:
+    """One part: its kernel time (median), bytes (transfer + output) and fraction of its own bound (paired)."""
+    out = torch.empty(rl.V, 3)
+    nbytes = rl.bytes_read(li)
+    f = rl.prepared(li, lv, out)
+    p = measure_paired(f, io_bound_fn(nbytes, rl.V * 12), repeats=7, warmup=1, floor_pairs=40)
+    t = measure(f, repeats=7, warmup=1).median
+    return {"part": name, "terms": int(li.numel()), "bytes": nbytes + rl.V * 12, "us": t * 1e6,
+            "of_bound": p.speedup, "trusted": bool(p.contention.get("trusted")), "load": load()}
+
+
+def main() -> None:
+    torch.set_num_threads(1)
+    mesh = builtin("occluder_over_plane", "small")
+    tr = precompute_wavelet(mesh, 32, 256, BITS, shadows="always", run=RunOptions(workers=1))
+    rl = relight.WaveletRelighter(tr, threads=1)
+    before = load()
+    rows = []
+    for N in TERMS + (rl.P,):
+        li, lv, _ = rl.light("studio", N, "transport")
+        lv = lv.to(torch.float32).contiguous()
+        d = rl.dslot[li] >= 0
+        s = li[~d]
+        frac = int(rl.bcount[:, s[rl.nnz[s] > 0]].sum()) / max(1, int(rl.rcol.numel()))
+        for name, m in (("all", torch.ones_like(d)), ("dense", d), ("sparse", ~d)):
+            r = part_row(rl, name, li[m].contiguous(), lv[:, m].contiguous())
+            r.update(N=N, sparse_blocks=frac)
+            rows.append(r)
+            print(f"[wavelet_parts] N={N} {r}", flush=True)
+    empty = torch.nonzero(rl.cls == 0).flatten()[:1].contiguous()
+    if empty.numel():
+        r = part_row(rl, "output", empty, torch.ones(3, 1))
+        r.update(N=1, sparse_blocks=0.0)
+        rows.append(r)
+        print(f"[wavelet_parts] {r}", flush=True)
+    m = machine_info()
+    L = ["# Wavelet kernel: one thread's time by part (issue 39)\n",
+         f"{m['cpu']}, one thread, the AVX2 path of `kernels/wavelet.c` (no AVX-512 on this CPU); load average "
+         f"{before:.1f} → {load():.1f} (the machine shared with other jobs; ⚠: the pairing flagged contention). "
+         f"Studio light, occluder_over_plane small (V = {rl.V}), R = 32, K = 256, {BITS}-bit, {rl.Pd} dense columns, "
+         f"tiles of {rl.TV}. Each part relit alone through `WaveletRelighter.prepared`, paired (interleaved samples, fastest "
+         "tenth) with its own bound: a copy of the transfer bytes it reads and a fill of the output (`timing.io_bound_fn`). "
+         "Every part's time includes the per-light set-up and the output pass. Reproduce: "
+         "`.venv/bin/python benchmarks/bench_wavelet_parts.py`.\n",
+         "| N | part | terms | bytes read (+ output) | sparse blocks held / all | time | of own bound | load |",
+         "|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        L.append(f"| {r['N']} | {r['part']} | {r['terms']} | {r['bytes']} | {r['sparse_blocks']:.2f} | {r['us']:.1f} µs | "
+                 f"{r['of_bound']:.2f}{'' if r['trusted'] else ' ⚠'} | {r['load']:.1f} |")
+    OUT.mkdir(parents=True, exist_ok=True)
+    (OUT / "wavelet_parts.md").write_text("\n".join(L) + "\n")
+    print(f"[wavelet_parts] wrote {OUT / 'wavelet_parts.md'}", flush=True)
+
+
+if __name__ == "__main__":
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    main()
