@@ -377,7 +377,7 @@ def _residuals(X: torch.Tensor, C: torch.Tensor, labels: torch.Tensor, idx: torc
     Cx = C.to(X.dtype)
     n = X.shape[0] if idx is None else idx.numel()
     out = torch.empty(n, dtype=X.dtype)
-    step = row_chunk(X.shape[1], X.element_size())
+    step = min(row_chunk(X.shape[1], X.element_size()), getattr(X, "rows", n) or 1)  # a streamed signal: its chunks
     for i in range(0, n, step):  # chunks bound the [rows, D] difference
         if idx is None:
             xs, lab = X[i:i + step], labels[i:i + step]
