@@ -35,7 +35,7 @@ import torch
 from .affine import AffineCodec, classify_all
 from ..params import Boolean, Interval, Options
 from .base import register
-from .kmeans import kmeans_pp, lloyd, repair_empty, seed_space
+from .kmeans import kmeans_pp, lloyd, repair_empty, seed_space, segment_sums
 from .chunks import CentredRows, row_sq_norms, spans
 from .segment import choose_tile, from_tiles, tile_layout, tiles_bmm, to_tiles
 from .subspace import TileSource, cluster_pca, total_variance
@@ -183,7 +183,11 @@ class _Work:
         return self._xx
 
     def means(self) -> torch.Tensor:
-        """Weighted cluster means [K, D] float64 (x_0, Sloan 2003 §4.1); empty clusters: 0."""
+        """Weighted cluster means [K, D] float64 (x_0, Sloan 2003 §4.1); empty clusters: 0.
+        Streamed: ``kmeans.segment_sums`` of the rows as read (no tile order needed)."""
+        if self.streamed:
+            sums, ws = segment_sums(self.X, self.labels, self.K, self.w)
+            return sums / ws.clamp_min(1e-300)[:, None]
         sums = torch.zeros(self.K, self.D, dtype=torch.float64)
         ws = torch.zeros(self.K, dtype=torch.float64)
         for c in self.chunks():
@@ -222,12 +226,22 @@ class _Work:
                                        oversample=oversample, power_iters=pi, cache=self.cache)
             tv = total_variance(self._one.layout, Yt)
         else:  # streamed: every product is a pass over the chunks, each centred when read
-            src = TileSource(self.K, self.D, self.dt, lambda: ((c.layout, self._centred_tiles(c, means)) for c in self.chunks()))
+            tvs = []
+
+            def tiles():  # one pass; its per-cluster Σ||y||² noted on the way (the last pass's is kept)
+                tv = torch.zeros(self.K, dtype=torch.float64)
+                for c in self.chunks():
+                    Yt = self._centred_tiles(c, means)
+                    yield c.layout, Yt
+                    tv += total_variance(c.layout, Yt)
+                tvs.append(tv)
+
+            src = TileSource(self.K, self.D, self.dt, tiles)
             basis, evals = cluster_pca(src, None, n, solver, gen=gen, init=init, oversample=oversample,
                                        power_iters=pi, cache=self.cache, counts=self.counts)
-            tv = torch.zeros(self.K, dtype=torch.float64)
-            for lay, Yt in src.tiles():
-                tv += total_variance(lay, Yt)
+            if not tvs:  # no pass ran (n = 0)
+                list(tiles())
+            tv = tvs[-1]
         return {"labels": self.labels, "means": means, "basis": basis, "evals": evals, "tv": tv,
                 "n_vectors": torch.full((self.K,), n, dtype=torch.long), "se": float(tv.sum() - evals.sum())}
 
