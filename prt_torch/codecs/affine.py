@@ -39,7 +39,7 @@ from ..params import Boolean, Interval, Options
 from .base import (Codec, Encoded, Relighter, array_type, as_array_type, check_light, check_matrix_shape, check_out,
                    check_signal, check_view, check_weights, encoding_state, grad_required, input_ref, squared_error_rows, typed,
                    typed_relighter, view_tensors)
-from .chunks import CHUNK_BYTES, CentredRows, chunk_rows, row_chunks, row_sq_norms
+from .chunks import CHUNK_BYTES, STREAM_BYTES, CentredRows, chunk_rows, row_chunks, row_sq_norms
 from .chunks import centred as centred_signal
 from .kmeans import CACHE_BLOCK_BYTES, linear, row_chunk
 from .relight_kernels import constants_layout as kernel_layout
@@ -152,7 +152,8 @@ class AffineCodec(Codec):
         # the centred signal: a copy when it fits one chunk, else read by chunks and centred on
         # the fly (chunks.CentredRows; float32 in a float32 fit: X − offset rounded once to
         # float32, else via float64), so the fit holds the signal once (issue 42 part 3)
-        Xc = centred_signal(X, offset, dtype, chunk_bytes=self._chunk_bytes())
+        Xc = centred_signal(X, offset, dtype, chunk_bytes=self._chunk_bytes(), stream_bytes=self._stream_bytes(),
+                            stream=_mapped(X_in))
         w64 = None if w is None else w.double()
         gen = torch.Generator().manual_seed(int(p.get("seed", 0)))
         res = self._fit_model(Xc, w64, gen)
@@ -185,9 +186,15 @@ class AffineCodec(Codec):
         return self
 
     def _chunk_bytes(self) -> int:
-        """Signal bytes per chunk of a fit or encode (``chunks.CHUNK_BYTES``; an instance
-        attribute ``chunk_bytes_`` overrides it, as the tests do to stream small signals)."""
+        """Signal bytes per chunk of a streamed fit or encode (``chunks.CHUNK_BYTES``; an
+        instance attribute ``chunk_bytes_`` overrides it)."""
         return int(getattr(self, "chunk_bytes_", CHUNK_BYTES))
+
+    def _stream_bytes(self) -> int:
+        """Signals larger than this are fitted and encoded by chunks (``chunks.STREAM_BYTES``; an
+        instance attribute ``stream_bytes_`` overrides it: 0 streams every signal). A
+        memory-mapped numpy input is always streamed."""
+        return int(getattr(self, "stream_bytes_", STREAM_BYTES))
 
     def _project(self, Xc, labels, means, basis, dtype) -> torch.Tensor:
         """Per-point weights w_p = B_k (x_p − x_0^k) ``[P, n_max]`` float32, masked by n_k;
@@ -270,14 +277,15 @@ class AffineCodec(Codec):
         sharing its tensors where X is the same data as another type: ``Encoded.array_type``)."""
         self._require_fitted()
         kind = array_type(X)
-        X = check_signal("X", X)
+        X_in, X = X, check_signal("X", X)
         self._check_features(X)
         train = getattr(self, "_train", None)
         if train is not None and train[0] == signal_key(X) and train[1]() is not None:
             return typed(train[2], kind)
         dtype = torch.float64 if X.dtype == torch.float64 else torch.float32
         off = self.means_.double().mean(0) if self.means_ is not None else torch.zeros(self.D_, dtype=torch.float64)
-        Xc = centred_signal(X, off, dtype, chunk_bytes=self._chunk_bytes(), via64=True)  # read by chunks when large
+        Xc = centred_signal(X, off, dtype, chunk_bytes=self._chunk_bytes(), via64=True, stream_bytes=self._stream_bytes(),
+                            stream=_mapped(X_in))  # read by chunks when large
         means = None if self.means_ is None else (self.means_.double() - off)
         basis = self.basis_.double()
         labels = self._classify(Xc, means, basis)
@@ -356,7 +364,7 @@ class AffineCodec(Codec):
         """Σ_p w_p ||x_p − x̃_p||² (Sloan 2003 Table 1's "SE"); a signal larger than one chunk
         (``chunks.CHUNK_BYTES``) is decoded chunk by chunk (no decoded ``[P, D]`` copy, no cached
         relighting plan), with the arithmetic of ``Codec.squared_error``."""
-        if not isinstance(X, torch.Tensor) or X.shape[0] * X.shape[1] * 4 <= self._chunk_bytes():
+        if not isinstance(X, torch.Tensor) or X.shape[0] * X.shape[1] * 4 <= min(self._stream_bytes(), 4 * self._chunk_bytes()):
             return super().squared_error(X, enc, weights)
         self._check_enc(enc)
         P, D = X.shape
@@ -774,7 +782,7 @@ def classify_all(Xc: torch.Tensor, xx: torch.Tensor, means: torch.Tensor | None,
     # fewer clusters than candidates; the smallest integer type that holds K (int64 would be
     # 8·top bytes per point, more than a transfer signal of 16 floats)
     tops = torch.empty(P, min(top, K), dtype=label_dtype(K)) if top else None
-    step = min(P, row_chunk(K * (1 + n), Xc.element_size(), CACHE_BLOCK_BYTES))
+    step = min(P, row_chunk(K * (1 + n), Xc.element_size(), CACHE_BLOCK_BYTES), getattr(Xc, "rows", P) or 1)
     W = W.contiguous()
     bias = bias.reshape(-1)
     for i in range(0, P, step):  # blocks bound the [rows, K(1+n)] temporary
@@ -794,6 +802,17 @@ def classify_all(Xc: torch.Tensor, xx: torch.Tensor, means: torch.Tensor | None,
             emin[i:i + step] = m.values
     emin += xx
     return labels, emin.clamp_min_(0), tops
+
+
+def _mapped(X: Any) -> bool:
+    """Whether ``X`` is a numpy memory map (or a view of one): a signal kept on disk, streamed."""
+    import numpy as np
+
+    while isinstance(X, np.ndarray):
+        if isinstance(X, np.memmap):
+            return True
+        X = X.base
+    return False
 
 
 def _total_energy(Xc, w, centred: bool) -> float:

@@ -142,7 +142,7 @@ def assign(X: torch.Tensor, C: torch.Tensor, xx: torch.Tensor | None = None,
     labels = torch.empty(P, dtype=torch.long)
     d2 = torch.empty(P, dtype=X.dtype)
     d2b = torch.full((P,), math.inf, dtype=X.dtype) if second else None
-    step = row_chunk(K, X.element_size(), CACHE_BLOCK_BYTES)
+    step = min(row_chunk(K, X.element_size(), CACHE_BLOCK_BYTES), getattr(X, "rows", P) or 1)  # a streamed signal: ≤ its chunks
     for i in range(0, P, step):  # chunks bound the [rows, K] block
         d = linear(X[i:i + step].contiguous(), Cm2, cc)
         if second and K > 1:
@@ -326,6 +326,7 @@ def lloyd(X: torch.Tensor, C0: torch.Tensor, max_iter: int, tol: float, w: torch
             n = idx.numel()
             lab, a2, b2 = torch.empty(n, dtype=torch.long), torch.empty(n, dtype=X.dtype), torch.empty(n, dtype=X.dtype)
             step = row_chunk(K, X.element_size(), CACHE_BLOCK_BYTES) * max(1, gather_blocks)
+            step = min(step, getattr(X, "rows", step) or 1)
             for i in range(0, n, step):
                 sel = idx[i:i + step]
                 lab[i:i + step], a2[i:i + step], b2[i:i + step] = assign(X.index_select(0, sel), C, xx[sel], second=True)
@@ -448,7 +449,7 @@ def _bounded_step(X, xx, C, labels, u, low, delta, sums, ws, wd, full, eps, xx64
         wc = wd[ch] if wd is not None else torch.ones(ch.numel(), dtype=torch.float64)
         # the moved points' rows in float64, by blocks (all adds, then all subtractions: the
         # order of one call over all of them)
-        step = row_chunk(X.shape[1], 8)
+        step = min(row_chunk(X.shape[1], 8), getattr(X, "rows", P) or 1)
         sums = sums.clone()
         for sign in (1.0, -1.0):
             for i in range(0, ch.numel(), step):
