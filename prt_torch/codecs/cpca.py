@@ -161,10 +161,12 @@ class _Work:
     def set_labels(self, labels: torch.Tensor) -> None:
         self.labels = labels
         self.counts = torch.bincount(labels, minlength=self.K)
-        self._one = None if self.streamed else self._tiles(0, self.P)
+        # one chunk (a small signal, or a streamed one within one chunk): its tiles are kept
+        # between passes (at most one chunk's size)
+        self._one = self._tiles(0, self.P) if len(self.spans) == 1 else None
 
     def _tiles(self, i: int, j: int) -> _Tiles:
-        x = self.X if (i, j) == (0, self.P) and not self.streamed else self.X[i:j]
+        x = self.X if not self.streamed else self.X[i:j]
         return _Tiles(i, j, self.labels[i:j], x, None if self.sw is None else self.sw[i:j], self.K, self.T, self._raw)
 
     def chunks(self):
@@ -185,7 +187,7 @@ class _Work:
     def means(self) -> torch.Tensor:
         """Weighted cluster means [K, D] float64 (x_0, Sloan 2003 §4.1); empty clusters: 0.
         Streamed: ``kmeans.segment_sums`` of the rows as read (no tile order needed)."""
-        if self.streamed:
+        if self._one is None:
             sums, ws = segment_sums(self.X, self.labels, self.K, self.w)
             return sums / ws.clamp_min(1e-300)[:, None]
         sums = torch.zeros(self.K, self.D, dtype=torch.float64)
