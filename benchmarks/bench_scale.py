@@ -180,6 +180,7 @@ def child(args) -> dict:
         codec.save(p["cpca"], enc, overwrite=True, extra_meta={"transfer": str(p["diffuse"])})
         out["vertices"] = tr.num_vertices
         out["data_bytes"] = tr.data.numel() * 4
+        out["file_bytes"] = p["diffuse"].stat().st_size
     elif stage == "cpca_stream":
         from prt_torch import io
 
@@ -371,6 +372,22 @@ def report(rows: list[dict], args, info: dict) -> str:
             wk = r["children_peak_rss"] / 2**20 if r["stage"] in ("diffuse", "mrt", "embree") else None
             L.append(f"| {r['stage']} | {r['vertices']} | {r['marginal_bytes'] / 2**20:.1f} | {b:.0f} | "
                      f"{b / f if f > 0 else float('nan'):.2f} | {'' if wk is None else f'{wk:.0f}'} |")
+    est = [r for r in marg if r["stage"] in ("cpca", "cpca_stream")]
+    if est:
+        from prt_torch.codecs.chunks import fit_memory
+
+        L += ["", "The CPCA stages' memory as `prt compress --dry-run` states it before the fit (`codecs.chunks.fit_memory`: "
+              "signal, copies, chunk work, bookkeeping, codes) against the measured marginal. The stage also holds what "
+              "its input takes besides the codec: `cpca` loads the whole transfer file (mesh included: the file's size "
+              "less the signal is added), `cpca_stream` maps it (the signal's pages, counted in its RSS, are added):", "",
+              "| stage | vertices | fit estimate MiB | + input MiB | estimate / measured |", "|---|---:|---:|---:|---:|"]
+        D = args.bands * args.bands
+        for r in est:
+            V = r["vertices"]
+            m = fit_memory(V, D, 16, 4, streamed=r["stage"] == "cpca_stream")
+            extra = (r.get("file_bytes", 0) - V * D * 4) if r["stage"] == "cpca" else V * D * 4
+            L.append(f"| {r['stage']} | {V} | {m['peak'] / 2**20:.1f} | {extra / 2**20:.1f} | "
+                     f"{(m['peak'] + extra) / r['marginal_bytes']:.2f} |")
     cs = {(r["stage"], r["size"]): r for r in rows if r.get("stage") in ("cpca", "cpca_stream") and "error" not in r}
     pairs = [(cs[("cpca", n)], cs[("cpca_stream", n)]) for (st, n) in cs if st == "cpca" and ("cpca_stream", n) in cs]
     if pairs:

@@ -182,3 +182,31 @@ def test_fit_larger_than_the_memory_limit_from_the_file(tmp_path):
         out[mode] = json.loads(r.stdout.strip().splitlines()[-1])
     assert not out["load"]["ok"], out  # the limit bites: the signal does not fit
     assert out["mmap"]["ok"] and out["mmap"]["points"] == P, out
+
+
+def test_compress_stream_and_dry_run(tmp_path, capsys):
+    """``prt compress --stream`` fits from the memory-mapped file: the same codes as a streamed
+    fit of the loaded signal; ``--dry-run`` states the memory and writes nothing; a codec that
+    cannot stream is refused (status 2, one line)."""
+    from prt_torch.cli import main
+    from prt_torch.codecs.synthetic import transfer_like
+    from prt_torch.scene import builtin
+    from prt_torch.transfer import Transfer
+
+    mesh = builtin("bumpy_sphere", size="small")
+    V = mesh.num_vertices
+    t = Transfer("glossy", transfer_like(V, 9, 16, seed=3).view(V, 9, 16), mesh, {"matrix_shape": [9, 16], "out_index": list(range(9))})
+    t.save(tmp_path / "g.prt")
+    assert main(["compress", str(tmp_path / "g.prt"), "-o", str(tmp_path / "d.prt"), "--dry-run", "--clusters", "4", "--vectors", "3"]) == 0
+    out = capsys.readouterr().out
+    assert "holds the signal in memory" in out and "peak ~" in out and not (tmp_path / "d.prt").exists()
+    assert main(["compress", str(tmp_path / "g.prt"), "-o", str(tmp_path / "s.prt"), "--stream", "--clusters", "4", "--vectors", "3"]) == 0
+    c1, e1 = codecs.get("cpca").load(tmp_path / "s.prt")
+    c0 = codecs.get("cpca", clusters=4, vectors=3)
+    c0.stream_bytes_ = 0  # the in-memory signal, streamed at the same chunk size: the same arithmetic
+    X = t.signal()
+    e0 = c0.fit(X, matrix_shape=(9, 16)).encode(X)  # the training encoding, as fit_encode in the command
+    assert torch.equal(c1.labels_of(e1), c0.labels_of(e0)) and torch.equal(c1.coeffs_of(e1), c0.coeffs_of(e0))
+    assert main(["compress", str(tmp_path / "g.prt"), "-o", str(tmp_path / "x.prt"), "--stream", "--codec", "gaussian"]) == 2
+    err = capsys.readouterr().err
+    assert "--stream/--dry-run with codec 'gaussian'" in err and len(err.strip().splitlines()) == 1
