@@ -377,7 +377,8 @@ def report(rows: list[dict], args, info: dict) -> str:
         from prt_torch.codecs.chunks import fit_memory
 
         L += ["", "The CPCA stages' memory as `prt compress --dry-run` states it before the fit (`codecs.chunks.fit_memory`: "
-              "signal, copies, chunk work, bookkeeping, codes) against the measured marginal. The stage also holds what "
+              "signal, copies, chunk work, bookkeeping, codes, × the allocator slack 1.5, + fixed GEMM blocks) "
+              "against the measured marginal. The stage also holds what "
               "its input takes besides the codec: `cpca` loads the whole transfer file (mesh included: the file's size "
               "less the signal is added), `cpca_stream` maps it (the signal's pages, counted in its RSS, are added):", "",
               "| stage | vertices | fit estimate MiB | + input MiB | estimate / measured |", "|---|---:|---:|---:|---:|"]

@@ -146,8 +146,8 @@ def _dry_run(args, codec) -> int:
     print(f"{args.codec}: {P} points × D={D}; the fit {'streams the signal by chunks' if m['streamed'] else 'holds the signal in memory'}"
           + (" (--stream: from the memory-mapped file)" if args.stream else ""))
     print(f"  signal loaded {f(m['signal'])}, centred and tile-ordered copies {f(m['copies'])}, chunk work {f(m['work'])}, "
-          f"bookkeeping {f(m['bookkeeping'])}, codes {f(m['codes'])}")
-    print(f"  peak ~{f(m['peak'])} (nothing written)")
+          f"bookkeeping {f(m['bookkeeping'])}, codes {f(m['codes'])}, fixed blocks {f(m['fixed'])}")
+    print(f"  peak ~{f(m['peak'])} (the counted sum × the allocator slack, plus the fixed blocks; nothing written)")
     return 0
 
 

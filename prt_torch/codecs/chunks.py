@@ -26,7 +26,8 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["CHUNK_BYTES", "STREAM_BYTES", "fit_memory", "BOOKKEEPING_BYTES", "CentredRows", "centred", "spans", "row_chunks", "row_sq_norms", "chunk_rows"]
+__all__ = ["CHUNK_BYTES", "STREAM_BYTES", "fit_memory", "BOOKKEEPING_BYTES", "FIXED_BYTES", "CentredRows", "centred",
+           "spans", "row_chunks", "row_sq_norms", "chunk_rows"]
 
 #: Bytes of signal per chunk of a streamed fit: the work memory of every pass is a few times
 #: this (the chunk centred, its tile-ordered copy, its GEMM outputs), whatever P.
@@ -136,13 +137,19 @@ def row_sq_norms(X, norm: bool = False) -> torch.Tensor:
 #: and candidates. Measured: the peak of a streamed 1M × 16 CPCA 16×4 fit above the signal was
 #: 151 B per point (``fit_encode`` of a tensor, after a warm-up).
 BOOKKEEPING_BYTES = 160
+#: Fixed work of a fit whatever P: the classification and assignment GEMM blocks
+#: (``kmeans.CACHE_BLOCK_BYTES``) and their temporaries; the marginal memory of a 10k-point
+#: CPCA 16×4 fit was 16.6 MiB for 7 MiB of counted arrays (reports/benchmarks/scale_stream.md).
+FIXED_BYTES = 16 * 2**20
 
 
 def fit_memory(P: int, D: int, clusters: int = 1, vectors: int = 0, streamed: bool | None = None,
                dtype_bytes: int | None = None, chunk_bytes: int | None = None, stream_bytes: int | None = None) -> dict:
     """What an affine codec fit + encode of ``[P, D]`` float32 will hold, before it starts
     (``prt compress --dry-run``): ``{'streamed', 'signal', 'copies', 'work', 'bookkeeping', 'codes',
-    'peak'}`` in bytes. ``signal``: the input loaded (0 when streamed from a memory-mapped file:
+    'peak'}`` in bytes; ``peak`` = the counted sum × ``transfer.estimate.ALLOCATOR_SLACK`` (freed
+    temporaries the allocator keeps, as the precompute's estimate) + :data:`FIXED_BYTES`.
+    ``signal``: the input loaded (0 when streamed from a memory-mapped file:
     its pages are read per chunk and can be dropped). In memory the fit holds the centred copy
     and two tile-ordered buffers (``copies``); streamed, three chunks (``work``). The fit dtype
     is float64 when P·D ≤ 2²³ (``fit_dtype='auto'``)."""
@@ -160,5 +167,8 @@ def fit_memory(P: int, D: int, clusters: int = 1, vectors: int = 0, streamed: bo
         signal, copies, work = P * D * 4, (P + 2 * (P + K * (T - 1))) * D * s, 0
     book = BOOKKEEPING_BYTES * P
     codes = P * (4 * int(vectors) + (1 if K <= 256 else 2 if K <= 32768 else 4))
+    from ..transfer.estimate import ALLOCATOR_SLACK
+
+    peak = int(ALLOCATOR_SLACK * (signal + copies + work + book + codes)) + FIXED_BYTES
     return {"streamed": bool(streamed), "signal": signal, "copies": copies, "work": work, "bookkeeping": book,
-            "codes": codes, "peak": signal + copies + work + book + codes}
+            "codes": codes, "fixed": FIXED_BYTES, "peak": peak}
