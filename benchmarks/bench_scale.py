@@ -15,6 +15,9 @@ Stages, on ``bumpy_sphere:<size>`` (``size`` a vertex count: the nearest geodesi
   ``--mrt-samples`` samples; low bands so that 1M fits beside five other users' jobs), saved;
 * ``cpca``: CPCA (16 clusters, 4 vectors) fit + encode of the diffuse transfer, loaded from its
   file, and the codec file saved;
+* ``cpca_stream``: the same fit + encode from the transfer file's data memory-mapped
+  (``io.load_mmap``: the signal is not read into memory; the codec streams it by chunks,
+  ``codecs.chunks``), the codec file saved;
 * ``relight``: the codec file loaded and relit under the built-in ``sky`` (median of 5 calls,
   after one warm-up), beside the uncompressed diffuse relighting of the same transfer;
 * ``bench``: ``prt bench`` of a config with this scene, the same diffuse transfer (its own cache:
@@ -22,7 +25,12 @@ Stages, on ``bumpy_sphere:<size>`` (``size`` a vertex count: the nearest geodesi
 
 Reported per stage and size: seconds, seconds per vertex, the peak RSS and the peak above the
 child's RSS after its imports (what the stage itself added), per vertex; the last column is
-each per-vertex figure over the smallest size's (goal: ≤ 1.5 at 1M). Every child is single
+each per-vertex figure over the smallest size's (goal: ≤ 1.5 at 1M). The **marginal** memory
+(issue 42 part 3, (1)): each child first runs its stage once on a tiny input (a 642-vertex
+mesh, or 2048 rows) — imports, kernel compiles, thread pools, first-use allocations — then
+resets its peak (``/proc/self/clear_refs``) and records ``VmHWM`` − RSS at the reset over the
+real stage: what the stage's own arrays took, not the fixed costs (which made the 10k figures
+noise before). The Embree worker is a process of its own: its peak is the ``worker`` column. Every child is single
 ray-casting worker (``workers=1``) and torch's default threads, so rows compare like with like.
 The machine is shared (2 cores, six users): the load average is recorded with every row; time
 ratios taken under load are not a speed figure, memory figures do not depend on it.
@@ -45,7 +53,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-STAGES = ("embree", "diffuse", "mrt", "cpca", "relight", "bench")
+STAGES = ("embree", "diffuse", "mrt", "cpca", "cpca_stream", "relight", "bench")
 
 
 def rss_now() -> int:
@@ -101,6 +109,13 @@ def child(args) -> dict:
     work, size, stage = Path(args.work), int(args.size), args.child
     p = _paths(work, size)
     out: dict = {"stage": stage, "size": size, "rss_after_imports": base, "rss_now_after_imports": rss_imports}
+    if not args.no_warm:
+        warm_up(stage, args, work)
+    import gc
+
+    gc.collect()
+    out["marginal_reset"] = reset_peak()
+    out["rss_at_reset"] = rss_now()
     t0 = time.perf_counter()
     if stage == "embree":  # the peer: bare Embree occlusion rays from the mesh's own vertices
         import numpy as np
@@ -142,6 +157,7 @@ def child(args) -> dict:
                        mesh_rss=rss_now() - rss_imports)
         out["estimated_peak_bytes"], out["estimated_stages"] = est.peak_bytes, {st["stage"]: st["bytes"] for st in est.stages}
         out["rss_with_mesh"] = rss_now()
+        out["marginal_hwm_before_mesh_reset"] = vm_hwm()  # the mesh build's own peak (since the warm-up's reset)
         hwm_reset = reset_peak()  # the precompute's own peak from here (the mesh build's temporaries are not its)
         t0 = time.perf_counter()  # the stage's time is the precompute and its save (the mesh: its own column)
         tr = get_kind(stage).precompute(mesh, dict(params), run=run)
@@ -151,6 +167,7 @@ def child(args) -> dict:
         out["save_seconds"] = time.perf_counter() - ts
         out["vertices"] = mesh.num_vertices
         out["peak_after_mesh"] = vm_hwm() if hwm_reset else None  # bytes: the process's peak since the reset
+        out["marginal_peak_mesh"] = out.get("marginal_hwm_before_mesh_reset")
         out["rays"] = int(tr.meta.get("rays_traced", 0))
         out["data_bytes"] = tr.data.numel() * tr.data.element_size()
     elif stage == "cpca":
@@ -159,9 +176,25 @@ def child(args) -> dict:
         tf = time.perf_counter()
         enc = codec.fit_encode(tr.signal())
         out["fit_seconds"] = time.perf_counter() - tf
+        out["se"] = codec.fit_info_["se"]
         codec.save(p["cpca"], enc, overwrite=True, extra_meta={"transfer": str(p["diffuse"])})
         out["vertices"] = tr.num_vertices
         out["data_bytes"] = tr.data.numel() * 4
+        out["file_bytes"] = p["diffuse"].stat().st_size
+    elif stage == "cpca_stream":
+        from prt_torch import io
+
+        meta = io.describe(p["diffuse"])
+        V = meta["tensors"]["data"]["shape"][0]
+        X = io.load_mmap(p["diffuse"], "data").reshape(V, -1)  # a read-only memory map: streamed by the codec
+        codec = codecs.get("cpca", clusters=16, vectors=4)
+        tf = time.perf_counter()
+        enc = codec.fit_encode(X)
+        out["fit_seconds"] = time.perf_counter() - tf
+        out["se"] = codec.fit_info_["se"]
+        codec.save(work / f"diffuse_{size}.cpca_stream.prt", enc, overwrite=True, extra_meta={"transfer": str(p["diffuse"])})
+        out["vertices"] = V
+        out["data_bytes"] = X.size * 4
     elif stage == "relight":
         from prt_torch import relight
         from prt_torch.lighting import load_light
@@ -212,9 +245,38 @@ def child(args) -> dict:
         if r.returncode != 0:
             raise RuntimeError(f"prt bench failed ({r.returncode}): {r.stderr[-2000:]}")
         out["vertices"] = json.loads((work / "bench_reports" / f"scale_{size}" / "results.json").read_text())["scene"]["vertices"]
+        out["marginal_reset"] = False  # prt bench runs in a process of its own: no marginal figure
     out["seconds"] = time.perf_counter() - t0
     out["peak_rss"], out["children_peak_rss"] = peak_rss()
+    if out["marginal_reset"]:
+        hwm = max(vm_hwm(), out.get("marginal_hwm_before_mesh_reset") or 0)
+        out["marginal_bytes"] = max(0, hwm - out["rss_at_reset"])
     return out
+
+
+def warm_up(stage: str, args, work: Path) -> None:
+    """The stage once on a tiny input, in this process, before the measured run: imports,
+    compiled kernels, thread pools and first-use allocations are then not the stage's."""
+    import torch
+
+    from prt_torch import codecs
+    from prt_torch.scene import load_scene
+    from prt_torch.transfer import RunOptions, get_kind
+
+    if stage in ("diffuse", "mrt"):
+        params = ({"bands": args.bands, "samples": args.samples, "shadows": "always"} if stage == "diffuse" else
+                  {"bands": args.mrt_bands, "M": args.mrt_tents, "samples": args.mrt_samples, "shadows": "always",
+                   "brdf": {"type": "phong", "s": 12.0}})
+        get_kind(stage).precompute(load_scene("bumpy_sphere:642"), dict(params), run=RunOptions(workers=1))
+    elif stage in ("cpca", "cpca_stream", "relight"):
+        D = args.bands * args.bands
+        X = torch.randn(2048, D, generator=torch.Generator().manual_seed(0))
+        codec = codecs.get("cpca", clusters=16, vectors=4)
+        enc = codec.fit_encode(X)
+        if stage == "relight":
+            from prt_torch.lighting import load_light
+
+            codec.relight(enc, load_light("sky", bands=args.bands).to(torch.float32).T.contiguous())
 
 
 # ----------------------------------------------------------------------------------------------
@@ -224,7 +286,7 @@ def child(args) -> dict:
 def run_stage(stage: str, size: int, args, work: Path) -> dict:
     cmd = [sys.executable, __file__, "--child", stage, "--size", str(size), "--work", str(work),
            "--bands", str(args.bands), "--samples", str(args.samples), "--mrt-bands", str(args.mrt_bands),
-           "--mrt-tents", str(args.mrt_tents), "--mrt-samples", str(args.mrt_samples)]
+           "--mrt-tents", str(args.mrt_tents), "--mrt-samples", str(args.mrt_samples)] + (["--no-warm"] if args.no_warm else [])
     load0 = os.getloadavg()[0]
     t = time.perf_counter()
     r = subprocess.run(cmd, capture_output=True, text=True)
@@ -294,6 +356,49 @@ def report(rows: list[dict], args, info: dict) -> str:
                  f"{r['stage_peak_rss'] / 2**20:.0f} | {r['added_bytes_per_vertex']:.0f} | "
                  f"{'–' if ms is None else f'{ms:.2f}'} | {dm} | "
                  f"{r['load_average'][0]:.1f}–{r['load_average'][1]:.1f} |")
+    marg = [r for r in rows if r.get("marginal_bytes") is not None and "error" not in r]
+    if marg:
+        L += ["", "**Marginal memory** (each child ran its stage once on a tiny input first, then reset its peak; "
+              "marginal = the peak since the reset less the RSS at the reset: the stage's own arrays — mesh, input, "
+              "work, result — without imports, compiled kernels, thread pools or first-use allocations). `cpca_stream` "
+              "maps the transfer file: the pages it has read count in its RSS (file-backed, reclaimable), so its "
+              "figure includes the signal once. Worker = the Embree worker process's own peak RSS (its imports "
+              "included).", "",
+              "| stage | vertices | marginal MiB | marginal B / vertex | × smallest | worker peak MiB |", "|---|---:|---:|---:|---:|---:|"]
+        m0: dict[str, float] = {}
+        for r in marg:
+            b = r["marginal_bytes"] / r["vertices"]
+            f = m0.setdefault(r["stage"], b)
+            wk = r["children_peak_rss"] / 2**20 if r["stage"] in ("diffuse", "mrt", "embree") else None
+            L.append(f"| {r['stage']} | {r['vertices']} | {r['marginal_bytes'] / 2**20:.1f} | {b:.0f} | "
+                     f"{b / f if f > 0 else float('nan'):.2f} | {'' if wk is None else f'{wk:.0f}'} |")
+    est = [r for r in marg if r["stage"] in ("cpca", "cpca_stream")]
+    if est:
+        from prt_torch.codecs.chunks import fit_memory
+
+        L += ["", "The CPCA stages' memory as `prt compress --dry-run` states it before the fit (`codecs.chunks.fit_memory`: "
+              "signal, copies, chunk work, bookkeeping, codes, × the allocator slack 1.5, + fixed GEMM blocks) "
+              "against the measured marginal. The stage also holds what "
+              "its input takes besides the codec: `cpca` loads the whole transfer file (mesh included: the file's size "
+              "less the signal is added), `cpca_stream` maps it (the signal's pages, counted in its RSS, are added):", "",
+              "| stage | vertices | fit estimate MiB | + input MiB | estimate / measured |", "|---|---:|---:|---:|---:|"]
+        D = args.bands * args.bands
+        for r in est:
+            V = r["vertices"]
+            m = fit_memory(V, D, 16, 4, streamed=r["stage"] == "cpca_stream")
+            extra = (r.get("file_bytes", 0) - V * D * 4) if r["stage"] == "cpca" else V * D * 4
+            L.append(f"| {r['stage']} | {V} | {m['peak'] / 2**20:.1f} | {extra / 2**20:.1f} | "
+                     f"{(m['peak'] + extra) / r['marginal_bytes']:.2f} |")
+    cs = {(r["stage"], r["size"]): r for r in rows if r.get("stage") in ("cpca", "cpca_stream") and "error" not in r}
+    pairs = [(cs[("cpca", n)], cs[("cpca_stream", n)]) for (st, n) in cs if st == "cpca" and ("cpca_stream", n) in cs]
+    if pairs:
+        L += ["", "CPCA in memory (the transfer loaded) against streamed from the memory-mapped file (`codecs.chunks`, "
+              "16 MiB chunks), same seed:", "",
+              "| vertices | in-memory s | streamed s | SE in-memory | SE streamed | SE streamed / in-memory |",
+              "|---:|---:|---:|---:|---:|---:|"]
+        for a, b in pairs:
+            L.append(f"| {a['vertices']} | {a['seconds']:.3g} | {b['seconds']:.3g} | {a.get('se', float('nan')):.6g} | "
+                     f"{b.get('se', float('nan')):.6g} | {b.get('se', float('nan')) / a.get('se', float('nan')):.6f} |")
     rel = [r for r in rows if r.get("stage") == "relight" and "error" not in r]
     if rel:
         L += ["", "Relight beside its own bound (a copy of the bytes it must read once — the codes — and write once — "
@@ -353,6 +458,7 @@ def main(argv=None) -> int:
     ap.add_argument("--quick", action="store_true", help="2k and 10k vertices, 16 samples: a CI-sized smoke")
     ap.add_argument("--out", default=str(ROOT / "reports" / "benchmarks" / "scale.md"))
     ap.add_argument("--from-json", default=None, help="rewrite --out from an earlier run's .json (no measuring)")
+    ap.add_argument("--no-warm", action="store_true", help="no warm-up run before the measured one (the marginal column is then empty)")
     ap.add_argument("--child", choices=STAGES, help=argparse.SUPPRESS)
     ap.add_argument("--size", type=int, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)

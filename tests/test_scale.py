@@ -283,8 +283,10 @@ def test_bench_scale_smoke(tmp_path):
     assert len(rows) == 3 and not any("error" in r for r in rows)
     assert all(r["stage_peak_rss"] > 0 and r["vertices"] == 252 for r in rows)
     text = out.read_text()
-    for part in ("| diffuse | 252 |", "bound / CPCA", "estimate / measured"):
+    for part in ("| diffuse | 252 |", "bound / CPCA", "estimate / measured", "**Marginal memory**"):
         assert part in text
+    # the marginal memory (issue 42 part 3): measured after a warm-up and a peak reset, positive
+    assert all(r["marginal_reset"] and r["marginal_bytes"] > 0 for r in rows)
     again = tmp_path / "again.md"
     assert mod.main(["--from-json", str(out.with_suffix(".json")), "--out", str(again)]) == 0
     assert again.read_text() == text

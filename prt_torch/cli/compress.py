@@ -34,6 +34,11 @@ def register(subparsers) -> None:
     p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
                    help="any other codec parameter (repeatable), value parsed as YAML")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output file")
+    p.add_argument("--stream", action="store_true",
+                   help="fit from the transfer file memory-mapped: the signal is not read into memory, the codec reads it "
+                        "by chunks (vq, pca, cpca, mrt_pca; docs/codecs.md). Larger signals than memory work this way")
+    p.add_argument("--dry-run", action="store_true",
+                   help="print what the fit will hold (signal, copies, work, bookkeeping, codes) and whether it streams; no work")
     p.add_argument("--list", action="store_true", help="list codec names and exit")
     p.add_argument("--describe", metavar="NAME", help="show the parameters of codec NAME and exit")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
@@ -104,6 +109,48 @@ def load_input(path, codec):
     return X, ms, meta, {}
 
 
+def _mapped_input(path):
+    """``(X [V, D] float32 numpy memmap, matrix_shape, meta, {})`` of a transfer file, not read
+    into memory (``io.load_mmap``); the values are checked by the codec as it reads them."""
+    from pathlib import Path
+
+    from .. import io
+
+    if Path(path).is_dir():
+        raise ValueError(f"--stream takes a transfer file; {str(path)!r} is a directory")
+    d = io.describe(path)
+    meta = d["meta"]
+    if not str(meta.get("kind", "")).startswith("transfer/") or meta.get("kind") == "transfer/wavelet":
+        raise ValueError(f"--stream: {str(path)!r} holds kind={meta.get('kind')!r}; accepted: an SH transfer file (diffuse, glossy, mrt)")
+    if d["tensors"]["data"]["dtype"] != "F32":
+        raise ValueError(f"--stream: {str(path)!r} stores its data as {d['tensors']['data']['dtype']}; accepted: float32 (F32)")
+    shape = d["tensors"]["data"]["shape"]
+    ms = meta.get("matrix_shape") or (shape[1:] if len(shape) == 3 else None)
+    X = io.load_mmap(path, "data").reshape(shape[0], -1)
+    return X, (tuple(int(v) for v in ms) if ms else None), meta, {}
+
+
+def _dry_run(args, codec) -> int:
+    """What the fit will hold, from the file's header only (``codecs.chunks.fit_memory``)."""
+    from .. import io
+    from ..codecs.chunks import fit_memory
+
+    shape = io.describe(args.transfer)["tensors"]["data"]["shape"]
+    P = int(shape[0])
+    D = 1
+    for v in shape[1:]:
+        D *= int(v)
+    p = codec.get_params()
+    m = fit_memory(P, D, p.get("clusters", 1), p.get("vectors", 0), streamed=True if args.stream else None)
+    f = io.format_bytes
+    print(f"{args.codec}: {P} points × D={D}; the fit {'streams the signal by chunks' if m['streamed'] else 'holds the signal in memory'}"
+          + (" (--stream: from the memory-mapped file)" if args.stream else ""))
+    print(f"  signal loaded {f(m['signal'])}, centred and tile-ordered copies {f(m['copies'])}, chunk work {f(m['work'])}, "
+          f"bookkeeping {f(m['bookkeeping'])}, codes {f(m['codes'])}, fixed blocks {f(m['fixed'])}")
+    print(f"  peak ~{f(m['peak'])} (the counted sum × the allocator slack, plus the fixed blocks; nothing written)")
+    return 0
+
+
 def run(args) -> int:
     from .. import codecs
     from ..codecs import ConvergenceError
@@ -128,8 +175,14 @@ def run(args) -> int:
 
     from ..io import check_outputs
 
+    affine = args.codec in ("vq", "pca", "cpca", "cpca_static", "cpca_iterative", "cpca_adaptive", "mrt_pca")
+    if (args.stream or args.dry_run) and not affine:
+        raise ValueError(f"--stream/--dry-run with codec {args.codec!r}: it fits in memory only; accepted: vq, pca, cpca "
+                         "(and its presets), mrt_pca")
+    if args.dry_run:
+        return _dry_run(args, codec)
     check_outputs({"-o/--output": args.output}, {"TRANSFER": args.transfer}, args.overwrite)  # before the fit
-    X, ms, meta, geometry = load_input(args.transfer, codec)
+    X, ms, meta, geometry = _mapped_input(args.transfer) if args.stream else load_input(args.transfer, codec)
     t0 = time.perf_counter()
     try:
         enc = codec.fit_encode(X, matrix_shape=ms, **geometry)

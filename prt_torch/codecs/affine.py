@@ -37,7 +37,10 @@ from .. import io
 from .._checks import check_finite, tensor_version
 from ..params import Boolean, Interval, Options
 from .base import (Codec, Encoded, Relighter, array_type, as_array_type, check_light, check_matrix_shape, check_out,
-                   check_signal, check_view, check_weights, encoding_state, grad_required, input_ref, typed, typed_relighter, view_tensors)
+                   check_signal, check_view, check_weights, encoding_state, grad_required, input_ref, squared_error_rows, typed,
+                   typed_relighter, view_tensors)
+from .chunks import CHUNK_BYTES, STREAM_BYTES, CentredRows, chunk_rows, row_chunks, row_sq_norms
+from .chunks import centred as centred_signal
 from .kmeans import CACHE_BLOCK_BYTES, linear, row_chunk
 from .relight_kernels import constants_layout as kernel_layout
 from .relight_kernels import fits as kernel_fits
@@ -146,12 +149,11 @@ class AffineCodec(Codec):
                 for i in range(0, P, step):  # chunks bound the float64 temporary
                     offset += (X[i:i + step].double() * w[i:i + step, None].double()).sum(0)
                 offset /= float(w.sum())
-        if dtype == X.dtype == torch.float32:
-            Xc = X - offset.to(torch.float32)  # one pass (the offset rounded once to float32)
-        else:
-            Xc = torch.empty(P, D, dtype=dtype)
-            for i in range(0, P, step):  # chunks bound the float64 temporary
-                Xc[i:i + step] = (X[i:i + step].double() - offset).to(dtype)
+        # the centred signal: a copy when it fits one chunk, else read by chunks and centred on
+        # the fly (chunks.CentredRows; float32 in a float32 fit: X − offset rounded once to
+        # float32, else via float64), so the fit holds the signal once (issue 42 part 3)
+        Xc = centred_signal(X, offset, dtype, chunk_bytes=self._chunk_bytes(), stream_bytes=self._stream_bytes(),
+                            stream=_mapped(X_in))
         w64 = None if w is None else w.double()
         gen = torch.Generator().manual_seed(int(p.get("seed", 0)))
         res = self._fit_model(Xc, w64, gen)
@@ -183,23 +185,38 @@ class AffineCodec(Codec):
         self.fit_info_ = info
         return self
 
+    def _chunk_bytes(self) -> int:
+        """Signal bytes per chunk of a streamed fit or encode (``chunks.CHUNK_BYTES``; an
+        instance attribute ``chunk_bytes_`` overrides it)."""
+        return int(getattr(self, "chunk_bytes_", CHUNK_BYTES))
+
+    def _stream_bytes(self) -> int:
+        """Signals larger than this are fitted and encoded by chunks (``chunks.STREAM_BYTES``; an
+        instance attribute ``stream_bytes_`` overrides it: 0 streams every signal). A
+        memory-mapped numpy input is always streamed."""
+        return int(getattr(self, "stream_bytes_", STREAM_BYTES))
+
     def _project(self, Xc, labels, means, basis, dtype) -> torch.Tensor:
-        """Per-point weights w_p = B_k (x_p − x_0^k) ``[P, n_max]`` float32, masked by n_k."""
+        """Per-point weights w_p = B_k (x_p − x_0^k) ``[P, n_max]`` float32, masked by n_k;
+        ``Xc`` a tensor or ``chunks.CentredRows`` (projected chunk by chunk)."""
         P = Xc.shape[0]
         K, nmax, D = basis.shape
         if nmax == 0:
             return torch.zeros(P, 0, dtype=torch.float32)
         Bt = basis.transpose(1, 2).to(dtype)  # [K, D, n]
-        if K == 1:
-            c = Xc @ Bt[0]
-        else:
-            c = segment_matmul(tile_layout(labels, K), Xc, Bt)
-        if means is not None:
-            mb = torch.einsum("knd,kd->kn", basis, means).to(dtype)
-            c -= mb[labels] if K > 1 else mb[0]
-        c = c.to(torch.float32)
-        mask = torch.arange(nmax)[None, :] < self.n_vectors_[labels][:, None]
-        return c * mask
+        mb = None if means is None else torch.einsum("knd,kd->kn", basis, means).to(dtype)
+        out = torch.empty(P, nmax, dtype=torch.float32)
+        for i, j, x in row_chunks(Xc, getattr(Xc, "rows", None)):
+            lab = labels[i:j]
+            if K == 1:
+                c = x @ Bt[0]
+            else:
+                c = segment_matmul(tile_layout(lab, K), x, Bt)
+            if mb is not None:
+                c -= mb[lab] if K > 1 else mb[0]
+            mask = torch.arange(nmax)[None, :] < self.n_vectors_[lab][:, None]
+            torch.mul(c.to(torch.float32), mask, out=out[i:j])
+        return out
 
     # ----------------------------------------------------------------- codes
     @property
@@ -260,14 +277,15 @@ class AffineCodec(Codec):
         sharing its tensors where X is the same data as another type: ``Encoded.array_type``)."""
         self._require_fitted()
         kind = array_type(X)
-        X = check_signal("X", X)
+        X_in, X = X, check_signal("X", X)
         self._check_features(X)
         train = getattr(self, "_train", None)
         if train is not None and train[0] == signal_key(X) and train[1]() is not None:
             return typed(train[2], kind)
         dtype = torch.float64 if X.dtype == torch.float64 else torch.float32
         off = self.means_.double().mean(0) if self.means_ is not None else torch.zeros(self.D_, dtype=torch.float64)
-        Xc = (X.double() - off).to(dtype)
+        Xc = centred_signal(X, off, dtype, chunk_bytes=self._chunk_bytes(), via64=True, stream_bytes=self._stream_bytes(),
+                            stream=_mapped(X_in))  # read by chunks when large
         means = None if self.means_ is None else (self.means_.double() - off)
         basis = self.basis_.double()
         labels = self._classify(Xc, means, basis)
@@ -313,7 +331,7 @@ class AffineCodec(Codec):
         K = basis.shape[0]
         if K == 1:
             return torch.zeros(P, dtype=torch.long)
-        return classify_all(Xc, Xc.square().sum(1), means, basis)[0]
+        return classify_all(Xc, row_sq_norms(Xc), means, basis)[0]
 
     # ----------------------------------------------------------------- decode
     def _n_eff(self, n_vectors) -> int:
@@ -361,6 +379,26 @@ class AffineCodec(Codec):
         if self.K_ == 1:
             return W @ reps[0]
         return torch.einsum("pj,pjd->pd", W, reps[self.labels_of(enc)])
+
+    def squared_error(self, X, enc: Encoded, weights: torch.Tensor | None = None) -> float:
+        """Σ_p w_p ||x_p − x̃_p||² (Sloan 2003 Table 1's "SE"); a signal larger than one chunk
+        (``chunks.CHUNK_BYTES``) is decoded chunk by chunk (no decoded ``[P, D]`` copy, no cached
+        relighting plan), with the arithmetic of ``Codec.squared_error``."""
+        if not isinstance(X, torch.Tensor) or X.shape[0] * X.shape[1] * 4 <= min(self._stream_bytes(), 4 * self._chunk_bytes()):
+            return super().squared_error(X, enc, weights)
+        self._check_enc(enc)
+        P, D = X.shape
+        n = self.basis_.shape[1]
+        reps = self._representatives(n)  # [K, J, D]
+        labels, C = self.labels_of(enc), self.coeffs_of(enc)
+        se = 0.0
+        rows = chunk_rows(D, 4, self._chunk_bytes())
+        for i in range(0, P, rows):
+            lab, c = labels[i:i + rows], C[i:i + rows, :n]
+            W1 = torch.cat([torch.ones(c.shape[0], 1), c], 1) if self.means_ is not None else c
+            xh = W1 @ reps[0] if self.K_ == 1 else segment_matmul(tile_layout(lab, self.K_), W1.contiguous(), reps)
+            se += squared_error_rows(X[i:i + rows], xh, None if weights is None else weights[i:i + rows])
+        return se
 
     def _representatives(self, n: int) -> torch.Tensor:
         """``[K, J, D] float32``: (x_0,) x_1..x_n — J = n+1 with a mean, n without."""
@@ -781,8 +819,10 @@ def classify_all(Xc: torch.Tensor, xx: torch.Tensor, means: torch.Tensor | None,
     bias = bias.to(dt).reshape(1, K * (1 + n))
     labels = torch.empty(P, dtype=torch.long)
     emin = torch.empty(P, dtype=dt)
-    tops = torch.empty(P, min(top, K), dtype=torch.long) if top else None  # fewer clusters than candidates
-    step = min(P, row_chunk(K * (1 + n), Xc.element_size(), CACHE_BLOCK_BYTES))
+    # fewer clusters than candidates; the smallest integer type that holds K (int64 would be
+    # 8·top bytes per point, more than a transfer signal of 16 floats)
+    tops = torch.empty(P, min(top, K), dtype=label_dtype(K)) if top else None
+    step = min(P, row_chunk(K * (1 + n), Xc.element_size(), CACHE_BLOCK_BYTES), getattr(Xc, "rows", P) or 1)
     W = W.contiguous()
     bias = bias.reshape(-1)
     for i in range(0, P, step):  # blocks bound the [rows, K(1+n)] temporary
@@ -804,16 +844,26 @@ def classify_all(Xc: torch.Tensor, xx: torch.Tensor, means: torch.Tensor | None,
     return labels, emin.clamp_min_(0), tops
 
 
-def _total_energy(Xc: torch.Tensor, w, centred: bool) -> float:
+def _mapped(X: Any) -> bool:
+    """Whether ``X`` is a numpy memory map (or a view of one): a signal kept on disk, streamed."""
+    import numpy as np
+
+    while isinstance(X, np.ndarray):
+        if isinstance(X, np.memmap):
+            return True
+        X = X.base
+    return False
+
+
+def _total_energy(Xc, w, centred: bool) -> float:
     """Σ_p w_p ||x_p||², rows' norms in Xc's dtype, their squares summed in float64 (the
-    denominator of ``se_relative`` only)."""
+    denominator of ``se_relative`` only); Xc a tensor or ``chunks.CentredRows``."""
     if w is None:
-        return float(torch.linalg.vector_norm(Xc, dim=1).double().square().sum())
+        return float(row_sq_norms(Xc, norm=True).double().sum()) if isinstance(Xc, CentredRows) else \
+            float(torch.linalg.vector_norm(Xc, dim=1).double().square().sum())
     s = 0.0
-    for i in range(0, Xc.shape[0], 8192):
-        r = Xc[i:i + 8192].double().square().sum(1)
-        if w is not None:
-            r = r * w[i:i + 8192]
+    for i, j, x in row_chunks(Xc, 8192):
+        r = x.double().square().sum(1) * w[i:j]
         s += float(r.sum())
     return s
 

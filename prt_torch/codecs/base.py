@@ -319,21 +319,7 @@ class Codec(TransformerMixin, BaseEstimator):
     def squared_error(self, X, enc: Encoded, weights: torch.Tensor | None = None) -> float:
         """Σ_p w_p ||x_p − x̃_p||² (Sloan 2003 Table 1's "SE", weights default 1): rows' norms in
         the signal's dtype, their squares summed in float64."""
-        X = _as_tensor(X)
-        Xh = _as_tensor(self.decode(enc))
-        se = 0.0
-        for i in range(0, X.shape[0], 8192):  # chunks bound the float64 temporaries
-            xs, hs = X[i:i + 8192], Xh[i:i + 8192]
-            # float32 operands: the difference is taken in float32 (exact within a factor of 2,
-            # Sterbenz; else one rounding of the difference itself), its squares summed in float64
-            d = (xs - hs) if xs.dtype == hs.dtype == torch.float32 else (xs.double() - hs.double())
-            # each row's norm in d's dtype (float32: relative rounding ~1e-7; a float64-cast
-            # reduction runs ~20x slower), the squares summed in float64
-            r = torch.linalg.vector_norm(d, dim=1).double().square()
-            if weights is not None:
-                r = r * weights[i:i + 8192].double()
-            se += float(r.sum())
-        return se
+        return squared_error_rows(_as_tensor(X), _as_tensor(self.decode(enc)), weights)
 
     # -- persistence -------------------------------------------------------------------
     def _state(self) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
@@ -375,6 +361,23 @@ class Codec(TransformerMixin, BaseEstimator):
         if getattr(self, "strict", False):
             raise ConvergenceError(message)
         warnings.warn(message, ConvergenceWarning, stacklevel=3)
+
+
+def squared_error_rows(X: torch.Tensor, Xh: torch.Tensor, weights: torch.Tensor | None = None) -> float:
+    """Σ_p w_p ||x_p − x̂_p||² of ``X, Xh [P, D]`` (weights ``[P]`` or None), by blocks of rows."""
+    se = 0.0
+    for i in range(0, X.shape[0], 8192):  # chunks bound the float64 temporaries
+        xs, hs = X[i:i + 8192], Xh[i:i + 8192]
+        # float32 operands: the difference is taken in float32 (exact within a factor of 2,
+        # Sterbenz; else one rounding of the difference itself), its squares summed in float64
+        d = (xs - hs) if xs.dtype == hs.dtype == torch.float32 else (xs.double() - hs.double())
+        # each row's norm in d's dtype (float32: relative rounding ~1e-7; a float64-cast
+        # reduction runs ~20x slower), the squares summed in float64
+        r = torch.linalg.vector_norm(d, dim=1).double().square()
+        if weights is not None:
+            r = r * weights[i:i + 8192].double()
+        se += float(r.sum())
+    return se
 
 
 def _nbytes(t: torch.Tensor) -> int:

@@ -35,9 +35,10 @@ import torch
 from .affine import AffineCodec, classify_all
 from ..params import Boolean, Interval, Options
 from .base import register
-from .kmeans import kmeans_pp, lloyd, repair_empty, seed_space
+from .kmeans import kmeans_pp, lloyd, repair_empty, seed_space, segment_sums
+from .chunks import CentredRows, row_sq_norms, spans
 from .segment import choose_tile, from_tiles, tile_layout, tiles_bmm, to_tiles
-from .subspace import cluster_pca, total_variance
+from .subspace import TileSource, cluster_pca, total_variance
 
 __all__ = ["VQ", "PCA", "CPCA", "CPCAStatic", "CPCAIterative", "CPCAAdaptive", "MRTPCA"]
 
@@ -114,77 +115,135 @@ def _doc(summary: str, *entries: str) -> str:
 # fit machinery
 # ----------------------------------------------------------------------------------------
 
-class _Work:
-    """The centred signal in cluster-tile order, with buffers reused across iterations."""
+class _Tiles:
+    """One chunk of rows ``[i, j)`` of the centred signal in cluster-tile order: its layout, the
+    rows ``Xt [NT, T, D]``, the sqrt weights ``swt [NT, T]`` (zero on padding rows) and the flat
+    padding rows."""
 
-    def __init__(self, Xc: torch.Tensor, w: torch.Tensor | None, K: int, centred: bool = True):
+    def __init__(self, i: int, j: int, labels: torch.Tensor, x: torch.Tensor, sw: torch.Tensor | None, K: int, T: int,
+                 raw: torch.Tensor):
+        self.i, self.j = i, j
+        lay = tile_layout(labels, K, T)
+        self.layout, self.tc = lay, lay.tile_cluster
+        self.Xt = to_tiles(lay, x, out=raw)
+        self.swt = to_tiles(lay, torch.ones(j - i, dtype=x.dtype) if sw is None else sw)
+        used = torch.zeros(lay.NT * T, dtype=torch.bool)
+        used[lay.pos] = True
+        self.pad_rows = torch.nonzero(~used).flatten()
+        self.xxt = None
+
+
+class _Work:
+    """The centred signal with the current cluster labels, read in cluster-tile order chunk by
+    chunk (``chunks``): a signal of one chunk (``Xc`` a tensor) keeps its tiles between passes,
+    as the whole fit used to; a streamed one (``Xc`` a ``chunks.CentredRows``) rebuilds each
+    chunk's tiles in two reused buffers of one chunk's size per pass, so the signal is held
+    once (by the caller, or on disk) plus O(chunk) work memory (issue 42 part 3). Per point it
+    keeps the labels, ``||x||²`` and, weighted, ``sqrt(w)``."""
+
+    def __init__(self, Xc, w: torch.Tensor | None, K: int, centred: bool = True):
         self.X, self.w, self.K, self.centred = Xc, w, K, centred
         self.P, self.D = Xc.shape
         self.dt = Xc.dtype
-        self.T = choose_tile(self.P, K) if K > 1 else 256
+        self.streamed = isinstance(Xc, CentredRows)
+        self.spans = spans(self.P, Xc.rows) if self.streamed else [(0, self.P)]
+        n = self.spans[0][1] - self.spans[0][0]  # rows of the largest chunk
+        self.T = choose_tile(n, K) if K > 1 else 256
         self._xx = None  # ||x_p||², computed when a classification first needs it (not by PCA)
         self.sw = None if w is None else w.sqrt().to(self.dt)
-        rows = self.P + K * (self.T - 1)
+        rows = n + K * (self.T - 1)
         self._raw = torch.empty(rows, self.D, dtype=self.dt)
         self._y = torch.empty(rows, self.D, dtype=self.dt)
         self.labels = None
+        self._one = None  # the one chunk's tiles (a signal of one chunk)
         self.cache: dict = {}
 
     def set_labels(self, labels: torch.Tensor) -> None:
         self.labels = labels
-        lay = tile_layout(labels, self.K, self.T)
-        self.layout, self.tc, self.counts = lay, lay.tile_cluster, lay.counts
-        self.Xt = to_tiles(lay, self.X, out=self._raw)
-        ones = torch.ones(self.P, dtype=self.dt) if self.sw is None else self.sw
-        self.swt = to_tiles(lay, ones)  # [NT, T]; zero on padding rows
-        self._xxt = None
-        used = torch.zeros(lay.NT * self.T, dtype=torch.bool)
-        used[lay.pos] = True
-        self.pad_rows = torch.nonzero(~used).flatten()  # flat tile rows that hold no point
+        self.counts = torch.bincount(labels, minlength=self.K)
+        # one chunk (a small signal, or a streamed one within one chunk): its tiles are kept
+        # between passes (at most one chunk's size)
+        self._one = self._tiles(0, self.P) if len(self.spans) == 1 else None
+
+    def _tiles(self, i: int, j: int) -> _Tiles:
+        x = self.X if not self.streamed else self.X[i:j]
+        return _Tiles(i, j, self.labels[i:j], x, None if self.sw is None else self.sw[i:j], self.K, self.T, self._raw)
+
+    def chunks(self):
+        """The chunks of rows in tile order, in row order (one cached chunk, or built afresh)."""
+        if self._one is not None:
+            yield self._one
+            return
+        for i, j in self.spans:
+            yield self._tiles(i, j)
 
     @property
     def xx(self) -> torch.Tensor:
         """``||x_p||²`` ``[P]`` (X's dtype), computed once on first use."""
         if self._xx is None:
-            self._xx = torch.linalg.vector_norm(self.X, dim=1).square_()
+            self._xx = row_sq_norms(self.X, norm=True)
         return self._xx
 
-    @property
-    def xxt(self) -> torch.Tensor:
-        """``||x_p||²`` in tile order ``[NT, T]`` (zero on padding rows), for the current labels."""
-        if self._xxt is None:
-            self._xxt = to_tiles(self.layout, self.xx)
-        return self._xxt
-
     def means(self) -> torch.Tensor:
-        """Weighted cluster means [K, D] float64 (x_0, Sloan 2003 §4.1); empty clusters: 0."""
-        w2 = self.swt.square()
-        if self.sw is None:  # padding rows are zero: a plain per-tile sum
-            s = self.Xt.sum(1).double()
-        else:
-            s = torch.bmm(w2[:, None, :], self.Xt).squeeze(1).double()
-        sums = torch.zeros(self.K, self.D, dtype=torch.float64).index_add_(0, self.tc, s)
-        ws = torch.zeros(self.K, dtype=torch.float64).index_add_(0, self.tc, w2.sum(1).double())
+        """Weighted cluster means [K, D] float64 (x_0, Sloan 2003 §4.1); empty clusters: 0.
+        Streamed: ``kmeans.segment_sums`` of the rows as read (no tile order needed)."""
+        if self._one is None:
+            sums, ws = segment_sums(self.X, self.labels, self.K, self.w)
+            return sums / ws.clamp_min(1e-300)[:, None]
+        sums = torch.zeros(self.K, self.D, dtype=torch.float64)
+        ws = torch.zeros(self.K, dtype=torch.float64)
+        for c in self.chunks():
+            w2 = c.swt.square()
+            if self.sw is None:  # padding rows are zero: a plain per-tile sum
+                s = c.Xt.sum(1).double()
+            else:
+                s = torch.bmm(w2[:, None, :], c.Xt).squeeze(1).double()
+            sums.index_add_(0, c.tc, s)
+            ws.index_add_(0, c.tc, w2.sum(1).double())
         return sums / ws.clamp_min(1e-300)[:, None]
+
+    def _centred_tiles(self, c: _Tiles, means: torch.Tensor | None) -> torch.Tensor:
+        """``Yt = sqrt(w) (x − x_0)`` of chunk ``c`` in its tile order, zero on padding rows (in
+        the reused work buffer)."""
+        Yt = self._y[: c.Xt.shape[0] * self.T].view_as(c.Xt)
+        if means is not None:
+            torch.sub(c.Xt, means.to(self.dt)[c.tc][:, None, :], out=Yt)
+            if self.sw is None:
+                Yt.view(-1, self.D).index_fill_(0, c.pad_rows, 0)
+            else:
+                Yt *= c.swt[..., None]
+        else:
+            Yt.copy_(c.Xt)
+            if self.sw is not None:
+                Yt *= c.swt[..., None]
+        return Yt
 
     def refit(self, n: int, solver: str, gen, init=None, oversample=8, power_iters=3, alloc=None) -> dict:
         """Means, top-n PCA vectors and squared error of the current clusters (Sloan 2003 §4.1)."""
         means = self.means() if self.centred else None
-        Yt = self._y[: self.Xt.shape[0] * self.T].view_as(self.Xt)
-        if means is not None:  # Yt = sqrt(w) (x - x_0), zero on padding rows
-            torch.sub(self.Xt, means.to(self.dt)[self.tc][:, None, :], out=Yt)
-            if self.sw is None:
-                Yt.view(-1, self.D).index_fill_(0, self.pad_rows, 0)
-            else:
-                Yt *= self.swt[..., None]
-        else:
-            Yt.copy_(self.Xt)
-            if self.sw is not None:
-                Yt *= self.swt[..., None]
         pi = power_iters if init is None or init.shape[1] == 0 else 1
-        basis, evals = cluster_pca(self.layout, Yt, n, solver, gen=gen, init=init,
-                                   oversample=oversample, power_iters=pi, cache=self.cache)
-        tv = total_variance(self.layout, Yt)
+        if self._one is not None:  # one chunk: its centred tiles once, for every product
+            Yt = self._centred_tiles(self._one, means)
+            basis, evals = cluster_pca(self._one.layout, Yt, n, solver, gen=gen, init=init,
+                                       oversample=oversample, power_iters=pi, cache=self.cache)
+            tv = total_variance(self._one.layout, Yt)
+        else:  # streamed: every product is a pass over the chunks, each centred when read
+            tvs = []
+
+            def tiles():  # one pass; its per-cluster Σ||y||² noted on the way (the last pass's is kept)
+                tv = torch.zeros(self.K, dtype=torch.float64)
+                for c in self.chunks():
+                    Yt = self._centred_tiles(c, means)
+                    yield c.layout, Yt
+                    tv += total_variance(c.layout, Yt)
+                tvs.append(tv)
+
+            src = TileSource(self.K, self.D, self.dt, tiles)
+            basis, evals = cluster_pca(src, None, n, solver, gen=gen, init=init, oversample=oversample,
+                                       power_iters=pi, cache=self.cache, counts=self.counts)
+            if not tvs:  # no pass ran (n = 0)
+                list(tiles())
+            tv = tvs[-1]
         return {"labels": self.labels, "means": means, "basis": basis, "evals": evals, "tv": tv,
                 "n_vectors": torch.full((self.K,), n, dtype=torch.long), "se": float(tv.sum() - evals.sum())}
 
@@ -192,7 +251,7 @@ class _Work:
         """Least reconstruction error among each cluster's candidate clusters ``cand [K, L]``
         (own cluster first), in tile order: one tile-GEMM against the candidates' stacked
         representatives ``[−2 x_0, x_i]`` with the constants ``[||x_0||², −x_i·x_0]`` added after
-        (as ``classify_all``). Returns (labels [P], e_min [P])."""
+        (as ``classify_all``), chunk by chunk. Returns (labels [P], e_min [P])."""
         means, basis = st["means"], st["basis"]
         K, n, D = basis.shape
         L = cand.shape[1]
@@ -202,14 +261,19 @@ class _Work:
         Wc = Wall[cand].reshape(K, L * (1 + n), D).transpose(1, 2)  # [K, D, L(1+n)], a view
         bias = torch.cat([means.square().sum(1)[:, None], -torch.einsum("knd,kd->kn", basis, means)], 1)
         bc = bias[cand].reshape(K, L * (1 + n)).to(self.dt)  # [K, L(1+n)]
-        E = tiles_bmm(self.layout, self.Xt, Wc)
-        E += bc[self.tc][:, None, :]
-        E = E.view(*self.Xt.shape[:2], L, 1 + n)
-        e = E[..., 0] - E[..., 1:].square_().sum(-1) if n else E[..., 0]
-        m = e.min(-1)
-        lab_t = torch.gather(cand[self.tc][:, None, :].expand(-1, self.T, -1), 2, m.indices[..., None]).squeeze(-1)
-        labels = from_tiles(self.layout, lab_t[..., None]).squeeze(-1)
-        emin = from_tiles(self.layout, (m.values + self.xxt).clamp_min(0)[..., None]).squeeze(-1)
+        labels = torch.empty(self.P, dtype=torch.long)
+        emin = torch.empty(self.P, dtype=self.dt)
+        for c in self.chunks():
+            if c.xxt is None:
+                c.xxt = to_tiles(c.layout, self.xx[c.i:c.j])
+            E = tiles_bmm(c.layout, c.Xt, Wc)
+            E += bc[c.tc][:, None, :]
+            E = E.view(*c.Xt.shape[:2], L, 1 + n)
+            e = E[..., 0] - E[..., 1:].square_().sum(-1) if n else E[..., 0]
+            m = e.min(-1)
+            lab_t = torch.gather(cand[c.tc][:, None, :].expand(-1, self.T, -1), 2, m.indices[..., None]).squeeze(-1)
+            labels[c.i:c.j] = from_tiles(c.layout, lab_t[..., None]).squeeze(-1)
+            emin[c.i:c.j] = from_tiles(c.layout, (m.values + c.xxt).clamp_min(0)[..., None]).squeeze(-1)
         return labels, emin
 
 
@@ -217,8 +281,12 @@ def _candidate_sets(labels: torch.Tensor, top: torch.Tensor, K: int, L: int) -> 
     """Per-cluster candidates ``[K, L]``: the cluster itself, then the clusters most often among
     its members' ``top`` choices (one bincount over (cluster, choice) pairs)."""
     L = min(L, K)
-    pairs = (labels[:, None] * K + top).flatten()
-    cnt = torch.bincount(pairs, minlength=K * K).view(K, K).double()
+    cnt = torch.zeros(K * K, dtype=torch.float64)
+    step = 1 << 18
+    for i in range(0, labels.numel(), step):  # blocks bound the [rows, L] int64 pairs
+        pairs = (labels[i:i + step, None] * K + top[i:i + step].long()).flatten()
+        cnt += torch.bincount(pairs, minlength=K * K).double()
+    cnt = cnt.view(K, K)
     cnt[torch.arange(K), torch.arange(K)] = math.inf
     return torch.topk(cnt, L, dim=1).indices
 
@@ -266,7 +334,7 @@ class _VQMixin:
         """LBG from k-means++ (or random) seeds; ``final``: the clustering is the codec's result,
         so stopping at max_iter warns (CPCA records it in fit_info_ and warns only if strict)."""
         p = self.params
-        xx = Xc.square().sum(1)
+        xx = row_sq_norms(Xc)
         best = None
         for r in range(p["n_init"]):  # restarts: a handful, each a full batched fit
             if p["init"] == "k-means++":
@@ -274,15 +342,15 @@ class _VQMixin:
                 d = p.get("init_dims")
                 if m < Xc.shape[0]:
                     sub = torch.randperm(Xc.shape[0], generator=gen)[:m]
-                    Z = seed_space(Xc[sub], d, gen)
+                    Z = seed_space(Xc.index_select(0, sub), d, gen)
                     idx = sub[kmeans_pp(Z, K, gen, None if w is None else w[sub], xx=xx[sub] if Z.shape[1] == Xc.shape[1] else None)]
-                else:
-                    Z = seed_space(Xc, d, gen)
+                else:  # all points are candidates (at most init_sample of them): held whole here
+                    Z = seed_space(Xc.materialize() if isinstance(Xc, CentredRows) else Xc, d, gen)
                     idx = kmeans_pp(Z, K, gen, w, xx=xx if Z.shape[1] == Xc.shape[1] else None)
             else:
                 pw = torch.ones(Xc.shape[0], dtype=torch.float64) if w is None else w.double()
                 idx = torch.multinomial(pw / pw.sum(), K, replacement=False, generator=gen)
-            res = lloyd(Xc, Xc[idx], p["max_iter"], p["tol"], w, xx)
+            res = lloyd(Xc, Xc.index_select(0, idx), p["max_iter"], p["tol"], w, xx)
             if best is None or res["inertia"] < best["inertia"]:
                 best = res
         if not best["converged"] and (final or p["strict"]):

@@ -34,6 +34,8 @@ import time
 
 import torch
 
+from .chunks import row_chunks, row_sq_norms
+
 __all__ = ["BLOCK_BYTES", "CACHE_BLOCK_BYTES", "row_chunk", "linear", "gemm_choice", "sq_dists", "assign", "kmeans_pp", "seed_space",
            "lloyd", "repair_empty", "segment_sums"]
 
@@ -132,7 +134,7 @@ def assign(X: torch.Tensor, C: torch.Tensor, xx: torch.Tensor | None = None,
     ``second``); ``||x||²`` is added to the K-wide block's minimum only (faiss's order)."""
     P = X.shape[0]
     if xx is None:
-        xx = X.square().sum(1)
+        xx = row_sq_norms(X)
     C = C.to(X.dtype)
     K = C.shape[0]
     cc = C.square().sum(1)
@@ -140,7 +142,7 @@ def assign(X: torch.Tensor, C: torch.Tensor, xx: torch.Tensor | None = None,
     labels = torch.empty(P, dtype=torch.long)
     d2 = torch.empty(P, dtype=X.dtype)
     d2b = torch.full((P,), math.inf, dtype=X.dtype) if second else None
-    step = row_chunk(K, X.element_size(), CACHE_BLOCK_BYTES)
+    step = min(row_chunk(K, X.element_size(), CACHE_BLOCK_BYTES), getattr(X, "rows", P) or 1)  # a streamed signal: ≤ its chunks
     for i in range(0, P, step):  # chunks bound the [rows, K] block
         d = linear(X[i:i + step].contiguous(), Cm2, cc)
         if second and K > 1:
@@ -165,19 +167,17 @@ def segment_sums(X: torch.Tensor, labels: torch.Tensor, K: int, w: torch.Tensor 
     """Per-cluster weighted sums ``[K, D]`` and weights ``[K]``, returned as float64.
 
     Summed with ``index_add_`` in the dtype of X (a cluster's few hundred float32 terms lose
-    about 1e-6 relative), then promoted; no float64 copy of X is made.
+    about 1e-6 relative), then promoted; no float64 copy of X is made. X is a tensor or a
+    ``chunks.CentredRows``; read by row blocks in point order (``index_add_`` adds the rows in
+    index order, so the sums are those of one call over all rows).
     """
     D = X.shape[1]
     sums = torch.zeros(K, D, dtype=X.dtype)
-    if w is None:
-        sums.index_add_(0, labels, X)
-        ws = torch.bincount(labels, minlength=K).double()
-    else:
-        wx = w.to(X.dtype)
-        step = row_chunk(D, X.element_size())
-        for i in range(0, X.shape[0], step):  # chunks bound the weighted temporary
-            sums.index_add_(0, labels[i:i + step], X[i:i + step] * wx[i:i + step, None])
-        ws = torch.bincount(labels, weights=w, minlength=K).double()
+    step = getattr(X, "rows", None) or (X.shape[0] if w is None else row_chunk(D, X.element_size()))
+    wx = None if w is None else w.to(X.dtype)
+    for i, j, x in row_chunks(X, step):  # chunks bound the (centred, weighted) temporary
+        sums.index_add_(0, labels[i:j], x if wx is None else x * wx[i:j, None])
+    ws = torch.bincount(labels, minlength=K).double() if w is None else torch.bincount(labels, weights=w, minlength=K).double()
     return sums.double(), ws
 
 
@@ -228,7 +228,7 @@ def kmeans_pp(X: torch.Tensor, K: int, gen: torch.Generator, w: torch.Tensor | N
     if trials is None:
         trials = 2 + int(math.log(K)) if K > 1 else 1
     if xx is None:
-        xx = X.square().sum(1)
+        xx = row_sq_norms(X)
     wd = torch.ones(P, dtype=torch.float64) if w is None else w.double()
     chosen = torch.empty(K, dtype=torch.long)
     chosen[0] = torch.multinomial(wd / wd.sum(), 1, generator=gen)[0]
@@ -306,20 +306,32 @@ def lloyd(X: torch.Tensor, C0: torch.Tensor, max_iter: int, tol: float, w: torch
     K = C0.shape[0]
     P = X.shape[0]
     if xx is None:
-        xx = X.square().sum(1)
+        xx = row_sq_norms(X)
     wd = None if w is None else w.double()
     C = C0.double().clone()
     eps = _ROUND.get(X.dtype, _ROUND[torch.float32])
+    # gathers of uncertified points: this many of assign's row blocks at a time (about 16 MiB)
+    gather_blocks = max(1, (16 * 2**20) // max(1, row_chunk(K, X.element_size(), CACHE_BLOCK_BYTES) * X.shape[1] * X.element_size()))
     xx64 = xx.double()
     rows = 0
 
     def full(idx):
-        """Exact labels and bounds of points ``idx`` (None: all) against all centres."""
+        """Exact labels and bounds of points ``idx`` (None: all) against all centres. The
+        points ``idx`` are gathered by blocks of ``assign``'s own row blocks (the same GEMMs as
+        one gather, without a copy of up to half the signal)."""
         nonlocal rows
-        Xs, xs = (X, xx) if idx is None else (X.index_select(0, idx), xx[idx])
-        lab, a2, b2 = assign(Xs, C, xs, second=True)
+        if idx is None:
+            lab, a2, b2 = assign(X, C, xx, second=True)
+        else:
+            n = idx.numel()
+            lab, a2, b2 = torch.empty(n, dtype=torch.long), torch.empty(n, dtype=X.dtype), torch.empty(n, dtype=X.dtype)
+            step = row_chunk(K, X.element_size(), CACHE_BLOCK_BYTES) * max(1, gather_blocks)
+            step = min(step, getattr(X, "rows", step) or 1)
+            for i in range(0, n, step):
+                sel = idx[i:i + step]
+                lab[i:i + step], a2[i:i + step], b2[i:i + step] = assign(X.index_select(0, sel), C, xx[sel], second=True)
         m = eps * ((xx64 if idx is None else xx64[idx]) + float(C.square().sum(1).max()))
-        rows += Xs.shape[0]
+        rows += P if idx is None else idx.numel()
         return lab, (a2.double() + m).sqrt(), (b2.double() - m).clamp_min(0).sqrt()
 
     labels, u, low = full(None)
@@ -366,7 +378,7 @@ def _residuals(X: torch.Tensor, C: torch.Tensor, labels: torch.Tensor, idx: torc
     Cx = C.to(X.dtype)
     n = X.shape[0] if idx is None else idx.numel()
     out = torch.empty(n, dtype=X.dtype)
-    step = row_chunk(X.shape[1], X.element_size())
+    step = min(row_chunk(X.shape[1], X.element_size()), getattr(X, "rows", n) or 1)  # a streamed signal: its chunks
     for i in range(0, n, step):  # chunks bound the [rows, D] difference
         if idx is None:
             xs, lab = X[i:i + step], labels[i:i + step]
@@ -434,13 +446,17 @@ def _bounded_step(X, xx, C, labels, u, low, delta, sums, ws, wd, full, eps, xx64
         ch = torch.unique(torch.cat([ch, moved]))
     if ch.numel():
         old, new = labels[ch], new_labels[ch]
-        xs = X[ch].double()
-        if wd is not None:
-            xs = xs * wd[ch, None]
-            wc = wd[ch]
-        else:
-            wc = torch.ones(ch.numel(), dtype=torch.float64)
-        sums = sums.index_add(0, new, xs).index_add_(0, old, xs, alpha=-1.0)
+        wc = wd[ch] if wd is not None else torch.ones(ch.numel(), dtype=torch.float64)
+        # the moved points' rows in float64, by blocks (all adds, then all subtractions: the
+        # order of one call over all of them)
+        step = min(row_chunk(X.shape[1], 8), getattr(X, "rows", P) or 1)
+        sums = sums.clone()
+        for sign in (1.0, -1.0):
+            for i in range(0, ch.numel(), step):
+                xs = X.index_select(0, ch[i:i + step]).double()
+                if wd is not None:
+                    xs = xs * wc[i:i + step, None]
+                sums.index_add_(0, (new if sign > 0 else old)[i:i + step], xs, alpha=sign)
         ws = ws.index_add(0, new, wc).index_add_(0, old, wc, alpha=-1.0)
         ws = torch.where(torch.bincount(new_labels, minlength=K) > 0, ws, torch.zeros_like(ws))
     return new_labels, u, low, sums, ws, int((new_labels != labels).sum()), int(moved.numel())

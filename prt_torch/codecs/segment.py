@@ -48,7 +48,8 @@ class TileLayout:
         groups: list of ``(t0, t1)`` tile ranges; group j holds clusters ``corder[:t1-t0]``.
         tile_cluster: ``int64 [NT]`` cluster of each tile.
         pos: ``int64 [n]`` flat tile position (tile·T + slot) of each item.
-        order: ``int64 [n]`` items by increasing ``pos``; pos_sorted = pos[order].
+        order: ``int64 [n]`` items by increasing ``pos``; pos_sorted = pos[order] (both computed
+        on first use: no caller of the fit's per-chunk layouts needs them).
     """
 
     K: int
@@ -62,8 +63,16 @@ class TileLayout:
     group_start: torch.Tensor
     tile_cluster: torch.Tensor
     pos: torch.Tensor
-    order: torch.Tensor
-    pos_sorted: torch.Tensor
+
+    @property
+    def order(self) -> torch.Tensor:
+        if getattr(self, "_order", None) is None:
+            self._order = torch.argsort(self.pos)
+        return self._order
+
+    @property
+    def pos_sorted(self) -> torch.Tensor:
+        return self.pos[self.order]
 
     @property
     def NT(self) -> int:
@@ -104,7 +113,10 @@ def tile_layout(labels: torch.Tensor, K: int, T: int | None = None) -> TileLayou
     if NT:
         jj = torch.repeat_interleave(torch.arange(G), c)
         tile_cluster[:] = corder[torch.arange(NT) - group_start[jj]]
-    order0 = torch.argsort(labels, stable=True)
+    # a stable sort of the labels in the smallest integer type that holds K (the same
+    # permutation; uint8 / int16 keys sort several times faster than int64)
+    key = labels.to(torch.uint8 if K <= 256 else torch.int16 if K <= 32768 else torch.int32) if n else labels
+    order0 = torch.argsort(key, stable=True)
     sl = labels[order0]
     cstart = torch.cumsum(counts, 0) - counts
     rank = torch.arange(n) - cstart[sl]
@@ -112,9 +124,8 @@ def tile_layout(labels: torch.Tensor, K: int, T: int | None = None) -> TileLayou
     tile = group_start[j] + crank[sl] if n else rank
     pos = torch.empty(n, dtype=torch.long)
     pos[order0] = tile * T + rank % T
-    order = torch.argsort(pos)
     return TileLayout(K=K, T=T, n=n, counts=counts, ntiles=ntiles, corder=corder, crank=crank, groups=groups,
-                      group_start=group_start, tile_cluster=tile_cluster, pos=pos, order=order, pos_sorted=pos[order])
+                      group_start=group_start, tile_cluster=tile_cluster, pos=pos)
 
 
 def to_tiles(layout: TileLayout, Y: torch.Tensor, out: torch.Tensor | None = None) -> torch.Tensor:

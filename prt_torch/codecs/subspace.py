@@ -2,7 +2,10 @@
 
 Input is the cluster-centred, weight-scaled signal in tile order (``segment.TileLayout``):
 ``Yt [NT, T, D]`` whose tile t holds rows ``sqrt(w_p)(x_p − x_0)`` of cluster
-``tile_cluster[t]`` (zero rows pad the last tile of a cluster). For cluster k with residual
+``tile_cluster[t]`` (zero rows pad the last tile of a cluster) — one such ``(layout, Yt)`` for
+the whole signal, or one per chunk of rows (a :class:`TileSource`: a streamed fit never holds
+the signal in tile order whole; every product below is a sum over the chunks, so the solvers
+are the same for one chunk or many). For cluster k with residual
 matrix C_k (m_k × D, Sloan's C), the PCA vectors are the top right singular vectors of C_k
 and the squared singular values D_i² are the squared error each removes:
 
@@ -27,7 +30,32 @@ import torch
 
 from .segment import TileLayout, tiles_accumulate, tiles_bmm
 
-__all__ = ["cluster_pca", "total_variance", "orthonormalize"]
+__all__ = ["cluster_pca", "total_variance", "orthonormalize", "TileSource"]
+
+
+class TileSource:
+    """The rows of every cluster as tiles, chunk by chunk: ``tiles()`` yields ``(layout, Yt)``
+    per chunk of rows (``Yt [NT_c, T, D]``, the chunk's rows in its own tile layout); ``K``,
+    ``D``, ``dtype``. The plain form holds one chunk: ``TileSource.single(layout, Yt)``."""
+
+    def __init__(self, K: int, D: int, dtype: torch.dtype, tiles):
+        self.K, self.D, self.dtype, self._tiles = K, D, dtype, tiles
+
+    @classmethod
+    def single(cls, layout: TileLayout, Yt: torch.Tensor) -> "TileSource":
+        return cls(layout.K, Yt.shape[2], Yt.dtype, lambda: ((layout, Yt),))
+
+    def tiles(self):
+        return self._tiles()
+
+
+def _over(src: TileSource, fn) -> torch.Tensor:
+    """``Σ_chunks fn(layout, Yt)`` (the first chunk's result itself when there is one chunk)."""
+    acc = None
+    for lay, Yt in src.tiles():
+        r = fn(lay, Yt)
+        acc = r if acc is None else acc.add_(r)
+    return acc
 
 
 #: Random columns added to a warm basis (``init``): the warm basis and its power step carry the
@@ -56,6 +84,20 @@ def total_variance(layout: TileLayout, Yt: torch.Tensor) -> torch.Tensor:
     """``Σ_{p∈k} ||y_p||²`` per cluster, float64 ``[K]`` (no temporary of Yt's size)."""
     per_tile = torch.linalg.vector_norm(Yt, dim=(1, 2)).double().square()
     return torch.zeros(layout.K, dtype=torch.float64).index_add_(0, layout.tile_cluster, per_tile)
+
+
+def _rows_of(src: TileSource, ks: torch.Tensor) -> tuple[torch.Tensor, int]:
+    """The rows of clusters ``ks`` from every chunk, ``[len(ks), R, D]`` float64 (zero rows where
+    a cluster has fewer), and R. For the few small clusters of the normal form and the SVD."""
+    parts = []
+    for lay, Yt in src.tiles():
+        NT, T, D = Yt.shape
+        R = int(lay.ntiles[ks].max()) * T
+        if R:
+            rows, valid = lay.cluster_rows(ks, R)
+            parts.append(Yt.reshape(NT * T, D)[rows].double() * valid[..., None])
+    Cb = parts[0] if len(parts) == 1 else torch.cat(parts, 1)
+    return Cb, int(Cb.shape[1])
 
 
 def orthonormalize(A: torch.Tensor, passes: int = 2) -> torch.Tensor:
@@ -91,10 +133,8 @@ def _top(evals: torch.Tensor, evecs: torch.Tensor, n: int) -> tuple[torch.Tensor
     return evals[..., -n:].flip(-1).clamp_min(0), evecs[..., -n:].flip(-1)
 
 
-def _eigh_normal_form(layout, Yt, n):
-    NT, T, D = Yt.shape
-    K = layout.K
-    counts = layout.counts
+def _eigh_normal_form(src, n, counts):
+    K, D = src.K, src.D
     basis = torch.zeros(K, n, D, dtype=torch.float64)
     evals = torch.zeros(K, n, dtype=torch.float64)
     if n == 0:
@@ -103,7 +143,7 @@ def _eigh_normal_form(layout, Yt, n):
     # clusters with m_k >= D: C^T C (D x D), eigenvectors = PCA vectors (Sloan 2003 §4.1)
     ka = torch.nonzero(big).flatten()
     if ka.numel():
-        S = _accumulate(layout, Yt, Yt)[ka]
+        S = _over(src, lambda lay, Yt: _accumulate(lay, Yt, Yt))[ka]
         lam, V = torch.linalg.eigh(0.5 * (S + S.transpose(1, 2)))
         lam, V = _top(lam, V, n)
         basis[ka] = V.transpose(1, 2)
@@ -111,9 +151,7 @@ def _eigh_normal_form(layout, Yt, n):
     # clusters with 0 < m_k < D: C C^T (m_k x m_k); right vectors V^T = D^-1 U^T C
     kb = torch.nonzero((~big) & (counts > 0)).flatten()
     if kb.numel():
-        R = int(layout.ntiles[kb].max()) * T
-        rows, valid = layout.cluster_rows(kb, R)
-        Cb = Yt.reshape(NT * T, D)[rows].double() * valid[..., None]
+        Cb, R = _rows_of(src, kb)
         G = Cb @ Cb.transpose(1, 2)
         lam, U = torch.linalg.eigh(0.5 * (G + G.transpose(1, 2)))
         nb = min(n, R)
@@ -126,17 +164,14 @@ def _eigh_normal_form(layout, Yt, n):
     return basis, evals
 
 
-def _svd(layout, Yt, n):
-    NT, T, D = Yt.shape
-    K = layout.K
+def _svd(src, n, counts):
+    K, D = src.K, src.D
     basis = torch.zeros(K, n, D, dtype=torch.float64)
     evals = torch.zeros(K, n, dtype=torch.float64)
-    ks = torch.nonzero(layout.counts > 0).flatten()
+    ks = torch.nonzero(counts > 0).flatten()
     if n == 0 or ks.numel() == 0:
         return basis, evals
-    R = int(layout.ntiles[ks].max()) * T
-    rows, valid = layout.cluster_rows(ks, R)
-    Cb = Yt.reshape(NT * T, D)[rows].double() * valid[..., None]
+    Cb, R = _rows_of(src, ks)
     _, S, Vh = torch.linalg.svd(Cb, full_matrices=False)
     nb = min(n, S.shape[1])
     ok = S[:, :nb] > S[:, :1].clamp_min(1e-300) * (max(R, D) * torch.finfo(torch.float64).eps * 4)
@@ -145,9 +180,8 @@ def _svd(layout, Yt, n):
     return basis, evals
 
 
-def _randomized(layout, Yt, n, gen, init, oversample, power_iters, cache):
-    NT, T, D = Yt.shape
-    K = layout.K
+def _randomized(src, n, gen, init, oversample, power_iters, cache):
+    K, D = src.K, src.D
     basis = torch.zeros(K, n, D, dtype=torch.float64)
     evals = torch.zeros(K, n, dtype=torch.float64)
     if n == 0:
@@ -162,45 +196,55 @@ def _randomized(layout, Yt, n, gen, init, oversample, power_iters, cache):
     if warm is None:
         Q = orthonormalize(g)
         for _ in range(max(1, power_iters)):  # power steps (each: 2 tile-GEMMs + a small orth)
-            Q = orthonormalize(_accumulate(layout, Yt, _bmm(layout, Yt, Q)))
+            Q = orthonormalize(_apply(src, Q))
     else:
         # one power step on [warm, random], then Rayleigh-Ritz on span([warm, S [warm, random]]):
         # the warm basis stays in the span, so the captured variance cannot drop
         Q0 = torch.cat([warm, g], 2)
-        SQ = _accumulate(layout, Yt, _bmm(layout, Yt, Q0))
+        SQ = _apply(src, Q0)
         Q = orthonormalize(torch.cat([warm, SQ], 2)[..., :D])
-    Z = _bmm(layout, Yt, Q)
-    H = _accumulate(layout, Z, Z)
+    H = _over(src, lambda lay, Yt: (lambda Z: _accumulate(lay, Z, Z))(_bmm(lay, Yt, Q)))  # (YQ)ᵀ(YQ) per cluster
     lam, U = torch.linalg.eigh(0.5 * (H + H.transpose(1, 2)))
     nb = min(n, lam.shape[1])
     lam, U = _top(lam, U, nb)
     basis[:, :nb] = (Q @ U).transpose(1, 2)
     evals[:, :nb] = lam
     # fewer points than vectors, or zero columns: drop directions without variance
-    small = evals <= evals[:, :1].clamp_min(1e-300) * (D * torch.finfo(Yt.dtype).eps * 16)
+    small = evals <= evals[:, :1].clamp_min(1e-300) * (D * torch.finfo(src.dtype).eps * 16)
     basis[small] = 0
     evals[small] = 0
     return basis, evals
 
 
-def cluster_pca(layout: TileLayout, Yt: torch.Tensor, n: int, solver: str, gen: torch.Generator | None = None,
+def _apply(src: TileSource, Q: torch.Tensor) -> torch.Tensor:
+    """``Σ_{p∈k} y_p y_pᵀ Q_k`` = ``C_kᵀ (C_k Q_k)`` per cluster ``[K, D, r]`` float64: one pass over the chunks."""
+    return _over(src, lambda lay, Yt: _accumulate(lay, Yt, _bmm(lay, Yt, Q)))
+
+
+def cluster_pca(layout, Yt: torch.Tensor | None, n: int, solver: str, gen: torch.Generator | None = None,
                 init: torch.Tensor | None = None, oversample: int = 8, power_iters: int = 3,
-                cache: dict | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+                cache: dict | None = None, counts: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Top-``n`` PCA vectors of every cluster: ``(basis [K, n, D], evals [K, n])`` float64.
 
     Args:
-        layout: the tile layout of the clusters; Yt: ``[NT, T, D]`` centred,
-            sqrt(weight)-scaled rows in that tile order (float32/64; padding rows zero).
+        layout: the tile layout of the clusters and Yt: ``[NT, T, D]`` centred,
+            sqrt(weight)-scaled rows in that tile order (float32/64; padding rows zero); or a
+            :class:`TileSource` (chunks of rows, each in its own layout) with ``Yt`` None and
+            ``counts [K]`` the points per cluster.
         solver: 'eigh' | 'svd' | 'randomized' (see module docstring).
         init: ``[K, n0, D]`` warm-start basis for 'randomized' (its span is kept).
         cache: a dict owned by one fit, to reuse the random test block across refits.
     """
+    if isinstance(layout, TileSource):
+        src = layout
+    else:
+        src, counts = TileSource.single(layout, Yt), layout.counts
     if solver == "eigh":
-        return _eigh_normal_form(layout, Yt, n)
+        return _eigh_normal_form(src, n, counts)
     if solver == "svd":
-        return _svd(layout, Yt, n)
+        return _svd(src, n, counts)
     if solver == "randomized":
         if gen is None:
             gen = torch.Generator().manual_seed(0)
-        return _randomized(layout, Yt, n, gen, init, oversample, power_iters, cache)
+        return _randomized(src, n, gen, init, oversample, power_iters, cache)
     raise ValueError(f"solver={solver!r}; accepted: 'eigh', 'svd', 'randomized'")
