@@ -28,6 +28,8 @@ over cluster tiles (``segment.tiles_bmm``), never decoding x̃_p. With a view, `
 from __future__ import annotations
 
 import math
+import operator
+import threading
 import time
 from typing import Any
 
@@ -44,7 +46,7 @@ from .chunks import centred as centred_signal
 from .kmeans import CACHE_BLOCK_BYTES, linear, row_chunk
 from .relight_kernels import constants_layout as kernel_layout
 from .relight_kernels import fits as kernel_fits
-from .relight_kernels import native, run_checked, run_plan
+from .relight_kernels import light_flagged, native, run_checked, run_plan
 from .relight_kernels import plan as kernel_plan
 from .segment import from_tiles, segment_matmul, tile_layout, tiles_bmm, to_tiles
 
@@ -887,7 +889,7 @@ class AffineRelighter(Relighter):
     replaced tensor or a refit), or ``relight`` itself where it would convert the light or the
     view or not use the kernels."""
 
-    __slots__ = ("_hot",)
+    __slots__ = ("_hot", "_fast")
 
     def __init__(self, codec: AffineCodec, enc: Encoded, view: Any = None, n_vectors: int | None = None):
         codec._check_enc(enc)
@@ -902,12 +904,66 @@ class AffineRelighter(Relighter):
         # the last full call's checked setting: (light shape, out, out's address and shape, the view's
         # addresses, encoding_state of the codes and model, plan, n_out, result shape, held tensors)
         self._hot: tuple | None = None
+        # the render loop's form without a view, r(light, out=buf), prepared at its first full call (_arm_fast): the
+        # ctypes function, the plan's argument array, a constants buffer of this relighter's own and what the call
+        # checks against (see _call_fast)
+        self._fast: tuple | None = None
+
+    def _arm_fast(self, lib, pl, light: torch.Tensor, out: torch.Tensor, held: tuple) -> None:
+        """Prepare ``_call_fast`` after a full call without a view into ``out``: everything the
+        call would look up (the ctypes function, the plan's argument address, a constants buffer
+        ``T`` of the plan's layout owned by this relighter and the thread that armed it, so no
+        other call replaces it under us) and what it compares against (``out``'s address, shape
+        and storage, the light's shape, the point count and, per held tensor, the tensor itself,
+        its address, shape and version: ``encoding_state``'s key without rebuilding it)."""
+        try:
+            meta = tuple((t, t.data_ptr(), t.shape, t._version) for t in held if t is not None)
+        except RuntimeError:  # inference-mode tensors track no version: every call checks in full
+            self._fast = None
+            return
+        T = torch.zeros(pl.size, dtype=torch.float32)
+        self._fast = (out, threading.get_ident(), lib, light.shape, out.data_ptr(), out.shape, out.untyped_storage().data_ptr(),
+                      self.enc.meta.get("points"), held, meta, lib.prt_relight_plan, pl.args_ptr, T, T.data_ptr(), pl)
+
+    def _call_fast(self, light: torch.Tensor, out: torch.Tensor, f: tuple) -> torch.Tensor | None:
+        """``r(light, out=buf)`` without a view, as armed by ``_arm_fast``: ``out``, or None where
+        anything the full call checked changed (the caller then checks in full). Per call: the
+        light a CPU float32 contiguous tensor of the armed shape not in ``out``'s storage, no
+        grad wanted; ``out`` at the same address, shape and storage, contiguous; the encoding
+        still this codec's (``_check_enc``) with the same point count; its codes and the model the
+        same tensors at the same addresses, shapes and versions; then the one kernel call
+        (``prt_relight_plan``: Sloan 2003 §6's constants M_i l, then e_p per point), whose light
+        check raises naming a non-finite value, as ``relight`` does. ~3 µs of Python where the
+        general fast path took ~9 (reports/benchmarks/relight.md, "prepared")."""
+        codec, enc = self.codec, self.enc
+        if (light.requires_grad and torch.is_grad_enabled()) or native() is not f[2] or light.dtype != torch.float32 \
+                or light.shape != f[3] or not light.is_contiguous() or not light.is_cpu or out.data_ptr() != f[4] \
+                or out.shape != f[5] or not out.is_contiguous() or light.untyped_storage().data_ptr() == f[6] \
+                or threading.get_ident() != f[1] or enc.meta.get("points") != f[7]:
+            return None
+        codec._check_enc(enc)
+        held = (*enc.tensors.values(), *codec._model_tensors())
+        if len(held) != len(f[8]) or not all(map(operator.is_, held, f[8])):
+            return None
+        for t, ptr, shape, v in f[9]:
+            if t._version != v or t.data_ptr() != ptr or t.shape != shape:
+                return None
+        flag = f[10](f[11], light.data_ptr(), f[13], f[4], None, None, torch.get_num_threads())
+        if flag & 16:
+            light_flagged(light, light)
+        return out
 
     def _view_ptrs(self) -> tuple:
         v = self.view
         return () if v is None else ((v[0].data_ptr(), v[1].data_ptr()) if isinstance(v, tuple) else (v.data_ptr(),))
 
     def __call__(self, light: Any, out: torch.Tensor | None = None) -> torch.Tensor:
+        f = self._fast
+        if f is not None and out is f[0] and type(light) is torch.Tensor:
+            res = self._call_fast(light, out, f)
+            if res is not None:
+                return res
+        self._fast = None
         codec, enc, view = self.codec, self.enc, self.view
         if grad_required(light):  # the kernels are forward-only: relight's autograd path
             return codec.relight(enc, light, view, out=out, **self.kwargs)
@@ -955,4 +1011,6 @@ class AffineRelighter(Relighter):
         held = (*enc.tensors.values(), *codec._model_tensors())
         self._hot = (light.shape, out, None if out is None else out.data_ptr(), None if out is None else out.shape, vptrs,
                      encoding_state(enc, held), pl, n_out, shape, held)
+        if view is None and out is not None:
+            self._arm_fast(lib, pl, light, out, held)
         return res if out is not None or shape is None else res.view(shape)

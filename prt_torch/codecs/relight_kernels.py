@@ -61,7 +61,7 @@ from .._checks import check_finite_float32, tensor_version
 from .._native import LIBRARIES, compile_library, cpu_isa, kernel_isa, kernel_sources
 
 __all__ = ["native", "native_status", "kernel_path", "constants", "constants_layout", "model_t", "affine_rows", "affine_dense", "affine_taps",
-           "plan", "run_plan", "Plan", "sg_lookup_sum", "sg_taps", "lobe_layout", "fits", "MAX_ROW"]
+           "plan", "run_plan", "light_flagged", "Plan", "sg_lookup_sum", "sg_taps", "lobe_layout", "fits", "MAX_ROW"]
 
 #: largest per-point row (n_out·C for dense views, J·C for taps) the kernels hold on the stack
 MAX_ROW = 4096
@@ -299,7 +299,7 @@ def _scratch(kind: str, size: tuple) -> torch.Tensor:
     return out
 
 
-def _light_flagged(L: torch.Tensor, Lc: torch.Tensor) -> None:
+def light_flagged(L: torch.Tensor, Lc: torch.Tensor) -> None:
     """Raise naming the light's first non-finite value (as given, else as converted to float32:
     a float64 value beyond its range), after a kernel flagged the float32 light it read."""
     check_finite_float32("light", L, Lc)
@@ -331,7 +331,7 @@ def constants(lib, means, basis, n: int, n_out: int, n_in: int, L: torch.Tensor,
         bad = lib.prt_constants(K, J, Jmax, n_in, n_out, Mt.shape[3], C, Mt.data_ptr(), Lc.data_ptr(), out.data_ptr(),
                                 sk, sj, so, sc, _ptr(nk), int(means is not None), torch.get_num_threads())
     if bad:
-        _light_flagged(L, Lc)
+        light_flagged(L, Lc)
     return out
 
 
@@ -417,7 +417,7 @@ def run_checked(lib, pl: Plan, L: torch.Tensor, Lc: torch.Tensor, y0, y1, out: t
     T = _scratch(pl.kind, pl.size)
     flag = lib.prt_relight_plan(pl.args_ptr, Lc.data_ptr(), T.data_ptr(), out.data_ptr(), y0, y1, torch.get_num_threads())
     if flag & 16:
-        _light_flagged(L, Lc)
+        light_flagged(L, Lc)
     return int(flag)
 
 
