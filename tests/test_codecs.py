@@ -205,13 +205,14 @@ def test_cpca_one_cluster_equals_pca_and_zero_vectors_equals_vq():
     ep, eq = p.fit_encode(X), q.fit_encode(X)
     assert torch.allclose(p.decode(ep), q.decode(eq), atol=1e-5)
     assert math.isclose(p.fit_info_["se"], q.fit_info_["se"], rel_tol=1e-6)
-    v = codecs.get("vq", clusters=7, seed=3, max_iter=100)
-    z = codecs.get("cpca_static", clusters=7, vectors=0, seed=3, max_iter=100)
+    # equal k-means++ samples (the defaults differ: vq 32·clusters, CPCA 64·clusters points)
+    v = codecs.get("vq", clusters=7, seed=3, max_iter=100, init_sample=300)
+    z = codecs.get("cpca_static", clusters=7, vectors=0, seed=3, max_iter=100, init_sample=300)
     ev, ez = v.fit_encode(X), z.fit_encode(X)
     assert torch.equal(v.labels_of(ev), z.labels_of(ez))
     assert torch.allclose(v.decode(ev), z.decode(ez), atol=1e-6)
     # iterative with n' = 0 is plain VQ too
-    zi = codecs.get("cpca_iterative", clusters=7, vectors=0, seed=3, max_iter=100)
+    zi = codecs.get("cpca_iterative", clusters=7, vectors=0, seed=3, max_iter=100, init_sample=300)
     assert torch.equal(zi.labels_of(zi.fit_encode(X)), v.labels_of(ev))
 
 

@@ -227,3 +227,33 @@ def test_linear_is_the_gemm_with_bias_whichever_kernel_the_machine_chose():
         out = km.linear(X, W, b)
         assert out.shape == (m, 96) and out.dtype == torch.float32
         assert torch.allclose(out.double(), ref, rtol=1e-5, atol=1e-4)
+
+
+@pytest.mark.parametrize("near", [2, 3, 5])
+def test_near_centre_bounds_prune_and_keep_plain_lloyd_labels(monkeypatch, near):
+    """The per-centre bounds of the next-nearest centres (``kmeans.NEAR``, Elkan 2003 Lemma 2 on
+    those centres, Hamerly 2010 on the rest) give plain Lloyd's labels and centres (the float64
+    brute force above) on overlapping blobs where they prune, for 1, 2 and 4 tracked centres."""
+    X = blobs(3000, 16, 60, 7, spread=1.2)  # overlapping blobs: many points near a boundary
+    g = torch.Generator().manual_seed(3)
+    C0 = X[torch.randperm(X.shape[0], generator=g)[:80]]
+    monkeypatch.setattr(km, "NEAR", near)
+    res = km.lloyd(X, C0, 25, 0.0)
+    C_ref, lab_ref = plain_lloyd(X, C0, res["n_iter"])
+    assert torch.equal(res["labels"], lab_ref)
+    assert torch.allclose(res["centers"], C_ref, atol=1e-10)
+    assert res["distance_rows"] < res["n_iter"] + 1  # it pruned
+
+
+def test_near_centre_bounds_skip_more_rows_than_one_lower_bound(monkeypatch):
+    """NEAR = 3 (2nd and 3rd nearest centres bounded by their own shifts) evaluates fewer
+    distance rows than NEAR = 2 on the same run, with the same labels."""
+    X = blobs(3000, 16, 60, 7, spread=1.2)
+    g = torch.Generator().manual_seed(3)
+    C0 = X[torch.randperm(X.shape[0], generator=g)[:80]]
+    out = {}
+    for near in (2, 3):
+        monkeypatch.setattr(km, "NEAR", near)
+        out[near] = km.lloyd(X, C0, 25, 0.0)
+    assert torch.equal(out[2]["labels"], out[3]["labels"])
+    assert out[3]["distance_rows"] < out[2]["distance_rows"]
