@@ -305,3 +305,31 @@ def test_interruption_hint_says_what_was_kept(tmp_path):
     (state / "chunk_000001.prt").write_bytes(b"")
     assert str(h) == (f"finished chunks (2) are kept in {str(state)!r}; continue with: "
                       "prt precompute bumpy_sphere:xl -o t.prt --resume")
+
+
+def test_run_chunks_with_a_sink_holds_no_finished_chunk():
+    """With ``sink``, a chunk's result is freed once the sink has copied it: while chunk i computes,
+    no earlier chunk's tensor is alive (the executor's result list used to keep every one until the
+    map ended, so a run held its result twice), and the assembled result is every chunk's rows."""
+    import weakref
+
+    from prt_torch.transfer.base import run_chunks
+
+    refs: list = []
+    dead_at: list[bool] = []
+
+    def compute(a: int, b: int) -> dict:
+        dead_at.append(all(r() is None for r in refs))
+        t = torch.arange(a, b, dtype=torch.float64)[:, None].expand(-1, 4).clone()
+        refs.append(weakref.ref(t))
+        return {"T": t}
+
+    got = torch.full((10, 4), -1.0, dtype=torch.float64)
+
+    def sink(a: int, b: int, p: dict) -> None:
+        got[a:b] = p["T"]
+
+    out = run_chunks(10, 3, compute, fingerprint={"t": 1}, sink=sink)
+    assert dead_at == [True] * 4 and all(r() is None for r in refs)
+    assert out == [None] * 4
+    assert torch.equal(got, torch.arange(10, dtype=torch.float64)[:, None].expand(-1, 4))

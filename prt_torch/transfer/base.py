@@ -362,6 +362,8 @@ def run_chunks(
             bar.update(stop - start)
         if callback is not None:
             callback(i, n_chunks)
+        if sink is not None:
+            res.clear()  # the sink has copied it: the executor's result list keeps no chunk (each is held once, briefly)
 
     try:
         todo = []
