@@ -386,6 +386,7 @@ class WaveletRelighter:
             raise ValueError(f"a tile of {TV} vertices holds {int(tptr[:, -1].max())} sparse blocks; accepted: < 2^31 (a smaller tile)")
         self.tptr = tptr.to(torch.int32).contiguous()
         self.bcount = cnt  # [NT, P] sparse blocks per tile and column
+        self._cblk = cnt.sum(0).to(torch.int32).contiguous()  # [P] sparse blocks per column (the kernel's row/column choice)
         self.MT = max(1, min(self.NT, os.cpu_count() or 1))
         self.threads = threads
         self._f: dict = {}
@@ -395,8 +396,7 @@ class WaveletRelighter:
         self.dcol = dcols.contiguous()  # [Pd] the dense slot's column
         self.cls = torch.where(is_dense, 2, (self.nnz > 0).to(torch.int64)).to(torch.uint8)  # [P] 0 empty, 1 sparse, 2 dense
         self._mark = torch.empty(P, dtype=torch.uint8)  # the light's columns: 1 sparse, 2 dense
-        self._lp = torch.empty(P, 4, dtype=torch.float32)  # the light per column
-        self._lr = torch.empty(P, 4, dtype=torch.float32)  # the light per sparse column, zeros elsewhere (row-major pass)
+        self._lp = torch.zeros(P, 4, dtype=torch.float32)  # the light per column (zero between the kernel's calls)
         self._native = None
 
     def bytes_read(self, light_idx: torch.Tensor) -> int:
@@ -452,8 +452,9 @@ class WaveletRelighter:
                                          self.tptr.data_ptr(), self.tbase.data_ptr(), self.bofs.data_ptr(), self.bvals.data_ptr(),
                                          self.dslot.data_ptr(), self.dense.data_ptr(), self._acc.data_ptr(), self._wk.data_ptr(),
                                          self._lw.data_ptr(), self.dcol.data_ptr(), self.cls.data_ptr(), self._mark.data_ptr(), self._lp.data_ptr(),
-                                         self._lr.data_ptr(), self.rptr.data_ptr(), self.rcol.data_ptr(), self.rvals.data_ptr(),
-                                         self.rcol.numel(), min(int(round(self.row_min * 1000)), 1001)], dtype=torch.int64)
+                                         self.rptr.data_ptr(), self.rcol.data_ptr(), self.rvals.data_ptr(),
+                                         self.rcol.numel(), min(int(round(self.row_min * 1000)), 1001), self._cblk.data_ptr()],
+                                        dtype=torch.int64)
             lay = self._layout.data_ptr()
             self._native = functools.partial(fn, lay)
         return self._native

@@ -172,6 +172,42 @@ SPARSE_TILE(float)
 SPARSE_TILE(int8_t)
 SPARSE_TILE(int16_t)
 
+/* the light per column lp [P, 4] (zero on entry; a column listed twice adds its values) and each listed
+ * column's class in mark [P]: light channel c of output c (a grey light C = 1 on a coloured transfer:
+ * channel 0 for all three), without a branch per term (restrict: the byte stores of mark would otherwise
+ * make every later load wait for them). Returns the sparse blocks of the distinct columns listed (cblk [P]:
+ * a column's sparse blocks over all tiles; counted at a column's first listing, while its mark is 0). */
+static inline i64 gather_light(i64 N, const i64 *restrict sel, const float *restrict lv, i64 C, i64 CO,
+                               const unsigned char *restrict cls, const int32_t *restrict cblk, unsigned char *restrict mark,
+                               float *restrict lp) {
+    i64 sb = 0;
+    if (C == 3)
+        for (i64 n = 0; n < N; n++) {
+            const i64 j = sel[n];
+            float *q = lp + 4 * j;
+            sb += cblk[j] & -(i64)(mark[j] == 0);
+            mark[j] = cls[j];
+            q[0] += lv[n]; q[1] += lv[N + n]; q[2] += lv[2 * N + n];
+        }
+    else if (C == 1)
+        for (i64 n = 0; n < N; n++) {
+            const i64 j = sel[n];
+            float *q = lp + 4 * j;
+            const float x = lv[n];
+            sb += cblk[j] & -(i64)(mark[j] == 0);
+            mark[j] = cls[j];
+            for (int c = 0; c < CO; c++) q[c] += x;
+        }
+    else
+        for (i64 n = 0; n < N; n++) {
+            const i64 j = sel[n];
+            sb += cblk[j] & -(i64)(mark[j] == 0);
+            mark[j] = cls[j];
+            for (int c = 0; c < CO; c++) lp[4 * j + c] += lv[c * N + n];
+        }
+    return sb;
+}
+
 /* the transfer's layout and the scratch, built once per transfer (relight.py: an int64 tensor of
  * these fields in this order; pointers as integers) */
 typedef struct {
@@ -189,13 +225,14 @@ typedef struct {
     const i64 *dcol;            /* [Pd] the dense slot's column */
     const unsigned char *cls;   /* [P] the column's class: 0 empty, 1 sparse, 2 dense */
     unsigned char *mark;        /* scratch [P]: 1 the column is one of the light's sparse terms, 2 a dense one */
-    float *lp;                  /* scratch [P, 4]: the light per column */
-    float *lr;                  /* scratch [P, 4]: the light per sparse column, zeros elsewhere (the row-major pass) */
+    float *lp;                  /* scratch [P, 4]: the light per column, zero between calls (the row-major pass reads it for
+                                 * every column: zero for the columns the light does not hold) */
     const i64 *rptr;            /* [4 ceil(V/32) + 1] the row-major copy of the sparse part: 8-vertex block b's entries */
     const int32_t *rcol;        /* [NR] the entry's column */
     const void *rvals;          /* [NR, CT, 8] its stored values */
     i64 NR, row_permille;       /* entries; the row-major pass is taken when the light's sparse terms hold at least
                                  * row_permille / 1000 of the sparse blocks (> 1000: never) */
+    const int32_t *cblk;        /* [P] the column's sparse blocks over all tiles (0: dense or empty) */
 } wavelet_layout;
 
 #define TILE_CASE(T, CT_, CO_)                                                                               \
@@ -203,7 +240,7 @@ typedef struct {
     for (i64 b = 0; b < nb; b++) {                                                                           \
         const i64 v0 = vt + b * BV, nv = V - v0 < BV ? V - v0 : BV;                                          \
         dense_block_##T(CT_, CO_, nd, wk, lw, dense + v0 * Pd * CT_, BV * CT_, ns && !rows ? acc + 128 * b : NULL, \
-                        L->rptr + v0 / 8, L->rcol, rvals, rows ? lr : NULL, nv, f + CO_ * v0, out + CO_ * v0);  \
+                        L->rptr + v0 / 8, L->rcol, rvals, rows ? lp : NULL, nv, f + CO_ * v0, out + CO_ * v0);  \
     }
 
 #define WAVELET_KERNEL(NAME, T)                                                                              \
@@ -214,7 +251,9 @@ int NAME(const wavelet_layout *L, i64 N, const i64 *sel, const float *lv, i64 C,
     float *lw = L->lw;                                                                                       \
     i64 *wk = L->wk;                                                                                         \
     if (C < 1 || C > 4 || (CT == 3 && C != 1 && C != 3)) return 1;                                          \
-    for (i64 n = 0; n < N; n++) if (sel[n] < 0 || sel[n] >= P) return 2;                                    \
+    uint64_t bad = 0; /* no exit per term: vectorised */                                                     \
+    for (i64 n = 0; n < N; n++) bad |= (uint64_t)sel[n] >= (uint64_t)P;                                      \
+    if (bad) return 2;                                                                                       \
     const i64 CO = C > CT ? C : CT;                                                                          \
     /* the dense terms in slot order (each block's values are then read front to back; a column listed twice    \
      * adds its light values), the sparse terms from the back of wk / lw; light channel c of output c        \
@@ -224,14 +263,14 @@ int NAME(const wavelet_layout *L, i64 N, const i64 *sel, const float *lv, i64 C,
      * term: in the light's order dense and sparse terms alternate, and a branch on the form mispredicted     \
      * about every other term (measured: ~5-10 ns per term, a third of the time at N = all) */                \
     unsigned char *mark = L->mark;                                                                           \
-    float *lp = L->lp;                                                                                       \
+    float *lp = L->lp; /* zero for every column on entry: this call's columns are zeroed again at its end */  \
     memset(mark, 0, (size_t)P);                                                                              \
-    for (i64 n = 0; n < N; n++) memset(lp + 4 * sel[n], 0, 4 * sizeof(float));                               \
-    for (i64 n = 0; n < N; n++) {                                                                            \
-        const i64 j = sel[n];                                                                                \
-        mark[j] = L->cls[j];                                                                                 \
-        for (int c = 0; c < CO; c++) lp[4 * j + c] += lv[(C == 1 ? 0 : c) * N + n];                          \
-    }                                                                                                        \
+    const i64 sb = gather_light(N, sel, lv, C, CO, L->cls, L->cblk, mark, lp);                               \
+    /* the row-major pass when the light's sparse terms hold at least row_permille / 1000 of the sparse blocks: \
+     * each 8-vertex block's entries into the dense block's register sums (no scratch, no read-modify-write), \
+     * the light looked up per column in lp (zero for the columns it does not hold); else the column-major   \
+     * pass into the tiles' scratch over the sparse terms listed below */                                    \
+    const int rows = sb && L->NR && L->row_permille <= 1000 && sb * 1000 >= L->row_permille * L->NR;          \
     /* the dense terms in slot order (each block's values are then read front to back), written always and   \
      * kept by advancing the count */                                                                        \
     i64 nd = 0;                                                                                              \
@@ -246,7 +285,7 @@ int NAME(const wavelet_layout *L, i64 N, const i64 *sel, const float *lv, i64 C,
     i64 *sw = wk + Pd;                                                                                       \
     float *sl = lw + 4 * Pd;                                                                                 \
     i64 ns = 0;                                                                                              \
-    for (i64 w = 0; w < P; w += 8) {                                                                         \
+    for (i64 w = 0; w < (rows ? 0 : P); w += 8) {                                                            \
         uint64_t x = 0; /* a constant-size copy (a variable one is a libc call: ~2.5 us per call over P = 6144) */ \
         if (P - w >= 8) memcpy(&x, mark + w, 8); else memcpy(&x, mark + w, (size_t)(P - w));                \
         x &= 0x0101010101010101ull;                                                                          \
@@ -257,21 +296,6 @@ int NAME(const wavelet_layout *L, i64 N, const i64 *sel, const float *lv, i64 C,
             memcpy(sl + 4 * ns, lp + 4 * j, 4 * sizeof(float));                                              \
             ns++;                                                                                            \
         }                                                                                                    \
-    }                                                                                                        \
-    /* the row-major pass when the light's sparse terms hold most sparse blocks: each 8-vertex block's entries \
-     * into the dense block's register sums (no scratch, no read-modify-write), the light looked up per      \
-     * column in lr (zero for the columns it does not hold); else the column-major pass into the tiles' scratch */ \
-    int rows = 0;                                                                                            \
-    if (ns && L->NR && L->row_permille <= 1000) {                                                            \
-        i64 sb = 0;                                                                                          \
-        for (i64 t = 0; t < NT; t++)                                                                         \
-            for (i64 k = 0; k < ns; k++) sb += L->tptr[t * (P + 1) + sw[k] + 1] - L->tptr[t * (P + 1) + sw[k]]; \
-        rows = sb * 1000 >= L->row_permille * L->NR;                                                         \
-    }                                                                                                        \
-    float *lr = L->lr;                                                                                       \
-    if (rows) {                                                                                              \
-        memset(lr, 0, (size_t)(P * 4) * sizeof(float));                                                      \
-        for (i64 k = 0; k < ns; k++) memcpy(lr + 4 * sw[k], sl + 4 * k, 4 * sizeof(float));                  \
     }                                                                                                        \
     const T *rvals = (const T *)L->rvals;                                                                    \
     int nt = (int)(threads < 1 ? 1 : threads > L->MT ? L->MT : threads);                                     \
@@ -293,6 +317,7 @@ int NAME(const wavelet_layout *L, i64 N, const i64 *sel, const float *lv, i64 C,
             default: { TILE_CASE(T, 1, 4) } break;                                                           \
         }                                                                                                    \
     }                                                                                                        \
+    for (i64 n = 0; n < N; n++) memset(lp + 4 * sel[n], 0, 4 * sizeof(float));                               \
     return 0;                                                                                                \
 }
 
