@@ -586,7 +586,7 @@ def write_md(res: dict, quick: bool) -> None:
              "(`relight.WaveletRelighter`): *dense* (32-vertex blocks of the stored values, zeros included, no index: "
              "the columns most vertices keep, the coarse levels) or *block-sparse* (per tile of vertices and column, "
              "the 8-vertex blocks holding a value: an int32 offset and 8 values, zeros included; two int32 pointers "
-             "per tile and term — or, when the light's sparse terms hold at least 0.4 of all sparse blocks (here N = "
+             "per tile and term — or, when the light's sparse terms hold at least 0.5 of all sparse blocks (here N = "
              "2000 and all), the row-major copy: every sparse block, int32 column + 8 values, summed in registers). "
              "Bytes read are that layout's and pass's, the output's included. Paired (interleaved short samples, "
              "fastest tenth of each side) with its own bound "
