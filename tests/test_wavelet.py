@@ -241,6 +241,49 @@ def test_kernel_dense_and_sparse_columns_equal_the_dense_gather(scene, dtype, mo
     assert forms[2.0] == 0 and 0 < forms[None] < forms[0.0]
 
 
+def test_kernel_keeps_no_light_between_calls_grey_and_coloured(scene):
+    """kernels/wavelet.c keeps the light per column in a scratch that is zero between calls (the
+    row-major pass reads it for every column; each call zeroes its own columns at its end): a
+    sequence of lights on one relighter — the row-major pass over every column, a refused index,
+    the column-major pass over a few other columns, the row-major pass again over half of them,
+    duplicated indices — each equals the float64 gather of the stored values (a stale light
+    would add). For a grey (CT = 1) and a coloured (CT = 3) transfer, grey and RGB lights (the
+    RGB output's register interleave for whole 32-vertex blocks; V = 2251 leaves a partial one)."""
+    g = torch.Generator().manual_seed(17)
+    V, res, K = scene.num_vertices, 8, 24
+    P = 6 * res * res
+    index = (torch.rand(V, P, generator=g) * torch.where(torch.arange(P) < 16, 50.0, 1.0)).topk(K, dim=1).indices
+    for CT in (1, 3):
+        shape = (V, K) if CT == 1 else (V, 3, K)
+        q = torch.randint(-32767, 32768, shape, generator=g).to(torch.int16)
+        scale = torch.rand(V, generator=g) + 0.5 if CT == 1 else torch.rand(V, 3, generator=g) + 0.5
+        tr = Transfer("wavelet", q, scene, {"res": res, "terms": K, "bits": 16}, aux={"index": index.to(torch.int16), "scale": scale})
+        vals = (q.double() * scale.double()[:, None]) if CT == 1 else q.double() * scale.double()[..., None]
+        alb = scene.albedo.double() if CT == 1 else torch.ones(V, 3, dtype=torch.float64)
+        r = relight.WaveletRelighter(tr, threads=1)
+        if r._kernel() is None:
+            pytest.skip("no native kernel here")
+        sparse = torch.nonzero((r.dslot < 0) & (r.nnz > 0)).flatten()
+        perm = sparse[torch.randperm(sparse.numel(), generator=g)]
+        lights = [torch.arange(P), perm[:5], perm[:sparse.numel() // 2], torch.cat([perm[:9], perm[:9]])]
+        for C in (1, 3):
+            for i, li in enumerate(lights):
+                lv = torch.randn(C, li.numel(), generator=g, dtype=torch.float64)
+                Lsum = torch.zeros(C, P, dtype=torch.float64).index_add_(1, li, lv)
+                if CT == 1:
+                    ref = relight.wavelet_dense(vals, index, torch.arange(P), Lsum, P) * (alb[:, :C] if C > 1 else alb[:, :1])
+                else:
+                    L3 = Lsum.expand(3, -1)
+                    ref = torch.stack([relight.wavelet_dense(vals[:, c], index, torch.arange(P), L3[c:c + 1], P)[:, 0]
+                                       for c in range(3)], 1)
+                got = r(li, lv.float()).double()
+                assert (got - ref).abs().max() <= 1e-5 * float(ref.abs().max()) + 1e-6, (CT, C, i)
+                if i == 0:  # a refused index leaves nothing behind either
+                    with pytest.raises(ValueError, match=f"accepted: 0..{P - 1}"):
+                        r(torch.tensor([int(perm[0]), P]), torch.ones(C, 2))
+        assert bool((r._lp == 0).all())
+
+
 def test_kernel_portable_path_without_avx2(scene):
     """kernels/wavelet.c compiled for baseline x86-64 (no AVX2: the portable vector-extension
     loads and the one-row-per-entry scatter, the path a CPU without AVX2 takes) on the
