@@ -25,9 +25,14 @@
  *    output channel into its accumulator, which stays in L1 (a tile's scratch: TV/8 x 128 bytes).
  * Per tile (the unit of the threads' split, OpenMP, `threads`): its sparse blocks of the light's
  * sparse terms into the zeroed scratch, then its dense blocks, each adding the scratch and writing
- * its outputs once. Only the columns of the light's terms are read. The index check (0 <= sel < P)
- * runs before any work (returns 2); an unsupported C returns 1 (CT = 1: 1..4; CT = 3: 1 or 3). A column
- * listed more than once adds its light values. */
+ * its outputs once. Only the columns of the light's terms are read — except when the light's sparse
+ * terms hold at least row_permille / 1000 of all sparse blocks: then every sparse block is read from a
+ * row-major copy (per 8-vertex block its columns' entries) into the dense block's register sums, the
+ * light looked up per column (zero for the columns the light does not hold; no scratch). The index
+ * check (0 <= sel < P) runs before any work (returns 2); an unsupported C returns 1 (CT = 1: 1..4;
+ * CT = 3: 1 or 3). A column listed more than once adds its light values. The layout's scratch (the
+ * light per column lp, zero between calls: each call zeroes its own columns at its end; the term
+ * lists; the tiles' accumulators) makes one call at a time per layout. */
 
 #include <stdint.h>
 #include <string.h>
@@ -255,9 +260,6 @@ int NAME(const wavelet_layout *L, i64 N, const i64 *sel, const float *lv, i64 C,
     for (i64 n = 0; n < N; n++) bad |= (uint64_t)sel[n] >= (uint64_t)P;                                      \
     if (bad) return 2;                                                                                       \
     const i64 CO = C > CT ? C : CT;                                                                          \
-    /* the dense terms in slot order (each block's values are then read front to back; a column listed twice    \
-     * adds its light values), the sparse terms from the back of wk / lw; light channel c of output c        \
-     * (a grey light C = 1 on a coloured transfer: channel 0 for all three) */                               \
     /* the light per column (duplicates add), and a mark per column (its class: 0 no vertex keeps it — not    \
      * read —, 1 sparse, 2 dense; 3264 of the 5900 sparse columns at N = all on the blocker scene) — without a branch per  \
      * term: in the light's order dense and sparse terms alternate, and a branch on the form mispredicted     \
