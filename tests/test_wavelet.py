@@ -248,7 +248,8 @@ def test_kernel_keeps_no_light_between_calls_grey_and_coloured(scene):
     the column-major pass over a few other columns, the row-major pass again over half of them,
     duplicated indices — each equals the float64 gather of the stored values (a stale light
     would add). For a grey (CT = 1) and a coloured (CT = 3) transfer, grey and RGB lights (the
-    RGB output's register interleave for whole 32-vertex blocks; V = 2251 leaves a partial one)."""
+    RGB output's register interleave for whole 32-vertex blocks; V = 2251 leaves a partial one), and
+    an RGB light with equal channels (the kernel's one-sum path on a grey transfer)."""
     g = torch.Generator().manual_seed(17)
     V, res, K = scene.num_vertices, 8, 24
     P = 6 * res * res
@@ -266,9 +267,9 @@ def test_kernel_keeps_no_light_between_calls_grey_and_coloured(scene):
         sparse = torch.nonzero((r.dslot < 0) & (r.nnz > 0)).flatten()
         perm = sparse[torch.randperm(sparse.numel(), generator=g)]
         lights = [torch.arange(P), perm[:5], perm[:sparse.numel() // 2], torch.cat([perm[:9], perm[:9]])]
-        for C in (1, 3):
+        for C, grey in ((1, False), (3, False), (3, True)):  # grey: an RGB light with equal channels (one sum, CT = 1)
             for i, li in enumerate(lights):
-                lv = torch.randn(C, li.numel(), generator=g, dtype=torch.float64)
+                lv = torch.randn(1 if grey else C, li.numel(), generator=g, dtype=torch.float64).expand(C, -1).contiguous()
                 Lsum = torch.zeros(C, P, dtype=torch.float64).index_add_(1, li, lv)
                 if CT == 1:
                     ref = relight.wavelet_dense(vals, index, torch.arange(P), Lsum, P) * (alb[:, :C] if C > 1 else alb[:, :1])
@@ -277,7 +278,7 @@ def test_kernel_keeps_no_light_between_calls_grey_and_coloured(scene):
                     ref = torch.stack([relight.wavelet_dense(vals[:, c], index, torch.arange(P), L3[c:c + 1], P)[:, 0]
                                        for c in range(3)], 1)
                 got = r(li, lv.float()).double()
-                assert (got - ref).abs().max() <= 1e-5 * float(ref.abs().max()) + 1e-6, (CT, C, i)
+                assert (got - ref).abs().max() <= 1e-5 * float(ref.abs().max()) + 1e-6, (CT, C, grey, i)
                 if i == 0:  # a refused index leaves nothing behind either
                     with pytest.raises(ValueError, match=f"accepted: 0..{P - 1}"):
                         r(torch.tensor([int(perm[0]), P]), torch.ones(C, 2))

@@ -98,7 +98,7 @@ static inline void store_rgb8(float *out, const float *f, v8f r, v8f g, v8f b) {
  * term's values are loaded one vector at a time with the CO light values held (CT = 1, CO = 3: 12 sums,
  * 3 lights, 1 value = 16 registers, no spill) */
 #define DENSE_BLOCK(T)                                                                                       \
-static inline __attribute__((always_inline)) void dense_block_##T(const int CT, const int CO, i64 nd,         \
+static inline __attribute__((always_inline)) void dense_block_##T(const int CT, const int CO, const int OC, i64 nd, \
         const i64 *ds, const float *lw, const T *blk, i64 stride, const float *acc, const i64 *rp,           \
         const int32_t *rc, const T *rv, const float *lp, i64 nv, const float *f, float *out) {               \
     v8f a[4][4];                                                                                             \
@@ -137,18 +137,20 @@ static inline __attribute__((always_inline)) void dense_block_##T(const int CT, 
         }                                                                                                    \
     if (acc)                                                                                                 \
         for (int k = 0; k < 4; k++) for (int c = 0; c < CO; c++) a[c][k] += ld8(acc + 32 * k + 8 * c);      \
-    if (CO == 3 && nv == BV) { /* RGB: each 8 vertices' sums interleaved in registers (permute + blend) */    \
-        for (int k = 0; k < 4; k++) store_rgb8(out + 24 * k, f + 24 * k, a[0][k], a[1][k], a[2][k]);         \
+    /* OC output channels: CO, or 3 from one grey sum (an RGB light with equal channels, CO = 1) */         \
+    if (OC == 3 && nv == BV) { /* RGB: each 8 vertices' sums interleaved in registers (permute + blend) */    \
+        for (int k = 0; k < 4; k++)                                                                          \
+            store_rgb8(out + 24 * k, f + 24 * k, a[0][k], a[CO == 3 ? 1 : 0][k], a[CO == 3 ? 2 : 0][k]);    \
         return;                                                                                              \
     }                                                                                                        \
     float sums[4 * BV] __attribute__((aligned(32)));                                                         \
     for (int c = 0; c < CO; c++) for (int k = 0; k < 4; k++) st8(sums + c * BV + 8 * k, a[c][k]);           \
     if (nv == BV) /* constant trip counts: vectorised */                                                     \
         for (int v = 0; v < BV; v++)                                                                         \
-            for (int c = 0; c < CO; c++) out[CO * v + c] = sums[c * BV + v] * f[CO * v + c];                 \
+            for (int c = 0; c < OC; c++) out[OC * v + c] = sums[(CO == 1 ? 0 : c) * BV + v] * f[OC * v + c]; \
     else                                                                                                     \
         for (i64 v = 0; v < nv; v++)                                                                         \
-            for (int c = 0; c < CO; c++) out[CO * v + c] = sums[c * BV + v] * f[CO * v + c];                 \
+            for (int c = 0; c < OC; c++) out[OC * v + c] = sums[(CO == 1 ? 0 : c) * BV + v] * f[OC * v + c]; \
 }
 DENSE_BLOCK(float)
 DENSE_BLOCK(int8_t)
@@ -240,12 +242,12 @@ typedef struct {
     const int32_t *cblk;        /* [P] the column's sparse blocks over all tiles (0: dense or empty) */
 } wavelet_layout;
 
-#define TILE_CASE(T, CT_, CO_)                                                                               \
+#define TILE_CASE(T, CT_, CO_, OC_)                                                                          \
     if (ns && !rows) sparse_tile_##T(CT_, CO_, ns, sw, sl, tp, bofs, bv, acc);                               \
     for (i64 b = 0; b < nb; b++) {                                                                           \
         const i64 v0 = vt + b * BV, nv = V - v0 < BV ? V - v0 : BV;                                          \
-        dense_block_##T(CT_, CO_, nd, wk, lw, dense + v0 * Pd * CT_, BV * CT_, ns && !rows ? acc + 128 * b : NULL, \
-                        L->rptr + v0 / 8, L->rcol, rvals, rows ? lp : NULL, nv, f + CO_ * v0, out + CO_ * v0);  \
+        dense_block_##T(CT_, CO_, OC_, nd, wk, lw, dense + v0 * Pd * CT_, BV * CT_, ns && !rows ? acc + 128 * b : NULL, \
+                        L->rptr + v0 / 8, L->rcol, rvals, rows ? lp : NULL, nv, f + OC_ * v0, out + OC_ * v0);  \
     }
 
 #define WAVELET_KERNEL(NAME, T)                                                                              \
@@ -259,7 +261,16 @@ int NAME(const wavelet_layout *L, i64 N, const i64 *sel, const float *lv, i64 C,
     uint64_t bad = 0; /* no exit per term: vectorised */                                                     \
     for (i64 n = 0; n < N; n++) bad |= (uint64_t)sel[n] >= (uint64_t)P;                                      \
     if (bad) return 2;                                                                                       \
-    const i64 CO = C > CT ? C : CT;                                                                          \
+    /* an RGB light whose three channels are equal (a grey environment given as RGB) on a grey transfer:      \
+     * one sum per vertex, written to all three outputs with their own factors (a third of the multiply-adds \
+     * and of the scratch's read-modify-writes) */                                                           \
+    int grey = C == 3 && CT == 1;                                                                            \
+    for (i64 n = 0; grey && n < N; n++) { /* a coloured light stops at its first coloured term */           \
+        uint32_t a, b, c;                                                                                    \
+        memcpy(&a, lv + n, 4); memcpy(&b, lv + N + n, 4); memcpy(&c, lv + 2 * N + n, 4);                     \
+        grey = ((a ^ b) | (a ^ c)) == 0;                                                                     \
+    }                                                                                                        \
+    const i64 CO = grey ? 1 : C > CT ? C : CT;                                                               \
     /* the light per column (duplicates add), and a mark per column (its class: 0 no vertex keeps it — not    \
      * read —, 1 sparse, 2 dense; 3264 of the 5900 sparse columns at N = all on the blocker scene) — without a branch per  \
      * term: in the light's order dense and sparse terms alternate, and a branch on the form mispredicted     \
@@ -311,12 +322,13 @@ int NAME(const wavelet_layout *L, i64 N, const i64 *sel, const float *lv, i64 C,
         const int32_t *tp = L->tptr + t * (P + 1), *bofs = L->bofs + L->tbase[t];                           \
         const T *bv = bvals + L->tbase[t] * 8 * CT;                                                          \
         if (ns && !rows) memset(acc, 0, (size_t)(nb * 128) * sizeof(float));                                          \
-        if (CT == 3) { TILE_CASE(T, 3, 3) }                                                                  \
+        if (CT == 3) { TILE_CASE(T, 3, 3, 3) }                                                               \
+        else if (grey) { TILE_CASE(T, 1, 1, 3) }                                                             \
         else switch (CO) {                                                                                   \
-            case 1: { TILE_CASE(T, 1, 1) } break;                                                            \
-            case 2: { TILE_CASE(T, 1, 2) } break;                                                            \
-            case 3: { TILE_CASE(T, 1, 3) } break;                                                            \
-            default: { TILE_CASE(T, 1, 4) } break;                                                           \
+            case 1: { TILE_CASE(T, 1, 1, 1) } break;                                                         \
+            case 2: { TILE_CASE(T, 1, 2, 2) } break;                                                         \
+            case 3: { TILE_CASE(T, 1, 3, 3) } break;                                                         \
+            default: { TILE_CASE(T, 1, 4, 4) } break;                                                        \
         }                                                                                                    \
     }                                                                                                        \
     for (i64 n = 0; n < N; n++) memset(lp + 4 * sel[n], 0, 4 * sizeof(float));                               \
