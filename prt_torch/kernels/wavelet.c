@@ -30,7 +30,8 @@
  * row-major copy (per 8-vertex block its columns' entries) into the dense block's register sums, the
  * light looked up per column (zero for the columns the light does not hold; no scratch). The index
  * check (0 <= sel < P) runs before any work (returns 2); an unsupported C returns 1 (CT = 1: 1..4;
- * CT = 3: 1 or 3). A column listed more than once adds its light values. The layout's scratch (the
+ * CT = 3: 1 or 3). A column listed more than once adds its light values. An RGB light with three equal
+ * channels on a grey transfer takes one sum per vertex (CO = 1), written to the three outputs. The layout's scratch (the
  * light per column lp, zero between calls: each call zeroes its own columns at its end; the term
  * lists; the tiles' accumulators) makes one call at a time per layout. */
 
