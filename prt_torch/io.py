@@ -32,7 +32,8 @@ FORMAT = "prt_torch"
 FORMAT_VERSION = 1
 
 __all__ = ["save", "load", "load_meta", "atomic_path", "atomic_write_text", "atomic_write_json", "jsonable", "check_writable",
-           "check_outputs", "strict_json", "describe", "register_check", "format_bytes", "FORMAT_VERSION", "load_mmap"]
+           "check_outputs", "strict_json", "describe", "register_check", "format_bytes", "FORMAT_VERSION", "load_mmap",
+           "scratch_rows", "streamed_npy"]
 
 
 @contextlib.contextmanager
@@ -324,6 +325,61 @@ def load_mmap(path: str | os.PathLike, name: str):
     if end == start:
         return np.zeros(shape, dtype=_NP_DTYPES[info["dtype"]])
     return np.memmap(path, dtype=_NP_DTYPES[info["dtype"]], mode="r", offset=8 + n + start, shape=shape)
+
+
+def scratch_rows(directory: str | os.PathLike, shape: tuple[int, ...], dtype: torch.dtype = torch.float32,
+                 name: str = "rows") -> torch.Tensor:
+    """A tensor of ``shape`` and ``dtype`` backed by a file in ``directory`` rather than by
+    memory (issue 42 part 3: a result larger than memory, assembled chunk by chunk): a shared
+    writable mapping (``np.lib.format.open_memmap``) of a file unlinked as soon as it is mapped,
+    so that nothing is ever left on disk (not even after SIGKILL) and its pages are the page
+    cache's — written back and dropped under memory pressure, never swap or ``RLIMIT_DATA``. The
+    space is freed when the last reference to the tensor goes. Values start at zero.
+
+    Raises ValueError naming ``directory`` when it cannot hold the file (one line)."""
+    import numpy as np
+
+    directory = Path(directory)
+    n = 1
+    for d in shape:
+        n *= int(d)
+    itemsize = torch.tensor([], dtype=dtype).element_size()
+    np_dtype = {torch.float32: np.float32, torch.float64: np.float64, torch.float16: np.float16,
+                torch.int64: np.int64, torch.int32: np.int32, torch.int16: np.int16, torch.int8: np.int8,
+                torch.uint8: np.uint8}.get(dtype)
+    if np_dtype is None:
+        raise ValueError(f"scratch_rows: dtype={dtype}; accepted: float16/32/64, int8/16/32/64, uint8")
+    directory.mkdir(parents=True, exist_ok=True)
+    path = directory / f".{name}.{os.getpid()}.{id(shape):x}.scratch.npy"
+    try:
+        if n == 0:
+            return torch.zeros(shape, dtype=dtype)
+        arr = np.lib.format.open_memmap(path, mode="w+", dtype=np_dtype, shape=tuple(int(d) for d in shape))
+    except OSError as e:
+        raise ValueError(f"cannot create {format_bytes(n * itemsize)} of scratch rows in {str(directory)!r} "
+                         f"({e.strerror or e}); accepted: a directory on a file system with that much free space") from None
+    finally:
+        if path.exists():
+            path.unlink()  # the mapping keeps the file alive; nothing remains on disk once it is gone
+    return torch.from_numpy(arr)
+
+
+@contextlib.contextmanager
+def streamed_npy(path: str | os.PathLike, shape: tuple[int, ...], dtype="float32", overwrite: bool = False):
+    """Write a ``.npy`` file of ``shape`` chunk by chunk without holding it: yields a writable
+    ``numpy.memmap`` of ``<path>.<pid>.partial`` (``np.lib.format.open_memmap``, a shared
+    file mapping: its pages are the page cache's), flushed and renamed over ``path`` when the block
+    succeeds; on an exception (Ctrl-C included) the partial file is removed and ``path`` is left as
+    it was (:func:`atomic_path`). The file is the one ``np.save`` writes for the same array."""
+    import numpy as np
+
+    with atomic_path(path, overwrite=overwrite) as tmp:
+        arr = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.dtype(dtype), shape=tuple(int(d) for d in shape))
+        try:
+            yield arr
+            arr.flush()
+        finally:
+            del arr
 
 
 def _existing(path: str | os.PathLike) -> Path:
