@@ -349,11 +349,11 @@ def scratch_rows(directory: str | os.PathLike, shape: tuple[int, ...], dtype: to
                 torch.uint8: np.uint8}.get(dtype)
     if np_dtype is None:
         raise ValueError(f"scratch_rows: dtype={dtype}; accepted: float16/32/64, int8/16/32/64, uint8")
-    directory.mkdir(parents=True, exist_ok=True)
     path = directory / f".{name}.{os.getpid()}.{id(shape):x}.scratch.npy"
     try:
         if n == 0:
             return torch.zeros(shape, dtype=dtype)
+        directory.mkdir(parents=True, exist_ok=True)
         arr = np.lib.format.open_memmap(path, mode="w+", dtype=np_dtype, shape=tuple(int(d) for d in shape))
     except OSError as e:
         raise ValueError(f"cannot create {format_bytes(n * itemsize)} of scratch rows in {str(directory)!r} "

@@ -1,0 +1,164 @@
+"""Results larger than memory streamed to their files (issue 42 part 3): a precompute's assembled
+rows in a file-backed buffer (``RunOptions.stream_result``, ``io.scratch_rows``), ``prt relight``'s
+``[V, 3]`` written through ``np.lib.format.open_memmap`` by chunks (``io.streamed_npy``).
+
+Each is checked three ways: the streamed file equals the in-memory result bit for bit (and a
+``.npy`` equals the file ``np.save`` writes for the same array, byte for byte); an interrupted run
+leaves nothing half-written; and under a data limit (``RLIMIT_DATA`` in a subprocess) that the
+whole result breaks, the streamed run finishes (shared file mappings are not data)."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+import torch
+
+from prt_torch import io
+from prt_torch.scene import builtin
+from prt_torch.transfer import ChunkInterrupt, RunOptions, get_kind
+
+MRT = {"bands": 3, "M": 3, "bands_out": 3, "samples": 16, "shadows": "always", "brdf": {"type": "phong", "s": 4.0}}
+DIFFUSE = {"bands": 3, "samples": 16, "shadows": "always"}
+
+
+def _file_backed(t: torch.Tensor) -> bool:
+    """Whether ``t``'s memory is a shared mapping of a (deleted) file: /proc/self/maps."""
+    p = t.untyped_storage().data_ptr()
+    with open("/proc/self/maps") as f:
+        for line in f:
+            lo, hi = (int(x, 16) for x in line.split()[0].split("-"))
+            if lo <= p < hi:
+                return ".scratch.npy" in line and line.split()[1][3] == "s"
+    return False
+
+
+# ------------------------------------------------------------------------------ precompute
+@pytest.mark.parametrize("kind, params", [("diffuse", DIFFUSE), ("mrt", MRT)])
+def test_streamed_result_equals_in_memory(tmp_path, kind, params):
+    """The rows assembled in a file equal the rows assembled in memory bit for bit, and so do
+    the saved files' tensors; the buffer is a shared file mapping and leaves no file behind."""
+    mesh = builtin("bumpy_sphere:642")
+    ref = get_kind(kind).precompute(mesh, dict(params), run=RunOptions(chunk_size=100))
+    got = get_kind(kind).precompute(mesh, dict(params), run=RunOptions(chunk_size=100, state_dir=tmp_path / "s",
+                                                                         stream_result=True))
+    assert _file_backed(got.data) and not _file_backed(ref.data)
+    assert got.data.dtype == ref.data.dtype == torch.float32 and torch.equal(got.data, ref.data)
+    got.save(tmp_path / "a.prt")
+    ref.save(tmp_path / "b.prt")
+    ta, _ = io.load(tmp_path / "a.prt")
+    tb, _ = io.load(tmp_path / "b.prt")
+    assert ta.keys() == tb.keys() and all(torch.equal(ta[k], tb[k]) for k in ta)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.prt", "b.prt"]  # no state, no scratch file
+
+
+def test_stream_result_needs_a_state_dir_and_threshold():
+    with pytest.raises(ValueError, match="stream_result=True needs a state_dir"):
+        RunOptions(stream_result=True)
+    with pytest.raises(TypeError, match="stream_result"):
+        RunOptions(stream_result="yes")
+    from prt_torch.transfer.base import STREAM_RESULT_BYTES
+
+    r = RunOptions(state_dir="x")
+    assert not r.streams_result(STREAM_RESULT_BYTES) and r.streams_result(STREAM_RESULT_BYTES + 1)
+    assert not RunOptions().streams_result(10 * STREAM_RESULT_BYTES)  # no state directory: in memory
+
+
+def test_interrupted_streamed_run_leaves_nothing_half_written(tmp_path):
+    """Stopped after two chunks: the state directory holds them, no scratch file and no output
+    exist; resumed, the result equals the uninterrupted one."""
+    mesh = builtin("bumpy_sphere:642")
+    state = tmp_path / "o.prt.state"
+
+    def stop(i, n):
+        if i == 1:
+            raise ChunkInterrupt("stop")
+
+    with pytest.raises(ChunkInterrupt):
+        get_kind("mrt").precompute(mesh, dict(MRT), run=RunOptions(chunk_size=100, state_dir=state, stream_result=True,
+                                                                    callback=stop))
+    assert [p.name for p in tmp_path.iterdir()] == ["o.prt.state"]
+    assert len(list(state.glob("chunk_*.prt"))) == 2
+    got = get_kind("mrt").precompute(mesh, dict(MRT), run=RunOptions(chunk_size=100, state_dir=state, resume=True,
+                                                                      stream_result=True))
+    ref = get_kind("mrt").precompute(mesh, dict(MRT), run=RunOptions(chunk_size=100))
+    assert torch.equal(got.data, ref.data)
+
+
+_LIMITED_PRECOMPUTE = textwrap.dedent("""
+    import json, resource, sys, torch
+    torch.set_num_threads(1)
+    from prt_torch.scene import builtin
+    from prt_torch.transfer import RunOptions, get_kind
+    out, mode, limit = sys.argv[1], sys.argv[2], int(sys.argv[3])
+    p = {"bands": 4, "M": 8, "bands_out": 3, "samples": 8, "shadows": "never", "brdf": {"type": "phong", "s": 4.0}}
+    mesh = builtin("bumpy_sphere:2562")
+    get_kind("mrt").precompute(builtin("bumpy_sphere:642"), dict(p), run=RunOptions(chunk_size=256))  # warm-up
+    big = builtin("bumpy_sphere:10242")
+    def vmdata():
+        for line in open("/proc/self/status"):
+            if line.startswith("VmData:"):
+                return int(line.split()[1]) * 1024
+    resource.setrlimit(resource.RLIMIT_DATA, (vmdata() + limit, resource.RLIM_INFINITY))
+    try:
+        run = RunOptions(chunk_size=256, max_memory=1 << 40, state_dir=out + ".state", stream_result=mode == "stream")
+        tr = get_kind("mrt").precompute(big, dict(p), run=run)
+        tr.save(out)
+        print(json.dumps({"ok": True, "bytes": tr.data.numel() * 4}))
+    except MemoryError:
+        print(json.dumps({"ok": False, "error": "MemoryError"}))
+    except RuntimeError as e:
+        print(json.dumps({"ok": False, "error": str(e)[:200]}))
+""")
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="RLIMIT_DATA as Linux enforces it")
+def test_precompute_result_larger_than_the_memory_limit(tmp_path):
+    """An MRT result of 40 MiB (10242 vertices × 64×16 float32) under a data limit of 24 MiB above
+    the warmed-up process: assembled in memory it fails, assembled in a file it is written."""
+    limit = 24 * 2**20
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    out = {}
+    for mode in ("memory", "stream"):
+        r = subprocess.run([sys.executable, "-c", _LIMITED_PRECOMPUTE, str(tmp_path / f"{mode}.prt"), mode, str(limit)],
+                           capture_output=True, text=True, env=env, timeout=600)
+        assert r.returncode == 0, r.stderr[-2000:]
+        out[mode] = json.loads(r.stdout.strip().splitlines()[-1])
+    assert not out["memory"]["ok"], out  # the limit bites: the whole result does not fit
+    assert out["stream"]["ok"] and out["stream"]["bytes"] > limit, out
+    d = io.describe(tmp_path / "stream.prt")
+    assert d["tensors"]["data"]["shape"] == [10242, 64, 16]
+
+
+# ------------------------------------------------------------------------------ io helpers
+def test_streamed_npy_is_np_save_and_atomic(tmp_path):
+    """Filled by chunks, the file is byte for byte what ``np.save`` writes; an exception in the
+    block leaves no file (and an existing one untouched)."""
+    x = np.random.default_rng(0).standard_normal((1001, 3)).astype(np.float32)
+    with io.streamed_npy(tmp_path / "a.npy", x.shape) as a:
+        for i in range(0, 1001, 97):
+            a[i:i + 97] = x[i:i + 97]
+    np.save(tmp_path / "b.npy", x)
+    assert (tmp_path / "a.npy").read_bytes() == (tmp_path / "b.npy").read_bytes()
+    with pytest.raises(KeyboardInterrupt):
+        with io.streamed_npy(tmp_path / "b.npy", x.shape, overwrite=True) as a:
+            a[:10] = 0
+            raise KeyboardInterrupt
+    assert (tmp_path / "b.npy").read_bytes() == (tmp_path / "a.npy").read_bytes()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.npy", "b.npy"]
+    with pytest.raises(FileExistsError):
+        with io.streamed_npy(tmp_path / "a.npy", x.shape):
+            pass
+
+
+def test_scratch_rows_zero_unlinked_and_refused_where_it_cannot_be(tmp_path):
+    t = io.scratch_rows(tmp_path, (100, 4), torch.float64)
+    assert t.dtype == torch.float64 and t.shape == (100, 4) and not t.any() and _file_backed(t)
+    assert list(tmp_path.iterdir()) == []
+    (tmp_path / "f").write_text("")
+    with pytest.raises(ValueError, match=r"cannot create .* scratch rows in .*f"):
+        io.scratch_rows(tmp_path / "f", (10, 4))
