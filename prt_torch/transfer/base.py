@@ -193,9 +193,15 @@ class Transfer:
         return io.save(path, tensors, kind=f"transfer/{self.kind}", meta=meta, overwrite=overwrite)
 
     @classmethod
-    def load(cls, path: str | os.PathLike) -> "Transfer":
-        """Load a file written by ``save``; checks kind, shapes and the mesh hash."""
-        tensors, meta = io.load(path, expect_kind="transfer/")
+    def load(cls, path: str | os.PathLike, mmap: bool = False) -> "Transfer":
+        """Load a file written by ``save``; checks kind, shapes and the mesh hash. ``mmap``: the
+        data tensor is a read-only memory map of the file (``io.load_mmap``: its pages are read
+        when used and dropped under memory pressure — what ``prt relight`` streams a transfer
+        larger than memory by; never write to it), the other tensors are loaded."""
+        if mmap:
+            tensors, meta = _load_mapped(path)
+        else:
+            tensors, meta = io.load(path, expect_kind="transfer/")
         kind = meta["kind"].split("/", 1)[1]
         mesh = check_transfer_values(path, tensors, meta)
         if mesh is None:  # names the missing arrays
@@ -208,6 +214,25 @@ class Transfer:
 
     def __repr__(self) -> str:
         return f"Transfer(kind={self.kind!r}, data={tuple(self.data.shape)}, mesh={self.mesh!r})"
+
+
+def _load_mapped(path) -> tuple[dict[str, torch.Tensor], dict]:
+    """(tensors, meta) of a transfer file with ``data`` memory-mapped (read-only) and the rest loaded."""
+    import warnings
+
+    from safetensors import safe_open
+
+    d = io.describe(path)
+    meta = d["meta"]
+    if not str(meta.get("kind", "")).startswith("transfer/"):
+        raise ValueError(f"{str(path)!r} holds kind={meta.get('kind')!r}; expected a kind starting with 'transfer/'")
+    arr = io.load_mmap(path, "data")
+    with warnings.catch_warnings():  # a read-only map: torch warns that the tensor is not writable (it is never written)
+        warnings.simplefilter("ignore", UserWarning)
+        tensors = {"data": torch.from_numpy(arr)}
+    with safe_open(str(path), framework="pt") as f:
+        tensors.update({k: f.get_tensor(k) for k in f.keys() if k != "data"})
+    return tensors, meta
 
 
 def check_transfer_file(path: Path, meta: dict, shapes: dict[str, list[int]]) -> None:
@@ -261,15 +286,18 @@ def check_transfer_values(path: Any, tensors: dict[str, torch.Tensor], meta: dic
         shape = {"diffuse": "[V, n²] or [V, C, n²]", "wavelet": "[V, K] or [V, 3, K]"}.get(kind, "[V, rows, n²]")
         raise ValueError(f"{name!r} is labelled kind=transfer/{kind} but its data has shape {tuple(data.shape)} (rank {data.ndim}); "
                          f"accepted for {kind}: rank {' or '.join(map(str, ranks))} ({shape})")
-    bad = ~torch.isfinite(data)
-    if bool(bad.any()):
-        i = tuple(int(v) for v in torch.nonzero(bad)[0])
-        raise ValueError(f"{name!r}: data holds {int(bad.sum())} non-finite value(s), first at {i}; accepted: finite values")
-    if data.numel():  # min and max in one pass, no |data| copy (a 1M-vertex file is not held twice)
-        lo, hi = torch.aminmax(data) if data.is_floating_point() else (data.min(), data.max())
-        top = max(abs(float(lo)), abs(float(hi)))
-    else:
-        top = 0.0
+    top, rows = 0.0, max(1, (16 << 20) // max(1, data[:1].numel() * data.element_size()))
+    for a in range(0, data.shape[0], rows):  # by chunks of rows: no [V, D] temporary (the data may be a memory map)
+        part = data[a:a + rows]
+        bad = ~torch.isfinite(part)
+        if bool(bad.any()):
+            i = tuple(int(v) for v in torch.nonzero(bad)[0])
+            i = (i[0] + a,) + i[1:]
+            n = int(bad.sum()) + sum(int((~torch.isfinite(data[b:b + rows])).sum()) for b in range(a + rows, data.shape[0], rows))
+            raise ValueError(f"{name!r}: data holds {n} non-finite value(s), first at {i}; accepted: finite values")
+        if part.numel():  # min and max in one pass, no |data| copy (a 1M-vertex file is not held twice)
+            lo, hi = torch.aminmax(part) if part.is_floating_point() else (part.min(), part.max())
+            top = max(top, abs(float(lo)), abs(float(hi)))
     if top > MAX_ABS_TRANSFER:
         raise ValueError(f"{name!r}: data reaches |{top:.3g}|, beyond ±{MAX_ABS_TRANSFER:g} (float32 products would overflow); "
                          "accepted: a transfer of physical scale (values of order 1)")
