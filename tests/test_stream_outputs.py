@@ -20,7 +20,7 @@ import torch
 
 from prt_torch import io
 from prt_torch.scene import builtin
-from prt_torch.transfer import ChunkInterrupt, RunOptions, get_kind
+from prt_torch.transfer import ChunkInterrupt, RunOptions, Transfer, get_kind
 
 MRT = {"bands": 3, "M": 3, "bands_out": 3, "samples": 16, "shadows": "always", "brdf": {"type": "phong", "s": 4.0}}
 DIFFUSE = {"bands": 3, "samples": 16, "shadows": "always"}
@@ -162,3 +162,157 @@ def test_scratch_rows_zero_unlinked_and_refused_where_it_cannot_be(tmp_path):
     (tmp_path / "f").write_text("")
     with pytest.raises(ValueError, match=r"cannot create .* scratch rows in .*f"):
         io.scratch_rows(tmp_path / "f", (10, 4))
+
+
+# ------------------------------------------------------------------------------ prt relight
+def _mrt_file(tmp_path, V="bumpy_sphere:642", M=3):
+    p = dict(MRT, M=M)
+    tr = get_kind("mrt").precompute(builtin(V), p, run=RunOptions(chunk_size=4096))
+    path = tmp_path / "m.prt"
+    tr.save(path)
+    return path, tr
+
+
+@pytest.mark.parametrize("kind", ["diffuse", "mrt"])
+def test_relight_streamed_npy_equals_in_memory(tmp_path, kind, monkeypatch):
+    """``prt relight`` of a mapped transfer, by chunks straight into the .npy: the file is byte for
+    byte ``np.save`` of the same relight of the transfer loaded whole (in memory); and both agree
+    with the float64 relighting of ``prt_torch.relight`` (diffuse: ``diffuse_transfer``; MRT: the
+    four-tap sum ``relight.mrt``) within float32 rounding."""
+    from prt_torch import relight
+    from prt_torch.cli import main as cli_main
+    from prt_torch.cli import relight as rl
+    from prt_torch.lighting import load_light
+    from prt_torch.render import Camera
+
+    monkeypatch.setattr(rl, "CHUNK_VERTICES", 100)  # several chunks on a small mesh
+    if kind == "mrt":
+        path, tr = _mrt_file(tmp_path)
+    else:
+        tr = get_kind("diffuse").precompute(builtin("bumpy_sphere:642"), dict(DIFFUSE))
+        path = tmp_path / "d.prt"
+        tr.save(path)
+    out = tmp_path / "r.npy"
+    assert cli_main(["relight", str(path), "--light", "sky", "-o", str(out)]) == 0
+    whole = Transfer.load(path)  # in memory
+    ref, _ = rl.radiance(whole, "sky", rows=100)
+    np.save(tmp_path / "ref.npy", ref.numpy())
+    assert out.read_bytes() == (tmp_path / "ref.npy").read_bytes()
+    n2 = whole.data.shape[-1]
+    L = load_light("sky", bands=int(round(n2 ** 0.5))).to(torch.float64)
+    if kind == "diffuse":
+        exact = relight.diffuse_transfer(whole, L)
+    else:
+        eye = torch.as_tensor(Camera.fit(whole.mesh).eye, dtype=torch.float64)
+        v = relight.local_view(whole.mesh.frames().double(), whole.mesh.vertices.double(), eye=eye)
+        exact = relight.mrt(whole.data.double(), L.expand(3, -1), v)
+    np.testing.assert_allclose(np.load(out), exact.expand(-1, 3).numpy(), rtol=1e-5, atol=1e-5 * float(exact.abs().max()))
+
+
+def test_relight_interrupted_leaves_nothing(tmp_path, monkeypatch):
+    """An interruption between chunks (Ctrl-C) removes the partial file; an existing output is
+    left as it was."""
+    from prt_torch.cli import relight as rl
+    from prt_torch.render import PRTScene
+
+    path, _ = _mrt_file(tmp_path)
+    out = tmp_path / "r.npy"
+    out.write_bytes(b"old")
+    monkeypatch.setattr(rl, "CHUNK_VERTICES", 100)
+    calls = {"n": 0}
+    real = PRTScene.cpu_radiance
+
+    def stop(self, *a, **k):
+        calls["n"] += 1
+        if calls["n"] == 3:
+            raise KeyboardInterrupt
+        return real(self, *a, **k)
+
+    monkeypatch.setattr(PRTScene, "cpu_radiance", stop)
+    from prt_torch.cli import main as cli_main
+
+    assert cli_main(["relight", str(path), "--light", "sky", "-o", str(out), "--overwrite"]) == 130
+    assert out.read_bytes() == b"old" and sorted(p.name for p in tmp_path.iterdir()) == ["m.prt", "r.npy"]
+
+
+_LIMITED_RELIGHT = textwrap.dedent("""
+    import json, resource, sys, torch
+    torch.set_num_threads(1)
+    from prt_torch.cli import relight as rl
+    from prt_torch.transfer import Transfer
+    path, out, mode, limit = sys.argv[1], sys.argv[2], sys.argv[3], int(sys.argv[4])
+    from prt_torch import io
+    rl.radiance(Transfer.load(path, mmap=True), "sky", rows=4096)  # warm-up: imports, light, kernels
+    def vmdata():
+        for line in open("/proc/self/status"):
+            if line.startswith("VmData:"):
+                return int(line.split()[1]) * 1024
+    resource.setrlimit(resource.RLIMIT_DATA, (vmdata() + limit, resource.RLIM_INFINITY))
+    try:
+        tr = Transfer.load(path, mmap=mode == "stream")
+        with io.streamed_npy(out, (tr.num_vertices, 3)) as arr:
+            rl.radiance(tr, "sky", out=torch.from_numpy(arr), rows=4096)
+        print(json.dumps({"ok": True}))
+    except ValueError as e:  # io.load: the file's tensors cannot be mapped for copying
+        print(json.dumps({"ok": False, "error": str(e)[:300]}))
+    except MemoryError:
+        print(json.dumps({"ok": False, "error": "MemoryError"}))
+    except RuntimeError as e:
+        print(json.dumps({"ok": False, "error": str(e)[:200]}))
+""")
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="RLIMIT_DATA as Linux enforces it")
+def test_relight_transfer_larger_than_the_memory_limit(tmp_path):
+    """An MRT transfer of 40 MiB (10242 × 64×16 float32) under a data limit of 24 MiB above the
+    warmed-up process: loading it whole fails; mapped and relit by chunks into the .npy it works,
+    and the file equals the relight of the transfer loaded whole (without a limit)."""
+    from prt_torch.cli import relight as rl
+
+    tr = get_kind("mrt").precompute(builtin("bumpy_sphere:10242"), dict(MRT, M=8, bands=4, samples=8, shadows="never"),
+                                    run=RunOptions(chunk_size=4096))
+    path = tmp_path / "m.prt"
+    tr.save(path)
+    limit = 24 * 2**20
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    res = {}
+    for mode in ("load", "stream"):
+        r = subprocess.run([sys.executable, "-c", _LIMITED_RELIGHT, str(path), str(tmp_path / f"{mode}.npy"), mode, str(limit)],
+                           capture_output=True, text=True, env=env, timeout=600)
+        assert r.returncode == 0, r.stderr[-2000:]
+        res[mode] = json.loads(r.stdout.strip().splitlines()[-1])
+    assert not res["load"]["ok"] and res["stream"]["ok"], res
+    assert not (tmp_path / "load.npy").exists()
+    ref, _ = rl.radiance(Transfer.load(path), "sky", rows=4096)
+    assert np.array_equal(np.load(tmp_path / "stream.npy"), ref.numpy())
+
+
+def test_relight_dry_run_arithmetic_and_refusal(tmp_path, capsys):
+    """``--dry-run`` writes nothing and states each stage from the headers: the input is the mesh
+    arrays plus PRTScene's frames, points and albedo (108 B per vertex), the data mapped (not
+    counted), the output streamed (0); the peak is their sum × ALLOCATOR_SLACK; the time is an
+    estimate. A budget below the peak is refused in one line naming the sizes (status 2)."""
+    from prt_torch import io as pio
+    from prt_torch.cli import main as cli_main
+    from prt_torch.cli import relight as rl
+    from prt_torch.transfer.estimate import ALLOCATOR_SLACK
+
+    path, tr = _mrt_file(tmp_path)
+    out = tmp_path / "r.npy"
+    assert cli_main(["relight", str(path), "--light", "sky", "-o", str(out), "--dry-run"]) == 0
+    err = capsys.readouterr().err
+    assert not out.exists() and "nothing written" in err and "(an estimate; calibration" in err
+    V = tr.num_vertices
+    mesh = sum(t.numel() * t.element_size() for t in tr.mesh.to_tensors("").values())
+    import argparse
+
+    pl = rl.plan(argparse.Namespace(transfer=str(path), source=None, output=str(out), memory_limit=None))
+    st = {s["stage"]: s["bytes"] for s in pl["stages"]}
+    assert st["input"] == mesh + 108 * V and st["output"] == 0
+    assert st["relight"] == V * (2 * tr.data[0].numel() * 4 + 212)  # one chunk (V < CHUNK_VERTICES)
+    assert pl["peak"] == int(ALLOCATOR_SLACK * sum(st.values())) and pl["streamed"]
+    assert f"peak    {pio.format_bytes(pl['peak']):>10s}" in err
+    assert cli_main(["relight", str(path), "--light", "sky", "-o", str(out), "--memory-limit", "0.0001"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "needs about" in err[0] and "input" in err[0] and "budget is 105 KiB" in err[0], err
+    assert not out.exists()

@@ -136,10 +136,10 @@ def _load(args):
 
 
 def radiance(transfer, light: str, codec=None, enc=None, terms: int | None = None, selection: str = "transport",
-             view=None, out=None, rows: int = CHUNK_VERTICES):
+             view=None, out=None, rows: int | None = None):
     """Per-vertex exit radiance ``[V, 3]`` float32 and a one-line description (module docstring).
 
-    An uncompressed SH transfer is relit by chunks of ``rows`` vertices (``PRTScene.cpu_radiance``
+    An uncompressed SH transfer is relit by chunks of ``rows`` (default :data:`CHUNK_VERTICES`) vertices (``PRTScene.cpu_radiance``
     with ``rows=``; the same bits whether its data is in memory or memory-mapped), each written into
     ``out`` (a ``[V, 3]`` float32 tensor, e.g. over the memory map of the output file) when given.
     Other inputs (codec, wavelet) are computed whole and copied into ``out``."""
@@ -170,6 +170,7 @@ def radiance(transfer, light: str, codec=None, enc=None, terms: int | None = Non
     if codec is not None:
         return _into(scene.cpu_radiance(L, None if eye is None else scene.view(eye), codec, enc), out), what
     res = torch.empty(scene.V, 3, dtype=torch.float32) if out is None else out
+    rows = CHUNK_VERTICES if rows is None else int(rows)
     for a in range(0, scene.V, rows):  # by chunks: only these rows of a mapped transfer are read
         sl = slice(a, min(scene.V, a + rows))
         res[sl] = scene.cpu_radiance(L, None if eye is None else scene.view(eye, sl), rows=sl)

@@ -199,7 +199,7 @@ class Transfer:
         when used and dropped under memory pressure — what ``prt relight`` streams a transfer
         larger than memory by; never write to it), the other tensors are loaded."""
         if mmap:
-            tensors, meta = _load_mapped(path)
+            tensors, meta = io.load_mapped(path, ("data",), expect_kind="transfer/")
         else:
             tensors, meta = io.load(path, expect_kind="transfer/")
         kind = meta["kind"].split("/", 1)[1]
@@ -214,25 +214,6 @@ class Transfer:
 
     def __repr__(self) -> str:
         return f"Transfer(kind={self.kind!r}, data={tuple(self.data.shape)}, mesh={self.mesh!r})"
-
-
-def _load_mapped(path) -> tuple[dict[str, torch.Tensor], dict]:
-    """(tensors, meta) of a transfer file with ``data`` memory-mapped (read-only) and the rest loaded."""
-    import warnings
-
-    from safetensors import safe_open
-
-    d = io.describe(path)
-    meta = d["meta"]
-    if not str(meta.get("kind", "")).startswith("transfer/"):
-        raise ValueError(f"{str(path)!r} holds kind={meta.get('kind')!r}; expected a kind starting with 'transfer/'")
-    arr = io.load_mmap(path, "data")
-    with warnings.catch_warnings():  # a read-only map: torch warns that the tensor is not writable (it is never written)
-        warnings.simplefilter("ignore", UserWarning)
-        tensors = {"data": torch.from_numpy(arr)}
-    with safe_open(str(path), framework="pt") as f:
-        tensors.update({k: f.get_tensor(k) for k in f.keys() if k != "data"})
-    return tensors, meta
 
 
 def check_transfer_file(path: Path, meta: dict, shapes: dict[str, list[int]]) -> None:
@@ -286,7 +267,7 @@ def check_transfer_values(path: Any, tensors: dict[str, torch.Tensor], meta: dic
         shape = {"diffuse": "[V, n²] or [V, C, n²]", "wavelet": "[V, K] or [V, 3, K]"}.get(kind, "[V, rows, n²]")
         raise ValueError(f"{name!r} is labelled kind=transfer/{kind} but its data has shape {tuple(data.shape)} (rank {data.ndim}); "
                          f"accepted for {kind}: rank {' or '.join(map(str, ranks))} ({shape})")
-    top, rows = 0.0, max(1, (16 << 20) // max(1, data[:1].numel() * data.element_size()))
+    top, rows = 0.0, max(1, (4 << 20) // max(1, data[:1].numel() * data.element_size()))
     for a in range(0, data.shape[0], rows):  # by chunks of rows: no [V, D] temporary (the data may be a memory map)
         part = data[a:a + rows]
         bad = ~torch.isfinite(part)
