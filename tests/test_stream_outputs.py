@@ -316,3 +316,20 @@ def test_relight_dry_run_arithmetic_and_refusal(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "needs about" in err[0] and "input" in err[0] and "budget is 105 KiB" in err[0], err
     assert not out.exists()
+
+
+def test_estimate_does_not_count_a_streamed_result(tmp_path):
+    """``transfer.estimate``: with the result assembled in a file the rays stage holds no rows and
+    the result stage one chunk's work (said in its note); in memory the rows count (float32 × V for MRT). The
+    difference of the two rays stages is the result's bytes × ALLOCATOR_SLACK exactly."""
+    from prt_torch.transfer.estimate import ALLOCATOR_SLACK, estimate
+
+    mesh = builtin("bumpy_sphere:642")
+    k = get_kind("mrt")
+    st = {so: estimate(k, mesh, dict(MRT), RunOptions(state_dir=tmp_path / "s", stream_result=so), probe=False)
+          for so in (True, False)}
+    rays = {so: e.stages[1]["bytes"] for so, e in st.items()}
+    result = mesh.num_vertices * 9 * 9 * 4
+    assert abs((rays[False] - rays[True]) - ALLOCATOR_SLACK * result) <= 1
+    assert "assembled in a file" in st[True].stages[2]["note"] and "assembled in a file" not in st[False].stages[2]["note"]
+    assert not (tmp_path / "s").exists()
