@@ -333,3 +333,22 @@ def test_estimate_does_not_count_a_streamed_result(tmp_path):
     assert abs((rays[False] - rays[True]) - ALLOCATOR_SLACK * result) <= 1
     assert "assembled in a file" in st[True].stages[2]["note"] and "assembled in a file" not in st[False].stages[2]["note"]
     assert not (tmp_path / "s").exists()
+
+
+def test_bench_dry_run_time_line(tmp_path, capsys, monkeypatch):
+    """``prt bench --dry-run`` prints a time line per config: the precompute's probe and each
+    affine codec setting's calibrated fit (estimates); a codec it cannot calibrate says so;
+    ``--no-time`` leaves the line out; nothing is written."""
+    from prt_torch.cli import main as cli_main
+
+    monkeypatch.chdir(tmp_path)
+    args = ["bench", "diffuse", "transfer.bands=3", "transfer.samples=16", "transfer.bounces=0", "target.psnr=null",
+            "codecs=[{type: pca, vectors: 2}, {type: cpca, clusters: 4, vectors: 2}, {type: neural}]", "--dry-run"]
+    assert cli_main(args) == 0
+    out = capsys.readouterr().out
+    line = next(x for x in out.splitlines() if x.startswith("# time per stage"))
+    assert "precompute ~" in line and "pca vectors=2 ~" in line and "cpca clusters=4,vectors=2 ~" in line
+    assert "neural not estimated" in line and line.endswith("estimates")
+    assert cli_main(args + ["--no-time"]) == 0
+    assert "# time per stage" not in capsys.readouterr().out
+    assert not (tmp_path / "reports").exists() and not (tmp_path / "cache").exists()

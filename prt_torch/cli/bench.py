@@ -62,6 +62,13 @@ def stage_time(cfg: dict, mesh, mem: dict, rows: int = 1024, probe_vertices: int
         pre = "precompute " + ("not estimated" if sec is None else f"~{sec:.3g} s (probe of {probe_vertices}-vertex chunks, unless cached)")
     V = mesh.num_vertices
     shape = signal_shape(cfg)
+    if shape is None and cfg["transfer"]["type"] == "diffuse" and "auto" not in params.values():
+        from ..transfer.estimate import result_bytes_per_vertex
+
+        kw, _ = get_kind("diffuse").resolve(params)  # grey [V, n²] or RGB [V, 3, n²]: the mesh and bounces say which
+        n2 = int(kw["bands"]) ** 2
+        D = result_bytes_per_vertex("diffuse", kw, mesh)[0] // 4
+        shape = (D, (D // n2, n2))
     parts = []
     if shape is not None and shape[0] > max_dim:
         parts.append(f"not estimated for D={shape[0]} > {max_dim}")
@@ -104,7 +111,10 @@ def register(sub) -> None:
     p.add_argument("--no-resume", action="store_true", help="recompute settings even if their records exist")
     p.add_argument("--no-render", action="store_true", help="skip the pyrender images")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
-    p.add_argument("--dry-run", action="store_true", help="validate and print the resolved config and sweep, do no work")
+    p.add_argument("--dry-run", action="store_true", help="validate and print the resolved config and sweep, memory and "
+                   "estimated time per stage, do no work")
+    p.add_argument("--no-time", action="store_true", help="with --dry-run: skip the time estimates (a precompute probe and "
+                   "a calibration fit per codec setting: seconds per config)")
     add_executor_args(p, "the transfer's chunks and the codec settings")
     p.add_argument("--debug", action="store_true", help="show tracebacks")
     p.set_defaults(func=run)
@@ -167,7 +177,8 @@ def run(args: argparse.Namespace) -> int:
                 for _, one in ablation_values(sub):  # each value of a transfer ablation is its own transfer
                     mesh, mem = load_mesh_within_budget(one)  # the memory estimate the real run refuses on
                     print(f"# memory per stage, {mesh.name} ({mesh.num_vertices} vertices): " + stage_memory(one, mesh, mem))
-                    print(f"# time per stage: {stage_time(one, mesh, mem)}")
+                    if not args.no_time:
+                        print(f"# time per stage: {stage_time(one, mesh, mem)}")
                 if sub["target"].get("psnr") is not None:
                     from ..harness.target import search_cost
 
