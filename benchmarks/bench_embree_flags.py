@@ -125,9 +125,17 @@ def main(argv=None) -> int:
               f"same answers {same}", flush=True)
         del res
     load1 = os.getloadavg()[0]
+    fam = {}
+    with open("/proc/cpuinfo") as f:  # family/model: which kernels Embree picks (AVX2 vs AVX-512) is named by the flags
+        for line in f:
+            k, _, v = line.partition(":")
+            if k.strip() in ("cpu family", "model", "flags") and k.strip() not in fam:
+                fam[k.strip()] = v.strip()
+    isa = "AVX-512" if "avx512f" in fam.get("flags", "").split() else "AVX2" if "avx2" in fam.get("flags", "").split() else "SSE"
+    info["cpu"] = f"{info['cpu']} (CPU family {fam.get('cpu family', '?')} model {fam.get('model', '?')}; Embree's {isa} path)"
     cmd = "python benchmarks/bench_embree_flags.py " + " ".join(argv if argv is not None else sys.argv[1:])
     L = ["# Embree's BVH at 1M vertices: what embreex exposes, paired against the default (issue 42 part 3)", "",
-         f"`{cmd}` on {info['cpu']} ({info['cores']} cores, AVX2 build of Embree's kernels where the CPU has no AVX-512), "
+         f"`{cmd}` on {info['cpu']}, {info['cores']} cores, "
          f"one thread, CPU time (`time.process_time`); load average {load0:.1f} at the start, {load1:.1f} at the end "
          "(shared machine: the ratios are paired and alternated in one process, the absolute nanoseconds are not "
          "quiet-machine figures).", "",
