@@ -352,3 +352,26 @@ def test_bench_dry_run_time_line(tmp_path, capsys, monkeypatch):
     assert cli_main(args + ["--no-time"]) == 0
     assert "# time per stage" not in capsys.readouterr().out
     assert not (tmp_path / "reports").exists() and not (tmp_path / "cache").exists()
+
+
+def test_compress_dry_run_time_and_refusal(tmp_path, capsys):
+    """``prt compress --dry-run`` states the fit's time as an estimate from a calibration fit
+    (here of every row: the whole signal is smaller than the calibration sample, so the factor is
+    1), and a budget below ``fit_memory``'s peak is refused before the signal is read: one line
+    naming every count and suggesting --stream; nothing is written."""
+    from prt_torch.cli import main as cli_main
+    from prt_torch.codecs.chunks import fit_memory
+
+    tr = get_kind("diffuse").precompute(builtin("bumpy_sphere:642"), dict(DIFFUSE))
+    src, out = tmp_path / "d.prt", tmp_path / "c.prt"
+    tr.save(src)
+    base = ["compress", str(src), "--clusters", "4", "--vectors", "2", "-o", str(out)]
+    assert cli_main(base + ["--dry-run"]) == 0
+    text = capsys.readouterr().out
+    assert f"calibration: {tr.num_vertices} rows fitted and encoded in" in text and " s, × 1)" in text
+    assert "time ~" in text and "(an estimate;" in text and not out.exists()
+    m = fit_memory(tr.num_vertices, 9, 4, 2)
+    assert cli_main(base + ["--memory-limit", str(0.5 * m["peak"] / 2**30)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"needs about {io.format_bytes(m['peak'])}" in err[0] and "--stream" in err[0], err
+    assert not out.exists()
