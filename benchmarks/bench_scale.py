@@ -291,8 +291,9 @@ def child(args) -> dict:
         del tr
         ns = argparse.Namespace(transfer=str(p["diffuse"]), source=None, output=str(work / f"r_{size}.npy"), light="sky",
                                 view=None, memory_limit=None)
-        mapped = Transfer.load(p["diffuse"], mmap=True)
-        out["relight_cli_estimated_seconds"], _ = rl.calibrate(ns, mapped, None, None)
+        tl = time.perf_counter()
+        mapped = Transfer.load(p["diffuse"], mmap=True)  # what prt relight --dry-run loads (and times) first
+        out["relight_cli_estimated_seconds"], _ = rl.calibrate(ns, mapped, None, None, time.perf_counter() - tl)
         out["relight_cli_plan_peak"] = rl.plan(ns)["peak"]
         r0, h0 = rss_now(), (reset_peak() and vm_hwm())
         t = time.perf_counter()
@@ -580,8 +581,8 @@ def report(rows: list[dict], args, info: dict) -> str:
               "the same child right after the real run — not a timed assertion, a check of the estimate): precompute = "
               "`transfer.estimate`'s probe (set-up + the second of two 1024-vertex chunks × chunks) against the compute + "
               "save; cpca / cpca_stream = `prt compress --dry-run`'s calibration (a fit of up to 16384 evenly spaced rows, "
-              "scaled by V / rows) against the fit + encode; relight = `prt relight --dry-run`'s calibration (set-up + the "
-              "first 32768-vertex chunk × chunks) against the streamed relight of the uncompressed diffuse file into a .npy:", "",
+              "scaled by V / rows) against the fit + encode; relight = `prt relight --dry-run`'s calibration (loading + set-up + "
+              "the first 32768-vertex chunk × chunks) against the streamed relight of the uncompressed diffuse file into a .npy:", "",
               "| stage | vertices | estimated s | measured s | estimate / measured |", "|---|---:|---:|---:|---:|"]
         for r in tim:
             if r["stage"] in ("diffuse", "mrt") and r.get("estimated_seconds") is not None:

@@ -296,7 +296,7 @@ def json_load(path):
     return json.loads(Path(path).read_text())
 
 
-def calibrate(args, transfer, codec, enc) -> tuple[float | None, str]:
+def calibrate(args, transfer, codec, enc, load_seconds: float = 0.0) -> tuple[float | None, str]:
     """(estimated seconds of the whole relight, how): an SH transfer's first chunk relit and timed
     (after a warm-up of 64 vertices), scaled to every chunk; a codec: one relight of every point
     (the codes are small: the call is the stage itself, nothing written); otherwise not estimated."""
@@ -309,7 +309,8 @@ def calibrate(args, transfer, codec, enc) -> tuple[float | None, str]:
         radiance(transfer, args.light, codec, enc, view=args.view)  # warm-up (kernels, plans)
         t = time.perf_counter()
         radiance(transfer, args.light, codec, enc, view=args.view)
-        return time.perf_counter() - t, "one relight of the codes timed (the stage itself, nothing written)"
+        return load_seconds + time.perf_counter() - t, (f"loading {load_seconds:.3g} s + one relight of the codes timed "
+                                                        "(the stage itself, nothing written)")
     import torch
 
     k = min(V, CHUNK_VERTICES)
@@ -327,7 +328,8 @@ def calibrate(args, transfer, codec, enc) -> tuple[float | None, str]:
     chunk(0, k)
     dt = time.perf_counter() - t
     n = -(-V // k)
-    return setup + dt * n, (f"calibration: set-up {setup:.3g} s + the first {k} vertices relit in {dt:.3g} s "
+    return load_seconds + setup + dt * n, (f"calibration: loading {load_seconds:.3g} s + set-up {setup:.3g} s + the first {k} "
+                                           f"vertices relit in {dt:.3g} s "
                             f"(from the mapped file) × {n} chunks")
 
 
@@ -384,8 +386,12 @@ def run(args) -> int:
     if args.dry_run:
         transfer = codec = enc = None
         if not Path(args.transfer).is_dir():
-            transfer, codec, enc = _load(args)
-        seconds, how = calibrate(args, transfer, codec, enc)
+            import time
+
+            t = time.perf_counter()
+            transfer, codec, enc = _load(args)  # what the run loads first (the mesh; the data mapped)
+            load = time.perf_counter() - t
+        seconds, how = calibrate(args, transfer, codec, enc, load if transfer is not None else 0.0)
         _print_plan(pl, seconds, how)
         check_plan(pl)
         print("prt relight: dry run: nothing written", file=__import__("sys").stderr)
