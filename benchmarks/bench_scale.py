@@ -88,6 +88,41 @@ def vm_hwm() -> int:
     return 0
 
 
+class AnonSampler:
+    """The peak of ``RssAnon`` (memory the process holds: heap, anonymous maps — not file pages,
+    which the kernel writes back and drops under pressure) sampled every ``dt`` seconds in a
+    thread, bytes: ``VmHWM`` counts a file-backed result's resident pages as well, this does not."""
+
+    def __init__(self, dt: float = 0.02):
+        import threading
+
+        self.dt, self.peak, self._stop = dt, 0, threading.Event()
+        self._t = threading.Thread(target=self._run, daemon=True)
+
+    @staticmethod
+    def now() -> int:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("RssAnon:"):
+                    return int(line.split()[1]) * 1024
+        return 0
+
+    def _run(self):
+        while not self._stop.is_set():
+            self.peak = max(self.peak, self.now())
+            self._stop.wait(self.dt)
+
+    def __enter__(self):
+        self.peak = self.now()
+        self._t.start()
+        return self
+
+    def __exit__(self, *exc):
+        self._stop.set()
+        self._t.join()
+        self.peak = max(self.peak, self.now())
+
+
 # ----------------------------------------------------------------------------------------------
 # the child: one stage, one size
 # ----------------------------------------------------------------------------------------------
@@ -117,6 +152,7 @@ def child(args) -> dict:
     out["marginal_reset"] = reset_peak()
     out["rss_at_reset"] = rss_now()
     t0 = time.perf_counter()
+    c0 = time.process_time()  # CPU seconds of this process, every thread: what the machine's load moves least
     if stage == "embree":  # the peer: bare Embree occlusion rays from the mesh's own vertices
         import numpy as np
 
@@ -135,10 +171,11 @@ def child(args) -> dict:
         d = np.einsum("nk,vkj->vnj", local, F).reshape(-1, 3)
         o = np.repeat((mesh.vertices[a:a + k] + 1e-4 * mesh.normals[a:a + k]).numpy(), rpv, axis=0)
         caster.trace(o[:1024], d[:1024])  # warm-up
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         for i in range(0, o.shape[0], 1 << 18):
             caster.trace(o[i:i + (1 << 18)], d[i:i + (1 << 18)])
         out["bare_seconds_per_ray"] = (time.perf_counter() - t) / o.shape[0]
+        out["bare_cpu_seconds_per_ray"] = (time.process_time() - c) / o.shape[0]
         out["bare_rays"] = int(o.shape[0])
         caster.close()
         out["vertices"] = mesh.num_vertices
@@ -160,16 +197,29 @@ def child(args) -> dict:
         out["marginal_hwm_before_mesh_reset"] = vm_hwm()  # the mesh build's own peak (since the warm-up's reset)
         hwm_reset = reset_peak()  # the precompute's own peak from here (the mesh build's temporaries are not its)
         t0 = time.perf_counter()  # the stage's time is the precompute and its save (the mesh: its own column)
-        tr = get_kind(stage).precompute(mesh, dict(params), run=run)
-        out["compute_seconds"] = time.perf_counter() - t0
-        ts = time.perf_counter()
-        tr.save(p[stage], overwrite=True)
-        out["save_seconds"] = time.perf_counter() - ts
+        c0 = time.process_time()
+        anon0 = AnonSampler.now()
+        with AnonSampler() as anon:
+            tr = get_kind(stage).precompute(mesh, dict(params), run=run)
+            out["compute_seconds"] = time.perf_counter() - t0
+            out["compute_cpu_seconds"] = time.process_time() - c0
+            ts = time.perf_counter()
+            tr.save(p[stage], overwrite=True)
+            out["save_seconds"] = time.perf_counter() - ts
+        out["anon_peak_growth"] = anon.peak - anon0  # held memory the precompute + save added (file pages excluded)
         out["vertices"] = mesh.num_vertices
         out["peak_after_mesh"] = vm_hwm() if hwm_reset else None  # bytes: the process's peak since the reset
-        out["marginal_peak_mesh"] = out.get("marginal_hwm_before_mesh_reset")
+        out["result_file_backed"] = "scratch" in _mapping_of(tr.data)
         out["rays"] = int(tr.meta.get("rays_traced", 0))
         out["data_bytes"] = tr.data.numel() * tr.data.element_size()
+        del tr
+        # what --dry-run says of the time (its probe: two chunks of the real run, scaled), after the measured run
+        # (its allocations must not count in the peak above); compared with the measured compute + save
+        te = time.perf_counter()
+        est_t = estimate(get_kind(stage), mesh, dict(params), RunOptions(workers=1), probe=True, mesh_seconds=0.0)
+        out["estimated_seconds"] = est_t.seconds
+        out["estimate_wall_seconds"] = time.perf_counter() - te
+        out["marginal_peak_mesh"] = out.get("marginal_hwm_before_mesh_reset")
     elif stage == "cpca":
         tr = Transfer.load(p["diffuse"])
         codec = codecs.get("cpca", clusters=16, vectors=4)
@@ -178,6 +228,7 @@ def child(args) -> dict:
         out["fit_seconds"] = time.perf_counter() - tf
         out["se"] = codec.fit_info_["se"]
         codec.save(p["cpca"], enc, overwrite=True, extra_meta={"transfer": str(p["diffuse"])})
+        out["estimated_seconds"] = _compress_estimate(p["diffuse"], codec, stream=False)
         out["vertices"] = tr.num_vertices
         out["data_bytes"] = tr.data.numel() * 4
         out["file_bytes"] = p["diffuse"].stat().st_size
@@ -193,6 +244,7 @@ def child(args) -> dict:
         out["fit_seconds"] = time.perf_counter() - tf
         out["se"] = codec.fit_info_["se"]
         codec.save(work / f"diffuse_{size}.cpca_stream.prt", enc, overwrite=True, extra_meta={"transfer": str(p["diffuse"])})
+        out["estimated_seconds"] = _compress_estimate(p["diffuse"], codec, stream=True)
         out["vertices"] = V
         out["data_bytes"] = X.size * 4
     elif stage == "relight":
@@ -230,6 +282,28 @@ def child(args) -> dict:
         out["relight_seconds"] = times[2]
         out["uncompressed_seconds"] = ref_times[2]
         out["vertices"] = tr.num_vertices
+        # prt relight of the uncompressed transfer file: --dry-run's estimate, then the streamed run (mapped
+        # transfer, chunks into the .npy), its time and its RSS growth (the whole [V, 3] is 12 B / vertex)
+        import argparse
+
+        from prt_torch.cli import relight as rl
+
+        del tr
+        ns = argparse.Namespace(transfer=str(p["diffuse"]), source=None, output=str(work / f"r_{size}.npy"), light="sky",
+                                view=None, memory_limit=None)
+        tl = time.perf_counter()
+        mapped = Transfer.load(p["diffuse"], mmap=True)  # what prt relight --dry-run loads (and times) first
+        out["relight_cli_estimated_seconds"], _ = rl.calibrate(ns, mapped, None, None, time.perf_counter() - tl)
+        out["relight_cli_plan_peak"] = rl.plan(ns)["peak"]
+        r0, h0 = rss_now(), (reset_peak() and vm_hwm())
+        t = time.perf_counter()
+        from prt_torch import io as pio
+
+        mapped = Transfer.load(p["diffuse"], mmap=True)
+        with pio.streamed_npy(work / f"r_{size}.npy", (mapped.num_vertices, 3), overwrite=True) as arr:
+            rl.radiance(mapped, "sky", out=torch.from_numpy(arr))
+        out["relight_cli_seconds"] = time.perf_counter() - t
+        out["relight_cli_peak_growth"] = (vm_hwm() - r0) if h0 else None
     elif stage == "bench":
         cfg = work / f"bench_{size}.yaml"
         cfg.write_text(
@@ -247,11 +321,35 @@ def child(args) -> dict:
         out["vertices"] = json.loads((work / "bench_reports" / f"scale_{size}" / "results.json").read_text())["scene"]["vertices"]
         out["marginal_reset"] = False  # prt bench runs in a process of its own: no marginal figure
     out["seconds"] = time.perf_counter() - t0
+    out["cpu_seconds"] = time.process_time() - c0
     out["peak_rss"], out["children_peak_rss"] = peak_rss()
     if out["marginal_reset"]:
         hwm = max(vm_hwm(), out.get("marginal_hwm_before_mesh_reset") or 0)
         out["marginal_bytes"] = max(0, hwm - out["rss_at_reset"])
     return out
+
+
+def _mapping_of(t) -> str:
+    """The /proc/self/maps line holding tensor ``t``'s memory ('' when anonymous or not found)."""
+    ptr = t.untyped_storage().data_ptr()
+    with open("/proc/self/maps") as f:
+        for line in f:
+            lo, hi = (int(x, 16) for x in line.split()[0].split("-"))
+            if lo <= ptr < hi:
+                return line.strip()
+    return ""
+
+
+def _compress_estimate(path: Path, codec, stream: bool) -> float:
+    """What ``prt compress --dry-run`` says of the fit + encode time (``cli.compress.calibrate``)."""
+    import argparse
+
+    from prt_torch import io
+    from prt_torch.cli import compress as cc
+
+    V = io.describe(path)["tensors"]["data"]["shape"][0]
+    sec, _ = cc.calibrate(argparse.Namespace(transfer=str(path)), codec, V, stream or V * 16 * 4 > 256 * 2**20)
+    return sec
 
 
 def warm_up(stage: str, args, work: Path) -> None:
@@ -442,6 +540,68 @@ def report(rows: list[dict], args, info: dict) -> str:
         for r in pre:
             L.append(f"| {r['stage']} | {r['vertices']} | {r['mesh_seconds']:.2f} | {r['compute_seconds']:.2f} | "
                      f"{r['save_seconds']:.2f} | {r['rays']} | {r['data_bytes'] / r['vertices']:.0f} |")
+    cpu = [r for r in rows if "error" not in r and r.get("stage") in ("diffuse", "mrt", "cpca", "cpca_stream", "embree")
+           and (r.get("compute_cpu_seconds") or r.get("cpu_seconds") or r.get("bare_cpu_seconds_per_ray"))]
+    if cpu:
+        L += ["", "**CPU time** (`time.process_time` of the stage's process, every thread: what other users' jobs on the "
+              "shared cores move least — a process waiting for a core accrues none; the wall seconds above include that "
+              "wait). Precompute: the compute alone; embree: per ray × rays per vertex; cpca: fit + encode + save:", "",
+              "| stage | vertices | CPU s | CPU µs / vertex | × smallest |", "|---|---:|---:|---:|---:|"]
+        c0: dict[str, float] = {}
+        rpv = (args.samples + 1) // 2
+        for r in cpu:
+            if r["stage"] == "embree":
+                if r.get("bare_cpu_seconds_per_ray") is None:
+                    continue
+                tot, per = r["bare_cpu_seconds_per_ray"] * r["bare_rays"], r["bare_cpu_seconds_per_ray"] * rpv
+            else:
+                tot = r.get("compute_cpu_seconds", r.get("cpu_seconds"))
+                per = tot / r["vertices"]
+            f0 = c0.setdefault(r["stage"], per)
+            L.append(f"| {r['stage']} | {r['vertices']} | {tot:.3g} | {per * 1e6:.3g} | {per / f0:.2f} |")
+    anon = [r for r in rows if "error" not in r and r.get("anon_peak_growth") is not None]
+    if anon:
+        L += ["", "Held memory of the precompute and its save (the peak of `RssAnon`, sampled every 20 ms, less its value "
+              "before: heap and anonymous maps, not file pages). A result over `transfer.base.STREAM_RESULT_BYTES` (256 MiB) "
+              "is assembled in a file beside the state directory (`RunOptions.stream_result`): its pages count in the RSS "
+              "above but not here (the kernel writes them back and drops them under pressure):", "",
+              "| stage | vertices | result MiB | result in a file | held peak growth MiB | B / vertex | × smallest |",
+              "|---|---:|---:|:---:|---:|---:|---:|"]
+        a0: dict[str, float] = {}
+        for r in anon:
+            b = r["anon_peak_growth"] / r["vertices"]
+            f0 = a0.setdefault(r["stage"], b)
+            L.append(f"| {r['stage']} | {r['vertices']} | {r['data_bytes'] / 2**20:.0f} | "
+                     f"{'yes' if r.get('result_file_backed') else 'no'} | {r['anon_peak_growth'] / 2**20:.0f} | {b:.0f} | "
+                     f"{b / f0 if f0 > 0 else float('nan'):.2f} |")
+    tim = [r for r in rows if "error" not in r and (r.get("estimated_seconds") is not None
+                                                    or r.get("relight_cli_estimated_seconds") is not None)]
+    if tim:
+        L += ["", "**Time estimates against the measured run** (what each `--dry-run` says before it starts, measured in "
+              "the same child right after the real run — not a timed assertion, a check of the estimate): precompute = "
+              "`transfer.estimate`'s probe (set-up + the second of two 1024-vertex chunks × chunks) against the compute + "
+              "save; cpca / cpca_stream = `prt compress --dry-run`'s calibration (a fit of up to 16384 evenly spaced rows, "
+              "scaled by V / rows) against the fit + encode; relight = `prt relight --dry-run`'s calibration (loading + set-up + "
+              "the first 32768-vertex chunk × chunks) against the streamed relight of the uncompressed diffuse file into a .npy:", "",
+              "| stage | vertices | estimated s | measured s | estimate / measured |", "|---|---:|---:|---:|---:|"]
+        for r in tim:
+            if r["stage"] in ("diffuse", "mrt") and r.get("estimated_seconds") is not None:
+                m = r["compute_seconds"] + r["save_seconds"]
+                L.append(f"| {r['stage']} | {r['vertices']} | {r['estimated_seconds']:.3g} | {m:.3g} | {r['estimated_seconds'] / m:.2f} |")
+            elif r["stage"] in ("cpca", "cpca_stream") and r.get("estimated_seconds") is not None:
+                L.append(f"| {r['stage']} | {r['vertices']} | {r['estimated_seconds']:.3g} | {r['fit_seconds']:.3g} | "
+                         f"{r['estimated_seconds'] / r['fit_seconds']:.2f} |")
+            elif r["stage"] == "relight" and r.get("relight_cli_estimated_seconds") is not None:
+                L.append(f"| relight (prt relight, streamed .npy) | {r['vertices']} | {r['relight_cli_estimated_seconds']:.3g} | "
+                         f"{r['relight_cli_seconds']:.3g} | {r['relight_cli_estimated_seconds'] / r['relight_cli_seconds']:.2f} |")
+        rl = [r for r in tim if r["stage"] == "relight" and r.get("relight_cli_peak_growth") is not None]
+        if rl:
+            L += ["", "`prt relight`'s streamed run: its peak RSS growth (mapped transfer pages included: they are file pages) "
+                  "against the [V, 3] float32 output it never holds, and `--dry-run`'s peak:", "",
+                  "| vertices | output MiB | peak growth MiB | dry-run peak MiB |", "|---:|---:|---:|---:|"]
+            for r in rl:
+                L.append(f"| {r['vertices']} | {r['vertices'] * 12 / 2**20:.1f} | {r['relight_cli_peak_growth'] / 2**20:.1f} | "
+                         f"{r['relight_cli_plan_peak'] / 2**20:.1f} |")
     return "\n".join(L) + "\n"
 
 

@@ -32,7 +32,8 @@ FORMAT = "prt_torch"
 FORMAT_VERSION = 1
 
 __all__ = ["save", "load", "load_meta", "atomic_path", "atomic_write_text", "atomic_write_json", "jsonable", "check_writable",
-           "check_outputs", "strict_json", "describe", "register_check", "format_bytes", "FORMAT_VERSION", "load_mmap"]
+           "check_outputs", "strict_json", "describe", "register_check", "format_bytes", "FORMAT_VERSION", "load_mmap",
+           "scratch_rows", "streamed_npy", "load_mapped"]
 
 
 @contextlib.contextmanager
@@ -301,29 +302,134 @@ def load(path: str | os.PathLike, expect_kind: str | None = None) -> tuple[dict[
 _NP_DTYPES = {"F32": "<f4", "F64": "<f8", "F16": "<f2", "I64": "<i8", "I32": "<i4", "I16": "<i2", "U8": "u1", "I8": "i1"}
 
 
+def _raw_header(path: Path) -> tuple[int, dict, dict]:
+    """``(data start, {name: header entry}, meta)`` of a ``.prt`` (safetensors) file read from its
+    first bytes only — no mapping of the file (``safe_open`` maps it whole, which a memory limit
+    counts) — after the kind's consistency check. Raises ValueError naming the file."""
+    size = path.stat().st_size
+    try:
+        with open(path, "rb") as f:
+            n = int.from_bytes(f.read(8), "little")
+            if not 0 < n <= min(size - 8, 100 << 20):
+                raise ValueError(f"header length {n} does not fit the file's {size} bytes")
+            header = json.loads(f.read(n))
+        raw = (header.pop("__metadata__", None) or {}).get(FORMAT)
+        for k, v in header.items():
+            a, b = v["data_offsets"]
+            if not 0 <= a <= b <= size - 8 - n:
+                raise ValueError(f"tensor {k!r} lies beyond the end of the file")
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise ValueError(f"{str(path)!r} is not a readable prt_torch file ({e}); expected a file written by prt_torch.io.save") from None
+    meta = _parse_meta(path, raw)
+    _check(path, meta, {k: list(v["shape"]) for k, v in header.items()})
+    return 8 + n, header, meta
+
+
+def _np_tensor(path: Path, start: int, info: dict, mapped: bool):
+    """One tensor of a safetensors file as numpy: a read-only ``np.memmap`` or read into memory."""
+    import numpy as np
+
+    if info["dtype"] not in _NP_DTYPES:
+        raise ValueError(f"{str(path)!r}: tensor has dtype {info['dtype']}; accepted for a memory map: {sorted(_NP_DTYPES)}")
+    a, b = info["data_offsets"]
+    shape, dt = tuple(info["shape"]), np.dtype(_NP_DTYPES[info["dtype"]])
+    if b == a:
+        return np.zeros(shape, dtype=dt)
+    if mapped:
+        return np.memmap(path, dtype=dt, mode="r", offset=start + a, shape=shape)
+    out = np.empty(shape, dtype=dt)
+    with open(path, "rb") as f:
+        f.seek(start + a)
+        f.readinto(memoryview(out).cast("B"))
+    return out
+
+
 def load_mmap(path: str | os.PathLike, name: str):
     """One tensor of a ``.prt`` (safetensors) file as a read-only ``numpy.memmap`` — not read into
     memory: its pages are read when used and can be dropped again (what a streamed codec fit
     reads, issue 42 part 3: ``codecs.get('cpca').fit(io.load_mmap(p, 'data').reshape(V, -1))``).
-    The file's kind check runs first (:func:`describe`). Raises ValueError naming the file and
-    the tensor when it is absent or of a dtype numpy cannot map."""
-    import numpy as np
+    The file's kind check runs first. Raises ValueError naming the file and the tensor when it is
+    absent or of a dtype numpy cannot map."""
+    path = _existing(path)
+    start, header, _ = _raw_header(path)
+    if name not in header:
+        raise ValueError(f"{str(path)!r} has no tensor {name!r}; it holds {sorted(header)}")
+    return _np_tensor(path, start, header[name], mapped=True)
+
+
+def load_mapped(path: str | os.PathLike, mapped: tuple[str, ...] = ("data",),
+                expect_kind: str | None = None) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
+    """:func:`load` with the tensors named in ``mapped`` left on disk: read-only memory maps
+    (``np.memmap`` under a torch tensor; never write to them) whose pages are read when used and
+    dropped under memory pressure; the others read into memory. Nothing maps the whole file
+    (a limit on process memory, ``RLIMIT_DATA``, does not count the mapped tensors)."""
+    import warnings
 
     path = _existing(path)
-    d = describe(path)
-    if name not in d["tensors"]:
-        raise ValueError(f"{str(path)!r} has no tensor {name!r}; it holds {sorted(d['tensors'])}")
-    with open(path, "rb") as f:
-        n = int.from_bytes(f.read(8), "little")
-        header = json.loads(f.read(n))
-    info = header[name]
-    if info["dtype"] not in _NP_DTYPES:
-        raise ValueError(f"{str(path)!r}: tensor {name!r} has dtype {info['dtype']}; accepted for a memory map: {sorted(_NP_DTYPES)}")
-    start, end = info["data_offsets"]
-    shape = tuple(info["shape"])
-    if end == start:
-        return np.zeros(shape, dtype=_NP_DTYPES[info["dtype"]])
-    return np.memmap(path, dtype=_NP_DTYPES[info["dtype"]], mode="r", offset=8 + n + start, shape=shape)
+    start, header, meta = _raw_header(path)
+    if expect_kind is not None and not str(meta.get("kind", "")).startswith(expect_kind):
+        raise ValueError(f"{str(path)!r} holds kind={meta.get('kind')!r}; expected a kind starting with {expect_kind!r}")
+    tensors = {}
+    with warnings.catch_warnings():  # a read-only map: torch warns that the tensor is not writable (it is never written)
+        warnings.simplefilter("ignore", UserWarning)
+        for k, info in header.items():
+            tensors[k] = torch.from_numpy(_np_tensor(path, start, info, mapped=k in mapped))
+    return tensors, meta
+
+
+def scratch_rows(directory: str | os.PathLike, shape: tuple[int, ...], dtype: torch.dtype = torch.float32,
+                 name: str = "rows") -> torch.Tensor:
+    """A tensor of ``shape`` and ``dtype`` backed by a file in ``directory`` rather than by
+    memory (issue 42 part 3: a result larger than memory, assembled chunk by chunk): a shared
+    writable mapping (``np.lib.format.open_memmap``) of a file unlinked as soon as it is mapped,
+    so that nothing is ever left on disk (not even after SIGKILL) and its pages are the page
+    cache's — written back and dropped under memory pressure, never swap or ``RLIMIT_DATA``. The
+    space is freed when the last reference to the tensor goes. Values start at zero.
+
+    Raises ValueError naming ``directory`` when it cannot hold the file (one line)."""
+    import numpy as np
+
+    directory = Path(directory)
+    n = 1
+    for d in shape:
+        n *= int(d)
+    itemsize = torch.tensor([], dtype=dtype).element_size()
+    np_dtype = {torch.float32: np.float32, torch.float64: np.float64, torch.float16: np.float16,
+                torch.int64: np.int64, torch.int32: np.int32, torch.int16: np.int16, torch.int8: np.int8,
+                torch.uint8: np.uint8}.get(dtype)
+    if np_dtype is None:
+        raise ValueError(f"scratch_rows: dtype={dtype}; accepted: float16/32/64, int8/16/32/64, uint8")
+    path = directory / f".{name}.{os.getpid()}.{id(shape):x}.scratch.npy"
+    try:
+        if n == 0:
+            return torch.zeros(shape, dtype=dtype)
+        directory.mkdir(parents=True, exist_ok=True)
+        arr = np.lib.format.open_memmap(path, mode="w+", dtype=np_dtype, shape=tuple(int(d) for d in shape))
+    except OSError as e:
+        raise ValueError(f"cannot create {format_bytes(n * itemsize)} of scratch rows in {str(directory)!r} "
+                         f"({e.strerror or e}); accepted: a directory on a file system with that much free space") from None
+    finally:
+        if path.exists():
+            path.unlink()  # the mapping keeps the file alive; nothing remains on disk once it is gone
+    return torch.from_numpy(arr)
+
+
+@contextlib.contextmanager
+def streamed_npy(path: str | os.PathLike, shape: tuple[int, ...], dtype="float32", overwrite: bool = False):
+    """Write a ``.npy`` file of ``shape`` chunk by chunk without holding it: yields a writable
+    ``numpy.memmap`` of ``<path>.<pid>.partial`` (``np.lib.format.open_memmap``, a shared
+    file mapping: its pages are the page cache's), flushed and renamed over ``path`` when the block
+    succeeds; on an exception (Ctrl-C included) the partial file is removed and ``path`` is left as
+    it was (:func:`atomic_path`). The file is the one ``np.save`` writes for the same array."""
+    import numpy as np
+
+    with atomic_path(path, overwrite=overwrite) as tmp:
+        arr = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.dtype(dtype), shape=tuple(int(d) for d in shape))
+        try:
+            yield arr
+            arr.flush()
+        finally:
+            del arr
 
 
 def _existing(path: str | os.PathLike) -> Path:

@@ -24,6 +24,74 @@ def stage_memory(cfg: dict, mesh, mem: dict) -> str:
             f"{fb(mem['codec_workspace_bytes'])}, metrics {fb(mem['metrics_bytes'])}); cached transfers are not recomputed")
 
 
+#: calibrations already timed in this process: (what) -> seconds
+_TIMED: dict = {}
+#: codecs whose fit time ``--dry-run`` estimates from a calibration fit on a synthetic signal
+CALIBRATED_CODECS = ("vq", "pca", "cpca", "cpca_static", "cpca_iterative", "cpca_adaptive", "mrt_pca")
+
+
+def stage_time(cfg: dict, mesh, mem: dict, rows: int = 1024, probe_vertices: int = 256, max_dim: int = 4096) -> str:
+    """One line: each stage's estimated time. The precompute from
+    :func:`prt_torch.transfer.estimate.estimate`'s probe (two chunks of the real run timed, scaled
+    to every vertex; a cached transfer is not recomputed); each affine codec setting's fit + encode
+    from a calibration fit of ``rows`` rows of a synthetic signal of the transfer's shape
+    (``codecs.synthetic.transfer_like``), scaled by V / rows (each calibration once per process);
+    signals wider than ``max_dim`` are not calibrated (their fixed per-cluster eigensolves of a
+    D×D scatter dominate a small sample: the scaled figure would mislead, and the calibration
+    alone would take tens of seconds). Estimates, said as such; the metrics' timing repeats are
+    not estimated (they are ``metrics.repeats`` short relights)."""
+    import time
+
+    from .. import codecs
+    from ..codecs.synthetic import transfer_like
+    from ..harness.config import expand_codecs
+    from ..harness.run import signal_shape, transfer_params
+    from ..transfer import get_kind
+    from ..transfer.estimate import estimate
+
+    params = transfer_params(cfg)
+    if "auto" in params.values():
+        pre = "precompute: after its 'auto' choices (see prt precompute --dry-run)"
+    else:
+        key = (cfg["transfer"]["type"], mesh.content_hash(), repr(sorted(params.items())))
+        if key not in _TIMED:
+            e = estimate(get_kind(cfg["transfer"]["type"]), mesh, params, probe=True, probe_vertices=probe_vertices,
+                         mesh_seconds=0.0)
+            _TIMED[key] = e.seconds
+        sec = _TIMED[key]
+        pre = "precompute " + ("not estimated" if sec is None else f"~{sec:.3g} s (probe of {probe_vertices}-vertex chunks, unless cached)")
+    V = mesh.num_vertices
+    shape = signal_shape(cfg)
+    if shape is None and cfg["transfer"]["type"] == "diffuse" and "auto" not in params.values():
+        from ..transfer.estimate import result_bytes_per_vertex
+
+        kw, _ = get_kind("diffuse").resolve(params)  # grey [V, n²] or RGB [V, 3, n²]: the mesh and bounces say which
+        n2 = int(kw["bands"]) ** 2
+        D = result_bytes_per_vertex("diffuse", kw, mesh)[0] // 4
+        shape = (D, (D // n2, n2))
+    parts = []
+    if shape is not None and shape[0] > max_dim:
+        parts.append(f"not estimated for D={shape[0]} > {max_dim}")
+    elif shape is not None:
+        n_out, n_in = shape[1]
+        s_rows = min(V, rows)
+        X = transfer_like(s_rows, n_out, n_in)
+        for st in expand_codecs(cfg["codecs"]):
+            kw = {k: v for k, v in st.items() if k != "type"}
+            if st["type"] not in CALIBRATED_CODECS:
+                parts.append(f"{st['type']} not estimated")
+                continue
+            key = (st["type"], repr(sorted(kw.items())), n_out, n_in, s_rows)
+            if key not in _TIMED:  # once per setting and shape in this process (a sweep repeats them)
+                c = codecs.get(st["type"], **kw)
+                t = time.perf_counter()
+                c.fit_encode(X, matrix_shape=(n_out, n_in))
+                _TIMED[key] = time.perf_counter() - t
+            parts.append(f"{st['type']} {','.join(f'{k}={v}' for k, v in kw.items())} ~{_TIMED[key] * V / s_rows:.3g} s")
+    return (f"{pre}; codec fit + encode (calibration: {min(V, rows)} synthetic rows, scaled to {V}): "
+            + ("; ".join(parts) if parts else "not estimated") + " — estimates")
+
+
 def register(sub) -> None:
     p = sub.add_parser(
         "bench",
@@ -43,7 +111,10 @@ def register(sub) -> None:
     p.add_argument("--no-resume", action="store_true", help="recompute settings even if their records exist")
     p.add_argument("--no-render", action="store_true", help="skip the pyrender images")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
-    p.add_argument("--dry-run", action="store_true", help="validate and print the resolved config and sweep, do no work")
+    p.add_argument("--dry-run", action="store_true", help="validate and print the resolved config and sweep, memory and "
+                   "estimated time per stage, do no work")
+    p.add_argument("--no-time", action="store_true", help="with --dry-run: skip the time estimates (a precompute probe and "
+                   "a calibration fit per codec setting: seconds per config)")
     add_executor_args(p, "the transfer's chunks and the codec settings")
     p.add_argument("--debug", action="store_true", help="show tracebacks")
     p.set_defaults(func=run)
@@ -106,6 +177,8 @@ def run(args: argparse.Namespace) -> int:
                 for _, one in ablation_values(sub):  # each value of a transfer ablation is its own transfer
                     mesh, mem = load_mesh_within_budget(one)  # the memory estimate the real run refuses on
                     print(f"# memory per stage, {mesh.name} ({mesh.num_vertices} vertices): " + stage_memory(one, mesh, mem))
+                    if not args.no_time:
+                        print(f"# time per stage: {stage_time(one, mesh, mem)}")
                 if sub["target"].get("psnr") is not None:
                     from ..harness.target import search_cost
 

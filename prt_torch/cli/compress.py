@@ -38,7 +38,10 @@ def register(subparsers) -> None:
                    help="fit from the transfer file memory-mapped: the signal is not read into memory, the codec reads it "
                         "by chunks (vq, pca, cpca, mrt_pca; docs/codecs.md). Larger signals than memory work this way")
     p.add_argument("--dry-run", action="store_true",
-                   help="print what the fit will hold (signal, copies, work, bookkeeping, codes) and whether it streams; no work")
+                   help="print what the fit will hold (signal, copies, work, bookkeeping, codes), whether it streams, and its "
+                        "estimated time (a calibration fit of a sample of rows, scaled); writes nothing")
+    p.add_argument("--memory-limit", type=float, default=None, metavar="GIB",
+                   help="GiB; refuse a fit estimated above it before reading the signal (default 60%% of RAM)")
     p.add_argument("--list", action="store_true", help="list codec names and exit")
     p.add_argument("--describe", metavar="NAME", help="show the parameters of codec NAME and exit")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
@@ -130,25 +133,91 @@ def _mapped_input(path):
     return X, (tuple(int(v) for v in ms) if ms else None), meta, {}
 
 
-def _dry_run(args, codec) -> int:
-    """What the fit will hold, from the file's header only (``codecs.chunks.fit_memory``)."""
+def fit_plan(args, codec) -> dict:
+    """``codecs.chunks.fit_memory`` of this fit from the file's header only (``P``, ``D``, the
+    codec's clusters and vectors; streamed with ``--stream``), with ``'P'``, ``'D'`` and the budget
+    (``--memory-limit``, default 60% of RAM: ``transfer.glossy.memory_budget``)."""
     from .. import io
     from ..codecs.chunks import fit_memory
+    from ..transfer.glossy import memory_budget
 
     shape = io.describe(args.transfer)["tensors"]["data"]["shape"]
-    P = int(shape[0])
-    D = 1
+    P, D = int(shape[0]), 1
     for v in shape[1:]:
         D *= int(v)
     p = codec.get_params()
     m = fit_memory(P, D, p.get("clusters", 1), p.get("vectors", 0), streamed=True if args.stream else None)
+    m.update(P=P, D=D, budget=memory_budget(None if args.memory_limit is None else int(args.memory_limit * (1 << 30))))
+    return m
+
+
+#: rows of the calibration fit ``--dry-run`` times (at least 64 per cluster, at most the signal)
+CALIBRATION_ROWS = 16384
+
+
+def calibrate(args, codec, P: int, streamed: bool) -> tuple[float, str]:
+    """(estimated seconds of the fit + encode, how): the same codec fitted on ``s`` evenly spaced
+    rows of the memory-mapped signal (streamed like the real fit when it streams), timed after a
+    warm-up on 256 rows, scaled by P / s — an estimate: Lloyd's iterations to converge and the
+    fixed costs (seeding on a fixed sample, per-cluster eigensolves) do not scale with P."""
+    import time
+
+    import numpy as np
+    import torch
+    from sklearn.base import clone
+
+    from .. import io
+
+    X = io.load_mmap(args.transfer, "data")
+    X = X.reshape(X.shape[0], -1)
+    K = int(codec.get_params().get("clusters", 1) or 1)
+    s = min(P, max(CALIBRATION_ROWS, 64 * K))
+    idx = np.unique(np.linspace(0, P - 1, s).round().astype(np.int64))
+    sample = torch.from_numpy(np.ascontiguousarray(X[idx], dtype=np.float32))
+    warm = clone(codec)
+    warm.fit_encode(sample[:max(256, 2 * K)])
+    c = clone(codec)
+    if streamed:
+        c.stream_bytes_ = 0  # read by chunks, as the real fit of the mapped file
+    t = time.perf_counter()
+    c.fit_encode(sample)
+    dt = time.perf_counter() - t
+    return dt * P / idx.size, f"calibration: {idx.size} rows fitted and encoded in {dt:.3g} s, × {P / idx.size:.3g}"
+
+
+def _dry_run(args, codec) -> int:
+    """What the fit will hold, from the file's header (``codecs.chunks.fit_memory``), and how long
+    it will take (:func:`calibrate`)."""
+    from .. import io
+
+    m = fit_plan(args, codec)
+    P, D = m["P"], m["D"]
     f = io.format_bytes
     print(f"{args.codec}: {P} points × D={D}; the fit {'streams the signal by chunks' if m['streamed'] else 'holds the signal in memory'}"
           + (" (--stream: from the memory-mapped file)" if args.stream else ""))
     print(f"  signal loaded {f(m['signal'])}, centred and tile-ordered copies {f(m['copies'])}, chunk work {f(m['work'])}, "
           f"bookkeeping {f(m['bookkeeping'])}, codes {f(m['codes'])}, fixed blocks {f(m['fixed'])}")
-    print(f"  peak ~{f(m['peak'])} (the counted sum × the allocator slack, plus the fixed blocks; nothing written)")
+    seconds, how = calibrate(args, codec, P, m["streamed"])
+    print(f"  peak ~{f(m['peak'])} (the counted sum × the allocator slack, plus the fixed blocks; nothing written); "
+          f"budget {f(m['budget'])} ({'fits' if m['peak'] <= m['budget'] else 'does NOT fit'})")
+    print(f"  time ~{seconds:.3g} s fit + encode (an estimate; {how})")
+    check_plan(args, m)
     return 0
+
+
+def check_plan(args, m: dict) -> None:
+    """Refuse (ValueError, one line naming the sizes) a fit whose estimated peak exceeds the budget."""
+    from .. import io
+
+    if m["peak"] <= m["budget"]:
+        return
+    f = io.format_bytes
+    hint = ("the fit already streams; accepted: fewer clusters or vectors, or a larger --memory-limit on a machine that has it"
+            if m["streamed"] else "accepted: --stream (the signal is then read from the file by chunks), fewer clusters or "
+            "vectors, or a larger --memory-limit")
+    raise ValueError(f"{args.codec} fit of {m['P']} points × D={m['D']} needs about {f(m['peak'])} at its peak (signal "
+                     f"{f(m['signal'])}, copies {f(m['copies'])}, work {f(m['work'])}, bookkeeping {f(m['bookkeeping'])}, "
+                     f"codes {f(m['codes'])}) but the budget is {f(m['budget'])}; {hint}")
 
 
 def run(args) -> int:
@@ -179,9 +248,17 @@ def run(args) -> int:
     if (args.stream or args.dry_run) and not affine:
         raise ValueError(f"--stream/--dry-run with codec {args.codec!r}: it fits in memory only; accepted: vq, pca, cpca "
                          "(and its presets), mrt_pca")
+    import math
+
+    if args.memory_limit is not None and not (math.isfinite(args.memory_limit) and 0 < args.memory_limit <= 1 << 20):
+        raise ValueError(f"--memory-limit {args.memory_limit!r} GiB; accepted: a finite number of GiB in (0, 1048576]")
     if args.dry_run:
         return _dry_run(args, codec)
     check_outputs({"-o/--output": args.output}, {"TRANSFER": args.transfer}, args.overwrite)  # before the fit
+    from pathlib import Path
+
+    if affine and not Path(args.transfer).is_dir():
+        check_plan(args, fit_plan(args, codec))  # before the signal is read: what cannot fit even streamed
     X, ms, meta, geometry = _mapped_input(args.transfer) if args.stream else load_input(args.transfer, codec)
     t0 = time.perf_counter()
     try:

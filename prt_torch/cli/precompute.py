@@ -228,8 +228,9 @@ def _run(args, executor) -> int:
     mesh = load_scene(args.scene, size=args.size, up=args.up, albedo=args.albedo)
     t_mesh, mesh_rss = time.perf_counter() - t_mesh, rss_bytes() - rss0
     print(f"prt precompute: {mesh.name}: {mesh.num_vertices} vertices, {mesh.num_faces} faces", file=sys.stderr)
-    plan = RunOptions(chunk_size=args.chunk, workers=args.workers, offset=RunOptions.offset,
-                      max_memory=None if args.memory_limit is None else int(args.memory_limit * (1 << 30)))
+    plan = RunOptions(chunk_size=args.chunk, workers=args.workers, offset=RunOptions.offset, state_dir=state,
+                      max_memory=None if args.memory_limit is None else int(args.memory_limit * (1 << 30)))  # a result over
+    # STREAM_RESULT_BYTES is assembled in a file beside the state directory: the estimate does not count it in memory
     est = estimate(kind, mesh, params, plan, lights=lights, probe=args.dry_run, mesh_seconds=t_mesh, mesh_rss=mesh_rss)
     if args.dry_run:
         print(f"prt precompute: dry run, {kind.name} on {mesh.num_vertices} vertices: memory and time per stage", file=sys.stderr)

@@ -18,6 +18,15 @@ for the whole mesh, ``--exposure``) for a mesh viewer. Every kind:
 
 View-dependent kinds (glossy, MRT, transport tables) take the camera position ``--view X,Y,Z`` (default: the
 camera ``prt render`` places by default); view-independent ones refuse it.
+
+Larger than memory (issue 42 part 3): an SH transfer is memory-mapped (``Transfer.load(mmap=True)``:
+only the rows being relit are read) and relit by chunks of :data:`CHUNK_VERTICES` vertices, each
+written at once into the ``.npy`` through ``np.lib.format.open_memmap`` (``io.streamed_npy``: a
+``.partial`` file renamed at the end, removed on an interruption), so neither the transfer nor the
+``[V, 3]`` output is held. A codec file's source transfer is mapped too (only its mesh is read).
+``--dry-run`` prints each stage's memory and an estimated time (a calibration relight of the first
+chunk, scaled to every vertex) and writes nothing; a run whose estimate exceeds the budget
+(``--memory-limit``, default 60% of RAM) is refused before any work, naming the sizes.
 """
 from __future__ import annotations
 
@@ -28,6 +37,9 @@ from pathlib import Path
 import numpy as np
 
 OUT_EXTS = (".npy", ".ply")
+#: vertices per chunk when an SH transfer is relit (and streamed to the .npy) by chunks: the
+#: chunk's rows (≤ 4 KiB each for MRT 11×11 × 5 bands), its view weights and its output
+CHUNK_VERTICES = 1 << 15
 
 
 def _vector(text: str) -> list[float]:
@@ -59,6 +71,10 @@ def register(subparsers) -> None:
     p.add_argument("--exposure", default="auto", help=".ply: stops (EV) for the vertex colours, or 'auto'")
     p.add_argument("-o", "--output", required=True, help="output: .npy ([V, 3] float32) or .ply (mesh with vertex colours)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
+    p.add_argument("--dry-run", action="store_true",
+                   help="print each stage's memory and estimated time (a calibration relight of one chunk), write nothing")
+    p.add_argument("--memory-limit", type=float, default=None, metavar="GIB",
+                   help="GiB; refuse a run estimated above it before any work (default 60%% of RAM)")
     p.add_argument("--debug", action="store_true", help="show tracebacks")
     p.set_defaults(func=run)
 
@@ -108,7 +124,7 @@ def _load(args):
         if not src or not Path(src).is_file():
             raise FileNotFoundError(f"codec file {args.transfer!r}: its transfer {src!r} is not a file; accepted: "
                                     "--transfer TRANSFER.prt, the file it was compressed from (its mesh, frames and albedo)")
-        transfer = Transfer.load(src)
+        transfer = Transfer.load(src, mmap=True)  # its mesh, frames and albedo: the data is mapped, not read
         codec, enc = check_codec_file(args.transfer, PRTScene(transfer))
         return transfer, codec, enc
     if not kind.startswith("transfer/"):
@@ -116,17 +132,20 @@ def _load(args):
                          "(prt compress)")
     if args.source is not None:
         raise ValueError("--transfer applies to codec files; the input is a transfer")
-    return Transfer.load(args.transfer), None, None
+    return Transfer.load(args.transfer, mmap=kind != "transfer/wavelet"), None, None  # SH rows: read by chunks
 
 
 def radiance(transfer, light: str, codec=None, enc=None, terms: int | None = None, selection: str = "transport",
-             view=None):
-    """Per-vertex exit radiance ``[V, 3]`` float32 and a one-line description (module docstring)."""
+             view=None, out=None, rows: int | None = None):
+    """Per-vertex exit radiance ``[V, 3]`` float32 and a one-line description (module docstring).
+
+    An uncompressed SH transfer is relit by chunks of ``rows`` (default :data:`CHUNK_VERTICES`) vertices (``PRTScene.cpu_radiance``
+    with ``rows=``; the same bits whether its data is in memory or memory-mapped), each written into
+    ``out`` (a ``[V, 3]`` float32 tensor, e.g. over the memory map of the output file) when given.
+    Other inputs (codec, wavelet) are computed whole and copied into ``out``."""
     import torch
 
     from .. import relight
-    from ..render import Camera, PRTScene
-    from ..lighting import load_light
 
     if transfer.kind == "wavelet":
         if codec is not None:  # pragma: no cover - compress refuses wavelet transfers
@@ -137,27 +156,49 @@ def radiance(transfer, light: str, codec=None, enc=None, terms: int | None = Non
         li, lv, rec = r.light(light, terms, selection)
         if rec.get("upsampled"):
             warnings.warn(rec["warning"])
-        out = r(li, lv)
-        if out.shape[1] == 1:
-            out = out.expand(-1, 3)
-        return out.contiguous(), (f"wavelet R={r.res}, {li.numel()} of {r.P} light terms ({selection}), "
-                                  f"{r.touched(li)} transfer coefficients read")
+        res = r(li, lv)
+        if res.shape[1] == 1:
+            res = res.expand(-1, 3)
+        return _into(res.contiguous(), out), (f"wavelet R={r.res}, {li.numel()} of {r.P} light terms ({selection}), "
+                                              f"{r.touched(li)} transfer coefficients read")
     if terms is not None:
         raise ValueError(f"--terms {terms} applies to wavelet transfers; a {transfer.kind} transfer takes the light in "
                          "its own SH bands")
+    scene, L, eye = _sh_setup(transfer, light, view)
+    bands = int(round(scene.n_in ** 0.5))
+    what = f"{transfer.kind} transfer, {bands} bands" + (f", codec {codec.codec_name}" if codec is not None else "")
+    if codec is not None:
+        return _into(scene.cpu_radiance(L, None if eye is None else scene.view(eye), codec, enc), out), what
+    res = torch.empty(scene.V, 3, dtype=torch.float32) if out is None else out
+    rows = CHUNK_VERTICES if rows is None else int(rows)
+    for a in range(0, scene.V, rows):  # by chunks: only these rows of a mapped transfer are read
+        sl = slice(a, min(scene.V, a + rows))
+        res[sl] = scene.cpu_radiance(L, None if eye is None else scene.view(eye, sl), rows=sl)
+    return res, what
+
+
+def _sh_setup(transfer, light: str, view):
+    """``(PRTScene, light [C, n²], eye [3] float64 or None)`` of an SH transfer for :func:`radiance`."""
+    import torch
+
+    from ..lighting import load_light
+    from ..render import Camera, PRTScene
+
     scene = PRTScene(transfer)
+    eye = None
     if scene.needs_view:
         eye = torch.tensor(view, dtype=torch.float64) if view is not None else torch.as_tensor(Camera.fit(transfer.mesh).eye)
-        v = scene.view(eye)
     elif view is not None:
         raise ValueError(f"--view applies to glossy and MRT transfers; a {transfer.kind} transfer is view-independent")
-    else:
-        v = None
-    bands = int(round(scene.n_in ** 0.5))
-    L = load_light(light, bands=bands)
-    out = scene.cpu_radiance(L, v, codec, enc)
-    what = f"{transfer.kind} transfer, {bands} bands" + (f", codec {codec.codec_name}" if codec is not None else "")
-    return out, what
+    return scene, load_light(light, bands=int(round(scene.n_in ** 0.5))), eye
+
+
+def _into(res, out):
+    """``res`` copied into ``out`` (when given; returned), else ``res``."""
+    if out is None:
+        return res
+    out[:] = res
+    return out
 
 
 def _write_ply(path: Path, mesh, rgb: np.ndarray, exposure: str, overwrite: bool) -> float:
@@ -178,6 +219,148 @@ def _write_ply(path: Path, mesh, rgb: np.ndarray, exposure: str, overwrite: bool
     return ev
 
 
+def _tensor_bytes(info: dict) -> int:
+    """Bytes of one tensor from ``io.describe``'s ``{'shape', 'dtype'}``."""
+    n = 1
+    for d in info["shape"]:
+        n *= int(d)
+    return n * {"F64": 8, "I64": 8, "F32": 4, "I32": 4, "F16": 2, "I16": 2, "U8": 1, "I8": 1, "BOOL": 1}.get(info["dtype"], 4)
+
+
+def plan(args) -> dict:
+    """What the run will hold, from the files' headers only (no data read): ``{'V', 'stages':
+    [{'stage', 'bytes', 'note'}], 'peak', 'budget', 'streamed'}``. Stages: *input* (the mesh and
+    what :class:`~prt_torch.render.PRTScene` derives from it — frames, points, albedo —; an SH
+    transfer's data is memory-mapped: its pages are page cache, not counted; a codec's codes,
+    a wavelet transfer's coefficients and transport tables are loaded whole), *relight* (one chunk's
+    rows, view weights and output; a codec, wavelet or table: the whole ``[V, 3]`` result and its
+    work), *output* (``.npy``: written chunk by chunk through a file mapping, not held; ``.ply``: the
+    colours and the trimesh mesh whole). Peak = the sum × ``transfer.estimate.ALLOCATOR_SLACK``."""
+    from .. import io
+    from ..transfer.estimate import ALLOCATOR_SLACK
+    from ..transfer.glossy import memory_budget
+
+    fb = io.format_bytes
+    src = Path(args.transfer)
+    if src.is_dir():  # transport tables: the evaluator loads the table whole
+        size = sum(f.stat().st_size for f in src.rglob("*") if f.is_file())
+        V = int(json_load(src / "manifest.json").get("vertices", 0) or 0) if (src / "manifest.json").is_file() else 0
+        stages = [{"stage": "input", "bytes": 2 * size, "note": f"transport tables {fb(size)} loaded whole (and weighted)"},
+                  {"stage": "relight", "bytes": V * 3 * 8, "note": "the whole result at once"}]
+        streamed, kind = False, "transport"
+    else:
+        d = io.describe(src)
+        kind = str(d["meta"].get("kind", ""))
+        codes = 0
+        if kind.startswith("codec/"):
+            codes = sum(_tensor_bytes(t) for t in d["tensors"].values())
+            srcf = args.source or (d["meta"].get("extra") or {}).get("source")
+            if srcf and Path(srcf).is_file():
+                d = io.describe(srcf)
+            elif srcf and Path(srcf).is_dir():
+                return plan(type(args)(**{**vars(args), "transfer": srcf, "source": None}))
+        t = d["tensors"]
+        if "data" not in t:
+            raise ValueError(f"{str(src)!r}: no transfer data to plan from; accepted: a transfer or codec file")
+        V = int(t["data"]["shape"][0])
+        mesh = sum(_tensor_bytes(v) for k, v in t.items() if k.startswith("mesh."))
+        data = sum(_tensor_bytes(v) for k, v in t.items() if k == "data" or k.startswith("aux."))
+        scene = V * (72 + 24 + 12)  # PRTScene: frames float64, points float64, albedo float32
+        row = _tensor_bytes(t["data"]) // max(V, 1)
+        wavelet = d["meta"].get("kind") == "transfer/wavelet"
+        if codes:
+            inp, note = mesh + scene + codes, f"mesh {fb(mesh)} + frames {fb(scene)}, codes {fb(codes)}; the source's data mapped, not read"
+            work, wnote = V * 3 * 4 * 3, "the whole [V, 3] result at once (a codec relights every point in one call)"
+        elif wavelet:
+            inp, note = mesh + 2 * data, f"mesh {fb(mesh)}, coefficients {fb(data)} loaded whole (and the relighter's copy)"
+            work, wnote = V * 3 * 4 * 3, "the whole [V, 3] result at once"
+        else:
+            k = min(V, CHUNK_VERTICES)
+            inp, note = mesh + scene, f"mesh {fb(mesh)} + frames {fb(scene)}; the data ({fb(data)}) memory-mapped, read by chunks"
+            work, wnote = k * (2 * row + 200 + 12), f"one chunk of {k} vertices (rows, view weights, output)"
+        stages = [{"stage": "input", "bytes": inp, "note": note}, {"stage": "relight", "bytes": work, "note": wnote}]
+        streamed = not codes and not wavelet
+    if Path(args.output).suffix.lower() == ".npy":
+        stages.append({"stage": "output", "bytes": 0, "note": f"{fb(V * 12)} .npy written chunk by chunk through a file "
+                                                            "mapping (a .partial renamed at the end), not held"})
+    else:
+        stages.append({"stage": "output", "bytes": V * 64, "note": f".ply: colours and the mesh for trimesh, whole ({fb(V * 64)})"})
+    budget = memory_budget(None if args.memory_limit is None else int(args.memory_limit * (1 << 30)))
+    peak = int(ALLOCATOR_SLACK * sum(st["bytes"] for st in stages))
+    return {"V": V, "kind": kind, "stages": stages, "peak": peak, "budget": budget, "streamed": streamed}
+
+
+def json_load(path):
+    import json
+
+    return json.loads(Path(path).read_text())
+
+
+def calibrate(args, transfer, codec, enc, load_seconds: float = 0.0) -> tuple[float | None, str]:
+    """(estimated seconds of the whole relight, how): an SH transfer's first chunk relit and timed
+    (after a warm-up of 64 vertices), scaled to every chunk; a codec: one relight of every point
+    (the codes are small: the call is the stage itself, nothing written); otherwise not estimated."""
+    import time
+
+    if transfer is None or isinstance(transfer, (str, Path)) or transfer.kind == "wavelet":
+        return None, "not estimated for transport tables and wavelet transfers"
+    V = transfer.num_vertices
+    if codec is not None:
+        radiance(transfer, args.light, codec, enc, view=args.view)  # warm-up (kernels, plans)
+        t = time.perf_counter()
+        radiance(transfer, args.light, codec, enc, view=args.view)
+        return load_seconds + time.perf_counter() - t, (f"loading {load_seconds:.3g} s + one relight of the codes timed "
+                                                        "(the stage itself, nothing written)")
+    import torch
+
+    k = min(V, CHUNK_VERTICES)
+    t = time.perf_counter()
+    scene, L, eye = _sh_setup(transfer, args.light, args.view)  # once per run: frames, camera, light
+    setup = time.perf_counter() - t
+    sub = torch.empty(k, 3, dtype=torch.float32)
+
+    def chunk(a: int, b: int) -> None:
+        sl = slice(a, b)
+        sub[:b - a] = scene.cpu_radiance(L, None if eye is None else scene.view(eye, sl), rows=sl)
+
+    chunk(0, min(V, 64))  # warm-up
+    t = time.perf_counter()
+    chunk(0, k)
+    dt = time.perf_counter() - t
+    n = -(-V // k)
+    return load_seconds + setup + dt * n, (f"calibration: loading {load_seconds:.3g} s + set-up {setup:.3g} s + the first {k} "
+                                           f"vertices relit in {dt:.3g} s "
+                            f"(from the mapped file) × {n} chunks")
+
+
+def _print_plan(pl: dict, seconds: float | None, how: str) -> None:
+    from .. import io
+
+    fb = io.format_bytes
+    import sys
+
+    print(f"prt relight: dry run, {pl['kind']} with {pl['V']} vertices: memory and time per stage", file=sys.stderr)
+    for st in pl["stages"]:
+        print(f"  {st['stage']:7s} {fb(st['bytes']):>10s}  {st['note']}", file=sys.stderr)
+    tot = "time not estimated" if seconds is None else f"~{seconds:.3g} s relight (an estimate; {how})"
+    print(f"  peak    {fb(pl['peak']):>10s}  {tot}; budget {fb(pl['budget'])} ({'fits' if pl['peak'] <= pl['budget'] else 'does NOT fit'})",
+          file=sys.stderr)
+
+
+def check_plan(pl: dict) -> None:
+    """Refuse (ValueError, one line with every stage's size) a run whose peak exceeds the budget."""
+    from .. import io
+
+    if pl["peak"] <= pl["budget"]:
+        return
+    fb = io.format_bytes
+    parts = ", ".join(f"{st['stage']} {fb(st['bytes'])}" for st in pl["stages"])
+    raise ValueError(f"prt relight of {pl['V']} vertices needs about {fb(pl['peak'])} at its peak ({parts}"
+                     + ("; the transfer is already mapped and the .npy streamed" if pl["streamed"] else "")
+                     + f") but the budget is {fb(pl['budget'])}; accepted: a .npy output, an SH transfer (streamed by "
+                     "chunks), or a larger --memory-limit on a machine that has it")
+
+
 def run(args) -> int:
     from .. import io
 
@@ -191,8 +374,28 @@ def run(args) -> int:
             float(args.exposure)
         except ValueError:
             raise ValueError(f"--exposure {args.exposure!r}; accepted: a number of stops or 'auto'") from None
+    import math
+
+    if args.memory_limit is not None and not (math.isfinite(args.memory_limit) and 0 < args.memory_limit <= 1 << 20):
+        raise ValueError(f"--memory-limit {args.memory_limit!r} GiB; accepted: a finite number of GiB in (0, 1048576]")
     io.check_outputs({"-o/--output": out}, {"TRANSFER_OR_CODEC": args.transfer, "--transfer": args.source,
                                             "--light": args.light}, args.overwrite)
+    pl = plan(args)  # from the headers: refused here, before anything is read, when it cannot fit
+    if not args.dry_run:
+        check_plan(pl)
+    if args.dry_run:
+        transfer = codec = enc = None
+        if not Path(args.transfer).is_dir():
+            import time
+
+            t = time.perf_counter()
+            transfer, codec, enc = _load(args)  # what the run loads first (the mesh; the data mapped)
+            load = time.perf_counter() - t
+        seconds, how = calibrate(args, transfer, codec, enc, load if transfer is not None else 0.0)
+        _print_plan(pl, seconds, how)
+        check_plan(pl)
+        print("prt relight: dry run: nothing written", file=__import__("sys").stderr)
+        return 0
     if Path(args.transfer).is_dir():  # Green 2005 transport tables
         if args.terms is not None:
             raise ValueError(f"--terms {args.terms} applies to wavelet transfers; transport tables take the light in SH")
@@ -205,13 +408,21 @@ def run(args) -> int:
                 raise ValueError(f"--terms {args.terms} applies to wavelet transfers; transport tables take the light in SH")
             rad, what = _transport(transfer, args.light, args.view, args.transfer)
             transfer = None
+        elif out.suffix.lower() == ".npy":  # streamed: each chunk written into the file's mapping as it is relit
+            import torch
+
+            with io.streamed_npy(out, (transfer.num_vertices, 3), "float32", overwrite=args.overwrite) as arr:
+                _, what = radiance(transfer, args.light, codec, enc, args.terms, args.selection, args.view,
+                                   out=torch.from_numpy(arr))
+                lo, hi = float(arr.min()), float(arr.max())
+            print(f"wrote {out} ([{transfer.num_vertices}, 3] float32; {what}; radiance range [{lo:.4g}, {hi:.4g}])")
+            return 0
         else:
             rad, what = radiance(transfer, args.light, codec, enc, args.terms, args.selection, args.view)
     rgb = rad.numpy().astype(np.float32)
     if out.suffix.lower() == ".npy":
-        with io.atomic_path(out, overwrite=args.overwrite) as tmp:
-            with open(tmp, "wb") as f:
-                np.save(f, rgb)
+        with io.streamed_npy(out, rgb.shape, "float32", overwrite=args.overwrite) as arr:
+            arr[:] = rgb
         print(f"wrote {out} ([{rgb.shape[0]}, {rgb.shape[1]}] float32; {what}; radiance range "
               f"[{float(rgb.min()):.4g}, {float(rgb.max()):.4g}])")
     else:

@@ -108,13 +108,15 @@ class PRTScene:
         L[:k] = light[:, :k].T.to(torch.float32)
         return L.expand(self.n_in, 3).contiguous()
 
-    def view(self, eye) -> Any:
+    def view(self, eye, rows: slice | None = None) -> Any:
         """Per-vertex view weights for a camera at ``eye [3]`` (world): None (diffuse), dense
         y(v_p) ``[V, n_out]`` float32 (glossy, Sloan 2003 §3.1) or taps (idx ``[V, 4]`` int64,
-        g ``[V, 4]`` float32) (MRT eq. 13); zero below each vertex's horizon."""
+        g ``[V, 4]`` float32) (MRT eq. 13); zero below each vertex's horizon. ``rows``: only
+        those vertices (a slice; the leading dimension is then its length)."""
         if not self.needs_view:
             return None
-        v = relight.local_view(self.frames, self.points, eye=torch.as_tensor(np.asarray(eye, np.float64)))
+        sl = slice(None) if rows is None else rows
+        v = relight.local_view(self.frames[sl], self.points[sl], eye=torch.as_tensor(np.asarray(eye, np.float64)))
         if self.kind == "glossy":
             return relight.glossy_view_weights(v, self.transfer.meta.get("out_index"), self.n_out)
         return relight.mrt_view_taps(v, math.isqrt(self.n_out))
@@ -128,29 +130,35 @@ class PRTScene:
         check_codec_matches(source, codec, enc, meta, mesh_hash=self.mesh.content_hash(), points=self.V, dim=self.D,
                             matrix_shape=self.matrix_shape, n_in=self.n_in, kind=self.kind)
 
-    def cpu_radiance(self, light: torch.Tensor, view: Any = None, codec=None, enc=None) -> torch.Tensor:
+    def cpu_radiance(self, light: torch.Tensor, view: Any = None, codec=None, enc=None,
+                     rows: slice | None = None) -> torch.Tensor:
         """The torch engine's exit radiance ``[V, 3]`` float32 under ``light [C, n²]``.
 
         Uncompressed: ``relight.diffuse`` / ``relight.apply_dense`` / ``relight.apply_taps``
         (the project's reference); with ``codec``: ``codec.relight(enc, light [n_in, 3], view)``
         (Sloan 2003 §6 / MRT eq. 13 from the compressed form). Albedo applied for diffuse grey
-        transfer stored without it; the diagonal taken for RGB diffuse transfer."""
+        transfer stored without it; the diagonal taken for RGB diffuse transfer. ``rows``
+        (uncompressed only): those vertices only, ``view`` being theirs (``view(eye, rows)``) —
+        what ``prt relight`` streams a transfer larger than memory by (only those rows are read)."""
         Lm = self.light_matrix(light)  # [n_in, 3]
         if codec is None:
+            sl = slice(None) if rows is None else rows
             if self.mode == "none":
-                out = relight.diffuse(self.rows[:, 0], Lm.T)
+                out = relight.diffuse(self.rows[sl, 0], Lm.T)
             elif self.mode == "diagonal":
-                out = relight.diffuse(self.rows, Lm.T)
+                out = relight.diffuse(self.rows[sl], Lm.T)
             elif self.mode == "dense":
-                out = relight.apply_dense(self.rows, Lm.T, view)
+                out = relight.apply_dense(self.rows[sl], Lm.T, view)
             else:
-                out = relight.apply_taps(self.rows, Lm.T, *view)
-        else:
-            out = codec.relight(enc, Lm, view=view if self.needs_view else None)
-            if self.mode == "diagonal":
-                out = torch.diagonal(out, dim1=1, dim2=2)
-            elif out.ndim == 3:
-                out = out[:, 0]
+                out = relight.apply_taps(self.rows[sl], Lm.T, *view)
+            return (out.to(torch.float32) * self.albedo[sl]).contiguous()
+        if rows is not None:
+            raise ValueError("cpu_radiance(rows=...) applies to uncompressed transfer; a codec relights every point at once")
+        out = codec.relight(enc, Lm, view=view if self.needs_view else None)
+        if self.mode == "diagonal":
+            out = torch.diagonal(out, dim1=1, dim2=2)
+        elif out.ndim == 3:
+            out = out[:, 0]
         return (out.to(torch.float32) * self.albedo).contiguous()
 
     def decoder(self, light: torch.Tensor, view: Any = None, codec=None, enc=None, **kw):

@@ -35,10 +35,14 @@ from ..executor import Executor, LocalExecutor, TaskFailure
 from ..scene import Mesh, RayCaster
 
 __all__ = ["Transfer", "KINDS", "TRANSFER_VERSION", "RunOptions", "run_chunks", "ChunkInterrupt", "default_state_dir",
-           "remove_state", "check_transfer_values", "MAX_ABS_TRANSFER"]
+           "remove_state", "check_transfer_values", "MAX_ABS_TRANSFER", "STREAM_RESULT_BYTES", "cast_rows"]
 
 KINDS = ("diffuse", "glossy", "mrt", "transport", "wavelet")
 TRANSFER_VERSION = 1
+#: A precompute's assembled result larger than this (bytes) is kept in a file beside its state
+#: directory rather than in memory (``RunOptions.stream_result=None``; issue 42 part 3): the
+#: same threshold as a codec fit's streaming (``codecs.chunks.STREAM_BYTES``).
+STREAM_RESULT_BYTES = 256 * 2**20
 
 
 @dataclasses.dataclass(frozen=True)
@@ -61,6 +65,11 @@ class RunOptions:
             order; a ``RayExecutor`` runs each chunk as a Ray task (the state files are still
             written here, by :func:`run_chunks`). Not part of the result: a chunk is a
             deterministic function of its range and the fingerprint.
+        stream_result: where the assembled result rows live (:func:`result_rows`): True = in a
+            file beside ``state_dir`` (``io.scratch_rows``: page cache, not memory; needs a
+            ``state_dir``), False = in memory, None = a file when the rows exceed
+            :data:`STREAM_RESULT_BYTES` and there is a ``state_dir``. Not part of the result
+            (the same bits either way).
     """
 
     chunk_size: int | None = None
@@ -73,6 +82,7 @@ class RunOptions:
     progress: bool = False
     callback: Callable[[int, int], None] | None = None
     executor: Executor | None = None
+    stream_result: bool | None = None
 
     def __post_init__(self):
         if self.chunk_size is not None:
@@ -85,6 +95,11 @@ class RunOptions:
         for k in ("resume", "keep_state", "progress"):
             if not isinstance(getattr(self, k), bool):
                 raise TypeError(f"RunOptions.{k} must be true or false, got {getattr(self, k)!r}")
+        if self.stream_result not in (None, True, False):
+            raise TypeError(f"RunOptions.stream_result must be true, false or None, got {self.stream_result!r}")
+        if self.stream_result is True and self.state_dir is None:
+            raise ValueError("RunOptions.stream_result=True needs a state_dir (the result's file goes beside it); "
+                             "accepted: a state_dir, or stream_result=None/False")
         if self.callback is not None and not callable(self.callback):
             raise TypeError(f"RunOptions.callback must be callable, got {self.callback!r}")
         if self.executor is not None and not isinstance(self.executor, Executor):
@@ -101,6 +116,27 @@ class RunOptions:
         return run_chunks(n_items, chunk_size, compute, state_dir=self.state_dir, fingerprint=fingerprint,
                           resume=self.resume, progress=self.progress, desc=desc, rays_of=rays_of, callback=self.callback,
                           executor=self.executor, sink=sink)
+
+    def streams_result(self, nbytes: int) -> bool:
+        """Whether a result of ``nbytes`` is assembled in a file (``stream_result``, above)."""
+        if self.stream_result is None:
+            return self.state_dir is not None and nbytes > STREAM_RESULT_BYTES
+        return bool(self.stream_result)
+
+    def result_rows(self, shape: tuple[int, ...], dtype: torch.dtype = torch.float32, name: str = "result") -> torch.Tensor:
+        """The tensor a precompute assembles its chunks into (``run_chunks``' sink copies each
+        chunk in): ``torch.empty`` in memory, or — a result larger than :data:`STREAM_RESULT_BYTES`
+        with a state directory, or ``stream_result=True`` — rows backed by an unlinked file beside
+        the state directory (``io.scratch_rows``), so that a result larger than memory is written
+        out by the kernel as it is filled and ``Transfer.save`` streams it from the page cache.
+        Shape and dtype as asked; the values are the same bits either way."""
+        n = torch.tensor([], dtype=dtype).element_size()
+        for d in shape:
+            n *= int(d)
+        if not self.streams_result(n):
+            return torch.empty(shape, dtype=dtype)
+        sd = Path(self.state_dir)
+        return io.scratch_rows(sd.parent, shape, dtype, name=f"{sd.name}.{name}")
 
     def finish(self) -> None:
         """After a successful run: remove the state directory unless ``keep_state``."""
@@ -157,9 +193,15 @@ class Transfer:
         return io.save(path, tensors, kind=f"transfer/{self.kind}", meta=meta, overwrite=overwrite)
 
     @classmethod
-    def load(cls, path: str | os.PathLike) -> "Transfer":
-        """Load a file written by ``save``; checks kind, shapes and the mesh hash."""
-        tensors, meta = io.load(path, expect_kind="transfer/")
+    def load(cls, path: str | os.PathLike, mmap: bool = False) -> "Transfer":
+        """Load a file written by ``save``; checks kind, shapes and the mesh hash. ``mmap``: the
+        data tensor is a read-only memory map of the file (``io.load_mmap``: its pages are read
+        when used and dropped under memory pressure — what ``prt relight`` streams a transfer
+        larger than memory by; never write to it), the other tensors are loaded."""
+        if mmap:
+            tensors, meta = io.load_mapped(path, ("data",), expect_kind="transfer/")
+        else:
+            tensors, meta = io.load(path, expect_kind="transfer/")
         kind = meta["kind"].split("/", 1)[1]
         mesh = check_transfer_values(path, tensors, meta)
         if mesh is None:  # names the missing arrays
@@ -225,15 +267,18 @@ def check_transfer_values(path: Any, tensors: dict[str, torch.Tensor], meta: dic
         shape = {"diffuse": "[V, n²] or [V, C, n²]", "wavelet": "[V, K] or [V, 3, K]"}.get(kind, "[V, rows, n²]")
         raise ValueError(f"{name!r} is labelled kind=transfer/{kind} but its data has shape {tuple(data.shape)} (rank {data.ndim}); "
                          f"accepted for {kind}: rank {' or '.join(map(str, ranks))} ({shape})")
-    bad = ~torch.isfinite(data)
-    if bool(bad.any()):
-        i = tuple(int(v) for v in torch.nonzero(bad)[0])
-        raise ValueError(f"{name!r}: data holds {int(bad.sum())} non-finite value(s), first at {i}; accepted: finite values")
-    if data.numel():  # min and max in one pass, no |data| copy (a 1M-vertex file is not held twice)
-        lo, hi = torch.aminmax(data) if data.is_floating_point() else (data.min(), data.max())
-        top = max(abs(float(lo)), abs(float(hi)))
-    else:
-        top = 0.0
+    top, rows = 0.0, max(1, (4 << 20) // max(1, data[:1].numel() * data.element_size()))
+    for a in range(0, data.shape[0], rows):  # by chunks of rows: no [V, D] temporary (the data may be a memory map)
+        part = data[a:a + rows]
+        bad = ~torch.isfinite(part)
+        if bool(bad.any()):
+            i = tuple(int(v) for v in torch.nonzero(bad)[0])
+            i = (i[0] + a,) + i[1:]
+            n = int(bad.sum()) + sum(int((~torch.isfinite(data[b:b + rows])).sum()) for b in range(a + rows, data.shape[0], rows))
+            raise ValueError(f"{name!r}: data holds {n} non-finite value(s), first at {i}; accepted: finite values")
+        if part.numel():  # min and max in one pass, no |data| copy (a 1M-vertex file is not held twice)
+            lo, hi = torch.aminmax(part) if part.is_floating_point() else (part.min(), part.max())
+            top = max(top, abs(float(lo)), abs(float(hi)))
     if top > MAX_ABS_TRANSFER:
         raise ValueError(f"{name!r}: data reaches |{top:.3g}|, beyond ±{MAX_ABS_TRANSFER:g} (float32 products would overflow); "
                          "accepted: a transfer of physical scale (values of order 1)")
@@ -408,6 +453,17 @@ def _reduce_caster(c: RayCaster):
 
 
 copyreg.pickle(RayCaster, _reduce_caster)
+
+
+def cast_rows(src: torch.Tensor, dtype: torch.dtype, run: RunOptions, name: str = "result",
+              rows: int = 1 << 16) -> torch.Tensor:
+    """``src.to(dtype).contiguous()`` by chunks of ``rows`` rows into :meth:`RunOptions.result_rows`
+    (in memory or file-backed as the run says): an elementwise conversion, so the same bits as the
+    whole-tensor expression, without a second whole copy in memory when the result streams."""
+    out = run.result_rows(tuple(src.shape), dtype, name=name)
+    for i in range(0, src.shape[0], rows):
+        out[i:i + rows] = src[i:i + rows].to(dtype)
+    return out
 
 
 def remove_state(state_dir: str | os.PathLike | None) -> None:

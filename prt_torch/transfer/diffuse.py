@@ -49,7 +49,7 @@ from .._checks import check_choice, check_float, check_int
 from ..executor import torch_threads
 from ..scene import Mesh, RayCaster, default_workers, edge_face_counts
 from ..sh import clamped_cosine, eval_sh, rotate_zonal
-from .base import RunOptions, Transfer, remove_state, run_chunks
+from .base import RunOptions, Transfer, cast_rows, remove_state, run_chunks
 from .ray_kernels import qmc_rays_native, select_rays, sh_accumulate, upper_rays
 from .sampling import cosine_hemisphere, to_world, uniform_sphere
 
@@ -879,6 +879,8 @@ def precompute_diffuse(
         meta["seconds"] = time.perf_counter() - t_start
         meta["rays_per_second"] = meta["rays_traced"] / meta["seconds"] if meta["rays_traced"] else 0.0
         meta["workers"] = caster.workers if caster is not None else 1
+        if data.dtype != torch.float32 and run.streams_result(data.numel() * 4):  # by chunks: never a whole copy in memory
+            data = cast_rows(data, torch.float32, run)
         tr = Transfer(kind="diffuse", data=data.to(torch.float32).contiguous(), mesh=mesh, meta=meta)
     finally:
         if caster is not None:
@@ -965,7 +967,7 @@ def _trace_direct(caster: RayCaster, mesh: Mesh, bands: int, samples: int, seed:
         meta["rays_traced"] = int(sum(int(p["rays"].sum()) for p in parts))
         T0 = torch.cat([p["T"] for p in parts]).to(torch.float64)
     else:  # each chunk copied in as it finishes: the transfer is never held twice
-        T0 = torch.empty(V, bands * bands, dtype=torch.float64)
+        T0 = run.result_rows((V, bands * bands), torch.float64, name="t0")  # in memory, or file-backed (RunOptions.stream_result)
         meta["rays_traced"] = 0
 
         def sink(a: int, b: int, p: dict[str, torch.Tensor]) -> None:

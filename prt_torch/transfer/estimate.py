@@ -172,10 +172,16 @@ def estimate(kind, mesh: Mesh, params: dict[str, Any], run: RunOptions | None = 
     traced = kw.get("shadows", True) not in (False, "never")
     bvh = BVH_BYTES_PER_FACE * F if traced else 0
     chunk = _chunk_bytes(kind.name, kw, V, run.chunk_size)
-    # the assembled rows, filled as each chunk finishes (run_chunks' sink): float64 for diffuse, the stored rows elsewhere
-    finished = 0 if kind.output == "directory" else (held_pv - out_pv if kind.name == "diffuse" else out_pv) * V
+    # the assembled rows, filled as each chunk finishes (run_chunks' sink): float64 for diffuse, the stored rows elsewhere;
+    # none in memory when they are assembled in a file (RunOptions.stream_result: a result larger than
+    # STREAM_RESULT_BYTES with a state directory, as prt precompute always has) — only what streaming cannot
+    # take: diffuse with bounces or a folded albedo, subsurface, wavelet assemble in memory
+    streamed = (kind.output != "directory" and kind.name in ("glossy", "mrt", "diffuse") and run.streams_result(out_pv * V)
+                and not (kind.name == "diffuse" and (int(kw.get("bounces", 0)) > 0 or out_pv != 4 * int(kw.get("bands", 5)) ** 2)))
+    finished = 0 if kind.output == "directory" or streamed else (held_pv - out_pv if kind.name == "diffuse" else out_pv) * V
     rays_stage = int(ALLOCATOR_SLACK * (bvh + chunk + finished))
-    result_stage = int(ALLOCATOR_SLACK * (held_pv * V + (0 if kind.output == "directory" else out_pv * V // 4)))  # + scratch
+    result_stage = (int(ALLOCATOR_SLACK * chunk) if streamed else  # the result is written from the page cache
+                    int(ALLOCATOR_SLACK * (held_pv * V + (0 if kind.output == "directory" else out_pv * V // 4))))  # + scratch
     seconds_rays = None
     probe_info: dict[str, Any] = {}
     if probe:
@@ -189,6 +195,8 @@ def estimate(kind, mesh: Mesh, params: dict[str, Any], run: RunOptions | None = 
                   + (f"; time from {probe_info['note']}" if probe_info.get("note") else ""))},
         {"stage": "result", "bytes": result_stage, "seconds": None if seconds_rays is None else 0.0,
          "note": (f"{format_bytes(out_pv * V)} on disk, streamed per chunk (not held)" if kind.output == "directory" else
+                  f"{format_bytes(out_pv * V)} assembled in a file beside the state directory and written from it "
+                  "(page cache, not held)" if streamed else
                   f"{format_bytes(out_pv)} per vertex stored ({format_bytes(out_pv * V)}), {format_bytes(held_pv)} per vertex "
                   "held while assembling")},
     ]
@@ -211,7 +219,7 @@ def _probe(kind, mesh: Mesh, params: dict, run: RunOptions, lights, k: int) -> t
         if len(marks) >= 2:
             raise ChunkInterrupt("probe done")
 
-    opts = dataclasses.replace(run, chunk_size=k, callback=stop, state_dir=None, resume=False, keep_state=False,
+    opts = dataclasses.replace(run, chunk_size=k, callback=stop, state_dir=None, resume=False, keep_state=False, stream_result=None,
                                progress=False, executor=None, workers=1)
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="prt_probe_") as tmp:

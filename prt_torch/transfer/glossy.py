@@ -99,10 +99,11 @@ def check_frames(mesh: Mesh, tol: float = 1e-6) -> torch.Tensor:
     return F
 
 
-def estimate_memory(vertices: int, n_out: int, n_in: int, samples: int, chunk_size: int) -> int:
-    """Bytes a glossy/MRT precompute holds at its peak: the float32 result twice (chunk list +
-    assembled tensor) plus one chunk's working set (weights, rays, float64 matrices)."""
-    result = 2 * vertices * n_out * n_in * 4
+def estimate_memory(vertices: int, n_out: int, n_in: int, samples: int, chunk_size: int, streamed: bool = False) -> int:
+    """Bytes a glossy/MRT precompute holds at its peak: the float32 result once (each chunk is
+    copied into it as it finishes: ``run_chunks``' sink; none when it is assembled in a file,
+    ``RunOptions.stream_result``) plus one chunk's working set (weights, rays, float64 matrices)."""
+    result = 0 if streamed else vertices * n_out * n_in * 4
     chunk = chunk_size * (samples * (8 + 8 + 3 * 8 * 2 + 16) + n_in * n_in * 8 * 3 + n_out * n_in * 8 * 2)
     table = samples * n_in * n_in * 8  # YY [N, n⁴] with n_in = n²
     return int(result + chunk + table)
@@ -266,7 +267,7 @@ def run_exit_transfer(
     n_out = left.shape[1] if left.numel() else n2
     rays_per_vertex = max(1, samples // 2)
     chunk_size = check_int("chunk_size", run.chunks(default_chunk(samples)), 1)
-    need = check_memory(kind, V, n_out, n2, samples, chunk_size, run.max_memory)
+    need = check_memory(kind, V, n_out, n2, samples, chunk_size, run.max_memory, run.streams_result(V * n_out * n2 * 4))
     directions = _Directions(bands, samples, seed)
     caster = None
     meta: dict[str, Any] = {"estimated_bytes": need, "chunk_size": chunk_size, "estimator": estimator}
@@ -305,7 +306,7 @@ def run_exit_transfer(
                 out = T  # the global transferred-radiance matrices (Sloan 2002)
             return {"data": out.to(torch.float32), "rays": torch.tensor([rays], dtype=torch.int64)}
 
-        data = torch.empty(V, n_out, n2, dtype=torch.float32)
+        data = run.result_rows((V, n_out, n2), torch.float32)  # in memory, or a file when larger than memory allows
 
         def sink(a: int, b: int, p: dict[str, torch.Tensor]) -> None:  # each chunk copied in as it finishes
             data[a:b] = p["data"]
@@ -353,17 +354,19 @@ def default_chunk(samples: int) -> int:
 
 
 def check_memory(kind: str, V: int, n_out: int, n2: int, samples: int, chunk_size: int | None,
-                  max_memory: int | None) -> int:
-    """Refuse up front (before any BRDF projection or ray) when the estimate exceeds the budget."""
+                  max_memory: int | None, streamed: bool = False) -> int:
+    """Refuse up front (before any BRDF projection or ray) when the estimate exceeds the budget
+    (``streamed``: the result is assembled in a file, ``RunOptions.result_rows``, and not counted)."""
     chunk = default_chunk(samples) if chunk_size is None else chunk_size
-    need = estimate_memory(V, n_out, n2, samples, min(chunk, max(V, 1)))
+    need = estimate_memory(V, n_out, n2, samples, min(chunk, max(V, 1)), streamed)
     budget = int(0.6 * _available_memory()) if max_memory is None else int(max_memory)
     if need > budget:
+        held = "assembled in a file beside the state directory" if streamed else "held once while assembling"
         raise ValueError(
             f"{kind} transfer for {V} vertices with {n_out}×{n2} matrices and {samples} samples needs about "
-            f"{format_bytes(need)} (result {format_bytes(V * n_out * n2 * 4)} float32, held twice while assembling), "
+            f"{format_bytes(need)} (result {format_bytes(V * n_out * n2 * 4)} float32, {held}), "
             f"more than the budget {format_bytes(budget)}; accepted: fewer bands or tents, fewer samples / a smaller "
-            "chunk_size, a vertex subset, or a larger max_memory"
+            "chunk_size, a vertex subset, a state directory (the result then streams to a file), or a larger max_memory"
         )
     return need
 
@@ -479,7 +482,8 @@ def precompute_glossy(
     check_frames(mesh)
     n_rows = (bands_out * bands_out - len(drop_out or [])) if exit else bands * bands
     n_sel = mesh.num_vertices if vertices is None else len(vertices)
-    check_memory("glossy", n_sel, n_rows, bands * bands, samples, run.chunk_size, run.max_memory)
+    check_memory("glossy", n_sel, n_rows, bands * bands, samples, run.chunk_size, run.max_memory,
+                 run.streams_result(n_sel * n_rows * bands * bands * 4))
     shadows, shadow_meta = decide_shadows(mesh, shadows, seed, run)
     t0 = time.perf_counter()
     rcond_meta: dict[str, Any] = {}
