@@ -534,6 +534,34 @@ def test_mean_only_rows_gather_each_label_dtype(dtype):
             assert torch.equal(got, ref), (dtype, n_out, C, threads)
 
 
+@pytest.mark.parametrize("dtype", [torch.uint8, torch.int16, torch.int32])
+def test_diffuse_vq_rows_every_tail_and_split_write_only_their_floats(dtype):
+    """Diffuse VQ without a view (n_out = 1, C = 3: rows of 3 floats from constants padded to 8),
+    the point kernel that writes 4 points as three 16-byte stores (uint8 labels, 8 labels read at a
+    time) and the loops for the rest: out[p] = T[label_p, :3] bit for bit against plain indexing, for
+    point counts that leave every tail length past groups of 4 and 8, split over 1-3 threads (ranges
+    starting anywhere), and nothing written past the last point's 3 floats (a NaN-filled guard after
+    them stays NaN; the constants' padding is filled with values that must not appear)."""
+    lib = relight_kernels.native()
+    if lib is None:
+        pytest.skip("no compiled kernels")
+    g = torch.Generator().manual_seed(11)
+    K = {torch.uint8: 256, torch.int16: 700, torch.int32: 5000}[dtype]
+    T = torch.randn(K, 1, 8, generator=g)
+    T[..., 3:] = 1e30  # padding: a kernel that wrote it out would put it in the next point's floats
+    for P in [*range(0, 26), 31, 32, 33, 1001, 4099]:
+        labels = torch.randint(0, K, (P,), generator=g).to(dtype)
+        if P >= 2:
+            labels[:2] = torch.tensor([K - 1, 0]).to(dtype)
+        ref = T[labels.long(), 0, :3]
+        for threads in (1, 2, 3):
+            buf = torch.full((P * 3 + 16,), float("nan"))
+            with torch_threads(threads):
+                got = relight_kernels.affine_rows(lib, T, 1, 1, 3, labels, None, 0, None, None, 0, 1, P=P, out=buf[:P * 3])
+            assert torch.equal(got.view(P, 3), ref), (dtype, P, threads)
+            assert torch.isnan(buf[P * 3:]).all(), (dtype, P, threads)
+
+
 def test_dense_and_taps_kernels_do_not_depend_on_the_thread_split():
     """The dense and taps kernels reduce RGB points 8 at a time (hsum8) and the rest one by one (hsum),
     with the same association: a point's result is the same whichever way the threads split
