@@ -3,6 +3,7 @@
 through the uncompressed reference (``prt_torch.relight.apply_dense`` / ``apply_taps``, float64):
 every codec family × view mode (none, dense, taps) × K = 1 / K > 1 × with / without a mean ×
 n_vectors prefixes × per-cluster n_k (adaptive, packed codes) × label dtypes × colours."""
+import itertools
 import math
 import re
 import shutil
@@ -379,7 +380,8 @@ def test_rows_of_one_vector_read_no_weight_past_the_last_used():
     """The fixed-term loop loads 4 or 8 weights per point at once; it stops where that load would
     pass the last weight the one-point chain reads, so weights ending right there (at a page the
     process may not read: a read past it is a crash) work for any row stride — 0 (one row for
-    every point), below 4, 5-7, 8 and more — and give the float64 chain's values."""
+    every point), below 4, 5-7, 8 and more — and give the float64 chain's values. The same for one
+    cluster (PCA, RGB: 8 points in lanes, each point's first 8 weights one load, the rest masked)."""
     import ctypes
     import sys
 
@@ -396,16 +398,16 @@ def test_rows_of_one_vector_read_no_weight_past_the_last_used():
     assert base not in (None, ctypes.c_void_p(-1).value) and libc.mprotect(base + page, page, 0) == 0
     g = torch.Generator().manual_seed(31)
     try:
-        for ws, nuse in ((0, 4), (0, 8), (2, 2), (3, 3), (6, 5), (8, 8), (11, 2), (11, 7)):
-            for P, Fo in ((1, 3), (9, 3), (40, 3), (40, 8)):
+        for (ws, nuse), K in itertools.product(((0, 4), (0, 8), (2, 2), (3, 3), (6, 5), (8, 8), (11, 2), (11, 7), (9, 9)), (3, 1)):
+            for P, Fo in ((1, 3), (9, 3), (16, 3), (40, 3), (40, 8)):  # K = 1, Fo = 3: PCA's 8 points in lanes
                 n = (P - 1) * ws + nuse  # the weights the chain reads, ending at the guard page
                 W = torch.frombuffer((ctypes.c_float * n).from_address(base + page - 4 * n), dtype=torch.float32)
                 W.copy_(torch.randn(n, generator=g))
-                T = torch.randn(3, nuse + 1, 8, generator=g)
+                T = torch.randn(K, nuse + 1, 8, generator=g)
                 T[..., Fo:] = 0.0
-                labels = torch.randint(0, 3, (P,), generator=g).to(torch.uint8)
+                labels = torch.randint(0, K, (P,), generator=g).to(torch.uint8) if K > 1 else None
                 rows = torch.stack([W[p * ws:p * ws + nuse] for p in range(P)]).double()
-                Td = T.double()[labels.long()]
+                Td = T.double()[labels.long() if K > 1 else torch.zeros(P, dtype=torch.long)]
                 ref = Td[:, 0, :Fo] + (rows[:, :, None] * Td[:, 1:, :Fo]).sum(1)
                 for threads in (1, 2):
                     with torch_threads(threads):

@@ -38,7 +38,17 @@ static __attribute__((noinline)) void vq_rows_range(i64 p0, i64 p1, i64 F, const
    Whole 8-float vectors are stored where rows are consecutive (the next points' stores overwrite
    the lanes past Fo) and the store ends inside the thread's range; otherwise Fo scalar stores
    (masked vector stores of consecutive 12-byte rows ran at a third of the speed on Zen 4). */
-#if defined(SHUF) && defined(__AVX512VL__)
+#if defined(SHUF) && defined(__AVX2__) && defined(__FMA__)
+/* the first m weights of a point's 8 (the rest read as 0, never touched in memory): AVX-512VL's masked load, or AVX's
+   vmaskmovps with the mask as a vector of sign bits */
+static inline __m256 load_first(const float *p, i64 m) {
+#if defined(__AVX512VL__)
+    return _mm256_maskz_loadu_ps((__mmask8)((1u << m) - 1u), p);
+#else
+    if (m == 8) return _mm256_loadu_ps(p);
+    return _mm256_maskload_ps(p, _mm256_cmpgt_epi32(_mm256_set1_epi32((int)m), _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7)));
+#endif
+}
 /* 8 consecutive points of one cluster (K = 1: PCA), RGB rows (Fo = 3), points in lanes: the 8
    points' weights transposed 8 at a time (r[i] = weight i of each point), then per colour c
    acc_c = T_0[c] + sum_i r[i] T_{1+i}[c] by the same FMA chain per point and colour as the
@@ -52,9 +62,8 @@ static inline void k1_rgb8(const float *Tk, int mean, const float *wq, i64 ws, i
     const float *b = Tk + (mean ? 8 : 0);
     for (i64 i0 = 0; i0 < cnt; i0 += 8) {
         i64 m = cnt - i0 < 8 ? cnt - i0 : 8;
-        const __mmask8 mk = (__mmask8)((1u << m) - 1u);
         v8 r[8];
-        for (int j = 0; j < 8; j++) r[j] = (v8)_mm256_maskz_loadu_ps(mk, wq + j * ws + i0);
+        for (int j = 0; j < 8; j++) r[j] = (v8)load_first(wq + j * ws + i0, m);
         transpose8(r);
         for (i64 i = 0; i < m; i++) {
             const float *t = b + 8 * (i0 + i);
