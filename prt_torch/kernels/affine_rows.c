@@ -143,25 +143,18 @@ static inline __attribute__((always_inline)) void vq_rgb4(const float *T, uint64
 #endif
 #endif
 /* points q.. in order, n terms each after the mean, weights in rows of stride ws, the label kind fixed: each
-   point by the one-point chain a = T_k[0] + sum_i w_i T_k[1+i] below (same FMAs, same bits), specialised so that
-   neither the label kind, nor the weights' addressing, nor the term count is decided per point. The point's first 8
-   weights are one load (4 floats for up to 4 terms; lanes permuted where the CPU has AVX2), so the loop stops at
-   the caller's `last`: where that load would end past the last weight the one-point chain reads (any row stride, 0
-   included) or a whole-vector store past the range. Returns where it stopped. On builds without AVX2 the compiler may order a
-   multiply-add's operands differently here and in the one-point loop: where both are NaN, the NaN's payload bits
-   can then depend on the path (every result is the same otherwise). */
+   point by the one-point chain a = T_k[0] + sum_i w_i T_k[1+i] below (same FMAs, same operands, same bits),
+   specialised so that neither the label kind, nor the weights' addressing, nor the term count is decided per point.
+   Each weight is broadcast from memory (a load, no shuffle): where the point's 4 or 8 weights were one load with a
+   lane permute per term, the permutes bounded the loop on Zen 3 (ab_kernels --shape diffuse --only cpca --clock cpu:
+   CPCA 64x4 1.30x, maxdiff 0). The loop stops at the caller's `last`, where a whole-vector store would end past the
+   range. Returns where it stopped. */
 static inline __attribute__((always_inline)) i64 rows_fixed(i64 q, i64 last, i64 Fo, const void *lab, const int lab_kind,
         const float *W, i64 ws, const int n, const float *T, i64 J, float *out) {
     for (; q <= last; q++) {
         const float *t = T + lab_at(lab, lab_kind, q) * J * 8, *w = W + q * ws;
         v8 a = LD(t);
-#if defined(__AVX2__)
-        __m256 wv = n <= 4 ? _mm256_castps128_ps256(_mm_loadu_ps(w)) : _mm256_loadu_ps(w);
-        IN_REG(wv);  /* one load: GCC otherwise folds it into every permute (n loads, 1.3x slower, bare C) */
-        for (int i = 0; i < n; i++) a = FMA8V((v8)_mm256_permutevar8x32_ps(wv, _mm256_set1_epi32(i)), LD(t + 8 + 8 * i), a);
-#else
         for (int i = 0; i < n; i++) a = FMA8(w[i], LD(t + 8 + 8 * i), a);
-#endif
         ST(out + q * Fo, a);
     }
     return q;
@@ -251,13 +244,9 @@ static __attribute__((noinline)) void small_rows_range(int path, const int32_t *
        overlaps consecutive points' chains; an 8-point pass, with a pointer per point, spilled them (CPCA 1.5x slower).
        Consecutive rows with whole-vector stores while they end inside the range, then Fo floats per point. */
     if (path == PRT_ROWS_SMALL_FIXED) {  /* CPCA, PCA: fixed term count, rows of weights */
-        /* the last point whose load of wl weights ends within the range's last used one, (p1 - 1) ws + nuse (row
-           stride 0: every point or none), and whose 8-float store ends within the range (computed here: inside
-           rows_fixed the same bound made GCC's CPCA loop 1.7x slower) */
-        const i64 wl = nuse <= 4 ? 4 : 8, last_o = p1 - (8 + Fo - 1) / Fo;
-        const i64 last_w = wstride > 0 ? p1 - 1 - (wl - nuse + wstride - 1) / wstride : (wl <= nuse ? p1 - 1 : q - 1);
-        const i64 last = last_o < last_w ? last_o : last_w;
-        q = fixed_rows(q, last, Fo, lab, lab_kind, W, wstride, nuse, T, J, out);
+        /* the last point whose 8-float store ends within the range (computed here: inside rows_fixed the same bound
+           made GCC's CPCA loop 1.7x slower); the weights read are the point's own nuse */
+        q = fixed_rows(q, p1 - (8 + Fo - 1) / Fo, Fo, lab, lab_kind, W, wstride, nuse, T, J, out);
     }
 #define ONE_ROW(pc) i64 k = lab_at(lab, lab_kind, pc), cnt;                                                          \
         const float *w = weights_of(W, wstride, woff, nk, nuse, k, pc, &cnt), *t = T + k * J * 8, *b = t + (mean ? 8 : 0); \
