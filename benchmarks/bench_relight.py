@@ -431,7 +431,7 @@ def merge_rows(path: Path, results: list[dict], command: str) -> list[dict]:
             runs.insert(0, res)
             continue
         if kept.get("points") != res["points"]:
-            raise SystemExit(f"bench_relight: --merge into a run of {kept.get('points')} points from one of {res['points']}; "
+            raise SystemExit(f"bench_relight: --merge into a run of {kept.get('points')} points from one of {res['points']} points; "
                              "accepted: the same point count")
         ident = lambda x: (x["codec"], x["view"], x["threads"])  # noqa: E731
         for new in res["rows"]:
