@@ -446,8 +446,12 @@ def merge_rows(path: Path, results: list[dict], command: str) -> list[dict]:
                 kept["fits"].append(f)
             else:
                 kept["fits"][idx] = f
-        kept.setdefault("reruns", []).append({
-            "rows": [f"{x['codec']} {x['view']} {x['threads']} thr" for x in res["rows"]], "command": command,
+        names = [f"{x['codec']} {x['view']} {x['threads']} thr" for x in res["rows"]]
+        for rr in kept.get("reruns", []):  # an earlier rerun's rows measured again are this one's now
+            rr["rows"] = [n for n in rr["rows"] if n not in names]
+        kept["reruns"] = [rr for rr in kept.get("reruns", []) if rr["rows"]]
+        kept["reruns"].append({
+            "rows": names, "command": command,
             "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "load_average_before": res["load_average_before"],
             "load_average_after": res["load_average_after"], "kernels": res["native"]["detail"]})
     return runs

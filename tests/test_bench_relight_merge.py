@@ -43,6 +43,17 @@ def test_merge_replaces_only_the_same_rows_and_notes_them(br, tmp_path):
     (note,) = a["reruns"]
     assert note["rows"] == ["vq none 1 thr", "cpca none 1 thr"] and note["command"] == "--only x --merge"
     assert tuple(note["load_average_before"]) == (7.5, 7.0, 6.0)
+    # measured again: the earlier note keeps only the rows this one did not re-measure
+    path.write_text(json.dumps({"runs": runs}))
+    runs = br.merge_rows(path, [_run("cpu A", 50000, [("cpca", "none", 1, 3.5)])], "--only cpca --merge")
+    a = next(r for r in runs if r["machine"]["cpu"] == "cpu A")
+    assert [(n["rows"], n["command"]) for n in a["reruns"]] == [(["vq none 1 thr"], "--only x --merge"),
+                                                                (["cpca none 1 thr"], "--only cpca --merge")]
+    rerun = json.loads(json.dumps(a))
+    rerun["reruns"][0]["rows"] = []  # a note left with no row is dropped
+    path.write_text(json.dumps({"runs": [rerun]}))
+    a = br.merge_rows(path, [_run("cpu A", 50000, [("vq", "none", 1, 0.4)])], "--only vq --merge")[0]
+    assert [n["rows"] for n in a["reruns"]] == [["cpca none 1 thr"], ["vq none 1 thr"]]
 
 
 def test_merge_into_another_point_count_is_refused(br, tmp_path):
