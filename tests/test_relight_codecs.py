@@ -210,6 +210,23 @@ def test_view_dtypes_and_layouts(path):
     assert torch.allclose(c.relight(enc, L, view=(idx.int(), w.double())), c.relight(enc, L, view=(idx, w)), rtol=1e-6, atol=1e-6)
 
 
+def test_a_non_finite_view_value_in_any_lane_of_a_block_is_named():
+    """The dense kernels reduce 8 points at a time and flag a non-finite result from all 8 lanes at
+    once (store8_rgb: a lane mask of the 24 sums): a NaN or Inf in the view of any point of a block
+    (each of its 8 lanes, blocks past the first, the tail) is refused naming that value, for VQ (its
+    8-point loop: `dense: VQ, 8 lanes, 8 points`) and PCA."""
+    L = torch.randn(9, 3)
+    for name, params in (("vq", {"clusters": 5, "max_iter": 3}), ("pca", {"vectors": 3})):
+        c, enc = _fit(name, params, (16, 9), 37, None)
+        for p in (0, 3, 7, 8, 13, 31, 32, 36):
+            for bad in (float("nan"), float("inf")):
+                y = torch.randn(37, 16, generator=torch.Generator().manual_seed(p))
+                y[p, 5] = bad
+                with pytest.raises(ValueError, match=rf"view has 1 non-finite value\(s\).*index \({p}, 5\)"):
+                    c.relight(enc, L, view=y)
+        assert torch.isfinite(c.relight(enc, L, view=torch.randn(37, 16))).all()
+
+
 def test_bad_views_are_refused_naming_the_value(path):
     c, enc = _fit("mrt_pca", {"vectors": 4}, (16, 9), 150, None)
     L = torch.randn(9, 3)

@@ -13,6 +13,9 @@
 #ifndef PRT_VEC_H
 #define PRT_VEC_H
 #include "prt_kernels.h"
+#if defined(__AVX__)
+#include <immintrin.h>
+#endif
 
 /* 8 floats, unaligned loads/stores (GCC/Clang vector extensions; split into SSE where no AVX) */
 typedef float v8 __attribute__((vector_size(32), aligned(4)));
@@ -83,7 +86,11 @@ static inline int store8_rgb(const v8 *R, float *out, const i64 *pl, int seq) {
     const v8i maxbits = {0x7f7fffff, 0x7f7fffff, 0x7f7fffff, 0x7f7fffff, 0x7f7fffff, 0x7f7fffff, 0x7f7fffff, 0x7f7fffff};
     v8i bad = (((v8i)s0 & absmask) > maxbits) | (((v8i)s1 & absmask) > maxbits) | (((v8i)s2 & absmask) > maxbits);
     int any = 0;
+#if defined(__AVX__)
+    any = _mm256_movemask_ps((__m256)bad);  /* the lanes' sign bits (every lane is 0 or -1): one instruction */
+#else
     for (int l = 0; l < 8; l++) any |= bad[l];
+#endif
 #ifdef SHUF
     if (seq) {  /* consecutive points (pl[l] = pl[0] + l): 24 contiguous floats, three vector stores */
         interleave3(s0, s1, s2, out + 3 * pl[0]);
