@@ -357,7 +357,11 @@ def main() -> int:
     ap.add_argument("--quick", action="store_true", help="5 000 points, 64 clusters; print, write nothing")
     ap.add_argument("--threads", default="2", help="torch/kernel threads; a comma list (e.g. 1,2) measures each")
     ap.add_argument("--repeats", type=int, default=9)
-    ap.add_argument("--only", default="", help="measure only codecs whose label contains this text (prints, writes nothing)")
+    ap.add_argument("--only", default="", help="measure only codecs whose label contains this text (prints, writes nothing "
+                    "unless --merge)")
+    ap.add_argument("--merge", action="store_true", help="with --only: put the re-measured rows in place of the same rows "
+                    "(codec, view, threads) of the kept run of this CPU and build, and write the report; the section then "
+                    "lists them with their load and command")
     ap.add_argument("--cache", default=os.path.join(tempfile.gettempdir(), "prt_bench_relight"))
     ap.add_argument("--isa", default="auto", help="kernel builds to measure, each in its own process: auto (this CPU's "
                     "native build, and also avx512-256 and avx2 where native is AVX-512), or a comma list of native, avx2, "
@@ -372,12 +376,22 @@ def main() -> int:
     isas = isa_runs(args.isa)
     if isas[0]:
         os.environ["PRT_TORCH_KERNEL_ISA"] = isas[0]  # before the kernels are first loaded in this process
+    if args.merge and (not args.only or args.quick):
+        raise SystemExit(f"bench_relight: --merge with --only {args.only!r}{' and --quick' if args.quick else ''}; accepted: "
+                         "--merge with a non-empty --only and without --quick (rows re-measured at full size)")
     results = [run(args)] + [child_run(isa, args) for isa in isas[1:]]
     text = report_all(results)
-    if args.quick or args.only:
+    if args.quick or (args.only and not args.merge):
         print(text)
         return 0
     OUT.mkdir(parents=True, exist_ok=True)
+    if args.merge:
+        runs = merge_rows(OUT / "relight.json", results, " ".join(sys.argv[1:]))
+        atomic_write_json(OUT / "relight.json", {"runs": runs})
+        atomic_write_text(OUT / "relight.md", report_all(runs))
+        print(text)
+        print(f"merged {sum(len(r['rows']) for r in results)} row(s) into {OUT / 'relight.md'}")
+        return 0
     runs = merge_runs(OUT / "relight.json", results)
     atomic_write_json(OUT / "relight.json", {"runs": runs})
     atomic_write_text(OUT / "relight.md", report_all(runs))
@@ -402,6 +416,45 @@ def merge_runs(path: Path, results: list[dict]) -> list[dict]:
     keys = [run_key(r) for r in results]
     kept = [r for r in runs if run_key(r) not in keys]
     return results + kept
+
+
+def merge_rows(path: Path, results: list[dict], command: str) -> list[dict]:
+    """The runs kept in ``path`` with each of ``results``' rows (a ``--only`` run) in place of the row of the same
+    codec, view and threads in the kept run of the same key (appended where it has none), its fits likewise, and a
+    note of the re-measured rows, their load and the command in that run's ``reruns``; a key with no kept run is
+    added as it is. Refused where the kept run measured another point count."""
+    runs = merge_runs(path, []) if path.exists() else []
+    for res in results:
+        key = run_key(res)
+        kept = next((r for r in runs if run_key(r) == key), None)
+        if kept is None:
+            runs.insert(0, res)
+            continue
+        if kept.get("points") != res["points"]:
+            raise SystemExit(f"bench_relight: --merge into a run of {kept.get('points')} points from one of {res['points']} points; "
+                             "accepted: the same point count")
+        ident = lambda x: (x["codec"], x["view"], x["threads"])  # noqa: E731
+        for new in res["rows"]:
+            idx = next((i for i, x in enumerate(kept["rows"]) if ident(x) == ident(new)), None)
+            if idx is None:
+                kept["rows"].append(new)
+            else:
+                kept["rows"][idx] = new
+        for f in res["fits"]:
+            idx = next((i for i, x in enumerate(kept["fits"]) if x["codec"] == f["codec"]), None)
+            if idx is None:
+                kept["fits"].append(f)
+            else:
+                kept["fits"][idx] = f
+        names = [f"{x['codec']} {x['view']} {x['threads']} thr" for x in res["rows"]]
+        for rr in kept.get("reruns", []):  # an earlier rerun's rows measured again are this one's now
+            rr["rows"] = [n for n in rr["rows"] if n not in names]
+        kept["reruns"] = [rr for rr in kept.get("reruns", []) if rr["rows"]]
+        kept["reruns"].append({
+            "rows": names, "command": command,
+            "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "load_average_before": res["load_average_before"],
+            "load_average_after": res["load_average_after"], "kernels": res["native"]["detail"]})
+    return runs
 
 
 def run(args) -> dict:
@@ -579,6 +632,10 @@ def report(r: dict) -> list[str]:
          f"load average before {la(r['load_average_before'])}, after {la(r['load_average_after'])}. "
          f"Total {r['seconds_total']:.0f} s. Kernels: {r['native']['detail']}. Peak float32 rate (compute floor): "
          f"{', '.join(f'{float(v) / 1e9:.0f} GMAC/s at {k} thread(s)' for k, v in r['peak_macs_per_s'].items())}.", ""]
+    for rr in r.get("reruns", []):
+        L += [f"Re-measured {rr['date']} (`bench_relight.py {rr['command']}`), load average before "
+              f"{la(rr['load_average_before'])}, after {la(rr['load_average_after'])}: {', '.join(rr['rows'])} "
+              f"(kernels: {rr['kernels']}); the other rows are from the run above.", ""]
     if not r.get("kernel_build"):
         L += ["This run is from before issue 42 §4: its rows did not record their kernel path or the CPU's family/model "
               "(the library was built `-march=native` on this CPU, as its Kernels line says).", ""]

@@ -36,6 +36,22 @@ def test_bad_options_are_refused_naming_them(tmp_path):
     assert r.returncode != 0 and "--points 10; accepted: an integer >= 64" in r.stderr
     r = subprocess.run([sys.executable, str(TOOL), "--threads", "0"], capture_output=True, text=True, cwd=ROOT, timeout=120)
     assert r.returncode != 0 and "--threads '0'; accepted: positive integers" in r.stderr
+    r = subprocess.run([sys.executable, str(TOOL), "--clock", "cpu", "--threads", "1,2"], capture_output=True, text=True, cwd=ROOT,
+                       timeout=120)
+    assert r.returncode != 0 and "--clock cpu with --threads '1,2'; accepted: --threads 1" in r.stderr
+
+
+@pytest.mark.skipif(shutil.which("cc") is None and shutil.which("gcc") is None, reason="no C compiler")
+@pytest.mark.skipif(not (ROOT / ".git").exists(), reason="not a git checkout")
+def test_cpu_clock_pairs_by_thread_time(tmp_path):
+    """--clock cpu times both sides by the thread's CPU time (one thread): the table says so, and equal
+    sources give equal bits and a finite ratio."""
+    r = _run("--shape", "diffuse", "--only", "vq", "--clock", "cpu", tmp=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert "CPU time (time.thread_time)" in r.stdout
+    table = [line for line in r.stdout.splitlines() if line.startswith("| ") and "**" in line]
+    assert len(table) == 1 and table[0].strip("|").split("|")[-1].strip() == "0.0e+00", r.stdout
+    assert 0.2 < float(table[0].split("**")[1]) < 5, table
 
 
 def _cpu_has(flag: str) -> bool:

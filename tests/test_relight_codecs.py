@@ -3,6 +3,7 @@
 through the uncompressed reference (``prt_torch.relight.apply_dense`` / ``apply_taps``, float64):
 every codec family × view mode (none, dense, taps) × K = 1 / K > 1 × with / without a mean ×
 n_vectors prefixes × per-cluster n_k (adaptive, packed codes) × label dtypes × colours."""
+import itertools
 import math
 import re
 import shutil
@@ -209,6 +210,23 @@ def test_view_dtypes_and_layouts(path):
     assert torch.allclose(c.relight(enc, L, view=(idx.int(), w.double())), c.relight(enc, L, view=(idx, w)), rtol=1e-6, atol=1e-6)
 
 
+def test_a_non_finite_view_value_in_any_lane_of_a_block_is_named():
+    """The dense kernels reduce 8 points at a time and flag a non-finite result from all 8 lanes at
+    once (store8_rgb: a lane mask of the 24 sums): a NaN or Inf in the view of any point of a block
+    (each of its 8 lanes, blocks past the first, the tail) is refused naming that value, for VQ (its
+    8-point loop: `dense: VQ, 8 lanes, 8 points`) and PCA."""
+    L = torch.randn(9, 3)
+    for name, params in (("vq", {"clusters": 5, "max_iter": 3}), ("pca", {"vectors": 3})):
+        c, enc = _fit(name, params, (16, 9), 37, None)
+        for p in (0, 3, 7, 8, 13, 31, 32, 36):
+            for bad in (float("nan"), float("inf")):
+                y = torch.randn(37, 16, generator=torch.Generator().manual_seed(p))
+                y[p, 5] = bad
+                with pytest.raises(ValueError, match=rf"view has 1 non-finite value\(s\).*index \({p}, 5\)"):
+                    c.relight(enc, L, view=y)
+        assert torch.isfinite(c.relight(enc, L, view=torch.randn(37, 16))).all()
+
+
 def test_bad_views_are_refused_naming_the_value(path):
     c, enc = _fit("mrt_pca", {"vectors": 4}, (16, 9), 150, None)
     L = torch.randn(9, 3)
@@ -379,7 +397,8 @@ def test_rows_of_one_vector_read_no_weight_past_the_last_used():
     """The fixed-term loop loads 4 or 8 weights per point at once; it stops where that load would
     pass the last weight the one-point chain reads, so weights ending right there (at a page the
     process may not read: a read past it is a crash) work for any row stride — 0 (one row for
-    every point), below 4, 5-7, 8 and more — and give the float64 chain's values."""
+    every point), below 4, 5-7, 8 and more — and give the float64 chain's values. The same for one
+    cluster (PCA, RGB: 8 points in lanes, each point's first 8 weights one load, the rest masked)."""
     import ctypes
     import sys
 
@@ -396,16 +415,16 @@ def test_rows_of_one_vector_read_no_weight_past_the_last_used():
     assert base not in (None, ctypes.c_void_p(-1).value) and libc.mprotect(base + page, page, 0) == 0
     g = torch.Generator().manual_seed(31)
     try:
-        for ws, nuse in ((0, 4), (0, 8), (2, 2), (3, 3), (6, 5), (8, 8), (11, 2), (11, 7)):
-            for P, Fo in ((1, 3), (9, 3), (40, 3), (40, 8)):
+        for (ws, nuse), K in itertools.product(((0, 4), (0, 8), (2, 2), (3, 3), (6, 5), (8, 8), (11, 2), (11, 7), (9, 9)), (3, 1)):
+            for P, Fo in ((1, 3), (9, 3), (16, 3), (40, 3), (40, 8)):  # K = 1, Fo = 3: PCA's 8 points in lanes
                 n = (P - 1) * ws + nuse  # the weights the chain reads, ending at the guard page
                 W = torch.frombuffer((ctypes.c_float * n).from_address(base + page - 4 * n), dtype=torch.float32)
                 W.copy_(torch.randn(n, generator=g))
-                T = torch.randn(3, nuse + 1, 8, generator=g)
+                T = torch.randn(K, nuse + 1, 8, generator=g)
                 T[..., Fo:] = 0.0
-                labels = torch.randint(0, 3, (P,), generator=g).to(torch.uint8)
+                labels = torch.randint(0, K, (P,), generator=g).to(torch.uint8) if K > 1 else None
                 rows = torch.stack([W[p * ws:p * ws + nuse] for p in range(P)]).double()
-                Td = T.double()[labels.long()]
+                Td = T.double()[labels.long() if K > 1 else torch.zeros(P, dtype=torch.long)]
                 ref = Td[:, 0, :Fo] + (rows[:, :, None] * Td[:, 1:, :Fo]).sum(1)
                 for threads in (1, 2):
                     with torch_threads(threads):
@@ -532,6 +551,34 @@ def test_mean_only_rows_gather_each_label_dtype(dtype):
             with torch_threads(threads):
                 got = relight_kernels.affine_rows(lib, T, 1, n_out, C, labels, None, 0, None, None, 0, 1, P=P)
             assert torch.equal(got, ref), (dtype, n_out, C, threads)
+
+
+@pytest.mark.parametrize("dtype", [torch.uint8, torch.int16, torch.int32])
+def test_diffuse_vq_rows_every_tail_and_split_write_only_their_floats(dtype):
+    """Diffuse VQ without a view (n_out = 1, C = 3: rows of 3 floats from constants padded to 8),
+    the point kernel that writes 4 points as three 16-byte stores (uint8 labels, 8 labels read at a
+    time) and the loops for the rest: out[p] = T[label_p, :3] bit for bit against plain indexing, for
+    point counts that leave every tail length past groups of 4 and 8, split over 1-3 threads (ranges
+    starting anywhere), and nothing written past the last point's 3 floats (a NaN-filled guard after
+    them stays NaN; the constants' padding is filled with values that must not appear)."""
+    lib = relight_kernels.native()
+    if lib is None:
+        pytest.skip("no compiled kernels")
+    g = torch.Generator().manual_seed(11)
+    K = {torch.uint8: 256, torch.int16: 700, torch.int32: 5000}[dtype]
+    T = torch.randn(K, 1, 8, generator=g)
+    T[..., 3:] = 1e30  # padding: a kernel that wrote it out would put it in the next point's floats
+    for P in [*range(0, 26), 31, 32, 33, 1001, 4099]:
+        labels = torch.randint(0, K, (P,), generator=g).to(dtype)
+        if P >= 2:
+            labels[:2] = torch.tensor([K - 1, 0]).to(dtype)
+        ref = T[labels.long(), 0, :3]
+        for threads in (1, 2, 3):
+            buf = torch.full((P * 3 + 16,), float("nan"))
+            with torch_threads(threads):
+                got = relight_kernels.affine_rows(lib, T, 1, 1, 3, labels, None, 0, None, None, 0, 1, P=P, out=buf[:P * 3])
+            assert torch.equal(got.view(P, 3), ref), (dtype, P, threads)
+            assert torch.isnan(buf[P * 3:]).all(), (dtype, P, threads)
 
 
 def test_dense_and_taps_kernels_do_not_depend_on_the_thread_split():

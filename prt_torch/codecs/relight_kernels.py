@@ -142,9 +142,9 @@ def native_status() -> dict:
 
 #: prt_plan_path's codes (PRT_ROWS_*, PRT_DENSE_*, PRT_TAPS_* in kernels/prt_kernels.h, in that order): the point
 #: kernel a plan runs, as the kernels dispatch
-_PATH_NAMES = {1: "rows: VQ row copy", 2: "rows/1 vector: VQ RGB, 8 points (uint8 labels: 16-byte row copies; else packed)",
+_PATH_NAMES = {1: "rows: VQ row copy", 2: "rows/1 vector: VQ RGB, 8 points (uint8 labels: 4 points in three 16-byte stores; else packed)",
                3: "rows/1 vector: VQ row copy",
-               4: "rows/1 vector: PCA RGB, 8 points in lanes (AVX-512VL)", 5: "rows/1 vector: fixed term count (AVX2 permutes)",
+               4: "rows/1 vector: PCA RGB, 8 points in lanes (AVX2)", 5: "rows/1 vector: fixed term count (weights broadcast)",
                6: "rows/1 vector: one point at a time", 7: "rows: 16 lanes (AVX-512)", 8: "rows: 8 lanes, two points per load",
                9: "rows: 8 lanes", 10: "dense: VQ, 8 lanes, 8 points", 11: "dense: 16 lanes (AVX-512)",
                12: "dense: 8 lanes, RGB, two points per load", 13: "dense: 8 lanes, RGB", 14: "dense: per colour, 8 lanes",

@@ -38,7 +38,17 @@ static __attribute__((noinline)) void vq_rows_range(i64 p0, i64 p1, i64 F, const
    Whole 8-float vectors are stored where rows are consecutive (the next points' stores overwrite
    the lanes past Fo) and the store ends inside the thread's range; otherwise Fo scalar stores
    (masked vector stores of consecutive 12-byte rows ran at a third of the speed on Zen 4). */
-#if defined(SHUF) && defined(__AVX512VL__)
+#if defined(SHUF) && defined(__AVX2__) && defined(__FMA__)
+/* the first m weights of a point's 8 (the rest read as 0, never touched in memory): AVX-512VL's masked load, or AVX's
+   vmaskmovps with the mask as a vector of sign bits */
+static inline __m256 load_first(const float *p, i64 m) {
+#if defined(__AVX512VL__)
+    return _mm256_maskz_loadu_ps((__mmask8)((1u << m) - 1u), p);
+#else
+    if (m == 8) return _mm256_loadu_ps(p);
+    return _mm256_maskload_ps(p, _mm256_cmpgt_epi32(_mm256_set1_epi32((int)m), _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7)));
+#endif
+}
 /* 8 consecutive points of one cluster (K = 1: PCA), RGB rows (Fo = 3), points in lanes: the 8
    points' weights transposed 8 at a time (r[i] = weight i of each point), then per colour c
    acc_c = T_0[c] + sum_i r[i] T_{1+i}[c] by the same FMA chain per point and colour as the
@@ -52,9 +62,8 @@ static inline void k1_rgb8(const float *Tk, int mean, const float *wq, i64 ws, i
     const float *b = Tk + (mean ? 8 : 0);
     for (i64 i0 = 0; i0 < cnt; i0 += 8) {
         i64 m = cnt - i0 < 8 ? cnt - i0 : 8;
-        const __mmask8 mk = (__mmask8)((1u << m) - 1u);
         v8 r[8];
-        for (int j = 0; j < 8; j++) r[j] = (v8)_mm256_maskz_loadu_ps(mk, wq + j * ws + i0);
+        for (int j = 0; j < 8; j++) r[j] = (v8)load_first(wq + j * ws + i0, m);
         transpose8(r);
         for (i64 i = 0; i < m; i++) {
             const float *t = b + 8 * (i0 + i);
@@ -107,24 +116,58 @@ static inline void k1_rgb8(const float *Tk, int mean, const float *wq, i64 ws, i
         float *d_ = out + 3 * q;                                                                                  \
         for (int i_ = 0; i_ < 8; i_++) *(v4u *)(d_ + 3 * i_) = *(const v4u *)(T + (i64)l_[i_] * 8);               \
     }
+#if defined(__SSE4_1__)
+#include <smmintrin.h>
+/* 4 VQ points, RGB, uint8 labels l4 (the low 4 bytes), rows 8 floats apart (J = 1), as 12 contiguous floats in three
+   16-byte stores (d: the first point's output): a0 a1 a2 b0 | b1 b2 c0 c1 | c2 e0 e1 e2, each a row's first 4 floats
+   combined by one insertps, one shufps, and a byte shift + insertps. Zen 3 (AVX2 build) stores one vector per cycle
+   here, 16 or 32 bytes alike, so the store count bounds the loop: 6 stores per 8 points where VQ_RGB16_U8 issues 8
+   (a quarter of them crossing a cache line). Measured (C microbenchmark, 50 000 points, one thread, CPU time, load
+   3-4): 21.3 -> 16.8-17.4 us (bound: a 50 kB copy + a 600 kB fill, 9.8-11.3 us); 32-byte stores (three per 8 points)
+   cost more in shuffles than they save (17.3-20.8 us), gathers 68 us, 32-byte loads of pre-rotated rows 16-22 us.
+   No arithmetic: the output bits are the constants' bits. */
+static inline __attribute__((always_inline)) void vq_rgb4(const float *T, uint64_t l4, float *d) {
+    const __m128 a = _mm_loadu_ps(T + (i64)(l4 & 255) * 8), b = _mm_loadu_ps(T + (i64)((l4 >> 8) & 255) * 8);
+    const __m128 c = _mm_loadu_ps(T + (i64)((l4 >> 16) & 255) * 8), e = _mm_loadu_ps(T + (i64)((l4 >> 24) & 255) * 8);
+    _mm_storeu_ps(d, _mm_insert_ps(a, b, 0x30));                                  /* b's lane 0 into lane 3 */
+    _mm_storeu_ps(d + 4, _mm_shuffle_ps(b, c, _MM_SHUFFLE(1, 0, 2, 1)));          /* b1 b2 c0 c1 */
+    _mm_storeu_ps(d + 8, _mm_insert_ps(_mm_castsi128_ps(_mm_slli_si128(_mm_castps_si128(e), 4)), c, 0x80));  /* c2 e0 e1 e2 */
+}
+/* 8 points from q: labels read 8 at a time */
+#define VQ_RGB12_U8 {                                                                                             \
+        uint64_t l8;                                                                                              \
+        __builtin_memcpy(&l8, (const uint8_t *)lab + q, 8);                                                       \
+        vq_rgb4(T, l8, out + 3 * q);                                                                              \
+        vq_rgb4(T, l8 >> 32, out + 3 * q + 12);                                                                   \
+    }
+#endif
 #endif
 /* points q.. in order, n terms each after the mean, weights in rows of stride ws, the label kind fixed: each
-   point by the one-point chain a = T_k[0] + sum_i w_i T_k[1+i] below (same FMAs, same bits), specialised so that
-   neither the label kind, nor the weights' addressing, nor the term count is decided per point. The point's first 8
-   weights are one load (4 floats for up to 4 terms; lanes permuted where the CPU has AVX2), so the loop stops at
-   the caller's `last`: where that load would end past the last weight the one-point chain reads (any row stride, 0
-   included) or a whole-vector store past the range. Returns where it stopped. On builds without AVX2 the compiler may order a
-   multiply-add's operands differently here and in the one-point loop: where both are NaN, the NaN's payload bits
-   can then depend on the path (every result is the same otherwise). */
+   point by the one-point chain a = T_k[0] + sum_i w_i T_k[1+i] below (same FMAs, same operands, same bits),
+   specialised so that neither the label kind, nor the weights' addressing, nor the term count is decided per point.
+   Each group of 4 weights is one 16-byte load into both halves and each weight broadcast from it by an in-lane
+   permute (vpermilps: either shuffle pipe, latency 1), the last n mod 4 by vbroadcastss, so no load reads past the
+   point's n weights. Measured on Zen 3 (ab_kernels --shape diffuse --only cpca --clock cpu, CPCA 64x4, maxdiff 0):
+   one load of 4/8 weights and a cross-lane vpermps per term (its permutes bounded the loop) -> vbroadcastss per term,
+   1.30x; -> this, 1.19x more: the loop is bound by how many points are in flight, each waiting on its label, its
+   constants' address and a chain of n multiply-adds, and fewer loads per point leave room for more points in the
+   load queue. The loop stops at the caller's `last`, where a whole-vector store would end past the range. Returns
+   where it stopped. */
 static inline __attribute__((always_inline)) i64 rows_fixed(i64 q, i64 last, i64 Fo, const void *lab, const int lab_kind,
         const float *W, i64 ws, const int n, const float *T, i64 J, float *out) {
     for (; q <= last; q++) {
         const float *t = T + lab_at(lab, lab_kind, q) * J * 8, *w = W + q * ws;
         v8 a = LD(t);
-#if defined(__AVX2__)
-        __m256 wv = n <= 4 ? _mm256_castps128_ps256(_mm_loadu_ps(w)) : _mm256_loadu_ps(w);
-        IN_REG(wv);  /* one load: GCC otherwise folds it into every permute (n loads, 1.3x slower, bare C) */
-        for (int i = 0; i < n; i++) a = FMA8V((v8)_mm256_permutevar8x32_ps(wv, _mm256_set1_epi32(i)), LD(t + 8 + 8 * i), a);
+#if defined(__AVX__) && defined(__FMA__)
+        int i = 0;
+        for (; i + 4 <= n; i += 4) {  /* 4 weights, one load into both halves; each broadcast by an in-lane permute */
+            const __m256 w4 = _mm256_broadcast_ps((const __m128 *)(w + i));
+            a = FMA8V((v8)_mm256_permute_ps(w4, 0x00), LD(t + 8 + 8 * i), a);
+            a = FMA8V((v8)_mm256_permute_ps(w4, 0x55), LD(t + 16 + 8 * i), a);
+            a = FMA8V((v8)_mm256_permute_ps(w4, 0xAA), LD(t + 24 + 8 * i), a);
+            a = FMA8V((v8)_mm256_permute_ps(w4, 0xFF), LD(t + 32 + 8 * i), a);
+        }
+        for (; i < n; i++) a = FMA8(w[i], LD(t + 8 + 8 * i), a);
 #else
         for (int i = 0; i < n; i++) a = FMA8(w[i], LD(t + 8 + 8 * i), a);
 #endif
@@ -183,6 +226,10 @@ static __attribute__((noinline)) void small_rows_range(int path, const int32_t *
                                                      store per point crosses a cache line every other point; 2x, bare C) */
         switch (lab_kind) {
         case 1:
+#if defined(__SSE4_1__)
+            if (J == 1)  /* rows 8 floats apart, as VQ_RGB12_U8 assumes; stores end at the 8th point's last float */
+                for (; q + 8 <= p1; q += 8) VQ_RGB12_U8
+#endif
             if (J == 1)  /* rows 8 floats apart, as VQ_RGB16_U8 / VQ_RGB8_U8 assume */
                 for (; q + 9 <= p1; q += 8) VQ_RGB16_U8
             if (J == 1)
@@ -213,13 +260,9 @@ static __attribute__((noinline)) void small_rows_range(int path, const int32_t *
        overlaps consecutive points' chains; an 8-point pass, with a pointer per point, spilled them (CPCA 1.5x slower).
        Consecutive rows with whole-vector stores while they end inside the range, then Fo floats per point. */
     if (path == PRT_ROWS_SMALL_FIXED) {  /* CPCA, PCA: fixed term count, rows of weights */
-        /* the last point whose load of wl weights ends within the range's last used one, (p1 - 1) ws + nuse (row
-           stride 0: every point or none), and whose 8-float store ends within the range (computed here: inside
-           rows_fixed the same bound made GCC's CPCA loop 1.7x slower) */
-        const i64 wl = nuse <= 4 ? 4 : 8, last_o = p1 - (8 + Fo - 1) / Fo;
-        const i64 last_w = wstride > 0 ? p1 - 1 - (wl - nuse + wstride - 1) / wstride : (wl <= nuse ? p1 - 1 : q - 1);
-        const i64 last = last_o < last_w ? last_o : last_w;
-        q = fixed_rows(q, last, Fo, lab, lab_kind, W, wstride, nuse, T, J, out);
+        /* the last point whose 8-float store ends within the range (computed here: inside rows_fixed the same bound
+           made GCC's CPCA loop 1.7x slower); the weights read are the point's own nuse */
+        q = fixed_rows(q, p1 - (8 + Fo - 1) / Fo, Fo, lab, lab_kind, W, wstride, nuse, T, J, out);
     }
 #define ONE_ROW(pc) i64 k = lab_at(lab, lab_kind, pc), cnt;                                                          \
         const float *w = weights_of(W, wstride, woff, nk, nuse, k, pc, &cnt), *t = T + k * J * 8, *b = t + (mean ? 8 : 0); \

@@ -13,6 +13,9 @@
 #ifndef PRT_VEC_H
 #define PRT_VEC_H
 #include "prt_kernels.h"
+#if defined(__AVX__)
+#include <immintrin.h>
+#endif
 
 /* 8 floats, unaligned loads/stores (GCC/Clang vector extensions; split into SSE where no AVX) */
 typedef float v8 __attribute__((vector_size(32), aligned(4)));
@@ -28,15 +31,21 @@ static inline float hsum(v8 a) {
     v4 s = SHUF(a, 0, 2, 4, 6) + SHUF(a, 1, 3, 5, 7);
     return (s[0] + s[1]) + (s[2] + s[3]);
 }
-/* lane i = the sum of a[i]'s lanes, for 8 vectors at once: three rounds of adding the even and
-   odd lanes of neighbouring pairs (7 shuffle pairs for 8 sums, where 8 hsums take 24) */
-#define EVEN2(a, b) __builtin_shufflevector(a, b, 0, 2, 4, 6, 8, 10, 12, 14)
-#define ODD2(a, b) __builtin_shufflevector(a, b, 1, 3, 5, 7, 9, 11, 13, 15)
+/* lane i = the sum of a[i]'s lanes, for 8 vectors at once: three rounds of adding the even and odd lanes of
+   neighbouring pairs (7 shuffle pairs for 8 sums, where 8 hsums take 24), each sum with the same operands in the
+   same order as hsum's. The pairs are taken within 128-bit halves (vshufps) and the halves exchanged once at the
+   end: round 1 leaves [a(01) a(23) b(01) b(23) | a(45) a(67) b(45) b(67)] per pair, round 2
+   [a(0123) b(0123) c(0123) d(0123) | a(4567) ...], round 3 adds the halves, lane i = a_i(0123) + a_i(4567). Taking
+   the even and odd lanes across the halves instead (a 16-lane pattern) made AVX2 code of vpermd from the stack:
+   measured on Zen 3 (ab_kernels --shape relight --clock cpu, one thread, maxdiff 0) VQ with a dense view 1.60x
+   faster this way, PCA 8 dense 1.20x, CPCA 256x8 dense 1.12x, MRT-PCA taps 1.24x. */
+#define EVENL(a, b) __builtin_shufflevector(a, b, 0, 2, 8, 10, 4, 6, 12, 14)
+#define ODDL(a, b) __builtin_shufflevector(a, b, 1, 3, 9, 11, 5, 7, 13, 15)
 static inline v8 hsum8(const v8 *a) {
-    v8 t0 = EVEN2(a[0], a[1]) + ODD2(a[0], a[1]), t1 = EVEN2(a[2], a[3]) + ODD2(a[2], a[3]);
-    v8 t2 = EVEN2(a[4], a[5]) + ODD2(a[4], a[5]), t3 = EVEN2(a[6], a[7]) + ODD2(a[6], a[7]);
-    v8 u0 = EVEN2(t0, t1) + ODD2(t0, t1), u1 = EVEN2(t2, t3) + ODD2(t2, t3);
-    return EVEN2(u0, u1) + ODD2(u0, u1);
+    v8 h01 = EVENL(a[0], a[1]) + ODDL(a[0], a[1]), h23 = EVENL(a[2], a[3]) + ODDL(a[2], a[3]);
+    v8 h45 = EVENL(a[4], a[5]) + ODDL(a[4], a[5]), h67 = EVENL(a[6], a[7]) + ODDL(a[6], a[7]);
+    v8 g0 = EVENL(h01, h23) + ODDL(h01, h23), g1 = EVENL(h45, h67) + ODDL(h45, h67);
+    return __builtin_shufflevector(g0, g1, 0, 1, 2, 3, 8, 9, 10, 11) + __builtin_shufflevector(g0, g1, 4, 5, 6, 7, 12, 13, 14, 15);
 }
 #else
 static inline float hsum(v8 a) { return ((a[0] + a[1]) + (a[2] + a[3])) + ((a[4] + a[5]) + (a[6] + a[7])); }
@@ -83,7 +92,11 @@ static inline int store8_rgb(const v8 *R, float *out, const i64 *pl, int seq) {
     const v8i maxbits = {0x7f7fffff, 0x7f7fffff, 0x7f7fffff, 0x7f7fffff, 0x7f7fffff, 0x7f7fffff, 0x7f7fffff, 0x7f7fffff};
     v8i bad = (((v8i)s0 & absmask) > maxbits) | (((v8i)s1 & absmask) > maxbits) | (((v8i)s2 & absmask) > maxbits);
     int any = 0;
+#if defined(__AVX__)
+    any = _mm256_movemask_ps((__m256)bad);  /* the lanes' sign bits (every lane is 0 or -1): one instruction */
+#else
     for (int l = 0; l < 8; l++) any |= bad[l];
+#endif
 #ifdef SHUF
     if (seq) {  /* consecutive points (pl[l] = pl[0] + l): 24 contiguous floats, three vector stores */
         interleave3(s0, s1, s2, out + 3 * pl[0]);
