@@ -184,6 +184,40 @@ def test_normal_equations_equal_autograd_jacobian(cube, N):
         torch.testing.assert_close(E[f], r0.square().sum(), rtol=1e-12, atol=1e-14)
 
 
+def test_fit_error_statistics_by_row_blocks_equal_the_definitions(cube):
+    """``fit_info_``'s errors, accumulated a few vertices at a time into one float64 buffer
+    (``_fit_errors``: 3-vertex blocks here, the last one short), against the definitions on the
+    whole decoded table: relative L2 = √(Σ Δω (T̃ − T)² / Σ Δω T²) over the table, the median and
+    p90 of the per-function relative L2, SE = Σ (T̃ − T)² and SE / Σ T² (to the float32 rounding of
+    the decoded values, which a block's GEMM may round differently from the whole table's)."""
+    d, sa = cube
+    g = torch.Generator().manual_seed(5)
+    V, J = 10, 2
+    T = mixture(d, torch.rand(V * J, 2, generator=g, dtype=torch.float64) + 0.2,
+                torch.nn.functional.normalize(torch.randn(V * J, 2, 3, generator=g, dtype=torch.float64), dim=-1),
+                torch.empty(V * J, 2, dtype=torch.float64).uniform_(0.2, 0.5, generator=g)).reshape(V, J, -1)
+    T[3, 1] = 0.0  # a zero function: in the totals, not in the per-function statistics
+    c = codecs.get("gaussian", lobes=1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        enc = c.fit_encode(T.reshape(V, -1).float(), matrix_shape=(J, d.shape[0]))
+    err, ref, se, tot = c._fit_errors(T.float(), enc, rows=3)
+    Th, T0 = c.decode(enc).double().reshape(V, J, -1), T.float().double()
+    e = ((Th - T0).square() * sa.double()).sum(-1)
+    r = (T0.square() * sa.double()).sum(-1)
+    torch.testing.assert_close(err, e, rtol=1e-5, atol=1e-12)
+    torch.testing.assert_close(ref, r, rtol=1e-5, atol=1e-12)
+    assert se == pytest.approx(float((Th - T0).square().sum()), rel=1e-5)
+    assert tot == pytest.approx(float(T0.square().sum()), rel=1e-5)
+    info = c.fit_info_
+    nz = r > 0
+    assert info["relative_l2"] == pytest.approx(math.sqrt(float(e.sum() / r.sum())), rel=1e-5)
+    assert info["relative_l2_median"] == pytest.approx(float((e[nz] / r[nz]).sqrt().median()), rel=1e-5)
+    assert info["relative_l2_p90"] == pytest.approx(float((e[nz] / r[nz]).sqrt().quantile(0.9)), rel=1e-5)
+    assert info["se"] == pytest.approx(float((Th - T0).square().sum()), rel=1e-5)
+    assert info["relative_l2"] > 1e-4  # one lobe for two: a real error, not a vacuous zero
+
+
 def test_all_zero_function_gives_zero_weights_and_no_nan(cube):
     d, _ = cube
     T = torch.zeros(3, d.shape[0])
