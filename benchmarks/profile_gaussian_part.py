@@ -7,7 +7,7 @@ the end and its peak within the stage (``/proc/self/clear_refs`` resets the high
 the load average before and after. Stages: mesh, transport table (precompute into a fresh cache
 unless ``--cache`` holds it), evaluator and uncompressed references, then per codec setting its fit
 (``fit_encode``), its error and PSNR pass (decode, per light and view) and its relighting timings
-(``harness.run.time_setting``: the paired repeats).
+(``harness.run.time_setting``: the paired repeats, broken down by timing function).
 
 Run: .venv/bin/python benchmarks/profile_gaussian_part.py --size medium [--codecs gaussian,pca]
      [--cache DIR] [--json out.json]
@@ -72,6 +72,26 @@ def stage(name: str):
           f"load {l0:.1f}->{row['load'][1]:.1f}", flush=True)
 
 
+def _trace_timing() -> dict:
+    """Wrap the timing functions ``harness.run.time_setting`` calls so that each call's wall and
+    CPU time are summed per function name (the relight-timing stage broken down)."""
+    import prt_torch.harness.run as hr
+
+    spent: dict = {}
+    for name in ("measure_paired", "measure_paired_cold", "rate_policy"):
+        fn = getattr(hr, name)
+
+        def wrapped(*args, _fn=fn, _name=name, **kw):
+            t0, c0 = time.perf_counter(), time.process_time()
+            try:
+                return _fn(*args, **kw)
+            finally:
+                w, c, n = spent.get(_name, (0.0, 0.0, 0))
+                spent[_name] = (w + time.perf_counter() - t0, c + time.process_time() - c0, n + 1)
+        setattr(hr, name, wrapped)
+    return spent
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--config", default="default")
@@ -95,6 +115,7 @@ def main(argv=None) -> int:
         i, key = k.split(".", 1)
         sub["codecs"][int(i)][key] = yaml.safe_load(v)
     want = set(a.codecs.split(",")) if a.codecs else None
+    spent = _trace_timing()
     print(f"load {os.getloadavg()}, torch threads {torch.get_num_threads()}, OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY')}")
     with stage("mesh"):
         mesh, _ = load_mesh_within_budget(sub)
@@ -121,8 +142,11 @@ def main(argv=None) -> int:
         print(f"  encode {rec['encode_s']:.1f} s (error/PSNR {time.perf_counter() - t0 - rec['encode_s']:.1f} s), "
               f"{rec['bytes_per_vertex']:.1f} B/vertex, PSNR lights {rec['psnr_lights_db']:.2f} dB, rel SE {rec['relative_se']:.4f}")
         if not a.no_timing:
+            spent.clear()
             with stage(f"{sid}: relight timings"):
                 rec.update(time_setting(ev, codec, enc, lights, views, sub))
+            ROWS[-1]["timing_calls"] = {k: {"wall_s": w, "cpu_s": c, "calls": n} for k, (w, c, n) in spent.items()}
+            print("  " + ", ".join(f"{k} x{n}: {w:.1f} s wall, {c:.1f} s CPU" for k, (w, c, n) in spent.items()))
         records.append({k: rec.get(k) for k in ("setting_id", "encode_s", "bytes_per_vertex", "psnr_lights_db", "relative_se",
                                                 "speedup_vs_uncompressed")})
         del codec, enc
