@@ -1233,3 +1233,26 @@ def test_cached_lobe_layout_follows_in_place_edits(cube, dtype):
     after = (c.relight(enc, pe), c.relight(enc, pe, (idx, a)))
     for b, x in zip(before, after):
         assert torch.allclose(x, 2 * b, rtol=1e-6, atol=0)
+
+
+def test_fit_runs_one_thread_while_the_cores_are_busy_now(monkeypatch):
+    """The fit's batches drop to one thread when other processes hold the cores now (checked per
+    batch: a long fit outlives the import-time wait policy), and keep all threads when they are
+    free and the policy spins; the caller's thread count is restored either way."""
+    import prt_torch
+    from prt_torch.codecs.gaussian import fit as gfit
+
+    monkeypatch.delenv("OMP_WAIT_POLICY", raising=False)
+    n = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        for busy, inside in ((True, 1), (False, 2)):
+            monkeypatch.setattr(prt_torch, "busy_now", lambda *a, _b=busy, **k: _b)
+            with gfit._threads_for(1000):
+                assert torch.get_num_threads() == inside, busy
+            assert torch.get_num_threads() == 2
+        monkeypatch.setattr(prt_torch, "busy_now", lambda *a, **k: True)
+        with gfit._threads_for(1 << 26):  # a batch large enough to parallelise keeps its threads, busy or not
+            assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(n)

@@ -127,15 +127,22 @@ def flood_fill_order(faces: torch.Tensor | None, V: int) -> tuple[torch.Tensor, 
 
 @contextlib.contextmanager
 def _threads_for(work: int, small: int = 1 << 25):
-    """One thread for batches below ``small`` texel·lobe evaluations when other processes held
-    the cores at import (``OMP_WAIT_POLICY=PASSIVE``, chosen by :mod:`prt_torch` from the
-    runnable-process count): there the per-op thread hand-off of the many mid-sized tensors of
-    an LM step cost more than it gained (200 functions: 0.4 s on 1 thread vs 3–9 s on 2;
-    4600 functions × 2 lobes: 17 s vs 62 s, load average 5–7). On an idle machine all threads."""
+    """One thread for batches below ``small`` texel·lobe evaluations when the cores are not free:
+    other processes held them at import (``OMP_WAIT_POLICY=PASSIVE``, chosen by :mod:`prt_torch`)
+    or hold them now (:func:`prt_torch.busy_now`, checked per batch: a long fit outlives the
+    import-time choice). There the per-op thread hand-off of the many mid-sized tensors of an LM
+    step costs more than it gains: 200 functions: 0.4 s on 1 thread vs 3–9 s on 2; 4600 functions
+    × 2 lobes: 17 s vs 62 s (PASSIVE, load 5–7); with spinning threads (``OMP_WAIT_POLICY=ACTIVE``)
+    beside one or two other processes (load 2.7–4.3), 1000 vertices × 42 views, 1 lobe: 2.9–6.0 s
+    wall on 1 thread vs 12.7–47.7 s on 2 (and 3.7–4.2 vs 8.5–47 s of CPU); the default benchmark's
+    10k part, imported at load 2.4 (spinning) and then shared, spent 164 CPU s on the one-lobe fit
+    and its error pass that took 31 in one thread. On an idle machine all threads."""
     n = torch.get_num_threads()
-    busy = os.environ.get("OMP_WAIT_POLICY", "").upper() == "PASSIVE"
-    if busy and work < small and n > 1:
-        torch.set_num_threads(1)
+    if n > 1 and work < small:
+        from ... import busy_now
+
+        if os.environ.get("OMP_WAIT_POLICY", "").upper() == "PASSIVE" or busy_now():
+            torch.set_num_threads(1)
     try:
         yield
     finally:
