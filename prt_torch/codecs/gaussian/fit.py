@@ -264,7 +264,8 @@ class Problem:
         g = term.mul_(self.rsa)  # √Δω g_k  [b, N, P] (term is not used after this)
         M = torch.matmul((g[:, :, None, :] * g[:, None, :, :]).reshape(-1, P), self.moments)  # [b·N·N, 16]
         M = M.view(b, N, N, 4, 4).double()
-        # A_k M_kl A_lᵀ as two batched 4×4 products ([b, N, N, 4, 4]; the three-operand einsum took 5× longer)
+        # A_k M_kl A_lᵀ as two batched 4×4 products ([b, N, N, 4, 4]; the same bits and, measured, the same
+        # time as the three-operand einsum "bkij,bkljm,blnm->bkiln": 6.2 ms per 4096 functions × 2 lobes)
         JtJ = torch.matmul(torch.matmul(A[:, :, None], M), A[:, None].transpose(-1, -2))
         JtJ = JtJ.permute(0, 1, 3, 2, 4).reshape(b, 4 * N, 4 * N)
         v = torch.matmul(g * (r * self.rsa)[:, None, :], self.d1).double()  # [b, N, 4]
