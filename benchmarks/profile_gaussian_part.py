@@ -22,6 +22,7 @@ import contextlib  # noqa: E402
 import json  # noqa: E402
 import os  # noqa: E402
 import resource  # noqa: E402
+import shutil  # noqa: E402
 import sys  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
@@ -102,11 +103,20 @@ def main(argv=None) -> int:
     ap.add_argument("--no-timing", action="store_true", help="skip the relighting timings")
     ap.add_argument("--json", default=None)
     a = ap.parse_args(argv)
+    cfg = load_config(a.config)
+    scratch = [tempfile.mkdtemp(prefix="prof_part_")] + ([] if a.cache else [tempfile.mkdtemp(prefix="prof_cache_")])
+    try:
+        return _run(a, cfg, scratch)
+    finally:
+        for d in scratch:  # the run writes nothing there that is kept; a fresh cache would be the whole table
+            shutil.rmtree(d, ignore_errors=True)
+
+
+def _run(a, cfg: dict, scratch: list[str]) -> int:
     import yaml
 
-    cfg = load_config(a.config)
-    cfg["output_dir"] = tempfile.mkdtemp(prefix="prof_part_")
-    cfg["cache_dir"] = a.cache or tempfile.mkdtemp(prefix="prof_cache_")
+    cfg["output_dir"] = scratch[0]
+    cfg["cache_dir"] = a.cache or scratch[1]
     sub = [s for s in part_configs(cfg) if s["name"] == "gaussian"][0]
     if a.size:
         sub["scene"]["size"] = int(a.size) if a.size.isdigit() else a.size
