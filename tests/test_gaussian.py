@@ -184,6 +184,89 @@ def test_normal_equations_equal_autograd_jacobian(cube, N):
         torch.testing.assert_close(E[f], r0.square().sum(), rtol=1e-12, atol=1e-14)
 
 
+def test_fit_error_statistics_by_row_blocks_equal_the_definitions(cube):
+    """``fit_info_``'s errors, accumulated a few vertices at a time into one float64 buffer
+    (``_fit_errors``: 3-vertex blocks here, the last one short), against the definitions on the
+    whole decoded table: relative L2 = √(Σ Δω (T̃ − T)² / Σ Δω T²) over the table, the median and
+    p90 of the per-function relative L2, SE = Σ (T̃ − T)² and SE / Σ T² (to the float32 rounding of
+    the decoded values, which a block's GEMM may round differently from the whole table's)."""
+    d, sa = cube
+    g = torch.Generator().manual_seed(5)
+    V, J = 10, 2
+    T = mixture(d, torch.rand(V * J, 2, generator=g, dtype=torch.float64) + 0.2,
+                torch.nn.functional.normalize(torch.randn(V * J, 2, 3, generator=g, dtype=torch.float64), dim=-1),
+                torch.empty(V * J, 2, dtype=torch.float64).uniform_(0.2, 0.5, generator=g)).reshape(V, J, -1)
+    T[3, 1] = 0.0  # a zero function: in the totals, not in the per-function statistics
+    c = codecs.get("gaussian", lobes=1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        enc = c.fit_encode(T.reshape(V, -1).float(), matrix_shape=(J, d.shape[0]))
+    err, ref, se, tot = c._fit_errors(T.float(), enc, rows=3)
+    Th, T0 = c.decode(enc).double().reshape(V, J, -1), T.float().double()
+    e = ((Th - T0).square() * sa.double()).sum(-1)
+    r = (T0.square() * sa.double()).sum(-1)
+    torch.testing.assert_close(err, e, rtol=1e-5, atol=1e-12)
+    torch.testing.assert_close(ref, r, rtol=1e-5, atol=1e-12)
+    assert se == pytest.approx(float((Th - T0).square().sum()), rel=1e-5)
+    assert tot == pytest.approx(float(T0.square().sum()), rel=1e-5)
+    info = c.fit_info_
+    nz = r > 0
+    assert info["relative_l2"] == pytest.approx(math.sqrt(float(e.sum() / r.sum())), rel=1e-5)
+    assert info["relative_l2_median"] == pytest.approx(float((e[nz] / r[nz]).sqrt().median()), rel=1e-5)
+    assert info["relative_l2_p90"] == pytest.approx(float((e[nz] / r[nz]).sqrt().quantile(0.9)), rel=1e-5)
+    assert info["se"] == pytest.approx(float((Th - T0).square().sum()), rel=1e-5)
+    assert info["relative_l2"] > 1e-4  # one lobe for two: a real error, not a vacuous zero
+
+
+@pytest.mark.parametrize("lobes", [1, 2])
+def test_lm_fit_reaches_scipys_least_squares_optimum_on_noisy_mixtures(cube, lobes):
+    """The batched LM (fused objective, restart only above fit.RESTART_ABOVE) against
+    scipy.optimize.least_squares (trust-region reflective, its own finite-difference Jacobian)
+    minimising the same data term Σ_p Δω_p (Σ_k w_k G(ω_p; μ_k, σ_k) − T(ω_p))² of noisy mixtures
+    (no exact fit), without the view and spatial terms: the LM's objective is within 1% of scipy's
+    (or below it) on every function, scipy started from the LM's solution (a local optimum: scipy
+    cannot improve it) and, for one lobe, from the noiseless truth (the global optimum). For two
+    lobes the greedy start can end in another basin than the truth's (seen: 17% above it on one of
+    these six functions, with the restart at 2% as at 20%), so the truth is no bound there."""
+    scipy_opt = pytest.importorskip("scipy.optimize")
+    import numpy as np
+
+    d, sa = (t.double() for t in cube)
+    g = torch.Generator().manual_seed(11 + lobes)
+    B = 6
+    w = torch.empty(B, lobes, dtype=torch.float64).uniform_(0.5, 2.0, generator=g)
+    mu = torch.nn.functional.normalize(torch.randn(B, lobes, 3, generator=g, dtype=torch.float64), dim=-1)
+    sg = torch.empty(B, lobes, dtype=torch.float64).uniform_(0.25, 0.5, generator=g)
+    clean = mixture(d, w, mu, sg)
+    T = (clean + 0.03 * clean.amax(1, keepdim=True) * torch.randn(clean.shape, generator=g, dtype=torch.float64)).clamp_min(0)
+    c, enc = _fit(T, lobes, view_weight=0.0, spatial_weight=0.0, max_iter=100, tol=1e-9)
+    fitted = c.decode(enc).double()
+    lm = ((fitted - T.float().double()).square() * sa).sum(1)
+    rsa, dn, Tn = sa.sqrt().numpy(), d.numpy(), T.float().double().numpy()
+
+    def resid(x, f):  # x: per lobe (log w, θ, φ, log σ); G = c(λ) exp(λ(μ·ω − 1)), c = λ / (2π(1 − e^{−2λ})), λ = σ⁻²
+        x = x.reshape(lobes, 4)
+        m = np.stack([np.sin(x[:, 1]) * np.cos(x[:, 2]), np.sin(x[:, 1]) * np.sin(x[:, 2]), np.cos(x[:, 1])], -1)
+        lam = np.exp(-2 * x[:, 3])
+        c = lam / (2 * np.pi * -np.expm1(-2 * lam))
+        val = ((np.exp(x[:, 0]) * c)[:, None] * np.exp(lam[:, None] * (m @ dn.T - 1))).sum(0)
+        return rsa * (val - Tn[f])
+
+    def start(wf, muf, sgf):
+        th = torch.acos(muf[:, 2].clamp(-1, 1))
+        ph = torch.atan2(muf[:, 1], muf[:, 0])
+        return torch.stack([wf.clamp_min(1e-8).log(), th, ph, sgf.log()], -1).reshape(-1).numpy()
+
+    fw, fmu, fsg = (t.double()[:, 0] for t in c.lobes_of(enc))  # the LM's lobes [B, N(, 3)]
+    for f in range(B):
+        # from the LM's own solution: a local optimum (scipy cannot improve it); from the truth (one
+        # lobe: the global optimum; two: a greedy start may end in another basin, see the docstring)
+        starts = [start(fw[f], fmu[f], fsg[f])] + ([start(w[f], mu[f], sg[f])] if lobes == 1 else [])
+        best = min(float(np.square(scipy_opt.least_squares(resid, x0, args=(f,), xtol=1e-12, ftol=1e-12, gtol=1e-12,
+                                                           max_nfev=3000).fun).sum()) for x0 in starts)
+        assert float(lm[f]) <= best * 1.01 + 1e-12, (f, float(lm[f]), best)
+
+
 def test_all_zero_function_gives_zero_weights_and_no_nan(cube):
     d, _ = cube
     T = torch.zeros(3, d.shape[0])
@@ -1150,3 +1233,26 @@ def test_cached_lobe_layout_follows_in_place_edits(cube, dtype):
     after = (c.relight(enc, pe), c.relight(enc, pe, (idx, a)))
     for b, x in zip(before, after):
         assert torch.allclose(x, 2 * b, rtol=1e-6, atol=0)
+
+
+def test_fit_runs_one_thread_while_the_cores_are_busy_now(monkeypatch):
+    """The fit's batches drop to one thread when other processes hold the cores now (checked per
+    batch: a long fit outlives the import-time wait policy), and keep all threads when they are
+    free and the policy spins; the caller's thread count is restored either way."""
+    import prt_torch
+    from prt_torch.codecs.gaussian import fit as gfit
+
+    monkeypatch.delenv("OMP_WAIT_POLICY", raising=False)
+    n = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        for busy, inside in ((True, 1), (False, 2)):
+            monkeypatch.setattr(prt_torch, "busy_now", lambda *a, _b=busy, **k: _b)
+            with gfit._threads_for(1000):
+                assert torch.get_num_threads() == inside, busy
+            assert torch.get_num_threads() == 2
+        monkeypatch.setattr(prt_torch, "busy_now", lambda *a, **k: True)
+        with gfit._threads_for(1 << 26):  # a batch large enough to parallelise keeps its threads, busy or not
+            assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(n)

@@ -154,6 +154,25 @@ def test_random_light_psnr_monte_carlo_matches_closed_form():
     assert 0 < rel < 1e-3
 
 
+@pytest.mark.parametrize("n_lights", [5, 40])  # fewer lights than inputs (projection form) and more (Gram form)
+def test_random_light_psnr_and_squared_error_by_row_blocks(monkeypatch, n_lights):
+    """By row blocks (BLOCK_ELEMENTS made tiny: 7 rows a block, the last one short) both metrics
+    equal the brute force from their definitions: SE = Σ (x − x̂)², and the mean over the sampled
+    lights of Σ_p ‖Δ_p l‖² / P in float64 — for n_lights below n_in too, where the row blocks are
+    projected on the lights instead of forming the Gram matrix."""
+    g = torch.Generator().manual_seed(3)
+    X = torch.randn(103, 3 * 12, generator=g)
+    Xh = X + 0.05 * torch.randn(103, 36, generator=g)
+    monkeypatch.setattr(hm, "BLOCK_ELEMENTS", 7 * 36)
+    d = (X.double() - Xh.double())
+    se, rel = hm.squared_error(X, Xh)
+    assert se == pytest.approx(float((d * d).sum()), rel=1e-12)
+    assert rel == pytest.approx(float((d * d).sum() / (X.double() ** 2).sum()), rel=1e-12)
+    L = hm.random_unit_vectors(n_lights, 12, seed=4)
+    brute = float(((d.reshape(103, 3, 12) @ L.T) ** 2).sum(1).mean())
+    assert abs(-10 * math.log10(brute) - hm.random_light_psnr(X, Xh, 12, n_lights=n_lights, seed=4)) < 1e-9
+
+
 def test_psnr_vs_reference_definition():
     ref = torch.tensor([[1.0, 2.0], [4.0, 0.0]], dtype=torch.float64)
     test = ref + torch.tensor([[0.1, -0.1], [0.0, 0.2]], dtype=torch.float64)

@@ -22,13 +22,28 @@ from .timing import torch_threads
 __all__ = ["squared_error", "psnr_from_mse", "psnr_vs_reference", "random_unit_vectors", "random_light_psnr", "random_light_psnr_analytic"]
 
 
+#: elements of one row block of the float64 temporaries in :func:`squared_error` and :func:`random_light_psnr`
+#: (32 MiB of float64): a [10242, 16128] transport table made 1.3 GB temporaries at once before
+BLOCK_ELEMENTS = 1 << 22
+
+
+def _row_blocks(x: torch.Tensor):
+    """Row slices of ``x [P, D]`` of about :data:`BLOCK_ELEMENTS` elements."""
+    step = max(1, BLOCK_ELEMENTS // max(1, x.shape[1] if x.ndim > 1 else 1))
+    for i in range(0, x.shape[0], step):
+        yield slice(i, i + step)
+
+
 def squared_error(x: torch.Tensor, x_hat: torch.Tensor) -> tuple[float, float]:
-    """(SE, relative SE) of ``x_hat [P, D]`` against ``x [P, D]``, accumulated in float64."""
+    """(SE, relative SE) of ``x_hat [P, D]`` against ``x [P, D]``, accumulated in float64 (row
+    blocks of :data:`BLOCK_ELEMENTS`: no table-sized temporaries)."""
     if x.shape != x_hat.shape:
         raise ValueError(f"x_hat has shape {tuple(x_hat.shape)} but x has {tuple(x.shape)}")
-    d = (x.double() - x_hat.double())
-    se = float((d * d).sum())
-    ref = float((x.double() ** 2).sum())
+    se = ref = 0.0
+    for rows in _row_blocks(x):
+        xd = x[rows].double()
+        se += float(torch.linalg.vector_norm(xd - x_hat[rows].double()).square())
+        ref += float(torch.linalg.vector_norm(xd).square())
     return se, (se / ref if ref > 0 else float("inf") if se > 0 else 0.0)
 
 
@@ -61,17 +76,26 @@ def random_light_psnr(x: torch.Tensor, x_hat: torch.Tensor, n_in: int, n_lights:
     """Monte Carlo PSNR_avg of MRT eq. 11 over ``n_lights`` random norm-1 lighting vectors.
 
     ``x, x_hat``: ``[P, n_out·n_in]`` (row-major matrices) or ``[P, n_in]`` (vectors).
-    Uses the Gram form E_l{lᵀ G l}/P with G = Σ_p Δ_pᵀ Δ_p (one GEMM), which is exact for the
-    sampled lights and needs no [P, n_out, n_lights] intermediate.
+    E_l{‖Δ l‖²}/P, exact for the sampled lights, in float64 by row blocks of Δ = x − x̂
+    (``[P·n_out, n_in]``): with n_lights ≥ n_in in the Gram form E_l{lᵀ G l} with G = Σ Δᵀ Δ
+    (one GEMM of n_in² per row), else as Σ ‖Δ Lᵀ‖² / n_lights (n_lights per row: a 384-texel
+    transport table with 128 lights needs a third of the Gram form's multiply-adds) — the same
+    quantity, summed in another order.
     """
     P = x.shape[0]
-    d = (x.double() - x_hat.double()).reshape(-1, n_in)  # [P·n_out, n_in]
     L = random_unit_vectors(n_lights, n_in, seed)
+    gram = n_lights >= n_in
+    acc = torch.zeros(n_in, n_in, dtype=torch.float64) if gram else torch.zeros((), dtype=torch.float64)
     # in one thread: MKL splits the GEMM's long P·n_out reduction between threads on some CPUs (an Intel
     # Xeon here), so G's last bits, and the figure's, depended on the thread count (a Ray worker runs one)
     with torch_threads(1):
-        G = d.T @ d
-        mse = float(torch.einsum("li,ij,lj->l", L, G, L).mean()) / P
+        for rows in _row_blocks(x):
+            d = (x[rows].double() - x_hat[rows].double()).reshape(-1, n_in)  # [rows·n_out, n_in]
+            if gram:
+                acc += d.T @ d
+            else:
+                acc += torch.linalg.vector_norm(d @ L.T).square()
+        mse = (float(torch.einsum("li,ij,lj->l", L, acc, L).mean()) if gram else float(acc) / n_lights) / P
     return psnr_from_mse(mse)
 
 

@@ -60,6 +60,13 @@ __all__ = ["mixture", "resolvable_sigma", "flood_fill_order", "fit_all", "Proble
 _LOG_W_MIN = math.log(1e-10)
 #: narrowest lobe, in texel spacings (resolvable_sigma)
 RESOLVE_FACTOR = 0.6
+#: functions still above this relative L2 error after the fit get one restart of their weakest lobe
+#: (_lm_batch). Was 0.02, below the median function's error of two lobes on 6×8×8 tables (0.11-0.12),
+#: so most functions paid 10 more iterations for nothing: on the default benchmark's 10k-vertex tables
+#: (42 views, Phong s = 12; the first 600 / 1000 vertices, 2 lobes) 0.2 gives the same error (whole-table
+#: relative L2 0.12302 vs 0.12297, 0.11378 vs 0.11372; SE +0.1%; median and p90 unchanged to 4 digits)
+#: for 27-28% less CPU time (benchmarks/profile_gaussian_part.py, docs/harness.md)
+RESTART_ABOVE = 0.2
 
 
 def mixture(dirs: torch.Tensor, w: torch.Tensor, mu: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
@@ -120,15 +127,22 @@ def flood_fill_order(faces: torch.Tensor | None, V: int) -> tuple[torch.Tensor, 
 
 @contextlib.contextmanager
 def _threads_for(work: int, small: int = 1 << 25):
-    """One thread for batches below ``small`` texel·lobe evaluations when other processes held
-    the cores at import (``OMP_WAIT_POLICY=PASSIVE``, chosen by :mod:`prt_torch` from the
-    runnable-process count): there the per-op thread hand-off of the many mid-sized tensors of
-    an LM step cost more than it gained (200 functions: 0.4 s on 1 thread vs 3–9 s on 2;
-    4600 functions × 2 lobes: 17 s vs 62 s, load average 5–7). On an idle machine all threads."""
+    """One thread for batches below ``small`` texel·lobe evaluations when the cores are not free:
+    other processes held them at import (``OMP_WAIT_POLICY=PASSIVE``, chosen by :mod:`prt_torch`)
+    or hold them now (:func:`prt_torch.busy_now`, checked per batch: a long fit outlives the
+    import-time choice). There the per-op thread hand-off of the many mid-sized tensors of an LM
+    step costs more than it gains: 200 functions: 0.4 s on 1 thread vs 3–9 s on 2; 4600 functions
+    × 2 lobes: 17 s vs 62 s (PASSIVE, load 5–7); with spinning threads (``OMP_WAIT_POLICY=ACTIVE``)
+    beside one or two other processes (load 2.7–4.3), 1000 vertices × 42 views, 1 lobe: 2.9–6.0 s
+    wall on 1 thread vs 12.7–47.7 s on 2 (and 3.7–4.2 vs 8.5–47 s of CPU); the default benchmark's
+    10k part, imported at load 2.4 (spinning) and then shared, spent 164 CPU s on the one-lobe fit
+    and its error pass that took 31 in one thread. On an idle machine all threads."""
     n = torch.get_num_threads()
-    busy = os.environ.get("OMP_WAIT_POLICY", "").upper() == "PASSIVE"
-    if busy and work < small and n > 1:
-        torch.set_num_threads(1)
+    if n > 1 and work < small:
+        from ... import busy_now
+
+        if os.environ.get("OMP_WAIT_POLICY", "").upper() == "PASSIVE" or busy_now():
+            torch.set_num_threads(1)
     try:
         yield
     finally:
@@ -181,6 +195,7 @@ class Problem:
 
     def __init__(self, T, dirs, sa, N, beta, gamma, delta, smin, smax):
         self.T, self.dirs, self.sa = T, dirs, sa
+        self.dirs_t = dirs.T.contiguous()  # [3, P]
         self.energy = (T.square() * sa).sum(1)  # [B]: β, γ, δ act relative to each function's energy
         self.N, self.beta, self.gamma, self.delta = N, beta, gamma, delta
         self.lsmin, self.lsmax = math.log(smin), math.log(smax)
@@ -193,16 +208,21 @@ class Problem:
     def evaluate(self, a, ls, mu, sel, tgt_mu, tgt_s, sb):
         """Objective per function ``[b]``, the residual ``r [b, P]``, the lobe terms
         ``w_k G(ω_p; μ_k, σ_k)`` ``[b, N, P]`` and λ = σ⁻² ``[b, N]``."""
-        T = self.T[sel]
+        T = self.T if sel.numel() == self.T.shape[0] else self.T[sel]  # sel: sorted distinct indices
         lam = torch.exp(-2 * ls)
-        term = torch.matmul(mu, self.dirs.T)  # cos [b, N, P], then (in place unless differentiated) the lobe terms
-        coef = (torch.exp(a) * sg_normaliser(lam))[..., None]
         if torch.is_grad_enabled() and (a.requires_grad or ls.requires_grad or mu.requires_grad):
-            term = torch.exp(lam[..., None] * (term - 1)) * coef
+            coef = (torch.exp(a) * sg_normaliser(lam))[..., None]
+            term = torch.exp(lam[..., None] * (torch.matmul(mu, self.dirs.T) - 1)) * coef
+            r = term.sum(1) - T
+            E = (r * r * self.sa).sum(1)
         else:
-            term.sub_(1).mul_(lam[..., None]).exp_().mul_(coef)
-        r = term.sum(1) - T
-        E = (r * r * self.sa).sum(1)
+            # w c(λ) exp(λ(μ·ω − 1)) = exp(λμ·ω + log(w c(λ)) − λ): one GEMM with the bias, one exp pass
+            # (was a GEMM and four passes over [b, N, P]); log w = a, log c(λ) of the [b, N] widths
+            b, N = a.shape
+            bias = (a + sg_normaliser(lam).log() - lam).reshape(-1, 1)
+            term = torch.addmm(bias, (mu * lam[..., None]).reshape(-1, 3), self.dirs_t).view(b, N, -1).exp_()
+            r = term.sum(1).sub_(T)
+            E = torch.mv(r.square(), self.sa)
         if self.beta > 0 and tgt_mu is not None:
             en = self.energy[sel]
             E = E + en * (self.beta * (mu - tgt_mu).square().sum((1, 2)) + self.gamma * (ls.exp() - tgt_s).square().sum(1))
@@ -244,7 +264,10 @@ class Problem:
         g = term.mul_(self.rsa)  # √Δω g_k  [b, N, P] (term is not used after this)
         M = torch.matmul((g[:, :, None, :] * g[:, None, :, :]).reshape(-1, P), self.moments)  # [b·N·N, 16]
         M = M.view(b, N, N, 4, 4).double()
-        JtJ = torch.einsum("bkij,bkljm,blnm->bkiln", A, M, A).reshape(b, 4 * N, 4 * N)
+        # A_k M_kl A_lᵀ as two batched 4×4 products ([b, N, N, 4, 4]; the same bits and, measured, the same
+        # time as the three-operand einsum "bkij,bkljm,blnm->bkiln": 6.2 ms per 4096 functions × 2 lobes)
+        JtJ = torch.matmul(torch.matmul(A[:, :, None], M), A[:, None].transpose(-1, -2))
+        JtJ = JtJ.permute(0, 1, 3, 2, 4).reshape(b, 4 * N, 4 * N)
         v = torch.matmul(g * (r * self.rsa)[:, None, :], self.d1).double()  # [b, N, 4]
         Jtr = torch.einsum("bkij,bkj->bki", A, v).reshape(b, 4 * N)
         en = self.energy[sel].double()[:, None]
@@ -354,16 +377,17 @@ def fit_all(T: torch.Tensor, p: dict, init, directions: torch.Tensor, solid_angl
 
 
 def _lm_batch(Tn, nonzero, dirs, sa, J, vn, N, beta, delta, sb, smin, smax, max_iter, tol, views, init=None,
-              restart_above=0.02, loop=None):
+              restart_above=None, loop=None):
     """Batched Levenberg–Marquardt over ``Tn [B, P]`` (B = vertices·J, view-major within a
     vertex), from peaks and moments (or ``init = (w, mu, sigma)`` ``[B, N]``, ``[B, N, 3]``,
-    ``[B, N]``). Functions still above ``restart_above`` relative L2 error afterwards get one
+    ``[B, N]``). Functions still above ``restart_above`` (default :data:`RESTART_ABOVE`) relative L2 error afterwards get one
     restart with their weakest lobe re-initialised at the peak of the residual (kept when it
     lowers the objective). Returns (w [B, N], mu [B, N, 3], sigma [B, N], iterations,
     converged [B] bool, objective [B])."""
     B, P = Tn.shape
     dt = torch.float32
     loop = loop or _lm_loop
+    restart_above = RESTART_ABOVE if restart_above is None else restart_above
     dirs, sa = dirs.to(dt), sa.to(dt)
     view_of = torch.arange(B) % J
     z = ~nonzero
