@@ -417,14 +417,18 @@ class WaveletRelighter:
         written into the kernel's layout when it exists. Once; a no-op after."""
         if self.rptr is not None:
             return
-        P, NT, nb = self.P, self.NT, -(-self.V // self.BLOCK)
-        flat = self.bcount.reshape(-1)
-        col_b = torch.arange(P).repeat(NT).repeat_interleave(flat)  # [NB]
-        tile_b = torch.arange(NT).repeat_interleave(self.bcount.sum(1))
-        blk_b = tile_b * (self.TV // self.SUB) + self.bofs.long() // (4 * self.SUB * 4)
-        order = torch.argsort(blk_b * P + col_b)
-        rcol = col_b[order].to(torch.int32).contiguous()
-        rvals = self.bvals[order].contiguous()
+        P, NT, nb, NB = self.P, self.NT, -(-self.V // self.BLOCK), self.NB
+        i32 = torch.int32
+        col_b = torch.repeat_interleave(torch.arange(P, dtype=i32).repeat(NT), self.bcount.reshape(-1), output_size=NB)
+        tile_b = torch.repeat_interleave(torch.arange(NT, dtype=i32), self.bcount.sum(1), output_size=NB)
+        blk_b = tile_b * (self.TV // self.SUB) + (self.bofs >> 7)  # bofs: the block's 128-byte accumulator in its tile
+        # a block's 8 vertices lie in one tile and, within a tile, the blocks are in column order: a stable sort by
+        # block alone gives (block, column) order (measured 0.37 against 0.85 ms for the argsort of the pair's key)
+        order = torch.sort(blk_b, stable=True).indices
+        rcol = col_b[order].contiguous()
+        # the [CT, 8] values (8·CT·b bytes: a multiple of 8) moved as int64 words: 3.4x faster than the gather of rows
+        rvals = torch.index_select(self.bvals.reshape(NB, self.CT * self.SUB).view(torch.int64), 0, order).view(
+            self.bvals.dtype).reshape(self.bvals.shape)
         rptr = torch.zeros(4 * nb + 1, dtype=torch.int64)  # [4 ceil(V/32) + 1]: every dense block's four
         rptr[1:] = torch.cumsum(torch.bincount(blk_b, minlength=4 * nb), 0)
         self.rcol, self.rvals, self.rptr = rcol, rvals, rptr
