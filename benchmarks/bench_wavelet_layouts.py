@@ -86,7 +86,8 @@ def row(scene: str, res: int, bounces: int = 0) -> dict:
         drop_rows(auto)
         t_first = cpu(run_all)  # status 3, the build, the call again
         first.append((t_first, cpu(run_all, CALLS)))
-    return {"scene": scene + (f", {bounces} bounce, coloured (CT = 3)" if bounces else ""), "res": res, "V": V, "NB": auto.NB, "before": held_before, "after": held_after, "both": held_both,
+    return {"scene": scene + (f", {bounces} bounce, coloured (CT = 3)" if bounces else ""), "res": res, "V": V,
+            "NB": auto.NB, "before": held_before, "after": held_after, "both": held_both,
             "stored": tr.data[0].numel() * tr.data.element_size() + 2 * tr.data.shape[-1],
             "build_us": q([x * 1e6 for x in b]), "all_us": q([x * 1e6 for x in ra]), "n100_us": q([x * 1e6 for x in r1]),
             "build_over_all": q([x / y for x, y in zip(b, ra)]), "build_over_100": q([x / y for x, y in zip(b, r1)]),
