@@ -519,7 +519,8 @@ class WaveletRelighter:
         (argtypes conversion included) done once here, so a call is the C kernel and one Python call
         (~3–4 µs less per call than ``__call__``). The light's values and indices may be changed in
         place between calls (same N); its indices are checked by the kernel at every call (an index
-        out of range raises as ``__call__`` does). Without the kernel, ``run`` calls ``__call__``."""
+        out of range raises as ``__call__`` does; a changed light that first chooses the row-major pass
+        builds that copy inside ``run``, ``layouts='auto'``). Without the kernel, ``run`` calls ``__call__``."""
         li = torch.as_tensor(light_idx).long().contiguous()
         lv = torch.as_tensor(light_vals).to(torch.float32).contiguous()
         o = self(li, lv, out=out, albedo=albedo)  # every check once, and the first result
