@@ -66,7 +66,7 @@ def main() -> None:
         lv = lv.to(torch.float32).contiguous()
         d = rl.dslot[li] >= 0
         s = li[~d]
-        frac = int(rl.bcount[:, s[rl.nnz[s] > 0]].sum()) / max(1, int(rl.rcol.numel()))
+        frac = int(rl.bcount[:, s[rl.nnz[s] > 0]].sum()) / max(1, rl.NB)
         for name, m in (("all", torch.ones_like(d)), ("dense", d), ("sparse", ~d)):
             r = part_row(rl, name, li[m].contiguous(), lv[:, m].contiguous())
             held = frac if name != "dense" else 0.0

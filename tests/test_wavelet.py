@@ -309,7 +309,7 @@ def test_kernel_portable_path_without_avx2(scene):
                       (torch.float32, lib.prt_wavelet_relight_f32)):
         q = torch.randn(V, K, generator=g) if dtype == torch.float32 else torch.randint(-100, 101, (V, K), generator=g).to(dtype)
         tr = Transfer("wavelet", q, scene, {"res": res, "terms": K}, aux={"index": index.to(torch.int16), "scale": torch.ones(V)})
-        r = relight.WaveletRelighter(tr)
+        r = relight.WaveletRelighter(tr, layouts="both")  # the row-major copy held: the lib is called directly (no status 3)
         if r._kernel() is None:
             pytest.skip("no native kernel here")
         assert 0 < r.Pd < P  # both column forms in play
@@ -412,7 +412,8 @@ def test_cli_relight_every_kind(tmp_path, capsys):
     assert cli_main(["relight", str(w), "--light", "sky", "--terms", "100", "-o", str(ply)]) == 0
     tm = trimesh.load(ply, process=False)
     assert tm.vertices.shape[0] == albedo.shape[0] and tm.visual.vertex_colors.shape[0] == albedo.shape[0]
-    capsys.readouterr()
+    said = capsys.readouterr()
+    assert "relighter holds" in said.out + said.err  # the relighter's arrays per vertex (N = 100: no row-major copy)
     for argv, what in ((["relight", str(w), "--light", "sky", "--terms", "0", "-o", str(tmp_path / "x.npy")], "--terms"),
                        (["relight", str(d), "--light", "sky", "--terms", "5", "-o", str(tmp_path / "x.npy")], "--terms"),
                        (["relight", str(d), "--light", "sky", "--view", "1,2,3", "-o", str(tmp_path / "x.npy")], "--view"),
@@ -748,3 +749,82 @@ def test_bench_takes_a_coloured_interreflected_wavelet_transfer(tmp_path):
     rows = res["trade"]["rows"]
     assert next(x for x in rows if x.get("N") == 96)["error"] < 1e-5
     assert next(x for x in rows if x.get("bands") == 3)["error"] < 0.5
+
+
+def test_row_major_copy_built_on_first_need_results_equal_the_dense_reference(scene):
+    """``layouts``: 'auto' holds no row-major copy until a light chooses the row-major pass (fails
+    if the copy is built eagerly, or by a light below ``row_min``), 'both' holds it from the start,
+    'column' never builds it; whichever exists, a small light (column-major pass) and every term
+    (row-major pass where a copy may be held) equal the float64 gather of the stored values
+    (``relight.wavelet_dense``), grey (CT = 1) and coloured (CT = 3) transfers, through ``__call__``
+    and ``prepared``; the lazy copy's bytes appear in ``held_bytes`` only once built."""
+    g = torch.Generator().manual_seed(39)
+    V, res, K = scene.num_vertices, 8, 24
+    P = 6 * res * res
+    index = (torch.rand(V, P, generator=g) * torch.where(torch.arange(P) < 16, 50.0, 1.0)).topk(K, dim=1).indices
+    for CT in (1, 3):
+        shape = (V, K) if CT == 1 else (V, 3, K)
+        q = torch.randint(-32767, 32768, shape, generator=g).to(torch.int16)
+        scale = torch.rand(V, generator=g) + 0.5 if CT == 1 else torch.rand(V, 3, generator=g) + 0.5
+        tr = Transfer("wavelet", q, scene, {"res": res, "terms": K, "bits": 16}, aux={"index": index.to(torch.int16), "scale": scale})
+        vals = (q.double() * scale.double()[:, None]) if CT == 1 else q.double() * scale.double()[..., None]
+        alb = scene.albedo.double() if CT == 1 else torch.ones(V, 3, dtype=torch.float64)
+
+        def ref(li, lv):
+            C = lv.shape[0]
+            Lsum = torch.zeros(C, P, dtype=torch.float64).index_add_(1, li, lv.double())
+            if CT == 1:
+                return relight.wavelet_dense(vals, index, torch.arange(P), Lsum, P) * (alb[:, :C] if C > 1 else alb[:, :1])
+            L3 = Lsum.expand(3, -1)
+            return torch.stack([relight.wavelet_dense(vals[:, c], index, torch.arange(P), L3[c:c + 1], P)[:, 0]
+                                for c in range(3)], 1)
+
+        probe = relight.WaveletRelighter(tr, threads=1)
+        if probe._kernel() is None:
+            pytest.skip("no native kernel here (the torch path holds no row-major copy)")
+        sparse = torch.nonzero((probe.dslot < 0) & (probe.nnz > 0)).flatten()
+        few = sparse[torch.randperm(sparse.numel(), generator=g)[:5]]  # far below row_min of the sparse blocks
+        assert int(probe.bcount[:, few].sum()) < 0.5 * probe.NB
+        lights = [(few, 3), (torch.arange(P), 3), (few, 1), (torch.arange(P), 1)]
+        built = {}
+        for layouts in ("auto", "both", "column"):
+            for prepared in (False, True):
+                r = relight.WaveletRelighter(tr, threads=1, layouts=layouts)
+                assert (r.rptr is not None) == (layouts == "both"), layouts
+                before = r.held_bytes()
+                assert (before["row"] > 0) == (layouts == "both")
+                for i, (li, C) in enumerate(lights):
+                    lv = torch.randn(C, li.numel(), generator=g)
+                    got = r.prepared(li, lv)() if prepared else r(li, lv)
+                    want = ref(li, lv)
+                    assert (got.double() - want).abs().max() <= 1e-5 * float(want.abs().max()) + 1e-6, (CT, layouts, prepared, i)
+                    if i == 0:  # a light below row_min builds nothing
+                        assert (r.rptr is not None) == (layouts == "both"), (CT, layouts, prepared)
+                assert (r.rptr is not None) == (layouts != "column"), (CT, layouts, prepared)
+                after = r.held_bytes()
+                if layouts == "auto":
+                    # the copy: an int32 column and the 8 CT int16 values per block, int64 pointers per 8 vertices
+                    assert after["row"] == r.NB * (4 + 8 * CT * 2) + (4 * -(-V // 32) + 1) * 8
+                    assert after["total"] - before["total"] >= after["row"]  # the factor cache may grow too
+                    built[prepared] = (r.rptr, r.rcol, r.rvals)
+                elif layouts == "both":
+                    built["both"] = (r.rptr, r.rcol, r.rvals)
+                else:
+                    assert after["row"] == 0
+                assert bool((r._lp == 0).all())
+        for k in (False, True):  # the lazy copy is the eager one
+            assert all(torch.equal(a, b) for a, b in zip(built[k], built["both"]))
+        # a prepared light that changes in place to one choosing the row-major pass (row_min 0: any sparse block) builds
+        # the copy inside run(): first only dense columns (no sparse block, nothing built), then sparse ones
+        r = relight.WaveletRelighter(tr, threads=1, row_min=0.0)
+        dcols = torch.nonzero(r.dslot >= 0).flatten()[:5]
+        li, lv = dcols.clone(), torch.randn(1, 5, generator=g)
+        run = r.prepared(li, lv)
+        assert r.rptr is None
+        li.copy_(few)
+        got = run()
+        assert r.rptr is not None
+        want = ref(few, lv)
+        assert (got.double() - want).abs().max() <= 1e-5 * float(want.abs().max()) + 1e-6, (CT, "prepared in place")
+    with pytest.raises(ValueError, match="layouts='rows'; accepted: 'auto'"):
+        relight.WaveletRelighter(tr, layouts="rows")

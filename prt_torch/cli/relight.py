@@ -160,7 +160,8 @@ def radiance(transfer, light: str, codec=None, enc=None, terms: int | None = Non
         if res.shape[1] == 1:
             res = res.expand(-1, 3)
         return _into(res.contiguous(), out), (f"wavelet R={r.res}, {li.numel()} of {r.P} light terms ({selection}), "
-                                              f"{r.touched(li)} transfer coefficients read")
+                                              f"{r.touched(li)} transfer coefficients read, relighter holds "
+                                              f"{r.held_bytes()['total'] / r.V:.0f} B/vertex")
     if terms is not None:
         raise ValueError(f"--terms {terms} applies to wavelet transfers; a {transfer.kind} transfer takes the light in "
                          "its own SH bands")

@@ -30,7 +30,9 @@
  * row-major copy (per 8-vertex block its columns' entries) into the dense block's register sums, the
  * light looked up per column (zero for the columns the light does not hold; no scratch). The index
  * check (0 <= sel < P) runs before any work (returns 2); an unsupported C returns 1 (CT = 1: 1..4;
- * CT = 3: 1 or 3). A column listed more than once adds its light values. An RGB light with three equal
+ * CT = 3: 1 or 3); a light that chooses the row-major pass while the layout has no row-major copy
+ * (rptr NULL: relight.py builds it on first need) returns 3 before any output is written, the light
+ * scratch zero again. A column listed more than once adds its light values. An RGB light with three equal
  * channels on a grey transfer takes one sum per vertex (CO = 1), written to the three outputs. The layout's scratch (the
  * light per column lp, zero between calls: each call zeroes its own columns at its end; the term
  * lists; the tiles' accumulators) makes one call at a time per layout. */
@@ -235,7 +237,8 @@ typedef struct {
     unsigned char *mark;        /* scratch [P]: 1 the column is one of the light's sparse terms, 2 a dense one */
     float *lp;                  /* scratch [P, 4]: the light per column, zero between calls (the row-major pass reads it for
                                  * every column: zero for the columns the light does not hold) */
-    const i64 *rptr;            /* [4 ceil(V/32) + 1] the row-major copy of the sparse part: 8-vertex block b's entries */
+    const i64 *rptr;            /* [4 ceil(V/32) + 1] the row-major copy of the sparse part: 8-vertex block b's entries
+                                 * (NULL: not built yet — a light choosing the row-major pass returns 3) */
     const int32_t *rcol;        /* [NR] the entry's column */
     const void *rvals;          /* [NR, CT, 8] its stored values */
     i64 NR, row_permille;       /* entries; the row-major pass is taken when the light's sparse terms hold at least
@@ -285,6 +288,10 @@ int NAME(const wavelet_layout *L, i64 N, const i64 *sel, const float *lv, i64 C,
      * the light looked up per column in lp (zero for the columns it does not hold); else the column-major   \
      * pass into the tiles' scratch over the sparse terms listed below */                                    \
     const int rows = sb && L->NR && L->row_permille <= 1000 && sb * 1000 >= L->row_permille * L->NR;          \
+    if (rows && !L->rptr) { /* the row-major copy is built on first need (relight.py): none yet, nothing done */ \
+        for (i64 n = 0; n < N; n++) memset(lp + 4 * sel[n], 0, 4 * sizeof(float));                           \
+        return 3;                                                                                            \
+    }                                                                                                        \
     /* the dense terms in slot order (each block's values are then read front to back), written always and   \
      * kept by advancing the count */                                                                        \
     i64 nd = 0;                                                                                              \
