@@ -92,6 +92,7 @@ def register(subparsers) -> None:
         defaults = {k: get_kind(k).defaults()[a.param] for k in used_by}
         dtxt = ", ".join(f"{k}: {v}" for k, v in defaults.items()) if not a.is_switch and not a.spec else ""
         help_text = f"{a.help} [{', '.join(used_by)}" + (f"; default {dtxt}" if dtxt else "") + "]"
+        help_text = help_text.replace("%", "%%")  # argparse %-formats help: a registry text's '1%' broke --help
         if a.is_switch:
             g.add_argument(flag, dest=_dest(flag), action="store_true", help=help_text)
         elif a.values is not None:
