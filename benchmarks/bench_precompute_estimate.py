@@ -54,6 +54,34 @@ def real_run(kind: str, mesh, work: Path) -> dict:
     return res
 
 
+def per_chunk(kind: str, mesh, chunk: int, n: int = 5) -> dict:
+    """Per-vertex wall, this thread's and the process's CPU µs and minor page faults per vertex of chunks 2..n of a run
+    in chunks of ``chunk`` (no state directory; the first chunk, with the set-up, left out)."""
+    import resource
+
+    from prt_torch.transfer import RunOptions, get_kind
+    from prt_torch.transfer.base import ChunkInterrupt
+
+    V, marks = mesh.num_vertices, []
+
+    def cb(i: int, n_chunks: int) -> None:
+        marks.append((min(V, (i + 1) * chunk) - i * chunk, time.perf_counter(), time.thread_time(), time.process_time(),
+                      resource.getrusage(resource.RUSAGE_SELF).ru_minflt))
+        if len(marks) >= n:
+            raise ChunkInterrupt("enough")
+
+    try:
+        get_kind(kind).precompute(mesh, dict(PARAMS[kind]), run=RunOptions(workers=1, chunk_size=chunk, callback=cb, progress=False))
+    except ChunkInterrupt:
+        pass
+    if len(marks) < 2:
+        return {"chunk": chunk, "chunks_timed": 0}
+    nv = sum(m[0] for m in marks[1:])
+    return {"chunk": chunk, "chunks_timed": len(marks) - 1, "wall_us_per_vertex": 1e6 * (marks[-1][1] - marks[0][1]) / nv,
+            "cpu_us_per_vertex": 1e6 * (marks[-1][2] - marks[0][2]) / nv,
+            "process_cpu_us_per_vertex": 1e6 * (marks[-1][3] - marks[0][3]) / nv, "faults_per_vertex": (marks[-1][4] - marks[0][4]) / nv}
+
+
 def estimated(kind: str, mesh, probe_vertices: int | None) -> dict:
     from prt_torch.transfer import RunOptions, get_kind
     from prt_torch.transfer.estimate import estimate
@@ -105,6 +133,17 @@ def main(argv=None) -> int:
                           f"{row['estimate_1024_seconds']:.3g} s, real {row['real_seconds']:.3g} s "
                           f"(cpu {row['real_cpu_seconds']:.3g}), probe {row['estimate_probe_wall_seconds']:.3g} s, "
                           f"load {row['load']:.1f}", flush=True)
+        chunks = []
+        from prt_torch.transfer.estimate import probe_chunk
+
+        for size in args.sizes:
+            mesh = load_scene(f"bumpy_sphere:{size}")
+            for kind in args.kinds:
+                real = next(r["chunk_size"] for r in rows if r["kind"] == kind and r["vertices"] == mesh.num_vertices)
+                for c in sorted({256, 1024, probe_chunk(mesh.num_vertices, real), real}):
+                    chunks.append({"kind": kind, "vertices": mesh.num_vertices, "real_chunk": real, "load": os.getloadavg()[0],
+                                   **per_chunk(kind, mesh, c)})
+                    print(chunks[-1], flush=True)
     info["load_end"] = os.getloadavg()[0]
     L = ["# `prt precompute --dry-run`: time estimate against the real run", "",
          f"Command: `{info['command'].strip()}`. CPU: {cpu_label(info)}, {info['cores']} cores; the machine was shared "
@@ -123,11 +162,22 @@ def main(argv=None) -> int:
                  f"| {r['estimate_seconds']:.3g} | {r['estimate_seconds'] / r['real_seconds']:.2f} | "
                  f"{r['estimate_1024_seconds'] / r['real_seconds']:.2f} | {r['estimate_probe_wall_seconds'] / r['real_seconds']:.2f} "
                  f"| {r['load']:.1f}–{r['load_end']:.1f} |")
+    L += ["", "Per chunk size (the cause): µs per vertex (wall; CPU of the thread running the chunk; CPU of the whole "
+          "process, every thread) and minor page faults per vertex over "
+          "chunks 2–5 of a run in chunks of that size (no state directory; the first chunk, with the set-up, left out):",
+          "", "| kind | vertices | chunk | chunks timed | wall µs / vertex | thread CPU µs / vertex | process CPU µs / vertex "
+          "| faults / vertex | load |",
+          "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for r in chunks:
+        if r["chunks_timed"]:
+            L.append(f"| {r['kind']} | {r['vertices']} | {r['chunk']}{' (real)' if r['chunk'] == r['real_chunk'] else ''} | "
+                     f"{r['chunks_timed']} | {r['wall_us_per_vertex']:.1f} | {r['cpu_us_per_vertex']:.1f} | {r['process_cpu_us_per_vertex']:.1f} | "
+                     f"{r['faults_per_vertex']:.2f} | {r['load']:.1f} |")
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     with io.atomic_path(out, overwrite=True) as t:
         Path(t).write_text("\n".join(L) + "\n")
-    io.atomic_write_json(out.with_suffix(".json"), {"machine": info, "args": vars(args), "rows": rows})
+    io.atomic_write_json(out.with_suffix(".json"), {"machine": info, "args": vars(args), "rows": rows, "chunks": chunks})
     print(f"wrote {out}")
     return 0
 

@@ -11,7 +11,8 @@ A precompute runs in three stages, each with its own memory:
    copied into the assembled rows at once (``run_chunks(..., sink=)``), never kept as a list.
    Time: measured on a probe of the first three chunks of the real run (the same mesh, parameters,
    ray caster, chunk saves to a state directory and file-backed rows where the real run has
-   them), the chunks as large as the real run's up to 1/16 of the vertices (:func:`probe_chunk`),
+   them), the chunks as large as the real run's up to 1/16 of the vertices (the whole run when it
+   has at most three chunks: :func:`probe_chunk`),
    the mean of the second and third chunk's time scaled to every vertex, plus the set-up before
    the first chunk (ray-casting scene, BRDF projection, tables). One worker, wall time under the
    load of the moment (stated in the note). Checked against real runs in
@@ -235,15 +236,23 @@ def estimate(kind, mesh: Mesh, params: dict[str, Any], run: RunOptions | None = 
 
 
 def probe_chunk(V: int, chunk: int, k: int | None = None) -> int:
-    """Vertices per chunk of the probe for ``V`` vertices whose real run uses chunks of ``chunk``:
-    ``k`` when given, else ``min(chunk, max(PROBE_MIN_CHUNK, V // PROBE_SHARE))`` — the real
-    chunk where the mesh is large enough, so that each chunk's fixed cost (MRT's ~13 ms of
-    per-chunk work beside ~10 µs per vertex, measured on bumpy_sphere:100000: a 1024-vertex
-    probe read 21-35 µs per vertex for 10 µs in 8192-vertex chunks) is paid as often as in the
-    real run; never more than ``1 / PROBE_SHARE`` of the vertices per chunk (the probe's cost)."""
+    """Vertices per chunk of the probe for ``V`` vertices whose real run uses chunks of ``chunk``.
+
+    ``k`` when given. Else the real chunk when the real run has at most :data:`PROBE_CHUNKS`
+    chunks (the probe then is the whole run, at most three chunks of the kind's ~2¹⁹–2²⁰ rays),
+    and otherwise ``min(chunk, max(PROBE_MIN_CHUNK, V // PROBE_SHARE))``: the real chunk where the
+    mesh is large enough, so that each chunk's fixed cost is paid as often as in the real run —
+    MRT's chunk costs ~11 ms of CPU in threads other than the chunk's own beside ~9 µs per
+    vertex (bumpy_sphere:100000, 3 bands, M = 4, 32 samples: 21.4 µs per vertex of process CPU in
+    1024-vertex chunks, 9.8 in the real 8192-vertex ones; ``reports/benchmarks/precompute_estimate.md``),
+    which made the 1024-vertex probe's estimate up to 2× the real run — and never more than
+    ``1 / PROBE_SHARE`` of the vertices per chunk (the probe's cost)."""
     if k is not None:
         return max(1, int(k))
-    return max(1, min(int(chunk), max(PROBE_MIN_CHUNK, int(V) // PROBE_SHARE)))
+    chunk = max(1, int(chunk))
+    if V <= PROBE_CHUNKS * chunk:
+        return chunk
+    return min(chunk, max(PROBE_MIN_CHUNK, int(V) // PROBE_SHARE))
 
 
 def probe_seconds(V: int, k: int, first: float, timed: list[float]) -> tuple[float, float, float]:
@@ -290,6 +299,7 @@ def _probe(kind, mesh: Mesh, params: dict, run: RunOptions, lights, k: int | Non
                 kind.precompute(mesh, params, run=opts, lights=lights)
         except ChunkInterrupt:
             pass
+        done = time.perf_counter()
         # the write rate of the output's file system is not probed (it would write there); this
         # machine's temporary directory stands in: 32 MiB written and flushed
         buf = torch.zeros(8 << 20, dtype=torch.float32).numpy()
@@ -298,11 +308,10 @@ def _probe(kind, mesh: Mesh, params: dict, run: RunOptions, lights, k: int | Non
             f.write(memoryview(buf))
             f.flush()
         write = (time.perf_counter() - tw) / buf.nbytes
-    end = time.perf_counter()
-    info: dict[str, Any] = {"write_seconds_per_byte": write, "probe_wall_seconds": end - t0, "probe_chunk": k,
+    info: dict[str, Any] = {"write_seconds_per_byte": write, "probe_wall_seconds": time.perf_counter() - t0, "probe_chunk": k,
                             "load": load}
-    if len(marks) < 2:  # the whole run finished within the probe (small mesh, or nothing traced)
-        return end - t0, {**info, "note": "the whole run (it finished within the probe)"}
+    if len(marks) < PROBE_CHUNKS:  # the whole run finished within the probe (small mesh, or nothing traced)
+        return done - t0, {**info, "note": f"the whole run (it finished within the probe), load {load:.1f}"}
     timed = [marks[i] - marks[i - 1] for i in range(1, len(marks))]
     seconds, setup, per = probe_seconds(V, k, marks[0] - t0, timed)
     info.update(setup_seconds=setup, chunk_seconds=per)
