@@ -43,7 +43,7 @@ from ..io import format_bytes
 from .glossy import default_chunk, estimate_memory, memory_budget
 
 __all__ = ["estimate", "check_fits", "format_estimate", "result_bytes_per_vertex", "rss_bytes", "BVH_BYTES_PER_FACE",
-           "ALLOCATOR_SLACK", "probe_chunk", "probe_seconds", "PROBE_CHUNKS", "PROBE_MIN_CHUNK", "PROBE_SHARE"]
+           "ALLOCATOR_SLACK", "real_chunk", "probe_chunk", "probe_seconds", "PROBE_CHUNKS", "PROBE_MIN_CHUNK", "PROBE_SHARE"]
 
 #: what the process holds beyond the counted arrays of the rays and result stages: freed
 #: temporaries the allocator keeps (heap fragments reused only by allocations that fit them). The
@@ -120,7 +120,7 @@ def result_bytes_per_vertex(kind: str, kw: dict[str, Any], mesh: Mesh) -> tuple[
     raise ValueError(f"kind={kind!r}; accepted: diffuse, glossy, mrt, wavelet, transport, subsurface")
 
 
-def _real_chunk(kind: str, kw: dict[str, Any], chunk_size: int | None) -> int:
+def real_chunk(kind: str, kw: dict[str, Any], chunk_size: int | None) -> int:
     """Vertices per chunk of the real run of ``kind`` (``chunk_size``, else the kind's default:
     ``glossy.default_chunk`` for glossy/MRT, 2²⁰ rays per chunk within [16, 16384] for diffuse
     and subsurface, 1024 otherwise)."""
@@ -142,12 +142,12 @@ def _chunk_bytes(kind: str, kw: dict[str, Any], V: int, chunk_size: int | None) 
     samples = int(kw.get("samples", 1024))
     if kind in ("glossy", "mrt"):
         rows = int(kw.get("M", 11)) ** 2 if kind == "mrt" else int(kw.get("bands_out") or kw.get("bands", 5)) ** 2
-        return estimate_memory(0, rows, n2, samples, min(_real_chunk(kind, kw, chunk_size), max(V, 1)))
+        return estimate_memory(0, rows, n2, samples, min(real_chunk(kind, kw, chunk_size), max(V, 1)))
     if kind in ("diffuse", "subsurface"):  # subsurface: its diffuse pass's rays
         from .diffuse import rays_per_vertex
 
         rpv = rays_per_vertex(samples, kw.get("sampling", "qmc"))
-        c = min(_real_chunk(kind, kw, chunk_size), max(V, 1))
+        c = min(real_chunk(kind, kw, chunk_size), max(V, 1))
         return c * rpv * (73 + 8 * n2) * (1 + int(kw.get("bounces", 0) > 0))  # origins, directions, ids, cosines, SH
     return 64 << 20  # wavelet, transport: their chunks are bounded by their own defaults
 
@@ -279,7 +279,7 @@ def _probe(kind, mesh: Mesh, params: dict, run: RunOptions, lights, k: int | Non
     V = mesh.num_vertices
     kw, _ = kind.resolve(params, lights)
     out_pv, _ = result_bytes_per_vertex(kind.name, kw, mesh)
-    k = probe_chunk(V, _real_chunk(kind.name, kw, run.chunk_size), k)
+    k = probe_chunk(V, real_chunk(kind.name, kw, run.chunk_size), k)
     marks: list[float] = []
 
     def stop(i: int, n: int) -> None:
