@@ -19,7 +19,10 @@ The order of the three alternates between repeats (the load drifts). Reported pe
 repeat: estimate / real for both probes, and the probe's cost as a share of the real run. The
 machine is shared (2 cores): the load average is recorded with each row; every figure is wall
 time, which the load moves — the estimate is a wall-time prediction under the load of the moment.
-Writes ``--out`` (.md) and the same numbers as .json beside it, atomically.
+Then the cause: per chunk size, µs per vertex (wall, the chunk thread's CPU, the process's CPU)
+over chunks 2–5; and for MRT the same at 1024 and 8192 vertices per chunk in two child
+processes, ``OMP_WAIT_POLICY=ACTIVE`` (spinning, what ``prt_torch`` keeps on a quiet machine) and
+``PASSIVE``. Writes ``--out`` (.md) and the same numbers as .json beside it, atomically.
 """
 from __future__ import annotations
 
@@ -97,11 +100,25 @@ def main(argv=None) -> int:
     ap.add_argument("--sizes", type=int, nargs="+", default=[10_000, 100_000])
     ap.add_argument("--kinds", nargs="+", default=["diffuse", "mrt"], choices=sorted(PARAMS))
     ap.add_argument("--repeats", type=int, default=2)
+    ap.add_argument("--policy-size", type=int, default=100_000,
+                    help="the mesh of the OpenMP wait-policy table (MRT, 1024- and real-chunk runs in child processes)")
+    ap.add_argument("--policy-child", default=None, help=argparse.SUPPRESS)
     ap.add_argument("--out", default=str(ROOT / "reports/benchmarks/precompute_estimate.md"))
     args = ap.parse_args(argv)
     if args.repeats < 1:
         print(f"bench_precompute_estimate: --repeats {args.repeats}; accepted: 1 or more", file=sys.stderr)
         return 2
+    if args.policy_child:  # a child with OMP_WAIT_POLICY set by the parent: per-chunk figures as JSON on stdout
+        import json
+
+        import prt_torch
+        from prt_torch.scene import load_scene
+
+        mesh = load_scene(f"bumpy_sphere:{args.policy_size}")
+        res = [{"policy": prt_torch.OMP_POLICY_CHOICE, "kind": args.policy_child, "vertices": mesh.num_vertices,
+                "load": os.getloadavg()[0], **per_chunk(args.policy_child, mesh, c)} for c in (1024, 8192, 1024, 8192)]
+        print("JSON " + json.dumps(res))
+        return 0
     from prt_torch import io
     from prt_torch.harness.timing import cpu_label, machine_info
     from prt_torch.scene import load_scene
@@ -144,9 +161,18 @@ def main(argv=None) -> int:
                     chunks.append({"kind": kind, "vertices": mesh.num_vertices, "real_chunk": real, "load": os.getloadavg()[0],
                                    **per_chunk(kind, mesh, c)})
                     print(chunks[-1], flush=True)
+    policies = []
+    import json
+    import subprocess
+
+    for pol in ("ACTIVE", "PASSIVE"):  # torch's OpenMP threads spinning or sleeping after each parallel region
+        p = subprocess.run([sys.executable, __file__, "--policy-child", "mrt", "--policy-size", str(args.policy_size)],
+                           env={**os.environ, "OMP_WAIT_POLICY": pol}, capture_output=True, text=True, check=True)
+        policies += json.loads(next(ln for ln in p.stdout.splitlines() if ln.startswith("JSON "))[5:])
     info["load_end"] = os.getloadavg()[0]
     L = ["# `prt precompute --dry-run`: time estimate against the real run", "",
-         f"Command: `{info['command'].strip()}`. CPU: {cpu_label(info)}, {info['cores']} cores; the machine was shared "
+         f"Command: `{info['command'].strip()}`. CPU: {cpu_label(info)}, {info['cores']} cores, OpenMP wait policy: {info.get('omp_wait_policy')}; "
+         f"the machine was shared "
          f"with other jobs (load average at each row). Scene `bumpy_sphere:<vertices>`; diffuse 4 bands, 64 samples "
          f"(32 rays per vertex), shadows traced; MRT 3 bands, M = 4, Phong s = 12, 32 samples; one worker.", "",
          "estimate = `transfer.estimate.estimate(..., probe=True)` (rays + result stages, as `--dry-run` prints them); "
@@ -173,11 +199,19 @@ def main(argv=None) -> int:
             L.append(f"| {r['kind']} | {r['vertices']} | {r['chunk']}{' (real)' if r['chunk'] == r['real_chunk'] else ''} | "
                      f"{r['chunks_timed']} | {r['wall_us_per_vertex']:.1f} | {r['cpu_us_per_vertex']:.1f} | {r['process_cpu_us_per_vertex']:.1f} | "
                      f"{r['faults_per_vertex']:.2f} | {r['load']:.1f} |")
+    L += ["", "The per-chunk fixed cost by OpenMP wait policy (MRT, each policy in a child process of its own, "
+          "`OMP_WAIT_POLICY` set; two runs per chunk size, chunks 2–5 each):", "",
+          "| policy | vertices | chunk | wall µs / vertex | thread CPU µs / vertex | process CPU µs / vertex | load |",
+          "|---|---:|---:|---:|---:|---:|---:|"]
+    for r in policies:
+        if r["chunks_timed"]:
+            L.append(f"| {r['policy']} | {r['vertices']} | {r['chunk']} | {r['wall_us_per_vertex']:.1f} | "
+                     f"{r['cpu_us_per_vertex']:.1f} | {r['process_cpu_us_per_vertex']:.1f} | {r['load']:.1f} |")
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     with io.atomic_path(out, overwrite=True) as t:
         Path(t).write_text("\n".join(L) + "\n")
-    io.atomic_write_json(out.with_suffix(".json"), {"machine": info, "args": vars(args), "rows": rows, "chunks": chunks})
+    io.atomic_write_json(out.with_suffix(".json"), {"machine": info, "args": vars(args), "rows": rows, "chunks": chunks, "policies": policies})
     print(f"wrote {out}")
     return 0
 

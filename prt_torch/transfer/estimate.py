@@ -241,12 +241,12 @@ def probe_chunk(V: int, chunk: int, k: int | None = None) -> int:
     ``k`` when given. Else the real chunk when the real run has at most :data:`PROBE_CHUNKS`
     chunks (the probe then is the whole run, at most three chunks of the kind's ~2¹⁹–2²⁰ rays),
     and otherwise ``min(chunk, max(PROBE_MIN_CHUNK, V // PROBE_SHARE))``: the real chunk where the
-    mesh is large enough, so that each chunk's fixed cost is paid as often as in the real run —
-    MRT's chunk costs ~11 ms of CPU in threads other than the chunk's own beside ~9 µs per
-    vertex (bumpy_sphere:100000, 3 bands, M = 4, 32 samples: 21.4 µs per vertex of process CPU in
-    1024-vertex chunks, 9.8 in the real 8192-vertex ones; ``reports/benchmarks/precompute_estimate.md``),
-    which made the 1024-vertex probe's estimate up to 2× the real run — and never more than
-    ``1 / PROBE_SHARE`` of the vertices per chunk (the probe's cost)."""
+    mesh is large enough, never more than ``1 / PROBE_SHARE`` of the vertices per chunk (the
+    probe's cost). Why not the former 1024 vertices: such a chunk is ~10 ms of work, and one
+    preemption on a shared machine doubles it (estimates 2–3× the real run at 100k vertices,
+    load 2.3–3.4), and with torch's spinning OpenMP threads MRT's wall time per vertex in
+    1024-vertex chunks was at times 2–3× that in its real 8192-vertex ones
+    (``reports/benchmarks/precompute_estimate.md``)."""
     if k is not None:
         return max(1, int(k))
     chunk = max(1, int(chunk))
