@@ -60,3 +60,22 @@ def test_probe_note_and_state(tmp_path):
     whole = estimate(get_kind("mrt"), mesh, dict(MRT), RunOptions(), probe=True)  # V <= 3 real chunks
     assert "the whole run (it finished within the probe)" in whole.stages[1]["note"]
     assert whole.stages[1]["seconds"] > 0
+
+
+@pytest.mark.parametrize("stream", [True, False])
+def test_probe_does_the_runs_io(monkeypatch, tmp_path, stream):
+    """The probe saves each chunk to a (temporary) state directory as the real run does, and
+    fills file-backed rows exactly when the real run would (``RunOptions.streams_result``)."""
+    from prt_torch import io
+
+    saved, scratch = [], []
+    save, rows = io.save, io.scratch_rows
+    monkeypatch.setattr(io, "save", lambda p, *a, **k: (saved.append(str(p)), save(p, *a, **k))[1])
+    monkeypatch.setattr(io, "scratch_rows", lambda *a, **k: (scratch.append(str(a[0])), rows(*a, **k))[1])
+    mesh = builtin("bumpy_sphere:3000")
+    estimate(get_kind("mrt"), mesh, dict(MRT), RunOptions(state_dir=tmp_path / "s", stream_result=stream), probe=True,
+             probe_vertices=256)
+    chunks = [p for p in saved if "chunk_" in p]
+    assert len(chunks) == PROBE_CHUNKS and all("prt_probe_" in p for p in chunks)
+    assert len(scratch) == int(stream) and all("prt_probe_" in p for p in scratch)
+    assert not (tmp_path / "s").exists() and list(tmp_path.iterdir()) == []
