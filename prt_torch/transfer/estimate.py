@@ -316,7 +316,8 @@ def _probe(kind, mesh: Mesh, params: dict, run: RunOptions, lights, k: int | Non
     seconds, setup, per = probe_seconds(V, k, marks[0] - t0, timed)
     info.update(setup_seconds=setup, chunk_seconds=per)
     return seconds, {**info, "note": f"a probe: set-up {setup:.2f} s + {per:.3f} s per chunk of {k} vertices (mean of "
-                                     f"{len(timed)}) × {V / k:.1f} chunks, one worker, load {load:.1f}"}
+                                     f"{len(timed)}) × {V / k:.1f} chunks, one worker, load {load:.1f}; the probe took "
+                                     f"{info['probe_wall_seconds']:.1f} s"}
 
 
 def format_estimate(e: Estimate) -> list[str]:
