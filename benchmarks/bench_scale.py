@@ -216,7 +216,8 @@ def child(args) -> dict:
         # what --dry-run says of the time (its probe: two chunks of the real run, scaled), after the measured run
         # (its allocations must not count in the peak above); compared with the measured compute + save
         te = time.perf_counter()
-        est_t = estimate(get_kind(stage), mesh, dict(params), RunOptions(workers=1), probe=True, mesh_seconds=0.0)
+        est_t = estimate(get_kind(stage), mesh, dict(params), RunOptions(workers=1, state_dir=state), probe=True,
+                         mesh_seconds=0.0)  # the run's plan, as prt precompute's (its state directory: a result streamed as it was)
         out["estimated_seconds"] = est_t.seconds
         out["estimate_wall_seconds"] = time.perf_counter() - te
         out["marginal_peak_mesh"] = out.get("marginal_hwm_before_mesh_reset")
@@ -579,7 +580,7 @@ def report(rows: list[dict], args, info: dict) -> str:
     if tim:
         L += ["", "**Time estimates against the measured run** (what each `--dry-run` says before it starts, measured in "
               "the same child right after the real run — not a timed assertion, a check of the estimate): precompute = "
-              "`transfer.estimate`'s probe (set-up + the second of two 1024-vertex chunks × chunks) against the compute + "
+              "`transfer.estimate`'s probe (set-up + the mean of its 2nd and 3rd chunks × V / chunk, `probe_chunk`) against the compute + "
               "save; cpca / cpca_stream = `prt compress --dry-run`'s calibration (a fit of up to 16384 evenly spaced rows, "
               "scaled by V / rows) against the fit + encode; relight = `prt relight --dry-run`'s calibration (loading + set-up + "
               "the first 32768-vertex chunk × chunks) against the streamed relight of the uncompressed diffuse file into a .npy:", "",

@@ -9,9 +9,14 @@ A precompute runs in three stages, each with its own memory:
    (its rays, SH values and matrices) and the result's rows filled so far: each chunk is written
    to the state directory as it finishes (``<out>.state/``: an interrupted run resumes) and
    copied into the assembled rows at once (``run_chunks(..., sink=)``), never kept as a list.
-   Time: measured on a probe of two small chunks of the real run (the same mesh, parameters
-   and ray caster), the second chunk's time scaled to every vertex, plus the set-up before the
-   first chunk (ray-casting scene, BRDF projection, tables). One worker.
+   Time: measured on a probe of the first three chunks of the real run (the same mesh, parameters,
+   ray caster, chunk saves to a state directory and file-backed rows where the real run has
+   them), the chunks as large as the real run's up to 1/16 of the vertices (the whole run when it
+   has at most three chunks: :func:`probe_chunk`),
+   the mean of the second and third chunk's time scaled to every vertex, plus the set-up before
+   the first chunk (ray-casting scene, BRDF projection, tables). One worker, wall time under the
+   load of the moment (stated in the note). Checked against real runs in
+   ``benchmarks/bench_precompute_estimate.py`` (``reports/benchmarks/precompute_estimate.md``).
 3. **result** — the assembled transfer (float32 rows, the kind's shape; the diffuse pass
    assembles in float64 first) and the write to the output file.
 
@@ -38,7 +43,7 @@ from ..io import format_bytes
 from .glossy import default_chunk, estimate_memory, memory_budget
 
 __all__ = ["estimate", "check_fits", "format_estimate", "result_bytes_per_vertex", "rss_bytes", "BVH_BYTES_PER_FACE",
-           "ALLOCATOR_SLACK"]
+           "ALLOCATOR_SLACK", "real_chunk", "probe_chunk", "probe_seconds", "PROBE_CHUNKS", "PROBE_MIN_CHUNK", "PROBE_SHARE"]
 
 #: what the process holds beyond the counted arrays of the rays and result stages: freed
 #: temporaries the allocator keeps (heap fragments reused only by allocations that fit them). The
@@ -50,6 +55,13 @@ ALLOCATOR_SLACK = 1.5
 #: growth of building a RayCaster and tracing once: 48 B per face on bumpy_sphere:100000, 94 on
 #: bumpy_sphere:xl; a round upper figure)
 BVH_BYTES_PER_FACE = 128
+
+#: the probe's chunks: the first (set-up and first-touch costs) and the ones timed after it
+PROBE_CHUNKS = 3
+#: the smallest probe chunk, vertices (below it the timed chunks are a few ms: scheduler noise)
+PROBE_MIN_CHUNK = 1024
+#: a probe chunk is at most 1 / PROBE_SHARE of the mesh's vertices (its cost: PROBE_CHUNKS of them + set-up)
+PROBE_SHARE = 16
 
 
 def rss_bytes() -> int:
@@ -108,19 +120,34 @@ def result_bytes_per_vertex(kind: str, kw: dict[str, Any], mesh: Mesh) -> tuple[
     raise ValueError(f"kind={kind!r}; accepted: diffuse, glossy, mrt, wavelet, transport, subsurface")
 
 
+def real_chunk(kind: str, kw: dict[str, Any], chunk_size: int | None) -> int:
+    """Vertices per chunk of the real run of ``kind`` (``chunk_size``, else the kind's default:
+    ``glossy.default_chunk`` for glossy/MRT, 2²⁰ rays per chunk within [16, 16384] for diffuse
+    and subsurface, 1024 otherwise)."""
+    if chunk_size is not None:
+        return int(chunk_size)
+    samples = int(kw.get("samples", 1024))
+    if kind in ("glossy", "mrt"):
+        return default_chunk(samples)
+    if kind in ("diffuse", "subsurface"):
+        from .diffuse import rays_per_vertex
+
+        return int(min(max(16, (1 << 20) // max(1, rays_per_vertex(samples, kw.get("sampling", "qmc")))), 16384))
+    return 1024
+
+
 def _chunk_bytes(kind: str, kw: dict[str, Any], V: int, chunk_size: int | None) -> int:
     """One chunk's working set (rays, their SH values, matrices), bytes."""
     n2 = int(kw.get("bands", 5)) ** 2
     samples = int(kw.get("samples", 1024))
     if kind in ("glossy", "mrt"):
         rows = int(kw.get("M", 11)) ** 2 if kind == "mrt" else int(kw.get("bands_out") or kw.get("bands", 5)) ** 2
-        c = min(default_chunk(samples) if chunk_size is None else chunk_size, max(V, 1))
-        return estimate_memory(0, rows, n2, samples, c)
+        return estimate_memory(0, rows, n2, samples, min(real_chunk(kind, kw, chunk_size), max(V, 1)))
     if kind in ("diffuse", "subsurface"):  # subsurface: its diffuse pass's rays
         from .diffuse import rays_per_vertex
 
         rpv = rays_per_vertex(samples, kw.get("sampling", "qmc"))
-        c = min(int(min(max(16, (1 << 20) // max(1, rpv)), 16384)) if chunk_size is None else chunk_size, max(V, 1))
+        c = min(real_chunk(kind, kw, chunk_size), max(V, 1))
         return c * rpv * (73 + 8 * n2) * (1 + int(kw.get("bounces", 0) > 0))  # origins, directions, ids, cosines, SH
     return 64 << 20  # wavelet, transport: their chunks are bounded by their own defaults
 
@@ -148,15 +175,17 @@ class Estimate:
 
 
 def estimate(kind, mesh: Mesh, params: dict[str, Any], run: RunOptions | None = None, lights: list | None = None,
-             probe: bool = True, probe_vertices: int = 1024, mesh_seconds: float | None = None,
+             probe: bool = True, probe_vertices: int | None = None, mesh_seconds: float | None = None,
              mesh_rss: int | None = None) -> Estimate:
     """Per-stage memory and time of ``kind.precompute(mesh, params, run)`` (module docstring).
 
     Args:
         kind: a :class:`~prt_torch.transfer.registry.TransferKind`.
         params: its parameters (validated and resolved here, ``'auto'`` from ``lights``).
-        probe: time two chunks of ``probe_vertices`` vertices of the real run (no state, no
-            output; the result is discarded). Without it the seconds are None.
+        probe: time the first :data:`PROBE_CHUNKS` chunks of the real run (state and output in a
+            temporary directory, removed; the result is discarded). Without it the seconds are None.
+        probe_vertices: vertices per probe chunk; None: :func:`probe_chunk` (the real run's chunk,
+            at most V / :data:`PROBE_SHARE`, at least :data:`PROBE_MIN_CHUNK`).
         mesh_seconds: how long the mesh took to build (measured by the caller).
         mesh_rss: the process's RSS growth over the mesh build (measured by the caller): the
             mesh stage counts the larger of it and the mesh's tensors (a build leaves freed heap
@@ -206,23 +235,63 @@ def estimate(kind, mesh: Mesh, params: dict[str, Any], run: RunOptions | None = 
     return Estimate(kind.name, V, F, stages, int(peak), memory_budget(run.max_memory), probe_info.get("rays"))
 
 
-def _probe(kind, mesh: Mesh, params: dict, run: RunOptions, lights, k: int) -> tuple[float | None, dict]:
-    """Seconds of the ray stage from two chunks of ``k`` vertices of the real run: set-up (up to
-    the first chunk, less one chunk) + the second chunk × ⌈V/k⌉."""
+def probe_chunk(V: int, chunk: int, k: int | None = None) -> int:
+    """Vertices per chunk of the probe for ``V`` vertices whose real run uses chunks of ``chunk``.
+
+    ``k`` when given. Else the real chunk when the real run has at most :data:`PROBE_CHUNKS`
+    chunks (the probe then is the whole run, at most three chunks of the kind's ~2¹⁹–2²⁰ rays),
+    and otherwise ``min(chunk, max(PROBE_MIN_CHUNK, V // PROBE_SHARE))``: the real chunk where the
+    mesh is large enough, never more than ``1 / PROBE_SHARE`` of the vertices per chunk (the
+    probe's cost). Why not the former 1024 vertices: such a chunk is ~10 ms of work, and one
+    preemption on a shared machine doubles it (estimates 2–3× the real run at 100k vertices,
+    load 2.3–3.4), and with torch's spinning OpenMP threads MRT's wall time per vertex in
+    1024-vertex chunks was at times 2–3× that in its real 8192-vertex ones
+    (``reports/benchmarks/precompute_estimate.md``)."""
+    if k is not None:
+        return max(1, int(k))
+    chunk = max(1, int(chunk))
+    if V <= PROBE_CHUNKS * chunk:
+        return chunk
+    return min(chunk, max(PROBE_MIN_CHUNK, int(V) // PROBE_SHARE))
+
+
+def probe_seconds(V: int, k: int, first: float, timed: list[float]) -> tuple[float, float, float]:
+    """(seconds, set-up, seconds per chunk) of the ray stage from a probe over chunks of ``k``
+    vertices: ``first`` = seconds from the start to the end of the first chunk (set-up + one
+    chunk), ``timed`` = the seconds of the chunks after it. The per-chunk time is their mean
+    (one 10 ms chunk alone is at the mercy of the scheduler on a shared machine); the set-up is
+    ``first`` less one chunk (never negative); the run = set-up + per-chunk × V / k (the last,
+    partial chunk counted in proportion, not as a whole one)."""
+    if not timed:
+        raise ValueError("probe_seconds: timed is empty; accepted: the seconds of at least one chunk after the first")
+    per = sum(timed) / len(timed)
+    setup = max(0.0, first - per)
+    return setup + per * V / k, setup, per
+
+
+def _probe(kind, mesh: Mesh, params: dict, run: RunOptions, lights, k: int | None) -> tuple[float | None, dict]:
+    """Seconds of the ray stage from the first :data:`PROBE_CHUNKS` chunks of the real run
+    (:func:`probe_chunk` vertices each; :func:`probe_seconds`). As the real run, the probe saves
+    each chunk to a state directory and, where the real result would be assembled in a file
+    (``RunOptions.streams_result``), fills file-backed rows — in a temporary directory, removed after."""
     import tempfile
 
     V = mesh.num_vertices
+    kw, _ = kind.resolve(params, lights)
+    out_pv, _ = result_bytes_per_vertex(kind.name, kw, mesh)
+    k = probe_chunk(V, real_chunk(kind.name, kw, run.chunk_size), k)
     marks: list[float] = []
 
     def stop(i: int, n: int) -> None:
         marks.append(time.perf_counter())
-        if len(marks) >= 2:
+        if len(marks) >= PROBE_CHUNKS:
             raise ChunkInterrupt("probe done")
 
-    opts = dataclasses.replace(run, chunk_size=k, callback=stop, state_dir=None, resume=False, keep_state=False, stream_result=None,
-                               progress=False, executor=None, workers=1)
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="prt_probe_") as tmp:
+        opts = dataclasses.replace(run, chunk_size=k, callback=stop, state_dir=tmp + "/state", resume=False, keep_state=False,
+                                   stream_result=run.streams_result(out_pv * V), progress=False, executor=None, workers=1)
         try:
             if kind.output == "directory":
                 kind.precompute(mesh, params, run=opts, out=tmp + "/t", lights=lights)
@@ -230,6 +299,7 @@ def _probe(kind, mesh: Mesh, params: dict, run: RunOptions, lights, k: int) -> t
                 kind.precompute(mesh, params, run=opts, lights=lights)
         except ChunkInterrupt:
             pass
+        done = time.perf_counter()
         # the write rate of the output's file system is not probed (it would write there); this
         # machine's temporary directory stands in: 32 MiB written and flushed
         buf = torch.zeros(8 << 20, dtype=torch.float32).numpy()
@@ -238,14 +308,16 @@ def _probe(kind, mesh: Mesh, params: dict, run: RunOptions, lights, k: int) -> t
             f.write(memoryview(buf))
             f.flush()
         write = (time.perf_counter() - tw) / buf.nbytes
-    end = time.perf_counter()
-    if len(marks) < 2:  # the whole run finished within two chunks (small mesh, or nothing traced)
-        return end - t0, {"note": "the whole run (it finished within the probe)", "write_seconds_per_byte": write}
-    chunk = marks[1] - marks[0]
-    setup = max(0.0, marks[0] - t0 - chunk)
-    n = math.ceil(V / k)
-    return setup + chunk * n, {"note": f"a probe: set-up {setup:.2f} s + {chunk:.3f} s per chunk of {k} vertices × {n} chunks, "
-                                       "one worker", "write_seconds_per_byte": write}
+    info: dict[str, Any] = {"write_seconds_per_byte": write, "probe_wall_seconds": time.perf_counter() - t0, "probe_chunk": k,
+                            "load": load}
+    if len(marks) < PROBE_CHUNKS:  # the whole run finished within the probe (small mesh, or nothing traced)
+        return done - t0, {**info, "note": f"the whole run (it finished within the probe), load {load:.1f}"}
+    timed = [marks[i] - marks[i - 1] for i in range(1, len(marks))]
+    seconds, setup, per = probe_seconds(V, k, marks[0] - t0, timed)
+    info.update(setup_seconds=setup, chunk_seconds=per)
+    return seconds, {**info, "note": f"a probe: set-up {setup:.2f} s + {per:.3f} s per chunk of {k} vertices (mean of "
+                                     f"{len(timed)}) × {V / k:.1f} chunks, one worker, load {load:.1f}; the probe took "
+                                     f"{info['probe_wall_seconds']:.1f} s"}
 
 
 def format_estimate(e: Estimate) -> list[str]:
