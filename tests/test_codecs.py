@@ -138,8 +138,10 @@ def test_codecs_are_sklearn_estimators(name):
         c.fit(X, matrix_shape=(4, 3))
     small = {"clusters": 4, "vectors": 2}
     c.set_params(strict=False, **{k: v for k, v in small.items() if k in c.get_params()})
+    X0 = X.clone()
     assert c.fit(X, matrix_shape=(4, 3)) is c and c.fitted_  # fit returns self
     assert c.score(X) == pytest.approx(-c.squared_error(X, c.encode(X)) / 120) and c.score(X) <= 0
+    assert torch.equal(X, X0)  # fit/encode/score never write into the caller's data (a float64 X is used as is)
     pickled = pickle.loads(pickle.dumps(c))  # e.g. joblib workers; the training cache is dropped
     assert type(pickled) is type(c) and pickled.score(X) == c.score(X.clone())  # clone: not the cached training codes
     fitted_clone = clone(c)  # a clone is unfitted, with the same parameters

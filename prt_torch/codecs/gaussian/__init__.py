@@ -323,7 +323,7 @@ class GaussianCodec(Codec):
             se += float(torch.linalg.vector_norm(d).square())
             tot += float(torch.linalg.vector_norm(t).square())
             err[a:b] = d.square_().matmul(sa64)
-            ref[a:b] = t.square_().matmul(sa64)
+            ref[a:b] = t.square().matmul(sa64)  # not in place: .double() of a float64 T is T itself (the caller's X)
         return err, ref, se, tot
 
     def _encoded(self, tensors: dict[str, torch.Tensor], V: int, N: int, nb: int) -> Encoded:
