@@ -241,6 +241,21 @@ def test_kernel_dense_and_sparse_columns_equal_the_dense_gather(scene, dtype, mo
     assert forms[2.0] == 0 and 0 < forms[None] < forms[0.0]
 
 
+def _random_16bit_transfer(scene, index, CT, res, g):
+    """A 16-bit wavelet transfer of random values on ``index`` ``[V, K]`` (grey CT = 1: ``[V, K]``, one
+    scale per vertex; coloured CT = 3: ``[V, 3, K]``, one per channel), its values in float64 as the
+    kernel must read them, and the albedo the relighter applies (the scene's for grey, 1 for coloured:
+    folded)."""
+    V, K = index.shape
+    shape = (V, K) if CT == 1 else (V, 3, K)
+    q = torch.randint(-32767, 32768, shape, generator=g).to(torch.int16)
+    scale = torch.rand(V, generator=g) + 0.5 if CT == 1 else torch.rand(V, 3, generator=g) + 0.5
+    tr = Transfer("wavelet", q, scene, {"res": res, "terms": K, "bits": 16}, aux={"index": index.to(torch.int16), "scale": scale})
+    vals = (q.double() * scale.double()[:, None]) if CT == 1 else q.double() * scale.double()[..., None]
+    alb = scene.albedo.double() if CT == 1 else torch.ones(V, 3, dtype=torch.float64)
+    return tr, vals, alb
+
+
 def test_kernel_keeps_no_light_between_calls_grey_and_coloured(scene):
     """kernels/wavelet.c keeps the light per column in a scratch that is zero between calls (the
     row-major pass reads it for every column; each call zeroes its own columns at its end): a
@@ -255,12 +270,7 @@ def test_kernel_keeps_no_light_between_calls_grey_and_coloured(scene):
     P = 6 * res * res
     index = (torch.rand(V, P, generator=g) * torch.where(torch.arange(P) < 16, 50.0, 1.0)).topk(K, dim=1).indices
     for CT in (1, 3):
-        shape = (V, K) if CT == 1 else (V, 3, K)
-        q = torch.randint(-32767, 32768, shape, generator=g).to(torch.int16)
-        scale = torch.rand(V, generator=g) + 0.5 if CT == 1 else torch.rand(V, 3, generator=g) + 0.5
-        tr = Transfer("wavelet", q, scene, {"res": res, "terms": K, "bits": 16}, aux={"index": index.to(torch.int16), "scale": scale})
-        vals = (q.double() * scale.double()[:, None]) if CT == 1 else q.double() * scale.double()[..., None]
-        alb = scene.albedo.double() if CT == 1 else torch.ones(V, 3, dtype=torch.float64)
+        tr, vals, alb = _random_16bit_transfer(scene, index, CT, res, g)
         r = relight.WaveletRelighter(tr, threads=1)
         if r._kernel() is None:
             pytest.skip("no native kernel here")
@@ -763,12 +773,7 @@ def test_row_major_copy_built_on_first_need_results_equal_the_dense_reference(sc
     P = 6 * res * res
     index = (torch.rand(V, P, generator=g) * torch.where(torch.arange(P) < 16, 50.0, 1.0)).topk(K, dim=1).indices
     for CT in (1, 3):
-        shape = (V, K) if CT == 1 else (V, 3, K)
-        q = torch.randint(-32767, 32768, shape, generator=g).to(torch.int16)
-        scale = torch.rand(V, generator=g) + 0.5 if CT == 1 else torch.rand(V, 3, generator=g) + 0.5
-        tr = Transfer("wavelet", q, scene, {"res": res, "terms": K, "bits": 16}, aux={"index": index.to(torch.int16), "scale": scale})
-        vals = (q.double() * scale.double()[:, None]) if CT == 1 else q.double() * scale.double()[..., None]
-        alb = scene.albedo.double() if CT == 1 else torch.ones(V, 3, dtype=torch.float64)
+        tr, vals, alb = _random_16bit_transfer(scene, index, CT, res, g)
 
         def ref(li, lv):
             C = lv.shape[0]
