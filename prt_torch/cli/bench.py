@@ -84,6 +84,9 @@ def stage_time(cfg: dict, mesh, mem: dict, rows: int = 1024, probe_vertices: int
             key = (st["type"], repr(sorted(kw.items())), n_out, n_in, s_rows)
             if key not in _TIMED:  # once per setting and shape in this process (a sweep repeats them)
                 c = codecs.get(st["type"], **kw)
+                if ("warm", st["type"]) not in _TIMED:  # the family's first fit pays one-off costs (kernel
+                    codecs.get(st["type"], **kw).fit_encode(X, matrix_shape=(n_out, n_in))  # loading, first-use
+                    _TIMED[("warm", st["type"])] = 0.0  # allocations) a real run pays once, not per setting
                 t = time.perf_counter()
                 c.fit_encode(X, matrix_shape=(n_out, n_in))
                 _TIMED[key] = time.perf_counter() - t
