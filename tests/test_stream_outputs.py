@@ -89,7 +89,21 @@ def test_interrupted_streamed_run_leaves_nothing_half_written(tmp_path):
     assert torch.equal(got.data, ref.data)
 
 
-_LIMITED_PRECOMPUTE = textwrap.dedent("""
+#: the prelude of the memory-limited child scripts: ``limit_data(extra)`` caps the process's data
+#: segment (RLIMIT_DATA) at what it holds now plus ``extra`` bytes
+_DATA_LIMIT = textwrap.dedent("""
+    import resource
+
+
+    def limit_data(extra):
+        for line in open("/proc/self/status"):
+            if line.startswith("VmData:"):
+                held = int(line.split()[1]) * 1024
+        resource.setrlimit(resource.RLIMIT_DATA, (held + extra, resource.RLIM_INFINITY))
+""")
+
+
+_LIMITED_PRECOMPUTE = _DATA_LIMIT + textwrap.dedent("""
     import json, resource, sys, torch
     torch.set_num_threads(1)
     from prt_torch.scene import builtin
@@ -99,11 +113,7 @@ _LIMITED_PRECOMPUTE = textwrap.dedent("""
     mesh = builtin("bumpy_sphere:2562")
     get_kind("mrt").precompute(builtin("bumpy_sphere:642"), dict(p), run=RunOptions(chunk_size=256))  # warm-up
     big = builtin("bumpy_sphere:10242")
-    def vmdata():
-        for line in open("/proc/self/status"):
-            if line.startswith("VmData:"):
-                return int(line.split()[1]) * 1024
-    resource.setrlimit(resource.RLIMIT_DATA, (vmdata() + limit, resource.RLIM_INFINITY))
+    limit_data(limit)
     try:
         run = RunOptions(chunk_size=256, max_memory=1 << 40, state_dir=out + ".state", stream_result=mode == "stream")
         tr = get_kind("mrt").precompute(big, dict(p), run=run)
@@ -235,7 +245,7 @@ def test_relight_interrupted_leaves_nothing(tmp_path, monkeypatch):
     assert out.read_bytes() == b"old" and sorted(p.name for p in tmp_path.iterdir()) == ["m.prt", "r.npy"]
 
 
-_LIMITED_RELIGHT = textwrap.dedent("""
+_LIMITED_RELIGHT = _DATA_LIMIT + textwrap.dedent("""
     import json, resource, sys, torch
     torch.set_num_threads(1)
     from prt_torch.cli import relight as rl
@@ -243,11 +253,7 @@ _LIMITED_RELIGHT = textwrap.dedent("""
     path, out, mode, limit = sys.argv[1], sys.argv[2], sys.argv[3], int(sys.argv[4])
     from prt_torch import io
     rl.radiance(Transfer.load(path, mmap=True), "sky", rows=4096)  # warm-up: imports, light, kernels
-    def vmdata():
-        for line in open("/proc/self/status"):
-            if line.startswith("VmData:"):
-                return int(line.split()[1]) * 1024
-    resource.setrlimit(resource.RLIMIT_DATA, (vmdata() + limit, resource.RLIM_INFINITY))
+    limit_data(limit)
     try:
         tr = Transfer.load(path, mmap=mode == "stream")
         with io.streamed_npy(out, (tr.num_vertices, 3)) as arr:
