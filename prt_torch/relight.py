@@ -392,7 +392,7 @@ class WaveletRelighter:
         if NB and int(tptr[:, -1].max()) >= 2 ** 31:
             raise ValueError(f"a tile of {TV} vertices holds {int(tptr[:, -1].max())} sparse blocks; accepted: < 2^31 (a smaller tile)")
         self.tptr = tptr.to(torch.int32).contiguous()
-        self.bcount = cnt  # [NT, P] sparse blocks per tile and column
+        self.bcount = cnt.to(torch.int32)  # [NT, P] sparse blocks per tile and column (int32: < 2^31, checked above)
         self._rows_used = self.layouts != "column" and self.row_min <= 1  # the kernel may take the row-major pass
         self._cblk = cnt.sum(0).to(torch.int32).contiguous()  # [P] sparse blocks per column (the kernel's row/column choice)
         self.MT = max(1, min(self.NT, os.cpu_count() or 1))
