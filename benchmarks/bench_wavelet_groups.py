@@ -13,7 +13,7 @@ layout of ``lighting.haar.haar2d``; a node (f, h, a, b) has three detail sibling
 
   - ``siblings 3``: a node's three detail siblings;
   - ``siblings 2``: per node the two siblings whose 8-vertex blocks overlap most in the transfer, the third alone;
-  - ``h-pair 2`` / ``v-pair 2``: horizontal (j, j^1) / vertical (i, i^1) neighbours in one band;
+  - ``h-pair 2`` / ``v-pair 2``: horizontal (j, j^1) / vertical (i, i^1) neighbours in one band (level 1: unpaired);
   - ``children 4``: the four children of one parent in one band (2 × 2 neighbours);
   - ``parent+children 5``: those four and their parent.
 
@@ -82,8 +82,11 @@ def group_keys(res: int, blk: torch.Tensor) -> dict[str, torch.Tensor]:
         alone = (c2, c1, c0)[best]
         k2[alone] = n * 4 + 3
     keys["siblings 2"] = k2
-    keys["h-pair 2"] = (f * R2 + i * res + (j >> 1)) * 2 + (h == 0).long()
-    keys["v-pair 2"] = (f * R2 + (i >> 1) * res + j) * 2 + (h == 0).long()
+    # pairs within one band: a band of level h >= 2 starts at a multiple of h in i and j, so (j, j^1) / (i, i^1) stay in
+    # it; level 1's bands are one coefficient wide (their neighbours are siblings of another type): unpaired
+    one = h <= 1
+    keys["h-pair 2"] = torch.where(one, P + torch.arange(P), f * R2 + i * res + (j >> 1))
+    keys["v-pair 2"] = torch.where(one, P + torch.arange(P), f * R2 + (i >> 1) * res + j)
     ch = (f * R2 + h * h + (a // 2) * h.clamp(min=1) + b // 2) * 3 + t
     keys["children 4"] = ch
     # parent + children: a child joins its parent's group (the parent of (f, h, a, b, t) is (f, h/2, a/2, b/2, t))
