@@ -89,3 +89,19 @@ def test_groupings_relate_their_members_as_stated():
         parent = [c for c in det.tolist() if int(q["h"][c]) == h // 2 and int(q["a"][c]) == a and int(q["b"][c]) == b
                   and int(q["f"][c]) == int(q["f"][g[0]])]
         assert parent and torch.equal(union, sup[parent[0]])
+
+
+def test_member_slots_number_each_group_in_column_order():
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        from bench_wavelet_pass_micro import member_slots
+    finally:
+        sys.path.remove(str(ROOT / "benchmarks"))
+    g = torch.Generator().manual_seed(3)
+    key = torch.randint(-1, 40, (500,), generator=g)
+    slot = member_slots(key)
+    seen: dict[int, int] = {}
+    for c in range(key.numel()):  # brute force: the n-th column of a key (by index) gets slot n
+        k = int(key[c])
+        assert int(slot[c]) == seen.get(k, 0), c
+        seen[k] = seen.get(k, 0) + 1
