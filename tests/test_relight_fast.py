@@ -31,8 +31,9 @@ def _want(c, enc, L, n=None):
     return (c.decode(enc, n).double() @ L.double()).float()
 
 
-def _armed(c, enc, n=None):
-    return ("rows_fast", id(c), n) in enc.cache
+def _armed(c, enc, out, n=None):
+    f = enc.cache.get(("rows_fast", id(c), n), {}).get(id(out))
+    return f is not None and len(f) > 1 and f[0]() is out
 
 
 def _check(c, enc, L, out, n=None):
@@ -47,7 +48,9 @@ def test_relight_out_fast_path_same_bits_as_full_call(name):
     L, L2 = torch.randn(16, 3, generator=g), torch.randn(16, 3, generator=g)
     out = torch.full((enc.points, 3), float("nan"))
     _check(c, enc, L, out)
-    assert native() is None or _armed(c, enc)
+    assert not _armed(c, enc, out)  # the first full call into out only notes it
+    _check(c, enc, L, out)
+    assert native() is None or _armed(c, enc, out)
     for light in (L2, L, L2):  # fast path: the same bits as a fresh full call and as the prepared form
         _check(c, enc, light, out)
         assert torch.equal(out, c.relight(enc, light))
@@ -68,6 +71,19 @@ def test_relight_out_fast_path_sees_changes():
     _check(c, enc, L, out2)
     _check(c, enc, L, out2)
     _check(c, enc, L, out)
+    for _ in range(3):  # double buffering: both outputs keep their entries
+        _check(c, enc, L, out)
+        _check(c, enc, L, out2)
+    assert native() is None or (_armed(c, enc, out) and _armed(c, enc, out2))
+    outs = [torch.empty(enc.points, 3) for _ in range(c.FAST_OUTS + 1)]  # more outputs than entries: the oldest dropped
+    for _ in range(2):
+        for o in outs:
+            _check(c, enc, L, o)
+    assert len(enc.cache[("rows_fast", id(c), None)]) <= c.FAST_OUTS
+    fresh = [torch.empty(enc.points, 3) for _ in range(3)]  # a new out each call: noted, never armed
+    for o in fresh:
+        _check(c, enc, L, o)
+        assert not _armed(c, enc, o)
     L4 = torch.randn(16, 4, generator=g)  # another light shape: out no longer fits -> the full call's error
     with pytest.raises(ValueError, match="out has shape"):
         c.relight(enc, L4, out=out)

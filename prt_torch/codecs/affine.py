@@ -475,15 +475,17 @@ class AffineCodec(Codec):
         (``out`` when given); a tensor, or a numpy array for an encoding of numpy data
         (``Encoded.array_type``; the light and the view may be numpy arrays too).
 
-        Without a view and with ``out``, a call like the last one (the same ``out``, a float32
-        contiguous light of the same shape, the codes and the model unchanged) runs the prepared
-        form's fast path (``fast_rows``, armed in ``enc.cache`` by the last full call: ~4 µs of
-        checks instead of ~15, the same bits), so a render loop of ``relight(enc, light, out=buf)``
-        costs about what ``relighter(enc)(light, out=buf)`` does.
+        Without a view and with ``out``, from the third call into the same ``out`` (a float32
+        contiguous light of the same shape, the codes and the model unchanged) a call runs the
+        prepared form's fast path (``fast_rows``, armed in ``enc.cache`` by the second full call
+        into that ``out``, up to ``FAST_OUTS`` outputs: ~4 µs of checks instead of ~15, the same
+        bits), so a render loop of ``relight(enc, light, out=buf)`` costs about what
+        ``relighter(enc)(light, out=buf)`` does (benchmarks/bench_relight_call.py).
         """
         if view is None and out is not None and type(light) is torch.Tensor and (n_vectors is None or type(n_vectors) is int):
-            f = enc.cache.get(("rows_fast", id(self), n_vectors)) if isinstance(enc, Encoded) else None
-            if f is not None and f[0]() is out:
+            fs = enc.cache.get(("rows_fast", id(self), n_vectors)) if isinstance(enc, Encoded) else None
+            f = fs.get(id(out)) if fs is not None else None
+            if f is not None and len(f) > 1 and f[0]() is out:
                 res = fast_rows(self, enc, light, out, f)
                 if res is not None:
                     return res
@@ -523,20 +525,37 @@ class AffineCodec(Codec):
         res = self._relight_torch(enc, light, view, n)
         return as_array_type(res, enc.array_type) if out is None else out.copy_(res)
 
+    #: outputs per encoding, codec and n_vectors whose relight(out=) calls keep a fast-path entry (double or triple
+    #: buffering: each buffer its own entry); the oldest is dropped beyond
+    FAST_OUTS = 4
+
     def _arm_rows(self, lib, enc: Encoded, n: int, n_vectors: Any, light: torch.Tensor, out: torch.Tensor) -> None:
         """After a full ``relight(enc, light, out=out)`` without a view that ran the kernels: the
-        entry of ``fast_rows`` for the next such call (``arm_rows``), kept in ``enc.cache`` under
-        this codec and ``n_vectors`` (the value as given: the key of the call). Held there, not on
-        the codec: it holds the codes and the model's tensors, never the encoding or ``out``."""
+        entry of ``fast_rows`` for the next such call into ``out`` (``arm_rows``), kept in
+        ``enc.cache`` under this codec and ``n_vectors`` (the value as given: the key of the call),
+        one per output tensor (up to ``FAST_OUTS``: a double-buffered loop keeps both). The first
+        full call into an ``out`` only notes it (a weak reference), the second arms it: a call
+        into a new tensor each time pays no arming. Held there, not on the codec: an entry holds
+        the codes' and the model's tensors, never the encoding or ``out``."""
         if not (n_vectors is None or type(n_vectors) is int) or n + (self.means_ is not None) == 0:
             return
-        pl = self._kernel_plan(lib, enc, n, "rows", light.shape[1], 0)
-        f = arm_rows(lib, pl, light, out, (*enc.tensors.values(), *self._model_tensors()))
         key = ("rows_fast", id(self), n_vectors)
+        fs = enc.cache.get(key)
+        if fs is None:
+            fs = enc.cache[key] = {}
+        slot = fs.get(id(out))
+        if slot is None or slot[0]() is not out:  # the first full call into this out: note it
+            fs.pop(id(out), None)
+            while len(fs) >= self.FAST_OUTS:
+                del fs[next(iter(fs))]
+            fs[id(out)] = (weakref.ref(out),)
+            return
+        f = arm_rows(lib, self._kernel_plan(lib, enc, n, "rows", light.shape[1], 0), light, out,
+                     (*enc.tensors.values(), *self._model_tensors()))
         if f is None:
-            enc.cache.pop(key, None)
+            fs.pop(id(out), None)
         else:
-            enc.cache[key] = f
+            fs[id(out)] = f
 
     def relighter(self, enc: Encoded, view: Any = None, n_vectors: int | None = None) -> "AffineRelighter":
         """A prepared relighting (``base.Relighter``): ``r = codec.relighter(enc, view)``, then
