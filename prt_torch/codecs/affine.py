@@ -546,8 +546,8 @@ class AffineCodec(Codec):
         slot = fs.get(id(out))
         if slot is None or slot[0]() is not out:  # the first full call into this out: note it
             fs.pop(id(out), None)
-            while len(fs) >= self.FAST_OUTS:
-                del fs[next(iter(fs))]
+            while len(fs) >= self.FAST_OUTS:  # (pop with a default: another thread may drop the same entry)
+                fs.pop(next(iter(fs), None), None)
             fs[id(out)] = (weakref.ref(out),)
             return
         f = arm_rows(lib, self._kernel_plan(lib, enc, n, "rows", light.shape[1], 0), light, out,
