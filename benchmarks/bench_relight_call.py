@@ -37,7 +37,7 @@ import torch  # noqa: E402
 from prt_torch import codecs  # noqa: E402
 from prt_torch.codecs.relight_kernels import kernel_path, native  # noqa: E402
 from prt_torch.codecs.synthetic import transfer_like  # noqa: E402
-from prt_torch.harness.timing import machine_info, measure_paired  # noqa: E402
+from prt_torch.harness.timing import cpu_label, machine_info, measure_paired  # noqa: E402
 from prt_torch.io import atomic_write_text  # noqa: E402
 
 SETTINGS = [("vq 256 (diffuse)", "vq", {"clusters": 256, "max_iter": 10}),
@@ -112,7 +112,7 @@ def main() -> int:
     kp = kernel_path()
     lines = ["# Per-call cost of a small relight without a view", "",
              "Reproduce: `.venv/bin/python benchmarks/bench_relight_call.py` (the script's docstring defines the forms and the peer).", "",
-             f"Machine: {mi.get('cpu', '?')}, {kp.get('isa', '?')} build of the kernels (`{kp.get('flags', '')}`), one thread, "
+             f"Machine: {cpu_label(mi)}, {kp.get('isa', '?')} build of the kernels (`{kp.get('flags', '')}`), one thread, "
              f"CPU time (time.thread_time). Load average before {tuple(round(x, 2) for x in load0)}, "
              f"after {tuple(round(x, 2) for x in load1)} (2 cores, shared with other jobs: CPU time keeps their time out of "
              "either side, not their use of the shared caches).", "",
