@@ -1,5 +1,5 @@
 """The prepared relighting's no-view form, ``r = codec.relighter(enc)`` then ``r(light, out=buf)``
-(``AffineRelighter._call_fast``) and the diffuse VQ point kernel it runs (one 16-byte copy per point):
+(``affine.fast_rows``) and the diffuse VQ point kernel it runs (one 16-byte copy per point):
 checked against the decoded signal times the light (Sloan 2003 §6: x̃_p · l, computed here in float64
 from ``decode``, independent of the kernels), across point counts that leave every tail length, at one
 and two threads, from another thread, and after changes the fast path must see."""

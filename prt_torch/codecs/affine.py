@@ -31,6 +31,7 @@ import math
 import operator
 import threading
 import time
+import weakref
 from typing import Any
 
 import torch
@@ -473,7 +474,21 @@ class AffineCodec(Codec):
         Returns: ``[P, C]`` float32 (vectors, or matrices with a view), else ``[P, n_out, C]``
         (``out`` when given); a tensor, or a numpy array for an encoding of numpy data
         (``Encoded.array_type``; the light and the view may be numpy arrays too).
+
+        Without a view and with ``out``, from the third call into the same ``out`` (a float32
+        contiguous light of the same shape, the codes and the model unchanged) a call runs the
+        prepared form's fast path (``fast_rows``, armed in ``enc.cache`` by the second full call
+        into that ``out``, up to ``FAST_OUTS`` outputs: ~4 µs of checks instead of ~15, the same
+        bits), so a render loop of ``relight(enc, light, out=buf)`` costs about what
+        ``relighter(enc)(light, out=buf)`` does (benchmarks/bench_relight_call.py).
         """
+        if view is None and out is not None and type(light) is torch.Tensor and (n_vectors is None or type(n_vectors) is int):
+            fs = enc.cache.get(("rows_fast", id(self), n_vectors)) if isinstance(enc, Encoded) else None
+            f = fs.get(id(out)) if fs is not None else None
+            if f is not None and len(f) > 1 and f[0]() is out:
+                res = fast_rows(self, enc, light, out, f)
+                if res is not None:
+                    return res
         self._check_enc(enc)
         P = enc.points
         n_out, n_in = self.matrix_shape_ or (1, self.D_)
@@ -502,11 +517,45 @@ class AffineCodec(Codec):
                 res, flag = got
                 if flag:
                     check_view(view, P, n_out)  # raises with the offending value; else the data overflowed
+                if view is None and out is not None and L is light and light.is_contiguous():
+                    self._arm_rows(lib, enc, n, n_vectors, light, out)
                 return res if out is not None or enc.array_type == "torch" else res.numpy()
             check_finite("light", L)  # the torch formulation below
         view = check_view(view, P, n_out) if self.matrix_shape_ is not None else None
         res = self._relight_torch(enc, light, view, n)
         return as_array_type(res, enc.array_type) if out is None else out.copy_(res)
+
+    #: outputs per encoding, codec and n_vectors whose relight(out=) calls keep a fast-path entry (double or triple
+    #: buffering: each buffer its own entry); the oldest is dropped beyond
+    FAST_OUTS = 4
+
+    def _arm_rows(self, lib, enc: Encoded, n: int, n_vectors: Any, light: torch.Tensor, out: torch.Tensor) -> None:
+        """After a full ``relight(enc, light, out=out)`` without a view that ran the kernels: the
+        entry of ``fast_rows`` for the next such call into ``out`` (``arm_rows``), kept in
+        ``enc.cache`` under this codec and ``n_vectors`` (the value as given: the key of the call),
+        one per output tensor (up to ``FAST_OUTS``: a double-buffered loop keeps both). The first
+        full call into an ``out`` only notes it (a weak reference), the second arms it: a call
+        into a new tensor each time pays no arming. Held there, not on the codec: an entry holds
+        the codes' and the model's tensors, never the encoding or ``out``."""
+        if not (n_vectors is None or type(n_vectors) is int) or n + (self.means_ is not None) == 0:
+            return
+        key = ("rows_fast", id(self), n_vectors)
+        fs = enc.cache.get(key)
+        if fs is None:
+            fs = enc.cache[key] = {}
+        slot = fs.get(id(out))
+        if slot is None or slot[0]() is not out:  # the first full call into this out: note it
+            fs.pop(id(out), None)
+            while len(fs) >= self.FAST_OUTS:  # (pop with a default: another thread may drop the same entry)
+                fs.pop(next(iter(fs), None), None)
+            fs[id(out)] = (weakref.ref(out),)
+            return
+        f = arm_rows(lib, self._kernel_plan(lib, enc, n, "rows", light.shape[1], 0), light, out,
+                     (*enc.tensors.values(), *self._model_tensors()))
+        if f is None:
+            fs.pop(id(out), None)
+        else:
+            fs[id(out)] = f
 
     def relighter(self, enc: Encoded, view: Any = None, n_vectors: int | None = None) -> "AffineRelighter":
         """A prepared relighting (``base.Relighter``): ``r = codec.relighter(enc, view)``, then
@@ -889,7 +938,7 @@ class AffineRelighter(Relighter):
     replaced tensor or a refit), or ``relight`` itself where it would convert the light or the
     view or not use the kernels."""
 
-    __slots__ = ("_hot", "_fast")
+    __slots__ = ("_hot", "_fast")  # _fast: arm_rows' tuple
 
     def __init__(self, codec: AffineCodec, enc: Encoded, view: Any = None, n_vectors: int | None = None):
         codec._check_enc(enc)
@@ -904,54 +953,10 @@ class AffineRelighter(Relighter):
         # the last full call's checked setting: (light shape, out, out's address and shape, the view's
         # addresses, encoding_state of the codes and model, plan, n_out, result shape, held tensors)
         self._hot: tuple | None = None
-        # the render loop's form without a view, r(light, out=buf), prepared at its first full call (_arm_fast): the
+        # the render loop's form without a view, r(light, out=buf), prepared at its first full call (arm_rows): the
         # ctypes function, the plan's argument array, a constants buffer of this relighter's own and what the call
-        # checks against (see _call_fast)
+        # checks against (see fast_rows)
         self._fast: tuple | None = None
-
-    def _arm_fast(self, lib, pl, light: torch.Tensor, out: torch.Tensor, held: tuple) -> None:
-        """Prepare ``_call_fast`` after a full call without a view into ``out``: everything the
-        call would look up (the ctypes function, the plan's argument address, a constants buffer
-        ``T`` of the plan's layout owned by this relighter and the thread that armed it, so no
-        other call replaces it under us) and what it compares against (``out``'s address, shape
-        and storage, the light's shape, the point count and, per held tensor, the tensor itself,
-        its address, shape and version: ``encoding_state``'s key without rebuilding it)."""
-        try:
-            meta = tuple((t, t.data_ptr(), t.shape, t._version) for t in held if t is not None)
-        except RuntimeError:  # inference-mode tensors track no version: every call checks in full
-            self._fast = None
-            return
-        T = torch.zeros(pl.size, dtype=torch.float32)
-        self._fast = (out, threading.get_ident(), lib, light.shape, out.data_ptr(), out.shape, out.untyped_storage().data_ptr(),
-                      self.enc.meta.get("points"), held, meta, lib.prt_relight_plan, pl.args_ptr, T, T.data_ptr(), pl)
-
-    def _call_fast(self, light: torch.Tensor, out: torch.Tensor, f: tuple) -> torch.Tensor | None:
-        """``r(light, out=buf)`` without a view, as armed by ``_arm_fast``: ``out``, or None where
-        anything the full call checked changed (the caller then checks in full). Per call: the
-        light a CPU float32 contiguous tensor of the armed shape not in ``out``'s storage, no
-        grad wanted; ``out`` at the same address, shape and storage, contiguous; the encoding
-        still this codec's (``_check_enc``) with the same point count; its codes and the model the
-        same tensors at the same addresses, shapes and versions; then the one kernel call
-        (``prt_relight_plan``: Sloan 2003 §6's constants M_i l, then e_p per point), whose light
-        check raises naming a non-finite value, as ``relight`` does. ~3 µs of Python where the
-        general fast path took ~9 (reports/benchmarks/relight.md, "prepared")."""
-        codec, enc = self.codec, self.enc
-        if (light.requires_grad and torch.is_grad_enabled()) or native() is not f[2] or light.dtype != torch.float32 \
-                or light.shape != f[3] or not light.is_contiguous() or not light.is_cpu or out.data_ptr() != f[4] \
-                or out.shape != f[5] or not out.is_contiguous() or light.untyped_storage().data_ptr() == f[6] \
-                or threading.get_ident() != f[1] or enc.meta.get("points") != f[7]:
-            return None
-        codec._check_enc(enc)
-        held = (*enc.tensors.values(), *codec._model_tensors())
-        if len(held) != len(f[8]) or not all(map(operator.is_, held, f[8])):
-            return None
-        for t, ptr, shape, v in f[9]:
-            if t._version != v or t.data_ptr() != ptr or t.shape != shape:
-                return None
-        flag = f[10](f[11], light.data_ptr(), f[13], f[4], None, None, torch.get_num_threads())
-        if flag & 16:
-            light_flagged(light, light)
-        return out
 
     def _view_ptrs(self) -> tuple:
         v = self.view
@@ -959,8 +964,8 @@ class AffineRelighter(Relighter):
 
     def __call__(self, light: Any, out: torch.Tensor | None = None) -> torch.Tensor:
         f = self._fast
-        if f is not None and out is f[0] and type(light) is torch.Tensor:
-            res = self._call_fast(light, out, f)
+        if f is not None and type(light) is torch.Tensor and f[0]() is out:
+            res = fast_rows(self.codec, self.enc, light, out, f)
             if res is not None:
                 return res
         self._fast = None
@@ -1012,5 +1017,54 @@ class AffineRelighter(Relighter):
         self._hot = (light.shape, out, None if out is None else out.data_ptr(), None if out is None else out.shape, vptrs,
                      encoding_state(enc, held), pl, n_out, shape, held)
         if view is None and out is not None:
-            self._arm_fast(lib, pl, light, out, held)
+            self._fast = arm_rows(lib, pl, light, out, held)
         return res if out is not None or shape is None else res.view(shape)
+
+
+def arm_rows(lib, pl, light: torch.Tensor, out: torch.Tensor, held: tuple) -> tuple | None:
+    """The render loop's form without a view, ``relight(enc, light, out=buf)`` or ``r(light,
+    out=buf)``, prepared after a full call into ``out`` that ran plan ``pl`` (kind 'rows') under
+    ``light`` (float32, contiguous): everything :func:`fast_rows` would otherwise look up (the ctypes
+    function, the plan's argument address, a constants buffer ``T`` of the plan's layout owned by
+    this entry and the thread that armed it, so no other call replaces it under us) and what it
+    compares against (a weak reference to ``out``, its address, shape and storage, the light's
+    shape, the point count and, per held tensor — the codes and the model — the tensor itself, its
+    address, shape and version: ``encoding_state``'s key without rebuilding it). None where a held
+    tensor tracks no version (inference mode): every call then checks in full. Holds no reference
+    to the encoding or ``out``, so it may live in ``enc.cache`` (``AffineCodec.relight``)."""
+    try:
+        meta = tuple((t, t.data_ptr(), t.shape, t._version) for t in held if t is not None)
+    except RuntimeError:
+        return None
+    T = torch.zeros(pl.size, dtype=torch.float32)
+    return (weakref.ref(out), threading.get_ident(), lib, light.shape, out.data_ptr(), out.shape, out.untyped_storage().data_ptr(),
+            pl.P, held, meta, lib.prt_relight_plan, pl.args_ptr, T, T.data_ptr(), pl)
+
+
+def fast_rows(codec: AffineCodec, enc: Encoded, light: torch.Tensor, out: torch.Tensor, f: tuple) -> torch.Tensor | None:
+    """``relight(enc, light, out=out)`` without a view, as armed by :func:`arm_rows` (the caller
+    has checked ``f[0]() is out`` and ``type(light) is torch.Tensor``): ``out``, or None where
+    anything the full call checked changed (the caller then checks in full). Per call: the light a
+    CPU float32 contiguous tensor of the armed shape not in ``out``'s storage, no grad wanted (of
+    the light, the codes or the model); ``out`` at the same address, shape and storage,
+    contiguous; the kernels still enabled; the encoding still this codec's (``_check_enc``) with
+    the same point count; its codes and the model the same tensors at the same addresses, shapes
+    and versions; then the one kernel call (``prt_relight_plan``: Sloan 2003 §6's constants
+    M_i l, then e_p per point), whose light check raises naming a non-finite value, as
+    ``relight`` does. ~3-4 µs of Python (reports/benchmarks/relight.md, "prepared")."""
+    if (light.requires_grad and torch.is_grad_enabled()) or native() is not f[2] or light.dtype != torch.float32 \
+            or light.shape != f[3] or not light.is_contiguous() or not light.is_cpu or out.data_ptr() != f[4] \
+            or out.shape != f[5] or not out.is_contiguous() or light.untyped_storage().data_ptr() == f[6] \
+            or threading.get_ident() != f[1] or enc.meta.get("points") != f[7]:
+        return None
+    codec._check_enc(enc)
+    held = (*enc.tensors.values(), *codec._model_tensors())
+    if len(held) != len(f[8]) or not all(map(operator.is_, held, f[8])):
+        return None
+    for t, ptr, shape, v in f[9]:
+        if t._version != v or t.data_ptr() != ptr or t.shape != shape or t.requires_grad:
+            return None
+    flag = f[10](f[11], light.data_ptr(), f[13], f[4], None, None, torch.get_num_threads())
+    if flag & 16:
+        light_flagged(light, light)
+    return out

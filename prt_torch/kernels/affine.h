@@ -94,7 +94,7 @@ static inline __attribute__((always_inline)) void combine(i64 F, i64 cs, const f
    formed in the same order as by ACCUMULATE, so a point's result does not depend on whether it
    was paired. */
 #define ACC2_INIT(b) v8 a##b = (b < NB_ && mean) ? LD(Tc + 8 * b) : (v8){0}; v8 c##b = a##b;
-#define ACC2_STEP(b) if (b < NB_) { v8 t_ = LD(Tb + 8 * b); a##b += wi * t_; c##b += ui * t_; }
+#define ACC2_STEP(b) if (b < NB_) { v8 t_ = LD(Tb + 8 * b); IN_REG(t_); a##b += wi * t_; c##b += ui * t_; }
 #define ACC2_STORE(b) if (b < NB_) { ST(ec + 8 * b, a##b); ST(fc + 8 * b, c##b); }
 #define ROWS2_CHUNK(NB)                                                                          \
 static inline void rows2_chunk_##NB(const float *Tc, i64 F, int mean, const float *w, const float *u, i64 cnt, \

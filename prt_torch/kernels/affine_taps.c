@@ -56,6 +56,20 @@ static inline void taps3v_##NBJ(const float *Tk, i64 R, i64 n_out, const i64 *ix
     for (int b = 0; b < NBJ; b++) xw[b] = TWV(b);                                                \
     v8 a0[NBJ], a1[NBJ], a2[NBJ];                                                                \
     for (int b = 0; b < NBJ; b++) { a0[b] = (v8){0}; a1[b] = (v8){0}; a2[b] = (v8){0}; }         \
+    if (ntap == 4 && (uint64_t)ix[0] < (uint64_t)n_out && (uint64_t)ix[1] < (uint64_t)n_out      \
+        && (uint64_t)ix[2] < (uint64_t)n_out && (uint64_t)ix[3] < (uint64_t)n_out) {               \
+        /* four valid taps (MRT's bilinear tents): the loop below with its trip count known and no  \
+           per-tap test, the same FMAs in the same order (same bits) */                           \
+        for (int t = 0; t < 4; t++) {                                                            \
+            const float *r = Tk + ix[t] * R;                                                     \
+            float gt = gg[t];                                                                    \
+            for (int b = 0; b < NBJ; b++) {                                                      \
+                a0[b] += gt * LD(r + 8 * b);                                                     \
+                a1[b] += gt * LD(r + Jp + 8 * b);                                                \
+                a2[b] += gt * LD(r + 2 * Jp + 8 * b);                                            \
+            }                                                                                    \
+        }                                                                                        \
+    } else                                                                                       \
     for (i64 t = 0; t < ntap; t++) {                                                             \
         i64 ri = ix[t];                                                                          \
         if ((uint64_t)ri >= (uint64_t)n_out) { *flag |= 1; continue; }  /* skipped, flagged */    \
