@@ -420,22 +420,29 @@ def _lm_batch(Tn, nonzero, dirs, sa, J, vn, N, beta, delta, sb, smin, smax, max_
     else:
         # greedy: lobe k starts at the peak of the residual of the (k−1)-lobe fit (peaks and
         # moments), then all k lobes are optimised together
-        Tp = Tn.clamp_min(0)
+        # peaks and moments of the nonzero functions only (the zero ones — about half — take zero_start's
+        # values): the first 1000 vertices of the default benchmark's 10k tables, 2 lobes, one thread, whole fit
+        # 7.37-7.50 → 6.74-6.88 s CPU (paired, load 3-5), the same relative L2 and SE to 5 digits
+        nzi = nonzero.nonzero()[:, 0]
+        Tp = Tn[nzi].clamp_min(0)
         a = torch.empty(B, 0, dtype=dt)
         ls = torch.empty(B, 0, dtype=dt)
         mu = torch.empty(B, 0, 3, dtype=dt)
         for k in range(1, N + 1):
             if k > 1:
-                lam = torch.exp(-2 * ls)
-                fit = ((a.exp() * sg_normaliser(lam))[..., None]
-                       * torch.exp(lam[..., None] * (torch.einsum("bnc,pc->bnp", mu, dirs) - 1))).sum(1)
+                fit = mixture(dirs, a[nzi].exp(), mu[nzi], ls[nzi].exp())
                 res = (Tp - fit).clamp_min(0)
             else:
                 res = Tp
             w1, m1, s1 = _init_lobes(res, dirs, sa, 1, smin, smax)
-            a = torch.cat([a, w1.clamp_min(1e-10).log()], 1)
-            ls = torch.cat([ls, s1.log()], 1)
-            mu = torch.cat([mu, m1], 1)
+            ak = torch.full((B, 1), _LOG_W_MIN, dtype=dt)
+            lk = torch.full((B, 1), math.log(smax), dtype=dt)
+            mk = torch.zeros(B, 1, 3, dtype=dt)
+            mk[..., 2] = 1.0
+            ak[nzi], lk[nzi], mk[nzi] = w1.clamp_min(1e-10).log(), s1.log(), m1
+            a = torch.cat([a, ak], 1)
+            ls = torch.cat([ls, lk], 1)
+            mu = torch.cat([mu, mk], 1)
             zero_start(a, ls, mu)
             prob = Problem(Tn, dirs, sa, k, beta, beta, delta if k > 1 else 0.0, smin, smax)
             sbk = None
