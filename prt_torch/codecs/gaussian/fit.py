@@ -53,6 +53,7 @@ import time
 import torch
 
 from ...lighting.prefilter import sg_normaliser
+from . import lm_native
 from .views import view_neighbours
 
 __all__ = ["mixture", "resolvable_sigma", "flood_fill_order", "fit_all", "Problem", "tangents", "prob_pairs", "RESOLVE_FACTOR"]
@@ -387,6 +388,9 @@ def _lm_batch(Tn, nonzero, dirs, sa, J, vn, N, beta, delta, sb, smin, smax, max_
     B, P = Tn.shape
     dt = torch.float32
     loop = loop or _lm_loop
+    if loop is _lm_loop and lm_native.available():  # the same iterations compiled (PRT_TORCH_NATIVE=0: the torch loop)
+        def loop(prob, a, ls, mu, conv, z, targets, sb, max_iter, tol, smin, smax):
+            return lm_native.lm_loop(prob, a, ls, mu, conv, z, sb, max_iter, tol, smin, smax, vn, J)
     restart_above = RESTART_ABOVE if restart_above is None else restart_above
     dirs, sa = dirs.to(dt), sa.to(dt)
     view_of = torch.arange(B) % J

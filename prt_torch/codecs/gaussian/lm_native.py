@@ -1,0 +1,90 @@
+"""The Gaussian fit's Levenberg–Marquardt loop compiled (``prt_torch/kernels/gauss_lm.c``): the same
+iterations as :func:`.fit._lm_loop` (Green 2005 eq. 2.2–2.6; the objective, the Gauss–Newton normal
+equations from per-texel moments, the active set at the bounds, per-function damping and
+convergence, the view targets by block Jacobi) with each function's step — its lobe terms, residual,
+moments, 4N×4N system, Cholesky solve, trial step and its objective — in one pass over its P texels
+instead of a dozen batched torch passes over ``[b, N, P]`` per iteration, and the loop itself in C
+(no per-iteration gather / scatter of the active functions).
+
+:func:`lm_loop` has :func:`.fit._lm_loop`'s contract plus the view geometry (``vn``, ``J``);
+:func:`available` says whether the library is there. Without a C compiler, or with
+``PRT_TORCH_NATIVE=0``, the fit runs the torch loop (tests compare both).
+"""
+from __future__ import annotations
+
+import ctypes
+import os
+import threading
+
+import torch
+
+from ..._native import LIBRARIES, compile_library, kernel_sources
+
+__all__ = ["available", "lm_loop", "why"]
+
+_lock = threading.Lock()
+_state: dict = {}
+
+
+def _lib():
+    if os.environ.get("PRT_TORCH_NATIVE", "1") == "0":
+        return None
+    if "lib" not in _state:
+        with _lock:
+            if "lib" not in _state:
+                names, flags = LIBRARIES["gauss_lm"]
+                i64, vp, dbl = ctypes.c_int64, ctypes.c_void_p, ctypes.c_double
+                _state["lib"], _state["why"] = compile_library("gauss_lm", kernel_sources(names), list(flags), {
+                    "prt_gauss_lm_loop": [i64] * 7 + [vp] * 7 + [dbl] * 8 + [i64] + [vp] * 5 + [ctypes.c_int]})
+    return _state["lib"]
+
+
+def available() -> bool:
+    """Whether the compiled loop runs here (a C compiler, and ``PRT_TORCH_NATIVE`` is not 0)."""
+    return _lib() is not None
+
+
+def why() -> str:
+    """How the library was obtained, or why not."""
+    _lib()
+    return _state.get("why", "disabled by PRT_TORCH_NATIVE=0")
+
+
+def _c(t: torch.Tensor, dtype) -> torch.Tensor:
+    return t.detach().to(dtype).contiguous()
+
+
+def lm_loop(prob, a, ls, mu, conv, z, sb, max_iter, tol, smin, smax, vn, J):
+    """:func:`.fit._lm_loop` compiled: ``prob`` (:class:`.fit.Problem`: tables ``T [B, P]``, texel
+    directions and solid angles, N, β, γ, δ, width bounds), ``a``, ``ls [B, N]``, ``mu [B, N, 3]``
+    float32 (updated in place and returned), ``conv [B]`` bool (True: not optimised; updated), ``z
+    [B]`` bool zero functions, ``sb [B, pairs, Q, 3]`` or None (eq. 2.6's neighbour differences),
+    ``vn [J, R]`` int64 view neighbours (R = 0 or β = 0: no view terms), ``J`` views per vertex.
+    Runs ``torch.get_num_threads()`` OpenMP threads. → ``(a, ls, mu, conv, iterations)``."""
+    lib = _lib()
+    B, N = a.shape
+    P = prob.T.shape[1]
+    f32 = torch.float32
+    T, dirs, sa = _c(prob.T, f32), _c(prob.dirs_t, f32), _c(prob.sa, f32)  # dirs_t [3, P]: one row per axis
+    en = _c(prob.energy, f32)
+    a_, ls_, mu_ = _c(a, f32), _c(ls, f32), _c(mu, f32)
+    cv = _c(conv, torch.uint8)
+    zz = _c(z, torch.uint8)
+    vn_ = _c(vn, torch.int64)
+    R = vn_.shape[1] if (prob.beta > 0 and vn_.ndim == 2) else 0
+    use_sb = prob.delta > 0 and sb is not None and len(prob.pairs) > 0
+    sb_ = _c(sb, f32) if use_sb else None
+    Q = sb_.shape[2] if use_sb else 0
+    pairs = torch.tensor(prob.pairs if prob.pairs else [(0, 0)], dtype=torch.int32).contiguous()
+    it = lib.prt_gauss_lm_loop(B, N, P, J, R, Q, len(prob.pairs) if use_sb else 0, T.data_ptr(), dirs.data_ptr(), sa.data_ptr(),
+                               en.data_ptr(), vn_.data_ptr(), sb_.data_ptr() if use_sb else None, pairs.data_ptr(),
+                               float(prob.beta), float(prob.gamma), float(prob.delta), float(prob.lsmin), float(prob.lsmax),
+                               float(smin), float(smax), float(tol), int(max_iter), a_.data_ptr(), ls_.data_ptr(), mu_.data_ptr(),
+                               cv.data_ptr(), zz.data_ptr(), int(torch.get_num_threads()))
+    if it < 0:
+        raise MemoryError(f"prt_gauss_lm_loop: {'bad sizes' if it == -1 else 'out of memory'} (B={B}, N={N}, P={P})")
+    a.copy_(a_)
+    ls.copy_(ls_)
+    mu.copy_(mu_)
+    conv.copy_(cv.bool())
+    return a, ls, mu, conv, int(it)
