@@ -81,26 +81,29 @@ static inline float sg_norm(float lam) {
 
 /* term [N, P], r [P] of function f at (a, ls, mu); returns E (data + view + spatial terms). */
 static double evaluate(const ctx_t *c, int64_t f, const float *a, const float *ls, const float *mu, const float *tm,
-                       const float *ts, float *term, float *r, float *lam_out) {
+                       const float *ts, float *restrict term, float *restrict r, float *lam_out) {
     const int64_t N = c->N, P = c->P;
     const float *T = c->T + f * P, *dx = c->dirs, *dy = c->dirs + P, *dz = c->dirs + 2 * P, *sa = c->sa;
     for (int64_t k = 0; k < N; k++) {
         float lam = expf(-2.0f * ls[k]);
         float bias = a[k] + logf(sg_norm(lam)) - lam;
         float mx = mu[3 * k] * lam, my = mu[3 * k + 1] * lam, mz = mu[3 * k + 2] * lam;
-        float *tk = term + k * P;
+        float *restrict tk = term + k * P;
 #pragma omp simd
         for (int64_t p = 0; p < P; p++) tk[p] = fexp(mx * dx[p] + my * dy[p] + mz * dz[p] + bias);
         if (lam_out) lam_out[k] = lam;
     }
     float e = 0.0f;
-#pragma omp simd reduction(+ : e)
-    for (int64_t p = 0; p < P; p++) {
-        float s = -T[p];
-        for (int64_t k = 0; k < N; k++) s += term[k * P + p];
-        r[p] = s;
-        e += s * s * sa[p];
+    const float *restrict t0 = term;
+#pragma omp simd
+    for (int64_t p = 0; p < P; p++) r[p] = t0[p] - T[p];
+    for (int64_t k = 1; k < N; k++) {
+        const float *restrict tk = term + k * P;
+#pragma omp simd
+        for (int64_t p = 0; p < P; p++) r[p] += tk[p];
     }
+#pragma omp simd reduction(+ : e)
+    for (int64_t p = 0; p < P; p++) e += r[p] * r[p] * sa[p];
     double E = e;
     double en = c->en[f];
     if (c->beta > 0 && tm) {
