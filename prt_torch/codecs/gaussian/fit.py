@@ -16,7 +16,9 @@ coordinates of μ, re-centred every step: constraints by reparameterisation), so
 equations are 4N×4N (assembled from per-texel moments, :meth:`Problem.normal_equations`) and
 one batched Cholesky solve per iteration serves thousands of functions; Gauss–Newton converges
 in a few tens of steps on these near-Gaussian lobes (Green reports "several hundred" fmincon
-iterations). ``optimizer='lbfgs'`` (torch's L-BFGS on the batch's summed objective) is kept as
+iterations). The loop runs compiled where a C compiler is (:mod:`.lm_native`: each function's step in
+one pass over its texels; :func:`_lm_loop` is the same iterations in torch, run with
+``PRT_TORCH_NATIVE=0``). ``optimizer='lbfgs'`` (torch's L-BFGS on the batch's summed objective) is kept as
 the measured alternative: on the same functions and start it ends at a higher error with 5×
 the iterations (reports/benchmarks/gaussian.md). Widths and weights at their bounds are
 handled as an active set (frozen for a step when the gradient points outward). The
