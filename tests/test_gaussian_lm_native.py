@@ -131,3 +131,56 @@ def test_bounds_hold_and_a_zero_table_stays_zero(monkeypatch):
     assert float(w.min()) >= 0.0 and float(w[~nonzero].abs().max()) == 0.0
     torch.testing.assert_close(mu.norm(dim=-1), torch.ones(mu.shape[:2]), rtol=0, atol=1e-5)
     assert math.isfinite(float(E.sum()))
+
+
+@pytest.mark.parametrize("N", [1, 2, 3])
+def test_compiled_normal_equations_equal_problem_and_finite_differences(N):
+    """The compiled objective and Gauss–Newton system (``lm_native.normal_equations``, what each
+    compiled step solves with) with the data, view (eq. 2.4–2.5) and spatial (eq. 2.6) terms all
+    active: E, JᵀJ, Jᵀr equal fit.Problem's (float64) to float32 rounding, and 2 Jᵀr equals the
+    central finite-difference gradient of the float64 objective in the step's coordinates (log w,
+    log σ, tangent-plane u, v of each mean) — an independent check of the view and spatial terms,
+    which the autograd test of the data term does not cover."""
+    r = 8
+    d, s = cube_map_directions(r)
+    dirs, sa = d.reshape(-1, 3).double(), s.reshape(-1).double()
+    g = torch.Generator().manual_seed(20 + N)
+    B = 4
+    T = mixture(dirs, torch.empty(B, N, dtype=torch.float64).uniform_(0.5, 1.5, generator=g),
+                torch.nn.functional.normalize(torch.randn(B, N, 3, generator=g, dtype=torch.float64), dim=-1),
+                torch.empty(B, N, dtype=torch.float64).uniform_(0.3, 0.6, generator=g))
+    T = T.float().double()  # representable in float32: both sides see the same table
+    a = torch.empty(B, N, dtype=torch.float64).uniform_(-0.5, 0.5, generator=g)
+    ls = torch.empty(B, N, dtype=torch.float64).uniform_(math.log(0.3), math.log(0.7), generator=g)
+    mu = torch.nn.functional.normalize(torch.randn(B, N, 3, generator=g, dtype=torch.float64), dim=-1)
+    tm = mu + 0.2 * torch.randn(B, N, 3, generator=g, dtype=torch.float64)
+    ts = ls.exp() * torch.empty(B, N, dtype=torch.float64).uniform_(0.7, 1.3, generator=g)
+    npairs = len(F.prob_pairs(N))
+    sb = torch.randn(B, npairs, 5, 3, generator=g, dtype=torch.float64) if npairs else None
+    beta, delta = 0.05, 0.5
+    a, ls, mu, tm, ts = (t.float().double() for t in (a, ls, mu, tm, ts))
+    sb = None if sb is None else sb.float().double()
+    p64 = F.Problem(T, dirs.float().double(), sa.float().double(), N, beta, beta, delta, 0.05, 3.0)
+    p32 = F.Problem(T.float(), dirs.float(), sa.float(), N, beta, beta, delta, 0.05, 3.0)
+    JtJ_c, Jtr_c, E_c = lm_native.normal_equations(p32, a.float(), ls.float(), mu.float(), tm.float(), ts.float(),
+                                                   None if sb is None else sb.float())
+    JtJ_t, Jtr_t, E_t = p64.normal_equations(a, ls, mu, torch.arange(B), tm, ts, sb)
+    torch.testing.assert_close(E_c, E_t, rtol=1e-5, atol=1e-9)
+    scale = JtJ_t.abs().amax((1, 2), keepdim=True)
+    torch.testing.assert_close(JtJ_c / scale, JtJ_t / scale, rtol=0, atol=2e-5)
+    torch.testing.assert_close(Jtr_c / scale[..., 0], Jtr_t / scale[..., 0], rtol=0, atol=2e-5)
+    if npairs:
+        assert float(p64._spatial(mu, sb)[0].amax()) > 0.1  # the spatial hinge is active somewhere
+
+    def objective(theta):  # [B, 4N] steps in the LM's coordinates → E [B] (float64)
+        a2, ls2, mu2 = p64.step(a, ls, mu, theta)
+        return p64.evaluate(a2, ls2, mu2, torch.arange(B), tm, ts, sb)[0]
+
+    h = 1e-6
+    grad = torch.empty(B, 4 * N, dtype=torch.float64)
+    for i in range(4 * N):
+        e = torch.zeros(B, 4 * N, dtype=torch.float64)
+        e[:, i] = h
+        grad[:, i] = (objective(e) - objective(-e)) / (2 * h)
+    gs = grad.abs().amax(1, keepdim=True)
+    torch.testing.assert_close(2 * Jtr_c / gs, grad / gs, rtol=0, atol=1e-4)

@@ -420,3 +420,27 @@ int prt_gauss_lm_loop(int64_t B, int64_t N, int64_t P, int64_t J, int64_t R, int
     free(tm); free(ts); free(lm); free(act); free(zi); free(fscr); free(dscr);
     return (int)it;
 }
+
+/* The objective E [B], JtJ [B, 4N, 4N] and Jtr [B, 4N] (float64) of each function at the given
+ * parameters and view targets (tm [B, N, 3], ts [B, N], or NULL: no view terms), before any active
+ * set or damping: the quantities each step of prt_gauss_lm_loop solves with (tests compare them with
+ * fit.Problem and with finite differences). Arguments as prt_gauss_lm_loop's. Returns 0; -1 bad sizes,
+ * -2 out of memory. */
+int prt_gauss_normal_equations(int64_t B, int64_t N, int64_t P, int64_t Q, int64_t npairs, const float *T, const float *dirs,
+                               const float *sa, const float *en, const float *sb, const int32_t *pairs, double beta, double gamma,
+                               double delta, const float *a, const float *ls, const float *mu, const float *tm, const float *ts,
+                               double *E, double *JtJ, double *Jtr) {
+    if (N < 1 || N > MAXN || P < 1 || B < 0) return -1;
+    ctx_t c = {B, N, P, 1, 0, Q, npairs, T, dirs, sa, en, sb, NULL, pairs, beta, gamma, delta, 0, 0, 0, 0, 0};
+    float *term = malloc(sizeof(float) * (N + 1) * P);
+    if (!term) return -2;
+    const int64_t n4 = 4 * N;
+    for (int64_t f = 0; f < B; f++) {
+        float lam[MAXN];
+        const float *tmf = tm ? tm + f * N * 3 : NULL, *tsf = tm ? ts + f * N : NULL;
+        E[f] = evaluate(&c, f, a + f * N, ls + f * N, mu + f * N * 3, tmf, tsf, term, term + N * P, lam);
+        normal_equations(&c, f, ls + f * N, mu + f * N * 3, tmf, tsf, term, term + N * P, lam, JtJ + f * n4 * n4, Jtr + f * n4);
+    }
+    free(term);
+    return 0;
+}

@@ -20,7 +20,7 @@ import torch
 
 from ..._native import LIBRARIES, compile_library, kernel_sources
 
-__all__ = ["available", "lm_loop", "why"]
+__all__ = ["available", "lm_loop", "normal_equations", "why"]
 
 _lock = threading.Lock()
 _state: dict = {}
@@ -35,7 +35,8 @@ def _lib():
                 names, flags = LIBRARIES["gauss_lm"]
                 i64, vp, dbl = ctypes.c_int64, ctypes.c_void_p, ctypes.c_double
                 _state["lib"], _state["why"] = compile_library("gauss_lm", kernel_sources(names), list(flags), {
-                    "prt_gauss_lm_loop": [i64] * 7 + [vp] * 7 + [dbl] * 8 + [i64] + [vp] * 5 + [ctypes.c_int]})
+                    "prt_gauss_lm_loop": [i64] * 7 + [vp] * 7 + [dbl] * 8 + [i64] + [vp] * 5 + [ctypes.c_int],
+                    "prt_gauss_normal_equations": [i64] * 5 + [vp] * 6 + [dbl] * 3 + [vp] * 8})
     return _state["lib"]
 
 
@@ -88,3 +89,33 @@ def lm_loop(prob, a, ls, mu, conv, z, sb, max_iter, tol, smin, smax, vn, J):
     mu.copy_(mu_)
     conv.copy_(cv.bool())
     return a, ls, mu, conv, int(it)
+
+
+def normal_equations(prob, a, ls, mu, tgt_mu, tgt_s, sb):
+    """The compiled objective and Gauss–Newton system of every function of ``prob`` (as
+    :meth:`.fit.Problem.normal_equations` for ``sel`` = all, before the active set and damping):
+    ``a``, ``ls [B, N]``, ``mu [B, N, 3]``, view targets ``tgt_mu [B, N, 3]``, ``tgt_s [B, N]`` (or
+    None), ``sb [B, pairs, Q, 3]`` (or None) → ``(JtJ [B, 4N, 4N], Jtr [B, 4N], E [B])`` float64.
+    What each step of :func:`lm_loop` solves with; for tests."""
+    lib = _lib()
+    B, N = a.shape
+    P = prob.T.shape[1]
+    f32 = torch.float32
+    T, dirs, sa, en = _c(prob.T, f32), _c(prob.dirs_t, f32), _c(prob.sa, f32), _c(prob.energy, f32)
+    a_, ls_, mu_ = _c(a, f32), _c(ls, f32), _c(mu, f32)
+    views = prob.beta > 0 and tgt_mu is not None
+    tm, ts = (_c(tgt_mu, f32), _c(tgt_s, f32)) if views else (None, None)
+    use_sb = prob.delta > 0 and sb is not None and len(prob.pairs) > 0
+    sb_ = _c(sb, f32) if use_sb else None
+    pairs = torch.tensor(prob.pairs if prob.pairs else [(0, 0)], dtype=torch.int32).contiguous()
+    E = torch.empty(B, dtype=torch.float64)
+    JtJ = torch.empty(B, 4 * N, 4 * N, dtype=torch.float64)
+    Jtr = torch.empty(B, 4 * N, dtype=torch.float64)
+    rc = lib.prt_gauss_normal_equations(B, N, P, sb_.shape[2] if use_sb else 0, len(prob.pairs) if use_sb else 0, T.data_ptr(),
+                                        dirs.data_ptr(), sa.data_ptr(), en.data_ptr(), sb_.data_ptr() if use_sb else None,
+                                        pairs.data_ptr(), float(prob.beta), float(prob.gamma), float(prob.delta), a_.data_ptr(),
+                                        ls_.data_ptr(), mu_.data_ptr(), tm.data_ptr() if views else None,
+                                        ts.data_ptr() if views else None, E.data_ptr(), JtJ.data_ptr(), Jtr.data_ptr())
+    if rc != 0:
+        raise MemoryError(f"prt_gauss_normal_equations: {'bad sizes' if rc == -1 else 'out of memory'} (B={B}, N={N}, P={P})")
+    return JtJ, Jtr, E
