@@ -1,4 +1,4 @@
-/* The Gaussian codec's fit (Green 2005 §2.2, eq. 2.2-2.6): the batched Levenberg-Marquardt loop of
+/* gauss_lm.c: the Gaussian codec's fit (Green 2005 §2.2, eq. 2.2-2.6): the batched Levenberg-Marquardt loop of
  * prt_torch/codecs/gaussian/fit.py (_lm_loop) in one compiled pass per iteration and function.
  *
  * Per function f of a batch (row f of T [B, P]) with N lobes (log w a, log sigma ls, unit mean mu):

@@ -82,8 +82,10 @@ def lm_loop(prob, a, ls, mu, conv, z, sb, max_iter, tol, smin, smax, vn, J):
                                float(prob.beta), float(prob.gamma), float(prob.delta), float(prob.lsmin), float(prob.lsmax),
                                float(smin), float(smax), float(tol), int(max_iter), a_.data_ptr(), ls_.data_ptr(), mu_.data_ptr(),
                                cv.data_ptr(), zz.data_ptr(), int(torch.get_num_threads()))
+    if it == -1:
+        raise ValueError(f"prt_gauss_lm_loop: lobes N={N}, texels P={P}, functions B={B}; accepted: 1 <= N <= 16, P >= 1, B >= 1")
     if it < 0:
-        raise MemoryError(f"prt_gauss_lm_loop: {'bad sizes' if it == -1 else 'out of memory'} (B={B}, N={N}, P={P})")
+        raise MemoryError(f"prt_gauss_lm_loop: out of memory for B={B} functions of N={N} lobes, P={P} texels")
     a.copy_(a_)
     ls.copy_(ls_)
     mu.copy_(mu_)
@@ -116,6 +118,8 @@ def normal_equations(prob, a, ls, mu, tgt_mu, tgt_s, sb):
                                         pairs.data_ptr(), float(prob.beta), float(prob.gamma), float(prob.delta), a_.data_ptr(),
                                         ls_.data_ptr(), mu_.data_ptr(), tm.data_ptr() if views else None,
                                         ts.data_ptr() if views else None, E.data_ptr(), JtJ.data_ptr(), Jtr.data_ptr())
+    if rc == -1:
+        raise ValueError(f"prt_gauss_normal_equations: lobes N={N}, texels P={P}; accepted: 1 <= N <= 16, P >= 1")
     if rc != 0:
-        raise MemoryError(f"prt_gauss_normal_equations: {'bad sizes' if rc == -1 else 'out of memory'} (B={B}, N={N}, P={P})")
+        raise MemoryError(f"prt_gauss_normal_equations: out of memory for N={N} lobes, P={P} texels")
     return JtJ, Jtr, E
