@@ -74,7 +74,7 @@ def _fit(X, ev, kw, lobes: int, native: bool) -> dict:
     i = c.fit_info_
     return {"cpu_s": cpu, "wall_s": wall, "relative_l2": i["relative_l2"], "se_relative": i["se_relative"],
             "median": i["relative_l2_median"], "p90": i["relative_l2_p90"], "converged": i["converged_fraction"],
-            "iterations": max(b["iterations"] for b in i["batches"])}
+            "iterations": max(b["iterations"] for b in i["batches"]), "lm_loop": i["lm_loop"]}
 
 
 def main(argv=None) -> int:

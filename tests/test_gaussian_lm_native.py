@@ -108,6 +108,7 @@ def test_codec_fit_compiled_equals_torch_and_does_not_depend_on_threads(threads,
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
                 enc = c.fit_encode(X, matrix_shape=(J, T.shape[1]), views=views)
+            assert c.fit_info_["lm_loop"] == ("compiled" if native else "torch")
             res[(native, th)] = (c.decode(enc).double(), c.fit_info_["relative_l2"])
     finally:
         torch.set_num_threads(n)

@@ -377,6 +377,8 @@ def fit_all(T: torch.Tensor, p: dict, init, directions: torch.Tensor, solid_angl
             "converged_fraction": 1.0 - not_conv / max(1, fitted), "lobes": N,
             "optimiser": ("batched Levenberg-Marquardt (4N x 4N Cholesky per function)" if p["optimizer"] == "lm"
                           else "L-BFGS (strong Wolfe) on the batch's summed objective"),
+            # which LM loop ran (benchmarks name the path a row used): compiled (lm_native) or torch (fit._lm_loop)
+            "lm_loop": ("compiled" if lm_native.available() else "torch") if p["optimizer"] == "lm" else None,
             "flood_fill": faces is not None}
     return W, MU, SG, info
 
