@@ -185,3 +185,27 @@ def test_compiled_normal_equations_equal_problem_and_finite_differences(N):
         grad[:, i] = (objective(e) - objective(-e)) / (2 * h)
     gs = grad.abs().amax(1, keepdim=True)
     torch.testing.assert_close(2 * Jtr_c / gs, grad / gs, rtol=0, atol=1e-4)
+
+
+def test_compiled_peaks_and_moments_equal_the_torch_start():
+    """``lm_native.peaks`` (the compiled start) against ``fit._init_lobes`` with one lobe on noisy
+    two-lobe mixtures (cube-map texels symmetric about the peak included): the same weights, means
+    and widths to float32 rounding on every function; and for a single clean lobe both put the mean
+    within a texel of the truth."""
+    d, s = cube_map_directions(8)
+    dirs, sa = d.reshape(-1, 3).float(), s.reshape(-1).float()
+    g = torch.Generator().manual_seed(4)
+    B = 2000
+    T = mixture(dirs, torch.rand(B, 2, generator=g) + 0.2, torch.nn.functional.normalize(torch.randn(B, 2, 3, generator=g), dim=-1),
+                torch.rand(B, 2, generator=g) * 0.5 + 0.15).float()
+    T = (T + 0.02 * torch.rand(T.shape, generator=g) * T.amax(1, keepdim=True)).clamp_min(0)
+    smin = F.resolvable_sigma(sa)
+    w0, m0, s0 = F._init_lobes(T, dirs, sa, 1, smin, 3.0)
+    w1, m1, s1 = lm_native.peaks(T, dirs.T, sa, smin, 3.0)
+    torch.testing.assert_close(w1, w0, rtol=1e-4, atol=1e-7)
+    torch.testing.assert_close(m1, m0, rtol=0, atol=1e-5)
+    torch.testing.assert_close(s1, s0, rtol=1e-4, atol=0)
+    truth = torch.nn.functional.normalize(torch.tensor([[[0.3, -0.5, 0.8]]]), dim=-1)
+    one = mixture(dirs, torch.ones(1, 1), truth, torch.full((1, 1), 0.3)).float()
+    for m in (F._init_lobes(one, dirs, sa, 1, smin, 3.0)[1], lm_native.peaks(one, dirs.T, sa, smin, 3.0)[1]):
+        assert float(torch.rad2deg(torch.acos((m * truth).sum(-1).clamp(-1, 1)))) < 90 / 8  # within one texel (90° / r)

@@ -444,3 +444,54 @@ int prt_gauss_normal_equations(int64_t B, int64_t N, int64_t P, int64_t Q, int64
     free(term);
     return 0;
 }
+
+/* Peaks and moments (fit._init_lobes with one lobe; Green §2.2's initialisation): for each function
+ * f of R [B, P] (float32, >= 0 where it matters) the lobe at the centroid of the contiguous
+ * half-maximum cap around its largest texel: c_out = the largest cos to the peak among texels below
+ * half the peak (-1 if none), the cap = texels with cos > c_out, c_in = their smallest cos (1 if
+ * none); sigma = sqrt((1 - (c_in + c_out) / 2) / ln 2) within [smin, smax] (1 - cos = ln2 sigma^2 at
+ * half maximum), mu = the cap's first moment sum dw max(R, 0) w normalised (the peak direction if it
+ * vanishes), w = max(peak, 0) / max(exp(lam (mu . w_peak - 1)), 1/2) / c(lam). dirs [3, P] as
+ * prt_gauss_lm_loop's. Writes w [B], mu [B, 3], sigma [B]. Returns 0, or -1 for bad sizes. */
+int prt_gauss_peaks(int64_t B, int64_t P, const float *R, const float *dirs, const float *sa, double smin, double smax, float *w,
+                    float *mu, float *sigma, int nthreads) {
+    if (B < 0 || P < 1) return -1;
+    const float *dx = dirs, *dy = dirs + P, *dz = dirs + 2 * P;
+    nthreads = nthreads < 1 ? 1 : nthreads;
+#pragma omp parallel for num_threads(nthreads) schedule(static)
+    for (int64_t f = 0; f < B; f++) {
+        const float *r = R + f * P;
+        int64_t p = 0;
+        float peak = r[0];
+        for (int64_t q = 1; q < P; q++)
+            if (r[q] > peak) { peak = r[q]; p = q; }
+        const float px = dx[p], py = dy[p], pz = dz[p], half = 0.5f * peak;
+        float c_out = -1.0f;
+        for (int64_t q = 0; q < P; q++) {
+            float c = px * dx[q] + py * dy[q] + pz * dz[q];
+            if (!(r[q] >= half) && c > c_out) c_out = c;
+        }
+        float c_in = 1.0f, cx = 0, cy = 0, cz = 0;
+        for (int64_t q = 0; q < P; q++) {
+            float c = px * dx[q] + py * dy[q] + pz * dz[q];
+            if (c > c_out + 1e-6f) {
+                if (c < c_in) c_in = c;
+                float v = (r[q] > 0 ? r[q] : 0.0f) * sa[q];
+                cx += v * dx[q]; cy += v * dy[q]; cz += v * dz[q];
+            }
+        }
+        float omc = 0.5f * ((1 - c_out) + (1 - c_in));
+        float s = sqrtf(omc / 0.69314718055994531f);
+        s = s < (float)smin ? (float)smin : (s > (float)smax ? (float)smax : s);
+        float cn = sqrtf(cx * cx + cy * cy + cz * cz), m[3];
+        if (cn > 1e-30f) { m[0] = cx / cn; m[1] = cy / cn; m[2] = cz / cn; }
+        else { m[0] = px; m[1] = py; m[2] = pz; }
+        float lam = 1.0f / (s * s);
+        float off = expf(lam * (m[0] * px + m[1] * py + m[2] * pz - 1.0f));
+        off = off > 0.5f ? off : 0.5f;
+        w[f] = (peak > 0 ? peak : 0.0f) / off / sg_norm(lam);
+        mu[3 * f] = m[0]; mu[3 * f + 1] = m[1]; mu[3 * f + 2] = m[2];
+        sigma[f] = s;
+    }
+    return 0;
+}

@@ -178,7 +178,10 @@ def _init_lobes(T: torch.Tensor, dirs: torch.Tensor, sa: torch.Tensor, N: int, s
         above = R >= 0.5 * peak[:, None]
         # the contiguous half-maximum cap: out to the nearest texel below half the peak
         c_out = torch.where(above, torch.full_like(cos, -1.0), cos).amax(1)  # [B]
-        cap = cos > c_out[:, None]
+        # (the margin: texels at the same angle from the peak as c_out's — cube-map symmetry — stay out of
+        # the cap whatever the rounding of cos; without it 2% of random functions started differently in
+        # the compiled start, lm_native.peaks, whose cos rounds otherwise than this GEMM)
+        cap = cos > c_out[:, None] + 1e-6
         c_in = torch.where(cap, cos, torch.ones_like(cos)).amin(1)
         one_minus_c = 0.5 * ((1 - c_out) + (1 - c_in))
         s = (one_minus_c / ln2).sqrt().clamp(smin, smax)  # 1 − cos θ_half = ln2 σ² for a Gaussian
@@ -192,6 +195,15 @@ def _init_lobes(T: torch.Tensor, dirs: torch.Tensor, sa: torch.Tensor, N: int, s
         if k < N - 1:  # the residual for the next lobe (none after the last: the fit calls this with N = 1)
             R = R - wk[:, None] * sg_normaliser(lam)[:, None] * torch.exp(lam[:, None] * (m @ dirs.T - 1))
     return w, mu, sg
+
+
+def _start_lobe(R: torch.Tensor, dirs: torch.Tensor, sa: torch.Tensor, smin: float, smax: float):
+    """One lobe by peaks and moments for each row of ``R [B, P]`` → ``(w [B, 1], mu [B, 1, 3], sigma
+    [B, 1])``: :func:`_init_lobes`, compiled where the LM loop is (:func:`.lm_native.peaks`, the same
+    values to float32 rounding; 3× less CPU time, 4000 functions of 384 texels)."""
+    if lm_native.available():
+        return lm_native.peaks(R, dirs.T, sa, smin, smax)
+    return _init_lobes(R, dirs, sa, 1, smin, smax)
 
 
 class Problem:
@@ -445,7 +457,7 @@ def _lm_batch(Tn, nonzero, dirs, sa, J, vn, N, beta, delta, sb, smin, smax, max_
                 res = (Tp - fit).clamp_min(0)
             else:
                 res = Tp
-            w1, m1, s1 = _init_lobes(res, dirs, sa, 1, smin, smax)
+            w1, m1, s1 = _start_lobe(res, dirs, sa, smin, smax)
             ak = torch.full((B, 1), _LOG_W_MIN, dtype=dt)
             lk = torch.full((B, 1), math.log(smax), dtype=dt)
             mk = torch.zeros(B, 1, 3, dtype=dt)
@@ -480,7 +492,7 @@ def _lm_batch(Tn, nonzero, dirs, sa, J, vn, N, beta, delta, sb, smin, smax, max_
         lam = torch.exp(-2 * ls[bi])
         others = ((a[bi].exp() * sg_normaliser(lam) * keep)[..., None]
                   * torch.exp(lam[..., None] * (torch.einsum("bnc,pc->bnp", mu[bi], dirs) - 1))).sum(1)
-        w1, m1, s1 = _init_lobes((Tn[bi] - others).clamp_min(0), dirs, sa, 1, smin, smax)
+        w1, m1, s1 = _start_lobe((Tn[bi] - others).clamp_min(0), dirs, sa, smin, smax)
         a2[bi, k] = w1[:, 0].clamp_min(1e-10).log()
         mu2[bi, k] = m1[:, 0]
         ls2[bi, k] = s1[:, 0].log()

@@ -20,7 +20,7 @@ import torch
 
 from ..._native import LIBRARIES, compile_library, kernel_sources
 
-__all__ = ["available", "lm_loop", "normal_equations", "why"]
+__all__ = ["available", "lm_loop", "normal_equations", "peaks", "why"]
 
 _lock = threading.Lock()
 _state: dict = {}
@@ -36,7 +36,8 @@ def _lib():
                 i64, vp, dbl = ctypes.c_int64, ctypes.c_void_p, ctypes.c_double
                 _state["lib"], _state["why"] = compile_library("gauss_lm", kernel_sources(names), list(flags), {
                     "prt_gauss_lm_loop": [i64] * 7 + [vp] * 7 + [dbl] * 8 + [i64] + [vp] * 5 + [ctypes.c_int],
-                    "prt_gauss_normal_equations": [i64] * 5 + [vp] * 6 + [dbl] * 3 + [vp] * 8})
+                    "prt_gauss_normal_equations": [i64] * 5 + [vp] * 6 + [dbl] * 3 + [vp] * 8,
+                    "prt_gauss_peaks": [i64, i64, vp, vp, vp, dbl, dbl, vp, vp, vp, ctypes.c_int]})
     return _state["lib"]
 
 
@@ -123,3 +124,21 @@ def normal_equations(prob, a, ls, mu, tgt_mu, tgt_s, sb):
     if rc != 0:
         raise MemoryError(f"prt_gauss_normal_equations: out of memory for N={N} lobes, P={P} texels")
     return JtJ, Jtr, E
+
+
+def peaks(R, dirs_t, sa, smin, smax):
+    """:func:`.fit._init_lobes` for one lobe, compiled (peaks and moments: the centroid of the
+    half-maximum cap around each function's largest texel, σ from the cap's angular radius, w from
+    the peak): ``R [B, P]``, texel directions ``dirs_t [3, P]``, solid angles ``sa [P]`` → ``(w [B, 1],
+    mu [B, 1, 3], sigma [B, 1])`` float32. ``torch.get_num_threads()`` threads."""
+    lib = _lib()
+    f32 = torch.float32
+    R, dirs_t, sa = _c(R, f32), _c(dirs_t, f32), _c(sa, f32)
+    B, P = R.shape
+    w = torch.empty(B, 1, dtype=f32)
+    mu = torch.empty(B, 1, 3, dtype=f32)
+    sg = torch.empty(B, 1, dtype=f32)
+    if lib.prt_gauss_peaks(B, P, R.data_ptr(), dirs_t.data_ptr(), sa.data_ptr(), float(smin), float(smax), w.data_ptr(),
+                           mu.data_ptr(), sg.data_ptr(), int(torch.get_num_threads())) != 0:
+        raise ValueError(f"prt_gauss_peaks: functions B={B}, texels P={P}; accepted: B >= 0, P >= 1")
+    return w, mu, sg
