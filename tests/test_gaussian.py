@@ -76,10 +76,14 @@ def test_spherical_gaussian_is_normalised_and_matches_green_eq_3_2_for_narrow_lo
 _MU = [_unit(1, 0.2, 0.3), _unit(-0.4, 1, 0.1), _unit(0.1, -0.3, -1)]
 
 
+@pytest.mark.parametrize("native", [True, False], ids=["compiled-loop", "torch-loop"])
 @pytest.mark.parametrize("lobes, sigmas", [(1, [0.15]), (1, [0.8]), (2, [0.15, 0.5]), (3, [0.12, 0.3, 0.9])])
-def test_recovers_known_mixture_from_perturbed_start(cube, lobes, sigmas):
+def test_recovers_known_mixture_from_perturbed_start(cube, lobes, sigmas, native, monkeypatch):
     """Noise-free mixtures: from a start 6° off in every mean, widths ×1.25 and weights ×0.7 the
-    fit returns the ground truth: means within 0.05°, widths and weights within 0.2%."""
+    fit returns the ground truth: means within 0.05°, widths and weights within 0.2% — with the
+    compiled LM loop (gaussian.lm_native) and with the torch loop (PRT_TORCH_NATIVE=0)."""
+    if not native:
+        monkeypatch.setenv("PRT_TORCH_NATIVE", "0")
     d, _ = cube
     w = torch.tensor([[1.0, 0.6, 1.5][:lobes]], dtype=torch.float64)
     mu = torch.stack(_MU[:lobes])[None]
@@ -218,8 +222,8 @@ def test_fit_error_statistics_by_row_blocks_equal_the_definitions(cube):
     assert info["relative_l2"] > 1e-4  # one lobe for two: a real error, not a vacuous zero
 
 
-@pytest.mark.parametrize("lobes", [1, 2])
-def test_lm_fit_reaches_scipys_least_squares_optimum_on_noisy_mixtures(cube, lobes):
+@pytest.mark.parametrize("lobes, native", [(1, True), (2, True), (1, False)], ids=["1-compiled", "2-compiled", "1-torch"])
+def test_lm_fit_reaches_scipys_least_squares_optimum_on_noisy_mixtures(cube, lobes, native, monkeypatch):
     """The batched LM (fused objective, restart only above fit.RESTART_ABOVE) against
     scipy.optimize.least_squares (trust-region reflective, its own finite-difference Jacobian)
     minimising the same data term Σ_p Δω_p (Σ_k w_k G(ω_p; μ_k, σ_k) − T(ω_p))² of noisy mixtures
@@ -227,8 +231,11 @@ def test_lm_fit_reaches_scipys_least_squares_optimum_on_noisy_mixtures(cube, lob
     (or below it) on every function, scipy started from the LM's solution (a local optimum: scipy
     cannot improve it) and, for one lobe, from the noiseless truth (the global optimum). For two
     lobes the greedy start can end in another basin than the truth's (seen: 17% above it on one of
-    these six functions, with the restart at 2% as at 20%), so the truth is no bound there."""
+    these six functions, with the restart at 2% as at 20%), so the truth is no bound there. The
+    compiled LM loop (gaussian.lm_native, the default) and the torch loop (PRT_TORCH_NATIVE=0)."""
     scipy_opt = pytest.importorskip("scipy.optimize")
+    if not native:
+        monkeypatch.setenv("PRT_TORCH_NATIVE", "0")
     import numpy as np
 
     d, sa = (t.double() for t in cube)
@@ -279,8 +286,12 @@ def test_all_zero_function_gives_zero_weights_and_no_nan(cube):
     assert c.fit_info_["relative_l2"] < 1e-2
 
 
-def test_two_lobes_from_scratch_on_random_mixtures(cube):
-    """Greedy peaks-and-moments start + joint LM: 95% of random 2-lobe mixtures to 1e-3."""
+@pytest.mark.parametrize("native", [True, False], ids=["compiled-loop", "torch-loop"])
+def test_two_lobes_from_scratch_on_random_mixtures(cube, native, monkeypatch):
+    """Greedy peaks-and-moments start + joint LM: 95% of random 2-lobe mixtures to 1e-3 (the
+    compiled LM loop and the torch loop)."""
+    if not native:
+        monkeypatch.setenv("PRT_TORCH_NATIVE", "0")
     d, _ = cube
     g = torch.Generator().manual_seed(0)
     B = 60
