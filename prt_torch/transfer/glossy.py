@@ -542,12 +542,15 @@ def _add_subsurface(mesh: Mesh, data: torch.Tensor, out_idx: torch.Tensor, spec:
     t = precompute_diffuse(mesh.with_albedo(1.0), bands=bands, samples=samples, bounces=bounces, seed=seed,
                            shadows="always" if shadows else "never", fold_albedo=False,
                            run=dataclasses.replace(run, state_dir=sub_state(run, "irradiance")))
-    L = add_term(mesh, spec, t.data, run, meta)  # [V, 3, n²]
+    L = add_term(mesh, spec, t.data, run, meta)  # [V, 3, n²] (in a file when large: subsurface_term)
+    del t
     r0 = int((out_idx == 0).nonzero()[0, 0])
-    out = data.clone()
-    out[:, r0] += (torch.einsum("vcn,c->vn", L, _LUMA) * (2 * math.sqrt(math.pi))).to(out.dtype)
+    w = [float(x) for x in _LUMA]
+    for a in range(0, data.shape[0], 1 << 14):  # in place, by blocks of rows (data may be file-backed): no second copy
+        x = L[a:a + (1 << 14)]
+        data[a:a + (1 << 14), r0] += ((x[:, 0] * w[0] + x[:, 1] * w[1] + x[:, 2] * w[2]) * (2 * math.sqrt(math.pi))).to(data.dtype)
     meta["subsurface"]["glossy"] = "luminance (Rec. 709) added to the y_00 exit row"
-    return out
+    return data
 
 
 def submesh(mesh: Mesh, sel: torch.Tensor) -> Mesh:

@@ -552,9 +552,16 @@ def check_scale(mesh: Mesh, m: Material, scale: float) -> str | None:
 def subsurface_term(mesh: Mesh, irradiance_transfer: torch.Tensor, material: Any, scale: float, *,
                     epsilon: float = DEFAULT_EPSILON, fresnel: bool = True, method: str = "hierarchical",
                     spacing: float = DEFAULT_SPACING, max_samples: int = MAX_SAMPLES, seed: int = 0,
-                    run: RunOptions | None = None, meta: dict | None = None) -> torch.Tensor:
-    """The subsurface exit transfer ``[V, 3, n²]`` float64 (module docstring's L_o) from the
-    per-vertex diffuse transfer t (ρ = 1, ``[V, n²]``: E = π t) of the same mesh.
+                    run: RunOptions | None = None, meta: dict | None = None,
+                    dtype: torch.dtype = torch.float64) -> torch.Tensor:
+    """The subsurface exit transfer ``[V, 3, n²]`` (module docstring's L_o; float64, or ``dtype``)
+    from the per-vertex diffuse transfer t (ρ = 1, ``[V, n²]``: E = π t) of the same mesh.
+
+    Memory: the irradiance samples and their hierarchy are held whole (every receiver may read
+    any sample: about three float64 copies of ``[S, n²]``); the receivers' rows are copied into
+    :meth:`RunOptions.result_rows` as each chunk finishes — in a file beside ``run.state_dir``
+    when larger than the streaming threshold — and converted to ``dtype`` there (elementwise:
+    the bits of ``L.to(dtype)`` on the whole result).
 
     Irradiance samples (Jensen & Buhler 2002 §3.1: denser than the mean free path): the vertices
     when their mean spacing is below ``spacing`` × the smallest 1/σ'_t, else
@@ -575,8 +582,10 @@ def subsurface_term(mesh: Mesh, irradiance_transfer: torch.Tensor, material: Any
     t0 = time.perf_counter()
     V = mesh.num_vertices
     T = torch.as_tensor(irradiance_transfer, dtype=torch.float64).reshape(V, -1)
+    T_sum, D = float(T.abs().sum()), int(T.shape[1])  # the fingerprint's
     recv = mesh.vertices.to(torch.float64) * scale
     E_v = math.pi * T
+    del T  # one copy of the irradiance held (the input may be a file-backed map: read once here)
     target = spacing * float(m.z_r.min())  # mm between irradiance samples
     varea = vertex_areas(mesh) * scale * scale
     if float(varea.sum()) / V <= target * target:  # the vertices are dense enough: they are the samples
@@ -606,10 +615,15 @@ def subsurface_term(mesh: Mesh, irradiance_transfer: torch.Tensor, material: Any
 
     fp = {"kind": "subsurface", "mesh": mesh.content_hash(), "material": m.describe(), "scale": scale, "epsilon": epsilon,
           "fresnel": fresnel, "method": method, "spacing": spacing, "max_samples": max_samples, "seed": seed,
-          "T": float(T.abs().sum()), "shape": list(T.shape)}
-    chunks = run.run_chunks(V, run.chunks(2048), compute, fingerprint=fp, desc="subsurface")
-    L = torch.cat([c["L"] for c in chunks])
-    terms = torch.stack([c["terms"] for c in chunks]).sum(0)
+          "T": T_sum, "shape": [V, D]}
+    L = run.result_rows((V, 3, D), dtype, name="subsurface")
+    terms = torch.zeros(2, dtype=torch.int64)
+
+    def sink(a: int, b: int, c: dict[str, torch.Tensor]) -> None:  # each chunk copied in as it finishes
+        L[a:b] = c["L"]
+        terms.add_(c["terms"])
+
+    run.run_chunks(V, run.chunks(2048), compute, fingerprint=fp, desc="subsurface", sink=sink)
     stats = {"node_terms": int(terms[0]), "sample_terms": int(terms[1])}
     meta.update({"material": m.describe(), "scale_mm_per_unit": scale, "epsilon": epsilon, "method": method,
                  "fresnel": f"F_dt = eta^2 (1 - F_dr) = {m.F_dt:.4f} at entry and exit (view-independent, Sloan 2003 §3.1)" if fresnel else "none",
