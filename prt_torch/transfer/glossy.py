@@ -508,7 +508,10 @@ def precompute_glossy(
           "vertices": None if sel is None else sel.tolist()}
     if estimator != "plain":
         fp["estimator"] = estimator
-    data, run_meta = run_exit_transfer("glossy", mesh, B, index, bands, samples, seed, shadows, run, fp, sel,
+    # with a subsurface term its passes follow under the state directory: kept until the last (an interruption
+    # there resumes without recomputing the glossy rows), removed after it
+    data, run_meta = run_exit_transfer("glossy", mesh, B, index, bands, samples, seed, shadows,
+                                       run if subsurface is None else dataclasses.replace(run, keep_state=True), fp, sel,
                                        bounces=bounces, estimator=estimator)
     meta = {**shadow_meta, **run_meta, **rcond_meta}
     meta.update(
@@ -526,6 +529,7 @@ def precompute_glossy(
     )
     if subsurface is not None:
         data = _add_subsurface(mesh, data, out_idx, subsurface, bands, samples, seed, shadows, bounces, run, meta)
+        run.finish()
     mesh_out = mesh if sel is None else submesh(mesh, sel)
     return Transfer(kind="glossy", data=data, mesh=mesh_out, meta=meta)
 
@@ -541,7 +545,7 @@ def _add_subsurface(mesh: Mesh, data: torch.Tensor, out_idx: torch.Tensor, spec:
 
     t = precompute_diffuse(mesh.with_albedo(1.0), bands=bands, samples=samples, bounces=bounces, seed=seed,
                            shadows="always" if shadows else "never", fold_albedo=False,
-                           run=dataclasses.replace(run, state_dir=sub_state(run, "irradiance")))
+                           run=dataclasses.replace(run, state_dir=sub_state(run, "irradiance"), keep_state=True))
     L = add_term(mesh, spec, t.data, run, meta)  # [V, 3, n²] (in a file when large: subsurface_term)
     del t
     r0 = int((out_idx == 0).nonzero()[0, 0])

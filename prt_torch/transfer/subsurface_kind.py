@@ -71,7 +71,8 @@ def precompute_subsurface(
             warnings.warn(w, stacklevel=2)
     direct = precompute_diffuse(mesh.with_albedo(1.0), bands=bands, samples=samples, bounces=bounces, seed=seed,
                                 shadows=shadows, fold_albedo=False,
-                                run=dataclasses.replace(run, state_dir=sub_state(run, "irradiance")))
+                                run=dataclasses.replace(run, state_dir=sub_state(run, "irradiance"), keep_state=True))
+    # (kept until the scatter is done: an interrupted scatter resumes without recomputing the irradiance)
     sub: dict[str, Any] = {}
     # the receivers' rows are converted to float32 as each chunk is copied in (in a file when large: subsurface_term)
     L = subsurface_term(mesh, direct.data, m, scale, epsilon=epsilon, fresnel=fresnel, method=method, spacing=spacing,
