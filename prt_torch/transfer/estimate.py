@@ -375,7 +375,8 @@ def estimate(kind, mesh: Mesh, params: dict[str, Any], run: RunOptions | None = 
         {"stage": "rays", "bytes": rays_stage, "seconds": seconds_rays,
          "note": (f"ray-casting scene ~{format_bytes(bvh)}, one chunk ~{format_bytes(chunk)}, the rows filled so far "
                   f"{format_bytes(finished)} (each chunk also on disk in the state directory)"
-                  + (f"; time from {probe_info['note']}" if probe_info.get("note") else ""))},
+                  + (f"; time from {probe_info['note']}" if probe_info.get("note") else "")),
+         "passes": probe_info.get("passes")},
         {"stage": "result", "bytes": result_stage, "seconds": None if seconds_rays is None else 0.0,
          "note": (f"{format_bytes(out_pv * V)} on disk, streamed per chunk (not held)" if kind.output == "directory" else
                   f"{format_bytes(out_pv * V)} assembled in a file beside the state directory and written from it "
