@@ -251,7 +251,7 @@ def _material(kw: dict[str, Any]):
 def real_chunk(kind: str, kw: dict[str, Any], chunk_size: int | None) -> int:
     """Vertices per chunk of the real run of ``kind`` (``chunk_size``, else the kind's default:
     ``glossy.default_chunk`` for glossy/MRT, 2²⁰ rays per chunk within [16, 16384] for diffuse
-    and subsurface's irradiance pass, ``wavelet._default_chunk`` (about 2²⁰ rays at the sub-texel
+    and subsurface's irradiance pass, ``wavelet.default_chunk`` (about 2²⁰ rays at the sub-texel
     resolution) and ``transport``'s 8 Mi table entries per chunk file, at most 4096 vertices)."""
     if chunk_size is not None:
         return int(chunk_size)
@@ -264,9 +264,9 @@ def real_chunk(kind: str, kw: dict[str, Any], chunk_size: int | None) -> int:
 
         return int(min(max(16, (1 << 20) // max(1, rays_per_vertex(samples, kw.get("sampling", "qmc")))), 16384))
     if kind == "wavelet":
-        from .wavelet import _default_chunk
+        from .wavelet import default_chunk as wavelet_chunk
 
-        return _default_chunk(int(kw.get("res", 32)), int(kw.get("supersample", 1)))
+        return wavelet_chunk(int(kw.get("res", 32)), int(kw.get("supersample", 1)))
     if kind == "transport":
         return int(max(1, min(4096, (8 << 20) // (_views(kw) * 6 * int(kw.get("res", 8)) ** 2))))
     return 1024

@@ -112,7 +112,7 @@ def estimate_wavelet_memory(V: int, res: int, terms: int, bits: int, supersample
     return int(result + work + Pf * 40)
 
 
-def _default_chunk(res: int, supersample: int) -> int:
+def default_chunk(res: int, supersample: int) -> int:
     rays = 3 * res * res * supersample * supersample  # about half the sub-texels are above the horizon
     return int(min(max(8, (1 << 20) // rays), 8192))
 
@@ -409,7 +409,7 @@ def precompute_wavelet(
     bounces = check_int("bounces", bounces, 0, 8)
     hit_samples = check_int("hit_samples", hit_samples, 1, 4096)
     V = mesh.num_vertices
-    chunk_size = run.chunks(_default_chunk(res, s))
+    chunk_size = run.chunks(default_chunk(res, s))
     C = 3 if bounces and not mesh.is_grey() else 1  # a coloured mesh's interreflection: one transfer per colour
     stored = V * bytes_per_vertex(terms, bits, P, n_scales, C)  # decides where the rows are assembled (result_rows)
     need = estimate_wavelet_memory(V, res, terms, bits, s, min(chunk_size, max(V, 1)), sampling == "jittered", C,
