@@ -142,6 +142,7 @@ def main(argv=None) -> int:
     ap.add_argument("--merge", action="store_true",
                     help="keep the rows, per-chunk and policy tables of the kinds not measured now from --out's .json")
     ap.add_argument("--no-chunks", action="store_true", help="skip the per-chunk-size table")
+    ap.add_argument("--render-only", action="store_true", help="measure nothing: write --out again from its .json")
     ap.add_argument("--no-policy", action="store_true", help="skip the OpenMP wait-policy table")
     ap.add_argument("--max-real", type=float, default=120.0,
                     help="skip the larger sizes of a kind once its real run took longer than this (seconds)")
@@ -166,14 +167,16 @@ def main(argv=None) -> int:
 
     info = machine_info()
     info["command"] = "python benchmarks/bench_precompute_estimate.py " + " ".join(argv if argv is not None else sys.argv[1:])
-    rows = []
+    rows, chunks = [], []
+    if args.render_only:  # the tables again from --out's .json (after a change of the table's layout)
+        args.merge, args.kinds, args.no_chunks, args.no_policy = True, [], True, True
     with tempfile.TemporaryDirectory(prefix="bench_estimate_") as tmp:
         work = Path(tmp)
-        small = load_scene("bumpy_sphere:642")
+        small = load_scene("bumpy_sphere:642") if args.kinds else None
         for kind in args.kinds:  # warm-up: imports, kernels, first-use allocations
             real_run(kind, small, work)
         too_long: set[str] = set()
-        for size in args.sizes:
+        for size in (args.sizes if args.kinds else []):
             V = load_scene(f"bumpy_sphere:{size}").num_vertices
             for kind in args.kinds:
                 if kind in too_long:
@@ -191,13 +194,12 @@ def main(argv=None) -> int:
                             row.update({f"{step}_{k}": v for k, v in e.items()})
                     row["load_end"] = os.getloadavg()[0]
                     rows.append(row)
-                    if row["real_seconds"] * V / max(1, min(args.sizes)) > 10 * args.max_real and size == min(args.sizes):
-                        too_long.add(kind)  # the next size (10x) would take longer than --max-real
+                    if size == min(args.sizes) and row["real_seconds"] * max(args.sizes) / size > args.max_real:
+                        too_long.add(kind)  # the largest size would take longer than --max-real (time linear in V)
                     print(f"{kind} {V} #{r}: estimate {row['estimate_seconds']:.3g} s, @1024 "
                           f"{row['estimate_1024_seconds']:.3g} s, real {row['real_seconds']:.3g} s "
                           f"(cpu {row['real_cpu_seconds']:.3g}), probe {row['estimate_probe_wall_seconds']:.3g} s, "
                           f"load {row['load']:.1f}", flush=True)
-        chunks = []
         from prt_torch.transfer.estimate import probe_chunk
 
         for size in ([] if args.no_chunks else args.sizes):
@@ -226,7 +228,10 @@ def main(argv=None) -> int:
         rows = keep + rows
         chunks = chunks or old.get("chunks", [])
         policies = policies or old.get("policies", [])
-        info["earlier_runs"] = old.get("machine", {}).get("earlier_runs", []) + [old.get("machine", {})]
+        if args.render_only:
+            info = old.get("machine", info)
+        else:
+            info["earlier_runs"] = old.get("machine", {}).get("earlier_runs", []) + [old.get("machine", {})]
     L = ["# `prt precompute --dry-run`: time estimate against the real run", "",
          f"Command: `{info['command'].strip()}`. CPU: {cpu_label(info)}, {info['cores']} cores, OpenMP wait policy: {info.get('omp_wait_policy')}; "
          f"the machine was shared "
@@ -250,8 +255,8 @@ def main(argv=None) -> int:
     for r in rows:
         note = r["estimate_note"]
         k = note.split("per chunk of ")[1].split(" ")[0] if "per chunk of" in note else "whole run"
-        fp = r.get("estimate_first_pass_seconds")
-        fp = "–" if fp is None or abs(fp - r["estimate_seconds"]) < 1e-9 else f"{fp / r['real_seconds']:.2f}"
+        fp = r.get("estimate_first_pass_seconds")  # shown for the runs of several passes (subsurface)
+        fp = f"{fp / r['real_seconds']:.2f}" if fp is not None and kind_of(r["kind"])[0] == "subsurface" else "–"
         L.append(f"| {r['kind']} | {r['vertices']} | {r['chunk_size']} | {k} | {r['real_seconds']:.3g} ({r['real_cpu_seconds']:.3g}) "
                  f"| {r['estimate_seconds']:.3g} | {r['estimate_seconds'] / r['real_seconds']:.2f} | "
                  f"{r['estimate_1024_seconds'] / r['real_seconds']:.2f} | "

@@ -281,3 +281,28 @@ def test_killed_cli_run_resumes(tmp_path, kind, args, watch):
         ref = get_kind(kind).precompute(builtin(mesh), params, run=RunOptions(chunk_size=48, workers=1))
     assert _same(got, ref)
     assert not state.exists()
+
+
+@pytest.mark.parametrize("kind, params", [
+    ("wavelet", {"res": 8, "terms": 16, "shadows": "always"}),
+    ("wavelet", {"res": 4, "terms": 16, "supersample": 2, "shadows": "always"}),
+    ("transport", {"views": 1, "res": 4, "shadows": True}),
+    ("subsurface", {"bands": 2, "samples": 16, "shadows": "always", "material": "skin1", "scale": 10.0, "spacing": 4.0}),
+])
+def test_probe_chunk_is_the_runs_own(tmp_path, kind, params):
+    """The dry run's probe sizes its chunks from the chunk the kind itself uses (its run meta):
+    wavelet and transport probed 1024-vertex chunks whatever their own before; subsurface was
+    sized with the diffuse kind's 1024 samples (its default is 256)."""
+    from prt_torch.transfer.estimate import real_chunk
+
+    mesh = builtin(GREY)
+    k = get_kind(kind)
+    kw, _ = k.resolve(dict(params))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        if k.output == "directory":
+            tr = k.precompute(mesh, dict(params), run=RunOptions(), out=tmp_path / "t")
+        else:
+            tr = k.precompute(mesh, dict(params), run=RunOptions())
+    assert real_chunk(kind, kw, None) == tr.meta["chunk_size"]
+    assert real_chunk(kind, kw, 77) == 77
