@@ -8,8 +8,8 @@ Each repeat runs, in child processes and alternating the order,
 
 * ``prt precompute SCENE --size SIZE --kind mrt`` (the defaults: 5 bands, M = 11, 1024 samples,
   ray-casting workers as the CLI chooses) with ``OMP_WAIT_POLICY`` unset (``prt_torch``'s import-time
-  choice: spinning threads unless other processes hold the cores, the choice printed) and with
-  ``OMP_WAIT_POLICY=PASSIVE``: wall seconds, CPU seconds of the whole process tree (user + system of
+  choice: spinning threads unless other processes hold the cores, the choice printed), ``ACTIVE``
+  (threads spin while they wait) and ``PASSIVE`` (they sleep): wall seconds, CPU seconds of the whole process tree (user + system of
   the child and the workers it reaped: ``RUSAGE_CHILDREN``), and the precompute's own seconds (its
   ``rays in`` figure);
 * bare Embree: the same rays (every ray-casting call of one MRT precompute recorded, ``RecordRays``)
@@ -43,21 +43,38 @@ def _tree_cpu() -> float:
     return r.ru_utime + r.ru_stime
 
 
-def cli_run(scene: str, size: str, policy: str | None, out: Path) -> dict:
-    """``prt precompute --kind mrt`` in a child process: wall, the tree's CPU, the precompute's seconds."""
+#: a child that imports torch before prt_torch: libgomp reads OMP_WAIT_POLICY when torch loads, so prt_torch's
+#: import-time choice (PASSIVE on a busy machine) comes too late and the libgomp default (spin, then sleep) holds —
+#: what a quiet machine runs, reproduced on a busy one
+_TORCH_FIRST = "import sys; sys.path.insert(0, sys.argv.pop(1)); import torch; from prt_torch.cli import main; sys.exit(main(sys.argv[1:]))"
+
+
+def cli_run(scene: str, size: str, policy: str | None, out: Path, code: str | None = None) -> dict:
+    """``prt precompute --kind mrt`` in a child process: wall, the tree's CPU, the precompute's seconds.
+    ``policy`` 'default': the libgomp default (torch imported first); ``code``: the tree whose
+    ``prt_torch`` runs (default this one)."""
     env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
-    if policy:
+    if policy and policy != "default":
         env["OMP_WAIT_POLICY"] = policy
-    cmd = [sys.executable, "-m", "prt_torch", "precompute", scene, "--size", size, "--kind", "mrt", "-o", str(out),
-           "--overwrite", "--no-progress"]
+    args = ["precompute", scene, "--size", size, "--kind", "mrt", "-o", str(out), "--overwrite", "--no-progress"]
+    if policy == "default" or code is not None:
+        env["PYTHONPATH"] = str(code or ROOT)
+        cmd = [sys.executable, "-c", _TORCH_FIRST, str(code or ROOT), *args]
+    else:
+        cmd = [sys.executable, "-m", "prt_torch", *args]
     load = os.getloadavg()[0]
+    choice = None
+    if not policy:  # what prt_torch's import-time rule chooses now (spinning unless other processes hold the cores)
+        choice = subprocess.run([sys.executable, "-c", "import prt_torch; print(prt_torch.OMP_POLICY_CHOICE)"], env=env,
+                                capture_output=True, text=True).stdout.strip()
     c0, t0 = _tree_cpu(), time.perf_counter()
     p = subprocess.run(cmd, env=env, capture_output=True, text=True)
     wall, cpu = time.perf_counter() - t0, _tree_cpu() - c0
     if p.returncode != 0:
         raise RuntimeError(p.stderr[-2000:])
     m = re.search(r"(\d+) rays in ([0-9.]+) s", p.stderr)
-    return {"policy": policy or "unset", "wall_s": wall, "cpu_s": cpu, "rays": int(m.group(1)) if m else None,
+    label = (policy or f"unset: {choice}") + ("" if code is None else f" [{Path(code).name}]")
+    return {"policy": label, "wall_s": wall, "cpu_s": cpu, "rays": int(m.group(1)) if m else None,
             "precompute_s": float(m.group(2)) if m else None, "load": load, "load_end": os.getloadavg()[0]}
 
 
@@ -108,6 +125,10 @@ def main(argv=None) -> int:
     ap.add_argument("--size", default="medium")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--bare-child", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--before", default=None, metavar="REV",
+                    help="also run the code of git revision REV (extracted to a temporary tree), libgomp default policy")
+    ap.add_argument("--policies", nargs="+", default=["unset", "ACTIVE", "PASSIVE"],
+                    help="arms: unset (prt_torch's import-time choice), default (libgomp's: torch imported first), ACTIVE, PASSIVE")
     ap.add_argument("--out", default=str(ROOT / "reports/benchmarks/mrt_spin.md"))
     args = ap.parse_args(argv)
     if args.bare_child:
@@ -124,11 +145,19 @@ def main(argv=None) -> int:
     rows, bare = [], []
     with tempfile.TemporaryDirectory(prefix="bench_mrt_spin_") as tmp:
         out = Path(tmp) / "x.prt"
+        before = None
+        if args.before:  # the earlier code, for a paired before/after under the libgomp default
+            before = Path(tmp) / f"before-{args.before[:12]}"
+            before.mkdir()
+            arch = subprocess.run(["git", "-C", str(ROOT), "archive", args.before, "prt_torch"], capture_output=True, check=True)
+            subprocess.run(["tar", "-x", "-C", str(before)], input=arch.stdout, check=True)
+        arms = [(None if p == "unset" else p, None) for p in args.policies] + ([("default", str(before))] if before else [])
         cli_run(args.scene, args.size, "PASSIVE", out)  # warm-up: the file cache, kernels built
+        if before:
+            cli_run(args.scene, args.size, "default", out, str(before))
         for r in range(args.repeats):
-            order = [None, "PASSIVE"] if r % 2 == 0 else ["PASSIVE", None]
-            for pol in order:
-                rows.append({"repeat": r, **cli_run(args.scene, args.size, pol, out)})
+            for pol, code in (arms if r % 2 == 0 else arms[::-1]):
+                rows.append({"repeat": r, **cli_run(args.scene, args.size, pol, out, code)})
                 print(rows[-1], flush=True)
             c0 = _tree_cpu()
             p = subprocess.run([sys.executable, __file__, "--bare-child", "--scene", args.scene, "--size", args.size],
@@ -152,8 +181,8 @@ def main(argv=None) -> int:
     for b in bare:
         L.append(f"| {b['repeat']} | {b['rays']} | {b['workers']} | {b['wall_s']:.2f} | {b['cpu_s']:.2f} | "
                  f"{b['cpu_s'] / b['wall_s']:.2f} | {b['load']:.1f} |")
-    for pol in ("unset", "PASSIVE"):
-        sel = [r for r in rows if r["policy"] == pol]
+    for pol in sorted({r["policy"].split(":")[0] for r in rows}):
+        sel = [r for r in rows if r["policy"].split(":")[0] == pol]
         if sel:
             med = sorted(r["cpu_s"] / r["wall_s"] for r in sel)[len(sel) // 2]
             L.append(f"\nMedian CPU / wall, OMP_WAIT_POLICY {pol}: {med:.2f}; median wall "

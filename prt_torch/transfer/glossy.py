@@ -312,8 +312,9 @@ def run_exit_transfer(
             data[a:b] = p["data"]
             meta["rays_traced"] = meta.get("rays_traced", 0) + int(p["rays"].sum())
 
-        run.run_chunks(V, chunk_size, compute, fingerprint=fingerprint, desc=f"{kind} {mesh.name}",
-                       rays_of=lambda r: int(r["rays"].sum()), sink=sink)
+        with torch_threads(CHUNK_THREADS or torch.get_num_threads()):  # the sink's copies and the chunk saves too
+            run.run_chunks(V, chunk_size, compute, fingerprint=fingerprint, desc=f"{kind} {mesh.name}",
+                           rays_of=lambda r: int(r["rays"].sum()), sink=sink)
     finally:
         if caster is not None:
             meta["workers"] = caster.workers
