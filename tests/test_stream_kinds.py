@@ -30,8 +30,7 @@ CASES = {
     "diffuse_bounce_colour": ("diffuse", {"bands": 3, "samples": 16, "shadows": "always", "bounces": 1}, True),
     "diffuse_folded": ("diffuse", {"bands": 3, "samples": 16, "shadows": "always", "fold_albedo": True}, True),
     "diffuse_subsurface": ("diffuse", {"bands": 2, "samples": 16, "shadows": "always", "bounces": 1, "subsurface": SSS}, False),
-    "subsurface": ("subsurface", {"bands": 2, "samples": 16, "shadows": "always", "material": "skin1", "scale": 10.0,
-                                  "spacing": 4.0}, False),
+    "subsurface": ("subsurface", {"bands": 2, "samples": 16, "shadows": "always", **SSS}, False),
     "glossy_subsurface": ("glossy", {"bands": 2, "samples": 16, "shadows": "always", "brdf": {"type": "phong", "s": 4.0},
                                      "subsurface": SSS}, False),
     "wavelet": ("wavelet", {"res": 4, "terms": 16, "shadows": "always"}, False),
@@ -274,7 +273,7 @@ def test_killed_cli_run_resumes(tmp_path, kind, args, watch):
 
     got = Transfer.load(out)
     params = {"diffuse": {"bands": 3, "samples": 64, "bounces": 1},
-              "subsurface": {"bands": 2, "samples": 16, "material": "skin1", "scale": 10.0, "spacing": 4.0},
+              "subsurface": {"bands": 2, "samples": 16, **SSS},
               "wavelet": {"res": 8, "terms": 32}}[kind]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
