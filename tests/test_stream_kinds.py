@@ -229,19 +229,18 @@ sys.exit(main(sys.argv[1:]))
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="SIGKILL and /proc as on Linux")
-@pytest.mark.parametrize("kind, args, watch", [
-    ("diffuse", ["--bands", "3", "--samples", "64", "--bounces", "1", "--chunk", "48"], "chunk_*.prt"),
-    ("subsurface", ["--bands", "2", "--samples", "16", "--material", "skin1", "--scale", "10", "--spacing", "4",
-                    "--chunk", "48"], "scatter/chunk_*.prt"),
-    ("wavelet", ["--res", "8", "--terms", "32", "--chunk", "48"], "chunk_*.prt"),
+@pytest.mark.parametrize("kind, mesh, args, watch", [
+    ("diffuse", "bumpy_sphere:2562", ["--bands", "3", "--samples", "64", "--bounces", "1", "--chunk", "48"], "chunk_*.prt"),
+    ("subsurface", GREY, ["--bands", "2", "--samples", "16", "--material", "skin1", "--scale", "10", "--spacing", "4",
+                          "--chunk", "48"], "scatter/chunk_*.prt"),
+    ("wavelet", "bumpy_sphere:2562", ["--res", "8", "--terms", "32", "--chunk", "48"], "chunk_*.prt"),
 ])
-def test_killed_cli_run_resumes(tmp_path, kind, args, watch):
+def test_killed_cli_run_resumes(tmp_path, kind, mesh, args, watch):
     """``prt precompute`` killed with SIGKILL after a few chunks (the result streamed: the threshold
     at 0 bytes), then ``--resume``: the file equals the uninterrupted in-memory run's; the killed
     run left no output and no scratch file (its mappings were of unlinked files)."""
     from prt_torch.cli import main as cli_main
 
-    mesh = "bumpy_sphere:2562"
     out = tmp_path / "t.prt"
     state = tmp_path / "t.prt.state"
     cmd = ["precompute", mesh, "--kind", kind, *args, "-o", str(out), "--no-progress", "--workers", "1"]
@@ -277,7 +276,7 @@ def test_killed_cli_run_resumes(tmp_path, kind, args, watch):
               "wavelet": {"res": 8, "terms": 32}}[kind]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        ref = get_kind(kind).precompute(builtin(mesh), params, run=RunOptions(chunk_size=48, workers=1))
+        ref = get_kind(kind).precompute(builtin(mesh), params, run=RunOptions(chunk_size=int(args[-1]), workers=1))
     assert _same(got, ref)
     assert not state.exists()
 
