@@ -38,26 +38,50 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 PARAMS = {"diffuse": {"bands": 4, "samples": 64, "shadows": "always"},
-          "mrt": {"bands": 3, "M": 4, "samples": 32, "shadows": "always", "brdf": {"type": "phong", "s": 12.0}}}
+          "mrt": {"bands": 3, "M": 4, "samples": 32, "shadows": "always", "brdf": {"type": "phong", "s": 12.0}},
+          # the kinds that streamed last (issue 42 part 3, the rest): a row label -> (kind, parameters)
+          "diffuse_bounce": {"kind": "diffuse", "bands": 4, "samples": 64, "bounces": 1, "shadows": "always"},
+          "subsurface": {"kind": "subsurface", "bands": 3, "samples": 64, "material": "skin1", "scale": 10.0,
+                         "shadows": "always"},
+          "wavelet": {"kind": "wavelet", "res": 16, "terms": 64, "shadows": "always"},
+          "transport": {"kind": "transport", "views": 1, "res": 8, "shadows": True}}
 
 
-def real_run(kind: str, mesh, work: Path) -> dict:
-    """The precompute as ``prt precompute`` runs it (state directory) + the save, timed."""
+def kind_of(label: str) -> tuple[str, dict]:
+    """(transfer kind, its parameters) of a row label of :data:`PARAMS`."""
+    p = dict(PARAMS[label])
+    return p.pop("kind", label), p
+
+
+def real_run(label: str, mesh, work: Path) -> dict:
+    """The precompute as ``prt precompute`` runs it (state directory) + the save, timed (transport:
+    its table streamed to the directory, which is its output)."""
+    import warnings
+
     from prt_torch.transfer import RunOptions, get_kind
 
-    state, out = work / f"{kind}.prt.state", work / f"{kind}.prt"
+    kind, params = kind_of(label)
+    state, out = work / f"{label}.prt.state", work / f"{label}.prt"
+    k = get_kind(kind)
     t, c = time.perf_counter(), time.process_time()
-    tr = get_kind(kind).precompute(mesh, dict(PARAMS[kind]), run=RunOptions(workers=1, state_dir=state, progress=False))
-    tr.save(out, overwrite=True)
-    res = {"real_seconds": time.perf_counter() - t, "real_cpu_seconds": time.process_time() - c,
-           "chunk_size": int(tr.meta.get("chunk_size", 0))}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the subsurface scale/holes notes
+        if k.output == "directory":
+            tr = k.precompute(mesh, params, run=RunOptions(workers=1, state_dir=state, progress=False), out=state)
+            chunk = int(tr.meta["chunk_size"])
+        else:
+            tr = k.precompute(mesh, params, run=RunOptions(workers=1, state_dir=state, progress=False))
+            tr.save(out, overwrite=True)
+            chunk = int(tr.meta.get("chunk_size", 0))
+    res = {"real_seconds": time.perf_counter() - t, "real_cpu_seconds": time.process_time() - c, "chunk_size": chunk}
     del tr
-    out.unlink()
+    if out.exists():
+        out.unlink()
     shutil.rmtree(state, ignore_errors=True)
     return res
 
 
-def per_chunk(kind: str, mesh, chunk: int, n: int = 5) -> dict:
+def per_chunk(label: str, mesh, chunk: int, n: int = 5) -> dict:
     """Per-vertex wall, this thread's and the process's CPU µs and minor page faults per vertex of chunks 2..n of a run
     in chunks of ``chunk`` (no state directory; the first chunk, with the set-up, left out)."""
     import resource
@@ -73,8 +97,9 @@ def per_chunk(kind: str, mesh, chunk: int, n: int = 5) -> dict:
         if len(marks) >= n:
             raise ChunkInterrupt("enough")
 
+    kind, params = kind_of(label)
     try:
-        get_kind(kind).precompute(mesh, dict(PARAMS[kind]), run=RunOptions(workers=1, chunk_size=chunk, callback=cb, progress=False))
+        get_kind(kind).precompute(mesh, params, run=RunOptions(workers=1, chunk_size=chunk, callback=cb, progress=False))
     except ChunkInterrupt:
         pass
     if len(marks) < 2:
@@ -85,14 +110,24 @@ def per_chunk(kind: str, mesh, chunk: int, n: int = 5) -> dict:
             "process_cpu_us_per_vertex": 1e6 * (marks[-1][3] - marks[0][3]) / nv, "faults_per_vertex": (marks[-1][4] - marks[0][4]) / nv}
 
 
-def estimated(kind: str, mesh, probe_vertices: int | None) -> dict:
+def estimated(label: str, mesh, probe_vertices: int | None) -> dict:
+    """The dry run's estimate (its probe), timed; ``first_pass_seconds``: the estimate of the first
+    pass alone (what the probe said before it timed a subsurface scatter)."""
+    import warnings
+
     from prt_torch.transfer import RunOptions, get_kind
     from prt_torch.transfer.estimate import estimate
 
+    kind, params = kind_of(label)
     t = time.perf_counter()
-    e = estimate(get_kind(kind), mesh, dict(PARAMS[kind]), RunOptions(workers=1, state_dir=Path(tempfile.gettempdir()) / "x"),
-                 probe=True, probe_vertices=probe_vertices, mesh_seconds=0.0)
-    return {"seconds": e.seconds, "probe_wall_seconds": time.perf_counter() - t, "note": e.stages[1]["note"].split("time from ")[-1]}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        e = estimate(get_kind(kind), mesh, params, RunOptions(workers=1, state_dir=Path(tempfile.gettempdir()) / "x"),
+                     probe=True, probe_vertices=probe_vertices, mesh_seconds=0.0)
+    note = e.stages[1]["note"].split("time from ")[-1]
+    passes = e.stages[1].get("passes") or []
+    return {"seconds": e.seconds, "probe_wall_seconds": time.perf_counter() - t, "note": note,
+            "first_pass_seconds": passes[0]["seconds"] if passes else e.seconds}
 
 
 def main(argv=None) -> int:
@@ -104,6 +139,13 @@ def main(argv=None) -> int:
                     help="the mesh of the OpenMP wait-policy table (MRT, 1024- and real-chunk runs in child processes)")
     ap.add_argument("--policy-child", default=None, help=argparse.SUPPRESS)
     ap.add_argument("--out", default=str(ROOT / "reports/benchmarks/precompute_estimate.md"))
+    ap.add_argument("--merge", action="store_true",
+                    help="keep the rows, per-chunk and policy tables of the kinds not measured now from --out's .json")
+    ap.add_argument("--no-chunks", action="store_true", help="skip the per-chunk-size table")
+    ap.add_argument("--render-only", action="store_true", help="measure nothing: write --out again from its .json")
+    ap.add_argument("--no-policy", action="store_true", help="skip the OpenMP wait-policy table")
+    ap.add_argument("--max-real", type=float, default=120.0,
+                    help="skip the larger sizes of a kind once its real run took longer than this (seconds)")
     args = ap.parse_args(argv)
     if args.repeats < 1:
         print(f"bench_precompute_estimate: --repeats {args.repeats}; accepted: 1 or more", file=sys.stderr)
@@ -125,15 +167,21 @@ def main(argv=None) -> int:
 
     info = machine_info()
     info["command"] = "python benchmarks/bench_precompute_estimate.py " + " ".join(argv if argv is not None else sys.argv[1:])
-    rows = []
+    rows, chunks = [], []
+    if args.render_only:  # the tables again from --out's .json (after a change of the table's layout)
+        args.merge, args.kinds, args.no_chunks, args.no_policy = True, [], True, True
     with tempfile.TemporaryDirectory(prefix="bench_estimate_") as tmp:
         work = Path(tmp)
-        small = load_scene("bumpy_sphere:642")
+        small = load_scene("bumpy_sphere:642") if args.kinds else None
         for kind in args.kinds:  # warm-up: imports, kernels, first-use allocations
             real_run(kind, small, work)
-        for size in args.sizes:
+        too_long: set[str] = set()
+        for size in (args.sizes if args.kinds else []):
             V = load_scene(f"bumpy_sphere:{size}").num_vertices
             for kind in args.kinds:
+                if kind in too_long:
+                    print(f"{kind} {V}: skipped (its real run took over --max-real {args.max_real:g} s at a smaller size)")
+                    continue
                 for r in range(args.repeats):
                     row = {"kind": kind, "vertices": V, "repeat": r, "load": os.getloadavg()[0]}
                     steps = ["estimate", "estimate_1024", "real"]
@@ -146,14 +194,15 @@ def main(argv=None) -> int:
                             row.update({f"{step}_{k}": v for k, v in e.items()})
                     row["load_end"] = os.getloadavg()[0]
                     rows.append(row)
+                    if size == min(args.sizes) and row["real_seconds"] * max(args.sizes) / size > args.max_real:
+                        too_long.add(kind)  # the largest size would take longer than --max-real (time linear in V)
                     print(f"{kind} {V} #{r}: estimate {row['estimate_seconds']:.3g} s, @1024 "
                           f"{row['estimate_1024_seconds']:.3g} s, real {row['real_seconds']:.3g} s "
                           f"(cpu {row['real_cpu_seconds']:.3g}), probe {row['estimate_probe_wall_seconds']:.3g} s, "
                           f"load {row['load']:.1f}", flush=True)
-        chunks = []
         from prt_torch.transfer.estimate import probe_chunk
 
-        for size in args.sizes:
+        for size in ([] if args.no_chunks else args.sizes):
             mesh = load_scene(f"bumpy_sphere:{size}")
             for kind in args.kinds:
                 real = next(r["chunk_size"] for r in rows if r["kind"] == kind and r["vertices"] == mesh.num_vertices)
@@ -165,28 +214,54 @@ def main(argv=None) -> int:
     import json
     import subprocess
 
-    for pol in ("ACTIVE", "PASSIVE"):  # torch's OpenMP threads spinning or sleeping after each parallel region
+    for pol in (() if args.no_policy else ("ACTIVE", "PASSIVE")):  # torch's OpenMP threads spinning or sleeping
         p = subprocess.run([sys.executable, __file__, "--policy-child", "mrt", "--policy-size", str(args.policy_size)],
                            env={**os.environ, "OMP_WAIT_POLICY": pol}, capture_output=True, text=True, check=True)
         policies += json.loads(next(ln for ln in p.stdout.splitlines() if ln.startswith("JSON "))[5:])
     info["load_end"] = os.getloadavg()[0]
+    out = Path(args.out)
+    if args.merge and out.with_suffix(".json").exists():  # the other kinds' rows (and tables not measured now) kept
+        import json
+
+        old = json.loads(out.with_suffix(".json").read_text())
+        keep = [r for r in old.get("rows", []) if r["kind"] not in args.kinds]
+        rows = keep + rows
+        chunks = chunks or old.get("chunks", [])
+        policies = policies or old.get("policies", [])
+        if args.render_only:
+            info = old.get("machine", info)
+        else:
+            info["earlier_runs"] = old.get("machine", {}).get("earlier_runs", []) + [old.get("machine", {})]
     L = ["# `prt precompute --dry-run`: time estimate against the real run", "",
          f"Command: `{info['command'].strip()}`. CPU: {cpu_label(info)}, {info['cores']} cores, OpenMP wait policy: {info.get('omp_wait_policy')}; "
          f"the machine was shared "
          f"with other jobs (load average at each row). Scene `bumpy_sphere:<vertices>`; diffuse 4 bands, 64 samples "
-         f"(32 rays per vertex), shadows traced; MRT 3 bands, M = 4, Phong s = 12, 32 samples; one worker.", "",
+         f"(32 rays per vertex), shadows traced; MRT 3 bands, M = 4, Phong s = 12, 32 samples; one worker."
+         + "".join(f" Earlier rows: `{m.get('command', '').strip()}` (load {m.get('load_end', float('nan')):.1f} at its end)."
+                   for m in info.get("earlier_runs", []) if m.get("command"))
+         + " Rows added by issue 42 part 3 (the rest): diffuse_bounce = diffuse with 1 bounce (hit-point estimator, "
+         "8 rays per hit); subsurface = the subsurface kind, skin1 at 10 mm per unit, 3 bands, 64 samples (its "
+         "irradiance pass, then the scatter over the receivers); wavelet = res 16, 64 terms, 8 bits; transport = "
+         "12 views (icosphere 1) × 6×8×8 texels, streamed to a directory.", "",
          "estimate = `transfer.estimate.estimate(..., probe=True)` (rays + result stages, as `--dry-run` prints them); "
          "real = the precompute with its state directory + the save (`bench_scale.py`'s measured figure), wall "
          "seconds, back to back in one process (order alternating per repeat). probe = the estimate's own wall time "
          "(set-up + three chunks + a 32 MiB write) as a share of the real run. `@1024` = the same probe with "
-         "1024-vertex chunks (the probe's chunk before).", "",
+         "1024-vertex chunks (the probe's chunk before; wavelet and transport probed 1024-vertex chunks whatever their "
+         "own). first pass / real = the estimate of the first pass alone (subsurface: what the probe said before it "
+         "timed the scatter).", "",
          "| kind | vertices | real chunk | probe chunk | real s (CPU s) | estimate s | estimate / real | @1024 / real "
-         "| probe / real | load |", "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+         "| first pass / real | probe / real | load |", "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in rows:
-        k = r["estimate_note"].split("per chunk of ")[-1].split(" ")[0] if "per chunk of" in r["estimate_note"] else "whole run"
+        note = r["estimate_note"]
+        k = note.split("per chunk of ")[1].split(" ")[0] if "per chunk of" in note else "whole run"
+        fp = r.get("estimate_first_pass_seconds")  # shown for the runs of several passes (subsurface)
+        fp = f"{fp / r['real_seconds']:.2f}" if fp is not None and kind_of(r["kind"])[0] == "subsurface" else "–"
         L.append(f"| {r['kind']} | {r['vertices']} | {r['chunk_size']} | {k} | {r['real_seconds']:.3g} ({r['real_cpu_seconds']:.3g}) "
                  f"| {r['estimate_seconds']:.3g} | {r['estimate_seconds'] / r['real_seconds']:.2f} | "
-                 f"{r['estimate_1024_seconds'] / r['real_seconds']:.2f} | {r['estimate_probe_wall_seconds'] / r['real_seconds']:.2f} "
+                 f"{r['estimate_1024_seconds'] / r['real_seconds']:.2f} | "
+                 f"{fp} | "
+                 f"{r['estimate_probe_wall_seconds'] / r['real_seconds']:.2f} "
                  f"| {r['load']:.1f}–{r['load_end']:.1f} |")
     L += ["", "Per chunk size (the cause): µs per vertex (wall; CPU of the thread running the chunk; CPU of the whole "
           "process, every thread) and minor page faults per vertex over "
@@ -207,7 +282,6 @@ def main(argv=None) -> int:
         if r["chunks_timed"]:
             L.append(f"| {r['policy']} | {r['vertices']} | {r['chunk']} | {r['wall_us_per_vertex']:.1f} | "
                      f"{r['cpu_us_per_vertex']:.1f} | {r['process_cpu_us_per_vertex']:.1f} | {r['load']:.1f} |")
-    out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     with io.atomic_path(out, overwrite=True) as t:
         Path(t).write_text("\n".join(L) + "\n")

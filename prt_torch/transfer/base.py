@@ -35,14 +35,34 @@ from ..executor import Executor, LocalExecutor, TaskFailure
 from ..scene import Mesh, RayCaster
 
 __all__ = ["Transfer", "KINDS", "TRANSFER_VERSION", "RunOptions", "run_chunks", "ChunkInterrupt", "default_state_dir",
-           "remove_state", "check_transfer_values", "MAX_ABS_TRANSFER", "STREAM_RESULT_BYTES", "cast_rows"]
+           "remove_state", "check_transfer_values", "MAX_ABS_TRANSFER", "STREAM_RESULT_BYTES", "cast_rows",
+           "stream_result_bytes"]
 
 KINDS = ("diffuse", "glossy", "mrt", "transport", "wavelet")
 TRANSFER_VERSION = 1
 #: A precompute's assembled result larger than this (bytes) is kept in a file beside its state
 #: directory rather than in memory (``RunOptions.stream_result=None``; issue 42 part 3): the
-#: same threshold as a codec fit's streaming (``codecs.chunks.STREAM_BYTES``).
+#: same threshold as a codec fit's streaming (``codecs.chunks.STREAM_BYTES``). The environment
+#: variable ``PRT_STREAM_RESULT_BYTES`` lowers (or raises) it for a process — what the tests use
+#: to stream a tiny mesh's result through the command line (:func:`stream_result_bytes`).
 STREAM_RESULT_BYTES = 256 * 2**20
+
+
+def stream_result_bytes() -> int:
+    """The streaming threshold in force: ``PRT_STREAM_RESULT_BYTES`` (bytes, an integer ≥ 0)
+    when set, else :data:`STREAM_RESULT_BYTES`. A value that is not such an integer is refused
+    naming the variable."""
+    v = os.environ.get("PRT_STREAM_RESULT_BYTES")
+    if v is None or v == "":
+        return STREAM_RESULT_BYTES
+    try:
+        n = int(v)
+    except ValueError:
+        n = -1
+    if n < 0:
+        raise ValueError(f"PRT_STREAM_RESULT_BYTES={v!r}; accepted: a number of bytes, an integer >= 0 "
+                         f"(unset: {STREAM_RESULT_BYTES})")
+    return n
 
 
 @dataclasses.dataclass(frozen=True)
@@ -120,20 +140,23 @@ class RunOptions:
     def streams_result(self, nbytes: int) -> bool:
         """Whether a result of ``nbytes`` is assembled in a file (``stream_result``, above)."""
         if self.stream_result is None:
-            return self.state_dir is not None and nbytes > STREAM_RESULT_BYTES
+            return self.state_dir is not None and nbytes > stream_result_bytes()
         return bool(self.stream_result)
 
-    def result_rows(self, shape: tuple[int, ...], dtype: torch.dtype = torch.float32, name: str = "result") -> torch.Tensor:
+    def result_rows(self, shape: tuple[int, ...], dtype: torch.dtype = torch.float32, name: str = "result",
+                    nbytes: int | None = None) -> torch.Tensor:
         """The tensor a precompute assembles its chunks into (``run_chunks``' sink copies each
         chunk in): ``torch.empty`` in memory, or — a result larger than :data:`STREAM_RESULT_BYTES`
         with a state directory, or ``stream_result=True`` — rows backed by an unlinked file beside
         the state directory (``io.scratch_rows``), so that a result larger than memory is written
         out by the kernel as it is filled and ``Transfer.save`` streams it from the page cache.
-        Shape and dtype as asked; the values are the same bits either way."""
+        Shape and dtype as asked; the values are the same bits either way. ``nbytes``: the size
+        that decides (a kind assembling several buffers decides once for all of them, on what it
+        holds in all — what its dry-run estimate counts); None: this buffer's own size."""
         n = torch.tensor([], dtype=dtype).element_size()
         for d in shape:
             n *= int(d)
-        if not self.streams_result(n):
+        if not self.streams_result(n if nbytes is None else int(nbytes)):
             return torch.empty(shape, dtype=dtype)
         sd = Path(self.state_dir)
         return io.scratch_rows(sd.parent, shape, dtype, name=f"{sd.name}.{name}")

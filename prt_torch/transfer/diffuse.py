@@ -49,7 +49,7 @@ from .._checks import check_choice, check_float, check_int
 from ..executor import torch_threads
 from ..scene import Mesh, RayCaster, default_workers, edge_face_counts
 from ..sh import clamped_cosine, eval_sh, rotate_zonal
-from .base import RunOptions, Transfer, cast_rows, remove_state, run_chunks
+from .base import RunOptions, Transfer, remove_state, run_chunks
 from .ray_kernels import qmc_rays_native, select_rays, sh_accumulate, upper_rays
 from .sampling import cosine_hemisphere, to_world, uniform_sphere
 
@@ -73,6 +73,7 @@ __all__ = [
     "SAMPLINGS",
     "ESTIMATORS",
     "qmc_rays",
+    "held_bytes_per_vertex",
 ]
 
 MAX_DIFFUSE_BANDS = 32
@@ -831,6 +832,7 @@ def precompute_diffuse(
 
         warnings.warn(rounding, stacklevel=2)
     t_start = time.perf_counter()
+    V = mesh.num_vertices
     if fold_albedo is False and bounces > 0 and not mesh.is_grey():
         raise ValueError("fold_albedo=False with coloured albedo and bounces > 0: interreflection bleeds colour, so the albedo "
                          "cannot be kept separate; accepted: fold_albedo=None/True, or bounces=0, or a grey albedo")
@@ -856,32 +858,45 @@ def precompute_diffuse(
         if traced and bounces > 0 and bounce_points == "hits":
             hits = _hit_tables(caster, mesh, bands, samples, seed, sampling, bounces, hit_samples, run, meta, hit_offset,
                                estimator)
+        C_out = 3 if (subsurface is not None or fold_albedo is True or (fold_albedo is None and bounces > 0 and traced
+                                                                          and not mesh.is_grey())) else 1
+        held = V * held_bytes_per_vertex(bands, bounces if hits is not None else 0, 1 if mesh.is_grey() else 3, C_out)
         if traced:
             hit_columns = bounce_points if bounces > 0 else "vertices"
             T0, S = _trace_direct(caster, mesh, bands, samples, seed, sampling, bounces > 0, run, meta, hit_columns, hits,
-                                  estimator)
+                                  estimator, held)
             if bounces > 0 and bounce_points in ("faces", "corners"):
                 faces = _trace_faces(caster, mesh, bands, samples, seed, sampling, bounces > 1, run, meta, bounce_points,
                                      estimator)
         else:
             T0, S = unshadowed_transfer(mesh.normals, bands), None  # [V, n²] float64, exact
             meta["rays_traced"] = 0
-        total, C = _interreflect(T0, S, mesh, bounces, bounce_tol, meta, faces)
-        if subsurface is not None:
-            if fold_albedo is False:
-                raise ValueError("fold_albedo=False with a subsurface term: the term is coloured (R_d per channel); "
-                                 "accepted: fold_albedo=None/True")
-            from .subsurface import add_term
+        if subsurface is not None and fold_albedo is False:
+            raise ValueError("fold_albedo=False with a subsurface term: the term is coloured (R_d per channel); "
+                             "accepted: fold_albedo=None/True")
+        if S is None or isinstance(S, torch.Tensor):  # no bounce term, or the hit-point estimator's: by blocks of rows
+            C, used = _bounce_decision(T0, S, mesh, bounces, bounce_tol, meta)
+            fold = True if subsurface is not None else ((C == 3) if fold_albedo is None else bool(fold_albedo))
+            L = None
+            if subsurface is not None:
+                from .subsurface import add_term
 
-            data = _store_albedo(total, mesh, C, True, meta) + add_term(mesh, subsurface, total, run, meta)
-        else:
-            data = _store_albedo(total, mesh, C, fold_albedo, meta)
+                L = add_term(mesh, subsurface, _irradiance_rows(T0, S, C, used), run, meta)
+            data = _assemble(T0, S, C, used, mesh, fold, meta, run, L, held)
+            del T0, S, L
+        else:  # bounce_points 'vertices', 'faces', 'corners' (kept for comparison): their sparse bounces read every row
+            total, C = _interreflect(T0, S, mesh, bounces, bounce_tol, meta, faces)
+            if subsurface is not None:
+                from .subsurface import add_term
+
+                data = _store_albedo(total, mesh, C, True, meta) + add_term(mesh, subsurface, total, run, meta)
+            else:
+                data = _store_albedo(total, mesh, C, fold_albedo, meta)
+            data = data.to(torch.float32).contiguous()
         meta["seconds"] = time.perf_counter() - t_start
         meta["rays_per_second"] = meta["rays_traced"] / meta["seconds"] if meta["rays_traced"] else 0.0
         meta["workers"] = caster.workers if caster is not None else 1
-        if data.dtype != torch.float32 and run.streams_result(data.numel() * 4):  # by chunks: never a whole copy in memory
-            data = cast_rows(data, torch.float32, run)
-        tr = Transfer(kind="diffuse", data=data.to(torch.float32).contiguous(), mesh=mesh, meta=meta)
+        tr = Transfer(kind="diffuse", data=data, mesh=mesh, meta=meta)
     finally:
         if caster is not None:
             caster.close()
@@ -931,10 +946,15 @@ def _hit_tables(caster: RayCaster, mesh: Mesh, bands: int, samples: int, seed: i
 
 def _trace_direct(caster: RayCaster, mesh: Mesh, bands: int, samples: int, seed: int, sampling: str,
                   record_hits: bool, run: RunOptions, meta: dict, hit_columns: str = "vertices",
-                  hits: HitBounce | None = None, estimator: str = "plain") -> tuple[torch.Tensor, Any]:
+                  hits: HitBounce | None = None, estimator: str = "plain",
+                  held: int | None = None) -> tuple[torch.Tensor, Any]:
     """Step 2: shadowed transfer t⁰ ``[V, n²]`` float64 over resumable chunks, and (when
     ``record_hits``) the bounce matrix S of the same rays (scipy CSR): ``[V, V]`` for
-    ``hit_columns='vertices'``, ``[V, F]`` for ``'faces'``."""
+    ``hit_columns='vertices'``, ``[V, F]`` for ``'faces'``; with ``hits`` (the hit-point
+    estimator) its bounce terms TB ``[V, B, C, n²]`` float64 instead. t⁰ and TB are assembled as
+    each chunk finishes (``run_chunks``' sink) in :meth:`RunOptions.result_rows` — in a file
+    beside the state directory when ``held`` (the bytes the whole assembly holds,
+    :func:`held_bytes_per_vertex`) exceeds the streaming threshold."""
     V = mesh.num_vertices
     sampler = DiffuseSampler(bands, samples, seed, sampling, estimator)
     rpv = rays_per_vertex(samples, sampling)
@@ -961,17 +981,22 @@ def _trace_direct(caster: RayCaster, mesh: Mesh, bands: int, samples: int, seed:
         fingerprint["hit_columns"] = hit_columns
     if hits is not None:
         fingerprint.update(hit_samples=hits.M, hit_terms=hits.terms, hit_offset=hits.hit_offset)
-    if record_hits:
+    if record_hits and hits is None:
         parts = run.run_chunks(V, chunk_size, compute, fingerprint=fingerprint, desc=f"diffuse {mesh.name}",
                                rays_of=lambda r: int(r["rays"].sum()))
         meta["rays_traced"] = int(sum(int(p["rays"].sum()) for p in parts))
         T0 = torch.cat([p["T"] for p in parts]).to(torch.float64)
     else:  # each chunk copied in as it finishes: the transfer is never held twice
-        T0 = run.result_rows((V, bands * bands), torch.float64, name="t0")  # in memory, or file-backed (RunOptions.stream_result)
+        # in memory, or file-backed (RunOptions.stream_result), decided once for every buffer of the assembly
+        T0 = run.result_rows((V, bands * bands), torch.float64, name="t0", nbytes=held)
+        TB = None if hits is None else run.result_rows((V, hits.terms, hits.C, bands * bands), torch.float64, name="tb",
+                                                       nbytes=held)
         meta["rays_traced"] = 0
 
         def sink(a: int, b: int, p: dict[str, torch.Tensor]) -> None:
             T0[a:b] = p["T"]
+            if TB is not None:
+                TB[a:b] = p["TB"]
             meta["rays_traced"] += int(p["rays"].sum())
 
         run.run_chunks(V, chunk_size, compute, fingerprint=fingerprint, desc=f"diffuse {mesh.name}",
@@ -981,8 +1006,7 @@ def _trace_direct(caster: RayCaster, mesh: Mesh, bands: int, samples: int, seed:
     if not record_hits:
         return T0, None
     if hits is not None:
-        TB = torch.cat([p["TB"] for p in parts])  # [V, terms, C, n²]
-        return T0, TB
+        return T0, TB  # [V, terms, C, n²]
     S = scipy.sparse.vstack([
         scipy.sparse.csr_matrix((p["S_data"].numpy(), p["S_indices"].numpy(), p["S_indptr"].numpy()),
                                 shape=(p["T"].shape[0], n_cols)) for p in parts], format="csr")
@@ -1124,20 +1148,18 @@ def face_transfer(mesh: Mesh, bands: int, samples: int, seed: int, bounces: int,
 
 def _interreflect(T0: torch.Tensor, S: Any, mesh: Mesh, bounces: int, bounce_tol: float, meta: dict,
                   faces: dict | None = None) -> tuple[torch.Tensor, int]:
-    """Step 3: t = Σ_b t̃^b (course notes 2005, "Interreflections"), ρ_p kept out. Returns
-    (``[V, C, n²]`` float64, C) with C = 3 only for coloured bounces.
+    """Step 3 for the sparse bounce matrices (``bounce_points`` 'vertices', 'faces', 'corners';
+    no bounce and the hit-point estimator go by blocks of rows: :func:`_bounce_decision`,
+    :func:`_assemble`): t = Σ_b t̃^b (course notes 2005, "Interreflections"), ρ_p kept out.
+    Returns (``[V, C, n²]`` float64, C) with C = 3 only for coloured bounces. Each bounce reads
+    every row of the one before (a sparse product over the whole mesh), so it is held in memory.
 
     ``faces`` None (``bounce_points='vertices'``): t̃^b = S (ρ ⊙ t̃^{b-1}) with S ``[V,V]``.
     ``faces`` given: the hit face's own transfer x_f (centroid, face hemisphere) is what a bounce
     ray brings: t̃^b = S_vf (ρ_f ⊙ x^{b-1}), x^b = S_ff (ρ_f ⊙ x^{b-1}), x⁰ the faces' direct pass."""
     V, n2 = T0.shape
     rho = mesh.albedo.to(torch.float64)
-    C = 1 if (mesh.is_grey() or S is None) else 3
-    if bounces == 0 or S is None:  # no bounce term: t = t⁰ itself, not two copies of it
-        meta["bounces_used"], meta["bounce_energy_fraction"] = 0, []
-        if bounces > 0:
-            meta["bounce_decision"] = "no interreflection: shadow rays were not traced (no occluding geometry)"
-        return T0[:, None, :], 1
+    C = 1 if mesh.is_grey() else 3
     rho_c = rho[:, :1] if C == 1 else rho  # [V,C]
     tb = T0[:, None, :].expand(V, C, n2).clone()  # t̃⁰ (ρ_p kept out)
     total = tb.clone()
@@ -1147,23 +1169,19 @@ def _interreflect(T0: torch.Tensor, S: Any, mesh: Mesh, bounces: int, bounce_tol
         F = faces["X0"].shape[0]
         rho_c = faces["rho"][:, :1] if C == 1 else faces["rho"]  # [F,C]: the reflectors are faces
         xf = faces["X0"][:, None, :].expand(F, C, n2).clone()
+
     def bounce_terms():  # t̃^1, t̃^2, ... lazily, so a converged sum stops computing
         nonlocal tb
-        if isinstance(S, torch.Tensor):  # bounce_points='hits': the bounce terms are already per vertex
-            St = S if C == S.shape[2] else S.expand(-1, -1, C, -1)
-            for b in range(bounces):
-                yield St[:, b]
-        elif S is not None:
-            xb = xf if faces is not None else None
-            for b in range(1, bounces + 1):  # each bounce one sparse product over all vertices
-                if faces is None:
-                    tb = torch.from_numpy(S @ (rho_c[:, :, None] * tb).reshape(V, C * n2).numpy()).reshape(V, C, n2)
-                else:
-                    x = (rho_c[:, :, None] * xb).reshape(F, C * n2).numpy()
-                    tb = torch.from_numpy(S @ x).reshape(V, C, n2)
-                    if b < bounces:
-                        xb = torch.from_numpy(faces["S"] @ x).reshape(F, C, n2)
-                yield tb
+        xb = xf if faces is not None else None
+        for b in range(1, bounces + 1):  # each bounce one sparse product over all vertices
+            if faces is None:
+                tb = torch.from_numpy(S @ (rho_c[:, :, None] * tb).reshape(V, C * n2).numpy()).reshape(V, C, n2)
+            else:
+                x = (rho_c[:, :, None] * xb).reshape(F, C * n2).numpy()
+                tb = torch.from_numpy(S @ x).reshape(V, C, n2)
+                if b < bounces:
+                    xb = torch.from_numpy(faces["S"] @ x).reshape(F, C, n2)
+            yield tb
 
     for b, term in enumerate(bounce_terms(), 1):  # a loop over bounces
         total += term
@@ -1174,12 +1192,106 @@ def _interreflect(T0: torch.Tensor, S: Any, mesh: Mesh, bounces: int, bounce_tol
             break
     meta["bounces_used"] = used
     meta["bounce_energy_fraction"] = energy
-    if bounces > 0 and S is None:
-        meta["bounce_decision"] = "no interreflection: shadow rays were not traced (no occluding geometry)"
-    elif bounces > 0:
-        meta["bounce_decision"] = (f"stopped after {used} of {bounces} bounces"
-                                   + (f" (bounce {used} added {energy[-1]:.3g} < bounce_tol)" if used < bounces else ""))
+    meta["bounce_decision"] = (f"stopped after {used} of {bounces} bounces"
+                               + (f" (bounce {used} added {energy[-1]:.3g} < bounce_tol)" if used < bounces else ""))
     return total, C
+
+
+#: rows per block of the diffuse assembly (bounce sums, albedo, float32 rows): a few MiB of temporaries
+ASSEMBLE_ROWS = 1 << 14
+
+
+def held_bytes_per_vertex(bands: int, hit_terms: int, hit_channels: int, channels: int) -> int:
+    """Bytes per vertex the diffuse assembly holds (:func:`_assemble`): t⁰ ``[n²]`` float64, the
+    hit-point estimator's bounce terms ``[hit_terms, hit_channels, n²]`` float64 and the stored
+    rows ``[channels, n²]`` float32. A result whose assembly holds more than the streaming
+    threshold (``RunOptions.streams_result``) is assembled in files; the dry run counts the same."""
+    n2 = int(bands) ** 2
+    return 8 * n2 + 8 * int(hit_terms) * int(hit_channels) * n2 + 4 * int(channels) * n2
+
+
+def _block_total(T0: torch.Tensor, TB: torch.Tensor | None, C: int, a: int, b: int, terms: int) -> torch.Tensor:
+    """t̃⁰ + Σ_{k<terms} t̃^{k+1} of rows a..b-1, ``[b-a, C, n²]`` float64 (ρ_p kept out): the
+    running sum of :func:`_interreflect`, in the same order (a new tensor: the rows are not changed)."""
+    tot = T0[a:b, None, :].expand(b - a, C, T0.shape[1]).clone()
+    for k in range(terms):  # a loop over bounces
+        t = TB[a:b, k]
+        tot += t if t.shape[1] == C else t.expand(-1, C, -1)
+    return tot
+
+
+def _bounce_decision(T0: torch.Tensor, TB: torch.Tensor | None, mesh: Mesh, bounces: int, bounce_tol: float,
+                     meta: dict, rows: int = ASSEMBLE_ROWS) -> tuple[int, int]:
+    """Step 3 without the sum (no bounce term, or the hit-point estimator's terms ``TB [V, B, C, n²]``):
+    how many bounce terms the stored transfer keeps (course notes 2005, "Interreflections": stop once
+    a bounce adds less than ``bounce_tol`` of the accumulated transfer's norm, that bounce kept).
+    The norms are accumulated over blocks of ``rows`` rows (sums of squares in float64), so the
+    rows may live in a file (:meth:`RunOptions.result_rows`). Returns (channels C, bounces used)."""
+    C = 1 if (mesh.is_grey() or TB is None) else 3
+    if bounces == 0 or TB is None:  # no bounce term: t = t⁰ itself
+        meta["bounces_used"], meta["bounce_energy_fraction"] = 0, []
+        if bounces > 0:
+            meta["bounce_decision"] = "no interreflection: shadow rays were not traced (no occluding geometry)"
+        return C, 0
+    B = min(bounces, TB.shape[1])
+    ss_term = torch.zeros(B, dtype=torch.float64)
+    ss_total = torch.zeros(B, dtype=torch.float64)
+    for a in range(0, T0.shape[0], rows):
+        b = min(T0.shape[0], a + rows)
+        tot = _block_total(T0, TB, C, a, b, 0)
+        for k in range(B):  # a loop over bounces
+            t = TB[a:b, k]
+            t = t if t.shape[1] == C else t.expand(-1, C, -1)
+            tot += t
+            ss_term[k] += t.square().sum()
+            ss_total[k] += tot.square().sum()
+    energy, used = [], 0
+    for k in range(B):
+        used = k + 1
+        frac = float(ss_term[k].sqrt() / ss_total[k].sqrt().clamp_min(1e-300))
+        energy.append(frac)
+        if frac < bounce_tol:
+            break
+    meta["bounces_used"] = used
+    meta["bounce_energy_fraction"] = energy
+    meta["bounce_decision"] = (f"stopped after {used} of {bounces} bounces"
+                               + (f" (bounce {used} added {energy[-1]:.3g} < bounce_tol)" if used < bounces else ""))
+    return C, used
+
+
+def _irradiance_rows(T0: torch.Tensor, TB: torch.Tensor | None, C: int, used: int,
+                     rows: int = ASSEMBLE_ROWS) -> torch.Tensor:
+    """``[V, n²]`` float64 in memory: the transfer with ``used`` bounces, channels averaged (ρ_p
+    kept out) — what a subsurface term spreads (``subsurface.add_term``: its hierarchy reads every
+    sample, so this is held whole), built by blocks of rows."""
+    out = torch.empty(T0.shape, dtype=torch.float64)
+    for a in range(0, T0.shape[0], rows):
+        b = min(T0.shape[0], a + rows)
+        out[a:b] = _block_total(T0, TB, C, a, b, used).mean(1)
+    return out
+
+
+def _assemble(T0: torch.Tensor, TB: torch.Tensor | None, C: int, used: int, mesh: Mesh, fold: bool, meta: dict,
+              run: RunOptions, L: torch.Tensor | None = None, held: int | None = None,
+              rows: int = ASSEMBLE_ROWS) -> torch.Tensor:
+    """Steps 3 and 4 by blocks of rows: t = t̃⁰ + Σ_{b≤used} t̃^b (``TB``), the albedo folded
+    (``[V, 3, n²]``) or kept out (``[V, n²]``), plus a subsurface term ``L [V, 3, n²]`` (float64),
+    cast to float32 into :meth:`RunOptions.result_rows` (a file when ``held`` exceeds the streaming
+    threshold). Every step is elementwise, so the bits do not depend on where the rows live;
+    they are those of :func:`_interreflect` + :func:`_store_albedo` on the whole tensors."""
+    V, n2 = T0.shape
+    meta["albedo_folded"] = bool(fold)
+    meta["channels"] = 3 if fold else 1
+    out = run.result_rows((V, 3, n2) if fold else (V, n2), torch.float32, nbytes=held)
+    rho = mesh.albedo.to(torch.float64) if fold else None
+    for a in range(0, V, rows):
+        b = min(V, a + rows)
+        tot = _block_total(T0, TB, C, a, b, used)
+        x = rho[a:b, :, None] * tot.expand(b - a, 3, n2) if fold else tot[:, 0, :]
+        if L is not None:
+            x = x + L[a:b]
+        out[a:b] = x
+    return out
 
 
 def _store_albedo(total: torch.Tensor, mesh: Mesh, C: int, fold_albedo: bool | None, meta: dict) -> torch.Tensor:

@@ -42,7 +42,8 @@ from .base import ChunkInterrupt, RunOptions
 from ..io import format_bytes
 from .glossy import default_chunk, estimate_memory, memory_budget
 
-__all__ = ["estimate", "check_fits", "format_estimate", "result_bytes_per_vertex", "rss_bytes", "BVH_BYTES_PER_FACE",
+__all__ = ["estimate", "check_fits", "format_estimate", "result_bytes_per_vertex", "memory_plan", "MemoryPlan", "full_params",
+           "rss_bytes", "BVH_BYTES_PER_FACE",
            "ALLOCATOR_SLACK", "real_chunk", "probe_chunk", "probe_seconds", "PROBE_CHUNKS", "PROBE_MIN_CHUNK", "PROBE_SHARE"]
 
 #: what the process holds beyond the counted arrays of the rays and result stages: freed
@@ -78,21 +79,44 @@ def mesh_bytes(mesh: Mesh) -> int:
     return int(sum(t.numel() * t.element_size() for t in mesh.to_tensors("").values()))
 
 
+def full_params(kind: str, kw: dict[str, Any]) -> dict[str, Any]:
+    """Resolved keywords ``kw`` of ``kind`` with the kind's defaults filled in where unset (the
+    estimate sizes what the run will do: subsurface's 3 bands and 256 samples, wavelet's res 32)."""
+    from .registry import get_kind
+
+    d = {k: v for k, v in get_kind(kind).defaults().items() if v is not None}
+    return {**d, **{k: v for k, v in kw.items() if v is not None}}
+
+
+def _diffuse_layout(kw: dict[str, Any], mesh: Mesh) -> tuple[int, int, bool, int, int]:
+    """(n², bounces, hit-point bounces, hit channels, stored channels) of a diffuse run (precompute_diffuse)."""
+    n2 = int(kw.get("bands", 5)) ** 2
+    bounces = int(kw.get("bounces", 0) or 0)
+    hits = bounces > 0 and kw.get("bounce_points", "hits") == "hits"
+    fold = kw.get("fold_albedo")
+    C = 3 if (kw.get("subsurface") is not None or fold is True or (fold is None and bounces > 0 and not mesh.is_grey())) else 1
+    return n2, bounces, hits, 1 if mesh.is_grey() else 3, C
+
+
 def result_bytes_per_vertex(kind: str, kw: dict[str, Any], mesh: Mesh) -> tuple[int, int]:
-    """(bytes per vertex of the stored result, bytes per vertex held while assembling it) for
-    resolved precompute keywords ``kw`` of ``kind``. Diffuse: ``[V, (3,) n²]`` float32, assembled
-    in float64 (with bounces, every bounce term and the sum too); glossy ``[V, m², n²]``, MRT
+    """(bytes per vertex of the stored result, bytes per vertex held while assembling it, in
+    memory or in files) for resolved precompute keywords ``kw`` of ``kind`` (defaults filled in:
+    :func:`full_params`). Diffuse: ``[V, (3,) n²]`` float32, assembled from t⁰ in float64 and,
+    with the hit-point estimator's bounces, its bounce terms (``diffuse.held_bytes_per_vertex``;
+    the sparse ``bounce_points`` hold every bounce term and the sum too); glossy ``[V, m², n²]``, MRT
     ``[V, M², n²]`` float32 (chunks copied into it and released one by one); wavelet ``[V, K]``
-    values + index + a scale; transport: streamed, nothing held; subsurface ``[V, 3, n²]`` float32 after
-    a grey diffuse pass."""
+    values + index + scales; transport: streamed, nothing held; subsurface ``[V, 3, n²]`` float32
+    after a grey diffuse pass."""
+    from .diffuse import held_bytes_per_vertex
+
+    kw = full_params(kind, kw)
     n2 = int(kw.get("bands", 5)) ** 2
     if kind == "diffuse":
-        bounces = int(kw.get("bounces", 0))
-        fold = kw.get("fold_albedo")
-        C = 3 if (fold is True or (fold is None and bounces > 0 and not mesh.is_grey())) else 1
+        n2, bounces, hits, Ch, C = _diffuse_layout(kw, mesh)
         out = 4 * C * n2
-        work = 8 * n2 + out if bounces == 0 else 8 * n2 * (1 + 3 * (bounces + 2)) + out
-        return out, work
+        if bounces == 0 or hits:
+            return out, held_bytes_per_vertex(int(kw.get("bands", 5)), bounces if hits else 0, Ch, C)
+        return out, 8 * n2 * (1 + 3 * (bounces + 2)) + out
     if kind in ("glossy", "mrt"):
         rows = int(kw.get("M", 11)) ** 2 if kind == "mrt" else int(kw.get("bands_out") or kw.get("bands", 5)) ** 2
         out = 4 * rows * n2
@@ -112,20 +136,126 @@ def result_bytes_per_vertex(kind: str, kw: dict[str, Any], mesh: Mesh) -> tuple[
         res = int(kw.get("res", 8))
         return J * 6 * res * res * (2 if kw.get("dtype") == "float16" else 4), 0
     if kind == "subsurface":  # a grey diffuse precompute, then the dipole term in colour (subsurface_kind)
-        _, work = result_bytes_per_vertex("diffuse", {**kw, "fold_albedo": False}, mesh)
+        _, work = result_bytes_per_vertex("diffuse", {**kw, "fold_albedo": False, "subsurface": None}, mesh.with_albedo(1.0))
         out = 4 * 3 * n2
-        # + the colour term and the irradiance samples' SH rows (float64, about one sample per vertex
-        # where vertices are closer than the spacing; denser meshes of a thin medium hold more)
-        return out, work + out + 2 * 8 * 3 * n2
+        return out, work + out
     raise ValueError(f"kind={kind!r}; accepted: diffuse, glossy, mrt, wavelet, transport, subsurface")
+
+
+@dataclasses.dataclass
+class MemoryPlan:
+    """Where a run's result lives (:func:`memory_plan`): stored bytes per vertex, whether its
+    assembled rows are in files (``RunOptions.streams_result``), the bytes held in memory while
+    the rays run (rows filled so far) and at the result stage, and what is held whole, and why."""
+
+    out_pv: int
+    held_pv: int
+    streamed: bool
+    rows: int
+    result: int
+    whole: list[str]
+
+
+def _scatter_plan(mesh: Mesh, spec: dict[str, Any], n2: int) -> tuple[int, int]:
+    """(bytes the subsurface scatter holds whole, irradiance samples) for a term ``spec``."""
+    from .subsurface import DEFAULT_SPACING, sample_count, scatter_bytes
+
+    S = sample_count(mesh, spec["material"], float(spec["scale"]), float(spec.get("spacing", DEFAULT_SPACING)))
+    return scatter_bytes(mesh.num_vertices, S, n2), S
+
+
+def memory_plan(kind, kw: dict[str, Any], mesh: Mesh, run: RunOptions) -> MemoryPlan:
+    """The memory of ``kind``'s result for resolved keywords ``kw`` (defaults filled in here):
+    what streams to files (the kind's :meth:`RunOptions.result_rows` decisions, taken on the
+    same byte counts) and what every pass must hold whole in memory (the dry run names it).
+
+    - diffuse without bounces or with the hit-point estimator (default): t⁰, its bounce terms and
+      the stored rows (:func:`diffuse.held_bytes_per_vertex`) in files when they exceed the
+      threshold; the sparse ``bounce_points`` ('vertices', 'faces', 'corners') hold every row.
+    - glossy, MRT: the rows, in a file when larger than the threshold.
+    - wavelet: values, indices and scales in files when larger; 28 B per vertex of error sums held.
+    - subsurface (and a ``subsurface:`` term): the irradiance samples and their hierarchy are held
+      whole (:func:`subsurface.scatter_bytes`: every receiver may read any sample); the receivers'
+      rows stream.
+    - transport: a directory of chunk files, nothing held."""
+    name = kind.name
+    kw = full_params(name, kw)
+    V = mesh.num_vertices
+    out_pv, held_pv = result_bytes_per_vertex(name, kw, mesh)
+    whole: list[str] = []
+    if kind.output == "directory":
+        return MemoryPlan(out_pv, held_pv, True, 0, 0, whole)
+    blocks = 0  # the block-wise assembly's temporaries (diffuse), a few MiB
+    if name in ("diffuse", "subsurface"):
+        dkw = kw if name == "diffuse" else {**kw, "fold_albedo": False, "subsurface": None}
+        dmesh = mesh if name == "diffuse" else mesh.with_albedo(1.0)
+        n2, bounces, hits, Ch, C = _diffuse_layout(dkw, dmesh)
+        d_out, d_held = result_bytes_per_vertex("diffuse", dkw, dmesh)
+        from .diffuse import ASSEMBLE_ROWS
+
+        blocks = ASSEMBLE_ROWS * 8 * n2 * (3 * C + 1)
+        if bounces == 0 or hits:
+            d_streamed = run.streams_result(d_held * V)
+            rows = 0 if d_streamed else (d_held - d_out) * V
+            d_result = blocks + (0 if d_streamed else d_held * V)
+        else:
+            d_streamed, rows, d_result = False, (d_held - d_out) * V, d_held * V
+            whole.append(f"bounce_points={kw.get('bounce_points')!r}: its sparse bounces read every row, held in memory "
+                         f"({format_bytes(d_held * V)}; bounce_points='hits' streams)")
+        spec = kw.get("subsurface") if name == "diffuse" else {
+            "material": _material(kw), "scale": kw.get("scale", 1.0), "spacing": kw.get("spacing", 1.0)}
+        if spec is None:
+            return MemoryPlan(out_pv, held_pv, d_streamed, rows, d_result, whole)
+        sc, S = _scatter_plan(mesh, spec, n2)
+        whole.append(f"the subsurface hierarchy over {S} irradiance samples, held whole (every receiver may read any "
+                     f"sample): about {format_bytes(sc)}")
+        if name == "diffuse":
+            L = 24 * n2 * V  # the term's float64 rows (their own decision), then the assembly adds them
+            L_mem = 0 if run.streams_result(L) else L
+            irr = 8 * n2 * V
+            result = (0 if d_streamed else (d_held - d_out) * V) + L_mem + max(irr + sc, blocks + (0 if d_streamed else d_out * V))
+            return MemoryPlan(out_pv, held_pv, d_streamed, rows, result, whole)
+        streamed = run.streams_result(out_pv * V)
+        result = max(d_result, (0 if d_streamed else d_out * V) + sc + (0 if streamed else out_pv * V))
+        return MemoryPlan(out_pv, held_pv, streamed and d_streamed, rows, result, whole)
+    if name == "wavelet":
+        from .wavelet import STATS_BYTES
+
+        streamed = run.streams_result(out_pv * V)
+        rows = STATS_BYTES * V + (0 if streamed else out_pv * V)
+        return MemoryPlan(out_pv, held_pv, streamed, rows, rows + (0 if streamed else out_pv * V // 4), whole)
+    streamed = run.streams_result(out_pv * V)  # glossy, mrt
+    rows = 0 if streamed else out_pv * V
+    result = 0 if streamed else held_pv * V + out_pv * V // 4
+    spec = kw.get("subsurface") if name == "glossy" else None
+    if spec is not None:  # the irradiance's diffuse pass (grey, ρ = 1), the hierarchy, the term's float64 rows; added in place
+        dkw = {"bands": kw.get("bands", 5), "bounces": kw.get("bounces", 0), "fold_albedo": False}
+        n2 = int(kw.get("bands", 5)) ** 2
+        d_out, d_held = result_bytes_per_vertex("diffuse", dkw, mesh.with_albedo(1.0))
+        d_mem = 0 if run.streams_result(d_held * V) else d_held * V
+        sc, S = _scatter_plan(mesh, spec, n2)
+        L = 24 * n2 * V
+        result = rows + max(d_mem, (0 if run.streams_result(d_held * V) else d_out * V) + sc + (0 if run.streams_result(L) else L))
+        whole.append(f"the subsurface hierarchy over {S} irradiance samples, held whole (every receiver may read any "
+                     f"sample): about {format_bytes(sc)}")
+    return MemoryPlan(out_pv, held_pv, streamed, rows, result, whole)
+
+
+def _material(kw: dict[str, Any]):
+    """The subsurface kind's material from its keywords (preset, or sigma_a/sigma_s/eta)."""
+    from .subsurface import resolve_material
+
+    return resolve_material(kw.get("material"), kw.get("sigma_a"), kw.get("sigma_s"), kw.get("eta"))
 
 
 def real_chunk(kind: str, kw: dict[str, Any], chunk_size: int | None) -> int:
     """Vertices per chunk of the real run of ``kind`` (``chunk_size``, else the kind's default:
     ``glossy.default_chunk`` for glossy/MRT, 2²⁰ rays per chunk within [16, 16384] for diffuse
-    and subsurface, 1024 otherwise)."""
+    and subsurface's irradiance pass, ``wavelet.default_chunk`` (about 2²⁰ rays at the sub-texel
+    resolution) and ``transport``'s 8 Mi table entries per chunk file, at most 4096 vertices)."""
     if chunk_size is not None:
         return int(chunk_size)
+    kw = full_params(kind, kw)
     samples = int(kw.get("samples", 1024))
     if kind in ("glossy", "mrt"):
         return default_chunk(samples)
@@ -133,11 +263,24 @@ def real_chunk(kind: str, kw: dict[str, Any], chunk_size: int | None) -> int:
         from .diffuse import rays_per_vertex
 
         return int(min(max(16, (1 << 20) // max(1, rays_per_vertex(samples, kw.get("sampling", "qmc")))), 16384))
+    if kind == "wavelet":
+        from .wavelet import default_chunk as wavelet_chunk
+
+        return wavelet_chunk(int(kw.get("res", 32)), int(kw.get("supersample", 1)))
+    if kind == "transport":
+        return int(max(1, min(4096, (8 << 20) // (_views(kw) * 6 * int(kw.get("res", 8)) ** 2))))
     return 1024
+
+
+def _views(kw: dict[str, Any]) -> int:
+    """View directions J of a transport table (an icosphere frequency f: 10 f² + 2)."""
+    views = kw.get("views", 3)
+    return 10 * int(views) ** 2 + 2 if isinstance(views, int) else len(views)
 
 
 def _chunk_bytes(kind: str, kw: dict[str, Any], V: int, chunk_size: int | None) -> int:
     """One chunk's working set (rays, their SH values, matrices), bytes."""
+    kw = full_params(kind, kw)
     n2 = int(kw.get("bands", 5)) ** 2
     samples = int(kw.get("samples", 1024))
     if kind in ("glossy", "mrt"):
@@ -149,7 +292,20 @@ def _chunk_bytes(kind: str, kw: dict[str, Any], V: int, chunk_size: int | None) 
         rpv = rays_per_vertex(samples, kw.get("sampling", "qmc"))
         c = min(real_chunk(kind, kw, chunk_size), max(V, 1))
         return c * rpv * (73 + 8 * n2) * (1 + int(kw.get("bounces", 0) > 0))  # origins, directions, ids, cosines, SH
-    return 64 << 20  # wavelet, transport: their chunks are bounded by their own defaults
+    c = min(real_chunk(kind, kw, chunk_size), max(V, 1))
+    if kind == "wavelet":  # its own working-set count, without the result (V = 0)
+        from .wavelet import estimate_wavelet_memory
+
+        res, K, bits = int(kw.get("res", 32)), int(kw.get("terms", 256)), int(kw.get("bits", 8))
+        C = 3 if int(kw.get("bounces", 0) or 0) > 0 else 1
+        return estimate_wavelet_memory(0, res, min(K, 6 * res * res), bits, int(kw.get("supersample", 1)), c,
+                                       kw.get("sampling") == "jittered", C)
+    if kind == "transport":  # the chunk's table (reused), its rays and the BRDF on blocks of (view, texel) pairs
+        from .transport import PAIR_BLOCK
+
+        P = 6 * int(kw.get("res", 8)) ** 2
+        return c * _views(kw) * P * 4 + c * P * 40 + PAIR_BLOCK * 256
+    return 64 << 20
 
 
 @dataclasses.dataclass
@@ -163,6 +319,7 @@ class Estimate:
     peak_bytes: int
     budget_bytes: int
     rays: int | None = None
+    whole: list[str] = dataclasses.field(default_factory=list)
 
     @property
     def fits(self) -> bool:
@@ -196,21 +353,18 @@ def estimate(kind, mesh: Mesh, params: dict[str, Any], run: RunOptions | None = 
     run = RunOptions() if run is None else run
     kw, _ = kind.resolve(params, lights)
     V, F = mesh.num_vertices, mesh.num_faces
-    out_pv, held_pv = result_bytes_per_vertex(kind.name, kw, mesh)
+    plan = memory_plan(kind, kw, mesh, run)
+    out_pv, held_pv, streamed = plan.out_pv, plan.held_pv, plan.streamed
     m_bytes = max(mesh_bytes(mesh), int(mesh_rss or 0))
     traced = kw.get("shadows", True) not in (False, "never")
     bvh = BVH_BYTES_PER_FACE * F if traced else 0
     chunk = _chunk_bytes(kind.name, kw, V, run.chunk_size)
-    # the assembled rows, filled as each chunk finishes (run_chunks' sink): float64 for diffuse, the stored rows elsewhere;
-    # none in memory when they are assembled in a file (RunOptions.stream_result: a result larger than
-    # STREAM_RESULT_BYTES with a state directory, as prt precompute always has) — only what streaming cannot
-    # take: diffuse with bounces or a folded albedo, subsurface, wavelet assemble in memory
-    streamed = (kind.output != "directory" and kind.name in ("glossy", "mrt", "diffuse") and run.streams_result(out_pv * V)
-                and not (kind.name == "diffuse" and (int(kw.get("bounces", 0)) > 0 or out_pv != 4 * int(kw.get("bands", 5)) ** 2)))
-    finished = 0 if kind.output == "directory" or streamed else (held_pv - out_pv if kind.name == "diffuse" else out_pv) * V
+    # the assembled rows, filled as each chunk finishes (run_chunks' sink); none in memory when they are
+    # assembled in files (RunOptions.stream_result: a result larger than STREAM_RESULT_BYTES with a state
+    # directory, as prt precompute always has) — only what a pass must hold whole (memory_plan) counts
+    finished = plan.rows
     rays_stage = int(ALLOCATOR_SLACK * (bvh + chunk + finished))
-    result_stage = (int(ALLOCATOR_SLACK * chunk) if streamed else  # the result is written from the page cache
-                    int(ALLOCATOR_SLACK * (held_pv * V + (0 if kind.output == "directory" else out_pv * V // 4))))  # + scratch
+    result_stage = int(ALLOCATOR_SLACK * max(plan.result, chunk if streamed else 0))
     seconds_rays = None
     probe_info: dict[str, Any] = {}
     if probe:
@@ -221,18 +375,19 @@ def estimate(kind, mesh: Mesh, params: dict[str, Any], run: RunOptions | None = 
         {"stage": "rays", "bytes": rays_stage, "seconds": seconds_rays,
          "note": (f"ray-casting scene ~{format_bytes(bvh)}, one chunk ~{format_bytes(chunk)}, the rows filled so far "
                   f"{format_bytes(finished)} (each chunk also on disk in the state directory)"
-                  + (f"; time from {probe_info['note']}" if probe_info.get("note") else ""))},
+                  + (f"; time from {probe_info['note']}" if probe_info.get("note") else "")),
+         "passes": probe_info.get("passes")},
         {"stage": "result", "bytes": result_stage, "seconds": None if seconds_rays is None else 0.0,
          "note": (f"{format_bytes(out_pv * V)} on disk, streamed per chunk (not held)" if kind.output == "directory" else
                   f"{format_bytes(out_pv * V)} assembled in a file beside the state directory and written from it "
                   "(page cache, not held)" if streamed else
                   f"{format_bytes(out_pv)} per vertex stored ({format_bytes(out_pv * V)}), {format_bytes(held_pv)} per vertex "
-                  "held while assembling")},
+                  "held while assembling") + "".join(f"; {w}" for w in plan.whole)},
     ]
     if seconds_rays is not None:
         stages[2]["seconds"] = probe_info.get("write_seconds_per_byte", 0.0) * out_pv * V
     peak = m_bytes + max(rays_stage, result_stage)
-    return Estimate(kind.name, V, F, stages, int(peak), memory_budget(run.max_memory), probe_info.get("rays"))
+    return Estimate(kind.name, V, F, stages, int(peak), memory_budget(run.max_memory), probe_info.get("rays"), list(plan.whole))
 
 
 def probe_chunk(V: int, chunk: int, k: int | None = None) -> int:
@@ -269,17 +424,48 @@ def probe_seconds(V: int, k: int, first: float, timed: list[float]) -> tuple[flo
     return setup + per * V / k, setup, per
 
 
-def _probe(kind, mesh: Mesh, params: dict, run: RunOptions, lights, k: int | None) -> tuple[float | None, dict]:
-    """Seconds of the ray stage from the first :data:`PROBE_CHUNKS` chunks of the real run
-    (:func:`probe_chunk` vertices each; :func:`probe_seconds`). As the real run, the probe saves
-    each chunk to a state directory and, where the real result would be assembled in a file
-    (``RunOptions.streams_result``), fills file-backed rows — in a temporary directory, removed after."""
-    import tempfile
+def _passes(kind, mesh: Mesh, params: dict, lights) -> list[tuple[str, Any, Mesh, dict, Any]]:
+    """The passes of ``kind``'s run the probe times one by one: (name, kind, mesh, params, lights).
+    Most kinds are one chunked pass; a subsurface scatter (the subsurface kind, a ``subsurface:``
+    term of diffuse or glossy) is a second pass over the receivers — ``('scatter', None, mesh,
+    {material, scale, spacing, epsilon, fresnel, method, bands, seed}, None)`` — after the
+    irradiance's diffuse pass (the glossy term's own, a third)."""
+    from .registry import get_kind
 
-    V = mesh.num_vertices
-    kw, _ = kind.resolve(params, lights)
-    out_pv, _ = result_bytes_per_vertex(kind.name, kw, mesh)
-    k = probe_chunk(V, real_chunk(kind.name, kw, run.chunk_size), k)
+    name = kind.name
+    if name == "subsurface":
+        kw = full_params(name, kind.resolve(params, lights)[0])
+        d = {k: kw[k] for k in ("bands", "samples", "bounces", "seed", "shadows") if k in kw}
+        scatter = {"material": _material(kw), "scale": kw.get("scale", 1.0), "spacing": kw.get("spacing", 1.0),
+                   "epsilon": kw.get("epsilon"), "fresnel": kw.get("fresnel", True), "method": kw.get("method", "hierarchical"),
+                   "bands": int(kw.get("bands", 3)), "seed": int(kw.get("seed", 0))}
+        return [("irradiance", get_kind("diffuse"), mesh.with_albedo(1.0), {**d, "fold_albedo": False}, None),
+                ("scatter", None, mesh, scatter, None)]
+    spec = params.get("subsurface") if name in ("diffuse", "glossy") else None
+    if spec is None:
+        return [(name, kind, mesh, params, lights)]
+    from .subsurface import check_term_spec
+
+    sp = check_term_spec(spec)
+    kw = full_params(name, kind.resolve(params, lights)[0])
+    bands = int(kw.get("bands", 5))
+    scatter = {"material": sp["material"], "scale": sp["scale"], "spacing": sp["spacing"], "epsilon": sp["epsilon"],
+               "fresnel": sp["fresnel"], "method": "hierarchical", "bands": bands, "seed": 0}
+    main = {k: v for k, v in params.items() if k != "subsurface"}
+    out = [(name, kind, mesh, main, lights)]
+    if name == "glossy":  # its irradiance: a grey diffuse pass with the glossy run's rays (glossy._add_subsurface)
+        shadows = kw.get("shadows", True)
+        out.append(("irradiance", get_kind("diffuse"), mesh.with_albedo(1.0),
+                    {"bands": bands, "samples": int(kw.get("samples", 1024)), "bounces": int(kw.get("bounces", 0)),
+                     "seed": int(kw.get("seed", 0)), "fold_albedo": False,
+                     "shadows": "always" if shadows not in (False, "never") else "never"}, None))
+    return out + [("scatter", None, mesh, scatter, None)]
+
+
+def _time_pass(go, V: int, k: int) -> tuple[float, dict[str, Any]]:
+    """Seconds of one chunked pass over ``V`` items from its first :data:`PROBE_CHUNKS` chunks of
+    ``k`` (:func:`probe_seconds`): ``go(callback)`` runs the pass with ``callback`` after each
+    chunk (which stops it by :class:`ChunkInterrupt` after the third)."""
     marks: list[float] = []
 
     def stop(i: int, n: int) -> None:
@@ -287,19 +473,69 @@ def _probe(kind, mesh: Mesh, params: dict, run: RunOptions, lights, k: int | Non
         if len(marks) >= PROBE_CHUNKS:
             raise ChunkInterrupt("probe done")
 
+    t0 = time.perf_counter()
+    try:
+        go(stop)
+    except ChunkInterrupt:
+        pass
+    done = time.perf_counter()
+    if len(marks) < PROBE_CHUNKS:  # the whole pass finished within the probe (small mesh, or nothing traced)
+        return done - t0, {"whole": True}
+    timed = [marks[i] - marks[i - 1] for i in range(1, len(marks))]
+    seconds, setup, per = probe_seconds(V, k, marks[0] - t0, timed)
+    return seconds, {"whole": False, "setup_seconds": setup, "chunk_seconds": per, "timed": len(timed)}
+
+
+def _probe(kind, mesh: Mesh, params: dict, run: RunOptions, lights, k: int | None) -> tuple[float | None, dict]:
+    """Seconds of the ray stage from the first :data:`PROBE_CHUNKS` chunks of the real run
+    (:func:`probe_chunk` vertices each; :func:`probe_seconds`), pass by pass (:func:`_passes`: a
+    subsurface scatter is timed on its own receivers' chunks after the irradiance pass, its
+    hierarchy built on the real samples from the unshadowed transfer — its cost is the geometry's,
+    not the values'). As the real run, the probe saves each chunk to a state directory and fills
+    file-backed rows where the real run would (the run's ``stream_result`` with a state directory;
+    in memory without one) — in a temporary directory, removed after."""
+    import tempfile
+    import warnings
+
+    V = mesh.num_vertices
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     t0 = time.perf_counter()
+    total, notes, infos = 0.0, [], []
     with tempfile.TemporaryDirectory(prefix="prt_probe_") as tmp:
-        opts = dataclasses.replace(run, chunk_size=k, callback=stop, state_dir=tmp + "/state", resume=False, keep_state=False,
-                                   stream_result=run.streams_result(out_pv * V), progress=False, executor=None, workers=1)
-        try:
-            if kind.output == "directory":
-                kind.precompute(mesh, params, run=opts, out=tmp + "/t", lights=lights)
+        stream = run.stream_result if run.state_dir is not None else False
+        for i, (name, pk, pmesh, pparams, plights) in enumerate(_passes(kind, mesh, params, lights)):
+            base = dataclasses.replace(run, state_dir=f"{tmp}/state{i}", resume=False, keep_state=False, stream_result=stream,
+                                       progress=False, executor=None, workers=1)
+            if pk is None:  # the subsurface scatter over the receivers (chunks of run.chunk_size, default 2048)
+                kk = probe_chunk(V, run.chunk_size or 2048, k)
+
+                def go(cb, base=base, kk=kk, sp=pparams):
+                    from .diffuse import unshadowed_transfer
+                    from .subsurface import subsurface_term
+
+                    T = unshadowed_transfer(mesh.normals.to(torch.float64), sp["bands"])
+                    with warnings.catch_warnings():
+                        warnings.simplefilter("ignore")
+                        subsurface_term(mesh, T, sp["material"], sp["scale"], epsilon=sp["epsilon"], fresnel=sp["fresnel"],
+                                        method=sp["method"], spacing=sp["spacing"], seed=sp["seed"], meta={},
+                                        run=dataclasses.replace(base, chunk_size=kk, callback=cb), dtype=torch.float32)
             else:
-                kind.precompute(mesh, params, run=opts, lights=lights)
-        except ChunkInterrupt:
-            pass
-        done = time.perf_counter()
+                pkw, _ = pk.resolve(pparams, plights)
+                kk = probe_chunk(V, real_chunk(pk.name, pkw, run.chunk_size), k)
+
+                def go(cb, base=base, kk=kk, pk=pk, pmesh=pmesh, pparams=pparams, plights=plights):
+                    opts = dataclasses.replace(base, chunk_size=kk, callback=cb)
+                    if pk.output == "directory":
+                        pk.precompute(pmesh, pparams, run=opts, out=tmp + "/t", lights=plights)
+                    else:
+                        pk.precompute(pmesh, pparams, run=opts, lights=plights)
+            sec, info = _time_pass(go, V, kk)
+            total += sec
+            infos.append({"pass": name, "chunk": kk, "seconds": sec, **info})
+            label = "" if name == kind.name else f"{name}: "
+            notes.append(f"{label}the whole pass ({sec:.2f} s: it finished within the probe)" if info["whole"] else
+                         f"{label}set-up {info['setup_seconds']:.2f} s + {info['chunk_seconds']:.3f} s per chunk of {kk} "
+                         f"vertices (mean of {info['timed']}) × {V / kk:.1f} chunks")
         # the write rate of the output's file system is not probed (it would write there); this
         # machine's temporary directory stands in: 32 MiB written and flushed
         buf = torch.zeros(8 << 20, dtype=torch.float32).numpy()
@@ -308,16 +544,15 @@ def _probe(kind, mesh: Mesh, params: dict, run: RunOptions, lights, k: int | Non
             f.write(memoryview(buf))
             f.flush()
         write = (time.perf_counter() - tw) / buf.nbytes
-    info: dict[str, Any] = {"write_seconds_per_byte": write, "probe_wall_seconds": time.perf_counter() - t0, "probe_chunk": k,
-                            "load": load}
-    if len(marks) < PROBE_CHUNKS:  # the whole run finished within the probe (small mesh, or nothing traced)
-        return done - t0, {**info, "note": f"the whole run (it finished within the probe), load {load:.1f}"}
-    timed = [marks[i] - marks[i - 1] for i in range(1, len(marks))]
-    seconds, setup, per = probe_seconds(V, k, marks[0] - t0, timed)
-    info.update(setup_seconds=setup, chunk_seconds=per)
-    return seconds, {**info, "note": f"a probe: set-up {setup:.2f} s + {per:.3f} s per chunk of {k} vertices (mean of "
-                                     f"{len(timed)}) × {V / k:.1f} chunks, one worker, load {load:.1f}; the probe took "
-                                     f"{info['probe_wall_seconds']:.1f} s"}
+    first = infos[0]
+    info: dict[str, Any] = {"write_seconds_per_byte": write, "probe_wall_seconds": time.perf_counter() - t0,
+                            "probe_chunk": first["chunk"], "load": load, "passes": infos}
+    if not first["whole"]:
+        info.update(setup_seconds=first["setup_seconds"], chunk_seconds=first["chunk_seconds"])
+    if len(infos) == 1 and first["whole"]:
+        return total, {**info, "note": f"the whole run (it finished within the probe), load {load:.1f}"}
+    return total, {**info, "note": f"a probe: {'; '.join(notes)}; one worker, load {load:.1f}; the probe took "
+                                   f"{info['probe_wall_seconds']:.1f} s"}
 
 
 def format_estimate(e: Estimate) -> list[str]:
@@ -339,6 +574,7 @@ def check_fits(e: Estimate, what: str = "precompute") -> None:
         return
     parts = ", ".join(f"{st['stage']} {format_bytes(st['bytes'])}" for st in e.stages)
     raise ValueError(f"{what} {e.kind} of {e.vertices} vertices needs about {format_bytes(e.peak_bytes)} at its peak "
-                     f"({parts}; chunks are already streamed to disk) but the budget is {format_bytes(e.budget_bytes)}; "
+                     f"({parts}; chunks are already streamed to disk"
+                     + "".join(f"; {w}" for w in e.whole) + f") but the budget is {format_bytes(e.budget_bytes)}; "
                      "accepted: fewer bands (or tents, bands_out, terms), a smaller mesh, or a larger --memory-limit "
                      "(RunOptions.max_memory) on a machine that has it")

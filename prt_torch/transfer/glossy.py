@@ -312,8 +312,9 @@ def run_exit_transfer(
             data[a:b] = p["data"]
             meta["rays_traced"] = meta.get("rays_traced", 0) + int(p["rays"].sum())
 
-        run.run_chunks(V, chunk_size, compute, fingerprint=fingerprint, desc=f"{kind} {mesh.name}",
-                       rays_of=lambda r: int(r["rays"].sum()), sink=sink)
+        with torch_threads(CHUNK_THREADS or torch.get_num_threads()):  # the sink's copies and the chunk saves too
+            run.run_chunks(V, chunk_size, compute, fingerprint=fingerprint, desc=f"{kind} {mesh.name}",
+                           rays_of=lambda r: int(r["rays"].sum()), sink=sink)
     finally:
         if caster is not None:
             meta["workers"] = caster.workers
@@ -508,7 +509,10 @@ def precompute_glossy(
           "vertices": None if sel is None else sel.tolist()}
     if estimator != "plain":
         fp["estimator"] = estimator
-    data, run_meta = run_exit_transfer("glossy", mesh, B, index, bands, samples, seed, shadows, run, fp, sel,
+    # with a subsurface term its passes follow under the state directory: kept until the last (an interruption
+    # there resumes without recomputing the glossy rows), removed after it
+    data, run_meta = run_exit_transfer("glossy", mesh, B, index, bands, samples, seed, shadows,
+                                       run if subsurface is None else dataclasses.replace(run, keep_state=True), fp, sel,
                                        bounces=bounces, estimator=estimator)
     meta = {**shadow_meta, **run_meta, **rcond_meta}
     meta.update(
@@ -526,6 +530,7 @@ def precompute_glossy(
     )
     if subsurface is not None:
         data = _add_subsurface(mesh, data, out_idx, subsurface, bands, samples, seed, shadows, bounces, run, meta)
+        run.finish()
     mesh_out = mesh if sel is None else submesh(mesh, sel)
     return Transfer(kind="glossy", data=data, mesh=mesh_out, meta=meta)
 
@@ -541,13 +546,16 @@ def _add_subsurface(mesh: Mesh, data: torch.Tensor, out_idx: torch.Tensor, spec:
 
     t = precompute_diffuse(mesh.with_albedo(1.0), bands=bands, samples=samples, bounces=bounces, seed=seed,
                            shadows="always" if shadows else "never", fold_albedo=False,
-                           run=dataclasses.replace(run, state_dir=sub_state(run, "irradiance")))
-    L = add_term(mesh, spec, t.data, run, meta)  # [V, 3, n²]
+                           run=dataclasses.replace(run, state_dir=sub_state(run, "irradiance"), keep_state=True))
+    L = add_term(mesh, spec, t.data, run, meta)  # [V, 3, n²] (in a file when large: subsurface_term)
+    del t
     r0 = int((out_idx == 0).nonzero()[0, 0])
-    out = data.clone()
-    out[:, r0] += (torch.einsum("vcn,c->vn", L, _LUMA) * (2 * math.sqrt(math.pi))).to(out.dtype)
+    w = [float(x) for x in _LUMA]
+    for a in range(0, data.shape[0], 1 << 14):  # in place, by blocks of rows (data may be file-backed): no second copy
+        x = L[a:a + (1 << 14)]
+        data[a:a + (1 << 14), r0] += ((x[:, 0] * w[0] + x[:, 1] * w[1] + x[:, 2] * w[2]) * (2 * math.sqrt(math.pi))).to(data.dtype)
     meta["subsurface"]["glossy"] = "luminance (Rec. 709) added to the y_00 exit row"
-    return out
+    return data
 
 
 def submesh(mesh: Mesh, sel: torch.Tensor) -> Mesh:

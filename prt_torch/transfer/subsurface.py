@@ -71,6 +71,7 @@ __all__ = [
     "Material", "PRESETS", "material_from_spec", "resolve_material", "published_rd", "fresnel_dr", "vertex_areas", "dipole_rd", "dipole_rd_within",
     "SampleTree", "scatter_brute", "scatter_hierarchical", "subsurface_term",
     "check_closed", "check_scale", "sub_state", "surface_samples", "DEFAULT_SPACING", "MAX_SAMPLES", "check_term_spec", "add_term", "DEFAULT_EPSILON",
+    "sample_count", "scatter_bytes",
 ]
 
 #: default solid-angle threshold ΔΩ = A_node/d² of the hierarchy; measured against the O(V²)
@@ -481,6 +482,50 @@ def _lattice(k: int) -> torch.Tensor:
     return torch.stack([1 - u - v, u, v], 1)
 
 
+def _subdivisions(mesh: Mesh, spacing: float, max_samples: int) -> tuple[torch.Tensor, torch.Tensor, bool]:
+    """:func:`surface_samples`' subdivision of each face: (k_f ``[F]`` int64, face areas ``[F]``
+    float64, whether the budget coarsened them)."""
+    fa = torch.from_numpy(face_areas(mesh.vertices.to(torch.float64).numpy(), mesh.faces.to(torch.int64).numpy()))
+    k = torch.ceil(torch.sqrt(fa) / spacing).clamp_min(1).to(torch.int64)
+    capped = False
+    while int((k * k).sum()) > max_samples and int(k.max()) > 1:  # coarsen uniformly until within the budget
+        k = torch.ceil(k.double() * 0.9).to(torch.int64).clamp_min(1) - (k > 1).to(torch.int64) * (k > 2).to(torch.int64)
+        capped = True
+    return k, fa, capped
+
+
+def _on_vertices(mesh: Mesh, m: "Material", scale: float, spacing: float) -> tuple[bool, float, torch.Tensor]:
+    """Whether the vertices are dense enough to be the irradiance samples (their mean spacing at
+    most ``spacing`` × the smallest mean free path, :func:`subsurface_term`), that target spacing
+    in mm, and the vertex areas in mm²."""
+    target = spacing * float(m.z_r.min())  # mm between irradiance samples
+    varea = vertex_areas(mesh) * scale * scale
+    return float(varea.sum()) / mesh.num_vertices <= target * target, target, varea
+
+
+def sample_count(mesh: Mesh, material: Any, scale: float, spacing: float = DEFAULT_SPACING,
+                 max_samples: int = MAX_SAMPLES) -> int:
+    """How many irradiance samples :func:`subsurface_term` takes on ``mesh`` (the vertices, or
+    :func:`surface_samples`' lattice), without building them: what the dry run sizes the
+    hierarchy by (:func:`scatter_bytes`)."""
+    m = material_from_spec(material)
+    dense, target, _ = _on_vertices(mesh, m, scale, spacing)
+    if dense:
+        return mesh.num_vertices
+    k, _, _ = _subdivisions(mesh, target / scale, max_samples)
+    return int((k * k).sum())
+
+
+def scatter_bytes(V: int, S: int, D: int, levels: int = _LEVELS) -> int:
+    """Bytes the scatter pass holds in memory whole (:func:`subsurface_term`; every receiver may
+    read any sample, so these are not streamed): the irradiance of the V vertices twice (float64
+    ``[V, D]``: the input's copy and E = π t), the S samples (points, areas, values, Morton codes and
+    order, and the build's sorted copies: 2 × (32 + 8D) + 40 bytes each) and the hierarchy's nodes
+    (81 + 8D bytes each), counted at their upper bound Σ_l min(S, 8^l) over its ``levels`` + 1 levels."""
+    nodes = sum(min(int(S), 8 ** lev) for lev in range(levels + 1))
+    return int(2 * 8 * D * V + S * (2 * (32 + 8 * D) + 40) + nodes * (81 + 8 * D))
+
+
 def surface_samples(mesh: Mesh, values: torch.Tensor, spacing: float, max_samples: int = 1_000_000,
                     seed: int = 0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict]:
     """Irradiance sample points over the surface about ``spacing`` apart (mesh units): each face
@@ -492,12 +537,7 @@ def surface_samples(mesh: Mesh, values: torch.Tensor, spacing: float, max_sample
     ``[S]``, values ``[S, D]`` (float64) and ``{'where', 'count', 'spacing', 'capped'}``."""
     v = mesh.vertices.to(torch.float64)
     f = mesh.faces.to(torch.int64)
-    fa = torch.from_numpy(face_areas(v.numpy(), f.numpy()))
-    k = torch.ceil(torch.sqrt(fa) / spacing).clamp_min(1).to(torch.int64)
-    capped = False
-    while int((k * k).sum()) > max_samples and int(k.max()) > 1:  # coarsen uniformly until within the budget
-        k = torch.ceil(k.double() * 0.9).to(torch.int64).clamp_min(1) - (k > 1).to(torch.int64) * (k > 2).to(torch.int64)
-        capped = True
+    k, fa, capped = _subdivisions(mesh, spacing, max_samples)
     vals = values.to(torch.float64)
     pts_l, area_l, val_l = [], [], []
     for kk in torch.unique(k).tolist():  # one batch per subdivision level (a handful)
@@ -552,9 +592,16 @@ def check_scale(mesh: Mesh, m: Material, scale: float) -> str | None:
 def subsurface_term(mesh: Mesh, irradiance_transfer: torch.Tensor, material: Any, scale: float, *,
                     epsilon: float = DEFAULT_EPSILON, fresnel: bool = True, method: str = "hierarchical",
                     spacing: float = DEFAULT_SPACING, max_samples: int = MAX_SAMPLES, seed: int = 0,
-                    run: RunOptions | None = None, meta: dict | None = None) -> torch.Tensor:
-    """The subsurface exit transfer ``[V, 3, n²]`` float64 (module docstring's L_o) from the
-    per-vertex diffuse transfer t (ρ = 1, ``[V, n²]``: E = π t) of the same mesh.
+                    run: RunOptions | None = None, meta: dict | None = None,
+                    dtype: torch.dtype = torch.float64) -> torch.Tensor:
+    """The subsurface exit transfer ``[V, 3, n²]`` (module docstring's L_o; float64, or ``dtype``)
+    from the per-vertex diffuse transfer t (ρ = 1, ``[V, n²]``: E = π t) of the same mesh.
+
+    Memory: the irradiance samples and their hierarchy are held whole (every receiver may read
+    any sample: about three float64 copies of ``[S, n²]``); the receivers' rows are copied into
+    :meth:`RunOptions.result_rows` as each chunk finishes — in a file beside ``run.state_dir``
+    when larger than the streaming threshold — and converted to ``dtype`` there (elementwise:
+    the bits of ``L.to(dtype)`` on the whole result).
 
     Irradiance samples (Jensen & Buhler 2002 §3.1: denser than the mean free path): the vertices
     when their mean spacing is below ``spacing`` × the smallest 1/σ'_t, else
@@ -575,11 +622,12 @@ def subsurface_term(mesh: Mesh, irradiance_transfer: torch.Tensor, material: Any
     t0 = time.perf_counter()
     V = mesh.num_vertices
     T = torch.as_tensor(irradiance_transfer, dtype=torch.float64).reshape(V, -1)
+    T_sum, D = float(T.abs().sum()), int(T.shape[1])  # the fingerprint's
     recv = mesh.vertices.to(torch.float64) * scale
     E_v = math.pi * T
-    target = spacing * float(m.z_r.min())  # mm between irradiance samples
-    varea = vertex_areas(mesh) * scale * scale
-    if float(varea.sum()) / V <= target * target:  # the vertices are dense enough: they are the samples
+    del T  # one copy of the irradiance held (the input may be a file-backed map: read once here)
+    dense, target, varea = _on_vertices(mesh, m, scale, spacing)
+    if dense:  # the vertices are dense enough: they are the samples
         pts, areas, E, ids = recv, varea, E_v, torch.arange(V)
         meta["samples"] = {"where": "vertices", "count": V, "spacing_mm": math.sqrt(float(varea.sum()) / V)}
     else:
@@ -606,10 +654,15 @@ def subsurface_term(mesh: Mesh, irradiance_transfer: torch.Tensor, material: Any
 
     fp = {"kind": "subsurface", "mesh": mesh.content_hash(), "material": m.describe(), "scale": scale, "epsilon": epsilon,
           "fresnel": fresnel, "method": method, "spacing": spacing, "max_samples": max_samples, "seed": seed,
-          "T": float(T.abs().sum()), "shape": list(T.shape)}
-    chunks = run.run_chunks(V, run.chunks(2048), compute, fingerprint=fp, desc="subsurface")
-    L = torch.cat([c["L"] for c in chunks])
-    terms = torch.stack([c["terms"] for c in chunks]).sum(0)
+          "T": T_sum, "shape": [V, D]}
+    L = run.result_rows((V, 3, D), dtype, name="subsurface")
+    terms = torch.zeros(2, dtype=torch.int64)
+
+    def sink(a: int, b: int, c: dict[str, torch.Tensor]) -> None:  # each chunk copied in as it finishes
+        L[a:b] = c["L"]
+        terms.add_(c["terms"])
+
+    run.run_chunks(V, run.chunks(2048), compute, fingerprint=fp, desc="subsurface", sink=sink)
     stats = {"node_terms": int(terms[0]), "sample_terms": int(terms[1])}
     meta.update({"material": m.describe(), "scale_mm_per_unit": scale, "epsilon": epsilon, "method": method,
                  "fresnel": f"F_dt = eta^2 (1 - F_dr) = {m.F_dt:.4f} at entry and exit (view-independent, Sloan 2003 §3.1)" if fresnel else "none",

@@ -71,16 +71,19 @@ def precompute_subsurface(
             warnings.warn(w, stacklevel=2)
     direct = precompute_diffuse(mesh.with_albedo(1.0), bands=bands, samples=samples, bounces=bounces, seed=seed,
                                 shadows=shadows, fold_albedo=False,
-                                run=dataclasses.replace(run, state_dir=sub_state(run, "irradiance")))
+                                run=dataclasses.replace(run, state_dir=sub_state(run, "irradiance"), keep_state=True))
+    # (kept until the scatter is done: an interrupted scatter resumes without recomputing the irradiance)
     sub: dict[str, Any] = {}
+    # the receivers' rows are converted to float32 as each chunk is copied in (in a file when large: subsurface_term)
     L = subsurface_term(mesh, direct.data, m, scale, epsilon=epsilon, fresnel=fresnel, method=method, spacing=spacing,
-                        seed=seed, run=dataclasses.replace(run, state_dir=sub_state(run, "scatter")), meta=sub)
+                        seed=seed, run=dataclasses.replace(run, state_dir=sub_state(run, "scatter")), meta=sub,
+                        dtype=torch.float32)
     meta = dict(direct.meta)
     meta.update(albedo_folded=True, channels=3, transfer_kind_requested="subsurface", subsurface=sub,
                 normalisation="exit radiance L_out[v,c] = sum_i data[v,c,i] * l[c,i]; the subsurface term "
                               "(F_dt^2/pi) sum_j R_d(|x_j - x_v|) A_j E_j, E = pi t (Jensen 2001, Jensen & Buhler 2002); "
                               "constant radiance 1 -> l00 = 2 sqrt(pi)")
     run.finish()
-    return Transfer(kind="diffuse", data=L.to(torch.float32).contiguous(), mesh=mesh, meta=meta)
+    return Transfer(kind="diffuse", data=L, mesh=mesh, meta=meta)
 
 

@@ -91,21 +91,28 @@ def bytes_per_vertex(terms: int, bits: int, P: int, scales: int = 1, channels: i
     return terms * (channels * bits // 8 + (2 if P <= 32767 else 4)) + 4 * scales * channels
 
 
+#: bytes per vertex of the per-vertex error sums a wavelet precompute keeps in memory (float64
+#: total, dropped, quantisation error and an int32 count: ``meta``'s truncation and nnz figures)
+STATS_BYTES = 3 * 8 + 4
+
+
 def estimate_wavelet_memory(V: int, res: int, terms: int, bits: int, supersample: int, chunk: int,
-                            jittered: bool = False, channels: int = 1) -> int:
-    """Bytes a wavelet precompute holds at its peak: the stored result twice (chunk list and
-    assembled tensors) plus one chunk's working set (float64 cosines and weights, float32 rays
+                            jittered: bool = False, channels: int = 1, streamed: bool = False) -> int:
+    """Bytes a wavelet precompute holds at its peak: the stored result once (each chunk copied
+    into the assembled rows as it finishes; none when they are in a file, ``streamed``:
+    :meth:`RunOptions.result_rows`) and the per-vertex error sums (:data:`STATS_BYTES`), plus one
+    chunk's working set (float64 cosines and weights, float32 rays
     with their indices, at the sub-texel resolution; float64 Haar coefficients and top-K; jittered:
     each vertex's own float64 directions, weights and their intermediates; ``channels`` = 3: the
     coloured bounce's three pixel-basis transfers and their Haar coefficients)."""
     P = 6 * res * res
     Pf = P * supersample * supersample
-    result = 2 * V * bytes_per_vertex(terms, bits, P, 1, channels)
+    result = V * STATS_BYTES + (0 if streamed else V * bytes_per_vertex(terms, bits, P, 1, channels))
     work = chunk * (Pf * (8 + 8 + 12 + 12 + 16 + 1 + (120 if jittered else 0)) + channels * (P * 8 * 4 + terms * 16))
     return int(result + work + Pf * 40)
 
 
-def _default_chunk(res: int, supersample: int) -> int:
+def default_chunk(res: int, supersample: int) -> int:
     rays = 3 * res * res * supersample * supersample  # about half the sub-texels are above the horizon
     return int(min(max(8, (1 << 20) // rays), 8192))
 
@@ -402,9 +409,11 @@ def precompute_wavelet(
     bounces = check_int("bounces", bounces, 0, 8)
     hit_samples = check_int("hit_samples", hit_samples, 1, 4096)
     V = mesh.num_vertices
-    chunk_size = run.chunks(_default_chunk(res, s))
+    chunk_size = run.chunks(default_chunk(res, s))
     C = 3 if bounces and not mesh.is_grey() else 1  # a coloured mesh's interreflection: one transfer per colour
-    need = estimate_wavelet_memory(V, res, terms, bits, s, min(chunk_size, max(V, 1)), sampling == "jittered", C)
+    stored = V * bytes_per_vertex(terms, bits, P, n_scales, C)  # decides where the rows are assembled (result_rows)
+    need = estimate_wavelet_memory(V, res, terms, bits, s, min(chunk_size, max(V, 1)), sampling == "jittered", C,
+                                   run.streams_result(stored))
     budget = memory_budget(run.max_memory)
     if need > budget:
         raise ValueError(f"wavelet transfer of {V} vertices at res={res} (6x{res}x{res} texels, supersample {s}) with "
@@ -445,13 +454,25 @@ def precompute_wavelet(
                    "threshold": threshold, "supersample": s, "sampling": sampling, "seed": seed if sampling == "jittered" or bounces else None,
                    "bounces": bounces, "hit_samples": hit_samples if bounces else None, "hit_offset": hit_offset if bounces else None,
                    "shadows": traced, "offset": run.offset}
+    cat: dict[str, torch.Tensor] = {}  # the assembled rows: q, index, scale (in a file when large) and the per-vertex sums
+
+    def sink(a: int, b: int, p: dict[str, torch.Tensor]) -> None:  # each chunk copied in as it finishes (any order)
+        for k, v in p.items():
+            if k not in cat:
+                shape = (1 if k == "rays" else V,) + tuple(v.shape[1:])
+                cat[k] = (run.result_rows(shape, v.dtype, name=f"wavelet_{k}", nbytes=stored) if k in ("q", "index", "scale")
+                          else torch.zeros(shape, dtype=v.dtype))
+            if k == "rays":
+                cat[k] += v
+            else:
+                cat[k][a:b] = v
+
     try:
-        parts = run.run_chunks(V, chunk_size, compute, fingerprint=fingerprint, desc=f"wavelet {mesh.name}",
-                               rays_of=lambda r: int(r["rays"].sum()))
+        run.run_chunks(V, chunk_size, compute, fingerprint=fingerprint, desc=f"wavelet {mesh.name}",
+                       rays_of=lambda r: int(r["rays"].sum()), sink=sink)
     finally:
         if caster is not None:
             caster.close()
-    cat = {k: torch.cat([p[k] for p in parts]) for k in parts[0]} if parts else {}
     total, dropped, qerr = cat["total"], cat["dropped"], cat["qerr"]
     rel = lambda e: (e / total.clamp_min(1e-300)).sqrt()  # noqa: E731 - relative L2 per vertex
     lit = total > 0
