@@ -71,17 +71,20 @@ def main(argv=None):
     ap.add_argument("--seeds", type=int, default=2)
     ap.add_argument("--ref-factor", type=int, default=64)
     ap.add_argument("--bands", type=int, default=5)
+    ap.add_argument("--albedo", type=float, default=None,
+                    help="a grey albedo for every vertex (a coloured scene such as cornell_box: fold_albedo=False "
+                         "with bounces needs a grey one); default: the scene's own")
     ap.add_argument("--ref-cache", default=None, help="a .pt file keeping the references between runs (same settings)")
     ap.add_argument("--out", default=str(ROOT / "reports" / "benchmarks" / "precompute_error"))
     args = ap.parse_args(argv)
     torch.set_num_threads(max(1, os.cpu_count() or 1))
-    mesh = builtin(args.scene, args.size)
+    mesh = builtin(args.scene, args.size, albedo=args.albedo)
     V = mesh.num_vertices
     load0 = os.getloadavg()[0]
     ref_n = args.ref_factor * max(args.samples)
     print(f"[bench] {args.scene}:{args.size} V={V}; reference {ref_n} samples (x{args.ref_factor})", flush=True)
     t0 = time.perf_counter()
-    key = {"scene": args.scene, "size": args.size, "bands": args.bands, "ref_n": ref_n, "mesh": mesh.content_hash()}
+    key = {"scene": args.scene, "size": args.size, "albedo": args.albedo, "bands": args.bands, "ref_n": ref_n, "mesh": mesh.content_hash()}
     cached = torch.load(args.ref_cache) if args.ref_cache and os.path.exists(args.ref_cache) else None
     if cached is not None and cached["key"] == key:
         ref0, ref0_check, ref1, t_ref = cached["ref0"], cached["ref0_check"], cached["ref1"], cached["seconds"]
@@ -118,7 +121,7 @@ def main(argv=None):
                   f"direct {row['err_direct']:.4f} 1-bounce {row['err_bounce1_total']:.4f} "
                   f"inter {row['err_bounce1_inter']:.4f}", flush=True)
     load1 = os.getloadavg()[0]
-    res = {"scene": f"{args.scene}:{args.size}", "vertices": V, "bands": args.bands, "reference_samples": ref_n,
+    res = {"scene": f"{args.scene}:{args.size}", "albedo": args.albedo, "vertices": V, "bands": args.bands, "reference_samples": ref_n,
            "reference_seconds": t_ref, "reference_self_error": ref_self, "occluded_fraction_t00": occl,
            "occluded_quantiles_t00": occl_q, "seeds": args.seeds, "rows": rows, "cpu": machine_info()["cpu"],
            "load": [load0, load1], "samples": sorted(args.samples), "ref_factor": args.ref_factor}
@@ -218,9 +221,10 @@ def section(res) -> list[str]:
     rows = res["rows"]
     q = res.get("occluded_quantiles_t00")
     qs = f" (10/50/90th percentile over vertices: {q[0]:.2f} / {q[1]:.2f} / {q[2]:.2f})" if q else ""
+    grey = f", grey albedo {res['albedo']}" if res.get("albedo") is not None else ""
     lines = [
         "", f"## `{res['scene']}`", "",
-        f"{res['vertices']} vertices, {res['bands']} bands; shadowing removes {100 * res['occluded_fraction_t00']:.1f}% "
+        f"{res['vertices']} vertices, {res['bands']} bands{grey}; shadowing removes {100 * res['occluded_fraction_t00']:.1f}% "
         f"of t00 on average{qs}. Reference: {res['reference_samples']} samples per vertex "
         f"({res['reference_seconds']:.0f} s); the uniform + plain reference differs from it by "
         f"{res['reference_self_error']:.1e}. {res['seeds']} seeds per row. CPU: {res['cpu']}; load average "
@@ -242,7 +246,8 @@ def section(res) -> list[str]:
     if h:
         lines += ["", f"At N = 1024 the default (qmc + auto) has {h}; goal ≤ 0.5×."]
     scene, size = res["scene"].split(":")
-    lines += ["", f"Reproduce: `.venv/bin/python benchmarks/bench_precompute_error.py --scene {scene} --size {size} "
+    alb = f" --albedo {res['albedo']}" if res.get("albedo") is not None else ""
+    lines += ["", f"Reproduce: `.venv/bin/python benchmarks/bench_precompute_error.py --scene {scene} --size {size}{alb} "
               f"--seeds {res['seeds']} --ref-factor {res.get('ref_factor', 64)} "
               f"--samples {' '.join(str(n) for n in sorted(today))}` (`--ref-cache F.pt` keeps the references "
               "between runs; the other scenes' sections are kept)."]
