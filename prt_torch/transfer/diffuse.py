@@ -428,11 +428,13 @@ class HitBounce:
     of (seed, vertex) plus the radical inverses in bases 3 and 5 of the primary direction's index j
     (mod 1) — each hit's rotation uniform, the hits of one vertex stratified together like a 4-D
     Halton–Hammersley set, 0.86× the interreflected part's error of independent rotations on
-    occluder_over_plane; further hits by :func:`_hash_uniform` of (seed, vertex, direction, path)):
+    occluder_over_plane (estimators 'control' and 'auto'; 'plain', the estimator before issue 42,
+    keeps its rotations bit for bit); further hits, and every hit under 'plain', by
+    :func:`_hash_uniform` of (seed, vertex, direction, path)):
     x⁰(q) = (1/M) Σ_m V(q,s_m) y(s_m) and, recursively,
     x^k(q) = (1/M) Σ_m [front hit q'] ρ_{q'} x^{k-1}(q'). M = ``hit_samples`` at the first hit
     and a quarter of it per further level (at least 1): an unbiased path-traced estimate of
-    every bounce, no per-vertex or per-face table. Rays leave q from q + eps_h·n_f with eps_h =
+    every bounce, no per-vertex table ('auto' reads one open fraction per face). Rays leave q from q + eps_h·n_f with eps_h =
     :func:`hit_ray_eps` (``hit_offset``; None: the caster's own eps, the rule before issue 37).
     ``estimator='control'`` (issue 42): x⁰(q) = t_unshadowed(n_f) − (1/M) Σ_m (1 − V(q,s_m))
     y(s_m), exact where the hit's hemisphere is open. ``'auto'``: per hit, that control variate
@@ -532,7 +534,7 @@ class HitBounce:
         vt = self.vertices
         q = bary[:, :1] * vt[ft[:, 0]] + bary[:, 1:2] * vt[ft[:, 1]] + bary[:, 2:3] * vt[ft[:, 2]]  # [H,3] hit points
         n = self.face_normals_np[tri]
-        if level == 0:  # the vertex's shift plus a Halton offset over its direction index: its hits' sets stratified together
+        if level == 0 and self.mode != "plain":  # the vertex's shift + a Halton offset over its direction index (class doc)
             zero = np.zeros_like(key_b)
             u1 = np.mod(_hash_uniform(self.seed, key_a, zero, 1) + _radical_inverse(key_b, 3), 1.0)
             u2 = 2 * math.pi * np.mod(_hash_uniform(self.seed, key_a, zero, 2) + _radical_inverse(key_b, 5), 1.0)
