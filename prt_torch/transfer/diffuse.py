@@ -183,14 +183,17 @@ class DiffuseSampler:
       vertex (weights 4π/N; about N/2 above a tangent plane are traced), SH evaluated once.
     * ``'cosine'``: N stratified cosine-weighted directions over each vertex's hemisphere.
     * ``'qmc'``: M = ⌈N/2⌉ directions per vertex (the rays 'uniform' traces) from a Hammersley set
-      over the vertex's hemisphere, cosine-weighted (Malley's method: r = √a, z = √(1 − a)),
-      Cranley–Patterson rotated per vertex by :func:`_hash_uniform` of (seed, vertex id) so that
-      every vertex has its own randomised low-discrepancy set and the numbers depend on neither
-      chunking nor executor: (1/π) ∫ f max(n·s, 0) ds ≈ (1/M) Σ_m f(s_m). Measured
-      (benchmarks/bench_precompute_error.py) with 0.2-0.4x the relative RMS error of 'uniform' +
-      'plain' at equal rays; the cosine-weighted map has 0.80-0.87x the error of the same set
-      uniform in solid angle (z = a, weights 2z: the map before) where occlusion is heavy
-      (cornell_box, occluder_over_plane), the visibility edge weighted evenly rather than by z.
+      over the vertex's hemisphere, drawn from the defensive mixture of the uniform and the cosine
+      densities, p(z) = ½ + z for z = cos θ ∈ [0, 1] (z = 2a / (½ + √(¼ + 2a)) of the set's first
+      coordinate a; Hesterberg 1995's defensive importance sampling), Cranley–Patterson rotated per
+      vertex by :func:`_hash_uniform` of (seed, vertex id) so that every vertex has its own
+      randomised low-discrepancy set and the numbers depend on neither chunking nor executor:
+      (1/π) ∫ f max(n·s, 0) ds ≈ (1/M) Σ_m q(z_m) f(s_m), q(z) = 2z / (½ + z) (:func:`qmc_factor`).
+      Measured (benchmarks/bench_precompute_error.py, N = 1024): the cosine density alone had
+      0.80× the uniform one's error where occlusion is heavy (cornell_box: walls high above the
+      horizon) but 1.4× on a scan (scan_blob: bumps occlude near the horizon, where the cosine
+      density puts few rays); the mixture keeps the better of the two on both (cornell 0.0224 vs
+      cosine 0.0222 and uniform 0.0276; scan_blob 0.0042 vs uniform 0.0043 and cosine 0.0060).
 
     ``estimator``: ``'plain'`` sums the visible directions, P = Σ_j w_j V_j y(s_j); ``'control'``
     (issue 42) uses the exact unshadowed transfer as a control variate and samples only what is
@@ -221,7 +224,7 @@ class DiffuseSampler:
             self.base_tables = _hammersley_tables(self.base)
             self._work = {}
             self.Y = None
-            self.weight = 1.0 / self.M  # cosine-weighted directions: every ray weighs 1/M
+            self.weight = 1.0 / self.M  # times qmc_factor(z) per ray
         else:
             self.dirs = cosine_hemisphere(samples, seed)  # local frame
             self.Y = None
@@ -289,8 +292,9 @@ class DiffuseSampler:
     def _qmc(self, o_v: np.ndarray, normals: torch.Tensor, ids: np.ndarray | None, work: dict | None):
         """The qmc direction set of k vertices (class docstring): the Hammersley set (a_m, b_m)
         Cranley–Patterson rotated by the vertex's (u1, u2) = :func:`_hash_uniform` of (seed,
-        vertex id), a = (a_m + u1) mod 1, r = √a, z = √max(1 − a, 1e-24) (cosine-weighted, Malley's
-        method), φ = 2π((b_m + u2) mod 1), d = r cos φ t + r sin φ b + z n (frame rows of :func:`~prt_torch.scene.mesh.tangent_frames`
+        vertex id), a = (a_m + u1) mod 1, z = max(2a / (½ + √(¼ + 2a)), 1e-12) (the defensive mixture
+        p(z) = ½ + z), r = √(1 − z²), φ = 2π((b_m + u2) mod 1), d = r cos φ t + r sin φ b + z n (frame rows of
+        :func:`~prt_torch.scene.mesh.tangent_frames`
         from the normals alone). cos φ, sin φ by the angle sum of the set's 2πb_m and the vertex's
         2πu2 (no libm call per ray). One compiled pass (``ray_kernels.qmc_rays_native``) or the same
         float64 operations in numpy (same bits): ``(o float32 [k·M, 3], d float32 [k·M, 3], z float64 [k·M])``."""
@@ -305,13 +309,22 @@ class DiffuseSampler:
         n = normals.numpy().astype(np.float64)
         t, b = tangent_frames(n)  # the module rule from the normals alone, whatever frames the mesh has
         F = np.stack([t, b, n], 1)  # [k,3,3] rows (t, b, n)
-        return _rotated_rays(F, o_v, u1, cu, su, self.base_tables, True, work)
+        return _rotated_rays(F, o_v, u1, cu, su, self.base_tables, 2, work)
 
     def ray_weights(self, i: np.ndarray, j: np.ndarray, cos: Any) -> np.ndarray:
         """``[R]`` float64 w_j of each ray in t = Σ_j w_j V_j y(s_j) (ρ = 1)."""
         if self.sampling == "uniform":
             return self.weight * cos[i, j]
-        return np.full(i.shape[0], self.weight)  # qmc and cosine: cosine-weighted directions, 1/M each
+        if self.sampling == "qmc":
+            return self.weight * qmc_factor(cos)
+        return np.full(i.shape[0], self.weight)
+
+
+def qmc_factor(z: np.ndarray) -> np.ndarray:
+    """``[R]`` float64 q(z) = 2z / (½ + z): a qmc ray's weight times M — the clamped cosine's
+    (1/π) max(n·s, 0) = z/π over the mixture density p(s) = (½ + z)/π per steradian
+    (:class:`DiffuseSampler`)."""
+    return (2.0 * z) / (0.5 + z)
 
 
 def rays_per_vertex(samples: int, sampling: str) -> int:
@@ -392,8 +405,11 @@ def _rotated_rays(frames: np.ndarray, o_v: np.ndarray, u1: np.ndarray, cu: np.nd
     + u2) mod 1) with cos φ, sin φ by the angle sum (a whole turn drops out), and
 
     * ``cosine=False`` (the vertices' qmc set, uniform in solid angle): z = max(a, 1e-12), r = √(1 − z²);
-    * ``cosine=True`` (the bounce estimator's set at hit points, cosine-weighted, Malley's method):
+    * ``cosine=True`` / 1 (the bounce estimator's set at hit points, cosine-weighted, Malley's method):
       r = √a, z = √max(1 − a, 1e-24);
+    * ``cosine=2`` (the vertices' qmc set, :class:`DiffuseSampler`): the defensive mixture of the
+      uniform and cosine densities, p(z) = ½ + z on z ∈ [0, 1], z = max(2a / (½ + √(¼ + 2a)), 1e-12),
+      r = √(1 − z²);
 
     d = r cos φ t + r sin φ b + z n with ``frames float64 [k, 3, 3]`` rows (t, b, n), origin the
     hemisphere's ``o_v float32 [k, 3]``. One compiled pass (``ray_kernels.qmc_rays_native``), or the
@@ -405,8 +421,11 @@ def _rotated_rays(frames: np.ndarray, o_v: np.ndarray, u1: np.ndarray, cu: np.nd
         return fused
     z = a[None, :] + u1[:, None]  # [k,M]
     z = np.where(z >= 1.0, z - 1.0, z)  # mod 1 (exact here)
-    if cosine:
+    if cosine == 1:
         r, z = np.sqrt(z), np.sqrt(np.maximum(1.0 - z, 1e-24))
+    elif cosine == 2:  # the defensive mixture p(z) = ½ + z (DiffuseSampler)
+        z = np.maximum((2.0 * z) / (0.5 + np.sqrt(0.25 + 2.0 * z)), 1e-12)
+        r = np.sqrt(1.0 - z * z)
     else:
         z = np.maximum(z, 1e-12)  # every ray leaves the tangent plane (measure-zero horizon)
         r = np.sqrt(1.0 - z * z)
@@ -656,7 +675,7 @@ def _chunk_work(caster: RayCaster, sampler: DiffuseSampler, points: torch.Tensor
 
     Uniform sampling: T = (4/N) · (V ⊙ max(n·s,0)) @ Y — one masked GEMM per chunk
     (course notes 2005, "Precomputation"). Cosine sampling: T = (1/N) Σ_j V y(s_j); qmc:
-    T = (1/M) Σ_j V y(s_j) over its cosine-weighted directions. With ``sampler.estimator == 'control'`` the same rays give
+    T = (1/M) Σ_j q(z_j) V y(s_j) (:func:`qmc_factor`). With ``sampler.estimator == 'control'`` the same rays give
     T = T_unshadowed − Σ_j w_j (1 − V_j) y(s_j) instead (:class:`DiffuseSampler`): only the
     blocked rays' SH values are needed; 'auto' chooses per vertex.
     Bounce entries (rows of S): ``hit_columns='faces'`` puts a front hit's weight on the hit
@@ -680,11 +699,11 @@ def _chunk_work(caster: RayCaster, sampler: DiffuseSampler, points: torch.Tensor
         hit = caster.trace(o, d, "occluded")
     out: dict[str, torch.Tensor] = {"rays": torch.tensor([o.shape[0]], dtype=torch.int64)}
     est = sampler.estimator
-    # qmc: every ray weighs 1/M (cosine-weighted directions), so the choice reads ray counts
-    picked = select_rays(np.ones(cos.shape[0]), hit, sampler.M, sampler.weight, est) if i is None else None
+    q = qmc_factor(cos) if i is None else None  # qmc: ray weights weight · q(z) (the mixture density's)
+    picked = select_rays(q, hit, sampler.M, sampler.weight, est) if i is None else None
     if picked is not None:  # qmc: the estimator's rays chosen in one compiled pass (the same choice as below)
         open_v, sel = picked
-        S = sh_accumulate(k, sampler.M, sel, d, None, sampler.weight, sampler.bands)  # [k, n²], SH in the same pass
+        S = sh_accumulate(k, sampler.M, sel, d, q, sampler.weight, sampler.bands)  # [k, n²], SH in the same pass
         if open_v.any():
             S[open_v] = unshadowed_transfer(torch.from_numpy(normals.numpy()[open_v]).to(torch.float64), sampler.bands).numpy() - S[open_v]
         out["T"] = torch.from_numpy(S)
