@@ -95,8 +95,8 @@ static void qmc_range(i64 v0, i64 v1, i64 M, const double *F, const float *ov, c
                 const double e = 1.0 - z;
                 r = sqrt(z);
                 z = sqrt(e > 1e-24 ? e : 1e-24);
-            } else if (cosine == 2) {          /* the defensive mixture p(z) = 1/2 + z: z = 2a / (1/2 + sqrt(1/4 + 2a)) */
-                z = (2.0 * z) / (0.5 + sqrt(0.25 + 2.0 * z));
+            } else if (cosine == 2) {          /* the defensive mixture p(z) = 3/4 + z/2: z = 2a / (3/4 + sqrt(9/16 + a)) */
+                z = (2.0 * z) / (0.75 + sqrt(0.5625 + z));
                 if (!(z > 1e-12)) z = 1e-12;
                 r = sqrt(1.0 - z * z);
             } else {

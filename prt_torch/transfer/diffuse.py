@@ -183,17 +183,18 @@ class DiffuseSampler:
       vertex (weights 4π/N; about N/2 above a tangent plane are traced), SH evaluated once.
     * ``'cosine'``: N stratified cosine-weighted directions over each vertex's hemisphere.
     * ``'qmc'``: M = ⌈N/2⌉ directions per vertex (the rays 'uniform' traces) from a Hammersley set
-      over the vertex's hemisphere, drawn from the defensive mixture of the uniform and the cosine
-      densities, p(z) = ½ + z for z = cos θ ∈ [0, 1] (z = 2a / (½ + √(¼ + 2a)) of the set's first
-      coordinate a; Hesterberg 1995's defensive importance sampling), Cranley–Patterson rotated per
+      over the vertex's hemisphere, drawn from a defensive mixture of the uniform (¾) and the cosine
+      (¼) densities, p(z) = ¾ + z/2 for z = cos θ ∈ [0, 1] (z = 2a / (¾ + √(9/16 + a)) of the set's
+      first coordinate a; Hesterberg 1995's defensive importance sampling), Cranley–Patterson rotated per
       vertex by :func:`_hash_uniform` of (seed, vertex id) so that every vertex has its own
       randomised low-discrepancy set and the numbers depend on neither chunking nor executor:
-      (1/π) ∫ f max(n·s, 0) ds ≈ (1/M) Σ_m q(z_m) f(s_m), q(z) = 2z / (½ + z) (:func:`qmc_factor`).
-      Measured (benchmarks/bench_precompute_error.py, N = 1024): the cosine density alone had
-      0.80× the uniform one's error where occlusion is heavy (cornell_box: walls high above the
-      horizon) but 1.4× on a scan (scan_blob: bumps occlude near the horizon, where the cosine
-      density puts few rays); the mixture keeps the better of the two on both (cornell 0.0224 vs
-      cosine 0.0222 and uniform 0.0276; scan_blob 0.0042 vs uniform 0.0043 and cosine 0.0060).
+      (1/π) ∫ f max(n·s, 0) ds ≈ (1/M) Σ_m q(z_m) f(s_m), q(z) = 2z / (¾ + z/2) (:func:`qmc_factor`).
+      Measured (benchmarks/bench_precompute_error.py, N = 1024, shadowed, 2 seeds, relative RMS):
+      the cosine density alone had 0.80× the uniform one's error where occlusion is heavy
+      (cornell_box: walls high above the horizon; 0.0222 vs 0.0276) but 1.4× on a scan (scan_blob,
+      0.0060 vs 0.0043: bumps occlude near the horizon, where the cosine density puts few rays); the
+      cosine share ¼ keeps bumpy_sphere's error (0.0063 vs 0.0062; ½: 0.0066) and scan_blob's (0.0042)
+      and takes most of the Cornell box's gain (0.0247; ½: 0.0224).
 
     ``estimator``: ``'plain'`` sums the visible directions, P = Σ_j w_j V_j y(s_j); ``'control'``
     (issue 42) uses the exact unshadowed transfer as a control variate and samples only what is
@@ -292,8 +293,8 @@ class DiffuseSampler:
     def _qmc(self, o_v: np.ndarray, normals: torch.Tensor, ids: np.ndarray | None, work: dict | None):
         """The qmc direction set of k vertices (class docstring): the Hammersley set (a_m, b_m)
         Cranley–Patterson rotated by the vertex's (u1, u2) = :func:`_hash_uniform` of (seed,
-        vertex id), a = (a_m + u1) mod 1, z = max(2a / (½ + √(¼ + 2a)), 1e-12) (the defensive mixture
-        p(z) = ½ + z), r = √(1 − z²), φ = 2π((b_m + u2) mod 1), d = r cos φ t + r sin φ b + z n (frame rows of
+        vertex id), a = (a_m + u1) mod 1, z = max(2a / (¾ + √(9/16 + a)), 1e-12) (the defensive mixture
+        p(z) = ¾ + z/2), r = √(1 − z²), φ = 2π((b_m + u2) mod 1), d = r cos φ t + r sin φ b + z n (frame rows of
         :func:`~prt_torch.scene.mesh.tangent_frames`
         from the normals alone). cos φ, sin φ by the angle sum of the set's 2πb_m and the vertex's
         2πu2 (no libm call per ray). One compiled pass (``ray_kernels.qmc_rays_native``) or the same
@@ -321,10 +322,10 @@ class DiffuseSampler:
 
 
 def qmc_factor(z: np.ndarray) -> np.ndarray:
-    """``[R]`` float64 q(z) = 2z / (½ + z): a qmc ray's weight times M — the clamped cosine's
-    (1/π) max(n·s, 0) = z/π over the mixture density p(s) = (½ + z)/π per steradian
+    """``[R]`` float64 q(z) = 2z / (¾ + z/2): a qmc ray's weight times M — the clamped cosine's
+    (1/π) max(n·s, 0) = z/π over the mixture density p(s) = (¾ + z/2)/(2π) per steradian
     (:class:`DiffuseSampler`)."""
-    return (2.0 * z) / (0.5 + z)
+    return (2.0 * z) / (0.75 + 0.5 * z)
 
 
 def rays_per_vertex(samples: int, sampling: str) -> int:
@@ -408,7 +409,7 @@ def _rotated_rays(frames: np.ndarray, o_v: np.ndarray, u1: np.ndarray, cu: np.nd
     * ``cosine=True`` / 1 (the bounce estimator's set at hit points, cosine-weighted, Malley's method):
       r = √a, z = √max(1 − a, 1e-24);
     * ``cosine=2`` (the vertices' qmc set, :class:`DiffuseSampler`): the defensive mixture of the
-      uniform and cosine densities, p(z) = ½ + z on z ∈ [0, 1], z = max(2a / (½ + √(¼ + 2a)), 1e-12),
+      uniform (¾) and cosine (¼) densities, p(z) = ¾ + z/2 on z ∈ [0, 1], z = max(2a / (¾ + √(9/16 + a)), 1e-12),
       r = √(1 − z²);
 
     d = r cos φ t + r sin φ b + z n with ``frames float64 [k, 3, 3]`` rows (t, b, n), origin the
@@ -423,8 +424,8 @@ def _rotated_rays(frames: np.ndarray, o_v: np.ndarray, u1: np.ndarray, cu: np.nd
     z = np.where(z >= 1.0, z - 1.0, z)  # mod 1 (exact here)
     if cosine == 1:
         r, z = np.sqrt(z), np.sqrt(np.maximum(1.0 - z, 1e-24))
-    elif cosine == 2:  # the defensive mixture p(z) = ½ + z (DiffuseSampler)
-        z = np.maximum((2.0 * z) / (0.5 + np.sqrt(0.25 + 2.0 * z)), 1e-12)
+    elif cosine == 2:  # the defensive mixture p(z) = ¾ + z/2 (DiffuseSampler)
+        z = np.maximum((2.0 * z) / (0.75 + np.sqrt(0.5625 + z)), 1e-12)
         r = np.sqrt(1.0 - z * z)
     else:
         z = np.maximum(z, 1e-12)  # every ray leaves the tangent plane (measure-zero horizon)

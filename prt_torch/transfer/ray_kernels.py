@@ -106,7 +106,7 @@ def qmc_rays_native(frames: np.ndarray, origins: np.ndarray, u1: np.ndarray, cu:
     grouped by vertex (ray v·M + m), z = n_v · d (before rounding d to float32). ``work``: as
     :func:`upper_rays`. ``cosine``: 1 (True) the bounce estimator's cosine-weighted set
     (``diffuse.HitBounce``: r = √a, z = √(1 − a)); 2 the vertices' defensive mixture of the uniform
-    and cosine densities, p(z) = ½ + z (``diffuse.DiffuseSampler``: z = 2a / (½ + √(¼ + 2a)),
+    and cosine densities, p(z) = ¾ + z/2 (``diffuse.DiffuseSampler``: z = 2a / (¾ + √(9/16 + a)),
     r = √(1 − z²)); 0 (False) the set uniform in solid angle (z = a, r = √(1 − z²)).
     """
     lib = _lib()
