@@ -2,7 +2,7 @@
 and estimator (issue 42, part 1: "the same error with fewer rays").
 
     .venv/bin/python benchmarks/bench_precompute_error.py [--scene bumpy_sphere] [--size small]
-        [--samples 64 256 1024] [--seeds 2] [--ref-factor 64] [--bands 5] [--ref-cache F.pt]
+        [--albedo A] [--samples 64 256 1024] [--seeds 2] [--ref-factor 64] [--bands 5] [--ref-cache F.pt]
 
 For each (sampling, estimator) in {uniform, qmc, cosine} × {plain, control} and each sample
 count N, the precompute (``precompute_diffuse``, shadows traced, ρ kept out) runs with ``--seeds``
@@ -19,7 +19,10 @@ today's estimator). ``cosine`` traces N rays per vertex where the others trace a
 run at N/2 to compare at equal rays. The reference is computed twice (qmc+control and
 uniform+plain, both at the reference size, other seeds): their difference bounds its own error.
 
-Writes reports/benchmarks/precompute_error.{md,json,png} atomically. Errors do not depend on the
+Writes reports/benchmarks/precompute_error.{md,json,png} atomically, a section, a headline line and
+a row of panels per scene: a run replaces its own scene's section and keeps the others' (the
+report covers bumpy_sphere, the scan stand-in scan_blob, occluder_over_plane and a grey
+cornell_box, each with its mean occluded fraction of t00). Errors do not depend on the
 machine's load; the seconds column does (it is the whole precompute, for orientation only).
 """
 from __future__ import annotations
