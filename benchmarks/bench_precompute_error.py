@@ -177,7 +177,7 @@ def write(scenes: dict, out: Path):
     fig.suptitle("error vs rays, per scene (rows)")
     fig.tight_layout()
     with io.atomic_path(out.with_suffix(".png")) as tmp:
-        fig.savefig(tmp, format="png", dpi=90)
+        fig.savefig(tmp, format="png", dpi=60)
     plt.close(fig)
 
     lines = [
