@@ -2,7 +2,7 @@
 and estimator (issue 42, part 1: "the same error with fewer rays").
 
     .venv/bin/python benchmarks/bench_precompute_error.py [--scene bumpy_sphere] [--size small]
-        [--samples 64 256 1024] [--seeds 2] [--ref-factor 64] [--bands 5] [--ref-cache F.pt]
+        [--albedo A] [--samples 64 256 1024] [--seeds 2] [--ref-factor 64] [--bands 5] [--ref-cache F.pt]
 
 For each (sampling, estimator) in {uniform, qmc, cosine} × {plain, control} and each sample
 count N, the precompute (``precompute_diffuse``, shadows traced, ρ kept out) runs with ``--seeds``
@@ -19,7 +19,10 @@ today's estimator). ``cosine`` traces N rays per vertex where the others trace a
 run at N/2 to compare at equal rays. The reference is computed twice (qmc+control and
 uniform+plain, both at the reference size, other seeds): their difference bounds its own error.
 
-Writes reports/benchmarks/precompute_error.{md,json,png} atomically. Errors do not depend on the
+Writes reports/benchmarks/precompute_error.{md,json,png} atomically, a section, a headline line and
+a row of panels per scene: a run replaces its own scene's section and keeps the others' (the
+report covers bumpy_sphere, the scan stand-in scan_blob, occluder_over_plane and a grey
+cornell_box, each with its mean occluded fraction of t00). Errors do not depend on the
 machine's load; the seconds column does (it is the whole precompute, for orientation only).
 """
 from __future__ import annotations
@@ -71,17 +74,20 @@ def main(argv=None):
     ap.add_argument("--seeds", type=int, default=2)
     ap.add_argument("--ref-factor", type=int, default=64)
     ap.add_argument("--bands", type=int, default=5)
+    ap.add_argument("--albedo", type=float, default=None,
+                    help="a grey albedo for every vertex (a coloured scene such as cornell_box: fold_albedo=False "
+                         "with bounces needs a grey one); default: the scene's own")
     ap.add_argument("--ref-cache", default=None, help="a .pt file keeping the references between runs (same settings)")
     ap.add_argument("--out", default=str(ROOT / "reports" / "benchmarks" / "precompute_error"))
     args = ap.parse_args(argv)
     torch.set_num_threads(max(1, os.cpu_count() or 1))
-    mesh = builtin(args.scene, args.size)
+    mesh = builtin(args.scene, args.size, albedo=args.albedo)
     V = mesh.num_vertices
     load0 = os.getloadavg()[0]
     ref_n = args.ref_factor * max(args.samples)
     print(f"[bench] {args.scene}:{args.size} V={V}; reference {ref_n} samples (x{args.ref_factor})", flush=True)
     t0 = time.perf_counter()
-    key = {"scene": args.scene, "size": args.size, "bands": args.bands, "ref_n": ref_n, "mesh": mesh.content_hash()}
+    key = {"scene": args.scene, "size": args.size, "albedo": args.albedo, "bands": args.bands, "ref_n": ref_n, "mesh": mesh.content_hash()}
     cached = torch.load(args.ref_cache) if args.ref_cache and os.path.exists(args.ref_cache) else None
     if cached is not None and cached["key"] == key:
         ref0, ref0_check, ref1, t_ref = cached["ref0"], cached["ref0_check"], cached["ref1"], cached["seconds"]
@@ -95,8 +101,9 @@ def main(argv=None):
     ref_inter = ref1 - ref0
     ref_self = rel(ref0_check, ref0)
     print(f"[bench] references in {t_ref:.0f} s; qmc+control vs uniform+plain reference: {ref_self:.2e}", flush=True)
-    occl = float(1 - (ref0[:, 0] / precompute_diffuse(mesh, args.bands, 16, shadows="never", fold_albedo=False)
-                      .data.to(torch.float64)[:, 0]).mean())
+    frac = 1 - ref0[:, 0] / precompute_diffuse(mesh, args.bands, 16, shadows="never", fold_albedo=False).data.to(torch.float64)[:, 0]
+    occl = float(frac.mean())  # each vertex's occluded fraction of t00 (cosine-weighted), by the reference
+    occl_q = [float(x) for x in torch.quantile(frac, torch.tensor([0.1, 0.5, 0.9], dtype=torch.float64))]
     rows = []
     for sampling, estimator in METHODS:
         for N in args.samples:
@@ -117,10 +124,23 @@ def main(argv=None):
                   f"direct {row['err_direct']:.4f} 1-bounce {row['err_bounce1_total']:.4f} "
                   f"inter {row['err_bounce1_inter']:.4f}", flush=True)
     load1 = os.getloadavg()[0]
-    res = {"scene": f"{args.scene}:{args.size}", "vertices": V, "bands": args.bands, "reference_samples": ref_n,
+    res = {"scene": f"{args.scene}:{args.size}", "albedo": args.albedo, "vertices": V, "bands": args.bands, "reference_samples": ref_n,
            "reference_seconds": t_ref, "reference_self_error": ref_self, "occluded_fraction_t00": occl,
-           "seeds": args.seeds, "rows": rows, "cpu": machine_info()["cpu"], "load": [load0, load1]}
-    write(res, Path(args.out))
+           "occluded_quantiles_t00": occl_q, "seeds": args.seeds, "rows": rows, "cpu": machine_info()["cpu"],
+           "load": [load0, load1], "samples": sorted(args.samples), "ref_factor": args.ref_factor}
+    out = Path(args.out)
+    scenes = load_scenes(out.with_suffix(".json"))
+    scenes[res["scene"]] = res  # this scene's section replaced, the others kept
+    write(scenes, out)
+
+
+def load_scenes(path: Path) -> dict:
+    """The scenes already in the report's JSON, by name (a file of one scene, the format before
+    sections per scene, is read as that one section)."""
+    if not path.exists():
+        return {}
+    old = json.loads(path.read_text())
+    return {old["scene"]: old} if "rows" in old else old["scenes"]
 
 
 def by(rows, sampling, estimator, key):
@@ -128,48 +148,90 @@ def by(rows, sampling, estimator, key):
     return np.array([x["rays_per_vertex"] for x in r]), np.array([x[key] for x in r]), [x["samples"] for x in r]
 
 
-def write(res, out: Path):
+def write(scenes: dict, out: Path):
+    """reports/benchmarks/precompute_error.{md,json,png}: a section, a headline line and a row of
+    three panels per scene."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     out.parent.mkdir(parents=True, exist_ok=True)
-    rows = res["rows"]
     keys = [("err_direct", "shadowed (bounces = 0)"), ("err_bounce1_total", "one bounce: total"),
             ("err_bounce1_inter", "one bounce: interreflected part")]
-    fig, axes = plt.subplots(1, 3, figsize=(15, 4.6))
-    for ax, (key, title) in zip(axes, keys):
-        for sampling, estimator in METHODS:
-            x, y, _ = by(rows, sampling, estimator, key)
-            ax.loglog(x, y, {"control": "o-", "auto": "^-", "plain": "s--"}[estimator], label=f"{sampling} + {estimator}")
-        x, y, _ = by(rows, *TODAY, key)
-        ax.loglog(x, y[0] * np.sqrt(x[0] / x), "k:", lw=1, label="1/√N")
-        ax.set_xlabel("rays traced per vertex")
-        ax.set_ylabel("relative RMS error vs reference")
-        ax.set_title(title)
-        ax.grid(True, which="both", alpha=0.3)
-    axes[0].legend(fontsize=8)
-    fig.suptitle(f"{res['scene']} ({res['vertices']} vertices), {res['bands']} bands: error vs rays")
+    fig, axes = plt.subplots(len(scenes), 3, figsize=(15, 4.6 * len(scenes)), squeeze=False)
+    for row_axes, res in zip(axes, scenes.values()):
+        rows = res["rows"]
+        for ax, (key, title) in zip(row_axes, keys):
+            for sampling, estimator in METHODS:
+                x, y, _ = by(rows, sampling, estimator, key)
+                if len(x):
+                    ax.loglog(x, y, {"control": "o-", "auto": "^-", "plain": "s--"}[estimator], label=f"{sampling} + {estimator}")
+            x, y, _ = by(rows, *TODAY, key)
+            ax.loglog(x, y[0] * np.sqrt(x[0] / x), "k:", lw=1, label="1/√N")
+            ax.set_xlabel("rays traced per vertex")
+            ax.set_ylabel("relative RMS error vs reference")
+            ax.set_title(f"{res['scene']}: {title}", fontsize=10)
+            ax.grid(True, which="both", alpha=0.3)
+        row_axes[0].legend(fontsize=7)
+    fig.suptitle("error vs rays, per scene (rows)")
     fig.tight_layout()
     with io.atomic_path(out.with_suffix(".png")) as tmp:
-        fig.savefig(tmp, format="png", dpi=110)
+        fig.savefig(tmp, format="png", dpi=60)
     plt.close(fig)
 
     lines = [
         "# Precompute error vs rays: direction sets and the control variate (issue 42, part 1)",
         "",
-        f"Scene `{res['scene']}`: {res['vertices']} vertices, {res['bands']} bands; shadowing removes "
-        f"{100 * res['occluded_fraction_t00']:.1f}% of t00 on average. Error = relative RMS over every vertex and "
-        f"coefficient, sqrt(Σ|t − t_ref|² / Σ|t_ref|²), mean of {res['seeds']} seeds, against a reference of "
-        f"{res['reference_samples']} samples per vertex (qmc + control, an independent seed; "
-        f"the same size with uniform + plain and another seed differs from it by {res['reference_self_error']:.1e}, "
-        "which bounds its own error). Cosine runs at N/2 samples so that every row traces about the same rays.",
-        "",
-        f"CPU: {res['cpu']}; load average before/after: {res['load'][0]:.1f} / {res['load'][1]:.1f} "
-        "(errors do not depend on load; seconds do).",
+        "Error = relative RMS over every vertex and coefficient, sqrt(Σ|t − t_ref|² / Σ|t_ref|²), mean over seeds, "
+        "against a reference of 64× the largest N's samples per vertex (qmc + control, an independent seed; the same "
+        "size with uniform + plain and another seed differs from it by the figure given per scene, which bounds its "
+        "own error). Cosine runs at N/2 samples so that every row traces about the same rays. The occluded fraction "
+        "of a vertex is 1 − t00(shadowed reference) / t00(unshadowed): the cosine-weighted share of its hemisphere "
+        "that shadowing removes. Errors do not depend on the machine's load; the seconds column does (for "
+        "orientation only).",
         "",
         "![error vs rays](precompute_error.png)",
+        "",
+        "Headlines at the default N = 1024 (the default qmc + auto against today's uniform + plain; goal ≤ 0.5×):",
+        "",
+    ]
+    for res in scenes.values():
+        h = headline(res)
+        if h:
+            lines.append(f"- `{res['scene']}` ({100 * res['occluded_fraction_t00']:.1f}% occluded on average): {h}")
+    for res in scenes.values():
+        lines += section(res)
+    with io.atomic_path(out.with_suffix(".md")) as tmp:
+        Path(tmp).write_text("\n".join(lines) + "\n")
+    with io.atomic_path(out.with_suffix(".json")) as tmp:
+        Path(tmp).write_text(json.dumps({"scenes": scenes}, indent=1))
+    print(f"[bench] wrote {out.with_suffix('.md')}")
+
+
+def headline(res) -> str | None:
+    rows = res["rows"]
+    t = next((x for x in rows if (x["sampling"], x["estimator"]) == TODAY and x["samples"] == 1024), None)
+    d = next((x for x in rows if (x["sampling"], x["estimator"]) == ("qmc", "auto") and x["samples"] == 1024), None)
+    if t is None or d is None:
+        return None
+    return (f"**{d['err_direct'] / t['err_direct']:.2f}×** today's error for the shadowed transfer and "
+            f"**{d['err_bounce1_total'] / t['err_bounce1_total']:.2f}×** for the total with one bounce "
+            f"({d['err_bounce1_inter'] / t['err_bounce1_inter']:.2f}× for the interreflected part alone)")
+
+
+def section(res) -> list[str]:
+    rows = res["rows"]
+    q = res.get("occluded_quantiles_t00")
+    qs = f" (10/50/90th percentile over vertices: {q[0]:.2f} / {q[1]:.2f} / {q[2]:.2f})" if q else ""
+    grey = f", grey albedo {res['albedo']}" if res.get("albedo") is not None else ""
+    lines = [
+        "", f"## `{res['scene']}`", "",
+        f"{res['vertices']} vertices, {res['bands']} bands{grey}; shadowing removes {100 * res['occluded_fraction_t00']:.1f}% "
+        f"of t00 on average{qs}. Reference: {res['reference_samples']} samples per vertex "
+        f"({res['reference_seconds']:.0f} s); the uniform + plain reference differs from it by "
+        f"{res['reference_self_error']:.1e}. {res['seeds']} seeds per row. CPU: {res['cpu']}; load average "
+        f"before/after: {res['load'][0]:.1f} / {res['load'][1]:.1f}.",
         "",
         "| sampling | estimator | N | rays / vertex | shadowed | ratio to today | 1 bounce: total | ratio "
         "| interreflected part | ratio | s (shadowed) |",
@@ -183,21 +245,16 @@ def write(res, out: Path):
             f"{x['err_direct'] / t['err_direct']:.2f} | {x['err_bounce1_total']:.4f} | "
             f"{x['err_bounce1_total'] / t['err_bounce1_total']:.2f} | {x['err_bounce1_inter']:.4f} | "
             f"{x['err_bounce1_inter'] / t['err_bounce1_inter']:.2f} | {x['seconds_direct']:.2f} |")
-    d = next((x for x in rows if (x["sampling"], x["estimator"]) == ("qmc", "auto") and x["samples"] == 1024), None)
-    if d is not None:
-        t = today[1024]
-        lines += ["", f"At the default N = 1024 the default (qmc + auto) has **{d['err_direct'] / t['err_direct']:.2f}×** "
-                  f"today's error for the shadowed transfer and **{d['err_bounce1_total'] / t['err_bounce1_total']:.2f}×** "
-                  f"for the total with one bounce ({d['err_bounce1_inter'] / t['err_bounce1_inter']:.2f}× for the "
-                  "interreflected part alone); goal ≤ 0.5×."]
-    lines += ["", "Reproduce: `.venv/bin/python benchmarks/bench_precompute_error.py --seeds 2 --ref-factor 64 "
-              f"--samples {' '.join(str(n) for n in sorted(today))}` (`--scene/--size` for another mesh; "
-              "`--ref-cache F.pt` keeps the references between runs)."]
-    with io.atomic_path(out.with_suffix(".md")) as tmp:
-        Path(tmp).write_text("\n".join(lines) + "\n")
-    with io.atomic_path(out.with_suffix(".json")) as tmp:
-        Path(tmp).write_text(json.dumps(res, indent=1))
-    print(f"[bench] wrote {out.with_suffix('.md')}")
+    h = headline(res)
+    if h:
+        lines += ["", f"At N = 1024 the default (qmc + auto) has {h}; goal ≤ 0.5×."]
+    scene, size = res["scene"].split(":")
+    alb = f" --albedo {res['albedo']}" if res.get("albedo") is not None else ""
+    lines += ["", f"Reproduce: `.venv/bin/python benchmarks/bench_precompute_error.py --scene {scene} --size {size}{alb} "
+              f"--seeds {res['seeds']} --ref-factor {res.get('ref_factor', 64)} "
+              f"--samples {' '.join(str(n) for n in sorted(today))}` (`--ref-cache F.pt` keeps the references "
+              "between runs; the other scenes' sections are kept)."]
+    return lines
 
 
 if __name__ == "__main__":

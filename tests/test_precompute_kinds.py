@@ -55,7 +55,7 @@ def test_transport_chunk_equals_the_dense_grid():
     assert 0.1 < frac < 0.4  # about a quarter of the grid is evaluated
 
 
-@pytest.mark.parametrize("estimator", ["plain", "control"])
+@pytest.mark.parametrize("estimator", ["plain", "control", "auto"])
 def test_hit_estimator_unbiased_and_exact_where_open(estimator):
     """The bounce estimator's x⁰(q) at hit points (compiled rays and SH sums): on the ground beside
     the sphere its mean over seeds is Y00 · the closed-form visible fraction within 3σ (plus the
@@ -79,7 +79,7 @@ def test_hit_estimator_unbiased_and_exact_where_open(estimator):
     assert ((mean[:3, 0] - ref).abs() <= 3 * se[:3, 0] + 3e-3 * ref).all(), (mean[:3, 0], ref, se[:3, 0])
     assert float(se[:3, 0].min()) > 0
     open_ref = unshadowed_transfer(fn[top:top + 1], 3)[0]
-    if estimator == "control":
+    if estimator in ("control", "auto"):  # auto: the top face is open (face_openness 1), so the control variate
         assert float((runs[:, 3] - open_ref).abs().max()) <= 1e-13
     else:
         assert ((mean[3] - open_ref).abs() <= 3 * se[3] + 1e-12).all()

@@ -72,8 +72,9 @@ def test_sampler_rays_same_with_and_without_the_compiled_pass(monkeypatch):
 
 # ------------------------------------------------------------------ the qmc set (issue 42 part 2)
 def _qmc_textbook(s, normals, ids):
-    """The qmc directions as the class docstring writes them, with libm's cos/sin of φ itself:
-    z = max((a + u1) mod 1, 1e-12), φ = 2π((b + u2) mod 1), d = r cos φ t + r sin φ b + z n."""
+    """The qmc directions as the class docstring writes them (the density p(z) = ¾ + z/2), with
+    libm's cos/sin of φ itself: a' = (a + u1) mod 1, z = max(2a' / (¾ + √(9/16 + a')), 1e-12),
+    r = √(1 − z²), φ = 2π((b + u2) mod 1), d = r cos φ t + r sin φ b + z n."""
     from prt_torch.scene.mesh import tangent_frames
     from prt_torch.transfer.diffuse import _hash_uniform
 
@@ -81,8 +82,9 @@ def _qmc_textbook(s, normals, ids):
     zero = np.zeros_like(keys)
     u1 = _hash_uniform(s.seed, keys, zero, 1 << 20)[:, None]
     u2 = _hash_uniform(s.seed, keys, zero, (1 << 20) + 1)[:, None]
-    z = np.maximum((s.base[None, :, 0] + u1) % 1.0, 1e-12)
+    a = (s.base[None, :, 0] + u1) % 1.0
     phi = 2 * np.pi * ((s.base[None, :, 1] + u2) % 1.0)
+    z = np.maximum(2 * a / (0.75 + np.sqrt(0.5625 + a)), 1e-12)
     r = np.sqrt(1 - z * z)
     n = np.asarray(normals, np.float64)
     t, b = tangent_frames(n)

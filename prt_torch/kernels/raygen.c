@@ -91,10 +91,14 @@ static void qmc_range(i64 v0, i64 v1, i64 M, const double *F, const float *ov, c
         for (i64 m = 0; m < M; m++) {
             double z = a[m] + uu, r;
             if (z >= 1.0) z -= 1.0;            /* exact for z in [1, 2) (Sterbenz): numpy's remainder */
-            if (cosine) {
+            if (cosine == 1) {
                 const double e = 1.0 - z;
                 r = sqrt(z);
                 z = sqrt(e > 1e-24 ? e : 1e-24);
+            } else if (cosine == 2) {          /* the defensive mixture p(z) = 3/4 + z/2: z = 2a / (3/4 + sqrt(9/16 + a)) */
+                z = (2.0 * z) / (0.75 + sqrt(0.5625 + z));
+                if (!(z > 1e-12)) z = 1e-12;
+                r = sqrt(1.0 - z * z);
             } else {
                 if (!(z > 1e-12)) z = 1e-12;   /* np.maximum(z, 1e-12) */
                 r = sqrt(1.0 - z * z);

@@ -104,8 +104,10 @@ def qmc_rays_native(frames: np.ndarray, origins: np.ndarray, u1: np.ndarray, cu:
     azimuth shift 2πu2; ``a, cb, sb float64 [M]``: the Hammersley set's first coordinate and
     cos/sin 2π of its second. → ``(o float32 [k·M, 3], d float32 [k·M, 3], z float64 [k·M])``
     grouped by vertex (ray v·M + m), z = n_v · d (before rounding d to float32). ``work``: as
-    :func:`upper_rays`. ``cosine``: the bounce estimator's cosine-weighted set (``diffuse.HitBounce``:
-    r = √a, z = √(1 − a)) instead of the uniform one (z = a, r = √(1 − z²)).
+    :func:`upper_rays`. ``cosine``: 1 (True) the bounce estimator's cosine-weighted set
+    (``diffuse.HitBounce``: r = √a, z = √(1 − a)); 2 the vertices' defensive mixture of the uniform
+    and cosine densities, p(z) = ¾ + z/2 (``diffuse.DiffuseSampler``: z = 2a / (¾ + √(9/16 + a)),
+    r = √(1 − z²)); 0 (False) the set uniform in solid angle (z = a, r = √(1 − z²)).
     """
     lib = _lib()
     if lib is None:
@@ -122,7 +124,7 @@ def qmc_rays_native(frames: np.ndarray, origins: np.ndarray, u1: np.ndarray, cu:
     z = _buffer(work, "z", (R,), np.float64)
     F, u1, cu, su, a, cb, sb = f64
     lib.prt_qmc_rays(k, M, F.ctypes.data, ov.ctypes.data, u1.ctypes.data, cu.ctypes.data, su.ctypes.data, a.ctypes.data,
-                     cb.ctypes.data, sb.ctypes.data, o.ctypes.data, d.ctypes.data, z.ctypes.data, int(bool(cosine)),
+                     cb.ctypes.data, sb.ctypes.data, o.ctypes.data, d.ctypes.data, z.ctypes.data, int(cosine),
                      int(threads or 1))
     return o, d, z
 
