@@ -87,6 +87,7 @@ def test_cluster_krylov_matches_exact_eigh_per_cluster():
 
 
 def test_auto_picks_krylov_for_one_wide_subspace():
+    # wide rows (P < 4D): krylov; a tall signal keeps the subspace iteration (test_encode)
     X = wide_signal(600, 16_000, 40, 0.9, seed=1)  # P·D > 2^23, D³ large: no dense eigh
     c = codecs.get("pca", vectors=8).fit(X)
     assert c.fit_info_["solver"] == "krylov"

@@ -89,9 +89,9 @@ _DOC_PCA = """
     solver : {'auto', 'eigh', 'svd', 'randomized', 'krylov'}, default='auto'
         eigh: Sloan 2003 §4.1 normal form (CᵀC or CCᵀ by shape); svd; randomized: subspace
         iteration; krylov: randomized block Krylov (Musco & Musco 2015; ``subspace``); auto:
-        eigh when K·D³ is small, else randomized (one-cluster PCA: krylov where it would be
-        randomized — the same passes over the data at half the width, at the optimum's error on
-        slowly decaying spectra).
+        eigh when K·D³ is small, else randomized (one-cluster PCA of wide rows, P < 4D: krylov
+        where it would be randomized — the same passes over the data at half the width, at the
+        optimum's error on slowly decaying spectra).
     oversample : int in [0, 256], default=8
         Extra random columns of a cold randomized start (warm starts: at most 2); krylov:
         blocks of ⌈(n' + oversample)/2⌉ columns.
@@ -460,8 +460,10 @@ class PCA(AffineCodec):
         if solver == "auto":  # big signals: subspace iteration by GEMMs over the data, not the D×D scatter
             big = P * D > 2**23 and P >= 4 * D and n + p["oversample"] <= D // 4
             solver = "randomized" if big else _resolve_solver("auto", 1, D, 4e8)
-            # one subspace: block Krylov in the same passes at half the width (subspace.py)
-            solver = "krylov" if solver == "randomized" else solver
+            # wide rows (P < 4D, e.g. 10 242 × 16 128 transport tables): block Krylov, the same passes at
+            # half the width (subspace.py); tall signals keep the subspace iteration (there the passes are
+            # bound by reading the rows, not by the GEMM width: 50 000 × 625, n' = 2-16, no faster)
+            solver = "krylov" if solver == "randomized" and P < 4 * D else solver
         work = _Work(Xc, w, 1, centred=p["center"])
         work.set_labels(torch.zeros(P, dtype=torch.long))
         st = work.refit(n, solver, gen, oversample=p["oversample"], power_iters=p["power_iters"])
