@@ -28,6 +28,7 @@ from prt_torch import codecs  # noqa: E402
 from prt_torch.harness.config import load_config, part_configs  # noqa: E402
 from prt_torch.harness.evaluate import Evaluator  # noqa: E402
 from prt_torch.harness.run import compute_transfer, load_mesh_within_budget  # noqa: E402
+from prt_torch.harness.timing import cpu_label  # noqa: E402
 
 
 def table(size: str, cache: str) -> torch.Tensor:
@@ -72,7 +73,7 @@ def main(argv=None) -> int:
     ap.add_argument("--cache", default="cache/prof")
     a = ap.parse_args(argv)
     X = table(a.size, a.cache)
-    print(f"table {tuple(X.shape)} {X.dtype}; CPU: {_cpu()}; load {os.getloadavg()}; torch threads {torch.get_num_threads()}",
+    print(f"table {tuple(X.shape)} {X.dtype}; CPU: {cpu_label()}; load {os.getloadavg()}; torch threads {torch.get_num_threads()}",
           flush=True)
     t0 = time.perf_counter()
     tv, lam = spectrum(X)
@@ -92,16 +93,6 @@ def main(argv=None) -> int:
               f"{c.fit_info_['se'] / tv:.5f} of the total variance | {cpu:.1f} | {wall:.1f} | {os.getloadavg()[0]:.1f} |",
               flush=True)
     return 0
-
-
-def _cpu() -> str:
-    try:
-        for line in open("/proc/cpuinfo"):
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return "unknown"
 
 
 if __name__ == "__main__":
