@@ -272,7 +272,9 @@ class _Work:
         if means is None:
             means = torch.zeros(K, D, dtype=torch.float64)
         Wall = torch.cat([-2.0 * means[:, None], basis], 1).to(self.dt)  # [K, 1+n, D]
-        Wc = Wall[cand].reshape(K, L * (1 + n), D).transpose(1, 2)  # [K, D, L(1+n)], a view
+        # [K, D, L(1+n)] made contiguous once: tiles_bmm permutes it per chunk, and a strided gather of
+        # 16 x 16 128 x 64 floats per 260-row chunk of wide rows cost more than the chunk's GEMM
+        Wc = Wall[cand].reshape(K, L * (1 + n), D).transpose(1, 2).contiguous()
         bias = torch.cat([means.square().sum(1)[:, None], -torch.einsum("knd,kd->kn", basis, means)], 1)
         bc = bias[cand].reshape(K, L * (1 + n)).to(self.dt)  # [K, L(1+n)]
         labels = torch.empty(self.P, dtype=torch.long)
