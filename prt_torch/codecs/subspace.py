@@ -34,7 +34,9 @@ D_i² = 0):
   the default benchmark's 10 242 × 16 128 Gaussian-part tables (a slowly decaying spectrum) it
   reaches the float64 optimum's SE (ratio ≤ 1.00003 at n = 81 and 163) where the subspace
   iteration with 6 steps and 16 extra columns stops at 1.00027 / 1.00023, at under half its
-  multiply-adds (reports/benchmarks/default_gaussian_10k/profile.md).
+  multiply-adds (reports/benchmarks/default_gaussian_10k/profile.md). Cold starts only: a warm
+  refit (``init``, iterative CPCA) takes the ``'randomized'`` warm step, whose span keeps the
+  warm basis.
 """
 from __future__ import annotations
 
@@ -287,7 +289,8 @@ def cluster_pca(layout, Yt: torch.Tensor | None, n: int, solver: str, gen: torch
             :class:`TileSource` (chunks of rows, each in its own layout) with ``Yt`` None and
             ``counts [K]`` the points per cluster.
         solver: 'eigh' | 'svd' | 'randomized' | 'krylov' (see module docstring).
-        init: ``[K, n0, D]`` warm-start basis for 'randomized' (its span is kept).
+        init: ``[K, n0, D]`` warm-start basis for 'randomized' and 'krylov' (its span is kept: both
+            take the randomized warm step).
         cache: a dict owned by one fit, to reuse the random test block across refits.
     """
     if isinstance(layout, TileSource):
@@ -305,5 +308,7 @@ def cluster_pca(layout, Yt: torch.Tensor | None, n: int, solver: str, gen: torch
     if solver == "krylov":
         if gen is None:
             gen = torch.Generator().manual_seed(0)
+        if init is not None and init.shape[1] > 0:  # a warm refit (iterative CPCA): the randomized warm
+            return _randomized(src, n, gen, init, oversample, power_iters, cache)  # step keeps the warm span
         return _krylov(src, n, gen, oversample, power_iters, cache)
     raise ValueError(f"solver={solver!r}; accepted: 'eigh', 'svd', 'randomized', 'krylov'")
