@@ -175,9 +175,11 @@ def test_classify_candidates_matches_restricted_argmin():
     np.testing.assert_array_equal(lab.numpy(), allowed[np.arange(P), Ec.argmin(1)])
 
 
-def test_one_cluster_randomized_pca_recovers_known_spectrum():
-    # P·D > 2^23: the auto solver takes the randomized GEMM path; singular values and right
-    # singular vectors known by construction (centred orthonormal U, orthonormal V)
+@pytest.mark.parametrize("solver", ["auto", "krylov"])
+def test_one_cluster_randomized_pca_recovers_known_spectrum(solver):
+    # P·D > 2^23, tall (P ≥ 4D): the auto solver takes the randomized GEMM path (krylov: the block
+    # Krylov one); singular values and right singular vectors known by construction (centred
+    # orthonormal U, orthonormal V)
     P, D, n = 13200, 640, 8
     g = torch.Generator().manual_seed(2)
     U = torch.randn(P, 24, generator=g, dtype=torch.float64)
@@ -185,8 +187,8 @@ def test_one_cluster_randomized_pca_recovers_known_spectrum():
     V = torch.linalg.qr(torch.randn(D, 24, generator=g, dtype=torch.float64))[0]
     s = torch.logspace(2, 0, 24, dtype=torch.float64)
     X = ((U * s) @ V.T + torch.linspace(-1, 1, D, dtype=torch.float64)).float()
-    c = codecs.get("pca", vectors=n).fit(X)
-    assert c.fit_info_["solver"] == "randomized"
+    c = codecs.get("pca", vectors=n, solver=solver).fit(X)
+    assert c.fit_info_["solver"] == ("randomized" if solver == "auto" else solver)
     np.testing.assert_allclose(np.array(c.fit_info_["eigenvalues"]), (s[:n] ** 2).numpy(), rtol=1e-4)
     # the same subspace as the known top-n singular vectors: cosines of the principal angles are 1
     sv = np.linalg.svd(c.basis_[0].double().numpy() @ V[:, :n].numpy(), compute_uv=False)

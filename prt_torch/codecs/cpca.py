@@ -53,7 +53,7 @@ _VQ_CONSTRAINTS = {
 }
 _PCA_CONSTRAINTS = {
     "vectors": [Interval(int, 0, None)],
-    "solver": [Options("auto", "eigh", "svd", "randomized")],
+    "solver": [Options("auto", "eigh", "svd", "randomized", "krylov")],
     "oversample": [Interval(int, 0, 256)],
     "power_iters": [Interval(int, 0, 50)],
 }
@@ -86,14 +86,18 @@ _DOC_VQ = """
         3510–3524 over seeds 1–3 (full-dimension seeds: 3498–3522 over seeds 0–2; faiss's
         random seeds: 3567–3583), i.e. within seeding luck (reports/benchmarks/encode.md)."""
 _DOC_PCA = """
-    solver : {'auto', 'eigh', 'svd', 'randomized'}, default='auto'
+    solver : {'auto', 'eigh', 'svd', 'randomized', 'krylov'}, default='auto'
         eigh: Sloan 2003 §4.1 normal form (CᵀC or CCᵀ by shape); svd; randomized: subspace
-        iteration; auto: eigh when K·D³ is small, else randomized (one-cluster PCA: randomized
-        for signals of more than 2^23 values with n' + oversample ≤ D/4).
+        iteration; krylov: randomized block Krylov (Musco & Musco 2015; ``subspace``); auto:
+        eigh when K·D³ is small, else randomized (one-cluster PCA of wide rows, P < 4D: krylov
+        where it would be randomized — the same passes over the data at half the width, at the
+        optimum's error on slowly decaying spectra).
     oversample : int in [0, 256], default=8
-        Extra random columns of a cold randomized start (warm starts: at most 2).
+        Extra random columns of a cold randomized start (warm starts: at most 2); krylov:
+        blocks of ⌈(n' + oversample)/2⌉ columns.
     power_iters : int in [0, 50], default=3
-        Power steps of a cold randomized start (warm starts use 1)."""
+        Power steps of a cold randomized start (warm starts use 1); krylov: passes over the
+        data (Krylov blocks)."""
 #: One global subspace (pca, mrt_pca): 6 power steps with 16 extra columns reach scikit-learn's
 #: randomized-PCA error (7 iterations, 10 extra columns) — n' = 8 on 50k × 625 synthetic transfer:
 #: SE 300156.24 vs scikit-learn's 300156.28 (3 steps, 8 columns: 300562.59), in 0.75 s against its
@@ -130,7 +134,10 @@ class _Tiles:
         self.i, self.j = i, j
         lay = tile_layout(labels, K, T)
         self.layout, self.tc = lay, lay.tile_cluster
-        self.Xt = to_tiles(lay, x, out=raw)
+        if K == 1 and j - i == T:  # one cluster, a chunk of exactly one tile: the rows themselves, no copy
+            self.Xt = x.view(1, T, x.shape[1])
+        else:
+            self.Xt = to_tiles(lay, x, out=raw)
         self.swt = to_tiles(lay, torch.ones(j - i, dtype=x.dtype) if sw is None else sw)
         used = torch.zeros(lay.NT * T, dtype=torch.bool)
         used[lay.pos] = True
@@ -153,10 +160,12 @@ class _Work:
         self.streamed = isinstance(Xc, CentredRows)
         self.spans = spans(self.P, Xc.rows) if self.streamed else [(0, self.P)]
         n = self.spans[0][1] - self.spans[0][0]  # rows of the largest chunk
-        self.T = choose_tile(n, K) if K > 1 else 256
+        # one cluster: a chunk is one tile (256-row tiles padded a 260-row chunk of a streamed
+        # 16 128-wide signal to 512 rows: twice the GEMM work of every pass)
+        self.T = choose_tile(n, K) if K > 1 else n
         self._xx = None  # ||x_p||², computed when a classification first needs it (not by PCA)
         self.sw = None if w is None else w.sqrt().to(self.dt)
-        rows = n + K * (self.T - 1)
+        rows = n + K * (self.T - 1) if K > 1 else n
         self._raw = torch.empty(rows, self.D, dtype=self.dt)
         self._y = torch.empty(rows, self.D, dtype=self.dt)
         self.labels = None
@@ -263,7 +272,9 @@ class _Work:
         if means is None:
             means = torch.zeros(K, D, dtype=torch.float64)
         Wall = torch.cat([-2.0 * means[:, None], basis], 1).to(self.dt)  # [K, 1+n, D]
-        Wc = Wall[cand].reshape(K, L * (1 + n), D).transpose(1, 2)  # [K, D, L(1+n)], a view
+        # [K, D, L(1+n)] made contiguous once: tiles_bmm permutes it per chunk, and a strided gather of
+        # 16 x 16 128 x 64 floats per 260-row chunk of wide rows cost more than the chunk's GEMM
+        Wc = Wall[cand].reshape(K, L * (1 + n), D).transpose(1, 2).contiguous()
         bias = torch.cat([means.square().sum(1)[:, None], -torch.einsum("knd,kd->kn", basis, means)], 1)
         bc = bias[cand].reshape(K, L * (1 + n)).to(self.dt)  # [K, L(1+n)]
         labels = torch.empty(self.P, dtype=torch.long)
@@ -451,6 +462,10 @@ class PCA(AffineCodec):
         if solver == "auto":  # big signals: subspace iteration by GEMMs over the data, not the D×D scatter
             big = P * D > 2**23 and P >= 4 * D and n + p["oversample"] <= D // 4
             solver = "randomized" if big else _resolve_solver("auto", 1, D, 4e8)
+            # wide rows (P < 4D, e.g. 10 242 × 16 128 transport tables): block Krylov, the same passes at
+            # half the width (subspace.py); tall signals keep the subspace iteration (there the passes are
+            # bound by reading the rows, not by the GEMM width: 50 000 × 625, n' = 2-16, no faster)
+            solver = "krylov" if solver == "randomized" and P < 4 * D else solver
         work = _Work(Xc, w, 1, centred=p["center"])
         work.set_labels(torch.zeros(P, dtype=torch.long))
         st = work.refit(n, solver, gen, oversample=p["oversample"], power_iters=p["power_iters"])

@@ -23,6 +23,20 @@ D_i² = 0):
   basis, so the captured variance never decreases from one refit to the next (iterative
   CPCA relies on this). Cost per power step: two tile-GEMMs of width n + oversample (warm
   starts: n + min(oversample, WARM_OVERSAMPLE)). One cluster: plain GEMMs, no tiles.
+* ``'krylov'`` — randomized block Krylov iteration (Musco & Musco 2015, "Randomized block Krylov
+  methods for stronger and faster approximate singular value decomposition", Algorithm 2;
+  Halko et al. 2011 §4.4 name the idea): the Rayleigh–Ritz step runs on the whole Krylov space
+  ``[Q₀, (CᵀC)Q₀, …, (CᵀC)^q Q₀]`` (blocks of b = ⌈(n + oversample)/2⌉ columns, each made
+  orthogonal to the earlier ones: block Lanczos with full re-orthogonalisation), not only on its
+  last block. ``power_iters`` = q + 1 passes over the data, each applying CᵀC to one block of b
+  columns: the same passes as ``'randomized'`` at about half its width. The Ritz matrix needs no
+  extra pass: its block column j is Q_cᵀ (CᵀC Q_j), the product each pass computed anyway. On
+  the default benchmark's 10 242 × 16 128 Gaussian-part tables (a slowly decaying spectrum) it
+  reaches the float64 optimum's SE (ratio ≤ 1.00003 at n = 81 and 163) where the subspace
+  iteration with 6 steps and 16 extra columns stops at 1.00027 / 1.00023, at under half its
+  multiply-adds (reports/benchmarks/default_gaussian_10k/profile.md). Cold starts only: a warm
+  refit (``init``, iterative CPCA) takes the ``'randomized'`` warm step, whose span keeps the
+  warm basis.
 """
 from __future__ import annotations
 
@@ -180,6 +194,17 @@ def _svd(src, n, counts):
     return basis, evals
 
 
+def _drop_empty(basis: torch.Tensor, evals: torch.Tensor, D: int, dtype: torch.dtype) -> None:
+    """Zero (in place) the vectors whose D_i² is within the rounding of the products that
+    estimated it: ≤ λ₁ · 16 √D · eps(dtype) — fewer points than vectors, or zero columns.
+    (The bound was λ₁ · 16 D · eps: 3% of λ₁ in float32 at D = 16 128, which dropped real
+    directions of a slowly decaying spectrum — the default benchmark's Gaussian-part tables have
+    λ₈₁/λ₁ = 0.039, λ₁₆₃/λ₁ = 0.0069: PCA at 163 vectors kept about 80 and had 2.6× the optimum's SE.)"""
+    small = evals <= evals[:, :1].clamp_min(1e-300) * (D ** 0.5 * torch.finfo(dtype).eps * 16)
+    basis[small] = 0
+    evals[small] = 0
+
+
 def _randomized(src, n, gen, init, oversample, power_iters, cache):
     K, D = src.K, src.D
     basis = torch.zeros(K, n, D, dtype=torch.float64)
@@ -210,9 +235,41 @@ def _randomized(src, n, gen, init, oversample, power_iters, cache):
     basis[:, :nb] = (Q @ U).transpose(1, 2)
     evals[:, :nb] = lam
     # fewer points than vectors, or zero columns: drop directions without variance
-    small = evals <= evals[:, :1].clamp_min(1e-300) * (D * torch.finfo(src.dtype).eps * 16)
-    basis[small] = 0
-    evals[small] = 0
+    _drop_empty(basis, evals, D, src.dtype)
+    return basis, evals
+
+
+def _krylov(src, n, gen, oversample, power_iters, cache):
+    """Randomized block Krylov (Musco & Musco 2015, Algorithm 2) with full re-orthogonalisation:
+    ``power_iters`` passes ``W_j = Σ y yᵀ Q_j`` (``_apply``), blocks ``Q_j [K, D, b]`` float64,
+    then Rayleigh–Ritz on ``Q_c = [Q_0 … Q_q]`` with ``H = Q_cᵀ [W_0 … W_q]`` ``[K, m, m]``."""
+    K, D = src.K, src.D
+    basis = torch.zeros(K, n, D, dtype=torch.float64)
+    evals = torch.zeros(K, n, dtype=torch.float64)
+    if n == 0:
+        return basis, evals
+    b = min(D, max(1, -(-(n + oversample) // 2)))
+    Q = orthonormalize(_test_block(gen, K, D, b, cache))
+    Qs, Ws = [], []
+    for i in range(max(1, power_iters)):
+        W = _apply(src, Q)  # C^T C Q_i, one pass over the data
+        Qs.append(Q)
+        Ws.append(W)
+        if i + 1 == max(1, power_iters) or b * (i + 1) >= D:
+            break
+        Qc = torch.cat(Qs, 2)
+        V = W
+        for _ in range(2):  # block Gram-Schmidt against the Krylov space so far, twice
+            V = V - Qc @ (Qc.transpose(1, 2) @ V)
+        Q = orthonormalize(V)
+    Qc, Wc = torch.cat(Qs, 2), torch.cat(Ws, 2)
+    H = Qc.transpose(1, 2) @ Wc  # Q_c^T C^T C Q_c, symmetric up to rounding
+    lam, U = torch.linalg.eigh(0.5 * (H + H.transpose(1, 2)))
+    nb = min(n, lam.shape[1])
+    lam, U = _top(lam, U, nb)
+    basis[:, :nb] = (Qc @ U).transpose(1, 2)
+    evals[:, :nb] = lam
+    _drop_empty(basis, evals, D, src.dtype)
     return basis, evals
 
 
@@ -231,8 +288,9 @@ def cluster_pca(layout, Yt: torch.Tensor | None, n: int, solver: str, gen: torch
             sqrt(weight)-scaled rows in that tile order (float32/64; padding rows zero); or a
             :class:`TileSource` (chunks of rows, each in its own layout) with ``Yt`` None and
             ``counts [K]`` the points per cluster.
-        solver: 'eigh' | 'svd' | 'randomized' (see module docstring).
-        init: ``[K, n0, D]`` warm-start basis for 'randomized' (its span is kept).
+        solver: 'eigh' | 'svd' | 'randomized' | 'krylov' (see module docstring).
+        init: ``[K, n0, D]`` warm-start basis for 'randomized' and 'krylov' (its span is kept: both
+            take the randomized warm step).
         cache: a dict owned by one fit, to reuse the random test block across refits.
     """
     if isinstance(layout, TileSource):
@@ -247,4 +305,10 @@ def cluster_pca(layout, Yt: torch.Tensor | None, n: int, solver: str, gen: torch
         if gen is None:
             gen = torch.Generator().manual_seed(0)
         return _randomized(src, n, gen, init, oversample, power_iters, cache)
-    raise ValueError(f"solver={solver!r}; accepted: 'eigh', 'svd', 'randomized'")
+    if solver == "krylov":
+        if gen is None:
+            gen = torch.Generator().manual_seed(0)
+        if init is not None and init.shape[1] > 0:  # a warm refit (iterative CPCA): the randomized warm
+            return _randomized(src, n, gen, init, oversample, power_iters, cache)  # step keeps the warm span
+        return _krylov(src, n, gen, oversample, power_iters, cache)
+    raise ValueError(f"solver={solver!r}; accepted: 'eigh', 'svd', 'randomized', 'krylov'")
