@@ -104,8 +104,12 @@ def test_cli_brdf_of_a_lambertian_object(tmp_path, renderer, shadowed):
 def test_cli_round_trip_of_engine_renders(tmp_path, renderer, shadowed):
     """Images the engine renders (GL, Gouraud, RGBA32F) under a known light, written as EXR with
     alpha, are inverted by ``prt invert`` to that light. The framebuffer is float32 (relative
-    rounding 6e-8 per pixel), which bounds the agreement at ~1e-5 (the float64 test below reaches
-    1e-6 and better); the output JSON is a light spec of ``prt light`` / ``load_light``."""
+    rounding 6e-8 per pixel), which bounds the agreement: to first order a least-squares solution moves
+    by at most κ · ‖δb‖/‖b‖ relatively (κ the design's condition number, δb the data's error, here at
+    most the fit's relative residual), about 2e-4 for this scene (κ ≈ 77, relative residual ≈ 2.7e-6);
+    measured 4.8e-6 with the uniform direction set, 2.8e-5 with the qmc mixture (issue 42 §1), the
+    same κ and residual — a different noise realisation along the weakest direction. The float64 test
+    below reaches 1e-6 and better; the output JSON is a light spec of ``prt light`` / ``load_light``."""
     mesh, T = shadowed
     L = load_light("sky", 3)
     rad = relight.diffuse_transfer(T, L)
@@ -116,7 +120,9 @@ def test_cli_round_trip_of_engine_renders(tmp_path, renderer, shadowed):
                  "light", "--transfer", str(tmp_path / "t.prt"), "-o", str(out), "--report", str(tmp_path / "rep")]) == 0
     res = json.loads(out.read_text())
     got = torch.tensor(res["coeffs"])
-    assert float((got - L).norm() / L.norm()) < 2e-5
+    wp, rel_res = res["inverse"]["well_posedness"], res["inverse"]["residual"]["relative_rms"]
+    assert rel_res < 1e-5 and wp["condition"] < 200  # float32 data; the scene's conditioning
+    assert float((got - L).norm() / L.norm()) < min(1e-4, wp["condition"] * rel_res)
     assert res["bands"] == 3 and "graphics convention" in res["convention"]
     assert res["inverse"]["residual"]["psnr_db"] > 90
     assert res["inverse"]["well_posedness"]["recoverable_bands"] == [0, 1, 2]
