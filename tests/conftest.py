@@ -19,3 +19,21 @@ def renderer(request):
         raise
     yield r
     r.close()
+
+
+def _file_backed(t) -> bool:
+    """Whether ``t``'s memory is a shared mapping of a (deleted) scratch file: /proc/self/maps."""
+    p = t.untyped_storage().data_ptr()
+    with open("/proc/self/maps") as f:
+        for line in f:
+            lo, hi = (int(x, 16) for x in line.split()[0].split("-"))
+            if lo <= p < hi:
+                return ".scratch.npy" in line and line.split()[1][3] == "s"
+    return False
+
+
+@pytest.fixture
+def file_backed():
+    """``file_backed(t) -> bool``: whether a tensor's memory is a result streamed to its scratch file
+    (a shared mapping of a deleted ``*.scratch.npy``), read from /proc/self/maps."""
+    return _file_backed

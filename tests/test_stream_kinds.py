@@ -43,15 +43,6 @@ def _mesh(colour: bool):
     return m.with_albedo([0.8, 0.5, 0.3]) if colour else m
 
 
-def _file_backed(t: torch.Tensor) -> bool:
-    """Whether ``t``'s memory is a shared mapping of a (deleted) scratch file: /proc/self/maps."""
-    p = t.untyped_storage().data_ptr()
-    with open("/proc/self/maps") as f:
-        for line in f:
-            lo, hi = (int(x, 16) for x in line.split()[0].split("-"))
-            if lo <= p < hi:
-                return ".scratch.npy" in line and line.split()[1][3] == "s"
-    return False
 
 
 def _run(kind, mesh, params, **run):
@@ -73,7 +64,7 @@ def in_memory():
 
 # ------------------------------------------------------------------------------ streamed == in memory
 @pytest.mark.parametrize("name", list(CASES))
-def test_streamed_result_equals_in_memory(tmp_path, monkeypatch, name, in_memory):
+def test_streamed_result_equals_in_memory(tmp_path, monkeypatch, name, in_memory, file_backed):
     """With the threshold at 0 bytes (``PRT_STREAM_RESULT_BYTES``) and a state directory, the rows
     are a shared file mapping; their values, the saved file's tensors and the bounce decision equal
     the in-memory run's bit for bit; nothing is left beside the output."""
@@ -81,8 +72,8 @@ def test_streamed_result_equals_in_memory(tmp_path, monkeypatch, name, in_memory
     monkeypatch.setenv("PRT_STREAM_RESULT_BYTES", "0")
     ref = in_memory[name]
     got = _run(kind, _mesh(colour), params, state_dir=tmp_path / "o.prt.state")
-    assert _file_backed(got.data) and not _file_backed(ref.data)
-    assert all(_file_backed(t) for t in got.aux.values())
+    assert file_backed(got.data) and not file_backed(ref.data)
+    assert all(file_backed(t) for t in got.aux.values())
     assert _same(got, ref)
     for k in ("bounces_used", "bounce_energy_fraction", "albedo_folded", "channels", "nonzero_per_vertex"):
         assert got.meta.get(k) == ref.meta.get(k), k
@@ -197,7 +188,7 @@ RESUME = [("diffuse_bounces", 1), ("diffuse_bounce_colour", 1), ("wavelet", 1), 
 
 
 @pytest.mark.parametrize("name, stop_at", RESUME)
-def test_interrupted_streamed_run_resumes_to_the_in_memory_result(tmp_path, monkeypatch, name, stop_at, in_memory):
+def test_interrupted_streamed_run_resumes_to_the_in_memory_result(tmp_path, monkeypatch, name, stop_at, in_memory, file_backed):
     """Stopped after ``stop_at`` + 1 chunks in all passes (RESUME), the result streamed: nothing but
     the state directory is left, holding every finished chunk (an earlier pass's are kept until the
     last pass ends); resumed, the result equals the uninterrupted in-memory run, and the state goes."""
@@ -217,7 +208,7 @@ def test_interrupted_streamed_run_resumes_to_the_in_memory_result(tmp_path, monk
     assert [p.name for p in tmp_path.iterdir()] == ["o.prt.state"]
     assert len(list(state.rglob("chunk_*.prt"))) == stop_at + 1
     got = _run(kind, mesh, params, state_dir=state, resume=True)
-    assert _file_backed(got.data) and _same(got, in_memory[name])
+    assert file_backed(got.data) and _same(got, in_memory[name])
     assert not state.exists()
 
 

@@ -26,27 +26,18 @@ MRT = {"bands": 3, "M": 3, "bands_out": 3, "samples": 16, "shadows": "always", "
 DIFFUSE = {"bands": 3, "samples": 16, "shadows": "always"}
 
 
-def _file_backed(t: torch.Tensor) -> bool:
-    """Whether ``t``'s memory is a shared mapping of a (deleted) file: /proc/self/maps."""
-    p = t.untyped_storage().data_ptr()
-    with open("/proc/self/maps") as f:
-        for line in f:
-            lo, hi = (int(x, 16) for x in line.split()[0].split("-"))
-            if lo <= p < hi:
-                return ".scratch.npy" in line and line.split()[1][3] == "s"
-    return False
 
 
 # ------------------------------------------------------------------------------ precompute
 @pytest.mark.parametrize("kind, params", [("diffuse", DIFFUSE), ("mrt", MRT)])
-def test_streamed_result_equals_in_memory(tmp_path, kind, params):
+def test_streamed_result_equals_in_memory(tmp_path, kind, params, file_backed):
     """The rows assembled in a file equal the rows assembled in memory bit for bit, and so do
     the saved files' tensors; the buffer is a shared file mapping and leaves no file behind."""
     mesh = builtin("bumpy_sphere:642")
     ref = get_kind(kind).precompute(mesh, dict(params), run=RunOptions(chunk_size=100))
     got = get_kind(kind).precompute(mesh, dict(params), run=RunOptions(chunk_size=100, state_dir=tmp_path / "s",
                                                                          stream_result=True))
-    assert _file_backed(got.data) and not _file_backed(ref.data)
+    assert file_backed(got.data) and not file_backed(ref.data)
     assert got.data.dtype == ref.data.dtype == torch.float32 and torch.equal(got.data, ref.data)
     got.save(tmp_path / "a.prt")
     ref.save(tmp_path / "b.prt")
@@ -165,9 +156,9 @@ def test_streamed_npy_is_np_save_and_atomic(tmp_path):
             pass
 
 
-def test_scratch_rows_zero_unlinked_and_refused_where_it_cannot_be(tmp_path):
+def test_scratch_rows_zero_unlinked_and_refused_where_it_cannot_be(tmp_path, file_backed):
     t = io.scratch_rows(tmp_path, (100, 4), torch.float64)
-    assert t.dtype == torch.float64 and t.shape == (100, 4) and not t.any() and _file_backed(t)
+    assert t.dtype == torch.float64 and t.shape == (100, 4) and not t.any() and file_backed(t)
     assert list(tmp_path.iterdir()) == []
     (tmp_path / "f").write_text("")
     with pytest.raises(ValueError, match=r"cannot create .* scratch rows in .*f"):

@@ -1240,6 +1240,15 @@ def face_transfer(mesh: Mesh, bands: int, samples: int, seed: int, bounces: int,
     return rho[:, :, None] * total, fc["normals"]
 
 
+
+def _record_bounce_decision(meta: dict, used: int, energy: list, bounces: int) -> None:
+    """The bounce stopping rule's outcome into ``meta``: bounces used, each bounce's energy fraction
+    (‖term‖ / ‖total so far‖) and the one-line reason (both assembly paths, in memory and by row blocks)."""
+    meta["bounces_used"] = used
+    meta["bounce_energy_fraction"] = energy
+    meta["bounce_decision"] = (f"stopped after {used} of {bounces} bounces"
+                               + (f" (bounce {used} added {energy[-1]:.3g} < bounce_tol)" if used < bounces else ""))
+
 def _interreflect(T0: torch.Tensor, S: Any, mesh: Mesh, bounces: int, bounce_tol: float, meta: dict,
                   faces: dict | None = None) -> tuple[torch.Tensor, int]:
     """Step 3 for the sparse bounce matrices (``bounce_points`` 'vertices', 'faces', 'corners';
@@ -1284,10 +1293,7 @@ def _interreflect(T0: torch.Tensor, S: Any, mesh: Mesh, bounces: int, bounce_tol
         energy.append(frac)
         if frac < bounce_tol:
             break
-    meta["bounces_used"] = used
-    meta["bounce_energy_fraction"] = energy
-    meta["bounce_decision"] = (f"stopped after {used} of {bounces} bounces"
-                               + (f" (bounce {used} added {energy[-1]:.3g} < bounce_tol)" if used < bounces else ""))
+    _record_bounce_decision(meta, used, energy, bounces)
     return total, C
 
 
@@ -1346,10 +1352,7 @@ def _bounce_decision(T0: torch.Tensor, TB: torch.Tensor | None, mesh: Mesh, boun
         energy.append(frac)
         if frac < bounce_tol:
             break
-    meta["bounces_used"] = used
-    meta["bounce_energy_fraction"] = energy
-    meta["bounce_decision"] = (f"stopped after {used} of {bounces} bounces"
-                               + (f" (bounce {used} added {energy[-1]:.3g} < bounce_tol)" if used < bounces else ""))
+    _record_bounce_decision(meta, used, energy, bounces)
     return C, used
 
 
