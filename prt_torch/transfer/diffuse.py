@@ -1240,7 +1240,6 @@ def face_transfer(mesh: Mesh, bands: int, samples: int, seed: int, bounces: int,
     return rho[:, :, None] * total, fc["normals"]
 
 
-
 def _record_bounce_decision(meta: dict, used: int, energy: list, bounces: int) -> None:
     """The bounce stopping rule's outcome into ``meta``: bounces used, each bounce's energy fraction
     (‖term‖ / ‖total so far‖) and the one-line reason (both assembly paths, in memory and by row blocks)."""
@@ -1248,6 +1247,7 @@ def _record_bounce_decision(meta: dict, used: int, energy: list, bounces: int) -
     meta["bounce_energy_fraction"] = energy
     meta["bounce_decision"] = (f"stopped after {used} of {bounces} bounces"
                                + (f" (bounce {used} added {energy[-1]:.3g} < bounce_tol)" if used < bounces else ""))
+
 
 def _interreflect(T0: torch.Tensor, S: Any, mesh: Mesh, bounces: int, bounce_tol: float, meta: dict,
                   faces: dict | None = None) -> tuple[torch.Tensor, int]:
