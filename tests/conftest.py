@@ -37,3 +37,25 @@ def file_backed():
     """``file_backed(t) -> bool``: whether a tensor's memory is a result streamed to its scratch file
     (a shared mapping of a deleted ``*.scratch.npy``), read from /proc/self/maps."""
     return _file_backed
+
+
+def _saved_alike(got, ref, d) -> None:
+    """``got`` and ``ref`` (Transfers) saved to ``d``/a.prt and b.prt load back as the same tensors, and
+    ``d`` holds nothing else (no state directory, no scratch file left behind)."""
+    import torch
+
+    from prt_torch import io
+
+    got.save(d / "a.prt")
+    ref.save(d / "b.prt")
+    ta, _ = io.load(d / "a.prt")
+    tb, _ = io.load(d / "b.prt")
+    assert ta.keys() == tb.keys() and all(torch.equal(ta[k], tb[k]) for k in ta)
+    assert sorted(p.name for p in d.iterdir()) == ["a.prt", "b.prt"]
+
+
+@pytest.fixture
+def saved_alike():
+    """``saved_alike(got, ref, dir)``: the two results' files are equal and nothing else was left in dir."""
+    return _saved_alike
+

@@ -64,7 +64,7 @@ def in_memory():
 
 # ------------------------------------------------------------------------------ streamed == in memory
 @pytest.mark.parametrize("name", list(CASES))
-def test_streamed_result_equals_in_memory(tmp_path, monkeypatch, name, in_memory, file_backed):
+def test_streamed_result_equals_in_memory(tmp_path, monkeypatch, name, in_memory, file_backed, saved_alike):
     """With the threshold at 0 bytes (``PRT_STREAM_RESULT_BYTES``) and a state directory, the rows
     are a shared file mapping; their values, the saved file's tensors and the bounce decision equal
     the in-memory run's bit for bit; nothing is left beside the output."""
@@ -77,12 +77,7 @@ def test_streamed_result_equals_in_memory(tmp_path, monkeypatch, name, in_memory
     assert _same(got, ref)
     for k in ("bounces_used", "bounce_energy_fraction", "albedo_folded", "channels", "nonzero_per_vertex"):
         assert got.meta.get(k) == ref.meta.get(k), k
-    got.save(tmp_path / "a.prt")
-    ref.save(tmp_path / "b.prt")
-    ta, _ = io.load(tmp_path / "a.prt")
-    tb, _ = io.load(tmp_path / "b.prt")
-    assert ta.keys() == tb.keys() and all(torch.equal(ta[k], tb[k]) for k in ta)
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.prt", "b.prt"]  # no state, no scratch file
+    saved_alike(got, ref, tmp_path)
 
 
 def test_bounce_decision_by_blocks_is_the_whole_tensors_norm():

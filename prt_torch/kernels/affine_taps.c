@@ -48,6 +48,17 @@ static inline v8 term_weights8(const float *w, i64 cnt, int mean, i64 b) {
 #else
 #define TWV(b) LD(wv + 8 * (b))
 #endif
+/* one tap's row r (three colour rows Jp apart) times its weight gt into the NBJ x 3 accumulators */
+#define TAP_ACC(NBJ, row, weight)                                                                \
+    do {                                                                                         \
+        const float *r = (row);                                                                  \
+        float gt = (weight);                                                                     \
+        for (int b = 0; b < NBJ; b++) {                                                          \
+            a0[b] += gt * LD(r + 8 * b);                                                         \
+            a1[b] += gt * LD(r + Jp + 8 * b);                                                    \
+            a2[b] += gt * LD(r + 2 * Jp + 8 * b);                                                \
+        }                                                                                        \
+    } while (0)
 #define TAPS3V(NBJ)                                                                              \
 static inline void taps3v_##NBJ(const float *Tk, i64 R, i64 n_out, const i64 *ix, const float *gg, i64 ntap, i64 Jp, \
                                 const float *wv, const float *w, i64 cnt, int mean, v8 *rv, int *flag) { \
@@ -61,25 +72,13 @@ static inline void taps3v_##NBJ(const float *Tk, i64 R, i64 n_out, const i64 *ix
         /* four valid taps (MRT's bilinear tents): the loop below with its trip count known and no  \
            per-tap test, the same FMAs in the same order (same bits) */                           \
         for (int t = 0; t < 4; t++) {                                                            \
-            const float *r = Tk + ix[t] * R;                                                     \
-            float gt = gg[t];                                                                    \
-            for (int b = 0; b < NBJ; b++) {                                                      \
-                a0[b] += gt * LD(r + 8 * b);                                                     \
-                a1[b] += gt * LD(r + Jp + 8 * b);                                                \
-                a2[b] += gt * LD(r + 2 * Jp + 8 * b);                                            \
-            }                                                                                    \
+            TAP_ACC(NBJ, Tk + ix[t] * R, gg[t]);                                                 \
         }                                                                                        \
     } else                                                                                       \
     for (i64 t = 0; t < ntap; t++) {                                                             \
         i64 ri = ix[t];                                                                          \
         if ((uint64_t)ri >= (uint64_t)n_out) { *flag |= 1; continue; }  /* skipped, flagged */    \
-        const float *r = Tk + ri * R;                                                            \
-        float gt = gg[t];                                                                        \
-        for (int b = 0; b < NBJ; b++) {                                                          \
-            a0[b] += gt * LD(r + 8 * b);                                                         \
-            a1[b] += gt * LD(r + Jp + 8 * b);                                                    \
-            a2[b] += gt * LD(r + 2 * Jp + 8 * b);                                                \
-        }                                                                                        \
+        TAP_ACC(NBJ, Tk + ri * R, gg[t]);                                                        \
     }                                                                                            \
     v8 r0 = a0[0] * xw[0], r1 = a1[0] * xw[0], r2 = a2[0] * xw[0];                              \
     for (int b = 1; b < NBJ; b++) {                                                              \
