@@ -81,8 +81,16 @@ MAX_SAMPLES = 1 << 20
 MAX_BOUNCES = 64
 SAMPLINGS = ("qmc", "uniform", "cosine")
 ESTIMATORS = ("auto", "control", "plain")
-#: rays per face of :meth:`HitBounce.face_openness` (the bounce estimator's per-hit choice under 'auto')
-FACE_PROBE_RAYS = 16
+#: the cells of the hit rays' guide (:meth:`HitBounce.face_openness`): rings × sectors of Malley's
+#: square (a = sin²θ, b = φ/2π), each of equal cosine-weighted solid angle; one probe ray per cell
+GUIDE_GRID = (4, 8)
+#: rays per face of :meth:`HitBounce.face_openness` (the bounce estimator's per-hit choice under
+#: 'auto' and its guide): one jittered ray per cell of :data:`GUIDE_GRID`
+FACE_PROBE_RAYS = GUIDE_GRID[0] * GUIDE_GRID[1]
+#: a face's guide pools the probes of the coplanar faces among its GUIDE_POOL nearest centroids; it
+#: is used only where at least GUIDE_MIN_FACES of them are coplanar (a flat region: their cells are
+#: the same directions); the uniform share of the guided density (Hesterberg 1995's defensive mixture)
+GUIDE_POOL, GUIDE_MIN_FACES, GUIDE_UNIFORM = 32, 8, 0.3
 FACE_PROBE_STREAM = 1 << 21  # its hash streams, apart from the vertices' (1 << 20) and the hits' (1, 2, ...)
 #: default offset of the rays leaving a bounce hit point, as a fraction of the bounding-box
 #: diagonal (issue 37; :func:`hit_ray_eps`). The vertices' own offset (``RunOptions.offset``,
@@ -437,6 +445,18 @@ def _rotated_rays(frames: np.ndarray, o_v: np.ndarray, u1: np.ndarray, cu: np.nd
     return np.repeat(o_v, a.shape[0], axis=0), d.reshape(-1, 3).astype(np.float32), z.reshape(-1)
 
 
+def _malley_dirs(frames: np.ndarray, rows: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``[R, 3]`` float32 cosine-weighted directions by Malley's map of (a, b) ∈ [0,1)² ``[R]``
+    float64 each: r = √a, z = √(1 − a), φ = 2πb, d = r cos φ t + r sin φ b + z n in the frame
+    ``frames[rows]`` (``frames float64 [F, 3, 3]`` rows (t, b, n)) — the map of
+    :func:`_rotated_rays` with ``cosine=1``, for points given one by one."""
+    r, z = np.sqrt(a), np.sqrt(np.maximum(1.0 - a, 1e-24))
+    phi = 2 * math.pi * b
+    fr = frames[rows]
+    d = (r * np.cos(phi))[:, None] * fr[:, 0] + (r * np.sin(phi))[:, None] * fr[:, 1] + z[:, None] * fr[:, 2]
+    return d.astype(np.float32)
+
+
 class HitBounce:
     """Exit transfer at bounce-ray hit points, estimated at the hit point itself.
 
@@ -480,6 +500,7 @@ class HitBounce:
         centroids, fn, _ = face_points(mesh)
         self.face_centroids = centroids.numpy()
         self._face_open: np.ndarray | None = None  # [F] float64, auto's per-face choice (face_openness)
+        self.guided: np.ndarray | None = None  # [F] bool, faces whose deepest hits are guided (_build_guide)
         self.face_normals = fn
         self.face_normals_np = fn.numpy()
         self._tables: dict = {}  # M -> the Hammersley set's tables (_hammersley_tables)
@@ -495,29 +516,88 @@ class HitBounce:
 
     def face_openness(self, caster: RayCaster) -> np.ndarray:
         """``[F]`` float64: each face's open fraction, (1/K) Σ_m [ray m leaves the scene], from K =
-        :data:`FACE_PROBE_RAYS` cosine-weighted rays leaving its centroid (the hits' offset rule), a
-        Hammersley set Cranley–Patterson rotated per face by :func:`_hash_uniform` of (seed, face)
-        on streams apart from the hits' — the cosine-weighted open fraction of the face's hemisphere,
-        what 'auto' reads to choose a hit's estimator. Computed once per estimator (F·K rays,
-        traced in batches of about 2¹⁸), a function of (seed, mesh) only: the same table in every
-        process and chunk, so the numbers stay independent of chunking and executor."""
+        :data:`FACE_PROBE_RAYS` cosine-weighted rays leaving its centroid (the hits' offset rule),
+        one per cell of :data:`GUIDE_GRID` in Malley's square (a = sin²θ, b = φ/2π), jittered in
+        its cell by :func:`_hash_uniform` of (seed, face, cell) on streams apart from the hits' —
+        a stratified estimate of the cosine-weighted open fraction of the face's hemisphere, what
+        'auto' reads to choose a hit's estimator; the same rays give the hits' guide
+        (:meth:`_build_guide`). Computed once per estimator (F·K rays, traced in batches of about
+        2¹⁸), a function of (seed, mesh) only: the same tables in every process and chunk, so the
+        numbers stay independent of chunking and executor."""
         if self._face_open is None:
             F, K = self.face_normals_np.shape[0], FACE_PROBE_RAYS
-            ids = np.arange(F, dtype=np.int64)
-            zero = np.zeros_like(ids)
-            u1 = _hash_uniform(self.seed, ids, zero, FACE_PROBE_STREAM)
-            u2 = 2 * math.pi * _hash_uniform(self.seed, ids, zero, FACE_PROBE_STREAM + 1)
+            Gb = GUIDE_GRID[1]
             o_f = offset_origins(self.face_centroids, self.face_normals_np,
                                  caster.eps if self.hit_eps is None else self.hit_eps).astype(np.float32)
-            tables = _hammersley_tables(_hammersley(K))
-            out = np.empty(F)
+            cell = np.arange(K, dtype=np.int64)
+            opened = np.empty((F, K))
             step = max(1, (1 << 18) // K)
-            for a in range(0, F, step):  # a loop over face batches, each one traced batch
-                sl = slice(a, a + step)
-                o, d, _ = _rotated_rays(self.frames[sl], o_f[sl], u1[sl], np.cos(u2[sl]), np.sin(u2[sl]), tables, True)
-                out[sl] = 1.0 - caster.trace(o, d, "occluded").reshape(-1, K).mean(1)
-            self._face_open = out
+            for s0 in range(0, F, step):  # a loop over face batches, each one traced batch
+                f = np.repeat(np.arange(s0, min(F, s0 + step), dtype=np.int64), K)
+                c = np.tile(cell, f.shape[0] // K)
+                a = (c // Gb + _hash_uniform(self.seed, f, c, FACE_PROBE_STREAM)) / GUIDE_GRID[0]
+                b = (c % Gb + _hash_uniform(self.seed, f, c, FACE_PROBE_STREAM + 1)) / Gb
+                d = _malley_dirs(self.frames, f, a, b)
+                opened[s0:s0 + step] = 1.0 - caster.trace(o_f[f], d, "occluded").reshape(-1, K)
+            self._face_open = opened.mean(1)
+            if self.mode != "plain":
+                self._build_guide(opened)
         return self._face_open
+
+    def _build_guide(self, opened: np.ndarray) -> None:
+        """The hits' guide from the probe's ``opened [F, K]`` (1 where a cell's probe ray left the
+        scene): per face the cell masses P ``[F, 4, 8]`` of a piecewise-constant density over
+        Malley's square, P = u/K + (1 − u) g/Σg with u = :data:`GUIDE_UNIFORM` and g the pooled
+        fraction of each cell the face's estimator samples — the open fraction where the hit takes
+        the plain sum, the blocked one where it takes the control variate — averaged over the
+        coplanar faces (normals within 2.6°, centroids within 1e-3 of the diagonal of the plane)
+        among the :data:`GUIDE_POOL` nearest centroids. Faces with fewer than
+        :data:`GUIDE_MIN_FACES` such faces (curved regions, where a cell's directions differ from
+        face to face) are not guided (``self.guided[f]`` False: the cosine-weighted set as before)."""
+        from scipy.spatial import cKDTree
+
+        F, K = opened.shape
+        c, n = self.face_centroids, self.face_normals_np
+        pool = min(GUIDE_POOL, F)
+        _, nb = cKDTree(c).query(c, pool)
+        nb = nb.reshape(F, pool)
+        diag = float(np.linalg.norm(c.max(0) - c.min(0))) if F else 0.0
+        same = (np.einsum("ij,ikj->ik", n, n[nb]) > 0.999) & \
+            (np.abs(np.einsum("ij,ikj->ik", n, c[nb] - c[:, None, :])) <= 1e-3 * diag)
+        cnt = same.sum(1)
+        g = np.einsum("ik,ikc->ic", same.astype(np.float64), opened[nb]) / np.maximum(cnt, 1)[:, None]  # [F, K]
+        open_f = self._face_open >= 0.5 if self.mode == "auto" else np.ones(F, bool)
+        g = np.where(open_f[:, None], 1.0 - g, g)  # the part each face's estimator samples
+        tot = g.sum(1, keepdims=True)
+        g = np.where(tot > 0, g / np.maximum(tot, 1e-300), 1.0 / K)
+        P = (GUIDE_UNIFORM / K + (1.0 - GUIDE_UNIFORM) * g).reshape(F, *GUIDE_GRID)
+        self.guided = cnt >= GUIDE_MIN_FACES
+        self.guide_mass = P  # [F, Ga, Gb], each face's sums to 1
+        Pa = P.sum(2)  # [F, Ga] ring masses
+        self._guide_cdf = (np.cumsum(Pa, 1), np.cumsum(P / Pa[:, :, None], 2))
+
+    def _guided_rays(self, tri: np.ndarray, ua: np.ndarray, ub: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Warp rotated points (``ua, ub`` float64 ``[R]`` in [0,1)², face ``tri [R]``) by the face's
+        guide (:meth:`_build_guide`): the ring by the inverse of its marginal CDF, the sector by
+        the conditional one, each linearly inside its cell (a monotone map per coordinate, so the
+        set's stratification carries over). Returns (directions float64 ``[R, 3]`` by Malley's map,
+        q float64 ``[R]`` = 1/(K P_cell), the ratio of the cosine density to the guided one: the ray's
+        weight factor, so that (1/M) Σ q f is unbiased for (1/π) ∫ f cos, as Σ f/M is under the
+        cosine set)."""
+        Ga, Gb = GUIDE_GRID
+        cA, cB = self._guide_cdf
+        R = np.arange(tri.shape[0])
+        rows = cA[tri]  # [R, Ga]
+        ia = np.minimum((rows[:, :-1] <= ua[:, None]).sum(1), Ga - 1)
+        lo = np.where(ia > 0, rows[R, np.maximum(ia - 1, 0)], 0.0)
+        pa = rows[R, ia] - lo
+        a = (ia + np.clip((ua - lo) / pa, 0.0, 1.0 - 1e-12)) / Ga
+        cols = cB[tri, ia]  # [R, Gb]
+        ib = np.minimum((cols[:, :-1] <= ub[:, None]).sum(1), Gb - 1)
+        lob = np.where(ib > 0, cols[R, np.maximum(ib - 1, 0)], 0.0)
+        pb = cols[R, ib] - lob
+        b = (ib + np.clip((ub - lob) / pb, 0.0, 1.0 - 1e-12)) / Gb
+        return _malley_dirs(self.frames, tri, a, b), 1.0 / (Ga * Gb * self.guide_mass[tri, ia, ib])
 
     def samples_at(self, level: int) -> int:
         """Rays per hit at recursion ``level`` (0 = the first hit)."""
@@ -547,9 +627,12 @@ class HitBounce:
               level: int, intersect: bool):
         """The M = :meth:`samples_at` (level) cosine-weighted rays of each hit (class docstring), traced:
         the Hammersley set Cranley–Patterson rotated per hit, in the hit face's frame, from the compiled
-        ray generator (:func:`_rotated_rays`). Returns (directions float32 ``[H·M, 3]``, ray h·M + m
-        of hit h; blocked ``bool [H·M]``; for ``intersect`` the Embree (prim, u, v) of each ray, else
-        None)."""
+        ray generator (:func:`_rotated_rays`); at the deepest level (``level == terms − 1``: rays not
+        followed further) of a guided face (estimators 'control' and 'auto', :meth:`_build_guide`) the
+        same rotated points warped by the face's guide (:meth:`_guided_rays`). Returns (directions
+        float32 ``[H·M, 3]``, ray h·M + m of hit h; blocked ``bool [H·M]``; for ``intersect`` the
+        Embree (prim, u, v) of each ray, else None; q float64 ``[H·M]``, each ray's weight factor,
+        or None where no ray is guided: every factor 1)."""
         M = self.samples_at(level)
         ft = self.faces[tri]
         vt = self.vertices
@@ -558,19 +641,45 @@ class HitBounce:
         if level == 0 and self.mode != "plain":  # the vertex's shift + a Halton offset over its direction index (class doc)
             zero = np.zeros_like(key_b)
             u1 = np.mod(_hash_uniform(self.seed, key_a, zero, 1) + _radical_inverse(key_b, 3), 1.0)
-            u2 = 2 * math.pi * np.mod(_hash_uniform(self.seed, key_a, zero, 2) + _radical_inverse(key_b, 5), 1.0)
+            v2 = np.mod(_hash_uniform(self.seed, key_a, zero, 2) + _radical_inverse(key_b, 5), 1.0)
         else:
             u1 = _hash_uniform(self.seed, key_a, key_b, 2 * level + 1)
-            u2 = 2 * math.pi * _hash_uniform(self.seed, key_a, key_b, 2 * level + 2)
+            v2 = _hash_uniform(self.seed, key_a, key_b, 2 * level + 2)
+        u2 = 2 * math.pi * v2
         o_h = offset_origins(q, n, caster.eps if self.hit_eps is None else self.hit_eps).astype(np.float32)
         tables = self._tables.get(M)
         if tables is None:
             tables = self._tables[M] = _hammersley_tables(_hammersley(M))
         o, d, _ = _rotated_rays(self.frames[tri], o_h, u1, np.cos(u2), np.sin(u2), tables, True)
+        w = None
+        if self.mode != "plain" and level == self.terms - 1:
+            g = np.flatnonzero(self.guided_faces(caster)[tri])  # [G] the guided hits
+            if g.size:
+                r = (g[:, None] * M + np.arange(M)).reshape(-1)  # their rays
+                ua = np.mod(tables[0][None, :] + u1[g, None], 1.0).reshape(-1)
+                ub = np.mod(self._base_b(M)[None, :] + v2[g, None], 1.0).reshape(-1)
+                d[r], qg = self._guided_rays(np.repeat(tri[g], M), ua, ub)
+                w = np.ones(d.shape[0])
+                w[r] = qg
         if intersect:
             prim, bu, bv, _ = caster.trace(o, d, "intersect")
-            return d, prim != -1, (prim, bu, bv)
-        return d, caster.trace(o, d, "occluded"), None
+            return d, prim != -1, (prim, bu, bv), w
+        return d, caster.trace(o, d, "occluded"), None, w
+
+    def guided_faces(self, caster: RayCaster) -> np.ndarray:
+        """``[F]`` bool: the faces whose deepest hits are guided (:meth:`_build_guide`; none under
+        'plain'), probing first if needed."""
+        if self.mode == "plain":
+            return np.zeros(self.face_normals_np.shape[0], bool)
+        self.face_openness(caster)
+        return self.guided
+
+    def _base_b(self, M: int) -> np.ndarray:
+        """``[M]`` float64 the Hammersley set's second coordinate (radical inverse base 2)."""
+        key = ("b", M)
+        if key not in self._tables:
+            self._tables[key] = _hammersley(M)[:, 1]
+        return self._tables[key]
 
     def _front_hits(self, d: np.ndarray, hit: np.ndarray, isect, key_a: np.ndarray, key_b: np.ndarray, M: int):
         """The rays of :meth:`_rays` that meet the front of a triangle, as the next level's hits:
@@ -595,15 +704,17 @@ class HitBounce:
         out = torch.zeros(H, depth, self.C, n2, dtype=torch.float64)
         if H == 0:
             return out
-        d, hit, isect = self._rays(caster, tri, bary, key_a, key_b, level, depth > 1)
+        d, hit, isect, w = self._rays(caster, tri, bary, key_a, key_b, level, depth > 1)
         if self.mode == "auto":  # per hit: the control variate where its face is mostly open (face_openness)
             open_h = self.face_openness(caster)[tri] >= 0.5  # [H]
             sel = np.flatnonzero(hit == np.repeat(open_h, M))  # the open faces' blocked rays, the others' open ones
         else:
             sel = np.flatnonzero(hit if self.control else ~hit)
-        x0 = sh_accumulate(H, M, sel, d, None, 1.0 / M, self.bands)  # [H, n²], SH summed in the pass
+        x0 = sh_accumulate(H, M, sel, d, w, 1.0 / M, self.bands)  # [H, n²], SH summed in the pass
         if x0 is None:  # without the compiled pass
             Y = eval_sh(torch.from_numpy(d[sel]).to(torch.float64), self.bands, check=False) / M  # [R_sel, n²]
+            if w is not None:
+                Y = Y * torch.from_numpy(w[sel])[:, None]
             x0 = torch.zeros(H, n2, dtype=torch.float64).index_add_(0, torch.from_numpy(sel // M), Y).numpy()
         x0 = torch.from_numpy(x0)
         if self.control:  # the exact unshadowed transfer of the face's hemisphere minus its blocked rays
@@ -637,9 +748,10 @@ class HitBounce:
             e = np.zeros(0, np.int64)
             return e, e, np.zeros((0, self.C))
         M = self.samples_at(level)
-        d, hit, isect = self._rays(caster, tri, bary, key_a, key_b, level, depth > 1)
+        d, hit, isect, q = self._rays(caster, tri, bary, key_a, key_b, level, depth > 1)
         op = np.flatnonzero(~hit)
-        rows, texels, w = [op // M], [texel_of(d[op].astype(np.float64))], [np.full((op.shape[0], self.C), 1.0 / M)]
+        w0 = np.full((op.shape[0], self.C), 1.0 / M) if q is None else np.repeat(q[op, None] / M, self.C, 1)
+        rows, texels, w = [op // M], [texel_of(d[op].astype(np.float64))], [w0]
         if depth > 1:
             row, t2, bary2, ka2, kb2 = self._front_hits(d, hit, isect, key_a, key_b, M)
             r2, tx2, w2 = self.texel_values(caster, t2, bary2, ka2, kb2, texel_of, level + 1)
@@ -1032,9 +1144,11 @@ def _hit_tables(caster: RayCaster, mesh: Mesh, bands: int, samples: int, seed: i
     needs no table: every bounce is estimated at its own hit point)."""
     hb = HitBounce(mesh, bands, hit_samples, seed, bounces, 1 if mesh.is_grey() else 3, hit_offset, estimator)
     meta.update(hit_samples=hit_samples, hit_offset=hit_offset, hit_eps=hb.hit_eps)
-    if hb.mode == "auto":  # auto's per-face choice, traced once here (travels with the estimator to its tasks)
+    if hb.mode != "plain":  # auto's per-face choice and the hits' guide, traced once here (they travel with the estimator)
         hb.face_openness(caster)
         meta["hit_choice_rays"] = int(hb.face_normals_np.shape[0]) * FACE_PROBE_RAYS
+        meta["hit_guide"] = {"grid": list(GUIDE_GRID), "pool": GUIDE_POOL, "min_faces": GUIDE_MIN_FACES,
+                             "uniform_share": GUIDE_UNIFORM, "faces_guided": int(hb.guided.sum())}
     return hb
 
 
