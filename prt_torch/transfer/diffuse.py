@@ -501,6 +501,7 @@ class HitBounce:
         self.face_centroids = centroids.numpy()
         self._face_open: np.ndarray | None = None  # [F] float64, auto's per-face choice (face_openness)
         self.guided: np.ndarray | None = None  # [F] bool, faces whose deepest hits are guided (_build_guide)
+        self.rays_traced = 0  # hit rays this process traced with this estimator (intersect + occluded; not the probe)
         self.face_normals = fn
         self.face_normals_np = fn.numpy()
         self._tables: dict = {}  # M -> the Hammersley set's tables (_hammersley_tables)
@@ -651,6 +652,7 @@ class HitBounce:
         if tables is None:
             tables = self._tables[M] = _hammersley_tables(_hammersley(M))
         o, d, _ = _rotated_rays(self.frames[tri], o_h, u1, np.cos(u2), np.sin(u2), tables, True)
+        self.rays_traced += o.shape[0]
         w = None
         if self.mode != "plain" and level == self.terms - 1:
             g = np.flatnonzero(self.guided_faces(caster)[tri])  # [G] the guided hits
@@ -855,8 +857,9 @@ def _chunk_work(caster: RayCaster, sampler: DiffuseSampler, points: torch.Tensor
         front = np.einsum("ij,ij->i", face_normals[tri], dh) < 0  # the ray meets the front of the triangle
         h, tri = h[front], tri[front]
         if hits is not None:
-            out["TB"] = _hit_bounces(caster, hits, k, i[h], j[h], tri,
-                                     bu[h], bv[h], w_ray[h], first_id, sampler.bands, ids)
+            out["TB"], n_hit = _hit_bounces(caster, hits, k, i[h], j[h], tri,
+                                            bu[h], bv[h], w_ray[h], first_id, sampler.bands, ids)
+            out["hit_rays"] = torch.tensor([n_hit], dtype=torch.int64)
             return out
         if hit_columns == "faces":
             rows, cols, vals = i[h], tri, w_ray[h]
@@ -879,9 +882,10 @@ def _hit_bounces(caster: RayCaster, hits: HitBounce, k: int, rows: np.ndarray, d
                  u: np.ndarray, v: np.ndarray, w: np.ndarray, first_id: int, bands: int,
                  ids: np.ndarray | None = None) -> torch.Tensor:
     """Σ over a chunk's front hits of w ρ_q x^k(q), per vertex row: ``[k, terms, C, n²]`` float64,
-    in batches of about 2¹⁸ secondary rays."""
+    in batches of about 2¹⁸ secondary rays, and the number of hit rays traced for it."""
     n2 = bands * bands
     out = torch.zeros(k, hits.terms, hits.C, n2, dtype=torch.float64)
+    traced = hits.rays_traced
     step = max(1, (1 << 18) // hits.M)
     for a in range(0, rows.shape[0], step):  # a loop over hit batches, each one traced batch
         sl = slice(a, a + step)
@@ -890,7 +894,7 @@ def _hit_bounces(caster: RayCaster, hits: HitBounce, k: int, rows: np.ndarray, d
         x = hits.values(caster, tri[sl], bary, key, dirs_j[sl])  # [h, terms, C, n²]
         wr = torch.from_numpy(np.asarray(w[sl], np.float64))[:, None] * hits.albedo_at(tri[sl], bary)  # [h, C]
         out.index_add_(0, torch.from_numpy(rows[sl]), x * wr[:, None, :, None])
-    return out
+    return out, hits.rays_traced - traced
 
 
 def transfer_at_points(caster: RayCaster, points: Any, normals: Any, bands: int, samples: int, seed: int = 0,
@@ -1189,6 +1193,8 @@ def _trace_direct(caster: RayCaster, mesh: Mesh, bands: int, samples: int, seed:
         fingerprint["hit_columns"] = hit_columns
     if hits is not None:
         fingerprint.update(hit_samples=hits.M, hit_terms=hits.terms, hit_offset=hits.hit_offset)
+        if hits.mode != "plain":  # the guided hits (issue 42): chunks of an earlier estimate do not mix in
+            fingerprint["hit_guide"] = [*GUIDE_GRID, GUIDE_POOL, GUIDE_MIN_FACES, GUIDE_UNIFORM]
     if record_hits and hits is None:
         parts = run.run_chunks(V, chunk_size, compute, fingerprint=fingerprint, desc=f"diffuse {mesh.name}",
                                rays_of=lambda r: int(r["rays"].sum()))
@@ -1206,6 +1212,8 @@ def _trace_direct(caster: RayCaster, mesh: Mesh, bands: int, samples: int, seed:
             if TB is not None:
                 TB[a:b] = p["TB"]
             meta["rays_traced"] += int(p["rays"].sum())
+            if "hit_rays" in p:
+                meta["hit_rays_traced"] = meta.get("hit_rays_traced", 0) + int(p["hit_rays"].sum())
 
         run.run_chunks(V, chunk_size, compute, fingerprint=fingerprint, desc=f"diffuse {mesh.name}",
                        rays_of=lambda r: int(r["rays"].sum()), sink=sink)
