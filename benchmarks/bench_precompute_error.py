@@ -52,14 +52,16 @@ REF_SEED = 1_000_003
 
 
 def run(mesh, bands, samples, seed, sampling, estimator, bounces):
-    """(total [V, n²] float64, direct [V, n²] or None, rays per vertex, seconds)."""
+    """(total [V, n²] float64, seconds, rays per vertex): every ray traced — the vertices' own, the
+    hit points' (intersect and occluded alike) and the hits' per-face probe (``hit_choice_rays``)."""
     n = samples // 2 if sampling == "cosine" else samples  # equal rays: cosine traces N, the others ~N/2
     t = time.perf_counter()
     tr = precompute_diffuse(mesh, bands, n, bounces, seed=seed, sampling=sampling, estimator=estimator, shadows="always",
                             fold_albedo=False, bounce_tol=0.0, run=RunOptions(progress=False))
     sec = time.perf_counter() - t
     total = tr.data.to(torch.float64)
-    return total, sec, tr.meta["rays_traced"] / mesh.num_vertices
+    m = tr.meta
+    return total, sec, (m["rays_traced"] + m.get("hit_rays_traced", 0) + m.get("hit_choice_rays", 0)) / mesh.num_vertices
 
 
 def rel(x, ref):
@@ -107,22 +109,24 @@ def main(argv=None):
     rows = []
     for sampling, estimator in METHODS:
         for N in args.samples:
-            e0, e1, ei, rays, secs = [], [], [], [], []
+            e0, e1, ei, rays, rays1, secs = [], [], [], [], [], []
             for s in range(args.seeds):
                 d, sec0, r = run(mesh, args.bands, N, s, sampling, estimator, 0)
-                t1, sec1, _ = run(mesh, args.bands, N, s, sampling, estimator, 1)
+                t1, sec1, r1 = run(mesh, args.bands, N, s, sampling, estimator, 1)
+                rays1.append(r1)
                 e0.append(rel(d, ref0))
                 e1.append(rel(t1, ref1))
                 ei.append(rel(t1 - d, ref_inter))
                 rays.append(r)
                 secs.append(sec0)
             row = {"sampling": sampling, "estimator": estimator, "samples": N, "rays_per_vertex": float(np.mean(rays)),
+                   "rays_per_vertex_bounce1": float(np.mean(rays1)),
                    "err_direct": float(np.mean(e0)), "err_bounce1_total": float(np.mean(e1)),
                    "err_bounce1_inter": float(np.mean(ei)), "seconds_direct": float(np.mean(secs))}
             rows.append(row)
             print(f"[bench] {sampling:8s} {estimator:8s} N={N:5d} rays/v={row['rays_per_vertex']:7.1f} "
                   f"direct {row['err_direct']:.4f} 1-bounce {row['err_bounce1_total']:.4f} "
-                  f"inter {row['err_bounce1_inter']:.4f}", flush=True)
+                  f"inter {row['err_bounce1_inter']:.4f} (rays/v {row['rays_per_vertex_bounce1']:.0f})", flush=True)
     load1 = os.getloadavg()[0]
     res = {"scene": f"{args.scene}:{args.size}", "albedo": args.albedo, "vertices": V, "bands": args.bands, "reference_samples": ref_n,
            "reference_seconds": t_ref, "reference_self_error": ref_self, "occluded_fraction_t00": occl,
@@ -144,8 +148,11 @@ def load_scenes(path: Path) -> dict:
 
 
 def by(rows, sampling, estimator, key):
+    """(rays per vertex, errors, N) of one method's rows; the one-bounce errors against every ray
+    of the one-bounce run (vertex, hit and probe rays) where the rows record them."""
     r = [x for x in rows if x["sampling"] == sampling and x["estimator"] == estimator]
-    return np.array([x["rays_per_vertex"] for x in r]), np.array([x[key] for x in r]), [x["samples"] for x in r]
+    xk = "rays_per_vertex_bounce1" if key != "err_direct" and all("rays_per_vertex_bounce1" in x for x in r) else "rays_per_vertex"
+    return np.array([x[xk] for x in r]), np.array([x[key] for x in r]), [x["samples"] for x in r]
 
 
 def write(scenes: dict, out: Path):
@@ -169,7 +176,7 @@ def write(scenes: dict, out: Path):
                     ax.loglog(x, y, {"control": "o-", "auto": "^-", "plain": "s--"}[estimator], label=f"{sampling} + {estimator}")
             x, y, _ = by(rows, *TODAY, key)
             ax.loglog(x, y[0] * np.sqrt(x[0] / x), "k:", lw=1, label="1/√N")
-            ax.set_xlabel("rays traced per vertex")
+            ax.set_xlabel("rays traced per vertex" + ("" if key == "err_direct" else " (vertex + hit + probe rays)"))
             ax.set_ylabel("relative RMS error vs reference")
             ax.set_title(f"{res['scene']}: {title}", fontsize=10)
             ax.grid(True, which="both", alpha=0.3)
@@ -233,16 +240,17 @@ def section(res) -> list[str]:
         f"{res['reference_self_error']:.1e}. {res['seeds']} seeds per row. CPU: {res['cpu']}; load average "
         f"before/after: {res['load'][0]:.1f} / {res['load'][1]:.1f}.",
         "",
-        "| sampling | estimator | N | rays / vertex | shadowed | ratio to today | 1 bounce: total | ratio "
+        "| sampling | estimator | N | rays / vertex | shadowed | ratio to today | rays / vertex, 1 bounce | 1 bounce: total | ratio "
         "| interreflected part | ratio | s (shadowed) |",
-        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     today = {x["samples"]: x for x in rows if (x["sampling"], x["estimator"]) == TODAY}
     for x in rows:
         t = today[x["samples"]]
+        rays1 = f"{x['rays_per_vertex_bounce1']:.0f}" if "rays_per_vertex_bounce1" in x else "–"
         lines.append(
             f"| {x['sampling']} | {x['estimator']} | {x['samples']} | {x['rays_per_vertex']:.0f} | {x['err_direct']:.4f} | "
-            f"{x['err_direct'] / t['err_direct']:.2f} | {x['err_bounce1_total']:.4f} | "
+            f"{x['err_direct'] / t['err_direct']:.2f} | {rays1} | {x['err_bounce1_total']:.4f} | "
             f"{x['err_bounce1_total'] / t['err_bounce1_total']:.2f} | {x['err_bounce1_inter']:.4f} | "
             f"{x['err_bounce1_inter'] / t['err_bounce1_inter']:.2f} | {x['seconds_direct']:.2f} |")
     h = headline(res)
