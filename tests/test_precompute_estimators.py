@@ -265,7 +265,8 @@ def test_hit_auto_unbiased_against_brute_force_where_both_branches_run():
         bary = np.full((8, 3), 1.0 / 3.0)
         ka, kb = np.arange(8) + 100, np.arange(8) * 5 + 1
         hbs = [HitBounce(mesh, 2, 16, s, 1, 1, estimator="auto") for s in range(40)]
-        assert all(hb.guided_faces(caster)[both].all() for hb in hbs)  # flat walls: every hit's rays guided
+        guided = np.stack([hb.guided_faces(caster)[both] for hb in hbs])  # [S, 8] per seed's own probe
+        assert guided[:, :4].mean() > 0.75 and not guided[:, 4:].any()  # the mostly blocked hits' rays guided, not the open
         runs = torch.stack([hb.values(caster, both, bary, ka, kb)[:, 0, 0] for hb in hbs])  # [S, 8, 4]
         ref = torch.stack([HitBounce(mesh, 2, 8192, 1000 + s, 1, 1, estimator="plain").values(caster, both, bary, ka, kb)[:, 0, 0]
                            for s in range(4)])
@@ -293,7 +294,7 @@ def test_guided_warp_is_unbiased_for_the_clamped_cosine_integral():
     direction leaves the face's side."""
     v, f = geodesic_sphere(2)
     mesh = make_mesh(v, f)
-    hb = HitBounce(mesh, 3, 8, 0, 1, 1, estimator="control")
+    hb = HitBounce(mesh, 3, 8, 0, 1, 1, estimator="auto")
     F, K = mesh.faces.shape[0], FACE_PROBE_RAYS
     rng = np.random.default_rng(5)
     opened = (rng.random((F, K)) < 0.3).astype(np.float64)
@@ -311,10 +312,10 @@ def test_guided_warp_is_unbiased_for_the_clamped_cosine_integral():
 
 
 @pytest.mark.parametrize("estimator", ["control", "auto"])
-def test_guided_hit_is_exact_where_its_hemisphere_is_open(estimator):
-    """A hit on a flat open plane (nothing above it): its face is guided, and the control variate
-    (chosen by 'auto' there, its face reads open) gives exactly the unshadowed transfer of the face's
-    hemisphere, whatever rays were drawn; the plain sum does not."""
+def test_hit_is_exact_where_its_hemisphere_is_open(estimator):
+    """A hit on a flat open plane (nothing above it): the control variate (chosen by 'auto' there,
+    its face reads open, so its rays are not guided) gives exactly the unshadowed transfer of the
+    face's hemisphere, whatever rays were drawn; the plain sum does not."""
     g = np.linspace(-1, 1, 9)
     X, Y = np.meshgrid(g, g)
     v = np.stack([X.ravel(), Y.ravel(), np.zeros(X.size)], 1)
@@ -326,7 +327,7 @@ def test_guided_hit_is_exact_where_its_hemisphere_is_open(estimator):
     ka, kb = np.arange(tri.shape[0]), 2 * np.arange(tri.shape[0]) + 1
     with RayCaster(mesh, workers=1) as caster:
         hb = HitBounce(mesh, 4, 8, 3, 1, 1, estimator=estimator)
-        assert hb.guided_faces(caster)[tri].all() and (hb.face_openness(caster) == 1).all()
+        assert not hb.guided_faces(caster).any() and (hb.face_openness(caster) == 1).all()
         x = hb.values(caster, tri, bary, ka, kb)[:, 0, 0]
         plain = HitBounce(mesh, 4, 8, 3, 1, 1, estimator="plain").values(caster, tri, bary, ka, kb)[:, 0, 0]
     _, fn, _ = face_points(mesh)

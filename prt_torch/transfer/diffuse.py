@@ -541,20 +541,21 @@ class HitBounce:
                 d = _malley_dirs(self.frames, f, a, b)
                 opened[s0:s0 + step] = 1.0 - caster.trace(o_f[f], d, "occluded").reshape(-1, K)
             self._face_open = opened.mean(1)
-            if self.mode != "plain":
+            if self.mode == "auto":
                 self._build_guide(opened)
         return self._face_open
 
     def _build_guide(self, opened: np.ndarray) -> None:
         """The hits' guide from the probe's ``opened [F, K]`` (1 where a cell's probe ray left the
         scene): per face the cell masses P ``[F, 4, 8]`` of a piecewise-constant density over
-        Malley's square, P = u/K + (1 − u) g/Σg with u = :data:`GUIDE_UNIFORM` and g the pooled
-        fraction of each cell the face's estimator samples — the open fraction where the hit takes
-        the plain sum, the blocked one where it takes the control variate — averaged over the
-        coplanar faces (normals within 2.6°, centroids within 1e-3 of the diagonal of the plane)
-        among the :data:`GUIDE_POOL` nearest centroids. Faces with fewer than
-        :data:`GUIDE_MIN_FACES` such faces (curved regions, where a cell's directions differ from
-        face to face) are not guided (``self.guided[f]`` False: the cosine-weighted set as before)."""
+        Malley's square, P = u/K + (1 − u) g/Σg with u = :data:`GUIDE_UNIFORM` and g each cell's
+        open fraction averaged over the coplanar faces (normals within 2.6°, centroids within 1e-3
+        of the diagonal of the plane) among the :data:`GUIDE_POOL` nearest centroids (uniform where
+        no probe ray left). Guided (``self.guided[f]``): the faces where 'auto' takes the plain sum
+        (open fraction < ½: the open cells are what it sums) with at least :data:`GUIDE_MIN_FACES`
+        such coplanar faces; not the curved regions (a cell's directions differ from face to face)
+        nor the faces where it takes the control variate (guided weights q up to 1/u could take its
+        estimate below 0, where the cosine set's never is), which keep the cosine-weighted set."""
         from scipy.spatial import cKDTree
 
         F, K = opened.shape
@@ -567,12 +568,10 @@ class HitBounce:
             (np.abs(np.einsum("ij,ikj->ik", n, c[nb] - c[:, None, :])) <= 1e-3 * diag)
         cnt = same.sum(1)
         g = np.einsum("ik,ikc->ic", same.astype(np.float64), opened[nb]) / np.maximum(cnt, 1)[:, None]  # [F, K]
-        open_f = self._face_open >= 0.5 if self.mode == "auto" else np.ones(F, bool)
-        g = np.where(open_f[:, None], 1.0 - g, g)  # the part each face's estimator samples
         tot = g.sum(1, keepdims=True)
         g = np.where(tot > 0, g / np.maximum(tot, 1e-300), 1.0 / K)
         P = (GUIDE_UNIFORM / K + (1.0 - GUIDE_UNIFORM) * g).reshape(F, *GUIDE_GRID)
-        self.guided = cnt >= GUIDE_MIN_FACES
+        self.guided = (cnt >= GUIDE_MIN_FACES) & (self._face_open < 0.5)
         self.guide_mass = P  # [F, Ga, Gb], each face's sums to 1
         Pa = P.sum(2)  # [F, Ga] ring masses
         self._guide_cdf = (np.cumsum(Pa, 1), np.cumsum(P / Pa[:, :, None], 2))
@@ -581,7 +580,7 @@ class HitBounce:
         """Warp rotated points (``ua, ub`` float64 ``[R]`` in [0,1)², face ``tri [R]``) by the face's
         guide (:meth:`_build_guide`): the ring by the inverse of its marginal CDF, the sector by
         the conditional one, each linearly inside its cell (a monotone map per coordinate, so the
-        set's stratification carries over). Returns (directions float64 ``[R, 3]`` by Malley's map,
+        set's stratification carries over). Returns (directions float32 ``[R, 3]`` by Malley's map,
         q float64 ``[R]`` = 1/(K P_cell), the ratio of the cosine density to the guided one: the ray's
         weight factor, so that (1/M) Σ q f is unbiased for (1/π) ∫ f cos, as Σ f/M is under the
         cosine set)."""
@@ -628,9 +627,10 @@ class HitBounce:
               level: int, intersect: bool):
         """The M = :meth:`samples_at` (level) cosine-weighted rays of each hit (class docstring), traced:
         the Hammersley set Cranley–Patterson rotated per hit, in the hit face's frame, from the compiled
-        ray generator (:func:`_rotated_rays`); at the deepest level (``level == terms − 1``: rays not
-        followed further) of a guided face (estimators 'control' and 'auto', :meth:`_build_guide`) the
-        same rotated points warped by the face's guide (:meth:`_guided_rays`). Returns (directions
+        ray generator (:func:`_rotated_rays`); at the first hit on a guided face (estimator 'auto',
+        :meth:`_build_guide`) the same rotated points warped by the face's guide (:meth:`_guided_rays`;
+        the same at every ``terms``, so a run with more bounces adds terms to the same first-hit
+        estimate). Returns (directions
         float32 ``[H·M, 3]``, ray h·M + m of hit h; blocked ``bool [H·M]``; for ``intersect`` the
         Embree (prim, u, v) of each ray, else None; q float64 ``[H·M]``, each ray's weight factor,
         or None where no ray is guided: every factor 1)."""
@@ -654,7 +654,7 @@ class HitBounce:
         o, d, _ = _rotated_rays(self.frames[tri], o_h, u1, np.cos(u2), np.sin(u2), tables, True)
         self.rays_traced += o.shape[0]
         w = None
-        if self.mode != "plain" and level == self.terms - 1:
+        if self.mode == "auto" and level == 0:
             g = np.flatnonzero(self.guided_faces(caster)[tri])  # [G] the guided hits
             if g.size:
                 r = (g[:, None] * M + np.arange(M)).reshape(-1)  # their rays
@@ -669,9 +669,9 @@ class HitBounce:
         return d, caster.trace(o, d, "occluded"), None, w
 
     def guided_faces(self, caster: RayCaster) -> np.ndarray:
-        """``[F]`` bool: the faces whose deepest hits are guided (:meth:`_build_guide`; none under
-        'plain'), probing first if needed."""
-        if self.mode == "plain":
+        """``[F]`` bool: the faces whose first hits' rays are guided (:meth:`_build_guide`; none but
+        under 'auto'), probing first if needed."""
+        if self.mode != "auto":
             return np.zeros(self.face_normals_np.shape[0], bool)
         self.face_openness(caster)
         return self.guided
@@ -685,7 +685,8 @@ class HitBounce:
 
     def _front_hits(self, d: np.ndarray, hit: np.ndarray, isect, key_a: np.ndarray, key_b: np.ndarray, M: int):
         """The rays of :meth:`_rays` that meet the front of a triangle, as the next level's hits:
-        (their hit's row ``[R]``, triangles ``[R]``, barycentrics float64 ``[R, 3]``, key_a, key_b)."""
+        (their hit's row ``[R]``, triangles ``[R]``, barycentrics float64 ``[R, 3]``, key_a, key_b, and
+        their ray index ``[R]`` into the level's rays)."""
         prim, bu, bv = isect
         hh = np.flatnonzero(hit)
         t2 = prim[hh].astype(np.int64)
@@ -694,7 +695,7 @@ class HitBounce:
         row = hh // M
         bary2 = np.stack([1 - bu[hh] - bv[hh], bu[hh], bv[hh]], 1).astype(np.float64)
         kb2 = key_b[row].astype(np.uint64) * np.uint64(64) + (hh % M).astype(np.uint64)
-        return row, t2, bary2, key_a[row], kb2
+        return row, t2, bary2, key_a[row], kb2, hh
 
     def values(self, caster: RayCaster, tri: np.ndarray, bary: np.ndarray, key_a: np.ndarray, key_b: np.ndarray,
                level: int = 0) -> torch.Tensor:
@@ -729,9 +730,11 @@ class HitBounce:
                 x0 = self._face_unshadowed[torch.from_numpy(tri)] - x0
         out[:, 0] = x0[:, None, :]
         if depth > 1:
-            row, t2, bary2, ka2, kb2 = self._front_hits(d, hit, isect, key_a, key_b, M)
+            row, t2, bary2, ka2, kb2, hh = self._front_hits(d, hit, isect, key_a, key_b, M)
             x2 = self.values(caster, t2, bary2, ka2, kb2, level + 1)  # [R, depth-1, C, n²]
             w2 = self.albedo_at(t2, bary2)[:, None, :, None] / M
+            if w is not None:  # guided rays: their weight factors (_guided_rays)
+                w2 = w2 * torch.from_numpy(w[hh])[:, None, None, None]
             out[:, 1:] = torch.zeros(H, depth - 1, self.C, n2, dtype=torch.float64).index_add_(
                 0, torch.from_numpy(row), w2 * x2)
         return out
@@ -755,9 +758,11 @@ class HitBounce:
         w0 = np.full((op.shape[0], self.C), 1.0 / M) if q is None else np.repeat(q[op, None] / M, self.C, 1)
         rows, texels, w = [op // M], [texel_of(d[op].astype(np.float64))], [w0]
         if depth > 1:
-            row, t2, bary2, ka2, kb2 = self._front_hits(d, hit, isect, key_a, key_b, M)
+            row, t2, bary2, ka2, kb2, hh = self._front_hits(d, hit, isect, key_a, key_b, M)
             r2, tx2, w2 = self.texel_values(caster, t2, bary2, ka2, kb2, texel_of, level + 1)
             rho = self.albedo_at(t2, bary2).numpy()  # [R2, C]
+            if q is not None:
+                rho = rho * q[hh, None]
             rows.append(row[r2])
             texels.append(tx2)
             w.append(w2 * rho[r2] / M)
