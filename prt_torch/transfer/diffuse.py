@@ -1153,7 +1153,7 @@ def _hit_tables(caster: RayCaster, mesh: Mesh, bands: int, samples: int, seed: i
     needs no table: every bounce is estimated at its own hit point)."""
     hb = HitBounce(mesh, bands, hit_samples, seed, bounces, 1 if mesh.is_grey() else 3, hit_offset, estimator)
     meta.update(hit_samples=hit_samples, hit_offset=hit_offset, hit_eps=hb.hit_eps)
-    if hb.mode != "plain":  # auto's per-face choice and the hits' guide, traced once here (they travel with the estimator)
+    if hb.mode == "auto":  # auto's per-face choice and the hits' guide, traced once here (they travel with the estimator)
         hb.face_openness(caster)
         meta["hit_choice_rays"] = int(hb.face_normals_np.shape[0]) * FACE_PROBE_RAYS
         meta["hit_guide"] = {"grid": list(GUIDE_GRID), "pool": GUIDE_POOL, "min_faces": GUIDE_MIN_FACES,
@@ -1198,7 +1198,7 @@ def _trace_direct(caster: RayCaster, mesh: Mesh, bands: int, samples: int, seed:
         fingerprint["hit_columns"] = hit_columns
     if hits is not None:
         fingerprint.update(hit_samples=hits.M, hit_terms=hits.terms, hit_offset=hits.hit_offset)
-        if hits.mode != "plain":  # the guided hits (issue 42): chunks of an earlier estimate do not mix in
+        if hits.mode == "auto":  # the guided hits (issue 42): chunks of an earlier estimate do not mix in
             fingerprint["hit_guide"] = [*GUIDE_GRID, GUIDE_POOL, GUIDE_MIN_FACES, GUIDE_UNIFORM]
     if record_hits and hits is None:
         parts = run.run_chunks(V, chunk_size, compute, fingerprint=fingerprint, desc=f"diffuse {mesh.name}",
