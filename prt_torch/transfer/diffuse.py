@@ -561,13 +561,20 @@ class HitBounce:
         F, K = opened.shape
         c, n = self.face_centroids, self.face_normals_np
         pool = min(GUIDE_POOL, F)
-        _, nb = cKDTree(c).query(c, pool)
-        nb = nb.reshape(F, pool)
+        tree = cKDTree(c)
         diag = float(np.linalg.norm(c.max(0) - c.min(0))) if F else 0.0
-        same = (np.einsum("ij,ikj->ik", n, n[nb]) > 0.999) & \
-            (np.abs(np.einsum("ij,ikj->ik", n, c[nb] - c[:, None, :])) <= 1e-3 * diag)
+        nb = np.empty((F, pool), np.int64)
+        same = np.empty((F, pool), bool)
+        step = 1 << 16
+        for s0 in range(0, F, step):  # face blocks: the [block, pool, 3] gathers stay small at millions of faces
+            sl = slice(s0, s0 + step)
+            nb[sl] = tree.query(c[sl], pool)[1].reshape(-1, pool)
+            same[sl] = (np.einsum("ij,ikj->ik", n[sl], n[nb[sl]]) > 0.999) & \
+                (np.abs(np.einsum("ij,ikj->ik", n[sl], c[nb[sl]] - c[sl, None, :])) <= 1e-3 * diag)
         cnt = same.sum(1)
-        g = np.einsum("ik,ikc->ic", same.astype(np.float64), opened[nb]) / np.maximum(cnt, 1)[:, None]  # [F, K]
+        pool_m = scipy.sparse.csr_matrix((same.reshape(-1).astype(np.float64), nb.reshape(-1), np.arange(0, F * pool + 1, pool)),
+                                         shape=(F, F))  # row f: its coplanar neighbours (sums of 0/1: exact in any order)
+        g = (pool_m @ opened) / np.maximum(cnt, 1)[:, None]  # [F, K] pooled open fraction per cell
         tot = g.sum(1, keepdims=True)
         g = np.where(tot > 0, g / np.maximum(tot, 1e-300), 1.0 / K)
         P = (GUIDE_UNIFORM / K + (1.0 - GUIDE_UNIFORM) * g).reshape(F, *GUIDE_GRID)
