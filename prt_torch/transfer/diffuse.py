@@ -484,7 +484,13 @@ class HitBounce:
     rotations): a choice independent of the hit's own rays, so each hit's estimate stays unbiased
     (a choice read from its M = 8 rays would correlate with their set's error). In an enclosure
     (a Cornell box) 'control' at every hit had 1.8× the interreflected part's error of 'plain'
-    (reports/benchmarks/precompute_error.md).
+    (reports/benchmarks/precompute_error.md). Under 'auto' the first hits on flat, mostly blocked
+    faces draw their rays from a density guided by the same probe (:meth:`_build_guide`: the
+    cells' open fractions pooled over coplanar neighbours, a defensive mixture with the cosine
+    density), each ray weighted by q = cosine density / guided density (:meth:`_guided_rays`):
+    x⁰(q) = (1/M) Σ_m q_m V(q,s_m) y(s_m), unbiased, with the rays where the face's hemisphere is
+    open (Cornell box, one bounce: the interreflected part's error 0.064 → 0.045, the total's
+    0.0287 → 0.0250 at 1.6% more rays; benchmarks/bench_bounce_parts.py).
     """
 
     def __init__(self, mesh: Mesh, bands: int, hit_samples: int, seed: int, terms: int, channels: int,
