@@ -583,10 +583,13 @@ class HitBounce:
         g = (pool_m @ opened) / np.maximum(cnt, 1)[:, None]  # [F, K] pooled open fraction per cell
         tot = g.sum(1, keepdims=True)
         g = np.where(tot > 0, g / np.maximum(tot, 1e-300), 1.0 / K)
-        P = (GUIDE_UNIFORM / K + (1.0 - GUIDE_UNIFORM) * g).reshape(F, *GUIDE_GRID)
         self.guided = (cnt >= GUIDE_MIN_FACES) & (self._face_open < 0.5)
-        self.guide_mass = P  # [F, Ga, Gb], each face's sums to 1
-        Pa = P.sum(2)  # [F, Ga] ring masses
+        gf = np.flatnonzero(self.guided)
+        self._guide_row = np.full(F, -1, np.int64)
+        self._guide_row[gf] = np.arange(gf.size)  # the guided faces' rows: kept for them only (544 B each)
+        P = (GUIDE_UNIFORM / K + (1.0 - GUIDE_UNIFORM) * g[gf]).reshape(gf.size, *GUIDE_GRID)
+        self.guide_mass = P  # [G, Ga, Gb] of the guided faces, each sums to 1
+        Pa = P.sum(2)  # [G, Ga] ring masses
         self._guide_cdf = (np.cumsum(Pa, 1), np.cumsum(P / Pa[:, :, None], 2))
 
     def _guided_rays(self, tri: np.ndarray, ua: np.ndarray, ub: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -599,18 +602,21 @@ class HitBounce:
         cosine set)."""
         Ga, Gb = GUIDE_GRID
         cA, cB = self._guide_cdf
+        gr = self._guide_row[tri]  # [R] the faces' guide rows (guided faces only)
+        if (gr < 0).any():
+            raise ValueError(f"_guided_rays: faces {np.unique(tri[gr < 0])[:5]} are not guided; accepted: faces with guided True")
         R = np.arange(tri.shape[0])
-        rows = cA[tri]  # [R, Ga]
+        rows = cA[gr]  # [R, Ga]
         ia = np.minimum((rows[:, :-1] <= ua[:, None]).sum(1), Ga - 1)
         lo = np.where(ia > 0, rows[R, np.maximum(ia - 1, 0)], 0.0)
         pa = rows[R, ia] - lo
         a = (ia + np.clip((ua - lo) / pa, 0.0, 1.0 - 1e-12)) / Ga
-        cols = cB[tri, ia]  # [R, Gb]
+        cols = cB[gr, ia]  # [R, Gb]
         ib = np.minimum((cols[:, :-1] <= ub[:, None]).sum(1), Gb - 1)
         lob = np.where(ib > 0, cols[R, np.maximum(ib - 1, 0)], 0.0)
         pb = cols[R, ib] - lob
         b = (ib + np.clip((ub - lob) / pb, 0.0, 1.0 - 1e-12)) / Gb
-        return _malley_dirs(self.frames, tri, a, b), 1.0 / (Ga * Gb * self.guide_mass[tri, ia, ib])
+        return _malley_dirs(self.frames, tri, a, b), 1.0 / (Ga * Gb * self.guide_mass[gr, ia, ib])
 
     def samples_at(self, level: int) -> int:
         """Rays per hit at recursion ``level`` (0 = the first hit)."""
