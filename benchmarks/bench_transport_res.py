@@ -12,6 +12,14 @@ what ``prt compress --codec gaussian --param lobes=N`` runs) and its relative L2
 60–80° and 80–90° from the vertex normal, with each band's share of Σ T² Δω; the fit's fraction of
 lobes at the narrowest resolvable width and whether it warned. One JSON line per fit on stdout
 (docs/precompute.md, "Transport tables: res: auto", has the tables of a run).
+
+Two further figures, clearly secondary to the plain relative L2 (the headline): ``rel_l2_cos``, the
+same error with each function weighted by its view's projected area cos θ_o (what a view's pixels
+see of the vertex), and ``relight_const``, the relative RMS difference over the functions between
+the encoding's relighting under a constant unit light (Σ_k w_k: the lobes' SG integrals, what
+``relight`` computes) and the table's own (Σ_p T Δω). ``--resolve-factor F [F ...]`` fits with the
+codec's narrowest width at F texel spacings (``codecs.gaussian.fit.RESOLVE_FACTOR``; default: the
+codec's), one row each, in the same run (issue 42 §2: 0.6 before, 0.35 after).
 """
 from __future__ import annotations
 
@@ -46,7 +54,12 @@ def main(argv=None) -> int:
     ap.add_argument("--vertices", type=int, default=150)
     ap.add_argument("--spread", action="store_true", help="tabulate the whole mesh and fit vertices spread over it")
     ap.add_argument("--brdf", choices=["default", "phong12"], default="default")
+    ap.add_argument("--resolve-factor", type=float, nargs="+", default=[None],
+                    help="the fit's narrowest lobe in texel spacings (default: the codec's RESOLVE_FACTOR)")
     args = ap.parse_args(argv)
+    from prt_torch.codecs.gaussian import fit as gfit
+
+    default_rf = gfit.RESOLVE_FACTOR
     mesh = builtin(args.scene)
     brdf = B.Phong(12.0, ks=0.7, kd=0.3) if args.brdf == "phong12" else None
     tmp = Path(tempfile.mkdtemp(prefix="bench_transport_res_"))
@@ -65,24 +78,32 @@ def main(argv=None) -> int:
             th = torch.rad2deg(torch.arccos((mesh.normals[idx].double() @ t.views.double().T).clamp(-1, 1)))  # [V, J]
             Td = X.reshape(V, J, -1).double()
             ref = (Td.square() * sa).sum(-1)
-            for n in args.lobes:
+            cos_o = (mesh.normals[idx].double() @ t.views.double().T).clamp_min(0)  # [V, J] projected area of each view
+            integ = (Td * sa).sum(-1)  # [V, J] the table's relighting under a constant unit light
+            for rf, n in [(rf, n) for rf in args.resolve_factor for n in args.lobes]:
+                gfit.RESOLVE_FACTOR = default_rf if rf is None else rf
                 c = codecs.get("gaussian", lobes=n)
-                t0 = time.perf_counter()
+                t0, c0 = time.perf_counter(), time.process_time()
                 with warnings.catch_warnings(record=True) as w:
                     warnings.simplefilter("always")
                     enc = c.fit_encode(X, matrix_shape=(J, X.shape[1] // J), views=t.views, faces=None, kind="transport")
-                secs = time.perf_counter() - t0
+                secs, cpu = time.perf_counter() - t0, time.process_time() - c0
                 err = ((torch.as_tensor(c.decode(enc)).reshape(V, J, -1).double() - Td).square() * sa).sum(-1)
+                lit = c.lobes_of(enc)[0].double().sum(-1)  # [V, J] Σ_k w_k
                 row = {"scene": args.scene, "brdf": args.brdf, "res": r, "vertices": V, "spread": args.spread, "lobes": n,
-                       "fit_s": round(secs, 1), "rel_l2_all": round(float(c.fit_info_["relative_l2"]), 4),
+                       "resolve_factor": gfit.RESOLVE_FACTOR, "lm_loop": c.fit_info_.get("lm_loop"),
+                       "fit_s": round(secs, 1), "fit_cpu_s": round(cpu, 1), "rel_l2_all": round(float(c.fit_info_["relative_l2"]), 4),
                        "at_limit": round(float(c.fit_info_["lobes_at_resolution_limit"]), 3),
-                       "warns": any("narrowest" in str(x.message) for x in w), "load": os.getloadavg()[0]}
+                       "warns": any("narrowest" in str(x.message) for x in w), "load": os.getloadavg()[0],
+                       "rel_l2_cos": round(float(((err * cos_o).sum() / (ref * cos_o).sum()).sqrt()), 4),
+                       "relight_const": round(float(((lit - integ).square().sum() / integ.square().sum().clamp_min(1e-300)).sqrt()), 4)}
                 for lo, hi in BANDS:
                     m = (th >= lo) & (th < hi)
                     row[f"rel_l2_{lo}_{hi}"] = round(float((err[m].sum() / ref[m].sum().clamp_min(1e-300)).sqrt()), 4)
                     row[f"energy_{lo}_{hi}"] = round(float(ref[m].sum() / ref.sum()), 3)
                 print(json.dumps(row), flush=True)
             shutil.rmtree(out, ignore_errors=True)
+        gfit.RESOLVE_FACTOR = default_rf
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return 0

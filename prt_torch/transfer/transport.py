@@ -100,7 +100,7 @@ AUTO_MIN_RES, AUTO_MAX_RES = 8, 32
 def texel_spacing(res: int) -> float:
     """h(r) = √(largest texel solid angle) of a 6×r×r cube map (≈ 2/r rad, at a face centre): the
     spacing the Gaussian fit's narrowest lobe is measured in (``codecs.gaussian.resolvable_sigma``
-    = 0.6 h)."""
+    = 0.35 h)."""
     return math.sqrt(float(cube_directions(res)[1].max()))
 
 
@@ -137,7 +137,7 @@ def choose_cube_res(brdf: BRDF | None, texels: float = AUTO_TEXELS_PER_LOBE, min
     narrowest lobe of ``brdf`` (:func:`lobe_width`, σ) spans ``texels`` texel spacings over ±σ,
     2σ ≥ texels · h(r) (:func:`texel_spacing`) — Green 2005 §2.2.1 tabulates direct glossy
     transport on finer cube maps than the 6×8×8 of smooth indirect terms for this reason, and the
-    Gaussian fit cannot place a lobe narrower than 0.6 h. Returns (r, decision) with the decision
+    Gaussian fit cannot place a lobe narrower than 0.35 h. Returns (r, decision) with the decision
     ``{'value', 'lobe_sigma', 'texel_spacing', 'texels_per_lobe', 'reason'}`` (what the manifest's
     ``auto.res`` records); ``max_res`` with the reason when even that is short."""
     texels = float(texels)
