@@ -161,9 +161,10 @@ def choose_cube_res(brdf: BRDF | None, texels: float = AUTO_TEXELS_PER_LOBE, min
     return r, {"value": r, "lobe_sigma": sigma, "texel_spacing": h, "texels_per_lobe": 2 * sigma / h, "reason": reason}
 
 
-#: texel averages (issue 42 §2): sub-samples per texel side where a view's lobe is narrower than the
-#: texels (``supersample='auto'``); 4 × 4 against 8 × 8: docs/precompute.md
-AUTO_SUPERSAMPLE = 4
+#: texel averages (issue 42 §2), ``supersample='auto'``: sub-texels per texel side where a view's lobe
+#: is narrower than the texels, chosen per view so that the sub-texel spacing h/S resolves the lobe
+#: across the plane of incidence (2σ cos θ_o ≥ AUTO_TEXELS_PER_LOBE · h/S), from 2 up to this many
+AUTO_SUPERSAMPLE = 8
 #: the cap about the mirror direction averaged: the lobe's in-plane σ times this, plus 0.75 texel
 #: spacings (a half-vector lobe at 3σ is (cos 3σ_h)^N ≈ e^−4.5 of its peak)
 SUPERSAMPLE_CAP_SIGMAS = 3.0
@@ -172,7 +173,7 @@ SUPERSAMPLE_CAP_SIGMAS = 3.0
 def supersample_plan(brdf: BRDF | None, res: int, supersample: int | str = "auto") -> dict[str, Any] | None:
     """Where a table of ``brdf`` at face resolution ``res`` holds texel averages instead of point
     values (issue 42 §2): ``None`` (point values everywhere: no lobe, ``supersample`` 1, or a lobe
-    the texel centres resolve at every view), else ``{'sub', 'cos_view', 'cos_cap', 'reason'}``.
+    the texel centres resolve at every view), else ``{'sub', 'adaptive', 'cos_view', 'cos_cap', 'reason'}``.
 
     A point value of a lobe narrower than the texel spacing is aliased: the texel centres hit or miss
     it, and Σ_p T Δω (what relighting from the table computes, Green 2005 eq. 1.1) no longer
@@ -180,11 +181,14 @@ def supersample_plan(brdf: BRDF | None, res: int, supersample: int | str = "auto
     of incidence by cos θ_o (:func:`lobe_width`), so beyond the view angle where its 2σ cos θ_o spans
     fewer than :data:`AUTO_TEXELS_PER_LOBE` texel spacings h(r) — local view z < ``cos_view`` =
     AUTO_TEXELS_PER_LOBE · h / (2σ) — each texel within the lobe's cap about the mirror direction
-    (angle < 3σ + 0.75 h: ``cos_cap``) gets the average of f_r max(n·ω, 0) over ``sub`` × ``sub``
-    sub-texels (weighted by their exact solid angles) times the texel's visibility. A lobe about
+    (angle < 3σ + 0.75 h: ``cos_cap``) gets the average of f_r max(n·ω, 0) over S × S sub-texels
+    (weighted by their exact solid angles) times the texel's visibility: S = ``supersample``, or with
+    'auto' (``adaptive``) per view the smallest S in [2, :data:`AUTO_SUPERSAMPLE`] at which the
+    sub-texels resolve the lobe, S ≥ cos_view / cos θ_o (:func:`view_sub`). A lobe about
     the reflected view (Phong) has the same width at every view: averaged at all views when r does
     not resolve it (a ``--cube-res`` below ``res: auto``'s), else not at all."""
-    if isinstance(supersample, str) and supersample == "auto":
+    adaptive = isinstance(supersample, str) and supersample == "auto"
+    if adaptive:
         sub = AUTO_SUPERSAMPLE
     elif isinstance(supersample, bool) or not isinstance(supersample, int):
         raise ValueError(f"supersample={supersample!r}; accepted: 'auto' or an integer in [1, 8] (1: point values)")
@@ -203,10 +207,27 @@ def supersample_plan(brdf: BRDF | None, res: int, supersample: int | str = "auto
     c_view = min(c_view, 1.0 + 1e-9)
     rho = min(math.pi, SUPERSAMPLE_CAP_SIGMAS * sigma + 0.75 * h)
     deg = math.degrees(math.acos(min(1.0, c_view)))
-    return {"sub": sub, "cos_view": c_view, "cos_cap": math.cos(rho),
-            "reason": f"texel averages over {sub}x{sub} sub-texels for views more than {deg:.1f} deg from the normal (the lobe's "
+    how = f"2x2 to {sub}x{sub} sub-texels (per view, as the lobe narrows)" if adaptive else f"{sub}x{sub} sub-texels"
+    return {"sub": sub, "adaptive": adaptive, "cos_view": c_view, "cos_cap": math.cos(rho),
+            "reason": f"texel averages over {how} for views more than {deg:.1f} deg from the normal (the lobe's "
                       f"2 sigma cos(theta_o) spans < {AUTO_TEXELS_PER_LOBE:g} texel spacings there; sigma = {sigma:.3f} rad, "
                       f"h = {h:.3f} rad) on texels within {math.degrees(rho):.0f} deg of the mirror direction; point values elsewhere"}
+
+
+def sub_texel_sets(res: int, plan: dict[str, Any]) -> dict[int, tuple[torch.Tensor, torch.Tensor]]:
+    """{S: :func:`_sub_texels` (res, S)} for every S the ``plan`` may use (2 … sub when adaptive)."""
+    sizes = range(2, int(plan["sub"]) + 1) if plan.get("adaptive") else [int(plan["sub"])]
+    return {S: _sub_texels(res, S) for S in sizes}
+
+
+def view_sub(plan: dict[str, Any], cos_o: torch.Tensor) -> torch.Tensor:
+    """Sub-texels per side for views at ``cos_o`` (local z, any shape) under ``plan``
+    (:func:`supersample_plan`): its ``sub``, or when ``adaptive`` ⌈cos_view / cos θ_o⌉ in [2, sub]
+    (int64)."""
+    if not plan.get("adaptive"):
+        return torch.full(cos_o.shape, int(plan["sub"]), dtype=torch.long)
+    s = torch.ceil(plan["cos_view"] / cos_o.clamp_min(1e-6)).clamp(2, int(plan["sub"]))
+    return s.long()
 
 
 def _sub_texels(res: int, sub: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -239,8 +260,8 @@ def _chunk_transport(caster, brdf, points, normals, frames, texels, views, mat_i
     rows, so every temporary is block-sized. ``out``: a buffer of at least ``k·J·P`` elements of
     ``dtype`` to write into (zeroed here; the chunk loop reuses one), else a new one.
 
-    ``plan`` (:func:`supersample_plan`) with ``sub_texels`` (:func:`_sub_texels`: ``[P, S², 3]``
-    directions and ``[P, S²]`` solid-angle shares): the pairs of a view beyond ``cos_view`` and a
+    ``plan`` (:func:`supersample_plan`) with ``sub_texels`` ({S: :func:`_sub_texels`: ``[P, S², 3]``
+    directions and ``[P, S²]`` solid-angle shares} for every S the plan uses): the pairs of a view beyond ``cos_view`` and a
     texel within the cap about its mirror direction hold V_p Σ_s a_s f_r(ω_s, ω_o) max(n·ω_s, 0),
     the texel average (V_p: one ray per texel, toward its centre, or toward its highest sub-texel
     when the centre is below the horizon and a sub-texel is not)."""
@@ -248,7 +269,7 @@ def _chunk_transport(caster, brdf, points, normals, frames, texels, views, mat_i
     W = cos.clamp_min(0)
     vis_any = None
     if plan is not None:
-        sd = sub_texels[0]
+        sd = sub_texels[max(sub_texels)][0]  # the finest sub-texels decide the straddling texels
         cmax, amax = torch.einsum("kc,psc->kps", normals, sd).max(-1)  # [k, P]: the highest sub-texel
         vis_any = cmax > 0  # some sub-texel above the horizon (visibility below)
     if shadows:
@@ -294,8 +315,7 @@ def _chunk_transport(caster, brdf, points, normals, frames, texels, views, mat_i
 def _average_texels(T, brdf, frames, normals, wo, vis_any, views, mat_index, plan, sub_texels, texels, dtype) -> None:
     """Overwrite the pairs ``plan`` averages (:func:`_chunk_transport`) in ``T [k, J·P]`` with their
     texel averages, in blocks of about :data:`PAIR_BLOCK` (pair, sub-texel) evaluations."""
-    sd, sw = sub_texels
-    P, S2 = sw.shape
+    P = T.shape[1] // wo.shape[1]
     mirror = 2 * (normals @ views.T)[..., None] * normals[:, None, :] - views[None]  # [k, J, 3] world mirror directions
     graze = (wo[:, :, 2] > 0) & (wo[:, :, 2] < plan["cos_view"])  # [k, J]
     iv, jv = torch.nonzero(graze, as_tuple=True)
@@ -304,13 +324,19 @@ def _average_texels(T, brdf, frames, normals, wo, vis_any, views, mat_index, pla
     near = (mirror[iv, jv] @ texels.T > plan["cos_cap"]) & vis_any[iv]  # [n, P]
     q, pv = torch.nonzero(near, as_tuple=True)
     iv, jv = iv[q], jv[q]
-    step = max(1, PAIR_BLOCK // S2)
-    for a in range(0, iv.numel(), step):  # blocks of pairs (block-sized temporaries), not a loop per pair
-        i, j, p = iv[a:a + step], jv[a:a + step], pv[a:a + step]
-        wi = torch.einsum("nab,nsb->nsa", frames[i], sd[p])  # [n, S², 3] local sub-texel directions
-        b = brdf if mat_index is None else brdf.select(mat_index[i].repeat_interleave(S2))
-        f = b.eval(wi.reshape(-1, 3), wo[i, j].repeat_interleave(S2, 0)).view(-1, S2)
-        T[i, j * P + p] = (f * wi[..., 2].clamp_min(0) * sw[p]).sum(1).to(dtype)
+    subs = view_sub(plan, wo[iv, jv, 2])
+    for S in subs.unique().tolist():  # one pass per sub-texel count (at most 7), not per view
+        sd, sw = sub_texels[S]
+        S2 = S * S
+        m = subs == S
+        ivs, jvs, pvs = iv[m], jv[m], pv[m]
+        step = max(1, PAIR_BLOCK // S2)
+        for a in range(0, ivs.numel(), step):  # blocks of pairs (block-sized temporaries), not a loop per pair
+            i, j, p = ivs[a:a + step], jvs[a:a + step], pvs[a:a + step]
+            wi = torch.einsum("nab,nsb->nsa", frames[i], sd[p])  # [n, S², 3] local sub-texel directions
+            b = brdf if mat_index is None else brdf.select(mat_index[i].repeat_interleave(S2))
+            f = b.eval(wi.reshape(-1, 3), wo[i, j].repeat_interleave(S2, 0)).view(-1, S2)
+            T[i, j * P + p] = (f * wi[..., 2].clamp_min(0) * sw[p]).sum(1).to(dtype)
 
 
 
@@ -359,8 +385,9 @@ def precompute_transport(
             the choice and its reason in ``manifest['auto']['res']``).
         supersample: sub-texels per texel side of the texel averages stored where the BRDF's lobe
             is narrower than the texels (:func:`supersample_plan`: grazing views of a half-vector
-            lobe, near its mirror direction), 'auto' (default: 4) or 1 (point values everywhere,
-            the tables before issue 42 §2); the plan and its reason in ``manifest['supersample']``.
+            lobe, near its mirror direction), 'auto' (default), an integer S in [1, 8] or 1 (point values everywhere,
+            the tables before issue 42 §2); 'auto': 2 to 8 per view as the lobe narrows; the plan and
+            its reason in ``manifest['supersample']``.
         dtype: stored precision, 'float32' or 'float16'.
         overwrite: remove an existing ``out`` first. Otherwise an existing ``out`` is refused
             unless ``run.resume`` (keep the chunk files already there, same fingerprint, and
@@ -449,7 +476,7 @@ def precompute_transport(
     io.save(out / "mesh.prt", mesh.to_tensors("mesh."), kind="scene/mesh", meta={"mesh_name": mesh.name})
     caster = RayCaster(mesh, workers=run.workers, offset=offset) if shadows else None
     texels_flat = texels.reshape(-1, 3)
-    subs = None if plan is None else _sub_texels(res, plan["sub"])
+    subs = None if plan is None else sub_texel_sets(res, plan)
     store = torch.float32 if dtype == "float32" else torch.float16
     bar = None
     if run.progress:
