@@ -78,6 +78,12 @@ RESOLVE_FACTOR = 0.35
 #: relative L2 0.12302 vs 0.12297, 0.11378 vs 0.11372; SE +0.1%; median and p90 unchanged to 4 digits)
 #: for 27-28% less CPU time (benchmarks/profile_gaussian_part.py, docs/harness.md)
 RESTART_ABOVE = 0.2
+#: a starting lobe (peaks and moments, and the restart's) is no narrower than this many texel spacings,
+#: the former width bound: the fit may then narrow it to resolvable_sigma. Started at 0.35 instead, 2 lobes
+#: on Phong s = 12 tables (the default benchmark's part: 600 vertices × 42 views, 6×8×8) end at relative L2
+#: 0.1260 against 0.1230 with the former bound; started at 0.6, 0.1244 (and 0.1507 instead of 0.1484 at
+#: 3 lobes on the default Ashikhmin–Shirley tables, r = 13 texel averages)
+START_FACTOR = 0.6
 
 
 def mixture(dirs: torch.Tensor, w: torch.Tensor, mu: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
@@ -423,6 +429,7 @@ def _lm_batch(Tn, nonzero, dirs, sa, J, vn, N, beta, delta, sb, smin, smax, max_
         def loop(prob, a, ls, mu, conv, z, targets, sb, max_iter, tol, smin, smax):
             return lm_native.lm_loop(prob, a, ls, mu, conv, z, sb, max_iter, tol, smin, smax, vn, J)
     restart_above = RESTART_ABOVE if restart_above is None else restart_above
+    s_start = min(smax, max(smin, START_FACTOR * math.sqrt(float(sa.max()))))  # a starting lobe's narrowest width
     dirs, sa = dirs.to(dt), sa.to(dt)
     view_of = torch.arange(B) % J
     z = ~nonzero
@@ -470,7 +477,7 @@ def _lm_batch(Tn, nonzero, dirs, sa, J, vn, N, beta, delta, sb, smin, smax, max_
                 res = (Tp - fit).clamp_min(0)
             else:
                 res = Tp
-            w1, m1, s1 = _start_lobe(res, dirs, sa, smin, smax)
+            w1, m1, s1 = _start_lobe(res, dirs, sa, s_start, smax)
             ak = torch.full((B, 1), _LOG_W_MIN, dtype=dt)
             lk = torch.full((B, 1), math.log(smax), dtype=dt)
             mk = torch.zeros(B, 1, 3, dtype=dt)
@@ -505,7 +512,7 @@ def _lm_batch(Tn, nonzero, dirs, sa, J, vn, N, beta, delta, sb, smin, smax, max_
         lam = torch.exp(-2 * ls[bi])
         others = ((a[bi].exp() * sg_normaliser(lam) * keep)[..., None]
                   * torch.exp(lam[..., None] * (torch.einsum("bnc,pc->bnp", mu[bi], dirs) - 1))).sum(1)
-        w1, m1, s1 = _start_lobe((Tn[bi] - others).clamp_min(0), dirs, sa, smin, smax)
+        w1, m1, s1 = _start_lobe((Tn[bi] - others).clamp_min(0), dirs, sa, s_start, smax)
         a2[bi, k] = w1[:, 0].clamp_min(1e-10).log()
         mu2[bi, k] = m1[:, 0]
         ls2[bi, k] = s1[:, 0].log()
