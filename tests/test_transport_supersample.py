@@ -54,7 +54,8 @@ def test_plan_averages_grazing_views_of_half_vector_lobes_only():
     assert not supersample_plan(AS40, 13, 4)["adaptive"] and view_sub(supersample_plan(AS40, 13, 4), z).eq(4).all()
     assert supersample_plan(AS40, 13, 1) is None
     assert supersample_plan(B.Phong(12.0), 8) is None  # 2σ = 0.58 rad spans > 2 texel spacings at r = 8
-    assert supersample_plan(B.Phong(200.0), 8)["cos_view"] > 1  # σ = 0.07 rad: every view
+    ph = supersample_plan(B.Phong(200.0), 8)  # σ = 0.07 rad: every view, the same sub-texels at every view
+    assert ph["cos_view"] > 1 and view_sub(ph, z).eq(math.ceil(ph["ratio"])).all() and 2 < math.ceil(ph["ratio"]) < 8
     assert supersample_plan(B.Lambertian(0.5), 8) is None
 
 

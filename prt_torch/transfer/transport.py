@@ -200,15 +200,15 @@ def supersample_plan(brdf: BRDF | None, res: int, supersample: int | str = "auto
         return None
     sigma = 1.0 / math.sqrt(s)
     h = texel_spacing(res)
-    c_view = AUTO_TEXELS_PER_LOBE * h / (2 * sigma)
-    if getattr(brdf, "lobe_axis", "half") != "half":
-        if c_view <= 1.0:
-            return None
+    c_view = ratio = AUTO_TEXELS_PER_LOBE * h / (2 * sigma)
+    half = getattr(brdf, "lobe_axis", "half") == "half"
+    if not half and c_view <= 1.0:
+        return None
     c_view = min(c_view, 1.0 + 1e-9)
     rho = min(math.pi, SUPERSAMPLE_CAP_SIGMAS * sigma + 0.75 * h)
     deg = math.degrees(math.acos(min(1.0, c_view)))
     how = f"2x2 to {sub}x{sub} sub-texels (per view, as the lobe narrows)" if adaptive else f"{sub}x{sub} sub-texels"
-    return {"sub": sub, "adaptive": adaptive, "cos_view": c_view, "cos_cap": math.cos(rho),
+    return {"sub": sub, "adaptive": adaptive, "half": half, "ratio": ratio, "cos_view": c_view, "cos_cap": math.cos(rho),
             "reason": f"texel averages over {how} for views more than {deg:.1f} deg from the normal (the lobe's "
                       f"2 sigma cos(theta_o) spans < {AUTO_TEXELS_PER_LOBE:g} texel spacings there; sigma = {sigma:.3f} rad, "
                       f"h = {h:.3f} rad) on texels within {math.degrees(rho):.0f} deg of the mirror direction; point values elsewhere"}
@@ -222,12 +222,13 @@ def sub_texel_sets(res: int, plan: dict[str, Any]) -> dict[int, tuple[torch.Tens
 
 def view_sub(plan: dict[str, Any], cos_o: torch.Tensor) -> torch.Tensor:
     """Sub-texels per side for views at ``cos_o`` (local z, any shape) under ``plan``
-    (:func:`supersample_plan`): its ``sub``, or when ``adaptive`` ⌈cos_view / cos θ_o⌉ in [2, sub]
-    (int64)."""
+    (:func:`supersample_plan`): its ``sub``, or when ``adaptive`` ⌈ratio / cos θ_o⌉ for a half-vector
+    lobe (ratio = AUTO_TEXELS_PER_LOBE · h / 2σ; the lobe narrows by cos θ_o), ⌈ratio⌉ for a lobe about
+    the reflected view, in [2, sub] (int64)."""
     if not plan.get("adaptive"):
         return torch.full(cos_o.shape, int(plan["sub"]), dtype=torch.long)
-    s = torch.ceil(plan["cos_view"] / cos_o.clamp_min(1e-6)).clamp(2, int(plan["sub"]))
-    return s.long()
+    need = plan["ratio"] / cos_o.clamp_min(1e-6) if plan.get("half", True) else torch.full_like(cos_o, plan["ratio"])
+    return torch.ceil(need - 1e-9).clamp(2, int(plan["sub"])).long()
 
 
 def _sub_texels(res: int, sub: int) -> tuple[torch.Tensor, torch.Tensor]:
