@@ -17,6 +17,10 @@ cube-map texels of T · L · Δω. Green tabulates T for the 92 views of a subdi
 
 Chunks are written atomically and skipped when present, so an interrupted run resumes.
 T is zero for views below the vertex's tangent plane and for occluded or below-horizon texels.
+Where the BRDF's lobe is narrower than the texels (grazing views of a half-vector lobe, near the
+mirror direction) a texel holds T's average over the texel instead of its centre value, so that
+Σ_p T Δω stays the integral a relighting needs (:func:`supersample_plan`, issue 42 §2; the default
+``supersample='auto'``, 1 for centre values everywhere).
 
 Cube-map convention (OpenGL order +x, -x, +y, -y, +z, -z; texel (row t, column s) centre at
 sc = 2(s+½)/r - 1, tc = 2(t+½)/r - 1):
@@ -41,7 +45,7 @@ from ..scene import Mesh, RayCaster
 from .base import RunOptions
 from .glossy import check_frames, decide_shadows
 
-__all__ = ["check_disk_space", "choose_cube_res", "lobe_width", "texel_spacing",
+__all__ = ["check_disk_space", "choose_cube_res", "lobe_width", "texel_spacing", "supersample_plan", "sub_texel_sets", "view_sub",
     "icosphere_directions",
     "cube_directions",
     "precompute_transport",
