@@ -111,3 +111,23 @@ def test_averaged_table_relights_a_constant_light_as_the_integral():
     rms = lambda x: float(((x - ref).square().sum() / ref.square().sum()).sqrt())  # noqa: E731
     assert rms(avg[sel] @ sa) < 0.01
     assert rms(point[sel] @ sa) > 1.0
+
+
+def test_per_vertex_brdf_averages_as_the_shared_one(tmp_path):
+    """A per-vertex BRDF ([V] parameters, all equal) gives the same texel-averaged table as the shared
+    one (the averaged pairs select each vertex's parameters per sub-texel); the manifest says where."""
+    from prt_torch.scene import builtin
+    from prt_torch.transfer import RunOptions, precompute_transport
+
+    mesh = builtin("convex", "small")
+    V = mesh.num_vertices
+    run = RunOptions(chunk_size=200, workers=1)
+    a = precompute_transport(mesh, tmp_path / "a", brdf=AS40, views=1, res=6, max_chunks=1, run=run)
+    per = B.AshikhminShirley(torch.full((V,), 40.0, dtype=torch.float64), torch.full((V,), 40.0, dtype=torch.float64),
+                             rs=torch.full((V,), 0.05, dtype=torch.float64), rd=torch.zeros(V, dtype=torch.float64))
+    b = precompute_transport(mesh, tmp_path / "b", brdf=per, views=1, res=6, max_chunks=1, run=run)
+    (_, _, x), (_, _, y) = next(iter(a)), next(iter(b))
+    assert torch.allclose(x, y, rtol=1e-6, atol=0) and float(x.max()) > 0
+    assert a.meta["supersample"]["adaptive"] and "texel averages" in a.meta["supersample"]["reason"]
+    p = precompute_transport(mesh, tmp_path / "p", brdf=AS40, views=1, res=6, max_chunks=1, supersample=1, run=run)
+    assert p.meta["supersample"]["sub"] == 1 and not torch.equal(next(iter(p))[2], x)

@@ -253,7 +253,8 @@ PAIR_BLOCK = 1 << 16
 
 def _chunk_transport(caster, brdf, points, normals, frames, texels, views, mat_index, shadows,
                      dtype: torch.dtype = torch.float64, out: torch.Tensor | None = None,
-                     plan: dict[str, Any] | None = None, sub_texels: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
+                     plan: dict[str, Any] | None = None,
+                     sub_texels: dict[int, tuple[torch.Tensor, torch.Tensor]] | None = None) -> torch.Tensor:
     """T for k vertices: ``[k, J, P]`` (P = 6r² texels) in ``dtype`` (the values computed in
     float64 and rounded once: the stored dtype is written directly), Green 2005 eq. 1.2.
 
