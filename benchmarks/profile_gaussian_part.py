@@ -102,6 +102,9 @@ def main(argv=None) -> int:
     ap.add_argument("--cache", default=None, help="cache directory (default: a fresh temporary one: the precompute is timed)")
     ap.add_argument("--no-timing", action="store_true", help="skip the relighting timings")
     ap.add_argument("--json", default=None)
+    ap.add_argument("--resolve-factor", type=float, nargs="+", default=[None],
+                    help="fit each Gaussian setting with its narrowest lobe at each of these texel spacings, paired in this run "
+                         "(codecs.gaussian.fit.RESOLVE_FACTOR; default: the codec's)")
     a = ap.parse_args(argv)
     cfg = load_config(a.config)
     scratch = [tempfile.mkdtemp(prefix="prof_part_")] + ([] if a.cache else [tempfile.mkdtemp(prefix="prof_cache_")])
@@ -141,10 +144,15 @@ def _run(a, cfg: dict, scratch: list[str]) -> int:
         views = [ev.view_weights(c) for c in cams]
         refs, unc = measure_uncompressed(ev, lights, views, sub["metrics"])
     records = []
-    for s in expand_codecs(sub["codecs"]):
+    from prt_torch.codecs.gaussian import fit as gfit
+
+    rf0 = gfit.RESOLVE_FACTOR
+    settings = [(s, rf) for s in expand_codecs(sub["codecs"]) for rf in (a.resolve_factor if s["type"] == "gaussian" else [None])]
+    for s, rf in settings:
         if want and s["type"] not in want:
             continue
-        sid = setting_id(s)
+        gfit.RESOLVE_FACTOR = rf0 if rf is None else rf
+        sid = setting_id(s) + ("" if rf is None else f" (resolve factor {rf:g})")
         t0 = time.perf_counter()
         with stage(f"{sid}: fit + error/PSNR"):
             rec, codec, enc = evaluate_setting(ev, s, lights, views, sub, refs, timed=False)
@@ -158,7 +166,7 @@ def _run(a, cfg: dict, scratch: list[str]) -> int:
             ROWS[-1]["timing_calls"] = {k: {"wall_s": w, "cpu_s": c, "calls": n} for k, (w, c, n) in spent.items()}
             print("  " + ", ".join(f"{k} x{n}: {w:.1f} s wall, {c:.1f} s CPU" for k, (w, c, n) in spent.items()))
         records.append({k: rec.get(k) for k in ("setting_id", "encode_s", "bytes_per_vertex", "psnr_lights_db", "relative_se",
-                                                "speedup_vs_uncompressed")})
+                                                "speedup_vs_uncompressed")} | {"resolve_factor": gfit.RESOLVE_FACTOR})
         del codec, enc
     tot = {k: sum(r[k] for r in ROWS) for k in ("wall_s", "user_s", "sys_s", "minor_faults")}
     peak = max(r["peak_rss_gib"] for r in ROWS)

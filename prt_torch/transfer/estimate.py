@@ -303,8 +303,12 @@ def _chunk_bytes(kind: str, kw: dict[str, Any], V: int, chunk_size: int | None) 
     if kind == "transport":  # the chunk's table (reused), its rays and the BRDF on blocks of (view, texel) pairs
         from .transport import PAIR_BLOCK
 
+        from .transport import AUTO_SUPERSAMPLE
+
         P = 6 * int(kw.get("res", 8)) ** 2
-        return c * _views(kw) * P * 4 + c * P * 40 + PAIR_BLOCK * 256
+        ss = kw.get("supersample", "auto")
+        sub = AUTO_SUPERSAMPLE if ss == "auto" else int(ss)  # texel averages: the sub-texels' heights per (vertex, texel)
+        return c * _views(kw) * P * 4 + c * P * 40 + c * P * sub * sub * 16 + PAIR_BLOCK * 256
     return 64 << 20
 
 

@@ -306,6 +306,7 @@ register_kind(TransferKind(
     constraints={
         "brdf": _BRDF, "views": [Interval(int, 1, 16), Predicate(_is_directions, "view directions [J, 3]")],
         "res": [Interval(int, 1, MAX_CUBE_RES), _AUTO], "dtype": [Options("float32", "float16")],
+        "supersample": [Interval(int, 1, 8), _AUTO],
         "shadows": [Boolean()] + _SHADOWS,
         "max_chunks": _OPT_INT,
     },
@@ -314,6 +315,9 @@ register_kind(TransferKind(
         Arg("--cube-res", "res", "cube-map face resolution r (6 r² texels), or auto (default): the smallest r where the "
             "BRDF's narrowest lobe spans 2 texel spacings (the reason in the manifest's auto.res)"),
         Arg("--transport-dtype", "dtype", "stored precision", values={"float32": "float32", "float16": "float16"}),
+        Arg("--supersample", "supersample", "s x s sub-texels per texel. transport: texel averages where the BRDF's lobe is "
+            "narrower than the texels (grazing views; auto, the default: 4; 1: point values at texel centres; the reason in the "
+            "manifest's supersample); wavelet: sub-texel rays per texel (1: texel centres)"),
     ),
 ))
 

@@ -17,6 +17,10 @@ cube-map texels of T · L · Δω. Green tabulates T for the 92 views of a subdi
 
 Chunks are written atomically and skipped when present, so an interrupted run resumes.
 T is zero for views below the vertex's tangent plane and for occluded or below-horizon texels.
+Where the BRDF's lobe is narrower than the texels (grazing views of a half-vector lobe, near the
+mirror direction) a texel holds T's average over the texel instead of its centre value, so that
+Σ_p T Δω stays the integral a relighting needs (:func:`supersample_plan`, issue 42 §2; the default
+``supersample='auto'``, 1 for centre values everywhere).
 
 Cube-map convention (OpenGL order +x, -x, +y, -y, +z, -z; texel (row t, column s) centre at
 sc = 2(s+½)/r - 1, tc = 2(t+½)/r - 1):
@@ -41,7 +45,7 @@ from ..scene import Mesh, RayCaster
 from .base import RunOptions
 from .glossy import check_frames, decide_shadows
 
-__all__ = ["check_disk_space", "choose_cube_res", "lobe_width", "texel_spacing",
+__all__ = ["check_disk_space", "choose_cube_res", "lobe_width", "texel_spacing", "supersample_plan", "sub_texel_sets", "view_sub",
     "icosphere_directions",
     "cube_directions",
     "precompute_transport",
@@ -70,7 +74,11 @@ def icosphere_directions(frequency: int = 3) -> torch.Tensor:
 def cube_directions(res: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Texel-centre directions ``[6, r, r, 3]`` and exact solid angles ``[6, r, r]`` (float64)
     of a cube map in the module's convention."""
-    res = check_int("res", res, 1, MAX_CUBE_RES)
+    return _cube_directions(check_int("res", res, 1, MAX_CUBE_RES))
+
+
+def _cube_directions(res: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`cube_directions` without the bound on ``res`` (sub-texels and references)."""
     c = (torch.arange(res, dtype=torch.float64) + 0.5) * (2.0 / res) - 1.0
     tc, sc = torch.meshgrid(c, c, indexing="ij")  # rows t, columns s
     one = torch.ones_like(sc)
@@ -100,7 +108,7 @@ AUTO_MIN_RES, AUTO_MAX_RES = 8, 32
 def texel_spacing(res: int) -> float:
     """h(r) = √(largest texel solid angle) of a 6×r×r cube map (≈ 2/r rad, at a face centre): the
     spacing the Gaussian fit's narrowest lobe is measured in (``codecs.gaussian.resolvable_sigma``
-    = 0.6 h)."""
+    = 0.35 h)."""
     return math.sqrt(float(cube_directions(res)[1].max()))
 
 
@@ -137,7 +145,7 @@ def choose_cube_res(brdf: BRDF | None, texels: float = AUTO_TEXELS_PER_LOBE, min
     narrowest lobe of ``brdf`` (:func:`lobe_width`, σ) spans ``texels`` texel spacings over ±σ,
     2σ ≥ texels · h(r) (:func:`texel_spacing`) — Green 2005 §2.2.1 tabulates direct glossy
     transport on finer cube maps than the 6×8×8 of smooth indirect terms for this reason, and the
-    Gaussian fit cannot place a lobe narrower than 0.6 h. Returns (r, decision) with the decision
+    Gaussian fit cannot place a lobe narrower than 0.35 h. Returns (r, decision) with the decision
     ``{'value', 'lobe_sigma', 'texel_spacing', 'texels_per_lobe', 'reason'}`` (what the manifest's
     ``auto.res`` records); ``max_res`` with the reason when even that is short."""
     texels = float(texels)
@@ -157,6 +165,85 @@ def choose_cube_res(brdf: BRDF | None, texels: float = AUTO_TEXELS_PER_LOBE, min
     return r, {"value": r, "lobe_sigma": sigma, "texel_spacing": h, "texels_per_lobe": 2 * sigma / h, "reason": reason}
 
 
+#: texel averages (issue 42 §2), ``supersample='auto'``: sub-texels per texel side where a view's lobe
+#: is narrower than the texels, chosen per view so that the sub-texel spacing h/S resolves the lobe
+#: across the plane of incidence (2σ cos θ_o ≥ AUTO_TEXELS_PER_LOBE · h/S), from 2 up to this many
+AUTO_SUPERSAMPLE = 8
+#: the cap about the mirror direction averaged: the lobe's in-plane σ times this, plus 0.75 texel
+#: spacings (a half-vector lobe at 3σ is (cos 3σ_h)^N ≈ e^−4.5 of its peak)
+SUPERSAMPLE_CAP_SIGMAS = 3.0
+
+
+def supersample_plan(brdf: BRDF | None, res: int, supersample: int | str = "auto") -> dict[str, Any] | None:
+    """Where a table of ``brdf`` at face resolution ``res`` holds texel averages instead of point
+    values (issue 42 §2): ``None`` (point values everywhere: no lobe, ``supersample`` 1, or a lobe
+    the texel centres resolve at every view), else ``{'sub', 'adaptive', 'cos_view', 'cos_cap', 'reason'}``.
+
+    A point value of a lobe narrower than the texel spacing is aliased: the texel centres hit or miss
+    it, and Σ_p T Δω (what relighting from the table computes, Green 2005 eq. 1.1) no longer
+    approximates ∫ T dω. A half-vector lobe (``BRDF.lobe_axis == 'half'``) narrows across the plane
+    of incidence by cos θ_o (:func:`lobe_width`), so beyond the view angle where its 2σ cos θ_o spans
+    fewer than :data:`AUTO_TEXELS_PER_LOBE` texel spacings h(r) — local view z < ``cos_view`` =
+    AUTO_TEXELS_PER_LOBE · h / (2σ) — each texel within the lobe's cap about the mirror direction
+    (angle < 3σ + 0.75 h: ``cos_cap``) gets the average of f_r max(n·ω, 0) over S × S sub-texels
+    (weighted by their exact solid angles) times the texel's visibility: S = ``supersample``, or with
+    'auto' (``adaptive``) per view the smallest S in [2, :data:`AUTO_SUPERSAMPLE`] at which the
+    sub-texels resolve the lobe, S ≥ cos_view / cos θ_o (:func:`view_sub`). A lobe about
+    the reflected view (Phong) has the same width at every view: averaged at all views when r does
+    not resolve it (a ``--cube-res`` below ``res: auto``'s), else not at all."""
+    adaptive = isinstance(supersample, str) and supersample == "auto"
+    if adaptive:
+        sub = AUTO_SUPERSAMPLE
+    elif isinstance(supersample, bool) or not isinstance(supersample, int):
+        raise ValueError(f"supersample={supersample!r}; accepted: 'auto' or an integer in [1, 8] (1: point values)")
+    else:
+        sub = check_int("supersample", supersample, 1, 8)
+    brdf = AshikhminShirley(40.0, 40.0, rs=0.05, rd=0.0) if brdf is None else brdf
+    s = float(brdf.sharpness)
+    if sub == 1 or s <= 0:
+        return None
+    sigma = 1.0 / math.sqrt(s)
+    h = texel_spacing(res)
+    c_view = ratio = AUTO_TEXELS_PER_LOBE * h / (2 * sigma)
+    half = getattr(brdf, "lobe_axis", "half") == "half"
+    if not half and c_view <= 1.0:
+        return None
+    c_view = min(c_view, 1.0 + 1e-9)
+    rho = min(math.pi, SUPERSAMPLE_CAP_SIGMAS * sigma + 0.75 * h)
+    deg = math.degrees(math.acos(min(1.0, c_view)))
+    how = f"2x2 to {sub}x{sub} sub-texels (per view, as the lobe narrows)" if adaptive else f"{sub}x{sub} sub-texels"
+    return {"sub": sub, "adaptive": adaptive, "half": half, "ratio": ratio, "cos_view": c_view, "cos_cap": math.cos(rho),
+            "reason": f"texel averages over {how} for views more than {deg:.1f} deg from the normal (the lobe's "
+                      f"2 sigma cos(theta_o) spans < {AUTO_TEXELS_PER_LOBE:g} texel spacings there; sigma = {sigma:.3f} rad, "
+                      f"h = {h:.3f} rad) on texels within {math.degrees(rho):.0f} deg of the mirror direction; point values elsewhere"}
+
+
+def sub_texel_sets(res: int, plan: dict[str, Any]) -> dict[int, tuple[torch.Tensor, torch.Tensor]]:
+    """{S: :func:`_sub_texels` (res, S)} for every S the ``plan`` may use (2 … sub when adaptive)."""
+    sizes = range(2, int(plan["sub"]) + 1) if plan.get("adaptive") else [int(plan["sub"])]
+    return {S: _sub_texels(res, S) for S in sizes}
+
+
+def view_sub(plan: dict[str, Any], cos_o: torch.Tensor) -> torch.Tensor:
+    """Sub-texels per side for views at ``cos_o`` (local z, any shape) under ``plan``
+    (:func:`supersample_plan`): its ``sub``, or when ``adaptive`` ⌈ratio / cos θ_o⌉ for a half-vector
+    lobe (ratio = AUTO_TEXELS_PER_LOBE · h / 2σ; the lobe narrows by cos θ_o), ⌈ratio⌉ for a lobe about
+    the reflected view, in [2, sub] (int64)."""
+    if not plan.get("adaptive"):
+        return torch.full(cos_o.shape, int(plan["sub"]), dtype=torch.long)
+    need = plan["ratio"] / cos_o.clamp_min(1e-6) if plan.get("half", True) else torch.full_like(cos_o, plan["ratio"])
+    return torch.ceil(need - 1e-9).clamp(2, int(plan["sub"])).long()
+
+
+def _sub_texels(res: int, sub: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Sub-texel directions ``[P, sub², 3]`` and their shares of the texel's solid angle ``[P, sub²]``
+    (float64; texel p in the module's order, its sub-texels those of the ``res·sub`` cube map)."""
+    d, sa = _cube_directions(res * sub)
+    d = d.reshape(6, res, sub, res, sub, 3).permute(0, 1, 3, 2, 4, 5).reshape(6 * res * res, sub * sub, 3)
+    sa = sa.reshape(6, res, sub, res, sub).permute(0, 1, 3, 2, 4).reshape(6 * res * res, sub * sub)
+    return d.contiguous(), (sa / sa.sum(1, keepdim=True)).contiguous()
+
+
 #: (view, texel) pairs per BRDF block of a transport chunk (issue 42): the block's float64
 #: temporaries stay a few MB (heap reused from block to block, in cache) where one evaluation
 #: over the whole chunk's ~2M pairs made tens of fresh 16–48 MB arrays — page faults that were
@@ -165,7 +252,9 @@ PAIR_BLOCK = 1 << 16
 
 
 def _chunk_transport(caster, brdf, points, normals, frames, texels, views, mat_index, shadows,
-                     dtype: torch.dtype = torch.float64, out: torch.Tensor | None = None) -> torch.Tensor:
+                     dtype: torch.dtype = torch.float64, out: torch.Tensor | None = None,
+                     plan: dict[str, Any] | None = None,
+                     sub_texels: dict[int, tuple[torch.Tensor, torch.Tensor]] | None = None) -> torch.Tensor:
     """T for k vertices: ``[k, J, P]`` (P = 6r² texels) in ``dtype`` (the values computed in
     float64 and rounded once: the stored dtype is written directly), Green 2005 eq. 1.2.
 
@@ -175,14 +264,32 @@ def _chunk_transport(caster, brdf, points, normals, frames, texels, views, mat_i
     is the table's cost, not the ~P/2 rays per vertex). The pairs are taken a block of vertices
     at a time (at most :data:`PAIR_BLOCK` pairs, at least one vertex) and scattered into their
     rows, so every temporary is block-sized. ``out``: a buffer of at least ``k·J·P`` elements of
-    ``dtype`` to write into (zeroed here; the chunk loop reuses one), else a new one."""
+    ``dtype`` to write into (zeroed here; the chunk loop reuses one), else a new one.
+
+    ``plan`` (:func:`supersample_plan`) with ``sub_texels`` ({S: :func:`_sub_texels`: ``[P, S², 3]``
+    directions and ``[P, S²]`` solid-angle shares} for every S the plan uses): the pairs of a view beyond ``cos_view`` and a
+    texel within the cap about its mirror direction hold V_p Σ_s a_s f_r(ω_s, ω_o) max(n·ω_s, 0),
+    the texel average (V_p: one ray per texel, toward its centre, or toward its highest sub-texel
+    when the centre is below the horizon and a sub-texel is not)."""
     cos = normals @ texels.T  # [k, P]
     W = cos.clamp_min(0)
+    vis_any = None
+    if plan is not None:
+        sd = sub_texels[max(sub_texels)][0]  # the finest sub-texels decide the straddling texels
+        cmax, amax = torch.einsum("kc,psc->kps", normals, sd).max(-1)  # [k, P]: the highest sub-texel
+        vis_any = cmax > 0  # some sub-texel above the horizon (visibility below)
     if shadows:
         i, j = torch.nonzero(cos > 0, as_tuple=True)
         if i.numel():
             occ = caster.occluded(points[i], texels[j], normals=normals[i])
             W[i[occ], j[occ]] = 0.0
+            if vis_any is not None:
+                vis_any[i[occ], j[occ]] = False
+        if vis_any is not None:  # straddling texels: centre below the horizon, a sub-texel above it
+            i, j = torch.nonzero(vis_any & (cos <= 0), as_tuple=True)
+            if i.numel():
+                occ = caster.occluded(points[i], sd[j, amax[i, j]], normals=normals[i])
+                vis_any[i[occ], j[occ]] = False
     wi = torch.einsum("kab,pb->kpa", frames, texels)  # [k, P, 3] local light directions
     wo = torch.einsum("kab,jb->kja", frames, views)  # [k, J, 3] local views
     k, J, P = wo.shape[0], wo.shape[1], wi.shape[1]
@@ -206,7 +313,37 @@ def _chunk_transport(caster, brdf, points, normals, frames, texels, views, mat_i
         b = brdf if mat_index is None else brdf.select(mat_index[iv])
         f = b.eval(wi[iv, pv], wo[iv, jv])  # [N]
         T[v0:v1].masked_scatter_(mask.view(v1 - v0, J * P), (f * W[iv, pv]).to(dtype))
+    if plan is not None:
+        _average_texels(T, brdf, frames, normals, wo, vis_any, views, mat_index, plan, sub_texels, texels, dtype)
     return T.view(k, J, P)
+
+
+def _average_texels(T, brdf, frames, normals, wo, vis_any, views, mat_index, plan, sub_texels, texels, dtype) -> None:
+    """Overwrite the pairs ``plan`` averages (:func:`_chunk_transport`) in ``T [k, J·P]`` with their
+    texel averages, in blocks of about :data:`PAIR_BLOCK` (pair, sub-texel) evaluations."""
+    P = T.shape[1] // wo.shape[1]
+    mirror = 2 * (normals @ views.T)[..., None] * normals[:, None, :] - views[None]  # [k, J, 3] world mirror directions
+    graze = (wo[:, :, 2] > 0) & (wo[:, :, 2] < plan["cos_view"])  # [k, J]
+    iv, jv = torch.nonzero(graze, as_tuple=True)
+    if not iv.numel():
+        return
+    near = (mirror[iv, jv] @ texels.T > plan["cos_cap"]) & vis_any[iv]  # [n, P]
+    q, pv = torch.nonzero(near, as_tuple=True)
+    iv, jv = iv[q], jv[q]
+    subs = view_sub(plan, wo[iv, jv, 2])
+    for S in subs.unique().tolist():  # one pass per sub-texel count (at most 7), not per view
+        sd, sw = sub_texels[S]
+        S2 = S * S
+        m = subs == S
+        ivs, jvs, pvs = iv[m], jv[m], pv[m]
+        step = max(1, PAIR_BLOCK // S2)
+        for a in range(0, ivs.numel(), step):  # blocks of pairs (block-sized temporaries), not a loop per pair
+            i, j, p = ivs[a:a + step], jvs[a:a + step], pvs[a:a + step]
+            wi = torch.einsum("nab,nsb->nsa", frames[i], sd[p])  # [n, S², 3] local sub-texel directions
+            b = brdf if mat_index is None else brdf.select(mat_index[i].repeat_interleave(S2))
+            f = b.eval(wi.reshape(-1, 3), wo[i, j].repeat_interleave(S2, 0)).view(-1, S2)
+            T[i, j * P + p] = (f * wi[..., 2].clamp_min(0) * sw[p]).sum(1).to(dtype)
+
 
 
 def check_disk_space(out: str | Path, V: int, views: torch.Tensor | int, res: int, dtype: str) -> int:
@@ -236,6 +373,7 @@ def precompute_transport(
     brdf: BRDF | None = None,
     views: torch.Tensor | int = 3,
     res: int | str = "auto",
+    supersample: int | str = "auto",
     dtype: str = "float32",
     shadows: bool | str = True,
     overwrite: bool = False,
@@ -251,6 +389,11 @@ def precompute_transport(
         res: cube-map face resolution r (6 r² texels per table), or 'auto' (default): the smallest
             r at which the BRDF's narrowest lobe spans two texel spacings (:func:`choose_cube_res`;
             the choice and its reason in ``manifest['auto']['res']``).
+        supersample: sub-texels per texel side of the texel averages stored where the BRDF's lobe
+            is narrower than the texels (:func:`supersample_plan`: grazing views of a half-vector
+            lobe, near its mirror direction), 'auto' (default), an integer S in [1, 8] or 1 (point values everywhere,
+            the tables before issue 42 §2); 'auto': 2 to 8 per view as the lobe narrows; the plan and
+            its reason in ``manifest['supersample']``.
         dtype: stored precision, 'float32' or 'float16'.
         overwrite: remove an existing ``out`` first. Otherwise an existing ``out`` is refused
             unless ``run.resume`` (keep the chunk files already there, same fingerprint, and
@@ -275,6 +418,7 @@ def precompute_transport(
     elif isinstance(res, str) or isinstance(res, bool) or not isinstance(res, int):
         raise ValueError(f"res={res!r}; accepted: an integer in [1, {MAX_CUBE_RES}] or 'auto'")
     res = check_int("res", res, 1, MAX_CUBE_RES)
+    plan = supersample_plan(brdf, res, supersample)
     check_choice("dtype", dtype, ["float32", "float16"])
     offset, resume = run.offset, run.resume
     check_disk_space(out, mesh.num_vertices, views, res, dtype)  # an absurd table is refused before any ray
@@ -300,6 +444,7 @@ def precompute_transport(
     out = Path(out)
     fingerprint = {"mesh_hash": mesh.content_hash(), "brdf": brdf.meta() if mat_index is None else "per-vertex",
                    "views": view_dirs.tolist() if isinstance(views, torch.Tensor) else int(views), "res": res,
+                   "supersample": None if plan is None else {k: v for k, v in plan.items() if k != "reason"},
                    "dtype": dtype, "shadows": shadows, "offset": offset, "chunk_size": chunk_size}
     manifest_path = out / "manifest.json"
     if out.exists():
@@ -327,6 +472,8 @@ def precompute_transport(
         "layout": "cube faces +x,-x,+y,-y,+z,-z (OpenGL); data[v, j, face, row, col]",
         "normalisation": "L_o(x_v, views[j]) = sum over texels of data * L(texel dir) * solid_angle",
         "complete": False, **shadow_meta,
+        "supersample": plan if plan is not None else {"sub": 1, "reason": "point values at the texel centres (no lobe narrower "
+                                                                          "than the texels, or supersample=1)"},
     }
     if auto:
         meta["auto"] = auto
@@ -335,6 +482,7 @@ def precompute_transport(
     io.save(out / "mesh.prt", mesh.to_tensors("mesh."), kind="scene/mesh", meta={"mesh_name": mesh.name})
     caster = RayCaster(mesh, workers=run.workers, offset=offset) if shadows else None
     texels_flat = texels.reshape(-1, 3)
+    subs = None if plan is None else sub_texel_sets(res, plan)
     store = torch.float32 if dtype == "float32" else torch.float16
     bar = None
     if run.progress:
@@ -352,7 +500,8 @@ def precompute_transport(
             buffer.append(torch.empty(chunk_size * J * P, dtype=store))
         with torch_threads(CHUNK_THREADS):
             T = _chunk_transport(caster, brdf, mesh.vertices[a:b], mesh.normals[a:b], F[a:b], texels_flat,
-                                 view_dirs, None if mat_index is None else mat_index[a:b], shadows, store, out=buffer[0])
+                                 view_dirs, None if mat_index is None else mat_index[a:b], shadows, store, out=buffer[0],
+                                 plan=plan, sub_texels=subs)
         return [T.reshape(b - a, J, 6, res, res)]
 
     def finished(c: int, box: list[torch.Tensor] | None) -> None:

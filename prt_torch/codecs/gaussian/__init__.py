@@ -100,7 +100,7 @@ class GaussianCodec(Codec):
         relative to each function's energy.
     sigma_min : float, default=0.01
         Smallest lobe width (radians); at least :func:`resolvable_sigma` of the tables is used
-        (0.6 × the texel spacing, 2/r on a cube map: a narrower lobe could fall between texel
+        (0.35 × the texel spacing, 2/r on a cube map: a narrower lobe could fall between texel
         centres).
     sigma_max : float, default=3.0
         Largest lobe width (radians; wider than a hemisphere is allowed).
@@ -237,7 +237,7 @@ class GaussianCodec(Codec):
         if info.get("lobes_at_resolution_limit", 0.0) > 0.25:
             warnings.warn(
                 f"codec {self.codec_name!r}: {100 * info['lobes_at_resolution_limit']:.0f}% of the fitted lobes sit at the "
-                f"narrowest width the tables resolve (sigma = {info['sigma_resolvable']:.3f} rad, 0.6 texel spacings at "
+                f"narrowest width the tables resolve (sigma = {info['sigma_resolvable']:.3f} rad, {RESOLVE_FACTOR:g} texel spacings at "
                 f"{layout}): the transport is sharper than its texels, so those functions keep a large error whatever "
                 "the lobe count; tabulate with a finer cube map (prt precompute --kind transport with the default --cube-res auto, "
                 "which sizes it from the BRDF's lobe, or --cube-res 16 or more)",

@@ -37,9 +37,12 @@ of the transport precompute (P = 384) a dense batched evaluation is cheaper than
 per-function quadtree of the zero region (Algorithm 2), and the closed form of Algorithm 1 is
 not used (Green found it less stable; it also breaks the Gauss–Newton structure).
 
-The narrowest lobe is :func:`resolvable_sigma` (0.6 × the texel spacing): on coarser tables a
-fit could put a lobe between texel centres, and its prefiltered integral (what rendering uses)
-would then differ from the table's texel sum by tens of percent.
+The narrowest lobe is :func:`resolvable_sigma` (0.35 × the texel spacing; it was 0.6 until issue 42 §2):
+narrower, a fit could put a lobe between texel centres whose prefiltered integral (what rendering
+uses) the texel values no longer constrain. At 0.6 the bound itself was the error of the default
+tables (Ashikhmin–Shirley N = 40 at res: auto = 13): their energy sits at grazing views, where the
+lobe is cos θ_o times narrower across the plane of incidence, so a quarter to a third of the lobes
+sat at the bound and 3 lobes fitted no better than 1 (docs/precompute.md, "Transport tables").
 
 Initialisation: peaks and moments — lobe k at the centroid of the half-maximum region around
 the largest remaining value, σ² from that region's solid angle (2π ln2 σ² for a Gaussian),
@@ -61,8 +64,13 @@ from .views import view_neighbours
 __all__ = ["mixture", "resolvable_sigma", "flood_fill_order", "fit_all", "Problem", "tangents", "prob_pairs", "RESOLVE_FACTOR"]
 
 _LOG_W_MIN = math.log(1e-10)
-#: narrowest lobe, in texel spacings (resolvable_sigma)
-RESOLVE_FACTOR = 0.6
+#: narrowest lobe, in texel spacings (resolvable_sigma). Was 0.6: on the default transport tables
+#: (Ashikhmin–Shirley N = 40, res: auto = 13; 150 vertices of scan_blob / bumpy_sphere:medium) 0.35
+#: takes the whole-table relative L2 of 1 → 3 lobes from 0.560 → 0.547 / 0.586 → 0.572 to 0.310 → 0.202 /
+#: 0.352 → 0.234 (no width-limit warning), and the encodings' constant-light relighting (Σ w, the SG
+#: integrals) from 0.27–0.33 to 0.08–0.19 of the table's texel sum (benchmarks/bench_transport_res.py
+#: --resolve-factor 0.6 0.35; docs/precompute.md)
+RESOLVE_FACTOR = 0.35
 #: functions still above this relative L2 error after the fit get one restart of their weakest lobe
 #: (_lm_batch). Was 0.02, below the median function's error of two lobes on 6×8×8 tables (0.11-0.12),
 #: so most functions paid 10 more iterations for nothing: on the default benchmark's 10k-vertex tables
@@ -70,6 +78,12 @@ RESOLVE_FACTOR = 0.6
 #: relative L2 0.12302 vs 0.12297, 0.11378 vs 0.11372; SE +0.1%; median and p90 unchanged to 4 digits)
 #: for 27-28% less CPU time (benchmarks/profile_gaussian_part.py, docs/harness.md)
 RESTART_ABOVE = 0.2
+#: a starting lobe (peaks and moments, and the restart's) is no narrower than this many texel spacings,
+#: the former width bound: the fit may then narrow it to resolvable_sigma. Started at 0.35 instead, 2 lobes
+#: on Phong s = 12 tables (the default benchmark's part: 600 vertices × 42 views, 6×8×8) end at relative L2
+#: 0.1260 against 0.1230 with the former bound; started at 0.6, 0.1244 (and 0.1507 instead of 0.1484 at
+#: 3 lobes on the default Ashikhmin–Shirley tables, r = 13 texel averages)
+START_FACTOR = 0.6
 
 
 def mixture(dirs: torch.Tensor, w: torch.Tensor, mu: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
@@ -81,11 +95,16 @@ def mixture(dirs: torch.Tensor, w: torch.Tensor, mu: torch.Tensor, sigma: torch.
 
 
 def resolvable_sigma(solid_angles: torch.Tensor) -> float:
-    """The narrowest lobe a table resolves: 0.6 h, h = √(largest texel solid angle) (2/r on a
-    cube map). Below it the texel sum of a Gaussian departs from its integral (the Riemann sum
-    of a Gaussian of width σ on spacing h errs by ~2 exp(−2π²σ²/h²) per axis: 0.2% at 0.6 h,
-    30% at 0.36 h, measured on 6×8×8 tables), so a fit could put a lobe between texel centres
-    whose prefiltered integral the data do not constrain."""
+    """The narrowest lobe a fit may use: :data:`RESOLVE_FACTOR` · h = 0.35 h, h = √(largest texel
+    solid angle) (2/r on a cube map). Below it the texel sum of a Gaussian departs from its
+    integral (the Riemann sum of a Gaussian of width σ on spacing h errs by ~2 exp(−2π²σ²/h²) per
+    axis at a face centre, more across the cube's seams: brute-force texel sums of unit lobes at
+    4000 random means, r = 8: 0.98–1.02 at 0.6 h, 0.63–1.39 at 0.35 h; r = 13: 0.68–1.36 at 0.35 h;
+    ``tests/test_gaussian.py`` checks ±40%), so a fit could put a lobe between texel centres whose
+    prefiltered integral the data do not constrain. At 0.35 h a lobe's texel sum is that far off, but
+    the fitted encodings' constant-light relighting (Σ_k w_k against Σ_p T Δω) errs less than at
+    0.6 h (0.05–0.08 vs 0.18 relative at 3 lobes on the default tables, 0.15–0.19 vs 0.09 at one:
+    the fit's residual, not the Riemann error, sets it; docs/precompute.md)."""
     return RESOLVE_FACTOR * math.sqrt(float(solid_angles.double().max()))
 
 
@@ -410,6 +429,7 @@ def _lm_batch(Tn, nonzero, dirs, sa, J, vn, N, beta, delta, sb, smin, smax, max_
         def loop(prob, a, ls, mu, conv, z, targets, sb, max_iter, tol, smin, smax):
             return lm_native.lm_loop(prob, a, ls, mu, conv, z, sb, max_iter, tol, smin, smax, vn, J)
     restart_above = RESTART_ABOVE if restart_above is None else restart_above
+    s_start = min(smax, max(smin, START_FACTOR * math.sqrt(float(sa.max()))))  # a starting lobe's narrowest width
     dirs, sa = dirs.to(dt), sa.to(dt)
     view_of = torch.arange(B) % J
     z = ~nonzero
@@ -457,7 +477,7 @@ def _lm_batch(Tn, nonzero, dirs, sa, J, vn, N, beta, delta, sb, smin, smax, max_
                 res = (Tp - fit).clamp_min(0)
             else:
                 res = Tp
-            w1, m1, s1 = _start_lobe(res, dirs, sa, smin, smax)
+            w1, m1, s1 = _start_lobe(res, dirs, sa, s_start, smax)
             ak = torch.full((B, 1), _LOG_W_MIN, dtype=dt)
             lk = torch.full((B, 1), math.log(smax), dtype=dt)
             mk = torch.zeros(B, 1, 3, dtype=dt)
@@ -492,7 +512,7 @@ def _lm_batch(Tn, nonzero, dirs, sa, J, vn, N, beta, delta, sb, smin, smax, max_
         lam = torch.exp(-2 * ls[bi])
         others = ((a[bi].exp() * sg_normaliser(lam) * keep)[..., None]
                   * torch.exp(lam[..., None] * (torch.einsum("bnc,pc->bnp", mu[bi], dirs) - 1))).sum(1)
-        w1, m1, s1 = _start_lobe((Tn[bi] - others).clamp_min(0), dirs, sa, smin, smax)
+        w1, m1, s1 = _start_lobe((Tn[bi] - others).clamp_min(0), dirs, sa, s_start, smax)
         a2[bi, k] = w1[:, 0].clamp_min(1e-10).log()
         mu2[bi, k] = m1[:, 0]
         ls2[bi, k] = s1[:, 0].log()
