@@ -15,25 +15,21 @@ from prt_torch.harness import metrics as hm
 from prt_torch.harness.timing import torch_threads
 
 
-def test_centred_moments_match_numpy_float64():
+def test_centred_moments_match_numpy_float64(monkeypatch):
     """x̄, Σ ||x − x̄||² and Σ w ||x − x̄||² by float64 row blocks (a float32 signal far from the
     origin, blocks of 7 rows) equal numpy's float64 evaluation of their definitions."""
     g = torch.Generator().manual_seed(0)
     X = (100 + torch.randn(503, 37, generator=g)).to(torch.float32)
     w = torch.rand(503, generator=g) + 0.1
     Xn, wn = X.numpy().astype(np.float64), w.numpy().astype(np.float64)
-    old = neural.CHUNK_ELEMENTS
-    try:
-        neural.CHUNK_ELEMENTS = 7 * 37
-        for wt in (None, w):
-            mu, ss, ssw = neural._centred_moments(X, wt)
-            mu_ref = Xn.mean(0) if wt is None else (Xn * wn[:, None]).sum(0) / wn.sum()
-            r = ((Xn - mu_ref) ** 2).sum(1)
-            np.testing.assert_allclose(mu.numpy(), mu_ref, rtol=1e-13)
-            assert ss == pytest.approx(r.sum(), rel=1e-11)
-            assert ssw == pytest.approx(r.sum() if wt is None else (r * wn).sum(), rel=1e-11)
-    finally:
-        neural.CHUNK_ELEMENTS = old
+    monkeypatch.setattr(neural, "CHUNK_ELEMENTS", 7 * 37)
+    for wt in (None, w):
+        mu, ss, ssw = neural._centred_moments(X, wt)
+        mu_ref = Xn.mean(0) if wt is None else (Xn * wn[:, None]).sum(0) / wn.sum()
+        r = ((Xn - mu_ref) ** 2).sum(1)
+        np.testing.assert_allclose(mu.numpy(), mu_ref, rtol=1e-13)
+        assert ss == pytest.approx(r.sum(), rel=1e-11)
+        assert ssw == pytest.approx(r.sum() if wt is None else (r * wn).sum(), rel=1e-11)
 
 
 def test_neural_float32_start_is_the_float64_optimum():
