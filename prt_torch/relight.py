@@ -265,7 +265,7 @@ class WaveletRelighter:
       values; in practice the coarse Haar levels, which every vertex above the horizon keeps, and
       most of the coefficients a light reads): ``dense [ceil(V/32), Pd, CT, 32]`` in the stored
       dtype (blocks of 32 vertices, zeros where a vertex did not keep the coefficient), ``dslot
-      [P]`` the column's slot or -1. Relit as a register-blocked GEMV: no index read, no scatter.
+      [P]`` int32 the column's slot or -1. Relit as a register-blocked GEMV: no index read, no scatter.
     * **block-sparse** — the rest, tile-major: the vertices in tiles of :attr:`TV` (a multiple of 32;
       ``tile``, default half the vertices up to 4096: a tile's accumulators, TV/8 × 128 bytes, stay in
       L2, and each thread takes whole tiles), within a tile per column
@@ -338,7 +338,7 @@ class WaveletRelighter:
         src = torch.nonzero(nzk.reshape(-1)).flatten()
         col = index.reshape(-1)[src]
         row = src // K
-        self.nnz = torch.bincount(col, minlength=P)  # [P] nonzero coefficients per column
+        self.nnz = torch.bincount(col, minlength=P).to(torch.int32)  # [P] nonzero coefficients per column (≤ V < 2^31)
         self.weights = torch.zeros(P, dtype=torch.float64).index_add_(
             0, col, vals3.abs().mean(1).reshape(-1)[src].to(torch.float64)) / max(V, 1)
         self.albedo = transfer.mesh.albedo.to(torch.float32)
@@ -350,9 +350,9 @@ class WaveletRelighter:
         b = q3.element_size()
         self.dense_min = b / (4 + b) if dense_min is None else float(dense_min)
         is_dense = self.nnz >= max(self.dense_min * V, 1)
-        self.dslot = torch.full((P,), -1, dtype=torch.int64)
+        self.dslot = torch.full((P,), -1, dtype=torch.int32)  # [P] the column's dense slot or -1 (int32: Pd ≤ P = 6R²)
         dcols = torch.nonzero(is_dense).flatten()
-        self.dslot[dcols] = torch.arange(dcols.numel())
+        self.dslot[dcols] = torch.arange(dcols.numel(), dtype=torch.int32)
         self.Pd = Pd = int(dcols.numel())
         in_dense = is_dense[col]
         nb = -(-V // self.BLOCK)

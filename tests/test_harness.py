@@ -170,7 +170,11 @@ def test_random_light_psnr_and_squared_error_by_row_blocks(monkeypatch, n_lights
     assert rel == pytest.approx(float((d * d).sum() / (X.double() ** 2).sum()), rel=1e-12)
     L = hm.random_unit_vectors(n_lights, 12, seed=4)
     brute = float(((d.reshape(103, 3, 12) @ L.T) ** 2).sum(1).mean())
-    assert abs(-10 * math.log10(brute) - hm.random_light_psnr(X, Xh, 12, n_lights=n_lights, seed=4)) < 1e-9
+    # the Gram form sums in float64 (1e-9 dB); the projection form takes float32 inputs' difference and
+    # their projection on the lights in float32 (a relative rounding of ~12 eps32 at most per product
+    # over these 12 inputs: 4.343 · 12 · 2^-24 ≈ 3e-6 dB), the squares summed in float64
+    tol = 1e-9 if n_lights >= 12 else 1e-5
+    assert abs(-10 * math.log10(brute) - hm.random_light_psnr(X, Xh, 12, n_lights=n_lights, seed=4)) < tol
 
 
 def test_psnr_vs_reference_definition():

@@ -309,7 +309,10 @@ def test_one_whole_decoder_per_cluster(tmp_path):
     L = torch.randn(25, 3, generator=torch.Generator().manual_seed(4))
     r = torch.as_tensor(c.relight(enc, L)).double()
     exact = torch.as_tensor(dec) @ L.double()
-    assert float((r - exact).abs().max()) <= 1e-5 * (1 + float(exact.abs().max()))
+    # float32 relighting's rounding scales with the magnitudes summed (|b_k| + |h| |W_k|) |l|, not with
+    # the result (the head's entries reach ~3400 here, the radiance ~55): the decode's bound, per light
+    bound = torch.as_tensor(mag) @ L.double().abs() * (64 * np.finfo(np.float32).eps)
+    assert bool(((r - exact).abs() <= bound).all()), float(((r - exact).abs() / bound).max())
     cp = codecs.get("cpca_static", clusters=3, vectors=1)
     se_cpca = cp.squared_error(X, cp.fit_encode(X))
     assert c.fit_info_["se"] < 0.9 * se_cpca, (c.fit_info_["se"], se_cpca)

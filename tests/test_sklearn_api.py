@@ -16,6 +16,7 @@ from sklearn.utils.estimator_checks import parametrize_with_checks
 
 from prt_torch import codecs
 from prt_torch.codecs.base import check_signal
+from prt_torch.codecs.gaussian import lm_native
 
 # the checks' small settings and random data stop iterations early and make lobes narrower than
 # the tables resolve: the codecs say so, which is not what is tested here
@@ -68,9 +69,11 @@ ROUNDING = ("transform of the training X reuses the fit's encoding (weights proj
 STATIC_LABELS = ("cpca_static's training encoding keeps the fit's VQ clusters (nearest centre, Sloan 2003 §4.1); encode "
                  "takes the cluster of least reconstruction error (§4.2), so a training point near a boundary is coded "
                  "in another cluster alone (other data: test_transform_invariances_at_float32_tolerance)")
-GAUSSIAN_BATCH = ("gaussian's encode is a non-linear fit (Green 2005) run in batches of vertices that iterate until the "
-                  "whole batch converges or max_iter, so a vertex fitted alone stops at another iteration than in a "
-                  "batch: its lobes agree to the fit's tolerance (tol=1e-4 of the objective), not to rtol=1e-4")
+GAUSSIAN_TORCH_LOOP = ("without the compiled LM loop (PRT_TORCH_NATIVE=0 or no C compiler) gaussian's encode runs the torch loop, "
+                       "whose batched products over [b, N, P] round differently for a batch of 64 vertices than for a few "
+                       "alone; with max_iter=3 (not converged) the lobes then differ by up to 1.4e-3 relative, above "
+                       "rtol=1e-4. The compiled loop (codecs/gaussian/lm_native.py) fits each function in its own pass, "
+                       "with its own convergence: the same bits alone or in a batch, so there the check is a plain test")
 
 AUTO_DECODER = ("neural is an auto-decoder (DeepSDF §4): the training points' codes are optimised jointly with the decoder "
                 "and returned by transform of the training X, while any other input (a subset, a permutation, an "
@@ -92,8 +95,8 @@ def expected_failed_checks(est) -> dict[str, str]:
         out["check_methods_sample_order_invariance"] = ROUNDING
     if name == "cpca_static":
         out["check_methods_subset_invariance"] = STATIC_LABELS
-    if name == "gaussian":
-        out["check_methods_subset_invariance"] = GAUSSIAN_BATCH
+    if name == "gaussian" and not lm_native.available():
+        out["check_methods_subset_invariance"] = GAUSSIAN_TORCH_LOOP
     return out
 
 

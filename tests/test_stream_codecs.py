@@ -21,6 +21,17 @@ from prt_torch.codecs.chunks import CentredRows, centred
 SMALL = 48 * 1024  # bytes per chunk in these tests: ~400-800 rows, a dozen chunks
 
 
+@pytest.fixture(scope="module", autouse=True)
+def _one_thread():
+    """Every test here in one torch thread: the comparisons (streamed vs in-memory fits, the command's
+    codes vs the library's) are within one thread count, and the fits' many short parallel regions
+    stall on OpenMP's spinning threads when other processes hold the cores (see test_stream_kinds)."""
+    from prt_torch.executor import torch_threads
+
+    with torch_threads(1):
+        yield
+
+
 def _signal(P=6000, D=16, K=12, seed=0, dtype=torch.float32):
     """Clustered low-rank signal: K centres, each with its own 3-dimensional spread, plus noise."""
     g = torch.Generator().manual_seed(seed)

@@ -38,6 +38,19 @@ CASES = {
 }
 
 
+@pytest.fixture(scope="module", autouse=True)
+def _one_thread():
+    """Every test here in one torch thread (the killed CLI runs already set ``OMP_NUM_THREADS=1``):
+    the comparisons are within one thread count (streamed vs in memory, resumed vs uninterrupted),
+    and the precomputes' many small parallel regions stall on OpenMP's spinning threads when other
+    processes hold the cores — the module took 79 s at load 11-13 for its killed-run tests with two
+    spinning threads, 19 s with ``OMP_WAIT_POLICY=PASSIVE``."""
+    from prt_torch.executor import torch_threads
+
+    with torch_threads(1):
+        yield
+
+
 def _mesh(colour: bool):
     m = builtin(GREY)
     return m.with_albedo([0.8, 0.5, 0.3]) if colour else m

@@ -26,6 +26,16 @@ MRT = {"bands": 3, "M": 3, "bands_out": 3, "samples": 16, "shadows": "always", "
 DIFFUSE = {"bands": 3, "samples": 16, "shadows": "always"}
 
 
+@pytest.fixture(scope="module", autouse=True)
+def _one_thread():
+    """Every test here in one torch thread (the memory-limited child processes already set one): the
+    comparisons (streamed vs in-memory results, resumed vs uninterrupted) are within one thread count,
+    and the short parallel regions of precomputes, fits and relights stall on OpenMP's spinning
+    threads when other processes hold the cores (see test_stream_kinds)."""
+    from prt_torch.executor import torch_threads
+
+    with torch_threads(1):
+        yield
 
 
 # ------------------------------------------------------------------------------ precompute

@@ -52,7 +52,7 @@ from ..params import Boolean, Interval, Options
 from .affine import check_enc_origin, label_dtype, signal_key
 from .cpca import CPCA, PCA, CPCAStatic
 from .base import (Codec, Encoded, Relighter, array_type, check_matrix_shape, check_signal, check_weights,
-                   encoding_state, grad_required, input_ref, register, typed, view_nbytes)
+                   encoding_state, grad_required, input_ref, register, squared_error_rows, typed, view_nbytes)
 from .segment import from_tiles, tile_layout, tiles_accumulate, to_tiles
 
 __all__ = ["NeuralCodec", "NeuralRelighter"]
@@ -249,7 +249,9 @@ class NeuralCodec(Codec):
         self.params_ = p
         dt = torch.float64 if p["fit_dtype"] == "float64" else torch.float32
         with _seeded(p["seed"]):
-            state, info = _Trainer(self, X, w, dt).run()
+            trainer = _Trainer(self, X, w, dt)
+            state, info = trainer.run()
+            del trainer.Y  # the scaled table: not needed past the fit
         cdt = torch.float16 if p["code_dtype"] == "float16" else torch.float32
         self.K_, self.D_, self.matrix_shape_ = int(state["head"].shape[0]), D, ms
         self.n_features_in_ = D
@@ -268,8 +270,7 @@ class NeuralCodec(Codec):
         self._train = (signal_key(X), input_ref(X_in), enc)
         info["seconds"] = time.perf_counter() - t0
         info["se"] = self.squared_error(X, enc, w)
-        tot = _energy(X, w)
-        info["se_relative"] = info["se"] / max(tot, 1e-300)
+        info["se_relative"] = info["se"] / max(trainer.energy, 1e-300)
         self.fit_info_ = info
         self.n_iter_ = int(info["epochs"])
         return self
@@ -474,6 +475,25 @@ class NeuralCodec(Codec):
                 out[i:i + 16384] = self._head(self._features(z[i:i + 16384].to(torch.float32), lb), lb, self.head_, self.bias_)
         return out.numpy() if enc.array_type == "numpy" else out
 
+    def squared_error(self, X, enc: Encoded, weights: torch.Tensor | None = None) -> float:
+        """Σ_p w_p ||x_p − x̃_p||² (``Codec.squared_error``'s arithmetic: ``squared_error_rows``) of
+        ``X [P, D]``, x̃ decoded by eq. (1) in blocks of about :data:`CHUNK_ELEMENTS` values — no
+        decoded ``[P, D]`` copy (661 MB at 10 242 × 16 128). Under autograd: ``Codec.squared_error``."""
+        self._check_enc(enc)
+        if grad_required(enc.tensors["z"], *self._model_tensors()):
+            return super().squared_error(X, enc, weights)
+        X = torch.as_tensor(X)
+        z = enc.tensors["z"]
+        labels = self.labels_of(enc) if self.K_ > 1 else None
+        rows = max(1, CHUNK_ELEMENTS // max(1, self.D_))
+        se = 0.0
+        with torch.no_grad():
+            for i in range(0, enc.points, rows):
+                lb = None if labels is None else labels[i:i + rows]
+                xh = self._head(self._features(z[i:i + rows].to(torch.float32), lb), lb, self.head_, self.bias_)
+                se += squared_error_rows(X[i:i + rows], xh, None if weights is None else weights[i:i + rows])
+        return se
+
     # ------------------------------------------------------------------ transform layout
     def _code_columns(self) -> list[str]:
         self._require_fitted()
@@ -612,14 +632,27 @@ def _seeded(seed: int):
         yield
 
 
-def _energy(X: torch.Tensor, w) -> float:
-    """Σ_p w_p ||x_p − x̄||² (the weighted mean x̄), float64: the denominator of ``se_relative``."""
-    Xd = X.double()
-    if w is None:
-        return float((Xd - Xd.mean(0)).square().sum())
-    wd = w.double()
-    mu = (Xd * wd[:, None]).sum(0) / wd.sum()
-    return float(((Xd - mu).square().sum(1) * wd).sum())
+def _centred_moments(X: torch.Tensor, w: torch.Tensor | None) -> tuple[torch.Tensor, float, float]:
+    """``(x̄ [D] float64, Σ_p ||x_p − x̄||², Σ_p w_p ||x_p − x̄||²)`` of ``X [P, D]`` (float32/64) with
+    the weighted mean x̄ (``w [P]`` ≥ 0 or None: the plain mean, and the two sums are equal), in
+    float64 by row blocks of :data:`CHUNK_ELEMENTS`: no float64 copy of X (at 10 242 × 16 128 a
+    1.3 GB copy and two more temporaries of its size, 7.8 M page faults in the default benchmark's
+    Gaussian part). The first sum is the scale of :class:`_Trainer`, the second the denominator of
+    ``se_relative``."""
+    P, D = X.shape
+    rows = max(1, CHUNK_ELEMENTS // max(1, D))
+    wd = None if w is None else w.double()
+    mu = torch.zeros(D, dtype=torch.float64)
+    for i in range(0, P, rows):
+        xb = X[i:i + rows].double()
+        mu += xb.sum(0) if wd is None else (xb * wd[i:i + rows, None]).sum(0)
+    mu /= P if wd is None else wd.sum()
+    ss = ssw = 0.0
+    for i in range(0, P, rows):
+        r = (X[i:i + rows].double() - mu).square_().sum(1)
+        ss += float(r.sum())
+        ssw += float(r.sum()) if wd is None else float((r * wd[i:i + rows]).sum())
+    return mu, ss, ssw
 
 
 class _Trainer:
@@ -633,11 +666,16 @@ class _Trainer:
         self.P, self.D = P, D
         wd = None if w is None else (w.double() / w.double().mean())
         self.w = None if wd is None else wd.to(dt)
-        Xd = X.double()
-        self.mu = Xd.mean(0) if wd is None else (Xd * wd[:, None]).sum(0) / wd.sum()
-        s = math.sqrt(float((Xd - self.mu).square().sum(1).mean()))
+        # x̄, the RMS norm s of x − x̄ and Σ w ||x − x̄||² (se_relative's denominator) by row blocks in
+        # float64, then Y = (X − x̄)/s block by block: each value as the whole-table float64 expression
+        # gives it, without a float64 copy of the table
+        self.mu, ss, self.energy = _centred_moments(X, w)
+        s = math.sqrt(ss / P)
         self.scale = s if s > 0 else 1.0
-        self.Y = ((Xd - self.mu) / self.scale).to(dt)
+        self.Y = torch.empty(P, D, dtype=dt)
+        rows = max(1, CHUNK_ELEMENTS // max(1, D))
+        for i in range(0, P, rows):
+            self.Y[i:i + rows] = (X[i:i + rows].double() - self.mu) / self.scale
         self.info: dict[str, Any] = {"scale": self.scale, "fit_dtype": str(dt).replace("torch.", ""), "optimizer": self.p["optimizer"]}
 
     # -- the model's tensors as a list of leaves
@@ -645,12 +683,17 @@ class _Trainer:
         p, P, D, dt = self.p, self.P, self.D, self.dt
         k, H, K = p["latent"], p["features"], p["clusters"]
         Y = self.Y
+        # the start on Y itself, in the fit's dtype: a float32 table larger than 2^23 values is fitted in
+        # float32 passes with float64 accumulation (AffineCodec.fit's ``auto``; streamed by row chunks above
+        # chunks.STREAM_BYTES, Krylov on wide rows: subspace.py), smaller ones in float64 as before. Was
+        # ``Y.double()`` always: a float64 copy of the whole table (1.3 GB at 10 242 × 16 128) and its passes
+        start_dtype = "float64" if dt == torch.float64 else "auto"
         if K == 1:
-            pc = PCA(vectors=k, seed=p["seed"], fit_dtype="float64")
+            pc = PCA(vectors=k, seed=p["seed"], fit_dtype=start_dtype)
         else:
-            pc = CPCAStatic(clusters=K, vectors=k, seed=p["seed"], fit_dtype="float64")
+            pc = CPCAStatic(clusters=K, vectors=k, seed=p["seed"], fit_dtype=start_dtype)
         with _quiet():
-            enc = pc.fit_encode(Y.double(), weights=None if self.w is None else self.w.double())
+            enc = pc.fit_encode(Y, weights=None if self.w is None else self.w.double())
         labels = pc.labels_of(enc) if K > 1 else None
         Kf = pc.K_
         basis = pc.basis_.double()  # [K, k, D]
@@ -695,13 +738,21 @@ class _Trainer:
             r = r * (self.w if idx is None else self.w[idx])
         return r
 
-    def full_loss(self, st) -> float:
+    def loss_sum(self, st, idx: torch.Tensor | None = None) -> float:
+        """Σ of :meth:`_loss_rows` over rows ``idx`` (all: None), float64, without gradients, by
+        blocks of about :data:`CHUNK_ELEMENTS` values (at D = 16 128: 130 rows; the former 16 384-row
+        blocks made three table-sized float32 temporaries — the rows, the prediction, the residual)."""
+        n = self.P if idx is None else idx.numel()
+        rows = max(1, min(16384, CHUNK_ELEMENTS // max(1, self.D)))
+        s = 0.0
         with torch.no_grad():
-            s = 0.0
-            for i in range(0, self.P, 16384):
-                idx = torch.arange(i, min(self.P, i + 16384))
-                s += float(self._loss_rows(st, idx).double().sum())
-        return s / self.P
+            for i in range(0, n, rows):
+                part = torch.arange(i, min(n, i + rows)) if idx is None else idx[i:i + rows]
+                s += float(self._loss_rows(st, part).double().sum())
+        return s
+
+    def full_loss(self, st) -> float:
+        return self.loss_sum(st) / self.P
 
     @staticmethod
     def _clone(st):
@@ -855,8 +906,7 @@ class _Trainer:
                 t.requires_grad_(r)
 
     def _hold_loss(self, st, hold) -> float:
-        with torch.no_grad():
-            return float(self._loss_rows(st, hold).double().sum()) / max(1, hold.numel())
+        return self.loss_sum(st, hold) / max(1, hold.numel())
 
     # -- full-batch L-BFGS
     def _lbfgs(self, st, train, hold):
@@ -903,8 +953,7 @@ class _EarlyStop:
         self.crit_hold = hold.numel() > 0
         self.best_crit = tr._hold_loss(st, hold) if self.crit_hold else tr.full_loss(st)
         self.best = tr._clone(st)
-        with torch.no_grad():
-            self.best_train = float(tr._loss_rows(st, train).double().sum()) / max(1, train.numel())  # the start's (PCA)
+        self.best_train = tr.loss_sum(st, train) / max(1, train.numel())  # the start's (PCA)
         self.best_epoch, self.bad, self.stop, self.hist = 0, 0, {"stopped": "max_epochs"}, []
         self.bar = _bar(tr.p["progress"], tr.p["epochs"])
 

@@ -72,29 +72,51 @@ def random_unit_vectors(n: int, dim: int, seed: int = 0) -> torch.Tensor:
     return v / v.norm(dim=-1, keepdim=True)
 
 
+def _light_block(x: torch.Tensor, x_hat: torch.Tensor, rows: slice, n_in: int, L: torch.Tensor, gram: bool) -> torch.Tensor:
+    """One row block's float64 term of :func:`random_light_psnr`: Δᵀ Δ ``[n_in, n_in]`` (Gram form) or
+    Σ ‖Δ Lᵀ‖² ``[]`` (projection form) of Δ = x − x̂ ``[rows·n_out, n_in]``. float32 inputs: Δ in float32
+    (one rounding of the difference), the projection a float32 GEMM over n_in terms with each row's norm
+    in float32 and the squares summed in float64, the Gram form in float64 (its reduction runs over
+    every row of the block); float64 inputs: all in float64."""
+    f32 = x.dtype == x_hat.dtype == torch.float32
+    d = (x[rows] - x_hat[rows]) if f32 else (x[rows].double() - x_hat[rows].double())
+    d = d.reshape(-1, n_in)
+    if gram:
+        d = d.double()
+        return d.T @ d
+    return torch.linalg.vector_norm(d @ L.to(d.dtype).T, dim=1).double().square().sum()
+
+
 def random_light_psnr(x: torch.Tensor, x_hat: torch.Tensor, n_in: int, n_lights: int = 64, seed: int = 0) -> float:
     """Monte Carlo PSNR_avg of MRT eq. 11 over ``n_lights`` random norm-1 lighting vectors.
 
-    ``x, x_hat``: ``[P, n_out·n_in]`` (row-major matrices) or ``[P, n_in]`` (vectors).
-    E_l{‖Δ l‖²}/P, exact for the sampled lights, in float64 by row blocks of Δ = x − x̂
-    (``[P·n_out, n_in]``): with n_lights ≥ n_in in the Gram form E_l{lᵀ G l} with G = Σ Δᵀ Δ
-    (one GEMM of n_in² per row), else as Σ ‖Δ Lᵀ‖² / n_lights (n_lights per row: a 384-texel
-    transport table with 128 lights needs a third of the Gram form's multiply-adds) — the same
-    quantity, summed in another order.
+    ``x, x_hat``: ``[P, n_out·n_in]`` (row-major matrices) or ``[P, n_in]`` (vectors), float32 or
+    float64. E_l{‖Δ l‖²}/P, exact for the sampled lights, by row blocks of Δ = x − x̂
+    (``[P·n_out, n_in]``, :data:`BLOCK_ELEMENTS` values each): with n_lights ≥ n_in in the Gram form
+    E_l{lᵀ G l} with G = Σ Δᵀ Δ in float64 (one GEMM of n_in² per row), else as Σ ‖Δ Lᵀ‖² / n_lights
+    (n_lights per row: a 384-texel transport table with 128 lights needs a third of the Gram form's
+    multiply-adds) — for float32 inputs a float32 GEMM, each row's norm in float32 and every square
+    summed in float64 (:func:`_light_block`; relative to a float64 evaluation ~1e-7, tested against
+    numpy's). The blocks run on the process's torch threads, each block in one thread, their float64
+    terms added in block order: the figure does not depend on the thread count (a Ray worker runs
+    one; MKL splitting one GEMM's long reduction between threads made G's last bits depend on it).
     """
     P = x.shape[0]
     L = random_unit_vectors(n_lights, n_in, seed)
     gram = n_lights >= n_in
-    acc = torch.zeros(n_in, n_in, dtype=torch.float64) if gram else torch.zeros((), dtype=torch.float64)
-    # in one thread: MKL splits the GEMM's long P·n_out reduction between threads on some CPUs (an Intel
-    # Xeon here), so G's last bits, and the figure's, depended on the thread count (a Ray worker runs one)
+    blocks = list(_row_blocks(x))
+    workers = min(len(blocks), max(1, torch.get_num_threads()))
     with torch_threads(1):
-        for rows in _row_blocks(x):
-            d = (x[rows].double() - x_hat[rows].double()).reshape(-1, n_in)  # [rows·n_out, n_in]
-            if gram:
-                acc += d.T @ d
-            else:
-                acc += torch.linalg.vector_norm(d @ L.T).square()
+        if workers > 1:
+            from concurrent.futures import ThreadPoolExecutor
+
+            with ThreadPoolExecutor(workers) as pool:  # torch's kernels release the GIL
+                terms = list(pool.map(lambda rows: _light_block(x, x_hat, rows, n_in, L, gram), blocks))
+        else:
+            terms = [_light_block(x, x_hat, rows, n_in, L, gram) for rows in blocks]
+        acc = torch.zeros(n_in, n_in, dtype=torch.float64) if gram else torch.zeros((), dtype=torch.float64)
+        for t in terms:  # in block order: the same sum whatever the thread count
+            acc += t
         mse = (float(torch.einsum("li,ij,lj->l", L, acc, L).mean()) if gram else float(acc) / n_lights) / P
     return psnr_from_mse(mse)
 

@@ -227,7 +227,7 @@ typedef struct {
     const i64 *tbase;           /* [NT] the tile's first block */
     const int32_t *bofs;        /* [NB] the block's accumulator: byte offset in its tile's scratch */
     const void *bvals;          /* [NB, CT, 8] stored values of the sparse blocks */
-    const i64 *dslot;           /* [P] the column's dense slot, or -1 */
+    const int32_t *dslot;       /* [P] the column's dense slot, or -1 (not read here: the kernel lists the dense terms from cls and dcol) */
     const void *dense;          /* [ceil(V/32), Pd, CT, 32] stored values of the dense columns */
     float *acc;                 /* scratch [MT, TV/8, 4, 8] */
     i64 *wk;                    /* scratch [P]: the dense terms' slots, then (from Pd) the sparse terms' columns */
