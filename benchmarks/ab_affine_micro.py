@@ -142,6 +142,7 @@ def main() -> int:
     flags = " ".join(src_b[1])
     info = machine_info()
     lines = [f"# Affine point kernels, bare C: {args.base} (base) vs {args.test if args.test != '.' else 'working tree'} (test)\n",
+             f"Reproduce: `.venv/bin/python benchmarks/ab_affine_micro.py {' '.join(sys.argv[1:])}`\n",
              f"{cpu_label(info)}, load average {load0:.1f} before, {os.getloadavg()[0]:.1f} after; {args.points} points, one "
              f"thread, CPU time (median of {args.reps} calls per run, {args.rounds} alternating runs per side); kernels compiled "
              f"with `{flags}`.\n",
