@@ -156,3 +156,32 @@ def test_mrt_pca_taps_match_the_uncompressed_reference(vectors):
             outs.append(c.relight(enc, L, view=(idx, w)))
     assert torch.equal(outs[0], outs[1])
     assert ((outs[0].double() - ref).abs() <= 2e-6 * scale).all()
+
+
+def test_kernel_path_names_the_loop_within_the_path():
+    """``kernel_path`` reports the loop the dispatch takes within a path, from the kernels' own test
+    (``prt_taps_seq_path``, ``prt_fixed_rows_path`` via ``prt_plan_path``): on an AVX2 build without
+    AVX-512, MRT-PCA 16 with 4 taps the one-cluster four-tap loop, with 3 taps the in-order one,
+    CPCA of diffuse vectors with uint8 labels the 8-labels-per-load loop; an AVX-512 build none."""
+    lib = _lib()
+    from prt_torch.codecs.relight_kernels import kernel_path
+
+    avx2_only = kernel_path()["isa"] == "avx2"
+    X = transfer_like(300, 49, 25, seed=0)
+    c = codecs.get("mrt_pca", vectors=16)
+    enc = c.fit_encode(X, matrix_shape=(49, 25))
+    four = c.kernel_path(enc, tent_taps_random(300, 7, seed=0))["path"]
+    three = c.kernel_path(enc, (torch.zeros(300, 3, dtype=torch.long), torch.rand(300, 3)))["path"]
+    Xd = transfer_like(300, 1, 16, seed=1).reshape(300, 16)
+    cd = codecs.get("cpca_static", clusters=4, vectors=4)
+    encd = cd.fit_encode(Xd)
+    rows = cd.kernel_path(encd)["path"]
+    assert four.startswith("taps: RGB, 8 points") and three.startswith("taps: RGB, 8 points"), (four, three)
+    assert rows.startswith("rows/1 vector: fixed term count"), rows
+    if avx2_only and lib.prt_isa() & 4:  # AVX2 with FMA, no AVX-512
+        assert four.endswith("(points in order, one cluster, 4 taps)"), four
+        assert three.endswith("(points in order, constant strides, weight rows in place)"), three
+        assert rows.endswith("(uint8 labels, RGB: 8 labels per load, 16-byte stores)"), rows
+    elif kernel_path()["isa"] == "avx512":
+        assert "(" not in four.split("8 points")[1] or four.endswith("(8 lanes)"), four
+        assert rows == "rows/1 vector: fixed term count (weights broadcast)", rows

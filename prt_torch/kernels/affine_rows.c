@@ -153,6 +153,18 @@ static inline __attribute__((always_inline)) void vq_rgb4(const float *T, uint64
    constants' address and a chain of n multiply-adds, and fewer loads per point leave room for more points in the
    load queue. The loop stops at the caller's `last`, where a whole-vector store would end past the range. Returns
    where it stopped. */
+#if defined(__AVX2__) && !defined(__AVX512F__)
+/* whether rows_fixed (term count nuse) takes its 8-labels-per-load loop below (PRT_FIXED_U8_RGB, prt_kernels.h; 0: the
+   one-point loop): the loop tests it, prt_plan_path reports it (only in these builds) */
+int prt_fixed_rows_path(i64 Fo, int lab_kind, i64 wstride, i64 nuse, i64 J) {
+#if defined(__FMA__)
+    return lab_kind == 1 && Fo == 3 && wstride == nuse && J == nuse + 1 ? PRT_FIXED_U8_RGB : 0;
+#else
+    (void)Fo; (void)lab_kind; (void)wstride; (void)nuse; (void)J;
+    return 0;
+#endif
+}
+#endif
 /* one point's chain: T_k[0] + sum_i w_i T_k[1+i] (t: T_k, w: its n weights) */
 static inline __attribute__((always_inline)) v8 fixed_chain(const float *t, const float *w, const int n) {
     v8 a = LD(t);
@@ -183,7 +195,7 @@ static inline __attribute__((always_inline)) i64 rows_fixed(i64 q, i64 last, i64
        alone 1.04x). Not kept: two points per vector (one in each half, their 4 weights one 32-byte load, rows
        blended or inserted: 0.95-0.99x, no fewer loads), pairs of points in one 32-byte store (0.94x), 4-lane
        arithmetic (1.00x). The same chain per point (fixed_chain), so the same bits. */
-    if (lab_kind == 1 && Fo == 3 && ws == n && J == n + 1)  /* RGB rows, weights rows of n, n terms: constant strides */
+    if (prt_fixed_rows_path(Fo, lab_kind, ws, n, J))  /* RGB rows, weights rows of n, n terms: constant strides */
         for (; q + 7 <= last; q += 8) {
             uint64_t l8;
             __builtin_memcpy(&l8, (const uint8_t *)lab + q, 8);

@@ -104,14 +104,14 @@ TAPS3V(1) TAPS3V(2) TAPS3V(3) TAPS3V(4)
    it stopped (the last p1 - q < 8 points are the caller's). */
 #if defined(__AVX2__) && !defined(__AVX512F__)
 #define TAPS_SEQ(NBJ)                                                                            \
-static __attribute__((noinline)) int taps_seq_##NBJ(i64 *qp, i64 p1, i64 n_out, const void *lab, int lab_kind,       \
+static __attribute__((noinline)) int taps_seq_##NBJ(int seq, i64 *qp, i64 p1, i64 n_out, const void *lab, int lab_kind, \
         const float *W, i64 wstride, const i64 *woff, const i64 *nk, i64 nuse, int mean, const float *T, i64 ntap,    \
         const i64 *idx, const float *g, float *out) {                                           \
     enum { Jp = 8 * NBJ, R = 3 * Jp };                                                           \
     v8 Rv[24];                                                                                   \
     int flag = 0;                                                                                \
     i64 q = *qp;                                                                                 \
-    if (W && !woff && !nk && !mean && nuse == Jp && !lab && ntap == 4)                           \
+    if (seq == PRT_SEQ_TAPS_K1_4)                                                                \
         for (; q + 8 <= p1; q += 8) {  /* one cluster, four taps (MRT-PCA): constants at T */     \
             for (int l = 0; l < 8; l++) {                                                        \
                 const i64 p = q + l;                                                             \
@@ -121,7 +121,7 @@ static __attribute__((noinline)) int taps_seq_##NBJ(i64 *qp, i64 p1, i64 n_out, 
             const i64 pl[8] = {q, q + 1, q + 2, q + 3, q + 4, q + 5, q + 6, q + 7};              \
             flag |= store8_rgb(Rv, out, pl, 1);                                                  \
         }                                                                                        \
-    else if (W && !woff && !nk && !mean && nuse == Jp)                                           \
+    else if (seq == PRT_SEQ_TAPS_EXACT)                                                           \
         for (; q + 8 <= p1; q += 8) {                                                            \
             for (int l = 0; l < 8; l++) {                                                        \
                 const i64 p = q + l;                                                             \
@@ -147,6 +147,14 @@ static __attribute__((noinline)) int taps_seq_##NBJ(i64 *qp, i64 p1, i64 n_out, 
     return flag;                                                                                 \
 }
 #define HAVE_TAPS_SEQ 1
+/* which of taps_seq's loops prt_affine_taps_range runs for these shapes and codes (PRT_SEQ_TAPS_*, prt_kernels.h; 0:
+   none, the general pass): the dispatch switches on it and prt_plan_path reports it (only in these builds) */
+int prt_taps_seq_path(i64 C, i64 Jp, const void *lab, const float *W, const i64 *woff, const i64 *nk, i64 nuse, int mean, i64 ntap,
+                      const int32_t *order) {
+    if (order || C != 3 || Jp < 8 || Jp / 8 > 4) return 0;
+    if (W && !woff && !nk && !mean && nuse == Jp) return !lab && ntap == 4 ? PRT_SEQ_TAPS_K1_4 : PRT_SEQ_TAPS_EXACT;
+    return PRT_SEQ_TAPS;
+}
 #else
 #define HAVE_TAPS_SEQ 0
 #endif
@@ -320,12 +328,13 @@ static int prt_affine_taps_range(const int32_t *order, int csort, i64 p0, i64 p1
         float wv[32];
         i64 pl[8];
 #if HAVE_TAPS_SEQ
-        if (!order) {
+        const int seq = prt_taps_seq_path(C, Jp, lab, W, woff, nk, nuse, mean, ntap, order);
+        if (seq) {
             switch (Jp / 8) {
-            case 1: flag |= taps_seq_1(&q, p1, n_out, lab, lab_kind, W, wstride, woff, nk, nuse, mean, T, ntap, idx, g, out); break;
-            case 2: flag |= taps_seq_2(&q, p1, n_out, lab, lab_kind, W, wstride, woff, nk, nuse, mean, T, ntap, idx, g, out); break;
-            case 3: flag |= taps_seq_3(&q, p1, n_out, lab, lab_kind, W, wstride, woff, nk, nuse, mean, T, ntap, idx, g, out); break;
-            default: flag |= taps_seq_4(&q, p1, n_out, lab, lab_kind, W, wstride, woff, nk, nuse, mean, T, ntap, idx, g, out); break;
+            case 1: flag |= taps_seq_1(seq, &q, p1, n_out, lab, lab_kind, W, wstride, woff, nk, nuse, mean, T, ntap, idx, g, out); break;
+            case 2: flag |= taps_seq_2(seq, &q, p1, n_out, lab, lab_kind, W, wstride, woff, nk, nuse, mean, T, ntap, idx, g, out); break;
+            case 3: flag |= taps_seq_3(seq, &q, p1, n_out, lab, lab_kind, W, wstride, woff, nk, nuse, mean, T, ntap, idx, g, out); break;
+            default: flag |= taps_seq_4(seq, &q, p1, n_out, lab, lab_kind, W, wstride, woff, nk, nuse, mean, T, ntap, idx, g, out); break;
             }
         }
 #endif
