@@ -93,7 +93,7 @@ TAPS3V(1) TAPS3V(2) TAPS3V(3) TAPS3V(4)
    addressed by immediate offsets from one pointer, where the general pass holds the runtime Jp's multiples in stack
    slots and reloads one per FMA; and the per-point bookkeeping of the general pass (the visiting order, the prefetches,
    the switch on Jp / 8, the weights' view) is decided once per range. Every point is taps3v_NBJ's: the same FMAs in
-   the same order, so the same bits. `exact`: every point's term weights are its stored row (no mean, nuse = Jp, rows
+   the same order, so the same bits. PRT_SEQ_TAPS_EXACT: every point's term weights are its stored row (no mean, nuse = Jp, rows
    of weights, no per-cluster counts: MRT-PCA with 8, 16, 24 or 32 vectors), read by plain loads; else formed in
    registers (term_weights8); one cluster with four taps per point (MRT-PCA's tents) has a loop of its own, the tap
    count a constant (the four-valid-taps test then one branch) and no label to read. Measured on Zen 3 (C
