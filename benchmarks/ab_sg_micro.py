@@ -117,9 +117,9 @@ int main(int argc, char **argv) {
 """
 
 
-def build(sources: dict[str, str], flags: list[str], work: Path, name: str) -> Path:
+def build(sources: dict[str, str], flags: list[str], work: Path, name: str, main: str = MAIN) -> Path:
     """An executable of the kernels ``sources`` (``{file name: C text}``; their compile flags, as a
-    program) and ``MAIN``."""
+    program) and ``main`` (default ``MAIN``; ``ab_affine_micro`` passes its own)."""
     cc = shutil.which("cc") or shutil.which("gcc")
     if cc is None:
         raise SystemExit("ab_sg_micro: no C compiler (cc or gcc) on PATH; accepted: a machine where the kernels compile")
@@ -133,7 +133,7 @@ def build(sources: dict[str, str], flags: list[str], work: Path, name: str) -> P
         units = ["unity.c"]
     units = [str(d / n) for n in units]
     src = "\n".join(sources.values())
-    (work / "main.c").write_text(MAIN)
+    (work / "main.c").write_text(main)
     exe = work / name
     fl = [f for f in flags if f not in ("-shared", "-fPIC")]
     if re.search(r"int prt_sg_taps\([^)]*i64 fv, i64 fj", src):  # and view-major ones (given vertex-major data here)

@@ -800,7 +800,10 @@ def test_rows_of_one_vector_by_term_count_and_label_kind():
     """The one-vector rows pass specialises points in order by term count (1-8), label kind and
     row stride of the weights (loaded 8 at a time where the stride allows): every combination
     gives the bits of the generic one-point chain (the same points visited in a random order take
-    it), for 1-3 threads, with weights rows wider than the terms used, and agrees with float64."""
+    it), for 1-3 threads, with weights rows wider than the terms used, and agrees with float64.
+    AVX2 builds without AVX-512 run uint8 labels of RGB rows with weights rows of exactly the terms
+    8 points per label load with 16-byte stores (P = 67: several blocks, then the one-point loop and
+    the tail, at every thread split)."""
     lib = relight_kernels.native()
     if lib is None:
         pytest.skip("no compiled kernels")
@@ -809,7 +812,7 @@ def test_rows_of_one_vector_by_term_count_and_label_kind():
         for extra in (0, 3):
             ws = nuse + extra
             for lab_dtype in (None, torch.uint8, torch.int16, torch.int32):
-                for P, Fo in ((5, 3), (37, 3), (37, 1), (37, 8)):
+                for P, Fo in ((5, 3), (37, 3), (67, 3), (37, 1), (37, 8)):
                     K, J = (1 if lab_dtype is None else 7), nuse + 1
                     T = torch.randn(K, J, 8, generator=g)
                     T[..., Fo:] = 0.0

@@ -149,6 +149,11 @@ _PATH_NAMES = {1: "rows: VQ row copy", 2: "rows/1 vector: VQ RGB, 8 points (uint
                9: "rows: 8 lanes", 10: "dense: VQ, 8 lanes, 8 points", 11: "dense: 16 lanes (AVX-512)",
                12: "dense: 8 lanes, RGB, two points per load", 13: "dense: 8 lanes, RGB", 14: "dense: per colour, 8 lanes",
                15: "taps: one term", 16: "taps: RGB, 8 points (8 lanes)", 17: "taps: general"}
+#: the loop within a path (AVX2 builds without AVX-512: prt_plan_path returns path + 32 x its code, PRT_SUBPATH and
+#: PRT_SEQ_TAPS_* / PRT_FIXED_U8_RGB in kernels/prt_kernels.h), by path
+_SUBPATH_NAMES = {5: {1: "uint8 labels, RGB: 8 labels per load, 16-byte stores"},
+                  16: {1: "points in order, constant strides", 2: "points in order, constant strides, weight rows in place",
+                       3: "points in order, one cluster, 4 taps"}}
 
 
 def _isa_name(bits: int) -> str:
@@ -176,7 +181,10 @@ def kernel_path(pl: "Plan | None" = None) -> dict:
     if pl is not None:
         code = int(lib.prt_plan_path(pl.args_ptr))
         out["path_code"] = code
-        out["path"] = _PATH_NAMES.get(code, f"code {code}")
+        path, sub = code % 32, code // 32
+        out["path"] = _PATH_NAMES.get(path, f"code {path}")
+        if sub:
+            out["path"] += f" ({_SUBPATH_NAMES.get(path, {}).get(sub, f'loop {sub}')})"
     return out
 
 

@@ -47,6 +47,20 @@ int prt_plan_path(const i64 *a) {
     const void *lab = PL_PTR(PL_LAB, const void *);
     const float *W = PL_PTR(PL_W, const float *);
     const int32_t *order = PL_PTR(PL_ORDER, const int32_t *);
+#if defined(__AVX2__) && !defined(__AVX512F__)  /* the loops within a path that only these builds have */
+    if (a[PL_KIND] == 0) {
+        const int path = prt_rows_path(a[PL_X], a[PL_FO], a[PL_J], lab, W, PL_PTR(PL_WOFF, const i64 *), PL_PTR(PL_NK, const i64 *),
+                                       a[PL_NUSE], (int)a[PL_MEAN], order);
+        return path == PRT_ROWS_SMALL_FIXED ? path + PRT_SUBPATH * prt_fixed_rows_path(a[PL_FO], (int)a[PL_LABKIND], a[PL_WSTRIDE],
+                                                                                            a[PL_NUSE], a[PL_J]) : path;
+    }
+    if (a[PL_KIND] == 2) {
+        const int path = prt_taps_path(a[PL_C], a[PL_X]);
+        return path == PRT_TAPS_RGB8 ? path + PRT_SUBPATH * prt_taps_seq_path(a[PL_C], a[PL_X], lab, W, PL_PTR(PL_WOFF, const i64 *),
+                                                                             PL_PTR(PL_NK, const i64 *), a[PL_NUSE], (int)a[PL_MEAN],
+                                                                             a[PL_NTAP], order) : path;
+    }
+#endif
     switch (a[PL_KIND]) {
     case 0:
         return prt_rows_path(a[PL_X], a[PL_FO], a[PL_J], lab, W, PL_PTR(PL_WOFF, const i64 *), PL_PTR(PL_NK, const i64 *), a[PL_NUSE],
