@@ -27,9 +27,7 @@ from __future__ import annotations
 
 import argparse
 import os
-import re
 import statistics
-import subprocess
 import sys
 import tempfile
 from pathlib import Path
@@ -105,11 +103,6 @@ int main(int argc, char **argv) {
 """
 
 
-def run(exe: Path, points: int, reps: int) -> dict[str, tuple[float, str]]:
-    out = subprocess.run([str(exe), str(points), str(reps)], capture_output=True, text=True, check=True).stdout
-    return {m.group(1): (float(m.group(2)), m.group(3)) for m in re.finditer(r"^(\w+) (\S+) (\S+)$", out, re.M)}
-
-
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--base", default="HEAD", help="git revision of the reference kernels (default HEAD)")
@@ -136,7 +129,7 @@ def main() -> int:
         sums: dict[str, dict[str, str]] = {"base": {}, "test": {}}
         for _ in range(args.rounds):
             for side in ("base", "test"):
-                for kernel, (ns, cs) in run(exes[side], args.points, args.reps).items():
+                for kernel, (ns, cs) in ab_sg_micro.run(exes[side], args.points, args.reps).items():
                     times[side].setdefault(kernel, []).append(ns)
                     sums[side][kernel] = cs
     flags = " ".join(src_b[1])

@@ -147,8 +147,10 @@ def build(sources: dict[str, str], flags: list[str], work: Path, name: str, main
     return exe
 
 
-def run(exe: Path, lookups: int, vertices: int, reps: int) -> dict[str, tuple[float, str]]:
-    out = subprocess.run([str(exe), str(lookups), str(vertices), str(reps)], capture_output=True, text=True, check=True).stdout
+def run(exe: Path, *args: int) -> dict[str, tuple[float, str]]:
+    """Run a built micro-benchmark program with its integer arguments; its lines ``kernel ns checksum``
+    as {kernel: (ns, checksum)} (this program: lookups, vertices, reps; ab_affine_micro's: points, reps)."""
+    out = subprocess.run([str(exe), *map(str, args)], capture_output=True, text=True, check=True).stdout
     return {m.group(1): (float(m.group(2)), m.group(3)) for m in re.finditer(r"^(\w+) (\S+) (\S+)$", out, re.M)}
 
 
