@@ -56,7 +56,7 @@ __all__ = ["check_disk_space", "choose_cube_res", "lobe_width", "texel_spacing",
 
 MAX_CUBE_RES = 64
 #: torch threads in a transport chunk's own work (the BRDF on the pairs): the other core runs the
-#: ray-casting workers (measured in reports/benchmarks/kinds.md)
+#: ray-casting workers (measured in reports/benchmarks/kinds.md); the texel averages, cast no ray, use all (``average_threads``)
 CHUNK_THREADS = 1
 
 
@@ -254,7 +254,8 @@ PAIR_BLOCK = 1 << 16
 def _chunk_transport(caster, brdf, points, normals, frames, texels, views, mat_index, shadows,
                      dtype: torch.dtype = torch.float64, out: torch.Tensor | None = None,
                      plan: dict[str, Any] | None = None,
-                     sub_texels: dict[int, tuple[torch.Tensor, torch.Tensor]] | None = None) -> torch.Tensor:
+                     sub_texels: dict[int, tuple[torch.Tensor, torch.Tensor]] | None = None,
+                     average_threads: int | None = None) -> torch.Tensor:
     """T for k vertices: ``[k, J, P]`` (P = 6r² texels) in ``dtype`` (the values computed in
     float64 and rounded once: the stored dtype is written directly), Green 2005 eq. 1.2.
 
@@ -270,7 +271,11 @@ def _chunk_transport(caster, brdf, points, normals, frames, texels, views, mat_i
     directions and ``[P, S²]`` solid-angle shares} for every S the plan uses): the pairs of a view beyond ``cos_view`` and a
     texel within the cap about its mirror direction hold V_p Σ_s a_s f_r(ω_s, ω_o) max(n·ω_s, 0),
     the texel average (V_p: one ray per texel, toward its centre, or toward its highest sub-texel
-    when the centre is below the horizon and a sub-texel is not)."""
+    when the centre is below the horizon and a sub-texel is not). ``average_threads``: torch threads
+    for those averages (None: the caller's count); :func:`precompute_transport` passes the process's
+    count, since no ray is cast while they run (the rest of the chunk runs in :data:`CHUNK_THREADS`,
+    the other cores being the ray-casting workers'). The values do not depend on it (elementwise
+    work and a per-pair sum: tested)."""
     cos = normals @ texels.T  # [k, P]
     W = cos.clamp_min(0)
     vis_any = None
@@ -314,7 +319,8 @@ def _chunk_transport(caster, brdf, points, normals, frames, texels, views, mat_i
         f = b.eval(wi[iv, pv], wo[iv, jv])  # [N]
         T[v0:v1].masked_scatter_(mask.view(v1 - v0, J * P), (f * W[iv, pv]).to(dtype))
     if plan is not None:
-        _average_texels(T, brdf, frames, normals, wo, vis_any, views, mat_index, plan, sub_texels, texels, dtype)
+        with torch_threads(average_threads or torch.get_num_threads()):
+            _average_texels(T, brdf, frames, normals, wo, vis_any, views, mat_index, plan, sub_texels, texels, dtype)
     return T.view(k, J, P)
 
 
@@ -509,10 +515,11 @@ def precompute_transport(
         a, b = ranges[c]
         if not buffer:
             buffer.append(torch.empty(chunk_size * J * P, dtype=store))
+        threads = torch.get_num_threads()  # this process's (a Ray task's: its CPUs): the texel averages use them all
         with torch_threads(CHUNK_THREADS):
             T = _chunk_transport(caster, brdf, mesh.vertices[a:b], mesh.normals[a:b], F[a:b], texels_flat,
                                  view_dirs, None if mat_index is None else mat_index[a:b], shadows, store, out=buffer[0],
-                                 plan=plan, sub_texels=subs)
+                                 plan=plan, sub_texels=subs, average_threads=threads)
         return [T.reshape(b - a, J, 6, res, res)]
 
     def finished(c: int, box: list[torch.Tensor] | None) -> None:
