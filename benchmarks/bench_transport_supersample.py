@@ -2,7 +2,7 @@
 cost (``precompute_transport(supersample='auto')`` against point values, ``supersample=1``).
 
     .venv/bin/python benchmarks/bench_transport_supersample.py [--scene scan_blob] [--res 13]
-        [--vertices 60] [--repeats 3] [--out reports/benchmarks/transport_supersample.md]
+        [--vertices 60] [--repeats 3] [--threads 2] [--against /tmp/ss_old] [--out reports/benchmarks/transport_supersample.md]
 
 One chunk of the table (``transport._chunk_transport``: the shadow rays, the BRDF on the (upper view,
 visible texel) pairs, and with 'auto' the texel averages of the grazing views) for ``--vertices``
@@ -11,6 +11,13 @@ two forms alternating ``--repeats`` times in one process: this thread's CPU time
 the machine's load does not enter the ratio) and the pairs evaluated. The ray casting runs in this
 thread too (``RayCaster(workers=1)``'s in-process path) and is the same in both. Prints and writes a
 markdown table naming the CPU and the load.
+
+A third form, 'auto' with the texel averages in ``--threads`` torch threads (``average_threads``, what
+``precompute_transport`` uses: the process's threads, since no ray is cast while they run), is timed by
+wall clock (its CPU time is spread over threads) next to the wall clock of the one-thread forms, and
+checked bit for bit against the one-thread table. ``--against DIR``: a checkout of another revision
+(``git archive main | tar -x -C DIR``) whose ``_average_texels`` is timed too, one thread, in this process
+(its source run in this module's namespace), and its table compared bit for bit.
 """
 from __future__ import annotations
 
@@ -47,6 +54,8 @@ def main(argv=None) -> int:
     ap.add_argument("--res", type=int, default=13)
     ap.add_argument("--vertices", type=int, default=60)
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--against", default=None)
     ap.add_argument("--out", default=None)
     a = ap.parse_args(argv)
     torch.set_num_threads(1)
@@ -59,31 +68,59 @@ def main(argv=None) -> int:
     plan = TT.supersample_plan(brdf, a.res, "auto")
     subs = TT.sub_texel_sets(a.res, plan)
     load0 = os.getloadavg()
-    t = {"point": [], "auto": []}
+    forms = {"point": {}, "auto": {"plan": plan, "sub_texels": subs, "average_threads": 1},
+             "threads": {"plan": plan, "sub_texels": subs, "average_threads": a.threads}}
+    mine = TT._average_texels
+    if a.against:
+        src = (Path(a.against) / "prt_torch/transfer/transport.py").read_text()
+        ns = dict(vars(TT))
+        exec(src[src.index("def _average_texels("):src.index("def check_disk_space(")], ns)
+        forms["against"] = {"plan": plan, "sub_texels": subs}
+    t: dict[str, list[float]] = {k: [] for k in forms}
+    w: dict[str, list[float]] = {k: [] for k in forms}
+    out = {}
     with RayCaster(mesh, workers=1) as c:
         args = (c, brdf, mesh.vertices[idx], mesh.normals[idx], F[idx], texels, views, None, True, torch.float32)
-        for _ in range(a.repeats):  # alternating: the two forms see the same machine state
-            for name in ("point", "auto"):
-                t0 = time.thread_time()
-                TT._chunk_transport(*args, **({"plan": plan, "sub_texels": subs} if name == "auto" else {}))
+        for _ in range(a.repeats):  # alternating: the forms see the same machine state
+            for name, kw in forms.items():
+                TT._average_texels = ns["_average_texels"] if name == "against" else mine
+                t0, w0 = time.thread_time(), time.perf_counter()
+                out[name] = TT._chunk_transport(*args, **kw)
                 t[name].append(time.thread_time() - t0)
+                w[name].append(time.perf_counter() - w0)
+    TT._average_texels = mine
     load1 = os.getloadavg()
+    same = torch.equal(out["threads"], out["auto"])
     best = {k: min(v) for k, v in t.items()}
+    wbest = {k: min(v) for k, v in w.items()}
     lines = [
         "# Transport tables: the cost of texel averages (issue 42 §2)",
         "",
-        f"`benchmarks/bench_transport_supersample.py --scene {a.scene} --res {a.res} --vertices {a.vertices} --repeats {a.repeats}`"
-        f" — CPU {_cpu()}, torch {torch.__version__}, one thread, load {load0[0]:.1f} → {load1[0]:.1f} (a shared machine: the"
+        f"`benchmarks/bench_transport_supersample.py --scene {a.scene} --res {a.res} --vertices {a.vertices} --repeats {a.repeats} "
+        f"--threads {a.threads}{' --against ' + a.against if a.against else ''}`"
+        f" — CPU {_cpu()}, torch {torch.__version__}, one thread except the averages of the threads row,"
+        f" load {load0[0]:.1f} → {load1[0]:.1f} (a shared machine: the"
         " figures are this thread's CPU time, paired and alternating in one process).",
         "",
         f"One table chunk of {len(idx)} vertices × {views.shape[0]} views × 6×{a.res}×{a.res} texels (default BRDF); 'auto': {plan['reason']}.",
         "",
-        "| form | CPU s per chunk (each repeat) | best | ratio to point values |",
-        "|---|---|---:|---:|",
+        "| form | thread CPU s per chunk (each repeat) | best | ratio to point values | wall s (each repeat) | best wall | wall ratio |",
+        "|---|---|---:|---:|---|---:|---:|",
     ]
-    for k in ("point", "auto"):
-        lines.append(f"| {'point values (supersample 1)' if k == 'point' else 'texel averages (supersample auto)'} | "
-                     f"{', '.join(f'{x:.2f}' for x in t[k])} | {best[k]:.2f} | {best[k] / best['point']:.2f} |")
+    names = {"point": "point values (supersample 1)", "auto": "texel averages (supersample auto), one thread",
+             "threads": f"texel averages, averages in {a.threads} threads", "against": f"texel averages, one thread, {a.against}'s code"}
+    for k in forms:
+        cpu = (f"{', '.join(f'{x:.3f}' for x in t[k])} | {best[k]:.3f} | {best[k] / best['point']:.2f}" if k != "threads"
+               else "(spread over threads) | | ")
+        lines.append(f"| {names[k]} | {cpu} | {', '.join(f'{x:.3f}' for x in w[k])} | {wbest[k]:.3f} | {wbest[k] / wbest['point']:.2f} |")
+    lines += ["", f"The {a.threads}-thread table {'equals' if same else 'DIFFERS from'} the one-thread table bit for bit; "
+              f"texel averages alone (best minus point values, wall): {wbest['auto'] - wbest['point']:.2f} s in one thread, "
+              f"{wbest['threads'] - wbest['point']:.2f} s in {a.threads}."]
+    if a.against:
+        lines += ["", f"{a.against}'s table {'equals' if torch.equal(out['against'], out['auto']) else 'DIFFERS from'} this one bit for bit; "
+                  f"its texel averages (best thread CPU minus point values) {best['against'] - best['point']:.3f} s against "
+                  f"{best['auto'] - best['point']:.3f} s here in one thread "
+                  f"({(best['against'] - best['point']) / (best['auto'] - best['point']):.2f}x)."]
     text = "\n".join(lines) + "\n"
     print(text)
     if a.out:
