@@ -16,8 +16,8 @@ A third form, 'auto' with the texel averages in ``--threads`` torch threads (``a
 ``precompute_transport`` uses: the process's threads, since no ray is cast while they run), is timed by
 wall clock (its CPU time is spread over threads) next to the wall clock of the one-thread forms, and
 checked bit for bit against the one-thread table. ``--against DIR``: a checkout of another revision
-(``git archive main | tar -x -C DIR``) whose ``_average_texels`` is timed too, one thread, in this process
-(its source run in this module's namespace), and its table compared bit for bit.
+(``git archive main | tar -x -C DIR``) whose ``transport._chunk_transport`` is timed too with 'auto', one
+thread, in this process (its transport.py loaded as a module of this package), and its table compared bit for bit.
 """
 from __future__ import annotations
 
@@ -70,12 +70,16 @@ def main(argv=None) -> int:
     load0 = os.getloadavg()
     forms = {"point": {}, "auto": {"plan": plan, "sub_texels": subs, "average_threads": 1},
              "threads": {"plan": plan, "sub_texels": subs, "average_threads": a.threads}}
-    mine = TT._average_texels
+    chunk = {k: TT._chunk_transport for k in forms}
     if a.against:
-        src = (Path(a.against) / "prt_torch/transfer/transport.py").read_text()
-        ns = dict(vars(TT))
-        exec(src[src.index("def _average_texels("):src.index("def check_disk_space(")], ns)
+        import importlib.util
+
+        spec = importlib.util.spec_from_file_location("prt_torch.transfer._against",
+                                                      Path(a.against) / "prt_torch/transfer/transport.py")
+        other = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(other)
         forms["against"] = {"plan": plan, "sub_texels": subs}
+        chunk["against"] = other._chunk_transport
     t: dict[str, list[float]] = {k: [] for k in forms}
     w: dict[str, list[float]] = {k: [] for k in forms}
     out = {}
@@ -83,12 +87,10 @@ def main(argv=None) -> int:
         args = (c, brdf, mesh.vertices[idx], mesh.normals[idx], F[idx], texels, views, None, True, torch.float32)
         for _ in range(a.repeats):  # alternating: the forms see the same machine state
             for name, kw in forms.items():
-                TT._average_texels = ns["_average_texels"] if name == "against" else mine
                 t0, w0 = time.thread_time(), time.perf_counter()
-                out[name] = TT._chunk_transport(*args, **kw)
+                out[name] = chunk[name](*args, **kw)
                 t[name].append(time.thread_time() - t0)
                 w[name].append(time.perf_counter() - w0)
-    TT._average_texels = mine
     load1 = os.getloadavg()
     same = torch.equal(out["threads"], out["auto"])
     best = {k: min(v) for k, v in t.items()}

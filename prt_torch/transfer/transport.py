@@ -271,7 +271,8 @@ def _chunk_transport(caster, brdf, points, normals, frames, texels, views, mat_i
     directions and ``[P, S²]`` solid-angle shares} for every S the plan uses): the pairs of a view beyond ``cos_view`` and a
     texel within the cap about its mirror direction hold V_p Σ_s a_s f_r(ω_s, ω_o) max(n·ω_s, 0),
     the texel average (V_p: one ray per texel, toward its centre, or toward its highest sub-texel
-    when the centre is below the horizon and a sub-texel is not). ``average_threads``: torch threads
+    when the centre is below the horizon and a sub-texel is not); their centre values are not
+    evaluated (:func:`_averaged_pairs` before the point pairs). ``average_threads``: torch threads
     for those averages (None: the caller's count); :func:`precompute_transport` passes the process's
     count, since no ray is cast while they run (the rest of the chunk runs in :data:`CHUNK_THREADS`,
     the other cores being the ray-casting workers'). The values do not depend on it (elementwise
@@ -306,11 +307,17 @@ def _chunk_transport(caster, brdf, points, normals, frames, texels, views, mat_i
         T = out.view(-1)[:k * J * P].view(k, J * P).zero_()
     # the pairs where T can be non-zero: view above the tangent plane (wo_z > 0) and W > 0
     up, vis = wo[:, :, 2] > 0, W > 0  # [k, J], [k, P]
+    pairs, later = None, None
+    if plan is not None:  # the averaged pairs: their centre values would be overwritten, so not evaluated
+        pairs = _averaged_pairs(normals, wo, vis_any, views, plan, texels)
+        later = torch.zeros(k, J, P, dtype=torch.bool).index_put_(pairs, torch.ones((), dtype=torch.bool))
     per_vertex = int((up.sum(1) * vis.sum(1)).max()) if k else 0
     step = max(1, PAIR_BLOCK // max(1, per_vertex))
     for v0 in range(0, k, step):  # blocks of vertices (block-sized temporaries), not a loop per vertex
         v1 = min(k, v0 + step)
         mask = up[v0:v1, :, None] & vis[v0:v1, None, :]  # [b, J, P]
+        if later is not None:
+            mask &= ~later[v0:v1]
         iv, jv, pv = torch.nonzero(mask, as_tuple=True)
         if not iv.numel():
             continue
@@ -320,12 +327,24 @@ def _chunk_transport(caster, brdf, points, normals, frames, texels, views, mat_i
         T[v0:v1].masked_scatter_(mask.view(v1 - v0, J * P), (f * W[iv, pv]).to(dtype))
     if plan is not None:
         with torch_threads(average_threads or torch.get_num_threads()):
-            _average_texels(T, brdf, frames, normals, wo, vis_any, views, mat_index, plan, sub_texels, texels, dtype)
+            _average_texels(T, brdf, frames, wo, pairs, mat_index, plan, sub_texels, dtype)
     return T.view(k, J, P)
 
 
-def _average_texels(T, brdf, frames, normals, wo, vis_any, views, mat_index, plan, sub_texels, texels, dtype) -> None:
-    """Overwrite the pairs ``plan`` averages (:func:`_chunk_transport`) in ``T [k, J·P]`` with their
+def _averaged_pairs(normals, wo, vis_any, views, plan, texels) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The (vertex, view, texel) index triples (int64 ``[n]`` each) that ``plan`` averages: a view above
+    the tangent plane and below ``cos_view`` (local z of ``wo [k, J, 3]``), a texel within the cap
+    about its mirror direction (cos > ``cos_cap``) with some sub-texel visible (``vis_any [k, P]``)."""
+    mirror = 2 * (normals @ views.T)[..., None] * normals[:, None, :] - views[None]  # [k, J, 3] world mirror directions
+    graze = (wo[:, :, 2] > 0) & (wo[:, :, 2] < plan["cos_view"])  # [k, J]
+    iv, jv = torch.nonzero(graze, as_tuple=True)
+    near = (mirror[iv, jv] @ texels.T > plan["cos_cap"]) & vis_any[iv]  # [n, P]
+    q, pv = torch.nonzero(near, as_tuple=True)
+    return iv[q], jv[q], pv
+
+
+def _average_texels(T, brdf, frames, wo, pairs, mat_index, plan, sub_texels, dtype) -> None:
+    """Overwrite the ``pairs`` ``plan`` averages (:func:`_averaged_pairs`) in ``T [k, J·P]`` with their
     texel averages, in blocks of about :data:`PAIR_BLOCK` (pair, sub-texel) evaluations.
 
     The work per (vertex, texel) that no view changes is done once: the sub-texels' local directions
@@ -335,14 +354,9 @@ def _average_texels(T, brdf, frames, normals, wo, vis_any, views, mat_index, pla
     repeated copies). Both leave every value as it was: the same rotation of the same inputs and an
     elementwise BRDF on the same operands."""
     P = T.shape[1] // wo.shape[1]
-    mirror = 2 * (normals @ views.T)[..., None] * normals[:, None, :] - views[None]  # [k, J, 3] world mirror directions
-    graze = (wo[:, :, 2] > 0) & (wo[:, :, 2] < plan["cos_view"])  # [k, J]
-    iv, jv = torch.nonzero(graze, as_tuple=True)
+    iv, jv, pv = pairs
     if not iv.numel():
         return
-    near = (mirror[iv, jv] @ texels.T > plan["cos_cap"]) & vis_any[iv]  # [n, P]
-    q, pv = torch.nonzero(near, as_tuple=True)
-    iv, jv = iv[q], jv[q]
     subs = view_sub(plan, wo[iv, jv, 2])
     for S in subs.unique().tolist():  # one pass per sub-texel count (at most 7), not per view
         sd, sw = sub_texels[S]
