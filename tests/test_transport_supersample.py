@@ -65,25 +65,26 @@ def test_supersample_refused_in_one_line(bad):
         supersample_plan(AS40, 8, bad)
 
 
-@pytest.mark.parametrize("copies,threads", [(1, 1), (40, 2)])
-def test_averaged_pairs_equal_the_block_mean_of_the_fine_grid(copies, threads):
+@pytest.mark.parametrize("brdf,copies,threads", [(AS40, 1, 1), (AS40, 40, 2), (B.Phong(200.0), 3, 2)])
+def test_averaged_pairs_equal_the_block_mean_of_the_fine_grid(brdf, copies, threads):
     """Pairs of a grazing view within the cap about its mirror direction: the solid-angle weighted
     mean of f_r max(n·ω, 0) over the texel's fine sub-texels (to 1e-12); every other pair: the
     centre value (bit for bit with the point table). With ``copies`` of the vertex (each texel's
     sub-texels rotated once, shared by its views) and the averages in ``threads`` torch threads
-    (blocks past torch's parallel grain): every copy's table the same block means."""
+    (blocks past torch's parallel grain): every copy's table the same block means. A Phong lobe
+    (about the reflected view) narrower than the texels: averaged at every view, the same way."""
     res, sub = 6, 4
     pts, nrm, frm = (t.expand(copies, *t.shape[1:]).contiguous() for t in _open_vertex())
     views = icosphere_directions(3)
     texels = cube_directions(res)[0].reshape(-1, 3)
-    plan = supersample_plan(AS40, res, sub)
-    every = _chunk_transport(None, AS40, pts, nrm, frm, texels, views, None, False, plan=plan,
+    plan = supersample_plan(brdf, res, sub)
+    every = _chunk_transport(None, brdf, pts, nrm, frm, texels, views, None, False, plan=plan,
                              sub_texels={sub: _sub_texels(res, sub)}, average_threads=threads)
     assert all(torch.equal(every[c], every[0]) for c in range(copies))
     got = every[-1]
-    point = _chunk_transport(None, AS40, pts[:1], nrm[:1], frm[:1], texels, views, None, False)[0]
+    point = _chunk_transport(None, brdf, pts[:1], nrm[:1], frm[:1], texels, views, None, False)[0]
     fd, fsa, coarse = _fine_blocks(res, sub)
-    f = AS40.eval(fd[None].expand(views.shape[0], -1, -1), views[:, None].expand(-1, fd.shape[0], -1)) * fd[:, 2].clamp_min(0)
+    f = brdf.eval(fd[None].expand(views.shape[0], -1, -1), views[:, None].expand(-1, fd.shape[0], -1)) * fd[:, 2].clamp_min(0)
     num = torch.zeros(views.shape[0], texels.shape[0], dtype=torch.float64).index_add_(1, coarse, f * fsa)
     den = torch.zeros(texels.shape[0], dtype=torch.float64).index_add_(0, coarse, fsa)
     mean = num / den  # [J, P] brute-force texel means
