@@ -43,6 +43,7 @@ from ..brdf import BRDF, AshikhminShirley
 from ..executor import LocalExecutor, TaskFailure, torch_threads
 from ..scene import Mesh, RayCaster
 from .base import RunOptions
+from . import transport_kernels
 from .glossy import check_frames, decide_shadows
 
 __all__ = ["check_disk_space", "choose_cube_res", "lobe_width", "texel_spacing", "supersample_plan", "sub_texel_sets", "view_sub",
@@ -304,13 +305,20 @@ def _chunk_transport(caster, brdf, points, normals, frames, texels, views, mat_i
     else:
         if out.dtype != dtype or out.numel() < k * J * P:
             raise ValueError(f"out holds {out.numel()} {out.dtype} values; accepted: at least {k * J * P} of {dtype}")
-        T = out.view(-1)[:k * J * P].view(k, J * P).zero_()
+        T = out.view(-1)[:k * J * P].view(k, J * P)
     # the pairs where T can be non-zero: view above the tangent plane (wo_z > 0) and W > 0
     up, vis = wo[:, :, 2] > 0, W > 0  # [k, J], [k, P]
     pairs, later = None, None
     if plan is not None:  # the averaged pairs: their centre values would be overwritten, so not evaluated
         pairs = _averaged_pairs(normals, wo, vis_any, views, plan, texels)
         later = torch.zeros(k, J, P, dtype=torch.bool).index_put_(pairs, torch.ones((), dtype=torch.bool))
+    threads = average_threads or torch.get_num_threads()
+    native = transport_kernels.native_model(brdf, k, mat_index) if k else None
+    if native is not None and transport_kernels.points(T, wi, wo, W, later, native, threads):  # the compiled pass (same pairs)
+        if plan is not None:
+            _average_texels(T, brdf, frames, wo, pairs, mat_index, plan, sub_texels, dtype, native=native, threads=threads)
+        return T.view(k, J, P)
+    T.zero_()
     per_vertex = int((up.sum(1) * vis.sum(1)).max()) if k else 0
     step = max(1, PAIR_BLOCK // max(1, per_vertex))
     for v0 in range(0, k, step):  # blocks of vertices (block-sized temporaries), not a loop per vertex
@@ -326,7 +334,7 @@ def _chunk_transport(caster, brdf, points, normals, frames, texels, views, mat_i
         f = b.eval(wi[iv, pv], wo[iv, jv])  # [N]
         T[v0:v1].masked_scatter_(mask.view(v1 - v0, J * P), (f * W[iv, pv]).to(dtype))
     if plan is not None:
-        with torch_threads(average_threads or torch.get_num_threads()):
+        with torch_threads(threads):
             _average_texels(T, brdf, frames, wo, pairs, mat_index, plan, sub_texels, dtype)
     return T.view(k, J, P)
 
@@ -343,7 +351,7 @@ def _averaged_pairs(normals, wo, vis_any, views, plan, texels) -> tuple[torch.Te
     return iv[q], jv[q], pv
 
 
-def _average_texels(T, brdf, frames, wo, pairs, mat_index, plan, sub_texels, dtype) -> None:
+def _average_texels(T, brdf, frames, wo, pairs, mat_index, plan, sub_texels, dtype, native=None, threads: int = 1) -> None:
     """Overwrite the ``pairs`` ``plan`` averages (:func:`_averaged_pairs`) in ``T [k, J·P]`` with their
     texel averages, in blocks of about :data:`PAIR_BLOCK` (pair, sub-texel) evaluations.
 
@@ -358,6 +366,8 @@ def _average_texels(T, brdf, frames, wo, pairs, mat_index, plan, sub_texels, dty
     if not iv.numel():
         return
     subs = view_sub(plan, wo[iv, jv, 2])
+    if native is not None and transport_kernels.averages(T, frames, wo, pairs, subs, sub_texels, native, threads):
+        return
     for S in subs.unique().tolist():  # one pass per sub-texel count (at most 7), not per view
         sd, sw = sub_texels[S]
         S2 = S * S
