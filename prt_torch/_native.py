@@ -51,8 +51,10 @@ LIBRARIES: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
     "raygen": (("raygen.c",), ("-O3", "-march=native", "-ffp-contract=off", "-fno-math-errno", "-fopenmp", "-shared", "-fPIC",
                                 "-std=c99")),
     "wavelet": (("wavelet.c",), ("-O3", "-march=native", "-ffp-contract=fast", "-fopenmp", "-shared", "-fPIC", "-std=c99")),
-    # libmvec (glibc's vector math: the AVX2 path's 4-lane pow), linked even where --as-needed is the default
-    "transport": (("transport.c",), ("-O3", "-march=native", "-ffp-contract=off", "-fno-math-errno", "-fopenmp", "-shared",
+    # libmvec (glibc's vector math: the AVX2 path's 4-lane pow), linked even where --as-needed is the default;
+    # -fno-trapping-math lets GCC if-convert (vectorise) the BRDF's guarded divisions
+    "transport": (("transport.c",), ("-O3", "-march=native", "-ffp-contract=off", "-fno-math-errno", "-fno-trapping-math",
+                                     "-fopenmp", "-shared",
                                      "-fPIC", "-std=c99", "-Wl,--no-as-needed", "-lmvec")),
     # -fno-trapping-math: lets GCC if-convert (and so vectorise) the polynomial exp's range clamps
     "gauss_lm": (("gauss_lm.c",), ("-O3", "-march=native", "-ffp-contract=fast", "-fno-trapping-math", "-fopenmp", "-shared",

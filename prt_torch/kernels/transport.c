@@ -31,9 +31,6 @@
 #include <stdint.h>
 #include <stdlib.h>
 #include <string.h>
-#ifdef _OPENMP
-#include <omp.h>
-#endif
 #if defined(__AVX2__)
 #include <immintrin.h>
 __m256d _ZGVdN4vv_pow(__m256d x, __m256d y); /* glibc libmvec: pow, 4 doubles (AVX2) */
@@ -42,6 +39,8 @@ __m256d _ZGVdN4vv_pow(__m256d x, __m256d y); /* glibc libmvec: pow, 4 doubles (A
 typedef int64_t i64;
 
 #define NPAR 4
+/* pairs per unit of the averages' dynamic schedule (a shared machine stalls a static split at its slowest thread) */
+#define AVG_BLOCK 512
 #define PI 3.14159265358979323846
 
 int prt_transport_points(i64 k, i64 J, i64 P, const double *wi, const double *wo, const double *W, const uint8_t *later,
@@ -75,16 +74,17 @@ static inline double pow5(double x) { double x2 = x * x; return x2 * x2 * x; }
 typedef struct { double *b, *e, *c1, *c2, *pw; } Scratch;
 
 /* f[q] = f_r(w[q], o) for q < n, w given as wx, wy, wz (n4 = n rounded up to 4 lanes, all readable and finite) */
-static void eval_block(int model, int flags, const double *p, i64 n, const double *wx, const double *wy,
-                       const double *wz, double ox, double oy, double oz, double *f, const Scratch *s) {
+static void eval_block(int model, int flags, const double *p, i64 n, const double *restrict wx, const double *restrict wy,
+                       const double *restrict wz, double ox, double oy, double oz, double *restrict f, const Scratch *s) {
     i64 n4 = (n + 3) & ~(i64)3;
+    double *restrict B = s->b, *restrict E = s->e, *restrict C1 = s->c1, *restrict C2 = s->c2, *restrict PW = s->pw;
     if (model == 4) { /* Lambertian */
         for (i64 q = 0; q < n; q++) f[q] = (wz[q] > 0 && oz > 0) ? p[0] / PI : 0.0;
         return;
     }
     if (model == 0) { /* Ashikhmin-Shirley eq. 4 (+ eq. 5) */
         const double nu = p[0], nv = p[1], rs = p[2], rd = p[3];
-        const double C = sqrt((nu + 1) * (nv + 1)) / (8 * PI);
+        const double C = sqrt((nu + 1) * (nv + 1)) / (8 * PI), fr = (flags & 1) ? 1.0 : 0.0;
         for (i64 q = 0; q < n4; q++) {
             double hx = wx[q] + ox, hy = wy[q] + oy, hz = wz[q] + oz;
             double nr = sqrt(hx * hx + hy * hy + hz * hz);
@@ -97,14 +97,14 @@ static void eval_block(int model, int flags, const double *p, i64 n, const doubl
             kh = kh > 1e-300 ? kh : 1e-300;
             double mz = wz[q] > oz ? wz[q] : oz;
             mz = mz > 1e-300 ? mz : 1e-300;
-            s->b[q] = hzc; s->e[q] = ex; s->c1[q] = kh * mz;
-            s->c2[q] = (flags & 1) ? rs + (1 - rs) * pow5(1 - kh) : rs;
+            B[q] = hzc; E[q] = ex; C1[q] = kh * mz;
+            C2[q] = rs + (1 - rs) * pow5(1 - kh) * fr; /* fr = 0: exactly rs */
         }
-        pow_block(n4, s->b, s->e, s->pw);
+        pow_block(n4, B, E, PW);
         const int diff = (flags & 2) && rd != 0.0; /* rd = 0: the diffuse term is exactly 0 */
         const double co = oz < 0 ? 0 : (oz > 1 ? 1 : oz), D = 28 * rd / (23 * PI) * (1 - rs), Do = 1 - pow5(1 - co / 2);
         for (i64 q = 0; q < n; q++) {
-            double v = C * s->pw[q] / s->c1[q] * s->c2[q];
+            double v = C * PW[q] / C1[q] * C2[q];
             if (diff) {
                 double ci = wz[q] < 0 ? 0 : (wz[q] > 1 ? 1 : wz[q]);
                 v = v + D * (1 - pow5(1 - ci / 2)) * Do;
@@ -125,12 +125,12 @@ static void eval_block(int model, int flags, const double *p, i64 n, const doubl
         } else {
             x = -ox * wx[q] + -oy * wy[q] + oz * wz[q]; /* reflect(wo) . wi */
         }
-        s->b[q] = x > 0 ? x : 0; s->e[q] = sx;
+        B[q] = x > 0 ? x : 0; E[q] = sx;
     }
-    pow_block(n4, s->b, s->e, s->pw);
+    pow_block(n4, B, E, PW);
     const double A = model == 3 ? ks * (sx + 8) / (8 * PI) : model == 1 ? ks * (sx + 2) / (2 * PI) : ks * (sx + 1) / (2 * PI);
     for (i64 q = 0; q < n; q++) {
-        double v = model == 2 ? kd / PI + A * s->pw[q] / (wz[q] > 1e-300 ? wz[q] : 1e-300) : kd / PI + A * s->pw[q];
+        double v = model == 2 ? kd / PI + A * PW[q] / (wz[q] > 1e-300 ? wz[q] : 1e-300) : kd / PI + A * PW[q];
         f[q] = (wz[q] > 0 && oz > 0) ? v : 0.0;
     }
 }
@@ -223,13 +223,11 @@ int prt_transport_averages(i64 n, const i64 *iv, const i64 *jv, const i64 *pv, c
         double *a[5]; /* the kept sub-texels: x, y, z, share; f */
         if (alloc_scratch(&s, a, 5, 68)) err = 1;
         else {
-            int t = 0, nt = 1;
-#ifdef _OPENMP
-            t = omp_get_thread_num(); nt = omp_get_num_threads();
-#endif
-            i64 q0 = n * t / nt, q1 = n * (t + 1) / nt, li = -1, lp = -1, lS = -1, m = 0;
             double *x = a[0], *y = a[1], *z = a[2], *w = a[3], *f = a[4];
-            for (i64 q = q0; q < q1; q++) {
+            #pragma omp for schedule(dynamic, 1)
+            for (i64 blk = 0; blk < (n + AVG_BLOCK - 1) / AVG_BLOCK; blk++) {
+            i64 q1 = (blk + 1) * AVG_BLOCK < n ? (blk + 1) * AVG_BLOCK : n, li = -1, lp = -1, lS = -1, m = 0;
+            for (i64 q = blk * AVG_BLOCK; q < q1; q++) {
                 i64 i = iv[q], p = pv[q], S = sv[q], S2 = S * S;
                 if (i != li || p != lp || S != lS) { /* rotate this (vertex, texel)'s sub-texels into its frame */
                     const double *F = frames + 9 * i, *d = sd + 3 * (soff[S] + p * S2), *a_s = sw + soff[S] + p * S2;
@@ -251,6 +249,7 @@ int prt_transport_averages(i64 n, const i64 *iv, const i64 *jv, const i64 *pv, c
                     for (i64 u = 0; u < m; u++) acc += f[u] * z[u] * w[u];
                 }
                 store(out, out_dtype, i * J * P + jv[q] * P + p, acc);
+            }
             }
             free(s.b);
         }

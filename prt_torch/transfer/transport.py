@@ -29,9 +29,11 @@ Texel solid angles are exact (the cube-face area integral, Σ = 4π).
 """
 from __future__ import annotations
 
+import collections
 import json
 import math
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -283,7 +285,11 @@ def _chunk_transport(caster, brdf, points, normals, frames, texels, views, mat_i
     vis_any = None
     if plan is not None:
         sd = sub_texels[max(sub_texels)][0]  # the finest sub-texels decide the straddling texels
-        cmax, amax = torch.einsum("kc,psc->kps", normals, sd).max(-1)  # [k, P]: the highest sub-texel
+        cmax = torch.empty(normals.shape[0], sd.shape[0], dtype=sd.dtype)
+        amax = torch.empty(normals.shape[0], sd.shape[0], dtype=torch.long)
+        step = max(1, (4 << 20) // (8 * sd.shape[0] * sd.shape[1]))  # vertex blocks: [b, P, S²] temporaries of ~4 MB, not one
+        for v0 in range(0, normals.shape[0], step):  # of k·P·S² (~46 MB fresh per chunk: page faults, issue 42 §2)
+            torch.max(torch.einsum("kc,psc->kps", normals[v0:v0 + step], sd), -1, out=(cmax[v0:v0 + step], amax[v0:v0 + step]))
         vis_any = cmax > 0  # some sub-texel above the horizon (visibility below)
     if shadows:
         i, j = torch.nonzero(cos > 0, as_tuple=True)
@@ -533,27 +539,53 @@ def precompute_transport(
     t0, new = time.perf_counter(), 0
     ranges = [(c * chunk_size, min(V, (c + 1) * chunk_size)) for c in range(n_chunks)]
 
-    buffer: list[torch.Tensor] = []  # one chunk's table, reused: saved by finished() before the next compute
+    # The chunk files are written by one background thread while the next chunk is computed (issue 42 §2: writing
+    # the 3.6 GB default table through the page cache was ~12 s of a ~50 s run, the compute waiting): two chunk
+    # buffers, one being written while the other fills; finished() returns once at most one write is pending, and
+    # a chunk is reported (progress, callback) when its file is written, in order. A failed write raises here.
+    pool: list[torch.Tensor] = []  # this process's chunk buffers
+    free: list[torch.Tensor] = []  # those not being written
+    writing: collections.deque = collections.deque()  # (chunk, future, buffer or None) in the order submitted
+    writer = ThreadPoolExecutor(1, thread_name_prefix="prt-transport-write")
 
     def compute(c: int) -> list[torch.Tensor]:  # one chunk file's tables (in a list finished() empties); a task of run.executor
         a, b = ranges[c]
-        if not buffer:
-            buffer.append(torch.empty(chunk_size * J * P, dtype=store))
-        threads = torch.get_num_threads()  # this process's (a Ray task's: its CPUs): the texel averages use them all
+        if not free:
+            pool.append(torch.empty(chunk_size * J * P, dtype=store))
+            free.append(pool[-1])
+        buf = free.pop()
+        threads = torch.get_num_threads()  # this process's (a Ray task's: its CPUs): the BRDF passes use them all
         with torch_threads(CHUNK_THREADS):
             T = _chunk_transport(caster, brdf, mesh.vertices[a:b], mesh.normals[a:b], F[a:b], texels_flat,
-                                 view_dirs, None if mat_index is None else mat_index[a:b], shadows, store, out=buffer[0],
+                                 view_dirs, None if mat_index is None else mat_index[a:b], shadows, store, out=buf,
                                  plan=plan, sub_texels=subs, average_threads=threads)
         return [T.reshape(b - a, J, 6, res, res)]
 
-    def finished(c: int, box: list[torch.Tensor] | None) -> None:
-        if box is not None:
-            io.save(out / f"chunk_{c:06d}.prt", {"data": box.pop()}, kind="transfer/transport_chunk",
-                    meta={"chunk": c, "start": ranges[c][0], "stop": ranges[c][1]})  # the executor's result list keeps no table
+    def report(c: int) -> None:
         if bar is not None:
             bar.update(ranges[c][1] - ranges[c][0])
         if run.callback is not None:
             run.callback(c, n_chunks)
+
+    def settle(keep: int) -> None:  # wait until at most `keep` writes are pending, reporting the written chunks
+        while len(writing) > keep:
+            c, fut, buf = writing[0]
+            fut.result()
+            writing.popleft()
+            if buf is not None:
+                free.append(buf)
+            report(c)
+
+    def finished(c: int, box: list[torch.Tensor] | None) -> None:
+        if box is None:
+            settle(0)
+            report(c)
+            return
+        data = box.pop()  # the executor's result list keeps no table
+        buf = next((x for x in pool if x.data_ptr() == data.data_ptr()), None)
+        writing.append((c, writer.submit(io.save, out / f"chunk_{c:06d}.prt", {"data": data}, kind="transfer/transport_chunk",
+                                         meta={"chunk": c, "start": ranges[c][0], "stop": ranges[c][1]}), buf))
+        settle(1)
 
     try:
         todo = []
@@ -564,12 +596,16 @@ def precompute_transport(
                 todo.append(c)
         ex = LocalExecutor() if run.executor is None else run.executor
         res = ex.map(compute, todo, on_result=lambda k, T: finished(todo[k], T))
+        settle(0)
         new = sum(not isinstance(r, TaskFailure) for r in res)
         bad = [r for r in res if isinstance(r, TaskFailure)]
         if bad:
             raise RuntimeError(f"transport {mesh.name}: chunk {todo[bad[0].index]} failed {bad[0].attempts} time(s): {bad[0].error}; "
                                f"{len(bad)} chunk(s) failed, the others are kept in {str(out)!r} (resume to compute the rest)")
     finally:
+        for _, fut, _ in writing:  # on an error: the writes under way finish (each file whole or absent) before we return
+            fut.exception()
+        writer.shutdown()
         if bar is not None:
             bar.close()
         if caster is not None:
