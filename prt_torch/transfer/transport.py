@@ -317,14 +317,15 @@ def _chunk_transport(caster, brdf, points, normals, frames, texels, views, mat_i
     pairs, later = None, None
     if plan is not None:  # the averaged pairs: their centre values would be overwritten, so not evaluated
         pairs = _averaged_pairs(normals, wo, vis_any, views, plan, texels)
-        later = torch.zeros(k, J, P, dtype=torch.bool).index_put_(pairs, torch.ones((), dtype=torch.bool))
     threads = average_threads or torch.get_num_threads()
     native = transport_kernels.native_model(brdf, k, mat_index) if k else None
-    if native is not None and transport_kernels.points(T, wi, wo, W, later, native, threads):  # the compiled pass (same pairs)
+    if native is not None and transport_kernels.points(T, wi, wo, W, pairs, native, threads):  # compiled: the same pairs
         if plan is not None:
             _average_texels(T, brdf, frames, wo, pairs, mat_index, plan, sub_texels, dtype, native=native, threads=threads)
         return T.view(k, J, P)
     T.zero_()
+    if pairs is not None:
+        later = torch.zeros(k, J, P, dtype=torch.bool).index_put_(pairs, torch.ones((), dtype=torch.bool))
     per_vertex = int((up.sum(1) * vis.sum(1)).max()) if k else 0
     step = max(1, PAIR_BLOCK // max(1, per_vertex))
     for v0 in range(0, k, step):  # blocks of vertices (block-sized temporaries), not a loop per vertex

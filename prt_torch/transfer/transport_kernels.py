@@ -38,8 +38,8 @@ def _lib() -> ctypes.CDLL | None:
             if "lib" not in _state:
                 i64, vp, ci = ctypes.c_int64, ctypes.c_void_p, ctypes.c_int
                 lib, why = compile_library("transport", kernel_sources(_SOURCES), _FLAGS, {
-                    "prt_transport_points": [i64, i64, i64, vp, vp, vp, vp, ci, ci, vp, ci, vp, ci],
-                    "prt_transport_averages": [i64, vp, vp, vp, vp, i64, i64, vp, vp, vp, vp, vp, ci, ci, vp, ci, vp, ci],
+                    "prt_transport_points": [i64, i64, i64, vp, vp, vp, i64, vp, vp, vp, ci, ci, vp, ci, vp, ci],
+                    "prt_transport_averages": [i64, vp, vp, vp, vp, i64, i64, i64, vp, vp, vp, vp, vp, ci, ci, vp, ci, vp, ci],
                     "prt_transport_abi": [],
                 })
                 _state["abi"] = int(lib.prt_transport_abi()) if lib is not None else 0
@@ -92,22 +92,27 @@ def _f64(x: torch.Tensor) -> torch.Tensor:
     return x.to(torch.float64).contiguous()
 
 
-def points(T: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor, W: torch.Tensor, later: torch.Tensor | None,
-           model: tuple[int, int, torch.Tensor], threads: int = 1) -> bool:
+def points(T: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor, W: torch.Tensor,
+           averaged: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None, model: tuple[int, int, torch.Tensor],
+           threads: int = 1) -> bool:
     """The point pass into ``T [k, J·P]`` (every element written: f_r W on the pairs of an upper view and a texel
-    with W > 0 that ``later [k, J, P]`` (bool, or None) does not mark, 0 elsewhere), from ``wi [k, P, 3]``,
-    ``wo [k, J, 3]`` local directions and ``W [k, P]`` (float64). False (nothing written) without the library."""
+    with W > 0 that are not ``averaged``, 0 elsewhere), from ``wi [k, P, 3]``, ``wo [k, J, 3]`` local directions
+    and ``W [k, P]`` (float64). ``averaged``: the (vertex, view, texel) int64 triples the texel averages write,
+    in lexicographic order (as ``transport._averaged_pairs`` gives them), or None. False (nothing written)
+    without the library."""
     lib = _lib()
     if lib is None or not _ok(T):
         return False
     k, P, J = wi.shape[0], wi.shape[1], wo.shape[1]
     wi, wo, W = _f64(wi), _f64(wo), _f64(W)
-    lt = None if later is None else later.contiguous()
+    e = torch.empty(0, dtype=torch.int64)
+    ai, aj, ap = (e, e, e) if averaged is None else (x.to(torch.int64).contiguous() for x in averaged)
     m, flags, par = model
-    rc = lib.prt_transport_points(k, J, P, wi.data_ptr(), wo.data_ptr(), W.data_ptr(), None if lt is None else lt.data_ptr(),
-                                  m, flags, par.data_ptr(), _DTYPES[T.dtype], T.data_ptr(), int(threads))
+    rc = lib.prt_transport_points(k, J, P, wi.data_ptr(), wo.data_ptr(), W.data_ptr(), ai.numel(), ai.data_ptr(), aj.data_ptr(),
+                                  ap.data_ptr(), m, flags, par.data_ptr(), _DTYPES[T.dtype], T.data_ptr(), int(threads))
     if rc:
-        raise RuntimeError(f"prt_transport_points returned {rc} (1: bad model or dtype, 2: out of memory)")
+        raise RuntimeError(f"prt_transport_points returned {rc} (1: bad model or dtype, 2: out of memory, 3: an averaged "
+                           "pair out of range, 4: averaged pairs not in (vertex, view, texel) order)")
     return True
 
 
@@ -139,8 +144,8 @@ def averages(T: torch.Tensor, frames: torch.Tensor, wo: torch.Tensor, pairs: tup
              subs: torch.Tensor, sub_texels: dict, model: tuple[int, int, torch.Tensor], threads: int = 1) -> bool:
     """The texel averages of ``pairs`` (vertex, view, texel int64 ``[n]`` each; ``subs [n]`` their sub-texel
     counts) into ``T [k, J·P]``, from ``frames [k, 3, 3]``, ``wo [k, J, 3]`` and ``sub_texels`` (as
-    :func:`transport.sub_texel_sets`). The pairs are taken in (vertex, texel, S) order so that each one's
-    sub-texels are rotated once for its views. False (nothing written) without the library."""
+    :func:`transport.sub_texel_sets`). The C takes the pairs in (vertex, texel) order (a counting sort) so that
+    each one's sub-texels are rotated once per S for its views. False (nothing written) without the library."""
     lib = _lib()
     if lib is None or not _ok(T):
         return False
@@ -148,17 +153,15 @@ def averages(T: torch.Tensor, frames: torch.Tensor, wo: torch.Tensor, pairs: tup
     n = iv.numel()
     if not n:
         return True
-    J, P = wo.shape[1], T.shape[1] // wo.shape[1]
-    key = (iv * P + pv) * 16 + subs
-    order = torch.argsort(key, stable=True)
-    iv, jv, pv, sv = (x[order].contiguous() for x in (iv, jv, pv, subs.to(torch.int64)))
+    k, J, P = wo.shape[0], wo.shape[1], T.shape[1] // wo.shape[1]
+    iv, jv, pv, sv = (x.to(torch.int64).contiguous() for x in (iv, jv, pv, subs))
     sd, sw, soff = _pack(sub_texels)
     fr, wo = _f64(frames), _f64(wo)
     m, flags, par = model
-    rc = lib.prt_transport_averages(n, iv.data_ptr(), jv.data_ptr(), pv.data_ptr(), sv.data_ptr(), J, P, fr.data_ptr(),
+    rc = lib.prt_transport_averages(n, iv.data_ptr(), jv.data_ptr(), pv.data_ptr(), sv.data_ptr(), k, J, P, fr.data_ptr(),
                                     wo.data_ptr(), sd.data_ptr(), sw.data_ptr(), soff.data_ptr(), m, flags, par.data_ptr(),
                                     _DTYPES[T.dtype], T.data_ptr(), int(threads))
     if rc:
-        raise RuntimeError(f"prt_transport_averages returned {rc} (1: bad model or dtype, 2: out of memory, 3: a sub-texel "
-                           "count without its set)")
+        raise RuntimeError(f"prt_transport_averages returned {rc} (1: bad model or dtype, 2: out of memory, 3: a pair out "
+                           "of range or a sub-texel count without its set)")
     return True
