@@ -399,8 +399,8 @@ class AshikhminShirley(BRDF):
         denom = kh * torch.maximum(wi[..., 2], wo[..., 2]).clamp_min(1e-300)
         F = p["rs"] + (1 - p["rs"]) * (1 - kh) ** 5 if self.fresnel else p["rs"] + 0 * kh
         spec = torch.sqrt((p["nu"] + 1) * (p["nv"] + 1)) / (8 * math.pi) * torch.pow(hz, expo) / denom * F
-        if not self.diffuse:
-            return spec
+        if not self.diffuse or (torch.broadcast_shapes(spec.shape, p["rd"].shape) == spec.shape and not bool(p["rd"].any())):
+            return spec  # rd = 0 (the default): the diffuse term is exactly 0, spec + 0 = spec; not computed (issue 42 §2)
         ci, co = wi[..., 2].clamp(0, 1), wo[..., 2].clamp(0, 1)
         diff = 28 * p["rd"] / (23 * math.pi) * (1 - p["rs"]) * (1 - (1 - ci / 2) ** 5) * (1 - (1 - co / 2) ** 5)
         return spec + diff

@@ -1,0 +1,178 @@
+"""The transport tables' compiled BRDF passes (``transfer.transport_kernels``, ``kernels/transport.c``; issue 42 §2)
+against the torch path (``BRDF.eval`` on the same pairs, ``PRT_TORCH_NATIVE=0``): float64 tables within relative
+1e-12 for every model the C knows (integer exponents by repeated squaring, others through pow; Fresnel, diffuse,
+anisotropy, per-vertex parameters), at odd sizes (one vertex, odd cube resolutions and view counts: vector tails),
+in 1 and 2 threads (bit for bit the same), in float32 / float16 within one rounding of the float64 value; models it
+does not know keep torch. The texel averages' independent check (a brute-force block mean of the fine grid) is
+``tests/test_transport_supersample.py``, which runs the compiled path by default."""
+from __future__ import annotations
+
+import pytest
+import torch
+
+from prt_torch import brdf as B
+from prt_torch.transfer import transport_kernels as TK
+from prt_torch.transfer.transport import (_chunk_transport, cube_directions, icosphere_directions, sub_texel_sets,
+                                          supersample_plan)
+
+native = pytest.mark.skipif(not TK.available()[0], reason=f"no compiled transport kernel: {TK.available()[1]}")
+
+AS40 = B.AshikhminShirley(40.0, 40.0, rs=0.05, rd=0.0)
+MODELS = {
+    "as40": AS40,
+    "as_aniso_pow": B.AshikhminShirley(37.3, 12.5, rs=0.1, rd=0.4),  # non-integer, anisotropic: pow, diffuse term
+    "as_nofresnel": B.AshikhminShirley(40.0, 40.0, rs=0.2, rd=0.3, fresnel=False),
+    "as_nodiffuse": B.AshikhminShirley(100.0, 100.0, rs=0.05, rd=0.5, diffuse=False),
+    "phong": B.Phong(200.0),
+    "phong_reflection": B.Phong(30.5, ks=0.7, kd=0.2, form="reflection"),
+    "blinn": B.BlinnPhong(64.0, kd=0.3),
+    "lambert": B.Lambertian(0.6),
+}
+
+
+def _vertices(k: int, seed: int = 0):
+    """k random points with random normals and orthonormal frames (rows t, b, n), float64."""
+    g = torch.Generator().manual_seed(seed)
+    n = torch.nn.functional.normalize(torch.randn(k, 3, generator=g, dtype=torch.float64), dim=-1)
+    a = torch.nn.functional.normalize(torch.randn(k, 3, generator=g, dtype=torch.float64), dim=-1)
+    t = torch.nn.functional.normalize(a - (a * n).sum(-1, keepdim=True) * n, dim=-1)
+    return torch.zeros(k, 3, dtype=torch.float64), n, torch.stack([t, torch.linalg.cross(n, t), n], 1)
+
+
+def _table(monkeypatch, on: bool, brdf, k=5, res=7, views=None, dtype=torch.float64, threads=1, mat_index=None, sub="auto"):
+    monkeypatch.setenv("PRT_TORCH_NATIVE", "1" if on else "0")
+    pts, nrm, frm = _vertices(k)
+    views = icosphere_directions(2) if views is None else views
+    texels = cube_directions(res)[0].reshape(-1, 3)
+    plan = supersample_plan(brdf, res, sub)
+    subs = None if plan is None else sub_texel_sets(res, plan)
+    T = _chunk_transport(None, brdf, pts, nrm, frm, texels, views, mat_index, False, dtype, plan=plan, sub_texels=subs,
+                         average_threads=threads)
+    return T, plan
+
+
+def _rel_close(got, want, rtol):
+    d = (got.double() - want.double()).abs()
+    return bool((d <= rtol * want.double().abs()).all()), float((d / want.double().abs().clamp_min(1e-300)).max())
+
+
+@native
+@pytest.mark.parametrize("name", list(MODELS))
+def test_float64_table_equals_the_torch_path_to_1e12(monkeypatch, name):
+    """Point values and texel averages (res 7 is below the default BRDF's `res: auto`, so many views average)."""
+    brdf = MODELS[name]
+    want, plan = _table(monkeypatch, False, brdf, sub=4 if name == "phong" else "auto")
+    got, _ = _table(monkeypatch, True, brdf, sub=4 if name == "phong" else "auto")
+    ok, worst = _rel_close(got, want, 1e-12)
+    assert ok, f"{name}: max relative difference {worst:.3g}"
+    assert torch.equal(got == 0, want == 0) and int((want > 0).sum()) > 1000
+    if name in ("as40", "phong"):
+        assert plan is not None  # the averages ran
+
+
+@native
+@pytest.mark.parametrize("k,res,J", [(1, 5, 7), (3, 9, 13), (13, 7, 42)])
+def test_odd_sizes_and_tails(monkeypatch, k, res, J):
+    """One vertex; odd texel and view counts (lists of visible texels and sub-texels of every length mod 4)."""
+    views = torch.nn.functional.normalize(torch.randn(J, 3, generator=torch.Generator().manual_seed(J), dtype=torch.float64), dim=-1)
+    want, _ = _table(monkeypatch, False, AS40, k=k, res=res, views=views)
+    got, _ = _table(monkeypatch, True, AS40, k=k, res=res, views=views)
+    ok, worst = _rel_close(got, want, 1e-12)
+    assert ok, worst
+
+
+@native
+def test_threads_give_the_same_bits(monkeypatch):
+    """13 vertices, every view at r = 5 averaged in blocks of 512 pairs split between 2 threads: the same bits as one."""
+    one, plan = _table(monkeypatch, True, AS40, k=13, res=5, threads=1)
+    two, _ = _table(monkeypatch, True, AS40, k=13, res=5, threads=2)
+    assert plan is not None and torch.equal(one, two)
+    want, _ = _table(monkeypatch, False, AS40, k=13, res=5, threads=2)
+    assert _rel_close(two, want, 1e-12)[0]
+
+
+@native
+def test_per_vertex_parameters(monkeypatch):
+    """[V] parameters selected per vertex (``mat_index``), different at every vertex (some isotropic integer, some not)."""
+    k = 6
+    nu = torch.tensor([40.0, 12.5, 100.0, 7.0, 40.0, 63.2], dtype=torch.float64)
+    nv = torch.tensor([40.0, 30.0, 100.0, 7.0, 20.0, 63.2], dtype=torch.float64)
+    brdf = B.AshikhminShirley(nu, nv, rs=torch.linspace(0.02, 0.3, k, dtype=torch.float64),
+                              rd=torch.tensor([0.0, 0.2, 0.0, 0.5, 0.1, 0.0], dtype=torch.float64))
+    idx = torch.arange(k)
+    want, _ = _table(monkeypatch, False, brdf, k=k, mat_index=idx)
+    got, _ = _table(monkeypatch, True, brdf, k=k, mat_index=idx)
+    assert _rel_close(got, want, 1e-12)[0]
+
+
+@native
+@pytest.mark.parametrize("dtype,rtol", [(torch.float32, 2.0 ** -23), (torch.float16, 2.0 ** -10)])
+def test_stored_dtypes_round_once(monkeypatch, dtype, rtol):
+    """float32 / float16 tables: the float64 values rounded once, so within one unit of the stored precision of the
+    torch path's (which rounds its float64 values once too); float16 only where the compiler has _Float16."""
+    if dtype == torch.float16 and TK._state.get("abi", 0) < 2:
+        pytest.skip("no _Float16 in this compiler: float16 tables take the torch path")
+    want, _ = _table(monkeypatch, False, AS40, dtype=dtype)
+    got, _ = _table(monkeypatch, True, AS40, dtype=dtype)
+    assert got.dtype == dtype
+    big = want.double().abs() > 1e-4  # normal range of float16
+    ok, worst = _rel_close(got[big], want[big], rtol)
+    assert ok, worst
+    assert int((got != want).sum()) < 0.01 * want.numel()
+
+
+def test_native_off_and_unknown_models_keep_torch(monkeypatch):
+    """``PRT_TORCH_NATIVE=0``: the passes write nothing and say so; a model the C does not know (Ward, a subclass that
+    may change ``_eval``) has no native form."""
+    monkeypatch.setenv("PRT_TORCH_NATIVE", "0")
+    assert TK.available() == (False, "PRT_TORCH_NATIVE=0")
+    T = torch.full((2, 12 * 24), float("nan"), dtype=torch.float32)
+    model = TK.native_model(AS40, 2)
+    wi = torch.zeros(2, 24, 3, dtype=torch.float64)
+    assert not TK.points(T, wi, torch.zeros(2, 12, 3, dtype=torch.float64), torch.ones(2, 24, dtype=torch.float64), None, model)
+    assert T.isnan().all()
+    assert TK.native_model(B.Ward(0.2), 3) is None
+
+    class Mine(B.AshikhminShirley):
+        pass
+
+    assert TK.native_model(Mine(), 3) is None
+    m, flags, par = TK.native_model(B.AshikhminShirley(40.0, 20.0, rs=0.1, rd=0.2, fresnel=False), 3)
+    assert (m, flags) == (0, 2) and par.shape == (3, 4) and par[:, 1].eq(20.0).all()
+
+
+@native
+def test_precompute_writes_every_chunk_before_reporting_it(tmp_path, monkeypatch):
+    """The whole command's form: chunk files written by the background writer, each reported (callback) only once
+    its file is there, in order; the table equals the torch path's within one float32 rounding; a failed write
+    raises and the chunks before it stay."""
+    from prt_torch import io
+    from prt_torch.scene import builtin
+    from prt_torch.transfer import RunOptions, precompute_transport
+
+    mesh = builtin("convex", "small")
+    seen = []
+
+    def cb(c, n):
+        assert (tmp_path / "n" / f"chunk_{c:06d}.prt").exists()
+        seen.append(c)
+
+    run = RunOptions(chunk_size=64, workers=1, callback=cb)
+    t = precompute_transport(mesh, tmp_path / "n", views=1, res=6, max_chunks=5, run=run)
+    assert seen == [0, 1, 2, 3, 4]
+    monkeypatch.setenv("PRT_TORCH_NATIVE", "0")
+    ref = precompute_transport(mesh, tmp_path / "t", views=1, res=6, max_chunks=5, run=RunOptions(chunk_size=64, workers=1))
+    for (a, b, x), (_, _, y) in zip(t, ref):
+        assert _rel_close(x, y, 2.0 ** -23)[0] and float(y.max()) > 0
+    monkeypatch.setenv("PRT_TORCH_NATIVE", "1")
+    real = io.save
+
+    def flaky(path, *a, **kw):
+        if "chunk_000002" in str(path):
+            raise OSError(f"cannot write {str(path)!r}: disk full")
+        return real(path, *a, **kw)
+
+    monkeypatch.setattr(io, "save", flaky)
+    with pytest.raises(OSError, match="disk full"):
+        precompute_transport(mesh, tmp_path / "f", views=1, res=6, max_chunks=5, run=RunOptions(chunk_size=64, workers=1))
+    assert (tmp_path / "f" / "chunk_000001.prt").exists() and not (tmp_path / "f" / "chunk_000002.prt").exists()
