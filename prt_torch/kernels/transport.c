@@ -170,7 +170,7 @@ static inline void store(void *out, int dt, i64 at, double v) {
     if (dt == 0) ((float *)out)[at] = (float)v;
     else if (dt == 1) ((double *)out)[at] = v;
 #if defined(__FLT16_MAX__)
-    else ((_Float16 *)out)[at] = (_Float16)v;
+    else ((_Float16 *)out)[at] = (_Float16)(float)v; /* through float, as torch's .to(float16) of a float64 */
 #endif
 }
 
