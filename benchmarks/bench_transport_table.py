@@ -1,0 +1,136 @@
+"""Benchmark (issue 42 §2): the whole default transport table from the command line, this checkout against another
+revision, paired and alternating.
+
+    .venv/bin/python benchmarks/bench_transport_table.py --against /tmp/tt42_main [--pairs 2] [--scene bumpy_sphere]
+        [--size medium] [--out reports/benchmarks/transport_table.md] [--keep DIR]
+
+Each run is ``prt precompute <scene> --size <size> --kind transport --no-progress -o DIR`` (defaults only: 92 views,
+``res: auto``, texel averages) in a fresh process, the other revision's (``git archive main | tar -x -C DIR``, put
+first on ``PYTHONPATH``) and this checkout's alternating ``--pairs`` times, the other first. Per run: wall seconds,
+user and system CPU of the process and its children (``resource.getrusage(RUSAGE_CHILDREN)`` deltas: the ray-casting
+workers included), the 1-minute load before and after. The machine is shared: the CPU seconds (user + system) are the
+figure to trust, wall is what this load gave. The last pair's tables are compared value for value (every chunk: the
+count of differing float32 values and the largest relative difference), then removed. Writes a markdown report.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import resource
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+
+def _cpu() -> str:
+    try:
+        out = subprocess.run(["lscpu"], capture_output=True, text=True).stdout
+        name = next(ln.split(":", 1)[1].strip() for ln in out.splitlines() if ln.startswith("Model name"))
+        fam = next((ln.split(":", 1)[1].strip() for ln in out.splitlines() if ln.startswith("CPU family")), "?")
+        mod = next((ln.split(":", 1)[1].strip() for ln in out.splitlines() if ln.startswith("Model:")), "?")
+        return f"{name} (family {fam} model {mod}), {os.cpu_count()} cores"
+    except (OSError, StopIteration):
+        return platform.processor() or "unknown"
+
+
+def run_once(code_root: str | None, args: list[str], out: Path) -> dict:
+    """One ``prt precompute`` in a fresh interpreter with ``code_root`` first on PYTHONPATH (None: this checkout)."""
+    env = dict(os.environ)
+    if code_root:
+        env["PYTHONPATH"] = code_root + os.pathsep + env.get("PYTHONPATH", "")
+    shutil.rmtree(out, ignore_errors=True)
+    cmd = [sys.executable, "-c", "import sys; from prt_torch.cli import main; sys.argv[0] = 'prt'; sys.exit(main())",
+           "precompute", *args, "--kind", "transport", "--no-progress", "-o", str(out)]
+    load0 = os.getloadavg()[0]
+    r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t0 = time.perf_counter()
+    p = subprocess.run(cmd, env=env, capture_output=True, text=True, cwd=str(ROOT) if code_root is None else code_root)
+    wall = time.perf_counter() - t0
+    r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    if p.returncode:
+        raise RuntimeError(f"{' '.join(cmd)} failed ({p.returncode}): {p.stderr[-2000:]}")
+    return {"wall": wall, "user": r1.ru_utime - r0.ru_utime, "sys": r1.ru_stime - r0.ru_stime,
+            "load0": load0, "load1": os.getloadavg()[0]}
+
+
+def compare(a: Path, b: Path) -> dict:
+    """Value for value over every chunk: differing values, the largest |x - y| / |x| (x: a's), the value count."""
+
+    from prt_torch.transfer import TransportTable
+
+    ta, tb = TransportTable(a), TransportTable(b)
+    n = diff = 0
+    worst = 0.0
+    for (s, e, x), (s2, e2, y) in zip(ta, tb):
+        assert (s, e) == (s2, e2)
+        x, y = x.double(), y.double()
+        d = (x - y).abs()
+        n += x.numel()
+        diff += int((d > 0).sum())
+        nz = x != 0
+        if bool(nz.any()):
+            worst = max(worst, float((d[nz] / x[nz].abs()).max()))
+        if bool((~nz & (d > 0)).any()):
+            worst = float("inf")
+    return {"values": n, "differ": diff, "max_rel": worst}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--against", required=True, help="another revision's checkout (e.g. git archive main)")
+    ap.add_argument("--pairs", type=int, default=2)
+    ap.add_argument("--scene", default="bumpy_sphere")
+    ap.add_argument("--size", default="medium")
+    ap.add_argument("--tmp", default="/tmp/prt_bench_transport_table")
+    ap.add_argument("--out", default=None)
+    a = ap.parse_args(argv)
+    tmp = Path(a.tmp)
+    tmp.mkdir(parents=True, exist_ok=True)
+    args = [a.scene, "--size", a.size]
+    rows: list[tuple[str, int, dict]] = []
+    for k in range(a.pairs):
+        for name, root in (("against", a.against), ("this", None)):
+            r = run_once(root, args, tmp / name)
+            rows.append((name, k, r))
+            print(f"pair {k} {name}: wall {r['wall']:.1f} s, user {r['user']:.1f} s, system {r['sys']:.1f} s, "
+                  f"load {r['load0']:.1f} -> {r['load1']:.1f}", flush=True)
+    cmp = compare(tmp / "against", tmp / "this")
+    shutil.rmtree(tmp, ignore_errors=True)
+    cpu = {n: [r["user"] + r["sys"] for m, _, r in rows if m == n] for n in ("against", "this")}
+    wall = {n: [r["wall"] for m, _, r in rows if m == n] for n in ("against", "this")}
+    ratios = [c0 / c1 for c0, c1 in zip(cpu["against"], cpu["this"])]
+    wratios = [w0 / w1 for w0, w1 in zip(wall["against"], wall["this"])]
+    lines = [
+        "# The whole default transport table (issue 42 §2)",
+        "",
+        f"`benchmarks/bench_transport_table.py --against {a.against} --pairs {a.pairs} --scene {a.scene} --size {a.size}` — "
+        f"`prt precompute {a.scene} --size {a.size} --kind transport --no-progress` (92 views, res auto, texel averages), "
+        f"{a.against} (the other revision) and this checkout alternating, each in a fresh process; CPU {_cpu()}; "
+        "a machine shared with other jobs (the load column): CPU seconds are the figure to trust.",
+        "",
+        "| pair | code | wall s | user s | system s | CPU s (user + system) | load before → after |",
+        "|---:|---|---:|---:|---:|---:|---|",
+    ]
+    for name, k, r in rows:
+        lines.append(f"| {k} | {'other (' + a.against + ')' if name == 'against' else 'this'} | {r['wall']:.1f} | {r['user']:.1f} | "
+                     f"{r['sys']:.1f} | {r['user'] + r['sys']:.1f} | {r['load0']:.1f} → {r['load1']:.1f} |")
+    lines += ["", f"CPU-time ratio other / this per pair: {', '.join(f'{x:.2f}' for x in ratios)}; wall ratio: "
+              f"{', '.join(f'{x:.2f}' for x in wratios)}.", "",
+              f"The last pair's tables: {cmp['values']} float32 values, {cmp['differ']} differ, largest relative difference "
+              f"{cmp['max_rel']:.3g} (zeros: the same set)." if cmp["max_rel"] != float("inf") else
+              f"The last pair's tables: {cmp['values']} values, {cmp['differ']} differ, and some zero in one is not in the other."]
+    text = "\n".join(lines) + "\n"
+    print(text)
+    if a.out:
+        Path(a.out).write_text(text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
