@@ -98,7 +98,7 @@ def main(argv=None) -> int:
         "",
         f"`benchmarks/bench_transport_native.py --scene {a.scene} --every {a.every} --dtype {a.dtype}` — CPU {_cpu()} "
         f"({cpu_isa()}: the kernel's {'AVX2 path, libmvec pow' if cpu_isa() in ('avx2', 'avx512') else 'portable path'}; "
-        f"{how.split(',')[0]}), torch {torch.__version__}, one thread, load {load0[0]:.1f} → {load1[0]:.1f} (a shared "
+        f"{how.rsplit(', ', 1)[0]}), torch {torch.__version__}, one thread, load {load0[0]:.1f} → {load1[0]:.1f} (a shared "
         "machine: the figures are this thread's CPU time, the two forms alternating chunk by chunk in one process).",
         "",
         f"{len(starts)} chunks of {chunk} vertices ({V} vertices, every {a.every}) × {J} views × 6×{res}×{res} texels, default "
