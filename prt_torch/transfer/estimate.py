@@ -388,7 +388,11 @@ def estimate(kind, mesh: Mesh, params: dict[str, Any], run: RunOptions | None = 
                   f"{format_bytes(out_pv)} per vertex stored ({format_bytes(out_pv * V)}), {format_bytes(held_pv)} per vertex "
                   "held while assembling") + "".join(f"; {w}" for w in plan.whole)},
     ]
-    if seconds_rays is not None:
+    if seconds_rays is not None and kind.output == "directory":  # transport: each chunk file is written inside the
+        # probed pass (a background thread while the next chunk computes; a chunk counts as done once written), so the
+        # probe's per-chunk time already holds the writes: adding the write rate again counted them twice
+        stages[2]["note"] += "; written within each chunk's time above (the probe times the writes)"
+    elif seconds_rays is not None:
         stages[2]["seconds"] = probe_info.get("write_seconds_per_byte", 0.0) * out_pv * V
     peak = m_bytes + max(rays_stage, result_stage)
     return Estimate(kind.name, V, F, stages, int(peak), memory_budget(run.max_memory), probe_info.get("rays"), list(plan.whole))
