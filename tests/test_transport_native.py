@@ -7,6 +7,8 @@ does not know keep torch. The texel averages' independent check (a brute-force b
 ``tests/test_transport_supersample.py``, which runs the compiled path by default."""
 from __future__ import annotations
 
+import ctypes
+
 import pytest
 import torch
 
@@ -176,3 +178,27 @@ def test_precompute_writes_every_chunk_before_reporting_it(tmp_path, monkeypatch
     with pytest.raises(OSError, match="disk full"):
         precompute_transport(mesh, tmp_path / "f", views=1, res=6, max_chunks=5, run=RunOptions(chunk_size=64, workers=1))
     assert (tmp_path / "f" / "chunk_000001.prt").exists() and not (tmp_path / "f" / "chunk_000002.prt").exists()
+
+
+@native
+def test_portable_build_without_march_native(tmp_path, monkeypatch):
+    """The library as a compiler refusing ``-march=native`` builds it (``_native.compile_library``'s fallback: the
+    baseline ISA, no AVX2, so libm's scalar ``pow`` for non-integer exponents and no vector code of its own): the
+    same tables as torch to 1e-12, through pow (anisotropic) and repeated squaring (N = 40)."""
+    from prt_torch._native import compile_library, kernel_sources
+
+    monkeypatch.setenv("PRT_TORCH_CACHE", str(tmp_path / "cache"))
+    TK._lib()  # the real library's signatures and ABI recorded first
+    flags = [f for f in TK._FLAGS if f != "-march=native"]
+    i64, vp, ci = ctypes.c_int64, ctypes.c_void_p, ctypes.c_int
+    lib, why = compile_library("transport", kernel_sources(TK._SOURCES), flags, {
+        "prt_transport_points": [i64, i64, i64, vp, vp, vp, i64, vp, vp, vp, ci, ci, vp, ci, vp, ci],
+        "prt_transport_averages": [i64, vp, vp, vp, vp, i64, i64, i64, vp, vp, vp, vp, vp, ci, ci, vp, ci, vp, ci],
+        "prt_transport_abi": []})
+    assert lib is not None, why
+    assert "-march=native" not in why
+    for brdf in (AS40, MODELS["as_aniso_pow"], MODELS["phong_reflection"]):
+        want, _ = _table(monkeypatch, False, brdf)
+        monkeypatch.setitem(TK._state, "lib", lib)
+        got, _ = _table(monkeypatch, True, brdf)
+        assert _rel_close(got, want, 1e-12)[0]
