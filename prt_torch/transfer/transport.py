@@ -32,6 +32,7 @@ from __future__ import annotations
 import collections
 import json
 import math
+import os
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -548,13 +549,19 @@ def precompute_transport(
     free: list[torch.Tensor] = []  # those not being written
     writing: collections.deque = collections.deque()  # (chunk, future, buffer or None) in the order submitted
     writer = ThreadPoolExecutor(1, thread_name_prefix="prt-transport-write")
+    home = os.getpid()
 
     def compute(c: int) -> list[torch.Tensor]:  # one chunk file's tables (in a list finished() empties); a task of run.executor
         a, b = ranges[c]
-        if not free:
-            pool.append(torch.empty(chunk_size * J * P, dtype=store))
-            free.append(pool[-1])
-        buf = free.pop()
+        if os.getpid() != home:  # a task in another process (Ray): its result is serialised as it returns and no
+            if not pool:  # buffer comes back, so one buffer serves every task of that process (as before the writer)
+                pool.append(torch.empty(chunk_size * J * P, dtype=store))
+            buf = pool[0]
+        else:
+            if not free:
+                pool.append(torch.empty(chunk_size * J * P, dtype=store))
+                free.append(pool[-1])
+            buf = free.pop()
         threads = torch.get_num_threads()  # this process's (a Ray task's: its CPUs): the BRDF passes use them all
         with torch_threads(CHUNK_THREADS):
             T = _chunk_transport(caster, brdf, mesh.vertices[a:b], mesh.normals[a:b], F[a:b], texels_flat,
