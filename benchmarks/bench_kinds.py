@@ -69,12 +69,14 @@ def gemms_alone(mesh, tr, bands: int, samples: int) -> float:
     return total
 
 
-def brdf_alone(mesh, brdf, views: int, res: int, chunk: int) -> tuple[float, float]:
+def brdf_alone(mesh, brdf, views: int, res: int, chunk: int) -> tuple[float, float, float | None]:
     """Seconds of the transport table's BRDF evaluations alone, on the pairs (upper view, texel
     above the tangent plane) of each chunk — the visible ones are fewer, so this is an upper floor.
-    Timed two ways, (whole chunk in one call, in blocks of ``transport.PAIR_BLOCK`` pairs on one
-    torch thread as the precompute does); the bound uses the faster."""
+    Timed three ways: the whole chunk in one torch call, in blocks of ``transport.PAIR_BLOCK`` pairs on one
+    torch thread, and the compiled point pass (``transport_kernels.points``, one thread, into a float32
+    table as the precompute's; None without the library); the bound uses the fastest."""
     from prt_torch.executor import torch_threads
+    from prt_torch.transfer import transport_kernels as TK
     from prt_torch.transfer.transport import PAIR_BLOCK
 
     texels, _ = cube_directions(res)
@@ -82,6 +84,7 @@ def brdf_alone(mesh, brdf, views: int, res: int, chunk: int) -> tuple[float, flo
     vd = icosphere_directions(views)
     F = check_frames(mesh)
     whole = blocked = 0.0
+    compiled = None
     for a in range(0, mesh.num_vertices, chunk):  # a loop over chunks, as the precompute's
         b = min(mesh.num_vertices, a + chunk)
         wi = torch.einsum("kab,pb->kpa", F[a:b], texels)
@@ -96,7 +99,14 @@ def brdf_alone(mesh, brdf, views: int, res: int, chunk: int) -> tuple[float, flo
             for s in range(0, x.shape[0], PAIR_BLOCK):  # blocks of pairs, as the precompute's
                 brdf.eval(x[s:s + PAIR_BLOCK], y[s:s + PAIR_BLOCK])
         blocked += time.perf_counter() - t
-    return whole, blocked
+        model = TK.native_model(brdf, b - a) if TK.available()[0] else None
+        if model is not None:
+            T = torch.empty(b - a, vd.shape[0] * texels.shape[0], dtype=torch.float32)
+            W = (wi[..., 2] > 0).to(torch.float64)
+            t = time.perf_counter()
+            TK.points(T, wi, wo, W, None, model, threads=1)
+            compiled = (compiled or 0.0) + time.perf_counter() - t
+    return whole, blocked, compiled
 
 
 def main(argv=None) -> int:
@@ -120,7 +130,7 @@ def main(argv=None) -> int:
         if kind == "mrt":
             return precompute_mrt(mesh, 5, 8, 11, samples=args.samples, run=run_opts)
         shutil.rmtree(tmp / "t", ignore_errors=True)
-        return precompute_transport(mesh, tmp / "t", views=3, res=8, run=run_opts)
+        return precompute_transport(mesh, tmp / "t", views=3, res=8, supersample=1, run=run_opts)  # point values: the bound's pairs
 
     results = []
     try:
@@ -135,9 +145,10 @@ def main(argv=None) -> int:
                     tp = time.perf_counter() - t
                     tb = rec.replay(wc)
                     if kind == "transport":
-                        whole, blocked = brdf_alone(mesh, AshikhminShirley(40.0, 40.0, rs=0.05, rd=0.0), 3, 8, tr.meta["chunk_size"])
-                        work, setup = min(whole, blocked), 0.0
-                        extra = {"work_whole_s": whole, "work_blocked_s": blocked}
+                        whole, blocked, compiled = brdf_alone(mesh, AshikhminShirley(40.0, 40.0, rs=0.05, rd=0.0), 3, 8,
+                                                              tr.meta["chunk_size"])
+                        work, setup = min(x for x in (whole, blocked, compiled) if x is not None), 0.0
+                        extra = {"work_whole_s": whole, "work_blocked_s": blocked, "work_compiled_s": compiled}
                     else:
                         work = gemms_alone(mesh, tr, 5, args.samples)
                         setup = float(tr.meta.get("brdf_seconds", 0.0))
@@ -169,7 +180,9 @@ def main(argv=None) -> int:
         "worker processes. Work alone: what the kind cannot avoid, timed alone on the same chunk shapes (glossy/MRT: "
         "`W @ YY`, the rotation into each vertex frame and `left @ R_p T_p`; transport: the BRDF on every (upper view, "
         "texel above the tangent plane) pair, "
-        "the faster of one call per chunk and blocks of `PAIR_BLOCK` pairs on one torch thread). "
+        "the fastest of one torch call per chunk, blocks of `PAIR_BLOCK` pairs on one torch thread and the compiled point "
+        "pass `transport_kernels.points` on one thread; the transport precompute here stores point values, `supersample=1`, "
+        "the pairs of that bound). "
         "Pace = (bare + work alone) / precompute (goal ≥ 0.5); the glossy/MRT "
         "precompute includes its once-per-run BRDF projection (column setup), the last pace column leaves it out.",
         "",
