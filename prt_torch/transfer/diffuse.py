@@ -1352,14 +1352,16 @@ def vertex_transfer(mesh: Mesh, idx: Any, bands: int, samples: int, seed: int, b
 
 def hit_bounce(mesh: Mesh, bands: int, samples: int, seed: int, bounces: int, offset: float = 1e-4,
                hit_samples: int = 8, sampling: str = "uniform", hit_offset: float | None = HIT_OFFSET,
-               estimator: str = "plain") -> HitBounce:
+               estimator: str = "plain", meta: dict | None = None) -> HitBounce:
     """The :class:`HitBounce` a diffuse precompute with ``bounces`` ≥ 1 uses (its face tables
     traced here): a glossy/MRT vertex with ``bounces`` bounces reads the same hit values, so
-    its interreflection equals the diffuse one."""
+    its interreflection equals the diffuse one. ``meta``: receives what :func:`_hit_tables`
+    records (hit settings; under 'auto' the probe's ``hit_choice_rays`` and ``hit_guide``)."""
     bounces = check_int("bounces", bounces, 1, MAX_BOUNCES)
     run = RunOptions(offset=offset)
     with RayCaster(mesh, workers=_workers(run, mesh, samples, sampling), offset=offset) as caster:
-        return _hit_tables(caster, mesh, bands, samples, seed, sampling, bounces, hit_samples, run, {}, hit_offset, estimator)
+        return _hit_tables(caster, mesh, bands, samples, seed, sampling, bounces, hit_samples, run,
+                           {} if meta is None else meta, hit_offset, estimator)
 
 
 def face_transfer(mesh: Mesh, bands: int, samples: int, seed: int, bounces: int, offset: float = 1e-4,

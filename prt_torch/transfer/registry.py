@@ -214,8 +214,10 @@ _SHARED_ARGS = {a.param: a for a in (
     Arg("--window", "window", "window the exit-radiance bands against ringing",
         values={"hanning": "hanning", "lanczos": "lanczos"}),
     Arg("--window-width", "window_width", "window width in bands"),
-    Arg("--estimator", "estimator", "control: the exact unshadowed T_p minus the sampled blocked part (default; exact "
-        "where nothing is blocked); plain: the sum over visible rays", values={"control": "control", "plain": "plain"}),
+    Arg("--estimator", "estimator", "auto (default): per vertex the control variate where at least half its directions "
+        "are open, the plain sum elsewhere; control: the exact unshadowed T_p minus the sampled blocked part (exact "
+        "where nothing is blocked); plain: the sum over visible rays",
+        values={"auto": "auto", "control": "control", "plain": "plain"}),
     Arg("--quad-bands", "quad_bands", "BRDF double-projection quadrature size (default from the lobe's sharpness)"),
 )}
 
@@ -262,7 +264,7 @@ _GLOSSY_COMMON = {
     "brdf": _BRDF, "window": _WINDOW, "window_width": _OPT_INT, "quad_bands": _OPT_INT,
     "samples": [Interval(int, 1, MAX_GLOSSY_SAMPLES)], "seed": _SEED,
     "shadows": [Boolean()] + _SHADOWS, "bounces": [Interval(int, 0, 16)], "vertices": _VERTICES,
-    "estimator": [Options("control", "plain")],
+    "estimator": [Options("auto", "control", "plain")],
 }
 
 register_kind(TransferKind(
