@@ -164,7 +164,8 @@ def section(scenes: dict) -> list[str]:
         lines += ["", f"### `{res['scene']}`{grey}", "",
                   f"{res['vertices']} vertices (every {res['every']}th), {res['bands']} bands in and out, MRT "
                   f"{res['tents']}×{res['tents']} tents, N = {res['samples']} sphere samples (about N/2 traced above the "
-                  f"tangent plane), reference {res['reference_samples']} samples (8 rays per hit: 64× the rays); {res['seeds']} seeds per row. CPU: {res['cpu']}; load average before/after "
+                  f"tangent plane), reference {res['reference_samples']} samples (8 rays per hit: 64× the rays); "
+                  f"{res['seeds']} seeds per row. CPU: {res['cpu']}; load average before/after "
                   f"{res['load'][0]:.1f} / {res['load'][1]:.1f}.", "",
                   "| kind | estimator | rays / vertex (shadowed) | shadowed | ratio | rays / vertex, 1 bounce | 1 bounce: total "
                   "| ratio | per seed | interreflected part | ratio |",

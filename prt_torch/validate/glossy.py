@@ -109,7 +109,8 @@ def engine_glossy(transfer: Transfer, L: torch.Tensor, idx: torch.Tensor, view_l
     reps = []
     est = meta.get("estimator", "plain")  # files before the control variate summed the visible rays
     control = est == "control"
-    if est in ("control", "auto"):  # 'auto': the control variate where at least half of the vertex's directions are open  # ∫_{n·s>0} h(s) L(s) ds = hvᵀ A (D_p l): the exact unshadowed part, per vertex [k, 3]
+    if est in ("control", "auto"):  # ('auto': where at least half of the vertex's directions are open)
+        # ∫_{n·s>0} h(s) L(s) ds = hvᵀ A (D_p l): the exact unshadowed part, per vertex [k, 3]
         from ..sh import hemisphere_gram, rotate
 
         l_loc = rotate(L3[:, None, :].expand(-1, idx.numel(), -1), F)  # [3, k, n²]: D_p l, the light in each local frame
