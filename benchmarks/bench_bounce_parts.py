@@ -71,6 +71,8 @@ def main(argv=None):
     ap.add_argument("--every", type=int, default=4)
     ap.add_argument("--seeds", type=int, default=2)
     ap.add_argument("--ref-cache", required=True, help="bench_precompute_error.py's --ref-cache file for this scene")
+    ap.add_argument("--hit-samples", type=int, nargs="*", default=None,
+                    help="instead of the fixed rows: today's and the default at N = 1024 with each of these rays per hit")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     mesh = builtin(args.scene, args.size, albedo=args.albedo)
@@ -113,6 +115,8 @@ def main(argv=None):
             ("split: N = 1744, 4 per hit", 1744, 4, "qmc", "auto", True),
             ("split: N = 2800, 2 per hit", 2800, 2, "qmc", "auto", True),
             ("split, unguided: N = 1744, 4 per hit", 1744, 4, "qmc", "auto", False)]
+    if args.hit_samples is not None:
+        rows = [rows[0]] + [(f"default, {m} per hit", 1024, m, "qmc", "auto", True) for m in args.hit_samples]
     print("| row | rays / vertex | shadowed | interreflected part | total, 1 bounce |")
     print("|---|---:|---:|---:|---:|")
     for name, N, Mh, sampling, est, guided in rows:
@@ -121,9 +125,10 @@ def main(argv=None):
         for s in range(args.seeds):
             T, TB, r = one(N, Mh, sampling, est, s, guided)
             e.append((r, rel(T, ref0), rel(TB, refi), rel(T + TB, ref1)))
+        per_seed = " / ".join(f"{x[3]:.4f}" for x in e)
         e = np.array(e).mean(0)
-        print(f"| {name} | {e[0]:.0f} | {e[1]:.4f} | {e[2]:.4f} | {e[3]:.4f} |  <!-- {time.perf_counter() - t0:.0f} s -->",
-              flush=True)
+        print(f"| {name} | {e[0]:.0f} | {e[1]:.4f} | {e[2]:.4f} | {e[3]:.4f} |  <!-- total per seed {per_seed}; "
+              f"{time.perf_counter() - t0:.0f} s -->", flush=True)
     caster.close()
 
 

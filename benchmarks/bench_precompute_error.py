@@ -80,6 +80,8 @@ def main(argv=None):
                     help="a grey albedo for every vertex (a coloured scene such as cornell_box: fold_albedo=False "
                          "with bounces needs a grey one); default: the scene's own")
     ap.add_argument("--ref-cache", default=None, help="a .pt file keeping the references between runs (same settings)")
+    ap.add_argument("--methods", nargs="+", default=None, metavar="SAMPLING:ESTIMATOR",
+                    help="run only these rows (e.g. uniform:plain qmc:auto); the scene's other rows are kept from the report")
     ap.add_argument("--out", default=str(ROOT / "reports" / "benchmarks" / "precompute_error"))
     args = ap.parse_args(argv)
     torch.set_num_threads(max(1, os.cpu_count() or 1))
@@ -107,7 +109,11 @@ def main(argv=None):
     occl = float(frac.mean())  # each vertex's occluded fraction of t00 (cosine-weighted), by the reference
     occl_q = [float(x) for x in torch.quantile(frac, torch.tensor([0.1, 0.5, 0.9], dtype=torch.float64))]
     rows = []
-    for sampling, estimator in METHODS:
+    methods = METHODS if args.methods is None else [tuple(m.split(":")) for m in args.methods]
+    bad = [m for m in methods if m not in METHODS]
+    if bad:
+        sys.exit(f"--methods {':'.join(bad[0])}: accepted: {' '.join(s + ':' + e for s, e in METHODS)}")
+    for sampling, estimator in methods:
         for N in args.samples:
             e0, e1, ei, rays, rays1, secs = [], [], [], [], [], []
             for s in range(args.seeds):
@@ -122,7 +128,8 @@ def main(argv=None):
             row = {"sampling": sampling, "estimator": estimator, "samples": N, "rays_per_vertex": float(np.mean(rays)),
                    "rays_per_vertex_bounce1": float(np.mean(rays1)),
                    "err_direct": float(np.mean(e0)), "err_bounce1_total": float(np.mean(e1)),
-                   "err_bounce1_inter": float(np.mean(ei)), "seconds_direct": float(np.mean(secs))}
+                   "err_bounce1_inter": float(np.mean(ei)), "seconds_direct": float(np.mean(secs)),
+                   "err_direct_seeds": e0, "err_bounce1_total_seeds": e1}
             rows.append(row)
             print(f"[bench] {sampling:8s} {estimator:8s} N={N:5d} rays/v={row['rays_per_vertex']:7.1f} "
                   f"direct {row['err_direct']:.4f} 1-bounce {row['err_bounce1_total']:.4f} "
@@ -134,6 +141,12 @@ def main(argv=None):
            "load": [load0, load1], "samples": sorted(args.samples), "ref_factor": args.ref_factor}
     out = Path(args.out)
     scenes = load_scenes(out.with_suffix(".json"))
+    old = scenes.get(res["scene"])
+    if args.methods is not None and old is not None:  # the rows not re-run are kept (same references: --ref-cache)
+        ran = {(x["sampling"], x["estimator"], x["samples"]) for x in rows}
+        kept = [x for x in old["rows"] if (x["sampling"], x["estimator"], x["samples"]) not in ran]
+        res["rows"] = sorted(kept + rows, key=lambda x: (METHODS.index((x["sampling"], x["estimator"])), x["samples"]))
+        res["samples"] = sorted({x["samples"] for x in res["rows"]})
     scenes[res["scene"]] = res  # this scene's section replaced, the others kept
     write(scenes, out)
 
@@ -209,8 +222,12 @@ def write(scenes: dict, out: Path):
             lines.append(f"- `{res['scene']}` ({100 * res['occluded_fraction_t00']:.1f}% occluded on average): {h}")
     for res in scenes.values():
         lines += section(res)
-    with io.atomic_path(out.with_suffix(".md")) as tmp:
-        Path(tmp).write_text("\n".join(lines) + "\n")
+    md = out.with_suffix(".md")
+    glossy_mark = "\n## Glossy and MRT with one bounce\n"  # bench_precompute_error_glossy.py's section: kept
+    old_md = md.read_text() if md.exists() else ""
+    tail = glossy_mark + old_md.split(glossy_mark, 1)[1] if glossy_mark in old_md else ""
+    with io.atomic_path(md) as tmp:
+        Path(tmp).write_text("\n".join(lines) + "\n" + tail)
     with io.atomic_path(out.with_suffix(".json")) as tmp:
         Path(tmp).write_text(json.dumps({"scenes": scenes}, indent=1))
     print(f"[bench] wrote {out.with_suffix('.md')}")

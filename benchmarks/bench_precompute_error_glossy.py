@@ -20,7 +20,8 @@ it hits, estimated there by :class:`~prt_torch.transfer.diffuse.HitBounce` (Sloa
 
 Error: relative RMS over every selected vertex and matrix entry, sqrt(Σ|X − X_ref|² / Σ|X_ref|²),
 mean over ``--seeds`` seeds, against a reference of ``--ref-factor`` × the samples per vertex with
-an independent seed (estimator 'control', hits 'control', unguided: 64× the rays) — for the shadowed
+independent seeds: the mean of a 'control' run (hits 'control', unguided) and a 'plain' run, each
+64× the rays, so that no row's own estimator makes it; their difference bounds its error — for the shadowed
 transfer, the one-bounce total and its interreflected part (total − shadowed of the same seed).
 Rays per vertex: every ray traced — the vertices' (``rays_traced``) and the hits' (intersect and
 occluded, ``hit_rays_traced``) per selected vertex, plus the face probe of 'auto'
@@ -106,12 +107,15 @@ def main(argv=None):
     for kind in args.kinds:
         if kind not in refs:
             t0 = time.perf_counter()
-            r0, _ = run(kind, mesh, args, ref_n, REF_SEED, "control", 0)
-            r1, _ = run(kind, mesh, args, ref_n, REF_SEED, "control", 1)
-            refs[kind] = {"ref0": r0, "ref1": r1, "seconds": time.perf_counter() - t0}
+            c0, _ = run(kind, mesh, args, ref_n, REF_SEED, "control", 0)
+            c1, _ = run(kind, mesh, args, ref_n, REF_SEED, "control", 1)
+            p0, _ = run(kind, mesh, args, ref_n, REF_SEED + 1, "plain", 0)
+            p1, _ = run(kind, mesh, args, ref_n, REF_SEED + 1, "plain", 1)
+            refs[kind] = {"ref0": (c0 + p0) / 2, "ref1": (c1 + p1) / 2, "self": rel(c1, p1), "seconds": time.perf_counter() - t0}
             if args.ref_cache:
                 torch.save({"key": key, "refs": refs}, args.ref_cache)
-            print(f"[glossy-err] {kind} reference in {refs[kind]['seconds']:.0f} s", flush=True)
+            print(f"[glossy-err] {kind} reference in {refs[kind]['seconds']:.0f} s; its two halves differ by "
+                  f"{refs[kind]['self']:.1e}", flush=True)
         ref0, ref1 = refs[kind]["ref0"], refs[kind]["ref1"]
         for name, est in METHODS:
             e0, e1, ei, r0s, r1s = [], [], [], [], []
@@ -128,7 +132,7 @@ def main(argv=None):
                    "rays_per_vertex": float(np.mean(r0s)), "rays_per_vertex_bounce1": float(np.mean(r1s)),
                    "err_direct": float(np.mean(e0)), "err_bounce1_total": float(np.mean(e1)),
                    "err_bounce1_inter": float(np.mean(ei)), "err_bounce1_total_seeds": e1,
-                   "seconds": time.perf_counter() - t0}
+                   "seconds": time.perf_counter() - t0, "reference_self_error": refs[kind]["self"]}
             rows.append(row)
             print(f"[glossy-err] {kind:6s} {name:30s} rays/v {row['rays_per_vertex']:6.0f} / {row['rays_per_vertex_bounce1']:6.0f}"
                   f"  shadowed {row['err_direct']:.4f}  1 bounce {row['err_bounce1_total']:.4f}  inter "
@@ -156,8 +160,9 @@ def section(scenes: dict) -> list[str]:
     lines = [MARK, "",
              "Written by `benchmarks/bench_precompute_error_glossy.py` (kept at the end of this report). Glossy exit "
              "transfer B R_p T_p and MRT G⁻¹C B R_p T_p, default BRDF, on every `every`-th vertex; relative RMS error "
-             "over every entry against a reference of 64× the samples (other seed; control variate at vertex and hits, "
-             "unguided). Rays per vertex: vertex + hit rays (intersect and occluded) + the face probe per mesh "
+             "over every entry against a reference of 64× the samples (other seeds: the mean of a control-variate run and a "
+             "plain-sum run, hits unguided; the two halves' relative difference is given per kind). "
+             "Rays per vertex: vertex + hit rays (intersect and occluded) + the face probe per mesh "
              "vertex. Ratios are to the estimator before issue 42 (plain at vertex and hits)."]
     for res in scenes.values():
         grey = f", grey albedo {res['albedo']}" if res.get("albedo") is not None else ""
@@ -178,6 +183,9 @@ def section(scenes: dict) -> list[str]:
                 f"{x['err_direct'] / b['err_direct']:.2f} | {x['rays_per_vertex_bounce1']:.0f} | {x['err_bounce1_total']:.4f} | "
                 f"{x['err_bounce1_total'] / b['err_bounce1_total']:.2f} | {seeds} | {x['err_bounce1_inter']:.4f} | "
                 f"{x['err_bounce1_inter'] / b['err_bounce1_inter']:.2f} |")
+        lines += ["", "Reference halves (control vs plain, one bounce) differ by " + ", ".join(
+            f"{k} {v:.1e}" for k, v in {x["kind"]: x.get("reference_self_error", float("nan")) for x in res["rows"]}.items())
+            + " (the mean's own error is about half of that)."]
         scene, size = res["scene"].split(":")
         alb = f" --albedo {res['albedo']}" if res.get("albedo") is not None else ""
         lines += ["", f"Reproduce: `.venv/bin/python benchmarks/bench_precompute_error_glossy.py --scene {scene} --size {size}"
