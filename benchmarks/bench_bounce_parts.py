@@ -115,20 +115,32 @@ def main(argv=None):
             ("split: N = 1744, 4 per hit", 1744, 4, "qmc", "auto", True),
             ("split: N = 2800, 2 per hit", 2800, 2, "qmc", "auto", True),
             ("split, unguided: N = 1744, 4 per hit", 1744, 4, "qmc", "auto", False)]
-    if args.hit_samples is not None:
-        rows = [rows[0]] + [(f"default, {m} per hit", 1024, m, "qmc", "auto", True) for m in args.hit_samples]
     print("| row | rays / vertex | shadowed | interreflected part | total, 1 bounce |")
     print("|---|---:|---:|---:|---:|")
-    for name, N, Mh, sampling, est, guided in rows:
+
+    def measure(name, N, Mh, sampling, est, guided):
         e = []
         t0 = time.perf_counter()
         for s in range(args.seeds):
             T, TB, r = one(N, Mh, sampling, est, s, guided)
             e.append((r, rel(T, ref0), rel(TB, refi), rel(T + TB, ref1)))
-        per_seed = " / ".join(f"{x[3]:.4f}" for x in e)
-        e = np.array(e).mean(0)
-        print(f"| {name} | {e[0]:.0f} | {e[1]:.4f} | {e[2]:.4f} | {e[3]:.4f} |  <!-- total per seed {per_seed}; "
-              f"{time.perf_counter() - t0:.0f} s -->", flush=True)
+        e = np.array(e)
+        m = e.mean(0)
+        print(f"| {name} | {m[0]:.0f} | {m[1]:.4f} | {m[2]:.4f} | {m[3]:.4f} |  <!-- total per seed "
+              f"{' / '.join(f'{x:.4f}' for x in e[:, 3])}; {time.perf_counter() - t0:.0f} s -->", flush=True)
+        return e
+
+    if args.hit_samples is None:
+        for row in rows:
+            measure(*row)
+    else:  # each rays-per-hit setting against today's estimator at the N that traces the same rays
+        today = measure(*rows[0])
+        for m in args.hit_samples:
+            d = measure(f"default, {m} per hit", 1024, m, "qmc", "auto", True)
+            n_eq = max(2, int(round(1024 * d[:, 0].mean() / today[:, 0].mean() / 2)) * 2)
+            t = measure(f"today at N = {n_eq} (equal rays)", n_eq, 8, "uniform", "plain", True)
+            print(f"|  ratio at equal rays, per seed: {' / '.join(f'{x:.3f}' for x in d[:, 3] / t[:, 3])}; "
+                  f"on the means {d[:, 3].mean() / t[:, 3].mean():.3f} | | | | |", flush=True)
     caster.close()
 
 

@@ -393,3 +393,21 @@ def test_one_bounce_with_guided_hits_is_unbiased_against_a_brute_force_reference
     rmean, rse = ref.mean(0), ref.std(0) / math.sqrt(ref.shape[0])
     tol = 3 * torch.sqrt(se ** 2 + rse ** 2)
     assert float(se[:, 0].min()) > 0 and ((mean - rmean).abs() <= tol).all(), (mean, rmean, tol)
+
+
+def test_hit_samples_auto_by_estimator_and_bad_values_named():
+    """``hit_samples='auto'`` (the default): 4 rays per hit under 'auto', 8 under 'control' and 'plain'
+    (their numbers as before); the resolved count is what the run records and traces."""
+    from prt_torch.transfer.diffuse import HIT_SAMPLES_AUTO, resolve_hit_samples
+
+    assert HIT_SAMPLES_AUTO == {"auto": 4, "control": 8, "plain": 8}
+    assert resolve_hit_samples("auto", "plain") == 8 and resolve_hit_samples(5, "auto") == 5
+    m = _enclosure()
+    for est, M in (("auto", 4), ("plain", 8)):
+        tr = precompute_diffuse(m, 2, 8, 1, estimator=est, shadows="always", fold_albedo=False, bounce_tol=0.0,
+                                run=RunOptions(progress=False))
+        assert tr.meta["hit_samples"] == M and tr.meta["hit_rays_traced"] == M * tr.meta["rays_traced"]  # every ray hits
+    with pytest.raises(ValueError, match="hit_samples='many'; accepted: an integer in \\[1, 4096\\] or 'auto'"):
+        precompute_diffuse(m, 2, 8, 1, hit_samples="many")
+    with pytest.raises(ValueError, match="hit_samples"):
+        precompute_diffuse(m, 2, 8, 1, hit_samples=0)

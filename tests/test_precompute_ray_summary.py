@@ -4,7 +4,7 @@ the self-occlusion probe of ``--shadows auto``).
 
 The reference counts are closed forms, independent of the code's bookkeeping: inside a closed,
 inward-facing sphere every ray a vertex traces meets the front of a face, so with one bounce each
-of the V·⌈N/2⌉ qmc vertex rays (diffuse) makes one hit that traces ``hit_samples`` rays, and the
+of the V·⌈N/2⌉ qmc vertex rays (diffuse) makes one hit that traces ``hit_samples`` rays (4 under the default estimator), and the
 face probe traces FACE_PROBE_RAYS rays per face.
 """
 from __future__ import annotations
@@ -16,7 +16,7 @@ import pytest
 from prt_torch.cli import main as cli_main
 from prt_torch.cli.precompute import ray_counts
 from prt_torch.scene import geodesic_sphere
-from prt_torch.transfer.diffuse import FACE_PROBE_RAYS
+from prt_torch.transfer.diffuse import FACE_PROBE_RAYS, HIT_SAMPLES_AUTO
 
 
 @pytest.fixture(scope="module")
@@ -39,7 +39,7 @@ def _summary(err: str) -> dict[str, int]:
 
 def test_diffuse_summary_counts_vertex_hit_and_probe_rays(enclosure, tmp_path, capsys):
     path, V, F = enclosure
-    N, M = 16, 8
+    N, M = 16, HIT_SAMPLES_AUTO["auto"]  # the default estimator's rays per hit
     out = tmp_path / "d.prt"
     assert cli_main(["precompute", str(path), "--kind", "diffuse", "--bands", "2", "--samples", str(N), "--bounces", "1",
                      "--shadows", "always", "--no-progress", "-o", str(out)]) == 0
@@ -48,6 +48,11 @@ def test_diffuse_summary_counts_vertex_hit_and_probe_rays(enclosure, tmp_path, c
     assert c["hit"] == M * c["vertex"]  # every vertex ray hits the inside; each hit traces M rays (one bounce: depth 1)
     assert c["probe"] == FACE_PROBE_RAYS * F  # estimator 'auto': the hits' per-face probe
     assert c["total"] == c["vertex"] + c["hit"] + c["probe"]
+    assert cli_main(["precompute", str(path), "--kind", "diffuse", "--bands", "2", "--samples", str(N), "--bounces", "1",
+                     "--shadows", "always", "--no-progress", "--estimator", "plain", "--hit-samples", "3", "-o",
+                     str(tmp_path / "p.prt")]) == 0
+    c = _summary(capsys.readouterr().err)
+    assert c["hit"] == 3 * c["vertex"] and c["probe"] == 0  # 'plain': no face probe; --hit-samples as given
 
 
 def test_glossy_summary_counts_hit_and_probe_rays(enclosure, tmp_path, capsys):
@@ -57,7 +62,7 @@ def test_glossy_summary_counts_hit_and_probe_rays(enclosure, tmp_path, capsys):
                      "--bounces", "1", "--shadows", "always", "--no-progress", "-o", str(out)]) == 0
     c = _summary(capsys.readouterr().err)
     assert 0 < c["vertex"] < V * 32  # the shared sphere set's directions above each tangent plane
-    assert c["hit"] == 8 * c["vertex"] and c["probe"] == FACE_PROBE_RAYS * F
+    assert c["hit"] == HIT_SAMPLES_AUTO["auto"] * c["vertex"] and c["probe"] == FACE_PROBE_RAYS * F
     assert c["total"] == c["vertex"] + c["hit"] + c["probe"]
 
 

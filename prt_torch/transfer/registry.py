@@ -235,7 +235,7 @@ register_kind(TransferKind(
         "estimator": [Options("auto", "control", "plain")], "shadows": _SHADOWS, "fold_albedo": [Boolean(), None],
         "bounce_tol": [Interval(float, 0, 1, closed="left")],
         "probe_tol": [Interval(float, 0, 1, closed="left")],
-        "bounce_points": [Options("hits", "vertices")], "hit_samples": [Interval(int, 1, 1024)],
+        "bounce_points": [Options("hits", "vertices")], "hit_samples": [Interval(int, 1, 1024), _AUTO],
         "hit_offset": [Interval(float, 0, 0.1)],
         "subsurface": [Predicate(lambda v: _is_sss_term(v), "{material: NAME or {sigma_a, sigma_s, eta}, scale: MM_PER_UNIT} "
                                  "(optional epsilon, fresnel, spacing)"), None],
@@ -254,7 +254,8 @@ register_kind(TransferKind(
         Arg("--bounce-points", "bounce_points", "where a bounce takes the reflected light: at the hit point itself "
             "(hits; unbiased near sharp vertices) or interpolated from the hit face's vertices (vertices; faster)",
             values={"hits": "hits", "vertices": "vertices"}),
-        Arg("--hit-samples", "hit_samples", "rays per bounce hit point (bounce_points=hits)"),
+        Arg("--hit-samples", "hit_samples", "rays per bounce hit point (bounce_points=hits); auto (default): 4 under "
+            "--estimator auto, 8 under control and plain"),
         Arg("--hit-offset", "hit_offset", "offset of the rays leaving a bounce hit point, as a fraction of the bounding-box "
             "diagonal (default 1e-6, floored at 16 float32 ulps; 1e-4 was the rule before issue 37)"),
     ),
