@@ -66,7 +66,8 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--scene", default="cornell_box")
     ap.add_argument("--size", default="small")
-    ap.add_argument("--albedo", type=float, default=0.8)
+    ap.add_argument("--albedo", type=lambda x: None if x == "scene" else float(x), default=0.8,
+                    help="a grey albedo for every vertex, or 'scene' (the scene's own; as the reference was made)")
     ap.add_argument("--bands", type=int, default=5)
     ap.add_argument("--every", type=int, default=4)
     ap.add_argument("--seeds", type=int, default=2)

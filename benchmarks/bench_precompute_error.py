@@ -80,6 +80,8 @@ def main(argv=None):
                     help="a grey albedo for every vertex (a coloured scene such as cornell_box: fold_albedo=False "
                          "with bounces needs a grey one); default: the scene's own")
     ap.add_argument("--ref-cache", default=None, help="a .pt file keeping the references between runs (same settings)")
+    ap.add_argument("--equal-rays", action="store_true",
+                    help="also run today's estimator at the N whose one-bounce run traces the default's rays (per seed)")
     ap.add_argument("--methods", nargs="+", default=None, metavar="SAMPLING:ESTIMATOR",
                     help="run only these rows (e.g. uniform:plain qmc:auto); the scene's other rows are kept from the report")
     ap.add_argument("--out", default=str(ROOT / "reports" / "benchmarks" / "precompute_error"))
@@ -134,6 +136,17 @@ def main(argv=None):
             print(f"[bench] {sampling:8s} {estimator:8s} N={N:5d} rays/v={row['rays_per_vertex']:7.1f} "
                   f"direct {row['err_direct']:.4f} 1-bounce {row['err_bounce1_total']:.4f} "
                   f"inter {row['err_bounce1_inter']:.4f} (rays/v {row['rays_per_vertex_bounce1']:.0f})", flush=True)
+            today = next((x for x in rows if (x["sampling"], x["estimator"]) == TODAY and x["samples"] == N), None)
+            if args.equal_rays and (sampling, estimator) == ("qmc", "auto") and today is not None:
+                # today's estimator at the N whose one-bounce run traces the default's rays (both scale with N)
+                n_eq = max(2, int(round(N * row["rays_per_vertex_bounce1"] / today["rays_per_vertex_bounce1"] / 2)) * 2)
+                eq = [run(mesh, args.bands, n_eq, s, *TODAY, 1) for s in range(args.seeds)]
+                row["equal_rays_today"] = {"samples": n_eq, "rays_per_vertex_bounce1": float(np.mean([x[2] for x in eq])),
+                                           "err_bounce1_total_seeds": [rel(x[0], ref1) for x in eq]}
+                q = np.array(e1) / np.array(row["equal_rays_today"]["err_bounce1_total_seeds"])
+                print(f"[bench]   today at N={n_eq} (rays/v {row['equal_rays_today']['rays_per_vertex_bounce1']:.0f}): "
+                      f"one bounce {np.mean(row['equal_rays_today']['err_bounce1_total_seeds']):.4f}; the default's ratio per "
+                      f"seed {' / '.join(f'{x:.3f}' for x in q)}", flush=True)
     load1 = os.getloadavg()[0]
     res = {"scene": f"{args.scene}:{args.size}", "albedo": args.albedo, "vertices": V, "bands": args.bands, "reference_samples": ref_n,
            "reference_seconds": t_ref, "reference_self_error": ref_self, "occluded_fraction_t00": occl,
@@ -239,9 +252,19 @@ def headline(res) -> str | None:
     d = next((x for x in rows if (x["sampling"], x["estimator"]) == ("qmc", "auto") and x["samples"] == 1024), None)
     if t is None or d is None:
         return None
-    return (f"**{d['err_direct'] / t['err_direct']:.2f}×** today's error for the shadowed transfer and "
-            f"**{d['err_bounce1_total'] / t['err_bounce1_total']:.2f}×** for the total with one bounce "
-            f"({d['err_bounce1_inter'] / t['err_bounce1_inter']:.2f}× for the interreflected part alone)")
+    h = (f"**{d['err_direct'] / t['err_direct']:.2f}×** today's error for the shadowed transfer and "
+         f"**{d['err_bounce1_total'] / t['err_bounce1_total']:.2f}×** for the total with one bounce "
+         f"({d['err_bounce1_inter'] / t['err_bounce1_inter']:.2f}× for the interreflected part alone")
+    if "rays_per_vertex_bounce1" in d and "rays_per_vertex_bounce1" in t:
+        h += f"; one-bounce rays per vertex {d['rays_per_vertex_bounce1']:.0f} vs {t['rays_per_vertex_bounce1']:.0f}"
+    h += ")"
+    eq = d.get("equal_rays_today")
+    if eq:
+        q = np.array(d["err_bounce1_total_seeds"]) / np.array(eq["err_bounce1_total_seeds"])
+        h += (f"; with one bounce at equal rays (today at N = {eq['samples']}, {eq['rays_per_vertex_bounce1']:.0f} rays per "
+              f"vertex against the default's {d['rays_per_vertex_bounce1']:.0f}): **{q.mean():.2f}×**, per seed "
+              f"{q.min():.2f}–{q.max():.2f} ({len(q)} seeds)")
+    return h
 
 
 def section(res) -> list[str]:

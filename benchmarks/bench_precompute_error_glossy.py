@@ -167,7 +167,8 @@ def section(scenes: dict) -> list[str]:
     for res in scenes.values():
         grey = f", grey albedo {res['albedo']}" if res.get("albedo") is not None else ""
         lines += ["", f"### `{res['scene']}`{grey}", "",
-                  f"{res['vertices']} vertices (every {res['every']}th), {res['bands']} bands in and out, MRT "
+                  f"{len(range(0, res['vertices'], res['every']))} of {res['vertices']} vertices (every {res['every']}th), "
+                  f"{res['bands']} bands in and out, MRT "
                   f"{res['tents']}×{res['tents']} tents, N = {res['samples']} sphere samples (about N/2 traced above the "
                   f"tangent plane), reference {res['reference_samples']} samples (8 rays per hit: 64× the rays); "
                   f"{res['seeds']} seeds per row. CPU: {res['cpu']}; load average before/after "
