@@ -490,7 +490,7 @@ class HitBounce:
     where the hit face is mostly open and the plain sum elsewhere, chosen from the face's open
     fraction measured by :meth:`face_openness` (:data:`FACE_PROBE_RAYS` rays per face, their own
     rotations): a choice independent of the hit's own rays, so each hit's estimate stays unbiased
-    (a choice read from its M = 8 rays would correlate with their set's error). In an enclosure
+    (a choice read from its M = 4 to 8 rays would correlate with their set's error). In an enclosure
     (a Cornell box) 'control' at every hit had 1.8× the interreflected part's error of 'plain'
     (reports/benchmarks/precompute_error.md). Under 'auto' the first hits on flat, mostly blocked
     faces draw their rays from a density guided by the same probe (:meth:`_build_guide`: the
