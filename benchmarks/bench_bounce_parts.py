@@ -28,6 +28,7 @@ Errors do not depend on the machine's load; the seconds printed do (orientation 
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
 import time
@@ -138,10 +139,14 @@ def main(argv=None):
         today = measure(*rows[0])
         for m in args.hit_samples:
             d = measure(f"default, {m} per hit", 1024, m, "qmc", "auto", True)
-            n_eq = max(2, int(round(1024 * d[:, 0].mean() / today[:, 0].mean() / 2)) * 2)
-            t = measure(f"today at N = {n_eq} (equal rays)", n_eq, 8, "uniform", "plain", True)
-            print(f"|  ratio at equal rays, per seed: {' / '.join(f'{x:.3f}' for x in d[:, 3] / t[:, 3])}; "
-                  f"on the means {d[:, 3].mean() / t[:, 3].mean():.3f} | | | | |", flush=True)
+            # today at a perfect square N (its jittered set a whole k × k grid) near the default's rays; the rest of
+            # the difference in rays corrected by √(rays ratio); and today's N = 1024 error scaled by 1/√rays
+            k = max(1, int(round(math.sqrt(1024 * d[:, 0].mean() / today[:, 0].mean()))))
+            t = measure(f"today at N = {k * k} (about equal rays)", k * k, 8, "uniform", "plain", True)
+            q = d[:, 3] / t[:, 3] * math.sqrt(d[:, 0].mean() / t[:, 0].mean())
+            c = d[:, 3] / (today[:, 3].mean() * math.sqrt(today[:, 0].mean() / d[:, 0].mean()))
+            print(f"|  ratio at equal rays, per seed: {' / '.join(f'{x:.3f}' for x in q)}; on the means {q.mean():.3f}; "
+                  f"against today's N = 1024 scaled by 1/√rays: {' / '.join(f'{x:.3f}' for x in c)} | | | | |", flush=True)
     caster.close()
 
 

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
 import time
@@ -138,12 +139,17 @@ def main(argv=None):
                   f"inter {row['err_bounce1_inter']:.4f} (rays/v {row['rays_per_vertex_bounce1']:.0f})", flush=True)
             today = next((x for x in rows if (x["sampling"], x["estimator"]) == TODAY and x["samples"] == N), None)
             if args.equal_rays and (sampling, estimator) == ("qmc", "auto") and today is not None:
-                # today's estimator at the N whose one-bounce run traces the default's rays (both scale with N)
-                n_eq = max(2, int(round(N * row["rays_per_vertex_bounce1"] / today["rays_per_vertex_bounce1"] / 2)) * 2)
+                # today's estimator at about the default's rays (both scale with N): N a perfect square, where its
+                # jittered sphere set is a whole k × k grid (other N leave strata out and read worse than 1/√N);
+                # the small difference in rays left is corrected by √(rays ratio)
+                k = max(1, int(round(math.sqrt(N * row["rays_per_vertex_bounce1"] / today["rays_per_vertex_bounce1"]))))
+                n_eq = k * k
                 eq = [run(mesh, args.bands, n_eq, s, *TODAY, 1) for s in range(args.seeds)]
-                row["equal_rays_today"] = {"samples": n_eq, "rays_per_vertex_bounce1": float(np.mean([x[2] for x in eq])),
+                r_eq = float(np.mean([x[2] for x in eq]))
+                row["equal_rays_today"] = {"samples": n_eq, "rays_per_vertex_bounce1": r_eq,
                                            "err_bounce1_total_seeds": [rel(x[0], ref1) for x in eq]}
                 q = np.array(e1) / np.array(row["equal_rays_today"]["err_bounce1_total_seeds"])
+                q = q * math.sqrt(row["rays_per_vertex_bounce1"] / r_eq)
                 print(f"[bench]   today at N={n_eq} (rays/v {row['equal_rays_today']['rays_per_vertex_bounce1']:.0f}): "
                       f"one bounce {np.mean(row['equal_rays_today']['err_bounce1_total_seeds']):.4f}; the default's ratio per "
                       f"seed {' / '.join(f'{x:.3f}' for x in q)}", flush=True)
@@ -261,9 +267,13 @@ def headline(res) -> str | None:
     eq = d.get("equal_rays_today")
     if eq:
         q = np.array(d["err_bounce1_total_seeds"]) / np.array(eq["err_bounce1_total_seeds"])
+        q = q * math.sqrt(d["rays_per_vertex_bounce1"] / eq["rays_per_vertex_bounce1"])  # the rays made equal
+        c = np.array(d["err_bounce1_total_seeds"]) / (t["err_bounce1_total"] * math.sqrt(
+            t["rays_per_vertex_bounce1"] / d["rays_per_vertex_bounce1"]))
         h += (f"; with one bounce at equal rays (today at N = {eq['samples']}, {eq['rays_per_vertex_bounce1']:.0f} rays per "
-              f"vertex against the default's {d['rays_per_vertex_bounce1']:.0f}): **{q.mean():.2f}×**, per seed "
-              f"{q.min():.2f}–{q.max():.2f} ({len(q)} seeds)")
+              f"vertex against the default's {d['rays_per_vertex_bounce1']:.0f}, scaled by √ of their ratio): "
+              f"**{q.mean():.2f}×**, per seed {q.min():.2f}–{q.max():.2f} ({len(q)} seeds); today's N = {t['samples']} error "
+              f"scaled by 1/√rays instead: {c.mean():.2f}×, per seed {c.min():.2f}–{c.max():.2f}")
     return h
 
 
