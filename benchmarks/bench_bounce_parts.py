@@ -3,7 +3,7 @@ vertices' first-hit directions, the hit points' own estimates, or their weightin
 a high-sample estimate for one part at a time, on a subset of vertices.
 
     .venv/bin/python benchmarks/bench_bounce_parts.py --ref-cache /tmp/ref_cornell.pt
-        [--scene cornell_box --size small --albedo 0.8] [--every 4] [--seeds 2]
+        [--scene cornell_box --size small --albedo 0.8|scene] [--every 4] [--seeds 2] [--hit-samples 2 3 4 8]
 
 The references are those of ``bench_precompute_error.py`` (its ``--ref-cache`` file, made with the
 same scene, bands and reference size: 64 × 1024 samples by default): the shadowed transfer t⁰ and
@@ -22,6 +22,12 @@ probe is counted too). Rows:
   with 2 per hit);
 * ``unguided``: the default with the hits' guide switched off (every hit's rays the
   cosine-weighted set, as before the guide), and ``today``: uniform + plain.
+
+``--hit-samples M ...`` replaces those rows (issue 42 §1, the Cornell box's margin): for each M the
+default at N = 1024 with M rays per hit, then today's estimator at about the same rays — at the
+perfect square N = k² nearest them (its jittered sphere set is a whole k × k grid there; other N
+leave strata out and read worse than 1/√N) — with the per-seed ratio, corrected by √ of the small
+remaining ray ratio, and the ratio to today's N = 1024 error scaled by 1/√rays.
 
 Errors do not depend on the machine's load; the seconds printed do (orientation only).
 """

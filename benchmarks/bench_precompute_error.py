@@ -3,6 +3,7 @@ and estimator (issue 42, part 1: "the same error with fewer rays").
 
     .venv/bin/python benchmarks/bench_precompute_error.py [--scene bumpy_sphere] [--size small]
         [--albedo A] [--samples 64 256 1024] [--seeds 2] [--ref-factor 64] [--bands 5] [--ref-cache F.pt]
+        [--methods uniform:plain qmc:auto] [--equal-rays]
 
 For each (sampling, estimator) in {uniform, qmc, cosine} × {plain, control} and each sample
 count N, the precompute (``precompute_diffuse``, shadows traced, ρ kept out) runs with ``--seeds``
@@ -18,6 +19,12 @@ plotted against the rays traced per vertex (log–log, with a 1/√N line throug
 today's estimator). ``cosine`` traces N rays per vertex where the others trace about N/2, so it is
 run at N/2 to compare at equal rays. The reference is computed twice (qmc+control and
 uniform+plain, both at the reference size, other seeds): their difference bounds its own error.
+
+``--equal-rays`` (issue 42 §1): after each default (qmc + auto) row, today's estimator again at the
+perfect square N = k² whose one-bounce run traces about the default's rays (a whole k × k grid of
+its jittered set), per seed; the headline gives the ratio at equal rays (corrected by √ of the small
+remaining ray ratio) and, as a second reading, against today's N error scaled by 1/√rays.
+``--methods`` re-runs only some rows and keeps the scene's others from the report.
 
 Writes reports/benchmarks/precompute_error.{md,json,png} atomically, a section, a headline line and
 a row of panels per scene: a run replaces its own scene's section and keeps the others' (the
