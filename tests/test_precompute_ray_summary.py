@@ -60,7 +60,9 @@ def test_glossy_summary_counts_hit_and_probe_rays(enclosure, tmp_path, capsys):
     out = tmp_path / "g.prt"
     assert cli_main(["precompute", str(path), "--kind", "glossy", "--bands", "2", "--bands-out", "2", "--samples", "32",
                      "--bounces", "1", "--shadows", "always", "--no-progress", "-o", str(out)]) == 0
-    c = _summary(capsys.readouterr().err)
+    err = capsys.readouterr().err
+    c = _summary(err)
+    assert "bounces used 1;" in err  # glossy/MRT record 'bounces' (no stopping rule)
     assert 0 < c["vertex"] < V * 32  # the shared sphere set's directions above each tangent plane
     assert c["hit"] == HIT_SAMPLES_AUTO["auto"] * c["vertex"] and c["probe"] == FACE_PROBE_RAYS * F
     assert c["total"] == c["vertex"] + c["hit"] + c["probe"]
