@@ -175,7 +175,7 @@ def transferred_radiance(caster: RayCaster | None, points: torch.Tensor, normals
     tangent plane are open and the plain sum elsewhere (the diffuse 'auto''s rule: the smaller
     part sampled, exact for an open and for an enclosed vertex; choosing from the same rays leaves
     a second-order bias, not detected at 3σ in tests/test_precompute_estimators.py). In a closed
-    room (Cornell box) 'control' had about twice the shadowed error of 'plain'
+    room (Cornell box) 'control' had 1.5–1.7× the error of 'plain' (N = 1024)
     (reports/benchmarks/precompute_error.md, glossy section)."""
     cos = normals.to(torch.float64) @ directions.dirs.T  # [k, N]
     i, j = torch.nonzero(cos > 0, as_tuple=True)
