@@ -284,6 +284,17 @@ def headline(res) -> str | None:
     return h
 
 
+def seeds_note(res) -> str:
+    """How many seeds each row averages: the last run's count for its rows (they keep per-seed
+    errors), 2 for rows kept from an earlier run (``--methods``), which did not record them."""
+    rows = res["rows"]
+    new = sorted({len(x["err_direct_seeds"]) for x in rows if "err_direct_seeds" in x})
+    if not new or len(new) == 1 and all("err_direct_seeds" in x for x in rows):
+        return f"{res['seeds']} seeds per row"
+    return (f"{'/'.join(map(str, new))} seeds per row for the rows re-run last (those with an equal-rays or per-seed "
+            "record in the JSON), 2 for the rows kept from the earlier run")
+
+
 def section(res) -> list[str]:
     rows = res["rows"]
     q = res.get("occluded_quantiles_t00")
@@ -294,7 +305,7 @@ def section(res) -> list[str]:
         f"{res['vertices']} vertices, {res['bands']} bands{grey}; shadowing removes {100 * res['occluded_fraction_t00']:.1f}% "
         f"of t00 on average{qs}. Reference: {res['reference_samples']} samples per vertex "
         f"({res['reference_seconds']:.0f} s); the uniform + plain reference differs from it by "
-        f"{res['reference_self_error']:.1e}. {res['seeds']} seeds per row. CPU: {res['cpu']}; load average "
+        f"{res['reference_self_error']:.1e}. {seeds_note(res)}. CPU: {res['cpu']}; load average "
         f"before/after: {res['load'][0]:.1f} / {res['load'][1]:.1f}.",
         "",
         "| sampling | estimator | N | rays / vertex | shadowed | ratio to today | rays / vertex, 1 bounce | 1 bounce: total | ratio "
