@@ -411,3 +411,31 @@ def test_hit_samples_auto_by_estimator_and_bad_values_named():
         precompute_diffuse(m, 2, 8, 1, hit_samples="many")
     with pytest.raises(ValueError, match="hit_samples"):
         precompute_diffuse(m, 2, 8, 1, hit_samples=0)
+
+
+def test_glossy_one_bounce_auto_is_unbiased_against_a_brute_force_reference():
+    """Glossy T_p with one bounce under the default 'auto' (per-vertex choice; the hits' probe, guided
+    walls and 4 rays per hit) in the small open room: its mean over 40 seeds equals a brute-force
+    estimate by another estimator ('plain': visible sum, unguided hits with 8 rays; 8× the sphere
+    samples, 16 other seeds) within 4σ of both at every entry of the 4 × 4 matrices of four floor
+    vertices (64 correlated entries: 4σ keeps the family-wise false alarm near 0.4%; with 160 seeds
+    each, auto against plain measured max |z| 1.9 over the 64; fails with the guided weights dropped)."""
+    from prt_torch.transfer.glossy import precompute_glossy
+
+    mesh = _room()
+    n, v = mesh.normals, mesh.vertices
+    floor = torch.nonzero((n[:, 2] > 0.99) & (v[:, 2].abs() < 1e-9) & (v[:, 0] > 0.1) & (v[:, 0] < 0.9)
+                          & (v[:, 1] > 0.1) & (v[:, 1] < 0.9))[:, 0][:4]
+    kw = dict(exit=False, shadows=True, bounces=1, vertices=floor, run=RunOptions(progress=False))
+    runs = []
+    for s in range(40):
+        tr = precompute_glossy(mesh, 2, samples=64, seed=s, **kw)
+        runs.append(tr.data.to(torch.float64))
+    assert tr.meta["estimator"] == "auto" and tr.meta["hit_guide"]["faces_guided"] > 0 and tr.meta["hit_samples"] == 4
+    ref = torch.stack([precompute_glossy(mesh, 2, samples=512, seed=100 + s, estimator="plain", **kw).data.to(torch.float64)
+                       for s in range(16)])
+    runs = torch.stack(runs)
+    mean, se = runs.mean(0), runs.std(0) / math.sqrt(runs.shape[0])
+    rmean, rse = ref.mean(0), ref.std(0) / math.sqrt(ref.shape[0])
+    tol = 4 * torch.sqrt(se ** 2 + rse ** 2) + 1e-12
+    assert float(se[:, 0, 0].min()) > 0 and ((mean - rmean).abs() <= tol).all(), (mean - rmean, tol)
