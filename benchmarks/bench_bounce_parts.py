@@ -3,7 +3,7 @@ vertices' first-hit directions, the hit points' own estimates, or their weightin
 a high-sample estimate for one part at a time, on a subset of vertices.
 
     .venv/bin/python benchmarks/bench_bounce_parts.py --ref-cache /tmp/ref_cornell.pt
-        [--scene cornell_box --size small --albedo 0.8] [--every 4] [--seeds 2]
+        [--scene cornell_box --size small --albedo 0.8|scene] [--every 4] [--seeds 2] [--hit-samples 2 3 4 8]
 
 The references are those of ``bench_precompute_error.py`` (its ``--ref-cache`` file, made with the
 same scene, bands and reference size: 64 × 1024 samples by default): the shadowed transfer t⁰ and
@@ -23,11 +23,18 @@ probe is counted too). Rows:
 * ``unguided``: the default with the hits' guide switched off (every hit's rays the
   cosine-weighted set, as before the guide), and ``today``: uniform + plain.
 
+``--hit-samples M ...`` replaces those rows (issue 42 §1, the Cornell box's margin): for each M the
+default at N = 1024 with M rays per hit, then today's estimator at about the same rays — at the
+perfect square N = k² nearest them (its jittered sphere set is a whole k × k grid there; other N
+leave strata out and read worse than 1/√N) — with the per-seed ratio, corrected by √ of the small
+remaining ray ratio, and the ratio to today's N = 1024 error scaled by 1/√rays.
+
 Errors do not depend on the machine's load; the seconds printed do (orientation only).
 """
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
 import time
@@ -66,11 +73,14 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--scene", default="cornell_box")
     ap.add_argument("--size", default="small")
-    ap.add_argument("--albedo", type=float, default=0.8)
+    ap.add_argument("--albedo", type=lambda x: None if x == "scene" else float(x), default=0.8,
+                    help="a grey albedo for every vertex, or 'scene' (the scene's own; as the reference was made)")
     ap.add_argument("--bands", type=int, default=5)
     ap.add_argument("--every", type=int, default=4)
     ap.add_argument("--seeds", type=int, default=2)
     ap.add_argument("--ref-cache", required=True, help="bench_precompute_error.py's --ref-cache file for this scene")
+    ap.add_argument("--hit-samples", type=int, nargs="*", default=None,
+                    help="instead of the fixed rows: today's and the default at N = 1024 with each of these rays per hit")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     mesh = builtin(args.scene, args.size, albedo=args.albedo)
@@ -115,15 +125,34 @@ def main(argv=None):
             ("split, unguided: N = 1744, 4 per hit", 1744, 4, "qmc", "auto", False)]
     print("| row | rays / vertex | shadowed | interreflected part | total, 1 bounce |")
     print("|---|---:|---:|---:|---:|")
-    for name, N, Mh, sampling, est, guided in rows:
+
+    def measure(name, N, Mh, sampling, est, guided):
         e = []
         t0 = time.perf_counter()
         for s in range(args.seeds):
             T, TB, r = one(N, Mh, sampling, est, s, guided)
             e.append((r, rel(T, ref0), rel(TB, refi), rel(T + TB, ref1)))
-        e = np.array(e).mean(0)
-        print(f"| {name} | {e[0]:.0f} | {e[1]:.4f} | {e[2]:.4f} | {e[3]:.4f} |  <!-- {time.perf_counter() - t0:.0f} s -->",
-              flush=True)
+        e = np.array(e)
+        m = e.mean(0)
+        print(f"| {name} | {m[0]:.0f} | {m[1]:.4f} | {m[2]:.4f} | {m[3]:.4f} |  <!-- total per seed "
+              f"{' / '.join(f'{x:.4f}' for x in e[:, 3])}; {time.perf_counter() - t0:.0f} s -->", flush=True)
+        return e
+
+    if args.hit_samples is None:
+        for row in rows:
+            measure(*row)
+    else:  # each rays-per-hit setting against today's estimator at the N that traces the same rays
+        today = measure(*rows[0])
+        for m in args.hit_samples:
+            d = measure(f"default, {m} per hit", 1024, m, "qmc", "auto", True)
+            # today at a perfect square N (its jittered set a whole k × k grid) near the default's rays; the rest of
+            # the difference in rays corrected by √(rays ratio); and today's N = 1024 error scaled by 1/√rays
+            k = max(1, int(round(math.sqrt(1024 * d[:, 0].mean() / today[:, 0].mean()))))
+            t = measure(f"today at N = {k * k} (about equal rays)", k * k, 8, "uniform", "plain", True)
+            q = d[:, 3] / t[:, 3] * math.sqrt(d[:, 0].mean() / t[:, 0].mean())
+            c = d[:, 3] / (today[:, 3].mean() * math.sqrt(today[:, 0].mean() / d[:, 0].mean()))
+            print(f"|  ratio at equal rays, per seed: {' / '.join(f'{x:.3f}' for x in q)}; on the means {q.mean():.3f}; "
+                  f"against today's N = 1024 scaled by 1/√rays: {' / '.join(f'{x:.3f}' for x in c)} | | | | |", flush=True)
     caster.close()
 
 

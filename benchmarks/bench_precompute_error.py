@@ -3,6 +3,7 @@ and estimator (issue 42, part 1: "the same error with fewer rays").
 
     .venv/bin/python benchmarks/bench_precompute_error.py [--scene bumpy_sphere] [--size small]
         [--albedo A] [--samples 64 256 1024] [--seeds 2] [--ref-factor 64] [--bands 5] [--ref-cache F.pt]
+        [--methods uniform:plain qmc:auto] [--equal-rays]
 
 For each (sampling, estimator) in {uniform, qmc, cosine} × {plain, control} and each sample
 count N, the precompute (``precompute_diffuse``, shadows traced, ρ kept out) runs with ``--seeds``
@@ -19,6 +20,12 @@ today's estimator). ``cosine`` traces N rays per vertex where the others trace a
 run at N/2 to compare at equal rays. The reference is computed twice (qmc+control and
 uniform+plain, both at the reference size, other seeds): their difference bounds its own error.
 
+``--equal-rays`` (issue 42 §1): after each default (qmc + auto) row, today's estimator again at the
+perfect square N = k² whose one-bounce run traces about the default's rays (a whole k × k grid of
+its jittered set), per seed; the headline gives the ratio at equal rays (corrected by √ of the small
+remaining ray ratio) and, as a second reading, against today's N error scaled by 1/√rays.
+``--methods`` re-runs only some rows and keeps the scene's others from the report.
+
 Writes reports/benchmarks/precompute_error.{md,json,png} atomically, a section, a headline line and
 a row of panels per scene: a run replaces its own scene's section and keeps the others' (the
 report covers bumpy_sphere, the scan stand-in scan_blob, occluder_over_plane and a grey
@@ -29,6 +36,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
 import time
@@ -80,6 +88,10 @@ def main(argv=None):
                     help="a grey albedo for every vertex (a coloured scene such as cornell_box: fold_albedo=False "
                          "with bounces needs a grey one); default: the scene's own")
     ap.add_argument("--ref-cache", default=None, help="a .pt file keeping the references between runs (same settings)")
+    ap.add_argument("--equal-rays", action="store_true",
+                    help="also run today's estimator at the N whose one-bounce run traces the default's rays (per seed)")
+    ap.add_argument("--methods", nargs="+", default=None, metavar="SAMPLING:ESTIMATOR",
+                    help="run only these rows (e.g. uniform:plain qmc:auto); the scene's other rows are kept from the report")
     ap.add_argument("--out", default=str(ROOT / "reports" / "benchmarks" / "precompute_error"))
     args = ap.parse_args(argv)
     torch.set_num_threads(max(1, os.cpu_count() or 1))
@@ -107,7 +119,11 @@ def main(argv=None):
     occl = float(frac.mean())  # each vertex's occluded fraction of t00 (cosine-weighted), by the reference
     occl_q = [float(x) for x in torch.quantile(frac, torch.tensor([0.1, 0.5, 0.9], dtype=torch.float64))]
     rows = []
-    for sampling, estimator in METHODS:
+    methods = METHODS if args.methods is None else [tuple(m.split(":")) for m in args.methods]
+    bad = [m for m in methods if m not in METHODS]
+    if bad:
+        sys.exit(f"--methods {':'.join(bad[0])}: accepted: {' '.join(s + ':' + e for s, e in METHODS)}")
+    for sampling, estimator in methods:
         for N in args.samples:
             e0, e1, ei, rays, rays1, secs = [], [], [], [], [], []
             for s in range(args.seeds):
@@ -122,11 +138,28 @@ def main(argv=None):
             row = {"sampling": sampling, "estimator": estimator, "samples": N, "rays_per_vertex": float(np.mean(rays)),
                    "rays_per_vertex_bounce1": float(np.mean(rays1)),
                    "err_direct": float(np.mean(e0)), "err_bounce1_total": float(np.mean(e1)),
-                   "err_bounce1_inter": float(np.mean(ei)), "seconds_direct": float(np.mean(secs))}
+                   "err_bounce1_inter": float(np.mean(ei)), "seconds_direct": float(np.mean(secs)),
+                   "err_direct_seeds": e0, "err_bounce1_total_seeds": e1}
             rows.append(row)
             print(f"[bench] {sampling:8s} {estimator:8s} N={N:5d} rays/v={row['rays_per_vertex']:7.1f} "
                   f"direct {row['err_direct']:.4f} 1-bounce {row['err_bounce1_total']:.4f} "
                   f"inter {row['err_bounce1_inter']:.4f} (rays/v {row['rays_per_vertex_bounce1']:.0f})", flush=True)
+            today = next((x for x in rows if (x["sampling"], x["estimator"]) == TODAY and x["samples"] == N), None)
+            if args.equal_rays and (sampling, estimator) == ("qmc", "auto") and today is not None:
+                # today's estimator at about the default's rays (both scale with N): N a perfect square, where its
+                # jittered sphere set is a whole k × k grid (other N leave strata out and read worse than 1/√N);
+                # the small difference in rays left is corrected by √(rays ratio)
+                k = max(1, int(round(math.sqrt(N * row["rays_per_vertex_bounce1"] / today["rays_per_vertex_bounce1"]))))
+                n_eq = k * k
+                eq = [run(mesh, args.bands, n_eq, s, *TODAY, 1) for s in range(args.seeds)]
+                r_eq = float(np.mean([x[2] for x in eq]))
+                row["equal_rays_today"] = {"samples": n_eq, "rays_per_vertex_bounce1": r_eq,
+                                           "err_bounce1_total_seeds": [rel(x[0], ref1) for x in eq]}
+                q = np.array(e1) / np.array(row["equal_rays_today"]["err_bounce1_total_seeds"])
+                q = q * math.sqrt(row["rays_per_vertex_bounce1"] / r_eq)
+                print(f"[bench]   today at N={n_eq} (rays/v {row['equal_rays_today']['rays_per_vertex_bounce1']:.0f}): "
+                      f"one bounce {np.mean(row['equal_rays_today']['err_bounce1_total_seeds']):.4f}; the default's ratio per "
+                      f"seed {' / '.join(f'{x:.3f}' for x in q)}", flush=True)
     load1 = os.getloadavg()[0]
     res = {"scene": f"{args.scene}:{args.size}", "albedo": args.albedo, "vertices": V, "bands": args.bands, "reference_samples": ref_n,
            "reference_seconds": t_ref, "reference_self_error": ref_self, "occluded_fraction_t00": occl,
@@ -134,6 +167,12 @@ def main(argv=None):
            "load": [load0, load1], "samples": sorted(args.samples), "ref_factor": args.ref_factor}
     out = Path(args.out)
     scenes = load_scenes(out.with_suffix(".json"))
+    old = scenes.get(res["scene"])
+    if args.methods is not None and old is not None:  # the rows not re-run are kept (same references: --ref-cache)
+        ran = {(x["sampling"], x["estimator"], x["samples"]) for x in rows}
+        kept = [x for x in old["rows"] if (x["sampling"], x["estimator"], x["samples"]) not in ran]
+        res["rows"] = sorted(kept + rows, key=lambda x: (METHODS.index((x["sampling"], x["estimator"])), x["samples"]))
+        res["samples"] = sorted({x["samples"] for x in res["rows"]})
     scenes[res["scene"]] = res  # this scene's section replaced, the others kept
     write(scenes, out)
 
@@ -209,8 +248,12 @@ def write(scenes: dict, out: Path):
             lines.append(f"- `{res['scene']}` ({100 * res['occluded_fraction_t00']:.1f}% occluded on average): {h}")
     for res in scenes.values():
         lines += section(res)
-    with io.atomic_path(out.with_suffix(".md")) as tmp:
-        Path(tmp).write_text("\n".join(lines) + "\n")
+    md = out.with_suffix(".md")
+    glossy_mark = "\n## Glossy and MRT with one bounce\n"  # bench_precompute_error_glossy.py's section: kept
+    old_md = md.read_text() if md.exists() else ""
+    tail = glossy_mark + old_md.split(glossy_mark, 1)[1] if glossy_mark in old_md else ""
+    with io.atomic_path(md) as tmp:
+        Path(tmp).write_text("\n".join(lines) + "\n" + tail)
     with io.atomic_path(out.with_suffix(".json")) as tmp:
         Path(tmp).write_text(json.dumps({"scenes": scenes}, indent=1))
     print(f"[bench] wrote {out.with_suffix('.md')}")
@@ -222,9 +265,34 @@ def headline(res) -> str | None:
     d = next((x for x in rows if (x["sampling"], x["estimator"]) == ("qmc", "auto") and x["samples"] == 1024), None)
     if t is None or d is None:
         return None
-    return (f"**{d['err_direct'] / t['err_direct']:.2f}×** today's error for the shadowed transfer and "
-            f"**{d['err_bounce1_total'] / t['err_bounce1_total']:.2f}×** for the total with one bounce "
-            f"({d['err_bounce1_inter'] / t['err_bounce1_inter']:.2f}× for the interreflected part alone)")
+    h = (f"**{d['err_direct'] / t['err_direct']:.2f}×** today's error for the shadowed transfer and "
+         f"**{d['err_bounce1_total'] / t['err_bounce1_total']:.2f}×** for the total with one bounce "
+         f"({d['err_bounce1_inter'] / t['err_bounce1_inter']:.2f}× for the interreflected part alone")
+    if "rays_per_vertex_bounce1" in d and "rays_per_vertex_bounce1" in t:
+        h += f"; one-bounce rays per vertex {d['rays_per_vertex_bounce1']:.0f} vs {t['rays_per_vertex_bounce1']:.0f}"
+    h += ")"
+    eq = d.get("equal_rays_today")
+    if eq:
+        q = np.array(d["err_bounce1_total_seeds"]) / np.array(eq["err_bounce1_total_seeds"])
+        q = q * math.sqrt(d["rays_per_vertex_bounce1"] / eq["rays_per_vertex_bounce1"])  # the rays made equal
+        c = np.array(d["err_bounce1_total_seeds"]) / (t["err_bounce1_total"] * math.sqrt(
+            t["rays_per_vertex_bounce1"] / d["rays_per_vertex_bounce1"]))
+        h += (f"; with one bounce at equal rays (today at N = {eq['samples']}, {eq['rays_per_vertex_bounce1']:.0f} rays per "
+              f"vertex against the default's {d['rays_per_vertex_bounce1']:.0f}, scaled by √ of their ratio): "
+              f"**{q.mean():.2f}×**, per seed {q.min():.2f}–{q.max():.2f} ({len(q)} seeds); today's N = {t['samples']} error "
+              f"scaled by 1/√rays instead: {c.mean():.2f}×, per seed {c.min():.2f}–{c.max():.2f}")
+    return h
+
+
+def seeds_note(res) -> str:
+    """How many seeds each row averages: the last run's count for its rows (they keep per-seed
+    errors), 2 for rows kept from an earlier run (``--methods``), which did not record them."""
+    rows = res["rows"]
+    new = sorted({len(x["err_direct_seeds"]) for x in rows if "err_direct_seeds" in x})
+    if not new or len(new) == 1 and all("err_direct_seeds" in x for x in rows):
+        return f"{res['seeds']} seeds per row"
+    return (f"{'/'.join(map(str, new))} seeds per row for the rows re-run last (those with an equal-rays or per-seed "
+            "record in the JSON), 2 for the rows kept from the earlier run")
 
 
 def section(res) -> list[str]:
@@ -237,7 +305,7 @@ def section(res) -> list[str]:
         f"{res['vertices']} vertices, {res['bands']} bands{grey}; shadowing removes {100 * res['occluded_fraction_t00']:.1f}% "
         f"of t00 on average{qs}. Reference: {res['reference_samples']} samples per vertex "
         f"({res['reference_seconds']:.0f} s); the uniform + plain reference differs from it by "
-        f"{res['reference_self_error']:.1e}. {res['seeds']} seeds per row. CPU: {res['cpu']}; load average "
+        f"{res['reference_self_error']:.1e}. {seeds_note(res)}. CPU: {res['cpu']}; load average "
         f"before/after: {res['load'][0]:.1f} / {res['load'][1]:.1f}.",
         "",
         "| sampling | estimator | N | rays / vertex | shadowed | ratio to today | rays / vertex, 1 bounce | 1 bounce: total | ratio "

@@ -162,6 +162,24 @@ def test_precompute_on_ray_is_bit_identical_and_resumes_from_the_same_state(ray_
 
 
 @needs_ray
+def test_glossy_one_bounce_auto_on_ray_is_bit_identical(ray_ex):
+    """Glossy with one bounce under the default 'auto' (per-vertex choice, the hits' face probe and
+    guide traced once in the driver, 4 rays per hit): the Ray executor's matrices and ray counts equal
+    the local run's (the hit rays come back with each chunk)."""
+    from prt_torch.scene import load_scene
+    from prt_torch.transfer import RunOptions
+    from prt_torch.transfer.glossy import precompute_glossy
+
+    mesh = load_scene("cornell_box", size="small")
+    kw = dict(bands=3, bands_out=3, samples=32, bounces=1, seed=5, vertices=torch.arange(0, mesh.num_vertices, 7))
+    a = precompute_glossy(mesh, **kw, run=RunOptions(chunk_size=100, progress=False))
+    b = precompute_glossy(mesh, **kw, run=RunOptions(chunk_size=100, progress=False, executor=ray_ex))
+    assert a.meta["estimator"] == "auto" and a.meta["hit_guide"]["faces_guided"] > 0
+    assert torch.equal(a.data, b.data)
+    assert a.meta["hit_rays_traced"] == b.meta["hit_rays_traced"] > 0 and a.meta["rays_traced"] == b.meta["rays_traced"]
+
+
+@needs_ray
 def test_cli_precompute_with_executor_ray_writes_the_local_file(ray_ex, tmp_path):
     from prt_torch.cli import main
     from prt_torch.transfer import Transfer

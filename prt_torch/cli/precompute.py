@@ -258,6 +258,25 @@ def _run(args, executor) -> int:
     for k, d in m.get("auto", {}).items():
         print(f"prt precompute: {k}={d['value']} keeps {d['energy_kept']:.4f} of the energy ({d['reason']})", file=sys.stderr)
     print(f"prt precompute: wrote {out} kind={tr.kind} data={tuple(tr.data.shape)} "
-          f"({m.get('shadow_decision', '')}; bounces used {m.get('bounces_used', 0)}; "
-          f"{m.get('rays_traced', 0)} rays in {m.get('seconds', 0):.1f} s)", file=sys.stderr)
+          f"({m.get('shadow_decision', '')}; bounces used {m.get('bounces_used', m.get('bounces', 0))}; "
+          f"{ray_summary(m)} in {m.get('seconds', 0):.1f} s)", file=sys.stderr)
     return 0
+
+
+def ray_counts(meta: dict) -> dict[str, int]:
+    """Every ray a precompute traced, from its metadata: ``vertex`` (the vertices' own,
+    ``rays_traced``), ``hit`` (the bounce hit points', intersect and occluded: ``hit_rays_traced``)
+    and ``probe`` (the self-occlusion probe of ``shadows: auto``, ``probe.rays``, and the hits'
+    per-face probe of estimator 'auto', ``hit_choice_rays``); ``total`` their sum."""
+    c = {"vertex": int(meta.get("rays_traced", 0)), "hit": int(meta.get("hit_rays_traced", 0)),
+         "probe": int((meta.get("probe") or {}).get("rays", 0)) + int(meta.get("hit_choice_rays", 0))}
+    c["total"] = c["vertex"] + c["hit"] + c["probe"]
+    return c
+
+
+def ray_summary(meta: dict) -> str:
+    """'N rays' with the parts of :func:`ray_counts` where there is more than the vertices' rays."""
+    c = ray_counts(meta)
+    if c["total"] == c["vertex"]:
+        return f"{c['total']} rays"
+    return f"{c['total']} rays: {c['vertex']} from vertices, {c['hit']} from hit points, {c['probe']} probe"

@@ -66,6 +66,7 @@ __all__ = [
     "offset_origins",
     "hit_ray_eps",
     "HIT_OFFSET",
+    "HIT_SAMPLES_AUTO",
     "probe_self_occlusion",
     "DiffuseSampler",
     "MAX_DIFFUSE_BANDS",
@@ -98,6 +99,13 @@ FACE_PROBE_STREAM = 1 << 21  # its hash streams, apart from the vertices' (1 << 
 HIT_OFFSET = 1e-6
 #: the floor of that offset in float32 ulps of the largest coordinate (Embree traces float32)
 HIT_OFFSET_ULPS = 16
+#: ``hit_samples='auto'`` (the default): rays per first hit by estimator. Under 'auto' (the guided
+#: hits) 4: a vertex's first hits share its stratification and average over hundreds of hits, so
+#: their rays buy less error than the vertices' own — Cornell box (grey 0.8, one bounce, N = 1024,
+#: 4 seeds; benchmarks/bench_bounce_parts.py) 4 per hit 0.0289 at 2212 rays per vertex against 8 per
+#: hit 0.0249 at 3856: 0.34× / 0.47× the error of uniform + plain at equal rays. 'control' and
+#: 'plain' keep 8 (the estimators before: their numbers unchanged).
+HIT_SAMPLES_AUTO = {"auto": 4, "control": 8, "plain": 8}
 
 
 def unshadowed_transfer(normals: torch.Tensor, bands: int, albedo: torch.Tensor | None = None) -> torch.Tensor:
@@ -482,7 +490,7 @@ class HitBounce:
     where the hit face is mostly open and the plain sum elsewhere, chosen from the face's open
     fraction measured by :meth:`face_openness` (:data:`FACE_PROBE_RAYS` rays per face, their own
     rotations): a choice independent of the hit's own rays, so each hit's estimate stays unbiased
-    (a choice read from its M = 8 rays would correlate with their set's error). In an enclosure
+    (a choice read from its M = 4 to 8 rays would correlate with their set's error). In an enclosure
     (a Cornell box) 'control' at every hit had 1.8× the interreflected part's error of 'plain'
     (reports/benchmarks/precompute_error.md). Under 'auto' the first hits on flat, mostly blocked
     faces draw their rays from a density guided by the same probe (:meth:`_build_guide`: the
@@ -989,7 +997,7 @@ def precompute_diffuse(
     bounce_tol: float = 1e-3,
     probe_tol: float = 1e-3,
     bounce_points: str = "hits",
-    hit_samples: int = 8,
+    hit_samples: int | str = "auto",
     hit_offset: float = HIT_OFFSET,
     subsurface: dict | None = None,
     run: RunOptions | None = None,
@@ -1026,7 +1034,8 @@ def precompute_diffuse(
             face's vertex transfers interpolated by barycentrics (course notes 2005; each over
             its vertex normal's hemisphere, which runs high at sharp and concave vertices). The
             last three are kept for comparison (docs/validate.md has the measurements).
-        hit_samples: rays per hit point for ``bounce_points='hits'`` (in [1, 4096]).
+        hit_samples: rays per hit point for ``bounce_points='hits'`` (in [1, 4096]), or 'auto'
+            (default): :data:`HIT_SAMPLES_AUTO` of the estimator (4 under 'auto', 8 otherwise).
         hit_offset: offset of the rays leaving a hit point, as a fraction of the bounding-box
             diagonal (in [0, 0.1]; floored at a few float32 ulps, :func:`hit_ray_eps`). The
             vertices' own ray offset is ``run.offset``.
@@ -1053,7 +1062,7 @@ def precompute_diffuse(
     check_choice("shadows", shadows, ["auto", "always", "never"])
     check_choice("fold_albedo", fold_albedo, [None, True, False])
     check_choice("bounce_points", bounce_points, ["hits", "faces", "corners", "vertices"])
-    hit_samples = check_int("hit_samples", hit_samples, 1, 4096)
+    hit_samples = resolve_hit_samples(hit_samples, estimator)
     hit_offset = check_float("hit_offset", hit_offset, 0.0, 0.1)
     bounce_tol = check_float("bounce_tol", bounce_tol, 0.0, 1.0, hi_open=True)
     probe_tol = check_float("probe_tol", probe_tol, 0.0, 1.0, hi_open=True)
@@ -1329,14 +1338,25 @@ def _trace_faces(caster: RayCaster, mesh: Mesh, bands: int, samples: int, seed: 
     return {"X0": X0, "S": S, "rho": rho_f, "normals": fn}
 
 
+def resolve_hit_samples(hit_samples: int | str, estimator: str) -> int:
+    """Rays per first hit: ``hit_samples`` checked in [1, 4096], or for 'auto' the estimator's
+    :data:`HIT_SAMPLES_AUTO`."""
+    if hit_samples == "auto":
+        return HIT_SAMPLES_AUTO[check_choice("estimator", estimator, ESTIMATORS)]
+    if isinstance(hit_samples, str):
+        raise ValueError(f"hit_samples={hit_samples!r}; accepted: an integer in [1, 4096] or 'auto'")
+    return check_int("hit_samples", hit_samples, 1, 4096)
+
+
 def vertex_transfer(mesh: Mesh, idx: Any, bands: int, samples: int, seed: int, bounces: int = 0, *,
-                    sampling: str = "qmc", offset: float = 1e-4, hit_samples: int = 8,
+                    sampling: str = "qmc", offset: float = 1e-4, hit_samples: int | str = "auto",
                     hit_offset: float | None = HIT_OFFSET, estimator: str = "auto") -> tuple[torch.Tensor, torch.Tensor | None]:
     """What ``precompute_diffuse(..., bounce_points='hits')`` computes for the vertices ``idx``
     alone (the same rays, keys and offsets): ``(t⁰ [k, n²], TB [k, B, C, n²] or None)`` float64,
     ρ_p kept out. Cheap for a few vertices (no pass over the mesh): the validator uses it to
     measure the engine's Monte Carlo noise by re-running other seeds."""
     idx = torch.as_tensor(idx, dtype=torch.int64)
+    hit_samples = resolve_hit_samples(hit_samples, estimator)
     frames = mesh.frames()[idx] if sampling == "cosine" else None
     nudge = boundary_nudge(mesh)[idx]
     run = RunOptions(offset=offset)
@@ -1351,15 +1371,18 @@ def vertex_transfer(mesh: Mesh, idx: Any, bands: int, samples: int, seed: int, b
 
 
 def hit_bounce(mesh: Mesh, bands: int, samples: int, seed: int, bounces: int, offset: float = 1e-4,
-               hit_samples: int = 8, sampling: str = "uniform", hit_offset: float | None = HIT_OFFSET,
-               estimator: str = "plain") -> HitBounce:
+               hit_samples: int | str = "auto", sampling: str = "uniform", hit_offset: float | None = HIT_OFFSET,
+               estimator: str = "plain", meta: dict | None = None) -> HitBounce:
     """The :class:`HitBounce` a diffuse precompute with ``bounces`` ≥ 1 uses (its face tables
     traced here): a glossy/MRT vertex with ``bounces`` bounces reads the same hit values, so
-    its interreflection equals the diffuse one."""
+    its interreflection equals the diffuse one. ``meta``: receives what :func:`_hit_tables`
+    records (hit settings; under 'auto' the probe's ``hit_choice_rays`` and ``hit_guide``)."""
     bounces = check_int("bounces", bounces, 1, MAX_BOUNCES)
+    hit_samples = resolve_hit_samples(hit_samples, estimator)
     run = RunOptions(offset=offset)
     with RayCaster(mesh, workers=_workers(run, mesh, samples, sampling), offset=offset) as caster:
-        return _hit_tables(caster, mesh, bands, samples, seed, sampling, bounces, hit_samples, run, {}, hit_offset, estimator)
+        return _hit_tables(caster, mesh, bands, samples, seed, sampling, bounces, hit_samples, run,
+                           {} if meta is None else meta, hit_offset, estimator)
 
 
 def face_transfer(mesh: Mesh, bands: int, samples: int, seed: int, bounces: int, offset: float = 1e-4,

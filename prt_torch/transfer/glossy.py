@@ -67,7 +67,10 @@ MAX_GLOSSY_BANDS = 16
 #: torch threads inside a glossy/MRT chunk (None: torch's default).
 CHUNK_THREADS: int | None = 1
 MAX_SAMPLES = 1 << 18
-ESTIMATORS = ("control", "plain")  # T_p's: the exact unshadowed T_p minus the blocked directions, or the visible sum
+#: T_p's estimators: per vertex the smaller part ('auto'), the exact unshadowed T_p minus the blocked
+#: directions ('control') or the visible sum ('plain'); with bounces the hit points read the diffuse
+#: estimator of the same name (:class:`~prt_torch.transfer.diffuse.HitBounce`).
+ESTIMATORS = ("auto", "control", "plain")
 
 
 def _available_memory() -> int:
@@ -167,11 +170,18 @@ def transferred_radiance(caster: RayCaster | None, points: torch.Tensor, normals
 
     ``estimator='control'`` (issue 42): the first term as the exact unshadowed T_p
     (:func:`unshadowed_transferred`) minus Σ_s w_s (1 − V(p,s)) y(s) y(s)ᵀ over the blocked
-    directions — the same rays, unbiased, exact where nothing is blocked; 'plain': the sum."""
+    directions — the same rays, unbiased, exact where nothing is blocked; 'plain': the sum;
+    'auto': per vertex the control variate where at least half of its directions above the
+    tangent plane are open and the plain sum elsewhere (the diffuse 'auto''s rule: the smaller
+    part sampled, exact for an open and for an enclosed vertex; choosing from the same rays leaves
+    a second-order bias, not detected at 3σ in tests/test_precompute_estimators.py). In a closed
+    room (Cornell box) 'control' had 1.5–1.7× the error of 'plain' (N = 1024)
+    (reports/benchmarks/precompute_error.md, glossy section)."""
     cos = normals.to(torch.float64) @ directions.dirs.T  # [k, N]
     i, j = torch.nonzero(cos > 0, as_tuple=True)
     W = torch.zeros_like(cos)
     T_ind = None
+    open_v = None  # [k] bool: the rows estimated by the control variate
     if caster is not None and i.numel():
         o = offset_origins(points.to(torch.float64).numpy(), normals.to(torch.float64).numpy(), caster.eps,
                            None if nudge is None else nudge.numpy())[i.numpy()].astype(np.float32)  # the one offset rule
@@ -194,15 +204,22 @@ def transferred_radiance(caster: RayCaster | None, points: torch.Tensor, normals
             A = torch.zeros(cos.shape[0], cos.shape[1], t_hit.shape[1], dtype=torch.float64)
             A[i[h], j[h]] = t_hit  # [k, N, n²]: radiance transfer arriving along each blocked direction
             T_ind = torch.matmul((directions.Y * directions.weight).T, A)  # [k, n², n²], one batched GEMM
-        if estimator == "control":
-            W[i[~vis], j[~vis]] = directions.weight  # the blocked directions, subtracted below
+        if estimator == "auto":  # per vertex: the control variate where at least half of its upper directions are open
+            k = cos.shape[0]
+            open_v = torch.bincount(i[vis], minlength=k) * 2 >= torch.bincount(i, minlength=k)  # [k]
+            sel = vis != open_v[i]  # the blocked directions of open vertices, the visible ones of the others
         else:
-            W[i[vis], j[vis]] = directions.weight
+            open_v = torch.full((cos.shape[0],), estimator == "control")
+            sel = ~vis if estimator == "control" else vis
+        W[i[sel], j[sel]] = directions.weight  # control rows: the blocked directions, subtracted below
     else:
         W[i, j] = directions.weight
     T = (W @ directions.YY).reshape(-1, directions.n2, directions.n2)
-    if caster is not None and estimator == "control":
-        T = unshadowed_transferred(normals, int(round(math.sqrt(directions.n2))), blocks) - T
+    if caster is not None and estimator != "plain" and open_v is None:  # no direction above any tangent plane
+        open_v = torch.full((cos.shape[0],), True)
+    if open_v is not None and bool(open_v.any()):
+        U = unshadowed_transferred(normals, int(round(math.sqrt(directions.n2))), blocks)
+        T = torch.where(open_v[:, None, None], U - T, T)
     if T_ind is not None:
         T += T_ind
     return T, int(i.numel()) if caster is not None else 0
@@ -222,11 +239,12 @@ _LUMA = torch.tensor([0.2126, 0.7152, 0.0722], dtype=torch.float64)
 
 
 def bounce_table(mesh: Mesh, bands: int, samples: int, seed: int, bounces: int, offset: float,
-                 estimator: str = "plain") -> Bounce:
+                 estimator: str = "plain", meta: dict | None = None) -> Bounce:
     """What a blocked direction brings (the hit point's diffuse transfer with ``bounces - 1``
     bounces), via :func:`prt_torch.transfer.diffuse.hit_bounce` — the estimator the diffuse
-    bounces use (coloured albedo becomes luminance: one matrix per vertex)."""
-    return Bounce(hits=hit_bounce(mesh, bands, samples, seed, bounces, offset=offset, estimator=estimator))
+    bounces use (coloured albedo becomes luminance: one matrix per vertex). ``meta`` receives the
+    hit settings and, under 'auto', the face probe's ray count (``hit_choice_rays``) and guide."""
+    return Bounce(hits=hit_bounce(mesh, bands, samples, seed, bounces, offset=offset, estimator=estimator, meta=meta))
 
 
 def rotate_rows(T: torch.Tensor, blocks: list[torch.Tensor]) -> torch.Tensor:
@@ -286,7 +304,7 @@ def run_exit_transfer(
             if not shadows:
                 raise ValueError("bounces > 0 needs shadows traced (interreflected light arrives along blocked directions)")
             tb = time.perf_counter()
-            bounce = bounce_table(mesh, bands, samples, seed, bounces, run.offset, estimator)
+            bounce = bounce_table(mesh, bands, samples, seed, bounces, run.offset, estimator, meta)
             meta["bounce_table_seconds"] = time.perf_counter() - tb
 
         def compute(a: int, b: int) -> dict[str, torch.Tensor]:
@@ -297,20 +315,25 @@ def run_exit_transfer(
 
         def chunk_work(a: int, b: int) -> dict[str, torch.Tensor]:
             idx = sel[a:b]
-            blocks = rotation_blocks(F_all[idx], bands) if left.numel() or estimator == "control" else None  # once per chunk
+            blocks = rotation_blocks(F_all[idx], bands) if left.numel() or estimator != "plain" else None  # once per chunk
+            hit0 = 0 if bounce is None else bounce.hits.rays_traced
             T, rays = transferred_radiance(caster, mesh.vertices[idx], mesh.normals[idx], directions, bounce, ids=idx,
                                            nudge=None if nudge is None else nudge[idx], estimator=estimator, blocks=blocks)
+            hit_rays = 0 if bounce is None else bounce.hits.rays_traced - hit0  # this chunk's hit rays (any executor)
             if left.numel():
                 out = left[index[idx]] @ rotate_rows(T, blocks)  # B_p R_p T_p
             else:
                 out = T  # the global transferred-radiance matrices (Sloan 2002)
-            return {"data": out.to(torch.float32), "rays": torch.tensor([rays], dtype=torch.int64)}
+            return {"data": out.to(torch.float32), "rays": torch.tensor([rays], dtype=torch.int64),
+                    "hit_rays": torch.tensor([hit_rays], dtype=torch.int64)}
 
         data = run.result_rows((V, n_out, n2), torch.float32)  # in memory, or a file when larger than memory allows
 
         def sink(a: int, b: int, p: dict[str, torch.Tensor]) -> None:  # each chunk copied in as it finishes
             data[a:b] = p["data"]
             meta["rays_traced"] = meta.get("rays_traced", 0) + int(p["rays"].sum())
+            if bounce is not None and "hit_rays" in p:  # the hit points' rays, intersect and occluded (chunks of an older run: none)
+                meta["hit_rays_traced"] = meta.get("hit_rays_traced", 0) + int(p["hit_rays"].sum())
 
         with torch_threads(CHUNK_THREADS or torch.get_num_threads()):  # the sink's copies and the chunk saves too
             run.run_chunks(V, chunk_size, compute, fingerprint=fingerprint, desc=f"{kind} {mesh.name}",
@@ -432,7 +455,7 @@ def precompute_glossy(
     shadows: bool | str = True,
     bounces: int = 0,
     vertices: torch.Tensor | None = None,
-    estimator: str = "control",
+    estimator: str = "auto",
     subsurface: dict | None = None,
     run: RunOptions | None = None,
 ) -> Transfer:
@@ -454,7 +477,8 @@ def precompute_glossy(
             the exit radiance of the diffuse surface they hit, from a diffuse transfer with
             ``bounces - 1`` bounces (see :func:`transferred_radiance`); coloured albedo is
             reduced to luminance since the glossy matrices are shared by the colour channels.
-        estimator: 'control' (default: the exact unshadowed T_p minus the blocked directions'
+        estimator: 'auto' (default: per vertex 'control' where at least half of its directions are
+            open, 'plain' elsewhere), 'control' (the exact unshadowed T_p minus the blocked directions'
             part, :func:`transferred_radiance`) or 'plain' (the sum over visible directions).
         subsurface: ``{material, scale}`` (optional ``epsilon``, ``fresnel``, ``spacing``): add
             the view-independent subsurface term of Sloan 2003 §3.1 to the constant exit

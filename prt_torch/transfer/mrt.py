@@ -41,7 +41,7 @@ def precompute_mrt(
     shadows: bool | str = True,
     bounces: int = 0,
     vertices: torch.Tensor | None = None,
-    estimator: str = "control",
+    estimator: str = "auto",
     run: RunOptions | None = None,
 ) -> Transfer:
     """Matrix radiance transfer A_p = G⁻¹ C B_p R_p T_p (Lehtinen & Kautz 2003 eq. 9).

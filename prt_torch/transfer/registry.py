@@ -214,8 +214,10 @@ _SHARED_ARGS = {a.param: a for a in (
     Arg("--window", "window", "window the exit-radiance bands against ringing",
         values={"hanning": "hanning", "lanczos": "lanczos"}),
     Arg("--window-width", "window_width", "window width in bands"),
-    Arg("--estimator", "estimator", "control: the exact unshadowed T_p minus the sampled blocked part (default; exact "
-        "where nothing is blocked); plain: the sum over visible rays", values={"control": "control", "plain": "plain"}),
+    Arg("--estimator", "estimator", "auto (default): per vertex the control variate where at least half its directions "
+        "are open, the plain sum elsewhere; control: the exact unshadowed T_p minus the sampled blocked part (exact "
+        "where nothing is blocked); plain: the sum over visible rays",
+        values={"auto": "auto", "control": "control", "plain": "plain"}),
     Arg("--quad-bands", "quad_bands", "BRDF double-projection quadrature size (default from the lobe's sharpness)"),
 )}
 
@@ -233,7 +235,7 @@ register_kind(TransferKind(
         "estimator": [Options("auto", "control", "plain")], "shadows": _SHADOWS, "fold_albedo": [Boolean(), None],
         "bounce_tol": [Interval(float, 0, 1, closed="left")],
         "probe_tol": [Interval(float, 0, 1, closed="left")],
-        "bounce_points": [Options("hits", "vertices")], "hit_samples": [Interval(int, 1, 1024)],
+        "bounce_points": [Options("hits", "vertices")], "hit_samples": [Interval(int, 1, 1024), _AUTO],
         "hit_offset": [Interval(float, 0, 0.1)],
         "subsurface": [Predicate(lambda v: _is_sss_term(v), "{material: NAME or {sigma_a, sigma_s, eta}, scale: MM_PER_UNIT} "
                                  "(optional epsilon, fresnel, spacing)"), None],
@@ -252,7 +254,8 @@ register_kind(TransferKind(
         Arg("--bounce-points", "bounce_points", "where a bounce takes the reflected light: at the hit point itself "
             "(hits; unbiased near sharp vertices) or interpolated from the hit face's vertices (vertices; faster)",
             values={"hits": "hits", "vertices": "vertices"}),
-        Arg("--hit-samples", "hit_samples", "rays per bounce hit point (bounce_points=hits)"),
+        Arg("--hit-samples", "hit_samples", "rays per bounce hit point (bounce_points=hits); auto (default): 4 under "
+            "--estimator auto, 8 under control and plain"),
         Arg("--hit-offset", "hit_offset", "offset of the rays leaving a bounce hit point, as a fraction of the bounding-box "
             "diagonal (default 1e-6, floored at 16 float32 ulps; 1e-4 was the rule before issue 37)"),
     ),
@@ -262,7 +265,7 @@ _GLOSSY_COMMON = {
     "brdf": _BRDF, "window": _WINDOW, "window_width": _OPT_INT, "quad_bands": _OPT_INT,
     "samples": [Interval(int, 1, MAX_GLOSSY_SAMPLES)], "seed": _SEED,
     "shadows": [Boolean()] + _SHADOWS, "bounces": [Interval(int, 0, 16)], "vertices": _VERTICES,
-    "estimator": [Options("control", "plain")],
+    "estimator": [Options("auto", "control", "plain")],
 }
 
 register_kind(TransferKind(

@@ -107,8 +107,10 @@ def engine_glossy(transfer: Transfer, L: torch.Tensor, idx: torch.Tensor, view_l
     for r in range(int(replicas)):  # the precompute's estimator with other seeds: the engine's noise
         sets[f"replica_{r}"] = uniform_sphere(samples, seed + 7919 * (r + 1))[0]
     reps = []
-    control = meta.get("estimator", "plain") == "control"  # files before the control variate summed the visible rays
-    if control:  # ∫_{n·s>0} h(s) L(s) ds = hvᵀ A (D_p l): the exact unshadowed part, per vertex [k, 3]
+    est = meta.get("estimator", "plain")  # files before the control variate summed the visible rays
+    control = est == "control"
+    if est in ("control", "auto"):  # ('auto': where at least half of the vertex's directions are open)
+        # ∫_{n·s>0} h(s) L(s) ds = hvᵀ A (D_p l): the exact unshadowed part, per vertex [k, 3]
         from ..sh import hemisphere_gram, rotate
 
         l_loc = rotate(L3[:, None, :].expand(-1, idx.numel(), -1), F)  # [3, k, n²]: D_p l, the light in each local frame
@@ -127,7 +129,8 @@ def engine_glossy(transfer: Transfer, L: torch.Tensor, idx: torch.Tensor, view_l
                 h = eval_sh(s_loc, bands, check=False) @ hv[k]
                 w = torch.zeros(N, dtype=torch.float64)
                 w[up] = 4 * math.pi * torch.from_numpy(vis.astype(np.float64))
-                if control and name != "dense":  # the precompute's control variate: exact open part minus the blocked rays
+                cv = control or (est == "auto" and 2 * int(vis.sum()) >= vis.shape[0])  # the precompute's per-vertex choice
+                if cv and name != "dense":  # the precompute's control variate: exact open part minus the blocked rays
                     wb = torch.zeros(N, dtype=torch.float64)
                     wb[up] = 4 * math.pi * torch.from_numpy((~vis).astype(np.float64))
                     x_sh = U[k] - (wb * torch.zeros(N, dtype=torch.float64).index_put_((up,), h))[:, None] * Ld  # [N, 3]
