@@ -518,7 +518,7 @@ class AffineCodec(Codec):
                 res, flag = got
                 if flag:
                     check_view(view, P, n_out)  # raises with the offending value; else the data overflowed
-                if out is not None and L is light and light.is_contiguous() and _as_given(v, view):
+                if out is not None and L is light and light.is_contiguous() and (view is None or _as_given(v, view)):
                     self._arm_rows(lib, enc, n, n_vectors, light, out, v)
                 return res if out is not None or enc.array_type == "torch" else res.numpy()
             check_finite("light", L)  # the torch formulation below
@@ -547,7 +547,7 @@ class AffineCodec(Codec):
         fs = enc.cache.get(key)
         if fs is None:
             fs = enc.cache[key] = {}
-        vids = tuple(map(id, _view_parts(view)))
+        vids = () if view is None else tuple(map(id, _view_parts(view)))
         slot = fs.get(id(out))
         if slot is None or slot[0]() is not out or slot[1] != vids:  # the first full call into this out (with this view)
             fs.pop(id(out), None)
