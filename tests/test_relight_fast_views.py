@@ -162,3 +162,27 @@ def test_wrong_out_after_arming_gives_the_full_calls_error(kind):
     want = (c.decode(enc).double().view(P, M * M, 9) @ L.double()).float() if view is None else _want(c, enc, L, view)
     torch.testing.assert_close(c.relight(enc, L, view, out=out), want, rtol=1e-4, atol=1e-4)
     torch.testing.assert_close(r(L, out=out), want, rtol=1e-4, atol=1e-4)
+
+
+@pytest.mark.parametrize("P", [3, 17, 1001])
+def test_no_view_rows_split_between_threads_same_bits(P):
+    """MRT-style rows without a view (n_out·C = 75 floats, padded to 80: combined two points per pass,
+    then copied out) split into one contiguous range per thread (bench_relight_split's question): odd
+    point counts put the boundary inside a pair; two threads give the bits of one, and both the
+    float64 decoded reference, through the armed fast path as through the full call."""
+    c, enc = _fit("mrt_pca", P)
+    L = torch.randn(9, 3, generator=torch.Generator().manual_seed(7))
+    want = (c.decode(enc).double().view(P, M * M, 9) @ L.double()).float()
+    got = {}
+    old = torch.get_num_threads()
+    try:
+        for threads in (1, 2):
+            torch.set_num_threads(threads)
+            out = torch.full((P, M * M, 3), float("nan"))
+            for _ in range(3):  # full, full (arms), fast
+                c.relight(enc, L, out=out)
+            got[threads] = out.clone()
+            torch.testing.assert_close(out, want, rtol=1e-4, atol=1e-4)
+    finally:
+        torch.set_num_threads(old)
+    assert torch.equal(got[1], got[2])
