@@ -143,6 +143,10 @@ def with_peak(r: dict, macs_per_s: float) -> dict:
               "fraction_of_roofline_cold": max(r["bound_cold_ms"], compute_ms) / r["relight_cold_ms"],
               "fraction_of_roofline_cold_relighter": max(r["bound_cold_relighter_ms"], compute_ms) / r["relighter_cold_ms"],
               "peak_fraction": compute_ms / r["relight_ms"], "peak_fraction_goal_needs": compute_ms / (2 * r["bound_ms"])})
+    # the roofline by the load-robust pair (one thread: CPU time; more: the fastest tenth), where the row has one
+    t, b = ((r.get("relight_cpu_ms"), r.get("bound_cpu_ms")) if r.get("relight_cpu_ms") is not None
+            else (r.get("relight_fastest_tenth_ms"), r.get("bound_fastest_tenth_ms")))
+    r["fraction_of_roofline_robust"] = max(b, compute_ms) / t if t else None
     return r
 
 
@@ -174,6 +178,16 @@ def measure(c, enc, light, view, unc, repeats: int) -> dict:
     # and the prepared form's (issue 42 part 4: its goal is stated in CPU time too)
     cpu_prep = (measure_paired(lambda: rl(light, out=buf), bound, repeats=repeats, warmup=1, clock=time.thread_time)
                 if torch.get_num_threads() == 1 else None)
+    # the two render-loop forms against each other, paired (issue 42 §4: the prepared and relight fractions above come
+    # from separate pairings minutes apart, and on a shared machine their bounds differ by more than the forms do):
+    # relight time / prepared time, > 1: the prepared form faster; one thread by CPU time, else the wall clock
+    pvr = measure_paired(lambda: rl(light, out=buf), fn, repeats=repeats, warmup=1,
+                         clock=time.thread_time if torch.get_num_threads() == 1 else time.perf_counter)
+    # with several threads, the wall-clock pair's fastest tenth (measure_paired's floor phase: short samples of equal
+    # length, the ratio of the two sides' 10% quantiles): what a quiet machine would show, where a spinning parallel
+    # region stalls whenever another process holds one of the cores (reports/benchmarks/timing_trust.md)
+    fl = (measure_paired(fn, bound, repeats=3, warmup=1, floor_pairs=40, floor_max_pairs=160)
+          if torch.get_num_threads() > 1 else None)
     u = measure_paired(fresh_fn, unc, repeats=repeats, warmup=1) if unc is not None else None
     out = fn().clone()
     prev = os.environ.get("PRT_TORCH_NATIVE")
@@ -194,6 +208,12 @@ def measure(c, enc, light, view, unc, repeats: int) -> dict:
             "fraction_cpu_time_q1_q3": [cpu.ratio.q1, cpu.ratio.q3] if cpu else None,
             "fraction_relighter_cpu_time": cpu_prep.ratio.median if cpu_prep else None,
             "fraction_relighter_cpu_time_q1_q3": [cpu_prep.ratio.q1, cpu_prep.ratio.q3] if cpu_prep else None,
+            "relight_cpu_ms": 1e3 * cpu.test.median if cpu else None, "bound_cpu_ms": 1e3 * cpu.peer.median if cpu else None,
+            "prepared_vs_relight": pvr.ratio.median, "prepared_vs_relight_q1_q3": [pvr.ratio.q1, pvr.ratio.q3],
+            "prepared_vs_relight_clock": "cpu" if cpu else "wall",
+            "fraction_fastest_tenth": fl.speedup if fl else None,
+            "relight_fastest_tenth_ms": 1e3 * fl.floor["test_s"] if fl else None,
+            "bound_fastest_tenth_ms": 1e3 * fl.floor["peer_s"] if fl else None,
             "relight_new_output_ms": 1e3 * fresh.test.median, "fraction_new_output": fresh.ratio.median,
             "relighter_ms": 1e3 * prep.test.median, "fraction_relighter": prep.ratio.median,
             "fraction_relighter_q1_q3": [prep.ratio.q1, prep.ratio.q3],
@@ -588,7 +608,14 @@ def report_all(runs: list[dict]) -> str:
          "**1 thr CPU time**: at one thread, the same pair timed by the thread's CPU time (`measure_paired(clock="
          "time.thread_time)`): the time other processes held the core is in neither side, so on a shared machine it is the "
          "work ratio where the wall-clock fraction moves with the load; **prepared** there: the prepared form "
-         "(`r(light, out=buf)`) against the same bound by the same clock.", ""]
+         "(`r(light, out=buf)`) against the same bound by the same clock. **2 thr fastest tenth**: at two threads, the "
+         "wall-clock pair's floor phase (`measure_paired(floor_pairs=40, floor_max_pairs=160)`: short samples of equal "
+         "length, the ratio of the two sides' 10% quantiles), what a quiet machine shows where a spinning parallel region "
+         "stalls whenever another process holds a core. **roofline, load-robust**: max(bound, compute floor) / relight from "
+         "that pair's times (1 thread: CPU time; 2 threads: the fastest tenth). **prepared vs relight (paired)**: the two "
+         "render-loop forms timed against each other in one pairing (relight time / prepared time; > 1: the prepared form "
+         "faster; 1 thread by CPU time, 2 threads wall clock): the prepared and fraction columns come from separate "
+         "pairings, each against its own samples of the bound.", ""]
     L += compare_builds(runs)
     for x in runs:
         L += report(x)
@@ -645,8 +672,9 @@ def report(r: dict) -> list[str]:
               "but re-run on a quiet machine for final figures.", ""]
     L += ["| codec | view | threads | bytes read | bytes written | MACs / point | relight (ms) | bound (ms) | compute floor (ms) "
           "| fraction of bound | prepared | roofline | of peak | goal needs | cold (relight / bound ms) | new output | torch path "
-          "| vs uncompressed | 1 thr CPU time | CPU · kernel path |",
-          "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+          "| vs uncompressed | 1 thr CPU time | 2 thr fastest tenth | roofline, load-robust | prepared vs relight (paired) "
+          "| CPU · kernel path |",
+          "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for x in r["rows"]:
         q1, q3 = x["fraction_q1_q3"]
         L.append(f"| {x['codec']} | {x['view']} | {x['threads']} | {x['bytes_read']:,} | {x['bytes_written']:,} | {x['macs_per_point']:.0f} | "
@@ -662,6 +690,10 @@ def report(r: dict) -> list[str]:
                     if x.get("fraction_cpu_time") is not None else " —")
                  + (f"; prepared {x['fraction_relighter_cpu_time']:.2f} [{x['fraction_relighter_cpu_time_q1_q3'][0]:.2f}, "
                     f"{x['fraction_relighter_cpu_time_q1_q3'][1]:.2f}] |" if x.get("fraction_relighter_cpu_time") is not None else " |")
+                 + (f" {x['fraction_fastest_tenth']:.2f} |" if x.get("fraction_fastest_tenth") is not None else " — |")
+                 + (f" {x['fraction_of_roofline_robust']:.2f} |" if x.get("fraction_of_roofline_robust") is not None else " — |")
+                 + (f" {x['prepared_vs_relight']:.3f} [{x['prepared_vs_relight_q1_q3'][0]:.3f}, {x['prepared_vs_relight_q1_q3'][1]:.3f}]"
+                    f" ({x['prepared_vs_relight_clock']}) |" if x.get("prepared_vs_relight") is not None else " — |")
                  + f" {x.get('cpu') or cpu_label(m)} · {kernel_label(x)} |")
     L += ["", "Fits (fit on the first points + encode all, or loaded from the cache):", "",
           "| codec | clusters | n_k | mean weights per point | stored bytes | compression | fit+encode (s) |",
@@ -691,6 +723,21 @@ def report(r: dict) -> list[str]:
                 "bound, or the arithmetic where it dominates): {n} of {N} rows at ≥ 0.5"),
           tally("fraction_of_roofline_cold_relighter", "Prepared (`codec.relighter`), from cold caches, against max(cold bound, "
                 "compute floor): {n} of {N} rows at ≥ 0.5")]
+    robust = [x for x in r["rows"] if x.get("fraction_of_roofline_robust") is not None]
+    if robust:
+        low = [x for x in robust if x["fraction_of_roofline_robust"] < 0.5]
+        L += [f"Rows at ≥ 0.5 of the roofline by the load-robust pair (1 thread: CPU time; 2 threads: the fastest tenth): "
+              f"{len(robust) - len(low)} of {len(robust)}"
+              + (" (not: " + ", ".join(f"{x['codec']} {x['view']} {x['threads']} thr {x['fraction_of_roofline_robust']:.2f}"
+                                       for x in low) + ")" if low else "") + "."]
+    pv = [x for x in r["rows"] if x.get("prepared_vs_relight") is not None]
+    if pv:
+        slower = [x for x in pv if x["prepared_vs_relight_q1_q3"][1] < 1.0]
+        vals = sorted(x["prepared_vs_relight"] for x in pv)
+        L += [f"Prepared vs relight, paired (relight time / prepared time): {vals[0]:.3f}–{vals[-1]:.3f}, median "
+              f"{vals[len(vals) // 2]:.3f}; prepared slower beyond its IQR (upper quartile < 1) in {len(slower)} of {len(pv)} rows"
+              + (" (" + ", ".join(f"{x['codec']} {x['view']} {x['threads']} thr {x['prepared_vs_relight']:.3f}" for x in slower) + ")"
+                 if slower else "") + "."]
     need = sorted(x["peak_fraction_goal_needs"] for x in r["rows"] if x["fraction_of_bound"] < 0.5)
     got = sorted(x["peak_fraction"] for x in r["rows"])
     if need:

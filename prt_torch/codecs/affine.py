@@ -475,18 +475,19 @@ class AffineCodec(Codec):
         (``out`` when given); a tensor, or a numpy array for an encoding of numpy data
         (``Encoded.array_type``; the light and the view may be numpy arrays too).
 
-        Without a view and with ``out``, from the third call into the same ``out`` (a float32
-        contiguous light of the same shape, the codes and the model unchanged) a call runs the
-        prepared form's fast path (``fast_rows``, armed in ``enc.cache`` by the second full call
-        into that ``out``, up to ``FAST_OUTS`` outputs: ~4 µs of checks instead of ~15, the same
-        bits), so a render loop of ``relight(enc, light, out=buf)`` costs about what
-        ``relighter(enc)(light, out=buf)`` does (benchmarks/bench_relight_call.py).
+        With ``out``, from the third call into the same ``out`` with the same view tensors (a float32
+        contiguous light of the same shape, the codes, the model and the view's tensors unchanged
+        but for the view's values) a call runs the prepared form's fast path (``fast_rows``, armed
+        in ``enc.cache`` by the second full call into that ``out``, up to ``FAST_OUTS`` outputs:
+        ~5 µs of checks instead of ~15-25, the same bits), so a render loop of ``relight(enc,
+        light, view, out=buf)`` costs about what ``relighter(enc, view)(light, out=buf)`` does
+        (benchmarks/bench_relight_call.py).
         """
-        if view is None and out is not None and type(light) is torch.Tensor and (n_vectors is None or type(n_vectors) is int):
+        if out is not None and type(light) is torch.Tensor and (n_vectors is None or type(n_vectors) is int):
             fs = enc.cache.get(("rows_fast", id(self), n_vectors)) if isinstance(enc, Encoded) else None
             f = fs.get(id(out)) if fs is not None else None
-            if f is not None and len(f) > 1 and f[0]() is out:
-                res = fast_rows(self, enc, light, out, f)
+            if f is not None and len(f) > 2 and f[0]() is out:
+                res = fast_rows(self, enc, light, out, f, view)
                 if res is not None:
                     return res
         self._check_enc(enc)
@@ -517,8 +518,9 @@ class AffineCodec(Codec):
                 res, flag = got
                 if flag:
                     check_view(view, P, n_out)  # raises with the offending value; else the data overflowed
-                if view is None and out is not None and L is light and light.is_contiguous():
-                    self._arm_rows(lib, enc, n, n_vectors, light, out)
+                if out is not None and L is light and light.is_contiguous() and (
+                        view is None or v is view or (type(v) is tuple and v[0] is view[0] and v[1] is view[1])):  # as given
+                    self._arm_rows(lib, enc, n, n_vectors, light, out, v)
                 return res if out is not None or enc.array_type == "torch" else res.numpy()
             check_finite("light", L)  # the torch formulation below
         view = check_view(view, P, n_out) if self.matrix_shape_ is not None else None
@@ -529,29 +531,35 @@ class AffineCodec(Codec):
     #: buffering: each buffer its own entry); the oldest is dropped beyond
     FAST_OUTS = 4
 
-    def _arm_rows(self, lib, enc: Encoded, n: int, n_vectors: Any, light: torch.Tensor, out: torch.Tensor) -> None:
-        """After a full ``relight(enc, light, out=out)`` without a view that ran the kernels: the
-        entry of ``fast_rows`` for the next such call into ``out`` (``arm_rows``), kept in
-        ``enc.cache`` under this codec and ``n_vectors`` (the value as given: the key of the call),
-        one per output tensor (up to ``FAST_OUTS``: a double-buffered loop keeps both). The first
-        full call into an ``out`` only notes it (a weak reference), the second arms it: a call
-        into a new tensor each time pays no arming. Held there, not on the codec: an entry holds
-        the codes' and the model's tensors, never the encoding or ``out``."""
+    def _arm_rows(self, lib, enc: Encoded, n: int, n_vectors: Any, light: torch.Tensor, out: torch.Tensor,
+                  view: Any = None) -> None:
+        """After a full ``relight(enc, light, view, out=out)`` that ran the kernels on the view as
+        given (``view``: None, or the checked dense view or taps, the same tensors the caller
+        passed): the entry of ``fast_rows`` for the next such call into ``out`` (``arm_rows``),
+        kept in ``enc.cache`` under this codec and ``n_vectors`` (the value as given: the key of the
+        call), one per output tensor (up to ``FAST_OUTS``: a double-buffered loop keeps both). The
+        first full call into an ``out`` only notes it (a weak reference and the view's tensors'
+        ids), the second with the same view arms it: a call into a new tensor each time, or with
+        another view each time, pays no arming. Held there, not on the codec: an entry holds the
+        codes', the model's and the view's tensors, never the encoding or ``out``."""
         if not (n_vectors is None or type(n_vectors) is int) or n + (self.means_ is not None) == 0:
             return
         key = ("rows_fast", id(self), n_vectors)
         fs = enc.cache.get(key)
         if fs is None:
             fs = enc.cache[key] = {}
+        vids = None if view is None else ((id(view[0]), id(view[1])) if type(view) is tuple else id(view))
         slot = fs.get(id(out))
-        if slot is None or slot[0]() is not out:  # the first full call into this out: note it
+        if slot is None or slot[1] != vids or slot[0]() is not out:  # the first full call into this out (with this view)
             fs.pop(id(out), None)
             while len(fs) >= self.FAST_OUTS:  # (pop with a default: another thread may drop the same entry)
                 fs.pop(next(iter(fs), None), None)
-            fs[id(out)] = (weakref.ref(out),)
+            fs[id(out)] = (weakref.ref(out), vids)
             return
-        f = arm_rows(lib, self._kernel_plan(lib, enc, n, "rows", light.shape[1], 0), light, out,
-                     (*enc.tensors.values(), *self._model_tensors()))
+        ntap = view[0].shape[1] if isinstance(view, tuple) else 0
+        kind = "rows" if view is None else ("taps" if ntap else "dense")
+        f = arm_rows(lib, self._kernel_plan(lib, enc, n, kind, light.shape[1], ntap), light, out,
+                     (*enc.tensors.values(), *self._model_tensors()), view)
         if f is None:
             fs.pop(id(out), None)
         else:
@@ -953,9 +961,9 @@ class AffineRelighter(Relighter):
         # the last full call's checked setting: (light shape, out, out's address and shape, the view's
         # addresses, encoding_state of the codes and model, plan, n_out, result shape, held tensors)
         self._hot: tuple | None = None
-        # the render loop's form without a view, r(light, out=buf), prepared at its first full call (arm_rows): the
-        # ctypes function, the plan's argument array, a constants buffer of this relighter's own and what the call
-        # checks against (see fast_rows)
+        # the render loop's form, r(light, out=buf), prepared at its first full call (arm_rows; with a view too): the
+        # ctypes function, the plan's argument array, the view's addresses, a constants buffer of this relighter's own
+        # and what the call checks against (see fast_rows)
         self._fast: tuple | None = None
 
     def _view_ptrs(self) -> tuple:
@@ -965,7 +973,7 @@ class AffineRelighter(Relighter):
     def __call__(self, light: Any, out: torch.Tensor | None = None) -> torch.Tensor:
         f = self._fast
         if f is not None and type(light) is torch.Tensor and f[0]() is out:
-            res = fast_rows(self.codec, self.enc, light, out, f)
+            res = fast_rows(self.codec, self.enc, light, out, f, self.view)
             if res is not None:
                 return res
         self._fast = None
@@ -1016,46 +1024,75 @@ class AffineRelighter(Relighter):
         held = (*enc.tensors.values(), *codec._model_tensors())
         self._hot = (light.shape, out, None if out is None else out.data_ptr(), None if out is None else out.shape, vptrs,
                      encoding_state(enc, held), pl, n_out, shape, held)
-        if view is None and out is not None:
-            self._fast = arm_rows(lib, pl, light, out, held)
+        if out is not None:
+            self._fast = arm_rows(lib, pl, light, out, held, view)
         return res if out is not None or shape is None else res.view(shape)
 
 
-def arm_rows(lib, pl, light: torch.Tensor, out: torch.Tensor, held: tuple) -> tuple | None:
-    """The render loop's form without a view, ``relight(enc, light, out=buf)`` or ``r(light,
-    out=buf)``, prepared after a full call into ``out`` that ran plan ``pl`` (kind 'rows') under
-    ``light`` (float32, contiguous): everything :func:`fast_rows` would otherwise look up (the ctypes
-    function, the plan's argument address, a constants buffer ``T`` of the plan's layout owned by
-    this entry and the thread that armed it, so no other call replaces it under us) and what it
-    compares against (a weak reference to ``out``, its address, shape and storage, the light's
-    shape, the point count and, per held tensor — the codes and the model — the tensor itself, its
-    address, shape and version: ``encoding_state``'s key without rebuilding it). None where a held
-    tensor tracks no version (inference mode): every call then checks in full. Holds no reference
-    to the encoding or ``out``, so it may live in ``enc.cache`` (``AffineCodec.relight``)."""
+def _view_parts(view: Any) -> tuple:
+    """The view's tensors as a tuple: () for None, (y,) for a dense view, (idx, w) for taps."""
+    return () if view is None else (tuple(view) if isinstance(view, (tuple, list)) else (view,))
+
+
+def arm_rows(lib, pl, light: torch.Tensor, out: torch.Tensor, held: tuple, view: Any = None) -> tuple | None:
+    """The render loop's form, ``relight(enc, light, view, out=buf)`` or ``r(light, out=buf)``,
+    prepared after a full call into ``out`` that ran plan ``pl`` under ``light`` (float32,
+    contiguous) and ``view`` (None for a plan of kind 'rows'; the dense view or the taps as the
+    kernels read them, for 'dense' and 'taps'): everything :func:`fast_rows` would otherwise look
+    up (the ctypes function, the plan's argument address, the view's addresses, a constants buffer
+    ``T`` of the plan's layout owned by this entry and the thread that armed it, so no other call
+    replaces it under us) and what it compares against (a weak reference to ``out``, its address,
+    shape and storage, the light's shape, the point count, per held tensor — the codes and the
+    model — the tensor itself, its address, shape and version: ``encoding_state``'s key without
+    rebuilding it; and per view tensor the tensor, its address, shape and dtype). None where a held
+    tensor tracks no version (inference mode), or the view is not what the plan's kernel reads in
+    place (dense float32 ``[P, n_out]``, taps int64 and float32 ``[P, t]``, contiguous): every call
+    then checks in full. Holds no reference to the encoding or ``out``, so it may live in
+    ``enc.cache`` (``AffineCodec.relight``)."""
     try:
         meta = tuple((t, t.data_ptr(), t.shape, t._version) for t in held if t is not None)
     except RuntimeError:
         return None
+    vts = _view_parts(view)
+    want = {"rows": (), "dense": ((torch.float32, (pl.P, pl.n_out)),),
+            "taps": ((torch.int64, (pl.P, pl.ntap)), (torch.float32, (pl.P, pl.ntap)))}[pl.kind]
+    if len(vts) != len(want) or any(not isinstance(t, torch.Tensor) or t.dtype != dt or t.shape != sh or not t.is_contiguous()
+                                    or not t.is_cpu for t, (dt, sh) in zip(vts, want)):
+        return None
+    vmeta = tuple((t, t.data_ptr(), t.shape, t.dtype) for t in vts)
+    y = [m[1] for m in vmeta] + [None, None]
     T = torch.zeros(pl.size, dtype=torch.float32)
     return (weakref.ref(out), threading.get_ident(), lib, light.shape, out.data_ptr(), out.shape, out.untyped_storage().data_ptr(),
-            pl.P, held, meta, lib.prt_relight_plan, pl.args_ptr, T, T.data_ptr(), pl)
+            pl.P, held, meta, lib.prt_relight_plan, pl.args_ptr, T, T.data_ptr(), pl, vts, vmeta, y[0], y[1])
 
 
-def fast_rows(codec: AffineCodec, enc: Encoded, light: torch.Tensor, out: torch.Tensor, f: tuple) -> torch.Tensor | None:
-    """``relight(enc, light, out=out)`` without a view, as armed by :func:`arm_rows` (the caller
-    has checked ``f[0]() is out`` and ``type(light) is torch.Tensor``): ``out``, or None where
-    anything the full call checked changed (the caller then checks in full). Per call: the light a
-    CPU float32 contiguous tensor of the armed shape not in ``out``'s storage, no grad wanted (of
-    the light, the codes or the model); ``out`` at the same address, shape and storage,
-    contiguous; the kernels still enabled; the encoding still this codec's (``_check_enc``) with
-    the same point count; its codes and the model the same tensors at the same addresses, shapes
-    and versions; then the one kernel call (``prt_relight_plan``: Sloan 2003 §6's constants
-    M_i l, then e_p per point), whose light check raises naming a non-finite value, as
-    ``relight`` does. ~3-4 µs of Python (reports/benchmarks/relight.md, "prepared")."""
+def fast_rows(codec: AffineCodec, enc: Encoded, light: torch.Tensor, out: torch.Tensor, f: tuple, view: Any = None) -> torch.Tensor | None:
+    """``relight(enc, light, view, out=out)``, as armed by :func:`arm_rows` (the caller has checked
+    ``f[0]() is out`` and ``type(light) is torch.Tensor``): ``out``, or None where anything the full
+    call checked changed (the caller then checks in full). Per call: the light a CPU float32
+    contiguous tensor of the armed shape not in ``out``'s storage, no grad wanted (of the light,
+    the view, the codes or the model); ``out`` at the same address, shape and storage, contiguous;
+    the kernels still enabled; the encoding still this codec's (``_check_enc``) with the same point
+    count; its codes and the model the same tensors at the same addresses, shapes and versions;
+    the view the armed tensors (or None for none) at the same addresses, shapes and dtypes,
+    contiguous; then the one kernel call (``prt_relight_plan``: Sloan 2003 §6's constants M_i l,
+    then e_p per point and, with a view, y(v_p)·e_p or Lehtinen & Kautz 2003 eq. (13)'s taps), whose
+    light check raises naming a non-finite value, as ``relight`` does, and whose view flag raises
+    naming the offending view value (``check_view``). ~4-6 µs of Python (reports/benchmarks/relight_call.md)."""
     if (light.requires_grad and torch.is_grad_enabled()) or native() is not f[2] or light.dtype != torch.float32 \
             or light.shape != f[3] or not light.is_contiguous() or not light.is_cpu or out.data_ptr() != f[4] \
             or out.shape != f[5] or not out.is_contiguous() or light.untyped_storage().data_ptr() == f[6] \
             or threading.get_ident() != f[1] or enc.meta.get("points") != f[7]:
+        return None
+    vts = f[15]
+    if vts:
+        if view is None or len(parts := _view_parts(view)) != len(vts) or not all(map(operator.is_, parts, vts)):
+            return None
+        grad = torch.is_grad_enabled()
+        for t, ptr, shape, dt in f[16]:
+            if t.data_ptr() != ptr or t.shape != shape or t.dtype != dt or not t.is_contiguous() or (grad and t.requires_grad):
+                return None
+    elif view is not None:
         return None
     codec._check_enc(enc)
     held = (*enc.tensors.values(), *codec._model_tensors())
@@ -1064,7 +1101,9 @@ def fast_rows(codec: AffineCodec, enc: Encoded, light: torch.Tensor, out: torch.
     for t, ptr, shape, v in f[9]:
         if t._version != v or t.data_ptr() != ptr or t.shape != shape or t.requires_grad:
             return None
-    flag = f[10](f[11], light.data_ptr(), f[13], f[4], None, None, torch.get_num_threads())
+    flag = f[10](f[11], light.data_ptr(), f[13], f[4], f[17], f[18], torch.get_num_threads())
     if flag & 16:
         light_flagged(light, light)
+    if flag and vts:
+        check_view(view, f[7], f[14].n_out)  # raises with the offending value; else the data overflowed (as relight)
     return out
