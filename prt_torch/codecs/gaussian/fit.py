@@ -428,6 +428,7 @@ def fit_all(T: torch.Tensor, p: dict, init, directions: torch.Tensor, solid_angl
                           else "L-BFGS (strong Wolfe) on the batch's summed objective"),
             # which LM loop ran (benchmarks name the path a row used): compiled (lm_native) or torch (fit._lm_loop)
             "lm_loop": ("compiled" if lm_native.available() else "torch") if p["optimizer"] == "lm" else None,
+            "lm_tries": LM_TRIES if p["optimizer"] == "lm" else None,  # damped solves per LM iteration
             "flood_fill": faces is not None}
     return W, MU, SG, info
 
