@@ -170,20 +170,6 @@ def fit_row(d: dict, lobes: int, max_iter: int, **params) -> dict:
     return row
 
 
-def _cpu() -> str:
-    import platform
-    import subprocess
-
-    try:
-        out = subprocess.run(["lscpu"], capture_output=True, text=True, check=False).stdout
-        get = {ln.split(":", 1)[0].strip(): ln.split(":", 1)[1].strip() for ln in out.splitlines() if ":" in ln}
-        isa = "AVX-512" if " avx512f" in f" {get.get('Flags', '')}" else "AVX2"
-        return (f"{get.get('Model name', platform.processor())} (family {get.get('CPU family', '?')} model "
-                f"{get.get('Model', '?')}), {os.cpu_count()} cores, {isa}")
-    except OSError:  # pragma: no cover
-        return platform.processor()
-
-
 COLS = [("lobes", "lobes"), ("max_iter", "max_iter"), ("tries", "tries"), ("rel_l2", "relative L2"),
         ("converged", "converged"), ("cpu_s", "CPU s"), ("rel_l2_0_60", "L2 0–60°"), ("rel_l2_60_80", "L2 60–80°"),
         ("rel_l2_80_90", "L2 80–90°"), ("unconv_0_60", "unconv. 0–60°"), ("unconv_60_80", "unconv. 60–80°"),
@@ -258,8 +244,10 @@ def main(argv=None) -> int:
         params[k] = int(v) if v.lstrip("-").isdigit() else float(v)
     from prt_torch.codecs.gaussian import fit as gfit
     from prt_torch.codecs.gaussian import lm_native
+    from prt_torch.harness.timing import cpu_label
 
-    res = {"argv": sys.argv[1:], "cpu": _cpu(), "torch": torch.__version__, "threads": args.threads, "res": args.res,
+    res = {"argv": sys.argv[1:], "cpu": f"{cpu_label()}, {os.cpu_count()} cores", "torch": torch.__version__,
+           "threads": args.threads, "res": args.res,
            "vertices": args.vertices, "lm_loop": "compiled" if lm_native.available() else "torch",
            "load_before": [round(x, 1) for x in os.getloadavg()], "rows": [], "paired": [], "repeats": args.repeats,
            "scenes": args.scene}
