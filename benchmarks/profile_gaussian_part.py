@@ -105,6 +105,9 @@ def main(argv=None) -> int:
     ap.add_argument("--resolve-factor", type=float, nargs="+", default=[None],
                     help="fit each Gaussian setting with its narrowest lobe at each of these texel spacings, paired in this run "
                          "(codecs.gaussian.fit.RESOLVE_FACTOR; default: the codec's)")
+    ap.add_argument("--lm-variants", nargs="+", default=[None], metavar="MAX_ITER:TRIES",
+                    help="fit each Gaussian setting with each of these LM budgets, paired in this run: max_iter and damped "
+                         "solves per iteration (codecs.gaussian.fit.LM_TRIES), e.g. 20:1 30:5 (before / after issue 42 §2)")
     a = ap.parse_args(argv)
     cfg = load_config(a.config)
     scratch = [tempfile.mkdtemp(prefix="prof_part_")] + ([] if a.cache else [tempfile.mkdtemp(prefix="prof_cache_")])
@@ -146,13 +149,21 @@ def _run(a, cfg: dict, scratch: list[str]) -> int:
     records = []
     from prt_torch.codecs.gaussian import fit as gfit
 
-    rf0 = gfit.RESOLVE_FACTOR
-    settings = [(s, rf) for s in expand_codecs(sub["codecs"]) for rf in (a.resolve_factor if s["type"] == "gaussian" else [None])]
-    for s, rf in settings:
+    rf0, tries0 = gfit.RESOLVE_FACTOR, gfit.LM_TRIES
+    settings = [(s, rf, lv) for s in expand_codecs(sub["codecs"])
+                for rf in (a.resolve_factor if s["type"] == "gaussian" else [None])
+                for lv in (a.lm_variants if s["type"] == "gaussian" else [None])]
+    for s, rf, lv in settings:
         if want and s["type"] not in want:
             continue
         gfit.RESOLVE_FACTOR = rf0 if rf is None else rf
-        sid = setting_id(s) + ("" if rf is None else f" (resolve factor {rf:g})")
+        gfit.LM_TRIES = tries0
+        if lv is not None:
+            mi, tr_ = (int(x) for x in lv.split(":"))
+            s = {**s, "max_iter": mi}
+            gfit.LM_TRIES = tr_
+        sid = (setting_id(s) + ("" if rf is None else f" (resolve factor {rf:g})")
+               + ("" if lv is None else f" (max_iter {s['max_iter']}, {gfit.LM_TRIES} tries)"))
         t0 = time.perf_counter()
         with stage(f"{sid}: fit + error/PSNR"):
             rec, codec, enc = evaluate_setting(ev, s, lights, views, sub, refs, timed=False)
@@ -166,8 +177,10 @@ def _run(a, cfg: dict, scratch: list[str]) -> int:
             ROWS[-1]["timing_calls"] = {k: {"wall_s": w, "cpu_s": c, "calls": n} for k, (w, c, n) in spent.items()}
             print("  " + ", ".join(f"{k} x{n}: {w:.1f} s wall, {c:.1f} s CPU" for k, (w, c, n) in spent.items()))
         records.append({k: rec.get(k) for k in ("setting_id", "encode_s", "bytes_per_vertex", "psnr_lights_db", "relative_se",
-                                                "speedup_vs_uncompressed")} | {"resolve_factor": gfit.RESOLVE_FACTOR})
+                                                "speedup_vs_uncompressed")} | {"resolve_factor": gfit.RESOLVE_FACTOR, "lm_tries": gfit.LM_TRIES,
+                                                                                "max_iter": s.get("max_iter")})
         del codec, enc
+    gfit.RESOLVE_FACTOR, gfit.LM_TRIES = rf0, tries0
     tot = {k: sum(r[k] for r in ROWS) for k in ("wall_s", "user_s", "sys_s", "minor_faults")}
     peak = max(r["peak_rss_gib"] for r in ROWS)
     print(f"total: wall {tot['wall_s']:.1f} s, CPU {tot['user_s'] + tot['sys_s']:.1f} s ({tot['user_s']:.1f} user + "

@@ -209,3 +209,27 @@ def test_compiled_peaks_and_moments_equal_the_torch_start():
     one = mixture(dirs, torch.ones(1, 1), truth, torch.full((1, 1), 0.3)).float()
     for m in (F._init_lobes(one, dirs, sa, 1, smin, 3.0)[1], lm_native.peaks(one, dirs.T, sa, smin, 3.0)[1]):
         assert float(torch.rad2deg(torch.acos((m * truth).sum(-1).clamp(-1, 1)))) < 90 / 8  # within one texel (90° / r)
+
+
+@pytest.mark.parametrize("N", [2, 3])
+def test_damped_retries_keep_accepted_steps_and_rescue_rejected_ones(N, monkeypatch):
+    """One LM iteration with up to 5 damped solves of its normal equations (fit.LM_TRIES, Marquardt's
+    inner loop: a rejected trial retried at 5× the damping) against one, in both loops: a function
+    whose first trial is accepted takes that same step either way (the first trial is unchanged); more
+    functions move with 5 tries (some first trials are rejected on these perturbed starts, and a more
+    damped retry lowers their objective); the compiled and torch loops move the same functions."""
+    T, nonzero, dirs, sa, J, vn, sb, views, start = p = _problem(N, seed=20 + N)
+    moved, out = {}, {}
+    for native in (True, False):
+        for tries in (1, 5):
+            monkeypatch.setattr(F, "LM_TRIES", tries)
+            w, mu, s, it, conv, E = out[(native, tries)] = _batch(native, monkeypatch, *p, N, max_iter=1)
+            moved[(native, tries)] = nonzero & ((w - start[0]).abs() > 1e-4 * start[0]).any(1)
+    for native in (True, False):
+        m1, m5 = moved[(native, 1)], moved[(native, 5)]
+        assert bool((m5 | ~m1).all())  # accepted at the first trial -> accepted with 5 tries
+        assert int(m5.sum()) > int(m1.sum())  # the retries rescue rejected first trials
+        for x1, x5 in zip(out[(native, 1)][:3], out[(native, 5)][:3]):
+            torch.testing.assert_close(x5[m1], x1[m1], rtol=1e-6, atol=1e-7)  # the same first step
+    for tries in (1, 5):
+        assert float((moved[(True, tries)] == moved[(False, tries)]).float().mean()) >= 0.98

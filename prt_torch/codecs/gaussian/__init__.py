@@ -80,9 +80,12 @@ class GaussianCodec(Codec):
     ----------
     lobes : int, default=1
         Number N of Gaussians per transport function (Green uses 1–3).
-    max_iter : int, default=20
+    max_iter : int, default=30
         Optimiser iterations per batch (the last lobe's stage; earlier stages of the greedy
-        start take a quarter).
+        start take a quarter). Each LM iteration forms the normal equations once and tries up
+        to ``fit.LM_TRIES`` = 5 damped steps on them. Was 20 with one try until issue 42 §2,
+        where 38% of the functions of 3 lobes on the default tables stopped unconverged
+        (docs/codecs.md, "Convergence").
     optimizer : {'lm', 'lbfgs'}, default='lm'
         'lm': batched Levenberg–Marquardt (Gauss–Newton normal equations per function, one
         4N×4N Cholesky each; per-function damping and convergence). 'lbfgs': torch's L-BFGS
@@ -91,7 +94,7 @@ class GaussianCodec(Codec):
         benchmarks/bench_gaussian.py compares both at equal iterations and equal time.
     tol : float, default=1e-4
         A function has converged when an accepted step lowers its objective by less than this
-        fraction.
+        fraction (or every coordinate of its step is below 1e-4, or its damping reached 1e12).
     view_weight : float, default=1e-3
         β = γ of Green eq. 2.4–2.5 (alignment of means and widths with the neighbouring views),
         relative to each function's energy Σ Δω T².
@@ -131,7 +134,7 @@ class GaussianCodec(Codec):
         "strict": [Boolean()],
     }
 
-    def __init__(self, *, lobes=1, max_iter=20, optimizer="lm", tol=1e-4, view_weight=1e-3, spatial_weight=1e-2, sigma_min=0.01,
+    def __init__(self, *, lobes=1, max_iter=30, optimizer="lm", tol=1e-4, view_weight=1e-3, spatial_weight=1e-2, sigma_min=0.01,
                  sigma_max=3.0, diffuse_bands=0, batch_size=8192, seed=0, strict=False):
         self.lobes = lobes
         self.max_iter = max_iter

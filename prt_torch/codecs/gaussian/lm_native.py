@@ -35,7 +35,7 @@ def _lib():
                 names, flags = LIBRARIES["gauss_lm"]
                 i64, vp, dbl = ctypes.c_int64, ctypes.c_void_p, ctypes.c_double
                 _state["lib"], _state["why"] = compile_library("gauss_lm", kernel_sources(names), list(flags), {
-                    "prt_gauss_lm_loop": [i64] * 7 + [vp] * 7 + [dbl] * 8 + [i64] + [vp] * 5 + [ctypes.c_int],
+                    "prt_gauss_lm_loop": [i64] * 7 + [vp] * 7 + [dbl] * 8 + [i64, i64] + [vp] * 5 + [ctypes.c_int],
                     "prt_gauss_normal_equations": [i64] * 5 + [vp] * 6 + [dbl] * 3 + [vp] * 8,
                     "prt_gauss_peaks": [i64, i64, vp, vp, vp, dbl, dbl, vp, vp, vp, ctypes.c_int]})
     return _state["lib"]
@@ -56,12 +56,13 @@ def _c(t: torch.Tensor, dtype) -> torch.Tensor:
     return t.detach().to(dtype).contiguous()
 
 
-def lm_loop(prob, a, ls, mu, conv, z, sb, max_iter, tol, smin, smax, vn, J):
+def lm_loop(prob, a, ls, mu, conv, z, sb, max_iter, tol, smin, smax, vn, J, tries=1):
     """:func:`.fit._lm_loop` compiled: ``prob`` (:class:`.fit.Problem`: tables ``T [B, P]``, texel
     directions and solid angles, N, β, γ, δ, width bounds), ``a``, ``ls [B, N]``, ``mu [B, N, 3]``
     float32 (updated in place and returned), ``conv [B]`` bool (True: not optimised; updated), ``z
     [B]`` bool zero functions, ``sb [B, pairs, Q, 3]`` or None (eq. 2.6's neighbour differences),
-    ``vn [J, R]`` int64 view neighbours (R = 0 or β = 0: no view terms), ``J`` views per vertex.
+    ``vn [J, R]`` int64 view neighbours (R = 0 or β = 0: no view terms), ``J`` views per vertex,
+    ``tries`` damped solves per iteration (a rejected trial step retried at 5× the damping; 1: one).
     Runs ``torch.get_num_threads()`` OpenMP threads. → ``(a, ls, mu, conv, iterations)``."""
     lib = _lib()
     B, N = a.shape
@@ -81,10 +82,11 @@ def lm_loop(prob, a, ls, mu, conv, z, sb, max_iter, tol, smin, smax, vn, J):
     it = lib.prt_gauss_lm_loop(B, N, P, J, R, Q, len(prob.pairs) if use_sb else 0, T.data_ptr(), dirs.data_ptr(), sa.data_ptr(),
                                en.data_ptr(), vn_.data_ptr(), sb_.data_ptr() if use_sb else None, pairs.data_ptr(),
                                float(prob.beta), float(prob.gamma), float(prob.delta), float(prob.lsmin), float(prob.lsmax),
-                               float(smin), float(smax), float(tol), int(max_iter), a_.data_ptr(), ls_.data_ptr(), mu_.data_ptr(),
+                               float(smin), float(smax), float(tol), int(max_iter), int(tries), a_.data_ptr(), ls_.data_ptr(), mu_.data_ptr(),
                                cv.data_ptr(), zz.data_ptr(), int(torch.get_num_threads()))
     if it == -1:
-        raise ValueError(f"prt_gauss_lm_loop: lobes N={N}, texels P={P}, functions B={B}; accepted: 1 <= N <= 16, P >= 1, B >= 1")
+        raise ValueError(f"prt_gauss_lm_loop: lobes N={N}, texels P={P}, functions B={B}, tries={tries}; "
+                         "accepted: 1 <= N <= 16, P >= 1, B >= 1, tries >= 1")
     if it < 0:
         raise MemoryError(f"prt_gauss_lm_loop: out of memory for B={B} functions of N={N} lobes, P={P} texels")
     a.copy_(a_)
