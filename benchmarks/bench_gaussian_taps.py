@@ -18,7 +18,7 @@ per (light, camera), the per-vertex RGB radiance of:
 * ``codec relight``: what ``prt bench`` measures (Green 2005 §2.3: the tapped views' lobes blended —
   weights and widths linearly, means as the normalised sum — then eq. 2.7 by prefiltered lookups);
 * ``param blend, f64``: the same blended lobes, E_σ(μ) = ∫ G(ω; μ, σ) L(ω) dω in float64 by Funk–Hecke
-  (the Gaussian's zonal coefficients by Gauss–Legendre on [max(−1, 1 − 60σ²), 1]; the lights are SH);
+  (``gaussian.sh_light_lobe_integral``; the lights are SH);
 * ``radiance blend``: every tapped view relit alone by the codec (prefiltered lookups), the three
   radiances blended linearly as the reference blends the table's;
 * ``decoded table``: the fitted lobes evaluated at the texel centres (``codec.decode``) relit as the
@@ -46,40 +46,14 @@ from pathlib import Path  # noqa: E402
 import torch  # noqa: E402
 
 from prt_torch import codecs, relight  # noqa: E402
-from prt_torch.codecs.gaussian import blend_lobes  # noqa: E402
+from prt_torch.codecs.gaussian import blend_lobes, sh_light_lobe_integral  # noqa: E402
 from prt_torch.harness.config import load_config  # noqa: E402
 from prt_torch.harness.evaluate import Evaluator, camera_positions, load_directory_transfer  # noqa: E402
 from prt_torch.harness.metrics import psnr_vs_reference  # noqa: E402
 from prt_torch.harness.timing import cpu_label  # noqa: E402
-from prt_torch.lighting.prefilter import sg_normaliser  # noqa: E402
 from prt_torch.sh import eval_sh  # noqa: E402
-from prt_torch.sh.basis import eval_zonal_basis  # noqa: E402
-from prt_torch.sh.zonal import gauss_legendre, rotate_zonal  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def exact_lobe_light(L: torch.Tensor, mu: torch.Tensor, sigma: torch.Tensor, n: int = 96, chunk: int = 20000) -> torch.Tensor:
-    """E_σ(μ) = ∫ G(ω; μ, σ) L(ω) dω in float64 for an SH light ``L [C, n²]`` (Green eq. 2.7's lookup,
-    exact): Funk–Hecke, the normalised Gaussian's zonal coefficients h_l = 2π ∫ c(λ) e^{λ(t−1)} Y_l0(t) dt
-    by ``n``-point Gauss–Legendre on [max(−1, 1 − 60σ²), 1] (the integrand is below e^-60 beyond),
-    rotated to μ (``sh.rotate_zonal``). ``mu [M, 3]`` (normalised here; a zero mean — a blend of zero
-    lobes — gets +z), ``sigma [M]`` → ``[M, C]`` float64."""
-    bands = math.isqrt(L.shape[1])
-    x, wx = gauss_legendre(n)
-    out = []
-    for a in range(0, mu.shape[0], chunk):
-        m, s = mu[a:a + chunk].double(), sigma[a:a + chunk].double()
-        nm = m.norm(dim=-1, keepdim=True)
-        m = torch.where(nm > 0.5, m / nm.clamp_min(1e-12), torch.tensor([0.0, 0.0, 1.0], dtype=m.dtype))
-        lam = s.reciprocal().square()
-        lo = (1 - 60 * s * s).clamp(-1, 1)
-        t = lo[:, None] + (x[None] + 1) * (1 - lo[:, None]) / 2
-        wt = wx[None] * (1 - lo[:, None]) / 2
-        g = sg_normaliser(lam)[:, None] * torch.exp(lam[:, None] * (t - 1))
-        h = 2 * math.pi * torch.einsum("mn,mnl->ml", wt * g, eval_zonal_basis(t.clamp(-1, 1), bands))
-        out.append(rotate_zonal(h, m, check=False) @ L.double().T)
-    return torch.cat(out)
 
 
 def tap_blend(R: torch.Tensor, idx: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
@@ -176,7 +150,7 @@ def main(argv=None) -> int:
             pe = ev.codec_light(codec, L)
             Lm = ev.light_matrix(L).T
             every = codec.relight(enc, pe)  # [V, J, C]
-            ex = (w.double()[..., None] * exact_lobe_light(L, mu.reshape(-1, 3), sg.reshape(-1)).view(V, J, N, -1)).sum(2)
+            ex = (w.double()[..., None] * sh_light_lobe_integral(L, mu.reshape(-1, 3), sg.reshape(-1)).view(V, J, N, -1)).sum(2)
             table_views = torch.einsum("vjp,cp->vjc", ev.X.view(V, J, -1).double(), Lm.double())
             put("stored views: codec lookups vs table", table_views, every)
             put("stored views: f64 lobes vs table", table_views, ex)
@@ -188,7 +162,7 @@ def main(argv=None) -> int:
                                          (a / tot.clamp_min(1e-12)).double())
                 outs = {"table at taps (harness reference)": ref,
                         "codec relight (param blend, lookups)": codec.relight(enc, pe, view=(idx, a)),
-                        "param blend, f64": (wb[..., None] * exact_lobe_light(L, mb.reshape(-1, 3), sb.reshape(-1)).view(V, N, -1)
+                        "param blend, f64": (wb[..., None] * sh_light_lobe_integral(L, mb.reshape(-1, 3), sb.reshape(-1)).view(V, N, -1)
                                              ).sum(1) * tot.double(),
                         "radiance blend, lookups": tap_blend(every, idx, a),
                         "decoded table at taps": relight.apply_taps(Xh, Lm, idx, a)}

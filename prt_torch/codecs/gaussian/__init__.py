@@ -52,13 +52,13 @@ from ...params import Boolean, Interval, Options
 from ..base import (Codec, Encoded, array_type, as_array_type, check_cpu, check_out, check_signal, grad_required, input_ref, register,
                     typed, typed_relighter, view_nbytes, view_tensors)
 from ..relight_kernels import lobe_layout, sg_prepare, sg_taps, sg_taps_prepare, sg_taps_prepared
-from .compare import haar_truncation, relative_l2, sh_truncation
+from .compare import haar_truncation, relative_l2, sh_light_lobe_integral, sh_truncation
 from .fit import RESOLVE_FACTOR, fit_all, flood_fill_order, mixture, prob_pairs, resolvable_sigma  # noqa: F401 (importable here as before)
 from .fit import Problem as _Problem, tangents as _tangents  # noqa: F401 (the names tests/test_gaussian.py uses)
 from .relight import GaussianRelighter, fused, lobe_sum, lobes_state
 from .views import blend_lobes, default_views, fibonacci_directions, view_neighbours, view_taps, views_cover_sphere
 
-__all__ = ["GaussianCodec", "resolvable_sigma", "relative_l2", "sh_truncation", "haar_truncation",
+__all__ = ["GaussianCodec", "resolvable_sigma", "relative_l2", "sh_truncation", "haar_truncation", "sh_light_lobe_integral",
            "fibonacci_directions", "default_views", "view_neighbours", "view_taps",
            "views_cover_sphere", "mixture", "blend_lobes", "lobe_sum", "flood_fill_order", "MAX_LOBES"]
 
