@@ -103,3 +103,35 @@ def test_relight_with_taps_equals_float64_lobe_blend_and_follows_a_moving_highli
     err_blend = float((got - truth).square().mean())
     err_cross = float((cross - truth).square().mean())
     assert err_blend < 0.5 * err_cross, (err_blend, err_cross)
+
+
+def test_order_lobes_numbers_corresponding_lobes_alike_across_views():
+    """Two lobes drifting smoothly over the views, stored in a random order per (vertex, view):
+    ``order_lobes`` gives every view the same numbering (each lobe's mean stays with its own track,
+    checked against the known tracks, not against the function's output), and leaves each
+    function's mixture (the sum over its lobes) unchanged."""
+    from prt_torch.codecs.gaussian import order_lobes
+
+    views = icosphere_directions(2)
+    V, J, N = 5, views.shape[0], 2
+    g = torch.Generator().manual_seed(5)
+    base = torch.nn.functional.normalize(torch.randn(V, N, 3, generator=g, dtype=torch.float64), dim=-1)
+    base[:, 1] = torch.nn.functional.normalize(-base[:, 0] + 0.3 * base[:, 1], dim=-1)  # two well-apart tracks
+    track = torch.nn.functional.normalize(base[:, None] + 0.3 * views[None, :, None], dim=-1)  # [V, J, N, 3]
+    w = torch.tensor([1.0, 0.5], dtype=torch.float64).expand(V, J, N).clone()
+    sg = torch.tensor([0.2, 0.4], dtype=torch.float64).expand(V, J, N).clone()
+    flip = torch.rand(V, J, generator=g) < 0.5
+    perm = torch.where(flip[..., None], torch.tensor([1, 0]), torch.tensor([0, 1]))  # [V, J, N]
+    mu_s = track.gather(2, perm[..., None].expand(-1, -1, -1, 3))
+    w_s, sg_s = w.gather(2, perm), sg.gather(2, perm)
+    w_o, mu_o, sg_o = order_lobes(w_s, mu_s, sg_s, views)
+    first = mu_o[:, :1]  # view 0's numbering is kept: every view must then agree with it
+    same = ((mu_o * track).sum(-1) > 0.999).all(-1)  # [V, J]: numbered as the tracks
+    swapped = ((mu_o * track.flip(2)).sum(-1) > 0.999).all(-1)
+    agree = torch.where(((first * track[:, :1]).sum(-1) > 0.999).all(-1, keepdim=True), same, swapped)
+    assert bool(agree.all())
+    d, _ = cube_map_directions(8)
+    d = d.reshape(-1, 3).double()
+    before = mixture(d, w_s.reshape(-1, N), mu_s.reshape(-1, N, 3), sg_s.reshape(-1, N))
+    after = mixture(d, w_o.reshape(-1, N), mu_o.reshape(-1, N, 3), sg_o.reshape(-1, N))
+    assert torch.allclose(before, after, rtol=1e-12, atol=1e-12)

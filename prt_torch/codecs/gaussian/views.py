@@ -10,7 +10,7 @@ import math
 
 import torch
 
-__all__ = ["fibonacci_directions", "default_views", "view_neighbours", "views_cover_sphere", "view_taps", "blend_lobes"]
+__all__ = ["fibonacci_directions", "default_views", "view_neighbours", "views_cover_sphere", "view_taps", "blend_lobes", "order_lobes"]
 
 
 def fibonacci_directions(n: int) -> torch.Tensor:
@@ -95,3 +95,44 @@ def blend_lobes(w: torch.Tensor, mu: torch.Tensor, sigma: torch.Tensor, a: torch
     mb = torch.einsum("mt,mtnc->mnc", a, mu)
     mb = mb / mb.norm(dim=-1, keepdim=True).clamp_min(1e-12)
     return wb, mb, sb.clamp_min(1e-6)
+
+
+def order_lobes(w: torch.Tensor, mu: torch.Tensor, sigma: torch.Tensor, views: torch.Tensor, k: int = 6
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Number each view's lobes so that lobe n of neighbouring views is the same lobe (Green §2.3
+    blends *corresponding* lobes; a fit numbers them per function). Breadth-first over the views'
+    neighbour graph (:func:`view_neighbours`) from view 0; each view's N lobes take the permutation
+    (of the N! ≤ 24 for N ≤ 4; more lobes are left as fitted) whose means best agree, Σ_n μ_n · m_n, with
+    m_n the weight-weighted sum of lobe n's means over the already-numbered neighbour views — per vertex,
+    batched over the vertices (a loop over the J views only). The sum over the lobes, hence the tables
+    and relighting at a stored view, is unchanged. ``w [V, J, N]``, ``mu [V, J, N, 3]``, ``sigma [V, J, N]``,
+    ``views [J, 3]`` → the same tensors renumbered (new tensors; measured on ``prt bench gaussian``'s
+    tables: reports/benchmarks/gaussian_taps.md)."""
+    import itertools
+
+    V, J, N = w.shape
+    if N < 2 or N > 4 or J < 2:
+        return w, mu, sigma
+    perms = torch.tensor(list(itertools.permutations(range(N))))  # [Q, N]
+    nb = view_neighbours(views.to(torch.float64), k)
+    seq, seen = [0], {0}
+    for j in seq:  # breadth-first order of the views
+        for m in nb[j].tolist():
+            if m not in seen:
+                seen.add(m)
+                seq.append(m)
+    seq += [j for j in range(J) if j not in seen]
+    w, mu, sigma = w.clone(), mu.clone(), sigma.clone()
+    done = torch.zeros(J, dtype=torch.bool)
+    done[seq[0]] = True
+    for j in seq[1:]:
+        ks = [m for m in nb[j].tolist() if done[m]]
+        done[j] = True
+        if not ks:
+            continue
+        tgt = (w[:, ks, :, None] * mu[:, ks]).sum(1)  # [V, N, 3]
+        best = perms[torch.einsum("vnc,vqnc->vq", tgt, mu[:, j][:, perms]).argmax(1)]  # [V, N]
+        w[:, j] = w[:, j].gather(1, best)
+        sigma[:, j] = sigma[:, j].gather(1, best)
+        mu[:, j] = mu[:, j].gather(1, best[..., None].expand(-1, -1, 3))
+    return w, mu, sigma
