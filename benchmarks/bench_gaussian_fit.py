@@ -22,8 +22,6 @@ import prt_torch  # noqa: F401  (first: it chooses OpenMP's wait policy from the
 import argparse  # noqa: E402
 import json  # noqa: E402
 import os  # noqa: E402
-import platform  # noqa: E402
-import subprocess  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 import warnings  # noqa: E402
@@ -36,20 +34,10 @@ from prt_torch.codecs.gaussian import lm_native  # noqa: E402
 from prt_torch.harness.config import load_config, part_configs  # noqa: E402
 from prt_torch.harness.evaluate import Evaluator  # noqa: E402
 from prt_torch.harness.run import compute_transfer, load_mesh_within_budget  # noqa: E402
+from prt_torch.harness.timing import cpu_label as _cpu  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 
-
-def _cpu() -> str:
-    try:
-        out = subprocess.run(["lscpu"], capture_output=True, text=True, check=False).stdout
-        get = {ln.split(":", 1)[0].strip(): ln.split(":", 1)[1].strip() for ln in out.splitlines() if ":" in ln}
-        flags = get.get("Flags", "")
-        isa = "AVX-512" if " avx512f" in f" {flags}" else ("AVX2" if " avx2" in f" {flags}" else "no AVX2")
-        fam = f"family {get.get('CPU family', '?')} model {get.get('Model', '?')}"
-        return f"{get.get('Model name', platform.processor())} ({fam}), {os.cpu_count()} cores, {isa}"
-    except OSError:  # pragma: no cover
-        return platform.processor()
 
 
 def _tables(config: str, size: str | None, cache: str):

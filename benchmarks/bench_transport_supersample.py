@@ -23,8 +23,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -38,14 +36,8 @@ from prt_torch.brdf import AshikhminShirley  # noqa: E402
 from prt_torch.scene import RayCaster, builtin  # noqa: E402
 from prt_torch.transfer import transport as TT  # noqa: E402
 from prt_torch.transfer.glossy import check_frames  # noqa: E402
+from prt_torch.harness.timing import cpu_label as _cpu  # noqa: E402
 
-
-def _cpu() -> str:
-    try:
-        out = subprocess.run(["lscpu"], capture_output=True, text=True).stdout
-        return next(ln.split(":", 1)[1].strip() for ln in out.splitlines() if ln.startswith("Model name"))
-    except (OSError, StopIteration):
-        return platform.processor() or "unknown"
 
 
 def main(argv=None) -> int:

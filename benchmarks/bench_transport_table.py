@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
 import resource
 import shutil
 import subprocess
@@ -28,15 +27,11 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 
+from prt_torch.harness.timing import cpu_label  # noqa: E402
+
+
 def _cpu() -> str:
-    try:
-        out = subprocess.run(["lscpu"], capture_output=True, text=True).stdout
-        name = next(ln.split(":", 1)[1].strip() for ln in out.splitlines() if ln.startswith("Model name"))
-        fam = next((ln.split(":", 1)[1].strip() for ln in out.splitlines() if ln.startswith("CPU family")), "?")
-        mod = next((ln.split(":", 1)[1].strip() for ln in out.splitlines() if ln.startswith("Model:")), "?")
-        return f"{name} (family {fam} model {mod}), {os.cpu_count()} cores"
-    except (OSError, StopIteration):
-        return platform.processor() or "unknown"
+    return f"{cpu_label()}, {os.cpu_count()} cores"
 
 
 def run_once(code_root: str | None, args: list[str], out: Path) -> dict:
