@@ -39,7 +39,6 @@ from prt_torch.harness.timing import cpu_label as _cpu  # noqa: E402
 ROOT = Path(__file__).resolve().parent.parent
 
 
-
 def _tables(config: str, size: str | None, cache: str):
     cfg = load_config(config)
     cfg["cache_dir"] = cache

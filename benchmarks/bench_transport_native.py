@@ -34,7 +34,6 @@ from prt_torch.transfer.glossy import check_frames  # noqa: E402
 from prt_torch.harness.timing import cpu_label as _cpu  # noqa: E402
 
 
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scene", default="bumpy_sphere:medium")
