@@ -2,9 +2,11 @@
 against the torch path (``BRDF.eval`` on the same pairs, ``PRT_TORCH_NATIVE=0``): float64 tables within relative
 1e-12 for every model the C knows (integer exponents by repeated squaring, others through pow; Fresnel, diffuse,
 anisotropy, per-vertex parameters), at odd sizes (one vertex, odd cube resolutions and view counts: vector tails),
-in 1 and 2 threads (bit for bit the same), in float32 / float16 within one rounding of the float64 value; models it
-does not know keep torch. The texel averages' independent check (a brute-force block mean of the fine grid) is
-``tests/test_transport_supersample.py``, which runs the compiled path by default."""
+in 1 and 2 threads (bit for bit the same), in float32 / float16 within one rounding of the float64 value; Ward 1992
+(isotropic, anisotropic, roughness 0.03 to 1) and Ramamoorthi's microfacet model (sigma 0.02 to 2) the same way, and at
+grazing views and texels; models it does not know (subclasses included) keep torch. The texel averages' independent
+check (a brute-force block mean of the fine grid) is ``tests/test_transport_supersample.py``, which runs the compiled
+path by default."""
 from __future__ import annotations
 
 import ctypes
@@ -29,7 +31,19 @@ MODELS = {
     "phong_reflection": B.Phong(30.5, ks=0.7, kd=0.2, form="reflection"),
     "blinn": B.BlinnPhong(64.0, kd=0.3),
     "lambert": B.Lambertian(0.6),
+    # Ward 1992: the default, anisotropic with a diffuse term, the roughness extremes (a lobe narrower than a texel, whose
+    # exp underflows to subnormals at grazing pairs; a lobe wider than the hemisphere)
+    "ward": B.Ward(0.2),
+    "ward_aniso": B.Ward(0.3, 0.07, rs=0.2, rd=0.4),
+    "ward_sharp": B.Ward(0.03, rs=0.05),
+    "ward_rough": B.Ward(1.0, 0.8, rs=0.5),
+    # Ramamoorthi 2002 eq. 5.34 over cos theta_i: the default, the roughness extremes (sigma in (0, 2])
+    "microfacet": B.Microfacet(0.2),
+    "microfacet_sharp": B.Microfacet(0.02, ks=0.7),
+    "microfacet_rough": B.Microfacet(2.0),
 }
+#: one of each compiled family for the tests that vary something else (sizes, threads, dtypes, builds)
+FAMILIES = ("as40", "ward_aniso", "microfacet")
 
 
 def _vertices(k: int, seed: int = 0):
@@ -53,9 +67,16 @@ def _table(monkeypatch, on: bool, brdf, k=5, res=7, views=None, dtype=torch.floa
     return T, plan
 
 
-def _rel_close(got, want, rtol):
+def _rel_close(got, want, rtol, floor=0.0):
+    """Whether |got - want| <= rtol max(|want|, floor) everywhere, and the largest such ratio. ``floor``: the float64
+    subnormals (Ward's and the microfacet's exp at grazing pairs of a sharp lobe) carry fewer bits than any relative
+    tolerance; below the smallest normal, 2^-1022, they are compared to it (an absolute 1e-12 · 2^-1022)."""
     d = (got.double() - want.double()).abs()
-    return bool((d <= rtol * want.double().abs()).all()), float((d / want.double().abs().clamp_min(1e-300)).max())
+    ref = want.double().abs().clamp_min(floor)
+    return bool((d <= rtol * ref).all()), float((d / ref.clamp_min(1e-300)).max())
+
+
+TINY = torch.finfo(torch.float64).tiny
 
 
 @native
@@ -65,32 +86,66 @@ def test_float64_table_equals_the_torch_path_to_1e12(monkeypatch, name):
     brdf = MODELS[name]
     want, plan = _table(monkeypatch, False, brdf, sub=4 if name == "phong" else "auto")
     got, _ = _table(monkeypatch, True, brdf, sub=4 if name == "phong" else "auto")
-    ok, worst = _rel_close(got, want, 1e-12)
+    ok, worst = _rel_close(got, want, 1e-12, TINY)
     assert ok, f"{name}: max relative difference {worst:.3g}"
     assert torch.equal(got == 0, want == 0) and int((want > 0).sum()) > 1000
-    if name in ("as40", "phong"):
+    if name in ("as40", "phong") or name.startswith(("ward", "microfacet")):
         assert plan is not None  # the averages ran
 
 
 @native
+@pytest.mark.parametrize("name", FAMILIES)
 @pytest.mark.parametrize("k,res,J", [(1, 5, 7), (3, 9, 13), (13, 7, 42)])
-def test_odd_sizes_and_tails(monkeypatch, k, res, J):
+def test_odd_sizes_and_tails(monkeypatch, k, res, J, name):
     """One vertex; odd texel and view counts (lists of visible texels and sub-texels of every length mod 4)."""
     views = torch.nn.functional.normalize(torch.randn(J, 3, generator=torch.Generator().manual_seed(J), dtype=torch.float64), dim=-1)
-    want, _ = _table(monkeypatch, False, AS40, k=k, res=res, views=views)
-    got, _ = _table(monkeypatch, True, AS40, k=k, res=res, views=views)
-    ok, worst = _rel_close(got, want, 1e-12)
+    want, _ = _table(monkeypatch, False, MODELS[name], k=k, res=res, views=views)
+    got, _ = _table(monkeypatch, True, MODELS[name], k=k, res=res, views=views)
+    ok, worst = _rel_close(got, want, 1e-12, TINY)
     assert ok, worst
 
 
 @native
-def test_threads_give_the_same_bits(monkeypatch):
+@pytest.mark.parametrize("name", ["as40", "ward", "ward_sharp", "microfacet", "microfacet_sharp"])
+def test_grazing_views_and_texels(monkeypatch, name):
+    """Views 1e-9 to 5 degrees above the tangent plane of vertices whose normal is +z (tangent frames turned by
+    irrational angles), a cube resolution whose texel rows straddle the horizon: the pairs where Ward's 1/sqrt(cos θi
+    cos θo), the microfacet's 1/cos θi and the half vector's θ_h are worst conditioned, point values and averages."""
+    from prt_torch.transfer.transport import _chunk_transport
+
+    monkeypatch.setenv("PRT_TORCH_NATIVE", "1")
+    k, res = 4, 9
+    ang = torch.arange(k, dtype=torch.float64) * 0.7390851332
+    t = torch.stack([ang.cos(), ang.sin(), torch.zeros(k, dtype=torch.float64)], -1)
+    n = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64).expand(k, 3)
+    frames = torch.stack([t, torch.linalg.cross(n, t), n], 1)
+    el = torch.tensor([1e-9, 1e-6, 1e-3, 0.01, 0.05, 0.09], dtype=torch.float64)  # radians above the tangent plane
+    az = torch.arange(el.numel(), dtype=torch.float64) * 1.1
+    views = torch.stack([el.cos() * az.cos(), el.cos() * az.sin(), el.sin()], -1)
+    texels = cube_directions(res)[0].reshape(-1, 3)
+    brdf = MODELS[name]
+    plan = supersample_plan(brdf, res, "auto")
+    subs = sub_texel_sets(res, plan)
+    out = {}
+    for on in ("0", "1"):
+        monkeypatch.setenv("PRT_TORCH_NATIVE", on)
+        out[on] = _chunk_transport(None, brdf, torch.zeros(k, 3, dtype=torch.float64), n.contiguous(), frames, texels, views,
+                                   None, False, torch.float64, plan=plan, sub_texels=subs, average_threads=1)
+    ok, worst = _rel_close(out["1"], out["0"], 1e-12, TINY)
+    assert ok, f"{name}: {worst:.3g}"
+    assert torch.equal(out["1"] == 0, out["0"] == 0) and int((out["0"] > 0).sum()) > 100
+
+
+@native
+@pytest.mark.parametrize("name", FAMILIES)
+def test_threads_give_the_same_bits(monkeypatch, name):
     """13 vertices, every view at r = 5 averaged in blocks of 512 pairs split between 2 threads: the same bits as one."""
-    one, plan = _table(monkeypatch, True, AS40, k=13, res=5, threads=1)
-    two, _ = _table(monkeypatch, True, AS40, k=13, res=5, threads=2)
+    brdf = MODELS[name]
+    one, plan = _table(monkeypatch, True, brdf, k=13, res=5, threads=1)
+    two, _ = _table(monkeypatch, True, brdf, k=13, res=5, threads=2)
     assert plan is not None and torch.equal(one, two)
-    want, _ = _table(monkeypatch, False, AS40, k=13, res=5, threads=2)
-    assert _rel_close(two, want, 1e-12)[0]
+    want, _ = _table(monkeypatch, False, brdf, k=13, res=5, threads=2)
+    assert _rel_close(two, want, 1e-12, TINY)[0]
 
 
 @native
@@ -108,14 +163,33 @@ def test_per_vertex_parameters(monkeypatch):
 
 
 @native
+def test_per_vertex_parameters_ward_and_microfacet(monkeypatch):
+    """[V] Ward (isotropic and anisotropic, with and without the diffuse term) and microfacet parameters per vertex."""
+    k = 6
+    ax = torch.tensor([0.2, 0.05, 0.6, 0.3, 0.1, 1.0], dtype=torch.float64)
+    ay = torch.tensor([0.2, 0.15, 0.6, 0.07, 0.1, 0.5], dtype=torch.float64)
+    ward = B.Ward(ax, ay, rs=torch.linspace(0.02, 0.6, k, dtype=torch.float64),
+                  rd=torch.tensor([0.0, 0.2, 0.0, 0.5, 0.1, 0.0], dtype=torch.float64))
+    mf = B.Microfacet(torch.tensor([0.2, 0.03, 0.5, 1.2, 0.08, 2.0], dtype=torch.float64),
+                      ks=torch.linspace(0.3, 1.5, k, dtype=torch.float64))
+    idx = torch.arange(k)
+    for brdf in (ward, mf):
+        want, _ = _table(monkeypatch, False, brdf, k=k, mat_index=idx)
+        got, _ = _table(monkeypatch, True, brdf, k=k, mat_index=idx)
+        ok, worst = _rel_close(got, want, 1e-12, TINY)
+        assert ok, f"{brdf.name}: {worst:.3g}"
+
+
+@native
+@pytest.mark.parametrize("name", FAMILIES)
 @pytest.mark.parametrize("dtype,rtol", [(torch.float32, 2.0 ** -23), (torch.float16, 2.0 ** -10)])
-def test_stored_dtypes_round_once(monkeypatch, dtype, rtol):
+def test_stored_dtypes_round_once(monkeypatch, dtype, rtol, name):
     """float32 / float16 tables: the float64 values rounded once, so within one unit of the stored precision of the
     torch path's (which rounds its float64 values once too); float16 only where the compiler has _Float16."""
     if dtype == torch.float16 and TK._state.get("abi", 0) < 2:
         pytest.skip("no _Float16 in this compiler: float16 tables take the torch path")
-    want, _ = _table(monkeypatch, False, AS40, dtype=dtype)
-    got, _ = _table(monkeypatch, True, AS40, dtype=dtype)
+    want, _ = _table(monkeypatch, False, MODELS[name], dtype=dtype)
+    got, _ = _table(monkeypatch, True, MODELS[name], dtype=dtype)
     assert got.dtype == dtype
     big = want.double().abs() > 1e-4  # normal range of float16
     ok, worst = _rel_close(got[big], want[big], rtol)
@@ -124,8 +198,9 @@ def test_stored_dtypes_round_once(monkeypatch, dtype, rtol):
 
 
 def test_native_off_and_unknown_models_keep_torch(monkeypatch):
-    """``PRT_TORCH_NATIVE=0``: the passes write nothing and say so; a model the C does not know (Ward, a subclass that
-    may change ``_eval``) has no native form."""
+    """``PRT_TORCH_NATIVE=0``: the passes write nothing and say so; a model the C does not know (a subclass, of
+    Ashikhmin–Shirley, Ward or the microfacet model, that may change ``_eval``) has no native form; Ward's and the
+    microfacet's parameter rows."""
     monkeypatch.setenv("PRT_TORCH_NATIVE", "0")
     assert TK.available() == (False, "PRT_TORCH_NATIVE=0")
     T = torch.full((2, 12 * 24), float("nan"), dtype=torch.float32)
@@ -133,12 +208,13 @@ def test_native_off_and_unknown_models_keep_torch(monkeypatch):
     wi = torch.zeros(2, 24, 3, dtype=torch.float64)
     assert not TK.points(T, wi, torch.zeros(2, 12, 3, dtype=torch.float64), torch.ones(2, 24, dtype=torch.float64), None, model)
     assert T.isnan().all()
-    assert TK.native_model(B.Ward(0.2), 3) is None
+    for base in (B.AshikhminShirley, B.Ward, B.Microfacet):
+        class Mine(base):
+            pass
 
-    class Mine(B.AshikhminShirley):
-        pass
-
-    assert TK.native_model(Mine(), 3) is None
+        assert TK.native_model(Mine(), 3) is None
+    assert TK.native_model(B.Ward(0.2, 0.1, rs=0.3, rd=0.1), 2)[2].tolist() == [[0.2, 0.1, 0.3, 0.1]] * 2
+    assert TK.native_model(B.Microfacet(0.4, ks=0.5), 1)[:2] == (6, 0)
     m, flags, par = TK.native_model(B.AshikhminShirley(40.0, 20.0, rs=0.1, rd=0.2, fresnel=False), 3)
     assert (m, flags) == (0, 2) and par.shape == (3, 4) and par[:, 1].eq(20.0).all()
 
@@ -197,8 +273,8 @@ def test_portable_build_without_march_native(tmp_path, monkeypatch):
         "prt_transport_abi": []})
     assert lib is not None, why
     assert "-march=native" not in why
-    for brdf in (AS40, MODELS["as_aniso_pow"], MODELS["phong_reflection"]):
-        want, _ = _table(monkeypatch, False, brdf)
+    for name in ("as40", "as_aniso_pow", "phong_reflection", "ward_aniso", "microfacet", "microfacet_sharp"):
+        want, _ = _table(monkeypatch, False, MODELS[name])
         monkeypatch.setitem(TK._state, "lib", lib)
-        got, _ = _table(monkeypatch, True, brdf)
-        assert _rel_close(got, want, 1e-12)[0]
+        got, _ = _table(monkeypatch, True, MODELS[name])
+        assert _rel_close(got, want, 1e-12, TINY)[0], name

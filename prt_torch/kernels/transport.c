@@ -24,12 +24,16 @@
  * The BRDF (model, flags; transport_kernels.native_model): 0 Ashikhmin-Shirley 2000 eq. 4 (+ eq. 5's diffuse
  * term where rd != 0; flags bit 0 Fresnel, bit 1 diffuse), par = (nu, nv, rs, rd); 1 modified Phong, 2 Phong
  * in the reflection form (Ramamoorthi 2002 eq. 3.37: the lobe over cos theta_i), 3 normalised Blinn-Phong,
- * par = (s, ks, kd); 4 Lambertian, par = (kd). The formulas and their order of operations are prt_torch/brdf.py's
+ * par = (s, ks, kd); 4 Lambertian, par = (kd); 5 Ward 1992 (isotropic or anisotropic), par = (ax, ay, rs, rd); 6 Ramamoorthi
+ * 2002's microfacet model (eq. 5.34 over cos theta_i, as brdf.Microfacet), par = (sigma, ks). The formulas and their order of operations are prt_torch/brdf.py's
  * _eval (the half vector normalised by one division and three products); the power b^N by repeated squaring
  * for an integer exponent N <= 1024 (isotropic Ashikhmin-Shirley, Phong, Blinn-Phong: ipow_block), else
  * glibc's libmvec _ZGVdN4vv_pow 4 lanes at a time on the AVX2 path (lanes padded with 1^1), libm's pow
  * otherwise (the portable path): values within a few ulp of torch's (tests: relative 1e-12; 6.6e-14 measured
- * over the whole 10k default table).
+ * over the whole 10k default table). Ward and microfacet normalise the half vector as torch does, bit for bit (torch
+ * 2.13's CPU norm is sqrt(fma(z, z, fma(y, y, x x))), then three divisions), so their exponent -- and the microfacet's
+ * theta_h = acos(h_z), ill-conditioned near the normal -- is torch's to the bit; exp (and acos) 4 lanes at a time from
+ * libmvec on the AVX2 path (_ZGVdN4v_exp; _ZGVdN4v_acos from glibc 2.35, libm's acos before), libm's otherwise.
  * f_r is 0 where wi_z <= 0 or wo_z <= 0, as BRDF.eval. Threads (OpenMP, `nthreads`): vertices (points) or
  * ranges of pairs (averages); each output element is computed by one thread the same way whatever the count. */
 
@@ -40,6 +44,11 @@
 #if defined(__AVX2__)
 #include <immintrin.h>
 __m256d _ZGVdN4vv_pow(__m256d x, __m256d y); /* glibc libmvec: pow, 4 doubles (AVX2) */
+__m256d _ZGVdN4v_exp(__m256d x);                /* exp, 4 doubles (glibc 2.22) */
+#if defined(__GLIBC__) && (__GLIBC__ > 2 || (__GLIBC__ == 2 && __GLIBC_MINOR__ >= 35))
+#define PRT_MVEC_ACOS 1
+__m256d _ZGVdN4v_acos(__m256d x);               /* acos, 4 doubles (glibc 2.35) */
+#endif
 #endif
 
 typedef int64_t i64;
@@ -75,6 +84,33 @@ static void pow_block(i64 n, const double *b, const double *e, double *o) {
     for (; q < n; q++) o[q] = pow(b[q], e[q]);
 }
 
+/* out[q] = exp(x[q]), q < n (n a multiple of 4) */
+static void exp_block(i64 n, const double *x, double *o) {
+    i64 q = 0;
+#if defined(__AVX2__)
+    for (; q + 4 <= n; q += 4) _mm256_storeu_pd(o + q, _ZGVdN4v_exp(_mm256_loadu_pd(x + q)));
+#endif
+    for (; q < n; q++) o[q] = exp(x[q]);
+}
+
+/* out[q] = acos(x[q]), q < n (n a multiple of 4) */
+static void acos_block(i64 n, const double *x, double *o) {
+    i64 q = 0;
+#if defined(__AVX2__) && defined(PRT_MVEC_ACOS)
+    for (; q + 4 <= n; q += 4) _mm256_storeu_pd(o + q, _ZGVdN4v_acos(_mm256_loadu_pd(x + q)));
+#endif
+    for (; q < n; q++) o[q] = acos(x[q]);
+}
+
+/* the half vector normalised as torch's h / h.norm(dim=-1).clamp_min(1e-300), bit for bit (the norm as torch 2.13's
+ * CPU kernel: sqrt(fma(z, z, fma(y, y, x x))); three divisions) */
+static inline void half_torch(double ix, double iy, double iz, double ox, double oy, double oz, double *h) {
+    double hx = ix + ox, hy = iy + oy, hz = iz + oz;
+    double nr = sqrt(fma(hz, hz, fma(hy, hy, hx * hx)));
+    nr = nr > 1e-300 ? nr : 1e-300;
+    h[0] = hx / nr; h[1] = hy / nr; h[2] = hz / nr;
+}
+
 /* o[q] = b[q]^N, q < n, for an integer N in [0, IPOW_MAX] by repeated squaring (per tile of 64 lanes a loop per bit, each
  * over the tile: vectorised). Squaring doubles a relative error, so x^N carries up to ~N/2 + log2 N ulp: 1.1e-13 at
  * N = 1024, 4e-15 at the default N = 40, within the 1e-12 the tests hold the kernel to; a fraction of pow's cost */
@@ -107,6 +143,44 @@ static void eval_block(int model, int flags, const double *p, i64 n, const doubl
     double *restrict B = s->b, *restrict E = s->e, *restrict C1 = s->c1, *restrict C2 = s->c2, *restrict PW = s->pw;
     if (model == 4) { /* Lambertian */
         for (i64 q = 0; q < n; q++) f[q] = (wz[q] > 0 && oz > 0) ? p[0] / PI : 0.0;
+        return;
+    }
+    if (model == 5) { /* Ward 1992: rd/pi + rs exp(-((hx/ax)^2 + (hy/ay)^2) / hz^2) / (4 pi ax ay sqrt(cos_i cos_o)) */
+        const double ax = p[0], ay = p[1], rs = p[2], dp = p[3] / PI, c0 = 4 * PI * ax * ay; /* torch's ((4 pi) ax) ay */
+        for (i64 q = 0; q < n4; q++) {
+            double h[3];
+            half_torch(wx[q], wy[q], wz[q], ox, oy, oz, h);
+            double hz2 = h[2] * h[2];
+            hz2 = hz2 > 1e-300 ? hz2 : 1e-300;
+            double a = h[0] / ax, b = h[1] / ay;
+            B[q] = -(a * a + b * b) / hz2;
+            double cc = wz[q] * oz;
+            C1[q] = c0 * sqrt(cc > 1e-300 ? cc : 1e-300);
+        }
+        exp_block(n4, B, PW);
+        for (i64 q = 0; q < n; q++) {
+            double v = dp + rs * PW[q] / C1[q];
+            f[q] = (wz[q] > 0 && oz > 0) ? v : 0.0;
+        }
+        return;
+    }
+    if (model == 6) { /* microfacet (Ramamoorthi 2002 eq. 5.34): ks exp(-(theta_h/sigma)^2) / (4 pi sigma^2) / cos_i */
+        const double sg = p[0], ks = p[1], c0 = 4 * PI * (sg * sg); /* torch's (4 pi) sigma**2 */
+        for (i64 q = 0; q < n4; q++) {
+            double h[3];
+            half_torch(wx[q], wy[q], wz[q], ox, oy, oz, h);
+            B[q] = h[2] < -1 ? -1 : (h[2] > 1 ? 1 : h[2]);
+        }
+        acos_block(n4, B, E);
+        for (i64 q = 0; q < n4; q++) {
+            double t = E[q] / sg;
+            B[q] = -(t * t);
+        }
+        exp_block(n4, B, PW);
+        for (i64 q = 0; q < n; q++) {
+            double v = ks * PW[q] / c0 / (wz[q] > 1e-300 ? wz[q] : 1e-300);
+            f[q] = (wz[q] > 0 && oz > 0) ? v : 0.0;
+        }
         return;
     }
     if (model == 0) { /* Ashikhmin-Shirley eq. 4 (+ eq. 5) */
@@ -208,7 +282,7 @@ static i64 lower_bound(const i64 *x, i64 a, i64 b, i64 v) {
 int prt_transport_points(i64 k, i64 J, i64 P, const double *wi, const double *wo, const double *W, i64 na, const i64 *ai,
                          const i64 *aj, const i64 *ap, int model, int flags, const double *par, int out_dtype, void *out,
                          int nthreads) {
-    if (!dtype_ok(out_dtype) || model < 0 || model > 4) return 1;
+    if (!dtype_ok(out_dtype) || model < 0 || model > 6) return 1;
     for (i64 q = 0; q < na; q++) { /* the averaged pairs: in range and in (vertex, view, texel) order */
         if (ai[q] < 0 || ai[q] >= k || aj[q] < 0 || aj[q] >= J || ap[q] < 0 || ap[q] >= P) return 3;
         if (q && (ai[q] < ai[q - 1] || (ai[q] == ai[q - 1] && (aj[q] < aj[q - 1] || (aj[q] == aj[q - 1] && ap[q] <= ap[q - 1])))))
@@ -267,7 +341,7 @@ int prt_transport_points(i64 k, i64 J, i64 P, const double *wi, const double *wo
 int prt_transport_averages(i64 n, const i64 *iv, const i64 *jv, const i64 *pv, const i64 *sv, i64 k, i64 J, i64 P,
                            const double *frames, const double *wo, const double *sd, const double *sw, const i64 *soff,
                            int model, int flags, const double *par, int out_dtype, void *out, int nthreads) {
-    if (!dtype_ok(out_dtype) || model < 0 || model > 4) return 1;
+    if (!dtype_ok(out_dtype) || model < 0 || model > 6) return 1;
     for (i64 q = 0; q < n; q++) {
         if (sv[q] < 1 || sv[q] > 8 || soff[sv[q]] < 0) return 3;
         if (iv[q] < 0 || iv[q] >= k || jv[q] < 0 || jv[q] >= J || pv[q] < 0 || pv[q] >= P) return 3;

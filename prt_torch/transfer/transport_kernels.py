@@ -1,12 +1,14 @@
 """The transport tables' BRDF passes compiled (issue 42 §2): the point values f_r W on the (upper view,
 visible texel) pairs and the texel averages Σ_s a_s f_r(ω_s) max(n·ω_s, 0) (Green 2005 eq. 1.2), each a
 fused loop over the pairs with the BRDF inline, for the models the C knows (:func:`native_model`:
-Ashikhmin–Shirley, Phong in both forms, Blinn-Phong, Lambertian; exactly those classes, not subclasses).
+Ashikhmin–Shirley, Phong in both forms, Blinn-Phong, Lambertian, Ward 1992 (isotropic and anisotropic) and
+Ramamoorthi 2002's microfacet model (eq. 5.34); exactly those classes, not subclasses).
 
 The C is ``prt_torch/kernels/transport.c`` (library ``transport``, built by :mod:`prt_torch._native`; its
 opening comment gives the layouts). Where torch made ~15 elementwise passes over block-sized float64
 temporaries per evaluation (~140 ns each), the C evaluates each pair once in registers, the power 4 lanes
-at a time (glibc's libmvec on the AVX2 path, libm's ``pow`` on the portable one). The values are the torch
+at a time (glibc's libmvec on the AVX2 path, libm's ``pow`` on the portable one; Ward's and the microfacet's
+``exp`` and ``acos`` the same way). The values are the torch
 path's to a few ulp in float64 (``tests/test_transport_native.py``: relative 1e-12), rounded once to the
 stored dtype. Without a compiler or libmvec, with ``PRT_TORCH_NATIVE=0``, for another BRDF or dtype, the
 functions return False and the caller keeps torch.
@@ -59,9 +61,10 @@ def available() -> tuple[bool, str]:
 def native_model(brdf, k: int, mat_index: torch.Tensor | None = None) -> tuple[int, int, torch.Tensor] | None:
     """``(model, flags, par float64 [k, 4])`` of ``brdf`` for the C (its header: 0 Ashikhmin–Shirley with flags
     bit 0 Fresnel, bit 1 diffuse, par (nu, nv, rs, rd); 1/2 Phong modified/reflection and 3 Blinn-Phong, par (s,
-    ks, kd); 4 Lambertian, par (kd)), one row per vertex of the chunk (``mat_index [k]``: per-vertex
-    parameters, else shared); None for a model the C does not know (its own ``_eval`` then runs in torch)."""
-    from ..brdf import AshikhminShirley, BlinnPhong, Lambertian, Phong
+    ks, kd); 4 Lambertian, par (kd); 5 Ward, par (ax, ay, rs, rd); 6 microfacet, par (sigma, ks)), one row per
+    vertex of the chunk (``mat_index [k]``: per-vertex parameters, else shared); None for a model the C does not
+    know (its own ``_eval`` then runs in torch)."""
+    from ..brdf import AshikhminShirley, BlinnPhong, Lambertian, Microfacet, Phong, Ward
 
     t = type(brdf)
     if t is AshikhminShirley:
@@ -72,6 +75,10 @@ def native_model(brdf, k: int, mat_index: torch.Tensor | None = None) -> tuple[i
         model, names, flags = 3, ("s", "ks", "kd"), 0
     elif t is Lambertian:
         model, names, flags = 4, ("kd",), 0
+    elif t is Ward:
+        model, names, flags = 5, ("ax", "ay", "rs", "rd"), 0
+    elif t is Microfacet:
+        model, names, flags = 6, ("sigma", "ks"), 0
     else:
         return None
     b = brdf if mat_index is None else brdf.select(mat_index)
