@@ -592,7 +592,7 @@ def precompute_transport(
         data = box.pop()  # the executor's result list keeps no table
         buf = next((x for x in pool if x.data_ptr() == data.data_ptr()), None)
         writing.append((c, writer.submit(io.save, out / f"chunk_{c:06d}.prt", {"data": data}, kind="transfer/transport_chunk",
-                                         meta={"chunk": c, "start": ranges[c][0], "stop": ranges[c][1]}), buf))
+                                         meta={"chunk": c, "start": ranges[c][0], "stop": ranges[c][1]}, direct=True), buf))
         settle(1)
 
     try:

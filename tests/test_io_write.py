@@ -1,0 +1,133 @@
+"""``io.save``'s own safetensors writer (issue 42 §2: chunks written from the tensors' memory, no serialised copy, and
+the transport chunks past the page cache): checked against the ``safetensors`` library itself — the same bytes as its
+``save_file`` for every dtype it lays out (order by dtype then name, padding, empty and 0-d tensors, non-ASCII
+metadata), and ``direct=True`` files (``O_DIRECT``, header padded to the tensor's address) read back identically by
+``safetensors.torch.load_file`` and ``io.load`` at every alignment and length tail; the atomic rename, and a failed
+write (disk full, mid-file) leaving neither the file nor its temporary behind."""
+from __future__ import annotations
+
+import errno
+import json
+import os
+
+import pytest
+import torch
+from safetensors.torch import load_file, save_file
+
+from prt_torch import io
+
+
+def _lib_bytes(tmp_path, tensors, kind, meta=None):
+    """The file ``safetensors.torch.save_file`` writes for what ``io.save`` is given (the same metadata text)."""
+    text = json.dumps({"format": io.FORMAT, "format_version": io.FORMAT_VERSION, "kind": kind, **(meta or {})})
+    p = tmp_path / "lib.safetensors"
+    save_file({k: v.contiguous() for k, v in tensors.items()}, str(p), metadata={io.FORMAT: text})
+    return p.read_bytes()
+
+
+def _every_dtype():
+    g = torch.Generator().manual_seed(3)
+    out = {}
+    for i, (dt, _) in enumerate(io._ST_DTYPES):
+        x = torch.randint(0, 100, (2, 3), generator=g, dtype=torch.int64) if dt != torch.bool else torch.rand(2, 3, generator=g) > 0.5
+        out[f"t{(7 * i) % 13}_{i}"] = x.to(dt)
+    out["a_same_dtype_as_t0"] = torch.rand(5, generator=g).double()  # ties: by name
+    out["scalar"] = torch.tensor(2.5)
+    out["empty"] = torch.zeros(0, 4, dtype=torch.float16)
+    return out
+
+
+@pytest.mark.parametrize("case", ["every_dtype", "one_big", "none"])
+def test_the_same_bytes_as_safetensors(tmp_path, case):
+    tensors = {"every_dtype": _every_dtype, "one_big": lambda: {"data": torch.rand(1001, 37)[:, 1:]},  # made contiguous
+               "none": dict}[case]()
+    meta = {"név": "é \x01 \"quoted\" \\ /", "n": [1, 2.5, None]}
+    io.save(tmp_path / "mine.prt", tensors, kind="test/bytes", meta=meta)
+    assert (tmp_path / "mine.prt").read_bytes() == _lib_bytes(tmp_path, tensors, "test/bytes", meta)
+    got, m = io.load(tmp_path / "mine.prt")
+    assert m["név"] == meta["név"] and set(got) == set(tensors)
+    assert all(torch.equal(got[k], v) and got[k].dtype == v.dtype for k, v in tensors.items())
+
+
+@pytest.mark.parametrize("shift,length", [(0, io._DIRECT_MIN), (2, io._DIRECT_MIN + 4), (514, 3 * io._DIRECT_MIN + 4092),
+                                          (1022, io._DIRECT_MIN + 4096)])
+def test_direct_files_read_back_identically(tmp_path, shift, length):
+    """A float32 tensor starting ``shift`` elements into its storage (addresses at several 8-byte residues modulo
+    4 KiB), of lengths with and without a partial last block, a small int64 tensor laid out before it: the library
+    reads the same values and names; the header is padded to the tensor's address (the page cache bypassed: not
+    checked here, it is the system time the benchmark measures)."""
+    base = torch.rand(shift + length // 4 + 1, generator=torch.Generator().manual_seed(shift))
+    big = base[shift:shift + length // 4]
+    small = torch.arange(5, dtype=torch.int64)
+    io.save(tmp_path / "d.prt", {"data": big, "z_small": small}, kind="test/direct", meta={"x": 1}, direct=True)
+    got = load_file(str(tmp_path / "d.prt"))
+    assert torch.equal(got["data"], big) and torch.equal(got["z_small"], small)
+    t, m = io.load(tmp_path / "d.prt")
+    assert torch.equal(t["data"], big) and m["x"] == 1 and m["kind"] == "test/direct"
+    raw = (tmp_path / "d.prt").read_bytes()
+    n = int.from_bytes(raw[:8], "little")
+    header = json.loads(raw[8:8 + n])
+    assert list(header)[1:] == ["z_small", "data"]  # int64 before float32: the small tensor is staged before the big one
+    assert (8 + n + header["data"]["data_offsets"][0]) % 4096 == big.data_ptr() % 4096  # padded to the tensor's address
+    assert os.path.getsize(tmp_path / "d.prt") == 8 + n + big.numel() * 4 + 5 * 8
+    assert not list(tmp_path.glob("*.partial"))
+
+
+def test_direct_below_its_threshold_is_the_library_file(tmp_path):
+    """``direct=True`` for a small tensor, two big ones, or a big one at an address not a multiple of 8 (its header
+    could not be padded to it in 8-byte steps): the ordinary (library) bytes."""
+    odd = torch.rand(io._DIRECT_MIN // 4 + 1)[1:]
+    for tensors in ({"data": torch.rand(100)}, {"a": torch.rand(io._DIRECT_MIN // 4), "b": torch.rand(io._DIRECT_MIN // 4)},
+                    {"data": odd}):
+        io.save(tmp_path / "s.prt", tensors, kind="k", direct=True)
+        assert (tmp_path / "s.prt").read_bytes() == _lib_bytes(tmp_path, tensors, "k")
+
+
+@pytest.mark.parametrize("direct", [False, True])
+def test_a_failed_write_leaves_nothing_and_keeps_the_old_file(tmp_path, monkeypatch, direct):
+    """Disk full in the middle of the data: OSError naming the path, no file, no temporary; an existing file at the path
+    stays as it was (the rename never happened); the next write succeeds and replaces it."""
+    path = tmp_path / "chunk.prt"
+    data = {"data": torch.rand(io._DIRECT_MIN // 4 * 2)}
+    real = os.write
+    calls = {"n": 0}
+
+    def full(fd, buf):
+        calls["n"] += 1
+        if calls["n"] == 2:  # the header went through; the data does not
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real(fd, buf)
+
+    monkeypatch.setattr(os, "write", full)
+    with pytest.raises(OSError, match=r"cannot write .*chunk\.prt.*No space left"):
+        io.save(path, data, kind="k", direct=direct)
+    assert not list(tmp_path.iterdir())
+    monkeypatch.setattr(os, "write", real)
+    io.save(path, {"old": torch.ones(3)}, kind="k")
+    old = path.read_bytes()
+    calls["n"] = 0
+    monkeypatch.setattr(os, "write", full)
+    with pytest.raises(OSError, match="No space left"):
+        io.save(path, data, kind="k", direct=direct)
+    assert path.read_bytes() == old and sorted(p.name for p in tmp_path.iterdir()) == ["chunk.prt"]
+    monkeypatch.setattr(os, "write", real)
+    io.save(path, data, kind="k", direct=direct)
+    assert torch.equal(load_file(str(path))["data"], data["data"])
+    with pytest.raises(FileExistsError, match="exists"):
+        io.save(path, data, kind="k", overwrite=False, direct=direct)
+
+
+def test_direct_falls_back_where_the_file_system_refuses_it(tmp_path, monkeypatch):
+    """EINVAL from an ``O_DIRECT`` open (tmpfs, some network file systems): the file is written through the page cache,
+    the library's bytes."""
+    real = os.open
+
+    def no_direct(path, flags, *a):
+        if flags & getattr(os, "O_DIRECT", 0):
+            raise OSError(errno.EINVAL, "Invalid argument")
+        return real(path, flags, *a)
+
+    monkeypatch.setattr(os, "open", no_direct)
+    data = {"data": torch.rand(io._DIRECT_MIN // 4 + 3)}
+    io.save(tmp_path / "f.prt", data, kind="k", direct=True)
+    assert (tmp_path / "f.prt").read_bytes() == _lib_bytes(tmp_path, data, "k")
