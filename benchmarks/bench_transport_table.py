@@ -7,19 +7,20 @@ revision, paired and alternating.
 Each run is ``prt precompute <scene> --size <size> --kind transport --no-progress -o DIR`` (defaults only: 92 views,
 ``res: auto``, texel averages) in a fresh process, the other revision's (``git archive main | tar -x -C DIR``, put
 first on ``PYTHONPATH``) and this checkout's alternating ``--pairs`` times, the other first. Per run: wall seconds,
-user and system CPU of the process and its children (``resource.getrusage(RUSAGE_CHILDREN)`` deltas: the ray-casting
-workers included), the 1-minute load before and after. The machine is shared: the CPU seconds (user + system) are the
-figure to trust, wall is what this load gave. The last pair's tables are compared value for value (every chunk: the
-count of differing float32 values and the largest relative difference), then removed. Writes a markdown report.
+user and system CPU of the process and its children (``os.wait4``'s rusage of the run: the ray-casting workers
+included), its peak RSS and minor page faults, the 1-minute load before and after. The machine is shared: the CPU seconds (user + system) are the
+figure to trust, wall is what this load gave. The last pair's tables are compared value for value (every
+``--compare-every``-th chunk, the others removed after each run so that the disk holds one table at a time: the count
+of differing float32 values and the largest relative difference), then removed. Writes a markdown report.
 """
 from __future__ import annotations
 
 import argparse
 import os
-import resource
 import shutil
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -43,15 +44,25 @@ def run_once(code_root: str | None, args: list[str], out: Path) -> dict:
     cmd = [sys.executable, "-c", "import sys; from prt_torch.cli import main; sys.argv[0] = 'prt'; sys.exit(main())",
            "precompute", *args, "--kind", "transport", "--no-progress", "-o", str(out)]
     load0 = os.getloadavg()[0]
-    r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
-    p = subprocess.run(cmd, env=env, capture_output=True, text=True, cwd=str(ROOT) if code_root is None else code_root)
-    wall = time.perf_counter() - t0
-    r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
-    if p.returncode:
-        raise RuntimeError(f"{' '.join(cmd)} failed ({p.returncode}): {p.stderr[-2000:]}")
-    return {"wall": wall, "user": r1.ru_utime - r0.ru_utime, "sys": r1.ru_stime - r0.ru_stime,
+    with tempfile.TemporaryFile() as err:
+        p = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=err, cwd=str(ROOT) if code_root is None else code_root)
+        _, status, ru = os.wait4(p.pid, 0)  # this run's own rusage: CPU and peak RSS of it and its waited-for children
+        wall = time.perf_counter() - t0
+        p.returncode = os.waitstatus_to_exitcode(status)
+        if p.returncode:
+            err.seek(0)
+            raise RuntimeError(f"{' '.join(cmd)} failed ({p.returncode}): {err.read().decode()[-2000:]}")
+    return {"wall": wall, "user": ru.ru_utime, "sys": ru.ru_stime, "rss": ru.ru_maxrss / 2**20, "minflt": ru.ru_minflt,
             "load0": load0, "load1": os.getloadavg()[0]}
+
+
+def prune(out: Path, every: int) -> None:
+    """Keep every ``every``-th chunk file of a finished table (the comparison's sample; the disk holds one whole table
+    at a time, not two)."""
+    for f in out.glob("chunk_*.prt"):
+        if int(f.stem.split("_")[1]) % every:
+            f.unlink()
 
 
 def compare(a: Path, b: Path) -> dict:
@@ -84,6 +95,7 @@ def main(argv=None) -> int:
     ap.add_argument("--size", default="medium")
     ap.add_argument("--tmp", default="/tmp/prt_bench_transport_table")
     ap.add_argument("--out", default=None)
+    ap.add_argument("--compare-every", type=int, default=4, help="compare every n-th chunk of the last pair's tables")
     a = ap.parse_args(argv)
     tmp = Path(a.tmp)
     tmp.mkdir(parents=True, exist_ok=True)
@@ -92,9 +104,10 @@ def main(argv=None) -> int:
     for k in range(a.pairs):
         for name, root in (("against", a.against), ("this", None)):
             r = run_once(root, args, tmp / name)
+            prune(tmp / name, a.compare_every)
             rows.append((name, k, r))
             print(f"pair {k} {name}: wall {r['wall']:.1f} s, user {r['user']:.1f} s, system {r['sys']:.1f} s, "
-                  f"load {r['load0']:.1f} -> {r['load1']:.1f}", flush=True)
+                  f"peak RSS {r['rss']:.2f} GiB, load {r['load0']:.1f} -> {r['load1']:.1f}", flush=True)
     cmp = compare(tmp / "against", tmp / "this")
     shutil.rmtree(tmp, ignore_errors=True)
     cpu = {n: [r["user"] + r["sys"] for m, _, r in rows if m == n] for n in ("against", "this")}
@@ -107,17 +120,19 @@ def main(argv=None) -> int:
         f"`benchmarks/bench_transport_table.py --against {a.against} --pairs {a.pairs} --scene {a.scene} --size {a.size}` — "
         f"`prt precompute {a.scene} --size {a.size} --kind transport --no-progress` (92 views, res auto, texel averages), "
         f"{a.against} (the other revision) and this checkout alternating, each in a fresh process; CPU {_cpu()}; "
-        "a machine shared with other jobs (the load column): CPU seconds are the figure to trust.",
+        "a machine shared with other jobs (the load column): CPU seconds are the figure to trust. CPU seconds and peak RSS: "
+        "`os.wait4` of the run (its process and the children it waited for; RSS: the largest of them).",
         "",
-        "| pair | code | wall s | user s | system s | CPU s (user + system) | load before → after |",
-        "|---:|---|---:|---:|---:|---:|---|",
+        "| pair | code | wall s | user s | system s | CPU s (user + system) | peak RSS GiB | minor faults | load before → after |",
+        "|---:|---|---:|---:|---:|---:|---:|---:|---|",
     ]
     for name, k, r in rows:
         lines.append(f"| {k} | {'other (' + a.against + ')' if name == 'against' else 'this'} | {r['wall']:.1f} | {r['user']:.1f} | "
-                     f"{r['sys']:.1f} | {r['user'] + r['sys']:.1f} | {r['load0']:.1f} → {r['load1']:.1f} |")
+                     f"{r['sys']:.1f} | {r['user'] + r['sys']:.1f} | {r['rss']:.2f} | {r['minflt']} | {r['load0']:.1f} → {r['load1']:.1f} |")
     lines += ["", f"CPU-time ratio other / this per pair: {', '.join(f'{x:.2f}' for x in ratios)}; wall ratio: "
               f"{', '.join(f'{x:.2f}' for x in wratios)}.", "",
-              f"The last pair's tables: {cmp['values']} float32 values, {cmp['differ']} differ, largest relative difference "
+              f"The last pair's tables (every {a.compare_every}-th chunk): {cmp['values']} float32 values, {cmp['differ']} differ, "
+              f"largest relative difference "
               f"{cmp['max_rel']:.3g} (zeros: the same set)." if cmp["max_rel"] != float("inf") else
               f"The last pair's tables: {cmp['values']} values, {cmp['differ']} differ, and some zero in one is not in the other."]
     text = "\n".join(lines) + "\n"
