@@ -343,7 +343,7 @@ def save(
     header = {"format": FORMAT, "format_version": FORMAT_VERSION, "kind": kind}
     header.update(meta or {})
     text = json.dumps(header, default=_json_default)
-    data = {k: v.detach().to("cpu").contiguous() for k, v in tensors.items()}
+    data = {k: v.detach().to("cpu").resolve_conj().resolve_neg().contiguous() for k, v in tensors.items()}
     own = sys.byteorder == "little" and all(v.dtype in _ST_RANK for v in data.values())
     try:
         with atomic_path(path, overwrite=overwrite) as tmp:

@@ -131,3 +131,14 @@ def test_direct_falls_back_where_the_file_system_refuses_it(tmp_path, monkeypatc
     data = {"data": torch.rand(io._DIRECT_MIN // 4 + 3)}
     io.save(tmp_path / "f.prt", data, kind="k", direct=True)
     assert (tmp_path / "f.prt").read_bytes() == _lib_bytes(tmp_path, data, "k")
+
+
+def test_views_are_written_as_their_values(tmp_path):
+    """A conjugate (lazy: the conj bit), a negated view, a strided slice: the values they show, not their storage."""
+    z = torch.tensor([1 + 2j, -3 - 0.5j], dtype=torch.complex64)
+    x = torch.arange(12, dtype=torch.float32).reshape(3, 4)
+    tensors = {"conj": z.conj(), "neg": z.conj().imag, "cols": x[:, 1::2]}
+    io.save(tmp_path / "v.prt", tensors, kind="k")
+    got, _ = io.load(tmp_path / "v.prt")
+    assert torch.equal(got["conj"], torch.tensor([1 - 2j, -3 + 0.5j], dtype=torch.complex64))
+    assert torch.equal(got["neg"], torch.tensor([-2.0, 0.5])) and torch.equal(got["cols"], x[:, 1::2])
