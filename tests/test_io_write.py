@@ -142,3 +142,27 @@ def test_views_are_written_as_their_values(tmp_path):
     got, _ = io.load(tmp_path / "v.prt")
     assert torch.equal(got["conj"], torch.tensor([1 - 2j, -3 + 0.5j], dtype=torch.complex64))
     assert torch.equal(got["neg"], torch.tensor([-2.0, 0.5])) and torch.equal(got["cols"], x[:, 1::2])
+
+
+def test_the_transport_chunk_writer_writes_past_the_page_cache(tmp_path, monkeypatch):
+    """``precompute_transport``'s chunks of ≥ 4 MiB go through the ``O_DIRECT`` writer (counted), and each file holds
+    the chunk's table: the same values as the chunk computed again in memory (``_chunk_transport``, the same inputs)."""
+    from prt_torch.brdf import AshikhminShirley
+    from prt_torch.scene import builtin
+    from prt_torch.transfer import RunOptions, precompute_transport
+    from prt_torch.transfer import transport as TT
+    from prt_torch.transfer.glossy import check_frames
+
+    calls = []
+    real = io._write_direct
+    monkeypatch.setattr(io, "_write_direct", lambda *a: (calls.append(a[3]), real(*a)))
+    mesh = builtin("convex", "small")
+    t = precompute_transport(mesh, tmp_path / "t", views=3, res=8, supersample=1, shadows=False, max_chunks=2,
+                             run=RunOptions(chunk_size=32, workers=1))
+    assert calls == ["data", "data"]  # 32 vertices x 92 views x 384 texels x 4 bytes = 4.5 MiB per chunk
+    texels = TT.cube_directions(8)[0].reshape(-1, 3)
+    F = check_frames(mesh)
+    for a, b, T in t:
+        want = TT._chunk_transport(None, AshikhminShirley(40.0, 40.0, rs=0.05, rd=0.0), mesh.vertices[a:b], mesh.normals[a:b],
+                                   F[a:b], texels, t.views, None, False, torch.float32)
+        assert torch.equal(T.reshape(b - a, -1), want.reshape(b - a, -1)) and float(want.max()) > 0
