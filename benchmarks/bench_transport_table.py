@@ -2,7 +2,7 @@
 revision, paired and alternating.
 
     .venv/bin/python benchmarks/bench_transport_table.py --against /tmp/tt42_main [--pairs 2] [--scene bumpy_sphere]
-        [--size medium] [--out reports/benchmarks/transport_table.md] [--keep DIR]
+        [--size medium] [--extra '--brdf ward'] [--out reports/benchmarks/transport_table.md]
 
 Each run is ``prt precompute <scene> --size <size> --kind transport --no-progress -o DIR`` (defaults only: 92 views,
 ``res: auto``, texel averages) in a fresh process, the other revision's (``git archive main | tar -x -C DIR``, put
@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import shlex
 import shutil
 import subprocess
 import sys
@@ -96,10 +97,11 @@ def main(argv=None) -> int:
     ap.add_argument("--tmp", default="/tmp/prt_bench_transport_table")
     ap.add_argument("--out", default=None)
     ap.add_argument("--compare-every", type=int, default=4, help="compare every n-th chunk of the last pair's tables")
+    ap.add_argument("--extra", default="", help="more options of prt precompute, one string (e.g. '--brdf ward')")
     a = ap.parse_args(argv)
     tmp = Path(a.tmp)
     tmp.mkdir(parents=True, exist_ok=True)
-    args = [a.scene, "--size", a.size]
+    args = [a.scene, "--size", a.size, *shlex.split(a.extra)]
     rows: list[tuple[str, int, dict]] = []
     for k in range(a.pairs):
         for name, root in (("against", a.against), ("this", None)):
@@ -115,10 +117,12 @@ def main(argv=None) -> int:
     ratios = [c0 / c1 for c0, c1 in zip(cpu["against"], cpu["this"])]
     wratios = [w0 / w1 for w0, w1 in zip(wall["against"], wall["this"])]
     lines = [
-        "# The whole default transport table (issue 42 §2)",
+        f"# The whole {'default ' if not a.extra else ''}transport table{' ' + a.extra if a.extra else ''} (issue 42 §2)",
         "",
-        f"`benchmarks/bench_transport_table.py --against {a.against} --pairs {a.pairs} --scene {a.scene} --size {a.size}` — "
-        f"`prt precompute {a.scene} --size {a.size} --kind transport --no-progress` (92 views, res auto, texel averages), "
+        f"`benchmarks/bench_transport_table.py --against {a.against} --pairs {a.pairs} --scene {a.scene} --size {a.size}"
+        f"{' --extra=' + repr(a.extra) if a.extra else ''}` — "
+        f"`prt precompute {a.scene} --size {a.size} --kind transport --no-progress{' ' + a.extra if a.extra else ''}` "
+        "(92 views, res auto, texel averages), "
         f"{a.against} (the other revision) and this checkout alternating, each in a fresh process; CPU {_cpu()}; "
         "a machine shared with other jobs (the load column): CPU seconds are the figure to trust. CPU seconds and peak RSS: "
         "`os.wait4` of the run (its process and the children it waited for; RSS: the largest of them).",
