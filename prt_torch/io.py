@@ -329,7 +329,8 @@ def save(
     The file is written from the tensors' memory (:func:`_write_safetensors`: the bytes ``safetensors``'
     ``save_file`` writes, without its copy in versions before 0.6); ``direct=True`` writes a big
     first tensor past the page cache (``O_DIRECT``: no kernel copy; for large files this process
-    will not read back soon, such as the transport tables' chunks). Returns the path written.
+    will not read back soon, such as the transport tables' chunks). Tensors that share memory are
+    written each as its own values (``save_file`` refuses them). Returns the path written.
     """
     import sys
 

@@ -134,12 +134,14 @@ def test_direct_falls_back_where_the_file_system_refuses_it(tmp_path, monkeypatc
 
 
 def test_views_are_written_as_their_values(tmp_path):
-    """A conjugate (lazy: the conj bit), a negated view, a strided slice: the values they show, not their storage."""
+    """A conjugate (lazy: the conj bit), a negated view, a strided slice, two views of one storage (which
+    ``safetensors``' ``save_file`` refuses): the values they show, each on its own."""
     z = torch.tensor([1 + 2j, -3 - 0.5j], dtype=torch.complex64)
     x = torch.arange(12, dtype=torch.float32).reshape(3, 4)
-    tensors = {"conj": z.conj(), "neg": z.conj().imag, "cols": x[:, 1::2]}
+    tensors = {"conj": z.conj(), "neg": z.conj().imag, "cols": x[:, 1::2], "all": x, "row": x[1]}
     io.save(tmp_path / "v.prt", tensors, kind="k")
     got, _ = io.load(tmp_path / "v.prt")
+    assert torch.equal(got["all"], x) and torch.equal(got["row"], x[1])
     assert torch.equal(got["conj"], torch.tensor([1 - 2j, -3 + 0.5j], dtype=torch.complex64))
     assert torch.equal(got["neg"], torch.tensor([-2.0, 0.5])) and torch.equal(got["cols"], x[:, 1::2])
 
