@@ -202,7 +202,7 @@ _ST_DTYPES = [(torch.uint64, "U64"), (torch.int64, "I64"), (torch.float64, "F64"
 _ST_RANK = {d: (i, c) for i, (d, c) in enumerate(_ST_DTYPES)}
 #: O_DIRECT's alignment of memory, file offsets and lengths (4 KiB: every common logical block size divides it)
 _DIRECT_ALIGN = 4096
-#: the least bytes of a file's first tensor for which ``direct=True`` bypasses the page cache
+#: the least bytes of the one big tensor of a file for which ``direct=True`` bypasses the page cache
 _DIRECT_MIN = 4 << 20
 
 
@@ -247,8 +247,8 @@ def _safetensors_header(data: dict[str, torch.Tensor], metadata: dict[str, str],
 
 def _write_safetensors(path: Path, data: dict[str, torch.Tensor], metadata: dict[str, str], direct: bool = False) -> None:
     """Write ``data`` (contiguous CPU tensors) as the safetensors file ``path``, each tensor from its own memory: no
-    serialised copy, whatever the installed ``safetensors`` (before 0.6 its ``save_file`` copied every tensor into a
-    ``bytes`` first). The file is the one ``safetensors.torch.save_file`` writes, byte for byte (tested).
+    serialised copy, whatever the installed ``safetensors`` (0.4's ``save_file`` copied every tensor into a ``bytes``
+    first; 0.8's passes pointers). The file is the one ``safetensors.torch.save_file`` writes, byte for byte (tested).
 
     ``direct``: where one tensor holds at least :data:`_DIRECT_MIN` bytes and the others together less, its
     page-aligned bulk is written with ``O_DIRECT`` from the tensor's memory — the kernel does not copy it into the page
@@ -327,8 +327,8 @@ def save(
 
     Tensors are made contiguous and moved to the CPU. ``meta`` must be JSON-serialisable.
     The file is written from the tensors' memory (:func:`_write_safetensors`: the bytes ``safetensors``'
-    ``save_file`` writes, without its copy in versions before 0.6); ``direct=True`` writes a big
-    first tensor past the page cache (``O_DIRECT``: no kernel copy; for large files this process
+    ``save_file`` writes, without the copy older versions made); ``direct=True`` writes one big
+    tensor past the page cache (``O_DIRECT``: no kernel copy; for large files this process
     will not read back soon, such as the transport tables' chunks). Tensors that share memory are
     written each as its own values (``save_file`` refuses them). Returns the path written.
     """
