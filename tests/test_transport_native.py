@@ -219,6 +219,19 @@ def test_native_off_and_unknown_models_keep_torch(monkeypatch):
     assert (m, flags) == (0, 2) and par.shape == (3, 4) and par[:, 1].eq(20.0).all()
 
 
+def test_every_built_in_model_has_a_compiled_form():
+    """Each class of ``brdf.MODELS`` (both Phong forms) maps to a model of the C, with one parameter row per vertex: a
+    model added to brdf.py without its C form fails here rather than silently taking the ~3-6x slower torch path."""
+    seen = set()
+    for name, cls in B.MODELS.items():
+        for brdf in ([cls(form="modified"), cls(form="reflection")] if cls is B.Phong else [cls()]):
+            got = TK.native_model(brdf, 3)
+            assert got is not None, name
+            assert got[2].shape == (3, 4) and got[2].dtype == torch.float64
+            seen.add(got[0])
+    assert seen == set(range(7))
+
+
 @native
 def test_precompute_writes_every_chunk_before_reporting_it(tmp_path, monkeypatch):
     """The whole command's form: chunk files written by the background writer, each reported (callback) only once
