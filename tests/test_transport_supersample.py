@@ -65,14 +65,16 @@ def test_supersample_refused_in_one_line(bad):
         supersample_plan(AS40, 8, bad)
 
 
-@pytest.mark.parametrize("brdf,copies,threads", [(AS40, 1, 1), (AS40, 40, 2), (B.Phong(200.0), 3, 2)])
+@pytest.mark.parametrize("brdf,copies,threads", [(AS40, 1, 1), (AS40, 40, 2), (B.Phong(200.0), 3, 2),
+                                                (B.Ward(0.3, 0.1, rs=0.1, rd=0.2), 3, 2), (B.Microfacet(0.15), 3, 2)])
 def test_averaged_pairs_equal_the_block_mean_of_the_fine_grid(brdf, copies, threads):
     """Pairs of a grazing view within the cap about its mirror direction: the solid-angle weighted
     mean of f_r max(n·ω, 0) over the texel's fine sub-texels (to 1e-12); every other pair: the
     centre value (bit for bit with the point table). With ``copies`` of the vertex (each texel's
     sub-texels rotated once, shared by its views) and the averages in ``threads`` torch threads
     (blocks past torch's parallel grain): every copy's table the same block means. A Phong lobe
-    (about the reflected view) narrower than the texels: averaged at every view, the same way."""
+    (about the reflected view) narrower than the texels: averaged at every view, the same way; an anisotropic
+    Ward lobe with a diffuse term and a microfacet lobe (compiled since issue 42 §2) the same way."""
     res, sub = 6, 4
     pts, nrm, frm = (t.expand(copies, *t.shape[1:]).contiguous() for t in _open_vertex())
     views = icosphere_directions(3)
