@@ -2,7 +2,9 @@
 
 Layout of a ``.prt`` file (it *is* a safetensors file, so any safetensors reader opens it):
 
-* the tensors, by name, little-endian, in the safetensors layout;
+* the tensors, by name, little-endian, in the safetensors layout (written by :func:`save` itself,
+  the library's bytes; with ``direct=True`` the JSON header carries more trailing spaces, which
+  safetensors readers accept, so that one big tensor is written past the page cache);
 * the safetensors ``__metadata__`` holds one key, ``"prt_torch"``, whose value is a JSON
   object with at least::
 
