@@ -168,3 +168,26 @@ def test_the_transport_chunk_writer_writes_past_the_page_cache(tmp_path, monkeyp
         want = TT._chunk_transport(None, AshikhminShirley(40.0, 40.0, rs=0.05, rd=0.0), mesh.vertices[a:b], mesh.normals[a:b],
                                    F[a:b], texels, t.views, None, False, torch.float32)
         assert torch.equal(T.reshape(b - a, -1), want.reshape(b - a, -1)) and float(want.max()) > 0
+
+
+@pytest.mark.parametrize("direct", [False, True])
+def test_short_writes_are_continued(tmp_path, monkeypatch, direct):
+    """``os.write`` writing less than asked (Linux: at most 2 GiB - 4 KiB per call; a signal): the rest is written,
+    the file whole — here at most 1 MiB per call (a whole number of blocks, as the kernel's own cap)."""
+    real = os.write
+    sizes = []
+
+    def short(fd, buf):
+        n = real(fd, memoryview(buf)[:1 << 20])
+        sizes.append(n)
+        return n
+
+    monkeypatch.setattr(os, "write", short)
+    data = {"data": torch.rand(io._DIRECT_MIN // 4 * 3 + 5), "ids": torch.arange(9, dtype=torch.int32)}
+    io.save(tmp_path / "s.prt", data, kind="k", direct=direct)
+    monkeypatch.setattr(os, "write", real)
+    got = load_file(str(tmp_path / "s.prt"))
+    assert torch.equal(got["data"], data["data"]) and torch.equal(got["ids"], data["ids"])
+    assert len(sizes) > 12 and max(sizes) == 1 << 20
+    if not direct:
+        assert (tmp_path / "s.prt").read_bytes() == _lib_bytes(tmp_path, data, "k")
