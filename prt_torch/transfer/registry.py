@@ -19,7 +19,7 @@ import dataclasses
 import inspect
 from typing import Any, Callable
 
-from ..brdf import from_spec as brdf_from_spec
+from ..brdf import MODELS as BRDF_MODELS, from_spec as brdf_from_spec
 from ..params import Boolean, Interval, Options, Predicate, describe_constraints, validate_params
 from .auto import AUTO, resolve_auto
 from .base import RunOptions
@@ -194,8 +194,8 @@ def _default_brdf():
 
     return AshikhminShirley(40.0, 40.0, rs=0.05, rd=0.0)  # the glossy/MRT precompute default
 _SHADOWS = [Options("auto", "always", "never")]
-_BRDF = [Predicate(_is_brdf, "a BRDF model name or {type: MODEL, <param>: value} (models: lambertian, phong, "
-                   "blinn_phong, ashikhmin_shirley, ward)"), None]
+_BRDF = [Predicate(_is_brdf, "a BRDF model name or {type: MODEL, <param>: value} (models: "
+                   + ", ".join(BRDF_MODELS) + ")"), None]
 _WINDOW = [Options("hanning", "lanczos"), None]
 _OPT_INT = [Interval(int, 1, None), None]
 _VERTICES = [Predicate(_is_index_list, "a list of vertex indices"), None]
@@ -208,7 +208,7 @@ _SHARED_ARGS = {a.param: a for a in (
     Arg("--seed", "seed", "direction-set seed"),
     Arg("--shadows", "shadows", "trace visibility: auto (probe self-occlusion first), always, never",
         values={"auto": "auto", "always": "always", "never": "never"}),
-    Arg("--brdf", "brdf", "reflectance model (lambertian, phong, blinn_phong, ashikhmin_shirley, ward); "
+    Arg("--brdf", "brdf", "reflectance model (" + ", ".join(BRDF_MODELS) + "); "
         "its parameters with --brdf-param NAME=VALUE, e.g. s=32 ks=1 kd=0.2 (Phong), nu=40 nv=10 rs=0.05 (AS)", spec=True),
     Arg("--bands-out", "bands_out", "exit radiance SH bands m"),
     Arg("--window", "window", "window the exit-radiance bands against ringing",
