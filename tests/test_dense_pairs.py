@@ -104,7 +104,7 @@ def test_paired_dense_points_keep_their_bits(n_out, name, params, edit):
 def test_a_cpca_relight_of_24_rows_is_the_same_at_one_and_two_threads_and_reports_its_path():
     """Through ``relight`` (cluster-sorted visiting, the plan, ``out=``) at the shape bench_relight measures, scaled
     down: 24 rows, 8 vectors, uneven clusters; 1 and 2 threads give the same bits, and the plan names the paired path
-    (every build pairs 24-row RGB views of one cluster now)."""
+    (every build pairs 24-row RGB views of one cluster now) and, in AVX2 builds, its grouped loop."""
     _lib()
     c, enc = _fit("cpca_static", {"clusters": 6, "vectors": 8, "max_iter": 5}, 24, 25)
     _uneven(c, enc)
@@ -117,7 +117,10 @@ def test_a_cpca_relight_of_24_rows_is_the_same_at_one_and_two_threads_and_report
             for _ in range(3):  # the full call, then the armed fast path
                 c.relight(enc, light, view=view, out=out)
             got.append(out.clone())
-            assert c.kernel_path(enc, view)["path"].startswith("dense: 8 lanes, RGB, two points per load"), threads
+            kp = c.kernel_path(enc, view)
+            assert kp["path"].startswith("dense: 8 lanes, RGB, two points per load"), (threads, kp)
+            # the loop within the path: AVX2 builds without AVX-512 name the grouped pass (16 vector registers)
+            assert ("vector groups 2 + 1" in kp["path"]) == (kp["isa"] == "avx2"), (threads, kp)
     assert torch.equal(got[0].view(torch.int32), got[1].view(torch.int32))
     M = c.decode(enc).double().view(P, 24, 25)
     ref = torch.einsum("po,poi,ic->pc", view.double(), M, light.double())

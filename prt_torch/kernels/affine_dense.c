@@ -410,6 +410,12 @@ static __attribute__((noinline)) i64 vq_dense_range(i64 p0, i64 p1, i64 n_out, c
     return q;
 }
 
+#if defined(__AVX2__) && !defined(__AVX512F__)
+/* the loop within PRT_DENSE_RGB8_PAIRS (PRT_PAIRS_GROUPS, prt_kernels.h, where two points of three vectors per colour run
+   as vector groups 2 + 1: dense3v2_3 above; 0: one pass): prt_plan_path reports it (only in these builds) */
+int prt_dense_pairs_path(i64 n_pad) { return n_pad / 8 == 3 ? PRT_PAIRS_GROUPS : 0; }
+#endif
+
 /* the path prt_affine_dense_range takes for these shapes and codes (PRT_DENSE_*, prt_kernels.h): the dispatch below
    reads it, and prt_plan_path reports it (a benchmark row names the kernel it ran). Points past the last whole block
    of 8 take the one-point form of the same path. */
