@@ -34,7 +34,7 @@ n_{k(p)} weights of each point one after the other; ``offsets int64 [P]`` where 
 ``[K, n_out, J·C]`` (taps), J = (1 if a mean) + n. Points may be visited in a given order
 (CPCA: cluster by cluster within blocks, from codes stored in that order; ``AffineCodec``
 chooses), and the result written into a given tensor (``out``). Without a view, and with an
-RGB dense view of up to 24 rows (8 with 16 vector registers; two points within one block of 8),
+RGB dense view of up to 24 rows (with 16 vector registers, 17–24 rows as vector groups 2 + 1; two points within one block of 8),
 two consecutive visits of one cluster with the same term count are combined in one pass over
 ``T_k`` (with a dense view each load kept in a register for both points' multiply-adds; each
 point's sums in the same order: same bits). Compiled with ``-ffp-contract=fast``: each
