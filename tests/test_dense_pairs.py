@@ -126,3 +126,32 @@ def test_a_cpca_relight_of_24_rows_is_the_same_at_one_and_two_threads_and_report
     ref = torch.einsum("po,poi,ic->pc", view.double(), M, light.double())
     scale = torch.einsum("po,poi,ic->pc", view.double().abs(), M.abs(), light.double().abs())
     assert bool(((got[0].double() - ref).abs() <= 1e-5 * scale + 1e-6).all())
+
+
+@pytest.mark.parametrize("march", ["-mavx2"], ids=["avx2-without-fma"])
+def test_paired_dense_points_keep_their_bits_in_other_builds(march, monkeypatch, tmp_path):
+    """The same with the kernels built for 16 vector registers without FMA: each multiply-add rounded twice, so the
+    groups' products and sums must be dense3v's one for one (the baseline ISA's build of the same loop is held to the
+    float64 reference by test_relight_codecs' test_kernels_built_for_other_instruction_sets)."""
+    import platform
+    from pathlib import Path
+
+    if march is not None:
+        if platform.machine() not in ("x86_64", "AMD64"):
+            pytest.skip("x86-64 only")
+        try:
+            if "avx2" not in Path("/proc/cpuinfo").read_text().split():
+                pytest.skip("this CPU cannot run AVX2 code")
+        except OSError:
+            pass
+    if relight_kernels.native() is None:
+        pytest.skip("no compiled kernels")
+    flags = [f for f in relight_kernels._FLAGS if f != "-march=native"] + ([march] if march else [])
+    monkeypatch.setattr(relight_kernels, "_FLAGS", flags)
+    monkeypatch.setattr(relight_kernels, "_state", {})
+    monkeypatch.setenv("PRT_TORCH_CACHE", str(tmp_path))
+    if relight_kernels.native() is None:
+        pytest.fail(f"the kernels do not compile with {' '.join(flags)}: {relight_kernels.native_status()['detail']}")
+    assert " ".join(flags) in relight_kernels.native_status()["detail"]
+    for name, params, edit in (CODECS[1], CODECS[4]):
+        test_paired_dense_points_keep_their_bits(24, name, params, edit)
