@@ -13,6 +13,9 @@ each revision's kernel sources and flags (as ab_kernels reads them) are compiled
   eq. (13)) — ``bench_relight``'s "mrt_pca 16 taps" row;
 * ``rows``: ``prt_affine_rows`` of CPCA 64×4 of diffuse vectors (uint8 labels, weights rows of 4,
   constants ``[64, 5, 8]``, RGB rows of 3 floats) — its "cpca static 64x4 (diffuse)" row;
+* ``dense``: ``prt_affine_dense`` of CPCA 256×8 with a dense view of 24 rows (Sloan 2003 §3.1; uint8 labels, weights
+  rows of 8, constants ``[256, 9, 3, 24]``), visited cluster by cluster within blocks of 8192 points from codes stored
+  in that order, the view rows and outputs scattered, as ``AffineCodec`` plans it — its "cpca static 256x8 dense" row;
 
 each ``--points`` points (default 50 000, as bench_relight), timed by the thread's CPU time
 (``CLOCK_THREAD_CPUTIME_ID``: the time other processes hold the core is not counted), the median
@@ -52,11 +55,21 @@ int prt_affine_taps(i64 P, i64 n_out, i64 C, const void *lab, int lab_kind, cons
 int prt_affine_rows(i64 P, i64 F, i64 Fo, const void *lab, int lab_kind, const float *W, i64 wstride, const i64 *woff,
                     const i64 *nk, i64 nuse, int mean, const float *T, i64 J, float *out, const int32_t *order, int csort,
                     int nthreads);
+int prt_affine_dense(i64 K, i64 P, i64 n_out, i64 n_pad, i64 C, const void *lab, int lab_kind, const float *W, i64 wstride,
+                     const i64 *woff, const i64 *nk, i64 nuse, int mean, const float *T, i64 J, const float *y, float *out,
+                     const int32_t *order, int csort, int nthreads);
 static double now(void) { struct timespec t; clock_gettime(CLOCK_THREAD_CPUTIME_ID, &t); return t.tv_sec + 1e-9 * t.tv_nsec; }
 static unsigned long long s = 88172645463325252ULL;
 static float rnd(void) { s ^= s << 13; s ^= s >> 7; s ^= s << 17; return (float)(s >> 40) / (float)(1ULL << 24); }
 static void *al(size_t n) { void *p = NULL; return posix_memalign(&p, 64, n) ? NULL : p; }  /* 64-byte aligned, as torch's */
 static int cmpd(const void *a, const void *b) { double x = *(const double *)a, y = *(const double *)b; return (x > y) - (x < y); }
+static const uint8_t *sort_lab;  /* visiting order: by block of 8192 points, then label, then point (a stable sort) */
+static int by_block_label(const void *a, const void *b) {
+    int32_t x = *(const int32_t *)a, y = *(const int32_t *)b;
+    if (x / 8192 != y / 8192) return x / 8192 < y / 8192 ? -1 : 1;
+    if (sort_lab[x] != sort_lab[y]) return sort_lab[x] < sort_lab[y] ? -1 : 1;
+    return (x > y) - (x < y);
+}
 static unsigned long long bits(const float *o, i64 n) {
     unsigned long long h = 0; uint32_t u;
     for (i64 i = 0; i < n; i++) { memcpy(&u, o + i, 4); h = h * 1000003ULL + u; }
@@ -98,6 +111,27 @@ int main(int argc, char **argv) {
     }
     qsort(t + 1, reps, sizeof(double), cmpd);
     printf("rows %.4f %llu\n", t[1 + reps / 2] / P * 1e9, bits(out, P * 3));
+    /* CPCA 256x8, dense view of 24 rows, RGB: constants [256, 9, 3, 24], codes stored in visiting order */
+    const i64 K3 = 256, J3 = 9, n3 = 8, R3 = 24;
+    float *T3 = al(K3 * J3 * 3 * R3 * 4), *W3 = al(P * n3 * 4), *y3 = al(P * R3 * 4), *o3 = al(P * 3 * 4);
+    uint8_t *lab3 = malloc(P), *lab3s = malloc(P);
+    int32_t *ord = malloc(P * 4);
+    for (i64 i = 0; i < K3 * J3 * 3 * R3; i++) T3[i] = rnd() - 0.5f;
+    for (i64 p = 0; p < P; p++) { lab3[p] = (uint8_t)(rnd() * K3); ord[p] = (int32_t)p; }
+    for (i64 i = 0; i < P * R3; i++) y3[i] = rnd() - 0.5f;
+    sort_lab = lab3;
+    qsort(ord, P, 4, by_block_label);
+    for (i64 q = 0; q < P; q++) {
+        lab3s[q] = lab3[ord[q]];
+        for (i64 i = 0; i < n3; i++) W3[q * n3 + i] = rnd() - 0.5f;
+    }
+    for (int q = 0; q <= reps; q++) {
+        double t0 = now();
+        prt_affine_dense(K3, P, R3, R3, 3, lab3s, 1, W3, n3, NULL, NULL, n3, 1, T3, J3, y3, o3, ord, 1, 1);
+        t[q] = now() - t0;
+    }
+    qsort(t + 1, reps, sizeof(double), cmpd);
+    printf("dense %.4f %llu\n", t[1 + reps / 2] / P * 1e9, bits(o3, P * 3));
     return 0;
 }
 """
@@ -141,7 +175,10 @@ def main() -> int:
              f"with `{flags}`.\n",
              "| kernel | base (ns / point) | test (ns / point) | ratio (base / test) [range over rounds] | same result |",
              "|---|---|---|---|---|"]
-    for kernel, label in (("taps", "taps: MRT-PCA 16, 4 tent taps"), ("rows", "rows: CPCA 64x4 diffuse, uint8 labels")):
+    for kernel, label in (("taps", "taps: MRT-PCA 16, 4 tent taps"), ("rows", "rows: CPCA 64x4 diffuse, uint8 labels"),
+                          ("dense", "dense: CPCA 256x8, 24-row view, cluster-sorted")):
+        if kernel not in times["base"] or kernel not in times["test"]:  # a revision from before this kernel was measured
+            continue
         a, b = statistics.median(times["base"][kernel]), statistics.median(times["test"][kernel])
         per = [x / y for x, y in zip(times["base"][kernel], times["test"][kernel])]  # round by round, adjacent in time
         lines.append(f"| {label} | {a:.3f} | {b:.3f} | **{statistics.median(per):.3f}** [{min(per):.3f}, {max(per):.3f}] | "

@@ -34,7 +34,7 @@ n_{k(p)} weights of each point one after the other; ``offsets int64 [P]`` where 
 ``[K, n_out, J·C]`` (taps), J = (1 if a mean) + n. Points may be visited in a given order
 (CPCA: cluster by cluster within blocks, from codes stored in that order; ``AffineCodec``
 chooses), and the result written into a given tensor (``out``). Without a view, and with an
-RGB dense view of up to 24 rows (8 with 16 vector registers; two points within one block of 8),
+RGB dense view of up to 24 rows (with 16 vector registers, 17–24 rows as vector groups 2 + 1; two points within one block of 8),
 two consecutive visits of one cluster with the same term count are combined in one pass over
 ``T_k`` (with a dense view each load kept in a register for both points' multiply-adds; each
 point's sums in the same order: same bits). Compiled with ``-ffp-contract=fast``: each
@@ -150,8 +150,9 @@ _PATH_NAMES = {1: "rows: VQ row copy", 2: "rows/1 vector: VQ RGB, 8 points (uint
                12: "dense: 8 lanes, RGB, two points per load", 13: "dense: 8 lanes, RGB", 14: "dense: per colour, 8 lanes",
                15: "taps: one term", 16: "taps: RGB, 8 points (8 lanes)", 17: "taps: general"}
 #: the loop within a path (AVX2 builds without AVX-512: prt_plan_path returns path + 32 x its code, PRT_SUBPATH and
-#: PRT_SEQ_TAPS_* / PRT_FIXED_U8_RGB in kernels/prt_kernels.h), by path
+#: PRT_SEQ_TAPS_* / PRT_FIXED_U8_RGB / PRT_PAIRS_GROUPS in kernels/prt_kernels.h), by path
 _SUBPATH_NAMES = {5: {1: "uint8 labels, RGB: 8 labels per load, 16-byte stores"},
+                  12: {1: "vector groups 2 + 1, 16 registers"},
                   16: {1: "points in order, constant strides", 2: "points in order, constant strides, weight rows in place",
                        3: "points in order, one cluster, 4 taps"}}
 

@@ -151,10 +151,60 @@ DENSE3VG(7, 4, 3, 0)
 /* 6 NBS accumulators + 3 T vectors + 2 weights in the vector registers: 32 with AVX-512VL, else 16 */
 #if defined(__AVX512VL__)
 #define MAXNBS2 3
+#define PAIRS_NBT(nbt) 1
 DENSE3V2(1) DENSE3V2(2) DENSE3V2(3)
 #else
-#define MAXNBS2 1
+/* AVX2 (16 vector registers), 3 vectors per colour (n_out 17..24: CPCA 256x8 of 24x25 glossy transfer): dense3v2_3's 18
+   accumulators overflow them, so the two points of one cluster run as groups of vectors per colour, blocks 0-1 (12
+   accumulators, one T vector in a register at a time, 2 weights: 15 registers) then block 2 (6), each accumulator the
+   same chain of multiply-adds over the terms and the dot terms added in vector order: dense3v's sums, the same bits. */
+static inline __attribute__((always_inline)) void dense3v2_group(const int GB, const int first, const float *T0, i64 n_pad,
+        i64 F, int mean, const float *w, const float *u, i64 cnt, const float *yc, const float *zc, v8 *r0, v8 *r1, v8 *r2,
+        v8 *q0, v8 *q1, v8 *q2) {
+    const float *T1 = T0 + n_pad, *T2 = T0 + 2 * n_pad;
+    v8 a0[2], a1[2], a2[2], c0[2], c1[2], c2[2];
+    for (int b = 0; b < GB; b++) {
+        a0[b] = c0[b] = mean ? LD(T0 + 8 * b) : (v8){0};
+        a1[b] = c1[b] = mean ? LD(T1 + 8 * b) : (v8){0};
+        a2[b] = c2[b] = mean ? LD(T2 + 8 * b) : (v8){0};
+    }
+    i64 s = mean ? F : 0;
+    for (i64 i = 0; i < cnt; i++, s += F) {
+        float wi = w[i], ui = u[i];
+        for (int b = 0; b < GB; b++) {
+            v8 t0 = LD(T0 + s + 8 * b);
+            IN_REG(t0);
+            a0[b] += wi * t0; c0[b] += ui * t0;
+            v8 t1 = LD(T1 + s + 8 * b);
+            IN_REG(t1);
+            a1[b] += wi * t1; c1[b] += ui * t1;
+            v8 t2 = LD(T2 + s + 8 * b);
+            IN_REG(t2);
+            a2[b] += wi * t2; c2[b] += ui * t2;
+        }
+    }
+    for (int b = 0; b < GB; b++) {
+        v8 yb = LD(yc + 8 * b), zb = LD(zc + 8 * b);
+        IN_REG(yb); IN_REG(zb);
+        if (first && b == 0) {
+            *r0 = a0[0] * yb; *r1 = a1[0] * yb; *r2 = a2[0] * yb;
+            *q0 = c0[0] * zb; *q1 = c1[0] * zb; *q2 = c2[0] * zb;
+        } else {
+            *r0 += a0[b] * yb; *r1 += a1[b] * yb; *r2 += a2[b] * yb;
+            *q0 += c0[b] * zb; *q1 += c1[b] * zb; *q2 += c2[b] * zb;
+        }
+    }
+}
+static inline void dense3v2_3(const float *T0, i64 n_pad, i64 F, int mean, const float *w, const float *u, i64 cnt,
+                              const float *yc, const float *zc, v8 *rv) {
+    v8 r0, r1, r2, q0, q1, q2;
+    dense3v2_group(2, 1, T0, n_pad, F, mean, w, u, cnt, yc, zc, &r0, &r1, &r2, &q0, &q1, &q2);
+    dense3v2_group(1, 0, T0 + 16, n_pad, F, mean, w, u, cnt, yc + 16, zc + 16, &r0, &r1, &r2, &q0, &q1, &q2);
+    rv[0] = r0; rv[8] = r1; rv[16] = r2; rv[1] = q0; rv[9] = q1; rv[17] = q2;
+}
+#define MAXNBS2 3
 DENSE3V2(1)
+#define PAIRS_NBT(nbt) ((nbt) != 2)  /* no dense3v2_2 here */
 #endif
 DENSE3(1) DENSE3(2) DENSE3(3) DENSE3(4) DENSE3(5) DENSE3(6) DENSE3(7)
 /* dense, RGB, 4 <= n_pad / 8 <= 8 (n_out 25..64: MRT's 7x7 tents), with AVX-512: dense3v's sums
@@ -360,6 +410,12 @@ static __attribute__((noinline)) i64 vq_dense_range(i64 p0, i64 p1, i64 n_out, c
     return q;
 }
 
+#if defined(__AVX2__) && !defined(__AVX512F__)
+/* the loop within PRT_DENSE_RGB8_PAIRS (PRT_PAIRS_GROUPS, prt_kernels.h, where two points of three vectors per colour run
+   as vector groups 2 + 1: dense3v2_3 above; 0: one pass): prt_plan_path reports it (only in these builds) */
+int prt_dense_pairs_path(i64 n_pad) { return n_pad / 8 == 3 ? PRT_PAIRS_GROUPS : 0; }
+#endif
+
 /* the path prt_affine_dense_range takes for these shapes and codes (PRT_DENSE_*, prt_kernels.h): the dispatch below
    reads it, and prt_plan_path reports it (a benchmark row names the kernel it ran). Points past the last whole block
    of 8 take the one-point form of the same path. */
@@ -368,7 +424,7 @@ int prt_dense_path(i64 n_out, i64 n_pad, i64 C, const float *W, int mean, const 
     if (HAVE_W16 && C == 3 && W && nbt >= 4 && nbt <= 8) return PRT_DENSE_W16;
     if (C == 3 && nbt <= 7) {
         if (!W && mean && !order && n_out == n_pad) return PRT_DENSE_VQ8;
-        return W && nbt <= MAXNBS2 ? PRT_DENSE_RGB8_PAIRS : PRT_DENSE_RGB8;
+        return W && nbt <= MAXNBS2 && PAIRS_NBT(nbt) ? PRT_DENSE_RGB8_PAIRS : PRT_DENSE_RGB8;
     }
     return PRT_DENSE_COLOUR;
 }
@@ -437,7 +493,9 @@ static int prt_affine_dense_range(const int32_t *order, int csort, i64 p0, i64 p
                     switch (nbt) {
                     case 1: dense3v2_1(Tk, n_pad, F, mean, w, u, cnt, yp, zp, R + l); break;
 #if MAXNBS2 >= 3
+#if defined(__AVX512VL__)
                     case 2: dense3v2_2(Tk, n_pad, F, mean, w, u, cnt, yp, zp, R + l); break;
+#endif
                     default: dense3v2_3(Tk, n_pad, F, mean, w, u, cnt, yp, zp, R + l); break;
 #endif
                     }

@@ -38,10 +38,11 @@ int prt_dense_path(i64 n_out, i64 n_pad, i64 C, const float *W, int mean, const 
 int prt_taps_path(i64 C, i64 Jp);
 /* AVX2 builds without AVX-512 only: the loop within a path (0: the path's general one), as the kernels dispatch on it;
    prt_plan_path reports it as PRT_SUBPATH times it plus the path */
-enum { PRT_SEQ_TAPS = 1, PRT_SEQ_TAPS_EXACT, PRT_SEQ_TAPS_K1_4, PRT_FIXED_U8_RGB = 1, PRT_SUBPATH = 32 };
+enum { PRT_SEQ_TAPS = 1, PRT_SEQ_TAPS_EXACT, PRT_SEQ_TAPS_K1_4, PRT_FIXED_U8_RGB = 1, PRT_PAIRS_GROUPS = 1, PRT_SUBPATH = 32 };
 int prt_taps_seq_path(i64 C, i64 Jp, const void *lab, const float *W, const i64 *woff, const i64 *nk, i64 nuse, int mean, i64 ntap,
                       const int32_t *order);
 int prt_fixed_rows_path(i64 Fo, int lab_kind, i64 wstride, i64 nuse, i64 J);
+int prt_dense_pairs_path(i64 n_pad);
 int prt_plan_path(const i64 *a);
 int prt_isa(void);
 int prt_relight_plan(const i64 *a, const float *L, float *T, float *out, const void *y0, const void *y1, int nthreads);

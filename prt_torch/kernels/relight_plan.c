@@ -54,6 +54,10 @@ int prt_plan_path(const i64 *a) {
         return path == PRT_ROWS_SMALL_FIXED ? path + PRT_SUBPATH * prt_fixed_rows_path(a[PL_FO], (int)a[PL_LABKIND], a[PL_WSTRIDE],
                                                                                             a[PL_NUSE], a[PL_J]) : path;
     }
+    if (a[PL_KIND] == 1) {
+        const int path = prt_dense_path(a[PL_FO], a[PL_X], a[PL_C], W, (int)a[PL_MEAN], order);
+        return path == PRT_DENSE_RGB8_PAIRS ? path + PRT_SUBPATH * prt_dense_pairs_path(a[PL_X]) : path;
+    }
     if (a[PL_KIND] == 2) {
         const int path = prt_taps_path(a[PL_C], a[PL_X]);
         return path == PRT_TAPS_RGB8 ? path + PRT_SUBPATH * prt_taps_seq_path(a[PL_C], a[PL_X], lab, W, PL_PTR(PL_WOFF, const i64 *),
