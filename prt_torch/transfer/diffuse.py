@@ -50,7 +50,7 @@ from ..executor import torch_threads
 from ..scene import Mesh, RayCaster, default_workers, edge_face_counts
 from ..sh import clamped_cosine, eval_sh, rotate_zonal
 from .base import RunOptions, Transfer, remove_state, run_chunks
-from .ray_kernels import qmc_rays_native, select_rays, sh_accumulate, upper_rays
+from .ray_kernels import guided_rays_native, qmc_rays_native, select_rays, sh_accumulate, upper_rays
 from .sampling import cosine_hemisphere, to_world, uniform_sphere
 
 __all__ = [
@@ -639,15 +639,29 @@ class HitBounce:
         return rho[:, :1] if self.C == 1 else rho
 
     def exit_transfer(self, caster: RayCaster, tri: np.ndarray, bary: np.ndarray, key_a: np.ndarray,
-                      key_b: np.ndarray) -> torch.Tensor:
+                      key_b: np.ndarray, channel_weights: torch.Tensor | None = None) -> torch.Tensor:
         """``[H, C, n²]`` float64: ρ_q Σ_k x^k(q), the whole exit transfer a hit brings (albedo
-        folded), in batches of about 2¹⁸ secondary rays."""
-        out = torch.empty(tri.shape[0], self.C, self.bands * self.bands, dtype=torch.float64)
+        folded), in batches of about 2¹⁸ secondary rays. ``channel_weights`` (float64 ``[3]``, the
+        glossy kind's luminance weights): ``[H, n²]`` instead, (w₀ t₀ + w₁ t₁) + w₂ t₂ with t_c the
+        channel's exit transfer (the order ``einsum('hcn,c->hn')`` takes here), or the one channel
+        of a grey mesh — per batch, never the ``[H, 3, n²]`` whole."""
+        n2 = self.bands * self.bands
+        out = torch.empty((tri.shape[0], self.C, n2) if channel_weights is None else (tri.shape[0], n2), dtype=torch.float64)
         step = max(1, (1 << 18) // self.M)
         for a in range(0, tri.shape[0], step):  # a loop over hit batches, each one traced batch
             sl = slice(a, a + step)
-            x = self.values(caster, tri[sl], bary[sl], key_a[sl], key_b[sl]).sum(1)
-            out[sl] = self.albedo_at(tri[sl], bary[sl])[:, :, None] * x
+            if self.terms == 1:  # one term (one bounce): x⁰ itself, without the [H, terms, C, n²] buffer and its sum
+                x = self._first_term(caster, tri[sl], bary[sl], key_a[sl], key_b[sl], 0, False)[0][:, None, :]
+            else:
+                x = self.values(caster, tri[sl], bary[sl], key_a[sl], key_b[sl]).sum(1)
+            rho = self.albedo_at(tri[sl], bary[sl])  # [h, C]
+            if channel_weights is None:
+                torch.mul(rho[:, :, None], x, out=out[sl])
+            elif self.C == 1:
+                torch.mul(rho, x[:, 0], out=out[sl])
+            else:
+                w, xc = channel_weights, (lambda c: x[:, min(c, x.shape[1] - 1)])
+                out[sl] = ((rho[:, 0:1] * xc(0)) * w[0] + (rho[:, 1:2] * xc(1)) * w[1]) + (rho[:, 2:3] * xc(2)) * w[2]
         return out
 
     def _rays(self, caster: RayCaster, tri: np.ndarray, bary: np.ndarray, key_a: np.ndarray, key_b: np.ndarray,
@@ -655,7 +669,8 @@ class HitBounce:
         """The M = :meth:`samples_at` (level) cosine-weighted rays of each hit (class docstring), traced:
         the Hammersley set Cranley–Patterson rotated per hit, in the hit face's frame, from the compiled
         ray generator (:func:`_rotated_rays`); at the first hit on a guided face (estimator 'auto',
-        :meth:`_build_guide`) the same rotated points warped by the face's guide (:meth:`_guided_rays`;
+        :meth:`_build_guide`) the same rotated points warped by the face's guide (one compiled pass,
+        ``ray_kernels.guided_rays_native``, or its numpy reference :meth:`_guided_rays`: the same bits;
         the same at every ``terms``, so a run with more bounces adds terms to the same first-hit
         estimate). Returns (directions
         float32 ``[H·M, 3]``, ray h·M + m of hit h; blocked ``bool [H·M]``; for ``intersect`` the
@@ -684,12 +699,13 @@ class HitBounce:
         if self.mode == "auto" and level == 0:
             g = np.flatnonzero(self.guided_faces(caster)[tri])  # [G] the guided hits
             if g.size:
-                r = (g[:, None] * M + np.arange(M)).reshape(-1)  # their rays
-                ua = np.mod(tables[0][None, :] + u1[g, None], 1.0).reshape(-1)
-                ub = np.mod(self._base_b(M)[None, :] + v2[g, None], 1.0).reshape(-1)
-                d[r], qg = self._guided_rays(np.repeat(tri[g], M), ua, ub)
                 w = np.ones(d.shape[0])
-                w[r] = qg
+                if not guided_rays_native(M, g, tri[g], u1[g], v2[g], tables[0], self._base_b(M), self._guide_row,
+                                          *self._guide_cdf, self.guide_mass, self.frames, d, w):  # numpy: the reference
+                    r = (g[:, None] * M + np.arange(M)).reshape(-1)  # their rays
+                    ua = np.mod(tables[0][None, :] + u1[g, None], 1.0).reshape(-1)
+                    ub = np.mod(self._base_b(M)[None, :] + v2[g, None], 1.0).reshape(-1)
+                    d[r], w[r] = self._guided_rays(np.repeat(tri[g], M), ua, ub)
         if intersect:
             prim, bu, bv, _ = caster.trace(o, d, "intersect")
             return d, prim != -1, (prim, bu, bv), w
@@ -734,7 +750,25 @@ class HitBounce:
         out = torch.zeros(H, depth, self.C, n2, dtype=torch.float64)
         if H == 0:
             return out
-        d, hit, isect, w = self._rays(caster, tri, bary, key_a, key_b, level, depth > 1)
+        x0, d, hit, isect, w = self._first_term(caster, tri, bary, key_a, key_b, level, depth > 1)
+        out[:, 0] = x0[:, None, :]
+        if depth > 1:
+            row, t2, bary2, ka2, kb2, hh = self._front_hits(d, hit, isect, key_a, key_b, M)
+            x2 = self.values(caster, t2, bary2, ka2, kb2, level + 1)  # [R, depth-1, C, n²]
+            w2 = self.albedo_at(t2, bary2)[:, None, :, None] / M
+            if w is not None:  # guided rays: their weight factors (_guided_rays)
+                w2 = w2 * torch.from_numpy(w[hh])[:, None, None, None]
+            out[:, 1:] = torch.zeros(H, depth - 1, self.C, n2, dtype=torch.float64).index_add_(
+                0, torch.from_numpy(row), w2 * x2)
+        return out
+
+    def _first_term(self, caster: RayCaster, tri: np.ndarray, bary: np.ndarray, key_a: np.ndarray, key_b: np.ndarray,
+                    level: int, intersect: bool):
+        """x⁰(q) ``[H, n²]`` float64 of each hit at ``level`` (the class docstring's estimate of the
+        chosen estimator; ρ_q not applied) and the level's traced rays as :meth:`_rays` returns them
+        (directions, blocked, the intersections when ``intersect``, weight factors or None)."""
+        H, n2, M = tri.shape[0], self.bands * self.bands, self.samples_at(level)
+        d, hit, isect, w = self._rays(caster, tri, bary, key_a, key_b, level, intersect)
         if self.mode == "auto":  # per hit: the control variate where its face is mostly open (face_openness)
             open_h = self.face_openness(caster)[tri] >= 0.5  # [H]
             sel = np.flatnonzero(hit == np.repeat(open_h, M))  # the open faces' blocked rays, the others' open ones
@@ -755,16 +789,7 @@ class HitBounce:
                 x0[oh] = self._face_unshadowed[torch.from_numpy(tri[open_h])] - x0[oh]
             else:
                 x0 = self._face_unshadowed[torch.from_numpy(tri)] - x0
-        out[:, 0] = x0[:, None, :]
-        if depth > 1:
-            row, t2, bary2, ka2, kb2, hh = self._front_hits(d, hit, isect, key_a, key_b, M)
-            x2 = self.values(caster, t2, bary2, ka2, kb2, level + 1)  # [R, depth-1, C, n²]
-            w2 = self.albedo_at(t2, bary2)[:, None, :, None] / M
-            if w is not None:  # guided rays: their weight factors (_guided_rays)
-                w2 = w2 * torch.from_numpy(w[hh])[:, None, None, None]
-            out[:, 1:] = torch.zeros(H, depth - 1, self.C, n2, dtype=torch.float64).index_add_(
-                0, torch.from_numpy(row), w2 * x2)
-        return out
+        return x0, d, hit, isect, w
 
     def texel_values(self, caster: RayCaster, tri: np.ndarray, bary: np.ndarray, key_a: np.ndarray, key_b: np.ndarray,
                      texel_of, level: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -198,8 +198,7 @@ def transferred_radiance(caster: RayCaster | None, points: torch.Tensor, normals
             h, th = h[front].numpy(), th[front].numpy()
             bary = np.stack([1 - bu[h] - bv[h], bu[h], bv[h]], 1).astype(np.float64)
             vid = (torch.arange(points.shape[0]) if ids is None else ids.to(torch.int64))[i].numpy()
-            t_hit = bounce.hits.exit_transfer(caster, th, bary, vid[h], j.numpy()[h])  # [H, C, n²] at the hit itself
-            t_hit = torch.einsum("hcn,c->hn", t_hit, _LUMA) if t_hit.shape[1] == 3 else t_hit[:, 0]
+            t_hit = bounce.hits.exit_transfer(caster, th, bary, vid[h], j.numpy()[h], _LUMA)  # [H, n²] at the hit itself
             h = torch.from_numpy(h)
             A = torch.zeros(cos.shape[0], cos.shape[1], t_hit.shape[1], dtype=torch.float64)
             A[i[h], j[h]] = t_hit  # [k, N, n²]: radiance transfer arriving along each blocked direction
