@@ -660,8 +660,11 @@ class HitBounce:
             elif self.C == 1:
                 torch.mul(rho, x[:, 0], out=out[sl])
             else:
-                w, xc = channel_weights, (lambda c: x[:, min(c, x.shape[1] - 1)])
-                out[sl] = ((rho[:, 0:1] * xc(0)) * w[0] + (rho[:, 1:2] * xc(1)) * w[1]) + (rho[:, 2:3] * xc(2)) * w[2]
+                w, o = channel_weights, out[sl]
+                xc = (lambda c: x[:, min(c, x.shape[1] - 1)])  # x [h, 1 or C, n²]
+                torch.mul(rho[:, 0:1], xc(0), out=o).mul_(w[0])  # in place: no fresh [h, n²] pages per operation
+                t = torch.mul(rho[:, 1:2], xc(1)).mul_(w[1])
+                o.add_(t).add_(torch.mul(rho[:, 2:3], xc(2), out=t).mul_(w[2]))
         return out
 
     def _rays(self, caster: RayCaster, tri: np.ndarray, bary: np.ndarray, key_a: np.ndarray, key_b: np.ndarray,
