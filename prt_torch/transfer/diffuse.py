@@ -63,6 +63,7 @@ __all__ = [
     "vertex_transfer",
     "hit_bounce",
     "HitBounce",
+    "record_probe_log",
     "offset_origins",
     "hit_ray_eps",
     "HIT_OFFSET",
@@ -513,7 +514,11 @@ class HitBounce:
         self.terms = int(terms)
         centroids, fn, _ = face_points(mesh)
         self.face_centroids = centroids.numpy()
-        self._face_open: np.ndarray | None = None  # [F] float64, auto's per-face choice (face_openness)
+        self._face_open: np.ndarray | None = None  # [F] float64, auto's per-face choice (face_openness; NaN: not probed)
+        self.probe_rays = 0  # probe rays this process traced (face_openness)
+        self._log: tuple = (0, [], [])  # (probe_rays at the last take_probe_log, faces probed, guided since)
+        self._decided: np.ndarray | None = None  # [F] bool, the faces 'auto' has probed and decided (prepare)
+        self._pool = None  # (cnt, csr) the faces' coplanar neighbours (_coplanar)
         self.guided: np.ndarray | None = None  # [F] bool, faces whose deepest hits are guided (_build_guide)
         self.rays_traced = 0  # hit rays this process traced with this estimator (intersect + occluded; not the probe)
         self.face_normals = fn
@@ -529,76 +534,157 @@ class HitBounce:
         # faces whose three vertices share one albedo (every built-in scene): a lookup, no interpolation
         self.rho_face = rf[:, 0] if bool((rf == rf[:, :1]).all()) else None
 
-    def face_openness(self, caster: RayCaster) -> np.ndarray:
+    def face_openness(self, caster: RayCaster, faces: np.ndarray | None = None) -> np.ndarray:
         """``[F]`` float64: each face's open fraction, (1/K) Σ_m [ray m leaves the scene], from K =
         :data:`FACE_PROBE_RAYS` cosine-weighted rays leaving its centroid (the hits' offset rule),
         one per cell of :data:`GUIDE_GRID` in Malley's square (a = sin²θ, b = φ/2π), jittered in
         its cell by :func:`_hash_uniform` of (seed, face, cell) on streams apart from the hits' —
         a stratified estimate of the cosine-weighted open fraction of the face's hemisphere, what
         'auto' reads to choose a hit's estimator; the same rays give the hits' guide
-        (:meth:`_build_guide`). Computed once per estimator (F·K rays, traced in batches of about
-        2¹⁸), a function of (seed, mesh) only: the same tables in every process and chunk, so the
-        numbers stay independent of chunking and executor."""
-        if self._face_open is None:
-            F, K = self.face_normals_np.shape[0], FACE_PROBE_RAYS
-            Gb = GUIDE_GRID[1]
-            o_f = offset_origins(self.face_centroids, self.face_normals_np,
-                                 caster.eps if self.hit_eps is None else self.hit_eps).astype(np.float32)
-            cell = np.arange(K, dtype=np.int64)
-            opened = np.empty((F, K))
-            step = max(1, (1 << 18) // K)
-            for s0 in range(0, F, step):  # a loop over face batches, each one traced batch
-                f = np.repeat(np.arange(s0, min(F, s0 + step), dtype=np.int64), K)
-                c = np.tile(cell, f.shape[0] // K)
-                a = (c // Gb + _hash_uniform(self.seed, f, c, FACE_PROBE_STREAM)) / GUIDE_GRID[0]
-                b = (c % Gb + _hash_uniform(self.seed, f, c, FACE_PROBE_STREAM + 1)) / Gb
-                d = _malley_dirs(self.frames, f, a, b)
-                opened[s0:s0 + step] = 1.0 - caster.trace(o_f[f], d, "occluded").reshape(-1, K)
-            self._face_open = opened.mean(1)
-            if self.mode == "auto":
-                self._build_guide(opened)
+        (:meth:`_build_guide`). A function of (seed, mesh, face) only: the same value in every
+        process and chunk, whichever faces were probed before, so the numbers stay independent of
+        chunking and executor.
+
+        ``faces`` (int64 ``[n]``): probe only these faces (and, under 'auto', the coplanar
+        neighbours a guided one pools: :meth:`prepare`), as a run does for the faces its first hits
+        land on (issue 42 §2: a face no ray reaches is never probed); None: every face (F·K rays).
+        Faces not probed read NaN. Traced in batches of about 2¹⁸ rays."""
+        faces = np.arange(self.face_normals_np.shape[0], dtype=np.int64) if faces is None else np.unique(np.asarray(faces, np.int64))
+        if self.mode == "auto":
+            self.prepare(caster, faces)
+        else:
+            self._probe(caster, faces)
         return self._face_open
 
-    def _build_guide(self, opened: np.ndarray) -> None:
-        """The hits' guide from the probe's ``opened [F, K]`` (1 where a cell's probe ray left the
-        scene): per face the cell masses P ``[F, 4, 8]`` of a piecewise-constant density over
-        Malley's square, P = u/K + (1 − u) g/Σg with u = :data:`GUIDE_UNIFORM` and g each cell's
-        open fraction averaged over the coplanar faces (normals within 2.6°, centroids within 1e-3
-        of the diagonal of the plane) among the :data:`GUIDE_POOL` nearest centroids (uniform where
-        no probe ray left). Guided (``self.guided[f]``): the faces where 'auto' takes the plain sum
-        (open fraction < ½: the open cells are what it sums) with at least :data:`GUIDE_MIN_FACES`
-        such coplanar faces; not the curved regions (a cell's directions differ from face to face)
-        nor the faces where it takes the control variate (guided weights q up to 1/u could take its
-        estimate below 0, where the cosine set's never is), which keep the cosine-weighted set."""
-        from scipy.spatial import cKDTree
+    def _probe(self, caster: RayCaster, faces: np.ndarray) -> None:
+        """Trace the probe (:meth:`face_openness`) of the not yet probed ``faces`` (int64, unique)."""
+        F, K = self.face_normals_np.shape[0], FACE_PROBE_RAYS
+        if self._face_open is None:
+            self._face_open = np.full(F, np.nan)
+            self._opened = np.zeros((F, K), bool)  # [F, K] the probe rays that left the scene (32 B per face)
+            self.probed = np.zeros(F, bool)
+        faces = faces[~self.probed[faces]]
+        if not faces.size:
+            return
+        Gb = GUIDE_GRID[1]
+        eps = caster.eps if self.hit_eps is None else self.hit_eps
+        cell = np.arange(K, dtype=np.int64)
+        step = max(1, (1 << 18) // K)
+        for s0 in range(0, faces.shape[0], step):  # a loop over face batches, each one traced batch
+            fb = faces[s0:s0 + step]
+            f = np.repeat(fb, K)
+            c = np.tile(cell, fb.shape[0])
+            a = (c // Gb + _hash_uniform(self.seed, f, c, FACE_PROBE_STREAM)) / GUIDE_GRID[0]
+            b = (c % Gb + _hash_uniform(self.seed, f, c, FACE_PROBE_STREAM + 1)) / Gb
+            d = _malley_dirs(self.frames, f, a, b)
+            o = offset_origins(self.face_centroids[fb], self.face_normals_np[fb], eps).astype(np.float32)
+            opened = ~caster.trace(np.repeat(o, K, axis=0), d, "occluded").reshape(-1, K)
+            self._opened[fb] = opened
+            self._face_open[fb] = opened.mean(1, dtype=np.float64)
+        self.probed[faces] = True
+        self.probe_rays += faces.shape[0] * K
+        self._log[1].append(faces)
 
+    def take_probe_log(self) -> dict[str, torch.Tensor]:
+        """What this process probed since the last call, for a chunk's result (any executor; a run
+        sums and unites them: :func:`record_probe_log`): ``probe_rays`` int64 ``[1]`` (rays traced),
+        ``probed_faces`` and ``guided_faces`` int64 (the faces newly probed, newly guided)."""
+        rays, probed, guided = self.probe_rays - self._log[0], self._log[1], self._log[2]
+        self._log = (self.probe_rays, [], [])
+        def cat(xs: list) -> torch.Tensor:
+            return torch.from_numpy(np.concatenate(xs).astype(np.int64)) if xs else torch.zeros(0, dtype=torch.int64)
+        return {"probe_rays": torch.tensor([rays], dtype=torch.int64), "probed_faces": cat(probed), "guided_faces": cat(guided)}
+
+    def prepare(self, caster: RayCaster, faces: np.ndarray, guide: bool = True) -> None:
+        """What a batch of hits on ``faces`` (int64 ``[n]``, repeats allowed) needs before its rays
+        (estimator 'auto'; nothing otherwise): the faces' probe (:meth:`face_openness`), and
+        (``guide``: first hits) for each face first seen here whether its first hits are guided,
+        with its guide (:meth:`_build_guide`), after probing the coplanar neighbours the guide
+        pools. Each face is decided once per process; what is decided is a function of (seed,
+        mesh, face) only."""
+        if self.mode != "auto":
+            return
+        if not guide:
+            self._probe(caster, np.unique(faces))
+            return
+        if self._decided is None:
+            self._decided = np.zeros(self.face_normals_np.shape[0], bool)
+        faces = np.unique(faces)
+        new = faces[~self._decided[faces]]
+        if not new.size:
+            return
+        self._probe(caster, new)
+        cnt, pool_m = self._coplanar()
+        cand = new[(cnt[new] >= GUIDE_MIN_FACES) & (self._face_open[new] < 0.5)]  # the faces guided (_build_guide)
+        if cand.size:
+            self._probe(caster, np.unique(pool_m[cand].indices).astype(np.int64))  # the neighbours their guides pool
+        self._build_guide(self._opened, new)
+        self._decided[new] = True
+
+    def _coplanar(self):
+        """``(cnt int64 [F], pool csr [F, F])``: per face its coplanar faces (normals within 2.6°,
+        centroids within 1e-3 of the diagonal of the plane) among the :data:`GUIDE_POOL` nearest
+        centroids (itself included), once per estimator (geometry only, no rays)."""
+        if self._pool is None:
+            from scipy.spatial import cKDTree
+
+            c, n = self.face_centroids, self.face_normals_np
+            F = c.shape[0]
+            pool = min(GUIDE_POOL, F)
+            tree = cKDTree(c)
+            diag = float(np.linalg.norm(c.max(0) - c.min(0))) if F else 0.0
+            nb = np.empty((F, pool), np.int64)
+            same = np.empty((F, pool), bool)
+            step = 1 << 16
+            for s0 in range(0, F, step):  # face blocks: the [block, pool, 3] gathers stay small at millions of faces
+                sl = slice(s0, s0 + step)
+                nb[sl] = tree.query(c[sl], pool)[1].reshape(-1, pool)
+                same[sl] = (np.einsum("ij,ikj->ik", n[sl], n[nb[sl]]) > 0.999) & \
+                    (np.abs(np.einsum("ij,ikj->ik", n[sl], c[nb[sl]] - c[sl, None, :])) <= 1e-3 * diag)
+            pool_m = scipy.sparse.csr_matrix((same.reshape(-1).astype(np.float64), nb.reshape(-1),
+                                              np.arange(0, F * pool + 1, pool)), shape=(F, F))
+            pool_m.eliminate_zeros()  # row f: its coplanar neighbours (sums of 0/1: exact in any order)
+            self._pool = (same.sum(1), pool_m)
+        return self._pool
+
+    def _build_guide(self, opened: np.ndarray, faces: np.ndarray | None = None) -> None:
+        """The hits' guide of ``faces`` (int64, default every face) from the probe's ``opened [F, K]``
+        (1 where a cell's probe ray left the scene; the rows of the faces and of their coplanar
+        neighbours are read): per face the cell masses P ``[4, 8]`` of a piecewise-constant density
+        over Malley's square, P = u/K + (1 − u) g/Σg with u = :data:`GUIDE_UNIFORM` and g each cell's
+        open fraction averaged over the coplanar faces (:meth:`_coplanar`) among the
+        :data:`GUIDE_POOL` nearest centroids (uniform where no probe ray left). Guided
+        (``self.guided[f]``): the faces where 'auto' takes the plain sum (open fraction < ½: the
+        open cells are what it sums) with at least :data:`GUIDE_MIN_FACES` such coplanar faces; not
+        the curved regions (a cell's directions differ from face to face) nor the faces where it
+        takes the control variate (guided weights q up to 1/u could take its estimate below 0,
+        where the cosine set's never is), which keep the cosine-weighted set. The guides are kept
+        for the guided faces only (544 B each), appended as faces are decided."""
         F, K = opened.shape
-        c, n = self.face_centroids, self.face_normals_np
-        pool = min(GUIDE_POOL, F)
-        tree = cKDTree(c)
-        diag = float(np.linalg.norm(c.max(0) - c.min(0))) if F else 0.0
-        nb = np.empty((F, pool), np.int64)
-        same = np.empty((F, pool), bool)
-        step = 1 << 16
-        for s0 in range(0, F, step):  # face blocks: the [block, pool, 3] gathers stay small at millions of faces
-            sl = slice(s0, s0 + step)
-            nb[sl] = tree.query(c[sl], pool)[1].reshape(-1, pool)
-            same[sl] = (np.einsum("ij,ikj->ik", n[sl], n[nb[sl]]) > 0.999) & \
-                (np.abs(np.einsum("ij,ikj->ik", n[sl], c[nb[sl]] - c[sl, None, :])) <= 1e-3 * diag)
-        cnt = same.sum(1)
-        pool_m = scipy.sparse.csr_matrix((same.reshape(-1).astype(np.float64), nb.reshape(-1), np.arange(0, F * pool + 1, pool)),
-                                         shape=(F, F))  # row f: its coplanar neighbours (sums of 0/1: exact in any order)
-        g = (pool_m @ opened) / np.maximum(cnt, 1)[:, None]  # [F, K] pooled open fraction per cell
+        faces = np.arange(F, dtype=np.int64) if faces is None else faces
+        cnt, pool_m = self._coplanar()
+        if self.guided is None:
+            self.guided = np.zeros(F, bool)
+            self._guide_row = np.full(F, -1, np.int64)
+            self.guide_mass = np.zeros((0, *GUIDE_GRID))
+            self._guide_cdf = (np.zeros((0, GUIDE_GRID[0])), np.zeros((0, *GUIDE_GRID)))
+        gf = faces[(cnt[faces] >= GUIDE_MIN_FACES) & (self._face_open[faces] < 0.5)]
+        gf = gf[self._guide_row[gf] < 0]  # not yet guided
+        self.guided[gf] = True
+        self._log[2].append(gf)
+        if not gf.size:
+            return
+        sub = pool_m[gf]  # [G, F] their coplanar neighbours
+        cols = np.unique(sub.indices)
+        g = (sub[:, cols] @ opened[cols].astype(np.float64)) / np.maximum(cnt[gf], 1)[:, None]  # [G, K] pooled open fraction per cell
         tot = g.sum(1, keepdims=True)
         g = np.where(tot > 0, g / np.maximum(tot, 1e-300), 1.0 / K)
-        self.guided = (cnt >= GUIDE_MIN_FACES) & (self._face_open < 0.5)
-        gf = np.flatnonzero(self.guided)
-        self._guide_row = np.full(F, -1, np.int64)
-        self._guide_row[gf] = np.arange(gf.size)  # the guided faces' rows: kept for them only (544 B each)
-        P = (GUIDE_UNIFORM / K + (1.0 - GUIDE_UNIFORM) * g[gf]).reshape(gf.size, *GUIDE_GRID)
-        self.guide_mass = P  # [G, Ga, Gb] of the guided faces, each sums to 1
+        self._guide_row[gf] = self.guide_mass.shape[0] + np.arange(gf.size)
+        P = (GUIDE_UNIFORM / K + (1.0 - GUIDE_UNIFORM) * g).reshape(gf.size, *GUIDE_GRID)
         Pa = P.sum(2)  # [G, Ga] ring masses
-        self._guide_cdf = (np.cumsum(Pa, 1), np.cumsum(P / Pa[:, :, None], 2))
+        self.guide_mass = np.concatenate([self.guide_mass, P])  # [G, Ga, Gb] of the guided faces, each sums to 1
+        self._guide_cdf = (np.concatenate([self._guide_cdf[0], np.cumsum(Pa, 1)]),
+                           np.concatenate([self._guide_cdf[1], np.cumsum(P / Pa[:, :, None], 2)]))
 
     def _guided_rays(self, tri: np.ndarray, ua: np.ndarray, ub: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Warp rotated points (``ua, ub`` float64 ``[R]`` in [0,1)², face ``tri [R]``) by the face's
@@ -661,10 +747,10 @@ class HitBounce:
                 torch.mul(rho, x[:, 0], out=out[sl])
             else:
                 w, o = channel_weights, out[sl]
-                xc = (lambda c: x[:, min(c, x.shape[1] - 1)])  # x [h, 1 or C, n²]
-                torch.mul(rho[:, 0:1], xc(0), out=o).mul_(w[0])  # in place: no fresh [h, n²] pages per operation
-                t = torch.mul(rho[:, 1:2], xc(1)).mul_(w[1])
-                o.add_(t).add_(torch.mul(rho[:, 2:3], xc(2), out=t).mul_(w[2]))
+                xs = [x[:, min(c, x.shape[1] - 1)] for c in range(3)]  # x [h, 1 or C, n²]
+                torch.mul(rho[:, 0:1], xs[0], out=o).mul_(w[0])  # in place: no fresh [h, n²] pages per operation
+                t = torch.mul(rho[:, 1:2], xs[1]).mul_(w[1])
+                o.add_(t).add_(torch.mul(rho[:, 2:3], xs[2], out=t).mul_(w[2]))
         return out
 
     def _rays(self, caster: RayCaster, tri: np.ndarray, bary: np.ndarray, key_a: np.ndarray, key_b: np.ndarray,
@@ -700,7 +786,8 @@ class HitBounce:
         self.rays_traced += o.shape[0]
         w = None
         if self.mode == "auto" and level == 0:
-            g = np.flatnonzero(self.guided_faces(caster)[tri])  # [G] the guided hits
+            self.prepare(caster, tri)  # the faces' probe and guides, where not yet decided
+            g = np.flatnonzero(self.guided[tri])  # [G] the guided hits
             if g.size:
                 w = np.ones(d.shape[0])
                 if not guided_rays_native(M, g, tri[g], u1[g], v2[g], tables[0], self._base_b(M), self._guide_row,
@@ -773,7 +860,8 @@ class HitBounce:
         H, n2, M = tri.shape[0], self.bands * self.bands, self.samples_at(level)
         d, hit, isect, w = self._rays(caster, tri, bary, key_a, key_b, level, intersect)
         if self.mode == "auto":  # per hit: the control variate where its face is mostly open (face_openness)
-            open_h = self.face_openness(caster)[tri] >= 0.5  # [H]
+            self.prepare(caster, tri, guide=level == 0)  # (done by _rays at the first hits)
+            open_h = self._face_open[tri] >= 0.5  # [H]
             sel = np.flatnonzero(hit == np.repeat(open_h, M))  # the open faces' blocked rays, the others' open ones
         else:
             sel = np.flatnonzero(hit if self.control else ~hit)
@@ -920,6 +1008,8 @@ def _chunk_work(caster: RayCaster, sampler: DiffuseSampler, points: torch.Tensor
             out["TB"], n_hit = _hit_bounces(caster, hits, k, i[h], j[h], tri,
                                             bu[h], bv[h], w_ray[h], first_id, sampler.bands, ids)
             out["hit_rays"] = torch.tensor([n_hit], dtype=torch.int64)
+            if hits.mode == "auto":
+                out.update(hits.take_probe_log())  # the faces this chunk probed (record_probe_log)
             return out
         if hit_columns == "faces":
             rows, cols, vals = i[h], tri, w_ray[h]
@@ -1209,12 +1299,28 @@ def _hit_tables(caster: RayCaster, mesh: Mesh, bands: int, samples: int, seed: i
     needs no table: every bounce is estimated at its own hit point)."""
     hb = HitBounce(mesh, bands, hit_samples, seed, bounces, 1 if mesh.is_grey() else 3, hit_offset, estimator)
     meta.update(hit_samples=hit_samples, hit_offset=hit_offset, hit_eps=hb.hit_eps)
-    if hb.mode == "auto":  # auto's per-face choice and the hits' guide, traced once here (they travel with the estimator)
-        hb.face_openness(caster)
-        meta["hit_choice_rays"] = int(hb.face_normals_np.shape[0]) * FACE_PROBE_RAYS
+    if hb.mode == "auto":  # auto's per-face choice and the hits' guide: probed by the chunks, where their hits land
+        meta["hit_choice_rays"] = 0
         meta["hit_guide"] = {"grid": list(GUIDE_GRID), "pool": GUIDE_POOL, "min_faces": GUIDE_MIN_FACES,
-                             "uniform_share": GUIDE_UNIFORM, "faces_guided": int(hb.guided.sum())}
+                             "uniform_share": GUIDE_UNIFORM, "faces_guided": 0, "faces_probed": 0,
+                             "faces": int(hb.face_normals_np.shape[0])}
     return hb
+
+
+def record_probe_log(meta: dict, part: dict, seen: dict) -> None:
+    """Add a chunk's probe log (:meth:`HitBounce.take_probe_log`) to a run's ``meta``:
+    ``hit_choice_rays`` sums the probe rays traced (on the Ray executor a face whose hits reach
+    several workers is probed in each of them), ``hit_guide['faces_probed' / 'faces_guided']``
+    count the distinct faces over all chunks (the same on any executor). ``seen``: the run's
+    ``{'probed': bool [F], 'guided': bool [F]}``, created on the first call."""
+    if "probe_rays" not in part or "hit_guide" not in meta:
+        return
+    F = meta["hit_guide"]["faces"]
+    for k in ("probed", "guided"):
+        arr = seen.setdefault(k, np.zeros(F, bool))
+        arr[part[f"{k}_faces"].numpy()] = True
+        meta["hit_guide"][f"faces_{k}"] = int(arr.sum())
+    meta["hit_choice_rays"] = meta.get("hit_choice_rays", 0) + int(part["probe_rays"].sum())
 
 
 def _trace_direct(caster: RayCaster, mesh: Mesh, bands: int, samples: int, seed: int, sampling: str,
@@ -1267,6 +1373,7 @@ def _trace_direct(caster: RayCaster, mesh: Mesh, bands: int, samples: int, seed:
         TB = None if hits is None else run.result_rows((V, hits.terms, hits.C, bands * bands), torch.float64, name="tb",
                                                        nbytes=held)
         meta["rays_traced"] = 0
+        seen: dict = {}
 
         def sink(a: int, b: int, p: dict[str, torch.Tensor]) -> None:
             T0[a:b] = p["T"]
@@ -1275,6 +1382,7 @@ def _trace_direct(caster: RayCaster, mesh: Mesh, bands: int, samples: int, seed:
             meta["rays_traced"] += int(p["rays"].sum())
             if "hit_rays" in p:
                 meta["hit_rays_traced"] = meta.get("hit_rays_traced", 0) + int(p["hit_rays"].sum())
+            record_probe_log(meta, p, seen)
 
         run.run_chunks(V, chunk_size, compute, fingerprint=fingerprint, desc=f"diffuse {mesh.name}",
                        rays_of=lambda r: int(r["rays"].sum()), sink=sink)
