@@ -64,6 +64,7 @@ __all__ = [
     "hit_bounce",
     "HitBounce",
     "record_probe_log",
+    "probe_rays_for",
     "offset_origins",
     "hit_ray_eps",
     "HIT_OFFSET",
@@ -89,6 +90,10 @@ GUIDE_GRID = (4, 8)
 #: rays per face of :meth:`HitBounce.face_openness` (the bounce estimator's per-hit choice under
 #: 'auto' and its guide): one jittered ray per cell of :data:`GUIDE_GRID`
 FACE_PROBE_RAYS = GUIDE_GRID[0] * GUIDE_GRID[1]
+#: rays per probed face a run may take (:func:`probe_rays_for`): every cell, every 2nd, every 4th
+PROBE_RAYS_CHOICES = (FACE_PROBE_RAYS, FACE_PROBE_RAYS // 2, FACE_PROBE_RAYS // 4)
+#: :func:`probe_rays_for`: the curved faces' probe rays below PROBE_FULL_SAMPLES directions per vertex
+PROBE_RAYS_LOW, PROBE_FULL_SAMPLES = FACE_PROBE_RAYS // 4, 1 << 30
 #: a face's guide pools the probes of the coplanar faces among its GUIDE_POOL nearest centroids; it
 #: is used only where at least GUIDE_MIN_FACES of them are coplanar (a flat region: their cells are
 #: the same directions); the uniform share of the guided density (Hesterberg 1995's defensive mixture)
@@ -503,10 +508,13 @@ class HitBounce:
     """
 
     def __init__(self, mesh: Mesh, bands: int, hit_samples: int, seed: int, terms: int, channels: int,
-                 hit_offset: float | None = HIT_OFFSET, estimator: str = "plain"):
+                 hit_offset: float | None = HIT_OFFSET, estimator: str = "plain", probe_rays: int = FACE_PROBE_RAYS):
         from ..scene.mesh import tangent_frames
 
         self.bands, self.M, self.seed, self.C = bands, int(hit_samples), int(seed), channels
+        if probe_rays not in PROBE_RAYS_CHOICES:
+            raise ValueError(f"probe_rays={probe_rays!r}; accepted: one of {PROBE_RAYS_CHOICES} (rays per probed face)")
+        self.probe_stride = FACE_PROBE_RAYS // int(probe_rays)  # a face probes every probe_stride-th cell (_probe)
         self.hit_offset = None if hit_offset is None else check_float("hit_offset", hit_offset, 0.0, 0.1)
         self.hit_eps = None if hit_offset is None else hit_ray_eps(mesh, hit_offset)
         self.mode = check_choice("estimator", estimator, ESTIMATORS)
@@ -516,6 +524,7 @@ class HitBounce:
         self.face_centroids = centroids.numpy()
         self._face_open: np.ndarray | None = None  # [F] float64, auto's per-face choice (face_openness; NaN: not probed)
         self.probe_rays = 0  # probe rays this process traced (face_openness)
+        self._cells: np.ndarray | None = None  # [F, K] bool, the cells each face probed (_probe)
         self._log: tuple = (0, [], [])  # (probe_rays at the last take_probe_log, faces probed, guided since)
         self._decided: np.ndarray | None = None  # [F] bool, the faces 'auto' has probed and decided (prepare)
         self._pool = None  # (cnt, csr) the faces' coplanar neighbours (_coplanar)
@@ -556,34 +565,59 @@ class HitBounce:
             self._probe(caster, faces)
         return self._face_open
 
-    def _probe(self, caster: RayCaster, faces: np.ndarray) -> None:
-        """Trace the probe (:meth:`face_openness`) of the not yet probed ``faces`` (int64, unique)."""
-        F, K = self.face_normals_np.shape[0], FACE_PROBE_RAYS
-        if self._face_open is None:
+    def _probe(self, caster: RayCaster, faces: np.ndarray, full: bool = False) -> None:
+        """Trace the probe (:meth:`face_openness`) of ``faces`` (int64, unique) where not yet traced,
+        whose mean is the face's open fraction: every cell of a face that may be guided (at least
+        :data:`GUIDE_MIN_FACES` coplanar faces: geometry only), K/s cells of the others (s =
+        ``probe_stride``, :func:`probe_rays_for`: every s-th cell from a first one hashed from
+        (seed, face) — a stratified estimate all the same; all K at s = 1). ``full``: then the
+        faces' other cells too (what a guide pools, :meth:`prepare`). Cell c of face f is always the
+        same ray, whichever call traces it, so the values do not depend on the order of calls."""
+        F, K, s = self.face_normals_np.shape[0], FACE_PROBE_RAYS, self.probe_stride
+        if self._cells is None:
             self._face_open = np.full(F, np.nan)
             self._opened = np.zeros((F, K), bool)  # [F, K] the probe rays that left the scene (32 B per face)
+            self._cells = np.zeros((F, K), bool)  # [F, K] the cells traced
             self.probed = np.zeros(F, bool)
-        faces = faces[~self.probed[faces]]
-        if not faces.size:
-            return
+        new = faces[~self.probed[faces]]
+        if new.size:  # the first stage: its open fraction
+            flat = self._coplanar()[0][new] >= GUIDE_MIN_FACES  # faces that may be guided: every cell
+            for grp, st in ((new[flat], 1), (new[~flat], s)):
+                if not grp.size:
+                    continue
+                k = K // st
+                c = np.tile(st * np.arange(k, dtype=np.int64), grp.shape[0])  # every st-th cell from a random first one
+                if st > 1:
+                    c = c + np.repeat((_hash_uniform(self.seed, grp, np.zeros_like(grp), FACE_PROBE_STREAM + 2) * st).astype(np.int64), k)
+                opened = self._trace_cells(caster, np.repeat(grp, k), c)
+                self._face_open[grp] = opened.reshape(-1, k).mean(1, dtype=np.float64)
+            self.probed[new] = True
+            self._log[1].append(new)
+        if full and s > 1:  # the faces' remaining cells
+            f, c = np.nonzero(~self._cells[faces])
+            if f.size:
+                self._trace_cells(caster, faces[f], c)
+
+    def _trace_cells(self, caster: RayCaster, f: np.ndarray, c: np.ndarray) -> np.ndarray:
+        """Trace probe ray (f, c) for each face f and cell c (int64 ``[R]``, grouped by face), one
+        jittered cosine-weighted ray in cell c of :data:`GUIDE_GRID` from f's centroid; records
+        them in ``_opened``/``_cells`` and the ray count. Returns ``opened bool [R]``. Traced in
+        batches of about 2¹⁸ rays."""
         Gb = GUIDE_GRID[1]
         eps = caster.eps if self.hit_eps is None else self.hit_eps
-        cell = np.arange(K, dtype=np.int64)
-        step = max(1, (1 << 18) // K)
-        for s0 in range(0, faces.shape[0], step):  # a loop over face batches, each one traced batch
-            fb = faces[s0:s0 + step]
-            f = np.repeat(fb, K)
-            c = np.tile(cell, fb.shape[0])
-            a = (c // Gb + _hash_uniform(self.seed, f, c, FACE_PROBE_STREAM)) / GUIDE_GRID[0]
-            b = (c % Gb + _hash_uniform(self.seed, f, c, FACE_PROBE_STREAM + 1)) / Gb
-            d = _malley_dirs(self.frames, f, a, b)
+        out = np.empty(f.shape[0], bool)
+        step = 1 << 18
+        for s0 in range(0, f.shape[0], step):  # a loop over ray batches, each one traced batch
+            fb, cb = f[s0:s0 + step], c[s0:s0 + step]
+            a = (cb // Gb + _hash_uniform(self.seed, fb, cb, FACE_PROBE_STREAM)) / GUIDE_GRID[0]
+            b = (cb % Gb + _hash_uniform(self.seed, fb, cb, FACE_PROBE_STREAM + 1)) / Gb
+            d = _malley_dirs(self.frames, fb, a, b)
             o = offset_origins(self.face_centroids[fb], self.face_normals_np[fb], eps).astype(np.float32)
-            opened = ~caster.trace(np.repeat(o, K, axis=0), d, "occluded").reshape(-1, K)
-            self._opened[fb] = opened
-            self._face_open[fb] = opened.mean(1, dtype=np.float64)
-        self.probed[faces] = True
-        self.probe_rays += faces.shape[0] * K
-        self._log[1].append(faces)
+            out[s0:s0 + step] = ~caster.trace(o, d, "occluded")
+        self._opened[f, c] = out
+        self._cells[f, c] = True
+        self.probe_rays += f.shape[0]
+        return out
 
     def take_probe_log(self) -> dict[str, torch.Tensor]:
         """What this process probed since the last call, for a chunk's result (any executor; a run
@@ -616,8 +650,8 @@ class HitBounce:
         self._probe(caster, new)
         cnt, pool_m = self._coplanar()
         cand = new[(cnt[new] >= GUIDE_MIN_FACES) & (self._face_open[new] < 0.5)]  # the faces guided (_build_guide)
-        if cand.size:
-            self._probe(caster, np.unique(pool_m[cand].indices).astype(np.int64))  # the neighbours their guides pool
+        if cand.size:  # the neighbours their guides pool (themselves included), every cell
+            self._probe(caster, np.unique(pool_m[cand].indices).astype(np.int64), full=True)
         self._build_guide(self._opened, new)
         self._decided[new] = True
 
@@ -676,7 +710,9 @@ class HitBounce:
             return
         sub = pool_m[gf]  # [G, F] their coplanar neighbours
         cols = np.unique(sub.indices)
-        g = (sub[:, cols] @ opened[cols].astype(np.float64)) / np.maximum(cnt[gf], 1)[:, None]  # [G, K] pooled open fraction per cell
+        cells = np.ones(opened.shape, bool) if self._cells is None else self._cells
+        n_cell = sub[:, cols] @ cells[cols].astype(np.float64)  # [G, K] probe rays per cell (cnt each: every cell probed)
+        g = (sub[:, cols] @ opened[cols].astype(np.float64)) / np.maximum(n_cell, 1)  # [G, K] pooled open fraction per cell
         tot = g.sum(1, keepdims=True)
         g = np.where(tot > 0, g / np.maximum(tot, 1e-300), 1.0 / K)
         self._guide_row[gf] = self.guide_mass.shape[0] + np.arange(gf.size)
@@ -1297,14 +1333,26 @@ def _hit_tables(caster: RayCaster, mesh: Mesh, bands: int, samples: int, seed: i
                 estimator: str = "plain") -> HitBounce:
     """Step 2a (``bounce_points='hits'``): the :class:`HitBounce` estimator of this run (it
     needs no table: every bounce is estimated at its own hit point)."""
-    hb = HitBounce(mesh, bands, hit_samples, seed, bounces, 1 if mesh.is_grey() else 3, hit_offset, estimator)
+    hb = HitBounce(mesh, bands, hit_samples, seed, bounces, 1 if mesh.is_grey() else 3, hit_offset, estimator,
+                   probe_rays_for(samples))
     meta.update(hit_samples=hit_samples, hit_offset=hit_offset, hit_eps=hb.hit_eps)
     if hb.mode == "auto":  # auto's per-face choice and the hits' guide: probed by the chunks, where their hits land
         meta["hit_choice_rays"] = 0
         meta["hit_guide"] = {"grid": list(GUIDE_GRID), "pool": GUIDE_POOL, "min_faces": GUIDE_MIN_FACES,
                              "uniform_share": GUIDE_UNIFORM, "faces_guided": 0, "faces_probed": 0,
-                             "faces": int(hb.face_normals_np.shape[0])}
+                             "faces": int(hb.face_normals_np.shape[0]), "curved_probe_rays": probe_rays_for(samples)}
     return hb
+
+
+def probe_rays_for(samples: int) -> int:
+    """Probe rays per face that cannot be guided (curved: fewer than :data:`GUIDE_MIN_FACES`
+    coplanar faces) for a run of ``samples`` directions per vertex: PROBE_RAYS_LOW (8)
+    below PROBE_FULL_SAMPLES, every cell (:data:`FACE_PROBE_RAYS`) from it; faces that may be
+    guided always probe every cell (their guide pools them). Measured (benchmarks/bench_face_probe.py
+    → reports/benchmarks/face_probe.md): such a face's probe only chooses between the plain sum and
+    the control variate, and 8 rays choose about as well as 32 (error within 1%) for a quarter of
+    the rays."""
+    return PROBE_RAYS_LOW if int(samples) < PROBE_FULL_SAMPLES else FACE_PROBE_RAYS
 
 
 def record_probe_log(meta: dict, part: dict, seen: dict) -> None:
@@ -1362,6 +1410,8 @@ def _trace_direct(caster: RayCaster, mesh: Mesh, bands: int, samples: int, seed:
         fingerprint.update(hit_samples=hits.M, hit_terms=hits.terms, hit_offset=hits.hit_offset)
         if hits.mode == "auto":  # the guided hits (issue 42): chunks of an earlier estimate do not mix in
             fingerprint["hit_guide"] = [*GUIDE_GRID, GUIDE_POOL, GUIDE_MIN_FACES, GUIDE_UNIFORM]
+            if hits.probe_stride > 1:  # the curved faces' probe thinned (probe_rays_for): chunks of the full probe do not mix in
+                fingerprint["hit_probe_rays"] = FACE_PROBE_RAYS // hits.probe_stride
     if record_hits and hits is None:
         parts = run.run_chunks(V, chunk_size, compute, fingerprint=fingerprint, desc=f"diffuse {mesh.name}",
                                rays_of=lambda r: int(r["rays"].sum()))
@@ -1497,8 +1547,8 @@ def vertex_transfer(mesh: Mesh, idx: Any, bands: int, samples: int, seed: int, b
     nudge = boundary_nudge(mesh)[idx]
     run = RunOptions(offset=offset)
     with RayCaster(mesh, workers=_workers(run, mesh, samples, sampling), offset=offset) as caster:
-        hits = (HitBounce(mesh, bands, hit_samples, seed, bounces, 1 if mesh.is_grey() else 3, hit_offset, estimator)
-                if bounces > 0 else None)
+        hits = (HitBounce(mesh, bands, hit_samples, seed, bounces, 1 if mesh.is_grey() else 3, hit_offset, estimator,
+                          probe_rays_for(samples)) if bounces > 0 else None)
         faces_np = mesh.faces.numpy()
         out = _chunk(caster, DiffuseSampler(bands, samples, seed, sampling, estimator), mesh.vertices[idx], mesh.normals[idx], frames,
                      faces_np, face_points(mesh)[1].numpy(), faces_np.shape[0], bounces > 0, "hits" if bounces else "vertices",
