@@ -103,7 +103,7 @@ def test_glossy_one_bounce_is_the_same_on_one_and_two_workers():
 
 
 def test_thinned_probe_of_curved_faces_is_the_full_probe_at_its_cells_and_unbiased():
-    """probe_rays=8 (``probe_rays_for`` below the full count): faces that may be guided (≥ 8 coplanar:
+    """probe_rays=8 (:data:`CURVED_PROBE_RAYS`, what a run takes): faces that may be guided (≥ 8 coplanar:
     the ground) still probe every cell, bit for bit the full probe; curved faces (the sphere) probe 8 of
     the 32 cells (every 4th from a hashed first), each the full probe's ray for that cell, so their open
     fraction is a stratified estimate of the same quantity: its mean over 24 seeds equals the full

@@ -64,7 +64,7 @@ __all__ = [
     "hit_bounce",
     "HitBounce",
     "record_probe_log",
-    "probe_rays_for",
+    "CURVED_PROBE_RAYS",
     "offset_origins",
     "hit_ray_eps",
     "HIT_OFFSET",
@@ -90,10 +90,14 @@ GUIDE_GRID = (4, 8)
 #: rays per face of :meth:`HitBounce.face_openness` (the bounce estimator's per-hit choice under
 #: 'auto' and its guide): one jittered ray per cell of :data:`GUIDE_GRID`
 FACE_PROBE_RAYS = GUIDE_GRID[0] * GUIDE_GRID[1]
-#: rays per probed face a run may take (:func:`probe_rays_for`): every cell, every 2nd, every 4th
+#: rays per probed curved face HitBounce accepts (``probe_rays``): every cell, every 2nd, every 4th
 PROBE_RAYS_CHOICES = (FACE_PROBE_RAYS, FACE_PROBE_RAYS // 2, FACE_PROBE_RAYS // 4)
-#: :func:`probe_rays_for`: the curved faces' probe rays below PROBE_FULL_SAMPLES directions per vertex
-PROBE_RAYS_LOW, PROBE_FULL_SAMPLES = FACE_PROBE_RAYS // 4, 1 << 30
+#: probe rays of a face that cannot be guided (curved: fewer than GUIDE_MIN_FACES coplanar faces) in a run
+#: (``HitBounce(probe_rays=)``): its probe only chooses between the plain sum and the control variate, and a
+#: stratified quarter of the cells chooses as well — one-bounce error unchanged to 3 digits, 3-37% fewer rays
+#: per vertex on curved meshes at N = 64-1024 (reports/benchmarks/face_probe.md); faces that may be guided
+#: probe every cell (their guide pools them)
+CURVED_PROBE_RAYS = FACE_PROBE_RAYS // 4
 #: a face's guide pools the probes of the coplanar faces among its GUIDE_POOL nearest centroids; it
 #: is used only where at least GUIDE_MIN_FACES of them are coplanar (a flat region: their cells are
 #: the same directions); the uniform share of the guided density (Hesterberg 1995's defensive mixture)
@@ -569,7 +573,7 @@ class HitBounce:
         """Trace the probe (:meth:`face_openness`) of ``faces`` (int64, unique) where not yet traced,
         whose mean is the face's open fraction: every cell of a face that may be guided (at least
         :data:`GUIDE_MIN_FACES` coplanar faces: geometry only), K/s cells of the others (s =
-        ``probe_stride``, :func:`probe_rays_for`: every s-th cell from a first one hashed from
+        ``probe_stride`` = K / ``probe_rays``, :data:`CURVED_PROBE_RAYS` in a run: every s-th cell from a first one hashed from
         (seed, face) — a stratified estimate all the same; all K at s = 1). ``full``: then the
         faces' other cells too (what a guide pools, :meth:`prepare`). Cell c of face f is always the
         same ray, whichever call traces it, so the values do not depend on the order of calls."""
@@ -1334,25 +1338,14 @@ def _hit_tables(caster: RayCaster, mesh: Mesh, bands: int, samples: int, seed: i
     """Step 2a (``bounce_points='hits'``): the :class:`HitBounce` estimator of this run (it
     needs no table: every bounce is estimated at its own hit point)."""
     hb = HitBounce(mesh, bands, hit_samples, seed, bounces, 1 if mesh.is_grey() else 3, hit_offset, estimator,
-                   probe_rays_for(samples))
+                   CURVED_PROBE_RAYS)
     meta.update(hit_samples=hit_samples, hit_offset=hit_offset, hit_eps=hb.hit_eps)
     if hb.mode == "auto":  # auto's per-face choice and the hits' guide: probed by the chunks, where their hits land
         meta["hit_choice_rays"] = 0
         meta["hit_guide"] = {"grid": list(GUIDE_GRID), "pool": GUIDE_POOL, "min_faces": GUIDE_MIN_FACES,
                              "uniform_share": GUIDE_UNIFORM, "faces_guided": 0, "faces_probed": 0,
-                             "faces": int(hb.face_normals_np.shape[0]), "curved_probe_rays": probe_rays_for(samples)}
+                             "faces": int(hb.face_normals_np.shape[0]), "curved_probe_rays": CURVED_PROBE_RAYS}
     return hb
-
-
-def probe_rays_for(samples: int) -> int:
-    """Probe rays per face that cannot be guided (curved: fewer than :data:`GUIDE_MIN_FACES`
-    coplanar faces) for a run of ``samples`` directions per vertex: PROBE_RAYS_LOW (8)
-    below PROBE_FULL_SAMPLES, every cell (:data:`FACE_PROBE_RAYS`) from it; faces that may be
-    guided always probe every cell (their guide pools them). Measured (benchmarks/bench_face_probe.py
-    → reports/benchmarks/face_probe.md): such a face's probe only chooses between the plain sum and
-    the control variate, and 8 rays choose about as well as 32 (error within 1%) for a quarter of
-    the rays."""
-    return PROBE_RAYS_LOW if int(samples) < PROBE_FULL_SAMPLES else FACE_PROBE_RAYS
 
 
 def record_probe_log(meta: dict, part: dict, seen: dict) -> None:
@@ -1410,7 +1403,7 @@ def _trace_direct(caster: RayCaster, mesh: Mesh, bands: int, samples: int, seed:
         fingerprint.update(hit_samples=hits.M, hit_terms=hits.terms, hit_offset=hits.hit_offset)
         if hits.mode == "auto":  # the guided hits (issue 42): chunks of an earlier estimate do not mix in
             fingerprint["hit_guide"] = [*GUIDE_GRID, GUIDE_POOL, GUIDE_MIN_FACES, GUIDE_UNIFORM]
-            if hits.probe_stride > 1:  # the curved faces' probe thinned (probe_rays_for): chunks of the full probe do not mix in
+            if hits.probe_stride > 1:  # the curved faces' probe thinned (CURVED_PROBE_RAYS): chunks of the full probe do not mix in
                 fingerprint["hit_probe_rays"] = FACE_PROBE_RAYS // hits.probe_stride
     if record_hits and hits is None:
         parts = run.run_chunks(V, chunk_size, compute, fingerprint=fingerprint, desc=f"diffuse {mesh.name}",
@@ -1548,7 +1541,7 @@ def vertex_transfer(mesh: Mesh, idx: Any, bands: int, samples: int, seed: int, b
     run = RunOptions(offset=offset)
     with RayCaster(mesh, workers=_workers(run, mesh, samples, sampling), offset=offset) as caster:
         hits = (HitBounce(mesh, bands, hit_samples, seed, bounces, 1 if mesh.is_grey() else 3, hit_offset, estimator,
-                          probe_rays_for(samples)) if bounces > 0 else None)
+                          CURVED_PROBE_RAYS) if bounces > 0 else None)
         faces_np = mesh.faces.numpy()
         out = _chunk(caster, DiffuseSampler(bands, samples, seed, sampling, estimator), mesh.vertices[idx], mesh.normals[idx], frames,
                      faces_np, face_points(mesh)[1].numpy(), faces_np.shape[0], bounces > 0, "hits" if bounces else "vertices",
