@@ -21,6 +21,12 @@ err·√(rays per vertex) (lower is better; equal rays under the 1/√rays readi
 runs here). The ratio of auto's efficiency to the better of plain and control is what the probe
 (auto's per-face choice and guide) buys at equal rays: below 1 it pays.
 
+``--compare BEFORE.json AFTER.json``: two reports of bench_precompute_error.py run with the code
+before and after this change (same references: ``--ref-cache``; ``--methods uniform:plain
+qmc:auto --equal-rays``), rendered as a before/after table per scene and N: rays per vertex, the
+one-bounce error, the interreflected part and the ratio at equal rays against today's estimator
+(per seed, as bench_precompute_error.py computes it).
+
 Writes the markdown report atomically; prints the CPU and load (the rays and errors do not depend
 on the load).
 """
@@ -73,12 +79,44 @@ def error_rows(path: Path, spec: str, N: int) -> dict | None:
     return out if "auto" in out else None
 
 
+def compare_table(before: str, after: str) -> list[str]:
+    """The before/after table of two bench_precompute_error.py reports (``--compare``)."""
+    B, A = (json.loads(Path(p).read_text())["scenes"] for p in (before, after))
+
+    def eq(r):  # per seed: default / today at about equal rays, corrected by √ of the rays' ratio
+        t = r["equal_rays_today"]
+        return [e / te * math.sqrt(r["rays_per_vertex_bounce1"] / t["rays_per_vertex_bounce1"])
+                for e, te in zip(r["err_bounce1_total_seeds"], t["err_bounce1_total_seeds"])]
+
+    L = ["", "## Error before → after, at equal N and at equal rays", "",
+         f"bench_precompute_error.py with the code before (`{before}`) and after (`{after}`), the same references and seeds; "
+         "rays per vertex count vertex + hit + probe rays; the last column is the default's one-bounce error over today's "
+         "estimator (uniform + plain) run at the perfect-square N of about the same rays, per seed (lower is better).", "",
+         "| scene | N | reference | rays / vertex, one bounce | one-bounce error | interreflected part | at equal rays vs today (per seed) |",
+         "|---|---:|---|---|---|---|---|"]
+    for s, sa in A.items():
+        if s not in B:
+            continue
+        rb = {r["samples"]: r for r in B[s]["rows"] if r["sampling"] == "qmc" and r["estimator"] == "auto"}
+        for r in (r for r in sa["rows"] if r["sampling"] == "qmc" and r["estimator"] == "auto"):
+            b = rb.get(r["samples"])
+            if b is None or "equal_rays_today" not in r or "equal_rays_today" not in b:
+                continue
+            L.append(f"| `{s}` | {r['samples']} | {sa['reference_samples']} samples | {b['rays_per_vertex_bounce1']:.0f} → "
+                     f"{r['rays_per_vertex_bounce1']:.0f} | {b['err_bounce1_total']:.4f} → {r['err_bounce1_total']:.4f} | "
+                     f"{b['err_bounce1_inter']:.4f} → {r['err_bounce1_inter']:.4f} | "
+                     f"{' / '.join(f'{x:.2f}' for x in eq(b))} → {' / '.join(f'{x:.2f}' for x in eq(r))} |")
+    return L
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--scenes", nargs="+", default=SCENES)
     ap.add_argument("--samples", nargs="+", type=int, default=[64, 256, 1024])
     ap.add_argument("--error-json", default=str(ROOT / "reports" / "benchmarks" / "precompute_error.json"))
     ap.add_argument("--out", default=str(ROOT / "reports" / "benchmarks" / "face_probe.md"))
+    ap.add_argument("--compare", nargs=2, metavar=("BEFORE_JSON", "AFTER_JSON"), default=None,
+                    help="bench_precompute_error.py reports of the code before and after (same references)")
     a = ap.parse_args(argv)
     load0 = os.getloadavg()[0]
     res = []
@@ -123,8 +161,11 @@ def main(argv=None):
         best = min(others) if others else float("nan")
         L.append(f"| `{r['scene']}` | {r['N']} | {err:.4f} | {rb:.0f} → {ra:.0f} | {eb:.3f} → {ea:.3f} ({ea / eb:.3f}) | "
                  f"{eb / best:.3f} → {ea / best:.3f} |")
+    if a.compare:
+        L += compare_table(*a.compare)
+    cmp = f" --compare {' '.join(a.compare)}" if a.compare else ""
     L += ["", f"Reproduce: `.venv/bin/python benchmarks/bench_face_probe.py --scenes {' '.join(a.scenes)} --samples "
-          f"{' '.join(map(str, a.samples))}`", ""]
+          f"{' '.join(map(str, a.samples))}{cmp}`", ""]
     with io.atomic_path(a.out) as tmp:
         Path(tmp).write_text("\n".join(L))
     print(f"wrote {a.out}")
