@@ -498,9 +498,11 @@ class HitBounce:
     ``estimator='control'`` (issue 42): x⁰(q) = t_unshadowed(n_f) − (1/M) Σ_m (1 − V(q,s_m))
     y(s_m), exact where the hit's hemisphere is open. ``'auto'``: per hit, that control variate
     where the hit face is mostly open and the plain sum elsewhere, chosen from the face's open
-    fraction measured by :meth:`face_openness` (:data:`FACE_PROBE_RAYS` rays per face, their own
-    rotations): a choice independent of the hit's own rays, so each hit's estimate stays unbiased
-    (a choice read from its M = 4 to 8 rays would correlate with their set's error). In an enclosure
+    fraction measured by :meth:`face_openness` (:data:`FACE_PROBE_RAYS` rays per face that may be
+    guided, ``probe_rays`` (:data:`CURVED_PROBE_RAYS` in a run) per curved face, their own
+    rotations; traced for the faces the hits land on, as they arrive: :meth:`prepare`): a choice
+    independent of the hit's own rays, so each hit's estimate stays unbiased (a choice read from
+    its M = 4 to 8 rays would correlate with their set's error). In an enclosure
     (a Cornell box) 'control' at every hit had 1.8× the interreflected part's error of 'plain'
     (reports/benchmarks/precompute_error.md). Under 'auto' the first hits on flat, mostly blocked
     faces draw their rays from a density guided by the same probe (:meth:`_build_guide`: the
@@ -843,7 +845,8 @@ class HitBounce:
 
     def guided_faces(self, caster: RayCaster) -> np.ndarray:
         """``[F]`` bool: the faces whose first hits' rays are guided (:meth:`_build_guide`; none but
-        under 'auto'), probing first if needed."""
+        under 'auto'), probing every face first if needed (the whole-mesh probe; a run probes
+        only the faces its hits land on, :meth:`prepare`)."""
         if self.mode != "auto":
             return np.zeros(self.face_normals_np.shape[0], bool)
         self.face_openness(caster)

@@ -227,7 +227,7 @@ def transferred_radiance(caster: RayCaster | None, points: torch.Tensor, normals
 @dataclasses.dataclass
 class Bounce:
     """What the glossy interreflection needs: the diffuse precompute's hit-point estimator
-    (:class:`prt_torch.transfer.diffuse.HitBounce`, its face tables traced)."""
+    (:class:`prt_torch.transfer.diffuse.HitBounce`; its face probe traced by the chunks where their hits land)."""
 
     hits: HitBounce
 
