@@ -130,3 +130,20 @@ def test_thinned_probe_of_curved_faces_is_the_full_probe_at_its_cells_and_unbias
     assert ma.var() > mb.var()  # fewer rays: a noisier estimate (the check is not vacuous)
     with pytest.raises(ValueError, match="probe_rays=5"):
         HitBounce(mesh, 2, 4, 0, 1, 1, estimator="auto", probe_rays=5)
+
+
+def test_diffuse_one_bounce_is_the_same_on_one_and_two_workers_and_any_chunking():
+    """sphere_on_plane (flat ground: guided faces, full probe; curved sphere: the 8-ray probe): one
+    bounce under 'auto' on 1 worker in chunks of 500 and on 2 workers in chunks of 1300 gives the same
+    bits, the same faces probed and guided and the same probe rays (local: each face once)."""
+    from prt_torch.transfer.diffuse import CURVED_PROBE_RAYS, precompute_diffuse
+
+    m = builtin("sphere_on_plane", "small")
+    kw = dict(seed=3, shadows="always", fold_albedo=False, bounce_tol=0.0)
+    a = precompute_diffuse(m, 2, 64, 1, run=RunOptions(chunk_size=500, workers=1, progress=False), **kw)
+    b = precompute_diffuse(m, 2, 64, 1, run=RunOptions(chunk_size=1300, workers=2, progress=False), **kw)
+    assert torch.equal(a.data, b.data)
+    assert a.meta["hit_guide"] == b.meta["hit_guide"] and a.meta["hit_choice_rays"] == b.meta["hit_choice_rays"]
+    g = a.meta["hit_guide"]
+    assert g["faces_guided"] > 0 and g["curved_probe_rays"] == CURVED_PROBE_RAYS
+    assert CURVED_PROBE_RAYS * g["faces_probed"] < a.meta["hit_choice_rays"] < FACE_PROBE_RAYS * g["faces_probed"]  # both kinds
