@@ -147,3 +147,22 @@ def test_diffuse_one_bounce_is_the_same_on_one_and_two_workers_and_any_chunking(
     g = a.meta["hit_guide"]
     assert g["faces_guided"] > 0 and g["curved_probe_rays"] == CURVED_PROBE_RAYS
     assert CURVED_PROBE_RAYS * g["faces_probed"] < a.meta["hit_choice_rays"] < FACE_PROBE_RAYS * g["faces_probed"]  # both kinds
+
+
+def test_vertex_transfer_reproduces_rows_whose_hits_land_on_curved_faces():
+    """vertex_transfer (the validator's re-run of chosen vertices) takes the run's probe (8 rays on
+    the curved sphere, every cell on the ground): its rows equal the precompute's, at ground vertices
+    whose first hits land on the sphere and sphere vertices whose hits land on the ground."""
+    from prt_torch.transfer.diffuse import precompute_diffuse, vertex_transfer
+
+    m = builtin("sphere_on_plane", "small")
+    tr = precompute_diffuse(m, 2, 64, bounces=1, seed=4, bounce_tol=0.0, fold_albedo=False, shadows="always",
+                            run=RunOptions(progress=False))
+    z = m.vertices[:, 2]
+    r = torch.linalg.norm(m.vertices[:, :2], dim=1)
+    ground = torch.nonzero((z.abs() < 1e-9) & (r > 0.3) & (r < 1.2))[:3, 0]
+    sphere = torch.nonzero((z > 0.05) & (z < 0.3))[:3, 0]
+    idx = torch.cat([ground, sphere])
+    assert idx.numel() == 6
+    T0, TB = vertex_transfer(m, idx, 2, 64, 4, 1)
+    torch.testing.assert_close((T0 + TB.sum(1)[:, 0]).float(), tr.data[idx], rtol=1e-5, atol=1e-6)  # grey: one channel
