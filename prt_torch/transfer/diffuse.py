@@ -681,10 +681,12 @@ class HitBounce:
                 nb[sl] = tree.query(c[sl], pool)[1].reshape(-1, pool)
                 same[sl] = (np.einsum("ij,ikj->ik", n[sl], n[nb[sl]]) > 0.999) & \
                     (np.abs(np.einsum("ij,ikj->ik", n[sl], c[nb[sl]] - c[sl, None, :])) <= 1e-3 * diag)
-            pool_m = scipy.sparse.csr_matrix((same.reshape(-1).astype(np.float64), nb.reshape(-1),
+            cnt = same.sum(1)
+            same &= (cnt >= GUIDE_MIN_FACES)[:, None]  # rows of faces that may be guided only (the others are never read)
+            pool_m = scipy.sparse.csr_matrix((same.reshape(-1).astype(np.int8), nb.reshape(-1),
                                               np.arange(0, F * pool + 1, pool)), shape=(F, F))
-            pool_m.eliminate_zeros()  # row f: its coplanar neighbours (sums of 0/1: exact in any order)
-            self._pool = (same.sum(1), pool_m)
+            pool_m.eliminate_zeros()  # row f: its coplanar neighbours, 5 B each (sums of 0/1: exact in any order)
+            self._pool = (cnt, pool_m)
         return self._pool
 
     def _build_guide(self, opened: np.ndarray, faces: np.ndarray | None = None) -> None:
