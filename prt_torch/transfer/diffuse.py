@@ -1346,6 +1346,7 @@ def _hit_tables(caster: RayCaster, mesh: Mesh, bands: int, samples: int, seed: i
                    CURVED_PROBE_RAYS)
     meta.update(hit_samples=hit_samples, hit_offset=hit_offset, hit_eps=hb.hit_eps)
     if hb.mode == "auto":  # auto's per-face choice and the hits' guide: probed by the chunks, where their hits land
+        hb._coplanar()  # the geometry (no rays) here, once: it travels with the estimator to the executor's tasks
         meta["hit_choice_rays"] = 0
         meta["hit_guide"] = {"grid": list(GUIDE_GRID), "pool": GUIDE_POOL, "min_faces": GUIDE_MIN_FACES,
                              "uniform_share": GUIDE_UNIFORM, "faces_guided": 0, "faces_probed": 0,
