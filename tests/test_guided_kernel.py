@@ -103,12 +103,13 @@ def test_glossy_one_bounce_is_the_same_on_one_and_two_workers():
 
 
 def test_thinned_probe_of_curved_faces_is_the_full_probe_at_its_cells_and_unbiased():
-    """probe_rays=8 (:data:`CURVED_PROBE_RAYS`, what a run takes): faces that may be guided (≥ 8 coplanar:
-    the ground) still probe every cell, bit for bit the full probe; curved faces (the sphere) probe 8 of
-    the 32 cells (every 4th from a hashed first), each the full probe's ray for that cell, so their open
-    fraction is a stratified estimate of the same quantity: its mean over 24 seeds equals the full
-    probe's mean over 24 other seeds within 3σ, over the sphere's lower faces (partly blocked by
-    the ground); the rays counted are 32 per flat and 8 per curved face."""
+    """probe_rays=8 (:data:`CURVED_PROBE_RAYS`, what a run takes): every face probes 8 of the 32 cells
+    first (every 4th from a hashed first), each the full probe's ray for that cell; curved faces (the
+    sphere) stop there, so their open fraction is a stratified estimate of the same quantity: its mean
+    over 24 seeds equals the full probe's mean over 24 other seeds within 3σ, over the sphere's lower
+    faces (partly blocked by the ground); faces that may be guided (≥ 8 coplanar: the ground) go on
+    to every cell — bit for bit the full probe — unless their 8 rays all left (read as open, 1); the
+    rays counted are 32 per completed face and 8 per other."""
     mesh = builtin("sphere_on_plane", "small")
     F = mesh.faces.shape[0]
     with RayCaster(mesh, workers=1) as caster:
@@ -116,9 +117,14 @@ def test_thinned_probe_of_curved_faces_is_the_full_probe_at_its_cells_and_unbias
         of, ot = full.face_openness(caster), thin.face_openness(caster)
         flat = full._coplanar()[0] >= 8
         assert flat.any() and (~flat).any()
-        assert np.array_equal(of[flat], ot[flat]) and thin._cells[flat].all()
-        assert (thin._cells[~flat].sum(1) == 8).all() and np.array_equal(thin._opened[thin._cells], full._opened[thin._cells])
-        assert thin.probe_rays == 32 * int(flat.sum()) + 8 * int((~flat).sum()) and full.probe_rays == 32 * F
+        done = thin._cells.all(1)  # every cell traced (completed, or topped up for a neighbour's guide)
+        assert (done <= flat).all() and (done & flat).any() and (~done & flat).any()
+        opened = flat & (ot == 1.0)  # flat faces read open: their 8 first rays all left (then maybe topped up)
+        assert np.array_equal(of[flat & ~opened], ot[flat & ~opened]) and (of[opened] >= 0.25).all()
+        assert (of[flat & ~opened] < 1.0).all() and opened.any() and (flat & ~opened).any()
+        assert (thin._cells[~done].sum(1) == 8).all() and np.array_equal(thin._opened[thin._cells], full._opened[thin._cells])
+        assert (thin._opened[flat & ~done][thin._cells[flat & ~done]]).all()  # the stopped flat faces: all 8 rays left
+        assert thin.probe_rays == 32 * int(done.sum()) + 8 * int((~done).sum()) and full.probe_rays == 32 * F
         c = mesh.vertices.to(torch.float64)[mesh.faces.to(torch.int64)].mean(1)
         low = np.flatnonzero(~flat & (c[:, 2].numpy() < 0.5 * float(c[:, 2].max())) & (of < 1.0))  # the sphere's lower faces
         assert low.size > 50

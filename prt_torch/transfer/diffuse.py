@@ -573,12 +573,16 @@ class HitBounce:
 
     def _probe(self, caster: RayCaster, faces: np.ndarray, full: bool = False) -> None:
         """Trace the probe (:meth:`face_openness`) of ``faces`` (int64, unique) where not yet traced,
-        whose mean is the face's open fraction: every cell of a face that may be guided (at least
-        :data:`GUIDE_MIN_FACES` coplanar faces: geometry only), K/s cells of the others (s =
-        ``probe_stride`` = K / ``probe_rays``, :data:`CURVED_PROBE_RAYS` in a run: every s-th cell from a first one hashed from
-        (seed, face) — a stratified estimate all the same; all K at s = 1). ``full``: then the
-        faces' other cells too (what a guide pools, :meth:`prepare`). Cell c of face f is always the
-        same ray, whichever call traces it, so the values do not depend on the order of calls."""
+        whose mean is the face's open fraction: K/s cells per face first (s = ``probe_stride`` = K /
+        ``probe_rays``, 4 in a run (:data:`CURVED_PROBE_RAYS`): every s-th cell from a first one
+        hashed from (seed, face) — two opposite sectors per ring, a stratified estimate all the
+        same; all K at s = 1); then every cell of the faces that may be guided (at least
+        :data:`GUIDE_MIN_FACES` coplanar faces: geometry only) unless all their first rays left the
+        scene (read as open, 1: the control variate, not guided), their open fraction from all K —
+        a choice from the probe's own rays, independent of the hits' (no bias). ``full``:
+        then the faces' remaining cells too (what a guide pools, :meth:`prepare`). Cell c of face f
+        is always the same ray and each step reads the face's own rays only, so the values do not
+        depend on the order of calls."""
         F, K, s = self.face_normals_np.shape[0], FACE_PROBE_RAYS, self.probe_stride
         if self._cells is None:
             self._face_open = np.full(F, np.nan)
@@ -587,16 +591,18 @@ class HitBounce:
             self.probed = np.zeros(F, bool)
         new = faces[~self.probed[faces]]
         if new.size:  # the first stage: its open fraction
-            flat = self._coplanar()[0][new] >= GUIDE_MIN_FACES  # faces that may be guided: every cell
-            for grp, st in ((new[flat], 1), (new[~flat], s)):
-                if not grp.size:
-                    continue
-                k = K // st
-                c = np.tile(st * np.arange(k, dtype=np.int64), grp.shape[0])  # every st-th cell from a random first one
-                if st > 1:
-                    c = c + np.repeat((_hash_uniform(self.seed, grp, np.zeros_like(grp), FACE_PROBE_STREAM + 2) * st).astype(np.int64), k)
-                opened = self._trace_cells(caster, np.repeat(grp, k), c)
-                self._face_open[grp] = opened.reshape(-1, k).mean(1, dtype=np.float64)
+            k = K // s
+            c = np.tile(s * np.arange(k, dtype=np.int64), new.shape[0])  # every s-th cell from a random first one
+            if s > 1:
+                c = c + np.repeat((_hash_uniform(self.seed, new, np.zeros_like(new), FACE_PROBE_STREAM + 2) * s).astype(np.int64), k)
+            opened = self._trace_cells(caster, np.repeat(new, k), c).reshape(-1, k)
+            self._face_open[new] = opened.mean(1, dtype=np.float64)
+            if s > 1:  # faces that may be guided, unless all their first rays left: every cell, the open fraction of all
+                rest = new[(self._coplanar()[0][new] >= GUIDE_MIN_FACES) & ~opened.all(1)]
+                f, c = np.nonzero(~self._cells[rest])
+                if f.size:
+                    self._trace_cells(caster, rest[f], c)
+                    self._face_open[rest] = self._opened[rest].mean(1, dtype=np.float64)
             self.probed[new] = True
             self._log[1].append(new)
         if full and s > 1:  # the faces' remaining cells
