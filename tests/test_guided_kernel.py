@@ -103,7 +103,7 @@ def test_glossy_one_bounce_is_the_same_on_one_and_two_workers():
 
 
 def test_thinned_probe_of_curved_faces_is_the_full_probe_at_its_cells_and_unbiased():
-    """probe_rays=8 (:data:`CURVED_PROBE_RAYS`, what a run takes): every face probes 8 of the 32 cells
+    """probe_rays=8 (:data:`FIRST_PROBE_RAYS`, what a run takes): every face probes 8 of the 32 cells
     first (every 4th from a hashed first), each the full probe's ray for that cell; curved faces (the
     sphere) stop there, so their open fraction is a stratified estimate of the same quantity: its mean
     over 24 seeds equals the full probe's mean over 24 other seeds within 3σ, over the sphere's lower
@@ -142,7 +142,7 @@ def test_diffuse_one_bounce_is_the_same_on_one_and_two_workers_and_any_chunking(
     """sphere_on_plane (flat ground: guided faces, full probe; curved sphere: the 8-ray probe): one
     bounce under 'auto' on 1 worker in chunks of 500 and on 2 workers in chunks of 1300 gives the same
     bits, the same faces probed and guided and the same probe rays (local: each face once)."""
-    from prt_torch.transfer.diffuse import CURVED_PROBE_RAYS, precompute_diffuse
+    from prt_torch.transfer.diffuse import FIRST_PROBE_RAYS, precompute_diffuse
 
     m = builtin("sphere_on_plane", "small")
     kw = dict(seed=3, shadows="always", fold_albedo=False, bounce_tol=0.0)
@@ -151,8 +151,8 @@ def test_diffuse_one_bounce_is_the_same_on_one_and_two_workers_and_any_chunking(
     assert torch.equal(a.data, b.data)
     assert a.meta["hit_guide"] == b.meta["hit_guide"] and a.meta["hit_choice_rays"] == b.meta["hit_choice_rays"]
     g = a.meta["hit_guide"]
-    assert g["faces_guided"] > 0 and g["curved_probe_rays"] == CURVED_PROBE_RAYS
-    assert CURVED_PROBE_RAYS * g["faces_probed"] < a.meta["hit_choice_rays"] < FACE_PROBE_RAYS * g["faces_probed"]  # both kinds
+    assert g["faces_guided"] > 0 and g["first_probe_rays"] == FIRST_PROBE_RAYS
+    assert FIRST_PROBE_RAYS * g["faces_probed"] < a.meta["hit_choice_rays"] < FACE_PROBE_RAYS * g["faces_probed"]  # both kinds
 
 
 def test_vertex_transfer_reproduces_rows_whose_hits_land_on_curved_faces():

@@ -5,7 +5,7 @@ the self-occlusion probe of ``--shadows auto``).
 The reference counts are closed forms, independent of the code's bookkeeping: inside a closed,
 inward-facing sphere every ray a vertex traces meets the front of a face, so with one bounce each
 of the V·⌈N/2⌉ qmc vertex rays (diffuse) makes one hit that traces ``hit_samples`` rays (4 under the default estimator), and the
-face probe traces ``CURVED_PROBE_RAYS`` rays per face its first hits land on (issue 42 §2: the sphere is curved,
+face probe traces ``FIRST_PROBE_RAYS`` rays per face its first hits land on (issue 42 §2: the sphere is curved,
 no face has 8 coplanar neighbours, so none may be guided and each probes the thinned set): every face at N = 256
 (46 336 hits on 720 faces), none on a lone plane (no ray of it meets the scene).
 """
@@ -18,7 +18,7 @@ import pytest
 from prt_torch.cli import main as cli_main
 from prt_torch.cli.precompute import ray_counts
 from prt_torch.scene import geodesic_sphere
-from prt_torch.transfer.diffuse import CURVED_PROBE_RAYS, HIT_SAMPLES_AUTO
+from prt_torch.transfer.diffuse import FIRST_PROBE_RAYS, HIT_SAMPLES_AUTO
 
 
 @pytest.fixture(scope="module")
@@ -48,7 +48,7 @@ def test_diffuse_summary_counts_vertex_hit_and_probe_rays(enclosure, tmp_path, c
     c = _summary(capsys.readouterr().err)
     assert c["vertex"] == V * (N // 2)  # qmc: ⌈N/2⌉ rays per vertex
     assert c["hit"] == M * c["vertex"]  # every vertex ray hits the inside; each hit traces M rays (one bounce: depth 1)
-    assert c["probe"] == CURVED_PROBE_RAYS * F  # estimator 'auto': the hits' per-face probe, every face hit at this N
+    assert c["probe"] == FIRST_PROBE_RAYS * F  # estimator 'auto': the hits' per-face probe, every face hit at this N
     assert c["total"] == c["vertex"] + c["hit"] + c["probe"]
     assert cli_main(["precompute", str(path), "--kind", "diffuse", "--bands", "2", "--samples", str(N), "--bounces", "1",
                      "--shadows", "always", "--no-progress", "--estimator", "plain", "--hit-samples", "3", "-o",
@@ -66,7 +66,7 @@ def test_glossy_summary_counts_hit_and_probe_rays(enclosure, tmp_path, capsys):
     c = _summary(err)
     assert "bounces used 1;" in err  # glossy/MRT record 'bounces' (no stopping rule)
     assert 0 < c["vertex"] < V * 256  # the shared sphere set's directions above each tangent plane
-    assert c["hit"] == HIT_SAMPLES_AUTO["auto"] * c["vertex"] and c["probe"] == CURVED_PROBE_RAYS * F
+    assert c["hit"] == HIT_SAMPLES_AUTO["auto"] * c["vertex"] and c["probe"] == FIRST_PROBE_RAYS * F
     assert c["total"] == c["vertex"] + c["hit"] + c["probe"]
 
 

@@ -64,7 +64,7 @@ __all__ = [
     "hit_bounce",
     "HitBounce",
     "record_probe_log",
-    "CURVED_PROBE_RAYS",
+    "FIRST_PROBE_RAYS",
     "offset_origins",
     "hit_ray_eps",
     "HIT_OFFSET",
@@ -92,12 +92,13 @@ GUIDE_GRID = (4, 8)
 FACE_PROBE_RAYS = GUIDE_GRID[0] * GUIDE_GRID[1]
 #: rays per probed curved face HitBounce accepts (``probe_rays``): every cell, every 2nd, every 4th
 PROBE_RAYS_CHOICES = (FACE_PROBE_RAYS, FACE_PROBE_RAYS // 2, FACE_PROBE_RAYS // 4)
-#: probe rays of a face that cannot be guided (curved: fewer than GUIDE_MIN_FACES coplanar faces) in a run
-#: (``HitBounce(probe_rays=)``): its probe only chooses between the plain sum and the control variate, and a
-#: stratified quarter of the cells chooses as well — one-bounce error unchanged to 3 digits, 3-37% fewer rays
-#: per vertex on curved meshes at N = 64-1024 (reports/benchmarks/face_probe.md); faces that may be guided
-#: probe every cell (their guide pools them)
-CURVED_PROBE_RAYS = FACE_PROBE_RAYS // 4
+#: a run's first probe rays per face (``HitBounce(probe_rays=)``, :meth:`HitBounce._probe`): a stratified
+#: quarter of the cells. A face that cannot be guided (curved: fewer than GUIDE_MIN_FACES coplanar faces) stops
+#: there — its probe only chooses between the plain sum and the control variate, which a quarter of the cells
+#: does as well; so does a flat face whose first rays all left (read open); the other flat faces go on to every
+#: cell (their guide pools them). One-bounce error unchanged to 3 digits, up to 60% fewer rays per vertex at
+#: N = 64-1024 (4 seeds; reports/benchmarks/face_probe.md, docs/precompute.md)
+FIRST_PROBE_RAYS = FACE_PROBE_RAYS // 4
 #: a face's guide pools the probes of the coplanar faces among its GUIDE_POOL nearest centroids; it
 #: is used only where at least GUIDE_MIN_FACES of them are coplanar (a flat region: their cells are
 #: the same directions); the uniform share of the guided density (Hesterberg 1995's defensive mixture)
@@ -499,7 +500,8 @@ class HitBounce:
     y(s_m), exact where the hit's hemisphere is open. ``'auto'``: per hit, that control variate
     where the hit face is mostly open and the plain sum elsewhere, chosen from the face's open
     fraction measured by :meth:`face_openness` (:data:`FACE_PROBE_RAYS` rays per face that may be
-    guided, ``probe_rays`` (:data:`CURVED_PROBE_RAYS` in a run) per curved face, their own
+    guided and not read open from the first ``probe_rays`` (:data:`FIRST_PROBE_RAYS` in a run), those
+    first rays on the other faces, their own
     rotations; traced for the faces the hits land on, as they arrive: :meth:`prepare`): a choice
     independent of the hit's own rays, so each hit's estimate stays unbiased (a choice read from
     its M = 4 to 8 rays would correlate with their set's error). In an enclosure
@@ -574,7 +576,7 @@ class HitBounce:
     def _probe(self, caster: RayCaster, faces: np.ndarray, full: bool = False) -> None:
         """Trace the probe (:meth:`face_openness`) of ``faces`` (int64, unique) where not yet traced,
         whose mean is the face's open fraction: K/s cells per face first (s = ``probe_stride`` = K /
-        ``probe_rays``, 4 in a run (:data:`CURVED_PROBE_RAYS`): every s-th cell from a first one
+        ``probe_rays``, 4 in a run (:data:`FIRST_PROBE_RAYS`): every s-th cell from a first one
         hashed from (seed, face) — two opposite sectors per ring, a stratified estimate all the
         same; all K at s = 1); then every cell of the faces that may be guided (at least
         :data:`GUIDE_MIN_FACES` coplanar faces: geometry only) unless all their first rays left the
@@ -1349,14 +1351,14 @@ def _hit_tables(caster: RayCaster, mesh: Mesh, bands: int, samples: int, seed: i
     """Step 2a (``bounce_points='hits'``): the :class:`HitBounce` estimator of this run (it
     needs no table: every bounce is estimated at its own hit point)."""
     hb = HitBounce(mesh, bands, hit_samples, seed, bounces, 1 if mesh.is_grey() else 3, hit_offset, estimator,
-                   CURVED_PROBE_RAYS)
+                   FIRST_PROBE_RAYS)
     meta.update(hit_samples=hit_samples, hit_offset=hit_offset, hit_eps=hb.hit_eps)
     if hb.mode == "auto":  # auto's per-face choice and the hits' guide: probed by the chunks, where their hits land
         hb._coplanar()  # the geometry (no rays) here, once: it travels with the estimator to the executor's tasks
         meta["hit_choice_rays"] = 0
         meta["hit_guide"] = {"grid": list(GUIDE_GRID), "pool": GUIDE_POOL, "min_faces": GUIDE_MIN_FACES,
                              "uniform_share": GUIDE_UNIFORM, "faces_guided": 0, "faces_probed": 0,
-                             "faces": int(hb.face_normals_np.shape[0]), "curved_probe_rays": CURVED_PROBE_RAYS}
+                             "faces": int(hb.face_normals_np.shape[0]), "first_probe_rays": FIRST_PROBE_RAYS}
     return hb
 
 
@@ -1415,7 +1417,7 @@ def _trace_direct(caster: RayCaster, mesh: Mesh, bands: int, samples: int, seed:
         fingerprint.update(hit_samples=hits.M, hit_terms=hits.terms, hit_offset=hits.hit_offset)
         if hits.mode == "auto":  # the guided hits (issue 42): chunks of an earlier estimate do not mix in
             fingerprint["hit_guide"] = [*GUIDE_GRID, GUIDE_POOL, GUIDE_MIN_FACES, GUIDE_UNIFORM]
-            if hits.probe_stride > 1:  # the curved faces' probe thinned (CURVED_PROBE_RAYS): chunks of the full probe do not mix in
+            if hits.probe_stride > 1:  # the probe's first stage thinned (FIRST_PROBE_RAYS): chunks of the full probe do not mix in
                 fingerprint["hit_probe_rays"] = FACE_PROBE_RAYS // hits.probe_stride
     if record_hits and hits is None:
         parts = run.run_chunks(V, chunk_size, compute, fingerprint=fingerprint, desc=f"diffuse {mesh.name}",
@@ -1553,7 +1555,7 @@ def vertex_transfer(mesh: Mesh, idx: Any, bands: int, samples: int, seed: int, b
     run = RunOptions(offset=offset)
     with RayCaster(mesh, workers=_workers(run, mesh, samples, sampling), offset=offset) as caster:
         hits = (HitBounce(mesh, bands, hit_samples, seed, bounces, 1 if mesh.is_grey() else 3, hit_offset, estimator,
-                          CURVED_PROBE_RAYS) if bounces > 0 else None)
+                          FIRST_PROBE_RAYS) if bounces > 0 else None)
         faces_np = mesh.faces.numpy()
         out = _chunk(caster, DiffuseSampler(bands, samples, seed, sampling, estimator), mesh.vertices[idx], mesh.normals[idx], frames,
                      faces_np, face_points(mesh)[1].numpy(), faces_np.shape[0], bounces > 0, "hits" if bounces else "vertices",
