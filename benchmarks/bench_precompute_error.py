@@ -214,7 +214,8 @@ def write(scenes: dict, out: Path):
                 if len(x):
                     ax.loglog(x, y, {"control": "o-", "auto": "^-", "plain": "s--"}[estimator], label=f"{sampling} + {estimator}")
             x, y, _ = by(rows, *TODAY, key)
-            ax.loglog(x, y[0] * np.sqrt(x[0] / x), "k:", lw=1, label="1/√N")
+            if len(x):  # a report of some rows only (--methods into a new --out) has no line to draw
+                ax.loglog(x, y[0] * np.sqrt(x[0] / x), "k:", lw=1, label="1/√N")
             ax.set_xlabel("rays traced per vertex" + ("" if key == "err_direct" else " (vertex + hit + probe rays)"))
             ax.set_ylabel("relative RMS error vs reference")
             ax.set_title(f"{res['scene']}: {title}", fontsize=10)

@@ -164,8 +164,10 @@ def test_precompute_on_ray_is_bit_identical_and_resumes_from_the_same_state(ray_
 @needs_ray
 def test_glossy_one_bounce_auto_on_ray_is_bit_identical(ray_ex):
     """Glossy with one bounce under the default 'auto' (per-vertex choice, the hits' face probe and
-    guide traced once in the driver, 4 rays per hit): the Ray executor's matrices and ray counts equal
-    the local run's (the hit rays come back with each chunk)."""
+    guide traced by each chunk where its hits land, 4 rays per hit): the Ray executor's matrices and
+    ray counts equal the local run's (the hit rays and the faces probed come back with each chunk;
+    a face whose hits reach several workers is probed in each, so the probe rays may exceed the
+    local run's, the faces probed and guided do not)."""
     from prt_torch.scene import load_scene
     from prt_torch.transfer import RunOptions
     from prt_torch.transfer.glossy import precompute_glossy
@@ -177,6 +179,7 @@ def test_glossy_one_bounce_auto_on_ray_is_bit_identical(ray_ex):
     assert a.meta["estimator"] == "auto" and a.meta["hit_guide"]["faces_guided"] > 0
     assert torch.equal(a.data, b.data)
     assert a.meta["hit_rays_traced"] == b.meta["hit_rays_traced"] > 0 and a.meta["rays_traced"] == b.meta["rays_traced"]
+    assert a.meta["hit_guide"] == b.meta["hit_guide"] and b.meta["hit_choice_rays"] >= a.meta["hit_choice_rays"] > 0
 
 
 @needs_ray

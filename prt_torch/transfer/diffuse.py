@@ -50,7 +50,7 @@ from ..executor import torch_threads
 from ..scene import Mesh, RayCaster, default_workers, edge_face_counts
 from ..sh import clamped_cosine, eval_sh, rotate_zonal
 from .base import RunOptions, Transfer, remove_state, run_chunks
-from .ray_kernels import qmc_rays_native, select_rays, sh_accumulate, upper_rays
+from .ray_kernels import guided_rays_native, qmc_rays_native, select_rays, sh_accumulate, upper_rays
 from .sampling import cosine_hemisphere, to_world, uniform_sphere
 
 __all__ = [
@@ -63,6 +63,8 @@ __all__ = [
     "vertex_transfer",
     "hit_bounce",
     "HitBounce",
+    "record_probe_log",
+    "FIRST_PROBE_RAYS",
     "offset_origins",
     "hit_ray_eps",
     "HIT_OFFSET",
@@ -88,6 +90,15 @@ GUIDE_GRID = (4, 8)
 #: rays per face of :meth:`HitBounce.face_openness` (the bounce estimator's per-hit choice under
 #: 'auto' and its guide): one jittered ray per cell of :data:`GUIDE_GRID`
 FACE_PROBE_RAYS = GUIDE_GRID[0] * GUIDE_GRID[1]
+#: rays per probed curved face HitBounce accepts (``probe_rays``): every cell, every 2nd, every 4th
+PROBE_RAYS_CHOICES = (FACE_PROBE_RAYS, FACE_PROBE_RAYS // 2, FACE_PROBE_RAYS // 4)
+#: a run's first probe rays per face (``HitBounce(probe_rays=)``, :meth:`HitBounce._probe`): a stratified
+#: quarter of the cells. A face that cannot be guided (curved: fewer than GUIDE_MIN_FACES coplanar faces) stops
+#: there — its probe only chooses between the plain sum and the control variate, which a quarter of the cells
+#: does as well; so does a flat face whose first rays all left (read open); the other flat faces go on to every
+#: cell (their guide pools them). One-bounce error unchanged to 3 digits, up to 60% fewer rays per vertex at
+#: N = 64-1024 (4 seeds; reports/benchmarks/face_probe.md, docs/precompute.md)
+FIRST_PROBE_RAYS = FACE_PROBE_RAYS // 4
 #: a face's guide pools the probes of the coplanar faces among its GUIDE_POOL nearest centroids; it
 #: is used only where at least GUIDE_MIN_FACES of them are coplanar (a flat region: their cells are
 #: the same directions); the uniform share of the guided density (Hesterberg 1995's defensive mixture)
@@ -488,9 +499,12 @@ class HitBounce:
     ``estimator='control'`` (issue 42): x⁰(q) = t_unshadowed(n_f) − (1/M) Σ_m (1 − V(q,s_m))
     y(s_m), exact where the hit's hemisphere is open. ``'auto'``: per hit, that control variate
     where the hit face is mostly open and the plain sum elsewhere, chosen from the face's open
-    fraction measured by :meth:`face_openness` (:data:`FACE_PROBE_RAYS` rays per face, their own
-    rotations): a choice independent of the hit's own rays, so each hit's estimate stays unbiased
-    (a choice read from its M = 4 to 8 rays would correlate with their set's error). In an enclosure
+    fraction measured by :meth:`face_openness` (:data:`FACE_PROBE_RAYS` rays per face that may be
+    guided and not read open from the first ``probe_rays`` (:data:`FIRST_PROBE_RAYS` in a run), those
+    first rays on the other faces, their own
+    rotations; traced for the faces the hits land on, as they arrive: :meth:`prepare`): a choice
+    independent of the hit's own rays, so each hit's estimate stays unbiased (a choice read from
+    its M = 4 to 8 rays would correlate with their set's error). In an enclosure
     (a Cornell box) 'control' at every hit had 1.8× the interreflected part's error of 'plain'
     (reports/benchmarks/precompute_error.md). Under 'auto' the first hits on flat, mostly blocked
     faces draw their rays from a density guided by the same probe (:meth:`_build_guide`: the
@@ -502,10 +516,13 @@ class HitBounce:
     """
 
     def __init__(self, mesh: Mesh, bands: int, hit_samples: int, seed: int, terms: int, channels: int,
-                 hit_offset: float | None = HIT_OFFSET, estimator: str = "plain"):
+                 hit_offset: float | None = HIT_OFFSET, estimator: str = "plain", probe_rays: int = FACE_PROBE_RAYS):
         from ..scene.mesh import tangent_frames
 
         self.bands, self.M, self.seed, self.C = bands, int(hit_samples), int(seed), channels
+        if probe_rays not in PROBE_RAYS_CHOICES:
+            raise ValueError(f"probe_rays={probe_rays!r}; accepted: one of {PROBE_RAYS_CHOICES} (rays per probed face)")
+        self.probe_stride = FACE_PROBE_RAYS // int(probe_rays)  # a face probes every probe_stride-th cell (_probe)
         self.hit_offset = None if hit_offset is None else check_float("hit_offset", hit_offset, 0.0, 0.1)
         self.hit_eps = None if hit_offset is None else hit_ray_eps(mesh, hit_offset)
         self.mode = check_choice("estimator", estimator, ESTIMATORS)
@@ -513,7 +530,12 @@ class HitBounce:
         self.terms = int(terms)
         centroids, fn, _ = face_points(mesh)
         self.face_centroids = centroids.numpy()
-        self._face_open: np.ndarray | None = None  # [F] float64, auto's per-face choice (face_openness)
+        self._face_open: np.ndarray | None = None  # [F] float64, auto's per-face choice (face_openness; NaN: not probed)
+        self.probe_rays = 0  # probe rays this process traced (face_openness)
+        self._cells: np.ndarray | None = None  # [F, K] bool, the cells each face probed (_probe)
+        self._log: tuple = (0, [], [])  # (probe_rays at the last take_probe_log, faces probed, guided since)
+        self._decided: np.ndarray | None = None  # [F] bool, the faces 'auto' has probed and decided (prepare)
+        self._pool = None  # (cnt, csr) the faces' coplanar neighbours (_coplanar)
         self.guided: np.ndarray | None = None  # [F] bool, faces whose deepest hits are guided (_build_guide)
         self.rays_traced = 0  # hit rays this process traced with this estimator (intersect + occluded; not the probe)
         self.face_normals = fn
@@ -529,76 +551,192 @@ class HitBounce:
         # faces whose three vertices share one albedo (every built-in scene): a lookup, no interpolation
         self.rho_face = rf[:, 0] if bool((rf == rf[:, :1]).all()) else None
 
-    def face_openness(self, caster: RayCaster) -> np.ndarray:
+    def face_openness(self, caster: RayCaster, faces: np.ndarray | None = None) -> np.ndarray:
         """``[F]`` float64: each face's open fraction, (1/K) Σ_m [ray m leaves the scene], from K =
         :data:`FACE_PROBE_RAYS` cosine-weighted rays leaving its centroid (the hits' offset rule),
         one per cell of :data:`GUIDE_GRID` in Malley's square (a = sin²θ, b = φ/2π), jittered in
         its cell by :func:`_hash_uniform` of (seed, face, cell) on streams apart from the hits' —
         a stratified estimate of the cosine-weighted open fraction of the face's hemisphere, what
         'auto' reads to choose a hit's estimator; the same rays give the hits' guide
-        (:meth:`_build_guide`). Computed once per estimator (F·K rays, traced in batches of about
-        2¹⁸), a function of (seed, mesh) only: the same tables in every process and chunk, so the
-        numbers stay independent of chunking and executor."""
-        if self._face_open is None:
-            F, K = self.face_normals_np.shape[0], FACE_PROBE_RAYS
-            Gb = GUIDE_GRID[1]
-            o_f = offset_origins(self.face_centroids, self.face_normals_np,
-                                 caster.eps if self.hit_eps is None else self.hit_eps).astype(np.float32)
-            cell = np.arange(K, dtype=np.int64)
-            opened = np.empty((F, K))
-            step = max(1, (1 << 18) // K)
-            for s0 in range(0, F, step):  # a loop over face batches, each one traced batch
-                f = np.repeat(np.arange(s0, min(F, s0 + step), dtype=np.int64), K)
-                c = np.tile(cell, f.shape[0] // K)
-                a = (c // Gb + _hash_uniform(self.seed, f, c, FACE_PROBE_STREAM)) / GUIDE_GRID[0]
-                b = (c % Gb + _hash_uniform(self.seed, f, c, FACE_PROBE_STREAM + 1)) / Gb
-                d = _malley_dirs(self.frames, f, a, b)
-                opened[s0:s0 + step] = 1.0 - caster.trace(o_f[f], d, "occluded").reshape(-1, K)
-            self._face_open = opened.mean(1)
-            if self.mode == "auto":
-                self._build_guide(opened)
+        (:meth:`_build_guide`). A function of (seed, mesh, face) only: the same value in every
+        process and chunk, whichever faces were probed before, so the numbers stay independent of
+        chunking and executor.
+
+        ``faces`` (int64 ``[n]``): probe only these faces (and, under 'auto', the coplanar
+        neighbours a guided one pools: :meth:`prepare`), as a run does for the faces its first hits
+        land on (issue 42 §2: a face no ray reaches is never probed); None: every face (F·K rays).
+        Faces not probed read NaN. Traced in batches of about 2¹⁸ rays."""
+        faces = np.arange(self.face_normals_np.shape[0], dtype=np.int64) if faces is None else np.unique(np.asarray(faces, np.int64))
+        if self.mode == "auto":
+            self.prepare(caster, faces)
+        else:
+            self._probe(caster, faces)
         return self._face_open
 
-    def _build_guide(self, opened: np.ndarray) -> None:
-        """The hits' guide from the probe's ``opened [F, K]`` (1 where a cell's probe ray left the
-        scene): per face the cell masses P ``[F, 4, 8]`` of a piecewise-constant density over
-        Malley's square, P = u/K + (1 − u) g/Σg with u = :data:`GUIDE_UNIFORM` and g each cell's
-        open fraction averaged over the coplanar faces (normals within 2.6°, centroids within 1e-3
-        of the diagonal of the plane) among the :data:`GUIDE_POOL` nearest centroids (uniform where
-        no probe ray left). Guided (``self.guided[f]``): the faces where 'auto' takes the plain sum
-        (open fraction < ½: the open cells are what it sums) with at least :data:`GUIDE_MIN_FACES`
-        such coplanar faces; not the curved regions (a cell's directions differ from face to face)
-        nor the faces where it takes the control variate (guided weights q up to 1/u could take its
-        estimate below 0, where the cosine set's never is), which keep the cosine-weighted set."""
-        from scipy.spatial import cKDTree
+    def _probe(self, caster: RayCaster, faces: np.ndarray, full: bool = False) -> None:
+        """Trace the probe (:meth:`face_openness`) of ``faces`` (int64, unique) where not yet traced,
+        whose mean is the face's open fraction: K/s cells per face first (s = ``probe_stride`` = K /
+        ``probe_rays``, 4 in a run (:data:`FIRST_PROBE_RAYS`): every s-th cell from a first one
+        hashed from (seed, face) — two opposite sectors per ring, a stratified estimate all the
+        same; all K at s = 1); then every cell of the faces that may be guided (at least
+        :data:`GUIDE_MIN_FACES` coplanar faces: geometry only) unless all their first rays left the
+        scene (read as open, 1: the control variate, not guided), their open fraction from all K —
+        a choice from the probe's own rays, independent of the hits' (no bias). ``full``:
+        then the faces' remaining cells too (what a guide pools, :meth:`prepare`). Cell c of face f
+        is always the same ray and each step reads the face's own rays only, so the values do not
+        depend on the order of calls."""
+        F, K, s = self.face_normals_np.shape[0], FACE_PROBE_RAYS, self.probe_stride
+        if self._cells is None:
+            self._face_open = np.full(F, np.nan)
+            self._opened = np.zeros((F, K), bool)  # [F, K] the probe rays that left the scene (32 B per face)
+            self._cells = np.zeros((F, K), bool)  # [F, K] the cells traced
+            self.probed = np.zeros(F, bool)
+        new = faces[~self.probed[faces]]
+        if new.size:  # the first stage: its open fraction
+            k = K // s
+            c = np.tile(s * np.arange(k, dtype=np.int64), new.shape[0])  # every s-th cell from a random first one
+            if s > 1:
+                c = c + np.repeat((_hash_uniform(self.seed, new, np.zeros_like(new), FACE_PROBE_STREAM + 2) * s).astype(np.int64), k)
+            opened = self._trace_cells(caster, np.repeat(new, k), c).reshape(-1, k)
+            self._face_open[new] = opened.mean(1, dtype=np.float64)
+            if s > 1:  # faces that may be guided, unless all their first rays left: every cell, the open fraction of all
+                rest = new[(self._coplanar()[0][new] >= GUIDE_MIN_FACES) & ~opened.all(1)]
+                f, c = np.nonzero(~self._cells[rest])
+                if f.size:
+                    self._trace_cells(caster, rest[f], c)
+                    self._face_open[rest] = self._opened[rest].mean(1, dtype=np.float64)
+            self.probed[new] = True
+            self._log[1].append(new)
+        if full and s > 1:  # the faces' remaining cells
+            f, c = np.nonzero(~self._cells[faces])
+            if f.size:
+                self._trace_cells(caster, faces[f], c)
 
+    def _trace_cells(self, caster: RayCaster, f: np.ndarray, c: np.ndarray) -> np.ndarray:
+        """Trace probe ray (f, c) for each face f and cell c (int64 ``[R]``, grouped by face), one
+        jittered cosine-weighted ray in cell c of :data:`GUIDE_GRID` from f's centroid; records
+        them in ``_opened``/``_cells`` and the ray count. Returns ``opened bool [R]``. Traced in
+        batches of about 2¹⁸ rays."""
+        Gb = GUIDE_GRID[1]
+        eps = caster.eps if self.hit_eps is None else self.hit_eps
+        out = np.empty(f.shape[0], bool)
+        step = 1 << 18
+        for s0 in range(0, f.shape[0], step):  # a loop over ray batches, each one traced batch
+            fb, cb = f[s0:s0 + step], c[s0:s0 + step]
+            a = (cb // Gb + _hash_uniform(self.seed, fb, cb, FACE_PROBE_STREAM)) / GUIDE_GRID[0]
+            b = (cb % Gb + _hash_uniform(self.seed, fb, cb, FACE_PROBE_STREAM + 1)) / Gb
+            d = _malley_dirs(self.frames, fb, a, b)
+            o = offset_origins(self.face_centroids[fb], self.face_normals_np[fb], eps).astype(np.float32)
+            out[s0:s0 + step] = ~caster.trace(o, d, "occluded")
+        self._opened[f, c] = out
+        self._cells[f, c] = True
+        self.probe_rays += f.shape[0]
+        return out
+
+    def take_probe_log(self) -> dict[str, torch.Tensor]:
+        """What this process probed since the last call, for a chunk's result (any executor; a run
+        sums and unites them: :func:`record_probe_log`): ``probe_rays`` int64 ``[1]`` (rays traced),
+        ``probed_faces`` and ``guided_faces`` int64 (the faces newly probed, newly guided)."""
+        rays, probed, guided = self.probe_rays - self._log[0], self._log[1], self._log[2]
+        self._log = (self.probe_rays, [], [])
+        def cat(xs: list) -> torch.Tensor:
+            return torch.from_numpy(np.concatenate(xs).astype(np.int64)) if xs else torch.zeros(0, dtype=torch.int64)
+        return {"probe_rays": torch.tensor([rays], dtype=torch.int64), "probed_faces": cat(probed), "guided_faces": cat(guided)}
+
+    def prepare(self, caster: RayCaster, faces: np.ndarray, guide: bool = True) -> None:
+        """What a batch of hits on ``faces`` (int64 ``[n]``, repeats allowed) needs before its rays
+        (estimator 'auto'; nothing otherwise): the faces' probe (:meth:`face_openness`), and
+        (``guide``: first hits) for each face first seen here whether its first hits are guided,
+        with its guide (:meth:`_build_guide`), after probing the coplanar neighbours the guide
+        pools. Each face is decided once per process; what is decided is a function of (seed,
+        mesh, face) only."""
+        if self.mode != "auto":
+            return
+        if not guide:
+            self._probe(caster, np.unique(faces))
+            return
+        if self._decided is None:
+            self._decided = np.zeros(self.face_normals_np.shape[0], bool)
+        faces = np.unique(faces)
+        new = faces[~self._decided[faces]]
+        if not new.size:
+            return
+        self._probe(caster, new)
+        cnt, pool_m = self._coplanar()
+        cand = new[(cnt[new] >= GUIDE_MIN_FACES) & (self._face_open[new] < 0.5)]  # the faces guided (_build_guide)
+        if cand.size:  # the neighbours their guides pool (themselves included), every cell
+            self._probe(caster, np.unique(pool_m[cand].indices).astype(np.int64), full=True)
+        self._build_guide(self._opened, new)
+        self._decided[new] = True
+
+    def _coplanar(self):
+        """``(cnt int64 [F], pool csr [F, F])``: per face its coplanar faces (normals within 2.6°,
+        centroids within 1e-3 of the diagonal of the plane) among the :data:`GUIDE_POOL` nearest
+        centroids (itself included), once per estimator (geometry only, no rays)."""
+        if self._pool is None:
+            from scipy.spatial import cKDTree
+
+            c, n = self.face_centroids, self.face_normals_np
+            F = c.shape[0]
+            pool = min(GUIDE_POOL, F)
+            tree = cKDTree(c)
+            diag = float(np.linalg.norm(c.max(0) - c.min(0))) if F else 0.0
+            nb = np.empty((F, pool), np.int64)
+            same = np.empty((F, pool), bool)
+            step = 1 << 16
+            for s0 in range(0, F, step):  # face blocks: the [block, pool, 3] gathers stay small at millions of faces
+                sl = slice(s0, s0 + step)
+                nb[sl] = tree.query(c[sl], pool)[1].reshape(-1, pool)
+                same[sl] = (np.einsum("ij,ikj->ik", n[sl], n[nb[sl]]) > 0.999) & \
+                    (np.abs(np.einsum("ij,ikj->ik", n[sl], c[nb[sl]] - c[sl, None, :])) <= 1e-3 * diag)
+            cnt = same.sum(1)
+            same &= (cnt >= GUIDE_MIN_FACES)[:, None]  # rows of faces that may be guided only (the others are never read)
+            pool_m = scipy.sparse.csr_matrix((same.reshape(-1).astype(np.int8), nb.reshape(-1),
+                                              np.arange(0, F * pool + 1, pool)), shape=(F, F))
+            pool_m.eliminate_zeros()  # row f: its coplanar neighbours, 5 B each (sums of 0/1: exact in any order)
+            self._pool = (cnt, pool_m)
+        return self._pool
+
+    def _build_guide(self, opened: np.ndarray, faces: np.ndarray | None = None) -> None:
+        """The hits' guide of ``faces`` (int64, default every face) from the probe's ``opened [F, K]``
+        (1 where a cell's probe ray left the scene; the rows of the faces and of their coplanar
+        neighbours are read): per face the cell masses P ``[4, 8]`` of a piecewise-constant density
+        over Malley's square, P = u/K + (1 − u) g/Σg with u = :data:`GUIDE_UNIFORM` and g each cell's
+        open fraction averaged over the coplanar faces (:meth:`_coplanar`) among the
+        :data:`GUIDE_POOL` nearest centroids (uniform where no probe ray left). Guided
+        (``self.guided[f]``): the faces where 'auto' takes the plain sum (open fraction < ½: the
+        open cells are what it sums) with at least :data:`GUIDE_MIN_FACES` such coplanar faces; not
+        the curved regions (a cell's directions differ from face to face) nor the faces where it
+        takes the control variate (guided weights q up to 1/u could take its estimate below 0,
+        where the cosine set's never is), which keep the cosine-weighted set. The guides are kept
+        for the guided faces only (544 B each), appended as faces are decided."""
         F, K = opened.shape
-        c, n = self.face_centroids, self.face_normals_np
-        pool = min(GUIDE_POOL, F)
-        tree = cKDTree(c)
-        diag = float(np.linalg.norm(c.max(0) - c.min(0))) if F else 0.0
-        nb = np.empty((F, pool), np.int64)
-        same = np.empty((F, pool), bool)
-        step = 1 << 16
-        for s0 in range(0, F, step):  # face blocks: the [block, pool, 3] gathers stay small at millions of faces
-            sl = slice(s0, s0 + step)
-            nb[sl] = tree.query(c[sl], pool)[1].reshape(-1, pool)
-            same[sl] = (np.einsum("ij,ikj->ik", n[sl], n[nb[sl]]) > 0.999) & \
-                (np.abs(np.einsum("ij,ikj->ik", n[sl], c[nb[sl]] - c[sl, None, :])) <= 1e-3 * diag)
-        cnt = same.sum(1)
-        pool_m = scipy.sparse.csr_matrix((same.reshape(-1).astype(np.float64), nb.reshape(-1), np.arange(0, F * pool + 1, pool)),
-                                         shape=(F, F))  # row f: its coplanar neighbours (sums of 0/1: exact in any order)
-        g = (pool_m @ opened) / np.maximum(cnt, 1)[:, None]  # [F, K] pooled open fraction per cell
+        faces = np.arange(F, dtype=np.int64) if faces is None else faces
+        cnt, pool_m = self._coplanar()
+        if self.guided is None:
+            self.guided = np.zeros(F, bool)
+            self._guide_row = np.full(F, -1, np.int64)
+            self.guide_mass = np.zeros((0, *GUIDE_GRID))
+            self._guide_cdf = (np.zeros((0, GUIDE_GRID[0])), np.zeros((0, *GUIDE_GRID)))
+        gf = faces[(cnt[faces] >= GUIDE_MIN_FACES) & (self._face_open[faces] < 0.5)]
+        gf = gf[self._guide_row[gf] < 0]  # not yet guided
+        self.guided[gf] = True
+        self._log[2].append(gf)
+        if not gf.size:
+            return
+        sub = pool_m[gf]  # [G, F] their coplanar neighbours
+        cols = np.unique(sub.indices)
+        cells = np.ones(opened.shape, bool) if self._cells is None else self._cells
+        n_cell = sub[:, cols] @ cells[cols].astype(np.float64)  # [G, K] probe rays per cell (cnt each: every cell probed)
+        g = (sub[:, cols] @ opened[cols].astype(np.float64)) / np.maximum(n_cell, 1)  # [G, K] pooled open fraction per cell
         tot = g.sum(1, keepdims=True)
         g = np.where(tot > 0, g / np.maximum(tot, 1e-300), 1.0 / K)
-        self.guided = (cnt >= GUIDE_MIN_FACES) & (self._face_open < 0.5)
-        gf = np.flatnonzero(self.guided)
-        self._guide_row = np.full(F, -1, np.int64)
-        self._guide_row[gf] = np.arange(gf.size)  # the guided faces' rows: kept for them only (544 B each)
-        P = (GUIDE_UNIFORM / K + (1.0 - GUIDE_UNIFORM) * g[gf]).reshape(gf.size, *GUIDE_GRID)
-        self.guide_mass = P  # [G, Ga, Gb] of the guided faces, each sums to 1
+        self._guide_row[gf] = self.guide_mass.shape[0] + np.arange(gf.size)
+        P = (GUIDE_UNIFORM / K + (1.0 - GUIDE_UNIFORM) * g).reshape(gf.size, *GUIDE_GRID)
         Pa = P.sum(2)  # [G, Ga] ring masses
-        self._guide_cdf = (np.cumsum(Pa, 1), np.cumsum(P / Pa[:, :, None], 2))
+        self.guide_mass = np.concatenate([self.guide_mass, P])  # [G, Ga, Gb] of the guided faces, each sums to 1
+        self._guide_cdf = (np.concatenate([self._guide_cdf[0], np.cumsum(Pa, 1)]),
+                           np.concatenate([self._guide_cdf[1], np.cumsum(P / Pa[:, :, None], 2)]))
 
     def _guided_rays(self, tri: np.ndarray, ua: np.ndarray, ub: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Warp rotated points (``ua, ub`` float64 ``[R]`` in [0,1)², face ``tri [R]``) by the face's
@@ -639,15 +777,32 @@ class HitBounce:
         return rho[:, :1] if self.C == 1 else rho
 
     def exit_transfer(self, caster: RayCaster, tri: np.ndarray, bary: np.ndarray, key_a: np.ndarray,
-                      key_b: np.ndarray) -> torch.Tensor:
+                      key_b: np.ndarray, channel_weights: torch.Tensor | None = None) -> torch.Tensor:
         """``[H, C, n²]`` float64: ρ_q Σ_k x^k(q), the whole exit transfer a hit brings (albedo
-        folded), in batches of about 2¹⁸ secondary rays."""
-        out = torch.empty(tri.shape[0], self.C, self.bands * self.bands, dtype=torch.float64)
+        folded), in batches of about 2¹⁸ secondary rays. ``channel_weights`` (float64 ``[3]``, the
+        glossy kind's luminance weights): ``[H, n²]`` instead, (w₀ t₀ + w₁ t₁) + w₂ t₂ with t_c the
+        channel's exit transfer (the order ``einsum('hcn,c->hn')`` takes here), or the one channel
+        of a grey mesh — per batch, never the ``[H, 3, n²]`` whole."""
+        n2 = self.bands * self.bands
+        out = torch.empty((tri.shape[0], self.C, n2) if channel_weights is None else (tri.shape[0], n2), dtype=torch.float64)
         step = max(1, (1 << 18) // self.M)
         for a in range(0, tri.shape[0], step):  # a loop over hit batches, each one traced batch
             sl = slice(a, a + step)
-            x = self.values(caster, tri[sl], bary[sl], key_a[sl], key_b[sl]).sum(1)
-            out[sl] = self.albedo_at(tri[sl], bary[sl])[:, :, None] * x
+            if self.terms == 1:  # one term (one bounce): x⁰ itself, without the [H, terms, C, n²] buffer and its sum
+                x = self._first_term(caster, tri[sl], bary[sl], key_a[sl], key_b[sl], 0, False)[0][:, None, :]
+            else:
+                x = self.values(caster, tri[sl], bary[sl], key_a[sl], key_b[sl]).sum(1)
+            rho = self.albedo_at(tri[sl], bary[sl])  # [h, C]
+            if channel_weights is None:
+                torch.mul(rho[:, :, None], x, out=out[sl])
+            elif self.C == 1:
+                torch.mul(rho, x[:, 0], out=out[sl])
+            else:
+                w, o = channel_weights, out[sl]
+                xs = [x[:, min(c, x.shape[1] - 1)] for c in range(3)]  # x [h, 1 or C, n²]
+                torch.mul(rho[:, 0:1], xs[0], out=o).mul_(w[0])  # in place: no fresh [h, n²] pages per operation
+                t = torch.mul(rho[:, 1:2], xs[1]).mul_(w[1])
+                o.add_(t).add_(torch.mul(rho[:, 2:3], xs[2], out=t).mul_(w[2]))
         return out
 
     def _rays(self, caster: RayCaster, tri: np.ndarray, bary: np.ndarray, key_a: np.ndarray, key_b: np.ndarray,
@@ -655,7 +810,8 @@ class HitBounce:
         """The M = :meth:`samples_at` (level) cosine-weighted rays of each hit (class docstring), traced:
         the Hammersley set Cranley–Patterson rotated per hit, in the hit face's frame, from the compiled
         ray generator (:func:`_rotated_rays`); at the first hit on a guided face (estimator 'auto',
-        :meth:`_build_guide`) the same rotated points warped by the face's guide (:meth:`_guided_rays`;
+        :meth:`_build_guide`) the same rotated points warped by the face's guide (one compiled pass,
+        ``ray_kernels.guided_rays_native``, or its numpy reference :meth:`_guided_rays`: the same bits;
         the same at every ``terms``, so a run with more bounces adds terms to the same first-hit
         estimate). Returns (directions
         float32 ``[H·M, 3]``, ray h·M + m of hit h; blocked ``bool [H·M]``; for ``intersect`` the
@@ -682,14 +838,16 @@ class HitBounce:
         self.rays_traced += o.shape[0]
         w = None
         if self.mode == "auto" and level == 0:
-            g = np.flatnonzero(self.guided_faces(caster)[tri])  # [G] the guided hits
+            self.prepare(caster, tri)  # the faces' probe and guides, where not yet decided
+            g = np.flatnonzero(self.guided[tri])  # [G] the guided hits
             if g.size:
-                r = (g[:, None] * M + np.arange(M)).reshape(-1)  # their rays
-                ua = np.mod(tables[0][None, :] + u1[g, None], 1.0).reshape(-1)
-                ub = np.mod(self._base_b(M)[None, :] + v2[g, None], 1.0).reshape(-1)
-                d[r], qg = self._guided_rays(np.repeat(tri[g], M), ua, ub)
                 w = np.ones(d.shape[0])
-                w[r] = qg
+                if not guided_rays_native(M, g, tri[g], u1[g], v2[g], tables[0], self._base_b(M), self._guide_row,
+                                          *self._guide_cdf, self.guide_mass, self.frames, d, w):  # numpy: the reference
+                    r = (g[:, None] * M + np.arange(M)).reshape(-1)  # their rays
+                    ua = np.mod(tables[0][None, :] + u1[g, None], 1.0).reshape(-1)
+                    ub = np.mod(self._base_b(M)[None, :] + v2[g, None], 1.0).reshape(-1)
+                    d[r], w[r] = self._guided_rays(np.repeat(tri[g], M), ua, ub)
         if intersect:
             prim, bu, bv, _ = caster.trace(o, d, "intersect")
             return d, prim != -1, (prim, bu, bv), w
@@ -697,7 +855,8 @@ class HitBounce:
 
     def guided_faces(self, caster: RayCaster) -> np.ndarray:
         """``[F]`` bool: the faces whose first hits' rays are guided (:meth:`_build_guide`; none but
-        under 'auto'), probing first if needed."""
+        under 'auto'), probing every face first if needed (the whole-mesh probe; a run probes
+        only the faces its hits land on, :meth:`prepare`)."""
         if self.mode != "auto":
             return np.zeros(self.face_normals_np.shape[0], bool)
         self.face_openness(caster)
@@ -734,9 +893,28 @@ class HitBounce:
         out = torch.zeros(H, depth, self.C, n2, dtype=torch.float64)
         if H == 0:
             return out
-        d, hit, isect, w = self._rays(caster, tri, bary, key_a, key_b, level, depth > 1)
+        x0, d, hit, isect, w = self._first_term(caster, tri, bary, key_a, key_b, level, depth > 1)
+        out[:, 0] = x0[:, None, :]
+        if depth > 1:
+            row, t2, bary2, ka2, kb2, hh = self._front_hits(d, hit, isect, key_a, key_b, M)
+            x2 = self.values(caster, t2, bary2, ka2, kb2, level + 1)  # [R, depth-1, C, n²]
+            w2 = self.albedo_at(t2, bary2)[:, None, :, None] / M
+            if w is not None:  # guided rays: their weight factors (_guided_rays)
+                w2 = w2 * torch.from_numpy(w[hh])[:, None, None, None]
+            out[:, 1:] = torch.zeros(H, depth - 1, self.C, n2, dtype=torch.float64).index_add_(
+                0, torch.from_numpy(row), w2 * x2)
+        return out
+
+    def _first_term(self, caster: RayCaster, tri: np.ndarray, bary: np.ndarray, key_a: np.ndarray, key_b: np.ndarray,
+                    level: int, intersect: bool):
+        """x⁰(q) ``[H, n²]`` float64 of each hit at ``level`` (the class docstring's estimate of the
+        chosen estimator; ρ_q not applied) and the level's traced rays as :meth:`_rays` returns them
+        (directions, blocked, the intersections when ``intersect``, weight factors or None)."""
+        H, n2, M = tri.shape[0], self.bands * self.bands, self.samples_at(level)
+        d, hit, isect, w = self._rays(caster, tri, bary, key_a, key_b, level, intersect)
         if self.mode == "auto":  # per hit: the control variate where its face is mostly open (face_openness)
-            open_h = self.face_openness(caster)[tri] >= 0.5  # [H]
+            self.prepare(caster, tri, guide=level == 0)  # (done by _rays at the first hits)
+            open_h = self._face_open[tri] >= 0.5  # [H]
             sel = np.flatnonzero(hit == np.repeat(open_h, M))  # the open faces' blocked rays, the others' open ones
         else:
             sel = np.flatnonzero(hit if self.control else ~hit)
@@ -755,16 +933,7 @@ class HitBounce:
                 x0[oh] = self._face_unshadowed[torch.from_numpy(tri[open_h])] - x0[oh]
             else:
                 x0 = self._face_unshadowed[torch.from_numpy(tri)] - x0
-        out[:, 0] = x0[:, None, :]
-        if depth > 1:
-            row, t2, bary2, ka2, kb2, hh = self._front_hits(d, hit, isect, key_a, key_b, M)
-            x2 = self.values(caster, t2, bary2, ka2, kb2, level + 1)  # [R, depth-1, C, n²]
-            w2 = self.albedo_at(t2, bary2)[:, None, :, None] / M
-            if w is not None:  # guided rays: their weight factors (_guided_rays)
-                w2 = w2 * torch.from_numpy(w[hh])[:, None, None, None]
-            out[:, 1:] = torch.zeros(H, depth - 1, self.C, n2, dtype=torch.float64).index_add_(
-                0, torch.from_numpy(row), w2 * x2)
-        return out
+        return x0, d, hit, isect, w
 
     def texel_values(self, caster: RayCaster, tri: np.ndarray, bary: np.ndarray, key_a: np.ndarray, key_b: np.ndarray,
                      texel_of, level: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -892,6 +1061,8 @@ def _chunk_work(caster: RayCaster, sampler: DiffuseSampler, points: torch.Tensor
             out["TB"], n_hit = _hit_bounces(caster, hits, k, i[h], j[h], tri,
                                             bu[h], bv[h], w_ray[h], first_id, sampler.bands, ids)
             out["hit_rays"] = torch.tensor([n_hit], dtype=torch.int64)
+            if hits.mode == "auto":
+                out.update(hits.take_probe_log())  # the faces this chunk probed (record_probe_log)
             return out
         if hit_columns == "faces":
             rows, cols, vals = i[h], tri, w_ray[h]
@@ -1179,14 +1350,32 @@ def _hit_tables(caster: RayCaster, mesh: Mesh, bands: int, samples: int, seed: i
                 estimator: str = "plain") -> HitBounce:
     """Step 2a (``bounce_points='hits'``): the :class:`HitBounce` estimator of this run (it
     needs no table: every bounce is estimated at its own hit point)."""
-    hb = HitBounce(mesh, bands, hit_samples, seed, bounces, 1 if mesh.is_grey() else 3, hit_offset, estimator)
+    hb = HitBounce(mesh, bands, hit_samples, seed, bounces, 1 if mesh.is_grey() else 3, hit_offset, estimator,
+                   FIRST_PROBE_RAYS)
     meta.update(hit_samples=hit_samples, hit_offset=hit_offset, hit_eps=hb.hit_eps)
-    if hb.mode == "auto":  # auto's per-face choice and the hits' guide, traced once here (they travel with the estimator)
-        hb.face_openness(caster)
-        meta["hit_choice_rays"] = int(hb.face_normals_np.shape[0]) * FACE_PROBE_RAYS
+    if hb.mode == "auto":  # auto's per-face choice and the hits' guide: probed by the chunks, where their hits land
+        hb._coplanar()  # the geometry (no rays) here, once: it travels with the estimator to the executor's tasks
+        meta["hit_choice_rays"] = 0
         meta["hit_guide"] = {"grid": list(GUIDE_GRID), "pool": GUIDE_POOL, "min_faces": GUIDE_MIN_FACES,
-                             "uniform_share": GUIDE_UNIFORM, "faces_guided": int(hb.guided.sum())}
+                             "uniform_share": GUIDE_UNIFORM, "faces_guided": 0, "faces_probed": 0,
+                             "faces": int(hb.face_normals_np.shape[0]), "first_probe_rays": FIRST_PROBE_RAYS}
     return hb
+
+
+def record_probe_log(meta: dict, part: dict, seen: dict) -> None:
+    """Add a chunk's probe log (:meth:`HitBounce.take_probe_log`) to a run's ``meta``:
+    ``hit_choice_rays`` sums the probe rays traced (on the Ray executor a face whose hits reach
+    several workers is probed in each of them), ``hit_guide['faces_probed' / 'faces_guided']``
+    count the distinct faces over all chunks (the same on any executor). ``seen``: the run's
+    ``{'probed': bool [F], 'guided': bool [F]}``, created on the first call."""
+    if "probe_rays" not in part or "hit_guide" not in meta:
+        return
+    F = meta["hit_guide"]["faces"]
+    for k in ("probed", "guided"):
+        arr = seen.setdefault(k, np.zeros(F, bool))
+        arr[part[f"{k}_faces"].numpy()] = True
+        meta["hit_guide"][f"faces_{k}"] = int(arr.sum())
+    meta["hit_choice_rays"] = meta.get("hit_choice_rays", 0) + int(part["probe_rays"].sum())
 
 
 def _trace_direct(caster: RayCaster, mesh: Mesh, bands: int, samples: int, seed: int, sampling: str,
@@ -1228,6 +1417,8 @@ def _trace_direct(caster: RayCaster, mesh: Mesh, bands: int, samples: int, seed:
         fingerprint.update(hit_samples=hits.M, hit_terms=hits.terms, hit_offset=hits.hit_offset)
         if hits.mode == "auto":  # the guided hits (issue 42): chunks of an earlier estimate do not mix in
             fingerprint["hit_guide"] = [*GUIDE_GRID, GUIDE_POOL, GUIDE_MIN_FACES, GUIDE_UNIFORM]
+            if hits.probe_stride > 1:  # the probe's first stage thinned (FIRST_PROBE_RAYS): chunks of the full probe do not mix in
+                fingerprint["hit_probe_rays"] = FACE_PROBE_RAYS // hits.probe_stride
     if record_hits and hits is None:
         parts = run.run_chunks(V, chunk_size, compute, fingerprint=fingerprint, desc=f"diffuse {mesh.name}",
                                rays_of=lambda r: int(r["rays"].sum()))
@@ -1239,6 +1430,7 @@ def _trace_direct(caster: RayCaster, mesh: Mesh, bands: int, samples: int, seed:
         TB = None if hits is None else run.result_rows((V, hits.terms, hits.C, bands * bands), torch.float64, name="tb",
                                                        nbytes=held)
         meta["rays_traced"] = 0
+        seen: dict = {}
 
         def sink(a: int, b: int, p: dict[str, torch.Tensor]) -> None:
             T0[a:b] = p["T"]
@@ -1247,6 +1439,7 @@ def _trace_direct(caster: RayCaster, mesh: Mesh, bands: int, samples: int, seed:
             meta["rays_traced"] += int(p["rays"].sum())
             if "hit_rays" in p:
                 meta["hit_rays_traced"] = meta.get("hit_rays_traced", 0) + int(p["hit_rays"].sum())
+            record_probe_log(meta, p, seen)
 
         run.run_chunks(V, chunk_size, compute, fingerprint=fingerprint, desc=f"diffuse {mesh.name}",
                        rays_of=lambda r: int(r["rays"].sum()), sink=sink)
@@ -1361,8 +1554,8 @@ def vertex_transfer(mesh: Mesh, idx: Any, bands: int, samples: int, seed: int, b
     nudge = boundary_nudge(mesh)[idx]
     run = RunOptions(offset=offset)
     with RayCaster(mesh, workers=_workers(run, mesh, samples, sampling), offset=offset) as caster:
-        hits = (HitBounce(mesh, bands, hit_samples, seed, bounces, 1 if mesh.is_grey() else 3, hit_offset, estimator)
-                if bounces > 0 else None)
+        hits = (HitBounce(mesh, bands, hit_samples, seed, bounces, 1 if mesh.is_grey() else 3, hit_offset, estimator,
+                          FIRST_PROBE_RAYS) if bounces > 0 else None)
         faces_np = mesh.faces.numpy()
         out = _chunk(caster, DiffuseSampler(bands, samples, seed, sampling, estimator), mesh.vertices[idx], mesh.normals[idx], frames,
                      faces_np, face_points(mesh)[1].numpy(), faces_np.shape[0], bounces > 0, "hits" if bounces else "vertices",

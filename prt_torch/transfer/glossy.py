@@ -42,7 +42,7 @@ from ..brdf import BRDF, AshikhminShirley, brdf_matrices, output_index
 from ..scene import Mesh, RayCaster, default_workers
 from ..sh import blocks_to_dense, eval_sh, hemisphere_gram, rotation_blocks
 from .base import RunOptions, Transfer
-from .diffuse import HitBounce, boundary_nudge, hit_bounce, offset_origins
+from .diffuse import HitBounce, boundary_nudge, hit_bounce, offset_origins, record_probe_log
 from .sampling import uniform_sphere
 
 __all__ = [
@@ -198,8 +198,7 @@ def transferred_radiance(caster: RayCaster | None, points: torch.Tensor, normals
             h, th = h[front].numpy(), th[front].numpy()
             bary = np.stack([1 - bu[h] - bv[h], bu[h], bv[h]], 1).astype(np.float64)
             vid = (torch.arange(points.shape[0]) if ids is None else ids.to(torch.int64))[i].numpy()
-            t_hit = bounce.hits.exit_transfer(caster, th, bary, vid[h], j.numpy()[h])  # [H, C, n²] at the hit itself
-            t_hit = torch.einsum("hcn,c->hn", t_hit, _LUMA) if t_hit.shape[1] == 3 else t_hit[:, 0]
+            t_hit = bounce.hits.exit_transfer(caster, th, bary, vid[h], j.numpy()[h], _LUMA)  # [H, n²] at the hit itself
             h = torch.from_numpy(h)
             A = torch.zeros(cos.shape[0], cos.shape[1], t_hit.shape[1], dtype=torch.float64)
             A[i[h], j[h]] = t_hit  # [k, N, n²]: radiance transfer arriving along each blocked direction
@@ -228,7 +227,7 @@ def transferred_radiance(caster: RayCaster | None, points: torch.Tensor, normals
 @dataclasses.dataclass
 class Bounce:
     """What the glossy interreflection needs: the diffuse precompute's hit-point estimator
-    (:class:`prt_torch.transfer.diffuse.HitBounce`, its face tables traced)."""
+    (:class:`prt_torch.transfer.diffuse.HitBounce`; its face probe traced by the chunks where their hits land)."""
 
     hits: HitBounce
 
@@ -324,16 +323,21 @@ def run_exit_transfer(
                 out = left[index[idx]] @ rotate_rows(T, blocks)  # B_p R_p T_p
             else:
                 out = T  # the global transferred-radiance matrices (Sloan 2002)
-            return {"data": out.to(torch.float32), "rays": torch.tensor([rays], dtype=torch.int64),
-                    "hit_rays": torch.tensor([hit_rays], dtype=torch.int64)}
+            res = {"data": out.to(torch.float32), "rays": torch.tensor([rays], dtype=torch.int64),
+                   "hit_rays": torch.tensor([hit_rays], dtype=torch.int64)}
+            if bounce is not None and bounce.hits.mode == "auto":
+                res.update(bounce.hits.take_probe_log())  # the faces this chunk probed (diffuse.record_probe_log)
+            return res
 
         data = run.result_rows((V, n_out, n2), torch.float32)  # in memory, or a file when larger than memory allows
+        seen: dict = {}
 
         def sink(a: int, b: int, p: dict[str, torch.Tensor]) -> None:  # each chunk copied in as it finishes
             data[a:b] = p["data"]
             meta["rays_traced"] = meta.get("rays_traced", 0) + int(p["rays"].sum())
             if bounce is not None and "hit_rays" in p:  # the hit points' rays, intersect and occluded (chunks of an older run: none)
                 meta["hit_rays_traced"] = meta.get("hit_rays_traced", 0) + int(p["hit_rays"].sum())
+            record_probe_log(meta, p, seen)
 
         with torch_threads(CHUNK_THREADS or torch.get_num_threads()):  # the sink's copies and the chunk saves too
             run.run_chunks(V, chunk_size, compute, fingerprint=fingerprint, desc=f"{kind} {mesh.name}",

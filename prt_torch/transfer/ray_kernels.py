@@ -1,6 +1,7 @@
 """Compiled passes of the diffuse precompute: the uniform set's rays (below), the qmc set's
 rotated Hammersley rays per vertex or per hit (:func:`qmc_rays_native`), the estimators' choice of
-rays (:func:`select_rays`) and their SH sums per vertex (:func:`sh_accumulate`) — issue 42.
+rays (:func:`select_rays`), their SH sums per vertex (:func:`sh_accumulate`) and the bounce
+estimator's guided first-hit rays (:func:`guided_rays_native`, ``kernels/guided.c``) — issue 42.
 
 For a chunk of k vertices and N shared sample directions, the rays traced are the pairs
 (vertex v, direction s) with n_v · s > 0, grouped by vertex in row-major order (course notes
@@ -23,7 +24,7 @@ import numpy as np
 
 from .._native import LIBRARIES, compile_library, kernel_sources
 
-__all__ = ["upper_rays", "qmc_rays_native", "select_rays", "sh_accumulate"]
+__all__ = ["upper_rays", "qmc_rays_native", "select_rays", "sh_accumulate", "guided_rays_native"]
 
 #: the C source (prt_torch/kernels/raygen.c) and compiler flags
 _SOURCES, _FLAGS = LIBRARIES["raygen"][0], list(LIBRARIES["raygen"][1])
@@ -45,7 +46,10 @@ def _lib() -> ctypes.CDLL | None:
                     "prt_qmc_rays": [i64, i64, vp, vp, vp, vp, vp, vp, vp, vp, vp, vp, vp, ci, ci],
                     "prt_select_rays": [i64, i64, vp, vp, ctypes.c_double, ci, vp, vp, vp],
                     "prt_sh_accumulate": [i64, vp, i64, vp, vp, ctypes.c_double, ci, vp, vp],
+                    "prt_guided_rays": [i64, i64, vp, vp, vp, vp, vp, vp, vp, vp, vp, vp, ci, ci, vp, vp, vp, ci],
                 })
+                if _state["lib"] is not None:
+                    _state["lib"].prt_guided_rays.restype = i64
     return _state["lib"]
 
 
@@ -204,3 +208,42 @@ def sh_accumulate(k: int, M: int, sel: np.ndarray, dirs: np.ndarray, z: np.ndarr
     lib.prt_sh_accumulate(sel.shape[0], sel.ctypes.data, int(M), d.ctypes.data, None if zz is None else zz.ctypes.data,
                           float(weight), int(bands), _state[key].ctypes.data, S.ctypes.data)
     return S
+
+
+def guided_rays_native(M: int, hits: np.ndarray, tri: np.ndarray, u1: np.ndarray, v2: np.ndarray, ta: np.ndarray,
+                       tb: np.ndarray, guide_row: np.ndarray, cdf_a: np.ndarray, cdf_b: np.ndarray, mass: np.ndarray,
+                       frames: np.ndarray, D: np.ndarray, W: np.ndarray, threads: int | None = None) -> bool:
+    """The guided first-hit rays of the bounce estimator (``diffuse.HitBounce._rays`` under 'auto'),
+    written in place in one compiled pass (``kernels/guided.c``, ``prt_guided_rays``: the formulas);
+    False without the library (the caller takes the numpy reference, ``HitBounce._guided_rays``).
+
+    ``hits, tri int64 [G]``: each guided hit's row in the level's hits and its face; ``u1, v2
+    float64 [G]``: its Cranley–Patterson shifts; ``ta, tb float64 [M]``: the Hammersley set's two
+    coordinates; ``guide_row int64 [F]`` (-1: no guide), ``cdf_a [Gf, Ga]``, ``cdf_b [Gf, Ga, Gb]``
+    and ``mass [Gf, Ga, Gb]`` float64 the guides (``HitBounce._build_guide``); ``frames float64 [F, 3, 3]``.
+    Writes rays h·M + m, m < M, of each guided hit h into ``D float32 [H·M, 3]`` (directions) and
+    ``W float64 [H·M]`` (weight factors q = 1/(K P_cell)); the other rows are left as they are.
+    Same float64 operations as the numpy reference in its order (tests/test_guided_kernel.py: the
+    same bits). One thread by default (as :func:`upper_rays`)."""
+    lib = _lib()
+    if lib is None:
+        return False
+    G = hits.shape[0]
+    Gf, Ga, Gb = mass.shape
+    if tri.shape != (G,) or u1.shape != (G,) or v2.shape != (G,) or ta.shape != (M,) or tb.shape != (M,) \
+            or cdf_a.shape != (Gf, Ga) or cdf_b.shape != (Gf, Ga, Gb) or frames.shape != (guide_row.shape[0], 3, 3):
+        raise ValueError(f"guided_rays_native: tri/u1/v2 {tri.shape}/{u1.shape}/{v2.shape}, ta/tb {ta.shape}/{tb.shape}, "
+                         f"guides {cdf_a.shape}/{cdf_b.shape}/{mass.shape}, frames {frames.shape}; accepted: [G] = "
+                         f"[{G}], [M] = [{M}], [Gf, Ga](, Gb) and [F, 3, 3] with F = guide_row's length")
+    if D.dtype != np.float32 or W.dtype != np.float64 or not D.flags.c_contiguous or not W.flags.c_contiguous \
+            or D.shape[0] != W.shape[0] or (G and int(hits.max()) * M + M > D.shape[0]):
+        raise ValueError(f"guided_rays_native: D {D.dtype} {D.shape}, W {W.dtype} {W.shape}; accepted: contiguous "
+                         f"float32 [R, 3] and float64 [R] with R >= (max hit + 1)·M")
+    c = [np.ascontiguousarray(x, np.int64) for x in (hits, tri, guide_row)]
+    f = [np.ascontiguousarray(x, np.float64) for x in (u1, v2, ta, tb, cdf_a, cdf_b, mass, frames)]
+    bad = lib.prt_guided_rays(G, int(M), c[0].ctypes.data, c[1].ctypes.data, f[0].ctypes.data, f[1].ctypes.data,
+                              f[2].ctypes.data, f[3].ctypes.data, c[2].ctypes.data, f[4].ctypes.data, f[5].ctypes.data,
+                              f[6].ctypes.data, Ga, Gb, f[7].ctypes.data, D.ctypes.data, W.ctypes.data, int(threads or 1))
+    if bad:
+        raise ValueError(f"guided_rays_native: face {int(tri[bad - 1])} has no guide; accepted: faces with a guide row >= 0")
+    return True
