@@ -52,6 +52,9 @@ __all__ = ["Evaluator", "camera_positions", "KINDS", "load_directory_transfer", 
 KINDS = ("diffuse", "glossy", "mrt", "transport", "wavelet", "subsurface")
 #: SH bands of the lights of a transport benchmark (evaluated on the cube texels / prefiltered)
 TRANSPORT_LIGHT_BANDS = 10
+#: the exact transport reference's finest sub-texels per texel side (the table's averages stop at 8; at views
+#: within ~5 degrees of the horizon a half-vector lobe is narrower still)
+EXACT_MAX_SUB = 16
 #: (vertex, sub-texel) evaluations per block of the exact transport reference (float64 temporaries of ~40 MB)
 EXACT_BLOCK = 1 << 20
 
@@ -331,8 +334,8 @@ class Evaluator:
         over the table's texels p (visibility V_p as the table stores it) and S×S sub-texels s of each
         (directions ω_s, solid-angle shares a_s), with the table's BRDF evaluated at the exact local view
         ω_o — S from the width of the BRDF's lobe at that view (``transfer.transport.view_sub`` of the
-        ``res: auto`` plan: 2 where the texels resolve it, up to 8 at grazing views; 2 for a model
-        without a lobe) — and the SH light ``[C, n²]`` evaluated at every sub-texel. ``directions [V, 3]``
+        ``res: auto`` plan: 2 where the texels resolve it, up to :data:`EXACT_MAX_SUB` at grazing views;
+        2 for a model without a lobe) — and the SH light ``[C, n²]`` evaluated at every sub-texel. ``directions [V, 3]``
         float64 world unit vectors toward the camera; zero below the horizon. Returns ``[V, C]`` float32.
         Batched over blocks of vertices of one S (the compiled BRDF pass ``transport_kernels.points`` for
         the models it knows, else ``BRDF.eval``)."""
@@ -343,9 +346,10 @@ class Evaluator:
         brdf, vis, plan = st["brdf"], st["vis"], st["plan"]
         wo = torch.einsum("vab,vb->va", self.frames, directions.to(torch.float64))  # [V, 3] local views
         up = wo[:, 2] > 0
-        S = (view_sub(plan, wo[:, 2]) if plan is not None else torch.full((self.V,), 2, dtype=torch.long))
+        S = (view_sub({**plan, "sub": EXACT_MAX_SUB, "adaptive": True}, wo[:, 2]) if plan is not None
+             else torch.full((self.V,), 2, dtype=torch.long))
         if brdf.batch_shape != ():
-            S = torch.full_like(S, AUTO_SUPERSAMPLE)  # per-vertex materials: the finest everywhere
+            S = torch.full_like(S, AUTO_SUPERSAMPLE)  # per-vertex materials: the table's finest everywhere
         L = light.to(torch.float64)
         bands = sh.band_of_coeffs(L.shape[1], "light coefficients")
         out = torch.zeros(self.V, L.shape[0], dtype=torch.float64)
