@@ -43,6 +43,7 @@ from typing import Any
 import torch
 
 from .. import relight, sh
+from .._checks import tensor_state
 from ..transfer import Transfer
 
 __all__ = ["Evaluator", "camera_positions", "KINDS", "load_directory_transfer", "check_codecs_for_kind",
@@ -353,6 +354,9 @@ class Evaluator:
         L = light.to(torch.float64)
         bands = sh.band_of_coeffs(L.shape[1], "light coefficients")
         out = torch.zeros(self.V, L.shape[0], dtype=torch.float64)
+        key = tensor_state(light)  # the light at the sub-texels, kept for the next view under the same light
+        if st.get("light_key") != key:
+            st["light_key"], st["light"], st["light_at"] = key, light, {}
         P = self.n_in
         for s in S[up].unique().tolist():
             if s not in st["subs"]:
@@ -360,7 +364,9 @@ class Evaluator:
             sd, sw = st["subs"][s]  # [P, s², 3], [P, s²]
             Q = P * s * s
             dirs = sd.reshape(Q, 3)
-            Lw = (sh.eval_sh(dirs, bands, check=False) @ L.T) * (sw * self.solid_angles[:, None]).reshape(Q, 1)  # [Q, C]
+            if s not in st["light_at"]:
+                st["light_at"][s] = (sh.eval_sh(dirs, bands, check=False) @ L.T) * (sw * self.solid_angles[:, None]).reshape(Q, 1)
+            Lw = st["light_at"][s]  # [Q, C]: L(ω_s) a_s Δω_p
             rows = torch.nonzero(up & (S == s)).flatten()
             step = max(1, EXACT_BLOCK // Q)
             for a in range(0, rows.numel(), step):  # blocks of vertices, not a loop per vertex

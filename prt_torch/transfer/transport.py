@@ -13,7 +13,9 @@ cube-map texels of T · L · Δω. Green tabulates T for the 92 views of a subdi
     <out>/manifest.json        kind "transfer/transport", meta (views, res, brdf, chunks, ...)
     <out>/views.prt            the view directions [J, 3] and texel solid angles [6, r, r]
     <out>/mesh.prt             the mesh arrays (as Transfer.save stores them)
-    <out>/chunk_000000.prt ... data [k, J, 6, r, r] (float32 or float16) for vertices start..stop-1
+    <out>/chunk_000000.prt ... data [k, J, 6, r, r] (float32 or float16) for vertices start..stop-1,
+                               and visibility [k, ⌈6r²/8⌉] uint8: each texel's V_p as packed bits (issue 42 §2;
+                               :func:`pack_visibility`; absent in tables written before — :func:`texel_visibility`)
 
 Chunks are written atomically and skipped when present, so an interrupted run resumes.
 T is zero for views below the vertex's tangent plane and for occluded or below-horizon texels.
