@@ -26,7 +26,10 @@ per (light, camera), the per-vertex RGB radiance of:
   radiances blended linearly as the reference blends the table's;
 * ``decoded table``: the fitted lobes evaluated at the texel centres (``codec.decode``) relit as the
   reference relights the table (texel sums, radiance blend);
-* at every stored view (no interpolation): the codec's lookups and the float64 evaluation against the table.
+* at every stored view (no interpolation): the codec's lookups and the float64 evaluation against the table;
+* ``codec relight as fitted (fill_empty=False)``: the lobes before ``gaussian.fill_empty_lobes`` (the rows
+  above are with it, the codec's default since issue 42 §2; it leaves the tables unchanged), and how often
+  a camera's taps meet a zero function or a lobe that appears or vanishes (``tap_incidence``).
 
 And the truth at each vertex's own view direction (no view interpolation at all), for every ``--every``-th
 vertex: L_o = Σ_p f_r(ω_p, ω_o) V(ω_p) max(n·ω_p, 0) L(ω_p) Δω_p over a ``--res`` cube map's texel centres
@@ -43,6 +46,7 @@ from __future__ import annotations
 import prt_torch  # noqa: F401  (first: it chooses OpenMP's wait policy from the machine's load)
 
 import argparse  # noqa: E402
+import copy  # noqa: E402
 import json  # noqa: E402
 import math  # noqa: E402
 import os  # noqa: E402
@@ -52,7 +56,7 @@ from pathlib import Path  # noqa: E402
 import torch  # noqa: E402
 
 from prt_torch import codecs, relight  # noqa: E402
-from prt_torch.codecs.gaussian import blend_lobes, sh_light_lobe_integral  # noqa: E402
+from prt_torch.codecs.gaussian import blend_lobes, fill_empty_lobes, sh_light_lobe_integral  # noqa: E402
 from prt_torch.harness.config import load_config  # noqa: E402
 from prt_torch.harness.evaluate import Evaluator, camera_positions, load_directory_transfer  # noqa: E402
 from prt_torch.harness.metrics import psnr_vs_reference, squared_error  # noqa: E402
@@ -66,6 +70,25 @@ def tap_blend(R: torch.Tensor, idx: torch.Tensor, a: torch.Tensor) -> torch.Tens
     """Σ_t a_t R[v, idx_t] for per-view radiance ``R [V, J, C]`` → ``[V, C]`` (the reference's blend)."""
     rows = torch.arange(R.shape[0])[:, None]
     return (R[rows, idx] * a[..., None].to(R.dtype)).sum(1)
+
+
+def tap_incidence(w: torch.Tensor, views: list) -> list[dict]:
+    """Per camera, over the vertices it sees: the fraction with a tapped view whose function is zero (every
+    lobe weight 0: a stored view below the vertex's horizon) and the fraction where some lobe carries > 10%
+    of its function's weight at one tap and < 2% at another (appearing or vanishing between the taps).
+    ``w [V, J, N]`` fitted weights; ``views``: the harness's taps per camera."""
+    out = []
+    tot = w.sum(-1)
+    share = w / tot.clamp_min(1e-30)[..., None]
+    for idx, a in views:
+        seen = a.sum(1) > 0
+        rows = torch.arange(w.shape[0])[:, None]
+        ti, sh, act = tot[rows, idx], share[rows, idx], (a > 0)[..., None]
+        zero = ((ti <= 0) & (a > 0)).any(1) & seen
+        van = (((sh > 0.10) & act).any(1) & ((sh < 0.02) & act & (ti > 0)[..., None]).any(1)).any(1) & seen
+        n = max(1, int(seen.sum()))
+        out.append({"seen": int(seen.sum()), "zero_function_tap": float(zero.sum()) / n, "lobe_appears_or_vanishes": float(van.sum()) / n})
+    return out
 
 
 def brute_force(ev: Evaluator, lights: list, cams: torch.Tensor, every: int, res: int) -> tuple[torch.Tensor, dict, list]:
@@ -165,17 +188,30 @@ def main(argv=None) -> int:
         print(json.dumps(rec), flush=True)
         rows.append(rec)
     for N in args.lobes:
-        codec = codecs.get("gaussian", lobes=N)
+        # fitted as before issue 42 §2's fill (fill_empty=False), then filled as the codec now does by default
+        # (gaussian.fill_empty_lobes on the fitted lobes: weights, hence the tables, unchanged)
+        codec = codecs.get("gaussian", lobes=N, fill_empty=False)
         enc = codec.fit_encode(ev.X, matrix_shape=ev.matrix_shape, **ev.fit_kwargs(codec))
         w, mu, sg = codec.lobes_of(enc)
+        fitted = copy.copy(enc)
+        fitted.tensors, fitted.cache = dict(enc.tensors), {}
+        wf, mf, sf = fill_empty_lobes(w, mu, sg, ev.views)
+        enc.tensors["lobes_by_view"] = torch.cat([wf[..., None], mf, sf[..., None]], -1).transpose(0, 1).contiguous()
+        enc.cache.clear()
+        mu, sg = mf, sf
         Xh = codec.decode(enc).float().view(V, J, -1)
         res: dict[str, list] = {}
+        incidence = tap_incidence(w, views)
 
         def put(key, ref, test):
             res.setdefault(key, []).append(psnr_vs_reference(ref, test))
 
         for li, L in enumerate(lights):
             pe = ev.codec_light(codec, L)
+            for vi, v in enumerate(views):
+                out = codec.relight(fitted, pe, view=v)
+                put("vs exact (harness reference): codec relight as fitted (fill_empty=False)", exact[li, vi], out)
+                put("vs truth: codec relight as fitted (fill_empty=False)", truth[vi][li], out[S])
             Lm = ev.light_matrix(L).T
             every = codec.relight(enc, pe)  # [V, J, C]
             ex = (w.double()[..., None] * sh_light_lobe_integral(L, mu.reshape(-1, 3), sg.reshape(-1)).view(V, J, N, -1)).sum(2)
@@ -199,7 +235,7 @@ def main(argv=None) -> int:
                         put("vs table at taps: " + k, ref, v)
                         put("vs exact (harness reference): " + k, exact[li, vi], v)
                     put("vs truth: " + k, truth[vi][li], v[S])
-        rec = {"lobes": N, "relative_l2": codec.fit_info_["relative_l2"],
+        rec = {"lobes": N, "relative_l2": codec.fit_info_["relative_l2"], "tap_incidence": incidence,
                "psnr_db": {k: {"mean": sum(v) / len(v), "each": v} for k, v in res.items()}}
         rows.append(rec)
         print(json.dumps(rec), flush=True)
@@ -221,6 +257,10 @@ def main(argv=None) -> int:
                   "| table relative L2 | " + " | ".join(f"{r['relative_l2']:.3f}" for r in group) + " |"]
         for k in group[0]["psnr_db"]:
             lines.append(f"| {k} | " + " | ".join(f"{r['psnr_db'][k]['mean']:.2f}" for r in group) + " |")
+        if "tap_incidence" in group[0]:
+            for key, what in (("zero_function_tap", "seen vertices with a zero-function tap (per camera)"),
+                              ("lobe_appears_or_vanishes", "seen vertices with a lobe > 10% at one tap, < 2% at another")):
+                lines.append(f"| {what} | " + " | ".join(" / ".join(f"{c[key]:.3f}" for c in r["tap_incidence"]) for r in group) + " |")
         lines.append("")
     (args.out.with_suffix(".md")).write_text("\n".join(lines) + "\n")
     print("\n".join(lines))

@@ -140,8 +140,8 @@ def order_lobes(w: torch.Tensor, mu: torch.Tensor, sigma: torch.Tensor, views: t
 
 
 #: :func:`fill_empty_lobes`: the locality κ of the weights exp(κ (v_j·v_m − 1)) over the views m a zero-weight
-#: lobe's mean is extrapolated from (κ = 8: half weight at 24°, a tenth at 45°)
-FILL_LOCALITY = 8.0
+#: lobe's mean is extrapolated from (κ = 10: half weight at 22°, a tenth at 40°; measured best of 4, 8 (scratch) and 10)
+FILL_LOCALITY = 10.0
 
 
 def fill_empty_lobes(w: torch.Tensor, mu: torch.Tensor, sigma: torch.Tensor, views: torch.Tensor, k: int = 6,
