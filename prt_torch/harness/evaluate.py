@@ -178,6 +178,9 @@ class Evaluator:
         self.frames = t.mesh.frames().to(torch.float64)  # [V, 3, 3] rows (t, b, n)
         self.points = torch.as_tensor(t.mesh.vertices).to(torch.float64)  # [V, 3]
 
+    def __getstate__(self):  # a Ray task gets the evaluator without the exact reference's state (visibility, lights)
+        return {**self.__dict__, "_exact": None} if "_exact" in self.__dict__ else dict(self.__dict__)
+
     @property
     def needs_view(self) -> bool:
         return self.kind in ("glossy", "mrt", "transport")
