@@ -9,8 +9,8 @@ cross-faded — ``prt bench``'s reference for transport until issue 42 §2), wit
 ``exact_transport``), with the Gaussian codec's default ``fill_empty`` (``gaussian.fill_empty_lobes`` on the same
 fitted lobes: the tables are unchanged). Each setting of the config's codecs (``--part``: a part of the config,
 e.g. the default benchmark's ``gaussian`` part at 10 242 vertices) is fitted once; PSNR as the harness
-(``metrics.psnr_vs_reference``, mean over lights × cameras). Also the two references' relight time (this
-thread's CPU time, one call each, paired in the same run; the exact one is computed once per (light, view)
+(``metrics.psnr_vs_reference``, mean over lights × cameras). Also the two references' relight time (this process's
+CPU time, every thread, one call each, paired in the same run; the exact one is computed once per (light, view)
 in a run) — accuracy otherwise; the CPU and load average are recorded.
 """
 from __future__ import annotations
@@ -63,18 +63,18 @@ def main(argv=None) -> int:
     rad = float((ev.points - c0).norm(dim=-1).max())
     cams = camera_positions(c0, rad, cfg["views"]["count"], cfg["views"]["elevation"], cfg["views"]["azimuth0"])
     views = [ev.view_weights(c) for c in cams]
-    t0 = time.thread_time()
+    t0 = time.process_time()
     ev.reference_info  # noqa: B018  the light-independent state (the stored visibility, or traced)
-    t_state = time.thread_time() - t0
+    t_state = time.process_time() - t0
     before, after, t_exact, t_unc = {}, {}, [], []
     for li, L in enumerate(lights):
         for vi, v in enumerate(views):
-            t0 = time.thread_time()
+            t0 = time.process_time()
             after[li, vi] = ev.reference(L, v)
-            t1 = time.thread_time()
+            t1 = time.process_time()
             before[li, vi] = ev.uncompressed(L, v)
             t_exact.append(t1 - t0)
-            t_unc.append(time.thread_time() - t1)
+            t_unc.append(time.process_time() - t1)
     head = {"cpu": cpu_label(), "load": os.getloadavg(), "config": args.config, "part": args.part, "set": args.set,
             "vertices": ev.V, "views": int(ev.views.shape[0]), "res": ev.res, "table": tinfo["path"], **ev.reference_info,
             "exact_state_cpu_s": t_state, "exact_reference_cpu_s": t_exact, "uncompressed_cpu_s": t_unc,
