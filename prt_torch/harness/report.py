@@ -425,7 +425,7 @@ def markdown(results: dict, figures: list[str], renders: list[str]) -> str:
         "",
         "## PSNR / fps",
         "",
-        ("PSNR (lights) is against the exact radiance at each vertex's own view (" + unc["visibility"] + "; not the tables "
+        ("PSNR (lights) is against the exact radiance at each vertex's own view (the texels' visibility " + unc["visibility"] + "; not the tables "
          "relit at the three tapped views and cross-faded, the peer above: Evaluator.reference, docs/harness.md)"
          if "visibility" in unc else "PSNR (lights) is against the uncompressed result")
         + ", averaged over lights × views; PSNR (rand) is MRT eq. 11 over "
