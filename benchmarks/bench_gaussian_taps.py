@@ -13,8 +13,11 @@ to the camera, barycentric, zero below the horizon) are used as ``prt bench`` us
 Per lobe count (the codec's own fit, ``codecs.get('gaussian', lobes=N)`` with the harness's geometry) and
 per (light, camera), the per-vertex RGB radiance of:
 
-* ``table at taps``: the harness reference (``Evaluator.reference``: the uncompressed table relit at the
-  three tapped views and blended linearly — a cross-fade of three views' radiance);
+* ``table at taps``: the harness's reference before issue 42 §2 (``Evaluator.uncompressed``: the table
+  relit at the three tapped views and blended linearly — a cross-fade of three views' radiance);
+* ``exact``: the harness's reference since (``Evaluator.reference`` → ``exact_transport``: the table's
+  texels with their stored visibility and the BRDF at each vertex's own view, sub-texel sums), what
+  ``prt bench`` now measures every codec against — itself checked here against the brute-force truth;
 * ``codec relight``: what ``prt bench`` measures (Green 2005 §2.3: the tapped views' lobes blended —
   weights and widths linearly, means as the normalised sum — then eq. 2.7 by prefiltered lookups);
 * ``param blend, f64``: the same blended lobes, E_σ(μ) = ∫ G(ω; μ, σ) L(ω) dω in float64 by Funk–Hecke
@@ -23,7 +26,10 @@ per (light, camera), the per-vertex RGB radiance of:
   radiances blended linearly as the reference blends the table's;
 * ``decoded table``: the fitted lobes evaluated at the texel centres (``codec.decode``) relit as the
   reference relights the table (texel sums, radiance blend);
-* at every stored view (no interpolation): the codec's lookups and the float64 evaluation against the table.
+* at every stored view (no interpolation): the codec's lookups and the float64 evaluation against the table;
+* ``codec relight as fitted (fill_empty=False)``: the lobes before ``gaussian.fill_empty_lobes`` (the rows
+  above are with it, the codec's default since issue 42 §2; it leaves the tables unchanged), and how often
+  a camera's taps meet a zero function or a lobe that appears or vanishes (``tap_incidence``).
 
 And the truth at each vertex's own view direction (no view interpolation at all), for every ``--every``-th
 vertex: L_o = Σ_p f_r(ω_p, ω_o) V(ω_p) max(n·ω_p, 0) L(ω_p) Δω_p over a ``--res`` cube map's texel centres
@@ -31,12 +37,16 @@ vertex: L_o = Σ_p f_r(ω_p, ω_o) V(ω_p) max(n·ω_p, 0) L(ω_p) Δω_p over a
 default Ashikhmin–Shirley N = 40), checked against the table at two stored views. PSNR as the harness
 (``metrics.psnr_vs_reference``: peak = max of the reference, mean over the lights and cameras). Accuracy
 only, no timing; the CPU and load average are recorded anyway.
+
+``--pca 4 8``: PCA settings of the same tables (``codecs.get('pca', vectors=K)``, relit at the same taps),
+each against the same three references: the before/after of ``prt bench gaussian``'s PCA rows.
 """
 from __future__ import annotations
 
 import prt_torch  # noqa: F401  (first: it chooses OpenMP's wait policy from the machine's load)
 
 import argparse  # noqa: E402
+import copy  # noqa: E402
 import json  # noqa: E402
 import math  # noqa: E402
 import os  # noqa: E402
@@ -46,10 +56,10 @@ from pathlib import Path  # noqa: E402
 import torch  # noqa: E402
 
 from prt_torch import codecs, relight  # noqa: E402
-from prt_torch.codecs.gaussian import blend_lobes, sh_light_lobe_integral  # noqa: E402
+from prt_torch.codecs.gaussian import blend_lobes, fill_empty_lobes, sh_light_lobe_integral  # noqa: E402
 from prt_torch.harness.config import load_config  # noqa: E402
 from prt_torch.harness.evaluate import Evaluator, camera_positions, load_directory_transfer  # noqa: E402
-from prt_torch.harness.metrics import psnr_vs_reference  # noqa: E402
+from prt_torch.harness.metrics import psnr_vs_reference, squared_error  # noqa: E402
 from prt_torch.harness.timing import cpu_label  # noqa: E402
 from prt_torch.sh import eval_sh  # noqa: E402
 
@@ -60,6 +70,25 @@ def tap_blend(R: torch.Tensor, idx: torch.Tensor, a: torch.Tensor) -> torch.Tens
     """Σ_t a_t R[v, idx_t] for per-view radiance ``R [V, J, C]`` → ``[V, C]`` (the reference's blend)."""
     rows = torch.arange(R.shape[0])[:, None]
     return (R[rows, idx] * a[..., None].to(R.dtype)).sum(1)
+
+
+def tap_incidence(w: torch.Tensor, views: list) -> list[dict]:
+    """Per camera, over the vertices it sees: the fraction with a tapped view whose function is zero (every
+    lobe weight 0: a stored view below the vertex's horizon) and the fraction where some lobe carries > 10%
+    of its function's weight at one tap and < 2% at another (appearing or vanishing between the taps).
+    ``w [V, J, N]`` fitted weights; ``views``: the harness's taps per camera."""
+    out = []
+    tot = w.sum(-1)
+    share = w / tot.clamp_min(1e-30)[..., None]
+    for idx, a in views:
+        seen = a.sum(1) > 0
+        rows = torch.arange(w.shape[0])[:, None]
+        ti, sh, act = tot[rows, idx], share[rows, idx], (a > 0)[..., None]
+        zero = ((ti <= 0) & (a > 0)).any(1) & seen
+        van = (((sh > 0.10) & act).any(1) & ((sh < 0.02) & act & (ti > 0)[..., None]).any(1)).any(1) & seen
+        n = max(1, int(seen.sum()))
+        out.append({"seen": int(seen.sum()), "zero_function_tap": float(zero.sum()) / n, "lobe_appears_or_vanishes": float(van.sum()) / n})
+    return out
 
 
 def brute_force(ev: Evaluator, lights: list, cams: torch.Tensor, every: int, res: int) -> tuple[torch.Tensor, dict, list]:
@@ -115,6 +144,7 @@ def main(argv=None) -> int:
     ap.add_argument("--every", type=int, default=4)
     ap.add_argument("--res", type=int, default=56)
     ap.add_argument("--out", type=Path, default=ROOT / "reports/benchmarks/gaussian_taps")
+    ap.add_argument("--pca", type=int, nargs="*", default=[], help="PCA vector counts to measure too")
     args = ap.parse_args(argv)
     torch.manual_seed(0)
     cfg = load_config(args.config, args.set)
@@ -135,19 +165,53 @@ def main(argv=None) -> int:
     head = {"cpu": cpu_label(), "load": os.getloadavg(), "vertices": V, "views": J, "res": ev.res, "config": args.config,
             "set": args.set, "truth_vertices": len(S), "truth_res": args.res, "truth_vs_table_at_stored_views_db": checks}
     print(json.dumps(head), flush=True)
+    exact = {(li, vi): ev.reference(L, v) for li, L in enumerate(lights) for vi, v in enumerate(views)}
+    head["exact_reference"] = ev.reference_info
+    head["exact_reference_vs_truth_db"] = [psnr_vs_reference(truth[vi][li], exact[li, vi][S])
+                                           for li in range(len(lights)) for vi in range(len(views))]
+    head["table_at_taps_vs_truth_db"] = [psnr_vs_reference(truth[vi][li], ev.uncompressed(L, v)[S])
+                                         for li, L in enumerate(lights) for vi, v in enumerate(views)]
     rows = []
+    for K in args.pca:
+        codec = codecs.get("pca", vectors=K)
+        enc = codec.fit_encode(ev.X, matrix_shape=ev.matrix_shape)
+        res: dict[str, list] = {}
+        for li, L in enumerate(lights):
+            Lm = ev.light_matrix(L)
+            for vi, v in enumerate(views):
+                out = codec.relight(enc, Lm, view=v)
+                for k, ref in (("vs table at taps", ev.uncompressed(L, v)), ("vs exact (harness reference)", exact[li, vi])):
+                    res.setdefault(k + ": pca relight", []).append(psnr_vs_reference(ref, out))
+                res.setdefault("vs truth: pca relight", []).append(psnr_vs_reference(truth[vi][li], out[S]))
+        rec = {"pca": K, "relative_l2": squared_error(ev.X, codec.decode(enc).float())[1] ** 0.5,
+               "psnr_db": {k: {"mean": sum(v) / len(v), "each": v} for k, v in res.items()}}
+        print(json.dumps(rec), flush=True)
+        rows.append(rec)
     for N in args.lobes:
-        codec = codecs.get("gaussian", lobes=N)
+        # fitted as before issue 42 §2's fill (fill_empty=False), then filled as the codec now does by default
+        # (gaussian.fill_empty_lobes on the fitted lobes: weights, hence the tables, unchanged)
+        codec = codecs.get("gaussian", lobes=N, fill_empty=False)
         enc = codec.fit_encode(ev.X, matrix_shape=ev.matrix_shape, **ev.fit_kwargs(codec))
         w, mu, sg = codec.lobes_of(enc)
+        fitted = copy.copy(enc)
+        fitted.tensors, fitted.cache = dict(enc.tensors), {}
+        wf, mf, sf = fill_empty_lobes(w, mu, sg, ev.views)
+        enc.tensors["lobes_by_view"] = torch.cat([wf[..., None], mf, sf[..., None]], -1).transpose(0, 1).contiguous()
+        enc.cache.clear()
+        mu, sg = mf, sf
         Xh = codec.decode(enc).float().view(V, J, -1)
         res: dict[str, list] = {}
+        incidence = tap_incidence(w, views)
 
         def put(key, ref, test):
             res.setdefault(key, []).append(psnr_vs_reference(ref, test))
 
         for li, L in enumerate(lights):
             pe = ev.codec_light(codec, L)
+            for vi, v in enumerate(views):
+                out = codec.relight(fitted, pe, view=v)
+                put("vs exact (harness reference): codec relight as fitted (fill_empty=False)", exact[li, vi], out)
+                put("vs truth: codec relight as fitted (fill_empty=False)", truth[vi][li], out[S])
             Lm = ev.light_matrix(L).T
             every = codec.relight(enc, pe)  # [V, J, C]
             ex = (w.double()[..., None] * sh_light_lobe_integral(L, mu.reshape(-1, 3), sg.reshape(-1)).view(V, J, N, -1)).sum(2)
@@ -155,36 +219,49 @@ def main(argv=None) -> int:
             put("stored views: codec lookups vs table", table_views, every)
             put("stored views: f64 lobes vs table", table_views, ex)
             for vi, (idx, a) in enumerate(views):
-                ref = ev.reference(L, (idx, a))
+                ref = ev.uncompressed(L, (idx, a))
                 rows_ = torch.arange(V)[:, None]
                 tot = a.sum(1, keepdim=True)
                 wb, mb, sb = blend_lobes(w[rows_, idx].double(), mu[rows_, idx].double(), sg[rows_, idx].double(),
                                          (a / tot.clamp_min(1e-12)).double())
-                outs = {"table at taps (harness reference)": ref,
+                outs = {"table at taps (harness reference before)": ref,
                         "codec relight (param blend, lookups)": codec.relight(enc, pe, view=(idx, a)),
                         "param blend, f64": (wb[..., None] * sh_light_lobe_integral(L, mb.reshape(-1, 3), sb.reshape(-1)).view(V, N, -1)
                                              ).sum(1) * tot.double(),
                         "radiance blend, lookups": tap_blend(every, idx, a),
                         "decoded table at taps": relight.apply_taps(Xh, Lm, idx, a)}
                 for k, v in outs.items():
-                    if k != "table at taps (harness reference)":
+                    if k != "table at taps (harness reference before)":
                         put("vs table at taps: " + k, ref, v)
+                        put("vs exact (harness reference): " + k, exact[li, vi], v)
                     put("vs truth: " + k, truth[vi][li], v[S])
-        rec = {"lobes": N, "relative_l2": codec.fit_info_["relative_l2"],
+        rec = {"lobes": N, "relative_l2": codec.fit_info_["relative_l2"], "tap_incidence": incidence,
                "psnr_db": {k: {"mean": sum(v) / len(v), "each": v} for k, v in res.items()}}
         rows.append(rec)
         print(json.dumps(rec), flush=True)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     (args.out.with_suffix(".json")).write_text(json.dumps({"head": head, "rows": rows}, indent=1))
-    keys = list(rows[0]["psnr_db"])
+    mean = lambda x: sum(x) / len(x)  # noqa: E731
     lines = [f"CPU: {head['cpu']}; load average {head['load'][0]:.1f}. {V} vertices × {J} views, 6×{ev.res}×{ev.res} tables "
              f"({args.config} {' '.join(args.set)}); truth at {len(S)} vertices (every {args.every}th), {args.res}² texels a face "
              f"(vs the table at two stored views: {checks[0]:.1f} / {checks[1]:.1f} dB).", "",
-             "| PSNR dB (mean over lights × cameras) | " + " | ".join(f"{r['lobes']} lobe{'s' if r['lobes'] > 1 else ''}" for r in rows) + " |",
-             "|---|" + "---|" * len(rows),
-             "| table relative L2 | " + " | ".join(f"{r['relative_l2']:.3f}" for r in rows) + " |"]
-    for k in keys:
-        lines.append(f"| {k} | " + " | ".join(f"{r['psnr_db'][k]['mean']:.2f}" for r in rows) + " |")
+             f"References vs truth (mean over lights × cameras): the exact reference (harness, visibility "
+             f"{head['exact_reference']['visibility']}) {mean(head['exact_reference_vs_truth_db']):.2f} dB; the table at the taps "
+             f"cross-faded (the reference before) {mean(head['table_at_taps_vs_truth_db']):.2f} dB.", ""]
+    for group in ([r for r in rows if "pca" in r], [r for r in rows if "lobes" in r]):
+        if not group:
+            continue
+        name = (lambda r: f"pca {r['pca']}") if "pca" in group[0] else (lambda r: f"{r['lobes']} lobe{'s' if r['lobes'] > 1 else ''}")
+        lines += ["| PSNR dB (mean over lights × cameras) | " + " | ".join(name(r) for r in group) + " |",
+                  "|---|" + "---|" * len(group),
+                  "| table relative L2 | " + " | ".join(f"{r['relative_l2']:.3f}" for r in group) + " |"]
+        for k in group[0]["psnr_db"]:
+            lines.append(f"| {k} | " + " | ".join(f"{r['psnr_db'][k]['mean']:.2f}" for r in group) + " |")
+        if "tap_incidence" in group[0]:
+            for key, what in (("zero_function_tap", "seen vertices with a zero-function tap (per camera)"),
+                              ("lobe_appears_or_vanishes", "seen vertices with a lobe > 10% at one tap, < 2% at another")):
+                lines.append(f"| {what} | " + " | ".join(" / ".join(f"{c[key]:.3f}" for c in r["tap_incidence"]) for r in group) + " |")
+        lines.append("")
     (args.out.with_suffix(".md")).write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
     return 0

@@ -1164,8 +1164,9 @@ def test_harness_evaluates_transport_with_gaussian_and_pca(tiny_table):
     assert ev.needs_view and ev.matrix_shape == (12, 384)
     L = load_light("sky", bands=ev.bands_in)
     view = ev.view_weights(torch.tensor([0.0, -4.0, 2.0], dtype=torch.float64))
-    ref = ev.reference(L, view)
-    # the reference is the table's own radiance at the tapped views
+    ref = ev.uncompressed(L, view)
+    # the uncompressed relighting is the table's own radiance at the tapped views (ev.reference: the exact
+    # view's, tests/test_transport_reference.py)
     Lq = ev.light_matrix(L)
     direct = (ev.X.view(ev.V, 12, 384).double() @ Lq.double())  # [V, J, C]
     idx, w = view

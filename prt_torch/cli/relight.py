@@ -96,7 +96,7 @@ def _transport(table: str, light: str, view, codec_file: str | None = None):
     vw = ev.view_weights(eye)
     L = load_light(light, bands=ev.bands_in)
     if codec_file is None:
-        out, what = ev.reference(L, vw), "transport tables"
+        out, what = ev.uncompressed(L, vw), "transport tables"
     else:
         codec, enc = codecs.load(codec_file)
         if enc.points != ev.V or enc.meta.get("dim") != ev.X.shape[1]:

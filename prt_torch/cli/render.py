@@ -432,7 +432,7 @@ def _run_transport(args, out: Path, cmp_png: Path | None) -> int:
         with Renderer(args.width, args.height) as r:
             def draw(decode, use_codec):
                 if not use_codec:
-                    return r.render_radiance(mesh, rgb(ev.reference(light, view)), cam, **rs)
+                    return r.render_radiance(mesh, rgb(ev.uncompressed(light, view)), cam, **rs)
                 Lc = ev.codec_light(codec, light)
                 if decode == "glsl":
                     return r.render(mesh, codec_decoder(codec, enc, Lc, mode="taps", view=view), cam, **rs)

@@ -15,9 +15,13 @@ camera position into per-vertex view weights over the n_out outputs:
   (P = 6r² texels); the light is the SH light evaluated at the texel centres times the texel
   solid angles, ``[P, C]`` (eq. 1.1 as a sum), so L_o = Σ_taps w_t (T_{p,j_t} · L Δω) over the
   three stored views nearest the global view direction (barycentric taps, zero below the
-  horizon) — the uncompressed reference; linear codecs take that ``[P, C]`` light, the
-  ``gaussian`` codec (light kind 'prefiltered') a Gaussian-prefiltered environment of the same
-  light (``codec_light``) and interpolates its lobes at the same taps (Green §2.3);
+  horizon) — the uncompressed relighting (:meth:`Evaluator.uncompressed`); linear codecs take
+  that ``[P, C]`` light, the ``gaussian`` codec (light kind 'prefiltered') a Gaussian-prefiltered
+  environment of the same light (``codec_light``) and interpolates its lobes at the same taps
+  (Green §2.3). The *reference* every codec is compared against is not that cross-fade (itself
+  22.8 dB from the truth at 42 views: reports/benchmarks/gaussian_taps.md) but the exact radiance
+  at each vertex's own view direction (:meth:`Evaluator.exact_transport`, issue 42 §2): eq. 1.1–1.2
+  summed over the table's texels with their stored visibility and the BRDF at that view;
 * wavelet ``[V, K]`` sparse Haar transfer on a 6×R×R cube (Ng et al. 2003): no view; the light
   is not band-limited — each config light rasterised on the cube at R and Haar-transformed
   (:meth:`Evaluator.load_light`, ``[C, 6R²]``), relit exactly (all its terms) by
@@ -27,7 +31,8 @@ camera position into per-vertex view weights over the n_out outputs:
 View weights are dense ``[V, n_out]`` (glossy) or sparse taps ``(idx [V, k], w [V, k])`` (MRT),
 zero below each vertex's horizon, from :mod:`prt_torch.relight` (the project's one uncompressed
 reference): the reference relights through ``relight`` and every codec gets the same weights,
-so a PSNR measures the codec alone.
+so a PSNR measures the codec alone. Transport taps are a :class:`TransportView` (the same two
+tensors, and the exact directions the reference uses).
 """
 from __future__ import annotations
 
@@ -38,15 +43,36 @@ from typing import Any
 import torch
 
 from .. import relight, sh
+from .._checks import tensor_state
 from ..transfer import Transfer
 
 __all__ = ["Evaluator", "camera_positions", "KINDS", "load_directory_transfer", "check_codecs_for_kind",
-           "TRANSPORT_LIGHT_BANDS"]
+           "TRANSPORT_LIGHT_BANDS", "TransportView", "EXACT_BLOCK"]
 
 #: transfer kinds the harness can relight ('subsurface' precomputes a diffuse transfer: relit as one)
 KINDS = ("diffuse", "glossy", "mrt", "transport", "wavelet", "subsurface")
 #: SH bands of the lights of a transport benchmark (evaluated on the cube texels / prefiltered)
 TRANSPORT_LIGHT_BANDS = 10
+#: the exact transport reference's finest sub-texels per texel side (the table's averages stop at 8; at views
+#: within ~5 degrees of the horizon a half-vector lobe is narrower still)
+EXACT_MAX_SUB = 16
+#: (vertex, sub-texel) evaluations per block of the exact transport reference (float64 temporaries of ~40 MB)
+EXACT_BLOCK = 1 << 20
+
+
+class TransportView(tuple):
+    """View taps over a transport table's stored views, ``(idx int64 [V, k], w float64 [V, k])`` — a
+    2-tuple as every codec takes it —, that also carry ``directions [V, 3]`` float64: the unit world
+    direction from each vertex to the camera, at which :meth:`Evaluator.reference` evaluates the exact
+    radiance (:meth:`Evaluator.view_weights` makes them)."""
+
+    def __new__(cls, idx: torch.Tensor, w: torch.Tensor, directions: torch.Tensor):
+        self = super().__new__(cls, (idx, w))
+        self.directions = directions
+        return self
+
+    def __getnewargs__(self):  # pickles (Ray tasks) with its directions
+        return (self[0], self[1], self.directions)
 
 
 def load_directory_transfer(path) -> Transfer:
@@ -65,7 +91,14 @@ def load_directory_transfer(path) -> Transfer:
         data[a:b] = T.to(torch.float32)
     meta = {k: v for k, v in table.meta.items() if k not in ("fingerprint",)}
     meta.update(views=table.views.tolist(), matrix_shape=[J, 6 * r * r], source=str(path))
-    return Transfer("transport", data, table.mesh(), meta)
+    meta.setdefault("offset", float((table.meta.get("fingerprint") or {}).get("offset", 1e-4)))  # the rays' origins
+    vis, have = table.visibility()  # the texels' visibility (tables since issue 42 §2; else traced when needed)
+    aux = {}
+    if bool(have.any()):
+        from ..transfer.transport import pack_visibility
+
+        aux = {"visibility": pack_visibility(vis), "visibility_stored": have}
+    return Transfer("transport", data, table.mesh(), meta, aux=aux)
 
 
 def check_codecs_for_kind(kind: str, names: list[str]) -> None:
@@ -125,6 +158,7 @@ class Evaluator:
             d, sa = cube_map_directions(self.res)
             self.texels, self.solid_angles = d.reshape(-1, 3), sa.reshape(-1)
             self._prefiltered: dict[int, Any] = {}
+            self._exact: dict[str, Any] | None = None
         elif t.kind == "wavelet":
             from ..relight import WaveletRelighter
 
@@ -143,6 +177,9 @@ class Evaluator:
                          else sh.band_of_coeffs(self.n_in, "transfer input coefficients"))
         self.frames = t.mesh.frames().to(torch.float64)  # [V, 3, 3] rows (t, b, n)
         self.points = torch.as_tensor(t.mesh.vertices).to(torch.float64)  # [V, 3]
+
+    def __getstate__(self):  # a Ray task gets the evaluator without the exact reference's state (visibility, lights)
+        return {**self.__dict__, "_exact": None} if "_exact" in self.__dict__ else dict(self.__dict__)
 
     @property
     def needs_view(self) -> bool:
@@ -228,7 +265,7 @@ class Evaluator:
             d = d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12)
             idx, w = view_taps(self.views, d)
             above = (d * self.frames[:, 2]).sum(-1) > 0  # the vertex's horizon
-            return idx, w * above[:, None].to(w.dtype)
+            return TransportView(idx, w * above[:, None].to(w.dtype), d)
         v = self.local_views(camera)
         if self.kind == "glossy":
             return relight.glossy_view_weights(v, self.transfer.meta.get("out_index"), self.matrix_shape[0])
@@ -244,9 +281,114 @@ class Evaluator:
         return out  # wavelet: the relighter applies the albedo
 
     def reference(self, light: torch.Tensor, view: Any) -> torch.Tensor:
-        """Uncompressed relighting through :mod:`prt_torch.relight`: the peer every codec is
-        compared against. ``light [C, n²]`` (any bands; truncated or zero-padded), ``view``
-        from :meth:`view_weights`. Returns ``[V, C]`` float32."""
+        """The radiance every codec is compared against, ``[V, C]`` float32: the uncompressed
+        relighting (:meth:`uncompressed`), except for transport tables with a :class:`TransportView`
+        (what :meth:`view_weights` gives), where it is the exact radiance at each vertex's own view
+        direction (:meth:`exact_transport`), not the table's three tapped views cross-faded."""
+        if self.kind == "transport" and isinstance(view, TransportView):
+            return self.exact_transport(light, view.directions)
+        return self.uncompressed(light, view)
+
+    @property
+    def reference_info(self) -> dict[str, Any]:
+        """What :meth:`reference` is for this kind (a results entry): for transport tables, the exact
+        view's evaluation and where its visibility came from (stored in the table, or traced now for a
+        table written before it was stored)."""
+        if self.kind != "transport":
+            return {"reference": "uncompressed relighting (prt_torch.relight)"}
+        st = self._exact_state()
+        return {"reference": "exact radiance at each vertex's own view (table texels x stored visibility x BRDF, "
+                             "sub-texel sums; Evaluator.exact_transport)",
+                "visibility": st["note"], "brdf": st["brdf"].meta() if st["brdf"].batch_shape == () else "per-vertex"}
+
+    def _exact_state(self) -> dict[str, Any]:
+        """The exact transport reference's light-independent state, made once: the BRDF of the table
+        (its manifest's), the texel visibility ``[V, P]`` bool (stored, or traced for the vertices whose
+        chunk files predate it: :func:`prt_torch.transfer.transport.texel_visibility`), the sub-texel
+        plan and where the visibility came from."""
+        if self._exact is not None:
+            return self._exact
+        from ..brdf import make_brdf
+        from ..transfer.transport import supersample_plan, texel_visibility, unpack_visibility
+
+        t, P = self.transfer, self.n_in
+        spec = dict(t.meta.get("brdf") or {"model": "ashikhmin_shirley", "nu": 40.0, "nv": 40.0, "rs": 0.05, "rd": 0.0})
+        model = spec.pop("model")
+        brdf = make_brdf(model, **{k: torch.tensor(v, dtype=torch.float64) if isinstance(v, list) else v for k, v in spec.items()})
+        have = t.aux.get("visibility_stored")
+        vis = (unpack_visibility(t.aux["visibility"], P) if have is not None
+               else torch.zeros(self.V, P, dtype=torch.bool))
+        have = torch.zeros(self.V, dtype=torch.bool) if have is None else have.bool()
+        missing = torch.nonzero(~have).flatten()
+        if missing.numel():
+            sup = t.meta.get("supersample") or {}
+            vis[missing] = texel_visibility(t.mesh, self.res, plan=sup if int(sup.get("sub", 1)) > 1 else None,
+                                            shadows=bool(t.meta.get("shadows", True)), offset=float(t.meta.get("offset", 1e-4)),
+                                            vertices=missing)
+        note = ("stored in the table" if not missing.numel() else
+                f"traced now for {missing.numel()} of {self.V} vertices (a table written before the visibility was stored)")
+        sharp = brdf if brdf.batch_shape == () else None
+        plan = supersample_plan(sharp, self.res, "auto") if sharp is not None else None
+        self._exact = {"brdf": brdf, "vis": vis, "plan": plan, "note": note, "subs": {}}
+        return self._exact
+
+    def exact_transport(self, light: torch.Tensor, directions: torch.Tensor) -> torch.Tensor:
+        """The exit radiance at each vertex's own view direction, no view interpolation (Green 2005
+        eq. 1.1 with eq. 1.2): ``L_o(x, ω_o) = Σ_p V_p Σ_s a_s f_r(ω_s, ω_o) max(n·ω_s, 0) L(ω_s) Δω_p``
+        over the table's texels p (visibility V_p as the table stores it) and S×S sub-texels s of each
+        (directions ω_s, solid-angle shares a_s), with the table's BRDF evaluated at the exact local view
+        ω_o — S from the width of the BRDF's lobe at that view (``transfer.transport.view_sub`` of the
+        ``res: auto`` plan: 2 where the texels resolve it, up to :data:`EXACT_MAX_SUB` at grazing views;
+        2 for a model without a lobe) — and the SH light ``[C, n²]`` evaluated at every sub-texel. ``directions [V, 3]``
+        float64 world unit vectors toward the camera; zero below the horizon. Returns ``[V, C]`` float32.
+        Batched over blocks of vertices of one S (the compiled BRDF pass ``transport_kernels.points`` for
+        the models it knows, else ``BRDF.eval``)."""
+        from ..transfer import transport_kernels
+        from ..transfer.transport import AUTO_SUPERSAMPLE, sub_texel_sets, view_sub
+
+        st = self._exact_state()
+        brdf, vis, plan = st["brdf"], st["vis"], st["plan"]
+        wo = torch.einsum("vab,vb->va", self.frames, directions.to(torch.float64))  # [V, 3] local views
+        up = wo[:, 2] > 0
+        S = (view_sub({**plan, "sub": EXACT_MAX_SUB, "adaptive": True}, wo[:, 2]) if plan is not None
+             else torch.full((self.V,), 2, dtype=torch.long))
+        if brdf.batch_shape != ():
+            S = torch.full_like(S, AUTO_SUPERSAMPLE)  # per-vertex materials: the table's finest everywhere
+        L = light.to(torch.float64)
+        bands = sh.band_of_coeffs(L.shape[1], "light coefficients")
+        out = torch.zeros(self.V, L.shape[0], dtype=torch.float64)
+        key = tensor_state(light)  # the light at the sub-texels, kept for the next view under the same light
+        if st.get("light_key") != key:
+            st["light_key"], st["light"], st["light_at"] = key, light, {}
+        P = self.n_in
+        for s in S[up].unique().tolist():
+            if s not in st["subs"]:
+                st["subs"][s] = sub_texel_sets(self.res, {"sub": s, "adaptive": False})[s]
+            sd, sw = st["subs"][s]  # [P, s², 3], [P, s²]
+            Q = P * s * s
+            dirs = sd.reshape(Q, 3)
+            if s not in st["light_at"]:
+                st["light_at"][s] = (sh.eval_sh(dirs, bands, check=False) @ L.T) * (sw * self.solid_angles[:, None]).reshape(Q, 1)
+            Lw = st["light_at"][s]  # [Q, C]: L(ω_s) a_s Δω_p
+            rows = torch.nonzero(up & (S == s)).flatten()
+            step = max(1, EXACT_BLOCK // Q)
+            for a in range(0, rows.numel(), step):  # blocks of vertices, not a loop per vertex
+                i = rows[a:a + step]
+                wi = torch.einsum("kab,qb->kqa", self.frames[i], dirs)  # [b, Q, 3] local sub-texel directions
+                W = wi[..., 2].clamp_min(0) * vis[i].repeat_interleave(s * s, dim=1)  # cos × the parent texel's V_p
+                T = torch.empty(i.numel(), Q, dtype=torch.float64)
+                model = transport_kernels.native_model(brdf, i.numel(), i if brdf.batch_shape != () else None)
+                if model is None or not transport_kernels.points(T, wi, wo[i][:, None], W, None, model, torch.get_num_threads()):
+                    b = brdf if brdf.batch_shape == () else brdf.select(i).view(-1, 1)
+                    T = b.eval(wi, wo[i][:, None, :]) * W
+                out[i] = T @ Lw
+        return out.to(torch.float32)
+
+    def uncompressed(self, light: torch.Tensor, view: Any) -> torch.Tensor:
+        """Uncompressed relighting through :mod:`prt_torch.relight` (the uncompressed peer a codec's
+        speed is compared with; for transport tables the stored views' tables relit at the taps and
+        cross-faded). ``light [C, n²]`` (any bands; truncated or zero-padded), ``view`` from
+        :meth:`view_weights`. Returns ``[V, C]`` float32."""
         if self.kind == "wavelet":  # every term of the light: the exact pixel-basis result (Ng 2003 eq. 2)
             return self.relighter(torch.arange(self.n_in), light)
         L = self.light_matrix(light).T  # [C, n_in]

@@ -67,7 +67,7 @@ def render_best(run_dir: Path, records: list[dict], ev: Evaluator, light: torch.
     out_dir = Path(run_dir) / "renders"
     out_dir.mkdir(parents=True, exist_ok=True)
     mesh = ev.transfer.mesh
-    ref = ev.reference(light, view).clamp_min(0)
+    ref = ev.uncompressed(light, view).clamp_min(0)
     center = ev.points.mean(0)
     radius = float((ev.points - center).norm(dim=-1).max())
     dist = float((eye - center).norm())

@@ -425,7 +425,10 @@ def markdown(results: dict, figures: list[str], renders: list[str]) -> str:
         "",
         "## PSNR / fps",
         "",
-        "PSNR (lights) is against the uncompressed result, averaged over lights × views; PSNR (rand) is MRT eq. 11 over "
+        ("PSNR (lights) is against the exact radiance at each vertex's own view (the texels' visibility " + unc["visibility"] + "; not the tables "
+         "relit at the three tapped views and cross-faded, the peer above: Evaluator.reference, docs/harness.md)"
+         if "visibility" in unc else "PSNR (lights) is against the uncompressed result")
+        + ", averaged over lights × views; PSNR (rand) is MRT eq. 11 over "
         "random norm-1 lighting vectors (Monte Carlo; closed form in results.json). Throughput: median of repeats after "
         "warm-up; spread = IQR/median; speed-up = the uncompressed relighting's time over the codec's, from 40 pairs of short, "
         "equal-length samples timed back to back (interleaved, same run) in one thread and in its CPU time, the ratio of each "

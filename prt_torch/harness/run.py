@@ -283,7 +283,7 @@ def time_setting(ev: Evaluator, codec, enc, lights: list[torch.Tensor], views: l
         return codec.relight(enc, L0, view=v0)
 
     def uncompressed():
-        return ev.reference(lights[0], v0)
+        return ev.uncompressed(lights[0], v0)
 
     pt = measure_paired(relit, uncompressed, repeats=m["repeats"], warmup=m["warmup"], floor_pairs=FLOOR_PAIRS)
     # contention that started after import: re-decided here (timing.rate_policy: re-timed, in one thread too)
@@ -401,12 +401,13 @@ def load_mesh_within_budget(cfg: dict):
 
 
 def measure_uncompressed(ev: Evaluator, lights: list[torch.Tensor], views: list[Any], metrics: dict) -> tuple[dict, dict]:
-    """The reference radiance ``[V, C]`` for every (light, view) and the uncompressed peer's
-    throughput (relighting the first light and view through ``prt_torch.relight``)."""
+    """The reference radiance ``[V, C]`` for every (light, view) (``Evaluator.reference``: for transport
+    tables the exact radiance at each vertex's view) and the uncompressed peer's throughput (relighting the
+    first light and view through ``prt_torch.relight``: ``Evaluator.uncompressed``)."""
     refs = {(li, vi): ev.reference(L, v) for li, L in enumerate(lights) for vi, v in enumerate(views)}
-    t = measure(lambda: ev.reference(lights[0], views[0]), repeats=metrics["repeats"], warmup=metrics["warmup"])
+    t = measure(lambda: ev.uncompressed(lights[0], views[0]), repeats=metrics["repeats"], warmup=metrics["warmup"])
     return refs, {"relight_s": t.median, "relight_spread": t.spread, "vertices_per_s": t.rate(ev.V), "fps": 1.0 / t.median,
-                  "bytes_total": ev.raw_bytes, "bytes_per_vertex": ev.raw_bytes / ev.V}
+                  "bytes_total": ev.raw_bytes, "bytes_per_vertex": ev.raw_bytes / ev.V, **ev.reference_info}
 
 
 @dataclasses.dataclass

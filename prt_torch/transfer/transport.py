@@ -13,7 +13,9 @@ cube-map texels of T · L · Δω. Green tabulates T for the 92 views of a subdi
     <out>/manifest.json        kind "transfer/transport", meta (views, res, brdf, chunks, ...)
     <out>/views.prt            the view directions [J, 3] and texel solid angles [6, r, r]
     <out>/mesh.prt             the mesh arrays (as Transfer.save stores them)
-    <out>/chunk_000000.prt ... data [k, J, 6, r, r] (float32 or float16) for vertices start..stop-1
+    <out>/chunk_000000.prt ... data [k, J, 6, r, r] (float32 or float16) for vertices start..stop-1,
+                               and visibility [k, ⌈6r²/8⌉] uint8: each texel's V_p as packed bits (issue 42 §2;
+                               :func:`pack_visibility`; absent in tables written before — :func:`texel_visibility`)
 
 Chunks are written atomically and skipped when present, so an interrupted run resumes.
 T is zero for views below the vertex's tangent plane and for occluded or below-horizon texels.
@@ -49,7 +51,8 @@ from .base import RunOptions
 from . import transport_kernels
 from .glossy import check_frames, decide_shadows
 
-__all__ = ["check_disk_space", "choose_cube_res", "lobe_width", "texel_spacing", "supersample_plan", "sub_texel_sets", "view_sub",
+__all__ = ["check_disk_space", "pack_visibility", "unpack_visibility", "texel_visibility",
+    "choose_cube_res", "lobe_width", "texel_spacing", "supersample_plan", "sub_texel_sets", "view_sub",
     "icosphere_directions",
     "cube_directions",
     "precompute_transport",
@@ -259,7 +262,7 @@ def _chunk_transport(caster, brdf, points, normals, frames, texels, views, mat_i
                      dtype: torch.dtype = torch.float64, out: torch.Tensor | None = None,
                      plan: dict[str, Any] | None = None,
                      sub_texels: dict[int, tuple[torch.Tensor, torch.Tensor]] | None = None,
-                     average_threads: int | None = None) -> torch.Tensor:
+                     average_threads: int | None = None, visibility: torch.Tensor | None = None) -> torch.Tensor:
     """T for k vertices: ``[k, J, P]`` (P = 6r² texels) in ``dtype`` (the values computed in
     float64 and rounded once: the stored dtype is written directly), Green 2005 eq. 1.2.
 
@@ -280,7 +283,12 @@ def _chunk_transport(caster, brdf, points, normals, frames, texels, views, mat_i
     for those averages (None: the caller's count); :func:`precompute_transport` passes the process's
     count, since no ray is cast while they run (the rest of the chunk runs in :data:`CHUNK_THREADS`,
     the other cores being the ray-casting workers'). The values do not depend on it (elementwise
-    work and a per-pair sum: tested)."""
+    work and a per-pair sum: tested).
+
+    ``visibility``: a bool ``[k, P]`` tensor to fill with each texel's visibility V_p as the table uses
+    it (independent of the view): its ray unblocked and some of it above the tangent plane (the texel
+    centre, or with ``plan`` some sub-texel) — what the harness's exact-view reference reads
+    (:func:`texel_visibility`, ``TransportTable.visibility``)."""
     cos = normals @ texels.T  # [k, P]
     W = cos.clamp_min(0)
     vis_any = None
@@ -304,6 +312,8 @@ def _chunk_transport(caster, brdf, points, normals, frames, texels, views, mat_i
             if i.numel():
                 occ = caster.occluded(points[i], sd[j, amax[i, j]], normals=normals[i])
                 vis_any[i[occ], j[occ]] = False
+    if visibility is not None:
+        visibility.copy_(W > 0 if vis_any is None else vis_any | (W > 0))
     wi = torch.einsum("kab,pb->kpa", frames, texels)  # [k, P, 3] local light directions
     wo = torch.einsum("kab,jb->kja", frames, views)  # [k, J, 3] local views
     k, J, P = wo.shape[0], wo.shape[1], wi.shape[1]
@@ -393,6 +403,52 @@ def _average_texels(T, brdf, frames, wo, pairs, mat_index, plan, sub_texels, dty
             b = brdf if mat_index is None else brdf.select(mat_index[i]).view(-1, 1)
             f = b.eval(wi, wo[i, j][:, None, :])  # [n, S²]
             T[i, j * P + p] = (f * wi[..., 2].clamp_min(0) * sw[p]).sum(1).to(dtype)
+
+
+def pack_visibility(vis: torch.Tensor) -> torch.Tensor:
+    """Texel visibility ``[k, P]`` bool → packed bits ``[k, ⌈P/8⌉]`` uint8 (texel p at bit p % 8 of byte
+    p // 8, little bit order): what a transport chunk file stores as ``visibility`` (P/8 bytes a vertex:
+    127 at 6×13×13, against J·P·4 = 170 kB of tables at 42 views)."""
+    import numpy as np
+
+    return torch.from_numpy(np.packbits(vis.numpy(), axis=1, bitorder="little"))
+
+
+def unpack_visibility(bits: torch.Tensor, P: int) -> torch.Tensor:
+    """:func:`pack_visibility`'s inverse: ``[k, ⌈P/8⌉]`` uint8 → ``[k, P]`` bool."""
+    import numpy as np
+
+    return torch.from_numpy(np.unpackbits(bits.numpy(), axis=1, count=P, bitorder="little").astype(bool))
+
+
+def texel_visibility(mesh: Mesh, res: int, *, plan: dict[str, Any] | None = None, shadows: bool = True,
+                     offset: float = 1e-4, workers: int | None = 1, vertices: torch.Tensor | None = None) -> torch.Tensor:
+    """The texel visibility V_p ``[k, P]`` bool (P = 6 res²) of a transport table of ``mesh``, traced now: the
+    rays :func:`precompute_transport` casts (one per texel with its centre above the tangent plane, and with a
+    supersample ``plan`` — the manifest's — one toward the highest sub-texel of a texel whose centre is below it
+    and a sub-texel above), from the same origins (``offset``, as the manifest's fingerprint has it), so the
+    bits of the chunk files' ``visibility``. For tables written before it was stored (the harness's exact-view
+    reference falls back to this). ``vertices``: int64 indices (default all), in chunks of 4096."""
+    res = check_int("res", res, 1, MAX_CUBE_RES)
+    from ..brdf import Lambertian
+
+    idx = torch.arange(mesh.num_vertices) if vertices is None else torch.as_tensor(vertices, dtype=torch.long)
+    texels = cube_directions(res)[0].reshape(-1, 3)
+    plan = None if plan is None or int(plan.get("sub", 1)) <= 1 else plan
+    subs = None if plan is None else sub_texel_sets(res, plan)
+    F = check_frames(mesh)
+    out = torch.zeros(idx.numel(), texels.shape[0], dtype=torch.bool)
+    caster = RayCaster(mesh, workers=workers, offset=offset) if shadows else None
+    up = torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64)  # one view: the BRDF pass is incidental (Lambertian)
+    try:
+        for a in range(0, idx.numel(), 4096):
+            i = idx[a:a + 4096]
+            _chunk_transport(caster, Lambertian(), mesh.vertices[i], mesh.normals[i], F[i], texels, up, None, bool(shadows),
+                             torch.float32, plan=plan, sub_texels=subs, visibility=out[a:a + 4096])
+    finally:
+        if caster is not None:
+            caster.close()
+    return out
 
 
 def check_disk_space(out: str | Path, V: int, views: torch.Tensor | int, res: int, dtype: str) -> int:
@@ -523,6 +579,9 @@ def precompute_transport(
         "complete": False, **shadow_meta,
         "supersample": plan if plan is not None else {"sub": 1, "reason": "point values at the texel centres (no lobe narrower "
                                                                           "than the texels, or supersample=1)"},
+        "visibility": {"stored": "each chunk file's 'visibility': uint8 [k, ceil(P/8)], texel p at bit p % 8 (little "
+                                 "order) of byte p // 8: V_p of the tables (ray unblocked, some of the texel above the "
+                                 "tangent plane), independent of the view", "bytes_per_vertex": (P + 7) // 8},
     }
     if auto:
         meta["auto"] = auto
@@ -563,11 +622,12 @@ def precompute_transport(
                 free.append(pool[-1])
             buf = free.pop()
         threads = torch.get_num_threads()  # this process's (a Ray task's: its CPUs): the BRDF passes use them all
+        vis = torch.empty(b - a, P, dtype=torch.bool)
         with torch_threads(CHUNK_THREADS):
             T = _chunk_transport(caster, brdf, mesh.vertices[a:b], mesh.normals[a:b], F[a:b], texels_flat,
                                  view_dirs, None if mat_index is None else mat_index[a:b], shadows, store, out=buf,
-                                 plan=plan, sub_texels=subs, average_threads=threads)
-        return [T.reshape(b - a, J, 6, res, res)]
+                                 plan=plan, sub_texels=subs, average_threads=threads, visibility=vis)
+        return [pack_visibility(vis), T.reshape(b - a, J, 6, res, res)]
 
     def report(c: int) -> None:
         if bar is not None:
@@ -590,8 +650,10 @@ def precompute_transport(
             report(c)
             return
         data = box.pop()  # the executor's result list keeps no table
+        bits = box.pop()  # the texels' visibility, packed (pack_visibility)
         buf = next((x for x in pool if x.data_ptr() == data.data_ptr()), None)
-        writing.append((c, writer.submit(io.save, out / f"chunk_{c:06d}.prt", {"data": data}, kind="transfer/transport_chunk",
+        writing.append((c, writer.submit(io.save, out / f"chunk_{c:06d}.prt", {"data": data, "visibility": bits},
+                                         kind="transfer/transport_chunk",
                                          meta={"chunk": c, "start": ranges[c][0], "stop": ranges[c][1]}, direct=True), buf))
         settle(1)
 
@@ -653,6 +715,24 @@ class TransportTable:
         for c in range(int(self.meta["chunks"])):
             if (self.path / f"chunk_{c:06d}.prt").exists():
                 yield self.chunk(c)
+
+    def visibility(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The stored texel visibility (:func:`texel_visibility`'s bits, written with each chunk since issue
+        42 §2): ``(vis [V, P] bool, have [V] bool)``, ``have`` False (and ``vis`` False) for the vertices of
+        a chunk file without it (a table written before) or missing."""
+        from safetensors import safe_open
+
+        V, P, k = self.num_vertices, int(self.meta["texels"]), int(self.meta["chunk_size"])
+        vis, have = torch.zeros(V, P, dtype=torch.bool), torch.zeros(V, dtype=torch.bool)
+        for c in range(int(self.meta["chunks"])):
+            f = self.path / f"chunk_{c:06d}.prt"
+            if not f.exists():
+                continue
+            with safe_open(str(f), framework="pt") as h:  # the bits alone (the tables are not read)
+                if "visibility" in h.keys():
+                    a, b = c * k, min(V, (c + 1) * k)
+                    vis[a:b], have[a:b] = unpack_visibility(h.get_tensor("visibility"), P), True
+        return vis, have
 
     def mesh(self) -> Mesh:
         t, m = io.load(self.path / "mesh.prt")

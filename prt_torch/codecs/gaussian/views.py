@@ -10,7 +10,8 @@ import math
 
 import torch
 
-__all__ = ["fibonacci_directions", "default_views", "view_neighbours", "views_cover_sphere", "view_taps", "blend_lobes", "order_lobes"]
+__all__ = ["fibonacci_directions", "default_views", "view_neighbours", "views_cover_sphere", "view_taps", "blend_lobes", "order_lobes",
+           "fill_empty_lobes"]
 
 
 def fibonacci_directions(n: int) -> torch.Tensor:
@@ -135,4 +136,79 @@ def order_lobes(w: torch.Tensor, mu: torch.Tensor, sigma: torch.Tensor, views: t
         w[:, j] = w[:, j].gather(1, best)
         sigma[:, j] = sigma[:, j].gather(1, best)
         mu[:, j] = mu[:, j].gather(1, best[..., None].expand(-1, -1, 3))
+    return w, mu, sigma
+
+
+#: :func:`fill_empty_lobes`: the locality κ of the weights exp(κ (v_j·v_m − 1)) over the views m a zero-weight
+#: lobe's mean is extrapolated from (κ = 10: half weight at 22°, a tenth at 40°; measured best of 4, 8 (scratch) and 10)
+FILL_LOCALITY = 10.0
+
+
+def fill_empty_lobes(w: torch.Tensor, mu: torch.Tensor, sigma: torch.Tensor, views: torch.Tensor, k: int = 6,
+                     locality: float = FILL_LOCALITY, block: int = 1024) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Place every lobe of weight 0 — all N lobes of a zero function (a view below the vertex's horizon) and a
+    lobe a fit dropped — where the same-numbered lobe's track over the views leads (run after :func:`order_lobes`).
+
+    The mean: an affine function of the view direction, μ(v) ≈ A v + b (A 3×3, b 3; a highlight's mirror
+    direction 2(n·v)n − v is one, exactly), fitted per (vertex, lobe, zero view j) by weighted least squares
+    over the views m where the lobe has weight, weights w_m exp(κ (v_j·v_m − 1)) (κ = ``locality``), then
+    evaluated at v_j and normalised — batched: per vertex block one GEMM of the locality kernel [J, J] with the
+    per-view moments, and 4×4 solves. A lobe with weight in fewer than 4 of its vertex's views (an ill-posed
+    fit) takes instead the normalised sum of its neighbouring views' means (:func:`view_neighbours`), sweep
+    after sweep outward over the view graph. The width: that neighbour average for every zero-weight lobe.
+
+    Weights stay 0, so the tables, the fit's error and every stored-view relight are unchanged. What changes
+    is the blend at view taps (Green §2.3, :func:`blend_lobes`): means and widths are blended with the tap
+    weights whatever the lobes' weights, so a tapped view with nothing there (near each vertex's horizon: about
+    20% of the vertices a camera sees at 162 views) pulled the blended lobe toward its placeholder (the fit's
+    zero functions start at the view direction, width 0.5) instead of only fading it out. Measured on ``prt
+    bench gaussian``'s tables against the exact radiance: reports/benchmarks/gaussian_taps.md (issue 42 §2).
+    ``w [V, J, N]``, ``mu [V, J, N, 3]``, ``sigma [V, J, N]``, ``views [J, 3]`` → (w, new mu, new sigma);
+    a lobe with weight in no view of its vertex is left as it was."""
+    V, J, N = w.shape
+    if J < 2:
+        return w, mu, sigma
+    vw = views.to(torch.float64)
+    nb = view_neighbours(vw, k)  # [J, K]
+    X = torch.cat([vw, torch.ones(J, 1, dtype=torch.float64)], 1)  # [J, 4]: (v, 1)
+    XX = (X[:, :, None] * X[:, None, :]).reshape(J, 16)
+    Kj = torch.exp(float(locality) * (vw @ vw.T - 1))  # [J, J] locality of view m to view j
+    mu, sigma = mu.clone(), sigma.clone()
+    for v0 in range(0, V, block):  # blocks of vertices: [b, N, J, 16] moments, no [V, J, J] temporaries
+        sl = slice(v0, v0 + block)
+        wb, m_, s_ = w[sl].to(torch.float64), mu[sl].to(torch.float64), sigma[sl].to(torch.float64)
+        b = wb.shape[0]
+        valid = wb > 0
+        todo = ~valid
+        # ring fill (widths; the means of lobes with too few weighted views), sweep by sweep over the view graph
+        mr, sr, got, left = m_.clone(), s_.clone(), valid.clone(), todo.clone()
+        for _ in range(J):
+            src = got[:, nb]  # [b, J, K, N]
+            can = left & src.any(2)
+            if not bool(can.any()):
+                break
+            m = (mr[:, nb] * src[..., None]).sum(2)
+            s = (sr[:, nb] * src).sum(2) / src.sum(2).clamp_min(1)
+            mr = torch.where(can[..., None], m / m.norm(dim=-1, keepdim=True).clamp_min(1e-12), mr)
+            sr = torch.where(can, s, sr)
+            got, left = got | can, left & ~can
+        # the affine track of each lobe's mean, fitted around each zero view
+        wt = (wb * valid).permute(0, 2, 1)  # [b, N, J]
+        G = (Kj @ (wt[..., None] * XX).reshape(b * N, J, 16)).reshape(b, N, J, 4, 4)  # Σ_m K_jm w_m x_m x_mᵀ
+        R = (Kj @ (wt[..., None, None] * X[:, :, None] * m_.permute(0, 2, 1, 3)[..., None, :]).reshape(b * N, J, 12)
+             ).reshape(b, N, J, 4, 3)  # Σ_m K_jm w_m x_m μ_mᵀ
+        rows = (todo.permute(0, 2, 1) & (valid.sum(1)[..., None] >= 4)).nonzero(as_tuple=True)  # (vertex, lobe, view)
+        lin = torch.zeros(b, N, J, dtype=torch.bool)
+        if rows[0].numel():
+            Gs = G[rows]
+            Gs = Gs + 1e-9 * Gs.diagonal(dim1=-2, dim2=-1).sum(-1)[:, None, None] * torch.eye(4, dtype=Gs.dtype)
+            C = torch.linalg.solve(Gs, R[rows])  # [n, 4, 3]
+            pred = torch.einsum("na,nac->nc", X[rows[2]], C)
+            ok = pred.norm(dim=-1) > 1e-6
+            lin[rows[0][ok], rows[1][ok], rows[2][ok]] = True
+            full = torch.zeros(b, N, J, 3, dtype=torch.float64)
+            full[rows[0][ok], rows[1][ok], rows[2][ok]] = pred[ok] / pred[ok].norm(dim=-1, keepdim=True)
+            mr = torch.where(lin.permute(0, 2, 1)[..., None], full.permute(0, 2, 1, 3), mr)
+        mu[sl] = torch.where(todo[..., None], mr, m_).to(mu.dtype)
+        sigma[sl] = torch.where(todo, sr, s_).to(sigma.dtype)
     return w, mu, sigma
