@@ -556,9 +556,9 @@ def test_precompute_resumes_to_the_same_result(tmp_path, scene):
 
 def test_cli_relight_transport_tables(tmp_path):
     """Transport tables (a directory) relit per vertex: constant radiance 1 on an unshadowed convex
-    object, Ashikhmin-Shirley tables; the result equals the harness evaluator's reference (what
-    prt render draws), and under unit radiance an energy-conserving BRDF exits within [0, 1] (its
-    directional albedo)."""
+    object, Ashikhmin-Shirley tables; the result equals the harness evaluator's uncompressed relight
+    (the tables cross-faded between their views: what prt render draws), and under unit radiance an
+    energy-conserving BRDF exits within [0, 1] (its directional albedo)."""
     from prt_torch.harness.evaluate import Evaluator, load_directory_transfer
 
     d = tmp_path / "t"
@@ -568,8 +568,11 @@ def test_cli_relight_transport_tables(tmp_path):
     assert cli_main(["relight", str(d), "--light", "constant:value=1", "--view", "0,-5,2", "-o", str(out)]) == 0
     rad = np.load(out)
     ev = Evaluator(load_directory_transfer(d))
-    ref = ev.reference(load_light("constant:value=1", bands=ev.bands_in), ev.view_weights(torch.tensor([0.0, -5.0, 2.0])))
+    light, view = load_light("constant:value=1", bands=ev.bands_in), ev.view_weights(torch.tensor([0.0, -5.0, 2.0]))
+    ref = ev.uncompressed(light, view)
     assert rad.shape == (ev.V, 3) and np.allclose(rad, ref.numpy(), atol=1e-6)
+    exact = ev.reference(light, view).numpy()  # the exact radiance at each vertex's view (no cross-fade)
+    assert (exact >= -1e-6).all() and (exact <= 1 + 1e-3).all() and exact.max() > 0  # within the directional albedo too
     assert (rad >= -1e-6).all() and (rad <= 1 + 1e-3).all() and rad.max() > 0
 
 
