@@ -340,6 +340,8 @@ def save(
 
     if not isinstance(kind, str) or not kind:
         raise ValueError(f"kind={kind!r}; accepted: a non-empty string such as 'transfer/diffuse'")
+    if not isinstance(direct, bool):  # a truthy string ("no") would bypass the page cache unasked
+        raise ValueError(f"direct={direct!r}; accepted: True or False")
     for k, v in tensors.items():
         if not isinstance(v, torch.Tensor):
             raise TypeError(f"tensors[{k!r}] is {type(v).__name__}; accepted: torch.Tensor")

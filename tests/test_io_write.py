@@ -191,3 +191,12 @@ def test_short_writes_are_continued(tmp_path, monkeypatch, direct):
     assert len(sizes) > 12 and max(sizes) == 1 << 20
     if not direct:
         assert (tmp_path / "s.prt").read_bytes() == _lib_bytes(tmp_path, data, "k")
+
+
+@pytest.mark.parametrize("bad", ["no", 1, None])
+def test_direct_must_be_a_bool(tmp_path, bad):
+    """``direct`` is refused unless True or False (a truthy string would take the O_DIRECT path unasked), naming the
+    parameter and value, before anything is written."""
+    with pytest.raises(ValueError, match=r"^direct=.*; accepted: True or False$"):
+        io.save(tmp_path / "x.prt", {"a": torch.ones(2)}, kind="k", direct=bad)
+    assert not list(tmp_path.iterdir())
