@@ -63,6 +63,11 @@ def test_compiled_guided_rays_equal_the_numpy_reference_bit_for_bit():
     with pytest.raises(ValueError, match=f"face {int(unguided[0])} has no guide"):
         ray_kernels.guided_rays_native(M, np.zeros(1, np.int64), unguided, u1[:1], v2[:1], ta, tb, hb._guide_row,
                                        *hb._guide_cdf, hb.guide_mass, hb.frames, D, W)
+    F = hb._guide_row.shape[0]
+    for h, t in ((np.array([-1]), gf[:1]), (np.zeros(1, np.int64), np.array([F])), (np.zeros(1, np.int64), np.array([-1]))):
+        with pytest.raises(ValueError, match=rf"accepted: hits >= 0, tri in \[0, {F}\)"):  # no out-of-range read or write in the C
+            ray_kernels.guided_rays_native(M, h, t, u1[:1], v2[:1], ta, tb, hb._guide_row, *hb._guide_cdf, hb.guide_mass,
+                                           hb.frames, D, W)
 
 
 def test_probe_of_a_subset_equals_the_whole_mesh_probe_at_those_faces():
