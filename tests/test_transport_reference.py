@@ -130,3 +130,20 @@ def test_transport_view_is_the_taps_every_codec_takes_and_pickles(shadowed):
     enc = c.fit_encode(ev.X, matrix_shape=ev.matrix_shape)
     L = ev.light_matrix(load_light("sky", bands=ev.bands_in))
     assert torch.equal(c.relight(enc, L, view=view), c.relight(enc, L, view=(idx, w)))
+
+
+def test_a_chunk_whose_visibility_has_the_wrong_shape_is_named(shadowed, tmp_path):
+    """A chunk file whose ``visibility`` is not uint8 [its vertices, ceil(P/8)] (another table's chunk copied in,
+    a truncated write by another tool): one line naming the file, what it holds and what is accepted — not a
+    shape error from the unpacking, nor bits read as another texel layout."""
+    import shutil
+
+    out = tmp_path / "t"
+    shutil.copytree(shadowed, out)
+    t, m = io.load(out / "chunk_000000.prt")
+    k, nb = t["visibility"].shape
+    for bad in (t["visibility"][:, :-1], t["visibility"][:-1], t["visibility"].to(torch.int16)):
+        io.save(out / "chunk_000000.prt", {"data": t["data"], "visibility": bad}, kind=m["kind"],
+                meta={key: m[key] for key in ("chunk", "start", "stop")}, overwrite=True)
+        with pytest.raises(ValueError, match=rf"chunk_000000\.prt'?: visibility is .*; accepted: uint8 \[{k}, {nb}\]"):
+            TransportTable(out).visibility()

@@ -731,7 +731,11 @@ class TransportTable:
             with safe_open(str(f), framework="pt") as h:  # the bits alone (the tables are not read)
                 if "visibility" in h.keys():
                     a, b = c * k, min(V, (c + 1) * k)
-                    vis[a:b], have[a:b] = unpack_visibility(h.get_tensor("visibility"), P), True
+                    bits = h.get_tensor("visibility")
+                    if bits.dtype != torch.uint8 or tuple(bits.shape) != (b - a, (P + 7) // 8):
+                        raise ValueError(f"{str(f)!r}: visibility is {bits.dtype} {list(bits.shape)}; accepted: uint8 "
+                                         f"[{b - a}, {(P + 7) // 8}] (the chunk's vertices x ceil(texels/8)), as the manifest says")
+                    vis[a:b], have[a:b] = unpack_visibility(bits, P), True
         return vis, have
 
     def mesh(self) -> Mesh:
