@@ -147,3 +147,19 @@ def test_a_chunk_whose_visibility_has_the_wrong_shape_is_named(shadowed, tmp_pat
                 meta={key: m[key] for key in ("chunk", "start", "stop")}, overwrite=True)
         with pytest.raises(ValueError, match=rf"chunk_000000\.prt'?: visibility is .*; accepted: uint8 \[{k}, {nb}\]"):
             TransportTable(out).visibility()
+
+
+def test_texel_visibility_refuses_bad_arguments():
+    """Vertex indices outside the mesh, a non-bool ``shadows``, a bad ``res`` or ``offset``: one line naming it."""
+    mesh = load_scene("sphere_on_plane", size="small")
+    V = mesh.num_vertices
+    with pytest.raises(ValueError, match=rf"vertices holds indices in \[0, {V}\]; accepted: vertex indices in \[0, {V}\)"):
+        texel_visibility(mesh, 4, vertices=torch.tensor([0, V]))
+    with pytest.raises(ValueError, match=r"vertices holds indices in \[-1, 0\]"):
+        texel_visibility(mesh, 4, vertices=[-1, 0])
+    with pytest.raises(ValueError, match=r"^shadows='yes'; accepted: True or False"):
+        texel_visibility(mesh, 4, shadows="yes", vertices=[0])
+    with pytest.raises(ValueError, match=r"^res=0"):
+        texel_visibility(mesh, 0, vertices=[0])
+    with pytest.raises(ValueError, match=r"^offset=-1.0 is out of range"):
+        texel_visibility(mesh, 4, offset=-1.0, vertices=[0])

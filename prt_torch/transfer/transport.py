@@ -432,7 +432,12 @@ def texel_visibility(mesh: Mesh, res: int, *, plan: dict[str, Any] | None = None
     res = check_int("res", res, 1, MAX_CUBE_RES)
     from ..brdf import Lambertian
 
-    idx = torch.arange(mesh.num_vertices) if vertices is None else torch.as_tensor(vertices, dtype=torch.long)
+    idx = torch.arange(mesh.num_vertices) if vertices is None else torch.as_tensor(vertices, dtype=torch.long).reshape(-1)
+    if idx.numel() and (int(idx.min()) < 0 or int(idx.max()) >= mesh.num_vertices):
+        raise ValueError(f"vertices holds indices in [{int(idx.min())}, {int(idx.max())}]; accepted: vertex indices in "
+                         f"[0, {mesh.num_vertices})")
+    if not isinstance(shadows, bool):
+        raise ValueError(f"shadows={shadows!r}; accepted: True or False (the table's manifest 'shadows')")
     texels = cube_directions(res)[0].reshape(-1, 3)
     plan = None if plan is None or int(plan.get("sub", 1)) <= 1 else plan
     subs = None if plan is None else sub_texel_sets(res, plan)
