@@ -200,3 +200,40 @@ def test_direct_must_be_a_bool(tmp_path, bad):
     with pytest.raises(ValueError, match=r"^direct=.*; accepted: True or False$"):
         io.save(tmp_path / "x.prt", {"a": torch.ones(2)}, kind="k", direct=bad)
     assert not list(tmp_path.iterdir())
+
+
+def test_direct_falls_back_when_a_write_is_refused_midway(tmp_path, monkeypatch):
+    """EINVAL from a write on the ``O_DIRECT`` descriptor after its first block went out (a device whose logical
+    block is larger than 4 KiB): the file is rewritten from the start through the page cache — the library's bytes,
+    nothing of the refused attempt left (not its length, not its padded header)."""
+    real_open, real_write = os.open, os.write
+    try:  # this file system must take O_DIRECT for the midway refusal to be reached (tmpfs refuses it at the open)
+        os.close(real_open(tmp_path / "probe", os.O_WRONLY | os.O_CREAT | getattr(os, "O_DIRECT", 0)))
+        os.unlink(tmp_path / "probe")
+    except OSError as e:
+        pytest.skip(f"no O_DIRECT here: {e}")
+    direct_fds, calls = set(), {"n": 0}
+
+    def opener(path, flags, *a):
+        fd = real_open(path, flags, *a)
+        if flags & getattr(os, "O_DIRECT", 0):
+            direct_fds.add(fd)
+        else:
+            direct_fds.discard(fd)
+        return fd
+
+    def writer(fd, buf):
+        if fd in direct_fds:
+            calls["n"] += 1
+            if calls["n"] == 2:
+                raise OSError(errno.EINVAL, "Invalid argument")
+        return real_write(fd, buf)
+
+    monkeypatch.setattr(os, "open", opener)
+    monkeypatch.setattr(os, "write", writer)
+    data = {"data": torch.rand(io._DIRECT_MIN // 4 * 2 + 3), "ids": torch.arange(7, dtype=torch.int64)}
+    io.save(tmp_path / "f.prt", data, kind="k", direct=True)
+    monkeypatch.setattr(os, "write", real_write)
+    assert calls["n"] == 2  # the O_DIRECT path was taken, and refused midway
+    assert (tmp_path / "f.prt").read_bytes() == _lib_bytes(tmp_path, data, "k")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["f.prt", "lib.safetensors"]
