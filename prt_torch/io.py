@@ -265,7 +265,10 @@ def _write_safetensors(path: Path, data: dict[str, torch.Tensor], metadata: dict
     if direct and getattr(os, "O_DIRECT", 0) and data and sys.byteorder == "little":
         size = {k: t.numel() * t.element_size() for k, t in data.items()}
         big = max(size, key=size.get)
-        if size[big] >= _DIRECT_MIN and sum(size.values()) - size[big] < _DIRECT_MIN and data[big].data_ptr() % 8 == 0:
+        order = sorted(data, key=lambda k: (_ST_RANK[data[k].dtype][0], k))
+        before = sum(size[k] for k in order[:order.index(big)])  # a multiple of 8, or the padded header would not be
+        if size[big] >= _DIRECT_MIN and sum(size.values()) - size[big] < _DIRECT_MIN and data[big].data_ptr() % 8 == 0 \
+                and before % 8 == 0:
             try:
                 _write_direct(path, data, metadata, big)
                 return

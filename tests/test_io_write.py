@@ -74,11 +74,14 @@ def test_direct_files_read_back_identically(tmp_path, shift, length):
 
 
 def test_direct_below_its_threshold_is_the_library_file(tmp_path):
-    """``direct=True`` for a small tensor, two big ones, or a big one at an address not a multiple of 8 (its header
-    could not be padded to it in 8-byte steps): the ordinary (library) bytes."""
+    """``direct=True`` for a small tensor, two big ones, a big one at an address not a multiple of 8 (its header
+    could not be padded to it in 8-byte steps), or one after tensors whose bytes are not a multiple of 8 (the header
+    would not be; safetensors' writers keep it so): the ordinary (library) bytes."""
     odd = torch.rand(io._DIRECT_MIN // 4 + 1)[1:]
+    # int32 [3] (12 bytes) laid out before a float16 tensor: the header padded to its address would be no multiple of 8
+    after_odd = {"data": torch.rand(io._DIRECT_MIN // 2).half(), "ids": torch.arange(3, dtype=torch.int32)}
     for tensors in ({"data": torch.rand(100)}, {"a": torch.rand(io._DIRECT_MIN // 4), "b": torch.rand(io._DIRECT_MIN // 4)},
-                    {"data": odd}):
+                    {"data": odd}, after_odd):
         io.save(tmp_path / "s.prt", tensors, kind="k", direct=True)
         assert (tmp_path / "s.prt").read_bytes() == _lib_bytes(tmp_path, tensors, "k")
 
