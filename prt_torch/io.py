@@ -252,7 +252,8 @@ def _write_safetensors(path: Path, data: dict[str, torch.Tensor], metadata: dict
     serialised copy, whatever the installed ``safetensors`` (0.4's ``save_file`` copied every tensor into a ``bytes``
     first; 0.8's passes pointers). The file is the one ``safetensors.torch.save_file`` writes, byte for byte (tested).
 
-    ``direct``: where one tensor holds at least :data:`_DIRECT_MIN` bytes and the others together less, its
+    ``direct``: where one tensor holds at least :data:`_DIRECT_MIN` bytes, the others together less, and those laid
+    out before it a multiple of 8 bytes (so the padded header stays a multiple of 8, as the library writes it), its
     page-aligned bulk is written with ``O_DIRECT`` from the tensor's memory — the kernel does not copy it into the page
     cache (on this machine that copy, and the reclaim of the pages it takes, was most of the system time of a transport
     table: 35 % of its CPU; issue 42 §2). The header is then padded with spaces so that the tensor's file offset is
