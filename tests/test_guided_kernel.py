@@ -177,3 +177,14 @@ def test_vertex_transfer_reproduces_rows_whose_hits_land_on_curved_faces():
     assert idx.numel() == 6
     T0, TB = vertex_transfer(m, idx, 2, 64, 4, 1)
     torch.testing.assert_close((T0 + TB.sum(1)[:, 0]).float(), tr.data[idx], rtol=1e-5, atol=1e-6)  # grey: one channel
+
+
+def test_face_openness_refuses_faces_outside_the_mesh():
+    """``face_openness(caster, faces)``: an index outside [0, F) named in one line (not an IndexError mid-probe)."""
+    mesh, hb = _guided_box()
+    F = mesh.faces.shape[0]
+    with RayCaster(mesh, workers=1) as caster:
+        for bad in ([0, F], [-1, 3]):
+            with pytest.raises(ValueError, match=rf"^faces holds indices in \[{min(bad)}, {max(bad)}\]; accepted: face indices in \[0, {F}\)$"):
+                hb.face_openness(caster, np.array(bad))
+        assert hb.probe_rays == 0  # nothing traced

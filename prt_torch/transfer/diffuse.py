@@ -567,7 +567,10 @@ class HitBounce:
         neighbours a guided one pools: :meth:`prepare`), as a run does for the faces its first hits
         land on (issue 42 §2: a face no ray reaches is never probed); None: every face (F·K rays).
         Faces not probed read NaN. Traced in batches of about 2¹⁸ rays."""
-        faces = np.arange(self.face_normals_np.shape[0], dtype=np.int64) if faces is None else np.unique(np.asarray(faces, np.int64))
+        F = self.face_normals_np.shape[0]
+        faces = np.arange(F, dtype=np.int64) if faces is None else np.unique(np.asarray(faces, np.int64))
+        if faces.size and (faces[0] < 0 or faces[-1] >= F):  # sorted by np.unique
+            raise ValueError(f"faces holds indices in [{int(faces[0])}, {int(faces[-1])}]; accepted: face indices in [0, {F})")
         if self.mode == "auto":
             self.prepare(caster, faces)
         else:
