@@ -163,3 +163,12 @@ def test_texel_visibility_refuses_bad_arguments():
         texel_visibility(mesh, 0, vertices=[0])
     with pytest.raises(ValueError, match=r"^offset=-1.0 is out of range"):
         texel_visibility(mesh, 4, offset=-1.0, vertices=[0])
+
+
+def test_exact_transport_refuses_directions_of_another_shape(shadowed):
+    """One line naming ``directions``, its shape and the [V, 3] accepted (not an einsum error)."""
+    ev = Evaluator(load_directory_transfer(shadowed))
+    L = load_light("sky", bands=ev.bands_in)
+    for bad in (torch.zeros(ev.V - 1, 3, dtype=torch.float64), torch.zeros(ev.V, 2, dtype=torch.float64)):
+        with pytest.raises(ValueError, match=rf"^directions has shape .*; accepted: \[V, 3\] = \[{ev.V}, 3\]"):
+            ev.exact_transport(L, bad)
