@@ -172,3 +172,27 @@ def test_exact_transport_refuses_directions_of_another_shape(shadowed):
     for bad in (torch.zeros(ev.V - 1, 3, dtype=torch.float64), torch.zeros(ev.V, 2, dtype=torch.float64)):
         with pytest.raises(ValueError, match=rf"^directions has shape .*; accepted: \[V, 3\] = \[{ev.V}, 3\]"):
             ev.exact_transport(L, bad)
+
+
+def test_exact_reference_with_per_vertex_materials_is_each_vertex_albedo(tmp_path):
+    """Per-vertex parameters (a Lambertian kd [V] from 0.1 to 0.9, the manifest's lists): under a constant radiance 1
+    an unshadowed convex vertex exits its own kd at every view (∫ kd/π cos θ dω = kd), through the per-vertex BRDF
+    rows of the compiled pass and of the torch one (``PRT_TORCH_NATIVE=0``) alike, within the 6×8×8 texels'
+    horizon error — so no vertex reads another's material."""
+    v, f = geodesic_sphere(8)
+    mesh = make_mesh(torch.from_numpy(v), torch.from_numpy(f), name="ico")
+    kd = torch.linspace(0.1, 0.9, mesh.num_vertices, dtype=torch.float64)
+    kd = kd[torch.randperm(kd.numel(), generator=torch.Generator().manual_seed(4))]
+    precompute_transport(mesh, tmp_path / "t", brdf=B.Lambertian(kd), views=1, res=8, shadows=False)
+    L = load_light("constant:value=1", bands=4)
+    for native in ("1", "0"):
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setenv("PRT_TORCH_NATIVE", native)
+            ev = Evaluator(load_directory_transfer(tmp_path / "t"))
+            assert ev.reference_info["brdf"] == "per-vertex"
+            view = ev.view_weights(torch.tensor([3.0, -2.0, 1.0], dtype=torch.float64))
+            up = torch.einsum("vab,vb->va", ev.frames, view.directions)[:, 2] > 0
+            ref = ev.reference(L, view)[:, 0].double()
+        assert int(up.sum()) > 100 and bool((ref[~up] == 0).all())
+        rel = (ref[up] - kd[up]).abs() / kd[up]
+        assert float(rel.max()) < 0.02, (native, float(rel.max()))
