@@ -118,6 +118,19 @@ def main(argv=None):
     ap.add_argument("--compare", nargs=2, metavar=("BEFORE_JSON", "AFTER_JSON"), default=None,
                     help="bench_precompute_error.py reports of the code before and after (same references)")
     a = ap.parse_args(argv)
+    from prt_torch.scene import SIZES, list_builtins
+
+    for spec in a.scenes:  # bad input named before any precompute (status 2, no traceback)
+        name, _, size = spec.partition(":")
+        if name not in list_builtins() or size not in SIZES:
+            ap.error(f"--scenes item {spec!r}; accepted: NAME:SIZE with NAME one of {list(list_builtins())} and SIZE one "
+                     f"of {list(SIZES)}")
+    bad = [n for n in a.samples if n < 1]
+    if bad:
+        ap.error(f"--samples {bad[0]}; accepted: integers >= 1 (rays per vertex)")
+    for f in a.compare or []:
+        if not Path(f).is_file():
+            ap.error(f"--compare {f!r}: no such file; accepted: two bench_precompute_error.py JSON reports")
     load0 = os.getloadavg()[0]
     res = []
     for spec in a.scenes:

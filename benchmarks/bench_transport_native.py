@@ -40,7 +40,13 @@ from prt_torch.harness.timing import cpu_label as _cpu  # noqa: E402
 def parse_brdf(spec: str):
     """``name`` or ``name:k=v,k=v`` -> (the BRDF, its label)."""
     name, _, rest = spec.partition(":")
-    kw = {k: float(v) for k, v in (kv.split("=", 1) for kv in rest.split(",") if kv)}
+    kw = {}
+    for kv in (x for x in rest.split(",") if x):
+        k, eq, v = kv.partition("=")
+        try:
+            kw[k] = float(v) if eq and k else float("x")
+        except ValueError:
+            raise ValueError(f"parameter {kv!r}; accepted: k=v with v a number, e.g. ward:ax=0.3,ay=0.1") from None
     return make_brdf(name, **kw), spec
 
 
@@ -93,11 +99,18 @@ def main(argv=None) -> int:
     ap.add_argument("--brdf", nargs="+", default=["as"], help="model[:k=v,...] (brdf.make_brdf), one row each")
     ap.add_argument("--out", default=None)
     a = ap.parse_args(argv)
+    if a.every < 1:
+        ap.error(f"--every {a.every}; accepted: an integer >= 1 (every n-th chunk)")
+    brdfs = []
+    for b in a.brdf:  # bad input named before any work (status 2, no traceback)
+        try:
+            brdfs.append(parse_brdf(b))
+        except (ValueError, TypeError) as e:
+            ap.error(f"--brdf {b!r}: {e}")
     torch.set_num_threads(1)
     ok, how = TK.available()
     if not ok:
         raise SystemExit(f"no compiled transport kernel: {how}")
-    brdfs = [parse_brdf(b) for b in a.brdf]
     mesh = builtin(a.scene)
     F = check_frames(mesh)
     dt = getattr(torch, a.dtype)

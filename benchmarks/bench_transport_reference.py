@@ -47,14 +47,18 @@ def main(argv=None) -> int:
     ap.add_argument("--cache", type=Path, default=ROOT / "cache")
     ap.add_argument("--out", type=Path, default=ROOT / "reports/benchmarks/transport_reference")
     args = ap.parse_args(argv)
-    cfg = load_config(args.config, args.set)
+    try:  # bad input named in one line, status 2, before any work
+        cfg = load_config(args.config, args.set)
+    except (ValueError, TypeError, OSError) as e:
+        ap.error(f"--config {args.config!r} --set {' '.join(args.set)!r}: {e}")
     if args.part:
         parts = {p["name"]: p for p in part_configs(cfg)}
         if args.part not in parts:
-            raise SystemExit(f"--part {args.part!r}: the config has parts {sorted(parts)}")
+            ap.error(f"--part {args.part!r}: the config has parts {sorted(parts)}")
         cfg = parts[args.part]
     if cfg["transfer"]["type"] != "transport":
-        raise SystemExit(f"config transfer type {cfg['transfer']['type']!r}; accepted: transport")
+        ap.error(f"config transfer type {cfg['transfer']['type']!r}; accepted: transport (--config gaussian, or --part gaussian "
+                 "of the default)")
     warnings.simplefilter("ignore")
     tr, tinfo = compute_transfer(cfg, load_mesh_within_budget(cfg)[0], args.cache, progress=False)
     ev = Evaluator(tr)

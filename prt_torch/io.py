@@ -252,7 +252,8 @@ def _write_safetensors(path: Path, data: dict[str, torch.Tensor], metadata: dict
     serialised copy, whatever the installed ``safetensors`` (0.4's ``save_file`` copied every tensor into a ``bytes``
     first; 0.8's passes pointers). The file is the one ``safetensors.torch.save_file`` writes, byte for byte (tested).
 
-    ``direct``: where one tensor holds at least :data:`_DIRECT_MIN` bytes and the others together less, its
+    ``direct``: where one tensor holds at least :data:`_DIRECT_MIN` bytes, the others together less, and those laid
+    out before it a multiple of 8 bytes (so the padded header stays a multiple of 8, as the library writes it), its
     page-aligned bulk is written with ``O_DIRECT`` from the tensor's memory — the kernel does not copy it into the page
     cache (on this machine that copy, and the reclaim of the pages it takes, was most of the system time of a transport
     table: 35 % of its CPU; issue 42 §2). The header is then padded with spaces so that the tensor's file offset is
@@ -265,7 +266,10 @@ def _write_safetensors(path: Path, data: dict[str, torch.Tensor], metadata: dict
     if direct and getattr(os, "O_DIRECT", 0) and data and sys.byteorder == "little":
         size = {k: t.numel() * t.element_size() for k, t in data.items()}
         big = max(size, key=size.get)
-        if size[big] >= _DIRECT_MIN and sum(size.values()) - size[big] < _DIRECT_MIN and data[big].data_ptr() % 8 == 0:
+        order = sorted(data, key=lambda k: (_ST_RANK[data[k].dtype][0], k))
+        before = sum(size[k] for k in order[:order.index(big)])  # a multiple of 8, or the padded header would not be
+        if size[big] >= _DIRECT_MIN and sum(size.values()) - size[big] < _DIRECT_MIN and data[big].data_ptr() % 8 == 0 \
+                and before % 8 == 0:
             try:
                 _write_direct(path, data, metadata, big)
                 return
@@ -340,6 +344,8 @@ def save(
 
     if not isinstance(kind, str) or not kind:
         raise ValueError(f"kind={kind!r}; accepted: a non-empty string such as 'transfer/diffuse'")
+    if not isinstance(direct, bool):  # a truthy string ("no") would bypass the page cache unasked
+        raise ValueError(f"direct={direct!r}; accepted: True or False")
     for k, v in tensors.items():
         if not isinstance(v, torch.Tensor):
             raise TypeError(f"tensors[{k!r}] is {type(v).__name__}; accepted: torch.Tensor")

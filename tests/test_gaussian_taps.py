@@ -8,6 +8,7 @@ from __future__ import annotations
 import math
 import warnings
 
+import pytest
 import torch
 
 from prt_torch import codecs
@@ -172,3 +173,24 @@ def test_fill_empty_lobes_keeps_the_tables_and_puts_the_blended_lobe_on_the_trut
     pe = prefilter_environment(_sh_light(bands=6), res=16)
     assert torch.equal(c0.relight(e0, pe), c1.relight(e1, pe))  # every stored view: the same bits
     assert float(got[True].max()) < 0.1 and float(got[False].max()) > 5.0, (got[True].max(), got[False].max())
+
+
+def test_fill_empty_lobes_refuses_bad_arguments():
+    """Mismatched shapes, a neighbour count or block below 1, a negative or non-finite locality: one line naming
+    the argument and what is accepted."""
+    from prt_torch.codecs.gaussian import fill_empty_lobes
+
+    V, J, N = 3, 5, 2
+    w, mu, sg = torch.rand(V, J, N), torch.rand(V, J, N, 3), torch.rand(V, J, N)
+    views = torch.nn.functional.normalize(torch.randn(J, 3), dim=-1)
+    with pytest.raises(ValueError, match=r"accepted: w \[V, J, N\], mu \[V, J, N, 3\]"):
+        fill_empty_lobes(w, mu[..., :2], sg, views)
+    with pytest.raises(ValueError, match=r"accepted: w \[V, J, N\]"):
+        fill_empty_lobes(w, mu, sg, views[:4])
+    with pytest.raises(ValueError, match=r"^k=0"):
+        fill_empty_lobes(w, mu, sg, views, k=0)
+    with pytest.raises(ValueError, match=r"^block=0"):
+        fill_empty_lobes(w, mu, sg, views, block=0)
+    for bad in (-1.0, float("nan")):
+        with pytest.raises(ValueError, match=r"^locality=.*accepted: finite values in \[0, inf\]"):
+            fill_empty_lobes(w, mu, sg, views, locality=bad)

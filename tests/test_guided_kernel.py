@@ -63,6 +63,11 @@ def test_compiled_guided_rays_equal_the_numpy_reference_bit_for_bit():
     with pytest.raises(ValueError, match=f"face {int(unguided[0])} has no guide"):
         ray_kernels.guided_rays_native(M, np.zeros(1, np.int64), unguided, u1[:1], v2[:1], ta, tb, hb._guide_row,
                                        *hb._guide_cdf, hb.guide_mass, hb.frames, D, W)
+    F = hb._guide_row.shape[0]
+    for h, t in ((np.array([-1]), gf[:1]), (np.zeros(1, np.int64), np.array([F])), (np.zeros(1, np.int64), np.array([-1]))):
+        with pytest.raises(ValueError, match=rf"accepted: hits >= 0, tri in \[0, {F}\)"):  # no out-of-range read or write in the C
+            ray_kernels.guided_rays_native(M, h, t, u1[:1], v2[:1], ta, tb, hb._guide_row, *hb._guide_cdf, hb.guide_mass,
+                                           hb.frames, D, W)
 
 
 def test_probe_of_a_subset_equals_the_whole_mesh_probe_at_those_faces():
@@ -172,3 +177,14 @@ def test_vertex_transfer_reproduces_rows_whose_hits_land_on_curved_faces():
     assert idx.numel() == 6
     T0, TB = vertex_transfer(m, idx, 2, 64, 4, 1)
     torch.testing.assert_close((T0 + TB.sum(1)[:, 0]).float(), tr.data[idx], rtol=1e-5, atol=1e-6)  # grey: one channel
+
+
+def test_face_openness_refuses_faces_outside_the_mesh():
+    """``face_openness(caster, faces)``: an index outside [0, F) named in one line (not an IndexError mid-probe)."""
+    mesh, hb = _guided_box()
+    F = mesh.faces.shape[0]
+    with RayCaster(mesh, workers=1) as caster:
+        for bad in ([0, F], [-1, 3]):
+            with pytest.raises(ValueError, match=rf"^faces holds indices in \[{min(bad)}, {max(bad)}\]; accepted: face indices in \[0, {F}\)$"):
+                hb.face_openness(caster, np.array(bad))
+        assert hb.probe_rays == 0  # nothing traced

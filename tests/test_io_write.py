@@ -74,11 +74,14 @@ def test_direct_files_read_back_identically(tmp_path, shift, length):
 
 
 def test_direct_below_its_threshold_is_the_library_file(tmp_path):
-    """``direct=True`` for a small tensor, two big ones, or a big one at an address not a multiple of 8 (its header
-    could not be padded to it in 8-byte steps): the ordinary (library) bytes."""
+    """``direct=True`` for a small tensor, two big ones, a big one at an address not a multiple of 8 (its header
+    could not be padded to it in 8-byte steps), or one after tensors whose bytes are not a multiple of 8 (the header
+    would not be; safetensors' writers keep it so): the ordinary (library) bytes."""
     odd = torch.rand(io._DIRECT_MIN // 4 + 1)[1:]
+    # int32 [3] (12 bytes) laid out before a float16 tensor: the header padded to its address would be no multiple of 8
+    after_odd = {"data": torch.rand(io._DIRECT_MIN // 2).half(), "ids": torch.arange(3, dtype=torch.int32)}
     for tensors in ({"data": torch.rand(100)}, {"a": torch.rand(io._DIRECT_MIN // 4), "b": torch.rand(io._DIRECT_MIN // 4)},
-                    {"data": odd}):
+                    {"data": odd}, after_odd):
         io.save(tmp_path / "s.prt", tensors, kind="k", direct=True)
         assert (tmp_path / "s.prt").read_bytes() == _lib_bytes(tmp_path, tensors, "k")
 
@@ -191,3 +194,49 @@ def test_short_writes_are_continued(tmp_path, monkeypatch, direct):
     assert len(sizes) > 12 and max(sizes) == 1 << 20
     if not direct:
         assert (tmp_path / "s.prt").read_bytes() == _lib_bytes(tmp_path, data, "k")
+
+
+@pytest.mark.parametrize("bad", ["no", 1, None])
+def test_direct_must_be_a_bool(tmp_path, bad):
+    """``direct`` is refused unless True or False (a truthy string would take the O_DIRECT path unasked), naming the
+    parameter and value, before anything is written."""
+    with pytest.raises(ValueError, match=r"^direct=.*; accepted: True or False$"):
+        io.save(tmp_path / "x.prt", {"a": torch.ones(2)}, kind="k", direct=bad)
+    assert not list(tmp_path.iterdir())
+
+
+def test_direct_falls_back_when_a_write_is_refused_midway(tmp_path, monkeypatch):
+    """EINVAL from a write on the ``O_DIRECT`` descriptor after its first block went out (a device whose logical
+    block is larger than 4 KiB): the file is rewritten from the start through the page cache — the library's bytes,
+    nothing of the refused attempt left (not its length, not its padded header)."""
+    real_open, real_write = os.open, os.write
+    try:  # this file system must take O_DIRECT for the midway refusal to be reached (tmpfs refuses it at the open)
+        os.close(real_open(tmp_path / "probe", os.O_WRONLY | os.O_CREAT | getattr(os, "O_DIRECT", 0)))
+        os.unlink(tmp_path / "probe")
+    except OSError as e:
+        pytest.skip(f"no O_DIRECT here: {e}")
+    direct_fds, calls = set(), {"n": 0}
+
+    def opener(path, flags, *a):
+        fd = real_open(path, flags, *a)
+        if flags & getattr(os, "O_DIRECT", 0):
+            direct_fds.add(fd)
+        else:
+            direct_fds.discard(fd)
+        return fd
+
+    def writer(fd, buf):
+        if fd in direct_fds:
+            calls["n"] += 1
+            if calls["n"] == 2:
+                raise OSError(errno.EINVAL, "Invalid argument")
+        return real_write(fd, buf)
+
+    monkeypatch.setattr(os, "open", opener)
+    monkeypatch.setattr(os, "write", writer)
+    data = {"data": torch.rand(io._DIRECT_MIN // 4 * 2 + 3), "ids": torch.arange(7, dtype=torch.int64)}
+    io.save(tmp_path / "f.prt", data, kind="k", direct=True)
+    monkeypatch.setattr(os, "write", real_write)
+    assert calls["n"] == 2  # the O_DIRECT path was taken, and refused midway
+    assert (tmp_path / "f.prt").read_bytes() == _lib_bytes(tmp_path, data, "k")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["f.prt", "lib.safetensors"]

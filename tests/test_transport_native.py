@@ -291,3 +291,20 @@ def test_portable_build_without_march_native(tmp_path, monkeypatch):
         monkeypatch.setitem(TK._state, "lib", lib)
         got, _ = _table(monkeypatch, True, MODELS[name])
         assert _rel_close(got, want, 1e-12, TINY)[0], name
+
+
+@pytest.mark.parametrize("args,msg", [(["--brdf", "foo"], "--brdf 'foo': BRDF model='foo' is not known; accepted:"),
+                                      (["--brdf", "ward:ax=x"], "--brdf 'ward:ax=x': parameter 'ax=x'; accepted: k=v"),
+                                      (["--brdf", "as", "ward:bogus=1"], "unknown parameter 'bogus'; accepted: ax, ay, rs, rd"),
+                                      (["--every", "0"], "--every 0; accepted: an integer >= 1")])
+def test_bench_transport_native_refuses_bad_options(args, msg):
+    """benchmarks/bench_transport_native.py: a bad --brdf or --every named in one line, status 2, no traceback, before
+    any table is computed."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    r = subprocess.run([sys.executable, str(root / "benchmarks" / "bench_transport_native.py"), *args, "--out", "-"],
+                       capture_output=True, text=True, cwd=root, timeout=120)
+    assert r.returncode == 2 and msg in r.stderr and "Traceback" not in r.stderr, r.stderr

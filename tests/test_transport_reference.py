@@ -130,3 +130,69 @@ def test_transport_view_is_the_taps_every_codec_takes_and_pickles(shadowed):
     enc = c.fit_encode(ev.X, matrix_shape=ev.matrix_shape)
     L = ev.light_matrix(load_light("sky", bands=ev.bands_in))
     assert torch.equal(c.relight(enc, L, view=view), c.relight(enc, L, view=(idx, w)))
+
+
+def test_a_chunk_whose_visibility_has_the_wrong_shape_is_named(shadowed, tmp_path):
+    """A chunk file whose ``visibility`` is not uint8 [its vertices, ceil(P/8)] (another table's chunk copied in,
+    a truncated write by another tool): one line naming the file, what it holds and what is accepted — not a
+    shape error from the unpacking, nor bits read as another texel layout."""
+    import shutil
+
+    out = tmp_path / "t"
+    shutil.copytree(shadowed, out)
+    t, m = io.load(out / "chunk_000000.prt")
+    k, nb = t["visibility"].shape
+    for bad in (t["visibility"][:, :-1], t["visibility"][:-1], t["visibility"].to(torch.int16)):
+        io.save(out / "chunk_000000.prt", {"data": t["data"], "visibility": bad}, kind=m["kind"],
+                meta={key: m[key] for key in ("chunk", "start", "stop")}, overwrite=True)
+        with pytest.raises(ValueError, match=rf"chunk_000000\.prt'?: visibility is .*; accepted: uint8 \[{k}, {nb}\]"):
+            TransportTable(out).visibility()
+
+
+def test_texel_visibility_refuses_bad_arguments():
+    """Vertex indices outside the mesh, a non-bool ``shadows``, a bad ``res`` or ``offset``: one line naming it."""
+    mesh = load_scene("sphere_on_plane", size="small")
+    V = mesh.num_vertices
+    with pytest.raises(ValueError, match=rf"vertices holds indices in \[0, {V}\]; accepted: vertex indices in \[0, {V}\)"):
+        texel_visibility(mesh, 4, vertices=torch.tensor([0, V]))
+    with pytest.raises(ValueError, match=r"vertices holds indices in \[-1, 0\]"):
+        texel_visibility(mesh, 4, vertices=[-1, 0])
+    with pytest.raises(ValueError, match=r"^shadows='yes'; accepted: True or False"):
+        texel_visibility(mesh, 4, shadows="yes", vertices=[0])
+    with pytest.raises(ValueError, match=r"^res=0"):
+        texel_visibility(mesh, 0, vertices=[0])
+    with pytest.raises(ValueError, match=r"^offset=-1.0 is out of range"):
+        texel_visibility(mesh, 4, offset=-1.0, vertices=[0])
+
+
+def test_exact_transport_refuses_directions_of_another_shape(shadowed):
+    """One line naming ``directions``, its shape and the [V, 3] accepted (not an einsum error)."""
+    ev = Evaluator(load_directory_transfer(shadowed))
+    L = load_light("sky", bands=ev.bands_in)
+    for bad in (torch.zeros(ev.V - 1, 3, dtype=torch.float64), torch.zeros(ev.V, 2, dtype=torch.float64)):
+        with pytest.raises(ValueError, match=rf"^directions has shape .*; accepted: \[V, 3\] = \[{ev.V}, 3\]"):
+            ev.exact_transport(L, bad)
+
+
+def test_exact_reference_with_per_vertex_materials_is_each_vertex_albedo(tmp_path):
+    """Per-vertex parameters (a Lambertian kd [V] from 0.1 to 0.9, the manifest's lists): under a constant radiance 1
+    an unshadowed convex vertex exits its own kd at every view (∫ kd/π cos θ dω = kd), through the per-vertex BRDF
+    rows of the compiled pass and of the torch one (``PRT_TORCH_NATIVE=0``) alike, within the 6×8×8 texels'
+    horizon error — so no vertex reads another's material."""
+    v, f = geodesic_sphere(8)
+    mesh = make_mesh(torch.from_numpy(v), torch.from_numpy(f), name="ico")
+    kd = torch.linspace(0.1, 0.9, mesh.num_vertices, dtype=torch.float64)
+    kd = kd[torch.randperm(kd.numel(), generator=torch.Generator().manual_seed(4))]
+    precompute_transport(mesh, tmp_path / "t", brdf=B.Lambertian(kd), views=1, res=8, shadows=False)
+    L = load_light("constant:value=1", bands=4)
+    for native in ("1", "0"):
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setenv("PRT_TORCH_NATIVE", native)
+            ev = Evaluator(load_directory_transfer(tmp_path / "t"))
+            assert ev.reference_info["brdf"] == "per-vertex"
+            view = ev.view_weights(torch.tensor([3.0, -2.0, 1.0], dtype=torch.float64))
+            up = torch.einsum("vab,vb->va", ev.frames, view.directions)[:, 2] > 0
+            ref = ev.reference(L, view)[:, 0].double()
+        assert int(up.sum()) > 100 and bool((ref[~up] == 0).all())
+        rel = (ref[up] - kd[up]).abs() / kd[up]
+        assert float(rel.max()) < 0.02, (native, float(rel.max()))

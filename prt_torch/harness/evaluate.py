@@ -346,6 +346,9 @@ class Evaluator:
         from ..transfer import transport_kernels
         from ..transfer.transport import AUTO_SUPERSAMPLE, sub_texel_sets, view_sub
 
+        if not isinstance(directions, torch.Tensor) or tuple(directions.shape) != (self.V, 3):
+            raise ValueError(f"directions has shape {tuple(getattr(directions, 'shape', ()))}; accepted: [V, 3] = "
+                             f"[{self.V}, 3] unit directions toward the camera (Evaluator.view_weights(...).directions)")
         st = self._exact_state()
         brdf, vis, plan = st["brdf"], st["vis"], st["plan"]
         wo = torch.einsum("vab,vb->va", self.frames, directions.to(torch.float64))  # [V, 3] local views

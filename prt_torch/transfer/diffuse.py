@@ -64,6 +64,7 @@ __all__ = [
     "hit_bounce",
     "HitBounce",
     "record_probe_log",
+    "probe_fingerprint",
     "FIRST_PROBE_RAYS",
     "offset_origins",
     "hit_ray_eps",
@@ -566,7 +567,10 @@ class HitBounce:
         neighbours a guided one pools: :meth:`prepare`), as a run does for the faces its first hits
         land on (issue 42 §2: a face no ray reaches is never probed); None: every face (F·K rays).
         Faces not probed read NaN. Traced in batches of about 2¹⁸ rays."""
-        faces = np.arange(self.face_normals_np.shape[0], dtype=np.int64) if faces is None else np.unique(np.asarray(faces, np.int64))
+        F = self.face_normals_np.shape[0]
+        faces = np.arange(F, dtype=np.int64) if faces is None else np.unique(np.asarray(faces, np.int64))
+        if faces.size and (faces[0] < 0 or faces[-1] >= F):  # sorted by np.unique
+            raise ValueError(f"faces holds indices in [{int(faces[0])}, {int(faces[-1])}]; accepted: face indices in [0, {F})")
         if self.mode == "auto":
             self.prepare(caster, faces)
         else:
@@ -1362,6 +1366,20 @@ def _hit_tables(caster: RayCaster, mesh: Mesh, bands: int, samples: int, seed: i
     return hb
 
 
+def probe_fingerprint(hits: HitBounce) -> dict[str, Any]:
+    """The resume-fingerprint entries of the bounce estimator's face probe and guide (issue 42): under
+    'auto' the guide's constants (``hit_guide``) and, with the probe's first stage thinned, its rays per
+    face (``hit_probe_rays``: :data:`FIRST_PROBE_RAYS`), so that chunks written with an earlier probe (every
+    face, :data:`FACE_PROBE_RAYS` rays, up front) — whose per-face choices differ — do not mix into a resumed
+    run; ``{}`` for the other estimators (no probe). Used by the diffuse, glossy and MRT runs alike."""
+    if hits.mode != "auto":
+        return {}
+    out: dict[str, Any] = {"hit_guide": [*GUIDE_GRID, GUIDE_POOL, GUIDE_MIN_FACES, GUIDE_UNIFORM]}
+    if hits.probe_stride > 1:
+        out["hit_probe_rays"] = FACE_PROBE_RAYS // hits.probe_stride
+    return out
+
+
 def record_probe_log(meta: dict, part: dict, seen: dict) -> None:
     """Add a chunk's probe log (:meth:`HitBounce.take_probe_log`) to a run's ``meta``:
     ``hit_choice_rays`` sums the probe rays traced (on the Ray executor a face whose hits reach
@@ -1414,11 +1432,7 @@ def _trace_direct(caster: RayCaster, mesh: Mesh, bands: int, samples: int, seed:
     if record_hits and hit_columns != "vertices":
         fingerprint["hit_columns"] = hit_columns
     if hits is not None:
-        fingerprint.update(hit_samples=hits.M, hit_terms=hits.terms, hit_offset=hits.hit_offset)
-        if hits.mode == "auto":  # the guided hits (issue 42): chunks of an earlier estimate do not mix in
-            fingerprint["hit_guide"] = [*GUIDE_GRID, GUIDE_POOL, GUIDE_MIN_FACES, GUIDE_UNIFORM]
-            if hits.probe_stride > 1:  # the probe's first stage thinned (FIRST_PROBE_RAYS): chunks of the full probe do not mix in
-                fingerprint["hit_probe_rays"] = FACE_PROBE_RAYS // hits.probe_stride
+        fingerprint.update(hit_samples=hits.M, hit_terms=hits.terms, hit_offset=hits.hit_offset, **probe_fingerprint(hits))
     if record_hits and hits is None:
         parts = run.run_chunks(V, chunk_size, compute, fingerprint=fingerprint, desc=f"diffuse {mesh.name}",
                                rays_of=lambda r: int(r["rays"].sum()))

@@ -42,7 +42,7 @@ from ..brdf import BRDF, AshikhminShirley, brdf_matrices, output_index
 from ..scene import Mesh, RayCaster, default_workers
 from ..sh import blocks_to_dense, eval_sh, hemisphere_gram, rotation_blocks
 from .base import RunOptions, Transfer
-from .diffuse import HitBounce, boundary_nudge, hit_bounce, offset_origins, record_probe_log
+from .diffuse import HitBounce, boundary_nudge, hit_bounce, offset_origins, probe_fingerprint, record_probe_log
 from .sampling import uniform_sphere
 
 __all__ = [
@@ -305,6 +305,8 @@ def run_exit_transfer(
             tb = time.perf_counter()
             bounce = bounce_table(mesh, bands, samples, seed, bounces, run.offset, estimator, meta)
             meta["bounce_table_seconds"] = time.perf_counter() - tb
+            # the face probe's settings (as the diffuse run's): chunks of an earlier probe do not mix into a resumed run
+            fingerprint = {**fingerprint, **probe_fingerprint(bounce.hits)}
 
         def compute(a: int, b: int) -> dict[str, torch.Tensor]:
             if CHUNK_THREADS is None:

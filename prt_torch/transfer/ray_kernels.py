@@ -239,6 +239,12 @@ def guided_rays_native(M: int, hits: np.ndarray, tri: np.ndarray, u1: np.ndarray
             or D.shape[0] != W.shape[0] or (G and int(hits.max()) * M + M > D.shape[0]):
         raise ValueError(f"guided_rays_native: D {D.dtype} {D.shape}, W {W.dtype} {W.shape}; accepted: contiguous "
                          f"float32 [R, 3] and float64 [R] with R >= (max hit + 1)·M")
+    F = guide_row.shape[0]
+    if G and (int(hits.min()) < 0 or int(tri.min()) < 0 or int(tri.max()) >= F) or (F and int(guide_row.max()) >= Gf):
+        # the C indexes D/W by hits, guide_row by tri and the guides by guide_row unchecked: out of range is memory corruption
+        raise ValueError(f"guided_rays_native: hits in [{int(hits.min()) if G else 0}, {int(hits.max()) if G else 0}], tri in "
+                         f"[{int(tri.min()) if G else 0}, {int(tri.max()) if G else 0}], guide_row up to "
+                         f"{int(guide_row.max()) if F else -1}; accepted: hits >= 0, tri in [0, {F}), guide_row < {Gf}")
     c = [np.ascontiguousarray(x, np.int64) for x in (hits, tri, guide_row)]
     f = [np.ascontiguousarray(x, np.float64) for x in (u1, v2, ta, tb, cdf_a, cdf_b, mass, frames)]
     bad = lib.prt_guided_rays(G, int(M), c[0].ctypes.data, c[1].ctypes.data, f[0].ctypes.data, f[1].ctypes.data,

@@ -432,7 +432,12 @@ def texel_visibility(mesh: Mesh, res: int, *, plan: dict[str, Any] | None = None
     res = check_int("res", res, 1, MAX_CUBE_RES)
     from ..brdf import Lambertian
 
-    idx = torch.arange(mesh.num_vertices) if vertices is None else torch.as_tensor(vertices, dtype=torch.long)
+    idx = torch.arange(mesh.num_vertices) if vertices is None else torch.as_tensor(vertices, dtype=torch.long).reshape(-1)
+    if idx.numel() and (int(idx.min()) < 0 or int(idx.max()) >= mesh.num_vertices):
+        raise ValueError(f"vertices holds indices in [{int(idx.min())}, {int(idx.max())}]; accepted: vertex indices in "
+                         f"[0, {mesh.num_vertices})")
+    if not isinstance(shadows, bool):
+        raise ValueError(f"shadows={shadows!r}; accepted: True or False (the table's manifest 'shadows')")
     texels = cube_directions(res)[0].reshape(-1, 3)
     plan = None if plan is None or int(plan.get("sub", 1)) <= 1 else plan
     subs = None if plan is None else sub_texel_sets(res, plan)
@@ -731,7 +736,11 @@ class TransportTable:
             with safe_open(str(f), framework="pt") as h:  # the bits alone (the tables are not read)
                 if "visibility" in h.keys():
                     a, b = c * k, min(V, (c + 1) * k)
-                    vis[a:b], have[a:b] = unpack_visibility(h.get_tensor("visibility"), P), True
+                    bits = h.get_tensor("visibility")
+                    if bits.dtype != torch.uint8 or tuple(bits.shape) != (b - a, (P + 7) // 8):
+                        raise ValueError(f"{str(f)!r}: visibility is {bits.dtype} {list(bits.shape)}; accepted: uint8 "
+                                         f"[{b - a}, {(P + 7) // 8}] (the chunk's vertices x ceil(texels/8)), as the manifest says")
+                    vis[a:b], have[a:b] = unpack_visibility(bits, P), True
         return vis, have
 
     def mesh(self) -> Mesh:

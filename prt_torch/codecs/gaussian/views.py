@@ -165,6 +165,14 @@ def fill_empty_lobes(w: torch.Tensor, mu: torch.Tensor, sigma: torch.Tensor, vie
     bench gaussian``'s tables against the exact radiance: reports/benchmarks/gaussian_taps.md (issue 42 §2).
     ``w [V, J, N]``, ``mu [V, J, N, 3]``, ``sigma [V, J, N]``, ``views [J, 3]`` → (w, new mu, new sigma);
     a lobe with weight in no view of its vertex is left as it was."""
+    from ..._checks import check_float, check_int
+
+    if w.ndim != 3 or tuple(mu.shape) != (*w.shape, 3) or tuple(sigma.shape) != tuple(w.shape) \
+            or tuple(views.shape) != (w.shape[1], 3):
+        raise ValueError(f"fill_empty_lobes: w {list(w.shape)}, mu {list(mu.shape)}, sigma {list(sigma.shape)}, views "
+                         f"{list(views.shape)}; accepted: w [V, J, N], mu [V, J, N, 3], sigma [V, J, N], views [J, 3]")
+    k, block = check_int("k", k, 1), check_int("block", block, 1)
+    locality = check_float("locality", locality, 0.0)
     V, J, N = w.shape
     if J < 2:
         return w, mu, sigma
