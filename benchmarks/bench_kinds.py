@@ -43,7 +43,7 @@ from prt_torch.sh import rotation_blocks  # noqa: E402
 from prt_torch.transfer import RunOptions  # noqa: E402
 from prt_torch.transfer.glossy import _Directions, check_frames, precompute_glossy, rotate_rows  # noqa: E402
 from prt_torch.transfer.mrt import precompute_mrt  # noqa: E402
-from prt_torch.transfer.transport import cube_directions, icosphere_directions, precompute_transport  # noqa: E402
+from prt_torch.transfer.transport import HORIZON_EPS, cube_directions, icosphere_directions, precompute_transport  # noqa: E402
 
 
 def gemms_alone(mesh, tr, bands: int, samples: int) -> float:
@@ -104,7 +104,7 @@ def brdf_alone(mesh, brdf, views: int, res: int, chunk: int) -> tuple[float, flo
             T = torch.empty(b - a, vd.shape[0] * texels.shape[0], dtype=torch.float32)
             W = (wi[..., 2] > 0).to(torch.float64)
             t = time.perf_counter()
-            TK.points(T, wi, wo, W, None, model, threads=1)
+            TK.points(T, wi, wo, W, None, model, threads=1, horizon=HORIZON_EPS)
             compiled = (compiled or 0.0) + time.perf_counter() - t
     return whole, blocked, compiled
 

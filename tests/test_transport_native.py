@@ -9,14 +9,12 @@ check (a brute-force block mean of the fine grid) is ``tests/test_transport_supe
 path by default."""
 from __future__ import annotations
 
-import ctypes
-
 import pytest
 import torch
 
 from prt_torch import brdf as B
 from prt_torch.transfer import transport_kernels as TK
-from prt_torch.transfer.transport import (_chunk_transport, cube_directions, icosphere_directions, sub_texel_sets,
+from prt_torch.transfer.transport import (HORIZON_EPS, _chunk_transport, cube_directions, icosphere_directions, sub_texel_sets,
                                           supersample_plan)
 
 native = pytest.mark.skipif(not TK.available()[0], reason=f"no compiled transport kernel: {TK.available()[1]}")
@@ -108,9 +106,10 @@ def test_odd_sizes_and_tails(monkeypatch, k, res, J, name):
 @native
 @pytest.mark.parametrize("name", ["as40", "ward", "ward_sharp", "microfacet", "microfacet_sharp"])
 def test_grazing_views_and_texels(monkeypatch, name):
-    """Views 1e-9 to 5 degrees above the tangent plane of vertices whose normal is +z (tangent frames turned by
-    irrational angles), a cube resolution whose texel rows straddle the horizon: the pairs where Ward's 1/sqrt(cos θi
-    cos θo), the microfacet's 1/cos θi and the half vector's θ_h are worst conditioned, point values and averages."""
+    """Views 2e-9 rad (just above transport.HORIZON_EPS) to 5 degrees above the tangent plane of vertices whose
+    normal is +z (tangent frames turned by irrational angles), a cube resolution whose texel rows straddle the
+    horizon: the pairs where Ward's 1/sqrt(cos θi cos θo), the microfacet's 1/cos θi and the half vector's θ_h
+    are worst conditioned, point values and averages."""
     from prt_torch.transfer.transport import _chunk_transport
 
     monkeypatch.setenv("PRT_TORCH_NATIVE", "1")
@@ -119,7 +118,7 @@ def test_grazing_views_and_texels(monkeypatch, name):
     t = torch.stack([ang.cos(), ang.sin(), torch.zeros(k, dtype=torch.float64)], -1)
     n = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64).expand(k, 3)
     frames = torch.stack([t, torch.linalg.cross(n, t), n], 1)
-    el = torch.tensor([1e-9, 1e-6, 1e-3, 0.01, 0.05, 0.09], dtype=torch.float64)  # radians above the tangent plane
+    el = torch.tensor([2e-9, 1e-6, 1e-3, 0.01, 0.05, 0.09], dtype=torch.float64)  # radians above the tangent plane
     az = torch.arange(el.numel(), dtype=torch.float64) * 1.1
     views = torch.stack([el.cos() * az.cos(), el.cos() * az.sin(), el.sin()], -1)
     texels = cube_directions(res)[0].reshape(-1, 3)
@@ -206,7 +205,8 @@ def test_native_off_and_unknown_models_keep_torch(monkeypatch):
     T = torch.full((2, 12 * 24), float("nan"), dtype=torch.float32)
     model = TK.native_model(AS40, 2)
     wi = torch.zeros(2, 24, 3, dtype=torch.float64)
-    assert not TK.points(T, wi, torch.zeros(2, 12, 3, dtype=torch.float64), torch.ones(2, 24, dtype=torch.float64), None, model)
+    assert not TK.points(T, wi, torch.zeros(2, 12, 3, dtype=torch.float64), torch.ones(2, 24, dtype=torch.float64), None, model,
+                         horizon=HORIZON_EPS)
     assert T.isnan().all()
     for base in (B.AshikhminShirley, B.Ward, B.Microfacet):
         class Mine(base):
@@ -279,11 +279,7 @@ def test_portable_build_without_march_native(tmp_path, monkeypatch):
     monkeypatch.setenv("PRT_TORCH_CACHE", str(tmp_path / "cache"))
     TK._lib()  # the real library's signatures and ABI recorded first
     flags = [f for f in TK._FLAGS if f != "-march=native"]
-    i64, vp, ci = ctypes.c_int64, ctypes.c_void_p, ctypes.c_int
-    lib, why = compile_library("transport", kernel_sources(TK._SOURCES), flags, {
-        "prt_transport_points": [i64, i64, i64, vp, vp, vp, i64, vp, vp, vp, ci, ci, vp, ci, vp, ci],
-        "prt_transport_averages": [i64, vp, vp, vp, vp, i64, i64, i64, vp, vp, vp, vp, vp, ci, ci, vp, ci, vp, ci],
-        "prt_transport_abi": []})
+    lib, why = compile_library("transport", kernel_sources(TK._SOURCES), flags, TK._SIGNATURES)
     assert lib is not None, why
     assert "-march=native" not in why
     for name in ("as40", "as_aniso_pow", "phong_reflection", "ward_aniso", "microfacet", "microfacet_sharp"):

@@ -260,11 +260,12 @@ class Evaluator:
             return None
         if self.kind == "transport":
             from ..codecs.gaussian import view_taps
+            from ..transfer.transport import HORIZON_EPS
 
             d = camera[None].double() - self.points
             d = d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12)
             idx, w = view_taps(self.views, d)
-            above = (d * self.frames[:, 2]).sum(-1) > 0  # the vertex's horizon
+            above = (d * self.frames[:, 2]).sum(-1) > HORIZON_EPS  # the vertex's horizon, as the tables have it
             return TransportView(idx, w * above[:, None].to(w.dtype), d)
         v = self.local_views(camera)
         if self.kind == "glossy":
@@ -340,11 +341,12 @@ class Evaluator:
         ω_o — S from the width of the BRDF's lobe at that view (``transfer.transport.view_sub`` of the
         ``res: auto`` plan: 2 where the texels resolve it, up to :data:`EXACT_MAX_SUB` at grazing views;
         2 for a model without a lobe) — and the SH light ``[C, n²]`` evaluated at every sub-texel. ``directions [V, 3]``
-        float64 world unit vectors toward the camera; zero below the horizon. Returns ``[V, C]`` float32.
+        float64 world unit vectors toward the camera; zero below the horizon (cos θ_o ≤ ``transport.HORIZON_EPS``,
+        as the tables). Returns ``[V, C]`` float32.
         Batched over blocks of vertices of one S (the compiled BRDF pass ``transport_kernels.points`` for
         the models it knows, else ``BRDF.eval``)."""
         from ..transfer import transport_kernels
-        from ..transfer.transport import AUTO_SUPERSAMPLE, sub_texel_sets, view_sub
+        from ..transfer.transport import AUTO_SUPERSAMPLE, HORIZON_EPS, sub_texel_sets, view_sub
 
         if not isinstance(directions, torch.Tensor) or tuple(directions.shape) != (self.V, 3):
             raise ValueError(f"directions has shape {tuple(getattr(directions, 'shape', ()))}; accepted: [V, 3] = "
@@ -352,7 +354,7 @@ class Evaluator:
         st = self._exact_state()
         brdf, vis, plan = st["brdf"], st["vis"], st["plan"]
         wo = torch.einsum("vab,vb->va", self.frames, directions.to(torch.float64))  # [V, 3] local views
-        up = wo[:, 2] > 0
+        up = wo[:, 2] > HORIZON_EPS  # a view in the tangent plane is below it, as in the tables (Ward diverges there)
         S = (view_sub({**plan, "sub": EXACT_MAX_SUB, "adaptive": True}, wo[:, 2]) if plan is not None
              else torch.full((self.V,), 2, dtype=torch.long))
         if brdf.batch_shape != ():
@@ -381,7 +383,8 @@ class Evaluator:
                 W = wi[..., 2].clamp_min(0) * vis[i].repeat_interleave(s * s, dim=1)  # cos × the parent texel's V_p
                 T = torch.empty(i.numel(), Q, dtype=torch.float64)
                 model = transport_kernels.native_model(brdf, i.numel(), i if brdf.batch_shape != () else None)
-                if model is None or not transport_kernels.points(T, wi, wo[i][:, None], W, None, model, torch.get_num_threads()):
+                if model is None or not transport_kernels.points(T, wi, wo[i][:, None], W, None, model, torch.get_num_threads(),
+                                                                    horizon=HORIZON_EPS):
                     b = brdf if brdf.batch_shape == () else brdf.select(i).view(-1, 1)
                     T = b.eval(wi, wo[i][:, None, :]) * W
                 out[i] = T @ Lw

@@ -10,8 +10,9 @@
  *     the na averaged pairs (ai, aj, ap int64: vertex, view, texel, in that lexicographic order; checked, 4 if
  *     not; the pairs the averages write, skipped by merging the sorted lists), the BRDF's parameters per vertex
  *     par float64 [k, 4] -> out [k, J * P] (float32, float64 or float16: out_dtype 0, 1, 2; float16 through
- *     float, as torch): every element of the k rows is written, f_r W on the pairs of an upper view (wo_z > 0)
- *     and a texel with W > 0 not averaged, 0 elsewhere. Per vertex the visible texels are gathered once
+ *     float, as torch): every element of the k rows is written, f_r W on the pairs of an upper view (wo_z >
+ *     horizon, the caller's transport.HORIZON_EPS: a view in the tangent plane, where Ward's 1/sqrt(cos theta_o)
+ *     diverges, counts as below) and a texel with W > 0 not averaged, 0 elsewhere. Per vertex the visible texels are gathered once
  *     (structure of arrays), then each upper view evaluates them in one block.
  * prt_transport_averages (the texel averages): n pairs (vertex iv, view jv, texel pv, sub-texel count sv; any
  *     order), frames float64 [k, 3, 3] (rows t, b, n), the sub-texel sets packed: for each S, sd float64
@@ -58,9 +59,9 @@ typedef int64_t i64;
 #define AVG_BLOCK 512
 #define PI 3.14159265358979323846
 
-int prt_transport_points(i64 k, i64 J, i64 P, const double *wi, const double *wo, const double *W, i64 na, const i64 *ai,
-                         const i64 *aj, const i64 *ap, int model, int flags, const double *par, int out_dtype, void *out,
-                         int nthreads);
+int prt_transport_points(i64 k, i64 J, i64 P, const double *wi, const double *wo, const double *W, double horizon, i64 na,
+                         const i64 *ai, const i64 *aj, const i64 *ap, int model, int flags, const double *par, int out_dtype,
+                         void *out, int nthreads);
 int prt_transport_averages(i64 n, const i64 *iv, const i64 *jv, const i64 *pv, const i64 *sv, i64 k, i64 J, i64 P,
                            const double *frames, const double *wo, const double *sd, const double *sw, const i64 *soff,
                            int model, int flags, const double *par, int out_dtype, void *out, int nthreads);
@@ -279,9 +280,9 @@ static i64 lower_bound(const i64 *x, i64 a, i64 b, i64 v) {
     return a;
 }
 
-int prt_transport_points(i64 k, i64 J, i64 P, const double *wi, const double *wo, const double *W, i64 na, const i64 *ai,
-                         const i64 *aj, const i64 *ap, int model, int flags, const double *par, int out_dtype, void *out,
-                         int nthreads) {
+int prt_transport_points(i64 k, i64 J, i64 P, const double *wi, const double *wo, const double *W, double horizon, i64 na,
+                         const i64 *ai, const i64 *aj, const i64 *ap, int model, int flags, const double *par, int out_dtype,
+                         void *out, int nthreads) {
     if (!dtype_ok(out_dtype) || model < 0 || model > 6) return 1;
     for (i64 q = 0; q < na; q++) { /* the averaged pairs: in range and in (vertex, view, texel) order */
         if (ai[q] < 0 || ai[q] >= k || aj[q] < 0 || aj[q] >= J || ap[q] < 0 || ap[q] >= P) return 3;
@@ -313,7 +314,7 @@ int prt_transport_points(i64 k, i64 J, i64 P, const double *wi, const double *wo
                 for (i64 j = 0; j < J; j++) {
                     const double *o = wo + 3 * (v * J + j);
                     while (qa < qe && aj[qa] < j) qa++;
-                    if (!(o[2] > 0) || !nv) continue;
+                    if (!(o[2] > horizon) || !nv) continue; /* at or below the horizon (transport.HORIZON_EPS): zeros */
                     double *ex = vx, *ey = vy, *ez = vz, *ew = vw;
                     const i64 *ei = vi;
                     i64 n = nv;

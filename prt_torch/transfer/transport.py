@@ -18,7 +18,8 @@ cube-map texels of T · L · Δω. Green tabulates T for the 92 views of a subdi
                                :func:`pack_visibility`; absent in tables written before — :func:`texel_visibility`)
 
 Chunks are written atomically and skipped when present, so an interrupted run resumes.
-T is zero for views below the vertex's tangent plane and for occluded or below-horizon texels.
+T is zero for views below the vertex's tangent plane (cos θ_o ≤ :data:`HORIZON_EPS`: a view lying in it, where
+Ward's 1/√cos θ_o diverges, counts as below) and for occluded or below-horizon texels.
 Where the BRDF's lobe is narrower than the texels (grazing views of a half-vector lobe, near the
 mirror direction) a texel holds T's average over the texel instead of its centre value, so that
 Σ_p T Δω stays the integral a relighting needs (:func:`supersample_plan`, issue 42 §2; the default
@@ -59,9 +60,19 @@ __all__ = ["check_disk_space", "pack_visibility", "unpack_visibility", "texel_vi
     "TransportTable",
     "transport_radiance",
     "MAX_CUBE_RES",
+    "HORIZON_EPS",
 ]
 
 MAX_CUBE_RES = 64
+#: a view with cos θ_o = n·ω_o ≤ HORIZON_EPS counts as below the vertex's tangent plane: its transport function
+#: is zero (Green 2005 eq. 1.2 has f_r(ω_i, ω_o) = 0 below it). Ward's 1/√(cos θ_i cos θ_o) (Ward 1992's anisotropic
+#: Gaussian, brdf.Ward) diverges at the horizon, and a view lying exactly in a tangent plane (geodesic meshes with icosphere views:
+#: systematic) comes out of the float64 frame rotation at |cos θ_o| ~ 1e-17 .. 1e-15 with either sign, where the
+#: table held ~1e7 (e.g. 5.9e6 at 1.1e-16). 1e-9 is six orders above that rounding noise and ~5.7e-8 degrees above
+#: the horizon, where a surface's projected area (∝ cos θ_o) leaves nothing to see; Ward's factor there is at most
+#: 3.2e4 times its normal-view value. The compiled pass (``kernels/transport.c``), the harness's exact reference
+#: and its view taps use this same constant; it is in a table's fingerprint.
+HORIZON_EPS = 1e-9
 #: torch threads in a transport chunk's own work (the BRDF on the pairs): the other core runs the
 #: ray-casting workers (measured in reports/benchmarks/kinds.md); the texel averages, cast no ray, use all (``average_threads``)
 CHUNK_THREADS = 1
@@ -266,7 +277,8 @@ def _chunk_transport(caster, brdf, points, normals, frames, texels, views, mat_i
     """T for k vertices: ``[k, J, P]`` (P = 6r² texels) in ``dtype`` (the values computed in
     float64 and rounded once: the stored dtype is written directly), Green 2005 eq. 1.2.
 
-    T is zero for a view below the vertex's tangent plane (f_r is zero there) and for a texel
+    T is zero for a view below the vertex's tangent plane (f_r is zero there; cos θ_o ≤ :data:`HORIZON_EPS`
+    counts as below, so a view lying in the plane gives zeros, not Ward's divergence) and for a texel
     below it or blocked (W = V max(n·ω_i, 0) is), so the BRDF is evaluated only on the pairs of
     an upper view and a visible texel — about a quarter of k·J·P (issue 42: the BRDF evaluation
     is the table's cost, not the ~P/2 rays per vertex). The pairs are taken a block of vertices
@@ -323,14 +335,14 @@ def _chunk_transport(caster, brdf, points, normals, frames, texels, views, mat_i
         if out.dtype != dtype or out.numel() < k * J * P:
             raise ValueError(f"out holds {out.numel()} {out.dtype} values; accepted: at least {k * J * P} of {dtype}")
         T = out.view(-1)[:k * J * P].view(k, J * P)
-    # the pairs where T can be non-zero: view above the tangent plane (wo_z > 0) and W > 0
-    up, vis = wo[:, :, 2] > 0, W > 0  # [k, J], [k, P]
+    # the pairs where T can be non-zero: view above the tangent plane (wo_z > HORIZON_EPS) and W > 0
+    up, vis = wo[:, :, 2] > HORIZON_EPS, W > 0  # [k, J], [k, P]
     pairs, later = None, None
     if plan is not None:  # the averaged pairs: their centre values would be overwritten, so not evaluated
         pairs = _averaged_pairs(normals, wo, vis_any, views, plan, texels)
     threads = average_threads or torch.get_num_threads()
     native = transport_kernels.native_model(brdf, k, mat_index) if k else None
-    if native is not None and transport_kernels.points(T, wi, wo, W, pairs, native, threads):  # compiled: the same pairs
+    if native is not None and transport_kernels.points(T, wi, wo, W, pairs, native, threads, horizon=HORIZON_EPS):  # compiled: the same pairs
         if plan is not None:
             _average_texels(T, brdf, frames, wo, pairs, mat_index, plan, sub_texels, dtype, native=native, threads=threads)
         return T.view(k, J, P)
@@ -359,10 +371,10 @@ def _chunk_transport(caster, brdf, points, normals, frames, texels, views, mat_i
 
 def _averaged_pairs(normals, wo, vis_any, views, plan, texels) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The (vertex, view, texel) index triples (int64 ``[n]`` each) that ``plan`` averages: a view above
-    the tangent plane and below ``cos_view`` (local z of ``wo [k, J, 3]``), a texel within the cap
+    the tangent plane (cos θ_o > :data:`HORIZON_EPS`) and below ``cos_view`` (local z of ``wo [k, J, 3]``), a texel within the cap
     about its mirror direction (cos > ``cos_cap``) with some sub-texel visible (``vis_any [k, P]``)."""
     mirror = 2 * (normals @ views.T)[..., None] * normals[:, None, :] - views[None]  # [k, J, 3] world mirror directions
-    graze = (wo[:, :, 2] > 0) & (wo[:, :, 2] < plan["cos_view"])  # [k, J]
+    graze = (wo[:, :, 2] > HORIZON_EPS) & (wo[:, :, 2] < plan["cos_view"])  # [k, J]
     iv, jv = torch.nonzero(graze, as_tuple=True)
     near = (mirror[iv, jv] @ texels.T > plan["cos_cap"]) & vis_any[iv]  # [n, P]
     q, pv = torch.nonzero(near, as_tuple=True)
@@ -555,7 +567,8 @@ def precompute_transport(
     fingerprint = {"mesh_hash": mesh.content_hash(), "brdf": brdf.meta() if mat_index is None else "per-vertex",
                    "views": view_dirs.tolist() if isinstance(views, torch.Tensor) else int(views), "res": res,
                    "supersample": None if plan is None else {k: v for k, v in plan.items() if k != "reason"},
-                   "dtype": dtype, "shadows": shadows, "offset": offset, "chunk_size": chunk_size}
+                   "dtype": dtype, "shadows": shadows, "offset": offset, "chunk_size": chunk_size,
+                   "horizon_eps": HORIZON_EPS}
     manifest_path = out / "manifest.json"
     if out.exists():
         if overwrite:

@@ -28,6 +28,13 @@ __all__ = ["native_model", "points", "averages", "available"]
 _SOURCES, _FLAGS = LIBRARIES["transport"][0], list(LIBRARIES["transport"][1])
 _lock = threading.Lock()
 _state: dict = {}
+_i64, _vp, _ci = ctypes.c_int64, ctypes.c_void_p, ctypes.c_int
+#: the library's functions and their ctypes argument types (as ``kernels/transport.c`` declares them)
+_SIGNATURES = {
+    "prt_transport_points": [_i64, _i64, _i64, _vp, _vp, _vp, ctypes.c_double, _i64, _vp, _vp, _vp, _ci, _ci, _vp, _ci, _vp, _ci],
+    "prt_transport_averages": [_i64, _vp, _vp, _vp, _vp, _i64, _i64, _i64, _vp, _vp, _vp, _vp, _vp, _ci, _ci, _vp, _ci, _vp, _ci],
+    "prt_transport_abi": [],
+}
 #: out_dtype codes of the C
 _DTYPES = {torch.float32: 0, torch.float64: 1, torch.float16: 2}
 
@@ -38,12 +45,7 @@ def _lib() -> ctypes.CDLL | None:
     if "lib" not in _state:
         with _lock:
             if "lib" not in _state:
-                i64, vp, ci = ctypes.c_int64, ctypes.c_void_p, ctypes.c_int
-                lib, why = compile_library("transport", kernel_sources(_SOURCES), _FLAGS, {
-                    "prt_transport_points": [i64, i64, i64, vp, vp, vp, i64, vp, vp, vp, ci, ci, vp, ci, vp, ci],
-                    "prt_transport_averages": [i64, vp, vp, vp, vp, i64, i64, i64, vp, vp, vp, vp, vp, ci, ci, vp, ci, vp, ci],
-                    "prt_transport_abi": [],
-                })
+                lib, why = compile_library("transport", kernel_sources(_SOURCES), _FLAGS, _SIGNATURES)
                 _state["abi"] = int(lib.prt_transport_abi()) if lib is not None else 0
                 _state["why"] = why
                 _state["lib"] = lib
@@ -101,12 +103,12 @@ def _f64(x: torch.Tensor) -> torch.Tensor:
 
 def points(T: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor, W: torch.Tensor,
            averaged: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None, model: tuple[int, int, torch.Tensor],
-           threads: int = 1) -> bool:
-    """The point pass into ``T [k, J·P]`` (every element written: f_r W on the pairs of an upper view and a texel
-    with W > 0 that are not ``averaged``, 0 elsewhere), from ``wi [k, P, 3]``, ``wo [k, J, 3]`` local directions
-    and ``W [k, P]`` (float64). ``averaged``: the (vertex, view, texel) int64 triples the texel averages write,
-    in lexicographic order (as ``transport._averaged_pairs`` gives them), or None. False (nothing written)
-    without the library."""
+           threads: int = 1, *, horizon: float) -> bool:
+    """The point pass into ``T [k, J·P]`` (every element written: f_r W on the pairs of an upper view — local
+    z > ``horizon``, the callers' ``transport.HORIZON_EPS`` — and a texel with W > 0 that are not ``averaged``,
+    0 elsewhere), from ``wi [k, P, 3]``, ``wo [k, J, 3]`` local directions and ``W [k, P]`` (float64).
+    ``averaged``: the (vertex, view, texel) int64 triples the texel averages write, in lexicographic order
+    (as ``transport._averaged_pairs`` gives them), or None. False (nothing written) without the library."""
     lib = _lib()
     if lib is None or not _ok(T):
         return False
@@ -115,7 +117,7 @@ def points(T: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor, W: torch.Tensor,
     e = torch.empty(0, dtype=torch.int64)
     ai, aj, ap = (e, e, e) if averaged is None else (x.to(torch.int64).contiguous() for x in averaged)
     m, flags, par = model
-    rc = lib.prt_transport_points(k, J, P, wi.data_ptr(), wo.data_ptr(), W.data_ptr(), ai.numel(), ai.data_ptr(), aj.data_ptr(),
+    rc = lib.prt_transport_points(k, J, P, wi.data_ptr(), wo.data_ptr(), W.data_ptr(), float(horizon), ai.numel(), ai.data_ptr(), aj.data_ptr(),
                                   ap.data_ptr(), m, flags, par.data_ptr(), _DTYPES[T.dtype], T.data_ptr(), int(threads))
     if rc:
         raise RuntimeError(f"prt_transport_points returned {rc} (1: bad model or dtype, 2: out of memory, 3: an averaged "
