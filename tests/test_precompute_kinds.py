@@ -9,12 +9,13 @@ import torch
 from prt_torch import brdf as B
 from prt_torch.scene import RayCaster, builtin, sphere_on_plane_visibility
 from prt_torch.transfer.diffuse import HitBounce, face_points, unshadowed_transfer
-from prt_torch.transfer.transport import _chunk_transport, cube_directions, icosphere_directions
+from prt_torch.transfer.transport import HORIZON_EPS, _chunk_transport, cube_directions, icosphere_directions
 
 
 def _dense_transport(caster, brdf, points, normals, frames, texels, views, mat_index):
     """Green 2005 eq. 1.2 on every (view, texel) pair: f_r(ω_i, ω_o) V max(n·ω_i, 0), the BRDF
-    evaluated on the whole [k, J, P] grid (the formulation before issue 42)."""
+    evaluated on the whole [k, J, P] grid (the formulation before issue 42), zero at views with cos θ_o ≤
+    ``transport.HORIZON_EPS`` (lying in the tangent plane: below the horizon, as the tables have it)."""
     cos = normals @ texels.T
     W = cos.clamp_min(0)
     i, j = torch.nonzero(cos > 0, as_tuple=True)
@@ -23,7 +24,7 @@ def _dense_transport(caster, brdf, points, normals, frames, texels, views, mat_i
     wi = torch.einsum("kab,pb->kpa", frames, texels)
     wo = torch.einsum("kab,jb->kja", frames, views)
     b = brdf if mat_index is None else brdf.select(mat_index).view(-1, 1, 1)
-    return b.eval(wi[:, None, :, :], wo[:, :, None, :]) * W[:, None, :]
+    return b.eval(wi[:, None, :, :], wo[:, :, None, :]) * W[:, None, :] * (wo[:, :, 2:] > HORIZON_EPS)
 
 
 def test_transport_chunk_equals_the_dense_grid():

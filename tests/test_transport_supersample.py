@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from prt_torch import brdf as B
-from prt_torch.transfer.transport import (_chunk_transport, _cube_directions, _sub_texels, cube_directions,
+from prt_torch.transfer.transport import (HORIZON_EPS, _chunk_transport, _cube_directions, _sub_texels, cube_directions,
                                           icosphere_directions, sub_texel_sets, supersample_plan, view_sub)
 
 AS40 = B.AshikhminShirley(40.0, 40.0, rs=0.05, rd=0.0)  # the default BRDF
@@ -93,9 +93,11 @@ def test_averaged_pairs_equal_the_block_mean_of_the_fine_grid(brdf, copies, thre
     vz = views[:, 2]
     mirror = torch.stack([-views[:, 0], -views[:, 1], vz], -1)
     fine_up = torch.zeros(texels.shape[0], dtype=torch.bool).index_put_((coarse,), fd[:, 2] > 0, accumulate=True)
-    avg = ((vz > 0) & (vz < plan["cos_view"]))[:, None] & (mirror @ texels.T > plan["cos_cap"]) & fine_up[None]
-    assert int(avg.sum()) > 100 and bool((~avg & (vz[:, None] > 0)).any())
+    up = vz > HORIZON_EPS  # a view in the tangent plane (the icosphere's equator: vz ~ ±1e-17) counts as below it
+    avg = (up & (vz < plan["cos_view"]))[:, None] & (mirror @ texels.T > plan["cos_cap"]) & fine_up[None]
+    assert int(avg.sum()) > 100 and bool((~avg & up[:, None]).any())
     assert torch.allclose(got[avg], mean[avg], rtol=1e-12, atol=1e-14)
+    assert float(got[~up].abs().max()) == 0.0
     assert torch.equal(got[~avg], point[~avg])
 
 
@@ -103,8 +105,10 @@ def test_averaged_table_relights_a_constant_light_as_the_integral():
     """Σ_p T Δω (the table's relighting under a unit constant light, Green eq. 1.1) against ∫ T dω by a
     fine-grid sum (8² points per texel; 16² moves it by < 0.1%), over the views the plan averages at
     r = 8 (default BRDF, per-view sub-texels), down to the horizon: the averaged table within 1% (RMS
-    over views; 0.19% measured, 13% with a fixed 4 × 4), the point table off by more than 100% there
-    (178% measured)."""
+    over views; 0.23% measured, 13% with a fixed 4 × 4), the point table off by more than 10% there
+    (19.5% measured). The two icosphere views lying in the tangent plane (cos θ_o ~ +1e-17) count as below
+    the horizon (``transport.HORIZON_EPS``: zero tables) and are left out; with them the point table was
+    178% off and the averaged one 0.19%."""
     res = 8
     pts, nrm, frm = _open_vertex()
     views = icosphere_directions(3)
@@ -114,12 +118,12 @@ def test_averaged_table_relights_a_constant_light_as_the_integral():
     avg = _chunk_transport(None, AS40, pts, nrm, frm, texels, views, None, False, plan=plan, sub_texels=sub_texel_sets(res, plan))[0]
     point = _chunk_transport(None, AS40, pts, nrm, frm, texels, views, None, False)[0]
     fd, fsa = (t.reshape(-1, *t.shape[3:]) for t in _cube_directions(res * 8))
-    sel = (views[:, 2] > 0) & (views[:, 2] < plan["cos_view"])
+    sel = (views[:, 2] > HORIZON_EPS) & (views[:, 2] < plan["cos_view"])
     v = views[sel]
     ref = torch.stack([(AS40.eval(fd, w.expand_as(fd)) * fd[:, 2].clamp_min(0) * fsa).sum() for w in v])  # loop over a few views
     rms = lambda x: float(((x - ref).square().sum() / ref.square().sum()).sqrt())  # noqa: E731
     assert rms(avg[sel] @ sa) < 0.01
-    assert rms(point[sel] @ sa) > 1.0
+    assert rms(point[sel] @ sa) > 0.1
 
 
 def test_per_vertex_brdf_averages_as_the_shared_one(tmp_path):
