@@ -89,7 +89,7 @@ def brdf_alone(mesh, brdf, views: int, res: int, chunk: int) -> tuple[float, flo
         b = min(mesh.num_vertices, a + chunk)
         wi = torch.einsum("kab,pb->kpa", F[a:b], texels)
         wo = torch.einsum("kab,jb->kja", F[a:b], vd)
-        iv, jv, pv = torch.nonzero((wo[:, :, None, 2] > 0) & (wi[:, None, :, 2] > 0), as_tuple=True)
+        iv, jv, pv = torch.nonzero((wo[:, :, None, 2] > HORIZON_EPS) & (wi[:, None, :, 2] > 0), as_tuple=True)
         x, y = wi[iv, pv], wo[iv, jv]
         t = time.perf_counter()
         brdf.eval(x, y)
