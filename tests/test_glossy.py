@@ -13,7 +13,7 @@ from prt_torch.scene import RayCaster, builtin
 from prt_torch.transfer import ChunkInterrupt, RunOptions, precompute_diffuse
 from prt_torch.transfer.glossy import precompute_glossy
 from prt_torch.transfer.mrt import precompute_mrt
-from prt_torch.transfer.transport import cube_directions, precompute_transport, TransportTable
+from prt_torch.transfer.transport import HORIZON_EPS, cube_directions, precompute_transport, TransportTable
 
 
 class PolyBRDF(B.BRDF):
@@ -202,13 +202,13 @@ def test_resume_gives_the_uninterrupted_result(tmp_path):
 
 def test_transport_tables(tmp_path):
     """Green 2005 eq. 1.1–1.2: a Lambertian table under constant unit light integrates to kd for
-    views above the tangent plane and 0 below; an interrupted table resumes to the same data."""
+    views above the tangent plane and 0 below (cos θ_o ≤ transport.HORIZON_EPS included); an interrupted table resumes to the same data."""
     mesh = builtin("convex", "small")
     kd = 0.6
     out = tmp_path / "t"
     t = precompute_transport(mesh, out, brdf=B.Lambertian(kd), views=1, res=12, run=RunOptions(chunk_size=500))
     r = t.radiance(torch.ones(1, 6, 12, 12), view=3)[:, 0]
-    facing = mesh.normals @ t.views[3].double() > 0
+    facing = mesh.normals @ t.views[3].double() > HORIZON_EPS  # a view in the tangent plane counts as below it
     assert torch.allclose(r[facing], torch.full_like(r[facing], kd), atol=2e-3)
     assert (r[~facing] == 0).all()
     part = tmp_path / "p"
