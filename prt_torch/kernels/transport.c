@@ -8,8 +8,8 @@
  * prt_transport_points (the point pass): for k vertices, wi float64 [k, P, 3] and wo float64 [k, J, 3] (local
  *     directions: the rows of the vertex frame applied to the texel centres and the views), W float64 [k, P],
  *     the horizon (a double: a view with wo_z <= horizon is below it), the na averaged pairs (ai, aj, ap
- *     int64: vertex, view, texel, in that lexicographic order; checked, 4 if not; the pairs the averages write, skipped by merging the sorted lists), the BRDF's parameters per vertex
- *     par float64 [k, 4] -> out [k, J * P] (float32, float64 or float16: out_dtype 0, 1, 2; float16 through
+ *     int64: vertex, view, texel, in that lexicographic order; checked, 4 if not; the pairs the averages write,
+ *     skipped by merging the sorted lists), the BRDF's parameters per vertex par float64 [k, 4] -> out [k, J * P] (float32, float64 or float16: out_dtype 0, 1, 2; float16 through
  *     float, as torch): every element of the k rows is written, f_r W on the pairs of an upper view (wo_z >
  *     horizon, the caller's transport.HORIZON_EPS: a view in the tangent plane, where Ward's 1/sqrt(cos theta_o)
  *     diverges, counts as below) and a texel with W > 0 not averaged, 0 elsewhere. Per vertex the visible
