@@ -9,11 +9,12 @@
  *     directions: the rows of the vertex frame applied to the texel centres and the views), W float64 [k, P],
  *     the horizon (a double: a view with wo_z <= horizon is below it), the na averaged pairs (ai, aj, ap
  *     int64: vertex, view, texel, in that lexicographic order; checked, 4 if not; the pairs the averages write,
- *     skipped by merging the sorted lists), the BRDF's parameters per vertex par float64 [k, 4] -> out [k, J * P] (float32, float64 or float16: out_dtype 0, 1, 2; float16 through
- *     float, as torch): every element of the k rows is written, f_r W on the pairs of an upper view (wo_z >
- *     horizon, the caller's transport.HORIZON_EPS: a view in the tangent plane, where Ward's 1/sqrt(cos theta_o)
- *     diverges, counts as below) and a texel with W > 0 not averaged, 0 elsewhere. Per vertex the visible
- *     texels are gathered once (structure of arrays), then each upper view evaluates them in one block.
+ *     skipped by merging the sorted lists), the BRDF's parameters per vertex par float64 [k, 4]
+ *     -> out [k, J * P] (float32, float64 or float16: out_dtype 0, 1, 2; float16 through float, as torch):
+ *     every element of the k rows is written, f_r W on the pairs of an upper view (wo_z > horizon, the
+ *     caller's transport.HORIZON_EPS: a view in the tangent plane, where Ward's 1/sqrt(cos theta_o) diverges,
+ *     counts as below) and a texel with W > 0 not averaged, 0 elsewhere. Per vertex the visible texels are
+ *     gathered once (structure of arrays), then each upper view evaluates them in one block.
  * prt_transport_averages (the texel averages): n pairs (vertex iv, view jv, texel pv, sub-texel count sv; any
  *     order), frames float64 [k, 3, 3] (rows t, b, n), the sub-texel sets packed: for each S, sd float64
  *     [P, S^2, 3] directions and sw float64 [P, S^2] shares, starting at element soff[S] of sd (x3) and sw
