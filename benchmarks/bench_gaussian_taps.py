@@ -58,7 +58,7 @@ import torch  # noqa: E402
 from prt_torch import codecs, relight  # noqa: E402
 from prt_torch.codecs.gaussian import blend_lobes, fill_empty_lobes, sh_light_lobe_integral  # noqa: E402
 from prt_torch.harness.config import load_config  # noqa: E402
-from prt_torch.harness.evaluate import Evaluator, camera_positions, load_directory_transfer  # noqa: E402
+from prt_torch.harness.evaluate import Evaluator, load_directory_transfer  # noqa: E402
 from prt_torch.harness.metrics import psnr_vs_reference, squared_error  # noqa: E402
 from prt_torch.harness.timing import cpu_label  # noqa: E402
 from prt_torch.sh import eval_sh  # noqa: E402
@@ -155,11 +155,7 @@ def main(argv=None) -> int:
 
         tr, _ = compute_transfer(cfg, load_mesh_within_budget(cfg)[0], args.cache, progress=False)
     ev = Evaluator(tr)
-    lights = [ev.load_light(s) for s in cfg["lights"]]
-    center = ev.points.mean(0)
-    radius = float((ev.points - center).norm(dim=-1).max())
-    cams = camera_positions(center, radius, cfg["views"]["count"], cfg["views"]["elevation"], cfg["views"]["azimuth0"])
-    views = [ev.view_weights(c) for c in cams]
+    lights, cams, views = ev.config_views(cfg)
     S, truth, checks = brute_force(ev, lights, cams, args.every, args.res)
     V, J = ev.V, ev.views.shape[0]
     head = {"cpu": cpu_label(), "load": os.getloadavg(), "vertices": V, "views": J, "res": ev.res, "config": args.config,

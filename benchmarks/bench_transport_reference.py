@@ -30,7 +30,7 @@ import torch  # noqa: E402
 from prt_torch import codecs  # noqa: E402
 from prt_torch.codecs.gaussian import fill_empty_lobes  # noqa: E402
 from prt_torch.harness.config import expand_codecs, load_config, part_configs  # noqa: E402
-from prt_torch.harness.evaluate import Evaluator, camera_positions  # noqa: E402
+from prt_torch.harness.evaluate import Evaluator  # noqa: E402
 from prt_torch.harness.metrics import psnr_vs_reference  # noqa: E402
 from prt_torch.harness.run import compute_transfer, load_mesh_within_budget, setting_id  # noqa: E402
 from prt_torch.harness.timing import cpu_label  # noqa: E402
@@ -62,11 +62,7 @@ def main(argv=None) -> int:
     warnings.simplefilter("ignore")
     tr, tinfo = compute_transfer(cfg, load_mesh_within_budget(cfg)[0], args.cache, progress=False)
     ev = Evaluator(tr)
-    lights = [ev.load_light(s) for s in cfg["lights"]]
-    c0 = ev.points.mean(0)
-    rad = float((ev.points - c0).norm(dim=-1).max())
-    cams = camera_positions(c0, rad, cfg["views"]["count"], cfg["views"]["elevation"], cfg["views"]["azimuth0"])
-    views = [ev.view_weights(c) for c in cams]
+    lights, cams, views = ev.config_views(cfg)
     t0 = time.process_time()
     ev.reference_info  # noqa: B018  the light-independent state (the stored visibility, or traced)
     t_state = time.process_time() - t0

@@ -31,7 +31,7 @@ from pathlib import Path  # noqa: E402
 import torch  # noqa: E402
 
 from prt_torch.harness.config import expand_codecs, load_config, part_configs  # noqa: E402
-from prt_torch.harness.evaluate import Evaluator, camera_positions  # noqa: E402
+from prt_torch.harness.evaluate import Evaluator  # noqa: E402
 from prt_torch.harness.run import (compute_transfer, evaluate_setting, load_mesh_within_budget,  # noqa: E402
                                    measure_uncompressed, setting_id, time_setting)
 
@@ -140,11 +140,7 @@ def _run(a, cfg: dict, scratch: list[str]) -> int:
     print(f"  table {tuple(tr.data.shape)} {tr.data.dtype} ({tinfo['cache']})")
     with stage("evaluator + uncompressed references"):
         ev = Evaluator(tr)
-        lights = [ev.load_light(spec) for spec in sub["lights"]]
-        center = ev.points.mean(0)
-        radius = float((ev.points - center).norm(dim=-1).max())
-        cams = camera_positions(center, radius, sub["views"]["count"], sub["views"]["elevation"], sub["views"]["azimuth0"])
-        views = [ev.view_weights(c) for c in cams]
+        lights, _, views = ev.config_views(sub)
         refs, unc = measure_uncompressed(ev, lights, views, sub["metrics"])
     records = []
     from prt_torch.codecs.gaussian import fit as gfit

@@ -253,6 +253,19 @@ class Evaluator:
         v = v / v.norm(dim=-1, keepdim=True).clamp_min(1e-12)
         return torch.einsum("vij,vj->vi", self.frames, v)
 
+    def config_views(self, cfg: dict) -> tuple[list[torch.Tensor], torch.Tensor, list[Any]]:
+        """A run config's lights and views for this mesh: ``(lights, cams, views)`` with ``lights`` each
+        ``[C, n²]`` (:meth:`load_light` of ``cfg['lights']``), ``cams [count, 3]`` on the ring of
+        :func:`camera_positions` (``cfg['views']``: count, elevation, azimuth0) around the vertices'
+        bounding sphere, and ``views`` their :meth:`view_weights` (``[None]`` for a kind that needs no view)."""
+        lights = [self.load_light(spec) for spec in cfg["lights"]]
+        center = self.points.mean(0)
+        radius = float((self.points - center).norm(dim=-1).max())
+        v = cfg["views"]
+        cams = camera_positions(center, radius, v["count"], v["elevation"], v["azimuth0"])
+        views = [self.view_weights(c) for c in cams] if self.needs_view else [None]
+        return lights, cams, views
+
     def view_weights(self, camera: torch.Tensor | None) -> Any:
         """Per-vertex weights over the n_out outputs for ``camera`` (None for view-independent
         kinds), zero below the horizon: ``relight.glossy_view_weights`` / ``relight.mrt_view_taps``."""

@@ -40,7 +40,7 @@ from ..executor import Executor, LocalExecutor, TaskFailure
 from ..transfer import Transfer
 from .config import config_hash, expand_codecs, part_configs
 from .convex import run_convex
-from .evaluate import Evaluator, camera_positions
+from .evaluate import Evaluator
 from .metrics import psnr_vs_reference, random_light_psnr, random_light_psnr_analytic, squared_error
 from .renders import render_best, render_convex
 from .report import load_results, write_outputs
@@ -453,11 +453,7 @@ def evaluate_run(cfg: dict, run_dir: Path, resume: bool = True, progress: bool =
     tr, tinfo = compute_transfer(cfg, mesh, Path(cfg["cache_dir"]), progress=progress, executor=executor)
     log(f"[bench] transfer {tuple(tr.data.shape)} ({tinfo['cache']}, {tinfo['seconds']:.1f} s)")
     ev = Evaluator(tr)
-    lights = [ev.load_light(spec) for spec in cfg["lights"]]
-    center = ev.points.mean(0)
-    radius = float((ev.points - center).norm(dim=-1).max())
-    cams = camera_positions(center, radius, cfg["views"]["count"], cfg["views"]["elevation"], cfg["views"]["azimuth0"])
-    views = [ev.view_weights(c) for c in cams] if ev.needs_view else [None]
+    lights, cams, views = ev.config_views(cfg)
     ref_cache, uncompressed = measure_uncompressed(ev, lights, views, cfg["metrics"])
 
     settings = expand_codecs(cfg["codecs"])
