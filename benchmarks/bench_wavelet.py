@@ -503,12 +503,14 @@ def write_md(res: dict, quick: bool) -> None:
     m = res["machine"]
     la = res["load_average"]
     K = max(r["K"] for r in res["wavelet"])
+    busy = max(la) > 0.75 * m["cores"]  # another job held most of a core (the same rule as prt_torch.busy_now)
     L = []
     L.append("# All-frequency relighting: Haar wavelets on cube maps vs SH (issue 39)\n")
     L.append(f"`benchmarks/bench_wavelet.py{' --quick' if quick else ''}` on {m['cpu']} ({m['cores']} cores), torch "
-             f"{m['torch']}, one torch thread; load average {la[0]:.1f} before and {la[-1]:.1f} after (the machine was "
-             f"shared with other jobs: absolute times are inflated, ratios measured in the same run are what to read). "
-             f"Scene `{res['scene']['name']}` (small, {res['scene']['vertices']} vertices: the course's blocker over a "
+             f"{m['torch']}, one torch thread; load average {la[0]:.1f} before and {la[-1]:.1f} after "
+             + ("(the machine was shared with other jobs: absolute times are inflated, ratios measured in the same run are "
+                "what to read). " if busy else "(a quiet machine). ")
+             + f"Scene `{res['scene']['name']}` (small, {res['scene']['vertices']} vertices: the course's blocker over a "
              "receiver plane). Lights rasterised onto the cube (not band-limited): "
              + ", ".join(f"{k} (`{v}`)" for k, v in res["lights"].items()) + ". Errors: relative L2 over vertices and "
              "RGB against the exact pixel-basis result at the same R (all 6R² terms, float64).\n")
@@ -517,7 +519,7 @@ def write_md(res: dict, quick: bool) -> None:
     h = res["headline"]
     L.append(f"## Headline: relight time to reach 5% and 1% error, SH vs wavelets (R = 32, K = {K}, {BITS}-bit values, "
              f"{res['selection_default']} selection)\n")
-    L.append("Times: medians of separate runs (inflated on the busy machine); the ratio columns are SH's time over the "
+    L.append("Times: medians of separate runs" + (" (inflated on the busy machine)" if busy else "") + "; the ratio columns are SH's time over the "
              "wavelets' for those two settings, timed paired in the same run (interleaved short samples, fastest tenth of "
              "each; > 1: wavelets faster; ⚠: measured under contention).\n")
     L.append("| light | SH to 5% | wavelets to 5% | SH/wavelet (paired) | SH to 1% | wavelets to 1% | SH/wavelet (paired) | "
@@ -581,7 +583,9 @@ def write_md(res: dict, quick: bool) -> None:
     L.append(f"## Relight time vs N against the kernel's bound (studio, R = 32, K = 256, {BITS}-bit)\n")
     L.append(f"{km['cpu']}, {km['cores']} cores, one and two threads; the AVX2 path of `kernels/wavelet.c` (this CPU has no AVX-512; "
              f"an AVX-512 CPU takes the same AVX2 code), load average {km.get('load_before', la[-1]):.1f} → "
-             f"{km.get('load_after', km.get('load_average_1min', la[-1])):.1f} (⚠: the pairing flagged contention). "
+             f"{km.get('load_after', km.get('load_average_1min', la[-1])):.1f}"
+             + (" (⚠: the pairing flagged contention). " if not all(r["trusted"] for r in res["kernel"]) else ". ")
+             + (
              "The kernel reads each Haar column of the light's terms in the form stored for it "
              "(`relight.WaveletRelighter`): *dense* (32-vertex blocks of the stored values, zeros included, no index: "
              "the columns most vertices keep, the coarse levels) or *block-sparse* (per tile of vertices and column, "
@@ -599,7 +603,7 @@ def write_md(res: dict, quick: bool) -> None:
              "the kernel and its bound paired by the calling thread's CPU time (`measure_paired(clock=time.thread_time)`, "
              "15 repeats: median of the per-repeat ratios and their quartiles): the time other processes held the core is "
              "in neither side, so on this shared machine it is the figure the load does not move (the wall-clock columns "
-             "take the fastest tenth of short samples instead).\n")
+             "take the fastest tenth of short samples instead).\n"))
     L.append("| N | coefficients read | in dense columns | bytes read (this layout) | previous layout | 1 thread | of own bound "
              "| **1 thr CPU time: of own bound** [quartiles] | of previous layout's bound | 2 threads | of own bound (2 threads) "
              "| torch path | C / torch | load | plain call / prepared |")
