@@ -16,8 +16,10 @@ Layout of a ``.prt`` file (it *is* a safetensors file, so any safetensors reader
 No pickle is ever used: a file can be loaded by another program with ``prt_torch`` (or with
 ``safetensors`` and ``json`` alone).
 
-Writing is atomic: data goes to ``<path>.<pid>.partial`` and is renamed over ``path`` only
-once it is complete, so an interrupted write never leaves a half-written file at ``path``.
+Writing is atomic: data goes to ``<path>.<pid>.<thread>.partial`` and is renamed over ``path``
+only once it is complete, so an interrupted write never leaves a half-written file at ``path``
+(and two threads, or two processes, writing one path each write their own temporary file: the
+last rename wins, whole).
 """
 from __future__ import annotations
 
@@ -25,6 +27,7 @@ import contextlib
 import json
 import math
 import os
+import threading
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
@@ -42,14 +45,15 @@ __all__ = ["save", "load", "load_meta", "atomic_path", "atomic_write_text", "ato
 def atomic_path(path: str | os.PathLike, overwrite: bool = True) -> Iterator[Path]:
     """Yield a temporary path next to ``path``; rename it over ``path`` when the block succeeds.
 
-    On an exception the temporary file is removed and ``path`` is left as it was. With
+    The temporary name carries the process id and the thread's id (``threading.get_ident``), so
+    concurrent writers of one path never share it. On an exception the temporary file is removed and ``path`` is left as it was. With
     ``overwrite=False`` an existing ``path`` is refused before any work.
     """
     path = Path(path)
     if not overwrite and path.exists():
         raise FileExistsError(f"output {str(path)!r} exists; pass overwrite=True (CLI: --overwrite) to replace it")
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f"{path.name}.{os.getpid()}.partial")
+    tmp = path.with_name(f"{path.name}.{os.getpid()}.{threading.get_ident()}.partial")
     try:
         yield tmp
         os.replace(tmp, path)
@@ -558,7 +562,7 @@ def scratch_rows(directory: str | os.PathLike, shape: tuple[int, ...], dtype: to
 @contextlib.contextmanager
 def streamed_npy(path: str | os.PathLike, shape: tuple[int, ...], dtype="float32", overwrite: bool = False):
     """Write a ``.npy`` file of ``shape`` chunk by chunk without holding it: yields a writable
-    ``numpy.memmap`` of ``<path>.<pid>.partial`` (``np.lib.format.open_memmap``, a shared
+    ``numpy.memmap`` of ``<path>.<pid>.<thread>.partial`` (``np.lib.format.open_memmap``, a shared
     file mapping: its pages are the page cache's), flushed and renamed over ``path`` when the block
     succeeds; on an exception (Ctrl-C included) the partial file is removed and ``path`` is left as
     it was (:func:`atomic_path`). The file is the one ``np.save`` writes for the same array."""

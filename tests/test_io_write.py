@@ -240,3 +240,33 @@ def test_direct_falls_back_when_a_write_is_refused_midway(tmp_path, monkeypatch)
     assert calls["n"] == 2  # the O_DIRECT path was taken, and refused midway
     assert (tmp_path / "f.prt").read_bytes() == _lib_bytes(tmp_path, data, "k")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["f.prt", "lib.safetensors"]
+
+
+def test_atomic_path_concurrent_threads_write_whole_files(tmp_path):
+    """Eight threads saving to one path at once (each a different tensor): every save succeeds, the file left is
+    exactly one thread's tensor (checked with the safetensors library, not io.load), and no temporary file remains.
+    With one temporary name per process, the threads wrote into each other's file or renamed it away under each
+    other (FileNotFoundError)."""
+    import threading
+
+    path = tmp_path / "shared.prt"
+    tensors = [torch.full((50_000,), float(i)) for i in range(8)]
+    errors, barrier = [], threading.Barrier(len(tensors))
+
+    def write(i):
+        barrier.wait()
+        try:
+            for _ in range(5):
+                io.save(path, {"x": tensors[i]}, kind="test/threads")
+        except Exception as e:  # noqa: BLE001 - collected for the assertion below
+            errors.append(e)
+
+    threads = [threading.Thread(target=write, args=(i,)) for i in range(len(tensors))]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert errors == []
+    got = load_file(str(path))["x"]
+    assert any(torch.equal(got, t) for t in tensors)
+    assert not list(tmp_path.glob("*.partial"))
