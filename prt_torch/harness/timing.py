@@ -22,7 +22,7 @@ from .._checks import check_int
 from ..executor import torch_threads  # noqa: F401  (re-exported: where it lived before issue 42)
 
 __all__ = ["Timing", "Paired", "measure", "measure_paired", "measure_paired_cold", "last_level_cache_bytes", "torch_threads",
-           "io_bound_fn", "machine_info", "cpu_label", "rate_policy"]
+           "io_bound_fn", "read_bound_fn", "machine_info", "cpu_label", "rate_policy"]
 
 
 @dataclass
@@ -349,6 +349,19 @@ def io_bound_fn(bytes_read: int, bytes_written: int) -> Callable[[], Any]:
     dst = torch.empty_like(src)
     out = torch.empty(max(1, int(bytes_written)), dtype=torch.uint8)
     return lambda: (dst.copy_(src), out.fill_(1))
+
+
+def read_bound_fn(bytes_read: int, bytes_written: int) -> Callable[[], Any]:
+    """A stricter bound than :func:`io_bound_fn`: the ``bytes_read`` are only read (a sum over them as
+    int64, eight bytes per add: a streaming read, not arithmetic, bounds it) and the output's
+    ``bytes_written`` filled once. :func:`io_bound_fn`'s copy also writes every byte it reads, so it
+    takes longer: on AMD EPYC Zen 3 at 1-2 MB, one thread, the copy took 1.8-1.9x this read
+    (``benchmarks/bench_wavelet.py``'s kernel section reports the kernel against both). Buffers are
+    allocated here, outside the timed call; the sum's one-element result is the only allocation."""
+    n = max(1, -(-int(bytes_read) // 8))
+    src = torch.empty(n * 8, dtype=torch.uint8).random_(0, 255).view(torch.int64)
+    out = torch.empty(max(1, int(bytes_written)), dtype=torch.uint8)
+    return lambda: (src.sum(), out.fill_(1))
 
 
 def _cpu_field(name: str) -> str | None:
