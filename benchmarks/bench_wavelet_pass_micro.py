@@ -91,6 +91,37 @@ int pass_g##G(const int64_t *rng, int64_t nr, int64_t nt, const float *lw, const
 GROUPED(1)
 GROUPED(2)
 GROUPED(4)
+/* 4-vertex blocks (issue 39 idea 1): per (tile, term) range, per 4-vertex block one 4-value load and conversion
+ * and three 16-byte read-modify-writes of the same scratch (a 4-block at its 8-block's offset + 16 bytes for the
+ * second half); bv4 [NB4, 4] int16, bofs4 [NB4] bytes; mode 1: the 4 values as a 64-bit load widened in one step */
+int pass_w4(const int64_t *rng, int64_t nr, int64_t nt, const float *lw, const int32_t *bofs, const int16_t *bv,
+            int64_t mode, float *acc, int64_t nacc, int64_t reps) {
+    typedef float v4f __attribute__((vector_size(16)));
+    for (int64_t r_ = 0; r_ < reps; r_++)
+        for (int64_t t = 0; t < nt; t++) {
+            memset(acc, 0, (size_t)nacc * sizeof(float));
+            for (int64_t r = 0; r < nr; r++) {
+                if (rng[3 * r] != t) continue;
+                const float l0 = lw[4 * r], l1 = lw[4 * r + 1], l2 = lw[4 * r + 2];
+                const v4f L0 = {l0, l0, l0, l0}, L1 = {l1, l1, l1, l1}, L2 = {l2, l2, l2, l2};
+                const int64_t e1 = rng[3 * r + 2];
+                for (int64_t e = rng[3 * r + 1]; e < e1; e++) {
+                    float *a = (float *)((char *)acc + bofs[e]);
+#ifdef __AVX2__
+                    const v4f w = (v4f)_mm_cvtepi32_ps(_mm_cvtepi16_epi32(_mm_loadl_epi64((const __m128i *)(bv + 4 * e))));
+#else
+                    const v4f w = {bv[4 * e], bv[4 * e + 1], bv[4 * e + 2], bv[4 * e + 3]};
+#endif
+                    v4f x0, x1, x2;
+                    memcpy(&x0, a, 16); memcpy(&x1, a + 8, 16); memcpy(&x2, a + 16, 16);
+                    x0 += w * L0; x1 += w * L1; x2 += w * L2;
+                    memcpy(a, &x0, 16); memcpy(a + 8, &x1, 16); memcpy(a + 16, &x2, 16);
+                }
+            }
+        }
+    (void)mode;
+    return 0;
+}
 /* one loop over the flat list of the light's blocks (flat [nf], tile-major), one light; mode 0: the blocks'
  * offsets, 1: a sweep of the scratch (block k at k mod nblk), 2: the sweep with no value read (3 RMW only) */
 int pass_flat(const int64_t *flat, const int64_t *ftile_end, int64_t nt, const int32_t *bofs, const int16_t *bv,
@@ -184,6 +215,7 @@ def main() -> None:
     for name in ("pass_g1", "pass_g2", "pass_g4"):
         getattr(lib, name).argtypes = [vp, i64, i64, vp, vp, vp, vp, i64, vp, i64, i64]
     lib.pass_flat.argtypes = [vp, vp, i64, vp, vp, i64, vp, i64, i64]
+    lib.pass_w4.argtypes = [vp, i64, i64, vp, vp, vp, i64, vp, i64, i64]
     mesh = builtin("occluder_over_plane", "small")
     tr = precompute_wavelet(mesh, 32, 256, BITS, shadows="always", run=RunOptions(workers=1))
     rl = relight.WaveletRelighter(tr, threads=1, layouts="column")
@@ -220,6 +252,24 @@ def main() -> None:
                                              rl.bvals.data_ptr(), mode, acc.data_ptr(), nacc, r), 200)
         rows.append((label, 1, 0, 0, flat.numel(), us))
         print(f"[pass_micro] {rows[-1]}", flush=True)
+    # 4-vertex blocks: each 8-vertex block's halves that hold a value, at the 8-block's scratch offset + 16 bytes per half
+    half = (rl.bvals[:, 0].reshape(-1, 2, 4) != 0).any(2)  # [NB, 2]
+    keep = half.reshape(-1)
+    bofs4 = (rl.bofs.long()[:, None] + torch.tensor([0, 16])).reshape(-1)[keep].to(torch.int32).contiguous()
+    bv4 = rl.bvals[:, 0].reshape(-1, 4)[keep].contiguous()
+    c4 = torch.zeros(rl.NB + 1, dtype=torch.int64)
+    c4[1:] = torch.cumsum(half.sum(1), 0)
+    rng4 = torch.stack([rng[:, 0], c4[rng[:, 1]], c4[rng[:, 2]]], 1).contiguous()
+    lw1 = grouped(rl, single, 1, li, lv)[1]
+    us = best_us(lambda r: lib.pass_w4(rng4.data_ptr(), rng4.shape[0], rl.NT, lw1.data_ptr(), bofs4.data_ptr(),
+                                       bv4.data_ptr(), 0, acc.data_ptr(), nacc, r), 200)
+    lib.pass_w4(rng4.data_ptr(), rng4.shape[0], rl.NT, lw1.data_ptr(), bofs4.data_ptr(), bv4.data_ptr(), 0,
+                acc.data_ptr(), nacc, 1)
+    err = float((acc - sums[0]).abs().max()) / max(float(sums[0].abs().max()), 1e-30)
+    assert err < 1e-5, ("4-vertex blocks", err)
+    rows.append(("4-vertex blocks", 1, rng4.shape[0], int((rng4[:, 2] == rng4[:, 1]).sum()),
+                 int((rng4[:, 2] - rng4[:, 1]).sum()), us))
+    print(f"[pass_micro] {rows[-1]}", flush=True)
     # the grouped layouts' keys need the blocks of each column only for 'siblings 2' (not timed): any matrix
     keys = group_keys(rl.res, torch.zeros(1, rl.P, dtype=torch.bool))
     run_grouped("h-pair 2", 2, keys["h-pair 2"])
