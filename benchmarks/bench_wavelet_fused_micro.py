@@ -14,7 +14,10 @@ over one light's real terms and blocks and times them paired by this thread's CP
     sparse step's registers fit beside them), each dense step followed by S sparse blocks taken from a cursor over
     the tile's (term, block range) list; what is left of either stream runs alone after; the half block's sums are
     added into the scratch;
-  - ``dense only`` / ``sparse only``: each pass of ``separate`` alone (their sum is what overlapping can save from).
+  - ``dense only`` / ``sparse only``: each pass of ``separate`` alone (their sum is what overlapping can save from);
+    ``dense half``: the fused forms' dense loop alone (half blocks, 8 sums), no sparse step;
+  - ``fused flat`` (a diagnostic, not a kernel form: its list is built per light outside the timing): the fused
+    loop with the tile's sparse blocks flattened into one list (block, its range's light), no cursor branches.
 
 Every form's scratch (the last tile's, the same sums in another order) is checked against ``separate``'s.
 Studio and sky (transport-weighted) at N terms (default 300, 1000, 2000); the kernel section's transfer
@@ -336,13 +339,14 @@ def main() -> None:
          "(the two passes over every tile, outputs not written), the median of 15 paired samples of "
          f"{args.reps} calls against `separate` (the kernel's order); **separate / form** > 1: the form is faster. "
          "Forms in the module docstring. Reproduce: `.venv/bin/python benchmarks/bench_wavelet_fused_micro.py`.\n",
-         "| light | N | dense terms | sparse blocks | separate µs | dense only µs | sparse only µs | fused 1 µs | "
-         "fused 2 µs | fused 3 µs | **separate / fused 1, 2, 3** |",
-         "|---|---|---|---|---|---|---|---|---|---|---|"]
+         "| light | N | dense terms | sparse blocks | separate µs | dense only µs | dense half µs | sparse only µs | "
+         "fused 1 µs | fused 2 µs | fused 3 µs | fused flat µs | **separate / fused 1, 2, 3, flat** |",
+         "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         L.append(f"| {r['light']} | {r['N']} | {r['dense terms']} | {r['sparse blocks']} | {r['separate']:.1f} | "
-                 f"{r['dense only']:.1f} | {r['sparse only']:.1f} | {r['fused1']:.1f} | {r['fused2']:.1f} | "
-                 f"{r['fused3']:.1f} | **{r['fused1 ratio']:.2f} / {r['fused2 ratio']:.2f} / {r['fused3 ratio']:.2f}** |")
+                 f"{r['dense only']:.1f} | {r['dense half']:.1f} | {r['sparse only']:.1f} | {r['fused1']:.1f} | "
+                 f"{r['fused2']:.1f} | {r['fused3']:.1f} | {r['fused flat']:.1f} | **{r['fused1 ratio']:.2f} / "
+                 f"{r['fused2 ratio']:.2f} / {r['fused3 ratio']:.2f} / {r['fused flat ratio']:.2f}** |")
     OUT.mkdir(parents=True, exist_ok=True)
     (OUT / "wavelet_fused_micro.md").write_text("\n".join(L) + "\n")
     print(f"[fused_micro] wrote {OUT / 'wavelet_fused_micro.md'}", flush=True)
