@@ -9,8 +9,13 @@ the real blocks of one light, in a small C loop compiled here (the loop of ``ker
   - ``flat, sweep``: the same loop with the scratch addressed in a fixed sweep, not the blocks' offsets
     (consecutive terms no longer hit the same blocks);
   - ``3 RMW sweep``: three read-modify-writes per block on a sweep of the scratch, nothing else (the floor);
+  - ``4-vertex blocks``: the 8-vertex blocks' halves that hold a value, each a 4-value load and conversion and
+    three 16-byte read-modify-writes (at the 8-block's scratch, + 16 bytes for the second half);
   - grouped layouts (``bench_wavelet_groups.py``): ``h-pair 2`` and ``children 4`` — per grouped block G
     values, 3·G multiply-adds and one read-modify-write per channel.
+
+Also counts, for studio and sky at N = 100 … all, the light's sparse blocks and bytes at 8, 4 and 2 vertices per
+block (``width_counts``).
 
 Studio light, transport-weighted, its sparse terms at N (default 1000); the kernel section's transfer
 (occluder_over_plane small, R = 32, K = 256, 16 bits, tiles as the relighter's). Each variant: the best of
@@ -192,6 +197,31 @@ def grouped(rl, key: torch.Tensor, G: int, li: torch.Tensor, lv: torch.Tensor):
     return rng, gl[g].contiguous(), bofs.contiguous(), vals.contiguous()
 
 
+def width_counts(rl, lights=("studio", "sky (sun)"), terms=(100, 300, 1000, 2000, None)) -> list[str]:
+    """Counts (no timing) for narrower sparse blocks: per light and N, the light's sparse coefficients, and its
+    sparse blocks, their fill and their bytes (int32 offset + W stored values each) at W = 8 (the kernel's), 4 and
+    2 vertices per block — a W-block kept where any of its vertices holds a value (the 8-blocks' halves, quarters)."""
+    b = rl.bvals.element_size()
+    col_b = torch.repeat_interleave(torch.arange(rl.P).repeat(rl.NT), rl.bcount.reshape(-1).long())
+    nz = rl.bvals[:, 0] != 0  # [NB, 8] (CT = 1)
+    L = ["| light | N | sparse coefficients | 8-vertex blocks (fill) | bytes | 4-vertex blocks (fill) | bytes | "
+         "2-vertex blocks (fill) | bytes | 4 / 8: blocks, bytes |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for light in lights:
+        for N in terms:
+            li, _, _ = rl.light(LIGHTS[light], N or rl.P, "transport")
+            held = torch.zeros(rl.P, dtype=torch.bool)
+            held[li[rl.cls[li] == 1]] = True
+            m = held[col_b]
+            c = int(nz[m].sum())
+            row = f"| {light} | {N or 'all'} | {c} |"
+            nw = {}
+            for W in (8, 4, 2):
+                nw[W] = int(nz[m].reshape(-1, 8 // W, W).any(2).sum())
+                row += f" {nw[W]} ({c / max(nw[W] * W, 1):.2f}) | {nw[W] * (4 + W * b)} |"
+            L.append(row + f" {nw[4] / max(nw[8], 1):.2f}×, {nw[4] * (4 + 4 * b) / max(nw[8] * (4 + 8 * b), 1):.2f}× |")
+    return L
+
+
 def best_us(fn, reps: int) -> float:
     fn(1)
     best = float("inf")
@@ -288,6 +318,11 @@ def main() -> None:
     for label, G, nr, ne, nb, us in rows:
         L.append(f"| {label} | {G} | {nr or '—'} | {ne if nr else '—'} | {nb} | {us:.1f} | {us * 1e3 / max(nb, 1):.2f} | "
                  f"{us / base:.2f} |")
+    L += ["\n## Narrower sparse blocks: counts (issue 39 idea 1)\n",
+          "The kernel's layout's sparse blocks re-cut at 4 and 2 vertices (a block kept where any of its vertices holds "
+          f"a value); bytes: int32 offset + W {BITS}-bit values per block. The pass over 4-vertex blocks is timed "
+          "above (`4-vertex blocks`: 128-bit read-modify-writes at the 8-block's scratch + 16 bytes for the second "
+          "half).\n"] + width_counts(rl)
     OUT.mkdir(parents=True, exist_ok=True)
     (OUT / "wavelet_pass_micro.md").write_text("\n".join(L) + "\n")
     print(f"[pass_micro] wrote {OUT / 'wavelet_pass_micro.md'}", flush=True)
