@@ -222,6 +222,74 @@ def width_counts(rl, lights=("studio", "sky (sun)"), terms=(100, 300, 1000, 2000
     return L
 
 
+def rank_counts(rl, lights=("studio", "sky (sun)"), terms=(300, 1000, 2000)) -> list[str]:
+    """Counts (issue 39 idea 2, a static order): would a fixed order of the sparse columns put a light's held columns
+    first? Per key (the column's transport weight, its kept count nnz, its Haar index), the columns sorted by it and
+    the prefixes holding 25 / 50 / 75% of all sparse blocks: the share of the light's held sparse blocks inside
+    each. Equal shares: the key does not concentrate a light's columns (a row-major pass over such a prefix plus a
+    column-major pass over the rest would read as much as now)."""
+    cb = rl._cblk.long()
+    sparse = rl.cls == 1
+    keys = {"weight": -rl.weights, "nnz": -rl.nnz.double(), "Haar index": torch.arange(rl.P, dtype=torch.float64)}
+    L = ["| key | light | N | held in the 25% prefix | 50% | 75% |", "|---|---|---|---|---|---|"]
+    for name, k in keys.items():
+        order = torch.argsort(torch.where(sparse, k, torch.tensor(float("inf"), dtype=k.dtype)), stable=True)
+        cum = torch.cumsum(cb[order], 0).double() / max(int(cb[sparse].sum()), 1)
+        for light in lights:
+            for N in terms:
+                li, _, _ = rl.light(LIGHTS[light], N, "transport")
+                held = torch.zeros(rl.P, dtype=torch.bool)
+                held[li] = True
+                hb = torch.where(held & sparse, cb, 0)[order].double()
+                hc = torch.cumsum(hb, 0) / max(float(hb.sum()), 1.0)
+                shares = [float(hc[int(torch.searchsorted(cum, torch.tensor(q, dtype=torch.float64)))]) for q in (.25, .5, .75)]
+                L.append(f"| {name} | {light} | {N} | " + " | ".join(f"{x:.2f}" for x in shares) + " |")
+    return L
+
+
+def regroup_counts(rl, lights=("studio", "sky (sun)"), terms=(300, 1000, 2000)) -> list[str]:
+    """Counts: the vertices of each 32-vertex block regrouped into its four 8-vertex blocks (greedy: a seed with the
+    most sparse columns, then the 7 vertices adding the fewest new columns), which would need only a permutation
+    inside each dense block's outputs: the light's sparse 8-vertex blocks against the mesh's own order."""
+    V, P = rl.V, rl.P
+    index = rl.index
+    vals = rl.values if rl.values.ndim == 2 else rl.values[:, 0]
+    keep = torch.zeros(V, P, dtype=torch.bool)
+    rows = torch.arange(V)[:, None].expand_as(index)
+    keep[rows[vals != 0], index[vals != 0]] = True
+    keep &= (rl.cls == 1)[None]
+    perm = []
+    for b0 in range(0, V, 32):
+        M = keep[b0:b0 + 32]
+        left = list(range(M.shape[0]))
+        while left:
+            seed = max(left, key=lambda i: int(M[i].sum()))
+            grp, u = [seed], M[seed].clone()
+            left.remove(seed)
+            while len(grp) < 8 and left:
+                cand = torch.tensor(left)
+                j = int(cand[int(torch.argmin((M[cand] & ~u[None]).sum(1)))])
+                grp.append(j)
+                left.remove(j)
+                u |= M[j]
+            perm += [b0 + i for i in grp]
+    perm = torch.tensor(perm)
+
+    def blocks(order, cols):
+        Mc = keep[order][:, cols]
+        Mc = torch.cat([Mc, torch.zeros((-Mc.shape[0]) % 8, Mc.shape[1], dtype=torch.bool)])
+        return int(Mc.reshape(-1, 8, Mc.shape[1]).any(1).sum())
+
+    L = ["| light | N | sparse blocks, mesh order | regrouped | regrouped / mesh order |", "|---|---|---|---|---|"]
+    for light in lights:
+        for N in terms:
+            li, _, _ = rl.light(LIGHTS[light], N, "transport")
+            cols = li[rl.cls[li] == 1]
+            a, r = blocks(torch.arange(V), cols), blocks(perm, cols)
+            L.append(f"| {light} | {N} | {a} | {r} | {r / max(a, 1):.3f} |")
+    return L
+
+
 def best_us(fn, reps: int) -> float:
     fn(1)
     best = float("inf")
@@ -323,6 +391,10 @@ def main() -> None:
           f"a value); bytes: int32 offset + W {BITS}-bit values per block. The pass over 4-vertex blocks is timed "
           "above (`4-vertex blocks`: 128-bit read-modify-writes at the 8-block's scratch + 16 bytes for the second "
           "half).\n"] + width_counts(rl)
+    L += ["\n## A static column order: counts (issue 39 idea 2)\n", rank_counts.__doc__.split("\n\n")[0].replace("\n   ", "") + "\n"]
+    L += rank_counts(rl)
+    L += ["\n## Vertices regrouped inside each 32-vertex block: counts\n",
+          regroup_counts.__doc__.replace("\n   ", "") + "\n"] + regroup_counts(rl)
     OUT.mkdir(parents=True, exist_ok=True)
     (OUT / "wavelet_pass_micro.md").write_text("\n".join(L) + "\n")
     print(f"[pass_micro] wrote {OUT / 'wavelet_pass_micro.md'}", flush=True)
