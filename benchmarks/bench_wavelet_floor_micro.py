@@ -13,25 +13,41 @@ clock rate measured in the same run (a chain of dependent integer adds, one cycl
     (128-bit), the stores alone and the loads alone.
 
 These are floors of the loops' bodies (no loop control beyond a counter, no range set-up, no memory traffic
-beyond L1): what the kernel's loops measure above them is what any rewrite of their code could win. Writes
-reports/benchmarks/wavelet_floor_micro.md.
+beyond L1): what the kernel's loops measure above them is what any rewrite of their code could win.
 
-    .venv/bin/python benchmarks/bench_wavelet_floor_micro.py     (about 10 s; x86-64 only)
+Then the model: per light (studio, sky; transport-weighted) and N (100, 300, 1000: the column-major pass), the
+kernel's work counted — dense (term, 32-vertex block) steps, the light's sparse 8-vertex blocks — times those
+floors at the measured clock, plus the kernel's own set-up (timed alone: ``kernels/wavelet.c`` compiled here with
+a return right after the light is gathered and its terms listed) and output pass (a one-term call of a column no
+vertex keeps, less its set-up): the kernel's time if both loops ran at their instruction mixes' floor. Against
+the kernel (``WaveletRelighter.prepared``) and its read-once/write-once bound (``timing.io_bound_fn``), paired by
+one thread's CPU time (median of 15). Writes reports/benchmarks/wavelet_floor_micro.md.
+
+    .venv/bin/python benchmarks/bench_wavelet_floor_micro.py     (about 30 s; x86-64 only)
 """
 
 from __future__ import annotations
 
-import ctypes
-import os
-import platform
-import sys
-from pathlib import Path
+import prt_torch  # noqa: F401  (first: it chooses OpenMP's wait policy from the machine's load)
+
+import ctypes  # noqa: E402
+import os  # noqa: E402
+import platform  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import torch  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_wavelet import OUT  # noqa: E402
+from bench_wavelet import BITS, LIGHTS, OUT  # noqa: E402
 
-from prt_torch._native import compile_library  # noqa: E402
-from prt_torch.harness.timing import machine_info  # noqa: E402
+from prt_torch import relight  # noqa: E402
+from prt_torch._native import KERNELS_DIR, LIBRARIES, compile_library  # noqa: E402
+from prt_torch.harness.timing import io_bound_fn, machine_info, measure_paired  # noqa: E402
+from prt_torch.scene import builtin  # noqa: E402
+from prt_torch.transfer import RunOptions  # noqa: E402
+from prt_torch.transfer.wavelet import precompute_wavelet  # noqa: E402
 
 SRC = r"""
 #define _POSIX_C_SOURCE 199309L
@@ -155,9 +171,80 @@ def main() -> None:
           "|---|---|---|---|"]
     for name, label in SPARSE:
         L.append(f"| {label} | " + " | ".join(f"{sparse[(name, s)] * f * 1e9 / n:.2f}" for s in (1, 37, 0)) + " |")
+    L += model(f, dense["d_kernel"] * f * 1e9 / n, sparse[("s_kernel", 37)] * f * 1e9 / n)
     OUT.mkdir(parents=True, exist_ok=True)
     (OUT / "wavelet_floor_micro.md").write_text("\n".join(L) + "\n")
     print("\n".join(L))
+
+
+def setup_probe():
+    """``kernels/wavelet.c`` compiled with a return right after the set-up (the light gathered per column, its terms
+    listed; the light table zeroed again as the kernel does at its end): the i16 entry point, or None."""
+    names, flags = LIBRARIES["wavelet"]
+    src = (KERNELS_DIR / names[0]).read_text()
+    marker = "    const T *rvals = (const T *)L->rvals;"
+    if marker not in src:
+        raise SystemExit("bench_wavelet_floor_micro: kernels/wavelet.c changed: the set-up probe's cut point is gone")
+    cut = "    for (i64 n = 0; n < N; n++) memset(lp + 4 * sel[n], 0, 4 * sizeof(float)); return 0; \\\n"
+    lib, how = compile_library("wavelet_setup_probe", src.replace(marker, cut + marker, 1), list(flags), {})
+    if lib is None:
+        return None
+    fn = lib.prt_wavelet_relight_i16
+    i64, vp = ctypes.c_int64, ctypes.c_void_p
+    fn.argtypes = [vp, i64, vp, vp, i64, vp, vp, i64]
+    return fn
+
+
+def model(ghz: float, dense_cyc: float, sparse_cyc: float) -> list[str]:
+    """The floor model's table (module docstring)."""
+    torch.set_num_threads(1)
+    probe = setup_probe()
+    mesh = builtin("occluder_over_plane", "small")
+    tr = precompute_wavelet(mesh, 32, 256, BITS, shadows="always", run=RunOptions(workers=1))
+    rl = relight.WaveletRelighter(tr, threads=1)
+    nb = rl.dense.shape[0]
+    out = torch.empty(rl.V, 3)
+    f3 = rl._factor(3, True)
+    rl.prepared(torch.zeros(1, dtype=torch.int64), torch.ones(3, 1), out)()  # binds the layout
+    lay = rl._layout.data_ptr()
+
+    def setup(li, lv):
+        return lambda: probe(lay, li.numel(), li.data_ptr(), lv.data_ptr(), 3, f3.data_ptr(), out.data_ptr(), 1)
+
+    def cpu(fn, peer):
+        p = measure_paired(fn, peer, repeats=15, warmup=1, clock=time.thread_time)
+        return p.test.median * 1e6, p.peer.median * 1e6
+
+    empty = torch.nonzero(rl.cls == 0).flatten()[:1].contiguous()
+    one = torch.ones(3, 1)
+    out_call, out_setup = cpu(rl.prepared(empty, one, out), setup(empty, one))
+    load0 = os.getloadavg()[0]
+    L = ["\n## The kernel against its loops' floor (R = 32, K = 256, 16-bit, V = %d, one thread)\n" % rl.V,
+         f"Dense steps × {dense_cyc:.2f} cycles (the kernel's mix above) + sparse blocks × {sparse_cyc:.2f} (the "
+         f"kernel's block, scattered) at {ghz:.2f} GHz, + the set-up timed alone + the output pass ({out_call - out_setup:.1f} µs: "
+         f"a one-term call {out_call:.1f} µs less its set-up {out_setup:.1f} µs); load average {load0:.1f}. The kernel "
+         "and its bound paired by CPU time; **bound / floor**: the fraction of its bound the kernel would reach at "
+         "its loops' floor.\n",
+         "| light | N | dense steps | sparse blocks | kernel µs | bound µs | kernel of bound | set-up µs | floor µs "
+         "| **bound / floor** | kernel / floor |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for light in ("studio", "sky (sun)"):
+        for N in (100, 300, 1000):
+            li, lv, _ = rl.light(LIGHTS[light], N, "transport")
+            lv = lv.to(torch.float32).contiguous()
+            d = rl.dslot[li] >= 0
+            s = li[~d]
+            sb = int(rl.bcount[:, s[rl.nnz[s] > 0]].sum())
+            if sb >= rl.row_min * rl.NB:
+                continue  # the row-major pass: not this model's
+            call = rl.prepared(li, lv, out)
+            k_us, b_us = cpu(call, io_bound_fn(rl.bytes_read(li), rl.V * 12))
+            s_us, _ = cpu(setup(li, lv), call)
+            steps = int(d.sum()) * nb
+            floor = (steps * dense_cyc + sb * sparse_cyc) / ghz / 1e3 + s_us + (out_call - out_setup)
+            L.append(f"| {light} | {N} | {steps} | {sb} | {k_us:.1f} | {b_us:.1f} | {b_us / k_us:.2f} | {s_us:.1f} | "
+                     f"{floor:.1f} | **{b_us / floor:.2f}** | {k_us / floor:.2f} |")
+            print(L[-1], flush=True)
+    return L
 
 
 if __name__ == "__main__":
