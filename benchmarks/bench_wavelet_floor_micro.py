@@ -18,7 +18,8 @@ beyond L1): what the kernel's loops measure above them is what any rewrite of th
 Then the model: per light (studio, sky; transport-weighted) and N (100, 300, 1000: the column-major pass), the
 kernel's work counted — dense (term, 32-vertex block) steps, the light's sparse 8-vertex blocks — times those
 floors at the measured clock, plus the kernel's own set-up (timed alone: ``kernels/wavelet.c`` compiled here with
-a return right after the light is gathered and its terms listed) and output pass (a one-term call of a column no
+a return right after the light is gathered and its terms listed; also cut after each of its steps, the set-up by
+step at N = 1000) and output pass (a one-term call of a column no
 vertex keeps, less its set-up): the kernel's time if both loops ran at their instruction mixes' floor. Against
 the kernel (``WaveletRelighter.prepared``) and its read-once/write-once bound (``timing.io_bound_fn``), paired by
 one thread's CPU time (median of 15). Writes reports/benchmarks/wavelet_floor_micro.md.
@@ -177,15 +178,23 @@ def main() -> None:
     print("\n".join(L))
 
 
-def setup_probe():
-    """``kernels/wavelet.c`` compiled with a return right after the set-up (the light gathered per column, its terms
-    listed; the light table zeroed again as the kernel does at its end): the i16 entry point, or None."""
+#: the set-up probes' cut points in kernels/wavelet.c (a return inserted before each line), cumulative
+SETUP_CUTS = (("call, checks (index, grey light), the light's closing zeroing", "    unsigned char *mark = L->mark;"),
+              ("+ marks cleared, light gathered per column", "    const int rows = sb && L->NR"),
+              ("+ dense terms listed", "    i64 *sw = wk + Pd;"),
+              ("+ sparse terms listed: the set-up", "    const T *rvals = (const T *)L->rvals;"))
+
+
+def setup_probe(marker: str):
+    """``kernels/wavelet.c`` compiled with a return inserted before the line ``marker`` (one of
+    :data:`SETUP_CUTS`: what the kernel does before the tiles, up to there; the light table zeroed again as the
+    kernel does at its end): the i16 entry point, or None without a compiler."""
     names, flags = LIBRARIES["wavelet"]
     src = (KERNELS_DIR / names[0]).read_text()
-    marker = "    const T *rvals = (const T *)L->rvals;"
     if marker not in src:
-        raise SystemExit("bench_wavelet_floor_micro: kernels/wavelet.c changed: the set-up probe's cut point is gone")
-    cut = "    for (i64 n = 0; n < N; n++) memset(lp + 4 * sel[n], 0, 4 * sizeof(float)); return 0; \\\n"
+        raise SystemExit(f"bench_wavelet_floor_micro: kernels/wavelet.c changed: the set-up probe's cut {marker.strip()!r} "
+                         "is gone")
+    cut = "    { float *lp_ = L->lp; for (i64 n = 0; n < N; n++) memset(lp_ + 4 * sel[n], 0, 4 * sizeof(float)); return 0; } \\\n"
     lib, how = compile_library("wavelet_setup_probe", src.replace(marker, cut + marker, 1), list(flags), {})
     if lib is None:
         return None
@@ -198,7 +207,8 @@ def setup_probe():
 def model(ghz: float, dense_cyc: float, sparse_cyc: float) -> list[str]:
     """The floor model's table (module docstring)."""
     torch.set_num_threads(1)
-    probe = setup_probe()
+    probes = [setup_probe(m) for _, m in SETUP_CUTS]
+    probe = probes[-1]
     mesh = builtin("occluder_over_plane", "small")
     tr = precompute_wavelet(mesh, 32, 256, BITS, shadows="always", run=RunOptions(workers=1))
     rl = relight.WaveletRelighter(tr, threads=1)
@@ -208,8 +218,9 @@ def model(ghz: float, dense_cyc: float, sparse_cyc: float) -> list[str]:
     rl.prepared(torch.zeros(1, dtype=torch.int64), torch.ones(3, 1), out)()  # binds the layout
     lay = rl._layout.data_ptr()
 
-    def setup(li, lv):
-        return lambda: probe(lay, li.numel(), li.data_ptr(), lv.data_ptr(), 3, f3.data_ptr(), out.data_ptr(), 1)
+    def setup(li, lv, fn=None):
+        fn = fn or probe
+        return lambda: fn(lay, li.numel(), li.data_ptr(), lv.data_ptr(), 3, f3.data_ptr(), out.data_ptr(), 1)
 
     def cpu(fn, peer):
         p = measure_paired(fn, peer, repeats=15, warmup=1, clock=time.thread_time)
@@ -244,6 +255,17 @@ def model(ghz: float, dense_cyc: float, sparse_cyc: float) -> list[str]:
             L.append(f"| {light} | {N} | {steps} | {sb} | {k_us:.1f} | {b_us:.1f} | {b_us / k_us:.2f} | {s_us:.1f} | "
                      f"{floor:.1f} | **{b_us / floor:.2f}** | {k_us / floor:.2f} |")
             print(L[-1], flush=True)
+    L += ["\n### The set-up by step (cumulative, µs; one thread's CPU time, median of 15)\n",
+          "| light | N | " + " | ".join(label for label, _ in SETUP_CUTS) + " |", "|---|---|" + "---|" * len(SETUP_CUTS)]
+    for light, N in (("one term", 1), ("studio", 1000), ("sky (sun)", 1000)):
+        if N == 1:
+            li, lv = empty, one
+        else:
+            li, lv, _ = rl.light(LIGHTS[light], N, "transport")
+            lv = lv.to(torch.float32).contiguous()
+        call = rl.prepared(li, lv, out)
+        L.append(f"| {light} | {N} | " + " | ".join(f"{cpu(setup(li, lv, fn), call)[0]:.2f}" for fn in probes) + " |")
+        print(L[-1], flush=True)
     return L
 
 
