@@ -290,6 +290,34 @@ def regroup_counts(rl, lights=("studio", "sky (sun)"), terms=(300, 1000, 2000)) 
     return L
 
 
+def local_dense_counts(rl, lights=("studio", "sky (sun)"), terms=(300, 1000, 2000), dense_cyc=6.8, block_cyc=4.8,
+                       ghz=3.2) -> list[str]:
+    """Counts and a cost model: (32-vertex block, column) pairs whose column has k >= 2, 3 or 4 non-empty 8-vertex
+    blocks there, stored as one 32-value entry of the block, read row-major (every such entry, the light looked up per
+    column, zero where the light does not hold it: no read-modify-write) at about a dense step's cost
+    (``dense_cyc`` + the look-up: ~7.5 cycles), against the column-major pass over the light's blocks of those pairs
+    (``block_cyc`` cycles each; floors of ``bench_wavelet_floor_micro.py``)."""
+    P, NT, TV = rl.P, rl.NT, rl.TV
+    col_b = torch.repeat_interleave(torch.arange(P).repeat(NT), rl.bcount.reshape(-1).long())
+    tile_b = torch.repeat_interleave(torch.arange(NT), rl.bcount.sum(1).long())
+    blk32 = (tile_b * (TV // 8) + (rl.bofs.long() >> 7)) // 4
+    uk, cnt = torch.unique(blk32 * P + col_b, return_counts=True)
+    L = ["| light | N | k ≥ | pairs | of them held | their held 8-vertex blocks | column-major µs | row-major entries µs |",
+         "|---|---|---|---|---|---|---|---|"]
+    for light in lights:
+        for N in terms:
+            li, _, _ = rl.light(LIGHTS[light], N, "transport")
+            held = torch.zeros(P, dtype=torch.bool)
+            held[li] = True
+            hp = held[uk // P]
+            for kmin in (2, 3, 4):
+                sel = cnt >= kmin
+                hb = int(cnt[sel & hp].sum())
+                L.append(f"| {light} | {N} | {kmin} | {int(sel.sum())} | {int((sel & hp).sum())} | {hb} | "
+                         f"{block_cyc * hb / ghz / 1e3:.1f} | {(dense_cyc + 0.7) * int(sel.sum()) / ghz / 1e3:.1f} |")
+    return L
+
+
 def best_us(fn, reps: int) -> float:
     fn(1)
     best = float("inf")
@@ -395,6 +423,8 @@ def main() -> None:
     L += rank_counts(rl)
     L += ["\n## Vertices regrouped inside each 32-vertex block: counts\n",
           regroup_counts.__doc__.replace("\n   ", "") + "\n"] + regroup_counts(rl)
+    L += ["\n## Columns dense inside a 32-vertex block: counts and a cost model\n",
+          local_dense_counts.__doc__.replace("\n   ", "") + "\n"] + local_dense_counts(rl)
     OUT.mkdir(parents=True, exist_ok=True)
     (OUT / "wavelet_pass_micro.md").write_text("\n".join(L) + "\n")
     print(f"[pass_micro] wrote {OUT / 'wavelet_pass_micro.md'}", flush=True)
