@@ -10,7 +10,9 @@ clock rate measured in the same run (a chain of dependent integer adds, one cycl
     (16-bit widened and converted, or float), three 32-byte read-modify-writes of the tile's scratch (load,
     multiply-add, store), the blocks visited in a sweep (stride 1), scattered (stride 37 of 144 blocks) or all
     the same block (stride 0: each read waits for the previous store: the chain); also 4-vertex blocks
-    (128-bit), the stores alone and the loads alone.
+    (128-bit), the stores alone and the loads alone;
+  - both in one loop step (``bench_wavelet_fused_micro.py``'s question without its loop): a dense half step
+    (16 vertices, 6 sums) and one sparse block, against each alone.
 
 These are floors of the loops' bodies (no loop control beyond a counter, no range set-up, no memory traffic
 beyond L1): what the kernel's loops measure above them is what any rewrite of their code could win.
@@ -122,7 +124,47 @@ SPARSE(s_loads, ADDR "shl $4,%%rcx\n vpmovsxwd (%3,%%rcx),%%ymm0\n vcvtdq2ps %%y
 SPARSE(s_stores, ADDR "shl $4,%%rcx\n vpmovsxwd (%3,%%rcx),%%ymm0\n vcvtdq2ps %%ymm0,%%ymm0\n"
        "vmulps %%ymm0,%%ymm15,%%ymm3\n vmovups %%ymm3,(%%rax)\n vmulps %%ymm0,%%ymm14,%%ymm1\n vmovups %%ymm1,32(%%rax)\n"
        "vmulps %%ymm0,%%ymm13,%%ymm2\n vmovups %%ymm2,64(%%rax)\n")
+
+/* the two interleaved (bench_wavelet_fused_micro.py's question at the instruction level): a dense half step (16
+ * vertices: 2 widening loads and conversions, 3 broadcasts, 6 multiply-adds into 6 sums) and one sparse block */
+static short dvals[1 << 16] __attribute__((aligned(64)));
+#define F6 "vfmadd231ps %%ymm4,%%ymm12,%%ymm0\n vfmadd231ps %%ymm4,%%ymm13,%%ymm1\n vfmadd231ps %%ymm4,%%ymm14,%%ymm2\n" \
+    "vfmadd231ps %%ymm5,%%ymm12,%%ymm6\n vfmadd231ps %%ymm5,%%ymm13,%%ymm7\n vfmadd231ps %%ymm5,%%ymm14,%%ymm8\n"
+#define DH "vpmovsxwd (%5),%%ymm4\n vcvtdq2ps %%ymm4,%%ymm4\n vpmovsxwd 16(%5),%%ymm5\n vcvtdq2ps %%ymm5,%%ymm5\n"     \
+    "vbroadcastss (%3),%%ymm12\n vbroadcastss 4(%3),%%ymm13\n vbroadcastss 8(%3),%%ymm14\n" F6
+#define DHV "mov %1,%%rdx\n shl $6,%%rdx\n and $65535,%%rdx\n vpmovsxwd (%5,%%rdx),%%ymm4\n vcvtdq2ps %%ymm4,%%ymm4\n" \
+    "vpmovsxwd 16(%5,%%rdx),%%ymm5\n vcvtdq2ps %%ymm5,%%ymm5\n"                                                  \
+    "vbroadcastss (%3),%%ymm12\n vbroadcastss 4(%3),%%ymm13\n vbroadcastss 8(%3),%%ymm14\n" F6
+#define SBT "movslq (%4,%1,4),%%rax\n add %2,%%rax\n mov %1,%%rcx\n shl $4,%%rcx\n"
+#define SBC "mov %1,%%rax\n imul $37,%%rax\n and $127,%%rax\n shl $7,%%rax\n add %2,%%rax\n mov %1,%%rcx\n shl $4,%%rcx\n"
+#define SB "vpmovsxwd (%6,%%rcx),%%ymm15\n vcvtdq2ps %%ymm15,%%ymm15\n"                                              \
+    "vmovups (%%rax),%%ymm3\n vfmadd231ps %%ymm15,%%ymm9,%%ymm3\n vmovups %%ymm3,(%%rax)\n"                            \
+    "vmovups 32(%%rax),%%ymm3\n vfmadd231ps %%ymm15,%%ymm10,%%ymm3\n vmovups %%ymm3,32(%%rax)\n"                      \
+    "vmovups 64(%%rax),%%ymm3\n vfmadd231ps %%ymm15,%%ymm11,%%ymm3\n vmovups %%ymm3,64(%%rax)\n"
+#define MIX(NAME, BODY)                                                                                      \
+double NAME(long n) {                                                                                        \
+    for (int i = 0; i < 4096; i++) ofs[i] = ((i * 37) % 144) * 128;                                           \
+    long e = 0;                                                                                              \
+    const double t0 = now();                                                                                 \
+    __asm__ volatile("vbroadcastss (%3),%%ymm9\n vbroadcastss 4(%3),%%ymm10\n vbroadcastss 8(%3),%%ymm11\n"      \
+                     "2: " BODY "inc %1\n and $4095,%1\n dec %0\n jnz 2b"                                     \
+                     : "+r"(n), "+r"(e) : "r"(acc), "r"(lt), "r"(ofs), "r"(dvals), "r"(vals)                 \
+                     : "rax", "rcx", "rdx", "xmm0", "xmm1", "xmm2", "xmm3", "xmm4", "xmm5", "xmm6", "xmm7", "xmm8", \
+                       "xmm9", "xmm10", "xmm11", "xmm12", "xmm13", "xmm14", "xmm15", "memory");              \
+    return now() - t0;                                                                                       \
+}
+MIX(m_dense, DH)
+MIX(m_sparse, SBT SB)
+MIX(m_both, DH SBT SB)
+MIX(m_both_computed, DH SBC SB)
+MIX(m_both_varying, DHV SBT SB)
 """
+
+MIX = (("m_dense", "a dense half step alone (6 sums: each one multiply-add per step, the 4-cycle latency)"),
+       ("m_sparse", "a sparse block alone (address from the offset table)"),
+       ("m_both", "**both in one step** (address from the table)"),
+       ("m_both_computed", "both, the sparse address computed (no load)"),
+       ("m_both_varying", "both, the dense values from a moving address"))
 
 DENSE = (("d_fma", "12 multiply-adds alone"), ("d_bc", "+ 3 light broadcasts (vbroadcastss m32)"),
          ("d_cvt", "+ 4 conversions alone (vcvtdq2ps)"), ("d_pmov", "+ 4 widening loads alone (vpmovsxwd m128)"),
@@ -142,7 +184,7 @@ def main() -> None:
     lib, how = compile_library("wavelet_floor_micro", SRC, ["-O2", "-shared", "-fPIC", "-std=c99"], {})
     if lib is None:
         raise SystemExit(f"bench_wavelet_floor_micro: no compiler: {how}")
-    for name, _ in DENSE:
+    for name, _ in DENSE + MIX:
         getattr(lib, name).restype = ctypes.c_double
         getattr(lib, name).argtypes = [ctypes.c_long]
     for name, _ in SPARSE:
@@ -154,6 +196,7 @@ def main() -> None:
     ghz = [lib.clock_ghz()]
     dense = {name: min(getattr(lib, name)(n) for _ in range(3)) for name, _ in DENSE}
     sparse = {(name, s): min(getattr(lib, name)(n, s) for _ in range(3)) for name, _ in SPARSE for s in (1, 37, 0)}
+    mix = {name: min(getattr(lib, name)(n) for _ in range(3)) for name, _ in MIX}
     ghz.append(lib.clock_ghz())
     f = sum(ghz) / 2
     m = machine_info()
@@ -172,6 +215,10 @@ def main() -> None:
           "|---|---|---|---|"]
     for name, label in SPARSE:
         L.append(f"| {label} | " + " | ".join(f"{sparse[(name, s)] * f * 1e9 / n:.2f}" for s in (1, 37, 0)) + " |")
+    L += ["\n## A dense half step and a sparse block in one loop step (the fused form's question)\n",
+          "| mix | cycles per step |", "|---|---|"]
+    for name, label in MIX:
+        L.append(f"| {label} | {mix[name] * f * 1e9 / n:.2f} |")
     L += model(f, dense["d_kernel"] * f * 1e9 / n, sparse[("s_kernel", 37)] * f * 1e9 / n)
     OUT.mkdir(parents=True, exist_ok=True)
     (OUT / "wavelet_floor_micro.md").write_text("\n".join(L) + "\n")
