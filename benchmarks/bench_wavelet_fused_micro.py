@@ -10,12 +10,12 @@ over one light's real terms and blocks and times them paired by this thread's CP
   - ``separate``: per tile the sparse blocks into the zeroed scratch (the kernel's ``sparse_tile``), then each
     32-vertex block's GEMV over the dense terms (12 sums in registers, the kernel's prefetch) added into the
     scratch (the kernel then writes the outputs from there: the same in both forms, not timed);
-  - ``fused S``: per tile one loop over the dense terms of each half block (16 vertices: 8 sums, so that the
+  - ``fused S``: per tile one loop over the dense terms of each half block (16 vertices: 6 sums, so that the
     sparse step's registers fit beside them), each dense step followed by S sparse blocks taken from a cursor over
     the tile's (term, block range) list; what is left of either stream runs alone after; the half block's sums are
     added into the scratch;
   - ``dense only`` / ``sparse only``: each pass of ``separate`` alone (their sum is what overlapping can save from);
-    ``dense half``: the fused forms' dense loop alone (half blocks, 8 sums), no sparse step;
+    ``dense half``: the fused forms' dense loop alone (half blocks, 6 sums), no sparse step;
   - ``fused flat`` (a diagnostic, not a kernel form: its list is built per light outside the timing): the fused
     loop with the tile's sparse blocks flattened into one list (block, its range's light), no cursor branches.
 
@@ -117,7 +117,7 @@ int separate(const i64 *rng, i64 nr, const float *slw, const int32_t *bofs, cons
     }
     return 0;
 }
-/* one dense step of a half block (16 vertices, 8 sums) followed by S sparse blocks from the cursor (r, e, e1) */
+/* one dense step of a half block (16 vertices, 6 sums) followed by S sparse blocks from the cursor (r, e, e1) */
 #define FUSED(S)                                                                                            \
 int fused##S(const i64 *rng, i64 nr, const float *slw, const int32_t *bofs, const int16_t *bv, const int16_t *dense, \
              i64 Pd, const i64 *ds, i64 nd, const float *dlw, const i64 *tb, i64 nt, float *acc, i64 nacc,   \
@@ -221,7 +221,7 @@ int fused_flat(const i64 *fb, const int32_t *fr, const i64 *fte, const float *sl
     }
     return 0;
 }
-/* diagnostic: the dense half-block loop of the fused forms alone (8 sums; no sparse step) */
+/* diagnostic: the dense half-block loop of the fused forms alone (6 sums; no sparse step) */
 int dense_half(const int16_t *dense, i64 Pd, const i64 *ds, i64 nd, const float *dlw, const i64 *tb, i64 nt,
                float *acc, i64 nacc, i64 reps) {
     for (i64 r_ = 0; r_ < reps; r_++)
