@@ -4,6 +4,8 @@ light's dense terms, CT = 1, 16-bit values, the kernel's prefetch 6 terms ahead)
 blocks and terms of one light, with one thing changed per variant:
 
   - ``kernel form``: per term 4 widening loads (``vpmovsxwd``), 4 int -> float conversions, 12 multiply-adds;
+  - ``prefetch across blocks``: the kernel form, its last PF terms prefetching the next block's first PF slots
+    (the kernel stops prefetching there);
   - ``lean loop``: the kernel form with the slots as byte offsets (no shift per term) and the list padded by the
     prefetch distance (no test before each prefetch); ``lean, 2 terms a step``: the same, two terms per loop step;
   - ``shifts``: the block's 32 values stored as 16 32-bit lanes, lane i of the q-th vector holding vertex
@@ -72,17 +74,19 @@ static inline v8f load8(const int16_t *p) { v8s x; memcpy(&x, p, sizeof x); retu
 #endif
 #define PF 6
 /* dense [nb, Pd, 32] (blocks bs apart: 0 reads block 0 for every block), ds [nd] slots, lw [nd, 4]; sums [nb, 3, 32]
- * mode 0: int16, kernel form; 1: int16 shifts (the lanes' pairs as above); 2: float32 values */
+ * mode 0: int16, kernel form; 1: int16 shifts (the lanes' pairs as above); 2: float32 values; 3, 4: lean loop (ds: byte
+ * offsets, PF + 1 padded), one or two terms a step; 5: the kernel form, its last PF terms prefetching the next block's first slots */
 int dense_pass(const void *dense, i64 bs, const i64 *ds, i64 nd, const float *lw, i64 nb, i64 mode, float *sums, i64 reps) {
     for (i64 r_ = 0; r_ < reps; r_++)
         for (i64 b = 0; b < nb; b++) {
             v8f a[3][4];
             for (int c = 0; c < 3; c++) for (int k = 0; k < 4; k++) a[c][k] = (v8f){0};
-            if (mode == 0) {
+            if (mode == 0 || mode == 5) {
                 const int16_t *blk = (const int16_t *)dense + b * bs;
                 for (i64 t = 0; t < nd; t++) {
                     const int16_t *p = blk + ds[t] * 32;
                     if (t + PF < nd) __builtin_prefetch(blk + ds[t + PF] * 32);
+                    else if (mode == 5 && b + 1 < nb) __builtin_prefetch(blk + bs + ds[t + PF - nd] * 32);
                     v8f l[3];
                     for (int c = 0; c < 3; c++) l[c] = bc8(lw + 4 * t + c);
                     for (int k = 0; k < 4; k++) {
@@ -212,23 +216,24 @@ def main() -> None:
             lw[:, :3] = lv[:, d].T.float()[order]
             sums = torch.zeros(nb, 3, 32)
 
-            ds3 = torch.cat([ds, ds[-1:].expand(7)]) * 64  # byte offsets, the last repeated PF = 6 times
+            ds3 = torch.cat([ds, ds[-1:].expand(7)]) * 64  # byte offsets, the last repeated PF + 1 = 7 times
 
             def call(mode, l1=False, reps=1):
-                arr, light_w = ((d16, lw), (dsa, lw), (dfl, lw), (d16, lw), (d16, lw))[mode]
-                return lib.dense_pass(arr.data_ptr(), 0 if l1 else Pd * 32, (ds3 if mode >= 3 else ds).data_ptr(), nd,
+                arr, light_w = ((d16, lw), (dsa, lw), (dfl, lw), (d16, lw), (d16, lw), (d16, lw))[mode]
+                return lib.dense_pass(arr.data_ptr(), 0 if l1 else Pd * 32, (ds3 if mode in (3, 4) else ds).data_ptr(), nd,
                                       light_w.data_ptr(), nb, mode, sums.data_ptr(), reps)
 
             ref = {}
             for l1 in (False, True):
                 call(0, l1)
                 ref[l1] = sums.clone()
-                for mode in (1, 2, 3, 4):
+                for mode in (1, 2, 3, 4, 5):
                     call(mode, l1)
                     assert torch.equal(sums, ref[l1]) or mode == 2 and torch.allclose(sums, ref[l1], rtol=1e-5, atol=1e-3), \
                         (mode, l1, float((sums - ref[l1]).abs().max()))
             res = {"light": light, "N": N, "nd": nd, "tb": nd * nb}
-            for label, mode, l1 in (("kernel form, L1", 0, True), ("lean loop", 3, False), ("lean loop, L1", 3, True),
+            for label, mode, l1 in (("kernel form, L1", 0, True), ("prefetch across blocks", 5, False),
+                                    ("lean loop", 3, False), ("lean loop, L1", 3, True),
                                     ("lean, 2 terms a step", 4, False), ("lean, 2 terms a step, L1", 4, True),
                                     ("shifts", 1, False), ("shifts, L1", 1, True),
                                     ("float", 2, False), ("float, L1", 2, True)):
@@ -254,7 +259,8 @@ def main() -> None:
          "| light | N | dense terms | variant | µs per pass | cycles per term and block | **kernel form / variant** |",
          "|---|---|---|---|---|---|---|"]
     for r in rows:
-        for label in ("kernel form", "kernel form, L1", "lean loop", "lean loop, L1", "lean, 2 terms a step",
+        for label in ("kernel form", "kernel form, L1", "prefetch across blocks", "lean loop", "lean loop, L1",
+                      "lean, 2 terms a step",
                       "lean, 2 terms a step, L1", "shifts", "shifts, L1", "float",
                       "float, L1"):
             cyc = r[label] * 1e3 * ghz / r["tb"]
