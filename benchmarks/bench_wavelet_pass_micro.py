@@ -9,8 +9,13 @@ the real blocks of one light, in a small C loop compiled here (the loop of ``ker
   - ``flat, sweep``: the same loop with the scratch addressed in a fixed sweep, not the blocks' offsets
     (consecutive terms no longer hit the same blocks);
   - ``3 RMW sweep``: three read-modify-writes per block on a sweep of the scratch, nothing else (the floor);
+  - ``4-vertex blocks``: the 8-vertex blocks' halves that hold a value, each a 4-value load and conversion and
+    three 16-byte read-modify-writes (at the 8-block's scratch, + 16 bytes for the second half);
   - grouped layouts (``bench_wavelet_groups.py``): ``h-pair 2`` and ``children 4`` — per grouped block G
     values, 3·G multiply-adds and one read-modify-write per channel.
+
+Also counts, for studio and sky at N = 100 … all, the light's sparse blocks and bytes at 8, 4 and 2 vertices per
+block (``width_counts``).
 
 Studio light, transport-weighted, its sparse terms at N (default 1000); the kernel section's transfer
 (occluder_over_plane small, R = 32, K = 256, 16 bits, tiles as the relighter's). Each variant: the best of
@@ -91,6 +96,37 @@ int pass_g##G(const int64_t *rng, int64_t nr, int64_t nt, const float *lw, const
 GROUPED(1)
 GROUPED(2)
 GROUPED(4)
+/* 4-vertex blocks (issue 39 idea 1): per (tile, term) range, per 4-vertex block one 4-value load and conversion
+ * and three 16-byte read-modify-writes of the same scratch (a 4-block at its 8-block's offset + 16 bytes for the
+ * second half); bv4 [NB4, 4] int16, bofs4 [NB4] bytes; mode 1: the 4 values as a 64-bit load widened in one step */
+int pass_w4(const int64_t *rng, int64_t nr, int64_t nt, const float *lw, const int32_t *bofs, const int16_t *bv,
+            int64_t mode, float *acc, int64_t nacc, int64_t reps) {
+    typedef float v4f __attribute__((vector_size(16)));
+    for (int64_t r_ = 0; r_ < reps; r_++)
+        for (int64_t t = 0; t < nt; t++) {
+            memset(acc, 0, (size_t)nacc * sizeof(float));
+            for (int64_t r = 0; r < nr; r++) {
+                if (rng[3 * r] != t) continue;
+                const float l0 = lw[4 * r], l1 = lw[4 * r + 1], l2 = lw[4 * r + 2];
+                const v4f L0 = {l0, l0, l0, l0}, L1 = {l1, l1, l1, l1}, L2 = {l2, l2, l2, l2};
+                const int64_t e1 = rng[3 * r + 2];
+                for (int64_t e = rng[3 * r + 1]; e < e1; e++) {
+                    float *a = (float *)((char *)acc + bofs[e]);
+#ifdef __AVX2__
+                    const v4f w = (v4f)_mm_cvtepi32_ps(_mm_cvtepi16_epi32(_mm_loadl_epi64((const __m128i *)(bv + 4 * e))));
+#else
+                    const v4f w = {bv[4 * e], bv[4 * e + 1], bv[4 * e + 2], bv[4 * e + 3]};
+#endif
+                    v4f x0, x1, x2;
+                    memcpy(&x0, a, 16); memcpy(&x1, a + 8, 16); memcpy(&x2, a + 16, 16);
+                    x0 += w * L0; x1 += w * L1; x2 += w * L2;
+                    memcpy(a, &x0, 16); memcpy(a + 8, &x1, 16); memcpy(a + 16, &x2, 16);
+                }
+            }
+        }
+    (void)mode;
+    return 0;
+}
 /* one loop over the flat list of the light's blocks (flat [nf], tile-major), one light; mode 0: the blocks'
  * offsets, 1: a sweep of the scratch (block k at k mod nblk), 2: the sweep with no value read (3 RMW only) */
 int pass_flat(const int64_t *flat, const int64_t *ftile_end, int64_t nt, const int32_t *bofs, const int16_t *bv,
@@ -161,6 +197,127 @@ def grouped(rl, key: torch.Tensor, G: int, li: torch.Tensor, lv: torch.Tensor):
     return rng, gl[g].contiguous(), bofs.contiguous(), vals.contiguous()
 
 
+def width_counts(rl, lights=("studio", "sky (sun)"), terms=(100, 300, 1000, 2000, None)) -> list[str]:
+    """Counts (no timing) for narrower sparse blocks: per light and N, the light's sparse coefficients, and its
+    sparse blocks, their fill and their bytes (int32 offset + W stored values each) at W = 8 (the kernel's), 4 and
+    2 vertices per block — a W-block kept where any of its vertices holds a value (the 8-blocks' halves, quarters)."""
+    b = rl.bvals.element_size()
+    col_b = torch.repeat_interleave(torch.arange(rl.P).repeat(rl.NT), rl.bcount.reshape(-1).long())
+    nz = rl.bvals[:, 0] != 0  # [NB, 8] (CT = 1)
+    L = ["| light | N | sparse coefficients | 8-vertex blocks (fill) | bytes | 4-vertex blocks (fill) | bytes | "
+         "2-vertex blocks (fill) | bytes | 4 / 8: blocks, bytes |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for light in lights:
+        for N in terms:
+            li, _, _ = rl.light(LIGHTS[light], N or rl.P, "transport")
+            held = torch.zeros(rl.P, dtype=torch.bool)
+            held[li[rl.cls[li] == 1]] = True
+            m = held[col_b]
+            c = int(nz[m].sum())
+            row = f"| {light} | {N or 'all'} | {c} |"
+            nw = {}
+            for W in (8, 4, 2):
+                nw[W] = int(nz[m].reshape(-1, 8 // W, W).any(2).sum())
+                row += f" {nw[W]} ({c / max(nw[W] * W, 1):.2f}) | {nw[W] * (4 + W * b)} |"
+            L.append(row + f" {nw[4] / max(nw[8], 1):.2f}×, {nw[4] * (4 + 4 * b) / max(nw[8] * (4 + 8 * b), 1):.2f}× |")
+    return L
+
+
+def rank_counts(rl, lights=("studio", "sky (sun)"), terms=(300, 1000, 2000)) -> list[str]:
+    """Counts (issue 39 idea 2, a static order): would a fixed order of the sparse columns put a light's held columns
+    first? Per key (the column's transport weight, its kept count nnz, its Haar index), the columns sorted by it and
+    the prefixes holding 25 / 50 / 75% of all sparse blocks: the share of the light's held sparse blocks inside
+    each. Equal shares: the key does not concentrate a light's columns (a row-major pass over such a prefix plus a
+    column-major pass over the rest would read as much as now)."""
+    cb = rl._cblk.long()
+    sparse = rl.cls == 1
+    keys = {"weight": -rl.weights, "nnz": -rl.nnz.double(), "Haar index": torch.arange(rl.P, dtype=torch.float64)}
+    L = ["| key | light | N | held in the 25% prefix | 50% | 75% |", "|---|---|---|---|---|---|"]
+    for name, k in keys.items():
+        order = torch.argsort(torch.where(sparse, k, torch.tensor(float("inf"), dtype=k.dtype)), stable=True)
+        cum = torch.cumsum(cb[order], 0).double() / max(int(cb[sparse].sum()), 1)
+        for light in lights:
+            for N in terms:
+                li, _, _ = rl.light(LIGHTS[light], N, "transport")
+                held = torch.zeros(rl.P, dtype=torch.bool)
+                held[li] = True
+                hb = torch.where(held & sparse, cb, 0)[order].double()
+                hc = torch.cumsum(hb, 0) / max(float(hb.sum()), 1.0)
+                shares = [float(hc[int(torch.searchsorted(cum, torch.tensor(q, dtype=torch.float64)))]) for q in (.25, .5, .75)]
+                L.append(f"| {name} | {light} | {N} | " + " | ".join(f"{x:.2f}" for x in shares) + " |")
+    return L
+
+
+def regroup_counts(rl, lights=("studio", "sky (sun)"), terms=(300, 1000, 2000)) -> list[str]:
+    """Counts: the vertices of each 32-vertex block regrouped into its four 8-vertex blocks (greedy: a seed with the
+    most sparse columns, then the 7 vertices adding the fewest new columns), which would need only a permutation
+    inside each dense block's outputs: the light's sparse 8-vertex blocks against the mesh's own order."""
+    V, P = rl.V, rl.P
+    index = rl.index
+    vals = rl.values if rl.values.ndim == 2 else rl.values[:, 0]
+    keep = torch.zeros(V, P, dtype=torch.bool)
+    rows = torch.arange(V)[:, None].expand_as(index)
+    keep[rows[vals != 0], index[vals != 0]] = True
+    keep &= (rl.cls == 1)[None]
+    perm = []
+    for b0 in range(0, V, 32):
+        M = keep[b0:b0 + 32]
+        left = list(range(M.shape[0]))
+        while left:
+            seed = max(left, key=lambda i: int(M[i].sum()))
+            grp, u = [seed], M[seed].clone()
+            left.remove(seed)
+            while len(grp) < 8 and left:
+                cand = torch.tensor(left)
+                j = int(cand[int(torch.argmin((M[cand] & ~u[None]).sum(1)))])
+                grp.append(j)
+                left.remove(j)
+                u |= M[j]
+            perm += [b0 + i for i in grp]
+    perm = torch.tensor(perm)
+
+    def blocks(order, cols):
+        Mc = keep[order][:, cols]
+        Mc = torch.cat([Mc, torch.zeros((-Mc.shape[0]) % 8, Mc.shape[1], dtype=torch.bool)])
+        return int(Mc.reshape(-1, 8, Mc.shape[1]).any(1).sum())
+
+    L = ["| light | N | sparse blocks, mesh order | regrouped | regrouped / mesh order |", "|---|---|---|---|---|"]
+    for light in lights:
+        for N in terms:
+            li, _, _ = rl.light(LIGHTS[light], N, "transport")
+            cols = li[rl.cls[li] == 1]
+            a, r = blocks(torch.arange(V), cols), blocks(perm, cols)
+            L.append(f"| {light} | {N} | {a} | {r} | {r / max(a, 1):.3f} |")
+    return L
+
+
+def local_dense_counts(rl, lights=("studio", "sky (sun)"), terms=(300, 1000, 2000), dense_cyc=6.8, block_cyc=4.8,
+                       ghz=3.2) -> list[str]:
+    """Counts and a cost model: (32-vertex block, column) pairs whose column has k >= 2, 3 or 4 non-empty 8-vertex
+    blocks there, stored as one 32-value entry of the block, read row-major (every such entry, the light looked up per
+    column, zero where the light does not hold it: no read-modify-write) at about a dense step's cost
+    (``dense_cyc`` + the look-up: ~7.5 cycles), against the column-major pass over the light's blocks of those pairs
+    (``block_cyc`` cycles each; floors of ``bench_wavelet_floor_micro.py``)."""
+    P, NT, TV = rl.P, rl.NT, rl.TV
+    col_b = torch.repeat_interleave(torch.arange(P).repeat(NT), rl.bcount.reshape(-1).long())
+    tile_b = torch.repeat_interleave(torch.arange(NT), rl.bcount.sum(1).long())
+    blk32 = (tile_b * (TV // 8) + (rl.bofs.long() >> 7)) // 4
+    uk, cnt = torch.unique(blk32 * P + col_b, return_counts=True)
+    L = ["| light | N | k ≥ | pairs | of them held | their held 8-vertex blocks | column-major µs | row-major entries µs |",
+         "|---|---|---|---|---|---|---|---|"]
+    for light in lights:
+        for N in terms:
+            li, _, _ = rl.light(LIGHTS[light], N, "transport")
+            held = torch.zeros(P, dtype=torch.bool)
+            held[li] = True
+            hp = held[uk // P]
+            for kmin in (2, 3, 4):
+                sel = cnt >= kmin
+                hb = int(cnt[sel & hp].sum())
+                L.append(f"| {light} | {N} | {kmin} | {int(sel.sum())} | {int((sel & hp).sum())} | {hb} | "
+                         f"{block_cyc * hb / ghz / 1e3:.1f} | {(dense_cyc + 0.7) * int(sel.sum()) / ghz / 1e3:.1f} |")
+    return L
+
+
 def best_us(fn, reps: int) -> float:
     fn(1)
     best = float("inf")
@@ -184,6 +341,7 @@ def main() -> None:
     for name in ("pass_g1", "pass_g2", "pass_g4"):
         getattr(lib, name).argtypes = [vp, i64, i64, vp, vp, vp, vp, i64, vp, i64, i64]
     lib.pass_flat.argtypes = [vp, vp, i64, vp, vp, i64, vp, i64, i64]
+    lib.pass_w4.argtypes = [vp, i64, i64, vp, vp, vp, i64, vp, i64, i64]
     mesh = builtin("occluder_over_plane", "small")
     tr = precompute_wavelet(mesh, 32, 256, BITS, shadows="always", run=RunOptions(workers=1))
     rl = relight.WaveletRelighter(tr, threads=1, layouts="column")
@@ -220,6 +378,24 @@ def main() -> None:
                                              rl.bvals.data_ptr(), mode, acc.data_ptr(), nacc, r), 200)
         rows.append((label, 1, 0, 0, flat.numel(), us))
         print(f"[pass_micro] {rows[-1]}", flush=True)
+    # 4-vertex blocks: each 8-vertex block's halves that hold a value, at the 8-block's scratch offset + 16 bytes per half
+    half = (rl.bvals[:, 0].reshape(-1, 2, 4) != 0).any(2)  # [NB, 2]
+    keep = half.reshape(-1)
+    bofs4 = (rl.bofs.long()[:, None] + torch.tensor([0, 16])).reshape(-1)[keep].to(torch.int32).contiguous()
+    bv4 = rl.bvals[:, 0].reshape(-1, 4)[keep].contiguous()
+    c4 = torch.zeros(rl.NB + 1, dtype=torch.int64)
+    c4[1:] = torch.cumsum(half.sum(1), 0)
+    rng4 = torch.stack([rng[:, 0], c4[rng[:, 1]], c4[rng[:, 2]]], 1).contiguous()
+    lw1 = grouped(rl, single, 1, li, lv)[1]
+    us = best_us(lambda r: lib.pass_w4(rng4.data_ptr(), rng4.shape[0], rl.NT, lw1.data_ptr(), bofs4.data_ptr(),
+                                       bv4.data_ptr(), 0, acc.data_ptr(), nacc, r), 200)
+    lib.pass_w4(rng4.data_ptr(), rng4.shape[0], rl.NT, lw1.data_ptr(), bofs4.data_ptr(), bv4.data_ptr(), 0,
+                acc.data_ptr(), nacc, 1)
+    err = float((acc - sums[0]).abs().max()) / max(float(sums[0].abs().max()), 1e-30)
+    assert err < 1e-5, ("4-vertex blocks", err)
+    rows.append(("4-vertex blocks", 1, rng4.shape[0], int((rng4[:, 2] == rng4[:, 1]).sum()),
+                 int((rng4[:, 2] - rng4[:, 1]).sum()), us))
+    print(f"[pass_micro] {rows[-1]}", flush=True)
     # the grouped layouts' keys need the blocks of each column only for 'siblings 2' (not timed): any matrix
     keys = group_keys(rl.res, torch.zeros(1, rl.P, dtype=torch.bool))
     run_grouped("h-pair 2", 2, keys["h-pair 2"])
@@ -238,6 +414,17 @@ def main() -> None:
     for label, G, nr, ne, nb, us in rows:
         L.append(f"| {label} | {G} | {nr or '—'} | {ne if nr else '—'} | {nb} | {us:.1f} | {us * 1e3 / max(nb, 1):.2f} | "
                  f"{us / base:.2f} |")
+    L += ["\n## Narrower sparse blocks: counts (issue 39 idea 1)\n",
+          "The kernel's layout's sparse blocks re-cut at 4 and 2 vertices (a block kept where any of its vertices holds "
+          f"a value); bytes: int32 offset + W {BITS}-bit values per block. The pass over 4-vertex blocks is timed "
+          "above (`4-vertex blocks`: 128-bit read-modify-writes at the 8-block's scratch + 16 bytes for the second "
+          "half).\n"] + width_counts(rl)
+    L += ["\n## A static column order: counts (issue 39 idea 2)\n", rank_counts.__doc__.split("\n\n")[0].replace("\n   ", "") + "\n"]
+    L += rank_counts(rl)
+    L += ["\n## Vertices regrouped inside each 32-vertex block: counts\n",
+          regroup_counts.__doc__.replace("\n   ", "") + "\n"] + regroup_counts(rl)
+    L += ["\n## Columns dense inside a 32-vertex block: counts and a cost model\n",
+          local_dense_counts.__doc__.replace("\n   ", "") + "\n"] + local_dense_counts(rl)
     OUT.mkdir(parents=True, exist_ok=True)
     (OUT / "wavelet_pass_micro.md").write_text("\n".join(L) + "\n")
     print(f"[pass_micro] wrote {OUT / 'wavelet_pass_micro.md'}", flush=True)

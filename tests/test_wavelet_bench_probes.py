@@ -1,0 +1,75 @@
+"""The issue-39 benchmarks that compile ``kernels/wavelet.c`` rewritten (bench_wavelet_setup_variants.py: the
+sparse listing from a bitmap of the marks; bench_wavelet_floor_micro.py: the kernel cut after each set-up step)
+still apply to the kernel's source, and keep its contract: the variant relights as the dense reference
+(``relight.wavelet_dense``, a gather per kept coefficient) does, and a cut build leaves the layout's light table
+zero (the kernel's invariant between calls), so the real kernel called after it still matches the reference."""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from prt_torch import relight
+from prt_torch.scene import builtin
+from prt_torch.transfer import RunOptions
+from prt_torch.transfer.wavelet import precompute_wavelet
+
+ROOT = Path(__file__).resolve().parents[1]
+
+pytestmark = pytest.mark.skipif(os.environ.get("PRT_TORCH_NATIVE", "1") == "0" or relight._wavelet_lib() is None,
+                                reason="no compiled wavelet kernel")
+
+
+def _bench(name: str):
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        return __import__(name)
+    finally:
+        sys.path.remove(str(ROOT / "benchmarks"))
+
+
+@pytest.fixture(scope="module")
+def rl():
+    mesh = builtin("occluder_over_plane", "small")
+    tr = precompute_wavelet(mesh, 8, 32, 16, shadows="always", run=RunOptions(workers=1))
+    return relight.WaveletRelighter(tr, threads=1)
+
+
+def _reference(rl, li, lv):
+    return relight.wavelet_dense(rl.values.double(), rl.index, li, lv, rl.P) * rl.albedo[:, :3].double()
+
+
+def _args(rl, li, lv, out):
+    rl.prepared(li, lv, out)()  # binds the layout (and builds the row-major copy when this light takes it)
+    return (rl._layout.data_ptr(), li.numel(), li.data_ptr(), lv.data_ptr(), 3, rl._factor(3, True).data_ptr(),
+            out.data_ptr(), 1)
+
+
+@pytest.mark.parametrize("N", [10, 100, None])
+def test_setup_variant_relights_as_the_reference(rl, N):
+    fn = _bench("bench_wavelet_setup_variants").variant("bitmap listing")
+    li, lv, _ = rl.light("studio", N or rl.P, "transport")
+    lv = lv.to(torch.float32).contiguous()
+    out = torch.empty(rl.V, 3)
+    args = _args(rl, li, lv, out)
+    out.fill_(float("nan"))
+    assert fn(*args) == 0
+    assert torch.allclose(out.double(), _reference(rl, li, lv), rtol=1e-5, atol=1e-6)
+
+
+def test_setup_probes_leave_the_light_table_zero(rl):
+    fm = _bench("bench_wavelet_floor_micro")
+    li, lv, _ = rl.light("studio", 100, "transport")
+    lv = lv.to(torch.float32).contiguous()
+    out = torch.empty(rl.V, 3)
+    args = _args(rl, li, lv, out)
+    for _, marker in fm.SETUP_CUTS:
+        probe = fm.setup_probe(marker)
+        assert probe(*args) == 0
+        assert not bool(rl._lp.any()), marker  # the kernel's light per column: zero between calls
+        rl(li, lv, out=out)
+        assert torch.allclose(out.double(), _reference(rl, li, lv), rtol=1e-5, atol=1e-6), marker
