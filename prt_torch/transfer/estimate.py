@@ -278,20 +278,45 @@ def _views(kw: dict[str, Any]) -> int:
     return 10 * int(views) ** 2 + 2 if isinstance(views, int) else len(views)
 
 
-def _chunk_bytes(kind: str, kw: dict[str, Any], V: int, chunk_size: int | None) -> int:
-    """One chunk's working set (rays, their SH values, matrices), bytes."""
+def _chunk_bytes(kind: str, kw: dict[str, Any], V: int, chunk_size: int | None, grey: bool = True) -> int:
+    """One chunk's working set (rays, their SH values, matrices), bytes (``grey``: the mesh's albedo is
+    grey, one channel at the hit points)."""
     kw = full_params(kind, kw)
     n2 = int(kw.get("bands", 5)) ** 2
     samples = int(kw.get("samples", 1024))
     if kind in ("glossy", "mrt"):
         rows = int(kw.get("M", 11)) ** 2 if kind == "mrt" else int(kw.get("bands_out") or kw.get("bands", 5)) ** 2
-        return estimate_memory(0, rows, n2, samples, min(real_chunk(kind, kw, chunk_size), max(V, 1)))
+        return estimate_memory(0, rows, n2, samples, min(real_chunk(kind, kw, chunk_size), max(V, 1)),
+                               bounces=int(kw.get("bounces", 0) or 0))
     if kind in ("diffuse", "subsurface"):  # subsurface: its diffuse pass's rays
+        from . import ray_kernels
         from .diffuse import rays_per_vertex
 
-        rpv = rays_per_vertex(samples, kw.get("sampling", "qmc"))
+        sampling = kw.get("sampling", "qmc")
+        rpv = rays_per_vertex(samples, sampling)
         c = min(real_chunk(kind, kw, chunk_size), max(V, 1))
-        return c * rpv * (73 + 8 * n2) * (1 + int(kw.get("bounces", 0) > 0))  # origins, directions, ids, cosines, SH
+        # origins, directions, ids, cosines, weights; and each ray's SH values except where the compiled qmc pass
+        # accumulates them without a per-ray row (ray_kernels.sh_accumulate): counting them there read 3.8-4x the
+        # measured peak growth (scan_blob, 2154 vertices, 1024 samples: 834 MiB against 220 MiB with one bounce)
+        sh = 0 if sampling == "qmc" and ray_kernels.available() else 8 * n2
+        bounces = int(kw.get("bounces", 0) or 0)
+        if bounces == 0:
+            return c * rpv * (73 + sh)
+        if kw.get("bounce_points", "hits") != "hits":  # the sparse bounce rows: the rays' records twice, as before
+            return c * rpv * (73 + sh) * 2
+        # the hit-point estimator (diffuse._chunk_work, _hit_bounces): each ray's hit record (prim, barycentrics, its
+        # (vertex, direction) indices and weight: 36 B) and, for half the rays taken as front hits (the blocked share
+        # is not known before the rays), the hit's arrays (face, keys, float64 direction, weights: 100 B each); then
+        # per batch of 2¹⁸ secondary rays (2¹⁸ / M hits): their rays and three [h, terms, C, n²] float64 buffers
+        # (the terms, their weighted copy, the index_add). Measured peak growth, 1024 samples, one bounce: scan_blob
+        # 202 MB (3% of the rays blocked; every ray counted as a hit read 2.07x that), the Cornell box 356 MB (77%
+        # blocked, coloured hits: 1.3x with half)
+        from .diffuse import resolve_hit_samples
+
+        M = resolve_hit_samples(kw.get("hit_samples", "auto"), kw.get("estimator", "auto"))
+        Ch = 1 if grey else 3
+        batch = (1 << 18) * 73 + 3 * max(1, (1 << 18) // M) * bounces * Ch * n2 * 8
+        return c * rpv * (73 + sh + 36 + 50) + batch
     c = min(real_chunk(kind, kw, chunk_size), max(V, 1))
     if kind == "wavelet":  # its own working-set count, without the result (V = 0)
         from .wavelet import estimate_wavelet_memory
@@ -300,7 +325,8 @@ def _chunk_bytes(kind: str, kw: dict[str, Any], V: int, chunk_size: int | None) 
         C = 3 if int(kw.get("bounces", 0) or 0) > 0 else 1
         return estimate_wavelet_memory(0, res, min(K, 6 * res * res), bits, int(kw.get("supersample", 1)), c,
                                        kw.get("sampling") == "jittered", C)
-    if kind == "transport":  # the chunk's table (reused), its rays and the BRDF on blocks of (view, texel) pairs
+    if kind == "transport":  # the chunk's table and the one being written (two reused buffers: transport's pool, a
+        # chunk's file written in the background while the next computes), its rays and the BRDF on blocks of pairs
         from .transport import PAIR_BLOCK
 
         from .transport import AUTO_SUPERSAMPLE
@@ -308,7 +334,8 @@ def _chunk_bytes(kind: str, kw: dict[str, Any], V: int, chunk_size: int | None) 
         P = 6 * int(kw.get("res", 8)) ** 2
         ss = kw.get("supersample", "auto")
         sub = AUTO_SUPERSAMPLE if ss == "auto" else int(ss)  # texel averages: the sub-texels' heights per (vertex, texel)
-        return c * _views(kw) * P * 4 + c * P * 40 + c * P * sub * sub * 16 + PAIR_BLOCK * 256
+        item = 2 if kw.get("dtype") == "float16" else 4
+        return 2 * c * _views(kw) * P * item + c * P * 40 + c * P * sub * sub * 16 + PAIR_BLOCK * 256
     return 64 << 20
 
 
@@ -362,7 +389,7 @@ def estimate(kind, mesh: Mesh, params: dict[str, Any], run: RunOptions | None = 
     m_bytes = max(mesh_bytes(mesh), int(mesh_rss or 0))
     traced = kw.get("shadows", True) not in (False, "never")
     bvh = BVH_BYTES_PER_FACE * F if traced else 0
-    chunk = _chunk_bytes(kind.name, kw, V, run.chunk_size)
+    chunk = _chunk_bytes(kind.name, kw, V, run.chunk_size, mesh.is_grey())
     # the assembled rows, filled as each chunk finishes (run_chunks' sink); none in memory when they are
     # assembled in files (RunOptions.stream_result: a result larger than STREAM_RESULT_BYTES with a state
     # directory, as prt precompute always has) — only what a pass must hold whole (memory_plan) counts
