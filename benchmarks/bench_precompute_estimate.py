@@ -353,6 +353,10 @@ def main(argv=None) -> int:
         chunks = chunks or old.get("chunks", [])
         policies = policies or old.get("policies", [])
         cli_command = info["command"] if args.scenes else old.get("cli_command", "")
+        if args.scenes:  # the rows of the other scenes (or kinds) kept, with the command that measured them
+            kept = [r for r in old.get("cli", []) if r["scene"] not in args.scenes or r["kind"] not in args.cli_kinds]
+            cli_command = "; ".join(x for x in (old.get("cli_command", "") if kept else "", cli_command) if x)
+            cli = kept + cli
         cli = cli or old.get("cli", [])
         if args.scenes:
             info = old.get("machine", info)
@@ -412,7 +416,7 @@ def main(argv=None) -> int:
                      f"{r['cpu_us_per_vertex']:.1f} | {r['process_cpu_us_per_vertex']:.1f} | {r['load']:.1f} |")
     if cli:
         L += cli_table(cli)
-        L += ["", f"Command: `{cli_command.strip()}`; CPU: {cpu_label(info)}, {info['cores']} "
+        L += ["", f"Commands: `{cli_command.strip()}`; CPU: {cpu_label(info)}, {info['cores']} "
               f"cores; the machine was shared with other jobs (load average at each row)."]
     out.parent.mkdir(parents=True, exist_ok=True)
     with io.atomic_path(out, overwrite=True) as t:
