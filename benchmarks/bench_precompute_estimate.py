@@ -208,6 +208,38 @@ def cli_row(scene: str, label: str, work: Path, order: int) -> dict:
     return row
 
 
+def chunk_cost(scene: str, label: str) -> dict:
+    """CPU seconds per chunk of a real run in the dry-run probe's chunks (``estimate.probe_chunk``), one worker, in
+    this process: the mean of chunks 2-3 (what the probe scales to every vertex) over the mean of chunks 4 to the
+    last whole one — above 1 where the first chunks pay for lazily built state, such as the bounce estimator's face
+    probe, traced for the faces the first hits land on (``diffuse.HitBounce``)."""
+    from prt_torch.scene import load_scene
+    from prt_torch.transfer import RunOptions, get_kind
+    from prt_torch.transfer.estimate import probe_chunk, real_chunk
+
+    name, size = (scene.split(":") + ["small"])[:2]
+    mesh = load_scene(name, size=size)
+    kind = {"diffuse_bounce": "diffuse", "glossy_bounce": "glossy", "transport": "transport"}[label]
+    params = {"bounces": 1} if kind != "transport" else {}
+    k = get_kind(kind)
+    kw, _ = k.resolve(params, None)
+    V = mesh.num_vertices
+    chunk = probe_chunk(V, real_chunk(kind, kw, None))
+    marks = [time.process_time()]
+    with tempfile.TemporaryDirectory() as d:
+        run = RunOptions(workers=1, chunk_size=chunk, state_dir=d + "/s", progress=False,
+                         callback=lambda i, n: marks.append(time.process_time()))
+        if k.output == "directory":
+            k.precompute(mesh, params, run=run, out=d + "/t")
+        else:
+            k.precompute(mesh, params, run=run)
+    cpu = [b - a for a, b in zip(marks, marks[1:])]
+    whole = V // chunk  # chunks of the full size
+    rest = cpu[3:whole]
+    return {"scene": scene, "kind": label, "vertices": V, "chunk": chunk, "chunks": len(cpu), "load": os.getloadavg()[0],
+            "first": cpu[0], "probed": sum(cpu[1:3]) / 2, "rest": sum(rest) / len(rest) if rest else float("nan")}
+
+
 def cli_table(rows: list[dict]) -> list[str]:
     """The command-line section of the report."""
     if not rows:
@@ -220,12 +252,18 @@ def cli_table(rows: list[dict]) -> list[str]:
          "command's imports (the baseline RSS, which the estimate does not count). time: the estimate's total "
          "(mesh + rays + result) against the real command's `main()` after its imports (wall, timed in the "
          "process); peak: the estimate's peak against the real peak RSS less the baseline's. dry run = the dry "
-         "run's own wall time (imports + mesh + probe).", "",
+         "run's own wall time (imports + mesh + probe). Before commit 186c70c the peak read low for glossy with a "
+         "bounce (183 MiB against 530–560 measured on the Cornell box, 185 against 404–418 on scan_blob: the chunk's "
+         "[k, N, n²] interreflection buffer and matmul's copy of it were not counted) and for transport (222 against "
+         "230–250: the second, in-flight chunk buffer), and 2.6–4.1× high for diffuse with a bounce (798–834 MiB against "
+         "205–340: per-ray SH values the compiled qmc pass never holds); before 19c5de8 a glossy run of exactly three "
+         "chunks (2154 vertices in 1024s) had its 106-vertex last chunk counted as a whole one (0.72–0.97).", "",
          "| scene | vertices | kind | estimate s | real s (main() wall) | time est / real | estimate peak | "
          "real peak (RSS − baseline) | peak est / real | dry run wall s | probe | load |",
          "|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---|---:|"]
     mb = 1 << 20
-    for r in rows:
+    order = list(dict.fromkeys(r["scene"] for r in rows))
+    for r in sorted(rows, key=lambda r: (order.index(r["scene"]), list(CLI_KINDS).index(r["kind"]), r.get("repeat", 0))):
         note = r["estimate_note"]
         probe = ("whole run" if "whole run" in note else
                  note.split("per chunk of ")[1].split(" vertices")[0] + "-vertex chunks" if "per chunk of" in note else note[:40])
@@ -254,6 +292,10 @@ def main(argv=None) -> int:
                     help="measure only the command-line section (dry run against the real command under /usr/bin/time -v) "
                          "on these scenes; the other tables are kept from --out's .json")
     ap.add_argument("--cli-kinds", nargs="+", default=list(CLI_KINDS), choices=sorted(CLI_KINDS))
+    ap.add_argument("--chunk-cost", action="store_true",
+                    help="with --scenes: instead of the command-line rows, the CPU per chunk of real runs in the probe's "
+                         "chunks, chunks 2-3 (the probe's) against the later ones (what the first chunks' lazily traced "
+                         "face probe adds)")
     ap.add_argument("--max-real", type=float, default=120.0,
                     help="skip the larger sizes of a kind once its real run took longer than this (seconds)")
     args = ap.parse_args(argv)
@@ -277,7 +319,7 @@ def main(argv=None) -> int:
 
     info = machine_info()
     info["command"] = "python benchmarks/bench_precompute_estimate.py " + " ".join(argv if argv is not None else sys.argv[1:])
-    rows, chunks, cli = [], [], []
+    rows, chunks, cli, costs = [], [], [], []
     cli_command = info["command"]
     if args.render_only or args.scenes:  # the tables again from --out's .json (after a change of the table's layout)
         args.merge, args.kinds, args.no_chunks, args.no_policy = True, [], True, True
@@ -287,7 +329,11 @@ def main(argv=None) -> int:
                   "with it (apt-get install time)", file=sys.stderr)
             return 2
         with tempfile.TemporaryDirectory(prefix="bench_estimate_cli_") as tmp:
-            for scene in args.scenes:
+            for scene in (args.scenes if args.chunk_cost else []):
+                for label in args.cli_kinds:
+                    costs.append({**chunk_cost(scene, label), "command": info["command"].strip()})
+                    print(costs[-1], flush=True)
+            for scene in ([] if args.chunk_cost else args.scenes):
                 for label in args.cli_kinds:
                     for r in range(args.repeats):
                         cli.append({**cli_row(scene, label, Path(tmp), r), "repeat": r})
@@ -353,7 +399,12 @@ def main(argv=None) -> int:
         chunks = chunks or old.get("chunks", [])
         policies = policies or old.get("policies", [])
         cli_command = info["command"] if args.scenes else old.get("cli_command", "")
-        if args.scenes:  # the rows of the other scenes (or kinds) kept, with the command that measured them
+        if args.chunk_cost:
+            costs = [r for r in old.get("chunk_cost", []) if r["scene"] not in args.scenes or r["kind"] not in args.cli_kinds] + costs
+            cli_command = old.get("cli_command", "")
+        else:
+            costs = old.get("chunk_cost", [])
+        if args.scenes and not args.chunk_cost:  # the rows of the other scenes (or kinds) kept, with the command that measured them
             kept = [r for r in old.get("cli", []) if r["scene"] not in args.scenes or r["kind"] not in args.cli_kinds]
             cli_command = "; ".join(x for x in (old.get("cli_command", "") if kept else "", cli_command) if x)
             cli = kept + cli
@@ -418,11 +469,23 @@ def main(argv=None) -> int:
         L += cli_table(cli)
         L += ["", f"Commands: `{cli_command.strip()}`; CPU: {cpu_label(info)}, {info['cores']} "
               f"cores; the machine was shared with other jobs (load average at each row)."]
+    if costs:
+        L += ["", "CPU per chunk of real runs in the dry-run probe's chunks (`--scenes S --chunk-cost`, one worker, one "
+              "process): the probe scales the mean of chunks 2–3 to every vertex; the first chunks also trace the "
+              "bounce estimator's face probe for the faces their hits land on, which later chunks mostly find done. "
+              "probed / later = how high that makes the probe's per-chunk figure.", "",
+              "| scene | vertices | kind | chunk | chunks | first (set-up) CPU s | chunks 2–3 mean CPU s | later chunks "
+              "mean CPU s | probed / later | load |", "|---|---:|---|---:|---:|---:|---:|---:|---:|---:|"]
+        for r in costs:
+            L.append(f"| {r['scene']} | {r['vertices']} | {r['kind']} | {r['chunk']} | {r['chunks']} | {r['first']:.2f} | "
+                     f"{r['probed']:.3f} | {r['rest']:.3f} | {r['probed'] / r['rest']:.2f} | {r['load']:.1f} |")
+        L += ["", "Command: " + "; ".join(f"`{c}`" for c in dict.fromkeys(r.get("command", "") for r in costs) if c)
+              + f"; CPU: {cpu_label(info)}; the machine was shared with other jobs (load average at each row)."]
     out.parent.mkdir(parents=True, exist_ok=True)
     with io.atomic_path(out, overwrite=True) as t:
         Path(t).write_text("\n".join(L) + "\n")
     io.atomic_write_json(out.with_suffix(".json"), {"machine": info, "args": vars(args), "rows": rows, "chunks": chunks, "policies": policies,
-                                                "cli": cli, "cli_command": cli_command})
+                                                "cli": cli, "cli_command": cli_command, "chunk_cost": costs})
     print(f"wrote {out}")
     return 0
 

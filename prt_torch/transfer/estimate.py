@@ -21,7 +21,13 @@ A precompute runs in three stages, each with its own memory:
    assembles in float64 first) and the write to the output file.
 
 Peak memory is the mesh plus the larger of the last two stages, each counted array sum times
-:data:`ALLOCATOR_SLACK` (what the allocator keeps of freed temporaries, measured). :func:`estimate` returns every
+:data:`ALLOCATOR_SLACK` (what the allocator keeps of freed temporaries, measured). Its tolerance: 1.0–2.0×
+the peak RSS growth a run reaches (it is what :func:`check_fits` refuses on: never low, not so high that
+it refuses runs that fit); measured at the command line 1.10–1.93× (diffuse and glossy with a bounce, and
+transport tables, on scan_blob, bumpy_sphere small and medium and the Cornell box:
+``benchmarks/bench_precompute_estimate.py --scenes``; ``tests/test_precompute_estimate_memory.py``). The
+time is wall time under the load of the moment, per run 0.58–2.50× the real run there (median 0.98) on a
+shared 2-core machine. :func:`estimate` returns every
 figure; :func:`check_fits` refuses — before any ray — a run whose peak exceeds the budget
 (``RunOptions.max_memory``, else 60% of the machine's RAM), saying each stage's share. The
 transport kind streams its tables to a directory: its result is never held (stage 3 is its
