@@ -254,7 +254,7 @@ def cli_table(rows: list[dict]) -> list[str]:
          "process); peak: the estimate's peak against the real peak RSS less the baseline's. dry run = the dry "
          "run's own wall time (imports + mesh + probe). Before commit 186c70c the peak read low for glossy with a "
          "bounce (183 MiB against 530–560 measured on the Cornell box, 185 against 404–418 on scan_blob: the chunk's "
-         "[k, N, n²] interreflection buffer and matmul's copy of it were not counted) and for transport (222 against "
+         "[k, N, n²] interreflection buffer and the hits' [H, n²] exit transfers were not counted) and for transport (222 against "
          "230–250: the second, in-flight chunk buffer), and 2.6–4.1× high for diffuse with a bounce (798–834 MiB against "
          "205–340: per-ray SH values the compiled qmc pass never holds); before 19c5de8 a glossy run of exactly three "
          "chunks (2154 vertices in 1024s) had its 106-vertex last chunk counted as a whole one (0.72–0.97).", "",

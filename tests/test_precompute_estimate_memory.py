@@ -6,7 +6,7 @@ refuses runs that fit. Each case runs in a fresh interpreter: imports and the me
 against the estimate's peak less its mesh stage: 1.0 <= estimate / measured <= 2.0.
 
 Before: glossy with one bounce on the Cornell box read 183 MiB against 555 MiB measured (its chunk's [k, N, n²]
-interreflection buffer and matmul's copy of it were not counted), transport on scan_blob 222 against 250 (the
+interreflection buffer and the hits' exit transfers were not counted), transport on scan_blob 222 against 250 (the
 second, in-flight chunk buffer), and diffuse with one bounce on scan_blob 834 against 220 (per-ray SH values that
 the compiled qmc pass never materialises) — ``reports/benchmarks/precompute_estimate.md``, command-line section.
 """

@@ -108,11 +108,12 @@ def estimate_memory(vertices: int, n_out: int, n_in: int, samples: int, chunk_si
     copied into it as it finishes: ``run_chunks``' sink; none when it is assembled in a file,
     ``RunOptions.stream_result``) plus one chunk's working set (weights, rays, float64 matrices).
     With ``bounces``: the chunk's interreflected part (:func:`transferred_radiance`) also holds
-    ``A [k, N, n²]`` float64 (what each direction brings) and, in the batched product
-    ``(Y w)ᵀ A``, a copy of the same size (torch's matmul of a 2-D by a 3-D tensor materialises
-    the broadcast operand): ``2 · k · N · n² · 8`` bytes — 400 MiB at k = N = 1024, n² = 25,
-    which the estimate left out (Cornell box, glossy, one bounce: 183 MiB estimated against
-    555 MiB measured; ``reports/benchmarks/precompute_estimate.md``, command-line section)."""
+    ``A [k, N, n²]`` float64 (what each direction brings: the pages its hits write), the hits'
+    exit transfers ``[H, n²]`` float64 (H up to the k·N/2 directions above the tangent planes),
+    their records and the hit estimator's per-batch buffers: counted as ``2 · k · N · n² · 8``
+    bytes — 400 MiB at k = N = 1024, n² = 25, which the estimate left out (Cornell box, glossy,
+    one bounce: 183 MiB estimated against 530–560 MiB measured, 170 of them without the bounce;
+    ``reports/benchmarks/precompute_estimate.md``, command-line section)."""
     result = 0 if streamed else vertices * n_out * n_in * 4
     chunk = chunk_size * (samples * (8 + 8 + 3 * 8 * 2 + 16) + n_in * n_in * 8 * 3 + n_out * n_in * 8 * 2)
     if bounces:
