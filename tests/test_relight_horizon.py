@@ -19,24 +19,8 @@ import pytest
 import torch
 
 from prt_torch import relight
-from prt_torch.scene.mesh import make_mesh
 from prt_torch.sh import eval_sh
 from prt_torch.transfer.transport import HORIZON_EPS
-
-
-def _tilted_plane():
-    """A 12×12 grid in the plane through (0.37, 0.37, 0.37) with normal ∝ (0.3, -0.5, 0.8), and two unit vectors
-    (t, b) spanning the plane (float64)."""
-    n = np.array([0.3, -0.5, 0.8])
-    n /= np.linalg.norm(n)
-    t = np.cross(n, [0.0, 0.0, 1.0])
-    t /= np.linalg.norm(t)
-    b = np.cross(n, t)
-    g = np.linspace(-1.0, 1.0, 12)
-    P = np.array([x * t + y * b + 0.37 for x in g for y in g])
-    F = [[a, a + 12, a + 1] for i in range(11) for a in [i * 12 + j for j in range(11)]]
-    F += [[a + 1, a + 12, a + 13] for i in range(11) for a in [i * 12 + j for j in range(11)]]
-    return make_mesh(P, np.array(F), name="tilted plane"), n, t, b
 
 
 def _views(n, t, b, lift: float) -> list[torch.Tensor]:
@@ -64,11 +48,11 @@ def _relit(mesh, d: torch.Tensor) -> dict[str, torch.Tensor]:
             "kautz": relight.kautz(None, relight.kautz_setup(frames, 3), Bk, L, v), "z": v[:, 2]}
 
 
-def test_a_plane_seen_along_itself_relights_to_one_value():
+def test_a_plane_seen_along_itself_relights_to_one_value(tilted_plane):
     """Every vertex of the plane, seen by a distant view lying in it, relights to zero under glossy, MRT and Kautz
     — whichever sign the float64 rotation gave its cos θ_o (both signs occur here: that is what made it a stripe
     pattern under ``> 0``)."""
-    mesh, n, t, b = _tilted_plane()
+    mesh, n, t, b = tilted_plane
     assert float((mesh.normals - torch.tensor(n)).abs().max()) < 1e-12  # one normal: one radiance per view
     signs = set()
     for d in _views(n, t, b, 0.0):
@@ -81,10 +65,10 @@ def test_a_plane_seen_along_itself_relights_to_one_value():
     assert {-1, 1} <= signs  # the rounding gave both signs: a `> 0` test split the plane
 
 
-def test_just_above_the_plane_one_non_zero_value():
+def test_just_above_the_plane_one_non_zero_value(tilted_plane):
     """At 1e-3 rad above the plane the same vertices relight to one non-zero value each (spread at rounding level):
     the zero above is the horizon's, not a transfer that happens to vanish."""
-    mesh, n, t, b = _tilted_plane()
+    mesh, n, t, b = tilted_plane
     for d in _views(n, t, b, 1e-3):
         r = _relit(mesh, d)
         for k in ("glossy", "mrt", "kautz"):
