@@ -8,7 +8,7 @@ against the estimate's peak less its mesh stage: 1.0 <= estimate / measured <= 2
 Before: glossy with one bounce on the Cornell box read 0.31 here (its chunk's [k, N, n²] interreflection buffer and
 the hits' exit transfers were not counted) and diffuse with one bounce on scan_blob 4.28 (per-ray SH values that the
 compiled qmc pass never materialises): both cases fail on that code. Transport on scan_blob read 1.02 here
-(0.89–0.97 at the command line, ``reports/benchmarks/precompute_estimate.md``: the second, in-flight chunk buffer
+(0.93 at the command line, ``reports/benchmarks/precompute_estimate.md``: the second, in-flight chunk buffer
 was not counted); it now reads 1.20 (glossy 1.54, diffuse 1.61).
 """
 from __future__ import annotations
