@@ -71,6 +71,12 @@ def report(res: dict) -> str:
         "vectors; on the glossy transfer of the scan-like mesh neural k = 2, 4 (and k = 2 with 16 clusters, one whole decoder each), PCA 2-16 and "
         "CPCA 16/64 x 2/4/8; on the transport tables neural k = 4, PCA 4-16 and Gaussians with 1-2 lobes.",
         "",
+        "PSNR (lights) is against the harness's reference (`Evaluator.reference`): the uncompressed relight for the MRT and "
+        "glossy parts; for the transport tables the exact radiance at each vertex's own view (`Evaluator.exact_transport`: "
+        "the table's texels × its stored visibility × the BRDF at the exact view, docs/harness.md), not the tables relit at "
+        "three stored views and cross-faded (the reference of transport rows measured before 2026-11-29). rel. SE is the "
+        "reconstruction error of the stored transfer itself.",
+        "",
         "| part | codec | setting | stored B/vertex | run-time B/vertex | PSNR lights (dB) | rel. SE | relight (ms) | "
         "vs uncompr. | encode (s) |",
         "|---|---|---|---|---|---|---|---|---|---|",

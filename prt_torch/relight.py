@@ -34,6 +34,7 @@ import torch
 from ._checks import check_shape, describe
 from .sh import band_of_coeffs, eval_sh, rotation_blocks
 from .transfer.tents import tent_taps
+from .transfer.transport import HORIZON_EPS
 
 __all__ = ["diffuse", "diffuse_transfer", "glossy", "mrt", "kautz", "kautz_setup", "local_view", "glossy_view_weights", "mrt_view_taps",
            "apply_dense", "apply_taps"]
@@ -94,22 +95,35 @@ def diffuse_transfer(transfer, L: torch.Tensor) -> torch.Tensor:
     return diffuse(data, L.to(torch.float64), None if folded else transfer.mesh.albedo)
 
 
+def _above(view_local: torch.Tensor) -> torch.Tensor:
+    """``[V, 1]`` bool: the local view ``view_local [V, 3]`` is above the vertex's tangent plane,
+    cos θ_o = z > :data:`~prt_torch.transfer.transport.HORIZON_EPS` — the one horizon test of every
+    view-dependent relight here (glossy, MRT, Kautz), the transport tables and the harness's exact
+    reference (Green 2005 eq. 1.2: f_r = 0 below the horizon; a view in the plane counts as below)."""
+    return view_local[:, 2:3] > HORIZON_EPS
+
+
 def glossy_view_weights(view_local: torch.Tensor, out_index: torch.Tensor | list | None, n_out: int,
                         dtype: torch.dtype = torch.float32) -> torch.Tensor:
     """Per-vertex weights over the rows of exit transfer (Sloan 2003 §3.1): y_{o(r)}(v_p),
-    zero where the local view is below the horizon. ``view_local [V, 3]`` → ``[V, n_out]``."""
+    zero where the local view is below the horizon. ``view_local [V, 3]`` → ``[V, n_out]``.
+    Below the horizon means cos θ_o = z ≤ :data:`~prt_torch.transfer.transport.HORIZON_EPS` (1e-9), as
+    the transport tables, their exact reference and view taps have it: a view lying in the tangent
+    plane comes out of the float64 frame rotation at z ~ ±1e-17, and a ``> 0`` test gave it the full
+    grazing weights or none by the sign of that rounding (:func:`_above`)."""
     idx = torch.arange(n_out) if out_index is None else torch.as_tensor(out_index, dtype=torch.int64)
     if idx.numel() != n_out:
         raise ValueError(f"out_index has {idx.numel()} entries but the matrices have {n_out} rows; accepted: one SH index per row")
     y = eval_sh(view_local.to(torch.float64), _bands_from_index(idx), check=False)[:, idx]
-    return (y * (view_local[:, 2:3] > 0)).to(dtype)
+    return (y * _above(view_local)).to(dtype)
 
 
 def mrt_view_taps(view_local: torch.Tensor, M: int, dtype: torch.dtype = torch.float32) -> tuple[torch.Tensor, torch.Tensor]:
     """The four nonzero tents at each local view (Lehtinen & Kautz 2003 eq. 13), weights zero
-    below the horizon: (idx int64 ``[V, 4]`` into the M² rows, w ``[V, 4]``)."""
+    below the horizon (cos θ_o ≤ ``HORIZON_EPS``, :func:`_above`): (idx int64 ``[V, 4]`` into the M² rows,
+    w ``[V, 4]``)."""
     idx, w = tent_taps(view_local.to(torch.float64), M)
-    return idx, (w * (view_local[:, 2:3] > 0)).to(dtype)
+    return idx, (w * _above(view_local)).to(dtype)
 
 
 def apply_dense(M: torch.Tensor, L: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
@@ -212,7 +226,7 @@ def kautz(T: torch.Tensor | None, rot_blocks: list[torch.Tensor], B: torch.Tenso
         if material_index is None:
             raise ValueError("B holds one matrix per material; pass material_index [V]")
         bv = torch.einsum("vi,vij->vj", y, Bd[material_index])
-    return torch.einsum("vj,vjc->vc", bv, tl) * (view_local[:, 2:3] > 0).to(dtype)
+    return torch.einsum("vj,vjc->vc", bv, tl) * _above(view_local).to(dtype)
 
 
 # --------------------------------------------------------------------------------------------

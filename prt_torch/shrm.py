@@ -51,6 +51,7 @@ import torch
 from . import io
 from ._checks import check_float, check_int, check_shape, check_unit_vectors
 from .brdf import BRDF, from_spec as brdf_from_spec
+from .transfer.transport import HORIZON_EPS
 from .lighting import builtin_environment, list_builtin_environments, load_environment, load_light, parse_light_spec
 from .sh import MAX_BANDS, band_factor, eval_sh, gauss_legendre, latlong_grid, lm_of, rotate, rotation_blocks
 
@@ -694,7 +695,8 @@ class SHRM:
     def view_terms(self, normals: torch.Tensor, views: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """What a point's view contributes (eq. 5.3, 5.10): its axis (R or n, unit), its frame
         R_αβ (:func:`local_frames`) and the SH weights y_pq(ω'o) of ω'o = R_αβᵀ v, zero where the
-        point faces away (n·v ≤ 0). ``normals [N, 3]``, ``views [N, 3]`` or ``[3]`` ->
+        point faces away (n·v ≤ ``transport.HORIZON_EPS``, as the glossy PRT relights: a view in the tangent
+        plane, at float64 rounding of either sign, counts as away). ``normals [N, 3]``, ``views [N, 3]`` or ``[3]`` ->
         (``[N, 3]``, ``[N, 3, 3]``, ``[N, (P_B+1)²]``) float64."""
         check_unit_vectors("normals", normals)
         views = views.expand_as(normals) if views.ndim == 1 else views
@@ -707,7 +709,7 @@ class SHRM:
         wo = (v[:, :, None] * Rf).sum(1)  # ω'o = Rᵀ v  [N, 3]
         wo = wo / wo.norm(dim=-1, keepdim=True).clamp_min(1e-300)
         y = eval_sh(wo, self.P_B + 1, check=False)  # [N, nP]
-        facing = (n * v).sum(-1) > 0
+        facing = (n * v).sum(-1) > HORIZON_EPS  # as the glossy PRT it is compared with (relight._above)
         return ax, Rf, torch.where(facing[:, None], y, torch.zeros((), dtype=torch.float64))
 
     def radiance(self, normals: torch.Tensor, views: torch.Tensor, method: str = "map", chunk: int = 1024,
@@ -718,7 +720,7 @@ class SHRM:
         B = Σ_pq B_pq(α, β) y_pq(ω'o) with B_pq either bilinearly interpolated from the maps
         (``method="map"``: the rendering path, wrap-around in β) or summed from the coefficients
         (``method="coeffs"``: eq. 5.9 with the rotation blocks of each point's frame, exact up to
-        the orders; ``chunk`` points at a time). Points facing away (n·v ≤ 0) get 0.
+        the orders; ``chunk`` points at a time). Points facing away (n·v ≤ ``transport.HORIZON_EPS``) get 0.
 
         ``clamp``: max(B, 0). The truncated series rings below zero where the true radiance is
         small (studio light, microfacet σ = 0.3: 17% of random surface points at ε = 0.03, down to
@@ -777,7 +779,7 @@ class SHRM:
                          clamp: bool = False) -> torch.Tensor:
         """Reflected radiance for a distant viewer (one view ``[3]`` for every point) from the
         reflection map of that view (:meth:`reflection_map`, eq. 5.11): a bilinear lookup at each
-        point's axis (R, or n for a Lambertian SHRM), 0 where n·v ≤ 0, ``clamp`` as in :meth:`radiance`.
+        point's axis (R, or n for a Lambertian SHRM), 0 where n·v ≤ ``transport.HORIZON_EPS``, ``clamp`` as in :meth:`radiance`.
         ``normals [N, 3]`` unit -> ``[N, C]`` in the dtype of ``normals``."""
         check_unit_vectors("normals", normals)
         v = view.reshape(1, 3).to(torch.float64)
@@ -786,7 +788,7 @@ class SHRM:
         ax = self.axes(n, v.expand_as(n))
         ax = ax / ax.norm(dim=-1, keepdim=True).clamp_min(1e-300)
         out = self._lookup(ax, E[:, None])[..., 0]
-        out = torch.where(((n * v).sum(-1) > 0)[:, None], out, torch.zeros((), dtype=torch.float64))
+        out = torch.where(((n * v).sum(-1) > HORIZON_EPS)[:, None], out, torch.zeros((), dtype=torch.float64))
         return (out.clamp_min(0) if clamp else out).to(normals.dtype)
 
     def _lookup(self, dirs: torch.Tensor, maps: torch.Tensor | None = None) -> torch.Tensor:

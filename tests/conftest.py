@@ -59,3 +59,24 @@ def saved_alike():
     """``saved_alike(got, ref, dir)``: the two results' files are equal and nothing else was left in dir."""
     return _saved_alike
 
+
+
+@pytest.fixture
+def tilted_plane():
+    """A 12×12 grid (``prt_torch.scene.mesh.make_mesh``) in the plane through (0.37, 0.37, 0.37) with normal
+    n ∝ (0.3, -0.5, 0.8): one normal up to float64 rounding, so a distant view lying in the plane has cos θ_o ~ ±1e-16
+    of both signs at its vertices. Returns (mesh, n, t, b), n, t, b float64 numpy unit vectors (t, b span the plane)."""
+    import numpy as np
+
+    from prt_torch.scene.mesh import make_mesh
+
+    n = np.array([0.3, -0.5, 0.8])
+    n /= np.linalg.norm(n)
+    t = np.cross(n, [0.0, 0.0, 1.0])
+    t /= np.linalg.norm(t)
+    b = np.cross(n, t)
+    g = np.linspace(-1.0, 1.0, 12)
+    P = np.array([x * t + y * b + 0.37 for x in g for y in g])
+    corners = [i * 12 + j for i in range(11) for j in range(11)]
+    F = [[a, a + 12, a + 1] for a in corners] + [[a + 1, a + 12, a + 13] for a in corners]
+    return make_mesh(P, np.array(F), name="tilted plane"), n, t, b

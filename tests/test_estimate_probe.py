@@ -36,6 +36,31 @@ def test_probe_seconds_arithmetic():
         probe_seconds(10, 1, 1.0, [])
 
 
+def test_a_pass_of_exactly_probe_chunks_is_timed_whole(monkeypatch):
+    """A pass of exactly PROBE_CHUNKS chunks whose last is a sliver (2154 vertices in chunks of 1024: 1024, 1024, 106)
+    is timed as what it took, not as the mean of chunks 2-3 scaled to V / k, which counted the 106-vertex chunk as a
+    whole one (0.72-0.97 of the real run for glossy with a bounce on scan_blob and the Cornell box). A fake clock
+    (no timing): chunks of 40, 40 and 4 ms take 84 ms (the scaled mean said 0.018 + 0.022 · 2154 / 1024 = 64 ms); a
+    pass of six 30 ms chunks is cut after three and scaled: 6 × 30 ms."""
+    from prt_torch.transfer import estimate as E
+
+    clock = [0.0]
+    monkeypatch.setattr(E.time, "perf_counter", lambda: clock[0])
+    ran = []
+
+    def go(cb, sizes):
+        for i, dt in enumerate(sizes):
+            clock[0] += dt
+            ran.append(i)
+            cb(i, len(sizes))
+
+    sec, info = E._time_pass(lambda cb: go(cb, [0.04, 0.04, 0.004]), 2154, 1024)
+    assert E.PROBE_CHUNKS == 3 and info == {"whole": True} and sec == pytest.approx(0.084)
+    ran.clear()
+    sec, info = E._time_pass(lambda cb: go(cb, [0.03] * 6), 6 * 1024, 1024)
+    assert ran == [0, 1, 2] and not info["whole"] and info["timed"] == 2 and sec == pytest.approx(0.18)
+
+
 @pytest.mark.parametrize("kind,params", [("mrt", MRT), ("diffuse", DIFFUSE)])
 def test_real_chunk_is_the_runs_own(kind, params):
     """The probe sizes its chunks from the chunk the kind itself chooses (its run meta)."""

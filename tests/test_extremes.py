@@ -49,8 +49,9 @@ def test_points_inside_a_closed_box_see_nothing():
 
 
 def test_views_at_the_horizon():
-    t = torch.tensor([-1e-9, 0.0, 1e-9, 1e-3], dtype=torch.float64)
+    # cos θ_o <= transport.HORIZON_EPS (1e-9) counts as below the horizon, as in the transport tables
+    t = torch.tensor([-1e-9, 0.0, 1e-9, 2e-9, 1e-3], dtype=torch.float64)
     v = torch.stack([torch.sqrt(1 - t * t), torch.zeros_like(t), t], 1)
     idx, w = relight.mrt_view_taps(v, 8, torch.float64)
-    assert (w[:2] == 0).all() and torch.allclose(w[2:].sum(1), torch.ones(2, dtype=torch.float64))
-    assert (relight.glossy_view_weights(v, None, 16, torch.float64)[:2] == 0).all()
+    assert (w[:3] == 0).all() and torch.allclose(w[3:].sum(1), torch.ones(2, dtype=torch.float64))
+    assert (relight.glossy_view_weights(v, None, 16, torch.float64)[:3] == 0).all()

@@ -369,3 +369,25 @@ def test_reference_radiance_analytic():
     a = S.reference_radiance(Microfacet(0.3), dirs, w[:, None], n, R @ v)
     b = S.reference_radiance(Microfacet(0.3), dirs, w[:, None], z[None], v)
     assert torch.allclose(a, b.expand_as(a), rtol=5e-3)  # the product rule is not rotation invariant
+
+
+def test_a_plane_seen_along_itself_is_dark_whatever_the_rounding(light6, tilted_plane):
+    """A tilted plane's vertices (one normal up to float64 rounding) seen by a distant view lying in the plane: n·v
+    comes out at ~±1e-16 of both signs; every point gets 0 (n·v ≤ transport.HORIZON_EPS counts as facing away, as in
+    the glossy PRT the convex config compares the SHRM with: relight's view weights), not the grazing value at the
+    points whose rounding came out positive. 1e-3 rad above the plane they all get one non-zero value."""
+    import numpy as np
+
+    mesh, n0, t, b = tilted_plane
+    n = mesh.normals
+    s = S.build_shrm(Microfacet(0.4), light6, orders=(5, 2), height=8)
+    signs = set()
+    for d in (t, b, (t + b) / np.linalg.norm(t + b)):
+        v = torch.tensor(d)
+        signs |= {int(x) for x in torch.sign(n @ v).unique().tolist()}
+        for out in (s.radiance(n, v, "coeffs"), s.radiance(n, v, "map"), s.radiance_distant(n, v)):
+            assert float(out.abs().max()) == 0.0
+        up = torch.tensor(math.cos(1e-3) * d + math.sin(1e-3) * n0)
+        r = s.radiance(n, up / up.norm(), "coeffs")
+        assert float(r.abs().min()) > 0 and float((r - r[0]).abs().max()) <= 1e-9 * float(r.abs().max())
+    assert {-1, 1} <= signs

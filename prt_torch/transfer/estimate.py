@@ -21,7 +21,13 @@ A precompute runs in three stages, each with its own memory:
    assembles in float64 first) and the write to the output file.
 
 Peak memory is the mesh plus the larger of the last two stages, each counted array sum times
-:data:`ALLOCATOR_SLACK` (what the allocator keeps of freed temporaries, measured). :func:`estimate` returns every
+:data:`ALLOCATOR_SLACK` (what the allocator keeps of freed temporaries, measured). Its tolerance: 1.0–2.0×
+the peak RSS growth a run reaches (it is what :func:`check_fits` refuses on: never low, not so high that
+it refuses runs that fit); measured at the command line 1.10–1.93× (diffuse and glossy with a bounce, and
+transport tables, on scan_blob, bumpy_sphere small and medium and the Cornell box:
+``benchmarks/bench_precompute_estimate.py --scenes``; ``tests/test_precompute_estimate_memory.py``). The
+time is wall time under the load of the moment, per run 0.58–2.50× the real run there (median 0.98) on a
+shared 2-core machine. :func:`estimate` returns every
 figure; :func:`check_fits` refuses — before any ray — a run whose peak exceeds the budget
 (``RunOptions.max_memory``, else 60% of the machine's RAM), saying each stage's share. The
 transport kind streams its tables to a directory: its result is never held (stage 3 is its
@@ -278,20 +284,45 @@ def _views(kw: dict[str, Any]) -> int:
     return 10 * int(views) ** 2 + 2 if isinstance(views, int) else len(views)
 
 
-def _chunk_bytes(kind: str, kw: dict[str, Any], V: int, chunk_size: int | None) -> int:
-    """One chunk's working set (rays, their SH values, matrices), bytes."""
+def _chunk_bytes(kind: str, kw: dict[str, Any], V: int, chunk_size: int | None, grey: bool = True) -> int:
+    """One chunk's working set (rays, their SH values, matrices), bytes (``grey``: the mesh's albedo is
+    grey, one channel at the hit points)."""
     kw = full_params(kind, kw)
     n2 = int(kw.get("bands", 5)) ** 2
     samples = int(kw.get("samples", 1024))
     if kind in ("glossy", "mrt"):
         rows = int(kw.get("M", 11)) ** 2 if kind == "mrt" else int(kw.get("bands_out") or kw.get("bands", 5)) ** 2
-        return estimate_memory(0, rows, n2, samples, min(real_chunk(kind, kw, chunk_size), max(V, 1)))
+        return estimate_memory(0, rows, n2, samples, min(real_chunk(kind, kw, chunk_size), max(V, 1)),
+                               bounces=int(kw.get("bounces", 0) or 0))
     if kind in ("diffuse", "subsurface"):  # subsurface: its diffuse pass's rays
+        from . import ray_kernels
         from .diffuse import rays_per_vertex
 
-        rpv = rays_per_vertex(samples, kw.get("sampling", "qmc"))
+        sampling = kw.get("sampling", "qmc")
+        rpv = rays_per_vertex(samples, sampling)
         c = min(real_chunk(kind, kw, chunk_size), max(V, 1))
-        return c * rpv * (73 + 8 * n2) * (1 + int(kw.get("bounces", 0) > 0))  # origins, directions, ids, cosines, SH
+        # origins, directions, ids, cosines, weights; and each ray's SH values except where the compiled qmc pass
+        # accumulates them without a per-ray row (ray_kernels.sh_accumulate): counting them there read 3.8-4x the
+        # measured peak growth (scan_blob, 2154 vertices, 1024 samples: 834 MiB against 220 MiB with one bounce)
+        sh = 0 if sampling == "qmc" and ray_kernels.available() else 8 * n2
+        bounces = int(kw.get("bounces", 0) or 0)
+        if bounces == 0:
+            return c * rpv * (73 + sh)
+        if kw.get("bounce_points", "hits") != "hits":  # the sparse bounce rows: the rays' records twice, as before
+            return c * rpv * (73 + sh) * 2
+        # the hit-point estimator (diffuse._chunk_work, _hit_bounces): each ray's hit record (prim, barycentrics, its
+        # (vertex, direction) indices and weight: 36 B) and, for half the rays taken as front hits (the blocked share
+        # is not known before the rays), the hit's arrays (face, keys, float64 direction, weights: 100 B each); then
+        # per batch of 2¹⁸ secondary rays (2¹⁸ / M hits): their rays and three [h, terms, C, n²] float64 buffers
+        # (the terms, their weighted copy, the index_add). Measured peak growth, 1024 samples, one bounce: scan_blob
+        # 202 MB (3% of the rays blocked; every ray counted as a hit read 2.07x that), the Cornell box 356 MB (77%
+        # blocked, coloured hits: 1.3x with half)
+        from .diffuse import resolve_hit_samples
+
+        M = resolve_hit_samples(kw.get("hit_samples", "auto"), kw.get("estimator", "auto"))
+        Ch = 1 if grey else 3
+        batch = (1 << 18) * 73 + 3 * max(1, (1 << 18) // M) * bounces * Ch * n2 * 8
+        return c * rpv * (73 + sh + 36 + 50) + batch
     c = min(real_chunk(kind, kw, chunk_size), max(V, 1))
     if kind == "wavelet":  # its own working-set count, without the result (V = 0)
         from .wavelet import estimate_wavelet_memory
@@ -300,7 +331,8 @@ def _chunk_bytes(kind: str, kw: dict[str, Any], V: int, chunk_size: int | None) 
         C = 3 if int(kw.get("bounces", 0) or 0) > 0 else 1
         return estimate_wavelet_memory(0, res, min(K, 6 * res * res), bits, int(kw.get("supersample", 1)), c,
                                        kw.get("sampling") == "jittered", C)
-    if kind == "transport":  # the chunk's table (reused), its rays and the BRDF on blocks of (view, texel) pairs
+    if kind == "transport":  # the chunk's table and the one being written (two reused buffers: transport's pool, a
+        # chunk's file written in the background while the next computes), its rays and the BRDF on blocks of pairs
         from .transport import PAIR_BLOCK
 
         from .transport import AUTO_SUPERSAMPLE
@@ -308,7 +340,8 @@ def _chunk_bytes(kind: str, kw: dict[str, Any], V: int, chunk_size: int | None) 
         P = 6 * int(kw.get("res", 8)) ** 2
         ss = kw.get("supersample", "auto")
         sub = AUTO_SUPERSAMPLE if ss == "auto" else int(ss)  # texel averages: the sub-texels' heights per (vertex, texel)
-        return c * _views(kw) * P * 4 + c * P * 40 + c * P * sub * sub * 16 + PAIR_BLOCK * 256
+        item = 2 if kw.get("dtype") == "float16" else 4
+        return 2 * c * _views(kw) * P * item + c * P * 40 + c * P * sub * sub * 16 + PAIR_BLOCK * 256
     return 64 << 20
 
 
@@ -362,7 +395,7 @@ def estimate(kind, mesh: Mesh, params: dict[str, Any], run: RunOptions | None = 
     m_bytes = max(mesh_bytes(mesh), int(mesh_rss or 0))
     traced = kw.get("shadows", True) not in (False, "never")
     bvh = BVH_BYTES_PER_FACE * F if traced else 0
-    chunk = _chunk_bytes(kind.name, kw, V, run.chunk_size)
+    chunk = _chunk_bytes(kind.name, kw, V, run.chunk_size, mesh.is_grey())
     # the assembled rows, filled as each chunk finishes (run_chunks' sink); none in memory when they are
     # assembled in files (RunOptions.stream_result: a result larger than STREAM_RESULT_BYTES with a state
     # directory, as prt precompute always has) — only what a pass must hold whole (memory_plan) counts
@@ -475,10 +508,12 @@ def _time_pass(go, V: int, k: int) -> tuple[float, dict[str, Any]]:
     ``k`` (:func:`probe_seconds`): ``go(callback)`` runs the pass with ``callback`` after each
     chunk (which stops it by :class:`ChunkInterrupt` after the third)."""
     marks: list[float] = []
+    total = [0]  # the pass's chunk count, as its callback reports it
 
     def stop(i: int, n: int) -> None:
         marks.append(time.perf_counter())
-        if len(marks) >= PROBE_CHUNKS:
+        total[0] = n
+        if len(marks) >= PROBE_CHUNKS and len(marks) < n:
             raise ChunkInterrupt("probe done")
 
     t0 = time.perf_counter()
@@ -487,7 +522,9 @@ def _time_pass(go, V: int, k: int) -> tuple[float, dict[str, Any]]:
     except ChunkInterrupt:
         pass
     done = time.perf_counter()
-    if len(marks) < PROBE_CHUNKS:  # the whole pass finished within the probe (small mesh, or nothing traced)
+    if len(marks) < PROBE_CHUNKS or len(marks) >= total[0]:  # the whole pass ran within the probe (small mesh, nothing
+        # traced, or exactly PROBE_CHUNKS chunks: its time is the pass's, not the mean of chunks 2-3 scaled — the last
+        # chunk may be a sliver: 106 of 2154 vertices in chunks of 1024, counted as a whole one, read 0.72-0.97)
         return done - t0, {"whole": True}
     timed = [marks[i] - marks[i - 1] for i in range(1, len(marks))]
     seconds, setup, per = probe_seconds(V, k, marks[0] - t0, timed)

@@ -102,12 +102,22 @@ def check_frames(mesh: Mesh, tol: float = 1e-6) -> torch.Tensor:
     return F
 
 
-def estimate_memory(vertices: int, n_out: int, n_in: int, samples: int, chunk_size: int, streamed: bool = False) -> int:
+def estimate_memory(vertices: int, n_out: int, n_in: int, samples: int, chunk_size: int, streamed: bool = False,
+                    bounces: int = 0) -> int:
     """Bytes a glossy/MRT precompute holds at its peak: the float32 result once (each chunk is
     copied into it as it finishes: ``run_chunks``' sink; none when it is assembled in a file,
-    ``RunOptions.stream_result``) plus one chunk's working set (weights, rays, float64 matrices)."""
+    ``RunOptions.stream_result``) plus one chunk's working set (weights, rays, float64 matrices).
+    With ``bounces``: the chunk's interreflected part (:func:`transferred_radiance`) also holds
+    ``A [k, N, n²]`` float64 (what each direction brings: the pages its hits write), the hits'
+    exit transfers ``[H, n²]`` float64 (H up to the k·N/2 directions above the tangent planes),
+    their records and the hit estimator's per-batch buffers: counted as ``2 · k · N · n² · 8``
+    bytes — 400 MiB at k = N = 1024, n² = 25, which the estimate left out (Cornell box, glossy,
+    one bounce: 183 MiB estimated against 530–560 MiB measured, 170 of them without the bounce;
+    ``reports/benchmarks/precompute_estimate.md``, command-line section)."""
     result = 0 if streamed else vertices * n_out * n_in * 4
     chunk = chunk_size * (samples * (8 + 8 + 3 * 8 * 2 + 16) + n_in * n_in * 8 * 3 + n_out * n_in * 8 * 2)
+    if bounces:
+        chunk += 2 * chunk_size * samples * n_in * 8
     table = samples * n_in * n_in * 8  # YY [N, n⁴] with n_in = n²
     return int(result + chunk + table)
 
@@ -284,7 +294,8 @@ def run_exit_transfer(
     n_out = left.shape[1] if left.numel() else n2
     rays_per_vertex = max(1, samples // 2)
     chunk_size = check_int("chunk_size", run.chunks(default_chunk(samples)), 1)
-    need = check_memory(kind, V, n_out, n2, samples, chunk_size, run.max_memory, run.streams_result(V * n_out * n2 * 4))
+    need = check_memory(kind, V, n_out, n2, samples, chunk_size, run.max_memory, run.streams_result(V * n_out * n2 * 4),
+                        bounces)
     directions = _Directions(bands, samples, seed)
     caster = None
     meta: dict[str, Any] = {"estimated_bytes": need, "chunk_size": chunk_size, "estimator": estimator}
@@ -384,11 +395,12 @@ def default_chunk(samples: int) -> int:
 
 
 def check_memory(kind: str, V: int, n_out: int, n2: int, samples: int, chunk_size: int | None,
-                  max_memory: int | None, streamed: bool = False) -> int:
+                  max_memory: int | None, streamed: bool = False, bounces: int = 0) -> int:
     """Refuse up front (before any BRDF projection or ray) when the estimate exceeds the budget
-    (``streamed``: the result is assembled in a file, ``RunOptions.result_rows``, and not counted)."""
+    (``streamed``: the result is assembled in a file, ``RunOptions.result_rows``, and not counted;
+    ``bounces``: the chunk's interreflection buffers, :func:`estimate_memory`)."""
     chunk = default_chunk(samples) if chunk_size is None else chunk_size
-    need = estimate_memory(V, n_out, n2, samples, min(chunk, max(V, 1)), streamed)
+    need = estimate_memory(V, n_out, n2, samples, min(chunk, max(V, 1)), streamed, bounces)
     budget = int(0.6 * _available_memory()) if max_memory is None else int(max_memory)
     if need > budget:
         held = "assembled in a file beside the state directory" if streamed else "held once while assembling"
@@ -514,7 +526,7 @@ def precompute_glossy(
     n_rows = (bands_out * bands_out - len(drop_out or [])) if exit else bands * bands
     n_sel = mesh.num_vertices if vertices is None else len(vertices)
     check_memory("glossy", n_sel, n_rows, bands * bands, samples, run.chunk_size, run.max_memory,
-                 run.streams_result(n_sel * n_rows * bands * bands * 4))
+                 run.streams_result(n_sel * n_rows * bands * bands * 4), bounces)
     shadows, shadow_meta = decide_shadows(mesh, shadows, seed, run)
     t0 = time.perf_counter()
     rcond_meta: dict[str, Any] = {}

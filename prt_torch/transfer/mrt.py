@@ -66,7 +66,7 @@ def precompute_mrt(
     check_frames(mesh)
     n_sel = mesh.num_vertices if vertices is None else len(vertices)
     check_memory("mrt", n_sel, M * M, bands * bands, samples, run.chunk_size, run.max_memory,
-                 run.streams_result(n_sel * M * M * bands * bands * 4))
+                 run.streams_result(n_sel * M * M * bands * bands * 4), bounces)
     shadows, shadow_meta = decide_shadows(mesh, shadows, seed, run)
     t0 = time.perf_counter()
     with torch_threads(1):  # small steps: one thread is steady (0.2–0.3 s) where two spin (up to 1 s, 2 cores)

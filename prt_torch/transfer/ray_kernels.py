@@ -24,7 +24,7 @@ import numpy as np
 
 from .._native import LIBRARIES, compile_library, kernel_sources
 
-__all__ = ["upper_rays", "qmc_rays_native", "select_rays", "sh_accumulate", "guided_rays_native"]
+__all__ = ["available", "upper_rays", "qmc_rays_native", "select_rays", "sh_accumulate", "guided_rays_native"]
 
 #: the C source (prt_torch/kernels/raygen.c) and compiler flags
 _SOURCES, _FLAGS = LIBRARIES["raygen"][0], list(LIBRARIES["raygen"][1])
@@ -51,6 +51,13 @@ def _lib() -> ctypes.CDLL | None:
                 if _state["lib"] is not None:
                     _state["lib"].prt_guided_rays.restype = i64
     return _state["lib"]
+
+
+def available() -> bool:
+    """True when the compiled ray library (``kernels/raygen.c``) is loaded: the qmc diffuse chunk then
+    selects its rays and accumulates their SH in one pass (:func:`select_rays`, :func:`sh_accumulate`),
+    holding no per-ray SH values (what ``transfer.estimate`` counts)."""
+    return _lib() is not None
 
 
 def _buffer(work: dict | None, name: str, shape: tuple, dtype) -> np.ndarray:
