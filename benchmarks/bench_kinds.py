@@ -7,7 +7,7 @@ For each kind, every ray-casting call of one precompute is recorded (``RecordRay
 bare on pre-started worker processes (the same count as the precompute uses), and the work the
 kind cannot avoid is timed alone on the same chunk shapes:
 
-* glossy / MRT: the per-vertex GEMMs — ``W [k, N] @ YY [N, n⁴]`` (the transferred-radiance sum),
+* glossy / MRT: the per-vertex sums and GEMMs — ``outer_sums`` (the transferred-radiance sum),
   the rotation into each vertex frame (``rotate_rows``) and ``left [n_out, n²] @ R_p T_p``;
   the bound is bare Embree + these GEMMs; the BRDF projection (once per run, ``brdf_seconds``) is
   reported beside it;
@@ -41,14 +41,15 @@ from prt_torch.harness.timing import machine_info  # noqa: E402
 from prt_torch.scene import RayCaster, builtin, default_workers  # noqa: E402
 from prt_torch.sh import rotation_blocks  # noqa: E402
 from prt_torch.transfer import RunOptions  # noqa: E402
-from prt_torch.transfer.glossy import _Directions, check_frames, precompute_glossy, rotate_rows  # noqa: E402
+from prt_torch.transfer.glossy import _Directions, check_frames, outer_sums, precompute_glossy, rotate_rows  # noqa: E402
 from prt_torch.transfer.mrt import precompute_mrt  # noqa: E402
 from prt_torch.transfer.transport import HORIZON_EPS, cube_directions, icosphere_directions, precompute_transport  # noqa: E402
 
 
 def gemms_alone(mesh, tr, bands: int, samples: int) -> float:
-    """Seconds of the glossy/MRT per-vertex GEMMs alone on the precompute's chunk shapes: W @ YY
-    (W half filled, as above a tangent plane), rotate_rows, left @ R T (left of the output's shape)."""
+    """Seconds of the glossy/MRT per-vertex sums and GEMMs alone on the precompute's chunk shapes: the
+    T_p sums over half of the directions (as above a tangent plane; ``outer_sums``, what the precompute
+    runs since it stopped multiplying a dense W by YY), rotate_rows, left @ R T (left of the output's shape)."""
     dirs = _Directions(bands, samples, 0)
     F = check_frames(mesh)
     V, n_out, n2 = tr.data.shape
@@ -58,11 +59,10 @@ def gemms_alone(mesh, tr, bands: int, samples: int) -> float:
     total = 0.0
     for a in range(0, V, chunk):  # a loop over chunks, as the precompute's
         b = min(V, a + chunk)
-        W = torch.rand(b - a, dirs.dirs.shape[0], generator=g, dtype=torch.float64)
-        W[W < 0.5] = 0.0
+        rows, cols = torch.nonzero(torch.rand(b - a, dirs.dirs.shape[0], generator=g) >= 0.5, as_tuple=True)
         blocks = rotation_blocks(F[a:b], bands)
         t = time.perf_counter()
-        T = (W @ dirs.YY).reshape(-1, n2, n2)
+        T = outer_sums(b - a, rows, cols, dirs.Y, dirs.weight)
         out = left @ rotate_rows(T, blocks)
         total += time.perf_counter() - t
         del out
