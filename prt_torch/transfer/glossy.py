@@ -109,11 +109,12 @@ def check_frames(mesh: Mesh, tol: float = 1e-6) -> torch.Tensor:
 def estimate_memory(vertices: int, n_out: int, n_in: int, samples: int, chunk_size: int, streamed: bool = False) -> int:
     """Bytes a glossy/MRT precompute holds at its peak: the float32 result once (each chunk is
     copied into it as it finishes: ``run_chunks``' sink; none when it is assembled in a file,
-    ``RunOptions.stream_result``) plus one chunk's working set (weights, rays, float64 matrices)."""
+    ``RunOptions.stream_result``) plus one chunk's working set (cosines, the upper pairs' indices, rays,
+    float64 matrices). No ``[N, n⁴]`` outer-product table and no dense ``[k, N]`` weights: the sums run
+    over each vertex's entries (:func:`outer_sums`)."""
     result = 0 if streamed else vertices * n_out * n_in * 4
-    chunk = chunk_size * (samples * (8 + 8 + 3 * 8 * 2 + 16) + n_in * n_in * 8 * 3 + n_out * n_in * 8 * 2)
-    table = samples * n_in * n_in * 8  # YY [N, n⁴] with n_in = n²
-    return int(result + chunk + table)
+    chunk = chunk_size * (samples * (8 + 3 * 8 * 2 + 16) + n_in * n_in * 8 * 3 + n_out * n_in * 8 * 2)
+    return int(result + chunk)
 
 
 def memory_budget(max_memory: int | None) -> int:
