@@ -45,7 +45,7 @@ from ..scene import Mesh, RayCaster, default_workers
 from ..sh import blocks_to_dense, eval_sh, hemisphere_gram, rotation_blocks
 from .base import RunOptions, Transfer
 from .diffuse import HitBounce, boundary_nudge, hit_bounce, offset_origins, probe_fingerprint, record_probe_log
-from .ray_kernels import outer_accumulate
+from .ray_kernels import outer_accumulate, upper_rays
 from .sampling import uniform_sphere
 
 __all__ = [
@@ -225,14 +225,21 @@ def transferred_radiance(caster: RayCaster | None, points: torch.Tensor, normals
     room (Cornell box) 'control' had 1.5–1.7× the error of 'plain' (N = 1024)
     (reports/benchmarks/precompute_error.md, glossy section)."""
     cos = normals.to(torch.float64) @ directions.dirs.T  # [k, N]
-    i, j = torch.nonzero(cos > 0, as_tuple=True)  # grouped by vertex (row-major): outer_sums' entries
     k = cos.shape[0]
+    fused = None
+    if caster is not None:
+        o_v = offset_origins(points.to(torch.float64).numpy(), normals.to(torch.float64).numpy(), caster.eps,
+                             None if nudge is None else nudge.numpy()).astype(np.float32)  # the one offset rule
+        fused = upper_rays(cos.numpy(), o_v, directions.dirs32)  # the rays above each tangent plane in one compiled pass
+    if fused is not None:
+        i, j, o, d = torch.from_numpy(fused[0]), torch.from_numpy(fused[1]), fused[2], fused[3]
+    else:  # the same pairs, origins and directions (upper_rays' numpy equivalent)
+        i, j = torch.nonzero(cos > 0, as_tuple=True)  # grouped by vertex (row-major): outer_sums' entries
+        if caster is not None:
+            o, d = o_v[i.numpy()], directions.dirs32[j.numpy()]
     T_ind = None
     open_v = None  # [k] bool: the rows estimated by the control variate
     if caster is not None and i.numel():
-        o = offset_origins(points.to(torch.float64).numpy(), normals.to(torch.float64).numpy(), caster.eps,
-                           None if nudge is None else nudge.numpy())[i.numpy()].astype(np.float32)  # the one offset rule
-        d = directions.dirs32[j.numpy()]
         if bounce is None:
             vis = ~torch.from_numpy(caster.trace(o, d, "occluded"))
         else:
