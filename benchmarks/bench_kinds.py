@@ -178,7 +178,8 @@ def main(argv=None) -> int:
         "",
         "Bare: every ray-casting call of one precompute recorded and replayed bare on the same number of pre-started "
         "worker processes. Work alone: what the kind cannot avoid, timed alone on the same chunk shapes (glossy/MRT: "
-        "`W @ YY`, the rotation into each vertex frame and `left @ R_p T_p`; transport: the BRDF on every (upper view, "
+        "the T_p sums (`outer_sums`; `W @ YY` before), the rotation into each vertex frame and `left @ R_p T_p`; "
+        "transport: the BRDF on every (upper view, "
         "texel above the tangent plane) pair, "
         "the fastest of one torch call per chunk, blocks of `PAIR_BLOCK` pairs on one torch thread and the compiled point "
         "pass `transport_kernels.points` on one thread; the transport precompute here stores point values, `supersample=1`, "

@@ -28,7 +28,6 @@ triangle; backs black), so T_p gains Σ_s w_s (1 - V(p,s)) y(s) t_q(s)ᵀ — Sl
 from __future__ import annotations
 
 import dataclasses
-import functools
 import math
 import os
 import time
@@ -126,8 +125,8 @@ def memory_budget(max_memory: int | None) -> int:
 
 class _Directions:
     """Shared stratified sphere set: directions ``dirs [N, 3]`` float64 (and float32), weight 4π/N,
-    SH values ``Y [N, n²]`` float64 evaluated once. ``YY [N, n⁴]`` (the outer products, 8·N·n⁴ bytes)
-    is built only when asked for: the precompute no longer multiplies by it (:func:`outer_sums`)."""
+    SH values ``Y [N, n²]`` float64 evaluated once. (No ``[N, n⁴]`` table of outer products, 8·N·n⁴
+    bytes: the sums take y(s) yᵀ per entry, :func:`outer_sums`.)"""
 
     def __init__(self, bands: int, samples: int, seed: int):
         self.dirs, w = uniform_sphere(samples, seed)  # [N,3] float64, weights 4π/N
@@ -135,11 +134,6 @@ class _Directions:
         self.Y = eval_sh(self.dirs, bands)  # [N, n²]
         self.dirs32 = np.ascontiguousarray(self.dirs.numpy(), np.float32)
         self.n2 = bands * bands
-
-    @functools.cached_property
-    def YY(self) -> torch.Tensor:
-        """``[N, n⁴]`` float64: row s is vec(y(s) y(s)ᵀ)."""
-        return (self.Y[:, :, None] * self.Y[:, None, :]).reshape(self.Y.shape[0], -1)
 
 
 #: entries per torch step of :func:`outer_sums` without the compiled pass ([B, n², n²] float64 at a time)
