@@ -151,3 +151,22 @@ def test_one_bounce_precompute_same_bits_for_any_chunk_size(kind):
     b = f(mesh, 3, samples=64, bounces=1, vertices=vids, run=RunOptions(chunk_size=100))
     assert a.meta["hit_rays_traced"] == b.meta["hit_rays_traced"] > 0
     assert torch.equal(a.data, b.data)
+
+
+def test_csr_rows_equal_scipy_row_slices():
+    """``diffuse._csr_rows`` (the coplanar pools' rows without scipy.sparse) against scipy's own CSR row slicing:
+    the same columns row after row, each row's start, empty rows and repeated rows included."""
+    import scipy.sparse
+
+    from prt_torch.transfer.diffuse import _csr_rows
+
+    g = np.random.default_rng(3)
+    dense = (g.random((40, 30)) < 0.2) & (g.random((40, 1)) < 0.8)  # some rows empty
+    m = scipy.sparse.csr_matrix(dense.astype(np.int8))
+    indptr, indices = m.indptr.astype(np.int64), m.indices.astype(np.int32)
+    rows = np.array([5, 0, 5, 39, 17, 2], np.int64)
+    cols, seg = _csr_rows(indptr, indices, rows)
+    sub = m[rows]
+    assert np.array_equal(cols, sub.indices) and np.array_equal(seg, sub.indptr[:-1])
+    e, s = _csr_rows(indptr, indices, np.zeros(0, np.int64))
+    assert e.size == 0 and s.size == 0
