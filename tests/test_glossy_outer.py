@@ -170,3 +170,25 @@ def test_csr_rows_equal_scipy_row_slices():
     assert np.array_equal(cols, sub.indices) and np.array_equal(seg, sub.indptr[:-1])
     e, s = _csr_rows(indptr, indices, np.zeros(0, np.int64))
     assert e.size == 0 and s.size == 0
+
+
+@needs_lib
+@pytest.mark.parametrize("C", [1, 3])
+def test_luma_mix_same_bits_as_the_torch_steps(C):
+    """``ray_kernels.luma_mix`` (the glossy bounce's luminance mix of a coloured hit, one pass) against the torch
+    steps it replaces in ``HitBounce.exit_transfer`` — mul, mul_, add_ in their order —: the same bits; x with one
+    channel (one bounce: one transfer for the three albedos) or one per channel."""
+    g = torch.Generator().manual_seed(C)
+    H, n = 1000, 25
+    x = torch.randn(H, C, n, generator=g, dtype=torch.float64)
+    rho = torch.rand(H, 3, generator=g, dtype=torch.float64)
+    w = torch.tensor([0.2126, 0.7152, 0.0722], dtype=torch.float64)
+    xs = [x[:, min(c, C - 1)] for c in range(3)]
+    ref = torch.mul(rho[:, 0:1], xs[0]).mul_(w[0])
+    t = torch.mul(rho[:, 1:2], xs[1]).mul_(w[1])
+    ref.add_(t).add_(torch.mul(rho[:, 2:3], xs[2], out=t).mul_(w[2]))
+    out = np.empty((H, n))
+    assert ray_kernels.luma_mix(out, rho.numpy(), x.numpy(), w.numpy())
+    assert np.array_equal(out, ref.numpy())
+    with pytest.raises(ValueError, match="luma_mix: .*accepted: contiguous float64"):
+        ray_kernels.luma_mix(np.empty((H, n), np.float32), rho.numpy(), x.numpy(), w.numpy())

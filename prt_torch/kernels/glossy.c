@@ -47,3 +47,22 @@ void prt_outer_accumulate(i64 k, i64 n, const i64 *ptr, const i64 *dir, const do
 #pragma omp parallel for schedule(dynamic, 8) num_threads(threads > 0 ? threads : 1)
     for (i64 p = 0; p < k; p++) outer_vertex(n, ptr[p], ptr[p + 1], dir, Y, R, c, T + p * n * n);
 }
+
+/* The glossy kind's monochrome bounce (diffuse.HitBounce.exit_transfer with channel weights): a coloured hit
+ * brings ρ_c x_c per channel c, made one transfer by the Rec. 709 luminance weights w (glossy matrices are shared
+ * by the light's colour channels):
+ *     out[h, b] = ((ρ_h0 x_h0[b]) w0 + (ρ_h1 x_h1[b]) w1) + (ρ_h2 x_h2[b]) w2,
+ * the products and sums in exactly the order of the torch steps it replaces (mul, mul_, add_; -ffp-contract=off),
+ * so the same bits, in one pass instead of eight over [H, n] temporaries.
+ *     rho float64 [H, 3]; x float64 [H, C, n] with channel c read from min(c, C - 1) (C = 1: one exit transfer for
+ *     the three albedos, one bounce); w float64 [3]; out float64 [H, n]. */
+void prt_luma_mix(i64 H, i64 n, i64 C, const double *rho, const double *x, const double *w, double *out) {
+    const double w0 = w[0], w1 = w[1], w2 = w[2];
+    const i64 c1 = C > 1 ? 1 : 0, c2 = C > 2 ? 2 : C - 1;
+    for (i64 h = 0; h < H; h++) {
+        const double r0 = rho[3 * h], r1 = rho[3 * h + 1], r2 = rho[3 * h + 2];
+        const double *x0 = x + h * C * n, *x1 = x0 + c1 * n, *x2 = x0 + c2 * n;
+        double *o = out + h * n;
+        for (i64 b = 0; b < n; b++) o[b] = ((r0 * x0[b]) * w0 + (r1 * x1[b]) * w1) + (r2 * x2[b]) * w2;
+    }
+}

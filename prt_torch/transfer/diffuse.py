@@ -49,7 +49,7 @@ from ..executor import torch_threads
 from ..scene import Mesh, RayCaster, default_workers, edge_face_counts
 from ..sh import clamped_cosine, eval_sh, rotate_zonal
 from .base import RunOptions, Transfer, remove_state, run_chunks
-from .ray_kernels import guided_rays_native, qmc_rays_native, select_rays, sh_accumulate, upper_rays
+from .ray_kernels import guided_rays_native, luma_mix, qmc_rays_native, select_rays, sh_accumulate, upper_rays
 from .sampling import cosine_hemisphere, to_world, uniform_sphere
 
 __all__ = [
@@ -816,7 +816,7 @@ class HitBounce:
                 torch.mul(rho[:, :, None], x, out=out[sl])
             elif self.C == 1:
                 torch.mul(rho, x[:, 0], out=out[sl])
-            else:
+            elif not luma_mix(out[sl].numpy(), rho.numpy(), x.numpy(), channel_weights.numpy()):  # one pass, the same bits
                 w, o = channel_weights, out[sl]
                 xs = [x[:, min(c, x.shape[1] - 1)] for c in range(3)]  # x [h, 1 or C, n²]
                 torch.mul(rho[:, 0:1], xs[0], out=o).mul_(w[0])  # in place: no fresh [h, n²] pages per operation

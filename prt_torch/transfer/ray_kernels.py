@@ -25,7 +25,7 @@ import numpy as np
 
 from .._native import LIBRARIES, compile_library, kernel_sources
 
-__all__ = ["upper_rays", "qmc_rays_native", "select_rays", "sh_accumulate", "guided_rays_native", "outer_accumulate"]
+__all__ = ["upper_rays", "qmc_rays_native", "select_rays", "sh_accumulate", "guided_rays_native", "outer_accumulate", "luma_mix"]
 
 #: the C source (prt_torch/kernels/raygen.c) and compiler flags
 _SOURCES, _FLAGS = LIBRARIES["raygen"][0], list(LIBRARIES["raygen"][1])
@@ -49,6 +49,7 @@ def _lib() -> ctypes.CDLL | None:
                     "prt_sh_accumulate": [i64, vp, i64, vp, vp, ctypes.c_double, ci, vp, vp],
                     "prt_guided_rays": [i64, i64, vp, vp, vp, vp, vp, vp, vp, vp, vp, vp, ci, ci, vp, vp, vp, ci],
                     "prt_outer_accumulate": [i64, i64, vp, vp, vp, vp, ctypes.c_double, vp, ci],
+                    "prt_luma_mix": [i64, i64, i64, vp, vp, vp, vp],
                 })
                 if _state["lib"] is not None:
                     _state["lib"].prt_guided_rays.restype = i64
@@ -291,4 +292,27 @@ def outer_accumulate(T: np.ndarray, ptr: np.ndarray, dirs: np.ndarray, Y: np.nda
     r = None if R is None else np.ascontiguousarray(R, np.float64)
     lib.prt_outer_accumulate(k, n, p.ctypes.data, d.ctypes.data, y.ctypes.data, None if r is None else r.ctypes.data,
                              float(c), T.ctypes.data, int(threads or 1))
+    return True
+
+
+def luma_mix(out: np.ndarray, rho: np.ndarray, x: np.ndarray, w: np.ndarray) -> bool:
+    """``out[h] = ((ρ_h0 x_h0) w0 + (ρ_h1 x_h1) w1) + (ρ_h2 x_h2) w2``: a coloured hit's exit transfer made
+    monochrome by the luminance weights (the glossy bounce, ``diffuse.HitBounce.exit_transfer``), in one
+    compiled pass (``kernels/glossy.c``, ``prt_luma_mix``) with the torch steps' operations in their order
+    (the same bits); False without the library.
+
+    ``out float64 [H, n]`` C-contiguous (written); ``rho float64 [H, 3]``; ``x float64 [H, C, n]`` (channel c
+    read from min(c, C - 1)); ``w float64 [3]``."""
+    lib = _lib()
+    if lib is None:
+        return False
+    H, n = out.shape if out.ndim == 2 else (-1, -1)
+    if out.dtype != np.float64 or not out.flags.c_contiguous or rho.shape != (H, 3) or x.ndim != 3 \
+            or x.shape[0] != H or x.shape[2] != n or x.shape[1] < 1 or np.shape(w) != (3,):
+        raise ValueError(f"luma_mix: out {out.dtype} {out.shape}, rho {rho.shape}, x {x.shape}, w {np.shape(w)}; accepted: "
+                         "contiguous float64 [H, n], [H, 3], [H, C, n] with C >= 1, [3]")
+    r = np.ascontiguousarray(rho, np.float64)
+    xx = np.ascontiguousarray(x, np.float64)
+    ww = np.ascontiguousarray(w, np.float64)
+    lib.prt_luma_mix(H, n, xx.shape[1], r.ctypes.data, xx.ctypes.data, ww.ctypes.data, out.ctypes.data)
     return True
