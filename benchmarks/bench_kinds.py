@@ -7,7 +7,8 @@ For each kind, every ray-casting call of one precompute is recorded (``RecordRay
 bare on pre-started worker processes (the same count as the precompute uses), and the work the
 kind cannot avoid is timed alone on the same chunk shapes:
 
-* glossy / MRT: the per-vertex GEMMs — ``W [k, N] @ YY [N, n⁴]`` (the transferred-radiance sum),
+* glossy / MRT: the per-vertex GEMMs — (before: ``W [k, N] @ YY``, the transferred-radiance sum; now left
+  out, ``outer_sums`` runs over the selected entries only),
   the rotation into each vertex frame (``rotate_rows``) and ``left [n_out, n²] @ R_p T_p``;
   the bound is bare Embree + these GEMMs; the BRDF projection (once per run, ``brdf_seconds``) is
   reported beside it;
@@ -41,31 +42,34 @@ from prt_torch.harness.timing import machine_info  # noqa: E402
 from prt_torch.scene import RayCaster, builtin, default_workers  # noqa: E402
 from prt_torch.sh import rotation_blocks  # noqa: E402
 from prt_torch.transfer import RunOptions  # noqa: E402
-from prt_torch.transfer.glossy import _Directions, check_frames, precompute_glossy, rotate_rows  # noqa: E402
+from prt_torch.transfer.glossy import check_frames, precompute_glossy, rotate_rows  # noqa: E402
 from prt_torch.transfer.mrt import precompute_mrt  # noqa: E402
 from prt_torch.transfer.transport import HORIZON_EPS, cube_directions, icosphere_directions, precompute_transport  # noqa: E402
 
 
 def gemms_alone(mesh, tr, bands: int, samples: int) -> float:
-    """Seconds of the glossy/MRT per-vertex GEMMs alone on the precompute's chunk shapes: W @ YY
-    (W half filled, as above a tangent plane), rotate_rows, left @ R T (left of the output's shape)."""
-    dirs = _Directions(bands, samples, 0)
+    """Seconds of the glossy/MRT per-vertex GEMMs alone on the precompute's chunk shapes, on one torch thread
+    as the precompute's chunks: rotate_rows and left @ R T (left of the output's shape). The T_p sums are left
+    out: since they run over each vertex's selected entries only (``outer_sums``; before, ``W [k, N] @ YY``
+    timed here whatever W held) their size depends on the estimator's selection, so the bound here is a
+    floor and the pace a lower bound."""
+    from prt_torch.executor import torch_threads
+
     F = check_frames(mesh)
     V, n_out, n2 = tr.data.shape
     chunk = tr.meta["chunk_size"]
     left = torch.randn(n_out, n2, dtype=torch.float64)
     g = torch.Generator().manual_seed(0)
     total = 0.0
-    for a in range(0, V, chunk):  # a loop over chunks, as the precompute's
-        b = min(V, a + chunk)
-        W = torch.rand(b - a, dirs.dirs.shape[0], generator=g, dtype=torch.float64)
-        W[W < 0.5] = 0.0
-        blocks = rotation_blocks(F[a:b], bands)
-        t = time.perf_counter()
-        T = (W @ dirs.YY).reshape(-1, n2, n2)
-        out = left @ rotate_rows(T, blocks)
-        total += time.perf_counter() - t
-        del out
+    with torch_threads(1):
+        for a in range(0, V, chunk):  # a loop over chunks, as the precompute's
+            b = min(V, a + chunk)
+            T = torch.randn(b - a, n2, n2, generator=g, dtype=torch.float64)
+            blocks = rotation_blocks(F[a:b], bands)
+            t = time.perf_counter()
+            out = left @ rotate_rows(T, blocks)
+            total += time.perf_counter() - t
+            del out
     return total
 
 
@@ -178,7 +182,9 @@ def main(argv=None) -> int:
         "",
         "Bare: every ray-casting call of one precompute recorded and replayed bare on the same number of pre-started "
         "worker processes. Work alone: what the kind cannot avoid, timed alone on the same chunk shapes (glossy/MRT: "
-        "`W @ YY`, the rotation into each vertex frame and `left @ R_p T_p`; transport: the BRDF on every (upper view, "
+        "the rotation into each vertex frame and `left @ R_p T_p` on one torch thread (the T_p sums, `W @ YY` before, left "
+        "out: `outer_sums` runs over the selected entries only, so the bound is a floor); "
+        "transport: the BRDF on every (upper view, "
         "texel above the tangent plane) pair, "
         "the fastest of one torch call per chunk, blocks of `PAIR_BLOCK` pairs on one torch thread and the compiled point "
         "pass `transport_kernels.points` on one thread; the transport precompute here stores point values, `supersample=1`, "

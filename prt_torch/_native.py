@@ -48,7 +48,7 @@ LIBRARIES: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
     "relight": (("prt_kernels.h", "vec.h", "affine.h", "sg_texels.h", "affine_constants.c", "affine_rows.c", "affine_dense.c",
                  "affine_taps.c", "relight_plan.c", "sg_lookup.c"),
                 ("-O3", "-march=native", "-ffp-contract=fast", "-fopenmp", "-shared", "-fPIC", "-std=c99")),
-    "raygen": (("raygen.c", "guided.c"), ("-O3", "-march=native", "-ffp-contract=off", "-fno-math-errno", "-fopenmp", "-shared", "-fPIC",
+    "raygen": (("raygen.c", "guided.c", "glossy.c"), ("-O3", "-march=native", "-ffp-contract=off", "-fno-math-errno", "-fopenmp", "-shared", "-fPIC",
                                 "-std=c99")),
     "wavelet": (("wavelet.c",), ("-O3", "-march=native", "-ffp-contract=fast", "-fopenmp", "-shared", "-fPIC", "-std=c99")),
     # libmvec (glibc's vector math: the AVX2 path's 4-lane pow), linked even where --as-needed is the default;

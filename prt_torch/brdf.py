@@ -122,6 +122,23 @@ def _check_dirs(wi: torch.Tensor, wo: torch.Tensor) -> tuple[torch.Tensor, torch
     return wi, wo
 
 
+def _broadcast_shapes(*shapes) -> torch.Size:
+    """``torch.broadcast_shapes`` of plain integer shapes (NumPy's broadcasting rule), without its
+    first-call import of ``torch.fx.experimental.symbolic_shapes`` and sympy (0.39 CPU s on this
+    machine, torch 2.13: a fixed cost of every glossy/MRT precompute, issue 42). Raises as torch does,
+    naming the shapes, when they do not broadcast."""
+    n = max((len(s) for s in shapes), default=0)
+    out = [1] * n
+    for s in shapes:
+        for k, d in enumerate(s, n - len(s)):
+            d = int(d)
+            if d != out[k] and d != 1:
+                if out[k] != 1:
+                    raise RuntimeError(f"shapes {[tuple(x) for x in shapes]} do not broadcast (axis {k}: {out[k]} vs {d})")
+                out[k] = d
+    return torch.Size(out)
+
+
 class BRDF:
     """Base class of the batched reflectance models (see the module docstring for frames).
 
@@ -140,7 +157,7 @@ class BRDF:
     @property
     def batch_shape(self) -> torch.Size:
         """Broadcast shape of all parameters (``torch.Size([])`` for a single material)."""
-        return torch.broadcast_shapes(*(p.shape for p in self.params.values()))
+        return _broadcast_shapes(*(p.shape for p in self.params.values()))
 
     def _replace(self, **params) -> "BRDF":
         new = object.__new__(type(self))
@@ -258,13 +275,13 @@ class Lambertian(BRDF):
         self.kd = _param("kd", kd, 0.0, hi=1.0)
 
     def _eval(self, wi, wo, p):
-        shape = torch.broadcast_shapes(wi.shape[:-1], wo.shape[:-1], p["kd"].shape)
+        shape = _broadcast_shapes(wi.shape[:-1], wo.shape[:-1], p["kd"].shape)
         return (p["kd"] / math.pi).expand(shape)
 
     def extended(self, wi, wo):
         """kd/π max(wi_z, 0) for every wo on the sphere (view-independent)."""
         _check_dirs(wi, wo)
-        shape = torch.broadcast_shapes(wi.shape[:-1], wo.shape[:-1], self.kd.shape)
+        shape = _broadcast_shapes(wi.shape[:-1], wo.shape[:-1], self.kd.shape)
         return (self.kd.to(wi.dtype) / math.pi * wi[..., 2].clamp_min(0)).expand(shape)
 
     def lobes(self, bands):
@@ -399,7 +416,7 @@ class AshikhminShirley(BRDF):
         denom = kh * torch.maximum(wi[..., 2], wo[..., 2]).clamp_min(1e-300)
         F = p["rs"] + (1 - p["rs"]) * (1 - kh) ** 5 if self.fresnel else p["rs"] + 0 * kh
         spec = torch.sqrt((p["nu"] + 1) * (p["nv"] + 1)) / (8 * math.pi) * torch.pow(hz, expo) / denom * F
-        if not self.diffuse or (torch.broadcast_shapes(spec.shape, p["rd"].shape) == spec.shape and not bool(p["rd"].any())):
+        if not self.diffuse or (_broadcast_shapes(spec.shape, p["rd"].shape) == spec.shape and not bool(p["rd"].any())):
             return spec  # rd = 0 (the default): the diffuse term is exactly 0, spec + 0 = spec; not computed (issue 42 §2)
         ci, co = wi[..., 2].clamp(0, 1), wo[..., 2].clamp(0, 1)
         diff = 28 * p["rd"] / (23 * math.pi) * (1 - p["rs"]) * (1 - (1 - ci / 2) ** 5) * (1 - (1 - co / 2) ** 5)

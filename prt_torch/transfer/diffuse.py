@@ -42,7 +42,6 @@ import time
 from typing import Any
 
 import numpy as np
-import scipy.sparse
 import torch
 
 from .._checks import check_choice, check_float, check_int
@@ -50,7 +49,7 @@ from ..executor import torch_threads
 from ..scene import Mesh, RayCaster, default_workers, edge_face_counts
 from ..sh import clamped_cosine, eval_sh, rotate_zonal
 from .base import RunOptions, Transfer, remove_state, run_chunks
-from .ray_kernels import guided_rays_native, qmc_rays_native, select_rays, sh_accumulate, upper_rays
+from .ray_kernels import guided_rays_native, luma_mix, qmc_rays_native, select_rays, sh_accumulate, upper_rays
 from .sampling import cosine_hemisphere, to_world, uniform_sphere
 
 __all__ = [
@@ -171,6 +170,16 @@ def boundary_nudge(mesh: Mesh) -> torch.Tensor:
     ok = on & (norm[:, 0] > 0)
     out[torch.from_numpy(ok)] = torch.from_numpy(d[ok] / norm[ok])
     return out
+
+
+def _csr_rows(indptr: np.ndarray, indices: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The entries of ``rows`` (int64 ``[G]``) of a CSR pattern, row after row: (their column indices,
+    int64 ``[Σ lengths]``; each row's start in it, int64 ``[G]``) — one gather, no per-row loop."""
+    start, length = indptr[rows], indptr[rows + 1] - indptr[rows]
+    seg = np.zeros(rows.size, np.int64)
+    np.cumsum(length[:-1], out=seg[1:])
+    pos = np.repeat(start - seg, length) + np.arange(int(length.sum()), dtype=np.int64)
+    return indices[pos].astype(np.int64), seg
 
 
 def offset_origins(points: Any, normals: Any, eps: float, nudge: Any = None) -> np.ndarray:
@@ -666,17 +675,20 @@ class HitBounce:
         if not new.size:
             return
         self._probe(caster, new)
-        cnt, pool_m = self._coplanar()
+        cnt, pool = self._coplanar()
         cand = new[(cnt[new] >= GUIDE_MIN_FACES) & (self._face_open[new] < 0.5)]  # the faces guided (_build_guide)
         if cand.size:  # the neighbours their guides pool (themselves included), every cell
-            self._probe(caster, np.unique(pool_m[cand].indices).astype(np.int64), full=True)
+            self._probe(caster, np.unique(_csr_rows(*pool, cand)[0]).astype(np.int64), full=True)
         self._build_guide(self._opened, new)
         self._decided[new] = True
 
     def _coplanar(self):
-        """``(cnt int64 [F], pool csr [F, F])``: per face its coplanar faces (normals within 2.6°,
-        centroids within 1e-3 of the diagonal of the plane) among the :data:`GUIDE_POOL` nearest
-        centroids (itself included), once per estimator (geometry only, no rays)."""
+        """``(cnt int64 [F], (indptr int64 [F+1], indices int32 [nnz]))``: per face its coplanar faces
+        (normals within 2.6°, centroids within 1e-3 of the diagonal of the plane) among the
+        :data:`GUIDE_POOL` nearest centroids (itself included), row f of a CSR pattern (no values: the
+        former scipy matrix's were all 1; numpy arrays keep the 0.17 CPU s scipy.sparse import off the
+        glossy/MRT bounce precompute), rows kept only for faces that may be guided; once per estimator
+        (geometry only, no rays)."""
         if self._pool is None:
             from scipy.spatial import cKDTree
 
@@ -695,10 +707,10 @@ class HitBounce:
                     (np.abs(np.einsum("ij,ikj->ik", n[sl], c[nb[sl]] - c[sl, None, :])) <= 1e-3 * diag)
             cnt = same.sum(1)
             same &= (cnt >= GUIDE_MIN_FACES)[:, None]  # rows of faces that may be guided only (the others are never read)
-            pool_m = scipy.sparse.csr_matrix((same.reshape(-1).astype(np.int8), nb.reshape(-1),
-                                              np.arange(0, F * pool + 1, pool)), shape=(F, F))
-            pool_m.eliminate_zeros()  # row f: its coplanar neighbours, 5 B each (sums of 0/1: exact in any order)
-            self._pool = (cnt, pool_m)
+            indptr = np.zeros(F + 1, np.int64)
+            np.cumsum(same.sum(1), out=indptr[1:])
+            indices = nb[same].astype(np.int32 if F < (1 << 31) else np.int64)  # row f: its coplanar neighbours, 4 B each
+            self._pool = (cnt, (indptr, indices))
         return self._pool
 
     def _build_guide(self, opened: np.ndarray, faces: np.ndarray | None = None) -> None:
@@ -716,7 +728,7 @@ class HitBounce:
         for the guided faces only (544 B each), appended as faces are decided."""
         F, K = opened.shape
         faces = np.arange(F, dtype=np.int64) if faces is None else faces
-        cnt, pool_m = self._coplanar()
+        cnt, pool = self._coplanar()
         if self.guided is None:
             self.guided = np.zeros(F, bool)
             self._guide_row = np.full(F, -1, np.int64)
@@ -728,11 +740,14 @@ class HitBounce:
         self._log[2].append(gf)
         if not gf.size:
             return
-        sub = pool_m[gf]  # [G, F] their coplanar neighbours
-        cols = np.unique(sub.indices)
         cells = np.ones(opened.shape, bool) if self._cells is None else self._cells
-        n_cell = sub[:, cols] @ cells[cols].astype(np.float64)  # [G, K] probe rays per cell (cnt each: every cell probed)
-        g = (sub[:, cols] @ opened[cols].astype(np.float64)) / np.maximum(n_cell, 1)  # [G, K] pooled open fraction per cell
+        n_cell = np.empty((gf.size, K))  # [G, K] probe rays per cell (cnt each: every cell probed)
+        g = np.empty((gf.size, K))  # [G, K] pooled open fraction per cell
+        for b0 in range(0, gf.size, 1 << 12):  # blocks of guided faces: [block · pool, K] gathers
+            nbr, seg = _csr_rows(*pool, gf[b0:b0 + (1 << 12)])  # their coplanar neighbours (each has >= GUIDE_MIN_FACES)
+            n_cell[b0:b0 + seg.size] = np.add.reduceat(cells[nbr].astype(np.float64), seg, axis=0)  # sums of 0/1: exact
+            g[b0:b0 + seg.size] = np.add.reduceat(opened[nbr].astype(np.float64), seg, axis=0)
+        g = g / np.maximum(n_cell, 1)
         tot = g.sum(1, keepdims=True)
         g = np.where(tot > 0, g / np.maximum(tot, 1e-300), 1.0 / K)
         self._guide_row[gf] = self.guide_mass.shape[0] + np.arange(gf.size)
@@ -801,7 +816,7 @@ class HitBounce:
                 torch.mul(rho[:, :, None], x, out=out[sl])
             elif self.C == 1:
                 torch.mul(rho, x[:, 0], out=out[sl])
-            else:
+            elif not luma_mix(out[sl].numpy(), rho.numpy(), x.numpy(), channel_weights.numpy()):  # one pass, the same bits
                 w, o = channel_weights, out[sl]
                 xs = [x[:, min(c, x.shape[1] - 1)] for c in range(3)]  # x [h, 1 or C, n²]
                 torch.mul(rho[:, 0:1], xs[0], out=o).mul_(w[0])  # in place: no fresh [h, n²] pages per operation
@@ -1077,6 +1092,8 @@ def _chunk_work(caster: RayCaster, sampler: DiffuseSampler, points: torch.Tensor
             cols = (faces[tri] if hit_columns == "vertices" else 3 * tri[:, None] + np.arange(3)).reshape(-1)
             vals = (w_ray[h][:, None] * beta).reshape(-1)
         # this chunk's rows of S [V,V] in CSR form, duplicates summed (scipy's C++ conversion)
+        import scipy.sparse  # here, not at the top: 0.17 CPU s the glossy/MRT kinds and the hit-point bounces never need
+
         S = scipy.sparse.coo_matrix((vals, (rows, cols)), shape=(k, n_vertices)).tocsr()
         S.sum_duplicates()
         out["S_indptr"] = torch.from_numpy(S.indptr.astype(np.int64))
@@ -1463,6 +1480,8 @@ def _trace_direct(caster: RayCaster, mesh: Mesh, bands: int, samples: int, seed:
         return T0, None
     if hits is not None:
         return T0, TB  # [V, terms, C, n²]
+    import scipy.sparse
+
     S = scipy.sparse.vstack([
         scipy.sparse.csr_matrix((p["S_data"].numpy(), p["S_indices"].numpy(), p["S_indptr"].numpy()),
                                 shape=(p["T"].shape[0], n_cols)) for p in parts], format="csr")
@@ -1538,6 +1557,8 @@ def _trace_faces(caster: RayCaster, mesh: Mesh, bands: int, samples: int, seed: 
     meta["face_points"] = F
     S = None
     if record_hits:
+        import scipy.sparse
+
         S = scipy.sparse.vstack([
             scipy.sparse.csr_matrix((p["S_data"].numpy(), p["S_indices"].numpy(), p["S_indptr"].numpy()),
                                     shape=(p["T"].shape[0], F)) for p in parts], format="csr")

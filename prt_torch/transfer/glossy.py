@@ -8,8 +8,9 @@ Quantities per vertex p (lighting l is a *global* SH radiance vector, n² = ``ba
   (T_p)_ij = ∫ y_i(s) y_j(s) V_p(s) [n_p·s > 0] ds, so T_p l are the SH coefficients of the
   transferred incident radiance L(s) V_p(s), zeroed below the tangent plane (the
   "zero-hemisphere" transferred radiance of Sloan 2003 §3.2). Monte Carlo over one shared
-  stratified sphere set {s_k} with weights 4π/N: T_p = Σ_k w_k V_pk y(s_k) y(s_k)ᵀ, for a chunk
-  of vertices one GEMM ``W [k, N] @ YY [N, n⁴]`` with YY_k = vec(y(s_k) y(s_k)ᵀ).
+  stratified sphere set {s_k} with weights 4π/N: T_p = Σ_k w_k V_pk y(s_k) y(s_k)ᵀ, summed over
+  only each vertex's selected directions (:func:`outer_sums`: one rank-1 update per entry in a
+  compiled pass, ``kernels/glossy.c``; no dense ``[k, N]`` weights or ``[k, N, n²]`` hit buffer).
 * R_p (block-diagonal SH rotation, Kautz et al. 2002; Sloan 2003 §3.1): D(F_p) with F_p the
   rows (t, b, n) of ``Mesh.frames()``; R_p T_p l is the transferred radiance in the local
   frame (normal = +z, tangent = +x).
@@ -43,6 +44,7 @@ from ..scene import Mesh, RayCaster, default_workers
 from ..sh import blocks_to_dense, eval_sh, hemisphere_gram, rotation_blocks
 from .base import RunOptions, Transfer
 from .diffuse import HitBounce, boundary_nudge, hit_bounce, offset_origins, probe_fingerprint, record_probe_log
+from .ray_kernels import outer_accumulate, upper_rays
 from .sampling import uniform_sphere
 
 __all__ = [
@@ -57,6 +59,7 @@ __all__ = [
     "estimate_memory",
     "transferred_radiance",
     "unshadowed_transferred",
+    "outer_sums",
     "rotate_rows",
     "run_exit_transfer",
     "submesh",
@@ -106,20 +109,18 @@ def estimate_memory(vertices: int, n_out: int, n_in: int, samples: int, chunk_si
                     bounces: int = 0) -> int:
     """Bytes a glossy/MRT precompute holds at its peak: the float32 result once (each chunk is
     copied into it as it finishes: ``run_chunks``' sink; none when it is assembled in a file,
-    ``RunOptions.stream_result``) plus one chunk's working set (weights, rays, float64 matrices).
-    With ``bounces``: the chunk's interreflected part (:func:`transferred_radiance`) also holds
-    ``A [k, N, n²]`` float64 (what each direction brings: the pages its hits write), the hits'
-    exit transfers ``[H, n²]`` float64 (H up to the k·N/2 directions above the tangent planes),
-    their records and the hit estimator's per-batch buffers: counted as ``2 · k · N · n² · 8``
-    bytes — 400 MiB at k = N = 1024, n² = 25, which the estimate left out (Cornell box, glossy,
-    one bounce: 183 MiB estimated against 530–560 MiB measured, 170 of them without the bounce;
-    ``reports/benchmarks/precompute_estimate.md``, command-line section)."""
+    ``RunOptions.stream_result``) plus one chunk's working set (cosines, the upper pairs' indices, rays,
+    float64 matrices). No ``[N, n⁴]`` outer-product table and no dense ``[k, N]`` weights: the sums run
+    over each vertex's entries (:func:`outer_sums`). With ``bounces``: the chunk's interreflected part
+    (:func:`transferred_radiance`) holds the hits' exit transfers ``[H, n²]`` float64 (H up to the
+    k·N/2 directions above the tangent planes), their records and the hit estimator's per-batch
+    buffers: counted as ``k · N · n² · 8`` bytes (the ``[k, N, n²]`` hit buffer the sums once
+    scattered into is gone; ``reports/benchmarks/precompute_estimate.md``, command-line section)."""
     result = 0 if streamed else vertices * n_out * n_in * 4
-    chunk = chunk_size * (samples * (8 + 8 + 3 * 8 * 2 + 16) + n_in * n_in * 8 * 3 + n_out * n_in * 8 * 2)
+    chunk = chunk_size * (samples * (8 + 3 * 8 * 2 + 16) + n_in * n_in * 8 * 3 + n_out * n_in * 8 * 2)
     if bounces:
-        chunk += 2 * chunk_size * samples * n_in * 8
-    table = samples * n_in * n_in * 8  # YY [N, n⁴] with n_in = n²
-    return int(result + chunk + table)
+        chunk += chunk_size * samples * n_in * 8
+    return int(result + chunk)
 
 
 def memory_budget(max_memory: int | None) -> int:
@@ -130,16 +131,53 @@ def memory_budget(max_memory: int | None) -> int:
 
 
 class _Directions:
-    """Shared stratified sphere set with the outer-product table YY [N, n⁴] evaluated once."""
+    """Shared stratified sphere set: directions ``dirs [N, 3]`` float64 (and float32), weight 4π/N,
+    SH values ``Y [N, n²]`` float64 evaluated once. (No ``[N, n⁴]`` table of outer products, 8·N·n⁴
+    bytes: the sums take y(s) yᵀ per entry, :func:`outer_sums`.)"""
 
     def __init__(self, bands: int, samples: int, seed: int):
         self.dirs, w = uniform_sphere(samples, seed)  # [N,3] float64, weights 4π/N
         self.weight = float(w[0])
-        Y = eval_sh(self.dirs, bands)
-        self.Y = Y  # [N, n²]
+        self.Y = eval_sh(self.dirs, bands)  # [N, n²]
         self.dirs32 = np.ascontiguousarray(self.dirs.numpy(), np.float32)
-        self.YY = (Y[:, :, None] * Y[:, None, :]).reshape(samples, -1)  # [N, n⁴]
         self.n2 = bands * bands
+
+
+#: entries per torch step of :func:`outer_sums` without the compiled pass ([B, n², n²] float64 at a time)
+OUTER_BATCH = 2048
+
+
+def outer_sums(k: int, rows: torch.Tensor, dirs: torch.Tensor, Y: torch.Tensor, c: float,
+               R: torch.Tensor | None = None) -> torch.Tensor:
+    """``S [k, n², n²]`` float64 with S[p] = c · Σ_{e: rows_e = p} y(s_{dirs_e}) r_eᵀ, r_e = ``R[e]``
+    or (None) y(s_{dirs_e}): the Monte Carlo sums of T_p (Sloan et al. 2002 §4–5; module docstring)
+    over only the entries given — a vertex's selected (direction, hit) pairs — instead of dense
+    ``[k, N]`` / ``[k, N, n²]`` buffers multiplied by the whole set (issue 42 §2).
+
+    ``rows, dirs int64 [E]`` (``rows`` nondecreasing: entries grouped by vertex, as ``torch.nonzero``
+    gives them); ``Y float64 [N, n²]``; ``R float64 [E, n²]`` or None. The compiled pass
+    (:func:`~prt_torch.transfer.ray_kernels.outer_accumulate`) adds each vertex's entries in their
+    order (bits independent of chunking and threads); without it torch adds ``OUTER_BATCH`` entries'
+    outer products at a time with ``index_add_`` (the same sums, float64 rounding apart)."""
+    n2 = Y.shape[1]
+    S = torch.zeros(k, n2, n2, dtype=torch.float64)
+    E = int(rows.numel())
+    if E == 0:
+        return S
+    if bool((rows[1:] < rows[:-1]).any()) or int(rows[0]) < 0 or int(rows[-1]) >= k:
+        raise ValueError(f"outer_sums: rows must be nondecreasing in [0, {k}) (entries grouped by vertex); got rows in "
+                         f"[{int(rows.min())}, {int(rows.max())}], sorted: {not bool((rows[1:] < rows[:-1]).any())}")
+    ptr = torch.zeros(k + 1, dtype=torch.int64)
+    ptr[1:] = torch.cumsum(torch.bincount(rows, minlength=k), 0)
+    Rn = None if R is None else R.to(torch.float64).contiguous().numpy()
+    if outer_accumulate(S.numpy(), ptr.numpy(), dirs.numpy(), Y.numpy(), c, Rn, threads=torch.get_num_threads()):
+        return S
+    flat = S.view(k, n2 * n2)
+    for a in range(0, E, OUTER_BATCH):  # batches of entries (not of vertices): [B, n², n²] at a time
+        y = Y[dirs[a:a + OUTER_BATCH]]
+        r = y if R is None else R[a:a + OUTER_BATCH].to(torch.float64)
+        flat.index_add_(0, rows[a:a + OUTER_BATCH], ((y * c)[:, :, None] * r[:, None, :]).reshape(-1, n2 * n2))
+    return S
 
 
 def unshadowed_transferred(normals: torch.Tensor, bands: int, blocks: list[torch.Tensor] | None = None) -> torch.Tensor:
@@ -188,14 +226,21 @@ def transferred_radiance(caster: RayCaster | None, points: torch.Tensor, normals
     room (Cornell box) 'control' had 1.5–1.7× the error of 'plain' (N = 1024)
     (reports/benchmarks/precompute_error.md, glossy section)."""
     cos = normals.to(torch.float64) @ directions.dirs.T  # [k, N]
-    i, j = torch.nonzero(cos > 0, as_tuple=True)
-    W = torch.zeros_like(cos)
+    k = cos.shape[0]
+    fused = None
+    if caster is not None:
+        o_v = offset_origins(points.to(torch.float64).numpy(), normals.to(torch.float64).numpy(), caster.eps,
+                             None if nudge is None else nudge.numpy()).astype(np.float32)  # the one offset rule
+        fused = upper_rays(cos.numpy(), o_v, directions.dirs32)  # the rays above each tangent plane in one compiled pass
+    if fused is not None:
+        i, j, o, d = torch.from_numpy(fused[0]), torch.from_numpy(fused[1]), fused[2], fused[3]
+    else:  # the same pairs, origins and directions (upper_rays' numpy equivalent)
+        i, j = torch.nonzero(cos > 0, as_tuple=True)  # grouped by vertex (row-major): outer_sums' entries
+        if caster is not None:
+            o, d = o_v[i.numpy()], directions.dirs32[j.numpy()]
     T_ind = None
     open_v = None  # [k] bool: the rows estimated by the control variate
     if caster is not None and i.numel():
-        o = offset_origins(points.to(torch.float64).numpy(), normals.to(torch.float64).numpy(), caster.eps,
-                           None if nudge is None else nudge.numpy())[i.numpy()].astype(np.float32)  # the one offset rule
-        d = directions.dirs32[j.numpy()]
         if bounce is None:
             vis = ~torch.from_numpy(caster.trace(o, d, "occluded"))
         else:
@@ -210,22 +255,20 @@ def transferred_radiance(caster: RayCaster | None, points: torch.Tensor, normals
             vid = (torch.arange(points.shape[0]) if ids is None else ids.to(torch.int64))[i].numpy()
             t_hit = bounce.hits.exit_transfer(caster, th, bary, vid[h], j.numpy()[h], _LUMA)  # [H, n²] at the hit itself
             h = torch.from_numpy(h)
-            A = torch.zeros(cos.shape[0], cos.shape[1], t_hit.shape[1], dtype=torch.float64)
-            A[i[h], j[h]] = t_hit  # [k, N, n²]: radiance transfer arriving along each blocked direction
-            T_ind = torch.matmul((directions.Y * directions.weight).T, A)  # [k, n², n²], one batched GEMM
+            # Σ_s w y(s) t_q(s)ᵀ over each vertex's front hits: the radiance transfer arriving along its blocked directions
+            T_ind = outer_sums(k, i[h], j[h], directions.Y, directions.weight, R=t_hit)  # [k, n², n²]
         if estimator == "auto":  # per vertex: the control variate where at least half of its upper directions are open
-            k = cos.shape[0]
             open_v = torch.bincount(i[vis], minlength=k) * 2 >= torch.bincount(i, minlength=k)  # [k]
             sel = vis != open_v[i]  # the blocked directions of open vertices, the visible ones of the others
         else:
-            open_v = torch.full((cos.shape[0],), estimator == "control")
+            open_v = torch.full((k,), estimator == "control")
             sel = ~vis if estimator == "control" else vis
-        W[i[sel], j[sel]] = directions.weight  # control rows: the blocked directions, subtracted below
+        # Σ_s w y(s) y(s)ᵀ over the selected directions (control rows: the blocked ones, subtracted below)
+        T = outer_sums(k, i[sel], j[sel], directions.Y, directions.weight)
     else:
-        W[i, j] = directions.weight
-    T = (W @ directions.YY).reshape(-1, directions.n2, directions.n2)
+        T = outer_sums(k, i, j, directions.Y, directions.weight)  # every direction above the tangent plane
     if caster is not None and estimator != "plain" and open_v is None:  # no direction above any tangent plane
-        open_v = torch.full((cos.shape[0],), True)
+        open_v = torch.full((k,), True)
     if open_v is not None and bool(open_v.any()):
         U = unshadowed_transferred(normals, int(round(math.sqrt(directions.n2))), blocks)
         T = torch.where(open_v[:, None, None], U - T, T)

@@ -1,7 +1,8 @@
 """Compiled passes of the diffuse precompute: the uniform set's rays (below), the qmc set's
 rotated Hammersley rays per vertex or per hit (:func:`qmc_rays_native`), the estimators' choice of
-rays (:func:`select_rays`), their SH sums per vertex (:func:`sh_accumulate`) and the bounce
-estimator's guided first-hit rays (:func:`guided_rays_native`, ``kernels/guided.c``) — issue 42.
+rays (:func:`select_rays`), their SH sums per vertex (:func:`sh_accumulate`), the bounce
+estimator's guided first-hit rays (:func:`guided_rays_native`, ``kernels/guided.c``) and the
+glossy / MRT transferred-radiance sums per vertex (:func:`outer_accumulate`, ``kernels/glossy.c``) — issue 42.
 
 For a chunk of k vertices and N shared sample directions, the rays traced are the pairs
 (vertex v, direction s) with n_v · s > 0, grouped by vertex in row-major order (course notes
@@ -24,7 +25,8 @@ import numpy as np
 
 from .._native import LIBRARIES, compile_library, kernel_sources
 
-__all__ = ["available", "upper_rays", "qmc_rays_native", "select_rays", "sh_accumulate", "guided_rays_native"]
+__all__ = ["available", "upper_rays", "qmc_rays_native", "select_rays", "sh_accumulate", "guided_rays_native", "outer_accumulate",
+           "luma_mix"]
 
 #: the C source (prt_torch/kernels/raygen.c) and compiler flags
 _SOURCES, _FLAGS = LIBRARIES["raygen"][0], list(LIBRARIES["raygen"][1])
@@ -47,6 +49,8 @@ def _lib() -> ctypes.CDLL | None:
                     "prt_select_rays": [i64, i64, vp, vp, ctypes.c_double, ci, vp, vp, vp],
                     "prt_sh_accumulate": [i64, vp, i64, vp, vp, ctypes.c_double, ci, vp, vp],
                     "prt_guided_rays": [i64, i64, vp, vp, vp, vp, vp, vp, vp, vp, vp, vp, ci, ci, vp, vp, vp, ci],
+                    "prt_outer_accumulate": [i64, i64, vp, vp, vp, vp, ctypes.c_double, vp, ci],
+                    "prt_luma_mix": [i64, i64, i64, vp, vp, vp, vp],
                 })
                 if _state["lib"] is not None:
                     _state["lib"].prt_guided_rays.restype = i64
@@ -259,4 +263,64 @@ def guided_rays_native(M: int, hits: np.ndarray, tri: np.ndarray, u1: np.ndarray
                               f[6].ctypes.data, Ga, Gb, f[7].ctypes.data, D.ctypes.data, W.ctypes.data, int(threads or 1))
     if bad:
         raise ValueError(f"guided_rays_native: face {int(tri[bad - 1])} has no guide; accepted: faces with a guide row >= 0")
+    return True
+
+
+def outer_accumulate(T: np.ndarray, ptr: np.ndarray, dirs: np.ndarray, Y: np.ndarray, c: float,
+                     R: np.ndarray | None = None, threads: int | None = None) -> bool:
+    """``T[p] += c · Σ_e y(s_{dirs_e}) r_eᵀ`` over each vertex's entries ``ptr[p] <= e < ptr[p+1]``,
+    with ``r_e = R[e]`` or (``R`` None) ``y(s_{dirs_e})`` — the Monte Carlo sums of glossy transferred
+    radiance T_p (Sloan et al. 2002 §4–5; ``glossy.transferred_radiance``) in one compiled pass
+    (``kernels/glossy.c``, ``prt_outer_accumulate``), in place; False without the library (the caller
+    takes its torch path).
+
+    ``T float64 [k, n, n]`` C-contiguous (added to); ``ptr int64 [k+1]`` (0 first, nondecreasing, E
+    last); ``dirs int64 [E]`` rows of ``Y float64 [N, n]``; ``R float64 [E, n]`` or None. Each vertex's
+    entries are added in their order (the same bits for any chunking or thread count); OpenMP over
+    vertices with ``threads`` (default 1, as :func:`upper_rays`)."""
+    lib = _lib()
+    if lib is None:
+        return False
+    k, n = T.shape[0], Y.shape[1] if Y.ndim == 2 else -1
+    E = dirs.shape[0]
+    if T.dtype != np.float64 or not T.flags.c_contiguous or T.shape != (k, n, n) or ptr.shape != (k + 1,) \
+            or dirs.ndim != 1 or (R is not None and R.shape != (E, n)):
+        raise ValueError(f"outer_accumulate: T {T.dtype} {T.shape}, ptr {ptr.shape}, dirs {dirs.shape}, Y {Y.shape}, R "
+                         f"{None if R is None else R.shape}; accepted: contiguous float64 [k, n, n], [k+1], [E], [N, n] "
+                         "and [E, n] or None")
+    p = np.ascontiguousarray(ptr, np.int64)
+    d = np.ascontiguousarray(dirs, np.int64)
+    if int(p[0]) != 0 or int(p[-1]) != E or (k and bool((p[1:] < p[:-1]).any())) \
+            or (E and (int(d.min()) < 0 or int(d.max()) >= Y.shape[0])):
+        # the C reads R and Y by these indices unchecked: out of range is an out-of-bounds read
+        raise ValueError(f"outer_accumulate: ptr from {int(p[0])} to {int(p[-1])} (E = {E}), directions in "
+                         f"[{int(d.min()) if E else 0}, {int(d.max()) if E else 0}]; accepted: ptr 0 .. E nondecreasing, "
+                         f"directions in [0, {Y.shape[0]})")
+    y = np.ascontiguousarray(Y, np.float64)
+    r = None if R is None else np.ascontiguousarray(R, np.float64)
+    lib.prt_outer_accumulate(k, n, p.ctypes.data, d.ctypes.data, y.ctypes.data, None if r is None else r.ctypes.data,
+                             float(c), T.ctypes.data, int(threads or 1))
+    return True
+
+
+def luma_mix(out: np.ndarray, rho: np.ndarray, x: np.ndarray, w: np.ndarray) -> bool:
+    """``out[h] = ((ρ_h0 x_h0) w0 + (ρ_h1 x_h1) w1) + (ρ_h2 x_h2) w2``: a coloured hit's exit transfer made
+    monochrome by the luminance weights (the glossy bounce, ``diffuse.HitBounce.exit_transfer``), in one
+    compiled pass (``kernels/glossy.c``, ``prt_luma_mix``) with the torch steps' operations in their order
+    (the same bits); False without the library.
+
+    ``out float64 [H, n]`` C-contiguous (written); ``rho float64 [H, 3]``; ``x float64 [H, C, n]`` (channel c
+    read from min(c, C - 1)); ``w float64 [3]``."""
+    lib = _lib()
+    if lib is None:
+        return False
+    H, n = out.shape if out.ndim == 2 else (-1, -1)
+    if out.dtype != np.float64 or not out.flags.c_contiguous or rho.shape != (H, 3) or x.ndim != 3 \
+            or x.shape[0] != H or x.shape[2] != n or x.shape[1] < 1 or np.shape(w) != (3,):
+        raise ValueError(f"luma_mix: out {out.dtype} {out.shape}, rho {rho.shape}, x {x.shape}, w {np.shape(w)}; accepted: "
+                         "contiguous float64 [H, n], [H, 3], [H, C, n] with C >= 1, [3]")
+    r = np.ascontiguousarray(rho, np.float64)
+    xx = np.ascontiguousarray(x, np.float64)
+    ww = np.ascontiguousarray(w, np.float64)
+    lib.prt_luma_mix(H, n, xx.shape[1], r.ctypes.data, xx.ctypes.data, ww.ctypes.data, out.ctypes.data)
     return True

@@ -220,11 +220,32 @@ def tent_quadrature(M: int, q: int | None = None) -> tuple[torch.Tensor, torch.T
     return X.clone(), W.clone()
 
 
+def _square_taps(ab: torch.Tensor, M: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The (at most) four nonzero tents at square points ``[N, 2]``: (index ``[N, 4]`` int64 into the M²
+    basis, value ``[N, 4]`` float64), each value the bits :func:`_tents_at_square` gives that tent (the
+    same hat formula at the two nodes around each coordinate; the other hats are 0 there)."""
+    nodes = tent_nodes(M).to(ab.dtype)
+    h = 2.0 / (M - 1)
+    taps = []
+    for c in (0, 1):
+        i0, _ = _hat_taps(ab[:, c], M)
+        i = torch.stack([i0, i0 + 1], -1)  # [N, 2] the nodes around the coordinate
+        taps.append((i, (1.0 - (ab[:, c:c + 1] - nodes[i]).abs() / h).clamp_min(0)))
+    (ia, ha), (ib, hb) = taps
+    idx = (ia[:, :, None] * M + ib[:, None, :]).reshape(-1, 4)
+    return idx, (ha[:, :, None] * hb[:, None, :]).reshape(-1, 4)
+
+
 def tent_gram(M: int, q: int | None = None) -> torch.Tensor:
-    """G_jk = ∫_H g_j g_k dω (Lehtinen & Kautz eq. 7) by quadrature, ``[M², M²]`` float64."""
+    """G_jk = ∫_H g_j g_k dω (Lehtinen & Kautz eq. 7) by quadrature, ``[M², M²]`` float64. Each point
+    adds its 4 × 4 nonzero products (g_j W) g_k (:func:`_square_taps`) instead of a dense ``[N, M²]``
+    GEMM (issue 42 §2: the MRT precompute's fixed cost; the same terms, summed in another order)."""
     X, W = tent_quadrature(M, q)
-    g = _tents_at_square(X, M)
-    G = (g * W[:, None]).T @ g
+    idx, g = _square_taps(X, M)
+    gw = g * W[:, None]
+    G = torch.zeros(M * M * M * M, dtype=torch.float64)
+    G.index_add_(0, (idx[:, :, None] * (M * M) + idx[:, None, :]).reshape(-1), (gw[:, :, None] * g[:, None, :]).reshape(-1))
+    G = G.reshape(M * M, M * M)
     return 0.5 * (G + G.T)
 
 
@@ -245,9 +266,13 @@ def change_of_basis(M: int, bands: int, q: int | None = None) -> torch.Tensor:
     """C_ji = ∫_H Y_i g_j dω (Lehtinen & Kautz eq. 7), ``[M², m²]`` float64 (m = bands)."""
     bands = check_int("bands", bands, 1, MAX_BANDS)
     X, W = tent_quadrature(M, q)
-    g = _tents_at_square(X, M)
+    idx, g = _square_taps(X, M)  # the 4 nonzero tents per point, not the dense [N, M²]
     y = eval_sh(square_to_hemisphere(X), bands, check=False)
-    return (g * W[:, None]).T @ y
+    gw = g * W[:, None]
+    C = torch.zeros(M * M, bands * bands, dtype=torch.float64)
+    for t in range(4):  # the four taps (not a loop over points)
+        C.index_add_(0, idx[:, t], gw[:, t:t + 1] * y)
+    return C
 
 
 def tent_project(fn, M: int, q: int | None = None) -> torch.Tensor:
