@@ -2,7 +2,7 @@
 failed before its fix. Small scenes and cubes (R <= 8) so the module runs in seconds."""
 from __future__ import annotations
 
-
+import pytest
 import torch
 
 from prt_torch.cli import main as cli_main
@@ -44,3 +44,24 @@ def test_cli_wavelet_takes_hit_offset(tmp_path, capsys):
     assert cli_main(["precompute", "cornell_box", "--kind", "wavelet", "--res", "4", "--hit-offset", "0.5",
                      "-o", str(tmp_path / "bad.prt")]) == 2
     assert "--hit-offset" in capsys.readouterr().err and not (tmp_path / "bad.prt").exists()
+
+
+def test_cube_light_refuses_a_cap_angle_outside_0_to_180_degrees(tmp_path, capsys):
+    """``prt light`` and the SH path refuse a cap half-angle outside (0°, 180°] (analytic.cap_zonal), but
+    the cube rasteriser the wavelet path uses took -1° as a 1° cap (the same cos, so the same 'exact
+    power') and 200° as an almost-constant light, and ``prt relight`` wrote their results. The bound
+    itself is a light: a 180° cap of radiance 1 covers the sphere, the constant light 1 in every texel."""
+    from prt_torch.lighting.haar import cube_light
+
+    for deg in (-1, 0, 200):
+        with pytest.raises(ValueError, match="half_angle"):
+            cube_light(f"cap:direction=0,0,1;half_angle_deg={deg};intensity=1", 4)
+    whole, _ = cube_light("cap:direction=0.3,0.2,1;half_angle_deg=180;radiance=1", 4)
+    assert torch.allclose(whole, torch.ones_like(whole), atol=1e-12, rtol=0)
+    f = tmp_path / "w.prt"
+    assert cli_main(["precompute", "occluder_over_plane", "--kind", "wavelet", "--res", "2", "--terms", "8", "--workers",
+                     "1", "--no-progress", "-o", str(f)]) == 0
+    out = tmp_path / "o.npy"
+    assert cli_main(["relight", str(f), "--light", "cap:direction=0,0,1;half_angle_deg=-1;intensity=1", "-o", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "half_angle" in err and "Traceback" not in err and not out.exists()
