@@ -65,3 +65,40 @@ def test_cube_light_refuses_a_cap_angle_outside_0_to_180_degrees(tmp_path, capsy
     assert cli_main(["relight", str(f), "--light", "cap:direction=0,0,1;half_angle_deg=-1;intensity=1", "-o", str(out)]) == 2
     err = capsys.readouterr().err
     assert "half_angle" in err and "Traceback" not in err and not out.exists()
+
+
+@pytest.mark.parametrize("damage", ["index_out_of_range", "index_negative", "index_shape", "scale_shape", "scale_nan"])
+def test_a_corrupt_wavelet_file_is_refused_in_one_line(tmp_path, capsys, damage):
+    """A wavelet file whose sparse arrays disagree (a Haar index outside the 6R² coefficients, aux
+    arrays of another shape, a NaN scale) went through ``prt relight`` as a traceback (IndexError,
+    bincount, a size mismatch) or, for the NaN, was written as a result. Now ``Transfer.load`` (every
+    command) refuses it in one line naming the file and the array; nothing is written."""
+    f = tmp_path / "w.prt"
+    assert cli_main(["precompute", "occluder_over_plane", "--kind", "wavelet", "--res", "4", "--terms", "20", "--workers",
+                     "1", "--no-progress", "-o", str(f)]) == 0
+    tr = Transfer.load(f)
+    P = 6 * 4 * 4
+    idx, sc = tr.aux["index"].clone(), tr.aux["scale"].clone()
+    assert sc.shape == (tr.data.shape[0], 3)  # one scale per vertex and Haar level: log2(4) + 1
+    if damage == "index_out_of_range":
+        idx[5, 3] = P  # one past the last coefficient
+    elif damage == "index_negative":
+        idx[0, 0] = -1
+    elif damage == "index_shape":
+        idx = idx[:, :10].contiguous()
+    elif damage == "scale_shape":
+        sc = sc[:, :2].contiguous()
+    else:
+        sc[7, 1] = float("nan")
+    tr.aux["index"], tr.aux["scale"] = idx, sc
+    bad = tmp_path / "bad.prt"
+    tr.save(bad)
+    capsys.readouterr()
+    out = tmp_path / "o.npy"
+    for argv in (["relight", str(bad), "--light", "sky", "-o", str(out)], ["info", str(bad)]):
+        assert cli_main(argv) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and "bad.prt" in err and "aux." in err and "Traceback" not in err
+    assert not out.exists()
+    if damage.startswith("index_") and damage != "index_shape":
+        assert f"0..{P - 1}" in err
