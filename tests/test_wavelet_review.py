@@ -102,3 +102,30 @@ def test_a_corrupt_wavelet_file_is_refused_in_one_line(tmp_path, capsys, damage)
     assert not out.exists()
     if damage.startswith("index_") and damage != "index_shape":
         assert f"0..{P - 1}" in err
+
+
+def test_trade_plot_tells_the_shipped_lights_apart(tmp_path, monkeypatch):
+    """trade.png's legend cut every light spec to 28 characters, so the shipped allfrequency config's three
+    caps (0.5°, 20°, 40°, the same direction) all read 'cap:direction=0.3,0.2,1;half wavelets'. Each
+    wavelet line's label now names its own light: the caps by their half-angle (the config's values)."""
+    from pathlib import Path
+
+    import yaml
+
+    from prt_torch.harness import report
+
+    lights = yaml.safe_load((Path(__file__).parents[1] / "configs" / "allfrequency.yaml").read_text())["lights"]
+    assert len(lights) == 5
+    rows = [{"light": s, "method": m, "N": 10, "bands": 3, "error": 0.1, "relight_s": 1e-4}
+            for s in lights for m in ("wavelet", "sh")]
+    figs = []
+    monkeypatch.setattr(report, "_save_figure", lambda fig, path: figs.append(fig) or path)
+    report.plot_trade({"headline": [{"light": s} for s in lights], "rows": rows}, tmp_path)
+    labels = [t.get_text() for t in figs[0].axes[0].get_legend().get_texts() if t.get_text() != "SH"]
+    assert len(labels) == 5 and len(set(labels)) == 5
+    for deg in ("0.5", "20", "40"):
+        assert sum(f"half_angle_deg={deg}" in x for x in labels) == 1
+    assert any(x.startswith("sky") for x in labels) and any(x.startswith("studio") for x in labels)
+    import matplotlib.pyplot as plt
+
+    plt.close("all")
