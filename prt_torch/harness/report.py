@@ -293,9 +293,10 @@ def trade_lines(t: dict) -> list[str]:
     L = ["## SH vs wavelets: the all-frequency trade", "",
          f"Each light cut to N Haar terms ({t['selection']} selection; R = {t['res']}, the stored transfer, "
          f"{t['bytes_per_vertex']} B/vertex) and SH at n bands projected from the same visibility (n² floats per vertex), "
-         "each against the exact result (every term of the light): relative L2 over vertices and RGB. Times: median per "
-         "relight in one process; SH/wavelet: the two settings timed paired in this run (> 1: wavelets faster; ⚠: "
-         "contention).", "",
+         "each against the exact result (every term of the light): relative L2 over vertices and RGB. Times: "
+         f"{'one thread, ' if t.get('threads') == 1 else ''}median per relight in one process; SH/wavelet: the two "
+         f"settings timed paired in this run{' in one thread by its CPU time' if t.get('ratio_clock') == 'thread_time' else ''} "
+         "(> 1: wavelets faster; ⚠: contention).", "",
          "| light | SH to 5% | wavelets to 5% | SH/wavelet | SH to 1% | wavelets to 1% | SH/wavelet | best SH | best wavelets |",
          "|---|---|---|---|---|---|---|---|---|"]
     for h in t["headline"]:
