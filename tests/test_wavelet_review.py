@@ -166,3 +166,39 @@ def test_trade_times_each_method_in_one_thread_and_pairs_by_cpu_time(tmp_path, m
     res = json.loads((tmp_path / "r" / "t" / "results.json").read_text())
     assert res["trade"]["threads"] == 1 and res["trade"]["ratio_clock"] == "thread_time"
     assert "one thread by its CPU time" in (tmp_path / "r" / "t" / "report.md").read_text()
+
+
+def test_wavelet_run_refused_before_work_when_its_files_do_not_fit_the_disk(tmp_path, monkeypatch, capsys):
+    """A wavelet result too large for memory streams to disk, which nothing checked: `prt precompute convex
+    --size 2000000 --kind wavelet --res 128 --terms 98304` (915 GiB stored) started tracing and had written
+    12 GiB of chunks in ten minutes. The disk estimate (chunks, the rows' file when streamed, the output)
+    is checked against what a run really writes (its kept chunk files and its output file, measured), then
+    a disk reported smaller than it refuses the CLI run in one line before any work."""
+    import shutil
+
+    from prt_torch.scene import builtin
+    from prt_torch.transfer import RunOptions
+    from prt_torch.transfer.wavelet import bytes_per_vertex, precompute_wavelet, wavelet_disk_bytes
+
+    mesh = builtin("occluder_over_plane", "small")
+    sd = tmp_path / "o.prt.state"
+    tr = precompute_wavelet(mesh, res=4, terms=20, run=RunOptions(state_dir=sd, keep_state=True, workers=1, chunk_size=700))
+    tr.save(tmp_path / "o.prt")
+    written = (tmp_path / "o.prt").stat().st_size + sum(f.stat().st_size for f in sd.glob("chunk_*.prt"))
+    stored = mesh.num_vertices * bytes_per_vertex(20, 8, 96, 3, 1)
+    need = wavelet_disk_bytes(mesh, stored, streamed=False)
+    assert abs(need - written) <= 0.05 * written  # headers (JSON metadata) are the difference
+
+    usage = shutil.disk_usage(tmp_path)
+    out = tmp_path / "c.prt"
+    argv = ["precompute", "occluder_over_plane", "--kind", "wavelet", "--res", "4", "--terms", "20", "--workers", "1",
+            "--no-progress", "-o", str(out)]
+    monkeypatch.setattr(shutil, "disk_usage", lambda p: usage._replace(free=int(0.9 * need)))
+    capsys.readouterr()
+    assert cli_main(argv) == 2
+    err = [x for x in capsys.readouterr().err.strip().splitlines() if "error" in x]
+    assert len(err) == 1 and "wavelet transfer of 2251 vertices" in err[0] and "are free" in err[0] and "accepted:" in err[0]
+    assert "Traceback" not in err[0]
+    assert not out.exists() and not (tmp_path / "c.prt.state").exists()
+    monkeypatch.setattr(shutil, "disk_usage", lambda p: usage._replace(free=int(1.2 * need)))
+    assert cli_main(argv) == 0 and out.exists()

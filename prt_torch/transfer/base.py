@@ -239,6 +239,11 @@ class Transfer:
         return f"Transfer(kind={self.kind!r}, data={tuple(self.data.shape)}, mesh={self.mesh!r})"
 
 
+def mesh_bytes(mesh: Mesh) -> int:
+    """Bytes the mesh's tensors hold (vertices, faces, normals, frames, albedo)."""
+    return int(sum(t.numel() * t.element_size() for t in mesh.to_tensors("").values()))
+
+
 def check_transfer_file(path: Path, meta: dict, shapes: dict[str, list[int]]) -> None:
     """Consistency of a transfer file (``io.register_check('transfer/')``): the data tensor
     against the recorded shape, the mesh rows, the bands and the matrix shape. Raises
