@@ -202,3 +202,18 @@ def test_wavelet_run_refused_before_work_when_its_files_do_not_fit_the_disk(tmp_
     assert not out.exists() and not (tmp_path / "c.prt.state").exists()
     monkeypatch.setattr(shutil, "disk_usage", lambda p: usage._replace(free=int(1.2 * need)))
     assert cli_main(argv) == 0 and out.exists()
+
+
+def test_relight_refuses_selection_for_an_sh_transfer(tmp_path, capsys):
+    """``--terms`` on an SH transfer was refused, ``--selection`` (the light's Haar-term choice) silently
+    ignored: a user asking for area-weighted terms of an SH file got the SH result unannounced."""
+    f = tmp_path / "d.prt"
+    assert cli_main(["precompute", "convex", "--kind", "diffuse", "--bands", "2", "--samples", "16", "--workers", "1",
+                     "--no-progress", "-o", str(f)]) == 0
+    out = tmp_path / "o.npy"
+    capsys.readouterr()
+    assert cli_main(["relight", str(f), "--light", "sky", "--selection", "area", "-o", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.endswith("--selection area applies to wavelet transfers; a diffuse transfer takes the light in its own SH bands")
+    assert not out.exists()
+    assert cli_main(["relight", str(f), "--light", "sky", "-o", str(out)]) == 0 and out.exists()
