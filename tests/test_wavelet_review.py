@@ -217,3 +217,15 @@ def test_relight_refuses_selection_for_an_sh_transfer(tmp_path, capsys):
     assert err.endswith("--selection area applies to wavelet transfers; a diffuse transfer takes the light in its own SH bands")
     assert not out.exists()
     assert cli_main(["relight", str(f), "--light", "sky", "-o", str(out)]) == 0 and out.exists()
+
+
+def test_precompute_reports_bytes_per_vertex(tmp_path, capsys):
+    """The issue asks for bytes/vertex reported; it was only in the file's metadata (``prt info``). The
+    summary line now says it: docs/wavelet.md's K·(bits/8 + 2) + 4·(scales), here K = 20 8-bit values,
+    int16 indices and a scale per Haar level of R = 4 (3 levels): 20·3 + 4·3 = 72."""
+    f = tmp_path / "w.prt"
+    capsys.readouterr()
+    assert cli_main(["precompute", "occluder_over_plane", "--kind", "wavelet", "--res", "4", "--terms", "20", "--workers",
+                     "1", "--no-progress", "-o", str(f)]) == 0
+    assert "data=(2251, 20), 72 B/vertex stored" in capsys.readouterr().err
+    assert Transfer.load(f).meta["bytes_per_vertex"] == 72
