@@ -229,3 +229,27 @@ def test_precompute_reports_bytes_per_vertex(tmp_path, capsys):
                      "1", "--no-progress", "-o", str(f)]) == 0
     assert "data=(2251, 20), 72 B/vertex stored" in capsys.readouterr().err
     assert Transfer.load(f).meta["bytes_per_vertex"] == 72
+
+
+def test_res_auto_without_lights_writes_strict_json_metadata(tmp_path, capsys):
+    """``--res auto`` with no ``--light`` recorded ``energy_kept: NaN`` (Python's token, not JSON: a strict
+    parser refuses the file's metadata) and printed 'res=32 keeps nan of the energy'. Nothing was measured:
+    the value is null and the line gives the reason alone."""
+    import json
+
+    from safetensors import safe_open
+
+    f = tmp_path / "w.prt"
+    capsys.readouterr()
+    assert cli_main(["precompute", "occluder_over_plane", "--kind", "wavelet", "--res", "auto", "--terms", "8", "--workers",
+                     "1", "--no-progress", "-o", str(f)]) == 0
+    err = capsys.readouterr().err
+    assert "prt precompute: res=32 (no lights given: the default R=32)" in err and "nan" not in err.lower()
+    with safe_open(str(f), framework="pt") as h:
+        raw = h.metadata()["prt_torch"]
+
+    def refuse(token):
+        raise ValueError(f"not JSON: {token}")
+
+    meta = json.loads(raw, parse_constant=refuse)  # NaN / Infinity are not JSON
+    assert meta["auto"]["res"]["value"] == 32 and meta["auto"]["res"]["energy_kept"] is None

@@ -195,7 +195,7 @@ def scene_required(results: dict) -> list[str]:
     elif "bounces" in m:
         items.append(f"bounces: {m['bounces']}")
     for k, d in (m.get("auto") or {}).items():
-        if "energy_kept" in d:  # bands, bands_out, M, the wavelet res: an energy target
+        if d.get("energy_kept") is not None:  # bands, bands_out, M, the wavelet res: an energy target (None: no lights)
             items.append(f"{k} = {d['value']} (auto): keeps {d['energy_kept']:.4f} of the energy, target {d['target']:g} — {d['reason']}")
         else:  # the transport res: a lobe-width rule (transfer.transport.choose_cube_res)
             items.append(f"{k} = {d['value']} (auto): {d['reason']}")
