@@ -253,3 +253,17 @@ def test_res_auto_without_lights_writes_strict_json_metadata(tmp_path, capsys):
 
     meta = json.loads(raw, parse_constant=refuse)  # NaN / Infinity are not JSON
     assert meta["auto"]["res"]["value"] == 32 and meta["auto"]["res"]["energy_kept"] is None
+
+
+def test_dense_size_of_a_coloured_transfer_counts_its_three_channels(tmp_path):
+    """``meta['bytes_per_vertex_dense']`` (what the sparse form is compared with) was 6R²·4 for a coloured
+    interreflected transfer too, which holds one pixel-basis transfer per colour: 3·6R²·4."""
+    f = tmp_path / "c.prt"
+    assert cli_main(["precompute", "cornell_box", "--kind", "wavelet", "--res", "4", "--terms", "16", "--bounces", "1",
+                     "--hit-samples", "2", "--workers", "1", "--no-progress", "-o", str(f)]) == 0
+    tr = Transfer.load(f)
+    assert tr.data.shape[1] == 3 and tr.meta["bytes_per_vertex_dense"] == 3 * 6 * 4 * 4 * 4
+    g = tmp_path / "g.prt"
+    assert cli_main(["precompute", "occluder_over_plane", "--kind", "wavelet", "--res", "4", "--terms", "16", "--workers",
+                     "1", "--no-progress", "-o", str(g)]) == 0
+    assert Transfer.load(g).meta["bytes_per_vertex_dense"] == 6 * 4 * 4 * 4

@@ -512,7 +512,7 @@ def precompute_wavelet(
         "hit_samples": hit_samples if bounces else None, "hit_offset": hit_offset if bounces else None,
         "scales": scales if bits != 32 else "none (float32 values)",
         "bytes_per_vertex": bytes_per_vertex(terms, bits, P, n_scales, C),
-        "bytes_per_vertex_dense": P * 4,
+        "bytes_per_vertex_dense": P * 4 * C,  # the pixel-basis transfer(s) in float32: one per colour when coloured
         "index_dtype": str(_index_dtype(P)).replace("torch.", ""),
         "nonzero_per_vertex": float(cat["nnz"].float().mean()),
         "truncation_rel_l2_mean": float(rel(dropped)[lit].mean()) if bool(lit.any()) else 0.0,
