@@ -37,7 +37,7 @@ FORMAT = "prt_torch"
 FORMAT_VERSION = 1
 
 __all__ = ["save", "load", "load_meta", "atomic_path", "atomic_write_text", "atomic_write_json", "jsonable", "check_writable",
-           "check_outputs", "strict_json", "describe", "register_check", "format_bytes", "FORMAT_VERSION", "load_mmap",
+           "check_outputs", "check_disk_space", "strict_json", "describe", "register_check", "format_bytes", "FORMAT_VERSION", "load_mmap",
            "scratch_rows", "streamed_npy", "load_mapped"]
 
 
@@ -60,6 +60,22 @@ def atomic_path(path: str | os.PathLike, overwrite: bool = True) -> Iterator[Pat
     finally:
         if tmp.exists():
             tmp.unlink()
+
+
+def check_disk_space(path: str | os.PathLike, need: int, what: str, accepted: str, have: int = 0) -> None:
+    """Refuse with ValueError (before any work) when the disk that will hold ``path`` (its nearest
+    existing ancestor) has less free space than the ``need`` bytes ``what`` will write there, less
+    the ``have`` bytes already written (a resumed run's chunks), plus 5%. One line: what, the
+    bytes, the place, the free space and ``accepted``."""
+    import shutil
+
+    anc = Path(path).resolve()
+    while not anc.exists() and anc != anc.parent:
+        anc = anc.parent
+    free = shutil.disk_usage(anc).free
+    if need - have > 0.95 * free:
+        raise ValueError(f"{what} need {format_bytes(need - have)} at {str(path)!r}, where {format_bytes(free)} are free; "
+                         f"accepted: {accepted}")
 
 
 def format_bytes(b: float) -> str:

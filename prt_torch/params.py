@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import math
 import numbers
+import re
 from typing import Any, Iterable
 
 from ._checks import describe
@@ -237,9 +238,14 @@ def check_kwargs(fn: Any, kwargs: dict[str, Any], what: str, hidden: Iterable[st
         raise ValueError(f"{what}: needs {', '.join(repr(shown.get(n, n)) for n in missing)}; accepted: {accepted}")
 
 
+#: a number in exponent notation without the '.' YAML 1.1 (PyYAML) needs to read it as a float: 1e-3, 2E6, -5e+2
+_EXPONENT_FLOAT = re.compile(r"[-+]?(?:\d+\.?\d*|\.\d+)[eE][-+]?\d+")
+
+
 def parse_value(text: str) -> Any:
     """A value typed as text: YAML scalars and lists (``3``, ``0.5``, ``true``, ``null``,
-    ``[2, 4]``, ``phong``) and comma-separated numbers ``0.3,0.2,1`` (a list of floats)."""
+    ``[2, 4]``, ``phong``), numbers in exponent notation ``1e-3`` (a float; YAML 1.1 reads it as text)
+    and comma-separated numbers ``0.3,0.2,1`` (a list of floats)."""
     import yaml
 
     s = text.strip()
@@ -247,6 +253,8 @@ def parse_value(text: str) -> Any:
         v = yaml.safe_load(s) if s else None
     except yaml.YAMLError as e:
         raise ValueError(f"value {text!r} is not valid YAML ({str(e).splitlines()[0]})") from None
+    if isinstance(v, str) and _EXPONENT_FLOAT.fullmatch(v):  # '1e-3': a string to YAML 1.1 (it wants '1.0e-3')
+        return float(v)
     if isinstance(v, str) and "," in v and not v.startswith(("{", "[")):
         parts = [p.strip() for p in v.split(",") if p.strip()]
         try:

@@ -256,8 +256,10 @@ def _run(args, executor) -> int:
     tr.save(out, overwrite=args.overwrite)
     m = tr.meta
     for k, d in m.get("auto", {}).items():
-        print(f"prt precompute: {k}={d['value']} keeps {d['energy_kept']:.4f} of the energy ({d['reason']})", file=sys.stderr)
-    print(f"prt precompute: wrote {out} kind={tr.kind} data={tuple(tr.data.shape)} "
+        kept = "" if d.get("energy_kept") is None else f" keeps {d['energy_kept']:.4f} of the energy"  # None: nothing measured
+        print(f"prt precompute: {k}={d['value']}{kept} ({d['reason']})", file=sys.stderr)
+    stored = f", {m['bytes_per_vertex']} B/vertex stored" if "bytes_per_vertex" in m else ""  # the wavelet kind's sparse rows
+    print(f"prt precompute: wrote {out} kind={tr.kind} data={tuple(tr.data.shape)}{stored} "
           f"({m.get('shadow_decision', '')}; bounces used {m.get('bounces_used', m.get('bounces', 0))}; "
           f"{ray_summary(m)} in {m.get('seconds', 0):.1f} s)", file=sys.stderr)
     return 0

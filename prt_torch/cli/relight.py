@@ -61,7 +61,7 @@ def register(subparsers) -> None:
     p.add_argument("--light", required=True, help="built-in environment, analytic spec or image file")
     p.add_argument("--terms", type=int, default=None,
                    help="wavelet transfers: the light's N largest Haar terms (default: all 6R², exact)")
-    p.add_argument("--selection", default="transport", choices=["magnitude", "area", "transport"],
+    p.add_argument("--selection", default=None, choices=["magnitude", "area", "transport"],
                    help="wavelet transfers: how the N terms are chosen (Ng 2003 §5; default transport-weighted, measured in "
                         "reports/benchmarks/wavelet.md)")
     p.add_argument("--transfer", dest="source", default=None, metavar="TRANSFER.prt",
@@ -362,6 +362,13 @@ def check_plan(pl: dict) -> None:
                      "chunks), or a larger --memory-limit on a machine that has it")
 
 
+def _wavelet_options_only(args, why: str) -> None:
+    """Refuse ``--terms`` / ``--selection`` (the light's Haar terms) for an input that is not a wavelet transfer."""
+    for flag, v in (("--terms", args.terms), ("--selection", args.selection)):
+        if v is not None:
+            raise ValueError(f"{flag} {v} applies to wavelet transfers; {why}")
+
+
 def run(args) -> int:
     from .. import io
 
@@ -398,28 +405,30 @@ def run(args) -> int:
         print("prt relight: dry run: nothing written", file=__import__("sys").stderr)
         return 0
     if Path(args.transfer).is_dir():  # Green 2005 transport tables
-        if args.terms is not None:
-            raise ValueError(f"--terms {args.terms} applies to wavelet transfers; transport tables take the light in SH")
+        _wavelet_options_only(args, "transport tables take the light in SH")
         rad, what = _transport(args.transfer, args.light, args.view)
         transfer = None
     else:
         transfer, codec, enc = _load(args)
         if codec == "transport":  # a codec file of transport tables: transfer is the table's directory
-            if args.terms is not None:
-                raise ValueError(f"--terms {args.terms} applies to wavelet transfers; transport tables take the light in SH")
+            _wavelet_options_only(args, "transport tables take the light in SH")
             rad, what = _transport(transfer, args.light, args.view, args.transfer)
             transfer = None
+        elif transfer.kind != "wavelet":
+            _wavelet_options_only(args, f"a {transfer.kind} transfer takes the light in its own SH bands")
+        if transfer is None:
+            pass
         elif out.suffix.lower() == ".npy":  # streamed: each chunk written into the file's mapping as it is relit
             import torch
 
             with io.streamed_npy(out, (transfer.num_vertices, 3), "float32", overwrite=args.overwrite) as arr:
-                _, what = radiance(transfer, args.light, codec, enc, args.terms, args.selection, args.view,
+                _, what = radiance(transfer, args.light, codec, enc, args.terms, args.selection or "transport", args.view,
                                    out=torch.from_numpy(arr))
                 lo, hi = float(arr.min()), float(arr.max())
             print(f"wrote {out} ([{transfer.num_vertices}, 3] float32; {what}; radiance range [{lo:.4g}, {hi:.4g}])")
             return 0
         else:
-            rad, what = radiance(transfer, args.light, codec, enc, args.terms, args.selection, args.view)
+            rad, what = radiance(transfer, args.light, codec, enc, args.terms, args.selection or "transport", args.view)
     rgb = rad.numpy().astype(np.float32)
     if out.suffix.lower() == ".npy":
         with io.streamed_npy(out, rgb.shape, "float32", overwrite=args.overwrite) as arr:

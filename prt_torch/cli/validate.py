@@ -6,7 +6,9 @@ vertices, with no scale fit: the direct part (Mitsuba ``max_depth`` 1 against th
 shadowed pass) and the interreflected part (``max_depth`` B+1 minus 1 against the transfer's
 bounces), each with both sides' Monte Carlo noise. A glossy exit transfer is compared toward one
 view per vertex (direct and interreflected), with the engine's BRDF as a Mitsuba BSDF (the SH
-truncation bias reported apart). See docs/validate.md.
+truncation bias reported apart). A wavelet transfer (all-frequency, Ng 2003; every Haar term of the
+light) is compared under the environment's original image: ``--light-source image`` (required for it)
+with an environment file or built-in name (docs/wavelet.md). See docs/validate.md.
 
 Mitsuba 3 is optional: ``pip install 'prt-torch[validate]'``. A transfer kind or light the
 validator cannot express is refused by name before any work.
@@ -21,7 +23,7 @@ from pathlib import Path
 def register(subparsers) -> None:
     p = subparsers.add_parser("validate", help="compare a transfer's exit radiance with Mitsuba 3 path tracing",
                               description=__doc__.split("\n\n")[1])
-    p.add_argument("transfer", help="a diffuse or glossy (exit) transfer file (prt precompute)")
+    p.add_argument("transfer", help="a diffuse, glossy (exit) or wavelet transfer file (prt precompute)")
     p.add_argument("--light", required=True,
                    help="built-in environment, environment file or analytic spec (see prt light); its band-limited "
                         "radiance must be non-negative")

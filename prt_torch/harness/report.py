@@ -195,7 +195,7 @@ def scene_required(results: dict) -> list[str]:
     elif "bounces" in m:
         items.append(f"bounces: {m['bounces']}")
     for k, d in (m.get("auto") or {}).items():
-        if "energy_kept" in d:  # bands, bands_out, M, the wavelet res: an energy target
+        if d.get("energy_kept") is not None:  # bands, bands_out, M, the wavelet res: an energy target (None: no lights)
             items.append(f"{k} = {d['value']} (auto): keeps {d['energy_kept']:.4f} of the energy, target {d['target']:g} — {d['reason']}")
         else:  # the transport res: a lobe-width rule (transfer.transport.choose_cube_res)
             items.append(f"{k} = {d['value']} (auto): {d['reason']}")
@@ -293,9 +293,10 @@ def trade_lines(t: dict) -> list[str]:
     L = ["## SH vs wavelets: the all-frequency trade", "",
          f"Each light cut to N Haar terms ({t['selection']} selection; R = {t['res']}, the stored transfer, "
          f"{t['bytes_per_vertex']} B/vertex) and SH at n bands projected from the same visibility (n² floats per vertex), "
-         "each against the exact result (every term of the light): relative L2 over vertices and RGB. Times: median per "
-         "relight in one process; SH/wavelet: the two settings timed paired in this run (> 1: wavelets faster; ⚠: "
-         "contention).", "",
+         "each against the exact result (every term of the light): relative L2 over vertices and RGB. Times: "
+         f"{'one thread, ' if t.get('threads') == 1 else ''}median per relight in one process; SH/wavelet: the two "
+         f"settings timed paired in this run{' in one thread by its CPU time' if t.get('ratio_clock') == 'thread_time' else ''} "
+         "(> 1: wavelets faster; ⚠: contention).", "",
          "| light | SH to 5% | wavelets to 5% | SH/wavelet | SH to 1% | wavelets to 1% | SH/wavelet | best SH | best wavelets |",
          "|---|---|---|---|---|---|---|---|---|"]
     for h in t["headline"]:
@@ -315,6 +316,46 @@ def trade_lines(t: dict) -> list[str]:
     return L + [""]
 
 
+def light_labels(specs: list[str], width: int = 28) -> list[str]:
+    """Short legend labels for light specs, distinct where the specs are: a spec up to ``width``
+    characters as is; a longer analytic one as its type and the parameters that tell it from the
+    other lights of its type (``cap half_angle_deg=0.5``); a path as its file name; what is still
+    too long cut to ``width``, and any label still shared numbered (``#2``)."""
+    from pathlib import PurePath
+
+    from ..lighting.spec import parse_light_spec
+
+    def parsed(s: str) -> dict | None:
+        try:
+            return parse_light_spec(s)
+        except ValueError:
+            return None
+
+    ps = [parsed(s) for s in specs]
+    out = []
+    for s, d in zip(specs, ps):
+        if len(s) <= width:
+            out.append(s)
+        elif d is not None:
+            same = [e for e in ps if e is not None and e.get("type") == d.get("type")]
+            keys = [k for k in d if k != "type" and any(e.get(k) != d.get(k) for e in same)]
+            out.append(" ".join([str(d["type"])] + [f"{k}={_spec_value(d[k])}" for k in keys]))
+        else:
+            out.append(PurePath(s).name)
+    out = [x if len(x) <= width else x[:width - 1] + "…" for x in out]
+    counts = {x: out.count(x) for x in out}
+    seen: dict[str, int] = {}
+    for i, x in enumerate(list(out)):
+        seen[x] = seen.get(x, 0) + 1
+        if counts[x] > 1:
+            out[i] = f"{x} #{seen[x]}"
+    return out
+
+
+def _spec_value(v) -> str:
+    return ",".join(f"{x:g}" for x in v) if isinstance(v, (list, tuple)) else (f"{v:g}" if isinstance(v, float) else str(v))
+
+
 def plot_trade(t: dict, out_dir: Path) -> Path:
     """trade.png: error vs terms (N light terms; n² SH coefficients) and error vs relight time, per light."""
     import matplotlib
@@ -323,11 +364,12 @@ def plot_trade(t: dict, out_dir: Path) -> Path:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(1, 2, figsize=(11.0, 4.2))
+    names = light_labels([h["light"] for h in t["headline"]])
     for i, h in enumerate(t["headline"]):
         w = [x for x in t["rows"] if x["light"] == h["light"] and x["method"] == "wavelet"]
         s = [x for x in t["rows"] if x["light"] == h["light"] and x["method"] == "sh"]
         c = f"C{i % 10}"
-        ax[0].loglog([x["N"] for x in w], [max(x["error"], 1e-6) for x in w], "-o", color=c, label=f"{h['light'][:28]} wavelets")
+        ax[0].loglog([x["N"] for x in w], [max(x["error"], 1e-6) for x in w], "-o", color=c, label=f"{names[i]} wavelets")
         ax[0].loglog([x["bands"] ** 2 for x in s], [max(x["error"], 1e-6) for x in s], "--s", color=c, label="SH")
         ax[1].loglog([x["relight_s"] * 1e3 for x in w], [max(x["error"], 1e-6) for x in w], "-o", color=c)
         ax[1].loglog([x["relight_s"] * 1e3 for x in s], [max(x["error"], 1e-6) for x in s], "--s", color=c)

@@ -13,18 +13,23 @@ For a run whose transfer is kind ``wavelet`` (the config's ``trade`` section):
   (``ihaar2d``), projected t_lm = Σ_j T_j y_lm(d_j), the light projected from its cube
   L_lm = Σ_j L_j y_lm(d_j) Ω_j, relit by :func:`prt_torch.relight.diffuse` (n² floats per vertex).
 
-Error: relative L2 over vertices and RGB against the exact result. Times: median per relight in
-this process; the headline's SH/wavelet ratio is timed paired (interleaved, same run).
+Error: relative L2 over vertices and RGB against the exact result. Times: in one thread (the
+work of each method; at the process's thread count a busy machine stalls OpenMP's parallel
+regions on descheduled peers — at load 3.9 on 2 cores every relight read 8 or 16 ms, a scheduler
+slice, for 0.03–0.6 ms of work): each row the median per relight; the headline's SH/wavelet
+ratio timed paired (interleaved, same run) in this thread's CPU time, the ratio of the fastest
+tenth of 40 short pairs, as the harness's speed-up column (``harness.run``).
 """
 from __future__ import annotations
 
+import time
 from typing import Any, Callable
 
 import torch
 
 from .. import relight
 from .evaluate import Evaluator
-from .timing import measure, measure_paired
+from .timing import measure, measure_paired, torch_threads
 
 __all__ = ["wavelet_trade", "TARGETS"]
 
@@ -74,14 +79,16 @@ def wavelet_trade(ev: Evaluator, lights: list[torch.Tensor], cfg: dict, log: Cal
             idx, vals = select_terms(Lhat.double(), N, sel, r.weights if sel == "transport" else None)
             o = r(idx, vals, out=out)
             e = _rel(o, ref)
-            s = measure(lambda: r(idx, vals, out=out), repeats=5, warmup=1).median
+            with torch_threads(1):
+                s = measure(lambda: r(idx, vals, out=out), repeats=5, warmup=1).median
             wav.append({"light": str(spec), "method": "wavelet", "N": int(idx.numel()), "error": e, "relight_s": s,
                         "fps": 1.0 / s, "bytes_per_vertex": ev.bytes_per_vertex, "coefficients_read": r.touched(idx)})
         for n in bands:
             Lsh = ((cube * om) @ Y[:, : n * n]).to(torch.float32)  # [C, n²]
             o = relight.diffuse(t_sh[n], Lsh) * albedo[:, :max(C, CT)]
             e = _rel(o, ref)
-            s = measure(lambda: relight.diffuse(t_sh[n], Lsh), repeats=5, warmup=1).median
+            with torch_threads(1):
+                s = measure(lambda: relight.diffuse(t_sh[n], Lsh), repeats=5, warmup=1).median
             shr.append({"light": str(spec), "method": "sh", "bands": n, "error": e, "relight_s": s, "fps": 1.0 / s,
                         "bytes_per_vertex": n * n * 4})
         rows += wav + shr
@@ -95,10 +102,11 @@ def wavelet_trade(ev: Evaluator, lights: list[torch.Tensor], cfg: dict, log: Cal
                 idx, vals = select_terms(Lhat.double(), w["N"], sel, r.weights if sel == "transport" else None)
                 Lsh = ((cube * om) @ Y[:, : s["bands"] ** 2]).to(torch.float32)
                 tn = t_sh[s["bands"]]
-                p = measure_paired(lambda: r(idx, vals, out=out), lambda: relight.diffuse(tn, Lsh), repeats=5, warmup=1,
-                                   floor_pairs=40)
+                with torch_threads(1):
+                    p = measure_paired(lambda: r(idx, vals, out=out), lambda: relight.diffuse(tn, Lsh), repeats=5, warmup=1,
+                                       floor_pairs=40, clock=time.thread_time)
                 h[f"ratio_{tgt}"] = {"sh_over_wavelet": p.speedup, "trusted": bool(p.contention.get("trusted"))}
         head.append(h)
         log(f"[bench] trade {spec}: best SH {h['sh_best_error']:.4f}, best wavelets {h['wavelet_best_error']:.4f}")
     return {"selection": sel, "res": R, "terms": list(t["terms"]), "bands": bands, "rows": rows, "headline": head,
-            "bytes_per_vertex": ev.bytes_per_vertex}
+            "bytes_per_vertex": ev.bytes_per_vertex, "threads": 1, "ratio_clock": "thread_time"}

@@ -23,7 +23,7 @@ from typing import Any
 
 import torch
 
-from .._checks import check_choice, check_int, describe
+from .._checks import check_choice, check_float, check_int, describe
 from . import layouts as L
 
 __all__ = ["haar2d", "ihaar2d", "check_res", "cube_geometry", "support_solid_angles", "haar_levels", "cube_light",
@@ -269,7 +269,7 @@ def _analytic_cube(kind: str, d: dict, res: int, s: int, dirs: torch.Tensor, ome
         if kind == "cap":
             if ("intensity" in d) == ("radiance" in d):
                 raise ValueError("cap: give exactly one of intensity= or radiance=")
-            alpha = float(d.pop("half_angle"))
+            alpha = check_float("half_angle", d.pop("half_angle"), 0.0, math.pi, lo_open=True)  # as analytic.cap_zonal
             direction = A.unit_direction(d.pop("direction"))
             if "intensity" in d:
                 Lc = A.color(d.pop("intensity")) / math.sin(min(alpha, math.pi / 2)) ** 2

@@ -112,18 +112,19 @@ AUTO_HAAR_MAX_RES = 64
 AUTO_HAAR_DEFAULT_RES = 32
 
 
-def choose_haar_res(lights: list | None, energy: float, max_res: int = AUTO_HAAR_MAX_RES) -> tuple[int, float, str]:
+def choose_haar_res(lights: list | None, energy: float, max_res: int = AUTO_HAAR_MAX_RES) -> tuple[int, float | None, str]:
     """``res: auto`` of the wavelet kind: the smallest cube face resolution R ≤ ``max_res`` whose
     Haar levels keep ``energy`` of each light's energy (Σ L̂² over the coefficients coarser than R
     of the light's cube at 2·``max_res``, each light normalised to unit energy and summed, as for
     bands): what the dropped finer levels hold is the light's detail a coarser cube cannot place;
     ``max_res`` with the fraction it keeps when even that is short. Lights: SH
     tensors ``[C, n²]`` or specs (:func:`prt_torch.lighting.haar.cube_light`). Returns
-    (R, fraction kept, reason); without lights R = :data:`AUTO_HAAR_DEFAULT_RES`."""
+    (R, fraction kept, reason); without lights R = :data:`AUTO_HAAR_DEFAULT_RES` and the fraction None
+    (nothing measured; metadata is JSON, which has no NaN)."""
     from ..lighting.haar import cube_light, haar2d
 
     if not lights:
-        return AUTO_HAAR_DEFAULT_RES, float("nan"), f"no lights given: the default R={AUTO_HAAR_DEFAULT_RES}"
+        return AUTO_HAAR_DEFAULT_RES, None, f"no lights given: the default R={AUTO_HAAR_DEFAULT_RES}"
     r = 2 * max_res
     m = torch.arange(r)
     level = torch.maximum(m[:, None], m[None, :])  # coefficient (i, j) belongs to resolution > max(i, j)

@@ -239,6 +239,11 @@ class Transfer:
         return f"Transfer(kind={self.kind!r}, data={tuple(self.data.shape)}, mesh={self.mesh!r})"
 
 
+def mesh_bytes(mesh: Mesh) -> int:
+    """Bytes the mesh's tensors hold (vertices, faces, normals, frames, albedo)."""
+    return int(sum(t.numel() * t.element_size() for t in mesh.to_tensors("").values()))
+
+
 def check_transfer_file(path: Path, meta: dict, shapes: dict[str, list[int]]) -> None:
     """Consistency of a transfer file (``io.register_check('transfer/')``): the data tensor
     against the recorded shape, the mesh rows, the bands and the matrix shape. Raises
@@ -262,11 +267,33 @@ def check_transfer_file(path: Path, meta: dict, shapes: dict[str, list[int]]) ->
         problems.append(f"matrix_shape {ms} but data {d}")
     if kind == "mrt" and isinstance(meta.get("M"), int) and d[1] != meta["M"] ** 2:
         problems.append(f"M={meta['M']} (M²={meta['M'] ** 2}) but {d[1]} rows")
+    if kind == "wavelet":
+        problems += _wavelet_shape_problems(meta, shapes)
     if problems:
         raise ValueError(f"{str(path)!r} is inconsistent: {'; '.join(problems)}")
 
 
 io.register_check("transfer/", check_transfer_file)
+
+
+def _wavelet_shape_problems(meta: dict, shapes: dict[str, list[int]]) -> list[str]:
+    """A wavelet transfer's arrays against each other and its ``res`` (transfer.wavelet's layout:
+    ``data [V, K]`` or ``[V, C, K]``, ``aux.index [V, K]``, ``aux.scale [V]``/``[V, L]`` or
+    ``[V, C]``/``[V, C, L]`` with L = log2(res) + 1 Haar levels, K ≤ 6·res²)."""
+    d, res = shapes["data"], meta.get("res")
+    if not (isinstance(res, int) and not isinstance(res, bool) and 1 <= res <= 1 << 15 and not res & (res - 1)):
+        return [f"res={res!r}; accepted: a power of two (the cube's face size)"]
+    if len(d) not in (2, 3):
+        return []  # the rank is named by check_transfer_values
+    out, K, P = [], d[-1], 6 * res * res
+    if K > P:
+        out.append(f"{K} terms per vertex but a 6x{res}x{res} cube has {P} coefficients")
+    if shapes.get("aux.index") != [d[0], K]:
+        out.append(f"aux.index is {shapes.get('aux.index')} for data {d}; accepted: [{d[0]}, {K}]")
+    sc, lead = shapes.get("aux.scale"), d[:-1]
+    if sc not in (lead, lead + [int(math.log2(res)) + 1]):
+        out.append(f"aux.scale is {sc} for data {d} at res={res}; accepted: {lead} or {lead + [int(math.log2(res)) + 1]}")
+    return out
 
 #: the largest |value| a transfer file may hold: squares and sums over a row stay finite in float32
 #: (radiance transfer is of order 1; a value beyond this is a corrupt or mis-scaled file)
@@ -305,6 +332,14 @@ def check_transfer_values(path: Any, tensors: dict[str, torch.Tensor], meta: dic
     if top > MAX_ABS_TRANSFER:
         raise ValueError(f"{name!r}: data reaches |{top:.3g}|, beyond ±{MAX_ABS_TRANSFER:g} (float32 products would overflow); "
                          "accepted: a transfer of physical scale (values of order 1)")
+    if kind == "wavelet" and "aux.index" in tensors and "aux.scale" in tensors:  # shapes: check_transfer_file
+        P, idx, sc = 6 * int(meta["res"]) ** 2, tensors["aux.index"], tensors["aux.scale"]
+        if idx.numel() and (int(idx.min()) < 0 or int(idx.max()) >= P):
+            raise ValueError(f"{name!r}: aux.index holds Haar coefficients {int(idx.min())}..{int(idx.max())}; accepted: "
+                             f"0..{P - 1} (6x{meta['res']}x{meta['res']} cube; the file is corrupt)")
+        if not bool(torch.isfinite(sc).all()) or bool((sc < 0).any()):
+            raise ValueError(f"{name!r}: aux.scale holds non-finite or negative scales; accepted: finite scales >= 0 "
+                             "(the file is corrupt)")
     if not any(k.startswith("mesh.") for k in tensors):  # a data-only file (compress reads it; render needs the mesh)
         return None
     mesh = Mesh.from_tensors(tensors, name=meta.get("mesh_name", "mesh"), meta=meta.get("mesh_meta"))

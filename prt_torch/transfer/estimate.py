@@ -44,7 +44,7 @@ from typing import Any
 import torch
 
 from ..scene import Mesh
-from .base import ChunkInterrupt, RunOptions
+from .base import ChunkInterrupt, RunOptions, mesh_bytes
 from ..io import format_bytes
 from .glossy import default_chunk, estimate_memory, memory_budget
 
@@ -78,11 +78,6 @@ def rss_bytes() -> int:
             return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
     except (OSError, ValueError, IndexError):  # pragma: no cover - not Linux
         return 0
-
-
-def mesh_bytes(mesh: Mesh) -> int:
-    """Bytes the mesh's tensors hold (vertices, faces, normals, frames, albedo)."""
-    return int(sum(t.numel() * t.element_size() for t in mesh.to_tensors("").values()))
 
 
 def full_params(kind: str, kw: dict[str, Any]) -> dict[str, Any]:

@@ -343,6 +343,8 @@ register_kind(TransferKind(
     },
     args=_args("shadows", "seed", "bounces") + (
         Arg("--hit-samples", "hit_samples", "rays per bounce hit point (cosine-weighted; a quarter per further bounce)"),
+        Arg("--hit-offset", "hit_offset", "offset of the rays leaving a bounce hit point, as a fraction of the bounding-box "
+            "diagonal (default 1e-6, floored at 16 float32 ulps)"),
         Arg("--res", "res", "cube face resolution R, a power of two (6 R² texels), or auto (from the lights' energy "
             "above each wavelet level)"),
         Arg("--terms", "terms", "Haar coefficients kept per vertex (the largest), K <= 6 R²"),

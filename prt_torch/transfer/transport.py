@@ -472,19 +472,11 @@ def check_disk_space(out: str | Path, V: int, views: torch.Tensor | int, res: in
     """The bytes the tables of ``V`` vertices will take (``V·J·6r²`` values of ``dtype``), refused with
     ValueError (before any work) when the disk holding ``out`` has less free space than that plus
     5%. Returns the estimate."""
-    import shutil
-
     J = (10 * int(views) ** 2 + 2) if isinstance(views, int) else int(torch.as_tensor(views).shape[0])
     need = int(V) * J * 6 * int(res) ** 2 * (4 if dtype == "float32" else 2)
-    anc = Path(out).resolve()
-    while not anc.exists() and anc != anc.parent:
-        anc = anc.parent
     have = sum(f.stat().st_size for f in Path(out).glob("*.prt")) if Path(out).is_dir() else 0  # chunks kept for a resume
-    free = shutil.disk_usage(anc).free
-    if need - have > 0.95 * free:
-        raise ValueError(f"transport tables of {V} vertices x {J} views x 6x{res}x{res} texels ({dtype}) need "
-                         f"{(need - have) / 2**30:.2f} GiB at {str(out)!r}, where {free / 2**30:.2f} GiB are free; accepted: "
-                         "fewer views, a smaller res, dtype float16, a smaller mesh, or an output on a disk with room")
+    io.check_disk_space(out, need, f"transport tables of {V} vertices x {J} views x 6x{res}x{res} texels ({dtype})",
+                        "fewer views, a smaller res, dtype float16, a smaller mesh, or an output on a disk with room", have)
     return need
 
 

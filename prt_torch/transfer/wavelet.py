@@ -56,7 +56,7 @@ from .._checks import check_choice, check_float, check_int, describe
 from ..lighting.haar import MAX_HAAR_RES, check_res, cube_geometry, haar2d, haar_levels
 from ..lighting.layouts import dir_to_pixel, pixel_to_dir
 from ..scene import Mesh, RayCaster
-from .base import RunOptions, Transfer
+from .base import RunOptions, Transfer, mesh_bytes
 from .diffuse import HIT_OFFSET, HitBounce, boundary_nudge, offset_origins
 from ..io import format_bytes
 from .glossy import decide_shadows, memory_budget
@@ -110,6 +110,31 @@ def estimate_wavelet_memory(V: int, res: int, terms: int, bits: int, supersample
     result = V * STATS_BYTES + (0 if streamed else V * bytes_per_vertex(terms, bits, P, 1, channels))
     work = chunk * (Pf * (8 + 8 + 12 + 12 + 16 + 1 + (120 if jittered else 0)) + channels * (P * 8 * 4 + terms * 16))
     return int(result + work + Pf * 40)
+
+
+def wavelet_disk_bytes(mesh: Mesh, stored: int, streamed: bool) -> int:
+    """Bytes a wavelet precompute with a state directory writes beside its output at its peak (the
+    end, when the output is written and the state is not yet removed): its chunk files (the stored
+    rows and :data:`STATS_BYTES` per vertex), the assembled rows when they are in a file
+    (``streamed``, :meth:`RunOptions.result_rows`) and the output (the stored rows and the mesh)."""
+    V = mesh.num_vertices
+    return (stored + V * STATS_BYTES) + (stored if streamed else 0) + (stored + mesh_bytes(mesh))
+
+
+def check_wavelet_disk(run: RunOptions, mesh: Mesh, stored: int) -> None:
+    """Refuse (ValueError, before any ray) a run whose :func:`wavelet_disk_bytes` exceed the free
+    space of the disk holding ``run.state_dir`` (less the chunks a resumed run already holds)."""
+    from pathlib import Path
+
+    from .. import io
+
+    sd = Path(run.state_dir)
+    have = sum(f.stat().st_size for f in sd.glob("chunk_*.prt")) if sd.is_dir() else 0
+    streamed = run.streams_result(stored)
+    io.check_disk_space(sd.parent / sd.name.removesuffix(".state"), wavelet_disk_bytes(mesh, stored, streamed),
+                        f"wavelet transfer of {mesh.num_vertices} vertices ({format_bytes(stored)} stored: its chunks, "
+                        + ("the assembled rows' file " if streamed else "") + "and the output)",
+                        "a smaller res, fewer terms or bits, a smaller mesh, or an output on a disk with room", have)
 
 
 def default_chunk(res: int, supersample: int) -> int:
@@ -419,6 +444,8 @@ def precompute_wavelet(
         raise ValueError(f"wavelet transfer of {V} vertices at res={res} (6x{res}x{res} texels, supersample {s}) with "
                          f"{terms} terms needs about {format_bytes(need)}, more than the budget {format_bytes(budget)}; "
                          "accepted: a smaller res, fewer terms, a smaller chunk_size or mesh, or a larger memory limit")
+    if run.state_dir is not None:  # a CLI run: the chunks, the rows assembled in a file and the output, on one disk
+        check_wavelet_disk(run, mesh, stored)
     hits = _hit_bounce(mesh, bounces, hit_samples, hit_offset, seed)
     rho = mesh.albedo.to(torch.float64)
     t0 = time.perf_counter()
@@ -485,7 +512,7 @@ def precompute_wavelet(
         "hit_samples": hit_samples if bounces else None, "hit_offset": hit_offset if bounces else None,
         "scales": scales if bits != 32 else "none (float32 values)",
         "bytes_per_vertex": bytes_per_vertex(terms, bits, P, n_scales, C),
-        "bytes_per_vertex_dense": P * 4,
+        "bytes_per_vertex_dense": P * 4 * C,  # the pixel-basis transfer(s) in float32: one per colour when coloured
         "index_dtype": str(_index_dtype(P)).replace("torch.", ""),
         "nonzero_per_vertex": float(cat["nnz"].float().mean()),
         "truncation_rel_l2_mean": float(rel(dropped)[lit].mean()) if bool(lit.any()) else 0.0,
