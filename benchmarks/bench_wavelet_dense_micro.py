@@ -42,6 +42,7 @@ import torch  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_wavelet import BITS, LIGHTS, OUT  # noqa: E402
+from bench_wavelet_pass_micro import C_PRELUDE  # noqa: E402
 
 from prt_torch import relight  # noqa: E402
 from prt_torch._native import compile_library  # noqa: E402
@@ -50,28 +51,10 @@ from prt_torch.scene import builtin  # noqa: E402
 from prt_torch.transfer import RunOptions  # noqa: E402
 from prt_torch.transfer.wavelet import precompute_wavelet  # noqa: E402
 
-SRC = r"""
-#define _POSIX_C_SOURCE 199309L
-#include <stdint.h>
-#include <string.h>
-#include <time.h>
-#ifdef __AVX2__
-#include <immintrin.h>
-#endif
-#pragma GCC diagnostic ignored "-Wpsabi"
+SRC = "#define _POSIX_C_SOURCE 199309L\n" + C_PRELUDE + r"""#include <time.h>
 typedef int64_t i64;
-typedef float v8f __attribute__((vector_size(32)));
-typedef int16_t v8s __attribute__((vector_size(16)));
 typedef int32_t v8i __attribute__((vector_size(32)));
 typedef uint32_t v8u __attribute__((vector_size(32)));
-static inline v8f ld8(const float *p) { v8f x; memcpy(&x, p, sizeof x); return x; }
-static inline void st8(float *p, v8f x) { memcpy(p, &x, sizeof x); }
-static inline v8f bc8(const float *p) { const float x = *p; return (v8f){x, x, x, x, x, x, x, x}; }
-#ifdef __AVX2__
-static inline v8f load8(const int16_t *p) { return _mm256_cvtepi32_ps(_mm256_cvtepi16_epi32(_mm_loadu_si128((const __m128i *)p))); }
-#else
-static inline v8f load8(const int16_t *p) { v8s x; memcpy(&x, p, sizeof x); return __builtin_convertvector(x, v8f); }
-#endif
 #define PF 6
 /* dense [nb, Pd, 32] (blocks bs apart: 0 reads block 0 for every block), ds [nd] slots, lw [nd, 4]; sums [nb, 3, 32]
  * mode 0: int16, kernel form; 1: int16 shifts (the lanes' pairs as above); 2: float32 values; 3, 4: lean loop (ds: byte

@@ -42,7 +42,7 @@ import torch  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_wavelet import BITS, LIGHTS, OUT  # noqa: E402
-from bench_wavelet_pass_micro import grouped  # noqa: E402
+from bench_wavelet_pass_micro import C_PRELUDE, grouped  # noqa: E402
 
 from prt_torch import relight  # noqa: E402
 from prt_torch._native import compile_library  # noqa: E402
@@ -51,24 +51,8 @@ from prt_torch.scene import builtin  # noqa: E402
 from prt_torch.transfer import RunOptions  # noqa: E402
 from prt_torch.transfer.wavelet import precompute_wavelet  # noqa: E402
 
-SRC = r"""
-#include <stdint.h>
-#include <string.h>
-#ifdef __AVX2__
-#include <immintrin.h>
-#endif
-#pragma GCC diagnostic ignored "-Wpsabi"
+SRC = C_PRELUDE + r"""
 typedef int64_t i64;
-typedef float v8f __attribute__((vector_size(32)));
-typedef int16_t v8s __attribute__((vector_size(16)));
-static inline v8f ld8(const float *p) { v8f x; memcpy(&x, p, sizeof x); return x; }
-static inline void st8(float *p, v8f x) { memcpy(p, &x, sizeof x); }
-static inline v8f bc8(const float *p) { const float x = *p; return (v8f){x, x, x, x, x, x, x, x}; }
-#ifdef __AVX2__
-static inline v8f load8(const int16_t *p) { return _mm256_cvtepi32_ps(_mm256_cvtepi16_epi32(_mm_loadu_si128((const __m128i *)p))); }
-#else
-static inline v8f load8(const int16_t *p) { v8s x; memcpy(&x, p, sizeof x); return __builtin_convertvector(x, v8f); }
-#endif
 #define PF 6
 /* rng [nr, 3] (tile, first block, end), ordered by tile; slw [nr, 4] the range's light; bofs [NB] bytes; bv [NB, 8];
  * dense [nb, Pd, 32]; ds [nd] the light's dense slots (ascending), dlw [nd, 4]; tile t: 32-blocks tb[t] .. tb[t+1];

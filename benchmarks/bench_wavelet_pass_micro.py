@@ -49,7 +49,10 @@ from prt_torch.scene import builtin  # noqa: E402
 from prt_torch.transfer import RunOptions  # noqa: E402
 from prt_torch.transfer.wavelet import precompute_wavelet  # noqa: E402
 
-SRC = r"""
+#: the C the micro-benchmarks of the wavelet kernel share (bench_wavelet_fused_micro, bench_wavelet_dense_micro):
+#: includes, the 8-lane float and int16 vector types, unaligned load/store, a broadcast and the int16 widening
+#: load as kernels/wavelet.c has them
+C_PRELUDE = r"""
 #include <stdint.h>
 #include <string.h>
 #ifdef __AVX2__
@@ -66,7 +69,9 @@ static inline v8f load8(const int16_t *p) { return _mm256_cvtepi32_ps(_mm256_cvt
 #else
 static inline v8f load8(const int16_t *p) { v8s x; memcpy(&x, p, sizeof x); return __builtin_convertvector(x, v8f); }
 #endif
-/* rng [nr, 3]: tile, first block, end; lw [nr, G, 4]; bofs [NB] (128 bytes per scratch block); bv [NB, G, 8];
+"""
+
+SRC = C_PRELUDE + r"""/* rng [nr, 3]: tile, first block, end; lw [nr, G, 4]; bofs [NB] (128 bytes per scratch block); bv [NB, G, 8];
  * acc: one tile's scratch (TV/8 x 128 bytes), zeroed per tile; mode 0 int16 values, 1 float values bvf */
 #define GROUPED(G)                                                                                          \
 int pass_g##G(const int64_t *rng, int64_t nr, int64_t nt, const float *lw, const int32_t *bofs,              \
