@@ -351,7 +351,9 @@ def save(
 ) -> Path:
     """Save ``tensors`` (name -> tensor, any shape/dtype) with metadata, atomically.
 
-    Tensors are made contiguous and moved to the CPU. ``meta`` must be JSON-serialisable.
+    Tensors are made contiguous and moved to the CPU. ``meta`` must be JSON-serialisable; a NaN or
+    infinity in it is written as ``null`` (:func:`strict_json`: JSON has no such numbers, and parsers
+    other than Python's refuse the ``NaN`` token), so the header reads in any JSON parser.
     The file is written from the tensors' memory (:func:`_write_safetensors`: the bytes ``safetensors``'
     ``save_file`` writes, without the copy older versions made); ``direct=True`` writes one big
     tensor past the page cache (``O_DIRECT``: no kernel copy; for large files this process
@@ -371,7 +373,8 @@ def save(
             raise TypeError(f"tensors[{k!r}] is {type(v).__name__}; accepted: torch.Tensor")
     header = {"format": FORMAT, "format_version": FORMAT_VERSION, "kind": kind}
     header.update(meta or {})
-    text = json.dumps(header, default=_json_default)
+    # JSON proper (other programs' parsers refuse Python's NaN/Infinity tokens): a non-finite number is written null
+    text = json.dumps(strict_json(json.loads(json.dumps(header, default=_json_default))), allow_nan=False)
     data = {k: v.detach().to("cpu").resolve_conj().resolve_neg().contiguous() for k, v in tensors.items()}
     own = sys.byteorder == "little" and all(v.dtype in _ST_RANK for v in data.values())
     try:

@@ -270,3 +270,23 @@ def test_atomic_path_concurrent_threads_write_whole_files(tmp_path):
     got = load_file(str(path))["x"]
     assert any(torch.equal(got, t) for t in tensors)
     assert not list(tmp_path.glob("*.partial"))
+
+
+def test_save_writes_strict_json_metadata(tmp_path):
+    """A NaN or infinity in the metadata is written as null: the header parses with a parser that refuses
+    Python's NaN/Infinity tokens (json.loads with parse_constant raising, as JavaScript's or serde's would)."""
+    import struct
+
+    io.save(tmp_path / "m.prt", {"x": torch.zeros(2)}, kind="test/nan", meta={"a": float("nan"), "b": [1.0, float("inf")],
+                                                                              "c": {"d": -float("inf")}, "e": 2.5})
+    raw = (tmp_path / "m.prt").read_bytes()
+    n = struct.unpack("<Q", raw[:8])[0]
+
+    def refuse(tok):
+        raise ValueError(f"non-standard JSON token {tok}")
+
+    header = json.loads(raw[8:8 + n])
+    meta = json.loads(header["__metadata__"]["prt_torch"], parse_constant=refuse)
+    assert meta["a"] is None and meta["b"] == [1.0, None] and meta["c"] == {"d": None} and meta["e"] == 2.5
+    _, m = io.load(tmp_path / "m.prt")
+    assert m["a"] is None and m["e"] == 2.5
