@@ -362,7 +362,7 @@ def check_plan(pl: dict) -> None:
                      "chunks), or a larger --memory-limit on a machine that has it")
 
 
-def _wavelet_options_only(args, why: str) -> None:
+def wavelet_options_only(args, why: str) -> None:
     """Refuse ``--terms`` / ``--selection`` (the light's Haar terms) for an input that is not a wavelet transfer."""
     for flag, v in (("--terms", args.terms), ("--selection", args.selection)):
         if v is not None:
@@ -405,17 +405,17 @@ def run(args) -> int:
         print("prt relight: dry run: nothing written", file=__import__("sys").stderr)
         return 0
     if Path(args.transfer).is_dir():  # Green 2005 transport tables
-        _wavelet_options_only(args, "transport tables take the light in SH")
+        wavelet_options_only(args, "transport tables take the light in SH")
         rad, what = _transport(args.transfer, args.light, args.view)
         transfer = None
     else:
         transfer, codec, enc = _load(args)
         if codec == "transport":  # a codec file of transport tables: transfer is the table's directory
-            _wavelet_options_only(args, "transport tables take the light in SH")
+            wavelet_options_only(args, "transport tables take the light in SH")
             rad, what = _transport(transfer, args.light, args.view, args.transfer)
             transfer = None
         elif transfer.kind != "wavelet":
-            _wavelet_options_only(args, f"a {transfer.kind} transfer takes the light in its own SH bands")
+            wavelet_options_only(args, f"a {transfer.kind} transfer takes the light in its own SH bands")
         if transfer is None:
             pass
         elif out.suffix.lower() == ".npy":  # streamed: each chunk written into the file's mapping as it is relit

@@ -99,7 +99,12 @@ def register(subparsers) -> None:
                         "and its view towards the camera")
     p.add_argument("-o", "--output", required=True, help="output image (.png, .exr, .pfm, .hdr, .tif)")
     p.add_argument("--compare", default=None, metavar="OUT.png",
-                   help="also write uncompressed (CPU) | this render | relative-error heat map (OUT.png and OUT.exr)")
+                   help="also write uncompressed (CPU) | this render | relative-error heat map (OUT.png and OUT.exr); "
+                        "a wavelet transfer with --terms: every term of the light | N terms | error")
+    p.add_argument("--terms", type=int, default=None,
+                   help="wavelet transfers: the light's N largest Haar terms (default: all 6R², exact; Ng 2003)")
+    p.add_argument("--selection", default=None, choices=["magnitude", "area", "transport"],
+                   help="wavelet transfers: how the N terms are chosen (Ng 2003 §5; default transport-weighted)")
     p.add_argument("--validate", action="store_true",
                    help="also render with the other decode and print GLSL vs CPU PSNR (exit 1 below 50 dB)")
     p.add_argument("--width", type=_pixels("--width"), default=512, help="image width in pixels (1..16384)")
@@ -213,6 +218,12 @@ def run(args) -> int:
         except ValueError:
             raise ValueError(f"--exposure {args.exposure!r}; accepted: a number of stops or 'auto'") from None
 
+    if args.terms is not None and args.terms < 1:
+        raise ValueError(f"--terms {args.terms}; accepted: N >= 1 Haar terms of the light (wavelet transfers)")
+    from .relight import wavelet_options_only
+
+    if args.method == "shrm" or Path(args.transfer).is_dir():
+        wavelet_options_only(args, "SHRMs and transport tables take the light in SH")
     if args.method == "shrm":
         return _run_shrm(args, out, cmp_png)
     shading_error = ValueError(f"{'--shading pixel' if args.shading != 'vertex' else '--no-clamp'} applies to SHRMs (a file "
@@ -225,6 +236,7 @@ def run(args) -> int:
     from ..io import load_meta
 
     if load_meta(args.transfer).get("kind") == "shrm":
+        wavelet_options_only(args, "SHRMs take the light in SH")
         return _run_shrm(args, out, cmp_png)
     if args.shading != "vertex" or args.no_clamp:
         raise shading_error
@@ -233,7 +245,8 @@ def run(args) -> int:
                          "which carries its own mesh")
     transfer = Transfer.load(args.transfer)
     if transfer.kind == "wavelet":
-        return _run_wavelet(args, transfer, out)
+        return _run_wavelet(args, transfer, out, cmp_png)
+    wavelet_options_only(args, f"a {transfer.kind} transfer takes the light in its own SH bands")
     args.decode = args.decode or "glsl"
     scene = PRTScene(transfer)  # refuses kinds it cannot relight, naming the accepted ones
     codec = enc = None
@@ -263,33 +276,46 @@ def run(args) -> int:
     return _write_outputs(args, out, cmp_png, img, mask, ref_img, other, what)
 
 
-def _run_wavelet(args, transfer, out: Path) -> int:
-    """``prt render WAVELET.prt --light SPEC``: the exit radiance of the sparse Haar relighting
-    (every term of the light, rasterised on the transfer's cube; ``prt relight`` for fewer terms)
-    drawn per vertex. CPU decode only: the terms a light keeps change with every light, which Ng
-    et al. 2003 leave to the CPU (course notes 2005: "not well-suited to hardware rendering")."""
+def _run_wavelet(args, transfer, out: Path, cmp_png: Path | None) -> int:
+    """``prt render WAVELET.prt --light SPEC [--terms N] [--selection S] [--compare CMP.png]``: the exit
+    radiance of the sparse Haar relighting (the light rasterised on the transfer's cube, its N largest
+    terms by S — Ng et al. 2003 §5 —, all 6R² by default: exact) drawn per vertex; ``--compare`` puts the
+    render with every term beside it, with the relative-error map (what the N-term light approximation
+    costs, per pixel). CPU decode only: the terms a light keeps change with every light, which Ng et al.
+    2003 leave to the CPU (course notes 2005: "not well-suited to hardware rendering")."""
     from .relight import radiance
     from ..render import Camera, Renderer, RenderUnavailable
 
-    if args.decode == "glsl" or args.validate or args.codec_file or args.compare:
+    if args.decode == "glsl" or args.validate or args.codec_file:
         raise ValueError("a wavelet transfer renders with --decode cpu only (no GLSL decoder: the light's terms change "
-                         "with every light, Ng et al. 2003); --codec-file, --compare and --validate do not apply")
+                         "with every light, Ng et al. 2003); --codec-file and --validate do not apply")
+    if cmp_png is not None and args.terms is None:
+        raise ValueError(f"--compare {args.compare!r} for a wavelet transfer compares N light terms with all of them; "
+                         "accepted: with --terms N")
     args.decode = "cpu"
-    rad, what = radiance(transfer, args.light)
+    selection = args.selection or "transport"
+    rad, what = radiance(transfer, args.light, terms=args.terms, selection=selection)
+    ref = radiance(transfer, args.light)[0] if cmp_png is not None else None  # every term: the exact result
     mesh = transfer.mesh
     cam = Camera.fit(mesh, azimuth=args.azimuth, elevation=args.elevation, fov=args.fov,
                      projection="orthographic" if args.orthographic else "perspective", aspect=args.width / args.height)
     try:
         with Renderer(args.width, args.height) as r:
             img, mask = r.render_radiance(mesh, rad, cam, background=args.background, supersample=args.supersample)
+            ref_img = (r.render_radiance(mesh, ref, cam, background=args.background, supersample=args.supersample)[0]
+                       if ref is not None else None)
     except RenderUnavailable as e:
         print(f"prt render: error: {e}", file=sys.stderr)
         return 3
-    return _write_outputs(args, out, None, img, mask, None, None, what)
+    return _write_outputs(args, out, cmp_png, img, mask, ref_img, None, what,
+                          labels=("all light terms (exact)", f"{args.terms} terms ({selection})"))
 
 
-def _write_outputs(args, out: Path, cmp_png: Path | None, img, mask, ref_img, other, what: str) -> int:
-    """Write the image, the optional comparison (PNG + linear EXR) and the GLSL-vs-CPU check."""
+def _write_outputs(args, out: Path, cmp_png: Path | None, img, mask, ref_img, other, what: str,
+                   labels: tuple[str, str] | None = None) -> int:
+    """Write the image, the optional comparison (PNG + linear EXR) and the GLSL-vs-CPU check.
+    ``labels``: the comparison's reference and render captions (default: the uncompressed CPU render
+    and the codec file or 'uncompressed', with the decode)."""
     from ..render import auto_exposure, error_heatmap, error_map, psnr, side_by_side
 
     base = ref_img if ref_img is not None else img
@@ -312,16 +338,17 @@ def _write_outputs(args, out: Path, cmp_png: Path | None, img, mask, ref_img, ot
         vmax = float(np.percentile(e[mask], 99.0)) if mask.any() else 0.0
         vmax = vmax if vmax > 0 else 1.0
         heat = error_heatmap(img, ref_img, mask, kind="rel", vmax=vmax)
-        label = (Path(args.codec_file).name if args.codec_file else "uncompressed") + f" ({args.decode})"
+        ref_label, label = labels or ("uncompressed (cpu)",
+                                      (Path(args.codec_file).name if args.codec_file else "uncompressed") + f" ({args.decode})")
         db = psnr(img, ref_img, mask) if mask.any() else float("nan")
-        side_by_side([ref_img, img, heat], ["uncompressed (cpu)", f"{label}, {db:.1f} dB",
+        side_by_side([ref_img, img, heat], [ref_label, f"{label}, {db:.1f} dB",
                                             f"relative error (0..{vmax:.3g})"],
                      exposure=[ev, ev, 0.0], path=cmp_png)
         abserr = np.nan_to_num(error_map(img, ref_img, mask, kind="abs"), nan=0.0).astype(np.float32)
         _write(cmp_png.with_suffix(".exr"), _linear_composite([ref_img, img, np.repeat(abserr[:, :, None], 3, 2)]),
                ev, args.tonemap, args.overwrite)
         print(f"wrote {cmp_png} and {cmp_png.with_suffix('.exr')} (linear: reference | render | |error|), "
-              f"PSNR vs uncompressed {db:.1f} dB")
+              f"PSNR vs {'uncompressed' if labels is None else labels[0]} {db:.1f} dB")
     return status
 
 
