@@ -267,3 +267,15 @@ def test_dense_size_of_a_coloured_transfer_counts_its_three_channels(tmp_path):
     assert cli_main(["precompute", "occluder_over_plane", "--kind", "wavelet", "--res", "4", "--terms", "16", "--workers",
                      "1", "--no-progress", "-o", str(g)]) == 0
     assert Transfer.load(g).meta["bytes_per_vertex_dense"] == 6 * 4 * 4 * 4
+
+
+@pytest.mark.parametrize("flag", ["--res", "--samples"])
+def test_cli_an_empty_option_value_is_named_as_typed(flag, tmp_path, capsys):
+    """`--res ''` was refused as '--res None' (the empty text read as YAML null): the message now shows what was
+    typed, in one line, and nothing is written."""
+    out = tmp_path / "w.prt"
+    argv = ["precompute", "occluder_over_plane", "--kind", "wavelet" if flag == "--res" else "diffuse", flag, "", "-o", str(out)]
+    assert cli_main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"{flag} '' is empty" in err[0] and "None" not in err[0], err
+    assert not out.exists()

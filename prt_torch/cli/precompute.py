@@ -136,6 +136,8 @@ def params_from_args(kind: str, args: argparse.Namespace) -> dict:
             spec.update(parse_assignments(sub or [], what=f"{flag}-param"))
             params[a.param] = spec
         else:
+            if isinstance(v, str) and not v.strip():  # parse_value reads '' as null: say what was typed
+                raise ValueError(f"{flag} {v!r} is empty; accepted: a value ({a.help.split(';')[0].split(' (')[0]})")
             params[a.param] = parse_value(v)
     if getattr(args, "energy", None) is not None:
         params["energy"] = args.energy
