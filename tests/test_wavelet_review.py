@@ -279,3 +279,19 @@ def test_cli_an_empty_option_value_is_named_as_typed(flag, tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and f"{flag} '' is empty" in err[0] and "None" not in err[0], err
     assert not out.exists()
+
+
+def test_cli_relight_more_terms_than_the_cube_has_says_so(tmp_path, capsys):
+    """`prt relight --terms N` with N above the cube's 6R² Haar terms relights with all of them (the exact result,
+    equal to the run without --terms) and says so in one warning line."""
+    import numpy as np
+
+    w = tmp_path / "w.prt"
+    assert cli_main(["precompute", "occluder_over_plane", "--kind", "wavelet", "--res", "4", "--terms", "16", "--no-progress",
+                     "-o", str(w)]) == 0
+    capsys.readouterr()
+    assert cli_main(["relight", str(w), "--light", "studio", "--terms", "100000", "-o", str(tmp_path / "a.npy")]) == 0
+    err = capsys.readouterr().err
+    assert "--terms 100000 is more than the light's 96 Haar terms" in err
+    assert cli_main(["relight", str(w), "--light", "studio", "-o", str(tmp_path / "b.npy")]) == 0
+    assert np.array_equal(np.load(tmp_path / "a.npy"), np.load(tmp_path / "b.npy"))

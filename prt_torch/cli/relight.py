@@ -153,6 +153,8 @@ def radiance(transfer, light: str, codec=None, enc=None, terms: int | None = Non
         if view is not None:
             raise ValueError("--view applies to glossy and MRT transfers; a wavelet transfer is diffuse (view-independent)")
         r = relight.WaveletRelighter(transfer)
+        if terms is not None and terms > r.P:
+            warnings.warn(f"--terms {terms} is more than the light's {r.P} Haar terms at R = {r.res} (6R²); all {r.P} are used")
         li, lv, rec = r.light(light, terms, selection)
         if rec.get("upsampled"):
             warnings.warn(rec["warning"])
