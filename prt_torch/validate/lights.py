@@ -142,7 +142,8 @@ def remap_to_mitsuba(env: Environment, height: int, supersample: int = 4, pull: 
     (the image of a constant light, i.e. the per-pixel fluctuation) within the reported residual.
 
     Returns (image ``[H, 2H, C]`` float64, info dict: ``iters``, ``row_residual`` = max over
-    Mitsuba pixels of |Σ_e A_me/Ω̃_m − 1|, ``entries``)."""
+    Mitsuba pixels of |Σ_e A_me/Ω̃_m − 1|, ``entries``). A Mitsuba pixel that meets no engine
+    pixel (only possible where the source has no light: the rim of an angular map) is 0."""
     H, W = int(height), 2 * int(height)
     s, q = int(supersample), int(pull)
     eh, ew = env.shape
@@ -157,6 +158,11 @@ def remap_to_mitsuba(env: Environment, height: int, supersample: int = 4, pull: 
     keep = (w1 > 0) & (om_e[e1] > 0)
     d1 = (d1.reshape(-1, 3) @ env.rotation.T)[keep]
     w1, e1 = w1[keep], e1[keep]
+    bare = (om_e > 0) & (torch.bincount(e1, w1, E) == 0)  # rim pixels of an angular map: their centre stands in
+    if bool(bare.any()):
+        eb = torch.nonzero(bare).squeeze(1)
+        d1 = torch.cat([d1, env.directions().reshape(-1, 3)[eb]])
+        w1, e1 = torch.cat([w1, om_e[eb]]), torch.cat([e1, eb])
     hq = math.pi / ((H - 1) * q)
     cell = hq * (2 * math.pi / (W * q))  # a pull sub-cell's solid angle is cell · sin θ (to first order)
     pull_w = cell * torch.sqrt((1 - d1[:, 1] ** 2).clamp_min(0))
@@ -179,17 +185,18 @@ def remap_to_mitsuba(env: Environment, height: int, supersample: int = 4, pull: 
     A = torch.zeros(key.numel(), dtype=torch.float64).index_add_(0, inv, torch.cat([a1, a2]))
     node, pix = key // E, key % E
     om_m = mitsuba_pixel_solid_angles(H).repeat_interleave(W)  # [H W]
+    seen = torch.bincount(node, minlength=H * W) > 0  # a Mitsuba pixel no engine pixel meets (an angular map's rim) stays 0
     it, res = 0, float("inf")
     for it in range(1, iters + 1):  # Sinkhorn: each pass two bincounts over the entries
         row = torch.bincount(node, A, H * W)
-        res = float((row / om_m - 1).abs().max())
-        A *= (om_m / row)[node]
+        res = float((row / om_m - 1)[seen].abs().max())
+        A *= (om_m / row.clamp_min(1e-300))[node]
         col = torch.bincount(pix, A, E)
-        A *= (om_e / col)[pix]
+        A *= (om_e / col.clamp_min(1e-300))[pix]
         if res < tol:
             break
     row = torch.bincount(node, A, H * W)
-    res = float((row / om_m - 1).abs().max())
+    res = float((row / om_m - 1)[seen].abs().max())
     vals = env.image.reshape(-1, env.channels).to(torch.float64)  # [E, C]
     img = torch.zeros(H * W, env.channels, dtype=torch.float64).index_add_(0, node, A[:, None] * vals[pix])
     img /= om_m[:, None]
