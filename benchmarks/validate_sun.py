@@ -4,7 +4,9 @@ transfer of ``scan_blob`` at sampled vertices, shadowed diffuse exit radiance, a
 fed :func:`prt_torch.validate.lights.source_image` (the power-conserving remap).
 
 Also prints the remap's figures per environment: total power engine vs Mitsuba image (Mitsuba's
-pixel solid angles), the power in a 3° cone around the brightest engine pixel, the largest
+pixel solid angles), the power in a 3° cone around the brightest engine pixel (each side's pixels
+by their centres: a like-for-like figure for a point-like source such as the sky's sun; for an
+extended one the two grids' pixel sets cover different solid angles), the largest
 deviation from 1 of the remap of a constant light (per-pixel fluctuation), the remap's CPU time.
 
     .venv/bin/python benchmarks/validate_sun.py [--vertices 16] [--spp 2048] [--lights sky,studio,overcast]
