@@ -11,7 +11,11 @@ The SH light ``[C, n²]`` is reconstructed on a lat-long image in Mitsuba's
   band-limited reconstruction goes negative (a directional light, a sharp cap at many bands)
   cannot be emitted and is refused by name before any work. ``light_source='image'`` (files
   and built-in environments) gives Mitsuba the original image instead; the difference between
-  the two Mitsuba runs is what SH truncation of the light contributes (reported).
+  the two Mitsuba runs is what SH truncation of the light contributes (reported). That image is
+  a power-conserving remap of the environment onto Mitsuba's grid (:func:`remap_to_mitsuba`):
+  every source pixel's power (radiance × exact solid angle) reaches Mitsuba, whose pixels emit
+  through bilinear hats (:func:`mitsuba_pixel_solid_angles`), so a sun smaller than a pixel keeps
+  its power (docs/validate.md, "Environment images reach Mitsuba with their power").
 """
 from __future__ import annotations
 
@@ -129,15 +133,18 @@ def remap_to_mitsuba(env: Environment, height: int, supersample: int = 4, pull: 
     The engine's radiance is piecewise constant over its pixels e (solid angle Ω_e,
     :meth:`Environment.solid_angles`); Mitsuba's is Σ_m v_m Λ_m(ω) with the bilinear hats Λ_m of
     :func:`mitsuba_envmap_directions` (solid angle Ω̃_m = ∫Λ_m, :func:`mitsuba_pixel_solid_angles`).
-    The conservative (first-order) remap is v_m = Σ_e A_me L_e / Ω̃_m with the overlap
+    The conservative (first-order) remap (Jones 1999, "First- and second-order conservative
+    remapping schemes for grids in spherical coordinates", Mon. Wea. Rev. 127, eq. 2, with
+    Mitsuba's hats in place of its target cells) is v_m = Σ_e A_me L_e / Ω̃_m with the overlap
     A_me = ∫ Λ_m 1_e dω, whose margins are known exactly: Σ_e A_me = Ω̃_m (a constant stays
     constant) and Σ_m A_me = Ω_e (the hats sum to one: every source pixel keeps its power). A is
     estimated by two quadratures, averaged: ``supersample``² points per engine pixel (centres of
     the sub-pixels of the ``supersample``-times finer grid of its layout, weighted by their exact
     solid angles; every engine pixel is seen) and ``pull``² points per cell of Mitsuba's grid
     (exact lat-long sub-cell solid angles; every Mitsuba pixel is seen), each splatted on its
-    four nodes with the hat weights. The estimate's margins are then made exact by alternate
-    row and column scaling (Sinkhorn / iterative proportional fitting), ending on the columns:
+    four nodes with the hat weights and weighted by the balance heuristic of the two point
+    densities (Veach & Guibas 1995: each quadrature counts where its points are the denser). The estimate's margins are then made exact by alternate
+    row and column scaling (Sinkhorn & Knopp 1967, iterative proportional fitting), ending on the columns:
     the image's power per source pixel, Σ_m A_me, is Ω_e to round-off, and its row margins
     (the image of a constant light, i.e. the per-pixel fluctuation) within the reported residual.
 
