@@ -116,6 +116,29 @@ def test_mitsuba_envmap_rows_sit_on_the_poles():
         np.testing.assert_allclose(got, img[i, j], rtol=1e-4)
 
 
+@pytest.mark.parametrize("which", ["sky", "file"])
+def test_mitsubas_own_power_estimate_is_the_engines(which, tmp_path):
+    """Mitsuba's emitter, given the image, integrates to the engine's ``total_power``: its own
+    importance sampling (``sample_direction``, weight L/pdf) over 128² stratified samples, within
+    1% (sky measured 11.743 for 11.733; the point-sampled image gave 17.35)."""
+    mi = pytest.importorskip("mitsuba", reason="pip install 'prt-torch[validate]'")
+    from prt_torch.validate import require_mitsuba
+
+    require_mitsuba()
+    spec = _hot_file_envs(tmp_path)[0] if which == "file" else which
+    env = VL._environment_of(spec)
+    em = mi.load_dict({"type": "envmap", "bitmap": mi.Bitmap(VL.source_image(spec, 32))})
+    it = mi.Interaction3f()
+    n = 128
+    acc = np.zeros(3)
+    for a in range(n):  # scalar variant: one sample per call (16 384 calls, ~0.1 s)
+        for b in range(n):
+            _, w = em.sample_direction(it, mi.Point2f((a + 0.5) / n, (b + 0.5) / n))
+            acc += np.asarray(w).reshape(-1)[:3]
+    want = env.total_power().expand(3).numpy()
+    np.testing.assert_allclose(acc / (n * n), want, rtol=0.01)
+
+
 def test_engine_matches_mitsuba_under_the_sky_with_its_sun():
     """The issue-39 review's case: a full-K R = 64 wavelet transfer of ``scan_blob`` (small), 16
     sampled vertices, shadowed diffuse exit radiance under the built-in ``sky`` against Mitsuba 3
