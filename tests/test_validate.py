@@ -162,7 +162,7 @@ def test_source_image_axes_and_sh_truncation(tmp_path):
     path = tmp_path / "env.pfm"
     env.save(path)
     img_src = V._source_image(str(path), 32)
-    img_sh = V.light_image(__import__("prt_torch").lighting.load_light(str(path), 2), 32)
+    img_sh = V.light_image(__import__("prt_torch").lighting.load_light(str(path), 2), img_src.shape[0])  # at least 2x the file's
     assert np.abs(img_src - img_sh).max() < 0.03
     m = builtin("occluder_over_plane")
     rep = V.validate(precompute_diffuse(m, 2, 256, seed=1, shadows="always"), str(path), vertices=8, spp=512,

@@ -85,6 +85,9 @@ def validate(transfer: Transfer | str | os.PathLike, light: Any, *, vertices: in
             (Mitsuba sees the original environment; the report adds the SH-truncation effect).
         sharp_deg: vertices whose adjacent faces tilt at least this far from the vertex normal
             are reported separately.
+        image_height: rows of Mitsuba's lat-long image of the SH light; an environment image
+            (``light_source='image'``, wavelet) gets at least this and twice the environment's
+            own (:func:`lights.source_height`), remapped with its power (:func:`lights.remap_to_mitsuba`).
         mitsuba_frame: 'normalized' (default: Mitsuba sees the mesh centred and scaled to a
             diagonal of :data:`MITSUBA_DIAGONAL`, so that its absolute ray epsilons are negligible
             against the engine's, whatever the mesh's units; :func:`mitsuba_frame`) or 'as_is'
