@@ -21,8 +21,7 @@ import torch
 
 from prt_torch.lighting import builtin_environment
 from prt_torch.scene import builtin
-from prt_torch.transfer import Transfer
-from prt_torch.transfer.wavelet import dense_wavelet_transfer, sparsify
+from prt_torch.transfer.wavelet import sampled_wavelet_transfer
 from prt_torch.validate import lights as VL
 from prt_torch.validate import sample_vertices, validate
 
@@ -79,12 +78,7 @@ def main() -> None:
     m = builtin("scan_blob", "small")
     idx = sample_vertices(m, a.vertices, 0)
     R = a.res
-    s = sparsify(dense_wavelet_transfer(m, R, vertices=idx).reshape(idx.numel(), -1), 6 * R * R, 32)
-    q = torch.zeros(m.num_vertices, 6 * R * R)
-    ind = torch.zeros(m.num_vertices, 6 * R * R, dtype=s["index"].dtype)
-    sc = torch.ones(m.num_vertices)
-    q[idx], ind[idx], sc[idx] = s["q"], s["index"], s["scale"]
-    tr = Transfer("wavelet", q, m, {"res": R, "terms": 6 * R * R, "bits": 32, "offset": 1e-4}, aux={"index": ind, "scale": sc})
+    tr = sampled_wavelet_transfer(m, R, idx)
     for name in a.lights.split(","):
         t = time.time()
         rep = validate(tr, name, light_source="image", idx=idx, spp=a.spp, batches=8)

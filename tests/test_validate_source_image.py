@@ -147,19 +147,13 @@ def test_engine_matches_mitsuba_under_the_sky_with_its_sun():
     light, so a one-pixel sun needs 2M samples per vertex for ±1% (about 20 s here)."""
     pytest.importorskip("mitsuba", reason="pip install 'prt-torch[validate]'")
     from prt_torch.scene import builtin
-    from prt_torch.transfer import Transfer
-    from prt_torch.transfer.wavelet import dense_wavelet_transfer, sparsify
+    from prt_torch.transfer.wavelet import sampled_wavelet_transfer
     from prt_torch.validate import sample_vertices, validate
 
     m = builtin("scan_blob", "small")
     idx = sample_vertices(m, 16, 0)
     R = 64
-    s = sparsify(dense_wavelet_transfer(m, R, vertices=idx).reshape(idx.numel(), -1), 6 * R * R, 32)
-    q = torch.zeros(m.num_vertices, 6 * R * R)
-    ind = torch.zeros(m.num_vertices, 6 * R * R, dtype=s["index"].dtype)
-    sc = torch.ones(m.num_vertices)
-    q[idx], ind[idx], sc[idx] = s["q"], s["index"], s["scale"]
-    tr = Transfer("wavelet", q, m, {"res": R, "terms": 6 * R * R, "bits": 32, "offset": 1e-4}, aux={"index": ind, "scale": sc})
+    tr = sampled_wavelet_transfer(m, R, idx)
     rep = validate(tr, "sky", light_source="image", idx=idx, spp=1 << 21, batches=8)
     assert rep["direct"]["ratio_se"] < 0.015, rep["direct"]  # the check has teeth
     assert abs(rep["direct"]["ratio"] - 1) < 0.03, rep["direct"]

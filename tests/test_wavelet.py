@@ -487,18 +487,13 @@ def test_validate_against_mitsuba_with_the_original_image():
     vertices' rows are computed alone (the precompute's function); the other rows are left empty
     and never read."""
     pytest.importorskip("mitsuba")
-    from prt_torch.transfer.wavelet import sparsify
+    from prt_torch.transfer.wavelet import sampled_wavelet_transfer
     from prt_torch.validate import sample_vertices, validate
 
     m = builtin("scan_blob", "small")
     idx = sample_vertices(m, 24, 0)
     R = 64
-    s = sparsify(dense_wavelet_transfer(m, R, vertices=idx).reshape(idx.numel(), -1), 6 * R * R, 32)
-    q = torch.zeros(m.num_vertices, 6 * R * R)
-    ind = torch.zeros(m.num_vertices, 6 * R * R, dtype=s["index"].dtype)
-    sc = torch.ones(m.num_vertices)
-    q[idx], ind[idx], sc[idx] = s["q"], s["index"], s["scale"]
-    tr = Transfer("wavelet", q, m, {"res": R, "terms": 6 * R * R, "bits": 32, "offset": 1e-4}, aux={"index": ind, "scale": sc})
+    tr = sampled_wavelet_transfer(m, R, idx)
     rep = validate(tr, "overcast", light_source="image", idx=idx, spp=1024, batches=8)
     assert abs(rep["direct"]["ratio"] - 1) < 0.03, rep["direct"]
     assert rep["direct_rms_rel"] < 0.05, rep["direct_rms_rel"]

@@ -62,7 +62,8 @@ from ..io import format_bytes
 from .glossy import decide_shadows, memory_budget
 from .ray_kernels import upper_rays
 
-__all__ = ["precompute_wavelet", "estimate_wavelet_memory", "dense_wavelet_transfer", "sparsify", "quantise", "dequantise",
+__all__ = ["precompute_wavelet", "estimate_wavelet_memory", "dense_wavelet_transfer", "sampled_wavelet_transfer",
+           "sparsify", "quantise", "dequantise",
            "wavelet_values", "MAX_WAVELET_TERMS", "BITS", "SAMPLINGS", "SCALES"]
 
 MAX_WAVELET_TERMS = 6 * MAX_HAAR_RES * MAX_HAAR_RES
@@ -365,6 +366,22 @@ def dense_wavelet_transfer(mesh: Mesh, res: int, *, supersample: int = 1, shadow
             caster.close()
     return haar2d(T) if haar else T
 
+
+
+def sampled_wavelet_transfer(mesh: Mesh, res: int, vertices: Any, offset: float = 1e-4) -> Transfer:
+    """A ``wavelet`` :class:`Transfer` holding every Haar term (all 6R², float32, ``bits`` 32) of the
+    vertices ``vertices`` (int64 ``[k]``) alone, computed by :func:`dense_wavelet_transfer`; the other
+    rows are zero (index 0, scale 1) and are never to be read. What ``prt validate``'s comparisons with
+    Mitsuba take on a few sampled vertices (``validate(tr, light, idx=vertices)``) without a whole
+    precompute: ``data [V, 6R²]`` float32, ``aux.index [V, 6R²]``, ``aux.scale [V]``."""
+    idx = torch.as_tensor(vertices, dtype=torch.int64)
+    P = 6 * res * res
+    s = sparsify(dense_wavelet_transfer(mesh, res, offset=offset, vertices=idx).reshape(idx.numel(), -1), P, 32)
+    q = torch.zeros(mesh.num_vertices, P)
+    ind = torch.zeros(mesh.num_vertices, P, dtype=s["index"].dtype)
+    sc = torch.ones(mesh.num_vertices)
+    q[idx], ind[idx], sc[idx] = s["q"], s["index"], s["scale"]
+    return Transfer("wavelet", q, mesh, {"res": res, "terms": P, "bits": 32, "offset": offset}, aux={"index": ind, "scale": sc})
 
 def precompute_wavelet(
     mesh: Mesh,
