@@ -154,7 +154,9 @@ def resolve_auto(kind: str, params: dict[str, Any], lights: list[torch.Tensor] |
                  max_bands: int) -> tuple[dict[str, Any], dict[str, Any]]:
     """Replace ``'auto'`` in ``params`` (bands, bands_out, M; the wavelet kind's res; the transport
     kind's res, 'auto' when absent: :func:`prt_torch.transfer.transport.choose_cube_res`) by the
-    chosen values.
+    chosen values. A wavelet ``terms`` (given or the default 256) above the 6R² coefficients of the
+    cube ``res: auto`` chose becomes 6R² (every coefficient kept; the decision ``terms`` says so), as the
+    user cannot know R beforehand.
 
     ``params['energy']`` (default 0.99, in (0, 1]) is the fraction kept; it is removed from the
     returned parameters. Returns (parameters for the precompute, decisions: per parameter
@@ -163,9 +165,17 @@ def resolve_auto(kind: str, params: dict[str, Any], lights: list[torch.Tensor] |
     energy = check_float("energy", p.pop("energy", DEFAULT_ENERGY), 0.0, 1.0, lo_open=True)
     decisions: dict[str, Any] = {}
     if kind == "wavelet" and p.get("res") == AUTO:
+        from .wavelet import DEFAULT_TERMS
+
         r, kept, why = choose_haar_res(lights, energy)
         p["res"] = r
         decisions["res"] = {"value": r, "energy_kept": kept, "target": energy, "reason": why}
+        K, P = p.get("terms", DEFAULT_TERMS), 6 * r * r
+        if isinstance(K, int) and K > P:  # the K asked for (or the default) is for a finer cube than auto chose
+            p["terms"] = P
+            decisions["terms"] = {"value": P, "energy_kept": None, "target": None,
+                                  "reason": f"terms {K} > the {P} Haar coefficients of the cube res: auto chose (6R², "
+                                            f"R={r}): every coefficient kept"}
     if kind == "transport" and p.get("res", AUTO) == AUTO:  # the kind's default is 'auto'
         from .transport import choose_cube_res
 

@@ -67,6 +67,8 @@ __all__ = ["precompute_wavelet", "estimate_wavelet_memory", "dense_wavelet_trans
            "wavelet_values", "MAX_WAVELET_TERMS", "BITS", "SAMPLINGS", "SCALES"]
 
 MAX_WAVELET_TERMS = 6 * MAX_HAAR_RES * MAX_HAAR_RES
+#: K, the coefficients kept per vertex when none is given (``terms``)
+DEFAULT_TERMS = 256
 #: stored precisions: signed integers of 8 or 16 bits with a per-vertex scale, or float32
 BITS = (8, 16, 32)
 #: where the texel integrals are sampled: sub-texel centres, or one random point per sub-texel and vertex
@@ -386,7 +388,7 @@ def sampled_wavelet_transfer(mesh: Mesh, res: int, vertices: Any, offset: float 
 def precompute_wavelet(
     mesh: Mesh,
     res: int = 32,
-    terms: int = 256,
+    terms: int = DEFAULT_TERMS,
     bits: int = 8,
     *,
     scales: str = "level",
