@@ -214,11 +214,16 @@ def _run(args, executor) -> int:
     lights = None
     if args.light:  # read before the scene is announced: a bad light is one line, before any work
         from ..lighting import load_light
+        from ..lighting.haar import cube_light
 
         lights = []
         for spec in args.light:
             try:
-                lights.append(load_light(spec, bands=32))
+                if kind.name == "wavelet":  # res auto measures the light itself on the cube, not its SH projection
+                    cube_light(spec, 1, supersample=1)  # (an image of any size; its SH at 32 bands need not exist)
+                    lights.append(spec)
+                else:
+                    lights.append(load_light(spec, bands=32))
             except (ValueError, OSError) as e:
                 raise ValueError(f"--light {spec!r}: {e}") from None
     import time
@@ -252,8 +257,6 @@ def _run(args, executor) -> int:
         _TableDir(table).save(out, overwrite=args.overwrite)
         print(f"prt precompute: wrote {out}/ kind={kind.name} ({table!r})", file=sys.stderr)
         return 0
-    if lights is not None and kind.name == "wavelet":  # wavelet res auto measures the lights themselves on the cube
-        lights = list(args.light)
     tr = kind.precompute(mesh, params, run=opts, lights=lights)
     tr.save(out, overwrite=args.overwrite)
     m = tr.meta
