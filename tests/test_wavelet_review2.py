@@ -59,3 +59,32 @@ def test_precompute_res_auto_takes_an_image_coarser_than_sh_32_bands(tmp_path, c
                      str(tmp_path / "missing.hdr"), "-o", str(bad)]) == 2
     err = capsys.readouterr().err
     assert "missing.hdr" in err and "Traceback" not in err and not bad.exists()
+
+
+def test_res_auto_does_not_ask_a_coarse_image_for_a_finer_cube_than_it_fills(tmp_path):
+    """A 32x16 image (11.25° pixels) measured on the R = 128 cube is point-sampled there, so its pixel
+    edges read as detail: ``res: auto`` chose the largest R, 64, and advised 'pass --res 128 for more'.
+    Now R is at most the finest cube every texel of which holds one of the image's pixel centres — the
+    rasteriser's own test for 'coarser than the cube': checked on the cube itself, the chosen R is filled
+    (no point samples, so a relight does not warn 'upsampled') and 2R is not."""
+    from prt_torch.lighting.haar import cube_light
+    from prt_torch.transfer.auto import choose_haar_res
+
+    light = _coarse_image(tmp_path / "coarse.hdr")
+    R, kept, why = choose_haar_res([light], 0.99)
+    assert R < 64 and "--res 128" not in why and "point-sampled" in why
+    assert not cube_light(light, R, supersample=1)[1]["upsampled"]
+    assert cube_light(light, 2 * R, supersample=1)[1]["upsampled"]
+    R2, _, _ = choose_haar_res([light, "cap:direction=0,0,1;half_angle_deg=0.5;intensity=1"], 0.99)
+    assert R2 == 64  # a sharp analytic light beside it still asks for the finest cube
+
+
+def test_res_auto_a_smooth_light_small_r_a_sharp_one_large_r():
+    """The brief's check of ``--res auto``: the constant light has all its energy in the coarsest
+    level (R = 1; analytic: a constant face is its scaling coefficient alone), a 0.5° cap needs the finest
+    cube auto chooses (64)."""
+    from prt_torch.transfer.auto import choose_haar_res
+
+    R, kept, _ = choose_haar_res(["constant:value=1"], 0.99)
+    assert R == 1 and abs(kept - 1.0) < 1e-9
+    assert choose_haar_res(["cap:direction=0,0,1;half_angle_deg=0.5;intensity=1"], 0.99)[0] == 64

@@ -117,7 +117,9 @@ def choose_haar_res(lights: list | None, energy: float, max_res: int = AUTO_HAAR
     Haar levels keep ``energy`` of each light's energy (Σ L̂² over the coefficients coarser than R
     of the light's cube at 2·``max_res``, each light normalised to unit energy and summed, as for
     bands): what the dropped finer levels hold is the light's detail a coarser cube cannot place;
-    ``max_res`` with the fraction it keeps when even that is short. Lights: SH
+    ``max_res`` with the fraction it keeps when even that is short. When every light is an image
+    coarser than the measuring cube (``cube_light`` point-samples it: its pixels' edges would count as
+    detail), R is at most the finest cube every texel of which holds one of its pixel centres. Lights: SH
     tensors ``[C, n²]`` or specs (:func:`prt_torch.lighting.haar.cube_light`). Returns
     (R, fraction kept, reason); without lights R = :data:`AUTO_HAAR_DEFAULT_RES` and the fraction None
     (nothing measured; metadata is JSON, which has no NaN)."""
@@ -129,8 +131,14 @@ def choose_haar_res(lights: list | None, energy: float, max_res: int = AUTO_HAAR
     m = torch.arange(r)
     level = torch.maximum(m[:, None], m[None, :])  # coefficient (i, j) belongs to resolution > max(i, j)
     per_res = torch.zeros(r.bit_length(), dtype=torch.float64)  # energy first resolved at R = 2^k
+    fills: list[tuple[str, int]] = []  # images coarser than the measuring cube: (name, the finest R they fill)
     for spec in lights:  # a few lights
-        cube, _ = cube_light(spec, r, supersample=2)
+        cube, rec = cube_light(spec, r, supersample=2)
+        if rec.get("upsampled"):  # point samples at r: the image's pixel edges would read as detail to resolve
+            f = r // 2
+            while f > 1 and cube_light(spec, f, supersample=1)[1].get("upsampled"):
+                f //= 2
+            fills.append((str(rec.get("source", spec)), f))
         e = haar2d(cube).square().sum((0, 1))  # [R, R] summed over channels and faces
         tot = float(e.sum())
         if tot <= 0:
@@ -141,6 +149,13 @@ def choose_haar_res(lights: list | None, energy: float, max_res: int = AUTO_HAAR
     cum = torch.cumsum(per_res, 0) / per_res.sum().clamp_min(1e-300)
     ok = torch.nonzero(cum >= energy - 1e-12).flatten()
     top = max_res.bit_length() - 1
+    if fills and len(fills) == len(lights):  # every light an image coarser than the measuring cube: a finer R than
+        cap = max(f for _, f in fills)  # the finest they fill holds no more of them (cube_light point-samples there)
+        k = min(int(ok[0]) if ok.numel() else top, top, cap.bit_length() - 1)
+        return 1 << k, float(cum[k]), (f"R={1 << k}: the light(s) are images no finer than the cube at R={cap} (every texel "
+                                       f"holds a pixel centre there, beyond it they are point-sampled: "
+                                       f"{'; '.join(n for n, _ in fills)}); keeps {float(cum[k]):.4f} of the energy of "
+                                       f"their point-sampled cube at R={r}, whose pixel edges hold the rest (target {energy:g})")
     if ok.numel() and int(ok[0]) <= top:
         k = int(ok[0])
         return 1 << k, float(cum[k]), (f"smallest cube face resolution whose Haar levels keep {energy:g} of the energy of "
