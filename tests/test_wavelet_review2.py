@@ -4,6 +4,8 @@ seconds. The last test is a check of `--res auto` the review asked for (it passe
 from __future__ import annotations
 
 import numpy as np
+import pytest
+import torch
 
 from prt_torch.cli import main as cli_main
 from prt_torch.transfer import Transfer
@@ -88,3 +90,46 @@ def test_res_auto_a_smooth_light_small_r_a_sharp_one_large_r():
     R, kept, _ = choose_haar_res(["constant:value=1"], 0.99)
     assert R == 1 and abs(kept - 1.0) < 1e-9
     assert choose_haar_res(["cap:direction=0,0,1;half_angle_deg=0.5;intensity=1"], 0.99)[0] == 64
+
+
+def _shifted_scene_file(path, shift: float = 0.0, scale: float = 1.0):
+    """occluder_over_plane (small) written as an OBJ, its vertices × scale + shift; and the mesh."""
+    from prt_torch.scene import builtin
+
+    m = builtin("occluder_over_plane", "small")
+    v = m.vertices.double().numpy() * scale + shift
+    with open(path, "w") as fh:
+        fh.writelines("v %.17g %.17g %.17g\n" % tuple(x) for x in v)
+        fh.writelines("f %d %d %d\n" % tuple(t + 1) for t in m.faces.numpy())
+    return m
+
+
+def test_a_mesh_far_from_the_origin_is_refused_not_traced_black(tmp_path, capsys):
+    """A scan in georeferenced units (the course's scene moved by 1e4 along x, y, z) was traced in float32
+    with offsets of 1e-4 × its diagonal, smaller than float32's spacing there (0.001): 65% of the rays
+    started inside the surface and the written transfer was black at every vertex (relight: radiance 0), for
+    every ray-traced kind. Now ray casting refuses it in one line naming the limit; nothing is written. A
+    mesh inside the limit (moved by 1000) traces as at the origin: the occlusion of the same rays (8 random
+    upper-hemisphere directions per vertex) equals the unmoved mesh's exactly."""
+    from prt_torch.scene.raycast import RayCaster
+
+    far = tmp_path / "far.obj"
+    m = _shifted_scene_file(far, shift=1e4)
+    out = tmp_path / "far.prt"
+    for kind in (["--kind", "wavelet", "--res", "4", "--terms", "16"], ["--kind", "diffuse", "--bands", "2"]):
+        assert cli_main(["precompute", str(far), *kind, "--workers", "1", "--no-progress", "-o", str(out)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert err[-1].startswith("prt precompute: error: mesh coordinates reach 1e+04") and "accepted" in err[-1]
+        assert not out.exists() and not any(p.name.startswith("far.prt") for p in tmp_path.iterdir())
+    v, n, f = m.vertices.double(), m.normals.double(), m.faces
+    g = torch.Generator().manual_seed(0)
+    d = torch.randn(v.shape[0] * 8, 3, generator=g, dtype=torch.float64)
+    d = d / d.norm(dim=1, keepdim=True)
+    o, nn = v.repeat_interleave(8, 0), n.repeat_interleave(8, 0)
+    d = torch.where((d * nn).sum(1, keepdim=True) < 0, -d, d)
+    ref = RayCaster(vertices=v, faces=f).occluded(o, d, nn)
+    assert 0.05 < float(ref.float().mean()) < 0.5  # the blocker shadows the plane
+    assert torch.equal(RayCaster(vertices=v + 1000.0, faces=f).occluded(o + 1000.0, d, nn), ref)
+    for s in (1e20, 1e-20):  # float32 products over- or underflow inside Embree: no shadow at all was found
+        with pytest.raises(ValueError, match="rescale the mesh"):
+            RayCaster(vertices=v * s, faces=f)
