@@ -133,3 +133,22 @@ def test_a_mesh_far_from_the_origin_is_refused_not_traced_black(tmp_path, capsys
     for s in (1e20, 1e-20):  # float32 products over- or underflow inside Embree: no shadow at all was found
         with pytest.raises(ValueError, match="rescale the mesh"):
             RayCaster(vertices=v * s, faces=f)
+
+
+def test_trade_terms_above_the_cube_make_one_row(tmp_path):
+    """``trade.terms`` above the cube's 6R² Haar terms each made a row of their own, all of them N = 6R²
+    (a user's ``trade: {terms: [10, 2000, 5000]}`` at R = 16 listed N=1536 twice per light, in the
+    report, results.json and trade.png). Now such N are one row: at R = 4 the N are min(N, 96), once
+    each, and the all-terms row is the exact result (error 0 to float32 round-off); the report's table
+    has exactly results.json's rows."""
+    import json
+
+    assert cli_main(["bench", "allfrequency", "transfer.res=4", "transfer.terms=32", "render.enabled=false",
+                     f"output_dir={tmp_path / 'r'}", f"cache_dir={tmp_path / 'c'}", "metrics.repeats=1", "name=t",
+                     "trade.terms=[10, 96, 500, 2000]", "trade.bands=[2]", "lights=[overcast]"]) == 0
+    res = json.loads((tmp_path / "r" / "t" / "results.json").read_text())["trade"]
+    wav = [x for x in res["rows"] if x["method"] == "wavelet"]
+    assert [x["N"] for x in wav] == sorted({min(n, 6 * 4 * 4) for n in (10, 96, 500, 2000)}) == [10, 96]
+    assert wav[-1]["error"] < 1e-6
+    report = (tmp_path / "r" / "t" / "report.md").read_text()
+    assert sum(line.startswith("| overcast | wavelet |") for line in report.splitlines()) == len(wav)

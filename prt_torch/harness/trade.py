@@ -54,6 +54,7 @@ def wavelet_trade(ev: Evaluator, lights: list[torch.Tensor], cfg: dict, log: Cal
     d, om = cube_geometry(R)
     dirs, om = d.reshape(-1, 3), om.reshape(-1)
     bands = sorted(set(int(b) for b in t["bands"]))
+    terms = sorted(set(min(int(n), P) for n in t["terms"]))  # N above the cube's 6R² terms is all of them: one row
     Y = eval_sh(dirs, max(bands), check=False)  # [P, n²]
     nb = max(bands) ** 2
     CT = r.CT  # 3: a coloured mesh's interreflection, one transfer per colour (albedo folded): SH per colour too
@@ -75,7 +76,7 @@ def wavelet_trade(ev: Evaluator, lights: list[torch.Tensor], cfg: dict, log: Cal
         cube = ihaar2d(Lhat.double().reshape(C, 6, R, R)).reshape(C, P)
         out = torch.empty(V, max(C, CT))
         wav, shr = [], []
-        for N in sorted(set(int(n) for n in t["terms"])):
+        for N in terms:
             idx, vals = select_terms(Lhat.double(), N, sel, r.weights if sel == "transport" else None)
             o = r(idx, vals, out=out)
             e = _rel(o, ref)
@@ -108,5 +109,5 @@ def wavelet_trade(ev: Evaluator, lights: list[torch.Tensor], cfg: dict, log: Cal
                 h[f"ratio_{tgt}"] = {"sh_over_wavelet": p.speedup, "trusted": bool(p.contention.get("trusted"))}
         head.append(h)
         log(f"[bench] trade {spec}: best SH {h['sh_best_error']:.4f}, best wavelets {h['wavelet_best_error']:.4f}")
-    return {"selection": sel, "res": R, "terms": list(t["terms"]), "bands": bands, "rows": rows, "headline": head,
+    return {"selection": sel, "res": R, "terms": terms, "bands": bands, "rows": rows, "headline": head,
             "bytes_per_vertex": ev.bytes_per_vertex, "threads": 1, "ratio_clock": "thread_time"}
