@@ -152,3 +152,21 @@ def test_trade_terms_above_the_cube_make_one_row(tmp_path):
     assert wav[-1]["error"] < 1e-6
     report = (tmp_path / "r" / "t" / "report.md").read_text()
     assert sum(line.startswith("| overcast | wavelet |") for line in report.splitlines()) == len(wav)
+
+
+def test_trade_counts_a_coloured_transfers_sh_bytes_per_colour(tmp_path):
+    """A coloured mesh's interreflected wavelet transfer (cornell_box, bounces) holds three transfers, and
+    the trade projects SH from each (``[V, 3, n²]``), but its SH rows said n²·4 bytes per vertex — a third
+    of what they hold, beside wavelet rows that count all three channels. Now 3·n²·4 (three float32 SH
+    vectors), and the wavelet rows' bytes are the stored K·(3·bits/8 + 2) + 4·3·L."""
+    import json
+
+    assert cli_main(["bench", "allfrequency", "scene.name=cornell_box", "transfer.res=4", "transfer.terms=32",
+                     "transfer.bounces=1", "transfer.hit_samples=2", "render.enabled=false", "metrics.repeats=1",
+                     f"output_dir={tmp_path / 'r'}", f"cache_dir={tmp_path / 'c'}", "name=t",
+                     "trade.terms=[10]", "trade.bands=[2, 3]", "lights=[overcast]"]) == 0
+    res = json.loads((tmp_path / "r" / "t" / "results.json").read_text())["trade"]
+    sh = {x["bands"]: x["bytes_per_vertex"] for x in res["rows"] if x["method"] == "sh"}
+    assert sh == {2: 3 * 4 * 4, 3: 3 * 9 * 4}
+    wav = [x["bytes_per_vertex"] for x in res["rows"] if x["method"] == "wavelet"]
+    assert wav == [32 * (3 * 8 // 8 + 2) + 4 * 3 * 3]  # 8-bit values, one scale per colour and Haar level (log2 4 + 1)

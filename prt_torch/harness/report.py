@@ -292,7 +292,8 @@ def trade_lines(t: dict) -> list[str]:
     to reach 5% and 1% error, SH vs wavelets" per light, then every row."""
     L = ["## SH vs wavelets: the all-frequency trade", "",
          f"Each light cut to N Haar terms ({t['selection']} selection; R = {t['res']}, the stored transfer, "
-         f"{t['bytes_per_vertex']} B/vertex) and SH at n bands projected from the same visibility (n² floats per vertex), "
+         f"{t['bytes_per_vertex']} B/vertex) and SH at n bands projected from the same visibility (n² floats per vertex, "
+         "3n² for a coloured transfer), "
          "each against the exact result (every term of the light): relative L2 over vertices and RGB. Times: "
          f"{'one thread, ' if t.get('threads') == 1 else ''}median per relight in one process; SH/wavelet: the two "
          f"settings timed paired in this run{' in one thread by its CPU time' if t.get('ratio_clock') == 'thread_time' else ''} "

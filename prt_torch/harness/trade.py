@@ -11,7 +11,7 @@ For a run whose transfer is kind ``wavelet`` (the config's ``trade`` section):
   (:class:`prt_torch.relight.WaveletRelighter`);
 * **SH, n bands, from the same visibility**: the stored transfer back in the pixel basis
   (``ihaar2d``), projected t_lm = Σ_j T_j y_lm(d_j), the light projected from its cube
-  L_lm = Σ_j L_j y_lm(d_j) Ω_j, relit by :func:`prt_torch.relight.diffuse` (n² floats per vertex).
+  L_lm = Σ_j L_j y_lm(d_j) Ω_j, relit by :func:`prt_torch.relight.diffuse` (n² floats per vertex; 3n² for a coloured transfer, one per colour).
 
 Error: relative L2 over vertices and RGB against the exact result. Times: in one thread (the
 work of each method; at the process's thread count a busy machine stalls OpenMP's parallel
@@ -91,7 +91,7 @@ def wavelet_trade(ev: Evaluator, lights: list[torch.Tensor], cfg: dict, log: Cal
             with torch_threads(1):
                 s = measure(lambda: relight.diffuse(t_sh[n], Lsh), repeats=5, warmup=1).median
             shr.append({"light": str(spec), "method": "sh", "bands": n, "error": e, "relight_s": s, "fps": 1.0 / s,
-                        "bytes_per_vertex": n * n * 4})
+                        "bytes_per_vertex": n * n * 4 * CT})  # CT = 3: one SH vector per colour
         rows += wav + shr
         h: dict[str, Any] = {"light": str(spec), "sh_best_error": min(x["error"] for x in shr),
                              "wavelet_best_error": min(x["error"] for x in wav)}
