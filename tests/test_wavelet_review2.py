@@ -170,3 +170,30 @@ def test_trade_counts_a_coloured_transfers_sh_bytes_per_colour(tmp_path):
     assert sh == {2: 3 * 4 * 4, 3: 3 * 9 * 4}
     wav = [x["bytes_per_vertex"] for x in res["rows"] if x["method"] == "wavelet"]
     assert wav == [32 * (3 * 8 // 8 + 2) + 4 * 3 * 3]  # 8-bit values, one scale per colour and Haar level (log2 4 + 1)
+
+
+def test_relight_ply_says_how_many_vertices_clip_at_white(tmp_path, capsys):
+    """``prt relight … -o OUT.ply`` writes display colours: radiance × 2^EV clipped to [0, 1], sRGB-encoded.
+    A radiance above 2^-EV becomes 255 with nothing said (under ``studio`` at --exposure 0 most of the
+    blocker scene's vertices exceed 1). The summary line now gives that count; checked against the .npy
+    of the same relight (numpy) and the colours trimesh reads back (the sRGB formula, IEC 61966-2-1)."""
+    import re
+
+    import trimesh
+
+    f = tmp_path / "w.prt"
+    assert cli_main(["precompute", "occluder_over_plane", "--kind", "wavelet", "--res", "4", "--terms", "96", "--bits",
+                     "32", "--workers", "1", "--no-progress", "-o", str(f)]) == 0
+    ply, npy = tmp_path / "w.ply", tmp_path / "w.npy"
+    assert cli_main(["relight", str(f), "--light", "studio", "-o", str(npy)]) == 0
+    capsys.readouterr()
+    assert cli_main(["relight", str(f), "--light", "studio", "--exposure", "0", "-o", str(ply)]) == 0
+    out = capsys.readouterr().out
+    x = np.load(npy).astype(np.float64)
+    over = int((x > 1.0).any(1).sum())
+    assert 0 < over < x.shape[0]
+    assert re.search(rf"exposure \+0\.00 EV, {over} clipped at white \(radiance above 1:", out)
+    c = np.clip(x, 0.0, 1.0)
+    srgb = np.where(c <= 0.0031308, 12.92 * c, 1.055 * c ** (1 / 2.4) - 0.055)
+    cols = trimesh.load(ply, process=False).visual.vertex_colors[:, :3].astype(np.int64)
+    assert np.abs(cols - np.round(srgb * 255)).max() == 0 and (cols[(x > 1.0).any(1)] == 255).any(1).all()

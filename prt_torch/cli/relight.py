@@ -204,7 +204,10 @@ def _into(res, out):
     return out
 
 
-def _write_ply(path: Path, mesh, rgb: np.ndarray, exposure: str, overwrite: bool) -> float:
+def _write_ply(path: Path, mesh, rgb: np.ndarray, exposure: str, overwrite: bool) -> tuple[float, int]:
+    """Write the mesh with vertex colours sRGB(clip(radiance · 2^EV, 0, 1)); returns (EV, the vertices
+    with a channel clipped at white, i.e. radiance above 2^-EV: 'auto' puts the 99th percentile of
+    luminance at 0.8, so about the brightest 1% and any channel beyond)."""
     import trimesh
 
     from .. import io
@@ -219,7 +222,7 @@ def _write_ply(path: Path, mesh, rgb: np.ndarray, exposure: str, overwrite: bool
     data = trimesh.exchange.ply.export_ply(tm, encoding="binary", vertex_normal=False)
     with io.atomic_path(path, overwrite=overwrite) as tmp:
         Path(tmp).write_bytes(data)
-    return ev
+    return ev, int((rgb.astype(np.float64) * 2.0 ** ev > 1.0).any(1).sum())
 
 
 def _tensor_bytes(info: dict) -> int:
@@ -445,6 +448,7 @@ def run(args) -> int:
             mesh = TransportTable(src).mesh()
         else:
             mesh = transfer.mesh
-        ev = _write_ply(out, mesh, rgb, args.exposure, args.overwrite)
-        print(f"wrote {out} ({rgb.shape[0]} vertices with colours at exposure {ev:+.2f} EV; {what})")
+        ev, clipped = _write_ply(out, mesh, rgb, args.exposure, args.overwrite)
+        print(f"wrote {out} ({rgb.shape[0]} vertices with colours at exposure {ev:+.2f} EV, {clipped} clipped at white "
+              f"(radiance above {2.0 ** -ev:.4g}: the .npy keeps the values); {what})")
     return 0
