@@ -197,3 +197,14 @@ def test_relight_ply_says_how_many_vertices_clip_at_white(tmp_path, capsys):
     srgb = np.where(c <= 0.0031308, 12.92 * c, 1.055 * c ** (1 / 2.4) - 0.055)
     cols = trimesh.load(ply, process=False).visual.vertex_colors[:, :3].astype(np.int64)
     assert np.abs(cols - np.round(srgb * 255)).max() == 0 and (cols[(x > 1.0).any(1)] == 255).any(1).all()
+
+
+def test_terms_above_the_cube_names_the_res_it_depends_on(tmp_path, capsys):
+    """K's bound is 6R², which the message did not say: ``prt bench`` with ``transfer: {res: 16, terms:
+    5000}`` answered 'terms=5000 is out of range; accepted: integers in [1, 1536]', a number the config
+    does not hold. Now the line names R and 6R² (6·16² = 1536), before any work."""
+    assert cli_main(["bench", "allfrequency", "transfer.res=16", "transfer.terms=5000", f"output_dir={tmp_path / 'r'}",
+                     f"cache_dir={tmp_path / 'c'}"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "terms=5000" in err and "[1, 1536]" in err and "res=16" in err and "Traceback" not in err
+    assert not (tmp_path / "c").exists() and not (tmp_path / "r" / "allfrequency").exists()

@@ -443,6 +443,9 @@ def precompute_wavelet(
     run = RunOptions() if run is None else run
     res = check_res(res)
     P = 6 * res * res
+    if isinstance(terms, int) and not isinstance(terms, bool) and terms > P:  # the bound depends on res: say so
+        raise ValueError(f"terms={terms} is out of range; accepted: integers in [1, {P}] (the 6R² Haar coefficients per "
+                         f"vertex at res={res})")
     terms = check_int("terms", terms, 1, P)
     bits = check_choice("bits", bits, BITS)
     scales = check_choice("scales", scales, SCALES)
