@@ -81,12 +81,14 @@ def register(subparsers) -> None:
                    help="build the mesh, then print each stage's memory and time (time from a probe of two small "
                         "chunks) and whether it fits, and stop; a run that would not fit is refused up front anyway")
     p.add_argument("--debug", action="store_true", help="show tracebacks")
-    g = p.add_argument_group("automatic choices ('auto' for --bands, --bands-out, --tents)")
+    g = p.add_argument_group("automatic choices ('auto' for --bands, --bands-out, --tents; wavelet: --res)")
     g.add_argument("--energy", type=float, default=None,
-                   help="fraction of the reflected energy an 'auto' choice keeps, in (0, 1] (default 0.99)")
+                   help="fraction of the reflected energy an 'auto' choice keeps, in (0, 1] (default 0.99); wavelet "
+                        "--res auto: of the lights' Haar energy")
     g.add_argument("--light", action="append", default=None, metavar="SPEC",
                    help="a light of the scene (built-in name, file or analytic spec), repeatable: 'auto' bands keep "
-                        "the energy of these lights through the BRDF lobe (default: a flat light spectrum)")
+                        "the energy of these lights through the BRDF lobe (default: a flat light spectrum); wavelet "
+                        "--res auto: the smallest cube keeping their energy (default without: R = 32)")
     g = p.add_argument_group("transfer parameters (default: the kind's)")
     for flag, (a, used_by) in _kind_args().items():
         defaults = {k: get_kind(k).defaults()[a.param] for k in used_by}
