@@ -208,3 +208,21 @@ def test_terms_above_the_cube_names_the_res_it_depends_on(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert "terms=5000" in err and "[1, 1536]" in err and "res=16" in err and "Traceback" not in err
     assert not (tmp_path / "c").exists() and not (tmp_path / "r" / "allfrequency").exists()
+
+
+def test_a_run_without_codecs_writes_no_empty_table_or_plots(tmp_path):
+    """The shipped ``allfrequency`` config has ``codecs: []`` (a wavelet transfer takes no SH codec), and
+    its report held an empty PSNR / fps table, 'Pareto front (PSNR vs fps): .' and two empty plots
+    (rd.png, speed_accuracy.png: axes and the uncompressed size's line only). Now the section says there
+    is nothing compressed and points to the trade; the plots written and listed are the trade's."""
+    import json
+
+    run = tmp_path / "r" / "t"
+    assert cli_main(["bench", "allfrequency", "transfer.res=4", "transfer.terms=32", "render.enabled=false",
+                     f"output_dir={tmp_path / 'r'}", f"cache_dir={tmp_path / 'c'}", "metrics.repeats=1", "name=t",
+                     "trade.terms=[10]", "trade.bands=[2]", "lights=[overcast]"]) == 0
+    assert json.loads((run / "results.json").read_text())["records"] == []
+    report = (run / "report.md").read_text()
+    assert "Pareto front" not in report and "| codec | setting |" not in report and "No codec settings" in report
+    assert sorted(p.name for p in run.glob("*.png")) == ["trade.png"]
+    assert "![trade](trade.png)" in report and "rd.png" not in report

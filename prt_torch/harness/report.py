@@ -485,7 +485,12 @@ def markdown(results: dict, figures: list[str], renders: list[str]) -> str:
         "call timed alone after evicting the caches (harness.timing.measure_paired_cold) — the memory-bandwidth bound.",
         "",
     ]
-    lines += _records_table(r["records"])
+    if r["records"]:
+        lines += _records_table(r["records"])
+    else:  # codecs: [] (a wavelet run's trade, below): no table, no front, no empty plots
+        lines = lines[:lines.index("## PSNR / fps")] + [
+            "## PSNR / fps", "", "No codec settings in this run (`codecs: []`): nothing compressed to compare with the peer "
+            "above" + (" (the trade below compares the light's approximations)." if r.get("trade") else "."), ""]
     lines += _contention_note(r["records"])
     lines += runtime_lines(r["records"])
     for part in r.get("parts") or []:
@@ -841,7 +846,7 @@ def write_outputs(run_dir: Path, results: dict, log: Callable[[str], None] = pri
     run_dir.mkdir(parents=True, exist_ok=True)
     io.atomic_write_json(run_dir / "results.json", results)
     write_csv(run_dir / "results.csv", results["records"])
-    figs = [p.name for p in plot_results([results], run_dir)]
+    figs = [p.name for p in plot_results([results], run_dir)] if results["records"] else []  # codecs: []: nothing to plot
     if results.get("ablation"):
         figs.append(plot_ablation(results, run_dir).name)
     if results.get("trade"):
