@@ -226,3 +226,28 @@ def test_a_run_without_codecs_writes_no_empty_table_or_plots(tmp_path):
     assert "Pareto front" not in report and "| codec | setting |" not in report and "No codec settings" in report
     assert sorted(p.name for p in run.glob("*.png")) == ["trade.png"]
     assert "![trade](trade.png)" in report and "rd.png" not in report
+
+
+def test_wavelet_relight_reads_an_sh_light_file(tmp_path, capsys):
+    """``prt light --json`` and ``prt invert`` write SH lights as JSON, which every SH path reads
+    (``load_light``), but the cube rasteriser took the file for an image: ``prt relight W.prt --light
+    sky.json`` answered 'cannot read image'. Now the file is evaluated as its SH light on the cube. A
+    one-band light L00 = 2 is the constant radiance 2·Y00 = 1/sqrt(pi) (analytic): its cube is that value
+    in every texel, and a wavelet transfer relit under it equals the relight under 'constant:value=…'."""
+    import json
+    import math
+
+    from prt_torch.lighting.haar import cube_light
+    from prt_torch.lighting.spec import SH_CONVENTION
+
+    js = tmp_path / "l.json"
+    js.write_text(json.dumps({"coeffs": [[2.0], [2.0], [2.0]], "bands": 1, "convention": SH_CONVENTION}))
+    cube, rec = cube_light(str(js), 4)
+    assert torch.allclose(cube, torch.full_like(cube, 1 / math.sqrt(math.pi)), rtol=1e-12, atol=0) and "l.json" in rec["source"]
+    f = tmp_path / "w.prt"
+    assert cli_main(["precompute", "occluder_over_plane", "--kind", "wavelet", "--res", "4", "--terms", "96", "--bits",
+                     "32", "--workers", "1", "--no-progress", "-o", str(f)]) == 0
+    a, b = tmp_path / "a.npy", tmp_path / "b.npy"
+    assert cli_main(["relight", str(f), "--light", str(js), "-o", str(a)]) == 0
+    assert cli_main(["relight", str(f), "--light", f"constant:value={1 / math.sqrt(math.pi)!r}", "-o", str(b)]) == 0
+    assert np.allclose(np.load(a), np.load(b), rtol=1e-5, atol=1e-7)

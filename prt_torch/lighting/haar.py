@@ -19,6 +19,8 @@ support is the block of (R / 2^ℓ)² texels at block position (i mod 2^ℓ, j m
 from __future__ import annotations
 
 import math
+import os
+from pathlib import Path
 from typing import Any
 
 import torch
@@ -194,7 +196,8 @@ def cube_light(spec: Any, res: int, supersample: int = 4, channels: int = 3) -> 
     by its sub-texel coverage rescaled to its exact power, a directional light as its power π·I in
     the texel holding its direction; ``hemisphere``, ``sky_gradient``, ``constant`` by their
     radiance functions averaged over ``supersample``² sub-texel directions); a dict of the same;
-    or an SH light ``[C, n²]`` tensor (evaluated at the sub-texel directions). An image
+    or an SH light ``[C, n²]`` tensor or ``.json`` file (``prt light --json``'s layout; evaluated at the
+    sub-texel directions). An image
     resampled to the cube: each source pixel's power L·Ω lands in the cube texel holding its
     centre (energy-conserving) when every texel holds at least one pixel centre; otherwise the
     image is coarser than the cube somewhere, the cube is point-sampled at sub-texel directions
@@ -235,6 +238,12 @@ def cube_light(spec: Any, res: int, supersample: int = 4, channels: int = 3) -> 
         kind, d = analytic_params(d)
         rec["source"] = f"analytic {kind} rasterised at R={res}"
         return _analytic_cube(kind, d, res, s, dirs, omega).permute(3, 0, 1, 2).contiguous(), rec
+    if isinstance(spec, (str, os.PathLike)) and str(spec).lower().endswith(".json") and Path(spec).is_file():
+        from .spec import load_light_json  # an SH light file (prt light --json, prt invert): evaluated, as a tensor
+
+        img, rec = cube_light(load_light_json(spec), res, supersample, channels)
+        rec["source"] = f"SH light file {str(spec)!r} ({rec['source']})"
+        return img, rec
     if isinstance(spec, Environment):
         env = spec
     elif isinstance(spec, (str, list, tuple)) or hasattr(spec, "__fspath__"):
