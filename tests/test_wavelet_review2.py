@@ -251,3 +251,37 @@ def test_wavelet_relight_reads_an_sh_light_file(tmp_path, capsys):
     assert cli_main(["relight", str(f), "--light", str(js), "-o", str(a)]) == 0
     assert cli_main(["relight", str(f), "--light", f"constant:value={1 / math.sqrt(math.pi)!r}", "-o", str(b)]) == 0
     assert np.allclose(np.load(a), np.load(b), rtol=1e-5, atol=1e-7)
+
+
+def test_trade_measures_what_the_stored_transfer_itself_costs(tmp_path):
+    """The trade's errors are against the stored transfer relit with every light term, so its wavelet rows
+    reach 0 while the stored transfer (K kept terms, 8 bits) is itself several % from the pixel-basis
+    transfer the issue asks the error against (the shipped allfrequency run: sky 4.9%, the 0.5° cap 2.7%)
+    — a floor the report did not show. Now the headline gives it per light ('stored vs all terms'),
+    measured on vertices spread over the mesh. Checked against prt relight of two CLI precomputes of the
+    same scene (K = 8, 8 bits against K = 6R² = 96 in float32) at those vertices; a jittered transfer
+    says it is not measured."""
+    import json
+
+    run = tmp_path / "r" / "t"
+    common = ["render.enabled=false", f"output_dir={tmp_path / 'r'}", f"cache_dir={tmp_path / 'c'}", "metrics.repeats=1",
+              "trade.terms=[10]", "trade.bands=[2]", "lights=[studio]"]
+    assert cli_main(["bench", "allfrequency", "transfer.res=4", "transfer.terms=8", "name=t", *common]) == 0
+    res = json.loads((run / "results.json").read_text())["trade"]
+    k = res["stored_check"]["vertices"]
+    got = res["headline"][0]["stored_error"]
+    files = {}
+    for K, bits in ((8, 8), (96, 32)):
+        f, o = tmp_path / f"w{K}.prt", tmp_path / f"w{K}.npy"
+        assert cli_main(["precompute", "occluder_over_plane", "--kind", "wavelet", "--res", "4", "--terms", str(K), "--bits",
+                         str(bits), "--workers", "1", "--no-progress", "-o", str(f)]) == 0
+        assert cli_main(["relight", str(f), "--light", "studio", "-o", str(o)]) == 0
+        files[K] = np.load(o).astype(np.float64)
+    vi = np.unique(np.round(np.linspace(0, files[8].shape[0] - 1, k)).astype(np.int64))
+    want = np.linalg.norm(files[8][vi] - files[96][vi]) / np.linalg.norm(files[96][vi])
+    assert want > 0.01 and abs(got - want) <= 1e-4 * want + 1e-6
+    assert "| stored vs all terms |" in (run / "report.md").read_text()
+    assert cli_main(["bench", "allfrequency", "transfer.res=4", "transfer.terms=8", "transfer.sampling=jittered",
+                     "name=j", *common]) == 0
+    res = json.loads((tmp_path / "r" / "j" / "results.json").read_text())["trade"]
+    assert "jittered" in res["stored_check"]["skipped"] and res["headline"][0]["stored_error"] is None

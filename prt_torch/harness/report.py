@@ -297,9 +297,16 @@ def trade_lines(t: dict) -> list[str]:
          "each against the exact result (every term of the light): relative L2 over vertices and RGB. Times: "
          f"{'one thread, ' if t.get('threads') == 1 else ''}median per relight in one process; SH/wavelet: the two "
          f"settings timed paired in this run{' in one thread by its CPU time' if t.get('ratio_clock') == 'thread_time' else ''} "
-         "(> 1: wavelets faster; ⚠: contention).", "",
-         "| light | SH to 5% | wavelets to 5% | SH/wavelet | SH to 1% | wavelets to 1% | SH/wavelet | best SH | best wavelets |",
-         "|---|---|---|---|---|---|---|---|---|"]
+         "(> 1: wavelets faster; ⚠: contention).", ""]
+    sc = t.get("stored_check") or {}
+    if sc:  # what the exact result above itself costs: the stored transfer against all 6R² terms
+        L += [("Stored vs all terms: the stored transfer (its K terms, quantised) against its full pixel-basis transfer "
+               f"(all 6R² terms, traced again) on {sc['vertices']} vertices, under each light — the floor every row "
+               "above sits on, which the errors above (against the stored transfer) do not include."
+               if "vertices" in sc else f"Stored vs all terms: not measured ({sc['skipped']})."), ""]
+    L += ["| light | SH to 5% | wavelets to 5% | SH/wavelet | SH to 1% | wavelets to 1% | SH/wavelet | best SH | best wavelets "
+          "| stored vs all terms |",
+          "|---|---|---|---|---|---|---|---|---|---|"]
     for h in t["headline"]:
         cells = [h["light"]]
         for tgt in (0.05, 0.01):
@@ -307,7 +314,8 @@ def trade_lines(t: dict) -> list[str]:
             cells.append("not reached" if s is None else f"{s['bands']} bands, {_ms(s['relight_s'])}")
             cells.append("not reached" if w is None else f"N={w['N']}, {_ms(w['relight_s'])}")
             cells.append(f"{q['sh_over_wavelet']:.2f}{'' if q['trusted'] else ' ⚠'}" if q else "—")
-        cells += [f"{h['sh_best_error']:.4f}", f"{h['wavelet_best_error']:.4f}"]
+        cells += [f"{h['sh_best_error']:.4f}", f"{h['wavelet_best_error']:.4f}",
+                  "—" if h.get("stored_error") is None else f"{h['stored_error']:.4f}"]
         L.append("| " + " | ".join(cells) + " |")
     L += ["", "| light | method | N or bands | error | relight | fps | B/vertex |", "|---|---|---|---|---|---|---|"]
     for x in t["rows"]:
