@@ -1,6 +1,7 @@
 """Issue 39 reviewed a second time from the command line (`--res auto`, lights, odd meshes, the
 harness's trade): each test here failed before its fix. Small scenes and cubes so the module runs in
-seconds. The last test is a check of `--res auto` the review asked for (it passed before)."""
+seconds. ``test_res_auto_a_smooth_light_small_r_a_sharp_one_large_r`` is a check of `--res auto` the
+review asked for (it passed before)."""
 from __future__ import annotations
 
 import numpy as np
