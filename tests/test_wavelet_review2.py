@@ -286,3 +286,18 @@ def test_trade_measures_what_the_stored_transfer_itself_costs(tmp_path):
                      "name=j", *common]) == 0
     res = json.loads((tmp_path / "r" / "j" / "results.json").read_text())["trade"]
     assert "jittered" in res["stored_check"]["skipped"] and res["headline"][0]["stored_error"] is None
+
+
+def test_dry_run_says_what_res_auto_chose(tmp_path, capsys):
+    """``prt precompute --res auto --dry-run`` sized the run for the R it chose but did not say which (the
+    choice was printed only after a real run). Now the dry run prints each 'auto' decision first: overcast
+    gives R = 4 and K = 6·4² = 96, the values the real run then records; nothing is written."""
+    out = tmp_path / "w.prt"
+    argv = ["precompute", "occluder_over_plane", "--kind", "wavelet", "--res", "auto", "--light", "overcast", "--workers",
+            "1", "--no-progress", "-o", str(out)]
+    assert cli_main(argv + ["--dry-run"]) == 0
+    err = capsys.readouterr().err
+    assert "prt precompute: res=4 keeps" in err and "prt precompute: terms=96 (" in err and not out.exists()
+    assert cli_main(argv) == 0
+    m = Transfer.load(out).meta
+    assert (m["res"], m["terms"]) == (4, 96)

@@ -243,6 +243,7 @@ def _run(args, executor) -> int:
     # STREAM_RESULT_BYTES is assembled in a file beside the state directory: the estimate does not count it in memory
     est = estimate(kind, mesh, params, plan, lights=lights, probe=args.dry_run, mesh_seconds=t_mesh, mesh_rss=mesh_rss)
     if args.dry_run:
+        _print_auto(kind.resolve(params, lights)[1])  # what 'auto' chose (the estimate is for it)
         print(f"prt precompute: dry run, {kind.name} on {mesh.num_vertices} vertices: memory and time per stage", file=sys.stderr)
         for line in format_estimate(est):
             print(line, file=sys.stderr)
@@ -262,14 +263,19 @@ def _run(args, executor) -> int:
     tr = kind.precompute(mesh, params, run=opts, lights=lights)
     tr.save(out, overwrite=args.overwrite)
     m = tr.meta
-    for k, d in m.get("auto", {}).items():
-        kept = "" if d.get("energy_kept") is None else f" keeps {d['energy_kept']:.4f} of the energy"  # None: nothing measured
-        print(f"prt precompute: {k}={d['value']}{kept} ({d['reason']})", file=sys.stderr)
+    _print_auto(m.get("auto", {}))
     stored = f", {m['bytes_per_vertex']} B/vertex stored" if "bytes_per_vertex" in m else ""  # the wavelet kind's sparse rows
     print(f"prt precompute: wrote {out} kind={tr.kind} data={tuple(tr.data.shape)}{stored} "
           f"({m.get('shadow_decision', '')}; bounces used {m.get('bounces_used', m.get('bounces', 0))}; "
           f"{ray_summary(m)} in {m.get('seconds', 0):.1f} s)", file=sys.stderr)
     return 0
+
+
+def _print_auto(decisions: dict) -> None:
+    """One stderr line per 'auto' decision (``meta['auto']``: value, energy kept, reason)."""
+    for k, d in decisions.items():
+        kept = "" if d.get("energy_kept") is None else f" keeps {d['energy_kept']:.4f} of the energy"  # None: nothing measured
+        print(f"prt precompute: {k}={d['value']}{kept} ({d['reason']})", file=sys.stderr)
 
 
 def ray_counts(meta: dict) -> dict[str, int]:
