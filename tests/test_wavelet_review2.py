@@ -80,6 +80,11 @@ def test_res_auto_does_not_ask_a_coarse_image_for_a_finer_cube_than_it_fills(tmp
     assert cube_light(light, 2 * R, supersample=1)[1]["upsampled"]
     R2, _, _ = choose_haar_res([light, "cap:direction=0,0,1;half_angle_deg=0.5;intensity=1"], 0.99)
     assert R2 == 64  # a sharp analytic light beside it still asks for the finest cube
+    from prt_torch.lighting.imageio import write_image
+
+    write_image(tmp_path / "flat.hdr", np.full((16, 32, 3), 0.3, np.float32))  # as coarse, but constant: all its energy
+    R3, kept3, why3 = choose_haar_res([str(tmp_path / "flat.hdr")], 0.99)  # in the coarsest level (R = 1), which the
+    assert R3 == 1 and kept3 > 0.99 and why3.startswith("smallest cube")  # energy chooses; the cap does not apply
 
 
 def test_res_auto_a_smooth_light_small_r_a_sharp_one_large_r():

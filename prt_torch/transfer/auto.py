@@ -149,9 +149,10 @@ def choose_haar_res(lights: list | None, energy: float, max_res: int = AUTO_HAAR
     cum = torch.cumsum(per_res, 0) / per_res.sum().clamp_min(1e-300)
     ok = torch.nonzero(cum >= energy - 1e-12).flatten()
     top = max_res.bit_length() - 1
-    if fills and len(fills) == len(lights):  # every light an image coarser than the measuring cube: a finer R than
-        cap = max(f for _, f in fills)  # the finest they fill holds no more of them (cube_light point-samples there)
-        k = min(int(ok[0]) if ok.numel() else top, top, cap.bit_length() - 1)
+    k_energy = min(int(ok[0]), top) if ok.numel() else top
+    cap = max((f for _, f in fills), default=0)  # the finest cube the coarse images fill: a finer one holds no more
+    if fills and len(fills) == len(lights) and cap.bit_length() - 1 < k_energy:  # of them (cube_light point-samples)
+        k = cap.bit_length() - 1
         return 1 << k, float(cum[k]), (f"R={1 << k}: the light(s) are images no finer than the cube at R={cap} (every texel "
                                        f"holds a pixel centre there, beyond it they are point-sampled: "
                                        f"{'; '.join(n for n, _ in fills)}); keeps {float(cum[k]):.4f} of the energy of "
