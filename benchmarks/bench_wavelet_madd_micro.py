@@ -26,8 +26,9 @@ is paired with itself at light 0. Variants:
   - each also with every block reading the first block's values (``L1``): the memory taken out.
 
 Scale groups (``--groups``): ``all`` one group (one int32 -> float flush per block) or ``16`` consecutive terms;
-``65535 rule``: s_g = max(sum_{k in g} |L_k| / 65535, max_{k in g} |L_k| / 32767), safe for any |T| <= 32767
-(32767 x 65535 < 2^31); ``column max``: s_g = max(sum_k tmax_k |L_k| / (2^31 - 1 - sum_k tmax_k / 2),
+``65535 rule``: s_g = max(sum_{k in g} |L_k| / (65538 - n_g / 2), max_{k in g} |L_k| / 32767), safe for any
+|T| <= 32767 (32767 x 65538 < 2^31; the n_g / 2: the rounding's share, which the plain sum |L| / 65535 misses);
+``column max``: s_g = max(sum_k tmax_k |L_k| / (2^31 - 1 - sum_k tmax_k / 2),
 max_k |L_k| / 32767) with tmax_k the dense column's largest stored magnitude, safe for the stored values (and finer).
 Lq = round(L / s_g), s_g rounded up to float32. The madd sums are checked against the float64 sums of the same stored
 values within the stated bound |dB_v| <= sum_g (s_g / 2) sum_{k in g} |T_v,k| (+ float rounding), and the bound is
@@ -241,8 +242,10 @@ int madd_half(const int16_t *dense, i64 bs, const i64 *pob, const int32_t *lq, c
         }
     return 0;
 }
-#else
+#else /* no AVX2: the integer loops are not built (status -1) */
 int madd_pass(void) { return -1; }
+int madd_lean(void) { return -1; }
+int madd_half(void) { return -1; }
 #endif
 /* the loops' instruction mixes alone (x86-64 asm, data in L1, n iterations; this thread's CPU time in s): what = 0: the
  * madd pair body (2 terms x 32 vertices: 4 loads, 4 unpacks, 12 vpmaddwd with the light from memory, 12 vpaddd); 1: the
@@ -299,10 +302,13 @@ FLOORS = ("madd pair body (2 terms x 32 vertices; per term: half)", "float term 
 def quantise_light(lw: torch.Tensor, group: int, tmax: torch.Tensor | None):
     """The dense terms' light lw [nd, 3] float32 quantised per group of ``group`` consecutive terms and channel:
     Lq int32 [nd, 3], the groups' scales s float32 [ng, 3] and each term's group int64 [nd]. The scale keeps every
-    int32 sum of Tq Lq in range: with the columns' largest stored magnitudes tmax [nd] ("column max"),
-    s_g = max(sum_k tmax_k |L_k| / (2^31 - 1 - sum_k tmax_k / 2), max_k |L_k| / 32767) (rounding adds at most
-    tmax_k / 2 per term); without (None: the brief's rule for |T| <= 32767), s_g = max(sum |L| / 65535,
-    max |L| / 32767). Rounded up to float32, so that q s_g is the dequantised light exactly and |q s_g - L| <= s_g/2."""
+    int32 sum of Tq Lq in range, rounding included (|Lq_k| <= |L_k| / s + 1/2): with the columns' largest stored
+    magnitudes tmax [nd] ("column max"), s_g = max(sum_k tmax_k |L_k| / (2^31 - 1 - sum_k tmax_k / 2),
+    max_k |L_k| / 32767); without (None: any |T| <= 32767, "65535 rule"), s_g = max(sum |L| / (65538 - n_g / 2),
+    max |L| / 32767), n_g the group's terms — the brief's sum |L| / 65535 lets the rounding carry sum |Lq| to
+    65535 + n_g / 2, past the 65538 = floor((2^31 - 1) / 32767) that |T| = 32767 allows
+    (tests/test_wavelet_madd_micro.py found it). Rounded up to float32, so that q s_g is the dequantised light
+    exactly and |q s_g - L| <= s_g / 2."""
     nd = lw.shape[0]
     grp = torch.arange(nd) // group
     ng = int(grp[-1]) + 1 if nd else 0
@@ -310,7 +316,8 @@ def quantise_light(lw: torch.Tensor, group: int, tmax: torch.Tensor | None):
     smax = torch.zeros(ng, 3, dtype=torch.float64).scatter_reduce_(0, grp[:, None].expand(-1, 3), a, "amax")
     if tmax is None:
         ssum = torch.zeros(ng, 3, dtype=torch.float64).index_add_(0, grp, a)
-        s = torch.maximum(ssum / 65535, smax / 32767)
+        cnt = torch.bincount(grp, minlength=ng).to(torch.float64)[:, None]
+        s = torch.maximum(ssum / (65538 - cnt / 2), smax / 32767)
     else:
         tm = tmax.double()[:, None]
         ssum = torch.zeros(ng, 3, dtype=torch.float64).index_add_(0, grp, a * tm)
@@ -326,6 +333,61 @@ def quantise_light(lw: torch.Tensor, group: int, tmax: torch.Tensor | None):
 CONFIGS = {"all, 65535 rule": (4096, False), "all, column max": (4096, True), "16, column max": (16, True)}
 
 
+def build_library():
+    """The micro-benchmark's library (compiled once, cached), its functions' argument types set; None without a compiler."""
+    lib, _ = compile_library("wavelet_madd_micro", SRC, ["-O3", "-march=native", "-ffp-contract=fast", "-shared",
+                                                          "-fPIC", "-std=c99"], {})
+    if lib is None:
+        return None
+    i64, vp = ctypes.c_int64, ctypes.c_void_p
+    lib.dense_pass.argtypes = [vp, i64, vp, i64, vp, i64, i64, vp, i64]
+    lib.madd_pass.argtypes = [vp, i64, vp, i64, vp, vp, i64, vp, i64, vp, i64]
+    lib.madd_lean.argtypes = [vp, i64, vp, vp, vp, i64, vp, i64, vp, i64, i64]
+    lib.madd_half.argtypes = [vp, i64, vp, vp, vp, i64, vp, i64, vp, i64]
+    lib.clock_ghz.restype = ctypes.c_double
+    lib.floor_loop.argtypes = [i64, ctypes.c_long]
+    lib.floor_loop.restype = ctypes.c_double
+    return lib
+
+
+def pack(ds: torch.Tensor, q: torch.Tensor, s: torch.Tensor, group: int) -> dict:
+    """The integer loops' arguments for the dense slots ``ds [nd]`` (slot order) and their quantised light ``q [nd, 3]``
+    int32 with scales ``s [ng, 3]`` float32 (:func:`quantise_light` with ``group`` terms a group, even): the pairs'
+    slots ``pab [np, 2]`` (an odd last term paired with itself at light 0), their byte offsets ``pob`` (padded by
+    2 PF + 2 entries for the prefetch), the pairs' light ``lq [np, 4]`` int32 ((Lq_a & 0xFFFF) | Lq_b << 16 per
+    channel) and pre-broadcast ``lb [np, 3, 8]``, each group's first pair ``gp [ng + 1]`` and scales ``gs [ng, 4]``."""
+    nd = ds.numel()
+    pa, qq = ds.long(), q
+    if nd % 2:
+        pa = torch.cat([pa, pa[-1:]])
+        qq = torch.cat([qq, torch.zeros(1, 3, dtype=torch.int32)])
+    np_ = pa.numel() // 2
+    ng = s.shape[0]
+    lq = torch.zeros(np_, 4, dtype=torch.int32)
+    lq[:, :3] = (qq[0::2] & 0xFFFF) | (qq[1::2] << 16)
+    gs = torch.zeros(ng, 4)
+    gs[:, :3] = s
+    return {"np": np_, "ng": ng, "pab": pa.contiguous(), "pob": torch.cat([pa, pa[-2:].repeat(7)]) * 64, "lq": lq,
+            "lb": lq[:, :3, None].expand(np_, 3, 8).contiguous(),
+            "gp": torch.tensor([min(g * group // 2, np_) for g in range(ng)] + [np_], dtype=torch.int64), "gs": gs}
+
+
+def madd_call(lib, variant: str, d16: torch.Tensor, k: dict, out: torch.Tensor, l1: bool = False, reps: int = 1) -> int:
+    """One call of an integer loop over the dense blocks ``d16 [nb, Pd, 32]`` int16 with :func:`pack`'s arguments ``k``:
+    the sums (light scale applied, no factor) into ``out [nb, 3, 32]`` float32, vertex order; ``l1``: every block reads
+    the first block's values. Returns the loop's status (-1: no AVX2 build)."""
+    nb, Pd = d16.shape[0], d16.shape[1]
+    bs = 0 if l1 else Pd * 32
+    if variant == "half, asm":
+        return lib.madd_half(d16.data_ptr(), bs, k["pob"].data_ptr(), k["lq"].data_ptr(), k["gp"].data_ptr(), k["ng"],
+                             k["gs"].data_ptr(), nb, out.data_ptr(), reps)
+    if variant == "half":
+        return lib.madd_pass(d16.data_ptr(), bs, k["pab"].data_ptr(), k["np"], k["lq"].data_ptr(), k["gp"].data_ptr(),
+                             k["ng"], k["gs"].data_ptr(), nb, out.data_ptr(), reps)
+    return lib.madd_lean(d16.data_ptr(), bs, k["pob"].data_ptr(), k["lb"].data_ptr(), k["gp"].data_ptr(), k["ng"],
+                         k["gs"].data_ptr(), nb, out.data_ptr(), reps, LEAN[variant])
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--terms", type=int, nargs="+", default=[1000])
@@ -335,18 +397,9 @@ def main() -> None:
     ap.add_argument("--variants", nargs="+", default=[v for v in VARIANTS if v != "lean, no prefetch"], choices=VARIANTS)
     args = ap.parse_args()
     torch.set_num_threads(1)
-    lib, how = compile_library("wavelet_madd_micro", SRC, ["-O3", "-march=native", "-ffp-contract=fast", "-shared",
-                                                           "-fPIC", "-std=c99"], {})
+    lib = build_library()
     if lib is None:
-        raise SystemExit(f"bench_wavelet_madd_micro: no compiler: {how}")
-    i64, vp = ctypes.c_int64, ctypes.c_void_p
-    lib.dense_pass.argtypes = [vp, i64, vp, i64, vp, i64, i64, vp, i64]
-    lib.madd_pass.argtypes = [vp, i64, vp, i64, vp, vp, i64, vp, i64, vp, i64]
-    lib.madd_lean.argtypes = [vp, i64, vp, vp, vp, i64, vp, i64, vp, i64, i64]
-    lib.madd_half.argtypes = [vp, i64, vp, vp, vp, i64, vp, i64, vp, i64]
-    lib.clock_ghz.restype = ctypes.c_double
-    lib.floor_loop.argtypes = [i64, ctypes.c_long]
-    lib.floor_loop.restype = ctypes.c_double
+        raise SystemExit("bench_wavelet_madd_micro: no compiler")
     mesh = builtin("occluder_over_plane", "small")
     tr = precompute_wavelet(mesh, 32, 256, BITS, shadows="always", run=RunOptions(workers=1))
     rl = relight.WaveletRelighter(tr, threads=1, layouts="column")
@@ -384,37 +437,14 @@ def main() -> None:
                 for G in args.groups:
                     G2, use_tmax = CONFIGS[G]
                     q, s, grp = quantise_light(lw[:, :3], G2, tmax[ds] if use_tmax else None)
-                    ng = s.shape[0]
-                    # pairs in slot order; the odd last term paired with itself at light 0
-                    pa = ds.clone()
-                    qq = q.clone()
-                    if nd % 2:
-                        pa = torch.cat([pa, pa[-1:]])
-                        qq = torch.cat([qq, torch.zeros(1, 3, dtype=torch.int32)])
-                    np_ = pa.numel() // 2
-                    pab = pa.contiguous()
-                    lq = torch.zeros(np_, 4, dtype=torch.int32)
-                    lo16, hi16 = qq[0::2], qq[1::2]
-                    lq[:, :3] = (lo16 & 0xFFFF) | (hi16 << 16)
-                    gp = torch.tensor([min(g * G2 // 2, np_) for g in range(ng)] + [np_], dtype=torch.int64)
-                    gs = torch.zeros(ng, 4)
-                    gs[:, :3] = s
+                    k = pack(ds, q, s, G2)
+                    ng = k["ng"]
                     # the stated bound: sum_g (s_g / 2) sum_k |Tq_v,k|; the transfer's own 16-bit bound: sum_k |L_k| / 2
                     bound = torch.einsum("bkv,kc->bcv", tv.abs(), s.double()[grp] / 2)
                     tbound = lw[:, :3].double().abs().sum(0)[None, :, None] / 2
 
-                    pob = torch.cat([pab, pab[-2:].repeat(7)]) * 64  # byte offsets (32 int16 per slot), 2 PF + 2 padded
-                    lb = lq[:, :3, None].expand(np_, 3, 8).contiguous()
-
-                    def mcall(variant, l1=False, reps=1):
-                        if variant == "half, asm":
-                            return lib.madd_half(d16.data_ptr(), 0 if l1 else Pd * 32, pob.data_ptr(), lq.data_ptr(),
-                                                 gp.data_ptr(), ng, gs.data_ptr(), nb, msums.data_ptr(), reps)
-                        if variant == "half":
-                            return lib.madd_pass(d16.data_ptr(), 0 if l1 else Pd * 32, pab.data_ptr(), np_, lq.data_ptr(),
-                                                 gp.data_ptr(), ng, gs.data_ptr(), nb, msums.data_ptr(), reps)
-                        return lib.madd_lean(d16.data_ptr(), 0 if l1 else Pd * 32, pob.data_ptr(), lb.data_ptr(),
-                                             gp.data_ptr(), ng, gs.data_ptr(), nb, msums.data_ptr(), reps, LEAN[variant])
+                    def mcall(variant, l1=False, reps=1, k=k):
+                        return madd_call(lib, variant, d16, k, msums, l1, reps)
 
                     slack = 1e-6 * exact.abs() + 1e-6 * torch.einsum("bkv,kc->bcv", tv.abs(), lw[:, :3].double().abs())
                     res["float err"] = float((ref.double() - exact).abs().max())
@@ -453,7 +483,8 @@ def main() -> None:
          "the integer loop is faster; cycles per (term, 32-vertex block) at the measured clock. `L1`: every block "
          "reads the first block's values (the memory taken out). G: the light's scale groups — `all`: one group (one "
          "int32 -> float flush per block), `16`: groups of 16 consecutive dense terms; `65535 rule`: "
-         "s_g = max(sum |L| / 65535, max |L| / 32767) (safe for any |T| <= 32767), `column max`: "
+         "s_g = max(sum |L| / (65538 - n_g / 2), max |L| / 32767) (safe for any |T| <= 32767, rounding included: the "
+         "brief's sum |L| / 65535 is not, by up to n_g / 2 in sum |Lq|), `column max`: "
          "s_g = max(sum tmax_k |L_k| / (2^31 - 1 - sum tmax_k / 2), max |L| / 32767) with tmax_k the dense column's "
          "largest stored magnitude (safe for the stored values). "
          "`bound / transfer's bound`: the median over vertices and channels of the stated bound over the transfer's own "
