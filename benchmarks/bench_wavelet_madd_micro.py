@@ -350,6 +350,16 @@ def build_library():
     return lib
 
 
+def float_pf_library(pf: int):
+    """The float loop (``dense_pass`` mode 0) compiled with its prefetch ``pf`` terms ahead instead of the kernel's 6."""
+    lib, _ = compile_library(f"wavelet_madd_micro_pf{pf}", SRC.replace("#define PF 6", f"#define PF {pf}"),
+                             ["-O3", "-march=native", "-ffp-contract=fast", "-shared", "-fPIC", "-std=c99"], {})
+    if lib is not None:
+        i64, vp = ctypes.c_int64, ctypes.c_void_p
+        lib.dense_pass.argtypes = [vp, i64, vp, i64, vp, i64, i64, vp, i64]
+    return lib
+
+
 def pack(ds: torch.Tensor, q: torch.Tensor, s: torch.Tensor, group: int) -> dict:
     """The integer loops' arguments for the dense slots ``ds [nd]`` (slot order) and their quantised light ``q [nd, 3]``
     int32 with scales ``s [ng, 3]`` float32 (:func:`quantise_light` with ``group`` terms a group, even): the pairs'
@@ -390,7 +400,8 @@ def madd_call(lib, variant: str, d16: torch.Tensor, k: dict, out: torch.Tensor, 
 
 def main() -> None:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--terms", type=int, nargs="+", default=[1000])
+    ap.add_argument("--terms", type=int, nargs="+", default=[300, 1000, 6144])
+    ap.add_argument("--pf", type=int, nargs="*", default=[12, 18, 24], help="the float loop's prefetch distances to pair")
     ap.add_argument("--groups", nargs="+", default=list(CONFIGS), choices=list(CONFIGS))
     ap.add_argument("--reps", type=int, default=100)
     ap.add_argument("--runs", type=int, default=2)
@@ -408,6 +419,7 @@ def main() -> None:
     d16 = rl.dense.reshape(nb, Pd, 32)
     tmax = d16.abs().amax(dim=(0, 2)).to(torch.int64)  # [Pd] each dense column's largest stored magnitude
     assert int(d16.abs().max()) <= 32767 and int(d16.min()) >= -32767, "stored values outside +-32767"
+    pf_libs = {pf: float_pf_library(pf) for pf in args.pf}
     ghz = lib.clock_ghz()
     loads = [os.getloadavg()[0]]
     floors = {}
@@ -434,6 +446,16 @@ def main() -> None:
                 tv = d16[:, ds, :].double()  # [nb, nd, 32]
                 exact = torch.einsum("bkv,kc->bcv", tv, lw[:, :3].double())
                 res = {"light": light, "N": N, "nd": nd, "tb": nd * nb, "run": run}
+                for pf in args.pf:  # the float loop alone: a longer prefetch distance against the kernel's
+                    pl = pf_libs[pf]
+                    p = measure_paired(lambda pl=pl: pl.dense_pass(d16.data_ptr(), Pd * 32, ds.data_ptr(), nd, lw.data_ptr(), nb, 0,
+                                                                   sums.data_ptr(), args.reps),
+                                       lambda: lib.dense_pass(d16.data_ptr(), Pd * 32, ds.data_ptr(), nd, lw.data_ptr(), nb, 0,
+                                                              sums.data_ptr(), args.reps),
+                                       repeats=15, warmup=1, clock=time.thread_time)
+                    res[f"pf{pf}"] = p.speedup
+                    print(f"[madd_micro] run {run} {light} N={N} float loop, prefetch {pf} terms ahead: PF 6 / PF {pf} "
+                          f"{p.speedup:.3f}", flush=True)
                 for G in args.groups:
                     G2, use_tmax = CONFIGS[G]
                     q, s, grp = quantise_light(lw[:, :3], G2, tmax[ds] if use_tmax else None)
@@ -505,6 +527,14 @@ def main() -> None:
                 L.append(f"| {r['run']} | {r['light']} | {r['N']} | {r['nd']} | {v} | {G} | {r[k + ' groups']} | {r[k]:.1f} | "
                          f"{r[k + ' float']:.1f} | {cm:.1f} / {cf:.1f} | **{r[k + ' ratio']:.2f}** | **{r[k + ' L1 ratio']:.2f}** | "
                          f"{r[k + ' err']:.1e} | {r[k + ' bound']:.1e} | {r[k + ' vs transfer']:.2f} | {'✓' if r[k + ' ok'] else '✗'} |")
+    if args.pf:
+        L += ["", "The float loop alone (the kernel's form) with its prefetch further ahead than the kernel's 6 terms, paired "
+              "against it in the same run (one thread CPU time, median of 15 × reps passes): **PF 6 / PF x** > 1: the longer "
+              "distance is faster.", "",
+              "| run | light | N | dense terms | " + " | ".join(f"**PF 6 / PF {pf}**" for pf in args.pf) + " |",
+              "|---|---|---|---|" + "---|" * len(args.pf)]
+        L += [f"| {r['run']} | {r['light']} | {r['N']} | {r['nd']} | " + " | ".join(f"{r[f'pf{pf}']:.3f}" for pf in args.pf)
+              + " |" for r in rows]
     L += ["", "The loops' instruction mixes alone (x86-64 asm, data in L1, independent sums; min of 5 × 2M iterations, "
           "cycles per iteration at the measured clock): which operations share pipes on this CPU.", "",
           "| instruction mix | cycles |", "|---|---|"]
