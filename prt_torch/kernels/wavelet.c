@@ -352,3 +352,16 @@ int NAME(const wavelet_layout *L, i64 N, const i64 *sel, const float *lv, i64 C,
 WAVELET_KERNEL(prt_wavelet_relight_f32, float)
 WAVELET_KERNEL(prt_wavelet_relight_i8, int8_t)
 WAVELET_KERNEL(prt_wavelet_relight_i16, int16_t)
+
+/* the same kernels with their arguments packed in one int64 array a [8] = (layout, N, sel, lv, C, f, out, threads),
+ * pointers as integers: a ctypes call converts one argument instead of eight (measured: ~0.23 against ~1.03 us per
+ * call through functools.partial, benchmarks/bench_wavelet_call.py), the fixed cost a render loop pays per frame
+ * (relight.py: WaveletRelighter.prepared packs them once) */
+#define PACKED(NAME)                                                                                         \
+int NAME##_packed(const i64 *a) {                                                                            \
+    return NAME((const wavelet_layout *)(intptr_t)a[0], a[1], (const i64 *)(intptr_t)a[2],                   \
+                (const float *)(intptr_t)a[3], a[4], (const float *)(intptr_t)a[5], (float *)(intptr_t)a[6], a[7]); \
+}
+PACKED(prt_wavelet_relight_f32)
+PACKED(prt_wavelet_relight_i8)
+PACKED(prt_wavelet_relight_i16)
