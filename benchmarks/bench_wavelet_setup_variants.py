@@ -1,6 +1,7 @@
 """The wavelet kernel's per-light set-up (issue 39, one thread): variants of ``kernels/wavelet.c`` compiled side by
 side from its own source with one step of the set-up rewritten, each paired with the kernel as it is over whole
-calls (``WaveletRelighter.prepared``'s arguments, the same layout), outputs compared bit for bit:
+calls (``WaveletRelighter.prepared``'s arguments, the same layout; both through the eight-argument entry point),
+outputs compared bit for bit:
 
   - ``bitmap listing``: the sparse terms found from a bitmap of the marks (per 64 columns, two 32-byte loads, a
     shift and a byte mask: one 64-bit word whose set bits are the sparse marks; the portable path builds it
@@ -99,9 +100,12 @@ def main() -> None:
         for N in (10, 100, 300, 1000, 2000, rl.P):
             li, lv, _ = rl.light(LIGHTS[light], N, "transport")
             lv = lv.to(torch.float32).contiguous()
-            call = rl.prepared(li, lv, out)
-            call()
+            rl.prepared(li, lv, out)()  # binds the layout (and builds the row-major copy when this light takes it)
             lay = rl._layout.data_ptr()
+            kern8 = rl._native.func  # the kernel's eight-argument entry point, the variants' form
+
+            def call(kern8=kern8, lay=lay, li=li, lv=lv):
+                return kern8(lay, li.numel(), li.data_ptr(), lv.data_ptr(), 3, f3.data_ptr(), out.data_ptr(), 1)
             row = {"light": light, "N": N}
             for name, fn in fns.items():
                 def run(fn=fn):
