@@ -41,7 +41,7 @@ from prt_torch.transfer import RunOptions  # noqa: E402
 from prt_torch.transfer.wavelet import precompute_wavelet  # noqa: E402
 
 #: the kernel's sparse listing (kernels/wavelet.c), as the variants find it
-LISTING = """    for (i64 w = 0; w < (rows || small ? 0 : P); w += 8) {                                                            \\
+LISTING = """    for (i64 w = 0; w < (rows || small ? 0 : P); w += 8) {                                                   \\
         uint64_t x = 0; /* a constant-size copy (a variable one is a libc call: ~2.5 us per call over P = 6144) */ \\
         if (P - w >= 8) memcpy(&x, mark + w, 8); else memcpy(&x, mark + w, (size_t)(P - w));                \\
         x &= 0x0101010101010101ull;                                                                          \\

@@ -297,12 +297,13 @@ int NAME(const wavelet_layout *L, i64 N, const i64 *sel, const float *lv, i64 C,
     }                                                                                                        \
     /* the dense terms in slot order (each block's values are then read front to back), written always and   \
      * kept by advancing the count */                                                                        \
-    /* few terms (N <= SMALL_N): both lists from the light's own terms, unsorted (below), instead of a pass over the Pd\
-     * dense slots and a scan of the P marks (measured per call: 1.33x at N = 1, 1.23x at N = 10, 1.07-1.12x at N = 100;\
-     * benchmarks/bench_wavelet_setup_variants.py); N < P - Pd keeps the lists' unconditional writes inside wk and lw */\
+    /* few terms (N <= SMALL_N): both lists from the light's own terms, unsorted (below), instead of a       \
+     * pass over the Pd dense slots and a scan of the P marks (measured per call, against that listing:      \
+     * 1.18-1.36x at N = 1, 1.21-1.23x at 10, 1.05-1.10x at 100; bench_wavelet_setup_variants.py);           \
+     * N < P - Pd keeps the lists' unconditional writes inside wk and lw */                                  \
     const int small = N <= SMALL_N && N < P - Pd;                                                            \
     i64 nd = 0;                                                                                              \
-    for (i64 s = 0; s < (small ? 0 : Pd); s++) {                                                                           \
+    for (i64 s = 0; s < (small ? 0 : Pd); s++) {                                                             \
         const i64 j = L->dcol[s];                                                                            \
         wk[nd] = s;                                                                                          \
         memcpy(lw + 4 * nd, lp + 4 * j, 4 * sizeof(float));                                                  \
@@ -313,7 +314,7 @@ int NAME(const wavelet_layout *L, i64 N, const i64 *sel, const float *lv, i64 C,
     i64 *sw = wk + Pd;                                                                                       \
     float *sl = lw + 4 * Pd;                                                                                 \
     i64 ns = 0;                                                                                              \
-    for (i64 w = 0; w < (rows || small ? 0 : P); w += 8) {                                                            \
+    for (i64 w = 0; w < (rows || small ? 0 : P); w += 8) {                                                   \
         uint64_t x = 0; /* a constant-size copy (a variable one is a libc call: ~2.5 us per call over P = 6144) */ \
         if (P - w >= 8) memcpy(&x, mark + w, 8); else memcpy(&x, mark + w, (size_t)(P - w));                \
         x &= 0x0101010101010101ull;                                                                          \
@@ -325,7 +326,7 @@ int NAME(const wavelet_layout *L, i64 N, const i64 *sel, const float *lv, i64 C,
             ns++;                                                                                            \
         }                                                                                                    \
     }                                                                                                        \
-    if (small) { /* the dense terms (a dense mark consumed: a column listed twice is listed once), then the sparse */\
+    if (small) { /* dense terms (a dense mark consumed: a repeated column once), then sparse */              \
         for (i64 n = 0; n < N; n++) {                                                                        \
             const i64 j = sel[n];                                                                            \
             const unsigned m = mark[j];                                                                      \
