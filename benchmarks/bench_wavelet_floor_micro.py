@@ -23,7 +23,8 @@ floors at the measured clock, plus the kernel's own set-up (timed alone: ``kerne
 a return right after the light is gathered and its terms listed; also cut after each of its steps, the set-up by
 step at N = 1000) and output pass (a one-term call of a column no
 vertex keeps, less its set-up): the kernel's time if both loops ran at their instruction mixes' floor. Against
-the kernel (``WaveletRelighter.prepared``) and its read-once/write-once bound (``timing.io_bound_fn``), paired by
+the kernel (its eight-argument entry point, the probes' form; ``WaveletRelighter.prepared`` packs them)
+and its read-once/write-once bound (``timing.io_bound_fn``), paired by
 one thread's CPU time (median of 15). Writes reports/benchmarks/wavelet_floor_micro.md.
 
     .venv/bin/python benchmarks/bench_wavelet_floor_micro.py     (about 30 s; x86-64 only)
@@ -275,7 +276,10 @@ def model(ghz: float, dense_cyc: float, sparse_cyc: float) -> list[str]:
 
     empty = torch.nonzero(rl.cls == 0).flatten()[:1].contiguous()
     one = torch.ones(3, 1)
-    out_call, out_setup = cpu(rl.prepared(empty, one, out), setup(empty, one))
+    # the kernel through its eight-argument entry point, the probes' form (prepared packs its arguments: ~0.8 us less
+    # per call, benchmarks/bench_wavelet_call.py), so that the two sides differ only by the work after the cut
+    kern8 = rl._native.func
+    out_call, out_setup = cpu(setup(empty, one, kern8), setup(empty, one))
     load0 = os.getloadavg()[0]
     L = ["\n## The kernel against its loops' floor (R = 32, K = 256, 16-bit, V = %d, one thread)\n" % rl.V,
          f"Dense steps × {dense_cyc:.2f} cycles (the kernel's mix above) + sparse blocks × {sparse_cyc:.2f} (the "
@@ -294,7 +298,8 @@ def model(ghz: float, dense_cyc: float, sparse_cyc: float) -> list[str]:
             sb = int(rl.bcount[:, s[rl.nnz[s] > 0]].sum())
             if sb >= rl.row_min * rl.NB:
                 continue  # the row-major pass: not this model's
-            call = rl.prepared(li, lv, out)
+            rl.prepared(li, lv, out)()
+            call = setup(li, lv, kern8)
             k_us, b_us = cpu(call, io_bound_fn(rl.bytes_read(li), rl.V * 12))
             s_us, _ = cpu(setup(li, lv), call)
             steps = int(d.sum()) * nb
@@ -310,7 +315,8 @@ def model(ghz: float, dense_cyc: float, sparse_cyc: float) -> list[str]:
         else:
             li, lv, _ = rl.light(LIGHTS[light], N, "transport")
             lv = lv.to(torch.float32).contiguous()
-        call = rl.prepared(li, lv, out)
+        rl.prepared(li, lv, out)()
+        call = setup(li, lv, kern8)
         L.append(f"| {light} | {N} | " + " | ".join(f"{cpu(setup(li, lv, fn), call)[0]:.2f}" for fn in probes) + " |")
         print(L[-1], flush=True)
     return L

@@ -56,6 +56,9 @@ typedef int8_t v8b __attribute__((vector_size(8)));
 #ifndef PF
 #define PF 6 /* dense terms ahead the prefetch reads */
 #endif
+#ifndef SMALL_N
+#define SMALL_N 256 /* at most this many light terms: the set-up lists them from the light itself, unsorted */
+#endif
 
 #ifdef __AVX2__ /* one 8-lane widening load (gcc splits __builtin_convertvector of 16-bit lanes into halves) */
 static inline v8f load8_int16_t(const int16_t *p) {
@@ -294,8 +297,13 @@ int NAME(const wavelet_layout *L, i64 N, const i64 *sel, const float *lv, i64 C,
     }                                                                                                        \
     /* the dense terms in slot order (each block's values are then read front to back), written always and   \
      * kept by advancing the count */                                                                        \
+    /* few terms (N <= SMALL_N): both lists from the light's own terms, unsorted (below), instead of a       \
+     * pass over the Pd dense slots and a scan of the P marks (measured per call, against that listing:      \
+     * 1.18-1.36x at N = 1, 1.21-1.23x at 10, 1.05-1.10x at 100; bench_wavelet_setup_variants.py);           \
+     * N < P - Pd keeps the lists' unconditional writes inside wk and lw */                                  \
+    const int small = N <= SMALL_N && N < P - Pd;                                                            \
     i64 nd = 0;                                                                                              \
-    for (i64 s = 0; s < Pd; s++) {                                                                           \
+    for (i64 s = 0; s < (small ? 0 : Pd); s++) {                                                             \
         const i64 j = L->dcol[s];                                                                            \
         wk[nd] = s;                                                                                          \
         memcpy(lw + 4 * nd, lp + 4 * j, 4 * sizeof(float));                                                  \
@@ -306,7 +314,7 @@ int NAME(const wavelet_layout *L, i64 N, const i64 *sel, const float *lv, i64 C,
     i64 *sw = wk + Pd;                                                                                       \
     float *sl = lw + 4 * Pd;                                                                                 \
     i64 ns = 0;                                                                                              \
-    for (i64 w = 0; w < (rows ? 0 : P); w += 8) {                                                            \
+    for (i64 w = 0; w < (rows || small ? 0 : P); w += 8) {                                                   \
         uint64_t x = 0; /* a constant-size copy (a variable one is a libc call: ~2.5 us per call over P = 6144) */ \
         if (P - w >= 8) memcpy(&x, mark + w, 8); else memcpy(&x, mark + w, (size_t)(P - w));                \
         x &= 0x0101010101010101ull;                                                                          \
@@ -316,6 +324,24 @@ int NAME(const wavelet_layout *L, i64 N, const i64 *sel, const float *lv, i64 C,
             sw[ns] = j;                                                                                      \
             memcpy(sl + 4 * ns, lp + 4 * j, 4 * sizeof(float));                                              \
             ns++;                                                                                            \
+        }                                                                                                    \
+    }                                                                                                        \
+    if (small) { /* dense terms (a dense mark consumed: a repeated column once), then sparse */              \
+        for (i64 n = 0; n < N; n++) {                                                                        \
+            const i64 j = sel[n];                                                                            \
+            const unsigned m = mark[j];                                                                      \
+            wk[nd] = L->dslot[j];                                                                            \
+            memcpy(lw + 4 * nd, lp + 4 * j, 4 * sizeof(float));                                              \
+            nd += m >> 1;                                                                                    \
+            mark[j] = (unsigned char)(m & 1);                                                                \
+        }                                                                                                    \
+        for (i64 n = 0; n < (rows ? 0 : N); n++) {                                                           \
+            const i64 j = sel[n];                                                                            \
+            const unsigned m = mark[j];                                                                      \
+            sw[ns] = j;                                                                                      \
+            memcpy(sl + 4 * ns, lp + 4 * j, 4 * sizeof(float));                                              \
+            ns += m & 1;                                                                                     \
+            mark[j] = 0;                                                                                     \
         }                                                                                                    \
     }                                                                                                        \
     const T *rvals = (const T *)L->rvals;                                                                    \
@@ -352,3 +378,16 @@ int NAME(const wavelet_layout *L, i64 N, const i64 *sel, const float *lv, i64 C,
 WAVELET_KERNEL(prt_wavelet_relight_f32, float)
 WAVELET_KERNEL(prt_wavelet_relight_i8, int8_t)
 WAVELET_KERNEL(prt_wavelet_relight_i16, int16_t)
+
+/* the same kernels with their arguments packed in one int64 array a [8] = (layout, N, sel, lv, C, f, out, threads),
+ * pointers as integers: a ctypes call converts one argument instead of eight (measured: ~0.23 against ~1.03 us per
+ * call through functools.partial, benchmarks/bench_wavelet_call.py), the fixed cost a render loop pays per frame
+ * (relight.py: WaveletRelighter.prepared packs them once) */
+#define PACKED(NAME)                                                                                         \
+int NAME##_packed(const i64 *a) {                                                                            \
+    return NAME((const wavelet_layout *)(intptr_t)a[0], a[1], (const i64 *)(intptr_t)a[2],                   \
+                (const float *)(intptr_t)a[3], a[4], (const float *)(intptr_t)a[5], (float *)(intptr_t)a[6], a[7]); \
+}
+PACKED(prt_wavelet_relight_f32)
+PACKED(prt_wavelet_relight_i8)
+PACKED(prt_wavelet_relight_i16)

@@ -1,0 +1,137 @@
+"""Issue 39's integer multiply-add idea for the wavelet kernel's dense part (measured and not kept:
+docs/wavelet.md; benchmarks/bench_wavelet_madd_micro.py): the claims its report rests on, checked against float64.
+
+- The light's int16 quantisation (``quantise_light``) never lets an int32 sum overflow: with the columns' largest
+  stored magnitudes tmax, Σ_k tmax_k |Lq_k| ≤ 2³¹ − 1 per group and |Lq| ≤ 32767 (integer arithmetic, int64), and
+  |Lq s − L| ≤ s/2 — for lights built to stress it: one huge term and many tiny ones, all negative, all equal,
+  one term, an odd count.
+- The measured loops (AVX2 ``vpmaddwd``, in intrinsics and asm) compute Σ_k T_v,k L_k within the stated bound
+  Σ_g (s_g/2) Σ_{k∈g} |T_v,k| (+ float32 rounding) against the float64 sum of the same stored values: on the extreme
+  layout (|T| = 32767 everywhere, signs alternating or not, a light of equal terms: the largest int32 sums the rule
+  allows), on random layouts with random lights, and on a real transfer's dense blocks.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _bench():
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        return __import__("bench_wavelet_madd_micro")
+    finally:
+        sys.path.remove(str(ROOT / "benchmarks"))
+
+
+@pytest.fixture(scope="module")
+def bench():
+    return _bench()
+
+
+@pytest.fixture(scope="module")
+def lib(bench):
+    lib = bench.build_library()
+    if lib is None:
+        pytest.skip("no compiler for the micro-benchmark")
+    probe = torch.zeros(1, 2, 32, dtype=torch.int16)
+    k = bench.pack(torch.tensor([0, 1]), torch.zeros(2, 3, dtype=torch.int32), torch.ones(1, 3), 2)
+    if bench.madd_call(lib, "lean", probe, k, torch.zeros(1, 3, 32)) != 0:
+        pytest.skip("no AVX2 here: the integer loops are not built")
+    return lib
+
+
+def _lights(g: torch.Generator, nd: int) -> dict[str, torch.Tensor]:
+    """[nd, 3] float32 lights that stress the quantisation."""
+    huge = torch.full((nd, 3), 1e-6)
+    huge[nd // 2] = torch.tensor([1e3, -2e3, 5e2])
+    return {"random": torch.randn(nd, 3, generator=g), "one huge, many tiny": huge,
+            "all negative": -torch.rand(nd, 3, generator=g) - 0.1, "equal": torch.full((nd, 3), 0.75),
+            "grey": torch.randn(nd, 1, generator=g).expand(nd, 3).contiguous()}
+
+
+@pytest.mark.parametrize("nd", [1, 7, 64])
+@pytest.mark.parametrize("rule", ["column max", "65535 rule"])
+def test_quantisation_cannot_overflow_and_is_within_half_a_step(bench, nd, rule):
+    g = torch.Generator().manual_seed(nd)
+    tmax = torch.randint(1, 32768, (nd,), generator=g)
+    tmax[0] = 32767
+    for name, L in _lights(g, nd).items():
+        for group in (2, 16, 4096):
+            q, s, grp = bench.quantise_light(L, group, tmax if rule == "column max" else None)
+            assert int(q.abs().max()) <= 32767, (name, group)
+            bound_t = tmax if rule == "column max" else torch.full((nd,), 32767)
+            worst = torch.zeros(s.shape[0], 3, dtype=torch.int64).index_add_(0, grp, bound_t[:, None] * q.long().abs())
+            assert int(worst.max()) <= 2 ** 31 - 1, (name, group)
+            err = (q.double() * s.double()[grp] - L.double()).abs()
+            assert bool((err <= s.double()[grp] / 2 * (1 + 1e-12)).all()), (name, group)
+
+
+def _check(bench, lib, d16: torch.Tensor, ds: torch.Tensor, L: torch.Tensor, group: int, use_tmax: bool):
+    """Every loop's sums against the float64 sums of the same stored values, within the stated bound."""
+    tmax = d16.abs().amax(dim=(0, 2)).long()
+    q, s, grp = bench.quantise_light(L, group, tmax[ds] if use_tmax else None)
+    k = bench.pack(ds, q, s, group)
+    tv = d16[:, ds, :].double()
+    exact = torch.einsum("bkv,kc->bcv", tv, L.double())
+    bound = torch.einsum("bkv,kc->bcv", tv.abs(), s.double()[grp] / 2)
+    slack = 1e-6 * torch.einsum("bkv,kc->bcv", tv.abs(), L.double().abs()) + 1e-30
+    for variant in bench.VARIANTS:
+        out = torch.full((d16.shape[0], 3, 32), float("nan"))
+        assert bench.madd_call(lib, variant, d16, k, out) == 0
+        err = (out.double() - exact).abs()
+        assert bool((err <= bound + slack).all()), (variant, float((err - bound).max()))
+
+
+@pytest.mark.parametrize("signs", ["all positive", "alternating"])
+def test_extreme_values_do_not_overflow(bench, lib, signs):
+    """|T| = 32767 in every value and a light of equal terms: each int32 sum reaches the rule's limit (21 equal
+    terms: 65535 / 21 = 3120.7 rounds up, so the plain Σ|L| / 65535 rule would give Σ|Lq| = 65541 > 65538 and wrap)."""
+    nb, Pd = 3, 40
+    d16 = torch.full((nb, Pd, 32), 32767, dtype=torch.int16)
+    if signs == "alternating":
+        d16[:, :, 1::2] = -32767
+    for nd in (1, 2, 21, 39):
+        ds = torch.arange(nd)
+        for use_tmax in (True, False):
+            _check(bench, lib, d16, ds, torch.full((nd, 3), 0.5), 4096, use_tmax)
+            _check(bench, lib, d16, ds, -torch.full((nd, 3), 2.0), 16, use_tmax)
+
+
+def test_random_layouts_and_lights_within_the_bound(bench, lib):
+    g = torch.Generator().manual_seed(3)
+    nb, Pd = 4, 50
+    d16 = torch.randint(-32767, 32768, (nb, Pd, 32), generator=g).to(torch.int16)
+    d16[torch.rand(nb, Pd, 32, generator=g) < 0.3] = 0  # vertices that do not keep the column
+    for nd in (1, 5, 33, 50):
+        ds = torch.sort(torch.randperm(Pd, generator=g)[:nd]).values
+        for L in _lights(g, nd).values():
+            for group, use_tmax in ((4096, True), (16, True), (4096, False), (2, True)):
+                _check(bench, lib, d16, ds, L, group, use_tmax)
+
+
+def test_real_transfer_dense_blocks_within_the_bound(bench, lib):
+    from prt_torch import relight
+    from prt_torch.scene import builtin
+    from prt_torch.transfer import RunOptions
+    from prt_torch.transfer.wavelet import precompute_wavelet
+
+    tr = precompute_wavelet(builtin("occluder_over_plane", "small"), 8, 32, 16, shadows="always", run=RunOptions(workers=1))
+    rl = relight.WaveletRelighter(tr, threads=1, layouts="column")
+    assert rl.CT == 1 and rl.dense.dtype == torch.int16 and rl.Pd > 1
+    d16 = rl.dense.reshape(rl.dense.shape[0], rl.Pd, 32)
+    assert int(d16.min()) >= -32767  # the stored range is symmetric: vpmaddwd's one overflow cannot occur
+    for spec, N in (("studio", 100), ("sky", rl.P)):
+        li, lv, _ = rl.light(spec, N, "transport")
+        d = rl.dslot[li] >= 0
+        order = torch.argsort(rl.dslot[li[d]].long())
+        ds = rl.dslot[li[d]].long()[order]
+        L = lv[:, d].T.float()[order].contiguous()
+        for group, use_tmax in ((4096, True), (16, True), (4096, False)):
+            _check(bench, lib, d16, ds, L, group, use_tmax)
