@@ -10,9 +10,15 @@ the limit and runs the fit (copy-on-write: the same VmData base as the parent), 
 ``--resolution`` bytes. ``--runs`` fresh processes per mode; ``--busy N`` runs N ``while True:
 pass`` processes beside them (started before, killed after) to see whether load moves the need.
 
+``--mmap-threshold BYTES`` sets glibc's ``MALLOC_MMAP_THRESHOLD_`` in the children: a fixed
+threshold turns off glibc's dynamic one (which, once a large block is freed, serves blocks up to
+its size from the heap, where freed memory stays counted in VmData), so that VmData follows the
+live allocations.
+
 Run: .venv/bin/python benchmarks/bench_stream_memory_margin.py [--runs 10] [--busy 0] [--rows 98304]
-     [--dim 128] [--chunk-mib 2] [--limit-mib 32]
-Prints one line per run and a summary; --report PATH appends a markdown table.
+     [--dim 128] [--chunk-mib 2] [--limit-mib 32] [--modes load,mmap] [--mmap-threshold 131072] [--max-mib 512]
+Prints one line per run and a summary row; --report PATH appends the row to a markdown table
+(reports/benchmarks/stream_memory_margin.md holds the runs behind the test's sizes).
 """
 from __future__ import annotations
 
@@ -37,7 +43,7 @@ CHILD = textwrap.dedent("""
     import json, os, resource, sys, numpy as np, torch
     torch.set_num_threads(1)
     from prt_torch import codecs
-    path, mode, chunk, res = sys.argv[1], sys.argv[2], int(sys.argv[3]), int(sys.argv[4])
+    path, mode, chunk, res, top = sys.argv[1], sys.argv[2], int(sys.argv[3]), int(sys.argv[4]), int(sys.argv[5])
     codecs.get("cpca", clusters=4, vectors=2, method="static").fit_encode(torch.randn(4096, 64))  # warm-up
     def vmdata():
         for line in open("/proc/self/status"):
@@ -59,8 +65,8 @@ CHILD = textwrap.dedent("""
                 ok = 1
             os._exit(ok)
         return os.waitpid(pid, 0)[1] == 0
-    lo, hi = 0, 512 * 2**20  # fails at lo (nothing fits in 0 bytes), passes at hi (checked)
-    assert fits(hi), "the fit does not pass even 512 MiB above the warmed-up process"
+    lo, hi = 0, top  # fails at lo (nothing fits in 0 bytes), passes at hi (checked)
+    assert fits(hi), f"the fit does not pass even {top} bytes above the warmed-up process"
     while hi - lo > res:
         mid = (lo + hi) // 2
         lo, hi = (lo, mid) if fits(mid) else (mid, hi)
@@ -77,10 +83,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--chunk-mib", type=float, default=2.0)
     ap.add_argument("--limit-mib", type=float, default=32.0, help="the test's limit, for the margins")
     ap.add_argument("--resolution-kib", type=int, default=256)
+    ap.add_argument("--max-mib", type=int, default=512, help="the bisection's upper end (must pass)")
     ap.add_argument("--modes", default="load,mmap", help="which of load,mmap to measure")
+    ap.add_argument("--mmap-threshold", type=int, default=0,
+                    help="MALLOC_MMAP_THRESHOLD_ for the children (bytes; 0: glibc's default, dynamic threshold)")
     ap.add_argument("--report", type=Path, default=None)
     a = ap.parse_args(argv)
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    if a.mmap_threshold:  # a fixed threshold: no dynamic raise, every block above it mapped and unmapped
+        env["MALLOC_MMAP_THRESHOLD_"] = str(a.mmap_threshold)
     g = np.random.default_rng(0)
     P, D = a.rows, a.dim
     X = (g.standard_normal((P, D), dtype=np.float32) + 4 * g.integers(0, 8, P)[:, None].astype(np.float32))
@@ -95,7 +106,7 @@ def main(argv: list[str] | None = None) -> int:
             for i in range(a.runs):
                 for mode in a.modes.split(","):
                     r = subprocess.run([sys.executable, "-c", CHILD, str(path), mode, str(int(a.chunk_mib * 2**20)),
-                                        str(a.resolution_kib * 1024)], capture_output=True, text=True, env=env, cwd=ROOT)
+                                        str(a.resolution_kib * 1024), str(a.max_mib * 2**20)], capture_output=True, text=True, env=env, cwd=ROOT)
                     if r.returncode != 0:
                         raise SystemExit(r.stderr[-2000:])
                     rec = json.loads(r.stdout.strip().splitlines()[-1])
@@ -110,12 +121,13 @@ def main(argv: list[str] | None = None) -> int:
     sig = X.nbytes / 2**20
     mm, ld = (np.array(needs[m] or [np.nan]) / 2**20 for m in ("mmap", "load"))
     lines = [
-        f"| {P}x{D} float32 ({sig:.0f} MiB) | {a.chunk_mib:g} | {a.busy} | {a.runs} | {mm.min():.2f} / {mm.max():.2f} | "
+        f"| {P}x{D} float32 ({sig:.0f} MiB) | {a.mmap_threshold or 'default'} | {a.chunk_mib:g} | {a.busy} | {a.runs} | "
+        f"{mm.min():.2f} / {mm.max():.2f} | "
         f"{ld.min():.2f} / {ld.max():.2f} | {a.limit_mib - mm.max():.1f} | {ld.min() - a.limit_mib:.1f} | "
         f"{load0:.1f} / {load1:.1f} | {time.time() - t0:.0f} s |"]
-    head = ("| signal | chunk MiB | busy procs | runs | mmap need min / max (MiB) | load need min / max (MiB) | "
+    head = ("| signal | MALLOC_MMAP_THRESHOLD_ | chunk MiB | busy procs | runs | mmap need min / max (MiB) | load need min / max (MiB) | "
             f"mmap margin at {a.limit_mib:g} MiB | load margin at {a.limit_mib:g} MiB | load avg before / after | wall |\n"
-            "|---|---|---|---|---|---|---|---|---|---|")
+            "|---|---|---|---|---|---|---|---|---|---|---|")
     print(f"CPU {cpu_label()}; needs at {a.resolution_kib} KiB resolution")
     print(head)
     print(lines[0])
