@@ -24,6 +24,7 @@ and after, in the same process.
 
 Run: .venv/bin/python benchmarks/bench_taps_first_touch.py [--settings cpca:16:7] [--states default,mmap,heap]
      [--size medium] [--cache cache/bench_taps_first_touch]
+     .venv/bin/python benchmarks/bench_taps_first_touch.py --shapes 10242:64:16:4,10242:42:384:3   (the peer alone)
 Writes reports/benchmarks/taps_first_touch.{md,json} (the transport table is cached under --cache).
 """
 from __future__ import annotations
@@ -39,6 +40,8 @@ import sys  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
+
+import torch  # noqa: E402
 
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -108,6 +111,33 @@ def child(a) -> dict:
     return out
 
 
+def shapes(spec: str) -> list[str]:
+    """The peer alone on random tables of given shapes (``V:R:N:k``, comma-separated), blocked vs whole,
+    paired in this process (one thread, thread CPU time; floor of 40 short pairs as the harness)."""
+    from prt_torch import relight
+    from prt_torch.harness.timing import measure_paired, torch_threads
+
+    out = []
+    g = torch.Generator().manual_seed(0)
+    for item in spec.split(","):
+        V, R, N, k = (int(x) for x in item.split(":"))
+        A, L = torch.rand(V, R, N, generator=g), torch.rand(3, N, generator=g)
+        idx, w = torch.randint(0, R, (V, k), generator=g), torch.rand(V, k, generator=g)
+
+        def f(block, A=A, L=L, idx=idx, w=w):
+            def run():
+                relight.TAPS_BLOCK_BYTES = block
+                return relight.apply_taps(A, L, idx, w)
+            return run
+        blocked = relight.TAPS_BLOCK_BYTES
+        with torch_threads(1):
+            p = measure_paired(f(blocked), f(WHOLE), repeats=21, warmup=3, clock=time.thread_time, floor_pairs=40)
+        relight.TAPS_BLOCK_BYTES = blocked
+        out.append(f"| {V}×{R}×{N}, {k} taps | {p.peer.median * 1e3:.3f} | {p.test.median * 1e3:.3f} | {p.ratio.median:.3f} "
+                   f"({p.ratio.q1:.3f}–{p.ratio.q3:.3f}) | {p.speedup:.3f} | {os.getloadavg()[0]:.1f} |")
+    return out
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--settings", default="cpca:16:7", help="the part's settings, type:clusters:vectors or gaussian:lobes")
@@ -115,8 +145,15 @@ def main(argv=None) -> int:
     ap.add_argument("--size", default=None)
     ap.add_argument("--cache", type=Path, default=ROOT / "cache" / "bench_taps_first_touch")
     ap.add_argument("--out", type=Path, default=ROOT / "reports" / "benchmarks" / "taps_first_touch")
+    ap.add_argument("--shapes", default=None, metavar="V:R:N:k,...",
+                    help="only the peer alone on random tables of these shapes in this process (default allocator), printed "
+                         "as table rows: e.g. 10242:64:16:4 (the default MRT run's peer), 10242:42:384:3 (the Gaussian part's)")
     ap.add_argument("--child", default=None, help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
+    if a.shapes:
+        print("| table, taps | whole ms | blocked ms | whole / blocked (q1–q3) | floor ratio | load |\n|---|---|---|---|---|---|")
+        print("\n".join(shapes(a.shapes)))
+        return 0
     if a.child:
         print(json.dumps(child(a)))
         return 0

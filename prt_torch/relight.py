@@ -140,8 +140,9 @@ def apply_dense(M: torch.Tensor, L: torch.Tensor, y: torch.Tensor) -> torch.Tens
 #: every vertex's rows at once made a fresh ``V·k·N_i`` temporary per call (47 MB for the default
 #: Gaussian part's tables), which glibc either served from its heap or mapped anew — page-faulted on
 #: first touch every call, 2-3x the call's time — depending on the process's allocation history
-#: (reports/benchmarks/taps_first_touch.md).
-TAPS_BLOCK_BYTES = 1 << 20
+#: (reports/benchmarks/taps_first_touch.md). 4 MiB: the default MRT run's peer (10 242 × 4 taps × 16
+#: floats, 2.6 MB) stays one gather, as before (1 MiB blocks there paired 0.91-1.03x whole).
+TAPS_BLOCK_BYTES = 4 << 20
 
 
 def apply_taps(A: torch.Tensor, L: torch.Tensor, idx: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
@@ -163,7 +164,7 @@ def apply_taps(A: torch.Tensor, L: torch.Tensor, idx: torch.Tensor, w: torch.Ten
     else:
         e = torch.empty(V * k, Lc.shape[0], dtype=A.dtype)
         buf = torch.empty(nb * k, n_in, dtype=A.dtype)
-        for s in range(0, V, nb):  # a few blocks (V·k·N_i·4 / 1 MiB), each a batched gather + GEMM
+        for s in range(0, V, nb):  # a few blocks (V·k·N_i·4 / 4 MiB), each a batched gather + GEMM
             a, b = s * k, min(s + nb, V) * k
             torch.mm(torch.index_select(Af, 0, rows[a:b], out=buf[: b - a]), Lc.T, out=e[a:b])
         e = e.view(V, k, -1)
