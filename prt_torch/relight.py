@@ -162,8 +162,8 @@ def apply_taps(A: torch.Tensor, L: torch.Tensor, idx: torch.Tensor, w: torch.Ten
     if nb >= V or (torch.is_grad_enabled() and (A.requires_grad or Lc.requires_grad or w.requires_grad)):
         e = (Af.index_select(0, rows) @ Lc.T).reshape(V, k, -1)  # [V·k, N_i] gathered at once
     else:
-        e = torch.empty(V * k, Lc.shape[0], dtype=A.dtype)
-        buf = torch.empty(nb * k, n_in, dtype=A.dtype)
+        e = A.new_empty(V * k, Lc.shape[0])
+        buf = A.new_empty(nb * k, n_in)
         for s in range(0, V, nb):  # a few blocks (V·k·N_i·4 / 4 MiB), each a batched gather + GEMM
             a, b = s * k, min(s + nb, V) * k
             torch.mm(torch.index_select(Af, 0, rows[a:b], out=buf[: b - a]), Lc.T, out=e[a:b])
