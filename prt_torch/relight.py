@@ -136,15 +136,38 @@ def apply_dense(M: torch.Tensor, L: torch.Tensor, y: torch.Tensor) -> torch.Tens
     return torch.einsum("vr,vrc->vc", y.to(M.dtype), e)
 
 
+#: bytes of gathered tap rows :func:`apply_taps` holds at once (one reused buffer per call). Gathering
+#: every vertex's rows at once made a fresh ``V·k·N_i`` temporary per call (47 MB for the default
+#: Gaussian part's tables), which glibc either served from its heap or mapped anew — page-faulted on
+#: first touch every call, 2-3x the call's time — depending on the process's allocation history
+#: (reports/benchmarks/taps_first_touch.md). 4 MiB: the default MRT run's peer (10 242 × 4 taps × 16
+#: floats, 2.6 MB) stays one gather, as before (1 MiB blocks there paired 0.91-1.03x whole).
+TAPS_BLOCK_BYTES = 4 << 20
+
+
 def apply_taps(A: torch.Tensor, L: torch.Tensor, idx: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     """Σ_k w_pk (A_p l_c)_{idx_pk}: ``A [V, R, N_i]``, ``L [C, N_i]``, taps ``[V, k]`` → ``[V, C]``
-    (a gather of k rows per vertex, then one GEMM)."""
+    (Lehtinen & Kautz 2003 eq. 9's taps; the transport tables' cross-fade between stored views):
+    a gather of k rows per vertex, then one GEMM, by blocks of vertices whose gathered rows fill
+    :data:`TAPS_BLOCK_BYTES` (one buffer reused across the blocks: the same per-row arithmetic as
+    one gather, no per-call first-touch page faults). With autograd recording through ``A``, ``L``
+    or ``w``: one gather of every vertex (differentiable)."""
     check_shape("A", A, ndim=3)
     V, R, n_in = A.shape
     Lc = _light(L, n_in, A.dtype)
+    k = idx.shape[1]
     rows = (torch.arange(V)[:, None] * R + idx).reshape(-1)
-    taps = A.reshape(V * R, n_in).index_select(0, rows)  # [V·k, N_i]
-    e = (taps @ Lc.T).reshape(V, idx.shape[1], -1)
+    Af = A.reshape(V * R, n_in)
+    nb = max(1, TAPS_BLOCK_BYTES // max(1, k * n_in * A.element_size()))
+    if nb >= V or (torch.is_grad_enabled() and (A.requires_grad or Lc.requires_grad or w.requires_grad)):
+        e = (Af.index_select(0, rows) @ Lc.T).reshape(V, k, -1)  # [V·k, N_i] gathered at once
+    else:
+        e = A.new_empty(V * k, Lc.shape[0])
+        buf = A.new_empty(nb * k, n_in)
+        for s in range(0, V, nb):  # a few blocks (V·k·N_i·4 / 4 MiB), each a batched gather + GEMM
+            a, b = s * k, min(s + nb, V) * k
+            torch.mm(torch.index_select(Af, 0, rows[a:b], out=buf[: b - a]), Lc.T, out=e[a:b])
+        e = e.view(V, k, -1)
     return (e * w.to(A.dtype)[:, :, None]).sum(1)
 
 

@@ -688,7 +688,12 @@ class HitBounce:
         :data:`GUIDE_POOL` nearest centroids (itself included), row f of a CSR pattern (no values: the
         former scipy matrix's were all 1; numpy arrays keep the 0.17 CPU s scipy.sparse import off the
         glossy/MRT bounce precompute), rows kept only for faces that may be guided; once per estimator
-        (geometry only, no rays)."""
+        (geometry only, no rays). ``scipy.spatial`` is imported here only (~0.4-0.5 s CPU on the 2-core
+        Zen 3, paired: reports/benchmarks/import_cost.md; every estimator-'auto' bounce run needs these sets,
+        whose probe they steer): a brute-force or grid k-NN in torch/numpy would pick other faces
+        where centroids tie at the 32nd distance, and they do on the planar scenes (small sizes:
+        the 32nd and 33rd equal for 974 of 4480 faces of sphere_on_plane, 816/4096 occluder_over_plane,
+        951/3690 cornell_box; 0 bumpy_sphere, 19/4307 scan_blob), so no cheaper path keeps the output."""
         if self._pool is None:
             from scipy.spatial import cKDTree
 
