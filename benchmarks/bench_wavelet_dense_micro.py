@@ -162,6 +162,18 @@ double clock_ghz(void) {
 """
 
 
+def dense_terms(rl: "relight.WaveletRelighter", li: torch.Tensor, lv: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """A light's dense terms as the kernel lists them: ``ds`` int64 [nd] their dense slots in slot order and
+    ``lw`` float32 [nd, 4] their light (channels 0..C-1, the rest zero), from the light's Haar terms ``li``
+    int64 [N] and values ``lv`` [C, N] (``WaveletRelighter.light``)."""
+    d = rl.dslot[li] >= 0
+    order = torch.argsort(rl.dslot[li[d]].long())
+    ds = rl.dslot[li[d]].long()[order].contiguous()
+    lw = torch.zeros(ds.numel(), 4)
+    lw[:, :lv.shape[0]] = lv[:, d].T.float()[order]
+    return ds, lw
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--terms", type=int, nargs="+", default=[1000])
@@ -191,12 +203,8 @@ def main() -> None:
     for light in ("studio", "sky (sun)"):
         for N in args.terms:
             li, lv, _ = rl.light(LIGHTS[light], N, "transport")
-            d = rl.dslot[li] >= 0
-            order = torch.argsort(rl.dslot[li[d]].long())
-            ds = rl.dslot[li[d]].long()[order].contiguous()
+            ds, lw = dense_terms(rl, li, lv)
             nd = ds.numel()
-            lw = torch.zeros(nd, 4)
-            lw[:, :3] = lv[:, d].T.float()[order]
             sums = torch.zeros(nb, 3, 32)
 
             ds3 = torch.cat([ds, ds[-1:].expand(7)]) * 64  # byte offsets, the last repeated PF + 1 = 7 times

@@ -42,6 +42,7 @@ import torch  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_wavelet import BITS, LIGHTS, OUT  # noqa: E402
+from bench_wavelet_dense_micro import dense_terms  # noqa: E402
 from bench_wavelet_pass_micro import C_PRELUDE, grouped  # noqa: E402
 
 from prt_torch import relight  # noqa: E402
@@ -262,11 +263,7 @@ def main() -> None:
     for light in ("studio", "sky (sun)"):
         for N in args.terms:
             li, lv, _ = rl.light(LIGHTS[light], N, "transport")
-            d = rl.dslot[li] >= 0
-            order = torch.argsort(rl.dslot[li[d]].long())
-            ds = rl.dslot[li[d]].long()[order].contiguous()
-            dlw = torch.zeros(ds.numel(), 4)
-            dlw[:, :3] = lv[:, d].T.float()[order]
+            ds, dlw = dense_terms(rl, li, lv)
             rng, gl, bofs, vals = grouped(rl, torch.arange(rl.P), 1, li, lv)
             order_r = torch.argsort(rng[:, 0], stable=True)
             rng, gl = rng[order_r].contiguous(), gl[order_r].reshape(-1, 4).contiguous()

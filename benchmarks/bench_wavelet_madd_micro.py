@@ -58,6 +58,7 @@ import torch  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_wavelet import BITS, LIGHTS, OUT  # noqa: E402
 from bench_wavelet_dense_micro import SRC as DENSE_SRC  # noqa: E402
+from bench_wavelet_dense_micro import dense_terms  # noqa: E402
 
 from prt_torch import relight  # noqa: E402
 from prt_torch._native import compile_library  # noqa: E402
@@ -489,12 +490,8 @@ def main() -> None:
         for light in ("studio", "sky (sun)"):
             for N in args.terms:
                 li, lv, _ = rl.light(LIGHTS[light], N, "transport")
-                d = rl.dslot[li] >= 0
-                order = torch.argsort(rl.dslot[li[d]].long())
-                ds = rl.dslot[li[d]].long()[order].contiguous()
+                ds, lw = dense_terms(rl, li, lv)
                 nd = ds.numel()
-                lw = torch.zeros(nd, 4)
-                lw[:, :3] = lv[:, d].T.float()[order]
                 sums = torch.zeros(nb, 3, 32)
                 msums = torch.zeros(nb, 3, 32)
                 lib.dense_pass(d16.data_ptr(), Pd * 32, ds.data_ptr(), nd, lw.data_ptr(), nb, 0, sums.data_ptr(), 1)
@@ -553,13 +550,9 @@ def main() -> None:
         for light in args.grey:  # a grey light: one output channel (CO = 1)
             for N in args.terms:
                 li, lv, _ = rl.light(LIGHTS[light], N, "transport")
-                d = rl.dslot[li] >= 0
-                order = torch.argsort(rl.dslot[li[d]].long())
-                ds = rl.dslot[li[d]].long()[order].contiguous()
+                ds, lw = dense_terms(rl, li, lv[:1])
                 nd = ds.numel()
-                L1c = lv[0, d].float()[order]
-                lw = torch.zeros(nd, 4)
-                lw[:, 0] = L1c
+                L1c = lw[:, 0].clone()
                 gsum = torch.zeros(nb, 32)
                 msum = torch.zeros(nb, 32)
                 tv = d16[:, ds, :].double()
