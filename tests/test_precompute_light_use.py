@@ -1,0 +1,61 @@
+"""``prt precompute --light`` is read only by the 'auto' choices that measure a light (plan 10, issue 39
+review): a wavelet transfer's ``--res auto`` and an SH kind's ``--bands auto``. With an explicit
+``--res R`` / ``--bands n`` (or a kind with no such choice) the light changed nothing and was accepted
+silently; it is now refused in one line, before any work (house style: ``prt relight --selection`` on
+an SH transfer, tests/test_wavelet_review.py)."""
+from __future__ import annotations
+
+import pytest
+
+from prt_torch.cli import main as cli_main
+from prt_torch.lighting import load_light
+from prt_torch.transfer import get_kind
+from prt_torch.transfer.auto import light_choices
+
+CASES = [("diffuse", {}), ("diffuse", {"bands": 3}), ("diffuse", {"bands": "auto"}),
+         ("glossy", {"bands": 3, "bands_out": "auto"}), ("glossy", {"bands": "auto", "bands_out": "auto"}),
+         ("mrt", {"bands": 3, "bands_out": "auto", "M": "auto"}), ("wavelet", {}), ("wavelet", {"res": 8}),
+         ("wavelet", {"res": "auto"}), ("transport", {}), ("subsurface", {"bands": 3})]
+
+
+@pytest.mark.parametrize("kind,params", CASES)
+def test_light_choices_is_exactly_where_a_light_changes_resolve(kind, params):
+    """Independent of :func:`light_choices`' rule: resolve each kind's parameters with a constant light
+    (only band 0 / a flat cube: 1 band, R = 1) and without a light (a flat spectrum: 3+ bands; R = 32).
+    The decisions differ exactly where :func:`light_choices` says a light is read."""
+    k = get_kind(kind)
+    p = k.validate(params)
+    light = ["constant"] if kind == "wavelet" else [load_light("constant", bands=32)]
+    with_light = {n: d["value"] for n, d in k.resolve(p, light)[1].items()}
+    without = {n: d["value"] for n, d in k.resolve(p, None)[1].items()}
+    used = light_choices(kind, p)
+    assert bool(used) == (with_light != without), (with_light, without, used)
+    for n in used:
+        assert with_light[n] != without[n]
+
+
+@pytest.mark.parametrize("argv,flag", [
+    (["--kind", "wavelet", "--res", "4", "--terms", "20"], "with --res 4: --kind wavelet reads the lights only to choose --res auto"),
+    (["--kind", "wavelet", "--terms", "20"], "with the default --res 32"),
+    (["--kind", "diffuse", "--bands", "2", "--samples", "16"], "with --bands 2: --kind diffuse reads the lights only to choose "
+                                                              "--bands auto"),
+    (["--kind", "transport"], "on --kind transport: no 'auto' choice of this kind reads a light"),
+])
+def test_precompute_refuses_a_light_nothing_reads(tmp_path, capsys, argv, flag):
+    out = tmp_path / "t.prt"
+    capsys.readouterr()
+    assert cli_main(["precompute", "occluder_over_plane", *argv, "--light", "sun", "--workers", "1", "--no-progress",
+                     "-o", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--light 'sun' has no effect" in err[0] and flag in err[0] and "accepted:" in err[0], err
+    assert not out.exists() and not (tmp_path / "t.prt.state").exists()
+
+
+def test_precompute_light_with_auto_still_runs(tmp_path, capsys):
+    """The lights a choice reads are still taken: ``--res auto --light constant`` chooses R = 1 (a flat
+    light has no Haar detail), as without the refusal."""
+    out = tmp_path / "w.prt"
+    capsys.readouterr()
+    assert cli_main(["precompute", "occluder_over_plane", "--kind", "wavelet", "--res", "auto", "--light", "constant",
+                     "--workers", "1", "--no-progress", "--dry-run", "-o", str(out)]) == 0
+    assert "res=1" in capsys.readouterr().err and not out.exists()
