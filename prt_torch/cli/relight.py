@@ -241,10 +241,10 @@ def plan(args) -> dict:
     a wavelet transfer's coefficients and transport tables are loaded whole), *relight* (one chunk's
     rows, view weights and output; a codec, wavelet or table: the whole ``[V, 3]`` result and its
     work), *output* (``.npy``: written chunk by chunk through a file mapping, not held; ``.ply``: the
-    colours and the trimesh mesh whole). Peak = the sum × ``transfer.estimate.ALLOCATOR_SLACK``."""
+    colours and the trimesh mesh whole). Peak = the sum × ``transfer.estimate.ALLOCATOR_SLACK``. A wavelet
+    transfer: :func:`_wavelet_plan` (*held* and *build* stages besides; a dry run reads the file's coefficients,
+    mapped, to count them)."""
     from .. import io
-    from ..transfer.estimate import ALLOCATOR_SLACK
-    from ..transfer.glossy import memory_budget
 
     fb = io.format_bytes
     src = Path(args.transfer)
@@ -285,8 +285,18 @@ def plan(args) -> dict:
             work, wnote = k * (2 * row + 200 + 12), f"one chunk of {k} vertices (rows, view weights, output)"
         stages = [{"stage": "input", "bytes": inp, "note": note}, {"stage": "relight", "bytes": work, "note": wnote}]
         streamed = not codes and not wavelet
+    return _finish_plan(args, V, kind, stages, streamed)
+
+
+def _finish_plan(args, V: int, kind: str, stages: list, streamed: bool, how: str = "chunk by chunk ") -> dict:
+    """:func:`plan`'s *output* stage appended to ``stages``, the budget and the peak (the sum × ALLOCATOR_SLACK)."""
+    from .. import io
+    from ..transfer.estimate import ALLOCATOR_SLACK
+    from ..transfer.glossy import memory_budget
+
+    fb = io.format_bytes
     if Path(args.output).suffix.lower() == ".npy":
-        stages.append({"stage": "output", "bytes": 0, "note": f"{fb(V * 12)} .npy written chunk by chunk through a file "
+        stages.append({"stage": "output", "bytes": 0, "note": f"{fb(V * 12)} .npy written {how}through a file "
                                                             "mapping (a .partial renamed at the end), not held"})
     else:
         stages.append({"stage": "output", "bytes": V * 64, "note": f".ply: colours and the mesh for trimesh, whole ({fb(V * 64)})"})
@@ -297,7 +307,7 @@ def plan(args) -> dict:
 
 def _wavelet_plan(args, V: int, mesh: int, data: int, exact: bool | None = None) -> dict:
     """:func:`plan` of a wavelet transfer: *input* (the mesh and the file's coefficients, loaded whole),
-    *relighter* (:meth:`~prt_torch.relight.WaveletRelighter.estimate_bytes`: its kernel layouts — dense
+    *held* (:meth:`~prt_torch.relight.WaveletRelighter.estimate_bytes`: its kernel layouts — dense
     columns, column-major blocks, the row-major copy 'auto' builds for a light that takes that pass — and
     tables, as :meth:`~prt_torch.relight.WaveletRelighter.held_bytes` will report them, plus its float32
     values and int64 index copies), *build* (its construction's temporaries), *relight* (the whole
@@ -305,8 +315,6 @@ def _wavelet_plan(args, V: int, mesh: int, data: int, exact: bool | None = None)
     bound first, counted only when that bound does not fit the budget (a run that fits reads nothing here)."""
     from .. import io
     from ..relight import WaveletRelighter
-    from ..transfer.estimate import ALLOCATOR_SLACK
-    from ..transfer.glossy import memory_budget
 
     fb = io.format_bytes
     if exact is None:
@@ -320,17 +328,10 @@ def _wavelet_plan(args, V: int, mesh: int, data: int, exact: bool | None = None)
               {"stage": "build", "bytes": e["build"], "note": f"the relighter's construction temporaries ({e['E']} kept "
                                                              "coefficients: keys, sorts), freed before the relight"},
               {"stage": "relight", "bytes": V * 3 * 4 * 3, "note": "the whole [V, 3] result at once"}]
-    if Path(args.output).suffix.lower() == ".npy":
-        stages.append({"stage": "output", "bytes": 0, "note": f"{fb(V * 12)} .npy written through a file mapping (a "
-                                                            ".partial renamed at the end), not held"})
-    else:
-        stages.append({"stage": "output", "bytes": V * 64, "note": f".ply: colours and the mesh for trimesh, whole ({fb(V * 64)})"})
-    budget = memory_budget(None if args.memory_limit is None else int(args.memory_limit * (1 << 30)))
-    peak = int(ALLOCATOR_SLACK * sum(st["bytes"] for st in stages))
-    if peak > budget and not exact:  # the bound does not fit: count what the relighter will really hold
+    pl = _finish_plan(args, V, "transfer/wavelet", stages, False, how="")
+    if pl["peak"] > pl["budget"] and not exact:  # the bound does not fit: count what the relighter will really hold
         return _wavelet_plan(args, V, mesh, data, exact=True)
-    return {"V": V, "kind": "transfer/wavelet", "stages": stages, "peak": peak, "budget": budget, "streamed": False,
-            "relighter": e}
+    return dict(pl, relighter=e)
 
 
 def json_load(path):
