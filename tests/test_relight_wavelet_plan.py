@@ -27,8 +27,8 @@ from prt_torch.transfer import RunOptions, Transfer, get_kind
 PARTS = ("dense", "column", "row", "other", "total")
 
 
-def _wavelet(path, **params):
-    tr = get_kind("wavelet").precompute(builtin("occluder_over_plane"), params, run=RunOptions(workers=1, progress=False))
+def _wavelet(path, scene="occluder_over_plane", **params):
+    tr = get_kind("wavelet").precompute(builtin(scene), params, run=RunOptions(workers=1, progress=False))
     tr.save(path)
     return path
 
@@ -44,7 +44,8 @@ def blocker32(tmp_path_factory):
     ({"res": 16, "terms": 64, "bits": 16, "scales": "vertex"}, "auto", None),  # the stored int16 values as they are
     ({"res": 8, "terms": 48, "bits": 32}, "auto", None),  # float32 values
     ({"res": 16, "terms": 64}, "column", 20),  # never the row-major copy
-], ids=["8bit-level", "16bit-vertex", "float32", "column-only"])
+    ({"scene": "cornell_box", "res": 4, "terms": 48, "bounces": 1, "hit_samples": 4}, "auto", None),  # coloured: CT = 3
+], ids=["8bit-level", "16bit-vertex", "float32", "column-only", "coloured"])
 def test_estimate_equals_held_bytes(tmp_path, params, layouts, terms):
     """Every part of ``estimate_bytes`` (from the file, nothing built) equals ``held_bytes()`` of the relighter
     built from it after one RGB relight; the header-only bound is at least the count, part by part."""
@@ -55,6 +56,7 @@ def test_estimate_equals_held_bytes(tmp_path, params, layouts, terms):
     li, lv, _ = r.light("studio", terms)
     r(li, lv)
     held = r.held_bytes()
+    assert est["CT"] == r.CT == (3 if "scene" in params else 1)
     assert {k: est[k] for k in PARTS} == held, (est, held)
     assert (held["row"] > 0) == (layouts != "column")
     assert est["reference"] == r.values.numel() * r.values.element_size() + r.index.numel() * r.index.element_size()
