@@ -59,3 +59,34 @@ def test_precompute_light_with_auto_still_runs(tmp_path, capsys):
     assert cli_main(["precompute", "occluder_over_plane", "--kind", "wavelet", "--res", "auto", "--light", "constant",
                      "--workers", "1", "--no-progress", "--dry-run", "-o", str(out)]) == 0
     assert "res=1" in capsys.readouterr().err and not out.exists()
+
+
+@pytest.mark.parametrize("kind,params", CASES)
+def test_energy_choices_cover_every_decision_energy_changes(kind, params):
+    """``--energy`` (the fraction an 'auto' choice keeps) was silently ignored without an 'auto' choice too. Where
+    :func:`energy_choices` is empty, resolving with energy 0.5 and 0.9999 gives the same decisions; where it lists
+    the choices, those are the decisions made (a different energy may or may not move them)."""
+    from prt_torch.transfer.auto import energy_choices
+
+    k = get_kind(kind)
+    lo, hi = ({n: d["value"] for n, d in k.resolve(k.validate({**params, "energy": e}), None)[1].items()}
+              for e in (0.5, 0.9999))
+    used = energy_choices(kind, k.validate(params))
+    if not used:
+        assert lo == hi, (lo, hi)
+    assert set(used) <= set(hi), (used, hi)
+
+
+@pytest.mark.parametrize("argv,flag", [
+    (["--kind", "wavelet", "--res", "4", "--terms", "20"], "no effect: no 'auto' choice in this run; accepted: --res auto"),
+    (["--kind", "diffuse", "--bands", "2", "--samples", "16"], "accepted: --bands auto with --energy"),
+    (["--kind", "transport"], "on --kind transport: no 'auto' choice of this kind keeps a fraction"),
+])
+def test_precompute_refuses_an_energy_nothing_keeps(tmp_path, capsys, argv, flag):
+    out = tmp_path / "t.prt"
+    capsys.readouterr()
+    assert cli_main(["precompute", "occluder_over_plane", *argv, "--energy", "0.9", "--workers", "1", "--no-progress",
+                     "-o", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--energy 0.9 has no effect" in err[0] and flag in err[0], err
+    assert not out.exists()

@@ -84,7 +84,7 @@ def register(subparsers) -> None:
     g = p.add_argument_group("automatic choices ('auto' for --bands, --bands-out, --tents; wavelet: --res)")
     g.add_argument("--energy", type=float, default=None,
                    help="fraction of the reflected energy an 'auto' choice keeps, in (0, 1] (default 0.99); wavelet "
-                        "--res auto: of the lights' Haar energy")
+                        "--res auto: of the lights' Haar energy; refused where no 'auto' choice keeps it")
     g.add_argument("--light", action="append", default=None, metavar="SPEC",
                    help="a light of the scene (built-in name, file or analytic spec), repeatable: 'auto' bands keep "
                         "the energy of these lights through the BRDF lobe (default: a flat light spectrum); wavelet "
@@ -200,6 +200,8 @@ def _run(args, executor) -> int:
     kind.validate(params, where=f"--kind {args.kind}")
     if args.light:
         _check_lights_used(kind, params, args.light)
+    if args.energy is not None:
+        _check_energy_used(kind, params, args.energy)
     out = Path(args.output)
     from ..io import check_outputs
 
@@ -296,6 +298,27 @@ def _check_lights_used(kind, params: dict, lights: list[str]) -> None:
     now = f"{flag} {given}" if given is not None else f"the default {flag} {kind.defaults()[param]}"
     raise ValueError(f"--light {lights[0]!r} has no effect with {now}: --kind {kind.name} reads the lights only to choose "
                      f"{flag} auto; accepted: {flag} auto with --light, or no --light")
+
+
+def _check_energy_used(kind, params: dict, energy: float) -> None:
+    """Refuse ``--energy`` when no 'auto' choice of this run keeps it (:func:`prt_torch.transfer.auto.energy_choices`),
+    one line naming the kind's options that take 'auto' with it."""
+    from ..transfer.auto import energy_choices
+
+    if energy_choices(kind.name, params):
+        return
+    flags = []
+    for a in kind.args:
+        try:
+            if energy_choices(kind.name, kind.validate({a.param: "auto"})):
+                flags.append(a.flag)
+        except (ValueError, TypeError):
+            pass
+    if not flags:
+        raise ValueError(f"--energy {energy:g} has no effect on --kind {kind.name}: no 'auto' choice of this kind keeps a "
+                         "fraction of the energy; accepted: no --energy")
+    raise ValueError(f"--energy {energy:g} has no effect: no 'auto' choice in this run; accepted: "
+                     f"{' / '.join(f'{f} auto' for f in flags)} with --energy, or no --energy")
 
 
 def _print_auto(decisions: dict) -> None:

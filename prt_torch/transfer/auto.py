@@ -35,7 +35,7 @@ from ..sh import band_factor, clamped_cosine, hemisphere_gram, phong
 from .tents import MAX_TENTS, error_matrix
 
 __all__ = ["AUTO", "DEFAULT_ENERGY", "lobe_filter", "light_spectrum", "choose_bands", "choose_tents", "choose_haar_res", "resolve_auto",
-           "light_choices"]
+           "light_choices", "energy_choices"]
 
 AUTO = "auto"
 DEFAULT_ENERGY = 0.99
@@ -177,6 +177,15 @@ def light_choices(kind: str, params: dict[str, Any]) -> list[str]:
     if kind == "wavelet":
         return ["res"] if params.get("res") == AUTO else []
     return ["bands"] if params.get("bands") == AUTO else []
+
+
+def energy_choices(kind: str, params: dict[str, Any]) -> list[str]:
+    """The parameters of ``params`` whose ``'auto'`` choice in :func:`resolve_auto` keeps the fraction
+    ``energy``: ``bands``, ``bands_out``, ``M`` and a wavelet transfer's ``res`` (the transport kind's
+    ``res: auto`` comes from the BRDF's narrowest lobe alone). Empty: ``energy`` changes nothing
+    (``prt precompute`` refuses ``--energy`` then)."""
+    names = ("bands", "bands_out", "M") + (("res",) if kind == "wavelet" else ())
+    return [n for n in names if params.get(n) == AUTO]
 
 
 def resolve_auto(kind: str, params: dict[str, Any], lights: list[torch.Tensor] | None, brdf: BRDF | None,
