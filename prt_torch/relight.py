@@ -496,12 +496,27 @@ class WaveletRelighter:
         when the bound does not fit its budget."""
         from . import io
 
-        t, meta = io.load_mapped(path, mapped=("data", "aux.index"), expect_kind="transfer/wavelet")
-        res = int(meta["res"])
+        hd = io.describe(path)  # the header: shapes and dtypes, nothing read
+        if hd["meta"].get("kind") != "transfer/wavelet":
+            raise ValueError(f"{str(path)!r} holds kind={hd['meta'].get('kind')!r}; accepted: a wavelet transfer (transfer/wavelet)")
+        res = int(hd["meta"]["res"])
         P = 6 * res * res
-        V, K = (int(d) for d in t["aux.index"].shape)
+        V, K = (int(d) for d in hd["tensors"]["aux.index"]["shape"])
+        dshape, dtype = hd["tensors"]["data"]["shape"], hd["tensors"]["data"]["dtype"]
+        CT = 1 if len(dshape) == 2 else int(dshape[1])
+        stored = {"I8": 1, "I16": 2}.get(dtype)  # quantised values' bytes; None: float
+        # the relighter's tile (TV) and the counts, as __init__ derives them
+        half = -(-V // 2)
+        TV = int(tile) if tile is not None else min(4096, max(cls.BLOCK, -(-half // cls.BLOCK) * cls.BLOCK))
+        if not exact:  # the header's bound: b from the stored dtype (a scale per level: re-quantised to 16 bits)
+            per_level = stored is not None and len(hd["tensors"]["aux.scale"]["shape"]) == (3 if CT > 1 else 2)
+            b = 2 if per_level else (stored or 4)
+            dmin = b / (4 + b) if dense_min is None else float(dense_min)
+            E = V * K
+            Pd = min(P, E // max(math.ceil(dmin * V), 1)) if dmin <= 1 else 0
+            return cls._held_estimate(V, K, CT, P, b, TV, layouts, light_channels, E, E, Pd, E, b != stored, exact=False)
+        t, meta = io.load_mapped(path, mapped=("data", "aux.index"), expect_kind="transfer/wavelet")
         data = t["data"]
-        CT = 1 if data.ndim == 2 else int(data.shape[1])
 
         class _Rows:  # a slice of the file's rows, as _kernel_values reads a transfer
             kind = "wavelet"
@@ -510,18 +525,8 @@ class WaveletRelighter:
                 self.data, self.meta = data[a:b], meta
                 self.aux = {"index": t["aux.index"][a:b], "scale": t["aux.scale"][a:b]}
 
-        # the relighter's tile (TV) and the counts, as __init__ derives them
-        half = -(-V // 2)
-        TV = int(tile) if tile is not None else min(4096, max(cls.BLOCK, -(-half // cls.BLOCK) * cls.BLOCK))
         nb8 = -(-V // cls.SUB)
         step = max(TV, chunk // TV * TV)  # whole tiles per slice: a sparse block never spans two slices
-        if not exact:  # the header's bound: b from the stored dtype (a scale per level: re-quantised to 16 bits)
-            per_level = data.dtype in (torch.int8, torch.int16) and t["aux.scale"].ndim == (3 if CT > 1 else 2)
-            b = 2 if per_level else (data.element_size() if data.dtype in (torch.int8, torch.int16) else 4)
-            dmin = b / (4 + b) if dense_min is None else float(dense_min)
-            E = V * K
-            Pd = min(P, E // max(math.ceil(dmin * V), 1)) if dmin <= 1 else 0
-            return cls._held_estimate(V, K, CT, P, b, TV, layouts, light_channels, E, E, Pd, E, data, exact=False)
         nnz = torch.zeros(P, dtype=torch.int64)
         nz = torch.empty(V, K, dtype=torch.bool)  # [V, K] the vertex keeps coefficient k in some channel (1 B each)
         b = 4
@@ -540,11 +545,12 @@ class WaveletRelighter:
             row = torch.nonzero(keep)[:, 0] + a
             NB += int(torch.unique(((row // TV) * P + idx[keep]) * nb8 + row // cls.SUB).numel())
         Es = E - int(nnz[is_dense].sum())
-        return cls._held_estimate(V, K, CT, P, b, TV, layouts, light_channels, E, Es, Pd, NB, data)
+        return cls._held_estimate(V, K, CT, P, b, TV, layouts, light_channels, E, Es, Pd, NB, b != stored)
 
     @classmethod
-    def _held_estimate(cls, V, K, CT, P, b, TV, layouts, light_channels, E, Es, Pd, NB, data, exact=True) -> dict:
-        """:meth:`estimate_bytes`' arithmetic from the counts (``b`` the kernel values' bytes, ``TV`` the tile)."""
+    def _held_estimate(cls, V, K, CT, P, b, TV, layouts, light_channels, E, Es, Pd, NB, requant, exact=True) -> dict:
+        """:meth:`estimate_bytes`' arithmetic from the counts (``b`` the kernel values' bytes, ``TV`` the tile,
+        ``requant``: the kernel's values are not the stored ones — re-quantised to 16 bits, or float)."""
         NT, nb = -(-V // TV), -(-V // cls.BLOCK)
         MT = max(1, min(NT, os.cpu_count() or 1))
         CO = max(light_channels, CT)
@@ -562,7 +568,6 @@ class WaveletRelighter:
         # values (the stored values and the file's float32 values when re-quantised), the [V, K] keep mask, the entries'
         # source/column/row int64 lists and stored values, the dense flags, the dense entries' rows (int64); the sparse
         # entries' row, column, values, key and unique's sorted copy, permutation and inverse (int64)
-        requant = (data.element_size() != b) or data.dtype.is_floating_point
         parts["build"] = (V * CT * K * (b + (4 if requant else 0)) + V * K + E * (24 + CT * b + 1) + 8 * (E - Es)
                           + Es * (16 + CT * b + 8 + 24))
         parts.update(V=V, K=K, CT=CT, P=P, E=E, Es=Es, Pd=Pd, NB=NB, exact=exact)
