@@ -34,20 +34,27 @@ def test_light_choices_is_exactly_where_a_light_changes_resolve(kind, params):
         assert with_light[n] != without[n]
 
 
-@pytest.mark.parametrize("argv,flag", [
-    (["--kind", "wavelet", "--res", "4", "--terms", "20"], "with --res 4: --kind wavelet reads the lights only to choose --res auto"),
-    (["--kind", "wavelet", "--terms", "20"], "with the default --res 32"),
-    (["--kind", "diffuse", "--bands", "2", "--samples", "16"], "with --bands 2: --kind diffuse reads the lights only to choose "
-                                                              "--bands auto"),
-    (["--kind", "transport"], "on --kind transport: no 'auto' choice of this kind reads a light"),
+WAVELET4, DIFFUSE2 = ["--kind", "wavelet", "--res", "4", "--terms", "20"], ["--kind", "diffuse", "--bands", "2", "--samples", "16"]
+
+
+@pytest.mark.parametrize("option,argv,flag", [
+    (["--light", "sun"], WAVELET4, "with --res 4: --kind wavelet reads the lights only to choose --res auto"),
+    (["--light", "sun"], ["--kind", "wavelet", "--terms", "20"], "with the default --res 32"),
+    (["--light", "sun"], DIFFUSE2, "with --bands 2: --kind diffuse reads the lights only to choose --bands auto"),
+    (["--light", "sun"], ["--kind", "transport"], "on --kind transport: no 'auto' choice of this kind reads a light"),
+    (["--energy", "0.9"], WAVELET4, "no effect: no 'auto' choice in this run; accepted: --res auto"),
+    (["--energy", "0.9"], DIFFUSE2, "accepted: --bands auto with --energy"),
+    (["--energy", "0.9"], ["--kind", "transport"], "on --kind transport: no 'auto' choice of this kind keeps a fraction"),
 ])
-def test_precompute_refuses_a_light_nothing_reads(tmp_path, capsys, argv, flag):
+def test_precompute_refuses_an_option_nothing_reads(tmp_path, capsys, option, argv, flag):
+    """One line (status 2) naming the option, its value and what would read it; nothing written."""
     out = tmp_path / "t.prt"
     capsys.readouterr()
-    assert cli_main(["precompute", "occluder_over_plane", *argv, "--light", "sun", "--workers", "1", "--no-progress",
+    assert cli_main(["precompute", "occluder_over_plane", *argv, *option, "--workers", "1", "--no-progress",
                      "-o", str(out)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "--light 'sun' has no effect" in err[0] and flag in err[0] and "accepted:" in err[0], err
+    shown = f"{option[0]} 'sun'" if option[0] == "--light" else f"{option[0]} {option[1]}"
+    assert len(err) == 1 and f"{shown} has no effect" in err[0] and flag in err[0] and "accepted:" in err[0], err
     assert not out.exists() and not (tmp_path / "t.prt.state").exists()
 
 
@@ -75,18 +82,3 @@ def test_energy_choices_cover_every_decision_energy_changes(kind, params):
     if not used:
         assert lo == hi, (lo, hi)
     assert set(used) <= set(hi), (used, hi)
-
-
-@pytest.mark.parametrize("argv,flag", [
-    (["--kind", "wavelet", "--res", "4", "--terms", "20"], "no effect: no 'auto' choice in this run; accepted: --res auto"),
-    (["--kind", "diffuse", "--bands", "2", "--samples", "16"], "accepted: --bands auto with --energy"),
-    (["--kind", "transport"], "on --kind transport: no 'auto' choice of this kind keeps a fraction"),
-])
-def test_precompute_refuses_an_energy_nothing_keeps(tmp_path, capsys, argv, flag):
-    out = tmp_path / "t.prt"
-    capsys.readouterr()
-    assert cli_main(["precompute", "occluder_over_plane", *argv, "--energy", "0.9", "--workers", "1", "--no-progress",
-                     "-o", str(out)]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "--energy 0.9 has no effect" in err[0] and flag in err[0], err
-    assert not out.exists()
