@@ -337,40 +337,49 @@ class WaveletRelighter:
     BLOCK = 32  # vertices per dense block (kernels/wavelet.c BV)
     SUB = 8  # vertices per sparse block
 
-    def __init__(self, transfer, dense_min: float | None = None, tile: int | None = None, threads: int | None = None,
-                 row_min: float | None = None, layouts: str = "auto"):
+    @staticmethod
+    def _kernel_values(transfer):
+        """The kernel's values of a wavelet transfer (or of a slice of its rows: the rows are independent):
+        ``(vals, vals3 [V, CT, K] float32 the values relit with, q3 [V, CT, K] the stored values the kernel
+        reads, scale [V, CT] float32, quantised)``. ``vals`` is :func:`~prt_torch.transfer.wavelet.wavelet_values`
+        (``[V, K]`` or ``[V, 3, K]``); a transfer with one scale per vertex and Haar level is re-quantised to
+        16 bits with one scale per vertex and channel (the kernel applies one factor per vertex at the end;
+        added error per value <= max|T̂_v| / 65534), its ``vals3`` the re-quantised values."""
         from .transfer.wavelet import dequantise, quantise, wavelet_values
 
+        vals = wavelet_values(transfer)  # [V, K] or [V, 3, K] float32
+        CT = 1 if vals.ndim == 2 else vals.shape[1]
+        vals3 = vals[:, None] if CT == 1 else vals  # [V, CT, K]
+        V, K = vals3.shape[0], vals3.shape[2]
+        # the kernel's values: the stored (quantised) integers, the scale (per vertex and channel) applied at the end
+        qstore = transfer.data if CT > 1 else transfer.data[:, None]
+        quantised = qstore.dtype in (torch.int8, torch.int16)
+        sc = transfer.aux["scale"].to(torch.float32)
+        if quantised and sc.ndim == (3 if CT > 1 else 2):  # one scale per vertex and Haar level
+            q2, s2 = quantise(vals3.reshape(V * CT, K), 16)
+            qstore, scale = q2.reshape(V, CT, K), s2.reshape(V, CT)
+            vals3 = dequantise(q2, s2).reshape(V, CT, K)  # the values relit with
+        elif quantised:
+            scale = sc.reshape(V, CT)
+        else:
+            scale = torch.ones(V, CT)
+        return vals, vals3, (qstore if quantised else vals3.to(torch.float32)), scale, quantised
+
+    def __init__(self, transfer, dense_min: float | None = None, tile: int | None = None, threads: int | None = None,
+                 row_min: float | None = None, layouts: str = "auto"):
         if getattr(transfer, "kind", None) != "wavelet":
             raise ValueError(f"WaveletRelighter needs a transfer of kind 'wavelet'; got {getattr(transfer, 'kind', describe(transfer))!r}")
         if layouts not in ("auto", "both", "column"):
             raise ValueError(f"layouts={layouts!r}; accepted: 'auto' (row-major copy on first need), 'both', 'column'")
         self.layouts = layouts
-        vals = wavelet_values(transfer)  # [V, K] or [V, 3, K] float32
+        vals, vals3, q3, self.scale, quantised = self._kernel_values(transfer)
         index = transfer.aux["index"].long()
         self.transfer = transfer
-        self.CT = CT = 1 if vals.ndim == 2 else vals.shape[1]
-        vals3 = vals[:, None] if CT == 1 else vals  # [V, CT, K]
+        self.CT = CT = vals3.shape[1]
         V, K = index.shape
-        # the kernel's values: the stored (quantised) integers, the scale (per vertex and channel) applied at the end
-        qstore = transfer.data if CT > 1 else transfer.data[:, None]
-        quantised = qstore.dtype in (torch.int8, torch.int16)
-        sc = transfer.aux["scale"].to(torch.float32)
-        per_level = quantised and sc.ndim == (3 if CT > 1 else 2)
-        if quantised and per_level:
-            # one scale per vertex and Haar level: the kernel applies one factor per vertex at the end, so the values are
-            # re-quantised to 16 bits with one scale per vertex and channel (added error per value <= max|T̂_v| / 65534)
-            q2, s2 = quantise(vals3.reshape(V * CT, K), 16)
-            qstore, self.scale = q2.reshape(V, CT, K), s2.reshape(V, CT)
-            vals3 = dequantise(q2, s2).reshape(V, CT, K)  # the values relit with
-        elif quantised:
-            self.scale = sc.reshape(V, CT)
-        else:
-            self.scale = torch.ones(V, CT)
         self.V, self.K = V, K
         self.res = int(transfer.meta["res"])
         self.P = P = 6 * self.res * self.res
-        q3 = qstore if quantised else vals3.to(torch.float32)
         nzk = (q3 != 0).any(1)  # [V, K]: the vertex keeps coefficient k in some channel
         src = torch.nonzero(nzk.reshape(-1)).flatten()
         col = index.reshape(-1)[src]
@@ -485,6 +494,106 @@ class WaveletRelighter:
                  "other": nb(self.dslot, self.bcount, self._cblk, self._acc, self._wk, self._lw, self.dcol, self.cls,
                              self._mark, self._lp, self.scale, self.albedo, self.nnz, self.weights, *self._f.values())}
         parts["total"] = sum(parts.values())
+        return parts
+
+    @classmethod
+    def estimate_bytes(cls, path, layouts: str = "auto", dense_min: float | None = None, tile: int | None = None,
+                       light_channels: int = 3, chunk: int = 1 << 14, exact: bool = True) -> dict:
+        """What a relighter of the wavelet transfer file ``path`` will hold, without building it: the layout
+        arithmetic of ``__init__`` and :meth:`_build_rows` on the counts it depends on — the nonzero
+        coefficients per Haar column (dense or sparse: ``dense_min``) and the distinct (tile, column,
+        8-vertex block) triples of the sparse ones — counted in one pass over ``chunk`` rows at a time
+        (``data`` and ``aux.index`` memory-mapped, each slice through :meth:`_kernel_values`, whose rows are
+        independent: the counts are exact; it holds a ``[V, K]`` bool mask and one slice's values).
+        Returns :meth:`held_bytes`' parts after one relight by a light of ``light_channels`` channels (its
+        factor cached; ``row`` counted unless ``layouts='column'``: 'auto' builds it for the first light
+        that takes the row-major pass, e.g. every term), plus ``reference``
+        (the ``values`` float32 and ``index`` int64 copies the relighter keeps, not in :meth:`held_bytes`),
+        ``build`` (the construction's temporaries at its peak — the kernel values, the entries' row/column
+        int64 lists and ``torch.unique``'s sort of the sparse entries' keys, about 40–90 B per kept
+        coefficient — a count of ``__init__``'s live tensors, checked against a measured peak in
+        tests/test_relight_wavelet_plan.py) and the counts ``V, K, CT, P, E`` (nonzero entries), ``Es``
+        (sparse entries), ``Pd``, ``NB``. ``exact=False`` reads the header alone and returns an upper bound
+        of every part (every coefficient kept, each in a dense column as far as ``dense_min`` allows and in
+        a sparse block of its own; ``'exact': False``): what ``prt relight`` checks first, counting only
+        when the bound does not fit its budget."""
+        from . import io
+
+        hd = io.describe(path)  # the header: shapes and dtypes, nothing read
+        if hd["meta"].get("kind") != "transfer/wavelet":
+            raise ValueError(f"{str(path)!r} holds kind={hd['meta'].get('kind')!r}; accepted: a wavelet transfer (transfer/wavelet)")
+        res = int(hd["meta"]["res"])
+        P = 6 * res * res
+        V, K = (int(d) for d in hd["tensors"]["aux.index"]["shape"])
+        dshape, dtype = hd["tensors"]["data"]["shape"], hd["tensors"]["data"]["dtype"]
+        CT = 1 if len(dshape) == 2 else int(dshape[1])
+        stored = {"I8": 1, "I16": 2}.get(dtype)  # quantised values' bytes; None: float
+        # the relighter's tile (TV) and the counts, as __init__ derives them
+        half = -(-V // 2)
+        TV = int(tile) if tile is not None else min(4096, max(cls.BLOCK, -(-half // cls.BLOCK) * cls.BLOCK))
+        if not exact:  # the header's bound: b from the stored dtype (a scale per level: re-quantised to 16 bits)
+            per_level = stored is not None and len(hd["tensors"]["aux.scale"]["shape"]) == (3 if CT > 1 else 2)
+            b = 2 if per_level else (stored or 4)
+            dmin = b / (4 + b) if dense_min is None else float(dense_min)
+            E = V * K
+            Pd = min(P, E // max(math.ceil(dmin * V), 1)) if dmin <= 1 else 0
+            return cls._held_estimate(V, K, CT, P, b, TV, layouts, light_channels, E, E, Pd, E, b != stored, exact=False)
+        t, meta = io.load_mapped(path, mapped=("data", "aux.index"), expect_kind="transfer/wavelet")
+        data = t["data"]
+
+        class _Rows:  # a slice of the file's rows, as _kernel_values reads a transfer
+            kind = "wavelet"
+
+            def __init__(self, a, b):
+                self.data, self.meta = data[a:b], meta
+                self.aux = {"index": t["aux.index"][a:b], "scale": t["aux.scale"][a:b]}
+
+        nb8 = -(-V // cls.SUB)
+        step = max(TV, chunk // TV * TV)  # whole tiles per slice: a sparse block never spans two slices
+        nnz = torch.zeros(P, dtype=torch.int64)
+        nz = torch.empty(V, K, dtype=torch.bool)  # [V, K] the vertex keeps coefficient k in some channel (1 B each)
+        b = 4
+        for a in range(0, V, step):
+            _, _, q3, _, _ = cls._kernel_values(_Rows(a, min(V, a + step)))
+            b = q3.element_size()
+            nz[a:a + step] = (q3 != 0).any(1)
+            nnz += torch.bincount(t["aux.index"][a:a + step].long()[nz[a:a + step]], minlength=P)
+        dmin = b / (4 + b) if dense_min is None else float(dense_min)
+        is_dense = nnz >= max(dmin * V, 1)
+        Pd, E = int(is_dense.sum()), int(nnz.sum())
+        NB = 0
+        for a in range(0, V, step):
+            idx = t["aux.index"][a:a + step].long()
+            keep = nz[a:a + step] & ~is_dense[idx]
+            row = torch.nonzero(keep)[:, 0] + a
+            NB += int(torch.unique(((row // TV) * P + idx[keep]) * nb8 + row // cls.SUB).numel())
+        Es = E - int(nnz[is_dense].sum())
+        return cls._held_estimate(V, K, CT, P, b, TV, layouts, light_channels, E, Es, Pd, NB, b != stored)
+
+    @classmethod
+    def _held_estimate(cls, V, K, CT, P, b, TV, layouts, light_channels, E, Es, Pd, NB, requant, exact=True) -> dict:
+        """:meth:`estimate_bytes`' arithmetic from the counts (``b`` the kernel values' bytes, ``TV`` the tile,
+        ``requant``: the kernel's values are not the stored ones — re-quantised to 16 bits, or float)."""
+        NT, nb = -(-V // TV), -(-V // cls.BLOCK)
+        MT = max(1, min(NT, os.cpu_count() or 1))
+        CO = max(light_channels, CT)
+        blk = NB * CT * cls.SUB * b
+        parts = {"dense": nb * max(Pd, 1) * CT * cls.BLOCK * b,
+                 "column": blk + 4 * NB + 4 * NT * (P + 1) + 8 * NT,
+                 "row": 0 if layouts == "column" else (4 * nb + 1) * 8 + 4 * NB + blk,
+                 # dslot, _cblk, nnz int32; bcount [NT, P] int32; _acc; _wk int64; _lw, _lp [P, 4] float32; dcol int64;
+                 # cls, _mark uint8; scale [V, CT], albedo [V, 3], the cached factor [V, CO] float32; weights float64
+                 "other": 12 * P + 4 * NT * P + MT * (TV // cls.SUB) * 4 * cls.SUB * 4 + 8 * P + 32 * P + 8 * Pd + 2 * P
+                 + 4 * V * CT + 12 * V + 4 * V * CO + 8 * P}
+        parts["total"] = sum(parts.values())
+        parts["reference"] = 4 * V * CT * K + 8 * V * K  # values (float32) and index (int64), kept for the torch path
+        # __init__'s peak, at torch.unique of the sparse entries' keys (held: the transfer, 'reference'): the kernel
+        # values (the stored values and the file's float32 values when re-quantised), the [V, K] keep mask, the entries'
+        # source/column/row int64 lists and stored values, the dense flags, the dense entries' rows (int64); the sparse
+        # entries' row, column, values, key and unique's sorted copy, permutation and inverse (int64)
+        parts["build"] = (V * CT * K * (b + (4 if requant else 0)) + V * K + E * (24 + CT * b + 1) + 8 * (E - Es)
+                          + Es * (16 + CT * b + 8 + 24))
+        parts.update(V=V, K=K, CT=CT, P=P, E=E, Es=Es, Pd=Pd, NB=NB, exact=exact)
         return parts
 
     def bytes_read(self, light_idx: torch.Tensor) -> int:

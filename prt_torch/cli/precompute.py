@@ -84,11 +84,12 @@ def register(subparsers) -> None:
     g = p.add_argument_group("automatic choices ('auto' for --bands, --bands-out, --tents; wavelet: --res)")
     g.add_argument("--energy", type=float, default=None,
                    help="fraction of the reflected energy an 'auto' choice keeps, in (0, 1] (default 0.99); wavelet "
-                        "--res auto: of the lights' Haar energy")
+                        "--res auto: of the lights' Haar energy; refused where no 'auto' choice keeps it")
     g.add_argument("--light", action="append", default=None, metavar="SPEC",
                    help="a light of the scene (built-in name, file or analytic spec), repeatable: 'auto' bands keep "
                         "the energy of these lights through the BRDF lobe (default: a flat light spectrum); wavelet "
-                        "--res auto: the smallest cube keeping their energy (default without: R = 32)")
+                        "--res auto: the smallest cube keeping their energy (default without: R = 32); refused where no "
+                        "'auto' choice reads it (an explicit --bands / --res)")
     g = p.add_argument_group("transfer parameters (default: the kind's)")
     for flag, (a, used_by) in _kind_args().items():
         defaults = {k: get_kind(k).defaults()[a.param] for k in used_by}
@@ -197,6 +198,10 @@ def _run(args, executor) -> int:
             check_int(opt, v, 1)
     params = params_from_args(args.kind, args)
     kind.validate(params, where=f"--kind {args.kind}")
+    if args.light:
+        _check_lights_used(kind, params, args.light)
+    if args.energy is not None:
+        _check_energy_used(kind, params, args.energy)
     out = Path(args.output)
     from ..io import check_outputs
 
@@ -269,6 +274,51 @@ def _run(args, executor) -> int:
           f"({m.get('shadow_decision', '')}; bounces used {m.get('bounces_used', m.get('bounces', 0))}; "
           f"{ray_summary(m)} in {m.get('seconds', 0):.1f} s)", file=sys.stderr)
     return 0
+
+
+def _check_lights_used(kind, params: dict, lights: list[str]) -> None:
+    """Refuse ``--light`` when no 'auto' choice of this run reads it (:func:`prt_torch.transfer.auto.light_choices`:
+    the lights are used by ``--res auto`` of the wavelet kind and ``--bands auto`` of the SH kinds, nothing
+    else): one line naming the light and what would use it, before any work (as ``prt relight --selection``
+    on an SH transfer)."""
+    from ..transfer.auto import light_choices
+
+    if light_choices(kind.name, params):
+        return
+    param = "res" if kind.name == "wavelet" else "bands"
+    flag = f"--{param}"
+    try:
+        usable = param in kind.constraints and bool(light_choices(kind.name, kind.validate({param: "auto"})))
+    except (ValueError, TypeError):  # e.g. subsurface: bands is a number, never 'auto'
+        usable = False
+    if not usable:
+        raise ValueError(f"--light {lights[0]!r} has no effect on --kind {kind.name}: no 'auto' choice of this kind reads a "
+                         "light; accepted: no --light")
+    given = params.get(param)
+    now = f"{flag} {given}" if given is not None else f"the default {flag} {kind.defaults()[param]}"
+    raise ValueError(f"--light {lights[0]!r} has no effect with {now}: --kind {kind.name} reads the lights only to choose "
+                     f"{flag} auto; accepted: {flag} auto with --light, or no --light")
+
+
+def _check_energy_used(kind, params: dict, energy: float) -> None:
+    """Refuse ``--energy`` when no 'auto' choice of this run keeps it (:func:`prt_torch.transfer.auto.energy_choices`),
+    one line naming the kind's options that take 'auto' with it."""
+    from ..transfer.auto import energy_choices
+
+    if energy_choices(kind.name, params):
+        return
+    flags = []
+    for a in kind.args:
+        try:
+            if energy_choices(kind.name, kind.validate({a.param: "auto"})):
+                flags.append(a.flag)
+        except (ValueError, TypeError):
+            pass
+    if not flags:
+        raise ValueError(f"--energy {energy:g} has no effect on --kind {kind.name}: no 'auto' choice of this kind keeps a "
+                         "fraction of the energy; accepted: no --energy")
+    raise ValueError(f"--energy {energy:g} has no effect: no 'auto' choice in this run; accepted: "
+                     f"{' / '.join(f'{f} auto' for f in flags)} with --energy, or no --energy")
 
 
 def _print_auto(decisions: dict) -> None:

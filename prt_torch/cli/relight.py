@@ -241,10 +241,10 @@ def plan(args) -> dict:
     a wavelet transfer's coefficients and transport tables are loaded whole), *relight* (one chunk's
     rows, view weights and output; a codec, wavelet or table: the whole ``[V, 3]`` result and its
     work), *output* (``.npy``: written chunk by chunk through a file mapping, not held; ``.ply``: the
-    colours and the trimesh mesh whole). Peak = the sum × ``transfer.estimate.ALLOCATOR_SLACK``."""
+    colours and the trimesh mesh whole). Peak = the sum × ``transfer.estimate.ALLOCATOR_SLACK``. A wavelet
+    transfer: :func:`_wavelet_plan` (*held* and *build* stages besides; a dry run reads the file's coefficients,
+    mapped, to count them)."""
     from .. import io
-    from ..transfer.estimate import ALLOCATOR_SLACK
-    from ..transfer.glossy import memory_budget
 
     fb = io.format_bytes
     src = Path(args.transfer)
@@ -278,22 +278,60 @@ def plan(args) -> dict:
             inp, note = mesh + scene + codes, f"mesh {fb(mesh)} + frames {fb(scene)}, codes {fb(codes)}; the source's data mapped, not read"
             work, wnote = V * 3 * 4 * 3, "the whole [V, 3] result at once (a codec relights every point in one call)"
         elif wavelet:
-            inp, note = mesh + 2 * data, f"mesh {fb(mesh)}, coefficients {fb(data)} loaded whole (and the relighter's copy)"
-            work, wnote = V * 3 * 4 * 3, "the whole [V, 3] result at once"
+            return _wavelet_plan(args, V, mesh, data)
         else:
             k = min(V, CHUNK_VERTICES)
             inp, note = mesh + scene, f"mesh {fb(mesh)} + frames {fb(scene)}; the data ({fb(data)}) memory-mapped, read by chunks"
             work, wnote = k * (2 * row + 200 + 12), f"one chunk of {k} vertices (rows, view weights, output)"
         stages = [{"stage": "input", "bytes": inp, "note": note}, {"stage": "relight", "bytes": work, "note": wnote}]
         streamed = not codes and not wavelet
+    return _finish_plan(args, V, kind, stages, streamed)
+
+
+def _finish_plan(args, V: int, kind: str, stages: list, streamed: bool, how: str = "chunk by chunk ") -> dict:
+    """:func:`plan`'s *output* stage appended to ``stages``, the budget and the peak (the sum × ALLOCATOR_SLACK)."""
+    from .. import io
+    from ..transfer.estimate import ALLOCATOR_SLACK
+    from ..transfer.glossy import memory_budget
+
+    fb = io.format_bytes
     if Path(args.output).suffix.lower() == ".npy":
-        stages.append({"stage": "output", "bytes": 0, "note": f"{fb(V * 12)} .npy written chunk by chunk through a file "
+        stages.append({"stage": "output", "bytes": 0, "note": f"{fb(V * 12)} .npy written {how}through a file "
                                                             "mapping (a .partial renamed at the end), not held"})
     else:
         stages.append({"stage": "output", "bytes": V * 64, "note": f".ply: colours and the mesh for trimesh, whole ({fb(V * 64)})"})
     budget = memory_budget(None if args.memory_limit is None else int(args.memory_limit * (1 << 30)))
     peak = int(ALLOCATOR_SLACK * sum(st["bytes"] for st in stages))
     return {"V": V, "kind": kind, "stages": stages, "peak": peak, "budget": budget, "streamed": streamed}
+
+
+def _wavelet_plan(args, V: int, mesh: int, data: int, exact: bool | None = None) -> dict:
+    """:func:`plan` of a wavelet transfer: *input* (the mesh and the file's coefficients, loaded whole),
+    *held* (:meth:`~prt_torch.relight.WaveletRelighter.estimate_bytes`: its kernel layouts — dense
+    columns, column-major blocks, the row-major copy 'auto' builds for a light that takes that pass — and
+    tables, as :meth:`~prt_torch.relight.WaveletRelighter.held_bytes` will report them, plus its float32
+    values and int64 index copies), *build* (its construction's temporaries), *relight* (the whole
+    ``[V, 3]`` result), *output*. ``exact`` None: counted from the file for a dry run; otherwise the header's
+    bound first, counted only when that bound does not fit the budget (a run that fits reads nothing here)."""
+    from .. import io
+    from ..relight import WaveletRelighter
+
+    fb = io.format_bytes
+    if exact is None:
+        exact = bool(getattr(args, "dry_run", False))
+    e = WaveletRelighter.estimate_bytes(args.transfer, exact=exact)
+    lay = (f"dense {fb(e['dense'])}, column-major {fb(e['column'])}, row-major {fb(e['row'])} (built on first need), "
+           f"tables {fb(e['other'])}: {e['total'] / max(V, 1):.0f} B/vertex{'' if exact else ' at most (header bound)'}")
+    stages = [{"stage": "input", "bytes": mesh + data, "note": f"mesh {fb(mesh)}, coefficients {fb(data)} loaded whole"},
+              {"stage": "held", "bytes": e["total"] + e["reference"],
+               "note": f"{lay}; its values and index copies {fb(e['reference'])}"},
+              {"stage": "build", "bytes": e["build"], "note": f"the relighter's construction temporaries ({e['E']} kept "
+                                                             "coefficients: keys, sorts), freed before the relight"},
+              {"stage": "relight", "bytes": V * 3 * 4 * 3, "note": "the whole [V, 3] result at once"}]
+    pl = _finish_plan(args, V, "transfer/wavelet", stages, False, how="")
+    if pl["peak"] > pl["budget"] and not exact:  # the bound does not fit: count what the relighter will really hold
+        return _wavelet_plan(args, V, mesh, data, exact=True)
+    return dict(pl, relighter=e)
 
 
 def json_load(path):

@@ -34,7 +34,8 @@ from ..brdf import BRDF, Lambertian
 from ..sh import band_factor, clamped_cosine, hemisphere_gram, phong
 from .tents import MAX_TENTS, error_matrix
 
-__all__ = ["AUTO", "DEFAULT_ENERGY", "lobe_filter", "light_spectrum", "choose_bands", "choose_tents", "choose_haar_res", "resolve_auto"]
+__all__ = ["AUTO", "DEFAULT_ENERGY", "lobe_filter", "light_spectrum", "choose_bands", "choose_tents", "choose_haar_res", "resolve_auto",
+           "light_choices", "energy_choices"]
 
 AUTO = "auto"
 DEFAULT_ENERGY = 0.99
@@ -164,6 +165,27 @@ def choose_haar_res(lights: list | None, energy: float, max_res: int = AUTO_HAAR
     return max_res, float(cum[top]), (f"R={max_res}, the largest res: auto chooses, keeps {float(cum[top]):.4f} < {energy:g} of "
                                       f"the energy of {len(lights)} light(s) (each normalised, measured at R={r}): sharper "
                                       "than the cube resolves; pass --res 128 for more")
+
+
+def light_choices(kind: str, params: dict[str, Any]) -> list[str]:
+    """The parameters of ``params`` (validated, the kind's defaults not filled in) whose ``'auto'``
+    choice in :func:`resolve_auto` reads the lights: a wavelet transfer's ``res`` (the lights' Haar
+    energy, :func:`choose_haar_res`), an SH kind's ``bands`` (the light spectrum × the lobe,
+    :func:`choose_bands`). ``bands_out`` and ``M`` come from the lobe alone and the transport kind's
+    ``res`` from the BRDF, so an empty list means the lights change nothing (``prt precompute``
+    refuses ``--light`` then)."""
+    if kind == "wavelet":
+        return ["res"] if params.get("res") == AUTO else []
+    return ["bands"] if params.get("bands") == AUTO else []
+
+
+def energy_choices(kind: str, params: dict[str, Any]) -> list[str]:
+    """The parameters of ``params`` whose ``'auto'`` choice in :func:`resolve_auto` keeps the fraction
+    ``energy``: ``bands``, ``bands_out``, ``M`` and a wavelet transfer's ``res`` (the transport kind's
+    ``res: auto`` comes from the BRDF's narrowest lobe alone). Empty: ``energy`` changes nothing
+    (``prt precompute`` refuses ``--energy`` then)."""
+    names = ("bands", "bands_out", "M") + (("res",) if kind == "wavelet" else ())
+    return [n for n in names if params.get(n) == AUTO]
 
 
 def resolve_auto(kind: str, params: dict[str, Any], lights: list[torch.Tensor] | None, brdf: BRDF | None,
