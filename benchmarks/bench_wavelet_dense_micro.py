@@ -162,6 +162,18 @@ double clock_ghz(void) {
 """
 
 
+def blocker_dense() -> tuple["relight.WaveletRelighter", int, int, torch.Tensor]:
+    """The micro-benchmarks' layout: the blocker scene (occluder_over_plane, small) at R = 32, K = 256, 16-bit,
+    its one-thread column-major relighter ``rl``, its ``nb`` 32-vertex blocks and ``Pd`` dense columns, and the
+    dense values ``d16`` int16 [nb, Pd, 32]."""
+    mesh = builtin("occluder_over_plane", "small")
+    tr = precompute_wavelet(mesh, 32, 256, BITS, shadows="always", run=RunOptions(workers=1))
+    rl = relight.WaveletRelighter(tr, threads=1, layouts="column")
+    assert rl.CT == 1 and rl.dense.dtype == torch.int16
+    nb, Pd = rl.dense.shape[0], rl.dense.shape[1]
+    return rl, nb, Pd, rl.dense.reshape(nb, Pd, 32)
+
+
 def dense_terms(rl: "relight.WaveletRelighter", li: torch.Tensor, lv: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """A light's dense terms as the kernel lists them: ``ds`` int64 [nd] their dense slots in slot order and
     ``lw`` float32 [nd, 4] their light (channels 0..C-1, the rest zero), from the light's Haar terms ``li``
@@ -187,12 +199,7 @@ def main() -> None:
     i64, vp = ctypes.c_int64, ctypes.c_void_p
     lib.dense_pass.argtypes = [vp, i64, vp, i64, vp, i64, i64, vp, i64]
     lib.clock_ghz.restype = ctypes.c_double
-    mesh = builtin("occluder_over_plane", "small")
-    tr = precompute_wavelet(mesh, 32, 256, BITS, shadows="always", run=RunOptions(workers=1))
-    rl = relight.WaveletRelighter(tr, threads=1, layouts="column")
-    assert rl.CT == 1 and rl.dense.dtype == torch.int16
-    nb, Pd = rl.dense.shape[0], rl.dense.shape[1]
-    d16 = rl.dense.reshape(nb, Pd, 32)
+    rl, nb, Pd, d16 = blocker_dense()
     # shifts: lane i of 32-bit vector q = (vertex 16q + i) | (vertex 16q + 8 + i) << 16
     perm = torch.tensor([16 * q + h * 8 + i for q in range(2) for i in range(8) for h in range(2)])
     dsa = d16[:, :, perm].contiguous()

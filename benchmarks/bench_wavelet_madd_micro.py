@@ -58,14 +58,10 @@ import torch  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_wavelet import BITS, LIGHTS, OUT  # noqa: E402
 from bench_wavelet_dense_micro import SRC as DENSE_SRC  # noqa: E402
-from bench_wavelet_dense_micro import dense_terms  # noqa: E402
+from bench_wavelet_dense_micro import blocker_dense, dense_terms  # noqa: E402
 
-from prt_torch import relight  # noqa: E402
 from prt_torch._native import compile_library  # noqa: E402
 from prt_torch.harness.timing import machine_info, measure_paired  # noqa: E402
-from prt_torch.scene import builtin  # noqa: E402
-from prt_torch.transfer import RunOptions  # noqa: E402
-from prt_torch.transfer.wavelet import precompute_wavelet  # noqa: E402
 
 # the dense micro-benchmark's source (C_PRELUDE, its float kernel form as dense_pass mode 0, clock_ghz) and the madd loop
 SRC = DENSE_SRC + r"""
@@ -469,12 +465,7 @@ def main() -> None:
     lib = build_library()
     if lib is None:
         raise SystemExit("bench_wavelet_madd_micro: no compiler")
-    mesh = builtin("occluder_over_plane", "small")
-    tr = precompute_wavelet(mesh, 32, 256, BITS, shadows="always", run=RunOptions(workers=1))
-    rl = relight.WaveletRelighter(tr, threads=1, layouts="column")
-    assert rl.CT == 1 and rl.dense.dtype == torch.int16
-    nb, Pd = rl.dense.shape[0], rl.dense.shape[1]
-    d16 = rl.dense.reshape(nb, Pd, 32)
+    rl, nb, Pd, d16 = blocker_dense()
     tmax = d16.abs().amax(dim=(0, 2)).to(torch.int64)  # [Pd] each dense column's largest stored magnitude
     assert int(d16.abs().max()) <= 32767 and int(d16.min()) >= -32767, "stored values outside +-32767"
     pf_libs = {pf: float_pf_library(pf) for pf in args.pf}
