@@ -288,6 +288,17 @@ def wavelet_dense(values: torch.Tensor, index: torch.Tensor, light_idx: torch.Te
     return (g * values[None]).sum(-1).T.contiguous()
 
 
+class _Rows:
+    """Rows ``a:b`` of a wavelet transfer's ``data``, ``aux['index']``, ``aux['scale']`` (tensors or memory maps),
+    as :meth:`WaveletRelighter._kernel_values` reads a transfer (its rows are independent)."""
+
+    kind = "wavelet"
+
+    def __init__(self, data, meta: dict, aux: dict, a: int, b: int):
+        self.data, self.meta = data[a:b], meta
+        self.aux = {"index": aux["index"][a:b], "scale": aux["scale"][a:b]}
+
+
 class WaveletRelighter:
     """Sparse light × sparse transfer (Ng 2003 §6), the all-frequency relighting of a wavelet
     transfer (:mod:`prt_torch.transfer.wavelet`), grey (``data [V, K]``, CT = 1) or coloured
@@ -365,6 +376,61 @@ class WaveletRelighter:
             scale = torch.ones(V, CT)
         return vals, vals3, (qstore if quantised else vals3.to(torch.float32)), scale, quantised
 
+    #: the construction's chunk: rows whose kernel values take about this many bytes (×~40 of temporaries
+    #: while counted and placed, ~16 MiB at 16-bit values: the construction's peak above what it keeps)
+    BUILD_CHUNK_BYTES = 1 << 19
+
+    @classmethod
+    def _build_rows_per_chunk(cls, K: int, CT: int) -> int:
+        """Rows per construction chunk: whole 32-vertex blocks (so whole 8-vertex sparse blocks) of about
+        :attr:`BUILD_CHUNK_BYTES` of 16-bit kernel values (``K·CT·2`` bytes per row), at least one block."""
+        return max(cls.BLOCK, cls.BUILD_CHUNK_BYTES // max(2 * K * CT, 1) // cls.BLOCK * cls.BLOCK)
+
+    @classmethod
+    def _tile(cls, V: int, tile: int | None) -> int:
+        """The sparse blocks' tile (vertices): ``tile``, or half the vertices rounded up to 32, at most 4096."""
+        half = -(-V // 2)
+        return int(tile) if tile is not None else min(4096, max(cls.BLOCK, -(-half // cls.BLOCK) * cls.BLOCK))
+
+    @classmethod
+    def _count_chunk(cls, rows, nnz: torch.Tensor, weights: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Construction pass 1 over a slice of rows (``_Rows``): its kernel values (:meth:`_kernel_values`),
+        the nonzero count per Haar column added to ``nnz [P]`` int64 and Σ over its entries of mean_c |T̂|
+        to ``weights [P]`` float64 (in place, entries in row-major order: the same sums as one pass over all
+        rows). → ``(q3 [k, CT, K]`` the stored values the kernel reads, ``scale [k, CT]`` float32)."""
+        _, vals3, q3, scale, _ = cls._kernel_values(rows)
+        src = torch.nonzero((q3 != 0).any(1).reshape(-1)).flatten()  # the entries some channel keeps
+        col = rows.aux["index"].reshape(-1)[src].long()
+        nnz += torch.bincount(col, minlength=nnz.numel())
+        weights.index_add_(0, col, vals3.abs().mean(1).reshape(-1)[src].to(torch.float64))
+        return q3, scale
+
+    def _place_chunk(self, q3: torch.Tensor, index: torch.Tensor, a: int, is_dense: torch.Tensor
+                     ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Construction pass 2 over rows ``a:a+k`` (``q3 [k, CT, K]`` their kernel values, ``index [k, K]``):
+        the dense columns' entries written into :attr:`dense`, the sparse ones gathered into their 8-vertex
+        blocks. → ``(key [nb] int64`` the blocks' sorted keys (tile, column, block), ``bvals [nb, CT, 8]``)."""
+        k, CT, K = q3.shape
+        src = torch.nonzero((q3 != 0).any(1).reshape(-1)).flatten()
+        col = index.reshape(-1)[src].long()
+        row = src // K + a
+        qk = q3.permute(0, 2, 1).reshape(k * K, CT)[src]  # [E, CT] each entry's stored values
+        del src
+        in_dense = is_dense[col]
+        dv = row[in_dense]
+        self.dense[dv // self.BLOCK, self.dslot[col[in_dense]], :, dv % self.BLOCK] = qk[in_dense]
+        del dv
+        out = ~in_dense
+        sr, sc_, sv = row[out], col[out], qk[out]
+        del row, col, qk, in_dense, out
+        nb8 = -(-self.V // self.SUB)
+        key = ((sr // self.TV) * self.P + sc_) * nb8 + sr // self.SUB
+        ukey, inv = torch.unique(key, sorted=True, return_inverse=True)
+        del key, sc_
+        bvals = torch.zeros(ukey.numel(), CT, self.SUB, dtype=q3.dtype)
+        bvals[inv, :, sr % self.SUB] = sv
+        return ukey, bvals
+
     def __init__(self, transfer, dense_min: float | None = None, tile: int | None = None, threads: int | None = None,
                  row_min: float | None = None, layouts: str = "auto"):
         if getattr(transfer, "kind", None) != "wavelet":
@@ -372,58 +438,68 @@ class WaveletRelighter:
         if layouts not in ("auto", "both", "column"):
             raise ValueError(f"layouts={layouts!r}; accepted: 'auto' (row-major copy on first need), 'both', 'column'")
         self.layouts = layouts
-        vals, vals3, q3, self.scale, quantised = self._kernel_values(transfer)
-        index = transfer.aux["index"].long()
         self.transfer = transfer
-        self.CT = CT = vals3.shape[1]
-        V, K = index.shape
+        idx_all = transfer.aux["index"]
+        self.CT = CT = 1 if transfer.data.ndim == 2 else int(transfer.data.shape[1])
+        V, K = idx_all.shape
         self.V, self.K = V, K
         self.res = int(transfer.meta["res"])
         self.P = P = 6 * self.res * self.res
-        nzk = (q3 != 0).any(1)  # [V, K]: the vertex keeps coefficient k in some channel
-        src = torch.nonzero(nzk.reshape(-1)).flatten()
-        col = index.reshape(-1)[src]
-        row = src // K
-        self.nnz = torch.bincount(col, minlength=P).to(torch.int32)  # [P] nonzero coefficients per column (≤ V < 2^31)
-        self.weights = torch.zeros(P, dtype=torch.float64).index_add_(
-            0, col, vals3.abs().mean(1).reshape(-1)[src].to(torch.float64)) / max(V, 1)
+        # built in chunks of rows (each slice's kernel values, entries and keys freed before the next: the peak is the
+        # layout plus one chunk's temporaries, measured in reports/benchmarks/wavelet_build.md); pass 1: the kernel's
+        # values, the nonzero count and mean |T̂| per column (dense or sparse needs every row's count)
+        step = self._build_rows_per_chunk(K, CT)
+        nnz = torch.zeros(P, dtype=torch.int64)
+        self.weights = torch.zeros(P, dtype=torch.float64)
+        qs, scales = [], []
+        for a in range(0, V, step):
+            q3c, scc = self._count_chunk(_Rows(transfer.data, transfer.meta, transfer.aux, a, a + step), nnz, self.weights)
+            qs.append(q3c), scales.append(scc)
+        self.weights /= max(V, 1)
+        self.scale = scales[0] if len(scales) == 1 else torch.cat(scales)
+        del scales
+        self.nnz = nnz.to(torch.int32)  # [P] nonzero coefficients per column (≤ V < 2^31)
         self.albedo = transfer.mesh.albedo.to(torch.float32)
         if transfer.meta.get("albedo_folded") or CT > 1:
             self.albedo = torch.ones_like(self.albedo)
-        self.values = vals if CT > 1 else vals3[:, 0]
-        self.index = index
-        qk = q3.permute(0, 2, 1).reshape(V * K, CT)[src]  # [E, CT] each entry's stored values
-        b = q3.element_size()
+        dtype = qs[0].dtype if qs else torch.float32
+        b = dtype.itemsize
         self.dense_min = b / (4 + b) if dense_min is None else float(dense_min)
         is_dense = self.nnz >= max(self.dense_min * V, 1)
         self.dslot = torch.full((P,), -1, dtype=torch.int32)  # [P] the column's dense slot or -1 (int32: Pd ≤ P = 6R²)
         dcols = torch.nonzero(is_dense).flatten()
         self.dslot[dcols] = torch.arange(dcols.numel(), dtype=torch.int32)
         self.Pd = Pd = int(dcols.numel())
-        in_dense = is_dense[col]
         nb = -(-V // self.BLOCK)
-        dense = torch.zeros(nb, max(Pd, 1), CT, self.BLOCK, dtype=q3.dtype)
-        dv = row[in_dense]
-        dense[dv // self.BLOCK, self.dslot[col[in_dense]], :, dv % self.BLOCK] = qk[in_dense]
-        self.dense = dense.contiguous()
+        self.dense = torch.zeros(nb, max(Pd, 1), CT, self.BLOCK, dtype=dtype)
         # block-sparse columns, tile-major: (tile, column, 8-vertex block) ascending
         # default: two tiles (one per thread at two) of at most 4096 vertices (a tile's scratch, 64 KB, in L2): every
         # (tile, sparse term) pair costs a pointer pair and a loop exit, measured at ~40% of the sparse part's time with
         # four tiles on the 2251-vertex blocker scene (reports/benchmarks/wavelet.md)
-        half = -(-V // 2)
-        TV = int(tile) if tile is not None else min(4096, max(self.BLOCK, -(-half // self.BLOCK) * self.BLOCK))
+        TV = self._tile(V, tile)
         if TV % self.BLOCK or TV < self.BLOCK:
             raise ValueError(f"tile={TV}; accepted: a positive multiple of {self.BLOCK}")
         self.TV, self.NT = TV, -(-V // TV)
-        nb8 = -(-V // self.SUB)
-        sr, sc_, sv = row[~in_dense], col[~in_dense], qk[~in_dense]
-        key = ((sr // TV) * P + sc_) * nb8 + sr // self.SUB
-        ukey, inv = torch.unique(key, sorted=True, return_inverse=True)
-        NB = int(ukey.numel())
-        bvals = torch.zeros(NB, CT, self.SUB, dtype=q3.dtype)
-        bvals[inv, :, sr % self.SUB] = sv
+        # pass 2: each chunk's entries into the dense columns and its sparse blocks (chunks of whole 8-vertex blocks:
+        # a block lies in one chunk; the chunks' sorted keys merged by one sort of the blocks' keys)
+        keys, bvs = [], []
+        for i, a in enumerate(range(0, V, step)):
+            k, bv = self._place_chunk(qs[i], idx_all[a:a + step], a, is_dense)
+            qs[i] = None  # the chunk's kernel values: dead once placed
+            keys.append(k), bvs.append(bv)
+        del qs
+        ukey = keys[0] if len(keys) == 1 else torch.cat(keys)
+        bvals = bvs[0] if len(bvs) == 1 else torch.cat(bvs)
+        del keys, bvs
+        if len(range(0, V, step)) > 1:
+            ukey, order = torch.sort(ukey)
+            bvals = bvals[order]
+            del order
         self.bvals = bvals
+        NB = int(ukey.numel())
+        P, nb8 = self.P, -(-V // self.SUB)
         tile_b, col_b, blk_b = ukey // (P * nb8), (ukey // nb8) % P, ukey % nb8
+        del ukey
         self.bofs = ((blk_b - tile_b * (TV // self.SUB)) * (4 * self.SUB * 4)).to(torch.int32)  # 4 channels x 8 floats
         self.NB = NB
         self.rptr = self.rcol = self.rvals = None  # the row-major copy: _build_rows (layouts)
@@ -481,6 +557,28 @@ class WaveletRelighter:
         if self._native is not None:  # the layout's three fields, in place (the bound kernel keeps its address)
             self._layout[20:23] = torch.tensor([rptr.data_ptr(), rcol.data_ptr(), rvals.data_ptr()])
 
+    def reference_rows(self, a: int = 0, b: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """The kept coefficients of rows ``a:b`` as the reference paths read them (``relight.wavelet_dense``,
+        harness/trade.py's SH projection): ``(index [k, K]`` int64, ``values [k, K]`` — ``[k, CT, K]`` coloured —
+        float32, the values relit with: re-quantised as the kernel's when the transfer has a scale per Haar level;
+        a coloured transfer's are the stored values dequantised)``, derived from the stored transfer at each call
+        (not held: the relighter keeps only the kernel's layout). Rows are independent: a slice equals the
+        whole's rows."""
+        tr = self.transfer
+        b = self.V if b is None else b
+        vals, vals3, _, _, _ = self._kernel_values(_Rows(tr.data, tr.meta, tr.aux, a, b))
+        return tr.aux["index"][a:b].long(), (vals if self.CT > 1 else vals3[:, 0])
+
+    @property
+    def index(self) -> torch.Tensor:
+        """``[V, K]`` int64 every vertex's kept Haar indices (:meth:`reference_rows`; a new tensor per access)."""
+        return self.transfer.aux["index"].long()
+
+    @property
+    def values(self) -> torch.Tensor:
+        """``[V, K]`` / ``[V, CT, K]`` float32 the values relit with (:meth:`reference_rows`; a new tensor per access)."""
+        return self.reference_rows()[1]
+
     def held_bytes(self) -> dict:
         """Bytes of the kernel's arrays this relighter holds, by part: ``dense`` (the dense columns),
         ``column`` (the column-major sparse blocks: ``bvals``, ``bofs``, ``tptr``, ``tbase``), ``row`` (the
@@ -529,8 +627,7 @@ class WaveletRelighter:
         CT = 1 if len(dshape) == 2 else int(dshape[1])
         stored = {"I8": 1, "I16": 2}.get(dtype)  # quantised values' bytes; None: float
         # the relighter's tile (TV) and the counts, as __init__ derives them
-        half = -(-V // 2)
-        TV = int(tile) if tile is not None else min(4096, max(cls.BLOCK, -(-half // cls.BLOCK) * cls.BLOCK))
+        TV = cls._tile(V, tile)
         if not exact:  # the header's bound: b from the stored dtype (a scale per level: re-quantised to 16 bits)
             per_level = stored is not None and len(hd["tensors"]["aux.scale"]["shape"]) == (3 if CT > 1 else 2)
             b = 2 if per_level else (stored or 4)
@@ -539,22 +636,14 @@ class WaveletRelighter:
             Pd = min(P, E // max(math.ceil(dmin * V), 1)) if dmin <= 1 else 0
             return cls._held_estimate(V, K, CT, P, b, TV, layouts, light_channels, E, E, Pd, E, b != stored, exact=False)
         t, meta = io.load_mapped(path, mapped=("data", "aux.index"), expect_kind="transfer/wavelet")
-        data = t["data"]
-
-        class _Rows:  # a slice of the file's rows, as _kernel_values reads a transfer
-            kind = "wavelet"
-
-            def __init__(self, a, b):
-                self.data, self.meta = data[a:b], meta
-                self.aux = {"index": t["aux.index"][a:b], "scale": t["aux.scale"][a:b]}
-
+        aux = {"index": t["aux.index"], "scale": t["aux.scale"]}
         nb8 = -(-V // cls.SUB)
         step = max(TV, chunk // TV * TV)  # whole tiles per slice: a sparse block never spans two slices
         nnz = torch.zeros(P, dtype=torch.int64)
         nz = torch.empty(V, K, dtype=torch.bool)  # [V, K] the vertex keeps coefficient k in some channel (1 B each)
         b = 4
         for a in range(0, V, step):
-            _, _, q3, _, _ = cls._kernel_values(_Rows(a, min(V, a + step)))
+            _, _, q3, _, _ = cls._kernel_values(_Rows(t["data"], meta, aux, a, min(V, a + step)))
             b = q3.element_size()
             nz[a:a + step] = (q3 != 0).any(1)
             nnz += torch.bincount(t["aux.index"][a:a + step].long()[nz[a:a + step]], minlength=P)
