@@ -378,7 +378,7 @@ class WaveletRelighter:
 
     #: the construction's chunk: rows whose kernel values take about this many bytes (×~40 of temporaries
     #: while counted and placed, ~16 MiB at 16-bit values: the construction's peak above what it keeps)
-    BUILD_CHUNK_BYTES = 1 << 19
+    BUILD_CHUNK_BYTES = 1 << 17
 
     @classmethod
     def _build_rows_per_chunk(cls, K: int, CT: int) -> int:
@@ -560,14 +560,15 @@ class WaveletRelighter:
     def reference_rows(self, a: int = 0, b: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """The kept coefficients of rows ``a:b`` as the reference paths read them (``relight.wavelet_dense``,
         harness/trade.py's SH projection): ``(index [k, K]`` int64, ``values [k, K]`` — ``[k, CT, K]`` coloured —
-        float32, the values relit with: re-quantised as the kernel's when the transfer has a scale per Haar level;
-        a coloured transfer's are the stored values dequantised)``, derived from the stored transfer at each call
+        float32, the values relit with: re-quantised as the kernel's when the transfer has a scale per Haar level
+        — a coloured one's too: before mem10 its ``values`` were the stored values dequantised, up to one 16-bit
+        step of the vertex's largest value away from what the kernel relights)``, derived from the stored transfer at each call
         (not held: the relighter keeps only the kernel's layout). Rows are independent: a slice equals the
         whole's rows."""
         tr = self.transfer
         b = self.V if b is None else b
-        vals, vals3, _, _, _ = self._kernel_values(_Rows(tr.data, tr.meta, tr.aux, a, b))
-        return tr.aux["index"][a:b].long(), (vals if self.CT > 1 else vals3[:, 0])
+        _, vals3, _, _, _ = self._kernel_values(_Rows(tr.data, tr.meta, tr.aux, a, b))
+        return tr.aux["index"][a:b].long(), (vals3 if self.CT > 1 else vals3[:, 0])
 
     @property
     def index(self) -> torch.Tensor:
@@ -583,8 +584,9 @@ class WaveletRelighter:
         """Bytes of the kernel's arrays this relighter holds, by part: ``dense`` (the dense columns),
         ``column`` (the column-major sparse blocks: ``bvals``, ``bofs``, ``tptr``, ``tbase``), ``row`` (the
         row-major copy, 0 while not built), ``other`` (per-column tables, the factor cache and the
-        kernel's scratch), ``total``; divide by :attr:`V` for bytes per vertex. The transfer's own
-        ``values``/``index`` (kept for the torch path's reference and :meth:`light`) are not counted."""
+        kernel's scratch), ``total``; divide by :attr:`V` for bytes per vertex: everything it holds besides the
+        transfer itself (``values``/``index``, the reference paths' float32 values and int64 indices, are derived
+        from the transfer on access, :meth:`reference_rows`, not held)."""
         def nb(*ts):
             return sum(t.numel() * t.element_size() for t in ts if t is not None)
         parts = {"dense": nb(self.dense), "column": nb(self.bvals, self.bofs, self.tptr, self.tbase),
@@ -605,12 +607,11 @@ class WaveletRelighter:
         independent: the counts are exact; it holds a ``[V, K]`` bool mask and one slice's values).
         Returns :meth:`held_bytes`' parts after one relight by a light of ``light_channels`` channels (its
         factor cached; ``row`` counted unless ``layouts='column'``: 'auto' builds it for the first light
-        that takes the row-major pass, e.g. every term), plus ``reference``
-        (the ``values`` float32 and ``index`` int64 copies the relighter keeps, not in :meth:`held_bytes`),
-        ``build`` (the construction's temporaries at its peak — the kernel values, the entries' row/column
-        int64 lists and ``torch.unique``'s sort of the sparse entries' keys, about 40–90 B per kept
-        coefficient — a count of ``__init__``'s live tensors, checked against a measured peak in
-        tests/test_relight_wavelet_plan.py) and the counts ``V, K, CT, P, E`` (nonzero entries), ``Es``
+        that takes the row-major pass, e.g. every term), plus
+        ``build`` (the construction's temporaries at its peak above what it keeps — built in chunks of rows
+        (:attr:`BUILD_CHUNK_BYTES`): the re-quantised kernel values of every row, one chunk's entry lists and
+        keys, the merge of the chunks' sparse blocks; a bound from ``__init__``'s live tensors, checked against
+        a measured peak in tests/test_relight_wavelet_plan.py) and the counts ``V, K, CT, P, E`` (nonzero entries), ``Es``
         (sparse entries), ``Pd``, ``NB``. ``exact=False`` reads the header alone and returns an upper bound
         of every part (every coefficient kept, each in a dense column as far as ``dense_min`` allows and in
         a sparse block of its own; ``'exact': False``): what ``prt relight`` checks first, counting only
@@ -675,13 +676,15 @@ class WaveletRelighter:
                  "other": 12 * P + 4 * NT * P + MT * (TV // cls.SUB) * 4 * cls.SUB * 4 + 8 * P + 32 * P + 8 * Pd + 2 * P
                  + 4 * V * CT + 12 * V + 4 * V * CO + 8 * P}
         parts["total"] = sum(parts.values())
-        parts["reference"] = 4 * V * CT * K + 8 * V * K  # values (float32) and index (int64), kept for the torch path
-        # __init__'s peak, at torch.unique of the sparse entries' keys (held: the transfer, 'reference'): the kernel
-        # values (the stored values and the file's float32 values when re-quantised), the [V, K] keep mask, the entries'
-        # source/column/row int64 lists and stored values, the dense flags, the dense entries' rows (int64); the sparse
-        # entries' row, column, values, key and unique's sorted copy, permutation and inverse (int64)
-        parts["build"] = (V * CT * K * (b + (4 if requant else 0)) + V * K + E * (24 + CT * b + 1) + 8 * (E - Es)
-                          + Es * (16 + CT * b + 8 + 24))
+        # __init__'s peak above what it keeps (built in chunks of rows): either while placing the chunks — the kernel
+        # values of every row (held between the passes when re-quantised or float: a view of the stored values
+        # otherwise), one chunk's temporaries (its kernel values, re-quantisation in float64, entry lists, keys and
+        # unique's sort: a bound of ~60 B per value and 100 B per entry) and the blocks placed so far — or while the
+        # chunks' block keys are merged (the lists and their concatenation, the sort's keys and permutation, the
+        # split into tile, column and block: ~40 B per block) and the blocks re-ordered (two copies of the values)
+        rows = min(V, cls._build_rows_per_chunk(K, CT))
+        place = (V * CT * K * b if requant else 0) + rows * K * (60 * CT + 100) + 8 * NB + blk
+        parts["build"] = max(place, 40 * NB + 2 * blk)
         parts.update(V=V, K=K, CT=CT, P=P, E=E, Es=Es, Pd=Pd, NB=NB, exact=exact)
         return parts
 
