@@ -31,7 +31,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "reports" / "benchmarks"
 BEFORE = "1f32c50"  # the branch's base: the whole-transfer construction
-PAIRS = 9
+PAIRS = 21
 
 CHILD = r'''
 import json, sys, time, importlib.util

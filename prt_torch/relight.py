@@ -376,9 +376,11 @@ class WaveletRelighter:
             scale = torch.ones(V, CT)
         return vals, vals3, (qstore if quantised else vals3.to(torch.float32)), scale, quantised
 
-    #: the construction's chunk: rows whose kernel values take about this many bytes (×~40 of temporaries
-    #: while counted and placed, ~16 MiB at 16-bit values: the construction's peak above what it keeps)
-    BUILD_CHUNK_BYTES = 1 << 17
+    #: the construction's chunk: rows whose 16-bit kernel values take about this many bytes (512 rows at K = 256;
+    #: ~30x that in temporaries while counted and placed): the construction's peak above what it keeps. 256 KiB:
+    #: 4-7x less peak than the whole-transfer build and no slower (128 KiB: 9-12x less, 0.95-1.11x its CPU time;
+    #: reports/benchmarks/wavelet_build.md)
+    BUILD_CHUNK_BYTES = 1 << 18
 
     @classmethod
     def _build_rows_per_chunk(cls, K: int, CT: int) -> int:
