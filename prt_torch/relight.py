@@ -600,11 +600,12 @@ class WaveletRelighter:
 
     @classmethod
     def estimate_bytes(cls, path, layouts: str = "auto", dense_min: float | None = None, tile: int | None = None,
-                       light_channels: int = 3, chunk: int = 1 << 14, exact: bool = True) -> dict:
+                       light_channels: int = 3, chunk: int | None = None, exact: bool = True) -> dict:
         """What a relighter of the wavelet transfer file ``path`` will hold, without building it: the layout
         arithmetic of ``__init__`` and :meth:`_build_rows` on the counts it depends on — the nonzero
         coefficients per Haar column (dense or sparse: ``dense_min``) and the distinct (tile, column,
-        8-vertex block) triples of the sparse ones — counted in one pass over ``chunk`` rows at a time
+        8-vertex block) triples of the sparse ones — counted in one pass over ``chunk`` rows at a time (default: the
+        construction's chunk, :meth:`_build_rows_per_chunk`; a multiple of 8)
         (``data`` and ``aux.index`` memory-mapped, each slice through :meth:`_kernel_values`, whose rows are
         independent: the counts are exact; it holds a ``[V, K]`` bool mask and one slice's values).
         Returns :meth:`held_bytes`' parts after one relight by a light of ``light_channels`` channels (its
@@ -641,7 +642,8 @@ class WaveletRelighter:
         t, meta = io.load_mapped(path, mapped=("data", "aux.index"), expect_kind="transfer/wavelet")
         aux = {"index": t["aux.index"], "scale": t["aux.scale"]}
         nb8 = -(-V // cls.SUB)
-        step = max(TV, chunk // TV * TV)  # whole tiles per slice: a sparse block never spans two slices
+        # whole 8-vertex blocks per slice: a sparse block never spans two slices (its key names its tile and block)
+        step = cls._build_rows_per_chunk(K, CT) if chunk is None else max(cls.SUB, int(chunk) // cls.SUB * cls.SUB)
         nnz = torch.zeros(P, dtype=torch.int64)
         nz = torch.empty(V, K, dtype=torch.bool)  # [V, K] the vertex keeps coefficient k in some channel (1 B each)
         b = 4

@@ -153,3 +153,16 @@ def test_wavelet_refusal_names_what_would_help(blocker32, tmp_path, capsys):
     e = capsys.readouterr().err.strip().splitlines()
     assert len(e) == 1 and "--terms" in e[0] and "--res" in e[0] and ".npy output" not in e[0], e
     assert not out.exists()
+
+
+@pytest.mark.parametrize("chunk", [8, 24, 1000])
+def test_estimate_counts_in_any_chunk_of_whole_blocks(blocker32, chunk):
+    """``estimate_bytes`` counts in slices of whole 8-vertex blocks (not whole tiles: a block's key names its
+    tile and block, so it lies in one slice): slices of 8, 24 or 1000 rows (a multiple of 8 inside the 1152-vertex
+    tiles) count exactly what a relighter built from the file holds, part by part."""
+    r = WaveletRelighter(Transfer.load(blocker32), layouts="column")
+    li, lv, _ = r.light("studio", 50)
+    r(li, lv)
+    est = WaveletRelighter.estimate_bytes(blocker32, layouts="column", chunk=chunk)
+    assert r.TV == 1152 and {k: est[k] for k in r.held_bytes()} == r.held_bytes()
+    assert (est["NB"], est["Pd"]) == (r.NB, r.Pd)
