@@ -288,6 +288,17 @@ def wavelet_dense(values: torch.Tensor, index: torch.Tensor, light_idx: torch.Te
     return (g * values[None]).sum(-1).T.contiguous()
 
 
+class _Rows:
+    """Rows ``a:b`` of a wavelet transfer's ``data``, ``aux['index']``, ``aux['scale']`` (tensors or memory maps),
+    as :meth:`WaveletRelighter._kernel_values` reads a transfer (its rows are independent)."""
+
+    kind = "wavelet"
+
+    def __init__(self, data, meta: dict, aux: dict, a: int, b: int):
+        self.data, self.meta = data[a:b], meta
+        self.aux = {"index": aux["index"][a:b], "scale": aux["scale"][a:b]}
+
+
 class WaveletRelighter:
     """Sparse light × sparse transfer (Ng 2003 §6), the all-frequency relighting of a wavelet
     transfer (:mod:`prt_torch.transfer.wavelet`), grey (``data [V, K]``, CT = 1) or coloured
@@ -365,6 +376,63 @@ class WaveletRelighter:
             scale = torch.ones(V, CT)
         return vals, vals3, (qstore if quantised else vals3.to(torch.float32)), scale, quantised
 
+    #: the construction's chunk: rows whose 16-bit kernel values take about this many bytes (512 rows at K = 256;
+    #: ~30x that in temporaries while counted and placed): the construction's peak above what it keeps. 256 KiB:
+    #: 4-7x less peak than the whole-transfer build and no slower (128 KiB: 9-12x less, 0.95-1.11x its CPU time;
+    #: reports/benchmarks/wavelet_build.md)
+    BUILD_CHUNK_BYTES = 1 << 18
+
+    @classmethod
+    def _build_rows_per_chunk(cls, K: int, CT: int) -> int:
+        """Rows per construction chunk: whole 32-vertex blocks (so whole 8-vertex sparse blocks) of about
+        :attr:`BUILD_CHUNK_BYTES` of 16-bit kernel values (``K·CT·2`` bytes per row), at least one block."""
+        return max(cls.BLOCK, cls.BUILD_CHUNK_BYTES // max(2 * K * CT, 1) // cls.BLOCK * cls.BLOCK)
+
+    @classmethod
+    def _tile(cls, V: int, tile: int | None) -> int:
+        """The sparse blocks' tile (vertices): ``tile``, or half the vertices rounded up to 32, at most 4096."""
+        half = -(-V // 2)
+        return int(tile) if tile is not None else min(4096, max(cls.BLOCK, -(-half // cls.BLOCK) * cls.BLOCK))
+
+    @classmethod
+    def _count_chunk(cls, rows, nnz: torch.Tensor, weights: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Construction pass 1 over a slice of rows (``_Rows``): its kernel values (:meth:`_kernel_values`),
+        the nonzero count per Haar column added to ``nnz [P]`` int64 and Σ over its entries of mean_c |T̂|
+        to ``weights [P]`` float64 (in place, entries in row-major order: the same sums as one pass over all
+        rows). → ``(q3 [k, CT, K]`` the stored values the kernel reads, ``scale [k, CT]`` float32)."""
+        _, vals3, q3, scale, _ = cls._kernel_values(rows)
+        src = torch.nonzero((q3 != 0).any(1).reshape(-1)).flatten()  # the entries some channel keeps
+        col = rows.aux["index"].reshape(-1)[src].long()
+        nnz += torch.bincount(col, minlength=nnz.numel())
+        weights.index_add_(0, col, vals3.abs().mean(1).reshape(-1)[src].to(torch.float64))
+        return q3, scale
+
+    def _place_chunk(self, q3: torch.Tensor, index: torch.Tensor, a: int, is_dense: torch.Tensor
+                     ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Construction pass 2 over rows ``a:a+k`` (``q3 [k, CT, K]`` their kernel values, ``index [k, K]``):
+        the dense columns' entries written into :attr:`dense`, the sparse ones gathered into their 8-vertex
+        blocks. → ``(key [nb] int64`` the blocks' sorted keys (tile, column, block), ``bvals [nb, CT, 8]``)."""
+        k, CT, K = q3.shape
+        src = torch.nonzero((q3 != 0).any(1).reshape(-1)).flatten()
+        col = index.reshape(-1)[src].long()
+        row = src // K + a
+        qk = q3.permute(0, 2, 1).reshape(k * K, CT)[src]  # [E, CT] each entry's stored values
+        del src
+        in_dense = is_dense[col]
+        dv = row[in_dense]
+        self.dense[dv // self.BLOCK, self.dslot[col[in_dense]], :, dv % self.BLOCK] = qk[in_dense]
+        del dv
+        out = ~in_dense
+        sr, sc_, sv = row[out], col[out], qk[out]
+        del row, col, qk, in_dense, out
+        nb8 = -(-self.V // self.SUB)
+        key = ((sr // self.TV) * self.P + sc_) * nb8 + sr // self.SUB
+        ukey, inv = torch.unique(key, sorted=True, return_inverse=True)
+        del key, sc_
+        bvals = torch.zeros(ukey.numel(), CT, self.SUB, dtype=q3.dtype)
+        bvals[inv, :, sr % self.SUB] = sv
+        return ukey, bvals
+
     def __init__(self, transfer, dense_min: float | None = None, tile: int | None = None, threads: int | None = None,
                  row_min: float | None = None, layouts: str = "auto"):
         if getattr(transfer, "kind", None) != "wavelet":
@@ -372,58 +440,68 @@ class WaveletRelighter:
         if layouts not in ("auto", "both", "column"):
             raise ValueError(f"layouts={layouts!r}; accepted: 'auto' (row-major copy on first need), 'both', 'column'")
         self.layouts = layouts
-        vals, vals3, q3, self.scale, quantised = self._kernel_values(transfer)
-        index = transfer.aux["index"].long()
         self.transfer = transfer
-        self.CT = CT = vals3.shape[1]
-        V, K = index.shape
+        idx_all = transfer.aux["index"]
+        self.CT = CT = 1 if transfer.data.ndim == 2 else int(transfer.data.shape[1])
+        V, K = idx_all.shape
         self.V, self.K = V, K
         self.res = int(transfer.meta["res"])
         self.P = P = 6 * self.res * self.res
-        nzk = (q3 != 0).any(1)  # [V, K]: the vertex keeps coefficient k in some channel
-        src = torch.nonzero(nzk.reshape(-1)).flatten()
-        col = index.reshape(-1)[src]
-        row = src // K
-        self.nnz = torch.bincount(col, minlength=P).to(torch.int32)  # [P] nonzero coefficients per column (≤ V < 2^31)
-        self.weights = torch.zeros(P, dtype=torch.float64).index_add_(
-            0, col, vals3.abs().mean(1).reshape(-1)[src].to(torch.float64)) / max(V, 1)
+        # built in chunks of rows (each slice's kernel values, entries and keys freed before the next: the peak is the
+        # layout plus one chunk's temporaries, measured in reports/benchmarks/wavelet_build.md); pass 1: the kernel's
+        # values, the nonzero count and mean |T̂| per column (dense or sparse needs every row's count)
+        step = self._build_rows_per_chunk(K, CT)
+        nnz = torch.zeros(P, dtype=torch.int64)
+        self.weights = torch.zeros(P, dtype=torch.float64)
+        qs, scales = [], []
+        for a in range(0, V, step):
+            q3c, scc = self._count_chunk(_Rows(transfer.data, transfer.meta, transfer.aux, a, a + step), nnz, self.weights)
+            qs.append(q3c), scales.append(scc)
+        self.weights /= max(V, 1)
+        self.scale = scales[0] if len(scales) == 1 else torch.cat(scales)
+        del scales
+        self.nnz = nnz.to(torch.int32)  # [P] nonzero coefficients per column (≤ V < 2^31)
         self.albedo = transfer.mesh.albedo.to(torch.float32)
         if transfer.meta.get("albedo_folded") or CT > 1:
             self.albedo = torch.ones_like(self.albedo)
-        self.values = vals if CT > 1 else vals3[:, 0]
-        self.index = index
-        qk = q3.permute(0, 2, 1).reshape(V * K, CT)[src]  # [E, CT] each entry's stored values
-        b = q3.element_size()
+        dtype = qs[0].dtype if qs else torch.float32
+        b = dtype.itemsize
         self.dense_min = b / (4 + b) if dense_min is None else float(dense_min)
         is_dense = self.nnz >= max(self.dense_min * V, 1)
         self.dslot = torch.full((P,), -1, dtype=torch.int32)  # [P] the column's dense slot or -1 (int32: Pd ≤ P = 6R²)
         dcols = torch.nonzero(is_dense).flatten()
         self.dslot[dcols] = torch.arange(dcols.numel(), dtype=torch.int32)
         self.Pd = Pd = int(dcols.numel())
-        in_dense = is_dense[col]
         nb = -(-V // self.BLOCK)
-        dense = torch.zeros(nb, max(Pd, 1), CT, self.BLOCK, dtype=q3.dtype)
-        dv = row[in_dense]
-        dense[dv // self.BLOCK, self.dslot[col[in_dense]], :, dv % self.BLOCK] = qk[in_dense]
-        self.dense = dense.contiguous()
+        self.dense = torch.zeros(nb, max(Pd, 1), CT, self.BLOCK, dtype=dtype)
         # block-sparse columns, tile-major: (tile, column, 8-vertex block) ascending
         # default: two tiles (one per thread at two) of at most 4096 vertices (a tile's scratch, 64 KB, in L2): every
         # (tile, sparse term) pair costs a pointer pair and a loop exit, measured at ~40% of the sparse part's time with
         # four tiles on the 2251-vertex blocker scene (reports/benchmarks/wavelet.md)
-        half = -(-V // 2)
-        TV = int(tile) if tile is not None else min(4096, max(self.BLOCK, -(-half // self.BLOCK) * self.BLOCK))
+        TV = self._tile(V, tile)
         if TV % self.BLOCK or TV < self.BLOCK:
             raise ValueError(f"tile={TV}; accepted: a positive multiple of {self.BLOCK}")
         self.TV, self.NT = TV, -(-V // TV)
-        nb8 = -(-V // self.SUB)
-        sr, sc_, sv = row[~in_dense], col[~in_dense], qk[~in_dense]
-        key = ((sr // TV) * P + sc_) * nb8 + sr // self.SUB
-        ukey, inv = torch.unique(key, sorted=True, return_inverse=True)
-        NB = int(ukey.numel())
-        bvals = torch.zeros(NB, CT, self.SUB, dtype=q3.dtype)
-        bvals[inv, :, sr % self.SUB] = sv
+        # pass 2: each chunk's entries into the dense columns and its sparse blocks (chunks of whole 8-vertex blocks:
+        # a block lies in one chunk; the chunks' sorted keys merged by one sort of the blocks' keys)
+        keys, bvs = [], []
+        for i, a in enumerate(range(0, V, step)):
+            k, bv = self._place_chunk(qs[i], idx_all[a:a + step], a, is_dense)
+            qs[i] = None  # the chunk's kernel values: dead once placed
+            keys.append(k), bvs.append(bv)
+        del qs
+        ukey = keys[0] if len(keys) == 1 else torch.cat(keys)
+        bvals = bvs[0] if len(bvs) == 1 else torch.cat(bvs)
+        del keys, bvs
+        if len(range(0, V, step)) > 1:
+            ukey, order = torch.sort(ukey)
+            bvals = bvals[order]
+            del order
         self.bvals = bvals
+        NB = int(ukey.numel())
+        P, nb8 = self.P, -(-V // self.SUB)
         tile_b, col_b, blk_b = ukey // (P * nb8), (ukey // nb8) % P, ukey % nb8
+        del ukey
         self.bofs = ((blk_b - tile_b * (TV // self.SUB)) * (4 * self.SUB * 4)).to(torch.int32)  # 4 channels x 8 floats
         self.NB = NB
         self.rptr = self.rcol = self.rvals = None  # the row-major copy: _build_rows (layouts)
@@ -481,12 +559,36 @@ class WaveletRelighter:
         if self._native is not None:  # the layout's three fields, in place (the bound kernel keeps its address)
             self._layout[20:23] = torch.tensor([rptr.data_ptr(), rcol.data_ptr(), rvals.data_ptr()])
 
+    def reference_rows(self, a: int = 0, b: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """The kept coefficients of rows ``a:b`` as the reference paths read them (``relight.wavelet_dense``,
+        harness/trade.py's SH projection): ``(index [k, K]`` int64, ``values [k, K]`` — ``[k, CT, K]`` coloured —
+        float32, the values relit with: re-quantised as the kernel's when the transfer has a scale per Haar level
+        — a coloured one's too: before mem10 its ``values`` were the stored values dequantised, up to one 16-bit
+        step of the vertex's largest value away from what the kernel relights)``, derived from the stored transfer at each call
+        (not held: the relighter keeps only the kernel's layout). Rows are independent: a slice equals the
+        whole's rows."""
+        tr = self.transfer
+        b = self.V if b is None else b
+        _, vals3, _, _, _ = self._kernel_values(_Rows(tr.data, tr.meta, tr.aux, a, b))
+        return tr.aux["index"][a:b].long(), (vals3 if self.CT > 1 else vals3[:, 0])
+
+    @property
+    def index(self) -> torch.Tensor:
+        """``[V, K]`` int64 every vertex's kept Haar indices (:meth:`reference_rows`; a new tensor per access)."""
+        return self.transfer.aux["index"].long()
+
+    @property
+    def values(self) -> torch.Tensor:
+        """``[V, K]`` / ``[V, CT, K]`` float32 the values relit with (:meth:`reference_rows`; a new tensor per access)."""
+        return self.reference_rows()[1]
+
     def held_bytes(self) -> dict:
         """Bytes of the kernel's arrays this relighter holds, by part: ``dense`` (the dense columns),
         ``column`` (the column-major sparse blocks: ``bvals``, ``bofs``, ``tptr``, ``tbase``), ``row`` (the
         row-major copy, 0 while not built), ``other`` (per-column tables, the factor cache and the
-        kernel's scratch), ``total``; divide by :attr:`V` for bytes per vertex. The transfer's own
-        ``values``/``index`` (kept for the torch path's reference and :meth:`light`) are not counted."""
+        kernel's scratch), ``total``; divide by :attr:`V` for bytes per vertex: everything it holds besides the
+        transfer itself (``values``/``index``, the reference paths' float32 values and int64 indices, are derived
+        from the transfer on access, :meth:`reference_rows`, not held)."""
         def nb(*ts):
             return sum(t.numel() * t.element_size() for t in ts if t is not None)
         parts = {"dense": nb(self.dense), "column": nb(self.bvals, self.bofs, self.tptr, self.tbase),
@@ -498,21 +600,21 @@ class WaveletRelighter:
 
     @classmethod
     def estimate_bytes(cls, path, layouts: str = "auto", dense_min: float | None = None, tile: int | None = None,
-                       light_channels: int = 3, chunk: int = 1 << 14, exact: bool = True) -> dict:
+                       light_channels: int = 3, chunk: int | None = None, exact: bool = True) -> dict:
         """What a relighter of the wavelet transfer file ``path`` will hold, without building it: the layout
         arithmetic of ``__init__`` and :meth:`_build_rows` on the counts it depends on — the nonzero
         coefficients per Haar column (dense or sparse: ``dense_min``) and the distinct (tile, column,
-        8-vertex block) triples of the sparse ones — counted in one pass over ``chunk`` rows at a time
+        8-vertex block) triples of the sparse ones — counted in one pass over ``chunk`` rows at a time (default: the
+        construction's chunk, :meth:`_build_rows_per_chunk`; a multiple of 8)
         (``data`` and ``aux.index`` memory-mapped, each slice through :meth:`_kernel_values`, whose rows are
         independent: the counts are exact; it holds a ``[V, K]`` bool mask and one slice's values).
         Returns :meth:`held_bytes`' parts after one relight by a light of ``light_channels`` channels (its
         factor cached; ``row`` counted unless ``layouts='column'``: 'auto' builds it for the first light
-        that takes the row-major pass, e.g. every term), plus ``reference``
-        (the ``values`` float32 and ``index`` int64 copies the relighter keeps, not in :meth:`held_bytes`),
-        ``build`` (the construction's temporaries at its peak — the kernel values, the entries' row/column
-        int64 lists and ``torch.unique``'s sort of the sparse entries' keys, about 40–90 B per kept
-        coefficient — a count of ``__init__``'s live tensors, checked against a measured peak in
-        tests/test_relight_wavelet_plan.py) and the counts ``V, K, CT, P, E`` (nonzero entries), ``Es``
+        that takes the row-major pass, e.g. every term), plus
+        ``build`` (the construction's temporaries at its peak above what it keeps — built in chunks of rows
+        (:attr:`BUILD_CHUNK_BYTES`): the re-quantised kernel values of every row, one chunk's entry lists and
+        keys, the merge of the chunks' sparse blocks; a bound from ``__init__``'s live tensors, checked against
+        a measured peak in tests/test_relight_wavelet_plan.py) and the counts ``V, K, CT, P, E`` (nonzero entries), ``Es``
         (sparse entries), ``Pd``, ``NB``. ``exact=False`` reads the header alone and returns an upper bound
         of every part (every coefficient kept, each in a dense column as far as ``dense_min`` allows and in
         a sparse block of its own; ``'exact': False``): what ``prt relight`` checks first, counting only
@@ -529,8 +631,7 @@ class WaveletRelighter:
         CT = 1 if len(dshape) == 2 else int(dshape[1])
         stored = {"I8": 1, "I16": 2}.get(dtype)  # quantised values' bytes; None: float
         # the relighter's tile (TV) and the counts, as __init__ derives them
-        half = -(-V // 2)
-        TV = int(tile) if tile is not None else min(4096, max(cls.BLOCK, -(-half // cls.BLOCK) * cls.BLOCK))
+        TV = cls._tile(V, tile)
         if not exact:  # the header's bound: b from the stored dtype (a scale per level: re-quantised to 16 bits)
             per_level = stored is not None and len(hd["tensors"]["aux.scale"]["shape"]) == (3 if CT > 1 else 2)
             b = 2 if per_level else (stored or 4)
@@ -539,22 +640,15 @@ class WaveletRelighter:
             Pd = min(P, E // max(math.ceil(dmin * V), 1)) if dmin <= 1 else 0
             return cls._held_estimate(V, K, CT, P, b, TV, layouts, light_channels, E, E, Pd, E, b != stored, exact=False)
         t, meta = io.load_mapped(path, mapped=("data", "aux.index"), expect_kind="transfer/wavelet")
-        data = t["data"]
-
-        class _Rows:  # a slice of the file's rows, as _kernel_values reads a transfer
-            kind = "wavelet"
-
-            def __init__(self, a, b):
-                self.data, self.meta = data[a:b], meta
-                self.aux = {"index": t["aux.index"][a:b], "scale": t["aux.scale"][a:b]}
-
+        aux = {"index": t["aux.index"], "scale": t["aux.scale"]}
         nb8 = -(-V // cls.SUB)
-        step = max(TV, chunk // TV * TV)  # whole tiles per slice: a sparse block never spans two slices
+        # whole 8-vertex blocks per slice: a sparse block never spans two slices (its key names its tile and block)
+        step = cls._build_rows_per_chunk(K, CT) if chunk is None else max(cls.SUB, int(chunk) // cls.SUB * cls.SUB)
         nnz = torch.zeros(P, dtype=torch.int64)
         nz = torch.empty(V, K, dtype=torch.bool)  # [V, K] the vertex keeps coefficient k in some channel (1 B each)
         b = 4
         for a in range(0, V, step):
-            _, _, q3, _, _ = cls._kernel_values(_Rows(a, min(V, a + step)))
+            _, _, q3, _, _ = cls._kernel_values(_Rows(t["data"], meta, aux, a, min(V, a + step)))
             b = q3.element_size()
             nz[a:a + step] = (q3 != 0).any(1)
             nnz += torch.bincount(t["aux.index"][a:a + step].long()[nz[a:a + step]], minlength=P)
@@ -586,13 +680,15 @@ class WaveletRelighter:
                  "other": 12 * P + 4 * NT * P + MT * (TV // cls.SUB) * 4 * cls.SUB * 4 + 8 * P + 32 * P + 8 * Pd + 2 * P
                  + 4 * V * CT + 12 * V + 4 * V * CO + 8 * P}
         parts["total"] = sum(parts.values())
-        parts["reference"] = 4 * V * CT * K + 8 * V * K  # values (float32) and index (int64), kept for the torch path
-        # __init__'s peak, at torch.unique of the sparse entries' keys (held: the transfer, 'reference'): the kernel
-        # values (the stored values and the file's float32 values when re-quantised), the [V, K] keep mask, the entries'
-        # source/column/row int64 lists and stored values, the dense flags, the dense entries' rows (int64); the sparse
-        # entries' row, column, values, key and unique's sorted copy, permutation and inverse (int64)
-        parts["build"] = (V * CT * K * (b + (4 if requant else 0)) + V * K + E * (24 + CT * b + 1) + 8 * (E - Es)
-                          + Es * (16 + CT * b + 8 + 24))
+        # __init__'s peak above what it keeps (built in chunks of rows): either while placing the chunks — the kernel
+        # values of every row (held between the passes when re-quantised or float: a view of the stored values
+        # otherwise), one chunk's temporaries (its kernel values, re-quantisation in float64, entry lists, keys and
+        # unique's sort: a bound of ~60 B per value and 100 B per entry) and the blocks placed so far — or while the
+        # chunks' block keys are merged (the lists and their concatenation, the sort's keys and permutation, the
+        # split into tile, column and block: ~40 B per block) and the blocks re-ordered (two copies of the values)
+        rows = min(V, cls._build_rows_per_chunk(K, CT))
+        place = (V * CT * K * b if requant else 0) + rows * K * (60 * CT + 100) + 8 * NB + blk
+        parts["build"] = max(place, 40 * NB + 2 * blk)
         parts.update(V=V, K=K, CT=CT, P=P, E=E, Es=Es, Pd=Pd, NB=NB, exact=exact)
         return parts
 

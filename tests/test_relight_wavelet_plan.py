@@ -59,15 +59,14 @@ def test_estimate_equals_held_bytes(tmp_path, params, layouts, terms):
     assert est["CT"] == r.CT == (3 if "scene" in params else 1)
     assert {k: est[k] for k in PARTS} == held, (est, held)
     assert (held["row"] > 0) == (layouts != "column")
-    assert est["reference"] == r.values.numel() * r.values.element_size() + r.index.numel() * r.index.element_size()
     assert (est["Pd"], est["NB"], est["E"]) == (r.Pd, r.NB, int(r.nnz.sum()))
-    for k in (*PARTS, "reference", "build"):
+    for k in (*PARTS, "build"):
         assert bound[k] >= est[k], (k, bound[k], est[k])
 
 
 def test_dry_run_states_what_the_relighter_holds(blocker32, tmp_path, capsys):
-    """The dry run's *held* stage is ``held_bytes()`` (1520 B/vertex here, both layouts) plus the values and index
-    copies; a budget between the exact peak and the header's bound is counted exactly and the run proceeds; one
+    """The dry run's *held* stage is ``held_bytes()`` (1520 B/vertex here, both layouts; nothing else held
+    since mem10); a budget between the exact peak and the header's bound is counted exactly and the run proceeds; one
     below the exact peak is refused in one line naming the stages, nothing written."""
     out = tmp_path / "o.npy"
     capsys.readouterr()
@@ -77,13 +76,12 @@ def test_dry_run_states_what_the_relighter_holds(blocker32, tmp_path, capsys):
     li, lv, _ = r.light("studio")
     r(li, lv)
     held = r.held_bytes()["total"]
-    assert f": {held / r.V:.0f} B/vertex;" in err and 1400 < held / r.V < 1650, err
+    assert f": {held / r.V:.0f} B/vertex\n" in err and 1400 < held / r.V < 1650, err
     ns = dict(transfer=str(blocker32), source=None, output=str(out), memory_limit=None)
     exact = rl.plan(argparse.Namespace(**ns, dry_run=True))
     st = {s["stage"]: s["bytes"] for s in exact["stages"]}
     bound = rl._wavelet_plan(argparse.Namespace(**ns, dry_run=False), exact["V"], st["input"], 0, exact=False)
-    ref = r.values.numel() * 4 + r.index.numel() * 8
-    assert st["held"] == held + ref
+    assert st["held"] == held
     assert bound["peak"] > exact["peak"]
     mid = (exact["peak"] + bound["peak"]) / 2 / 2**30
     pl = rl.plan(argparse.Namespace(**{**ns, "memory_limit": mid}, dry_run=False))
@@ -128,4 +126,5 @@ def test_plan_peak_covers_the_measured_peak_within_2x(blocker32, tmp_path):
     assert p.returncode == 0, p.stderr[-2000:]
     r = json.loads(next(ln for ln in p.stdout.splitlines() if ln.startswith("JSON "))[5:])
     ratio = r["plan"] / r["growth"]
+    print(r, ratio)
     assert 1.0 <= ratio <= 2.0, (r, ratio)

@@ -305,14 +305,22 @@ def _finish_plan(args, V: int, kind: str, stages: list, streamed: bool, how: str
     return {"V": V, "kind": kind, "stages": stages, "peak": peak, "budget": budget, "streamed": streamed}
 
 
+#: bytes per sub-texel direction of a wavelet light's rasterisation (``relight.wavelet_light``: directions, solid
+#: angles, the environment's evaluation and its temporaries in float64): measured 157-207 B (peak RSS growth, studio
+#: and sky, R = 16, 32, 64, supersample 4), rounded up
+LIGHT_SAMPLE_BYTES = 256
+
+
 def _wavelet_plan(args, V: int, mesh: int, data: int, exact: bool | None = None) -> dict:
     """:func:`plan` of a wavelet transfer: *input* (the mesh and the file's coefficients, loaded whole),
     *held* (:meth:`~prt_torch.relight.WaveletRelighter.estimate_bytes`: its kernel layouts — dense
     columns, column-major blocks, the row-major copy 'auto' builds for a light that takes that pass — and
-    tables, as :meth:`~prt_torch.relight.WaveletRelighter.held_bytes` will report them, plus its float32
-    values and int64 index copies), *build* (its construction's temporaries), *relight* (the whole
-    ``[V, 3]`` result), *output*. ``exact`` None: counted from the file for a dry run; otherwise the header's
-    bound first, counted only when that bound does not fit the budget (a run that fits reads nothing here)."""
+    tables, as :meth:`~prt_torch.relight.WaveletRelighter.held_bytes` will report them), *build|light* (the
+    larger of its construction's temporaries and the light's rasterisation on the cube at R,
+    :data:`LIGHT_SAMPLE_BYTES` per sub-texel direction: one after the other, each freed before the next),
+    *relight* (the whole ``[V, 3]`` result), *output*. ``exact`` None: counted from the file for a dry run;
+    otherwise the header's bound first, counted only when that bound does not fit the budget (a run that fits
+    reads nothing here)."""
     from .. import io
     from ..relight import WaveletRelighter
 
@@ -322,11 +330,15 @@ def _wavelet_plan(args, V: int, mesh: int, data: int, exact: bool | None = None)
     e = WaveletRelighter.estimate_bytes(args.transfer, exact=exact)
     lay = (f"dense {fb(e['dense'])}, column-major {fb(e['column'])}, row-major {fb(e['row'])} (built on first need), "
            f"tables {fb(e['other'])}: {e['total'] / max(V, 1):.0f} B/vertex{'' if exact else ' at most (header bound)'}")
+    light = e["P"] * 16 * LIGHT_SAMPLE_BYTES
     stages = [{"stage": "input", "bytes": mesh + data, "note": f"mesh {fb(mesh)}, coefficients {fb(data)} loaded whole"},
-              {"stage": "held", "bytes": e["total"] + e["reference"],
-               "note": f"{lay}; its values and index copies {fb(e['reference'])}"},
-              {"stage": "build", "bytes": e["build"], "note": f"the relighter's construction temporaries ({e['E']} kept "
-                                                             "coefficients: keys, sorts), freed before the relight"},
+              {"stage": "held", "bytes": e["total"], "note": lay},
+              # the construction's temporaries, then the light's rasterisation: one after the other, each freed before
+              # the next (the larger counts)
+              {"stage": "build|light", "bytes": max(e["build"], light),
+               "note": f"the larger of the relighter's construction temporaries {fb(e['build'])} ({e['E']} kept "
+                       f"coefficients, built in chunks of rows) and the light rasterised at 4x4 sub-texel directions "
+                       f"{fb(light)}, one after the other"},
               {"stage": "relight", "bytes": V * 3 * 4 * 3, "note": "the whole [V, 3] result at once"}]
     pl = _finish_plan(args, V, "transfer/wavelet", stages, False, how="")
     if pl["peak"] > pl["budget"] and not exact:  # the bound does not fit: count what the relighter will really hold
@@ -399,10 +411,15 @@ def check_plan(pl: dict) -> None:
         return
     fb = io.format_bytes
     parts = ", ".join(f"{st['stage']} {fb(st['bytes'])}" for st in pl["stages"])
+    if pl["kind"] == "transfer/wavelet":  # the output is never the problem: the coefficients and their layout are
+        ok = ("a wavelet transfer keeping fewer coefficients per vertex (prt precompute --kind wavelet --terms K, or a "
+              "smaller --res R: the relighter's layout and its construction grow with the kept coefficients)")
+    else:
+        ok = "a .npy output, an SH transfer (streamed by chunks)"
     raise ValueError(f"prt relight of {pl['V']} vertices needs about {fb(pl['peak'])} at its peak ({parts}"
                      + ("; the transfer is already mapped and the .npy streamed" if pl["streamed"] else "")
-                     + f") but the budget is {fb(pl['budget'])}; accepted: a .npy output, an SH transfer (streamed by "
-                     "chunks), or a larger --memory-limit on a machine that has it")
+                     + f") but the budget is {fb(pl['budget'])}; accepted: {ok}, or a larger --memory-limit on a machine "
+                     "that has it")
 
 
 def wavelet_options_only(args, why: str) -> None:

@@ -88,8 +88,9 @@ def wavelet_trade(ev: Evaluator, lights: list[torch.Tensor], cfg: dict, log: Cal
     step = max(1, (64 << 20) // (P * 8 * CT))  # chunks of vertices: the dense rows stay ~64 MB at any V and R
     for a in range(0, V, step):  # the stored transfer, dense, back in the pixel basis, projected
         k = min(step, V - a)
-        ind = r.index[a:a + step, None, :].expand(-1, CT, -1)
-        H = torch.zeros(k, CT, P, dtype=torch.float64).scatter_(2, ind, r.values[a:a + step].reshape(k, CT, -1).double())
+        ind, vals = r.reference_rows(a, a + k)  # derived from the stored transfer per chunk (the relighter holds neither)
+        H = torch.zeros(k, CT, P, dtype=torch.float64).scatter_(2, ind[:, None, :].expand(-1, CT, -1),
+                                                                 vals.reshape(k, CT, -1).double())
         t_all[a:a + step] = ihaar2d(H.reshape(-1, 6, R, R)).reshape(k, CT, P) @ Y
     t_sh = {n: (t_all[:, 0, : n * n] if CT == 1 else t_all[:, :, : n * n]).to(torch.float32).contiguous() for n in bands}
     del t_all
