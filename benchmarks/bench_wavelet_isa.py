@@ -3,9 +3,10 @@ native build (on an AVX-512 CPU the dense loop on 16 lanes) and as ``PRT_TORCH_K
 (``-mno-avx512f``: the 8-lane AVX2 code an AVX2-only CPU runs), both bound to the same layout of the same
 relighter, timed paired by one thread's CPU time (``measure_paired(clock=time.thread_time)``: the time other
 processes held the core is in neither side), each N of the kernel section and both environments (studio, sky),
-transport-weighted terms; every output compared with the other build's and with the float64 sums of the same
-stored values (``relight.wavelet_dense`` on ``reference_rows``). Two threads: the same pair by wall clock
-(fastest tenth of short samples), which the load moves.
+transport-weighted terms, and at N = 300 and 1000 (studio) the light's dense terms alone and its sparse terms alone
+(what each build's loops change: the dense loop is the 16-lane one); every output compared with the other
+build's and with the float64 sums of the same stored values (``relight.wavelet_dense`` on ``reference_rows``).
+Two threads: the same pair by wall clock (fastest tenth of short samples), which the load moves.
 
 The kernel section's transfer: occluder_over_plane small, R = 32, K = 256, 16 bits. ``--builds a,b``: the pair
 (default ``native,avx2``; any of native, avx2, avx512, avx512-256 this CPU runs). Writes
@@ -80,32 +81,36 @@ def main() -> None:
     alb = rl.albedo[:, :3].double()
     before = load()
     rows = []
-    for light in ("studio", "sky (sun)"):
-        for N in TERMS + [rl.P]:
-            li, lv, _ = rl.light(LIGHTS[light], N, "transport")
-            lv = lv.to(torch.float32).contiguous()
-            li = li.contiguous()
-            outs = [torch.empty(rl.V, 3) for _ in builds]
-            one = [bound_call(rl, lib, li, lv, o, 1) for lib, o in zip(libs, outs)]
-            two = [bound_call(rl, lib, li, lv, o, 2) for lib, o in zip(libs, outs)]
-            for f in one:
-                f()
-            ref = relight.wavelet_dense(ref_vals.double(), ref_index, li, lv.double(), rl.P) * alb
-            scale = float(ref.abs().max()) or 1.0
-            err = [float((o.double() - ref).abs().max()) / scale for o in outs]
-            diff = float((outs[0] - outs[1]).abs().max()) / scale
-            p1 = measure_paired(one[0], one[1], repeats=args.repeats, warmup=1, clock=time.thread_time)
-            torch.set_num_threads(2)
-            p2 = measure_paired(two[0], two[1], repeats=7, warmup=1, floor_pairs=40)
-            torch.set_num_threads(1)
-            row = {"light": light, "N": N, "us": [p1.test.median * 1e6, p1.peer.median * 1e6], "ratio": p1.speedup,
-                   "q": [p1.ratio.q1, p1.ratio.q3], "ratio_2": p2.speedup, "trusted_2": bool(p2.contention.get("trusted")),
-                   "err": err, "diff": diff, "load": load()}
-            rows.append(row)
-            print(f"[wavelet_isa] {light} N={N}: {builds[1]} {row['us'][1]:.1f} us, {builds[0]} {row['us'][0]:.1f} us, "
-                  f"{builds[1]}/{builds[0]} {row['ratio']:.3f} [{row['q'][0]:.3f}, {row['q'][1]:.3f}], 2 threads "
-                  f"{row['ratio_2']:.3f}, max |err|/max|ref| {err[0]:.1e} / {err[1]:.1e}, between builds {diff:.1e}, "
-                  f"load {row['load']:.1f}", flush=True)
+    cases = [(light, N, "all") for light in ("studio", "sky (sun)") for N in TERMS + [rl.P]]
+    cases[cases.index(("studio", 1000, "all")) + 1:1] = [("studio", N, part) for N in (300, 1000) for part in ("dense", "sparse")]
+    for light, N, part in cases:
+        li, lv, _ = rl.light(LIGHTS[light], N, "transport")
+        lv = lv.to(torch.float32).contiguous()
+        if part != "all":  # the light's dense (or sparse) terms alone
+            keep = (rl.dslot[li] >= 0) == (part == "dense")
+            li, lv = li[keep], lv[:, keep].contiguous()
+        li = li.contiguous()
+        outs = [torch.empty(rl.V, 3) for _ in builds]
+        one = [bound_call(rl, lib, li, lv, o, 1) for lib, o in zip(libs, outs)]
+        two = [bound_call(rl, lib, li, lv, o, 2) for lib, o in zip(libs, outs)]
+        for f in one:
+            f()
+        ref = relight.wavelet_dense(ref_vals.double(), ref_index, li, lv.double(), rl.P) * alb
+        scale = float(ref.abs().max()) or 1.0
+        err = [float((o.double() - ref).abs().max()) / scale for o in outs]
+        diff = float((outs[0] - outs[1]).abs().max()) / scale
+        p1 = measure_paired(one[0], one[1], repeats=args.repeats, warmup=1, clock=time.thread_time)
+        torch.set_num_threads(2)
+        p2 = measure_paired(two[0], two[1], repeats=7, warmup=1, floor_pairs=40)
+        torch.set_num_threads(1)
+        row = {"light": light, "N": N, "part": part, "terms": int(li.numel()), "us": [p1.test.median * 1e6, p1.peer.median * 1e6],
+               "ratio": p1.speedup, "q": [p1.ratio.q1, p1.ratio.q3], "ratio_2": p2.speedup, "trusted_2": bool(p2.contention.get("trusted")),
+               "err": err, "diff": diff, "load": load()}
+        rows.append(row)
+        print(f"[wavelet_isa] {light} N={N} {part}: {builds[1]} {row['us'][1]:.1f} us, {builds[0]} {row['us'][0]:.1f} us, "
+              f"{builds[1]}/{builds[0]} {row['ratio']:.3f} [{row['q'][0]:.3f}, {row['q'][1]:.3f}], 2 threads "
+              f"{row['ratio_2']:.3f}, max |err|/max|ref| {err[0]:.1e} / {err[1]:.1e}, between builds {diff:.1e}, "
+              f"load {row['load']:.1f}", flush=True)
     after = load()
     a, b = builds
     L = [f"# Wavelet kernel: the `{a}` and `{b}` builds paired (issue 39)\n",
@@ -119,11 +124,12 @@ def main() -> None:
          "(fastest tenth of 40 pairs of short samples; ⚠: contention flagged). Error: max |output − float64 sums of the "
          "stored values × factor| / max |reference| (`relight.wavelet_dense`). Reproduce: "
          f"`.venv/bin/python benchmarks/bench_wavelet_isa.py --builds {a},{b}`.\n",
-         f"| light | N | {a} (1 thr CPU) | {b} (1 thr CPU) | **{b} / {a}, 1 thr** [quartiles] | {b} / {a}, 2 threads "
+         f"| light | N | terms | {a} (1 thr CPU) | {b} (1 thr CPU) | **{b} / {a}, 1 thr** [quartiles] | {b} / {a}, 2 threads "
          f"| error {a} | error {b} | {a} vs {b} | load |",
-         "|---|---|---|---|---|---|---|---|---|---|"]
+         "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
-        L.append(f"| {r['light']} | {r['N']} | {r['us'][0]:.1f} µs | {r['us'][1]:.1f} µs | **{r['ratio']:.2f}** "
+        terms = "all" if r["part"] == "all" else f"{r['part']} alone ({r['terms']})"
+        L.append(f"| {r['light']} | {r['N']} | {terms} | {r['us'][0]:.1f} µs | {r['us'][1]:.1f} µs | **{r['ratio']:.2f}** "
                  f"[{r['q'][0]:.2f}, {r['q'][1]:.2f}] | {r['ratio_2']:.2f}{'' if r['trusted_2'] else ' ⚠'} | {r['err'][0]:.1e} | "
                  f"{r['err'][1]:.1e} | {r['diff']:.1e} | {r['load']:.1f} |")
     text = "\n".join(L) + "\n"
