@@ -24,7 +24,7 @@
  *    on one layout, one thread's CPU time (bench_wavelet_isa.py): the dense terms alone 1.08-1.12x faster,
  *    whole lights 1.00-1.12x (an ad-hoc C loop of the same work from L1: 1.26x; in the kernel the 1-2 MB
  *    come partly from L3). The sparse blocks, the row-major pass and the output stay on 8 lanes (a 16-lane
- *    read-modify-write of two channels' scratch per block measured 0.90-0.96x of the 8-lane one: not kept).
+ *    read-modify-write of two channels' scratch per block measured 0.90-0.94x of the 8-lane one: not kept).
  *  - block-sparse, the rest: the vertices in tiles of TV (a multiple of 32), and within a tile, per
  *    column, the 8-vertex blocks holding any of its nonzero values: bofs int32 (the byte offset of the
  *    block's accumulator in the tile's scratch, 128 per block: 4 channels x 8 floats) and vals
