@@ -909,6 +909,8 @@ def _wavelet_lib(isa: str | None = None):
 
     if isa is None and os.environ.get("PRT_TORCH_NATIVE", "1") == "0":
         return None
+    if isa is None and "lib" in _WAVELET:  # this process's build, read once
+        return _WAVELET["lib"]
     from ._native import LIBRARIES, compile_library, kernel_isa, kernel_sources
 
     if isa is None:
