@@ -723,9 +723,9 @@ def write_md(res: dict, quick: bool) -> None:
              "once they outgrow the core's private cache it runs at the next level's speed while the kernel and the read "
              "still find most of their bytes there, so a fraction of the copy bound above 1 says that bound is slow "
              "there, not that the kernel beats memory — the streaming read is the bound to read then (on the Intel Xeon "
-             "below, 2 MB of L2 per core: the copy fell from 32 GB/s at 0.5 MB to 16 at 0.75 MB and 10 from 1.25 MB, the "
-             "read from 63–80 to 28 GB/s at 1.5 MB; a fresh destination per copy cost little more below 2 MB, so not page "
-             "faults).\n")
+             "below, 2 MB of L2 per core, `reports/benchmarks/bound_sizes.md`: the copy fell from 32–34 GB/s at 0.5 MB to "
+             "18 at 0.75 MB and 10–11 from 1.25 MB, the read from 50–79 GB/s up to 1 MB to 34 at 1.5 MB; a fresh "
+             "destination per copy cost about the same, with no page fault per call: not first-touch faults).\n")
     runs = kernel_runs(res)
     by_cpu: dict[str, list[dict]] = {}
     for run in runs:
