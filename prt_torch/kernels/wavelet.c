@@ -21,10 +21,11 @@
  *    sums instead, one widening load and CO multiply-adds per 16 values (one 64-byte line of 16-bit values
  *    per term and block), each vertex's terms added in the same order, so the same bits as the 8-lane loop;
  *    the same layout. Measured on an Intel Xeon (AVX-512, 2 MB L2 per core), paired against the avx2 build
- *    on one layout, one thread's CPU time (bench_wavelet_isa.py): the dense terms alone 1.08-1.12x faster,
- *    whole lights 1.00-1.12x (an ad-hoc C loop of the same work from L1: 1.26x; in the kernel the 1-2 MB
- *    come partly from L3). The sparse blocks, the row-major pass and the output stay on 8 lanes (a 16-lane
- *    read-modify-write of two channels' scratch per block measured 0.90-0.94x of the 8-lane one: not kept).
+ *    on one layout, one thread's CPU time (bench_wavelet_isa.py): the dense terms alone 1.07-1.12x faster,
+ *    whole lights 1.02-1.13x except the studio light at N = 100-300 (0.96-1.05x; an ad-hoc C loop of the same
+ *    work from L1: 1.26x; in the kernel the 1-2 MB come partly from L3, and zmm FMAs cost ~5% of clock).
+ *    The sparse blocks, the row-major pass and the output stay on 8 lanes (a 16-lane read-modify-write of
+ *    two channels' scratch per block measured 0.90-0.94x of the 8-lane one: not kept).
  *  - block-sparse, the rest: the vertices in tiles of TV (a multiple of 32), and within a tile, per
  *    column, the 8-vertex blocks holding any of its nonzero values: bofs int32 (the byte offset of the
  *    block's accumulator in the tile's scratch, 128 per block: 4 channels x 8 floats) and vals
