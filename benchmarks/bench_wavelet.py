@@ -756,7 +756,8 @@ def write_md(res: dict, quick: bool) -> None:
         L.append(f"{km['cpu']}, {km['cores']} cores, one and two threads; load average "
                  f"{km.get('load_before', km.get('load_average_1min', float('nan'))):.1f} → "
                  f"{km.get('load_after', km.get('load_average_1min', float('nan'))):.1f}"
-                 + (" (⚠: the pairing flagged contention).\n" if not all(r["trusted"] for r in rows) else ".\n"))
+                 + (" (⚠: the pairing flagged contention)." if not all(r["trusted"] for r in rows) else ".")
+                 + (f" Rows: {run['source']}." if run.get("source") else "") + "\n")
         L.append("| N | coefficients read | in dense columns | bytes read (this layout) | previous layout | 1 thread | of own bound "
                  "| **1 thr CPU time: of own bound** [quartiles] | of previous layout's bound | 2 threads | of own bound (2 threads) "
                  "| torch path | C / torch | load | plain call / prepared | 1 thr CPU time: of a streaming read (read / copy) |")
