@@ -20,9 +20,14 @@ caps of 0.5°, 20° and 40° half-angle from above (tilted), and the built-in en
 6. Bytes/vertex vs error at R = 16, 32, 64 and several K (all light terms), also against the
    R = 64 exact result (what a coarser cube cannot place).
 7. Relight time vs N, against the kernel's read-once/write-once bound (the transfer coefficients
-   it touches — int32 row + stored value — and the output), ``timing.io_bound_fn``, paired.
+   it touches — int32 row + stored value — and the output), ``timing.io_bound_fn``, paired. One
+   section per CPU and kernel build (``relight.wavelet_kernel_path``: on an AVX-512 CPU the dense loop
+   on 16 lanes, on an AVX2 one the 8-lane code): a run replaces the section of its own CPU and build and
+   keeps the others; ``--isa auto`` (default) also runs the ``avx2`` build (``PRT_TORCH_KERNEL_ISA``, in a
+   child process) where the native one is AVX-512, and the report then puts the builds side by side.
 
 Run: .venv/bin/python benchmarks/bench_wavelet.py [--quick]   (about 5 minutes on 2 cores)
+     .venv/bin/python benchmarks/bench_wavelet.py --only kernel [--isa auto|native,avx2,...]   (25 s per build)
 Writes reports/benchmarks/wavelet.{md,json,png}.
 """
 from __future__ import annotations
@@ -33,6 +38,9 @@ import argparse  # noqa: E402
 import json  # noqa: E402
 import math  # noqa: E402
 import os  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
+import tempfile  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
@@ -40,7 +48,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from prt_torch import relight  # noqa: E402
-from prt_torch.harness.timing import io_bound_fn, machine_info, measure, measure_paired, read_bound_fn  # noqa: E402
+from prt_torch.harness.timing import cpu_label, io_bound_fn, machine_info, measure, measure_paired, read_bound_fn  # noqa: E402
 from prt_torch.lighting.haar import cube_geometry, cube_light, haar2d, haar_levels  # noqa: E402
 from prt_torch.scene import RayCaster, builtin  # noqa: E402
 from prt_torch.sh import eval_sh  # noqa: E402
@@ -118,9 +126,18 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--quick", action="store_true", help="R = 16 and 32 only, fewer budgets")
     ap.add_argument("--only", choices=["kernel", "sampling", "quant"], help="one section, its rows replaced in the existing wavelet.json")
+    ap.add_argument("--isa", default="auto", help="section 7's kernel builds, each in its own process: auto (this CPU's "
+                    "native build, and also avx2 where native is AVX-512), or a comma list of native, avx2, avx512, "
+                    "avx512-256 (PRT_TORCH_KERNEL_ISA)")
+    ap.add_argument("--child-json", default="", help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.child_json:  # one build's section-7 run for a parent (child_run): the run as JSON, nothing else written
+        res = json.loads((OUT / "wavelet.json").read_text())
+        Path(args.child_json).write_text(json.dumps(kernel_run(res["selection_default"]), default=str))
+        return None
+    isas = isa_runs(args.isa)
     if args.only == "kernel":
-        return kernel_only()
+        return kernel_only(isas)
     if args.only in ("sampling", "quant"):
         return section_only(args.only)
     torch.set_num_threads(1)
@@ -252,10 +269,14 @@ def main() -> None:
         print(f"[wavelet] R={r} bytes/error done; load {load():.1f}", flush=True)
     results["bytes_vs_error"] = bve
 
-    # 7. relight time vs N against the bound (paired), studio, K = 256
-    bound_rows = kernel_rows(relighters[256], results["selection_default"])
-    results["kernel"] = bound_rows
-    results["kernel_machine"] = machine_info()
+    # 7. relight time vs N against the bound (paired), studio, K = 256: this build, then the others (child processes)
+    before = load()
+    runs = [{"machine": dict(machine_info(), load_before=before), "build": relight.wavelet_kernel_path(),
+             "rows": kernel_rows(relighters[256], results["selection_default"])}]
+    runs[0]["machine"]["load_after"] = load()
+    if (OUT / "wavelet.json").exists():  # the kept runs of other CPUs and builds
+        merge_kernel_runs(results, kernel_runs(json.loads((OUT / "wavelet.json").read_text())))
+    merge_kernel_runs(results, runs)
     results["sampling"] = sampling_rows(mesh)
     results["quant"] = quant_rows(mesh)
     loads.append(load())
@@ -263,6 +284,9 @@ def main() -> None:
     results["notes"] = []
     OUT.mkdir(parents=True, exist_ok=True)
     (OUT / "wavelet.json").write_text(json.dumps(results, indent=1, default=str))
+    if len(isas) > 1:  # the other builds' section 7, each in a child process, reading the file just written
+        merge_kernel_runs(results, [child_run(isa) for isa in isas[1:]])
+        (OUT / "wavelet.json").write_text(json.dumps(results, indent=1, default=str))
     plot(results)
     write_md(results, args.quick)
     print(f"[wavelet] wrote {OUT / 'wavelet.md'}", flush=True)
@@ -451,9 +475,95 @@ def section_only(name: str) -> None:
     print(f"[wavelet] wrote {OUT / 'wavelet.md'} ({name})", flush=True)
 
 
-def kernel_only() -> None:
-    """``--only kernel``: section 7 alone (the same transfer: R = 32, K = 256, BITS), its rows replaced in
-    the existing wavelet.json and the report rewritten."""
+def kernel_run(selection: str) -> dict:
+    """Section 7 in this process's kernel build (the same transfer: R = 32, K = 256, BITS): ``{machine (with the
+    load before and after), build (relight.wavelet_kernel_path), rows}``."""
+    mesh = builtin("occluder_over_plane", "small")
+    tr = precompute_wavelet(mesh, 32, 256, BITS, shadows="always", run=RunOptions(workers=1))
+    before = load()
+    rows = kernel_rows(relight.WaveletRelighter(tr), selection)
+    return {"machine": dict(machine_info(), load_before=before, load_after=load()), "build": relight.wavelet_kernel_path(),
+            "rows": rows}
+
+
+def kernel_runs(res: dict) -> list[dict]:
+    """The kernel section's runs kept in ``res`` (one per CPU and kernel build); a report from before builds were
+    recorded (``kernel`` + ``kernel_machine``) is one run of the AVX2 path (its CPU had no AVX-512)."""
+    if "kernel_runs" in res:
+        return list(res["kernel_runs"])
+    if "kernel" not in res:
+        return []
+    m = res.get("kernel_machine", res["machine"])
+    return [{"machine": m, "rows": res["kernel"], "build": {
+        "backend": "native", "isa": m.get("cpu_isa") or "avx2", "w16": False, "isa_choice": "native",
+        "path": "dense loop, sparse blocks and output on 8 lanes (AVX2 code: the only path then; recorded before the "
+                "report named builds)"}}]
+
+
+def kernel_run_key(run: dict) -> str:
+    """A kernel run's CPU and build: a new run replaces a kept one of the same key."""
+    b = run.get("build") or {}
+    return cpu_label(run["machine"]) + f", kernels {b.get('isa')} ({b.get('isa_choice', 'native')}, w16 {bool(b.get('w16'))})"
+
+
+def build_label(b: dict) -> str:
+    """A kernel build in words: its ISA, the PRT_TORCH_KERNEL_ISA choice when not native, and its path."""
+    if b.get("backend") != "native":
+        return f"torch path ({b.get('why', '')})"
+    return (f"{b['isa']} build" + (f" (`PRT_TORCH_KERNEL_ISA={b['isa_choice']}`)" if b.get("isa_choice", "native") != "native" else "")
+            + f": {b['path']}")
+
+
+def merge_kernel_runs(res: dict, runs: list[dict]) -> None:
+    """``res``'s kernel runs with ``runs`` replacing those of the same CPU and build (first) and the others kept."""
+    keys = {kernel_run_key(r) for r in runs}
+    res["kernel_runs"] = runs + [r for r in kernel_runs(res) if kernel_run_key(r) not in keys]
+    res.pop("kernel", None)
+    res.pop("kernel_machine", None)
+
+
+def isa_runs(spec: str) -> list[str]:
+    """The kernel builds section 7 measures, each in its own process (``PRT_TORCH_KERNEL_ISA`` is read once per
+    process): ``auto`` = this process's build, and also ``avx2`` where that build is AVX-512; else a comma list of
+    native, avx2, avx512, avx512-256 (the first in this process, set here before the kernel is loaded). Each value
+    is checked here (one line naming it and what this CPU accepts, status 2)."""
+    from prt_torch._native import kernel_isa
+
+    if spec == "auto":
+        return ["", "avx2"] if relight.wavelet_kernel_path()["isa"] == "avx512" else [""]
+    out = [v.strip() for v in spec.split(",") if v.strip()]
+    prev = os.environ.get("PRT_TORCH_KERNEL_ISA")
+    try:
+        for v in out:
+            os.environ["PRT_TORCH_KERNEL_ISA"] = v
+            kernel_isa()
+    except ValueError as e:
+        print(f"bench_wavelet.py: --isa {spec}: {e}", file=sys.stderr)
+        raise SystemExit(2) from None
+    finally:
+        if prev is None:
+            os.environ.pop("PRT_TORCH_KERNEL_ISA", None)
+        else:
+            os.environ["PRT_TORCH_KERNEL_ISA"] = prev
+    if out:
+        os.environ["PRT_TORCH_KERNEL_ISA"] = out[0]  # this process's build (the kernel is not loaded yet)
+    return out or [""]
+
+
+def child_run(isa: str) -> dict:
+    """Section 7 in a child process with ``PRT_TORCH_KERNEL_ISA=isa``: its run."""
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "run.json"
+        cmd = [sys.executable, __file__, "--only", "kernel", "--child-json", str(out)]
+        print(f"[wavelet] --- the kernel built for {isa}: {' '.join(cmd)}", flush=True)
+        subprocess.run(cmd, env={**os.environ, "PRT_TORCH_KERNEL_ISA": isa}, check=True)
+        return json.loads(out.read_text())
+
+
+def kernel_only(isas: list[str]) -> None:
+    """``--only kernel``: section 7 alone (the same transfer: R = 32, K = 256, BITS) in each build of ``isas`` (the
+    first in this process, the others in child processes), each run replacing the kept run of its own CPU and
+    build in the existing wavelet.json (the others kept), and the report rewritten."""
     torch.set_num_threads(1)
     res = json.loads((OUT / "wavelet.json").read_text())
     res.setdefault("notes", [])
@@ -462,14 +572,11 @@ def kernel_only() -> None:
             "run (the plain CSC kernel, 1.8-2.2x slower than the dense/CSC one that followed it).")
     if note not in res["notes"]:
         res["notes"].append(note)
-    mesh = builtin("occluder_over_plane", "small")
-    tr = precompute_wavelet(mesh, 32, 256, BITS, shadows="always", run=RunOptions(workers=1))
-    before = load()
-    res["kernel"] = kernel_rows(relight.WaveletRelighter(tr), res["selection_default"])
-    res["kernel_machine"] = dict(machine_info(), load_before=before, load_after=load())
+    runs = [kernel_run(res["selection_default"])] + [child_run(isa) for isa in isas[1:]]
+    merge_kernel_runs(res, runs)
     (OUT / "wavelet.json").write_text(json.dumps(res, indent=1, default=str))
     write_md(res, False)
-    print(f"[wavelet] wrote {OUT / 'wavelet.md'} (section 7)", flush=True)
+    print(f"[wavelet] wrote {OUT / 'wavelet.md'} (section 7: {', '.join(kernel_run_key(r) for r in runs)})", flush=True)
 
 
 def plot(res: dict) -> None:
@@ -584,13 +691,17 @@ def write_md(res: dict, quick: bool) -> None:
              f"{p['precompute_s']:.2f} s; bare Embree tracing the same rays runs at **{p['bare_over_precompute']:.2f}** "
              f"of the precompute's time (paired, spread {p['spread']:.2f}{'' if p['trusted'] else ', ⚠ contention'}): "
              "the rest is ray generation, the Haar transform, top-K and quantisation.\n")
-    km = res.get("kernel_machine", m)
     L.append(f"## Relight time vs N against the kernel's bound (studio, R = 32, K = 256, {BITS}-bit)\n")
-    L.append(f"{km['cpu']}, {km['cores']} cores, one and two threads; the AVX2 path of `kernels/wavelet.c` (this CPU has no AVX-512; "
-             f"an AVX-512 CPU takes the same AVX2 code), load average {km.get('load_before', la[-1]):.1f} → "
-             f"{km.get('load_after', km.get('load_average_1min', la[-1])):.1f}"
-             + (" (⚠: the pairing flagged contention). " if not all(r["trusted"] for r in res["kernel"]) else ". ")
-             + (
+    L.append(
+             "One section per CPU and kernel build (`relight.wavelet_kernel_path`, from the library's own `prt_wavelet_isa`: "
+             "on an AVX-512 CPU the dense loop runs on 16-lane vectors, on an AVX2 one on 8 lanes; `PRT_TORCH_KERNEL_ISA=avx2` "
+             "builds the AVX2 code on an AVX-512 CPU): `--only kernel` replaces the section of its own CPU and build and keeps "
+             "the others, `--isa auto` also runs the avx2 build where the native one is AVX-512. Each CPU precomputes the "
+             "transfer itself, and the terms a light selects (so the bytes read) may differ between CPUs (the bytes column "
+             "says what each run read): the studio light has 292 Haar terms above 1e-15 of its largest, and from N = 300 "
+             "on the rest are ranked by round-off-level scores, which each machine's floating point orders its own way "
+             "(at N = 1000 the AMD EPYC's run read 0.97 MB, the Intel Xeon's 1.49 MB). Compare fractions of each run's "
+             "own bounds, not times across CPUs. "
              "The kernel reads each Haar column of the light's terms in the form stored for it "
              "(`relight.WaveletRelighter`): *dense* (32-vertex blocks of the stored values, zeros included, no index: "
              "the columns most vertices keep, the coarse levels) or *block-sparse* (per tile of vertices and column, "
@@ -611,24 +722,59 @@ def write_md(res: dict, quick: bool) -> None:
              "take the fastest tenth of short samples instead). **Last column**: the same one-thread CPU-time pairing "
              "against a stricter bound, the same bytes only read (a streaming int64 sum, `timing.read_bound_fn`) and the "
              "output filled — the copy behind every other column also writes each byte it reads —, and in brackets the "
-             "read's time over the copy's.\n"))
-    L.append("| N | coefficients read | in dense columns | bytes read (this layout) | previous layout | 1 thread | of own bound "
-             "| **1 thr CPU time: of own bound** [quartiles] | of previous layout's bound | 2 threads | of own bound (2 threads) "
-             "| torch path | C / torch | load | plain call / prepared | 1 thr CPU time: of a streaming read (read / copy) |")
-    L.append("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
-    for r in res["kernel"]:
-        flag = "" if r["trusted"] else " ⚠"
-        if "of_bound_2" not in r:  # a report from before the block-sparse layout
+             "read's time over the copy's. The copy moves twice the bytes through the caches (source and destination): "
+             "once they outgrow the core's private cache it runs at the next level's speed while the kernel and the read "
+             "still find most of their bytes there, so a fraction of the copy bound above 1 says that bound is slow "
+             "there, not that the kernel beats memory — the streaming read is the bound to read then (on the Intel Xeon "
+             "below, 2 MB of L2 per core, `reports/benchmarks/bound_sizes.md`: the copy fell from 32–34 GB/s at 0.5 MB to "
+             "18 at 0.75 MB and 10–11 from 1.25 MB, the read from 50–79 GB/s up to 1 MB to 34 at 1.5 MB; a fresh "
+             "destination per copy cost about the same, with no page fault per call: not first-touch faults).\n")
+    runs = kernel_runs(res)
+    by_cpu: dict[str, list[dict]] = {}
+    for run in runs:
+        by_cpu.setdefault(cpu_label(run["machine"]), []).append(run)
+    for cpu, rs in by_cpu.items():  # the builds of one CPU side by side (one thread, CPU time)
+        if len(rs) < 2:
             continue
-        cp = f"{r['call_over_prepared']:.2f}×{flag}" if "call_over_prepared" in r else "—"
-        cpu = (f"**{r['of_bound_cpu_1']:.2f}** [{r['of_bound_cpu_1_q'][0]:.2f}, {r['of_bound_cpu_1_q'][1]:.2f}]"
-               if "of_bound_cpu_1" in r else "—")
-        rd = (f"{r['of_read_bound_cpu_1']:.2f} ({r['read_over_copy_1']:.2f})" if "of_read_bound_cpu_1" in r else "—")
-        L.append(f"| {r['N']} | {r['touched']} | {r['dense_coefficients']} ({r['dense_terms']} terms) | {r['bytes']} | "
-                 f"{r['previous_bytes']} | {_ms(r['relight_s_1'])} | {r['of_bound_1']:.2f}{flag} | {cpu} | {r['of_previous_bound']:.2f}{flag} | "
-                 f"{_ms(r['relight_s_2'])} | {r['of_bound_2']:.2f}{flag} | {_ms(r['torch_relight_s'])} | "
-                 f"{r['torch_relight_s'] / r['relight_s']:.1f}× | {r['load']:.1f} | {cp} | {rd} |")
-    L.append("")
+        L.append(f"### {cpu}: the kernel builds side by side (1 thread CPU time: µs per call; of the copy bound / of the "
+                 "streaming read)\n")
+        L.append("Each build's run has its own bounds, timed in its own process (its rows below); the builds paired on one "
+                 "layout in one process: `benchmarks/bench_wavelet_isa.py` (reports/benchmarks/wavelet_isa.md).\n")
+        L.append("| N | " + " | ".join(build_label(r["build"]) for r in rs) + " |")
+        L.append("|---|" + "---|" * len(rs))
+        for N in [r["N"] for r in rs[0]["rows"]]:
+            cells = []
+            for run in rs:
+                x = next((r for r in run["rows"] if r["N"] == N), None)
+                cells.append(f"{x['relight_cpu_s_1'] * 1e6:.1f} µs; {x['of_bound_cpu_1']:.2f} / {x['of_read_bound_cpu_1']:.2f}"
+                             if x and "of_read_bound_cpu_1" in x else "—")
+            L.append(f"| {N} | " + " | ".join(cells) + " |")
+        L.append("")
+    for run in runs:
+        km, rows = run["machine"], run["rows"]
+        L.append(f"### {cpu_label(km)} · {build_label(run.get('build') or {})}\n")
+        L.append(f"{km['cpu']}, {km['cores']} cores, one and two threads; load average "
+                 f"{km.get('load_before', km.get('load_average_1min', float('nan'))):.1f} → "
+                 f"{km.get('load_after', km.get('load_average_1min', float('nan'))):.1f}"
+                 + (" (⚠: the pairing flagged contention)." if not all(r["trusted"] for r in rows) else ".")
+                 + (f" Rows: {run['source']}." if run.get("source") else "") + "\n")
+        L.append("| N | coefficients read | in dense columns | bytes read (this layout) | previous layout | 1 thread | of own bound "
+                 "| **1 thr CPU time: of own bound** [quartiles] | of previous layout's bound | 2 threads | of own bound (2 threads) "
+                 "| torch path | C / torch | load | plain call / prepared | 1 thr CPU time: of a streaming read (read / copy) |")
+        L.append("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+        for r in rows:
+            flag = "" if r["trusted"] else " ⚠"
+            if "of_bound_2" not in r:  # a report from before the block-sparse layout
+                continue
+            cp = f"{r['call_over_prepared']:.2f}×{flag}" if "call_over_prepared" in r else "—"
+            cpu_t = (f"**{r['of_bound_cpu_1']:.2f}** [{r['of_bound_cpu_1_q'][0]:.2f}, {r['of_bound_cpu_1_q'][1]:.2f}]"
+                     if "of_bound_cpu_1" in r else "—")
+            rd = (f"{r['of_read_bound_cpu_1']:.2f} ({r['read_over_copy_1']:.2f})" if "of_read_bound_cpu_1" in r else "—")
+            L.append(f"| {r['N']} | {r['touched']} | {r['dense_coefficients']} ({r['dense_terms']} terms) | {r['bytes']} | "
+                     f"{r['previous_bytes']} | {_ms(r['relight_s_1'])} | {r['of_bound_1']:.2f}{flag} | {cpu_t} | "
+                     f"{r['of_previous_bound']:.2f}{flag} | {_ms(r['relight_s_2'])} | {r['of_bound_2']:.2f}{flag} | "
+                     f"{_ms(r['torch_relight_s'])} | {r['torch_relight_s'] / r['relight_s']:.1f}× | {r['load']:.1f} | {cp} | {rd} |")
+        L.append("")
     if "sampling" in res:
         sm = res["sampling"]
         L.append(f"## Texel sampling: grid vs jittered (R = {sm['res']}, {sm['vertices']} vertices)\n")

@@ -104,7 +104,8 @@ def main() -> None:
         print(f"[wavelet_call] {rows[-1]}", flush=True)
     m = machine_info()
     L = ["# Wavelet kernel: the cost of the call (issue 39)\n",
-         f"{m['cpu']}, one thread (the kernel's AVX2 path; no AVX-512 on this CPU), load average {load0:.1f} → "
+         f"{m['cpu']}, one thread (the kernel's {relight.wavelet_kernel_path().get('isa')} build: {relight.wavelet_kernel_path()['path']}),"
+         f" load average {load0:.1f} → "
          f"{os.getloadavg()[0]:.1f} (shared machine; this thread's CPU time). `WaveletRelighter.prepared`'s run() with the "
          "kernel's arguments packed once into an int64 array (one pointer converted by ctypes per call: the form now) "
          "against the eight-argument entry point through `functools.partial` (the form before), the same kernel on the "

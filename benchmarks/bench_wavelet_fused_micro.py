@@ -314,7 +314,7 @@ def main() -> None:
             rows.append(res)
     m = machine_info()
     L = ["# Wavelet kernel: the dense GEMV and the sparse pass interleaved (issue 39)\n",
-         f"{m['cpu']}, one thread, `-O3 -march=native` (AVX2 path; no AVX-512 on this CPU); load average "
+         f"{m['cpu']}, one thread, `-O3 -march=native` (this benchmark's own 8-lane code; this CPU: {m.get('cpu_isa')}); load average "
          f"{load0:.1f} → {os.getloadavg()[0]:.1f} (shared machine; this thread's CPU time). The kernel section's "
          f"transfer (V = {rl.V}, R = 32, K = 256, {BITS}-bit, tiles of {rl.TV}); CT = 1, RGB. Per form: µs per call "
          "(the two passes over every tile, outputs not written), the median of 15 paired samples of "

@@ -102,7 +102,7 @@ def main() -> None:
     la.append(load())
     L = ["# Wavelet relighter: the row-major copy on first need (`layouts`)\n",
          f"CPU: {info['cpu']} (family {info.get('cpu_family')} model {info.get('cpu_model')}), kernel path "
-         f"{info.get('cpu_isa')} (kernels/wavelet.c at -march=native; no AVX-512 here), one thread; load average "
+         f"{info.get('cpu_isa')} (kernels/wavelet.c at -march=native: {relight.wavelet_kernel_path()['path']}), one thread; load average "
          f"{min(la + [r['load'] for r in rows]):.1f}-{max(la + [r['load'] for r in rows]):.1f} on "
          f"{os.cpu_count()} cores (shared with other jobs: CPU time, `time.thread_time`, which other processes' "
          "load does not enter). Transfers: occluder_over_plane small (grey) and cornell_box small with one bounce "

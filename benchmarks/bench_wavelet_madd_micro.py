@@ -582,8 +582,9 @@ def main() -> None:
         loads.append(os.getloadavg()[0])
     m = machine_info()
     L = ["# Wavelet kernel: the dense part with integer multiply-adds (issue 39)\n",
-         f"{m['cpu']} at {ghz:.2f} GHz (measured: a chain of dependent integer adds, the fastest of five), one thread, `-O3 -march=native` "
-         f"(AVX2 path: `vpmaddwd`; no AVX-512 on this CPU); load average {' → '.join(f'{x:.1f}' for x in loads)} "
+         f"{m['cpu']} at {ghz:.2f} GHz (measured: a chain of dependent multiplies, the fastest of five), one thread, `-O3 -march=native` "
+         f"(AVX2 path: `vpmaddwd`, this benchmark's own 8-lane code on every CPU; this CPU: {m.get('cpu_isa')});"
+         f" load average {' → '.join(f'{x:.1f}' for x in loads)} "
          "(shared machine; this thread's CPU time). The kernel section's transfer "
          f"(V = {rl.V}, R = 32, K = 256, {BITS}-bit, {Pd} dense columns, {nb} blocks of 32 vertices); CT = 1, RGB. "
          "µs per pass over every block (sums stored, no output), the median of 15 paired samples of "

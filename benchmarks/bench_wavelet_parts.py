@@ -82,7 +82,8 @@ def main() -> None:
         print(f"[wavelet_parts] {r}", flush=True)
     m = machine_info()
     L = ["# Wavelet kernel: one thread's time by part (issue 39)\n",
-         f"{m['cpu']}, one thread, the AVX2 path of `kernels/wavelet.c` (no AVX-512 on this CPU); load average "
+         f"{m['cpu']}, one thread, the {relight.wavelet_kernel_path().get('isa')} build of `kernels/wavelet.c` "
+         f"({relight.wavelet_kernel_path()['path']}); load average "
          f"{before:.1f} → {load():.1f} (the machine shared with other jobs; ⚠: the pairing flagged contention). "
          f"Studio light, occluder_over_plane small (V = {rl.V}), R = 32, K = 256, {BITS}-bit, {rl.Pd} dense columns, "
          f"tiles of {rl.TV}. Each part relit alone through `WaveletRelighter.prepared`, paired (interleaved samples, fastest "

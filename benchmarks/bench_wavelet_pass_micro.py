@@ -408,8 +408,8 @@ def main() -> None:
     m = machine_info()
     base = rows[0][5]
     L = ["# Wavelet kernel: the column-major sparse pass alone (issue 39)\n",
-         f"{m['cpu']}, one thread, `-O3 -march=native` ({'AVX2' if 'avx2' in str(m).lower() else 'the CPU own'} "
-         f"path; no AVX-512 on this CPU); load average {load0:.1f} → {os.getloadavg()[0]:.1f} (shared machine; "
+         f"{m['cpu']}, one thread, `-O3 -march=native` (this benchmark's own 8-lane code; "
+         f"this CPU: {m.get('cpu_isa')}); load average {load0:.1f} → {os.getloadavg()[0]:.1f} (shared machine; "
          "this thread's CPU time, best of 15 samples of 200 passes). Studio light, transport-weighted, "
          f"N = {args.terms}: its sparse terms' blocks in the blocker scene's layout (V = {rl.V}, R = 32, K = 256, "
          f"{BITS}-bit, tiles of {rl.TV}). The pass of `kernels/wavelet.c` (CT = 1, RGB) with one thing changed per "

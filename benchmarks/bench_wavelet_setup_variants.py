@@ -129,7 +129,7 @@ def main() -> None:
             rows.append(row)
     m = machine_info()
     L = ["# Wavelet kernel: per-light set-up variants (issue 39)\n",
-         f"{m['cpu']}, one thread, the AVX2 path (no AVX-512 on this CPU); load average {load0:.1f} → "
+         f"{m['cpu']}, one thread, `-march=native` on this CPU ({m.get('cpu_isa')}); load average {load0:.1f} → "
          f"{os.getloadavg()[0]:.1f} (shared machine; this thread's CPU time, median of 15 paired samples). "
          f"The kernel section's transfer (V = {rl.V}, R = 32, K = 256, {BITS}-bit). Each variant: `kernels/wavelet.c` "
          "with one step of its set-up rewritten (module docstring), compiled beside it and called on the same layout "

@@ -897,21 +897,70 @@ class WaveletRelighter:
 _WAVELET: dict = {}
 
 
-def _wavelet_lib():
-    """The compiled sparse relighting kernel (``prt_torch/kernels/wavelet.c``), or None (torch path)."""
+def _wavelet_lib(isa: str | None = None):
+    """The compiled sparse relighting kernel (``prt_torch/kernels/wavelet.c``), or None (torch path). Built with
+    the flags of ``PRT_TORCH_KERNEL_ISA`` (``_native.kernel_isa``: ``avx2`` builds the 8-lane AVX2 loops on an
+    AVX-512 CPU, ``avx512-256`` AVX-512VL without the 16-lane dense loop; read at the first call, once per
+    process, like the relight library's; a value not accepted raises ``ValueError`` naming it), or, with ``isa``
+    given, that build (one of ``_native.KERNEL_ISAS``, checked against this CPU the same way; each build loaded
+    once per process: ``benchmarks/bench_wavelet_isa.py`` pairs two builds on one layout)."""
     import ctypes
     import os
 
-    if os.environ.get("PRT_TORCH_NATIVE", "1") == "0":
+    if isa is None and os.environ.get("PRT_TORCH_NATIVE", "1") == "0":
         return None
-    if "lib" not in _WAVELET:
-        from ._native import LIBRARIES, compile_library, kernel_sources
+    if isa is None and "lib" in _WAVELET:  # this process's build, read once
+        return _WAVELET["lib"]
+    from ._native import LIBRARIES, compile_library, kernel_isa, kernel_sources
 
+    if isa is None:
+        choice, extra = kernel_isa()  # raises for a bad value before anything is compiled
+    else:
+        prev = os.environ.get("PRT_TORCH_KERNEL_ISA")
+        os.environ["PRT_TORCH_KERNEL_ISA"] = isa
+        try:
+            choice, extra = kernel_isa()
+        finally:
+            if prev is None:
+                os.environ.pop("PRT_TORCH_KERNEL_ISA", None)
+            else:
+                os.environ["PRT_TORCH_KERNEL_ISA"] = prev
+    key = "lib" if isa is None else f"lib:{choice}"
+    if key not in _WAVELET:
         names, flags = LIBRARIES["wavelet"]
+        flags = list(flags) + list(extra)
         i64, vp = ctypes.c_int64, ctypes.c_void_p
         sig = [vp, i64, vp, vp, i64, vp, vp, i64]
-        _WAVELET["lib"], _WAVELET["why"] = compile_library("wavelet", kernel_sources(names), list(flags), {
+        lib, why = compile_library("wavelet", kernel_sources(names), flags, {
             "prt_wavelet_relight_f32": sig, "prt_wavelet_relight_i8": sig, "prt_wavelet_relight_i16": sig,
             "prt_wavelet_relight_f32_packed": [vp], "prt_wavelet_relight_i8_packed": [vp],
-            "prt_wavelet_relight_i16_packed": [vp]})
-    return _WAVELET["lib"]
+            "prt_wavelet_relight_i16_packed": [vp], "prt_wavelet_isa": []})
+        if lib is not None:
+            lib.prt_build = (choice, " ".join(flags))  # wavelet_kernel_path's PRT_TORCH_KERNEL_ISA choice and flags
+        _WAVELET[key], _WAVELET["why" if isa is None else f"why:{choice}"] = lib, why
+    return _WAVELET[key]
+
+
+def wavelet_kernel_path(isa: str | None = None) -> dict:
+    """Which build of ``kernels/wavelet.c`` relights (a benchmark row names it): ``backend`` (``native``, or
+    ``torch`` with ``why``), the build's instruction set as its ``#if`` branches saw it (``isa``: avx512 / avx2 /
+    avx / baseline, from ``prt_wavelet_isa``; ``w16``: the dense loop on 16 lanes), the ``PRT_TORCH_KERNEL_ISA``
+    choice, the compiler flags, this CPU's own ISA (``cpu_isa``) and ``path`` in words. ``isa``: that build
+    (:func:`_wavelet_lib`) instead of this process's."""
+    from ._native import cpu_isa
+
+    lib = _wavelet_lib(isa)
+    out = {"backend": "native" if lib is not None else "torch", "cpu_isa": cpu_isa()}
+    if lib is None:
+        out["why"] = _WAVELET.get("why") or "disabled by PRT_TORCH_NATIVE=0"
+        out["path"] = "torch formulation"
+        return out
+    bits = int(lib.prt_wavelet_isa())
+    choice, flags = lib.prt_build
+    name = "avx512" if bits & 8 else "avx2" if bits & 2 and bits & 4 else "avx" if bits & 1 else "baseline"
+    w16 = bool(bits & 32)
+    vec = ("AVX-512" if bits & 8 else "AVX2") if bits & 2 else "portable vector"
+    out.update({"isa": name, "w16": w16, "isa_choice": choice, "flags": flags,
+                "path": ("dense loop on 16 lanes (AVX-512, zmm), sparse blocks and output on 8 lanes" if w16 else
+                         f"dense loop, sparse blocks and output on 8 lanes ({vec} code)")})
+    return out

@@ -16,7 +16,16 @@
  *    for each block of 32 vertices, the Pd dense columns' values side by side (zeros where a vertex
  *    did not keep the coefficient), dslot[j] the column's slot (-1: sparse). A block keeps its CO x 4
  *    vectors of 8 sums in registers over every dense light term: one load and CO multiply-adds per 8
- *    values (CT = 1), no index, no scatter (a register-blocked GEMV).
+ *    values (CT = 1), no index, no scatter (a register-blocked GEMV). Built with AVX-512F (W16 below, the
+ *    condition of vec.h's HAVE_W16; not with PRT_TORCH_KERNEL_ISA=avx2 or avx512-256): CO x 2 vectors of 16
+ *    sums instead, one widening load and CO multiply-adds per 16 values (one 64-byte line of 16-bit values
+ *    per term and block), each vertex's terms added in the same order, so the same bits as the 8-lane loop;
+ *    the same layout. Measured on an Intel Xeon (AVX-512, 2 MB L2 per core), paired against the avx2 build
+ *    on one layout, one thread's CPU time (bench_wavelet_isa.py): the dense terms alone 1.07-1.12x faster,
+ *    whole lights 1.02-1.13x except the studio light at N = 100-300 (0.96-1.05x; an ad-hoc C loop of the same
+ *    work from L1: 1.26x; in the kernel the 1-2 MB come partly from L3, and zmm FMAs cost ~5% of clock).
+ *    The sparse blocks, the row-major pass and the output stay on 8 lanes (a 16-lane read-modify-write of
+ *    two channels' scratch per block measured 0.90-0.94x of the 8-lane one: not kept).
  *  - block-sparse, the rest: the vertices in tiles of TV (a multiple of 32), and within a tile, per
  *    column, the 8-vertex blocks holding any of its nonzero values: bofs int32 (the byte offset of the
  *    block's accumulator in the tile's scratch, 128 per block: 4 channels x 8 floats) and vals
@@ -75,6 +84,48 @@ static inline void st8(float *p, v8f x) { memcpy(p, &x, sizeof x); }
 /* a broadcast straight from memory (no zero register held for it: the dense block needs all 16) */
 static inline v8f bc8(const float *p) { const float x = *p; return (v8f){x, x, x, x, x, x, x, x}; }
 
+/* AVX-512 (the condition of vec.h's HAVE_W16: off with PRT_NO_W16, PRT_TORCH_KERNEL_ISA=avx512-256, and without
+ * AVX-512F, e.g. PRT_TORCH_KERNEL_ISA=avx2 or an AVX2 CPU): the dense loop on 16-lane vectors, a 32-vertex block's
+ * channel in two of them (one 64-byte line of 16-bit values per term), loaded by one widening load (vpmovsxwd zmm,
+ * port 5) and one conversion (vcvtdq2ps, port 0) per 16 values, CO multiply-adds on ports 0 and 5: per term and
+ * block 4 + 2 CO operations on two ports where the 8-lane loop issues 4 + 4 CO onto the two 256-bit FMA ports (plus
+ * 4 widening loads on port 5). Everything after the dense terms (the row-major sparse entries, the scratch, the
+ * output) takes the 8-lane code on the sums' halves. */
+#if defined(__AVX512F__) && !defined(PRT_NO_W16)
+#define W16 1
+typedef float v16f __attribute__((vector_size(64)));
+static inline v16f load16_int16_t(const int16_t *p) {
+    return (v16f)_mm512_cvtepi32_ps(_mm512_cvtepi16_epi32(_mm256_loadu_si256((const __m256i *)p))); }
+static inline v16f load16_int8_t(const int8_t *p) {
+    return (v16f)_mm512_cvtepi32_ps(_mm512_cvtepi8_epi32(_mm_loadu_si128((const __m128i *)p))); }
+static inline v16f load16_float(const float *p) { v16f x; memcpy(&x, p, sizeof x); return x; }
+static inline v16f bc16(const float *p) { return (v16f)_mm512_set1_ps(*p); }
+static inline v8f lo8(v16f x) { return (v8f)_mm512_castps512_ps256((__m512)x); }
+static inline v8f hi8(v16f x) { return (v8f)_mm256_castpd_ps(_mm512_extractf64x4_pd(_mm512_castps_pd((__m512)x), 1)); }
+#else
+#define W16 0
+#endif
+
+/* what the library was built with (relight.py: wavelet_kernel_path): 1 AVX, 2 AVX2, 4 FMA, 8 AVX-512F (the bits of
+ * the relight library's prt_isa), 32 the dense loop on 16 lanes (W16) */
+int prt_wavelet_isa(void) {
+    int b = 0;
+#if defined(__AVX__)
+    b |= 1;
+#endif
+#if defined(__AVX2__)
+    b |= 2;
+#endif
+#if defined(__FMA__)
+    b |= 4;
+#endif
+#if defined(__AVX512F__)
+    b |= 8;
+#endif
+    b |= W16 ? 32 : 0;
+    return b;
+}
+
 /* 8 vertices' RGB sums r, g, b (one channel per vector) times their factors f [8, 3], written interleaved
  * to out [8, 3]: each output vector gathers its vertices from all three (a permute with one index vector)
  * and takes each lane's channel by two blends; the portable path through a small buffer */
@@ -99,15 +150,31 @@ static inline void store_rgb8(float *out, const float *f, v8f r, v8f g, v8f b) {
 #endif
 }
 
-/* one block of BV vertices over the nd dense terms (light lw [nd, 4]); acc: the block's four 8-vertex
- * accumulators [4][4 channels][8] of the sparse part, or NULL; CT, CO constants after inlining. Each
- * term's values are loaded one vector at a time with the CO light values held (CT = 1, CO = 3: 12 sums,
- * 3 lights, 1 value = 16 registers, no spill) */
-#define DENSE_BLOCK(T)                                                                                       \
-static inline __attribute__((always_inline)) void dense_block_##T(const int CT, const int CO, const int OC, i64 nd, \
-        const i64 *ds, const float *lw, const T *blk, i64 stride, const float *acc, const i64 *rp,           \
-        const int32_t *rc, const T *rv, const float *lp, i64 nv, const float *f, float *out) {               \
-    v8f a[4][4];                                                                                             \
+/* the dense terms into a[c][k]: with W16 two 16-lane sums per channel (z[c][h], its halves a[c][2h], a[c][2h + 1]),
+ * the prefetch as in the 8-lane loop */
+#if W16
+#define DENSE_TERMS(T)                                                                                       \
+    {                                                                                                        \
+        v16f z[4][2];                                                                                        \
+        for (int c = 0; c < 4; c++) for (int h = 0; h < 2; h++) z[c][h] = (v16f){0};                        \
+        for (i64 t = 0; t < nd; t++) {                                                                       \
+            const T *p = blk + ds[t] * stride;                                                               \
+            if (t + PF < nd)                                                                                 \
+                for (i64 q = 0; q < stride * (i64)sizeof(T); q += 64)                                        \
+                    __builtin_prefetch((const char *)(blk + ds[t + PF] * stride) + q);                       \
+            v16f l[4];                                                                                       \
+            for (int c = 0; c < CO; c++) l[c] = bc16(lw + 4 * t + c);                                        \
+            for (int h = 0; h < 2; h++)                                                                      \
+                for (int c = 0; c < CO; c++) {                                                               \
+                    const v16f x = load16_##T(p + (CT == 1 ? 0 : c * BV) + 16 * h);                          \
+                    z[c][h] += x * l[c];                                                                     \
+                }                                                                                            \
+        }                                                                                                    \
+        for (int c = 0; c < 4; c++)                                                                          \
+            for (int h = 0; h < 2; h++) { a[c][2 * h] = lo8(z[c][h]); a[c][2 * h + 1] = hi8(z[c][h]); }     \
+    }
+#else /* the 8-lane loop: CO x 4 vectors of 8 sums */
+#define DENSE_TERMS(T)                                                                                       \
     for (int c = 0; c < 4; c++) for (int k = 0; k < 4; k++) a[c][k] = (v8f){0};                             \
     for (i64 t = 0; t < nd; t++) {                                                                           \
         const T *p = blk + ds[t] * stride;                                                                   \
@@ -121,7 +188,19 @@ static inline __attribute__((always_inline)) void dense_block_##T(const int CT, 
                 const v8f x = load8_##T(p + (CT == 1 ? 0 : c * BV) + 8 * k);                                 \
                 a[c][k] += x * l[c];                                                                         \
             }                                                                                                \
-    }                                                                                                        \
+    }
+#endif
+
+/* one block of BV vertices over the nd dense terms (light lw [nd, 4]); acc: the block's four 8-vertex
+ * accumulators [4][4 channels][8] of the sparse part, or NULL; CT, CO constants after inlining. Each
+ * term's values are loaded one vector at a time with the CO light values held (CT = 1, CO = 3: 12 sums,
+ * 3 lights, 1 value = 16 registers, no spill) */
+#define DENSE_BLOCK(T)                                                                                       \
+static inline __attribute__((always_inline)) void dense_block_##T(const int CT, const int CO, const int OC, i64 nd, \
+        const i64 *ds, const float *lw, const T *blk, i64 stride, const float *acc, const i64 *rp,           \
+        const int32_t *rc, const T *rv, const float *lp, i64 nv, const float *f, float *out) {               \
+    v8f a[4][4];                                                                                             \
+    DENSE_TERMS(T)                                                                                           \
     if (lp) /* row-major sparse entries of the block's four 8-vertex blocks, the light looked up per column;  \
              * two entries at a time into two sets of sums (one set: a multiply-add latency chain per entry) */ \
         for (int k = 0; k < 4; k++) {                                                                        \

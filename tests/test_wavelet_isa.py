@@ -1,0 +1,124 @@
+"""The wavelet kernel's builds (``PRT_TORCH_KERNEL_ISA``: native, avx2, avx512, avx512-256; ``relight._wavelet_lib``):
+each build this CPU runs relights one layout — every stored dtype, grey and coloured transfers, 1-4 light channels,
+the column-major and row-major sparse passes, one and two threads, a vertex count that is not a multiple of the
+32-vertex block — as the float64 gather of the same stored values (``relight.wavelet_dense``), and names its path
+(``wavelet_kernel_path``: the 16-lane dense loop in the AVX-512 build alone). The AVX-512 builds are skipped on a
+CPU without avx512f and avx512vl (where they are refused in one line); the environment variable is honoured."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+import torch
+
+from prt_torch import _native, relight
+from prt_torch.scene import builtin
+from prt_torch.transfer import Transfer
+
+pytestmark = pytest.mark.skipif(os.environ.get("PRT_TORCH_NATIVE", "1") == "0" or relight._wavelet_lib() is None,
+                                reason="no compiled wavelet kernel")
+
+HAS_512 = _native.cpu_isa() == "avx512"
+HAS_AVX2 = _native.cpu_isa() in ("avx2", "avx512")
+
+
+def _transfer(dtype, CT: int, res: int = 8, K: int = 24, seed: int = 3) -> Transfer:
+    """A synthetic wavelet transfer on the 2251-vertex blocker scene (2251 = 70 x 32 + 11): the first 16 columns kept
+    by most vertices (dense), the rest sparse."""
+    scene = builtin("occluder_over_plane", "small")
+    g = torch.Generator().manual_seed(seed)
+    V, P = scene.num_vertices, 6 * res * res
+    index = (torch.rand(V, P, generator=g) * torch.where(torch.arange(P) < 16, 50.0, 1.0)).topk(K, dim=1).indices
+    shape = (V, K) if CT == 1 else (V, CT, K)
+    q = (torch.randn(*shape, generator=g) if dtype == torch.float32
+         else torch.randint(-100 if dtype == torch.int8 else -30000, 101 if dtype == torch.int8 else 30001, shape,
+                            generator=g).to(dtype))
+    return Transfer("wavelet", q, scene, {"res": res, "terms": K, "albedo_folded": True},
+                    aux={"index": index.to(torch.int16), "scale": torch.ones(V) if CT == 1 else torch.ones(V, CT)})
+
+
+def _relight(r, lib, li, lv, threads: int) -> torch.Tensor:
+    """``r``'s layout relit by build ``lib`` (its plain entry point), no albedo."""
+    r._kernel()
+    name = {torch.int8: "i8", torch.int16: "i16"}.get(r.bvals.dtype, "f32")
+    f = r._factor(lv.shape[0], False)
+    out = torch.empty(r.V, f.shape[1])
+    st = getattr(lib, f"prt_wavelet_relight_{name}")(r._layout.data_ptr(), li.numel(), li.data_ptr(), lv.data_ptr(),
+                                                     lv.shape[0], f.data_ptr(), out.data_ptr(), threads)
+    assert st == 0, st
+    return out
+
+
+def _builds() -> list:
+    out = [pytest.param("native", id="native")]
+    out.append(pytest.param("avx2", id="avx2", marks=pytest.mark.skipif(not HAS_AVX2, reason="no AVX2 on this CPU")))
+    for b in ("avx512", "avx512-256"):
+        out.append(pytest.param(b, id=b, marks=pytest.mark.skipif(not HAS_512, reason="no avx512f/avx512vl on this CPU")))
+    return out
+
+
+@pytest.mark.parametrize("isa", _builds())
+def test_each_build_equals_the_dense_reference(isa):
+    lib = relight._wavelet_lib(isa)
+    assert lib is not None
+    path = relight.wavelet_kernel_path(isa)
+    assert path["backend"] == "native" and path["isa_choice"] == isa
+    assert path["w16"] == (isa == "avx512" or (isa == "native" and HAS_512)), path
+    if isa == "avx2":
+        assert path["isa"] == "avx2" and "8 lanes" in path["path"]
+    g = torch.Generator().manual_seed(11)
+    for dtype in (torch.int8, torch.int16, torch.float32):
+        for CT, channels in ((1, (1, 2, 3, 4)), (3, (1, 3))):
+            tr = _transfer(dtype, CT)
+            r = relight.WaveletRelighter(tr, threads=1, layouts="both")
+            assert 0 < r.Pd < r.P
+            idx, vals = r.reference_rows()
+            for C in channels:
+                for N in (30, r.P):  # column-major scratch pass; every column: the row-major pass
+                    li = torch.randperm(r.P, generator=g)[:N].contiguous()
+                    lv = torch.randn(C, N, generator=g)
+                    L = lv.double().expand(max(C, CT), N)  # a grey light on a coloured transfer: its channel for all three
+                    ref = (relight.wavelet_dense(vals.double(), idx, li, L, r.P) if CT == 1 else torch.cat(
+                        [relight.wavelet_dense(vals[:, c].double(), idx, li, L[c:c + 1], r.P) for c in range(CT)], 1))
+                    for threads in (1, 2):
+                        got = _relight(r, lib, li, lv, threads).double()
+                        err = float((got - ref).abs().max())
+                        assert err <= 1e-5 * float(ref.abs().max()) + 1e-6, (isa, dtype, CT, C, N, threads, err)
+
+
+@pytest.mark.skipif(not HAS_512, reason="no avx512f/avx512vl on this CPU: one build only")
+def test_builds_agree_bit_for_bit():
+    """The 16-lane dense loop adds each vertex's terms in the order the 8-lane one does (one multiply-add per term and
+    lane): the AVX-512 and AVX2 builds give the same bits."""
+    tr = _transfer(torch.int16, 1)
+    r = relight.WaveletRelighter(tr, threads=1, layouts="both")
+    g = torch.Generator().manual_seed(5)
+    for N in (40, r.P):
+        li = torch.randperm(r.P, generator=g)[:N].contiguous()
+        lv = torch.randn(3, N, generator=g)
+        a = _relight(r, relight._wavelet_lib("avx512"), li, lv, 1)
+        b = _relight(r, relight._wavelet_lib("avx2"), li, lv, 1)
+        assert torch.equal(a, b), N
+
+
+def test_avx512_request_refused_in_one_line_without_it():
+    if HAS_512:
+        pytest.skip("this CPU has AVX-512: the request is accepted (test_each_build_equals_the_dense_reference)")
+    with pytest.raises(ValueError) as e:
+        relight._wavelet_lib("avx512")
+    assert "\n" not in str(e.value) and "PRT_TORCH_KERNEL_ISA='avx512'" in str(e.value) and "accepted here: native" in str(e.value)
+
+
+@pytest.mark.skipif(not HAS_AVX2, reason="no AVX2 on this CPU")
+def test_environment_variable_selects_the_build():
+    env = {k: v for k, v in os.environ.items() if k != "PRT_TORCH_NATIVE"}
+    env["PRT_TORCH_KERNEL_ISA"] = "avx2"
+    r = subprocess.run([sys.executable, "-c", "import json; from prt_torch import relight; "
+                        "print(json.dumps(relight.wavelet_kernel_path()))"], capture_output=True, text=True, env=env, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    p = json.loads(r.stdout.strip().splitlines()[-1])
+    assert p["isa"] == "avx2" and p["isa_choice"] == "avx2" and not p["w16"] and "-mno-avx512f" in p["flags"], p
