@@ -1,6 +1,7 @@
 """benchmarks/ab_kernels.py, the paired A/B of two revisions' relight kernels: at a small point
 count it builds the kernels, measures every view mode of the chosen settings and reports equal
 results (maxdiff 0) and finite ratios for equal sources; bad options are refused, naming them."""
+import os
 import shutil
 import subprocess
 import sys
@@ -79,3 +80,50 @@ def test_a_source_built_only_by_the_fallback_flags_is_refused(monkeypatch, tmp_p
             ab_kernels.compile_source((src, list(rk._FLAGS)), "broken")
     finally:
         sys.path.remove(str(ROOT / "benchmarks"))
+
+
+def _has_revision(rev: str) -> bool:
+    return subprocess.run(["git", "-C", str(ROOT), "cat-file", "-e", f"{rev}^{{commit}}"], capture_output=True).returncode == 0
+
+
+def test_stubs_only_for_the_entry_points_a_source_lacks():
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        import ab_kernels
+        old = ({"relight.c": "int prt_affine_rows(void) { return 0; }\n"}, ["-O3"])
+        (src, flags), added = ab_kernels.with_stubs(old)
+        assert added == ["prt_plan_path", "prt_isa"] and flags == ["-O3"]
+        assert src["relight.c"] == old[0]["relight.c"] and "int prt_isa(void)" in src["ab_stubs.c"]
+        has = ({"a.c": "int prt_plan_path(const i64 *a) { return 1; }\nint prt_isa(void) { return 2; }\n"}, [])
+        assert ab_kernels.with_stubs(has) == (has, [])
+    finally:
+        sys.path.remove(str(ROOT / "benchmarks"))
+
+
+@pytest.mark.skipif(shutil.which("cc") is None and shutil.which("gcc") is None, reason="no C compiler")
+@pytest.mark.skipif(not (ROOT / ".git").exists() or not _has_revision("332b8d2"), reason="needs the history back to 332b8d2")
+def test_a_revision_with_other_python_runs_only_when_accepted(tmp_path):
+    """332b8d2 (the kernels as one string, before the path reporting) is refused by default; with
+    --accept-python-diff its Python difference is printed, the entry points it lacks are stubbed and its
+    kernels give the working tree's bits on the diffuse PCA row."""
+    r = _run("--base", "332b8d2", "--shape", "diffuse", "--only", "pca 8", tmp=tmp_path)
+    assert r.returncode != 0 and "differs between '332b8d2' and the working tree" in r.stderr
+    r = _run("--base", "332b8d2", "--shape", "diffuse", "--only", "pca 8", "--accept-python-diff", tmp=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert "+def kernel_path(" in r.stderr and "lacks prt_plan_path, prt_isa: stubs" in r.stderr
+    table = [line for line in r.stdout.splitlines() if line.startswith("| ") and "**" in line]
+    assert len(table) == 1 and table[0].strip("|").split("|")[-1].strip() == "0.0e+00", r.stdout
+
+
+@pytest.mark.skipif(shutil.which("cc") is None and shutil.which("gcc") is None, reason="no C compiler")
+@pytest.mark.skipif(not (ROOT / ".git").exists(), reason="not a git checkout")
+@pytest.mark.skipif(not _cpu_has("avx512f") or not _cpu_has("avx512vl"), reason="needs AVX-512 (the avx2 build is then another ISA)")
+def test_the_kernel_isa_choice_is_the_builds_own_flags(tmp_path):
+    """PRT_TORCH_KERNEL_ISA=avx2 adds -mno-avx512f to both sides' flags (_compile): that build is accepted (it
+    was refused as 'compiled only with other flags'), and the table names the choice."""
+    env = {**os.environ, "PRT_TORCH_KERNEL_ISA": "avx2"}
+    r = subprocess.run([sys.executable, str(TOOL), "--base", ".", "--test", ".", "--points", "1000", "--repeats", "3", "--cache",
+                        str(tmp_path), "--shape", "diffuse", "--only", "pca 8"], capture_output=True, text=True, cwd=ROOT,
+                       timeout=600, env=env)
+    assert r.returncode == 0, r.stderr
+    assert "PRT_TORCH_KERNEL_ISA=avx2" in r.stdout

@@ -556,7 +556,7 @@ def test_mean_only_rows_gather_each_label_dtype(dtype):
 @pytest.mark.parametrize("dtype", [torch.uint8, torch.int16, torch.int32])
 def test_diffuse_vq_rows_every_tail_and_split_write_only_their_floats(dtype):
     """Diffuse VQ without a view (n_out = 1, C = 3: rows of 3 floats from constants padded to 8),
-    the point kernel that writes 4 points as three 16-byte stores (uint8 labels, 8 labels read at a
+    the point kernel that writes 4 points as three 16-byte stores without AVX-512, else packed 8 (uint8 labels, 8 labels read at a
     time) and the loops for the rest: out[p] = T[label_p, :3] bit for bit against plain indexing, for
     point counts that leave every tail length past groups of 4 and 8, split over 1-3 threads (ranges
     starting anywhere), and nothing written past the last point's 3 floats (a NaN-filled guard after

@@ -142,7 +142,8 @@ def native_status() -> dict:
 
 #: prt_plan_path's codes (PRT_ROWS_*, PRT_DENSE_*, PRT_TAPS_* in kernels/prt_kernels.h, in that order): the point
 #: kernel a plan runs, as the kernels dispatch
-_PATH_NAMES = {1: "rows: VQ row copy", 2: "rows/1 vector: VQ RGB, 8 points (uint8 labels: 4 points in three 16-byte stores; else packed)",
+_PATH_NAMES = {1: "rows: VQ row copy",
+               2: "rows/1 vector: VQ RGB, 8 points (uint8 labels: 4 points in three 16-byte stores without AVX-512; else packed)",
                3: "rows/1 vector: VQ row copy",
                4: "rows/1 vector: PCA RGB, 8 points in lanes (AVX2)", 5: "rows/1 vector: fixed term count (weights broadcast)",
                6: "rows/1 vector: one point at a time", 7: "rows: 16 lanes (AVX-512)", 8: "rows: 8 lanes, two points per load",

@@ -263,12 +263,17 @@ static __attribute__((noinline)) void small_rows_range(int path, const int32_t *
                                                      store per point crosses a cache line every other point; 2x, bare C) */
         switch (lab_kind) {
         case 1:
+#if !defined(__AVX512F__)
+            /* AVX-512 builds keep VQ_RGB8_U8 (the Intel Xeon of reports/benchmarks/xeon_audit.md: ab_kernels --shape diffuse
+               --only vq --clock cpu, one thread, maxdiff 0: VQ_RGB16_U8 0.83x [0.77, 0.87] of it; these two loops were
+               measured faster on Zen 3, AVX2 only, and are unchanged there) */
 #if defined(__SSE4_1__)
             if (J == 1)  /* rows 8 floats apart, as VQ_RGB12_U8 assumes; stores end at the 8th point's last float */
                 for (; q + 8 <= p1; q += 8) VQ_RGB12_U8
 #endif
             if (J == 1)  /* rows 8 floats apart, as VQ_RGB16_U8 / VQ_RGB8_U8 assume */
                 for (; q + 9 <= p1; q += 8) VQ_RGB16_U8
+#endif
             if (J == 1)
                 for (; q + 8 <= p1; q += 8) VQ_RGB8_U8
             for (; q + 8 <= p1; q += 8) VQ_RGB8(uint8_t)
