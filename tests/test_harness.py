@@ -567,6 +567,8 @@ def test_cold_paired_timing_with_evict_flushes_the_given_tensors_and_caches_the_
     assert timing.release_eviction_buffer() == 1 << 20 and "t" not in timing._JUNK
     with pytest.raises(ValueError, match=r"tensors\[1\] is a str"):
         timing.measure_paired_cold(lambda: None, lambda: None, repeats=1, evict=[a, "a"])
+    with timing.torch_threads(2), pytest.raises(ValueError, match="thread_time.*accepted: one thread"):
+        timing.measure_paired_cold(lambda: None, lambda: None, repeats=1, evict=[a], clock=time.thread_time)
 
 
 def test_flush_caches_keeps_the_bytes_and_refuses_what_it_cannot_flush():

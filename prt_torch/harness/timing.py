@@ -497,7 +497,7 @@ def release_eviction_buffer() -> int:
 
 def measure_paired_cold(test: Callable[[], Any], peer: Callable[[], Any], repeats: int = 15, warmup: int = 1,
                         evict_bytes: int | None = None, max_switch_rate: float = 50.0, max_spread: float = 0.5,
-                        evict: Any = None) -> Paired:
+                        evict: Any = None, clock: Callable[[], float] = time.perf_counter) -> Paired:
     """:func:`measure_paired` from cold caches: every timed call is a single call, preceded (untimed) by an
     eviction of what the previous calls left in the caches, so each side reads its inputs from memory and
     writes its outputs back, as in a render loop whose other work between frames evicts them. The two
@@ -514,7 +514,8 @@ def measure_paired_cold(test: Callable[[], Any], peer: Callable[[], Any], repeat
     its cost grows with the cache (1920 MiB per call where sysfs lists a 480 MiB L3).
     Paired's ``eviction`` says which ran: ``method`` (``clflushopt``, ``clflush``, ``dc civac`` or ``junk
     read``), ``bytes`` per eviction and ``median_s``, its median time per call (and ``why`` the flush was not
-    used, where ``evict`` was given).
+    used, where ``evict`` was given). ``clock`` times the calls as in :func:`measure_paired` (``time.thread_time``:
+    this thread's CPU time, in one thread only; a stall on memory is CPU time of the thread).
 
     Where the data fit in the last-level cache, :func:`measure_paired`'s back-to-back repeats
     measure an L3-bandwidth bound; this one measures the memory-bandwidth bound
@@ -523,6 +524,9 @@ def measure_paired_cold(test: Callable[[], Any], peer: Callable[[], Any], repeat
 
     repeats = check_int("repeats", repeats, 1)
     warmup = check_int("warmup", warmup, 0)
+    if clock is time.thread_time and torch.get_num_threads() != 1:
+        raise ValueError(f"measure_paired_cold: clock=time.thread_time counts only the calling thread's CPU time, and torch "
+                         f"runs {torch.get_num_threads()} threads; accepted: one thread (with timing.torch_threads(1): ...)")
     method = flush_method() if evict is not None else None
     if method is not None:
         arr, nbytes = _flush_ranges(evict)
@@ -550,7 +554,7 @@ def measure_paired_cold(test: Callable[[], Any], peer: Callable[[], Any], repeat
         peer()
     r0 = resource.getrusage(resource.RUSAGE_SELF)
     c0, w0 = time.process_time(), time.perf_counter()
-    tt, tp, ratios = _alternate(test, peer, repeats, 1, 1, before=before)
+    tt, tp, ratios = _alternate(test, peer, repeats, 1, 1, before=before, clock=clock)
     ratio = _quantiles(ratios, warmup)
     contention = _contention(r0, c0, w0, ratio, max_switch_rate, max_spread)
     eviction = {"method": method, "bytes": nbytes, "median_s": statistics.median(costs)}
