@@ -45,8 +45,8 @@ from .metrics import psnr_vs_reference, random_light_psnr, random_light_psnr_ana
 from .renders import render_best, render_convex
 from .report import load_results, write_outputs
 from .target import find_smallest, search_families
-from .timing import (io_bound_fn, machine_info, measure, measure_paired, measure_paired_cold, rate_policy, torch_threads,
-                     working_set)
+from .timing import (io_bound_fn, machine_info, measure, measure_paired, measure_paired_cold, rate_policy,
+                     release_eviction_buffer, torch_threads, working_set)
 
 __all__ = ["run_benchmark", "compute_transfer", "evaluate_setting", "convex_results", "RESULTS_VERSION"]
 
@@ -530,6 +530,9 @@ def evaluate_run(cfg: dict, run_dir: Path, resume: bool = True, progress: bool =
             failures.append({"setting_id": sid, "setting": f.item, "error": f.error, "attempts": f.attempts})
             log(f"[bench] FAILED {sid} after {f.attempts} attempt(s): {f.error}")
     records = [done[key_of(s)] for s in settings if finished_timed(s)]
+    # the cold column's fallback eviction buffer (4x the LLC; only where the cache flush is not available): kept
+    # across this run's settings, not into the renders or the next part's precompute
+    release_eviction_buffer()
     if skipped:
         log(f"[bench] resumed: {skipped} finished setting(s) reused from {rec_dir}")
     return RunState(cfg, mesh, mem, tr, tinfo, ev, lights, cams, views, ref_cache, uncompressed, records, run_setting,

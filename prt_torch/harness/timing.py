@@ -511,7 +511,9 @@ def measure_paired_cold(test: Callable[[], Any], peer: Callable[[], Any], repeat
     ``evict``, or where the flush helper is not available (:func:`flush_method` None), a read of
     ``evict_bytes`` (default 4× the last-level cache, at least 64 MiB; its lines are clean, so no write-back
     lands in the timed call) from a junk buffer allocated once per process (:func:`release_eviction_buffer`);
-    its cost grows with the cache (1920 MiB per call where sysfs lists a 480 MiB L3).
+    its cost grows with the cache (1920 MiB per call where sysfs lists a 480 MiB L3). The junk read also evicts
+    the code, the interpreter's and torch's state and the page tables, a per-call cost that is not the data's
+    (0.1–3 ms a call on a Xeon VM, reports/benchmarks/cold_evict.md): the flush times the data alone.
     Paired's ``eviction`` says which ran: ``method`` (``clflushopt``, ``clflush``, ``dc civac`` or ``junk
     read``), ``bytes`` per eviction and ``median_s``, its median time per call (and ``why`` the flush was not
     used, where ``evict`` was given). ``clock`` times the calls as in :func:`measure_paired` (``time.thread_time``:
