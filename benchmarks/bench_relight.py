@@ -16,7 +16,7 @@ MRT's four tent taps, Lehtinen & Kautz 2003 eq. (13)), one light per call ``[25,
   same run (a cache-resident 256³ GEMM, at the start and at the end, the faster kept), and **roofline** = max(bound, floor) / relight: where the
   floor is over twice the bound, no kernel meets the 0.5 goal on this CPU;
 * **cold** = the same fraction with both sides from cold caches (``measure_paired_cold``: each
-  call timed alone after reading 4× the last-level cache): the memory-bandwidth bound proper,
+  call timed alone after flushing what both sides touch from the caches): the memory-bandwidth bound proper,
   where the back-to-back repeats above keep the 20–50 MB of a row largely in the L3;
 * **of peak** / **goal needs** = compute floor / relight, and compute floor / (2 × bound): the
   share of the peak rate the kernel sustains, and the share the 0.5 goal would need;
@@ -71,7 +71,7 @@ import torch  # noqa: E402
 from prt_torch import codecs, relight  # noqa: E402
 from prt_torch.codecs.relight_kernels import kernel_path, native_status  # noqa: E402
 from prt_torch.codecs.synthetic import tent_taps_random, transfer_like  # noqa: E402
-from prt_torch.harness.timing import cpu_label, io_bound_fn, machine_info, measure_paired, measure_paired_cold  # noqa: E402
+from prt_torch.harness.timing import cpu_label, io_bound_fn, machine_info, measure_paired, measure_paired_cold, working_set  # noqa: E402
 from prt_torch.io import atomic_write_json, atomic_write_text  # noqa: E402
 from prt_torch.lighting import prefilter_environment  # noqa: E402
 
@@ -163,14 +163,15 @@ def measure(c, enc, light, view, unc, repeats: int) -> dict:
     b = measure_paired(fn, bound, repeats=repeats, warmup=2)
     # the same pair from cold caches (each call after an eviction): the memory-bandwidth bound
     # proper, where the back-to-back repeats above keep the data of either side in the L3
-    cold = measure_paired_cold(fn, bound, repeats=max(15, repeats), warmup=1)
+    cold = measure_paired_cold(fn, bound, repeats=max(15, repeats), warmup=1, evict=working_set(fn, bound))
     # relight allocating its result (first-touch page faults of a new tensor: significant when the
     # output is large, i.e. without a view) against the same bound
     fresh = measure_paired(fresh_fn, bound, repeats=max(3, repeats // 2), warmup=1)
     # a render loop's prepared form (Codec.relighter: the per-call checks done once), same bound
     rl = c.relighter(enc, view)
     prep = measure_paired(lambda: rl(light, out=buf), bound, repeats=repeats, warmup=2)
-    prep_cold = measure_paired_cold(lambda: rl(light, out=buf), bound, repeats=max(15, repeats), warmup=1)
+    prep_cold = measure_paired_cold(lambda: rl(light, out=buf), bound, repeats=max(15, repeats), warmup=1,
+                                    evict=working_set(rl, light, buf, bound))
     # at one thread, the same pair timed by this thread's CPU time (timing.measure_paired's clock): the time other
     # processes held the core is in neither side, so on a shared machine this is the work ratio (the wall-clock
     # column above moves with the load; reports/benchmarks/timing_trust.md)
@@ -595,8 +596,8 @@ def report_all(runs: list[dict]) -> str:
          "the share of the peak rate the kernel sustains (the MACs are the cost model's; the per-light constants are "
          "not counted); **goal needs** = compute floor / (2 × bound), the share it would have to sustain for "
          "fraction 0.5 (over 1: unreachable on this CPU). **cold** = the same fraction from cold caches "
-         "(`harness.timing.measure_paired_cold`: each call, relight or bound, timed alone after reading 4× the "
-         "last-level cache, pairs alternating; median of per-pair ratios [IQR]): the bound is then the "
+         "(`harness.timing.measure_paired_cold`: each call, relight or bound, timed alone after flushing what both "
+         "sides touch from the caches, pairs alternating; median of per-pair ratios [IQR]): the bound is then the "
          "memory-bandwidth bound proper, while the back-to-back repeats of the main column keep either side's data "
          "(20–50 MB here) largely in the L3 and measure an L3-bandwidth bound. "
          "**vs uncompressed**: `relight.apply_dense` / `apply_taps` (or `M @ l`) on the decoded matrices, paired, "

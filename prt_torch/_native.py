@@ -2,7 +2,8 @@
 
 Used where torch has no fused op for a hot loop: the relight kernels
 (:mod:`prt_torch.codecs.relight_kernels`) and the ray generation of the diffuse precompute
-(:mod:`prt_torch.transfer.ray_kernels`). Their C sources are files of their own, shipped as package
+(:mod:`prt_torch.transfer.ray_kernels`); and by the cold-cache timing, to flush what a timed call
+touches from the caches (:func:`prt_torch.harness.timing.flush_caches`). Their C sources are files of their own, shipped as package
 data in ``prt_torch/kernels/`` (:data:`LIBRARIES` lists which files and flags make each library);
 a compile error names the file and line there. A library is compiled once per source, flags,
 compiler, CPU and platform (a hash of them names the file), kept on disk in
@@ -59,6 +60,9 @@ LIBRARIES: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
     # -fno-trapping-math: lets GCC if-convert (and so vectorise) the polynomial exp's range clamps
     "gauss_lm": (("gauss_lm.c",), ("-O3", "-march=native", "-ffp-contract=fast", "-fno-trapping-math", "-fopenmp", "-shared",
                                    "-fPIC", "-std=c99")),
+    # cold-cache timing's eviction (harness.timing.flush_caches): CLFLUSHOPT where -march=native has it, else CLFLUSH
+    # (the build without -march=native), dc civac on aarch64
+    "cacheflush": (("cacheflush.c",), ("-O2", "-march=native", "-shared", "-fPIC", "-std=c99")),
 }
 
 

@@ -215,9 +215,17 @@ def test_torch_threads_sets_and_restores_the_count_even_on_error():
 
 # ------------------------------------------------------------------ end to end
 
-def test_tiny_sweep_end_to_end_and_consistent_numbers(tmp_path):
+def test_tiny_sweep_end_to_end_and_consistent_numbers(tmp_path, monkeypatch):
+    from prt_torch.harness import timing
     from prt_torch.harness.run import run_benchmark
 
+    method = timing.flush_method()
+    if method is not None:  # the cold column flushes the setting's own tensors: the LLC-sized junk is never allocated
+
+        def no_junk(nbytes):
+            raise AssertionError(f"the timing path allocated {nbytes} bytes of eviction junk")
+
+        monkeypatch.setattr(timing, "_junk", no_junk)
     cfg = hc.load_config(str(write_cfg(tmp_path, TINY)))
     logs = []
     run_dir = run_benchmark(cfg, progress=False, log=logs.append)
@@ -239,6 +247,11 @@ def test_tiny_sweep_end_to_end_and_consistent_numbers(tmp_path):
         assert r["relight_timing"]["repeats"] >= 3
         assert 0 < r["fraction_of_bound"] < 2  # the bound is a lower bound on the time (noise aside)
         assert 0 < r["fraction_of_bound_cold"] < 3 and r["bound_cold"]["bound_s"] > 0  # the same from cold caches
+        ev = r["bound_cold"]["eviction"]
+        assert ev["method"] == (method or "junk read")
+        if method is not None:  # what the two sides touch: at least the bound's buffers (2 x read + written), no LLC
+            rb, wb = r["bound_bytes"]["read"], r["bound_bytes"]["written"]
+            assert 2 * rb + wb <= ev["bytes"] < 2 * rb + wb + 4 * (rb + wb) + (1 << 20)
         assert len(r["psnr_per_light_view"]) == 2
         assert r["psnr_lights_db"] == pytest.approx(sum(p["psnr_db"] for p in r["psnr_per_light_view"]) / 2)
     vq = sorted((r for r in res["records"] if r["codec"] == "vq"), key=lambda r: r["params"]["clusters"])
@@ -520,6 +533,97 @@ def test_cold_paired_timing_alternates_single_calls_after_an_eviction():
     assert last_level_cache_bytes() >= 1 << 16
     with pytest.raises(ValueError, match="repeats"):
         measure_paired_cold(lambda: None, lambda: None, repeats=0)
+
+
+def test_cold_paired_timing_with_evict_flushes_the_given_tensors_and_caches_the_junk():
+    """measure_paired_cold(evict=tensors): the same single-call alternation, the eviction a flush of
+    exactly those tensors' bytes (overlaps once; the flush helper where there is one, else the junk
+    read); without evict, the junk buffer is allocated once and reused, and freed on request."""
+    from prt_torch.harness import timing
+
+    calls = []
+    a = torch.zeros(1000)  # 4000 B
+    b = torch.zeros(10, 30)[:, ::2]  # a strided view: its span, 9 * 120 + 14 * 8 + 4 = 1196 B
+
+    def work(name):
+        calls.append(name)
+        a.add_(1)
+
+    p = timing.measure_paired_cold(lambda: work("t"), lambda: work("p"), repeats=5, warmup=1, evict=[a, a[10:], b])
+    assert calls == ["t", "p"] + ["t", "p", "p", "t"] * 2 + ["t", "p"]
+    assert p.ratio.repeats == 5 and p.test.inner == 1
+    assert bool((a == 12).all())  # warm-up + repeats calls of each side
+    method = timing.flush_method()
+    if method is not None:
+        assert p.eviction["method"] == method and p.eviction["bytes"] == 4000 + 1196 and p.eviction["median_s"] >= 0
+    else:
+        assert p.eviction["method"] == "junk read" and p.eviction["why"]
+    timing.release_eviction_buffer()
+    q1 = timing.measure_paired_cold(lambda: None, lambda: None, repeats=2, evict_bytes=1 << 20)
+    junk = timing._JUNK["t"]
+    q2 = timing.measure_paired_cold(lambda: None, lambda: None, repeats=2, evict_bytes=1 << 20)
+    assert timing._JUNK["t"] is junk and q1.eviction == dict(q2.eviction, median_s=q1.eviction["median_s"])
+    assert q1.eviction["method"] == "junk read" and q1.eviction["bytes"] == 1 << 20
+    assert timing.release_eviction_buffer() == 1 << 20 and "t" not in timing._JUNK
+    with pytest.raises(ValueError, match=r"tensors\[1\] is a str"):
+        timing.measure_paired_cold(lambda: None, lambda: None, repeats=1, evict=[a, "a"])
+    with timing.torch_threads(2), pytest.raises(ValueError, match="thread_time.*accepted: one thread"):
+        timing.measure_paired_cold(lambda: None, lambda: None, repeats=1, evict=[a], clock=time.thread_time)
+
+
+def test_flush_caches_keeps_the_bytes_and_refuses_what_it_cannot_flush():
+    """The flush writes back and evicts, never changes memory: bytes equal after it (dirty lines of a
+    just-written tensor included); strided views count their span, overlaps once, empty tensors and
+    numpy arrays are accepted; a device, sparse or non-tensor item is refused naming it."""
+    import numpy as np
+
+    from prt_torch.harness import timing
+
+    if timing.flush_method() is None:
+        pytest.skip(f"no cache-flush helper here: {timing._FLUSH.get('why')}")
+    g = torch.Generator().manual_seed(0)
+    x = torch.randint(-2 ** 31, 2 ** 31 - 1, (4096,), dtype=torch.int32, generator=g)  # 16 KiB, just written: dirty lines
+    want = x.numpy().tobytes()
+    arr = np.arange(100, dtype=np.float64)[::-1]  # a negative stride
+    assert timing.flush_caches([x, x[::3], x.view(64, 64).t(), torch.empty(0), torch.empty(0, 5)[:, 1:], arr]) == 16384 + 800
+    assert x.numpy().tobytes() == want and arr[0] == 99.0
+    assert timing.flush_caches([x[::3]]) == (1365 * 3 + 1) * 4 and timing.flush_caches([]) == 0
+    for bad, match in [(torch.empty(3, device="meta"), r"tensors\[0\] is on meta"),
+                       (torch.eye(3).to_sparse(), r"tensors\[0\] has layout torch.sparse_coo"),
+                       ([1, 2], r"tensors\[0\] is a list")]:
+        with pytest.raises(ValueError, match=match):
+            timing.flush_caches([bad])
+    with pytest.raises(ValueError, match="tensors is a Tensor; accepted: a list"):
+        timing.flush_caches(x)
+
+
+def test_working_set_finds_what_the_timed_callables_hold():
+    """working_set: a nested function's closure, the bound's own buffers (io_bound_fn: read bytes
+    copied into a buffer of the same size, the written bytes filled), containers and prt_torch
+    objects' attributes; each tensor once."""
+    from prt_torch import codecs
+    from prt_torch.harness.timing import _flush_ranges, io_bound_fn, working_set
+
+    bound = io_bound_fn(1000, 200)
+    assert _flush_ranges(working_set(bound))[1] == 1000 + 1000 + 200
+    X = torch.rand(50, 6)
+    codec = codecs.get("pca", vectors=2)
+    enc = codec.fit_encode(X)
+    light = torch.rand(6, 1)
+    buf = torch.empty(50, 1)
+    prepared = codec.relighter(enc)
+
+    def make():
+        return lambda: prepared(light, out=buf)
+
+    fn = make()
+    fn()
+    found = working_set(fn, bound)
+    ids = {id(t) for t in found}
+    assert len(ids) == len(found)
+    assert {id(light), id(buf), *(id(t) for t in enc.tensors.values())} <= ids
+    assert id(codec.basis_) in ids  # the model
+    assert working_set({"a": [(light,)]}, None, 3) == [light]
 
 
 def test_bench_report_has_a_mitsuba_validation_section(tmp_path):

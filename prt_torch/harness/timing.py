@@ -12,6 +12,7 @@ import os
 import platform
 import statistics
 import sys
+import threading
 import time
 from dataclasses import asdict, dataclass
 from typing import Any, Callable
@@ -22,7 +23,8 @@ from .._checks import check_int
 from ..executor import torch_threads  # noqa: F401  (re-exported: where it lived before issue 42)
 
 __all__ = ["Timing", "Paired", "measure", "measure_paired", "measure_paired_cold", "last_level_cache_bytes", "torch_threads",
-           "io_bound_fn", "read_bound_fn", "machine_info", "cpu_label", "rate_policy"]
+           "flush_caches", "flush_method", "working_set", "release_eviction_buffer", "io_bound_fn", "read_bound_fn",
+           "machine_info", "cpu_label", "rate_policy"]
 
 
 @dataclass
@@ -100,10 +102,13 @@ class Paired:
     #: samples (``floor_pairs`` of :func:`measure_paired`), else the median per-repeat ratio
     speedup: float = float("nan")
     floor: dict | None = None
+    #: :func:`measure_paired_cold`'s eviction before each call: method, bytes, median seconds (None elsewhere)
+    eviction: dict | None = None
 
     def as_dict(self) -> dict[str, Any]:
         return {"test": self.test.as_dict(), "peer": self.peer.as_dict(), "ratio": self.ratio.as_dict(),
-                "contention": dict(self.contention), "speedup": self.speedup, "floor": self.floor}
+                "contention": dict(self.contention), "speedup": self.speedup, "floor": self.floor,
+                "eviction": self.eviction}
 
 
 def _quantiles(xs: list[float], warmup: int, inner: int = 1) -> Timing:
@@ -311,34 +316,253 @@ def last_level_cache_bytes() -> int:
     return best or 32 * 1024 ** 2
 
 
+#: what ``prt_flush_method`` of the cacheflush library reports (prt_torch/kernels/cacheflush.c)
+FLUSH_METHODS = {1: "clflush", 2: "clflushopt", 3: "dc civac"}
+
+_FLUSH: dict = {}
+_FLUSH_LOCK = threading.Lock()
+#: the junk buffer of the fallback eviction (:func:`_junk`): allocated once, kept until :func:`release_eviction_buffer`
+_JUNK: dict = {}
+
+
+def _flush_lib():
+    """The compiled cache-flush helper (``prt_torch/kernels/cacheflush.c``), or None (no compiler, or no flush
+    instruction on this CPU). A measuring tool, not a computation path: loaded whatever ``PRT_TORCH_NATIVE`` says
+    (that variable chooses the relighting path being timed, not how the caches are emptied between calls)."""
+    if "lib" not in _FLUSH:
+        with _FLUSH_LOCK:
+            if "lib" not in _FLUSH:
+                import ctypes
+
+                from .._native import LIBRARIES, compile_library, kernel_sources
+
+                names, flags = LIBRARIES["cacheflush"]
+                lib, why = compile_library("cacheflush", kernel_sources(names), list(flags), {
+                    "prt_flush_method": [], "prt_flush_line_bytes": [],
+                    "prt_flush_ranges": [ctypes.c_int64, ctypes.c_void_p, ctypes.c_void_p]})
+                if lib is not None and lib.prt_flush_method() not in FLUSH_METHODS:
+                    lib, why = None, f"no cache-flush instruction in this build for {platform.machine()} ({why})"
+                _FLUSH["why"] = why
+                _FLUSH["lib"] = lib
+    return _FLUSH["lib"]
+
+
+def flush_method() -> str | None:
+    """How :func:`flush_caches` evicts on this machine: ``'clflushopt'`` (x86-64 CPUs that have it),
+    ``'clflush'`` (other x86-64), ``'dc civac'`` (aarch64), or None where the helper is not available (no C
+    compiler, another architecture: :func:`measure_paired_cold` then reads its junk buffer)."""
+    lib = _flush_lib()
+    return None if lib is None else FLUSH_METHODS[lib.prt_flush_method()]
+
+
+def _byte_range(i: int, t: Any) -> tuple[int, int] | None:
+    """``(address, length)`` of the bytes tensor or array ``t`` (item ``i`` of the caller's list) can reach:
+    from its lowest to its highest element, so a strided view spans the gaps between its elements; None
+    when it holds no element. Refuses anything else in one line."""
+    if isinstance(t, torch.Tensor):
+        if t.device.type != "cpu":
+            raise ValueError(f"flush_caches: tensors[{i}] is on {t.device}; accepted: CPU tensors (a device's memory is "
+                             f"not in the CPU's caches)")
+        if t.layout != torch.strided:
+            raise ValueError(f"flush_caches: tensors[{i}] has layout {t.layout}; accepted: strided tensors (pass a "
+                             f"sparse tensor's indices and values)")
+        if t.numel() == 0:
+            return None
+        ptr, shape, strides, item = t.data_ptr(), t.shape, [s * t.element_size() for s in t.stride()], t.element_size()
+    else:
+        import numpy as np
+
+        if not isinstance(t, np.ndarray):
+            raise ValueError(f"flush_caches: tensors[{i}] is a {type(t).__name__}; accepted: CPU torch tensors or "
+                             f"numpy arrays")
+        if t.size == 0:
+            return None
+        ptr, shape, strides, item = t.__array_interface__["data"][0], t.shape, t.strides, t.itemsize
+    lo = sum(min(0, (n - 1) * s) for n, s in zip(shape, strides))
+    hi = sum(max(0, (n - 1) * s) for n, s in zip(shape, strides)) + item
+    return ptr + lo, hi - lo
+
+
+def _flush_ranges(tensors: Any) -> tuple[torch.Tensor, int]:
+    """The merged byte ranges of ``tensors`` (a sequence of CPU tensors / numpy arrays) as an int64 tensor
+    ``[2, n]`` (addresses, lengths), and their total bytes."""
+    if isinstance(tensors, torch.Tensor) or not hasattr(tensors, "__iter__"):
+        raise ValueError(f"flush_caches: tensors is a {type(tensors).__name__}; accepted: a list or tuple of CPU "
+                         f"torch tensors or numpy arrays (working_set(...) gathers them)")
+    spans = sorted(r for i, t in enumerate(tensors) if (r := _byte_range(i, t)) is not None)
+    merged: list[list[int]] = []
+    for a, n in spans:
+        if merged and a <= merged[-1][0] + merged[-1][1]:
+            merged[-1][1] = max(merged[-1][1], a + n - merged[-1][0])
+        else:
+            merged.append([a, n])
+    arr = torch.tensor(merged, dtype=torch.int64).reshape(-1, 2).t().contiguous()
+    return arr, int(arr[1].sum()) if merged else 0
+
+
+def flush_caches(tensors: Any) -> int:
+    """Write back and evict from every cache level the bytes of ``tensors`` (a list or tuple of CPU torch tensors
+    of any dtype, shape and strides — a strided view's whole span — or numpy arrays; empty ones are skipped):
+    CLFLUSHOPT / CLFLUSH per 64-byte line then a fence on x86-64, ``dc civac`` on aarch64
+    (``prt_torch/kernels/cacheflush.c``). The data are unchanged. Costs in proportion to the bytes, whatever
+    the size of the last-level cache. Returns the bytes flushed (overlapping tensors counted once).
+
+    Raises ``ValueError`` (one line naming the item) for anything else — a GPU or sparse tensor, another type —
+    and ``RuntimeError`` where the helper is not available here (:func:`flush_method` is None)."""
+    arr, total = _flush_ranges(tensors)
+    lib = _flush_lib()
+    if lib is None:
+        raise RuntimeError(f"flush_caches: the cache-flush helper is not available here ({_FLUSH.get('why')}); accepted: "
+                           f"a machine with a C compiler on x86-64 or aarch64 (measure_paired_cold falls back to a junk read)")
+    if arr.shape[1]:
+        lib.prt_flush_ranges(arr.shape[1], arr[0].data_ptr(), arr[1].data_ptr())
+    return total
+
+
+def working_set(*objs: Any, max_depth: int = 8) -> list:
+    """The CPU tensors (strided) and numpy arrays reachable from ``objs``: what a timed call that holds them
+    can touch, for ``measure_paired_cold(..., evict=...)``. Followed: tensors and arrays themselves, dicts,
+    lists, tuples and sets, a function's closure (the variables a ``lambda`` or nested function closes over; for
+    a function in ``objs`` also the module-level variables its code names, a script's lambda; a bound method's
+    object), and the attributes (``__dict__`` and ``__slots__``) of prt_torch's own objects —
+    a codec, an encoding with its cached kernel plans, a prepared relighter, a light — to ``max_depth`` levels;
+    not other libraries' objects (a torch module, a ctypes array). Each tensor once, in the order found."""
+    import types
+
+    import numpy as np
+
+    out: list = []
+    seen: set[int] = set()
+    stack = [(o, 0) for o in reversed(objs)]
+    while stack:
+        o, depth = stack.pop()
+        if id(o) in seen or depth > max_depth or o is None or isinstance(o, (str, bytes, int, float, bool)):
+            continue
+        seen.add(id(o))
+        if isinstance(o, torch.Tensor):
+            if o.device.type == "cpu" and o.layout == torch.strided:
+                out.append(o)
+            continue
+        if isinstance(o, np.ndarray):
+            out.append(o)
+            continue
+        kids: list = []
+        if isinstance(o, dict):
+            kids = list(o.values())
+        elif isinstance(o, (list, tuple, set, frozenset)):
+            kids = list(o)
+        elif isinstance(o, types.FunctionType):
+            kids = [c.cell_contents for c in (o.__closure__ or ()) if _cell_filled(c)]
+            if depth == 0:  # one passed here: also the module-level variables it names (a script's lambda)
+                g = o.__globals__
+                kids += [g[n] for n in o.__code__.co_names if n in g and not isinstance(g[n], (types.ModuleType, type))]
+        elif isinstance(o, types.MethodType):
+            kids = [o.__self__, o.__func__]
+        elif type(o).__module__.startswith("prt_torch"):
+            kids = list(getattr(o, "__dict__", {}).values())
+            for cls in type(o).__mro__:
+                for name in getattr(cls, "__slots__", ()):
+                    if hasattr(o, name) and name not in ("__dict__", "__weakref__"):
+                        kids.append(getattr(o, name))
+        stack.extend((k, depth + 1) for k in reversed(kids))
+    return out
+
+
+def _cell_filled(cell) -> bool:
+    try:
+        cell.cell_contents
+    except ValueError:  # a variable the function closes over that is not yet assigned
+        return False
+    return True
+
+
+def _junk(nbytes: int) -> torch.Tensor:
+    """The fallback eviction's buffer of ``nbytes`` (float32 ones), allocated and filled once and kept at module
+    level (:func:`release_eviction_buffer` frees it): allocating and filling 1920 MiB took 6.9 s on a busy
+    Xeon, once per ``measure_paired_cold`` call before."""
+    n = max(1, int(nbytes) // 4)
+    t = _JUNK.get("t")
+    if t is None or t.numel() != n:
+        _JUNK.pop("t", None)
+        t = _JUNK["t"] = torch.ones(n, dtype=torch.float32)
+    return t
+
+
+def release_eviction_buffer() -> int:
+    """Free :func:`measure_paired_cold`'s cached junk buffer (the fallback eviction's); returns its bytes (0: none
+    was held)."""
+    t = _JUNK.pop("t", None)
+    return 0 if t is None else t.numel() * 4
+
+
 def measure_paired_cold(test: Callable[[], Any], peer: Callable[[], Any], repeats: int = 15, warmup: int = 1,
-                        evict_bytes: int | None = None, max_switch_rate: float = 50.0, max_spread: float = 0.5) -> Paired:
-    """:func:`measure_paired` from cold caches: every timed call is a single call, preceded by a
-    read of ``evict_bytes`` (default 4× the last-level cache, at least 64 MiB) that evicts what
-    the previous call left in the caches (a read: the lines it leaves are clean, so no write-back
-    lands in the timed call), so each side reads its inputs from memory and writes its outputs
-    back, as in a render loop whose other work between frames evicts them. The two
-    sides alternate (order swapped every repeat); ``ratio`` is the distribution of per-repeat
-    ratios peer/test, ``speedup`` its median.
+                        evict_bytes: int | None = None, max_switch_rate: float = 50.0, max_spread: float = 0.5,
+                        evict: Any = None, clock: Callable[[], float] = time.perf_counter) -> Paired:
+    """:func:`measure_paired` from cold caches: every timed call is a single call, preceded (untimed) by an
+    eviction of what the previous calls left in the caches, so each side reads its inputs from memory and
+    writes its outputs back, as in a render loop whose other work between frames evicts them. The two
+    sides alternate (order swapped every repeat); ``ratio`` is the distribution of per-repeat ratios
+    peer/test, ``speedup`` its median.
+
+    The eviction: with ``evict`` (a list of the CPU tensors / numpy arrays the two sides read and write —
+    :func:`working_set` of the two callables gathers what they close over) the bytes of those tensors are
+    flushed from every cache level (:func:`flush_caches`: CLFLUSHOPT, CLFLUSH or ``dc civac`` per line; dirty
+    lines written back during the flush, not in the timed call), at a cost in proportion to the data. Without
+    ``evict``, or where the flush helper is not available (:func:`flush_method` None), a read of
+    ``evict_bytes`` (default 4× the last-level cache, at least 64 MiB; its lines are clean, so no write-back
+    lands in the timed call) from a junk buffer allocated once per process (:func:`release_eviction_buffer`);
+    its cost grows with the cache (1920 MiB per call where sysfs lists a 480 MiB L3). The junk read also evicts
+    the code, the interpreter's and torch's state and the page tables, a per-call cost that is not the data's
+    (0.1–3 ms a call on a Xeon VM, reports/benchmarks/cold_evict.md): the flush times the data alone.
+    Paired's ``eviction`` says which ran: ``method`` (``clflushopt``, ``clflush``, ``dc civac`` or ``junk
+    read``), ``bytes`` per eviction and ``median_s``, its median time per call (and ``why`` the flush was not
+    used, where ``evict`` was given). ``clock`` times the calls as in :func:`measure_paired` (``time.thread_time``:
+    this thread's CPU time, in one thread only; a stall on memory is CPU time of the thread).
 
     Where the data fit in the last-level cache, :func:`measure_paired`'s back-to-back repeats
     measure an L3-bandwidth bound; this one measures the memory-bandwidth bound
-    (reports/benchmarks/relight.md, "cold")."""
+    (reports/benchmarks/relight.md, "cold"; the two evictions agree: reports/benchmarks/cold_evict.md)."""
     import resource
 
     repeats = check_int("repeats", repeats, 1)
     warmup = check_int("warmup", warmup, 0)
-    nbytes = evict_bytes if evict_bytes is not None else max(64 * 1024 ** 2, 4 * last_level_cache_bytes())
-    junk = torch.ones(max(1, int(nbytes) // 4), dtype=torch.float32)
+    if clock is time.thread_time and torch.get_num_threads() != 1:
+        raise ValueError(f"measure_paired_cold: clock=time.thread_time counts only the calling thread's CPU time, and torch "
+                         f"runs {torch.get_num_threads()} threads; accepted: one thread (with timing.torch_threads(1): ...)")
+    method = flush_method() if evict is not None else None
+    if method is not None:
+        arr, nbytes = _flush_ranges(evict)
+        lib, n = _flush_lib(), arr.shape[1]
+        a0, a1 = arr[0].data_ptr(), arr[1].data_ptr()
+
+        def evict_now():
+            if n:
+                lib.prt_flush_ranges(n, a0, a1)
+    else:
+        if evict is not None:
+            _flush_ranges(evict)  # bad input is refused here too
+        nbytes = int(evict_bytes if evict_bytes is not None else max(64 * 1024 ** 2, 4 * last_level_cache_bytes()))
+        evict_now = _junk(nbytes).sum
+        method = "junk read"
+    costs: list[float] = []
+
+    def before():
+        t0 = time.perf_counter()
+        evict_now()
+        costs.append(time.perf_counter() - t0)
+
     for _ in range(warmup):
         test()
         peer()
     r0 = resource.getrusage(resource.RUSAGE_SELF)
     c0, w0 = time.process_time(), time.perf_counter()
-    tt, tp, ratios = _alternate(test, peer, repeats, 1, 1, before=junk.sum)
+    tt, tp, ratios = _alternate(test, peer, repeats, 1, 1, before=before, clock=clock)
     ratio = _quantiles(ratios, warmup)
     contention = _contention(r0, c0, w0, ratio, max_switch_rate, max_spread)
-    return Paired(_quantiles(tt, warmup), _quantiles(tp, warmup), ratio, contention, ratio.median, None)
+    eviction = {"method": method, "bytes": nbytes, "median_s": statistics.median(costs)}
+    if evict is not None and method == "junk read":
+        eviction["why"] = _FLUSH.get("why")
+    return Paired(_quantiles(tt, warmup), _quantiles(tp, warmup), ratio, contention, ratio.median, None, eviction)
 
 
 def io_bound_fn(bytes_read: int, bytes_written: int) -> Callable[[], Any]:
