@@ -391,16 +391,18 @@ def calibrate(args, transfer, codec, enc, load_seconds: float = 0.0) -> tuple[fl
 
 def _print_plan(pl: dict, seconds: float | None, how: str) -> None:
     from .. import io
+    from ..transfer.estimate import stage_width
 
     fb = io.format_bytes
     import sys
 
     print(f"prt relight: dry run, {pl['kind']} with {pl['V']} vertices: memory and time per stage", file=sys.stderr)
+    w = stage_width(pl["stages"])  # 'build|light' (a wavelet transfer's) is wider than the others
     for st in pl["stages"]:
-        print(f"  {st['stage']:7s} {fb(st['bytes']):>10s}  {st['note']}", file=sys.stderr)
+        print(f"  {st['stage']:{w}s} {fb(st['bytes']):>10s}  {st['note']}", file=sys.stderr)
     tot = "time not estimated" if seconds is None else f"~{seconds:.3g} s relight (an estimate; {how})"
-    print(f"  peak    {fb(pl['peak']):>10s}  {tot}; budget {fb(pl['budget'])} ({'fits' if pl['peak'] <= pl['budget'] else 'does NOT fit'})",
-          file=sys.stderr)
+    print(f"  {'peak':{w}s} {fb(pl['peak']):>10s}  {tot}; budget {fb(pl['budget'])} "
+          f"({'fits' if pl['peak'] <= pl['budget'] else 'does NOT fit'})", file=sys.stderr)
 
 
 def check_plan(pl: dict) -> None:
