@@ -305,10 +305,23 @@ def _finish_plan(args, V: int, kind: str, stages: list, streamed: bool, how: str
     return {"V": V, "kind": kind, "stages": stages, "peak": peak, "budget": budget, "streamed": streamed}
 
 
-#: bytes per sub-texel direction of a wavelet light's rasterisation (``relight.wavelet_light``: directions, solid
-#: angles, the environment's evaluation and its temporaries in float64): measured 157-207 B (peak RSS growth, studio
-#: and sky, R = 16, 32, 64, supersample 4), rounded up
-LIGHT_SAMPLE_BYTES = 256
+#: a wavelet light's rasterisation (``relight.wavelet_light``) works in blocks of sub-texel directions
+#: (``lighting.haar.sub_texel_blocks``, ``Environment.from_function``'s row blocks): bytes per direction of a block
+#: (its directions, solid angles, the light there and the temporaries, float64) and per cube texel (the cube, its
+#: Haar transform, the term selection); fitted with a margin to the peak RSS growth of the light's path in a fresh
+#: process (sky, studio, a 20° cap, constant, hemisphere; supersample 4): 12.0-13.5 MiB at R = 64, 27.4-30.6 MiB at
+#: R = 128, 3.3-7.9 MiB at R = 32 (before the blocks: 78-99 MiB at R = 64, ~200-263 B per sub-texel direction)
+LIGHT_BLOCK_SAMPLE_BYTES, LIGHT_TEXEL_BYTES = 400, 320
+
+
+def light_bytes(res: int, supersample: int = 4) -> int:
+    """The peak bytes of a wavelet light's rasterisation and transform on the cube at face size ``res``: one block of
+    sub-texel directions (at most ``lighting.haar.LIGHT_BLOCK_SAMPLES``) × :data:`LIGHT_BLOCK_SAMPLE_BYTES` plus
+    :data:`LIGHT_TEXEL_BYTES` per texel (6 res²)."""
+    from ..lighting.haar import LIGHT_BLOCK_SAMPLES
+
+    P = 6 * res * res
+    return min(P * supersample * supersample, LIGHT_BLOCK_SAMPLES) * LIGHT_BLOCK_SAMPLE_BYTES + P * LIGHT_TEXEL_BYTES
 
 
 def _wavelet_plan(args, V: int, mesh: int, data: int, exact: bool | None = None) -> dict:
@@ -317,7 +330,7 @@ def _wavelet_plan(args, V: int, mesh: int, data: int, exact: bool | None = None)
     columns, column-major blocks, the row-major copy 'auto' builds for a light that takes that pass — and
     tables, as :meth:`~prt_torch.relight.WaveletRelighter.held_bytes` will report them), *build|light* (the
     larger of its construction's temporaries and the light's rasterisation on the cube at R,
-    :data:`LIGHT_SAMPLE_BYTES` per sub-texel direction: one after the other, each freed before the next),
+    :func:`light_bytes`, a block of sub-texel directions and the cube: one after the other, each freed before the next),
     *relight* (the whole ``[V, 3]`` result), *output*. ``exact`` None: counted from the file for a dry run;
     otherwise the header's bound first, counted only when that bound does not fit the budget (a run that fits
     reads nothing here)."""
@@ -330,15 +343,15 @@ def _wavelet_plan(args, V: int, mesh: int, data: int, exact: bool | None = None)
     e = WaveletRelighter.estimate_bytes(args.transfer, exact=exact)
     lay = (f"dense {fb(e['dense'])}, column-major {fb(e['column'])}, row-major {fb(e['row'])} (built on first need), "
            f"tables {fb(e['other'])}: {e['total'] / max(V, 1):.0f} B/vertex{'' if exact else ' at most (header bound)'}")
-    light = e["P"] * 16 * LIGHT_SAMPLE_BYTES
+    light = light_bytes(int(round((e["P"] / 6) ** 0.5)))
     stages = [{"stage": "input", "bytes": mesh + data, "note": f"mesh {fb(mesh)}, coefficients {fb(data)} loaded whole"},
               {"stage": "held", "bytes": e["total"], "note": lay},
               # the construction's temporaries, then the light's rasterisation: one after the other, each freed before
               # the next (the larger counts)
               {"stage": "build|light", "bytes": max(e["build"], light),
                "note": f"the larger of the relighter's construction temporaries {fb(e['build'])} ({e['E']} kept "
-                       f"coefficients, built in chunks of rows) and the light rasterised at 4x4 sub-texel directions "
-                       f"{fb(light)}, one after the other"},
+                       f"coefficients, built in chunks of rows) and the light rasterised on the cube {fb(light)} "
+                       f"(in blocks of 4x4 sub-texel directions), one after the other"},
               {"stage": "relight", "bytes": V * 3 * 4 * 3, "note": "the whole [V, 3] result at once"}]
     pl = _finish_plan(args, V, "transfer/wavelet", stages, False, how="")
     if pl["peak"] > pl["budget"] and not exact:  # the bound does not fit: count what the relighter will really hold
