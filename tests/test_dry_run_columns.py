@@ -58,3 +58,16 @@ def test_precompute_estimate_columns_line_up(probe):
     assert len({c[0] for c in _columns(rows)}) == 1, rows
     notes = [st["note"] for st in e.stages] + ["mesh + the larger"]
     assert len({r.index(n) for r, n in zip(rows, notes)}) == 1, rows
+
+
+def test_relight_wavelet_dry_run_estimates_time(wavelet_file, tmp_path, capsys):
+    """The wavelet dry run said 'time not estimated'; it now times a calibration relighter of the first rows (scaled to
+    every row) and the light on the cube, as the SH path times its first chunk (no timed assertion: the figure is the
+    benchmark's); nothing written."""
+    out = tmp_path / "o.npy"
+    capsys.readouterr()
+    assert cli_main(["relight", str(wavelet_file), "--light", "sky", "--terms", "20", "-o", str(out), "--dry-run"]) == 0
+    err = capsys.readouterr().err
+    peak = next(ln for ln in err.splitlines() if ln.strip().startswith("peak"))
+    assert "s relight (an estimate; calibration: loading" in peak and "relighter of the first 2048 rows" in peak, peak
+    assert "time not estimated" not in err and not out.exists()

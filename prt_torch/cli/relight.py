@@ -368,11 +368,14 @@ def json_load(path):
 def calibrate(args, transfer, codec, enc, load_seconds: float = 0.0) -> tuple[float | None, str]:
     """(estimated seconds of the whole relight, how): an SH transfer's first chunk relit and timed
     (after a warm-up of 64 vertices), scaled to every chunk; a codec: one relight of every point
-    (the codes are small: the call is the stage itself, nothing written); otherwise not estimated."""
+    (the codes are small: the call is the stage itself, nothing written); a wavelet transfer:
+    :func:`_calibrate_wavelet`; otherwise (transport tables) not estimated."""
     import time
 
-    if transfer is None or isinstance(transfer, (str, Path)) or transfer.kind == "wavelet":
-        return None, "not estimated for transport tables and wavelet transfers"
+    if transfer is None or isinstance(transfer, (str, Path)):
+        return None, "not estimated for transport tables"
+    if transfer.kind == "wavelet":
+        return _calibrate_wavelet(args, transfer, load_seconds)
     V = transfer.num_vertices
     if codec is not None:
         radiance(transfer, args.light, codec, enc, view=args.view)  # warm-up (kernels, plans)
@@ -400,6 +403,40 @@ def calibrate(args, transfer, codec, enc, load_seconds: float = 0.0) -> tuple[fl
     return load_seconds + setup + dt * n, (f"calibration: loading {load_seconds:.3g} s + set-up {setup:.3g} s + the first {k} "
                                            f"vertices relit in {dt:.3g} s "
                             f"(from the mapped file) × {n} chunks")
+
+
+#: vertices of a wavelet transfer's calibration relighter (:func:`_calibrate_wavelet`)
+WAVELET_CALIBRATION_ROWS = 2048
+
+
+def _calibrate_wavelet(args, transfer, load_seconds: float) -> tuple[float, str]:
+    """A wavelet relight's time, by the SH path's method (a first chunk timed, scaled to every row): a relighter built
+    from the first :data:`WAVELET_CALIBRATION_ROWS` rows (its construction and one relight scale with the rows), the
+    light rasterised and cut to its terms at R (independent of V: timed whole, the stage itself), after the load."""
+    import time
+    import types
+
+    from ..relight import WaveletRelighter
+
+    V = transfer.num_vertices
+    k = min(V, WAVELET_CALIBRATION_ROWS)
+    rows = types.SimpleNamespace(kind="wavelet", data=transfer.data[:k], aux={n: a[:k] for n, a in transfer.aux.items()},
+                                 meta=transfer.meta, mesh=types.SimpleNamespace(albedo=transfer.mesh.albedo[:k]),
+                                 num_vertices=k)
+    t = time.perf_counter()
+    r = WaveletRelighter(rows)
+    build = time.perf_counter() - t
+    t = time.perf_counter()
+    li, lv, _ = r.light(args.light, args.terms, args.selection or "transport")
+    light = time.perf_counter() - t
+    r(li, lv)  # warm-up (the row-major copy, if this light takes that pass)
+    t = time.perf_counter()
+    r(li, lv)
+    call = time.perf_counter() - t
+    f = V / k
+    return load_seconds + (build + call) * f + light, (f"calibration: loading {load_seconds:.3g} s + a relighter of the "
+                                                       f"first {k} rows built in {build:.3g} s and relit in {call:.3g} s "
+                                                       f"× {f:.3g} + the light on the cube {light:.3g} s")
 
 
 def _print_plan(pl: dict, seconds: float | None, how: str) -> None:
