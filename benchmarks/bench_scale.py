@@ -169,7 +169,7 @@ def child(args) -> dict:
         local = np.stack([r * np.cos(phi), r * np.sin(phi), u], 1)  # [rpv, 3]
         F = mesh.frames()[a:a + k].numpy()  # rows (t, b, n)
         d = np.einsum("nk,vkj->vnj", local, F).reshape(-1, 3)
-        o = np.repeat((mesh.vertices[a:a + k] + 1e-4 * mesh.normals[a:a + k]).numpy(), rpv, axis=0)
+        o = np.repeat((caster.local(mesh.vertices[a:a + k]) + 1e-4 * mesh.normals[a:a + k]).numpy(), rpv, axis=0)
         caster.trace(o[:1024], d[:1024])  # warm-up
         t, c = time.perf_counter(), time.process_time()
         for i in range(0, o.shape[0], 1 << 18):

@@ -164,13 +164,13 @@ def diagnostics(mesh, rays: int = 200000, seed: int = 0) -> dict:
     out: dict = {"hit_fraction": {}, "own_face": {}}
     with RayCaster(mesh) as c:
         for rel in (1e-3, 1e-4, 1e-5, 1e-6, 1e-7):
-            prim, _, _, _ = c.trace(offset_origins(q, fn[tri], rel * D).astype(np.float32), d, "intersect")
+            prim, _, _, _ = c.trace(offset_origins(c.local(q), fn[tri], rel * D).astype(np.float32), d, "intersect")
             out["hit_fraction"][f"{rel:g}"] = float((prim != -1).mean())
             out["own_face"][f"{rel:g}"] = float((prim == tri).mean())
         from prt_torch.transfer.diffuse import DiffuseSampler
 
         idx = sample_vertices(mesh, 200, seed=2)
-        i, j, o, dd, _ = DiffuseSampler(2, 2048, 3, "uniform").rays(mesh.vertices[idx], mesh.normals[idx], None, c.eps,
+        i, j, o, dd, _ = DiffuseSampler(2, 2048, 3, "uniform").rays(c.local(mesh.vertices[idx]), mesh.normals[idx], None, c.eps,
                                                                   boundary_nudge(mesh)[idx])
         prim, _, _, _ = c.trace(o, dd, "intersect")
         h = prim != -1

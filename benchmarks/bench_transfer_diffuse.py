@@ -51,7 +51,7 @@ def regenerate_rays(mesh, caster, sampler, chunk_size):
     for a in range(0, V, chunk_size):
         b = min(V, a + chunk_size)
         frames = mesh.frames()[a:b] if sampler.sampling == "cosine" else None
-        _, _, o, d, _ = sampler.rays(mesh.vertices[a:b], mesh.normals[a:b], frames, caster.eps, ids=np.arange(a, b))
+        _, _, o, d, _ = sampler.rays(caster.local(mesh.vertices[a:b]), mesh.normals[a:b], frames, caster.eps, ids=np.arange(a, b))
         yield np.ascontiguousarray(o), np.ascontiguousarray(d)
 
 

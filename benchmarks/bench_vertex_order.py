@@ -51,7 +51,7 @@ def main() -> None:
         for i in range(0, n, 1024):
             idx = order[i:i + 1024]
             d = np.einsum("nk,vkj->vnj", local, F[idx]).reshape(-1, 3).astype(np.float32)
-            o = np.repeat(P[idx] + 1e-4 * N[idx], rpv, axis=0).astype(np.float32)
+            o = np.repeat(caster.local(P[idx]) + 1e-4 * N[idx], rpv, axis=0).astype(np.float32)
             t0 = time.perf_counter()
             caster.trace(o, d)
             t += time.perf_counter() - t0

@@ -109,7 +109,7 @@ def precompute_vs_bare(mesh, res: int, K: int) -> dict:
     for a in range(0, mesh.num_vertices, chunk):  # the same rays, built once, outside the timing
         p, n = mesh.vertices[a:a + chunk].double(), mesh.normals[a:a + chunk].double()
         cos = n.numpy() @ dirs.T
-        o_v = offset_origins(p.numpy(), n.numpy(), caster.eps).astype(np.float32)
+        o_v = offset_origins(caster.local(p.numpy()), n.numpy(), caster.eps).astype(np.float32)  # the caster's frame
         _, _, o, dd = upper_rays(cos, o_v, d32)
         rays.append((o.copy(), dd.copy()))
     n_rays = sum(o.shape[0] for o, _ in rays)

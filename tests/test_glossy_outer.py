@@ -109,7 +109,7 @@ def test_transferred_radiance_equals_a_brute_force_visibility_sum():
         shadowed = 0
         for r in range(len(vids)):  # per vertex, on purpose: the independent reference
             up = torch.nonzero(dirs.dirs @ Nrm[r] > 0).flatten()
-            o = (P[r] + caster.eps * Nrm[r]).expand(up.numel(), 3).numpy().astype(np.float32)
+            o = (caster.local(P[r]) + caster.eps * Nrm[r]).expand(up.numel(), 3).numpy().astype(np.float32)
             vis = ~torch.from_numpy(caster.trace(o, dirs.dirs32[up.numpy()], "occluded"))
             y = eval_sh(dirs.dirs[up[vis]], 3)
             ref[r] = dirs.weight * y.T @ y

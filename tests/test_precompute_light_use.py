@@ -82,3 +82,49 @@ def test_energy_choices_cover_every_decision_energy_changes(kind, params):
     if not used:
         assert lo == hi, (lo, hi)
     assert set(used) <= set(hi), (used, hi)
+
+
+CONFIG = """name: t
+scene: {{name: occluder_over_plane, size: small}}
+transfer: {transfer}
+lights: [sky]
+codecs: {codecs}
+"""
+
+
+@pytest.mark.parametrize("transfer,codecs,refused", [
+    ("{type: diffuse, bands: 3, samples: 16, energy: 0.9}", "[{type: pca, vectors: 2}]",
+     "with transfer.bands = 3: no 'auto' choice in this run keeps it; accepted: transfer.bands: auto with transfer.energy"),
+    ("{type: wavelet, terms: 20, energy: 0.9}", "[]", "with the default transfer.res = 32"),
+    ("{type: wavelet, res: 8, terms: 20, energy: 0.9}", "[]", "with transfer.res = 8"),
+    ("{type: mrt, bands: 3, bands_out: 3, M: 4, samples: 16, energy: 0.9}", "[{type: pca, vectors: 2}]",
+     "accepted: transfer.bands: auto / transfer.bands_out: auto / transfer.M: auto with transfer.energy"),
+    ("{type: diffuse, bands: auto, samples: 16, energy: 0.9}", "[{type: pca, vectors: 2}]", None),
+    ("{type: diffuse, bands: [3, auto], samples: 16, energy: 0.9}", "[{type: pca, vectors: 2}]", None),  # auto reads it
+    ("{type: wavelet, res: auto, terms: 20, energy: 0.9}", "[]", None),
+])
+def test_bench_config_refuses_energy_nothing_keeps(tmp_path, capsys, transfer, codecs, refused):
+    """A config's ``transfer.energy`` was silently accepted where ``prt precompute --energy`` is refused (no 'auto'
+    choice keeps it): now the same refusal, one line (status 2) naming the config file, the key and its value. Which
+    runs read it is checked independently above (resolve() at two energies); a sweep with one 'auto' point reads it."""
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(CONFIG.format(transfer=transfer, codecs=codecs))
+    capsys.readouterr()
+    rc = cli_main(["bench", str(cfg), f"output_dir={tmp_path / 'rep'}", f"cache_dir={tmp_path / 'cache'}", "--dry-run",
+                   "--no-time"])
+    err = capsys.readouterr().err.strip().splitlines()
+    if refused is None:
+        assert rc == 0, err
+        return
+    assert rc == 2 and len(err) == 1, err
+    assert f"config {str(cfg)!r}: key 'transfer.energy' = 0.9 has no effect" in err[0] and refused in err[0], err
+
+
+def test_energy_dropped_where_a_sweep_point_does_not_keep_it():
+    """``bands: [3, auto]`` with ``energy``: the bands-3 point's transfer is the one without ``energy`` (one cache
+    entry), the auto point keeps it."""
+    from prt_torch.harness.run import transfer_params
+
+    base = {"seed": 0, "transfer": {"type": "diffuse", "samples": 16, "energy": 0.9}}
+    assert "energy" not in transfer_params({**base, "transfer": {**base["transfer"], "bands": 3}})
+    assert transfer_params({**base, "transfer": {**base["transfer"], "bands": "auto"}})["energy"] == 0.9

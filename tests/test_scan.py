@@ -110,9 +110,12 @@ def test_scan_blob_is_a_builtin():
 def test_hit_ray_eps_rule():
     m = scan_like(300)
     assert hit_ray_eps(m) == pytest.approx(HIT_OFFSET * m.bbox_diagonal())
+    # rays are traced in a frame centred on the mesh (RayCaster.center): the rule is the same 1000 units away
     far = make_mesh(m.vertices.numpy() + [1000.0, 0, 0], m.faces.numpy(), merge_duplicates=False)
-    floor = 16 * 2.0 ** -23 * float(far.vertices.abs().max())
-    assert hit_ray_eps(far) == pytest.approx(floor) and floor > HIT_OFFSET * far.bbox_diagonal()
+    assert hit_ray_eps(far) == pytest.approx(hit_ray_eps(m), rel=1e-9)
+    v = m.vertices.double()
+    floor = 16 * 2.0 ** -23 * float((v - (v.amin(0) + v.amax(0)) / 2).abs().max())  # 16 ulps of the centred extent
+    assert hit_ray_eps(far, 1e-9) == pytest.approx(floor, rel=1e-9) and floor > 1e-9 * far.bbox_diagonal()
 
 
 def _plates(gap: float):

@@ -104,7 +104,7 @@ def test_all_terms_equal_the_brute_force_texel_sum(scene, full8):
     cos = (n @ d.T).clamp_min(0)
     ii, jj = torch.nonzero(cos > 0, as_tuple=True)
     with RayCaster(scene, workers=1) as c:
-        o = offset_origins(p[ii].numpy(), n[ii].numpy(), c.eps)
+        o = offset_origins(c.local(p[ii].numpy()), n[ii].numpy(), c.eps)  # the caster's (mesh-centred) frame
         occ = torch.from_numpy(c.trace(o.astype(np.float32), d[jj].numpy().astype(np.float32), "occluded"))
     Vis = torch.zeros_like(cos)
     Vis[ii, jj] = (~occ).double()

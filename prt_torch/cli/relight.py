@@ -305,10 +305,23 @@ def _finish_plan(args, V: int, kind: str, stages: list, streamed: bool, how: str
     return {"V": V, "kind": kind, "stages": stages, "peak": peak, "budget": budget, "streamed": streamed}
 
 
-#: bytes per sub-texel direction of a wavelet light's rasterisation (``relight.wavelet_light``: directions, solid
-#: angles, the environment's evaluation and its temporaries in float64): measured 157-207 B (peak RSS growth, studio
-#: and sky, R = 16, 32, 64, supersample 4), rounded up
-LIGHT_SAMPLE_BYTES = 256
+#: a wavelet light's rasterisation (``relight.wavelet_light``) works in blocks of sub-texel directions
+#: (``lighting.haar.sub_texel_blocks``, ``Environment.from_function``'s row blocks): bytes per direction of a block
+#: (its directions, solid angles, the light there and the temporaries, float64) and per cube texel (the cube, its
+#: Haar transform, the term selection); fitted with a margin to the peak RSS growth of the light's path in a fresh
+#: process (sky, studio, a 20° cap, constant, hemisphere; supersample 4): 12.0-13.5 MiB at R = 64, 27.4-30.6 MiB at
+#: R = 128, 3.3-7.9 MiB at R = 32 (before the blocks: 78-99 MiB at R = 64, ~200-263 B per sub-texel direction)
+LIGHT_BLOCK_SAMPLE_BYTES, LIGHT_TEXEL_BYTES = 400, 320
+
+
+def light_bytes(res: int, supersample: int = 4) -> int:
+    """The peak bytes of a wavelet light's rasterisation and transform on the cube at face size ``res``: one block of
+    sub-texel directions (at most ``lighting.haar.LIGHT_BLOCK_SAMPLES``) × :data:`LIGHT_BLOCK_SAMPLE_BYTES` plus
+    :data:`LIGHT_TEXEL_BYTES` per texel (6 res²)."""
+    from ..lighting.haar import LIGHT_BLOCK_SAMPLES
+
+    P = 6 * res * res
+    return min(P * supersample * supersample, LIGHT_BLOCK_SAMPLES) * LIGHT_BLOCK_SAMPLE_BYTES + P * LIGHT_TEXEL_BYTES
 
 
 def _wavelet_plan(args, V: int, mesh: int, data: int, exact: bool | None = None) -> dict:
@@ -317,7 +330,7 @@ def _wavelet_plan(args, V: int, mesh: int, data: int, exact: bool | None = None)
     columns, column-major blocks, the row-major copy 'auto' builds for a light that takes that pass — and
     tables, as :meth:`~prt_torch.relight.WaveletRelighter.held_bytes` will report them), *build|light* (the
     larger of its construction's temporaries and the light's rasterisation on the cube at R,
-    :data:`LIGHT_SAMPLE_BYTES` per sub-texel direction: one after the other, each freed before the next),
+    :func:`light_bytes`, a block of sub-texel directions and the cube: one after the other, each freed before the next),
     *relight* (the whole ``[V, 3]`` result), *output*. ``exact`` None: counted from the file for a dry run;
     otherwise the header's bound first, counted only when that bound does not fit the budget (a run that fits
     reads nothing here)."""
@@ -330,15 +343,15 @@ def _wavelet_plan(args, V: int, mesh: int, data: int, exact: bool | None = None)
     e = WaveletRelighter.estimate_bytes(args.transfer, exact=exact)
     lay = (f"dense {fb(e['dense'])}, column-major {fb(e['column'])}, row-major {fb(e['row'])} (built on first need), "
            f"tables {fb(e['other'])}: {e['total'] / max(V, 1):.0f} B/vertex{'' if exact else ' at most (header bound)'}")
-    light = e["P"] * 16 * LIGHT_SAMPLE_BYTES
+    light = light_bytes(int(round((e["P"] / 6) ** 0.5)))
     stages = [{"stage": "input", "bytes": mesh + data, "note": f"mesh {fb(mesh)}, coefficients {fb(data)} loaded whole"},
               {"stage": "held", "bytes": e["total"], "note": lay},
               # the construction's temporaries, then the light's rasterisation: one after the other, each freed before
               # the next (the larger counts)
               {"stage": "build|light", "bytes": max(e["build"], light),
                "note": f"the larger of the relighter's construction temporaries {fb(e['build'])} ({e['E']} kept "
-                       f"coefficients, built in chunks of rows) and the light rasterised at 4x4 sub-texel directions "
-                       f"{fb(light)}, one after the other"},
+                       f"coefficients, built in chunks of rows) and the light rasterised on the cube {fb(light)} "
+                       f"(in blocks of 4x4 sub-texel directions), one after the other"},
               {"stage": "relight", "bytes": V * 3 * 4 * 3, "note": "the whole [V, 3] result at once"}]
     pl = _finish_plan(args, V, "transfer/wavelet", stages, False, how="")
     if pl["peak"] > pl["budget"] and not exact:  # the bound does not fit: count what the relighter will really hold
@@ -355,11 +368,14 @@ def json_load(path):
 def calibrate(args, transfer, codec, enc, load_seconds: float = 0.0) -> tuple[float | None, str]:
     """(estimated seconds of the whole relight, how): an SH transfer's first chunk relit and timed
     (after a warm-up of 64 vertices), scaled to every chunk; a codec: one relight of every point
-    (the codes are small: the call is the stage itself, nothing written); otherwise not estimated."""
+    (the codes are small: the call is the stage itself, nothing written); a wavelet transfer:
+    :func:`_calibrate_wavelet`; otherwise (transport tables) not estimated."""
     import time
 
-    if transfer is None or isinstance(transfer, (str, Path)) or transfer.kind == "wavelet":
-        return None, "not estimated for transport tables and wavelet transfers"
+    if transfer is None or isinstance(transfer, (str, Path)):
+        return None, "not estimated for transport tables"
+    if transfer.kind == "wavelet":
+        return _calibrate_wavelet(args, transfer, load_seconds)
     V = transfer.num_vertices
     if codec is not None:
         radiance(transfer, args.light, codec, enc, view=args.view)  # warm-up (kernels, plans)
@@ -389,18 +405,54 @@ def calibrate(args, transfer, codec, enc, load_seconds: float = 0.0) -> tuple[fl
                             f"(from the mapped file) × {n} chunks")
 
 
+#: vertices of a wavelet transfer's calibration relighter (:func:`_calibrate_wavelet`)
+WAVELET_CALIBRATION_ROWS = 2048
+
+
+def _calibrate_wavelet(args, transfer, load_seconds: float) -> tuple[float, str]:
+    """A wavelet relight's time, by the SH path's method (a first chunk timed, scaled to every row): a relighter built
+    from the first :data:`WAVELET_CALIBRATION_ROWS` rows (its construction and one relight scale with the rows), the
+    light rasterised and cut to its terms at R (independent of V: timed whole, the stage itself), after the load."""
+    import time
+    import types
+
+    from ..relight import WaveletRelighter
+
+    V = transfer.num_vertices
+    k = min(V, WAVELET_CALIBRATION_ROWS)
+    rows = types.SimpleNamespace(kind="wavelet", data=transfer.data[:k], aux={n: a[:k] for n, a in transfer.aux.items()},
+                                 meta=transfer.meta, mesh=types.SimpleNamespace(albedo=transfer.mesh.albedo[:k]),
+                                 num_vertices=k)
+    t = time.perf_counter()
+    r = WaveletRelighter(rows)
+    build = time.perf_counter() - t
+    t = time.perf_counter()
+    li, lv, _ = r.light(args.light, args.terms, args.selection or "transport")
+    light = time.perf_counter() - t
+    r(li, lv)  # warm-up (the row-major copy, if this light takes that pass)
+    t = time.perf_counter()
+    r(li, lv)
+    call = time.perf_counter() - t
+    f = V / k
+    return load_seconds + (build + call) * f + light, (f"calibration: loading {load_seconds:.3g} s + a relighter of the "
+                                                       f"first {k} rows built in {build:.3g} s and relit in {call:.3g} s "
+                                                       f"× {f:.3g} + the light on the cube {light:.3g} s")
+
+
 def _print_plan(pl: dict, seconds: float | None, how: str) -> None:
     from .. import io
+    from ..transfer.estimate import stage_width
 
     fb = io.format_bytes
     import sys
 
     print(f"prt relight: dry run, {pl['kind']} with {pl['V']} vertices: memory and time per stage", file=sys.stderr)
+    w = stage_width(pl["stages"])  # 'build|light' (a wavelet transfer's) is wider than the others
     for st in pl["stages"]:
-        print(f"  {st['stage']:7s} {fb(st['bytes']):>10s}  {st['note']}", file=sys.stderr)
+        print(f"  {st['stage']:{w}s} {fb(st['bytes']):>10s}  {st['note']}", file=sys.stderr)
     tot = "time not estimated" if seconds is None else f"~{seconds:.3g} s relight (an estimate; {how})"
-    print(f"  peak    {fb(pl['peak']):>10s}  {tot}; budget {fb(pl['budget'])} ({'fits' if pl['peak'] <= pl['budget'] else 'does NOT fit'})",
-          file=sys.stderr)
+    print(f"  {'peak':{w}s} {fb(pl['peak']):>10s}  {tot}; budget {fb(pl['budget'])} "
+          f"({'fits' if pl['peak'] <= pl['budget'] else 'does NOT fit'})", file=sys.stderr)
 
 
 def check_plan(pl: dict) -> None:

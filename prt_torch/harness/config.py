@@ -430,6 +430,7 @@ def _validate_ablation(cfg: dict) -> None:
 
 def _validate_transfer(cfg: dict) -> None:
     from ..transfer import get_kind
+    from ..transfer.auto import energy_choices
     from .evaluate import KINDS
 
     t = cfg["transfer"]
@@ -445,11 +446,40 @@ def _validate_transfer(cfg: dict) -> None:
             raise ValueError(f"config key 'transfer.type' = {name!r}; accepted: {list(KINDS)} (the types the harness relights)")
         kind = get_kind(name)
         params = {k: v for k, v in t.items() if k != "type"}
+        energy_read = False
         for combo in itertools.product(*[(params[k] if k in sweeps else [params[k]]) for k in params]):
             try:
-                kind.validate(dict(zip(params, combo)), where=f"config key 'transfer' (type {name})")
+                p = kind.validate(dict(zip(params, combo)), where=f"config key 'transfer' (type {name})")
             except (ValueError, TypeError) as e:
                 raise ValueError(str(e)) from None
+            energy_read = energy_read or bool(energy_choices(name, p))
+        if "energy" in params and not energy_read:
+            _refuse_energy(cfg, kind, params)
+
+
+def _refuse_energy(cfg: dict, kind, params: dict) -> None:
+    """``transfer.energy`` that no ``'auto'`` choice of the run keeps (:func:`prt_torch.transfer.auto.energy_choices`,
+    over every combination of a sweep): one line naming the config file, the key, its value and what would keep it —
+    the refusal ``prt precompute --energy`` gives (cli/precompute.py ``_check_energy_used``). The config's ``lights``
+    have no such case: the harness relights with them whatever the transfer's parameters are."""
+    from ..transfer.auto import energy_choices
+
+    where = f"config {cfg.get('_source') or cfg.get('name')!r}: key 'transfer.energy' = {params['energy']!r} has no effect"
+    names = []  # the type's parameters whose 'auto' keeps the energy
+    for param in kind.constraints:
+        try:
+            if energy_choices(kind.name, kind.validate({param: "auto"})):
+                names.append(param)
+        except (ValueError, TypeError):
+            pass
+    if not names:
+        raise ValueError(f"{where} on transfer type {kind.name!r}: no 'auto' choice of this type keeps a fraction of the "
+                         "energy; accepted: no transfer.energy")
+    given = [f"transfer.{n} = {params[n]!r}" for n in names if n in params]
+    now = (f"with {', '.join(given)}" if given
+           else f"with the default transfer.{names[0]} = {kind.defaults().get(names[0])!r}")
+    raise ValueError(f"{where} {now}: no 'auto' choice in this run keeps it; accepted: "
+                     f"{' / '.join(f'transfer.{n}: auto' for n in names)} with transfer.energy, or no transfer.energy")
 
 
 def _validate_lights(lights: Any) -> None:

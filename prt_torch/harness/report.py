@@ -290,13 +290,20 @@ def _ms(x: float) -> str:
 def trade_lines(t: dict) -> list[str]:
     """The all-frequency trade of a wavelet transfer (harness.trade): the headline "relight time
     to reach 5% and 1% error, SH vs wavelets" per light, then every row."""
+    loop = t.get("timed") == "render_loop"  # results before it timed the plain call
+    rel = "render loop" if loop else "relight"
     L = ["## SH vs wavelets: the all-frequency trade", "",
          f"Each light cut to N Haar terms ({t['selection']} selection; R = {t['res']}, the stored transfer, "
          f"{t['bytes_per_vertex']} B/vertex) and SH at n bands projected from the same visibility (n² floats per vertex, "
          "3n² for a coloured transfer), "
          "each against the exact result (every term of the light): relative L2 over vertices and RGB. Times: "
-         f"{'one thread, ' if t.get('threads') == 1 else ''}median per relight in one process; SH/wavelet: the two "
-         f"settings timed paired in this run{' in one thread by its CPU time' if t.get('ratio_clock') == 'thread_time' else ''} "
+         f"{'one thread, ' if t.get('threads') == 1 else ''}median per relight in one process"
+         + (", in the render-loop form a user's loop calls (wavelets: `WaveletRelighter.prepared`, the form the kernel "
+            "report times; SH: the product into a reused output), the plain call (the relighter or `relight.diffuse` "
+            "called with the light: its per-call checks and conversions) in its own column"
+            if loop else ", the plain call (the relighter called with the light)")
+         + f"; SH/wavelet: the two settings timed paired in this run{' (render-loop forms)' if loop else ''}"
+         f"{' in one thread by its CPU time' if t.get('ratio_clock') == 'thread_time' else ''} "
          "(> 1: wavelets faster; ⚠: contention).", ""]
     sc = t.get("stored_check") or {}
     if sc:  # what the exact result above itself costs: the stored transfer against all 6R² terms
@@ -304,8 +311,8 @@ def trade_lines(t: dict) -> list[str]:
                f"(all 6R² terms, traced again) on {sc['vertices']} vertices, under each light — the floor every row "
                "above sits on, which the errors above (against the stored transfer) do not include."
                if "vertices" in sc else f"Stored vs all terms: not measured ({sc['skipped']})."), ""]
-    L += ["| light | SH to 5% | wavelets to 5% | SH/wavelet | SH to 1% | wavelets to 1% | SH/wavelet | best SH | best wavelets "
-          "| stored vs all terms |",
+    L += [f"| light | SH to 5% ({rel}) | wavelets to 5% ({rel}) | SH/wavelet | SH to 1% ({rel}) | wavelets to 1% ({rel}) "
+          "| SH/wavelet | best SH | best wavelets | stored vs all terms |",
           "|---|---|---|---|---|---|---|---|---|---|"]
     for h in t["headline"]:
         cells = [h["light"]]
@@ -317,11 +324,16 @@ def trade_lines(t: dict) -> list[str]:
         cells += [f"{h['sh_best_error']:.4f}", f"{h['wavelet_best_error']:.4f}",
                   "—" if h.get("stored_error") is None else f"{h['stored_error']:.4f}"]
         L.append("| " + " | ".join(cells) + " |")
-    L += ["", "| light | method | N or bands | error | relight | fps | B/vertex |", "|---|---|---|---|---|---|---|"]
+    if loop:
+        L += ["", "| light | method | N or bands | error | relight (render loop) | fps (render loop) | plain call | B/vertex |",
+              "|---|---|---|---|---|---|---|---|"]
+    else:
+        L += ["", "| light | method | N or bands | error | relight | fps | B/vertex |", "|---|---|---|---|---|---|---|"]
     for x in t["rows"]:
         size = x["N"] if x["method"] == "wavelet" else x["bands"]
-        L.append(f"| {x['light']} | {x['method']} | {size} | {x['error']:.4f} | {_ms(x['relight_s'])} | {x['fps']:.0f} | "
-                 f"{x['bytes_per_vertex']} |")
+        call = f" {_ms(x['call_s'])} |" if loop else ""
+        L.append(f"| {x['light']} | {x['method']} | {size} | {x['error']:.4f} | {_ms(x['relight_s'])} | {x['fps']:.0f} |"
+                 f"{call} {x['bytes_per_vertex']} |")
     return L + [""]
 
 

@@ -63,12 +63,16 @@ FLOOR_MAX_PAIRS = 160
 # --------------------------------------------------------------------------- transfer
 
 def transfer_params(cfg: dict) -> dict:
-    """The precompute parameters of ``cfg['transfer']`` (everything but ``type``); the run's
-    ``seed`` unless the transfer sets its own."""
+    """The precompute parameters of ``cfg['transfer']`` (everything but ``type``, and ``energy`` where no
+    ``'auto'`` choice keeps it); the run's ``seed`` unless the transfer sets its own."""
     from ..transfer import get_kind
+
+    from ..transfer.auto import energy_choices
 
     t = cfg["transfer"]
     p = {k: v for k, v in t.items() if k != "type"}
+    if "energy" in p and not energy_choices(t["type"], p):  # one point of a sweep where no 'auto' keeps it (the config
+        del p["energy"]  # is refused where none does): the same transfer, the same cache entry
     if "seed" in get_kind(t["type"]).constraints:
         p.setdefault("seed", cfg["seed"])
     return p

@@ -21,9 +21,13 @@ pixel-basis transfer of all 6R² terms, under each light, is measured beside it 
 ``stored_error``; grid-sampled direct transfers only — jittered or interreflected ones say why not). Times: in one thread (the
 work of each method; at the process's thread count a busy machine stalls OpenMP's parallel
 regions on descheduled peers — at load 3.9 on 2 cores every relight read 8 or 16 ms, a scheduler
-slice, for 0.03–0.6 ms of work): each row the median per relight; the headline's SH/wavelet
-ratio timed paired (interleaved, same run) in this thread's CPU time, the ratio of the fastest
-tenth of 40 short pairs, as the harness's speed-up column (``harness.run``).
+slice, for 0.03–0.6 ms of work): each row the median per relight in the render-loop form a user's loop
+calls (wavelets: :meth:`~prt_torch.relight.WaveletRelighter.prepared`, the form the kernel report times; SH:
+:func:`sh_loop`, the product into a reused output), with the plain call beside it (``call_s``: the relighter
+called with the light, or :func:`prt_torch.relight.diffuse`: the per-call checks and conversions, 1.2–2.3× the
+wavelet kernel at small N); the headline's SH/wavelet ratio timed paired (interleaved, same run), render-loop
+forms, in this thread's CPU time, the ratio of the fastest tenth of 40 short pairs, as the harness's speed-up
+column (``harness.run``).
 """
 from __future__ import annotations
 
@@ -36,7 +40,7 @@ from .. import relight
 from .evaluate import Evaluator
 from .timing import measure, measure_paired, torch_threads
 
-__all__ = ["wavelet_trade", "stored_check", "TARGETS", "STORED_CHECK_VERTICES"]
+__all__ = ["wavelet_trade", "stored_check", "sh_loop", "TARGETS", "STORED_CHECK_VERTICES"]
 
 #: the headline's error targets (relative L2)
 TARGETS = (0.05, 0.01)
@@ -61,6 +65,26 @@ def stored_check(ev: Evaluator) -> dict[str, Any]:
     full = dense_wavelet_transfer(ev.transfer.mesh, R, supersample=int(m.get("supersample", 1)),
                                   shadows=bool(m.get("shadows_traced", True)), offset=float(m.get("offset", 1e-4)), vertices=idx)
     return {"vertices": idx, "full": full.reshape(idx.numel(), -1)}
+
+
+def sh_loop(T: torch.Tensor, L: torch.Tensor) -> Callable[[], torch.Tensor]:
+    """The SH side's render-loop form, as :meth:`prt_torch.relight.WaveletRelighter.prepared` is the wavelets':
+    :func:`prt_torch.relight.diffuse`'s product (Sloan 2002) with its checks and the light's layout done once and
+    the output reused, so a call is the product alone. ``T [V, n²]`` or ``[V, CT, n²]`` float32, ``L [C, n²]``;
+    the returned ``run()`` gives ``[V, C]`` (``[V, CT]``) float32, equal to ``relight.diffuse(T, L)`` (the same
+    sums; tested)."""
+    Lc = relight._light(L, T.shape[-1], T.dtype)
+    if T.ndim == 2:
+        Lt = Lc.T.contiguous()  # [n², C]
+        o = torch.empty(T.shape[0], Lt.shape[1], dtype=T.dtype)
+        return lambda: torch.mm(T, Lt, out=o)
+    Lc = (Lc.expand(T.shape[1], -1) if Lc.shape[0] == 1 else Lc).contiguous()  # [CT, n²]
+    tmp = torch.empty_like(T)
+    o = torch.empty(T.shape[0], T.shape[1], dtype=T.dtype)
+
+    def run() -> torch.Tensor:  # [V, CT, n²] · [CT, n²] summed over n²: relight.diffuse's einsum, into reused buffers
+        return torch.sum(torch.mul(T, Lc, out=tmp), -1, out=o)
+    return run
 
 
 def _rel(x: torch.Tensor, ref: torch.Tensor) -> float:
@@ -106,20 +130,24 @@ def wavelet_trade(ev: Evaluator, lights: list[torch.Tensor], cfg: dict, log: Cal
         wav, shr = [], []
         for N in terms:
             idx, vals = select_terms(Lhat.double(), N, sel, r.weights if sel == "transport" else None)
+            vals = vals.to(torch.float32).contiguous()  # the kernel's light (a plain call would convert per call)
             o = r(idx, vals, out=out)
             e = _rel(o, ref)
-            with torch_threads(1):
-                s = measure(lambda: r(idx, vals, out=out), repeats=5, warmup=1).median
+            with torch_threads(1):  # prepared at one thread: its kernel arguments hold the thread count
+                s = measure(r.prepared(idx, vals, out=out), repeats=5, warmup=1).median
+                sc = measure(lambda: r(idx, vals, out=out), repeats=5, warmup=1).median
             wav.append({"light": str(spec), "method": "wavelet", "N": int(idx.numel()), "error": e, "relight_s": s,
-                        "fps": 1.0 / s, "bytes_per_vertex": ev.bytes_per_vertex, "coefficients_read": r.touched(idx)})
+                        "fps": 1.0 / s, "call_s": sc, "bytes_per_vertex": ev.bytes_per_vertex,
+                        "coefficients_read": r.touched(idx)})
         for n in bands:
             Lsh = ((cube * om) @ Y[:, : n * n]).to(torch.float32)  # [C, n²]
             o = relight.diffuse(t_sh[n], Lsh) * albedo[:, :max(C, CT)]
             e = _rel(o, ref)
             with torch_threads(1):
-                s = measure(lambda: relight.diffuse(t_sh[n], Lsh), repeats=5, warmup=1).median
+                s = measure(sh_loop(t_sh[n], Lsh), repeats=5, warmup=1).median
+                sc = measure(lambda: relight.diffuse(t_sh[n], Lsh), repeats=5, warmup=1).median  # noqa: B023
             shr.append({"light": str(spec), "method": "sh", "bands": n, "error": e, "relight_s": s, "fps": 1.0 / s,
-                        "bytes_per_vertex": n * n * 4 * CT})  # CT = 3: one SH vector per colour
+                        "call_s": sc, "bytes_per_vertex": n * n * 4 * CT})  # CT = 3: one SH vector per colour
         rows += wav + shr
         h: dict[str, Any] = {"light": str(spec), "sh_best_error": min(x["error"] for x in shr),
                              "wavelet_best_error": min(x["error"] for x in wav)}
@@ -136,10 +164,9 @@ def wavelet_trade(ev: Evaluator, lights: list[torch.Tensor], cfg: dict, log: Cal
             if s is not None and w is not None:  # paired: SH's relighting time over the wavelets'
                 idx, vals = select_terms(Lhat.double(), w["N"], sel, r.weights if sel == "transport" else None)
                 Lsh = ((cube * om) @ Y[:, : s["bands"] ** 2]).to(torch.float32)
-                tn = t_sh[s["bands"]]
-                with torch_threads(1):
-                    p = measure_paired(lambda: r(idx, vals, out=out), lambda: relight.diffuse(tn, Lsh), repeats=5, warmup=1,
-                                       floor_pairs=40, clock=time.thread_time)
+                with torch_threads(1):  # the render-loop forms, as the rows
+                    p = measure_paired(r.prepared(idx, vals.to(torch.float32), out=out), sh_loop(t_sh[s["bands"]], Lsh),
+                                       repeats=5, warmup=1, floor_pairs=40, clock=time.thread_time)
                 h[f"ratio_{tgt}"] = {"sh_over_wavelet": p.speedup, "trusted": bool(p.contention.get("trusted"))}
         head.append(h)
         log(f"[bench] trade {spec}: best SH {h['sh_best_error']:.4f}, best wavelets {h['wavelet_best_error']:.4f}")
@@ -147,4 +174,5 @@ def wavelet_trade(ev: Evaluator, lights: list[torch.Tensor], cfg: dict, log: Cal
                "terms, float64, traced again with the precompute's rays) on vertices evenly spread over the index range"}
               if "full" in chk else {"skipped": chk["skipped"]})
     return {"selection": sel, "res": R, "terms": terms, "bands": bands, "rows": rows, "headline": head, "stored_check": stored,
-            "bytes_per_vertex": ev.bytes_per_vertex, "threads": 1, "ratio_clock": "thread_time"}
+            "bytes_per_vertex": ev.bytes_per_vertex, "threads": 1, "ratio_clock": "thread_time",
+            "timed": "render_loop"}

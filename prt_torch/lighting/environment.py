@@ -34,6 +34,9 @@ __all__ = [
 ]
 
 _CHUNK = 1 << 16  # pixels per GEMM chunk: bounds the [chunk, n²] basis to a few MB
+#: pixels per row block of :meth:`Environment.from_function` (each sub-pixel pass's directions, the function's values
+#: and their temporaries, a few hundred bytes per pixel: a few MiB a block)
+FROM_FUNCTION_BLOCK = 1 << 14
 
 
 def window_factors(window: Any, bands: int) -> torch.Tensor | None:
@@ -216,23 +219,34 @@ class Environment:
                       supersample: int = 1, rotation: Any = None, name: str = "", meta: dict | None = None) -> "Environment":
         """Rasterise ``fn(world dirs [N, 3] float64) -> [N, C]`` into ``layout`` at ``size``,
         averaging ``supersample``² sub-pixel samples per pixel (samples outside the angular
-        disk or in blank cross tiles are skipped). ``rotation`` as in :func:`load_environment`."""
+        disk or in blank cross tiles are skipped). ``rotation`` as in :func:`load_environment`.
+        Rasterised in blocks of about :data:`FROM_FUNCTION_BLOCK` pixels' rows (each pixel's samples summed in the
+        same order as a whole-image pass): the directions and their temporaries (~1 KB per pixel at
+        ``supersample`` 4) never exist for the whole image at once."""
         R = L.resolve_rotation(rotation, "z")
         h, w = L.layout_shape(layout, size)
         s = check_int("supersample", supersample, 1, 32)
-        ya = torch.arange(h, dtype=torch.float64)[:, None].expand(h, w)
-        xa = torch.arange(w, dtype=torch.float64)[None, :].expand(h, w)
-        acc = None
-        cnt = torch.zeros(h, w, dtype=torch.float64)
-        for p in range(s):  # loop over the s² sub-pixel offsets; each is a whole-image call
-            for q in range(s):
-                d, valid = L.pixel_to_dir(layout, h, w, ya + (p + 0.5) / s, xa + (q + 0.5) / s)
-                v = torch.as_tensor(fn((d @ R.T).reshape(-1, 3))).to(torch.float64).reshape(h, w, -1)
-                v = v * valid[..., None]
-                acc = v if acc is None else acc + v
-                cnt += valid
-        img = acc / cnt.clamp_min(1)[..., None]
-        return cls(img.to(torch.float32), layout, R, name, meta)
+        rows = max(1, FROM_FUNCTION_BLOCK // w)
+        xa = torch.arange(w, dtype=torch.float64)[None, :]
+        img = None
+        for y0 in range(0, h, rows):  # a loop over row blocks and the s² sub-pixel offsets; each a batched call
+            y1 = min(h, y0 + rows)
+            ya = torch.arange(y0, y1, dtype=torch.float64)[:, None].expand(y1 - y0, w)
+            xb = xa.expand(y1 - y0, w)
+            acc = None
+            cnt = torch.zeros(y1 - y0, w, dtype=torch.float64)
+            for p in range(s):
+                for q in range(s):
+                    d, valid = L.pixel_to_dir(layout, h, w, ya + (p + 0.5) / s, xb + (q + 0.5) / s)
+                    v = torch.as_tensor(fn((d @ R.T).reshape(-1, 3))).to(torch.float64).reshape(y1 - y0, w, -1)
+                    v = v * valid[..., None]
+                    acc = v if acc is None else acc + v
+                    cnt += valid
+            block = (acc / cnt.clamp_min(1)[..., None]).to(torch.float32)
+            if img is None:
+                img = torch.empty(h, w, block.shape[-1], dtype=torch.float32)
+            img[y0:y1] = block
+        return cls(img, layout, R, name, meta)
 
     def __repr__(self) -> str:
         return (f"Environment(name={self.name!r}, layout={self.layout!r}, shape={tuple(self.image.shape)}, "

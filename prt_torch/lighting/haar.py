@@ -29,7 +29,7 @@ from .._checks import check_choice, check_float, check_int, describe
 from . import layouts as L
 
 __all__ = ["haar2d", "ihaar2d", "check_res", "cube_geometry", "support_solid_angles", "haar_levels", "cube_light",
-           "select_terms", "SELECTIONS", "DEFAULT_SELECTION", "MAX_HAAR_RES"]
+           "sub_texel_blocks", "LIGHT_BLOCK_SAMPLES", "select_terms", "SELECTIONS", "DEFAULT_SELECTION", "MAX_HAAR_RES"]
 
 #: largest face resolution accepted (6·128² = 98 304 texels)
 MAX_HAAR_RES = 128
@@ -157,15 +157,54 @@ def support_solid_angles(res: int) -> torch.Tensor:
     return out
 
 
-def _energy_cap(img: torch.Tensor, dirs: torch.Tensor, omega: torch.Tensor, d: torch.Tensor, alpha: float,
-                radiance: torch.Tensor, res: int, s: int) -> None:
+#: sub-texel directions per block of :func:`cube_light`'s rasterisation (:func:`sub_texel_blocks`): a block's
+#: directions, solid angles, the light evaluated there and its temporaries, a few hundred B each: a few MiB
+LIGHT_BLOCK_SAMPLES = 1 << 14
+
+
+def sub_texel_blocks(res: int, s: int):
+    """The ``s`` × ``s`` sub-texel grid of the ``faces`` cube at face size ``res`` in blocks of whole texel rows of one
+    face, about :data:`LIGHT_BLOCK_SAMPLES` directions each: yields ``(f, i0, i1, dirs [(i1-i0)·s, r, 3],
+    omega [(i1-i0)·s, r])`` float64 (r = res · s) for face f and texel rows i0…i1-1 — the values of
+    :func:`cube_geometry` (res, s) there, bit for bit, without the whole grid at once (at R = 64, s = 4 the grid and
+    its temporaries took ~78 MiB, ~200 B per direction)."""
+    r = res * s
+    face_om = L.cube_face_solid_angles(r)  # [r, r], the same on every face
+    rows = max(1, LIGHT_BLOCK_SAMPLES // (r * s))  # texel rows per block
+    x = torch.arange(r, dtype=torch.float64)
+    for f in range(6):  # a loop over faces and row blocks, each block one batched evaluation
+        xx = (x + f * r)[None, :] + 0.5
+        for i0 in range(0, res, rows):
+            i1 = min(res, i0 + rows)
+            yy = torch.arange(i0 * s, i1 * s, dtype=torch.float64)[:, None] + 0.5
+            d = L.pixel_to_dir("faces", r, 6 * r, yy.expand(-1, r), xx.expand(yy.shape[0], -1))[0]
+            yield f, i0, i1, d, face_om[i0 * s:i1 * s]
+
+
+def _averaged(fn, res: int, s: int) -> torch.Tensor:
+    """``[6, R, R, C]`` float64: ``fn`` (directions ``[n, 3]`` float64 → radiance ``[n, C]``) averaged by solid angle
+    over each texel's ``s``² sub-texels, block by block (:func:`sub_texel_blocks`)."""
+    om_R = _texel_omega(res)
+    img = None
+    for f, i0, i1, d, om in sub_texel_blocks(res, s):
+        v = torch.as_tensor(fn(d.reshape(-1, 3))).to(torch.float64).reshape(d.shape[0], d.shape[1], -1)
+        part = (v * om[..., None]).reshape(i1 - i0, s, res, s, -1).sum((1, 3)) / om_R[f, i0:i1, :, None]
+        if img is None:
+            img = torch.empty(6, res, res, part.shape[-1], dtype=torch.float64)
+        img[f, i0:i1] = part
+    return img
+
+
+def _energy_cap(img: torch.Tensor, d: torch.Tensor, alpha: float, radiance: torch.Tensor, res: int, s: int) -> None:
     """Add a uniform cap (direction ``d``, half-angle ``alpha``, radiance ``[C]``) to ``img [6, R, R, C]``
-    energy-conservingly: texel coverage from ``s``² sub-texel directions, rescaled so Σ L Ω is the
-    cap's exact power; a cap smaller than every sample puts its power in the texel holding ``d``
-    (the rule of the built-in environments)."""
+    energy-conservingly: texel coverage from ``s``² sub-texel directions (block by block,
+    :func:`sub_texel_blocks`), rescaled so Σ L Ω is the cap's exact power; a cap smaller than every sample
+    puts its power in the texel holding ``d`` (the rule of the built-in environments)."""
     cosa = math.cos(alpha)
-    inside = ((dirs @ d) >= cosa).to(torch.float64)  # [6, r, r] at the sub-texel grid
-    cov_om = (inside * omega).reshape(6, res, s, res, s).sum((2, 4))  # [6, R, R] covered solid angle
+    cov_om = torch.empty(6, res, res, dtype=torch.float64)  # [6, R, R] covered solid angle
+    for f, i0, i1, dirs, omega in sub_texel_blocks(res, s):
+        inside = ((dirs @ d) >= cosa).to(torch.float64)  # at the block's sub-texel grid
+        cov_om[f, i0:i1] = (inside * omega).reshape(i1 - i0, s, res, s).sum((1, 3))
     power = 2 * math.pi * (1 - cosa)
     raster = float(cov_om.sum())
     if raster > 0:
@@ -176,7 +215,8 @@ def _energy_cap(img: torch.Tensor, dirs: torch.Tensor, omega: torch.Tensor, d: t
 
 
 def _texel_omega(res: int) -> torch.Tensor:
-    return cube_geometry(res)[1]
+    """``[6, R, R]`` float64: :func:`cube_geometry` (res)'s solid angles, without its directions."""
+    return L.cube_face_solid_angles(res).expand(6, res, res)
 
 
 def _texel_of(d: torch.Tensor, res: int) -> tuple[int, int, int]:
@@ -209,15 +249,11 @@ def cube_light(spec: Any, res: int, supersample: int = 4, channels: int = 3) -> 
 
     res = check_res(res)
     s = check_int("supersample", supersample, 1, 16)
-    dirs, omega = cube_geometry(res, s)  # sub-texel grid
     om_R = _texel_omega(res)
-    flat = dirs.reshape(-1, 3)
     rec: dict[str, Any] = {"res": res, "upsampled": False}
 
-    def averaged(fn) -> torch.Tensor:  # sub-texel radiance averaged by solid angle -> [6, R, R, C]
-        v = torch.as_tensor(fn(flat)).to(torch.float64).reshape(6, res * s, res * s, -1)
-        w = omega[..., None]
-        return (v * w).reshape(6, res, s, res, s, -1).sum((2, 4)) / om_R[..., None]
+    def averaged(fn) -> torch.Tensor:  # sub-texel radiance averaged by solid angle -> [6, R, R, C], block by block
+        return _averaged(fn, res, s)
 
     if isinstance(spec, torch.Tensor):
         from ..sh import band_of_coeffs, eval_sh
@@ -237,7 +273,7 @@ def cube_light(spec: Any, res: int, supersample: int = 4, channels: int = 3) -> 
     if d is not None:
         kind, d = analytic_params(d)
         rec["source"] = f"analytic {kind} rasterised at R={res}"
-        return _analytic_cube(kind, d, res, s, dirs, omega).permute(3, 0, 1, 2).contiguous(), rec
+        return _analytic_cube(kind, d, res, s).permute(3, 0, 1, 2).contiguous(), rec
     if isinstance(spec, (str, os.PathLike)) and str(spec).lower().endswith(".json") and Path(spec).is_file():
         from .spec import load_light_json  # an SH light file (prt light --json, prt invert): evaluated, as a tensor
 
@@ -269,7 +305,7 @@ def cube_light(spec: Any, res: int, supersample: int = 4, channels: int = 3) -> 
     return img.permute(3, 0, 1, 2).contiguous(), rec
 
 
-def _analytic_cube(kind: str, d: dict, res: int, s: int, dirs: torch.Tensor, omega: torch.Tensor) -> torch.Tensor:
+def _analytic_cube(kind: str, d: dict, res: int, s: int) -> torch.Tensor:
     """``[6, R, R, C]`` radiance of an analytic light (see :func:`cube_light`)."""
     from . import analytic as A
 
@@ -287,7 +323,7 @@ def _analytic_cube(kind: str, d: dict, res: int, s: int, dirs: torch.Tensor, ome
             if d:
                 raise TypeError(f"unexpected keys {sorted(d)}")
             img = torch.zeros(6, res, res, Lc.numel(), dtype=torch.float64)
-            _energy_cap(img, dirs, omega, direction, alpha, Lc, res, s)
+            _energy_cap(img, direction, alpha, Lc, res, s)
             return img
         if kind == "directional":
             direction = A.unit_direction(d.pop("direction"))
@@ -316,9 +352,11 @@ def _analytic_cube(kind: str, d: dict, res: int, s: int, dirs: torch.Tensor, ome
             if d:
                 raise TypeError(f"unexpected keys {sorted(d)}")
             z, h, g = torch.broadcast_tensors(z, h, g)
-            t = (dirs @ up)[..., None]  # [6, r, r, 1]
-            v = torch.where(t >= 0, h + (z - h) * t.clamp_min(0), g)
-            return (v * omega[..., None]).reshape(6, res, s, res, s, -1).sum((2, 4)) / om_R[..., None]
+
+            def radiance(dirs: torch.Tensor) -> torch.Tensor:  # [n, 3] -> [n, C]
+                t = (dirs @ up)[..., None]
+                return torch.where(t >= 0, h + (z - h) * t.clamp_min(0), g)
+            return _averaged(radiance, res, s)
     except TypeError as e:
         raise ValueError(f"light spec for {kind!r}: {e}") from None
     raise ValueError(f"light type {kind!r}; accepted: cap, directional, constant, hemisphere, sky_gradient")

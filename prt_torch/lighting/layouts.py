@@ -69,6 +69,7 @@ __all__ = [
     "dir_to_pixel",
     "pixel_directions",
     "solid_angles",
+    "cube_face_solid_angles",
     "valid_mask",
     "up_rotation",
     "euler_matrix",
@@ -292,13 +293,17 @@ def solid_angles(layout: str, height: int, width: int, subsamples: int = ANGULAR
                 out += dens * da
         return out
     tw, th, tile_id, *_ = _cube_tables(layout)
-    n = width // tw
+    tiles = (tile_id >= 0).to(torch.float64)
+    return torch.kron(tiles, cube_face_solid_angles(width // tw))
+
+
+def cube_face_solid_angles(n: int) -> torch.Tensor:
+    """Exact solid angles ``[n, n]`` float64 of the pixels of one cube face of n × n pixels (every face the same;
+    F(a,b) = atan2(ab, √(a²+b²+1)) over each pixel's corners): what :func:`solid_angles` tiles over a cube layout."""
     e = torch.linspace(-1, 1, n + 1, dtype=torch.float64)
     a0, a1 = e[None, :-1], e[None, 1:]
     b0, b1 = e[:-1, None], e[1:, None]
-    face = _cube_F(a1, b1) - _cube_F(a0, b1) - _cube_F(a1, b0) + _cube_F(a0, b0)  # [n, n], symmetric in b
-    tiles = (tile_id >= 0).to(torch.float64)
-    return torch.kron(tiles, face)
+    return _cube_F(a1, b1) - _cube_F(a0, b1) - _cube_F(a1, b0) + _cube_F(a0, b0)  # [n, n], symmetric in b
 
 
 def valid_mask(layout: str, height: int, width: int) -> torch.Tensor:

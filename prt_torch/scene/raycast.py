@@ -6,6 +6,13 @@
 * ``intersect(origins, dirs) -> (hit bool[R], tri int64[R], bary float64[R,2], t float64[R])``
   (first hit; ``rtcIntersect1``), with the hit point ``(1-u-v)·v0 + u·v1 + v·v2``.
 
+Frame: Embree's float32 ray tests run in a frame centred on the mesh (``center``, its bounding-box
+centre, subtracted in float64 before any float32 cast), so a mesh far from the origin (a scan in
+world or georeferenced coordinates) traces as it would at the origin: transfer under distant light
+is translation-invariant. ``occluded``/``intersect`` take world coordinates and shift them; the bare
+``trace`` takes float32 origins already in the caster's frame (``caster.local(points)`` in float64,
+then offset and cast). Hit distances and (triangle, barycentrics) are the same in either frame.
+
 Self-intersection: rays leaving a surface are offset by ``eps = offset · (bounding-box
 diagonal)`` along the surface normal (towards the side the ray leaves on) when ``normals`` are
 given, and by ``eps`` along the ray (equivalent to t_near = eps, which embreex does not expose);
@@ -20,7 +27,6 @@ traces one share itself.
 """
 from __future__ import annotations
 
-import math
 import os
 import signal
 import struct
@@ -61,31 +67,31 @@ def _as_np3(name: str, x: Any) -> np.ndarray:
 #: the coordinate magnitudes Embree's float32 ray-triangle tests handle (measured on occluder_over_plane,
 #: 8 rays per vertex against the same mesh at scale 1: identical occlusion for bounding-box diagonals
 #: 2.9e-17 … 2.9e13, none of the blocker's shadow at 2.9e-18 and 2.9e14 — products of coordinates
-#: leave float32's range); accepted with a margin of 100 to 10^5
+#: leave float32's range); accepted with a margin of 100 to 10^5. Checked on the mesh-centred
+#: coordinates (:class:`RayCaster` traces in that frame): a mesh's own extent, not its distance from the origin
 MAX_COORDINATE, MIN_DIAGONAL = 1e12, 1e-12
 
 
 def check_traceable(vertices: np.ndarray, diagonal: float, eps: float, offset: float) -> None:
-    """Refuse (ValueError, one line) a mesh Embree cannot trace correctly in float32: coordinates
-    above :data:`MAX_COORDINATE` or a bounding-box diagonal below :data:`MIN_DIAGONAL`, or a mesh so far
-    from the origin for its size that float32's spacing at its largest coordinate exceeds half the
-    self-intersection offset ``eps`` (= offset × diagonal): the offset origins then round back into the
-    surface and rays start inside it (measured: occluder_over_plane moved by 5000 along x,y,z, spacing
-    1.7 eps: 0.65% of rays wrong; moved by 1e4: 65% of rays blocked, the SH and wavelet transfers all black;
-    moved by 3000, spacing 0.85 eps: every ray as at the origin). ``vertices [N, 3]`` float64."""
+    """Refuse (ValueError, one line) a mesh Embree cannot trace correctly in float32 even centred on itself:
+    ``vertices [N, 3]`` float64 in the caster's frame (the bounding-box centre subtracted, so ``|vertices|``
+    is at most half the ``diagonal``). Refused: coordinates above :data:`MAX_COORDINATE` (an extent beyond
+    float32's products) or a bounding-box diagonal below :data:`MIN_DIAGONAL`, or float32's spacing at the
+    largest coordinate above half the self-intersection offset ``eps`` (= offset × diagonal: only an offset
+    below ~1e-7 of the diagonal, the offset origins would round back into the surface). Before the frame was
+    centred, a mesh far from the origin was refused here (occluder_over_plane moved by 1e4: float32's spacing
+    1.7× eps there, 65% of the rays started inside the surface, every transfer black); it now traces as at the
+    origin."""
     far = float(np.abs(vertices).max()) if vertices.size else 0.0
     if far > MAX_COORDINATE or (diagonal < MIN_DIAGONAL and far > 0):
-        raise ValueError(f"mesh coordinates reach {far:.3g} with a bounding-box diagonal of {diagonal:.3g}; accepted for "
-                         f"ray tracing (Embree, float32): |coordinates| <= {MAX_COORDINATE:g} and a diagonal >= "
-                         f"{MIN_DIAGONAL:g} (rescale the mesh)")
+        raise ValueError(f"mesh extent reaches {far:.3g} from its centre with a bounding-box diagonal of {diagonal:.3g}; "
+                         f"accepted for ray tracing (Embree, float32, centred on the mesh): |coordinates - centre| <= "
+                         f"{MAX_COORDINATE:g} and a diagonal >= {MIN_DIAGONAL:g} (rescale the mesh)")
     spacing = float(np.spacing(np.float32(far)))
     if eps > 0 and spacing > eps / 2:
-        limit = 2.0 ** (math.floor(math.log2(eps / 2)) + 24)  # float32's spacing is 2^(e-23) on [2^e, 2^(e+1))
-        raise ValueError(f"mesh coordinates reach {far:.3g} from the origin for a bounding-box diagonal of {diagonal:.3g}: "
-                         f"float32 ray tracing (Embree) spaces them {spacing:.2g} apart there, more than half the "
-                         f"self-intersection offset {eps:.2g} (offset {offset:g} x diagonal), so rays would start inside "
-                         f"the surface; accepted: |coordinates| < {limit:.4g} for this mesh (translate it nearer "
-                         "the origin, e.g. centre it)")
+        raise ValueError(f"self-intersection offset {offset:g} x the bounding-box diagonal {diagonal:.3g} = {eps:.2g} is "
+                         f"below twice float32's spacing {spacing:.2g} at the mesh's extent ({far:.3g} from its centre): "
+                         f"rays would start inside the surface; accepted: offset >= {2 * spacing / diagonal:.2g}")
 
 
 def _ended_by_signal(pool: list) -> str | None:
@@ -131,14 +137,17 @@ class RayCaster:
             raise ValueError("vertices hold NaN or Inf; accepted: finite coordinates")
         self.vertices = v
         self.faces = f.astype(np.int64)
-        self.scale = float(np.linalg.norm(v.max(0) - v.min(0)))
+        lo, hi = (v.min(0), v.max(0)) if v.shape[0] else (np.zeros(3), np.zeros(3))
+        self.center = (lo + hi) / 2  # float64 [3]: the frame Embree traces in (module docstring)
+        self._local = v - self.center
+        self.scale = float(np.linalg.norm(hi - lo))
         self.offset = check_float("offset", offset, 0.0, 0.1)
         self.eps = self.offset * self.scale
-        check_traceable(v, self.scale, self.eps, self.offset)
+        check_traceable(self._local, self.scale, self.eps, self.offset)
         self.workers = default_workers() if workers is None else check_int("workers", workers, 1, 256)
         self.min_parallel_rays = check_int("min_parallel_rays", min_parallel_rays, 1)
         self.chunk_rays = check_int("chunk_rays", chunk_rays, 1)
-        self._scene = _build_scene(v, self.faces)
+        self._scene = _build_scene(self._local, self.faces)
         self._pool = None
         self.rays_traced = 0
 
@@ -185,7 +194,7 @@ class RayCaster:
             env = dict(os.environ)
             root = str(Path(__file__).resolve().parents[2])
             env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
-            v = np.ascontiguousarray(self.vertices, "<f4")
+            v = np.ascontiguousarray(self._local, "<f4")  # the caster's frame, as the in-process scene
             f = np.ascontiguousarray(self.faces, "<i4")
             procs = []
             for _ in range(self.workers - 1):
@@ -200,12 +209,21 @@ class RayCaster:
         return self._pool
 
     # ---------------------------------------------------------------- helpers
+    def local(self, points: Any) -> Any:
+        """World positions ``[..., 3]`` in the caster's frame, ``points - center`` in float64 (torch in, torch out;
+        otherwise numpy): what :meth:`trace`'s float32 origins are built from (offset, then cast), so that a mesh
+        far from the origin keeps its float32 precision."""
+        if isinstance(points, torch.Tensor):
+            return points.to(torch.float64) - torch.from_numpy(self.center)
+        return np.asarray(points, np.float64) - self.center
+
     def prepare(self, origins: Any, dirs: Any, normals: Any = None) -> tuple[np.ndarray, np.ndarray]:
-        """Offset origins off the surface and return contiguous float32 ``(origins, dirs)``.
+        """Offset origins off the surface and return contiguous float32 ``(origins, dirs)``, the origins in the
+        caster's frame (world ``origins`` minus :attr:`center`, in float64 before the cast).
 
         ``o' = o + eps·sign(n·d)·n + eps·d`` (the normal term only when ``normals`` are given).
         """
-        o = _as_np3("origins", origins).astype(np.float64)
+        o = _as_np3("origins", origins).astype(np.float64) - self.center
         d = _as_np3("dirs", dirs).astype(np.float64)
         if o.shape != d.shape:
             raise ValueError(f"origins {o.shape} and dirs {d.shape} differ; accepted: equal [R, 3] shapes")
@@ -250,7 +268,9 @@ class RayCaster:
 
     # ---------------------------------------------------------------- queries
     def trace(self, origins: np.ndarray, dirs: np.ndarray, query: str = "occluded", tfar: np.ndarray | None = None):
-        """The bare path: float32 numpy rays, no offsets, straight to Embree (split over workers).
+        """The bare path: float32 numpy rays, no offsets, straight to Embree (split over workers). ``origins`` are in
+        the caster's frame: build them from :meth:`local` positions (float64) before the float32 cast — world
+        coordinates cast to float32 lose the precision the offsets need far from the origin.
 
         Returns numpy ``bool [R]`` for ``query='occluded'``, or ``(primID int32 [R] (-1 = miss),
         u float32 [R], v float32 [R], tfar float32 [R])`` for ``'intersect'``.

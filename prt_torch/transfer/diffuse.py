@@ -208,6 +208,8 @@ def hit_ray_eps(mesh: Mesh, hit_offset: float = HIT_OFFSET) -> float:
     hits are none from 1e-7 of the diagonal up on a mesh near the origin; far from it (coordinates
     of 1000 for a 3-unit mesh) 1e-5 gave 0.8% and the ulp floor (16 ulps) keeps them away."""
     v = mesh.vertices.to(torch.float64)
+    if v.numel():  # the largest coordinate in the frame rays are traced in (RayCaster: centred on the bounding box)
+        v = v - (v.amin(0) + v.amax(0)) / 2
     floor = HIT_OFFSET_ULPS * 2.0 ** -23 * float(v.abs().max()) if v.numel() else 0.0
     return max(float(hit_offset) * mesh.bbox_diagonal(), floor)
 
@@ -639,7 +641,7 @@ class HitBounce:
             a = (cb // Gb + _hash_uniform(self.seed, fb, cb, FACE_PROBE_STREAM)) / GUIDE_GRID[0]
             b = (cb % Gb + _hash_uniform(self.seed, fb, cb, FACE_PROBE_STREAM + 1)) / Gb
             d = _malley_dirs(self.frames, fb, a, b)
-            o = offset_origins(self.face_centroids[fb], self.face_normals_np[fb], eps).astype(np.float32)
+            o = offset_origins(caster.local(self.face_centroids[fb]), self.face_normals_np[fb], eps).astype(np.float32)
             out[s0:s0 + step] = ~caster.trace(o, d, "occluded")
         self._opened[f, c] = out
         self._cells[f, c] = True
@@ -843,8 +845,11 @@ class HitBounce:
         or None where no ray is guided: every factor 1)."""
         M = self.samples_at(level)
         ft = self.faces[tri]
-        vt = self.vertices
-        q = bary[:, :1] * vt[ft[:, 0]] + bary[:, 1:2] * vt[ft[:, 1]] + bary[:, 2:3] * vt[ft[:, 2]]  # [H,3] hit points
+        vt, c = self.vertices, caster.center
+        # [H,3] hit points in the caster's (mesh-centred) frame: Embree's float32 barycentrics sum to 1 only within
+        # ~6e-8, an error that scales with the corners' coordinates (7e-4 at 1e4 from the origin), so the corners are
+        # moved to that frame first
+        q = bary[:, :1] * (vt[ft[:, 0]] - c) + bary[:, 1:2] * (vt[ft[:, 1]] - c) + bary[:, 2:3] * (vt[ft[:, 2]] - c)
         n = self.face_normals_np[tri]
         if level == 0 and self.mode != "plain":  # the vertex's shift + a Halton offset over its direction index (class doc)
             zero = np.zeros_like(key_b)
@@ -1029,10 +1034,10 @@ def _chunk_work(caster: RayCaster, sampler: DiffuseSampler, points: torch.Tensor
     k = points.shape[0]
     keys = (first_id + np.arange(k)) if ids is None else np.asarray(ids)
     if sampler.sampling == "qmc":  # rays in blocks of M per vertex: the index arrays only where needed
-        o, d, cos = sampler.chunk_rays(points, normals, caster.eps, nudge, ids=keys, reuse=True)  # consumed within this chunk
-        i = j = None
+        o, d, cos = sampler.chunk_rays(caster.local(points), normals, caster.eps, nudge, ids=keys, reuse=True)  # consumed
+        i = j = None  # within this chunk; origins in the caster's (mesh-centred) frame
     else:
-        i, j, o, d, cos = sampler.rays(points, normals, frames, caster.eps, nudge, reuse=True, ids=keys)
+        i, j, o, d, cos = sampler.rays(caster.local(points), normals, frames, caster.eps, nudge, reuse=True, ids=keys)
     if record_hits:
         prim, bu, bv, _ = caster.trace(o, d, "intersect")
         hit = prim != -1

@@ -48,7 +48,7 @@ from .base import ChunkInterrupt, RunOptions, mesh_bytes
 from ..io import format_bytes
 from .glossy import default_chunk, estimate_memory, memory_budget
 
-__all__ = ["estimate", "check_fits", "format_estimate", "result_bytes_per_vertex", "memory_plan", "MemoryPlan", "full_params",
+__all__ = ["estimate", "check_fits", "format_estimate", "stage_width", "result_bytes_per_vertex", "memory_plan", "MemoryPlan", "full_params",
            "rss_bytes", "BVH_BYTES_PER_FACE",
            "ALLOCATOR_SLACK", "real_chunk", "probe_chunk", "probe_seconds", "PROBE_CHUNKS", "PROBE_MIN_CHUNK", "PROBE_SHARE"]
 
@@ -595,14 +595,22 @@ def _probe(kind, mesh: Mesh, params: dict, run: RunOptions, lights, k: int | Non
                                    f"{info['probe_wall_seconds']:.1f} s"}
 
 
+def stage_width(stages: list[dict]) -> int:
+    """The width of a dry run's stage-name column: the longest of ``stages``' names and 'peak', at least 7 (the
+    columns after it line up whatever the names: ``prt relight``'s wavelet plan has 'build|light')."""
+    return max(7, len("peak"), *(len(str(st["stage"])) for st in stages))
+
+
 def format_estimate(e: Estimate) -> list[str]:
-    """One line per stage and a total, for ``--dry-run``."""
+    """One line per stage and a total, for ``--dry-run``: name, bytes, time and note in aligned columns."""
     lines = []
-    for st in e.stages:
-        sec = "time not measured" if st["seconds"] is None else f"~{st['seconds']:.1f} s"
-        lines.append(f"  {st['stage']:7s} {format_bytes(st['bytes']):>10s}  {sec:>12s}  {st['note']}")
-    tot = e.seconds
-    lines.append(f"  peak    {format_bytes(e.peak_bytes):>10s}  {'' if tot is None else f'~{tot:.1f} s':>12s}  "
+    w = stage_width(e.stages)
+    secs = ["time not measured" if st["seconds"] is None else f"~{st['seconds']:.1f} s" for st in e.stages]
+    tot = "" if e.seconds is None else f"~{e.seconds:.1f} s"
+    ws = max(12, len(tot), *map(len, secs))  # 'time not measured' is wider than '~0.5 s'
+    for st, sec in zip(e.stages, secs):
+        lines.append(f"  {st['stage']:{w}s} {format_bytes(st['bytes']):>10s}  {sec:>{ws}s}  {st['note']}")
+    lines.append(f"  {'peak':{w}s} {format_bytes(e.peak_bytes):>10s}  {tot:>{ws}s}  "
                  f"mesh + the larger of rays and result; budget {format_bytes(e.budget_bytes)} "
                  f"({'fits' if e.fits else 'does NOT fit'})")
     return lines

@@ -229,7 +229,7 @@ def transferred_radiance(caster: RayCaster | None, points: torch.Tensor, normals
     k = cos.shape[0]
     fused = None
     if caster is not None:
-        o_v = offset_origins(points.to(torch.float64).numpy(), normals.to(torch.float64).numpy(), caster.eps,
+        o_v = offset_origins(caster.local(points.to(torch.float64).numpy()), normals.to(torch.float64).numpy(), caster.eps,
                              None if nudge is None else nudge.numpy()).astype(np.float32)  # the one offset rule
         fused = upper_rays(cos.numpy(), o_v, directions.dirs32)  # the rays above each tangent plane in one compiled pass
     if fused is not None:

@@ -304,7 +304,7 @@ def _pixel_transfer(caster: RayCaster | None, points: torch.Tensor, normals: tor
     cos = np.einsum("kd,kpd->kp", normals.numpy(), dirs_f) if per_vertex else normals.numpy() @ dirs_f.T  # [k, Pf] float64
     rays = 0
     if caster is not None:
-        o_v = offset_origins(points.numpy(), normals.numpy(), eps,
+        o_v = offset_origins(caster.local(points.numpy()), normals.numpy(), eps,  # the caster's (mesh-centred) frame
                              None if nudge is None else nudge.numpy()).astype(np.float32)
         fused = None if per_vertex else upper_rays(cos, o_v, dirs32, work=work)
         if fused is not None:

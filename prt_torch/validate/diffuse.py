@@ -150,7 +150,7 @@ def _ray_noise(caster: RayCaster, mesh: Mesh, p: torch.Tensor, n: torch.Tensor, 
 
         t, b = tangent_frames(n.numpy())
         frames = torch.stack([torch.from_numpy(t), torch.from_numpy(b), n], dim=-2)
-    i, j, o, d, cos = sampler.rays(p, n, frames, caster.eps, boundary_nudge(mesh)[idx],
+    i, j, o, d, cos = sampler.rays(caster.local(p), n, frames, caster.eps, boundary_nudge(mesh)[idx],
                                    ids=None if idx is None else idx.numpy())
     prim, bu, bv, _ = caster.trace(o, d, "intersect")
     hit = prim != -1

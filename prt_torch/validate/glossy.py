@@ -121,7 +121,7 @@ def engine_glossy(transfer: Transfer, L: torch.Tensor, idx: torch.Tensor, view_l
             N = dirs.shape[0]
             for k in range(idx.numel()):
                 up = torch.nonzero(dirs @ n[k] > 0).flatten()
-                o = offset_origins(p[k:k + 1].numpy(), n[k:k + 1].numpy(), caster.eps,
+                o = offset_origins(caster.local(p[k:k + 1].numpy()), n[k:k + 1].numpy(), caster.eps,
                                    None if nudge is None else nudge[k:k + 1].numpy())
                 d = dirs[up].numpy()
                 vis = ~caster.trace(np.repeat(o, d.shape[0], 0).astype(np.float32), d.astype(np.float32), "occluded")
