@@ -340,24 +340,15 @@ def isa_runs(spec: str) -> list[str]:
     and ``avx2`` where that build is AVX-512 (the alternatives issue 42 §4 asks to settle on AMD Zen 4); else a
     comma list of native, avx2, avx512, avx512-256 (the first in this process). Each value is checked here
     (one line naming it and what this CPU accepts, status 2)."""
-    from prt_torch._native import kernel_isa
+    from prt_torch._native import check_isa_list
 
     if spec == "auto":
         return ["", "avx512-256", "avx2"] if kernel_path()["isa"] == "avx512" else [""]
-    out = [v.strip() for v in spec.split(",") if v.strip()]
-    prev = os.environ.get("PRT_TORCH_KERNEL_ISA")
     try:
-        for v in out:
-            os.environ["PRT_TORCH_KERNEL_ISA"] = v
-            kernel_isa()
+        out = check_isa_list(spec)
     except ValueError as e:
         print(f"bench_relight.py: --isa {spec}: {e}", file=sys.stderr)
         raise SystemExit(2) from None
-    finally:
-        if prev is None:
-            os.environ.pop("PRT_TORCH_KERNEL_ISA", None)
-        else:
-            os.environ["PRT_TORCH_KERNEL_ISA"] = prev
     return out
 
 

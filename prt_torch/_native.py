@@ -220,6 +220,24 @@ def kernel_isa() -> tuple[str, tuple[str, ...]]:
     return v, KERNEL_ISAS[v]
 
 
+def check_isa_list(spec: str) -> list[str]:
+    """A comma list of ``PRT_TORCH_KERNEL_ISA`` values (the benchmarks' ``--isa``), each checked by :func:`kernel_isa`
+    as this CPU would take it; the variable is left as it was. Raises ``ValueError`` (one line) for a value that is
+    not accepted here."""
+    out = [v.strip() for v in spec.split(",") if v.strip()]
+    prev = os.environ.get("PRT_TORCH_KERNEL_ISA")
+    try:
+        for v in out:
+            os.environ["PRT_TORCH_KERNEL_ISA"] = v
+            kernel_isa()
+    finally:
+        if prev is None:
+            os.environ.pop("PRT_TORCH_KERNEL_ISA", None)
+        else:
+            os.environ["PRT_TORCH_KERNEL_ISA"] = prev
+    return out
+
+
 def _sources_of(name: str, src) -> dict[str, str]:
     return {f"{name}.c": src} if isinstance(src, str) else dict(src)
 

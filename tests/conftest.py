@@ -2,6 +2,7 @@
 import os
 
 import pytest
+import torch
 
 
 @pytest.fixture(scope="module")
@@ -80,3 +81,18 @@ def tilted_plane():
     corners = [i * 12 + j for i in range(11) for j in range(11)]
     F = [[a, a + 12, a + 1] for a in corners] + [[a + 1, a + 12, a + 13] for a in corners]
     return make_mesh(P, np.array(F), name="tilted plane"), n, t, b
+
+
+def _upper_rays(v, n, k: int = 8, seed: int = 0):
+    """``k`` random directions per vertex in the hemisphere of its normal (float64, seeded): origins ``[V·k, 3]``
+    (the vertices repeated), directions ``[V·k, 3]`` unit, normals ``[V·k, 3]`` — rays for ``RayCaster.occluded``."""
+    g = torch.Generator().manual_seed(seed)
+    d = torch.randn(v.shape[0] * k, 3, generator=g, dtype=torch.float64)
+    d = d / d.norm(dim=1, keepdim=True)
+    o, nn = v.repeat_interleave(k, 0), n.repeat_interleave(k, 0)
+    return o, torch.where((d * nn).sum(1, keepdim=True) < 0, -d, d), nn
+
+
+@pytest.fixture
+def upper_rays():
+    return _upper_rays

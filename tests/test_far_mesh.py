@@ -57,15 +57,11 @@ def test_moved_mesh_gives_the_transfer_at_the_origin(blocker, name):
         assert torch.equal(tr.mesh.vertices, moved.vertices)  # stored in the user's coordinates
 
 
-def test_shadows_are_traced_far_from_the_origin(blocker):
+def test_shadows_are_traced_far_from_the_origin(blocker, upper_rays):
     """The occlusion of the same rays (8 upper-hemisphere directions per vertex) through ``occluded`` (world
     coordinates in): the moved mesh's equals the unmoved one's, which the blocker shadows."""
     v, n, f = blocker.vertices.double(), blocker.normals.double(), blocker.faces
-    g = torch.Generator().manual_seed(0)
-    d = torch.randn(v.shape[0] * 8, 3, generator=g, dtype=torch.float64)
-    d = d / d.norm(dim=1, keepdim=True)
-    o, nn = v.repeat_interleave(8, 0), n.repeat_interleave(8, 0)
-    d = torch.where((d * nn).sum(1, keepdim=True) < 0, -d, d)
+    o, d, nn = upper_rays(v, n)
     ref = RayCaster(vertices=v, faces=f).occluded(o, d, nn)
     assert 0.05 < float(ref.float().mean()) < 0.5
     for s in (1e4, 1e6):

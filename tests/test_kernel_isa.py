@@ -131,3 +131,16 @@ def test_kernel_path_in_process_names_a_kernel_per_view():
     rows, dense = c.kernel_path(enc), c.kernel_path(enc, torch.randn(300, 24))
     assert rows["path"].startswith("rows") and dense["path"].startswith("dense"), (rows, dense)
     assert rows["threads"] == torch.get_num_threads() and rows["cpu_isa"] == _native.cpu_isa()
+
+
+def test_check_isa_list_checks_each_value_and_leaves_the_variable(monkeypatch):
+    """_native.check_isa_list (the benchmarks' --isa): each value checked as kernel_isa would, the variable as before."""
+    from prt_torch._native import check_isa_list
+
+    monkeypatch.setenv("PRT_TORCH_KERNEL_ISA", "native")
+    assert check_isa_list(" native, ,native ") == ["native", "native"]
+    with pytest.raises(ValueError, match="PRT_TORCH_KERNEL_ISA='bogus'; accepted: native"):
+        check_isa_list("native,bogus")
+    assert os.environ["PRT_TORCH_KERNEL_ISA"] == "native"
+    monkeypatch.delenv("PRT_TORCH_KERNEL_ISA")
+    assert check_isa_list("") == [] and "PRT_TORCH_KERNEL_ISA" not in os.environ

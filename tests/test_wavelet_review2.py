@@ -110,7 +110,7 @@ def _shifted_scene_file(path, shift: float = 0.0, scale: float = 1.0):
     return m
 
 
-def test_a_mesh_moved_by_1000_traces_as_at_the_origin(tmp_path):
+def test_a_mesh_moved_by_1000_traces_as_at_the_origin(tmp_path, upper_rays):
     """A scan in georeferenced units (the course's scene moved by 1e4 along x, y, z) was traced in float32
     with offsets of 1e-4 × its diagonal, smaller than float32's spacing there (0.001): 65% of the rays
     started inside the surface and the written transfer was black at every vertex. It was then refused; ray
@@ -122,11 +122,7 @@ def test_a_mesh_moved_by_1000_traces_as_at_the_origin(tmp_path):
 
     m = _shifted_scene_file(tmp_path / "far.obj", shift=1e4)
     v, n, f = m.vertices.double(), m.normals.double(), m.faces
-    g = torch.Generator().manual_seed(0)
-    d = torch.randn(v.shape[0] * 8, 3, generator=g, dtype=torch.float64)
-    d = d / d.norm(dim=1, keepdim=True)
-    o, nn = v.repeat_interleave(8, 0), n.repeat_interleave(8, 0)
-    d = torch.where((d * nn).sum(1, keepdim=True) < 0, -d, d)
+    o, d, nn = upper_rays(v, n)
     ref = RayCaster(vertices=v, faces=f).occluded(o, d, nn)
     assert 0.05 < float(ref.float().mean()) < 0.5  # the blocker shadows the plane
     assert torch.equal(RayCaster(vertices=v + 1000.0, faces=f).occluded(o + 1000.0, d, nn), ref)
