@@ -130,6 +130,8 @@ def wavelet_trade(ev: Evaluator, lights: list[torch.Tensor], cfg: dict, log: Cal
         wav, shr = [], []
         for N in terms:
             idx, vals = select_terms(Lhat.double(), N, sel, r.weights if sel == "transport" else None)
+            if wav and wav[-1]["N"] == int(idx.numel()):  # N past the light's nonzero terms (select_terms): the same row
+                continue
             vals = vals.to(torch.float32).contiguous()  # the kernel's light (a plain call would convert per call)
             o = r(idx, vals, out=out)
             e = _rel(o, ref)

@@ -29,7 +29,8 @@ from .._checks import check_choice, check_float, check_int, describe
 from . import layouts as L
 
 __all__ = ["haar2d", "ihaar2d", "check_res", "cube_geometry", "support_solid_angles", "haar_levels", "cube_light",
-           "sub_texel_blocks", "LIGHT_BLOCK_SAMPLES", "select_terms", "SELECTIONS", "DEFAULT_SELECTION", "MAX_HAAR_RES"]
+           "sub_texel_blocks", "LIGHT_BLOCK_SAMPLES", "select_terms", "ZERO_TERM", "SELECTIONS", "DEFAULT_SELECTION",
+           "MAX_HAAR_RES"]
 
 #: largest face resolution accepted (6·128² = 98 304 texels)
 MAX_HAAR_RES = 128
@@ -362,6 +363,12 @@ def _analytic_cube(kind: str, d: dict, res: int, s: int) -> torch.Tensor:
     raise ValueError(f"light type {kind!r}; accepted: cap, directional, constant, hemisphere, sky_gradient")
 
 
+#: relative size below which a light's Haar coefficient counts as zero (:func:`select_terms`): 1e-12 of the
+#: largest |L̂_k| — about 5000 float64 roundings above the transform's round-off (~1e-16 relative per level) and
+#: far below any real light's range (an HDR sun over a sky spans ~1e6); float32 lights carry no information there.
+ZERO_TERM = 1e-12
+
+
 def select_terms(coeffs: torch.Tensor, terms: int, selection: str = DEFAULT_SELECTION,
                  weights: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """The non-linear N-term approximation of a light (Ng 2003 §5): the ``terms`` wavelet
@@ -376,15 +383,21 @@ def select_terms(coeffs: torch.Tensor, terms: int, selection: str = DEFAULT_SELE
             |T̂_vk| of the transfer over the vertices (Ng's transport-weighted selection).
         weights: ``[P]`` per-coefficient weights ('transport'; 'area' computes its own).
     Returns:
-        (indices ``[N]`` int64 into P, sorted by decreasing importance; values ``[C, N]``, dtype of
-        ``coeffs``).
+        (indices ``[N']`` int64 into P, sorted by decreasing importance; values ``[C, N']``, dtype of
+        ``coeffs``), N' = min(N, the light's nonzero terms): a coefficient whose |L̂_k| is at most
+        :data:`ZERO_TERM` of the largest is the transform's round-off (a light that is piecewise constant
+        on blocks, such as caps or area lights on black, has exact zeros there that the float64 Haar
+        sums leave at ~1e-17), carries no light, and is never selected — ranking such terms would make
+        which transfer columns an N above the light's real terms reads depend on the CPU's rounding.
+        An all-zero light keeps its largest term (one, of value 0).
     """
     if coeffs.ndim != 2:
         raise ValueError(f"coeffs has shape {tuple(coeffs.shape)}; accepted: [C, P] Haar coefficients")
     P = coeffs.shape[1]
     terms = check_int("terms", terms, 1)
     check_choice("selection", selection, SELECTIONS)
-    imp = coeffs.abs().sum(0).to(torch.float64)
+    mag = coeffs.abs().sum(0).to(torch.float64)
+    imp = mag.clone()
     if selection == "area":
         r = math.isqrt(P // 6)
         if 6 * r * r != P:
@@ -395,6 +408,10 @@ def select_terms(coeffs: torch.Tensor, terms: int, selection: str = DEFAULT_SELE
             raise ValueError(f"selection='transport' needs weights [P] = [{P}] (mean |transfer coefficient| per wavelet); "
                              f"got {None if weights is None else tuple(weights.shape)}")
         imp = imp * weights.to(torch.float64)
-    k = min(terms, P)
+    real = mag > ZERO_TERM * (float(mag.max()) if P else 0.0)  # [P] bool: the light's nonzero terms (mag: |L̂_k| summed over C)
+    nonzero = int(real.sum())
+    if nonzero:  # round-off terms rank below every real one, whatever their weight (a weight can be 0)
+        imp = torch.where(real, imp, torch.full_like(imp, -1.0))
+    k = min(terms, P, max(nonzero, 1))
     idx = torch.topk(imp, k, sorted=True).indices
     return idx, coeffs[:, idx]

@@ -1,0 +1,71 @@
+"""select_terms never ranks a light's zero (round-off) Haar terms (lighting.haar.ZERO_TERM).
+
+A light that is constant on blocks has exact zeros in the Haar basis; the float64 transform leaves
+them at round-off (~1e-17), whose order is the CPU's rounding, not the light. Independent reference:
+the light is built in the Haar basis itself (a few chosen coefficients, inverse-transformed), so its
+nonzero terms are known without the forward transform under test."""
+import math
+
+import pytest
+import torch
+
+from prt_torch.lighting.haar import ZERO_TERM, cube_light, haar2d, ihaar2d, select_terms
+
+
+def _light_with_terms(res: int, picks: dict[int, float]) -> torch.Tensor:
+    """A [1, 6, R, R] cube whose Haar coefficients are exactly ``picks`` (flat index -> value), back in the pixel basis."""
+    P = 6 * res * res
+    h = torch.zeros(1, P, dtype=torch.float64)
+    for k, v in picks.items():
+        h[0, k] = v
+    return ihaar2d(h.reshape(1, 6, res, res))
+
+
+@pytest.mark.parametrize("selection", ["magnitude", "area", "transport"])
+def test_round_off_terms_are_never_selected(selection):
+    R = 16
+    P = 6 * R * R
+    picks = {0: 3.0, 5: -0.7, 300: 1e-6, 1000: 2.5e-9, 1500: 0.25}  # 1e-6 and 2.5e-9: real, far above round-off
+    img = _light_with_terms(R, picks)
+    H = haar2d(img).reshape(1, P)
+    off = H.clone()
+    off[0, list(picks)] = 0
+    assert 0 < float(off.abs().max()) < 1e-14  # the forward transform's round-off is really there
+    w = torch.rand(P, dtype=torch.float64, generator=torch.Generator().manual_seed(1)) * 10
+    w[list(picks)] = 1e-3  # transport weights that favour the round-off terms over the real ones
+    idx, vals = select_terms(H, 2000, selection, w if selection == "transport" else None)
+    assert sorted(idx.tolist()) == sorted(picks)
+    assert vals.shape == (1, len(picks))
+    assert torch.allclose(vals[0], torch.tensor([picks[int(k)] for k in idx], dtype=torch.float64), rtol=1e-9, atol=1e-15)
+    # fewer requested than real: the largest of the real ones (magnitude order)
+    idx2, _ = select_terms(H, 2, "magnitude")
+    assert idx2.tolist() == [0, 5]  # |3| then |-0.7|
+
+
+def test_a_real_term_just_above_the_threshold_is_kept_and_one_below_is_not():
+    R = 4
+    P = 6 * R * R
+    h = torch.zeros(2, P, dtype=torch.float64)
+    h[0, 0], h[1, 7] = 1.0, 3 * ZERO_TERM  # summed over channels: |L̂_7| = 3e-12 of the largest
+    h[0, 9] = 0.5 * ZERO_TERM
+    idx, _ = select_terms(h, P, "magnitude")
+    assert sorted(idx.tolist()) == [0, 7]
+
+
+def test_all_zero_light_keeps_one_term_and_relights_black():
+    idx, vals = select_terms(torch.zeros(3, 24, dtype=torch.float64), 10, "magnitude")
+    assert idx.numel() == 1 and float(vals.abs().max()) == 0.0
+
+
+def test_area_light_on_black_selects_its_nonzero_terms_only():
+    """A cap rasterised on the cube: the N-term approximation at N = all equals the light exactly (nothing real is dropped)."""
+    R = 16
+    cube, _ = cube_light("cap:direction=0.3,0.2,1;half_angle_deg=20;radiance=1", R)
+    C = cube.shape[0]
+    H = haar2d(cube.permute(3, 0, 1, 2) if cube.shape[-1] == C else cube).reshape(-1, 6 * R * R)
+    idx, vals = select_terms(H, 6 * R * R, "magnitude")
+    assert idx.numel() < 6 * R * R  # the dark part of the cube has exact zeros
+    back = torch.zeros_like(H)
+    back[:, idx] = vals
+    assert float((back - H).abs().max()) <= ZERO_TERM * float(H.abs().sum(0).max())
+    assert math.isclose(float(back.square().sum()), float(H.square().sum()), rel_tol=1e-12)
