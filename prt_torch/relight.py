@@ -347,6 +347,22 @@ class WaveletRelighter:
 
     BLOCK = 32  # vertices per dense block (kernels/wavelet.c BV)
     SUB = 8  # vertices per sparse block
+    #: ``row_min``'s default: the row-major pass from half the sparse blocks, measured against the column-major pass
+    #: (1 thread CPU time, studio and sky, R = 32, K = 256): 0.88-0.90x at 0.39-0.42 of the blocks held, 0.99x at 0.51,
+    #: 1.04-1.31x from 0.56
+    ROW_MIN = 0.5
+
+    @staticmethod
+    def _row_permille(row_min: float, rows_used: bool) -> int:
+        """kernels/wavelet.c's ``row_permille``: ``row_min`` in thousandths, or 1001 (never the row-major pass) when
+        the relighter does not use it (``layouts='column'`` or ``row_min`` > 1)."""
+        return min(int(round(row_min * 1000)), 1001) if rows_used else 1001
+
+    @staticmethod
+    def _takes_rows(sb: int, NB: int, permille: int) -> bool:
+        """kernels/wavelet.c's choice of the row-major pass for a light whose distinct sparse columns hold ``sb`` of
+        the ``NB`` sparse blocks: at least ``permille`` / 1000 of them (and at least one)."""
+        return bool(sb and NB and permille <= 1000 and sb * 1000 >= permille * NB)
 
     @staticmethod
     def _kernel_values(transfer):
@@ -505,9 +521,7 @@ class WaveletRelighter:
         self.bofs = ((blk_b - tile_b * (TV // self.SUB)) * (4 * self.SUB * 4)).to(torch.int32)  # 4 channels x 8 floats
         self.NB = NB
         self.rptr = self.rcol = self.rvals = None  # the row-major copy: _build_rows (layouts)
-        # the row-major pass from half the sparse blocks: measured against the column-major pass (1 thread CPU time, studio
-        # and sky, R = 32, K = 256): 0.88-0.90x at 0.39-0.42 of the blocks held, 0.99x at 0.51, 1.04-1.31x from 0.56
-        self.row_min = 0.5 if row_min is None else float(row_min)
+        self.row_min = self.ROW_MIN if row_min is None else float(row_min)
         cnt = torch.bincount(tile_b * P + col_b, minlength=self.NT * P).reshape(self.NT, P)
         self.tbase = torch.zeros(self.NT, dtype=torch.int64)
         self.tbase[1:] = torch.cumsum(cnt.sum(1), 0)[:-1]
@@ -600,27 +614,43 @@ class WaveletRelighter:
 
     @classmethod
     def estimate_bytes(cls, path, layouts: str = "auto", dense_min: float | None = None, tile: int | None = None,
-                       light_channels: int = 3, chunk: int | None = None, exact: bool = True) -> dict:
+                       light_channels: int = 3, chunk: int | None = None, exact: bool = True, light=None,
+                       terms: int | None = None, selection: str = "transport", row_min: float | None = None,
+                       supersample: int = 4) -> dict:
         """What a relighter of the wavelet transfer file ``path`` will hold, without building it: the layout
         arithmetic of ``__init__`` and :meth:`_build_rows` on the counts it depends on — the nonzero
-        coefficients per Haar column (dense or sparse: ``dense_min``) and the distinct (tile, column,
-        8-vertex block) triples of the sparse ones — counted in one pass over ``chunk`` rows at a time (default: the
-        construction's chunk, :meth:`_build_rows_per_chunk`; a multiple of 8)
-        (``data`` and ``aux.index`` memory-mapped, each slice through :meth:`_kernel_values`, whose rows are
-        independent: the counts are exact; it holds a ``[V, K]`` bool mask and one slice's values).
-        Returns :meth:`held_bytes`' parts after one relight by a light of ``light_channels`` channels (its
-        factor cached; ``row`` counted unless ``layouts='column'``: 'auto' builds it for the first light
-        that takes the row-major pass, e.g. every term), plus
+        coefficients per Haar column (dense or sparse: ``dense_min``), the distinct (tile, column,
+        8-vertex block) triples of the sparse ones and their number per column — counted in one pass over ``chunk``
+        rows at a time (default: the construction's chunk, :meth:`_build_rows_per_chunk`; a multiple of 8)
+        (``data`` and ``aux.index`` memory-mapped, each slice through :meth:`_count_chunk`, whose rows are
+        independent: the counts are exact, and so are the transport weights; it holds a ``[V, K]`` bool mask and one
+        slice's values).
+        Returns :meth:`held_bytes`' parts after one relight by a light, plus
         ``build`` (the construction's temporaries at its peak above what it keeps — built in chunks of rows
         (:attr:`BUILD_CHUNK_BYTES`): the re-quantised kernel values of every row, one chunk's entry lists and
         keys, the merge of the chunks' sparse blocks; a bound from ``__init__``'s live tensors, checked against
         a measured peak in tests/test_relight_wavelet_plan.py) and the counts ``V, K, CT, P, E`` (nonzero entries), ``Es``
-        (sparse entries), ``Pd``, ``NB``. ``exact=False`` reads the header alone and returns an upper bound
+        (sparse entries), ``Pd``, ``NB``, and ``row_pass`` (below).
+
+        ``row``, the row-major copy: 0 with ``layouts='column'``, counted with ``'both'``; with ``'auto'`` (built for
+        the first light that takes the row-major pass, :meth:`bytes_read`) it follows ``light`` — a spec as
+        :meth:`light` takes it (with ``terms``, ``selection``, ``supersample``: rasterised on the cube at the file's R
+        after the count, its terms selected with the counted transport weights, exactly as the relighter will): counted
+        when that light's sparse columns hold at least ``row_min`` (default :attr:`ROW_MIN`) of the sparse blocks
+        (``row_pass`` True), else 0 (``row_pass`` False; e.g. a light with few nonzero Haar terms, such as the studio's
+        softboxes on black: ``lighting.haar.select_terms``). Without a light (``row_pass`` None) it is counted, an upper
+        bound whatever the light: the estimate never counts less than the relighter will hold. The cached factor
+        is for ``light_channels`` channels (the light's own with ``light``). The C kernel's choice: the torch path
+        (``PRT_TORCH_NATIVE=0``, no compiler) never builds the copy, so it holds less.
+
+        ``exact=False`` reads the header alone and returns an upper bound
         of every part (every coefficient kept, each in a dense column as far as ``dense_min`` allows and in
-        a sparse block of its own; ``'exact': False``): what ``prt relight`` checks first, counting only
-        when the bound does not fit its budget."""
+        a sparse block of its own, the row-major copy counted whatever ``light``; ``'exact': False``): what
+        ``prt relight`` checks first, counting only when the bound does not fit its budget."""
         from . import io
 
+        if layouts not in ("auto", "both", "column"):
+            raise ValueError(f"layouts={layouts!r}; accepted: 'auto' (row-major copy on first need), 'both', 'column'")
         hd = io.describe(path)  # the header: shapes and dtypes, nothing read
         if hd["meta"].get("kind") != "transfer/wavelet":
             raise ValueError(f"{str(path)!r} holds kind={hd['meta'].get('kind')!r}; accepted: a wavelet transfer (transfer/wavelet)")
@@ -632,49 +662,68 @@ class WaveletRelighter:
         stored = {"I8": 1, "I16": 2}.get(dtype)  # quantised values' bytes; None: float
         # the relighter's tile (TV) and the counts, as __init__ derives them
         TV = cls._tile(V, tile)
+        rmin = cls.ROW_MIN if row_min is None else float(row_min)
+        permille = cls._row_permille(rmin, layouts != "column" and rmin <= 1)  # as __init__'s _rows_used
+        may_rows = layouts == "both" or permille <= 1000  # the relighter may hold the row-major copy
         if not exact:  # the header's bound: b from the stored dtype (a scale per level: re-quantised to 16 bits)
             per_level = stored is not None and len(hd["tensors"]["aux.scale"]["shape"]) == (3 if CT > 1 else 2)
             b = 2 if per_level else (stored or 4)
             dmin = b / (4 + b) if dense_min is None else float(dense_min)
             E = V * K
             Pd = min(P, E // max(math.ceil(dmin * V), 1)) if dmin <= 1 else 0
-            return cls._held_estimate(V, K, CT, P, b, TV, layouts, light_channels, E, E, Pd, E, b != stored, exact=False)
+            return cls._held_estimate(V, K, CT, P, b, TV, may_rows, light_channels, E, E, Pd, E, b != stored, exact=False)
         t, meta = io.load_mapped(path, mapped=("data", "aux.index"), expect_kind="transfer/wavelet")
         aux = {"index": t["aux.index"], "scale": t["aux.scale"]}
         nb8 = -(-V // cls.SUB)
         # whole 8-vertex blocks per slice: a sparse block never spans two slices (its key names its tile and block)
         step = cls._build_rows_per_chunk(K, CT) if chunk is None else max(cls.SUB, int(chunk) // cls.SUB * cls.SUB)
         nnz = torch.zeros(P, dtype=torch.int64)
+        weights = torch.zeros(P, dtype=torch.float64)
         nz = torch.empty(V, K, dtype=torch.bool)  # [V, K] the vertex keeps coefficient k in some channel (1 B each)
         b = 4
-        for a in range(0, V, step):
-            _, _, q3, _, _ = cls._kernel_values(_Rows(t["data"], meta, aux, a, min(V, a + step)))
+        for a in range(0, V, step):  # __init__'s pass 1: the kernel values, nnz and the transport weights per column
+            q3, _ = cls._count_chunk(_Rows(t["data"], meta, aux, a, min(V, a + step)), nnz, weights)
             b = q3.element_size()
             nz[a:a + step] = (q3 != 0).any(1)
-            nnz += torch.bincount(t["aux.index"][a:a + step].long()[nz[a:a + step]], minlength=P)
+        weights /= max(V, 1)
         dmin = b / (4 + b) if dense_min is None else float(dense_min)
         is_dense = nnz >= max(dmin * V, 1)
         Pd, E = int(is_dense.sum()), int(nnz.sum())
-        NB = 0
+        cblk = torch.zeros(P, dtype=torch.int64)  # [P] sparse blocks per column (the kernel's row/column choice)
         for a in range(0, V, step):
             idx = t["aux.index"][a:a + step].long()
             keep = nz[a:a + step] & ~is_dense[idx]
             row = torch.nonzero(keep)[:, 0] + a
-            NB += int(torch.unique(((row // TV) * P + idx[keep]) * nb8 + row // cls.SUB).numel())
+            key = torch.unique(((row // TV) * P + idx[keep]) * nb8 + row // cls.SUB)
+            cblk += torch.bincount((key // nb8) % P, minlength=P)
+        NB = int(cblk.sum())
         Es = E - int(nnz[is_dense].sum())
-        return cls._held_estimate(V, K, CT, P, b, TV, layouts, light_channels, E, Es, Pd, NB, b != stored)
+        rows, row_pass = may_rows, None
+        if light is not None and layouts == "auto":  # the light the relighter will relight first: its pass decides
+            li, lv, _ = wavelet_light(light, res, terms, selection, weights if selection == "transport" else None,
+                                      supersample)
+            light_channels = int(lv.shape[0])
+            ls = torch.unique(li)
+            ls = ls[~is_dense[ls] & (nnz[ls] > 0)]  # its sparse columns some vertex keeps
+            rows = row_pass = cls._takes_rows(int(cblk[ls].sum()), NB, permille)
+        elif light is not None:
+            row_pass = layouts == "both"
+        est = cls._held_estimate(V, K, CT, P, b, TV, rows, light_channels, E, Es, Pd, NB, b != stored)
+        est["row_pass"] = row_pass
+        return est
 
     @classmethod
-    def _held_estimate(cls, V, K, CT, P, b, TV, layouts, light_channels, E, Es, Pd, NB, requant, exact=True) -> dict:
+    def _held_estimate(cls, V, K, CT, P, b, TV, rows, light_channels, E, Es, Pd, NB, requant, exact=True) -> dict:
         """:meth:`estimate_bytes`' arithmetic from the counts (``b`` the kernel values' bytes, ``TV`` the tile,
-        ``requant``: the kernel's values are not the stored ones — re-quantised to 16 bits, or float)."""
+        ``rows``: the row-major copy counted, ``requant``: the kernel's values are not the stored ones — re-quantised
+        to 16 bits, or float)."""
         NT, nb = -(-V // TV), -(-V // cls.BLOCK)
         MT = max(1, min(NT, os.cpu_count() or 1))
         CO = max(light_channels, CT)
         blk = NB * CT * cls.SUB * b
         parts = {"dense": nb * max(Pd, 1) * CT * cls.BLOCK * b,
                  "column": blk + 4 * NB + 4 * NT * (P + 1) + 8 * NT,
-                 "row": 0 if layouts == "column" else (4 * nb + 1) * 8 + 4 * NB + blk,
+                 "row": (4 * nb + 1) * 8 + 4 * NB + blk if rows else 0,
                  # dslot, _cblk, nnz int32; bcount [NT, P] int32; _acc; _wk int64; _lw, _lp [P, 4] float32; dcol int64;
                  # cls, _mark uint8; scale [V, CT], albedo [V, 3], the cached factor [V, CO] float32; weights float64
                  "other": 12 * P + 4 * NT * P + MT * (TV // cls.SUB) * 4 * cls.SUB * 4 + 8 * P + 32 * P + 8 * Pd + 2 * P
@@ -691,7 +740,7 @@ class WaveletRelighter:
         rows = min(V, cls._build_rows_per_chunk(K, CT))
         place = (V * CT * K * b if requant else 0) + rows * K * (40 * CT + 16) + 8 * NB + blk
         parts["build"] = max(place, 40 * NB + 2 * blk)
-        parts.update(V=V, K=K, CT=CT, P=P, E=E, Es=Es, Pd=Pd, NB=NB, exact=exact)
+        parts.update(V=V, K=K, CT=CT, P=P, E=E, Es=Es, Pd=Pd, NB=NB, exact=exact, row_pass=None)
         return parts
 
     def bytes_read(self, light_idx: torch.Tensor) -> int:
@@ -709,7 +758,7 @@ class WaveletRelighter:
         dense = int(d.sum()) * self.dense.shape[0] * self.BLOCK * self.CT * b
         sb = int(self.bcount[:, ls].sum())
         NR = self.NB
-        if ls.numel() and NR and self._rows_used and sb * 1000 >= min(int(round(self.row_min * 1000)), 1001) * NR:
+        if self._takes_rows(sb, NR, self._row_permille(self.row_min, self._rows_used)):
             return dense + NR * (4 + self.SUB * self.CT * b) + (4 * self.dense.shape[0] + 1) * 8
         return dense + sb * (4 + self.SUB * self.CT * b) + self.NT * int(ls.numel()) * 8
 
@@ -748,7 +797,7 @@ class WaveletRelighter:
                                          self.dslot.data_ptr(), self.dense.data_ptr(), self._acc.data_ptr(), self._wk.data_ptr(),
                                          self._lw.data_ptr(), self.dcol.data_ptr(), self.cls.data_ptr(), self._mark.data_ptr(), self._lp.data_ptr(),
                                          *(0 if t is None else t.data_ptr() for t in (self.rptr, self.rcol, self.rvals)),
-                                         self.NB, min(int(round(self.row_min * 1000)), 1001) if self._rows_used else 1001,
+                                         self.NB, self._row_permille(self.row_min, self._rows_used),
                                          self._cblk.data_ptr()],
                                         dtype=torch.int64)
             lay = self._layout.data_ptr()

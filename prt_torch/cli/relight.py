@@ -327,7 +327,9 @@ def light_bytes(res: int, supersample: int = 4) -> int:
 def _wavelet_plan(args, V: int, mesh: int, data: int, exact: bool | None = None) -> dict:
     """:func:`plan` of a wavelet transfer: *input* (the mesh and the file's coefficients, loaded whole),
     *held* (:meth:`~prt_torch.relight.WaveletRelighter.estimate_bytes`: its kernel layouts — dense
-    columns, column-major blocks, the row-major copy 'auto' builds for a light that takes that pass — and
+    columns, column-major blocks, the row-major copy 'auto' builds for a light that takes that pass: counted from the
+    file, for ``args.light`` with its ``--terms`` and ``--selection``, counted or not as the relighter will build it;
+    the header's bound counts it whatever the light — and
     tables, as :meth:`~prt_torch.relight.WaveletRelighter.held_bytes` will report them), *build|light* (the
     larger of its construction's temporaries and the light's rasterisation on the cube at R,
     :func:`light_bytes`, a block of sub-texel directions and the cube: one after the other, each freed before the next),
@@ -340,8 +342,13 @@ def _wavelet_plan(args, V: int, mesh: int, data: int, exact: bool | None = None)
     fb = io.format_bytes
     if exact is None:
         exact = bool(getattr(args, "dry_run", False))
-    e = WaveletRelighter.estimate_bytes(args.transfer, exact=exact)
-    lay = (f"dense {fb(e['dense'])}, column-major {fb(e['column'])}, row-major {fb(e['row'])} (built on first need), "
+    # counted exactly, the relighter's row-major copy follows the run's light (built only when it takes that pass)
+    e = WaveletRelighter.estimate_bytes(args.transfer, exact=exact, light=getattr(args, "light", None),
+                                        terms=getattr(args, "terms", None),
+                                        selection=getattr(args, "selection", None) or "transport")
+    rowp = {True: "this light takes that pass", False: "not built: this light takes the column-major pass",
+            None: "built on first need"}[e["row_pass"]]
+    lay = (f"dense {fb(e['dense'])}, column-major {fb(e['column'])}, row-major {fb(e['row'])} ({rowp}), "
            f"tables {fb(e['other'])}: {e['total'] / max(V, 1):.0f} B/vertex{'' if exact else ' at most (header bound)'}")
     light = light_bytes(int(round((e["P"] / 6) ** 0.5)))
     stages = [{"stage": "input", "bytes": mesh + data, "note": f"mesh {fb(mesh)}, coefficients {fb(data)} loaded whole"},
