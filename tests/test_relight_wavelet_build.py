@@ -57,7 +57,7 @@ def test_chunked_build_equals_dense_reference_and_torch_path(params, chunk, monk
         idx, vals = r.reference_rows()
         assert idx.shape == (r.V, r.K) and vals.dtype == torch.float32
         for terms in (None, 40):
-            li, lv, _ = r.light("studio", terms)
+            li, lv, _ = r.light("sky", terms)  # every sky term: the row-major pass at R = 16 with 'both' (not studio's few)
             got = r(li, lv.float())
             a = tr.mesh.albedo[:, :3].double() if r.CT == 1 else torch.ones(r.V, 3, dtype=torch.float64)
             if r.CT == 1:
@@ -99,7 +99,7 @@ def test_held_bytes_counts_every_tensor_the_relighter_holds(blocker32):
     layout) were held and not counted. And the total after one relight of every term (both layouts) is the
     documented ~1520 B/vertex."""
     r = WaveletRelighter(Transfer.load(blocker32))
-    li, lv, _ = r.light("studio")
+    li, lv, _ = r.light("sky")  # every term of the sky: the row-major pass (not the studio light's 292 nonzero terms)
     r(li, lv)
     own = [v for k, v in vars(r).items() if isinstance(v, torch.Tensor) and k not in ("_layout",)]
     own += list(r._f.values())
