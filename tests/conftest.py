@@ -96,3 +96,26 @@ def _upper_rays(v, n, k: int = 8, seed: int = 0):
 @pytest.fixture
 def upper_rays():
     return _upper_rays
+
+
+def _nonzero_haar_terms(spec, res: int) -> int:
+    """The number of nonzero Haar terms of a light on the cube at ``res`` (``lighting.haar.cube_light``, as the
+    harness and ``prt relight`` rasterise it; ``haar2d`` in float64, |L̂_ck| summed over the channels), counted
+    directly: the terms above 1e-9 of the largest, checked to be the same terms as above 1e-15 — the light's real
+    terms lie decades above the transform's round-off (~1e-17 of the largest), so the count does not depend on
+    where a threshold between them sits (select_terms' ``haar.ZERO_TERM`` = 1e-12 is not used here)."""
+    from prt_torch.lighting.haar import cube_light, haar2d
+
+    cube, _ = cube_light(spec, res)
+    m = haar2d(cube.double()).reshape(cube.shape[0], -1).abs().sum(0)
+    top = float(m.max())
+    n = int((m > 1e-9 * top).sum())
+    assert n == int((m > 1e-15 * top).sum()), f"{spec!r} at R = {res}: terms between 1e-15 and 1e-9 of its largest"
+    return n
+
+
+@pytest.fixture
+def nonzero_haar_terms():
+    """``nonzero_haar_terms(spec, res) -> int``: a light's nonzero Haar terms on the cube at ``res``, counted
+    directly from its coefficients (:func:`_nonzero_haar_terms`)."""
+    return _nonzero_haar_terms

@@ -435,7 +435,7 @@ def test_cli_relight_every_kind(tmp_path, capsys):
     assert not (tmp_path / "x.npy").exists() and not (tmp_path / "x.prt").exists()
 
 
-def test_bench_runs_a_wavelet_transfer(tmp_path):
+def test_bench_runs_a_wavelet_transfer(tmp_path, nonzero_haar_terms):
     """prt bench with a wavelet transfer: the exact sparse relighting is the run's reference (the
     shipped allfrequency config, shrunk); an SH codec on it is refused before any work."""
     import json
@@ -448,11 +448,13 @@ def test_bench_runs_a_wavelet_transfer(tmp_path):
     # 8-bit values, int16 indices, a float32 scale per vertex and each of R = 8's 4 Haar levels (scales: level)
     assert res["transfer"]["kind"] == "wavelet" and res["uncompressed"]["bytes_per_vertex"] == 64 * 3 + 4 * 4
     rows = res["trade"]["rows"]
-    # N = 384 (6R²) keeps the sky's nonzero terms only (select_terms drops round-off): at most 384, the exact result
-    wav = sorted(x["N"] for x in rows if x["method"] == "wavelet")
+    # N = 384 (6R²) keeps the sky's nonzero terms only (select_terms drops round-off: 192, its upper hemisphere,
+    # counted from its coefficients), the exact result
+    nz = nonzero_haar_terms("sky", 8)
     assert {(x["method"], x.get("bands")) for x in rows if x["method"] == "sh"} == {("sh", 3), ("sh", 5)}
-    assert len(wav) == 2 and wav[0] == 10 and 10 < wav[1] <= 384
-    assert next(x for x in rows if x.get("N") == wav[1])["error"] < 1e-5  # every nonzero term of the light: exact
+    assert [(x["N"], x["terms_requested"]) for x in rows if x["method"] == "wavelet"] == [(10, 10), (nz, 384)]
+    assert 10 < nz < 384
+    assert next(x for x in rows if x.get("N") == nz)["error"] < 1e-5  # every nonzero term of the light: exact
     assert "SH vs wavelets" in (tmp_path / "r" / "t" / "report.md").read_text()
     assert cli_main(base + ["codecs=[{type: pca, vectors: 4}]", "name=t2"]) == 2
     assert not (tmp_path / "r" / "t2").exists()

@@ -131,23 +131,30 @@ def test_a_mesh_moved_by_1000_traces_as_at_the_origin(tmp_path, upper_rays):
             RayCaster(vertices=v * s, faces=f)
 
 
-def test_trade_terms_above_the_cube_make_one_row(tmp_path):
+def test_trade_terms_above_the_cube_make_one_row(tmp_path, nonzero_haar_terms):
     """``trade.terms`` above the cube's 6R² Haar terms each made a row of their own, all of them N = 6R²
     (a user's ``trade: {terms: [10, 2000, 5000]}`` at R = 16 listed N=1536 twice per light, in the
-    report, results.json and trade.png). Now such N are one row: at R = 4 the N are min(N, 96), once
-    each, and the all-terms row is the exact result (error 0 to float32 round-off); the report's table
-    has exactly results.json's rows."""
+    report, results.json and trade.png). Now such N are one row, and so are N past the light's nonzero Haar
+    terms (select_terms never keeps the transform's round-off): overcast at R = 4 has 46 of the 96, counted here
+    from its coefficients, so the rows keep min(N, 46) terms, once each (``terms_requested``: the N that gave
+    the row; the headline's ``nonzero_terms``), and the all-terms row is the exact result (error 0 to float32
+    round-off); the report's table has exactly results.json's rows, the last marked as all the nonzero terms."""
     import json
 
     assert cli_main(["bench", "allfrequency", "transfer.res=4", "transfer.terms=32", "render.enabled=false",
                      f"output_dir={tmp_path / 'r'}", f"cache_dir={tmp_path / 'c'}", "metrics.repeats=1", "name=t",
                      "trade.terms=[10, 96, 500, 2000]", "trade.bands=[2]", "lights=[overcast]"]) == 0
     res = json.loads((tmp_path / "r" / "t" / "results.json").read_text())["trade"]
+    nz = nonzero_haar_terms("overcast", 4)
+    assert 10 < nz < 6 * 4 * 4
     wav = [x for x in res["rows"] if x["method"] == "wavelet"]
-    assert [x["N"] for x in wav] == sorted({min(n, 6 * 4 * 4) for n in (10, 96, 500, 2000)}) == [10, 96]
+    assert [x["N"] for x in wav] == sorted({min(n, 6 * 4 * 4, nz) for n in (10, 96, 500, 2000)}) == [10, nz]
+    assert [x["terms_requested"] for x in wav] == [10, 96]
+    assert res["headline"][0]["nonzero_terms"] == nz
     assert wav[-1]["error"] < 1e-6
     report = (tmp_path / "r" / "t" / "report.md").read_text()
     assert sum(line.startswith("| overcast | wavelet |") for line in report.splitlines()) == len(wav)
+    assert f"| overcast | wavelet | {nz} (all nonzero; 96 asked) |" in report
 
 
 def test_trade_counts_a_coloured_transfers_sh_bytes_per_colour(tmp_path):

@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from prt_torch.lighting.haar import ZERO_TERM, cube_light, haar2d, ihaar2d, select_terms
+from prt_torch.relight import wavelet_dense
 
 
 def _light_with_terms(res: int, picks: dict[int, float]) -> torch.Tensor:
@@ -69,3 +70,41 @@ def test_area_light_on_black_selects_its_nonzero_terms_only():
     back[:, idx] = vals
     assert float((back - H).abs().max()) <= ZERO_TERM * float(H.abs().sum(0).max())
     assert math.isclose(float(back.square().sum()), float(H.square().sum()), rel_tol=1e-12)
+
+
+def test_a_coloured_light_keeps_a_term_any_one_channel_carries():
+    """An RGB light whose channels have different zero patterns: the magnitude thresholded is Σ_c |L̂_ck| (the
+    selections' own), so a term zero in two channels and nonzero in the third is kept — with its zeros —, the
+    N = all result equals the relighting with every term (the dropped ones are round-off), and a channel far
+    below the others (1e-9 of the largest here, above ZERO_TERM) keeps its own terms too."""
+    R = 8
+    P = 6 * R * R
+    picks = [{0: 2.0, 5: -0.5, 40: 0.1},  # red
+             {0: 1.0, 77: 0.3},  # green: 77 only here
+             {0: 0.5, 5: 0.2, 130: -0.04, 200: 1e-9}]  # blue: 130 and 200 only here (200 tiny but real)
+    h = torch.zeros(3, P, dtype=torch.float64)
+    for c, pk in enumerate(picks):
+        for k, v in pk.items():
+            h[c, k] = v
+    H = haar2d(ihaar2d(h.reshape(3, 6, R, R))).reshape(3, P)  # back and forth: the round-off in every channel
+    real = sorted(set().union(*picks))
+    off = H.clone()
+    off[:, real] = 0
+    assert 0 < float(off.abs().max()) < 1e-14
+    for selection in ("magnitude", "area", "transport"):
+        w = torch.linspace(0.1, 5.0, P, dtype=torch.float64)
+        idx, vals = select_terms(H, P, selection, w if selection == "transport" else None)
+        assert sorted(idx.tolist()) == real, selection
+        for c, pk in enumerate(picks):  # each channel's values, its zeros where another channel carries the term
+            want = torch.tensor([pk.get(int(k), 0.0) for k in idx], dtype=torch.float64)
+            assert torch.allclose(vals[c], want, rtol=1e-9, atol=1e-15), (selection, c)
+    # the kept terms relight as every term does (an independent sum over all P terms of a random transfer)
+    g = torch.Generator().manual_seed(3)
+    V, K = 50, 40
+    index = torch.stack([torch.randperm(P, generator=g)[:K] for _ in range(V)])
+    index[:, :len(real)] = torch.tensor(real)  # every vertex keeps the light's real terms, and some round-off ones
+    values = torch.randn(V, K, generator=g, dtype=torch.float64)
+    idx, vals = select_terms(H, P, "magnitude")
+    got = wavelet_dense(values, index, idx, vals, P)  # [V, 3]
+    ref = (values[:, None, :] * H[:, index].permute(1, 0, 2)).sum(-1)  # Σ_k over each vertex's kept terms, all of H
+    assert float((got - ref).abs().max()) <= 1e-13 * float(ref.abs().max())

@@ -296,7 +296,9 @@ def trade_lines(t: dict) -> list[str]:
          f"Each light cut to N Haar terms ({t['selection']} selection; R = {t['res']}, the stored transfer, "
          f"{t['bytes_per_vertex']} B/vertex) and SH at n bands projected from the same visibility (n² floats per vertex, "
          "3n² for a coloured transfer), "
-         "each against the exact result (every term of the light): relative L2 over vertices and RGB. Times: "
+         "each against the exact result (every term of the light): relative L2 over vertices and RGB; only a light's "
+         "nonzero Haar terms are selected (above `haar.ZERO_TERM` of its largest), so an N past them keeps them all, "
+         "once: one row, marked 'all nonzero'. Times: "
          f"{'one thread, ' if t.get('threads') == 1 else ''}median per relight in one process"
          + (", in the render-loop form a user's loop calls (wavelets: `WaveletRelighter.prepared`, the form the kernel "
             "report times; SH: the product into a reused output), the plain call (the relighter or `relight.diffuse` "
@@ -331,6 +333,8 @@ def trade_lines(t: dict) -> list[str]:
         L += ["", "| light | method | N or bands | error | relight | fps | B/vertex |", "|---|---|---|---|---|---|---|"]
     for x in t["rows"]:
         size = x["N"] if x["method"] == "wavelet" else x["bands"]
+        if x["method"] == "wavelet" and x.get("terms_requested", x["N"]) > x["N"]:  # the light has no more nonzero terms
+            size = f"{x['N']} (all nonzero; {x['terms_requested']} asked)"
         call = f" {_ms(x['call_s'])} |" if loop else ""
         L.append(f"| {x['light']} | {x['method']} | {size} | {x['error']:.4f} | {_ms(x['relight_s'])} | {x['fps']:.0f} |"
                  f"{call} {x['bytes_per_vertex']} |")

@@ -8,7 +8,10 @@ For a run whose transfer is kind ``wavelet`` (the config's ``trade`` section):
   transfer, so the trade isolates the light's approximation);
 * **wavelets, N terms**: the light's N most important terms (``trade.selection``,
   :func:`prt_torch.lighting.haar.select_terms`), sparse light × sparse transfer
-  (:class:`prt_torch.relight.WaveletRelighter`);
+  (:class:`prt_torch.relight.WaveletRelighter`). Only the light's nonzero terms are ever selected (those above
+  ``haar.ZERO_TERM`` of its largest; the headline's ``nonzero_terms``): an N past them keeps them all, the exact
+  result, once — a row's ``N`` is the terms kept, ``terms_requested`` the trade's N that gave it, and a larger
+  N, which would keep the same terms, makes no row of its own;
 * **SH, n bands, from the same visibility**: the stored transfer back in the pixel basis
   (``ihaar2d``), projected t_lm = Σ_j T_j y_lm(d_j), the light projected from its cube
   L_lm = Σ_j L_j y_lm(d_j) Ω_j, relit by :func:`prt_torch.relight.diffuse` (n² floats per vertex; 3n² for a coloured transfer, one per colour).
@@ -128,6 +131,7 @@ def wavelet_trade(ev: Evaluator, lights: list[torch.Tensor], cfg: dict, log: Cal
         cube = ihaar2d(Lhat.double().reshape(C, 6, R, R)).reshape(C, P)
         out = torch.empty(V, max(C, CT))
         wav, shr = [], []
+        nonzero = int(select_terms(Lhat.double(), P, "magnitude")[0].numel())  # the light's nonzero Haar terms
         for N in terms:
             idx, vals = select_terms(Lhat.double(), N, sel, r.weights if sel == "transport" else None)
             if wav and wav[-1]["N"] == int(idx.numel()):  # N past the light's nonzero terms (select_terms): the same row
@@ -138,7 +142,9 @@ def wavelet_trade(ev: Evaluator, lights: list[torch.Tensor], cfg: dict, log: Cal
             with torch_threads(1):  # prepared at one thread: its kernel arguments hold the thread count
                 s = measure(r.prepared(idx, vals, out=out), repeats=5, warmup=1).median
                 sc = measure(lambda: r(idx, vals, out=out), repeats=5, warmup=1).median
-            wav.append({"light": str(spec), "method": "wavelet", "N": int(idx.numel()), "error": e, "relight_s": s,
+            # N: the terms kept (at most the light's nonzero ones), terms_requested: the trade's N that gave the row
+            wav.append({"light": str(spec), "method": "wavelet", "N": int(idx.numel()), "terms_requested": N,
+                        "error": e, "relight_s": s,
                         "fps": 1.0 / s, "call_s": sc, "bytes_per_vertex": ev.bytes_per_vertex,
                         "coefficients_read": r.touched(idx)})
         for n in bands:
@@ -151,7 +157,7 @@ def wavelet_trade(ev: Evaluator, lights: list[torch.Tensor], cfg: dict, log: Cal
             shr.append({"light": str(spec), "method": "sh", "bands": n, "error": e, "relight_s": s, "fps": 1.0 / s,
                         "call_s": sc, "bytes_per_vertex": n * n * 4 * CT})  # CT = 3: one SH vector per colour
         rows += wav + shr
-        h: dict[str, Any] = {"light": str(spec), "sh_best_error": min(x["error"] for x in shr),
+        h: dict[str, Any] = {"light": str(spec), "nonzero_terms": nonzero, "sh_best_error": min(x["error"] for x in shr),
                              "wavelet_best_error": min(x["error"] for x in wav)}
         if "full" in chk:  # the stored transfer (K terms, quantised) against all 6R² terms, under this light
             vi = chk["vertices"]

@@ -384,11 +384,15 @@ def select_terms(coeffs: torch.Tensor, terms: int, selection: str = DEFAULT_SELE
         weights: ``[P]`` per-coefficient weights ('transport'; 'area' computes its own).
     Returns:
         (indices ``[N']`` int64 into P, sorted by decreasing importance; values ``[C, N']``, dtype of
-        ``coeffs``), N' = min(N, the light's nonzero terms): a coefficient whose |L̂_k| is at most
-        :data:`ZERO_TERM` of the largest is the transform's round-off (a light that is piecewise constant
-        on blocks, such as caps or area lights on black, has exact zeros there that the float64 Haar
-        sums leave at ~1e-17), carries no light, and is never selected — ranking such terms would make
-        which transfer columns an N above the light's real terms reads depend on the CPU's rounding.
+        ``coeffs``), N' = min(N, P, the light's nonzero terms): a coefficient whose |L̂_k| (summed over the
+        channels, as the selections rank it) is at most :data:`ZERO_TERM` of the largest |L̂_k| is the
+        transform's round-off (a light that is piecewise constant on blocks, such as caps or area lights on
+        black, has exact zeros there that the float64 Haar sums leave at ~1e-17), carries no light, and is
+        never selected, whatever its weight — ranking such terms would make which transfer columns an N
+        above the light's real terms reads depend on the CPU's rounding. A coloured light's term is kept
+        when any channel carries it (a term zero in red and green but not in blue is kept, with its zeros);
+        a channel's terms below ``ZERO_TERM`` of the whole light's largest |L̂_k| count as zero. Each dropped
+        term changes the relit result by at most ZERO_TERM · max|L̂_k| times its transfer coefficient.
         An all-zero light keeps its largest term (one, of value 0).
     """
     if coeffs.ndim != 2:
