@@ -182,7 +182,8 @@ def main() -> None:
                     li, lv, rec = rl.light(spec, N, sel)
                     out = rl(li, lv)
                     row = {"K": K, "bytes_per_vertex": bytes_per_vertex(K, BITS, P), "light": name,
-                           "selection": sel, "N": N, "error": rel(out, exact[name]), "touched": rl.touched(li),
+                           "selection": sel, "N": N, "terms_kept": int(li.numel()),  # at most the light's nonzero terms
+                           "error": rel(out, exact[name]), "touched": rl.touched(li),
                            "relight_s": measure(lambda: rl(li, lv, out=out), repeats=5, warmup=1).median}
                     wav_rows.append(row)
         print(f"[wavelet] K={K} done; load {load():.1f}", flush=True)
@@ -292,6 +293,13 @@ def main() -> None:
     print(f"[wavelet] wrote {OUT / 'wavelet.md'}", flush=True)
 
 
+def _n_kept(r: dict) -> str:
+    """A row's N, with the terms really kept when fewer (``select_terms`` keeps only the light's nonzero Haar terms:
+    the studio light has 292 at R = 32); rows from before ``terms_kept`` was recorded: N alone."""
+    k = r.get("terms_kept", r["N"])
+    return f"{r['N']} ({k} kept)" if k < r["N"] else str(r["N"])
+
+
 def previous_layout_bytes(rl, li: torch.Tensor) -> int:
     """The bytes the previous layout read for these terms (the same dense columns; each sparse column
     a CSC list of (int32 row offset, value) pairs padded to groups of 4): the bound that kernel was
@@ -316,7 +324,7 @@ def kernel_rows(rl, selection: str) -> list[dict]:
         E = rl.touched(li)
         nbytes = rl.bytes_read(li)
         prev = previous_layout_bytes(rl, li)
-        row = {"N": N, "touched": E, "bytes": nbytes + V * 12, "previous_bytes": prev + V * 12}
+        row = {"N": N, "terms_kept": int(li.numel()), "touched": E, "bytes": nbytes + V * 12, "previous_bytes": prev + V * 12}
         trusted = True
         for th in (1, 2):
             torch.set_num_threads(th)
@@ -659,7 +667,7 @@ def write_md(res: dict, quick: bool) -> None:
     L.append("|---|---|---|---|---|---|---|")
     for r in res["wavelet"]:
         if r["selection"] == res["selection_default"]:
-            L.append(f"| {r['light']} | {r['K']} | {r['bytes_per_vertex']} | {r['N']} | {r['error']:.4f} | "
+            L.append(f"| {r['light']} | {r['K']} | {r['bytes_per_vertex']} | {_n_kept(r)} | {r['error']:.4f} | "
                      f"{_ms(r['relight_s'])} | {r['touched']} |")
     L.append("")
     L.append("## SH at 3–10 bands, projected from the same visibility\n")
@@ -761,7 +769,7 @@ def write_md(res: dict, quick: bool) -> None:
             cpu_t = (f"**{r['of_bound_cpu_1']:.2f}** [{r['of_bound_cpu_1_q'][0]:.2f}, {r['of_bound_cpu_1_q'][1]:.2f}]"
                      if "of_bound_cpu_1" in r else "—")
             rd = (f"{r['of_read_bound_cpu_1']:.2f} ({r['read_over_copy_1']:.2f})" if "of_read_bound_cpu_1" in r else "—")
-            L.append(f"| {r['N']} | {r['touched']} | {r['dense_coefficients']} ({r['dense_terms']} terms) | {r['bytes']} | "
+            L.append(f"| {_n_kept(r)} | {r['touched']} | {r['dense_coefficients']} ({r['dense_terms']} terms) | {r['bytes']} | "
                      f"{r['previous_bytes']} | {_ms(r['relight_s_1'])} | {r['of_bound_1']:.2f}{flag} | {cpu_t} | "
                      f"{r['of_previous_bound']:.2f}{flag} | {_ms(r['relight_s_2'])} | {r['of_bound_2']:.2f}{flag} | "
                      f"{_ms(r['torch_relight_s'])} | {r['torch_relight_s'] / r['relight_s']:.1f}× | {r['load']:.1f} | {cp} | {rd} |")

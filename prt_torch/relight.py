@@ -261,8 +261,11 @@ def wavelet_light(spec, res: int, terms: int | None = None, selection: str = "tr
     ``res`` (:func:`prt_torch.lighting.haar.cube_light`, not band-limited), its Haar coefficients
     per face, and the ``terms`` most important of them by ``selection`` ('magnitude', 'area',
     'transport' with ``weights [P]``; :func:`prt_torch.lighting.haar.select_terms`). ``terms``
-    None: all 6R² (the exact pixel-basis result). Returns (indices ``[N]`` int64, values ``[C, N]``
-    float64, record of the rasterisation with ``'energy_kept'``, the fraction of Σ L̂² kept)."""
+    None: all 6R² (the exact pixel-basis result). Only the light's nonzero terms are ever kept
+    (``select_terms``: above ``haar.ZERO_TERM`` of its largest), so N' = min(N, 6R², nonzero) terms.
+    Returns (indices ``[N']`` int64, values ``[C, N']`` float64, record of the rasterisation with
+    ``'terms'`` (N', the terms kept), ``'terms_requested'`` (N, or 6R² for None) and ``'energy_kept'``,
+    the fraction of Σ L̂² kept)."""
     from .lighting.haar import cube_light, haar2d, select_terms
 
     cube, rec = cube_light(spec, res, supersample=supersample)
@@ -270,7 +273,7 @@ def wavelet_light(spec, res: int, terms: int | None = None, selection: str = "tr
     P = H.shape[1]
     idx, vals = select_terms(H, P if terms is None else terms, selection, weights)
     tot = float(H.square().sum())
-    rec = dict(rec, terms=int(idx.numel()), selection=selection,
+    rec = dict(rec, terms=int(idx.numel()), terms_requested=P if terms is None else int(terms), selection=selection,
                energy_kept=float(vals.square().sum()) / tot if tot > 0 else 1.0)
     return idx, vals, rec
 

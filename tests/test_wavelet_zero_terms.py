@@ -108,3 +108,38 @@ def test_a_coloured_light_keeps_a_term_any_one_channel_carries():
     got = wavelet_dense(values, index, idx, vals, P)  # [V, 3]
     ref = (values[:, None, :] * H[:, index].permute(1, 0, 2)).sum(-1)  # Σ_k over each vertex's kept terms, all of H
     assert float((got - ref).abs().max()) <= 1e-13 * float(ref.abs().max())
+
+
+def test_prt_relight_says_when_it_keeps_fewer_terms_than_asked(tmp_path, capsys, nonzero_haar_terms):
+    """``prt relight --terms N`` with N above the light's nonzero Haar terms keeps those (select_terms) and says so
+    in one warning line naming the count — the studio light at R = 8 has 59 of 384, counted here from its
+    coefficients —; the result equals the one with every term; an N below the count says nothing."""
+    import numpy as np
+
+    from prt_torch.cli import main as cli_main
+    from prt_torch.scene import builtin
+    from prt_torch.transfer import RunOptions, get_kind
+
+    w = tmp_path / "w.prt"
+    get_kind("wavelet").precompute(builtin("occluder_over_plane"), {"res": 8, "terms": 48},
+                                   run=RunOptions(workers=1, progress=False)).save(w)
+    nz = nonzero_haar_terms("studio", 8)
+    assert 30 < nz < 384
+    capsys.readouterr()
+    outs = {}
+    for terms in (None, 30, 200, 1000):
+        o = tmp_path / f"o{terms}.npy"
+        assert cli_main(["relight", str(w), "--light", "studio", "-o", str(o)]
+                        + ([] if terms is None else ["--terms", str(terms)])) == 0
+        said = capsys.readouterr()
+        warned = [ln for ln in said.err.splitlines() if "warning" in ln]
+        if terms == 200:
+            assert len(warned) == 1 and f"has {nz} nonzero Haar terms of 384" in warned[0], said.err
+        elif terms == 1000:  # above the cube's 6R² as well: one line for both
+            assert len(warned) == 1 and f"384 Haar terms at R = 8 (6R²), of which 'studio' has {nz} nonzero" in warned[0]
+        else:
+            assert not warned, said.err
+        if terms in (200, 1000):
+            assert f"{nz} of 384 light terms" in said.out
+        outs[terms] = np.load(o)
+    assert np.array_equal(outs[200], outs[None]) and np.array_equal(outs[1000], outs[None])

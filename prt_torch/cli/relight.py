@@ -136,8 +136,11 @@ def _load(args):
 
 
 def radiance(transfer, light: str, codec=None, enc=None, terms: int | None = None, selection: str = "transport",
-             view=None, out=None, rows: int | None = None):
+             view=None, out=None, rows: int | None = None, record: dict | None = None):
     """Per-vertex exit radiance ``[V, 3]`` float32 and a one-line description (module docstring).
+    A wavelet transfer: ``record`` (a dict, when given) receives the light's record (``relight.wavelet_light``:
+    ``terms``, the terms kept, ``terms_requested``, ...); ``--terms`` N above the light's nonzero Haar terms keeps
+    those (the same result) and says so in one warning line.
 
     An uncompressed SH transfer is relit by chunks of ``rows`` (default :data:`CHUNK_VERTICES`) vertices (``PRTScene.cpu_radiance``
     with ``rows=``; the same bits whether its data is in memory or memory-mapped), each written into
@@ -146,6 +149,7 @@ def radiance(transfer, light: str, codec=None, enc=None, terms: int | None = Non
     import torch
 
     from .. import relight
+    from ..lighting.haar import ZERO_TERM
 
     if transfer.kind == "wavelet":
         if codec is not None:  # pragma: no cover - compress refuses wavelet transfers
@@ -153,9 +157,18 @@ def radiance(transfer, light: str, codec=None, enc=None, terms: int | None = Non
         if view is not None:
             raise ValueError("--view applies to glossy and MRT transfers; a wavelet transfer is diffuse (view-independent)")
         r = relight.WaveletRelighter(transfer)
-        if terms is not None and terms > r.P:
-            warnings.warn(f"--terms {terms} is more than the light's {r.P} Haar terms at R = {r.res} (6R²); all {r.P} are used")
         li, lv, rec = r.light(light, terms, selection)
+        if record is not None:
+            record.update(rec)
+        n = int(li.numel())
+        if terms is not None and n < min(terms, r.P):  # select_terms keeps the light's nonzero terms only
+            zero = f"the rest are zero: at most {ZERO_TERM:g} of its largest"
+            warnings.warn((f"--terms {terms} is more than the light's {r.P} Haar terms at R = {r.res} (6R²), of which "
+                           f"{light!r} has {n} nonzero ({zero})" if terms > r.P else
+                           f"--terms {terms}: the light {light!r} has {n} nonzero Haar terms of {r.P} at R = {r.res} ({zero})")
+                          + f"; {n} are used, the same result as all")
+        elif terms is not None and terms > r.P:
+            warnings.warn(f"--terms {terms} is more than the light's {r.P} Haar terms at R = {r.res} (6R²); all {r.P} are used")
         if rec.get("upsampled"):
             warnings.warn(rec["warning"])
         res = r(li, lv)

@@ -294,7 +294,8 @@ def _run_wavelet(args, transfer, out: Path, cmp_png: Path | None) -> int:
                          "accepted: with --terms N")
     args.decode = "cpu"
     selection = args.selection or "transport"
-    rad, what = radiance(transfer, args.light, terms=args.terms, selection=selection)
+    rec: dict = {}
+    rad, what = radiance(transfer, args.light, terms=args.terms, selection=selection, record=rec)
     ref = radiance(transfer, args.light)[0] if cmp_png is not None else None  # every term: the exact result
     mesh = transfer.mesh
     cam = Camera.fit(mesh, azimuth=args.azimuth, elevation=args.elevation, fov=args.fov,
@@ -308,7 +309,7 @@ def _run_wavelet(args, transfer, out: Path, cmp_png: Path | None) -> int:
         print(f"prt render: error: {e}", file=sys.stderr)
         return 3
     return _write_outputs(args, out, cmp_png, img, mask, ref_img, None, what,
-                          labels=("all light terms (exact)", f"{args.terms} terms ({selection})"))
+                          labels=("all light terms (exact)", f"{rec.get('terms', args.terms)} terms ({selection})"))
 
 
 def _write_outputs(args, out: Path, cmp_png: Path | None, img, mask, ref_img, other, what: str,
