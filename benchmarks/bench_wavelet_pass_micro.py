@@ -314,7 +314,7 @@ def local_dense_counts(rl, lights=("studio", "sky (sun)"), terms=(300, 1000, 200
             li, _, _ = rl.light(LIGHTS[light], N, "transport")
             held = torch.zeros(P, dtype=torch.bool)
             held[li] = True
-            hp = held[uk // P]
+            hp = held[uk % P]  # the pair's column (uk = 32-vertex block · P + column)
             for kmin in (2, 3, 4):
                 sel = cnt >= kmin
                 hb = int(cnt[sel & hp].sum())
