@@ -716,9 +716,9 @@ class WaveletRelighter:
         return est
 
     @classmethod
-    def _held_estimate(cls, V, K, CT, P, b, TV, rows, light_channels, E, Es, Pd, NB, requant, exact=True) -> dict:
+    def _held_estimate(cls, V, K, CT, P, b, TV, with_rows, light_channels, E, Es, Pd, NB, requant, exact=True) -> dict:
         """:meth:`estimate_bytes`' arithmetic from the counts (``b`` the kernel values' bytes, ``TV`` the tile,
-        ``rows``: the row-major copy counted, ``requant``: the kernel's values are not the stored ones — re-quantised
+        ``with_rows``: the row-major copy counted, ``requant``: the kernel's values are not the stored ones — re-quantised
         to 16 bits, or float)."""
         NT, nb = -(-V // TV), -(-V // cls.BLOCK)
         MT = max(1, min(NT, os.cpu_count() or 1))
@@ -726,7 +726,7 @@ class WaveletRelighter:
         blk = NB * CT * cls.SUB * b
         parts = {"dense": nb * max(Pd, 1) * CT * cls.BLOCK * b,
                  "column": blk + 4 * NB + 4 * NT * (P + 1) + 8 * NT,
-                 "row": (4 * nb + 1) * 8 + 4 * NB + blk if rows else 0,
+                 "row": (4 * nb + 1) * 8 + 4 * NB + blk if with_rows else 0,
                  # dslot, _cblk, nnz int32; bcount [NT, P] int32; _acc; _wk int64; _lw, _lp [P, 4] float32; dcol int64;
                  # cls, _mark uint8; scale [V, CT], albedo [V, 3], the cached factor [V, CO] float32; weights float64
                  "other": 12 * P + 4 * NT * P + MT * (TV // cls.SUB) * 4 * cls.SUB * 4 + 8 * P + 32 * P + 8 * Pd + 2 * P
