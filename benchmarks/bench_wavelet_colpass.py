@@ -27,6 +27,10 @@ and the light's sparse terms alone at N = 100, 300, 1000 (the column-major pass,
 Every output compared bit for bit between the two builds. The working tree's kernel also paired with the streaming
 read bound of its bytes (``timing.read_bound_fn(WaveletRelighter.bytes_read(li), 12 V)``).
 
+Part 3, **where a call of the sparse terms alone goes**: timing-only builds of the working tree's kernel cut after the
+set-up (the light gathered, its terms listed) and without the column-major pass, each paired with the whole
+call (studio and sky, N = 300 and 1000).
+
 The transfer: occluder_over_plane small (V = 2251), R = 32, K = 256, 16 bits, tiles as the relighter's. Writes
 reports/benchmarks/wavelet_colpass.md (the CPU, the builds and the load named).
 
@@ -124,6 +128,10 @@ FN(v_u3dummy, for (; e < e1; e += 3) { /* the step's missing blocks (1-2 at a ra
         RMW(a0, w0) RMW(a1, w1) RMW(a2, w2) })
 FN(v_u3pin, for (; e + 2 < e1; e += 3) { BLK(0) BLK(1) BLK(2) PIN(a0); PIN(a1); PIN(a2); RMW(a0, w0) RMW(a1, w1) RMW(a2, w2) }
     for (; e < e1; e++) { BLK(0) PIN(a0); RMW(a0, w0) })
+FN(v_u3pf, if (r + 2 < nr) { const int64_t n = rng[3 * r + 7]; /* the range after next: its first lines */
+        __builtin_prefetch(bv + 8 * n); __builtin_prefetch(bv + 8 * n + 32); __builtin_prefetch(bofs + n); }
+    for (; e + 2 < e1; e += 3) { BLK(0) BLK(1) BLK(2) PIN(a0); PIN(a1); PIN(a2); RMW(a0, w0) RMW(a1, w1) RMW(a2, w2) }
+    for (; e < e1; e++) { BLK(0) PIN(a0); RMW(a0, w0) })
 FN(v_u4, for (; e + 3 < e1; e += 4) { BLK(0) BLK(1) BLK(2) BLK(3) RMW(a0, w0) RMW(a1, w1) RMW(a2, w2) RMW(a3, w3) }
     for (; e < e1; e++) { BLK(0) RMW(a0, w0) })
 FN(v_u2dummy, for (; e < e1; e += 2) {
@@ -145,7 +153,8 @@ VARIANTS = [("v_kernel", "kernel: 1 block / step", True, False),
             ("v_elsewhere", "stores elsewhere", False, False), ("v_fixed12", "fixed 12 per range", False, True),
             ("v_ranges", "ranges only", False, False),
             ("v_u2", "2 / step", True, False), ("v_u3", "3 / step", True, False), ("v_u4", "4 / step", True, False),
-            ("v_u3dummy", "3 / step, tail to a dummy", True, False), ("v_u3pin", "**3 / step, address pinned** (kept)", True, False),
+            ("v_u3dummy", "3 / step, tail to a dummy", True, False),
+            ("v_u3pf", "3 / step, pinned, prefetch 2 ranges ahead", True, False), ("v_u3pin", "**3 / step, address pinned** (kept)", True, False),
             ("v_u2dummy", "2 / step, tail to a dummy", True, False), ("v_z1", "16 lanes", True, False),
             ("v_z2", "16 lanes, 2 / step", True, False)]
 
@@ -196,23 +205,26 @@ def micro(rl, lights, terms, repeats: int = 15, reps: int = 100) -> tuple[list[s
                     t0 = time.thread_time()
                     f(*args, reps)
                     res[n].append((time.thread_time() - t0) / reps * 1e6)
-            med = {n: sorted(v)[len(v) // 2] for n, v in res.items()}
+            kernel_blk = sorted(res["v_kernel"])[repeats // 2] / max(nblk, 1)
             for n, label, same, fixed in VARIANTS:
                 s = sorted(res[n])
                 nb = rng.shape[0] * 12 if fixed else nblk
-                cyc = "—" if n == "v_ranges" else f"{s[len(s) // 2] * 1e3 * hz / max(nb, 1):.2f}"
+                per = s[len(s) // 2] / max(nb, 1)  # µs per block (fixed 12: per block of its own count)
+                cyc = "—" if n == "v_ranges" else f"{per * 1e3 * hz:.2f}"
+                ratio = "—" if n == "v_ranges" else f"{kernel_blk / per:.3f}"
                 eq = ("equal" if torch.equal(sums[n], sums["v_kernel"]) else "**differ**") if same else "—"
                 L.append(f"| {light} | {N} | {rng.shape[0]} ({int((rng[:, 2] == rng[:, 1]).sum())}) | {nblk} | {label} | "
-                         f"{s[len(s) // 2]:.1f} [{s[len(s) // 4]:.1f}, {s[3 * len(s) // 4]:.1f}] | {cyc} | "
-                         f"{med['v_kernel'] / s[len(s) // 2]:.3f} | {eq} |")
-                print(f"[colpass micro] {light} N={N} {label}: {s[len(s) // 2]:.2f} us, {cyc} cyc/blk, "
-                      f"kernel/this {med['v_kernel'] / s[len(s) // 2]:.3f} {eq}", flush=True)
+                         f"{s[len(s) // 2]:.1f} [{s[len(s) // 4]:.1f}, {s[3 * len(s) // 4]:.1f}] | {cyc} | {ratio} | {eq} |")
+                print(f"[colpass micro] {light} N={N} {label}: {s[len(s) // 2]:.2f} us, {cyc} cyc/blk, kernel/this {ratio} {eq}",
+                      flush=True)
     return L, hz
 
 
-def kernel_lib(rev: str | None, isa: str):
+def kernel_lib(rev: str | None, isa: str, tag: str = "", cut: str = ""):
     """``kernels/wavelet.c`` at git revision ``rev`` (None: the working tree) compiled with the wavelet library's flags
-    and ``isa``'s (``_native.KERNEL_ISAS``); returns (library, commit or 'working tree')."""
+    and ``isa``'s (``_native.KERNEL_ISAS``), ``tag`` appended as a comment (a second build of the same code: the A/A
+    control); ``cut``: ``setup`` returns after the light is gathered and its terms listed, ``nopass`` skips the
+    column-major pass (timing-only builds: where a call's time goes); returns (library, commit or 'working tree', flags)."""
     names, flags = LIBRARIES["wavelet"]
     flags = list(flags) + list(KERNEL_ISAS[isa])
     if rev is None:
@@ -222,6 +234,16 @@ def kernel_lib(rev: str | None, isa: str):
                              capture_output=True, text=True).stdout
         what = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", rev], check=True, capture_output=True,
                               text=True).stdout.strip()
+    if tag:
+        src += f"\n/* {tag} */\n"
+    if cut:
+        at = {"setup": ("    const T *rvals = (const T *)L->rvals;",
+                        "    if (1) { for (i64 n = 0; n < N; n++) memset(lp + 4 * sel[n], 0, 4 * sizeof(float)); return 0; } \\\n"
+                        "    const T *rvals = (const T *)L->rvals;"),
+              "nopass": ("    if (ns && !rows) sparse_tile_##T(", "    if (0) sparse_tile_##T(")}[cut]
+        if at[0] not in src:
+            raise SystemExit(f"bench_wavelet_colpass: --cut {cut}: the kernel's text changed ({at[0]!r} not found)")
+        src = src.replace(at[0], at[1], 1) + f"\n/* cut: {cut} */\n"
     vp = ctypes.c_void_p
     lib, how = compile_library("wavelet", {"wavelet.c": src}, flags, {
         "prt_wavelet_relight_f32_packed": [vp], "prt_wavelet_relight_i8_packed": [vp], "prt_wavelet_relight_i16_packed": [vp],
@@ -259,10 +281,12 @@ def main() -> None:
         text += ["## The pass alone, by variant\n",
                  f"The light's sparse terms' blocks, the kernel's loop for CT = 1, RGB, 16-bit values (`-O3 -march=native`); "
                  f"each variant's median of 15 interleaved samples of 100 passes [quartiles]; cycles at {hz:.2f} GHz (a chain of dependent "
-                 f"multiplies, same thread); **kernel / variant** > 1: the variant faster; sums: the last tile's "
+                 f"multiplies, same thread); **kernel / variant**: the kernel's time per block over the variant's (> 1: the variant faster; "
+                 f"`fixed 12`: per block of its own 12 × ranges); sums: the last tile's "
                  f"scratch against the kernel's, bit for bit (— : not the same work). Load {load():.1f} at its end.\n"] + rows + [""]
     test, twhat, tflags = kernel_lib(None, args.isa)
     base, bwhat, _ = kernel_lib(args.base, args.isa)
+    control, _, _ = kernel_lib(args.base, args.isa, "the A/A control: a second build of the base")
     cases = []
     for light in ("studio", "sky (sun)"):
         for N in (100, 300, 1000, 2000, rl.P):
@@ -277,36 +301,67 @@ def main() -> None:
             keep = rl.dslot[li] < 0
             li, lv = li[keep], lv[:, keep].contiguous()
         li = li.contiguous()
-        outs = [torch.empty(rl.V, 3), torch.empty(rl.V, 3)]
+        outs = [torch.empty(rl.V, 3), torch.empty(rl.V, 3), torch.empty(rl.V, 3)]
         ft, fb = bound_call(rl, test, li, lv, outs[0], 1), bound_call(rl, base, li, lv, outs[1], 1)
+        fc = bound_call(rl, control, li, lv, outs[2], 1)
         ft()
         fb()
-        same = torch.equal(outs[0], outs[1])
+        fc()
+        same = torch.equal(outs[0], outs[1]) and torch.equal(outs[2], outs[1])
         p = measure_paired(ft, fb, repeats=args.repeats, warmup=1, clock=time.thread_time)
+        pc = measure_paired(fc, fb, repeats=args.repeats, warmup=1, clock=time.thread_time)
         rb = measure_paired(ft, read_bound_fn(rl.bytes_read(li), rl.V * 12), repeats=args.repeats, warmup=1, clock=time.thread_time)
         sb = int(rl._cblk[li[rl.cls[li] == 1]].sum())  # the sparse blocks of its sparse terms
         row = dict(light=light, N=N, part=part, terms=int(li.numel()), sblocks=sb, test=p.test.median * 1e6,
-                   base=p.peer.median * 1e6, ratio=p.speedup, q=(p.ratio.q1, p.ratio.q3), of_read=rb.speedup,
+                   base=p.peer.median * 1e6, ratio=p.speedup, q=(p.ratio.q1, p.ratio.q3), of_read=rb.speedup, control=pc.speedup,
                    same=same, load=load())
         rows.append(row)
         print(f"[colpass] {light} N={N} {part}: test {row['test']:.1f} us, base {row['base']:.1f} us, base/test "
-              f"{row['ratio']:.3f} [{row['q'][0]:.3f}, {row['q'][1]:.3f}], of read bound {row['of_read']:.2f}, "
+              f"{row['ratio']:.3f} [{row['q'][0]:.3f}, {row['q'][1]:.3f}], control {row['control']:.3f}, of read bound {row['of_read']:.2f}, "
               f"bit-identical {same}, load {row['load']:.1f}", flush=True)
     text += [f"## The kernel against {args.base}'s\n",
              f"**test**: the working tree's `kernels/wavelet.c`; **base**: {args.base} ({bwhat}); both `{tflags}`, bound to "
              f"one layout (the row-major copy built: N = 2000 and all take the row-major pass, whose blocks this change does "
              f"not touch). One thread, paired by its CPU time (`measure_paired(clock=time.thread_time)`, {args.repeats} "
              f"repeats): medians per call and **base / test**, the median of the per-repeat ratios [quartiles] (> 1: the "
-             f"working tree faster). Of read bound: the test kernel paired the same way with a streaming read of "
+             f"working tree faster); **control**: a second build of the base (the same code, a comment appended) paired with the "
+             f"base the same way (the same machine code in a second library: the pairing's own noise; the row-major "
+             f"rows N = 2000 and all, whose source is untouched but whose code moved inside the same function, show what "
+             f"placement alone moves). Of read bound: the test kernel paired the same way with a streaming read of "
              f"`WaveletRelighter.bytes_read` of its terms and a fill of the output (`timing.read_bound_fn`). Outputs "
              f"compared bit for bit.\n",
-             "| light | N | terms | sparse blocks | test µs | base µs | **base / test** [quartiles] | test of read bound "
-             "| bit-identical | load |", "|---|---|---|---|---|---|---|---|---|---|"]
+             "| light | N | terms | sparse blocks | test µs | base µs | **base / test** [quartiles] | control | test of read bound "
+             "| bit-identical | load |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         terms = f"all {r['terms']}" if r["part"] == "all" else f"sparse alone {r['terms']}"
         text.append(f"| {r['light']} | {'all' if r['N'] == rl.P else r['N']} | {terms} | {r['sblocks']} | {r['test']:.1f} | "
-                    f"{r['base']:.1f} | **{r['ratio']:.3f}** [{r['q'][0]:.3f}, {r['q'][1]:.3f}] | {r['of_read']:.2f} | "
+                    f"{r['base']:.1f} | **{r['ratio']:.3f}** [{r['q'][0]:.3f}, {r['q'][1]:.3f}] | {r['control']:.3f} | {r['of_read']:.2f} | "
                     f"{'yes' if r['same'] else '**no**'} | {r['load']:.1f} |")
+    text += ["\n## Where a call of the light's sparse terms alone goes (the working tree's kernel)\n",
+             "The same call through timing-only builds of the working tree's kernel: **set-up** returns after the checks, "
+             "the light's gathering and its terms' listing (the light's columns zeroed again); **no pass** skips the "
+             "column-major pass (the tiles' scratch zeroed and the dense blocks' output pass kept); each paired with the "
+             "whole call by one thread's CPU time (medians). pass = whole − no pass.\n",
+             "| light | N | sparse terms | sparse blocks | whole µs | set-up µs | + scratch and output µs | pass µs | pass ns per "
+             "block |", "|---|---|---|---|---|---|---|---|---|"]
+    cuts = {c: kernel_lib(None, args.isa, cut=c)[0] for c in ("setup", "nopass")}
+    for light in ("studio", "sky (sun)"):
+        for N in (300, 1000):
+            li, lv, _ = rl.light(LIGHTS[light], N, "transport")
+            keep = rl.dslot[li] < 0
+            li, lv = li[keep].contiguous(), lv.to(torch.float32)[:, keep].contiguous()
+            out = torch.empty(rl.V, 3)
+            whole = bound_call(rl, test, li, lv, out, 1)
+            us = {}
+            for c, lib in cuts.items():
+                f = bound_call(rl, lib, li, lv, out, 1)
+                p = measure_paired(f, whole, repeats=args.repeats, warmup=1, clock=time.thread_time)
+                us[c], us["whole"] = p.test.median * 1e6, p.peer.median * 1e6
+            sb = int(rl._cblk[li[rl.cls[li] == 1]].sum())
+            ps = us["whole"] - us["nopass"]
+            text.append(f"| {light} | {N} | {li.numel()} | {sb} | {us['whole']:.1f} | {us['setup']:.1f} | "
+                        f"{us['nopass'] - us['setup']:.1f} | {ps:.1f} | {ps * 1e3 / max(sb, 1):.2f} |")
+            print(f"[colpass split] {text[-1]}", flush=True)
     text.append(f"\nLoad average {before:.1f} → {load():.1f}.")
     out = "\n".join(text) + "\n"
     if args.write:

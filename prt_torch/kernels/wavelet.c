@@ -256,14 +256,19 @@ DENSE_BLOCK(int16_t)
 /* AVX-512 builds (W16): three blocks per loop step, their offsets and (CT = 1) values loaded first, then their
  * read-modify-writes in block order (a column's blocks in a tile are distinct 8-vertex blocks, and each vertex's
  * terms are still added in column order: the same bits), the last 0-2 blocks one at a time; each block's scratch
- * address formed once (PIN). Measured on an Intel Xeon (AVX-512, 3.5 GHz), one thread's CPU time
- * (benchmarks/bench_wavelet_colpass.py): the pass alone on the real blocks 5.1-5.3 -> 4.7 cycles per block (fewer
- * loop-control and address uops per block: the pass is bound by their issue, not by the scratch's store-to-load
- * chains, its loads or stores alone, nor the loop exits — each removed alone saves 3-16%); in the kernel the
- * light's sparse terms alone 1.02-1.07x. Not kept there: 2 or 4 per step (no better than 3), the tail's blocks
- * sent to a dummy scratch instead of a remainder loop (0.96-0.98x), channels 0-1 as one 16-lane read-modify-write
- * (0.92-0.95x alone, 1.06-1.07x at 2 per step). The AVX2 build keeps one block per step, its machine code unchanged
- * (two and four per step measured no faster on AMD Zen 3, docs/wavelet.md). */
+ * address formed once (PIN). Measured on an Intel Xeon (AVX-512, 3.3-3.5 GHz), one thread's CPU time
+ * (benchmarks/bench_wavelet_colpass.py, reports/benchmarks/wavelet_colpass.md): the pass alone on the real blocks
+ * 4.8-5.0 -> 4.4-4.6 cycles per block (1.07-1.10x); in the kernel, paired with main's, the light's sparse terms
+ * alone 1.02-1.06x at N = 100, 1.05-1.10x at N = 300, 1.07-1.11x at N = 1000, whole lights 0.99-1.03x at N = 100-300
+ * and 1.02-1.06x at N = 1000 (N >= 2000 take the row-major pass: 0.97-1.01x, code placement). What bounds the
+ * pass is none of its parts alone (each removed alone saves at most 5-25%: the value loads most, the stores 3-9%,
+ * the scratch loads 7-16%; a fixed trip count per range, i.e. no loop-exit mispredicts, 0.94-1.01x; the stores sent
+ * to a second buffer, i.e. no store-to-load chains through the scratch, 0.85-0.92x). Not kept: 2 or 4 per step (no
+ * better than 3), the tail's blocks sent to a dummy scratch instead of a remainder loop (0.92-0.97x), channels 0-1 as
+ * one 16-lane read-modify-write (0.91-0.95x; 1.02-1.06x at 2 per step), a prefetch of the range after next's first
+ * lines (no change) or of the block pointers 4-16 terms ahead (0.98-1.02x), the pass out of line (0.94x: CT and CO no
+ * longer constants). The AVX2 and avx512-256 builds keep one block per step, their machine code byte-identical to
+ * before (objdump; two and four per step measured no faster on AMD Zen 3, docs/wavelet.md). */
 #if W16
 /* the block's scratch address held in a register (an empty asm: gcc otherwise forms base + offset + 32 c by one lea
  * per channel, ~3 more uops per block, where one add and the stores' displacements do) */
