@@ -266,7 +266,8 @@ DENSE_BLOCK(int16_t)
  * to a second buffer, i.e. no store-to-load chains through the scratch, 0.85-0.92x). Not kept: 2 or 4 per step (no
  * better than 3), the tail's blocks sent to a dummy scratch instead of a remainder loop (0.92-0.97x), channels 0-1 as
  * one 16-lane read-modify-write (0.91-0.95x; 1.02-1.06x at 2 per step), a prefetch of the range after next's first
- * lines (no change) or of the block pointers 4-16 terms ahead (0.98-1.02x), the pass out of line (0.94x: CT and CO no
+ * lines (no change; in the kernel 2 or 4 terms ahead: 0.99-1.04x) or of the block pointers 4-16 terms ahead
+ * (0.98-1.02x), the pass out of line (0.94x: CT and CO no
  * longer constants). The AVX2 and avx512-256 builds keep one block per step, their machine code byte-identical to
  * before (objdump; two and four per step measured no faster on AMD Zen 3, docs/wavelet.md). */
 #if W16
