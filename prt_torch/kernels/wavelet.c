@@ -25,7 +25,8 @@
  *    whole lights 1.02-1.13x except the studio light at N = 100-300 (0.96-1.05x; an ad-hoc C loop of the same
  *    work from L1: 1.26x; in the kernel the 1-2 MB come partly from L3, and zmm FMAs cost ~5% of clock).
  *    The sparse blocks, the row-major pass and the output stay on 8 lanes (a 16-lane read-modify-write of
- *    two channels' scratch per block measured 0.90-0.94x of the 8-lane one: not kept).
+ *    two channels' scratch per block measured 0.90-0.94x of the 8-lane one: not kept); the column-major sparse
+ *    pass takes three blocks per loop step in these builds (SPARSE_RANGE).
  *  - block-sparse, the rest: the vertices in tiles of TV (a multiple of 32), and within a tile, per
  *    column, the 8-vertex blocks holding any of its nonzero values: bofs int32 (the byte offset of the
  *    block's accumulator in the tile's scratch, 128 per block: 4 channels x 8 floats) and vals
@@ -241,6 +242,65 @@ DENSE_BLOCK(float)
 DENSE_BLOCK(int8_t)
 DENSE_BLOCK(int16_t)
 
+/* one sparse block e of a tile into its scratch: CO 8-lane read-modify-writes at byte offset bofs[e] */
+#define SPARSE_BLOCK(T, e)                                                                                   \
+    {                                                                                                        \
+        float *a = (float *)((char *)acc + bofs[e]);                                                         \
+        const T *x = bv + (e) * 8 * CT;                                                                      \
+        if (CT == 1) {                                                                                       \
+            const v8f w = load8_##T(x);                                                                      \
+            for (int c = 0; c < CO; c++) st8(a + 8 * c, ld8(a + 8 * c) + w * l[c]);                          \
+        } else                                                                                               \
+            for (int c = 0; c < CO; c++) st8(a + 8 * c, ld8(a + 8 * c) + load8_##T(x + 8 * c) * l[c]);       \
+    }
+/* AVX-512 builds (W16): three blocks per loop step, their offsets and (CT = 1) values loaded first, then their
+ * read-modify-writes in block order (a column's blocks in a tile are distinct 8-vertex blocks, and each vertex's
+ * terms are still added in column order: the same bits), the last 0-2 blocks one at a time; each block's scratch
+ * address formed once (PIN). Measured on an Intel Xeon (AVX-512, 3.3-3.5 GHz), one thread's CPU time
+ * (benchmarks/bench_wavelet_colpass.py, reports/benchmarks/wavelet_colpass.md): the pass alone on the real blocks
+ * 4.8-5.0 -> 4.4-4.6 cycles per block (1.07-1.10x); in the kernel, paired with main's, the light's sparse terms
+ * alone 1.02-1.06x at N = 100, 1.05-1.10x at N = 300, 1.07-1.11x at N = 1000, whole lights 0.99-1.03x at N = 100-300
+ * and 1.02-1.06x at N = 1000 (N >= 2000 take the row-major pass: 0.97-1.01x, code placement). What bounds the
+ * pass is none of its parts alone (each removed alone saves at most 5-25%: the value loads most, the stores 3-9%,
+ * the scratch loads 7-16%; a fixed trip count per range, i.e. no loop-exit mispredicts, 0.94-1.01x; the stores sent
+ * to a second buffer, i.e. no store-to-load chains through the scratch, 0.85-0.92x). Not kept: 2 or 4 per step (no
+ * better than 3), the tail's blocks sent to a dummy scratch instead of a remainder loop (0.92-0.97x), channels 0-1 as
+ * one 16-lane read-modify-write (0.91-0.95x; 1.02-1.06x at 2 per step), a prefetch of the range after next's first
+ * lines (no change; in the kernel 2 or 4 terms ahead: 0.99-1.04x) or of the block pointers 4-16 terms ahead
+ * (0.98-1.02x), the pass out of line (0.94x: CT and CO no
+ * longer constants). The AVX2 and avx512-256 builds keep one block per step, their machine code byte-identical to
+ * before (objdump; two and four per step measured no faster on AMD Zen 3, docs/wavelet.md). */
+#if W16
+/* the block's scratch address held in a register (an empty asm: gcc otherwise forms base + offset + 32 c by one lea
+ * per channel, ~3 more uops per block, where one add and the stores' displacements do) */
+#define PIN(p) __asm__("" : "+r"(p))
+#define SPARSE_RANGE(T)                                                                                      \
+    for (; e + 2 < e1; e += 3) {                                                                             \
+        float *a0 = (float *)((char *)acc + bofs[e]), *a1 = (float *)((char *)acc + bofs[e + 1]),            \
+              *a2 = (float *)((char *)acc + bofs[e + 2]);                                                    \
+        PIN(a0); PIN(a1); PIN(a2);                                                                           \
+        const T *x = bv + e * 8 * CT;                                                                        \
+        if (CT == 1) {                                                                                       \
+            const v8f w0 = load8_##T(x), w1 = load8_##T(x + 8), w2 = load8_##T(x + 16);                      \
+            for (int c = 0; c < CO; c++) st8(a0 + 8 * c, ld8(a0 + 8 * c) + w0 * l[c]);                       \
+            for (int c = 0; c < CO; c++) st8(a1 + 8 * c, ld8(a1 + 8 * c) + w1 * l[c]);                       \
+            for (int c = 0; c < CO; c++) st8(a2 + 8 * c, ld8(a2 + 8 * c) + w2 * l[c]);                       \
+        } else {                                                                                             \
+            for (int c = 0; c < CO; c++) st8(a0 + 8 * c, ld8(a0 + 8 * c) + load8_##T(x + 8 * c) * l[c]);    \
+            for (int c = 0; c < CO; c++) st8(a1 + 8 * c, ld8(a1 + 8 * c) + load8_##T(x + 8 * (CT + c)) * l[c]); \
+            for (int c = 0; c < CO; c++) st8(a2 + 8 * c, ld8(a2 + 8 * c) + load8_##T(x + 8 * (2 * CT + c)) * l[c]); \
+        }                                                                                                    \
+    }                                                                                                        \
+    for (; e < e1; e++) {                                                                                    \
+        float *a = (float *)((char *)acc + bofs[e]);                                                         \
+        PIN(a);                                                                                              \
+        const T *x = bv + e * 8 * CT;                                                                        \
+        for (int c = 0; c < CO; c++) st8(a + 8 * c, ld8(a + 8 * c) + load8_##T(x + (CT == 1 ? 0 : 8 * c)) * l[c]); \
+    }
+#else
+#define SPARSE_RANGE(T) for (; e < e1; e++) SPARSE_BLOCK(T, e)
+#endif
+
 /* the sparse terms' blocks of one tile into its scratch acc (zeroed), column-major; lw [ns, 4] the terms' light */
 #define SPARSE_TILE(T)                                                                                       \
 static inline __attribute__((always_inline)) void sparse_tile_##T(const int CT, const int CO, i64 ns,        \
@@ -249,15 +309,8 @@ static inline __attribute__((always_inline)) void sparse_tile_##T(const int CT, 
         v8f l[4];                                                                                            \
         for (int c = 0; c < CO; c++) l[c] = bc8(lw + 4 * t + c);                                             \
         const i64 e1 = tp[ss[t] + 1];                                                                        \
-        for (i64 e = tp[ss[t]]; e < e1; e++) {                                                               \
-            float *a = (float *)((char *)acc + bofs[e]);                                                     \
-            const T *x = bv + e * 8 * CT;                                                                    \
-            if (CT == 1) {                                                                                   \
-                const v8f w = load8_##T(x);                                                                  \
-                for (int c = 0; c < CO; c++) st8(a + 8 * c, ld8(a + 8 * c) + w * l[c]);                      \
-            } else                                                                                           \
-                for (int c = 0; c < CO; c++) st8(a + 8 * c, ld8(a + 8 * c) + load8_##T(x + 8 * c) * l[c]);   \
-        }                                                                                                    \
+        i64 e = tp[ss[t]];                                                                                   \
+        SPARSE_RANGE(T)                                                                                      \
     }                                                                                                        \
 }
 SPARSE_TILE(float)
