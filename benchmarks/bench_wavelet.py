@@ -300,6 +300,11 @@ def _n_kept(r: dict) -> str:
     return f"{r['N']} ({k} kept)" if k < r["N"] else str(r["N"])
 
 
+def _row_key(r: dict) -> tuple[str, int]:
+    """A section-7 row's (light, N); rows from before the sky light was timed there are the studio's."""
+    return r.get("light", "studio"), r["N"]
+
+
 def previous_layout_bytes(rl, li: torch.Tensor) -> int:
     """The bytes the previous layout read for these terms (the same dense columns; each sparse column
     a CSC list of (int32 row offset, value) pairs padded to groups of 4): the bound that kernel was
@@ -309,22 +314,30 @@ def previous_layout_bytes(rl, li: torch.Tensor) -> int:
     return int(d.sum()) * rl.dense.shape[0] * rl.BLOCK * b + int(((rl.nnz[li[~d]] + 3) // 4 * 4).sum()) * (4 + b)
 
 
+KERNEL_LIGHTS = ("studio", "sky")
+
+
 def kernel_rows(rl, selection: str) -> list[dict]:
-    """Section 7: the C kernel per N (studio) at one and two threads, each paired with its
+    """Section 7: the C kernel per light (:data:`KERNEL_LIGHTS`: studio, 292 nonzero Haar terms at R = 32, and
+    sky, 3072, so that N = 300-2000 also time lights that really hold that many terms) and N (an N whose kept terms
+    equal the previous N's is not timed again: ``select_terms`` keeps only nonzero terms), at one and two threads, each
+    paired with its
     read-once/write-once bound — a copy of the transfer bytes it reads (:meth:`WaveletRelighter.bytes_read`:
     dense columns' blocks, the sparse 8-vertex blocks with their offsets and the per-tile pointers)
     and a fill of the output, at the same thread count —, and at one thread with the previous
     layout's bound (dense + CSC pairs: :func:`previous_layout_bytes`); and the torch path."""
     V = rl.V
     rows = []
-    for N in TERMS + [rl.P]:
-        li, lv, _ = rl.light("studio", N, selection)
+    for light, N in [(x, n) for x in KERNEL_LIGHTS for n in TERMS + [rl.P]]:
+        li, lv, _ = rl.light(light, N, selection)
+        if rows and rows[-1]["light"] == light and rows[-1]["terms_kept"] == li.numel():
+            continue  # the same kept terms as the previous N: the same call
         lv = lv.to(torch.float32).contiguous()
         out = torch.empty(V, 3)
         E = rl.touched(li)
         nbytes = rl.bytes_read(li)
         prev = previous_layout_bytes(rl, li)
-        row = {"N": N, "terms_kept": int(li.numel()), "touched": E, "bytes": nbytes + V * 12, "previous_bytes": prev + V * 12}
+        row = {"light": light, "N": N, "terms_kept": int(li.numel()), "touched": E, "bytes": nbytes + V * 12, "previous_bytes": prev + V * 12}
         trusted = True
         for th in (1, 2):
             torch.set_num_threads(th)
@@ -362,7 +375,7 @@ def kernel_rows(rl, selection: str) -> list[dict]:
         row.update({"dense_terms": int(d.sum()), "dense_coefficients": int(rl.nnz[li[d]].sum()), "relight_s": row["relight_s_1"],
                     "of_bound": row["of_bound_1"], "trusted": trusted, "load": load()})
         rows.append(row)
-        print(f"[wavelet] kernel N={N}: {rows[-1]}", flush=True)
+        print(f"[wavelet] kernel {light} N={N}: {rows[-1]}", flush=True)
     return rows
 
 
@@ -690,17 +703,19 @@ def write_md(res: dict, quick: bool) -> None:
              f"{p['precompute_s']:.2f} s; bare Embree tracing the same rays runs at **{p['bare_over_precompute']:.2f}** "
              f"of the precompute's time (paired, spread {p['spread']:.2f}{'' if p['trusted'] else ', ⚠ contention'}): "
              "the rest is ray generation, the Haar transform, top-K and quantisation.\n")
-    L.append(f"## Relight time vs N against the kernel's bound (studio, R = 32, K = 256, {BITS}-bit)\n")
+    L.append(f"## Relight time vs N against the kernel's bound (studio and sky, R = 32, K = 256, {BITS}-bit)\n")
     L.append(
              "One section per CPU and kernel build (`relight.wavelet_kernel_path`, from the library's own `prt_wavelet_isa`: "
              "on an AVX-512 CPU the dense loop runs on 16-lane vectors, on an AVX2 one on 8 lanes; `PRT_TORCH_KERNEL_ISA=avx2` "
              "builds the AVX2 code on an AVX-512 CPU): `--only kernel` replaces the section of its own CPU and build and keeps "
              "the others, `--isa auto` also runs the avx2 build where the native one is AVX-512. Each CPU precomputes the "
-             "transfer itself, and the terms a light selects (so the bytes read) may differ between CPUs (the bytes column "
-             "says what each run read): the studio light has 292 Haar terms above 1e-15 of its largest, and from N = 300 "
-             "on the rest are ranked by round-off-level scores, which each machine's floating point orders its own way "
-             "(at N = 1000 the AMD EPYC's run read 0.97 MB, the Intel Xeon's 1.49 MB). Compare fractions of each run's "
-             "own bounds, not times across CPUs. "
+             "transfer itself (the bytes column says what each run read). Two lights: studio (a few small sources: 292 "
+             "nonzero Haar terms at R = 32) and sky (a sun over a sky: 3072 nonzero terms, its lower hemisphere zero). "
+             "A light keeps only its nonzero terms (`haar.select_terms`, `ZERO_TERM`), so studio's N = 300 and above "
+             "time its 292 terms once (\"N (292 kept)\"), and sky's rows time what N = 300-2000 real terms cost. "
+             "Rows of runs before that rule (the AMD EPYC's below) ranked a light's round-off terms too, which each "
+             "machine's floating point orders its own way (studio at N = 1000: 0.97 MB read on the AMD EPYC, 1.49 MB on "
+             "the Intel Xeon, for the same result). Compare fractions of each run's own bounds, not times across CPUs. "
              "The kernel reads each Haar column of the light's terms in the form stored for it "
              "(`relight.WaveletRelighter`): *dense* (32-vertex blocks of the stored values, zeros included, no index: "
              "the columns most vertices keep, the coarse levels) or *block-sparse* (per tile of vertices and column, "
@@ -739,15 +754,15 @@ def write_md(res: dict, quick: bool) -> None:
                  "streaming read)\n")
         L.append("Each build's run has its own bounds, timed in its own process (its rows below); the builds paired on one "
                  "layout in one process: `benchmarks/bench_wavelet_isa.py` (reports/benchmarks/wavelet_isa.md).\n")
-        L.append("| N | " + " | ".join(build_label(r["build"]) for r in rs) + " |")
-        L.append("|---|" + "---|" * len(rs))
-        for N in [r["N"] for r in rs[0]["rows"]]:
+        L.append("| light | N | " + " | ".join(build_label(r["build"]) for r in rs) + " |")
+        L.append("|---|---|" + "---|" * len(rs))
+        for r0 in rs[0]["rows"]:
             cells = []
             for run in rs:
-                x = next((r for r in run["rows"] if r["N"] == N), None)
+                x = next((r for r in run["rows"] if _row_key(r) == _row_key(r0)), None)
                 cells.append(f"{x['relight_cpu_s_1'] * 1e6:.1f} µs; {x['of_bound_cpu_1']:.2f} / {x['of_read_bound_cpu_1']:.2f}"
                              if x and "of_read_bound_cpu_1" in x else "—")
-            L.append(f"| {N} | " + " | ".join(cells) + " |")
+            L.append(f"| {_row_key(r0)[0]} | {_n_kept(r0)} | " + " | ".join(cells) + " |")
         L.append("")
     for run in runs:
         km, rows = run["machine"], run["rows"]
@@ -757,10 +772,10 @@ def write_md(res: dict, quick: bool) -> None:
                  f"{km.get('load_after', km.get('load_average_1min', float('nan'))):.1f}"
                  + (" (⚠: the pairing flagged contention)." if not all(r["trusted"] for r in rows) else ".")
                  + (f" Rows: {run['source']}." if run.get("source") else "") + "\n")
-        L.append("| N | coefficients read | in dense columns | bytes read (this layout) | previous layout | 1 thread | of own bound "
+        L.append("| light | N | coefficients read | in dense columns | bytes read (this layout) | previous layout | 1 thread | of own bound "
                  "| **1 thr CPU time: of own bound** [quartiles] | of previous layout's bound | 2 threads | of own bound (2 threads) "
                  "| torch path | C / torch | load | plain call / prepared | 1 thr CPU time: of a streaming read (read / copy) |")
-        L.append("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+        L.append("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
         for r in rows:
             flag = "" if r["trusted"] else " ⚠"
             if "of_bound_2" not in r:  # a report from before the block-sparse layout
@@ -769,7 +784,7 @@ def write_md(res: dict, quick: bool) -> None:
             cpu_t = (f"**{r['of_bound_cpu_1']:.2f}** [{r['of_bound_cpu_1_q'][0]:.2f}, {r['of_bound_cpu_1_q'][1]:.2f}]"
                      if "of_bound_cpu_1" in r else "—")
             rd = (f"{r['of_read_bound_cpu_1']:.2f} ({r['read_over_copy_1']:.2f})" if "of_read_bound_cpu_1" in r else "—")
-            L.append(f"| {_n_kept(r)} | {r['touched']} | {r['dense_coefficients']} ({r['dense_terms']} terms) | {r['bytes']} | "
+            L.append(f"| {_row_key(r)[0]} | {_n_kept(r)} | {r['touched']} | {r['dense_coefficients']} ({r['dense_terms']} terms) | {r['bytes']} | "
                      f"{r['previous_bytes']} | {_ms(r['relight_s_1'])} | {r['of_bound_1']:.2f}{flag} | {cpu_t} | "
                      f"{r['of_previous_bound']:.2f}{flag} | {_ms(r['relight_s_2'])} | {r['of_bound_2']:.2f}{flag} | "
                      f"{_ms(r['torch_relight_s'])} | {r['torch_relight_s'] / r['relight_s']:.1f}× | {r['load']:.1f} | {cp} | {rd} |")
