@@ -24,6 +24,14 @@
  *    on one layout, one thread's CPU time (bench_wavelet_isa.py): the dense terms alone 1.07-1.12x faster,
  *    whole lights 1.02-1.13x except the studio light at N = 100-300 (0.96-1.05x; an ad-hoc C loop of the same
  *    work from L1: 1.26x; in the kernel the 1-2 MB come partly from L3, and zmm FMAs cost ~5% of clock).
+ *    The 16-lane loop takes a tile's blocks 2i and 2i + 1 in lockstep (the last of an odd count alone): one slot
+ *    load, address and CO light broadcasts per term for both, 2 x CO x 2 independent sums (CO = 4: 16 of the 32
+ *    zmm registers), block 2i + 1's sums kept for its own call; each vertex's order unchanged (the same bits).
+ *    Against the one-block loop on the Xeon, one thread's CPU time (bench_wavelet_dense16.py): the dense terms
+ *    alone 1.06-1.17x, whole lights 1.03-1.15x (N = 100-2000). Its floor: ~10 uops per term and block on the two
+ *    512-bit pipes (2 widening loads on p5, 2 conversions on p0, 6 FMAs), measured in assembly at 6.5 cycles of
+ *    the nominal clock one block at a time, 5.8 two in lockstep (12 zmm FMAs alone: 6.5; the clock drops under
+ *    zmm FMAs; bench_wavelet_dense16_micro.py).
  *    The sparse blocks, the row-major pass and the output stay on 8 lanes (a 16-lane read-modify-write of
  *    two channels' scratch per block measured 0.90-0.94x of the 8-lane one: not kept).
  *  - block-sparse, the rest: the vertices in tiles of TV (a multiple of 32), and within a tile, per
@@ -151,29 +159,64 @@ static inline void store_rgb8(float *out, const float *f, v8f r, v8f g, v8f b) {
 }
 
 /* the dense terms into a[c][k]: with W16 two 16-lane sums per channel (z[c][h], its halves a[c][2h], a[c][2h + 1]),
- * the prefetch as in the 8-lane loop */
-#if W16
+ * the prefetch as in the 8-lane loop; and two blocks in lockstep (pm, the block's pair mode: 1 this block and the next,
+ * pst elements on, over the same terms: one slot load, one address and CO light broadcasts per term for both, and
+ * 2 x CO x 2 independent sums; the next block's sums kept in keep [4, 32] float32 for its own call, pm = 2; 0 this
+ * block alone). Each vertex's terms are added in the same order in every mode: the same bits. */
+#if W16 /* the pair mode's parameters, arguments (blocks 2i and 2i + 1 in lockstep) and keep, in W16 builds only */
+#define PAIR_PARAMS const int pm, const i64 pst, float *keep,
+#define PAIR_ARGS(b, nb, pst) ((b) & 1 ? 2 : (b) + 1 < (nb)), (pst), keep,
+#define PAIR_KEEP float keep[128] __attribute__((aligned(64)));
 #define DENSE_TERMS(T)                                                                                       \
     {                                                                                                        \
         v16f z[4][2];                                                                                        \
         for (int c = 0; c < 4; c++) for (int h = 0; h < 2; h++) z[c][h] = (v16f){0};                        \
-        for (i64 t = 0; t < nd; t++) {                                                                       \
-            const T *p = blk + ds[t] * stride;                                                               \
-            if (t + PF < nd)                                                                                 \
-                for (i64 q = 0; q < stride * (i64)sizeof(T); q += 64)                                        \
-                    __builtin_prefetch((const char *)(blk + ds[t + PF] * stride) + q);                       \
-            v16f l[4];                                                                                       \
-            for (int c = 0; c < CO; c++) l[c] = bc16(lw + 4 * t + c);                                        \
-            for (int h = 0; h < 2; h++)                                                                      \
-                for (int c = 0; c < CO; c++) {                                                               \
-                    const v16f x = load16_##T(p + (CT == 1 ? 0 : c * BV) + 16 * h);                          \
-                    z[c][h] += x * l[c];                                                                     \
-                }                                                                                            \
-        }                                                                                                    \
+        if (pm == 2) /* computed with the previous block */                                                  \
+            for (int c = 0; c < CO; c++) for (int h = 0; h < 2; h++) memcpy(&z[c][h], keep + 32 * c + 16 * h, 64); \
+        else if (pm == 1) {                                                                                  \
+            v16f y[4][2];                                                                                    \
+            for (int c = 0; c < 4; c++) for (int h = 0; h < 2; h++) y[c][h] = (v16f){0};                    \
+            const T *nblk = blk + pst;                                                                       \
+            for (i64 t = 0; t < nd; t++) {                                                                   \
+                const i64 o = ds[t] * stride;                                                                \
+                if (t + PF < nd)                                                                             \
+                    for (i64 q = 0; q < stride * (i64)sizeof(T); q += 64) {                                  \
+                        const i64 op = ds[t + PF] * stride;                                                  \
+                        __builtin_prefetch((const char *)(blk + op) + q);                                    \
+                        __builtin_prefetch((const char *)(nblk + op) + q);                                   \
+                    }                                                                                        \
+                v16f l[4];                                                                                   \
+                for (int c = 0; c < CO; c++) l[c] = bc16(lw + 4 * t + c);                                    \
+                for (int h = 0; h < 2; h++)                                                                  \
+                    for (int c = 0; c < CO; c++) {                                                           \
+                        const i64 e = o + (CT == 1 ? 0 : c * BV) + 16 * h;                                   \
+                        const v16f x = load16_##T(blk + e), w = load16_##T(nblk + e);                        \
+                        z[c][h] += x * l[c];                                                                 \
+                        y[c][h] += w * l[c];                                                                 \
+                    }                                                                                        \
+            }                                                                                                \
+            for (int c = 0; c < CO; c++) for (int h = 0; h < 2; h++) memcpy(keep + 32 * c + 16 * h, &y[c][h], 64); \
+        } else                                                                                               \
+            for (i64 t = 0; t < nd; t++) {                                                                   \
+                const T *p = blk + ds[t] * stride;                                                           \
+                if (t + PF < nd)                                                                             \
+                    for (i64 q = 0; q < stride * (i64)sizeof(T); q += 64)                                    \
+                        __builtin_prefetch((const char *)(blk + ds[t + PF] * stride) + q);                   \
+                v16f l[4];                                                                                   \
+                for (int c = 0; c < CO; c++) l[c] = bc16(lw + 4 * t + c);                                    \
+                for (int h = 0; h < 2; h++)                                                                  \
+                    for (int c = 0; c < CO; c++) {                                                           \
+                        const v16f x = load16_##T(p + (CT == 1 ? 0 : c * BV) + 16 * h);                      \
+                        z[c][h] += x * l[c];                                                                 \
+                    }                                                                                        \
+            }                                                                                                \
         for (int c = 0; c < 4; c++)                                                                          \
             for (int h = 0; h < 2; h++) { a[c][2 * h] = lo8(z[c][h]); a[c][2 * h + 1] = hi8(z[c][h]); }     \
     }
 #else /* the 8-lane loop: CO x 4 vectors of 8 sums */
+#define PAIR_PARAMS
+#define PAIR_ARGS(b, nb, pst)
+#define PAIR_KEEP
 #define DENSE_TERMS(T)                                                                                       \
     for (int c = 0; c < 4; c++) for (int k = 0; k < 4; k++) a[c][k] = (v8f){0};                             \
     for (i64 t = 0; t < nd; t++) {                                                                           \
@@ -197,7 +240,7 @@ static inline void store_rgb8(float *out, const float *f, v8f r, v8f g, v8f b) {
  * 3 lights, 1 value = 16 registers, no spill) */
 #define DENSE_BLOCK(T)                                                                                       \
 static inline __attribute__((always_inline)) void dense_block_##T(const int CT, const int CO, const int OC, i64 nd, \
-        const i64 *ds, const float *lw, const T *blk, i64 stride, const float *acc, const i64 *rp,           \
+        const i64 *ds, const float *lw, const T *blk, i64 stride, PAIR_PARAMS const float *acc, const i64 *rp,  \
         const int32_t *rc, const T *rv, const float *lp, i64 nv, const float *f, float *out) {               \
     v8f a[4][4];                                                                                             \
     DENSE_TERMS(T)                                                                                           \
@@ -330,9 +373,11 @@ typedef struct {
 
 #define TILE_CASE(T, CT_, CO_, OC_)                                                                          \
     if (ns && !rows) sparse_tile_##T(CT_, CO_, ns, sw, sl, tp, bofs, bv, acc);                               \
+    PAIR_KEEP                                                                                                \
     for (i64 b = 0; b < nb; b++) {                                                                           \
         const i64 v0 = vt + b * BV, nv = V - v0 < BV ? V - v0 : BV;                                          \
-        dense_block_##T(CT_, CO_, OC_, nd, wk, lw, dense + v0 * Pd * CT_, BV * CT_, ns && !rows ? acc + 128 * b : NULL, \
+        dense_block_##T(CT_, CO_, OC_, nd, wk, lw, dense + v0 * Pd * CT_, BV * CT_, PAIR_ARGS(b, nb, Pd * BV * CT_) \
+                        ns && !rows ? acc + 128 * b : NULL,                                                  \
                         L->rptr + v0 / 8, L->rcol, rvals, rows ? lp : NULL, nv, f + OC_ * v0, out + OC_ * v0);  \
     }
 
