@@ -166,7 +166,7 @@ static inline void store_rgb8(float *out, const float *f, v8f r, v8f g, v8f b) {
 #if W16 /* the pair mode's parameters, arguments (blocks 2i and 2i + 1 in lockstep) and keep, in W16 builds only */
 #define PAIR_PARAMS const int pm, const i64 pst, float *keep,
 #define PAIR_ARGS(b, nb, pst) ((b) & 1 ? 2 : (b) + 1 < (nb)), (pst), keep,
-#define PAIR_KEEP float keep[128] __attribute__((aligned(64)));
+#define PAIR_KEEP float keep[128] __attribute__((aligned(64))) = {0};
 #define DENSE_TERMS(T)                                                                                       \
     {                                                                                                        \
         v16f z[4][2];                                                                                        \
