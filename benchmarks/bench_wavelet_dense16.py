@@ -3,7 +3,7 @@ tree and of ``--base`` (a git revision; default 69385e0, main before the dense l
 lockstep) compiled as two libraries with this CPU's native flags (the ``wavelet`` library's; on an AVX-512 CPU the
 ``W16`` dense loop), both bound to one layout of one relighter, timed paired by one thread's CPU time
 (``measure_paired(clock=time.thread_time)``: what other processes ran is in neither side). Rows: the studio and sky
-lights (transport-weighted terms, RGB: CO = 3) at N = 100, 300, 1000, 2000 and all, the whole call, and at N = 100,
+lights (transport-weighted terms, RGB: CO = 3) at N = 1, 10, 30, 100, 300, 1000, 2000 and all, the whole call, and at N = 100,
 300, 1000 the light's dense terms alone (the loop this work changes, with the set-up and the output pass). Every
 output is compared bit for bit with the base build's (``maxdiff`` must be 0: each vertex's terms are added in the
 same order) and with the float64 sums of the same stored values (``relight.wavelet_dense``).
@@ -45,7 +45,7 @@ from prt_torch.transfer import RunOptions  # noqa: E402
 from prt_torch.transfer.wavelet import precompute_wavelet  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-TERMS = (100, 300, 1000, 2000)
+TERMS = (1, 10, 30, 100, 300, 1000, 2000)
 
 
 def build(rev: str | None):
