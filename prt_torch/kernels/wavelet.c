@@ -39,7 +39,8 @@
  *    Python call ~1 more (the first pass after the interpreter, and the interpreter after a zmm-heavy call).
  *    Not kept (paired against the pair, load 4-6): four blocks in lockstep (CO <= 3, 24 zmm sums) 0.88-0.99x; the
  *    pair's loop split at nd - PF (no prefetch test per term) 0.93-1.03x; the RGB output on 16 lanes (a vpermt2ps
- *    and a masked vpermps per output vector) 0.96-1.04x.
+ *    and a masked vpermps per output vector) 0.96-1.04x; the prefetch distance 3 / 10 / 16 terms with the pair
+ *    0.94-1.01x of 6.
  *    The sparse blocks, the row-major pass and the output stay on 8 lanes (a 16-lane read-modify-write of
  *    two channels' scratch per block measured 0.90-0.94x of the 8-lane one: not kept).
  *  - block-sparse, the rest: the vertices in tiles of TV (a multiple of 32), and within a tile, per
