@@ -91,18 +91,29 @@ def test_each_build_equals_the_dense_reference(isa):
 
 
 @pytest.mark.skipif(not HAS_512, reason="no avx512f/avx512vl on this CPU: one build only")
-def test_builds_agree_bit_for_bit():
+@pytest.mark.parametrize("dtype", [torch.int16, torch.int8, torch.float32])
+def test_builds_agree_bit_for_bit(dtype):
     """The 16-lane dense loop adds each vertex's terms in the order the 8-lane one does (one multiply-add per term and
-    lane): the AVX-512 and AVX2 builds give the same bits."""
-    tr = _transfer(torch.int16, 1)
-    r = relight.WaveletRelighter(tr, threads=1, layouts="both")
+    lane), also when it takes two 32-vertex blocks in lockstep (blocks 2i and 2i + 1 of a tile; the last block of a
+    tile with an odd count alone), and when a light with little dense work takes the 8-lane loop (2 dense terms x 71
+    blocks < ZMM_MIN): the AVX-512 and AVX2 builds give the same bits — every stored dtype, a grey transfer with 1-4
+    light channels and a grey RGB light (one sum per vertex), a coloured transfer, tiles of 36 and of 3 blocks (2251
+    vertices = 70 blocks + 11: odd counts, a partial last block), one and two threads."""
     g = torch.Generator().manual_seed(5)
-    for N in (40, r.P):
-        li = torch.randperm(r.P, generator=g)[:N].contiguous()
-        lv = torch.randn(3, N, generator=g)
-        a = _relight(r, relight._wavelet_lib("avx512"), li, lv, 1)
-        b = _relight(r, relight._wavelet_lib("avx2"), li, lv, 1)
-        assert torch.equal(a, b), N
+    for CT, channels in ((1, (1, 2, 3, 4, "grey")), (3, (1, 3))):
+        tr = _transfer(dtype, CT)
+        for tile in (None, 96):
+            r = relight.WaveletRelighter(tr, threads=1, layouts="both", tile=tile)
+            dense = torch.nonzero(r.dslot >= 0).flatten()
+            sparse = torch.nonzero((r.dslot < 0) & (r.cls > 0)).flatten()
+            for C in channels:
+                for N in (3, 40, r.P):
+                    li = (torch.cat([dense[:2], sparse[:1]]) if N == 3 else torch.randperm(r.P, generator=g)[:N]).contiguous()
+                    lv = torch.randn(1, N, generator=g).expand(3, N).contiguous() if C == "grey" else torch.randn(C, N, generator=g)
+                    for threads in (1, 2):
+                        a = _relight(r, relight._wavelet_lib("avx512"), li, lv, threads)
+                        b = _relight(r, relight._wavelet_lib("avx2"), li, lv, threads)
+                        assert torch.equal(a, b), (dtype, CT, tile, C, N, threads)
 
 
 def test_avx512_request_refused_in_one_line_without_it():

@@ -24,6 +24,23 @@
  *    on one layout, one thread's CPU time (bench_wavelet_isa.py): the dense terms alone 1.07-1.12x faster,
  *    whole lights 1.02-1.13x except the studio light at N = 100-300 (0.96-1.05x; an ad-hoc C loop of the same
  *    work from L1: 1.26x; in the kernel the 1-2 MB come partly from L3, and zmm FMAs cost ~5% of clock).
+ *    The 16-lane loop takes a tile's blocks 2i and 2i + 1 in lockstep (the last of an odd count alone): one slot
+ *    load, address and CO light broadcasts per term for both, 2 x CO x 2 independent sums (CO = 4: 16 of the 32
+ *    zmm registers), block 2i + 1's sums kept (as 8-lane halves) for its own call; each vertex's order unchanged
+ *    (the same bits); a call with fewer than ZMM_MIN (dense term, block) pairs takes the 8-lane loop instead (the
+ *    zmm loop's first use costs ~0.3-0.4 us a call). Against 69385e0's one-block loop on the Xeon, one thread's CPU
+ *    time (bench_wavelet_dense16.py, load 2.2): the dense terms alone 1.09-1.16x, whole lights 1.01-1.17x at every
+ *    N = 1-all (studio/sky N = 1 1.15/1.17x, 10 1.04/1.04x, 100 1.12/1.10x, 1000 1.05/1.04x, all 1.01/1.03x),
+ *    and 1.05-1.27x faster than the avx2 build at every N.
+ *    What is left above the ports' floor (bench_wavelet_dense16_micro.py): the term's mix alone in assembly, from
+ *    L1, 5.7-5.8 cycles per term and block at the nominal clock (10 uops on the two 512-bit pipes: 5, and the clock
+ *    drops under zmm FMAs: 12 of them alone read 6.5 for 6); the loop on the real layout from L2 6.8-7.5 (2 blocks)
+ *    against 7.4-8.2 (1 block): the per-term slot load, shifts, prefetch and its test, the broadcasts; through a
+ *    Python call ~1 more (the first pass after the interpreter, and the interpreter after a zmm-heavy call).
+ *    Not kept (paired against the pair, load 4-6): four blocks in lockstep (CO <= 3, 24 zmm sums) 0.88-0.99x; the
+ *    pair's loop split at nd - PF (no prefetch test per term) 0.93-1.03x; the RGB output on 16 lanes (a vpermt2ps
+ *    and a masked vpermps per output vector) 0.96-1.04x; the prefetch distance 3 / 10 / 16 terms with the pair
+ *    0.94-1.01x of 6.
  *    The sparse blocks, the row-major pass and the output stay on 8 lanes (a 16-lane read-modify-write of
  *    two channels' scratch per block measured 0.90-0.94x of the 8-lane one: not kept); the column-major sparse
  *    pass takes three blocks per loop step in these builds (SPARSE_RANGE).
@@ -152,30 +169,15 @@ static inline void store_rgb8(float *out, const float *f, v8f r, v8f g, v8f b) {
 }
 
 /* the dense terms into a[c][k]: with W16 two 16-lane sums per channel (z[c][h], its halves a[c][2h], a[c][2h + 1]),
- * the prefetch as in the 8-lane loop */
-#if W16
-#define DENSE_TERMS(T)                                                                                       \
-    {                                                                                                        \
-        v16f z[4][2];                                                                                        \
-        for (int c = 0; c < 4; c++) for (int h = 0; h < 2; h++) z[c][h] = (v16f){0};                        \
-        for (i64 t = 0; t < nd; t++) {                                                                       \
-            const T *p = blk + ds[t] * stride;                                                               \
-            if (t + PF < nd)                                                                                 \
-                for (i64 q = 0; q < stride * (i64)sizeof(T); q += 64)                                        \
-                    __builtin_prefetch((const char *)(blk + ds[t + PF] * stride) + q);                       \
-            v16f l[4];                                                                                       \
-            for (int c = 0; c < CO; c++) l[c] = bc16(lw + 4 * t + c);                                        \
-            for (int h = 0; h < 2; h++)                                                                      \
-                for (int c = 0; c < CO; c++) {                                                               \
-                    const v16f x = load16_##T(p + (CT == 1 ? 0 : c * BV) + 16 * h);                          \
-                    z[c][h] += x * l[c];                                                                     \
-                }                                                                                            \
-        }                                                                                                    \
-        for (int c = 0; c < 4; c++)                                                                          \
-            for (int h = 0; h < 2; h++) { a[c][2 * h] = lo8(z[c][h]); a[c][2 * h + 1] = hi8(z[c][h]); }     \
-    }
-#else /* the 8-lane loop: CO x 4 vectors of 8 sums */
-#define DENSE_TERMS(T)                                                                                       \
+ * the prefetch as in the 8-lane loop; and two blocks in lockstep (pm, the block's mode: 1 this block and the next, pst
+ * elements on, over the same terms: one slot load, one address and CO light broadcasts per term for both, and
+ * 2 x CO x 2 independent sums; the next block's sums kept in keep [4, 32] float32 for its own call, pm = 2; 0 this
+ * block alone; 3 the 8-lane loop, DENSE_TERMS8, when the call holds fewer than ZMM_MIN (dense term, block) pairs).
+ * Each vertex's terms are added in the same order in every mode: the same bits. keep is written and read in 32-byte
+ * halves: the 8-lane halves a[c][k] read back from 64-byte stores missed store forwarding, ~0.4 us per call (0.82x
+ * at N = 1, 0.92x at N = 10 against the one-block loop; halves: 0.97x, 1.00x). */
+/* the 8-lane loop: CO x 4 vectors of 8 sums (W16 builds: lights of few dense terms) */
+#define DENSE_TERMS8(T)                                                                                      \
     for (int c = 0; c < 4; c++) for (int k = 0; k < 4; k++) a[c][k] = (v8f){0};                             \
     for (i64 t = 0; t < nd; t++) {                                                                           \
         const T *p = blk + ds[t] * stride;                                                                   \
@@ -190,6 +192,70 @@ static inline void store_rgb8(float *out, const float *f, v8f r, v8f g, v8f b) {
                 a[c][k] += x * l[c];                                                                         \
             }                                                                                                \
     }
+#if W16 /* the pair mode's parameters, arguments (blocks 2i and 2i + 1 in lockstep) and keep, in W16 builds only */
+#define PAIR_PARAMS const int pm, const i64 pst, float *keep,
+#ifndef ZMM_MIN /* fewer (dense term, 32-vertex block) pairs than this in a call: the 8-lane loop (the zmm loop's first
+                 * use in a call costs ~0.3-0.4 us on the Xeon: measured 1.10-1.21x at 1-3 dense terms x 71 blocks,
+                 * 0.93-0.97x at 5-7) */
+#define ZMM_MIN 256
+#endif
+#define PAIR_ARGS(b, nb, pst) nd * ((V + BV - 1) / BV) < ZMM_MIN ? 3 : (b) & 1 ? 2 : (b) + 1 < (nb), (pst), keep,
+#define PAIR_KEEP float keep[128] __attribute__((aligned(64))) = {0};
+#define DENSE_TERMS(T)                                                                                       \
+    if (pm == 3) { DENSE_TERMS8(T) } else /* little dense work in the call: the 8-lane loop */               \
+    if (pm == 2) /* computed with the previous block: its halves as stored (32-byte loads of 32-byte stores) */ \
+        for (int c = 0; c < 4; c++) for (int k = 0; k < 4; k++) a[c][k] = c < CO ? ld8(keep + 32 * c + 8 * k) : (v8f){0}; \
+    else {                                                                                                   \
+        v16f z[4][2];                                                                                        \
+        for (int c = 0; c < 4; c++) for (int h = 0; h < 2; h++) z[c][h] = (v16f){0};                        \
+        if (pm == 1) {                                                                                       \
+            v16f y[4][2];                                                                                    \
+            for (int c = 0; c < 4; c++) for (int h = 0; h < 2; h++) y[c][h] = (v16f){0};                    \
+            const T *nblk = blk + pst;                                                                       \
+            for (i64 t = 0; t < nd; t++) {                                                                   \
+                const i64 o = ds[t] * stride;                                                                \
+                if (t + PF < nd)                                                                             \
+                    for (i64 q = 0; q < stride * (i64)sizeof(T); q += 64) {                                  \
+                        const i64 op = ds[t + PF] * stride;                                                  \
+                        __builtin_prefetch((const char *)(blk + op) + q);                                    \
+                        __builtin_prefetch((const char *)(nblk + op) + q);                                   \
+                    }                                                                                        \
+                v16f l[4];                                                                                   \
+                for (int c = 0; c < CO; c++) l[c] = bc16(lw + 4 * t + c);                                    \
+                for (int h = 0; h < 2; h++)                                                                  \
+                    for (int c = 0; c < CO; c++) {                                                           \
+                        const i64 e = o + (CT == 1 ? 0 : c * BV) + 16 * h;                                   \
+                        const v16f x = load16_##T(blk + e), w = load16_##T(nblk + e);                        \
+                        z[c][h] += x * l[c];                                                                 \
+                        y[c][h] += w * l[c];                                                                 \
+                    }                                                                                        \
+            }                                                                                                \
+            for (int c = 0; c < CO; c++) for (int h = 0; h < 2; h++) {                                       \
+                st8(keep + 32 * c + 16 * h, lo8(y[c][h]));                                                   \
+                st8(keep + 32 * c + 16 * h + 8, hi8(y[c][h]));                                               \
+            }                                                                                                \
+        } else                                                                                               \
+            for (i64 t = 0; t < nd; t++) {                                                                   \
+                const T *p = blk + ds[t] * stride;                                                           \
+                if (t + PF < nd)                                                                             \
+                    for (i64 q = 0; q < stride * (i64)sizeof(T); q += 64)                                    \
+                        __builtin_prefetch((const char *)(blk + ds[t + PF] * stride) + q);                   \
+                v16f l[4];                                                                                   \
+                for (int c = 0; c < CO; c++) l[c] = bc16(lw + 4 * t + c);                                    \
+                for (int h = 0; h < 2; h++)                                                                  \
+                    for (int c = 0; c < CO; c++) {                                                           \
+                        const v16f x = load16_##T(p + (CT == 1 ? 0 : c * BV) + 16 * h);                      \
+                        z[c][h] += x * l[c];                                                                 \
+                    }                                                                                        \
+            }                                                                                                \
+        for (int c = 0; c < 4; c++)                                                                          \
+            for (int h = 0; h < 2; h++) { a[c][2 * h] = lo8(z[c][h]); a[c][2 * h + 1] = hi8(z[c][h]); }     \
+    }
+#else /* the 8-lane loop: CO x 4 vectors of 8 sums */
+#define PAIR_PARAMS
+#define PAIR_ARGS(b, nb, pst)
+#define PAIR_KEEP
+#define DENSE_TERMS(T) DENSE_TERMS8(T)
 #endif
 
 /* one block of BV vertices over the nd dense terms (light lw [nd, 4]); acc: the block's four 8-vertex
@@ -198,7 +264,7 @@ static inline void store_rgb8(float *out, const float *f, v8f r, v8f g, v8f b) {
  * 3 lights, 1 value = 16 registers, no spill) */
 #define DENSE_BLOCK(T)                                                                                       \
 static inline __attribute__((always_inline)) void dense_block_##T(const int CT, const int CO, const int OC, i64 nd, \
-        const i64 *ds, const float *lw, const T *blk, i64 stride, const float *acc, const i64 *rp,           \
+        const i64 *ds, const float *lw, const T *blk, i64 stride, PAIR_PARAMS const float *acc, const i64 *rp,  \
         const int32_t *rc, const T *rv, const float *lp, i64 nv, const float *f, float *out) {               \
     v8f a[4][4];                                                                                             \
     DENSE_TERMS(T)                                                                                           \
@@ -383,9 +449,11 @@ typedef struct {
 
 #define TILE_CASE(T, CT_, CO_, OC_)                                                                          \
     if (ns && !rows) sparse_tile_##T(CT_, CO_, ns, sw, sl, tp, bofs, bv, acc);                               \
+    PAIR_KEEP                                                                                                \
     for (i64 b = 0; b < nb; b++) {                                                                           \
         const i64 v0 = vt + b * BV, nv = V - v0 < BV ? V - v0 : BV;                                          \
-        dense_block_##T(CT_, CO_, OC_, nd, wk, lw, dense + v0 * Pd * CT_, BV * CT_, ns && !rows ? acc + 128 * b : NULL, \
+        dense_block_##T(CT_, CO_, OC_, nd, wk, lw, dense + v0 * Pd * CT_, BV * CT_, PAIR_ARGS(b, nb, Pd * BV * CT_) \
+                        ns && !rows ? acc + 128 * b : NULL,                                                  \
                         L->rptr + v0 / 8, L->rcol, rvals, rows ? lp : NULL, nv, f + OC_ * v0, out + OC_ * v0);  \
     }
 
