@@ -191,6 +191,55 @@ static inline void store_rgb8(float *out, const float *f, v8f r, v8f g, v8f b) {
     }
 #endif
 
+/* The row-major pass with 32 vector registers (W16, AVX-512F: ymm0-31 through AVX-512VL): ROW_G(CO) of a dense
+ * block's four 8-vertex blocks walked in lockstep — per step two entries of each, into that block's own two sets of
+ * sums, up to the shortest block's pairs; then each block's rest and its odd entry as in the 8-lane loop — so each
+ * vertex's terms are added in the same order (the same bits as one block at a time) with 2 ROW_G independent
+ * multiply-add chains per channel instead of 2. The column as unsigned (lp + 16 col bytes: one shift, where int
+ * arithmetic gave a shift and a sign extension per entry). Four blocks for CO <= 3 (24 sums), two for CO = 4.
+ * Measured (bench_wavelet_rowpass.py; Intel Xeon, one thread CPU time): see the header comment. */
+#if W16
+#ifndef ROW_LS
+#define ROW_LS 4 /* 8-vertex blocks in lockstep (CO <= 3): 1, 2 or 4 */
+#endif
+#define ROW_G(CO) ((CO) <= 3 || ROW_LS < 2 ? ROW_LS : 2)
+#define ROW_LP(col) ((const float *)((const char *)lp + ((size_t)(uint32_t)(col) << 4)))
+/* two row-major entries E, E + 1 of one 8-vertex block into its two sets of sums S0, S1 [CO] */
+#define ROW2(T, S0, S1, E)                                                                                   \
+    {                                                                                                        \
+        const float *l0_ = ROW_LP(rc[E]), *l1_ = ROW_LP(rc[(E) + 1]);                                        \
+        const T *x0_ = rv + (E) * 8 * CT, *x1_ = x0_ + 8 * CT;                                               \
+        for (int c = 0; c < CO; c++) {                                                                       \
+            S0[c] += load8_##T(x0_ + (CT == 1 ? 0 : 8 * c)) * bc8(l0_ + c);                                  \
+            S1[c] += load8_##T(x1_ + (CT == 1 ? 0 : 8 * c)) * bc8(l1_ + c);                                  \
+        }                                                                                                    \
+    }
+/* G 8-vertex blocks k0 .. k0 + G - 1 in lockstep (a[c][k]: the dense sums in, the block's sums out) */
+#define ROWS_LOCKSTEP(T, G)                                                                                  \
+    for (int k0 = 0; k0 < 4; k0 += (G)) {                                                                    \
+        v8f s0[4][4], s1[4][4];                                                                              \
+        i64 e[4], e1[4], m = INT64_MAX;                                                                      \
+        for (int g = 0; g < (G); g++) {                                                                      \
+            for (int c = 0; c < CO; c++) { s0[g][c] = a[c][k0 + g]; s1[g][c] = (v8f){0}; }                   \
+            e[g] = rp[k0 + g];                                                                               \
+            e1[g] = rp[k0 + g + 1];                                                                          \
+            const i64 n = (e1[g] - e[g]) >> 1;                                                               \
+            m = n < m ? n : m;                                                                               \
+        }                                                                                                    \
+        for (i64 i = 0; i < m; i++)                                                                          \
+            for (int g = 0; g < (G); g++) { ROW2(T, s0[g], s1[g], e[g]) e[g] += 2; }                         \
+        for (int g = 0; g < (G); g++) {                                                                      \
+            for (; e[g] + 1 < e1[g]; e[g] += 2) ROW2(T, s0[g], s1[g], e[g])                                  \
+            if (e[g] < e1[g])                                                                                \
+                for (int c = 0; c < CO; c++)                                                                 \
+                    s0[g][c] += load8_##T(rv + e[g] * 8 * CT + (CT == 1 ? 0 : 8 * c)) * bc8(ROW_LP(rc[e[g]]) + c); \
+            for (int c = 0; c < CO; c++) a[c][k0 + g] = s0[g][c] + s1[g][c];                                 \
+        }                                                                                                    \
+    }
+#else
+#define ROWS_LOCKSTEP(T, G) {}
+#endif
+
 /* one block of BV vertices over the nd dense terms (light lw [nd, 4]); acc: the block's four 8-vertex
  * accumulators [4][4 channels][8] of the sparse part, or NULL; CT, CO constants after inlining. Each
  * term's values are loaded one vector at a time with the CO light values held (CT = 1, CO = 3: 12 sums,
@@ -201,8 +250,10 @@ static inline __attribute__((always_inline)) void dense_block_##T(const int CT, 
         const int32_t *rc, const T *rv, const float *lp, i64 nv, const float *f, float *out) {               \
     v8f a[4][4];                                                                                             \
     DENSE_TERMS(T)                                                                                           \
-    if (lp) /* row-major sparse entries of the block's four 8-vertex blocks, the light looked up per column;  \
-             * two entries at a time into two sets of sums (one set: a multiply-add latency chain per entry) */ \
+    if (lp && W16) ROWS_LOCKSTEP(T, ROW_G(CO)) /* AVX-512: the 8-vertex blocks in lockstep (above) */        \
+    else if (lp) /* row-major sparse entries of the block's four 8-vertex blocks, the light looked up per  \
+                  * column; two entries at a time into two sets of sums (one set: a multiply-add latency   \
+                  * chain per entry) */                                                                    \
         for (int k = 0; k < 4; k++) {                                                                        \
             v8f s0[4], s1[4];                                                                                \
             for (int c = 0; c < CO; c++) { s0[c] = a[c][k]; s1[c] = (v8f){0}; }                             \
