@@ -104,6 +104,8 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--base", default=BASE, help="the kernel to pair against: a git revision, '.', or a .c file")
     ap.add_argument("--test", default=".", help="the kernel measured: '.', a git revision or a .c file")
+    ap.add_argument("--ls", type=int, default=0, help="compile the test kernel with ROW_LS (8-vertex blocks in lockstep "
+                    "on the AVX-512 build: 1, 2 or 4; 0: its default)")
     ap.add_argument("--repeats", type=int, default=15)
     ap.add_argument("--crossover", action="store_true", help="also the two passes forced on the test build")
     ap.add_argument("--quick", action="store_true", help="N = 1000, 2000, all and the sparse rows only")
@@ -111,7 +113,11 @@ def main() -> None:
     args = ap.parse_args()
     if args.repeats < 3:
         raise SystemExit(f"bench_wavelet_rowpass: --repeats {args.repeats}; accepted: an integer >= 3")
+    if args.ls not in (0, 1, 2, 4):
+        raise SystemExit(f"bench_wavelet_rowpass: --ls {args.ls}; accepted: 1, 2, 4 (0: the kernel's default)")
     (ttext, tlabel), (btext, blabel) = source(args.test), source(args.base)
+    if args.ls:
+        ttext, tlabel = f"#define ROW_LS {args.ls}\n" + ttext, f"{tlabel} with ROW_LS {args.ls}"
     (tfn, flags, bits), (bfn, _, _) = build(ttext, "test"), build(btext, "base")
     clk = compile_library("wavelet_floor_micro", CLOCK_SRC, ["-O2", "-shared", "-fPIC", "-std=c99"], {})[0]
     clk.clock_ghz.restype = ctypes.c_double
@@ -195,6 +201,7 @@ def main() -> None:
          "per-repeat ratios base / test [quartiles] (> 1: test faster); *same bits*: the two outputs equal bit for bit. "
          "*sparse*: the light's sparse terms alone (no dense terms: the pass, the set-up and the output). Reproduce: "
          f"`.venv/bin/python benchmarks/bench_wavelet_rowpass.py --base {args.base} --test {args.test}"
+         f"{f' --ls {args.ls}' if args.ls else ''}{f' --repeats {args.repeats}' if args.repeats != 15 else ''}"
          f"{' --crossover' if args.crossover else ''}`.\n",
          "| light | N | terms | sparse blocks held | pass | test | base | **base / test** [quartiles] | test ns (cycles) per "
          "entry | same bits | load |",

@@ -200,7 +200,7 @@ static inline void store_rgb8(float *out, const float *f, v8f r, v8f g, v8f b) {
  * Measured (bench_wavelet_rowpass.py; Intel Xeon, one thread CPU time): see the header comment. */
 #if W16
 #ifndef ROW_LS
-#define ROW_LS 4 /* 8-vertex blocks in lockstep (CO <= 3): 1, 2 or 4 */
+#define ROW_LS 2 /* 8-vertex blocks in lockstep: 1, 2 or 4 (4: CO <= 3 only, else 2) */
 #endif
 #define ROW_G(CO) ((CO) <= 3 || ROW_LS < 2 ? ROW_LS : 2)
 #define ROW_LP(col) ((const float *)((const char *)lp + ((size_t)(uint32_t)(col) << 4)))
