@@ -204,7 +204,7 @@ def main() -> None:
          f"{f' --ls {args.ls}' if args.ls else ''}{f' --repeats {args.repeats}' if args.repeats != 15 else ''}"
          f"{' --crossover' if args.crossover else ''}`.\n",
          "| light | N | terms | sparse blocks held | pass | test | base | **base / test** [quartiles] | test ns (cycles) per "
-         "entry | same bits | load |",
+         "entry (the call / entries) | same bits | load |",
          "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         per = (f"{r['us'][0] * 1e3 / rl.NB:.2f} ({r['us'][0] * 1e3 / rl.NB * g:.1f})"

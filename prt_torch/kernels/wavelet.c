@@ -25,7 +25,8 @@
  *    whole lights 1.02-1.13x except the studio light at N = 100-300 (0.96-1.05x; an ad-hoc C loop of the same
  *    work from L1: 1.26x; in the kernel the 1-2 MB come partly from L3, and zmm FMAs cost ~5% of clock).
  *    The sparse blocks, the row-major pass and the output stay on 8 lanes (a 16-lane read-modify-write of
- *    two channels' scratch per block measured 0.90-0.94x of the 8-lane one: not kept).
+ *    two channels' scratch per block measured 0.90-0.94x of the 8-lane one: not kept); with AVX-512's 32
+ *    registers the row-major pass walks two 8-vertex blocks in lockstep (ROWS_LOCKSTEP below).
  *  - block-sparse, the rest: the vertices in tiles of TV (a multiple of 32), and within a tile, per
  *    column, the 8-vertex blocks holding any of its nonzero values: bofs int32 (the byte offset of the
  *    block's accumulator in the tile's scratch, 128 per block: 4 channels x 8 floats) and vals
@@ -37,7 +38,8 @@
  * its outputs once. Only the columns of the light's terms are read — except when the light's sparse
  * terms hold at least row_permille / 1000 of all sparse blocks: then every sparse block is read from a
  * row-major copy (per 8-vertex block its columns' entries) into the dense block's register sums, the
- * light looked up per column (zero for the columns the light does not hold; no scratch). The index
+ * light looked up per column (zero for the columns the light does not hold; no scratch; W16: two 8-vertex
+ * blocks at a time, each in its own entry order, ROWS_LOCKSTEP). The index
  * check (0 <= sel < P) runs before any work (returns 2); an unsupported C returns 1 (CT = 1: 1..4;
  * CT = 3: 1 or 3); a light that chooses the row-major pass while the layout has no row-major copy
  * (rptr NULL: relight.py builds it on first need) returns 3 before any output is written, the light
@@ -90,7 +92,7 @@ static inline v8f bc8(const float *p) { const float x = *p; return (v8f){x, x, x
  * port 5) and one conversion (vcvtdq2ps, port 0) per 16 values, CO multiply-adds on ports 0 and 5: per term and
  * block 4 + 2 CO operations on two ports where the 8-lane loop issues 4 + 4 CO onto the two 256-bit FMA ports (plus
  * 4 widening loads on port 5). Everything after the dense terms (the row-major sparse entries, the scratch, the
- * output) takes the 8-lane code on the sums' halves. */
+ * output) takes the 8-lane code on the sums' halves (the row-major entries two 8-vertex blocks at a time). */
 #if defined(__AVX512F__) && !defined(PRT_NO_W16)
 #define W16 1
 typedef float v16f __attribute__((vector_size(64)));
@@ -191,16 +193,31 @@ static inline void store_rgb8(float *out, const float *f, v8f r, v8f g, v8f b) {
     }
 #endif
 
-/* The row-major pass with 32 vector registers (W16, AVX-512F: ymm0-31 through AVX-512VL): ROW_G(CO) of a dense
- * block's four 8-vertex blocks walked in lockstep — per step two entries of each, into that block's own two sets of
- * sums, up to the shortest block's pairs; then each block's rest and its odd entry as in the 8-lane loop — so each
- * vertex's terms are added in the same order (the same bits as one block at a time) with 2 ROW_G independent
- * multiply-add chains per channel instead of 2. The column as unsigned (lp + 16 col bytes: one shift, where int
- * arithmetic gave a shift and a sign extension per entry). Four blocks for CO <= 3 (24 sums), two for CO = 4.
- * Measured (bench_wavelet_rowpass.py; Intel Xeon, one thread CPU time): see the header comment. */
+/* The row-major pass with 32 vector registers (W16, AVX-512F: ymm0-31 through AVX-512VL; the AVX2 and portable
+ * builds keep the loop in DENSE_BLOCK, their machine code unchanged): ROW_G(CO) of a dense block's four 8-vertex
+ * blocks walked in lockstep — per step two entries of each, into that block's own two sets of sums, up to the
+ * shorter block's pairs; then each block's rest and its odd entry as in the 8-lane loop — so each vertex's terms
+ * are added in the same order (the same bits as one block at a time) with 2 ROW_G independent multiply-add chains
+ * per channel instead of 2; the column taken as unsigned (lp + 16 col bytes: one shift, where int arithmetic gave a
+ * shift and a sign extension per entry). Measured on an Intel Xeon (AVX-512; bench_wavelet_rowpass.py, paired with
+ * the loop before on one layout, one thread CPU time, load 4-7): the pass alone (one sparse term, the pass forced)
+ * 1.07x (49.3 -> 46.6 us for 43228 entries; less the call's 1.8 us of set-up and output, 3.7 -> 3.45 cycles per
+ * entry at 3.3 GHz), the light's sparse terms alone at N = 2000 and all 1.00-1.04x, whole lights 0.98-1.03x (the
+ * pass is a third of the call at N = all; within the noise of whole calls). Four blocks (24 sums):
+ * the same on the pass (0.98-1.00x of two) but the column-major lights 3.5-5.8% slower (the larger code inlined in
+ * every TILE_CASE); one block with the unsigned column alone 1.00-1.05x. Measured and not kept (each against the
+ * loop before, paired, in runs where the kept form gave 1.04-1.07x): the light from a 4 KB table (in L1) or the
+ * values from 4 KB, timing-only variants, 1.03-1.04x (so the pass is not waiting on L2); no column load at all (the
+ * light from a fixed table) 1.14x; a prefetch of the values 16, 64 or 128 entries ahead 0.88-0.91x; both entries'
+ * values converted by one 16-lane conversion (CT = 1) 1.03-1.06x; two pairs of entries per block and step 1.06x
+ * with two blocks, 0.75x with four (spills); the blocks' entries addressed from one counter 1.06x. An assembly loop
+ * of the same instructions from L1 runs at 2.6 cycles per entry (2.15 without the column load and its shift; the
+ * two FMA ports' floor is 2.0: a conversion and 3 multiply-adds per entry for CO = 3), the kernel's loop at 3.45;
+ * the likely cause, the scalar work per entry (column load, shift, loop counters) competing for ports 0 and 1 with
+ * the multiply-adds, this VM's lack of performance counters leaves unconfirmed. */
 #if W16
 #ifndef ROW_LS
-#define ROW_LS 2 /* 8-vertex blocks in lockstep: 1, 2 or 4 (4: CO <= 3 only, else 2) */
+#define ROW_LS 2 /* 8-vertex blocks in lockstep: 1, 2 or 4 (4: CO <= 3 only, else 2; bench_wavelet_rowpass.py --ls) */
 #endif
 #define ROW_G(CO) ((CO) <= 3 || ROW_LS < 2 ? ROW_LS : 2)
 #define ROW_LP(col) ((const float *)((const char *)lp + ((size_t)(uint32_t)(col) << 4)))
