@@ -200,10 +200,12 @@ static inline void store_rgb8(float *out, const float *f, v8f r, v8f g, v8f b) {
  * are added in the same order (the same bits as one block at a time) with 2 ROW_G independent multiply-add chains
  * per channel instead of 2; the column taken as unsigned (lp + 16 col bytes: one shift, where int arithmetic gave a
  * shift and a sign extension per entry). Measured on an Intel Xeon (AVX-512; bench_wavelet_rowpass.py, paired with
- * the loop before on one layout, one thread CPU time, load 2-4): the pass alone (one sparse term, the pass forced)
- * 1.07-1.08x (49.3-49.9 -> 46.3-46.6 us for 43228 entries; less the call's 1.8 us of set-up and output, 3.8 -> 3.45
- * cycles per entry at 3.3 GHz), the light's sparse terms alone at N = 2000 and all 1.00-1.07x, whole lights
- * 0.98-1.03x (the pass is a third of the call at N = all; within the noise of whole calls). Four blocks (24 sums):
+ * the loop before on one layout, one thread CPU time, load 1-4): the pass alone (one sparse term, the pass forced)
+ * 1.06-1.08x (49.3-50.6 -> 46.3-47.9 us for 43228 entries; less the call's 1.8 us of set-up and output, 3.8 -> 3.5
+ * cycles per entry at 3.3 GHz), the light's sparse terms alone at N = 2000 and all 1.00-1.07x, but whole lights at
+ * N = 2000 and all unchanged: 0.96-1.02x over four runs, 0.99-1.01x paired with 31 repeats (in a whole call the pass
+ * costs ~65 us against 45 alone: the dense part's 1.1 MB and the row copy's 0.87 MB do not fit the 2 MB L2 together);
+ * the column-major lights 0.99-1.03x (their code unchanged). Four blocks (24 sums):
  * the same on the pass (0.98-1.00x of two) but the column-major lights 3.5-5.8% slower (the larger code inlined in
  * every TILE_CASE); one block with the unsigned column alone 1.00-1.05x. Measured and not kept (each against the
  * loop before, paired, in runs where the kept form gave 1.04-1.07x): the light from a 4 KB table (in L1) or the
