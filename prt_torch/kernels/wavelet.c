@@ -221,6 +221,9 @@ static inline void store_rgb8(float *out, const float *f, v8f r, v8f g, v8f b) {
 #ifndef ROW_LS
 #define ROW_LS 2 /* 8-vertex blocks in lockstep: 1, 2 or 4 (4: CO <= 3 only, else 2; bench_wavelet_rowpass.py --ls) */
 #endif
+#ifndef ROW_PF
+#define ROW_PF 300 /* entries ahead the lockstep loop prefetches (about half a 32-vertex block's) */
+#endif
 #define ROW_G(CO) ((CO) <= 3 || ROW_LS < 2 ? ROW_LS : 2)
 #define ROW_LP(col) ((const float *)((const char *)lp + ((size_t)(uint32_t)(col) << 4)))
 /* two row-major entries E, E + 1 of one 8-vertex block into its two sets of sums S0, S1 [CO] */
@@ -245,8 +248,14 @@ static inline void store_rgb8(float *out, const float *f, v8f r, v8f g, v8f b) {
             const i64 n = (e1[g] - e[g]) >> 1;                                                               \
             m = n < m ? n : m;                                                                               \
         }                                                                                                    \
-        for (i64 i = 0; i < m; i++)                                                                          \
+        /* the entries ROW_PF ahead of the first block's, as many bytes per step as the step reads: in a whole    \
+         * call the row copy comes partly from L3 (with the dense blocks it outgrows the L2) */               \
+        const char *pf_ = (const char *)(rv + (rp[k0] + ROW_PF) * 8 * CT);                                  \
+        for (i64 i = 0; i < m; i++) {                                                                        \
+            for (i64 q = 0; q < 2 * (G) * 8 * CT * (i64)sizeof(T); q += 64) __builtin_prefetch(pf_ + q);    \
+            pf_ += 2 * (G) * 8 * CT * (i64)sizeof(T);                                                        \
             for (int g = 0; g < (G); g++) { ROW2(T, s0[g], s1[g], e[g]) e[g] += 2; }                         \
+        }                                                                                                    \
         for (int g = 0; g < (G); g++) {                                                                      \
             for (; e[g] + 1 < e1[g]; e[g] += 2) ROW2(T, s0[g], s1[g], e[g])                                  \
             if (e[g] < e1[g])                                                                                \
