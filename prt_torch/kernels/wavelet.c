@@ -199,18 +199,21 @@ static inline void store_rgb8(float *out, const float *f, v8f r, v8f g, v8f b) {
  * shorter block's pairs; then each block's rest and its odd entry as in the 8-lane loop — so each vertex's terms
  * are added in the same order (the same bits as one block at a time) with 2 ROW_G independent multiply-add chains
  * per channel instead of 2; the column taken as unsigned (lp + 16 col bytes: one shift, where int arithmetic gave a
- * shift and a sign extension per entry). Measured on an Intel Xeon (AVX-512; bench_wavelet_rowpass.py, paired with
- * the loop before on one layout, one thread CPU time, load 1-4): the pass alone (one sparse term, the pass forced)
- * 1.06-1.08x (49.3-50.6 -> 46.3-47.9 us for 43228 entries; less the call's 1.8 us of set-up and output, 3.8 -> 3.5
- * cycles per entry at 3.3 GHz), the light's sparse terms alone at N = 2000 and all 1.00-1.07x, but whole lights at
- * N = 2000 and all unchanged: 0.96-1.02x over four runs, 0.99-1.01x paired with 31 repeats (in a whole call the pass
- * costs ~65 us against 45 alone: the dense part's 1.1 MB and the row copy's 0.87 MB do not fit the 2 MB L2 together);
- * the column-major lights 0.99-1.03x (their code unchanged). Four blocks (24 sums):
+ * shift and a sign extension per entry); a prefetch of the row copy ROW_PF entries ahead. Measured on an Intel Xeon
+ * (AVX-512; bench_wavelet_rowpass.py, paired with the loop before on one layout, one thread CPU time, load 1-3):
+ * whole lights at N = 2000 and all 1.00-1.02x (the report's run), 1.01-1.04x (31 repeats), column-major lights
+ * 1.00-1.04x (their code unchanged), the pass alone (one sparse term, the pass forced: its copy stays in L2)
+ * 1.01-1.03x.
+ * Without the prefetch the pass alone was 1.06-1.08x (3.8 -> 3.5 cycles per entry, the call's 1.8 us of set-up and
+ * output aside) but whole lights 0.96-1.02x: in a whole call the pass costs ~65 us against 45 alone, its copy
+ * (0.87 MB) and the dense blocks (1.1 MB) outgrowing the 2 MB L2 together. Four blocks (24 sums):
  * the same on the pass (0.98-1.00x of two) but the column-major lights 3.5-5.8% slower (the larger code inlined in
- * every TILE_CASE); one block with the unsigned column alone 1.00-1.05x. Measured and not kept (each against the
- * loop before, paired, in runs where the kept form gave 1.04-1.07x): the light from a 4 KB table (in L1) or the
+ * every TILE_CASE); one block with the unsigned column alone 1.00-1.05x; the prefetch 600 or 1200 entries ahead
+ * about as 300 on whole lights (1.01-1.05x / 1.00-1.04x). Measured and not kept (each against the loop before,
+ * paired, in runs where the lockstep without prefetch gave 1.04-1.07x): the light from a 4 KB table (in L1) or the
  * values from 4 KB, timing-only variants, 1.03-1.04x (so the pass is not waiting on L2); no column load at all (the
- * light from a fixed table) 1.14x; a prefetch of the values 16, 64 or 128 entries ahead 0.88-0.91x; both entries'
+ * light from a fixed table) 1.14x; a prefetch per pair of entries, 16, 64 or 128 entries ahead, 0.88-0.91x (the pass
+ * alone) and 0.92-0.94x (whole lights at N = all); both entries'
  * values converted by one 16-lane conversion (CT = 1) 1.03-1.06x; two pairs of entries per block and step 1.06x
  * with two blocks, 0.75x with four (spills); the blocks' entries addressed from one counter 1.06x. An assembly loop
  * of the same instructions from L1 runs at 2.6 cycles per entry (2.15 without the column load and its shift; the
