@@ -197,8 +197,8 @@ static inline void store_rgb8(float *out, const float *f, v8f r, v8f g, v8f b) {
  * builds keep the loop in DENSE_BLOCK, their machine code unchanged): ROW_G(CO) of a dense block's four 8-vertex
  * blocks walked in lockstep — per step two entries of each, into that block's own two sets of sums, up to the
  * shorter block's pairs; then each block's rest and its odd entry as in the 8-lane loop — so each vertex's terms
- * are added in the same order (the same bits as one block at a time) with 2 ROW_G independent multiply-add chains
- * per channel instead of 2; the column taken as unsigned (lp + 16 col bytes: one shift, where int arithmetic gave a
+ * are added in the same order (the same bits as one block at a time) with 2 x ROW_G independent multiply-add
+ * chains per channel instead of 2; the column taken as unsigned (lp + 16 col bytes: one shift, where int arithmetic gave a
  * shift and a sign extension per entry); a prefetch of the row copy ROW_PF entries ahead. Measured on an Intel Xeon
  * (AVX-512; bench_wavelet_rowpass.py, paired with the loop before on one layout, one thread CPU time, load 1-3):
  * whole lights at N = 2000 and all 1.00-1.02x (the report's run), 1.01-1.04x (31 repeats), column-major lights
@@ -253,9 +253,9 @@ static inline void store_rgb8(float *out, const float *f, v8f r, v8f g, v8f b) {
         }                                                                                                    \
         /* the entries ROW_PF ahead of the first block's, as many bytes per step as the step reads: in a whole    \
          * call the row copy comes partly from L3 (with the dense blocks it outgrows the L2) */               \
-        const char *pf_ = (const char *)(rv + (rp[k0] + ROW_PF) * 8 * CT);                                  \
+        uintptr_t pf_ = (uintptr_t)rv + (uintptr_t)((rp[k0] + ROW_PF) * 8 * CT * (i64)sizeof(T)); /* may pass the end */ \
         for (i64 i = 0; i < m; i++) {                                                                        \
-            for (i64 q = 0; q < 2 * (G) * 8 * CT * (i64)sizeof(T); q += 64) __builtin_prefetch(pf_ + q);    \
+            for (i64 q = 0; q < 2 * (G) * 8 * CT * (i64)sizeof(T); q += 64) __builtin_prefetch((const char *)(pf_ + q)); \
             pf_ += 2 * (G) * 8 * CT * (i64)sizeof(T);                                                        \
             for (int g = 0; g < (G); g++) { ROW2(T, s0[g], s1[g], e[g]) e[g] += 2; }                         \
         }                                                                                                    \
