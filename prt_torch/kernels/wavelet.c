@@ -201,9 +201,9 @@ static inline void store_rgb8(float *out, const float *f, v8f r, v8f g, v8f b) {
  * chains per channel instead of 2; the column taken as unsigned (lp + 16 col bytes: one shift, where int arithmetic gave a
  * shift and a sign extension per entry); a prefetch of the row copy ROW_PF entries ahead. Measured on an Intel Xeon
  * (AVX-512; bench_wavelet_rowpass.py, paired with the loop before on one layout, one thread CPU time, load 1-3):
- * whole lights at N = 2000 and all 1.00-1.02x (the report's run), 1.01-1.04x (31 repeats), column-major lights
- * 1.00-1.04x (their code unchanged), the pass alone (one sparse term, the pass forced: its copy stays in L2)
- * 1.01-1.03x.
+ * whole lights at N = 2000 and all 1.01-1.02x (the report's run, load 1.0; 1.00-1.02x at 2.6), 1.03-1.05x (31
+ * repeats), column-major lights 1.01-1.03x (their code unchanged), the pass alone (one sparse term, the pass forced:
+ * its copy stays in L2) 1.01-1.03x.
  * Without the prefetch the pass alone was 1.06-1.08x (3.8 -> 3.5 cycles per entry, the call's 1.8 us of set-up and
  * output aside) but whole lights 0.96-1.02x: in a whole call the pass costs ~65 us against 45 alone, its copy
  * (0.87 MB) and the dense blocks (1.1 MB) outgrowing the 2 MB L2 together. Four blocks (24 sums):
