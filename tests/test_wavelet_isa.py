@@ -96,7 +96,10 @@ def test_builds_agree_bit_for_bit(dtype):
     """The 16-lane dense loop adds each vertex's terms in the order the 8-lane one does (one multiply-add per term and
     lane), also when it takes two 32-vertex blocks in lockstep (blocks 2i and 2i + 1 of a tile; the last block of a
     tile with an odd count alone), and when a light with little dense work takes the 8-lane loop (2 dense terms x 71
-    blocks < ZMM_MIN): the AVX-512 and AVX2 builds give the same bits — every stored dtype, a grey transfer with 1-4
+    blocks < ZMM_MIN), and when the AVX-512 row-major pass walks two 8-vertex blocks in lockstep, each in its own entry
+    order (N = every column: blocks holding 0 to 72 entries, about half an odd count: unequal lockstep partners and
+    odd tails), and the column-major pass takes three blocks per step: the AVX-512 and AVX2 builds give the same
+    bits — every stored dtype, a grey transfer with 1-4
     light channels and a grey RGB light (one sum per vertex), a coloured transfer, tiles of 36 and of 3 blocks (2251
     vertices = 70 blocks + 11: odd counts, a partial last block), one and two threads."""
     g = torch.Generator().manual_seed(5)

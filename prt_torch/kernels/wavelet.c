@@ -43,7 +43,8 @@
  *    0.94-1.01x of 6.
  *    The sparse blocks, the row-major pass and the output stay on 8 lanes (a 16-lane read-modify-write of
  *    two channels' scratch per block measured 0.90-0.94x of the 8-lane one: not kept); the column-major sparse
- *    pass takes three blocks per loop step in these builds (SPARSE_RANGE).
+ *    pass takes three blocks per loop step in these builds (SPARSE_RANGE), and with AVX-512's 32 registers the
+ *    row-major pass walks two 8-vertex blocks in lockstep (ROWS_LOCKSTEP below).
  *  - block-sparse, the rest: the vertices in tiles of TV (a multiple of 32), and within a tile, per
  *    column, the 8-vertex blocks holding any of its nonzero values: bofs int32 (the byte offset of the
  *    block's accumulator in the tile's scratch, 128 per block: 4 channels x 8 floats) and vals
@@ -55,7 +56,8 @@
  * its outputs once. Only the columns of the light's terms are read — except when the light's sparse
  * terms hold at least row_permille / 1000 of all sparse blocks: then every sparse block is read from a
  * row-major copy (per 8-vertex block its columns' entries) into the dense block's register sums, the
- * light looked up per column (zero for the columns the light does not hold; no scratch). The index
+ * light looked up per column (zero for the columns the light does not hold; no scratch; W16: two 8-vertex
+ * blocks at a time, each in its own entry order, ROWS_LOCKSTEP). The index
  * check (0 <= sel < P) runs before any work (returns 2); an unsupported C returns 1 (CT = 1: 1..4;
  * CT = 3: 1 or 3); a light that chooses the row-major pass while the layout has no row-major copy
  * (rptr NULL: relight.py builds it on first need) returns 3 before any output is written, the light
@@ -108,7 +110,7 @@ static inline v8f bc8(const float *p) { const float x = *p; return (v8f){x, x, x
  * port 5) and one conversion (vcvtdq2ps, port 0) per 16 values, CO multiply-adds on ports 0 and 5: per term and
  * block 4 + 2 CO operations on two ports where the 8-lane loop issues 4 + 4 CO onto the two 256-bit FMA ports (plus
  * 4 widening loads on port 5). Everything after the dense terms (the row-major sparse entries, the scratch, the
- * output) takes the 8-lane code on the sums' halves. */
+ * output) takes the 8-lane code on the sums' halves (the row-major entries two 8-vertex blocks at a time). */
 #if defined(__AVX512F__) && !defined(PRT_NO_W16)
 #define W16 1
 typedef float v16f __attribute__((vector_size(64)));
@@ -258,6 +260,84 @@ static inline void store_rgb8(float *out, const float *f, v8f r, v8f g, v8f b) {
 #define DENSE_TERMS(T) DENSE_TERMS8(T)
 #endif
 
+/* The row-major pass with 32 vector registers (W16, AVX-512F: ymm0-31 through AVX-512VL; the AVX2 and portable
+ * builds keep the loop in DENSE_BLOCK, their machine code unchanged): ROW_G(CO) of a dense block's four 8-vertex
+ * blocks walked in lockstep — per step two entries of each, into that block's own two sets of sums, up to the
+ * shorter block's pairs; then each block's rest and its odd entry as in the 8-lane loop — so each vertex's terms
+ * are added in the same order (the same bits as one block at a time) with 2 x ROW_G independent multiply-add
+ * chains per channel instead of 2; the column taken as unsigned (lp + 16 col bytes: one shift, where int arithmetic gave a
+ * shift and a sign extension per entry); a prefetch of the row copy ROW_PF entries ahead. Measured on an Intel Xeon
+ * (AVX-512; bench_wavelet_rowpass.py, paired with the loop before on one layout, one thread CPU time, load 1-3):
+ * whole lights at N = 2000 and all 1.01-1.02x (the report's run, load 1.0; 1.00-1.02x at 2.6), 1.03-1.05x (31
+ * repeats), column-major lights 1.01-1.03x (their code unchanged), the pass alone (one sparse term, the pass forced:
+ * its copy stays in L2) 1.01-1.03x.
+ * Without the prefetch the pass alone was 1.06-1.08x (3.8 -> 3.5 cycles per entry, the call's 1.8 us of set-up and
+ * output aside) but whole lights 0.96-1.02x: in a whole call the pass costs ~65 us against 45 alone, its copy
+ * (0.87 MB) and the dense blocks (1.1 MB) outgrowing the 2 MB L2 together. Four blocks (24 sums):
+ * the same on the pass (0.98-1.00x of two) but the column-major lights 3.5-5.8% slower (the larger code inlined in
+ * every TILE_CASE); one block with the unsigned column alone 1.00-1.05x; the prefetch 600 or 1200 entries ahead
+ * about as 300 on whole lights (1.01-1.05x / 1.00-1.04x). Measured and not kept (each against the loop before,
+ * paired, in runs where the lockstep without prefetch gave 1.04-1.07x): the light from a 4 KB table (in L1) or the
+ * values from 4 KB, timing-only variants, 1.03-1.04x (so the pass is not waiting on L2); no column load at all (the
+ * light from a fixed table) 1.14x; a prefetch per pair of entries, 16, 64 or 128 entries ahead, 0.88-0.91x (the pass
+ * alone) and 0.92-0.94x (whole lights at N = all); both entries'
+ * values converted by one 16-lane conversion (CT = 1) 1.03-1.06x; two pairs of entries per block and step 1.06x
+ * with two blocks, 0.75x with four (spills); the blocks' entries addressed from one counter 1.06x. An assembly loop
+ * of the same instructions from L1 runs at 2.6 cycles per entry (2.15 without the column load and its shift; the
+ * two FMA ports' floor is 2.0: a conversion and 3 multiply-adds per entry for CO = 3), the kernel's loop at 3.45;
+ * the likely cause, the scalar work per entry (column load, shift, loop counters) competing for ports 0 and 1 with
+ * the multiply-adds, this VM's lack of performance counters leaves unconfirmed. */
+#if W16
+#ifndef ROW_LS
+#define ROW_LS 2 /* 8-vertex blocks in lockstep: 1, 2 or 4 (4: CO <= 3 only, else 2; bench_wavelet_rowpass.py --ls) */
+#endif
+#ifndef ROW_PF
+#define ROW_PF 300 /* entries ahead the lockstep loop prefetches (about half a 32-vertex block's) */
+#endif
+#define ROW_G(CO) ((CO) <= 3 || ROW_LS < 2 ? ROW_LS : 2)
+#define ROW_LP(col) ((const float *)((const char *)lp + ((size_t)(uint32_t)(col) << 4)))
+/* two row-major entries E, E + 1 of one 8-vertex block into its two sets of sums S0, S1 [CO] */
+#define ROW2(T, S0, S1, E)                                                                                   \
+    {                                                                                                        \
+        const float *l0_ = ROW_LP(rc[E]), *l1_ = ROW_LP(rc[(E) + 1]);                                        \
+        const T *x0_ = rv + (E) * 8 * CT, *x1_ = x0_ + 8 * CT;                                               \
+        for (int c = 0; c < CO; c++) {                                                                       \
+            S0[c] += load8_##T(x0_ + (CT == 1 ? 0 : 8 * c)) * bc8(l0_ + c);                                  \
+            S1[c] += load8_##T(x1_ + (CT == 1 ? 0 : 8 * c)) * bc8(l1_ + c);                                  \
+        }                                                                                                    \
+    }
+/* G 8-vertex blocks k0 .. k0 + G - 1 in lockstep (a[c][k]: the dense sums in, the block's sums out) */
+#define ROWS_LOCKSTEP(T, G)                                                                                  \
+    for (int k0 = 0; k0 < 4; k0 += (G)) {                                                                    \
+        v8f s0[4][4], s1[4][4];                                                                              \
+        i64 e[4], e1[4], m = INT64_MAX;                                                                      \
+        for (int g = 0; g < (G); g++) {                                                                      \
+            for (int c = 0; c < CO; c++) { s0[g][c] = a[c][k0 + g]; s1[g][c] = (v8f){0}; }                   \
+            e[g] = rp[k0 + g];                                                                               \
+            e1[g] = rp[k0 + g + 1];                                                                          \
+            const i64 n = (e1[g] - e[g]) >> 1;                                                               \
+            m = n < m ? n : m;                                                                               \
+        }                                                                                                    \
+        /* the entries ROW_PF ahead of the first block's, as many bytes per step as the step reads: in a whole    \
+         * call the row copy comes partly from L3 (with the dense blocks it outgrows the L2) */               \
+        uintptr_t pf_ = (uintptr_t)rv + (uintptr_t)((rp[k0] + ROW_PF) * 8 * CT * (i64)sizeof(T)); /* may pass the end */ \
+        for (i64 i = 0; i < m; i++) {                                                                        \
+            for (i64 q = 0; q < 2 * (G) * 8 * CT * (i64)sizeof(T); q += 64) __builtin_prefetch((const char *)(pf_ + q)); \
+            pf_ += 2 * (G) * 8 * CT * (i64)sizeof(T);                                                        \
+            for (int g = 0; g < (G); g++) { ROW2(T, s0[g], s1[g], e[g]) e[g] += 2; }                         \
+        }                                                                                                    \
+        for (int g = 0; g < (G); g++) {                                                                      \
+            for (; e[g] + 1 < e1[g]; e[g] += 2) ROW2(T, s0[g], s1[g], e[g])                                  \
+            if (e[g] < e1[g])                                                                                \
+                for (int c = 0; c < CO; c++)                                                                 \
+                    s0[g][c] += load8_##T(rv + e[g] * 8 * CT + (CT == 1 ? 0 : 8 * c)) * bc8(ROW_LP(rc[e[g]]) + c); \
+            for (int c = 0; c < CO; c++) a[c][k0 + g] = s0[g][c] + s1[g][c];                                 \
+        }                                                                                                    \
+    }
+#else
+#define ROWS_LOCKSTEP(T, G) {}
+#endif
+
 /* one block of BV vertices over the nd dense terms (light lw [nd, 4]); acc: the block's four 8-vertex
  * accumulators [4][4 channels][8] of the sparse part, or NULL; CT, CO constants after inlining. Each
  * term's values are loaded one vector at a time with the CO light values held (CT = 1, CO = 3: 12 sums,
@@ -268,8 +348,10 @@ static inline __attribute__((always_inline)) void dense_block_##T(const int CT, 
         const int32_t *rc, const T *rv, const float *lp, i64 nv, const float *f, float *out) {               \
     v8f a[4][4];                                                                                             \
     DENSE_TERMS(T)                                                                                           \
-    if (lp) /* row-major sparse entries of the block's four 8-vertex blocks, the light looked up per column;  \
-             * two entries at a time into two sets of sums (one set: a multiply-add latency chain per entry) */ \
+    if (lp && W16) ROWS_LOCKSTEP(T, ROW_G(CO)) /* AVX-512: the 8-vertex blocks in lockstep (above) */        \
+    else if (lp) /* row-major sparse entries of the block's four 8-vertex blocks, the light looked up per  \
+                  * column; two entries at a time into two sets of sums (one set: a multiply-add latency   \
+                  * chain per entry) */                                                                    \
         for (int k = 0; k < 4; k++) {                                                                        \
             v8f s0[4], s1[4];                                                                                \
             for (int c = 0; c < CO; c++) { s0[c] = a[c][k]; s1[c] = (v8f){0}; }                             \
