@@ -44,7 +44,6 @@ import prt_torch  # noqa: F401  (first: it chooses OpenMP's wait policy from the
 import argparse  # noqa: E402
 import ctypes  # noqa: E402
 import os  # noqa: E402
-import subprocess  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
@@ -54,11 +53,11 @@ import torch  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_wavelet import BITS, LIGHTS, OUT, load  # noqa: E402
 from bench_wavelet_dense_micro import SRC as DENSE_SRC  # noqa: E402
-from bench_wavelet_isa import bound_call  # noqa: E402
+from bench_wavelet_isa import bound_call, kernel_build, kernel_source  # noqa: E402
 from bench_wavelet_pass_micro import C_PRELUDE, grouped  # noqa: E402
 
 from prt_torch import relight  # noqa: E402
-from prt_torch._native import KERNEL_ISAS, LIBRARIES, compile_library, cpu_isa  # noqa: E402
+from prt_torch._native import compile_library, cpu_isa  # noqa: E402
 from prt_torch.harness.timing import cpu_label, measure_paired, read_bound_fn  # noqa: E402
 from prt_torch.scene import builtin  # noqa: E402
 from prt_torch.transfer import RunOptions  # noqa: E402
@@ -224,18 +223,9 @@ def kernel_lib(rev: str | None, isa: str, tag: str = "", cut: str = ""):
     """``kernels/wavelet.c`` at git revision ``rev`` (None: the working tree) compiled with the wavelet library's flags
     and ``isa``'s (``_native.KERNEL_ISAS``), ``tag`` appended as a comment (a second build of the same code: the A/A
     control); ``cut``: ``setup`` returns after the light is gathered and its terms listed, ``nopass`` skips the
-    column-major pass (timing-only builds: where a call's time goes); returns (library, commit or 'working tree', flags)."""
-    names, flags = LIBRARIES["wavelet"]
-    flags = list(flags) + list(KERNEL_ISAS[isa])
-    if rev is None:
-        src, what = (ROOT / "prt_torch/kernels/wavelet.c").read_text(), "working tree"
-    else:
-        src = subprocess.run(["git", "-C", str(ROOT), "show", f"{rev}:prt_torch/kernels/wavelet.c"], check=True,
-                             capture_output=True, text=True).stdout
-        what = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", rev], check=True, capture_output=True,
-                              text=True).stdout.strip()
-    if tag:
-        src += f"\n/* {tag} */\n"
+    column-major pass (timing-only builds: where a call's time goes); returns (library, commit or 'working tree', flags)
+    (bench_wavelet_isa.kernel_source / kernel_build)."""
+    src, what = kernel_source(rev, "bench_wavelet_colpass: --base")
     if cut:
         at = {"setup": ("    const T *rvals = (const T *)L->rvals;",
                         "    if (1) { for (i64 n = 0; n < N; n++) memset(lp + 4 * sel[n], 0, 4 * sizeof(float)); return 0; } \\\n"
@@ -244,13 +234,8 @@ def kernel_lib(rev: str | None, isa: str, tag: str = "", cut: str = ""):
         if at[0] not in src:
             raise SystemExit(f"bench_wavelet_colpass: --cut {cut}: the kernel's text changed ({at[0]!r} not found)")
         src = src.replace(at[0], at[1], 1) + f"\n/* cut: {cut} */\n"
-    vp = ctypes.c_void_p
-    lib, how = compile_library("wavelet", {"wavelet.c": src}, flags, {
-        "prt_wavelet_relight_f32_packed": [vp], "prt_wavelet_relight_i8_packed": [vp], "prt_wavelet_relight_i16_packed": [vp],
-        "prt_wavelet_isa": []})
-    if lib is None:
-        raise SystemExit(f"bench_wavelet_colpass: {what}'s wavelet.c did not compile: {how}")
-    return lib, what, " ".join(flags)
+    lib, flags = kernel_build(src, isa, "bench_wavelet_colpass", tag)
+    return lib, what, flags
 
 
 def main() -> None:

@@ -24,9 +24,7 @@ from __future__ import annotations
 import prt_torch  # noqa: F401  (first: it chooses OpenMP's wait policy from the machine's load)
 
 import argparse  # noqa: E402
-import ctypes  # noqa: E402
 import os  # noqa: E402
-import subprocess  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
@@ -35,10 +33,9 @@ import torch  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_wavelet import BITS, LIGHTS, OUT, load  # noqa: E402
-from bench_wavelet_isa import bound_call  # noqa: E402
+from bench_wavelet_isa import bound_call, kernel_build, kernel_source  # noqa: E402
 
 from prt_torch import relight  # noqa: E402
-from prt_torch._native import LIBRARIES, compile_library, kernel_sources  # noqa: E402
 from prt_torch.harness.timing import cpu_label, measure_paired, read_bound_fn  # noqa: E402
 from prt_torch.scene import builtin  # noqa: E402
 from prt_torch.transfer import RunOptions  # noqa: E402
@@ -50,27 +47,9 @@ TERMS = (1, 10, 30, 100, 300, 1000, 2000)
 
 def build(rev: str | None):
     """The ``wavelet`` library compiled from revision ``rev``'s ``prt_torch/kernels/wavelet.c`` (None: the working
-    tree's) with the library's own flags; raises SystemExit with one line when the revision or the compiler fails."""
-    names, flags = LIBRARIES["wavelet"]
-    if rev is None:
-        src = kernel_sources(names)
-    else:
-        src = {}
-        for n in names:
-            r = subprocess.run(["git", "-C", str(ROOT), "show", f"{rev}:prt_torch/kernels/{n}"], capture_output=True, text=True)
-            if r.returncode:
-                raise SystemExit(f"bench_wavelet_dense16.py: --base {rev!r}: git show of prt_torch/kernels/{n} failed "
-                                 f"({r.stderr.strip()}); accepted: a revision of this repository that has it")
-            src[n] = r.stdout
-    i64, vp = ctypes.c_int64, ctypes.c_void_p
-    sig = [vp, i64, vp, vp, i64, vp, vp, i64]
-    lib, how = compile_library("wavelet", src, list(flags), {
-        "prt_wavelet_relight_f32": sig, "prt_wavelet_relight_i8": sig, "prt_wavelet_relight_i16": sig,
-        "prt_wavelet_relight_f32_packed": [vp], "prt_wavelet_relight_i8_packed": [vp],
-        "prt_wavelet_relight_i16_packed": [vp], "prt_wavelet_isa": []})
-    if lib is None:
-        raise SystemExit(f"bench_wavelet_dense16.py: the wavelet kernel of {rev or 'the working tree'} did not compile: {how}")
-    return lib, " ".join(flags)
+    tree's) with the library's own flags (bench_wavelet_isa.kernel_source / kernel_build); raises SystemExit with one
+    line when the revision or the compiler fails."""
+    return kernel_build(kernel_source(rev, "bench_wavelet_dense16.py: --base")[0], "native", "bench_wavelet_dense16.py")
 
 
 def main() -> None:

@@ -20,8 +20,10 @@ from __future__ import annotations
 import prt_torch  # noqa: F401  (first: it chooses OpenMP's wait policy from the machine's load)
 
 import argparse  # noqa: E402
+import ctypes  # noqa: E402
 import functools  # noqa: E402
 import os  # noqa: E402
+import subprocess  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
@@ -32,10 +34,53 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_wavelet import BITS, LIGHTS, OUT, TERMS, load  # noqa: E402
 
 from prt_torch import relight  # noqa: E402
+from prt_torch._native import KERNEL_ISAS, LIBRARIES, compile_library, kernel_isa  # noqa: E402
 from prt_torch.harness.timing import cpu_label, measure_paired  # noqa: E402
 from prt_torch.scene import builtin  # noqa: E402
 from prt_torch.transfer import RunOptions  # noqa: E402
 from prt_torch.transfer.wavelet import precompute_wavelet  # noqa: E402
+
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def kernel_source(spec: str | None, who: str) -> tuple[str, str]:
+    """``(text, label)`` of ``prt_torch/kernels/wavelet.c``: ``spec`` None or ``.`` the working tree, a path ending
+    in ``.c``, or a git revision of this repository (label: its short commit). One ``SystemExit`` line naming ``who``
+    (the benchmark and its option), the value and what is accepted when it cannot be read. The benchmarks that pair
+    two versions of the kernel on one layout (bench_wavelet_colpass / _rowpass / _dense16) read their sources here."""
+    if spec in (None, "."):
+        return (ROOT / "prt_torch/kernels/wavelet.c").read_text(), "working tree"
+    accepted = "accepted: '.', a .c file, a git revision of this repository"
+    if spec.endswith(".c"):
+        try:
+            return Path(spec).read_text(), spec
+        except OSError as e:
+            raise SystemExit(f"{who} {spec!r}: {e.strerror}; {accepted}") from None
+    r = subprocess.run(["git", "-C", str(ROOT), "show", f"{spec}:prt_torch/kernels/wavelet.c"], capture_output=True, text=True)
+    if r.returncode:
+        raise SystemExit(f"{who} {spec!r}: {r.stderr.strip()}; {accepted}")
+    short = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", spec], capture_output=True, text=True).stdout.strip()
+    return r.stdout, short
+
+
+def kernel_build(text: str, isa: str | None, who: str, tag: str = ""):
+    """``(library, flags)``: ``text`` (a version of kernels/wavelet.c) compiled as the wavelet library with its own flags
+    and ``isa``'s (``_native.KERNEL_ISAS``; None: this process's ``PRT_TORCH_KERNEL_ISA``), ``tag`` appended as a
+    comment (a second build of the same code: an A/A control), every entry point typed; cached by the source's hash.
+    One ``SystemExit`` line naming ``who`` when it does not compile."""
+    flags = list(LIBRARIES["wavelet"][1]) + list(KERNEL_ISAS[isa] if isa is not None else kernel_isa()[1])
+    if tag:
+        text += f"\n/* {tag} */\n"
+    i64, vp = ctypes.c_int64, ctypes.c_void_p
+    sig = [vp, i64, vp, vp, i64, vp, vp, i64]
+    lib, how = compile_library("wavelet", {"wavelet.c": text}, flags, {
+        "prt_wavelet_relight_f32": sig, "prt_wavelet_relight_i8": sig, "prt_wavelet_relight_i16": sig,
+        "prt_wavelet_relight_f32_packed": [vp], "prt_wavelet_relight_i8_packed": [vp],
+        "prt_wavelet_relight_i16_packed": [vp], "prt_wavelet_isa": []})
+    if lib is None:
+        raise SystemExit(f"{who}: the wavelet kernel did not compile: {how}")
+    return lib, " ".join(flags)
 
 
 def bound_call(rl, lib, li: torch.Tensor, lv: torch.Tensor, out: torch.Tensor, threads: int):

@@ -27,7 +27,6 @@ import argparse  # noqa: E402
 import ctypes  # noqa: E402
 import functools  # noqa: E402
 import os  # noqa: E402
-import subprocess  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
@@ -37,9 +36,10 @@ import torch  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_wavelet import BITS, LIGHTS, OUT, load  # noqa: E402
 from bench_wavelet_floor_micro import SRC as CLOCK_SRC  # noqa: E402
+from bench_wavelet_isa import kernel_build, kernel_source  # noqa: E402
 
 from prt_torch import relight  # noqa: E402
-from prt_torch._native import KERNELS_DIR, LIBRARIES, compile_library, kernel_isa  # noqa: E402
+from prt_torch._native import compile_library  # noqa: E402
 from prt_torch.harness.timing import cpu_label, measure_paired  # noqa: E402
 from prt_torch.scene import builtin  # noqa: E402
 from prt_torch.transfer import RunOptions  # noqa: E402
@@ -52,37 +52,12 @@ TERMS = (100, 300, 1000, 2000)
 CROSS = (300, 500, 700, 850, 1000, 1200, 1500, 2000)
 
 
-def source(spec: str) -> tuple[str, str]:
-    """``(text, label)`` of kernels/wavelet.c: ``.`` the working tree, a path to a ``.c`` file, or a git revision."""
-    if spec == ".":
-        return (KERNELS_DIR / "wavelet.c").read_text(), "working tree"
-    if spec.endswith(".c"):
-        try:
-            return Path(spec).read_text(), spec
-        except OSError as e:
-            raise SystemExit(f"bench_wavelet_rowpass: --test/--base {spec!r}: {e.strerror}; accepted: '.', a .c file, "
-                             "a git revision") from None
-    try:
-        text = subprocess.run(["git", "show", f"{spec}:prt_torch/kernels/wavelet.c"], cwd=ROOT, check=True,
-                              capture_output=True, text=True).stdout
-    except subprocess.CalledProcessError as e:
-        raise SystemExit(f"bench_wavelet_rowpass: --test/--base {spec!r}: {e.stderr.strip()}; accepted: '.', a .c file, "
-                         "a git revision") from None
-    return text, f"{spec} ({subprocess.run(['git', 'rev-parse', '--short', spec], cwd=ROOT, capture_output=True, text=True).stdout.strip()})"
-
-
 def build(text: str, tag: str):
     """The i16 packed entry point of ``text`` compiled with the wavelet library's flags and this process's
-    ``PRT_TORCH_KERNEL_ISA`` (cached by the source's hash)."""
-    names, flags = LIBRARIES["wavelet"]
-    flags = list(flags) + list(kernel_isa()[1])
-    lib, how = compile_library(f"wavelet_rowpass_{tag}", {"wavelet.c": text}, flags, {})
-    if lib is None:
-        raise SystemExit(f"bench_wavelet_rowpass: {tag} did not compile: {how}")
-    fn = lib.prt_wavelet_relight_i16_packed
-    fn.argtypes = [ctypes.c_void_p]
-    lib.prt_wavelet_isa.argtypes = []
-    return fn, " ".join(flags), int(lib.prt_wavelet_isa())
+    ``PRT_TORCH_KERNEL_ISA`` (bench_wavelet_isa.kernel_build; cached by the source's hash), its flags and the build's
+    ``prt_wavelet_isa`` bits."""
+    lib, flags = kernel_build(text, None, f"bench_wavelet_rowpass ({tag})")
+    return lib.prt_wavelet_relight_i16_packed, flags, int(lib.prt_wavelet_isa())
 
 
 def bound(fn, layout: torch.Tensor, f: torch.Tensor, li: torch.Tensor, lv: torch.Tensor, out: torch.Tensor):
@@ -115,7 +90,7 @@ def main() -> None:
         raise SystemExit(f"bench_wavelet_rowpass: --repeats {args.repeats}; accepted: an integer >= 3")
     if args.ls not in (0, 1, 2, 4):
         raise SystemExit(f"bench_wavelet_rowpass: --ls {args.ls}; accepted: 1, 2, 4 (0: the kernel's default)")
-    (ttext, tlabel), (btext, blabel) = source(args.test), source(args.base)
+    (ttext, tlabel), (btext, blabel) = (kernel_source(x, f"bench_wavelet_rowpass: --{o}") for o, x in (("test", args.test), ("base", args.base)))
     if args.ls:
         ttext, tlabel = f"#define ROW_LS {args.ls}\n" + ttext, f"{tlabel} with ROW_LS {args.ls}"
     (tfn, flags, bits), (bfn, _, _) = build(ttext, "test"), build(btext, "base")
