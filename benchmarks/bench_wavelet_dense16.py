@@ -13,8 +13,8 @@ faster), the working tree's fraction of its streaming-read bound (``timing.read_
 ``WaveletRelighter.bytes_read`` plus the output, paired the same way), its ns per (dense term, 32-vertex block) for
 the dense-alone rows (the call's time less the set-up and output, timed as a one-term call of a column no vertex
 keeps, over nd x blocks), and with ``--avx2`` the working tree's ``PRT_TORCH_KERNEL_ISA=avx2`` build paired against
-it (avx2 / test > 1: the 16-lane build faster). The kernel section's transfer: occluder_over_plane small, R = 32,
-K = 256, 16 bits, one thread. Writes reports/benchmarks/wavelet_dense16.md (the CPU, flags and load named).
+it (avx2 / test > 1: the 16-lane build faster). The kernel section's transfer: occluder_over_plane small (``--size medium|large``: the
+sizes users relight), R = 32, K = 256, 16 bits, one thread. Writes reports/benchmarks/wavelet_dense16.md (the CPU, flags and load named).
 
     .venv/bin/python benchmarks/bench_wavelet_dense16.py [--base REV] [--avx2]        (about 2 minutes)
 """
@@ -32,7 +32,7 @@ from pathlib import Path  # noqa: E402
 import torch  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_wavelet import BITS, LIGHTS, OUT, load  # noqa: E402
+from bench_wavelet import BITS, KERNEL_SIZES, LIGHTS, OUT, load, size_choice  # noqa: E402
 from bench_wavelet_isa import bound_call, kernel_build, kernel_source  # noqa: E402
 
 from prt_torch import relight  # noqa: E402
@@ -45,11 +45,15 @@ ROOT = Path(__file__).resolve().parents[1]
 TERMS = (1, 10, 30, 100, 300, 1000, 2000)
 
 
-def build(rev: str | None):
+def build(rev: str | None, zmm_min: int = 0):
     """The ``wavelet`` library compiled from revision ``rev``'s ``prt_torch/kernels/wavelet.c`` (None: the working
-    tree's) with the library's own flags (bench_wavelet_isa.kernel_source / kernel_build); raises SystemExit with one
-    line when the revision or the compiler fails."""
-    return kernel_build(kernel_source(rev, "bench_wavelet_dense16.py: --base")[0], "native", "bench_wavelet_dense16.py")
+    tree's; ``zmm_min`` > 0: with ``#define ZMM_MIN zmm_min`` before it) with the library's own flags
+    (bench_wavelet_isa.kernel_source / kernel_build); raises SystemExit with one line when the revision or the
+    compiler fails."""
+    text = kernel_source(rev, "bench_wavelet_dense16.py: --base")[0]
+    if zmm_min:
+        text = f"#define ZMM_MIN {zmm_min}LL\n" + text
+    return kernel_build(text, "native", "bench_wavelet_dense16.py")
 
 
 def main() -> None:
@@ -57,16 +61,24 @@ def main() -> None:
     ap.add_argument("--base", default="69385e0", help="the git revision to pair against (default 69385e0)")
     ap.add_argument("--avx2", action="store_true", help="also pair the working tree's avx2 build (8-lane loop)")
     ap.add_argument("--repeats", type=int, default=15)
+    ap.add_argument("--base-zmm-min", type=int, default=0, help="compile the base with ZMM_MIN set (e.g. --base . "
+                    "--base-zmm-min 1000000000: the working tree with every call on the 8-lane loop; 0: its own)")
     ap.add_argument("--write", default=str(OUT / "wavelet_dense16.md"), help="the report ('': print only)")
+    ap.add_argument("--size", default=None, help="the kernel section's mesh (occluder_over_plane): " + ", ".join(KERNEL_SIZES)
+                    + " (default small)")
     args = ap.parse_args()
+    size = size_choice(args.size, "bench_wavelet_dense16.py")
     torch.set_num_threads(1)
-    base, flags = build(args.base)
+    if args.base_zmm_min < 0:
+        raise SystemExit(f"bench_wavelet_dense16.py: --base-zmm-min {args.base_zmm_min}; accepted: an integer >= 0 (0: the "
+                         "kernel's own ZMM_MIN)")
+    base, flags = build(args.base, args.base_zmm_min)
     test, _ = build(None)
     if not int(test.prt_wavelet_isa()) & 32:
         print("[dense16] warning: this build has no 16-lane dense loop (no AVX-512F): the pair compares 8-lane code",
               flush=True)
     avx2 = relight._wavelet_lib("avx2") if args.avx2 else None
-    mesh = builtin("occluder_over_plane", "small")
+    mesh = builtin("occluder_over_plane", size)
     tr = precompute_wavelet(mesh, 32, 256, BITS, shadows="always", run=RunOptions(workers=1))
     rl = relight.WaveletRelighter(tr, threads=1, layouts="both")  # the row-major copy built: both builds read it
     ref_index, ref_vals = rl.reference_rows(0, rl.V)
@@ -122,8 +134,10 @@ def main() -> None:
     L = ["# Wavelet kernel: the 16-lane dense loop, two 32-vertex blocks in lockstep (issue 39)\n",
          f"{cpu_label()}; load average {before:.1f} → {after:.1f} (a machine shared with other jobs: one thread's CPU "
          f"time, which their load does not enter). Two builds of `kernels/wavelet.c` with the wavelet library's flags "
-         f"(`{flags}`): **test** the working tree's, **base** revision `{args.base}`'s, both bound to one layout "
-         f"(occluder_over_plane small, V = {rl.V}, R = 32, K = 256, {BITS}-bit, {rl.Pd} dense columns, {nb} blocks of "
+         f"(`{flags}`): **test** the working tree's, **base** revision `{args.base}`'s"
+         + (f" with `ZMM_MIN` {args.base_zmm_min} (every call with fewer (dense term, 32-vertex block) pairs on the "
+            "8-lane loop)" if args.base_zmm_min else "") + f", both bound to one layout "
+         f"(occluder_over_plane {size}, V = {rl.V}, R = 32, K = 256, {BITS}-bit, {rl.Pd} dense columns, {nb} blocks of "
          f"32 vertices, tiles of {rl.TV}; the row-major copy built), transport-weighted terms, RGB light (CO = 3), one "
          f"thread. Paired by the calling thread's CPU time (`measure_paired(clock=time.thread_time)`, {args.repeats} "
          "repeats): medians per call and **base / test**, the median of the per-repeat ratios [quartiles] (> 1: the "
@@ -135,7 +149,8 @@ def main() -> None:
          + (". *avx2 / test*: the working tree's `PRT_TORCH_KERNEL_ISA=avx2` build (the 8-lane loop) paired against "
             "the test build the same way" if avx2 is not None else "")
          + f". Reproduce: `.venv/bin/python benchmarks/bench_wavelet_dense16.py --base {args.base}"
-         + (" --avx2" if avx2 is not None else "") + "`.\n",
+         + (f" --base-zmm-min {args.base_zmm_min}" if args.base_zmm_min else "")
+         + (" --avx2" if avx2 is not None else "") + (f" --size {size}" if size != "small" else "") + "`.\n",
          "| light | N | terms | dense terms | base | test | **base / test** [quartiles] | test of read bound "
          "| ns / (term, block) base → test | same bits | error |" + (" avx2 / test [quartiles] |" if avx2 is not None else "")
          + " load |",
