@@ -61,6 +61,8 @@ def main() -> None:
     ap.add_argument("--base", default="69385e0", help="the git revision to pair against (default 69385e0)")
     ap.add_argument("--avx2", action="store_true", help="also pair the working tree's avx2 build (8-lane loop)")
     ap.add_argument("--repeats", type=int, default=15)
+    ap.add_argument("--terms", default="", help="the whole-light rows' N, a comma list of integers >= 1 (default: "
+                    + ", ".join(map(str, TERMS)) + " and all, with the dense-alone rows)")
     ap.add_argument("--base-zmm-min", type=int, default=0, help="compile the base with ZMM_MIN set (e.g. --base . "
                     "--base-zmm-min 1000000000: the working tree with every call on the 8-lane loop; 0: its own)")
     ap.add_argument("--write", default=str(OUT / "wavelet_dense16.md"), help="the report ('': print only)")
@@ -72,6 +74,12 @@ def main() -> None:
     if args.base_zmm_min < 0:
         raise SystemExit(f"bench_wavelet_dense16.py: --base-zmm-min {args.base_zmm_min}; accepted: an integer >= 0 (0: the "
                          "kernel's own ZMM_MIN)")
+    try:
+        terms = tuple(int(x) for x in args.terms.split(",")) if args.terms else None
+    except ValueError:
+        terms = (0,)
+    if terms is not None and min(terms) < 1:
+        raise SystemExit(f"bench_wavelet_dense16.py: --terms {args.terms}; accepted: a comma list of integers >= 1")
     base, flags = build(args.base, args.base_zmm_min)
     test, _ = build(None)
     if not int(test.prt_wavelet_isa()) & 32:
@@ -92,8 +100,8 @@ def main() -> None:
                            bound_call(rl, base, empty, torch.ones(3, 1), out0, 1), repeats=args.repeats, warmup=1,
                            clock=time.thread_time).test.median if empty.numel() else 0.0
     rows = []
-    cases = [(light, N, part) for light in ("studio", "sky (sun)") for N in TERMS + (rl.P,) for part in ("all",)]
-    cases += [(light, N, "dense") for light in ("studio", "sky (sun)") for N in (100, 300, 1000)]
+    cases = [(light, N, part) for light in ("studio", "sky (sun)") for N in (terms or TERMS + (rl.P,)) for part in ("all",)]
+    cases += [(light, N, "dense") for light in ("studio", "sky (sun)") for N in (100, 300, 1000) if terms is None]
     for light, N, part in cases:
         li, lv, _ = rl.light(LIGHTS[light], N, "transport")
         lv = lv.to(torch.float32).contiguous()
@@ -149,7 +157,7 @@ def main() -> None:
          + (". *avx2 / test*: the working tree's `PRT_TORCH_KERNEL_ISA=avx2` build (the 8-lane loop) paired against "
             "the test build the same way" if avx2 is not None else "")
          + f". Reproduce: `.venv/bin/python benchmarks/bench_wavelet_dense16.py --base {args.base}"
-         + (f" --base-zmm-min {args.base_zmm_min}" if args.base_zmm_min else "")
+         + (f" --base-zmm-min {args.base_zmm_min}" if args.base_zmm_min else "") + (f" --terms {args.terms}" if args.terms else "")
          + (" --avx2" if avx2 is not None else "") + (f" --size {size}" if size != "small" else "") + "`.\n",
          "| light | N | terms | dense terms | base | test | **base / test** [quartiles] | test of read bound "
          "| ns / (term, block) base → test | same bits | error |" + (" avx2 / test [quartiles] |" if avx2 is not None else "")
