@@ -396,7 +396,8 @@ def steady_pair(test, peer, repeats: int = 15) -> tuple:
     another process's time slice on this core evicts the L2 the two sides use; the thread's CPU time leaves the other's
     time out but not the refill after it, so a sample that held a switch is slow on either side (more on a streaming
     read than on the kernel): a wide spread says the pairing caught such switches, and the fastest tenth of short
-    samples is the pairing of samples that held none."""
+    samples pairs the least disturbed ones (past the L2, the other processes' traffic in the shared L3 and memory
+    slows every sample, which neither estimate removes)."""
     best, tries = None, 0
     for tries in range(1, STEADY_TRIES + 1):
         p = measure_paired(test, peer, repeats=repeats, warmup=1, clock=time.thread_time, floor_pairs=40, floor_max_pairs=160)
@@ -910,8 +911,9 @@ def write_md(res: dict, quick: bool) -> None:
              "core's L2 and the L3 sysfs lists (between back-to-back calls of one thread the bytes live in the smallest that "
              "holds them); one thread by CPU time against the copy and against the streaming read (as above: the median of 15 "
              "per-repeat ratios, [the read's quartiles]; and the ratio of each side's fastest tenth of 40-160 short samples by "
-             "CPU time, the samples no other process's time slice on this core interrupted — on this shared 2-core machine "
-             "such a slice evicts the L2 both sides use, and the refill after it is the thread's own CPU time; *tries*: a "
+             "CPU time, the samples other processes disturbed least — on this shared 2-core machine another process's time "
+             "slice on this core evicts the L2 both sides use, and the refill after it is the thread's own CPU time; past "
+             "the L2, the others' traffic in the shared L3 and memory slows both sides too; *tries*: a "
              "pairing whose per-repeat ratios spread more than 0.2 (relative quartile range) is timed again, up to three "
              "times, the steadiest kept); two threads "
              "(wall time, fastest tenth of short samples) against both at two threads; and **cold**: one thread by CPU time, "
