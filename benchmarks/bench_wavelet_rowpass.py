@@ -110,11 +110,12 @@ def synthetic_light(rl, order: str, share: float, seed: int = 0) -> tuple[torch.
 
 def sweep(args) -> None:
     """``--sweep``: the working tree's kernel, built for this process's ``PRT_TORCH_KERNEL_ISA``, on each
-    ``--scenes`` size of occluder_over_plane (R = 32, K = 256, 16-bit), synthetic lights (:func:`synthetic_light`,
-    both orders) at the :data:`SWEEP` shares and the real sky and studio lights at N = 300 ... all, each with the pass
-    forced row-major and column-major (``row_permille`` 0 / 1001) on copies of one layout, paired: one thread by its
-    CPU time, or ``--threads`` 2 by wall time (the floor of short samples). Writes ``--write`` (default
-    reports/benchmarks/wavelet_rowmin.md; '' prints) and a JSON of the rows beside it."""
+    ``--scenes`` size of occluder_over_plane (``--res`` R, default 32, ``--K`` terms per vertex, default 256,
+    16-bit), synthetic lights (:func:`synthetic_light`, both orders) at the :data:`SWEEP` shares and the :data:`REAL`
+    lights at N = 300 ... all, each with the pass forced row-major and column-major (``row_permille`` 0 / 1001) on
+    copies of one layout, paired: one thread by its CPU time, or ``--threads`` 2 by wall time (the floor of short
+    samples). Writes a JSON of the rows (``--write``'s name, its suffix ``.<isa>.t<threads>.json``; the report is
+    ``--summarise``'s)."""
     import json
 
     from prt_torch.harness.timing import torch_threads
@@ -127,8 +128,9 @@ def sweep(args) -> None:
     for size in args.scenes.split(","):
         mesh = builtin("occluder_over_plane", size)
         t0 = time.perf_counter()
-        tr = precompute_wavelet(mesh, 32, 256, BITS, shadows="always", run=RunOptions(workers=1))
+        tr = precompute_wavelet(mesh, args.res, args.K, BITS, shadows="always", run=RunOptions(workers=1))
         rl = relight.WaveletRelighter(tr, threads=args.threads, layouts="both")
+        size = size if (args.res, args.K) == (32, 256) else f"{size} R{args.res} K{args.K}"
         rl._kernel()
         print(f"[rowmin] {size}: V = {rl.V}, {rl.Pd} dense columns, {rl.NB} sparse blocks, tiles of {rl.TV} "
               f"({time.perf_counter() - t0:.0f} s to build)", flush=True)
@@ -224,7 +226,13 @@ def summarise(paths: list[str], write: str) -> None:
              "(synthetic: the columns some vertex keeps in descending transport weight, coarse levels first — a "
              "uniform light's transport-weighted selection — up to the share), *random* (synthetic: every dense "
              "column, then sparse columns in a random order: more, smaller columns per share), and the real sky (sun), "
-             "overcast (grey: the kernel's one-sum path) at N = 300 ... all (transport-weighted).\n")
+             "overcast (grey: the kernel's one-sum path) at N = 300 ... all (transport-weighted); the same at R = 16, "
+             "K = 64 where named (R16 K64). *crossover*: where a line fitted to column / row against the share held "
+             "(0.45-0.80) reaches 1 — the medians over runs, and each run's own. Reproduce (one run per build; the "
+             "JSONs beside this report, reports/benchmarks/wavelet_rowmin/): `.venv/bin/python "
+             "benchmarks/bench_wavelet_rowpass.py --sweep --scenes small,medium,large --repeats 21 --write DIR/x.md`, "
+             "the same with `PRT_TORCH_KERNEL_ISA=avx2`, with `--threads 2`, with `--res 16 --K 64`; then "
+             "`--summarise DIR*/*.json`.\n")
     for b in builds:
         isa, w16, th = b
         L.append(f"## {isa} build{' (W16)' if w16 else ''}, {th} thread{'s' if th > 1 else ''}\n")
@@ -241,11 +249,14 @@ def summarise(paths: list[str], write: str) -> None:
             nrun = len({x[0] for v in pts.values() for x in v})
             fits = [_fit_crossover([(h, x[1]) for (_, h), v in pts.items() for x in v if x[0] == i])
                     for i in sorted({x[0] for v in pts.values() for x in v})]
-            fits = [f for f in fits if f is not None]
+            out = sum(1 for f in fits if f is None or not 0.35 <= f <= 0.90)  # flat or noisy: no crossover in range
+            fits = [f for f in fits if f is not None and 0.35 <= f <= 0.90]
             x0 = _fit_crossover(med)
+            x0 = x0 if x0 is not None and 0.35 <= x0 <= 0.90 else None
             shown = ", ".join(f"{h:.3f}: {r:.3f}" for h, r in med if 0.40 <= h <= 0.80)
             L.append(f"| {scene} | {fam} ({nrun} runs) | {f'**{x0:.3f}**' if x0 is not None else '—'} | "
-                     f"{f'{min(fits):.3f}-{max(fits):.3f}' if fits else '—'} | {shown} |")
+                     f"{f'{min(fits):.3f}-{max(fits):.3f}' if fits else '—'}{f' ({out} outside 0.35-0.90)' if out else ''} | "
+                     f"{shown} |")
             for h, r in med:
                 if 0.40 <= h <= 0.80:
                     for t in THRESHOLDS:
@@ -256,7 +267,7 @@ def summarise(paths: list[str], write: str) -> None:
               "its time over the faster pass's (medians over runs) less 1: the mean over the lights, and in brackets "
               "the worst:\n", "| scene | " + " | ".join(f"row_min {t:.2f}" for t in THRESHOLDS) + " |",
               "|---|" + "---|" * len(THRESHOLDS)]
-        for scene in sorted(costs, key=lambda x: ("small", "medium", "large", "all").index(x)):
+        for scene in sorted(costs, key=lambda x: (x == "all", x.split()[0] != "small", x)):
             c = costs[scene]
             L.append(f"| {scene} | " + " | ".join(f"{100 * sum(c[t]) / len(c[t]):.1f}% ({100 * max(c[t]):.0f}%)"
                                                   for t in THRESHOLDS) + " |")
@@ -283,6 +294,8 @@ def main() -> None:
                     "on --scenes (writes --write, default reports/benchmarks/wavelet_rowmin.md, with a JSON)")
     ap.add_argument("--scenes", default="small,medium", help="--sweep: occluder_over_plane sizes, comma-separated")
     ap.add_argument("--threads", type=int, default=1, help="--sweep: the kernel's threads (1: CPU time; 2: wall time)")
+    ap.add_argument("--res", type=int, default=32, help="--sweep: the transfer's cube face size R")
+    ap.add_argument("--K", type=int, default=256, help="--sweep: the transfer's terms kept per vertex")
     ap.add_argument("--summarise", nargs="+", metavar="JSON", help="the report from --sweep runs' JSONs (written to "
                     "--write, default reports/benchmarks/wavelet_rowmin.md)")
     args = ap.parse_args()

@@ -357,8 +357,11 @@ class WaveletRelighter:
     #: 1 thread CPU time, studio and sky, R = 32, K = 256): 0.88-0.90x at 0.39-0.42 of the blocks held, 0.99x at 0.51,
     #: 1.04-1.31x from 0.56
     ROW_MIN = 0.5
-    #: ``row_min``'s default in the W16 builds (AVX-512: the column-major pass three blocks per step), measured on an
-    #: Intel Xeon (AVX-512; reports/benchmarks/wavelet_rowmin.md): ROW_MIN_W16_NOTE
+    #: ``row_min``'s default in the W16 builds (AVX-512 with the 16-lane code: the column-major pass three blocks per
+    #: step), measured on an Intel Xeon (family 6 model 167; reports/benchmarks/wavelet_rowmin.md: 1 thread CPU time,
+    #: blocker scene R = 32, K = 256, three runs): the passes cross at 0.56-0.69 of the blocks held by light (small,
+    #: 2251 vertices; medium, 10 585: 0.60-0.67); over lights holding 0.40-0.80, 0.62 loses 0.2% on average to the
+    #: faster pass (small and medium), 0.5 1.8% / 1.7%
     ROW_MIN_W16 = 0.62
 
     @classmethod
