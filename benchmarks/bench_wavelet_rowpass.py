@@ -10,12 +10,16 @@ part this change is about, also as ns and cycles per row-major entry (the clock 
 ``bench_wavelet_floor_micro``'s chain of dependent multiplies). ``--crossover``: the test build alone, each light at
 N = 300 … all with the pass forced both ways (the layout's ``row_permille`` 0 / 1001), column-major time over
 row-major time against the share of the sparse blocks the light's sparse terms hold (the kernel takes the row-major
-pass from ``row_min`` = 0.5 of them): where the two passes cross.
+pass from ``row_min`` of them: the build's default, ``WaveletRelighter.default_row_min``): where the two passes cross.
+``--sweep`` (one build per run: this process's ``PRT_TORCH_KERNEL_ISA``) sweeps that share with synthetic lights on
+larger scenes too and writes JSONs; ``--summarise`` turns them into reports/benchmarks/wavelet_rowmin.md (the
+crossovers per build, what each threshold costs).
 
 The kernel section's transfer (occluder_over_plane small, R = 32, K = 256, 16 bits). Writes
 reports/benchmarks/wavelet_rowpass.md (the CPU, both builds, the flags and the load named).
 
     .venv/bin/python benchmarks/bench_wavelet_rowpass.py --crossover          (about 2 minutes)
+    .venv/bin/python benchmarks/bench_wavelet_rowpass.py --sweep --write DIR/x.md   (2-7 minutes; then --summarise DIR/*.json)
     PRT_TORCH_KERNEL_ISA=avx2 .venv/bin/python benchmarks/bench_wavelet_rowpass.py --write ''   (the AVX2 build)
 """
 
@@ -414,7 +418,8 @@ def main() -> None:
         L += ["", "**Crossover** (the test build alone): each light with the pass forced row-major (`row_permille` 0) and "
               "column-major (1001) on copies of the one layout, paired by CPU time as above; column / row > 1: the "
               "row-major pass is faster. The kernel takes the row-major pass from `row_min` = "
-              f"{rl.row_min} of the sparse blocks held. Outputs of the two passes differ in rounding only (each vertex's "
+              f"{rl.row_min} of the sparse blocks held (this build's default, `WaveletRelighter.default_row_min`; "
+              "the sweep over shares, scenes and builds: wavelet_rowmin.md). Outputs of the two passes differ in rounding only (each vertex's "
               "terms summed in another order): max |difference| / max |output|.\n",
               "| light | N | sparse blocks held | row-major | column-major | **column / row** [quartiles] | max diff | load |",
               "|---|---|---|---|---|---|---|---|"]
