@@ -326,9 +326,11 @@ class WaveletRelighter:
       (relative to ``tbase [NT]``). One 8-lane multiply-add per block and output channel.
 
     The same sparse blocks may also be kept row-major (``rptr [4·ceil(V/32)+1]`` int64, ``rcol [NB]`` int32,
-    ``rvals [NB, CT, 8]``): when a light's sparse terms hold at least ``row_min`` (default 0.5, the measured crossover; > 1:
-    never) of the sparse blocks, the kernel sums every block into the dense block's registers with
-    the light looked up per column instead of scattering the selected ones into scratch. ``layouts``
+    ``rvals [NB, CT, 8]``): when a light's sparse terms hold at least ``row_min`` (> 1: never) of the sparse blocks —
+    by default the crossover measured for the kernel's build (:meth:`default_row_min`: :attr:`ROW_MIN_W16` in the
+    AVX-512 builds with the 16-lane code, :attr:`ROW_MIN` = 0.5 in the others; an explicit ``row_min`` wins) —, the
+    kernel sums every block into the dense block's registers with the light looked up per column instead of
+    scattering the selected ones into scratch. ``layouts``
     says when that copy (as many bytes as the column-major blocks, less their ``bofs``) is held:
     ``'auto'`` (default) builds it on first need — the first light that chooses the row-major pass
     (the kernel answers 3 before any work, :meth:`_build_rows`, the call is repeated), so a render
@@ -350,10 +352,28 @@ class WaveletRelighter:
 
     BLOCK = 32  # vertices per dense block (kernels/wavelet.c BV)
     SUB = 8  # vertices per sparse block
-    #: ``row_min``'s default: the row-major pass from half the sparse blocks, measured against the column-major pass
-    #: (1 thread CPU time, studio and sky, R = 32, K = 256): 0.88-0.90x at 0.39-0.42 of the blocks held, 0.99x at 0.51,
+    #: ``row_min``'s default in builds without the 16-lane (W16) code (AVX2, AVX, baseline, ``avx512-256``): the
+    #: row-major pass from half the sparse blocks, measured against the column-major pass on an AMD EPYC Zen 3 (AVX2;
+    #: 1 thread CPU time, studio and sky, R = 32, K = 256): 0.88-0.90x at 0.39-0.42 of the blocks held, 0.99x at 0.51,
     #: 1.04-1.31x from 0.56
     ROW_MIN = 0.5
+    #: ``row_min``'s default in the W16 builds (AVX-512 with the 16-lane code: the column-major pass three blocks per
+    #: step), measured on an Intel Xeon (family 6 model 167; reports/benchmarks/wavelet_rowmin.md: 1 thread CPU time,
+    #: blocker scene R = 32, K = 256, three runs): the passes cross at 0.56-0.69 of the blocks held by light (small,
+    #: 2251 vertices; medium, 10 585: 0.60-0.67); over lights holding 0.40-0.80, 0.62 loses 0.2% on average to the
+    #: faster pass (small and medium), 0.5 1.8% / 1.7%
+    ROW_MIN_W16 = 0.62
+
+    @classmethod
+    def default_row_min(cls, path: dict | None = None) -> float:
+        """``row_min``'s default for a build of ``kernels/wavelet.c`` (``path``: :func:`wavelet_kernel_path`'s record;
+        None: this process's build, read once): :attr:`ROW_MIN_W16` where the build has the 16-lane code (``w16``),
+        else :attr:`ROW_MIN` (also for the torch formulation, which never takes the row-major pass)."""
+        if path is None:
+            if "row_min_path" not in _WAVELET:
+                _WAVELET["row_min_path"] = wavelet_kernel_path()
+            path = _WAVELET["row_min_path"]
+        return cls.ROW_MIN_W16 if path.get("w16") else cls.ROW_MIN
 
     @staticmethod
     def _row_permille(row_min: float, rows_used: bool) -> int:
@@ -524,7 +544,7 @@ class WaveletRelighter:
         self.bofs = ((blk_b - tile_b * (TV // self.SUB)) * (4 * self.SUB * 4)).to(torch.int32)  # 4 channels x 8 floats
         self.NB = NB
         self.rptr = self.rcol = self.rvals = None  # the row-major copy: _build_rows (layouts)
-        self.row_min = self.ROW_MIN if row_min is None else float(row_min)
+        self.row_min = self.default_row_min() if row_min is None else float(row_min)
         cnt = torch.bincount(tile_b * P + col_b, minlength=self.NT * P).reshape(self.NT, P)
         self.tbase = torch.zeros(self.NT, dtype=torch.int64)
         self.tbase[1:] = torch.cumsum(cnt.sum(1), 0)[:-1]
@@ -639,8 +659,9 @@ class WaveletRelighter:
         the first light that takes the row-major pass, :meth:`bytes_read`) it follows ``light`` — a spec as
         :meth:`light` takes it (with ``terms``, ``selection``, ``supersample``: rasterised on the cube at the file's R
         after the count, its terms selected with the counted transport weights, exactly as the relighter will): counted
-        when that light's sparse columns hold at least ``row_min`` (default :attr:`ROW_MIN`) of the sparse blocks
-        (``row_pass`` True), else 0 (``row_pass`` False; e.g. a light with few nonzero Haar terms, such as the studio's
+        when that light's sparse columns hold at least ``row_min`` (default :meth:`default_row_min`, this process's
+        build) of the sparse blocks (``row_pass`` True; ``row_share``: the share they hold; ``row_min``: the
+        threshold), else 0 (``row_pass`` False; e.g. a light with few nonzero Haar terms, such as the studio's
         softboxes on black: ``lighting.haar.select_terms``). Without a light (``row_pass`` None) it is counted, an upper
         bound whatever the light: the estimate never counts less than the relighter will hold. The cached factor
         is for ``light_channels`` channels (the light's own with ``light``). The C kernel's choice: the torch path
@@ -665,7 +686,7 @@ class WaveletRelighter:
         stored = {"I8": 1, "I16": 2}.get(dtype)  # quantised values' bytes; None: float
         # the relighter's tile (TV) and the counts, as __init__ derives them
         TV = cls._tile(V, tile)
-        rmin = cls.ROW_MIN if row_min is None else float(row_min)
+        rmin = cls.default_row_min() if row_min is None else float(row_min)
         permille = cls._row_permille(rmin, layouts != "column" and rmin <= 1)  # as __init__'s _rows_used
         may_rows = layouts == "both" or permille <= 1000  # the relighter may hold the row-major copy
         if not exact:  # the header's bound: b from the stored dtype (a scale per level: re-quantised to 16 bits)
@@ -709,10 +730,14 @@ class WaveletRelighter:
             ls = torch.unique(li)
             ls = ls[~is_dense[ls] & (nnz[ls] > 0)]  # its sparse columns some vertex keeps
             rows = row_pass = cls._takes_rows(int(cblk[ls].sum()), NB, permille)
+            share = int(cblk[ls].sum()) / max(NB, 1)
         elif light is not None:
             row_pass = layouts == "both"
         est = cls._held_estimate(V, K, CT, P, b, TV, rows, light_channels, E, Es, Pd, NB, b != stored)
         est["row_pass"] = row_pass
+        est["row_min"] = rmin
+        if light is not None and layouts == "auto":
+            est["row_share"] = share
         return est
 
     @classmethod

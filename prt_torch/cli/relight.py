@@ -361,6 +361,9 @@ def _wavelet_plan(args, V: int, mesh: int, data: int, exact: bool | None = None)
                                         selection=getattr(args, "selection", None) or "transport")
     rowp = {True: "this light takes that pass", False: "not built: this light takes the column-major pass",
             None: "built on first need"}[e["row_pass"]]
+    if "row_share" in e:  # the kernel's choice: the light's sparse terms' share of the sparse blocks against row_min
+        rowp += (f" — its sparse terms hold {e['row_share']:.2f} of the sparse blocks, row_min {e['row_min']:g} for this "
+                 f"kernel build")
     lay = (f"dense {fb(e['dense'])}, column-major {fb(e['column'])}, row-major {fb(e['row'])} ({rowp}), "
            f"tables {fb(e['other'])}: {e['total'] / max(V, 1):.0f} B/vertex{'' if exact else ' at most (header bound)'}")
     light = light_bytes(int(round((e["P"] / 6) ** 0.5)))
