@@ -47,7 +47,12 @@ thread's CPU time, studio and sky at N = 10, 100, 300, 1000, 2000 and all, with 
 second build of itself); every output compared bit for bit (a difference stops the run).
 
     .venv/bin/python benchmarks/bench_wavelet_setup.py [--isa native|avx2]     (about 2 minutes)
+``--variant NAME`` (with ``--pair REV``): instead of the working tree, REV's kernel rewritten as one of
+:data:`VARIANTS` (what was measured and not kept: the dense prefetch distance, the tiles reversed every other call,
+the OpenMP region's pragma removed, its shared variables copied in).
+
     .venv/bin/python benchmarks/bench_wavelet_setup.py --pair main [--isa native|avx2]     (about a minute)
+    .venv/bin/python benchmarks/bench_wavelet_setup.py --pair main --variant 'tiles reversed'
 """
 
 from __future__ import annotations
@@ -99,6 +104,30 @@ PARTS = ("Python → C call", "checks (C, indices, grey)", "light table's closin
 FLOORS = {True: (5.78, 4.5), False: (8.31, 4.9)}
 
 
+#: the tile loop's pragma in kernels/wavelet.c, and the tile and 32-vertex-block loops' heads, as the variants find them
+PRAGMA = '_Pragma("omp parallel for schedule(static) num_threads(nt) if(nt > 1)")'
+TILES = "    for (i64 t = 0; t < NT; t++) {"
+SHARED = "nd, ns, wk, lw, sw, sl, lp, rows, grey, CO, dense, bvals, rvals, f, out, L, V, TV, P, CT, Pd, NT"
+
+
+def _tiles_reversed(text: str) -> str:
+    """Every other call takes the tiles in reverse order (a static toggle: an experiment, not thread-safe across
+    layouts), so that the tile relit last in the previous call, the most recently cached, is relit first."""
+    text = text.replace("    " + PRAGMA, "    static int flip_st_; const int flip_ = (flip_st_ ^= 1); (void)flip_; \\\n    " + PRAGMA)
+    return text.replace(TILES, "    for (i64 t_ = 0; t_ < NT; t_++) { const i64 t = flip_ ? NT - 1 - t_ : t_;")
+
+
+#: name -> (what must be in the source, rewrite of the source) for ``--variant``
+VARIANTS = {
+    "dense prefetch 12": ("#define PF 6", lambda s: "#define PF 12\n" + s),
+    "dense prefetch 24": ("#define PF 6", lambda s: "#define PF 24\n" + s),
+    "dense prefetch 40": ("#define PF 6", lambda s: "#define PF 40\n" + s),
+    "tiles reversed": (TILES, _tiles_reversed),
+    "no OpenMP pragma": (PRAGMA, lambda s: s.replace("    " + PRAGMA + "                                 \\\n", "", 1)),
+    "firstprivate": (PRAGMA, lambda s: s.replace(PRAGMA, PRAGMA[:-2] + f" firstprivate({SHARED})\")", 1)),
+}
+
+
 def probe_source(text: str, k: int) -> str:
     """``text`` (kernels/wavelet.c) as probe ``k`` (1-11, 13: module docstring; 12: the kernel itself)."""
     for old, ins in CUTS:
@@ -141,7 +170,10 @@ def main() -> None:
     ap.add_argument("--write", default=str(OUT / "wavelet_setup.md"), help="the report ('': print only)")
     ap.add_argument("--source", default=".", help="the kernel accounted: '.' the working tree, a git revision or a .c file")
     ap.add_argument("--pair", default=None, help="pair the working tree's kernel with this revision's (or .c file's)")
+    ap.add_argument("--variant", default=None, help=f"with --pair: REV's kernel rewritten, one of {sorted(VARIANTS)}")
     args = ap.parse_args()
+    if args.variant is not None and (args.variant not in VARIANTS or not args.pair):
+        raise SystemExit(f"{WHO}: --variant {args.variant!r}; accepted: one of {sorted(VARIANTS)}, with --pair REV")
     if args.pair:
         return write(args.write, pair(args))
     torch.set_num_threads(1)
@@ -248,21 +280,28 @@ def pair(args) -> str:
         path = relight.wavelet_kernel_path(args.isa)
     except ValueError as e:
         raise SystemExit(f"{WHO}: --isa {args.isa!r}: {e}") from None
-    tree, _ = kernel_source(None, WHO)
+    tree, name = kernel_source(None, WHO)
+    test = "tree"
     base, label = kernel_source(args.pair, f"{WHO} --pair")
+    if args.variant:
+        need, rewrite = VARIANTS[args.variant]
+        if need not in base:
+            raise SystemExit(f"{WHO}: --variant {args.variant!r} no longer applies to {label}'s kernel ({need.strip()!r} is gone)")
+        tree, name = rewrite(base), f"{label} as '{args.variant}'"
+    test = "variant" if args.variant else "tree"
     libs = {"tree": kernel_build(tree, args.isa, WHO)[0], "base": kernel_build(base, args.isa, WHO)[0],
             "A/A": kernel_build(base, args.isa, WHO, tag="A/A control")[0]}
     mesh = builtin("occluder_over_plane", "small")
     tr = precompute_wavelet(mesh, 32, 256, BITS, shadows="always", run=RunOptions(workers=1))
     rl = relight.WaveletRelighter(tr, threads=1, layouts="both")
     before = load()
-    L = [f"## {cpu_label()}: the `{args.isa}` build, the working tree against {label}\n",
+    L = [f"## {cpu_label()}: the `{args.isa}` build, {name} against {label}\n",
          f"{path['path']}. Both kernels compiled with the library's flags and this build's, bound to one layout (the "
          "row-major copy built), called through the packed entry point as `WaveletRelighter.prepared` calls it; one "
-         f"thread's CPU time, the median of {args.repeats} paired samples; **{label} / tree** > 1: the working tree faster "
+         f"thread's CPU time, the median of {args.repeats} paired samples; **{label} / {test}** > 1: {name} faster "
          f"[quartiles]; A/A: {label} against a second build of itself. Every output equal bit for bit. Load average "
          "{load0:.1f} → {load1:.1f}.\n",
-         f"| light | N | {label} µs | tree µs | **{label} / tree** [quartiles] | A/A [quartiles] | load |",
+         f"| light | N | {label} µs | {test} µs | **{label} / {test}** [quartiles] | A/A [quartiles] | load |",
          "|---|---|---|---|---|---|---|"]
     for light in ("studio", "sky (sun)"):
         for N in (10, 100, 300, 1000, 2000, rl.P):

@@ -94,3 +94,16 @@ def test_call_probes_apply_and_leave_the_light_table_zero(rl, k):
         assert torch.allclose(out.double(), _reference(rl, li, lv), rtol=1e-5, atol=1e-6)
     rl(li, lv, out=out)
     assert torch.allclose(out.double(), _reference(rl, li, lv), rtol=1e-5, atol=1e-6), k
+
+
+def test_call_variants_apply_to_the_kernel_source(monkeypatch):
+    """bench_wavelet_setup.py's --variant rewrites (what was measured and not kept) still find their text in the
+    kernel's source and change it; a variant name not listed is refused in one line naming it."""
+    bs = _bench("bench_wavelet_setup")
+    src = (ROOT / "prt_torch/kernels/wavelet.c").read_text()
+    for name, (need, rewrite) in bs.VARIANTS.items():
+        assert need in src, name
+        assert rewrite(src) != src, name
+    monkeypatch.setattr(sys, "argv", ["bench_wavelet_setup.py", "--pair", "main", "--variant", "nonsense", "--write", ""])
+    with pytest.raises(SystemExit, match="--variant 'nonsense'; accepted: one of"):
+        bs.main()

@@ -564,9 +564,9 @@ typedef struct {
  * (AVX-512), one thread's CPU time, paired with main's kernel on one layout (bench_wavelet_setup.py --pair, five runs,
  * load 3.6-6; A/A 0.97-1.02x): N = 10 1.09-1.14x (~0.4 us a call: the region's entry, as the call's probes give it:
  * 0.35-0.47 us, now 0.02-0.09), N = 100-all 1.02-1.09x (0.5-4 us). The same loop with main's pragma simply removed
- * measured 0.98-1.16x in three runs, so beyond the entry the gain moves with code placement; copying the region's shared variables
+ * measured 0.98-1.17x in four runs, so beyond the entry the gain moves with code placement; copying the region's shared variables
  * (firstprivate) gained nothing (0.997-1.010x). Outputs bit-identical (each vertex's terms in the same order). The
- * AVX2 and avx512-256 builds expand SERIAL_TILES to nothing: their machine code is main's, byte for byte (objdump),
+ * AVX2 and avx512-256 builds expand SERIAL_TILES to nothing: their .text is main's, byte for byte (objcopy),
  * as it was tuned on an AMD Zen 3 that this change was not measured on. */
 #if W16
 #define SERIAL_TILES(T) if (nt == 1) { for (i64 t = 0; t < NT; t++) { TILE_BODY(T) } } else
