@@ -73,3 +73,37 @@ def test_setup_probes_leave_the_light_table_zero(rl):
         assert not bool(rl._lp.any()), marker  # the kernel's light per column: zero between calls
         rl(li, lv, out=out)
         assert torch.allclose(out.double(), _reference(rl, li, lv), rtol=1e-5, atol=1e-6), marker
+
+
+@pytest.mark.parametrize("k", [3, 7, 10, 13])
+def test_call_probes_apply_and_leave_the_light_table_zero(rl, k):
+    """bench_wavelet_setup.py's probes (the kernel cut after a step of the call, or with its dense blocks relit twice)
+    still apply to the kernel's source, return 0 and leave the light table zero; the ``dense twice`` probe (13)
+    relights as the reference does (the second pass writes the same outputs)."""
+    bs = _bench("bench_wavelet_setup")
+    src, _ = _bench("bench_wavelet_isa").kernel_source(None, "test")
+    lib, _ = _bench("bench_wavelet_isa").kernel_build(bs.probe_source(src, k), None, "test")
+    li, lv, _ = rl.light("studio", 100, "transport")
+    lv = lv.to(torch.float32).contiguous()
+    out = torch.empty(rl.V, 3)
+    args = _args(rl, li, lv, out)
+    out.fill_(float("nan"))
+    assert lib.prt_wavelet_relight_i16(*args) == 0
+    assert not bool(rl._lp.any()), k
+    if k == 13:
+        assert torch.allclose(out.double(), _reference(rl, li, lv), rtol=1e-5, atol=1e-6)
+    rl(li, lv, out=out)
+    assert torch.allclose(out.double(), _reference(rl, li, lv), rtol=1e-5, atol=1e-6), k
+
+
+def test_call_variants_apply_to_the_kernel_source(monkeypatch):
+    """bench_wavelet_setup.py's --variant rewrites (what was measured and not kept) still find their text in the
+    kernel's source and change it; a variant name not listed is refused in one line naming it."""
+    bs = _bench("bench_wavelet_setup")
+    src = (ROOT / "prt_torch/kernels/wavelet.c").read_text()
+    for name, (need, rewrite) in bs.VARIANTS.items():
+        assert need in src, name
+        assert rewrite(src) != src, name
+    monkeypatch.setattr(sys, "argv", ["bench_wavelet_setup.py", "--pair", "main", "--variant", "nonsense", "--write", ""])
+    with pytest.raises(SystemExit, match="--variant 'nonsense'; accepted: one of"):
+        bs.main()

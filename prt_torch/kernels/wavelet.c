@@ -51,7 +51,8 @@
  *    [CT, 8] (zeros where a vertex of the block did not keep it). Tile t's blocks of column j are
  *    tbase[t] + tptr[t, j] .. tbase[t] + tptr[t, j + 1]. A block adds one 8-lane multiply-add per
  *    output channel into its accumulator, which stays in L1 (a tile's scratch: TV/8 x 128 bytes).
- * Per tile (the unit of the threads' split, OpenMP, `threads`): its sparse blocks of the light's
+ * Per tile (the unit of the threads' split, OpenMP, `threads`; at one thread the AVX-512 build (W16) runs the
+ * tiles in a plain loop instead, no OpenMP region: SERIAL_TILES below): its sparse blocks of the light's
  * sparse terms into the zeroed scratch, then its dense blocks, each adding the scratch and writing
  * its outputs once. Only the columns of the light's terms are read — except when the light's sparse
  * terms hold at least row_permille / 1000 of all sparse blocks: then every sparse block is read from a
@@ -539,6 +540,40 @@ typedef struct {
                         L->rptr + v0 / 8, L->rcol, rvals, rows ? lp : NULL, nv, f + OC_ * v0, out + OC_ * v0);  \
     }
 
+/* one tile t's work (the unit of the threads' split): its scratch zeroed, its sparse blocks, its dense blocks and
+ * their outputs (WAVELET_KERNEL's locals) */
+#define TILE_BODY(T)                                                                                         \
+        int tid = 0;                                                                                         \
+        TID(tid);                                                                                            \
+        float *acc = L->acc + (i64)tid * (TV / 8) * 32;                                                      \
+        const i64 vt = t * TV, nvt = V - vt < TV ? V - vt : TV, nb = (nvt + BV - 1) / BV;                    \
+        const int32_t *tp = L->tptr + t * (P + 1), *bofs = L->bofs + L->tbase[t];                           \
+        const T *bv = bvals + L->tbase[t] * 8 * CT;                                                          \
+        if (ns && !rows) memset(acc, 0, (size_t)(nb * 128) * sizeof(float));                                          \
+        if (CT == 3) { TILE_CASE(T, 3, 3, 3) }                                                               \
+        else if (grey) { TILE_CASE(T, 1, 1, 3) }                                                             \
+        else switch (CO) {                                                                                   \
+            case 1: { TILE_CASE(T, 1, 1, 1) } break;                                                         \
+            case 2: { TILE_CASE(T, 1, 2, 2) } break;                                                         \
+            case 3: { TILE_CASE(T, 1, 3, 3) } break;                                                         \
+            default: { TILE_CASE(T, 1, 4, 4) } break;                                                        \
+        }
+
+/* One thread in the AVX-512 build (W16): the tiles in a plain loop before (instead of) the OpenMP region — `omp parallel
+ * for ... if(nt > 1)` still enters libgomp at one thread (a team set up and torn down). Measured on an Intel Xeon
+ * (AVX-512), one thread's CPU time, paired with main's kernel on one layout (bench_wavelet_setup.py --pair, five runs,
+ * load 3.6-6; A/A 0.97-1.02x): N = 10 1.09-1.14x (~0.4 us a call: the region's entry, as the call's probes give it:
+ * 0.35-0.47 us, now 0.02-0.09), N = 100-all 1.02-1.09x (0.5-4 us). The same loop with main's pragma simply removed
+ * measured 0.98-1.17x in four runs, so beyond the entry the gain moves with code placement; copying the region's shared variables
+ * (firstprivate) gained nothing (0.997-1.010x). Outputs bit-identical (each vertex's terms in the same order). The
+ * AVX2 and avx512-256 builds expand SERIAL_TILES to nothing: their .text is main's, byte for byte (objcopy),
+ * as it was tuned on an AMD Zen 3 that this change was not measured on. */
+#if W16
+#define SERIAL_TILES(T) if (nt == 1) { for (i64 t = 0; t < NT; t++) { TILE_BODY(T) } } else
+#else
+#define SERIAL_TILES(T)
+#endif
+
 #define WAVELET_KERNEL(NAME, T)                                                                              \
 int NAME(const wavelet_layout *L, i64 N, const i64 *sel, const float *lv, i64 C, const float *f, float *out,  \
          i64 threads) {                                                                                      \
@@ -629,24 +664,9 @@ int NAME(const wavelet_layout *L, i64 N, const i64 *sel, const float *lv, i64 C,
     const T *rvals = (const T *)L->rvals;                                                                    \
     int nt = (int)(threads < 1 ? 1 : threads > L->MT ? L->MT : threads);                                     \
     (void)nt;                                                                                                \
+    SERIAL_TILES(T) /* AVX-512 builds at one thread: the tiles in a plain loop, no OpenMP region (above) */       \
     _Pragma("omp parallel for schedule(static) num_threads(nt) if(nt > 1)")                                 \
-    for (i64 t = 0; t < NT; t++) {                                                                           \
-        int tid = 0;                                                                                         \
-        TID(tid);                                                                                            \
-        float *acc = L->acc + (i64)tid * (TV / 8) * 32;                                                      \
-        const i64 vt = t * TV, nvt = V - vt < TV ? V - vt : TV, nb = (nvt + BV - 1) / BV;                    \
-        const int32_t *tp = L->tptr + t * (P + 1), *bofs = L->bofs + L->tbase[t];                           \
-        const T *bv = bvals + L->tbase[t] * 8 * CT;                                                          \
-        if (ns && !rows) memset(acc, 0, (size_t)(nb * 128) * sizeof(float));                                          \
-        if (CT == 3) { TILE_CASE(T, 3, 3, 3) }                                                               \
-        else if (grey) { TILE_CASE(T, 1, 1, 3) }                                                             \
-        else switch (CO) {                                                                                   \
-            case 1: { TILE_CASE(T, 1, 1, 1) } break;                                                         \
-            case 2: { TILE_CASE(T, 1, 2, 2) } break;                                                         \
-            case 3: { TILE_CASE(T, 1, 3, 3) } break;                                                         \
-            default: { TILE_CASE(T, 1, 4, 4) } break;                                                        \
-        }                                                                                                    \
-    }                                                                                                        \
+    for (i64 t = 0; t < NT; t++) { TILE_BODY(T) }                                                            \
     for (i64 n = 0; n < N; n++) memset(lp + 4 * sel[n], 0, 4 * sizeof(float));                               \
     return 0;                                                                                                \
 }

@@ -1,0 +1,331 @@
+"""Every microsecond of a wavelet relight call, by part (issue 39): ``kernels/wavelet.c`` compiled as cumulative probes —
+the same source with a return (or an empty tile) inserted after each step of the call — each bound to the layout as
+``WaveletRelighter.prepared`` binds the kernel (the packed entry point: one ctypes argument) and paired with the whole
+kernel by one thread's CPU time (``measure_paired(clock=time.thread_time)``, median of the repeats); a part's time is
+the difference of two consecutive probes' medians, so the parts add up to the call by construction.
+
+Probes, in call order (each includes every step before it; the light's closing zeroing runs in every probe past
+the gather, so the light table is zero again between calls, as the kernel leaves it):
+
+  1. call: ``return 0`` on entry — Python's loop and the ``run()`` closure, ctypes, the packed entry point;
+  2. + checks: the light's channel count, the index check over N, the grey-light test;
+  3. + closing zeroing: the light table's N columns zeroed (what the kernel does at its end);
+  4. + gather: the P marks cleared, the light gathered per column, the sparse blocks counted;
+  5. + dense listing: the row/column choice and the dense terms listed (N > SMALL_N: the Pd slots' pass);
+  6. + sparse listing: the sparse terms listed (N > SMALL_N: the scan of the P marks) — the set-up;
+  7. + OpenMP region: the tile loop entered (one thread: ``if(nt > 1)`` false, still a libgomp region), the tiles'
+     pointers formed, nothing done;
+  8. + scratch zeroing: each tile's accumulators zeroed (column-major lights);
+  9. + sparse pass: the column-major pass into the scratch (no dense block);
+  10. + output pass: every dense block called with no dense term — the scratch's sums (or, row-major lights, none)
+      times the factor, written once;
+  11. + row-major pass: the same with the row-major entries (row-major lights only; a column-major light's probe 11
+      is the same work as 10, so its difference is the probes' code-placement noise, reported as such);
+  12. + dense terms: the whole kernel.
+
+Floors per part: the dense terms' instruction floor (dense (term, 32-vertex block) steps × the loop's instruction mix
+from L1 on this CPU — the 16-lane term 5.78 cycles, the 8-lane AVX2 term 8.31, ``wavelet_dense16_micro.md`` —, at
+the clock measured here: a chain of dependent multiplies, ``bench_wavelet_floor_micro.clock_ghz``), and the same loop
+re-run from the caches (probe ``dense twice``: each tile's dense blocks relit twice, the second pass right after the
+first: its extra time), the sparse pass's (the light's 8-vertex blocks × the column-major pass alone in a tight loop:
+4.5 cycles per block for the AVX-512 build's three-per-step loop, 4.9 for the one-block loop, ``wavelet_colpass.md``),
+the output's (its factors read and its values written, 24 V bytes, at the rate of the call's own streaming read:
+``timing.read_bound_fn`` of the call's bytes, paired here; ``read_bound_fn`` of 24 V bytes alone is mostly torch's
+fixed cost, ~4 µs); the set-up's floor in the issue's bound is zero (the bound counts transfer bytes and the output only).
+The call against its bound: ``timing.read_bound_fn`` of :meth:`WaveletRelighter.bytes_read` + the output, paired.
+
+Lights (transport-weighted): studio at N = 100 and 300 (its 292 nonzero terms: N = 300 … all relight the same), sky at
+N = 100, 300, 1000 and all; the kernel section's transfer
+(occluder_over_plane small, R = 32, K = 256, 16 bits). ``--isa``: the build (``native`` default; ``avx2`` the 8-lane
+AVX2 code on an AVX-512 CPU); ``--source REV``: the kernel of a git revision (or a .c file) instead of the working
+tree's. Writes the CPU's, build's and source's section of reports/benchmarks/wavelet_setup.md (a run
+replaces its own section and keeps the others).
+
+``--pair REV``: instead, the working tree's kernel paired with REV's (a git revision, or a .c file:
+``bench_wavelet_isa.kernel_source``), both compiled with the same flags (``--isa``) and bound to one layout, one
+thread's CPU time, studio and sky at N = 10, 100, 300, 1000, 2000 and all, with an A/A control (REV against a
+second build of itself); every output compared bit for bit (a difference stops the run).
+
+    .venv/bin/python benchmarks/bench_wavelet_setup.py [--isa native|avx2]     (about 2 minutes)
+``--variant NAME`` (with ``--pair REV``): instead of the working tree, REV's kernel rewritten as one of
+:data:`VARIANTS` (what was measured and not kept: the dense prefetch distance, the tiles reversed every other call,
+the OpenMP region's pragma removed, its shared variables copied in).
+
+    .venv/bin/python benchmarks/bench_wavelet_setup.py --pair main [--isa native|avx2]     (about a minute)
+    .venv/bin/python benchmarks/bench_wavelet_setup.py --pair main --variant 'tiles reversed'
+"""
+
+from __future__ import annotations
+
+import prt_torch  # noqa: F401  (first: it chooses OpenMP's wait policy from the machine's load)
+
+import argparse  # noqa: E402
+import ctypes  # noqa: E402
+import os  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import torch  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_wavelet import BITS, LIGHTS, OUT, load  # noqa: E402
+from bench_wavelet_floor_micro import SRC as FLOOR_SRC  # noqa: E402
+from bench_wavelet_isa import bound_call, kernel_build, kernel_source  # noqa: E402
+
+from prt_torch import relight  # noqa: E402
+from prt_torch._native import compile_library  # noqa: E402
+from prt_torch.harness.timing import cpu_label, measure_paired, read_bound_fn  # noqa: E402
+from prt_torch.scene import builtin  # noqa: E402
+from prt_torch.transfer import RunOptions  # noqa: E402
+from prt_torch.transfer.wavelet import precompute_wavelet  # noqa: E402
+
+WHO = "bench_wavelet_setup.py"
+#: the light table's closing zeroing, as the kernel ends (every probe past the gather runs it)
+ZERO = "for (i64 n_ = 0; n_ < N; n_++) memset(L->lp + 4 * sel[n_], 0, 4 * sizeof(float));"
+#: (line of kernels/wavelet.c, probe's statement inserted before it)
+CUTS = (("    if (C < 1 || C > 4 || (CT == 3 && C != 1 && C != 3)) return 1;", "if (PROBE == 1) return 0;"),
+        ("    const i64 CO = grey ? 1 : C > CT ? C : CT;", "if (PROBE == 2) return 0;"),
+        ("    const i64 CO = grey ? 1 : C > CT ? C : CT;", "if (PROBE == 3) { " + ZERO + " return 0; }"),
+        ("    const int rows = sb && L->NR", "if (PROBE == 4) { " + ZERO + " return 0; }"),
+        ("    i64 *sw = wk + Pd;", "if (PROBE == 5) { " + ZERO + " return 0; }"),
+        ("    const T *rvals = (const T *)L->rvals;", "if (PROBE == 6) { " + ZERO + " return 0; }"),
+        ("        if (ns && !rows) memset(acc, 0,", "if (PROBE == 7) continue;"),
+        ("        if (CT == 3) { TILE_CASE(T, 3, 3, 3) }", "if (PROBE == 8) continue;"))
+#: (text, replacement): probes 9-11 inside TILE_CASE, and ``dense twice`` (PROBE 13)
+SUBS = (("    for (i64 b = 0; b < nb; b++) {                                                                           \\",
+         "    for (int r_ = 0; r_ < (PROBE == 13 ? 2 : 1); r_++) for (i64 b = 0; b < (PROBE == 9 ? 0 : nb); b++) { \\"),
+        ("        dense_block_##T(CT_, CO_, OC_, nd, wk,", "        dense_block_##T(CT_, CO_, OC_, PROBE == 10 || PROBE == 11 ? 0 : nd, wk,"),
+        ("rows ? lp : NULL, nv,", "rows && PROBE != 10 ? lp : NULL, nv,"))
+PARTS = ("Python → C call", "checks (C, indices, grey)", "light table's closing zeroing", "gather (marks, light per column)",
+         "dense listing", "sparse listing", "OpenMP region (1 thread) + tiles", "scratch zeroing", "sparse pass (column-major)",
+         "output pass", "row-major pass", "dense terms")
+#: instruction floors in cycles (module docstring): dense per (term, 32-vertex block), sparse per 8-vertex block
+FLOORS = {True: (5.78, 4.5), False: (8.31, 4.9)}
+
+
+#: the tile loop's pragma in kernels/wavelet.c, and the tile and 32-vertex-block loops' heads, as the variants find them
+PRAGMA = '_Pragma("omp parallel for schedule(static) num_threads(nt) if(nt > 1)")'
+TILES = "    for (i64 t = 0; t < NT; t++) {"
+SHARED = "nd, ns, wk, lw, sw, sl, lp, rows, grey, CO, dense, bvals, rvals, f, out, L, V, TV, P, CT, Pd, NT"
+
+
+def _tiles_reversed(text: str) -> str:
+    """Every other call takes the tiles in reverse order (a static toggle: an experiment, not thread-safe across
+    layouts), so that the tile relit last in the previous call, the most recently cached, is relit first."""
+    text = text.replace("    " + PRAGMA, "    static int flip_st_; const int flip_ = (flip_st_ ^= 1); (void)flip_; \\\n    " + PRAGMA)
+    return text.replace(TILES, "    for (i64 t_ = 0; t_ < NT; t_++) { const i64 t = flip_ ? NT - 1 - t_ : t_;")
+
+
+#: name -> (what must be in the source, rewrite of the source) for ``--variant``
+VARIANTS = {
+    "dense prefetch 12": ("#define PF 6", lambda s: "#define PF 12\n" + s),
+    "dense prefetch 24": ("#define PF 6", lambda s: "#define PF 24\n" + s),
+    "dense prefetch 40": ("#define PF 6", lambda s: "#define PF 40\n" + s),
+    "tiles reversed": (TILES, _tiles_reversed),
+    "no OpenMP pragma": (PRAGMA, lambda s: s.replace("    " + PRAGMA + "                                 \\\n", "", 1)),
+    "firstprivate": (PRAGMA, lambda s: s.replace(PRAGMA, PRAGMA[:-2] + f" firstprivate({SHARED})\")", 1)),
+}
+
+
+def probe_source(text: str, k: int) -> str:
+    """``text`` (kernels/wavelet.c) as probe ``k`` (1-11, 13: module docstring; 12: the kernel itself)."""
+    for old, ins in CUTS:
+        if old not in text:
+            raise SystemExit(f"{WHO}: kernels/wavelet.c changed: the probe's line {old.strip()!r} is gone")
+        text = text.replace(old, "    " + ins + " \\\n" + old, 1)
+    for old, new in SUBS:
+        if old not in text:
+            raise SystemExit(f"{WHO}: kernels/wavelet.c changed: the probe's text {old.strip()!r} is gone")
+        text = text.replace(old, new, 1)
+    return f"#define PROBE {k}\n" + text
+
+
+def clock_ghz() -> float:
+    """This core's clock by a chain of dependent multiplies (bench_wavelet_floor_micro's), GHz."""
+    lib, how = compile_library("wavelet_floor_micro", FLOOR_SRC, ["-O2", "-shared", "-fPIC", "-std=c99"], {})
+    if lib is None:
+        raise SystemExit(f"{WHO}: no compiler: {how}")
+    lib.clock_ghz.restype = ctypes.c_double
+    return lib.clock_ghz()
+
+
+def section(rows: list[dict], head: str) -> list[str]:
+    L = [head, "| light | N | part | µs | of the call | floor µs | **of its floor** |", "|---|---|---|---|---|---|---|"]
+    for r in rows:
+        n = "all" if r["N"] == r["P"] else r["N"]
+        for name, us, fl in r["parts"]:
+            of = f"**{fl / us:.2f}**" if fl and us > 0 else "—"
+            L.append(f"| {r['light']} | {n} | {name} | {us:.2f} | {us / r['call']:.3f} | {fl:.1f} | {of} |" if fl else
+                     f"| {r['light']} | {n} | {name} | {us:.2f} | {us / r['call']:.3f} | — | — |")
+        L.append(f"| {r['light']} | {n} | **the call** | **{r['call']:.1f}** | 1 | read bound {r['read']:.1f} | "
+                 f"**{r['read'] / r['call']:.2f}** |")
+    return L
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--isa", default="native", help="the kernel build: native (default), avx2, avx512, avx512-256")
+    ap.add_argument("--repeats", type=int, default=21)
+    ap.add_argument("--write", default=str(OUT / "wavelet_setup.md"), help="the report ('': print only)")
+    ap.add_argument("--source", default=".", help="the kernel accounted: '.' the working tree, a git revision or a .c file")
+    ap.add_argument("--pair", default=None, help="pair the working tree's kernel with this revision's (or .c file's)")
+    ap.add_argument("--variant", default=None, help=f"with --pair: REV's kernel rewritten, one of {sorted(VARIANTS)}")
+    args = ap.parse_args()
+    if args.variant is not None and (args.variant not in VARIANTS or not args.pair):
+        raise SystemExit(f"{WHO}: --variant {args.variant!r}; accepted: one of {sorted(VARIANTS)}, with --pair REV")
+    if args.pair:
+        return write(args.write, pair(args))
+    torch.set_num_threads(1)
+    try:
+        path = relight.wavelet_kernel_path(args.isa)
+    except ValueError as e:
+        raise SystemExit(f"{WHO}: --isa {args.isa!r}: {e}") from None
+    src, label = kernel_source(args.source, f"{WHO} --source")
+    libs = {k: kernel_build(probe_source(src, k), args.isa, WHO)[0] for k in (*range(1, 12), 13)}
+    libs[12] = kernel_build(src, args.isa, WHO)[0]
+    w16 = bool(path.get("w16"))
+    dense_cyc, sparse_cyc = FLOORS[w16]
+    mesh = builtin("occluder_over_plane", "small")
+    tr = precompute_wavelet(mesh, 32, 256, BITS, shadows="always", run=RunOptions(workers=1))
+    rl = relight.WaveletRelighter(tr, threads=1, layouts="both")
+    ghz = [clock_ghz()]
+    before = load()
+    rows = []
+    for light, N in (("studio", 100), ("studio", 300), ("sky (sun)", 100), ("sky (sun)", 300), ("sky (sun)", 1000),
+                     ("sky (sun)", rl.P)):
+        if True:
+            li, lv, _ = rl.light(LIGHTS[light], N, "transport")
+            lv = lv.to(torch.float32).contiguous()
+            li = li.contiguous()
+            out = torch.empty(rl.V, 3)
+            calls = {k: bound_call(rl, lib, li, lv, out, 1) for k, lib in libs.items()}
+            full = calls[12]
+            full()
+            ref = out.clone()
+            calls[13]()
+            if not torch.equal(out, ref):
+                raise SystemExit(f"{WHO}: the 'dense twice' probe changed the output ({light}, N = {N})")
+            d = rl.dslot[li] >= 0
+            s = li[~d]
+            s = s[rl.nnz[s] > 0]
+            sb = int(rl.bcount[:, s].sum())
+            rows_pass = rl._takes_rows(sb, rl.NB, rl._row_permille(rl.row_min, True))
+            t, peers = {}, []
+            for k in (*range(1, 12), 13):
+                p = measure_paired(calls[k], full, repeats=args.repeats, warmup=1, clock=time.thread_time)
+                t[k] = p.test.median * 1e6
+                peers.append(p.peer.median * 1e6)
+            t[12] = sum(peers) / len(peers)
+            rb = measure_paired(read_bound_fn(rl.bytes_read(li), rl.V * 12), full, repeats=args.repeats, warmup=1,
+                                clock=time.thread_time)
+            g = ghz[0]
+            steps = int(d.sum()) * rl.dense.shape[0]
+            read_us = rb.test.median * 1e6
+            rate = (rl.bytes_read(li) + rl.V * 12) / read_us  # bytes per µs of the streaming read at this size
+            floors = {9: 0.0 if rows_pass else sb * sparse_cyc / g / 1e3, 10: rl.V * 24 / rate,
+                      11: rl.NB * 2.6 / g / 1e3 if rows_pass else 0.0, 12: steps * dense_cyc / g / 1e3}
+            parts = [(PARTS[0], t[1], 0.0)]
+            for k in range(2, 13):
+                name = PARTS[k - 1]
+                if k == 11 and not rows_pass:
+                    name = "(no row-major pass: the probes' code-placement noise)"
+                parts.append((name, t[k] - t[k - 1], floors.get(k, 0.0)))
+            hot = t[13] - t[12]
+            parts.append(("  the dense terms and the row-major pass re-run from the caches (dense twice)" if rows_pass else
+                          "  the dense terms re-run from the caches (dense twice)", hot, floors[12] + floors[11]))
+            row = {"light": light, "N": N, "P": rl.P, "call": t[12], "read": read_us, "parts": parts,
+                   "dense": int(d.sum()), "sparse": int(s.numel()), "blocks": sb, "rows": rows_pass, "load": load()}
+            rows.append(row)
+            print(f"[wavelet_setup] {light} N={N}: dense {row['dense']} sparse {row['sparse']} blocks {sb} call "
+                  f"{t[12]:.1f} us, read bound {row['read']:.1f}; " +
+                  ", ".join(f"{n} {u:.2f}" for n, u, _ in parts), flush=True)
+    ghz.append(clock_ghz())
+    after = load()
+    counts = "; ".join(f"{r['light']} N = {'all' if r['N'] == r['P'] else r['N']}: {r['dense']} dense terms, {r['sparse']} "
+                       f"sparse ({r['blocks']} blocks{', row-major' if r['rows'] else ''})" for r in rows)
+    head = (f"## {cpu_label()}: the `{args.isa}` build, kernel {label} ({path['path']})\n\n"
+            f"Clock {ghz[0]:.2f} / {ghz[1]:.2f} GHz (before / after: dependent multiplies); one thread's CPU time, each probe "
+            f"the median of {args.repeats} samples paired with the whole kernel; load average {before:.1f} → {after:.1f} "
+            f"(a shared machine). Floors: dense {dense_cyc} cycles per (term, 32-vertex block), "
+            f"sparse {sparse_cyc} per 8-vertex block (module docstring), row-major 2.6 per entry "
+            "(`wavelet_rowpass.md`, assembly from L1), output: its 24 V bytes at the rate of the call's streaming read "
+            f"(module docstring); **of its floor**: floor / part. Per light and N: {counts}.\n")
+    write(args.write, "\n".join(section(rows, head)) + "\n")
+
+
+def write(dest: str, text: str, title: str | None = None) -> None:
+    """``text`` (a section: its first line, ``## ...``, names the CPU, the build and what it measures) into the report
+    ``dest``, replacing the section of the same first line and keeping the others ('' : printed only); ``title``: the
+    report's head when it is new (default: this benchmark's)."""
+    if not dest:
+        print(text)
+        return
+    dest = Path(dest)
+    title = title or "# Wavelet kernel: every microsecond of a relight call, by part (issue 39)\n\n" \
+            "Reproduce: `.venv/bin/python benchmarks/bench_wavelet_setup.py [--isa native|avx2] [--pair REV]` (module " \
+            "docstring: the probes, the floors, the pairing). One section per CPU, build and measurement; a run replaces its own.\n"
+    old = dest.read_text() if dest.exists() else title
+    key = text.split("\n")[0]
+    chunks = old.split("\n## ")
+    kept = [c for c in chunks[1:] if ("## " + c).split("\n")[0] != key]
+    dest.write_text(chunks[0].rstrip("\n") + "\n\n" + "".join("## " + c.rstrip("\n") + "\n\n" for c in kept) + text)
+    print(f"[wavelet_setup] wrote {dest}", flush=True)
+
+
+def pair(args) -> str:
+    """The ``--pair`` section (module docstring)."""
+    torch.set_num_threads(1)
+    try:
+        path = relight.wavelet_kernel_path(args.isa)
+    except ValueError as e:
+        raise SystemExit(f"{WHO}: --isa {args.isa!r}: {e}") from None
+    tree, name = kernel_source(None, WHO)
+    test = "tree"
+    base, label = kernel_source(args.pair, f"{WHO} --pair")
+    if args.variant:
+        need, rewrite = VARIANTS[args.variant]
+        if need not in base:
+            raise SystemExit(f"{WHO}: --variant {args.variant!r} no longer applies to {label}'s kernel ({need.strip()!r} is gone)")
+        tree, name = rewrite(base), f"{label} as '{args.variant}'"
+    test = "variant" if args.variant else "tree"
+    libs = {"tree": kernel_build(tree, args.isa, WHO)[0], "base": kernel_build(base, args.isa, WHO)[0],
+            "A/A": kernel_build(base, args.isa, WHO, tag="A/A control")[0]}
+    mesh = builtin("occluder_over_plane", "small")
+    tr = precompute_wavelet(mesh, 32, 256, BITS, shadows="always", run=RunOptions(workers=1))
+    rl = relight.WaveletRelighter(tr, threads=1, layouts="both")
+    before = load()
+    L = [f"## {cpu_label()}: the `{args.isa}` build, {name} against {label}\n",
+         f"{path['path']}. Both kernels compiled with the library's flags and this build's, bound to one layout (the "
+         "row-major copy built), called through the packed entry point as `WaveletRelighter.prepared` calls it; one "
+         f"thread's CPU time, the median of {args.repeats} paired samples; **{label} / {test}** > 1: {name} faster "
+         f"[quartiles]; A/A: {label} against a second build of itself. Every output equal bit for bit. Load average "
+         "{load0:.1f} → {load1:.1f}.\n",
+         f"| light | N | {label} µs | {test} µs | **{label} / {test}** [quartiles] | A/A [quartiles] | load |",
+         "|---|---|---|---|---|---|---|"]
+    for light in ("studio", "sky (sun)"):
+        for N in (10, 100, 300, 1000, 2000, rl.P):
+            li, lv, _ = rl.light(LIGHTS[light], N, "transport")
+            lv = lv.to(torch.float32).contiguous()
+            li = li.contiguous()
+            outs = {k: torch.empty(rl.V, 3) for k in libs}
+            calls = {k: bound_call(rl, lib, li, lv, outs[k], 1) for k, lib in libs.items()}
+            for k in calls:
+                calls[k]()
+            for k in ("tree", "A/A"):
+                if not torch.equal(outs[k], outs["base"]):
+                    raise SystemExit(f"{WHO}: {k} and {label} differ ({light}, N = {N}): "
+                                     f"{float((outs[k] - outs['base']).abs().max()):.3e}")
+            p = measure_paired(calls["tree"], calls["base"], repeats=args.repeats, warmup=1, clock=time.thread_time)
+            a = measure_paired(calls["A/A"], calls["base"], repeats=args.repeats, warmup=1, clock=time.thread_time)
+            L.append(f"| {light} | {'all' if N == rl.P else N} | {p.peer.median * 1e6:.1f} | {p.test.median * 1e6:.1f} | "
+                     f"**{p.speedup:.3f}** [{p.ratio.q1:.3f}, {p.ratio.q3:.3f}] | {a.speedup:.3f} [{a.ratio.q1:.3f}, "
+                     f"{a.ratio.q3:.3f}] | {load():.1f} |")
+            print(f"[wavelet_setup] {L[-1]}", flush=True)
+    L[1] = L[1].replace("{load0:.1f}", f"{before:.1f}").replace("{load1:.1f}", f"{load():.1f}")
+    return "\n".join(L) + "\n"
+
+
+if __name__ == "__main__":
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    main()
