@@ -194,16 +194,6 @@ static inline void store_rgb8(float *out, const float *f, v8f r, v8f g, v8f b) {
                 a[c][k] += x * l[c];                                                                         \
             }                                                                                                \
     }
-#if W16 /* the pair mode's parameters, arguments (blocks 2i and 2i + 1 in lockstep) and keep, in W16 builds only */
-#define PAIR_PARAMS const int pm, const i64 pst, const int far, float *keep,
-#ifndef ZMM_MIN /* fewer (dense term, 32-vertex block) pairs than this in a call: the 8-lane loop (the zmm loop's first
-                 * use in a call costs ~0.3-0.4 us on the Xeon: measured 1.10-1.21x at 1-3 dense terms x 71 blocks,
-                 * 0.93-0.97x at 5-7) */
-#define ZMM_MIN 256
-#endif
-#define PAIR_ARGS(b, nb, pst) nd * ((V + BV - 1) / BV) < ZMM_MIN ? 3 : (b) & 1 ? 2 : (b) + 1 < (nb), (pst),       \
-    (V + BV - 1) / BV * (pst) * (i64)sizeof(*dense) >= PFX_MIN, keep,
-#define PAIR_KEEP float keep[128] __attribute__((aligned(64))) = {0};
 #ifndef PFX
 #define PFX 24 /* (term, unit) steps ahead the 16-lane loops prefetch, across their unit's end into the next unit's terms */
 #endif
@@ -227,6 +217,16 @@ static inline void store_rgb8(float *out, const float *f, v8f r, v8f g, v8f b) {
         }                                                                                                    \
         if (++pt_ == nd) { pt_ = 0; po_ += (us); }                                                           \
     }
+#if W16 /* the pair mode's parameters, arguments (blocks 2i and 2i + 1 in lockstep) and keep, in W16 builds only */
+#define PAIR_PARAMS const int pm, const i64 pst, const int far, float *keep,
+#ifndef ZMM_MIN /* fewer (dense term, 32-vertex block) pairs than this in a call: the 8-lane loop (the zmm loop's first
+                 * use in a call costs ~0.3-0.4 us on the Xeon: measured 1.10-1.21x at 1-3 dense terms x 71 blocks,
+                 * 0.93-0.97x at 5-7) */
+#define ZMM_MIN 256
+#endif
+#define PAIR_ARGS(b, nb, pst) nd * ((V + BV - 1) / BV) < ZMM_MIN ? 3 : (b) & 1 ? 2 : (b) + 1 < (nb), (pst),       \
+    (V + BV - 1) / BV * (pst) * (i64)sizeof(*dense) >= PFX_MIN, keep,
+#define PAIR_KEEP float keep[128] __attribute__((aligned(64))) = {0};
 /* within the unit only (layouts below PFX_MIN): the lines of the term PF ahead, none for the unit's last PF terms */
 #define PF_IN(T, us, two)                                                                                    \
     if (t + PF < nd)                                                                                         \
@@ -285,6 +285,27 @@ static inline void store_rgb8(float *out, const float *f, v8f r, v8f g, v8f b) {
         for (int c = 0; c < 4; c++)                                                                          \
             for (int h = 0; h < 2; h++) { a[c][2 * h] = lo8(z[c][h]); a[c][2 * h + 1] = hi8(z[c][h]); }     \
     }
+#elif defined(PF_X8) /* a measurement only (bench_wavelet_prefetch.py --avx2-far): the 8-lane builds with the prefetch across
+                        * blocks; off by default, so the AVX2 build's machine code is the one tuned on the AMD Zen 3 */
+#define PAIR_PARAMS const i64 pst, const int far,
+#define PAIR_ARGS(b, nb, pst) (pst), (V + BV - 1) / BV * (pst) * (i64)sizeof(*dense) >= PFX_MIN,
+#define PAIR_KEEP
+#define DENSE_TERMS(T)                                                                                       \
+    if (far && nd) {                                                                                         \
+        for (int c = 0; c < 4; c++) for (int k = 0; k < 4; k++) a[c][k] = (v8f){0};                         \
+        PFX_START(pst)                                                                                       \
+        for (i64 t = 0; t < nd; t++) {                                                                       \
+            const T *p = blk + ds[t] * stride;                                                               \
+            PF_FAR(T, pst, 0)                                                                                \
+            v8f l[4];                                                                                        \
+            for (int c = 0; c < CO; c++) l[c] = bc8(lw + 4 * t + c);                                         \
+            for (int k = 0; k < 4; k++)                                                                      \
+                for (int c = 0; c < CO; c++) {                                                               \
+                    const v8f x = load8_##T(p + (CT == 1 ? 0 : c * BV) + 8 * k);                             \
+                    a[c][k] += x * l[c];                                                                     \
+                }                                                                                            \
+        }                                                                                                    \
+    } else { DENSE_TERMS8(T) }
 #else /* the 8-lane loop: CO x 4 vectors of 8 sums */
 #define PAIR_PARAMS
 #define PAIR_ARGS(b, nb, pst)
