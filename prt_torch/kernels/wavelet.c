@@ -43,17 +43,19 @@
  *    0.94-1.01x of 6.
  *    Prefetch across units (PF_FAR, W16): when the dense layout holds at least PFX_MIN (2 MB, the Xeon's L2) bytes,
  *    the 16-lane loops prefetch the (term, unit) step PFX = 24 steps ahead (a unit: the pair of blocks, or a block
- *    alone), past the unit's last term into the next unit's first terms; below PFX_MIN the term PF = 6 ahead within
- *    the unit, none for its last PF terms, as before (the two loops kept apart: one loop branching per term on the
- *    mode cost 0.90-0.95x at small). A block spans Pd x 64 B (15.6 KB at R = 32, K = 256) and a light reads its nd
- *    lines scattered in it: no stream the hardware follows, and once the layout outgrows the L2 the first PF terms of
- *    every block were demand misses from L3. Measured on the Intel Xeon, one thread's CPU time, paired with main's
- *    build (bench_wavelet_prefetch.py, reports/benchmarks/wavelet_prefetch.md): occluder_over_plane medium (V 10585,
- *    5.2 MB) 1.02-1.19x at N = 10-100, large (V 51335, 25 MB) 1.11-1.45x; small (1.1 MB, not taken) within the A/A
- *    control. PFX 12 / 48 about as 24, 6 less; prefetching in every unit's tail also below PFX_MIN 0.92-0.98x at
- *    small. The 8-lane loop (AVX2 builds) keeps its code (tuned on the AMD Zen 3): the same prefetch there, PF_X8,
- *    measured as the avx2 build on the Xeon at large 1.30-1.86x but small 0.96-0.99x (N = 10, the path not taken:
- *    code placement), so it is off by default.
+ *    alone), past the unit's last term into the next unit's first terms (dense_far_T, out of line: one instance per
+ *    CT, CO); below PFX_MIN, main's loops: the term PF = 6 ahead within the unit, none for its last PF terms. A block
+ *    spans Pd x 64 B (15.6 KB at R = 32, K = 256) and a light reads its nd lines scattered in it: no stream the
+ *    hardware follows, and once the layout outgrows the L2 the first PF terms of every block were demand misses from
+ *    L3. Measured on the Intel Xeon, one thread's CPU time, paired with main's build (bench_wavelet_prefetch.py,
+ *    reports/benchmarks/wavelet_prefetch.md, load 6-8): occluder_over_plane large (V 51335, 23.9 MB) 1.22-1.45x at
+ *    N = 10, 1.08-1.25x at N = 30, about 1.05x at N = 100-300; medium (V 10585, 4.9 MB) 1.02-1.20x at N = 10-100.
+ *    PFX 12 / 48 about as 24, 6 less. At small (1.1 MB, the far path never taken) some rows 0.93-0.97x (studio
+ *    N = 30 / 100, sky N = 100; A/A 0.99-1.03): the call's extra argument and branch or code placement, unresolved;
+ *    the far loops inline 0.92-0.95x, one loop branching per term 0.90-0.95x, every unit's tail prefetching the
+ *    next unit also below PFX_MIN 0.92-0.98x. The 8-lane loop (AVX2 builds) keeps its code (tuned on the AMD
+ *    Zen 3; its assembly unchanged): the same prefetch there, -DPF_X8, measured as the avx2 build on the Xeon at
+ *    large 1.30-1.86x but small 0.96-0.97x (N = 10, the path not taken), so it is off by default.
  *    The sparse blocks, the row-major pass and the output stay on 8 lanes (a 16-lane read-modify-write of
  *    two channels' scratch per block measured 0.90-0.94x of the 8-lane one: not kept); the column-major sparse
  *    pass takes three blocks per loop step in these builds (SPARSE_RANGE), and with AVX-512's 32 registers the
