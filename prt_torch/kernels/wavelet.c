@@ -43,8 +43,8 @@
  *    0.94-1.01x of 6.
  *    Prefetch across units (PF_FAR, W16): when the dense layout holds at least PFX_MIN (2 MB, the Xeon's L2) bytes,
  *    the 16-lane loops prefetch the (term, unit) step PFX = 24 steps ahead (a unit: the pair of blocks, or a block
- *    alone), past the unit's last term into the next unit's first terms (dense_far_T, out of line: one instance per
- *    CT, CO); below PFX_MIN, main's loops: the term PF = 6 ahead within the unit, none for its last PF terms. A block
+ *    alone), past the unit's last term into the next unit's first terms (PF_FAR); below PFX_MIN a second copy of the
+ *    loops (PF_IN): the term PF = 6 ahead within the unit, none for its last PF terms, as in main. A block
  *    spans Pd x 64 B (15.6 KB at R = 32, K = 256) and a light reads its nd lines scattered in it: no stream the
  *    hardware follows, and once the layout outgrows the L2 the first PF terms of every block were demand misses from
  *    L3. Measured on the Intel Xeon, one thread's CPU time, paired with main's build (bench_wavelet_prefetch.py,
@@ -52,7 +52,8 @@
  *    N = 10, 1.08-1.25x at N = 30, about 1.05x at N = 100-300; medium (V 10585, 4.9 MB) 1.02-1.20x at N = 10-100.
  *    PFX 12 / 48 about as 24, 6 less. At small (1.1 MB, the far path never taken) some rows 0.93-0.97x (studio
  *    N = 30 / 100, sky N = 100; A/A 0.99-1.03): the call's extra argument and branch or code placement, unresolved;
- *    the far loops inline 0.92-0.95x, one loop branching per term 0.90-0.95x, every unit's tail prefetching the
+ *    one loop branching per term on the mode 0.90-0.95x, the far loops out of line (a
+ *    function per block, main's loop text kept below PFX_MIN) no better at small and 0.93-0.94x at medium N = 10-30, every unit's tail prefetching the
  *    next unit also below PFX_MIN 0.92-0.98x. The 8-lane loop (AVX2 builds) keeps its code (tuned on the AMD
  *    Zen 3; its assembly unchanged): the same prefetch there, -DPF_X8, measured as the avx2 build on the Xeon at
  *    large 1.30-1.86x but small 0.96-0.97x (N = 10, the path not taken), so it is off by default.
@@ -242,7 +243,15 @@ static inline void store_rgb8(float *out, const float *f, v8f r, v8f g, v8f b) {
 #define PAIR_ARGS(b, nb, pst) nd * ((V + BV - 1) / BV) < ZMM_MIN ? 3 : (b) & 1 ? 2 : (b) + 1 < (nb), (pst),       \
     (V + BV - 1) / BV * (pst) * (i64)sizeof(*dense) >= PFX_MIN, keep,
 #define PAIR_KEEP float keep[128] __attribute__((aligned(64))) = {0};
-/* blocks blk and nblk in lockstep over the nd dense terms, STEP the prefetch (PF_FAR) */
+/* within the unit only (layouts below PFX_MIN): the lines of the term PF ahead, none for the unit's last PF terms */
+#define PF_IN(T, us, two)                                                                                    \
+    if (t + PF < nd)                                                                                         \
+        for (i64 q = 0; q < stride * (i64)sizeof(T); q += 64) {                                              \
+            const i64 op = ds[t + PF] * stride;                                                              \
+            __builtin_prefetch((const char *)(blk + op) + q);                                                \
+            if (two) __builtin_prefetch((const char *)(blk + pst + op) + q);                                 \
+        }
+/* blocks blk and nblk in lockstep over the nd dense terms, STEP the prefetch (PF_FAR or PF_IN) */
 #define PAIR_TERMS(T, STEP)                                                                                  \
     for (i64 t = 0; t < nd; t++) {                                                                           \
         const i64 o = ds[t] * stride;                                                                        \
@@ -270,99 +279,25 @@ static inline void store_rgb8(float *out, const float *f, v8f r, v8f g, v8f b) {
                 z[c][h] += x * l[c];                                                                         \
             }                                                                                                \
     }
-/* the far path (layouts of at least PFX_MIN bytes) out of line, so that the loops below keep main's code and placement
- * (the far loops inlined beside them cost 0.92-0.95x at small, where they are never taken): the sums of block blk (and,
- * pm = 1, of the next block into keep, as DENSE_TERMS) into ah [4, 32] float32 in 32-byte halves, each CT, CO an
- * instance of its own */
-#define DENSE_FAR(T)                                                                                         \
-static inline __attribute__((always_inline)) void dense_far_body_##T(const int CT, const int CO, i64 nd,   \
-        const i64 *ds, const float *lw, const T *blk, i64 stride, const int pm, const i64 pst, float *keep,   \
-        float *ah) {                                                                                         \
-    v16f z[4][2];                                                                                            \
-    for (int c = 0; c < 4; c++) for (int h = 0; h < 2; h++) z[c][h] = (v16f){0};                            \
-    if (pm == 1) {                                                                                           \
-        v16f y[4][2];                                                                                        \
-        for (int c = 0; c < 4; c++) for (int h = 0; h < 2; h++) y[c][h] = (v16f){0};                        \
-        const T *nblk = blk + pst;                                                                           \
-        PFX_START(2 * pst)                                                                                   \
-        PAIR_TERMS(T, PF_FAR)                                                                                \
-        for (int c = 0; c < CO; c++) for (int h = 0; h < 2; h++) {                                           \
-            st8(keep + 32 * c + 16 * h, lo8(y[c][h]));                                                       \
-            st8(keep + 32 * c + 16 * h + 8, hi8(y[c][h]));                                                   \
-        }                                                                                                    \
-    } else {                                                                                                 \
-        PFX_START(pst)                                                                                       \
-        ONE_TERMS(T, PF_FAR)                                                                                 \
-    }                                                                                                        \
-    for (int c = 0; c < CO; c++) for (int h = 0; h < 2; h++) {                                               \
-        st8(ah + 32 * c + 16 * h, lo8(z[c][h]));                                                             \
-        st8(ah + 32 * c + 16 * h + 8, hi8(z[c][h]));                                                         \
-    }                                                                                                        \
-}                                                                                                            \
-static __attribute__((noinline)) void dense_far_##T(const int CT, const int CO, i64 nd, const i64 *ds,      \
-        const float *lw, const T *blk, i64 stride, const int pm, const i64 pst, float *keep, float *ah) {    \
-    if (CT == 3) dense_far_body_##T(3, 3, nd, ds, lw, blk, stride, pm, pst, keep, ah);                       \
-    else switch (CO) {                                                                                       \
-        case 1: dense_far_body_##T(1, 1, nd, ds, lw, blk, stride, pm, pst, keep, ah); break;                 \
-        case 2: dense_far_body_##T(1, 2, nd, ds, lw, blk, stride, pm, pst, keep, ah); break;                 \
-        case 3: dense_far_body_##T(1, 3, nd, ds, lw, blk, stride, pm, pst, keep, ah); break;                 \
-        default: dense_far_body_##T(1, 4, nd, ds, lw, blk, stride, pm, pst, keep, ah); break;                \
-    }                                                                                                        \
-}
-DENSE_FAR(float)
-DENSE_FAR(int8_t)
-DENSE_FAR(int16_t)
 #define DENSE_TERMS(T)                                                                                       \
     if (pm == 3) { DENSE_TERMS8(T) } else /* little dense work in the call: the 8-lane loop */               \
     if (pm == 2) /* computed with the previous block: its halves as stored (32-byte loads of 32-byte stores) */ \
         for (int c = 0; c < 4; c++) for (int k = 0; k < 4; k++) a[c][k] = c < CO ? ld8(keep + 32 * c + 8 * k) : (v8f){0}; \
-    else if (far && nd) { /* a layout of at least PFX_MIN bytes: the prefetch across units, out of line */     \
-        float ah[128] __attribute__((aligned(64)));                                                          \
-        dense_far_##T(CT, CO, nd, ds, lw, blk, stride, pm, pst, keep, ah);                                   \
-        for (int c = 0; c < 4; c++) for (int k = 0; k < 4; k++) a[c][k] = c < CO ? ld8(ah + 32 * c + 8 * k) : (v8f){0}; \
-    } else {                                                                                                   \
+    else {                                                                                                   \
         v16f z[4][2];                                                                                        \
         for (int c = 0; c < 4; c++) for (int h = 0; h < 2; h++) z[c][h] = (v16f){0};                        \
         if (pm == 1) {                                                                                       \
             v16f y[4][2];                                                                                    \
             for (int c = 0; c < 4; c++) for (int h = 0; h < 2; h++) y[c][h] = (v16f){0};                    \
             const T *nblk = blk + pst;                                                                       \
-            for (i64 t = 0; t < nd; t++) {                                                                   \
-                const i64 o = ds[t] * stride;                                                                \
-                if (t + PF < nd)                                                                             \
-                    for (i64 q = 0; q < stride * (i64)sizeof(T); q += 64) {                                  \
-                        const i64 op = ds[t + PF] * stride;                                                  \
-                        __builtin_prefetch((const char *)(blk + op) + q);                                    \
-                        __builtin_prefetch((const char *)(nblk + op) + q);                                   \
-                    }                                                                                        \
-                v16f l[4];                                                                                   \
-                for (int c = 0; c < CO; c++) l[c] = bc16(lw + 4 * t + c);                                    \
-                for (int h = 0; h < 2; h++)                                                                  \
-                    for (int c = 0; c < CO; c++) {                                                           \
-                        const i64 e = o + (CT == 1 ? 0 : c * BV) + 16 * h;                                   \
-                        const v16f x = load16_##T(blk + e), w = load16_##T(nblk + e);                        \
-                        z[c][h] += x * l[c];                                                                 \
-                        y[c][h] += w * l[c];                                                                 \
-                    }                                                                                        \
-            }                                                                                                \
+            if (far && nd) { PFX_START(2 * pst) PAIR_TERMS(T, PF_FAR) }                                      \
+            else PAIR_TERMS(T, PF_IN)                                                                        \
             for (int c = 0; c < CO; c++) for (int h = 0; h < 2; h++) {                                       \
                 st8(keep + 32 * c + 16 * h, lo8(y[c][h]));                                                   \
                 st8(keep + 32 * c + 16 * h + 8, hi8(y[c][h]));                                               \
             }                                                                                                \
-        } else                                                                                               \
-            for (i64 t = 0; t < nd; t++) {                                                                   \
-                const T *p = blk + ds[t] * stride;                                                           \
-                if (t + PF < nd)                                                                             \
-                    for (i64 q = 0; q < stride * (i64)sizeof(T); q += 64)                                    \
-                        __builtin_prefetch((const char *)(blk + ds[t + PF] * stride) + q);                   \
-                v16f l[4];                                                                                   \
-                for (int c = 0; c < CO; c++) l[c] = bc16(lw + 4 * t + c);                                    \
-                for (int h = 0; h < 2; h++)                                                                  \
-                    for (int c = 0; c < CO; c++) {                                                           \
-                        const v16f x = load16_##T(p + (CT == 1 ? 0 : c * BV) + 16 * h);                      \
-                        z[c][h] += x * l[c];                                                                 \
-                    }                                                                                        \
-            }                                                                                                \
+        } else if (far && nd) { PFX_START(pst) ONE_TERMS(T, PF_FAR) }                                        \
+        else ONE_TERMS(T, PF_IN)                                                                             \
         for (int c = 0; c < 4; c++)                                                                          \
             for (int h = 0; h < 2; h++) { a[c][2 * h] = lo8(z[c][h]); a[c][2 * h + 1] = hi8(z[c][h]); }     \
     }
