@@ -41,6 +41,22 @@
  *    pair's loop split at nd - PF (no prefetch test per term) 0.93-1.03x; the RGB output on 16 lanes (a vpermt2ps
  *    and a masked vpermps per output vector) 0.96-1.04x; the prefetch distance 3 / 10 / 16 terms with the pair
  *    0.94-1.01x of 6.
+ *    Prefetch across units (PF_FAR, W16): when the dense layout holds at least PFX_MIN (2 MB, the Xeon's L2) bytes,
+ *    the 16-lane loops prefetch the (term, unit) step PFX = 24 steps ahead (a unit: the pair of blocks, or a block
+ *    alone), past the unit's last term into the next unit's first terms (PF_FAR); below PFX_MIN a second copy of the
+ *    loops (PF_IN): the term PF = 6 ahead within the unit, none for its last PF terms, as in main. A block
+ *    spans Pd x 64 B (15.6 KB at R = 32, K = 256) and a light reads its nd lines scattered in it: no stream the
+ *    hardware follows, and once the layout outgrows the L2 the first PF terms of every block were demand misses from
+ *    L3. Measured on the Intel Xeon, one thread's CPU time, paired with main's build (bench_wavelet_prefetch.py,
+ *    reports/benchmarks/wavelet_prefetch.md, load 6-8): occluder_over_plane large (V 51335, 23.9 MB) 1.22-1.45x at
+ *    N = 10, 1.08-1.25x at N = 30, about 1.05x at N = 100-300; medium (V 10585, 4.9 MB) 1.02-1.20x at N = 10-100.
+ *    PFX 12 / 48 about as 24, 6 less. At small (1.1 MB, the far path never taken) some rows 0.93-0.97x (studio
+ *    N = 30 / 100, sky N = 100; A/A 0.99-1.03): the call's extra argument and branch or code placement, unresolved;
+ *    one loop branching per term on the mode 0.90-0.95x, the far loops out of line (a
+ *    function per block, main's loop text kept below PFX_MIN) no better at small and 0.93-0.94x at medium N = 10-30, every unit's tail prefetching the
+ *    next unit also below PFX_MIN 0.92-0.98x. The 8-lane loop (AVX2 builds) keeps its code (tuned on the AMD
+ *    Zen 3; its assembly unchanged): the same prefetch there, -DPF_X8, measured as the avx2 build on the Xeon at
+ *    large 1.30-1.86x but small 0.96-0.97x (N = 10, the path not taken), so it is off by default.
  *    The sparse blocks, the row-major pass and the output stay on 8 lanes (a 16-lane read-modify-write of
  *    two channels' scratch per block measured 0.90-0.94x of the 8-lane one: not kept); the column-major sparse
  *    pass takes three blocks per loop step in these builds (SPARSE_RANGE), and with AVX-512's 32 registers the
@@ -195,15 +211,75 @@ static inline void store_rgb8(float *out, const float *f, v8f r, v8f g, v8f b) {
                 a[c][k] += x * l[c];                                                                         \
             }                                                                                                \
     }
+#ifndef PFX
+#define PFX 24 /* (term, unit) steps ahead the 16-lane loops prefetch, across their unit's end into the next unit's terms */
+#endif
+#ifndef PFX_MIN
+#define PFX_MIN (2LL << 20) /* dense layouts of at least this many bytes take the prefetch across units (far) */
+#endif
+/* the prefetch's target PFX steps ahead of this unit's term 0 (a unit: the block, or the pair of blocks, us elements
+ * long; the next unit starts us elements on): pt_ its term, po_ its unit's offset from blk in elements */
+#define PFX_START(us)                                                                                        \
+    i64 pt_ = PFX, po_ = 0;                                                                                  \
+    if (pt_ >= nd) { const i64 u_ = pt_ / nd; pt_ -= u_ * nd; po_ = u_ * (us); }
+/* one step's prefetch across units (far: the layout outgrows PFX_MIN), both blocks' lines when two: the target term's
+ * lines, then the target one step on, into the next unit after this one's last term; the address as an integer (past
+ * the layout's end after its last unit: a prefetch, never a load) */
+#define PF_FAR(T, us, two)                                                                                   \
+    {                                                                                                        \
+        const uintptr_t a_ = (uintptr_t)blk + (uintptr_t)((po_ + ds[pt_] * stride) * (i64)sizeof(T));      \
+        for (i64 q = 0; q < stride * (i64)sizeof(T); q += 64) {                                              \
+            __builtin_prefetch((const char *)(a_ + q));                                                      \
+            if (two) __builtin_prefetch((const char *)(a_ + (uintptr_t)(pst * (i64)sizeof(T)) + q));         \
+        }                                                                                                    \
+        if (++pt_ == nd) { pt_ = 0; po_ += (us); }                                                           \
+    }
 #if W16 /* the pair mode's parameters, arguments (blocks 2i and 2i + 1 in lockstep) and keep, in W16 builds only */
-#define PAIR_PARAMS const int pm, const i64 pst, float *keep,
+#define PAIR_PARAMS const int pm, const i64 pst, const int far, float *keep,
 #ifndef ZMM_MIN /* fewer (dense term, 32-vertex block) pairs than this in a call: the 8-lane loop (the zmm loop's first
                  * use in a call costs ~0.3-0.4 us on the Xeon: measured 1.10-1.21x at 1-3 dense terms x 71 blocks,
                  * 0.93-0.97x at 5-7) */
 #define ZMM_MIN 256
 #endif
-#define PAIR_ARGS(b, nb, pst) nd * ((V + BV - 1) / BV) < ZMM_MIN ? 3 : (b) & 1 ? 2 : (b) + 1 < (nb), (pst), keep,
+#define PAIR_ARGS(b, nb, pst) nd * ((V + BV - 1) / BV) < ZMM_MIN ? 3 : (b) & 1 ? 2 : (b) + 1 < (nb), (pst),       \
+    (V + BV - 1) / BV * (pst) * (i64)sizeof(*dense) >= PFX_MIN, keep,
 #define PAIR_KEEP float keep[128] __attribute__((aligned(64))) = {0};
+/* within the unit only (layouts below PFX_MIN): the lines of the term PF ahead, none for the unit's last PF terms */
+#define PF_IN(T, us, two)                                                                                    \
+    if (t + PF < nd)                                                                                         \
+        for (i64 q = 0; q < stride * (i64)sizeof(T); q += 64) {                                              \
+            const i64 op = ds[t + PF] * stride;                                                              \
+            __builtin_prefetch((const char *)(blk + op) + q);                                                \
+            if (two) __builtin_prefetch((const char *)(blk + pst + op) + q);                                 \
+        }
+/* blocks blk and nblk in lockstep over the nd dense terms, STEP the prefetch (PF_FAR or PF_IN) */
+#define PAIR_TERMS(T, STEP)                                                                                  \
+    for (i64 t = 0; t < nd; t++) {                                                                           \
+        const i64 o = ds[t] * stride;                                                                        \
+        STEP(T, 2 * pst, 1)                                                                                  \
+        v16f l[4];                                                                                           \
+        for (int c = 0; c < CO; c++) l[c] = bc16(lw + 4 * t + c);                                            \
+        for (int h = 0; h < 2; h++)                                                                          \
+            for (int c = 0; c < CO; c++) {                                                                   \
+                const i64 e = o + (CT == 1 ? 0 : c * BV) + 16 * h;                                           \
+                const v16f x = load16_##T(blk + e), w = load16_##T(nblk + e);                                \
+                z[c][h] += x * l[c];                                                                         \
+                y[c][h] += w * l[c];                                                                         \
+            }                                                                                                \
+    }
+/* block blk alone over the nd dense terms */
+#define ONE_TERMS(T, STEP)                                                                                   \
+    for (i64 t = 0; t < nd; t++) {                                                                           \
+        const T *p = blk + ds[t] * stride;                                                                   \
+        STEP(T, pst, 0)                                                                                      \
+        v16f l[4];                                                                                           \
+        for (int c = 0; c < CO; c++) l[c] = bc16(lw + 4 * t + c);                                            \
+        for (int h = 0; h < 2; h++)                                                                          \
+            for (int c = 0; c < CO; c++) {                                                                   \
+                const v16f x = load16_##T(p + (CT == 1 ? 0 : c * BV) + 16 * h);                              \
+                z[c][h] += x * l[c];                                                                         \
+            }                                                                                                \
+    }
 #define DENSE_TERMS(T)                                                                                       \
     if (pm == 3) { DENSE_TERMS8(T) } else /* little dense work in the call: the 8-lane loop */               \
     if (pm == 2) /* computed with the previous block: its halves as stored (32-byte loads of 32-byte stores) */ \
@@ -215,45 +291,38 @@ static inline void store_rgb8(float *out, const float *f, v8f r, v8f g, v8f b) {
             v16f y[4][2];                                                                                    \
             for (int c = 0; c < 4; c++) for (int h = 0; h < 2; h++) y[c][h] = (v16f){0};                    \
             const T *nblk = blk + pst;                                                                       \
-            for (i64 t = 0; t < nd; t++) {                                                                   \
-                const i64 o = ds[t] * stride;                                                                \
-                if (t + PF < nd)                                                                             \
-                    for (i64 q = 0; q < stride * (i64)sizeof(T); q += 64) {                                  \
-                        const i64 op = ds[t + PF] * stride;                                                  \
-                        __builtin_prefetch((const char *)(blk + op) + q);                                    \
-                        __builtin_prefetch((const char *)(nblk + op) + q);                                   \
-                    }                                                                                        \
-                v16f l[4];                                                                                   \
-                for (int c = 0; c < CO; c++) l[c] = bc16(lw + 4 * t + c);                                    \
-                for (int h = 0; h < 2; h++)                                                                  \
-                    for (int c = 0; c < CO; c++) {                                                           \
-                        const i64 e = o + (CT == 1 ? 0 : c * BV) + 16 * h;                                   \
-                        const v16f x = load16_##T(blk + e), w = load16_##T(nblk + e);                        \
-                        z[c][h] += x * l[c];                                                                 \
-                        y[c][h] += w * l[c];                                                                 \
-                    }                                                                                        \
-            }                                                                                                \
+            if (far && nd) { PFX_START(2 * pst) PAIR_TERMS(T, PF_FAR) }                                      \
+            else PAIR_TERMS(T, PF_IN)                                                                        \
             for (int c = 0; c < CO; c++) for (int h = 0; h < 2; h++) {                                       \
                 st8(keep + 32 * c + 16 * h, lo8(y[c][h]));                                                   \
                 st8(keep + 32 * c + 16 * h + 8, hi8(y[c][h]));                                               \
             }                                                                                                \
-        } else                                                                                               \
-            for (i64 t = 0; t < nd; t++) {                                                                   \
-                const T *p = blk + ds[t] * stride;                                                           \
-                if (t + PF < nd)                                                                             \
-                    for (i64 q = 0; q < stride * (i64)sizeof(T); q += 64)                                    \
-                        __builtin_prefetch((const char *)(blk + ds[t + PF] * stride) + q);                   \
-                v16f l[4];                                                                                   \
-                for (int c = 0; c < CO; c++) l[c] = bc16(lw + 4 * t + c);                                    \
-                for (int h = 0; h < 2; h++)                                                                  \
-                    for (int c = 0; c < CO; c++) {                                                           \
-                        const v16f x = load16_##T(p + (CT == 1 ? 0 : c * BV) + 16 * h);                      \
-                        z[c][h] += x * l[c];                                                                 \
-                    }                                                                                        \
-            }                                                                                                \
+        } else if (far && nd) { PFX_START(pst) ONE_TERMS(T, PF_FAR) }                                        \
+        else ONE_TERMS(T, PF_IN)                                                                             \
         for (int c = 0; c < 4; c++)                                                                          \
             for (int h = 0; h < 2; h++) { a[c][2 * h] = lo8(z[c][h]); a[c][2 * h + 1] = hi8(z[c][h]); }     \
     }
+#elif defined(PF_X8) /* a measurement only (bench_wavelet_prefetch.py --avx2-far): the 8-lane builds with the prefetch across
+                        * blocks; off by default, so the AVX2 build's machine code is the one tuned on the AMD Zen 3 */
+#define PAIR_PARAMS const i64 pst, const int far,
+#define PAIR_ARGS(b, nb, pst) (pst), (V + BV - 1) / BV * (pst) * (i64)sizeof(*dense) >= PFX_MIN,
+#define PAIR_KEEP
+#define DENSE_TERMS(T)                                                                                       \
+    if (far && nd) {                                                                                         \
+        for (int c = 0; c < 4; c++) for (int k = 0; k < 4; k++) a[c][k] = (v8f){0};                         \
+        PFX_START(pst)                                                                                       \
+        for (i64 t = 0; t < nd; t++) {                                                                       \
+            const T *p = blk + ds[t] * stride;                                                               \
+            PF_FAR(T, pst, 0)                                                                                \
+            v8f l[4];                                                                                        \
+            for (int c = 0; c < CO; c++) l[c] = bc8(lw + 4 * t + c);                                         \
+            for (int k = 0; k < 4; k++)                                                                      \
+                for (int c = 0; c < CO; c++) {                                                               \
+                    const v8f x = load8_##T(p + (CT == 1 ? 0 : c * BV) + 8 * k);                             \
+                    a[c][k] += x * l[c];                                                                     \
+                }                                                                                            \
+        }                                                                                                    \
+    } else { DENSE_TERMS8(T) }
 #else /* the 8-lane loop: CO x 4 vectors of 8 sums */
 #define PAIR_PARAMS
 #define PAIR_ARGS(b, nb, pst)

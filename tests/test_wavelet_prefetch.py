@@ -1,0 +1,63 @@
+"""The 16-lane dense loop's prefetch across units (kernels/wavelet.c ``PF_FAR``: taken when the dense layout holds at
+least ``PFX_MIN`` bytes, 2 MB; the test layouts are far smaller, so the kernel is built here with ``PFX_MIN`` 0): a
+prefetch never changes what is summed, so the forced build gives the AVX2 build's bits (each vertex's terms in the same
+order) and the float64 gather of the same stored values (``relight.wavelet_dense``) — with fewer dense terms than
+``PFX`` (the target several units ahead), with more, tiles of odd block counts (the pair and the lone block), the
+layout's last unit (the prefetch past its end), one and two threads."""
+
+from __future__ import annotations
+
+import ctypes
+import os
+
+import pytest
+import torch
+
+from prt_torch import _native, relight
+from prt_torch._native import KERNEL_ISAS, KERNELS_DIR, LIBRARIES, compile_library
+
+from test_wavelet_isa import _relight, _transfer
+
+HAS_512 = _native.cpu_isa() == "avx512"
+pytestmark = [pytest.mark.skipif(os.environ.get("PRT_TORCH_NATIVE", "1") == "0" or relight._wavelet_lib() is None,
+                                 reason="no compiled wavelet kernel"),
+              pytest.mark.skipif(not HAS_512, reason="no avx512f/avx512vl on this CPU: no 16-lane dense loop")]
+
+
+def _forced():
+    """The avx512 build of the working tree's wavelet.c with every layout taking the prefetch across units."""
+    text = "#define PFX_MIN 0LL\n" + (KERNELS_DIR / "wavelet.c").read_text()
+    i64, vp = ctypes.c_int64, ctypes.c_void_p
+    sig = [vp, i64, vp, vp, i64, vp, vp, i64]
+    lib, how = compile_library("wavelet", {"wavelet.c": text}, list(LIBRARIES["wavelet"][1]) + list(KERNEL_ISAS["avx512"]),
+                               {f"prt_wavelet_relight_{n}": sig for n in ("f32", "i8", "i16")})
+    assert lib is not None, how
+    return lib
+
+
+@pytest.mark.parametrize("dtype", [torch.int16, torch.int8, torch.float32])
+def test_prefetch_across_units_keeps_the_bits(dtype):
+    forced, avx2 = _forced(), relight._wavelet_lib("avx2")
+    g = torch.Generator().manual_seed(7)
+    for CT, channels in ((1, (1, 3)), (3, (3,))):
+        tr = _transfer(dtype, CT)
+        for tile in (None, 96):
+            r = relight.WaveletRelighter(tr, threads=1, layouts="both", tile=tile)
+            dense = torch.nonzero(r.dslot >= 0).flatten()
+            other = torch.nonzero(r.dslot < 0).flatten()
+            assert dense.numel() >= 10
+            idx, vals = r.reference_rows()
+            for C in channels:
+                # 4 dense terms (PFX = 24: six units ahead), 10 dense + 30 others, every column
+                for li in (dense[:4], torch.cat([dense[:10], other[torch.randperm(other.numel(), generator=g)[:30]]]), torch.arange(r.P)):
+                    li = li.contiguous()
+                    lv = torch.randn(C, li.numel(), generator=g)
+                    L = lv.double().expand(max(C, CT), li.numel())
+                    ref = (relight.wavelet_dense(vals.double(), idx, li, L, r.P) if CT == 1 else torch.cat(
+                        [relight.wavelet_dense(vals[:, c].double(), idx, li, L[c:c + 1], r.P) for c in range(CT)], 1))
+                    for threads in (1, 2):
+                        a = _relight(r, forced, li, lv, threads)
+                        b = _relight(r, avx2, li, lv, threads)
+                        assert torch.equal(a, b), (dtype, CT, tile, C, li.numel(), threads)
+                        err = float((a.double() - ref).abs().max())
+                        assert err <= 1e-5 * float(ref.abs().max()) + 1e-6, (dtype, CT, tile, C, li.numel(), err)
