@@ -195,14 +195,19 @@ static inline void store_rgb8(float *out, const float *f, v8f r, v8f g, v8f b) {
  * Each vertex's terms are added in the same order in every mode: the same bits. keep is written and read in 32-byte
  * halves: the 8-lane halves a[c][k] read back from 64-byte stores missed store forwarding, ~0.4 us per call (0.82x
  * at N = 1, 0.92x at N = 10 against the one-block loop; halves: 0.97x, 1.00x). */
-/* the 8-lane loop: CO x 4 vectors of 8 sums (W16 builds: lights of few dense terms) */
-#define DENSE_TERMS8(T)                                                                                      \
-    for (int c = 0; c < 4; c++) for (int k = 0; k < 4; k++) a[c][k] = (v8f){0};                             \
+/* within the unit only (layouts below PFX_MIN): the lines of the term PF ahead, none for the unit's last PF terms */
+#define PF_IN(T, us, two)                                                                                    \
+    if (t + PF < nd)                                                                                         \
+        for (i64 q = 0; q < stride * (i64)sizeof(T); q += 64) {                                              \
+            const i64 op = ds[t + PF] * stride;                                                              \
+            __builtin_prefetch((const char *)(blk + op) + q);                                                \
+            if (two) __builtin_prefetch((const char *)(blk + (us) / 2 + op) + q); /* the unit's next block */ \
+        }
+/* the 8-lane loop over the nd dense terms, added to a[c][k], STEP the prefetch (PF_IN; PF_X8 builds: PF_FAR), US its unit */
+#define TERMS8(T, STEP, US)                                                                                   \
     for (i64 t = 0; t < nd; t++) {                                                                           \
         const T *p = blk + ds[t] * stride;                                                                   \
-        if (t + PF < nd) /* the selected slots are scattered in the block (N < all): no stream to prefetch */ \
-            for (i64 q = 0; q < stride * (i64)sizeof(T); q += 64)                                            \
-                __builtin_prefetch((const char *)(blk + ds[t + PF] * stride) + q);                           \
+        STEP(T, US, 0)  /* the selected slots are scattered in the block (N < all): no stream to prefetch */ \
         v8f l[4];                                                                                            \
         for (int c = 0; c < CO; c++) l[c] = bc8(lw + 4 * t + c);                                             \
         for (int k = 0; k < 4; k++)                                                                          \
@@ -211,6 +216,9 @@ static inline void store_rgb8(float *out, const float *f, v8f r, v8f g, v8f b) {
                 a[c][k] += x * l[c];                                                                         \
             }                                                                                                \
     }
+/* the 8-lane loop: CO x 4 vectors of 8 sums (W16 builds: lights of few dense terms) */
+#define ZERO8 for (int c = 0; c < 4; c++) for (int k = 0; k < 4; k++) a[c][k] = (v8f){0};
+#define DENSE_TERMS8(T) ZERO8 TERMS8(T, PF_IN, 0)
 #ifndef PFX
 #define PFX 24 /* (term, unit) steps ahead the 16-lane loops prefetch, across their unit's end into the next unit's terms */
 #endif
@@ -244,14 +252,6 @@ static inline void store_rgb8(float *out, const float *f, v8f r, v8f g, v8f b) {
 #define PAIR_ARGS(b, nb, pst) nd * ((V + BV - 1) / BV) < ZMM_MIN ? 3 : (b) & 1 ? 2 : (b) + 1 < (nb), (pst),       \
     (V + BV - 1) / BV * (pst) * (i64)sizeof(*dense) >= PFX_MIN, keep,
 #define PAIR_KEEP float keep[128] __attribute__((aligned(64))) = {0};
-/* within the unit only (layouts below PFX_MIN): the lines of the term PF ahead, none for the unit's last PF terms */
-#define PF_IN(T, us, two)                                                                                    \
-    if (t + PF < nd)                                                                                         \
-        for (i64 q = 0; q < stride * (i64)sizeof(T); q += 64) {                                              \
-            const i64 op = ds[t + PF] * stride;                                                              \
-            __builtin_prefetch((const char *)(blk + op) + q);                                                \
-            if (two) __builtin_prefetch((const char *)(blk + pst + op) + q);                                 \
-        }
 /* blocks blk and nblk in lockstep over the nd dense terms, STEP the prefetch (PF_FAR or PF_IN) */
 #define PAIR_TERMS(T, STEP)                                                                                  \
     for (i64 t = 0; t < nd; t++) {                                                                           \
@@ -308,21 +308,7 @@ static inline void store_rgb8(float *out, const float *f, v8f r, v8f g, v8f b) {
 #define PAIR_ARGS(b, nb, pst) (pst), (V + BV - 1) / BV * (pst) * (i64)sizeof(*dense) >= PFX_MIN,
 #define PAIR_KEEP
 #define DENSE_TERMS(T)                                                                                       \
-    if (far && nd) {                                                                                         \
-        for (int c = 0; c < 4; c++) for (int k = 0; k < 4; k++) a[c][k] = (v8f){0};                         \
-        PFX_START(pst)                                                                                       \
-        for (i64 t = 0; t < nd; t++) {                                                                       \
-            const T *p = blk + ds[t] * stride;                                                               \
-            PF_FAR(T, pst, 0)                                                                                \
-            v8f l[4];                                                                                        \
-            for (int c = 0; c < CO; c++) l[c] = bc8(lw + 4 * t + c);                                         \
-            for (int k = 0; k < 4; k++)                                                                      \
-                for (int c = 0; c < CO; c++) {                                                               \
-                    const v8f x = load8_##T(p + (CT == 1 ? 0 : c * BV) + 8 * k);                             \
-                    a[c][k] += x * l[c];                                                                     \
-                }                                                                                            \
-        }                                                                                                    \
-    } else { DENSE_TERMS8(T) }
+    if (far && nd) { ZERO8 PFX_START(pst) TERMS8(T, PF_FAR, pst) } else { DENSE_TERMS8(T) }
 #else /* the 8-lane loop: CO x 4 vectors of 8 sums */
 #define PAIR_PARAMS
 #define PAIR_ARGS(b, nb, pst)
