@@ -39,6 +39,7 @@ from prt_torch.harness.timing import cpu_label, measure_paired, read_bound_fn  #
 from prt_torch.scene import builtin  # noqa: E402
 from prt_torch.transfer import RunOptions  # noqa: E402
 from prt_torch.transfer.wavelet import precompute_wavelet  # noqa: E402
+from prt_torch.io import atomic_write_text  # noqa: E402
 
 TERMS = (10, 30, 100, 300, 1000)
 WHO = "bench_wavelet_prefetch.py"
@@ -149,7 +150,7 @@ def main() -> None:
                  f"{'same' if n['same'] and a['same'] else '**differ**'} | {r['load']:.1f} |")
     text = "\n".join(L) + "\n"
     if args.write:
-        Path(args.write).write_text(text)
+        atomic_write_text(args.write, text)
         print(f"[prefetch] wrote {args.write}", flush=True)
     else:
         print(text)

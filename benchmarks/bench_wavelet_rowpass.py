@@ -48,6 +48,7 @@ from prt_torch.harness.timing import cpu_label, measure_paired  # noqa: E402
 from prt_torch.scene import builtin  # noqa: E402
 from prt_torch.transfer import RunOptions  # noqa: E402
 from prt_torch.transfer.wavelet import precompute_wavelet  # noqa: E402
+from prt_torch.io import atomic_write_text  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 #: the kernel before the row-major pass's change (main at 69385e0)
@@ -175,7 +176,7 @@ def sweep(args) -> None:
     run = {"cpu": cpu_label(), "build": isa, "flags": flags, "bits": bits, "threads": args.threads,
            "repeats": args.repeats, "load": [before, after], "rows": rows}
     if args.write:
-        Path(args.write).with_suffix(f".{isa.get('isa')}.t{args.threads}.json").write_text(json.dumps(run, indent=1))
+        atomic_write_text(Path(args.write).with_suffix(f".{isa.get('isa')}.t{args.threads}.json"), json.dumps(run, indent=1))
     print(json.dumps({k: v for k, v in run.items() if k != "rows"}), flush=True)
 
 
@@ -278,7 +279,7 @@ def summarise(paths: list[str], write: str) -> None:
         L.append("")
     text = "\n".join(L) + "\n"
     if write:
-        Path(write).write_text(text)
+        atomic_write_text(write, text)
         print(f"[rowmin] wrote {write}", flush=True)
     print(text)
 
@@ -428,7 +429,7 @@ def main() -> None:
                      f"**{x['ratio']:.3f}** [{x['q'][0]:.3f}, {x['q'][1]:.3f}] | {x['diff']:.1e} | {x['load']:.1f} |")
     text = "\n".join(L) + "\n"
     if args.write:
-        Path(args.write).write_text(text)
+        atomic_write_text(args.write, text)
         print(f"[rowpass] wrote {args.write}", flush=True)
     else:
         print(text)

@@ -79,6 +79,7 @@ from prt_torch.harness.timing import cpu_label, measure_paired, read_bound_fn  #
 from prt_torch.scene import builtin  # noqa: E402
 from prt_torch.transfer import RunOptions  # noqa: E402
 from prt_torch.transfer.wavelet import precompute_wavelet  # noqa: E402
+from prt_torch.io import atomic_write_text  # noqa: E402
 
 WHO = "bench_wavelet_setup.py"
 #: the light table's closing zeroing, as the kernel ends (every probe past the gather runs it)
@@ -269,7 +270,7 @@ def write(dest: str, text: str, title: str | None = None) -> None:
     key = text.split("\n")[0]
     chunks = old.split("\n## ")
     kept = [c for c in chunks[1:] if ("## " + c).split("\n")[0] != key]
-    dest.write_text(chunks[0].rstrip("\n") + "\n\n" + "".join("## " + c.rstrip("\n") + "\n\n" for c in kept) + text)
+    atomic_write_text(dest, chunks[0].rstrip("\n") + "\n\n" + "".join("## " + c.rstrip("\n") + "\n\n" for c in kept) + text)
     print(f"[wavelet_setup] wrote {dest}", flush=True)
 
 
