@@ -28,6 +28,7 @@ import json
 import math
 import os
 import threading
+import weakref
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
@@ -38,7 +39,8 @@ FORMAT_VERSION = 1
 
 __all__ = ["save", "load", "load_meta", "atomic_path", "atomic_write_text", "atomic_write_json", "jsonable", "check_writable",
            "check_outputs", "check_disk_space", "strict_json", "describe", "register_check", "format_bytes", "FORMAT_VERSION", "load_mmap",
-           "scratch_rows", "streamed_npy", "load_mapped"]
+           "scratch_rows", "streamed_npy", "load_mapped", "hugepage_zeros", "hugepage_backed", "huge_pages_enabled",
+           "HUGE_PAGE_BYTES"]
 
 
 @contextlib.contextmanager
@@ -576,6 +578,75 @@ def scratch_rows(directory: str | os.PathLike, shape: tuple[int, ...], dtype: to
         if path.exists():
             path.unlink()  # the mapping keeps the file alive; nothing remains on disk once it is gone
     return torch.from_numpy(arr)
+
+
+#: the size of a transparent huge page on Linux with 4 KB base pages (x86-64, aarch64): the helper below allocates
+#: in huge-page-advised memory from this size up (a smaller array would occupy a huge page it does not fill)
+HUGE_PAGE_BYTES = 2 << 20
+_HUGE_MAPS: "weakref.WeakValueDictionary[int, Any]" = weakref.WeakValueDictionary()  # aligned start -> its mmap
+
+
+def huge_pages_enabled() -> bool:
+    """``PRT_TORCH_HUGEPAGES``: ``1`` (or unset / empty, the default) lets :func:`hugepage_zeros` advise transparent
+    huge pages, ``0`` keeps every array in torch's own buffers. Raises ``ValueError`` (one line naming the variable,
+    its value and what is accepted) for another value."""
+    raw = os.environ.get("PRT_TORCH_HUGEPAGES", "")
+    v = raw.strip()
+    if v not in ("", "0", "1"):
+        raise ValueError(f"PRT_TORCH_HUGEPAGES={raw!r}; accepted: 1 (the default: arrays of 2 MiB or more in "
+                         "memory advised for transparent huge pages) or 0 (torch's own buffers)")
+    return v != "0"
+
+
+def _thp_mode() -> str:
+    """Linux's transparent huge page mode (``always``, ``madvise``, ``never``), or ``''`` where it is not told."""
+    try:
+        text = Path("/sys/kernel/mm/transparent_hugepage/enabled").read_text()
+    except OSError:
+        return ""
+    return text[text.find("[") + 1:text.find("]")] if "[" in text else ""
+
+
+def hugepage_zeros(shape: tuple[int, ...] | torch.Size, dtype: torch.dtype, huge: bool | None = None) -> torch.Tensor:
+    """A zero-filled, contiguous tensor of ``shape`` and ``dtype`` (any torch dtype), on the CPU, in memory advised
+    for transparent huge pages (2 MiB pages: one TLB entry where 4 KB pages take 512) when that is possible and
+    worth it: on Linux, with ``huge`` True (None: :func:`huge_pages_enabled`, the ``PRT_TORCH_HUGEPAGES`` switch), at
+    least :data:`HUGE_PAGE_BYTES`, the kernel's mode not ``never``, and ``mmap``/``madvise(MADV_HUGEPAGE)``
+    available and succeeding. Then the tensor lies in a private anonymous mapping (zero pages until written: no
+    fill, no second copy) whose start is rounded up to a 2 MiB boundary (one huge page of address space more than
+    the data, never touched, so never resident; its length a whole number of huge pages, so the last one is huge
+    too: up to 2 MiB resident beyond the data, which :meth:`nbytes`-style counts do not include) and which lives as long as the tensor's storage does
+    (``torch.frombuffer`` holds a reference to it; unmapped when the last view goes). Otherwise, and on any
+    failure, ``torch.zeros(shape, dtype=dtype)``. The kernel backs the advised range with huge pages as far as it
+    can at the first touch (``AnonHugePages`` in ``/proc/self/smaps_rollup``; 4 KB pages where it cannot find
+    2 MiB of contiguous memory). :func:`hugepage_backed` says which of the two a tensor got."""
+    import mmap
+    import sys
+
+    shape = torch.Size(shape)
+    nbytes = shape.numel() * torch.empty((), dtype=dtype).element_size()
+    huge = huge_pages_enabled() if huge is None else bool(huge)
+    if not (huge and sys.platform.startswith("linux") and nbytes >= HUGE_PAGE_BYTES and hasattr(mmap, "MADV_HUGEPAGE")
+            and _thp_mode() != "never"):
+        return torch.zeros(shape, dtype=dtype)
+    try:
+        span = -(-nbytes // HUGE_PAGE_BYTES) * HUGE_PAGE_BYTES  # whole huge pages from the aligned start
+        mm = mmap.mmap(-1, span + HUGE_PAGE_BYTES, flags=mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS)
+        mm.madvise(mmap.MADV_HUGEPAGE)
+    except (OSError, ValueError, AttributeError):
+        return torch.zeros(shape, dtype=dtype)
+    base = torch.frombuffer(mm, dtype=torch.uint8)  # holds mm: the mapping lives while any view of it does
+    off = -base.data_ptr() % HUGE_PAGE_BYTES
+    _HUGE_MAPS[base.data_ptr() + off] = mm
+    return base[off:off + nbytes].view(dtype).view(shape)
+
+
+def hugepage_backed(t: torch.Tensor | None) -> bool:
+    """Whether ``t`` (a tensor or a view of one) lies in a mapping :func:`hugepage_zeros` advised for huge pages."""
+    if t is None or t.numel() == 0:
+        return False
+    p = t.data_ptr()
+    return any(a <= p < a + len(mm) - HUGE_PAGE_BYTES for a, mm in list(_HUGE_MAPS.items()))
 
 
 @contextlib.contextmanager

@@ -31,6 +31,7 @@ import os
 
 import torch
 
+from . import io
 from ._checks import check_shape, describe
 from .sh import band_of_coeffs, eval_sh, rotation_blocks
 from .transfer.tents import tent_taps
@@ -479,6 +480,7 @@ class WaveletRelighter:
         if layouts not in ("auto", "both", "column"):
             raise ValueError(f"layouts={layouts!r}; accepted: 'auto' (row-major copy on first need), 'both', 'column'")
         self.layouts = layouts
+        self.huge_pages = io.huge_pages_enabled()  # PRT_TORCH_HUGEPAGES, read once per relighter
         self.transfer = transfer
         idx_all = transfer.aux["index"]
         self.CT = CT = 1 if transfer.data.ndim == 2 else int(transfer.data.shape[1])
@@ -512,7 +514,10 @@ class WaveletRelighter:
         self.dslot[dcols] = torch.arange(dcols.numel(), dtype=torch.int32)
         self.Pd = Pd = int(dcols.numel())
         nb = -(-V // self.BLOCK)
-        self.dense = torch.zeros(nb, max(Pd, 1), CT, self.BLOCK, dtype=dtype)
+        # in memory advised for 2 MiB pages from 2 MiB up (io.hugepage_zeros; PRT_TORCH_HUGEPAGES=0: torch's buffer), written
+        # in place below: a light's dense terms read a few scattered 64-byte lines per block, each a new 4 KB page once
+        # the layout outgrows the L2 (TLB misses; reports/benchmarks/wavelet_hugepages.md)
+        self.dense = io.hugepage_zeros((nb, max(Pd, 1), CT, self.BLOCK), dtype, huge=self.huge_pages)
         # block-sparse columns, tile-major: (tile, column, 8-vertex block) ascending
         # default: two tiles (one per thread at two) of at most 4096 vertices (a tile's scratch, 64 KB, in L2): every
         # (tile, sparse term) pair costs a pointer pair and a loop exit, measured at ~40% of the sparse part's time with
@@ -671,8 +676,6 @@ class WaveletRelighter:
         of every part (every coefficient kept, each in a dense column as far as ``dense_min`` allows and in
         a sparse block of its own, the row-major copy counted whatever ``light``; ``'exact': False``): what
         ``prt relight`` checks first, counting only when the bound does not fit its budget."""
-        from . import io
-
         if layouts not in ("auto", "both", "column"):
             raise ValueError(f"layouts={layouts!r}; accepted: 'auto' (row-major copy on first need), 'both', 'column'")
         hd = io.describe(path)  # the header: shapes and dtypes, nothing read

@@ -26,13 +26,13 @@ HAS_512 = _native.cpu_isa() == "avx512"
 HAS_AVX2 = _native.cpu_isa() in ("avx2", "avx512")
 
 
-def _transfer(dtype, CT: int, res: int = 8, K: int = 24, seed: int = 3) -> Transfer:
-    """A synthetic wavelet transfer on the 2251-vertex blocker scene (2251 = 70 x 32 + 11): the first 16 columns kept
-    by most vertices (dense), the rest sparse."""
+def _transfer(dtype, CT: int, res: int = 8, K: int = 24, seed: int = 3, dense: int = 16) -> Transfer:
+    """A synthetic wavelet transfer on the 2251-vertex blocker scene (2251 = 70 x 32 + 11): the first ``dense``
+    columns kept by most vertices (dense), the rest sparse."""
     scene = builtin("occluder_over_plane", "small")
     g = torch.Generator().manual_seed(seed)
     V, P = scene.num_vertices, 6 * res * res
-    index = (torch.rand(V, P, generator=g) * torch.where(torch.arange(P) < 16, 50.0, 1.0)).topk(K, dim=1).indices
+    index = (torch.rand(V, P, generator=g) * torch.where(torch.arange(P) < dense, 50.0, 1.0)).topk(K, dim=1).indices
     shape = (V, K) if CT == 1 else (V, CT, K)
     q = (torch.randn(*shape, generator=g) if dtype == torch.float32
          else torch.randint(-100 if dtype == torch.int8 else -30000, 101 if dtype == torch.int8 else 30001, shape,
