@@ -54,7 +54,7 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from prt_torch import relight  # noqa: E402
+from prt_torch import io, relight  # noqa: E402
 from prt_torch.harness.timing import (cpu_label, io_bound_fn, machine_info, measure, measure_paired,  # noqa: E402
                                       measure_paired_cold, read_bound_fn, working_set)
 from prt_torch.lighting.haar import cube_geometry, cube_light, haar2d, haar_levels  # noqa: E402
@@ -625,12 +625,14 @@ def kernel_run(selection: str, size: str = "small") -> dict:
     print(f"[wavelet] kernel section at {size}: {mesh.num_vertices} vertices, precompute {t_pre:.1f} s", flush=True)
     caches = cache_sizes()
     before = load()
-    rows = kernel_rows(relight.WaveletRelighter(tr), selection)
+    rl = relight.WaveletRelighter(tr)
+    pages = "2 MiB pages (io.hugepage_zeros)" if io.hugepage_backed(rl.dense) else "torch's buffer (4 KB pages)"
+    rows = kernel_rows(rl, selection)
     for r in rows:
         r["lives"] = bytes_home(r["bytes"], caches)
     return {"machine": dict(machine_info(), load_before=before, load_after=load(), **caches),
             "build": relight.wavelet_kernel_path(), "size": size, "vertices": mesh.num_vertices, "precompute_s": t_pre,
-            "rows": rows}
+            "dense_pages": pages, "rows": rows}
 
 
 def kernel_runs(res: dict) -> list[dict]:
@@ -879,7 +881,9 @@ def write_md(res: dict, quick: bool) -> None:
              "the Intel Xeon, for the same result). Compare fractions of each run's own bounds, not times across CPUs. "
              "The kernel reads each Haar column of the light's terms in the form stored for it "
              "(`relight.WaveletRelighter`): *dense* (32-vertex blocks of the stored values, zeros included, no index: "
-             "the columns most vertices keep, the coarse levels) or *block-sparse* (per tile of vertices and column, "
+             "the columns most vertices keep, the coarse levels; from 2 MiB up in memory advised for 2 MiB transparent huge "
+             "pages, `PRT_TORCH_HUGEPAGES=0`: torch's buffer, reports/benchmarks/wavelet_hugepages.md; each run names "
+             "its pages, runs before them had 4 KB pages) or *block-sparse* (per tile of vertices and column, "
              "the 8-vertex blocks holding a value: an int32 offset and 8 values, zeros included; two int32 pointers "
              "per tile and term — or, when the light's sparse terms hold at least `row_min` of all sparse blocks (the "
              "build's default, `WaveletRelighter.default_row_min`: 0.5 in the AVX2 build, "
@@ -955,7 +959,8 @@ def write_md(res: dict, quick: bool) -> None:
                  f"{km.get('load_after', km.get('load_average_1min', float('nan'))):.1f}"
                  + (" (⚠: the pairing flagged contention)." if not all(r["trusted"] for r in rows) else ".")
                  + (f" Rows: {run['source']}." if run.get("source") else "")
-                 + (f" Precompute {run['precompute_s']:.0f} s (one worker)." if "precompute_s" in run else "") + "\n")
+                 + (f" Precompute {run['precompute_s']:.0f} s (one worker)." if "precompute_s" in run else "")
+                 + " Dense layout on " + run.get("dense_pages", "torch's buffer (4 KB pages; before huge pages)") + ".\n")
         L.append("| light | N | coefficients read | in dense columns | bytes read (this layout) | previous layout | 1 thread | of own bound "
                  "| **1 thr CPU time: of own bound** [quartiles] | of previous layout's bound | 2 threads | of own bound (2 threads) "
                  "| torch path | C / torch | load | plain call / prepared | 1 thr CPU time: of a streaming read (read / copy) |")
