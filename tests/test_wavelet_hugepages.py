@@ -117,3 +117,10 @@ def test_relighter_on_huge_pages_equals_torch_buffer_and_dense_reference(dtype, 
         monkeypatch.setenv("PRT_TORCH_NATIVE", "0")  # the torch path reads the same layout
         assert torch.allclose(huge(li, lv), a, rtol=1e-5, atol=1e-5 * float(a.abs().max()))
         monkeypatch.delenv("PRT_TORCH_NATIVE")
+    if HP:  # dropped with the relighter (its prepared closures, the kernel's bound layout and all): unmapped
+        run = huge.prepared(dense[:10].contiguous(), torch.randn(3, 10, generator=g))
+        run()
+        ptr, span = huge.dense.data_ptr(), _mapping_of(huge.dense.data_ptr())
+        del huge, run
+        gc.collect()
+        assert _mapping_of(ptr) != span
