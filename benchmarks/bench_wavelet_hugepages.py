@@ -27,9 +27,12 @@ written to reports/benchmarks/wavelet_hugepages.md:
   ``PFX_MIN`` above the layout (the far prefetch off) prepended (``bench_wavelet_isa.kernel_build``, the wavelet
   library's flags, this CPU's native build) paired with the working tree's build on the same layout at medium and
   large, with an A/A control; the far prefetch off also on torch's buffer (what the prefetch is worth with 4 KB pages).
+* ``avx2``: the AVX2 build (the 8-lane code an AVX2-only CPU runs, the AMD EPYC Zen 3's) on the hp, 4k and 4k′
+  layouts at medium and large (``--prefetch-sizes``), paired as ``pages``: what the pages do to the code this change
+  does not touch, on this Xeon (a proxy, not the Zen 3).
 
-    .venv/bin/python benchmarks/bench_wavelet_hugepages.py [--parts pages,spread,prefetch] [--sizes small,medium,large]
-    (about 6 minutes on a 2-core Xeon: pages 3, spread 1.5, prefetch 1.5)
+    .venv/bin/python benchmarks/bench_wavelet_hugepages.py [--parts pages,spread,prefetch,avx2] [--sizes small,medium,large]
+    (about 10 minutes on a 2-core Xeon: pages 4, spread 2.5, prefetch 2, avx2 1.5)
 """
 
 from __future__ import annotations
@@ -60,7 +63,7 @@ from prt_torch.transfer.wavelet import precompute_wavelet  # noqa: E402
 
 WHO = "bench_wavelet_hugepages.py"
 TERMS = (10, 30, 100, 300, 1000)
-PARTS = ("pages", "spread", "prefetch")
+PARTS = ("pages", "spread", "prefetch", "avx2")
 AA = "4k'"  # the A/A control's relighter: a second one on torch's buffer
 SPARSE = ("bvals", "bofs", "rvals", "rcol", "rptr")  # the arrays the hp+sparse variant copies onto huge pages
 #: the prefetch variants: name -> the lines prepended to kernels/wavelet.c
@@ -261,6 +264,31 @@ def prefetch_part(sizes: list[str], repeats: int) -> dict:
     return {"rows": rows, "variants": VARIANTS}
 
 
+def avx2_part(sizes: list[str], repeats: int) -> dict:
+    """The 8-lane AVX2 build (``PRT_TORCH_KERNEL_ISA=avx2``'s code, compiled here; the Zen 3's kernel, whose code
+    this change leaves alone — on this Xeon a proxy, not proof) on the same three layouts: hp against 4k and the A/A."""
+    lib = kernel_build(kernel_source(None, WHO)[0], "avx2", WHO)[0]
+    rows = []
+    for size in sizes:
+        tr = transfer(size)
+        rls = {"hp": relighter(tr, True), "4k": relighter(tr, False), AA: relighter(tr, False)}
+        for light in ("studio", "sky (sun)"):
+            for N in TERMS + (rls["hp"].P,):
+                li, lv = light_of(rls["hp"], light, N)
+                outs = {k: torch.empty(rls["hp"].V, 3) for k in rls}
+                fn = {k: bound_call(rl, lib, li, lv, outs[k], 1) for k, rl in rls.items()}
+                for f in fn.values():
+                    f()
+                row = {"size": size, "light": light, "N": N, "same": all(torch.equal(o, outs["4k"]) for o in outs.values()),
+                       "hp": pair(fn["hp"], fn["4k"], repeats), "aa": pair(fn[AA], fn["4k"], repeats), "load": load()}
+                rows.append(row)
+                print(f"[hugepages] avx2 {size} {light} N={N}: 4k/hp {row['hp']['r']:.3f}, A/A {row['aa']['r']:.3f}, "
+                      f"same {row['same']}", flush=True)
+        del rls
+        gc.collect()
+    return {"rows": rows}
+
+
 def q(p: dict) -> str:
     return f"{p['r']:.2f} [{p['q'][0]:.2f}, {p['q'][1]:.2f}]"
 
@@ -298,6 +326,10 @@ def write_md(res: dict, path: str) -> None:
               "too (> 1: the copy faster); *of read*: against a streaming read of the bytes the light touches "
               "(`WaveletRelighter.bytes_read`) plus a fill of the output (`timing.read_bound_fn`), paired the same "
               "way; *bits*: every relighter's output equal to 4k's.\n",
+              "*AnonHugePages* below: the process's growth while each relighter was built; numpy advises huge pages "
+              "for its own arrays of 4 MB or more (checked: an 8 MB numpy array got 6144 kB), so a figure may hold "
+              "memory besides the layout — the 4k relighters' layouts are in torch's buffer (`io.hugepage_backed` "
+              "false) whatever the column says.\n",
               "| size | V | dense MB | held MB (total; the same for hp and 4k) | AnonHugePages kB after building hp / 4k / "
               "4k′ / hp+sparse | on huge pages in hp+sparse | build, 4k / hp (CPU time, 3 paired) |",
               "|---|---|---|---|---|---|---|"]
@@ -363,6 +395,19 @@ def write_md(res: dict, path: str) -> None:
                      + " | ".join(q(r[f"hp {k}"]) for k in names) + f" | {q(r['4k far off'])} | "
                      f"{'same' if r['same'] else '**differ**'} | {r['load']:.1f} |")
         L.append("")
+    av = res.get("avx2")
+    if av:
+        m = av["machine"]
+        L += ["## The AVX2 build on the same layouts (a proxy for the AMD EPYC Zen 3)\n",
+              f"{m['cpu']}; load average {runs_load(av)}. The 8-lane AVX2 kernel (`PRT_TORCH_KERNEL_ISA=avx2`'s code, "
+              "the code the Zen 3 runs; this change leaves it alone and moves only its data) bound to the hp, 4k and 4k′ "
+              "relighters, paired as above: **4k / hp**, **A/A** 4k′ over 4k. On this Xeon, not on the Zen 3 (whose "
+              "TLBs differ: not measured).\n",
+              "| size | light | N | **4k / hp** | A/A | bits | load |", "|---|---|---|---|---|---|---|"]
+        for r in av["rows"]:
+            L.append(f"| {r['size']} | {r['light']} | {r['N']} | **{q(r['hp'])}** | {q(r['aa'])} | "
+                     f"{'same' if r['same'] else '**differ**'} | {r['load']:.1f} |")
+        L.append("")
     io.atomic_write_text(path, "\n".join(L))
 
 
@@ -370,7 +415,7 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--parts", default=",".join(PARTS), help="comma-separated: " + ", ".join(PARTS))
     ap.add_argument("--sizes", default=",".join(KERNEL_SIZES), help="pages: comma-separated " + ", ".join(KERNEL_SIZES))
-    ap.add_argument("--prefetch-sizes", default="medium,large", help="prefetch: comma-separated sizes")
+    ap.add_argument("--prefetch-sizes", default="medium,large", help="prefetch and avx2: comma-separated sizes")
     ap.add_argument("--repeats", type=int, default=11)
     ap.add_argument("--processes", type=int, default=3, help="spread: fresh processes per kind")
     ap.add_argument("--write", default=str(OUT / "wavelet_hugepages.md"), help="the report ('': print the JSON only)")
@@ -406,14 +451,16 @@ def main() -> None:
             r = pages_part(sizes, args.repeats)
         elif part == "spread":
             r = spread_part(args.processes, args.repeats)
-        else:
+        elif part == "prefetch":
             r = prefetch_part(psizes, args.repeats)
+        else:
+            r = avx2_part(psizes, args.repeats)
         r["machine"] = {"cpu": cpu_label(), "thp": io._thp_mode(), "load": [before, load()], "repeats": args.repeats,
                         "processes": args.processes,
                         "flags": kernel_build(kernel_source(None, WHO)[0], "native", WHO)[1] if part == "prefetch" else ""}
-        r["machine"]["sizes"] = sizes if part == "pages" else psizes if part == "prefetch" else ["large"]
+        r["machine"]["sizes"] = sizes if part == "pages" else psizes if part in ("prefetch", "avx2") else ["large"]
         r["sessions"] = [r["machine"]]
-        if part in ("pages", "prefetch") and part in res:  # a run of some sizes replaces those sizes' rows only
+        if part in ("pages", "prefetch", "avx2") and part in res:  # a run of some sizes replaces those sizes' rows only
             done = set(r["machine"]["sizes"])
             for key in ("rows", "infos"):
                 if key in r:
@@ -428,7 +475,7 @@ def main() -> None:
             print(f"[hugepages] wrote {args.write} ({part})", flush=True)
     if not args.write:
         print(json.dumps(res, indent=1))
-    bad = [r for p in ("pages", "prefetch") if p in parts for r in res[p]["rows"] if not r["same"]]
+    bad = [r for p in ("pages", "prefetch", "avx2") if p in parts for r in res[p]["rows"] if not r["same"]]
     if bad:
         raise SystemExit(f"{WHO}: outputs differ between relighters or builds in {len(bad)} rows (see 'bits')")
 
