@@ -466,8 +466,12 @@ def main() -> None:
                 if key in r:
                     kept = [x for x in res[part][key] if x["size"] not in done]
                     r[key] = sorted(kept + r[key], key=lambda x: KERNEL_SIZES.index(x["size"]))
-            r["sessions"] = [m for m in res[part].get("sessions", [res[part]["machine"]])
-                             if set(m.get("sizes", KERNEL_SIZES)) - done] + r["sessions"]
+            kept = []
+            for m in res[part].get("sessions", [res[part]["machine"]]):
+                left = [z for z in m.get("sizes", KERNEL_SIZES) if z not in done]  # the sizes its rows still hold
+                if left:
+                    kept.append(m | {"sizes": left})
+            r["sessions"] = kept + r["sessions"]
         res[part] = r
         if args.write:
             io.atomic_write_json(jpath, res)

@@ -316,7 +316,9 @@ class WaveletRelighter:
     * **dense** — the columns at least ``dense_min`` × V vertices keep (default b/(4+b) for b-byte
       values; in practice the coarse Haar levels, which every vertex above the horizon keeps, and
       most of the coefficients a light reads): ``dense [ceil(V/32), Pd, CT, 32]`` in the stored
-      dtype (blocks of 32 vertices, zeros where a vertex did not keep the coefficient), ``dslot
+      dtype (blocks of 32 vertices, zeros where a vertex did not keep the coefficient; from 2 MiB up in memory advised
+      for 2 MiB transparent huge pages, :func:`prt_torch.io.hugepage_zeros`, ``PRT_TORCH_HUGEPAGES=0``: torch's
+      buffer — :attr:`huge_pages` the switch as read at construction), ``dslot
       [P]`` int32 the column's slot or -1. Relit as a register-blocked GEMV: no index read, no scatter.
     * **block-sparse** — the rest, tile-major: the vertices in tiles of :attr:`TV` (a multiple of 32;
       ``tile``, default half the vertices up to 4096: a tile's accumulators, TV/8 × 128 bytes, stay in
