@@ -69,6 +69,7 @@ def _pages(bh, sizes, r):
 
 def test_a_run_of_one_size_replaces_only_its_rows(bh, monkeypatch, tmp_path):
     out = tmp_path / "hp.md"
+    monkeypatch.setattr(bh.torch, "set_num_threads", lambda n: None)  # main() sets one thread: not in the test process
     monkeypatch.setattr(bh, "pages_part", lambda sizes, repeats: _pages(bh, sizes, 1.5))
     monkeypatch.setattr(sys, "argv", ["bench_wavelet_hugepages.py", "--parts", "pages", "--sizes", "small,large",
                                       "--write", str(out)])
