@@ -83,6 +83,13 @@ def kernel_build(text: str, isa: str | None, who: str, tag: str = ""):
     return lib, " ".join(flags)
 
 
+def rl_bytes(rl, li: torch.Tensor) -> int:
+    """The bytes a call through :func:`bound_call` (default form) reads: the transfer's
+    (``WaveletRelighter.bytes_read(..., factor=False)``) and the ``[V, 3]`` factor it passes (12 bytes per vertex;
+    ``bytes_read`` alone counts the relighter's own factor, one float per vertex on a grey albedo)."""
+    return rl.bytes_read(li, factor=False) + rl.V * 12
+
+
 def bound_call(rl, lib, li: torch.Tensor, lv: torch.Tensor, out: torch.Tensor, threads: int, per_vertex: bool = False):
     """``run()`` relighting ``li``/``lv`` into ``out`` through build ``lib`` on ``rl``'s layout (the packed entry point,
     as ``WaveletRelighter.prepared``); the tensors it addresses are kept alive by the closure. The factor as

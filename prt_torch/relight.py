@@ -811,12 +811,12 @@ class WaveletRelighter:
     def _factor_form(albedo: torch.Tensor | None, CT: int, CO: int) -> str:
         """How the kernel's factor (quantisation scale × albedo) is laid out for ``CO`` output channels of a
         ``CT``-channel transfer, the albedo ``[V, ≥CO]`` float32 applied (None: not applied): ``'vertex'`` one float
-        per vertex (``f [V + 4]``, the last four 1: a grey transfer, CO > 1, the albedo off or every vertex's channels
-        equal), ``'uniform'`` one float per vertex times one colour for all (``f [V + 4]``: the scale, then the
-        albedo's first row: every vertex the same colour), ``'channel'`` one per vertex and channel (``f [V, CO]``:
-        a coloured transfer's scale per channel, a per-vertex coloured albedo, or CO = 1, where it is one per vertex
-        anyway)."""
-        if CT != 1 or CO == 1 or (albedo is not None and albedo.shape[1] < CO):
+        per vertex (``f [V + 4]``, the last four 1: a grey transfer, RGB output — CO = 3: the kernel takes this form
+        for three output channels only —, the albedo off or every vertex's channels equal), ``'uniform'`` one float
+        per vertex times one colour for all (``f [V + 4]``: the scale, then the albedo's first row: every vertex the
+        same colour), ``'channel'`` one per vertex and channel (``f [V, CO]``: a coloured transfer's scale per
+        channel, a per-vertex coloured albedo, CO = 2 or 4, or CO = 1, where it is one per vertex anyway)."""
+        if CT != 1 or CO != 3 or (albedo is not None and albedo.shape[1] < CO):
             return "channel"
         if albedo is None or albedo.shape[0] == 0:
             return "vertex"

@@ -132,3 +132,16 @@ def test_bytes_read_counts_the_factor_the_kernel_reads():
         assert r.factor_bytes(3, True) == fb, (CT, name)
         assert r.bytes_read(li) - r.bytes_read(li, factor=False) == fb, (CT, name)
         assert r.factor_bytes(1, True) == (4 * V if CT == 1 else 12 * V)  # one output channel: [V, 1] is one per vertex
+
+
+def test_the_kernel_refuses_the_per_vertex_factor_where_it_has_no_code_for_it():
+    """``C | F1`` is taken for three output channels of a grey transfer only: a grey light (one output), a
+    four-channel one, or a coloured transfer given it return 1 (an unsupported C) before any output is written."""
+    for CT, C in ((1, 1), (1, 4), (3, 3)):
+        r = relight.WaveletRelighter(_transfer(None, CT), threads=1)
+        r._kernel()
+        li, lv = torch.arange(8), torch.ones(C, 8)
+        f = torch.ones(r.V + 4)
+        out = torch.full((r.V, max(C, CT)), 7.0)
+        assert r._native(8, li.data_ptr(), lv.data_ptr(), C | r.F1, f.data_ptr(), out.data_ptr(), 1) == 1, (CT, C)
+        assert bool((out == 7).all())

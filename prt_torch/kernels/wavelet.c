@@ -645,7 +645,7 @@ typedef struct {
         const i64 v0 = vt + b * BV, nv = V - v0 < BV ? V - v0 : BV;                                          \
         dense_block_##T(CT_, CO_, OC_, nd, wk, lw, dense + v0 * Pd * CT_, BV * CT_, PAIR_ARGS(b, nb, Pd * BV * CT_) \
                         ns && !rows ? acc + 128 * b : NULL,                                                  \
-                        L->rptr + v0 / 8, L->rcol, rvals, rows ? lp : NULL, nv, fm, fc, f + (fm ? 1 : OC_) * v0,  \
+                        L->rptr + v0 / 8, L->rcol, rvals, rows ? lp : NULL, nv, OC_ == 3 && CT_ == 1 ? fm : 0, fc, f + (fm ? 1 : OC_) * v0, \
                         out + OC_ * v0, nt_out);                                                     \
     }
 
@@ -719,6 +719,7 @@ int NAME(const wavelet_layout *L, i64 N, const i64 *sel, const float *lv, i64 C,
     /* the factor's form (fm, TILE_CASE): 0 f [V, OC]; 1 f [V]; 2 f [V] times fc [OC] = f + V, a channel's not 1 */ \
     const float *fc = f1 ? f + V : NULL;                                                                     \
     const i64 OCn = CT == 3 || grey ? 3 : CO;                                                                \
+    if (f1 && (OCn != 3 || CT != 1)) return 1; /* a per-vertex factor: RGB outputs of a grey transfer only */   \
     int fm = f1;                                                                                             \
     for (i64 c = 0; f1 && c < OCn; c++) fm = fc[c] != 1.0f ? 2 : fm;                                         \
     /* OUT_NT builds (W16): the output by streaming stores when it holds at least OUT_NT bytes (32-byte aligned) */ \
