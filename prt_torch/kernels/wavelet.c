@@ -9,6 +9,18 @@
  * per colour — interreflection of a coloured mesh —, the light grey (C = 1, c' = 0) or RGB (C = 3,
  * c' = c), c'' = c) and f [V, CO] the per-vertex factor (the quantisation scale of the vertex and
  * channel times the albedo) applied once at the end. CO = max(C, CT) output channels.
+ * The factor's two forms (relight.py: WaveletRelighter._kfactor): f float32 [V, OC] (OC output channels: 3 for a
+ * grey-summed RGB light, else CO), or — C passed as C | F1 (256), RGB output of a grey transfer only (else 1 is
+ * returned) — f float32 [V + 4]: f[v] one factor per vertex and f[V + c] one per output channel (1 for a grey albedo
+ * or none: the multiply skipped; a uniform albedo's colour), the factor of (v, c) being fl(f[v] f[V + c]): the same
+ * float32 products as the [V, OC] form, so the same bits. For a grey albedo the kernel then reads 4 bytes per vertex
+ * of it instead of 12 (large blocker scene: 0.21 against 0.62 MB per call, beside 1.0 MB of dense lines at N = 10);
+ * per 8 vertices one 32-byte load of the factors and the same three multiplies, before the interleave instead of
+ * after it (store_rgb8 / put_rgb8), in the 8- and the 16-lane builds alike. Measured: reports/benchmarks/
+ * wavelet_factor.md (bench_wavelet_factor.py; docs/wavelet.md "The factor per vertex").
+ * OUT_NT (a measurement knob, W16 only, off by default): the RGB output by streaming stores once it holds at least
+ * OUT_NT bytes (and out is 32-byte aligned), an sfence at the call's end; not kept (the same report: faster alone at
+ * large N = 10, slower with a read of the output right after the call).
  *
  * The transfer's columns (one per Haar coefficient j) are stored in one of two forms, chosen per
  * column when the relighter is built:
