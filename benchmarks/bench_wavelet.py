@@ -414,7 +414,9 @@ def kernel_rows(rl, selection: str) -> list[dict]:
     equal the previous N's is not timed again: ``select_terms`` keeps only nonzero terms), at one and two threads, each
     paired with its
     read-once/write-once bound — a copy of the transfer bytes it reads (:meth:`WaveletRelighter.bytes_read`:
-    dense columns' blocks, the sparse 8-vertex blocks with their offsets and the per-tile pointers)
+    dense columns' blocks, the sparse 8-vertex blocks with their offsets and the per-tile pointers, and the factor —
+    quantisation scale × albedo — the kernel reads: ``factor_bytes``, 4 (V + 4) on the blocker scene's grey albedo;
+    rows from before 0182f3f have no ``factor_bytes`` and did not count it)
     and a fill of the output, at the same thread count —, and at one thread with the previous
     layout's bound (dense + CSC pairs: :func:`previous_layout_bytes`); and the torch path. Also, per row: at one
     thread, by the thread's CPU time, against the same bytes only read (``timing.read_bound_fn``, a streaming read)
@@ -433,7 +435,8 @@ def kernel_rows(rl, selection: str) -> list[dict]:
         E = rl.touched(li)
         nbytes = rl.bytes_read(li)
         prev = previous_layout_bytes(rl, li)
-        row = {"light": light, "N": N, "terms_kept": int(li.numel()), "touched": E, "bytes": nbytes + V * 12, "previous_bytes": prev + V * 12}
+        row = {"light": light, "N": N, "terms_kept": int(li.numel()), "touched": E, "bytes": nbytes + V * 12, "previous_bytes": prev + V * 12,
+               "factor_bytes": rl.factor_bytes(lv.shape[0])}  # in "bytes" (bytes_read counts the factor from 0182f3f on)
         trusted = True
         for th in (1, 2):
             torch.set_num_threads(th)
@@ -745,7 +748,7 @@ def bounds_table(run: dict) -> list[str]:
         q, qc = r["of_read_bound_cpu_1_q"], r["of_read_bound_cold_q"]
         fl = (f"{r['of_bound_cpu_1_floor']:.2f} / **{r['of_read_bound_cpu_1_floor']:.2f}**" if "of_read_bound_cpu_1_floor" in r else "—")
         tries = "{}, {}".format(*r["tries_cpu_1"]) if "tries_cpu_1" in r else "1, 1"
-        L.append(f"| {_row_key(r)[0]} | {_n_kept(r)} | {r['bytes'] / 1e6:.2f} MB | {r.get('lives', '?')} | "
+        L.append(f"| {_row_key(r)[0]} | {_n_kept(r)} | {r['bytes'] / 1e6:.2f} MB{'†' if 'factor_bytes' in r else ''} | {r.get('lives', '?')} | "
                  f"{r['relight_cpu_s_1'] * 1e6:.0f} ({r['copy_bound_cpu_s_1'] * 1e6:.0f} / {r['read_bound_cpu_s_1'] * 1e6:.0f}) | "
                  f"{r['of_bound_cpu_1']:.2f} / **{r['of_read_bound_cpu_1']:.2f}** [{q[0]:.2f}, {q[1]:.2f}] | {fl} | {tries} | "
                  f"{r['relight_floor_s_2'] * 1e6:.0f} | {r['of_bound_2']:.2f} / **{r['of_read_bound_2']:.2f}** | "
@@ -890,7 +893,11 @@ def write_md(res: dict, quick: bool) -> None:
              f"{relight.WaveletRelighter.ROW_MIN_W16:g} in the AVX-512 build with the 16-lane code, 0.5 in the runs "
              "before issue 39's per-build threshold; here N = 2000 and all either way), the row-major copy: every "
              "sparse block, int32 column + 8 values, summed in registers). "
-             "Bytes read are that layout's and pass's, the output's included. Paired (interleaved short samples, "
+             "Bytes read are that layout's and pass's, the output's included, and — rows marked † (`factor_bytes` in "
+             "their JSON) — the factor the kernel reads once per call (the quantisation scale × albedo: one float per "
+             "vertex on this grey scene, `WaveletRelighter.factor_bytes`); rows without † were timed before the bound "
+             "counted it (the kernel then read 12 bytes per vertex of it, uncounted): compare a † row with one without "
+             "only with that in mind (reports/benchmarks/wavelet_factor.md pairs both counts). Paired (interleaved short samples, "
              "fastest tenth of each side) with its own bound "
              "(the kernel timed through `WaveletRelighter.prepared`, the render-loop form whose per-call Python is one "
              "call; `relighter(idx, vals)` adds its checks: the last column, paired) "
@@ -973,7 +980,8 @@ def write_md(res: dict, quick: bool) -> None:
             cpu_t = (f"**{r['of_bound_cpu_1']:.2f}** [{r['of_bound_cpu_1_q'][0]:.2f}, {r['of_bound_cpu_1_q'][1]:.2f}]"
                      if "of_bound_cpu_1" in r else "—")
             rd = (f"{r['of_read_bound_cpu_1']:.2f} ({r['read_over_copy_1']:.2f})" if "of_read_bound_cpu_1" in r else "—")
-            L.append(f"| {_row_key(r)[0]} | {_n_kept(r)} | {r['touched']} | {r['dense_coefficients']} ({r['dense_terms']} terms) | {r['bytes']} | "
+            L.append(f"| {_row_key(r)[0]} | {_n_kept(r)} | {r['touched']} | {r['dense_coefficients']} ({r['dense_terms']} terms) | {r['bytes']}"
+                     f"{'†' if 'factor_bytes' in r else ''} | "
                      f"{r['previous_bytes']} | {_ms(r['relight_s_1'])} | {r['of_bound_1']:.2f}{flag} | {cpu_t} | "
                      f"{r['of_previous_bound']:.2f}{flag} | {_ms(r['relight_s_2'])} | {r['of_bound_2']:.2f}{flag} | "
                      f"{_ms(r['torch_relight_s'])} | {r['torch_relight_s'] / r['relight_s']:.1f}× | {r['load']:.1f} | {cp} | {rd} |")

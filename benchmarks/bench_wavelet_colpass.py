@@ -53,7 +53,7 @@ import torch  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_wavelet import BITS, LIGHTS, OUT, load  # noqa: E402
 from bench_wavelet_dense_micro import SRC as DENSE_SRC  # noqa: E402
-from bench_wavelet_isa import bound_call, kernel_build, kernel_source  # noqa: E402
+from bench_wavelet_isa import rl_bytes, bound_call, kernel_build, kernel_source  # noqa: E402
 from bench_wavelet_pass_micro import C_PRELUDE, grouped  # noqa: E402
 
 from prt_torch import relight  # noqa: E402
@@ -295,7 +295,7 @@ def main() -> None:
         same = torch.equal(outs[0], outs[1]) and torch.equal(outs[2], outs[1])
         p = measure_paired(ft, fb, repeats=args.repeats, warmup=1, clock=time.thread_time)
         pc = measure_paired(fc, fb, repeats=args.repeats, warmup=1, clock=time.thread_time)
-        rb = measure_paired(ft, read_bound_fn(rl.bytes_read(li), rl.V * 12), repeats=args.repeats, warmup=1, clock=time.thread_time)
+        rb = measure_paired(ft, read_bound_fn(rl_bytes(rl, li), rl.V * 12), repeats=args.repeats, warmup=1, clock=time.thread_time)
         sb = int(rl._cblk[li[rl.cls[li] == 1]].sum())  # the sparse blocks of its sparse terms
         row = dict(light=light, N=N, part=part, terms=int(li.numel()), sblocks=sb, test=p.test.median * 1e6,
                    base=p.peer.median * 1e6, ratio=p.speedup, q=(p.ratio.q1, p.ratio.q3), of_read=rb.speedup, control=pc.speedup,

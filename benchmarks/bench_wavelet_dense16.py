@@ -33,7 +33,7 @@ import torch  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_wavelet import BITS, KERNEL_SIZES, LIGHTS, OUT, load, size_choice  # noqa: E402
-from bench_wavelet_isa import bound_call, kernel_build, kernel_source  # noqa: E402
+from bench_wavelet_isa import rl_bytes, bound_call, kernel_build, kernel_source  # noqa: E402
 
 from prt_torch import relight  # noqa: E402
 from prt_torch.harness.timing import cpu_label, measure_paired, read_bound_fn  # noqa: E402
@@ -118,7 +118,7 @@ def main() -> None:
         err = float((o_t.double() - ref).abs().max()) / scale
         same = bool(torch.equal(o_t, o_b))
         p = measure_paired(f_t, f_b, repeats=args.repeats, warmup=1, clock=time.thread_time)
-        bound = read_bound_fn(rl.bytes_read(li), rl.V * 12)
+        bound = read_bound_fn(rl_bytes(rl, li), rl.V * 12)
         pb = measure_paired(f_t, bound, repeats=args.repeats, warmup=1, clock=time.thread_time)
         row = {"light": light, "N": N, "part": part, "terms": int(li.numel()), "nd": nd, "test_us": p.test.median * 1e6,
                "base_us": p.peer.median * 1e6, "ratio": p.speedup, "q": [p.ratio.q1, p.ratio.q3],

@@ -44,6 +44,7 @@ from pathlib import Path  # noqa: E402
 import torch  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_wavelet_isa import rl_bytes  # noqa: E402
 from bench_wavelet import BITS, LIGHTS, OUT  # noqa: E402
 
 from prt_torch import relight  # noqa: E402
@@ -301,7 +302,7 @@ def model(ghz: float, dense_cyc: float, sparse_cyc: float) -> list[str]:
                 continue  # the row-major pass: not this model's
             rl.prepared(li, lv, out)()
             call = setup(li, lv, kern8)
-            k_us, b_us = cpu(call, io_bound_fn(rl.bytes_read(li), rl.V * 12))
+            k_us, b_us = cpu(call, io_bound_fn(rl_bytes(rl, li), rl.V * 12))
             s_us, _ = cpu(setup(li, lv), call)
             steps = int(d.sum()) * nb
             floor = (steps * dense_cyc + sb * sparse_cyc) / ghz / 1e3 + s_us + (out_call - out_setup)

@@ -83,13 +83,23 @@ def kernel_build(text: str, isa: str | None, who: str, tag: str = ""):
     return lib, " ".join(flags)
 
 
-def bound_call(rl, lib, li: torch.Tensor, lv: torch.Tensor, out: torch.Tensor, threads: int):
+def rl_bytes(rl, li: torch.Tensor) -> int:
+    """The bytes a call through :func:`bound_call` (default form) reads: the transfer's
+    (``WaveletRelighter.bytes_read(..., factor=False)``) and the ``[V, 3]`` factor it passes (12 bytes per vertex;
+    ``bytes_read`` alone counts the relighter's own factor, one float per vertex on a grey albedo)."""
+    return rl.bytes_read(li, factor=False) + rl.V * 12
+
+
+def bound_call(rl, lib, li: torch.Tensor, lv: torch.Tensor, out: torch.Tensor, threads: int, per_vertex: bool = False):
     """``run()`` relighting ``li``/``lv`` into ``out`` through build ``lib`` on ``rl``'s layout (the packed entry point,
-    as ``WaveletRelighter.prepared``); the tensors it addresses are kept alive by the closure."""
+    as ``WaveletRelighter.prepared``); the tensors it addresses are kept alive by the closure. The factor as
+    ``[V, CO]`` (``WaveletRelighter._factor``: what every build of the kernel reads), or with ``per_vertex`` in the
+    relighter's kernel form (``_kfactor``: ``[V + 4]`` with ``C | F1`` where one per vertex will do; builds from
+    0182f3f on)."""
     rl._kernel()  # the layout (self._layout) exists
-    f = rl._factor(lv.shape[0], True)
+    f, Ck = rl._kfactor(lv.shape[0], True) if per_vertex else (rl._factor(lv.shape[0], True), lv.shape[0])
     name = {torch.int8: "i8", torch.int16: "i16"}.get(rl.bvals.dtype, "f32")
-    args = torch.tensor([rl._layout.data_ptr(), li.numel(), li.data_ptr(), lv.data_ptr(), lv.shape[0], f.data_ptr(),
+    args = torch.tensor([rl._layout.data_ptr(), li.numel(), li.data_ptr(), lv.data_ptr(), Ck, f.data_ptr(),
                          out.data_ptr(), threads], dtype=torch.int64)
     fn = functools.partial(getattr(lib, f"prt_wavelet_relight_{name}_packed"), args.data_ptr())
     held = (li, lv, f, out, args)

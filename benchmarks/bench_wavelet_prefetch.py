@@ -32,7 +32,7 @@ import torch  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_wavelet import BITS, KERNEL_SIZES, LIGHTS, OUT, load, size_choice  # noqa: E402
-from bench_wavelet_isa import bound_call, kernel_build, kernel_source  # noqa: E402
+from bench_wavelet_isa import rl_bytes, bound_call, kernel_build, kernel_source  # noqa: E402
 
 from prt_torch import relight  # noqa: E402
 from prt_torch.harness.timing import cpu_label, measure_paired, read_bound_fn  # noqa: E402
@@ -73,9 +73,9 @@ def size_rows(size: str, libs: dict, repeats: int) -> tuple[dict, list[dict]]:
         for N in TERMS + (rl.P,):
             li, lv, _ = rl.light(LIGHTS[light], N, "transport")
             lv, li = lv.to(torch.float32).contiguous(), li.contiguous()
-            bound = read_bound_fn(rl.bytes_read(li), rl.V * 12)
+            bound = read_bound_fn(rl_bytes(rl, li), rl.V * 12)
             row = {"size": size, "light": light, "N": N, "nd": int((rl.dslot[li] >= 0).sum()),
-                   "mb": rl.bytes_read(li) / 2**20}
+                   "mb": rl_bytes(rl, li) / 2**20}
             for isa in ("native", "avx2"):
                 outs = {k: torch.empty(rl.V, 3) for k in libs[isa]}
                 fn = {k: bound_call(rl, lib, li, lv, outs[k], 1) for k, lib in libs[isa].items()}

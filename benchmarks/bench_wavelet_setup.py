@@ -71,7 +71,7 @@ import torch  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_wavelet import BITS, LIGHTS, OUT, load  # noqa: E402
 from bench_wavelet_floor_micro import SRC as FLOOR_SRC  # noqa: E402
-from bench_wavelet_isa import bound_call, kernel_build, kernel_source  # noqa: E402
+from bench_wavelet_isa import rl_bytes, bound_call, kernel_build, kernel_source  # noqa: E402
 
 from prt_torch import relight  # noqa: E402
 from prt_torch._native import compile_library  # noqa: E402
@@ -218,12 +218,12 @@ def main() -> None:
                 t[k] = p.test.median * 1e6
                 peers.append(p.peer.median * 1e6)
             t[12] = sum(peers) / len(peers)
-            rb = measure_paired(read_bound_fn(rl.bytes_read(li), rl.V * 12), full, repeats=args.repeats, warmup=1,
+            rb = measure_paired(read_bound_fn(rl_bytes(rl, li), rl.V * 12), full, repeats=args.repeats, warmup=1,
                                 clock=time.thread_time)
             g = ghz[0]
             steps = int(d.sum()) * rl.dense.shape[0]
             read_us = rb.test.median * 1e6
-            rate = (rl.bytes_read(li) + rl.V * 12) / read_us  # bytes per µs of the streaming read at this size
+            rate = (rl_bytes(rl, li) + rl.V * 12) / read_us  # bytes per µs of the streaming read at this size
             floors = {9: 0.0 if rows_pass else sb * sparse_cyc / g / 1e3, 10: rl.V * 24 / rate,
                       11: rl.NB * 2.6 / g / 1e3 if rows_pass else 0.0, 12: steps * dense_cyc / g / 1e3}
             parts = [(PARTS[0], t[1], 0.0)]

@@ -62,7 +62,7 @@ def main() -> None:
             a, b = rl(*now), rl(*before)
             row = {"light": spec, "N": N}
             for name, (li, _) in (("now", now), ("before", before)):
-                row[name] = (int(li.numel()), int((rl.dslot[li] >= 0).sum()), rl.bytes_read(li))
+                row[name] = (int(li.numel()), int((rl.dslot[li] >= 0).sum()), rl.bytes_read(li, factor=False))
             row["diff"] = float((a - b).abs().max() / b.abs().max())
             if (spec, N) in TIMED:
                 o1, o2 = torch.empty_like(a), torch.empty_like(b)

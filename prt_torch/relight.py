@@ -565,7 +565,8 @@ class WaveletRelighter:
         self._cblk = cnt.sum(0).to(torch.int32).contiguous()  # [P] sparse blocks per column (the kernel's row/column choice)
         self.MT = max(1, min(self.NT, os.cpu_count() or 1))
         self.threads = threads
-        self._f: dict = {}
+        self._f: dict = {}  # the kernel's factor per (C, albedo): (tensor, C argument), _kfactor
+        self._f_full: dict = {}  # [V, CO] where the kernel's is one per vertex: _factor (torch path, gradients)
         self._acc = torch.empty(self.MT, TV // self.SUB, 4, self.SUB, dtype=torch.float32)  # the kernel's scratch, per thread (+ a dummy block)
         self._wk = torch.empty(P, dtype=torch.int64)  # the light's terms split into dense / sparse
         self._lw = torch.empty(P, 4, dtype=torch.float32)
@@ -638,7 +639,8 @@ class WaveletRelighter:
         parts = {"dense": nb(self.dense), "column": nb(self.bvals, self.bofs, self.tptr, self.tbase),
                  "row": nb(self.rptr, self.rcol, self.rvals),
                  "other": nb(self.dslot, self.bcount, self._cblk, self._acc, self._wk, self._lw, self.dcol, self.cls,
-                             self._mark, self._lp, self.scale, self.albedo, self.nnz, self.weights, *self._f.values())}
+                             self._mark, self._lp, self.scale, self.albedo, self.nnz, self.weights,
+                             *(f for f, _ in self._f.values()), *self._f_full.values())}
         parts["total"] = sum(parts.values())
         return parts
 
@@ -671,7 +673,9 @@ class WaveletRelighter:
         threshold), else 0 (``row_pass`` False; e.g. a light with few nonzero Haar terms, such as the studio's
         softboxes on black: ``lighting.haar.select_terms``). Without a light (``row_pass`` None) it is counted, an upper
         bound whatever the light: the estimate never counts less than the relighter will hold. The cached factor
-        is for ``light_channels`` channels (the light's own with ``light``). The C kernel's choice: the torch path
+        is for ``light_channels`` channels (the light's own with ``light``), in the form the file's albedo gives it
+        (:meth:`_factor_form`: ``[V + 4]`` for a grey or uniform albedo, else ``[V, CO]``; ``exact=False``: ``[V, CO]``).
+        The C kernel's choice: the torch path
         (``PRT_TORCH_NATIVE=0``, no compiler) never builds the copy, so it holds less.
 
         ``exact=False`` reads the header alone and returns an upper bound
@@ -738,7 +742,10 @@ class WaveletRelighter:
             share = int(cblk[ls].sum()) / max(NB, 1)
         elif light is not None:
             row_pass = layouts == "both"
-        est = cls._held_estimate(V, K, CT, P, b, TV, rows, light_channels, E, Es, Pd, NB, b != stored)
+        CO = max(light_channels, CT)  # the factor's form for the relight counted, from the file's albedo as __init__ reads it
+        alb = None if meta.get("albedo_folded") or CT > 1 else t["mesh.albedo"].to(torch.float32)
+        form = cls._factor_form(None if alb is None else (alb[:, :CO] if CO > 1 else alb[:, :1]), CT, CO)
+        est = cls._held_estimate(V, K, CT, P, b, TV, rows, light_channels, E, Es, Pd, NB, b != stored, factor_form=form)
         est["row_pass"] = row_pass
         est["row_min"] = rmin
         if light is not None and layouts == "auto":
@@ -746,10 +753,12 @@ class WaveletRelighter:
         return est
 
     @classmethod
-    def _held_estimate(cls, V, K, CT, P, b, TV, with_rows, light_channels, E, Es, Pd, NB, requant, exact=True) -> dict:
+    def _held_estimate(cls, V, K, CT, P, b, TV, with_rows, light_channels, E, Es, Pd, NB, requant, exact=True,
+                       factor_form: str = "channel") -> dict:
         """:meth:`estimate_bytes`' arithmetic from the counts (``b`` the kernel values' bytes, ``TV`` the tile,
         ``with_rows``: the row-major copy counted, ``requant``: the kernel's values are not the stored ones — re-quantised
-        to 16 bits, or float)."""
+        to 16 bits, or float; ``factor_form``: :meth:`_factor_form`'s, the cached factor ``[V + 4]`` unless
+        ``'channel'``, ``[V, CO]``, the larger)."""
         NT, nb = -(-V // TV), -(-V // cls.BLOCK)
         MT = max(1, min(NT, os.cpu_count() or 1))
         CO = max(light_channels, CT)
@@ -758,9 +767,10 @@ class WaveletRelighter:
                  "column": blk + 4 * NB + 4 * NT * (P + 1) + 8 * NT,
                  "row": (4 * nb + 1) * 8 + 4 * NB + blk if with_rows else 0,
                  # dslot, _cblk, nnz int32; bcount [NT, P] int32; _acc; _wk int64; _lw, _lp [P, 4] float32; dcol int64;
-                 # cls, _mark uint8; scale [V, CT], albedo [V, 3], the cached factor [V, CO] float32; weights float64
+                 # cls, _mark uint8; scale [V, CT], albedo [V, 3], the cached factor [V, CO] or [V + 4] float32
+                 # (_kfactor); weights float64
                  "other": 12 * P + 4 * NT * P + MT * (TV // cls.SUB) * 4 * cls.SUB * 4 + 8 * P + 32 * P + 8 * Pd + 2 * P
-                 + 4 * V * CT + 12 * V + 4 * V * CO + 8 * P}
+                 + 4 * V * CT + 12 * V + (4 * V * CO if factor_form == "channel" else 4 * (V + 4)) + 8 * P}
         parts["total"] = sum(parts.values())
         # __init__'s peak above what it keeps (built in chunks of rows): either while placing the chunks — the kernel
         # values of every row (held between the passes when re-quantised or float: a view of the stored values
@@ -776,13 +786,16 @@ class WaveletRelighter:
         parts.update(V=V, K=K, CT=CT, P=P, E=E, Es=Es, Pd=Pd, NB=NB, exact=exact, row_pass=None)
         return parts
 
-    def bytes_read(self, light_idx: torch.Tensor) -> int:
+    def bytes_read(self, light_idx: torch.Tensor, channels: int = 3, albedo: bool = True, factor: bool = True) -> int:
         """Transfer bytes a light with these kept terms reads — the bound's byte count: the selected
         dense columns (32-vertex blocks, zeros included) and, for the selected sparse columns that
         any vertex keeps, either (column-major pass) their 8-vertex blocks (int32 offset + 8·CT
         values, zeros included) and per tile and column its two int32 block pointers, or (row-major
         pass, taken when they hold at least ``row_min`` of the sparse blocks) every sparse block
-        (int32 column + 8·CT values) and the int64 row pointers (kernels/wavelet.c's choice)."""
+        (int32 column + 8·CT values) and the int64 row pointers (kernels/wavelet.c's choice); and the
+        factor (the quantisation scale × albedo) for a light of ``channels`` channels, :meth:`factor_bytes`
+        (``factor=False``: the count before it was included, the transfer's stored coefficients alone)."""
+        fb = self.factor_bytes(channels, albedo) if factor else 0
         li = torch.unique(light_idx.long())
         d = self.dslot[li] >= 0
         b = self.bvals.element_size()
@@ -792,16 +805,74 @@ class WaveletRelighter:
         sb = int(self.bcount[:, ls].sum())
         NR = self.NB
         if self._takes_rows(sb, NR, self._row_permille(self.row_min, self._rows_used)):
-            return dense + NR * (4 + self.SUB * self.CT * b) + (4 * self.dense.shape[0] + 1) * 8
-        return dense + sb * (4 + self.SUB * self.CT * b) + self.NT * int(ls.numel()) * 8
+            return dense + NR * (4 + self.SUB * self.CT * b) + (4 * self.dense.shape[0] + 1) * 8 + fb
+        return dense + sb * (4 + self.SUB * self.CT * b) + self.NT * int(ls.numel()) * 8 + fb
 
-    def _factor(self, C: int, albedo: bool) -> torch.Tensor:
+    #: kernels/wavelet.c's ``F1``: the light's channel count ``C | F1`` tells the kernel its factor is one per vertex
+    #: (``f [V + 4]``: ``f [V]``, then the output channels' multipliers)
+    F1 = 256
+
+    @staticmethod
+    def _factor_form(albedo: torch.Tensor | None, CT: int, CO: int) -> str:
+        """How the kernel's factor (quantisation scale × albedo) is laid out for ``CO`` output channels of a
+        ``CT``-channel transfer, the albedo ``[V, ≥CO]`` float32 applied (None: not applied): ``'vertex'`` one float
+        per vertex (``f [V + 4]``, the last four 1: a grey transfer, RGB output — CO = 3: the kernel takes this form
+        for three output channels only —, the albedo off or every vertex's channels equal), ``'uniform'`` one float
+        per vertex times one colour for all (``f [V + 4]``: the scale, then the albedo's first row: every vertex the
+        same colour), ``'channel'`` one per vertex and channel (``f [V, CO]``: a coloured transfer's scale per
+        channel, a per-vertex coloured albedo, CO = 2 or 4, or CO = 1, where it is one per vertex anyway)."""
+        if CT != 1 or CO != 3 or (albedo is not None and albedo.shape[1] < CO):
+            return "channel"
+        if albedo is None or albedo.shape[0] == 0:
+            return "vertex"
+        a = albedo[:, :CO]
+        if bool((a == a[:, :1]).all()):
+            return "vertex"
+        return "uniform" if bool((a == a[:1]).all()) else "channel"
+
+    def _kfactor(self, C: int, albedo: bool) -> tuple[torch.Tensor, int]:
+        """The kernel's factor for a light of ``C`` channels (cached per ``(C, albedo)``) and the channel count to
+        pass it with: ``(f [V, CO] float32, C)`` — one factor per vertex and output channel, CO = max(C, CT) — or,
+        where one per vertex will do (:meth:`_factor_form`), ``(f [V + 4] float32, C | F1)``: ``f[:V]`` the
+        factor per vertex, ``f[V:V + CO]`` the output channels' multipliers (1: grey; the uniform albedo's colour),
+        the factor of vertex v and channel c being ``fl(f[v] · f[V + c])`` — the same float32 products as the
+        ``[V, CO]`` form. The kernel reads all of it once per call (:meth:`factor_bytes`)."""
         key = (C, albedo)
         if key not in self._f:
             CO = max(C, self.CT)
-            a = (self.albedo[:, :CO] if CO > 1 else self.albedo[:, :1]) if albedo else torch.ones(self.V, CO)
-            self._f[key] = (a * self.scale).contiguous()  # scale [V, CT]: CT = 1 broadcasts
+            alb = (self.albedo[:, :CO] if CO > 1 else self.albedo[:, :1]) if albedo else None
+            form = self._factor_form(alb, self.CT, CO)
+            if form == "channel":
+                a = alb if alb is not None else torch.ones(self.V, CO)
+                self._f[key] = ((a * self.scale).contiguous(), C)  # scale [V, CT]: CT = 1 broadcasts
+            else:
+                f = torch.ones(self.V + 4, dtype=torch.float32)
+                if form == "vertex":  # the same products as a * scale's columns (all equal)
+                    f[:self.V] = self.scale[:, 0] if alb is None else alb[:, 0] * self.scale[:, 0]
+                else:
+                    f[:self.V] = self.scale[:, 0]
+                    f[self.V:self.V + CO] = alb[0]
+                self._f[key] = (f, C | self.F1)
         return self._f[key]
+
+    def _factor(self, C: int, albedo: bool) -> torch.Tensor:
+        """The factor per vertex and output channel ``[V, CO]`` float32 (quantisation scale × albedo; the torch path,
+        :meth:`relight_grad`): :meth:`_kfactor`'s, expanded where it is one per vertex (the same float32 products;
+        cached, as callers pass its address to the kernel)."""
+        f, Ck = self._kfactor(C, albedo)
+        if not Ck & self.F1:
+            return f
+        key = (C, albedo)
+        if key not in self._f_full:  # cached (counted in held_bytes): callers pass its address to the kernel
+            CO = max(C, self.CT)
+            self._f_full[key] = (f[:self.V, None] * f[self.V:self.V + CO]).contiguous()
+        return self._f_full[key]
+
+    def factor_bytes(self, C: int = 3, albedo: bool = True) -> int:
+        """Bytes of the factor the kernel reads once per call for a light of ``C`` channels (:meth:`_kfactor`:
+        ``4 (V + 4)`` where one per vertex, else ``4 V CO``), counted in :meth:`bytes_read`."""
+        f, _ = self._kfactor(C, albedo)
+        return f.numel() * f.element_size()
 
     def touched(self, light_idx: torch.Tensor) -> int:
         """Nonzero transfer coefficients a light with these kept terms reads (Σ_n nnz(column n);
@@ -855,11 +926,11 @@ class WaveletRelighter:
         kern = self._kernel() if lv.shape[0] <= 4 else None
         if kern is None:
             return lambda: self(li, lv, out=o, albedo=albedo)
-        f = self._factor(lv.shape[0], albedo)
+        f, Ck = self._kfactor(lv.shape[0], albedo)
         th = torch.get_num_threads() if self.threads is None else self.threads
         # the kernel's eight arguments packed once into an int64 array: ctypes then converts one argument per call
         # instead of eight (~0.8 us less per call; benchmarks/bench_wavelet_call.py)
-        args = torch.tensor([self._layout.data_ptr(), li.numel(), li.data_ptr(), lv.data_ptr(), lv.shape[0], f.data_ptr(),
+        args = torch.tensor([self._layout.data_ptr(), li.numel(), li.data_ptr(), lv.data_ptr(), Ck, f.data_ptr(),
                              o.data_ptr(), th], dtype=torch.int64)
         call = functools.partial(self._packed, args.data_ptr())
         held = (li, lv, f, o, args)  # the tensors the pointers address stay alive with the closure
@@ -896,21 +967,20 @@ class WaveletRelighter:
         o = torch.empty(self.V, CO, dtype=torch.float32) if out is None else out
         if o.shape != (self.V, CO) or o.dtype != torch.float32 or not o.is_contiguous():
             raise ValueError(f"out {tuple(o.shape)} {o.dtype}; accepted: a contiguous float32 [{self.V}, {CO}]")
-        f = self._f.get((C, albedo))
-        if f is None:
-            f = self._factor(C, albedo)
         kern = self._native if self._native is not None and os.environ.get("PRT_TORCH_NATIVE") != "0" else (
             self._kernel() if C <= 4 else None)
         if kern is not None:
+            fk = self._f.get((C, albedo))
+            f, Ck = fk if fk is not None else self._kfactor(C, albedo)
             th = torch.get_num_threads() if self.threads is None else self.threads
-            st = kern(N, li.data_ptr(), lv.data_ptr(), C, f.data_ptr(), o.data_ptr(), th)
+            st = kern(N, li.data_ptr(), lv.data_ptr(), Ck, f.data_ptr(), o.data_ptr(), th)
             if st == 3:  # the first light needing the row-major copy: built, the call repeated
                 self._build_rows()
-                st = kern(N, li.data_ptr(), lv.data_ptr(), C, f.data_ptr(), o.data_ptr(), th)
+                st = kern(N, li.data_ptr(), lv.data_ptr(), Ck, f.data_ptr(), o.data_ptr(), th)
             if st == 0:
                 return o
         self._check_indices(li)
-        return self._torch(li, lv, o).mul_(f)
+        return self._torch(li, lv, o).mul_(self._factor(C, albedo))
 
     def relight_grad(self, light_idx: torch.Tensor, light_vals: torch.Tensor, albedo: bool = True) -> torch.Tensor:
         """The relighting under autograd (the C kernel is forward-only; ``__call__`` comes here when

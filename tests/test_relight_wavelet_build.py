@@ -102,7 +102,7 @@ def test_held_bytes_counts_every_tensor_the_relighter_holds(blocker32):
     li, lv, _ = r.light("sky")  # every term of the sky: the row-major pass (not the studio light's 292 nonzero terms)
     r(li, lv)
     own = [v for k, v in vars(r).items() if isinstance(v, torch.Tensor) and k not in ("_layout",)]
-    own += list(r._f.values())
+    own += [f for f, _ in r._f.values()] + list(r._f_full.values())  # the factors (_kfactor's: tensor, C argument)
     counted = sum(t.numel() * t.element_size() for t in own)
     assert counted == r.held_bytes()["total"], (counted, r.held_bytes())
     assert 1400 < counted / r.V < 1650

@@ -9,6 +9,18 @@
  * per colour — interreflection of a coloured mesh —, the light grey (C = 1, c' = 0) or RGB (C = 3,
  * c' = c), c'' = c) and f [V, CO] the per-vertex factor (the quantisation scale of the vertex and
  * channel times the albedo) applied once at the end. CO = max(C, CT) output channels.
+ * The factor's two forms (relight.py: WaveletRelighter._kfactor): f float32 [V, OC] (OC output channels: 3 for a
+ * grey-summed RGB light, else CO), or — C passed as C | F1 (256), RGB output of a grey transfer only (else 1 is
+ * returned) — f float32 [V + 4]: f[v] one factor per vertex and f[V + c] one per output channel (1 for a grey albedo
+ * or none: the multiply skipped; a uniform albedo's colour), the factor of (v, c) being fl(f[v] f[V + c]): the same
+ * float32 products as the [V, OC] form, so the same bits. For a grey albedo the kernel then reads 4 bytes per vertex
+ * of it instead of 12 (large blocker scene: 0.21 against 0.62 MB per call, beside 1.0 MB of dense lines at N = 10);
+ * per 8 vertices one 32-byte load of the factors and the same three multiplies, before the interleave instead of
+ * after it (store_rgb8 / put_rgb8), in the 8- and the 16-lane builds alike. Measured: reports/benchmarks/
+ * wavelet_factor.md (bench_wavelet_factor.py; docs/wavelet.md "The factor per vertex").
+ * OUT_NT (a measurement knob, W16 only, off by default): the RGB output by streaming stores once it holds at least
+ * OUT_NT bytes (and out is 32-byte aligned), an sfence at the call's end; not kept (the same report: faster alone at
+ * large N = 10, slower with a read of the output right after the call).
  *
  * The transfer's columns (one per Haar coefficient j) are stored in one of two forms, chosen per
  * column when the relighter is built:
@@ -163,27 +175,58 @@ int prt_wavelet_isa(void) {
     return b;
 }
 
-/* 8 vertices' RGB sums r, g, b (one channel per vector) times their factors f [8, 3], written interleaved
- * to out [8, 3]: each output vector gathers its vertices from all three (a permute with one index vector)
- * and takes each lane's channel by two blends; the portable path through a small buffer */
-static inline void store_rgb8(float *out, const float *f, v8f r, v8f g, v8f b) {
+/* 8 vertices' RGB values r, g, b (one channel per vector) interleaved into o [3] (out [8, 3]'s three vectors): each
+ * output vector gathers its vertices from all three (a permute with one index vector) and takes each lane's channel
+ * by two blends (AVX2; the portable path through a small buffer, store_rgb8 only) */
 #ifdef __AVX2__
+static inline void rgb8_interleave(v8f r, v8f g, v8f b, __m256 o[3]) {
     const __m256i i0 = _mm256_setr_epi32(0, 0, 0, 1, 1, 1, 2, 2), i1 = _mm256_setr_epi32(2, 3, 3, 3, 4, 4, 4, 5),
                   i2 = _mm256_setr_epi32(5, 5, 6, 6, 6, 7, 7, 7);
     const __m256 R = (__m256)r, G = (__m256)g, B = (__m256)b;
-    __m256 o0 = _mm256_blend_ps(_mm256_blend_ps(_mm256_permutevar8x32_ps(R, i0), _mm256_permutevar8x32_ps(G, i0), 0x92),
-                                _mm256_permutevar8x32_ps(B, i0), 0x24);
-    __m256 o1 = _mm256_blend_ps(_mm256_blend_ps(_mm256_permutevar8x32_ps(R, i1), _mm256_permutevar8x32_ps(G, i1), 0x24),
-                                _mm256_permutevar8x32_ps(B, i1), 0x49);
-    __m256 o2 = _mm256_blend_ps(_mm256_blend_ps(_mm256_permutevar8x32_ps(R, i2), _mm256_permutevar8x32_ps(G, i2), 0x49),
-                                _mm256_permutevar8x32_ps(B, i2), 0x92);
-    _mm256_storeu_ps(out, _mm256_mul_ps(o0, _mm256_loadu_ps(f)));
-    _mm256_storeu_ps(out + 8, _mm256_mul_ps(o1, _mm256_loadu_ps(f + 8)));
-    _mm256_storeu_ps(out + 16, _mm256_mul_ps(o2, _mm256_loadu_ps(f + 16)));
+    o[0] = _mm256_blend_ps(_mm256_blend_ps(_mm256_permutevar8x32_ps(R, i0), _mm256_permutevar8x32_ps(G, i0), 0x92),
+                           _mm256_permutevar8x32_ps(B, i0), 0x24);
+    o[1] = _mm256_blend_ps(_mm256_blend_ps(_mm256_permutevar8x32_ps(R, i1), _mm256_permutevar8x32_ps(G, i1), 0x24),
+                           _mm256_permutevar8x32_ps(B, i1), 0x49);
+    o[2] = _mm256_blend_ps(_mm256_blend_ps(_mm256_permutevar8x32_ps(R, i2), _mm256_permutevar8x32_ps(G, i2), 0x49),
+                           _mm256_permutevar8x32_ps(B, i2), 0x92);
+}
+#endif
+/* 8 vertices' RGB sums r, g, b times their factors f [8, 3] (one per vertex and channel), written interleaved to
+ * out [8, 3]: three loads of the factors, three multiplies after the interleave */
+static inline void store_rgb8(float *out, const float *f, v8f r, v8f g, v8f b) {
+#ifdef __AVX2__
+    __m256 o[3];
+    rgb8_interleave(r, g, b, o);
+    _mm256_storeu_ps(out, _mm256_mul_ps(o[0], _mm256_loadu_ps(f)));
+    _mm256_storeu_ps(out + 8, _mm256_mul_ps(o[1], _mm256_loadu_ps(f + 8)));
+    _mm256_storeu_ps(out + 16, _mm256_mul_ps(o[2], _mm256_loadu_ps(f + 16)));
 #else
     float s[24];
     for (int v = 0; v < 8; v++) { s[3 * v] = r[v]; s[3 * v + 1] = g[v]; s[3 * v + 2] = b[v]; }
     for (int q = 0; q < 24; q++) out[q] = s[q] * f[q];
+#endif
+}
+/* 8 vertices' RGB outputs r, g, b (the factors already applied) written interleaved to out [8, 3]; OUT_NT builds
+ * (a measurement knob: the output by streaming stores, W16 only) with nt set: non-temporal stores (out 32-byte
+ * aligned) */
+static inline void put_rgb8(float *out, v8f r, v8f g, v8f b, int nt) {
+    (void)nt;
+#ifdef __AVX2__
+    __m256 o[3];
+    rgb8_interleave(r, g, b, o);
+#if W16 && defined(OUT_NT)
+    if (nt) {
+        _mm256_stream_ps(out, o[0]);
+        _mm256_stream_ps(out + 8, o[1]);
+        _mm256_stream_ps(out + 16, o[2]);
+        return;
+    }
+#endif
+    _mm256_storeu_ps(out, o[0]);
+    _mm256_storeu_ps(out + 8, o[1]);
+    _mm256_storeu_ps(out + 16, o[2]);
+#else
+    for (int v = 0; v < 8; v++) { out[3 * v] = r[v]; out[3 * v + 1] = g[v]; out[3 * v + 2] = b[v]; }
 #endif
 }
 
@@ -401,7 +444,8 @@ static inline void store_rgb8(float *out, const float *f, v8f r, v8f g, v8f b) {
 #define DENSE_BLOCK(T)                                                                                       \
 static inline __attribute__((always_inline)) void dense_block_##T(const int CT, const int CO, const int OC, i64 nd, \
         const i64 *ds, const float *lw, const T *blk, i64 stride, PAIR_PARAMS const float *acc, const i64 *rp,  \
-        const int32_t *rc, const T *rv, const float *lp, i64 nv, const float *f, float *out) {               \
+        const int32_t *rc, const T *rv, const float *lp, i64 nv, const int fm, const float *fc, const float *f,   \
+        float *out, const int nt) {                                                                          \
     v8f a[4][4];                                                                                             \
     DENSE_TERMS(T)                                                                                           \
     if (lp && W16) ROWS_LOCKSTEP(T, ROW_G(CO)) /* AVX-512: the 8-vertex blocks in lockstep (above) */        \
@@ -427,15 +471,36 @@ static inline __attribute__((always_inline)) void dense_block_##T(const int CT, 
         }                                                                                                    \
     if (acc)                                                                                                 \
         for (int k = 0; k < 4; k++) for (int c = 0; c < CO; c++) a[c][k] += ld8(acc + 32 * k + 8 * c);      \
-    /* OC output channels: CO, or 3 from one grey sum (an RGB light with equal channels, CO = 1) */         \
+    /* OC output channels: CO, or 3 from one grey sum (an RGB light with equal channels, CO = 1); fm 0: f [nv, OC] a  \
+     * factor per vertex and channel; 1: f [nv] one per vertex; 2: f [nv] times fc [OC] per channel (fl(f[v] fc[c]))  \
+     * — the same products as fm 0 given f [V, OC] = fl(f[v] fc[c]), so the same bits */                    \
     if (OC == 3 && nv == BV) { /* RGB: each 8 vertices' sums interleaved in registers (permute + blend) */    \
-        for (int k = 0; k < 4; k++)                                                                          \
-            store_rgb8(out + 24 * k, f + 24 * k, a[0][k], a[CO == 3 ? 1 : 0][k], a[CO == 3 ? 2 : 0][k]);    \
+        if (fm == 0)                                                                                         \
+            for (int k = 0; k < 4; k++)                                                                      \
+                store_rgb8(out + 24 * k, f + 24 * k, a[0][k], a[CO == 3 ? 1 : 0][k], a[CO == 3 ? 2 : 0][k]); \
+        else if (fm == 1) /* one load of 8 factors, the same three multiplies before the interleave */      \
+            for (int k = 0; k < 4; k++) {                                                                    \
+                const v8f s = ld8(f + 8 * k);                                                                \
+                put_rgb8(out + 24 * k, a[0][k] * s, a[CO == 3 ? 1 : 0][k] * s, a[CO == 3 ? 2 : 0][k] * s, nt); \
+            }                                                                                                \
+        else {                                                                                               \
+            const v8f c0 = bc8(fc), c1 = bc8(fc + 1), c2 = bc8(fc + 2);                                      \
+            for (int k = 0; k < 4; k++) {                                                                    \
+                const v8f s = ld8(f + 8 * k);                                                                \
+                put_rgb8(out + 24 * k, a[0][k] * (s * c0), a[CO == 3 ? 1 : 0][k] * (s * c1),                 \
+                         a[CO == 3 ? 2 : 0][k] * (s * c2), nt);                                              \
+            }                                                                                                \
+        }                                                                                                    \
         return;                                                                                              \
     }                                                                                                        \
     float sums[4 * BV] __attribute__((aligned(32)));                                                         \
     for (int c = 0; c < CO; c++) for (int k = 0; k < 4; k++) st8(sums + c * BV + 8 * k, a[c][k]);           \
-    if (nv == BV) /* constant trip counts: vectorised */                                                     \
+    if (fm) { /* one factor per vertex (times fc [OC] when fm = 2; 1 exactly otherwise) */                  \
+        float fcv[4] = {1.0f, 1.0f, 1.0f, 1.0f};                                                             \
+        if (fm == 2) for (int c = 0; c < OC; c++) fcv[c] = fc[c];                                            \
+        for (i64 v = 0; v < nv; v++)                                                                         \
+            for (int c = 0; c < OC; c++) out[OC * v + c] = sums[(CO == 1 ? 0 : c) * BV + v] * (f[v] * fcv[c]); \
+    } else if (nv == BV) /* constant trip counts: vectorised */                                              \
         for (int v = 0; v < BV; v++)                                                                         \
             for (int c = 0; c < OC; c++) out[OC * v + c] = sums[(CO == 1 ? 0 : c) * BV + v] * f[OC * v + c]; \
     else                                                                                                     \
@@ -592,7 +657,8 @@ typedef struct {
         const i64 v0 = vt + b * BV, nv = V - v0 < BV ? V - v0 : BV;                                          \
         dense_block_##T(CT_, CO_, OC_, nd, wk, lw, dense + v0 * Pd * CT_, BV * CT_, PAIR_ARGS(b, nb, Pd * BV * CT_) \
                         ns && !rows ? acc + 128 * b : NULL,                                                  \
-                        L->rptr + v0 / 8, L->rcol, rvals, rows ? lp : NULL, nv, f + OC_ * v0, out + OC_ * v0);  \
+                        L->rptr + v0 / 8, L->rcol, rvals, rows ? lp : NULL, nv, OC_ == 3 && CT_ == 1 ? fm : 0, fc, f + (fm ? 1 : OC_) * v0, \
+                        out + OC_ * v0, nt_out);                                                     \
     }
 
 /* one tile t's work (the unit of the threads' split): its scratch zeroed, its sparse blocks, its dense blocks and
@@ -629,6 +695,15 @@ typedef struct {
 #define SERIAL_TILES(T)
 #endif
 
+#define F1 256 /* C | F1: the factor one per vertex (f [V + 4]: f [V], then fc [4] the output channels' multipliers) */
+#if W16 && defined(OUT_NT) /* a measurement knob (bench_wavelet_factor.py --nt): streaming stores for outputs of at least OUT_NT bytes */
+#define NT_OUT_SET(x, bytes, out) x = (bytes) >= (OUT_NT) && ((uintptr_t)(out) & 31) == 0
+#define NT_OUT_FENCE(x) if (x) _mm_sfence()
+#else
+#define NT_OUT_SET(x, bytes, out) (void)(out)
+#define NT_OUT_FENCE(x) (void)(x)
+#endif
+
 #define WAVELET_KERNEL(NAME, T)                                                                              \
 int NAME(const wavelet_layout *L, i64 N, const i64 *sel, const float *lv, i64 C, const float *f, float *out,  \
          i64 threads) {                                                                                      \
@@ -636,6 +711,9 @@ int NAME(const wavelet_layout *L, i64 N, const i64 *sel, const float *lv, i64 C,
     const T *dense = (const T *)L->dense, *bvals = (const T *)L->bvals;                                      \
     float *lw = L->lw;                                                                                       \
     i64 *wk = L->wk;                                                                                         \
+    /* C | F1 (256): f [V + 4] one factor per vertex, then one per output channel (below); else f [V, OC] */   \
+    const int f1 = C >> 8 == 1;                                                                              \
+    C -= f1 ? F1 : 0;                                                                                        \
     if (C < 1 || C > 4 || (CT == 3 && C != 1 && C != 3)) return 1;                                          \
     uint64_t bad = 0; /* no exit per term: vectorised */                                                     \
     for (i64 n = 0; n < N; n++) bad |= (uint64_t)sel[n] >= (uint64_t)P;                                      \
@@ -650,6 +728,15 @@ int NAME(const wavelet_layout *L, i64 N, const i64 *sel, const float *lv, i64 C,
         grey = ((a ^ b) | (a ^ c)) == 0;                                                                     \
     }                                                                                                        \
     const i64 CO = grey ? 1 : C > CT ? C : CT;                                                               \
+    /* the factor's form (fm, TILE_CASE): 0 f [V, OC]; 1 f [V]; 2 f [V] times fc [OC] = f + V, a channel's not 1 */ \
+    const float *fc = f1 ? f + V : NULL;                                                                     \
+    const i64 OCn = CT == 3 || grey ? 3 : CO;                                                                \
+    if (f1 && (OCn != 3 || CT != 1)) return 1; /* a per-vertex factor: RGB outputs of a grey transfer only */   \
+    int fm = f1;                                                                                             \
+    for (i64 c = 0; f1 && c < OCn; c++) fm = fc[c] != 1.0f ? 2 : fm;                                         \
+    /* OUT_NT builds (W16): the output by streaming stores when it holds at least OUT_NT bytes (32-byte aligned) */ \
+    int nt_out = 0;                                                                                          \
+    NT_OUT_SET(nt_out, V * OCn * (i64)sizeof(float), out);                                                   \
     /* the light per column (duplicates add), and a mark per column (its class: 0 no vertex keeps it — not    \
      * read —, 1 sparse, 2 dense; 3264 of the 5900 sparse columns at N = all on the blocker scene) — without a branch per  \
      * term: in the light's order dense and sparse terms alternate, and a branch on the form mispredicted     \
@@ -723,6 +810,7 @@ int NAME(const wavelet_layout *L, i64 N, const i64 *sel, const float *lv, i64 C,
     _Pragma("omp parallel for schedule(static) num_threads(nt) if(nt > 1)")                                 \
     for (i64 t = 0; t < NT; t++) { TILE_BODY(T) }                                                            \
     for (i64 n = 0; n < N; n++) memset(lp + 4 * sel[n], 0, 4 * sizeof(float));                               \
+    NT_OUT_FENCE(nt_out);                                                                                    \
     return 0;                                                                                                \
 }
 
