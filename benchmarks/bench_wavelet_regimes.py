@@ -6,7 +6,8 @@ Builds of the working tree's ``kernels/wavelet.c`` (this CPU's native build: on 
 whose prefetch these knobs move; ``-D`` overrides prepended to the source through ``bench_wavelet_isa.kernel_build``):
 **base** (``PFX_MIN`` = 2 MB, the default before; the working tree's is now 0), **A/A** (the base built twice), ``PFX_MIN`` = 0 (the far path always),
 512 KB, 1 MB, *never* (the within-unit prefetch ``PF_IN`` always), and ``PF_IN`` variants: the in-unit distance
-``PF`` = 3 / 10 / 16 and ``PF_NEXT`` (the unit's last PF terms prefetch the next unit's first terms). All bound to one
+``PF`` = 3 / 10 / 16 and ``PF_NEXT`` (the unit's last PF terms prefetch the next unit's first terms), these with the
+base's ``PFX_MIN`` (at small they replace the in-unit loop the base runs; at medium the far path runs in every build). All bound to one
 layout per size (occluder_over_plane small / medium: V = 2251 / 10585, dense layouts 1.1 / 5.2 MB against a 2 MB L2;
 R = 32, K = 256, 16-bit), the studio and sky lights (transport-weighted terms, RGB) at N = 10, 30, 100, 300, 1000 and
 all, one thread, timed by the calling thread's CPU time (``clock=time.thread_time``: the other processes' load enters
@@ -64,10 +65,10 @@ VARIANTS = {
     "pfx512k": "#define PFX_MIN (512LL << 10)\n",
     "pfx1m": "#define PFX_MIN (1LL << 20)\n",
     "never": "#define PFX_MIN (1LL << 62)\n",
-    "pf3": "#define PF 3\n",
-    "pf10": "#define PF 10\n",
-    "pf16": "#define PF 16\n",
-    "next": "#define PF_NEXT 1\n",
+    "pf3": "#define PF 3\n" + BASE,  # the in-unit variants with the base's PFX_MIN: at small they replace PF_IN
+    "pf10": "#define PF 10\n" + BASE,
+    "pf16": "#define PF 16\n" + BASE,
+    "next": "#define PF_NEXT 1\n" + BASE,
 }
 LABEL = {"base": "PFX_MIN 2 MB (base)", "aa": "A/A", "pfx0": "PFX_MIN 0 (far always)", "pfx512k": "PFX_MIN 512 KB",
          "pfx1m": "PFX_MIN 1 MB", "never": "PF_IN always", "pf3": "PF 3", "pf10": "PF 10", "pf16": "PF 16",
@@ -137,6 +138,11 @@ def size_rows(size: str, libs: dict, repeats: int, evict_bytes: int, calls: int,
     return info, rows
 
 
+def defines(k: str) -> str:
+    """Build ``k``'s prepended lines, on one line."""
+    return "; ".join(VARIANTS.get(k, BASE).strip().splitlines())
+
+
 def report(infos: list[dict], rows: list[dict], flags: str, args, before: float, after: float, names: list[str]) -> str:
     def q(t):
         return f"{t[0]:.2f} [{t[1]:.2f}, {t[2]:.2f}]"
@@ -144,7 +150,7 @@ def report(infos: list[dict], rows: list[dict], flags: str, args, before: float,
          f"{cpu_label()}; load average {before:.1f} → {after:.1f} (a machine shared with other jobs: one thread's CPU "
          f"time, which their load does not enter). Native builds of the working tree's `kernels/wavelet.c` with the "
          f"wavelet library's flags (`{flags}`), `-D` overrides prepended: "
-         + ", ".join(f"**{LABEL[k]}**" + (f" (`{VARIANTS.get(k, BASE).strip()}`)" if k != "aa" else "") for k in ["base", "aa"] + names)
+         + ", ".join(f"**{LABEL[k]}**" + (f" (`{defines(k)}`)" if k != "aa" else "") for k in ["base", "aa"] + names)
          + ". All bound to one layout per size (occluder_over_plane, R = 32, K = 256, "
          f"{BITS}-bit; " + "; ".join(f"{i['size']}: V = {i['V']}, {i['Pd']} dense columns, dense layout "
                                       f"{i['dense_mb']:.1f} MB" for i in infos)
