@@ -25,7 +25,7 @@ Each ``PFX_MIN`` build is also paired with the streaming read of the bytes the c
 (``timing.read_bound_fn`` of ``WaveletRelighter.bytes_read``) in the same regime. Every build's output is compared
 bit for bit with the base's. Writes reports/benchmarks/wavelet_regimes.md (and the rows as .json).
 
-    .venv/bin/python benchmarks/bench_wavelet_regimes.py [--sizes small,medium] [--variants ...]   (about 6 minutes)
+    .venv/bin/python benchmarks/bench_wavelet_regimes.py [--sizes small,medium] [--variants ...]   (about 7 minutes)
 """
 
 from __future__ import annotations
