@@ -59,14 +59,15 @@
  *    PFX_MIN from three cache regimes (bench_wavelet_regimes.py, reports/benchmarks/wavelet_regimes.md; Intel Xeon,
  *    one thread's CPU time, paired with the 2 MB build, A/A control, load 2-6): small (1.1 MB, where 2 MB kept the
  *    in-unit loop), the far path always (PFX_MIN 0) against 2 MB: warm (back-to-back calls, the layout in L2)
- *    0.96-1.03x (the A/A 0.99-1.01; studio N = 30 0.96-0.98x in each run: ~0.15 us of 6), evicted (a 3 MB streaming
- *    read of other data before each call: the lines from L3) 0.98-1.10x, cold (the working set flushed: from memory)
- *    1.06-1.30x; 512 KB and 1 MB (the far path at small too) the same within noise; medium (5.2 MB) takes it with
- *    either. A render loop does other work between relights (the evicted and cold regimes), and there the gains are
- *    2-12 us a call against the warm loss of at most ~0.2 us, so 0. The in-unit variants, where they would still
- *    apply (small, PFX_MIN 2 MB), paid in no regime: PF = 3 / 10 / 16 evicted 0.93-1.06x / 0.87-1.03x / 0.86-1.06x,
- *    cold 0.90-0.98x / 0.87-1.06x / 0.92-1.09x; the unit's last PF terms prefetching the next unit's first (-DPF_NEXT,
- *    a measurement knob) evicted 0.95-1.11x, cold 0.99-1.18x (the far path: 1.06-1.30x).
+ *    0.96-1.03x (the A/A 0.95-1.01; studio N = 30 0.96-0.98x in each run: ~0.2-0.3 us of 6-7), evicted (a 2-4 MB
+ *    streaming read of other data before each call: the lines from L3) 0.98-1.17x, cold (the working set flushed:
+ *    from memory) 1.03-1.30x; 512 KB and 1 MB (the far path at small too) the same within noise; medium (4.9 MiB)
+ *    takes it with either (the in-unit loop forced there: 0.80-1.04x warm, 0.76-1.00x evicted, 0.65-0.93x cold). A render loop does other work between relights (the evicted and cold regimes), and there the gains are
+ *    2-17 us a call against the warm loss of at most ~0.3 us, so 0. The in-unit variants, where they would still
+ *    apply (small, PFX_MIN 2 MB), paid in no regime: PF = 3 / 10 / 16 evicted 0.92-1.13x / 0.87-1.04x / 0.86-1.06x,
+ *    cold 0.90-0.98x / 0.87-1.06x / 0.92-1.11x (two runs); the unit's last PF terms prefetching the next unit's first (-DPF_NEXT,
+ *    a measurement knob) evicted 0.95-1.17x, cold 0.99-1.21x (the far path: 1.04-1.30x); PF_FAR's wrap without a
+ *    branch (a mask) warm 0.92-1.00x, evicted and cold within the A/A.
  *    The 8-lane loop (AVX2 builds) keeps its code (tuned on the AMD
  *    Zen 3; its assembly unchanged): the same prefetch there, -DPF_X8, measured as the avx2 build on the Xeon at
  *    large 1.30-1.86x but small 0.96-0.97x (N = 10, the path not taken at 2 MB), so it is off by default (with
