@@ -1,7 +1,8 @@
 """The wavelet kernel's dense loop with the prefetch across units against a base revision's (issue 39):
 ``kernels/wavelet.c`` of the working tree (the 16-lane loop's ``PF_FAR``: PFX = 24 (term, unit) steps ahead, into the
-next block or pair of blocks, when the dense layout holds at least PFX_MIN = 2 MB) and of ``--base`` (default
-``main``, which prefetches PF = 6 terms ahead within a block only), both compiled with the wavelet library's flags and
+next block or pair of blocks, when the dense layout holds at least PFX_MIN: 2 MB when this was written, 0 — every
+layout — since bench_wavelet_regimes.py) and of ``--base`` (default ``main``, which prefetched PF = 6 terms ahead
+within a block only), both compiled with the wavelet library's flags and
 bound to one layout, timed paired by one thread's CPU time (``measure_paired(clock=time.thread_time)``: what other
 processes ran is in neither side), at each ``--sizes`` of occluder_over_plane (small / medium / large: V = 2251 /
 10585 / 51335, dense layouts of 1.1 / 5.2 / 25 MB against the Xeon's 2 MB L2), the studio and sky lights

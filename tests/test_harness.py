@@ -535,6 +535,36 @@ def test_cold_paired_timing_alternates_single_calls_after_an_eviction():
         measure_paired_cold(lambda: None, lambda: None, repeats=0)
 
 
+def test_cold_paired_timing_calls_per_sample_each_after_its_own_eviction():
+    """measure_paired_cold(calls=3): a sample is three calls, each preceded by an eviction (none of them timed: the
+    per-call time is the sample's mean of the calls alone, so a slow eviction does not enter it)."""
+    import time
+
+    from prt_torch.harness import timing
+
+    seq = []
+
+    def work(name, k):
+        seq.append(name)
+        time.sleep(0.002 * k)
+
+    def slow_evict():  # the junk read replaced by a slow step: were it timed, the ratio would drift toward 1
+        seq.append("e")
+        time.sleep(0.02)
+
+    orig = timing._junk
+    try:
+        timing._junk = lambda nbytes: type("J", (), {"sum": staticmethod(slow_evict)})()
+        p = timing.measure_paired_cold(lambda: work("t", 1), lambda: work("p", 2), repeats=3, warmup=0, calls=3)
+    finally:
+        timing._junk = orig
+    assert seq == ["e", "t"] * 3 + ["e", "p"] * 6 + ["e", "t"] * 6 + ["e", "p"] * 3
+    assert p.test.inner == 3 and p.ratio.repeats == 3
+    assert 1.5 < p.ratio.median < 2.5
+    with pytest.raises(ValueError, match="calls"):
+        timing.measure_paired_cold(lambda: None, lambda: None, calls=0)
+
+
 def test_cold_paired_timing_with_evict_flushes_the_given_tensors_and_caches_the_junk():
     """measure_paired_cold(evict=tensors): the same single-call alternation, the eviction a flush of
     exactly those tensors' bytes (overlaps once; the flush helper where there is one, else the junk

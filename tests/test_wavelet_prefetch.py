@@ -1,5 +1,5 @@
 """The 16-lane dense loop's prefetch across units (kernels/wavelet.c ``PF_FAR``: taken when the dense layout holds at
-least ``PFX_MIN`` bytes, 2 MB; the test layouts are far smaller, so the kernel is built here with ``PFX_MIN`` 0): a
+least ``PFX_MIN`` bytes, by default 0 — every layout —; built here with ``PFX_MIN`` 0 whatever the default): a
 prefetch never changes what is summed, so the forced build gives the AVX2 build's bits (each vertex's terms in the same
 order) and the float64 gather of the same stored values (``relight.wavelet_dense``) — with fewer dense terms than
 ``PFX`` (the target several units ahead), with more, tiles of odd block counts (the pair and the lone block), the

@@ -207,9 +207,9 @@ def _alternate(test: Callable[[], Any], peer: Callable[[], Any], repeats: int, n
                before: Callable[[], Any] | None = None,
                clock: Callable[[], float] = time.perf_counter) -> tuple[list[float], list[float], list[float]]:
     """``repeats`` pairs of samples, back to back, the order swapped every repeat: a sample of
-    ``test`` is ``n_t`` calls in a row (of ``peer``, ``n_p``), preceded by ``before()`` untimed
-    when given, timed by ``clock``. Returns the per-call times of each side and the per-pair
-    ratios peer/test."""
+    ``test`` is ``n_t`` calls (of ``peer``, ``n_p``), in a row, or with ``before`` each call preceded by
+    ``before()`` untimed (the sample: the sum of its calls' times), timed by ``clock``. Returns the per-call
+    times of each side and the per-pair ratios peer/test."""
     tt: list[float] = []
     tp: list[float] = []
     ratios: list[float] = []
@@ -218,7 +218,14 @@ def _alternate(test: Callable[[], Any], peer: Callable[[], Any], repeats: int, n
         for name in (("test", "peer") if i % 2 == 0 else ("peer", "test")):
             fn, n = (test, n_t) if name == "test" else (peer, n_p)
             if before is not None:
-                before()
+                dt = 0.0
+                for _ in range(n):
+                    before()
+                    t0 = clock()
+                    fn()
+                    dt += clock() - t0
+                pair[name] = dt / n
+                continue
             t0 = clock()
             for _ in range(n):
                 fn()
@@ -497,12 +504,13 @@ def release_eviction_buffer() -> int:
 
 def measure_paired_cold(test: Callable[[], Any], peer: Callable[[], Any], repeats: int = 15, warmup: int = 1,
                         evict_bytes: int | None = None, max_switch_rate: float = 50.0, max_spread: float = 0.5,
-                        evict: Any = None, clock: Callable[[], float] = time.perf_counter) -> Paired:
+                        evict: Any = None, clock: Callable[[], float] = time.perf_counter, calls: int = 1) -> Paired:
     """:func:`measure_paired` from cold caches: every timed call is a single call, preceded (untimed) by an
     eviction of what the previous calls left in the caches, so each side reads its inputs from memory and
     writes its outputs back, as in a render loop whose other work between frames evicts them. The two
     sides alternate (order swapped every repeat); ``ratio`` is the distribution of per-repeat ratios
-    peer/test, ``speedup`` its median.
+    peer/test, ``speedup`` its median. ``calls`` > 1: a sample is that many such calls (each after its own
+    eviction), its time their mean — a steadier per-repeat ratio for calls of a few microseconds.
 
     The eviction: with ``evict`` (a list of the CPU tensors / numpy arrays the two sides read and write —
     :func:`working_set` of the two callables gathers what they close over) the bytes of those tensors are
@@ -526,6 +534,7 @@ def measure_paired_cold(test: Callable[[], Any], peer: Callable[[], Any], repeat
 
     repeats = check_int("repeats", repeats, 1)
     warmup = check_int("warmup", warmup, 0)
+    calls = check_int("calls", calls, 1)
     if clock is time.thread_time and torch.get_num_threads() != 1:
         raise ValueError(f"measure_paired_cold: clock=time.thread_time counts only the calling thread's CPU time, and torch "
                          f"runs {torch.get_num_threads()} threads; accepted: one thread (with timing.torch_threads(1): ...)")
@@ -556,13 +565,13 @@ def measure_paired_cold(test: Callable[[], Any], peer: Callable[[], Any], repeat
         peer()
     r0 = resource.getrusage(resource.RUSAGE_SELF)
     c0, w0 = time.process_time(), time.perf_counter()
-    tt, tp, ratios = _alternate(test, peer, repeats, 1, 1, before=before, clock=clock)
+    tt, tp, ratios = _alternate(test, peer, repeats, calls, calls, before=before, clock=clock)
     ratio = _quantiles(ratios, warmup)
     contention = _contention(r0, c0, w0, ratio, max_switch_rate, max_spread)
     eviction = {"method": method, "bytes": nbytes, "median_s": statistics.median(costs)}
     if evict is not None and method == "junk read":
         eviction["why"] = _FLUSH.get("why")
-    return Paired(_quantiles(tt, warmup), _quantiles(tp, warmup), ratio, contention, ratio.median, None, eviction)
+    return Paired(_quantiles(tt, warmup, calls), _quantiles(tp, warmup, calls), ratio, contention, ratio.median, None, eviction)
 
 
 def io_bound_fn(bytes_read: int, bytes_written: int) -> Callable[[], Any]:

@@ -53,10 +53,11 @@
  *    pair's loop split at nd - PF (no prefetch test per term) 0.93-1.03x; the RGB output on 16 lanes (a vpermt2ps
  *    and a masked vpermps per output vector) 0.96-1.04x; the prefetch distance 3 / 10 / 16 terms with the pair
  *    0.94-1.01x of 6.
- *    Prefetch across units (PF_FAR, W16): when the dense layout holds at least PFX_MIN (2 MB, the Xeon's L2) bytes,
- *    the 16-lane loops prefetch the (term, unit) step PFX = 24 steps ahead (a unit: the pair of blocks, or a block
- *    alone), past the unit's last term into the next unit's first terms (PF_FAR); below PFX_MIN a second copy of the
- *    loops (PF_IN): the term PF = 6 ahead within the unit, none for its last PF terms, as in main. A block
+ *    Prefetch across units (PF_FAR, W16): when the dense layout holds at least PFX_MIN bytes (0 by default: every
+ *    layout; 2 MB, the Xeon's L2, until the cache regimes below were measured), the 16-lane loops prefetch the
+ *    (term, unit) step PFX = 24 steps ahead (a unit: the pair of blocks, or a block alone), past the unit's last term
+ *    into the next unit's first terms (PF_FAR); below PFX_MIN a second copy of the loops (PF_IN, kept for a
+ *    PFX_MIN override): the term PF = 6 ahead within the unit, none for its last PF terms, as in main. A block
  *    spans Pd x 64 B (15.6 KB at R = 32, K = 256) and a light reads its nd lines scattered in it: no stream the
  *    hardware follows, and once the layout outgrows the L2 the first PF terms of every block were demand misses from
  *    L3. Measured on the Intel Xeon, one thread's CPU time, paired with main's build (bench_wavelet_prefetch.py,
@@ -66,9 +67,23 @@
  *    N = 30 / 100, sky N = 100; A/A 0.99-1.03): the call's extra argument and branch or code placement, unresolved;
  *    one loop branching per term on the mode 0.90-0.95x, the far loops out of line (a
  *    function per block, main's loop text kept below PFX_MIN) no better at small and 0.93-0.94x at medium N = 10-30, every unit's tail prefetching the
- *    next unit also below PFX_MIN 0.92-0.98x. The 8-lane loop (AVX2 builds) keeps its code (tuned on the AMD
+ *    next unit also below PFX_MIN 0.92-0.98x.
+ *    PFX_MIN from three cache regimes (bench_wavelet_regimes.py, reports/benchmarks/wavelet_regimes.md; Intel Xeon,
+ *    one thread's CPU time, paired with the 2 MB build, A/A control, load 2-6): small (1.1 MB, where 2 MB kept the
+ *    in-unit loop), the far path always (PFX_MIN 0) against 2 MB: warm (back-to-back calls, the layout in L2)
+ *    0.96-1.03x (the A/A 0.95-1.01; studio N = 30 0.96-0.98x in each run: ~0.2-0.3 us of 6-7), evicted (a 2-4 MB
+ *    streaming read of other data before each call: the lines from L3) 0.98-1.17x, cold (the working set flushed:
+ *    from memory) 1.03-1.30x; 512 KB and 1 MB (the far path at small too) the same within noise; medium (4.9 MiB)
+ *    takes it with either (the in-unit loop forced there: 0.80-1.04x warm, 0.76-1.00x evicted, 0.65-0.93x cold). A render loop does other work between relights (the evicted and cold regimes), and there the gains are
+ *    2-17 us a call against the warm loss of at most ~0.3 us, so 0. The in-unit variants, where they would still
+ *    apply (small, PFX_MIN 2 MB), paid in no regime: PF = 3 / 10 / 16 evicted 0.92-1.13x / 0.87-1.04x / 0.86-1.06x,
+ *    cold 0.90-0.98x / 0.87-1.06x / 0.92-1.11x (two runs); the unit's last PF terms prefetching the next unit's first (-DPF_NEXT,
+ *    a measurement knob) evicted 0.95-1.17x, cold 0.99-1.21x (the far path: 1.04-1.30x); PF_FAR's wrap without a
+ *    branch (a mask) warm 0.92-1.00x, evicted and cold within the A/A.
+ *    The 8-lane loop (AVX2 builds) keeps its code (tuned on the AMD
  *    Zen 3; its assembly unchanged): the same prefetch there, -DPF_X8, measured as the avx2 build on the Xeon at
- *    large 1.30-1.86x but small 0.96-0.97x (N = 10, the path not taken), so it is off by default.
+ *    large 1.30-1.86x but small 0.96-0.97x (N = 10, the path not taken at 2 MB), so it is off by default (with
+ *    PF_X8 it now follows PFX_MIN 0 too: every layout; the Zen 3's L2 is 512 KB).
  *    The sparse blocks, the row-major pass and the output stay on 8 lanes (a 16-lane read-modify-write of
  *    two channels' scratch per block measured 0.90-0.94x of the 8-lane one: not kept); the column-major sparse
  *    pass takes three blocks per loop step in these builds (SPARSE_RANGE), and with AVX-512's 32 registers the
@@ -238,7 +253,22 @@ static inline void put_rgb8(float *out, v8f r, v8f g, v8f b, int nt) {
  * Each vertex's terms are added in the same order in every mode: the same bits. keep is written and read in 32-byte
  * halves: the 8-lane halves a[c][k] read back from 64-byte stores missed store forwarding, ~0.4 us per call (0.82x
  * at N = 1, 0.92x at N = 10 against the one-block loop; halves: 0.97x, 1.00x). */
-/* within the unit only (layouts below PFX_MIN): the lines of the term PF ahead, none for the unit's last PF terms */
+/* within the unit only (layouts below PFX_MIN, none by default; the 8-lane loop): the lines of the term PF ahead, none for
+ * the unit's last PF terms */
+#if defined(PF_NEXT) && W16 /* a measurement only (bench_wavelet_regimes.py): the unit's last PF terms prefetch the next
+                              * unit's first PF terms (us elements on; past the layout's end: a prefetch, never a load) */
+#define PF_IN(T, us, two)                                                                                    \
+    {                                                                                                        \
+        const int nx_ = t + PF >= nd;                                                                        \
+        const i64 tt_ = nx_ ? t + PF - nd : t + PF;                                                          \
+        if (tt_ < nd && (!nx_ || (us)))                                                                      \
+            for (i64 q = 0; q < stride * (i64)sizeof(T); q += 64) {                                          \
+                const uintptr_t a_ = (uintptr_t)blk + (uintptr_t)((ds[tt_] * stride + (nx_ ? (us) : 0)) * (i64)sizeof(T)); \
+                __builtin_prefetch((const char *)(a_ + q));                                                  \
+                if (two) __builtin_prefetch((const char *)(a_ + (uintptr_t)((us) / 2 * (i64)sizeof(T)) + q)); \
+            }                                                                                                \
+    }
+#else
 #define PF_IN(T, us, two)                                                                                    \
     if (t + PF < nd)                                                                                         \
         for (i64 q = 0; q < stride * (i64)sizeof(T); q += 64) {                                              \
@@ -246,6 +276,7 @@ static inline void put_rgb8(float *out, v8f r, v8f g, v8f b, int nt) {
             __builtin_prefetch((const char *)(blk + op) + q);                                                \
             if (two) __builtin_prefetch((const char *)(blk + (us) / 2 + op) + q); /* the unit's next block */ \
         }
+#endif
 /* the 8-lane loop over the nd dense terms, added to a[c][k], STEP the prefetch (PF_IN; PF_X8 builds: PF_FAR), US its unit */
 #define TERMS8(T, STEP, US)                                                                                   \
     for (i64 t = 0; t < nd; t++) {                                                                           \
@@ -265,8 +296,9 @@ static inline void put_rgb8(float *out, v8f r, v8f g, v8f b, int nt) {
 #ifndef PFX
 #define PFX 24 /* (term, unit) steps ahead the 16-lane loops prefetch, across their unit's end into the next unit's terms */
 #endif
-#ifndef PFX_MIN
-#define PFX_MIN (2LL << 20) /* dense layouts of at least this many bytes take the prefetch across units (far) */
+#ifndef PFX_MIN /* dense layouts of at least this many bytes take the prefetch across units (far): 0, every layout (2 MB,
+                  * the Xeon's L2, before: in L2 the far path costs ~1-2% a call, from L3 or memory it gains; the header) */
+#define PFX_MIN 0LL
 #endif
 /* the prefetch's target PFX steps ahead of this unit's term 0 (a unit: the block, or the pair of blocks, us elements
  * long; the next unit starts us elements on): pt_ its term, po_ its unit's offset from blk in elements */
