@@ -1,5 +1,6 @@
 """Shared fixtures."""
 import os
+from pathlib import Path
 
 import pytest
 import torch
@@ -119,3 +120,22 @@ def nonzero_haar_terms():
     """``nonzero_haar_terms(spec, res) -> int``: a light's nonzero Haar terms on the cube at ``res``, counted
     directly from its coefficients (:func:`_nonzero_haar_terms`)."""
     return _nonzero_haar_terms
+
+
+def _bench_module(name: str):
+    """``benchmarks/<name>.py`` imported as a module: the benchmarks folder is on ``sys.path`` only while it imports."""
+    import importlib
+    import sys
+
+    bench = str(Path(__file__).resolve().parents[1] / "benchmarks")
+    sys.path.insert(0, bench)
+    try:
+        return importlib.import_module(name)
+    finally:
+        sys.path.remove(bench)
+
+
+@pytest.fixture(scope="session")
+def bench_module():
+    """:func:`_bench_module`: ``bench_module("bench_wavelet")`` gives that benchmark script as a module."""
+    return _bench_module

@@ -3,22 +3,13 @@ the rows of the same codec, view and threads in the kept run of the same CPU and
 rows and other builds' runs are added, every other row is kept as it was, the section names the
 re-measured rows with their load and command, and a run of another point count is refused."""
 import json
-import sys
-from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
-
 
 @pytest.fixture(scope="module")
-def br():
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    try:
-        import bench_relight
-    finally:
-        sys.path.remove(str(ROOT / "benchmarks"))
-    return bench_relight
+def br(bench_module):
+    return bench_module("bench_relight")
 
 
 def _run(cpu: str, points: int, rows: list[tuple], load: tuple = (1.0, 1.0, 1.0)) -> dict:

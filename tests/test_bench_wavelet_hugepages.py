@@ -6,21 +6,13 @@ from __future__ import annotations
 
 import json
 import sys
-from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
-
 
 @pytest.fixture(scope="module")
-def bh():
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    try:
-        import bench_wavelet_hugepages
-    finally:
-        sys.path.remove(str(ROOT / "benchmarks"))
-    return bench_wavelet_hugepages
+def bh(bench_module):
+    return bench_module("bench_wavelet_hugepages")
 
 
 def _no_work(bh, monkeypatch):
@@ -64,7 +56,6 @@ def _pages(bh, sizes, r):
               "anon_huge_kb": {"hp": 2048, "4k": 0, bh.AA: 0, "hp+sparse": 2048}, "backed": {"hp+sparse": ["dense"]},
               "build": _pair(1.0)} for s in sizes]
     return {"rows": rows, "infos": infos}
-
 
 
 def test_a_run_of_one_size_replaces_only_its_rows(bh, monkeypatch, tmp_path):

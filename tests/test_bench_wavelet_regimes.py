@@ -13,13 +13,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
-def br():
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    try:
-        import bench_wavelet_regimes
-    finally:
-        sys.path.remove(str(ROOT / "benchmarks"))
-    return bench_wavelet_regimes
+def br(bench_module):
+    return bench_module("bench_wavelet_regimes")
 
 
 @pytest.mark.parametrize("argv, says", [

@@ -5,21 +5,13 @@ build and size (runs from before ``--size`` count as the small mesh's)."""
 from __future__ import annotations
 
 import sys
-from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
-
 
 @pytest.fixture(scope="module")
-def bw():
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    try:
-        import bench_wavelet
-    finally:
-        sys.path.remove(str(ROOT / "benchmarks"))
-    return bench_wavelet
+def bw(bench_module):
+    return bench_module("bench_wavelet")
 
 
 @pytest.mark.parametrize("argv, says", [
