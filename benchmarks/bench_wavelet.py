@@ -340,6 +340,26 @@ def size_choice(size: str | None, who: str = "bench_wavelet.py") -> str:
     raise SystemExit(2)
 
 
+def kernel_transfer(size: str):
+    """Section 7's transfer at ``size`` (:data:`KERNEL_SIZES`): ``occluder_over_plane``, R = 32, K = 256, :data:`BITS`-bit
+    values, shadowed, one precompute worker — what the kernel benchmarks that pair builds or layouts relight."""
+    return precompute_wavelet(builtin("occluder_over_plane", size), 32, 256, BITS, shadows="always", run=RunOptions(workers=1))
+
+
+def kernel_lights(rl, terms):
+    """Section 7's lights for a relighter ``rl``: ``(light, N, idx, vals)`` for studio and sky at each N of ``terms`` and
+    at all ``rl.P`` terms (transport-weighted; ``vals`` float32 [C, n], ``idx`` int64 [n], both contiguous)."""
+    for light in ("studio", "sky (sun)"):
+        for N in tuple(terms) + (rl.P,):
+            li, lv, _ = rl.light(LIGHTS[light], N, "transport")
+            yield light, N, li.contiguous(), lv.to(torch.float32).contiguous()
+
+
+def layout_info(rl, size: str) -> dict:
+    """A relighter's layout for a report's header: ``{size, V, Pd, dense_mb}``."""
+    return {"size": size, "V": rl.V, "Pd": rl.Pd, "dense_mb": rl.dense.numel() * rl.dense.element_size() / 2**20}
+
+
 def check_size(size: str | None, only: str | None) -> str:
     """bench_wavelet.py's ``--size`` checked before any work (:func:`size_choice`), and only with ``--only kernel``
     (the other sections' tables are the small mesh's): one line and exit status 2 otherwise."""

@@ -34,15 +34,12 @@ from pathlib import Path  # noqa: E402
 import torch  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_wavelet import BITS, KERNEL_SIZES, LIGHTS, OUT, load, size_choice  # noqa: E402
+from bench_wavelet import BITS, KERNEL_SIZES, OUT, kernel_lights, kernel_transfer, layout_info, load, size_choice  # noqa: E402
 from bench_wavelet_isa import bound_call, kernel_build, kernel_source  # noqa: E402
 
 from prt_torch import relight  # noqa: E402
 from prt_torch.harness.timing import cpu_label, measure_paired, read_bound_fn  # noqa: E402
 from prt_torch.io import atomic_write_text  # noqa: E402
-from prt_torch.scene import builtin  # noqa: E402
-from prt_torch.transfer import RunOptions  # noqa: E402
-from prt_torch.transfer.wavelet import precompute_wavelet  # noqa: E402
 
 TERMS = (10, 30, 100, 300, 1000)
 WHO = "bench_wavelet_factor.py"
@@ -72,49 +69,43 @@ def paired(a, b, repeats: int) -> tuple[float, float, float]:
 
 def size_rows(size: str, libs: dict, repeats: int) -> tuple[dict, list[dict]]:
     """One size's layout (``{V, Pd, dense_mb}``) and its rows (each light and N, both builds)."""
-    mesh = builtin("occluder_over_plane", size)
-    tr = precompute_wavelet(mesh, 32, 256, BITS, shadows="always", run=RunOptions(workers=1))
-    rl = relight.WaveletRelighter(tr, threads=1, layouts="both")  # the row-major copy built: every build reads it
-    info = {"size": size, "V": rl.V, "Pd": rl.Pd, "dense_mb": rl.dense.numel() * rl.dense.element_size() / 2**20,
-            "form": relight.WaveletRelighter._factor_form(rl.albedo[:, :3], rl.CT, 3), "fb": rl.factor_bytes(3)}
+    rl = relight.WaveletRelighter(kernel_transfer(size), threads=1, layouts="both")  # the row-major copy: every build reads it
+    info = {**layout_info(rl, size), "form": relight.WaveletRelighter._factor_form(rl.albedo[:, :3], rl.CT, 3), "fb": rl.factor_bytes(3)}
     rows = []
-    for light in ("studio", "sky (sun)"):
-        for N in TERMS + (rl.P,):
-            li, lv, _ = rl.light(LIGHTS[light], N, "transport")
-            lv, li = lv.to(torch.float32).contiguous(), li.contiguous()
-            old = rl.bytes_read(li, factor=False)
-            new = {"test": rl.bytes_read(li), "base": old + 12 * rl.V}
-            bounds = {"old": read_bound_fn(old, rl.V * 12), "test": read_bound_fn(new["test"], rl.V * 12),
-                      "base": read_bound_fn(new["base"], rl.V * 12)}
-            row = {"size": size, "light": light, "N": N, "nd": int((rl.dslot[li] >= 0).sum()), "mb_old": old / 2**20,
-                   "mb_test": new["test"] / 2**20, "mb_base": new["base"] / 2**20}
-            for isa in ("native", "avx2"):
-                outs = {k: torch.empty(rl.V, 3) for k in libs[isa]}
-                fn = {k: bound_call(rl, lib, li, lv, outs[k], 1, per_vertex=k in ("test", "nt")) for k, lib in libs[isa].items()}
-                for f in fn.values():
-                    f()
-                r = {"same": all(torch.equal(outs[k], outs["base"]) for k in outs)}
-                p = measure_paired(fn["test"], fn["base"], repeats=repeats, warmup=1, clock=time.thread_time)
-                r["test"] = (p.speedup, p.ratio.q1, p.ratio.q3)
-                r["test_us"], r["base_us"] = p.test.median * 1e6, p.peer.median * 1e6
-                r["aa"] = paired(fn["aa"], fn["base"], repeats)
-                for k in ("test", "base"):
-                    r[f"{k}_read_new"] = paired(fn[k], bounds[k], repeats)[0]
-                    r[f"{k}_read_old"] = paired(fn[k], bounds["old"], repeats)[0]
-                if "nt" in fn:
-                    o = outs["nt"]
-                    r["nt"] = paired(fn["nt"], fn["test"], repeats)
-                    r["nt_sum"] = paired(lambda: fn["nt"]().sum(), lambda: fn["test"]().sum(), repeats)
-                    r["nt_same"] = torch.equal(o, outs["test"])
-                row[isa] = r
-            row["load"] = load()
-            rows.append(row)
-            n, a = row["native"], row["avx2"]
-            print(f"[factor] {size} {light} N={N} nd={row['nd']}: native base/test {n['test'][0]:.3f} (A/A {n['aa'][0]:.3f}) "
-                  f"{n['test_us']:.1f} us, of read new {n['test_read_new']:.2f} old {n['test_read_old']:.2f} (base "
-                  f"{n['base_read_new']:.2f} / {n['base_read_old']:.2f}), nt {n['nt'][0]:.3f} +sum {n['nt_sum'][0]:.3f}; "
-                  f"avx2 base/test {a['test'][0]:.3f} (A/A {a['aa'][0]:.3f}); same {n['same'] and a['same']}, "
-                  f"load {row['load']:.1f}", flush=True)
+    for light, N, li, lv in kernel_lights(rl, TERMS):
+        old = rl.bytes_read(li, factor=False)
+        new = {"test": rl.bytes_read(li), "base": old + 12 * rl.V}
+        bounds = {"old": read_bound_fn(old, rl.V * 12), "test": read_bound_fn(new["test"], rl.V * 12),
+                  "base": read_bound_fn(new["base"], rl.V * 12)}
+        row = {"size": size, "light": light, "N": N, "nd": int((rl.dslot[li] >= 0).sum()), "mb_old": old / 2**20,
+               "mb_test": new["test"] / 2**20, "mb_base": new["base"] / 2**20}
+        for isa in ("native", "avx2"):
+            outs = {k: torch.empty(rl.V, 3) for k in libs[isa]}
+            fn = {k: bound_call(rl, lib, li, lv, outs[k], 1, per_vertex=k in ("test", "nt")) for k, lib in libs[isa].items()}
+            for f in fn.values():
+                f()
+            r = {"same": all(torch.equal(outs[k], outs["base"]) for k in outs)}
+            p = measure_paired(fn["test"], fn["base"], repeats=repeats, warmup=1, clock=time.thread_time)
+            r["test"] = (p.speedup, p.ratio.q1, p.ratio.q3)
+            r["test_us"], r["base_us"] = p.test.median * 1e6, p.peer.median * 1e6
+            r["aa"] = paired(fn["aa"], fn["base"], repeats)
+            for k in ("test", "base"):
+                r[f"{k}_read_new"] = paired(fn[k], bounds[k], repeats)[0]
+                r[f"{k}_read_old"] = paired(fn[k], bounds["old"], repeats)[0]
+            if "nt" in fn:
+                o = outs["nt"]
+                r["nt"] = paired(fn["nt"], fn["test"], repeats)
+                r["nt_sum"] = paired(lambda: fn["nt"]().sum(), lambda: fn["test"]().sum(), repeats)
+                r["nt_same"] = torch.equal(o, outs["test"])
+            row[isa] = r
+        row["load"] = load()
+        rows.append(row)
+        n, a = row["native"], row["avx2"]
+        print(f"[factor] {size} {light} N={N} nd={row['nd']}: native base/test {n['test'][0]:.3f} (A/A {n['aa'][0]:.3f}) "
+              f"{n['test_us']:.1f} us, of read new {n['test_read_new']:.2f} old {n['test_read_old']:.2f} (base "
+              f"{n['base_read_new']:.2f} / {n['base_read_old']:.2f}), nt {n['nt'][0]:.3f} +sum {n['nt_sum'][0]:.3f}; "
+              f"avx2 base/test {a['test'][0]:.3f} (A/A {a['aa'][0]:.3f}); same {n['same'] and a['same']}, "
+              f"load {row['load']:.1f}", flush=True)
     return info, rows
 
 

@@ -52,14 +52,12 @@ from pathlib import Path  # noqa: E402
 import torch  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_wavelet import BITS, KERNEL_SIZES, LIGHTS, OUT, STEADY_SPREAD, STEADY_TRIES, load, size_choice  # noqa: E402
+from bench_wavelet import BITS, KERNEL_SIZES, LIGHTS, OUT, STEADY_SPREAD, STEADY_TRIES, kernel_transfer, load, size_choice  # noqa: E402
 from bench_wavelet_isa import bound_call, kernel_build, kernel_source  # noqa: E402
 
 from prt_torch import io, relight  # noqa: E402
 from prt_torch.harness.timing import cpu_label, measure_paired, read_bound_fn  # noqa: E402
-from prt_torch.scene import builtin  # noqa: E402
-from prt_torch.transfer import RunOptions, Transfer  # noqa: E402
-from prt_torch.transfer.wavelet import precompute_wavelet  # noqa: E402
+from prt_torch.transfer import Transfer  # noqa: E402
 
 WHO = "bench_wavelet_hugepages.py"
 TERMS = (10, 30, 100, 300, 1000)
@@ -82,11 +80,6 @@ def proc_kb(field: str, path: str = "/proc/self/smaps_rollup") -> int:
     except OSError:
         pass
     return 0
-
-
-def transfer(size: str) -> Transfer:
-    return precompute_wavelet(builtin("occluder_over_plane", size), 32, 256, BITS, shadows="always",
-                              run=RunOptions(workers=1))
 
 
 def relighter(tr: Transfer, huge: bool, sparse: bool = False) -> relight.WaveletRelighter:
@@ -135,7 +128,7 @@ def pair(a, b, repeats: int) -> dict:
 def pages_part(sizes: list[str], repeats: int) -> dict:
     infos, rows = [], []
     for size in sizes:
-        tr = transfer(size)
+        tr = kernel_transfer(size)
         ahp0 = proc_kb("AnonHugePages")
         rls, ahp = {}, {}
         for name, huge, sparse in (("hp", True, False), ("4k", False, False), (AA, False, False),
@@ -215,7 +208,7 @@ def spread_part(processes: int, repeats: int) -> dict:
     runs = []
     with tempfile.TemporaryDirectory() as d:
         path = str(Path(d) / "large.prt")
-        transfer("large").save(path)
+        kernel_transfer("large").save(path)
         r = subprocess.run([sys.executable, __file__, "--child", path, "--rss"], capture_output=True, text=True)
         if r.returncode:
             raise SystemExit(f"{WHO}: the RSS child process failed: {r.stderr.strip().splitlines()[-1:]}")
@@ -241,7 +234,7 @@ def prefetch_part(sizes: list[str], repeats: int) -> dict:
     libs.update({k: kernel_build(v + text, "native", WHO)[0] for k, v in VARIANTS.items()})
     rows = []
     for size in sizes:
-        tr = transfer(size)
+        tr = kernel_transfer(size)
         layouts = {"hp": relighter(tr, True), "4k": relighter(tr, False)}
         for light in ("studio", "sky (sun)"):
             for N in TERMS + (layouts["hp"].P,):
@@ -270,7 +263,7 @@ def avx2_part(sizes: list[str], repeats: int) -> dict:
     lib = kernel_build(kernel_source(None, WHO)[0], "avx2", WHO)[0]
     rows = []
     for size in sizes:
-        tr = transfer(size)
+        tr = kernel_transfer(size)
         rls = {"hp": relighter(tr, True), "4k": relighter(tr, False), AA: relighter(tr, False)}
         for light in ("studio", "sky (sun)"):
             for N in TERMS + (rls["hp"].P,):

@@ -32,14 +32,11 @@ from pathlib import Path  # noqa: E402
 import torch  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_wavelet import BITS, KERNEL_SIZES, LIGHTS, OUT, load, size_choice  # noqa: E402
+from bench_wavelet import BITS, KERNEL_SIZES, OUT, kernel_lights, kernel_transfer, layout_info, load, size_choice  # noqa: E402
 from bench_wavelet_isa import rl_bytes, bound_call, kernel_build, kernel_source  # noqa: E402
 
 from prt_torch import relight  # noqa: E402
 from prt_torch.harness.timing import cpu_label, measure_paired, read_bound_fn  # noqa: E402
-from prt_torch.scene import builtin  # noqa: E402
-from prt_torch.transfer import RunOptions  # noqa: E402
-from prt_torch.transfer.wavelet import precompute_wavelet  # noqa: E402
 from prt_torch.io import atomic_write_text  # noqa: E402
 
 TERMS = (10, 30, 100, 300, 1000)
@@ -65,39 +62,34 @@ def builds(base_rev: str) -> dict:
 
 def size_rows(size: str, libs: dict, repeats: int) -> tuple[dict, list[dict]]:
     """One size's layout (``{V, Pd, dense_mb}``) and its rows (each light and N, both builds)."""
-    mesh = builtin("occluder_over_plane", size)
-    tr = precompute_wavelet(mesh, 32, 256, BITS, shadows="always", run=RunOptions(workers=1))
-    rl = relight.WaveletRelighter(tr, threads=1, layouts="both")  # the row-major copy built: every build reads it
-    info = {"size": size, "V": rl.V, "Pd": rl.Pd, "dense_mb": rl.dense.numel() * rl.dense.element_size() / 2**20}
+    rl = relight.WaveletRelighter(kernel_transfer(size), threads=1, layouts="both")  # the row-major copy: every build reads it
+    info = layout_info(rl, size)
     rows = []
-    for light in ("studio", "sky (sun)"):
-        for N in TERMS + (rl.P,):
-            li, lv, _ = rl.light(LIGHTS[light], N, "transport")
-            lv, li = lv.to(torch.float32).contiguous(), li.contiguous()
-            bound = read_bound_fn(rl_bytes(rl, li), rl.V * 12)
-            row = {"size": size, "light": light, "N": N, "nd": int((rl.dslot[li] >= 0).sum()),
-                   "mb": rl_bytes(rl, li) / 2**20}
-            for isa in ("native", "avx2"):
-                outs = {k: torch.empty(rl.V, 3) for k in libs[isa]}
-                fn = {k: bound_call(rl, lib, li, lv, outs[k], 1) for k, lib in libs[isa].items()}
-                for f in fn.values():
-                    f()
-                r = {"same": all(torch.equal(outs[k], outs["base"]) for k in outs)}
-                for k in [k for k in fn if k != "base"]:
-                    p = measure_paired(fn[k], fn["base"], repeats=repeats, warmup=1, clock=time.thread_time)
-                    r[k] = (p.speedup, p.ratio.q1, p.ratio.q3)
-                    if k == "test":
-                        r["test_us"], r["base_us"] = p.test.median * 1e6, p.peer.median * 1e6
-                pb = measure_paired(fn["test"], bound, repeats=repeats, warmup=1, clock=time.thread_time)
-                r["of_read"] = pb.speedup
-                row[isa] = r
-            row["load"] = load()
-            rows.append(row)
-            n, a = row["native"], row["avx2"]
-            print(f"[prefetch] {size} {light} N={N} nd={row['nd']}: native base/test {n['test'][0]:.3f} (A/A "
-                  f"{n['aa'][0]:.3f}) {n['test_us']:.1f} us, of read {n['of_read']:.2f}; avx2 base/test "
-                  f"{a['test'][0]:.3f} (A/A {a['aa'][0]:.3f}), far {a['far'][0]:.3f}, of read {a['of_read']:.2f}; same "
-                  f"{n['same'] and a['same']}, load {row['load']:.1f}", flush=True)
+    for light, N, li, lv in kernel_lights(rl, TERMS):
+        bound = read_bound_fn(rl_bytes(rl, li), rl.V * 12)
+        row = {"size": size, "light": light, "N": N, "nd": int((rl.dslot[li] >= 0).sum()),
+               "mb": rl_bytes(rl, li) / 2**20}
+        for isa in ("native", "avx2"):
+            outs = {k: torch.empty(rl.V, 3) for k in libs[isa]}
+            fn = {k: bound_call(rl, lib, li, lv, outs[k], 1) for k, lib in libs[isa].items()}
+            for f in fn.values():
+                f()
+            r = {"same": all(torch.equal(outs[k], outs["base"]) for k in outs)}
+            for k in [k for k in fn if k != "base"]:
+                p = measure_paired(fn[k], fn["base"], repeats=repeats, warmup=1, clock=time.thread_time)
+                r[k] = (p.speedup, p.ratio.q1, p.ratio.q3)
+                if k == "test":
+                    r["test_us"], r["base_us"] = p.test.median * 1e6, p.peer.median * 1e6
+            pb = measure_paired(fn["test"], bound, repeats=repeats, warmup=1, clock=time.thread_time)
+            r["of_read"] = pb.speedup
+            row[isa] = r
+        row["load"] = load()
+        rows.append(row)
+        n, a = row["native"], row["avx2"]
+        print(f"[prefetch] {size} {light} N={N} nd={row['nd']}: native base/test {n['test'][0]:.3f} (A/A "
+              f"{n['aa'][0]:.3f}) {n['test_us']:.1f} us, of read {n['of_read']:.2f}; avx2 base/test "
+              f"{a['test'][0]:.3f} (A/A {a['aa'][0]:.3f}), far {a['far'][0]:.3f}, of read {a['of_read']:.2f}; same "
+              f"{n['same'] and a['same']}, load {row['load']:.1f}", flush=True)
     return info, rows
 
 

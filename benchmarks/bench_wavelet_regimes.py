@@ -42,16 +42,13 @@ from pathlib import Path  # noqa: E402
 import torch  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_wavelet import BITS, LIGHTS, OUT, load, size_choice  # noqa: E402
+from bench_wavelet import BITS, OUT, kernel_lights, kernel_transfer, layout_info, load, size_choice  # noqa: E402
 from bench_wavelet_isa import bound_call, kernel_build, kernel_source  # noqa: E402
 
 from prt_torch import relight  # noqa: E402
 from prt_torch.harness.timing import (cpu_label, measure_paired, measure_paired_cold, read_bound_fn,  # noqa: E402
                                       working_set)
 from prt_torch.io import atomic_write_text  # noqa: E402
-from prt_torch.scene import builtin  # noqa: E402
-from prt_torch.transfer import RunOptions  # noqa: E402
-from prt_torch.transfer.wavelet import precompute_wavelet  # noqa: E402
 
 TERMS = (10, 30, 100, 300, 1000)
 WHO = "bench_wavelet_regimes.py"
@@ -97,44 +94,39 @@ def pair(regime: str, a, b, ws: list, repeats: int, evict_bytes: int, calls: int
 
 
 def size_rows(size: str, libs: dict, repeats: int, evict_bytes: int, calls: int, terms) -> tuple[dict, list[dict]]:
-    mesh = builtin("occluder_over_plane", size)
-    tr = precompute_wavelet(mesh, 32, 256, BITS, shadows="always", run=RunOptions(workers=1))
-    rl = relight.WaveletRelighter(tr, threads=1, layouts="both")
-    info = {"size": size, "V": rl.V, "Pd": rl.Pd, "dense_mb": rl.dense.numel() * rl.dense.element_size() / 2**20}
+    rl = relight.WaveletRelighter(kernel_transfer(size), threads=1, layouts="both")
+    info = layout_info(rl, size)
     rows = []
-    for light in ("studio", "sky (sun)"):
-        for N in tuple(terms) + (rl.P,):
-            li, lv, _ = rl.light(LIGHTS[light], N, "transport")
-            lv, li = lv.to(torch.float32).contiguous(), li.contiguous()
-            nbytes = rl.bytes_read(li)
-            bound = read_bound_fn(nbytes, rl.V * 12)
-            nd = int((rl.dslot[li] >= 0).sum())
-            outs = {k: torch.empty(rl.V, 3) for k in libs}
-            fn = {k: bound_call(rl, lib, li, lv, outs[k], 1) for k, lib in libs.items()}
-            for f in fn.values():
-                f()
-            row = {"size": size, "light": light, "N": N, "nd": nd, "mb": nbytes / 2**20,
-                   "touched_dense_kb": nd * ((rl.V + 31) // 32) * 64 * rl.dense.shape[2] / 1024,
-                   "same": {k: bool(torch.equal(outs[k], outs["base"])) for k in outs}, "load0": load()}
-            for regime in REGIMES:
-                r = {}
-                for k in [k for k in fn if k != "base"]:
-                    p = pair(regime, fn[k], fn["base"], working_set(rl, fn[k], fn["base"]), repeats, evict_bytes, calls)
-                    r[k] = [p.speedup, p.ratio.q1, p.ratio.q3, p.test.median * 1e6]
-                    r["base_us"] = p.peer.median * 1e6
-                    if p.eviction:
-                        r["eviction"] = {"method": p.eviction["method"], "mb": p.eviction["bytes"] / 2**20}
-                for k in [k for k in BOUND if k in fn]:
-                    p = pair(regime, fn[k], bound, working_set(rl, fn[k], bound), repeats, evict_bytes, calls)
-                    r["read_" + k] = [p.speedup, p.ratio.q1, p.ratio.q3, p.peer.median * 1e6]
-                row[regime] = r
-            row["load1"] = load()
-            rows.append(row)
-            msg = "; ".join(f"{g} base {row[g]['base_us']:.1f} us of read {row[g]['read_base'][0]:.2f}, " + ", ".join(
-                f"{k} {row[g][k][0]:.3f}" for k in row[g] if k not in ("base_us", "eviction") and not k.startswith("read_"))
-                for g in REGIMES)
-            print(f"[regimes] {size} {light} N={N} nd={nd}: {msg}; same {all(row['same'].values())}, load "
-                  f"{row['load1']:.1f}", flush=True)
+    for light, N, li, lv in kernel_lights(rl, terms):
+        nbytes = rl.bytes_read(li)
+        bound = read_bound_fn(nbytes, rl.V * 12)
+        nd = int((rl.dslot[li] >= 0).sum())
+        outs = {k: torch.empty(rl.V, 3) for k in libs}
+        fn = {k: bound_call(rl, lib, li, lv, outs[k], 1) for k, lib in libs.items()}
+        for f in fn.values():
+            f()
+        row = {"size": size, "light": light, "N": N, "nd": nd, "mb": nbytes / 2**20,
+               "touched_dense_kb": nd * ((rl.V + 31) // 32) * 64 * rl.dense.shape[2] / 1024,
+               "same": {k: bool(torch.equal(outs[k], outs["base"])) for k in outs}, "load0": load()}
+        for regime in REGIMES:
+            r = {}
+            for k in [k for k in fn if k != "base"]:
+                p = pair(regime, fn[k], fn["base"], working_set(rl, fn[k], fn["base"]), repeats, evict_bytes, calls)
+                r[k] = [p.speedup, p.ratio.q1, p.ratio.q3, p.test.median * 1e6]
+                r["base_us"] = p.peer.median * 1e6
+                if p.eviction:
+                    r["eviction"] = {"method": p.eviction["method"], "mb": p.eviction["bytes"] / 2**20}
+            for k in [k for k in BOUND if k in fn]:
+                p = pair(regime, fn[k], bound, working_set(rl, fn[k], bound), repeats, evict_bytes, calls)
+                r["read_" + k] = [p.speedup, p.ratio.q1, p.ratio.q3, p.peer.median * 1e6]
+            row[regime] = r
+        row["load1"] = load()
+        rows.append(row)
+        msg = "; ".join(f"{g} base {row[g]['base_us']:.1f} us of read {row[g]['read_base'][0]:.2f}, " + ", ".join(
+            f"{k} {row[g][k][0]:.3f}" for k in row[g] if k not in ("base_us", "eviction") and not k.startswith("read_"))
+            for g in REGIMES)
+        print(f"[regimes] {size} {light} N={N} nd={nd}: {msg}; same {all(row['same'].values())}, load "
+              f"{row['load1']:.1f}", flush=True)
     return info, rows
 
 
