@@ -9,11 +9,12 @@ processes ran is in neither side), at each ``--sizes`` of occluder_over_plane (s
 (transport-weighted terms, RGB) at N = 10, 30, 100, 300, 1000 and all.
 
 Per build (``native``: on an AVX-512 CPU the 16-lane loop; ``avx2``: ``PRT_TORCH_KERNEL_ISA=avx2``, the 8-lane loop,
-whose machine code this change leaves as it was) and row: **base / test** (median of the per-repeat ratios,
+whose machine code the change this was written for left as it was) and row: **base / test** (median of the per-repeat ratios,
 quartiles; > 1: the working tree faster), an A/A control (the base against a second build of itself), the test
 build's fraction of a streaming read of the bytes it touches plus a fill of the output (``timing.read_bound_fn`` of
 ``WaveletRelighter.bytes_read``, paired the same way), the outputs bit for bit against the base's; for the avx2 build
-also ``far``: the working tree built with ``PF_X8`` (the same prefetch in the 8-lane loop, off by default) against the
+also ``far``: the working tree built with ``PF_X8`` (the same prefetch in the 8-lane loop: off by default when
+this was written, on since bench_wavelet_regimes.py --isa avx2, so ``far`` and ``test`` are now the same code) against the
 base. Writes reports/benchmarks/wavelet_prefetch.md (the CPU, flags and load named).
 
     .venv/bin/python benchmarks/bench_wavelet_prefetch.py [--base REV] [--sizes small,medium,large]   (about 7 minutes)
@@ -120,8 +121,8 @@ def main() -> None:
          f"{cpu_label()}; load average {before:.1f} → {after:.1f} (a machine shared with other jobs: one thread's CPU "
          f"time, which their load does not enter). Builds of `kernels/wavelet.c` with the wavelet library's flags "
          f"(`{flags}`; avx2: `PRT_TORCH_KERNEL_ISA=avx2`, `-mno-avx512f`): **test** the working tree's, **base** "
-         f"revision `{args.base}`'s, **A/A** the base built twice; **far** (avx2 only) the working tree with `PF_X8` "
-         "(the prefetch across blocks in the 8-lane loop; off by default). All bound to one layout per size "
+         f"revision `{args.base}`'s, **A/A** the base built twice; **far** (avx2 only) the working tree with `PF_X8 1` "
+         "(the prefetch across blocks in the 8-lane loop; on by default since bench_wavelet_regimes.py --isa avx2). All bound to one layout per size "
          "(occluder_over_plane, R = 32, K = 256, "
          f"{BITS}-bit; " + "; ".join(f"{i['size']}: V = {i['V']}, {i['Pd']} dense columns, dense layout "
                                       f"{i['dense_mb']:.1f} MB" for i in infos)

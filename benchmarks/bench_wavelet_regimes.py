@@ -46,16 +46,24 @@ from bench_wavelet import BITS, OUT, kernel_lights, kernel_transfer, layout_info
 from bench_wavelet_isa import bound_call, kernel_build, kernel_source  # noqa: E402
 
 from prt_torch import relight  # noqa: E402
+from prt_torch._native import KERNEL_ISAS  # noqa: E402
 from prt_torch.harness.timing import (cpu_label, measure_paired, measure_paired_cold, read_bound_fn,  # noqa: E402
                                       working_set)
 from prt_torch.io import atomic_write_text  # noqa: E402
 
 TERMS = (10, 30, 100, 300, 1000)
 WHO = "bench_wavelet_regimes.py"
-REGIMES = ("warm", "evicted", "cold")
+def regimes(evict_mb: list[float]) -> list[tuple[str, int | None]]:
+    """``[(name, evict bytes)]``: warm, one evicted regime per ``evict_mb`` size (named ``evicted`` alone when there is
+    one size, else ``evicted X MB``), cold."""
+    ev = [(("evicted" if len(evict_mb) == 1 else f"evicted {m:g} MB"), int(m * 2**20)) for m in evict_mb]
+    return [("warm", None), *ev, ("cold", None)]
 #: the base every variant is paired against: PFX_MIN = 2 MB (the default before this benchmark; the working tree's
 #: default is now 0, i.e. the ``pfx0`` variant), prepended whatever the tree's default
 BASE = "#define PFX_MIN (2LL << 20)\n"
+#: the 8-lane builds' base (--isa avx2, avx512-256): their dense loop without the prefetch across units, the code tuned
+#: on the AMD Zen 3 (the default until the x8 variant measured here was made the default)
+BASE_X8 = "#define PF_X8 0\n"
 #: variant name -> the -D lines prepended to the source
 VARIANTS = {
     "pfx0": "#define PFX_MIN 0LL\n",
@@ -66,34 +74,49 @@ VARIANTS = {
     "pf10": "#define PF 10\n" + BASE,
     "pf16": "#define PF 16\n" + BASE,
     "next": "#define PF_NEXT 1\n" + BASE,
+    # the 8-lane loop (builds without W16: --isa avx2 or avx512-256) with the prefetch across units, on every layout
+    "x8": "#define PF_X8 1\n#define PFX_MIN 0LL\n",
+    "x8pfx12": "#define PF_X8 1\n#define PFX_MIN 0LL\n#define PFX 12\n",
+    "x8pfx48": "#define PF_X8 1\n#define PFX_MIN 0LL\n#define PFX 48\n",
 }
+#: the variants that change only the 8-lane loop (PF_X8: a W16 build ignores them) and the builds running that loop
+X8 = ("x8", "x8pfx12", "x8pfx48")
+ISAS_8LANE = ("avx2", "avx512-256")
 LABEL = {"base": "PFX_MIN 2 MB (base)", "aa": "A/A", "pfx0": "PFX_MIN 0 (far always)", "pfx512k": "PFX_MIN 512 KB",
          "pfx1m": "PFX_MIN 1 MB", "never": "PF_IN always", "pf3": "PF 3", "pf10": "PF 10", "pf16": "PF 16",
-         "next": "PF_NEXT"}
+         "next": "PF_NEXT", "x8": "PF_X8 (PFX 24)", "x8pfx12": "PF_X8, PFX 12", "x8pfx48": "PF_X8, PFX 48"}
 #: the builds also paired with the streaming read
-BOUND = ("base", "pfx0", "pfx512k", "pfx1m")
+BOUND = ("base", "pfx0", "pfx512k", "pfx1m", "x8")
 
 
-def builds(names: list[str]) -> tuple[dict, str]:
-    """``({name: library}, flags)``: base, aa and ``names`` (keys of VARIANTS), native builds of the working tree."""
+def base_lines(isa: str) -> str:
+    """The base build's prepended lines for ``isa``: :data:`BASE_X8` for the 8-lane builds, else :data:`BASE`."""
+    return BASE_X8 if isa in ISAS_8LANE else BASE
+
+
+def builds(names: list[str], isa: str = "native") -> tuple[dict, str]:
+    """``({name: library}, flags)``: base, aa and ``names`` (keys of VARIANTS), builds of the working tree for ``isa``
+    (``_native.KERNEL_ISAS``: native, or avx2 / avx512-256 for the 8-lane loop, whose base is :data:`BASE_X8`)."""
     text, _ = kernel_source(None, WHO)
-    libs = {"base": kernel_build(BASE + text, None, WHO)[0], "aa": kernel_build(BASE + text, None, WHO, tag="A/A control")[0]}
+    b = base_lines(isa)
+    libs = {"base": kernel_build(b + text, isa, WHO)[0], "aa": kernel_build(b + text, isa, WHO, tag="A/A control")[0]}
     for n in names:
-        libs[n] = kernel_build(VARIANTS[n] + text, None, WHO)[0]
-    return libs, kernel_build(text, None, WHO)[1]
+        libs[n] = kernel_build(VARIANTS[n] + text, isa, WHO)[0]
+    return libs, kernel_build(text, isa, WHO)[1]
 
 
-def pair(regime: str, a, b, ws: list, repeats: int, evict_bytes: int, calls: int):
-    """``a`` against ``b`` in ``regime``: the Paired (speedup = b / a, > 1: a faster)."""
+def pair(regime: str, a, b, ws: list, repeats: int, evict_bytes: int | None, calls: int):
+    """``a`` against ``b`` in ``regime`` (a name of :func:`regimes`; ``evict_bytes`` its junk read): the Paired
+    (speedup = b / a, > 1: a faster)."""
     if regime == "warm":
         return measure_paired(a, b, repeats=repeats, warmup=1, clock=time.thread_time)
-    if regime == "evicted":
+    if regime.startswith("evicted"):
         return measure_paired_cold(a, b, repeats=2 * repeats + 1, warmup=1, evict_bytes=evict_bytes,
                                    clock=time.thread_time, calls=calls)
     return measure_paired_cold(a, b, repeats=2 * repeats + 1, warmup=1, evict=ws, clock=time.thread_time, calls=calls)
 
 
-def size_rows(size: str, libs: dict, repeats: int, evict_bytes: int, calls: int, terms) -> tuple[dict, list[dict]]:
+def size_rows(size: str, libs: dict, repeats: int, regs: list, calls: int, terms) -> tuple[dict, list[dict]]:
     rl = relight.WaveletRelighter(kernel_transfer(size), threads=1, layouts="both")
     info = layout_info(rl, size)
     rows = []
@@ -108,7 +131,7 @@ def size_rows(size: str, libs: dict, repeats: int, evict_bytes: int, calls: int,
         row = {"size": size, "light": light, "N": N, "nd": nd, "mb": nbytes / 2**20,
                "touched_dense_kb": nd * ((rl.V + 31) // 32) * 64 * rl.dense.shape[2] / 1024,
                "same": {k: bool(torch.equal(outs[k], outs["base"])) for k in outs}, "load0": load()}
-        for regime in REGIMES:
+        for regime, evict_bytes in regs:
             r = {}
             for k in [k for k in fn if k != "base"]:
                 p = pair(regime, fn[k], fn["base"], working_set(rl, fn[k], fn["base"]), repeats, evict_bytes, calls)
@@ -124,43 +147,56 @@ def size_rows(size: str, libs: dict, repeats: int, evict_bytes: int, calls: int,
         rows.append(row)
         msg = "; ".join(f"{g} base {row[g]['base_us']:.1f} us of read {row[g]['read_base'][0]:.2f}, " + ", ".join(
             f"{k} {row[g][k][0]:.3f}" for k in row[g] if k not in ("base_us", "eviction") and not k.startswith("read_"))
-            for g in REGIMES)
+            for g, _ in regs)
         print(f"[regimes] {size} {light} N={N} nd={nd}: {msg}; same {all(row['same'].values())}, load "
               f"{row['load1']:.1f}", flush=True)
     return info, rows
 
 
-def defines(k: str) -> str:
+def defines(k: str, isa: str = "native") -> str:
     """Build ``k``'s prepended lines, on one line."""
-    return "; ".join(VARIANTS.get(k, BASE).strip().splitlines())
+    return "; ".join(VARIANTS.get(k, base_lines(isa)).strip().splitlines())
 
 
-def report(infos: list[dict], rows: list[dict], flags: str, args, before: float, after: float, names: list[str]) -> str:
+def label(k: str, isa: str) -> str:
+    """Build ``k``'s name in the report: the base of an 8-lane build is its default code (no PF_X8)."""
+    return "PF_X8 0 (base)" if k == "base" and isa in ISAS_8LANE else LABEL[k]
+
+
+def report(infos: list[dict], rows: list[dict], flags: str, args, before: float, after: float, names: list[str],
+           regs: list) -> str:
     def q(t):
         return f"{t[0]:.2f} [{t[1]:.2f}, {t[2]:.2f}]"
-    L = ["# Wavelet kernel: the dense loop's prefetch in three cache regimes (issue 39)\n",
+    isa = args.isa
+    ev = [(g, b) for g, b in regs if b is not None]
+    base = ("the base: the 8-lane loop without the prefetch across units, its code tuned on the AMD Zen 3"
+            if isa in ISAS_8LANE else "")
+    L = [f"# Wavelet kernel: the dense loop's prefetch in {len(regs)} cache regimes, {isa} build (issue 39)\n",
          f"{cpu_label()}; load average {before:.1f} → {after:.1f} (a machine shared with other jobs: one thread's CPU "
-         f"time, which their load does not enter). Native builds of the working tree's `kernels/wavelet.c` with the "
-         f"wavelet library's flags (`{flags}`), `-D` overrides prepended: "
-         + ", ".join(f"**{LABEL[k]}**" + (f" (`{defines(k)}`)" if k != "aa" else "") for k in ["base", "aa"] + names)
+         f"time, which their load does not enter). Builds of the working tree's `kernels/wavelet.c` for "
+         f"`PRT_TORCH_KERNEL_ISA={isa}` with the wavelet library's flags (`{flags}`), `-D` overrides prepended"
+         + (f" ({base})" if base else "") + ": "
+         + ", ".join(f"**{label(k, isa)}**" + (f" (`{defines(k, isa)}`)" if k != "aa" else "") for k in ["base", "aa"] + names)
          + ". All bound to one layout per size (occluder_over_plane, R = 32, K = 256, "
          f"{BITS}-bit; " + "; ".join(f"{i['size']}: V = {i['V']}, {i['Pd']} dense columns, dense layout "
                                       f"{i['dense_mb']:.1f} MB" for i in infos)
          + "), transport-weighted terms, RGB light, one thread, paired by the calling thread's CPU time. Regimes: "
-         f"**warm** back-to-back calls (`measure_paired`, {args.repeats} repeats of ≥ 20 ms samples); **evicted** each "
-         f"call after an untimed streaming read of {args.evict_mb:g} MB of other data (`measure_paired_cold`'s "
-         f"junk read; {2 * args.repeats + 1} repeats, a sample {args.calls} such calls); **cold** each call after a flush "
+         f"**warm** back-to-back calls (`measure_paired`, {args.repeats} repeats of ≥ 20 ms samples); "
+         + "; ".join(f"**{g}** each call after an untimed streaming read of {b / 2**20:g} MB of other data" for g, b in ev)
+         + f" (`measure_paired_cold`'s junk read; {2 * args.repeats + 1} repeats, a sample {args.calls} such calls; a read "
+         "smaller than the L2 leaves the rest of the L2 to the previous call's lines: 1.5 MB of a 2 MB L2 leaves ~512 KB, "
+         "the L2 of an AMD Zen 3 core); **cold** each call after a flush "
          f"of everything both sides touch (`measure_paired_cold(evict=working_set(...), calls={args.calls})`: the layout, "
          f"its row-major copy and scratch, light, factor, output; {2 * args.repeats + 1} repeats). Ratios: base / variant, the "
          "median of the per-repeat ratios [quartiles] (> 1: the variant faster); *of read*: the build against a "
          "streaming read of the bytes it touches plus a fill of the output (`timing.read_bound_fn`) in the same regime "
          "(> 0.5: the issue's criterion met). *dense KB*: the light's dense lines (nd terms × blocks × 64 B × CT). "
-         f"Reproduce: `.venv/bin/python benchmarks/bench_wavelet_regimes.py --sizes {args.sizes} --variants "
-         f"{','.join(names)} --evict-mb {args.evict_mb:g} --calls {args.calls} --repeats {args.repeats}`.\n"]
-    for regime in REGIMES:
+         f"Reproduce: `.venv/bin/python benchmarks/bench_wavelet_regimes.py --isa {isa} --sizes {args.sizes} --variants "
+         f"{','.join(names)} --evict-mb {args.evict_mb} --calls {args.calls} --repeats {args.repeats}`.\n"]
+    for regime, _ in regs:
         L += [f"\n## {regime}\n",
               "| size | light | N | dense terms | dense KB | MB read | base µs | base of read | "
-              + " | ".join(f"base / {LABEL[k]}" for k in ["aa"] + names) + " | "
+              + " | ".join(f"base / {label(k, isa)}" for k in ["aa"] + names) + " | "
               + " | ".join(f"{LABEL[k]} of read" for k in BOUND if k != "base" and k in ["aa"] + names) + " | bits | load |",
               "|---" * (11 + len(names) + len([k for k in BOUND if k != "base" and k in names])) + "|"]
         for r in rows:
@@ -174,25 +210,45 @@ def report(infos: list[dict], rows: list[dict], flags: str, args, before: float,
 
 def main() -> None:
     ap = argparse.ArgumentParser()
+    ap.add_argument("--isa", default="native", help="the builds' PRT_TORCH_KERNEL_ISA: " + ", ".join(KERNEL_ISAS)
+                    + f" ({', '.join(ISAS_8LANE)}: the 8-lane loop, variants {', '.join(X8)})")
     ap.add_argument("--sizes", default="small,medium", help="comma-separated: small, medium, large")
-    ap.add_argument("--variants", default=",".join(VARIANTS), help="comma-separated, of: " + ", ".join(VARIANTS))
+    ap.add_argument("--variants", default=None, help="comma-separated, of: " + ", ".join(VARIANTS) + " (default: all "
+                    "that change the --isa build's loop)")
     ap.add_argument("--terms", default=",".join(map(str, TERMS)), help="light terms N (all is always added)")
     ap.add_argument("--repeats", type=int, default=11, help="warm repeats (evicted, cold: 3x as many single calls)")
     ap.add_argument("--calls", type=int, default=4, help="evicted, cold: calls per sample, each after its eviction")
-    ap.add_argument("--evict-mb", type=float, default=3.0, help="the evicted regime's streaming read, MB (default 3)")
-    ap.add_argument("--write", default=str(OUT / "wavelet_regimes.md"), help="the report ('': print only)")
+    ap.add_argument("--evict-mb", default="3", help="the evicted regimes' streaming reads, MB, comma-separated (default "
+                    "3; 1.5 leaves ~512 KB of a 2 MB L2 to the previous call)")
+    ap.add_argument("--write", default=None, help="the report ('': print only; default reports/benchmarks/"
+                    "wavelet_regimes.md, for another --isa wavelet_regimes_ISA.md)")
     args = ap.parse_args()
+    if args.isa not in KERNEL_ISAS:
+        raise SystemExit(f"{WHO}: --isa {args.isa!r}; accepted: one of " + ", ".join(KERNEL_ISAS))
     sizes = [size_choice(s.strip(), WHO) for s in args.sizes.split(",")]
-    names = [v.strip() for v in args.variants.split(",") if v.strip()]
+    lane8 = args.isa in ISAS_8LANE
+    own = [k for k in VARIANTS if (k in X8) == lane8]  # the variants that change this build's dense loop
+    names = own if args.variants is None else [v.strip() for v in args.variants.split(",") if v.strip()]
     bad = [v for v in names if v not in VARIANTS]
     if bad:
         raise SystemExit(f"{WHO}: --variants {bad[0]!r}; accepted: a comma-separated list of " + ", ".join(VARIANTS))
+    other = [v for v in names if v not in own]
+    if other:
+        raise SystemExit(f"{WHO}: --variants {other[0]!r} with --isa {args.isa}: it leaves that build's dense loop as the "
+                         f"base's; accepted with --isa {args.isa}: " + ", ".join(own))
     if args.calls < 1:
         raise SystemExit(f"{WHO}: --calls {args.calls}; accepted: an integer >= 1")
     if args.repeats < 3:
         raise SystemExit(f"{WHO}: --repeats {args.repeats}; accepted: an integer >= 3")
-    if not 0.5 <= args.evict_mb <= 64:
-        raise SystemExit(f"{WHO}: --evict-mb {args.evict_mb}; accepted: 0.5 to 64 (MB)")
+    try:
+        evict_mb = [float(m) for m in args.evict_mb.split(",") if m.strip()]
+    except ValueError:
+        evict_mb = []
+    if not evict_mb or not all(0.5 <= m <= 64 for m in evict_mb) or len(set(evict_mb)) < len(evict_mb):
+        raise SystemExit(f"{WHO}: --evict-mb {args.evict_mb!r}; accepted: comma-separated distinct sizes 0.5 to 64 (MB)")
+    regs = regimes(evict_mb)
+    if args.write is None:
+        args.write = str(OUT / ("wavelet_regimes.md" if args.isa == "native" else f"wavelet_regimes_{args.isa}.md"))
     try:
         terms = [int(t) for t in args.terms.split(",") if t.strip()]
     except ValueError:
@@ -200,20 +256,20 @@ def main() -> None:
     if not terms or min(terms) < 1:
         raise SystemExit(f"{WHO}: --terms {args.terms!r}; accepted: comma-separated integers >= 1")
     torch.set_num_threads(1)
-    libs, flags = builds(names)
+    libs, flags = builds(names, args.isa)
     before = load()
     infos, rows = [], []
     for s in sizes:
-        info, r = size_rows(s, libs, args.repeats, int(args.evict_mb * 2**20), args.calls, terms)
+        info, r = size_rows(s, libs, args.repeats, regs, args.calls, terms)
         infos.append(info)
         rows += r
     after = load()
-    text = report(infos, rows, flags, args, before, after, names)
+    text = report(infos, rows, flags, args, before, after, names, regs)
     if args.write:
         atomic_write_text(args.write, text)
         atomic_write_text(str(Path(args.write).with_suffix(".json")), json.dumps(
-            {"cpu": cpu_label(), "flags": flags, "load": [before, after], "infos": infos, "rows": rows,
-             "variants": {k: VARIANTS.get(k, BASE) for k in ["base", "aa"] + names}}, indent=1))
+            {"cpu": cpu_label(), "isa": args.isa, "flags": flags, "load": [before, after], "infos": infos, "rows": rows,
+             "variants": {k: VARIANTS.get(k, base_lines(args.isa)) for k in ["base", "aa"] + names}}, indent=1))
         print(f"[regimes] wrote {args.write}", flush=True)
     else:
         print(text)

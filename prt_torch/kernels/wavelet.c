@@ -80,10 +80,28 @@
  *    cold 0.90-0.98x / 0.87-1.06x / 0.92-1.11x (two runs); the unit's last PF terms prefetching the next unit's first (-DPF_NEXT,
  *    a measurement knob) evicted 0.95-1.17x, cold 0.99-1.21x (the far path: 1.04-1.30x); PF_FAR's wrap without a
  *    branch (a mask) warm 0.92-1.00x, evicted and cold within the A/A.
- *    The 8-lane loop (AVX2 builds) keeps its code (tuned on the AMD
- *    Zen 3; its assembly unchanged): the same prefetch there, -DPF_X8, measured as the avx2 build on the Xeon at
- *    large 1.30-1.86x but small 0.96-0.97x (N = 10, the path not taken at 2 MB), so it is off by default (with
- *    PF_X8 it now follows PFX_MIN 0 too: every layout; the Zen 3's L2 is 512 KB).
+ *    The 8-lane loop (AVX2, avx512-256 and portable builds) takes the same prefetch across units (PF_X8 = 1, on by
+ *    default since 2026-11-29; -DPF_X8=0: the in-unit PF_IN only, the code tuned on the AMD Zen 3), a unit there one
+ *    block, PFX = 24 and PFX_MIN 0 as above. Decided on the Intel Xeon as a proxy (no Zen 3 to measure): the avx2 build
+ *    (PRT_TORCH_KERNEL_ISA=avx2) with it against without, one layout, one thread's CPU time, A/A control 0.95-1.07
+ *    (bench_wavelet_regimes.py --isa avx2, reports/benchmarks/wavelet_regimes_avx2.md and _large.md, load 1.0-3.6,
+ *    small / medium / large, studio and sky at N = 10-all): warm (back-to-back) 1.00-1.06x / 1.04-1.36x / 1.19-1.85x;
+ *    evicted by a 3 MB read 1.04-1.20x / 1.05-1.47x / 1.08-1.61x; by a 1.5 MB read (~512 KB of the Xeon's 2 MB L2
+ *    left to the call: a Zen 3 core's L2) 1.04-1.28x / 1.07-1.54x / 1.10-1.72x; cold 1.13-1.66x / 1.15-2.07x /
+ *    1.19-1.92x: no row below 1.00 (the lowest 0.995). PFX 12 lower in nearly every row (cold geometric means 1.26 /
+ *    1.33 / 1.34 against 24's 1.39 / 1.53 / 1.52), PFX 48 as 24 (1.40 / 1.57 / 1.56; warm small 0.97-1.04x): 24 kept,
+ *    as on 16 lanes. The argument for the Zen 3: its L2 is 512 KB per core, so every layout here (1.1 / 4.9 / 23.9 MB
+ *    dense) outgrows it and its warm calls find the dense lines in L3, the regime of the Xeon's evicted rows, where
+ *    the far prefetch gained 1.04-1.72x; where the lines are already in L1/L2 it costs an issued prefetch per line
+ *    (on the Zen 3, as here, a load-pipe uop that finds the line present) and the far step's counter: the in-unit
+ *    loop issues one prefetch per term too (none for the unit's last PF), so the added work is the counter and its
+ *    wrap, which the Xeon's warm small rows (the L2-resident case) price at 1.00-1.06x (no loss). The 16-lane loop's
+ *    warm small loss (~3% at studio N = 30, above) did not appear on 8 lanes. The object code (znver3, objdump): the
+ *    only functions that change are the three tile bodies (prt_wavelet_relight_{f32,i8,i16}._omp_fn.0, where
+ *    dense_block_T is inlined; the entry points only by that function's address): a second copy of each 8-lane
+ *    dense loop (+51 vfmadd231ps, +32 widening loads, +7-16 prefetcht0, the step's counter; PFX_START's division
+ *    once per block), every sparse-pass and output instruction's count unchanged (vpermd, vblendps, vmulps, vaddps,
+ *    vpermps, vmovups); the W16 build's object code byte-identical.
  *    The sparse blocks, the row-major pass and the output stay on 8 lanes (a 16-lane read-modify-write of
  *    two channels' scratch per block measured 0.90-0.94x of the 8-lane one: not kept); the column-major sparse
  *    pass takes three blocks per loop step in these builds (SPARSE_RANGE), and with AVX-512's 32 registers the
@@ -317,6 +335,9 @@ static inline void put_rgb8(float *out, v8f r, v8f g, v8f b, int nt) {
         }                                                                                                    \
         if (++pt_ == nd) { pt_ = 0; po_ += (us); }                                                           \
     }
+#ifndef PF_X8 /* the 8-lane loop's prefetch across units (not W16 builds): 1 (0 before 2026-11-29; the header) */
+#define PF_X8 1
+#endif
 #if W16 /* the pair mode's parameters, arguments (blocks 2i and 2i + 1 in lockstep) and keep, in W16 builds only */
 #define PAIR_PARAMS const int pm, const i64 pst, const int far, float *keep,
 #ifndef ZMM_MIN /* fewer (dense term, 32-vertex block) pairs than this in a call: the 8-lane loop (the zmm loop's first
@@ -377,8 +398,8 @@ static inline void put_rgb8(float *out, v8f r, v8f g, v8f b, int nt) {
         for (int c = 0; c < 4; c++)                                                                          \
             for (int h = 0; h < 2; h++) { a[c][2 * h] = lo8(z[c][h]); a[c][2 * h + 1] = hi8(z[c][h]); }     \
     }
-#elif defined(PF_X8) /* a measurement only (bench_wavelet_prefetch.py --avx2-far): the 8-lane builds with the prefetch across
-                        * blocks; off by default, so the AVX2 build's machine code is the one tuned on the AMD Zen 3 */
+#elif PF_X8 /* the 8-lane builds (AVX2, avx512-256, portable): the prefetch across units (a unit: one block), PFX steps
+               * ahead from PFX_MIN up; -DPF_X8=0: the in-unit prefetch only (PF_IN), the code tuned on the AMD Zen 3 */
 #define PAIR_PARAMS const i64 pst, const int far,
 #define PAIR_ARGS(b, nb, pst) (pst), (V + BV - 1) / BV * (pst) * (i64)sizeof(*dense) >= PFX_MIN,
 #define PAIR_KEEP
