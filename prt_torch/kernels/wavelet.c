@@ -271,8 +271,8 @@ static inline void put_rgb8(float *out, v8f r, v8f g, v8f b, int nt) {
  * Each vertex's terms are added in the same order in every mode: the same bits. keep is written and read in 32-byte
  * halves: the 8-lane halves a[c][k] read back from 64-byte stores missed store forwarding, ~0.4 us per call (0.82x
  * at N = 1, 0.92x at N = 10 against the one-block loop; halves: 0.97x, 1.00x). */
-/* within the unit only (layouts below PFX_MIN, none by default; the 8-lane loop): the lines of the term PF ahead, none for
- * the unit's last PF terms */
+/* within the unit only (layouts below PFX_MIN, none by default; the W16 builds' 8-lane loop for calls of few dense terms;
+ * the 8-lane builds with -DPF_X8=0): the lines of the term PF ahead, none for the unit's last PF terms */
 #if defined(PF_NEXT) && W16 /* a measurement only (bench_wavelet_regimes.py): the unit's last PF terms prefetch the next
                               * unit's first PF terms (us elements on; past the layout's end: a prefetch, never a load) */
 #define PF_IN(T, us, two)                                                                                    \
