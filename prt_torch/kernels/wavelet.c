@@ -88,7 +88,8 @@
  *    small / medium / large, studio and sky at N = 10-all): warm (back-to-back) 1.00-1.06x / 1.04-1.36x / 1.19-1.85x;
  *    evicted by a 3 MB read 1.04-1.20x / 1.05-1.47x / 1.08-1.61x; by a 1.5 MB read (~512 KB of the Xeon's 2 MB L2
  *    left to the call: a Zen 3 core's L2) 1.04-1.28x / 1.07-1.54x / 1.10-1.72x; cold 1.13-1.66x / 1.15-2.07x /
- *    1.19-1.92x: no row below 1.00 (the lowest 0.995). PFX 12 lower in nearly every row (cold geometric means 1.26 /
+ *    1.19-1.92x: no row below 1.00 (the lowest 0.995; a second small run 0.995-1.58x; the avx512-256 build, small /
+ *    medium, 0.95-2.09x, below 1.00 only where a light reads the whole small layout: 0.95-0.98x, A/A 0.97-1.01). PFX 12 lower in nearly every row (cold geometric means 1.26 /
  *    1.33 / 1.34 against 24's 1.39 / 1.53 / 1.52), PFX 48 as 24 (1.40 / 1.57 / 1.56; warm small 0.97-1.04x): 24 kept,
  *    as on 16 lanes. The argument for the Zen 3: its L2 is 512 KB per core, so every layout here (1.1 / 4.9 / 23.9 MB
  *    dense) outgrows it and its warm calls find the dense lines in L3, the regime of the Xeon's evicted rows, where
