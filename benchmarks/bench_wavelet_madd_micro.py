@@ -605,7 +605,7 @@ def vnni_main(args, lib) -> None:
         floors[label] = min(lib.vnni_floor(what, 2_000_000) for _ in range(9)) * ghz * 1e9 / 2_000_000
         print(f"[madd_micro vnni] floor {label}: {floors[label]:.2f} cycles", flush=True)
     groups = ("all, column max", "16, column max")
-    rows = []
+    rows, protos = [], []
     for size in args.sizes:
         rl, nb, Pd, d16 = blocker_dense(size)
         tmax = d16.abs().amax(dim=(0, 2)).to(torch.int64)
@@ -690,10 +690,57 @@ def vnni_main(args, lib) -> None:
                       f"{res['fixed'] * 1e6:.1f} us", flush=True)
                 rows.append(res)
         loads.append(os.getloadavg()[0])
-    write_vnni(rows, floors, ghz, loads, args)
+        if size == "small":
+            protos += proto_rows(rl, fac, args)
+    write_vnni(rows, floors, ghz, loads, args, protos)
 
 
-def write_vnni(rows: list, floors: dict, ghz: float, loads: list, args) -> None:
+def proto_rows(rl, fac: torch.Tensor, args) -> list:
+    """The kernel prototype (``kernels/wavelet.c`` built with ``-DDENSE_VNNI``: the W16 dense loop on VNNI, the light
+    quantised per call by the 65535 rule) against the same source's default build on ``rl``'s layout, the whole call
+    paired by one thread's CPU time, each against its streaming-read bound; the prototype's output against the
+    default's (relative L2, and within the stated bound per vertex: fac (s / 2) sum_k |T_v,k| over the dense terms)."""
+    from bench_wavelet import rel
+    from bench_wavelet_isa import bound_call, kernel_build, kernel_source
+
+    text = kernel_source(None, "bench_wavelet_madd_micro.py")[0]
+    vn, _ = kernel_build("#define DENSE_VNNI 1\n" + text, "native", "bench_wavelet_madd_micro.py")
+    base, _ = kernel_build(text, "native", "bench_wavelet_madd_micro.py")
+    d16 = rl.dense.reshape(rl.dense.shape[0], rl.Pd, 32)
+    out = []
+    for light in ("studio", "sky (sun)"):
+        li_a, lv_a, _ = rl.light(LIGHTS[light], rl.P, "transport")
+        out_all = rl.prepared(li_a, lv_a.float(), torch.empty(rl.V, 3))().clone().double()
+        for N in args.terms:
+            N = min(N, rl.P)
+            li, lv, _ = rl.light(LIGHTS[light], N, "transport")
+            lv = lv.float().contiguous()
+            ds, lw = dense_terms(rl, li, lv)
+            o_b, o_v = torch.empty(rl.V, 3), torch.empty(rl.V, 3)
+            rl.prepared(li, lv, o_b)()  # builds the row-major copy where the light needs it
+            f_b, f_v = bound_call(rl, base, li, lv, o_b, 1, True), bound_call(rl, vn, li, lv, o_v, 1, True)
+            f_b(), f_v()
+            _, sc, _ = quantise_light(lw[:, :3], 4096, None)
+            tv = d16[:, ds, :].double().abs().sum(1)  # [nb, 32] sum_k |T_v,k|
+            bound = (tv.reshape(-1)[:rl.V, None] * sc.double()[0] / 2) * fac
+            diff = (o_v.double() - o_b.double()).abs()
+            ok = bool((diff <= bound + 1e-5 * o_b.double().abs() + 1e-30).all())
+            p = measure_paired(f_v, f_b, repeats=15, warmup=1, clock=time.thread_time)
+            read = read_bound_fn(rl.bytes_read(li), rl.V * 12)
+            rv = measure_paired(f_v, read, repeats=15, warmup=1, clock=time.thread_time)
+            rb = measure_paired(f_b, read, repeats=15, warmup=1, clock=time.thread_time)
+            r = {"light": light, "N": "all" if N == rl.P else N, "nd": ds.numel(), "vnni": p.test.median, "float": p.peer.median,
+                 "ratio": p.speedup, "q": [p.ratio.q1, p.ratio.q3], "of_read": rv.speedup, "of_read_float": rb.speedup,
+                 "err": rel(o_v, o_b.double()), "bound": float(bound.norm() / o_b.double().norm()),
+                 "trunc": rel(o_b, out_all), "ok": ok, "load": os.getloadavg()[0]}
+            print(f"[madd_micro vnni] prototype {light} N={r['N']}: vnni {r['vnni'] * 1e6:.1f} us, float {r['float'] * 1e6:.1f} us, "
+                  f"float/vnni {r['ratio']:.3f}; of read {r['of_read_float']:.2f} -> {r['of_read']:.2f}; err {r['err']:.1e} "
+                  f"(bound {r['bound']:.1e}, truncation {r['trunc']:.1e}), within bound {ok}; load {r['load']:.1f}", flush=True)
+            out.append(r)
+    return out
+
+
+def write_vnni(rows: list, floors: dict, ghz: float, loads: list, args, protos: list) -> None:
     """reports/benchmarks/wavelet_madd_micro_vnni.md from :func:`vnni_main`'s rows."""
     m = machine_info()
     best = "vnni, 2 blocks G" + "all, column max"
@@ -761,6 +808,23 @@ def write_vnni(rows: list, floors: dict, ghz: float, loads: list, args) -> None:
         L.append(f"| {r['size']} | {r['light']} | {r['N']} | {r['nd']} | {r['call'] * 1e6:.1f} | {r['of_read']:.2f} | "
                  f"{r['dense_call'] * 1e6:.1f} | {r['fixed'] * 1e6:.1f} | {net * 1e6:.1f} | {kn:.2f} | {vn:.2f} | "
                  f"{gain:.2f} | **{est * 1e6:.1f}** | **{r['read'] / est:.2f}** |")
+    if protos:
+        L += ["", "## The kernel prototype (`-DDENSE_VNNI`), the whole call\n",
+              "`kernels/wavelet.c` built twice from the working tree with the wavelet library's flags (native: the W16 "
+              "loop): **vnni** with `#define DENSE_VNNI` (the W16 dense loop on `vpdpwssd`, the light quantised per call "
+              "by the *65535 rule*, one group, the prefetch within the unit only), **float** the default; both bound to "
+              "the small layout (`bench_wavelet_isa.bound_call`, the per-vertex factor), paired by one thread's CPU time "
+              "(15 repeats; **float / vnni** > 1: the prototype faster [quartiles]), each against the streaming read "
+              "(`read_bound_fn`: section 7's criterion). *err*: relative L2 of vnni − float over the float output; "
+              "*bound*: the same of the stated per-vertex bound f_v (s/2) Σ_k |T_v,k| (every vertex within it: ✓); "
+              "*truncation*: the float output at N against all terms.\n",
+              "| light | N | dense terms | vnni µs | float µs | **float / vnni** [quartiles] | of read: float → **vnni** | "
+              "err | bound | truncation | within | load |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+        for r in protos:
+            L.append(f"| {r['light']} | {r['N']} | {r['nd']} | {r['vnni'] * 1e6:.1f} | {r['float'] * 1e6:.1f} | "
+                     f"**{r['ratio']:.2f}** [{r['q'][0]:.2f}, {r['q'][1]:.2f}] | {r['of_read_float']:.2f} → "
+                     f"**{r['of_read']:.2f}** | {r['err']:.1e} | {r['bound']:.1e} | {r['trunc']:.1e} | "
+                     f"{'✓' if r['ok'] else '✗'} | {r['load']:.1f} |")
     OUT.mkdir(parents=True, exist_ok=True)
     path = OUT / "wavelet_madd_micro_vnni.md"
     path.write_text("\n".join(L) + "\n")
