@@ -166,3 +166,47 @@ def test_vnni_light_that_would_overflow_does_not(bench, lib):
         _check(bench, lib, d16, ds, L, 4096, use_tmax)
         q, s, grp = bench.quantise_light(L, 4096, tmax[ds] if use_tmax else None)
         assert int((tmax[ds, None] * q.long().abs()).sum(0).max()) <= 2 ** 31 - 1
+
+
+def test_kernel_dense_vnni_prototype_within_the_bound(bench, lib):
+    """kernels/wavelet.c built with -DDENSE_VNNI (the prototype: off by default) relights within its stated bound of the
+    float64 sums of the same stored values: |out - exact| <= f_v (s_c / 2) sum_k |T_v,k| over the dense terms (s: the
+    65535 rule, quantise_light without tmax) + float rounding; odd and even dense-term counts, an odd block count."""
+    if lib.vnni_floor(0, 1) < 0:
+        pytest.skip("no AVX-512 VNNI here")
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        from bench_wavelet_isa import bound_call, kernel_build, kernel_source
+    finally:
+        sys.path.remove(str(ROOT / "benchmarks"))
+    from prt_torch import relight
+    from prt_torch.scene import builtin
+    from prt_torch.transfer import RunOptions
+    from prt_torch.transfer.wavelet import precompute_wavelet
+
+    vn, _ = kernel_build("#define DENSE_VNNI 1\n" + kernel_source(None, "test")[0], "native", "test")
+    if not int(vn.prt_wavelet_isa()) & 32:
+        pytest.skip("no 16-lane (W16) build here")
+    tr = precompute_wavelet(builtin("occluder_over_plane", "small"), 8, 32, 16, shadows="always", run=RunOptions(workers=1))
+    rl = relight.WaveletRelighter(tr, threads=1, layouts="column")
+    nb = rl.dense.shape[0]
+    assert nb % 2 == 1 or rl.V % 32, "wanted: an odd block count or a partial last block"
+    d16 = rl.dense.reshape(nb, rl.Pd, 32)
+    ref_index, ref_vals = rl.reference_rows(0, rl.V)
+    fac = rl._factor(3, True).double()
+    for spec, N in (("studio", 60), ("sky", 61), ("sky", rl.P)):
+        li, lv, _ = rl.light(spec, N, "transport")
+        lv = lv.float().contiguous()
+        d = rl.dslot[li] >= 0
+        ds = rl.dslot[li[d]].long()
+        out = torch.full((rl.V, 3), float("nan"))
+        default = rl.prepared(li, lv, torch.empty(rl.V, 3))()  # (and the row-major copy where the light takes it)
+        bound_call(rl, vn, li, lv, out, 1, True)()
+        # the reference rows are dequantised (the scale applied): times the albedo only
+        exact = relight.wavelet_dense(ref_vals.double(), ref_index, li, lv.double(), rl.P) * rl.albedo[:, :3].double()
+        _, s, _ = bench.quantise_light(lv[:, d].T.contiguous(), 1 << 20, None)
+        tv = d16[:, ds, :].double().abs().sum(1).reshape(-1)[:rl.V]  # [V] sum_k |T_v,k| over the dense terms
+        bound = tv[:, None] * s.double()[0] / 2 * fac
+        slack = 1e-5 * exact.abs().max()
+        assert bool(((out.double() - exact).abs() <= bound + slack).all()), (spec, N)
+        assert not torch.equal(out, default), "the prototype's loop was not taken (the default build's bits)"

@@ -18,6 +18,11 @@
  * per 8 vertices one 32-byte load of the factors and the same three multiplies, before the interleave instead of
  * after it (store_rgb8 / put_rgb8), in the 8- and the 16-lane builds alike. Measured: reports/benchmarks/
  * wavelet_factor.md (bench_wavelet_factor.py; docs/wavelet.md "The factor per vertex").
+ * DENSE_VNNI (a prototype, W16 with AVX-512 VNNI only, off by default; above DENSE_TERMS): the 16-lane dense loop on
+ * integer dot products (vpdpwssd zmm, two light terms per instruction), the dense light quantised per call to int16;
+ * not the float loop's bits. Measured on the Intel Xeon (bench_wavelet_madd_micro.py --vnni, reports/benchmarks/
+ * wavelet_madd_micro_vnni.md; docs/wavelet.md): the whole call 1.1-1.4x at small, the dense loop alone 1.7-1.9x from
+ * L2 and ~1.0-1.4x from L3 (medium). A change of the default arithmetic is the team's decision.
  * OUT_NT (a measurement knob, W16 only, off by default): the RGB output by streaming stores once it holds at least
  * OUT_NT bytes (and out is 32-byte aligned), an sfence at the call's end; not kept (the same report: faster alone at
  * large N = 10, slower with a read of the output right after the call).
