@@ -49,8 +49,8 @@ lockstep as the kernel's W16 loop. Paired against the kernel's own 16-lane float
 ``dense16_pass`` mode 1, the W16 pair), the light quantised by the column-maximum rule (one group, and groups of 16);
 per size (``--sizes small medium``) the kernel's own call on the same light split (whole call and its streaming-read
 bound, dense terms alone, set-up and output alone) and the whole call estimated with the dense loop at the measured
-gain; at small, the kernel built with ``-DDENSE_VNNI`` (the prototype in ``kernels/wavelet.c``'s W16 loop) paired with
-its default build on the whole call. Writes reports/benchmarks/wavelet_madd_micro_vnni.md.
+gain; the kernel built with ``-DDENSE_VNNI`` (the prototype in ``kernels/wavelet.c``'s W16 loop) paired with
+its default build on the whole call (each size). Writes reports/benchmarks/wavelet_madd_micro_vnni.md.
 
     .venv/bin/python benchmarks/bench_wavelet_madd_micro.py --vnni --sizes small medium --terms 10 30 100 300 1000 6144
     (about 7 min)
@@ -704,8 +704,7 @@ def vnni_main(args, lib) -> None:
                       f"{res['fixed'] * 1e6:.1f} us", flush=True)
                 rows.append(res)
         loads.append(os.getloadavg()[0])
-        if size == "small":
-            protos += proto_rows(rl, fac, args)
+        protos += [dict(r, size=size, V=rl.V) for r in proto_rows(rl, fac, args)]
     write_vnni(rows, floors, ghz, loads, args, protos)
 
 
@@ -828,16 +827,16 @@ def write_vnni(rows: list, floors: dict, ghz: float, loads: list, args, protos: 
         L += ["", "## The kernel prototype (`-DDENSE_VNNI`), the whole call\n",
               "`kernels/wavelet.c` built twice from the working tree with the wavelet library's flags (native: the W16 "
               "loop): **vnni** with `#define DENSE_VNNI` (the W16 dense loop on `vpdpwssd`, the light quantised per call "
-              "by the *65535 rule*, one group, the prefetch within the unit only), **float** the default; both bound to "
-              "the small layout (`bench_wavelet_isa.bound_call`, the per-vertex factor), paired by one thread's CPU time "
+              "by the *65535 rule*, one group, the float loop's prefetch), **float** the default; both bound to "
+              "the layout (`bench_wavelet_isa.bound_call`, the per-vertex factor), paired by one thread's CPU time "
               "(15 repeats; **float / vnni** > 1: the prototype faster [quartiles]), each against the streaming read "
               "(`read_bound_fn`: section 7's criterion). *err*: relative L2 of vnni − float over the float output; "
               "*bound*: the same of the stated per-vertex bound f_v (s/2) Σ_k |T_v,k| (every vertex within it: ✓); "
               "*truncation*: the float output at N against all terms.\n",
-              "| light | N | dense terms | vnni µs | float µs | **float / vnni** [quartiles] | of read: float → **vnni** | "
-              "err | bound | truncation | within | load |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+              "| size (V) | light | N | dense terms | vnni µs | float µs | **float / vnni** [quartiles] | of read: float → "
+              "**vnni** | err | bound | truncation | within | load |", "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for r in protos:
-            L.append(f"| {r['light']} | {r['N']} | {r['nd']} | {r['vnni'] * 1e6:.1f} | {r['float'] * 1e6:.1f} | "
+            L.append(f"| {r['size']} ({r['V']}) | {r['light']} | {r['N']} | {r['nd']} | {r['vnni'] * 1e6:.1f} | {r['float'] * 1e6:.1f} | "
                      f"**{r['ratio']:.2f}** [{r['q'][0]:.2f}, {r['q'][1]:.2f}] | {r['of_read_float']:.2f} → "
                      f"**{r['of_read']:.2f}** | {r['err']:.1e} | {r['bound']:.1e} | {r['trunc']:.1e} | "
                      f"{'✓' if r['ok'] else '✗'} | {r['load']:.1f} |")

@@ -369,8 +369,8 @@ static inline void put_rgb8(float *out, v8f r, v8f g, v8f b, int nt) {
  * layout does not hold), written over lw as the pairs' lights int32 [ceil(nd / 2), 4], (Lq_2q & 0xFFFF) |
  * Lq_2q+1 << 16 (an odd last term paired with itself at light 0). Per pair and 32-vertex block: the two rows (64
  * bytes each) interleaved by vpunpcklwd / vpunpckhwd, one vpdpwssd zmm per interleaving and channel (6 int32 sums;
- * the two blocks of the W16 pair in lockstep, the broadcasts shared), the prefetch PF terms ahead within the unit
- * (not across units); at the end converted, scaled, the vertex order restored (vpermt2ps) into z / y as the float
+ * the two blocks of the W16 pair in lockstep, the broadcasts shared), the prefetch as the float loop's (across units,
+ * PFX steps ahead, on layouts of at least PFX_MIN bytes; else PF terms ahead within the unit); at the end converted, scaled, the vertex order restored (vpermt2ps) into z / y as the float
  * loop leaves them. Error per vertex and channel |dS| <= (s[c] / 2) sum_k |T_v,k| (+ float rounding): not the same
  * bits as the float loop. Measured: reports/benchmarks/wavelet_madd_micro_vnni.md (docs/wavelet.md). */
 #if defined(DENSE_VNNI) && defined(__AVX512VNNI__) && defined(__AVX512BW__)
@@ -413,19 +413,38 @@ static inline void vnni_quantise(i64 nd, float *lw, float *vq) {
             : [s00] "+v"(s##k##00), [s01] "+v"(s##k##01), [s10] "+v"(s##k##10), [s11] "+v"(s##k##11),          \
               [s20] "+v"(s##k##20), [s21] "+v"(s##k##21), [x] "=&v"(x), [hi] "=&v"(hi)                        \
             : [pa_] "r"(pa), [pb_] "r"(pb), [l0] "v"(l0), [l1] "v"(l1), [l2] "v"(l2) : "memory")
-/* blk (and with two, blk + pstb bytes: the pair's next block) over the nd dense terms ds (64-byte rows), the pairs'
- * lights lq, scales vq [3]: the float sums into z (and y) [c][h], h: vertices 16h .. 16h + 15 */
-static inline __attribute__((always_inline)) void vnni_terms(const char *blk, i64 pstb, const int two, i64 nd,
-        const i64 *ds, const int32_t *lq, const float *vq, v16f z[4][2], v16f y[4][2]) {
+/* one (term, unit) step of the prefetch across units (as PF_FAR: the term pt_ of the unit po_ bytes on, both blocks'
+ * lines when two; past the layout's end a prefetch, never a load) */
+#define VNNI_FAR                                                                                             \
+    {                                                                                                        \
+        const uintptr_t a_ = (uintptr_t)blk + (uintptr_t)(po_ + ds[pt_] * 64);                              \
+        __builtin_prefetch((const char *)a_);                                                                \
+        if (two) __builtin_prefetch((const char *)(a_ + (uintptr_t)pstb));                                   \
+        if (++pt_ == nd) { pt_ = 0; po_ += us_; }                                                           \
+    }
+/* blk (and with two, blk + pstb bytes: the pair's next block; pstb the blocks' stride) over the nd dense terms ds
+ * (64-byte rows), the pairs' lights lq, scales vq [3]: the float sums into z (and y) [c][h], h: vertices 16h .. 16h +
+ * 15; far: the prefetch PFX (term, unit) steps ahead across units as the float loop's PF_FAR, else PF terms ahead
+ * within the unit */
+static inline __attribute__((always_inline)) void vnni_terms(const char *blk, i64 pstb, const int two, const int far,
+        i64 nd, const i64 *ds, const int32_t *lq, const float *vq, v16f z[4][2], v16f y[4][2]) {
     __m512i s000 = _mm512_setzero_si512(), s001 = s000, s010 = s000, s011 = s000, s020 = s000, s021 = s000,
             s100 = s000, s101 = s000, s110 = s000, s111 = s000, s120 = s000, s121 = s000;
+    const i64 us_ = (two ? 2 : 1) * pstb;
+    i64 pt_ = PFX, po_ = 0;
+    if (pt_ >= nd) { const i64 u_ = pt_ / nd; pt_ -= u_ * nd; po_ = u_ * us_; }
     for (i64 q = 0; 2 * q < nd; q++) {
-        const i64 ta = 2 * q, tb = ta + 1 < nd ? ta + 1 : ta, pa = ta + PF < nd ? ta + PF : nd - 1,
-                  pb = pa + 1 < nd ? pa + 1 : pa;
+        const i64 ta = 2 * q, tb = ta + 1 < nd ? ta + 1 : ta;
         const char *ra = blk + ds[ta] * 64, *rb = blk + ds[tb] * 64;
-        __builtin_prefetch(blk + ds[pa] * 64);
-        __builtin_prefetch(blk + ds[pb] * 64);
-        if (two) { __builtin_prefetch(blk + pstb + ds[pa] * 64); __builtin_prefetch(blk + pstb + ds[pb] * 64); }
+        if (far) {
+            VNNI_FAR
+            if (ta + 1 < nd) VNNI_FAR
+        } else {
+            const i64 pa = ta + PF < nd ? ta + PF : nd - 1, pb = pa + 1 < nd ? pa + 1 : pa;
+            __builtin_prefetch(blk + ds[pa] * 64);
+            __builtin_prefetch(blk + ds[pb] * 64);
+            if (two) { __builtin_prefetch(blk + pstb + ds[pa] * 64); __builtin_prefetch(blk + pstb + ds[pb] * 64); }
+        }
         const __m512i l0 = _mm512_set1_epi32(lq[4 * q]), l1 = _mm512_set1_epi32(lq[4 * q + 1]),
                       l2 = _mm512_set1_epi32(lq[4 * q + 2]);
         __m512i x, hi;
@@ -448,8 +467,8 @@ static inline __attribute__((always_inline)) void vnni_terms(const char *blk, i6
     }
 }
 #define VNNI_ON(T) vq && CO == 3 && CT == 1 && sizeof(T) == 2 && stride == BV
-#define VNNI_PAIR(T) if (VNNI_ON(T)) vnni_terms((const char *)blk, pst * (i64)sizeof(T), 1, nd, ds, (const int32_t *)lw, vq, z, y); else
-#define VNNI_ONE(T) if (VNNI_ON(T)) vnni_terms((const char *)blk, 0, 0, nd, ds, (const int32_t *)lw, vq, z, z); else
+#define VNNI_PAIR(T) if (VNNI_ON(T)) vnni_terms((const char *)blk, pst * (i64)sizeof(T), 1, far, nd, ds, (const int32_t *)lw, vq, z, y); else
+#define VNNI_ONE(T) if (VNNI_ON(T)) vnni_terms((const char *)blk, pst * (i64)sizeof(T), 0, far, nd, ds, (const int32_t *)lw, vq, z, z); else
 /* in the kernel after the term lists: the light quantised when the call takes the 16-lane loop (PAIR_ARGS's test) */
 #define VNNI_SETUP(T)                                                                                        \
     float vq_[4] = {0, 0, 0, 0};                                                                             \
