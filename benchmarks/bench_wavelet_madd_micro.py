@@ -832,7 +832,9 @@ def write_vnni(rows: list, floors: dict, ghz: float, loads: list, args, protos: 
               "(15 repeats; **float / vnni** > 1: the prototype faster [quartiles]), each against the streaming read "
               "(`read_bound_fn`: section 7's criterion). *err*: relative L2 of vnni − float over the float output; "
               "*bound*: the same of the stated per-vertex bound f_v (s/2) Σ_k |T_v,k| (every vertex within it: ✓); "
-              "*truncation*: the float output at N against all terms.\n",
+              "*truncation*: the float output at N against all terms. Each fraction of the read comes from its own pairing "
+              "(under load they move by ±0.1 between pairings, e.g. medium studio N = 10 0.99 → 0.82 against a paired "
+              "1.16×): **float / vnni** is the paired figure.\n",
               "| size (V) | light | N | dense terms | vnni µs | float µs | **float / vnni** [quartiles] | of read: float → "
               "**vnni** | err | bound | truncation | within | load |", "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for r in protos:
