@@ -197,6 +197,22 @@ MIXES = ("12 zmm FMAs alone", "the W16 term, 1 block (10 p0/p5 uops)", "the W16 
          "the term on float values (no widening/conversion)", "the 8-lane AVX2 term (ymm)")
 
 
+def build_library(who: str):
+    """This micro-benchmark's library (compiled once, cached; its functions' argument types set): ``dense16_pass``
+    (the 16-lane float loop in its variants; mode 1 the kernel's W16 form, two blocks in lockstep), ``mix`` and
+    ``clock_ghz``. Raises SystemExit naming ``who`` without a compiler."""
+    lib, how = compile_library("wavelet_dense16_micro", SRC, ["-O3", "-march=native", "-ffp-contract=fast", "-shared",
+                                                              "-fPIC", "-std=c99"], {})
+    if lib is None:
+        raise SystemExit(f"{who}: no compiler: {how}")
+    i64, vp = ctypes.c_int64, ctypes.c_void_p
+    lib.dense16_pass.argtypes = [vp, i64, vp, vp, i64, vp, i64, i64, i64, vp, i64]
+    lib.clock_ghz.restype = ctypes.c_double
+    lib.mix.argtypes = [i64, vp, vp, i64]
+    lib.mix.restype = ctypes.c_double
+    return lib
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--terms", type=int, nargs="+", default=[100, 300, 1000])
@@ -206,15 +222,7 @@ def main() -> None:
     if cpu_isa() != "avx512":
         raise SystemExit(f"bench_wavelet_dense16_micro.py: this CPU has {cpu_isa()}; accepted: an AVX-512 CPU (the 16-lane loop)")
     torch.set_num_threads(1)
-    lib, how = compile_library("wavelet_dense16_micro", SRC, ["-O3", "-march=native", "-ffp-contract=fast", "-shared",
-                                                              "-fPIC", "-std=c99"], {})
-    if lib is None:
-        raise SystemExit(f"bench_wavelet_dense16_micro.py: no compiler: {how}")
-    i64, vp = ctypes.c_int64, ctypes.c_void_p
-    lib.dense16_pass.argtypes = [vp, i64, vp, vp, i64, vp, i64, i64, i64, vp, i64]
-    lib.clock_ghz.restype = ctypes.c_double
-    lib.mix.argtypes = [i64, vp, vp, i64]
-    lib.mix.restype = ctypes.c_double
+    lib = build_library("bench_wavelet_dense16_micro.py")
     rl, nb, Pd, d16 = blocker_dense()
     ghz = lib.clock_ghz()
     load0 = os.getloadavg()[0]

@@ -41,15 +41,12 @@ from pathlib import Path  # noqa: E402
 import torch  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_wavelet import BITS, LIGHTS, OUT  # noqa: E402
+from bench_wavelet import BITS, LIGHTS, OUT, kernel_transfer  # noqa: E402
 from bench_wavelet_pass_micro import C_PRELUDE  # noqa: E402
 
 from prt_torch import relight  # noqa: E402
 from prt_torch._native import compile_library  # noqa: E402
 from prt_torch.harness.timing import machine_info, measure_paired  # noqa: E402
-from prt_torch.scene import builtin  # noqa: E402
-from prt_torch.transfer import RunOptions  # noqa: E402
-from prt_torch.transfer.wavelet import precompute_wavelet  # noqa: E402
 
 SRC = "#define _POSIX_C_SOURCE 199309L\n" + C_PRELUDE + r"""#include <time.h>
 typedef int64_t i64;
@@ -163,13 +160,11 @@ double clock_ghz(void) {
 """
 
 
-def blocker_dense() -> tuple["relight.WaveletRelighter", int, int, torch.Tensor]:
-    """The micro-benchmarks' layout: the blocker scene (occluder_over_plane, small) at R = 32, K = 256, 16-bit,
-    its one-thread column-major relighter ``rl``, its ``nb`` 32-vertex blocks and ``Pd`` dense columns, and the
-    dense values ``d16`` int16 [nb, Pd, 32]."""
-    mesh = builtin("occluder_over_plane", "small")
-    tr = precompute_wavelet(mesh, 32, 256, BITS, shadows="always", run=RunOptions(workers=1))
-    rl = relight.WaveletRelighter(tr, threads=1, layouts="column")
+def blocker_dense(size: str = "small") -> tuple["relight.WaveletRelighter", int, int, torch.Tensor]:
+    """The micro-benchmarks' layout: the blocker scene (occluder_over_plane, ``size``: small by default) at R = 32,
+    K = 256, 16-bit, its one-thread column-major relighter ``rl``, its ``nb`` 32-vertex blocks and ``Pd`` dense
+    columns, and the dense values ``d16`` int16 [nb, Pd, 32]."""
+    rl = relight.WaveletRelighter(kernel_transfer(size), threads=1, layouts="column")
     assert rl.CT == 1 and rl.dense.dtype == torch.int16
     nb, Pd = rl.dense.shape[0], rl.dense.shape[1]
     return rl, nb, Pd, rl.dense.reshape(nb, Pd, 32)

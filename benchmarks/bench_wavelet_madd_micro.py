@@ -40,6 +40,20 @@ K = 256, 16 bits). Each: the median of 15 paired samples of ``reps`` passes agai
 CPU time. Writes reports/benchmarks/wavelet_madd_micro.md.
 
     .venv/bin/python benchmarks/bench_wavelet_madd_micro.py [--terms 1000 ...] [--runs 2]    (about 2 min; x86-64 AVX2)
+
+``--vnni`` (a CPU with AVX-512 VNNI): the same idea on 16 lanes, ``vpdpwssd zmm`` (32 int16 products, adjacent pairs
+added and accumulated into 16 int32 in one instruction: ``vpmaddwd`` + ``vpaddd`` in one), ``vnni_pass``: per pair of
+dense terms and 32-vertex block 1 load, 2 unpacks (the second row their memory operand), 6 ``vpdpwssd`` (asm per
+block: in intrinsics gcc copied each of the 12 sums through another register at every step); one block, or two in
+lockstep as the kernel's W16 loop. Paired against the kernel's own 16-lane float loop (``bench_wavelet_dense16_micro``'s
+``dense16_pass`` mode 1, the W16 pair), the light quantised by the column-maximum rule (one group, and groups of 16);
+per size (``--sizes small medium``) the kernel's own call on the same light split (whole call and its streaming-read
+bound, dense terms alone, set-up and output alone) and the whole call estimated with the dense loop at the measured
+gain; the kernel built with ``-DDENSE_VNNI`` (the prototype in ``kernels/wavelet.c``'s W16 loop) paired with
+its default build on the whole call (each size). Writes reports/benchmarks/wavelet_madd_micro_vnni.md.
+
+    .venv/bin/python benchmarks/bench_wavelet_madd_micro.py --vnni --sizes small medium --terms 10 30 100 300 1000 6144
+    (about 7 min)
 """
 
 from __future__ import annotations
@@ -56,12 +70,12 @@ from pathlib import Path  # noqa: E402
 import torch  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_wavelet import BITS, LIGHTS, OUT  # noqa: E402
+from bench_wavelet import BITS, LIGHTS, OUT, size_choice  # noqa: E402
 from bench_wavelet_dense_micro import SRC as DENSE_SRC  # noqa: E402
 from bench_wavelet_dense_micro import blocker_dense, dense_terms  # noqa: E402
 
 from prt_torch._native import compile_library  # noqa: E402
-from prt_torch.harness.timing import machine_info, measure_paired  # noqa: E402
+from prt_torch.harness.timing import cpu_label, machine_info, measure_paired, read_bound_fn  # noqa: E402
 
 # the dense micro-benchmark's source (C_PRELUDE, its float kernel form as dense_pass mode 0, clock_ghz) and the madd loop
 SRC = DENSE_SRC + r"""
@@ -338,11 +352,139 @@ double floor_loop(i64 what, long n) {
 #else
 double floor_loop(i64 what, long n) { (void)what; (void)n; return -1.0; }
 #endif
+/* AVX-512 VNNI (vpdpwssd zmm: 32 int16 x int16 products, adjacent pairs added into 16 int32 and accumulated, one
+ * instruction): the pair loop on 16 lanes. Per pair of dense terms (a, b) and 32-vertex block: the two 64-byte rows
+ * (one zmm each) interleaved by vpunpcklwd / vpunpckhwd (in 128-bit lanes: lo holds vertices {0-3, 8-11, 16-19,
+ * 24-27}, hi {4-7, 12-15, 20-23, 28-31} as (T_a[v], T_b[v]) dword pairs), one vpdpwssd per interleaving and
+ * channel with the broadcast pair light (Lq_a[c], Lq_b[c]) (lq [np, 4] int32, pack()'s): CO x 2 = 6 int32 sums per
+ * block; at the end of each scale group (gp [ng + 1] first pairs, gs [ng, 4] scales) converted, scaled and added to
+ * 6 float sums; the vertex order restored once per block (vpermt2ps). mode bit 0: two blocks (2i, 2i + 1) in
+ * lockstep, as the kernel's W16 float loop (the pair's light broadcasts and offsets shared; 12 int32 sums; an odd
+ * last block alone); bit 1: no prefetch. The prefetch: both rows of the pair PF / 2 pairs ahead (PF terms) in each
+ * block (pob [np + 7, 2] byte offsets, padded). bs: the blocks' stride in int16 (0: every block reads block 0's
+ * values, L1). sums [nb, 3, 32] float32, vertex order. Returns -1 where the build has no AVX-512 VNNI. */
+#if defined(__AVX512F__) && defined(__AVX512BW__) && defined(__AVX512VNNI__)
+/* one pair's body in one block (asm: in intrinsics gcc copied each of the 12 sums through another register at every
+ * step, 24 moves per pair): the first row loaded, the second as the unpacks' memory operand, 6 vpdpwssd with the
+ * pair's three broadcast lights (registers, shared by the two blocks) */
+#define VN_BLOCK(k, pa, pb)                                                                                    \
+    __asm__("vmovdqu64 (%[pa_]), %[x]\n\t vpunpckhwd (%[pb_]), %[x], %[hi]\n\t vpunpcklwd (%[pb_]), %[x], %[x]\n\t" \
+            "vpdpwssd %[l0], %[x], %[s00]\n\t vpdpwssd %[l0], %[hi], %[s01]\n\t"                                \
+            "vpdpwssd %[l1], %[x], %[s10]\n\t vpdpwssd %[l1], %[hi], %[s11]\n\t"                                \
+            "vpdpwssd %[l2], %[x], %[s20]\n\t vpdpwssd %[l2], %[hi], %[s21]\n\t"                                \
+            : [s00] "+v"(s##k##00), [s01] "+v"(s##k##01), [s10] "+v"(s##k##10), [s11] "+v"(s##k##11),            \
+              [s20] "+v"(s##k##20), [s21] "+v"(s##k##21), [x] "=&v"(x), [hi] "=&v"(hi)                          \
+            : [pa_] "r"(pa), [pb_] "r"(pb), [l0] "v"(l0), [l1] "v"(l1), [l2] "v"(l2) : "memory")
+static inline __attribute__((always_inline)) void vnni_unit(const char *blk, i64 bsb, const int two, const int pf,
+        const i64 *pob, const int32_t *lq, const i64 *gp, i64 ng, const float *gs, float *sums) {
+    __m512 fs[2][3][2];
+    for (int k = 0; k < 2; k++) for (int c = 0; c < 3; c++) for (int h = 0; h < 2; h++) fs[k][c][h] = _mm512_setzero_ps();
+    for (i64 g = 0; g < ng; g++) {
+        __m512i s000 = _mm512_setzero_si512(), s001 = s000, s010 = s000, s011 = s000, s020 = s000, s021 = s000,
+                s100 = s000, s101 = s000, s110 = s000, s111 = s000, s120 = s000, s121 = s000;
+        const i64 q1 = gp[g + 1];
+        for (i64 q = gp[g]; q < q1; q++) {
+            const char *pa = blk + pob[2 * q], *pb = blk + pob[2 * q + 1];
+            if (pf) {
+                __builtin_prefetch(blk + pob[2 * q + PF]);
+                __builtin_prefetch(blk + pob[2 * q + PF + 1]);
+                if (two) { __builtin_prefetch(blk + bsb + pob[2 * q + PF]); __builtin_prefetch(blk + bsb + pob[2 * q + PF + 1]); }
+            }
+            const __m512i l0 = _mm512_set1_epi32(lq[4 * q]), l1 = _mm512_set1_epi32(lq[4 * q + 1]),
+                          l2 = _mm512_set1_epi32(lq[4 * q + 2]);
+            __m512i x, hi;
+            VN_BLOCK(0, pa, pb);
+            if (two) VN_BLOCK(1, pa + bsb, pb + bsb);
+        }
+        const __m512i si[2][3][2] = {{{s000, s001}, {s010, s011}, {s020, s021}}, {{s100, s101}, {s110, s111}, {s120, s121}}};
+        for (int c = 0; c < 3; c++) {
+            const __m512 sc = _mm512_set1_ps(gs[4 * g + c]);
+            for (int k = 0; k < 1 + two; k++) for (int h = 0; h < 2; h++)
+                fs[k][c][h] = _mm512_fmadd_ps(_mm512_cvtepi32_ps(si[k][c][h]), sc, fs[k][c][h]);
+        }
+    }
+    /* lane 4j + r of lo: vertex 8j + r; of hi: vertex 8j + 4 + r (r < 4) */
+    const __m512i i0 = _mm512_setr_epi32(0, 1, 2, 3, 16, 17, 18, 19, 4, 5, 6, 7, 20, 21, 22, 23),
+                  i1 = _mm512_setr_epi32(8, 9, 10, 11, 24, 25, 26, 27, 12, 13, 14, 15, 28, 29, 30, 31);
+    for (int k = 0; k < 1 + two; k++)
+        for (int c = 0; c < 3; c++) {
+            _mm512_storeu_ps(sums + 96 * k + 32 * c, _mm512_permutex2var_ps(fs[k][c][0], i0, fs[k][c][1]));
+            _mm512_storeu_ps(sums + 96 * k + 32 * c + 16, _mm512_permutex2var_ps(fs[k][c][0], i1, fs[k][c][1]));
+        }
+}
+#define VN_PASS(PFON)                                                                                          \
+    for (i64 r_ = 0; r_ < reps; r_++) {                                                                        \
+        i64 b = 0;                                                                                             \
+        if (two)                                                                                               \
+            for (; b + 2 <= nb; b += 2)                                                                        \
+                vnni_unit((const char *)dense + b * bsb, bsb, 1, PFON, pob, lq, gp, ng, gs, sums + 96 * b);    \
+        for (; b < nb; b++) vnni_unit((const char *)dense + b * bsb, bsb, 0, PFON, pob, lq, gp, ng, gs, sums + 96 * b); \
+    }
+int vnni_pass(const int16_t *dense, i64 bs, const i64 *pob, const int32_t *lq, const i64 *gp, i64 ng, const float *gs,
+              i64 nb, float *sums, i64 reps, i64 mode) {
+    const int two = mode & 1;
+    const i64 bsb = bs * (i64)sizeof(int16_t);
+    if (mode & 2) { VN_PASS(0) } else { VN_PASS(1) }
+    return 0;
+}
+/* the VNNI pair body's mixes alone (asm, data in L1, as floor_loop): what = 0: one block (2 terms x 32 vertices: a
+ * load, 2 unpacks with the second row as memory operand, 6 vpdpwssd with the light as an embedded broadcast {1to16});
+ * 1: two blocks, the 3 lights broadcast into registers once (per block: the same); 2: 12 independent vpdpwssd zmm;
+ * 3: 12 independent vfmadd231ps zmm (the float loop's multiply-adds, same clock); 4: 6 vpdpwssd + 6 vpunpcklwd zmm */
+#define VN_CLOB "xmm0", "xmm1", "xmm2", "xmm3", "xmm4", "xmm5", "xmm6", "xmm7", "xmm8", "xmm9", "xmm10", "xmm11", \
+    "xmm16", "xmm17", "xmm18", "xmm20", "xmm21", "xmm22", "memory"
+#define VN12(op) op " %%zmm20,%%zmm21,%%zmm0\n " op " %%zmm20,%%zmm21,%%zmm1\n " op " %%zmm20,%%zmm21,%%zmm2\n "    \
+    op " %%zmm20,%%zmm21,%%zmm3\n " op " %%zmm20,%%zmm21,%%zmm4\n " op " %%zmm20,%%zmm21,%%zmm5\n "                   \
+    op " %%zmm20,%%zmm21,%%zmm6\n " op " %%zmm20,%%zmm21,%%zmm7\n " op " %%zmm20,%%zmm21,%%zmm8\n "                   \
+    op " %%zmm20,%%zmm21,%%zmm9\n " op " %%zmm20,%%zmm21,%%zmm10\n " op " %%zmm20,%%zmm21,%%zmm11\n"
+#define VN_BLK(o, a, b, c, d, e, f) "vmovdqu64 " o "(%1),%%zmm16\n vpunpcklwd " o "+64(%1),%%zmm16,%%zmm17\n"      \
+    "vpunpckhwd " o "+64(%1),%%zmm16,%%zmm18\n"                                                                    \
+    "vpdpwssd %%zmm20,%%zmm17,%%zmm" a "\n vpdpwssd %%zmm21,%%zmm17,%%zmm" b "\n vpdpwssd %%zmm22,%%zmm17,%%zmm" c "\n" \
+    "vpdpwssd %%zmm20,%%zmm18,%%zmm" d "\n vpdpwssd %%zmm21,%%zmm18,%%zmm" e "\n vpdpwssd %%zmm22,%%zmm18,%%zmm" f "\n"
+double vnni_floor(i64 what, long n) {
+    struct timespec a, b;
+    const int16_t *pa = fl_d;
+    const int32_t *l = fl_l;
+    __asm__ volatile("vpxord %%xmm20,%%xmm20,%%xmm20\n vpxord %%xmm21,%%xmm21,%%xmm21\n vpxord %%xmm22,%%xmm22,%%xmm22\n"
+                     ::: "xmm20", "xmm21", "xmm22");
+    clock_gettime(CLOCK_THREAD_CPUTIME_ID, &a);
+#define VN_RUN(body) __asm__ volatile("1:\n" body "dec %0\n jnz 1b" : "+r"(n) : "r"(pa), "r"(l) : VN_CLOB)
+    switch (what) {
+    case 0: VN_RUN("vmovdqu64 (%1),%%zmm16\n vpunpcklwd 64(%1),%%zmm16,%%zmm17\n vpunpckhwd 64(%1),%%zmm16,%%zmm18\n"
+                   "vpdpwssd (%2)%{1to16%},%%zmm17,%%zmm0\n vpdpwssd 4(%2)%{1to16%},%%zmm17,%%zmm1\n"
+                   "vpdpwssd 8(%2)%{1to16%},%%zmm17,%%zmm2\n vpdpwssd (%2)%{1to16%},%%zmm18,%%zmm3\n"
+                   "vpdpwssd 4(%2)%{1to16%},%%zmm18,%%zmm4\n vpdpwssd 8(%2)%{1to16%},%%zmm18,%%zmm5\n"
+                   "vmovdqu64 128(%1),%%zmm16\n vpunpcklwd 192(%1),%%zmm16,%%zmm17\n vpunpckhwd 192(%1),%%zmm16,%%zmm18\n"
+                   "vpdpwssd (%2)%{1to16%},%%zmm17,%%zmm6\n vpdpwssd 4(%2)%{1to16%},%%zmm17,%%zmm7\n"
+                   "vpdpwssd 8(%2)%{1to16%},%%zmm17,%%zmm8\n vpdpwssd (%2)%{1to16%},%%zmm18,%%zmm9\n"
+                   "vpdpwssd 4(%2)%{1to16%},%%zmm18,%%zmm10\n vpdpwssd 8(%2)%{1to16%},%%zmm18,%%zmm11\n"); break;
+    case 1: VN_RUN("vpbroadcastd (%2),%%zmm20\n vpbroadcastd 4(%2),%%zmm21\n vpbroadcastd 8(%2),%%zmm22\n"
+                   VN_BLK("0", "0", "1", "2", "3", "4", "5") VN_BLK("2048", "6", "7", "8", "9", "10", "11")); break;
+    case 2: VN_RUN(VN12("vpdpwssd")); break;
+    case 3: VN_RUN(VN12("vfmadd231ps")); break;
+    default: VN_RUN("vpdpwssd %%zmm20,%%zmm21,%%zmm0\n vpdpwssd %%zmm20,%%zmm21,%%zmm1\n vpdpwssd %%zmm20,%%zmm21,%%zmm2\n"
+                    "vpdpwssd %%zmm20,%%zmm21,%%zmm3\n vpdpwssd %%zmm20,%%zmm21,%%zmm4\n vpdpwssd %%zmm20,%%zmm21,%%zmm5\n"
+                    "vpunpcklwd %%zmm20,%%zmm21,%%zmm6\n vpunpcklwd %%zmm20,%%zmm21,%%zmm7\n vpunpcklwd %%zmm20,%%zmm21,%%zmm8\n"
+                    "vpunpcklwd %%zmm20,%%zmm21,%%zmm9\n vpunpcklwd %%zmm20,%%zmm21,%%zmm10\n vpunpcklwd %%zmm20,%%zmm21,%%zmm11\n"); break;
+    }
+    clock_gettime(CLOCK_THREAD_CPUTIME_ID, &b);
+    return (double)(b.tv_sec - a.tv_sec) + 1e-9 * (double)(b.tv_nsec - a.tv_nsec);
+}
+#else
+int vnni_pass(void) { return -1; }
+double vnni_floor(i64 what, long n) { (void)what; (void)n; return -1.0; }
+#endif
 """
 
 
 LEAN = {"lean": 0, "lean, no prefetch": 1, "lean, row in register": 2, "lean, row in register, prefetch 2 PF": 6}
 VARIANTS = ("half", *LEAN, "half, asm")
+#: the AVX-512 VNNI loops (``vnni_pass``'s mode): one block, two blocks in lockstep (the kernel's W16 form), and
+#: two without the prefetch; status -1 where the build has no AVX-512 VNNI
+VNNI = {"vnni, 1 block": 0, "vnni, 2 blocks": 1, "vnni, 2 blocks, no prefetch": 3}
+VNNI_FLOORS = ("VNNI pair body, 1 block (2 terms x 32 vertices: 1 load, 2 unpacks, 6 vpdpwssd {1to16}; x2)",
+               "VNNI pair body, 2 blocks (3 broadcasts, per block 1 load, 2 unpacks, 6 vpdpwssd)", "12 vpdpwssd zmm",
+               "12 vfmadd231ps zmm", "6 vpdpwssd + 6 vpunpcklwd zmm")
 
 
 FLOORS = ("madd pair body (2 terms x 32 vertices; per term: half)", "float term body (1 term x 32 vertices)",
@@ -399,6 +541,9 @@ def build_library():
     lib.clock_ghz.restype = ctypes.c_double
     lib.floor_loop.argtypes = [i64, ctypes.c_long]
     lib.floor_loop.restype = ctypes.c_double
+    lib.vnni_pass.argtypes = [vp, i64, vp, vp, vp, i64, vp, i64, vp, i64, i64]
+    lib.vnni_floor.argtypes = [i64, ctypes.c_long]
+    lib.vnni_floor.restype = ctypes.c_double
     return lib
 
 
@@ -437,9 +582,12 @@ def pack(ds: torch.Tensor, q: torch.Tensor, s: torch.Tensor, group: int) -> dict
 def madd_call(lib, variant: str, d16: torch.Tensor, k: dict, out: torch.Tensor, l1: bool = False, reps: int = 1) -> int:
     """One call of an integer loop over the dense blocks ``d16 [nb, Pd, 32]`` int16 with :func:`pack`'s arguments ``k``:
     the sums (light scale applied, no factor) into ``out [nb, 3, 32]`` float32, vertex order; ``l1``: every block reads
-    the first block's values. Returns the loop's status (-1: no AVX2 build)."""
+    the first block's values. Returns the loop's status (-1: no AVX2 build; for the VNNI loops, no AVX-512 VNNI)."""
     nb, Pd = d16.shape[0], d16.shape[1]
     bs = 0 if l1 else Pd * 32
+    if variant in VNNI:
+        return lib.vnni_pass(d16.data_ptr(), bs, k["pob"].data_ptr(), k["lq"].data_ptr(), k["gp"].data_ptr(), k["ng"],
+                             k["gs"].data_ptr(), nb, out.data_ptr(), reps, VNNI[variant])
     if variant == "half, asm":
         return lib.madd_half(d16.data_ptr(), bs, k["pob"].data_ptr(), k["lq"].data_ptr(), k["gp"].data_ptr(), k["ng"],
                              k["gs"].data_ptr(), nb, out.data_ptr(), reps)
@@ -450,8 +598,260 @@ def madd_call(lib, variant: str, d16: torch.Tensor, k: dict, out: torch.Tensor, 
                          k["gs"].data_ptr(), nb, out.data_ptr(), reps, LEAN[variant])
 
 
+def vnni_main(args, lib) -> None:
+    """The AVX-512 VNNI rows (``--vnni``): per size, light and N, the VNNI loops against the kernel's 16-lane float
+    dense loop (``bench_wavelet_dense16_micro``'s ``dense16_pass`` mode 1: the kernel's W16 pair, two blocks in
+    lockstep) on the same dense terms, paired by one thread's CPU time; the errors against the float64 sums of the same
+    stored values and against the transfer's own quantisation bound; the kernel itself on the same light (whole call,
+    dense terms alone, set-up and output alone, its streaming-read bound) and what the whole call would become with
+    the dense loop at the measured gain. Writes reports/benchmarks/wavelet_madd_micro_vnni.md."""
+    from bench_wavelet import rel
+    from bench_wavelet_dense16_micro import build_library as dense16_library
+
+    if lib.vnni_floor(0, 1) < 0:
+        raise SystemExit("bench_wavelet_madd_micro.py: --vnni: this build has no AVX-512 VNNI (accepted: a CPU with "
+                         "avx512_vnni, e.g. Intel Xeon Ice Lake or later)")
+    f16 = dense16_library("bench_wavelet_madd_micro.py")
+    ghz = max(lib.clock_ghz() for _ in range(5))
+    loads = [os.getloadavg()[0]]
+    floors = {}
+    for what, label in enumerate(VNNI_FLOORS):
+        floors[label] = min(lib.vnni_floor(what, 2_000_000) for _ in range(9)) * ghz * 1e9 / 2_000_000
+        print(f"[madd_micro vnni] floor {label}: {floors[label]:.2f} cycles", flush=True)
+    groups = ("all, column max", "16, column max")
+    rows, protos = [], []
+    for size in args.sizes:
+        rl, nb, Pd, d16 = blocker_dense(size)
+        tmax = d16.abs().amax(dim=(0, 2)).to(torch.int64)
+        assert int(d16.abs().max()) <= 32767, "stored values outside +-32767"
+        reps = max(5, args.reps * 71 // nb)
+        fac = rl._factor(3, True).double()  # [V, 3] the kernel's per-vertex factor (quantisation scale x albedo)
+        empty = torch.nonzero(rl.cls == 0).flatten()[:1].contiguous()
+        out0 = torch.empty(rl.V, 3)
+        f_fixed = rl.prepared(empty, torch.ones(3, 1), out0)
+        for light in ("studio", "sky (sun)"):
+            li_a, lv_a, _ = rl.light(LIGHTS[light], rl.P, "transport")
+            out_all = rl.prepared(li_a, lv_a.float(), torch.empty(rl.V, 3))().clone().double()
+            for N in args.terms:
+                N = min(N, rl.P)
+                li, lv, _ = rl.light(LIGHTS[light], N, "transport")
+                lv = lv.float().contiguous()
+                ds, lw = dense_terms(rl, li, lv)
+                nd = ds.numel()
+                res = {"size": size, "V": rl.V, "nb": nb, "light": light, "N": "all" if N == rl.P else N,
+                       "terms": int(li.numel()), "nd": nd, "tb": nd * nb}
+                # the kernel: the whole call, its dense terms alone, the set-up and output alone, the streaming read
+                out_n = torch.empty(rl.V, 3)
+                f_all = rl.prepared(li, lv, out_n)
+                d = rl.dslot[li] >= 0
+                f_dense = rl.prepared(li[d].contiguous(), lv[:, d].contiguous(), torch.empty(rl.V, 3))
+                f_all()
+                pr = measure_paired(f_all, read_bound_fn(rl.bytes_read(li), rl.V * 12), repeats=15, warmup=1,
+                                    clock=time.thread_time)
+                pd = measure_paired(f_dense, f_fixed, repeats=15, warmup=1, clock=time.thread_time)
+                res.update(call=pr.test.median, read=pr.peer.median, of_read=pr.speedup, dense_call=pd.test.median,
+                           fixed=pd.peer.median, dense_net=pd.test.median - pd.peer.median,
+                           trunc=rel(out_n, out_all))
+                # the float pair loop (the kernel's W16 form) and the float64 sums of the stored values
+                fsums = torch.zeros(nb, 3, 32)
+                bo = torch.cat([ds, ds[-1:].expand(6)]) * 64
+
+                def fcall(l1=0, reps=1):
+                    return f16.dense16_pass(d16.data_ptr(), Pd, ds.data_ptr(), bo.data_ptr(), nd, lw.data_ptr(), nb, 1, l1,
+                                            fsums.data_ptr(), reps)
+
+                fcall()
+                tv = d16[:, ds, :].double()  # [nb, nd, 32]
+                exact = torch.einsum("bkv,kc->bcv", tv, lw[:, :3].double())
+                res["float err"] = float(((fsums.double() - exact).abs() / exact.abs().clamp_min(1e-30)).median())
+                tbound = lw[:, :3].double().abs().sum(0)[None, :, None] / 2
+                msums = torch.zeros(nb, 3, 32)
+                for G in groups:
+                    G2, _ = CONFIGS[G]
+                    q, sc, grp = quantise_light(lw[:, :3], G2, tmax[ds])
+                    k = pack(ds, q, sc, G2)
+                    bound = torch.einsum("bkv,kc->bcv", tv.abs(), sc.double()[grp] / 2)
+                    slack = 1e-6 * exact.abs() + 1e-6 * torch.einsum("bkv,kc->bcv", tv.abs(), lw[:, :3].double().abs())
+                    for variant in VNNI:
+                        assert madd_call(lib, variant, d16, k, msums) == 0
+                        err = (msums.double() - exact).abs()
+                        key = f"{variant} G{G}"
+                        res[key + " ok"] = bool((err <= bound + slack).all())
+                        res[key + " err"] = float((err / exact.abs().clamp_min(1e-30)).median())
+                        res[key + " vs transfer"] = float((bound / tbound).median())
+                        # the output's error from the dense sums alone: relative L2 over vertices and channels
+                        dv = (msums.double() - exact).permute(0, 2, 1).reshape(-1, 3)[:rl.V] * fac
+                        res[key + " out err"] = float(dv.norm() / out_n.double().norm())
+                        res[key + " out bound"] = float(((bound.permute(0, 2, 1).reshape(-1, 3)[:rl.V] * fac).norm()
+                                                         / out_n.double().norm()))
+                        res[key + " out transfer bound"] = float(((tbound.expand_as(bound).permute(0, 2, 1)
+                                                                   .reshape(-1, 3)[:rl.V] * fac).norm() / out_n.double().norm()))
+                        for l1 in (False, True):
+                            p = measure_paired(lambda x=l1, v=variant, k=k: madd_call(lib, v, d16, k, msums, x, reps),
+                                               lambda x=l1: fcall(int(x), reps), repeats=15, warmup=1, clock=time.thread_time)
+                            kk = key + (" L1" if l1 else "")
+                            res[kk] = p.test.median / reps
+                            res[kk + " float"] = p.peer.median / reps
+                            res[kk + " ratio"] = p.speedup
+                            res[kk + " q"] = [p.ratio.q1, p.ratio.q3]
+                        print(f"[madd_micro vnni] {size} {light} N={res['N']} nd={nd} {key}: vnni {res[key] * 1e6:.1f} us, "
+                              f"float pair {res[key + ' float'] * 1e6:.1f} us, float/vnni {res[key + ' ratio']:.3f} "
+                              f"(L1 {res[key + ' L1 ratio']:.3f}); within bound {res[key + ' ok']}; bound/transfer's "
+                              f"{res[key + ' vs transfer']:.2f}; output err {res[key + ' out err']:.1e} "
+                              f"(truncation {res['trunc']:.1e}); load {os.getloadavg()[0]:.1f}", flush=True)
+                print(f"[madd_micro vnni] {size} {light} N={res['N']}: kernel call {res['call'] * 1e6:.1f} us, of read "
+                      f"{res['of_read']:.2f}, dense alone {res['dense_call'] * 1e6:.1f} us, set-up+output "
+                      f"{res['fixed'] * 1e6:.1f} us", flush=True)
+                rows.append(res)
+        loads.append(os.getloadavg()[0])
+        protos += [dict(r, size=size, V=rl.V) for r in proto_rows(rl, fac, args)]
+    write_vnni(rows, floors, ghz, loads, args, protos)
+
+
+def proto_rows(rl, fac: torch.Tensor, args) -> list:
+    """The kernel prototype (``kernels/wavelet.c`` built with ``-DDENSE_VNNI``: the W16 dense loop on VNNI, the light
+    quantised per call by the 65535 rule) against the same source's default build on ``rl``'s layout, the whole call
+    paired by one thread's CPU time, each against its streaming-read bound; the prototype's output against the
+    default's (relative L2, and within the stated bound per vertex: fac (s / 2) sum_k |T_v,k| over the dense terms)."""
+    from bench_wavelet import rel
+    from bench_wavelet_isa import bound_call, kernel_build, kernel_source
+
+    text = kernel_source(None, "bench_wavelet_madd_micro.py")[0]
+    vn, _ = kernel_build("#define DENSE_VNNI 1\n" + text, "native", "bench_wavelet_madd_micro.py")
+    base, _ = kernel_build(text, "native", "bench_wavelet_madd_micro.py")
+    d16 = rl.dense.reshape(rl.dense.shape[0], rl.Pd, 32)
+    out = []
+    for light in ("studio", "sky (sun)"):
+        li_a, lv_a, _ = rl.light(LIGHTS[light], rl.P, "transport")
+        out_all = rl.prepared(li_a, lv_a.float(), torch.empty(rl.V, 3))().clone().double()
+        for N in args.terms:
+            N = min(N, rl.P)
+            li, lv, _ = rl.light(LIGHTS[light], N, "transport")
+            lv = lv.float().contiguous()
+            ds, lw = dense_terms(rl, li, lv)
+            o_b, o_v = torch.empty(rl.V, 3), torch.empty(rl.V, 3)
+            rl.prepared(li, lv, o_b)()  # builds the row-major copy where the light needs it
+            f_b, f_v = bound_call(rl, base, li, lv, o_b, 1, True), bound_call(rl, vn, li, lv, o_v, 1, True)
+            f_b(), f_v()
+            _, sc, _ = quantise_light(lw[:, :3], 4096, None)
+            tv = d16[:, ds, :].double().abs().sum(1)  # [nb, 32] sum_k |T_v,k|
+            bound = (tv.reshape(-1)[:rl.V, None] * sc.double()[0] / 2) * fac
+            diff = (o_v.double() - o_b.double()).abs()
+            ok = bool((diff <= bound + 1e-5 * o_b.double().abs() + 1e-30).all())
+            p = measure_paired(f_v, f_b, repeats=15, warmup=1, clock=time.thread_time)
+            read = read_bound_fn(rl.bytes_read(li), rl.V * 12)
+            rv = measure_paired(f_v, read, repeats=15, warmup=1, clock=time.thread_time)
+            rb = measure_paired(f_b, read, repeats=15, warmup=1, clock=time.thread_time)
+            r = {"light": light, "N": "all" if N == rl.P else N, "nd": ds.numel(), "vnni": p.test.median, "float": p.peer.median,
+                 "ratio": p.speedup, "q": [p.ratio.q1, p.ratio.q3], "of_read": rv.speedup, "of_read_float": rb.speedup,
+                 "err": rel(o_v, o_b.double()), "bound": float(bound.norm() / o_b.double().norm()),
+                 "trunc": rel(o_b, out_all), "ok": ok, "load": os.getloadavg()[0]}
+            print(f"[madd_micro vnni] prototype {light} N={r['N']}: vnni {r['vnni'] * 1e6:.1f} us, float {r['float'] * 1e6:.1f} us, "
+                  f"float/vnni {r['ratio']:.3f}; of read {r['of_read_float']:.2f} -> {r['of_read']:.2f}; err {r['err']:.1e} "
+                  f"(bound {r['bound']:.1e}, truncation {r['trunc']:.1e}), within bound {ok}; load {r['load']:.1f}", flush=True)
+            out.append(r)
+    return out
+
+
+def write_vnni(rows: list, floors: dict, ghz: float, loads: list, args, protos: list) -> None:
+    """reports/benchmarks/wavelet_madd_micro_vnni.md from :func:`vnni_main`'s rows."""
+    m = machine_info()
+    best = "vnni, 2 blocks G" + "all, column max"
+    L = ["# Wavelet kernel: the dense part with AVX-512 VNNI integer dot products (issue 39)\n",
+         f"{cpu_label()} at {ghz:.2f} GHz (a chain of dependent multiplies, the fastest of five; the zmm loops may run "
+         f"slower, so their cycles are over-counted by a few %), one thread, `-O3 -march=native`; load average "
+         f"{' → '.join(f'{x:.1f}' for x in loads)} (shared machine; this thread's CPU time, which the others' load does "
+         "not enter). The kernel section's transfer (occluder_over_plane, R = 32, K = 256, 16-bit, CT = 1), RGB light "
+         "(CO = 3), transport-weighted terms. Reproduce: `.venv/bin/python benchmarks/bench_wavelet_madd_micro.py --vnni"
+         + (f" --sizes {' '.join(args.sizes)}" if args.sizes != ["small"] else "") + "`.\n",
+         "**The loops** (`bench_wavelet_madd_micro.py`'s `vnni_pass`, sums stored per block, no output): per pair of "
+         "dense terms (a, b) and 32-vertex block the two 64-byte rows interleaved by `vpunpcklwd`/`vpunpckhwd` (zmm), "
+         "one `vpdpwssd zmm` per interleaving and channel with the broadcast pair light (Lq_a[c], Lq_b[c]): 6 int32 sums "
+         "per block; per scale group converted, scaled, added to float sums; the vertex order restored once per block. "
+         "`2 blocks`: blocks 2i and 2i + 1 in lockstep as the kernel's W16 loop (the pair's offsets and broadcasts "
+         "shared); the prefetch PF = 6 terms ahead in each block as the peer's. **The peer**: the kernel's 16-lane float "
+         "loop, two blocks in lockstep (`bench_wavelet_dense16_micro.py`'s `dense16_pass` mode 1, the W16 pair: per "
+         "term and block 2 widening loads, 2 conversions, 6 FMAs), the same terms, paired by this thread's CPU time "
+         "(median of 15 samples of several passes over every block; **float / vnni** > 1: VNNI faster, [quartiles]); "
+         "cycles per (dense term, 32-vertex block) at the measured clock. `L1`: every block reads the first block's (or "
+         "pair's) values. The light: int16 per group and channel by `quantise_light`'s column-maximum rule (Σ_k "
+         "tmax_k |Lq_k| ≤ 2³¹ − 1: no int32 sum overflows for the stored values), G `all` one group, `16` groups of 16 "
+         "consecutive dense terms.\n",
+         "**Errors**: *rel. err* the median over vertices and channels of |vnni − exact| / |exact| of the dense sums "
+         "(exact: float64 sums of the same stored values; every vertex within the stated bound Σ_g (s_g/2) "
+         "Σ_{k∈g} |T_v,k|: ✓); *bound / transfer's*: the median of that bound over the transfer's own 16-bit "
+         "quantisation bound for the same terms, Σ_k |L_k| / 2 (stored units); *output err*: the relative L2 over "
+         "vertices and channels of the dense sums' error × the per-vertex factor against the kernel's output at this N "
+         "(bench_wavelet's `rel`), beside the same of the two bounds and the **N-term truncation error** (the kernel's "
+         "output at N against all terms, relative L2).\n",
+         "## The instruction mixes alone (asm, data in L1, min of 9 × 2M iterations)\n",
+         "| mix | cycles per iteration | per (term, 32-vertex block) |", "|---|---|---|"]
+    L += [f"| {k} | {v:.2f} | {f'{v / 4:.2f}' if k.startswith('VNNI') else ''} |" for k, v in floors.items()]
+    L += ["", "The kernel's float term alone (`bench_wavelet_dense16_micro.py`, the W16 term: 3 broadcasts, 2 widening "
+          "loads, 2 conversions, 6 FMAs): 5.7-5.8 cycles per (term, block) at the same clock (the kernel's header).", "",
+          "## The loops on the real layout\n",
+          "| size (V) | light | N | dense terms | variant | G | vnni µs | float pair µs | cycles/(term, block) vnni / float | "
+          "**float / vnni** [quartiles] | L1: **float / vnni** | rel. err | bound / transfer's | output err | output bound "
+          "| transfer's output bound | truncation err | within bound |",
+          "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        for v in VNNI:
+            for G in ("all, column max", "16, column max"):
+                k = f"{v} G{G}"
+                cv, cf = (r[k] * 1e9 * ghz / r["tb"], r[k + " float"] * 1e9 * ghz / r["tb"]) if r["tb"] else (0, 0)
+                L.append(f"| {r['size']} ({r['V']}) | {r['light']} | {r['N']} | {r['nd']} | {v} | {G.split(',')[0]} | "
+                         f"{r[k] * 1e6:.1f} | {r[k + ' float'] * 1e6:.1f} | {cv:.2f} / {cf:.2f} | **{r[k + ' ratio']:.2f}** "
+                         f"[{r[k + ' q'][0]:.2f}, {r[k + ' q'][1]:.2f}] | **{r[k + ' L1 ratio']:.2f}** | {r[k + ' err']:.1e} | "
+                         f"{r[k + ' vs transfer']:.2f} | {r[k + ' out err']:.1e} | {r[k + ' out bound']:.1e} | "
+                         f"{r[k + ' out transfer bound']:.1e} | {r['trunc']:.1e} | {'✓' if r[k + ' ok'] else '✗'} |")
+    L += ["", "## What the whole call would become\n",
+          "The kernel itself on the same light (`WaveletRelighter.prepared`, this thread's CPU time, 15 paired repeats): "
+          "the whole call against its streaming-read bound (`timing.read_bound_fn` of `bytes_read` plus the output: "
+          "section 7's criterion), its dense terms alone against the set-up and output alone (a one-term call of a "
+          "column no vertex keeps): *dense net* the difference, the dense loop's time in the call. **Estimate**: the call "
+          f"with the dense net divided by the micro-benchmark's paired gain of `{best}` (the quantisation of the light "
+          "per call not counted: a pass over the dense terms, ~1 µs), and its fraction of the same bound.\n",
+          "| size | light | N | dense terms | call µs | of read | dense alone µs | set-up + output µs | dense net µs | "
+          "kernel ns/(term, block) | vnni ns/(term, block) | gain (paired, micro) | **estimated call µs** | "
+          "**estimated of read** |", "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        gain = r[best + " ratio"]
+        net = max(r["dense_net"], 0.0)
+        est = r["call"] - net + net / gain
+        kn = net * 1e9 / r["tb"] if r["tb"] else 0.0
+        vn = r[best] * 1e9 / r["tb"] if r["tb"] else 0.0
+        L.append(f"| {r['size']} | {r['light']} | {r['N']} | {r['nd']} | {r['call'] * 1e6:.1f} | {r['of_read']:.2f} | "
+                 f"{r['dense_call'] * 1e6:.1f} | {r['fixed'] * 1e6:.1f} | {net * 1e6:.1f} | {kn:.2f} | {vn:.2f} | "
+                 f"{gain:.2f} | **{est * 1e6:.1f}** | **{r['read'] / est:.2f}** |")
+    if protos:
+        L += ["", "## The kernel prototype (`-DDENSE_VNNI`), the whole call\n",
+              "`kernels/wavelet.c` built twice from the working tree with the wavelet library's flags (native: the W16 "
+              "loop): **vnni** with `#define DENSE_VNNI` (the W16 dense loop on `vpdpwssd`, the light quantised per call "
+              "by the *65535 rule*, one group, the float loop's prefetch), **float** the default; both bound to "
+              "the layout (`bench_wavelet_isa.bound_call`, the per-vertex factor), paired by one thread's CPU time "
+              "(15 repeats; **float / vnni** > 1: the prototype faster [quartiles]), each against the streaming read "
+              "(`read_bound_fn`: section 7's criterion). *err*: relative L2 of vnni − float over the float output; "
+              "*bound*: the same of the stated per-vertex bound f_v (s/2) Σ_k |T_v,k| (every vertex within it: ✓); "
+              "*truncation*: the float output at N against all terms. Each fraction of the read comes from its own pairing "
+              "(under load they move by ±0.1 between pairings, e.g. medium studio N = 10 0.99 → 0.82 against a paired "
+              "1.16×): **float / vnni** is the paired figure.\n",
+              "| size (V) | light | N | dense terms | vnni µs | float µs | **float / vnni** [quartiles] | of read: float → "
+              "**vnni** | err | bound | truncation | within | load |", "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+        for r in protos:
+            L.append(f"| {r['size']} ({r['V']}) | {r['light']} | {r['N']} | {r['nd']} | {r['vnni'] * 1e6:.1f} | {r['float'] * 1e6:.1f} | "
+                     f"**{r['ratio']:.2f}** [{r['q'][0]:.2f}, {r['q'][1]:.2f}] | {r['of_read_float']:.2f} → "
+                     f"**{r['of_read']:.2f}** | {r['err']:.1e} | {r['bound']:.1e} | {r['trunc']:.1e} | "
+                     f"{'✓' if r['ok'] else '✗'} | {r['load']:.1f} |")
+    OUT.mkdir(parents=True, exist_ok=True)
+    path = OUT / "wavelet_madd_micro_vnni.md"
+    path.write_text("\n".join(L) + "\n")
+    print(f"[madd_micro vnni] wrote {path} ({m['cpu']})", flush=True)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
+    ap.add_argument("--vnni", action="store_true", help="the AVX-512 VNNI rows only (wavelet_madd_micro_vnni.md)")
+    ap.add_argument("--sizes", nargs="+", default=["small"], help="--vnni: the kernel section's sizes (small, medium, large)")
     ap.add_argument("--terms", type=int, nargs="+", default=[300, 1000, 6144])
     ap.add_argument("--grey", nargs="*", default=["cap 20°", "cap 40°"], choices=list(LIGHTS),
                     help="lights relit grey (their first channel; CO = 1)")
@@ -461,10 +861,17 @@ def main() -> None:
     ap.add_argument("--runs", type=int, default=2)
     ap.add_argument("--variants", nargs="+", default=[v for v in VARIANTS if v != "lean, no prefetch"], choices=VARIANTS)
     args = ap.parse_args()
+    for size in args.sizes:
+        size_choice(size, "bench_wavelet_madd_micro.py")
+    if min(args.terms) < 1:
+        raise SystemExit(f"bench_wavelet_madd_micro.py: --terms {' '.join(map(str, args.terms))}; accepted: integers >= 1")
     torch.set_num_threads(1)
     lib = build_library()
     if lib is None:
         raise SystemExit("bench_wavelet_madd_micro: no compiler")
+    if args.vnni:
+        vnni_main(args, lib)
+        return
     rl, nb, Pd, d16 = blocker_dense()
     tmax = d16.abs().amax(dim=(0, 2)).to(torch.int64)  # [Pd] each dense column's largest stored magnitude
     assert int(d16.abs().max()) <= 32767 and int(d16.min()) >= -32767, "stored values outside +-32767"

@@ -5,10 +5,14 @@ docs/wavelet.md; benchmarks/bench_wavelet_madd_micro.py): the claims its report 
   stored magnitudes tmax, Σ_k tmax_k |Lq_k| ≤ 2³¹ − 1 per group and |Lq| ≤ 32767 (integer arithmetic, int64), and
   |Lq s − L| ≤ s/2 — for lights built to stress it: one huge term and many tiny ones, all negative, all equal,
   one term, an odd count.
-- The measured loops (AVX2 ``vpmaddwd``, in intrinsics and asm) compute Σ_k T_v,k L_k within the stated bound
+- The measured loops (AVX2 ``vpmaddwd``, in intrinsics and asm; AVX-512 VNNI ``vpdpwssd``, one block and two in
+  lockstep, where the CPU has it) compute Σ_k T_v,k L_k within the stated bound
   Σ_g (s_g/2) Σ_{k∈g} |T_v,k| (+ float32 rounding) against the float64 sum of the same stored values: on the extreme
   layout (|T| = 32767 everywhere, signs alternating or not, a light of equal terms: the largest int32 sums the rule
-  allows), on random layouts with random lights, and on a real transfer's dense blocks.
+  allows), on random layouts with random lights, and on a real transfer's dense blocks; on the VNNI path a light that
+  would overflow int32 wraps (the check sees it) and the rules' lights do not.
+- ``kernels/wavelet.c`` built with ``-DDENSE_VNNI`` (the prototype, off by default) relights within its stated bound
+  of the float64 sums of the same stored values.
 """
 
 from __future__ import annotations
@@ -47,6 +51,11 @@ def lib(bench):
     return lib
 
 
+def _variants(bench, lib) -> tuple[str, ...]:
+    """The loops to check: the AVX2 ones, and the AVX-512 VNNI ones where this build has them."""
+    return bench.VARIANTS + (tuple(bench.VNNI) if lib.vnni_floor(0, 1) >= 0 else ())
+
+
 def _lights(g: torch.Generator, nd: int) -> dict[str, torch.Tensor]:
     """[nd, 3] float32 lights that stress the quantisation."""
     huge = torch.full((nd, 3), 1e-6)
@@ -82,7 +91,7 @@ def _check(bench, lib, d16: torch.Tensor, ds: torch.Tensor, L: torch.Tensor, gro
     exact = torch.einsum("bkv,kc->bcv", tv, L.double())
     bound = torch.einsum("bkv,kc->bcv", tv.abs(), s.double()[grp] / 2)
     slack = 1e-6 * torch.einsum("bkv,kc->bcv", tv.abs(), L.double().abs()) + 1e-30
-    for variant in bench.VARIANTS:
+    for variant in _variants(bench, lib):
         out = torch.full((d16.shape[0], 3, 32), float("nan"))
         assert bench.madd_call(lib, variant, d16, k, out) == 0
         err = (out.double() - exact).abs()
@@ -135,3 +144,72 @@ def test_real_transfer_dense_blocks_within_the_bound(bench, lib):
         L = lv[:, d].T.float()[order].contiguous()
         for group, use_tmax in ((4096, True), (16, True), (4096, False)):
             _check(bench, lib, d16, ds, L, group, use_tmax)
+
+
+def test_vnni_light_that_would_overflow_does_not(bench, lib):
+    """The VNNI path (vpdpwssd accumulates into int32 and wraps): |T| = 32767 everywhere and a light of equal terms
+    quantised with full int16 range (Lq = 32767: Σ_k |T| |Lq| = n 32767² > 2³¹ − 1 from n = 2) wraps — the check is
+    sensitive — while quantise_light's rules, for the same light, keep every sum in range and within the bound; an odd
+    block count takes the two-block loop's lone last block."""
+    if lib.vnni_floor(0, 1) < 0:
+        pytest.skip("no AVX-512 VNNI here")
+    nb, Pd, nd = 3, 8, 8
+    d16 = torch.full((nb, Pd, 32), 32767, dtype=torch.int16)
+    ds = torch.arange(nd)
+    L = torch.full((nd, 3), 0.5)
+    exact = torch.einsum("bkv,kc->bcv", d16[:, ds, :].double(), L.double())
+    naive_s = torch.full((1, 3), 0.5 / 32767)  # the largest term at 32767: the sums overflow
+    naive = bench.pack(ds, torch.full((nd, 3), 32767, dtype=torch.int32), naive_s, 4096)
+    for variant in bench.VNNI:
+        out = torch.zeros(nb, 3, 32)
+        assert bench.madd_call(lib, variant, d16, naive, out) == 0
+        assert float((out.double() - exact).abs().max()) > 0.1 * float(exact.abs().max()), variant  # wrapped
+    tmax = d16.abs().amax(dim=(0, 2)).long()
+    for use_tmax in (True, False):
+        _check(bench, lib, d16, ds, L, 4096, use_tmax)
+        q, s, grp = bench.quantise_light(L, 4096, tmax[ds] if use_tmax else None)
+        assert int((tmax[ds, None] * q.long().abs()).sum(0).max()) <= 2 ** 31 - 1
+
+
+def test_kernel_dense_vnni_prototype_within_the_bound(bench, lib):
+    """kernels/wavelet.c built with -DDENSE_VNNI (the prototype: off by default) relights within its stated bound of the
+    float64 sums of the same stored values: |out - exact| <= f_v (s_c / 2) sum_k |T_v,k| over the dense terms (s: the
+    65535 rule, quantise_light without tmax) + float rounding; odd and even dense-term counts, an odd block count."""
+    if lib.vnni_floor(0, 1) < 0:
+        pytest.skip("no AVX-512 VNNI here")
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        from bench_wavelet_isa import bound_call, kernel_build, kernel_source
+    finally:
+        sys.path.remove(str(ROOT / "benchmarks"))
+    from prt_torch import relight
+    from prt_torch.scene import builtin
+    from prt_torch.transfer import RunOptions
+    from prt_torch.transfer.wavelet import precompute_wavelet
+
+    vn, _ = kernel_build("#define DENSE_VNNI 1\n" + kernel_source(None, "test")[0], "native", "test")
+    if not int(vn.prt_wavelet_isa()) & 32:
+        pytest.skip("no 16-lane (W16) build here")
+    tr = precompute_wavelet(builtin("occluder_over_plane", "small"), 8, 32, 16, shadows="always", run=RunOptions(workers=1))
+    rl = relight.WaveletRelighter(tr, threads=1, layouts="column")
+    nb = rl.dense.shape[0]
+    assert nb % 2 == 1 or rl.V % 32, "wanted: an odd block count or a partial last block"
+    d16 = rl.dense.reshape(nb, rl.Pd, 32)
+    ref_index, ref_vals = rl.reference_rows(0, rl.V)
+    fac = rl._factor(3, True).double()
+    for spec, N in (("studio", 60), ("sky", 61), ("sky", rl.P)):
+        li, lv, _ = rl.light(spec, N, "transport")
+        lv = lv.float().contiguous()
+        d = rl.dslot[li] >= 0
+        ds = rl.dslot[li[d]].long()
+        out = torch.full((rl.V, 3), float("nan"))
+        default = rl.prepared(li, lv, torch.empty(rl.V, 3))()  # (and the row-major copy where the light takes it)
+        bound_call(rl, vn, li, lv, out, 1, True)()
+        # the reference rows are dequantised (the scale applied): times the albedo only
+        exact = relight.wavelet_dense(ref_vals.double(), ref_index, li, lv.double(), rl.P) * rl.albedo[:, :3].double()
+        _, s, _ = bench.quantise_light(lv[:, d].T.contiguous(), 1 << 20, None)
+        tv = d16[:, ds, :].double().abs().sum(1).reshape(-1)[:rl.V]  # [V] sum_k |T_v,k| over the dense terms
+        bound = tv[:, None] * s.double()[0] / 2 * fac
+        slack = 1e-5 * exact.abs().max()
+        assert bool(((out.double() - exact).abs() <= bound + slack).all()), (spec, N)
+        assert not torch.equal(out, default), "the prototype's loop was not taken (the default build's bits)"

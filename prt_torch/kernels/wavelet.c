@@ -18,6 +18,11 @@
  * per 8 vertices one 32-byte load of the factors and the same three multiplies, before the interleave instead of
  * after it (store_rgb8 / put_rgb8), in the 8- and the 16-lane builds alike. Measured: reports/benchmarks/
  * wavelet_factor.md (bench_wavelet_factor.py; docs/wavelet.md "The factor per vertex").
+ * DENSE_VNNI (a prototype, W16 with AVX-512 VNNI only, off by default; above DENSE_TERMS): the 16-lane dense loop on
+ * integer dot products (vpdpwssd zmm, two light terms per instruction), the dense light quantised per call to int16;
+ * not the float loop's bits. Measured on the Intel Xeon (bench_wavelet_madd_micro.py --vnni, reports/benchmarks/
+ * wavelet_madd_micro_vnni.md; docs/wavelet.md): the whole call 1.1-1.4x at small, the dense loop alone 1.7-1.9x from
+ * L2 and ~1.0-1.4x from L3 (medium). A change of the default arithmetic is the team's decision.
  * OUT_NT (a measurement knob, W16 only, off by default): the RGB output by streaming stores once it holds at least
  * OUT_NT bytes (and out is 32-byte aligned), an sfence at the call's end; not kept (the same report: faster alone at
  * large N = 10, slower with a read of the output right after the call).
@@ -340,14 +345,14 @@ static inline void put_rgb8(float *out, v8f r, v8f g, v8f b, int nt) {
 #define PF_X8 1
 #endif
 #if W16 /* the pair mode's parameters, arguments (blocks 2i and 2i + 1 in lockstep) and keep, in W16 builds only */
-#define PAIR_PARAMS const int pm, const i64 pst, const int far, float *keep,
+#define PAIR_PARAMS const int pm, const i64 pst, const int far, float *keep, VNNI_PARAMS
 #ifndef ZMM_MIN /* fewer (dense term, 32-vertex block) pairs than this in a call: the 8-lane loop (the zmm loop's first
                  * use in a call costs ~0.3-0.4 us on the Xeon: measured 1.10-1.21x at 1-3 dense terms x 71 blocks,
                  * 0.93-0.97x at 5-7) */
 #define ZMM_MIN 256
 #endif
 #define PAIR_ARGS(b, nb, pst) nd * ((V + BV - 1) / BV) < ZMM_MIN ? 3 : (b) & 1 ? 2 : (b) + 1 < (nb), (pst),       \
-    (V + BV - 1) / BV * (pst) * (i64)sizeof(*dense) >= PFX_MIN, keep,
+    (V + BV - 1) / BV * (pst) * (i64)sizeof(*dense) >= PFX_MIN, keep, VNNI_ARGS
 #define PAIR_KEEP float keep[128] __attribute__((aligned(64))) = {0};
 /* blocks blk and nblk in lockstep over the nd dense terms, STEP the prefetch (PF_FAR or PF_IN) */
 #define PAIR_TERMS(T, STEP)                                                                                  \
@@ -377,6 +382,124 @@ static inline void put_rgb8(float *out, v8f r, v8f g, v8f b, int nt) {
                 z[c][h] += x * l[c];                                                                         \
             }                                                                                                \
     }
+/* DENSE_VNNI (a prototype, off by default: compile with -DDENSE_VNNI; W16 builds on a CPU with AVX-512 VNNI, 16-bit
+ * values, CT = 1, an RGB light on three output channels (CO = 3); the default build's code does not change): the dense
+ * terms with integer dot products. Per call (VNNI_SETUP, when the call takes the 16-lane loop) the dense light lw
+ * [nd, 4] is quantised in place to int16 per channel, one scale group, s[c] = max(sum |L| / (65538 - nd / 2),
+ * max |L| / 32767) rounded up to float32 (bench_wavelet_madd_micro.py's "65535 rule": no int32 sum overflows for any
+ * stored |T| <= 32767; the finer column-maximum rule needs each dense column's largest stored magnitude, which the
+ * layout does not hold), written over lw as the pairs' lights int32 [ceil(nd / 2), 4], (Lq_2q & 0xFFFF) |
+ * Lq_2q+1 << 16 (an odd last term paired with itself at light 0). Per pair and 32-vertex block: the two rows (64
+ * bytes each) interleaved by vpunpcklwd / vpunpckhwd, one vpdpwssd zmm per interleaving and channel (6 int32 sums;
+ * the two blocks of the W16 pair in lockstep, the broadcasts shared), the prefetch as the float loop's (across units,
+ * PFX steps ahead, on layouts of at least PFX_MIN bytes; else PF terms ahead within the unit); at the end converted, scaled, the vertex order restored (vpermt2ps) into z / y as the float
+ * loop leaves them. Error per vertex and channel |dS| <= (s[c] / 2) sum_k |T_v,k| (+ float rounding): not the same
+ * bits as the float loop. Measured: reports/benchmarks/wavelet_madd_micro_vnni.md (docs/wavelet.md). */
+#if defined(DENSE_VNNI) && defined(__AVX512VNNI__) && defined(__AVX512BW__)
+#define VNNI_PARAMS const float *vq,
+#define VNNI_ARGS vq,
+static inline void vnni_quantise(i64 nd, float *lw, float *vq) {
+    double sum[3] = {0, 0, 0}, mx[3] = {0, 0, 0};
+    for (i64 t = 0; t < nd; t++)
+        for (int c = 0; c < 3; c++) {
+            const double a = lw[4 * t + c] < 0 ? -(double)lw[4 * t + c] : (double)lw[4 * t + c];
+            sum[c] += a;
+            mx[c] = a > mx[c] ? a : mx[c];
+        }
+    for (int c = 0; c < 3; c++) {
+        double sc = sum[c] / (65538.0 - (double)nd / 2), sm = mx[c] / 32767.0;
+        sc = sc > sm ? sc : sm;
+        float s32 = sc > 0 ? (float)sc : 1.17549435e-38f;
+        if ((double)s32 < sc) s32 = (float)(sc * (1.0 + 0x1p-20)); /* rounded up: |Lq| <= |L| / s + 1/2 holds */
+        vq[c] = s32;
+    }
+    vq[3] = 0.0f;
+    int32_t *lq = (int32_t *)lw;
+    for (i64 q = 0; 2 * q < nd; q++) { /* pair q's lights read (terms 2q, 2q + 1) before entry q is written: q <= 2q */
+        int32_t w[3];
+        for (int c = 0; c < 3; c++) {
+            const double a = (double)lw[8 * q + c] / vq[c], b = 2 * q + 1 < nd ? (double)lw[8 * q + 4 + c] / vq[c] : 0.0;
+            const int32_t qa = (int32_t)(a + (a < 0 ? -0.5 : 0.5)), qb = (int32_t)(b + (b < 0 ? -0.5 : 0.5));
+            w[c] = (int32_t)(((uint32_t)qa & 0xFFFFu) | ((uint32_t)qb << 16));
+        }
+        lq[4 * q] = w[0]; lq[4 * q + 1] = w[1]; lq[4 * q + 2] = w[2]; lq[4 * q + 3] = 0;
+    }
+}
+/* one block's pair body: row a loaded, row b the unpacks' memory operand, 6 vpdpwssd (asm: in intrinsics gcc copied
+ * every sum through another register at each step) */
+#define VNNI_BLOCK(k, pa, pb)                                                                                \
+    __asm__("vmovdqu64 (%[pa_]), %[x]\n\t vpunpckhwd (%[pb_]), %[x], %[hi]\n\t vpunpcklwd (%[pb_]), %[x], %[x]\n\t" \
+            "vpdpwssd %[l0], %[x], %[s00]\n\t vpdpwssd %[l0], %[hi], %[s01]\n\t"                              \
+            "vpdpwssd %[l1], %[x], %[s10]\n\t vpdpwssd %[l1], %[hi], %[s11]\n\t"                              \
+            "vpdpwssd %[l2], %[x], %[s20]\n\t vpdpwssd %[l2], %[hi], %[s21]\n\t"                              \
+            : [s00] "+v"(s##k##00), [s01] "+v"(s##k##01), [s10] "+v"(s##k##10), [s11] "+v"(s##k##11),          \
+              [s20] "+v"(s##k##20), [s21] "+v"(s##k##21), [x] "=&v"(x), [hi] "=&v"(hi)                        \
+            : [pa_] "r"(pa), [pb_] "r"(pb), [l0] "v"(l0), [l1] "v"(l1), [l2] "v"(l2) : "memory")
+/* one (term, unit) step of the prefetch across units (as PF_FAR: the term pt_ of the unit po_ bytes on, both blocks'
+ * lines when two; past the layout's end a prefetch, never a load) */
+#define VNNI_FAR                                                                                             \
+    {                                                                                                        \
+        const uintptr_t a_ = (uintptr_t)blk + (uintptr_t)(po_ + ds[pt_] * 64);                              \
+        __builtin_prefetch((const char *)a_);                                                                \
+        if (two) __builtin_prefetch((const char *)(a_ + (uintptr_t)pstb));                                   \
+        if (++pt_ == nd) { pt_ = 0; po_ += us_; }                                                           \
+    }
+/* blk (and with two, blk + pstb bytes: the pair's next block; pstb the blocks' stride) over the nd dense terms ds
+ * (64-byte rows), the pairs' lights lq, scales vq [3]: the float sums into z (and y) [c][h], h: vertices 16h .. 16h +
+ * 15; far: the prefetch PFX (term, unit) steps ahead across units as the float loop's PF_FAR, else PF terms ahead
+ * within the unit */
+static inline __attribute__((always_inline)) void vnni_terms(const char *blk, i64 pstb, const int two, const int far,
+        i64 nd, const i64 *ds, const int32_t *lq, const float *vq, v16f z[4][2], v16f y[4][2]) {
+    __m512i s000 = _mm512_setzero_si512(), s001 = s000, s010 = s000, s011 = s000, s020 = s000, s021 = s000,
+            s100 = s000, s101 = s000, s110 = s000, s111 = s000, s120 = s000, s121 = s000;
+    const i64 us_ = (two ? 2 : 1) * pstb;
+    i64 pt_ = PFX, po_ = 0;
+    if (pt_ >= nd) { const i64 u_ = pt_ / nd; pt_ -= u_ * nd; po_ = u_ * us_; }
+    for (i64 q = 0; 2 * q < nd; q++) {
+        const i64 ta = 2 * q, tb = ta + 1 < nd ? ta + 1 : ta;
+        const char *ra = blk + ds[ta] * 64, *rb = blk + ds[tb] * 64;
+        if (far) {
+            VNNI_FAR
+            if (ta + 1 < nd) VNNI_FAR
+        } else {
+            const i64 pa = ta + PF < nd ? ta + PF : nd - 1, pb = pa + 1 < nd ? pa + 1 : pa;
+            __builtin_prefetch(blk + ds[pa] * 64);
+            __builtin_prefetch(blk + ds[pb] * 64);
+            if (two) { __builtin_prefetch(blk + pstb + ds[pa] * 64); __builtin_prefetch(blk + pstb + ds[pb] * 64); }
+        }
+        const __m512i l0 = _mm512_set1_epi32(lq[4 * q]), l1 = _mm512_set1_epi32(lq[4 * q + 1]),
+                      l2 = _mm512_set1_epi32(lq[4 * q + 2]);
+        __m512i x, hi;
+        VNNI_BLOCK(0, ra, rb);
+        if (two) VNNI_BLOCK(1, ra + pstb, rb + pstb);
+    }
+    /* lane 4j + r of the low interleaving: vertex 8j + r; of the high one: vertex 8j + 4 + r (r < 4) */
+    const __m512i i0 = _mm512_setr_epi32(0, 1, 2, 3, 16, 17, 18, 19, 4, 5, 6, 7, 20, 21, 22, 23),
+                  i1 = _mm512_setr_epi32(8, 9, 10, 11, 24, 25, 26, 27, 12, 13, 14, 15, 28, 29, 30, 31);
+    const __m512i si[2][3][2] = {{{s000, s001}, {s010, s011}, {s020, s021}}, {{s100, s101}, {s110, s111}, {s120, s121}}};
+    for (int c = 0; c < 3; c++) {
+        const __m512 sc = _mm512_set1_ps(vq[c]);
+        for (int k = 0; k < 1 + two; k++) {
+            const __m512 lo = _mm512_mul_ps(_mm512_cvtepi32_ps(si[k][c][0]), sc),
+                         hv = _mm512_mul_ps(_mm512_cvtepi32_ps(si[k][c][1]), sc);
+            v16f *o = k ? y[c] : z[c];
+            o[0] = (v16f)_mm512_permutex2var_ps(lo, i0, hv);
+            o[1] = (v16f)_mm512_permutex2var_ps(lo, i1, hv);
+        }
+    }
+}
+#define VNNI_ON(T) vq && CO == 3 && CT == 1 && sizeof(T) == 2 && stride == BV
+#define VNNI_PAIR(T) if (VNNI_ON(T)) vnni_terms((const char *)blk, pst * (i64)sizeof(T), 1, far, nd, ds, (const int32_t *)lw, vq, z, y); else
+#define VNNI_ONE(T) if (VNNI_ON(T)) vnni_terms((const char *)blk, pst * (i64)sizeof(T), 0, far, nd, ds, (const int32_t *)lw, vq, z, z); else
+/* in the kernel after the term lists: the light quantised when the call takes the 16-lane loop (PAIR_ARGS's test) */
+#define VNNI_SETUP(T)                                                                                        \
+    float vq_[4] = {0, 0, 0, 0};                                                                             \
+    const float *vq = NULL;                                                                                  \
+    if (sizeof(T) == 2 && CT == 1 && CO == 3 && nd && nd * ((V + BV - 1) / BV) >= ZMM_MIN) {                 \
+        vnni_quantise(nd, lw, vq_);                                                                          \
+        vq = vq_;                                                                                            \
+    }
+#endif
 #define DENSE_TERMS(T)                                                                                       \
     if (pm == 3) { DENSE_TERMS8(T) } else /* little dense work in the call: the 8-lane loop */               \
     if (pm == 2) /* computed with the previous block: its halves as stored (32-byte loads of 32-byte stores) */ \
@@ -388,13 +511,13 @@ static inline void put_rgb8(float *out, v8f r, v8f g, v8f b, int nt) {
             v16f y[4][2];                                                                                    \
             for (int c = 0; c < 4; c++) for (int h = 0; h < 2; h++) y[c][h] = (v16f){0};                    \
             const T *nblk = blk + pst;                                                                       \
-            if (far && nd) { PFX_START(2 * pst) PAIR_TERMS(T, PF_FAR) }                                      \
+            VNNI_PAIR(T) if (far && nd) { PFX_START(2 * pst) PAIR_TERMS(T, PF_FAR) }                         \
             else PAIR_TERMS(T, PF_IN)                                                                        \
             for (int c = 0; c < CO; c++) for (int h = 0; h < 2; h++) {                                       \
                 st8(keep + 32 * c + 16 * h, lo8(y[c][h]));                                                   \
                 st8(keep + 32 * c + 16 * h + 8, hi8(y[c][h]));                                               \
             }                                                                                                \
-        } else if (far && nd) { PFX_START(pst) ONE_TERMS(T, PF_FAR) }                                        \
+        } else VNNI_ONE(T) if (far && nd) { PFX_START(pst) ONE_TERMS(T, PF_FAR) }                            \
         else ONE_TERMS(T, PF_IN)                                                                             \
         for (int c = 0; c < 4; c++)                                                                          \
             for (int h = 0; h < 2; h++) { a[c][2 * h] = lo8(z[c][h]); a[c][2 * h + 1] = hi8(z[c][h]); }     \
@@ -411,6 +534,13 @@ static inline void put_rgb8(float *out, v8f r, v8f g, v8f b, int nt) {
 #define PAIR_ARGS(b, nb, pst)
 #define PAIR_KEEP
 #define DENSE_TERMS(T) DENSE_TERMS8(T)
+#endif
+#ifndef VNNI_SETUP /* the DENSE_VNNI prototype's hooks (above): nothing in the default builds */
+#define VNNI_PARAMS
+#define VNNI_ARGS
+#define VNNI_PAIR(T)
+#define VNNI_ONE(T)
+#define VNNI_SETUP(T)
 #endif
 
 /* The row-major pass with 32 vector registers (W16, AVX-512F: ymm0-31 through AVX-512VL; the AVX2 and portable
@@ -860,6 +990,7 @@ int NAME(const wavelet_layout *L, i64 N, const i64 *sel, const float *lv, i64 C,
     const T *rvals = (const T *)L->rvals;                                                                    \
     int nt = (int)(threads < 1 ? 1 : threads > L->MT ? L->MT : threads);                                     \
     (void)nt;                                                                                                \
+    VNNI_SETUP(T) /* DENSE_VNNI builds: the dense light quantised (a prototype; nothing by default) */            \
     SERIAL_TILES(T) /* AVX-512 builds at one thread: the tiles in a plain loop, no OpenMP region (above) */       \
     _Pragma("omp parallel for schedule(static) num_threads(nt) if(nt > 1)")                                 \
     for (i64 t = 0; t < NT; t++) { TILE_BODY(T) }                                                            \
