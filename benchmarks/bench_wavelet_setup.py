@@ -91,13 +91,16 @@ CUTS = (("    if (C < 1 || C > 4 || (CT == 3 && C != 1 && C != 3)) return 1;", "
         ("    const int rows = sb && L->NR", "if (PROBE == 4) { " + ZERO + " return 0; }"),
         ("    i64 *sw = wk + Pd;", "if (PROBE == 5) { " + ZERO + " return 0; }"),
         ("    const T *rvals = (const T *)L->rvals;", "if (PROBE == 6) { " + ZERO + " return 0; }"),
-        ("        if (ns && !rows) memset(acc, 0,", "if (PROBE == 7) continue;"),
+        ("        SCRATCH_ZERO", "if (PROBE == 7) continue;"),
         ("        if (CT == 3) { TILE_CASE(T, 3, 3, 3) }", "if (PROBE == 8) continue;"))
 #: (text, replacement): probes 9-11 inside TILE_CASE, and ``dense twice`` (PROBE 13)
 SUBS = (("    for (i64 b = 0; b < nb; b++) {                                                                           \\",
+         "    for (i64 b = 0; b < (PROBE == 9 ? nb : 0); b++) { SCRATCH_DROP(b) } \\\n"
          "    for (int r_ = 0; r_ < (PROBE == 13 ? 2 : 1); r_++) for (i64 b = 0; b < (PROBE == 9 ? 0 : nb); b++) { \\"),
         ("        dense_block_##T(CT_, CO_, OC_, nd, wk,", "        dense_block_##T(CT_, CO_, OC_, PROBE == 10 || PROBE == 11 ? 0 : nd, wk,"),
-        ("rows ? lp : NULL, nv,", "rows && PROBE != 10 ? lp : NULL, nv,"))
+        ("rows ? lp : NULL, nv,", "rows && PROBE != 10 ? lp : NULL, nv,"),
+        # dense twice: the sparse scratch added in the second pass only (the AVX-512 build's add-back clears it)
+        ("ACC_ARGS(b, ns && !rows)", "ACC_ARGS(b, ns && !rows && !(PROBE == 13 && r_ == 0))"))
 PARTS = ("Python → C call", "checks (C, indices, grey)", "light table's closing zeroing", "gather (marks, light per column)",
          "dense listing", "sparse listing", "OpenMP region (1 thread) + tiles", "scratch zeroing", "sparse pass (column-major)",
          "output pass", "row-major pass", "dense terms")
