@@ -48,7 +48,7 @@ from pathlib import Path  # noqa: E402
 import torch  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_wavelet import BITS, KERNEL_SIZES, OUT, kernel_lights, kernel_transfer, layout_info, load, size_choice  # noqa: E402
+from bench_wavelet import BITS, KERNEL_SIZES, OUT, kernel_lights, kernel_transfer, layout_info, load, size_choice, steady_pair  # noqa: E402
 from bench_wavelet_isa import bound_call, kernel_build, kernel_source  # noqa: E402
 
 from prt_torch import relight  # noqa: E402
@@ -61,7 +61,7 @@ WHO = "bench_wavelet_scratch.py"
 REGIMES = ("warm", "evicted")
 #: variant name -> the -D lines prepended to the working tree's source
 VARIANTS = {"touch8": "#define TOUCH8 1\n", "outpf": "#define OUT_PFW 1\n", "markall": "#define TOUCH_X (1LL << 40)\n",
-            "marknone": "#define TOUCH_X (-1LL)\n", "outz": "#define OUT_Z 1\n", "outz2": "#define OUT_Z 2\n"}
+            "marknone": "#define TOUCH_X (-1LL)\n", "outz0": "#define OUT_Z 0\n", "outz2": "#define OUT_Z 2\n"}
 
 
 def builds(base_rev: str, names: list[str]) -> tuple[dict, str]:
@@ -100,7 +100,7 @@ def pair(regime: str, a, b, repeats: int, evict_bytes: int, calls: int):
     return [p.speedup, p.ratio.q1, p.ratio.q3, p.test.median * 1e6, p.peer.median * 1e6]
 
 
-def size_rows(size: str, libs: dict, terms, repeats: int, evict_bytes: int, calls: int) -> tuple[dict, list[dict]]:
+def size_rows(size: str, libs: dict, terms, repeats: int, evict_bytes: int, calls: int, s7=()) -> tuple[dict, list[dict]]:
     rl = relight.WaveletRelighter(kernel_transfer(size), threads=1, layouts="both")
     info = layout_info(rl, size)
     # the output pass alone: no light term, against a fill of the output
@@ -136,13 +136,16 @@ def size_rows(size: str, libs: dict, terms, repeats: int, evict_bytes: int, call
             for k in ("test", "base"):
                 r["read_" + k] = pair(regime, fn[k], bound, repeats, evict_bytes, calls)
             row[regime] = r
+        if N in s7:  # section 7's figure: bench_wavelet.kernel_rows' of_read_bound_cpu_1 (steady_pair, median ratio)
+            row["s7"] = {k: steady_pair(fn[k], bound)[0].ratio.median for k in ("test", "base")}
         row["load1"] = load()
         rows.append(row)
         msg = "; ".join(f"{g} base {row[g]['test'][4]:.1f} us, of read test {row[g]['read_test'][0]:.2f} base "
                         f"{row[g]['read_base'][0]:.2f}, " + ", ".join(f"{k} {row[g][k][0]:.3f}" for k in fn if k != "base")
                         for g in REGIMES)
+        s7m = f"; section 7 of read test {row['s7']['test']:.2f} base {row['s7']['base']:.2f}" if "s7" in row else ""
         print(f"[scratch] {size} {light} N={N} nd={row['nd']} sparse blocks {row['sb']}{' (row-major)' if row['rows'] else ''}: "
-              f"{msg}; same {all(row['same'].values())}, load {row['load1']:.1f}", flush=True)
+              f"{msg}{s7m}; same {all(row['same'].values())}, load {row['load1']:.1f}", flush=True)
     return info, rows
 
 
@@ -183,6 +186,15 @@ def report(infos: list[dict], rows: list[dict], flags: str, args, before: float,
         t, b = i["output"]["test"], i["output"]["base"]
         L.append(f"| {i['size']} | {i['V']} | {t[3]:.1f} | {t[4]:.1f} | {1 / t[0]:.2f} | {1 / b[0]:.2f} |"
                  + "".join(f" {1 / i['output'][n][0]:.2f} |" for n in names))
+    s7rows = [r for r in rows if "s7" in r]
+    if s7rows:
+        L += ["\n## Section 7's fraction of the streaming read\n",
+              "As `bench_wavelet.py --only kernel` computes it (`bench_wavelet.steady_pair` of the call and "
+              "`read_bound_fn(bytes_read, 12 V)`: median of 15 per-repeat ratios by one thread's CPU time, re-timed while they "
+              "spread), for the test and the base build on the same layout, warm.\n",
+              "| size | light | N | test | base | load |", "|---|---|---|---|---|---|"]
+        for r in s7rows:
+            L.append(f"| {r['size']} | {r['light']} | {r['N']} | **{r['s7']['test']:.2f}** | {r['s7']['base']:.2f} | {r['load1']:.1f} |")
     for regime in REGIMES:
         L += [f"\n## {regime}\n",
               "| size | light | N | dense terms | sparse blocks | MB read | base µs | test µs | "
@@ -205,6 +217,8 @@ def main() -> None:
     ap.add_argument("--sizes", default=",".join(KERNEL_SIZES), help="comma-separated: " + ", ".join(KERNEL_SIZES))
     ap.add_argument("--terms", default=",".join(map(str, TERMS)), help="comma-separated N (all terms always added)")
     ap.add_argument("--variants", default="touch8,outpf", help="comma-separated: " + ", ".join(VARIANTS) + ", or several joined by '+' ('': none)")
+    ap.add_argument("--s7-terms", default="30", help="the N whose rows also get section 7's fraction of the streaming read "
+                    "(bench_wavelet.steady_pair: 15 repeats, median ratio), test and base ('': none)")
     ap.add_argument("--repeats", type=int, default=11)
     ap.add_argument("--evict-mb", type=float, default=3.0)
     ap.add_argument("--calls", type=int, default=4)
@@ -222,6 +236,10 @@ def main() -> None:
         raise SystemExit(f"{WHO}: --terms {args.terms!r}; accepted: comma-separated integers >= 1") from None
     if not terms or min(terms) < 1:
         raise SystemExit(f"{WHO}: --terms {args.terms!r}; accepted: comma-separated integers >= 1")
+    try:
+        s7 = tuple(int(t) for t in args.s7_terms.split(",") if t.strip())
+    except ValueError:
+        raise SystemExit(f"{WHO}: --s7-terms {args.s7_terms!r}; accepted: comma-separated integers (of --terms)") from None
     if args.repeats < 3:
         raise SystemExit(f"{WHO}: --repeats {args.repeats}; accepted: an integer >= 3")
     if args.calls < 1:
@@ -236,7 +254,7 @@ def main() -> None:
     before = load()
     infos, rows = [], []
     for s in sizes:
-        info, r = size_rows(s, libs, terms, args.repeats, int(args.evict_mb * 2**20), args.calls)
+        info, r = size_rows(s, libs, terms, args.repeats, int(args.evict_mb * 2**20), args.calls, s7)
         infos.append(info)
         rows += r
     after = load()

@@ -97,7 +97,8 @@
  * Per tile (the unit of the threads' split, OpenMP, `threads`; at one thread the AVX-512 build (W16) runs the
  * tiles in a plain loop instead, no OpenMP region: SERIAL_TILES below): its sparse blocks of the light's
  * sparse terms into the zeroed scratch, then its dense blocks, each adding the scratch and writing
- * its outputs once. Only the columns of the light's terms are read — except when the light's sparse
+ * its outputs once (the AVX-512 build: a scratch of its own that is zero between calls and a touched map, no zeroing
+ * per call, only the touched blocks added back and re-zeroed: zacc / tmark below). Only the columns of the light's terms are read — except when the light's sparse
  * terms hold at least row_permille / 1000 of all sparse blocks: then every sparse block is read from a
  * row-major copy (per 8-vertex block its columns' entries) into the dense block's register sums, the
  * light looked up per column (zero for the columns the light does not hold; no scratch; W16: two 8-vertex
@@ -108,7 +109,8 @@
  * scratch zero again. A column listed more than once adds its light values. An RGB light with three equal
  * channels on a grey transfer takes one sum per vertex (CO = 1), written to the three outputs. The layout's scratch (the
  * light per column lp, zero between calls: each call zeroes its own columns at its end; the term
- * lists; the tiles' accumulators) makes one call at a time per layout. */
+ * lists; the tiles' accumulators; W16: zacc and tmark, zero between calls whichever build ran last) makes one call at a
+ * time per layout. */
 
 #include <stdint.h>
 #include <string.h>
@@ -206,10 +208,32 @@ static inline void rgb8_interleave(v8f r, v8f g, v8f b, __m256 o[3]) {
                            _mm256_permutevar8x32_ps(B, i2), 0x92);
 }
 #endif
+#if W16 && !defined(OUT_Z)
+#define OUT_Z 1 /* the AVX-512 builds' RGB interleave (0: rgb8_interleave's, as the 8-lane builds; 2: out [0, 16) as two stores) */
+#endif
+#if W16 && OUT_Z
+/* the same interleave in the AVX-512 builds (OUT_Z): r | g as one 16-lane vector (one insert), then two two-source
+ * permutes (vpermt2ps) with b giving out [0, 16) in o01 and out [16, 24) in o2's lower half — 3 shuffles on port 5
+ * per 8 vertices where rgb8_interleave issues 9 permutes and 6 blends */
+static inline void rgb8_interleave_z(v8f r, v8f g, v8f b, __m512 *o01, __m512 *o2) {
+    const __m512 rg = _mm512_castpd_ps(_mm512_insertf64x4(_mm512_castps_pd(_mm512_castps256_ps512((__m256)r)),
+                                                          _mm256_castps_pd((__m256)g), 1));
+    const __m512 bz = _mm512_castps256_ps512((__m256)b);
+    const __m512i i01 = _mm512_setr_epi32(0, 8, 16, 1, 9, 17, 2, 10, 18, 3, 11, 19, 4, 12, 20, 5),
+                  i2 = _mm512_setr_epi32(13, 21, 6, 14, 22, 7, 15, 23, 0, 0, 0, 0, 0, 0, 0, 0);
+    *o01 = _mm512_permutex2var_ps(rg, i01, bz);
+    *o2 = _mm512_permutex2var_ps(rg, i2, bz);
+}
+#endif
 /* 8 vertices' RGB sums r, g, b times their factors f [8, 3] (one per vertex and channel), written interleaved to
  * out [8, 3]: three loads of the factors, three multiplies after the interleave */
 static inline void store_rgb8(float *out, const float *f, v8f r, v8f g, v8f b) {
-#ifdef __AVX2__
+#if W16 && OUT_Z
+    __m512 o01, o2;
+    rgb8_interleave_z(r, g, b, &o01, &o2);
+    _mm512_storeu_ps(out, _mm512_mul_ps(o01, _mm512_loadu_ps(f)));
+    _mm256_storeu_ps(out + 16, _mm256_mul_ps(_mm512_castps512_ps256(o2), _mm256_loadu_ps(f + 16)));
+#elif defined(__AVX2__)
     __m256 o[3];
     rgb8_interleave(r, g, b, o);
     _mm256_storeu_ps(out, _mm256_mul_ps(o[0], _mm256_loadu_ps(f)));
@@ -226,15 +250,9 @@ static inline void store_rgb8(float *out, const float *f, v8f r, v8f g, v8f b) {
  * aligned) */
 static inline void put_rgb8(float *out, v8f r, v8f g, v8f b, int nt) {
     (void)nt;
-#if W16 && defined(OUT_Z) && !defined(OUT_NT)
-    /* r | g as one 16-lane vector (one insert), then two two-source permutes (vpermt2ps) with b: out [0, 16) and
-     * out [16, 24) — 3 shuffles on port 5 per 8 vertices where rgb8_interleave issues 9 permutes and 6 blends */
-    const __m512 rg = _mm512_castpd_ps(_mm512_insertf64x4(_mm512_castps_pd(_mm512_castps256_ps512((__m256)r)),
-                                                          _mm256_castps_pd((__m256)g), 1));
-    const __m512 bz = _mm512_castps256_ps512((__m256)b);
-    const __m512i i01 = _mm512_setr_epi32(0, 8, 16, 1, 9, 17, 2, 10, 18, 3, 11, 19, 4, 12, 20, 5),
-                  i2 = _mm512_setr_epi32(13, 21, 6, 14, 22, 7, 15, 23, 0, 0, 0, 0, 0, 0, 0, 0);
-    const __m512 o01 = _mm512_permutex2var_ps(rg, i01, bz), o2 = _mm512_permutex2var_ps(rg, i2, bz);
+#if W16 && OUT_Z && !defined(OUT_NT)
+    __m512 o01, o2;
+    rgb8_interleave_z(r, g, b, &o01, &o2);
 #if OUT_Z == 2 /* out [0, 16) as two 32-byte stores (one more shuffle: the upper half's extract) */
     _mm256_storeu_ps(out, _mm512_castps512_ps256(o01));
     _mm256_storeu_ps(out + 8, _mm256_castpd_ps(_mm512_extractf64x4_pd(_mm512_castps_pd(o01), 1)));
