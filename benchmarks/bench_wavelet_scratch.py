@@ -158,7 +158,8 @@ def report(infos: list[dict], rows: list[dict], flags: str, args, before: float,
          f"{cpu_label()}; load average {before:.1f} → {after:.1f} (a machine shared with other jobs: one thread's CPU "
          f"time, which their load does not enter). Native builds of `kernels/wavelet.c` with the wavelet library's flags "
          f"(`{flags}`: on this CPU the AVX-512 build, W16): **test** the working tree's (the scratch zero between calls, "
-         f"a touched map per 32-vertex block), **base** revision `{args.base}`'s (a memset of each tile's scratch, every "
+         "a touched map per 32-vertex block; the RGB interleave by one insert and two `vpermt2ps`, `OUT_Z` 1), "
+         f"**base** revision `{args.base}`'s (a memset of each tile's scratch, every "
          "block's accumulators added back), **A/A** the base built twice" + "".join(
              f", **{n}** the working tree with `{'; '.join(VARIANTS[v].strip() for v in n.split('+'))}`" for n in names)
          + ". All bound to one layout per size (occluder_over_plane, R = 32, K = 256, "
@@ -167,7 +168,8 @@ def report(infos: list[dict], rows: list[dict], flags: str, args, before: float,
          + "), transport-weighted terms, RGB light, the relighter's per-vertex factor, one thread, paired by the calling "
          f"thread's CPU time ({args.repeats} repeats): **warm** back-to-back calls, **evicted** each call after a "
          f"{args.evict_mb:g} MB streaming read of other data ({args.calls} calls a sample). Columns *base / x*: medians of the "
-         "per-repeat ratios [quartiles] (> 1: x faster than the base). *of read*: the build against a streaming read "
+         "per-repeat ratios [quartiles] (> 1: x faster than the base; each variant is paired with the base, so variant "
+         "against test is the ratio of their columns). *of read*: the build against a streaming read "
          "of the bytes it touches plus a fill of the output (`timing.read_bound_fn` of `WaveletRelighter.bytes_read`, "
          "section 7's criterion), paired in the same regime (> 0.5: the issue's goal). *sparse blocks*: the light's "
          "sparse 8-vertex blocks (*rows*: the row-major pass, no scratch). *bits*: every build's output equal to the "
@@ -175,7 +177,8 @@ def report(infos: list[dict], rows: list[dict], flags: str, args, before: float,
          + ("its .text is the base's byte for byte (gcc + objcopy, `--check-avx2`)." if avx2_same else
             "not checked in this run (`--check-avx2`)." if avx2_same is None else "**its .text differs from the base's**.")
          + f" Reproduce: `.venv/bin/python benchmarks/bench_wavelet_scratch.py --base {args.base} --sizes "
-         f"{args.sizes} --variants {','.join(names) or ''}`.\n",
+         f"{args.sizes} --terms {args.terms} --repeats {args.repeats} --variants {','.join(names) or ''}"
+         f"{' --check-avx2' if args.check_avx2 else ''}`.\n",
          "## The output pass alone\n",
          "A call with no light term (N = 0: each dense block's zero sums times the factor, interleaved and written once; "
          "the call's fixed cost, ~0.5 µs, included) against a fill of the output's 12 V bytes (`read_bound_fn(0, 12 V)`), "
