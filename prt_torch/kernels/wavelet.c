@@ -51,7 +51,7 @@
  *    Python call ~1 more (the first pass after the interpreter, and the interpreter after a zmm-heavy call).
  *    Not kept (paired against the pair, load 4-6): four blocks in lockstep (CO <= 3, 24 zmm sums) 0.88-0.99x; the
  *    pair's loop split at nd - PF (no prefetch test per term) 0.93-1.03x; the RGB output on 16 lanes (a vpermt2ps
- *    and a masked vpermps per output vector) 0.96-1.04x; the prefetch distance 3 / 10 / 16 terms with the pair
+ *    and a masked vpermps per output vector) 0.96-1.04x (OUT_Z's interleave per 8 vertices, below, is kept); the prefetch distance 3 / 10 / 16 terms with the pair
  *    0.94-1.01x of 6.
  *    Prefetch across units (PF_FAR, W16): when the dense layout holds at least PFX_MIN bytes (0 by default: every
  *    layout; 2 MB, the Xeon's L2, until the cache regimes below were measured), the 16-lane loops prefetch the
@@ -85,7 +85,8 @@
  *    large 1.30-1.86x but small 0.96-0.97x (N = 10, the path not taken at 2 MB), so it is off by default (with
  *    PF_X8 it now follows PFX_MIN 0 too: every layout; the Zen 3's L2 is 512 KB).
  *    The sparse blocks, the row-major pass and the output stay on 8 lanes (a 16-lane read-modify-write of
- *    two channels' scratch per block measured 0.90-0.94x of the 8-lane one: not kept); the column-major sparse
+ *    two channels' scratch per block measured 0.90-0.94x of the 8-lane one: not kept; the output's RGB interleave alone
+ *    takes 16-lane shuffles, OUT_Z below); the column-major sparse
  *    pass takes three blocks per loop step in these builds (SPARSE_RANGE), and with AVX-512's 32 registers the
  *    row-major pass walks two 8-vertex blocks in lockstep (ROWS_LOCKSTEP below).
  *  - block-sparse, the rest: the vertices in tiles of TV (a multiple of 32), and within a tile, per
@@ -208,8 +209,17 @@ static inline void rgb8_interleave(v8f r, v8f g, v8f b, __m256 o[3]) {
                            _mm256_permutevar8x32_ps(B, i2), 0x92);
 }
 #endif
+/* The RGB interleave in the AVX-512 builds (OUT_Z 1): while the dense loop's zmm multiply-adds are in flight, port 1
+ * takes no vector work, so rgb8_interleave's 9 permutes and 6 blends per 8 vertices compete with them for ports 0 and
+ * 5; rgb8_interleave_z issues 3 shuffles (an insert and two vpermt2ps) and one 64-byte store with one 32-byte store.
+ * Data movement only: the same bits. Measured on the Xeon against the tree without it (bench_wavelet_scratch.py
+ * --base ., load 4-5, A/A warm 0.94-1.07): warm N = 10 1.05-1.10x (small / medium / large studio 1.05 / 1.08 / 1.10, sky
+ * 1.06 / 1.09 / 1.01), N = 30 0.95-1.05x, N >= 100 0.96-1.04x; the output pass alone (N = 0: the 8-lane loop, no zmm
+ * in flight) unchanged. Not kept: OUT_Z 2 (out [0, 16) as two 32-byte stores, one more extract) no better; OUT_PFW
+ * (each dense block prefetching the next block's output lines for writing) 0.95-0.97x of main at N = 10
+ * (the tree 0.97-0.99x in the same run), 0.99-1.07x of the tree at N = 30. */
 #if W16 && !defined(OUT_Z)
-#define OUT_Z 1 /* the AVX-512 builds' RGB interleave (0: rgb8_interleave's, as the 8-lane builds; 2: out [0, 16) as two stores) */
+#define OUT_Z 1 /* 0: rgb8_interleave's, as the 8-lane builds; 2: out [0, 16) as two stores */
 #endif
 #if W16 && OUT_Z
 /* the same interleave in the AVX-512 builds (OUT_Z): r | g as one 16-lane vector (one insert), then two two-source
@@ -512,9 +522,19 @@ static inline void put_rgb8(float *out, v8f r, v8f g, v8f b, int nt) {
  * its accumulators back only when marked, stores zeros over the CO channels it added and clears the mark, so every
  * tile ends with its scratch and marks zero again and no call zeroes the whole scratch (before: a memset of nb x 512
  * bytes per tile, 170 KB per call at V = 10 585 — more than the L1D — and 4 x CO loads and adds per dense block,
- * touched or not). The sums are the same bits: an accumulator never touched is +0, and a sum from +0 that adds +0
- * is unchanged. The AVX2 and avx512-256 builds keep the memset and the add-back of every block (ACC_PARAMS, ADD_BACK
- * and MARK below expand to the code before: their machine code unchanged). */
+ * touched or not). A light whose sparse terms hold more than TOUCH_X (2) sparse blocks per 8-vertex block of V marks
+ * none (its blocks cover the tiles anyway): the tile's marks are set by one memset of nb bytes and every block is
+ * added back and re-zeroed. The sums are the same bits: an accumulator never touched is +0, and a sum from +0 that
+ * adds +0 is unchanged. The AVX2 and avx512-256 builds keep the memset and the add-back of every block (ACC_PARAMS,
+ * ADD_BACK, MARK and SCRATCH_ZERO below expand to the code before: their .text is main's byte for byte, objcopy).
+ * Measured on an Intel Xeon (family 6 model 167, AVX-512), one thread's CPU time, paired with main's build on one
+ * layout, together with the RGB interleave below (bench_wavelet_scratch.py, reports/benchmarks/wavelet_scratch.md,
+ * load 3-5, A/A 0.94-1.05): warm medium N = 30 1.18 / 1.15x (studio / sky; section 7's fraction of the streaming
+ * read 0.48 / 0.46 against main's 0.40 / 0.40 in the same run), large N = 30 1.15 / 1.18x, small N = 30 1.09 / 1.07x,
+ * N = 100-all 0.97-1.06x; evicted (a 3 MB read before each call) the same within noise. Not kept (each against main
+ * in the same run): a mark per 8-vertex block (TOUCH8: four bytes per dense block, then each marked accumulator)
+ * no better (medium N = 30 1.20 / 1.14x against 1.18 / 1.15x); no marks at all (TOUCH_X -1: every block added back
+ * and re-zeroed, the memset gone) 1.10 / 1.14x. */
 #if W16
 #ifdef TOUCH8
 #define MK_SHIFT 7
