@@ -103,3 +103,31 @@ def test_held_bytes_count_the_scratch_as_estimated():
     r = relight.WaveletRelighter(tr, threads=1, tile=96)
     assert r._zacc.shape == r._acc.shape and r._tmark.shape == r._acc.shape[:2] and _clean(r)
     assert r.held_bytes()["other"] >= r._acc.numel() * 8 + r._tmark.numel()
+
+
+@pytest.mark.skipif(not (HAS_512 and HAS_AVX2), reason="one build only on this CPU")
+def test_per_vertex_factor_output_same_bits_in_both_builds():
+    """The AVX-512 build's RGB interleave (OUT_Z: an insert and two vpermt2ps per 8 vertices) moves data only: with the
+    relighter's per-vertex factor (``_kfactor``: ``f [V + 4]``, ``C | F1``; put_rgb8) and with ``f [V, 3]``
+    (store_rgb8), grey and coloured output multipliers, its outputs are the AVX2 build's bit for bit."""
+    tr = _transfer(torch.int16, 1)
+    r = relight.WaveletRelighter(tr, threads=1, layouts="column", tile=96)
+    r._kernel()
+    g = torch.Generator().manual_seed(13)
+    li = torch.randperm(r.P, generator=g)[:60].contiguous()
+    lv = torch.randn(3, 60, generator=g)
+    f1 = torch.rand(r.V + 4, generator=g) + 0.5
+    fc = f1.clone()
+    fc[r.V:r.V + 3] = torch.tensor([0.7, 1.0, 1.3])  # a uniform coloured albedo's multipliers (fm 2)
+    fv = torch.rand(r.V, 3, generator=g) + 0.5  # f [V, 3]
+    outs = {}
+    for isa in ("native", "avx2"):
+        lib = relight._wavelet_lib(isa)
+        for name, f, C in (("f1", f1, 3 | r.F1), ("fc", fc, 3 | r.F1), ("fv", fv.contiguous(), 3)):
+            out = torch.empty(r.V, 3)
+            assert lib.prt_wavelet_relight_i16(r._layout.data_ptr(), 60, li.data_ptr(), lv.data_ptr(), C, f.data_ptr(),
+                                               out.data_ptr(), 1) == 0
+            outs[isa, name] = out
+    for name in ("f1", "fc", "fv"):
+        assert torch.equal(outs["native", name], outs["avx2", name]), name
+    assert not torch.equal(outs["native", "f1"], outs["native", "fc"])
