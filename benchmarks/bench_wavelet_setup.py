@@ -15,10 +15,12 @@ the gather, so the light table is zero again between calls, as the kernel leaves
   6. + sparse listing: the sparse terms listed (N > SMALL_N: the scan of the P marks) — the set-up;
   7. + OpenMP region: the tile loop entered (one thread: ``if(nt > 1)`` false, still a libgomp region), the tiles'
      pointers formed, nothing done;
-  8. + scratch zeroing: each tile's accumulators zeroed (column-major lights);
-  9. + sparse pass: the column-major pass into the scratch (no dense block);
+  8. + scratch zeroing: each tile's accumulators zeroed (column-major lights; the AVX-512 build's scratch is zero
+     between calls: nothing, or the tile's marks set when the light marks no blocks — kernels/wavelet.c, SCRATCH_ZERO);
+  9. + sparse pass: the column-major pass into the scratch (no dense block; the AVX-512 build then drops the marked
+     blocks' accumulators unread, SCRATCH_DROP, so the scratch is zero again for the next call);
   10. + output pass: every dense block called with no dense term — the scratch's sums (or, row-major lights, none)
-      times the factor, written once;
+      times the factor, written once (the AVX-512 build: the marked blocks' sums added back and re-zeroed);
   11. + row-major pass: the same with the row-major entries (row-major lights only; a column-major light's probe 11
       is the same work as 10, so its difference is the probes' code-placement noise, reported as such);
   12. + dense terms: the whole kernel.
@@ -27,7 +29,8 @@ Floors per part: the dense terms' instruction floor (dense (term, 32-vertex bloc
 from L1 on this CPU — the 16-lane term 5.78 cycles, the 8-lane AVX2 term 8.31, ``wavelet_dense16_micro.md`` —, at
 the clock measured here: a chain of dependent multiplies, ``bench_wavelet_floor_micro.clock_ghz``), and the same loop
 re-run from the caches (probe ``dense twice``: each tile's dense blocks relit twice, the second pass right after the
-first: its extra time), the sparse pass's (the light's 8-vertex blocks × the column-major pass alone in a tight loop:
+first: its extra time; the sparse scratch added in the second pass only),
+the sparse pass's (the light's 8-vertex blocks × the column-major pass alone in a tight loop:
 4.5 cycles per block for the AVX-512 build's three-per-step loop, 4.9 for the one-block loop, ``wavelet_colpass.md``),
 the output's (its factors read and its values written, 24 V bytes, at the rate of the call's own streaming read:
 ``timing.read_bound_fn`` of the call's bytes, paired here; ``read_bound_fn`` of 24 V bytes alone is mostly torch's
@@ -91,13 +94,16 @@ CUTS = (("    if (C < 1 || C > 4 || (CT == 3 && C != 1 && C != 3)) return 1;", "
         ("    const int rows = sb && L->NR", "if (PROBE == 4) { " + ZERO + " return 0; }"),
         ("    i64 *sw = wk + Pd;", "if (PROBE == 5) { " + ZERO + " return 0; }"),
         ("    const T *rvals = (const T *)L->rvals;", "if (PROBE == 6) { " + ZERO + " return 0; }"),
-        ("        if (ns && !rows) memset(acc, 0,", "if (PROBE == 7) continue;"),
+        ("        SCRATCH_ZERO", "if (PROBE == 7) continue;"),
         ("        if (CT == 3) { TILE_CASE(T, 3, 3, 3) }", "if (PROBE == 8) continue;"))
 #: (text, replacement): probes 9-11 inside TILE_CASE, and ``dense twice`` (PROBE 13)
 SUBS = (("    for (i64 b = 0; b < nb; b++) {                                                                           \\",
+         "    for (i64 b = 0; b < (PROBE == 9 ? nb : 0); b++) { SCRATCH_DROP(b) } \\\n"
          "    for (int r_ = 0; r_ < (PROBE == 13 ? 2 : 1); r_++) for (i64 b = 0; b < (PROBE == 9 ? 0 : nb); b++) { \\"),
         ("        dense_block_##T(CT_, CO_, OC_, nd, wk,", "        dense_block_##T(CT_, CO_, OC_, PROBE == 10 || PROBE == 11 ? 0 : nd, wk,"),
-        ("rows ? lp : NULL, nv,", "rows && PROBE != 10 ? lp : NULL, nv,"))
+        ("rows ? lp : NULL, nv,", "rows && PROBE != 10 ? lp : NULL, nv,"),
+        # dense twice: the sparse scratch added in the second pass only (the AVX-512 build's add-back clears it)
+        ("ACC_ARGS(b, ns && !rows)", "ACC_ARGS(b, ns && !rows && !(PROBE == 13 && r_ == 0))"))
 PARTS = ("Python → C call", "checks (C, indices, grey)", "light table's closing zeroing", "gather (marks, light per column)",
          "dense listing", "sparse listing", "OpenMP region (1 thread) + tiles", "scratch zeroing", "sparse pass (column-major)",
          "output pass", "row-major pass", "dense terms")

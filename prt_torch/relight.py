@@ -568,6 +568,10 @@ class WaveletRelighter:
         self._f: dict = {}  # the kernel's factor per (C, albedo): (tensor, C argument), _kfactor
         self._f_full: dict = {}  # [V, CO] where the kernel's is one per vertex: _factor (torch path, gradients)
         self._acc = torch.empty(self.MT, TV // self.SUB, 4, self.SUB, dtype=torch.float32)  # the kernel's scratch, per thread (+ a dummy block)
+        # the AVX-512 builds' own scratch, zero between calls, and its touched map (a byte per 32-vertex block, sized
+        # per 8): kernels/wavelet.c's zacc / tmark (the AVX2 build, which may share this layout, zeroes _acc instead)
+        self._zacc = torch.zeros(self.MT, TV // self.SUB, 4, self.SUB, dtype=torch.float32)
+        self._tmark = torch.zeros(self.MT, TV // self.SUB, dtype=torch.uint8)
         self._wk = torch.empty(P, dtype=torch.int64)  # the light's terms split into dense / sparse
         self._lw = torch.empty(P, 4, dtype=torch.float32)
         self.dcol = dcols.contiguous()  # [Pd] the dense slot's column
@@ -638,8 +642,8 @@ class WaveletRelighter:
             return sum(t.numel() * t.element_size() for t in ts if t is not None)
         parts = {"dense": nb(self.dense), "column": nb(self.bvals, self.bofs, self.tptr, self.tbase),
                  "row": nb(self.rptr, self.rcol, self.rvals),
-                 "other": nb(self.dslot, self.bcount, self._cblk, self._acc, self._wk, self._lw, self.dcol, self.cls,
-                             self._mark, self._lp, self.scale, self.albedo, self.nnz, self.weights,
+                 "other": nb(self.dslot, self.bcount, self._cblk, self._acc, self._zacc, self._tmark, self._wk, self._lw,
+                             self.dcol, self.cls, self._mark, self._lp, self.scale, self.albedo, self.nnz, self.weights,
                              *(f for f, _ in self._f.values()), *self._f_full.values())}
         parts["total"] = sum(parts.values())
         return parts
@@ -766,10 +770,10 @@ class WaveletRelighter:
         parts = {"dense": nb * max(Pd, 1) * CT * cls.BLOCK * b,
                  "column": blk + 4 * NB + 4 * NT * (P + 1) + 8 * NT,
                  "row": (4 * nb + 1) * 8 + 4 * NB + blk if with_rows else 0,
-                 # dslot, _cblk, nnz int32; bcount [NT, P] int32; _acc; _wk int64; _lw, _lp [P, 4] float32; dcol int64;
+                 # dslot, _cblk, nnz int32; bcount [NT, P] int32; _acc, _zacc float32, _tmark uint8; _wk int64; _lw, _lp [P, 4] float32; dcol int64;
                  # cls, _mark uint8; scale [V, CT], albedo [V, 3], the cached factor [V, CO] or [V + 4] float32
                  # (_kfactor); weights float64
-                 "other": 12 * P + 4 * NT * P + MT * (TV // cls.SUB) * 4 * cls.SUB * 4 + 8 * P + 32 * P + 8 * Pd + 2 * P
+                 "other": 12 * P + 4 * NT * P + MT * (TV // cls.SUB) * (2 * 4 * cls.SUB * 4 + 1) + 8 * P + 32 * P + 8 * Pd + 2 * P
                  + 4 * V * CT + 12 * V + (4 * V * CO if factor_form == "channel" else 4 * (V + 4)) + 8 * P}
         parts["total"] = sum(parts.values())
         # __init__'s peak above what it keeps (built in chunks of rows): either while placing the chunks — the kernel
@@ -902,7 +906,7 @@ class WaveletRelighter:
                                          self._lw.data_ptr(), self.dcol.data_ptr(), self.cls.data_ptr(), self._mark.data_ptr(), self._lp.data_ptr(),
                                          *(0 if t is None else t.data_ptr() for t in (self.rptr, self.rcol, self.rvals)),
                                          self.NB, self._row_permille(self.row_min, self._rows_used),
-                                         self._cblk.data_ptr()],
+                                         self._cblk.data_ptr(), self._zacc.data_ptr(), self._tmark.data_ptr()],
                                         dtype=torch.int64)
             lay = self._layout.data_ptr()
             self._native = functools.partial(fn, lay)

@@ -56,7 +56,7 @@
  *    Python call ~1 more (the first pass after the interpreter, and the interpreter after a zmm-heavy call).
  *    Not kept (paired against the pair, load 4-6): four blocks in lockstep (CO <= 3, 24 zmm sums) 0.88-0.99x; the
  *    pair's loop split at nd - PF (no prefetch test per term) 0.93-1.03x; the RGB output on 16 lanes (a vpermt2ps
- *    and a masked vpermps per output vector) 0.96-1.04x; the prefetch distance 3 / 10 / 16 terms with the pair
+ *    and a masked vpermps per output vector) 0.96-1.04x (OUT_Z's interleave per 8 vertices, below, is kept); the prefetch distance 3 / 10 / 16 terms with the pair
  *    0.94-1.01x of 6.
  *    Prefetch across units (PF_FAR, W16): when the dense layout holds at least PFX_MIN bytes (0 by default: every
  *    layout; 2 MB, the Xeon's L2, until the cache regimes below were measured), the 16-lane loops prefetch the
@@ -109,7 +109,8 @@
  *    once per block), every sparse-pass and output instruction's count unchanged (vpermd, vblendps, vmulps, vaddps,
  *    vpermps, vmovups); the W16 build's object code byte-identical.
  *    The sparse blocks, the row-major pass and the output stay on 8 lanes (a 16-lane read-modify-write of
- *    two channels' scratch per block measured 0.90-0.94x of the 8-lane one: not kept); the column-major sparse
+ *    two channels' scratch per block measured 0.90-0.94x of the 8-lane one: not kept; the output's RGB interleave alone
+ *    takes 16-lane shuffles, OUT_Z below); the column-major sparse
  *    pass takes three blocks per loop step in these builds (SPARSE_RANGE), and with AVX-512's 32 registers the
  *    row-major pass walks two 8-vertex blocks in lockstep (ROWS_LOCKSTEP below).
  *  - block-sparse, the rest: the vertices in tiles of TV (a multiple of 32), and within a tile, per
@@ -121,7 +122,8 @@
  * Per tile (the unit of the threads' split, OpenMP, `threads`; at one thread the AVX-512 build (W16) runs the
  * tiles in a plain loop instead, no OpenMP region: SERIAL_TILES below): its sparse blocks of the light's
  * sparse terms into the zeroed scratch, then its dense blocks, each adding the scratch and writing
- * its outputs once. Only the columns of the light's terms are read — except when the light's sparse
+ * its outputs once (the AVX-512 build: a scratch of its own that is zero between calls and a touched map, no zeroing
+ * per call, only the touched blocks added back and re-zeroed: zacc / tmark below). Only the columns of the light's terms are read — except when the light's sparse
  * terms hold at least row_permille / 1000 of all sparse blocks: then every sparse block is read from a
  * row-major copy (per 8-vertex block its columns' entries) into the dense block's register sums, the
  * light looked up per column (zero for the columns the light does not hold; no scratch; W16: two 8-vertex
@@ -132,7 +134,8 @@
  * scratch zero again. A column listed more than once adds its light values. An RGB light with three equal
  * channels on a grey transfer takes one sum per vertex (CO = 1), written to the three outputs. The layout's scratch (the
  * light per column lp, zero between calls: each call zeroes its own columns at its end; the term
- * lists; the tiles' accumulators) makes one call at a time per layout. */
+ * lists; the tiles' accumulators; W16: zacc and tmark, zero between calls whichever build ran last) makes one call at a
+ * time per layout. */
 
 #include <stdint.h>
 #include <string.h>
@@ -230,10 +233,41 @@ static inline void rgb8_interleave(v8f r, v8f g, v8f b, __m256 o[3]) {
                            _mm256_permutevar8x32_ps(B, i2), 0x92);
 }
 #endif
+/* The RGB interleave in the AVX-512 builds (OUT_Z 1): while the dense loop's zmm multiply-adds are in flight, port 1
+ * takes no vector work, so rgb8_interleave's 9 permutes and 6 blends per 8 vertices compete with them for ports 0 and
+ * 5; rgb8_interleave_z issues 3 shuffles (an insert and two vpermt2ps) and one 64-byte store with one 32-byte store.
+ * Data movement only: the same bits. Measured on the Xeon against the tree without it (bench_wavelet_scratch.py
+ * --base ., load 4-5, A/A warm 0.94-1.07): warm N = 10 1.05-1.10x (small / medium / large studio 1.05 / 1.08 / 1.10, sky
+ * 1.06 / 1.09 / 1.01), N = 30 0.95-1.05x, N >= 100 0.96-1.04x; the output pass alone (N = 0: the 8-lane loop, no zmm
+ * in flight) unchanged. Not kept: OUT_Z 2 (out [0, 16) as two 32-byte stores, one more extract) no better; OUT_PFW
+ * (each dense block prefetching the next block's output lines for writing) 0.95-0.97x of main at N = 10
+ * (the tree 0.97-0.99x in the same run), 0.99-1.07x of the tree at N = 30. */
+#if W16 && !defined(OUT_Z)
+#define OUT_Z 1 /* 0: rgb8_interleave's, as the 8-lane builds; 2: out [0, 16) as two stores */
+#endif
+#if W16 && OUT_Z
+/* the same interleave in the AVX-512 builds (OUT_Z): r | g as one 16-lane vector (one insert), then two two-source
+ * permutes (vpermt2ps) with b giving out [0, 16) in o01 and out [16, 24) in o2's lower half — 3 shuffles on port 5
+ * per 8 vertices where rgb8_interleave issues 9 permutes and 6 blends */
+static inline void rgb8_interleave_z(v8f r, v8f g, v8f b, __m512 *o01, __m512 *o2) {
+    const __m512 rg = _mm512_castpd_ps(_mm512_insertf64x4(_mm512_castps_pd(_mm512_castps256_ps512((__m256)r)),
+                                                          _mm256_castps_pd((__m256)g), 1));
+    const __m512 bz = _mm512_castps256_ps512((__m256)b);
+    const __m512i i01 = _mm512_setr_epi32(0, 8, 16, 1, 9, 17, 2, 10, 18, 3, 11, 19, 4, 12, 20, 5),
+                  i2 = _mm512_setr_epi32(13, 21, 6, 14, 22, 7, 15, 23, 0, 0, 0, 0, 0, 0, 0, 0);
+    *o01 = _mm512_permutex2var_ps(rg, i01, bz);
+    *o2 = _mm512_permutex2var_ps(rg, i2, bz);
+}
+#endif
 /* 8 vertices' RGB sums r, g, b times their factors f [8, 3] (one per vertex and channel), written interleaved to
  * out [8, 3]: three loads of the factors, three multiplies after the interleave */
 static inline void store_rgb8(float *out, const float *f, v8f r, v8f g, v8f b) {
-#ifdef __AVX2__
+#if W16 && OUT_Z
+    __m512 o01, o2;
+    rgb8_interleave_z(r, g, b, &o01, &o2);
+    _mm512_storeu_ps(out, _mm512_mul_ps(o01, _mm512_loadu_ps(f)));
+    _mm256_storeu_ps(out + 16, _mm256_mul_ps(_mm512_castps512_ps256(o2), _mm256_loadu_ps(f + 16)));
+#elif defined(__AVX2__)
     __m256 o[3];
     rgb8_interleave(r, g, b, o);
     _mm256_storeu_ps(out, _mm256_mul_ps(o[0], _mm256_loadu_ps(f)));
@@ -250,6 +284,18 @@ static inline void store_rgb8(float *out, const float *f, v8f r, v8f g, v8f b) {
  * aligned) */
 static inline void put_rgb8(float *out, v8f r, v8f g, v8f b, int nt) {
     (void)nt;
+#if W16 && OUT_Z && !defined(OUT_NT)
+    __m512 o01, o2;
+    rgb8_interleave_z(r, g, b, &o01, &o2);
+#if OUT_Z == 2 /* out [0, 16) as two 32-byte stores (one more shuffle: the upper half's extract) */
+    _mm256_storeu_ps(out, _mm512_castps512_ps256(o01));
+    _mm256_storeu_ps(out + 8, _mm256_castpd_ps(_mm512_extractf64x4_pd(_mm512_castps_pd(o01), 1)));
+#else /* one 64-byte store (half of them across two lines: out [8, 3] blocks are 96 bytes apart) */
+    _mm512_storeu_ps(out, o01);
+#endif
+    _mm256_storeu_ps(out + 16, _mm512_castps512_ps256(o2));
+    return;
+#endif
 #ifdef __AVX2__
     __m256 o[3];
     rgb8_interleave(r, g, b, o);
@@ -621,16 +667,112 @@ static inline __attribute__((always_inline)) void vnni_terms(const char *blk, i6
 #define ROWS_LOCKSTEP(T, G) {}
 #endif
 
+/* The sparse scratch in the AVX-512 builds (W16): zero between calls, with a touched map. The column-major pass adds
+ * into zacc [MT, TV/8, 4, 8] float32 (the layout's own field, never the 8-lane builds' acc: a build of each may run on
+ * one layout, and the AVX2 build leaves acc dirty) and marks each block it adds to in tmark [MT, TV/8] uint8 (one byte
+ * per 32-vertex block: tmark[bofs >> 9]; TOUCH8, a measurement knob: per 8-vertex block, bofs >> 7); a dense block adds
+ * its accumulators back only when marked, stores zeros over the CO channels it added and clears the mark, so every
+ * tile ends with its scratch and marks zero again and no call zeroes the whole scratch (before: a memset of nb x 512
+ * bytes per tile, 170 KB per call at V = 10 585 — more than the L1D — and 4 x CO loads and adds per dense block,
+ * touched or not). A light whose sparse terms hold more than TOUCH_X (2) sparse blocks per 8-vertex block of V marks
+ * none (its blocks cover the tiles anyway): the tile's marks are set by one memset of nb bytes and every block is
+ * added back and re-zeroed. The sums are the same bits: an accumulator never touched is +0, and a sum from +0 that
+ * adds +0 is unchanged. The AVX2 and avx512-256 builds keep the memset and the add-back of every block (ACC_PARAMS,
+ * ADD_BACK, MARK and SCRATCH_ZERO below expand to the code before: their .text is main's byte for byte, objcopy).
+ * Measured on an Intel Xeon (family 6 model 167, AVX-512), one thread's CPU time, paired with main's build on one
+ * layout, together with the RGB interleave below (bench_wavelet_scratch.py, reports/benchmarks/wavelet_scratch.md,
+ * load 3-5, A/A 0.94-1.05): warm medium N = 30 1.18 / 1.15x (studio / sky; section 7's fraction of the streaming
+ * read 0.48 / 0.46 against main's 0.40 / 0.40 in the same run), large N = 30 1.15 / 1.18x, small N = 30 1.09 / 1.07x,
+ * N = 100-all 0.97-1.06x; evicted (a 3 MB read before each call) the same within noise. Not kept (each against main
+ * in the same run): a mark per 8-vertex block (TOUCH8: four bytes per dense block, then each marked accumulator)
+ * no better (medium N = 30 1.20 / 1.14x against 1.18 / 1.15x); no marks at all (TOUCH_X -1: every block added back
+ * and re-zeroed, the memset gone) 1.10 / 1.14x. */
+#if W16
+#ifdef TOUCH8
+#define MK_SHIFT 7
+#else
+#define MK_SHIFT 9
+#endif
+#define ACC_PARAMS float *acc, unsigned char *mk,
+#define ACC_ARGS(b, on) (on) ? acc + 128 * (b) : NULL, mk + ((b) << (9 - MK_SHIFT)),
+#define MK_PARAM , unsigned char *mk, const int mk_on
+#define MK_ARG , mk, mk_on
+#ifndef TOUCH_X
+#define TOUCH_X 2 /* the light's sparse blocks, per 8-vertex block of V, up to which the sparse pass marks its blocks */
+#endif
+#define MARK(e) if (mk_on) mk[(uint32_t)bofs[e] >> MK_SHIFT] = 1
+#define SCRATCH(tid) float *acc = L->zacc + (i64)(tid) * (TV / 8) * 32; unsigned char *mk = L->tmark + (i64)(tid) * (TV / 8);
+#define MK_ON const int mk_on = sb <= TOUCH_X * ((V + 7) / 8);
+#define SCRATCH_ZERO if (ns && !rows && !mk_on) memset(mk, 1, (size_t)nb << (9 - MK_SHIFT)); /* every block added back */
+/* block b's scratch dropped unread (its marks and accumulators zeroed: bench_wavelet_setup.py's sparse-pass probe, which
+ * calls no dense block) */
+#define SCRATCH_DROP(b)                                                                                      \
+    for (int k_ = 0; k_ < 1 << (9 - MK_SHIFT); k_++)                                                         \
+        if (mk[((b) << (9 - MK_SHIFT)) + k_]) {                                                              \
+            mk[((b) << (9 - MK_SHIFT)) + k_] = 0;                                                            \
+            memset(acc + 128 * (b) + ((1 << MK_SHIFT) >> 2) * k_, 0, (size_t)1 << MK_SHIFT);                \
+        }
+#ifdef TOUCH8 /* per 8-vertex block: the four marks read as one word, then each one's accumulator */
+#define ADD_BACK                                                                                             \
+    if (acc) {                                                                                               \
+        uint32_t m_;                                                                                         \
+        memcpy(&m_, mk, 4);                                                                                  \
+        if (m_) {                                                                                            \
+            memset(mk, 0, 4);                                                                                \
+            for (int k = 0; k < 4; k++)                                                                      \
+                if ((m_ >> (8 * k)) & 255)                                                                   \
+                    for (int c = 0; c < CO; c++) {                                                           \
+                        a[c][k] += ld8(acc + 32 * k + 8 * c);                                                \
+                        st8(acc + 32 * k + 8 * c, (v8f){0});                                                 \
+                    }                                                                                        \
+        }                                                                                                    \
+    }
+#else
+#define ADD_BACK                                                                                             \
+    if (acc && *mk) {                                                                                        \
+        *mk = 0;                                                                                             \
+        for (int k = 0; k < 4; k++)                                                                          \
+            for (int c = 0; c < CO; c++) {                                                                   \
+                a[c][k] += ld8(acc + 32 * k + 8 * c);                                                        \
+                st8(acc + 32 * k + 8 * c, (v8f){0});                                                         \
+            }                                                                                                \
+    }
+#endif
+#else
+#define ACC_PARAMS const float *acc,
+#define ACC_ARGS(b, on) (on) ? acc + 128 * (b) : NULL,
+#define MK_PARAM
+#define MK_ARG
+#define MARK(e)
+#define SCRATCH(tid) float *acc = L->acc + (i64)(tid) * (TV / 8) * 32;
+#define MK_ON
+#define SCRATCH_ZERO if (ns && !rows) memset(acc, 0, (size_t)(nb * 128) * sizeof(float));
+#define SCRATCH_DROP(b)
+#define ADD_BACK                                                                                             \
+    if (acc)                                                                                                 \
+        for (int k = 0; k < 4; k++) for (int c = 0; c < CO; c++) a[c][k] += ld8(acc + 32 * k + 8 * c);
+#endif
+
+#if W16 && defined(OUT_PFW) /* a measurement knob (bench_wavelet_scratch.py): the output lines OUT_PFW blocks ahead
+                               * prefetched for writing before the dense terms (past the end: a prefetch, never a store) */
+#define OUT_PF                                                                                               \
+    for (int q_ = 0; q_ < OC * BV * 4; q_ += 64)                                                             \
+        __builtin_prefetch((const char *)(uintptr_t)((uintptr_t)(out + OC * BV * (OUT_PFW)) + (uintptr_t)q_), 1);
+#else
+#define OUT_PF
+#endif
+
 /* one block of BV vertices over the nd dense terms (light lw [nd, 4]); acc: the block's four 8-vertex
  * accumulators [4][4 channels][8] of the sparse part, or NULL; CT, CO constants after inlining. Each
  * term's values are loaded one vector at a time with the CO light values held (CT = 1, CO = 3: 12 sums,
  * 3 lights, 1 value = 16 registers, no spill) */
 #define DENSE_BLOCK(T)                                                                                       \
 static inline __attribute__((always_inline)) void dense_block_##T(const int CT, const int CO, const int OC, i64 nd, \
-        const i64 *ds, const float *lw, const T *blk, i64 stride, PAIR_PARAMS const float *acc, const i64 *rp,  \
+        const i64 *ds, const float *lw, const T *blk, i64 stride, PAIR_PARAMS ACC_PARAMS const i64 *rp,        \
         const int32_t *rc, const T *rv, const float *lp, i64 nv, const int fm, const float *fc, const float *f,   \
         float *out, const int nt) {                                                                          \
     v8f a[4][4];                                                                                             \
+    OUT_PF                                                                                                   \
     DENSE_TERMS(T)                                                                                           \
     if (lp && W16) ROWS_LOCKSTEP(T, ROW_G(CO)) /* AVX-512: the 8-vertex blocks in lockstep (above) */        \
     else if (lp) /* row-major sparse entries of the block's four 8-vertex blocks, the light looked up per  \
@@ -653,8 +795,7 @@ static inline __attribute__((always_inline)) void dense_block_##T(const int CT, 
                 for (int c = 0; c < CO; c++) s0[c] += load8_##T(rv + e * 8 * CT + (CT == 1 ? 0 : 8 * c)) * bc8(lp + 4 * rc[e] + c); \
             for (int c = 0; c < CO; c++) a[c][k] = s0[c] + s1[c];                                            \
         }                                                                                                    \
-    if (acc)                                                                                                 \
-        for (int k = 0; k < 4; k++) for (int c = 0; c < CO; c++) a[c][k] += ld8(acc + 32 * k + 8 * c);      \
+    ADD_BACK                                                                                                 \
     /* OC output channels: CO, or 3 from one grey sum (an RGB light with equal channels, CO = 1); fm 0: f [nv, OC] a  \
      * factor per vertex and channel; 1: f [nv] one per vertex; 2: f [nv] times fc [OC] per channel (fl(f[v] fc[c]))  \
      * — the same products as fm 0 given f [V, OC] = fl(f[v] fc[c]), so the same bits */                    \
@@ -732,6 +873,7 @@ DENSE_BLOCK(int16_t)
         float *a0 = (float *)((char *)acc + bofs[e]), *a1 = (float *)((char *)acc + bofs[e + 1]),            \
               *a2 = (float *)((char *)acc + bofs[e + 2]);                                                    \
         PIN(a0); PIN(a1); PIN(a2);                                                                           \
+        MARK(e); MARK(e + 1); MARK(e + 2);                                                                   \
         const T *x = bv + e * 8 * CT;                                                                        \
         if (CT == 1) {                                                                                       \
             const v8f w0 = load8_##T(x), w1 = load8_##T(x + 8), w2 = load8_##T(x + 16);                      \
@@ -747,6 +889,7 @@ DENSE_BLOCK(int16_t)
     for (; e < e1; e++) {                                                                                    \
         float *a = (float *)((char *)acc + bofs[e]);                                                         \
         PIN(a);                                                                                              \
+        MARK(e);                                                                                             \
         const T *x = bv + e * 8 * CT;                                                                        \
         for (int c = 0; c < CO; c++) st8(a + 8 * c, ld8(a + 8 * c) + load8_##T(x + (CT == 1 ? 0 : 8 * c)) * l[c]); \
     }
@@ -757,7 +900,7 @@ DENSE_BLOCK(int16_t)
 /* the sparse terms' blocks of one tile into its scratch acc (zeroed), column-major; lw [ns, 4] the terms' light */
 #define SPARSE_TILE(T)                                                                                       \
 static inline __attribute__((always_inline)) void sparse_tile_##T(const int CT, const int CO, i64 ns,        \
-        const i64 *ss, const float *lw, const int32_t *tp, const int32_t *bofs, const T *bv, float *acc) {   \
+        const i64 *ss, const float *lw, const int32_t *tp, const int32_t *bofs, const T *bv, float *acc MK_PARAM) { \
     for (i64 t = 0; t < ns; t++) {                                                                           \
         v8f l[4];                                                                                            \
         for (int c = 0; c < CO; c++) l[c] = bc8(lw + 4 * t + c);                                             \
@@ -832,15 +975,17 @@ typedef struct {
     i64 NR, row_permille;       /* entries; the row-major pass is taken when the light's sparse terms hold at least
                                  * row_permille / 1000 of the sparse blocks (> 1000: never) */
     const int32_t *cblk;        /* [P] the column's sparse blocks over all tiles (0: dense or empty) */
+    float *zacc;                /* W16 builds' scratch [MT, TV/8, 4, 8], zero between calls (the touched map below) */
+    unsigned char *tmark;       /* W16 builds' scratch [MT, TV/8]: a tile's touched blocks, zero between calls */
 } wavelet_layout;
 
 #define TILE_CASE(T, CT_, CO_, OC_)                                                                          \
-    if (ns && !rows) sparse_tile_##T(CT_, CO_, ns, sw, sl, tp, bofs, bv, acc);                               \
+    if (ns && !rows) sparse_tile_##T(CT_, CO_, ns, sw, sl, tp, bofs, bv, acc MK_ARG);                        \
     PAIR_KEEP                                                                                                \
     for (i64 b = 0; b < nb; b++) {                                                                           \
         const i64 v0 = vt + b * BV, nv = V - v0 < BV ? V - v0 : BV;                                          \
         dense_block_##T(CT_, CO_, OC_, nd, wk, lw, dense + v0 * Pd * CT_, BV * CT_, PAIR_ARGS(b, nb, Pd * BV * CT_) \
-                        ns && !rows ? acc + 128 * b : NULL,                                                  \
+                        ACC_ARGS(b, ns && !rows)                                                             \
                         L->rptr + v0 / 8, L->rcol, rvals, rows ? lp : NULL, nv, OC_ == 3 && CT_ == 1 ? fm : 0, fc, f + (fm ? 1 : OC_) * v0, \
                         out + OC_ * v0, nt_out);                                                     \
     }
@@ -850,11 +995,11 @@ typedef struct {
 #define TILE_BODY(T)                                                                                         \
         int tid = 0;                                                                                         \
         TID(tid);                                                                                            \
-        float *acc = L->acc + (i64)tid * (TV / 8) * 32;                                                      \
+        SCRATCH(tid) /* W16: zacc and tmark, zero between calls; else acc, zeroed below */                   \
         const i64 vt = t * TV, nvt = V - vt < TV ? V - vt : TV, nb = (nvt + BV - 1) / BV;                    \
         const int32_t *tp = L->tptr + t * (P + 1), *bofs = L->bofs + L->tbase[t];                           \
         const T *bv = bvals + L->tbase[t] * 8 * CT;                                                          \
-        if (ns && !rows) memset(acc, 0, (size_t)(nb * 128) * sizeof(float));                                          \
+        SCRATCH_ZERO                                                                                         \
         if (CT == 3) { TILE_CASE(T, 3, 3, 3) }                                                               \
         else if (grey) { TILE_CASE(T, 1, 1, 3) }                                                             \
         else switch (CO) {                                                                                   \
@@ -934,6 +1079,7 @@ int NAME(const wavelet_layout *L, i64 N, const i64 *sel, const float *lv, i64 C,
      * the light looked up per column in lp (zero for the columns it does not hold); else the column-major   \
      * pass into the tiles' scratch over the sparse terms listed below */                                    \
     const int rows = sb && L->NR && L->row_permille <= 1000 && sb * 1000 >= L->row_permille * L->NR;          \
+    MK_ON /* W16: whether the column-major pass marks the blocks it touches (else every block is added back) */   \
     if (rows && !L->rptr) { /* the row-major copy is built on first need (relight.py): none yet, nothing done */ \
         for (i64 n = 0; n < N; n++) memset(lp + 4 * sel[n], 0, 4 * sizeof(float));                           \
         return 3;                                                                                            \

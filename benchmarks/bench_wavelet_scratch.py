@@ -1,0 +1,277 @@
+"""The wavelet kernel's sparse scratch and output pass (issue 39): ``kernels/wavelet.c`` of the working tree — in the
+AVX-512 build (W16) a scratch zero between calls with a touched map (``zacc`` / ``tmark``: the column-major pass marks
+each 32-vertex block it adds to, a dense block adds its accumulators back and stores zeros over them only when
+marked; no memset of the whole scratch per tile, no add-back of untouched blocks) — against ``--base`` (default
+``main``: a memset of each tile's scratch, every block's four accumulators added back), both compiled with the
+wavelet library's flags for this CPU (``native``) and bound to one layout, timed paired by one thread's CPU time
+(``measure_paired(clock=time.thread_time)``: what other processes ran is in neither side), at each ``--sizes`` of
+occluder_over_plane (small / medium / large: V = 2251 / 10585 / 51335), the studio and sky lights (transport-weighted
+terms, RGB, the relighter's per-vertex factor) at N = ``--terms`` and all, in two regimes:
+
+- **warm**: back-to-back calls (``timing.measure_paired``);
+- **evicted**: each call preceded (untimed) by a streaming read of ``--evict-mb`` MB (default 3) of other data
+  (``timing.measure_paired_cold``'s junk read): the call's lines from L3, as in a render loop doing other work between
+  relights; a sample is ``--calls`` (default 4) such calls.
+
+Builds: **test** (the working tree), **base**, **A/A** (the base built twice: the pairing's noise) and the measurement
+knobs in ``--variants`` (the working tree with ``-D`` lines prepended): ``touch8`` (``TOUCH8``: a mark per 8-vertex
+block instead of per 32), ``outpf`` (``OUT_PFW``: each dense block prefetches its output lines for writing before its
+dense terms). Per row: base / variant (median of the per-repeat ratios, quartiles; > 1: the variant faster), and the
+test and base builds against the streaming read of the bytes the call touches plus a fill of the output
+(``timing.read_bound_fn`` of ``WaveletRelighter.bytes_read``; section 7's criterion) in the same regime. Every
+build's output is compared bit for bit with the base's.
+
+The **output pass** alone: a call with no light term (N = 0: no dense term, no scratch; each dense block's zero sums
+times the factor, interleaved and written once) against a plain fill of the output's bytes (``read_bound_fn(0,
+12 V)``: the bound's own output part), warm, for test and base.
+
+The AVX2 build (``PRT_TORCH_KERNEL_ISA=avx2``, the code tuned on an AMD Zen 3) is not paired here: its machine code is
+the base's byte for byte (``--check-avx2`` compares the two builds' .text with objcopy, and stops if they differ).
+Writes reports/benchmarks/wavelet_scratch.md (the CPU, flags and load named) and the rows as .json.
+
+    .venv/bin/python benchmarks/bench_wavelet_scratch.py [--base REV] [--sizes small,medium,large] [--variants touch8,outpf]
+"""
+
+from __future__ import annotations
+
+import prt_torch  # noqa: F401  (first: it chooses OpenMP's wait policy from the machine's load)
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import os  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import torch  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_wavelet import BITS, KERNEL_SIZES, OUT, kernel_lights, kernel_transfer, layout_info, load, size_choice, steady_pair  # noqa: E402
+from bench_wavelet_isa import bound_call, kernel_build, kernel_source  # noqa: E402
+
+from prt_torch import relight  # noqa: E402
+from prt_torch._native import KERNEL_ISAS, LIBRARIES  # noqa: E402
+from prt_torch.harness.timing import cpu_label, measure_paired, measure_paired_cold, read_bound_fn  # noqa: E402
+from prt_torch.io import atomic_write_text  # noqa: E402
+
+TERMS = (10, 30, 100, 300, 1000)
+WHO = "bench_wavelet_scratch.py"
+REGIMES = ("warm", "evicted")
+#: variant name -> the -D lines prepended to the working tree's source
+VARIANTS = {"touch8": "#define TOUCH8 1\n", "outpf": "#define OUT_PFW 1\n", "markall": "#define TOUCH_X (1LL << 40)\n",
+            "marknone": "#define TOUCH_X (-1LL)\n", "outz0": "#define OUT_Z 0\n", "outz2": "#define OUT_Z 2\n"}
+
+
+def builds(base_rev: str, names: list[str]) -> tuple[dict, str]:
+    """``({name: library}, flags)``: test, base, aa and ``names`` (keys of VARIANTS), native builds."""
+    btext, _ = kernel_source(base_rev, f"{WHO}: --base")
+    ttext, _ = kernel_source(None, WHO)
+    libs = {"test": kernel_build(ttext, "native", WHO)[0], "base": kernel_build(btext, "native", WHO)[0],
+            "aa": kernel_build(btext, "native", WHO, tag="A/A control")[0]}
+    for n in names:  # a name: variants joined by '+'
+        libs[n] = kernel_build("".join(VARIANTS[v] for v in n.split("+")) + ttext, "native", WHO)[0]
+    return libs, kernel_build(ttext, "native", WHO)[1]
+
+
+def avx2_text_same(base_rev: str) -> bool:
+    """Whether the AVX2 builds of the working tree's and ``base_rev``'s kernel have the same .text, byte for byte
+    (gcc with the wavelet library's flags and ``-mno-avx512f``, objcopy)."""
+    flags = [f for f in LIBRARIES["wavelet"][1]] + list(KERNEL_ISAS["avx2"])
+    texts = []
+    with tempfile.TemporaryDirectory() as d:
+        for i, (src, _) in enumerate((kernel_source(None, WHO), kernel_source(base_rev, f"{WHO}: --base"))):
+            c, so, t = (Path(d) / f"k{i}.{e}" for e in ("c", "so", "text"))
+            c.write_text(src)
+            subprocess.run(["gcc", *flags, str(c), "-o", str(so)], check=True)
+            subprocess.run(["objcopy", "-O", "binary", "--only-section=.text", str(so), str(t)], check=True)
+            texts.append(t.read_bytes())
+    return texts[0] == texts[1]
+
+
+def pair(regime: str, a, b, repeats: int, evict_bytes: int, calls: int):
+    """``a`` against ``b`` in ``regime``: (median of b / a per repeat, q1, q3, a's median µs, b's median µs)."""
+    if regime == "warm":
+        p = measure_paired(a, b, repeats=repeats, warmup=1, clock=time.thread_time)
+    else:
+        p = measure_paired_cold(a, b, repeats=2 * repeats + 1, warmup=1, evict_bytes=evict_bytes, clock=time.thread_time,
+                                calls=calls)
+    return [p.speedup, p.ratio.q1, p.ratio.q3, p.test.median * 1e6, p.peer.median * 1e6]
+
+
+def size_rows(size: str, libs: dict, terms, repeats: int, evict_bytes: int, calls: int, s7=()) -> tuple[dict, list[dict]]:
+    rl = relight.WaveletRelighter(kernel_transfer(size), threads=1, layouts="both")
+    info = layout_info(rl, size)
+    # the output pass alone: no light term, against a fill of the output
+    e_li, e_lv = torch.zeros(0, dtype=torch.int64), torch.zeros(3, 0)
+    fill = read_bound_fn(0, rl.V * 12)
+    info["output"] = {}
+    for k in [k for k in libs if k != "aa"]:
+        fn = bound_call(rl, libs[k], e_li, e_lv, torch.empty(rl.V, 3), 1, per_vertex=True)
+        fn()
+        info["output"][k] = pair("warm", fn, fill, repeats, evict_bytes, calls)
+    print(f"[scratch] {size} output pass (N = 0) / fill: test {1 / info['output']['test'][0]:.2f}x the fill's time "
+          f"({info['output']['test'][3]:.1f} vs {info['output']['test'][4]:.1f} us), base "
+          f"{1 / info['output']['base'][0]:.2f}x" + "".join(f", {k} {1 / v[0]:.2f}x" for k, v in info["output"].items()
+                                                             if k not in ("test", "base")), flush=True)
+    rows = []
+    for light, N, li, lv in kernel_lights(rl, terms):
+        nbytes = rl.bytes_read(li)
+        bound = read_bound_fn(nbytes, rl.V * 12)
+        outs = {k: torch.empty(rl.V, 3) for k in libs}
+        fn = {k: bound_call(rl, lib, li, lv, outs[k], 1, per_vertex=True) for k, lib in libs.items()}
+        for f in fn.values():
+            f()
+        d = rl.dslot[li] >= 0
+        s = li[~d]
+        s = s[rl.nnz[s] > 0]
+        row = {"size": size, "light": light, "N": N, "nd": int(d.sum()), "sb": int(rl.bcount[:, s].sum()),
+               "rows": bool(rl._takes_rows(int(rl.bcount[:, s].sum()), rl.NB, rl._row_permille(rl.row_min, True))),
+               "mb": nbytes / 2**20, "same": {k: bool(torch.equal(outs[k], outs["base"])) for k in outs}, "load0": load()}
+        for regime in REGIMES:
+            r = {}
+            for k in [k for k in fn if k != "base"]:
+                r[k] = pair(regime, fn[k], fn["base"], repeats, evict_bytes, calls)
+            for k in ("test", "base"):
+                r["read_" + k] = pair(regime, fn[k], bound, repeats, evict_bytes, calls)
+            row[regime] = r
+        if N in s7:  # section 7's figure: bench_wavelet.kernel_rows' of_read_bound_cpu_1 (steady_pair, median ratio)
+            row["s7"] = {k: steady_pair(fn[k], bound)[0].ratio.median for k in ("test", "base")}
+        row["load1"] = load()
+        rows.append(row)
+        msg = "; ".join(f"{g} base {row[g]['test'][4]:.1f} us, of read test {row[g]['read_test'][0]:.2f} base "
+                        f"{row[g]['read_base'][0]:.2f}, " + ", ".join(f"{k} {row[g][k][0]:.3f}" for k in fn if k != "base")
+                        for g in REGIMES)
+        s7m = f"; section 7 of read test {row['s7']['test']:.2f} base {row['s7']['base']:.2f}" if "s7" in row else ""
+        print(f"[scratch] {size} {light} N={N} nd={row['nd']} sparse blocks {row['sb']}{' (row-major)' if row['rows'] else ''}: "
+              f"{msg}{s7m}; same {all(row['same'].values())}, load {row['load1']:.1f}", flush=True)
+    return info, rows
+
+
+def report(infos: list[dict], rows: list[dict], flags: str, args, before: float, after: float, names: list[str],
+           avx2_same: bool | None) -> str:
+    def q(t):
+        return f"{t[0]:.2f} [{t[1]:.2f}, {t[2]:.2f}]"
+    cols = ["test", "aa", *names]
+    L = ["# Wavelet kernel: the sparse scratch zero between calls, and the output pass (issue 39)\n",
+         f"{cpu_label()}; load average {before:.1f} → {after:.1f} (a machine shared with other jobs: one thread's CPU "
+         f"time, which their load does not enter). Native builds of `kernels/wavelet.c` with the wavelet library's flags "
+         f"(`{flags}`: on this CPU the AVX-512 build, W16): **test** the working tree's (the scratch zero between calls, "
+         "a touched map per 32-vertex block; the RGB interleave by one insert and two `vpermt2ps`, `OUT_Z` 1), "
+         f"**base** revision `{args.base}`'s (a memset of each tile's scratch, every "
+         "block's accumulators added back), **A/A** the base built twice" + "".join(
+             f", **{n}** the working tree with `{'; '.join(VARIANTS[v].strip() for v in n.split('+'))}`" for n in names)
+         + ". All bound to one layout per size (occluder_over_plane, R = 32, K = 256, "
+         f"{BITS}-bit; " + "; ".join(f"{i['size']}: V = {i['V']}, {i['Pd']} dense columns, dense layout "
+                                      f"{i['dense_mb']:.1f} MB" for i in infos)
+         + "), transport-weighted terms, RGB light, the relighter's per-vertex factor, one thread, paired by the calling "
+         f"thread's CPU time ({args.repeats} repeats): **warm** back-to-back calls, **evicted** each call after a "
+         f"{args.evict_mb:g} MB streaming read of other data ({args.calls} calls a sample). Columns *base / x*: medians of the "
+         "per-repeat ratios [quartiles] (> 1: x faster than the base; each variant is paired with the base, so variant "
+         "against test is the ratio of their columns). *of read*: the build against a streaming read "
+         "of the bytes it touches plus a fill of the output (`timing.read_bound_fn` of `WaveletRelighter.bytes_read`, "
+         "section 7's criterion), paired in the same regime (> 0.5: the issue's goal). *sparse blocks*: the light's "
+         "sparse 8-vertex blocks (*rows*: the row-major pass, no scratch). *bits*: every build's output equal to the "
+         "base's. The AVX2 build (`PRT_TORCH_KERNEL_ISA=avx2`) is not paired: "
+         + ("its .text is the base's byte for byte (gcc + objcopy, `--check-avx2`)." if avx2_same else
+            "not checked in this run (`--check-avx2`)." if avx2_same is None else "**its .text differs from the base's**.")
+         + f" Reproduce: `.venv/bin/python benchmarks/bench_wavelet_scratch.py --base {args.base} --sizes "
+         f"{args.sizes} --terms {args.terms} --repeats {args.repeats} --variants {','.join(names) or ''}"
+         f"{' --check-avx2' if args.check_avx2 else ''}`.\n",
+         "## The output pass alone\n",
+         "A call with no light term (N = 0: each dense block's zero sums times the factor, interleaved and written once; "
+         "the call's fixed cost, ~0.5 µs, included) against a fill of the output's 12 V bytes (`read_bound_fn(0, 12 V)`), "
+         "warm.\n",
+         "| size | V | test µs | fill µs | test / fill | base / fill |" + "".join(f" {n} / fill |" for n in names),
+         "|---|---|---|---|---|---|" + "---|" * len(names)]
+    for i in infos:
+        t, b = i["output"]["test"], i["output"]["base"]
+        L.append(f"| {i['size']} | {i['V']} | {t[3]:.1f} | {t[4]:.1f} | {1 / t[0]:.2f} | {1 / b[0]:.2f} |"
+                 + "".join(f" {1 / i['output'][n][0]:.2f} |" for n in names))
+    s7rows = [r for r in rows if "s7" in r]
+    if s7rows:
+        L += ["\n## Section 7's fraction of the streaming read\n",
+              "As `bench_wavelet.py --only kernel` computes it (`bench_wavelet.steady_pair` of the call and "
+              "`read_bound_fn(bytes_read, 12 V)`: median of 15 per-repeat ratios by one thread's CPU time, re-timed while they "
+              "spread), for the test and the base build on the same layout, warm.\n",
+              "| size | light | N | test | base | load |", "|---|---|---|---|---|---|"]
+        for r in s7rows:
+            L.append(f"| {r['size']} | {r['light']} | {r['N']} | **{r['s7']['test']:.2f}** | {r['s7']['base']:.2f} | {r['load1']:.1f} |")
+    for regime in REGIMES:
+        L += [f"\n## {regime}\n",
+              "| size | light | N | dense terms | sparse blocks | MB read | base µs | test µs | "
+              + " | ".join(f"**base / {k}**" if k == "test" else f"base / {k}" for k in cols)
+              + " | of read: test / base | bits | load |",
+              "|---|---|---|---|---|---|---|---|" + "---|" * len(cols) + "---|---|---|"]
+        for r in rows:
+            g = r[regime]
+            L.append(f"| {r['size']} | {r['light']} | {r['N']} | {r['nd']} | {r['sb']}{' rows' if r['rows'] else ''} | "
+                     f"{r['mb']:.2f} | {g['test'][4]:.1f} | {g['test'][3]:.1f} | "
+                     + " | ".join(q(g[k]) for k in cols)
+                     + f" | {g['read_test'][0]:.2f} / {g['read_base'][0]:.2f} | "
+                     f"{'same' if all(r['same'].values()) else '**differ**'} | {r['load1']:.1f} |")
+    return "\n".join(L) + "\n"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--base", default="main", help="the git revision to pair against (default main)")
+    ap.add_argument("--sizes", default=",".join(KERNEL_SIZES), help="comma-separated: " + ", ".join(KERNEL_SIZES))
+    ap.add_argument("--terms", default=",".join(map(str, TERMS)), help="comma-separated N (all terms always added)")
+    ap.add_argument("--variants", default="touch8,outpf", help="comma-separated: " + ", ".join(VARIANTS) + ", or several joined by '+' ('': none)")
+    ap.add_argument("--s7-terms", default="30", help="the N whose rows also get section 7's fraction of the streaming read "
+                    "(bench_wavelet.steady_pair: 15 repeats, median ratio), test and base ('': none)")
+    ap.add_argument("--repeats", type=int, default=11)
+    ap.add_argument("--evict-mb", type=float, default=3.0)
+    ap.add_argument("--calls", type=int, default=4)
+    ap.add_argument("--check-avx2", action="store_true", help="compare the AVX2 builds' .text (gcc, objcopy)")
+    ap.add_argument("--write", default=str(OUT / "wavelet_scratch.md"), help="the report ('': print only)")
+    args = ap.parse_args()
+    sizes = [size_choice(s.strip(), WHO) for s in args.sizes.split(",")]
+    names = [n.strip() for n in args.variants.split(",") if n.strip()]
+    for n in names:
+        if not all(v in VARIANTS for v in n.split("+")):
+            raise SystemExit(f"{WHO}: --variants {n!r}; accepted: a comma-separated list of {', '.join(VARIANTS)} (or several joined by '+')")
+    try:
+        terms = tuple(int(t) for t in args.terms.split(",") if t.strip())
+    except ValueError:
+        raise SystemExit(f"{WHO}: --terms {args.terms!r}; accepted: comma-separated integers >= 1") from None
+    if not terms or min(terms) < 1:
+        raise SystemExit(f"{WHO}: --terms {args.terms!r}; accepted: comma-separated integers >= 1")
+    try:
+        s7 = tuple(int(t) for t in args.s7_terms.split(",") if t.strip())
+    except ValueError:
+        raise SystemExit(f"{WHO}: --s7-terms {args.s7_terms!r}; accepted: comma-separated integers (of --terms)") from None
+    if args.repeats < 3:
+        raise SystemExit(f"{WHO}: --repeats {args.repeats}; accepted: an integer >= 3")
+    if args.calls < 1:
+        raise SystemExit(f"{WHO}: --calls {args.calls}; accepted: an integer >= 1")
+    if not args.evict_mb > 0:
+        raise SystemExit(f"{WHO}: --evict-mb {args.evict_mb}; accepted: a number > 0")
+    torch.set_num_threads(1)
+    avx2_same = avx2_text_same(args.base) if args.check_avx2 else None
+    if avx2_same is False:
+        raise SystemExit(f"{WHO}: the AVX2 build's .text differs from {args.base}'s: pair it (bench_wavelet_isa.py)")
+    libs, flags = builds(args.base, names)
+    before = load()
+    infos, rows = [], []
+    for s in sizes:
+        info, r = size_rows(s, libs, terms, args.repeats, int(args.evict_mb * 2**20), args.calls, s7)
+        infos.append(info)
+        rows += r
+    after = load()
+    text = report(infos, rows, flags, args, before, after, names, avx2_same)
+    if args.write:
+        atomic_write_text(args.write, text)
+        atomic_write_text(str(Path(args.write).with_suffix(".json")), json.dumps({"infos": infos, "rows": rows}, indent=1))
+        print(f"[scratch] wrote {args.write}", flush=True)
+    else:
+        print(text)
+    if not all(all(r["same"].values()) for r in rows):
+        raise SystemExit(f"{WHO}: a build's outputs differ from the base build's (see 'bits')")
+
+
+if __name__ == "__main__":
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    main()
