@@ -33,7 +33,7 @@ import torch  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_wavelet import BITS, KERNEL_SIZES, LIGHTS, OUT, load, size_choice  # noqa: E402
-from bench_wavelet_isa import rl_bytes, bound_call, kernel_build, kernel_source  # noqa: E402
+from bench_wavelet_isa import rl_bytes, bound_call, emit_report, kernel_build, kernel_source  # noqa: E402
 
 from prt_torch import relight  # noqa: E402
 from prt_torch.harness.timing import cpu_label, measure_paired, read_bound_fn  # noqa: E402
@@ -172,11 +172,7 @@ def main() -> None:
                  f"**{r['ratio']:.3f}** [{r['q'][0]:.3f}, {r['q'][1]:.3f}] | {r['of_read']:.2f} | {tb} | "
                  f"{'yes' if r['same'] else '**no**'} | {r['err']:.1e} |{a} {r['load']:.1f} |")
     text = "\n".join(L) + "\n"
-    if args.write:
-        Path(args.write).write_text(text)
-        print(f"[dense16] wrote {args.write}", flush=True)
-    else:
-        print(text)
+    emit_report(args.write, text, "dense16")
     if not all(r["same"] for r in rows):
         raise SystemExit("bench_wavelet_dense16.py: the test build's outputs differ from the base build's (see 'same bits')")
 

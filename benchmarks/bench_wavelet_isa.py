@@ -22,6 +22,7 @@ import prt_torch  # noqa: F401  (first: it chooses OpenMP's wait policy from the
 import argparse  # noqa: E402
 import ctypes  # noqa: E402
 import functools  # noqa: E402
+import json  # noqa: E402
 import os  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
@@ -36,6 +37,7 @@ from bench_wavelet import BITS, LIGHTS, OUT, TERMS, load  # noqa: E402
 from prt_torch import relight  # noqa: E402
 from prt_torch._native import KERNEL_ISAS, LIBRARIES, compile_library, kernel_isa  # noqa: E402
 from prt_torch.harness.timing import cpu_label, measure_paired  # noqa: E402
+from prt_torch.io import atomic_write_text  # noqa: E402
 from prt_torch.scene import builtin  # noqa: E402
 from prt_torch.transfer import RunOptions  # noqa: E402
 from prt_torch.transfer.wavelet import precompute_wavelet  # noqa: E402
@@ -110,6 +112,18 @@ def bound_call(rl, lib, li: torch.Tensor, lv: torch.Tensor, out: torch.Tensor, t
             raise RuntimeError(f"prt_wavelet_relight_{name}_packed returned {st}")
         return held[3]
     return run
+
+
+def emit_report(write: str | None, text: str, tag: str, payload: dict | None = None) -> None:
+    """A benchmark's report: written to ``write`` (and ``payload`` as JSON beside it, ``.json``), each through a
+    temporary file renamed into place (``io.atomic_write_text``), or printed when ``write`` is empty."""
+    if write:
+        atomic_write_text(write, text)
+        if payload is not None:
+            atomic_write_text(str(Path(write).with_suffix(".json")), json.dumps(payload, indent=1))
+        print(f"[{tag}] wrote {write}", flush=True)
+    else:
+        print(text)
 
 
 def main() -> None:

@@ -34,11 +34,10 @@ import torch  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_wavelet import BITS, KERNEL_SIZES, OUT, kernel_lights, kernel_transfer, layout_info, load, size_choice  # noqa: E402
-from bench_wavelet_isa import rl_bytes, bound_call, kernel_build, kernel_source  # noqa: E402
+from bench_wavelet_isa import rl_bytes, bound_call, emit_report, kernel_build, kernel_source  # noqa: E402
 
 from prt_torch import relight  # noqa: E402
 from prt_torch.harness.timing import cpu_label, measure_paired, read_bound_fn  # noqa: E402
-from prt_torch.io import atomic_write_text  # noqa: E402
 
 TERMS = (10, 30, 100, 300, 1000)
 WHO = "bench_wavelet_prefetch.py"
@@ -143,11 +142,7 @@ def main() -> None:
                  f"{q(a['aa'])} | **{q(a['far'])}** | {a['of_read']:.2f} | "
                  f"{'same' if n['same'] and a['same'] else '**differ**'} | {r['load']:.1f} |")
     text = "\n".join(L) + "\n"
-    if args.write:
-        atomic_write_text(args.write, text)
-        print(f"[prefetch] wrote {args.write}", flush=True)
-    else:
-        print(text)
+    emit_report(args.write, text, "prefetch")
     if not all(r["native"]["same"] and r["avx2"]["same"] for r in rows):
         raise SystemExit(f"{WHO}: a build's outputs differ from the base build's (see 'bits')")
 

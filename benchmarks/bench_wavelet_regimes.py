@@ -33,7 +33,6 @@ from __future__ import annotations
 import prt_torch  # noqa: F401  (first: it chooses OpenMP's wait policy from the machine's load)
 
 import argparse  # noqa: E402
-import json  # noqa: E402
 import os  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
@@ -43,13 +42,12 @@ import torch  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_wavelet import BITS, OUT, kernel_lights, kernel_transfer, layout_info, load, size_choice  # noqa: E402
-from bench_wavelet_isa import bound_call, kernel_build, kernel_source  # noqa: E402
+from bench_wavelet_isa import bound_call, emit_report, kernel_build, kernel_source  # noqa: E402
 
 from prt_torch import relight  # noqa: E402
 from prt_torch._native import KERNEL_ISAS  # noqa: E402
 from prt_torch.harness.timing import (cpu_label, measure_paired, measure_paired_cold, read_bound_fn,  # noqa: E402
                                       working_set)
-from prt_torch.io import atomic_write_text  # noqa: E402
 
 TERMS = (10, 30, 100, 300, 1000)
 WHO = "bench_wavelet_regimes.py"
@@ -265,14 +263,9 @@ def main() -> None:
         rows += r
     after = load()
     text = report(infos, rows, flags, args, before, after, names, regs)
-    if args.write:
-        atomic_write_text(args.write, text)
-        atomic_write_text(str(Path(args.write).with_suffix(".json")), json.dumps(
-            {"cpu": cpu_label(), "isa": args.isa, "flags": flags, "load": [before, after], "infos": infos, "rows": rows,
-             "variants": {k: VARIANTS.get(k, base_lines(args.isa)) for k in ["base", "aa"] + names}}, indent=1))
-        print(f"[regimes] wrote {args.write}", flush=True)
-    else:
-        print(text)
+    emit_report(args.write, text, "regimes",
+                {"cpu": cpu_label(), "isa": args.isa, "flags": flags, "load": [before, after], "infos": infos, "rows": rows,
+                 "variants": {k: VARIANTS.get(k, base_lines(args.isa)) for k in ["base", "aa"] + names}})
     if not all(all(r["same"].values()) for r in rows):
         raise SystemExit(f"{WHO}: a build's outputs differ from the base build's (see 'bits')")
 

@@ -37,7 +37,6 @@ from __future__ import annotations
 import prt_torch  # noqa: F401  (first: it chooses OpenMP's wait policy from the machine's load)
 
 import argparse  # noqa: E402
-import json  # noqa: E402
 import os  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
@@ -49,12 +48,11 @@ import torch  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_wavelet import BITS, KERNEL_SIZES, OUT, kernel_lights, kernel_transfer, layout_info, load, size_choice, steady_pair  # noqa: E402
-from bench_wavelet_isa import bound_call, kernel_build, kernel_source  # noqa: E402
+from bench_wavelet_isa import bound_call, emit_report, kernel_build, kernel_source  # noqa: E402
 
 from prt_torch import relight  # noqa: E402
 from prt_torch._native import KERNEL_ISAS, LIBRARIES  # noqa: E402
 from prt_torch.harness.timing import cpu_label, measure_paired, measure_paired_cold, read_bound_fn  # noqa: E402
-from prt_torch.io import atomic_write_text  # noqa: E402
 
 TERMS = (10, 30, 100, 300, 1000)
 WHO = "bench_wavelet_scratch.py"
@@ -262,12 +260,7 @@ def main() -> None:
         rows += r
     after = load()
     text = report(infos, rows, flags, args, before, after, names, avx2_same)
-    if args.write:
-        atomic_write_text(args.write, text)
-        atomic_write_text(str(Path(args.write).with_suffix(".json")), json.dumps({"infos": infos, "rows": rows}, indent=1))
-        print(f"[scratch] wrote {args.write}", flush=True)
-    else:
-        print(text)
+    emit_report(args.write, text, "scratch", {"infos": infos, "rows": rows})
     if not all(all(r["same"].values()) for r in rows):
         raise SystemExit(f"{WHO}: a build's outputs differ from the base build's (see 'bits')")
 
