@@ -45,7 +45,7 @@ from bench_wavelet import BITS, OUT, kernel_lights, kernel_transfer, layout_info
 from bench_wavelet_isa import bound_call, emit_report, kernel_build, kernel_source  # noqa: E402
 
 from prt_torch import relight  # noqa: E402
-from prt_torch._native import KERNEL_ISAS  # noqa: E402
+from prt_torch._native import KERNEL_ISAS, cpu_isa  # noqa: E402
 from prt_torch.harness.timing import (cpu_label, measure_paired, measure_paired_cold, read_bound_fn,  # noqa: E402
                                       working_set)
 
@@ -87,9 +87,15 @@ LABEL = {"base": "PFX_MIN 2 MB (base)", "aa": "A/A", "pfx0": "PFX_MIN 0 (far alw
 BOUND = ("base", "pfx0", "pfx512k", "pfx1m", "x8")
 
 
+def is_8lane(isa: str) -> bool:
+    """Whether the build for ``isa`` runs the 8-lane dense loop: avx2 / avx512-256 (:data:`ISAS_8LANE`), or native on a
+    CPU without AVX-512 (``_native.cpu_isa``: an AVX2-only CPU such as the AMD Zen 3, where native is the 8-lane build)."""
+    return isa in ISAS_8LANE or (isa == "native" and cpu_isa() != "avx512")
+
+
 def base_lines(isa: str) -> str:
     """The base build's prepended lines for ``isa``: :data:`BASE_X8` for the 8-lane builds, else :data:`BASE`."""
-    return BASE_X8 if isa in ISAS_8LANE else BASE
+    return BASE_X8 if is_8lane(isa) else BASE
 
 
 def builds(names: list[str], isa: str = "native") -> tuple[dict, str]:
@@ -158,7 +164,7 @@ def defines(k: str, isa: str = "native") -> str:
 
 def label(k: str, isa: str) -> str:
     """Build ``k``'s name in the report: the base of an 8-lane build is its default code (no PF_X8)."""
-    return "PF_X8 0 (base)" if k == "base" and isa in ISAS_8LANE else LABEL[k]
+    return "PF_X8 0 (base)" if k == "base" and is_8lane(isa) else LABEL[k]
 
 
 def report(infos: list[dict], rows: list[dict], flags: str, args, before: float, after: float, names: list[str],
@@ -168,7 +174,7 @@ def report(infos: list[dict], rows: list[dict], flags: str, args, before: float,
     isa = args.isa
     ev = [(g, b) for g, b in regs if b is not None]
     base = ("the base: the 8-lane loop without the prefetch across units, its code tuned on the AMD Zen 3"
-            if isa in ISAS_8LANE else "")
+            if is_8lane(isa) else "")
     L = [f"# Wavelet kernel: the dense loop's prefetch in {len(regs)} cache regimes, {isa} build (issue 39)\n",
          f"{cpu_label()}; load average {before:.1f} → {after:.1f} (a machine shared with other jobs: one thread's CPU "
          f"time, which their load does not enter). Builds of the working tree's `kernels/wavelet.c` for "
@@ -209,7 +215,7 @@ def report(infos: list[dict], rows: list[dict], flags: str, args, before: float,
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--isa", default="native", help="the builds' PRT_TORCH_KERNEL_ISA: " + ", ".join(KERNEL_ISAS)
-                    + f" ({', '.join(ISAS_8LANE)}: the 8-lane loop, variants {', '.join(X8)})")
+                    + f" ({', '.join(ISAS_8LANE)}, and native on a CPU without AVX-512: the 8-lane loop, variants {', '.join(X8)})")
     ap.add_argument("--sizes", default="small,medium", help="comma-separated: small, medium, large")
     ap.add_argument("--variants", default=None, help="comma-separated, of: " + ", ".join(VARIANTS) + " (default: all "
                     "that change the --isa build's loop)")
@@ -224,7 +230,7 @@ def main() -> None:
     if args.isa not in KERNEL_ISAS:
         raise SystemExit(f"{WHO}: --isa {args.isa!r}; accepted: one of " + ", ".join(KERNEL_ISAS))
     sizes = [size_choice(s.strip(), WHO) for s in args.sizes.split(",")]
-    lane8 = args.isa in ISAS_8LANE
+    lane8 = is_8lane(args.isa)
     own = [k for k in VARIANTS if (k in X8) == lane8]  # the variants that change this build's dense loop
     names = own if args.variants is None else [v.strip() for v in args.variants.split(",") if v.strip()]
     bad = [v for v in names if v not in VARIANTS]

@@ -63,3 +63,13 @@ def test_one_evicted_regime_per_size_between_warm_and_cold(br):
 def test_the_8_lane_variants_take_the_far_prefetch_on_every_layout(br):
     for name in br.X8:
         assert "#define PF_X8 1" in br.VARIANTS[name] and "#define PFX_MIN 0LL" in br.VARIANTS[name], name
+
+
+def test_native_on_a_cpu_without_avx512_is_an_8_lane_build(br, monkeypatch):
+    """On an AVX2-only CPU (the AMD Zen 3) the native build runs the 8-lane loop: its base is the code without the far
+    prefetch and the x8 variants are its own; on an AVX-512 CPU native is the 16-lane build."""
+    monkeypatch.setattr(br, "cpu_isa", lambda: "avx2")
+    assert br.is_8lane("native") and br.base_lines("native") == br.BASE_X8
+    monkeypatch.setattr(br, "cpu_isa", lambda: "avx512")
+    assert not br.is_8lane("native") and br.base_lines("native") == br.BASE
+    assert br.is_8lane("avx2") and br.is_8lane("avx512-256")
