@@ -899,14 +899,19 @@ class WaveletRelighter:
                 return None
             fn = {torch.int8: lib.prt_wavelet_relight_i8, torch.int16: lib.prt_wavelet_relight_i16}.get(
                 self.bvals.dtype, lib.prt_wavelet_relight_f32)
-            # kernels/wavelet.c's wavelet_layout: the arrays' addresses, built once (kept alive by self)
+            # kernels/wavelet.c's wavelet_layout: the arrays' addresses, built once (kept alive by self); last, each
+            # dense column's largest stored magnitude int32 [Pd] for 16-bit values (the -DDENSE_VNNI prototype's
+            # column-maximum rule; read by no default build), else NULL
+            self._dtmax = (self.dense.to(torch.int32).abs().amax(dim=(0, 2, 3)).contiguous()
+                           if self.dense.dtype == torch.int16 else None)
             self._layout = torch.tensor([self.P, self.Pd, self.V, self.CT, self.TV, self.NT, self.MT,
                                          self.tptr.data_ptr(), self.tbase.data_ptr(), self.bofs.data_ptr(), self.bvals.data_ptr(),
                                          self.dslot.data_ptr(), self.dense.data_ptr(), self._acc.data_ptr(), self._wk.data_ptr(),
                                          self._lw.data_ptr(), self.dcol.data_ptr(), self.cls.data_ptr(), self._mark.data_ptr(), self._lp.data_ptr(),
                                          *(0 if t is None else t.data_ptr() for t in (self.rptr, self.rcol, self.rvals)),
                                          self.NB, self._row_permille(self.row_min, self._rows_used),
-                                         self._cblk.data_ptr(), self._zacc.data_ptr(), self._tmark.data_ptr()],
+                                         self._cblk.data_ptr(), self._zacc.data_ptr(), self._tmark.data_ptr(),
+                                         0 if self._dtmax is None else self._dtmax.data_ptr()],
                                         dtype=torch.int64)
             lay = self._layout.data_ptr()
             self._native = functools.partial(fn, lay)

@@ -444,27 +444,41 @@ static inline void put_rgb8(float *out, v8f r, v8f g, v8f b, int nt) {
 #if defined(DENSE_VNNI) && defined(__AVX512VNNI__) && defined(__AVX512BW__)
 #define VNNI_PARAMS const float *vq,
 #define VNNI_ARGS vq,
-static inline void vnni_quantise(i64 nd, float *lw, float *vq) {
-    double sum[3] = {0, 0, 0}, mx[3] = {0, 0, 0};
-    for (i64 t = 0; t < nd; t++)
-        for (int c = 0; c < 3; c++) {
-            const double a = lw[4 * t + c] < 0 ? -(double)lw[4 * t + c] : (double)lw[4 * t + c];
-            sum[c] += a;
-            mx[c] = a > mx[c] ? a : mx[c];
+#ifndef VNNI_G /* dense terms per scale group (even): the int32 sums flushed to float once per group */
+#define VNNI_G 16
+#endif
+/* the dense light lw [nd, 4] (float32) quantised per group of VNNI_G consecutive terms and channel, in place as the
+ * pairs' lights int32 [ceil(nd / 2), 4]; vq [ceil(nd / VNNI_G), 4] the groups' scales (float32, rounded up); tm the
+ * layout's column maxima int32 [Pd] (NULL: the 65535 rule), ds [nd] the terms' slots */
+static inline void vnni_quantise(i64 nd, float *lw, float *vq, const int32_t *tm, const i64 *ds) {
+    for (i64 g0 = 0; g0 < nd; g0 += VNNI_G) {
+        const i64 g1 = g0 + VNNI_G < nd ? g0 + VNNI_G : nd;
+        double sum[3] = {0, 0, 0}, mx[3] = {0, 0, 0}, half = 0;
+        for (i64 t = g0; t < g1; t++) {
+            const double w = tm ? (double)tm[ds[t]] : 1.0;
+            half += w / 2;
+            for (int c = 0; c < 3; c++) {
+                const double a = lw[4 * t + c] < 0 ? -(double)lw[4 * t + c] : (double)lw[4 * t + c];
+                sum[c] += a * w;
+                mx[c] = a > mx[c] ? a : mx[c];
+            }
         }
-    for (int c = 0; c < 3; c++) {
-        double sc = sum[c] / (65538.0 - (double)nd / 2), sm = mx[c] / 32767.0;
-        sc = sc > sm ? sc : sm;
-        float s32 = sc > 0 ? (float)sc : 1.17549435e-38f;
-        if ((double)s32 < sc) s32 = (float)(sc * (1.0 + 0x1p-20)); /* rounded up: |Lq| <= |L| / s + 1/2 holds */
-        vq[c] = s32;
+        for (int c = 0; c < 3; c++) { /* bench_wavelet_madd_micro.py's quantise_light: the same scales */
+            double sc = tm ? sum[c] / (2147483647.0 - half) : sum[c] / (65538.0 - (double)(g1 - g0) / 2);
+            const double sm = mx[c] / 32767.0;
+            sc = sc > sm ? sc : sm;
+            float s32 = sc > 0 ? (float)sc : 1.17549435e-38f;
+            if ((double)s32 < sc) { uint32_t u; memcpy(&u, &s32, 4); u++; memcpy(&s32, &u, 4); } /* the next float up */
+            vq[4 * (g0 / VNNI_G) + c] = s32;
+        }
+        vq[4 * (g0 / VNNI_G) + 3] = 0.0f;
     }
-    vq[3] = 0.0f;
     int32_t *lq = (int32_t *)lw;
     for (i64 q = 0; 2 * q < nd; q++) { /* pair q's lights read (terms 2q, 2q + 1) before entry q is written: q <= 2q */
         int32_t w[3];
+        const float *s = vq + 4 * (2 * q / VNNI_G);
         for (int c = 0; c < 3; c++) {
-            const double a = (double)lw[8 * q + c] / vq[c], b = 2 * q + 1 < nd ? (double)lw[8 * q + 4 + c] / vq[c] : 0.0;
+            const double a = (double)lw[8 * q + c] / s[c], b = 2 * q + 1 < nd ? (double)lw[8 * q + 4 + c] / s[c] : 0.0;
             const int32_t qa = (int32_t)(a + (a < 0 ? -0.5 : 0.5)), qb = (int32_t)(b + (b < 0 ? -0.5 : 0.5));
             w[c] = (int32_t)(((uint32_t)qa & 0xFFFFu) | ((uint32_t)qb << 16));
         }
@@ -481,6 +495,18 @@ static inline void vnni_quantise(i64 nd, float *lw, float *vq) {
             : [s00] "+v"(s##k##00), [s01] "+v"(s##k##01), [s10] "+v"(s##k##10), [s11] "+v"(s##k##11),          \
               [s20] "+v"(s##k##20), [s21] "+v"(s##k##21), [x] "=&v"(x), [hi] "=&v"(hi)                        \
             : [pa_] "r"(pa), [pb_] "r"(pb), [l0] "v"(l0), [l1] "v"(l1), [l2] "v"(l2) : "memory")
+/* block k's group flush: its six int32 sums converted, times the group's scales s_ [3], added to its float sums */
+#define VNNI_FLUSH(k, s_)                                                                                    \
+    {                                                                                                        \
+        const __m512 c0_ = _mm512_set1_ps((s_)[0]), c1_ = _mm512_set1_ps((s_)[1]), c2_ = _mm512_set1_ps((s_)[2]); \
+        f##k##00 = _mm512_fmadd_ps(_mm512_cvtepi32_ps(s##k##00), c0_, f##k##00);                            \
+        f##k##01 = _mm512_fmadd_ps(_mm512_cvtepi32_ps(s##k##01), c0_, f##k##01);                            \
+        f##k##10 = _mm512_fmadd_ps(_mm512_cvtepi32_ps(s##k##10), c1_, f##k##10);                            \
+        f##k##11 = _mm512_fmadd_ps(_mm512_cvtepi32_ps(s##k##11), c1_, f##k##11);                            \
+        f##k##20 = _mm512_fmadd_ps(_mm512_cvtepi32_ps(s##k##20), c2_, f##k##20);                            \
+        f##k##21 = _mm512_fmadd_ps(_mm512_cvtepi32_ps(s##k##21), c2_, f##k##21);                            \
+        s##k##00 = s##k##01 = s##k##10 = s##k##11 = s##k##20 = s##k##21 = _mm512_setzero_si512();           \
+    }
 /* one (term, unit) step of the prefetch across units (as PF_FAR: the term pt_ of the unit po_ bytes on, both blocks'
  * lines when two; past the layout's end a prefetch, never a load) */
 #define VNNI_FAR                                                                                             \
@@ -498,10 +524,14 @@ static inline __attribute__((always_inline)) void vnni_terms(const char *blk, i6
         i64 nd, const i64 *ds, const int32_t *lq, const float *vq, v16f z[4][2], v16f y[4][2]) {
     __m512i s000 = _mm512_setzero_si512(), s001 = s000, s010 = s000, s011 = s000, s020 = s000, s021 = s000,
             s100 = s000, s101 = s000, s110 = s000, s111 = s000, s120 = s000, s121 = s000;
+    __m512 f000 = _mm512_setzero_ps(), f001 = f000, f010 = f000, f011 = f000, f020 = f000, f021 = f000,
+           f100 = f000, f101 = f000, f110 = f000, f111 = f000, f120 = f000, f121 = f000;
     const i64 us_ = (two ? 2 : 1) * pstb;
     i64 pt_ = PFX, po_ = 0;
     if (pt_ >= nd) { const i64 u_ = pt_ / nd; pt_ -= u_ * nd; po_ = u_ * us_; }
-    for (i64 q = 0; 2 * q < nd; q++) {
+    for (i64 q0 = 0; 2 * q0 < nd; q0 += VNNI_G / 2) { /* a scale group: VNNI_G / 2 pairs, then its flush */
+    const i64 qe = 2 * q0 + VNNI_G < nd ? q0 + VNNI_G / 2 : (nd + 1) / 2;
+    for (i64 q = q0; q < qe; q++) {
         const i64 ta = 2 * q, tb = ta + 1 < nd ? ta + 1 : ta;
         const char *ra = blk + ds[ta] * 64, *rb = blk + ds[tb] * 64;
         if (far) {
@@ -519,15 +549,19 @@ static inline __attribute__((always_inline)) void vnni_terms(const char *blk, i6
         VNNI_BLOCK(0, ra, rb);
         if (two) VNNI_BLOCK(1, ra + pstb, rb + pstb);
     }
+    { /* the group's flush: int32 -> float, times its scale, added; the int32 sums zeroed */
+        const float *s_ = vq + 4 * (2 * q0 / VNNI_G);
+        VNNI_FLUSH(0, s_)
+        if (two) VNNI_FLUSH(1, s_)
+    }
+    }
     /* lane 4j + r of the low interleaving: vertex 8j + r; of the high one: vertex 8j + 4 + r (r < 4) */
     const __m512i i0 = _mm512_setr_epi32(0, 1, 2, 3, 16, 17, 18, 19, 4, 5, 6, 7, 20, 21, 22, 23),
                   i1 = _mm512_setr_epi32(8, 9, 10, 11, 24, 25, 26, 27, 12, 13, 14, 15, 28, 29, 30, 31);
-    const __m512i si[2][3][2] = {{{s000, s001}, {s010, s011}, {s020, s021}}, {{s100, s101}, {s110, s111}, {s120, s121}}};
+    const __m512 fi[2][3][2] = {{{f000, f001}, {f010, f011}, {f020, f021}}, {{f100, f101}, {f110, f111}, {f120, f121}}};
     for (int c = 0; c < 3; c++) {
-        const __m512 sc = _mm512_set1_ps(vq[c]);
         for (int k = 0; k < 1 + two; k++) {
-            const __m512 lo = _mm512_mul_ps(_mm512_cvtepi32_ps(si[k][c][0]), sc),
-                         hv = _mm512_mul_ps(_mm512_cvtepi32_ps(si[k][c][1]), sc);
+            const __m512 lo = fi[k][c][0], hv = fi[k][c][1];
             v16f *o = k ? y[c] : z[c];
             o[0] = (v16f)_mm512_permutex2var_ps(lo, i0, hv);
             o[1] = (v16f)_mm512_permutex2var_ps(lo, i1, hv);
@@ -539,10 +573,10 @@ static inline __attribute__((always_inline)) void vnni_terms(const char *blk, i6
 #define VNNI_ONE(T) if (VNNI_ON(T)) vnni_terms((const char *)blk, pst * (i64)sizeof(T), 0, far, nd, ds, (const int32_t *)lw, vq, z, z); else
 /* in the kernel after the term lists: the light quantised when the call takes the 16-lane loop (PAIR_ARGS's test) */
 #define VNNI_SETUP(T)                                                                                        \
-    float vq_[4] = {0, 0, 0, 0};                                                                             \
+    float vq_[4 * ((nd + VNNI_G - 1) / VNNI_G) + 4]; /* the groups' scales [ceil(nd / VNNI_G), 4] */         \
     const float *vq = NULL;                                                                                  \
     if (sizeof(T) == 2 && CT == 1 && CO == 3 && nd && nd * ((V + BV - 1) / BV) >= ZMM_MIN) {                 \
-        vnni_quantise(nd, lw, vq_);                                                                          \
+        vnni_quantise(nd, lw, vq_, L->dtmax, wk);                                                            \
         vq = vq_;                                                                                            \
     }
 #endif
@@ -977,6 +1011,8 @@ typedef struct {
     const int32_t *cblk;        /* [P] the column's sparse blocks over all tiles (0: dense or empty) */
     float *zacc;                /* W16 builds' scratch [MT, TV/8, 4, 8], zero between calls (the touched map below) */
     unsigned char *tmark;       /* W16 builds' scratch [MT, TV/8]: a tile's touched blocks, zero between calls */
+    const int32_t *dtmax;       /* [Pd] the dense column's largest stored magnitude |T| (16-bit values; NULL: not held):
+                                 * read by the DENSE_VNNI prototype's column-maximum rule only */
 } wavelet_layout;
 
 #define TILE_CASE(T, CT_, CO_, OC_)                                                                          \
