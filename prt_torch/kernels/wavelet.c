@@ -19,10 +19,13 @@
  * after it (store_rgb8 / put_rgb8), in the 8- and the 16-lane builds alike. Measured: reports/benchmarks/
  * wavelet_factor.md (bench_wavelet_factor.py; docs/wavelet.md "The factor per vertex").
  * DENSE_VNNI (a prototype, W16 with AVX-512 VNNI only, off by default; above DENSE_TERMS): the 16-lane dense loop on
- * integer dot products (vpdpwssd zmm, two light terms per instruction), the dense light quantised per call to int16;
- * not the float loop's bits. Measured on the Intel Xeon (bench_wavelet_madd_micro.py --vnni, reports/benchmarks/
- * wavelet_madd_micro_vnni.md; docs/wavelet.md): the whole call 1.1-1.4x at small, the dense loop alone 1.7-1.9x from
- * L2 and ~1.0-1.4x from L3 (medium). A change of the default arithmetic is the team's decision.
+ * integer dot products (vpdpwssd zmm, two light terms per instruction), the dense light quantised per call to int16
+ * by the column-maximum rule in groups of VNNI_G = 16 terms (the layout's dtmax), a flush to float per group; not
+ * the float loop's bits. Measured on the Intel Xeon (bench_wavelet_madd_micro.py --vnni --proto, reports/benchmarks/
+ * wavelet_vnni_proto.md; docs/wavelet.md), the whole call paired with the default build: small 1.10-1.26x (N <= 300),
+ * medium N = 10-30 1.12-1.21x, N >= 100 0.99-1.04x (the lines from L3); output error 8e-6-6e-5 rel. L2 against
+ * float64, its bound 0.28-0.90x the transfer's own 16-bit bound. A change of the default arithmetic is the team's
+ * decision.
  * OUT_NT (a measurement knob, W16 only, off by default): the RGB output by streaming stores once it holds at least
  * OUT_NT bytes (and out is 32-byte aligned), an sfence at the call's end; not kept (the same report: faster alone at
  * large N = 10, slower with a read of the output right after the call).
@@ -431,16 +434,20 @@ static inline void put_rgb8(float *out, v8f r, v8f g, v8f b, int nt) {
 /* DENSE_VNNI (a prototype, off by default: compile with -DDENSE_VNNI; W16 builds on a CPU with AVX-512 VNNI, 16-bit
  * values, CT = 1, an RGB light on three output channels (CO = 3); the default build's code does not change): the dense
  * terms with integer dot products. Per call (VNNI_SETUP, when the call takes the 16-lane loop) the dense light lw
- * [nd, 4] is quantised in place to int16 per channel, one scale group, s[c] = max(sum |L| / (65538 - nd / 2),
- * max |L| / 32767) rounded up to float32 (bench_wavelet_madd_micro.py's "65535 rule": no int32 sum overflows for any
- * stored |T| <= 32767; the finer column-maximum rule needs each dense column's largest stored magnitude, which the
- * layout does not hold), written over lw as the pairs' lights int32 [ceil(nd / 2), 4], (Lq_2q & 0xFFFF) |
+ * [nd, 4] is quantised in place to int16 per channel and group g of VNNI_G = 16 consecutive dense terms (in the
+ * kernel's dense order), s_g[c] = max(sum_k tmax_k |L_k| / (2^31 - 1 - sum_k tmax_k / 2), max |L| / 32767) rounded up
+ * to float32 (bench_wavelet_madd_micro.py's quantise_light, "column max": no int32 sum of a group overflows for the
+ * stored values; tmax the layout's dtmax [Pd], each dense column's largest stored magnitude, built once in relight.py;
+ * a layout without it (NULL): the "65535 rule", s_g[c] = max(sum |L| / (65538 - n_g / 2), max |L| / 32767), any
+ * |T| <= 32767), written over lw as the pairs' lights int32 [ceil(nd / 2), 4], (Lq_2q & 0xFFFF) |
  * Lq_2q+1 << 16 (an odd last term paired with itself at light 0). Per pair and 32-vertex block: the two rows (64
  * bytes each) interleaved by vpunpcklwd / vpunpckhwd, one vpdpwssd zmm per interleaving and channel (6 int32 sums;
  * the two blocks of the W16 pair in lockstep, the broadcasts shared), the prefetch as the float loop's (across units,
- * PFX steps ahead, on layouts of at least PFX_MIN bytes; else PF terms ahead within the unit); at the end converted, scaled, the vertex order restored (vpermt2ps) into z / y as the float
- * loop leaves them. Error per vertex and channel |dS| <= (s[c] / 2) sum_k |T_v,k| (+ float rounding): not the same
- * bits as the float loop. Measured: reports/benchmarks/wavelet_madd_micro_vnni.md (docs/wavelet.md). */
+ * PFX steps ahead, on layouts of at least PFX_MIN bytes; else PF terms ahead within the unit); after each group's
+ * VNNI_G / 2 pairs a flush (the int32 sums converted, times the group's scales, added to float sums by FMA, zeroed);
+ * at the end the vertex order restored (vpermt2ps) into z / y as the float loop leaves them. Error per vertex and
+ * channel |dS| <= sum_g (s_g[c] / 2) sum_{k in g} |T_v,k| (+ float rounding): not the same bits as the float loop. Measured: reports/benchmarks/wavelet_madd_micro_vnni.md (the loops),
+ * wavelet_vnni_proto.md (the whole call; docs/wavelet.md). */
 #if defined(DENSE_VNNI) && defined(__AVX512VNNI__) && defined(__AVX512BW__)
 #define VNNI_PARAMS const float *vq,
 #define VNNI_ARGS vq,
