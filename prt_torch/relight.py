@@ -579,6 +579,7 @@ class WaveletRelighter:
         self._mark = torch.empty(P, dtype=torch.uint8)  # the light's columns: 1 sparse, 2 dense
         self._lp = torch.zeros(P, 4, dtype=torch.float32)  # the light per column (zero between the kernel's calls)
         self._native = None
+        self._dtmax = None  # [Pd] int32 each dense column's largest stored magnitude (16-bit: built with the kernel's layout)
         if self.layouts == "both":
             self._build_rows()
 
@@ -642,7 +643,8 @@ class WaveletRelighter:
             return sum(t.numel() * t.element_size() for t in ts if t is not None)
         parts = {"dense": nb(self.dense), "column": nb(self.bvals, self.bofs, self.tptr, self.tbase),
                  "row": nb(self.rptr, self.rcol, self.rvals),
-                 "other": nb(self.dslot, self.bcount, self._cblk, self._acc, self._zacc, self._tmark, self._wk, self._lw,
+                 "other": nb(self.dslot, self.bcount, self._cblk, self._acc, self._zacc, self._tmark, self._dtmax, self._wk,
+                             self._lw,
                              self.dcol, self.cls, self._mark, self._lp, self.scale, self.albedo, self.nnz, self.weights,
                              *(f for f, _ in self._f.values()), *self._f_full.values())}
         parts["total"] = sum(parts.values())
@@ -772,9 +774,10 @@ class WaveletRelighter:
                  "row": (4 * nb + 1) * 8 + 4 * NB + blk if with_rows else 0,
                  # dslot, _cblk, nnz int32; bcount [NT, P] int32; _acc, _zacc float32, _tmark uint8; _wk int64; _lw, _lp [P, 4] float32; dcol int64;
                  # cls, _mark uint8; scale [V, CT], albedo [V, 3], the cached factor [V, CO] or [V + 4] float32
-                 # (_kfactor); weights float64
+                 # (_kfactor); weights float64; _dtmax [Pd] int32 with 16-bit kernel values (once the kernel is bound)
                  "other": 12 * P + 4 * NT * P + MT * (TV // cls.SUB) * (2 * 4 * cls.SUB * 4 + 1) + 8 * P + 32 * P + 8 * Pd + 2 * P
-                 + 4 * V * CT + 12 * V + (4 * V * CO if factor_form == "channel" else 4 * (V + 4)) + 8 * P}
+                 + 4 * V * CT + 12 * V + (4 * V * CO if factor_form == "channel" else 4 * (V + 4)) + 8 * P
+                 + (4 * max(Pd, 1) if b == 2 else 0)}
         parts["total"] = sum(parts.values())
         # __init__'s peak above what it keeps (built in chunks of rows): either while placing the chunks — the kernel
         # values of every row (held between the passes when re-quantised or float: a view of the stored values
