@@ -176,7 +176,13 @@ static inline v8f load8_float(const float *p) { v8f x; memcpy(&x, p, sizeof x); 
 static inline v8f ld8(const float *p) { v8f x; memcpy(&x, p, sizeof x); return x; }
 static inline void st8(float *p, v8f x) { memcpy(p, &x, sizeof x); }
 /* a broadcast straight from memory (no zero register held for it: the dense block needs all 16) */
+#ifdef __AVX__
 static inline v8f bc8(const float *p) { const float x = *p; return (v8f){x, x, x, x, x, x, x, x}; }
+#else /* portable builds (no AVX): always inlined, or gcc makes an IPA clone (bc8.isra) returning a 32-byte vector, whose
+ * -Wpsabi note the pragma above does not reach (tests/test_kernel_sources.py builds with -Werror); the AVX builds keep
+ * the line above, their object code unchanged */
+static inline __attribute__((always_inline)) v8f bc8(const float *p) { const float x = *p; return (v8f){x, x, x, x, x, x, x, x}; }
+#endif
 
 /* AVX-512 (the condition of vec.h's HAVE_W16: off with PRT_NO_W16, PRT_TORCH_KERNEL_ISA=avx512-256, and without
  * AVX-512F, e.g. PRT_TORCH_KERNEL_ISA=avx2 or an AVX2 CPU): the dense loop on 16-lane vectors, a 32-vertex block's
