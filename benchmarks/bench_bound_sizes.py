@@ -27,6 +27,7 @@ from pathlib import Path  # noqa: E402
 import torch  # noqa: E402
 
 from prt_torch.harness.timing import cpu_label, io_bound_fn, read_bound_fn  # noqa: E402
+from prt_torch.io import atomic_write_text  # noqa: E402
 
 OUT = Path(__file__).resolve().parents[1] / "reports" / "benchmarks"
 SIZES_MB = (0.25, 0.5, 0.75, 1.0, 1.25, 1.5, 2.0, 3.0, 6.0)
@@ -87,7 +88,7 @@ def main() -> None:
         L.append(f"| {mb} | {tc * 1e6:.1f} µs | {gb(tc):.1f} | {tr * 1e6:.1f} µs | {gb(tr):.1f} | {tc / tr:.2f} | "
                  f"{tb * 1e6:.1f} µs | {tf * 1e6:.1f} µs | {fl:.0f} |")
     OUT.mkdir(parents=True, exist_ok=True)
-    (OUT / "bound_sizes.md").write_text("\n".join(L) + "\n")
+    atomic_write_text(OUT / "bound_sizes.md", "\n".join(L) + "\n")
     print(f"[bound_sizes] wrote {OUT / 'bound_sizes.md'}", flush=True)
 
 

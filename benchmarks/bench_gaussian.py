@@ -51,6 +51,7 @@ from prt_torch.transfer import RunOptions, precompute_transport  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_relight import tile_encoding  # noqa: E402
+from prt_torch.io import atomic_write_text  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "reports" / "benchmarks"
@@ -251,9 +252,9 @@ def main() -> None:
     if args.quick:
         return
     OUT.mkdir(parents=True, exist_ok=True)
-    (OUT / "gaussian.json").write_text(json.dumps(res, indent=2))
+    atomic_write_text(OUT / "gaussian.json", json.dumps(res, indent=2))
     plot(res["comparison"], OUT / "gaussian.png")
-    (OUT / "gaussian.md").write_text(report(res))
+    atomic_write_text(OUT / "gaussian.md", report(res))
 
 
 def report(r: dict) -> str:

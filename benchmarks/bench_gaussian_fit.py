@@ -35,6 +35,7 @@ from prt_torch.harness.config import load_config, part_configs  # noqa: E402
 from prt_torch.harness.evaluate import Evaluator  # noqa: E402
 from prt_torch.harness.run import compute_transfer, load_mesh_within_budget  # noqa: E402
 from prt_torch.harness.timing import cpu_label as _cpu  # noqa: E402
+from prt_torch.io import atomic_write_text  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -100,8 +101,8 @@ def main(argv=None) -> int:
            "torch": torch.__version__, "kernel": lm_native.why(), "load_before": load0, "load_after": load1, "rows": rows,
            "argv": sys.argv[1:]}
     out = Path(a.out) if a.out else ROOT / "reports" / "benchmarks" / f"gaussian_fit_{a.config}"
-    out.with_suffix(".json").write_text(json.dumps(res, indent=1))
-    out.with_suffix(".md").write_text(_markdown(res))
+    atomic_write_text(out.with_suffix(".json"), json.dumps(res, indent=1))
+    atomic_write_text(out.with_suffix(".md"), _markdown(res))
     print(f"wrote {out.with_suffix('.md')}")
     return 0
 

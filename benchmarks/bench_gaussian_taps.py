@@ -62,6 +62,7 @@ from prt_torch.harness.evaluate import Evaluator, load_directory_transfer  # noq
 from prt_torch.harness.metrics import psnr_vs_reference, squared_error  # noqa: E402
 from prt_torch.harness.timing import cpu_label  # noqa: E402
 from prt_torch.sh import eval_sh  # noqa: E402
+from prt_torch.io import atomic_write_text  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -236,7 +237,7 @@ def main(argv=None) -> int:
         rows.append(rec)
         print(json.dumps(rec), flush=True)
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    (args.out.with_suffix(".json")).write_text(json.dumps({"head": head, "rows": rows}, indent=1))
+    atomic_write_text(args.out.with_suffix(".json"), json.dumps({"head": head, "rows": rows}, indent=1))
     mean = lambda x: sum(x) / len(x)  # noqa: E731
     lines = [f"CPU: {head['cpu']}; load average {head['load'][0]:.1f}. {V} vertices × {J} views, 6×{ev.res}×{ev.res} tables "
              f"({args.config} {' '.join(args.set)}); truth at {len(S)} vertices (every {args.every}th), {args.res}² texels a face "
@@ -258,7 +259,7 @@ def main(argv=None) -> int:
                               ("lobe_appears_or_vanishes", "seen vertices with a lobe > 10% at one tap, < 2% at another")):
                 lines.append(f"| {what} | " + " | ".join(" / ".join(f"{c[key]:.3f}" for c in r["tap_incidence"]) for r in group) + " |")
         lines.append("")
-    (args.out.with_suffix(".md")).write_text("\n".join(lines) + "\n")
+    atomic_write_text(args.out.with_suffix(".md"), "\n".join(lines) + "\n")
     print("\n".join(lines))
     return 0
 

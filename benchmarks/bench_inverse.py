@@ -32,6 +32,7 @@ from prt_torch.render.camera import Camera  # noqa: E402
 from prt_torch.render.prt import PRTScene  # noqa: E402
 from prt_torch.scene import load_scene  # noqa: E402
 from prt_torch.transfer.diffuse import precompute_diffuse  # noqa: E402
+from prt_torch.io import atomic_write_text  # noqa: E402
 
 W = 40
 FOV = 40.0
@@ -169,7 +170,7 @@ def main() -> None:
     md += ["", "## Against Mitsuba 3", "", "Mitsuba's images of known geometry inverted to their light: "
            "`benchmarks/bench_inverse_mitsuba.py` → [inverse_mitsuba.md](inverse_mitsuba.md); the test: "
            "`tests/test_inverse_mitsuba.py`."]
-    (out / "inverse.md").write_text("\n".join(md) + "\n")
+    atomic_write_text(out / "inverse.md", "\n".join(md) + "\n")
     print("\n".join(md))
 
 

@@ -22,6 +22,7 @@ import test_inverse_brdf as T  # noqa: E402  (the independent brute force and fo
 
 from prt_torch.brdf import AshikhminShirley, Lambertian, Microfacet  # noqa: E402
 from prt_torch.inverse import brdf_fit  # noqa: E402
+from prt_torch.io import atomic_write_text  # noqa: E402
 
 
 def main() -> None:
@@ -50,7 +51,7 @@ def main() -> None:
            "|---|---|---|---|---|---|---|"]
     out += [f"| {a} | {b} | {c} | {d} | {e:.2e} | {f:.2e} | {g:.3f} |" for a, b, c, d, e, f, g in rows]
     dst = ROOT / "reports" / "benchmarks" / "inverse_brdf.md"
-    dst.write_text("\n".join(out) + "\n")
+    atomic_write_text(dst, "\n".join(out) + "\n")
     print("\n".join(out))
 
 

@@ -35,6 +35,7 @@ from prt_torch.scene import load_scene  # noqa: E402
 from prt_torch.transfer.diffuse import precompute_diffuse  # noqa: E402
 from prt_torch.validate.lights import check_expressible, light_image  # noqa: E402
 from prt_torch.validate.scenes import mitsuba_views  # noqa: E402
+from prt_torch.io import atomic_write_text  # noqa: E402
 
 FOV = 40.0
 ALBEDO = 0.8
@@ -117,7 +118,7 @@ def main() -> None:
                   f"{r['smin']:.4f} | {r['on_weakest']:.3f} |")
     out = ROOT / "reports" / "benchmarks"
     out.mkdir(parents=True, exist_ok=True)
-    (out / "inverse_mitsuba.md").write_text("\n".join(md) + "\n")
+    atomic_write_text(out / "inverse_mitsuba.md", "\n".join(md) + "\n")
     print("\n".join(md))
 
 

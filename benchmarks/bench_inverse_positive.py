@@ -36,6 +36,7 @@ from prt_torch.render.prt import PRTScene  # noqa: E402
 from prt_torch.scene import load_scene  # noqa: E402
 from prt_torch.sh.zonal import rotate_zonal, zonal_project  # noqa: E402
 from prt_torch.transfer.diffuse import precompute_diffuse  # noqa: E402
+from prt_torch.io import atomic_write_text  # noqa: E402
 
 W, FOV, VIEWS = 32, 40.0, 6
 SCENES = [("convex", "never"), ("bumpy_sphere", "auto"), ("occluder_over_plane", "always")]
@@ -130,7 +131,7 @@ def main() -> None:
            "28–44%) and lowers the re-render PSNR in every row (by 2–19 dB). Hence `--positive` is "
            "opt-in: use it when the light is known to be smooth at the fitted bands or when bands are filtered away "
            "(`recoverable_bands` shorter than `--bands`)."]
-    (out / "inverse_positive.md").write_text("\n".join(md) + "\n")
+    atomic_write_text(out / "inverse_positive.md", "\n".join(md) + "\n")
     print("\n".join(md))
 
 

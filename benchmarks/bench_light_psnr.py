@@ -31,6 +31,7 @@ import torch  # noqa: E402
 
 from prt_torch.harness import metrics  # noqa: E402
 from prt_torch.harness.timing import cpu_label  # noqa: E402
+from prt_torch.io import atomic_write_text  # noqa: E402
 
 
 def _load_before(path: str):
@@ -94,7 +95,7 @@ def main(argv=None) -> int:
     text = "\n".join(lines) + "\n"
     print(text)
     if a.out:
-        Path(a.out).write_text(text)
+        atomic_write_text(Path(a.out), text)
     return 0
 
 

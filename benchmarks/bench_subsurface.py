@@ -41,6 +41,7 @@ from prt_torch.render import PRTScene  # noqa: E402
 from prt_torch.scene import builtins  # noqa: E402
 from prt_torch.transfer import get_kind  # noqa: E402
 from prt_torch.transfer.diffuse import unshadowed_transfer  # noqa: E402
+from prt_torch.io import atomic_write_text  # noqa: E402
 from prt_torch.transfer.subsurface import (DEFAULT_EPSILON, PRESETS, SampleTree, scatter_brute,  # noqa: E402
                                            scatter_hierarchical, vertex_areas)
 
@@ -190,7 +191,7 @@ def main() -> int:
     for r in cp:
         lines.append(f"| {r['name']} | {r['V']} | {r['psnr']:.1f} |")
     lines += ["", "Same codec settings, same shapes [V, 3, 9]: equal bytes."]
-    (OUT / "subsurface.md").write_text("\n".join(lines) + "\n")
+    atomic_write_text(OUT / "subsurface.md", "\n".join(lines) + "\n")
     print("\n".join(lines))
     return 0
 

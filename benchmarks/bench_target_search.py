@@ -28,6 +28,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from prt_torch.harness.timing import machine_info  # noqa: E402
+from prt_torch.io import atomic_write_text  # noqa: E402
 
 
 def export(rev: str, dest: Path) -> Path:
@@ -97,7 +98,7 @@ def main() -> int:
     text = "\n".join(lines)
     print(text)
     if args.out:
-        Path(args.out).write_text(text + "\n")
+        atomic_write_text(Path(args.out), text + "\n")
     return 0 if all(r["rc"] == 0 for r in rows) else 1
 
 

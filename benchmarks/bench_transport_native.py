@@ -35,6 +35,7 @@ from prt_torch.transfer import transport as TT  # noqa: E402
 from prt_torch.transfer import transport_kernels as TK  # noqa: E402
 from prt_torch.transfer.glossy import check_frames  # noqa: E402
 from prt_torch.harness.timing import cpu_label as _cpu  # noqa: E402
+from prt_torch.io import atomic_write_text  # noqa: E402
 
 
 def parse_brdf(spec: str):
@@ -144,7 +145,7 @@ def main(argv=None) -> int:
     text = "\n".join(lines) + "\n"
     print(text)
     if a.out:
-        Path(a.out).write_text(text)
+        atomic_write_text(Path(a.out), text)
     return 0
 
 

@@ -34,6 +34,7 @@ from prt_torch.harness.evaluate import Evaluator  # noqa: E402
 from prt_torch.harness.metrics import psnr_vs_reference  # noqa: E402
 from prt_torch.harness.run import compute_transfer, load_mesh_within_budget, setting_id  # noqa: E402
 from prt_torch.harness.timing import cpu_label  # noqa: E402
+from prt_torch.io import atomic_write_text  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -115,7 +116,7 @@ def main(argv=None) -> int:
         print(json.dumps(rec), flush=True)
         rows.append(rec)
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.with_suffix(".json").write_text(json.dumps({"head": head, "rows": rows}, indent=1))
+    atomic_write_text(args.out.with_suffix(".json"), json.dumps({"head": head, "rows": rows}, indent=1))
     mean = lambda x: sum(x) / len(x)  # noqa: E731
     lines = [f"CPU: {head['cpu']}; load average {head['load'][0]:.1f} (shared machine). Config `{args.config}`"
              + (f" part `{args.part}`" if args.part else "") + f" {' '.join(args.set)}: {ev.V} vertices × {head['views']} views, "
@@ -127,7 +128,7 @@ def main(argv=None) -> int:
     for r in rows:
         lines.append(f"| {r['setting_id']} | {r['bytes_per_vertex']:.0f} | {r['psnr_before_db']:.2f} | {r['psnr_after_db']:.2f} | "
                      f"{r['psnr_fitted_vs_exact_db']:.2f} |")
-    args.out.with_suffix(".md").write_text("\n".join(lines) + "\n")
+    atomic_write_text(args.out.with_suffix(".md"), "\n".join(lines) + "\n")
     print("\n".join(lines))
     return 0
 

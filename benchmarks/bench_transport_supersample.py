@@ -37,6 +37,7 @@ from prt_torch.scene import RayCaster, builtin  # noqa: E402
 from prt_torch.transfer import transport as TT  # noqa: E402
 from prt_torch.transfer.glossy import check_frames  # noqa: E402
 from prt_torch.harness.timing import cpu_label as _cpu  # noqa: E402
+from prt_torch.io import atomic_write_text  # noqa: E402
 
 
 def main(argv=None) -> int:
@@ -119,7 +120,7 @@ def main(argv=None) -> int:
     text = "\n".join(lines) + "\n"
     print(text)
     if a.out:
-        Path(a.out).write_text(text)
+        atomic_write_text(Path(a.out), text)
     return 0
 
 

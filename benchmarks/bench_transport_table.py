@@ -30,6 +30,7 @@ sys.path.insert(0, str(ROOT))
 
 
 from prt_torch.harness.timing import cpu_label  # noqa: E402
+from prt_torch.io import atomic_write_text  # noqa: E402
 
 
 def _cpu() -> str:
@@ -142,7 +143,7 @@ def main(argv=None) -> int:
     text = "\n".join(lines) + "\n"
     print(text)
     if a.out:
-        Path(a.out).write_text(text)
+        atomic_write_text(Path(a.out), text)
     return 0
 
 

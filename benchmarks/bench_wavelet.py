@@ -64,6 +64,7 @@ from prt_torch.transfer import RunOptions, Transfer  # noqa: E402
 from prt_torch.transfer.diffuse import offset_origins  # noqa: E402
 from prt_torch.transfer.ray_kernels import upper_rays  # noqa: E402
 from prt_torch.transfer.wavelet import bytes_per_vertex, dense_wavelet_transfer, dequantise, precompute_wavelet, quantise, sparsify  # noqa: E402
+from prt_torch.io import atomic_write_text  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "reports" / "benchmarks"
@@ -295,10 +296,10 @@ def main() -> None:
     results["load_average"] = loads
     results["notes"] = []
     OUT.mkdir(parents=True, exist_ok=True)
-    (OUT / "wavelet.json").write_text(json.dumps(results, indent=1, default=str))
+    atomic_write_text(OUT / "wavelet.json", json.dumps(results, indent=1, default=str))
     if len(isas) > 1:  # the other builds' section 7, each in a child process, reading the file just written
         merge_kernel_runs(results, [child_run(isa) for isa in isas[1:]])
-        (OUT / "wavelet.json").write_text(json.dumps(results, indent=1, default=str))
+        atomic_write_text(OUT / "wavelet.json", json.dumps(results, indent=1, default=str))
     plot(results)
     write_md(results, args.quick)
     print(f"[wavelet] wrote {OUT / 'wavelet.md'}", flush=True)
@@ -632,7 +633,7 @@ def section_only(name: str) -> None:
         res["sampling"] = dict(sampling_rows(mesh), load_before=before, load_after=load())
     else:
         res["quant"] = quant_rows(mesh)
-    (OUT / "wavelet.json").write_text(json.dumps(res, indent=1, default=str))
+    atomic_write_text(OUT / "wavelet.json", json.dumps(res, indent=1, default=str))
     write_md(res, False)
     print(f"[wavelet] wrote {OUT / 'wavelet.md'} ({name})", flush=True)
 
@@ -744,7 +745,7 @@ def kernel_only(isas: list[str], size: str = "small") -> None:
         res["notes"].append(note)
     runs = [kernel_run(res["selection_default"], size)] + [child_run(isa, size) for isa in isas[1:]]
     merge_kernel_runs(res, runs)
-    (OUT / "wavelet.json").write_text(json.dumps(res, indent=1, default=str))
+    atomic_write_text(OUT / "wavelet.json", json.dumps(res, indent=1, default=str))
     write_md(res, False)
     print(f"[wavelet] wrote {OUT / 'wavelet.md'} (section 7: {', '.join(kernel_run_key(r) for r in runs)})", flush=True)
 
@@ -1041,7 +1042,7 @@ def write_md(res: dict, quick: bool) -> None:
             L.append(f"| {K} | {rk[schemes[0]]['truncation_mean_error']:.4f} | " + " | ".join(
                 f"{rk[sc]['mean_error']:.4f} ({rk[sc]['bytes_per_vertex']} B)" for sc in schemes) + " |")
         L.append("")
-    (OUT / "wavelet.md").write_text("\n".join(L) + "\n")
+    atomic_write_text(OUT / "wavelet.md", "\n".join(L) + "\n")
 
 
 if __name__ == "__main__":

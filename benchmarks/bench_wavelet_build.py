@@ -28,6 +28,8 @@ import sys
 import tempfile
 from pathlib import Path
 
+from prt_torch.io import atomic_write_text
+
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "reports" / "benchmarks"
 BEFORE = "1f32c50"  # the branch's base: the whole-transfer construction
@@ -131,7 +133,7 @@ def main() -> None:
                  f"{statistics.median(r['t']['before']) * 1e3:.0f} | {statistics.median(r['t']['after']) * 1e3:.0f} | "
                  f"**{m:.3f}** [{lo:.3f}, {hi:.3f}] | {r['t']['equal']} |")
     OUT.mkdir(parents=True, exist_ok=True)
-    (OUT / "wavelet_build.md").write_text("\n".join(L) + "\n")
+    atomic_write_text(OUT / "wavelet_build.md", "\n".join(L) + "\n")
     print("\n".join(L))
 
 

@@ -34,6 +34,7 @@ from prt_torch.harness.timing import machine_info, measure_paired  # noqa: E402
 from prt_torch.scene import builtin  # noqa: E402
 from prt_torch.transfer import RunOptions  # noqa: E402
 from prt_torch.transfer.wavelet import precompute_wavelet  # noqa: E402
+from prt_torch.io import atomic_write_text  # noqa: E402
 
 TRIVIAL = r"""
 #include <stdint.h>
@@ -117,7 +118,7 @@ def main() -> None:
         L.append(f"| {r['what']} | {r['N']} | {r['before']:.2f} | {r['now']:.2f} | {r['before'] - r['now']:.2f} | "
                  f"**{r['ratio']:.3f}** [{r['q'][0]:.3f}, {r['q'][1]:.3f}] |")
     OUT.mkdir(parents=True, exist_ok=True)
-    (OUT / "wavelet_call.md").write_text("\n".join(L) + "\n")
+    atomic_write_text(OUT / "wavelet_call.md", "\n".join(L) + "\n")
     print(f"[wavelet_call] wrote {OUT / 'wavelet_call.md'}", flush=True)
 
 

@@ -62,6 +62,7 @@ from prt_torch.harness.timing import cpu_label, measure_paired, read_bound_fn  #
 from prt_torch.scene import builtin  # noqa: E402
 from prt_torch.transfer import RunOptions  # noqa: E402
 from prt_torch.transfer.wavelet import precompute_wavelet  # noqa: E402
+from prt_torch.io import atomic_write_text  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -350,7 +351,7 @@ def main() -> None:
     text.append(f"\nLoad average {before:.1f} → {load():.1f}.")
     out = "\n".join(text) + "\n"
     if args.write:
-        Path(args.write).write_text(out)
+        atomic_write_text(Path(args.write), out)
         print(f"[colpass] wrote {args.write}", flush=True)
     else:
         print(out)

@@ -48,6 +48,7 @@ from bench_wavelet_dense_micro import blocker_dense, dense_terms  # noqa: E402
 
 from prt_torch._native import compile_library, cpu_isa  # noqa: E402
 from prt_torch.harness.timing import cpu_label, measure_paired  # noqa: E402
+from prt_torch.io import atomic_write_text  # noqa: E402
 
 SRC = r"""#define _POSIX_C_SOURCE 199309L
 #include <stdint.h>
@@ -280,7 +281,7 @@ def main() -> None:
         L.append(f"| {r['light']} | {r['N']} | {r['nd']} | {r['variant']} | {r['cyc']:.2f} | {r['one']:.2f} | "
                  f"**{r['ratio']:.3f}** [{r['q'][0]:.3f}, {r['q'][1]:.3f}] |")
     OUT.mkdir(parents=True, exist_ok=True)
-    (OUT / "wavelet_dense16_micro.md").write_text("\n".join(L) + "\n")
+    atomic_write_text(OUT / "wavelet_dense16_micro.md", "\n".join(L) + "\n")
     print(f"[dense16_micro] wrote {OUT / 'wavelet_dense16_micro.md'}", flush=True)
 
 

@@ -47,6 +47,7 @@ from bench_wavelet_pass_micro import C_PRELUDE  # noqa: E402
 from prt_torch import relight  # noqa: E402
 from prt_torch._native import compile_library  # noqa: E402
 from prt_torch.harness.timing import machine_info, measure_paired  # noqa: E402
+from prt_torch.io import atomic_write_text  # noqa: E402
 
 SRC = "#define _POSIX_C_SOURCE 199309L\n" + C_PRELUDE + r"""#include <time.h>
 typedef int64_t i64;
@@ -262,7 +263,7 @@ def main() -> None:
             ratio = "1.00" if label == "kernel form" else f"{r[label + ' ratio']:.2f}"
             L.append(f"| {r['light']} | {r['N']} | {r['nd']} | {label} | {r[label]:.1f} | {cyc:.1f} | **{ratio}** |")
     OUT.mkdir(parents=True, exist_ok=True)
-    (OUT / "wavelet_dense_micro.md").write_text("\n".join(L) + "\n")
+    atomic_write_text(OUT / "wavelet_dense_micro.md", "\n".join(L) + "\n")
     print(f"[dense_micro] wrote {OUT / 'wavelet_dense_micro.md'}", flush=True)
 
 

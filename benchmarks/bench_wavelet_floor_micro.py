@@ -53,6 +53,7 @@ from prt_torch.harness.timing import io_bound_fn, machine_info, measure_paired  
 from prt_torch.scene import builtin  # noqa: E402
 from prt_torch.transfer import RunOptions  # noqa: E402
 from prt_torch.transfer.wavelet import precompute_wavelet  # noqa: E402
+from prt_torch.io import atomic_write_text  # noqa: E402
 
 SRC = r"""
 #define _POSIX_C_SOURCE 199309L
@@ -224,7 +225,7 @@ def main() -> None:
         L.append(f"| {label} | {mix[name] * f * 1e9 / n:.2f} |")
     L += model(f, dense["d_kernel"] * f * 1e9 / n, sparse[("s_kernel", 37)] * f * 1e9 / n)
     OUT.mkdir(parents=True, exist_ok=True)
-    (OUT / "wavelet_floor_micro.md").write_text("\n".join(L) + "\n")
+    atomic_write_text(OUT / "wavelet_floor_micro.md", "\n".join(L) + "\n")
     print("\n".join(L))
 
 

@@ -51,6 +51,7 @@ from prt_torch.harness.timing import machine_info, measure_paired  # noqa: E402
 from prt_torch.scene import builtin  # noqa: E402
 from prt_torch.transfer import RunOptions  # noqa: E402
 from prt_torch.transfer.wavelet import precompute_wavelet  # noqa: E402
+from prt_torch.io import atomic_write_text  # noqa: E402
 
 SRC = C_PRELUDE + r"""
 typedef int64_t i64;
@@ -329,7 +330,7 @@ def main() -> None:
                  f"{r['fused2']:.1f} | {r['fused3']:.1f} | {r['fused flat']:.1f} | **{r['fused1 ratio']:.2f} / "
                  f"{r['fused2 ratio']:.2f} / {r['fused3 ratio']:.2f} / {r['fused flat ratio']:.2f}** |")
     OUT.mkdir(parents=True, exist_ok=True)
-    (OUT / "wavelet_fused_micro.md").write_text("\n".join(L) + "\n")
+    atomic_write_text(OUT / "wavelet_fused_micro.md", "\n".join(L) + "\n")
     print(f"[fused_micro] wrote {OUT / 'wavelet_fused_micro.md'}", flush=True)
 
 

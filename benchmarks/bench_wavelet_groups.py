@@ -44,6 +44,7 @@ from prt_torch import relight  # noqa: E402
 from prt_torch.scene import builtin  # noqa: E402
 from prt_torch.transfer import RunOptions  # noqa: E402
 from prt_torch.transfer.wavelet import precompute_wavelet  # noqa: E402
+from prt_torch.io import atomic_write_text  # noqa: E402
 
 TERMS = (100, 300, 1000, 2000)
 
@@ -162,7 +163,7 @@ def main() -> None:
             L.append(f"| {lname} | {N} | {int(held.sum())} | {ub} | " + " | ".join(cells) + " |")
             print(L[-1], flush=True)
     OUT.mkdir(parents=True, exist_ok=True)
-    (OUT / "wavelet_groups.md").write_text("\n".join(L) + "\n")
+    atomic_write_text(OUT / "wavelet_groups.md", "\n".join(L) + "\n")
     print(f"[wavelet_groups] wrote {OUT / 'wavelet_groups.md'}", flush=True)
 
 

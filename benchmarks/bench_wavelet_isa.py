@@ -203,7 +203,7 @@ def main() -> None:
                  f"{r['err'][1]:.1e} | {r['diff']:.1e} | {r['load']:.1f} |")
     text = "\n".join(L) + "\n"
     if args.write:
-        Path(args.write).write_text(text)
+        atomic_write_text(Path(args.write), text)
         print(f"[wavelet_isa] wrote {args.write}", flush=True)
     else:
         print(text)

@@ -35,6 +35,7 @@ from prt_torch.harness.timing import machine_info  # noqa: E402
 from prt_torch.scene import builtin  # noqa: E402
 from prt_torch.transfer import RunOptions  # noqa: E402
 from prt_torch.transfer.wavelet import precompute_wavelet  # noqa: E402
+from prt_torch.io import atomic_write_text  # noqa: E402
 
 REPEATS = 15
 CALLS = 20
@@ -138,7 +139,7 @@ def main() -> None:
         L.append(f"| {r['scene']} | {r['res']} | {f('build_us', ' µs')} | {f('all_us', ' µs')} | {f('n100_us', ' µs')} | "
                  f"**{f('build_over_all')}** | {f('build_over_100')} | **{f('first_over_later')}** | {r['load']:.1f} |")
     OUT.mkdir(parents=True, exist_ok=True)
-    (OUT / "wavelet_layouts.md").write_text("\n".join(L) + "\n")
+    atomic_write_text(OUT / "wavelet_layouts.md", "\n".join(L) + "\n")
     print("\n".join(L))
 
 

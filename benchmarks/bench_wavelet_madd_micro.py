@@ -76,6 +76,7 @@ from bench_wavelet_dense_micro import blocker_dense, dense_terms  # noqa: E402
 
 from prt_torch._native import compile_library  # noqa: E402
 from prt_torch.harness.timing import cpu_label, machine_info, measure_paired, read_bound_fn  # noqa: E402
+from prt_torch.io import atomic_write_text  # noqa: E402
 
 # the dense micro-benchmark's source (C_PRELUDE, its float kernel form as dense_pass mode 0, clock_ghz) and the madd loop
 SRC = DENSE_SRC + r"""
@@ -903,7 +904,7 @@ def write_vnni(rows: list, floors: dict, ghz: float, loads: list, args, protos: 
                      f"{'✓' if r['ok'] else '✗'} | {r['load']:.1f} |")
     OUT.mkdir(parents=True, exist_ok=True)
     path = OUT / "wavelet_madd_micro_vnni.md"
-    path.write_text("\n".join(L) + "\n")
+    atomic_write_text(path, "\n".join(L) + "\n")
     print(f"[madd_micro vnni] wrote {path} ({m['cpu']})", flush=True)
 
 
@@ -1115,7 +1116,7 @@ def main() -> None:
           "| instruction mix | cycles |", "|---|---|"]
     L += [f"| {k} | {v:.2f} |" for k, v in floors.items()]
     OUT.mkdir(parents=True, exist_ok=True)
-    (OUT / "wavelet_madd_micro.md").write_text("\n".join(L) + "\n")
+    atomic_write_text(OUT / "wavelet_madd_micro.md", "\n".join(L) + "\n")
     print(f"[madd_micro] wrote {OUT / 'wavelet_madd_micro.md'}", flush=True)
 
 

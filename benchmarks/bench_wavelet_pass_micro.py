@@ -48,6 +48,7 @@ from prt_torch.harness.timing import machine_info  # noqa: E402
 from prt_torch.scene import builtin  # noqa: E402
 from prt_torch.transfer import RunOptions  # noqa: E402
 from prt_torch.transfer.wavelet import precompute_wavelet  # noqa: E402
+from prt_torch.io import atomic_write_text  # noqa: E402
 
 #: the C the micro-benchmarks of the wavelet kernel share (bench_wavelet_fused_micro, bench_wavelet_dense_micro):
 #: includes, the 8-lane float and int16 vector types, unaligned load/store, a broadcast and the int16 widening
@@ -431,7 +432,7 @@ def main() -> None:
     L += ["\n## Columns dense inside a 32-vertex block: counts and a cost model\n",
           local_dense_counts.__doc__.replace("\n   ", "") + "\n"] + local_dense_counts(rl)
     OUT.mkdir(parents=True, exist_ok=True)
-    (OUT / "wavelet_pass_micro.md").write_text("\n".join(L) + "\n")
+    atomic_write_text(OUT / "wavelet_pass_micro.md", "\n".join(L) + "\n")
     print(f"[pass_micro] wrote {OUT / 'wavelet_pass_micro.md'}", flush=True)
 
 

@@ -39,6 +39,7 @@ from prt_torch.harness.timing import machine_info, measure_paired  # noqa: E402
 from prt_torch.scene import builtin  # noqa: E402
 from prt_torch.transfer import RunOptions  # noqa: E402
 from prt_torch.transfer.wavelet import precompute_wavelet  # noqa: E402
+from prt_torch.io import atomic_write_text  # noqa: E402
 
 #: the kernel's sparse listing (kernels/wavelet.c), as the variants find it
 LISTING = """    for (i64 w = 0; w < (rows || small ? 0 : P); w += 8) {                                                   \\
@@ -142,7 +143,7 @@ def main() -> None:
             L.append(f"| {r['light']} | {'all' if r['N'] == rl.P else r['N']} | {name} | {k:.1f} | {t:.1f} | "
                      f"**{sp:.3f}** [{q1:.3f}, {q3:.3f}] |")
     OUT.mkdir(parents=True, exist_ok=True)
-    (OUT / "wavelet_setup_variants.md").write_text("\n".join(L) + "\n")
+    atomic_write_text(OUT / "wavelet_setup_variants.md", "\n".join(L) + "\n")
     print(f"[setup_variants] wrote {OUT / 'wavelet_setup_variants.md'}", flush=True)
 
 

@@ -32,6 +32,7 @@ from prt_torch.lighting import haar  # noqa: E402
 from prt_torch.scene import builtin  # noqa: E402
 from prt_torch.transfer import RunOptions  # noqa: E402
 from prt_torch.transfer.wavelet import precompute_wavelet  # noqa: E402
+from prt_torch.io import atomic_write_text  # noqa: E402
 
 LIGHTS = ("studio", "sky")
 TIMED = {("studio", 300), ("studio", 1000), ("studio", 2000), ("studio", "all"), ("sky", 1000)}
@@ -90,7 +91,7 @@ def main() -> None:
         L.append(f"| {r['light']} | {r['N']} | {r['now'][0]} ({r['now'][1]}) | {r['now'][2] / 1e6:.3f} | "
                  f"{r['before'][0]} ({r['before'][1]}) | {r['before'][2] / 1e6:.3f} | {r['diff']:.1e} | {t} |")
     OUT.mkdir(parents=True, exist_ok=True)
-    (OUT / "wavelet_zero_terms.md").write_text("\n".join(L) + "\n")
+    atomic_write_text(OUT / "wavelet_zero_terms.md", "\n".join(L) + "\n")
     print(f"wrote {OUT / 'wavelet_zero_terms.md'}")
 
 

@@ -32,6 +32,7 @@ import torch  # noqa: E402
 
 from prt_torch.harness.config import expand_codecs, load_config, part_configs  # noqa: E402
 from prt_torch.harness.evaluate import Evaluator  # noqa: E402
+from prt_torch.io import atomic_write_text  # noqa: E402
 from prt_torch.harness.run import (compute_transfer, evaluate_setting, load_mesh_within_budget,  # noqa: E402
                                    measure_uncompressed, setting_id, time_setting)
 
@@ -182,7 +183,7 @@ def _run(a, cfg: dict, scratch: list[str]) -> int:
     print(f"total: wall {tot['wall_s']:.1f} s, CPU {tot['user_s'] + tot['sys_s']:.1f} s ({tot['user_s']:.1f} user + "
           f"{tot['sys_s']:.1f} sys), {tot['minor_faults'] / 1e6:.2f} M minor faults, peak RSS {peak:.2f} GiB; load {os.getloadavg()}")
     if a.json:
-        Path(a.json).write_text(json.dumps({"stages": ROWS, "records": records, "total": tot, "peak_rss_gib": peak,
+        atomic_write_text(Path(a.json), json.dumps({"stages": ROWS, "records": records, "total": tot, "peak_rss_gib": peak,
                                             "argv": sys.argv[1:]}, indent=1))
     return 0
 

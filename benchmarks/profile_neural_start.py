@@ -39,6 +39,7 @@ from prt_torch import codecs  # noqa: E402
 from prt_torch.harness.config import expand_codecs, load_config, part_configs  # noqa: E402
 from prt_torch.harness.evaluate import Evaluator  # noqa: E402
 from prt_torch.harness.run import compute_transfer, load_mesh_within_budget  # noqa: E402
+from prt_torch.io import atomic_write_text  # noqa: E402
 
 
 def _peak_kib() -> int:
@@ -127,7 +128,7 @@ def main(argv=None) -> int:
         row["start_se_over_optimum"] = se0 / opt
         print(f"  float64 optimum SE {opt:.8g} (top eigenvalues {', '.join(f'{v:.6g}' for v in lam)}); start / optimum {se0 / opt:.9f}")
     if a.json:
-        Path(a.json).write_text(json.dumps({"fit": row, "argv": sys.argv[1:], "prt_torch": prt_torch.__file__,
+        atomic_write_text(Path(a.json), json.dumps({"fit": row, "argv": sys.argv[1:], "prt_torch": prt_torch.__file__,
                                             "omp": prt_torch.OMP_POLICY_CHOICE}, indent=1))
     return 0
 
