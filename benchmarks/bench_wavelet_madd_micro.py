@@ -49,8 +49,10 @@ lockstep as the kernel's W16 loop. Paired against the kernel's own 16-lane float
 ``dense16_pass`` mode 1, the W16 pair), the light quantised by the column-maximum rule (one group, and groups of 16);
 per size (``--sizes small medium``) the kernel's own call on the same light split (whole call and its streaming-read
 bound, dense terms alone, set-up and output alone) and the whole call estimated with the dense loop at the measured
-gain; the kernel built with ``-DDENSE_VNNI`` (the prototype in ``kernels/wavelet.c``'s W16 loop) paired with
-its default build on the whole call (each size). Writes reports/benchmarks/wavelet_madd_micro_vnni.md.
+gain; the kernel's VNNI dense loop (``kernels/wavelet.c``'s W16 loop, the default on such a CPU since 2026-11-30)
+paired with its opt-out (``arith='float'``, C | FDENSE) on the whole call (each size). Writes
+reports/benchmarks/wavelet_madd_micro_vnni.md; ``--vnni --proto`` the whole-call rows alone, with the error bound
+(``vnni_bound``), to reports/benchmarks/wavelet_vnni_default.md.
 
     .venv/bin/python benchmarks/bench_wavelet_madd_micro.py --vnni --sizes small medium --terms 10 30 100 300 1000 6144
     (about 7 min)
@@ -719,57 +721,83 @@ def kernel_dense_order(rl, li: torch.Tensor, lv: torch.Tensor) -> tuple[torch.Te
     return ds, lw[:, :3].contiguous()
 
 
+def vnni_bound(rl, li: torch.Tensor, lv: torch.Tensor, fac: torch.Tensor | None = None) -> dict:
+    """The VNNI dense loop's stated error bound for one call on ``rl``'s layout (a 16-bit grey transfer, the light
+    ``li`` int64 [N], ``lv`` float32 [3, N]), per vertex and channel, float64 [V, 3], from quantities found here
+    independently of the kernel: the light's dense terms in the kernel's order (:func:`kernel_dense_order`), each dense
+    column's largest stored magnitude by brute force over ``rl.dense`` (not the layout's ``dtmax``), the groups' steps
+    s_g by :func:`quantise_light`'s column-maximum rule in groups of 16 terms; ``fac`` [V, 3] the factor (default the
+    relighter's, ``_factor(3, True)``). Returns ``bound`` f_v Σ_g (s_g,c / 2) Σ_{k∈g} |T_v,k| (the dense terms'
+    quantised light), ``slack`` 1e-5 f_v Σ_k |T_v,k| |L_k,c| over all N terms (float32 rounding of the whole call,
+    dense and sparse: ~100 roundings of 6e-8 each at most), ``tbound`` the transfer's own 16-bit quantisation bound for
+    the same dense terms f_v Σ_k |L_k,c| / 2, ``nd`` the dense terms and ``groups``."""
+    if fac is None:
+        fac = rl._factor(3, True).double()
+    nb = rl.dense.shape[0]
+    d16 = rl.dense.reshape(nb, rl.Pd, 32)
+    ds, lw = kernel_dense_order(rl, li, lv)
+    tmax = d16.to(torch.int32).abs().amax(dim=(0, 2))  # [Pd] brute force
+    _, sc, grp = quantise_light(lw, 16, tmax[ds])
+    tk = d16[:, ds, :].double().abs()  # [nb, nd, 32] |T_v,k| over the dense terms
+    bound = torch.einsum("bkv,kc->bvc", tk, sc.double()[grp] / 2).reshape(-1, 3)[:rl.V] * fac
+    ref_index, ref_vals = rl.reference_rows(0, rl.V)  # dequantised: the scale applied, so times the albedo only
+    from prt_torch import relight
+
+    mag = relight.wavelet_dense(ref_vals.double().abs(), ref_index, li, lv.double().abs(), rl.P) * rl.albedo[:, :3].double()
+    return {"bound": bound, "slack": 1e-5 * mag, "tbound": lw.double().abs().sum(0)[None, :] / 2 * fac, "nd": int(ds.numel()),
+            "groups": int(grp[-1]) + 1 if ds.numel() else 0}
+
+
 def proto_rows(rl, fac: torch.Tensor, args) -> list:
-    """The kernel prototype (``kernels/wavelet.c`` built with ``-DDENSE_VNNI``: the W16 dense loop on VNNI, the light
-    quantised per call by the column-maximum rule in groups of 16 dense terms, on the layout's column maxima) against
-    the same source's default build on ``rl``'s layout, the whole call paired by one thread's CPU time, each against
-    its streaming-read bound; both outputs against the float64 reference of the same stored values
-    (``relight.wavelet_dense`` of ``reference_rows``, times the albedo), the prototype within its stated bound per
-    vertex: f_v sum_g (s_g / 2) sum_{k in g} |T_v,k| (``quantise_light``'s scales), beside the transfer's own 16-bit
-    quantisation bound for the same dense terms, f_v sum_k |L_k| / 2."""
+    """The VNNI dense loop, the default of ``kernels/wavelet.c``'s AVX-512 build on a CPU with AVX-512 VNNI (the W16
+    dense loop on ``vpdpwssd``, the light quantised per call by the column-maximum rule in groups of 16 dense terms, on
+    the layout's column maxima), against the opt-out (``WaveletRelighter(arith='float')``: the call's C | FDENSE, the
+    float loop) on ``rl``'s layout, the same library (this process's build), the whole call paired by one thread's CPU
+    time, each against its streaming-read bound; both outputs against the float64 reference of the same stored values
+    (``relight.wavelet_dense`` of ``reference_rows``, times the albedo), the default within its stated bound per vertex
+    (:func:`vnni_bound`), beside the transfer's own 16-bit quantisation bound for the same dense terms."""
     from bench_wavelet import rel
-    from bench_wavelet_isa import bound_call, kernel_build, kernel_source
+    from bench_wavelet_isa import bound_call
 
     from prt_torch import relight
 
-    text = kernel_source(None, "bench_wavelet_madd_micro.py")[0]
-    vn, _ = kernel_build("#define DENSE_VNNI 1\n" + text, "native", "bench_wavelet_madd_micro.py")
-    base, _ = kernel_build(text, "native", "bench_wavelet_madd_micro.py")
-    d16 = rl.dense.reshape(rl.dense.shape[0], rl.Pd, 32)
-    rl._kernel()
-    tmax = rl._dtmax
+    lib = relight._wavelet_lib()
+    path = relight.wavelet_kernel_path()
+    if lib is None or not path.get("vnni"):
+        raise SystemExit(f"bench_wavelet_madd_micro.py --vnni --proto: this process's wavelet build has no VNNI dense loop "
+                         f"({path.get('path')}, PRT_TORCH_KERNEL_ISA {path.get('isa_choice')!r}); accepted: the native or "
+                         "avx512 build on a CPU with AVX-512 VNNI")
     ref_index, ref_vals = rl.reference_rows(0, rl.V)
     alb = rl.albedo[:, :3].double()
     out = []
     for light in ("studio", "sky (sun)"):
         li_a, lv_a, _ = rl.light(LIGHTS[light], rl.P, "transport")
-        out_all = rl.prepared(li_a, lv_a.float(), torch.empty(rl.V, 3))().clone().double()
+        o_all = torch.empty(rl.V, 3)
+        bound_call(rl, lib, li_a, lv_a.float().contiguous(), o_all, 1, True, flags=rl.FDENSE)()
+        out_all = o_all.double()
         for N in args.terms:
             N = min(N, rl.P)
             li, lv, _ = rl.light(LIGHTS[light], N, "transport")
             lv = lv.float().contiguous()
-            ds, lw = kernel_dense_order(rl, li, lv)
             o_b, o_v = torch.empty(rl.V, 3), torch.empty(rl.V, 3)
             rl.prepared(li, lv, o_b)()  # builds the row-major copy where the light needs it
-            f_b, f_v = bound_call(rl, base, li, lv, o_b, 1, True), bound_call(rl, vn, li, lv, o_v, 1, True)
+            f_b = bound_call(rl, lib, li, lv, o_b, 1, True, flags=rl.FDENSE)
+            f_v = bound_call(rl, lib, li, lv, o_v, 1, True)
             f_b(), f_v()
             exact = relight.wavelet_dense(ref_vals.double(), ref_index, li, lv.double(), rl.P) * alb
-            _, sc, grp = quantise_light(lw, 16, tmax[ds])
-            tk = d16[:, ds, :].double().abs()  # [nb, nd, 32]
-            bound = torch.einsum("bkv,kc->bvc", tk, sc.double()[grp] / 2).reshape(-1, 3)[:rl.V] * fac
-            tbound = lw.double().abs().sum(0)[None, :] / 2 * fac  # the transfer's own: 1/2 stored unit per term
-            ok = bool(((o_v.double() - exact).abs() <= bound + 1e-5 * exact.abs().max() + 1e-30).all())
+            b = vnni_bound(rl, li, lv, fac)
+            ok = bool(((o_v.double() - exact).abs() <= b["bound"] + b["slack"]).all())
             p = measure_paired(f_v, f_b, repeats=15, warmup=1, clock=time.thread_time)
             read = read_bound_fn(rl.bytes_read(li), rl.V * 12)
             rv = measure_paired(f_v, read, repeats=15, warmup=1, clock=time.thread_time)
             rb = measure_paired(f_b, read, repeats=15, warmup=1, clock=time.thread_time)
             en = exact.norm()
-            r = {"light": light, "N": "all" if N == rl.P else N, "nd": ds.numel(), "groups": int(grp[-1]) + 1 if ds.numel() else 0,
+            r = {"light": light, "N": "all" if N == rl.P else N, "nd": b["nd"], "groups": b["groups"],
                  "vnni": p.test.median, "float": p.peer.median, "ratio": p.speedup, "q": [p.ratio.q1, p.ratio.q3],
                  "of_read": rv.speedup, "of_read_float": rb.speedup, "err": rel(o_v, exact), "err_float": rel(o_b, exact),
-                 "bound": float(bound.norm() / en), "tbound": float(tbound.norm() / en),
-                 "trunc": rel(o_b, out_all), "ok": ok, "load": os.getloadavg()[0]}
-            print(f"[madd_micro vnni] prototype {light} N={r['N']}: vnni {r['vnni'] * 1e6:.1f} us, float {r['float'] * 1e6:.1f} us, "
+                 "bound": float(b["bound"].norm() / en), "tbound": float(b["tbound"].norm() / en),
+                 "trunc": rel(o_b, out_all), "ok": ok, "load": os.getloadavg()[0], "dense": path["dense"]}
+            print(f"[madd_micro vnni] default {light} N={r['N']}: vnni {r['vnni'] * 1e6:.1f} us, float {r['float'] * 1e6:.1f} us, "
                   f"float/vnni {r['ratio']:.3f}; of read {r['of_read_float']:.2f} -> {r['of_read']:.2f}; err {r['err']:.1e} "
                   f"(float {r['err_float']:.1e}, bound {r['bound']:.1e}, transfer's {r['tbound']:.1e}, truncation "
                   f"{r['trunc']:.1e}), within bound {ok}; load {r['load']:.1f}", flush=True)
@@ -778,28 +806,34 @@ def proto_rows(rl, fac: torch.Tensor, args) -> list:
 
 
 def write_proto(protos: list, loads: list, args) -> None:
-    """reports/benchmarks/wavelet_vnni_proto.md: the prototype's whole-call rows (``--vnni --proto``)."""
+    """reports/benchmarks/wavelet_vnni_default.md: the VNNI default's whole-call rows against the opt-out (``--vnni
+    --proto``; the prototype's report before it became the default: wavelet_vnni_proto.md)."""
     from bench_wavelet_isa import emit_report
 
-    L = ["# Wavelet kernel: the DENSE_VNNI prototype, the whole call (issue 39)\n",
+    from prt_torch import relight
+
+    path = relight.wavelet_kernel_path()
+    L = ["# Wavelet kernel: the VNNI dense loop by default against the opt-out, the whole call (issue 39)\n",
          f"{cpu_label()}, one thread, this thread's CPU time (`time.thread_time`; the others' load does not enter it); "
          f"load average {' → '.join(f'{x:.1f}' for x in loads)} (shared machine). Blocker scene `occluder_over_plane`, "
          "R = 32, K = 256, 16-bit values, CT = 1, RGB light (CO = 3), transport-weighted terms. Reproduce: "
          f"`.venv/bin/python benchmarks/bench_wavelet_madd_micro.py --vnni --proto --sizes {' '.join(args.sizes)} "
          f"--terms {' '.join(map(str, args.terms))}`.\n",
-         "`kernels/wavelet.c` built twice from the working tree with the wavelet library's flags (native: the W16 "
-         "loop): **vnni** with `#define DENSE_VNNI` (the W16 dense loop on `vpdpwssd`; the dense light quantised per "
-         "call by the *column-maximum rule* in groups of 16 dense terms — Σ_k tmax_k |Lq_k| ≤ 2³¹ − 1 per group and "
-         "channel, tmax the layout's per-column largest stored magnitude — and one flush per group: int32 → float, "
-         "times the group's scale, added), **float** the default build; both bound to the same layout "
-         "(`bench_wavelet_isa.bound_call`, the per-vertex factor), paired by one thread's CPU time (15 repeats; "
-         "**float / vnni** > 1: the prototype faster [quartiles]), each against the streaming read (`read_bound_fn` "
-         "of the bytes the call reads plus the output: section 7's criterion; each fraction from its own pairing). "
+         f"`kernels/wavelet.c` as this process builds it ({path.get('path')}; flags `{path.get('flags')}`), one library "
+         "bound to one layout (`bench_wavelet_isa.bound_call`, the per-vertex factor), called two ways: **vnni** the "
+         "default (the W16 dense loop on `vpdpwssd`; the dense light quantised per call by the *column-maximum rule* in "
+         "groups of 16 dense terms — Σ_k tmax_k |Lq_k| ≤ 2³¹ − 1 per group and channel, tmax the layout's per-column "
+         "largest stored magnitude — and one flush per group: int32 → float, times the group's scale, added), "
+         "**float** the opt-out (`WaveletRelighter(arith='float')`: C | FDENSE, the float loop's bits), paired by one "
+         "thread's CPU time (15 repeats; **float / vnni** > 1: the default faster [quartiles]), each against the "
+         "streaming read (`read_bound_fn` of the bytes the call reads plus the output: section 7's criterion; each "
+         "fraction from its own pairing). "
          "Errors, relative L2 over vertices and channels against the **float64 reference** of the same stored values "
-         "(`relight.wavelet_dense` of `reference_rows`, times the albedo): *err vnni*, *err float* (the default "
-         "build: float32 rounding only), *bound* the prototype's stated bound f_v Σ_g (s_g/2) Σ_{k∈g} |T_v,k| "
-         "(`quantise_light`'s scales; every vertex within it: ✓), *transfer's* the transfer's own 16-bit "
-         "quantisation bound for the same dense terms f_v Σ_k |L_k| / 2, *truncation* the default output at N "
+         "(`relight.wavelet_dense` of `reference_rows`, times the albedo): *err vnni*, *err float* (the opt-out: "
+         "float32 rounding only), *bound* the stated bound f_v Σ_g (s_g/2) Σ_{k∈g} |T_v,k| "
+         "(`vnni_bound`: `quantise_light`'s scales on brute-force column maxima; every vertex within it, float "
+         "rounding slack included: ✓), *transfer's* the transfer's own 16-bit "
+         "quantisation bound for the same dense terms f_v Σ_k |L_k| / 2, *truncation* the opt-out's output at N "
          "against all terms.\n",
          "| size (V) | light | N | dense terms (groups) | vnni µs | float µs | **float / vnni** [quartiles] | of read: "
          "float → **vnni** | err vnni | err float | bound | transfer's | truncation | within | load |",
@@ -809,7 +843,7 @@ def write_proto(protos: list, loads: list, args) -> None:
                  f"{r['float'] * 1e6:.1f} | **{r['ratio']:.2f}** [{r['q'][0]:.2f}, {r['q'][1]:.2f}] | "
                  f"{r['of_read_float']:.2f} → **{r['of_read']:.2f}** | {r['err']:.1e} | {r['err_float']:.1e} | "
                  f"{r['bound']:.1e} | {r['tbound']:.1e} | {r['trunc']:.1e} | {'✓' if r['ok'] else '✗'} | {r['load']:.1f} |")
-    emit_report(str(OUT / "wavelet_vnni_proto.md"), "\n".join(L) + "\n", "madd_micro vnni", {"rows": protos, "loads": loads})
+    emit_report(str(OUT / "wavelet_vnni_default.md"), "\n".join(L) + "\n", "madd_micro vnni", {"rows": protos, "loads": loads})
 
 
 def write_vnni(rows: list, floors: dict, ghz: float, loads: list, args, protos: list) -> None:
@@ -910,8 +944,8 @@ def write_vnni(rows: list, floors: dict, ghz: float, loads: list, args, protos: 
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--vnni", action="store_true", help="the AVX-512 VNNI rows only (wavelet_madd_micro_vnni.md)")
-    ap.add_argument("--proto", action="store_true", help="--vnni: the DENSE_VNNI prototype's whole-call rows only "
-                    "(reports/benchmarks/wavelet_vnni_proto.md)")
+    ap.add_argument("--proto", action="store_true", help="--vnni: the whole-call rows only "
+                    "(the VNNI default against the opt-out: reports/benchmarks/wavelet_vnni_default.md)")
     ap.add_argument("--sizes", nargs="+", default=["small"], help="--vnni: the kernel section's sizes (small, medium, large)")
     ap.add_argument("--terms", type=int, nargs="+", default=[300, 1000, 6144])
     ap.add_argument("--grey", nargs="*", default=["cap 20°", "cap 40°"], choices=list(LIGHTS),

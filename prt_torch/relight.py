@@ -379,6 +379,8 @@ class WaveletRelighter:
     FDENSE = 512
     #: ``arith``'s values
     ARITH = ("auto", "float")
+    #: kernels/wavelet.c's ZMM_MIN: a call with fewer (dense term, 32-vertex block) pairs takes the 8-lane float loop
+    ZMM_MIN = 256
 
     @classmethod
     def default_row_min(cls, path: dict | None = None) -> float:
@@ -498,6 +500,7 @@ class WaveletRelighter:
         self.layouts = layouts
         self.arith = arith
         self._fd = 0  # FDENSE when arith='float' and the bound build has the VNNI loop (_kernel)
+        self._vnni = False  # the bound build has the VNNI dense loop (_kernel)
         self.huge_pages = io.huge_pages_enabled()  # PRT_TORCH_HUGEPAGES, read once per relighter
         self.transfer = transfer
         idx_all = transfer.aux["index"]
@@ -902,6 +905,24 @@ class WaveletRelighter:
         a coloured transfer's coefficient counts once for its three values)."""
         return int(self.nnz[light_idx.long()].sum())
 
+    def _takes_vnni(self, light_idx: torch.Tensor, light_vals: torch.Tensor, vnni: bool | None = None,
+                    arith: str | None = None) -> bool:
+        """kernels/wavelet.c's choice of the VNNI dense loop for a call with ``light_idx [N]``, ``light_vals [C, N]``
+        float32: the build has it (``vnni``; None: the build this relighter is bound to), ``arith`` (None: this
+        relighter's) is ``'auto'``, 16-bit kernel values on a grey transfer (CT = 1), an RGB light whose three channels
+        are not bitwise equal at every term (a grey RGB light takes one sum per vertex), and at least :attr:`ZMM_MIN`
+        (distinct dense column, 32-vertex block) pairs. The other calls take the float loop (its bits)."""
+        if vnni is None:
+            self._kernel()
+            vnni = self._vnni
+        lv = torch.as_tensor(light_vals).to(torch.float32)
+        if (not vnni or (self.arith if arith is None else arith) != "auto" or self.dense.dtype != torch.int16
+                or self.CT != 1 or lv.shape[0] != 3 or bool((lv[0] == lv[1]).all() and (lv[0] == lv[2]).all())):
+            return False
+        slots = self.dslot[torch.as_tensor(light_idx).long()]
+        nd = int(torch.unique(slots[slots >= 0]).numel())
+        return nd > 0 and nd * -(-self.V // self.BLOCK) >= self.ZMM_MIN
+
     def kernel_path(self) -> dict:
         """:func:`wavelet_kernel_path` of the build this relighter calls, with ``dense`` for its calls under an RGB light
         (unequal channels): ``'int16 vnni'`` where the build has the VNNI loop, ``arith`` is ``'auto'`` and the kernel
@@ -944,7 +965,8 @@ class WaveletRelighter:
                                         dtype=torch.int64)
             lay = self._layout.data_ptr()
             # the opt-out bit only where the build has the VNNI loop (the others refuse any bit above F1: status 1)
-            self._fd = self.FDENSE if self.arith == "float" and int(lib.prt_wavelet_isa()) & 64 else 0
+            self._vnni = bool(int(lib.prt_wavelet_isa()) & 64)  # the build has the VNNI dense loop
+            self._fd = self.FDENSE if self.arith == "float" and self._vnni else 0
             self._native = functools.partial(fn, lay)
             self._packed = getattr(lib, fn.__name__ + "_packed")  # the same kernel, its arguments in one int64 array
         return self._native

@@ -3,6 +3,7 @@ wavelet transfer kind, light approximation, sparse relighting, and their refusal
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -442,7 +443,7 @@ def test_bench_runs_a_wavelet_transfer(tmp_path, nonzero_haar_terms):
 
     base = ["bench", "allfrequency", "transfer.res=8", "transfer.terms=64", "render.enabled=false",
             f"output_dir={tmp_path / 'r'}", f"cache_dir={tmp_path / 'c'}", "metrics.repeats=1", "name=t",
-            "trade.terms=[10, 384]", "trade.bands=[3, 5]"]
+            "trade.terms=[10, 384]", "trade.bands=[3, 5]", "wavelet.arith=float"]  # the float loop: the reference's bits
     assert cli_main(base + ["lights=[sky]"]) == 0
     res = json.loads((tmp_path / "r" / "t" / "results.json").read_text())
     # 8-bit values, int16 indices, a float32 scale per vertex and each of R = 8's 4 Haar levels (scales: level)
@@ -458,6 +459,54 @@ def test_bench_runs_a_wavelet_transfer(tmp_path, nonzero_haar_terms):
     assert "SH vs wavelets" in (tmp_path / "r" / "t" / "report.md").read_text()
     assert cli_main(base + ["codecs=[{type: pca, vectors: 4}]", "name=t2"]) == 2
     assert not (tmp_path / "r" / "t2").exists()
+    # the relighter's dense arithmetic is named (wavelet.arith=float: the float loop); a bad value refused
+    assert res["trade"]["kernel"]["dense"] == "float" and res["trade"]["kernel"]["backend"] in ("native", "torch")
+    assert cli_main(base + ["wavelet.arith=int16", "name=t3"]) == 2
+    assert not (tmp_path / "r" / "t3").exists()
+
+
+def test_cli_relight_arith(tmp_path, capsys):
+    """``prt relight --arith``: a 16-bit grey transfer of the blocker scene under the sky (RGB): ``float`` within float32
+    rounding of the float64 gather of the same stored values (``relight.wavelet_dense``), ``auto`` within the VNNI
+    loop's stated bound (``bench_wavelet_madd_micro.vnni_bound``) where this build has it (else the same bits as
+    ``float``), each naming its dense arithmetic; ``--arith`` on an SH transfer refused in one line (a value other than
+    auto / float: argparse's choices)."""
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    try:
+        bench = __import__("bench_wavelet_madd_micro")
+    finally:
+        sys.path.pop(0)
+    w, d = tmp_path / "w.prt", tmp_path / "d.prt"
+    tr = precompute_wavelet(builtin("occluder_over_plane", "small"), res=8, terms=32, bits=16, shadows="always")
+    tr.save(w)
+    rl = relight.WaveletRelighter(tr, layouts="column")
+    li, lv, _ = rl.light("sky", None, "transport")
+    lv = lv.float()
+    ref_index, ref_vals = rl.reference_rows()
+    exact = relight.wavelet_dense(ref_vals.double(), ref_index, li, lv.double(), rl.P) * rl.albedo[:, :3].double()
+    b = bench.vnni_bound(rl, li, lv) if rl.kernel_path()["dense"] == "int16 vnni" else None
+    outs = {}
+    for arith in ("float", "auto"):
+        out = tmp_path / f"{arith}.npy"
+        assert cli_main(["relight", str(w), "--light", "sky", "--arith", arith, "-o", str(out)]) == 0
+        outs[arith] = torch.from_numpy(np.load(out)).double()
+        said = capsys.readouterr().out
+        vnni = arith == "auto" and b is not None
+        assert f"dense {'int16 vnni' if vnni else 'float'}" in said, said
+        err = (outs[arith] - exact).abs()
+        mag = relight.wavelet_dense(ref_vals.double().abs(), ref_index, li, lv.double().abs(), rl.P) * rl.albedo[:, :3].double()
+        assert bool((err <= (b["bound"] + b["slack"] if vnni else 1e-5 * mag) + 1e-12).all()), arith
+    assert torch.equal(outs["float"], outs["auto"]) == (b is None)
+    assert cli_main(["precompute", "convex", "--kind", "diffuse", "--bands", "2", "--shadows", "never", "-o", str(d),
+                     "--no-progress"]) == 0
+    capsys.readouterr()
+    for argv, what in ((["relight", str(d), "--light", "sky", "--arith", "float", "-o", str(tmp_path / "x.npy")], "--arith"),):
+        assert cli_main(argv) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and what in err[0], err
+    assert not (tmp_path / "x.npy").exists()
 
 
 def test_cli_render_a_wavelet_transfer(tmp_path, capsys):
