@@ -18,14 +18,19 @@
  * per 8 vertices one 32-byte load of the factors and the same three multiplies, before the interleave instead of
  * after it (store_rgb8 / put_rgb8), in the 8- and the 16-lane builds alike. Measured: reports/benchmarks/
  * wavelet_factor.md (bench_wavelet_factor.py; docs/wavelet.md "The factor per vertex").
- * DENSE_VNNI (a prototype, W16 with AVX-512 VNNI only, off by default; above DENSE_TERMS): the 16-lane dense loop on
- * integer dot products (vpdpwssd zmm, two light terms per instruction), the dense light quantised per call to int16
- * by the column-maximum rule in groups of VNNI_G = 16 terms (the layout's dtmax), a flush to float per group; not
- * the float loop's bits. Measured on the Intel Xeon (bench_wavelet_madd_micro.py --vnni --proto, reports/benchmarks/
- * wavelet_vnni_proto.md; docs/wavelet.md), the whole call paired with the default build: small 1.10-1.26x (N <= 300),
- * medium N = 10-30 1.12-1.21x, N >= 100 0.99-1.04x (the lines from L3); output error 8e-6-6e-5 rel. L2 against
- * float64, its bound 0.28-0.90x the transfer's own 16-bit bound. A change of the default arithmetic is the team's
- * decision.
+ * DENSE_VNNI (the default since 2026-11-30 in W16 builds whose target has AVX-512 VNNI and BW: DVNNI; -DDENSE_VNNI=0
+ * builds the float loop only; above DENSE_TERMS): the 16-lane dense loop on integer dot products (vpdpwssd zmm, two
+ * light terms per instruction) for the calls of 16-bit values, CT = 1, CO = 3 that take the 16-lane loop, the dense
+ * light quantised per call to int16 by the column-maximum rule in groups of VNNI_G = 16 terms (the layout's dtmax), a
+ * flush to float per group; not the float loop's bits (error per vertex and channel within f_v sum_g (s_g / 2)
+ * sum_{k in g} |T_v,k|). C | FDENSE (512) opts a call out (the float loop, its bits: relight.py's arith="float");
+ * builds without DVNNI refuse the bit (1) and are unchanged (avx2, znver3, avx512-256, portable, skylake-avx512 and
+ * -DDENSE_VNNI=0 objects byte-identical to fdd5d3e's, objdump). prt_wavelet_isa's bit 64 says the build has it.
+ * Measured on the Intel Xeon (bench_wavelet_madd_micro.py --vnni --proto, reports/benchmarks/wavelet_vnni_default.md;
+ * docs/wavelet.md), the whole call paired with the opt-out on one layout: small 1.07-1.31x, medium N = 10-30
+ * 1.12-1.24x, N >= 100 1.00-1.04x (the lines from L3); output error 4e-6-6e-5 rel. L2 against float64, its bound
+ * 0.28-0.90x the transfer's own 16-bit bound; per vertex up to ~2e-3 relative at the dimmest vertices (cancellation;
+ * under a sun 1e4x the sky at R = 8, 3-6% at the sun-shadowed vertices: docs/wavelet.md).
  * OUT_NT (a measurement knob, W16 only, off by default): the RGB output by streaming stores once it holds at least
  * OUT_NT bytes (and out is 32-byte aligned), an sfence at the call's end; not kept (the same report: faster alone at
  * large N = 10, slower with a read of the output right after the call).
