@@ -721,18 +721,19 @@ def kernel_dense_order(rl, li: torch.Tensor, lv: torch.Tensor) -> tuple[torch.Te
     return ds, lw[:, :3].contiguous()
 
 
-def vnni_bound(rl, li: torch.Tensor, lv: torch.Tensor, fac: torch.Tensor | None = None) -> dict:
+def vnni_bound(rl, li: torch.Tensor, lv: torch.Tensor, fac: torch.Tensor | None = None, albedo: bool = True) -> dict:
     """The VNNI dense loop's stated error bound for one call on ``rl``'s layout (a 16-bit grey transfer, the light
     ``li`` int64 [N], ``lv`` float32 [3, N]), per vertex and channel, float64 [V, 3], from quantities found here
     independently of the kernel: the light's dense terms in the kernel's order (:func:`kernel_dense_order`), each dense
     column's largest stored magnitude by brute force over ``rl.dense`` (not the layout's ``dtmax``), the groups' steps
     s_g by :func:`quantise_light`'s column-maximum rule in groups of 16 terms; ``fac`` [V, 3] the factor (default the
-    relighter's, ``_factor(3, True)``). Returns ``bound`` f_v Σ_g (s_g,c / 2) Σ_{k∈g} |T_v,k| (the dense terms'
-    quantised light), ``slack`` 1e-5 f_v Σ_k |T_v,k| |L_k,c| over all N terms (float32 rounding of the whole call,
-    dense and sparse: ~100 roundings of 6e-8 each at most), ``tbound`` the transfer's own 16-bit quantisation bound for
-    the same dense terms f_v Σ_k |L_k,c| / 2, ``nd`` the dense terms and ``groups``."""
+    relighter's, ``_factor(3, albedo)``; ``albedo``: the output with the albedo applied, as the call's). Returns
+    ``bound`` f_v Σ_g (s_g,c / 2) Σ_{k∈g} |T_v,k| (the dense terms' quantised light), ``slack`` 1e-5 f_v Σ_k
+    |T_v,k| |L_k,c| over all N terms (float32 rounding of the whole call, dense and sparse: ~100 roundings of 6e-8
+    each at most), ``tbound`` the transfer's own 16-bit quantisation bound for the same dense terms
+    f_v Σ_k |L_k,c| / 2, ``nd`` the dense terms and ``groups``."""
     if fac is None:
-        fac = rl._factor(3, True).double()
+        fac = rl._factor(3, albedo).double()
     nb = rl.dense.shape[0]
     d16 = rl.dense.reshape(nb, rl.Pd, 32)
     ds, lw = kernel_dense_order(rl, li, lv)
@@ -743,7 +744,9 @@ def vnni_bound(rl, li: torch.Tensor, lv: torch.Tensor, fac: torch.Tensor | None 
     ref_index, ref_vals = rl.reference_rows(0, rl.V)  # dequantised: the scale applied, so times the albedo only
     from prt_torch import relight
 
-    mag = relight.wavelet_dense(ref_vals.double().abs(), ref_index, li, lv.double().abs(), rl.P) * rl.albedo[:, :3].double()
+    mag = relight.wavelet_dense(ref_vals.double().abs(), ref_index, li, lv.double().abs(), rl.P)
+    if albedo:
+        mag = mag * rl.albedo[:, :3].double()
     return {"bound": bound, "slack": 1e-5 * mag, "tbound": lw.double().abs().sum(0)[None, :] / 2 * fac, "nd": int(ds.numel()),
             "groups": int(grp[-1]) + 1 if ds.numel() else 0}
 

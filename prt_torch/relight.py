@@ -965,8 +965,8 @@ class WaveletRelighter:
                                         dtype=torch.int64)
             lay = self._layout.data_ptr()
             # the opt-out bit only where the build has the VNNI loop (the others refuse any bit above F1: status 1)
-            self._vnni = bool(int(lib.prt_wavelet_isa()) & 64)  # the build has the VNNI dense loop
-            self._fd = self.FDENSE if self.arith == "float" and self._vnni else 0
+            self._vnni = bool(float_dense_flag(lib))  # the build has the VNNI dense loop
+            self._fd = float_dense_flag(lib) if self.arith == "float" else 0
             self._native = functools.partial(fn, lay)
             self._packed = getattr(lib, fn.__name__ + "_packed")  # the same kernel, its arguments in one int64 array
         return self._native
@@ -1155,6 +1155,13 @@ def _wavelet_lib(isa: str | None = None):
             lib.prt_build = (choice, " ".join(flags))  # wavelet_kernel_path's PRT_TORCH_KERNEL_ISA choice and flags
         _WAVELET[key], _WAVELET["why" if isa is None else f"why:{choice}"] = lib, why
     return _WAVELET[key]
+
+
+def float_dense_flag(lib) -> int:
+    """The bits to or into a call's C for the float dense loop on build ``lib`` (a loaded ``kernels/wavelet.c``):
+    ``WaveletRelighter.FDENSE`` where the build has the VNNI dense loop (``prt_wavelet_isa`` bit 64), else 0 (the
+    builds without it take the float loop anyway and refuse the bit)."""
+    return WaveletRelighter.FDENSE if int(lib.prt_wavelet_isa()) & 64 else 0
 
 
 def check_arith(value, name: str = "arith") -> str:

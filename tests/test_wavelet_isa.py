@@ -74,9 +74,10 @@ def _relight(r, lib, li, lv, threads: int, flags: int = 0) -> torch.Tensor:
     return out
 
 
-def _within_vnni_bound(r, got, ref, li, lv) -> bool:
-    """``got`` (a VNNI call, no albedo) within the VNNI loop's stated bound of the float64 reference ``ref`` [V, 3]."""
-    b = _bench().vnni_bound(r, li, lv, r._factor(3, False).double())
+def _within_vnni_bound(r, got, ref, li, lv, albedo: bool = False) -> bool:
+    """``got`` (a VNNI call, the albedo applied or not) within the VNNI loop's stated bound of the float64 reference
+    ``ref`` [V, 3] (``bench_wavelet_madd_micro.vnni_bound``)."""
+    b = _bench().vnni_bound(r, li, lv, albedo=albedo)
     return bool(((got.double() - ref).abs() <= b["bound"] + b["slack"] + 1e-6).all())
 
 
