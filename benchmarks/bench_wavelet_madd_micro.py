@@ -808,6 +808,118 @@ def proto_rows(rl, fac: torch.Tensor, args) -> list:
     return out
 
 
+def hdr_lights(rl, N: int = 300) -> dict:
+    """Two high-dynamic-range lights as (indices [N'], values [3, N'] float32, sun-only values or None): the sky with a
+    sun — one cube texel, in the direction (0.3, 0.2, 1) over the blocker, at 1e4 x the sky's mean radiance — cut to
+    its N most important terms (transport-weighted), and the sky's N terms with one dense term in the middle of the
+    first group of 16 (in the kernel's order) scaled by 1e4 (one huge term among small ones: the group's step is
+    set by it)."""
+    from prt_torch.lighting.haar import cube_geometry, cube_light, haar2d, select_terms
+
+    sky, _ = cube_light("sky", rl.res)  # [3, 6, R, R] float64
+    d, _ = cube_geometry(rl.res)
+    s = torch.tensor([0.3, 0.2, 1.0], dtype=torch.float64)
+    t = int((d.reshape(-1, 3) @ (s / s.norm())).argmax())
+    sun = torch.zeros_like(sky).reshape(3, -1)
+    sun[:, t] = 1e4 * float(sky.mean())
+    sun = sun.reshape(sky.shape)
+    H = haar2d(sky + sun).reshape(3, -1)
+    li, lv = select_terms(H, N, "transport", rl.weights)
+    Hs = haar2d(sun).reshape(3, -1)
+    out = {"sky + sun 1e4": (li, lv.float().contiguous(), Hs[:, li].float().contiguous())}
+    li2, lv2, _ = rl.light("sky", N, "transport")
+    lv2 = lv2.float().clone()
+    ds = rl.dslot[li2]
+    dense_pos = torch.nonzero(ds >= 0).flatten()
+    if N > 256 or N >= rl.P - rl.Pd:  # the kernel's order: slot order
+        dense_pos = dense_pos[torch.argsort(ds[dense_pos])]
+    k = int(dense_pos[min(5, dense_pos.numel() - 1)])
+    lv2[:, k] *= 1e4
+    out["one term x 1e4"] = (li2, lv2.contiguous(), None)
+    return out
+
+
+def pervertex_rows(size: str, args) -> list:
+    """The VNNI default's error per vertex (``--pervertex``): on the kernel section's transfer at ``size`` (R = 32,
+    K = 256, 16-bit) and the same precompute stored as float32 (bits 32: the stored transfer's own error beside it),
+    under studio and sky at N = 100 and all, and :func:`hdr_lights`, the relative error per vertex (norm over channels
+    over the float64 gather of the same stored values, vertices above 1e-3 of the brightest; for the sun light also
+    the vertices the sun does not reach, its own contribution under 1e-3 of its largest) of the default, the opt-out
+    and the stored 16-bit transfer against the float32 one."""
+    from bench_wavelet import kernel_transfer
+
+    from prt_torch import relight
+    from prt_torch.scene import builtin
+    from prt_torch.transfer import RunOptions
+    from prt_torch.transfer.wavelet import precompute_wavelet
+
+    tr16 = kernel_transfer(size)
+    tr32 = precompute_wavelet(builtin("occluder_over_plane", size), 32, 256, 32, shadows="always", run=RunOptions(workers=1))
+    rl = relight.WaveletRelighter(tr16, threads=1, layouts="column")
+    fl = relight.WaveletRelighter(tr16, threads=1, layouts="column", arith="float")
+    r32 = relight.WaveletRelighter(tr32, threads=1, layouts="column")
+    idx16, vals16 = rl.reference_rows(0, rl.V)
+    idx32, vals32 = r32.reference_rows(0, r32.V)
+    alb = rl.albedo[:, :3].double()
+
+    def exact(idx, vals, li, lv):
+        return relight.wavelet_dense(vals.double(), idx, li, lv.double(), rl.P) * alb
+
+    lights = {}
+    for name in ("studio", "sky (sun)"):
+        for N in (100, rl.P):
+            li, lv, _ = rl.light(LIGHTS[name], N, "transport")
+            lights[f"{name}, N = {'all' if N == rl.P else N}"] = (li, lv.float().contiguous(), None)
+    lights.update({f"{k}, N = 300": v for k, v in hdr_lights(rl).items()})
+    rows = []
+    for name, (li, lv, sun) in lights.items():
+        out, opt = rl(li, lv).double(), fl(li, lv).double()
+        ex, e32 = exact(idx16, vals16, li, lv), exact(idx32, vals32, li, lv)
+        n = ex.norm(dim=1)
+        masks = {"above 1e-3 of the brightest": n > 1e-3 * n.max()}
+        if sun is not None:
+            s = exact(idx16, vals16, li, sun).norm(dim=1)
+            masks["sun-shadowed"] = (s <= 1e-3 * s.max()) & (n > 0)
+        for what, m in masks.items():
+            def q(x, m=m):
+                r = x.norm(dim=1)[m] / n[m]
+                return [float(r.median()), float(r.quantile(0.99)), float(r.max())]
+            rows.append({"size": size, "V": rl.V, "light": name, "vertices": what, "count": int(m.sum()),
+                         "vnni": q(out - ex), "float": q(opt - ex), "stored": q(ex - e32),
+                         "bound": q(vnni_bound(rl, li, lv)["bound"]), "takes_vnni": rl._takes_vnni(li, lv)})
+            r = rows[-1]
+            print(f"[madd_micro vnni] per vertex {size} {name} ({what}, {r['count']}): vnni {r['vnni'][0]:.1e} / "
+                  f"{r['vnni'][2]:.1e}, float {r['float'][0]:.1e} / {r['float'][2]:.1e}, stored 16-bit {r['stored'][0]:.1e} / "
+                  f"{r['stored'][2]:.1e} (median / max)", flush=True)
+    return rows
+
+
+def write_pervertex(rows: list, loads: list, args) -> None:
+    """reports/benchmarks/wavelet_vnni_pervertex.md (+ .json): :func:`pervertex_rows`."""
+    from bench_wavelet_isa import emit_report
+
+    from prt_torch import relight
+
+    path = relight.wavelet_kernel_path()
+    L = ["# Wavelet kernel: the VNNI default's error per vertex (issue 39)\n",
+         f"{cpu_label()}; build: {path.get('path')} (dense {path.get('dense')}); load {' → '.join(f'{x:.1f}' for x in loads)}. "
+         f"Reproduce: `.venv/bin/python benchmarks/bench_wavelet_madd_micro.py --vnni --pervertex --sizes {' '.join(args.sizes)}`.\n",
+         "Blocker scene, R = 32, K = 256; the relighter's default (**vnni**: the int16 VNNI dense loop where the call "
+         "takes it), its opt-out (**float**, `arith='float'`), each against the float64 gather of the same stored "
+         "16-bit values; **stored**: that float64 gather against the same precompute stored as float32 (bits 32), the "
+         "error the stored transfer already carries; **bound**: the VNNI loop's stated bound (`vnni_bound`). Relative "
+         "error per vertex (norm over RGB / the vertex's norm), median / 99th percentile / max over the vertices named. "
+         "Lights: transport-weighted terms; *sky + sun 1e4*: one cube texel toward (0.3, 0.2, 1) at 1e4× the sky's "
+         "mean radiance added to the sky; *one term x 1e4*: the sky's N terms with the 6th dense term (kernel order) "
+         "× 1e4 (`hdr_lights`).\n",
+         "| size (V) | light | vertices | count | vnni | float | stored | bound |", "|---|---|---|---|---|---|---|---|"]
+    f = lambda x: " / ".join(f"{v:.1e}" for v in x)  # noqa: E731
+    for r in rows:
+        L.append(f"| {r['size']} ({r['V']}) | {r['light']} | {r['vertices']} | {r['count']} | {f(r['vnni'])} | "
+                 f"{f(r['float'])} | {f(r['stored'])} | {f(r['bound'])} |")
+    emit_report(str(OUT / "wavelet_vnni_pervertex.md"), "\n".join(L) + "\n", "madd_micro vnni", {"rows": rows, "loads": loads})
+
+
 def write_proto(protos: list, loads: list, args) -> None:
     """reports/benchmarks/wavelet_vnni_default.md: the VNNI default's whole-call rows against the opt-out (``--vnni
     --proto``; the prototype's report before it became the default: wavelet_vnni_proto.md)."""
@@ -949,6 +1061,8 @@ def main() -> None:
     ap.add_argument("--vnni", action="store_true", help="the AVX-512 VNNI rows only (wavelet_madd_micro_vnni.md)")
     ap.add_argument("--proto", action="store_true", help="--vnni: the whole-call rows only "
                     "(the VNNI default against the opt-out: reports/benchmarks/wavelet_vnni_default.md)")
+    ap.add_argument("--pervertex", action="store_true", help="--vnni: the default's error per vertex beside the opt-out's "
+                    "and the stored transfer's own, incl. HDR lights (reports/benchmarks/wavelet_vnni_pervertex.md)")
     ap.add_argument("--sizes", nargs="+", default=["small"], help="--vnni: the kernel section's sizes (small, medium, large)")
     ap.add_argument("--terms", type=int, nargs="+", default=[300, 1000, 6144])
     ap.add_argument("--grey", nargs="*", default=["cap 20°", "cap 40°"], choices=list(LIGHTS),
@@ -967,6 +1081,13 @@ def main() -> None:
     lib = build_library()
     if lib is None:
         raise SystemExit("bench_wavelet_madd_micro: no compiler")
+    if args.vnni and args.pervertex:
+        loads, rows = [os.getloadavg()[0]], []
+        for size in args.sizes:
+            rows += pervertex_rows(size, args)
+            loads.append(os.getloadavg()[0])
+        write_pervertex(rows, loads, args)
+        return
     if args.vnni and args.proto:
         loads, protos = [os.getloadavg()[0]], []
         for size in args.sizes:

@@ -236,45 +236,14 @@ def test_kernel_vnni_default_within_the_bound(bench, vnni_rl):
         assert rl.kernel_path()["dense"] == "int16 vnni"
 
 
-def _hdr_lights(rl, N: int = 300) -> dict:
-    """Two high-dynamic-range lights as (indices [N'], values [3, N'] float32, sun-only values or None): the sky with a
-    sun — one cube texel, in the direction (0.3, 0.2, 1) over the blocker, at 1e4 x the sky's mean radiance — cut to
-    its N most important terms (transport-weighted), and the sky's N terms with one dense term in the middle of the
-    first group of 16 (in the kernel's order) scaled by 1e4 (one huge term among small ones: the group's step is
-    set by it)."""
-    from prt_torch.lighting.haar import cube_geometry, cube_light, haar2d, select_terms
-
-    sky, _ = cube_light("sky", rl.res)  # [3, 6, R, R] float64
-    d, _ = cube_geometry(rl.res)
-    s = torch.tensor([0.3, 0.2, 1.0], dtype=torch.float64)
-    t = int((d.reshape(-1, 3) @ (s / s.norm())).argmax())
-    sun = torch.zeros_like(sky).reshape(3, -1)
-    sun[:, t] = 1e4 * float(sky.mean())
-    sun = sun.reshape(sky.shape)
-    H = haar2d(sky + sun).reshape(3, -1)
-    li, lv = select_terms(H, N, "transport", rl.weights)
-    Hs = haar2d(sun).reshape(3, -1)
-    out = {"sky + sun 1e4": (li, lv.float().contiguous(), Hs[:, li].float().contiguous())}
-    li2, lv2, _ = rl.light("sky", N, "transport")
-    lv2 = lv2.float().clone()
-    ds = rl.dslot[li2]
-    dense_pos = torch.nonzero(ds >= 0).flatten()
-    if N > 256 or N >= rl.P - rl.Pd:  # the kernel's order: slot order
-        dense_pos = dense_pos[torch.argsort(ds[dense_pos])]
-    k = int(dense_pos[min(5, dense_pos.numel() - 1)])
-    lv2[:, k] *= 1e4
-    out["one term x 1e4"] = (li2, lv2.contiguous(), None)
-    return out
-
-
 def test_kernel_vnni_default_hdr_lights_within_the_bound(bench, vnni_rl):
-    """High-dynamic-range lights (``_hdr_lights``: a sun 1e4 x the sky's mean radiance; one huge term in a group of
+    """High-dynamic-range lights (``bench_wavelet_madd_micro.hdr_lights``: a sun 1e4 x the sky's mean radiance; one huge term in a group of
     small ones) on the VNNI default: every vertex within the stated bound (the step of a group follows its largest
     light term, so the error of a vertex follows the group's largest term, not its own radiance); the relative error of
     the vertices the sun does not reach (its own contribution under 1e-3 of its largest: shadowed by the blocker) is
     printed beside the opt-out's, for docs/wavelet.md."""
     rl = vnni_rl
-    for name, (li, lv, sun) in _hdr_lights(rl).items():
+    for name, (li, lv, sun) in bench.hdr_lights(rl).items():
         assert rl._takes_vnni(li, lv)
         out, opt = _default_and_float(rl, li, lv)
         exact = _exact(rl, li, lv)
