@@ -358,7 +358,7 @@ class WaveletRelighter:
     the light quantised per call to int16 per channel in groups of 16 dense terms by the column-maximum rule, error per
     vertex and channel at most f_v Σ_g (s_g / 2) Σ_{k∈g} |T̂_v,k| (s_g the group's step: about max|L̂| / 32767, more
     where Σ_k tmax_k |L̂_k| would overflow int32): 0.28–0.90× the stored 16-bit transfer's own quantisation bound, an
-    output error of 4e-6–6e-5 relative L2, but up to ~2e-3 relative at the dimmest vertices, where the light's terms
+    output error of 8e-6–6e-5 relative L2, but up to ~2e-3 relative at the dimmest vertices, where the light's terms
     cancel — more than the stored transfer's own error there (docs/wavelet.md, "The dense arithmetic" and "the VNNI
     dense loop by default"); every other call, and every other build, the float32 loop. ``'float'``: the float32 loop
     for every call (the kernel's C | FDENSE), the bits of the builds without VNNI.
