@@ -515,6 +515,7 @@ def kernel_rows(rl, selection: str) -> list[dict]:
         os.environ.pop("PRT_TORCH_NATIVE")
         d = rl.dslot[li] >= 0
         row.update({"dense_terms": int(d.sum()), "dense_coefficients": int(rl.nnz[li[d]].sum()), "relight_s": row["relight_s_1"],
+                    "dense": "int16 vnni" if rl._takes_vnni(li, lv) else "float",  # the call's dense arithmetic
                     "of_bound": row["of_bound_1"], "trusted": trusted, "load": load()})
         rows.append(row)
         print(f"[wavelet] kernel {light} N={N}: {rows[-1]}", flush=True)
@@ -1001,7 +1002,8 @@ def write_md(res: dict, quick: bool) -> None:
             cpu_t = (f"**{r['of_bound_cpu_1']:.2f}** [{r['of_bound_cpu_1_q'][0]:.2f}, {r['of_bound_cpu_1_q'][1]:.2f}]"
                      if "of_bound_cpu_1" in r else "—")
             rd = (f"{r['of_read_bound_cpu_1']:.2f} ({r['read_over_copy_1']:.2f})" if "of_read_bound_cpu_1" in r else "—")
-            L.append(f"| {_row_key(r)[0]} | {_n_kept(r)} | {r['touched']} | {r['dense_coefficients']} ({r['dense_terms']} terms) | {r['bytes']}"
+            L.append(f"| {_row_key(r)[0]} | {_n_kept(r)} | {r['touched']} | {r['dense_coefficients']} ({r['dense_terms']} terms"
+                     f"{', int16 VNNI' if r.get('dense') == 'int16 vnni' else ''}) | {r['bytes']}"
                      f"{'†' if 'factor_bytes' in r else ''} | "
                      f"{r['previous_bytes']} | {_ms(r['relight_s_1'])} | {r['of_bound_1']:.2f}{flag} | {cpu_t} | "
                      f"{r['of_previous_bound']:.2f}{flag} | {_ms(r['relight_s_2'])} | {r['of_bound_2']:.2f}{flag} | "

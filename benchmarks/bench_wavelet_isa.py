@@ -92,14 +92,17 @@ def rl_bytes(rl, li: torch.Tensor) -> int:
     return rl.bytes_read(li, factor=False) + rl.V * 12
 
 
-def bound_call(rl, lib, li: torch.Tensor, lv: torch.Tensor, out: torch.Tensor, threads: int, per_vertex: bool = False):
+def bound_call(rl, lib, li: torch.Tensor, lv: torch.Tensor, out: torch.Tensor, threads: int, per_vertex: bool = False,
+               flags: int = 0):
     """``run()`` relighting ``li``/``lv`` into ``out`` through build ``lib`` on ``rl``'s layout (the packed entry point,
     as ``WaveletRelighter.prepared``); the tensors it addresses are kept alive by the closure. The factor as
     ``[V, CO]`` (``WaveletRelighter._factor``: what every build of the kernel reads), or with ``per_vertex`` in the
     relighter's kernel form (``_kfactor``: ``[V + 4]`` with ``C | F1`` where one per vertex will do; builds from
-    0182f3f on)."""
+    0182f3f on). ``flags``: bits or-ed into C (``WaveletRelighter.FDENSE``: the float dense loop in a build with the
+    VNNI loop; the builds without it refuse the bit, and the run raises)."""
     rl._kernel()  # the layout (self._layout) exists
     f, Ck = rl._kfactor(lv.shape[0], True) if per_vertex else (rl._factor(lv.shape[0], True), lv.shape[0])
+    Ck |= flags
     name = {torch.int8: "i8", torch.int16: "i16"}.get(rl.bvals.dtype, "f32")
     args = torch.tensor([rl._layout.data_ptr(), li.numel(), li.data_ptr(), lv.data_ptr(), Ck, f.data_ptr(),
                          out.data_ptr(), threads], dtype=torch.int64)

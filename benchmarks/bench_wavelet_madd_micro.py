@@ -49,8 +49,10 @@ lockstep as the kernel's W16 loop. Paired against the kernel's own 16-lane float
 ``dense16_pass`` mode 1, the W16 pair), the light quantised by the column-maximum rule (one group, and groups of 16);
 per size (``--sizes small medium``) the kernel's own call on the same light split (whole call and its streaming-read
 bound, dense terms alone, set-up and output alone) and the whole call estimated with the dense loop at the measured
-gain; the kernel built with ``-DDENSE_VNNI`` (the prototype in ``kernels/wavelet.c``'s W16 loop) paired with
-its default build on the whole call (each size). Writes reports/benchmarks/wavelet_madd_micro_vnni.md.
+gain; the kernel's VNNI dense loop (``kernels/wavelet.c``'s W16 loop, the default on such a CPU since 2026-11-30)
+paired with its opt-out (``arith='float'``, C | FDENSE) on the whole call (each size). Writes
+reports/benchmarks/wavelet_madd_micro_vnni.md; ``--vnni --proto`` the whole-call rows alone, with the error bound
+(``vnni_bound``), to reports/benchmarks/wavelet_vnni_default.md.
 
     .venv/bin/python benchmarks/bench_wavelet_madd_micro.py --vnni --sizes small medium --terms 10 30 100 300 1000 6144
     (about 7 min)
@@ -720,57 +722,86 @@ def kernel_dense_order(rl, li: torch.Tensor, lv: torch.Tensor) -> tuple[torch.Te
     return ds, lw[:, :3].contiguous()
 
 
+def vnni_bound(rl, li: torch.Tensor, lv: torch.Tensor, fac: torch.Tensor | None = None, albedo: bool = True) -> dict:
+    """The VNNI dense loop's stated error bound for one call on ``rl``'s layout (a 16-bit grey transfer, the light
+    ``li`` int64 [N], ``lv`` float32 [3, N]), per vertex and channel, float64 [V, 3], from quantities found here
+    independently of the kernel: the light's dense terms in the kernel's order (:func:`kernel_dense_order`), each dense
+    column's largest stored magnitude by brute force over ``rl.dense`` (not the layout's ``dtmax``), the groups' steps
+    s_g by :func:`quantise_light`'s column-maximum rule in groups of 16 terms; ``fac`` [V, 3] the factor (default the
+    relighter's, ``_factor(3, albedo)``; ``albedo``: the output with the albedo applied, as the call's). Returns
+    ``bound`` f_v Σ_g (s_g,c / 2) Σ_{k∈g} |T_v,k| (the dense terms' quantised light), ``slack`` 1e-5 f_v Σ_k
+    |T_v,k| |L_k,c| over all N terms (float32 rounding of the whole call, dense and sparse: ~100 roundings of 6e-8
+    each at most), ``tbound`` the transfer's own 16-bit quantisation bound for the same dense terms
+    f_v Σ_k |L_k,c| / 2, ``nd`` the dense terms and ``groups``."""
+    if fac is None:
+        fac = rl._factor(3, albedo).double()
+    nb = rl.dense.shape[0]
+    d16 = rl.dense.reshape(nb, rl.Pd, 32)
+    ds, lw = kernel_dense_order(rl, li, lv)
+    tmax = d16.to(torch.int32).abs().amax(dim=(0, 2))  # [Pd] brute force
+    _, sc, grp = quantise_light(lw, 16, tmax[ds])
+    tk = d16[:, ds, :].double().abs()  # [nb, nd, 32] |T_v,k| over the dense terms
+    bound = torch.einsum("bkv,kc->bvc", tk, sc.double()[grp] / 2).reshape(-1, 3)[:rl.V] * fac
+    ref_index, ref_vals = rl.reference_rows(0, rl.V)  # dequantised: the scale applied, so times the albedo only
+    from prt_torch import relight
+
+    mag = relight.wavelet_dense(ref_vals.double().abs(), ref_index, li, lv.double().abs(), rl.P)
+    if albedo:
+        mag = mag * rl.albedo[:, :3].double()
+    return {"bound": bound, "slack": 1e-5 * mag, "tbound": lw.double().abs().sum(0)[None, :] / 2 * fac, "nd": int(ds.numel()),
+            "groups": int(grp[-1]) + 1 if ds.numel() else 0}
+
+
 def proto_rows(rl, fac: torch.Tensor, args) -> list:
-    """The kernel prototype (``kernels/wavelet.c`` built with ``-DDENSE_VNNI``: the W16 dense loop on VNNI, the light
-    quantised per call by the column-maximum rule in groups of 16 dense terms, on the layout's column maxima) against
-    the same source's default build on ``rl``'s layout, the whole call paired by one thread's CPU time, each against
-    its streaming-read bound; both outputs against the float64 reference of the same stored values
-    (``relight.wavelet_dense`` of ``reference_rows``, times the albedo), the prototype within its stated bound per
-    vertex: f_v sum_g (s_g / 2) sum_{k in g} |T_v,k| (``quantise_light``'s scales), beside the transfer's own 16-bit
-    quantisation bound for the same dense terms, f_v sum_k |L_k| / 2."""
+    """The VNNI dense loop, the default of ``kernels/wavelet.c``'s AVX-512 build on a CPU with AVX-512 VNNI (the W16
+    dense loop on ``vpdpwssd``, the light quantised per call by the column-maximum rule in groups of 16 dense terms, on
+    the layout's column maxima), against the opt-out (``WaveletRelighter(arith='float')``: the call's C | FDENSE, the
+    float loop) on ``rl``'s layout, the same library (this process's build), the whole call paired by one thread's CPU
+    time, each against its streaming-read bound; both outputs against the float64 reference of the same stored values
+    (``relight.wavelet_dense`` of ``reference_rows``, times the albedo), the default within its stated bound per vertex
+    (:func:`vnni_bound`), beside the transfer's own 16-bit quantisation bound for the same dense terms."""
     from bench_wavelet import rel
-    from bench_wavelet_isa import bound_call, kernel_build, kernel_source
+    from bench_wavelet_isa import bound_call
 
     from prt_torch import relight
 
-    text = kernel_source(None, "bench_wavelet_madd_micro.py")[0]
-    vn, _ = kernel_build("#define DENSE_VNNI 1\n" + text, "native", "bench_wavelet_madd_micro.py")
-    base, _ = kernel_build(text, "native", "bench_wavelet_madd_micro.py")
-    d16 = rl.dense.reshape(rl.dense.shape[0], rl.Pd, 32)
-    rl._kernel()
-    tmax = rl._dtmax
+    lib = relight._wavelet_lib()
+    path = relight.wavelet_kernel_path()
+    if lib is None or not path.get("vnni"):
+        raise SystemExit(f"bench_wavelet_madd_micro.py --vnni --proto: this process's wavelet build has no VNNI dense loop "
+                         f"({path.get('path')}, PRT_TORCH_KERNEL_ISA {path.get('isa_choice')!r}); accepted: the native or "
+                         "avx512 build on a CPU with AVX-512 VNNI")
     ref_index, ref_vals = rl.reference_rows(0, rl.V)
     alb = rl.albedo[:, :3].double()
     out = []
     for light in ("studio", "sky (sun)"):
         li_a, lv_a, _ = rl.light(LIGHTS[light], rl.P, "transport")
-        out_all = rl.prepared(li_a, lv_a.float(), torch.empty(rl.V, 3))().clone().double()
+        o_all = torch.empty(rl.V, 3)
+        bound_call(rl, lib, li_a, lv_a.float().contiguous(), o_all, 1, True, flags=rl.FDENSE)()
+        out_all = o_all.double()
         for N in args.terms:
             N = min(N, rl.P)
             li, lv, _ = rl.light(LIGHTS[light], N, "transport")
             lv = lv.float().contiguous()
-            ds, lw = kernel_dense_order(rl, li, lv)
             o_b, o_v = torch.empty(rl.V, 3), torch.empty(rl.V, 3)
             rl.prepared(li, lv, o_b)()  # builds the row-major copy where the light needs it
-            f_b, f_v = bound_call(rl, base, li, lv, o_b, 1, True), bound_call(rl, vn, li, lv, o_v, 1, True)
+            f_b = bound_call(rl, lib, li, lv, o_b, 1, True, flags=rl.FDENSE)
+            f_v = bound_call(rl, lib, li, lv, o_v, 1, True)
             f_b(), f_v()
             exact = relight.wavelet_dense(ref_vals.double(), ref_index, li, lv.double(), rl.P) * alb
-            _, sc, grp = quantise_light(lw, 16, tmax[ds])
-            tk = d16[:, ds, :].double().abs()  # [nb, nd, 32]
-            bound = torch.einsum("bkv,kc->bvc", tk, sc.double()[grp] / 2).reshape(-1, 3)[:rl.V] * fac
-            tbound = lw.double().abs().sum(0)[None, :] / 2 * fac  # the transfer's own: 1/2 stored unit per term
-            ok = bool(((o_v.double() - exact).abs() <= bound + 1e-5 * exact.abs().max() + 1e-30).all())
+            b = vnni_bound(rl, li, lv, fac)
+            ok = bool(((o_v.double() - exact).abs() <= b["bound"] + b["slack"]).all())
             p = measure_paired(f_v, f_b, repeats=15, warmup=1, clock=time.thread_time)
             read = read_bound_fn(rl.bytes_read(li), rl.V * 12)
             rv = measure_paired(f_v, read, repeats=15, warmup=1, clock=time.thread_time)
             rb = measure_paired(f_b, read, repeats=15, warmup=1, clock=time.thread_time)
             en = exact.norm()
-            r = {"light": light, "N": "all" if N == rl.P else N, "nd": ds.numel(), "groups": int(grp[-1]) + 1 if ds.numel() else 0,
+            r = {"light": light, "N": "all" if N == rl.P else N, "nd": b["nd"], "groups": b["groups"],
                  "vnni": p.test.median, "float": p.peer.median, "ratio": p.speedup, "q": [p.ratio.q1, p.ratio.q3],
                  "of_read": rv.speedup, "of_read_float": rb.speedup, "err": rel(o_v, exact), "err_float": rel(o_b, exact),
-                 "bound": float(bound.norm() / en), "tbound": float(tbound.norm() / en),
-                 "trunc": rel(o_b, out_all), "ok": ok, "load": os.getloadavg()[0]}
-            print(f"[madd_micro vnni] prototype {light} N={r['N']}: vnni {r['vnni'] * 1e6:.1f} us, float {r['float'] * 1e6:.1f} us, "
+                 "bound": float(b["bound"].norm() / en), "tbound": float(b["tbound"].norm() / en),
+                 "trunc": rel(o_b, out_all), "ok": ok, "load": os.getloadavg()[0], "dense": path["dense"]}
+            print(f"[madd_micro vnni] default {light} N={r['N']}: vnni {r['vnni'] * 1e6:.1f} us, float {r['float'] * 1e6:.1f} us, "
                   f"float/vnni {r['ratio']:.3f}; of read {r['of_read_float']:.2f} -> {r['of_read']:.2f}; err {r['err']:.1e} "
                   f"(float {r['err_float']:.1e}, bound {r['bound']:.1e}, transfer's {r['tbound']:.1e}, truncation "
                   f"{r['trunc']:.1e}), within bound {ok}; load {r['load']:.1f}", flush=True)
@@ -778,29 +809,147 @@ def proto_rows(rl, fac: torch.Tensor, args) -> list:
     return out
 
 
-def write_proto(protos: list, loads: list, args) -> None:
-    """reports/benchmarks/wavelet_vnni_proto.md: the prototype's whole-call rows (``--vnni --proto``)."""
+def hdr_lights(rl, N: int = 300) -> dict:
+    """Two high-dynamic-range lights as (indices [N'], values [3, N'] float32, sun-only values or None): the sky with a
+    sun — one cube texel, in the direction (0.3, 0.2, 1) over the blocker, at 1e4 x the sky's mean radiance — cut to
+    its N most important terms (transport-weighted), and the sky's N terms with one dense term in the middle of the
+    first group of 16 (in the kernel's order) scaled by 1e4 (one huge term among small ones: the group's step is
+    set by it)."""
+    from prt_torch.lighting.haar import cube_geometry, cube_light, haar2d, select_terms
+
+    sky, _ = cube_light("sky", rl.res)  # [3, 6, R, R] float64
+    d, _ = cube_geometry(rl.res)
+    s = torch.tensor([0.3, 0.2, 1.0], dtype=torch.float64)
+    t = int((d.reshape(-1, 3) @ (s / s.norm())).argmax())
+    sun = torch.zeros_like(sky).reshape(3, -1)
+    sun[:, t] = 1e4 * float(sky.mean())
+    sun = sun.reshape(sky.shape)
+    H = haar2d(sky + sun).reshape(3, -1)
+    li, lv = select_terms(H, N, "transport", rl.weights)
+    Hs = haar2d(sun).reshape(3, -1)
+    out = {"sky + sun 1e4": (li, lv.float().contiguous(), Hs[:, li].float().contiguous())}
+    li2, lv2, _ = rl.light("sky", N, "transport")
+    lv2 = lv2.float().clone()
+    ds = rl.dslot[li2]
+    dense_pos = torch.nonzero(ds >= 0).flatten()
+    if N > 256 or N >= rl.P - rl.Pd:  # the kernel's order: slot order
+        dense_pos = dense_pos[torch.argsort(ds[dense_pos])]
+    k = int(dense_pos[min(5, dense_pos.numel() - 1)])
+    lv2[:, k] *= 1e4
+    out["one term x 1e4"] = (li2, lv2.contiguous(), None)
+    return out
+
+
+def pervertex_rows(size: str, args) -> list:
+    """The VNNI default's error per vertex (``--pervertex``): on the kernel section's transfer at ``size`` (R = 32,
+    K = 256, 16-bit) and the same precompute stored as float32 (bits 32: the stored transfer's own error beside it),
+    under studio and sky at N = 100 and all, and :func:`hdr_lights`, the relative error per vertex (norm over channels
+    over the float64 gather of the same stored values, vertices above 1e-3 of the brightest; for the sun light also
+    the vertices the sun does not reach, its own contribution under 1e-3 of its largest) of the default, the opt-out
+    and the stored 16-bit transfer against the float32 one."""
+    from bench_wavelet import kernel_transfer
+
+    from prt_torch import relight
+    from prt_torch.scene import builtin
+    from prt_torch.transfer import RunOptions
+    from prt_torch.transfer.wavelet import precompute_wavelet
+
+    tr16 = kernel_transfer(size)
+    tr32 = precompute_wavelet(builtin("occluder_over_plane", size), 32, 256, 32, shadows="always", run=RunOptions(workers=1))
+    rl = relight.WaveletRelighter(tr16, threads=1, layouts="column")
+    fl = relight.WaveletRelighter(tr16, threads=1, layouts="column", arith="float")
+    r32 = relight.WaveletRelighter(tr32, threads=1, layouts="column")
+    idx16, vals16 = rl.reference_rows(0, rl.V)
+    idx32, vals32 = r32.reference_rows(0, r32.V)
+    alb = rl.albedo[:, :3].double()
+
+    def exact(idx, vals, li, lv):
+        return relight.wavelet_dense(vals.double(), idx, li, lv.double(), rl.P) * alb
+
+    lights = {}
+    for name in ("studio", "sky (sun)"):
+        for N in (100, rl.P):
+            li, lv, _ = rl.light(LIGHTS[name], N, "transport")
+            lights[f"{name}, N = {'all' if N == rl.P else N}"] = (li, lv.float().contiguous(), None)
+    lights.update({f"{k}, N = 300": v for k, v in hdr_lights(rl).items()})
+    rows = []
+    for name, (li, lv, sun) in lights.items():
+        out, opt = rl(li, lv).double(), fl(li, lv).double()
+        ex, e32 = exact(idx16, vals16, li, lv), exact(idx32, vals32, li, lv)
+        n = ex.norm(dim=1)
+        masks = {"above 1e-3 of the brightest": n > 1e-3 * n.max()}
+        if sun is not None:
+            s = exact(idx16, vals16, li, sun).norm(dim=1)
+            masks["sun-shadowed"] = (s <= 1e-3 * s.max()) & (n > 0)
+        for what, m in masks.items():
+            def q(x, m=m):
+                r = x.norm(dim=1)[m] / n[m]
+                return [float(r.median()), float(r.quantile(0.99)), float(r.max())]
+            rows.append({"size": size, "V": rl.V, "light": name, "vertices": what, "count": int(m.sum()),
+                         "vnni": q(out - ex), "float": q(opt - ex), "stored": q(ex - e32),
+                         "bound": q(vnni_bound(rl, li, lv)["bound"]), "takes_vnni": rl._takes_vnni(li, lv)})
+            r = rows[-1]
+            print(f"[madd_micro vnni] per vertex {size} {name} ({what}, {r['count']}): vnni {r['vnni'][0]:.1e} / "
+                  f"{r['vnni'][2]:.1e}, float {r['float'][0]:.1e} / {r['float'][2]:.1e}, stored 16-bit {r['stored'][0]:.1e} / "
+                  f"{r['stored'][2]:.1e} (median / max)", flush=True)
+    return rows
+
+
+def write_pervertex(rows: list, loads: list, args) -> None:
+    """reports/benchmarks/wavelet_vnni_pervertex.md (+ .json): :func:`pervertex_rows`."""
     from bench_wavelet_isa import emit_report
 
-    L = ["# Wavelet kernel: the DENSE_VNNI prototype, the whole call (issue 39)\n",
+    from prt_torch import relight
+
+    path = relight.wavelet_kernel_path()
+    L = ["# Wavelet kernel: the VNNI default's error per vertex (issue 39)\n",
+         f"{cpu_label()}; build: {path.get('path')} (dense {path.get('dense')}); load {' → '.join(f'{x:.1f}' for x in loads)}. "
+         f"Reproduce: `.venv/bin/python benchmarks/bench_wavelet_madd_micro.py --vnni --pervertex --sizes {' '.join(args.sizes)}`.\n",
+         "Blocker scene, R = 32, K = 256; the relighter's default (**vnni**: the int16 VNNI dense loop where the call "
+         "takes it), its opt-out (**float**, `arith='float'`), each against the float64 gather of the same stored "
+         "16-bit values; **stored**: that float64 gather against the same precompute stored as float32 (bits 32), the "
+         "error the stored transfer already carries; **bound**: the VNNI loop's stated bound (`vnni_bound`). Relative "
+         "error per vertex (norm over RGB / the vertex's norm), median / 99th percentile / max over the vertices named. "
+         "Lights: transport-weighted terms; *sky + sun 1e4*: one cube texel toward (0.3, 0.2, 1) at 1e4× the sky's "
+         "mean radiance added to the sky; *one term x 1e4*: the sky's N terms with the 6th dense term (kernel order) "
+         "× 1e4 (`hdr_lights`).\n",
+         "| size (V) | light | vertices | count | vnni | float | stored | bound |", "|---|---|---|---|---|---|---|---|"]
+    f = lambda x: " / ".join(f"{v:.1e}" for v in x)  # noqa: E731
+    for r in rows:
+        L.append(f"| {r['size']} ({r['V']}) | {r['light']} | {r['vertices']} | {r['count']} | {f(r['vnni'])} | "
+                 f"{f(r['float'])} | {f(r['stored'])} | {f(r['bound'])} |")
+    emit_report(str(OUT / "wavelet_vnni_pervertex.md"), "\n".join(L) + "\n", "madd_micro vnni", {"rows": rows, "loads": loads})
+
+
+def write_proto(protos: list, loads: list, args) -> None:
+    """reports/benchmarks/wavelet_vnni_default.md: the VNNI default's whole-call rows against the opt-out (``--vnni
+    --proto``; the prototype's report before it became the default: wavelet_vnni_proto.md)."""
+    from bench_wavelet_isa import emit_report
+
+    from prt_torch import relight
+
+    path = relight.wavelet_kernel_path()
+    L = ["# Wavelet kernel: the VNNI dense loop by default against the opt-out, the whole call (issue 39)\n",
          f"{cpu_label()}, one thread, this thread's CPU time (`time.thread_time`; the others' load does not enter it); "
          f"load average {' → '.join(f'{x:.1f}' for x in loads)} (shared machine). Blocker scene `occluder_over_plane`, "
          "R = 32, K = 256, 16-bit values, CT = 1, RGB light (CO = 3), transport-weighted terms. Reproduce: "
          f"`.venv/bin/python benchmarks/bench_wavelet_madd_micro.py --vnni --proto --sizes {' '.join(args.sizes)} "
          f"--terms {' '.join(map(str, args.terms))}`.\n",
-         "`kernels/wavelet.c` built twice from the working tree with the wavelet library's flags (native: the W16 "
-         "loop): **vnni** with `#define DENSE_VNNI` (the W16 dense loop on `vpdpwssd`; the dense light quantised per "
-         "call by the *column-maximum rule* in groups of 16 dense terms — Σ_k tmax_k |Lq_k| ≤ 2³¹ − 1 per group and "
-         "channel, tmax the layout's per-column largest stored magnitude — and one flush per group: int32 → float, "
-         "times the group's scale, added), **float** the default build; both bound to the same layout "
-         "(`bench_wavelet_isa.bound_call`, the per-vertex factor), paired by one thread's CPU time (15 repeats; "
-         "**float / vnni** > 1: the prototype faster [quartiles]), each against the streaming read (`read_bound_fn` "
-         "of the bytes the call reads plus the output: section 7's criterion; each fraction from its own pairing). "
+         f"`kernels/wavelet.c` as this process builds it ({path.get('path')}; flags `{path.get('flags')}`), one library "
+         "bound to one layout (`bench_wavelet_isa.bound_call`, the per-vertex factor), called two ways: **vnni** the "
+         "default (the W16 dense loop on `vpdpwssd`; the dense light quantised per call by the *column-maximum rule* in "
+         "groups of 16 dense terms — Σ_k tmax_k |Lq_k| ≤ 2³¹ − 1 per group and channel, tmax the layout's per-column "
+         "largest stored magnitude — and one flush per group: int32 → float, times the group's scale, added), "
+         "**float** the opt-out (`WaveletRelighter(arith='float')`: C | FDENSE, the float loop's bits), paired by one "
+         "thread's CPU time (15 repeats; **float / vnni** > 1: the default faster [quartiles]), each against the "
+         "streaming read (`read_bound_fn` of the bytes the call reads plus the output: section 7's criterion; each "
+         "fraction from its own pairing). "
          "Errors, relative L2 over vertices and channels against the **float64 reference** of the same stored values "
-         "(`relight.wavelet_dense` of `reference_rows`, times the albedo): *err vnni*, *err float* (the default "
-         "build: float32 rounding only), *bound* the prototype's stated bound f_v Σ_g (s_g/2) Σ_{k∈g} |T_v,k| "
-         "(`quantise_light`'s scales; every vertex within it: ✓), *transfer's* the transfer's own 16-bit "
-         "quantisation bound for the same dense terms f_v Σ_k |L_k| / 2, *truncation* the default output at N "
+         "(`relight.wavelet_dense` of `reference_rows`, times the albedo): *err vnni*, *err float* (the opt-out: "
+         "float32 rounding only), *bound* the stated bound f_v Σ_g (s_g/2) Σ_{k∈g} |T_v,k| "
+         "(`vnni_bound`: `quantise_light`'s scales on brute-force column maxima; every vertex within it, float "
+         "rounding slack included: ✓), *transfer's* the transfer's own 16-bit "
+         "quantisation bound for the same dense terms f_v Σ_k |L_k| / 2, *truncation* the opt-out's output at N "
          "against all terms.\n",
          "| size (V) | light | N | dense terms (groups) | vnni µs | float µs | **float / vnni** [quartiles] | of read: "
          "float → **vnni** | err vnni | err float | bound | transfer's | truncation | within | load |",
@@ -810,7 +959,7 @@ def write_proto(protos: list, loads: list, args) -> None:
                  f"{r['float'] * 1e6:.1f} | **{r['ratio']:.2f}** [{r['q'][0]:.2f}, {r['q'][1]:.2f}] | "
                  f"{r['of_read_float']:.2f} → **{r['of_read']:.2f}** | {r['err']:.1e} | {r['err_float']:.1e} | "
                  f"{r['bound']:.1e} | {r['tbound']:.1e} | {r['trunc']:.1e} | {'✓' if r['ok'] else '✗'} | {r['load']:.1f} |")
-    emit_report(str(OUT / "wavelet_vnni_proto.md"), "\n".join(L) + "\n", "madd_micro vnni", {"rows": protos, "loads": loads})
+    emit_report(str(OUT / "wavelet_vnni_default.md"), "\n".join(L) + "\n", "madd_micro vnni", {"rows": protos, "loads": loads})
 
 
 def write_vnni(rows: list, floors: dict, ghz: float, loads: list, args, protos: list) -> None:
@@ -911,8 +1060,10 @@ def write_vnni(rows: list, floors: dict, ghz: float, loads: list, args, protos: 
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--vnni", action="store_true", help="the AVX-512 VNNI rows only (wavelet_madd_micro_vnni.md)")
-    ap.add_argument("--proto", action="store_true", help="--vnni: the DENSE_VNNI prototype's whole-call rows only "
-                    "(reports/benchmarks/wavelet_vnni_proto.md)")
+    ap.add_argument("--proto", action="store_true", help="--vnni: the whole-call rows only "
+                    "(the VNNI default against the opt-out: reports/benchmarks/wavelet_vnni_default.md)")
+    ap.add_argument("--pervertex", action="store_true", help="--vnni: the default's error per vertex beside the opt-out's "
+                    "and the stored transfer's own, incl. HDR lights (reports/benchmarks/wavelet_vnni_pervertex.md)")
     ap.add_argument("--sizes", nargs="+", default=["small"], help="--vnni: the kernel section's sizes (small, medium, large)")
     ap.add_argument("--terms", type=int, nargs="+", default=[300, 1000, 6144])
     ap.add_argument("--grey", nargs="*", default=["cap 20°", "cap 40°"], choices=list(LIGHTS),
@@ -931,6 +1082,13 @@ def main() -> None:
     lib = build_library()
     if lib is None:
         raise SystemExit("bench_wavelet_madd_micro: no compiler")
+    if args.vnni and args.pervertex:
+        loads, rows = [os.getloadavg()[0]], []
+        for size in args.sizes:
+            rows += pervertex_rows(size, args)
+            loads.append(os.getloadavg()[0])
+        write_pervertex(rows, loads, args)
+        return
     if args.vnni and args.proto:
         loads, protos = [os.getloadavg()[0]], []
         for size in args.sizes:

@@ -351,6 +351,17 @@ class WaveletRelighter:
     the kernel's threads (tiles split between them; None = ``torch.get_num_threads()`` per call).
     The C kernel when it compiles, else (and with ``PRT_TORCH_NATIVE=0``) the same two forms in torch; light values
     that require grad take :meth:`relight_grad` (differentiable, for a fixed term selection).
+
+    ``arith``: the dense terms' arithmetic. ``'auto'`` (default): the build's — in the AVX-512 build on a CPU with
+    AVX-512 VNNI (:func:`wavelet_kernel_path`'s ``vnni``) the calls of a 16-bit grey transfer (CT = 1) under an RGB
+    light with unequal channels that take the 16-lane loop sum their dense terms by int16 dot products (``vpdpwssd``):
+    the light quantised per call to int16 per channel in groups of 16 dense terms by the column-maximum rule, error per
+    vertex and channel at most f_v Σ_g (s_g / 2) Σ_{k∈g} |T̂_v,k| (s_g the group's step: about max|L̂| / 32767, more
+    where Σ_k tmax_k |L̂_k| would overflow int32): 0.28–0.90× the stored 16-bit transfer's own quantisation bound, an
+    output error of 8e-6–6e-5 relative L2, but up to ~2e-3 relative at the dimmest vertices, where the light's terms
+    cancel — more than the stored transfer's own error there (docs/wavelet.md, "The dense arithmetic" and "the VNNI
+    dense loop by default"); every other call, and every other build, the float32 loop. ``'float'``: the float32 loop
+    for every call (the kernel's C | FDENSE), the bits of the builds without VNNI.
     """
 
     BLOCK = 32  # vertices per dense block (kernels/wavelet.c BV)
@@ -366,6 +377,12 @@ class WaveletRelighter:
     #: 2251 vertices; medium, 10 585: 0.60-0.67); over lights holding 0.40-0.80, 0.62 loses 0.2% on average to the
     #: faster pass (small and medium), 0.5 1.8% / 1.7%
     ROW_MIN_W16 = 0.62
+    #: kernels/wavelet.c's opt-out bit of the VNNI dense loop (C | FDENSE: the float loop), passed only to builds with it
+    FDENSE = 512
+    #: ``arith``'s values
+    ARITH = ("auto", "float")
+    #: kernels/wavelet.c's ZMM_MIN: a call with fewer (dense term, 32-vertex block) pairs takes the 8-lane float loop
+    ZMM_MIN = 256
 
     @classmethod
     def default_row_min(cls, path: dict | None = None) -> float:
@@ -476,12 +493,16 @@ class WaveletRelighter:
         return ukey, bvals
 
     def __init__(self, transfer, dense_min: float | None = None, tile: int | None = None, threads: int | None = None,
-                 row_min: float | None = None, layouts: str = "auto"):
+                 row_min: float | None = None, layouts: str = "auto", arith: str = "auto"):
         if getattr(transfer, "kind", None) != "wavelet":
             raise ValueError(f"WaveletRelighter needs a transfer of kind 'wavelet'; got {getattr(transfer, 'kind', describe(transfer))!r}")
         if layouts not in ("auto", "both", "column"):
             raise ValueError(f"layouts={layouts!r}; accepted: 'auto' (row-major copy on first need), 'both', 'column'")
+        check_arith(arith, "arith")
         self.layouts = layouts
+        self.arith = arith
+        self._fd = 0  # FDENSE when arith='float' and the bound build has the VNNI loop (_kernel)
+        self._vnni = False  # the bound build has the VNNI dense loop (_kernel)
         self.huge_pages = io.huge_pages_enabled()  # PRT_TORCH_HUGEPAGES, read once per relighter
         self.transfer = transfer
         idx_all = transfer.aux["index"]
@@ -886,6 +907,34 @@ class WaveletRelighter:
         a coloured transfer's coefficient counts once for its three values)."""
         return int(self.nnz[light_idx.long()].sum())
 
+    def _takes_vnni(self, light_idx: torch.Tensor, light_vals: torch.Tensor, vnni: bool | None = None,
+                    arith: str | None = None) -> bool:
+        """kernels/wavelet.c's choice of the VNNI dense loop for a call with ``light_idx [N]``, ``light_vals [C, N]``
+        float32: the build has it (``vnni``; None: the build this relighter is bound to), ``arith`` (None: this
+        relighter's) is ``'auto'``, 16-bit kernel values on a grey transfer (CT = 1), an RGB light whose three channels
+        are not bitwise equal at every term (a grey RGB light takes one sum per vertex), and at least :attr:`ZMM_MIN`
+        (distinct dense column, 32-vertex block) pairs. The other calls take the float loop (its bits)."""
+        if vnni is None:
+            self._kernel()
+            vnni = self._vnni
+        lv = torch.as_tensor(light_vals).to(torch.float32)
+        if (not vnni or (self.arith if arith is None else arith) != "auto" or self.dense.dtype != torch.int16
+                or self.CT != 1 or lv.shape[0] != 3 or bool((lv[0] == lv[1]).all() and (lv[0] == lv[2]).all())):
+            return False
+        slots = self.dslot[torch.as_tensor(light_idx).long()]
+        nd = int(torch.unique(slots[slots >= 0]).numel())
+        return nd > 0 and nd * -(-self.V // self.BLOCK) >= self.ZMM_MIN
+
+    def kernel_path(self) -> dict:
+        """:func:`wavelet_kernel_path` of the build this relighter calls, with ``dense`` for its calls under an RGB light
+        (unequal channels): ``'int16 vnni'`` where the build has the VNNI loop, ``arith`` is ``'auto'`` and the kernel
+        values are 16-bit on a grey transfer (a call with little dense work still takes the 8-lane float loop), else
+        ``'float'``; ``arith`` this relighter's."""
+        p = dict(wavelet_kernel_path(arith=self.arith))
+        if self.dense.dtype != torch.int16 or self.CT != 1 or os.environ.get("PRT_TORCH_NATIVE", "1") == "0":
+            p["dense"] = "float"
+        return p
+
     def light(self, spec, terms: int | None = None, selection: str = "transport", supersample: int = 4):
         """:func:`wavelet_light` at this transfer's resolution (``'transport'`` uses :attr:`weights`)."""
         return wavelet_light(spec, self.res, terms, selection, self.weights if selection == "transport" else None,
@@ -917,6 +966,9 @@ class WaveletRelighter:
                                          0 if self._dtmax is None else self._dtmax.data_ptr()],
                                         dtype=torch.int64)
             lay = self._layout.data_ptr()
+            # the opt-out bit only where the build has the VNNI loop (the others refuse any bit above F1: status 1)
+            self._vnni = bool(float_dense_flag(lib))  # the build has the VNNI dense loop
+            self._fd = float_dense_flag(lib) if self.arith == "float" else 0
             self._native = functools.partial(fn, lay)
             self._packed = getattr(lib, fn.__name__ + "_packed")  # the same kernel, its arguments in one int64 array
         return self._native
@@ -942,7 +994,7 @@ class WaveletRelighter:
         th = torch.get_num_threads() if self.threads is None else self.threads
         # the kernel's eight arguments packed once into an int64 array: ctypes then converts one argument per call
         # instead of eight (~0.8 us less per call; benchmarks/bench_wavelet_call.py)
-        args = torch.tensor([self._layout.data_ptr(), li.numel(), li.data_ptr(), lv.data_ptr(), Ck, f.data_ptr(),
+        args = torch.tensor([self._layout.data_ptr(), li.numel(), li.data_ptr(), lv.data_ptr(), Ck | self._fd, f.data_ptr(),
                              o.data_ptr(), th], dtype=torch.int64)
         call = functools.partial(self._packed, args.data_ptr())
         held = (li, lv, f, o, args)  # the tensors the pointers address stay alive with the closure
@@ -985,10 +1037,10 @@ class WaveletRelighter:
             fk = self._f.get((C, albedo))
             f, Ck = fk if fk is not None else self._kfactor(C, albedo)
             th = torch.get_num_threads() if self.threads is None else self.threads
-            st = kern(N, li.data_ptr(), lv.data_ptr(), Ck, f.data_ptr(), o.data_ptr(), th)
+            st = kern(N, li.data_ptr(), lv.data_ptr(), Ck | self._fd, f.data_ptr(), o.data_ptr(), th)
             if st == 3:  # the first light needing the row-major copy: built, the call repeated
                 self._build_rows()
-                st = kern(N, li.data_ptr(), lv.data_ptr(), Ck, f.data_ptr(), o.data_ptr(), th)
+                st = kern(N, li.data_ptr(), lv.data_ptr(), Ck | self._fd, f.data_ptr(), o.data_ptr(), th)
             if st == 0:
                 return o
         self._check_indices(li)
@@ -1107,26 +1159,49 @@ def _wavelet_lib(isa: str | None = None):
     return _WAVELET[key]
 
 
-def wavelet_kernel_path(isa: str | None = None) -> dict:
+def float_dense_flag(lib) -> int:
+    """The bits to or into a call's C for the float dense loop on build ``lib`` (a loaded ``kernels/wavelet.c``):
+    ``WaveletRelighter.FDENSE`` where the build has the VNNI dense loop (``prt_wavelet_isa`` bit 64), else 0 (the
+    builds without it take the float loop anyway and refuse the bit)."""
+    return WaveletRelighter.FDENSE if int(lib.prt_wavelet_isa()) & 64 else 0
+
+
+def check_arith(value, name: str = "arith") -> str:
+    """``value`` if it is one of :attr:`WaveletRelighter.ARITH`, else ``ValueError`` (one line naming ``name``, the
+    value and what is accepted)."""
+    if value not in WaveletRelighter.ARITH:
+        raise ValueError(f"{name}={value!r}; accepted: 'auto' (the build's dense arithmetic: int16 VNNI dot products on a "
+                         "CPU with AVX-512 VNNI where the call allows, else float32) or 'float' (the float32 dense loop always)")
+    return value
+
+
+def wavelet_kernel_path(isa: str | None = None, arith: str = "auto") -> dict:
     """Which build of ``kernels/wavelet.c`` relights (a benchmark row names it): ``backend`` (``native``, or
     ``torch`` with ``why``), the build's instruction set as its ``#if`` branches saw it (``isa``: avx512 / avx2 /
-    avx / baseline, from ``prt_wavelet_isa``; ``w16``: the dense loop on 16 lanes), the ``PRT_TORCH_KERNEL_ISA``
-    choice, the compiler flags, this CPU's own ISA (``cpu_isa``) and ``path`` in words. ``isa``: that build
-    (:func:`_wavelet_lib`) instead of this process's."""
+    avx / baseline, from ``prt_wavelet_isa``; ``w16``: the dense loop on 16 lanes; ``vnni``: the build has the dense
+    loop on AVX-512 VNNI), ``dense``: the dense arithmetic of its 16-bit grey-transfer calls under an RGB light with
+    ``arith`` (``'int16 vnni'``: the build has the VNNI loop and ``arith`` is ``'auto'``; ``'float'``: the float32 loop;
+    the other calls, and calls with little dense work, always ``'float'``), the ``PRT_TORCH_KERNEL_ISA`` choice, the
+    compiler flags, this CPU's own ISA (``cpu_isa``) and ``path`` in words. ``isa``: that build (:func:`_wavelet_lib`)
+    instead of this process's."""
     from ._native import cpu_isa
 
+    check_arith(arith)
     lib = _wavelet_lib(isa)
     out = {"backend": "native" if lib is not None else "torch", "cpu_isa": cpu_isa()}
     if lib is None:
         out["why"] = _WAVELET.get("why") or "disabled by PRT_TORCH_NATIVE=0"
         out["path"] = "torch formulation"
+        out["dense"] = "float"
         return out
     bits = int(lib.prt_wavelet_isa())
     choice, flags = lib.prt_build
     name = "avx512" if bits & 8 else "avx2" if bits & 2 and bits & 4 else "avx" if bits & 1 else "baseline"
-    w16 = bool(bits & 32)
+    w16, vnni = bool(bits & 32), bool(bits & 64)
+    dense = "int16 vnni" if vnni and arith == "auto" else "float"
     vec = ("AVX-512" if bits & 8 else "AVX2") if bits & 2 else "portable vector"
-    out.update({"isa": name, "w16": w16, "isa_choice": choice, "flags": flags,
-                "path": ("dense loop on 16 lanes (AVX-512, zmm), sparse blocks and output on 8 lanes" if w16 else
+    out.update({"isa": name, "w16": w16, "vnni": vnni, "dense": dense, "isa_choice": choice, "flags": flags,
+                "path": (f"dense loop on 16 lanes (AVX-512, zmm; {'int16 VNNI dot products' if dense != 'float' else 'float32'} "
+                         "for 16-bit RGB calls), sparse blocks and output on 8 lanes" if w16 else
                          f"dense loop, sparse blocks and output on 8 lanes ({vec} code)")})
     return out

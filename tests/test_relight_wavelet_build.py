@@ -52,7 +52,8 @@ def test_chunked_build_equals_dense_reference_and_torch_path(params, chunk, monk
     tr = _wavelet(**params)
     monkeypatch.setattr(WaveletRelighter, "BUILD_CHUNK_BYTES", chunk)
     for layouts in ("column", "both"):
-        r = WaveletRelighter(tr, layouts=layouts, tile=64 if chunk == 1 else None)
+        # the float dense loop (arith='float'): this test is about the chunked construction, to float32 rounding
+        r = WaveletRelighter(tr, layouts=layouts, tile=64 if chunk == 1 else None, arith="float")
         assert WaveletRelighter._build_rows_per_chunk(r.K, r.CT) < r.V or chunk > 1 << 20
         idx, vals = r.reference_rows()
         assert idx.shape == (r.V, r.K) and vals.dtype == torch.float32

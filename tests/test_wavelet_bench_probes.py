@@ -36,7 +36,9 @@ def _bench(name: str):
 def rl():
     mesh = builtin("occluder_over_plane", "small")
     tr = precompute_wavelet(mesh, 8, 32, 16, shadows="always", run=RunOptions(workers=1))
-    return relight.WaveletRelighter(tr, threads=1)
+    # the float dense loop (arith='float'; the probes' calls pass C | FDENSE too): these tests are about the probes,
+    # checked to float32 rounding of the reference
+    return relight.WaveletRelighter(tr, threads=1, arith="float")
 
 
 def _reference(rl, li, lv):
@@ -45,8 +47,8 @@ def _reference(rl, li, lv):
 
 def _args(rl, li, lv, out):
     rl.prepared(li, lv, out)()  # binds the layout (and builds the row-major copy when this light takes it)
-    return (rl._layout.data_ptr(), li.numel(), li.data_ptr(), lv.data_ptr(), 3, rl._factor(3, True).data_ptr(),
-            out.data_ptr(), 1)
+    return (rl._layout.data_ptr(), li.numel(), li.data_ptr(), lv.data_ptr(), 3 | relight.float_dense_flag(relight._wavelet_lib()),
+            rl._factor(3, True).data_ptr(), out.data_ptr(), 1)
 
 
 @pytest.mark.parametrize("N", [10, 100, None])

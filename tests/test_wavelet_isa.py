@@ -3,7 +3,14 @@ each build this CPU runs relights one layout — every stored dtype, grey and co
 the column-major and row-major sparse passes, one and two threads, a vertex count that is not a multiple of the
 32-vertex block — as the float64 gather of the same stored values (``relight.wavelet_dense``), and names its path
 (``wavelet_kernel_path``: the 16-lane dense loop in the AVX-512 build alone). The AVX-512 builds are skipped on a
-CPU without avx512f and avx512vl (where they are refused in one line); the environment variable is honoured."""
+CPU without avx512f and avx512vl (where they are refused in one line); the environment variable is honoured.
+
+On a CPU with AVX-512 VNNI the native and avx512 builds sum the dense terms of the calls that allow it (16-bit values,
+a grey transfer, an RGB light with unequal channels, enough dense work: ``WaveletRelighter._takes_vnni``) by int16 dot
+products, the default since 2026-11-30: those calls are checked within the VNNI loop's stated bound
+(``bench_wavelet_madd_micro.vnni_bound``), every other call — and every call with the opt-out, C | FDENSE — gives the
+float loop's bits, the AVX2 build's; the AVX2 build (a CPU without VNNI) refuses the bit and keeps the float loop, and a
+library cached on a VNNI CPU is not loaded where the CPU's flags lack VNNI."""
 
 from __future__ import annotations
 
@@ -11,6 +18,7 @@ import json
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 import torch
@@ -24,6 +32,18 @@ pytestmark = pytest.mark.skipif(os.environ.get("PRT_TORCH_NATIVE", "1") == "0" o
 
 HAS_512 = _native.cpu_isa() == "avx512"
 HAS_AVX2 = _native.cpu_isa() in ("avx2", "avx512")
+HAS_VNNI = HAS_512 and {"avx512_vnni", "avx512bw"} <= _native._isa_flags()
+FDENSE = relight.WaveletRelighter.FDENSE
+
+
+def _bench():
+    """benchmarks/bench_wavelet_madd_micro.py (``vnni_bound``: the VNNI loop's stated bound, found independently)."""
+    root = str(Path(__file__).resolve().parents[1] / "benchmarks")
+    sys.path.insert(0, root)
+    try:
+        return __import__("bench_wavelet_madd_micro")
+    finally:
+        sys.path.remove(root)
 
 
 def _transfer(dtype, CT: int, res: int = 8, K: int = 24, seed: int = 3, dense: int = 16) -> Transfer:
@@ -41,16 +61,24 @@ def _transfer(dtype, CT: int, res: int = 8, K: int = 24, seed: int = 3, dense: i
                     aux={"index": index.to(torch.int16), "scale": torch.ones(V) if CT == 1 else torch.ones(V, CT)})
 
 
-def _relight(r, lib, li, lv, threads: int) -> torch.Tensor:
-    """``r``'s layout relit by build ``lib`` (its plain entry point), no albedo."""
+def _relight(r, lib, li, lv, threads: int, flags: int = 0) -> torch.Tensor:
+    """``r``'s layout relit by build ``lib`` (its plain entry point), no albedo; ``flags`` or-ed into C (FDENSE: the
+    float dense loop)."""
     r._kernel()
     name = {torch.int8: "i8", torch.int16: "i16"}.get(r.bvals.dtype, "f32")
     f = r._factor(lv.shape[0], False)
     out = torch.empty(r.V, f.shape[1])
     st = getattr(lib, f"prt_wavelet_relight_{name}")(r._layout.data_ptr(), li.numel(), li.data_ptr(), lv.data_ptr(),
-                                                     lv.shape[0], f.data_ptr(), out.data_ptr(), threads)
+                                                     lv.shape[0] | flags, f.data_ptr(), out.data_ptr(), threads)
     assert st == 0, st
     return out
+
+
+def _within_vnni_bound(r, got, ref, li, lv, albedo: bool = False) -> bool:
+    """``got`` (a VNNI call, the albedo applied or not) within the VNNI loop's stated bound of the float64 reference
+    ``ref`` [V, 3] (``bench_wavelet_madd_micro.vnni_bound``)."""
+    b = _bench().vnni_bound(r, li, lv, albedo=albedo)
+    return bool(((got.double() - ref).abs() <= b["bound"] + b["slack"] + 1e-6).all())
 
 
 def _builds() -> list:
@@ -68,8 +96,12 @@ def test_each_build_equals_the_dense_reference(isa):
     path = relight.wavelet_kernel_path(isa)
     assert path["backend"] == "native" and path["isa_choice"] == isa
     assert path["w16"] == (isa == "avx512" or (isa == "native" and HAS_512)), path
+    assert path["vnni"] == (path["w16"] and HAS_VNNI), path
+    assert path["dense"] == ("int16 vnni" if path["vnni"] else "float"), path
+    assert relight.wavelet_kernel_path(isa, arith="float")["dense"] == "float"
     if isa == "avx2":
         assert path["isa"] == "avx2" and "8 lanes" in path["path"]
+    vnni_calls = 0
     g = torch.Generator().manual_seed(11)
     for dtype in (torch.int8, torch.int16, torch.float32):
         for CT, channels in ((1, (1, 2, 3, 4)), (3, (1, 3))):
@@ -84,10 +116,17 @@ def test_each_build_equals_the_dense_reference(isa):
                     L = lv.double().expand(max(C, CT), N)  # a grey light on a coloured transfer: its channel for all three
                     ref = (relight.wavelet_dense(vals.double(), idx, li, L, r.P) if CT == 1 else torch.cat(
                         [relight.wavelet_dense(vals[:, c].double(), idx, li, L[c:c + 1], r.P) for c in range(CT)], 1))
+                    vnni = r._takes_vnni(li, lv, vnni=path["vnni"], arith="auto")
+                    vnni_calls += vnni
                     for threads in (1, 2):
-                        got = _relight(r, lib, li, lv, threads).double()
-                        err = float((got - ref).abs().max())
-                        assert err <= 1e-5 * float(ref.abs().max()) + 1e-6, (isa, dtype, CT, C, N, threads, err)
+                        for flags in ((0, FDENSE) if path["vnni"] else (0,)):
+                            got = _relight(r, lib, li, lv, threads, flags).double()
+                            if vnni and not flags:  # the VNNI loop: its stated bound
+                                assert _within_vnni_bound(r, got, ref, li, lv), (isa, dtype, CT, C, N, threads)
+                                continue
+                            err = float((got - ref).abs().max())
+                            assert err <= 1e-5 * float(ref.abs().max()) + 1e-6, (isa, dtype, CT, C, N, threads, flags, err)
+    assert (vnni_calls > 0) == path["vnni"], vnni_calls
 
 
 @pytest.mark.skipif(not HAS_512, reason="no avx512f/avx512vl on this CPU: one build only")
@@ -113,10 +152,20 @@ def test_builds_agree_bit_for_bit(dtype):
                 for N in (3, 40, r.P):
                     li = (torch.cat([dense[:2], sparse[:1]]) if N == 3 else torch.randperm(r.P, generator=g)[:N]).contiguous()
                     lv = torch.randn(1, N, generator=g).expand(3, N).contiguous() if C == "grey" else torch.randn(C, N, generator=g)
+                    vnni = r._takes_vnni(li, lv, vnni=HAS_VNNI, arith="auto")
                     for threads in (1, 2):
                         a = _relight(r, relight._wavelet_lib("avx512"), li, lv, threads)
                         b = _relight(r, relight._wavelet_lib("avx2"), li, lv, threads)
-                        assert torch.equal(a, b), (dtype, CT, tile, C, N, threads)
+                        if vnni:  # the VNNI loop (AVX-512 VNNI CPUs): not the float bits, within its bound; opted out: the bits
+                            assert not torch.equal(a, b), (dtype, CT, tile, C, N, threads)
+                            if threads == 1:
+                                idx, vals = r.reference_rows()
+                                ref = relight.wavelet_dense(vals.double(), idx, li, lv.double(), r.P)
+                                assert _within_vnni_bound(r, a, ref, li, lv), (dtype, CT, tile, C, N)
+                            a = _relight(r, relight._wavelet_lib("avx512"), li, lv, threads, FDENSE)
+                        elif HAS_VNNI:  # the opt-out changes nothing where the VNNI loop is not taken
+                            assert torch.equal(a, _relight(r, relight._wavelet_lib("avx512"), li, lv, threads, FDENSE))
+                        assert torch.equal(a, b), (dtype, CT, tile, C, N, threads, vnni)
 
 
 def test_avx512_request_refused_in_one_line_without_it():
@@ -136,3 +185,58 @@ def test_environment_variable_selects_the_build():
     assert r.returncode == 0, r.stderr[-2000:]
     p = json.loads(r.stdout.strip().splitlines()[-1])
     assert p["isa"] == "avx2" and p["isa_choice"] == "avx2" and not p["w16"] and "-mno-avx512f" in p["flags"], p
+    assert not p["vnni"] and p["dense"] == "float", p  # a CPU without VNNI (the AVX2 build): the float loop
+
+
+def test_the_opt_out_bit_and_arith_values():
+    """C | FDENSE (512), also with C | F1: accepted by a build with the VNNI loop (the float loop), refused (status 1, nothing written) by
+    the builds without it; any other bit above F1 refused by every build; ``arith`` / ``wavelet_kernel_path(arith=)``
+    refuse another value in one line naming it; ``arith='float'`` passes the bit only to a build with the VNNI loop."""
+    tr = _transfer(torch.int16, 1)
+    r = relight.WaveletRelighter(tr, threads=1, arith="float")
+    li = torch.arange(40)
+    lv = torch.randn(3, 40, generator=torch.Generator().manual_seed(1))
+    builds = ["native"] + (["avx2"] if HAS_AVX2 else []) + (["avx512", "avx512-256"] if HAS_512 else [])
+    for isa in builds:
+        lib = relight._wavelet_lib(isa)
+        vnni = relight.wavelet_kernel_path(isa)["vnni"]
+        name = "prt_wavelet_relight_i16"
+        r._kernel()
+        f = r._factor(3, False)
+        for C, ok in ((3 | FDENSE, vnni), (3 | FDENSE | 256, vnni), (3 | 1024, False), (3 | 2048 | FDENSE, False)):
+            out = torch.full((r.V, 3), 7.0)
+            st = getattr(lib, name)(r._layout.data_ptr(), 40, li.data_ptr(), lv.data_ptr(), C, f.data_ptr(), out.data_ptr(), 1)
+            assert (st == 0) == ok, (isa, C, st)
+            if not ok:
+                assert st == 1 and bool((out == 7.0).all()), (isa, C, st)
+    assert r._fd == (FDENSE if relight.wavelet_kernel_path()["vnni"] else 0)
+    for bad in ("int16", "Float", None, 1):
+        with pytest.raises(ValueError) as e:
+            relight.WaveletRelighter(tr, arith=bad)
+        assert "\n" not in str(e.value) and f"arith={bad!r}" in str(e.value) and "'auto'" in str(e.value)
+        with pytest.raises(ValueError):
+            relight.wavelet_kernel_path(arith=bad)
+
+
+@pytest.mark.skipif("avx512_vnni" not in _native._cpu_id(), reason="this CPU has no AVX-512 VNNI")
+def test_a_library_cached_on_a_vnni_cpu_is_not_loaded_without_vnni(tmp_path, monkeypatch):
+    """The run-time cache keys a library by the CPU's model name and flags line (``_native._cpu_id``): the wavelet
+    library this CPU built (with the VNNI loop) is found again here, but not by a process whose CPU lacks avx512_vnni
+    (the flags line without it: another key), which compiles its own (here a compiler that refuses, so none)."""
+    relight._wavelet_lib()  # the cached build of this CPU exists
+    import shutil
+
+    cc = os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc")
+    fake = tmp_path / "cc"
+    fake.write_text(f'#!/bin/sh\nif [ "$1" = --version ]; then exec {cc} --version; fi\nexit 1\n')
+    fake.chmod(0o755)
+    monkeypatch.setenv("CC", str(fake))
+    monkeypatch.setenv("PRT_TORCH_PREBUILT", "0")
+    names, flags = _native.LIBRARIES["wavelet"]
+    sig = {"prt_wavelet_isa": []}
+    lib, how = _native.compile_library("wavelet", _native.kernel_sources(names), list(flags), sig)
+    assert lib is not None and int(lib.prt_wavelet_isa()) & 64, how  # found in the cache: the VNNI loop
+    cpu = _native._cpu_id()
+    monkeypatch.setattr(_native, "_cpu_id", lambda: cpu.replace(" avx512_vnni", ""))
+    lib, how = _native.compile_library("wavelet", _native.kernel_sources(names), list(flags), sig)
+    assert lib is None and "compiling the wavelet kernels failed" in how, how

@@ -11,8 +11,10 @@ docs/wavelet.md; benchmarks/bench_wavelet_madd_micro.py): the claims its report 
   layout (|T| = 32767 everywhere, signs alternating or not, a light of equal terms: the largest int32 sums the rule
   allows), on random layouts with random lights, and on a real transfer's dense blocks; on the VNNI path a light that
   would overflow int32 wraps (the check sees it) and the rules' lights do not.
-- ``kernels/wavelet.c`` built with ``-DDENSE_VNNI`` (the prototype, off by default) relights within its stated bound
-  of the float64 sums of the same stored values.
+- The wavelet relighter's default on an AVX-512 VNNI CPU (``kernels/wavelet.c``'s VNNI dense loop, the default
+  since 2026-11-30) relights within its stated bound (``vnni_bound``) of the float64 sums of the same stored values,
+  also under high-dynamic-range lights (a sun 1e4 x the sky; one huge term among small ones), and its opt-out
+  (``arith='float'``) is the float loop.
 """
 
 from __future__ import annotations
@@ -171,55 +173,94 @@ def test_vnni_light_that_would_overflow_does_not(bench, lib):
         assert int((tmax[ds, None] * q.long().abs()).sum(0).max()) <= 2 ** 31 - 1
 
 
-def test_kernel_dense_vnni_prototype_within_the_bound(bench, lib):
-    """kernels/wavelet.c built with -DDENSE_VNNI (the prototype: off by default) relights within its stated bound of the
-    float64 sums of the same stored values: |out - exact| <= f_v sum_g (s_g,c / 2) sum_{k in g} |T_v,k| over the dense
-    terms (s: quantise_light's column-maximum rule in groups of 16 terms, on the columns' largest stored magnitudes
-    found here by brute force) + float rounding; odd and even dense-term counts, an odd block count; and the prototype's
-    loop was taken (not the default build's bits)."""
-    if lib.vnni_floor(0, 1) < 0:
-        pytest.skip("no AVX-512 VNNI here")
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    try:
-        from bench_wavelet_isa import bound_call, kernel_build, kernel_source
-    finally:
-        sys.path.remove(str(ROOT / "benchmarks"))
+@pytest.fixture(scope="module")
+def vnni_rl():
+    """A real 16-bit grey transfer (blocker scene, small: 2251 vertices, 71 blocks with a partial last one) and its
+    default relighter, where this process's wavelet build has the VNNI dense loop (else skipped)."""
     from prt_torch import relight
     from prt_torch.scene import builtin
     from prt_torch.transfer import RunOptions
     from prt_torch.transfer.wavelet import precompute_wavelet
 
-    vn, _ = kernel_build("#define DENSE_VNNI 1\n" + kernel_source(None, "test")[0], "native", "test")
-    if not int(vn.prt_wavelet_isa()) & 32:
-        pytest.skip("no 16-lane (W16) build here")
+    if not relight.wavelet_kernel_path().get("vnni"):
+        pytest.skip("this wavelet build has no VNNI dense loop (no AVX-512 VNNI here, or PRT_TORCH_KERNEL_ISA)")
     tr = precompute_wavelet(builtin("occluder_over_plane", "small"), 8, 32, 16, shadows="always", run=RunOptions(workers=1))
     rl = relight.WaveletRelighter(tr, threads=1, layouts="column")
-    nb = rl.dense.shape[0]
-    assert nb % 2 == 1 or rl.V % 32, "wanted: an odd block count or a partial last block"
-    d16 = rl.dense.reshape(nb, rl.Pd, 32)
+    assert rl.CT == 1 and rl.dense.dtype == torch.int16 and (rl.dense.shape[0] % 2 == 1 or rl.V % 32)
+    return rl
+
+
+def _exact(rl, li, lv):
+    """The float64 reference of the same stored values (dequantised rows, times the albedo) [V, 3]."""
+    from prt_torch import relight
+
     ref_index, ref_vals = rl.reference_rows(0, rl.V)
-    fac = rl._factor(3, True).double()
+    return relight.wavelet_dense(ref_vals.double(), ref_index, li, lv.double(), rl.P) * rl.albedo[:, :3].double()
+
+
+def _default_and_float(rl, li, lv):
+    """The default call (the VNNI dense loop where it applies) and the opt-out's (``arith='float'``) on one layout,
+    through the relighter's own entry points (``__call__`` and ``prepared``, which must agree bit for bit)."""
+    from prt_torch import relight
+
+    default = rl(li, lv).clone()
+    assert torch.equal(default, rl.prepared(li, lv)())
+    fl = relight.WaveletRelighter(rl.transfer, threads=1, layouts="column", arith="float")
+    opt = fl(li, lv).clone()
+    assert torch.equal(opt, fl.prepared(li, lv)())
+    return default, opt
+
+
+def test_kernel_vnni_default_within_the_bound(bench, vnni_rl):
+    """The default relighter on an AVX-512 VNNI CPU (kernels/wavelet.c's VNNI dense loop) relights within its stated
+    bound of the float64 sums of the same stored values: |out - exact| <= f_v sum_g (s_g,c / 2) sum_{k in g} |T_v,k|
+    over the dense terms (``vnni_bound``: quantise_light's column-maximum rule in groups of 16 terms on the columns'
+    largest stored magnitudes found by brute force) + float rounding; odd and even dense-term counts, an odd block
+    count, the light's order and slot order; the VNNI loop was taken (not the opt-out's bits), the opt-out is the float
+    loop (float32 rounding only), and the layout's column maxima are the brute-force ones."""
+    rl = vnni_rl
+    rl._kernel()
+    d16 = rl.dense.reshape(rl.dense.shape[0], rl.Pd, 32)
+    assert torch.equal(rl._dtmax, d16.to(torch.int32).abs().amax(dim=(0, 2)))
     for spec, N in (("studio", 60), ("sky", 61), ("sky", rl.P)):
         li, lv, _ = rl.light(spec, N, "transport")
         lv = lv.float().contiguous()
-        d = rl.dslot[li] >= 0
-        ds = rl.dslot[li[d]].long()
-        out = torch.full((rl.V, 3), float("nan"))
-        default = rl.prepared(li, lv, torch.empty(rl.V, 3))()  # (and the row-major copy where the light takes it)
-        bound_call(rl, vn, li, lv, out, 1, True)()
-        # the reference rows are dequantised (the scale applied): times the albedo only
-        exact = relight.wavelet_dense(ref_vals.double(), ref_index, li, lv.double(), rl.P) * rl.albedo[:, :3].double()
-        lw = lv[:, d].T.contiguous()
-        if N > 256 or N >= rl.P - rl.Pd:  # the kernel lists the dense terms in slot order (else the light's order)
-            o = torch.argsort(ds)
-            ds, lw = ds[o], lw[o]
-        # the column-maximum rule in groups of 16 terms, on each column's largest stored magnitude (brute force here)
-        tmax = d16.to(torch.int32).abs().amax(dim=(0, 2))
-        assert torch.equal(rl._dtmax, tmax)
-        _, s, grp = bench.quantise_light(lw, 16, tmax[ds])
-        assert grp.numel() <= 16 or int(grp[-1]) > 0
-        tk = d16[:, ds, :].double().abs()  # [nb, nd, 32] |T_v,k| over the dense terms
-        bound = torch.einsum("bkv,kc->bvc", tk, s.double()[grp] / 2).reshape(-1, 3)[:rl.V] * fac
-        slack = 1e-5 * exact.abs().max()
-        assert bool(((out.double() - exact).abs() <= bound + slack).all()), (spec, N)
-        assert not torch.equal(out, default), "the prototype's loop was not taken (the default build's bits)"
+        assert rl._takes_vnni(li, lv)
+        out, opt = _default_and_float(rl, li, lv)
+        exact = _exact(rl, li, lv)
+        b = bench.vnni_bound(rl, li, lv)
+        assert b["groups"] >= 2 or b["nd"] <= 16
+        assert bool(((out.double() - exact).abs() <= b["bound"] + b["slack"]).all()), (spec, N)
+        assert bool(((opt.double() - exact).abs() <= b["slack"]).all()), (spec, N)  # the float loop: rounding only
+        assert not torch.equal(out, opt), "the VNNI loop was not taken (the opt-out's bits)"
+        assert rl.kernel_path()["dense"] == "int16 vnni"
+
+
+def test_kernel_vnni_default_hdr_lights_within_the_bound(bench, vnni_rl):
+    """High-dynamic-range lights (``bench_wavelet_madd_micro.hdr_lights``: a sun 1e4 x the sky's mean radiance; one huge term in a group of
+    small ones) on the VNNI default: every vertex within the stated bound (the step of a group follows its largest
+    light term, so the error of a vertex follows the group's largest term, not its own radiance); the relative error of
+    the vertices the sun does not reach (its own contribution under 1e-3 of its largest: shadowed by the blocker) is
+    printed beside the opt-out's, for docs/wavelet.md."""
+    rl = vnni_rl
+    for name, (li, lv, sun) in bench.hdr_lights(rl).items():
+        assert rl._takes_vnni(li, lv)
+        out, opt = _default_and_float(rl, li, lv)
+        exact = _exact(rl, li, lv)
+        b = bench.vnni_bound(rl, li, lv)
+        assert bool(((out.double() - exact).abs() <= b["bound"] + b["slack"]).all()), name
+        assert bool(((opt.double() - exact).abs() <= b["slack"]).all()), name
+        if sun is not None:
+            s = _exact(rl, li, sun).norm(dim=1)
+            mask = (s <= 1e-3 * s.max()) & (exact.norm(dim=1) > 0)
+        else:
+            mask = exact.norm(dim=1) > 0
+        assert int(mask.sum()) > 0
+        ev = (out.double() - exact).norm(dim=1)[mask] / exact.norm(dim=1)[mask]
+        ef = (opt.double() - exact).norm(dim=1)[mask] / exact.norm(dim=1)[mask]
+        bv = b["bound"].norm(dim=1)[mask] / exact.norm(dim=1)[mask]
+        print(f"\n[hdr] {name}: {int(mask.sum())} of {rl.V} vertices ({'sun-shadowed' if sun is not None else 'all lit'}): "
+              f"relative error per vertex, VNNI median {float(ev.median()):.1e} / 99% {float(ev.quantile(0.99)):.1e} / "
+              f"max {float(ev.max()):.1e} (bound median {float(bv.median()):.1e} / max {float(bv.max()):.1e}); "
+              f"float median {float(ef.median()):.1e} / max {float(ef.max()):.1e}; whole output rel. L2 VNNI "
+              f"{float((out.double() - exact).norm() / exact.norm()):.1e}")

@@ -56,7 +56,7 @@ def test_prefetch_across_units_keeps_the_bits(dtype):
                     ref = (relight.wavelet_dense(vals.double(), idx, li, L, r.P) if CT == 1 else torch.cat(
                         [relight.wavelet_dense(vals[:, c].double(), idx, li, L[c:c + 1], r.P) for c in range(CT)], 1))
                     for threads in (1, 2):
-                        a = _relight(r, forced, li, lv, threads)
+                        a = _relight(r, forced, li, lv, threads, relight.float_dense_flag(forced))  # the float dense loop
                         b = _relight(r, avx2, li, lv, threads)
                         assert torch.equal(a, b), (dtype, CT, tile, C, li.numel(), threads)
                         err = float((a.double() - ref).abs().max())

@@ -58,7 +58,10 @@ def test_consecutive_lights_each_build_scratch_zero_between_calls(tile):
             ref = _reference(r, li, lv)
             outs = {}
             for isa in _builds() if k % 2 == 0 else list(reversed(_builds())):  # each build last in turn
-                outs[isa] = _relight(r, relight._wavelet_lib(isa), li, lv, threads)
+                lib = relight._wavelet_lib(isa)
+                _relight(r, lib, li, lv, threads)  # the default (the VNNI dense loop where it applies): scratch zero too
+                assert _clean(r), (tile, threads, k, isa)
+                outs[isa] = _relight(r, lib, li, lv, threads, relight.float_dense_flag(lib))  # the float loop's bits
                 err = float((outs[isa].double() - ref).abs().max())
                 assert err <= 1e-5 * float(ref.abs().max()) + 1e-6, (tile, threads, k, isa, err)
                 assert _clean(r), (tile, threads, k, isa)
@@ -78,8 +81,11 @@ def test_refused_calls_and_the_row_major_pass_leave_the_scratch_zero():
     out = torch.empty(r.V, 3)
     call = lib.prt_wavelet_relight_i16
 
+    fd = relight.float_dense_flag(lib)  # the float dense loop (the reference's tolerance is float32 rounding)
+
     def st(li_, lv_, C):
-        return call(r._layout.data_ptr(), li_.numel(), li_.data_ptr(), lv_.data_ptr(), C, f.data_ptr(), out.data_ptr(), 1)
+        return call(r._layout.data_ptr(), li_.numel(), li_.data_ptr(), lv_.data_ptr(), C | (fd if C == 3 else 0), f.data_ptr(),
+                    out.data_ptr(), 1)
 
     assert st(li, lv, 3) == 0 and _clean(r)
     assert st(li, lv, 5) == 1 and _clean(r)  # C not accepted
@@ -125,6 +131,7 @@ def test_per_vertex_factor_output_same_bits_in_both_builds():
         lib = relight._wavelet_lib(isa)
         for name, f, C in (("f1", f1, 3 | r.F1), ("fc", fc, 3 | r.F1), ("fv", fv.contiguous(), 3)):
             out = torch.empty(r.V, 3)
+            C |= relight.float_dense_flag(lib)  # the float dense loop: the AVX2 build's bits
             assert lib.prt_wavelet_relight_i16(r._layout.data_ptr(), 60, li.data_ptr(), lv.data_ptr(), C, f.data_ptr(),
                                                out.data_ptr(), 1) == 0
             outs[isa, name] = out

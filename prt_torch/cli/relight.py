@@ -14,7 +14,9 @@ for the whole mesh, ``--exposure``) for a mesh viewer. Every kind:
 * a wavelet transfer (``prt precompute --kind wavelet``): the light on the cube at the transfer's
   R (not band-limited), its ``--terms`` N largest Haar coefficients by ``--selection`` (default:
   all 6R², the exact pixel-basis result), sparse light × sparse transfer
-  (:class:`prt_torch.relight.WaveletRelighter`; Ng et al. 2003).
+  (:class:`prt_torch.relight.WaveletRelighter`; Ng et al. 2003). ``--arith``: the dense terms' arithmetic
+  (``auto``, the default: int16 VNNI dot products on a CPU with AVX-512 VNNI where the call allows, error below the
+  stored 16-bit transfer's own bound; ``float``: the float32 loop, the bits of every other CPU; docs/wavelet.md).
 
 View-dependent kinds (glossy, MRT, transport tables) take the camera position ``--view X,Y,Z`` (default: the
 camera ``prt render`` places by default); view-independent ones refuse it.
@@ -64,6 +66,10 @@ def register(subparsers) -> None:
     p.add_argument("--selection", default=None, choices=["magnitude", "area", "transport"],
                    help="wavelet transfers: how the N terms are chosen (Ng 2003 §5; default transport-weighted, measured in "
                         "reports/benchmarks/wavelet.md)")
+    p.add_argument("--arith", default=None, choices=["auto", "float"],
+                   help="wavelet transfers: the kernel's dense arithmetic (default auto: int16 VNNI dot products on a CPU with "
+                        "AVX-512 VNNI where the call allows, else float32; float: the float32 loop everywhere, the same bits "
+                        "on every CPU)")
     p.add_argument("--transfer", dest="source", default=None, metavar="TRANSFER.prt",
                    help="codec files: the transfer it was compressed from (default: the path the codec file records)")
     p.add_argument("--view", type=_vector, default=None, metavar="X,Y,Z",
@@ -136,9 +142,10 @@ def _load(args):
 
 
 def radiance(transfer, light: str, codec=None, enc=None, terms: int | None = None, selection: str = "transport",
-             view=None, out=None, rows: int | None = None, record: dict | None = None):
+             view=None, out=None, rows: int | None = None, record: dict | None = None, arith: str = "auto"):
     """Per-vertex exit radiance ``[V, 3]`` float32 and a one-line description (module docstring).
-    A wavelet transfer: ``record`` (a dict, when given) receives the light's record (``relight.wavelet_light``:
+    A wavelet transfer: relit with ``arith`` (``WaveletRelighter(arith=)``: ``'auto'`` or ``'float'``, the dense
+    terms' arithmetic, named in the description); ``record`` (a dict, when given) receives the light's record (``relight.wavelet_light``:
     ``terms``, the terms kept, ``terms_requested``, ...); ``--terms`` N above the light's nonzero Haar terms keeps
     those (the same result) and says so in one warning line.
 
@@ -156,7 +163,7 @@ def radiance(transfer, light: str, codec=None, enc=None, terms: int | None = Non
             raise ValueError("a wavelet transfer has no codec files")
         if view is not None:
             raise ValueError("--view applies to glossy and MRT transfers; a wavelet transfer is diffuse (view-independent)")
-        r = relight.WaveletRelighter(transfer)
+        r = relight.WaveletRelighter(transfer, arith=arith)
         li, lv, rec = r.light(light, terms, selection)
         if record is not None:
             record.update(rec)
@@ -174,7 +181,9 @@ def radiance(transfer, light: str, codec=None, enc=None, terms: int | None = Non
         res = r(li, lv)
         if res.shape[1] == 1:
             res = res.expand(-1, 3)
-        return _into(res.contiguous(), out), (f"wavelet R={r.res}, {li.numel()} of {r.P} light terms ({selection}), "
+        dense = "int16 vnni" if r._takes_vnni(li, lv.to(torch.float32)) else "float"
+        return _into(res.contiguous(), out), (f"wavelet R={r.res}, {li.numel()} of {r.P} light terms ({selection}, dense "
+                                              f"{dense}), "
                                               f"{r.touched(li)} transfer coefficients read, relighter holds "
                                               f"{r.held_bytes()['total'] / r.V:.0f} B/vertex")
     if terms is not None:
@@ -447,7 +456,7 @@ def _calibrate_wavelet(args, transfer, load_seconds: float) -> tuple[float, str]
                                  meta=transfer.meta, mesh=types.SimpleNamespace(albedo=transfer.mesh.albedo[:k]),
                                  num_vertices=k)
     t = time.perf_counter()
-    r = WaveletRelighter(rows)
+    r = WaveletRelighter(rows, arith=getattr(args, "arith", None) or "auto")
     build = time.perf_counter() - t
     t = time.perf_counter()
     li, lv, _ = r.light(args.light, args.terms, args.selection or "transport")
@@ -498,8 +507,9 @@ def check_plan(pl: dict) -> None:
 
 
 def wavelet_options_only(args, why: str) -> None:
-    """Refuse ``--terms`` / ``--selection`` (the light's Haar terms) for an input that is not a wavelet transfer."""
-    for flag, v in (("--terms", args.terms), ("--selection", args.selection)):
+    """Refuse ``--terms`` / ``--selection`` (the light's Haar terms) / ``--arith`` for an input that is not a wavelet
+    transfer."""
+    for flag, v in (("--terms", args.terms), ("--selection", args.selection), ("--arith", getattr(args, "arith", None))):
         if v is not None:
             raise ValueError(f"{flag} {v} applies to wavelet transfers; {why}")
 
@@ -558,12 +568,13 @@ def run(args) -> int:
 
             with io.streamed_npy(out, (transfer.num_vertices, 3), "float32", overwrite=args.overwrite) as arr:
                 _, what = radiance(transfer, args.light, codec, enc, args.terms, args.selection or "transport", args.view,
-                                   out=torch.from_numpy(arr))
+                                   out=torch.from_numpy(arr), arith=args.arith or "auto")
                 lo, hi = float(arr.min()), float(arr.max())
             print(f"wrote {out} ([{transfer.num_vertices}, 3] float32; {what}; radiance range [{lo:.4g}, {hi:.4g}])")
             return 0
         else:
-            rad, what = radiance(transfer, args.light, codec, enc, args.terms, args.selection or "transport", args.view)
+            rad, what = radiance(transfer, args.light, codec, enc, args.terms, args.selection or "transport", args.view,
+                                 arith=args.arith or "auto")
     rgb = rad.numpy().astype(np.float32)
     if out.suffix.lower() == ".npy":
         with io.streamed_npy(out, rgb.shape, "float32", overwrite=args.overwrite) as arr:

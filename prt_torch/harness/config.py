@@ -72,6 +72,9 @@ DEFAULTS: dict[str, Any] = {
     # a wavelet transfer's all-frequency trade (harness.trade): its lights cut to N Haar terms against SH at n
     # bands projected from the same visibility, each against the exact result (every term)
     "trade": {"terms": [10, 30, 100, 300, 1000, 2000], "bands": [3, 4, 5, 6, 7, 8, 9, 10], "selection": "transport"},
+    # a wavelet transfer's relighter (relight.WaveletRelighter): the dense terms' arithmetic, 'auto' (int16 VNNI dot
+    # products on a CPU with AVX-512 VNNI where the call allows, else float32) or 'float' (the float32 loop everywhere)
+    "wavelet": {"arith": "auto"},
 }
 
 #: Keys whose value is itself a list (so a list there is not a sweep).
@@ -222,6 +225,7 @@ CONSTRAINTS: dict[str, list] = {
     "metrics.cold_pairs": [Interval(int, 0, None)],
     "metrics.max_memory_gb": [Interval(float, 0, None, closed="neither")],
     "trade.selection": [Options("magnitude", "area", "transport")],
+    "wavelet.arith": [Options("auto", "float")],
     "render.enabled": [Boolean()],
     "render.width": [Interval(int, 1, 8192)],
     "render.height": [Interval(int, 1, 8192)],

@@ -129,6 +129,8 @@ def camera_positions(center: torch.Tensor, radius: float, count: int, elevation_
 @dataclass
 class Evaluator:
     transfer: Transfer
+    #: a wavelet transfer's relighter: the dense terms' arithmetic (``WaveletRelighter(arith=)``; config ``wavelet.arith``)
+    wavelet_arith: str = "auto"
 
     def __post_init__(self):
         t = self.transfer
@@ -162,7 +164,7 @@ class Evaluator:
         elif t.kind == "wavelet":
             from ..relight import WaveletRelighter
 
-            self.relighter = WaveletRelighter(t)
+            self.relighter = WaveletRelighter(t, arith=self.wavelet_arith)
             self.res = self.relighter.res
             self.matrix_shape = None
             self.n_in = self.relighter.P

@@ -461,7 +461,7 @@ def evaluate_run(cfg: dict, run_dir: Path, resume: bool = True, progress: bool =
         f"transfer {cfg['transfer']['type']}")
     tr, tinfo = compute_transfer(cfg, mesh, Path(cfg["cache_dir"]), progress=progress, executor=executor)
     log(f"[bench] transfer {tuple(tr.data.shape)} ({tinfo['cache']}, {tinfo['seconds']:.1f} s)")
-    ev = Evaluator(tr)
+    ev = Evaluator(tr, wavelet_arith=cfg.get("wavelet", {}).get("arith", "auto"))
     lights, cams, views = ev.config_views(cfg)
     ref_cache, uncompressed = measure_uncompressed(ev, lights, views, cfg["metrics"])
 

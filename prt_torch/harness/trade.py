@@ -183,4 +183,4 @@ def wavelet_trade(ev: Evaluator, lights: list[torch.Tensor], cfg: dict, log: Cal
               if "full" in chk else {"skipped": chk["skipped"]})
     return {"selection": sel, "res": R, "terms": terms, "bands": bands, "rows": rows, "headline": head, "stored_check": stored,
             "bytes_per_vertex": ev.bytes_per_vertex, "threads": 1, "ratio_clock": "thread_time",
-            "timed": "render_loop"}
+            "timed": "render_loop", "kernel": r.kernel_path()}  # the build and its dense arithmetic (arith, VNNI)

@@ -18,14 +18,19 @@
  * per 8 vertices one 32-byte load of the factors and the same three multiplies, before the interleave instead of
  * after it (store_rgb8 / put_rgb8), in the 8- and the 16-lane builds alike. Measured: reports/benchmarks/
  * wavelet_factor.md (bench_wavelet_factor.py; docs/wavelet.md "The factor per vertex").
- * DENSE_VNNI (a prototype, W16 with AVX-512 VNNI only, off by default; above DENSE_TERMS): the 16-lane dense loop on
- * integer dot products (vpdpwssd zmm, two light terms per instruction), the dense light quantised per call to int16
- * by the column-maximum rule in groups of VNNI_G = 16 terms (the layout's dtmax), a flush to float per group; not
- * the float loop's bits. Measured on the Intel Xeon (bench_wavelet_madd_micro.py --vnni --proto, reports/benchmarks/
- * wavelet_vnni_proto.md; docs/wavelet.md), the whole call paired with the default build: small 1.10-1.26x (N <= 300),
- * medium N = 10-30 1.12-1.21x, N >= 100 0.99-1.04x (the lines from L3); output error 8e-6-6e-5 rel. L2 against
- * float64, its bound 0.28-0.90x the transfer's own 16-bit bound. A change of the default arithmetic is the team's
- * decision.
+ * DENSE_VNNI (the default since 2026-11-30 in W16 builds whose target has AVX-512 VNNI and BW: DVNNI; -DDENSE_VNNI=0
+ * builds the float loop only; above DENSE_TERMS): the 16-lane dense loop on integer dot products (vpdpwssd zmm, two
+ * light terms per instruction) for the calls of 16-bit values, CT = 1, CO = 3 that take the 16-lane loop, the dense
+ * light quantised per call to int16 by the column-maximum rule in groups of VNNI_G = 16 terms (the layout's dtmax), a
+ * flush to float per group; not the float loop's bits (error per vertex and channel within f_v sum_g (s_g / 2)
+ * sum_{k in g} |T_v,k|). C | FDENSE (512) opts a call out (the float loop, its bits: relight.py's arith="float");
+ * builds without DVNNI refuse the bit (1) and are unchanged (avx2, znver3, avx512-256, portable, skylake-avx512 and
+ * -DDENSE_VNNI=0 objects byte-identical to fdd5d3e's, objdump). prt_wavelet_isa's bit 64 says the build has it.
+ * Measured on the Intel Xeon (bench_wavelet_madd_micro.py --vnni --proto, reports/benchmarks/wavelet_vnni_default.md;
+ * docs/wavelet.md), the whole call paired with the opt-out on one layout: small 1.07-1.31x, medium N = 10-30
+ * 1.12-1.24x, N >= 100 1.00-1.04x (the lines from L3); output error 8e-6-6e-5 rel. L2 against float64, its bound
+ * 0.28-0.90x the transfer's own 16-bit bound; per vertex up to ~2e-3 relative at the dimmest vertices (cancellation;
+ * under a sun 1e4x the sky at R = 8, 3-6% at the sun-shadowed vertices: docs/wavelet.md).
  * OUT_NT (a measurement knob, W16 only, off by default): the RGB output by streaming stores once it holds at least
  * OUT_NT bytes (and out is 32-byte aligned), an sfence at the call's end; not kept (the same report: faster alone at
  * large N = 10, slower with a read of the output right after the call).
@@ -205,9 +210,18 @@ static inline v8f hi8(v16f x) { return (v8f)_mm256_castpd_ps(_mm512_extractf64x4
 #else
 #define W16 0
 #endif
+/* DVNNI: the dense loop on AVX-512 VNNI (DENSE_VNNI below), the default of W16 builds whose target has AVX-512 VNNI and
+ * BW (-march=native on such a CPU; PRT_TORCH_KERNEL_ISA native or avx512); -DDENSE_VNNI=0 builds the float loop only
+ * (the code of the builds before it became the default). Never in the avx2, avx512-256 or portable builds. */
+#if W16 && defined(__AVX512VNNI__) && defined(__AVX512BW__) && (!defined(DENSE_VNNI) || DENSE_VNNI)
+#define DVNNI 1
+#else
+#define DVNNI 0
+#endif
 
 /* what the library was built with (relight.py: wavelet_kernel_path): 1 AVX, 2 AVX2, 4 FMA, 8 AVX-512F (the bits of
- * the relight library's prt_isa), 32 the dense loop on 16 lanes (W16) */
+ * the relight library's prt_isa), 32 the dense loop on 16 lanes (W16), 64 the dense loop on AVX-512 VNNI (DVNNI: the
+ * calls DENSE_VNNI names take it unless C carries FDENSE) */
 int prt_wavelet_isa(void) {
     int b = 0;
 #if defined(__AVX__)
@@ -223,6 +237,7 @@ int prt_wavelet_isa(void) {
     b |= 8;
 #endif
     b |= W16 ? 32 : 0;
+    b |= DVNNI ? 64 : 0;
     return b;
 }
 
@@ -437,8 +452,11 @@ static inline void put_rgb8(float *out, v8f r, v8f g, v8f b, int nt) {
                 z[c][h] += x * l[c];                                                                         \
             }                                                                                                \
     }
-/* DENSE_VNNI (a prototype, off by default: compile with -DDENSE_VNNI; W16 builds on a CPU with AVX-512 VNNI, 16-bit
- * values, CT = 1, an RGB light on three output channels (CO = 3); the default build's code does not change): the dense
+/* DENSE_VNNI (the default of W16 builds on a CPU with AVX-512 VNNI and BW since 2026-11-30, DVNNI above; -DDENSE_VNNI=0:
+ * the float loop only; the calls it takes: 16-bit values, CT = 1, an RGB light on three output channels (CO = 3, a
+ * grey RGB light excluded), the 16-lane loop (at least ZMM_MIN (dense term, block) pairs), C without FDENSE (512: the
+ * caller's opt-out, relight.py's arith="float", the float loop's bits); every other call takes the float loop, the same
+ * bits as the builds without it): the dense
  * terms with integer dot products. Per call (VNNI_SETUP, when the call takes the 16-lane loop) the dense light lw
  * [nd, 4] is quantised in place to int16 per channel and group g of VNNI_G = 16 consecutive dense terms (in the
  * kernel's dense order), s_g[c] = max(sum_k tmax_k |L_k| / (2^31 - 1 - sum_k tmax_k / 2), max |L| / 32767) rounded up
@@ -454,7 +472,7 @@ static inline void put_rgb8(float *out, v8f r, v8f g, v8f b, int nt) {
  * at the end the vertex order restored (vpermt2ps) into z / y as the float loop leaves them. Error per vertex and
  * channel |dS| <= sum_g (s_g[c] / 2) sum_{k in g} |T_v,k| (+ float rounding): not the same bits as the float loop. Measured: reports/benchmarks/wavelet_madd_micro_vnni.md (the loops),
  * wavelet_vnni_proto.md (the whole call; docs/wavelet.md). */
-#if defined(DENSE_VNNI) && defined(__AVX512VNNI__) && defined(__AVX512BW__)
+#if DVNNI
 #define VNNI_PARAMS const float *vq,
 #define VNNI_ARGS vq,
 #ifndef VNNI_G /* dense terms per scale group (even): the int32 sums flushed to float once per group */
@@ -588,7 +606,7 @@ static inline __attribute__((always_inline)) void vnni_terms(const char *blk, i6
 #define VNNI_SETUP(T)                                                                                        \
     float vq_[4 * ((nd + VNNI_G - 1) / VNNI_G) + 4]; /* the groups' scales [ceil(nd / VNNI_G), 4] */         \
     const float *vq = NULL;                                                                                  \
-    if (sizeof(T) == 2 && CT == 1 && CO == 3 && nd && nd * ((V + BV - 1) / BV) >= ZMM_MIN) {                 \
+    if (!fdense && sizeof(T) == 2 && CT == 1 && CO == 3 && nd && nd * ((V + BV - 1) / BV) >= ZMM_MIN) {      \
         vnni_quantise(nd, lw, vq_, L->dtmax, wk);                                                            \
         vq = vq_;                                                                                            \
     }
@@ -628,7 +646,14 @@ static inline __attribute__((always_inline)) void vnni_terms(const char *blk, i6
 #define PAIR_KEEP
 #define DENSE_TERMS(T) DENSE_TERMS8(T)
 #endif
-#ifndef VNNI_SETUP /* the DENSE_VNNI prototype's hooks (above): nothing in the default builds */
+#if DVNNI /* C | FDENSE: the dense terms on the float loop (the caller's opt-out; decoded before C | F1) */
+#define FDENSE 512
+#define VNNI_FLAG                                                                                            \
+    const int fdense = (int)(C >> 9 & 1);                                                                    \
+    C -= fdense ? FDENSE : 0;
+#endif
+#ifndef VNNI_SETUP /* DENSE_VNNI's hooks (above): nothing in the builds without it (DVNNI 0) */
+#define VNNI_FLAG
 #define VNNI_PARAMS
 #define VNNI_ARGS
 #define VNNI_PAIR(T)
@@ -1089,7 +1114,9 @@ int NAME(const wavelet_layout *L, i64 N, const i64 *sel, const float *lv, i64 C,
     const T *dense = (const T *)L->dense, *bvals = (const T *)L->bvals;                                      \
     float *lw = L->lw;                                                                                       \
     i64 *wk = L->wk;                                                                                         \
-    /* C | F1 (256): f [V + 4] one factor per vertex, then one per output channel (below); else f [V, OC] */   \
+    /* C | F1 (256): f [V + 4] one factor per vertex, then one per output channel (below); else f [V, OC]; DVNNI  \
+     * builds: C | FDENSE (512) the float dense loop (other builds refuse the bit: 1, as any other high bit) */  \
+    VNNI_FLAG                                                                                                \
     const int f1 = C >> 8 == 1;                                                                              \
     C -= f1 ? F1 : 0;                                                                                        \
     if (C < 1 || C > 4 || (CT == 3 && C != 1 && C != 3)) return 1;                                          \
@@ -1185,7 +1212,7 @@ int NAME(const wavelet_layout *L, i64 N, const i64 *sel, const float *lv, i64 C,
     const T *rvals = (const T *)L->rvals;                                                                    \
     int nt = (int)(threads < 1 ? 1 : threads > L->MT ? L->MT : threads);                                     \
     (void)nt;                                                                                                \
-    VNNI_SETUP(T) /* DENSE_VNNI builds: the dense light quantised (a prototype; nothing by default) */            \
+    VNNI_SETUP(T) /* DVNNI builds: the dense light quantised (DENSE_VNNI; nothing in the others) */               \
     SERIAL_TILES(T) /* AVX-512 builds at one thread: the tiles in a plain loop, no OpenMP region (above) */       \
     _Pragma("omp parallel for schedule(static) num_threads(nt) if(nt > 1)")                                 \
     for (i64 t = 0; t < NT; t++) { TILE_BODY(T) }                                                            \
