@@ -370,11 +370,12 @@ class WaveletRelighter:
     #: ``dense_min``'s default for 16-bit values in the W16 builds whose dense loop is VNNI (``vnni``: DENSE_VNNI compiled
     #: in; elsewhere, and for other value sizes, b/(4+b): 1/3 for 16-bit values, the bytes rule): a column is dense from
     #: 0.2 of the vertices.
-    #: Measured on an Intel Xeon (family 6 model 167; docs/wavelet.md "The dense columns from 0.2 of the vertices";
-    #: blocker scene R = 32, K = 256, one thread's CPU time, the relighter paired with one of dense_min 1/3 on the same
-    #: transfer): with the DENSE_VNNI dense loop (a dense (term, 32-vertex block) ~6 cycles in the call, a sparse
-    #: 8-vertex block ~6) 1.03-1.14x at N = 30 (small and medium), 1.00-1.08x at N = 100-300, 0.96-1.02x at N = 1000;
-    #: with the float loop 0.97-1.07x; 16-27 more dense columns of 244, 1-6 more bytes per vertex held
+    #: Measured on an Intel Xeon (family 6 model 167; docs/wavelet.md "The fourth row (small studio, 292 kept) and the
+    #: call's non-dense parts"; blocker scene R = 32, K = 256, one thread's CPU time, paired with a relighter of
+    #: dense_min 1/3 on the same transfer, VNNI on both sides): in the call a VNNI dense (term, 32-vertex block) step
+    #: costs ~6 cycles and a sparse 8-vertex block ~6.5; medium N = 30 1.08-1.15x in every run, medium N = 100-300
+    #: 1.00-1.09x, small within noise (0.89-1.16x at load 5-6); the float loop on this layout down to 0.74x (evicted),
+    #: so the float builds keep b/(4+b). 15-20 more dense columns (244 -> 259-264), 1-6 more bytes per vertex held
     DENSE_MIN_W16 = 0.2
 
     @classmethod
