@@ -25,11 +25,21 @@ The **output pass** alone: a call with no light term (N = 0: no dense term, no s
 times the factor, interleaved and written once) against a plain fill of the output's bytes (``read_bound_fn(0,
 12 V)``: the bound's own output part), warm, for test and base.
 
+``--vnni``: every build compiled with ``#define DENSE_VNNI 1`` prepended (the dense loop on integer dot products where
+the CPU has AVX-512 VNNI; kernels/wavelet.c), so the pairing measures the rest of the call beside that loop.
+``--base-dense-min X``: the base and A/A builds bound to a relighter of their own on the same transfer, built with
+``dense_min`` X (``1/3``, the bytes rule main's relighter used for 16-bit values, is written ``third``), while the test
+build and the variants take the working tree's default layout (``WaveletRelighter.default_dense_min``): the pairing
+then measures a layout change with the kernel change; each side's fraction of the streaming read is of its own
+layout's bytes, and every output is compared with the float64 sums of the stored values (``relight.wavelet_dense``)
+as well as bit for bit with the build of its own layout (test for the variants).
+
 The AVX2 build (``PRT_TORCH_KERNEL_ISA=avx2``, the code tuned on an AMD Zen 3) is not paired here: its machine code is
 the base's byte for byte (``--check-avx2`` compares the two builds' .text with objcopy, and stops if they differ).
 Writes reports/benchmarks/wavelet_scratch.md (the CPU, flags and load named) and the rows as .json.
 
     .venv/bin/python benchmarks/bench_wavelet_scratch.py [--base REV] [--sizes small,medium,large] [--variants touch8,outpf]
+        [--vnni] [--base-dense-min third]
 """
 
 from __future__ import annotations
@@ -60,12 +70,17 @@ REGIMES = ("warm", "evicted")
 #: variant name -> the -D lines prepended to the working tree's source
 VARIANTS = {"touch8": "#define TOUCH8 1\n", "outpf": "#define OUT_PFW 1\n", "markall": "#define TOUCH_X (1LL << 40)\n",
             "marknone": "#define TOUCH_X (-1LL)\n", "outz0": "#define OUT_Z 0\n", "outz2": "#define OUT_Z 2\n"}
+#: the -D line ``--vnni`` prepends to every build
+VNNI = "#define DENSE_VNNI 1\n"
 
 
-def builds(base_rev: str, names: list[str]) -> tuple[dict, str]:
-    """``({name: library}, flags)``: test, base, aa and ``names`` (keys of VARIANTS), native builds."""
+def builds(base_rev: str, names: list[str], vnni: bool = False) -> tuple[dict, str]:
+    """``({name: library}, flags)``: test, base, aa and ``names`` (keys of VARIANTS), native builds (``vnni``: each
+    with :data:`VNNI` prepended)."""
+    pre = VNNI if vnni else ""
     btext, _ = kernel_source(base_rev, f"{WHO}: --base")
     ttext, _ = kernel_source(None, WHO)
+    btext, ttext = pre + btext, pre + ttext
     libs = {"test": kernel_build(ttext, "native", WHO)[0], "base": kernel_build(btext, "native", WHO)[0],
             "aa": kernel_build(btext, "native", WHO, tag="A/A control")[0]}
     for n in names:  # a name: variants joined by '+'
@@ -98,15 +113,27 @@ def pair(regime: str, a, b, repeats: int, evict_bytes: int, calls: int):
     return [p.speedup, p.ratio.q1, p.ratio.q3, p.test.median * 1e6, p.peer.median * 1e6]
 
 
-def size_rows(size: str, libs: dict, terms, repeats: int, evict_bytes: int, calls: int, s7=()) -> tuple[dict, list[dict]]:
-    rl = relight.WaveletRelighter(kernel_transfer(size), threads=1, layouts="both")
+def size_rows(size: str, libs: dict, terms, repeats: int, evict_bytes: int, calls: int, s7=(),
+              base_dmin: float | None = None) -> tuple[dict, list[dict]]:
+    tr = kernel_transfer(size)
+    # the test build's layout: the relighter's default for that build (its prt_wavelet_isa bits: w16, vnni), which may
+    # not be this process's own build (--vnni)
+    bits = int(libs["test"].prt_wavelet_isa())
+    rec = {"w16": bool(bits & 32), "vnni": bool(bits & 64)}
+    rl = relight.WaveletRelighter(tr, threads=1, layouts="both",
+                                  dense_min=relight.WaveletRelighter.default_dense_min(BITS // 8, rec))
+    # the base and A/A builds' layout: the same relighter, or (--base-dense-min) one of its own
+    rlb = rl if base_dmin is None else relight.WaveletRelighter(tr, threads=1, layouts="both", dense_min=base_dmin)
+    lay = {k: rlb if k in ("base", "aa") else rl for k in libs}
     info = layout_info(rl, size)
+    info["Pd_base"] = rlb.Pd
+    ref_index, ref_vals = rl.reference_rows(0, rl.V)
     # the output pass alone: no light term, against a fill of the output
     e_li, e_lv = torch.zeros(0, dtype=torch.int64), torch.zeros(3, 0)
     fill = read_bound_fn(0, rl.V * 12)
     info["output"] = {}
     for k in [k for k in libs if k != "aa"]:
-        fn = bound_call(rl, libs[k], e_li, e_lv, torch.empty(rl.V, 3), 1, per_vertex=True)
+        fn = bound_call(lay[k], libs[k], e_li, e_lv, torch.empty(rl.V, 3), 1, per_vertex=True)
         fn()
         info["output"][k] = pair("warm", fn, fill, repeats, evict_bytes, calls)
     print(f"[scratch] {size} output pass (N = 0) / fill: test {1 / info['output']['test'][0]:.2f}x the fill's time "
@@ -115,27 +142,36 @@ def size_rows(size: str, libs: dict, terms, repeats: int, evict_bytes: int, call
                                                              if k not in ("test", "base")), flush=True)
     rows = []
     for light, N, li, lv in kernel_lights(rl, terms):
-        nbytes = rl.bytes_read(li)
+        nbytes, nbytes_b = rl.bytes_read(li), rlb.bytes_read(li)
         bound = read_bound_fn(nbytes, rl.V * 12)
+        bound_b = bound if rlb is rl else read_bound_fn(nbytes_b, rl.V * 12)
         outs = {k: torch.empty(rl.V, 3) for k in libs}
-        fn = {k: bound_call(rl, lib, li, lv, outs[k], 1, per_vertex=True) for k, lib in libs.items()}
+        fn = {k: bound_call(lay[k], lib, li, lv, outs[k], 1, per_vertex=True) for k, lib in libs.items()}
         for f in fn.values():
             f()
+        ref = relight.wavelet_dense(ref_vals.double(), ref_index, li, lv.double(), rl.P) * rl.albedo[:, :3].double()
+        scale = float(ref.abs().max()) or 1.0
+        err = {k: float((o.double() - ref).abs().max()) / scale for k, o in outs.items()}
         d = rl.dslot[li] >= 0
         s = li[~d]
         s = s[rl.nnz[s] > 0]
+        db = rlb.dslot[li] >= 0
         row = {"size": size, "light": light, "N": N, "nd": int(d.sum()), "sb": int(rl.bcount[:, s].sum()),
+               "nd_base": int(db.sum()),
                "rows": bool(rl._takes_rows(int(rl.bcount[:, s].sum()), rl.NB, rl._row_permille(rl.row_min, True))),
-               "mb": nbytes / 2**20, "same": {k: bool(torch.equal(outs[k], outs["base"])) for k in outs}, "load0": load()}
+               "mb": nbytes / 2**20, "mb_base": nbytes_b / 2**20, "err": err,
+               # bit for bit with the build of the same layout: base for A/A, test for the variants (one layout: base)
+               "same": {k: bool(torch.equal(outs[k], outs["base" if lay[k] is rlb else "test"])) for k in outs},
+               "load0": load()}
         for regime in REGIMES:
             r = {}
             for k in [k for k in fn if k != "base"]:
                 r[k] = pair(regime, fn[k], fn["base"], repeats, evict_bytes, calls)
             for k in ("test", "base"):
-                r["read_" + k] = pair(regime, fn[k], bound, repeats, evict_bytes, calls)
+                r["read_" + k] = pair(regime, fn[k], bound if k == "test" else bound_b, repeats, evict_bytes, calls)
             row[regime] = r
         if N in s7:  # section 7's figure: bench_wavelet.kernel_rows' of_read_bound_cpu_1 (steady_pair, median ratio)
-            row["s7"] = {k: steady_pair(fn[k], bound)[0].ratio.median for k in ("test", "base")}
+            row["s7"] = {k: steady_pair(fn[k], bound if k == "test" else bound_b)[0].ratio.median for k in ("test", "base")}
         row["load1"] = load()
         rows.append(row)
         msg = "; ".join(f"{g} base {row[g]['test'][4]:.1f} us, of read test {row[g]['read_test'][0]:.2f} base "
@@ -152,15 +188,20 @@ def report(infos: list[dict], rows: list[dict], flags: str, args, before: float,
     def q(t):
         return f"{t[0]:.2f} [{t[1]:.2f}, {t[2]:.2f}]"
     cols = ["test", "aa", *names]
-    L = ["# Wavelet kernel: the sparse scratch zero between calls, and the output pass (issue 39)\n",
+    lay = ("" if args.base_dense_min is None else
+           f" The base and A/A builds on a layout of their own, `dense_min` {args.base_dense_min:.4g} (dense columns: "
+           + "; ".join(f"{i['size']} {i['Pd_base']}" for i in infos) + "); test and variants on the working tree's default "
+           "(`WaveletRelighter.default_dense_min`); each side's *of read* of its own layout's bytes; *error*: max |output − "
+           "float64 sums of the stored values| / max |reference| (`relight.wavelet_dense`), test / base.")
+    vn = " Every build with `#define DENSE_VNNI 1` prepended (`--vnni`: the dense loop on integer dot products)." if args.vnni else ""
+    L = [f"# Wavelet kernel: {args.title} (issue 39)\n",
          f"{cpu_label()}; load average {before:.1f} → {after:.1f} (a machine shared with other jobs: one thread's CPU "
          f"time, which their load does not enter). Native builds of `kernels/wavelet.c` with the wavelet library's flags "
-         f"(`{flags}`: on this CPU the AVX-512 build, W16): **test** the working tree's (the scratch zero between calls, "
-         "a touched map per 32-vertex block; the RGB interleave by one insert and two `vpermt2ps`, `OUT_Z` 1), "
-         f"**base** revision `{args.base}`'s (a memset of each tile's scratch, every "
-         "block's accumulators added back), **A/A** the base built twice" + "".join(
+         f"(`{flags}`: on this CPU the AVX-512 build, W16): **test** the working tree's ({args.test_about}), "
+         f"**base** revision `{args.base}`'s ({args.base_about}), **A/A** the base built twice" + "".join(
              f", **{n}** the working tree with `{'; '.join(VARIANTS[v].strip() for v in n.split('+'))}`" for n in names)
-         + ". All bound to one layout per size (occluder_over_plane, R = 32, K = 256, "
+         + ". All bound to " + ("one layout" if args.base_dense_min is None else "the test's layout (base and A/A: below)")
+         + " per size (occluder_over_plane, R = 32, K = 256, "
          f"{BITS}-bit; " + "; ".join(f"{i['size']}: V = {i['V']}, {i['Pd']} dense columns, dense layout "
                                       f"{i['dense_mb']:.1f} MB" for i in infos)
          + "), transport-weighted terms, RGB light, the relighter's per-vertex factor, one thread, paired by the calling "
@@ -176,7 +217,8 @@ def report(infos: list[dict], rows: list[dict], flags: str, args, before: float,
             "not checked in this run (`--check-avx2`)." if avx2_same is None else "**its .text differs from the base's**.")
          + f" Reproduce: `.venv/bin/python benchmarks/bench_wavelet_scratch.py --base {args.base} --sizes "
          f"{args.sizes} --terms {args.terms} --repeats {args.repeats} --variants {','.join(names) or ''}"
-         f"{' --check-avx2' if args.check_avx2 else ''}`.\n",
+         f"{' --check-avx2' if args.check_avx2 else ''}{' --vnni' if args.vnni else ''}"
+         f"{'' if args.base_dense_min is None else ' --base-dense-min ' + args.base_dense_min_text}`.{vn}{lay}\n",
          "## The output pass alone\n",
          "A call with no light term (N = 0: each dense block's zero sums times the factor, interleaved and written once; "
          "the call's fixed cost, ~0.5 µs, included) against a fill of the output's 12 V bytes (`read_bound_fn(0, 12 V)`), "
@@ -192,7 +234,8 @@ def report(infos: list[dict], rows: list[dict], flags: str, args, before: float,
         L += ["\n## Section 7's fraction of the streaming read\n",
               "As `bench_wavelet.py --only kernel` computes it (`bench_wavelet.steady_pair` of the call and "
               "`read_bound_fn(bytes_read, 12 V)`: median of 15 per-repeat ratios by one thread's CPU time, re-timed while they "
-              "spread), for the test and the base build on the same layout, warm.\n",
+              "spread), for the test and the base build " + ("on the same layout" if args.base_dense_min is None else
+                                                             "each on its own layout and of its bytes") + ", warm.\n",
               "| size | light | N | test | base | load |", "|---|---|---|---|---|---|"]
         for r in s7rows:
             L.append(f"| {r['size']} | {r['light']} | {r['N']} | **{r['s7']['test']:.2f}** | {r['s7']['base']:.2f} | {r['load1']:.1f} |")
@@ -200,15 +243,21 @@ def report(infos: list[dict], rows: list[dict], flags: str, args, before: float,
         L += [f"\n## {regime}\n",
               "| size | light | N | dense terms | sparse blocks | MB read | base µs | test µs | "
               + " | ".join(f"**base / {k}**" if k == "test" else f"base / {k}" for k in cols)
-              + " | of read: test / base | bits | load |",
-              "|---|---|---|---|---|---|---|---|" + "---|" * len(cols) + "---|---|---|"]
+              + " | of read: test / base | bits |" + (" error test / base |" if args.base_dense_min is not None else "")
+              + " load |",
+              "|---|---|---|---|---|---|---|---|" + "---|" * len(cols) + "---|---|---|"
+              + ("---|" if args.base_dense_min is not None else "")]
         for r in rows:
             g = r[regime]
-            L.append(f"| {r['size']} | {r['light']} | {r['N']} | {r['nd']} | {r['sb']}{' rows' if r['rows'] else ''} | "
-                     f"{r['mb']:.2f} | {g['test'][4]:.1f} | {g['test'][3]:.1f} | "
+            two = args.base_dense_min is not None
+            nd = f"{r['nd']} ({r['nd_base']})" if two else f"{r['nd']}"
+            mb = f"{r['mb']:.2f} ({r['mb_base']:.2f})" if two else f"{r['mb']:.2f}"
+            L.append(f"| {r['size']} | {r['light']} | {r['N']} | {nd} | {r['sb']}{' rows' if r['rows'] else ''} | "
+                     f"{mb} | {g['test'][4]:.1f} | {g['test'][3]:.1f} | "
                      + " | ".join(q(g[k]) for k in cols)
                      + f" | {g['read_test'][0]:.2f} / {g['read_base'][0]:.2f} | "
-                     f"{'same' if all(r['same'].values()) else '**differ**'} | {r['load1']:.1f} |")
+                     f"{'same' if all(r['same'].values()) else '**differ**'} |"
+                     + (f" {r['err']['test']:.1e} / {r['err']['base']:.1e} |" if two else "") + f" {r['load1']:.1f} |")
     return "\n".join(L) + "\n"
 
 
@@ -225,7 +274,24 @@ def main() -> None:
     ap.add_argument("--calls", type=int, default=4)
     ap.add_argument("--check-avx2", action="store_true", help="compare the AVX2 builds' .text (gcc, objcopy)")
     ap.add_argument("--write", default=str(OUT / "wavelet_scratch.md"), help="the report ('': print only)")
+    ap.add_argument("--vnni", action="store_true", help="every build with #define DENSE_VNNI 1 prepended")
+    ap.add_argument("--base-dense-min", default=None, help="the base and A/A builds on a relighter built with this "
+                    "dense_min (a number, or 'third': 1/3, main's 16-bit default); default: the same layout as the test")
+    ap.add_argument("--title", default="the sparse scratch zero between calls, and the output pass",
+                    help="the report's title (what the working tree changes)")
+    ap.add_argument("--test-about", default="the scratch zero between calls, a touched map per 32-vertex block; the RGB "
+                    "interleave by one insert and two `vpermt2ps`, `OUT_Z` 1", help="the report's words for the test build")
+    ap.add_argument("--base-about", default="a memset of each tile's scratch, every block's accumulators added back",
+                    help="the report's words for the base build")
     args = ap.parse_args()
+    args.base_dense_min_text = args.base_dense_min
+    if args.base_dense_min is not None:
+        try:
+            args.base_dense_min = 1 / 3 if args.base_dense_min == "third" else float(args.base_dense_min)
+        except ValueError:
+            raise SystemExit(f"{WHO}: --base-dense-min {args.base_dense_min!r}; accepted: a number > 0, or 'third'") from None
+        if not args.base_dense_min > 0:
+            raise SystemExit(f"{WHO}: --base-dense-min {args.base_dense_min_text!r}; accepted: a number > 0, or 'third'")
     sizes = [size_choice(s.strip(), WHO) for s in args.sizes.split(",")]
     names = [n.strip() for n in args.variants.split(",") if n.strip()]
     for n in names:
@@ -251,11 +317,11 @@ def main() -> None:
     avx2_same = avx2_text_same(args.base) if args.check_avx2 else None
     if avx2_same is False:
         raise SystemExit(f"{WHO}: the AVX2 build's .text differs from {args.base}'s: pair it (bench_wavelet_isa.py)")
-    libs, flags = builds(args.base, names)
+    libs, flags = builds(args.base, names, args.vnni)
     before = load()
     infos, rows = [], []
     for s in sizes:
-        info, r = size_rows(s, libs, terms, args.repeats, int(args.evict_mb * 2**20), args.calls, s7)
+        info, r = size_rows(s, libs, terms, args.repeats, int(args.evict_mb * 2**20), args.calls, s7, args.base_dense_min)
         infos.append(info)
         rows += r
     after = load()

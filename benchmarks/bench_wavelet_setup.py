@@ -72,16 +72,13 @@ from pathlib import Path  # noqa: E402
 import torch  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_wavelet import BITS, LIGHTS, OUT, load  # noqa: E402
+from bench_wavelet import LIGHTS, OUT, kernel_transfer, load, size_choice  # noqa: E402
 from bench_wavelet_floor_micro import SRC as FLOOR_SRC  # noqa: E402
 from bench_wavelet_isa import rl_bytes, bound_call, kernel_build, kernel_source  # noqa: E402
 
 from prt_torch import relight  # noqa: E402
 from prt_torch._native import compile_library  # noqa: E402
 from prt_torch.harness.timing import cpu_label, measure_paired, read_bound_fn  # noqa: E402
-from prt_torch.scene import builtin  # noqa: E402
-from prt_torch.transfer import RunOptions  # noqa: E402
-from prt_torch.transfer.wavelet import precompute_wavelet  # noqa: E402
 from prt_torch.io import atomic_write_text  # noqa: E402
 
 WHO = "bench_wavelet_setup.py"
@@ -135,6 +132,20 @@ VARIANTS = {
 }
 
 
+def light_list(spec: str | None) -> list[tuple[str, int | None]]:
+    """``--lights`` as ``[(light, N)]`` (N None: all terms); one ``SystemExit`` line naming the value when it is not
+    a comma-separated list of LIGHT:N with LIGHT studio or sky and N a positive count or 'all'."""
+    spec = spec or "studio:100,studio:300,sky:100,sky:300,sky:1000,sky:all"
+    names, out = {"studio": "studio", "sky": "sky (sun)"}, []
+    for item in spec.split(","):
+        light, _, n = item.strip().partition(":")
+        if light not in names or not (n == "all" or (n.isdigit() and int(n) > 0)):
+            raise SystemExit(f"{WHO}: --lights {item.strip()!r}: not LIGHT:N; accepted: LIGHT studio or sky, N a positive "
+                             "count or 'all', comma-separated (studio:300,sky:30)")
+        out.append((names[light], None if n == "all" else int(n)))
+    return out
+
+
 def probe_source(text: str, k: int) -> str:
     """``text`` (kernels/wavelet.c) as probe ``k`` (1-11, 13: module docstring; 12: the kernel itself)."""
     for old, ins in CUTS:
@@ -178,7 +189,12 @@ def main() -> None:
     ap.add_argument("--source", default=".", help="the kernel accounted: '.' the working tree, a git revision or a .c file")
     ap.add_argument("--pair", default=None, help="pair the working tree's kernel with this revision's (or .c file's)")
     ap.add_argument("--variant", default=None, help=f"with --pair: REV's kernel rewritten, one of {sorted(VARIANTS)}")
+    ap.add_argument("--size", default=None, help="section 7's mesh size: small (default), medium, large")
+    ap.add_argument("--lights", default=None, help="the probes' lights as LIGHT:N pairs, comma-separated (LIGHT studio or "
+                    "sky, N a count or 'all'; default studio:100,studio:300,sky:100,sky:300,sky:1000,sky:all)")
     args = ap.parse_args()
+    args.size = size_choice(args.size, WHO)
+    args.lights = light_list(args.lights)
     if args.variant is not None and (args.variant not in VARIANTS or not args.pair):
         raise SystemExit(f"{WHO}: --variant {args.variant!r}; accepted: one of {sorted(VARIANTS)}, with --pair REV")
     if args.pair:
@@ -193,14 +209,12 @@ def main() -> None:
     libs[12] = kernel_build(src, args.isa, WHO)[0]
     w16 = bool(path.get("w16"))
     dense_cyc, sparse_cyc = FLOORS[w16]
-    mesh = builtin("occluder_over_plane", "small")
-    tr = precompute_wavelet(mesh, 32, 256, BITS, shadows="always", run=RunOptions(workers=1))
-    rl = relight.WaveletRelighter(tr, threads=1, layouts="both")
+    rl = relight.WaveletRelighter(kernel_transfer(args.size), threads=1, layouts="both")
     ghz = [clock_ghz()]
     before = load()
     rows = []
-    for light, N in (("studio", 100), ("studio", 300), ("sky (sun)", 100), ("sky (sun)", 300), ("sky (sun)", 1000),
-                     ("sky (sun)", rl.P)):
+    for light, N in args.lights:
+        N = rl.P if N is None else N
         if True:
             li, lv, _ = rl.light(LIGHTS[light], N, "transport")
             lv = lv.to(torch.float32).contiguous()
@@ -251,7 +265,8 @@ def main() -> None:
     after = load()
     counts = "; ".join(f"{r['light']} N = {'all' if r['N'] == r['P'] else r['N']}: {r['dense']} dense terms, {r['sparse']} "
                        f"sparse ({r['blocks']} blocks{', row-major' if r['rows'] else ''})" for r in rows)
-    head = (f"## {cpu_label()}: the `{args.isa}` build, kernel {label} ({path['path']})\n\n"
+    size = "" if args.size == "small" else f", {args.size} (V = {rl.V})"
+    head = (f"## {cpu_label()}: the `{args.isa}` build, kernel {label}{size} ({path['path']})\n\n"
             f"Clock {ghz[0]:.2f} / {ghz[1]:.2f} GHz (before / after: dependent multiplies); one thread's CPU time, each probe "
             f"the median of {args.repeats} samples paired with the whole kernel; load average {before:.1f} → {after:.1f} "
             f"(a shared machine). Floors: dense {dense_cyc} cycles per (term, 32-vertex block), "
@@ -298,9 +313,7 @@ def pair(args) -> str:
     test = "variant" if args.variant else "tree"
     libs = {"tree": kernel_build(tree, args.isa, WHO)[0], "base": kernel_build(base, args.isa, WHO)[0],
             "A/A": kernel_build(base, args.isa, WHO, tag="A/A control")[0]}
-    mesh = builtin("occluder_over_plane", "small")
-    tr = precompute_wavelet(mesh, 32, 256, BITS, shadows="always", run=RunOptions(workers=1))
-    rl = relight.WaveletRelighter(tr, threads=1, layouts="both")
+    rl = relight.WaveletRelighter(kernel_transfer(args.size), threads=1, layouts="both")
     before = load()
     L = [f"## {cpu_label()}: the `{args.isa}` build, {name} against {label}\n",
          f"{path['path']}. Both kernels compiled with the library's flags and this build's, bound to one layout (the "

@@ -313,10 +313,11 @@ class WaveletRelighter:
     per Haar coefficient its vertices' values, zeros dropped), each column stored in one of two
     forms (``prt_torch/kernels/wavelet.c``):
 
-    * **dense** — the columns at least ``dense_min`` × V vertices keep (default b/(4+b) for b-byte
-      values; in practice the coarse Haar levels, which every vertex above the horizon keeps, and
-      most of the coefficients a light reads): ``dense [ceil(V/32), Pd, CT, 32]`` in the stored
-      dtype (blocks of 32 vertices, zeros where a vertex did not keep the coefficient; from 2 MiB up in memory advised
+    * **dense** — the columns at least ``dense_min`` × V vertices keep (default :meth:`default_dense_min`: b/(4+b)
+      for b-byte values, 0.2 for 16-bit values in the AVX-512 builds with the VNNI dense loop; in practice the coarse
+      Haar levels, which every vertex above the horizon keeps, and most of the coefficients a light reads):
+      ``dense [ceil(V/32), Pd, CT, 32]`` in the stored dtype (blocks of 32 vertices, zeros where a vertex did not keep
+      the coefficient; from 2 MiB up in memory advised
       for 2 MiB transparent huge pages, :func:`prt_torch.io.hugepage_zeros`, ``PRT_TORCH_HUGEPAGES=0``: torch's
       buffer — :attr:`huge_pages` the switch as read at construction), ``dslot
       [P]`` int32 the column's slot or -1. Relit as a register-blocked GEMV: no index read, no scatter.
@@ -383,16 +384,42 @@ class WaveletRelighter:
     ARITH = ("auto", "float")
     #: kernels/wavelet.c's ZMM_MIN: a call with fewer (dense term, 32-vertex block) pairs takes the 8-lane float loop
     ZMM_MIN = 256
+    #: ``dense_min``'s default for 16-bit values in the W16 builds whose dense loop is VNNI (``vnni``: DENSE_VNNI compiled
+    #: in; elsewhere, and for other value sizes, b/(4+b): 1/3 for 16-bit values, the bytes rule): a column is dense from
+    #: 0.2 of the vertices.
+    #: Measured on an Intel Xeon (family 6 model 167; docs/wavelet.md "The fourth row (small studio, 292 kept) and the
+    #: call's non-dense parts"; blocker scene R = 32, K = 256, one thread's CPU time, paired with a relighter of
+    #: dense_min 1/3 on the same transfer, VNNI on both sides): in the call a VNNI dense (term, 32-vertex block) step
+    #: costs ~6 cycles and a sparse 8-vertex block ~6.5; medium N = 30 1.08-1.15x in every run, medium N = 100-300
+    #: 1.00-1.09x, small within noise (0.89-1.16x at load 5-6); the float loop on this layout down to 0.74x (evicted),
+    #: so the float builds keep b/(4+b). 15-20 more dense columns (244 -> 259-264), 1-6 more bytes per vertex held
+    DENSE_MIN_W16 = 0.2
+
+    @classmethod
+    def _build_record(cls) -> dict:
+        """This process's kernel build (:func:`wavelet_kernel_path`), read once and kept (the key ``row_min_path``)."""
+        if "row_min_path" not in _WAVELET:
+            _WAVELET["row_min_path"] = wavelet_kernel_path()
+        return _WAVELET["row_min_path"]
+
+    @classmethod
+    def default_dense_min(cls, b: int, path: dict | None = None, arith: str = "auto") -> float:
+        """``dense_min``'s default for ``b``-byte stored values in a build of ``kernels/wavelet.c`` (``path``:
+        :func:`wavelet_kernel_path`'s record; None: this process's build, read once): :attr:`DENSE_MIN_W16` for 16-bit
+        values where the build's dense loop is the 16-lane one on integer dot products (``w16`` and ``vnni``: a dense
+        (term, block) step costs about what a sparse 8-vertex block does), else b/(4+b) (the bytes rule: a dense
+        column's b bytes per vertex against a sparse entry's 4 + b; the float loop's builds and the torch formulation,
+        and ``arith='float'``, which runs the float loop on a VNNI build)."""
+        path = cls._build_record() if path is None else path
+        vnni = path.get("w16") and path.get("vnni") and arith == "auto"
+        return cls.DENSE_MIN_W16 if b == 2 and vnni else b / (4 + b)
 
     @classmethod
     def default_row_min(cls, path: dict | None = None) -> float:
         """``row_min``'s default for a build of ``kernels/wavelet.c`` (``path``: :func:`wavelet_kernel_path`'s record;
         None: this process's build, read once): :attr:`ROW_MIN_W16` where the build has the 16-lane code (``w16``),
         else :attr:`ROW_MIN` (also for the torch formulation, which never takes the row-major pass)."""
-        if path is None:
-            if "row_min_path" not in _WAVELET:
-                _WAVELET["row_min_path"] = wavelet_kernel_path()
-            path = _WAVELET["row_min_path"]
+        path = cls._build_record() if path is None else path
         return cls.ROW_MIN_W16 if path.get("w16") else cls.ROW_MIN
 
     @staticmethod
@@ -530,7 +557,7 @@ class WaveletRelighter:
             self.albedo = torch.ones_like(self.albedo)
         dtype = qs[0].dtype if qs else torch.float32
         b = dtype.itemsize
-        self.dense_min = b / (4 + b) if dense_min is None else float(dense_min)
+        self.dense_min = self.default_dense_min(b, arith=arith) if dense_min is None else float(dense_min)
         is_dense = self.nnz >= max(self.dense_min * V, 1)
         self.dslot = torch.full((P,), -1, dtype=torch.int32)  # [P] the column's dense slot or -1 (int32: Pd ≤ P = 6R²)
         dcols = torch.nonzero(is_dense).flatten()
@@ -728,7 +755,7 @@ class WaveletRelighter:
         if not exact:  # the header's bound: b from the stored dtype (a scale per level: re-quantised to 16 bits)
             per_level = stored is not None and len(hd["tensors"]["aux.scale"]["shape"]) == (3 if CT > 1 else 2)
             b = 2 if per_level else (stored or 4)
-            dmin = b / (4 + b) if dense_min is None else float(dense_min)
+            dmin = cls.default_dense_min(b) if dense_min is None else float(dense_min)
             E = V * K
             Pd = min(P, E // max(math.ceil(dmin * V), 1)) if dmin <= 1 else 0
             return cls._held_estimate(V, K, CT, P, b, TV, may_rows, light_channels, E, E, Pd, E, b != stored, exact=False)
@@ -746,7 +773,7 @@ class WaveletRelighter:
             b = q3.element_size()
             nz[a:a + step] = (q3 != 0).any(1)
         weights /= max(V, 1)
-        dmin = b / (4 + b) if dense_min is None else float(dense_min)
+        dmin = cls.default_dense_min(b) if dense_min is None else float(dense_min)
         is_dense = nnz >= max(dmin * V, 1)
         Pd, E = int(is_dense.sum()), int(nnz.sum())
         cblk = torch.zeros(P, dtype=torch.int64)  # [P] sparse blocks per column (the kernel's row/column choice)

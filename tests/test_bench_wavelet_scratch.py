@@ -27,6 +27,8 @@ def bs(bench_module):
     (["--terms", "10,x"], "--terms '10,x'; accepted: comma-separated integers >= 1"),
     (["--terms", "0"], "--terms '0'; accepted: comma-separated integers >= 1"),
     (["--s7-terms", "x"], "--s7-terms 'x'; accepted: comma-separated integers"),
+    (["--base-dense-min", "x"], "--base-dense-min 'x'; accepted: a number > 0, or 'third'"),
+    (["--base-dense-min", "0"], "--base-dense-min '0'; accepted: a number > 0, or 'third'"),
 ])
 def test_bad_option_is_one_line_before_any_build(bs, monkeypatch, argv, says):
     def no_work(*a, **k):

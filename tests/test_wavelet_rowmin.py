@@ -15,6 +15,7 @@ from prt_torch.transfer import Transfer
 
 W = relight.WaveletRelighter
 W16 = {"backend": "native", "isa": "avx512", "w16": True}
+W16V = {**W16, "vnni": True}  # the dense loop on integer dot products (DENSE_VNNI compiled in)
 NO_W16 = ({"backend": "native", "isa": "avx2", "w16": False}, {"backend": "native", "isa": "avx512", "w16": False},
           {"backend": "torch"})
 
@@ -31,6 +32,51 @@ def test_row_min_default_follows_the_kernel_build(monkeypatch):
     assert W.default_row_min() == W.default_row_min(relight.wavelet_kernel_path())
     monkeypatch.setitem(relight._WAVELET, "row_min_path", W16)  # the record is read once: kept after
     assert W.default_row_min() == W.ROW_MIN_W16
+
+
+def test_dense_min_default_follows_the_kernel_build(monkeypatch):
+    """16-bit values in the W16 build with the VNNI dense loop: DENSE_MIN_W16 (0.2); every other build (the W16 float
+    loop too), the torch formulation and the other value sizes keep the bytes rule b/(4+b); without a record, this
+    process's build; an explicit ``dense_min`` wins."""
+    assert W.DENSE_MIN_W16 == 0.2
+    assert W.default_dense_min(2, W16V) == 0.2
+    for b in (1, 4):
+        assert W.default_dense_min(b, W16V) == b / (4 + b)
+    for rec in (W16, *NO_W16):
+        for b in (1, 2, 4):
+            assert W.default_dense_min(b, rec) == b / (4 + b), (rec, b)
+    monkeypatch.delitem(relight._WAVELET, "row_min_path", raising=False)
+    assert W.default_dense_min(2) == W.default_dense_min(2, relight.wavelet_kernel_path())
+
+
+def test_dense_min_default_layout_equals_the_dense_sum(transfer, monkeypatch):
+    """A transfer with columns kept by ~27% of the vertices (between 0.2 and 1/3): dense in a relighter whose build
+    record is W16 with the VNNI loop, sparse under the others' bytes rule (and with an explicit ``dense_min`` = 1/3);
+    each relights as the dense float64 sum over the Haar terms (scale and albedo applied)."""
+    _, _, alb = transfer
+    scene = builtin("occluder_over_plane", "small")
+    g = torch.Generator().manual_seed(392)
+    V, res, K = scene.num_vertices, 8, 12
+    P = 6 * res * res
+    # columns 0-7 kept by every vertex, 8-15 by the ~27% of vertices of a random mask each, the rest rare
+    w = torch.rand(V, P, generator=g)
+    w[:, :8] += 100.0
+    w[:, 8:16] += 50.0 * (torch.rand(V, 8, generator=g) < 0.27)
+    index = w.topk(K, dim=1).indices
+    q = torch.randint(-32767, 32768, (V, K), generator=g).to(torch.int16)
+    scale = torch.rand(V, generator=g) + 0.5
+    tr = Transfer("wavelet", q, scene, {"res": res, "terms": K, "bits": 16}, aux={"index": index.to(torch.int16), "scale": scale})
+    dense = torch.zeros(V, P, dtype=torch.float64).scatter_(1, index, q.double() * scale.double()[:, None])
+    li = torch.arange(P)
+    lv = torch.rand(3, P, generator=g) + 0.1
+    ref = (lv.double() @ dense.T).T * alb
+    for rec, dmin, want in ((W16V, None, 16), (W16, None, 8), (NO_W16[0], None, 8), (NO_W16[2], None, 8), (W16V, 1 / 3, 8)):
+        monkeypatch.setitem(relight._WAVELET, "row_min_path", rec)
+        r = W(tr, threads=1, dense_min=dmin)
+        assert r.Pd == want, (rec, dmin, r.Pd)
+        assert r.dense_min == (W.default_dense_min(2, rec) if dmin is None else dmin)
+        got = r(li, lv).double()
+        assert (got - ref).abs().max() <= 1e-5 * float(ref.abs().max()) + 1e-6, (rec, dmin)
 
 
 @pytest.fixture(scope="module")

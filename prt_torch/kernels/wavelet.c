@@ -37,7 +37,9 @@
  *
  * The transfer's columns (one per Haar coefficient j) are stored in one of two forms, chosen per
  * column when the relighter is built:
- *  - dense, for the columns most vertices keep (the coarse Haar levels). dense [ceil(V/32), Pd, CT, 32]:
+ *  - dense, for the columns most vertices keep (the coarse Haar levels; relight.py's dense_min: at least b/(4+b) of
+ *    the vertices for b-byte values, 0.2 for 16-bit values where prt_wavelet_isa reports the VNNI dense loop, bit 64:
+ *    its (term, block) step costs about a sparse 8-vertex block's, docs/wavelet.md). dense [ceil(V/32), Pd, CT, 32]:
  *    for each block of 32 vertices, the Pd dense columns' values side by side (zeros where a vertex
  *    did not keep the coefficient), dslot[j] the column's slot (-1: sparse). A block keeps its CO x 4
  *    vectors of 8 sums in registers over every dense light term: one load and CO multiply-adds per 8
@@ -221,7 +223,8 @@ static inline v8f hi8(v16f x) { return (v8f)_mm256_castpd_ps(_mm512_extractf64x4
 
 /* what the library was built with (relight.py: wavelet_kernel_path): 1 AVX, 2 AVX2, 4 FMA, 8 AVX-512F (the bits of
  * the relight library's prt_isa), 32 the dense loop on 16 lanes (W16), 64 the dense loop on AVX-512 VNNI (DVNNI: the
- * calls DENSE_VNNI names take it unless C carries FDENSE) */
+ * calls DENSE_VNNI names take it unless C carries FDENSE; relight.py then stores 16-bit columns dense from 0.2 of the
+ * vertices, WaveletRelighter.default_dense_min) */
 int prt_wavelet_isa(void) {
     int b = 0;
 #if defined(__AVX__)
@@ -934,8 +937,16 @@ DENSE_BLOCK(int16_t)
  * one 16-lane read-modify-write (0.91-0.95x; 1.02-1.06x at 2 per step), a prefetch of the range after next's first
  * lines (no change; in the kernel 2 or 4 terms ahead: 0.99-1.04x) or of the block pointers 4-16 terms ahead
  * (0.98-1.02x), the pass out of line (0.94x: CT and CO no
- * longer constants). The AVX2 and avx512-256 builds keep one block per step, their machine code byte-identical to
- * before (objdump; two and four per step measured no faster on AMD Zen 3, docs/wavelet.md). */
+ * longer constants); the tile's ranges listed first as one flat stream of blocks (per block its index and its term's
+ * light row in two stack buffers, three blocks per step each with its own light: no loop exit per range; 2026-11-30,
+ * paired with main on one layout, small, one thread's CPU time) 0.77-0.86x with the float dense loop and 0.83-0.88x
+ * with DENSE_VNNI (more loads per block, and spills in the large inlined function; the dense-only light 0.89x too).
+ * The tile count is what the ranges cost: one tile of 2272 vertices against two of 1152 (tile=, a layout choice in
+ * relight.py) 1.06x at small studio N = 292 kept (both dense loops), 1.02-1.06x at sky N >= 300, 1.00-1.02x at
+ * N <= 100; not the default (the two tiles are the two threads' shares). The next term's range bounds loaded before
+ * this term's blocks (so that after a range's mispredicted exit the next range's chain of loads need not start
+ * from its term's column): 0.95-1.04x, A/A 0.98-1.03 (small and medium, both dense loops, 21 repeats): noise.
+ * The AVX2 and avx512-256 builds keep one block per step, their machine code byte-identical to before (objdump; two and four per step measured no faster on AMD Zen 3, docs/wavelet.md). */
 #if W16
 /* the block's scratch address held in a register (an empty asm: gcc otherwise forms base + offset + 32 c by one lea
  * per channel, ~3 more uops per block, where one add and the stores' displacements do) */
