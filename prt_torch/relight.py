@@ -1073,6 +1073,20 @@ class WaveletRelighter:
         self._check_indices(li)
         return self._torch(li, lv, o).mul_(self._factor(C, albedo))
 
+    def float32(self, light_idx: torch.Tensor, light_vals: torch.Tensor, out: torch.Tensor | None = None,
+                albedo: bool = True) -> torch.Tensor:
+        """:meth:`__call__` with the float32 dense loop whatever ``arith`` (``C | FDENSE`` where the bound build has
+        the VNNI loop; the light is not quantised): the harness's exact reference (``Evaluator.reference``, Ng 2003
+        eq. 2 over every term), which a relighter of the default ``arith`` would otherwise compute within the VNNI
+        loop's bound only. The same arguments, shapes and result as :meth:`__call__`."""
+        if self._kernel() is None or not self._vnni or self._fd:
+            return self(light_idx, light_vals, out, albedo)
+        self._fd = self.FDENSE
+        try:
+            return self(light_idx, light_vals, out, albedo)
+        finally:
+            self._fd = 0
+
     def relight_grad(self, light_idx: torch.Tensor, light_vals: torch.Tensor, albedo: bool = True) -> torch.Tensor:
         """The relighting under autograd (the C kernel is forward-only; ``__call__`` comes here when
         ``light_vals`` requires grad): Ng 2003 eq. 2 for a fixed term selection, :meth:`_sums`

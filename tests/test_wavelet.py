@@ -303,6 +303,33 @@ def test_kernel_keeps_no_light_between_calls_grey_and_coloured(scene):
         assert bool((r._lp == 0).all())
 
 
+def test_evaluator_reference_is_the_float_loop_whatever_arith(scene):
+    """The harness's exact reference for wavelet transfer (``Evaluator.reference``: every Haar term) runs the float32
+    dense loop whatever ``wavelet_arith`` (``WaveletRelighter.float32``): against the float64 sum of the stored values
+    to float32 rounding, where the default relighter's own call (the VNNI loop on a CPU with it) is only within its
+    quantisation bound; the relighter's default call is left as it was (its opt-out bit restored)."""
+    from prt_torch.harness.evaluate import Evaluator
+
+    g = torch.Generator().manual_seed(23)
+    V, res, K = scene.num_vertices, 8, 24
+    P = 6 * res * res
+    index = (torch.rand(V, P, generator=g) * torch.where(torch.arange(P) < 16, 50.0, 1.0)).topk(K, dim=1).indices
+    tr, vals, alb = _random_16bit_transfer(scene, index, 1, res, g)
+    ev = Evaluator(tr)
+    assert ev.wavelet_arith == "auto"
+    lv = torch.randn(3, P, generator=g, dtype=torch.float64)
+    ref = relight.wavelet_dense(vals, index, torch.arange(P), lv, P) * alb[:, :3]
+    got = ev.reference(lv.float(), None).double()
+    assert (got - ref).abs().max() <= 1e-5 * float(ref.abs().max()) + 1e-6
+    r = ev.relighter
+    if r._kernel() is not None:
+        fl = relight.WaveletRelighter(tr, arith="float")
+        assert torch.equal(got.float(), fl(torch.arange(P), lv.float()))  # the float loop's bits
+        assert r._fd == 0  # the default's call restored: the VNNI loop where the build has it
+        if r._vnni:
+            assert not torch.equal(r(torch.arange(P), lv.float()), got.float())
+
+
 def test_kernel_portable_path_without_avx2(scene):
     """kernels/wavelet.c compiled for baseline x86-64 (no AVX2: the portable vector-extension
     loads and the one-row-per-entry scatter, the path a CPU without AVX2 takes) on the

@@ -300,9 +300,13 @@ class Evaluator:
         """The radiance every codec is compared against, ``[V, C]`` float32: the uncompressed
         relighting (:meth:`uncompressed`), except for transport tables with a :class:`TransportView`
         (what :meth:`view_weights` gives), where it is the exact radiance at each vertex's own view
-        direction (:meth:`exact_transport`), not the table's three tapped views cross-faded."""
+        direction (:meth:`exact_transport`), not the table's three tapped views cross-faded; for wavelet
+        transfer every Haar term through the float32 dense loop (``WaveletRelighter.float32``: not the VNNI
+        loop's quantised light, whatever ``wavelet.arith``)."""
         if self.kind == "transport" and isinstance(view, TransportView):
             return self.exact_transport(light, view.directions)
+        if self.kind == "wavelet":  # every term, the float32 dense loop whatever wavelet.arith (no light quantisation)
+            return self.relighter.float32(torch.arange(self.n_in), light)
         return self.uncompressed(light, view)
 
     @property
