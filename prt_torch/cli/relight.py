@@ -15,8 +15,9 @@ for the whole mesh, ``--exposure``) for a mesh viewer. Every kind:
   R (not band-limited), its ``--terms`` N largest Haar coefficients by ``--selection`` (default:
   all 6R², the exact pixel-basis result), sparse light × sparse transfer
   (:class:`prt_torch.relight.WaveletRelighter`; Ng et al. 2003). ``--arith``: the dense terms' arithmetic
-  (``auto``, the default: int16 VNNI dot products on a CPU with AVX-512 VNNI where the call allows, error below the
-  stored 16-bit transfer's own bound; ``float``: the float32 loop, the bits of every other CPU; docs/wavelet.md).
+  (``auto``, the default: int16 VNNI dot products on a CPU with AVX-512 VNNI where the call allows, within a stated
+  bound, at the median vertex no more than the stored 16-bit transfer's own error, more at dim vertices and in HDR
+  shadows; ``float``: the float32 loop, the bits of every other CPU; docs/wavelet.md).
 
 View-dependent kinds (glossy, MRT, transport tables) take the camera position ``--view X,Y,Z`` (default: the
 camera ``prt render`` places by default); view-independent ones refuse it.
