@@ -702,7 +702,7 @@ class WaveletRelighter:
     def estimate_bytes(cls, path, layouts: str = "auto", dense_min: float | None = None, tile: int | None = None,
                        light_channels: int = 3, chunk: int | None = None, exact: bool = True, light=None,
                        terms: int | None = None, selection: str = "transport", row_min: float | None = None,
-                       supersample: int = 4) -> dict:
+                       supersample: int = 4, arith: str = "auto") -> dict:
         """What a relighter of the wavelet transfer file ``path`` will hold, without building it: the layout
         arithmetic of ``__init__`` and :meth:`_build_rows` on the counts it depends on — the nonzero
         coefficients per Haar column (dense or sparse: ``dense_min``), the distinct (tile, column,
@@ -726,7 +726,8 @@ class WaveletRelighter:
         build) of the sparse blocks (``row_pass`` True; ``row_share``: the share they hold; ``row_min``: the
         threshold), else 0 (``row_pass`` False; e.g. a light with few nonzero Haar terms, such as the studio's
         softboxes on black: ``lighting.haar.select_terms``). Without a light (``row_pass`` None) it is counted, an upper
-        bound whatever the light: the estimate never counts less than the relighter will hold. The cached factor
+        bound whatever the light: the estimate never counts less than the relighter will hold.
+        ``dense_min`` defaults as a relighter of ``arith`` would (:meth:`default_dense_min`). The cached factor
         is for ``light_channels`` channels (the light's own with ``light``), in the form the file's albedo gives it
         (:meth:`_factor_form`: ``[V + 4]`` for a grey or uniform albedo, else ``[V, CO]``; ``exact=False``: ``[V, CO]``).
         The C kernel's choice: the torch path
@@ -755,7 +756,7 @@ class WaveletRelighter:
         if not exact:  # the header's bound: b from the stored dtype (a scale per level: re-quantised to 16 bits)
             per_level = stored is not None and len(hd["tensors"]["aux.scale"]["shape"]) == (3 if CT > 1 else 2)
             b = 2 if per_level else (stored or 4)
-            dmin = cls.default_dense_min(b) if dense_min is None else float(dense_min)
+            dmin = cls.default_dense_min(b, arith=arith) if dense_min is None else float(dense_min)
             E = V * K
             Pd = min(P, E // max(math.ceil(dmin * V), 1)) if dmin <= 1 else 0
             return cls._held_estimate(V, K, CT, P, b, TV, may_rows, light_channels, E, E, Pd, E, b != stored, exact=False)
@@ -773,7 +774,7 @@ class WaveletRelighter:
             b = q3.element_size()
             nz[a:a + step] = (q3 != 0).any(1)
         weights /= max(V, 1)
-        dmin = cls.default_dense_min(b) if dense_min is None else float(dense_min)
+        dmin = cls.default_dense_min(b, arith=arith) if dense_min is None else float(dense_min)
         is_dense = nnz >= max(dmin * V, 1)
         Pd, E = int(is_dense.sum()), int(nnz.sum())
         cblk = torch.zeros(P, dtype=torch.int64)  # [P] sparse blocks per column (the kernel's row/column choice)
@@ -979,8 +980,8 @@ class WaveletRelighter:
             fn = {torch.int8: lib.prt_wavelet_relight_i8, torch.int16: lib.prt_wavelet_relight_i16}.get(
                 self.bvals.dtype, lib.prt_wavelet_relight_f32)
             # kernels/wavelet.c's wavelet_layout: the arrays' addresses, built once (kept alive by self); last, each
-            # dense column's largest stored magnitude int32 [Pd] for 16-bit values (the -DDENSE_VNNI prototype's
-            # column-maximum rule; read by no default build), else NULL
+            # dense column's largest stored magnitude int32 [Pd] for 16-bit values (the VNNI dense loop's
+            # column-maximum rule; read by the builds with that loop only), else NULL
             self._dtmax = (self.dense.to(torch.int32).abs().amax(dim=(0, 2, 3)).contiguous()
                            if self.dense.dtype == torch.int16 else None)
             self._layout = torch.tensor([self.P, self.Pd, self.V, self.CT, self.TV, self.NT, self.MT,

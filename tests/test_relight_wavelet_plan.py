@@ -42,6 +42,20 @@ def blocker32(tmp_path_factory):
     return _wavelet(tmp_path_factory.mktemp("w") / "w32.prt", res=32)
 
 
+def test_estimate_follows_arith(tmp_path):
+    """``estimate_bytes(arith=)`` plans the layout a relighter of that ``arith`` builds (its ``dense_min`` default,
+    :meth:`WaveletRelighter.default_dense_min`: 0.2 for 16-bit values where the call runs the VNNI loop, else 1/3):
+    every part equals ``held_bytes()`` of the relighter built with it, for both values."""
+    path = _wavelet(tmp_path / "w.prt", res=16, terms=64, bits=16, scales="vertex")
+    for arith in ("auto", "float"):
+        est = WaveletRelighter.estimate_bytes(path, light="sky", arith=arith, row_min=0.5)
+        r = WaveletRelighter(Transfer.load(path), row_min=0.5, arith=arith)
+        li, lv, _ = r.light("sky")
+        r(li, lv)
+        assert {k: est[k] for k in PARTS} == r.held_bytes(), (arith, est, r.held_bytes())
+        assert est["Pd"] == r.Pd, (arith, est["Pd"], r.Pd)
+
+
 @pytest.mark.parametrize("params,layouts,light,terms,rows", [
     # sky at every term (its 6R²/2 upper-hemisphere terms): the light's sparse columns hold most sparse blocks, so the
     # kernel takes the row-major pass and 'auto' builds the copy

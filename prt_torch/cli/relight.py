@@ -368,7 +368,8 @@ def _wavelet_plan(args, V: int, mesh: int, data: int, exact: bool | None = None)
     # counted exactly, the relighter's row-major copy follows the run's light (built only when it takes that pass)
     e = WaveletRelighter.estimate_bytes(args.transfer, exact=exact, light=getattr(args, "light", None),
                                         terms=getattr(args, "terms", None),
-                                        selection=getattr(args, "selection", None) or "transport")
+                                        selection=getattr(args, "selection", None) or "transport",
+                                        arith=getattr(args, "arith", None) or "auto")
     rowp = {True: "this light takes that pass", False: "not built: this light takes the column-major pass",
             None: "built on first need"}[e["row_pass"]]
     if "row_share" in e:  # the kernel's choice: the light's sparse terms' share of the sparse blocks against row_min
