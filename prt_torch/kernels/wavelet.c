@@ -1041,12 +1041,12 @@ typedef struct {
     const i64 *tbase;           /* [NT] the tile's first block */
     const int32_t *bofs;        /* [NB] the block's accumulator: byte offset in its tile's scratch */
     const void *bvals;          /* [NB, CT, 8] stored values of the sparse blocks */
-    const int32_t *dslot;       /* [P] the column's dense slot, or -1 (not read here: the kernel lists the dense terms from cls and dcol) */
+    const int32_t *dslot;       /* [P] the column's dense slot, or -1 (read for the listed dense terms: LIST_TERMS in W16 builds, N <= SMALL_N) */
     const void *dense;          /* [ceil(V/32), Pd, CT, 32] stored values of the dense columns */
     float *acc;                 /* scratch [MT, TV/8, 4, 8] */
     i64 *wk;                    /* scratch [P]: the dense terms' slots, then (from Pd) the sparse terms' columns */
     float *lw;                  /* scratch [P, 4]: their light */
-    const i64 *dcol;            /* [Pd] the dense slot's column */
+    const i64 *dcol;            /* [Pd] the dense slot's column, ascending (slot order is column order: LIST_TERMS) */
     const unsigned char *cls;   /* [P] the column's class: 0 empty, 1 sparse, 2 dense */
     unsigned char *mark;        /* scratch [P]: 1 the column is one of the light's sparse terms, 2 a dense one */
     float *lp;                  /* scratch [P, 4]: the light per column, zero between calls (the row-major pass reads it for
@@ -1118,6 +1118,66 @@ typedef struct {
 #define NT_OUT_FENCE(x) (void)(x)
 #endif
 
+/* The term lists (WAVELET_KERNEL, N > SMALL_N). AVX-512 builds with BW (W16): both lists from one scan of the P marks,
+ * 64 per step (vptestmb of the dense bit 2 and the sparse bit 1 to two masks, then each mask's set bits): the dense
+ * terms in column order, which is slot order (relight.py numbers the dense slots by ascending column: dcol is sorted),
+ * their slot from dslot [P] int32; the sparse terms in column order, as before — the same lists, the same order, so the
+ * same bits. Before (the 8-lane builds' code, kept there byte for byte): a pass over the Pd dense slots (one mark load
+ * per slot) and a scan of the marks 8 per step (a 64-bit word, its sparse bits), 0.39 + 0.76 us of the fourth row's
+ * 1.7 us set-up (bench_wavelet_setup.py, small studio 292 kept: Pd = 259, P = 6144). */
+#if W16 && defined(__AVX512BW__)
+#define LIST_TERMS                                                                                           \
+    i64 nd = 0, ns = 0;                                                                                      \
+    i64 *sw = wk + Pd;                                                                                       \
+    float *sl = lw + 4 * Pd;                                                                                 \
+    for (i64 w = 0; w < (small ? 0 : P); w += 64) {                                                          \
+        const __mmask64 in_ = P - w >= 64 ? ~(__mmask64)0 : ((__mmask64)1 << (P - w)) - 1;                  \
+        const __m512i m_ = _mm512_maskz_loadu_epi8(in_, mark + w);                                           \
+        uint64_t xd = _mm512_test_epi8_mask(m_, _mm512_set1_epi8(2));                                        \
+        uint64_t xs = rows ? 0 : _mm512_test_epi8_mask(m_, _mm512_set1_epi8(1));                             \
+        while (xd) {                                                                                         \
+            const i64 j = w + __builtin_ctzll(xd);                                                           \
+            xd &= xd - 1;                                                                                    \
+            wk[nd] = L->dslot[j];                                                                            \
+            memcpy(lw + 4 * nd, lp + 4 * j, 4 * sizeof(float));                                              \
+            nd++;                                                                                            \
+        }                                                                                                    \
+        while (xs) {                                                                                         \
+            const i64 j = w + __builtin_ctzll(xs);                                                           \
+            xs &= xs - 1;                                                                                    \
+            sw[ns] = j;                                                                                      \
+            memcpy(sl + 4 * ns, lp + 4 * j, 4 * sizeof(float));                                              \
+            ns++;                                                                                            \
+        }                                                                                                    \
+    }
+#else
+#define LIST_TERMS                                                                                           \
+    i64 nd = 0;                                                                                              \
+    for (i64 s = 0; s < (small ? 0 : Pd); s++) {                                                             \
+        const i64 j = L->dcol[s];                                                                            \
+        wk[nd] = s;                                                                                          \
+        memcpy(lw + 4 * nd, lp + 4 * j, 4 * sizeof(float));                                                  \
+        nd += mark[j] >> 1;                                                                                  \
+    }                                                                                                        \
+    /* the sparse terms in column order (their blocks are then read front to back, the prefetcher's order),  \
+     * found 8 marks at a time, after the dense list's Pd places */                                          \
+    i64 *sw = wk + Pd;                                                                                       \
+    float *sl = lw + 4 * Pd;                                                                                 \
+    i64 ns = 0;                                                                                              \
+    for (i64 w = 0; w < (rows || small ? 0 : P); w += 8) {                                                   \
+        uint64_t x = 0; /* a constant-size copy (a variable one is a libc call: ~2.5 us per call over P = 6144) */ \
+        if (P - w >= 8) memcpy(&x, mark + w, 8); else memcpy(&x, mark + w, (size_t)(P - w));                \
+        x &= 0x0101010101010101ull;                                                                          \
+        while (x) {                                                                                          \
+            const i64 j = w + (__builtin_ctzll(x) >> 3);                                                     \
+            x &= x - 1;                                                                                      \
+            sw[ns] = j;                                                                                      \
+            memcpy(sl + 4 * ns, lp + 4 * j, 4 * sizeof(float));                                              \
+            ns++;                                                                                            \
+        }                                                                                                    \
+    }
+#endif
+
 #define WAVELET_KERNEL(NAME, T)                                                                              \
 int NAME(const wavelet_layout *L, i64 N, const i64 *sel, const float *lv, i64 C, const float *f, float *out,  \
          i64 threads) {                                                                                      \
@@ -1178,30 +1238,7 @@ int NAME(const wavelet_layout *L, i64 N, const i64 *sel, const float *lv, i64 C,
      * 1.18-1.36x at N = 1, 1.21-1.23x at 10, 1.05-1.10x at 100; bench_wavelet_setup_variants.py);           \
      * N < P - Pd keeps the lists' unconditional writes inside wk and lw */                                  \
     const int small = N <= SMALL_N && N < P - Pd;                                                            \
-    i64 nd = 0;                                                                                              \
-    for (i64 s = 0; s < (small ? 0 : Pd); s++) {                                                             \
-        const i64 j = L->dcol[s];                                                                            \
-        wk[nd] = s;                                                                                          \
-        memcpy(lw + 4 * nd, lp + 4 * j, 4 * sizeof(float));                                                  \
-        nd += mark[j] >> 1;                                                                                  \
-    }                                                                                                        \
-    /* the sparse terms in column order (their blocks are then read front to back, the prefetcher's order),  \
-     * found 8 marks at a time, after the dense list's Pd places */                                          \
-    i64 *sw = wk + Pd;                                                                                       \
-    float *sl = lw + 4 * Pd;                                                                                 \
-    i64 ns = 0;                                                                                              \
-    for (i64 w = 0; w < (rows || small ? 0 : P); w += 8) {                                                   \
-        uint64_t x = 0; /* a constant-size copy (a variable one is a libc call: ~2.5 us per call over P = 6144) */ \
-        if (P - w >= 8) memcpy(&x, mark + w, 8); else memcpy(&x, mark + w, (size_t)(P - w));                \
-        x &= 0x0101010101010101ull;                                                                          \
-        while (x) {                                                                                          \
-            const i64 j = w + (__builtin_ctzll(x) >> 3);                                                     \
-            x &= x - 1;                                                                                      \
-            sw[ns] = j;                                                                                      \
-            memcpy(sl + 4 * ns, lp + 4 * j, 4 * sizeof(float));                                              \
-            ns++;                                                                                            \
-        }                                                                                                    \
-    }                                                                                                        \
+    LIST_TERMS /* the dense terms in slot order, then the sparse ones in column order (W16 + BW: one scan) */   \
     if (small) { /* dense terms (a dense mark consumed: a repeated column once), then sparse */              \
         for (i64 n = 0; n < N; n++) {                                                                        \
             const i64 j = sel[n];                                                                            \
