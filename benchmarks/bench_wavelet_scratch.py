@@ -11,7 +11,10 @@ terms, RGB, the relighter's per-vertex factor) at N = ``--terms`` and all, in tw
 - **warm**: back-to-back calls (``timing.measure_paired``);
 - **evicted**: each call preceded (untimed) by a streaming read of ``--evict-mb`` MB (default 3) of other data
   (``timing.measure_paired_cold``'s junk read): the call's lines from L3, as in a render loop doing other work between
-  relights; a sample is ``--calls`` (default 4) such calls.
+  relights; a sample is ``--calls`` (default 4) such calls;
+- **2 threads** (``--two-threads``): back-to-back calls at two threads (the tiles split between them), paired by wall
+  clock (``time.perf_counter``: the other thread's work is not in one thread's CPU time; the machine's load is), no
+  fraction of the read bound (a one-thread figure).
 
 Builds: **test** (the working tree), **base**, **A/A** (the base built twice: the pairing's noise) and the measurement
 knobs in ``--variants`` (the working tree with ``-D`` lines prepended): ``touch8`` (``TOUCH8``: a mark per 8-vertex
@@ -67,6 +70,8 @@ from prt_torch.harness.timing import cpu_label, measure_paired, measure_paired_c
 TERMS = (10, 30, 100, 300, 1000)
 WHO = "bench_wavelet_scratch.py"
 REGIMES = ("warm", "evicted")
+#: the two-thread regime (--two-threads): warm, wall clock
+TWO = "2 threads"
 #: variant name -> the -D lines prepended to the working tree's source
 VARIANTS = {"touch8": "#define TOUCH8 1\n", "outpf": "#define OUT_PFW 1\n", "markall": "#define TOUCH_X (1LL << 40)\n",
             "marknone": "#define TOUCH_X (-1LL)\n", "outz0": "#define OUT_Z 0\n", "outz2": "#define OUT_Z 2\n"}
@@ -107,6 +112,8 @@ def pair(regime: str, a, b, repeats: int, evict_bytes: int, calls: int):
     """``a`` against ``b`` in ``regime``: (median of b / a per repeat, q1, q3, a's median µs, b's median µs)."""
     if regime == "warm":
         p = measure_paired(a, b, repeats=repeats, warmup=1, clock=time.thread_time)
+    elif regime == TWO:
+        p = measure_paired(a, b, repeats=repeats, warmup=1, clock=time.perf_counter)
     else:
         p = measure_paired_cold(a, b, repeats=2 * repeats + 1, warmup=1, evict_bytes=evict_bytes, clock=time.thread_time,
                                 calls=calls)
@@ -114,7 +121,7 @@ def pair(regime: str, a, b, repeats: int, evict_bytes: int, calls: int):
 
 
 def size_rows(size: str, libs: dict, terms, repeats: int, evict_bytes: int, calls: int, s7=(),
-              base_dmin: float | None = None) -> tuple[dict, list[dict]]:
+              base_dmin: float | None = None, regimes=REGIMES) -> tuple[dict, list[dict]]:
     tr = kernel_transfer(size)
     # the test build's layout: the relighter's default for that build (its prt_wavelet_isa bits: w16, vnni), which may
     # not be this process's own build (--vnni)
@@ -149,6 +156,10 @@ def size_rows(size: str, libs: dict, terms, repeats: int, evict_bytes: int, call
         fn = {k: bound_call(lay[k], lib, li, lv, outs[k], 1, per_vertex=True) for k, lib in libs.items()}
         for f in fn.values():
             f()
+        outs2 = {k: torch.empty(rl.V, 3) for k in libs}
+        fn2 = {k: bound_call(lay[k], lib, li, lv, outs2[k], 2, per_vertex=True) for k, lib in libs.items()}
+        for f in fn2.values():
+            f()
         ref = relight.wavelet_dense(ref_vals.double(), ref_index, li, lv.double(), rl.P) * rl.albedo[:, :3].double()
         scale = float(ref.abs().max()) or 1.0
         err = {k: float((o.double() - ref).abs().max()) / scale for k, o in outs.items()}
@@ -161,12 +172,17 @@ def size_rows(size: str, libs: dict, terms, repeats: int, evict_bytes: int, call
                "rows": bool(rl._takes_rows(int(rl.bcount[:, s].sum()), rl.NB, rl._row_permille(rl.row_min, True))),
                "mb": nbytes / 2**20, "mb_base": nbytes_b / 2**20, "err": err,
                # bit for bit with the build of the same layout: base for A/A, test for the variants (one layout: base)
-               "same": {k: bool(torch.equal(outs[k], outs["base" if lay[k] is rlb else "test"])) for k in outs},
+               "same": {k: bool(torch.equal(outs[k], outs["base" if lay[k] is rlb else "test"])
+                                and (TWO not in regimes or torch.equal(outs2[k], outs[k]))) for k in outs},
                "load0": load()}
-        for regime in REGIMES:
+        for regime in regimes:
             r = {}
+            f_ = fn2 if regime == TWO else fn
             for k in [k for k in fn if k != "base"]:
-                r[k] = pair(regime, fn[k], fn["base"], repeats, evict_bytes, calls)
+                r[k] = pair(regime, f_[k], f_["base"], repeats, evict_bytes, calls)
+            if regime == TWO:
+                row[regime] = r
+                continue
             for k in ("test", "base"):
                 r["read_" + k] = pair(regime, fn[k], bound if k == "test" else bound_b, repeats, evict_bytes, calls)
             row[regime] = r
@@ -174,9 +190,10 @@ def size_rows(size: str, libs: dict, terms, repeats: int, evict_bytes: int, call
             row["s7"] = {k: steady_pair(fn[k], bound if k == "test" else bound_b)[0].ratio.median for k in ("test", "base")}
         row["load1"] = load()
         rows.append(row)
-        msg = "; ".join(f"{g} base {row[g]['test'][4]:.1f} us, of read test {row[g]['read_test'][0]:.2f} base "
-                        f"{row[g]['read_base'][0]:.2f}, " + ", ".join(f"{k} {row[g][k][0]:.3f}" for k in fn if k != "base")
-                        for g in REGIMES)
+        msg = "; ".join(f"{g} base {row[g]['test'][4]:.1f} us, "
+                        + (f"of read test {row[g]['read_test'][0]:.2f} base {row[g]['read_base'][0]:.2f}, " if g != TWO else "")
+                        + ", ".join(f"{k} {row[g][k][0]:.3f}" for k in fn if k != "base")
+                        for g in regimes)
         s7m = f"; section 7 of read test {row['s7']['test']:.2f} base {row['s7']['base']:.2f}" if "s7" in row else ""
         print(f"[scratch] {size} {light} N={N} nd={row['nd']} sparse blocks {row['sb']}{' (row-major)' if row['rows'] else ''}: "
               f"{msg}{s7m}; same {all(row['same'].values())}, load {row['load1']:.1f}", flush=True)
@@ -216,8 +233,8 @@ def report(infos: list[dict], rows: list[dict], flags: str, args, before: float,
          + ("its .text is the base's byte for byte (gcc + objcopy, `--check-avx2`)." if avx2_same else
             "not checked in this run (`--check-avx2`)." if avx2_same is None else "**its .text differs from the base's**.")
          + f" Reproduce: `.venv/bin/python benchmarks/bench_wavelet_scratch.py --base {args.base} --sizes "
-         f"{args.sizes} --terms {args.terms} --repeats {args.repeats} --variants {','.join(names) or ''}"
-         f"{' --check-avx2' if args.check_avx2 else ''}{' --vnni' if args.vnni else ''}"
+         f"{args.sizes} --terms {args.terms} --s7-terms {args.s7_terms} --repeats {args.repeats} --variants '{','.join(names)}'"
+         f"{' --check-avx2' if args.check_avx2 else ''}{' --vnni' if args.vnni else ''}{' --two-threads' if args.two_threads else ''}"
          f"{'' if args.base_dense_min is None else ' --base-dense-min ' + args.base_dense_min_text}`.{vn}{lay}\n",
          "## The output pass alone\n",
          "A call with no light term (N = 0: each dense block's zero sums times the factor, interleaved and written once; "
@@ -239,7 +256,7 @@ def report(infos: list[dict], rows: list[dict], flags: str, args, before: float,
               "| size | light | N | test | base | load |", "|---|---|---|---|---|---|"]
         for r in s7rows:
             L.append(f"| {r['size']} | {r['light']} | {r['N']} | **{r['s7']['test']:.2f}** | {r['s7']['base']:.2f} | {r['load1']:.1f} |")
-    for regime in REGIMES:
+    for regime in [g for g in REGIMES + (TWO,) if g in rows[0]] if rows else ():
         L += [f"\n## {regime}\n",
               "| size | light | N | dense terms | sparse blocks | MB read | base µs | test µs | "
               + " | ".join(f"**base / {k}**" if k == "test" else f"base / {k}" for k in cols)
@@ -255,8 +272,8 @@ def report(infos: list[dict], rows: list[dict], flags: str, args, before: float,
             L.append(f"| {r['size']} | {r['light']} | {r['N']} | {nd} | {r['sb']}{' rows' if r['rows'] else ''} | "
                      f"{mb} | {g['test'][4]:.1f} | {g['test'][3]:.1f} | "
                      + " | ".join(q(g[k]) for k in cols)
-                     + f" | {g['read_test'][0]:.2f} / {g['read_base'][0]:.2f} | "
-                     f"{'same' if all(r['same'].values()) else '**differ**'} |"
+                     + (f" | {g['read_test'][0]:.2f} / {g['read_base'][0]:.2f} | " if regime != TWO else " | — | ")
+                     + f"{'same' if all(r['same'].values()) else '**differ**'} |"
                      + (f" {r['err']['test']:.1e} / {r['err']['base']:.1e} |" if two else "") + f" {r['load1']:.1f} |")
     return "\n".join(L) + "\n"
 
@@ -273,6 +290,7 @@ def main() -> None:
     ap.add_argument("--evict-mb", type=float, default=3.0)
     ap.add_argument("--calls", type=int, default=4)
     ap.add_argument("--check-avx2", action="store_true", help="compare the AVX2 builds' .text (gcc, objcopy)")
+    ap.add_argument("--two-threads", action="store_true", help="also pair every build at two threads by wall clock")
     ap.add_argument("--write", default=str(OUT / "wavelet_scratch.md"), help="the report ('': print only)")
     ap.add_argument("--vnni", action="store_true", help="every build with #define DENSE_VNNI 1 prepended")
     ap.add_argument("--base-dense-min", default=None, help="the base and A/A builds on a relighter built with this "
@@ -321,7 +339,8 @@ def main() -> None:
     before = load()
     infos, rows = [], []
     for s in sizes:
-        info, r = size_rows(s, libs, terms, args.repeats, int(args.evict_mb * 2**20), args.calls, s7, args.base_dense_min)
+        info, r = size_rows(s, libs, terms, args.repeats, int(args.evict_mb * 2**20), args.calls, s7, args.base_dense_min,
+                            REGIMES + ((TWO,) if args.two_threads else ()))
         infos.append(info)
         rows += r
     after = load()

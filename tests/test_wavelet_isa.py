@@ -240,3 +240,38 @@ def test_a_library_cached_on_a_vnni_cpu_is_not_loaded_without_vnni(tmp_path, mon
     monkeypatch.setattr(_native, "_cpu_id", lambda: cpu.replace(" avx512_vnni", ""))
     lib, how = _native.compile_library("wavelet", _native.kernel_sources(names), list(flags), sig)
     assert lib is None and "compiling the wavelet kernels failed" in how, how
+
+
+@pytest.mark.parametrize("res", [4, 8])
+def test_term_lists_from_the_marks(res):
+    """Lights of more than SMALL_N terms, or of at least P - Pd (the kernel's LIST_TERMS: the AVX-512 build lists the
+    dense and sparse terms from one scan of the P marks, 64 per step — P = 96 at R = 4 ends in a partial step —, the
+    8-lane builds by the Pd slots and 8 marks per step), repeated columns among them, the column-major pass (layouts
+    'column') and the row-major one, one and two threads, one tile and tiles of 160 vertices (15: an odd count):
+    each build equals the float64 sum of the stored values (within the VNNI loop's bound where the call takes it),
+    and the native build the AVX2 build's bits where both take the float loop."""
+    native, avx2 = relight._wavelet_lib("native"), relight._wavelet_lib("avx2") if HAS_AVX2 else None
+    vnni_on = relight.wavelet_kernel_path("native")["vnni"]
+    g = torch.Generator().manual_seed(7)
+    tr = _transfer(torch.int16, 1, res=res, K=24 if res == 8 else 12, dense=16 if res == 8 else 6)
+    for layouts, tile in (("column", None), ("column", 160), ("both", None)):
+        r = relight.WaveletRelighter(tr, threads=1, layouts=layouts, tile=tile)
+        idx, vals = r.reference_rows()
+        assert 0 < r.Pd < r.P
+        for N in (r.P - r.Pd, r.P, 300):  # 300: > SMALL_N, drawn with repeats
+            li = torch.randint(0, r.P, (N,), generator=g) if N == 300 else torch.randperm(r.P, generator=g)[:N]
+            li = li.contiguous()
+            for C in (1, 3):
+                lv = torch.randn(C, N, generator=g)
+                L = torch.zeros(C, r.P, dtype=torch.float64).index_add_(1, li, lv.double())  # a repeated column adds
+                ref = relight.wavelet_dense(vals.double(), idx, torch.arange(r.P), L, r.P)
+                vnni = r._takes_vnni(li, lv, vnni=vnni_on, arith="auto")
+                for threads in (1, 2):
+                    got = _relight(r, native, li, lv, threads)
+                    if vnni:
+                        assert _within_vnni_bound(r, got, ref, li, lv), (res, layouts, tile, N, C, threads)
+                        got = _relight(r, native, li, lv, threads, FDENSE)
+                    err = float((got.double() - ref).abs().max())
+                    assert err <= 1e-5 * float(ref.abs().max()) + 1e-6, (res, layouts, tile, N, C, threads, err)
+                    if avx2 is not None:
+                        assert torch.equal(got, _relight(r, avx2, li, lv, threads)), (res, layouts, tile, N, C, threads)
