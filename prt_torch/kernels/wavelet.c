@@ -946,6 +946,11 @@ DENSE_BLOCK(int16_t)
  * N <= 100; not the default (the two tiles are the two threads' shares). The next term's range bounds loaded before
  * this term's blocks (so that after a range's mispredicted exit the next range's chain of loads need not start
  * from its term's column): 0.95-1.04x, A/A 0.98-1.03 (small and medium, both dense loops, 21 repeats): noise.
+ * At one thread (2026-11-30, branch sp17, paired with LIST_TERMS's kernel, small, load 1.8-3.0): the sparse pass of
+ * every tile first, term by term, each tile into its own scratch (the same number of ranges, one light broadcast per
+ * term; two tiles' scratch and tptr rows in L1 together) ~0.95x on the fourth row, sky N = 1000 0.97x; each tile's
+ * empty (term) ranges skipped (per 64 terms the non-empty ranges listed branch-free first; 90 of the fourth row's 314
+ * ranges are empty) 0.98-0.99x: neither kept.
  * The AVX2 and avx512-256 builds keep one block per step, their machine code byte-identical to before (objdump; two and four per step measured no faster on AMD Zen 3, docs/wavelet.md). */
 #if W16
 /* the block's scratch address held in a register (an empty asm: gcc otherwise forms base + offset + 32 c by one lea
@@ -1122,9 +1127,14 @@ typedef struct {
  * 64 per step (vptestmb of the dense bit 2 and the sparse bit 1 to two masks, then each mask's set bits): the dense
  * terms in column order, which is slot order (relight.py numbers the dense slots by ascending column: dcol is sorted),
  * their slot from dslot [P] int32; the sparse terms in column order, as before — the same lists, the same order, so the
- * same bits. Before (the 8-lane builds' code, kept there byte for byte): a pass over the Pd dense slots (one mark load
- * per slot) and a scan of the marks 8 per step (a 64-bit word, its sparse bits), 0.39 + 0.76 us of the fourth row's
- * 1.7 us set-up (bench_wavelet_setup.py, small studio 292 kept: Pd = 259, P = 6144). */
+ * same bits. Before (the 8-lane builds' code, kept there byte for byte: avx2, znver3, avx512-256 and portable objects
+ * identical to 2913585's, objcopy): a pass over the Pd dense slots (one mark load per slot) and a scan of the marks 8
+ * per step (a 64-bit word, its sparse bits), 0.39 + 0.76 us of the fourth row's 1.7 us set-up (bench_wavelet_setup.py,
+ * small studio 292 kept: Pd = 259, P = 6144); now 0.59 together. Measured on the Intel Xeon (family 6 model 167), one
+ * thread's CPU time, paired with 2913585 on one layout: small studio N = 300 .. all 1.045-1.049x (19.1 -> 18.2 us; load
+ * 1.4-1.7, A/A 0.99-1.00), other rows 0.98-1.01x; with evicted calls and medium (bench_wavelet_scratch.py,
+ * reports/benchmarks/wavelet_listing.md, load 3.4-5.5) warm 1.04-1.06x on that row, the rest 0.94-1.07x (A/A
+ * 0.99-1.04); section 7's fraction of the fourth row 0.45 (main 0.42). */
 #if W16 && defined(__AVX512BW__)
 #define LIST_TERMS                                                                                           \
     i64 nd = 0, ns = 0;                                                                                      \
