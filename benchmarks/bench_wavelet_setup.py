@@ -190,11 +190,15 @@ def main() -> None:
     ap.add_argument("--pair", default=None, help="pair the working tree's kernel with this revision's (or .c file's)")
     ap.add_argument("--variant", default=None, help=f"with --pair: REV's kernel rewritten, one of {sorted(VARIANTS)}")
     ap.add_argument("--size", default=None, help="section 7's mesh size: small (default), medium, large")
+    ap.add_argument("--tile", type=int, default=None, help="the layout's tile (vertices, a multiple of 32; default the "
+                    "relighter's: half the vertices up to 4096)")
     ap.add_argument("--lights", default=None, help="the probes' lights as LIGHT:N pairs, comma-separated (LIGHT studio or "
                     "sky, N a count or 'all'; default studio:100,studio:300,sky:100,sky:300,sky:1000,sky:all)")
     args = ap.parse_args()
     args.size = size_choice(args.size, WHO)
     args.lights = light_list(args.lights)
+    if args.tile is not None and (args.tile < 32 or args.tile % 32):
+        raise SystemExit(f"{WHO}: --tile {args.tile}; accepted: a multiple of 32, at least 32")
     if args.variant is not None and (args.variant not in VARIANTS or not args.pair):
         raise SystemExit(f"{WHO}: --variant {args.variant!r}; accepted: one of {sorted(VARIANTS)}, with --pair REV")
     if args.pair:
@@ -209,7 +213,7 @@ def main() -> None:
     libs[12] = kernel_build(src, args.isa, WHO)[0]
     w16 = bool(path.get("w16"))
     dense_cyc, sparse_cyc = FLOORS[w16]
-    rl = relight.WaveletRelighter(kernel_transfer(args.size), threads=1, layouts="both")
+    rl = relight.WaveletRelighter(kernel_transfer(args.size), threads=1, layouts="both", tile=args.tile)
     ghz = [clock_ghz()]
     before = load()
     rows = []
@@ -313,7 +317,7 @@ def pair(args) -> str:
     test = "variant" if args.variant else "tree"
     libs = {"tree": kernel_build(tree, args.isa, WHO)[0], "base": kernel_build(base, args.isa, WHO)[0],
             "A/A": kernel_build(base, args.isa, WHO, tag="A/A control")[0]}
-    rl = relight.WaveletRelighter(kernel_transfer(args.size), threads=1, layouts="both")
+    rl = relight.WaveletRelighter(kernel_transfer(args.size), threads=1, layouts="both", tile=args.tile)
     before = load()
     L = [f"## {cpu_label()}: the `{args.isa}` build, {name} against {label}\n",
          f"{path['path']}. Both kernels compiled with the library's flags and this build's, bound to one layout (the "
