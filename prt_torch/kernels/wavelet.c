@@ -950,7 +950,10 @@ DENSE_BLOCK(int16_t)
  * every tile first, term by term, each tile into its own scratch (the same number of ranges, one light broadcast per
  * term; two tiles' scratch and tptr rows in L1 together) ~0.95x on the fourth row, sky N = 1000 0.97x; each tile's
  * empty (term) ranges skipped (per 64 terms the non-empty ranges listed branch-free first; 90 of the fourth row's 314
- * ranges are empty) 0.98-0.99x: neither kept.
+ * ranges are empty) 0.98-0.99x; every tile's sparse pass first, tile by tile (one switch from the sparse pass to the
+ * zmm dense loop per call instead of per tile) 0.96-1.00x: none kept. The pass is not what one tile saves: the probes
+ * on a one-tile layout (bench_wavelet_setup.py --tile 2272, three paired runs) give the sparse pass 0.06-0.43 us less
+ * and the dense terms 0.5-0.67 us less than on two tiles.
  * The AVX2 and avx512-256 builds keep one block per step, their machine code byte-identical to before (objdump; two and four per step measured no faster on AMD Zen 3, docs/wavelet.md). */
 #if W16
 /* the block's scratch address held in a register (an empty asm: gcc otherwise forms base + offset + 32 c by one lea
