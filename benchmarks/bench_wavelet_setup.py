@@ -151,7 +151,9 @@ def probe_source(text: str, k: int) -> str:
     for old, ins in CUTS:
         if old not in text:
             raise SystemExit(f"{WHO}: kernels/wavelet.c changed: the probe's line {old.strip()!r} is gone")
-        text = text.replace(old, "    " + ins + " \\\n" + old, 1)
+        # every occurrence: the term lists are a macro with one form per build (LIST_TERMS: the AVX-512 build's one scan,
+        # the 8-lane builds' two passes), and the probe after the dense listing belongs in whichever is compiled
+        text = text.replace(old, "    " + ins + " \\\n" + old)
     for old, new in SUBS:
         if old not in text:
             raise SystemExit(f"{WHO}: kernels/wavelet.c changed: the probe's text {old.strip()!r} is gone")
