@@ -93,10 +93,13 @@ CUTS = (("    if (C < 1 || C > 4 || (CT == 3 && C != 1 && C != 3)) return 1;", "
         ("    const T *rvals = (const T *)L->rvals;", "if (PROBE == 6) { " + ZERO + " return 0; }"),
         ("        SCRATCH_ZERO", "if (PROBE == 7) continue;"),
         ("        if (CT == 3) { TILE_CASE(T, 3, 3, 3) }", "if (PROBE == 8) continue;"))
-#: (text, replacement): probes 9-11 inside TILE_CASE, and ``dense twice`` (PROBE 13)
+#: (text, replacement): probes 9-11 inside TILE_CASE, ``dense twice`` (PROBE 13) and ``sparse twice`` (PROBE 14)
 SUBS = (("    for (i64 b = 0; b < nb; b++) {                                                                           \\",
-         "    for (i64 b = 0; b < (PROBE == 9 ? nb : 0); b++) { SCRATCH_DROP(b) } \\\n"
-         "    for (int r_ = 0; r_ < (PROBE == 13 ? 2 : 1); r_++) for (i64 b = 0; b < (PROBE == 9 ? 0 : nb); b++) { \\"),
+         "    for (i64 b = 0; b < (PROBE == 9 || PROBE == 14 ? nb : 0); b++) { SCRATCH_DROP(b) } \\\n"
+         "    for (int r_ = 0; r_ < (PROBE == 13 ? 2 : 1); r_++) for (i64 b = 0; b < (PROBE == 9 || PROBE == 14 ? 0 : nb); b++) { \\"),
+        # sparse twice: probe 9 with each tile's column-major pass run twice, the second right after the first (its
+        # sums doubled: timing only, the output is not compared)
+        ("    if (ns && !rows) sparse_tile_##T(", "    for (int s_ = 0; s_ < (PROBE == 14 ? 2 : 1); s_++) if (ns && !rows) sparse_tile_##T("),
         ("        dense_block_##T(CT_, CO_, OC_, nd, wk,", "        dense_block_##T(CT_, CO_, OC_, PROBE == 10 || PROBE == 11 ? 0 : nd, wk,"),
         ("rows ? lp : NULL, nv,", "rows && PROBE != 10 ? lp : NULL, nv,"),
         # dense twice: the sparse scratch added in the second pass only (the AVX-512 build's add-back clears it)
@@ -129,6 +132,14 @@ VARIANTS = {
     "tiles reversed": (TILES, _tiles_reversed),
     "no OpenMP pragma": (PRAGMA, lambda s: s.replace("    " + PRAGMA + "                                 \\\n", "", 1)),
     "firstprivate": (PRAGMA, lambda s: s.replace(PRAGMA, PRAGMA[:-2] + f" firstprivate({SHARED})\")", 1)),
+    # the column-major pass's knobs (kernels/wavelet.c: SP_PFR, SP_PFL, SP_PFS; AVX-512 builds only)
+    "sparse range prefetch 1": ("SP_RANGE_PF", lambda s: "#define SP_PFR 1\n" + s),
+    "sparse range prefetch 2": ("SP_RANGE_PF", lambda s: "#define SP_PFR 2\n" + s),
+    "sparse range prefetch 4": ("SP_RANGE_PF", lambda s: "#define SP_PFR 4\n" + s),
+    "sparse range prefetch 2, 4 lines": ("SP_RANGE_PF", lambda s: "#define SP_PFR 2\n#define SP_PFL 4\n" + s),
+    "scratch prefetch": ("SP_SCRATCH_PF", lambda s: "#define SP_PFS 8\n" + s),
+    "scratch prefetch always": ("SP_SCRATCH_PF", lambda s: "#define SP_PFS 0\n" + s),
+    "scratch prefetch + range prefetch 2": ("SP_SCRATCH_PF", lambda s: "#define SP_PFS 8\n#define SP_PFR 2\n" + s),
 }
 
 
@@ -211,7 +222,7 @@ def main() -> None:
     except ValueError as e:
         raise SystemExit(f"{WHO}: --isa {args.isa!r}: {e}") from None
     src, label = kernel_source(args.source, f"{WHO} --source")
-    libs = {k: kernel_build(probe_source(src, k), args.isa, WHO)[0] for k in (*range(1, 12), 13)}
+    libs = {k: kernel_build(probe_source(src, k), args.isa, WHO)[0] for k in (*range(1, 12), 13, 14)}
     libs[12] = kernel_build(src, args.isa, WHO)[0]
     w16 = bool(path.get("w16"))
     dense_cyc, sparse_cyc = FLOORS[w16]
@@ -239,7 +250,7 @@ def main() -> None:
             sb = int(rl.bcount[:, s].sum())
             rows_pass = rl._takes_rows(sb, rl.NB, rl._row_permille(rl.row_min, True))
             t, peers = {}, []
-            for k in (*range(1, 12), 13):
+            for k in (*range(1, 12), 13, 14):
                 p = measure_paired(calls[k], full, repeats=args.repeats, warmup=1, clock=time.thread_time)
                 t[k] = p.test.median * 1e6
                 peers.append(p.peer.median * 1e6)
@@ -261,6 +272,8 @@ def main() -> None:
             hot = t[13] - t[12]
             parts.append(("  the dense terms and the row-major pass re-run from the caches (dense twice)" if rows_pass else
                           "  the dense terms re-run from the caches (dense twice)", hot, floors[12] + floors[11]))
+            if not rows_pass:
+                parts.append(("  the sparse pass re-run from the caches (sparse twice)", t[14] - t[9], floors[9]))
             row = {"light": light, "N": N, "P": rl.P, "call": t[12], "read": read_us, "parts": parts,
                    "dense": int(d.sum()), "sparse": int(s.numel()), "blocks": sb, "rows": rows_pass, "load": load()}
             rows.append(row)

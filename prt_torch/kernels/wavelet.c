@@ -988,6 +988,29 @@ DENSE_BLOCK(int16_t)
 #define SPARSE_RANGE(T) for (; e < e1; e++) SPARSE_BLOCK(T, e)
 #endif
 
+#if W16 && defined(SP_PFR) /* a measurement knob: the range SP_PFR terms ahead, its first SP_PFL lines of values and its
+                             * first line of offsets prefetched (clamped to the last term: no branch) */
+#ifndef SP_PFL
+#define SP_PFL 2
+#endif
+#define SP_RANGE_PF                                                                                          \
+    {                                                                                                        \
+        const i64 f_ = tp[ss[t + SP_PFR < ns ? t + SP_PFR : ns - 1]];                                        \
+        __builtin_prefetch(bofs + f_);                                                                       \
+        for (int q_ = 0; q_ < SP_PFL; q_++) __builtin_prefetch((const char *)(bv + f_ * 8 * CT) + 64 * q_);  \
+    }
+#else
+#define SP_RANGE_PF
+#endif
+#if W16 && defined(SP_PFS) /* a measurement knob: the tile's whole scratch prefetched for writing before its sparse pass
+                             * when the light's sparse blocks are at least SP_PFS per 8-vertex block of V (scaled by 8) */
+#define SP_SCRATCH_PF                                                                                        \
+    if (ns && !rows && 8 * sb >= (SP_PFS) * ((V + 7) / 8))                                                   \
+        for (i64 q_ = 0; q_ < nb * 512; q_ += 64) __builtin_prefetch((const char *)acc + q_, 1);
+#else
+#define SP_SCRATCH_PF
+#endif
+
 /* the sparse terms' blocks of one tile into its scratch acc (zeroed), column-major; lw [ns, 4] the terms' light */
 #define SPARSE_TILE(T)                                                                                       \
 static inline __attribute__((always_inline)) void sparse_tile_##T(const int CT, const int CO, i64 ns,        \
@@ -995,6 +1018,7 @@ static inline __attribute__((always_inline)) void sparse_tile_##T(const int CT, 
     for (i64 t = 0; t < ns; t++) {                                                                           \
         v8f l[4];                                                                                            \
         for (int c = 0; c < CO; c++) l[c] = bc8(lw + 4 * t + c);                                             \
+        SP_RANGE_PF                                                                                          \
         const i64 e1 = tp[ss[t] + 1];                                                                        \
         i64 e = tp[ss[t]];                                                                                   \
         SPARSE_RANGE(T)                                                                                      \
@@ -1073,6 +1097,7 @@ typedef struct {
 } wavelet_layout;
 
 #define TILE_CASE(T, CT_, CO_, OC_)                                                                          \
+    SP_SCRATCH_PF                                                                                            \
     if (ns && !rows) sparse_tile_##T(CT_, CO_, ns, sw, sl, tp, bofs, bv, acc MK_ARG);                        \
     PAIR_KEEP                                                                                                \
     for (i64 b = 0; b < nb; b++) {                                                                           \
