@@ -487,7 +487,9 @@ static inline void put_rgb8(float *out, v8f r, v8f g, v8f b, int nt) {
  * 0.27-0.38 us less: the lines come from L2 at little cost), the per-block work around it (sums zeroed, permutes,
  * the pair's keep) ~0.75 us, one group instead of 16-term groups 0.2-0.5 us less (sky N = 300, 246 dense terms: 2.8 of
  * 35 us); the loop's scalar bookkeeping the rest above the asm body's 2.6 cycles per (term, block). With the records
- * the call is 1.04-1.10x faster warm at small (the A/A 0.97-1.02), the outputs bit for bit main's. Not kept: the pair
+ * the call is faster warm at small 1.01-1.10x (studio 292 kept 1.05-1.07x; A/A 0.98-1.04), medium 0.99-1.14x (N = 10-30
+ * 1.05-1.14x), evicted 0.93-1.09x (A/A 0.92-1.09; reports/benchmarks/wavelet_vnni_records.md, load 1.7-2.0), the
+ * outputs bit for bit main's; the fourth row 0.45 of the streaming read against main's 0.41 in that run. Not kept: the pair
  * loop unrolled by 2 (GCC unroll) no better (0.99-1.03x of the records alone); no prefetch at all 0.90-0.97x of the
  * records warm and 0.87-0.98x evicted. */
 #if DVNNI
