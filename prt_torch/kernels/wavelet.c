@@ -491,7 +491,8 @@ static inline void put_rgb8(float *out, v8f r, v8f g, v8f b, int nt) {
  * 1.05-1.14x), evicted 0.93-1.09x (A/A 0.92-1.09; reports/benchmarks/wavelet_vnni_records.md, load 1.7-2.0), the
  * outputs bit for bit main's; the fourth row 0.45 of the streaming read against main's 0.41 in that run. Not kept: the pair
  * loop unrolled by 2 (GCC unroll) no better (0.99-1.03x of the records alone); no prefetch at all 0.90-0.97x of the
- * records warm and 0.87-0.98x evicted. */
+ * records warm and 0.87-0.98x evicted; loops aligned to 32 / 64 bytes 0.98-1.02x; four blocks in lockstep (a timing-only
+ * prototype, 24 int32 sums in registers, the float sums flushed through the stack) 0.83-1.00x warm. */
 #if DVNNI
 #define VNNI_PARAMS const float *vq,
 #define VNNI_ARGS vq,
