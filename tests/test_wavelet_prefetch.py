@@ -61,3 +61,48 @@ def test_prefetch_across_units_keeps_the_bits(dtype):
                         assert torch.equal(a, b), (dtype, CT, tile, C, li.numel(), threads)
                         err = float((a.double() - ref).abs().max())
                         assert err <= 1e-5 * float(ref.abs().max()) + 1e-6, (dtype, CT, tile, C, li.numel(), err)
+
+
+def _build(pre: str):
+    """The avx512 build of the working tree's wavelet.c with ``pre`` prepended (its entry points typed)."""
+    i64, vp = ctypes.c_int64, ctypes.c_void_p
+    sig = [vp, i64, vp, vp, i64, vp, vp, i64]
+    lib, how = compile_library("wavelet", {"wavelet.c": pre + (KERNELS_DIR / "wavelet.c").read_text()},
+                               list(LIBRARIES["wavelet"][1]) + list(KERNEL_ISAS["avx512"]),
+                               {f"prt_wavelet_relight_{n}": sig for n in ("f32", "i8", "i16")})
+    assert lib is not None, how
+    return lib
+
+
+@pytest.mark.skipif(not {"avx512_vnni", "avx512bw"} <= _native._isa_flags(), reason="no AVX-512 VNNI on this CPU")
+def test_vnni_records_keep_the_sums():
+    """The VNNI dense loop's records (kernels/wavelet.c ``vnni_records``: each dense term's row offset and its prefetch
+    target, written over the call's dense slots) in both prefetch forms — across units (``PFX_MIN`` 0) and within the
+    unit (``PFX_MIN`` above every layout) — give the same bits (a prefetch never changes what is summed), within the
+    loop's stated bound of the float64 gather of the same stored values (``bench_wavelet_madd_micro.vnni_bound``), and
+    not the float loop's bits (the VNNI loop was taken): 4 and 5 dense terms (the prefetch target PFX = 24 steps, six
+    units ahead, an odd last term alone), 9 (odd, one group), 10 dense + 30 others, every column (odd and even counts
+    over several groups); the default tiles and tiles of 3 blocks (a pair and a lone block), one and two threads."""
+    from test_wavelet_isa import _within_vnni_bound
+
+    far, unit = _build("#define PFX_MIN 0LL\n"), _build("#define PFX_MIN (1LL << 62)\n")
+    assert far.prt_wavelet_isa() & 64 and unit.prt_wavelet_isa() & 64
+    g = torch.Generator().manual_seed(11)
+    tr = _transfer(torch.int16, 1, dense=20)
+    for tile in (None, 96):
+        r = relight.WaveletRelighter(tr, threads=1, layouts="both", tile=tile)
+        dense = torch.nonzero(r.dslot >= 0).flatten()
+        other = torch.nonzero(r.dslot < 0).flatten()
+        assert dense.numel() >= 17
+        idx, vals = r.reference_rows()
+        for li in (dense[:4], dense[:5], dense[:9], torch.cat([dense[:10], other[torch.randperm(other.numel(), generator=g)[:30]]]),
+                   dense.flip(0), torch.arange(r.P)):
+            li = li.contiguous()
+            lv = torch.randn(3, li.numel(), generator=g)
+            assert r._takes_vnni(li, lv, vnni=True, arith="auto")
+            ref = relight.wavelet_dense(vals.double(), idx, li, lv.double(), r.P)
+            for threads in (1, 2):
+                a, b = _relight(r, far, li, lv, threads), _relight(r, unit, li, lv, threads)
+                assert torch.equal(a, b), (tile, li.numel(), threads)
+                assert _within_vnni_bound(r, a, ref, li, lv), (tile, li.numel(), threads)
+                assert not torch.equal(a, _relight(r, far, li, lv, threads, relight.float_dense_flag(far))), (tile, li.numel())

@@ -469,12 +469,30 @@ static inline void put_rgb8(float *out, v8f r, v8f g, v8f b, int nt) {
  * |T| <= 32767), written over lw as the pairs' lights int32 [ceil(nd / 2), 4], (Lq_2q & 0xFFFF) |
  * Lq_2q+1 << 16 (an odd last term paired with itself at light 0). Per pair and 32-vertex block: the two rows (64
  * bytes each) interleaved by vpunpcklwd / vpunpckhwd, one vpdpwssd zmm per interleaving and channel (6 int32 sums;
- * the two blocks of the W16 pair in lockstep, the broadcasts shared), the prefetch as the float loop's (across units,
- * PFX steps ahead, on layouts of at least PFX_MIN bytes; else PF terms ahead within the unit); after each group's
+ * the two blocks of the W16 pair in lockstep, the broadcasts shared), the prefetch's targets as the float loop's (across
+ * units, PFX steps ahead, on layouts of at least PFX_MIN bytes; else PF terms ahead within the unit); after each group's
  * VNNI_G / 2 pairs a flush (the int32 sums converted, times the group's scales, added to float sums by FMA, zeroed);
  * at the end the vertex order restored (vpermt2ps) into z / y as the float loop leaves them. Error per vertex and
  * channel |dS| <= sum_g (s_g[c] / 2) sum_{k in g} |T_v,k| (+ float rounding): not the same bits as the float loop. Measured: reports/benchmarks/wavelet_madd_micro_vnni.md (the loops),
- * wavelet_vnni_proto.md (the whole call; docs/wavelet.md). */
+ * wavelet_vnni_proto.md (the whole call; docs/wavelet.md).
+ * The records (2026-11-30, branch vnni17): VNNI_SETUP also rewrites the call's dense slots wk [nd] (int64) in place as
+ * records int32 [nd, 2] (vnni_records: the term's row offset in bytes, its prefetch step's target from the unit's start,
+ * the same for every unit), so a pair step loads two records and adds them to the block's address — no slot shift, no
+ * odd-term select, no prefetch counter with its wrap, no division per unit (PFX_START's) — and an odd last term takes a
+ * step of its own after its group's pairs. The same sums in the same order: the outputs bit for bit those of the loop
+ * before (fdd5d3e..2913585's). Where the call's loop cost went, on the Intel Xeon (family 6 model 167), small blocker
+ * scene, studio 292 kept (71 dense terms x 71 blocks), one thread's CPU time, timing-only builds paired with main's
+ * (bench_wavelet_scratch.py, load 1.3-2.0; docs/wavelet.md "The VNNI dense steps in the call"): of the ~18.4 us call
+ * the dense terms ~9.1 us, ~8.4 of it the term loop with its flushes (every dense block's lines from its own block
+ * 0.27-0.38 us less: the lines come from L2 at little cost), the per-block work around it (sums zeroed, permutes,
+ * the pair's keep) ~0.75 us, one group instead of 16-term groups 0.2-0.5 us less (sky N = 300, 246 dense terms: 2.8 of
+ * 35 us); the loop's scalar bookkeeping the rest above the asm body's 2.6 cycles per (term, block). With the records
+ * the call is faster warm at small 1.01-1.10x (studio 292 kept 1.05-1.07x; A/A 0.98-1.04), medium 0.99-1.14x (N = 10-30
+ * 1.05-1.14x), evicted 0.93-1.09x (A/A 0.92-1.09; reports/benchmarks/wavelet_vnni_records.md, load 1.7-2.0), the
+ * outputs bit for bit main's; the fourth row 0.45 of the streaming read against main's 0.41 in that run. Not kept: the pair
+ * loop unrolled by 2 (GCC unroll) no better (0.99-1.03x of the records alone); no prefetch at all 0.90-0.97x of the
+ * records warm and 0.87-0.98x evicted; loops aligned to 32 / 64 bytes 0.98-1.02x; four blocks in lockstep (a timing-only
+ * prototype, 24 int32 sums in registers, the float sums flushed through the stack) 0.83-1.00x warm. */
 #if DVNNI
 #define VNNI_PARAMS const float *vq,
 #define VNNI_ARGS vq,
@@ -519,6 +537,24 @@ static inline void vnni_quantise(i64 nd, float *lw, float *vq, const int32_t *tm
         lq[4 * q] = w[0]; lq[4 * q + 1] = w[1]; lq[4 * q + 2] = w[2]; lq[4 * q + 3] = 0;
     }
 }
+/* the dense terms' slots ds = wk [nd] (int64) rewritten in place as records int32 [nd, 2]: (ds[t] x 64, the byte offset
+ * of term t's row in its block; the prefetch's target of step t), read by vnni_terms instead of ds. far (the layout
+ * outgrows PFX_MIN): the target PFX steps ahead across units, u x us + ds[(t + PFX) % nd] x 64 with u = (t + PFX) / nd
+ * units ahead and us the unit's bytes (a pair of blocks: the same offsets for every unit); else the term PF ahead within
+ * the unit (the last term's row for the unit's last PF terms). The caller checks that the offsets fit an int32
+ * ((PFX / nd + 1) us + Pd x 64 <= INT32_MAX; else the float loop) */
+static inline void vnni_records(i64 nd, i64 *wk, i64 us, const int far) {
+    int32_t *r = (int32_t *)wk;
+    for (i64 t = 0; t < nd; t++) { const i64 sl = wk[t]; r[2 * t] = (int32_t)(sl * 64); r[2 * t + 1] = 0; }
+    i64 u = far ? PFX / nd : 0, tt = far ? PFX - u * nd : PF;
+    for (i64 t = 0; t < nd; t++) {
+        if (far) {
+            r[2 * t + 1] = (int32_t)(u * us + r[2 * tt]);
+            if (++tt == nd) { tt = 0; u++; }
+        } else
+            r[2 * t + 1] = r[2 * (t + PF < nd ? t + PF : nd - 1)];
+    }
+}
 /* one block's pair body: row a loaded, row b the unpacks' memory operand, 6 vpdpwssd (asm: in intrinsics gcc copied
  * every sum through another register at each step) */
 #define VNNI_BLOCK(k, pa, pb)                                                                                \
@@ -541,47 +577,43 @@ static inline void vnni_quantise(i64 nd, float *lw, float *vq, const int32_t *tm
         f##k##21 = _mm512_fmadd_ps(_mm512_cvtepi32_ps(s##k##21), c2_, f##k##21);                            \
         s##k##00 = s##k##01 = s##k##10 = s##k##11 = s##k##20 = s##k##21 = _mm512_setzero_si512();           \
     }
-/* one (term, unit) step of the prefetch across units (as PF_FAR: the term pt_ of the unit po_ bytes on, both blocks'
- * lines when two; past the layout's end a prefetch, never a load) */
-#define VNNI_FAR                                                                                             \
-    {                                                                                                        \
-        const uintptr_t a_ = (uintptr_t)blk + (uintptr_t)(po_ + ds[pt_] * 64);                              \
-        __builtin_prefetch((const char *)a_);                                                                \
-        if (two) __builtin_prefetch((const char *)(a_ + (uintptr_t)pstb));                                   \
-        if (++pt_ == nd) { pt_ = 0; po_ += us_; }                                                           \
-    }
-/* blk (and with two, blk + pstb bytes: the pair's next block; pstb the blocks' stride) over the nd dense terms ds
- * (64-byte rows), the pairs' lights lq, scales vq [3]: the float sums into z (and y) [c][h], h: vertices 16h .. 16h +
- * 15; far: the prefetch PFX (term, unit) steps ahead across units as the float loop's PF_FAR, else PF terms ahead
- * within the unit */
-static inline __attribute__((always_inline)) void vnni_terms(const char *blk, i64 pstb, const int two, const int far,
-        i64 nd, const i64 *ds, const int32_t *lq, const float *vq, v16f z[4][2], v16f y[4][2]) {
+/* blk (and with two, blk + pstb bytes: the pair's next block; pstb the blocks' stride) over the nd dense terms, their
+ * records rc int32 [nd, 2] (vnni_records: each term's row offset and its prefetch step's target, both from blk), the
+ * pairs' lights lq, scales vq [3]: the float sums into z (and y) [c][h], h: vertices 16h .. 16h + 15. Per pair of terms
+ * two record loads, two adds, four prefetches from the records (no counter, no wrap, no shift); an odd last term alone
+ * (its row as both rows, light 0 on the second) */
+static inline __attribute__((always_inline)) void vnni_terms(const char *blk, i64 pstb, const int two,
+        i64 nd, const int32_t *rc, const int32_t *lq, const float *vq, v16f z[4][2], v16f y[4][2]) {
     __m512i s000 = _mm512_setzero_si512(), s001 = s000, s010 = s000, s011 = s000, s020 = s000, s021 = s000,
             s100 = s000, s101 = s000, s110 = s000, s111 = s000, s120 = s000, s121 = s000;
     __m512 f000 = _mm512_setzero_ps(), f001 = f000, f010 = f000, f011 = f000, f020 = f000, f021 = f000,
            f100 = f000, f101 = f000, f110 = f000, f111 = f000, f120 = f000, f121 = f000;
-    const i64 us_ = (two ? 2 : 1) * pstb;
-    i64 pt_ = PFX, po_ = 0;
-    if (pt_ >= nd) { const i64 u_ = pt_ / nd; pt_ -= u_ * nd; po_ = u_ * us_; }
+    const char *blk2 = blk + pstb;
+    const i64 nf = nd >> 1; /* full pairs */
     for (i64 q0 = 0; 2 * q0 < nd; q0 += VNNI_G / 2) { /* a scale group: VNNI_G / 2 pairs, then its flush */
-    const i64 qe = 2 * q0 + VNNI_G < nd ? q0 + VNNI_G / 2 : (nd + 1) / 2;
+    const i64 qe = q0 + VNNI_G / 2 < nf ? q0 + VNNI_G / 2 : nf;
     for (i64 q = q0; q < qe; q++) {
-        const i64 ta = 2 * q, tb = ta + 1 < nd ? ta + 1 : ta;
-        const char *ra = blk + ds[ta] * 64, *rb = blk + ds[tb] * 64;
-        if (far) {
-            VNNI_FAR
-            if (ta + 1 < nd) VNNI_FAR
-        } else {
-            const i64 pa = ta + PF < nd ? ta + PF : nd - 1, pb = pa + 1 < nd ? pa + 1 : pa;
-            __builtin_prefetch(blk + ds[pa] * 64);
-            __builtin_prefetch(blk + ds[pb] * 64);
-            if (two) { __builtin_prefetch(blk + pstb + ds[pa] * 64); __builtin_prefetch(blk + pstb + ds[pb] * 64); }
-        }
+        const int32_t *r = rc + 4 * q;
+        const char *ra = blk + r[0], *rb = blk + r[2];
+        __builtin_prefetch(blk + r[1]);
+        __builtin_prefetch(blk + r[3]);
+        if (two) { __builtin_prefetch(blk2 + r[1]); __builtin_prefetch(blk2 + r[3]); }
         const __m512i l0 = _mm512_set1_epi32(lq[4 * q]), l1 = _mm512_set1_epi32(lq[4 * q + 1]),
                       l2 = _mm512_set1_epi32(lq[4 * q + 2]);
         __m512i x, hi;
         VNNI_BLOCK(0, ra, rb);
         if (two) VNNI_BLOCK(1, ra + pstb, rb + pstb);
+    }
+    if ((nd & 1) && nf < q0 + VNNI_G / 2) { /* the odd last term, in this group: its row twice (light 0 on the second) */
+        const int32_t *r = rc + 4 * nf;
+        const char *ra = blk + r[0];
+        __builtin_prefetch(blk + r[1]);
+        if (two) __builtin_prefetch(blk2 + r[1]);
+        const __m512i l0 = _mm512_set1_epi32(lq[4 * nf]), l1 = _mm512_set1_epi32(lq[4 * nf + 1]),
+                      l2 = _mm512_set1_epi32(lq[4 * nf + 2]);
+        __m512i x, hi;
+        VNNI_BLOCK(0, ra, ra);
+        if (two) VNNI_BLOCK(1, ra + pstb, ra + pstb);
     }
     { /* the group's flush: int32 -> float, times its scale, added; the int32 sums zeroed */
         const float *s_ = vq + 4 * (2 * q0 / VNNI_G);
@@ -603,15 +635,19 @@ static inline __attribute__((always_inline)) void vnni_terms(const char *blk, i6
     }
 }
 #define VNNI_ON(T) vq && CO == 3 && CT == 1 && sizeof(T) == 2 && stride == BV
-#define VNNI_PAIR(T) if (VNNI_ON(T)) vnni_terms((const char *)blk, pst * (i64)sizeof(T), 1, far, nd, ds, (const int32_t *)lw, vq, z, y); else
-#define VNNI_ONE(T) if (VNNI_ON(T)) vnni_terms((const char *)blk, pst * (i64)sizeof(T), 0, far, nd, ds, (const int32_t *)lw, vq, z, z); else
+#define VNNI_PAIR(T) if (VNNI_ON(T)) vnni_terms((const char *)blk, pst * (i64)sizeof(T), 1, nd, (const int32_t *)ds, (const int32_t *)lw, vq, z, y); else
+#define VNNI_ONE(T) if (VNNI_ON(T)) vnni_terms((const char *)blk, pst * (i64)sizeof(T), 0, nd, (const int32_t *)ds, (const int32_t *)lw, vq, z, z); else
 /* in the kernel after the term lists: the light quantised when the call takes the 16-lane loop (PAIR_ARGS's test) */
 #define VNNI_SETUP(T)                                                                                        \
     float vq_[4 * ((nd + VNNI_G - 1) / VNNI_G) + 4]; /* the groups' scales [ceil(nd / VNNI_G), 4] */         \
     const float *vq = NULL;                                                                                  \
     if (!fdense && sizeof(T) == 2 && CT == 1 && CO == 3 && nd && nd * ((V + BV - 1) / BV) >= ZMM_MIN) {      \
-        vnni_quantise(nd, lw, vq_, L->dtmax, wk);                                                            \
-        vq = vq_;                                                                                            \
+        const i64 pstb_ = Pd * BV * (i64)sizeof(T), nbk_ = (V + BV - 1) / BV;                                \
+        if ((PFX / nd + 1) * 2 * pstb_ + Pd * 64 <= INT32_MAX) { /* the records' offsets fit (else the float loop) */ \
+            vnni_quantise(nd, lw, vq_, L->dtmax, wk);                                                        \
+            vnni_records(nd, wk, 2 * pstb_, nbk_ * pstb_ >= PFX_MIN); /* wk: ds -> records (after the quantisation) */ \
+            vq = vq_;                                                                                        \
+        }                                                                                                    \
     }
 #endif
 #define DENSE_TERMS(T)                                                                                       \
