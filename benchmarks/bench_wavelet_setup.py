@@ -133,6 +133,7 @@ VARIANTS = {
     "no OpenMP pragma": (PRAGMA, lambda s: s.replace("    " + PRAGMA + "                                 \\\n", "", 1)),
     "firstprivate": (PRAGMA, lambda s: s.replace(PRAGMA, PRAGMA[:-2] + f" firstprivate({SHARED})\")", 1)),
     # the column-major pass's knobs (kernels/wavelet.c: SP_PFR, SP_PFL, SP_PFS; AVX-512 builds only)
+    "sparse range prefetch off": ("SP_RANGE_PF", lambda s: "#define SP_PFR 0\n" + s),
     "sparse range prefetch 1": ("SP_RANGE_PF", lambda s: "#define SP_PFR 1\n" + s),
     "sparse range prefetch 2": ("SP_RANGE_PF", lambda s: "#define SP_PFR 2\n" + s),
     "sparse range prefetch 4": ("SP_RANGE_PF", lambda s: "#define SP_PFR 4\n" + s),

@@ -1024,8 +1024,24 @@ DENSE_BLOCK(int16_t)
 #define SPARSE_RANGE(T) for (; e < e1; e++) SPARSE_BLOCK(T, e)
 #endif
 
-#if W16 && defined(SP_PFR) /* a measurement knob: the range SP_PFR terms ahead, its first SP_PFL lines of values and its
-                             * first line of offsets prefetched (clamped to the last term: no branch) */
+/* AVX-512 builds (W16): each term's range start prefetched SP_PFR (2) terms ahead — the first line of its offsets bofs
+ * and the first SP_PFL (2) lines of its values bv (the term index clamped to the last term: a cmov, no branch; a
+ * prefetch never faults) — so that after a range's loop exit the next ranges' first lines are on their way from L2.
+ * A light's sparse columns are a subset of the tile's (ascending), so its ranges are short runs (~10-20 blocks, 1-5
+ * lines of values) with gaps between them that the hardware prefetchers do not cross, and in a call the dense pass
+ * of the tile before has moved them out of L1. Measured on an Intel Xeon (family 6 model 167, AVX-512), one thread's
+ * CPU time, small blocker scene: the column-major pass in the call 6.47 us at studio 292 kept (3167 blocks, 6.8
+ * cycles a block) against 5.12 re-run right after itself (probe 'sparse twice', bench_wavelet_setup.py); paired with
+ * the kernel without it on one layout (bench_wavelet_setup.py --pair, --variant, load 2.0-2.6): studio N = 100-all
+ * 1.014-1.036x (two runs), sky 0.99-1.01x, N = 10 0.98-1.01x (A/A 0.99-1.02). Measured and not kept: 1 term ahead
+ * 1.01-1.02x, 4 ahead 1.00-1.02x, 2 ahead with 4 lines 1.01-1.03x; the tile's whole scratch prefetched for writing
+ * before its pass (SP_PFS, when the light's sparse blocks are at least one per 8-vertex block) 0.97-0.99x at studio
+ * N = 10-2000, sky N = 300 0.97x: the scratch is not what the pass waits for. SP_PFR 0: off (a measurement knob).
+ * The 8-lane builds: none (their object code unchanged, objcopy). */
+#ifndef SP_PFR
+#define SP_PFR 2
+#endif
+#if W16 && SP_PFR > 0
 #ifndef SP_PFL
 #define SP_PFL 2
 #endif
