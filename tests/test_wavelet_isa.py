@@ -275,3 +275,32 @@ def test_term_lists_from_the_marks(res):
                     assert err <= 1e-5 * float(ref.abs().max()) + 1e-6, (res, layouts, tile, N, C, threads, err)
                     if avx2 is not None:
                         assert torch.equal(got, _relight(r, avx2, li, lv, threads)), (res, layouts, tile, N, C, threads)
+
+
+def test_sparse_range_prefetch_at_few_and_many_terms():
+    """The AVX-512 build's column-major pass prefetches each term's range SP_PFR (2) terms ahead, the term index
+    clamped to the light's last sparse term (kernels/wavelet.c, SP_RANGE_PF): lights of sparse terms only — 1, 2 and 3
+    of them (fewer than, as many as, and one more than the distance), every sparse column in descending order (ranges
+    walked backwards through the tile's entries), one tile and 15 (the last tile's entries end the array) — each equal
+    to the float64 sum of the stored values, and to the AVX2 build's bits (no prefetch there; the prefetch changes no
+    sum)."""
+    native, avx2 = relight._wavelet_lib("native"), relight._wavelet_lib("avx2") if HAS_AVX2 else None
+    g = torch.Generator().manual_seed(11)
+    tr = _transfer(torch.int16, 1)
+    for tile in (None, 160):
+        r = relight.WaveletRelighter(tr, threads=1, layouts="column", tile=tile)
+        idx, vals = r.reference_rows()
+        sparse = torch.nonzero((r.dslot < 0) & (r.nnz > 0)).flatten()
+        assert sparse.numel() > 3
+        for li in (sparse[:1], sparse[5:7], sparse[-3:], sparse.flip(0)):
+            li = li.contiguous()
+            for C in (1, 3):
+                lv = torch.randn(C, li.numel(), generator=g)
+                L = torch.zeros(C, r.P, dtype=torch.float64).index_add_(1, li, lv.double())
+                ref = relight.wavelet_dense(vals.double(), idx, torch.arange(r.P), L, r.P)
+                for threads in (1, 2):
+                    got = _relight(r, native, li, lv, threads)
+                    err = float((got.double() - ref).abs().max())
+                    assert err <= 1e-5 * float(ref.abs().max()) + 1e-6, (tile, li.numel(), C, threads, err)
+                    if avx2 is not None:
+                        assert torch.equal(got, _relight(r, avx2, li, lv, threads)), (tile, li.numel(), C, threads)
