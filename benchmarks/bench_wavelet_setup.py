@@ -138,6 +138,8 @@ VARIANTS = {
     "sparse range prefetch 2": ("SP_RANGE_PF", lambda s: "#define SP_PFR 2\n" + s),
     "sparse range prefetch 4": ("SP_RANGE_PF", lambda s: "#define SP_PFR 4\n" + s),
     "sparse range prefetch 2, 4 lines": ("SP_RANGE_PF", lambda s: "#define SP_PFR 2\n#define SP_PFL 4\n" + s),
+    "sparse range prefetch 2, bounds 6": ("SP_RANGE_PF", lambda s: "#define SP_PFT 6\n" + s),
+    "sparse range prefetch 2, bounds 12": ("SP_RANGE_PF", lambda s: "#define SP_PFT 12\n" + s),
     "scratch prefetch": ("SP_SCRATCH_PF", lambda s: "#define SP_PFS 8\n" + s),
     "scratch prefetch always": ("SP_SCRATCH_PF", lambda s: "#define SP_PFS 0\n" + s),
     "scratch prefetch + range prefetch 2": ("SP_SCRATCH_PF", lambda s: "#define SP_PFS 8\n#define SP_PFR 2\n" + s),

@@ -1045,8 +1045,14 @@ DENSE_BLOCK(int16_t)
 #ifndef SP_PFL
 #define SP_PFL 2
 #endif
+#ifdef SP_PFT /* a measurement knob: the range bounds' line (tp) SP_PFT terms ahead prefetched too */
+#define SP_TP_PF __builtin_prefetch(tp + ss[t + SP_PFT < ns ? t + SP_PFT : ns - 1]);
+#else
+#define SP_TP_PF
+#endif
 #define SP_RANGE_PF                                                                                          \
     {                                                                                                        \
+        SP_TP_PF                                                                                             \
         const i64 f_ = tp[ss[t + SP_PFR < ns ? t + SP_PFR : ns - 1]];                                        \
         __builtin_prefetch(bofs + f_);                                                                       \
         for (int q_ = 0; q_ < SP_PFL; q_++) __builtin_prefetch((const char *)(bv + f_ * 8 * CT) + 64 * q_);  \
