@@ -29,7 +29,8 @@ Floors per part: the dense terms' instruction floor (dense (term, 32-vertex bloc
 from L1 on this CPU — the 16-lane term 5.78 cycles, the 8-lane AVX2 term 8.31, ``wavelet_dense16_micro.md`` —, at
 the clock measured here: a chain of dependent multiplies, ``bench_wavelet_floor_micro.clock_ghz``), and the same loop
 re-run from the caches (probe ``dense twice``: each tile's dense blocks relit twice, the second pass right after the
-first: its extra time; the sparse scratch added in the second pass only),
+first: its extra time; the sparse scratch added in the second pass only; likewise probe ``sparse twice``, 14: probe 9
+with each tile's column-major pass run twice, its extra time the pass from the caches — timing only, the sums doubled),
 the sparse pass's (the light's 8-vertex blocks × the column-major pass alone in a tight loop:
 4.5 cycles per block for the AVX-512 build's three-per-step loop, 4.9 for the one-block loop, ``wavelet_colpass.md``),
 the output's (its factors read and its values written, 24 V bytes, at the rate of the call's own streaming read:

@@ -1033,10 +1033,14 @@ DENSE_BLOCK(int16_t)
  * CPU time, small blocker scene: the column-major pass in the call 6.47 us at studio 292 kept (3167 blocks, 6.8
  * cycles a block) against 5.12 re-run right after itself (probe 'sparse twice', bench_wavelet_setup.py); paired with
  * the kernel without it on one layout (bench_wavelet_setup.py --pair, --variant, load 2.0-2.6): studio N = 100-all
- * 1.014-1.036x (two runs), sky 0.99-1.01x, N = 10 0.98-1.01x (A/A 0.99-1.02). Measured and not kept: 1 term ahead
+ * 1.014-1.037x (two runs), sky 0.99-1.01x, N = 10 0.98-1.01x (A/A 0.99-1.02). Measured and not kept: 1 term ahead
  * 1.01-1.02x, 4 ahead 1.00-1.02x, 2 ahead with 4 lines 1.01-1.03x; the tile's whole scratch prefetched for writing
  * before its pass (SP_PFS, when the light's sparse blocks are at least one per 8-vertex block) 0.97-0.99x at studio
- * N = 10-2000, sky N = 300 0.97x: the scratch is not what the pass waits for. SP_PFR 0: off (a measurement knob).
+ * N = 10-2000, sky N = 300 0.97x: the scratch is not what the pass waits for; the range bounds' tptr line 6 or 12
+ * terms ahead besides (SP_PFT) 0.99-1.02x, noise. Section 7 at small in one session (load 1.2-2.4), the streaming
+ * read: studio 292 kept 0.49 [0.45, 0.55] against 0.47 [0.45, 0.52] with SP_PFR 0. What is left of the pass's excess:
+ * re-run right after itself it takes 5.12 us (4.94 with this), in the call 6.39-6.47: ~1 us a call still outside L1
+ * (docs/wavelet.md, "The sparse pass's in-call cost"). SP_PFR 0: off (a measurement knob).
  * The 8-lane builds: none (their object code unchanged, objcopy). */
 #ifndef SP_PFR
 #define SP_PFR 2
