@@ -494,7 +494,66 @@ FLOORS = ("madd pair body (2 terms x 32 vertices; per term: half)", "float term 
           "12 FMA", "12 vpmaddwd", "6 FMA + 6 vpmaddwd", "6 vpmaddwd + 6 vpunpcklwd", "6 FMA + 6 vcvtdq2ps", "12 vpaddd")
 
 
-def quantise_light(lw: torch.Tensor, group: int, tmax: torch.Tensor | None):
+#: the kernel's flush groups (``kernels/wavelet.c``'s VNNI_G, VNNI_RHO): chunks of 16 dense terms, merged while the call's
+#: column-maximum bound stays within 1.25 x the 16-term groups' (:func:`vnni_groups`)
+VNNI_G, VNNI_RHO = 16, 1.25
+
+
+def vnni_groups(lw: torch.Tensor, tmax: torch.Tensor, rho: float = VNNI_RHO, chunk: int = VNNI_G) -> torch.Tensor:
+    """The VNNI loop's flush groups for one call, found from the light and the columns' maxima (``kernels/wavelet.c``'s
+    rule, recomputed here): ``lw`` [nd, 3] the dense terms' light in the kernel's order, ``tmax`` [nd] their columns'
+    largest stored magnitudes. Chunks of ``chunk`` consecutive terms, merged left to right while, for every channel c,
+    done_c + s_G,c T_G + rest_c <= rho x B16_c, with B16_c = sum over the chunks g of s_g,c T_g (each chunk its own
+    group: the column-maximum bound of groups of ``chunk``), s a run's scale by :func:`quantise_light`'s column-maximum
+    rule, T its sum of tmax, done the closed groups' s T and rest the later chunks'. So the call's bound over the
+    columns' maxima, sum_G s_G,c T_G, is at most rho times that of the fixed groups. The same float64 sums in the same
+    order as the kernel (a chunk's sums term by term, a run's its chunks' in order; B16 summed from the back), so the
+    same groups. Returns each term's group, int64 [nd]."""
+    nd = lw.shape[0]
+    a = lw.double().abs().tolist()
+    tm = [float(x) for x in tmax.tolist()]
+    nc = (nd + chunk - 1) // chunk
+    cs, cm, ch = [], [], []
+    for i in range(nc):
+        su, mx, half = [0.0] * 3, [0.0] * 3, 0.0
+        for t in range(i * chunk, min((i + 1) * chunk, nd)):
+            half += tm[t] / 2
+            for c in range(3):
+                su[c] += a[t][c] * tm[t]
+                mx[c] = max(mx[c], a[t][c])
+        cs.append(su), cm.append(mx), ch.append(half)
+
+    def rule(su, mx, half):
+        return [max(su[c] / (2147483647.0 - half), mx[c] / 32767.0) for c in range(3)], 2 * half
+
+    rest = [[0.0] * 3 for _ in range(nc + 1)]
+    for i in range(nc - 1, -1, -1):
+        sc, T = rule(cs[i], cm[i], ch[i])
+        rest[i] = [rest[i + 1][c] + sc[c] * T for c in range(3)]
+    grp, g, done, cur = [], -1, [0.0] * 3, [0.0] * 3
+    gs = gm = None
+    gh = 0.0
+    for i in range(nc):
+        n = min((i + 1) * chunk, nd) - i * chunk
+        if i > 0:
+            s2 = [gs[c] + cs[i][c] for c in range(3)]
+            m2 = [max(gm[c], cm[i][c]) for c in range(3)]
+            h2 = gh + ch[i]
+            sc, T = rule(s2, m2, h2)
+            if all(done[c] + sc[c] * T + rest[i + 1][c] <= rho * rest[0][c] for c in range(3)):
+                gs, gm, gh, cur = s2, m2, h2, [sc[c] * T for c in range(3)]
+                grp += [g] * n
+                continue
+            done = [done[c] + cur[c] for c in range(3)]
+        g += 1
+        gs, gm, gh = list(cs[i]), list(cm[i]), ch[i]
+        sc, T = rule(gs, gm, gh)
+        cur = [sc[c] * T for c in range(3)]
+        grp += [g] * n
+    return torch.tensor(grp, dtype=torch.int64)
+
+
+def quantise_light(lw: torch.Tensor, group, tmax: torch.Tensor | None):
     """The dense terms' light lw [nd, 3] float32 quantised per group of ``group`` consecutive terms and channel:
     Lq int32 [nd, 3], the groups' scales s float32 [ng, 3] and each term's group int64 [nd]. The scale keeps every
     int32 sum of Tq Lq in range, rounding included (|Lq_k| <= |L_k| / s + 1/2): with the columns' largest stored
@@ -503,9 +562,10 @@ def quantise_light(lw: torch.Tensor, group: int, tmax: torch.Tensor | None):
     max |L| / 32767), n_g the group's terms — the brief's sum |L| / 65535 lets the rounding carry sum |Lq| to
     65535 + n_g / 2, past the 65538 = floor((2^31 - 1) / 32767) that |T| = 32767 allows
     (tests/test_wavelet_madd_micro.py found it). Rounded up to float32, so that q s_g is the dequantised light
-    exactly and |q s_g - L| <= s_g / 2."""
+    exactly and |q s_g - L| <= s_g / 2. ``group``: an int (consecutive terms a group) or each term's group int64 [nd]
+    (:func:`vnni_groups`)."""
     nd = lw.shape[0]
-    grp = torch.arange(nd) // group
+    grp = group if isinstance(group, torch.Tensor) else torch.arange(nd) // group
     ng = int(grp[-1]) + 1 if nd else 0
     a = lw.double().abs()
     smax = torch.zeros(ng, 3, dtype=torch.float64).scatter_reduce_(0, grp[:, None].expand(-1, 3), a, "amax")
@@ -727,7 +787,8 @@ def vnni_bound(rl, li: torch.Tensor, lv: torch.Tensor, fac: torch.Tensor | None 
     ``li`` int64 [N], ``lv`` float32 [3, N]), per vertex and channel, float64 [V, 3], from quantities found here
     independently of the kernel: the light's dense terms in the kernel's order (:func:`kernel_dense_order`), each dense
     column's largest stored magnitude by brute force over ``rl.dense`` (not the layout's ``dtmax``), the groups' steps
-    s_g by :func:`quantise_light`'s column-maximum rule in groups of 16 terms; ``fac`` [V, 3] the factor (default the
+    s_g by :func:`quantise_light`'s column-maximum rule in the kernel's flush groups (:func:`vnni_groups`: chunks of 16
+    terms merged within 1.25 x the 16-term groups' column-max bound); ``fac`` [V, 3] the factor (default the
     relighter's, ``_factor(3, albedo)``; ``albedo``: the output with the albedo applied, as the call's). Returns
     ``bound`` f_v Σ_g (s_g,c / 2) Σ_{k∈g} |T_v,k| (the dense terms' quantised light), ``slack`` 1e-5 f_v Σ_k
     |T_v,k| |L_k,c| over all N terms (float32 rounding of the whole call, dense and sparse: ~100 roundings of 6e-8
@@ -739,7 +800,7 @@ def vnni_bound(rl, li: torch.Tensor, lv: torch.Tensor, fac: torch.Tensor | None 
     d16 = rl.dense.reshape(nb, rl.Pd, 32)
     ds, lw = kernel_dense_order(rl, li, lv)
     tmax = d16.to(torch.int32).abs().amax(dim=(0, 2))  # [Pd] brute force
-    _, sc, grp = quantise_light(lw, 16, tmax[ds])
+    _, sc, grp = quantise_light(lw, vnni_groups(lw, tmax[ds]) if ds.numel() else 16, tmax[ds])
     tk = d16[:, ds, :].double().abs()  # [nb, nd, 32] |T_v,k| over the dense terms
     bound = torch.einsum("bkv,kc->bvc", tk, sc.double()[grp] / 2).reshape(-1, 3)[:rl.V] * fac
     ref_index, ref_vals = rl.reference_rows(0, rl.V)  # dequantised: the scale applied, so times the albedo only

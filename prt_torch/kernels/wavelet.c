@@ -499,36 +499,101 @@ static inline void put_rgb8(float *out, v8f r, v8f g, v8f b, int nt) {
 #ifndef VNNI_G /* dense terms per scale group (even): the int32 sums flushed to float once per group */
 #define VNNI_G 16
 #endif
-/* the dense light lw [nd, 4] (float32) quantised per group of VNNI_G consecutive terms and channel, in place as the
- * pairs' lights int32 [ceil(nd / 2), 4]; vq [ceil(nd / VNNI_G), 4] the groups' scales (float32, rounded up); tm the
- * layout's column maxima int32 [Pd] (NULL: the 65535 rule), ds [nd] the terms' slots */
+#ifndef VNNI_RHO /* the flush groups' budget: the call's column-maximum bound at most VNNI_RHO x the VNNI_G groups' */
+#define VNNI_RHO 1.25
+#endif
+/* a run's scales sc [3] by the column-maximum rule from its sums sum [3] of tmax_k |L_k,c|, maxima mx [3] of |L_k,c|
+ * and half = sum tmax_k / 2 (tm NULL: the 65535 rule, tmax 1, n the run's terms); returns its sum of tmax, 2 half */
+static inline double vnni_rule(const double sum[3], const double mx[3], double half, i64 n, const int tm, double sc[3]) {
+    for (int c = 0; c < 3; c++) { /* bench_wavelet_madd_micro.py's quantise_light: the same scales */
+        const double s = tm ? sum[c] / (2147483647.0 - half) : sum[c] / (65538.0 - (double)n / 2);
+        const double sm = mx[c] / 32767.0;
+        sc[c] = s > sm ? s : sm;
+    }
+    return 2 * half;
+}
+/* a group's scales sc [3] (float64) rounded up to float32 into s32 [3] (0: the least normal float) */
+static inline void vnni_scale32(const double sc[3], float *s32) {
+    for (int c = 0; c < 3; c++) {
+        float f = sc[c] > 0 ? (float)sc[c] : 1.17549435e-38f;
+        if ((double)f < sc[c]) { uint32_t u; memcpy(&u, &f, 4); u++; memcpy(&f, &u, 4); } /* the next float up */
+        s32[c] = f;
+    }
+}
+/* the dense light lw [nd, 4] (float32) quantised per flush group and channel, in place as the pairs' lights int32
+ * [ceil(nd / 2), 4]; vq [ng, 4] the groups' scales (float32, rounded up) and in lane 3 the group's end (int32 bits: its
+ * last term + 1; ng <= ceil(nd / VNNI_G)); tm the layout's column maxima int32 [Pd] (NULL: the 65535 rule, groups of
+ * VNNI_G), ds [nd] the terms' slots. The flush groups (grp17): runs of consecutive VNNI_G-term chunks, merged left to
+ * right while, for every channel c, done_c + s_G,c T_G + rest_c <= VNNI_RHO x B16_c (B16_c = sum over the chunks g of
+ * s_g,c T_g, the VNNI_G groups' column-max bound; T a run's sum of tmax; done: the closed groups' s T; rest: the chunks
+ * after the run, as VNNI_G groups): the call's bound over the columns' maxima at most VNNI_RHO times the VNNI_G groups'.
+ * A run's sums: its chunks' sums added in order. O(nd). bench_wavelet_madd_micro.py's vnni_groups: the same rule, the
+ * same sums in the same order */
 static inline void vnni_quantise(i64 nd, float *lw, float *vq, const int32_t *tm, const i64 *ds) {
-    for (i64 g0 = 0; g0 < nd; g0 += VNNI_G) {
-        const i64 g1 = g0 + VNNI_G < nd ? g0 + VNNI_G : nd;
-        double sum[3] = {0, 0, 0}, mx[3] = {0, 0, 0}, half = 0;
-        for (i64 t = g0; t < g1; t++) {
+    const i64 nc = (nd + VNNI_G - 1) / VNNI_G;
+    double cs[3 * nc + 3], cm[3 * nc + 3], ch[nc + 1], rest[3 * nc + 3], sc[3];
+    for (i64 i = 0; i < nc; i++) { /* each chunk's sums, maxima, half */
+        double *su = cs + 3 * i, *mx = cm + 3 * i, half = 0;
+        su[0] = su[1] = su[2] = mx[0] = mx[1] = mx[2] = 0;
+        for (i64 t = i * VNNI_G; t < (i + 1) * VNNI_G && t < nd; t++) {
             const double w = tm ? (double)tm[ds[t]] : 1.0;
             half += w / 2;
             for (int c = 0; c < 3; c++) {
-                const double a = lw[4 * t + c] < 0 ? -(double)lw[4 * t + c] : (double)lw[4 * t + c];
-                sum[c] += a * w;
-                mx[c] = a > mx[c] ? a : mx[c];
+                const double x = lw[4 * t + c] < 0 ? -(double)lw[4 * t + c] : (double)lw[4 * t + c];
+                su[c] += x * w;
+                mx[c] = x > mx[c] ? x : mx[c];
             }
         }
-        for (int c = 0; c < 3; c++) { /* bench_wavelet_madd_micro.py's quantise_light: the same scales */
-            double sc = tm ? sum[c] / (2147483647.0 - half) : sum[c] / (65538.0 - (double)(g1 - g0) / 2);
-            const double sm = mx[c] / 32767.0;
-            sc = sc > sm ? sc : sm;
-            float s32 = sc > 0 ? (float)sc : 1.17549435e-38f;
-            if ((double)s32 < sc) { uint32_t u; memcpy(&u, &s32, 4); u++; memcpy(&s32, &u, 4); } /* the next float up */
-            vq[4 * (g0 / VNNI_G) + c] = s32;
+        ch[i] = half;
+    }
+    rest[3 * nc] = rest[3 * nc + 1] = rest[3 * nc + 2] = 0;
+    for (i64 i = nc - 1; i >= 0; i--) { /* the VNNI_G groups' s T, summed from the back: rest [i] the chunks i.. */
+        const double T = vnni_rule(cs + 3 * i, cm + 3 * i, ch[i], VNNI_G, tm != NULL, sc);
+        for (int c = 0; c < 3; c++) rest[3 * i + c] = rest[3 * i + 3 + c] + sc[c] * T;
+    }
+    double done[3] = {0, 0, 0}, cur[3] = {0, 0, 0}, gs[3] = {0, 0, 0}, gm[3] = {0, 0, 0}, gh = 0;
+    i64 ng = 0;
+    for (i64 i = 0; i < nc; i++) {
+        if (i > 0 && tm) { /* the open group extended by chunk i, if the budget allows */
+            double s2[3], m2[3];
+            for (int c = 0; c < 3; c++) { s2[c] = gs[c] + cs[3 * i + c]; m2[c] = gm[c] > cm[3 * i + c] ? gm[c] : cm[3 * i + c]; }
+            const double h2 = gh + ch[i], T = vnni_rule(s2, m2, h2, 0, 1, sc);
+            int ok = 1;
+            for (int c = 0; c < 3; c++) ok &= done[c] + sc[c] * T + rest[3 * i + 3 + c] <= VNNI_RHO * rest[c];
+            if (ok) {
+                for (int c = 0; c < 3; c++) { gs[c] = s2[c]; gm[c] = m2[c]; cur[c] = sc[c] * T; }
+                gh = h2;
+                continue;
+            }
         }
-        vq[4 * (g0 / VNNI_G) + 3] = 0.0f;
+        if (i > 0) { /* the open group closed at chunk i: its scales, its end */
+            vnni_rule(gs, gm, gh, VNNI_G, tm != NULL, sc); /* n: the 65535 rule's only (a group one full chunk) */
+            for (int c = 0; c < 3; c++) done[c] += cur[c];
+            vnni_scale32(sc, vq + 4 * ng);
+            const int32_t e0 = (int32_t)(i * VNNI_G);
+            memcpy(vq + 4 * ng + 3, &e0, 4);
+            ng++;
+        }
+        for (int c = 0; c < 3; c++) { gs[c] = cs[3 * i + c]; gm[c] = cm[3 * i + c]; }
+        gh = ch[i];
+        const double T = vnni_rule(gs, gm, gh, VNNI_G, tm != NULL, sc);
+        for (int c = 0; c < 3; c++) cur[c] = sc[c] * T;
+    }
+    if (nd) { /* the last group */
+        vnni_rule(gs, gm, gh, nd - (nc - 1) * VNNI_G, tm != NULL, sc);
+        vnni_scale32(sc, vq + 4 * ng);
+        const int32_t e0 = (int32_t)nd;
+        memcpy(vq + 4 * ng + 3, &e0, 4);
+        ng++;
     }
     int32_t *lq = (int32_t *)lw;
+    i64 g = 0;
+    int32_t ge;
+    memcpy(&ge, vq + 3, 4);
     for (i64 q = 0; 2 * q < nd; q++) { /* pair q's lights read (terms 2q, 2q + 1) before entry q is written: q <= 2q */
         int32_t w[3];
-        const float *s = vq + 4 * (2 * q / VNNI_G);
+        if (2 * q >= ge) { g++; memcpy(&ge, vq + 4 * g + 3, 4); } /* groups start at multiples of VNNI_G: even */
+        const float *s = vq + 4 * g;
         for (int c = 0; c < 3; c++) {
             const double a = (double)lw[8 * q + c] / s[c], b = 2 * q + 1 < nd ? (double)lw[8 * q + 4 + c] / s[c] : 0.0;
             const int32_t qa = (int32_t)(a + (a < 0 ? -0.5 : 0.5)), qb = (int32_t)(b + (b < 0 ? -0.5 : 0.5));
@@ -590,8 +655,10 @@ static inline __attribute__((always_inline)) void vnni_terms(const char *blk, i6
            f100 = f000, f101 = f000, f110 = f000, f111 = f000, f120 = f000, f121 = f000;
     const char *blk2 = blk + pstb;
     const i64 nf = nd >> 1; /* full pairs */
-    for (i64 q0 = 0; 2 * q0 < nd; q0 += VNNI_G / 2) { /* a scale group: VNNI_G / 2 pairs, then its flush */
-    const i64 qe = q0 + VNNI_G / 2 < nf ? q0 + VNNI_G / 2 : nf;
+    for (i64 g = 0, q0 = 0; 2 * q0 < nd; g++) { /* a flush group (vq [g, 3]: its end term e), its pairs, then its flush */
+    int32_t e;
+    memcpy(&e, vq + 4 * g + 3, 4);
+    const i64 qe = e >> 1;
     for (i64 q = q0; q < qe; q++) {
         const int32_t *r = rc + 4 * q;
         const char *ra = blk + r[0], *rb = blk + r[2];
@@ -604,7 +671,7 @@ static inline __attribute__((always_inline)) void vnni_terms(const char *blk, i6
         VNNI_BLOCK(0, ra, rb);
         if (two) VNNI_BLOCK(1, ra + pstb, rb + pstb);
     }
-    if ((nd & 1) && nf < q0 + VNNI_G / 2) { /* the odd last term, in this group: its row twice (light 0 on the second) */
+    if (e & 1) { /* the odd last term (e = nd odd), in this group: its row twice (light 0 on the second) */
         const int32_t *r = rc + 4 * nf;
         const char *ra = blk + r[0];
         __builtin_prefetch(blk + r[1]);
@@ -616,10 +683,11 @@ static inline __attribute__((always_inline)) void vnni_terms(const char *blk, i6
         if (two) VNNI_BLOCK(1, ra + pstb, ra + pstb);
     }
     { /* the group's flush: int32 -> float, times its scale, added; the int32 sums zeroed */
-        const float *s_ = vq + 4 * (2 * q0 / VNNI_G);
+        const float *s_ = vq + 4 * g;
         VNNI_FLUSH(0, s_)
         if (two) VNNI_FLUSH(1, s_)
     }
+    q0 = (e + 1) >> 1;
     }
     /* lane 4j + r of the low interleaving: vertex 8j + r; of the high one: vertex 8j + 4 + r (r < 4) */
     const __m512i i0 = _mm512_setr_epi32(0, 1, 2, 3, 16, 17, 18, 19, 4, 5, 6, 7, 20, 21, 22, 23),
