@@ -264,3 +264,70 @@ def test_kernel_vnni_default_hdr_lights_within_the_bound(bench, vnni_rl):
               f"max {float(ev.max()):.1e} (bound median {float(bv.median()):.1e} / max {float(bv.max()):.1e}); "
               f"float median {float(ef.median()):.1e} / max {float(ef.max()):.1e}; whole output rel. L2 VNNI "
               f"{float((out.double() - exact).norm() / exact.norm()):.1e}")
+
+
+def _col_max_bound(bench, lw, tmax, grp):
+    """sum_g s_g,c T_g per channel [3] (float64): the column-maximum bound of a grouping, by quantise_light's scales."""
+    _, s, g = bench.quantise_light(lw, grp, tmax)
+    T = torch.zeros(s.shape[0], dtype=torch.float64).index_add_(0, g, tmax.double())
+    return (s.double() * T[:, None]).sum(0)
+
+
+def test_vnni_groups_rule(bench):
+    """``vnni_groups`` (the kernel's flush groups, recomputed): unions of consecutive 16-term chunks whose column-max
+    bound sum_G s_G,c T_G is within 1.25 x that of fixed groups of 16, found here by ``quantise_light``'s own sums;
+    equal light terms on small column maxima (the max |L| / 32767 branch binds: merging costs nothing) make one group,
+    equal terms on full columns (the sum branch: two chunks merged double s T) stay in groups of 16."""
+    gen = torch.Generator().manual_seed(17)
+    for nd in (1, 16, 17, 33, 92, 250):
+        for _ in range(4):
+            lw = torch.randn(nd, 3, generator=gen) * torch.rand(nd, 1, generator=gen) ** 4
+            tmax = torch.randint(1, 32768, (nd,), generator=gen)
+            grp = bench.vnni_groups(lw, tmax)
+            assert grp.shape == (nd,) and int(grp[0]) == 0 and bool((grp.diff() >= 0).all())
+            assert bool((grp.diff() <= 1).all())
+            starts = (torch.nonzero(grp.diff()).flatten() + 1).tolist()
+            assert all(s % 16 == 0 for s in starts), starts
+            b, b16 = _col_max_bound(bench, lw, tmax, grp), _col_max_bound(bench, lw, tmax, 16)
+            assert bool((b <= 1.25 * b16 * (1 + 1e-9)).all()), (nd, b / b16)
+    lw = torch.ones(64, 3)
+    assert int(bench.vnni_groups(lw, torch.ones(64, dtype=torch.int64)).max()) == 0
+    assert bench.vnni_groups(lw, torch.full((64,), 32767)).tolist() == (torch.arange(64) // 16).tolist()
+
+
+def test_kernel_vnni_takes_the_merged_groups(bench, vnni_rl):
+    """The kernel's flush groups are ``vnni_groups``'s: on lights whose groups merge, the default call equals the
+    float64 emulation of the quantised sums with those groups (exact + f_v sum_k T_v,k (q_k s_g(k) - L_k)) within float
+    rounding, and its difference from the emulation with fixed groups of 16 is the groupings' difference (least-squares factor 1
+    +- 0.2, not 0); within the bound."""
+    rl = vnni_rl
+    rl._kernel()
+    nb = rl.dense.shape[0]
+    d16 = rl.dense.reshape(nb, rl.Pd, 32)
+    tmax = d16.to(torch.int32).abs().amax(dim=(0, 2))
+    fac = rl._factor(3, True).double()
+    merged = 0
+    for spec, N in (("studio", 100), ("sky", 100), ("sky", 300), ("sky", rl.P)):
+        li, lv, _ = rl.light(spec, N, "transport")
+        lv = lv.float().contiguous()
+        ds, lw = bench.kernel_dense_order(rl, li, lv)
+        grp = bench.vnni_groups(lw, tmax[ds])
+        out, _ = _default_and_float(rl, li, lv)
+        exact = _exact(rl, li, lv)
+        b = bench.vnni_bound(rl, li, lv)
+        assert bool(((out.double() - exact).abs() <= b["bound"] + b["slack"]).all()), (spec, N)
+        tk = d16[:, ds, :].double()
+
+        def emul(g):
+            q, s, gi = bench.quantise_light(lw, g, tmax[ds])
+            dq = q.double() * s.double()[gi] - lw.double()  # [nd, 3]
+            return exact + torch.einsum("bkv,kc->bvc", tk, dq).reshape(-1, 3)[:rl.V] * fac
+
+        e_g, e_16 = emul(grp), emul(16)
+        assert bool(((out.double() - e_g).abs() <= b["slack"]).all()), (spec, N)
+        if int(grp.max()) + 1 < (ds.numel() + 15) // 16:
+            merged += 1
+            dg = (e_g - e_16).flatten()  # the grouping's own effect: out - e_16 = a dg + rounding, a = 1 with these groups
+            a = float(((out.double() - e_16).flatten() @ dg) / (dg @ dg))
+            assert abs(a - 1) < 0.2, (spec, N, a)
+    assert merged >= 1
