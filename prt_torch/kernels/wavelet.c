@@ -21,8 +21,9 @@
  * DENSE_VNNI (the default since 2026-11-30 in W16 builds whose target has AVX-512 VNNI and BW: DVNNI; -DDENSE_VNNI=0
  * builds the float loop only; above DENSE_TERMS): the 16-lane dense loop on integer dot products (vpdpwssd zmm, two
  * light terms per instruction) for the calls of 16-bit values, CT = 1, CO = 3 that take the 16-lane loop, the dense
- * light quantised per call to int16 by the column-maximum rule in groups of VNNI_G = 16 terms (the layout's dtmax), a
- * flush to float per group; not the float loop's bits (error per vertex and channel within f_v sum_g (s_g / 2)
+ * light quantised per call to int16 by the column-maximum rule in flush groups (the layout's dtmax): chunks of VNNI_G =
+ * 16 terms merged per call while the call's column-max bound stays within VNNI_RHO = 1.25 x the 16-term groups'
+ * (vnni_quantise; grp17), a flush to float per group; not the float loop's bits (error per vertex and channel within f_v sum_g (s_g / 2)
  * sum_{k in g} |T_v,k|). C | FDENSE (512) opts a call out (the float loop, its bits: relight.py's arith="float");
  * builds without DVNNI refuse the bit (1) and are unchanged (avx2, znver3, avx512-256, portable, skylake-avx512 and
  * -DDENSE_VNNI=0 objects byte-identical to fdd5d3e's, objdump). prt_wavelet_isa's bit 64 says the build has it.
@@ -461,8 +462,8 @@ static inline void put_rgb8(float *out, v8f r, v8f g, v8f b, int nt) {
  * caller's opt-out, relight.py's arith="float", the float loop's bits); every other call takes the float loop, the same
  * bits as the builds without it): the dense
  * terms with integer dot products. Per call (VNNI_SETUP, when the call takes the 16-lane loop) the dense light lw
- * [nd, 4] is quantised in place to int16 per channel and group g of VNNI_G = 16 consecutive dense terms (in the
- * kernel's dense order), s_g[c] = max(sum_k tmax_k |L_k| / (2^31 - 1 - sum_k tmax_k / 2), max |L| / 32767) rounded up
+ * [nd, 4] is quantised in place to int16 per channel and flush group g (consecutive dense terms in the kernel's dense
+ * order: chunks of VNNI_G = 16 merged per call under VNNI_RHO, vnni_quantise below), s_g[c] = max(sum_k tmax_k |L_k| / (2^31 - 1 - sum_k tmax_k / 2), max |L| / 32767) rounded up
  * to float32 (bench_wavelet_madd_micro.py's quantise_light, "column max": no int32 sum of a group overflows for the
  * stored values; tmax the layout's dtmax [Pd], each dense column's largest stored magnitude, built once in relight.py;
  * a layout without it (NULL): the "65535 rule", s_g[c] = max(sum |L| / (65538 - n_g / 2), max |L| / 32767), any
@@ -471,7 +472,7 @@ static inline void put_rgb8(float *out, v8f r, v8f g, v8f b, int nt) {
  * bytes each) interleaved by vpunpcklwd / vpunpckhwd, one vpdpwssd zmm per interleaving and channel (6 int32 sums;
  * the two blocks of the W16 pair in lockstep, the broadcasts shared), the prefetch's targets as the float loop's (across
  * units, PFX steps ahead, on layouts of at least PFX_MIN bytes; else PF terms ahead within the unit); after each group's
- * VNNI_G / 2 pairs a flush (the int32 sums converted, times the group's scales, added to float sums by FMA, zeroed);
+ * pairs a flush (the int32 sums converted, times the group's scales, added to float sums by FMA, zeroed);
  * at the end the vertex order restored (vpermt2ps) into z / y as the float loop leaves them. Error per vertex and
  * channel |dS| <= sum_g (s_g[c] / 2) sum_{k in g} |T_v,k| (+ float rounding): not the same bits as the float loop. Measured: reports/benchmarks/wavelet_madd_micro_vnni.md (the loops),
  * wavelet_vnni_proto.md (the whole call; docs/wavelet.md).
@@ -492,7 +493,18 @@ static inline void put_rgb8(float *out, v8f r, v8f g, v8f b, int nt) {
  * outputs bit for bit main's; the fourth row 0.45 of the streaming read against main's 0.41 in that run. Not kept: the pair
  * loop unrolled by 2 (GCC unroll) no better (0.99-1.03x of the records alone); no prefetch at all 0.90-0.97x of the
  * records warm and 0.87-0.98x evicted; loops aligned to 32 / 64 bytes 0.98-1.02x; four blocks in lockstep (a timing-only
- * prototype, 24 int32 sums in registers, the float sums flushed through the stack) 0.83-1.00x warm. */
+ * prototype, 24 int32 sums in registers, the float sums flushed through the stack) 0.83-1.00x warm.
+ * The flush groups per call (2026-11-30, branch grp17): fixed groups of 32 put sky N = 100's bound at 1.19x the
+ * transfer's own 16-bit bound (16: 0.76x), so the groups are chosen per call: 16-term chunks merged left to right while
+ * sum_G s_G,c T_G (T: the group's sum of tmax) stays within VNNI_RHO = 1.25 x the 16-term groups' for every channel
+ * (vnni_quantise; O(nd); the group's end in vq's lane 3, read by the loop). Small / medium blocker scene: studio 292
+ * kept 5 -> 3 groups, sky N = 100 6 -> 2, sky N >= 300 16 -> 5; the bound (rel. L2) of the transfer's own 0.24-0.77 ->
+ * 0.28-0.85 (bench_wavelet_madd_micro.vnni_groups recomputes the rule for vnni_bound). Paired with a506b53 on one layout
+ * (Intel Xeon family 6 model 167, load 3.1-3.8, one thread's CPU time; reports/benchmarks/wavelet_vnni_groups.md): warm
+ * small 0.97-1.06x (studio 292 kept 1.05x, sky N = 30-1000 1.02-1.04x; A/A 0.97-1.03), medium 0.95-1.05x (0.95 at
+ * studio N = 30, whose groups do not change; A/A 0.97-1.01); section 7's fourth row 0.51 against 0.48 in that run
+ * (bench_wavelet.py --only kernel --size small, load 5.4: 0.49). Other builds' .text byte-identical (objcopy).
+ * -DVNNI_RHO=0: the 16-term groups, main's bits. */
 #if DVNNI
 #define VNNI_PARAMS const float *vq,
 #define VNNI_ARGS vq,
