@@ -719,7 +719,7 @@ static inline __attribute__((always_inline)) void vnni_terms(const char *blk, i6
 #define VNNI_ONE(T) if (VNNI_ON(T)) vnni_terms((const char *)blk, pst * (i64)sizeof(T), 0, nd, (const int32_t *)ds, (const int32_t *)lw, vq, z, z); else
 /* in the kernel after the term lists: the light quantised when the call takes the 16-lane loop (PAIR_ARGS's test) */
 #define VNNI_SETUP(T)                                                                                        \
-    float vq_[4 * ((nd + VNNI_G - 1) / VNNI_G) + 4]; /* the groups' scales [ceil(nd / VNNI_G), 4] */         \
+    float vq_[4 * ((nd + VNNI_G - 1) / VNNI_G) + 4]; /* the flush groups: scales, end [ng <= ceil(nd / VNNI_G), 4] */ \
     const float *vq = NULL;                                                                                  \
     if (!fdense && sizeof(T) == 2 && CT == 1 && CO == 3 && nd && nd * ((V + BV - 1) / BV) >= ZMM_MIN) {      \
         const i64 pstb_ = Pd * BV * (i64)sizeof(T), nbk_ = (V + BV - 1) / BV;                                \
