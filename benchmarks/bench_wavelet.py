@@ -285,7 +285,8 @@ def main() -> None:
     # 7. relight time vs N against the bound (paired), studio, K = 256: this build, then the others (child processes)
     before = load()
     runs = [{"machine": dict(machine_info(), load_before=before), "build": relight.wavelet_kernel_path(),
-             "rows": kernel_rows(relighters[256], results["selection_default"])}]
+             "rows": kernel_rows(relighters[256], results["selection_default"],
+                                 relight.WaveletRelighter(relighters[256].transfer, threads=2))}]  # two threads' tiles
     runs[0]["machine"]["load_after"] = load()
     if (OUT / "wavelet.json").exists():  # the kept runs of other CPUs and builds
         merge_kernel_runs(results, kernel_runs(json.loads((OUT / "wavelet.json").read_text())))
@@ -429,7 +430,7 @@ def steady_pair(test, peer, repeats: int = 15) -> tuple:
     return best, tries
 
 
-def kernel_rows(rl, selection: str) -> list[dict]:
+def kernel_rows(rl, selection: str, rl2=None) -> list[dict]:
     """Section 7: the C kernel per light (:data:`KERNEL_LIGHTS`: studio, 292 nonzero Haar terms at R = 32, and
     sky, 3072, so that N = 300-2000 also time lights that really hold that many terms) and N (an N whose kept terms
     equal the previous N's is not timed again: ``select_terms`` keeps only nonzero terms), at one and two threads, each
@@ -444,8 +445,11 @@ def kernel_rows(rl, selection: str) -> list[dict]:
     warm and from cold caches (``measure_paired_cold``: before each call, untimed, the bytes both sides hold — the
     whole relighter's tensors and the bound's buffers, ``timing.working_set`` — are flushed from every cache level);
     at two threads (wall time, fastest tenth) against the streaming read too. Fields: ``of_read_bound_cpu_1``,
-    ``of_read_bound_2``, ``of_read_bound_cold`` [``_q`` quartiles], the bounds' own times (``*_bound_*_s``)."""
+    ``of_read_bound_2``, ``of_read_bound_cold`` [``_q`` quartiles], the bounds' own times (``*_bound_*_s``).
+    ``rl2``: the relighter the two-thread rows call (built for two threads: ``WaveletRelighter._tile``'s default
+    follows the threads a relighter is built for; None: ``rl``); ``tiles_1`` / ``tiles_2`` each side's tile count."""
     V = rl.V
+    rl2 = rl if rl2 is None else rl2
     rows = []
     for light, N in [(x, n) for x in KERNEL_LIGHTS for n in TERMS + [rl.P]]:
         li, lv, _ = rl.light(light, N, selection)
@@ -458,11 +462,14 @@ def kernel_rows(rl, selection: str) -> list[dict]:
         prev = previous_layout_bytes(rl, li)
         row = {"light": light, "N": N, "terms_kept": int(li.numel()), "touched": E, "bytes": nbytes + V * 12, "previous_bytes": prev + V * 12,
                "factor_bytes": rl.factor_bytes(lv.shape[0])}  # in "bytes" (bytes_read counts the factor from 0182f3f on)
+        row["tiles_1"], row["tiles_2"] = rl.NT, rl2.NT
         trusted = True
         for th in (1, 2):
             torch.set_num_threads(th)
-            rl.threads = th
-            f = rl.prepared(li, lv, out)  # the render-loop form: checks and ctypes arguments once
+            r = rl if th == 1 else rl2
+            r.threads = th
+            nbytes = r.bytes_read(li)  # the two-thread relighter's own bytes (its per-tile pointers)
+            f = r.prepared(li, lv, out)  # the render-loop form: checks and ctypes arguments once
             if th == 1:  # the plain call's extra (its per-call checks), paired
                 pc = measure_paired(lambda: rl(li, lv, out=out), f, repeats=7, warmup=1, floor_pairs=40)  # noqa: B023
                 row["call_over_prepared"] = 1.0 / pc.speedup
@@ -509,7 +516,7 @@ def kernel_rows(rl, selection: str) -> list[dict]:
                 row["relight_cold_s"], row["read_bound_cold_s"] = pcold.test.median, pcold.peer.median
                 row["eviction"] = pcold.eviction
         torch.set_num_threads(1)
-        rl.threads = None
+        rl.threads = rl2.threads = None
         os.environ["PRT_TORCH_NATIVE"] = "0"
         row["torch_relight_s"] = measure(lambda: rl(li, lv, out=out), repeats=3, warmup=1).median
         os.environ.pop("PRT_TORCH_NATIVE")
@@ -650,9 +657,13 @@ def kernel_run(selection: str, size: str = "small") -> dict:
     print(f"[wavelet] kernel section at {size}: {mesh.num_vertices} vertices, precompute {t_pre:.1f} s", flush=True)
     caches = cache_sizes()
     before = load()
-    rl = relight.WaveletRelighter(tr)
+    # one relighter per thread count the rows time: the default tile follows the threads a relighter is built for
+    # (one tile at one thread where V <= 4096, one per thread at two: WaveletRelighter._tile)
+    rl = relight.WaveletRelighter(tr, threads=1)
+    rl2 = relight.WaveletRelighter(tr, threads=2)
+    rl2 = rl if rl2.TV == rl.TV else rl2
     pages = "2 MiB pages (io.hugepage_zeros)" if io.hugepage_backed(rl.dense) else "torch's buffer (4 KB pages)"
-    rows = kernel_rows(rl, selection)
+    rows = kernel_rows(rl, selection, rl2)
     for r in rows:
         r["lives"] = bytes_home(r["bytes"], caches)
     return {"machine": dict(machine_info(), load_before=before, load_after=load(), **caches),

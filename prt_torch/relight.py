@@ -322,8 +322,9 @@ class WaveletRelighter:
       buffer — :attr:`huge_pages` the switch as read at construction), ``dslot
       [P]`` int32 the column's slot or -1. Relit as a register-blocked GEMV: no index read, no scatter.
     * **block-sparse** — the rest, tile-major: the vertices in tiles of :attr:`TV` (a multiple of 32;
-      ``tile``, default half the vertices up to 4096: a tile's accumulators, TV/8 × 128 bytes, stay in
-      L2, and each thread takes whole tiles), within a tile per column
+      ``tile``, default the vertices split between the relighter's ``threads`` — None: ``torch.get_num_threads()``
+      at construction — up to 4096: a tile's accumulators, TV/8 × 128 bytes, stay in L2, and each thread takes whole
+      tiles; a relighter built for one thread called at two runs its one tile on one thread), within a tile per column
       the 8-vertex blocks holding any of its values: ``bofs [NB]`` int32 (the block's accumulator,
       a byte offset in the tile's scratch), ``bvals [NB, CT, 8]`` the stored values (zeros where a
       vertex of the block did not keep it), ``tptr [NT, P+1]`` int32 each tile's column starts
@@ -349,7 +350,8 @@ class WaveletRelighter:
     ``relighter(light_idx [N], light_vals [C, N]) -> [V, CO]`` float32 exit radiance, CO = max(C, CT),
     albedo applied (``mesh.albedo``, the first CO channels; grey C=1 takes channel 0; folded into a
     coloured transfer). A coloured transfer takes a grey (C = 1) or RGB (C = 3) light. ``threads``:
-    the kernel's threads (tiles split between them; None = ``torch.get_num_threads()`` per call).
+    the kernel's threads (tiles split between them; None = ``torch.get_num_threads()`` per call; the default tile
+    follows the threads at construction: :meth:`_tile`).
     The C kernel when it compiles, else (and with ``PRT_TORCH_NATIVE=0``) the same two forms in torch; light values
     that require grad take :meth:`relight_grad` (differentiable, for a fixed term selection).
 
@@ -367,6 +369,7 @@ class WaveletRelighter:
 
     BLOCK = 32  # vertices per dense block (kernels/wavelet.c BV)
     SUB = 8  # vertices per sparse block
+    TILE_MAX = 4096  # the default tile's most vertices (_tile: a tile's scratch, TILE_MAX/8 x 128 bytes = 64 KB, in L2)
     #: ``row_min``'s default in builds without the 16-lane (W16) code (AVX2, AVX, baseline, ``avx512-256``): the
     #: row-major pass from half the sparse blocks, measured against the column-major pass on an AMD EPYC Zen 3 (AVX2;
     #: 1 thread CPU time, studio and sky, R = 32, K = 256): 0.88-0.90x at 0.39-0.42 of the blocks held, 0.99x at 0.51,
@@ -475,10 +478,17 @@ class WaveletRelighter:
         return max(cls.BLOCK, cls.BUILD_CHUNK_BYTES // max(2 * K * CT, 1) // cls.BLOCK * cls.BLOCK)
 
     @classmethod
-    def _tile(cls, V: int, tile: int | None) -> int:
-        """The sparse blocks' tile (vertices): ``tile``, or half the vertices rounded up to 32, at most 4096."""
-        half = -(-V // 2)
-        return int(tile) if tile is not None else min(4096, max(cls.BLOCK, -(-half // cls.BLOCK) * cls.BLOCK))
+    def _tile(cls, V: int, tile: int | None, threads: int | None = None) -> int:
+        """The sparse blocks' tile (vertices): ``tile``, or the vertices split between the relighter's ``threads``
+        (None: ``torch.get_num_threads()`` now, at construction) rounded up to 32, at most :attr:`TILE_MAX`: no more
+        tiles than the threads need (each (tile, sparse term) range costs ~22 cycles: at one thread one tile of 2272
+        vertices against two of 1152 measured 1.04-1.06x on the small studio 292-kept row, Intel Xeon family 6 model
+        167, reports/benchmarks/wavelet_tile1.md), none larger than a scratch of TILE_MAX/8 x 128 bytes (64 KB: L2)."""
+        if tile is not None:
+            return int(tile)
+        th = max(1, int(torch.get_num_threads() if threads is None else threads))
+        part = -(-V // th)
+        return min(cls.TILE_MAX, max(cls.BLOCK, -(-part // cls.BLOCK) * cls.BLOCK))
 
     @classmethod
     def _count_chunk(cls, rows, nnz: torch.Tensor, weights: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -569,10 +579,10 @@ class WaveletRelighter:
         # the layout outgrows the L2 (TLB misses; reports/benchmarks/wavelet_hugepages.md)
         self.dense = io.hugepage_zeros((nb, max(Pd, 1), CT, self.BLOCK), dtype, huge=self.huge_pages)
         # block-sparse columns, tile-major: (tile, column, 8-vertex block) ascending
-        # default: two tiles (one per thread at two) of at most 4096 vertices (a tile's scratch, 64 KB, in L2): every
-        # (tile, sparse term) pair costs a pointer pair and a loop exit, measured at ~40% of the sparse part's time with
-        # four tiles on the 2251-vertex blocker scene (reports/benchmarks/wavelet.md)
-        TV = self._tile(V, tile)
+        # default (_tile): one tile per thread the relighter is built for, of at most 4096 vertices (a tile's scratch,
+        # 64 KB, in L2): every (tile, sparse term) pair costs a pointer pair and a loop exit, measured at ~40% of the
+        # sparse part's time with four tiles on the 2251-vertex blocker scene (reports/benchmarks/wavelet.md)
+        TV = self._tile(V, tile, threads)
         if TV % self.BLOCK or TV < self.BLOCK:
             raise ValueError(f"tile={TV}; accepted: a positive multiple of {self.BLOCK}")
         self.TV, self.NT = TV, -(-V // TV)
@@ -700,7 +710,7 @@ class WaveletRelighter:
 
     @classmethod
     def estimate_bytes(cls, path, layouts: str = "auto", dense_min: float | None = None, tile: int | None = None,
-                       light_channels: int = 3, chunk: int | None = None, exact: bool = True, light=None,
+                       threads: int | None = None, light_channels: int = 3, chunk: int | None = None, exact: bool = True, light=None,
                        terms: int | None = None, selection: str = "transport", row_min: float | None = None,
                        supersample: int = 4, arith: str = "auto") -> dict:
         """What a relighter of the wavelet transfer file ``path`` will hold, without building it: the layout
@@ -749,7 +759,7 @@ class WaveletRelighter:
         CT = 1 if len(dshape) == 2 else int(dshape[1])
         stored = {"I8": 1, "I16": 2}.get(dtype)  # quantised values' bytes; None: float
         # the relighter's tile (TV) and the counts, as __init__ derives them
-        TV = cls._tile(V, tile)
+        TV = cls._tile(V, tile, threads)
         rmin = cls.default_row_min() if row_min is None else float(row_min)
         permille = cls._row_permille(rmin, layouts != "column" and rmin <= 1)  # as __init__'s _rows_used
         may_rows = layouts == "both" or permille <= 1000  # the relighter may hold the row-major copy

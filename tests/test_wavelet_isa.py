@@ -144,7 +144,7 @@ def test_builds_agree_bit_for_bit(dtype):
     g = torch.Generator().manual_seed(5)
     for CT, channels in ((1, (1, 2, 3, 4, "grey")), (3, (1, 3))):
         tr = _transfer(dtype, CT)
-        for tile in (None, 96):
+        for tile in (1152, 96):  # 36 and 3 blocks (one thread's default is one tile: test_wavelet_tile.py)
             r = relight.WaveletRelighter(tr, threads=1, layouts="both", tile=tile)
             dense = torch.nonzero(r.dslot >= 0).flatten()
             sparse = torch.nonzero((r.dslot < 0) & (r.cls > 0)).flatten()

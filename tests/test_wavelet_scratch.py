@@ -1,7 +1,8 @@
 """The wavelet kernel's sparse scratch in the AVX-512 build (``kernels/wavelet.c``: ``zacc`` / ``tmark``, zero between
 calls, a touched map instead of a memset per tile): consecutive calls with different lights and sparse sets — each
 build in turn on one layout, the AVX2 build (which zeroes its own ``acc``) between them —, one and two threads, tiles
-of 3 and 36 32-vertex blocks, relight as the float64 gather of the same stored values (``relight.wavelet_dense``: a
+of 3 and 36 32-vertex blocks and the default (one tile of 71 at one thread), relight as the float64 gather of the
+same stored values (``relight.wavelet_dense``: a
 stale accumulator would add a previous light's terms), give the AVX2 build's bits, and leave ``zacc`` and ``tmark``
 zero; so do the calls that return 1 (a channel count not accepted), 2 (an index out of range) and 3 (the row-major
 pass chosen before its copy exists), and the row-major pass (no scratch)."""
@@ -37,7 +38,7 @@ def _clean(r) -> bool:
     return not bool(r._zacc.any()) and not bool(r._tmark.any())
 
 
-@pytest.mark.parametrize("tile", [96, None])
+@pytest.mark.parametrize("tile", [96, 1152, None])
 def test_consecutive_lights_each_build_scratch_zero_between_calls(tile):
     tr = _transfer(torch.int16, 1)
     r = relight.WaveletRelighter(tr, threads=1, layouts="column", tile=tile)  # column-major pass at every N
