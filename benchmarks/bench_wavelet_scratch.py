@@ -37,14 +37,17 @@ the CPU has AVX-512 VNNI; kernels/wavelet.c), so the pairing measures the rest o
 build and the variants take the working tree's default layout (``WaveletRelighter.default_dense_min``): the pairing
 then measures a layout change with the kernel change; each side's fraction of the streaming read is of its own
 layout's bytes, and every output is compared with the float64 sums of the stored values (``relight.wavelet_dense``)
-as well as bit for bit with the build of its own layout (test for the variants).
+as well as bit for bit with the build of its own layout (test for the variants). ``--base-tile X|half`` likewise: the
+base and A/A builds on a relighter built with tile X (``half``: the default before the tile followed the relighter's
+threads, half the vertices up to 4096), the test build on the working tree's default at one thread
+(``WaveletRelighter._tile``): with ``--base`` at the same kernel source, the pairing measures the tile alone.
 
 The AVX2 build (``PRT_TORCH_KERNEL_ISA=avx2``, the code tuned on an AMD Zen 3) is not paired here: its machine code is
 the base's byte for byte (``--check-avx2`` compares the two builds' .text with objcopy, and stops if they differ).
 Writes reports/benchmarks/wavelet_scratch.md (the CPU, flags and load named) and the rows as .json.
 
     .venv/bin/python benchmarks/bench_wavelet_scratch.py [--base REV] [--sizes small,medium,large] [--variants touch8,outpf]
-        [--vnni] [--base-dense-min third]
+        [--vnni] [--base-dense-min third] [--base-tile half]
 """
 
 from __future__ import annotations
@@ -126,7 +129,7 @@ def pair(regime: str, a, b, repeats: int, evict_bytes: int, calls: int):
 
 
 def size_rows(size: str, libs: dict, terms, repeats: int, evict_bytes: int, calls: int, s7=(),
-              base_dmin: float | None = None, regimes=REGIMES) -> tuple[dict, list[dict]]:
+              base_dmin: float | None = None, regimes=REGIMES, base_tile: str | None = None) -> tuple[dict, list[dict]]:
     tr = kernel_transfer(size)
     # the test build's layout: the relighter's default for that build (its prt_wavelet_isa bits: w16, vnni), which may
     # not be this process's own build (--vnni)
@@ -134,11 +137,15 @@ def size_rows(size: str, libs: dict, terms, repeats: int, evict_bytes: int, call
     rec = {"w16": bool(bits & 32), "vnni": bool(bits & 64)}
     rl = relight.WaveletRelighter(tr, threads=1, layouts="both",
                                   dense_min=relight.WaveletRelighter.default_dense_min(BITS // 8, rec))
-    # the base and A/A builds' layout: the same relighter, or (--base-dense-min) one of its own
-    rlb = rl if base_dmin is None else relight.WaveletRelighter(tr, threads=1, layouts="both", dense_min=base_dmin)
+    # the base and A/A builds' layout: the same relighter, or (--base-dense-min, --base-tile) one of its own
+    btile = None if base_tile is None else (relight.WaveletRelighter._tile(rl.V, None, 2) if base_tile == "half"
+                                            else int(base_tile))
+    rlb = rl if base_dmin is None and btile is None else relight.WaveletRelighter(
+        tr, threads=1, layouts="both", dense_min=rl.dense_min if base_dmin is None else base_dmin, tile=btile)
     lay = {k: rlb if k in ("base", "aa") else rl for k in libs}
     info = layout_info(rl, size)
     info["Pd_base"] = rlb.Pd
+    info["tiles"], info["tiles_base"] = [rl.NT, rl.TV], [rlb.NT, rlb.TV]
     ref_index, ref_vals = rl.reference_rows(0, rl.V)
     # the output pass alone: no light term, against a fill of the output
     e_li, e_lv = torch.zeros(0, dtype=torch.int64), torch.zeros(3, 0)
@@ -210,11 +217,18 @@ def report(infos: list[dict], rows: list[dict], flags: str, args, before: float,
     def q(t):
         return f"{t[0]:.2f} [{t[1]:.2f}, {t[2]:.2f}]"
     cols = ["test", "aa", *names]
+    own = args.base_dense_min is not None or args.base_tile is not None  # the base on a layout of its own
     lay = ("" if args.base_dense_min is None else
            f" The base and A/A builds on a layout of their own, `dense_min` {args.base_dense_min:.4g} (dense columns: "
            + "; ".join(f"{i['size']} {i['Pd_base']}" for i in infos) + "); test and variants on the working tree's default "
            "(`WaveletRelighter.default_dense_min`); each side's *of read* of its own layout's bytes; *error*: max |output − "
            "float64 sums of the stored values| / max |reference| (`relight.wavelet_dense`), test / base.")
+    if args.base_tile is not None:
+        lay += (f" The base and A/A builds on a layout of their own, tile `{args.base_tile}` (tiles × vertices: "
+                + "; ".join(f"{i['size']} {i['tiles_base'][0]} × {i['tiles_base'][1]}" for i in infos)
+                + "); test and variants on the working tree's default (`WaveletRelighter._tile` at one thread: "
+                + "; ".join(f"{i['size']} {i['tiles'][0]} × {i['tiles'][1]}" for i in infos)
+                + "); each side's *of read* of its own layout's bytes.")
     vn = " Every build with `#define DENSE_VNNI 1` prepended (`--vnni`: the dense loop on integer dot products)." if args.vnni else ""
     L = [f"# Wavelet kernel: {args.title} (issue 39)\n",
          f"{cpu_label()}; load average {before:.1f} → {after:.1f} (a machine shared with other jobs: one thread's CPU "
@@ -240,7 +254,8 @@ def report(infos: list[dict], rows: list[dict], flags: str, args, before: float,
          + f" Reproduce: `.venv/bin/python benchmarks/bench_wavelet_scratch.py --base {args.base} --sizes "
          f"{args.sizes} --terms {args.terms} --s7-terms {args.s7_terms} --repeats {args.repeats} --variants '{','.join(names)}'"
          f"{' --check-avx2' if args.check_avx2 else ''}{' --vnni' if args.vnni else ''}{' --two-threads' if args.two_threads else ''}"
-         f"{'' if args.base_dense_min is None else ' --base-dense-min ' + args.base_dense_min_text}`.{vn}{lay}\n",
+         f"{'' if args.base_dense_min is None else ' --base-dense-min ' + args.base_dense_min_text}"
+         f"{'' if args.base_tile is None else ' --base-tile ' + args.base_tile}`.{vn}{lay}\n",
          "## The output pass alone\n",
          "A call with no light term (N = 0: each dense block's zero sums times the factor, interleaved and written once; "
          "the call's fixed cost, ~0.5 µs, included) against a fill of the output's 12 V bytes (`read_bound_fn(0, 12 V)`), "
@@ -256,7 +271,7 @@ def report(infos: list[dict], rows: list[dict], flags: str, args, before: float,
         L += ["\n## Section 7's fraction of the streaming read\n",
               "As `bench_wavelet.py --only kernel` computes it (`bench_wavelet.steady_pair` of the call and "
               "`read_bound_fn(bytes_read, 12 V)`: median of 15 per-repeat ratios by one thread's CPU time, re-timed while they "
-              "spread), for the test and the base build " + ("on the same layout" if args.base_dense_min is None else
+              "spread), for the test and the base build " + ("on the same layout" if not own else
                                                              "each on its own layout and of its bytes") + ", warm.\n",
               "| size | light | N | test | base | load |", "|---|---|---|---|---|---|"]
         for r in s7rows:
@@ -265,13 +280,13 @@ def report(infos: list[dict], rows: list[dict], flags: str, args, before: float,
         L += [f"\n## {regime}\n",
               "| size | light | N | dense terms | sparse blocks | MB read | base µs | test µs | "
               + " | ".join(f"**base / {k}**" if k == "test" else f"base / {k}" for k in cols)
-              + " | of read: test / base | bits |" + (" error test / base |" if args.base_dense_min is not None else "")
+              + " | of read: test / base | bits |" + (" error test / base |" if own else "")
               + " load |",
               "|---|---|---|---|---|---|---|---|" + "---|" * len(cols) + "---|---|---|"
-              + ("---|" if args.base_dense_min is not None else "")]
+              + ("---|" if own else "")]
         for r in rows:
             g = r[regime]
-            two = args.base_dense_min is not None
+            two = own
             nd = f"{r['nd']} ({r['nd_base']})" if two else f"{r['nd']}"
             mb = f"{r['mb']:.2f} ({r['mb_base']:.2f})" if two else f"{r['mb']:.2f}"
             L.append(f"| {r['size']} | {r['light']} | {r['N']} | {nd} | {r['sb']}{' rows' if r['rows'] else ''} | "
@@ -300,6 +315,9 @@ def main() -> None:
     ap.add_argument("--vnni", action="store_true", help="every build with #define DENSE_VNNI 1 prepended")
     ap.add_argument("--base-dense-min", default=None, help="the base and A/A builds on a relighter built with this "
                     "dense_min (a number, or 'third': 1/3, main's 16-bit default); default: the same layout as the test")
+    ap.add_argument("--base-tile", default=None, help="the base and A/A builds on a relighter built with this tile "
+                    "(vertices, a multiple of 32, or 'half': the default before the tile followed the threads, half the "
+                    "vertices up to 4096); default: the same layout as the test")
     ap.add_argument("--title", default="the sparse scratch zero between calls, and the output pass",
                     help="the report's title (what the working tree changes)")
     ap.add_argument("--test-about", default="the scratch zero between calls, a touched map per 32-vertex block; the RGB "
@@ -315,6 +333,9 @@ def main() -> None:
             raise SystemExit(f"{WHO}: --base-dense-min {args.base_dense_min!r}; accepted: a number > 0, or 'third'") from None
         if not args.base_dense_min > 0:
             raise SystemExit(f"{WHO}: --base-dense-min {args.base_dense_min_text!r}; accepted: a number > 0, or 'third'")
+    if args.base_tile is not None and args.base_tile != "half" and not (args.base_tile.isdigit() and int(args.base_tile) > 0
+                                                                         and int(args.base_tile) % 32 == 0):
+        raise SystemExit(f"{WHO}: --base-tile {args.base_tile!r}; accepted: a positive multiple of 32, or 'half'")
     sizes = [size_choice(s.strip(), WHO) for s in args.sizes.split(",")]
     names = [n.strip() for n in args.variants.split(",") if n.strip()]
     for n in names:
@@ -345,7 +366,7 @@ def main() -> None:
     infos, rows = [], []
     for s in sizes:
         info, r = size_rows(s, libs, terms, args.repeats, int(args.evict_mb * 2**20), args.calls, s7, args.base_dense_min,
-                            REGIMES + ((TWO,) if args.two_threads else ()))
+                            REGIMES + ((TWO,) if args.two_threads else ()), args.base_tile)
         infos.append(info)
         rows += r
     after = load()

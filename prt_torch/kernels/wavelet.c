@@ -1059,7 +1059,8 @@ DENSE_BLOCK(int16_t)
  * with DENSE_VNNI (more loads per block, and spills in the large inlined function; the dense-only light 0.89x too).
  * The tile count is what the ranges cost: one tile of 2272 vertices against two of 1152 (tile=, a layout choice in
  * relight.py) 1.06x at small studio N = 292 kept (both dense loops), 1.02-1.06x at sky N >= 300, 1.00-1.02x at
- * N <= 100; not the default (the two tiles are the two threads' shares). The next term's range bounds loaded before
+ * N <= 100; since 2026-11-30 the default where the relighter is built for one thread (relight.py _tile: one tile per
+ * thread it is built for, at most 4096 vertices; the kernel unchanged). The next term's range bounds loaded before
  * this term's blocks (so that after a range's mispredicted exit the next range's chain of loads need not start
  * from its term's column): 0.95-1.04x, A/A 0.98-1.03 (small and medium, both dense loops, 21 repeats): noise.
  * At one thread (2026-11-30, branch sp17, paired with LIST_TERMS's kernel, small, load 1.8-3.0): the sparse pass of
