@@ -208,7 +208,7 @@ def main() -> None:
     ap.add_argument("--variant", default=None, help=f"with --pair: REV's kernel rewritten, one of {sorted(VARIANTS)}")
     ap.add_argument("--size", default=None, help="section 7's mesh size: small (default), medium, large")
     ap.add_argument("--tile", type=int, default=None, help="the layout's tile (vertices, a multiple of 32; default the "
-                    "relighter's: half the vertices up to 4096)")
+                    "relighter's at one thread: the vertices up to 4096, WaveletRelighter._tile)")
     ap.add_argument("--lights", default=None, help="the probes' lights as LIGHT:N pairs, comma-separated (LIGHT studio or "
                     "sky, N a count or 'all'; default studio:100,studio:300,sky:100,sky:300,sky:1000,sky:all)")
     args = ap.parse_args()
