@@ -129,19 +129,26 @@ def pair(regime: str, a, b, repeats: int, evict_bytes: int, calls: int):
 
 
 def size_rows(size: str, libs: dict, terms, repeats: int, evict_bytes: int, calls: int, s7=(),
-              base_dmin: float | None = None, regimes=REGIMES, base_tile: str | None = None) -> tuple[dict, list[dict]]:
+              base_dmin: float | None = None, regimes=REGIMES, base_tile: str | None = None,
+              base_first: bool = False) -> tuple[dict, list[dict]]:
     tr = kernel_transfer(size)
     # the test build's layout: the relighter's default for that build (its prt_wavelet_isa bits: w16, vnni), which may
     # not be this process's own build (--vnni)
     bits = int(libs["test"].prt_wavelet_isa())
     rec = {"w16": bool(bits & 32), "vnni": bool(bits & 64)}
-    rl = relight.WaveletRelighter(tr, threads=1, layouts="both",
-                                  dense_min=relight.WaveletRelighter.default_dense_min(BITS // 8, rec))
-    # the base and A/A builds' layout: the same relighter, or (--base-dense-min, --base-tile) one of its own
-    btile = None if base_tile is None else (relight.WaveletRelighter._tile(rl.V, None, 2) if base_tile == "half"
-                                            else int(base_tile))
-    rlb = rl if base_dmin is None and btile is None else relight.WaveletRelighter(
-        tr, threads=1, layouts="both", dense_min=rl.dense_min if base_dmin is None else base_dmin, tile=btile)
+    dmin = relight.WaveletRelighter.default_dense_min(BITS // 8, rec)
+    # the base and A/A builds' layout: the same relighter, or (--base-dense-min, --base-tile) one of its own, built
+    # after the test's or (base_first: the placement's control, --base-first) before it
+    btile = None if base_tile is None else (relight.WaveletRelighter._tile(tr.mesh.num_vertices, None, 2)
+                                            if base_tile == "half" else int(base_tile))
+    own = base_dmin is not None or btile is not None
+
+    def base_rl():
+        return relight.WaveletRelighter(tr, threads=1, layouts="both", dense_min=dmin if base_dmin is None else base_dmin,
+                                        tile=btile)
+    rlb = base_rl() if own and base_first else None
+    rl = relight.WaveletRelighter(tr, threads=1, layouts="both", dense_min=dmin)
+    rlb = rl if not own else rlb if rlb is not None else base_rl()
     lay = {k: rlb if k in ("base", "aa") else rl for k in libs}
     info = layout_info(rl, size)
     info["Pd_base"] = rlb.Pd
@@ -255,7 +262,8 @@ def report(infos: list[dict], rows: list[dict], flags: str, args, before: float,
          f"{args.sizes} --terms {args.terms} --s7-terms {args.s7_terms} --repeats {args.repeats} --variants '{','.join(names)}'"
          f"{' --check-avx2' if args.check_avx2 else ''}{' --vnni' if args.vnni else ''}{' --two-threads' if args.two_threads else ''}"
          f"{'' if args.base_dense_min is None else ' --base-dense-min ' + args.base_dense_min_text}"
-         f"{'' if args.base_tile is None else ' --base-tile ' + args.base_tile}`.{vn}{lay}\n",
+         f"{'' if args.base_tile is None else ' --base-tile ' + args.base_tile}{' --base-first' if args.base_first else ''}`."
+         f"{vn}{lay}{' The base relighter built before the test one (`--base-first`).' if args.base_first else ''}\n",
          "## The output pass alone\n",
          "A call with no light term (N = 0: each dense block's zero sums times the factor, interleaved and written once; "
          "the call's fixed cost, ~0.5 µs, included) against a fill of the output's 12 V bytes (`read_bound_fn(0, 12 V)`), "
@@ -318,6 +326,8 @@ def main() -> None:
     ap.add_argument("--base-tile", default=None, help="the base and A/A builds on a relighter built with this tile "
                     "(vertices, a multiple of 32, or 'half': the default before the tile followed the threads, half the "
                     "vertices up to 4096); default: the same layout as the test")
+    ap.add_argument("--base-first", action="store_true", help="with --base-tile or --base-dense-min: the base's relighter "
+                    "built before the test's (a control of the two relighters' placement in memory)")
     ap.add_argument("--title", default="the sparse scratch zero between calls, and the output pass",
                     help="the report's title (what the working tree changes)")
     ap.add_argument("--test-about", default="the scratch zero between calls, a touched map per 32-vertex block; the RGB "
@@ -366,7 +376,7 @@ def main() -> None:
     infos, rows = [], []
     for s in sizes:
         info, r = size_rows(s, libs, terms, args.repeats, int(args.evict_mb * 2**20), args.calls, s7, args.base_dense_min,
-                            REGIMES + ((TWO,) if args.two_threads else ()), args.base_tile)
+                            REGIMES + ((TWO,) if args.two_threads else ()), args.base_tile, args.base_first)
         infos.append(info)
         rows += r
     after = load()

@@ -28,6 +28,7 @@ from __future__ import annotations
 import functools
 import math
 import os
+import warnings
 
 import torch
 
@@ -586,6 +587,11 @@ class WaveletRelighter:
         if TV % self.BLOCK or TV < self.BLOCK:
             raise ValueError(f"tile={TV}; accepted: a positive multiple of {self.BLOCK}")
         self.TV, self.NT = TV, -(-V // TV)
+        # the threads the default tile was built for (None: an explicit tile): a call at more threads than that, whose
+        # own default would hold more tiles, warns once (_more_threads); _th_seen the last thread count checked
+        self._th_built = None if tile is not None else max(1, int(torch.get_num_threads() if threads is None else threads))
+        self._th_seen = self._th_built
+        self._th_warned = False
         # pass 2: each chunk's entries into the dense columns and its sparse blocks (chunks of whole 8-vertex blocks:
         # a block lies in one chunk; the chunks' sorted keys merged by one sort of the blocks' keys)
         keys, bvs = [], []
@@ -1030,6 +1036,8 @@ class WaveletRelighter:
             return lambda: self(li, lv, out=o, albedo=albedo)
         f, Ck = self._kfactor(lv.shape[0], albedo)
         th = torch.get_num_threads() if self.threads is None else self.threads
+        if th != self._th_seen:  # checked once here, not per frame
+            self._more_threads(th)
         # the kernel's eight arguments packed once into an int64 array: ctypes then converts one argument per call
         # instead of eight (~0.8 us less per call; benchmarks/bench_wavelet_call.py)
         args = torch.tensor([self._layout.data_ptr(), li.numel(), li.data_ptr(), lv.data_ptr(), Ck | self._fd, f.data_ptr(),
@@ -1046,6 +1054,20 @@ class WaveletRelighter:
                 self._check_indices(held[0])
             return o
         return run
+
+    def _more_threads(self, th: int) -> None:
+        """A call at ``th`` threads on a default tile built for fewer (``_th_built``): when a relighter built for
+        ``th`` would hold more tiles, one warning per relighter — the tiles are the threads' unit of work, so the call
+        runs on ``NT`` of its ``th`` threads (at small, one tile on one thread: 0.77-0.94x a two-tile relighter by wall
+        clock at two threads, docs/wavelet.md "The tile follows the relighter's threads"). Build it with ``threads=th``
+        (or an explicit ``tile``)."""
+        self._th_seen = th
+        if self._th_warned or self._th_built is None or th <= self._th_built or self._tile(self.V, None, th) >= self.TV:
+            return
+        self._th_warned = True
+        warnings.warn(f"WaveletRelighter built for threads={self._th_built} ({self.NT} tile{'s' * (self.NT > 1)} of "
+                      f"{self.TV} vertices) called at {th} threads: it runs on {self.NT} of them; accepted for "
+                      f"{th}-thread calls: WaveletRelighter(..., threads={th})", RuntimeWarning, stacklevel=3)
 
     def __call__(self, light_idx: torch.Tensor, light_vals: torch.Tensor, out: torch.Tensor | None = None,
                  albedo: bool = True) -> torch.Tensor:
@@ -1075,6 +1097,8 @@ class WaveletRelighter:
             fk = self._f.get((C, albedo))
             f, Ck = fk if fk is not None else self._kfactor(C, albedo)
             th = torch.get_num_threads() if self.threads is None else self.threads
+            if th != self._th_seen:  # one int compare per call (the check when the thread count changes)
+                self._more_threads(th)
             st = kern(N, li.data_ptr(), lv.data_ptr(), Ck | self._fd, f.data_ptr(), o.data_ptr(), th)
             if st == 3:  # the first light needing the row-major copy: built, the call repeated
                 self._build_rows()
