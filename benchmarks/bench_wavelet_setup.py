@@ -57,6 +57,22 @@ the OpenMP region's pragma removed, its shared variables copied in).
 
     .venv/bin/python benchmarks/bench_wavelet_setup.py --pair main [--isa native|avx2]     (about a minute)
     .venv/bin/python benchmarks/bench_wavelet_setup.py --pair main --variant 'tiles reversed'
+
+``--tsc A,B`` (x86): instead, the parts timed in place in one build — the working tree's kernel with ``rdtsc`` read
+around each tile's sparse pass, each 32-vertex block's ``dense_block`` call (its dense terms, the scratch added back,
+the output) and the tile loop (from the light's quantisation, VNNI_SETUP, to the tiles' end), and from the gather to
+the call's end (Python and ctypes outside) — on two relighters of the same transfer with tiles A and B (vertices), and
+an A/A control (a second relighter of tile A: placement); the calls alternated A, B, B, A, ... (``--tsc-pairs`` pairs,
+50 untimed first; ``--tsc-block K``: K timed calls of one relighter, after an untimed one, then K of the other, the
+pairs taken in order), per pair the difference B − A of each part in TSC ticks (median [quartiles]), converted to µs at
+the TSC's rate (measured against CLOCK_MONOTONIC). Wall time inside the call: a pair preempted in between is in the
+quartiles, not the median. Alternated per call, two relighters whose working sets outgrow the L2 together (at small,
+sky N >= 300: 1.1 MB of dense lines each) find their lines in L2 or L3 by turns, and the differences are bimodal
+(quartiles of +-10 us): ``--tsc-block 100`` there. The ``rdtsc`` pairs themselves cost ~1 µs of a 13 µs call. Probes
+compiled as separate builds (above) charge a part with whatever the next probe's code changes elsewhere (placement, and
+the caches' state the skipped work leaves); this split times one build.
+
+    .venv/bin/python benchmarks/bench_wavelet_setup.py --tsc 2272,1152 --lights studio:300,studio:100,sky:100
 """
 
 from __future__ import annotations
@@ -211,9 +227,23 @@ def main() -> None:
                     "relighter's at one thread: the vertices up to 4096, WaveletRelighter._tile)")
     ap.add_argument("--lights", default=None, help="the probes' lights as LIGHT:N pairs, comma-separated (LIGHT studio or "
                     "sky, N a count or 'all'; default studio:100,studio:300,sky:100,sky:300,sky:1000,sky:all)")
+    ap.add_argument("--tsc", default=None, help="A,B: the parts timed in place by rdtsc on relighters of tiles A and B "
+                    "(vertices), calls alternated, with an A/A control (module docstring)")
+    ap.add_argument("--tsc-pairs", type=int, default=3000, help="with --tsc: the pairs of calls per light")
+    ap.add_argument("--tsc-block", type=int, default=1, help="with --tsc: calls of one relighter in a row before the "
+                    "other's (1: alternated per call; more where the two relighters' working sets outgrow the L2 together)")
     args = ap.parse_args()
     args.size = size_choice(args.size, WHO)
     args.lights = light_list(args.lights)
+    if args.tsc is not None:
+        tl = args.tsc.split(",")
+        if len(tl) != 2 or not all(x.strip().isdigit() and int(x) >= 32 and int(x) % 32 == 0 for x in tl):
+            raise SystemExit(f"{WHO}: --tsc {args.tsc!r}; accepted: two tiles A,B, each a multiple of 32 (vertices)")
+        if args.tsc_pairs < 10:
+            raise SystemExit(f"{WHO}: --tsc-pairs {args.tsc_pairs}; accepted: at least 10")
+        if args.tsc_block < 1:
+            raise SystemExit(f"{WHO}: --tsc-block {args.tsc_block}; accepted: at least 1")
+        return write(args.write, tsc_split(args, [int(x) for x in tl]))
     if args.tile is not None and (args.tile < 32 or args.tile % 32):
         raise SystemExit(f"{WHO}: --tile {args.tile}; accepted: a multiple of 32, at least 32")
     if args.variant is not None and (args.variant not in VARIANTS or not args.pair):
@@ -364,6 +394,120 @@ def pair(args) -> str:
             L.append(f"| {light} | {'all' if N == rl.P else N} | {p.peer.median * 1e6:.1f} | {p.test.median * 1e6:.1f} | "
                      f"**{p.speedup:.3f}** [{p.ratio.q1:.3f}, {p.ratio.q3:.3f}] | {a.speedup:.3f} [{a.ratio.q1:.3f}, "
                      f"{a.ratio.q3:.3f}] | {load():.1f} |")
+            print(f"[wavelet_setup] {L[-1]}", flush=True)
+    L[1] = L[1].replace("{load0:.1f}", f"{before:.1f}").replace("{load1:.1f}", f"{load():.1f}")
+    return "\n".join(L) + "\n"
+
+
+#: (text of kernels/wavelet.c, replacement) for --tsc: rdtsc around the parts, summed per call into prt_tsc [8]:
+#: 0 the dense blocks, 1 the sparse passes, 2 the tile loop (from VNNI_SETUP), 3 the gather to the end, 4 tile 0's
+#: blocks 0-1 (its first unit), 5 its blocks 2-3
+TSC_SUBS = (
+    ("#include <string.h>\n", "#include <string.h>\n#include <x86intrin.h>\nunsigned long long prt_tsc[8];\n"),
+    ("        dense_block_##T(CT_, CO_, OC_, nd, wk,", "        { const unsigned long long t0_ = __rdtsc(); \\\n"
+     "        dense_block_##T(CT_, CO_, OC_, nd, wk,"),
+    ("                        out + OC_ * v0, nt_out);", "                        out + OC_ * v0, nt_out); "
+     "{ const unsigned long long d_ = __rdtsc() - t0_; prt_tsc[0] += d_; if (v0 < 2 * BV) prt_tsc[4] += d_; "
+     "else if (v0 < 4 * BV) prt_tsc[5] += d_; } } "),
+    ("    if (ns && !rows) sparse_tile_##T(CT_, CO_, ns, sw, sl, tp, bofs, bv, acc MK_ARG);",
+     "    { const unsigned long long t1_ = __rdtsc(); \\\n"
+     "    if (ns && !rows) sparse_tile_##T(CT_, CO_, ns, sw, sl, tp, bofs, bv, acc MK_ARG); prt_tsc[1] += __rdtsc() - t1_; } "),
+    ("    VNNI_SETUP(T) /* DVNNI", "    const unsigned long long t2_ = __rdtsc(); \\\n    VNNI_SETUP(T) /* DVNNI"),
+    ("    for (i64 n = 0; n < N; n++) memset(lp + 4 * sel[n], 0, 4 * sizeof(float));                               \\\n"
+     "    NT_OUT_FENCE", "    prt_tsc[2] += __rdtsc() - t2_; \\\n"
+     "    for (i64 n = 0; n < N; n++) memset(lp + 4 * sel[n], 0, 4 * sizeof(float));                               \\\n"
+     "    NT_OUT_FENCE"),
+    ("    memset(mark, 0, (size_t)P);", "    const unsigned long long t3_ = __rdtsc(); \\\n    memset(mark, 0, (size_t)P);"),
+    ("    NT_OUT_FENCE(nt_out);                                                                                    \\\n    return 0;",
+     "    NT_OUT_FENCE(nt_out); prt_tsc[3] += __rdtsc() - t3_; \\\n    return 0;"))
+TSC_PARTS = ("set-up (gather → tile loop)", "sparse passes", "dense blocks (terms, add-back, output)", "tile loop",
+             "the call (gather → end)", "tile 0's first unit (blocks 0-1)", "its second unit (blocks 2-3)")
+
+
+def tsc_rate() -> float:
+    """The TSC's ticks per µs, against CLOCK_MONOTONIC over 0.2 s."""
+    src = ("#include <time.h>\n#include <x86intrin.h>\ndouble tsc_mhz(void) { struct timespec a, b; "
+           "clock_gettime(CLOCK_MONOTONIC, &a); unsigned long long t0 = __rdtsc(); double ns; do { "
+           "clock_gettime(CLOCK_MONOTONIC, &b); ns = (b.tv_sec - a.tv_sec) * 1e9 + (b.tv_nsec - a.tv_nsec); } "
+           "while (ns < 2e8); return (double)(__rdtsc() - t0) / ns * 1e3; }\n")
+    lib, how = compile_library("wavelet_tsc_rate", {"tsc.c": src}, ["-O2", "-shared", "-fPIC", "-std=gnu99"], {})
+    if lib is None:
+        raise SystemExit(f"{WHO}: no compiler: {how}")
+    lib.tsc_mhz.restype = ctypes.c_double
+    return lib.tsc_mhz()
+
+
+def tsc_split(args, tiles: list[int]) -> str:
+    """The ``--tsc`` section (module docstring)."""
+    import platform
+    import statistics
+
+    if platform.machine() not in ("x86_64", "AMD64"):
+        raise SystemExit(f"{WHO}: --tsc on {platform.machine()}; accepted: an x86-64 CPU (rdtsc)")
+    torch.set_num_threads(1)
+    src, label = kernel_source(args.source, f"{WHO} --source")
+    for old, new in TSC_SUBS:
+        if src.count(old) != 1:
+            raise SystemExit(f"{WHO}: kernels/wavelet.c changed: --tsc's text {old.strip()[:60]!r} is not there once")
+        src = src.replace(old, new)
+    lib = kernel_build(src, args.isa, WHO)[0]
+    tsc = (ctypes.c_ulonglong * 8).in_dll(lib, "prt_tsc")
+    mhz = tsc_rate()
+    tr = kernel_transfer(args.size)
+    rls = {"A": relight.WaveletRelighter(tr, threads=1, layouts="both", tile=tiles[0]),
+           "B": relight.WaveletRelighter(tr, threads=1, layouts="both", tile=tiles[1]),
+           "A'": relight.WaveletRelighter(tr, threads=1, layouts="both", tile=tiles[0])}
+    before = load()
+    nt = {k: r.NT for k, r in rls.items()}
+    L = [f"## {cpu_label()}: the `{args.isa}` build, kernel {label}, the call's parts in place (rdtsc), tiles "
+         f"{tiles[0]} against {tiles[1]}{'' if args.size == 'small' else ', ' + args.size}\n",
+         f"One build with `rdtsc` around the parts (`--tsc`, module docstring); relighters A (tile {tiles[0]}: {nt['A']} "
+         f"tile{'s' * (nt['A'] > 1)}), B (tile {tiles[1]}: {nt['B']} tiles) and A' (A's tile again: the A/A control) of one "
+         f"transfer (V = {rls['A'].V}); {args.tsc_pairs} pairs per light and control, "
+         + ("alternated per call" if args.tsc_block == 1 else f"in runs of {args.tsc_block} calls per relighter")
+         + f"; µs at the TSC's "
+         f"{mhz:.0f} MHz; **B − A**: the median of the per-pair differences [quartiles] (> 0: tile {tiles[0]} "
+         "faster); A' − A the same for two relighters of one tile. Load average {load0:.1f} → {load1:.1f}.\n",
+         "| light | N | part | A µs | B µs | **B − A µs** [quartiles] | A' − A µs [quartiles] |",
+         "|---|---|---|---|---|---|---|"]
+    for light, N in args.lights:
+        N = rls["A"].P if N is None else N
+        fns = {}
+        for k, rl in rls.items():
+            li, lv, _ = rl.light(LIGHTS[light], N, "transport")
+            li, lv = li.contiguous(), lv.to(torch.float32).contiguous()
+            fns[k] = bound_call(rl, lib, li, lv, torch.empty(rl.V, 3), 1, per_vertex=True)
+
+        def parts(fn):
+            ctypes.memset(tsc, 0, 64)
+            fn()
+            v = list(tsc)
+            return [v[3] - v[2], v[1], v[0], v[2], v[3], v[4], v[5]]
+
+        diffs = {}
+        for other in ("B", "A'"):
+            for _ in range(50):
+                fns["A"]()
+                fns[other]()
+            sa, so = [], []
+            K = args.tsc_block
+            for i in range(-(-args.tsc_pairs // K)):  # K calls of one relighter, then K of the other, in turn
+                first, second = (("A", sa), (other, so)) if i % 2 == 0 else ((other, so), ("A", sa))
+                for k, acc in (first, second):
+                    fns[k]()  # untimed: the first call after the other relighter's
+                    acc += [parts(fns[k]) for _ in range(K)]
+            diffs[other] = (sa, so)
+        for j, name in enumerate(TSC_PARTS):
+            cols = []
+            for other in ("B", "A'"):
+                sa, so = diffs[other]
+                d = sorted((b[j] - a[j]) / mhz for a, b in zip(sa, so))
+                n = len(d)
+                cols.append((statistics.median(a[j] for a in sa) / mhz, statistics.median(b[j] for b in so) / mhz,
+                             d[n // 2], d[n // 4], d[3 * n // 4]))
+            b, c = cols
+            L.append(f"| {light} | {'all' if N == rls['A'].P else N} | {name} | {b[0]:.2f} | {b[1]:.2f} | "
+                     f"**{b[2]:+.2f}** [{b[3]:+.2f}, {b[4]:+.2f}] | {c[2]:+.2f} [{c[3]:+.2f}, {c[4]:+.2f}] |")
             print(f"[wavelet_setup] {L[-1]}", flush=True)
     L[1] = L[1].replace("{load0:.1f}", f"{before:.1f}").replace("{load1:.1f}", f"{load():.1f}")
     return "\n".join(L) + "\n"
