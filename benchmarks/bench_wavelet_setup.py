@@ -424,6 +424,16 @@ TSC_PARTS = ("set-up (gather → tile loop)", "sparse passes", "dense blocks (te
              "the call (gather → end)", "tile 0's first unit (blocks 0-1)", "its second unit (blocks 2-3)")
 
 
+def tsc_source(src: str) -> str:
+    """``src`` (kernels/wavelet.c) with ``--tsc``'s ``rdtsc`` reads (:data:`TSC_SUBS`: the sums in ``prt_tsc``
+    unsigned long long [8]); one ``SystemExit`` line when a text they go after is not in it exactly once."""
+    for old, new in TSC_SUBS:
+        if src.count(old) != 1:
+            raise SystemExit(f"{WHO}: kernels/wavelet.c changed: --tsc's text {old.strip()[:60]!r} is not there once")
+        src = src.replace(old, new)
+    return src
+
+
 def tsc_rate() -> float:
     """The TSC's ticks per µs, against CLOCK_MONOTONIC over 0.2 s."""
     src = ("#include <time.h>\n#include <x86intrin.h>\ndouble tsc_mhz(void) { struct timespec a, b; "
@@ -446,11 +456,7 @@ def tsc_split(args, tiles: list[int]) -> str:
         raise SystemExit(f"{WHO}: --tsc on {platform.machine()}; accepted: an x86-64 CPU (rdtsc)")
     torch.set_num_threads(1)
     src, label = kernel_source(args.source, f"{WHO} --source")
-    for old, new in TSC_SUBS:
-        if src.count(old) != 1:
-            raise SystemExit(f"{WHO}: kernels/wavelet.c changed: --tsc's text {old.strip()[:60]!r} is not there once")
-        src = src.replace(old, new)
-    lib = kernel_build(src, args.isa, WHO)[0]
+    lib = kernel_build(tsc_source(src), args.isa, WHO)[0]
     tsc = (ctypes.c_ulonglong * 8).in_dll(lib, "prt_tsc")
     mhz = tsc_rate()
     tr = kernel_transfer(args.size)

@@ -109,3 +109,30 @@ def test_call_variants_apply_to_the_kernel_source(monkeypatch):
     monkeypatch.setattr(sys, "argv", ["bench_wavelet_setup.py", "--pair", "main", "--variant", "nonsense", "--write", ""])
     with pytest.raises(SystemExit, match="--variant 'nonsense'; accepted: one of"):
         bs.main()
+
+
+def test_tsc_build_relights_as_the_reference(rl, monkeypatch):
+    """bench_wavelet_setup.py --tsc: its rdtsc reads apply once each to the kernel's source, the build relights as the
+    reference does (timing only), and its sums nest — the dense blocks and sparse passes within the tile loop, the tile
+    loop and the set-up within the call, tile 0's first two units within the dense blocks; bad --tsc values are refused
+    in one line naming them."""
+    import ctypes
+
+    bs = _bench("bench_wavelet_setup")
+    src, _ = _bench("bench_wavelet_isa").kernel_source(None, "test")
+    lib, _ = _bench("bench_wavelet_isa").kernel_build(bs.tsc_source(src), None, "test")
+    tsc = (ctypes.c_ulonglong * 8).in_dll(lib, "prt_tsc")
+    li, lv, _ = rl.light("studio", 300, "transport")
+    lv = lv.to(torch.float32).contiguous()
+    out = torch.empty(rl.V, 3)
+    args = _args(rl, li, lv, out)
+    out.fill_(float("nan"))
+    ctypes.memset(tsc, 0, 64)
+    assert lib.prt_wavelet_relight_i16(*args) == 0
+    assert torch.allclose(out.double(), _reference(rl, li, lv), rtol=1e-5, atol=1e-6)
+    dense, sparse, loop, call, u0, u1 = (int(tsc[k]) for k in range(6))
+    assert 0 < dense + sparse <= loop < call and 0 < u0 + u1 <= dense and sparse > 0, list(tsc)
+    for bad in ("2272", "2272,100", "a,b"):
+        monkeypatch.setattr(sys, "argv", ["bench_wavelet_setup.py", "--tsc", bad, "--write", ""])
+        with pytest.raises(SystemExit, match=f"--tsc '{bad}'; accepted: two tiles A,B"):
+            bs.main()
