@@ -482,9 +482,12 @@ class WaveletRelighter:
     def _tile(cls, V: int, tile: int | None, threads: int | None = None) -> int:
         """The sparse blocks' tile (vertices): ``tile``, or the vertices split between the relighter's ``threads``
         (None: ``torch.get_num_threads()`` now, at construction) rounded up to 32, at most :attr:`TILE_MAX`: no more
-        tiles than the threads need (each (tile, sparse term) range costs ~22 cycles: at one thread one tile of 2272
-        vertices against two of 1152 measured 1.04-1.06x on the small studio 292-kept row, Intel Xeon family 6 model
-        167, reports/benchmarks/wavelet_tile1.md), none larger than a scratch of TILE_MAX/8 x 128 bytes (64 KB: L2)."""
+        tiles than the threads need (each (tile, sparse term) range of the sparse pass costs ~20 cycles, timed in place:
+        bench_wavelet_setup.py --tsc; at one thread one tile of 2272 vertices against two of 1152, across placements,
+        1.00-1.04x, studio 292 kept 1.02x, sky N = 1000 1.04x, Intel Xeon family 6 model 167,
+        reports/benchmarks/wavelet_tile18_placements.md), none larger than a scratch of TILE_MAX/8 x 128 bytes (64 KB:
+        L2). Two threads give main's tile (half the vertices); a call at more threads than a default tile was built for
+        warns once (:meth:`_more_threads`)."""
         if tile is not None:
             return int(tile)
         th = max(1, int(torch.get_num_threads() if threads is None else threads))

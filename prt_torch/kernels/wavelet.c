@@ -1068,9 +1068,14 @@ DENSE_BLOCK(int16_t)
  * term; two tiles' scratch and tptr rows in L1 together) ~0.95x on the fourth row, sky N = 1000 0.97x; each tile's
  * empty (term) ranges skipped (per 64 terms the non-empty ranges listed branch-free first; 90 of the fourth row's 314
  * ranges are empty) 0.98-0.99x; every tile's sparse pass first, tile by tile (one switch from the sparse pass to the
- * zmm dense loop per call instead of per tile) 0.96-1.00x: none kept. The pass is not what one tile saves: the probes
- * on a one-tile layout (bench_wavelet_setup.py --tile 2272, three paired runs) give the sparse pass 0.06-0.43 us less
- * and the dense terms 0.5-0.67 us less than on two tiles.
+ * zmm dense loop per call instead of per tile) 0.96-1.00x: none kept. The probes on a one-tile layout
+ * (bench_wavelet_setup.py --tile 2272, three paired runs) gave the sparse pass 0.06-0.43 us less and the dense terms
+ * 0.5-0.67 us less than on two tiles; timed in place in one build instead (branch tile18, bench_wavelet_setup.py --tsc:
+ * rdtsc around each tile's sparse pass and each block's dense_block call, two relighters' calls alternated, an A/A
+ * relighter; Intel Xeon family 6 model 167, load 1.1-2.1), one tile's dense blocks take the same time as two tiles'
+ * (studio 292 kept -0.03 us [-0.19, +0.12], A/A -0.01) and the pass is what it saves (0.41 us [0.33, 0.50] of the
+ * call's 0.47: 157 ranges against 224, ~20 cycles a range; sky N = 1000 2.44 us): the ranges after all, and no per-tile
+ * cost in the dense phase (docs/wavelet.md "The tile follows the relighter's threads").
  * The AVX2 and avx512-256 builds keep one block per step, their machine code byte-identical to before (objdump; two and four per step measured no faster on AMD Zen 3, docs/wavelet.md). */
 #if W16
 /* the block's scratch address held in a register (an empty asm: gcc otherwise forms base + offset + 32 c by one lea
