@@ -346,6 +346,9 @@ def main() -> None:
     if args.base_tile is not None and args.base_tile != "half" and not (args.base_tile.isdigit() and int(args.base_tile) > 0
                                                                          and int(args.base_tile) % 32 == 0):
         raise SystemExit(f"{WHO}: --base-tile {args.base_tile!r}; accepted: a positive multiple of 32, or 'half'")
+    if args.base_first and args.base_tile is None and args.base_dense_min is None:
+        raise SystemExit(f"{WHO}: --base-first without a layout of the base's own; accepted: with --base-tile or "
+                         "--base-dense-min")
     sizes = [size_choice(s.strip(), WHO) for s in args.sizes.split(",")]
     names = [n.strip() for n in args.variants.split(",") if n.strip()]
     for n in names:
