@@ -719,9 +719,9 @@ class WaveletRelighter:
 
     @classmethod
     def estimate_bytes(cls, path, layouts: str = "auto", dense_min: float | None = None, tile: int | None = None,
-                       threads: int | None = None, light_channels: int = 3, chunk: int | None = None, exact: bool = True, light=None,
+                       light_channels: int = 3, chunk: int | None = None, exact: bool = True, light=None,
                        terms: int | None = None, selection: str = "transport", row_min: float | None = None,
-                       supersample: int = 4, arith: str = "auto") -> dict:
+                       supersample: int = 4, arith: str = "auto", threads: int | None = None) -> dict:
         """What a relighter of the wavelet transfer file ``path`` will hold, without building it: the layout
         arithmetic of ``__init__`` and :meth:`_build_rows` on the counts it depends on — the nonzero
         coefficients per Haar column (dense or sparse: ``dense_min``), the distinct (tile, column,
@@ -746,7 +746,9 @@ class WaveletRelighter:
         threshold), else 0 (``row_pass`` False; e.g. a light with few nonzero Haar terms, such as the studio's
         softboxes on black: ``lighting.haar.select_terms``). Without a light (``row_pass`` None) it is counted, an upper
         bound whatever the light: the estimate never counts less than the relighter will hold.
-        ``dense_min`` defaults as a relighter of ``arith`` would (:meth:`default_dense_min`). The cached factor
+        ``dense_min`` defaults as a relighter of ``arith`` would (:meth:`default_dense_min`); ``tile`` and ``threads``
+        as the relighter takes them (:meth:`_tile`: with ``tile=None`` the tile follows ``threads``, None: torch's
+        thread count now). The cached factor
         is for ``light_channels`` channels (the light's own with ``light``), in the form the file's albedo gives it
         (:meth:`_factor_form`: ``[V + 4]`` for a grey or uniform albedo, else ``[V, CO]``; ``exact=False``: ``[V, CO]``).
         The C kernel's choice: the torch path

@@ -106,3 +106,18 @@ def test_more_threads_than_built_for_warns_once():
     q.threads = 2
     with pytest.warns(RuntimeWarning, match="called at 2 threads"):
         q.prepared(li, lv)  # the preparation checks (its __call__ warns first: once)
+
+
+def test_estimate_bytes_plans_the_threads_tile(tmp_path):
+    """``estimate_bytes(threads=)`` counts the tile a relighter built for those threads holds: its column-major part
+    (the sparse blocks and each tile's column pointers) equals the relighter's, for one thread and for two (which
+    differ by the second tile's pointers)."""
+    tr = _transfer(torch.int16, 1)
+    path = tmp_path / "t.prt"
+    tr.save(path)
+    col = {}
+    for th in (1, 2):
+        est = relight.WaveletRelighter.estimate_bytes(path, threads=th, layouts="column")
+        col[th] = relight.WaveletRelighter(tr, threads=th, layouts="column").held_bytes()["column"]
+        assert est["column"] == col[th], th
+    assert col[2] - col[1] == 4 * (6 * 8 * 8 + 1) + 8  # one more tile: its int32 pointers tptr [P + 1], int64 tbase
