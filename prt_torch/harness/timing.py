@@ -584,16 +584,28 @@ def io_bound_fn(bytes_read: int, bytes_written: int) -> Callable[[], Any]:
     return lambda: (dst.copy_(src), out.fill_(1))
 
 
-def read_bound_fn(bytes_read: int, bytes_written: int) -> Callable[[], Any]:
+def read_bound_fn(bytes_read: int, bytes_written: int, huge: bool = False) -> Callable[[], Any]:
     """A stricter bound than :func:`io_bound_fn`: the ``bytes_read`` are only read (a sum over them as
     int64, eight bytes per add: a streaming read, not arithmetic, bounds it) and the output's
     ``bytes_written`` filled once. :func:`io_bound_fn`'s copy also writes every byte it reads, so it
     takes longer: on AMD EPYC Zen 3 at 1-2 MB, one thread, the copy took 1.8-1.9x this read
     (``benchmarks/bench_wavelet.py``'s kernel section reports the kernel against both). Buffers are
-    allocated here, outside the timed call; the sum's one-element result is the only allocation."""
+    allocated here, outside the timed call; the sum's one-element result is the only allocation.
+
+    ``huge``: both buffers in one mapping advised for 2 MiB pages (:class:`prt_torch.io.HugePageArena`, whole huge
+    pages; torch's buffers where huge pages are unavailable or ``PRT_TORCH_HUGEPAGES=0``): a physically contiguous
+    read whose time does not depend on where the allocator's 4 KB pages landed (L2 set conflicts, TLB misses)."""
+    from .. import io
+
     n = max(1, -(-int(bytes_read) // 8))
-    src = torch.empty(n * 8, dtype=torch.uint8).random_(0, 255).view(torch.int64)
-    out = torch.empty(max(1, int(bytes_written)), dtype=torch.uint8)
+    nw = max(1, int(bytes_written))
+    if huge:
+        arena = io.HugePageArena(n * 8 + nw + io.HugePageArena.ALIGN)
+        src = arena.zeros((n * 8,), torch.uint8).random_(0, 255).view(torch.int64)
+        out = arena.zeros((nw,), torch.uint8)
+    else:
+        src = torch.empty(n * 8, dtype=torch.uint8).random_(0, 255).view(torch.int64)
+        out = torch.empty(nw, dtype=torch.uint8)
     return lambda: (src.sum(), out.fill_(1))
 
 
