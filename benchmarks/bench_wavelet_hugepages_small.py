@@ -58,6 +58,7 @@ PARTS = ("bound", "buffers", "pairs", "fresh", "relighters")
 ROWS = {"studio": (10, 30, 100, None), "sky (sun)": (10, 30, 100, 300, 1000, 2000, None)}  # None: all terms
 FRESH_ROWS = (("studio", None), ("sky (sun)", 300), ("sky (sun)", 1000))
 OUT_BYTES = 2251 * 12  # the small mesh's RGB output, float32
+PICK = 8  # bound: read_bound_fn(pick=PICK), the median-time one of PICK fresh 4 KB reads
 #: the arrays the kernel reads that :func:`arena_relighter` moves onto huge pages (scratch and per-column tables first,
 #: then the layout, the row-major copy; the factor and ``_dtmax`` after the first call binds the kernel)
 ARENA_ARRAYS = ("_acc", "_zacc", "_tmark", "_wk", "_lw", "_lp", "_mark", "cls", "dslot", "dcol", "_cblk", "tbase",
@@ -119,7 +120,8 @@ def buffers_part(processes: int, mbs: list[float], k: int, repeats: int) -> dict
 
 
 def bound_child(mbs: list[float], repeats: int) -> dict:
-    """One fresh process: per size three fresh (huge-page, 4 KB) read pairs, each paired by one thread's CPU time."""
+    """One fresh process: per size three fresh (huge-page, 4 KB, 4 KB median of :data:`PICK`) read triples, the first two
+    paired with each other and the third with the second by one thread's CPU time."""
     torch.set_num_threads(1)
     out = {"rows": [], "anon_huge_kb": []}
     for mb in mbs:
@@ -129,10 +131,12 @@ def bound_child(mbs: list[float], repeats: int) -> dict:
             hp = read_bound_fn(n, OUT_BYTES, huge=True)
             grown = proc_kb("AnonHugePages") - a0
             fk = read_bound_fn(n, OUT_BYTES)
+            pk = read_bound_fn(n, OUT_BYTES, pick=PICK)
             p = pair(hp, fk, repeats)
-            out["rows"].append({"mb": mb, "buf": i, "hp_us": p["us"][0], "4k_us": p["us"][1], "r": p["r"], "q": p["q"]})
+            out["rows"].append({"mb": mb, "buf": i, "hp_us": p["us"][0], "4k_us": p["us"][1], "r": p["r"], "q": p["q"],
+                                "pick_us": pair(pk, fk, repeats)["us"][0]})
             out["anon_huge_kb"].append(grown)
-            del hp, fk
+            del hp, fk, pk
     return out
 
 
@@ -146,7 +150,8 @@ def bound_part(processes: int, mbs: list[float], repeats: int) -> dict:
         res = json.loads(r.stdout.strip().splitlines()[-1])
         res["process"], res["load"] = i, load()
         runs.append(res)
-        print(f"[hp-small] bound process {i}: " + ", ".join(f"{x['mb']} MB hp {x['hp_us']:.1f} / 4k {x['4k_us']:.1f} us"
+        print(f"[hp-small] bound process {i}: " + ", ".join(f"{x['mb']} MB hp {x['hp_us']:.1f} / 4k {x['4k_us']:.1f} / "
+                                                          f"pick {x['pick_us']:.1f} us"
                                                           for x in res["rows"]) + f", AnonHugePages +{res['anon_huge_kb']} kB", flush=True)
     return {"runs": runs, "mb": mbs}
 
@@ -342,17 +347,20 @@ def write_md(res: dict, path: str) -> None:
               f"{len(b['runs'])} fresh processes; in each, per size three fresh buffer pairs (the huge-page read, "
               "`read_bound_fn(huge=True)`, and the 4 KB read, `read_bound_fn`), each pair timed by one thread's CPU "
               f"time ({m['repeats']} repeats, `measure_paired(clock=time.thread_time)`): the median µs of a call per "
-              "buffer. *across processes*: each process's first buffer; *all buffers*: every buffer of every process.\n",
+              "buffer. *across processes*: each process's first buffer; *all buffers*: every buffer of every process; "
+              f"*median of {PICK}*: `read_bound_fn(pick={PICK})` (the median-time one of {PICK} fresh 4 KB reads, chosen at "
+              "construction; absent in runs before it existed).\n",
               "| MB | 4 KB: first buffer per process | 4 KB: all buffers | huge page: first buffer per process | "
-              "huge page: all buffers | 4k / hp per pair |", "|---|---|---|---|---|---|"]
+              f"huge page: all buffers | 4k / hp per pair | 4 KB median of {PICK}: all |", "|---|---|---|---|---|---|---|"]
         for mb in b["mb"]:
             xs = [x for run in b["runs"] for x in run["rows"] if x["mb"] == mb]
             first = [x for x in xs if x["buf"] == 0]
             L.append(f"| {mb} | {rng([x['4k_us'] for x in first])} | {rng([x['4k_us'] for x in xs])} | "
                      f"{rng([x['hp_us'] for x in first])} | {rng([x['hp_us'] for x in xs])} | "
-                     f"{rng([x['r'] for x in xs], '.2f')} |")
-        L += ["", "Per process (µs, 4k / hp per buffer): " + "; ".join(
-            f"p{run['process']}: " + ", ".join(f"{x['mb']} MB {x['4k_us']:.1f}/{x['hp_us']:.1f}" for x in run["rows"])
+                     f"{rng([x['r'] for x in xs], '.2f')} | {rng([x['pick_us'] for x in xs if 'pick_us' in x])} |")
+        L += ["", f"Per process (µs, 4k / hp / median of {PICK} per buffer): " + "; ".join(
+            f"p{run['process']}: " + ", ".join(f"{x['mb']} MB {x['4k_us']:.1f}/{x['hp_us']:.1f}"
+                                               + (f"/{x['pick_us']:.1f}" if "pick_us" in x else "") for x in run["rows"])
             for run in b["runs"]),
             "", f"AnonHugePages growth per huge-page read (kB): {sorted({k for run in b['runs'] for k in run['anon_huge_kb']})}.\n"]
     p = res.get("pairs")

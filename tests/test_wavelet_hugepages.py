@@ -163,3 +163,16 @@ def test_read_bound_on_a_huge_page():
         fn()
         assert int((out == 1).sum()) == out.numel()
 
+
+
+def test_read_bound_pick_keeps_one_candidate_and_checks_its_argument():
+    """``pick=k``: one of k reads of the same size is kept (the others freed); a bad ``pick`` is one line."""
+    from prt_torch.harness.timing import read_bound_fn
+
+    fn = read_bound_fn(100_000, 1000, pick=3)
+    cells = dict(zip(fn.__code__.co_freevars, (c.cell_contents for c in fn.__closure__)))
+    assert cells["src"].numel() * 8 == 100_000 and cells["out"].numel() == 1000
+    fn()
+    with pytest.raises(ValueError, match="pick") as e:
+        read_bound_fn(100, 10, pick=0)
+    assert "\n" not in str(e.value)
