@@ -24,9 +24,13 @@ reports/benchmarks/wavelet_hugepages_small.md):
   ratios, the criterion) on 4 KB pages and on a huge page; outputs bit for bit against 4k's.
 * ``fresh``: in ``--processes`` fresh processes each with huge pages and without (alternating), the transfer saved
   once: the fourth row (studio all) and sky N = 1000 (and N = 300) against both reads.
+* ``relighters``: ``--buffers`` huge-page and as many 4 KB relighters held in one process, the same rows on each: the
+  call's spread from placement alone.
+* ``drift``: one process, one 4 KB relighter and one read per row built once (placement fixed), each row paired with
+  its read every ``--interval`` seconds for ``--minutes``: how call, read and fraction move with the machine over time.
 
-    .venv/bin/python benchmarks/bench_wavelet_hugepages_small.py [--parts bound,buffers,pairs,fresh,relighters]
-        [--processes 6] [--mb 0.3,1.5] [--buffers 8]
+    .venv/bin/python benchmarks/bench_wavelet_hugepages_small.py [--parts bound,buffers,pairs,fresh,relighters,drift]
+        [--processes 6] [--mb 0.3,1.5] [--buffers 8] [--minutes 20 --interval 30]
     (about 8 minutes on a 2-core Xeon: bound 0.5, buffers 1, pairs 3, fresh 2.5)
 """
 
@@ -41,6 +45,7 @@ import statistics  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
 import tempfile  # noqa: E402
+import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import torch  # noqa: E402
@@ -54,7 +59,7 @@ from prt_torch.harness.timing import cpu_label, read_bound_fn  # noqa: E402
 from prt_torch.transfer import Transfer  # noqa: E402
 
 WHO = "bench_wavelet_hugepages_small.py"
-PARTS = ("bound", "buffers", "pairs", "fresh", "relighters")
+PARTS = ("bound", "buffers", "pairs", "fresh", "relighters", "drift")
 ROWS = {"studio": (10, 30, 100, None), "sky (sun)": (10, 30, 100, 300, 1000, 2000, None)}  # None: all terms
 FRESH_ROWS = (("studio", None), ("sky (sun)", 300), ("sky (sun)", 1000))
 OUT_BYTES = 2251 * 12  # the small mesh's RGB output, float32
@@ -219,6 +224,35 @@ def relighters_part(k: int, repeats: int) -> dict:
     return {"rows": rows, "relighters": k}
 
 
+def drift_part(minutes: float, interval: float) -> dict:
+    """One process, one 4 KB relighter and one read per row (:data:`FRESH_ROWS`, the reads built once: the same pages
+    throughout), each row paired with its read (``steady_pair``) every ``interval`` seconds for ``minutes``: how the
+    call, the read and the fraction move with the machine's state over time, placement held fixed."""
+    tr = kernel_transfer("small")
+    rl = arena_relighter(tr, False)
+    cases = []
+    for light, N in FRESH_ROWS:
+        N = rl.P if N is None else N
+        li, lv = light_of(rl, light, N)
+        o = torch.empty(rl.V, 3)
+        cases.append((light, N, rl.prepared(li, lv, o), read_bound_fn(rl.bytes_read(li), rl.V * 12)))
+    samples = []
+    t_end = time.time() + minutes * 60
+    while True:
+        t0 = time.time()
+        for light, N, run, rb in cases:
+            p, _ = steady_pair(run, rb)
+            samples.append({"t": t0, "light": light, "N": N, "call_us": p.test.median * 1e6, "read_us": p.peer.median * 1e6,
+                            "r": p.ratio.median, "load": load()})
+        print(f"[hp-small] drift {time.strftime('%H:%M:%S', time.gmtime(t0))}: " + ", ".join(
+            f"{x['light']} N={x['N']} {x['call_us']:.1f}/{x['read_us']:.1f} us {x['r']:.2f}" for x in samples[-len(cases):])
+            + f", load {samples[-1]['load']:.1f}", flush=True)
+        if time.time() + interval > t_end:
+            break
+        time.sleep(max(0.0, interval - (time.time() - t0)))
+    return {"samples": samples, "minutes": minutes, "interval": interval}
+
+
 def fresh_child(path: str, huge: bool) -> dict:
     torch.set_num_threads(1)
     tr = Transfer.load(path)
@@ -309,6 +343,15 @@ def summary(res: dict) -> list[str]:
         for r in rs["rows"]:
             L.append(f"- {len(r['hp'])} + {len(r['4k'])} relighters held at once, {r['light']} N = {r['N']}: hp "
                      f"{min(r['hp']):.1f}–{max(r['hp']):.1f} µs, 4k {min(r['4k']):.1f}–{max(r['4k']):.1f} µs")
+    d = res.get("drift")
+    if d:
+        for light, N in FRESH_ROWS:
+            xs = [x for x in d["samples"] if x["light"] == light and (x["N"] == N or (N is None and x["N"] > 2000))]
+            if xs:
+                L.append(f"- over {d['minutes']:.0f} minutes in one process, {light} N = {'all' if N is None else N}: call "
+                         f"{min(x['call_us'] for x in xs):.1f}–{max(x['call_us'] for x in xs):.1f} µs, read "
+                         f"{min(x['read_us'] for x in xs):.1f}–{max(x['read_us'] for x in xs):.1f} µs, of read "
+                         f"{min(x['r'] for x in xs):.2f}–{max(x['r'] for x in xs):.2f} ({len(xs)} samples)")
     return L + [""]
 
 
@@ -321,7 +364,8 @@ def write_md(res: dict, path: str) -> None:
          "not kept in relight.py), and the streaming read from one (`timing.read_bound_fn(huge=True)`). Reproduce: `.venv/bin/python "
          "benchmarks/bench_wavelet_hugepages_small.py --parts bound --processes 6` (0.3 and 1.5 MB), `--parts buffers "
          "--processes 4 --mb 0.42,1.53` (the fourth row's and sky N = 1000's bytes), `--parts pairs`, `--parts fresh "
-         "--processes 4`, `--parts relighters --buffers 6` (figures in `wavelet_hugepages_small.json`). One thread's CPU "
+         "--processes 4`, `--parts relighters --buffers 6`, `--parts drift --minutes 40 --interval 60` (figures in "
+         "`wavelet_hugepages_small.json`). One thread's CPU "
          "time throughout (`measure_paired(clock=time.thread_time)`): the other jobs' load enters neither side, but "
          "their traffic in the shared caches does.\n"]
     L += summary(res)
@@ -399,6 +443,21 @@ def write_md(res: dict, path: str) -> None:
                      f"{' '.join(f'{x:.1f}' for x in r['4k'])} | {min(r['4k']):.1f}–{max(r['4k']):.1f} | "
                      f"{'same' if r['same'] else '**differ**'} |")
         L.append("")
+    d = res.get("drift")
+    if d:
+        m = d["machine"]
+        L += ["## Over time: one process, the same pages\n",
+              f"{m['cpu']}; load average {m['load'][0]:.1f} → {m['load'][1]:.1f}. One 4 KB relighter and one read per row "
+              f"(built once), each row paired with its read (`steady_pair`, one thread's CPU time) every {d['interval']:.0f} s "
+              f"for {d['minutes']:.0f} minutes: the call's µs, the read's µs and the fraction (min–max over the samples).\n",
+              "| light | N | samples | call µs | read µs | **of read** |", "|---|---|---|---|---|---|"]
+        for light, N in FRESH_ROWS:
+            xs = [x for x in d["samples"] if x["light"] == light and (x["N"] == N or (N is None and x["N"] > 2000))]
+            L.append(f"| {light} | {'all' if N is None else N} | {len(xs)} | {rng([x['call_us'] for x in xs])} | "
+                     f"{rng([x['read_us'] for x in xs])} | {rng([x['r'] for x in xs], '.2f')} |")
+        L += ["", "Per sample (UTC; call / read µs, fraction; load): " + "; ".join(
+            f"{time.strftime('%H:%M', time.gmtime(x['t']))} {x['light'].split()[0]} {x['N']} "
+            f"{x['call_us']:.1f}/{x['read_us']:.1f} {x['r']:.2f} ({x['load']:.1f})" for x in d["samples"]), ""]
     f = res.get("fresh")
     if f:
         m = f["machine"]
@@ -428,6 +487,8 @@ def main() -> None:
     ap.add_argument("--mb", default="0.3,1.5", help="bound: comma-separated read sizes in MB (1e6 bytes)")
     ap.add_argument("--repeats", type=int, default=11)
     ap.add_argument("--buffers", type=int, default=8, help="buffers: reads of each kind held at once per process")
+    ap.add_argument("--minutes", type=float, default=20.0, help="drift: how long")
+    ap.add_argument("--interval", type=float, default=30.0, help="drift: seconds between samples")
     ap.add_argument("--write", default=str(OUT / "wavelet_hugepages_small.md"), help="the report")
     ap.add_argument("--render", action="store_true", help="only rewrite the report from its JSON")
     ap.add_argument("--child", help=argparse.SUPPRESS)
@@ -469,6 +530,7 @@ def main() -> None:
         r = (bound_part(args.processes, mbs, args.repeats) if part == "bound" else pairs_part(args.repeats)
              if part == "pairs" else fresh_part(args.processes) if part == "fresh"
              else relighters_part(args.buffers, args.repeats) if part == "relighters"
+             else drift_part(args.minutes, args.interval) if part == "drift"
              else buffers_part(args.processes, [x for x in mbs], args.buffers, args.repeats))
         r["machine"] = {"cpu": cpu_label(), "thp": io._thp_mode(), "load": [before, load()], "repeats": args.repeats,
                         "processes": args.processes}
