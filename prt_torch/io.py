@@ -657,9 +657,11 @@ class HugePageArena:
     :attr:`ALIGN`-byte boundary (a bump allocator: nothing is freed; the mapping lives while any carved view does).
     Where huge pages are off or unavailable (``huge`` False, None with ``PRT_TORCH_HUGEPAGES=0``, not Linux, THP
     ``never``, a failing ``mmap``) the arena is empty and :meth:`zeros` / :meth:`take` fall back to torch's buffers.
-    Arrays that no longer fit fall back the same way: the arena never grows. Used where arrays below 2 MiB that one
-    kernel reads together should share one TLB entry and one physically contiguous 2 MiB (whose L2 sets it then
-    covers evenly) instead of 4 KB pages placed wherever the allocator put them."""
+    Arrays that no longer fit fall back the same way: the arena never grows. For arrays below 2 MiB that should share
+    one TLB entry (``timing.read_bound_fn(huge=True)``'s buffers). Whether a 2 MiB page is physically contiguous below
+    the guest is the host's business: on the Intel Xeon VM a read near the L2's size varied with its huge page as
+    much as with 4 KB pages, and the small wavelet layout was no faster in an arena
+    (reports/benchmarks/wavelet_hugepages_small.md)."""
 
     ALIGN = 64  # bytes: a cache line, as torch's own allocations
 

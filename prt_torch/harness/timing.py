@@ -599,8 +599,8 @@ def read_bound_fn(bytes_read: int, bytes_written: int, huge: bool = False, pick:
 
     ``pick`` > 1: ``pick`` candidate reads are built at once (distinct pages) and timed here (each the fastest of
     five short samples of back-to-back calls, wall time), and the one of median time is returned, the others freed:
-    the bound of a typical placement rather than of whichever pages one allocation got (the per-process spread of a
-    1.53 MB read: 16.6-22.9 us for one buffer, 18.8-20.9 for the median of eight)."""
+    the bound of a typical placement rather than of whichever pages one allocation got (a 1.53 MB read, 18 reads in six
+    fresh processes on the Intel Xeon VM: 16.7-20.7 us with one buffer each, 18.4-20.1 with the median of eight)."""
     from .. import io
 
     pick = check_int("pick", pick, 1)
