@@ -76,9 +76,9 @@ def arena_relighter(tr: Transfer, huge: bool = True):
     4 MiB for the small layout's 3.3 MB) and the kernel rebound to them; ``huge`` False: the plain 4 KB relighter
     (``PRT_TORCH_HUGEPAGES=0``). The variant measured here against the default (not kept in relight.py)."""
     rl = relighter(tr, False)
+    rl._kfactor(3, True)  # the RGB light's factor, cached (both variants: the same held_bytes)
     if not huge:
         return rl
-    rl._kfactor(3, True)  # the RGB light's factor, cached
     sizes = [getattr(rl, n).numel() * getattr(rl, n).element_size() for n in ARENA_ARRAYS]
     sizes += [f.numel() * 4 for f, _ in rl._f.values()] + [4 * max(rl.Pd, 1)]
     arena = io.HugePageArena(sum(-(-b // 64) * 64 + 64 for b in sizes))
