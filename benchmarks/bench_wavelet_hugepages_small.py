@@ -76,7 +76,8 @@ def arena_relighter(tr: Transfer, huge: bool = True):
     4 MiB for the small layout's 3.3 MB) and the kernel rebound to them; ``huge`` False: the plain 4 KB relighter
     (``PRT_TORCH_HUGEPAGES=0``). The variant measured here against the default (not kept in relight.py)."""
     rl = relighter(tr, False)
-    rl._kfactor(3, True)  # the RGB light's factor, cached (both variants: the same held_bytes)
+    rl._kfactor(3, True)  # the RGB light's factor, cached, and the kernel bound (_dtmax): both variants hold the same
+    rl._kernel()
     if not huge:
         return rl
     sizes = [getattr(rl, n).numel() * getattr(rl, n).element_size() for n in ARENA_ARRAYS]
