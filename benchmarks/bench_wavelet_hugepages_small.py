@@ -26,6 +26,7 @@ reports/benchmarks/wavelet_hugepages_small.md):
   once: the fourth row (studio all) and sky N = 1000 (and N = 300) against both reads.
 * ``relighters``: ``--buffers`` huge-page and as many 4 KB relighters held in one process, the same rows on each: the
   call's spread from placement alone.
+* ``corunner``: the rows alone, beside an L2-thrashing process time-sliced on the same CPU, alone again.
 * ``drift``: one process, one 4 KB relighter and one read per row built once (placement fixed), each row paired with
   its read every ``--interval`` seconds for ``--minutes``: how call, read and fraction move with the machine over time.
 
@@ -59,7 +60,7 @@ from prt_torch.harness.timing import cpu_label, read_bound_fn  # noqa: E402
 from prt_torch.transfer import Transfer  # noqa: E402
 
 WHO = "bench_wavelet_hugepages_small.py"
-PARTS = ("bound", "buffers", "pairs", "fresh", "relighters", "drift")
+PARTS = ("bound", "buffers", "pairs", "fresh", "relighters", "drift", "corunner")
 ROWS = {"studio": (10, 30, 100, None), "sky (sun)": (10, 30, 100, 300, 1000, 2000, None)}  # None: all terms
 FRESH_ROWS = (("studio", None), ("sky (sun)", 300), ("sky (sun)", 1000))
 OUT_BYTES = 2251 * 12  # the small mesh's RGB output, float32
@@ -254,6 +255,46 @@ def drift_part(minutes: float, interval: float) -> dict:
     return {"samples": samples, "minutes": minutes, "interval": interval}
 
 
+#: corunner: a process that reads 64 MB over and over (evicting the L2 of the CPU it runs on)
+THRASH = "import numpy as np, os\nos.sched_setaffinity(0, {CPU})\na = np.ones(64 << 17)\nwhile True:\n    a.sum()\n"
+
+
+def corunner_part() -> dict:
+    """This process pinned to one CPU; :data:`FRESH_ROWS` paired with their reads (``steady_pair``) alone, then with an
+    L2-thrashing process pinned to the same CPU (time-sliced with this one: it evicts the L2 between slices), then
+    alone again: whether another process's cache use, which one thread's CPU time does not remove, moves the fraction."""
+    cpu = min(os.sched_getaffinity(0))
+    os.sched_setaffinity(0, {cpu})
+    tr = kernel_transfer("small")
+    rl = arena_relighter(tr, False)
+    cases = []
+    for light, N in FRESH_ROWS:
+        N = rl.P if N is None else N
+        li, lv = light_of(rl, light, N)
+        o = torch.empty(rl.V, 3)
+        cases.append((light, N, rl.prepared(li, lv, o), read_bound_fn(rl.bytes_read(li), rl.V * 12)))
+    rows = []
+
+    def sweep(phase: str) -> None:
+        for light, N, run, rb in cases:
+            p, _ = steady_pair(run, rb)
+            rows.append({"phase": phase, "light": light, "N": N, "call_us": p.test.median * 1e6,
+                         "read_us": p.peer.median * 1e6, "r": p.ratio.median, "load": load()})
+            print(f"[hp-small] corunner {phase}: {light} N={N} {rows[-1]['call_us']:.1f} / {rows[-1]['read_us']:.1f} us, "
+                  f"{rows[-1]['r']:.2f}", flush=True)
+
+    sweep("alone")
+    th = subprocess.Popen([sys.executable, "-c", THRASH.replace("CPU", str(cpu))])
+    try:
+        time.sleep(0.5)
+        sweep("co-runner")
+    finally:
+        th.kill()
+        th.wait()
+    sweep("alone again")
+    return {"rows": rows, "cpu": cpu}
+
+
 def fresh_child(path: str, huge: bool) -> dict:
     torch.set_num_threads(1)
     tr = Transfer.load(path)
@@ -365,7 +406,7 @@ def write_md(res: dict, path: str) -> None:
          "not kept in relight.py), and the streaming read from one (`timing.read_bound_fn(huge=True)`). Reproduce: `.venv/bin/python "
          "benchmarks/bench_wavelet_hugepages_small.py --parts bound --processes 6` (0.3 and 1.5 MB), `--parts buffers "
          "--processes 4 --mb 0.42,1.53` (the fourth row's and sky N = 1000's bytes), `--parts pairs`, `--parts fresh "
-         "--processes 4`, `--parts relighters --buffers 6`, `--parts drift --minutes 40 --interval 60` (figures in "
+         "--processes 4`, `--parts relighters --buffers 6`, `--parts drift --minutes 40 --interval 60`, `--parts corunner` (figures in "
          "`wavelet_hugepages_small.json`). One thread's CPU "
          "time throughout (`measure_paired(clock=time.thread_time)`): the other jobs' load enters neither side, but "
          "their traffic in the shared caches does.\n"]
@@ -459,6 +500,23 @@ def write_md(res: dict, path: str) -> None:
         L += ["", "Per sample (UTC; call / read µs, fraction; load): " + "; ".join(
             f"{time.strftime('%H:%M', time.gmtime(x['t']))} {x['light'].split()[0]} {x['N']} "
             f"{x['call_us']:.1f}/{x['read_us']:.1f} {x['r']:.2f} ({x['load']:.1f})" for x in d["samples"]), ""]
+    c = res.get("corunner")
+    if c:
+        m = c["machine"]
+        L += ["## An L2-thrashing co-runner on the same CPU\n",
+              f"{m['cpu']}; load average {m['load'][0]:.1f} → {m['load'][1]:.1f}. This process pinned to CPU {c['cpu']}; each "
+              "row paired with its read (`steady_pair`, one thread's CPU time) alone, then with a process reading 64 MB "
+              "in a loop pinned to the same CPU (the two time-slice: it evicts the L2 between this process's slices; its "
+              "time is not in this thread's CPU time), then alone again: call / read µs (of the read).\n",
+              "| light | N | alone | co-runner | alone again |", "|---|---|---|---|---|"]
+        for light, N in FRESH_ROWS:
+            cells = []
+            for ph in ("alone", "co-runner", "alone again"):
+                x = next((x for x in c["rows"] if x["phase"] == ph and x["light"] == light
+                          and (x["N"] == N or (N is None and x["N"] > 2000))), None)
+                cells.append(f"{x['call_us']:.1f} / {x['read_us']:.1f} ({x['r']:.2f})" if x else "–")
+            L.append(f"| {light} | {'all' if N is None else N} | " + " | ".join(cells) + " |")
+        L.append("")
     f = res.get("fresh")
     if f:
         m = f["machine"]
@@ -532,6 +590,7 @@ def main() -> None:
              if part == "pairs" else fresh_part(args.processes) if part == "fresh"
              else relighters_part(args.buffers, args.repeats) if part == "relighters"
              else drift_part(args.minutes, args.interval) if part == "drift"
+             else corunner_part() if part == "corunner"
              else buffers_part(args.processes, [x for x in mbs], args.buffers, args.repeats))
         r["machine"] = {"cpu": cpu_label(), "thp": io._thp_mode(), "load": [before, load()], "repeats": args.repeats,
                         "processes": args.processes}
