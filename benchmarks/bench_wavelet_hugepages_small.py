@@ -556,6 +556,10 @@ def main() -> None:
     args = ap.parse_args()
     if args.repeats < 3:
         raise SystemExit(f"{WHO}: --repeats {args.repeats}; accepted: an integer >= 3")
+    if args.buffers < 1:
+        raise SystemExit(f"{WHO}: --buffers {args.buffers}; accepted: an integer >= 1")
+    if not (args.minutes > 0 and args.interval > 0):
+        raise SystemExit(f"{WHO}: --minutes {args.minutes} --interval {args.interval}; accepted: positive numbers")
     try:
         mbs = [float(x) for x in args.mb.split(",") if x.strip()]
     except ValueError:
