@@ -40,7 +40,7 @@ FORMAT_VERSION = 1
 __all__ = ["save", "load", "load_meta", "atomic_path", "atomic_write_text", "atomic_write_json", "jsonable", "check_writable",
            "check_outputs", "check_disk_space", "strict_json", "describe", "register_check", "format_bytes", "FORMAT_VERSION", "load_mmap",
            "scratch_rows", "streamed_npy", "load_mapped", "hugepage_zeros", "hugepage_backed", "huge_pages_enabled",
-           "HUGE_PAGE_BYTES"]
+           "HUGE_PAGE_BYTES", "HugePageArena"]
 
 
 @contextlib.contextmanager
@@ -607,11 +607,13 @@ def _thp_mode() -> str:
     return text[text.find("[") + 1:text.find("]")] if "[" in text else ""
 
 
-def hugepage_zeros(shape: tuple[int, ...] | torch.Size, dtype: torch.dtype, huge: bool | None = None) -> torch.Tensor:
+def hugepage_zeros(shape: tuple[int, ...] | torch.Size, dtype: torch.dtype, huge: bool | None = None,
+                   min_bytes: int = HUGE_PAGE_BYTES) -> torch.Tensor:
     """A zero-filled, contiguous tensor of ``shape`` and ``dtype`` (any torch dtype), on the CPU, in memory advised
     for transparent huge pages (2 MiB pages: one TLB entry where 4 KB pages take 512) when that is possible and
     worth it: on Linux, with ``huge`` True (None: :func:`huge_pages_enabled`, the ``PRT_TORCH_HUGEPAGES`` switch), at
-    least :data:`HUGE_PAGE_BYTES`, the kernel's mode not ``never``, and ``mmap``/``madvise(MADV_HUGEPAGE)``
+    least ``min_bytes`` (default :data:`HUGE_PAGE_BYTES`; 0: any size, a smaller array then occupies one huge page it
+    does not fill — :class:`HugePageArena` packs several into it), the kernel's mode not ``never``, and ``mmap``/``madvise(MADV_HUGEPAGE)``
     available and succeeding. Then the tensor lies in a private anonymous mapping (zero pages until written: no
     fill, no second copy) whose start is rounded up to a 2 MiB boundary (one huge page of address space more than
     the data, never touched, so never resident; its length a whole number of huge pages, so the last one is huge
@@ -626,11 +628,11 @@ def hugepage_zeros(shape: tuple[int, ...] | torch.Size, dtype: torch.dtype, huge
     shape = torch.Size(shape)
     nbytes = shape.numel() * torch.empty((), dtype=dtype).element_size()
     huge = huge_pages_enabled() if huge is None else bool(huge)
-    if not (huge and sys.platform.startswith("linux") and nbytes >= HUGE_PAGE_BYTES and hasattr(mmap, "MADV_HUGEPAGE")
+    if not (huge and sys.platform.startswith("linux") and nbytes >= min_bytes and hasattr(mmap, "MADV_HUGEPAGE")
             and _thp_mode() != "never"):
         return torch.zeros(shape, dtype=dtype)
     try:
-        span = -(-nbytes // HUGE_PAGE_BYTES) * HUGE_PAGE_BYTES  # whole huge pages from the aligned start
+        span = max(1, -(-nbytes // HUGE_PAGE_BYTES)) * HUGE_PAGE_BYTES  # whole huge pages from the aligned start
         mm = mmap.mmap(-1, span + HUGE_PAGE_BYTES, flags=mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS)
         mm.madvise(mmap.MADV_HUGEPAGE)
     except (OSError, ValueError, AttributeError):
@@ -647,6 +649,47 @@ def hugepage_backed(t: torch.Tensor | None) -> bool:
         return False
     p = t.data_ptr()
     return any(a <= p < a + len(mm) - HUGE_PAGE_BYTES for a, mm in list(_HUGE_MAPS.items()))
+
+
+class HugePageArena:
+    """Several small arrays in one zero-filled mapping advised for 2 MiB pages (:func:`hugepage_zeros` with
+    ``min_bytes=0``): ``capacity`` bytes rounded up to whole huge pages, each array carved at the next
+    :attr:`ALIGN`-byte boundary (a bump allocator: nothing is freed; the mapping lives while any carved view does).
+    Where huge pages are off or unavailable (``huge`` False, None with ``PRT_TORCH_HUGEPAGES=0``, not Linux, THP
+    ``never``, a failing ``mmap``) the arena is empty and :meth:`zeros` / :meth:`take` fall back to torch's buffers.
+    Arrays that no longer fit fall back the same way: the arena never grows. For arrays below 2 MiB that should share
+    one TLB entry (``timing.read_bound_fn(huge=True)``'s buffers). Whether a 2 MiB page is physically contiguous below
+    the guest is the host's business: on the Intel Xeon VM a read near the L2's size varied with its huge page as
+    much as with 4 KB pages, and the small wavelet layout was no faster in an arena
+    (reports/benchmarks/wavelet_hugepages_small.md)."""
+
+    ALIGN = 64  # bytes: a cache line, as torch's own allocations
+
+    def __init__(self, capacity: int, huge: bool | None = None):
+        cap = max(1, -(-int(capacity) // HUGE_PAGE_BYTES)) * HUGE_PAGE_BYTES
+        buf = hugepage_zeros((cap,), torch.uint8, huge=huge, min_bytes=0)
+        self.buf = buf if hugepage_backed(buf) else None  # uint8 [capacity] or None (the fall-back: torch's buffers)
+        self.capacity = cap if self.buf is not None else 0
+        self.used = 0
+
+    def zeros(self, shape: tuple[int, ...] | torch.Size, dtype: torch.dtype) -> torch.Tensor:
+        """A zero-filled contiguous ``shape`` ``dtype`` tensor in the arena, or ``torch.zeros`` where it does not fit."""
+        shape = torch.Size(shape)
+        nbytes = shape.numel() * torch.empty((), dtype=dtype).element_size()
+        a = -(-self.used // self.ALIGN) * self.ALIGN
+        if self.buf is None or a + nbytes > self.capacity:
+            return torch.zeros(shape, dtype=dtype)
+        self.used = a + nbytes
+        return self.buf[a:a + nbytes].view(dtype).view(shape)
+
+    def take(self, t: torch.Tensor | None) -> torch.Tensor | None:
+        """A contiguous copy of ``t`` in the arena (``t`` itself where it does not fit, or None)."""
+        if t is None or self.buf is None:
+            return t
+        a = -(-self.used // self.ALIGN) * self.ALIGN
+        if a + t.numel() * t.element_size() > self.capacity:
+            return t
+        return self.zeros(t.shape, t.dtype).copy_(t)
 
 
 @contextlib.contextmanager

@@ -124,3 +124,55 @@ def test_relighter_on_huge_pages_equals_torch_buffer_and_dense_reference(dtype, 
         del huge, run
         gc.collect()
         assert _mapping_of(ptr) != span
+
+
+@needs_hp
+def test_arena_packs_small_arrays_into_one_huge_page_mapping():
+    """Arrays carved from one mapping (``/proc/self/maps``), each zero, contiguous and 64-byte aligned; ``take`` copies
+    the values; what no longer fits (and every array of an arena with huge pages off) is torch's own buffer."""
+    arena = io.HugePageArena(100_000)
+    assert arena.capacity == io.HUGE_PAGE_BYTES and arena.buf.data_ptr() % io.HUGE_PAGE_BYTES == 0
+    a = arena.zeros((3, 5), torch.int16)
+    src = torch.arange(1000, dtype=torch.float32).reshape(10, 100)
+    b = arena.take(src)
+    c = arena.zeros((7,), torch.uint8)
+    span = _mapping_of(arena.buf.data_ptr())
+    for t in (a, b, c):
+        assert io.hugepage_backed(t) and _mapping_of(t.data_ptr()) == span and t.data_ptr() % 64 == 0 and t.is_contiguous()
+    assert int(torch.count_nonzero(a)) == 0 and int(torch.count_nonzero(c)) == 0
+    assert torch.equal(b, src) and b.data_ptr() != src.data_ptr()
+    assert c.data_ptr() >= b.data_ptr() + b.numel() * 4 and b.data_ptr() >= a.data_ptr() + a.numel() * 2
+    big = torch.ones(io.HUGE_PAGE_BYTES // 4, dtype=torch.float32)  # 2 MiB: no longer fits
+    assert arena.take(big) is big and not io.hugepage_backed(arena.zeros((io.HUGE_PAGE_BYTES,), torch.uint8))
+    off = io.HugePageArena(100, huge=False)
+    assert off.buf is None and off.capacity == 0 and not io.hugepage_backed(off.zeros((4,), torch.float32))
+    assert off.take(src) is src
+
+
+def test_read_bound_on_a_huge_page():
+    """``read_bound_fn(huge=True)``: the bytes and the output in one huge-page mapping (torch's buffers where there
+    are none); the 4 KB default in torch's; both read the same number of bytes."""
+    from prt_torch.harness.timing import read_bound_fn
+
+    for huge in (False, True):
+        fn = read_bound_fn(300_000, 27_012, huge=huge)
+        cells = dict(zip(fn.__code__.co_freevars, (c.cell_contents for c in fn.__closure__)))
+        src, out = cells["src"], cells["out"]
+        assert src.numel() * 8 == 300_000 and out.numel() == 27_012
+        assert io.hugepage_backed(src) == io.hugepage_backed(out) == (huge and HP)
+        fn()
+        assert int((out == 1).sum()) == out.numel()
+
+
+
+def test_read_bound_pick_keeps_one_candidate_and_checks_its_argument():
+    """``pick=k``: one of k reads of the same size is kept (the others freed); a bad ``pick`` is one line."""
+    from prt_torch.harness.timing import read_bound_fn
+
+    fn = read_bound_fn(100_000, 1000, pick=3)
+    cells = dict(zip(fn.__code__.co_freevars, (c.cell_contents for c in fn.__closure__)))
+    assert cells["src"].numel() * 8 == 100_000 and cells["out"].numel() == 1000
+    fn()
+    with pytest.raises(ValueError, match="pick") as e:
+        read_bound_fn(100, 10, pick=0)
+    assert "\n" not in str(e.value)

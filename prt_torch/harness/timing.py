@@ -584,17 +584,56 @@ def io_bound_fn(bytes_read: int, bytes_written: int) -> Callable[[], Any]:
     return lambda: (dst.copy_(src), out.fill_(1))
 
 
-def read_bound_fn(bytes_read: int, bytes_written: int) -> Callable[[], Any]:
+def read_bound_fn(bytes_read: int, bytes_written: int, huge: bool = False, pick: int = 1) -> Callable[[], Any]:
     """A stricter bound than :func:`io_bound_fn`: the ``bytes_read`` are only read (a sum over them as
     int64, eight bytes per add: a streaming read, not arithmetic, bounds it) and the output's
     ``bytes_written`` filled once. :func:`io_bound_fn`'s copy also writes every byte it reads, so it
     takes longer: on AMD EPYC Zen 3 at 1-2 MB, one thread, the copy took 1.8-1.9x this read
     (``benchmarks/bench_wavelet.py``'s kernel section reports the kernel against both). Buffers are
-    allocated here, outside the timed call; the sum's one-element result is the only allocation."""
+    allocated here, outside the timed call; the sum's one-element result is the only allocation.
+
+    ``huge``: both buffers in one mapping advised for 2 MiB pages (:class:`prt_torch.io.HugePageArena`, whole huge
+    pages; torch's buffers where huge pages are unavailable or ``PRT_TORCH_HUGEPAGES=0``). Measured on the Intel Xeon
+    VM (reports/benchmarks/wavelet_hugepages_small.md): no steadier than the 4 KB read — near the L2's size a read's
+    time depends on which pages it got (1.53 MB: 16.6-22.9 us over 4 KB buffers, 16.8-22.9 over 2 MiB pages).
+
+    ``pick`` > 1: ``pick`` candidate reads are built at once (distinct pages) and timed here (each the fastest of
+    five short samples of back-to-back calls, wall time), and the one of median time is returned, the others freed:
+    the bound of a typical placement rather than of whichever pages one allocation got (a 1.53 MB read, 18 reads in six
+    fresh processes on the Intel Xeon VM: 16.7-20.7 us with one buffer each, 18.4-20.1 with the median of eight)."""
+    from .. import io
+
+    pick = check_int("pick", pick, 1)
     n = max(1, -(-int(bytes_read) // 8))
-    src = torch.empty(n * 8, dtype=torch.uint8).random_(0, 255).view(torch.int64)
-    out = torch.empty(max(1, int(bytes_written)), dtype=torch.uint8)
-    return lambda: (src.sum(), out.fill_(1))
+    nw = max(1, int(bytes_written))
+
+    def one() -> Callable[[], Any]:
+        if huge:
+            arena = io.HugePageArena(n * 8 + nw + io.HugePageArena.ALIGN)
+            src = arena.zeros((n * 8,), torch.uint8).random_(0, 255).view(torch.int64)
+            out = arena.zeros((nw,), torch.uint8)
+        else:
+            src = torch.empty(n * 8, dtype=torch.uint8).random_(0, 255).view(torch.int64)
+            out = torch.empty(nw, dtype=torch.uint8)
+        return lambda: (src.sum(), out.fill_(1))
+
+    if pick == 1:
+        return one()
+    cands = [one() for _ in range(pick)]
+
+    def fastest(fn: Callable[[], Any]) -> float:
+        fn()
+        calls = _inner(fn, 2e-4)
+        best = math.inf
+        for _ in range(5):
+            t0 = time.perf_counter()
+            for _ in range(calls):
+                fn()
+            best = min(best, (time.perf_counter() - t0) / calls)
+        return best
+
+    times = [fastest(c) for c in cands]
+    return cands[sorted(range(pick), key=times.__getitem__)[pick // 2]]
 
 
 def _cpu_field(name: str) -> str | None:
