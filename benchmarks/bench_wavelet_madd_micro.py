@@ -494,63 +494,82 @@ FLOORS = ("madd pair body (2 terms x 32 vertices; per term: half)", "float term 
           "12 FMA", "12 vpmaddwd", "6 FMA + 6 vpmaddwd", "6 vpmaddwd + 6 vpunpcklwd", "6 FMA + 6 vcvtdq2ps", "12 vpaddd")
 
 
-#: the kernel's flush groups (``kernels/wavelet.c``'s VNNI_G, VNNI_RHO): chunks of 16 dense terms, merged while the call's
-#: column-maximum bound stays within 1.25 x the 16-term groups' (:func:`vnni_groups`)
-VNNI_G, VNNI_RHO = 16, 1.25
+#: the kernel's flush groups (``kernels/wavelet.c``'s VNNI_G, VNNI_RHO, VNNI_BETA): chunks of 16 dense terms, merged while
+#: the call's L2 bound (the columns' norms of scale x T) stays within 1.25 x the 16-term groups' or 0.5 x the transfer's
+#: own 16-bit bound, whichever is larger (:func:`vnni_groups`)
+VNNI_G, VNNI_RHO, VNNI_BETA = 16, 1.25, 0.5
 
 
-def vnni_groups(lw: torch.Tensor, tmax: torch.Tensor, rho: float = VNNI_RHO, chunk: int = VNNI_G) -> torch.Tensor:
-    """The VNNI loop's flush groups for one call, found from the light and the columns' maxima (``kernels/wavelet.c``'s
-    rule, recomputed here): ``lw`` [nd, 3] the dense terms' light in the kernel's order, ``tmax`` [nd] their columns'
-    largest stored magnitudes. Chunks of ``chunk`` consecutive terms, merged left to right while, for every channel c,
-    done_c + s_G,c T_G + rest_c <= rho x B16_c, with B16_c = sum over the chunks g of s_g,c T_g (each chunk its own
-    group: the column-maximum bound of groups of ``chunk``), s a run's scale by :func:`quantise_light`'s column-maximum
-    rule, T its sum of tmax, done the closed groups' s T and rest the later chunks'. So the call's bound over the
-    columns' maxima, sum_G s_G,c T_G, is at most rho times that of the fixed groups. The same float64 sums in the same
-    order as the kernel (a chunk's sums term by term, a run's its chunks' in order; B16 summed from the back), so the
-    same groups. Returns each term's group, int64 [nd]."""
+def vnni_groups(lw: torch.Tensor, tmax: torch.Tensor, rho: float = VNNI_RHO, chunk: int = VNNI_G,
+                norms: torch.Tensor | None = None, nscale: float = 0.0, beta: float = VNNI_BETA) -> torch.Tensor:
+    """The VNNI loop's flush groups for one call, found from the light and the columns' maxima and norms
+    (``kernels/wavelet.c``'s rule, recomputed here): ``lw`` [nd, 3] the dense terms' light in the kernel's order,
+    ``tmax`` [nd] their columns' largest stored magnitudes (the scales), ``norms`` [nd] float64 their columns' L2
+    norms over the vertices of scale x T and ``nscale`` the scale's own L2 norm (the kernel's rule since vnb18; None:
+    grp17's, the columns' maxima as weights, no absolute budget). Chunks of ``chunk`` consecutive terms, merged left
+    to right while, for every channel c, done_c + s_G,c W_G + rest_c <= budget_c, with W a run's weight (the sum of
+    its norms; grp17: of its tmax), s its scale by :func:`quantise_light`'s column-maximum rule, done the closed
+    groups' s W, rest the later chunks' as groups of ``chunk``, and budget_c = max(rho x B16_c, beta x nscale x
+    sum_k |L_k,c|) (B16_c = sum over the chunks g of s_g,c W_g; the second term with ``norms`` only). With the norms,
+    sum_G (s_G,c / 2) W_G bounds the output's L2 error over the vertices (triangle inequality; the albedo aside) and
+    nscale sum_k |L_k,c| / 2 is the transfer's own 16-bit bound in the same terms. The same float64 sums in the same
+    order as the kernel (a chunk's sums term by term, a run's its chunks' in order, sum |L| term by term; B16 summed
+    from the back), so the same groups. Returns each term's group, int64 [nd]."""
     nd = lw.shape[0]
     a = lw.double().abs().tolist()
     tm = [float(x) for x in tmax.tolist()]
+    nm = None if norms is None else [float(x) for x in norms.double().tolist()]
     nc = (nd + chunk - 1) // chunk
-    cs, cm, ch = [], [], []
+    cs, cm, ch, cw = [], [], [], []
+    la = [0.0] * 3
     for i in range(nc):
-        su, mx, half = [0.0] * 3, [0.0] * 3, 0.0
+        su, mx, half, wt = [0.0] * 3, [0.0] * 3, 0.0, 0.0
         for t in range(i * chunk, min((i + 1) * chunk, nd)):
             half += tm[t] / 2
+            wt += tm[t] if nm is None else nm[t]
             for c in range(3):
                 su[c] += a[t][c] * tm[t]
                 mx[c] = max(mx[c], a[t][c])
-        cs.append(su), cm.append(mx), ch.append(half)
+                la[c] += a[t][c]
+        cs.append(su), cm.append(mx), ch.append(half), cw.append(wt)
 
     def rule(su, mx, half):
-        return [max(su[c] / (2147483647.0 - half), mx[c] / 32767.0) for c in range(3)], 2 * half
+        return [max(su[c] / (2147483647.0 - half), mx[c] / 32767.0) for c in range(3)]
 
     rest = [[0.0] * 3 for _ in range(nc + 1)]
     for i in range(nc - 1, -1, -1):
-        sc, T = rule(cs[i], cm[i], ch[i])
-        rest[i] = [rest[i + 1][c] + sc[c] * T for c in range(3)]
+        sc = rule(cs[i], cm[i], ch[i])
+        rest[i] = [rest[i + 1][c] + sc[c] * cw[i] for c in range(3)]
+    bud = [max(rho * rest[0][c], beta * nscale * la[c] if nm is not None else 0.0) for c in range(3)]
     grp, g, done, cur = [], -1, [0.0] * 3, [0.0] * 3
     gs = gm = None
-    gh = 0.0
+    gh = gw = 0.0
     for i in range(nc):
         n = min((i + 1) * chunk, nd) - i * chunk
         if i > 0:
             s2 = [gs[c] + cs[i][c] for c in range(3)]
             m2 = [max(gm[c], cm[i][c]) for c in range(3)]
-            h2 = gh + ch[i]
-            sc, T = rule(s2, m2, h2)
-            if all(done[c] + sc[c] * T + rest[i + 1][c] <= rho * rest[0][c] for c in range(3)):
-                gs, gm, gh, cur = s2, m2, h2, [sc[c] * T for c in range(3)]
+            h2, w2 = gh + ch[i], gw + cw[i]
+            sc = rule(s2, m2, h2)
+            if all(done[c] + sc[c] * w2 + rest[i + 1][c] <= bud[c] for c in range(3)):
+                gs, gm, gh, gw, cur = s2, m2, h2, w2, [sc[c] * w2 for c in range(3)]
                 grp += [g] * n
                 continue
             done = [done[c] + cur[c] for c in range(3)]
         g += 1
-        gs, gm, gh = list(cs[i]), list(cm[i]), ch[i]
-        sc, T = rule(gs, gm, gh)
-        cur = [sc[c] * T for c in range(3)]
+        gs, gm, gh, gw = list(cs[i]), list(cm[i]), ch[i], cw[i]
+        sc = rule(gs, gm, gh)
+        cur = [sc[c] * gw for c in range(3)]
         grp += [g] * n
     return torch.tensor(grp, dtype=torch.int64)
+
+
+def dense_norms(rl) -> torch.Tensor:
+    """The dense columns' L2 norms over the vertices of scale x T, float64 [Pd], and the scale's, by brute force over
+    ``rl.dense`` and ``rl.scale`` (a grey transfer; not the layout's ``dnorm``): ``(norms, nscale)``."""
+    T = rl.dense[:, :rl.Pd, 0, :].permute(1, 0, 2).reshape(rl.Pd, -1)[:, :rl.V].double()  # [Pd, V]
+    sv = rl.scale[:, 0].double()
+    return (T * sv).norm(dim=1), float(sv.norm())
 
 
 def quantise_light(lw: torch.Tensor, group, tmax: torch.Tensor | None):
@@ -782,25 +801,33 @@ def kernel_dense_order(rl, li: torch.Tensor, lv: torch.Tensor) -> tuple[torch.Te
     return ds, lw[:, :3].contiguous()
 
 
-def vnni_bound(rl, li: torch.Tensor, lv: torch.Tensor, fac: torch.Tensor | None = None, albedo: bool = True) -> dict:
+def vnni_bound(rl, li: torch.Tensor, lv: torch.Tensor, fac: torch.Tensor | None = None, albedo: bool = True,
+               groups=None) -> dict:
     """The VNNI dense loop's stated error bound for one call on ``rl``'s layout (a 16-bit grey transfer, the light
     ``li`` int64 [N], ``lv`` float32 [3, N]), per vertex and channel, float64 [V, 3], from quantities found here
     independently of the kernel: the light's dense terms in the kernel's order (:func:`kernel_dense_order`), each dense
     column's largest stored magnitude by brute force over ``rl.dense`` (not the layout's ``dtmax``), the groups' steps
     s_g by :func:`quantise_light`'s column-maximum rule in the kernel's flush groups (:func:`vnni_groups`: chunks of 16
-    terms merged within 1.25 x the 16-term groups' column-max bound); ``fac`` [V, 3] the factor (default the
-    relighter's, ``_factor(3, albedo)``; ``albedo``: the output with the albedo applied, as the call's). Returns
+    terms merged within max(1.25 x the 16-term groups' L2 bound, 0.5 x the transfer's own), on the columns' norms by
+    brute force, :func:`dense_norms`); ``fac`` [V, 3] the factor (default the
+    relighter's, ``_factor(3, albedo)``; ``albedo``: the output with the albedo applied, as the call's; ``groups``: each
+    term's group int64 [nd] or a group size instead of the kernel's, :func:`vnni_groups` on brute-force column norms). Returns
     ``bound`` f_v Σ_g (s_g,c / 2) Σ_{k∈g} |T_v,k| (the dense terms' quantised light), ``slack`` 1e-5 f_v Σ_k
     |T_v,k| |L_k,c| over all N terms (float32 rounding of the whole call, dense and sparse: ~100 roundings of 6e-8
     each at most), ``tbound`` the transfer's own 16-bit quantisation bound for the same dense terms
-    f_v Σ_k |L_k,c| / 2, ``nd`` the dense terms and ``groups``."""
+    f_v Σ_k |L_k,c| / 2, ``nd`` the dense terms and ``groups``; per channel float64 [3]: ``l2`` the output's L2 error
+    bound over the vertices Σ_g (s_g,c / 2) Σ_{k∈g} ||f_c ⊙ T_:,k||_2, ``l2_transfer`` the transfer's own in the same
+    terms ||f_c||_2 Σ_k |L_k,c| / 2, ``slack_l2`` the rounding slack's L2 norm."""
     if fac is None:
         fac = rl._factor(3, albedo).double()
     nb = rl.dense.shape[0]
     d16 = rl.dense.reshape(nb, rl.Pd, 32)
     ds, lw = kernel_dense_order(rl, li, lv)
     tmax = d16.to(torch.int32).abs().amax(dim=(0, 2))  # [Pd] brute force
-    _, sc, grp = quantise_light(lw, vnni_groups(lw, tmax[ds]) if ds.numel() else 16, tmax[ds])
+    nrm, ns = dense_norms(rl)  # [Pd] brute force
+    if groups is None:
+        groups = vnni_groups(lw, tmax[ds], norms=nrm[ds], nscale=ns) if ds.numel() else 16
+    _, sc, grp = quantise_light(lw, groups, tmax[ds])
     tk = d16[:, ds, :].double().abs()  # [nb, nd, 32] |T_v,k| over the dense terms
     bound = torch.einsum("bkv,kc->bvc", tk, sc.double()[grp] / 2).reshape(-1, 3)[:rl.V] * fac
     ref_index, ref_vals = rl.reference_rows(0, rl.V)  # dequantised: the scale applied, so times the albedo only
@@ -809,8 +836,12 @@ def vnni_bound(rl, li: torch.Tensor, lv: torch.Tensor, fac: torch.Tensor | None 
     mag = relight.wavelet_dense(ref_vals.double().abs(), ref_index, li, lv.double().abs(), rl.P)
     if albedo:
         mag = mag * rl.albedo[:, :3].double()
+    # the L2 bound over the vertices per channel (triangle inequality over the columns) and the transfer's own
+    tf = torch.stack([(d16[:, ds, :].double().permute(1, 0, 2).reshape(ds.numel(), -1)[:, :rl.V] * fac[:, c]).norm(dim=1)
+                      for c in range(3)], 1)  # [nd, 3] ||f_c (.) T_:,k||
     return {"bound": bound, "slack": 1e-5 * mag, "tbound": lw.double().abs().sum(0)[None, :] / 2 * fac, "nd": int(ds.numel()),
-            "groups": int(grp[-1]) + 1 if ds.numel() else 0}
+            "groups": int(grp[-1]) + 1 if ds.numel() else 0, "l2": (sc.double()[grp] / 2 * tf).sum(0),
+            "l2_transfer": fac.norm(dim=0) * lw.double().abs().sum(0) / 2, "slack_l2": 1e-5 * mag.norm(dim=0)}
 
 
 def proto_rows(rl, fac: torch.Tensor, args) -> list:

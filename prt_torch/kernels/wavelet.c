@@ -511,8 +511,14 @@ static inline void put_rgb8(float *out, v8f r, v8f g, v8f b, int nt) {
 #ifndef VNNI_G /* dense terms per scale group (even): the int32 sums flushed to float once per group */
 #define VNNI_G 16
 #endif
-#ifndef VNNI_RHO /* the flush groups' budget: the call's column-maximum bound at most VNNI_RHO x the VNNI_G groups' */
+#ifndef VNNI_RHO /* the flush groups' budget: the call's bound at most VNNI_RHO x the VNNI_G groups' (or VNNI_BETA's) */
 #define VNNI_RHO 1.25
+#endif
+#ifndef VNNI_L2 /* the flush groups weighed by the columns' L2 norms (the layout's dnorm; vnb18); 0: by their maxima (grp17) */
+#define VNNI_L2 1
+#endif
+#ifndef VNNI_BETA /* ... or at most VNNI_BETA x the transfer's own 16-bit bound in the same L2 terms (VNNI_L2 only) */
+#define VNNI_BETA 0.5
 #endif
 /* a run's scales sc [3] by the column-maximum rule from its sums sum [3] of tmax_k |L_k,c|, maxima mx [3] of |L_k,c|
  * and half = sum tmax_k / 2 (tm NULL: the 65535 rule, tmax 1, n the run's terms); returns its sum of tmax, 2 half */
@@ -535,46 +541,68 @@ static inline void vnni_scale32(const double sc[3], float *s32) {
 /* the dense light lw [nd, 4] (float32) quantised per flush group and channel, in place as the pairs' lights int32
  * [ceil(nd / 2), 4]; vq [ng, 4] the groups' scales (float32, rounded up) and in lane 3 the group's end (int32 bits: its
  * last term + 1; ng <= ceil(nd / VNNI_G)); tm the layout's column maxima int32 [Pd] (NULL: the 65535 rule, groups of
- * VNNI_G), ds [nd] the terms' slots. The flush groups (grp17): runs of consecutive VNNI_G-term chunks, merged left to
- * right while, for every channel c, done_c + s_G,c T_G + rest_c <= VNNI_RHO x B16_c (B16_c = sum over the chunks g of
- * s_g,c T_g, the VNNI_G groups' column-max bound; T a run's sum of tmax; done: the closed groups' s T; rest: the chunks
- * after the run, as VNNI_G groups): the call's bound over the columns' maxima at most VNNI_RHO times the VNNI_G groups'.
- * A run's sums: its chunks' sums added in order. O(nd). bench_wavelet_madd_micro.py's vnni_groups: the same rule, the
- * same sums in the same order */
-static inline void vnni_quantise(i64 nd, float *lw, float *vq, const int32_t *tm, const i64 *ds) {
+ * VNNI_G), ds [nd] the terms' slots; nm the layout's dnorm [Pd] float64 (the columns' L2 norms of scale x T; NULL, or
+ * VNNI_L2 0: the column-maximum weights, grp17's rule) and ns its ||scale||_2. The flush groups: runs of consecutive
+ * VNNI_G-term chunks, merged left to right while, for every channel c, done_c + s_G,c W_G + rest_c <= budget_c, with
+ * W a run's weight — vnb18: the sum of its columns' L2 norms nm, so that sum_G (s_G,c / 2) W_G is the triangle
+ * inequality's bound of the output's L2 error over the vertices (the factor's per-vertex scale in the norms; a grey or
+ * uniform albedo a constant per channel on both sides of the budget); grp17 (tm without nm): the sum of the columns'
+ * maxima tmax, a bound at a vertex holding every column's maximum —, s its scale (the column-maximum rule, from tm:
+ * the scales never change with the weights), done the closed groups' s W, rest the chunks after the run as VNNI_G
+ * groups, and budget_c = max(VNNI_RHO x B16_c, VNNI_BETA x ns x sum_k |L_k,c|) (B16_c = sum over the chunks g of
+ * s_g,c W_g, the VNNI_G groups' bound; ns sum_k |L_k,c| (/ 2) the transfer's own 16-bit bound for the same terms in the
+ * same L2 terms: its stored values off by at most scale_v / 2 each; the second term with nm only): the call's L2 bound
+ * at most VNNI_RHO times the VNNI_G groups' or VNNI_BETA times the transfer's own, whichever is larger. A run's sums:
+ * its chunks' sums added in order. O(nd). bench_wavelet_madd_micro.py's vnni_groups: the same rule, the same sums in
+ * the same order */
+static inline void vnni_quantise(i64 nd, float *lw, float *vq, const int32_t *tm, const i64 *ds, const double *nm,
+                                 double ns) {
     const i64 nc = (nd + VNNI_G - 1) / VNNI_G;
-    double cs[3 * nc + 3], cm[3 * nc + 3], ch[nc + 1], rest[3 * nc + 3], sc[3];
-    for (i64 i = 0; i < nc; i++) { /* each chunk's sums, maxima, half */
-        double *su = cs + 3 * i, *mx = cm + 3 * i, half = 0;
+    double cs[3 * nc + 3], cm[3 * nc + 3], ch[nc + 1], cw[nc + 1], rest[3 * nc + 3], sc[3], la[3] = {0, 0, 0};
+#if !VNNI_L2
+    nm = NULL;
+#endif
+    for (i64 i = 0; i < nc; i++) { /* each chunk's sums, maxima, half, weight */
+        double *su = cs + 3 * i, *mx = cm + 3 * i, half = 0, wt = 0;
         su[0] = su[1] = su[2] = mx[0] = mx[1] = mx[2] = 0;
         for (i64 t = i * VNNI_G; t < (i + 1) * VNNI_G && t < nd; t++) {
             const double w = tm ? (double)tm[ds[t]] : 1.0;
             half += w / 2;
+            wt += nm ? nm[ds[t]] : w;
             for (int c = 0; c < 3; c++) {
                 const double x = lw[4 * t + c] < 0 ? -(double)lw[4 * t + c] : (double)lw[4 * t + c];
                 su[c] += x * w;
                 mx[c] = x > mx[c] ? x : mx[c];
+                la[c] += x;
             }
         }
         ch[i] = half;
+        cw[i] = wt;
     }
     rest[3 * nc] = rest[3 * nc + 1] = rest[3 * nc + 2] = 0;
-    for (i64 i = nc - 1; i >= 0; i--) { /* the VNNI_G groups' s T, summed from the back: rest [i] the chunks i.. */
-        const double T = vnni_rule(cs + 3 * i, cm + 3 * i, ch[i], VNNI_G, tm != NULL, sc);
-        for (int c = 0; c < 3; c++) rest[3 * i + c] = rest[3 * i + 3 + c] + sc[c] * T;
+    for (i64 i = nc - 1; i >= 0; i--) { /* the VNNI_G groups' s W, summed from the back: rest [i] the chunks i.. */
+        vnni_rule(cs + 3 * i, cm + 3 * i, ch[i], VNNI_G, tm != NULL, sc);
+        for (int c = 0; c < 3; c++) rest[3 * i + c] = rest[3 * i + 3 + c] + sc[c] * cw[i];
     }
-    double done[3] = {0, 0, 0}, cur[3] = {0, 0, 0}, gs[3] = {0, 0, 0}, gm[3] = {0, 0, 0}, gh = 0;
+    double bud[3];
+    for (int c = 0; c < 3; c++) {
+        const double r = VNNI_RHO * rest[c], a = nm ? VNNI_BETA * ns * la[c] : 0.0;
+        bud[c] = r > a ? r : a;
+    }
+    double done[3] = {0, 0, 0}, cur[3] = {0, 0, 0}, gs[3] = {0, 0, 0}, gm[3] = {0, 0, 0}, gh = 0, gw = 0;
     i64 ng = 0;
     for (i64 i = 0; i < nc; i++) {
         if (i > 0 && tm) { /* the open group extended by chunk i, if the budget allows */
             double s2[3], m2[3];
             for (int c = 0; c < 3; c++) { s2[c] = gs[c] + cs[3 * i + c]; m2[c] = gm[c] > cm[3 * i + c] ? gm[c] : cm[3 * i + c]; }
-            const double h2 = gh + ch[i], T = vnni_rule(s2, m2, h2, 0, 1, sc);
+            const double h2 = gh + ch[i], w2 = gw + cw[i];
+            vnni_rule(s2, m2, h2, 0, 1, sc);
             int ok = 1;
-            for (int c = 0; c < 3; c++) ok &= done[c] + sc[c] * T + rest[3 * i + 3 + c] <= VNNI_RHO * rest[c];
+            for (int c = 0; c < 3; c++) ok &= done[c] + sc[c] * w2 + rest[3 * i + 3 + c] <= bud[c];
             if (ok) {
-                for (int c = 0; c < 3; c++) { gs[c] = s2[c]; gm[c] = m2[c]; cur[c] = sc[c] * T; }
+                for (int c = 0; c < 3; c++) { gs[c] = s2[c]; gm[c] = m2[c]; cur[c] = sc[c] * w2; }
                 gh = h2;
+                gw = w2;
                 continue;
             }
         }
@@ -588,8 +616,9 @@ static inline void vnni_quantise(i64 nd, float *lw, float *vq, const int32_t *tm
         }
         for (int c = 0; c < 3; c++) { gs[c] = cs[3 * i + c]; gm[c] = cm[3 * i + c]; }
         gh = ch[i];
-        const double T = vnni_rule(gs, gm, gh, VNNI_G, tm != NULL, sc);
-        for (int c = 0; c < 3; c++) cur[c] = sc[c] * T;
+        gw = cw[i];
+        vnni_rule(gs, gm, gh, VNNI_G, tm != NULL, sc);
+        for (int c = 0; c < 3; c++) cur[c] = sc[c] * gw;
     }
     if (nd) { /* the last group */
         vnni_rule(gs, gm, gh, nd - (nc - 1) * VNNI_G, tm != NULL, sc);
@@ -724,7 +753,7 @@ static inline __attribute__((always_inline)) void vnni_terms(const char *blk, i6
     if (!fdense && sizeof(T) == 2 && CT == 1 && CO == 3 && nd && nd * ((V + BV - 1) / BV) >= ZMM_MIN) {      \
         const i64 pstb_ = Pd * BV * (i64)sizeof(T), nbk_ = (V + BV - 1) / BV;                                \
         if ((PFX / nd + 1) * 2 * pstb_ + Pd * 64 <= INT32_MAX) { /* the records' offsets fit (else the float loop) */ \
-            vnni_quantise(nd, lw, vq_, L->dtmax, wk);                                                        \
+            vnni_quantise(nd, lw, vq_, L->dtmax, wk, L->dnorm, L->dnorm ? L->dnorm[Pd] : 0.0);              \
             vnni_records(nd, wk, 2 * pstb_, nbk_ * pstb_ >= PFX_MIN); /* wk: ds -> records (after the quantisation) */ \
             vq = vq_;                                                                                        \
         }                                                                                                    \
@@ -1235,7 +1264,10 @@ typedef struct {
     float *zacc;                /* W16 builds' scratch [MT, TV/8, 4, 8], zero between calls (the touched map below) */
     unsigned char *tmark;       /* W16 builds' scratch [MT, TV/8]: a tile's touched blocks, zero between calls */
     const int32_t *dtmax;       /* [Pd] the dense column's largest stored magnitude |T| (16-bit values; NULL: not held):
-                                 * read by the DENSE_VNNI prototype's column-maximum rule only */
+                                 * read by the DENSE_VNNI loop's column-maximum rule only (the light's int16 scales) */
+    const double *dnorm;        /* [Pd + 1] float64: the dense column's L2 norm over the vertices of the quantisation scale
+                                 * times the stored value, ||scale (.) T_:,k||_2, then ||scale||_2 (16-bit values on a grey
+                                 * transfer; NULL: not held): read by the DENSE_VNNI loop's flush groups only (vnni_quantise) */
 } wavelet_layout;
 
 #define TILE_CASE(T, CT_, CO_, OC_)                                                                          \
