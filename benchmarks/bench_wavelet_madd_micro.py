@@ -495,9 +495,9 @@ FLOORS = ("madd pair body (2 terms x 32 vertices; per term: half)", "float term 
 
 
 #: the kernel's flush groups (``kernels/wavelet.c``'s VNNI_G, VNNI_RHO, VNNI_BETA): chunks of 16 dense terms, merged while
-#: the call's L2 bound (the columns' norms of scale x T) stays within 1.25 x the 16-term groups' or 0.5 x the transfer's
+#: the call's L2 bound (the columns' norms of scale x T) stays within 1.25 x the 16-term groups' or 0.75 x the transfer's
 #: own 16-bit bound, whichever is larger (:func:`vnni_groups`)
-VNNI_G, VNNI_RHO, VNNI_BETA = 16, 1.25, 0.5
+VNNI_G, VNNI_RHO, VNNI_BETA = 16, 1.25, 0.75
 
 
 def vnni_groups(lw: torch.Tensor, tmax: torch.Tensor, rho: float = VNNI_RHO, chunk: int = VNNI_G,
@@ -808,7 +808,7 @@ def vnni_bound(rl, li: torch.Tensor, lv: torch.Tensor, fac: torch.Tensor | None 
     independently of the kernel: the light's dense terms in the kernel's order (:func:`kernel_dense_order`), each dense
     column's largest stored magnitude by brute force over ``rl.dense`` (not the layout's ``dtmax``), the groups' steps
     s_g by :func:`quantise_light`'s column-maximum rule in the kernel's flush groups (:func:`vnni_groups`: chunks of 16
-    terms merged within max(1.25 x the 16-term groups' L2 bound, 0.5 x the transfer's own), on the columns' norms by
+    terms merged within max(1.25 x the 16-term groups' L2 bound, 0.75 x the transfer's own), on the columns' norms by
     brute force, :func:`dense_norms`); ``fac`` [V, 3] the factor (default the
     relighter's, ``_factor(3, albedo)``; ``albedo``: the output with the albedo applied, as the call's; ``groups``: each
     term's group int64 [nd] or a group size instead of the kernel's, :func:`vnni_groups` on brute-force column norms). Returns

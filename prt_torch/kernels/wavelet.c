@@ -518,7 +518,7 @@ static inline void put_rgb8(float *out, v8f r, v8f g, v8f b, int nt) {
 #define VNNI_L2 1
 #endif
 #ifndef VNNI_BETA /* ... or at most VNNI_BETA x the transfer's own 16-bit bound in the same L2 terms (VNNI_L2 only) */
-#define VNNI_BETA 0.5
+#define VNNI_BETA 0.75
 #endif
 /* a run's scales sc [3] by the column-maximum rule from its sums sum [3] of tmax_k |L_k,c|, maxima mx [3] of |L_k,c|
  * and half = sum tmax_k / 2 (tm NULL: the 65535 rule, tmax 1, n the run's terms); returns its sum of tmax, 2 half */
