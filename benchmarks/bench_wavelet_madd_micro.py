@@ -901,6 +901,85 @@ def proto_rows(rl, fac: torch.Tensor, args) -> list:
     return out
 
 
+def group_rows(size: str, terms) -> list:
+    """The flush groups and the error they carry per row (``--vnni --groups-table``): on the blocker scene at ``size``
+    (R = 32, K = 256, 16-bit; the default relighter, so the VNNI loop of this process's build), studio and sky at each N
+    of ``terms`` and all, the groups of fixed 16-term chunks, of grp17's column-maximum rule (:func:`vnni_groups`
+    without norms) and of the kernel's L2 rule (with brute-force norms, :func:`dense_norms`); per grouping the stated
+    bound as a fraction of the transfer's own 16-bit bound, per vertex in rel. L2 (``vnni_bound``'s ``bound`` against
+    ``tbound``, over V x 3) and in the L2 terms the rule uses (``l2`` against ``l2_transfer``, the largest channel); the
+    default call's error (rel. L2 against the float64 sum of the same stored values), every vertex within the per-vertex
+    bound and the L2 error within the L2 bound (per channel)."""
+    from bench_wavelet import kernel_transfer
+
+    from prt_torch import relight
+
+    rl = relight.WaveletRelighter(kernel_transfer(size), threads=1, layouts="column")
+    if not rl._takes_vnni(*rl.light(LIGHTS["studio"], 300, "transport")[:2]):
+        raise SystemExit("bench_wavelet_madd_micro.py --groups-table: this process's wavelet build has no VNNI dense loop; "
+                         "accepted: the native or avx512 build on a CPU with AVX-512 VNNI")
+    nb = rl.dense.shape[0]
+    tmax = rl.dense.reshape(nb, rl.Pd, 32).to(torch.int32).abs().amax(dim=(0, 2))
+    nrm, ns = dense_norms(rl)
+    ref_index, ref_vals = rl.reference_rows(0, rl.V)
+    rows = []
+    for light in ("studio", "sky (sun)"):
+        for N in tuple(terms) + (rl.P,):
+            li, lv, _ = rl.light(LIGHTS[light], min(N, rl.P), "transport")
+            lv = lv.float().contiguous()
+            ds, lw = kernel_dense_order(rl, li, lv)
+            exact = relight.wavelet_dense(ref_vals.double(), ref_index, li, lv.double(), rl.P) * rl.albedo[:, :3].double()
+            out = rl(li, lv).double()
+            r = {"size": size, "V": rl.V, "light": light, "N": "all" if N >= rl.P else N, "nd": int(ds.numel()),
+                 "err": float((out - exact).norm() / exact.norm())}
+            for name, g in (("16", 16), ("cm", vnni_groups(lw, tmax[ds])),
+                            ("l2", vnni_groups(lw, tmax[ds], norms=nrm[ds], nscale=ns))):
+                b = vnni_bound(rl, li, lv, groups=g)
+                r[name] = {"groups": b["groups"], "pv": float(b["bound"].norm() / b["tbound"].norm()),
+                           "l2": float((b["l2"] / b["l2_transfer"]).max())}
+                if name == "l2":
+                    r["within"] = bool(((out - exact).abs() <= b["bound"] + b["slack"]).all())
+                    r["within_l2"] = bool(((out - exact).norm(dim=0) <= b["l2"] + b["slack_l2"]).all())
+            print(f"[groups] {size} {light} N={r['N']} nd={r['nd']}: groups 16 / cm / l2 {r['16']['groups']} / "
+                  f"{r['cm']['groups']} / {r['l2']['groups']}, bound of the transfer's (per vertex) {r['16']['pv']:.2f} / "
+                  f"{r['cm']['pv']:.2f} / {r['l2']['pv']:.2f}, (L2) {r['16']['l2']:.2f} / {r['cm']['l2']:.2f} / "
+                  f"{r['l2']['l2']:.2f}; err {r['err']:.1e}; within {r['within']} / {r['within_l2']}", flush=True)
+            rows.append(r)
+    return rows
+
+
+def write_groups(rows: list, loads: list, args) -> None:
+    """``--groups-table``'s report: reports/benchmarks/wavelet_vnni_l2groups_error.md (and .json)."""
+    import json
+
+    L = ["# Wavelet kernel: the VNNI loop's flush groups and the error they carry (issue 39)", "",
+         f"{cpu_label()}; load average {min(loads):.1f}-{max(loads):.1f}. Blocker scene (occluder_over_plane, R = 32, "
+         "K = 256, 16-bit grey transfer, albedo 0.8), studio and sky, transport-weighted terms, RGB, the default "
+         "relighter (this process's wavelet build: the VNNI dense loop, VNNI_RHO "
+         f"{VNNI_RHO}, VNNI_BETA {VNNI_BETA}). Per row the groups of fixed 16-term chunks, of grp17's column-maximum rule "
+         "(`cm`) and of the kernel's L2 rule (`l2`: chunks merged while the call's L2 bound stays within max(1.25 x the "
+         "16-term groups', VNNI_BETA x the transfer's own 16-bit bound)), recomputed by `vnni_groups` from brute-force "
+         "column maxima and norms; the stated bound as a fraction of the transfer's own 16-bit bound, **per vertex** "
+         "(rel. L2 over V x 3 of `vnni_bound`'s f_v Σ_g (s_g,c / 2) Σ_{k∈g} |T_v,k| against f_v Σ_k |L_k,c| / 2: the "
+         "figure the VNNI default rests on) and **L2** (the rule's own terms: Σ_g (s_g,c / 2) Σ_{k∈g} ||f_c ⊙ T_:,k||_2 "
+         "against ||f_c||_2 Σ_k |L_k,c| / 2, the largest channel); the default call's error (rel. L2 against the "
+         "float64 sum of the same stored values, `relight.wavelet_dense` of `reference_rows` times the albedo); "
+         "*within*: every vertex within the per-vertex bound / every channel's L2 error within the L2 bound. "
+         f"Reproduce: `.venv/bin/python benchmarks/bench_wavelet_madd_micro.py --vnni --groups-table --sizes "
+         f"{' '.join(args.sizes)}`.", "",
+         "| size | light | N | dense terms | groups 16 / cm / **l2** | bound / transfer's, per vertex: 16 / cm / **l2** | "
+         "L2: 16 / cm / **l2** | error (rel. L2) | within |", "|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        L.append(f"| {r['size']} | {r['light']} | {r['N']} | {r['nd']} | {r['16']['groups']} / {r['cm']['groups']} / "
+                 f"**{r['l2']['groups']}** | {r['16']['pv']:.2f} / {r['cm']['pv']:.2f} / **{r['l2']['pv']:.2f}** | "
+                 f"{r['16']['l2']:.2f} / {r['cm']['l2']:.2f} / **{r['l2']['l2']:.2f}** | {r['err']:.1e} | "
+                 f"{'✓' if r['within'] else '✗'} / {'✓' if r['within_l2'] else '✗'} |")
+    path = OUT / "wavelet_vnni_l2groups_error.md"
+    atomic_write_text(path, "\n".join(L) + "\n")
+    atomic_write_text(path.with_suffix(".json"), json.dumps(rows, indent=1))
+    print(f"[groups] wrote {path}")
+
+
 def hdr_lights(rl, N: int = 300) -> dict:
     """Two high-dynamic-range lights as (indices [N'], values [3, N'] float32, sun-only values or None): the sky with a
     sun — one cube texel, in the direction (0.3, 0.2, 1) over the blocker, at 1e4 x the sky's mean radiance — cut to
@@ -1156,6 +1235,9 @@ def main() -> None:
                     "(the VNNI default against the opt-out: reports/benchmarks/wavelet_vnni_default.md)")
     ap.add_argument("--pervertex", action="store_true", help="--vnni: the default's error per vertex beside the opt-out's "
                     "and the stored transfer's own, incl. HDR lights (reports/benchmarks/wavelet_vnni_pervertex.md)")
+    ap.add_argument("--groups-table", action="store_true", help="--vnni: the flush groups (16-term, grp17's column-max "
+                    "rule, the kernel's L2 rule) and the error and bounds they carry per row "
+                    "(reports/benchmarks/wavelet_vnni_l2groups_error.md)")
     ap.add_argument("--sizes", nargs="+", default=["small"], help="--vnni: the kernel section's sizes (small, medium, large)")
     ap.add_argument("--terms", type=int, nargs="+", default=[300, 1000, 6144])
     ap.add_argument("--grey", nargs="*", default=["cap 20°", "cap 40°"], choices=list(LIGHTS),
@@ -1174,6 +1256,13 @@ def main() -> None:
     lib = build_library()
     if lib is None:
         raise SystemExit("bench_wavelet_madd_micro: no compiler")
+    if args.vnni and args.groups_table:
+        loads, rows = [os.getloadavg()[0]], []
+        for size in args.sizes:
+            rows += group_rows(size, (10, 30, 100, 300, 1000))
+            loads.append(os.getloadavg()[0])
+        write_groups(rows, loads, args)
+        return
     if args.vnni and args.pervertex:
         loads, rows = [os.getloadavg()[0]], []
         for size in args.sizes:
