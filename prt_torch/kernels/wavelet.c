@@ -22,8 +22,10 @@
  * builds the float loop only; above DENSE_TERMS): the 16-lane dense loop on integer dot products (vpdpwssd zmm, two
  * light terms per instruction) for the calls of 16-bit values, CT = 1, CO = 3 that take the 16-lane loop, the dense
  * light quantised per call to int16 by the column-maximum rule in flush groups (the layout's dtmax): chunks of VNNI_G =
- * 16 terms merged per call while the call's column-max bound stays within VNNI_RHO = 1.25 x the 16-term groups'
- * (vnni_quantise; grp17), a flush to float per group; not the float loop's bits (error per vertex and channel within f_v sum_g (s_g / 2)
+ * 16 terms merged per call while the call's L2 bound of the output's error (sum_g (s_g / 2) sum_{k in g} ||scale (.)
+ * T_:,k||_2, the layout's dnorm) stays within max(VNNI_RHO = 1.25 x the 16-term groups', VNNI_BETA = 0.75 x the
+ * transfer's own 16-bit bound ||scale||_2 sum_k |L_k| / 2) per channel (vnni_quantise; vnb18; grp17's column-max weights
+ * with -DVNNI_L2=0), a flush to float per group; not the float loop's bits (error per vertex and channel within f_v sum_g (s_g / 2)
  * sum_{k in g} |T_v,k|). C | FDENSE (512) opts a call out (the float loop, its bits: relight.py's arith="float");
  * builds without DVNNI refuse the bit (1) and are unchanged (avx2, znver3, avx512-256, portable, skylake-avx512 and
  * -DDENSE_VNNI=0 objects byte-identical to fdd5d3e's, objdump). prt_wavelet_isa's bit 64 says the build has it.
@@ -504,7 +506,25 @@ static inline void put_rgb8(float *out, v8f r, v8f g, v8f b, int nt) {
  * small 0.97-1.06x (studio 292 kept 1.05x, sky N = 30-1000 1.02-1.04x; A/A 0.97-1.03), medium 0.95-1.05x (0.95 at
  * studio N = 30, whose groups do not change; A/A 0.97-1.01); section 7's fourth row 0.51 against 0.48 in that run
  * (bench_wavelet.py --only kernel --size small, load 5.4: 0.49). Other builds' .text byte-identical (objcopy).
- * -DVNNI_RHO=0: the 16-term groups, main's bits. */
+ * -DVNNI_RHO=0 -DVNNI_BETA=0: the 16-term groups, a506b53's bits.
+ * The flush groups by an L2 bound (2026-11-30, branch vnb18): the column-max bound sum_G s_G T_G (a vertex holding every
+ * column's maximum) overestimates the per-vertex bound's rel. L2 2.7-4.4x (the lead's figure), so its budget could only
+ * be relative. By the triangle inequality the output's L2 error over the vertices is at most sum_G (s_G,c / 2) sum_{k in G} ||f_c (.)
+ * T_:,k||_2 (f the factor: the vertex's quantisation scale times the albedo), 1.07-1.21x the per-vertex bound's rel. L2
+ * on the blocker scene; the layout's dnorm [Pd + 1] holds each dense column's ||scale (.) T_:,k||_2 and ||scale||_2
+ * (relight.py's _dense_norms, float64, built with dtmax; the albedo left out: a per-call option and per channel; grey or
+ * uniform it is a constant per channel on both sides of the budget). The rule: grp17's left-to-right merge of 16-term
+ * chunks, each run weighed by its columns' norms instead of their maxima (the scales unchanged: the column-maximum rule,
+ * overflow-safe), within max(VNNI_RHO x the 16-term groups' L2 bound, VNNI_BETA x ||scale|| sum_k |L_k,c|): an
+ * absolute budget in the terms the VNNI default rests on (the bound below the transfer's own 16-bit error). VNNI_BETA
+ * 0.75 by measurement (bench_wavelet_scratch.py --vnni against f1408bf, Intel Xeon family 6 model 167, one thread's CPU
+ * time, 11 repeats, load 3.3-4.2, two runs; reports/benchmarks/wavelet_vnni_l2groups.md): studio N = 30 (2 -> 1
+ * groups) warm 1.03-1.05x (small 1.02-1.03, medium 1.04-1.05; beta 0.9 the same), every other row 0.98-1.02x (A/A
+ * 0.99-1.02; the fourth row, 3 -> 2 groups, 0.99x: one flush per block pair less is ~0.1 us of 14), beta 0.5 0.98-1.01x
+ * everywhere. Groups at small / medium (grp17 -> vnb18): studio N = 30 2 -> 1, 292 kept 3 -> 2, sky N >= 300 5 -> 4, the
+ * rest unchanged; the stated bound of the transfer's own (per vertex, rel. L2) 0.28-0.85 -> 0.51-0.85, in the rule's L2
+ * terms at most 0.92 (sky N = 30: its 1.25 x the 16-term groups'); the error (rel. L2) 1.3e-5-5.7e-5
+ * (reports/benchmarks/wavelet_vnni_l2groups_error.md). -DVNNI_L2=0: grp17's groups, f1408bf's bits (checked per row). */
 #if DVNNI
 #define VNNI_PARAMS const float *vq,
 #define VNNI_ARGS vq,
