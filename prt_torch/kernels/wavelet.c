@@ -509,9 +509,9 @@ static inline void put_rgb8(float *out, v8f r, v8f g, v8f b, int nt) {
  * -DVNNI_RHO=0 -DVNNI_BETA=0: the 16-term groups, a506b53's bits.
  * The flush groups by an L2 bound (2026-11-30, branch vnb18): the column-max bound sum_G s_G T_G (a vertex holding every
  * column's maximum) overestimates the per-vertex bound's rel. L2 2.7-4.4x (the lead's figure), so its budget could only
- * be relative. By the triangle inequality the output's L2 error over the vertices is at most sum_G (s_G,c / 2) sum_{k in G} ||f_c (.)
- * T_:,k||_2 (f the factor: the vertex's quantisation scale times the albedo), 1.07-1.21x the per-vertex bound's rel. L2
- * on the blocker scene; the layout's dnorm [Pd + 1] holds each dense column's ||scale (.) T_:,k||_2 and ||scale||_2
+ * be relative. By the triangle inequality the output's L2 error over the vertices is at most
+ * sum_G (s_G,c / 2) sum_{k in G} ||f_c (.) T_:,k||_2 (f the factor: the vertex's quantisation scale times the albedo),
+ * 1.07-1.21x the per-vertex bound's rel. L2 on the blocker scene; the layout's dnorm [Pd + 1] holds each dense column's ||scale (.) T_:,k||_2 and ||scale||_2
  * (relight.py's _dense_norms, float64, built with dtmax; the albedo left out: a per-call option and per channel; grey or
  * uniform it is a constant per channel on both sides of the budget). The rule: grp17's left-to-right merge of 16-term
  * chunks, each run weighed by its columns' norms instead of their maxima (the scales unchanged: the column-maximum rule,
