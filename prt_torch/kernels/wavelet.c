@@ -507,23 +507,27 @@ static inline void put_rgb8(float *out, v8f r, v8f g, v8f b, int nt) {
  * studio N = 30, whose groups do not change; A/A 0.97-1.01); section 7's fourth row 0.51 against 0.48 in that run
  * (bench_wavelet.py --only kernel --size small, load 5.4: 0.49). Other builds' .text byte-identical (objcopy).
  * -DVNNI_RHO=0 -DVNNI_BETA=0: the 16-term groups, a506b53's bits.
- * The flush groups by an L2 bound (2026-11-30, branch vnb18): the column-max bound sum_G s_G T_G (a vertex holding every
- * column's maximum) overestimates the per-vertex bound's rel. L2 2.7-4.4x (the lead's figure), so its budget could only
- * be relative. By the triangle inequality the output's L2 error over the vertices is at most
- * sum_G (s_G,c / 2) sum_{k in G} ||f_c (.) T_:,k||_2 (f the factor: the vertex's quantisation scale times the albedo),
- * 1.07-1.21x the per-vertex bound's rel. L2 on the blocker scene; the layout's dnorm [Pd + 1] holds each dense column's ||scale (.) T_:,k||_2 and ||scale||_2
- * (relight.py's _dense_norms, float64, built with dtmax; the albedo left out: a per-call option and per channel; grey or
- * uniform it is a constant per channel on both sides of the budget). The rule: grp17's left-to-right merge of 16-term
- * chunks, each run weighed by its columns' norms instead of their maxima (the scales unchanged: the column-maximum rule,
- * overflow-safe), within max(VNNI_RHO x the 16-term groups' L2 bound, VNNI_BETA x ||scale|| sum_k |L_k,c|): an
- * absolute budget in the terms the VNNI default rests on (the bound below the transfer's own 16-bit error). VNNI_BETA
- * 0.75 by measurement (bench_wavelet_scratch.py --vnni against f1408bf, Intel Xeon family 6 model 167, one thread's CPU
- * time, 11 repeats, load 3.3-4.2, two runs; reports/benchmarks/wavelet_vnni_l2groups.md): studio N = 30 (2 -> 1
- * groups) warm 1.03-1.05x (small 1.02-1.03, medium 1.04-1.05; beta 0.9 the same), every other row 0.98-1.02x (A/A
- * 0.99-1.02; the fourth row, 3 -> 2 groups, 0.99x: one flush per block pair less is ~0.1 us of 14), beta 0.5 0.98-1.01x
- * everywhere. Groups at small / medium (grp17 -> vnb18): studio N = 30 2 -> 1, 292 kept 3 -> 2, sky N >= 300 5 -> 4, the
- * rest unchanged; the stated bound of the transfer's own (per vertex, rel. L2) 0.28-0.85 -> 0.51-0.85, in the rule's L2
- * terms at most 0.92 (sky N = 30: its 1.25 x the 16-term groups'); the error (rel. L2) 1.3e-5-5.7e-5
+ * The flush groups by an L2 bound (2026-11-30, branch vnb18): the column-max bound sum_G s_G T_G (a vertex holding
+ * every column's maximum) overestimates the per-vertex bound's rel. L2 2.7-4.4x (the lead's figure), so its budget
+ * could only be relative. By the triangle inequality the output's L2 error over the vertices is at most sum_G (s_G,c /
+ * 2) sum_{k in G} ||f_c (.) T_:,k||_2 (f the factor: the vertex's quantisation scale times the albedo), 1.07-1.21x the
+ * per-vertex bound's rel. L2 on the blocker scene; the layout's dnorm [Pd + 1] holds each dense column's ||scale (.)
+ * T_:,k||_2 and ||scale||_2 (relight.py's _dense_norms, float64, built with dtmax; the albedo left out: a per-call
+ * option and per channel; grey or uniform it is a constant per channel on both sides of the budget). The rule: grp17's
+ * left-to-right merge of 16-term chunks, each run weighed by its columns' norms instead of their maxima (the scales
+ * unchanged: the column-maximum rule, overflow-safe), within max(VNNI_RHO x the 16-term groups' L2 bound, VNNI_BETA x
+ * ||scale|| sum_k |L_k,c|): an absolute budget in the terms the VNNI default rests on (the bound below the transfer's
+ * own 16-bit error). VNNI_BETA 0.75 by measurement (bench_wavelet_scratch.py --vnni against f1408bf, Intel Xeon family
+ * 6 model 167, one thread's CPU time, 11 repeats, load 3.3-4.2, two runs;
+ * reports/benchmarks/wavelet_vnni_l2groups.md): studio N = 30 (2 -> 1 groups) warm 1.02-1.05x (small 1.02-1.03, medium
+ * 1.04-1.05; beta 0.9 the same), every other row 0.98-1.02x in the second run (A/A 0.99-1.02; medium sky N = 300 1.04
+ * [0.98, 1.05]; the fourth row, 3 -> 2 groups, 0.99x: one flush per block pair less is ~0.1 us of 14), in the first
+ * the 0.75 variant 0.95-0.97x at small N = 10-30 rows whose groups and bits are the base's (noise or code placement);
+ * beta 0.5 0.98-1.01x everywhere; section 7's fourth row 0.41-0.42 for both rules (bench_wavelet.py --only kernel
+ * --size small, back to back, load 2.5-3.4: a call of 13.7-14.0 us against a streaming read of 5.7-5.8 us). Groups at
+ * small / medium (grp17 -> vnb18): studio N = 30 2 -> 1, 292 kept 3 -> 2, sky N >= 300 5 -> 4, the rest unchanged; the
+ * stated bound of the transfer's own (per vertex, rel. L2) 0.28-0.85 -> 0.51-0.85, in the rule's L2 terms at most 0.92
+ * (sky N = 30: its 1.25 x the 16-term groups'); the error (rel. L2) 1.3e-5-5.7e-5
  * (reports/benchmarks/wavelet_vnni_l2groups_error.md). -DVNNI_L2=0: grp17's groups, f1408bf's bits (checked per row). */
 #if DVNNI
 #define VNNI_PARAMS const float *vq,
