@@ -523,11 +523,11 @@ static inline void put_rgb8(float *out, v8f r, v8f g, v8f b, int nt) {
  * 1.04-1.05; beta 0.9 the same), every other row 0.98-1.02x in the second run (A/A 0.99-1.02; medium sky N = 300 1.04
  * [0.98, 1.05]; the fourth row, 3 -> 2 groups, 0.99x: one flush per block pair less is ~0.1 us of 14), in the first
  * the 0.75 variant 0.95-0.97x at small N = 10-30 rows whose groups and bits are the base's (noise or code placement);
- * beta 0.5 0.98-1.01x everywhere; section 7's fourth row 0.41-0.42 for both rules (bench_wavelet.py --only kernel
- * --size small, back to back, load 2.5-3.4: a call of 13.7-14.0 us against a streaming read of 5.7-5.8 us). Groups at
- * small / medium (grp17 -> vnb18): studio N = 30 2 -> 1, 292 kept 3 -> 2, sky N >= 300 5 -> 4, the rest unchanged; the
- * stated bound of the transfer's own (per vertex, rel. L2) 0.28-0.85 -> 0.51-0.85, in the rule's L2 terms at most 0.92
- * (sky N = 30: its 1.25 x the 16-term groups'); the error (rel. L2) 1.3e-5-5.7e-5
+ * beta 0.5 0.97-1.02x everywhere over the two runs; section 7's fourth row 0.41-0.42 for both rules (bench_wavelet.py
+ * --only kernel --size small, back to back, load 2.5-3.4: a call of 13.7-14.0 us against a streaming read of 5.7-5.8
+ * us). Groups at small / medium (grp17 -> vnb18): studio N = 30 2 -> 1, 292 kept 3 -> 2, sky N >= 300 5 -> 4, the rest
+ * unchanged; the stated bound of the transfer's own (per vertex, rel. L2) 0.28-0.85 -> 0.51-0.85, in the rule's L2
+ * terms at most 0.92 (sky N = 30: its 1.25 x the 16-term groups'); the error (rel. L2) 1.3e-5-5.7e-5
  * (reports/benchmarks/wavelet_vnni_l2groups_error.md). -DVNNI_L2=0: grp17's groups, f1408bf's bits (checked per row). */
 #if DVNNI
 #define VNNI_PARAMS const float *vq,
