@@ -494,10 +494,12 @@ FLOORS = ("madd pair body (2 terms x 32 vertices; per term: half)", "float term 
           "12 FMA", "12 vpmaddwd", "6 FMA + 6 vpmaddwd", "6 vpmaddwd + 6 vpunpcklwd", "6 FMA + 6 vcvtdq2ps", "12 vpaddd")
 
 
-#: the kernel's flush groups (``kernels/wavelet.c``'s VNNI_G, VNNI_RHO, VNNI_BETA): chunks of 16 dense terms, merged while
-#: the call's L2 bound (the columns' norms of scale x T) stays within 1.25 x the 16-term groups' or 0.75 x the transfer's
-#: own 16-bit bound, whichever is larger (:func:`vnni_groups`)
-VNNI_G, VNNI_RHO, VNNI_BETA = 16, 1.25, 0.75
+#: the kernel's flush groups (``kernels/wavelet.c``'s VNNI_G, VNNI_RHO, VNNI_L2, VNNI_BETA): chunks of 16 dense terms,
+#: merged while the call's column-maximum bound stays within 1.25 x the 16-term groups' (grp17's rule, the default:
+#: VNNI_L2 0); with VNNI_L2 (vnb18's knob) the L2 bound (the columns' norms of scale x T) within 1.25 x the 16-term
+#: groups' or 0.75 x the transfer's own 16-bit bound, whichever is larger (:func:`vnni_groups`). VNNI_GUARD (vg18): the
+#: call takes the float loop when its L2 bound exceeds VNNI_GUARD x the transfer's own (:func:`vnni_guard`)
+VNNI_G, VNNI_RHO, VNNI_BETA, VNNI_L2, VNNI_GUARD = 16, 1.25, 0.75, False, 1.0
 
 
 def vnni_groups(lw: torch.Tensor, tmax: torch.Tensor, rho: float = VNNI_RHO, chunk: int = VNNI_G,
@@ -562,6 +564,30 @@ def vnni_groups(lw: torch.Tensor, tmax: torch.Tensor, rho: float = VNNI_RHO, chu
         cur = [sc[c] * gw for c in range(3)]
         grp += [g] * n
     return torch.tensor(grp, dtype=torch.int64)
+
+
+def kernel_groups(lw: torch.Tensor, tmax: torch.Tensor, norms: torch.Tensor, nscale: float) -> torch.Tensor:
+    """The kernel's flush groups for one call (:func:`vnni_groups` by its default rule: grp17's column maxima, or the L2
+    rule where :data:`VNNI_L2`), each term's group int64 [nd]."""
+    return vnni_groups(lw, tmax, norms=norms, nscale=nscale) if VNNI_L2 else vnni_groups(lw, tmax)
+
+
+def vnni_guard(lw: torch.Tensor, grp, tmax: torch.Tensor, norms: torch.Tensor, nscale: float,
+               guard: float = VNNI_GUARD) -> tuple[bool, float]:
+    """``kernels/wavelet.c``'s per-call guard (vg18), recomputed: for the dense terms' light ``lw`` [nd, 3] in the
+    kernel's order, their flush groups ``grp`` (each term's group int64 [nd], or a group size), columns' maxima ``tmax``
+    [nd] and L2 norms of scale x T ``norms`` [nd] float64 (``nscale`` the scale's own norm), the call's L2 bound
+    sum_G s_G,c sum_{k in G} norms_k (:func:`quantise_light`'s float32 scales) against the transfer's own
+    nscale sum_k |L_k,c| (both without the common 1/2), per channel with light. Returns ``(trips, ratio)``: whether
+    the call takes the float loop (ratio > ``guard`` in some channel; ``guard`` 0: never) and the largest channel's
+    ratio."""
+    _, s, g = quantise_light(lw, grp, tmax)
+    W = torch.zeros(s.shape[0], dtype=torch.float64).index_add_(0, g, norms.double())
+    vb = (s.double() * W[:, None]).sum(0)
+    own = nscale * lw.double().abs().sum(0)
+    lit = own > 0
+    ratio = float((vb[lit] / own[lit]).max()) if bool(lit.any()) else 0.0
+    return bool(guard > 0 and ratio > guard), ratio
 
 
 def dense_norms(rl) -> torch.Tensor:
@@ -807,17 +833,19 @@ def vnni_bound(rl, li: torch.Tensor, lv: torch.Tensor, fac: torch.Tensor | None 
     ``li`` int64 [N], ``lv`` float32 [3, N]), per vertex and channel, float64 [V, 3], from quantities found here
     independently of the kernel: the light's dense terms in the kernel's order (:func:`kernel_dense_order`), each dense
     column's largest stored magnitude by brute force over ``rl.dense`` (not the layout's ``dtmax``), the groups' steps
-    s_g by :func:`quantise_light`'s column-maximum rule in the kernel's flush groups (:func:`vnni_groups`: chunks of 16
-    terms merged within max(1.25 x the 16-term groups' L2 bound, 0.75 x the transfer's own), on the columns' norms by
-    brute force, :func:`dense_norms`); ``fac`` [V, 3] the factor (default the
+    s_g by :func:`quantise_light`'s column-maximum rule in the kernel's flush groups (:func:`kernel_groups`: chunks of 16
+    terms merged within 1.25 x the 16-term groups' column-max bound, grp17's rule; with :data:`VNNI_L2` the L2 rule on the
+    columns' norms by brute force, :func:`dense_norms`); ``fac`` [V, 3] the factor (default the
     relighter's, ``_factor(3, albedo)``; ``albedo``: the output with the albedo applied, as the call's; ``groups``: each
-    term's group int64 [nd] or a group size instead of the kernel's, :func:`vnni_groups` on brute-force column norms). Returns
+    term's group int64 [nd] or a group size instead of the kernel's). Returns
     ``bound`` f_v Σ_g (s_g,c / 2) Σ_{k∈g} |T_v,k| (the dense terms' quantised light), ``slack`` 1e-5 f_v Σ_k
     |T_v,k| |L_k,c| over all N terms (float32 rounding of the whole call, dense and sparse: ~100 roundings of 6e-8
     each at most), ``tbound`` the transfer's own 16-bit quantisation bound for the same dense terms
     f_v Σ_k |L_k,c| / 2, ``nd`` the dense terms and ``groups``; per channel float64 [3]: ``l2`` the output's L2 error
     bound over the vertices Σ_g (s_g,c / 2) Σ_{k∈g} ||f_c ⊙ T_:,k||_2, ``l2_transfer`` the transfer's own in the same
-    terms ||f_c||_2 Σ_k |L_k,c| / 2, ``slack_l2`` the rounding slack's L2 norm."""
+    terms ||f_c||_2 Σ_k |L_k,c| / 2, ``slack_l2`` the rounding slack's L2 norm; ``guard`` whether the kernel's per-call
+    guard sends the call to the float loop with these groups (:func:`vnni_guard` on the brute-force norms: then the
+    call's output is the float loop's, ``bound`` does not apply) and ``guard_ratio`` its ratio."""
     if fac is None:
         fac = rl._factor(3, albedo).double()
     nb = rl.dense.shape[0]
@@ -826,8 +854,9 @@ def vnni_bound(rl, li: torch.Tensor, lv: torch.Tensor, fac: torch.Tensor | None 
     tmax = d16.to(torch.int32).abs().amax(dim=(0, 2))  # [Pd] brute force
     nrm, ns = dense_norms(rl)  # [Pd] brute force
     if groups is None:
-        groups = vnni_groups(lw, tmax[ds], norms=nrm[ds], nscale=ns) if ds.numel() else 16
+        groups = kernel_groups(lw, tmax[ds], nrm[ds], ns) if ds.numel() else 16
     _, sc, grp = quantise_light(lw, groups, tmax[ds])
+    trips, gratio = vnni_guard(lw, grp, tmax[ds], nrm[ds], ns) if ds.numel() else (False, 0.0)
     tk = d16[:, ds, :].double().abs()  # [nb, nd, 32] |T_v,k| over the dense terms
     bound = torch.einsum("bkv,kc->bvc", tk, sc.double()[grp] / 2).reshape(-1, 3)[:rl.V] * fac
     ref_index, ref_vals = rl.reference_rows(0, rl.V)  # dequantised: the scale applied, so times the albedo only
@@ -841,7 +870,8 @@ def vnni_bound(rl, li: torch.Tensor, lv: torch.Tensor, fac: torch.Tensor | None 
                       for c in range(3)], 1)  # [nd, 3] ||f_c (.) T_:,k||
     return {"bound": bound, "slack": 1e-5 * mag, "tbound": lw.double().abs().sum(0)[None, :] / 2 * fac, "nd": int(ds.numel()),
             "groups": int(grp[-1]) + 1 if ds.numel() else 0, "l2": (sc.double()[grp] / 2 * tf).sum(0),
-            "l2_transfer": fac.norm(dim=0) * lw.double().abs().sum(0) / 2, "slack_l2": 1e-5 * mag.norm(dim=0)}
+            "l2_transfer": fac.norm(dim=0) * lw.double().abs().sum(0) / 2, "slack_l2": 1e-5 * mag.norm(dim=0),
+            "guard": trips, "guard_ratio": gratio}
 
 
 def proto_rows(rl, fac: torch.Tensor, args) -> list:

@@ -538,8 +538,11 @@ static inline void put_rgb8(float *out, v8f r, v8f g, v8f b, int nt) {
 #ifndef VNNI_RHO /* the flush groups' budget: the call's bound at most VNNI_RHO x the VNNI_G groups' (or VNNI_BETA's) */
 #define VNNI_RHO 1.25
 #endif
-#ifndef VNNI_L2 /* the flush groups weighed by the columns' L2 norms (the layout's dnorm; vnb18); 0: by their maxima (grp17) */
-#define VNNI_L2 1
+#ifndef VNNI_L2 /* the flush groups weighed by the columns' L2 norms (the layout's dnorm; vnb18, a knob); 0: by their maxima (grp17) */
+#define VNNI_L2 0
+#endif
+#ifndef VNNI_GUARD /* the per-call guard (vg18): the float loop when the call's L2 bound > VNNI_GUARD x the transfer's own; 0: off */
+#define VNNI_GUARD 1.0
 #endif
 #ifndef VNNI_BETA /* ... or at most VNNI_BETA x the transfer's own 16-bit bound in the same L2 terms (VNNI_L2 only) */
 #define VNNI_BETA 0.75
@@ -579,10 +582,11 @@ static inline void vnni_scale32(const double sc[3], float *s32) {
  * at most VNNI_RHO times the VNNI_G groups' or VNNI_BETA times the transfer's own, whichever is larger. A run's sums:
  * its chunks' sums added in order. O(nd). bench_wavelet_madd_micro.py's vnni_groups: the same rule, the same sums in
  * the same order */
-static inline void vnni_quantise(i64 nd, float *lw, float *vq, const int32_t *tm, const i64 *ds, const double *nm,
-                                 double ns) {
+static inline int vnni_quantise(i64 nd, float *lw, float *vq, const int32_t *tm, const i64 *ds, const double *nm,
+                                double ns) {
     const i64 nc = (nd + VNNI_G - 1) / VNNI_G;
     double cs[3 * nc + 3], cm[3 * nc + 3], ch[nc + 1], cw[nc + 1], rest[3 * nc + 3], sc[3], la[3] = {0, 0, 0};
+    const double *gn = nm; /* the guard's norms: the layout's dnorm whatever the rule */
 #if !VNNI_L2
     nm = NULL;
 #endif
@@ -651,6 +655,22 @@ static inline void vnni_quantise(i64 nd, float *lw, float *vq, const int32_t *tm
         memcpy(vq + 4 * ng + 3, &e0, 4);
         ng++;
     }
+    if (VNNI_GUARD > 0 && gn && nd) { /* the guard: sum_G s_G,c sum_{k in G} dnorm_k > VNNI_GUARD x ns sum_k |L_k,c| (both / 2) -> 0 */
+        double vb[3] = {0, 0, 0}, w = 0;
+        i64 g = 0;
+        int32_t ge;
+        memcpy(&ge, vq + 3, 4);
+        for (i64 t = 0; t < nd; t++) {
+            w += gn[ds[t]];
+            if (t + 1 == ge) { /* group g closed: its weight times its float32 scales */
+                for (int c = 0; c < 3; c++) vb[c] += (double)vq[4 * g + c] * w;
+                w = 0;
+                if (++g < ng) memcpy(&ge, vq + 4 * g + 3, 4);
+            }
+        }
+        for (int c = 0; c < 3; c++)
+            if (la[c] > 0 && vb[c] > VNNI_GUARD * ns * la[c]) return 0; /* lw untouched: the float loop's light */
+    }
     int32_t *lq = (int32_t *)lw;
     i64 g = 0;
     int32_t ge;
@@ -666,6 +686,7 @@ static inline void vnni_quantise(i64 nd, float *lw, float *vq, const int32_t *tm
         }
         lq[4 * q] = w[0]; lq[4 * q + 1] = w[1]; lq[4 * q + 2] = w[2]; lq[4 * q + 3] = 0;
     }
+    return 1;
 }
 /* the dense terms' slots ds = wk [nd] (int64) rewritten in place as records int32 [nd, 2]: (ds[t] x 64, the byte offset
  * of term t's row in its block; the prefetch's target of step t), read by vnni_terms instead of ds. far (the layout
@@ -777,9 +798,10 @@ static inline __attribute__((always_inline)) void vnni_terms(const char *blk, i6
     if (!fdense && sizeof(T) == 2 && CT == 1 && CO == 3 && nd && nd * ((V + BV - 1) / BV) >= ZMM_MIN) {      \
         const i64 pstb_ = Pd * BV * (i64)sizeof(T), nbk_ = (V + BV - 1) / BV;                                \
         if ((PFX / nd + 1) * 2 * pstb_ + Pd * 64 <= INT32_MAX) { /* the records' offsets fit (else the float loop) */ \
-            vnni_quantise(nd, lw, vq_, L->dtmax, wk, L->dnorm, L->dnorm ? L->dnorm[Pd] : 0.0);              \
-            vnni_records(nd, wk, 2 * pstb_, nbk_ * pstb_ >= PFX_MIN); /* wk: ds -> records (after the quantisation) */ \
-            vq = vq_;                                                                                        \
+            if (vnni_quantise(nd, lw, vq_, L->dtmax, wk, L->dnorm, L->dnorm ? L->dnorm[Pd] : 0.0)) { /* 0: the guard */ \
+                vnni_records(nd, wk, 2 * pstb_, nbk_ * pstb_ >= PFX_MIN); /* wk: ds -> records (after the quantisation) */ \
+                vq = vq_;                                                                                    \
+            }                                                                                                \
         }                                                                                                    \
     }
 #endif
