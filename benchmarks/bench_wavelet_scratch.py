@@ -22,7 +22,8 @@ block instead of per 32), ``outpf`` (``OUT_PFW``: each dense block prefetches it
 dense terms), ``rho0`` / ``rho2`` (``VNNI_RHO`` 0 / 2: no relative budget — with ``b0``, ``rho0+b0``, the VNNI
 loop's fixed 16-term flush groups — / a budget of 2x the 16-term groups' bound), ``cm`` (``VNNI_L2`` 0: grp17's
 flush groups, weighed by the columns' maxima), ``b0`` / ``b5`` / ``b75`` / ``b9`` (``VNNI_BETA`` 0 / 0.5 / 0.75 / 0.9:
-the flush groups' absolute budget, a fraction of the transfer's own 16-bit L2 bound; 0: none), and the others in
+the flush groups' absolute budget, a fraction of the transfer's own 16-bit L2 bound; 0: none), ``l2`` (``VNNI_L2`` 1:
+vnb18's L2 flush groups), ``noguard`` (``VNNI_GUARD`` 0: no per-call guard, the VNNI loop whatever its bound), and the others in
 ``VARIANTS``. Per row: base / variant (median of the per-repeat ratios,
 quartiles; > 1: the variant faster), and the
 test and base builds against the streaming read of the bytes the call touches plus a fill of the output
@@ -84,7 +85,7 @@ VARIANTS = {"touch8": "#define TOUCH8 1\n", "outpf": "#define OUT_PFW 1\n", "mar
             "sprf0": "#define SP_PFR 0\n", "sprf4l": "#define SP_PFL 4\n",
             "rho0": "#define VNNI_RHO 0\n", "rho2": "#define VNNI_RHO 2.0\n",
             "cm": "#define VNNI_L2 0\n", "b0": "#define VNNI_BETA 0\n", "b5": "#define VNNI_BETA 0.5\n", "b75": "#define VNNI_BETA 0.75\n",
-            "b9": "#define VNNI_BETA 0.9\n"}
+            "b9": "#define VNNI_BETA 0.9\n", "l2": "#define VNNI_L2 1\n", "noguard": "#define VNNI_GUARD 0\n"}
 #: the -D line ``--vnni`` prepends to every build
 VNNI = "#define DENSE_VNNI 1\n"
 

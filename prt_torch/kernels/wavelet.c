@@ -585,18 +585,19 @@ static inline void vnni_scale32(const double sc[3], float *s32) {
 static inline int vnni_quantise(i64 nd, float *lw, float *vq, const int32_t *tm, const i64 *ds, const double *nm,
                                 double ns) {
     const i64 nc = (nd + VNNI_G - 1) / VNNI_G;
-    double cs[3 * nc + 3], cm[3 * nc + 3], ch[nc + 1], cw[nc + 1], rest[3 * nc + 3], sc[3], la[3] = {0, 0, 0};
-    const double *gn = nm; /* the guard's norms: the layout's dnorm whatever the rule */
+    double cs[3 * nc + 3], cm[3 * nc + 3], ch[nc + 1], cw[nc + 1], cg[nc + 1], rest[3 * nc + 3], sc[3], la[3] = {0, 0, 0};
+    const double *gn = VNNI_GUARD > 0 ? nm : NULL; /* the guard's norms: the layout's dnorm whatever the rule */
 #if !VNNI_L2
     nm = NULL;
 #endif
     for (i64 i = 0; i < nc; i++) { /* each chunk's sums, maxima, half, weight */
-        double *su = cs + 3 * i, *mx = cm + 3 * i, half = 0, wt = 0;
+        double *su = cs + 3 * i, *mx = cm + 3 * i, half = 0, wt = 0, wg = 0;
         su[0] = su[1] = su[2] = mx[0] = mx[1] = mx[2] = 0;
         for (i64 t = i * VNNI_G; t < (i + 1) * VNNI_G && t < nd; t++) {
             const double w = tm ? (double)tm[ds[t]] : 1.0;
             half += w / 2;
             wt += nm ? nm[ds[t]] : w;
+            wg += gn ? gn[ds[t]] : 0.0;
             for (int c = 0; c < 3; c++) {
                 const double x = lw[4 * t + c] < 0 ? -(double)lw[4 * t + c] : (double)lw[4 * t + c];
                 su[c] += x * w;
@@ -606,6 +607,7 @@ static inline int vnni_quantise(i64 nd, float *lw, float *vq, const int32_t *tm,
         }
         ch[i] = half;
         cw[i] = wt;
+        cg[i] = wg;
     }
     rest[3 * nc] = rest[3 * nc + 1] = rest[3 * nc + 2] = 0;
     for (i64 i = nc - 1; i >= 0; i--) { /* the VNNI_G groups' s W, summed from the back: rest [i] the chunks i.. */
@@ -617,7 +619,8 @@ static inline int vnni_quantise(i64 nd, float *lw, float *vq, const int32_t *tm,
         const double r = VNNI_RHO * rest[c], a = nm ? VNNI_BETA * ns * la[c] : 0.0;
         bud[c] = r > a ? r : a;
     }
-    double done[3] = {0, 0, 0}, cur[3] = {0, 0, 0}, gs[3] = {0, 0, 0}, gm[3] = {0, 0, 0}, gh = 0, gw = 0;
+    double done[3] = {0, 0, 0}, cur[3] = {0, 0, 0}, gs[3] = {0, 0, 0}, gm[3] = {0, 0, 0}, gh = 0, gw = 0, gg = 0;
+    double vb[3] = {0, 0, 0}; /* the guard's sum_G s_G,c sum_{k in G} dnorm_k (the float32 scales) */
     i64 ng = 0;
     for (i64 i = 0; i < nc; i++) {
         if (i > 0 && tm) { /* the open group extended by chunk i, if the budget allows */
@@ -631,6 +634,7 @@ static inline int vnni_quantise(i64 nd, float *lw, float *vq, const int32_t *tm,
                 for (int c = 0; c < 3; c++) { gs[c] = s2[c]; gm[c] = m2[c]; cur[c] = sc[c] * w2; }
                 gh = h2;
                 gw = w2;
+                gg += cg[i];
                 continue;
             }
         }
@@ -638,6 +642,7 @@ static inline int vnni_quantise(i64 nd, float *lw, float *vq, const int32_t *tm,
             vnni_rule(gs, gm, gh, VNNI_G, tm != NULL, sc); /* n: the 65535 rule's only (a group one full chunk) */
             for (int c = 0; c < 3; c++) done[c] += cur[c];
             vnni_scale32(sc, vq + 4 * ng);
+            for (int c = 0; c < 3; c++) vb[c] += (double)vq[4 * ng + c] * gg;
             const int32_t e0 = (int32_t)(i * VNNI_G);
             memcpy(vq + 4 * ng + 3, &e0, 4);
             ng++;
@@ -645,32 +650,21 @@ static inline int vnni_quantise(i64 nd, float *lw, float *vq, const int32_t *tm,
         for (int c = 0; c < 3; c++) { gs[c] = cs[3 * i + c]; gm[c] = cm[3 * i + c]; }
         gh = ch[i];
         gw = cw[i];
+        gg = cg[i];
         vnni_rule(gs, gm, gh, VNNI_G, tm != NULL, sc);
         for (int c = 0; c < 3; c++) cur[c] = sc[c] * gw;
     }
     if (nd) { /* the last group */
         vnni_rule(gs, gm, gh, nd - (nc - 1) * VNNI_G, tm != NULL, sc);
         vnni_scale32(sc, vq + 4 * ng);
+        for (int c = 0; c < 3; c++) vb[c] += (double)vq[4 * ng + c] * gg;
         const int32_t e0 = (int32_t)nd;
         memcpy(vq + 4 * ng + 3, &e0, 4);
         ng++;
     }
-    if (VNNI_GUARD > 0 && gn && nd) { /* the guard: sum_G s_G,c sum_{k in G} dnorm_k > VNNI_GUARD x ns sum_k |L_k,c| (both / 2) -> 0 */
-        double vb[3] = {0, 0, 0}, w = 0;
-        i64 g = 0;
-        int32_t ge;
-        memcpy(&ge, vq + 3, 4);
-        for (i64 t = 0; t < nd; t++) {
-            w += gn[ds[t]];
-            if (t + 1 == ge) { /* group g closed: its weight times its float32 scales */
-                for (int c = 0; c < 3; c++) vb[c] += (double)vq[4 * g + c] * w;
-                w = 0;
-                if (++g < ng) memcpy(&ge, vq + 4 * g + 3, 4);
-            }
-        }
+    if (gn) /* the guard: sum_G s_G,c sum_{k in G} dnorm_k > VNNI_GUARD x ns sum_k |L_k,c| (both / 2) -> 0 */
         for (int c = 0; c < 3; c++)
             if (la[c] > 0 && vb[c] > VNNI_GUARD * ns * la[c]) return 0; /* lw untouched: the float loop's light */
-    }
     int32_t *lq = (int32_t *)lw;
     i64 g = 0;
     int32_t ge;
