@@ -361,7 +361,10 @@ class WaveletRelighter:
     where Σ_k tmax_k |L̂_k| would overflow int32): 0.28–0.90× the stored 16-bit transfer's own quantisation bound, an
     output error of 8e-6–6e-5 relative L2, but up to ~2e-3 relative at the dimmest vertices, where the light's terms
     cancel — more than the stored transfer's own error there (docs/wavelet.md, "The dense arithmetic" and "the VNNI
-    dense loop by default"); every other call, and every other build, the float32 loop. ``'float'``: the float32 loop
+    dense loop by default"). A per-call guard keeps that premise for every light: a call whose L2 bound of the VNNI
+    error, Σ_G (s_G,c / 2) Σ_{k∈G} ‖scale ⊙ T̂_:,k‖₂, exceeds the transfer's own, ‖scale‖₂ Σ_k |L̂_k,c| / 2, in some
+    channel takes the float32 loop (its bits) instead (e.g. one light term 1e4 × the others in its flush group, or
+    the coarse R = 8 layouts). Every other call, and every other build, the float32 loop. ``'float'``: the float32 loop
     for every call (the kernel's C | FDENSE), the bits of the builds without VNNI.
     """
 
@@ -944,7 +947,9 @@ class WaveletRelighter:
         float32: the build has it (``vnni``; None: the build this relighter is bound to), ``arith`` (None: this
         relighter's) is ``'auto'``, 16-bit kernel values on a grey transfer (CT = 1), an RGB light whose three channels
         are not bitwise equal at every term (a grey RGB light takes one sum per vertex), and at least :attr:`ZMM_MIN`
-        (distinct dense column, 32-vertex block) pairs. The other calls take the float loop (its bits)."""
+        (distinct dense column, 32-vertex block) pairs. The other calls take the float loop (its bits). Not modelled
+        here: the kernel's per-call guard, which sends a call whose VNNI L2 bound exceeds the transfer's own to the
+        float loop after the light is grouped (``benchmarks/bench_wavelet_madd_micro.vnni_guard`` recomputes it)."""
         if vnni is None:
             self._kernel()
             vnni = self._vnni
