@@ -582,7 +582,7 @@ static inline void vnni_scale32(const double sc[3], float *s32) {
  * at most VNNI_RHO times the VNNI_G groups' or VNNI_BETA times the transfer's own, whichever is larger. A run's sums:
  * its chunks' sums added in order. O(nd). bench_wavelet_madd_micro.py's vnni_groups: the same rule, the same sums in
  * the same order */
-static inline int vnni_quantise(i64 nd, float *lw, float *vq, const int32_t *tm, const i64 *ds, const double *nm,
+static __attribute__((noinline)) int vnni_quantise(i64 nd, float *lw, float *vq, const int32_t *tm, const i64 *ds, const double *nm,
                                 double ns) {
     const i64 nc = (nd + VNNI_G - 1) / VNNI_G;
     double cs[3 * nc + 3], cm[3 * nc + 3], ch[nc + 1], cw[nc + 1], cg[nc + 1], rest[3 * nc + 3], sc[3], la[3] = {0, 0, 0};
