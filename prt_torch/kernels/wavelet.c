@@ -22,11 +22,13 @@
  * builds the float loop only; above DENSE_TERMS): the 16-lane dense loop on integer dot products (vpdpwssd zmm, two
  * light terms per instruction) for the calls of 16-bit values, CT = 1, CO = 3 that take the 16-lane loop, the dense
  * light quantised per call to int16 by the column-maximum rule in flush groups (the layout's dtmax): chunks of VNNI_G =
- * 16 terms merged per call while the call's L2 bound of the output's error (sum_g (s_g / 2) sum_{k in g} ||scale (.)
- * T_:,k||_2, the layout's dnorm) stays within max(VNNI_RHO = 1.25 x the 16-term groups', VNNI_BETA = 0.75 x the
- * transfer's own 16-bit bound ||scale||_2 sum_k |L_k| / 2) per channel (vnni_quantise; vnb18; grp17's column-max weights
- * with -DVNNI_L2=0), a flush to float per group; not the float loop's bits (error per vertex and channel within f_v sum_g (s_g / 2)
- * sum_{k in g} |T_v,k|). C | FDENSE (512) opts a call out (the float loop, its bits: relight.py's arith="float");
+ * 16 terms merged per call while the call's column-max bound stays within VNNI_RHO = 1.25 x the 16-term groups' (grp17;
+ * -DVNNI_L2=1: vnb18's L2 rule, a knob), a flush to float per group; not the float loop's bits (error per vertex and
+ * channel within f_v sum_g (s_g / 2) sum_{k in g} |T_v,k|). The per-call guard (vg18, VNNI_GUARD = 1): a call whose L2
+ * bound sum_G (s_G,c / 2) sum_{k in G} ||scale (.) T_:,k||_2 (the layout's dnorm) exceeds VNNI_GUARD x the transfer's
+ * own 16-bit bound ||scale||_2 sum_k |L_k,c| / 2 in some channel takes the float loop (C | FDENSE's bits), so the
+ * premise of the default — its error below the stored transfer's own — holds for every light it runs.
+ * C | FDENSE (512) opts a call out (the float loop, its bits: relight.py's arith="float");
  * builds without DVNNI refuse the bit (1) and are unchanged (avx2, znver3, avx512-256, portable, skylake-avx512 and
  * -DDENSE_VNNI=0 objects byte-identical to fdd5d3e's, objdump). prt_wavelet_isa's bit 64 says the build has it.
  * Measured on the Intel Xeon (bench_wavelet_madd_micro.py --vnni --proto, reports/benchmarks/wavelet_vnni_default.md;
@@ -528,7 +530,25 @@ static inline void put_rgb8(float *out, v8f r, v8f g, v8f b, int nt) {
  * us). Groups at small / medium (grp17 -> vnb18): studio N = 30 2 -> 1, 292 kept 3 -> 2, sky N >= 300 5 -> 4, the rest
  * unchanged; the stated bound of the transfer's own (per vertex, rel. L2) 0.28-0.85 -> 0.51-0.85, in the rule's L2
  * terms at most 0.92 (sky N = 30: its 1.25 x the 16-term groups'); the error (rel. L2) 1.3e-5-5.7e-5
- * (reports/benchmarks/wavelet_vnni_l2groups_error.md). -DVNNI_L2=0: grp17's groups, f1408bf's bits (checked per row). */
+ * (reports/benchmarks/wavelet_vnni_l2groups_error.md). -DVNNI_L2=0: grp17's groups, f1408bf's bits (checked per row).
+ * Since vg18 VNNI_L2 is 0 by default again (the L2 rule gave no speed on the rows that matter: the fourth row 0.99x,
+ * studio N = 30 1.02-1.05x), a knob; dnorm stays in the layout for the guard.
+ * The per-call guard (2026-11-30, branch vg18): vnb18 found one light term x 1e4 at N = 100 (in the first flush group)
+ * putting the stated bound at 2.8x the transfer's own 16-bit bound, with any grouping — the default's premise (the VNNI
+ * error below the error the stored transfer already carries) failing for that light. So vnni_quantise, after the
+ * groups are chosen, sums per channel B_c = sum_G s_G,c sum_{k in G} dnorm_k (s_G the float32 scales the loop uses;
+ * the chunks' dnorm sums taken in the chunk pass, O(nc) more) and returns 0 — the light left as float, wk as slots:
+ * the float loop, the bits of C | FDENSE — when B_c > VNNI_GUARD x ||scale||_2 sum_k |L_k,c| for a channel with light
+ * (the albedo, grey or uniform, a constant per channel on both sides). VNNI_GUARD 1 (the lead's rule; 0: no guard).
+ * Where it trips (bench_wavelet_madd_micro.vnni_guard, the same sums; small blocker scene, R = 32, K = 256): ordinary
+ * studio / sky rows 0.32-0.92 (none), sky + sun 1e4 at N = 100-1000 0.54-0.64 (none), one term x 1e4 at N = 100 3.0
+ * (float loop), at N = 300 / 1000 0.40; at R = 16, K = 64 / 128 sky N = 30 (one merged group) 1.2 and one term x 1e4
+ * at N = 300 1.2-1.4 trip too; at R = 8, K = 32 every studio / sky light (1.0-2.0: few, full dense columns). Its cost
+ * (bench_wavelet_scratch.py --vnni --base f1408bf --sizes small, Intel Xeon family 6 model 167, one thread's CPU time,
+ * load 1.0-1.2, reports/benchmarks/wavelet_vnni_guard.md): warm 0.96-1.01x of f1408bf (median ~0.99; noguard, the same
+ * source with VNNI_GUARD 0, 0.98-1.01x; A/A 0.99-1.01), the outputs f1408bf's bits on every row; vnni_quantise is
+ * noinline (once per call; the kernel body's code then does not move with the set-up's). avx2, znver3, avx512-256,
+ * portable, skylake-avx512 and -DDENSE_VNNI=0 objects' .text byte-identical to f1408bf's (gcc + objcopy). */
 #if DVNNI
 #define VNNI_PARAMS const float *vq,
 #define VNNI_ARGS vq,
@@ -581,7 +601,9 @@ static inline void vnni_scale32(const double sc[3], float *s32) {
  * same L2 terms: its stored values off by at most scale_v / 2 each; the second term with nm only): the call's L2 bound
  * at most VNNI_RHO times the VNNI_G groups' or VNNI_BETA times the transfer's own, whichever is larger. A run's sums:
  * its chunks' sums added in order. O(nd). bench_wavelet_madd_micro.py's vnni_groups: the same rule, the same sums in
- * the same order */
+ * the same order. The guard (nm non-NULL, VNNI_GUARD > 0; whatever VNNI_L2): with the groups chosen, B_c = sum_G s32_G,c
+ * x (the group's sum of nm), and B_c > VNNI_GUARD x ns x sum_k |L_k,c| for a channel with light returns 0 before lw is
+ * written (the caller takes the float loop); else lw is quantised and 1 returned (bench_wavelet_madd_micro.vnni_guard) */
 static __attribute__((noinline)) int vnni_quantise(i64 nd, float *lw, float *vq, const int32_t *tm, const i64 *ds, const double *nm,
                                 double ns) {
     const i64 nc = (nd + VNNI_G - 1) / VNNI_G;
