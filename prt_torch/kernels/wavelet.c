@@ -546,7 +546,9 @@ static inline void put_rgb8(float *out, v8f r, v8f g, v8f b, int nt) {
  * at N = 300 1.2-1.4 trip too; at R = 8, K = 32 every studio / sky light (1.0-2.0: few, full dense columns). Its cost
  * (bench_wavelet_scratch.py --vnni --base f1408bf --sizes small, Intel Xeon family 6 model 167, one thread's CPU time,
  * load 1.0-1.2, reports/benchmarks/wavelet_vnni_guard.md): warm 0.96-1.01x of f1408bf (median ~0.99; noguard, the same
- * source with VNNI_GUARD 0, 0.98-1.01x; A/A 0.99-1.01), the outputs f1408bf's bits on every row; vnni_quantise is
+ * source with VNNI_GUARD 0, 0.98-1.01x; A/A 0.99-1.01; 21 repeats at N >= 300: 0.97-0.99x, noguard 0.99-1.02), the
+ * outputs f1408bf's bits on every row: ~1-2%, also with the sums computed and the decision ignored, and with the sums
+ * taken from the column maxima instead of dnorm (not its lines; unexplained, placement suspected); vnni_quantise is
  * noinline (once per call; the kernel body's code then does not move with the set-up's). avx2, znver3, avx512-256,
  * portable, skylake-avx512 and -DDENSE_VNNI=0 objects' .text byte-identical to f1408bf's (gcc + objcopy). */
 #if DVNNI
