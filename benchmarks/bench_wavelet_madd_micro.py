@@ -935,11 +935,13 @@ def group_rows(size: str, terms) -> list:
     """The flush groups and the error they carry per row (``--vnni --groups-table``): on the blocker scene at ``size``
     (R = 32, K = 256, 16-bit; the default relighter, so the VNNI loop of this process's build), studio and sky at each N
     of ``terms`` and all, the groups of fixed 16-term chunks, of grp17's column-maximum rule (:func:`vnni_groups`
-    without norms) and of the kernel's L2 rule (with brute-force norms, :func:`dense_norms`); per grouping the stated
+    without norms: the kernel's default) and of vnb18's L2 rule (``-DVNNI_L2=1``; with brute-force norms,
+    :func:`dense_norms`); per grouping the stated
     bound as a fraction of the transfer's own 16-bit bound, per vertex in rel. L2 (``vnni_bound``'s ``bound`` against
     ``tbound``, over V x 3) and in the L2 terms the rule uses (``l2`` against ``l2_transfer``, the largest channel); the
     default call's error (rel. L2 against the float64 sum of the same stored values), every vertex within the per-vertex
-    bound and the L2 error within the L2 bound (per channel)."""
+    bound and the L2 error within the L2 bound (per channel), for the kernel's groups; and the per-call guard's ratio
+    (:func:`vnni_guard`: above 1 the call takes the float loop)."""
     from bench_wavelet import kernel_transfer
 
     from prt_torch import relight
@@ -967,13 +969,15 @@ def group_rows(size: str, terms) -> list:
                 b = vnni_bound(rl, li, lv, groups=g)
                 r[name] = {"groups": b["groups"], "pv": float(b["bound"].norm() / b["tbound"].norm()),
                            "l2": float((b["l2"] / b["l2_transfer"]).max())}
-                if name == "l2":
+                if name == ("l2" if VNNI_L2 else "cm"):  # the kernel's groups: its output within their bounds
                     r["within"] = bool(((out - exact).abs() <= b["bound"] + b["slack"]).all())
                     r["within_l2"] = bool(((out - exact).norm(dim=0) <= b["l2"] + b["slack_l2"]).all())
+                    r["guard"], r["guard_ratio"] = b["guard"], b["guard_ratio"]  # the per-call guard (vg18)
             print(f"[groups] {size} {light} N={r['N']} nd={r['nd']}: groups 16 / cm / l2 {r['16']['groups']} / "
                   f"{r['cm']['groups']} / {r['l2']['groups']}, bound of the transfer's (per vertex) {r['16']['pv']:.2f} / "
                   f"{r['cm']['pv']:.2f} / {r['l2']['pv']:.2f}, (L2) {r['16']['l2']:.2f} / {r['cm']['l2']:.2f} / "
-                  f"{r['l2']['l2']:.2f}; err {r['err']:.1e}; within {r['within']} / {r['within_l2']}", flush=True)
+                  f"{r['l2']['l2']:.2f}; err {r['err']:.1e}; within {r['within']} / {r['within_l2']}; guard "
+                  f"{r['guard_ratio']:.2f}{' (float loop)' if r['guard'] else ''}", flush=True)
             rows.append(r)
     return rows
 
@@ -987,23 +991,26 @@ def write_groups(rows: list, loads: list, args) -> None:
          "K = 256, 16-bit grey transfer, albedo 0.8), studio and sky, transport-weighted terms, RGB, the default "
          "relighter (this process's wavelet build: the VNNI dense loop, VNNI_RHO "
          f"{VNNI_RHO}, VNNI_BETA {VNNI_BETA}). Per row the groups of fixed 16-term chunks, of grp17's column-maximum rule "
-         "(`cm`) and of the kernel's L2 rule (`l2`: chunks merged while the call's L2 bound stays within max(1.25 x the "
+         "(`cm`: the kernel's default since vg18) and of vnb18's L2 rule (`l2`, `-DVNNI_L2=1`: chunks merged while the "
+         "call's L2 bound stays within max(1.25 x the "
          "16-term groups', VNNI_BETA x the transfer's own 16-bit bound)), recomputed by `vnni_groups` from brute-force "
          "column maxima and norms; the stated bound as a fraction of the transfer's own 16-bit bound, **per vertex** "
          "(rel. L2 over V x 3 of `vnni_bound`'s f_v Σ_g (s_g,c / 2) Σ_{k∈g} |T_v,k| against f_v Σ_k |L_k,c| / 2: the "
          "figure the VNNI default rests on) and **L2** (the rule's own terms: Σ_g (s_g,c / 2) Σ_{k∈g} ||f_c ⊙ T_:,k||_2 "
          "against ||f_c||_2 Σ_k |L_k,c| / 2, the largest channel); the default call's error (rel. L2 against the "
          "float64 sum of the same stored values, `relight.wavelet_dense` of `reference_rows` times the albedo); "
-         "*within*: every vertex within the per-vertex bound / every channel's L2 error within the L2 bound. "
+         "*within* (the kernel's groups): every vertex within the per-vertex bound / every channel's L2 error within "
+         "the L2 bound; *guard*: the per-call guard's ratio (`vnni_guard`; above 1: the float loop, the bounds moot). "
          f"Reproduce: `.venv/bin/python benchmarks/bench_wavelet_madd_micro.py --vnni --groups-table --sizes "
          f"{' '.join(args.sizes)}`.", "",
          "| size | light | N | dense terms | groups 16 / cm / **l2** | bound / transfer's, per vertex: 16 / cm / **l2** | "
-         "L2: 16 / cm / **l2** | error (rel. L2) | within |", "|---|---|---|---|---|---|---|---|---|"]
+         "L2: 16 / cm / **l2** | error (rel. L2) | within | guard |", "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         L.append(f"| {r['size']} | {r['light']} | {r['N']} | {r['nd']} | {r['16']['groups']} / {r['cm']['groups']} / "
                  f"**{r['l2']['groups']}** | {r['16']['pv']:.2f} / {r['cm']['pv']:.2f} / **{r['l2']['pv']:.2f}** | "
                  f"{r['16']['l2']:.2f} / {r['cm']['l2']:.2f} / **{r['l2']['l2']:.2f}** | {r['err']:.1e} | "
-                 f"{'✓' if r['within'] else '✗'} / {'✓' if r['within_l2'] else '✗'} |")
+                 f"{'✓' if r['within'] else '✗'} / {'✓' if r['within_l2'] else '✗'} | {r['guard_ratio']:.2f}"
+                 f"{' float' if r['guard'] else ''} |")
     path = OUT / "wavelet_vnni_l2groups_error.md"
     atomic_write_text(path, "\n".join(L) + "\n")
     atomic_write_text(path.with_suffix(".json"), json.dumps(rows, indent=1))
