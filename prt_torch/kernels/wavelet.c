@@ -27,7 +27,8 @@
  * channel within f_v sum_g (s_g / 2) sum_{k in g} |T_v,k|). The per-call guard (vg18, VNNI_GUARD = 1): a call whose L2
  * bound sum_G (s_G,c / 2) sum_{k in G} ||scale (.) T_:,k||_2 (the layout's dnorm) exceeds VNNI_GUARD x the transfer's
  * own 16-bit bound ||scale||_2 sum_k |L_k,c| / 2 in some channel takes the float loop (C | FDENSE's bits), so the
- * premise of the default — its error below the stored transfer's own — holds for every light it runs.
+ * premise of the default — its error below the stored transfer's own — holds, in these L2 terms over the vertices (not
+ * per vertex: a dim vertex may still carry more than its own), for every light it runs.
  * C | FDENSE (512) opts a call out (the float loop, its bits: relight.py's arith="float");
  * builds without DVNNI refuse the bit (1) and are unchanged (avx2, znver3, avx512-256, portable, skylake-avx512 and
  * -DDENSE_VNNI=0 objects byte-identical to fdd5d3e's, objdump). prt_wavelet_isa's bit 64 says the build has it.
