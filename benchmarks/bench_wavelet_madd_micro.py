@@ -494,63 +494,108 @@ FLOORS = ("madd pair body (2 terms x 32 vertices; per term: half)", "float term 
           "12 FMA", "12 vpmaddwd", "6 FMA + 6 vpmaddwd", "6 vpmaddwd + 6 vpunpcklwd", "6 FMA + 6 vcvtdq2ps", "12 vpaddd")
 
 
-#: the kernel's flush groups (``kernels/wavelet.c``'s VNNI_G, VNNI_RHO): chunks of 16 dense terms, merged while the call's
-#: column-maximum bound stays within 1.25 x the 16-term groups' (:func:`vnni_groups`)
-VNNI_G, VNNI_RHO = 16, 1.25
+#: the kernel's flush groups (``kernels/wavelet.c``'s VNNI_G, VNNI_RHO, VNNI_L2, VNNI_BETA): chunks of 16 dense terms,
+#: merged while the call's column-maximum bound stays within 1.25 x the 16-term groups' (grp17's rule, the default:
+#: VNNI_L2 0); with VNNI_L2 (vnb18's knob) the L2 bound (the columns' norms of scale x T) within 1.25 x the 16-term
+#: groups' or 0.75 x the transfer's own 16-bit bound, whichever is larger (:func:`vnni_groups`). VNNI_GUARD (vg18): the
+#: call takes the float loop when its L2 bound exceeds VNNI_GUARD x the transfer's own (:func:`vnni_guard`)
+VNNI_G, VNNI_RHO, VNNI_BETA, VNNI_L2, VNNI_GUARD = 16, 1.25, 0.75, False, 1.0
 
 
-def vnni_groups(lw: torch.Tensor, tmax: torch.Tensor, rho: float = VNNI_RHO, chunk: int = VNNI_G) -> torch.Tensor:
-    """The VNNI loop's flush groups for one call, found from the light and the columns' maxima (``kernels/wavelet.c``'s
-    rule, recomputed here): ``lw`` [nd, 3] the dense terms' light in the kernel's order, ``tmax`` [nd] their columns'
-    largest stored magnitudes. Chunks of ``chunk`` consecutive terms, merged left to right while, for every channel c,
-    done_c + s_G,c T_G + rest_c <= rho x B16_c, with B16_c = sum over the chunks g of s_g,c T_g (each chunk its own
-    group: the column-maximum bound of groups of ``chunk``), s a run's scale by :func:`quantise_light`'s column-maximum
-    rule, T its sum of tmax, done the closed groups' s T and rest the later chunks'. So the call's bound over the
-    columns' maxima, sum_G s_G,c T_G, is at most rho times that of the fixed groups. The same float64 sums in the same
-    order as the kernel (a chunk's sums term by term, a run's its chunks' in order; B16 summed from the back), so the
-    same groups. Returns each term's group, int64 [nd]."""
+def vnni_groups(lw: torch.Tensor, tmax: torch.Tensor, rho: float = VNNI_RHO, chunk: int = VNNI_G,
+                norms: torch.Tensor | None = None, nscale: float = 0.0, beta: float = VNNI_BETA) -> torch.Tensor:
+    """The VNNI loop's flush groups for one call, found from the light and the columns' maxima and norms
+    (``kernels/wavelet.c``'s rule, recomputed here): ``lw`` [nd, 3] the dense terms' light in the kernel's order,
+    ``tmax`` [nd] their columns' largest stored magnitudes (the scales), ``norms`` [nd] float64 their columns' L2
+    norms over the vertices of scale x T and ``nscale`` the scale's own L2 norm (the kernel's rule since vnb18; None:
+    grp17's, the columns' maxima as weights, no absolute budget). Chunks of ``chunk`` consecutive terms, merged left
+    to right while, for every channel c, done_c + s_G,c W_G + rest_c <= budget_c, with W a run's weight (the sum of
+    its norms; grp17: of its tmax), s its scale by :func:`quantise_light`'s column-maximum rule, done the closed
+    groups' s W, rest the later chunks' as groups of ``chunk``, and budget_c = max(rho x B16_c, beta x nscale x
+    sum_k |L_k,c|) (B16_c = sum over the chunks g of s_g,c W_g; the second term with ``norms`` only). With the norms,
+    sum_G (s_G,c / 2) W_G bounds the output's L2 error over the vertices (triangle inequality; the albedo aside) and
+    nscale sum_k |L_k,c| / 2 is the transfer's own 16-bit bound in the same terms. The same float64 sums in the same
+    order as the kernel (a chunk's sums term by term, a run's its chunks' in order, sum |L| term by term; B16 summed
+    from the back), so the same groups. Returns each term's group, int64 [nd]."""
     nd = lw.shape[0]
     a = lw.double().abs().tolist()
     tm = [float(x) for x in tmax.tolist()]
+    nm = None if norms is None else [float(x) for x in norms.double().tolist()]
     nc = (nd + chunk - 1) // chunk
-    cs, cm, ch = [], [], []
+    cs, cm, ch, cw = [], [], [], []
+    la = [0.0] * 3
     for i in range(nc):
-        su, mx, half = [0.0] * 3, [0.0] * 3, 0.0
+        su, mx, half, wt = [0.0] * 3, [0.0] * 3, 0.0, 0.0
         for t in range(i * chunk, min((i + 1) * chunk, nd)):
             half += tm[t] / 2
+            wt += tm[t] if nm is None else nm[t]
             for c in range(3):
                 su[c] += a[t][c] * tm[t]
                 mx[c] = max(mx[c], a[t][c])
-        cs.append(su), cm.append(mx), ch.append(half)
+                la[c] += a[t][c]
+        cs.append(su), cm.append(mx), ch.append(half), cw.append(wt)
 
     def rule(su, mx, half):
-        return [max(su[c] / (2147483647.0 - half), mx[c] / 32767.0) for c in range(3)], 2 * half
+        return [max(su[c] / (2147483647.0 - half), mx[c] / 32767.0) for c in range(3)]
 
     rest = [[0.0] * 3 for _ in range(nc + 1)]
     for i in range(nc - 1, -1, -1):
-        sc, T = rule(cs[i], cm[i], ch[i])
-        rest[i] = [rest[i + 1][c] + sc[c] * T for c in range(3)]
+        sc = rule(cs[i], cm[i], ch[i])
+        rest[i] = [rest[i + 1][c] + sc[c] * cw[i] for c in range(3)]
+    bud = [max(rho * rest[0][c], beta * nscale * la[c] if nm is not None else 0.0) for c in range(3)]
     grp, g, done, cur = [], -1, [0.0] * 3, [0.0] * 3
     gs = gm = None
-    gh = 0.0
+    gh = gw = 0.0
     for i in range(nc):
         n = min((i + 1) * chunk, nd) - i * chunk
         if i > 0:
             s2 = [gs[c] + cs[i][c] for c in range(3)]
             m2 = [max(gm[c], cm[i][c]) for c in range(3)]
-            h2 = gh + ch[i]
-            sc, T = rule(s2, m2, h2)
-            if all(done[c] + sc[c] * T + rest[i + 1][c] <= rho * rest[0][c] for c in range(3)):
-                gs, gm, gh, cur = s2, m2, h2, [sc[c] * T for c in range(3)]
+            h2, w2 = gh + ch[i], gw + cw[i]
+            sc = rule(s2, m2, h2)
+            if all(done[c] + sc[c] * w2 + rest[i + 1][c] <= bud[c] for c in range(3)):
+                gs, gm, gh, gw, cur = s2, m2, h2, w2, [sc[c] * w2 for c in range(3)]
                 grp += [g] * n
                 continue
             done = [done[c] + cur[c] for c in range(3)]
         g += 1
-        gs, gm, gh = list(cs[i]), list(cm[i]), ch[i]
-        sc, T = rule(gs, gm, gh)
-        cur = [sc[c] * T for c in range(3)]
+        gs, gm, gh, gw = list(cs[i]), list(cm[i]), ch[i], cw[i]
+        sc = rule(gs, gm, gh)
+        cur = [sc[c] * gw for c in range(3)]
         grp += [g] * n
     return torch.tensor(grp, dtype=torch.int64)
+
+
+def kernel_groups(lw: torch.Tensor, tmax: torch.Tensor, norms: torch.Tensor, nscale: float) -> torch.Tensor:
+    """The kernel's flush groups for one call (:func:`vnni_groups` by its default rule: grp17's column maxima, or the L2
+    rule where :data:`VNNI_L2`), each term's group int64 [nd]."""
+    return vnni_groups(lw, tmax, norms=norms, nscale=nscale) if VNNI_L2 else vnni_groups(lw, tmax)
+
+
+def vnni_guard(lw: torch.Tensor, grp, tmax: torch.Tensor, norms: torch.Tensor, nscale: float,
+               guard: float = VNNI_GUARD) -> tuple[bool, float]:
+    """``kernels/wavelet.c``'s per-call guard (vg18), recomputed: for the dense terms' light ``lw`` [nd, 3] in the
+    kernel's order, their flush groups ``grp`` (each term's group int64 [nd], or a group size), columns' maxima ``tmax``
+    [nd] and L2 norms of scale x T ``norms`` [nd] float64 (``nscale`` the scale's own norm), the call's L2 bound
+    sum_G s_G,c sum_{k in G} norms_k (:func:`quantise_light`'s float32 scales) against the transfer's own
+    nscale sum_k |L_k,c| (both without the common 1/2), per channel with light. Returns ``(trips, ratio)``: whether
+    the call takes the float loop (ratio > ``guard`` in some channel; ``guard`` 0: never) and the largest channel's
+    ratio."""
+    _, s, g = quantise_light(lw, grp, tmax)
+    W = torch.zeros(s.shape[0], dtype=torch.float64).index_add_(0, g, norms.double())
+    vb = (s.double() * W[:, None]).sum(0)
+    own = nscale * lw.double().abs().sum(0)
+    lit = own > 0
+    ratio = float((vb[lit] / own[lit]).max()) if bool(lit.any()) else 0.0
+    return bool(guard > 0 and ratio > guard), ratio
+
+
+def dense_norms(rl) -> torch.Tensor:
+    """The dense columns' L2 norms over the vertices of scale x T, float64 [Pd], and the scale's, by brute force over
+    ``rl.dense`` and ``rl.scale`` (a grey transfer; not the layout's ``dnorm``): ``(norms, nscale)``."""
+    T = rl.dense[:, :rl.Pd, 0, :].permute(1, 0, 2).reshape(rl.Pd, -1)[:, :rl.V].double()  # [Pd, V]
+    sv = rl.scale[:, 0].double()
+    return (T * sv).norm(dim=1), float(sv.norm())
 
 
 def quantise_light(lw: torch.Tensor, group, tmax: torch.Tensor | None):
@@ -782,25 +827,36 @@ def kernel_dense_order(rl, li: torch.Tensor, lv: torch.Tensor) -> tuple[torch.Te
     return ds, lw[:, :3].contiguous()
 
 
-def vnni_bound(rl, li: torch.Tensor, lv: torch.Tensor, fac: torch.Tensor | None = None, albedo: bool = True) -> dict:
+def vnni_bound(rl, li: torch.Tensor, lv: torch.Tensor, fac: torch.Tensor | None = None, albedo: bool = True,
+               groups=None) -> dict:
     """The VNNI dense loop's stated error bound for one call on ``rl``'s layout (a 16-bit grey transfer, the light
     ``li`` int64 [N], ``lv`` float32 [3, N]), per vertex and channel, float64 [V, 3], from quantities found here
     independently of the kernel: the light's dense terms in the kernel's order (:func:`kernel_dense_order`), each dense
     column's largest stored magnitude by brute force over ``rl.dense`` (not the layout's ``dtmax``), the groups' steps
-    s_g by :func:`quantise_light`'s column-maximum rule in the kernel's flush groups (:func:`vnni_groups`: chunks of 16
-    terms merged within 1.25 x the 16-term groups' column-max bound); ``fac`` [V, 3] the factor (default the
-    relighter's, ``_factor(3, albedo)``; ``albedo``: the output with the albedo applied, as the call's). Returns
+    s_g by :func:`quantise_light`'s column-maximum rule in the kernel's flush groups (:func:`kernel_groups`: chunks of 16
+    terms merged within 1.25 x the 16-term groups' column-max bound, grp17's rule; with :data:`VNNI_L2` the L2 rule on the
+    columns' norms by brute force, :func:`dense_norms`); ``fac`` [V, 3] the factor (default the
+    relighter's, ``_factor(3, albedo)``; ``albedo``: the output with the albedo applied, as the call's; ``groups``: each
+    term's group int64 [nd] or a group size instead of the kernel's). Returns
     ``bound`` f_v Σ_g (s_g,c / 2) Σ_{k∈g} |T_v,k| (the dense terms' quantised light), ``slack`` 1e-5 f_v Σ_k
     |T_v,k| |L_k,c| over all N terms (float32 rounding of the whole call, dense and sparse: ~100 roundings of 6e-8
     each at most), ``tbound`` the transfer's own 16-bit quantisation bound for the same dense terms
-    f_v Σ_k |L_k,c| / 2, ``nd`` the dense terms and ``groups``."""
+    f_v Σ_k |L_k,c| / 2, ``nd`` the dense terms and ``groups``; per channel float64 [3]: ``l2`` the output's L2 error
+    bound over the vertices Σ_g (s_g,c / 2) Σ_{k∈g} ||f_c ⊙ T_:,k||_2, ``l2_transfer`` the transfer's own in the same
+    terms ||f_c||_2 Σ_k |L_k,c| / 2, ``slack_l2`` the rounding slack's L2 norm; ``guard`` whether the kernel's per-call
+    guard sends the call to the float loop with these groups (:func:`vnni_guard` on the brute-force norms: then the
+    call's output is the float loop's, ``bound`` does not apply) and ``guard_ratio`` its ratio."""
     if fac is None:
         fac = rl._factor(3, albedo).double()
     nb = rl.dense.shape[0]
     d16 = rl.dense.reshape(nb, rl.Pd, 32)
     ds, lw = kernel_dense_order(rl, li, lv)
     tmax = d16.to(torch.int32).abs().amax(dim=(0, 2))  # [Pd] brute force
-    _, sc, grp = quantise_light(lw, vnni_groups(lw, tmax[ds]) if ds.numel() else 16, tmax[ds])
+    nrm, ns = dense_norms(rl)  # [Pd] brute force
+    if groups is None:
+        groups = kernel_groups(lw, tmax[ds], nrm[ds], ns) if ds.numel() else 16
+    _, sc, grp = quantise_light(lw, groups, tmax[ds])
+    trips, gratio = vnni_guard(lw, grp, tmax[ds], nrm[ds], ns) if ds.numel() else (False, 0.0)
     tk = d16[:, ds, :].double().abs()  # [nb, nd, 32] |T_v,k| over the dense terms
     bound = torch.einsum("bkv,kc->bvc", tk, sc.double()[grp] / 2).reshape(-1, 3)[:rl.V] * fac
     ref_index, ref_vals = rl.reference_rows(0, rl.V)  # dequantised: the scale applied, so times the albedo only
@@ -809,8 +865,13 @@ def vnni_bound(rl, li: torch.Tensor, lv: torch.Tensor, fac: torch.Tensor | None 
     mag = relight.wavelet_dense(ref_vals.double().abs(), ref_index, li, lv.double().abs(), rl.P)
     if albedo:
         mag = mag * rl.albedo[:, :3].double()
+    # the L2 bound over the vertices per channel (triangle inequality over the columns) and the transfer's own
+    tf = torch.stack([(d16[:, ds, :].double().permute(1, 0, 2).reshape(ds.numel(), -1)[:, :rl.V] * fac[:, c]).norm(dim=1)
+                      for c in range(3)], 1)  # [nd, 3] ||f_c (.) T_:,k||
     return {"bound": bound, "slack": 1e-5 * mag, "tbound": lw.double().abs().sum(0)[None, :] / 2 * fac, "nd": int(ds.numel()),
-            "groups": int(grp[-1]) + 1 if ds.numel() else 0}
+            "groups": int(grp[-1]) + 1 if ds.numel() else 0, "l2": (sc.double()[grp] / 2 * tf).sum(0),
+            "l2_transfer": fac.norm(dim=0) * lw.double().abs().sum(0) / 2, "slack_l2": 1e-5 * mag.norm(dim=0),
+            "guard": trips, "guard_ratio": gratio}
 
 
 def proto_rows(rl, fac: torch.Tensor, args) -> list:
@@ -868,6 +929,92 @@ def proto_rows(rl, fac: torch.Tensor, args) -> list:
                   f"{r['trunc']:.1e}), within bound {ok}; load {r['load']:.1f}", flush=True)
             out.append(r)
     return out
+
+
+def group_rows(size: str, terms) -> list:
+    """The flush groups and the error they carry per row (``--vnni --groups-table``): on the blocker scene at ``size``
+    (R = 32, K = 256, 16-bit; the default relighter, so the VNNI loop of this process's build), studio and sky at each N
+    of ``terms`` and all, the groups of fixed 16-term chunks, of grp17's column-maximum rule (:func:`vnni_groups`
+    without norms: the kernel's default) and of vnb18's L2 rule (``-DVNNI_L2=1``; with brute-force norms,
+    :func:`dense_norms`); per grouping the stated
+    bound as a fraction of the transfer's own 16-bit bound, per vertex in rel. L2 (``vnni_bound``'s ``bound`` against
+    ``tbound``, over V x 3) and in the L2 terms the rule uses (``l2`` against ``l2_transfer``, the largest channel); the
+    default call's error (rel. L2 against the float64 sum of the same stored values), every vertex within the per-vertex
+    bound and the L2 error within the L2 bound (per channel), for the kernel's groups; and the per-call guard's ratio
+    (:func:`vnni_guard`: above 1 the call takes the float loop)."""
+    from bench_wavelet import kernel_transfer
+
+    from prt_torch import relight
+
+    rl = relight.WaveletRelighter(kernel_transfer(size), threads=1, layouts="column")
+    if not rl._takes_vnni(*rl.light(LIGHTS["studio"], 300, "transport")[:2]):
+        raise SystemExit("bench_wavelet_madd_micro.py --groups-table: this process's wavelet build has no VNNI dense loop; "
+                         "accepted: the native or avx512 build on a CPU with AVX-512 VNNI")
+    nb = rl.dense.shape[0]
+    tmax = rl.dense.reshape(nb, rl.Pd, 32).to(torch.int32).abs().amax(dim=(0, 2))
+    nrm, ns = dense_norms(rl)
+    ref_index, ref_vals = rl.reference_rows(0, rl.V)
+    rows = []
+    for light in ("studio", "sky (sun)"):
+        for N in tuple(terms) + (rl.P,):
+            li, lv, _ = rl.light(LIGHTS[light], min(N, rl.P), "transport")
+            lv = lv.float().contiguous()
+            ds, lw = kernel_dense_order(rl, li, lv)
+            exact = relight.wavelet_dense(ref_vals.double(), ref_index, li, lv.double(), rl.P) * rl.albedo[:, :3].double()
+            out = rl(li, lv).double()
+            r = {"size": size, "V": rl.V, "light": light, "N": "all" if N >= rl.P else N, "nd": int(ds.numel()),
+                 "err": float((out - exact).norm() / exact.norm())}
+            for name, g in (("16", 16), ("cm", vnni_groups(lw, tmax[ds])),
+                            ("l2", vnni_groups(lw, tmax[ds], norms=nrm[ds], nscale=ns))):
+                b = vnni_bound(rl, li, lv, groups=g)
+                r[name] = {"groups": b["groups"], "pv": float(b["bound"].norm() / b["tbound"].norm()),
+                           "l2": float((b["l2"] / b["l2_transfer"]).max())}
+                if name == ("l2" if VNNI_L2 else "cm"):  # the kernel's groups: its output within their bounds
+                    r["within"] = bool(((out - exact).abs() <= b["bound"] + b["slack"]).all())
+                    r["within_l2"] = bool(((out - exact).norm(dim=0) <= b["l2"] + b["slack_l2"]).all())
+                    r["guard"], r["guard_ratio"] = b["guard"], b["guard_ratio"]  # the per-call guard (vg18)
+            print(f"[groups] {size} {light} N={r['N']} nd={r['nd']}: groups 16 / cm / l2 {r['16']['groups']} / "
+                  f"{r['cm']['groups']} / {r['l2']['groups']}, bound of the transfer's (per vertex) {r['16']['pv']:.2f} / "
+                  f"{r['cm']['pv']:.2f} / {r['l2']['pv']:.2f}, (L2) {r['16']['l2']:.2f} / {r['cm']['l2']:.2f} / "
+                  f"{r['l2']['l2']:.2f}; err {r['err']:.1e}; within {r['within']} / {r['within_l2']}; guard "
+                  f"{r['guard_ratio']:.2f}{' (float loop)' if r['guard'] else ''}", flush=True)
+            rows.append(r)
+    return rows
+
+
+def write_groups(rows: list, loads: list, args) -> None:
+    """``--groups-table``'s report: reports/benchmarks/wavelet_vnni_l2groups_error.md (and .json)."""
+    import json
+
+    L = ["# Wavelet kernel: the VNNI loop's flush groups and the error they carry (issue 39)", "",
+         f"{cpu_label()}; load average {min(loads):.1f}-{max(loads):.1f}. Blocker scene (occluder_over_plane, R = 32, "
+         "K = 256, 16-bit grey transfer, albedo 0.8), studio and sky, transport-weighted terms, RGB, the default "
+         "relighter (this process's wavelet build: the VNNI dense loop, VNNI_RHO "
+         f"{VNNI_RHO}, VNNI_BETA {VNNI_BETA}). Per row the groups of fixed 16-term chunks, of grp17's column-maximum rule "
+         "(`cm`: the kernel's default since vg18) and of vnb18's L2 rule (`l2`, `-DVNNI_L2=1`: chunks merged while the "
+         "call's L2 bound stays within max(1.25 x the "
+         "16-term groups', VNNI_BETA x the transfer's own 16-bit bound)), recomputed by `vnni_groups` from brute-force "
+         "column maxima and norms; the stated bound as a fraction of the transfer's own 16-bit bound, **per vertex** "
+         "(rel. L2 over V x 3 of `vnni_bound`'s f_v Σ_g (s_g,c / 2) Σ_{k∈g} |T_v,k| against f_v Σ_k |L_k,c| / 2: the "
+         "figure the VNNI default rests on) and **L2** (the rule's own terms: Σ_g (s_g,c / 2) Σ_{k∈g} ||f_c ⊙ T_:,k||_2 "
+         "against ||f_c||_2 Σ_k |L_k,c| / 2, the largest channel); the default call's error (rel. L2 against the "
+         "float64 sum of the same stored values, `relight.wavelet_dense` of `reference_rows` times the albedo); "
+         "*within* (the kernel's groups): every vertex within the per-vertex bound / every channel's L2 error within "
+         "the L2 bound; *guard*: the per-call guard's ratio (`vnni_guard`; above 1: the float loop, the bounds moot). "
+         f"Reproduce: `.venv/bin/python benchmarks/bench_wavelet_madd_micro.py --vnni --groups-table --sizes "
+         f"{' '.join(args.sizes)}`.", "",
+         "| size | light | N | dense terms | groups 16 / cm / **l2** | bound / transfer's, per vertex: 16 / cm / **l2** | "
+         "L2: 16 / cm / **l2** | error (rel. L2) | within | guard |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        L.append(f"| {r['size']} | {r['light']} | {r['N']} | {r['nd']} | {r['16']['groups']} / {r['cm']['groups']} / "
+                 f"**{r['l2']['groups']}** | {r['16']['pv']:.2f} / {r['cm']['pv']:.2f} / **{r['l2']['pv']:.2f}** | "
+                 f"{r['16']['l2']:.2f} / {r['cm']['l2']:.2f} / **{r['l2']['l2']:.2f}** | {r['err']:.1e} | "
+                 f"{'✓' if r['within'] else '✗'} / {'✓' if r['within_l2'] else '✗'} | {r['guard_ratio']:.2f}"
+                 f"{' float' if r['guard'] else ''} |")
+    path = OUT / "wavelet_vnni_l2groups_error.md"
+    atomic_write_text(path, "\n".join(L) + "\n")
+    atomic_write_text(path.with_suffix(".json"), json.dumps(rows, indent=1))
+    print(f"[groups] wrote {path}")
 
 
 def hdr_lights(rl, N: int = 300) -> dict:
@@ -1125,6 +1272,9 @@ def main() -> None:
                     "(the VNNI default against the opt-out: reports/benchmarks/wavelet_vnni_default.md)")
     ap.add_argument("--pervertex", action="store_true", help="--vnni: the default's error per vertex beside the opt-out's "
                     "and the stored transfer's own, incl. HDR lights (reports/benchmarks/wavelet_vnni_pervertex.md)")
+    ap.add_argument("--groups-table", action="store_true", help="--vnni: the flush groups (16-term, grp17's column-max "
+                    "rule, the kernel's L2 rule) and the error and bounds they carry per row "
+                    "(reports/benchmarks/wavelet_vnni_l2groups_error.md)")
     ap.add_argument("--sizes", nargs="+", default=["small"], help="--vnni: the kernel section's sizes (small, medium, large)")
     ap.add_argument("--terms", type=int, nargs="+", default=[300, 1000, 6144])
     ap.add_argument("--grey", nargs="*", default=["cap 20°", "cap 40°"], choices=list(LIGHTS),
@@ -1143,6 +1293,13 @@ def main() -> None:
     lib = build_library()
     if lib is None:
         raise SystemExit("bench_wavelet_madd_micro: no compiler")
+    if args.vnni and args.groups_table:
+        loads, rows = [os.getloadavg()[0]], []
+        for size in args.sizes:
+            rows += group_rows(size, (10, 30, 100, 300, 1000))
+            loads.append(os.getloadavg()[0])
+        write_groups(rows, loads, args)
+        return
     if args.vnni and args.pervertex:
         loads, rows = [os.getloadavg()[0]], []
         for size in args.sizes:

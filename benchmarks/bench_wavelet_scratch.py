@@ -19,8 +19,12 @@ terms, RGB, the relighter's per-vertex factor) at N = ``--terms`` and all, in tw
 Builds: **test** (the working tree), **base**, **A/A** (the base built twice: the pairing's noise) and the measurement
 knobs in ``--variants`` (the working tree with ``-D`` lines prepended): ``touch8`` (``TOUCH8``: a mark per 8-vertex
 block instead of per 32), ``outpf`` (``OUT_PFW``: each dense block prefetches its output lines for writing before its
-dense terms), ``rho0`` / ``rho2`` (``VNNI_RHO`` 0 / 2: the VNNI loop's fixed 16-term flush groups / a budget of 2x
-their column-max bound), and the others in ``VARIANTS``. Per row: base / variant (median of the per-repeat ratios,
+dense terms), ``rho0`` / ``rho2`` (``VNNI_RHO`` 0 / 2: no relative budget — with ``b0``, ``rho0+b0``, the VNNI
+loop's fixed 16-term flush groups — / a budget of 2x the 16-term groups' bound), ``cm`` (``VNNI_L2`` 0: grp17's
+flush groups, weighed by the columns' maxima), ``b0`` / ``b5`` / ``b75`` / ``b9`` (``VNNI_BETA`` 0 / 0.5 / 0.75 / 0.9:
+the flush groups' absolute budget, a fraction of the transfer's own 16-bit L2 bound; 0: none), ``l2`` (``VNNI_L2`` 1:
+vnb18's L2 flush groups), ``noguard`` (``VNNI_GUARD`` 0: no per-call guard, the VNNI loop whatever its bound), and the others in
+``VARIANTS``. Per row: base / variant (median of the per-repeat ratios,
 quartiles; > 1: the variant faster), and the
 test and base builds against the streaming read of the bytes the call touches plus a fill of the output
 (``timing.read_bound_fn`` of ``WaveletRelighter.bytes_read``; section 7's criterion) in the same regime. Every
@@ -82,7 +86,9 @@ VARIANTS = {"touch8": "#define TOUCH8 1\n", "outpf": "#define OUT_PFW 1\n", "mar
             "marknone": "#define TOUCH_X (-1LL)\n", "outz0": "#define OUT_Z 0\n", "outz2": "#define OUT_Z 2\n",
             "pfx12": "#define PFX 12\n", "pfx48": "#define PFX 48\n", "g32": "#define VNNI_G 32\n", "g4096": "#define VNNI_G 4096\n",
             "sprf0": "#define SP_PFR 0\n", "sprf4l": "#define SP_PFL 4\n",
-            "rho0": "#define VNNI_RHO 0\n", "rho2": "#define VNNI_RHO 2.0\n"}
+            "rho0": "#define VNNI_RHO 0\n", "rho2": "#define VNNI_RHO 2.0\n",
+            "cm": "#define VNNI_L2 0\n", "b0": "#define VNNI_BETA 0\n", "b5": "#define VNNI_BETA 0.5\n", "b75": "#define VNNI_BETA 0.75\n",
+            "b9": "#define VNNI_BETA 0.9\n", "l2": "#define VNNI_L2 1\n", "noguard": "#define VNNI_GUARD 0\n"}
 #: the -D line ``--vnni`` prepends to every build
 VNNI = "#define DENSE_VNNI 1\n"
 

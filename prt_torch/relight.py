@@ -364,7 +364,10 @@ class WaveletRelighter:
     where Σ_k tmax_k |L̂_k| would overflow int32): 0.28–0.90× the stored 16-bit transfer's own quantisation bound, an
     output error of 8e-6–6e-5 relative L2, but up to ~2e-3 relative at the dimmest vertices, where the light's terms
     cancel — more than the stored transfer's own error there (docs/wavelet.md, "The dense arithmetic" and "the VNNI
-    dense loop by default"); every other call, and every other build, the float32 loop. ``'float'``: the float32 loop
+    dense loop by default"). A per-call guard keeps that premise for every light: a call whose L2 bound of the VNNI
+    error, Σ_G (s_G,c / 2) Σ_{k∈G} ‖scale ⊙ T̂_:,k‖₂, exceeds the transfer's own, ‖scale‖₂ Σ_k |L̂_k,c| / 2, in some
+    channel takes the float32 loop (its bits) instead (e.g. one light term 1e4 × the others in its flush group, or
+    the coarse R = 8 layouts). Every other call, and every other build, the float32 loop. ``'float'``: the float32 loop
     for every call (the kernel's C | FDENSE), the bits of the builds without VNNI.
     """
 
@@ -647,6 +650,7 @@ class WaveletRelighter:
         self._lp = torch.zeros(P, 4, dtype=torch.float32)  # the light per column (zero between the kernel's calls)
         self._native = None
         self._dtmax = None  # [Pd] int32 each dense column's largest stored magnitude (16-bit: built with the kernel's layout)
+        self._dnorm = None  # [Pd + 1] float64 the dense columns' L2 norms of scale x T, then ||scale|| (_dense_norms)
         if self.layouts == "both":
             self._build_rows()
 
@@ -710,7 +714,8 @@ class WaveletRelighter:
             return sum(t.numel() * t.element_size() for t in ts if t is not None)
         parts = {"dense": nb(self.dense), "column": nb(self.bvals, self.bofs, self.tptr, self.tbase),
                  "row": nb(self.rptr, self.rcol, self.rvals),
-                 "other": nb(self.dslot, self.bcount, self._cblk, self._acc, self._zacc, self._tmark, self._dtmax, self._wk,
+                 "other": nb(self.dslot, self.bcount, self._cblk, self._acc, self._zacc, self._tmark, self._dtmax, self._dnorm,
+                             self._wk,
                              self._lw,
                              self.dcol, self.cls, self._mark, self._lp, self.scale, self.albedo, self.nnz, self.weights,
                              *(f for f, _ in self._f.values()), *self._f_full.values())}
@@ -844,10 +849,11 @@ class WaveletRelighter:
                  "row": (4 * nb + 1) * 8 + 4 * NB + blk if with_rows else 0,
                  # dslot, _cblk, nnz int32; bcount [NT, P] int32; _acc, _zacc float32, _tmark uint8; _wk int64; _lw, _lp [P, 4] float32; dcol int64;
                  # cls, _mark uint8; scale [V, CT], albedo [V, 3], the cached factor [V, CO] or [V + 4] float32
-                 # (_kfactor); weights float64; _dtmax [Pd] int32 with 16-bit kernel values (once the kernel is bound)
+                 # (_kfactor); weights float64; _dtmax [Pd] int32 with 16-bit kernel values (once the kernel is bound),
+                 # _dnorm [Pd + 1] float64 with 16-bit values on a grey transfer (the same)
                  "other": 12 * P + 4 * NT * P + MT * (TV // cls.SUB) * (2 * 4 * cls.SUB * 4 + 1) + 8 * P + 32 * P + 8 * Pd + 2 * P
                  + 4 * V * CT + 12 * V + (4 * V * CO if factor_form == "channel" else 4 * (V + 4)) + 8 * P
-                 + (4 * max(Pd, 1) if b == 2 else 0)}
+                 + (4 * max(Pd, 1) if b == 2 else 0) + (8 * (Pd + 1) if b == 2 and CT == 1 else 0)}
         parts["total"] = sum(parts.values())
         # __init__'s peak above what it keeps (built in chunks of rows): either while placing the chunks — the kernel
         # values of every row (held between the passes when re-quantised or float: a view of the stored values
@@ -962,7 +968,9 @@ class WaveletRelighter:
         float32: the build has it (``vnni``; None: the build this relighter is bound to), ``arith`` (None: this
         relighter's) is ``'auto'``, 16-bit kernel values on a grey transfer (CT = 1), an RGB light whose three channels
         are not bitwise equal at every term (a grey RGB light takes one sum per vertex), and at least :attr:`ZMM_MIN`
-        (distinct dense column, 32-vertex block) pairs. The other calls take the float loop (its bits)."""
+        (distinct dense column, 32-vertex block) pairs. The other calls take the float loop (its bits). Not modelled
+        here: the kernel's per-call guard, which sends a call whose VNNI L2 bound exceeds the transfer's own to the
+        float loop after the light is grouped (``benchmarks/bench_wavelet_madd_micro.vnni_guard`` recomputes it)."""
         if vnni is None:
             self._kernel()
             vnni = self._vnni
@@ -989,6 +997,25 @@ class WaveletRelighter:
         return wavelet_light(spec, self.res, terms, selection, self.weights if selection == "transport" else None,
                              supersample)
 
+    def _dense_norms(self) -> torch.Tensor:
+        """The dense columns' L2 norms over the vertices of the quantisation scale times the stored value, then the
+        scale's own: float64 ``[Pd + 1]``, ``||scale (.) T_:,k||_2`` for slot k of ``dense`` (a grey transfer: CT = 1;
+        ``scale`` [V, 1]) and ``||scale||_2`` — kernels/wavelet.c's ``dnorm``, the VNNI loop's flush groups' weights: the
+        output's L2 error of a call is at most sum_G (s_G,c / 2) sum_{k in G} ||f (.) T_:,k||_2 per channel (the triangle
+        inequality), and ``||scale|| sum_k |L_k,c| / 2`` is the transfer's own 16-bit bound in the same terms. The
+        factor f is the scale times the albedo: the albedo is left out (a per-call option and per channel; grey or
+        uniform, a constant per channel on both sides of the kernel's budget). Summed in blocks of 8192 vertices
+        (float64 squares, no [Pd, V] copy)."""
+        nb, Pd = self.dense.shape[0], self.Pd
+        s2 = torch.zeros(nb * self.BLOCK, dtype=torch.float64)
+        s2[:self.V] = self.scale[:, 0].double() ** 2
+        s2 = s2.reshape(nb, self.BLOCK)
+        acc = torch.zeros(Pd, dtype=torch.float64)
+        for b0 in range(0, nb, 256):  # 256 blocks a step: a loop of ceil(V / 8192) steps
+            d = self.dense[b0:b0 + 256, :Pd, 0, :].double()  # [nb', Pd, 32]
+            acc += torch.einsum("bkv,bv->k", d * d, s2[b0:b0 + 256])
+        return torch.cat([acc.sqrt(), s2.sum().sqrt().reshape(1)]).contiguous()
+
     def _kernel(self):
         """The compiled kernel bound to this transfer's arrays: a function of (N, sel, lv, C, f, out,
         threads) pointers returning the kernel's status; None without a compiler or with PRT_TORCH_NATIVE=0."""
@@ -1005,6 +1032,9 @@ class WaveletRelighter:
             # column-maximum rule; read by the builds with that loop only), else NULL
             self._dtmax = (self.dense.to(torch.int32).abs().amax(dim=(0, 2, 3)).contiguous()
                            if self.dense.dtype == torch.int16 else None)
+            # and the dense columns' L2 norms (the VNNI loop's flush groups: kernels/wavelet.c's dnorm), the same
+            # condition on a grey transfer (the VNNI loop's calls), else NULL
+            self._dnorm = self._dense_norms() if self.dense.dtype == torch.int16 and self.CT == 1 else None
             self._layout = torch.tensor([self.P, self.Pd, self.V, self.CT, self.TV, self.NT, self.MT,
                                          self.tptr.data_ptr(), self.tbase.data_ptr(), self.bofs.data_ptr(), self.bvals.data_ptr(),
                                          self.dslot.data_ptr(), self.dense.data_ptr(), self._acc.data_ptr(), self._wk.data_ptr(),
@@ -1012,7 +1042,8 @@ class WaveletRelighter:
                                          *(0 if t is None else t.data_ptr() for t in (self.rptr, self.rcol, self.rvals)),
                                          self.NB, self._row_permille(self.row_min, self._rows_used),
                                          self._cblk.data_ptr(), self._zacc.data_ptr(), self._tmark.data_ptr(),
-                                         0 if self._dtmax is None else self._dtmax.data_ptr()],
+                                         0 if self._dtmax is None else self._dtmax.data_ptr(),
+                                         0 if self._dnorm is None else self._dnorm.data_ptr()],
                                         dtype=torch.int64)
             lay = self._layout.data_ptr()
             # the opt-out bit only where the build has the VNNI loop (the others refuse any bit above F1: status 1)

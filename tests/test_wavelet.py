@@ -307,7 +307,8 @@ def test_evaluator_reference_is_the_float_loop_whatever_arith(scene):
     """The harness's exact reference for wavelet transfer (``Evaluator.reference``: every Haar term) runs the float32
     dense loop whatever ``wavelet_arith`` (``WaveletRelighter.float32``): against the float64 sum of the stored values
     to float32 rounding, where the default relighter's own call (the VNNI loop on a CPU with it) is only within its
-    quantisation bound; the relighter's default call is left as it was (its opt-out bit restored)."""
+    quantisation bound; the relighter's default call is left as it was (its opt-out bit restored: the VNNI loop, unless
+    the kernel's per-call guard sends this light to the float loop, as ``bench_wavelet_madd_micro.vnni_bound`` says)."""
     from prt_torch.harness.evaluate import Evaluator
 
     g = torch.Generator().manual_seed(23)
@@ -327,7 +328,15 @@ def test_evaluator_reference_is_the_float_loop_whatever_arith(scene):
         assert torch.equal(got.float(), fl(torch.arange(P), lv.float()))  # the float loop's bits
         assert r._fd == 0  # the default's call restored: the VNNI loop where the build has it
         if r._vnni:
-            assert not torch.equal(r(torch.arange(P), lv.float()), got.float())
+            import sys
+
+            sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+            try:
+                from bench_wavelet_madd_micro import vnni_bound
+            finally:
+                sys.path.pop(0)
+            guard = vnni_bound(r, torch.arange(P), lv.float())["guard"]  # the per-call guard, recomputed
+            assert torch.equal(r(torch.arange(P), lv.float()), got.float()) == guard
 
 
 def test_kernel_portable_path_without_avx2(scene):

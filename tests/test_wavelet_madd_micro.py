@@ -175,8 +175,9 @@ def test_vnni_light_that_would_overflow_does_not(bench, lib):
 
 @pytest.fixture(scope="module")
 def vnni_rl():
-    """A real 16-bit grey transfer (blocker scene, small: 2251 vertices, 71 blocks with a partial last one) and its
-    default relighter, where this process's wavelet build has the VNNI dense loop (else skipped)."""
+    """A real 16-bit grey transfer (blocker scene, small: 2251 vertices, 71 blocks with a partial last one; R = 16,
+    K = 64: ordinary lights keep the VNNI loop's bound below the transfer's own, so its per-call guard lets them take
+    it) and its default relighter, where this process's wavelet build has the VNNI dense loop (else skipped)."""
     from prt_torch import relight
     from prt_torch.scene import builtin
     from prt_torch.transfer import RunOptions
@@ -184,10 +185,24 @@ def vnni_rl():
 
     if not relight.wavelet_kernel_path().get("vnni"):
         pytest.skip("this wavelet build has no VNNI dense loop (no AVX-512 VNNI here, or PRT_TORCH_KERNEL_ISA)")
-    tr = precompute_wavelet(builtin("occluder_over_plane", "small"), 8, 32, 16, shadows="always", run=RunOptions(workers=1))
+    tr = precompute_wavelet(builtin("occluder_over_plane", "small"), 16, 64, 16, shadows="always", run=RunOptions(workers=1))
     rl = relight.WaveletRelighter(tr, threads=1, layouts="column")
     assert rl.CT == 1 and rl.dense.dtype == torch.int16 and (rl.dense.shape[0] % 2 == 1 or rl.V % 32)
     return rl
+
+
+@pytest.fixture(scope="module")
+def vnni_rl8(vnni_rl):
+    """The same scene at R = 8, K = 32 (few, full dense columns: the VNNI loop's L2 bound is 1.0-2.0x the transfer's
+    own for the studio and sky lights, so the per-call guard sends them to the float loop), where this build has the
+    VNNI loop (``vnni_rl`` skips otherwise)."""
+    from prt_torch import relight
+    from prt_torch.scene import builtin
+    from prt_torch.transfer import RunOptions
+    from prt_torch.transfer.wavelet import precompute_wavelet
+
+    tr = precompute_wavelet(builtin("occluder_over_plane", "small"), 8, 32, 16, shadows="always", run=RunOptions(workers=1))
+    return relight.WaveletRelighter(tr, threads=1, layouts="column")
 
 
 def _exact(rl, li, lv):
@@ -222,6 +237,11 @@ def test_kernel_vnni_default_within_the_bound(bench, vnni_rl):
     rl._kernel()
     d16 = rl.dense.reshape(rl.dense.shape[0], rl.Pd, 32)
     assert torch.equal(rl._dtmax, d16.to(torch.int32).abs().amax(dim=(0, 2)))
+    # the layout's norms (kernels/wavelet.c's dnorm) against a per-vertex sum of squares in float64
+    sv = rl.scale[:, 0].double()
+    T = torch.stack([d16[v // 32, :, v % 32] for v in range(rl.V)]).double()  # [V, Pd], vertex by vertex
+    assert torch.allclose(rl._dnorm[:-1], ((T * sv[:, None]) ** 2).sum(0).sqrt(), rtol=1e-12, atol=0)
+    assert torch.allclose(rl._dnorm[-1], (sv ** 2).sum().sqrt(), rtol=1e-12, atol=0)
     for spec, N in (("studio", 60), ("sky", 61), ("sky", rl.P)):
         li, lv, _ = rl.light(spec, N, "transport")
         lv = lv.float().contiguous()
@@ -229,10 +249,13 @@ def test_kernel_vnni_default_within_the_bound(bench, vnni_rl):
         out, opt = _default_and_float(rl, li, lv)
         exact = _exact(rl, li, lv)
         b = bench.vnni_bound(rl, li, lv)
+        assert not b["guard"] and b["guard_ratio"] <= 1, (spec, N, b["guard_ratio"])  # the premise holds: no guard
         assert b["groups"] >= 2 or b["nd"] <= 16
         assert bool(((out.double() - exact).abs() <= b["bound"] + b["slack"]).all()), (spec, N)
+        # the output's L2 error over the vertices within the L2 bound the flush groups are chosen by, per channel
+        assert bool(((out.double() - exact).norm(dim=0) <= b["l2"] + b["slack_l2"]).all()), (spec, N)
         assert bool(((opt.double() - exact).abs() <= b["slack"]).all()), (spec, N)  # the float loop: rounding only
-        assert not torch.equal(out, opt), "the VNNI loop was not taken (the opt-out's bits)"
+        assert not torch.equal(out, rl.float32(li, lv)), "the VNNI loop was not taken (C | FDENSE's bits)"
         assert rl.kernel_path()["dense"] == "int16 vnni"
 
 
@@ -248,6 +271,8 @@ def test_kernel_vnni_default_hdr_lights_within_the_bound(bench, vnni_rl):
         out, opt = _default_and_float(rl, li, lv)
         exact = _exact(rl, li, lv)
         b = bench.vnni_bound(rl, li, lv)
+        if b["guard"]:  # the per-call guard: the float loop, C | FDENSE's bits
+            assert torch.equal(out, rl.float32(li, lv)), name
         assert bool(((out.double() - exact).abs() <= b["bound"] + b["slack"]).all()), name
         assert bool(((opt.double() - exact).abs() <= b["slack"]).all()), name
         if sun is not None:
@@ -295,26 +320,69 @@ def test_vnni_groups_rule(bench):
     assert bench.vnni_groups(lw, torch.full((64,), 32767)).tolist() == (torch.arange(64) // 16).tolist()
 
 
+def _l2_bound(bench, lw, tmax, norms, grp):
+    """sum_G s_G,c W_G per channel [3] (float64): a grouping's L2 bound (W: the group's sum of column norms; the
+    factor 1/2 on both sides of the budget left out), by quantise_light's scales."""
+    _, s, g = bench.quantise_light(lw, grp, tmax)
+    W = torch.zeros(s.shape[0], dtype=torch.float64).index_add_(0, g, norms.double())
+    return (s.double() * W[:, None]).sum(0)
+
+
+def test_vnni_groups_l2_rule(bench):
+    """``vnni_groups`` with the columns' norms (the kernel's rule since vnb18, recomputed): unions of consecutive 16-term
+    chunks whose L2 bound sum_G s_G,c W_G (W: the group's sum of norms) is within max(1.25 x that of fixed groups of 16,
+    beta x ns sum_k |L_k,c|) for every channel, found here by ``quantise_light``'s own sums and a plain sum of |L|;
+    beta 0 the relative budget alone; a huge beta one group; norms equal to the maxima and beta 0: grp17's groups
+    (the column-maximum rule) exactly."""
+    gen = torch.Generator().manual_seed(18)
+    groups = {0.0: 0, 0.5: 0}
+    for nd in (1, 16, 17, 33, 71, 92, 250):
+        for _ in range(4):
+            lw = torch.randn(nd, 3, generator=gen) * torch.rand(nd, 1, generator=gen) ** 4
+            tmax = torch.randint(1, 32768, (nd,), generator=gen)
+            # a column's norm at most its max x the scale's norm, mostly well below (the blocker scene: ~0.2 x on average)
+            ns = 40.0
+            norms = tmax.double() * torch.rand(nd, generator=gen, dtype=torch.float64) * 0.1 * ns
+            b16 = _l2_bound(bench, lw, tmax, norms, 16)
+            own = ns * lw.double().abs().sum(0)
+            for beta in (0.0, 0.5):
+                grp = bench.vnni_groups(lw, tmax, norms=norms, nscale=ns, beta=beta)
+                assert grp.shape == (nd,) and int(grp[0]) == 0 and bool((grp.diff() >= 0).all() and (grp.diff() <= 1).all())
+                starts = (torch.nonzero(grp.diff()).flatten() + 1).tolist()
+                assert all(st % 16 == 0 for st in starts), starts
+                b = _l2_bound(bench, lw, tmax, norms, grp)
+                assert bool((b <= torch.maximum(1.25 * b16, beta * own) * (1 + 1e-9)).all()), (nd, beta, b / b16, b / own)
+                groups[beta] += int(grp.max()) + 1
+            assert torch.equal(bench.vnni_groups(lw, tmax, norms=tmax.double(), beta=0.0), bench.vnni_groups(lw, tmax))
+            assert int(bench.vnni_groups(lw, tmax, norms=norms, nscale=ns, beta=1e30).max()) == 0
+    assert groups[0.5] < groups[0.0] < sum(4 * ((nd + 15) // 16) for nd in (1, 16, 17, 33, 71, 92, 250)), groups
+
+
 def test_kernel_vnni_takes_the_merged_groups(bench, vnni_rl):
-    """The kernel's flush groups are ``vnni_groups``'s: on lights whose groups merge, the default call equals the
-    float64 emulation of the quantised sums with those groups (exact + f_v sum_k T_v,k (q_k s_g(k) - L_k)) within float
-    rounding, and its difference from the emulation with fixed groups of 16 is the groupings' difference (least-squares factor 1
-    +- 0.2, not 0); within the bound."""
-    rl = vnni_rl
-    rl._kernel()
-    nb = rl.dense.shape[0]
-    d16 = rl.dense.reshape(nb, rl.Pd, 32)
-    tmax = d16.to(torch.int32).abs().amax(dim=(0, 2))
-    fac = rl._factor(3, True).double()
-    merged = 0
-    for spec, N in (("studio", 100), ("sky", 100), ("sky", 300), ("sky", rl.P)):
+    """The kernel's flush groups are grp17's column-maximum rule's (``kernel_groups``: VNNI_L2 0, the default again
+    since vg18; the columns' maxima by brute force): on lights whose groups merge, the default call equals the float64
+    emulation of the quantised sums with those groups (exact + f_v sum_k T_v,k (q_k s_g(k) - L_k)) within float
+    rounding, and its difference from the emulation with fixed groups of 16, and with vnb18's L2 groups where they
+    differ, is the groupings' difference (least-squares factor 1 +- 0.2, not 0); within the bound; the per-call guard
+    does not trip on these lights (their L2 bound below the transfer's own)."""
+    merged = differ = 0
+    for rl, spec, N in ((vnni_rl, "studio", 100), (vnni_rl, "sky", 61), (vnni_rl, "sky", 100), (vnni_rl, "sky", 300),
+                        (vnni_rl, "sky", vnni_rl.P)):
+        rl._kernel()
+        nb = rl.dense.shape[0]
+        d16 = rl.dense.reshape(nb, rl.Pd, 32)
+        tmax = d16.to(torch.int32).abs().amax(dim=(0, 2))
+        nrm, ns = bench.dense_norms(rl)
+        fac = rl._factor(3, True).double()
         li, lv, _ = rl.light(spec, N, "transport")
         lv = lv.float().contiguous()
         ds, lw = bench.kernel_dense_order(rl, li, lv)
-        grp = bench.vnni_groups(lw, tmax[ds])
+        grp = bench.vnni_groups(lw, tmax[ds])  # grp17's rule, the kernel's default
+        g_l2 = bench.vnni_groups(lw, tmax[ds], norms=nrm[ds], nscale=ns)  # vnb18's (-DVNNI_L2=1)
         out, _ = _default_and_float(rl, li, lv)
         exact = _exact(rl, li, lv)
         b = bench.vnni_bound(rl, li, lv)
+        assert not b["guard"], (spec, N, b["guard_ratio"])
         assert bool(((out.double() - exact).abs() <= b["bound"] + b["slack"]).all()), (spec, N)
         tk = d16[:, ds, :].double()
 
@@ -323,11 +391,49 @@ def test_kernel_vnni_takes_the_merged_groups(bench, vnni_rl):
             dq = q.double() * s.double()[gi] - lw.double()  # [nd, 3]
             return exact + torch.einsum("bkv,kc->bvc", tk, dq).reshape(-1, 3)[:rl.V] * fac
 
-        e_g, e_16 = emul(grp), emul(16)
+        e_g = emul(grp)
         assert bool(((out.double() - e_g).abs() <= b["slack"]).all()), (spec, N)
-        if int(grp.max()) + 1 < (ds.numel() + 15) // 16:
-            merged += 1
-            dg = (e_g - e_16).flatten()  # the grouping's own effect: out - e_16 = a dg + rounding, a = 1 with these groups
-            a = float(((out.double() - e_16).flatten() @ dg) / (dg @ dg))
-            assert abs(a - 1) < 0.2, (spec, N, a)
-    assert merged >= 1
+        for other, g_o in ((16, torch.arange(ds.numel()) // 16), ("L2", g_l2)):
+            if torch.equal(g_o, grp):
+                continue
+            e_o = emul(g_o)
+            if other == 16 and int(grp.max()) + 1 < (ds.numel() + 15) // 16:
+                merged += 1
+            differ += other != 16
+            dg = (e_g - e_o).flatten()  # the grouping's own effect: out - e_o = a dg + rounding, a = 1 with these groups
+            a = float(((out.double() - e_o).flatten() @ dg) / (dg @ dg))
+            assert abs(a - 1) < 0.2, (spec, N, other, a)
+    assert merged >= 1, (merged, differ)
+
+
+def test_kernel_vnni_guard_takes_the_float_loop(bench, vnni_rl, vnni_rl8):
+    """kernels/wavelet.c's per-call guard (vg18): a call whose VNNI L2 bound sum_G (s_G,c / 2) sum_{k in G} ||scale (.)
+    T_:,k|| exceeds the transfer's own ||scale|| sum_k |L_k,c| / 2 in some channel takes the float dense loop — its
+    output is C | FDENSE's bits (``float32``) and within float rounding of the float64 sum of the same stored values
+    (``relight.wavelet_dense``) — and the others the VNNI loop (not those bits, within the VNNI bound); the mirror
+    (``vnni_bound``'s ``guard``, brute-force norms and maxima) decides as the kernel does. One light term x 1e4 at
+    N = 100 (the huge term in the first flush group: bound ~3x the transfer's own) and on the R = 8 layout the studio
+    and sky lights (1.0-2.0x) trip it; the sky with a 1e4 sun keeps the premise at R = 16 (bound below the
+    transfer's own) and takes the VNNI loop, within its bound."""
+    seen = {True: 0, False: 0}
+    hdr = bench.hdr_lights(vnni_rl, 100)
+    cases = [(vnni_rl, name, li, lv) for name, (li, lv, _) in hdr.items()]
+    cases += [(vnni_rl8, f"R8 {spec} {N}", *vnni_rl8.light(spec, N, "transport")[:2]) for spec, N in (("studio", 10),
+                                                                                                     ("sky", 100))]
+    for rl, name, li, lv in cases:
+        lv = lv.float().contiguous()
+        assert rl._takes_vnni(li, lv), name
+        b = bench.vnni_bound(rl, li, lv)
+        out, fl = rl(li, lv).clone(), rl.float32(li, lv).clone()
+        exact = _exact(rl, li, lv)
+        assert b["guard"] == (b["guard_ratio"] > 1), name
+        if b["guard"]:
+            assert torch.equal(out, fl), (name, b["guard_ratio"])
+            assert bool(((out.double() - exact).abs() <= b["slack"]).all()), name  # the float loop: rounding only
+        else:
+            assert not torch.equal(out, fl), (name, b["guard_ratio"])
+            assert bool(((out.double() - exact).abs() <= b["bound"] + b["slack"]).all()), name
+        seen[b["guard"]] += 1
+    assert bench.vnni_bound(vnni_rl, *hdr["one term x 1e4"][:2])["guard"]
+    assert not bench.vnni_bound(vnni_rl, *hdr["sky + sun 1e4"][:2])["guard"]
+    assert seen[True] >= 3 and seen[False] >= 1, seen

@@ -22,9 +22,14 @@
  * builds the float loop only; above DENSE_TERMS): the 16-lane dense loop on integer dot products (vpdpwssd zmm, two
  * light terms per instruction) for the calls of 16-bit values, CT = 1, CO = 3 that take the 16-lane loop, the dense
  * light quantised per call to int16 by the column-maximum rule in flush groups (the layout's dtmax): chunks of VNNI_G =
- * 16 terms merged per call while the call's column-max bound stays within VNNI_RHO = 1.25 x the 16-term groups'
- * (vnni_quantise; grp17), a flush to float per group; not the float loop's bits (error per vertex and channel within f_v sum_g (s_g / 2)
- * sum_{k in g} |T_v,k|). C | FDENSE (512) opts a call out (the float loop, its bits: relight.py's arith="float");
+ * 16 terms merged per call while the call's column-max bound stays within VNNI_RHO = 1.25 x the 16-term groups' (grp17;
+ * -DVNNI_L2=1: vnb18's L2 rule, a knob), a flush to float per group; not the float loop's bits (error per vertex and
+ * channel within f_v sum_g (s_g / 2) sum_{k in g} |T_v,k|). The per-call guard (vg18, VNNI_GUARD = 1): a call whose L2
+ * bound sum_G (s_G,c / 2) sum_{k in G} ||scale (.) T_:,k||_2 (the layout's dnorm) exceeds VNNI_GUARD x the transfer's
+ * own 16-bit bound ||scale||_2 sum_k |L_k,c| / 2 in some channel takes the float loop (C | FDENSE's bits), so the
+ * premise of the default — its error below the stored transfer's own — holds, in these L2 terms over the vertices (not
+ * per vertex: a dim vertex may still carry more than its own), for every light it runs.
+ * C | FDENSE (512) opts a call out (the float loop, its bits: relight.py's arith="float");
  * builds without DVNNI refuse the bit (1) and are unchanged (avx2, znver3, avx512-256, portable, skylake-avx512 and
  * -DDENSE_VNNI=0 objects byte-identical to fdd5d3e's, objdump). prt_wavelet_isa's bit 64 says the build has it.
  * Measured on the Intel Xeon (bench_wavelet_madd_micro.py --vnni --proto, reports/benchmarks/wavelet_vnni_default.md;
@@ -504,15 +509,66 @@ static inline void put_rgb8(float *out, v8f r, v8f g, v8f b, int nt) {
  * small 0.97-1.06x (studio 292 kept 1.05x, sky N = 30-1000 1.02-1.04x; A/A 0.97-1.03), medium 0.95-1.05x (0.95 at
  * studio N = 30, whose groups do not change; A/A 0.97-1.01); section 7's fourth row 0.51 against 0.48 in that run
  * (bench_wavelet.py --only kernel --size small, load 5.4: 0.49). Other builds' .text byte-identical (objcopy).
- * -DVNNI_RHO=0: the 16-term groups, main's bits. */
+ * -DVNNI_RHO=0 -DVNNI_BETA=0: the 16-term groups, a506b53's bits.
+ * The flush groups by an L2 bound (2026-11-30, branch vnb18): the column-max bound sum_G s_G T_G (a vertex holding
+ * every column's maximum) overestimates the per-vertex bound's rel. L2 2.7-4.4x (the lead's figure), so its budget
+ * could only be relative. By the triangle inequality the output's L2 error over the vertices is at most sum_G (s_G,c /
+ * 2) sum_{k in G} ||f_c (.) T_:,k||_2 (f the factor: the vertex's quantisation scale times the albedo), 1.07-1.21x the
+ * per-vertex bound's rel. L2 on the blocker scene; the layout's dnorm [Pd + 1] holds each dense column's ||scale (.)
+ * T_:,k||_2 and ||scale||_2 (relight.py's _dense_norms, float64, built with dtmax; the albedo left out: a per-call
+ * option and per channel; grey or uniform it is a constant per channel on both sides of the budget). The rule: grp17's
+ * left-to-right merge of 16-term chunks, each run weighed by its columns' norms instead of their maxima (the scales
+ * unchanged: the column-maximum rule, overflow-safe), within max(VNNI_RHO x the 16-term groups' L2 bound, VNNI_BETA x
+ * ||scale|| sum_k |L_k,c|): an absolute budget in the terms the VNNI default rests on (the bound below the transfer's
+ * own 16-bit error). VNNI_BETA 0.75 by measurement (bench_wavelet_scratch.py --vnni against f1408bf, Intel Xeon family
+ * 6 model 167, one thread's CPU time, 11 repeats, load 3.3-4.2, two runs;
+ * reports/benchmarks/wavelet_vnni_l2groups.md): studio N = 30 (2 -> 1 groups) warm 1.02-1.05x (small 1.02-1.03, medium
+ * 1.04-1.05; beta 0.9 the same), every other row 0.98-1.02x in the second run (A/A 0.99-1.02; medium sky N = 300 1.04
+ * [0.98, 1.05]; the fourth row, 3 -> 2 groups, 0.99x: one flush per block pair less is ~0.1 us of 14), in the first
+ * the 0.75 variant 0.95-0.97x at small N = 10-30 rows whose groups and bits are the base's (noise or code placement);
+ * beta 0.5 0.97-1.02x everywhere over the two runs; section 7's fourth row 0.41-0.42 for both rules (bench_wavelet.py
+ * --only kernel --size small, back to back, load 2.5-3.4: a call of 13.7-14.0 us against a streaming read of 5.7-5.8
+ * us). Groups at small / medium (grp17 -> vnb18): studio N = 30 2 -> 1, 292 kept 3 -> 2, sky N >= 300 5 -> 4, the rest
+ * unchanged; the stated bound of the transfer's own (per vertex, rel. L2) 0.28-0.85 -> 0.51-0.85, in the rule's L2
+ * terms at most 0.92 (sky N = 30: its 1.25 x the 16-term groups'); the error (rel. L2) 1.3e-5-5.7e-5
+ * (reports/benchmarks/wavelet_vnni_l2groups_error.md). -DVNNI_L2=0: grp17's groups, f1408bf's bits (checked per row).
+ * Since vg18 VNNI_L2 is 0 by default again (the L2 rule gave no speed on the rows that matter: the fourth row 0.99x,
+ * studio N = 30 1.02-1.05x), a knob; dnorm stays in the layout for the guard.
+ * The per-call guard (2026-11-30, branch vg18): vnb18 found one light term x 1e4 at N = 100 (in the first flush group)
+ * putting the stated bound at 2.8x the transfer's own 16-bit bound, with any grouping — the default's premise (the VNNI
+ * error below the error the stored transfer already carries) failing for that light. So vnni_quantise, after the
+ * groups are chosen, sums per channel B_c = sum_G s_G,c sum_{k in G} dnorm_k (s_G the float32 scales the loop uses;
+ * the chunks' dnorm sums taken in the chunk pass, O(nc) more) and returns 0 — the light left as float, wk as slots:
+ * the float loop, the bits of C | FDENSE — when B_c > VNNI_GUARD x ||scale||_2 sum_k |L_k,c| for a channel with light
+ * (the albedo, grey or uniform, a constant per channel on both sides). VNNI_GUARD 1 (the lead's rule; 0: no guard).
+ * Where it trips (bench_wavelet_madd_micro.vnni_guard, the same sums; small blocker scene, R = 32, K = 256): ordinary
+ * studio / sky rows 0.32-0.92 (none), sky + sun 1e4 at N = 100-1000 0.54-0.64 (none), one term x 1e4 at N = 100 3.0
+ * (float loop), at N = 300 / 1000 0.40; at R = 16, K = 64 / 128 sky N = 30 (one merged group) 1.2 and one term x 1e4
+ * at N = 300 1.2-1.4 trip too; at R = 8, K = 32 every studio / sky light (1.0-2.0: few, full dense columns). Its cost
+ * (bench_wavelet_scratch.py --vnni --base f1408bf --sizes small, Intel Xeon family 6 model 167, one thread's CPU time,
+ * load 1.0-1.2, reports/benchmarks/wavelet_vnni_guard.md): warm 0.96-1.01x of f1408bf (median ~0.99; noguard, the same
+ * source with VNNI_GUARD 0, 0.98-1.01x; A/A 0.99-1.01; 21 repeats at N >= 300: 0.97-0.99x, noguard 0.99-1.02), the
+ * outputs f1408bf's bits on every row: ~1-2%, also with the sums computed and the decision ignored, and with the sums
+ * taken from the column maxima instead of dnorm (not its lines; unexplained, placement suspected); vnni_quantise is
+ * noinline (once per call; the kernel body's code then does not move with the set-up's). avx2, znver3, avx512-256,
+ * portable, skylake-avx512 and -DDENSE_VNNI=0 objects' .text byte-identical to f1408bf's (gcc + objcopy). */
 #if DVNNI
 #define VNNI_PARAMS const float *vq,
 #define VNNI_ARGS vq,
 #ifndef VNNI_G /* dense terms per scale group (even): the int32 sums flushed to float once per group */
 #define VNNI_G 16
 #endif
-#ifndef VNNI_RHO /* the flush groups' budget: the call's column-maximum bound at most VNNI_RHO x the VNNI_G groups' */
+#ifndef VNNI_RHO /* the flush groups' budget: the call's bound at most VNNI_RHO x the VNNI_G groups' (or VNNI_BETA's) */
 #define VNNI_RHO 1.25
+#endif
+#ifndef VNNI_L2 /* the flush groups weighed by the columns' L2 norms (the layout's dnorm; vnb18, a knob); 0: by their maxima (grp17) */
+#define VNNI_L2 0
+#endif
+#ifndef VNNI_GUARD /* the per-call guard (vg18): the float loop when the call's L2 bound > VNNI_GUARD x the transfer's own; 0: off */
+#define VNNI_GUARD 1.0
+#endif
+#ifndef VNNI_BETA /* ... or at most VNNI_BETA x the transfer's own 16-bit bound in the same L2 terms (VNNI_L2 only) */
+#define VNNI_BETA 0.75
 #endif
 /* a run's scales sc [3] by the column-maximum rule from its sums sum [3] of tmax_k |L_k,c|, maxima mx [3] of |L_k,c|
  * and half = sum tmax_k / 2 (tm NULL: the 65535 rule, tmax 1, n the run's terms); returns its sum of tmax, 2 half */
@@ -535,46 +591,75 @@ static inline void vnni_scale32(const double sc[3], float *s32) {
 /* the dense light lw [nd, 4] (float32) quantised per flush group and channel, in place as the pairs' lights int32
  * [ceil(nd / 2), 4]; vq [ng, 4] the groups' scales (float32, rounded up) and in lane 3 the group's end (int32 bits: its
  * last term + 1; ng <= ceil(nd / VNNI_G)); tm the layout's column maxima int32 [Pd] (NULL: the 65535 rule, groups of
- * VNNI_G), ds [nd] the terms' slots. The flush groups (grp17): runs of consecutive VNNI_G-term chunks, merged left to
- * right while, for every channel c, done_c + s_G,c T_G + rest_c <= VNNI_RHO x B16_c (B16_c = sum over the chunks g of
- * s_g,c T_g, the VNNI_G groups' column-max bound; T a run's sum of tmax; done: the closed groups' s T; rest: the chunks
- * after the run, as VNNI_G groups): the call's bound over the columns' maxima at most VNNI_RHO times the VNNI_G groups'.
- * A run's sums: its chunks' sums added in order. O(nd). bench_wavelet_madd_micro.py's vnni_groups: the same rule, the
- * same sums in the same order */
-static inline void vnni_quantise(i64 nd, float *lw, float *vq, const int32_t *tm, const i64 *ds) {
+ * VNNI_G), ds [nd] the terms' slots; nm the layout's dnorm [Pd] float64 (the columns' L2 norms of scale x T; NULL, or
+ * VNNI_L2 0: the column-maximum weights, grp17's rule) and ns its ||scale||_2. The flush groups: runs of consecutive
+ * VNNI_G-term chunks, merged left to right while, for every channel c, done_c + s_G,c W_G + rest_c <= budget_c, with
+ * W a run's weight — vnb18: the sum of its columns' L2 norms nm, so that sum_G (s_G,c / 2) W_G is the triangle
+ * inequality's bound of the output's L2 error over the vertices (the factor's per-vertex scale in the norms; a grey or
+ * uniform albedo a constant per channel on both sides of the budget); grp17 (tm without nm): the sum of the columns'
+ * maxima tmax, a bound at a vertex holding every column's maximum —, s its scale (the column-maximum rule, from tm:
+ * the scales never change with the weights), done the closed groups' s W, rest the chunks after the run as VNNI_G
+ * groups, and budget_c = max(VNNI_RHO x B16_c, VNNI_BETA x ns x sum_k |L_k,c|) (B16_c = sum over the chunks g of
+ * s_g,c W_g, the VNNI_G groups' bound; ns sum_k |L_k,c| (/ 2) the transfer's own 16-bit bound for the same terms in the
+ * same L2 terms: its stored values off by at most scale_v / 2 each; the second term with nm only): the call's L2 bound
+ * at most VNNI_RHO times the VNNI_G groups' or VNNI_BETA times the transfer's own, whichever is larger. A run's sums:
+ * its chunks' sums added in order. O(nd). bench_wavelet_madd_micro.py's vnni_groups: the same rule, the same sums in
+ * the same order. The guard (nm non-NULL, VNNI_GUARD > 0; whatever VNNI_L2): with the groups chosen, B_c = sum_G s32_G,c
+ * x (the group's sum of nm), and B_c > VNNI_GUARD x ns x sum_k |L_k,c| for a channel with light returns 0 before lw is
+ * written (the caller takes the float loop); else lw is quantised and 1 returned (bench_wavelet_madd_micro.vnni_guard) */
+static __attribute__((noinline)) int vnni_quantise(i64 nd, float *lw, float *vq, const int32_t *tm, const i64 *ds, const double *nm,
+                                double ns) {
     const i64 nc = (nd + VNNI_G - 1) / VNNI_G;
-    double cs[3 * nc + 3], cm[3 * nc + 3], ch[nc + 1], rest[3 * nc + 3], sc[3];
-    for (i64 i = 0; i < nc; i++) { /* each chunk's sums, maxima, half */
-        double *su = cs + 3 * i, *mx = cm + 3 * i, half = 0;
+    double cs[3 * nc + 3], cm[3 * nc + 3], ch[nc + 1], cw[nc + 1], cg[nc + 1], rest[3 * nc + 3], sc[3], la[3] = {0, 0, 0};
+    const double *gn = VNNI_GUARD > 0 ? nm : NULL; /* the guard's norms: the layout's dnorm whatever the rule */
+#if !VNNI_L2
+    nm = NULL;
+#endif
+    for (i64 i = 0; i < nc; i++) { /* each chunk's sums, maxima, half, weight */
+        double *su = cs + 3 * i, *mx = cm + 3 * i, half = 0, wt = 0, wg = 0;
         su[0] = su[1] = su[2] = mx[0] = mx[1] = mx[2] = 0;
         for (i64 t = i * VNNI_G; t < (i + 1) * VNNI_G && t < nd; t++) {
             const double w = tm ? (double)tm[ds[t]] : 1.0;
             half += w / 2;
+            wt += nm ? nm[ds[t]] : w;
+            wg += gn ? gn[ds[t]] : 0.0;
             for (int c = 0; c < 3; c++) {
                 const double x = lw[4 * t + c] < 0 ? -(double)lw[4 * t + c] : (double)lw[4 * t + c];
                 su[c] += x * w;
                 mx[c] = x > mx[c] ? x : mx[c];
+                la[c] += x;
             }
         }
         ch[i] = half;
+        cw[i] = wt;
+        cg[i] = wg;
     }
     rest[3 * nc] = rest[3 * nc + 1] = rest[3 * nc + 2] = 0;
-    for (i64 i = nc - 1; i >= 0; i--) { /* the VNNI_G groups' s T, summed from the back: rest [i] the chunks i.. */
-        const double T = vnni_rule(cs + 3 * i, cm + 3 * i, ch[i], VNNI_G, tm != NULL, sc);
-        for (int c = 0; c < 3; c++) rest[3 * i + c] = rest[3 * i + 3 + c] + sc[c] * T;
+    for (i64 i = nc - 1; i >= 0; i--) { /* the VNNI_G groups' s W, summed from the back: rest [i] the chunks i.. */
+        vnni_rule(cs + 3 * i, cm + 3 * i, ch[i], VNNI_G, tm != NULL, sc);
+        for (int c = 0; c < 3; c++) rest[3 * i + c] = rest[3 * i + 3 + c] + sc[c] * cw[i];
     }
-    double done[3] = {0, 0, 0}, cur[3] = {0, 0, 0}, gs[3] = {0, 0, 0}, gm[3] = {0, 0, 0}, gh = 0;
+    double bud[3];
+    for (int c = 0; c < 3; c++) {
+        const double r = VNNI_RHO * rest[c], a = nm ? VNNI_BETA * ns * la[c] : 0.0;
+        bud[c] = r > a ? r : a;
+    }
+    double done[3] = {0, 0, 0}, cur[3] = {0, 0, 0}, gs[3] = {0, 0, 0}, gm[3] = {0, 0, 0}, gh = 0, gw = 0, gg = 0;
+    double vb[3] = {0, 0, 0}; /* the guard's sum_G s_G,c sum_{k in G} dnorm_k (the float32 scales) */
     i64 ng = 0;
     for (i64 i = 0; i < nc; i++) {
         if (i > 0 && tm) { /* the open group extended by chunk i, if the budget allows */
             double s2[3], m2[3];
             for (int c = 0; c < 3; c++) { s2[c] = gs[c] + cs[3 * i + c]; m2[c] = gm[c] > cm[3 * i + c] ? gm[c] : cm[3 * i + c]; }
-            const double h2 = gh + ch[i], T = vnni_rule(s2, m2, h2, 0, 1, sc);
+            const double h2 = gh + ch[i], w2 = gw + cw[i];
+            vnni_rule(s2, m2, h2, 0, 1, sc);
             int ok = 1;
-            for (int c = 0; c < 3; c++) ok &= done[c] + sc[c] * T + rest[3 * i + 3 + c] <= VNNI_RHO * rest[c];
+            for (int c = 0; c < 3; c++) ok &= done[c] + sc[c] * w2 + rest[3 * i + 3 + c] <= bud[c];
             if (ok) {
-                for (int c = 0; c < 3; c++) { gs[c] = s2[c]; gm[c] = m2[c]; cur[c] = sc[c] * T; }
+                for (int c = 0; c < 3; c++) { gs[c] = s2[c]; gm[c] = m2[c]; cur[c] = sc[c] * w2; }
                 gh = h2;
+                gw = w2;
+                gg += cg[i];
                 continue;
             }
         }
@@ -582,22 +667,29 @@ static inline void vnni_quantise(i64 nd, float *lw, float *vq, const int32_t *tm
             vnni_rule(gs, gm, gh, VNNI_G, tm != NULL, sc); /* n: the 65535 rule's only (a group one full chunk) */
             for (int c = 0; c < 3; c++) done[c] += cur[c];
             vnni_scale32(sc, vq + 4 * ng);
+            for (int c = 0; c < 3; c++) vb[c] += (double)vq[4 * ng + c] * gg;
             const int32_t e0 = (int32_t)(i * VNNI_G);
             memcpy(vq + 4 * ng + 3, &e0, 4);
             ng++;
         }
         for (int c = 0; c < 3; c++) { gs[c] = cs[3 * i + c]; gm[c] = cm[3 * i + c]; }
         gh = ch[i];
-        const double T = vnni_rule(gs, gm, gh, VNNI_G, tm != NULL, sc);
-        for (int c = 0; c < 3; c++) cur[c] = sc[c] * T;
+        gw = cw[i];
+        gg = cg[i];
+        vnni_rule(gs, gm, gh, VNNI_G, tm != NULL, sc);
+        for (int c = 0; c < 3; c++) cur[c] = sc[c] * gw;
     }
     if (nd) { /* the last group */
         vnni_rule(gs, gm, gh, nd - (nc - 1) * VNNI_G, tm != NULL, sc);
         vnni_scale32(sc, vq + 4 * ng);
+        for (int c = 0; c < 3; c++) vb[c] += (double)vq[4 * ng + c] * gg;
         const int32_t e0 = (int32_t)nd;
         memcpy(vq + 4 * ng + 3, &e0, 4);
         ng++;
     }
+    if (gn) /* the guard: sum_G s_G,c sum_{k in G} dnorm_k > VNNI_GUARD x ns sum_k |L_k,c| (both / 2) -> 0 */
+        for (int c = 0; c < 3; c++)
+            if (la[c] > 0 && vb[c] > VNNI_GUARD * ns * la[c]) return 0; /* lw untouched: the float loop's light */
     int32_t *lq = (int32_t *)lw;
     i64 g = 0;
     int32_t ge;
@@ -613,6 +705,7 @@ static inline void vnni_quantise(i64 nd, float *lw, float *vq, const int32_t *tm
         }
         lq[4 * q] = w[0]; lq[4 * q + 1] = w[1]; lq[4 * q + 2] = w[2]; lq[4 * q + 3] = 0;
     }
+    return 1;
 }
 /* the dense terms' slots ds = wk [nd] (int64) rewritten in place as records int32 [nd, 2]: (ds[t] x 64, the byte offset
  * of term t's row in its block; the prefetch's target of step t), read by vnni_terms instead of ds. far (the layout
@@ -724,9 +817,10 @@ static inline __attribute__((always_inline)) void vnni_terms(const char *blk, i6
     if (!fdense && sizeof(T) == 2 && CT == 1 && CO == 3 && nd && nd * ((V + BV - 1) / BV) >= ZMM_MIN) {      \
         const i64 pstb_ = Pd * BV * (i64)sizeof(T), nbk_ = (V + BV - 1) / BV;                                \
         if ((PFX / nd + 1) * 2 * pstb_ + Pd * 64 <= INT32_MAX) { /* the records' offsets fit (else the float loop) */ \
-            vnni_quantise(nd, lw, vq_, L->dtmax, wk);                                                        \
-            vnni_records(nd, wk, 2 * pstb_, nbk_ * pstb_ >= PFX_MIN); /* wk: ds -> records (after the quantisation) */ \
-            vq = vq_;                                                                                        \
+            if (vnni_quantise(nd, lw, vq_, L->dtmax, wk, L->dnorm, L->dnorm ? L->dnorm[Pd] : 0.0)) { /* 0: the guard */ \
+                vnni_records(nd, wk, 2 * pstb_, nbk_ * pstb_ >= PFX_MIN); /* wk: ds -> records (after the quantisation) */ \
+                vq = vq_;                                                                                    \
+            }                                                                                                \
         }                                                                                                    \
     }
 #endif
@@ -1241,7 +1335,10 @@ typedef struct {
     float *zacc;                /* W16 builds' scratch [MT, TV/8, 4, 8], zero between calls (the touched map below) */
     unsigned char *tmark;       /* W16 builds' scratch [MT, TV/8]: a tile's touched blocks, zero between calls */
     const int32_t *dtmax;       /* [Pd] the dense column's largest stored magnitude |T| (16-bit values; NULL: not held):
-                                 * read by the DENSE_VNNI prototype's column-maximum rule only */
+                                 * read by the DENSE_VNNI loop's column-maximum rule only (the light's int16 scales) */
+    const double *dnorm;        /* [Pd + 1] float64: the dense column's L2 norm over the vertices of the quantisation scale
+                                 * times the stored value, ||scale (.) T_:,k||_2, then ||scale||_2 (16-bit values on a grey
+                                 * transfer; NULL: not held): read by the DENSE_VNNI loop's flush groups only (vnni_quantise) */
 } wavelet_layout;
 
 #define TILE_CASE(T, CT_, CO_, OC_)                                                                          \
