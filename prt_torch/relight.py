@@ -1004,16 +1004,18 @@ class WaveletRelighter:
         output's L2 error of a call is at most sum_G (s_G,c / 2) sum_{k in G} ||f (.) T_:,k||_2 per channel (the triangle
         inequality), and ``||scale|| sum_k |L_k,c| / 2`` is the transfer's own 16-bit bound in the same terms. The
         factor f is the scale times the albedo: the albedo is left out (a per-call option and per channel; grey or
-        uniform, a constant per channel on both sides of the kernel's budget). Summed in blocks of 8192 vertices
-        (float64 squares, no [Pd, V] copy)."""
+        uniform, a constant per channel on both sides of the kernel's budget). Summed in steps of 32 blocks (1024
+        vertices: one float64 temporary of 32 x Pd x 256 bytes, squared in place — 2 MB at Pd = 250, inside what
+        ``prt relight``'s memory plan allows for; 256-block steps took 33 MB and broke that plan's 2x check)."""
         nb, Pd = self.dense.shape[0], self.Pd
         s2 = torch.zeros(nb * self.BLOCK, dtype=torch.float64)
         s2[:self.V] = self.scale[:, 0].double() ** 2
         s2 = s2.reshape(nb, self.BLOCK)
         acc = torch.zeros(Pd, dtype=torch.float64)
-        for b0 in range(0, nb, 256):  # 256 blocks a step: a loop of ceil(V / 8192) steps
-            d = self.dense[b0:b0 + 256, :Pd, 0, :].double()  # [nb', Pd, 32]
-            acc += torch.einsum("bkv,bv->k", d * d, s2[b0:b0 + 256])
+        step = 32
+        for b0 in range(0, nb, step):
+            d = self.dense[b0:b0 + step, :Pd, 0, :].double()  # [nb', Pd, 32]
+            acc += torch.einsum("bkv,bv->k", d.square_(), s2[b0:b0 + step])
         return torch.cat([acc.sqrt(), s2.sum().sqrt().reshape(1)]).contiguous()
 
     def _kernel(self):
