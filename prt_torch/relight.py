@@ -537,12 +537,14 @@ class WaveletRelighter:
         return ukey, bvals
 
     def __init__(self, transfer, dense_min: float | None = None, tile: int | None = None, threads: int | None = None,
-                 row_min: float | None = None, layouts: str = "auto", arith: str = "auto"):
+                 row_min: float | None = None, layouts: str = "auto", arith: str = "auto", dense_order="column"):
         if getattr(transfer, "kind", None) != "wavelet":
             raise ValueError(f"WaveletRelighter needs a transfer of kind 'wavelet'; got {getattr(transfer, 'kind', describe(transfer))!r}")
         if layouts not in ("auto", "both", "column"):
             raise ValueError(f"layouts={layouts!r}; accepted: 'auto' (row-major copy on first need), 'both', 'column'")
         check_arith(arith, "arith")
+        P0 = 6 * int(transfer.meta["res"]) ** 2
+        dense_order = self._check_dense_order(dense_order, P0)
         self.layouts = layouts
         self.arith = arith
         self._fd = 0  # FDENSE when arith='float' and the bound build has the VNNI loop (_kernel)
@@ -577,8 +579,9 @@ class WaveletRelighter:
         self.dense_min = self.default_dense_min(b, arith=arith) if dense_min is None else float(dense_min)
         is_dense = self.nnz >= max(self.dense_min * V, 1)
         self.dslot = torch.full((P,), -1, dtype=torch.int32)  # [P] the column's dense slot or -1 (int32: Pd ≤ P = 6R²)
-        dcols = torch.nonzero(is_dense).flatten()
+        dcols = self._dense_slots(torch.nonzero(is_dense).flatten(), dense_order)  # [Pd] the columns in slot order
         self.dslot[dcols] = torch.arange(dcols.numel(), dtype=torch.int32)
+        self.dense_order = dense_order if isinstance(dense_order, str) else "columns"
         self.Pd = Pd = int(dcols.numel())
         nb = -(-V // self.BLOCK)
         # in memory advised for 2 MiB pages from 2 MiB up (io.hugepage_zeros; PRT_TORCH_HUGEPAGES=0: torch's buffer), written
@@ -644,7 +647,7 @@ class WaveletRelighter:
         self._tmark = torch.zeros(self.MT, TV // self.SUB, dtype=torch.uint8)
         self._wk = torch.empty(P, dtype=torch.int64)  # the light's terms split into dense / sparse
         self._lw = torch.empty(P, 4, dtype=torch.float32)
-        self.dcol = dcols.contiguous()  # [Pd] the dense slot's column
+        self.dcol = dcols.contiguous()  # [Pd] the dense slot's column (ascending only with dense_order='column')
         self.cls = torch.where(is_dense, 2, (self.nnz > 0).to(torch.int64)).to(torch.uint8)  # [P] 0 empty, 1 sparse, 2 dense
         self._mark = torch.empty(P, dtype=torch.uint8)  # the light's columns: 1 sparse, 2 dense
         self._lp = torch.zeros(P, 4, dtype=torch.float32)  # the light per column (zero between the kernel's calls)
@@ -653,6 +656,50 @@ class WaveletRelighter:
         self._dnorm = None  # [Pd + 1] float64 the dense columns' L2 norms of scale x T, then ||scale|| (_dense_norms)
         if self.layouts == "both":
             self._build_rows()
+
+    #: ``dense_order``'s names (a tensor of Haar columns is accepted too: :meth:`_dense_slots`)
+    DENSE_ORDERS = ("column", "weight", "level")
+
+    @classmethod
+    def _check_dense_order(cls, value, P: int):
+        """``dense_order`` checked before any work: one of :attr:`DENSE_ORDERS`, or Haar columns (a 1-D integer
+        tensor or sequence of distinct values in [0, P)) returned as an int64 tensor; one ``ValueError`` line
+        naming the value and what is accepted otherwise."""
+        if isinstance(value, str):
+            if value not in cls.DENSE_ORDERS:
+                raise ValueError(f"dense_order={value!r}; accepted: one of {cls.DENSE_ORDERS} or a 1-D tensor of "
+                                 f"distinct Haar columns in [0, {P})")
+            return value
+        try:
+            t = torch.as_tensor(value)
+        except (TypeError, ValueError, RuntimeError):
+            t = None
+        if (t is None or t.ndim != 1 or t.dtype.is_floating_point or t.dtype.is_complex or t.dtype == torch.bool
+                or (t.numel() and (int(t.min()) < 0 or int(t.max()) >= P))
+                or int(torch.unique(t).numel()) != t.numel()):
+            raise ValueError(f"dense_order={describe(value)}; accepted: one of {cls.DENSE_ORDERS} or a 1-D tensor of "
+                             f"distinct Haar columns in [0, {P})")
+        return t.long()
+
+    def _dense_slots(self, dcols: torch.Tensor, order) -> torch.Tensor:
+        """The dense columns ``dcols [Pd]`` (int64, ascending) in slot order under ``order`` (``dense_order``):
+        ``'column'`` ascending column (the kernel's W16 listing then reads each block's lines at ascending addresses);
+        ``'weight'`` descending transport weight (:attr:`weights`, ties by column); ``'level'`` coarse Haar levels first
+        (:func:`~prt_torch.lighting.haar.haar_levels`, then column); a tensor of Haar columns: those of them that are
+        dense first, in the tensor's order (e.g. a light's transport-weighted ranking, ``light(spec, P)[0]``: every
+        N of that light then reads a prefix of each block's slots, adjacent lines), the rest by column. A permutation
+        of ``dcols`` → int64 ``[Pd]``."""
+        if isinstance(order, str):
+            if order == "column":
+                return dcols
+            if order == "weight":
+                key = self.weights[dcols]
+                return dcols[torch.argsort(-key, stable=True)]
+            from .lighting.haar import haar_levels
+            return dcols[torch.argsort(haar_levels(self.res)[dcols], stable=True)]
+        rank = torch.full((self.P,), order.numel(), dtype=torch.int64)
+        rank[order] = torch.arange(order.numel())
+        return dcols[torch.argsort(rank[dcols], stable=True)]
 
     def _build_rows(self) -> None:
         """The row-major copy of the sparse blocks (``rptr [4·ceil(V/32)+1]`` int64: each 8-vertex block's
