@@ -819,12 +819,14 @@ def vnni_main(args, lib) -> None:
 def kernel_dense_order(rl, li: torch.Tensor, lv: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """The light's dense terms in the order ``kernels/wavelet.c`` lists them (the order the DENSE_VNNI prototype's
     groups follow): ``ds`` int64 [nd] slots, ``lw`` float32 [nd, 3] their light. Few terms (N <= SMALL_N = 256 and
-    N < P - Pd): the light's own order; else slot order (``dense_terms``)."""
+    N < P - Pd): the light's own order; else column order (the AVX-512 build's listing, LIST_TERMS: the marks scanned
+    by column — the only build with the VNNI loop; slot order, ``dense_terms``, where the relighter's ``dense_order`` is
+    'column', its default)."""
+    d = rl.dslot[li] >= 0
     if li.numel() <= 256 and li.numel() < rl.P - rl.Pd:
-        d = rl.dslot[li] >= 0
         return rl.dslot[li[d]].long().contiguous(), lv[:, d].T.float().contiguous()
-    ds, lw = dense_terms(rl, li, lv)
-    return ds, lw[:, :3].contiguous()
+    order = torch.argsort(li[d])
+    return rl.dslot[li[d]].long()[order].contiguous(), lv[:, d].T.float()[order].contiguous()
 
 
 def vnni_bound(rl, li: torch.Tensor, lv: torch.Tensor, fac: torch.Tensor | None = None, albedo: bool = True,
