@@ -369,6 +369,19 @@ class WaveletRelighter:
     channel takes the float32 loop (its bits) instead (e.g. one light term 1e4 × the others in its flush group, or
     the coarse R = 8 layouts). Every other call, and every other build, the float32 loop. ``'float'``: the float32 loop
     for every call (the kernel's C | FDENSE), the bits of the builds without VNNI.
+
+    ``dense_order``: the order of the dense slots in each 32-vertex block (:meth:`_dense_slots`) — ``'column'``
+    (default: ascending Haar column), ``'weight'`` (descending transport weight), ``'level'`` (coarse Haar levels
+    first), or a 1-D tensor of Haar columns whose dense ones take the first slots in that order (e.g. the transport-
+    weighted ranking of the environment a render loop relights with, ``relighter.light(spec, P)[0]``: every N of that
+    light then reads a prefix of each block's ~Pd × 64 bytes, adjacent lines, instead of lines scattered over them).
+    The layout's bytes, :meth:`bytes_read` and the kernel are the same for every order; the kernel's dense list (and
+    so each vertex's summation order) follows the light's order for N ≤ 256 and the column order above it in the
+    AVX-512 build, the slot order in the 8-lane builds. Measured on an Intel Xeon (family 6 model 167; docs/wavelet.md
+    "The dense slot order", reports/benchmarks/wavelet_dense_order.md): a light's own ranking 1.2–1.4× faster warm at
+    the medium blocker (V = 10 585, studio N ≥ 100, sky N = 100; where its lines outgrow the L2 with the neighbours the
+    prefetchers pull), none at small (the layout in L2) or where a light reads nearly every slot; the light-independent
+    orders 0.92–1.09×, so ``'column'`` stays the default.
     """
 
     BLOCK = 32  # vertices per dense block (kernels/wavelet.c BV)

@@ -1320,7 +1320,7 @@ typedef struct {
     float *acc;                 /* scratch [MT, TV/8, 4, 8] */
     i64 *wk;                    /* scratch [P]: the dense terms' slots, then (from Pd) the sparse terms' columns */
     float *lw;                  /* scratch [P, 4]: their light */
-    const i64 *dcol;            /* [Pd] the dense slot's column, ascending (slot order is column order: LIST_TERMS) */
+    const i64 *dcol;            /* [Pd] the dense slot's column (ascending with relight.py's default dense_order) */
     const unsigned char *cls;   /* [P] the column's class: 0 empty, 1 sparse, 2 dense */
     unsigned char *mark;        /* scratch [P]: 1 the column is one of the light's sparse terms, 2 a dense one */
     float *lp;                  /* scratch [P, 4]: the light per column, zero between calls (the row-major pass reads it for
@@ -1398,7 +1398,8 @@ typedef struct {
 
 /* The term lists (WAVELET_KERNEL, N > SMALL_N). AVX-512 builds with BW (W16): both lists from one scan of the P marks,
  * 64 per step (vptestmb of the dense bit 2 and the sparse bit 1 to two masks, then each mask's set bits): the dense
- * terms in column order, which is slot order (relight.py numbers the dense slots by ascending column: dcol is sorted),
+ * terms in column order, which is slot order under relight.py's default dense_order 'column' (dcol sorted; other orders:
+ * column order still, the 8-lane listing's slot order then differs),
  * their slot from dslot [P] int32; the sparse terms in column order, as before — the same lists, the same order, so the
  * same bits. Before (the 8-lane builds' code, kept there byte for byte: avx2, znver3, avx512-256 and portable objects
  * identical to 2913585's, objcopy): a pass over the Pd dense slots (one mark load per slot) and a scan of the marks 8
