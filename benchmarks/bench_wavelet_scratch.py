@@ -84,7 +84,8 @@ TWO = "2 threads"
 #: variant name -> the -D lines prepended to the working tree's source
 VARIANTS = {"touch8": "#define TOUCH8 1\n", "outpf": "#define OUT_PFW 1\n", "markall": "#define TOUCH_X (1LL << 40)\n",
             "marknone": "#define TOUCH_X (-1LL)\n", "outz0": "#define OUT_Z 0\n", "outz2": "#define OUT_Z 2\n",
-            "pfx12": "#define PFX 12\n", "pfx48": "#define PFX 48\n", "pfx96": "#define PFX 96\n", "g32": "#define VNNI_G 32\n", "g4096": "#define VNNI_G 4096\n",
+            "pfx12": "#define PFX 12\n", "pfx48": "#define PFX 48\n", "pfx96": "#define PFX 96\n",
+            "g32": "#define VNNI_G 32\n", "g4096": "#define VNNI_G 4096\n",
             "sprf0": "#define SP_PFR 0\n", "sprf4l": "#define SP_PFL 4\n",
             "rho0": "#define VNNI_RHO 0\n", "rho2": "#define VNNI_RHO 2.0\n",
             "cm": "#define VNNI_L2 0\n", "b0": "#define VNNI_BETA 0\n", "b5": "#define VNNI_BETA 0.5\n", "b75": "#define VNNI_BETA 0.75\n",

@@ -381,7 +381,7 @@ class WaveletRelighter:
     "The dense slot order", reports/benchmarks/wavelet_dense_order.md): a light's own ranking 1.2–1.4× faster warm at
     the medium blocker (V = 10 585, studio N ≥ 100, sky N = 100; where its lines outgrow the L2 with the neighbours the
     prefetchers pull), none at small (the layout in L2) or where a light reads nearly every slot; the light-independent
-    orders 0.92–1.09×, so ``'column'`` stays the default.
+    orders 0.92–1.09×, so ``'column'`` stays the default. :meth:`reorder_dense` changes the order in place.
     """
 
     BLOCK = 32  # vertices per dense block (kernels/wavelet.c BV)
@@ -713,6 +713,28 @@ class WaveletRelighter:
         rank = torch.full((self.P,), order.numel(), dtype=torch.int64)
         rank[order] = torch.arange(order.numel())
         return dcols[torch.argsort(rank[dcols], stable=True)]
+
+    def reorder_dense(self, order) -> "WaveletRelighter":
+        """Renumber the dense slots in place to ``order`` (``dense_order``'s values: :meth:`_dense_slots`) — e.g. when a
+        render loop moves to another environment, its ranking ``self.light(spec, self.P)[0]`` — without rebuilding the
+        relighter: the dense values (one temporary copy of ``dense``), ``dslot``, ``dcol`` and the kernel's per-slot
+        column maxima and norms are permuted in their own buffers, so the kernel's layout and every :meth:`prepared`
+        call stay valid (not while a call runs: one call at a time per layout, as always). The result is the layout a
+        relighter built with ``dense_order=order`` holds. Returns self."""
+        order = self._check_dense_order(order, self.P)
+        Pd = self.Pd
+        new = self._dense_slots(torch.sort(self.dcol).values, order)  # [Pd] the dense columns in their new slot order
+        old = self.dslot[new].long()  # each one's slot now
+        if Pd:
+            self.dense[:, :Pd].copy_(self.dense[:, old].clone())
+            self.dslot[new] = torch.arange(Pd, dtype=torch.int32)
+            self.dcol.copy_(new)
+            if self._dtmax is not None:
+                self._dtmax.copy_(self._dtmax[old].clone())
+            if self._dnorm is not None:
+                self._dnorm[:Pd].copy_(self._dnorm[:Pd][old].clone())
+        self.dense_order = order if isinstance(order, str) else "columns"
+        return self
 
     def _build_rows(self) -> None:
         """The row-major copy of the sparse blocks (``rptr [4·ceil(V/32)+1]`` int64: each 8-vertex block's

@@ -127,3 +127,35 @@ def test_torch_path_follows_the_slots():
     for order in _orders(base):
         r = W(tr, threads=1, dense_order=order)
         assert torch.allclose(r._sums(li, lv.double(), torch.float64), ref, rtol=0, atol=1e-9)
+
+
+def test_reorder_in_place_gives_the_built_layout():
+    """``reorder_dense`` gives the tensors a relighter built with that order holds (after the kernel's layout exists:
+    its column maxima and norms permuted too), in the same buffers, so a prepared call bound before it still relights
+    as the float64 gather of the stored values."""
+    tr = _tr()
+    r = W(tr, threads=1, layouts="both")
+    idx, vals = r.reference_rows()
+    g = torch.Generator().manual_seed(6)
+    li = torch.randperm(r.P, generator=g)[:120]
+    lv = torch.rand(3, 120, generator=g)
+    ref = relight.wavelet_dense(vals.double(), idx, li, lv.double(), r.P)
+    run = r.prepared(li, lv, albedo=False)
+    ptrs = [t.data_ptr() for t in (r.dense, r.dslot, r.dcol)]
+    for order in [*_orders(r), "column"]:
+        r.reorder_dense(order)
+        want = W(tr, threads=1, dense_order=order)
+        want._kernel()
+        for k in ("dense", "dslot", "dcol", "_dtmax", "_dnorm"):
+            a, b = getattr(r, k), getattr(want, k)
+            assert (a is None) == (b is None), k
+            if a is not None:
+                assert torch.equal(a, b), k
+        assert [t.data_ptr() for t in (r.dense, r.dslot, r.dcol)] == ptrs
+        got = run().double()
+        if r._native is not None and r._takes_vnni(li, lv):
+            assert _within_vnni_bound(r, got, ref, li, lv), order if isinstance(order, str) else "columns"
+        else:
+            assert (got - ref).abs().max() <= 1e-5 * float(ref.abs().max()) + 1e-6
+    with pytest.raises(ValueError, match=r"^dense_order='x'; accepted"):
+        r.reorder_dense("x")
