@@ -432,6 +432,23 @@ def test_bad_input_refused_before_work(tmp_path, capsys):
     assert not (tmp_path / "w.prt").exists()
 
 
+def test_missing_light_named_with_the_accepted_forms():
+    """A wavelet light that names no file, built-in or analytic kind: the same line as the SH loader's, naming the
+    value and every accepted form (before: the image reader's bare 'environment map ... does not exist')."""
+    from prt_torch.lighting import load_light
+    from prt_torch.lighting.builtin import list_builtin_environments
+    from prt_torch.lighting.haar import cube_light
+
+    msgs = []
+    for load in (lambda: cube_light("no_such_light.exr", 4), lambda: load_light("no_such_light.exr")):
+        with pytest.raises(FileNotFoundError) as e:
+            load()
+        msgs.append(str(e.value))
+    assert msgs[0] == msgs[1]
+    assert "'no_such_light.exr'" in msgs[0] and "directional" in msgs[0]
+    assert all(n in msgs[0] for n in list_builtin_environments())
+
+
 def test_res_auto_from_the_lights():
     from prt_torch.transfer.auto import choose_haar_res
 

@@ -245,7 +245,7 @@ def cube_light(spec: Any, res: int, supersample: int = 4, channels: int = 3) -> 
     and ``record['upsampled']`` / ``record['warning']`` say so (the caller warns).
     """
     from .environment import Environment, load_environment
-    from .spec import analytic_params, parse_light_spec
+    from .spec import analytic_params, check_light_path, parse_light_spec
     from .builtin import builtin_environment, list_builtin_environments
 
     res = check_res(res)
@@ -284,6 +284,7 @@ def cube_light(spec: Any, res: int, supersample: int = 4, channels: int = 3) -> 
     if isinstance(spec, Environment):
         env = spec
     elif isinstance(spec, (str, list, tuple)) or hasattr(spec, "__fspath__"):
+        check_light_path(spec)
         env = load_environment(spec)
     else:
         raise TypeError(f"light spec {describe(spec)}; accepted: a built-in name, an analytic spec, a file, an "

@@ -115,6 +115,17 @@ def _analytic(d: dict, bands: int) -> torch.Tensor:
         raise ValueError(f"light {kind!r}: {e}") from None
 
 
+def check_light_path(spec: Any) -> None:
+    """Raise one clear FileNotFoundError when ``spec`` (a str or path, after the built-in names and analytic specs
+    were tried) names no existing file: the value and every accepted form (a '{face}' pattern is checked by the
+    loader, face by face)."""
+    if isinstance(spec, (str, os.PathLike)) and "{face}" not in str(spec) and not Path(spec).exists():
+        raise FileNotFoundError(
+            f"light {str(spec)!r} is neither an existing file, a built-in environment "
+            f"({', '.join(list_builtin_environments())}) nor an analytic spec ({', '.join(ANALYTIC_KINDS)}, "
+            "e.g. 'directional:direction=0,0,1;intensity=1')")
+
+
 def load_light(spec: Any, bands: int = 3, window: Any = None, size: int = BUILTIN_SIZE, **load_kw) -> torch.Tensor:
     """SH lighting vector ``[C, n²]`` float64 for ``spec`` (see module doc).
 
@@ -133,11 +144,7 @@ def load_light(spec: Any, bands: int = 3, window: Any = None, size: int = BUILTI
     elif isinstance(spec, (str, os.PathLike)) and str(spec).lower().endswith(".json") and Path(spec).is_file():
         L = load_light_json(spec, bands)
     elif isinstance(spec, (str, os.PathLike, list, tuple)):
-        if isinstance(spec, (str, os.PathLike)) and "{face}" not in str(spec) and not Path(spec).exists():
-            raise FileNotFoundError(
-                f"light {str(spec)!r} is neither an existing file, a built-in environment "
-                f"({', '.join(list_builtin_environments())}) nor an analytic spec ({', '.join(ANALYTIC_KINDS)}, "
-                "e.g. 'directional:direction=0,0,1;intensity=1')")
+        check_light_path(spec)
         return load_environment(spec, **load_kw).project(bands, window)
     else:
         raise TypeError(f"light spec of type {type(spec).__name__}; accepted: str, path, dict, Environment")
