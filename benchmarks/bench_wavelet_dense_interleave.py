@@ -2,9 +2,10 @@
 with ``--units`` consecutive 32-vertex blocks interleaved per term (``[ceil(V / (32 u)), Pd, u, 32]`` int16: a term's
 line for block 2i + 1 beside block 2i's, so every term the call reads is a run of u adjacent lines, u x 64 bytes,
 whatever the light), read by ``kernels/wavelet.c`` rewritten for it (substitutions: each block's address, the slots'
-stride and the pair's second block beside the first; the VNNI loop's stride test, its records' row offsets and their
-unit — the super-block of u blocks, so with u = 4 each of its two pairs prefetches its own two lines of the target row
-— and the int32 check; the float loop's far-prefetch unit, the super-block, and one line per target). Each row checks
+stride and the pair's second block beside the first; the VNNI loop's stride test and its records — one set per pair
+position in the super-block of u blocks, each term's prefetch target PFX steps ahead in the pairs' real order, the
+next pair's lines 128 bytes on or the next super-block's —; the float loop's far prefetch the same targets, one line
+per block; a timing build for one thread: the pair's position in a global). Each row checks
 the outputs equal the working tree's on the usual layout bit for bit (the same sums in the same order), for the VNNI
 dense loop (the default; checked to differ from the float loop's, so the call took it) and the float loop (``C |
 FDENSE``). Paired with the working tree's kernel on the usual layout, one thread's CPU time, warm and evicted (a 3 MB
@@ -38,19 +39,49 @@ from prt_torch.harness.timing import cpu_label, measure_paired, measure_paired_c
 WHO = "bench_wavelet_dense_interleave.py"
 
 
+HELPERS = r"""
+/* the interleaved layout's prefetch targets (bench_wavelet_dense_interleave.py): a super-block of ILV_U blocks holds
+ * ILV_U / 2 pairs, pair p's lines at 128 p bytes of each term row; the pair k pairs ahead of pair p of super-block s is
+ * pair (p + k) % (ILV_U / 2) of super-block s + (p + k) / (ILV_U / 2): ilv_delta its offset in elements from pair p */
+static inline i64 ilv_delta(i64 k) {
+    const i64 U = ILV_U / 2, p = ilv_par;
+    return (p + k) / U * ilv_us + (p + k) % U * 64 - p * 64;
+}
+/* the VNNI loop's records, one set per pair position p (ilv_rec + p nd): each term's row offset in bytes and its
+ * prefetch target PFX steps ahead (in this pair's terms, then the next pairs'), from the pair's first block */
+static inline void ilv_records(i64 nd, const i64 *wk) {
+    const i64 U = ILV_U / 2, keep = ilv_par;
+    for (i64 p = 0; p < U; p++) {
+        int32_t *r = (int32_t *)(ilv_rec + p * nd);
+        ilv_par = p;
+        for (i64 t = 0; t < nd; t++) {
+            const i64 tt = t + PFX, k = tt / nd;
+            r[2 * t] = (int32_t)(wk[t] * 64 * ILV_U);
+            r[2 * t + 1] = (int32_t)(2 * ilv_delta(k) + wk[tt % nd] * 64 * ILV_U);
+        }
+    }
+    ilv_par = keep;
+}
+"""
+
+
 def interleaved_source(src: str, u: int) -> str:
     """``src`` (kernels/wavelet.c) reading the dense layout with ``u`` blocks interleaved per term (module docstring)."""
+    vnni = "(const int32_t *)ds, (const int32_t *)lw"
     subs = [("dense + v0 * Pd * CT_, BV * CT_, PAIR_ARGS(b, nb, Pd * BV * CT_)",
              f"dense + (v0 / {32 * u}) * Pd * {32 * u} + (v0 % {32 * u}), {u} * BV, "
-             f"PAIR_ARGS(b, nb, (ilv_us = {u} * Pd * BV, BV))"),
+             f"PAIR_ARGS(b, nb, (ilv_us = {u} * Pd * BV, ilv_par = v0 / 64 % {u // 2}, BV))"),
             ("#define VNNI_ON(T) vq && CO == 3 && CT == 1 && sizeof(T) == 2 && stride == BV",
-             f"#define VNNI_ON(T) vq && CO == 3 && CT == 1 && sizeof(T) == 2 && stride == {u} * BV"),
-            ("r[2 * t] = (int32_t)(sl * 64);", f"r[2 * t] = (int32_t)(sl * {64 * u});"),
-            # the records' unit: the super-block of u blocks (u / 2 pairs; each pair's targets then keep its offset)
-            ("vnni_records(nd, wk, 2 * pstb_,", f"vnni_records(nd, wk, {u} * pstb_,"),
+             HELPERS + f"#define VNNI_ON(T) vq && CO == 3 && CT == 1 && sizeof(T) == 2 && stride == {u} * BV"),
+            (f"1, nd, {vnni}", "1, nd, (const int32_t *)(ilv_rec + ilv_par * nd), (const int32_t *)lw"),
+            (f"0, nd, {vnni}", "0, nd, (const int32_t *)(ilv_rec + ilv_par * nd), (const int32_t *)lw"),
+            ("vnni_records(nd, wk, 2 * pstb_, nbk_ * pstb_ >= PFX_MIN);", "ilv_records(nd, wk);"),
             ("(PFX / nd + 1) * 2 * pstb_ + Pd * 64", f"(PFX / nd + 1) * {u} * pstb_ + Pd * {64 * u}"),
-            # the float loop: its far prefetch's unit the super-block, one line per target (not the u-line row)
-            ("PFX_START(2 * pst)", "PFX_START(ilv_us)"),
+            # the float loop's far prefetch: the same targets (ilv_delta), one line per target and block
+            ("    i64 pt_ = PFX, po_ = 0;                                                                                  \\\n"
+             "    if (pt_ >= nd) { const i64 u_ = pt_ / nd; pt_ -= u_ * nd; po_ = u_ * (us); }",
+             "    i64 pt_ = PFX % nd, pk_ = PFX / nd, po_ = ilv_delta(pk_); (void)(us);"),
+            ("if (++pt_ == nd) { pt_ = 0; po_ += (us); }", "if (++pt_ == nd) { pt_ = 0; po_ = ilv_delta(++pk_); }"),
             ("        for (i64 q = 0; q < stride * (i64)sizeof(T); q += 64) {                                              \\\n"
              "            __builtin_prefetch((const char *)(a_ + q));",
              "        for (i64 q = 0; q < BV * CT * (i64)sizeof(T); q += 64) {                                             \\\n"
@@ -59,7 +90,9 @@ def interleaved_source(src: str, u: int) -> str:
         if src.count(a) != 1:
             raise SystemExit(f"{WHO}: kernels/wavelet.c changed: {a[:60]!r} is not there once")
         src = src.replace(a, b)
-    return "static long long ilv_us; /* the super-block's elements (u x Pd x BV), set at each block's call */\n" + src
+    return (f"#include <stdint.h>\n#define ILV_U {u}\nstatic int64_t ilv_us, ilv_par; /* the super-block's elements (u x Pd x "
+            "BV) and the pair's position in it, set at each block's call (one thread) */\n"
+            f"static int64_t ilv_rec[{u // 2} * 8192]; /* the records per pair position (the VNNI loop) */\n" + src)
 
 
 def interleaved(rl, u: int) -> None:
@@ -124,15 +157,15 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--sizes", default="small,medium,large", help="occluder_over_plane sizes, comma-separated")
     ap.add_argument("--size", default=None, help="one size (the earlier option; --sizes wins when both)")
-    ap.add_argument("--units", type=int, default=2, help="blocks interleaved per term: 2 or 4")
+    ap.add_argument("--units", type=int, default=2, help="blocks interleaved per term: 2, 4, 8 or 16")
     ap.add_argument("--regimes", default="warm,evicted", help="warm and/or evicted")
     ap.add_argument("--repeats", type=int, default=11)
     ap.add_argument("--write", default=str(OUT / "wavelet_dense_runs.md"), help="the report ('': print only)")
     args = ap.parse_args()
     raw = args.size if args.size and "--sizes" not in sys.argv else args.sizes
     sizes = [size_choice(s.strip(), WHO) for s in raw.split(",")]
-    if args.units not in (2, 4):
-        raise SystemExit(f"{WHO}: --units {args.units}; accepted: 2 or 4")
+    if args.units not in (2, 4, 8, 16):
+        raise SystemExit(f"{WHO}: --units {args.units}; accepted: 2, 4, 8 or 16")
     regimes = [g.strip() for g in args.regimes.split(",")]
     if not regimes or any(g not in ("warm", "evicted") for g in regimes):
         raise SystemExit(f"{WHO}: --regimes {args.regimes!r}; accepted: warm and/or evicted, comma-separated")
