@@ -16,6 +16,12 @@ Warm: back-to-back calls (``timing.measure_paired``); evicted (``--regimes``): e
 (a sample 4 calls). The outputs are the same bits for every placement in the AVX-512 build (its dense list is the
 light's order for N <= 256 and column order above: not the slots'), checked per row.
 
+``--read-strides``: rows of the contiguous placement read in another time order (the light's terms taken with that
+stride, N <= 256 rows: the same lines, each step that many slots from the last; the sums' order changes, so the outputs
+are checked within 1e-3 of the output's largest value) — whether the runs' gain needs their lines read one after another
+(``--fdense``: every call on the float dense loop, whose cost does not depend on the terms' order as the VNNI loop's
+flush groups do).
+
 Per row: column / runs and contiguous / runs (the median of the per-repeat ratios [quartiles]; > 1: the runs faster),
 and **share** = (column / runs - 1) / (column / contiguous - 1), the part of the contiguous gain the runs recover.
 Writes reports/benchmarks/wavelet_dense_runs.md's section for this CPU, build and sizes (``--write``; '' prints).
@@ -85,7 +91,8 @@ def runs_order(dcols: torch.Tensor, light_cols: torch.Tensor, r: int, g: int | N
     return torch.tensor(out, dtype=torch.int64), str(g)
 
 
-def size_rows(size: str, lib, runs, gaps, rows, repeats: int, evict_bytes: int, regimes) -> list[str]:
+def size_rows(size: str, lib, runs, gaps, rows, repeats: int, evict_bytes: int, regimes, strides=(),
+              flags: int = 0) -> list[str]:
     tr = kernel_transfer(size)
 
     def make():
@@ -103,10 +110,10 @@ def size_rows(size: str, lib, runs, gaps, rows, repeats: int, evict_bytes: int, 
         n = int(lcols.numel())
         own.reorder_dense(ranking(base, light))
         outs = {k: torch.empty(base.V, 3) for k in ("column", "aa", "own", "test")}
-        fc = bound_call(base, lib, li, lv, outs["column"], 1, per_vertex=True)
-        fa = bound_call(aa, lib, li, lv, outs["aa"], 1, per_vertex=True)
-        fo = bound_call(own, lib, li, lv, outs["own"], 1, per_vertex=True)
-        ft = bound_call(test, lib, li, lv, outs["test"], 1, per_vertex=True)
+        fc = bound_call(base, lib, li, lv, outs["column"], 1, per_vertex=True, flags=flags)
+        fa = bound_call(aa, lib, li, lv, outs["aa"], 1, per_vertex=True, flags=flags)
+        fo = bound_call(own, lib, li, lv, outs["own"], 1, per_vertex=True, flags=flags)
+        ft = bound_call(test, lib, li, lv, outs["test"], 1, per_vertex=True, flags=flags)
         for f in (fc, fa, fo):
             f()
         same = torch.equal(outs["column"], outs["own"]) and torch.equal(outs["column"], outs["aa"])
@@ -135,6 +142,27 @@ def size_rows(size: str, lib, runs, gaps, rows, repeats: int, evict_bytes: int, 
                             f"{cells[g]['A/A'][0]:.3f} | {load():.1f} |")
                     lines.append(line)
                     print(f"[dense_runs] {line}", flush=True)
+        for st in strides if N <= 256 else ():
+            # the contiguous placement read in another time order: the light's terms taken with stride st (the same
+            # lines; each step st slots from the last, as a layout that interleaves blocks spreads a term's lines over
+            # the pairs' steps); the sums' order changes, so the outputs are checked against the float64 sums' scale
+            perm = torch.cat([torch.arange(k, li.numel(), st) for k in range(st)])
+            lp, vp = li[perm].contiguous(), lv[:, perm].contiguous()
+            op = torch.empty(base.V, 3)
+            fp = bound_call(own, lib, lp, vp, op, 1, per_vertex=True, flags=flags)
+            fp()
+            if float((op - outs["column"]).abs().max()) > 1e-3 * float(outs["column"].abs().max()):
+                raise SystemExit(f"{WHO}: {size} {row}: the strided read's outputs differ beyond rounding")
+            for g in regimes:
+                c = pair(g, fp, fc, repeats, evict_bytes)
+                o = pair(g, fp, fo, repeats, evict_bytes)
+                gain = cells[g]["own"][0] - 1
+                share = (c[0] - 1) / gain if abs(gain) > 0.03 else float("nan")
+                line = (f"| {size} | {light} | {n_label} | {n} | {g} | contiguous, read stride {st} | – | {c[4]:.1f} | "
+                        f"**{c[0]:.3f}** [{c[1]:.2f}, {c[2]:.2f}] | {o[0]:.3f} [{o[1]:.2f}, {o[2]:.2f}] | {share:.2f} | "
+                        f"{cells[g]['A/A'][0]:.3f} | {load():.1f} |")
+                lines.append(line)
+                print(f"[dense_runs] {line}", flush=True)
         if not same:
             raise SystemExit(f"{WHO}: {size} {row}: a placement changed the outputs' bits")
     return lines
@@ -146,6 +174,10 @@ def main() -> None:
     ap.add_argument("--isa", default="native", help="the kernel build: native (default), avx2, avx512, avx512-256")
     ap.add_argument("--runs", default="2,4,8,16,32", help="run lengths r (slots), comma-separated")
     ap.add_argument("--gaps", default="1,3", help="gaps as multiples of r, comma-separated")
+    ap.add_argument("--read-strides", default="", help="rows of the contiguous placement read with the light's terms "
+                    "taken at these strides (N <= 256 rows only), comma-separated; '' none")
+    ap.add_argument("--no-runs", action="store_true", help="no runs rows (with --read-strides: those rows only)")
+    ap.add_argument("--fdense", action="store_true", help="every call on the float dense loop (C | FDENSE)")
     ap.add_argument("--lights", default=",".join(ROWS), help=f"rows: some of {tuple(ROWS)}")
     ap.add_argument("--regimes", default="warm", help="warm and/or evicted")
     ap.add_argument("--repeats", type=int, default=9)
@@ -162,6 +194,14 @@ def main() -> None:
     if any(t < 1 for t in runs) or any(t != "s" and t < 1 for t in gaps):
         raise SystemExit(f"{WHO}: --runs {args.runs!r} / --gaps {args.gaps!r}; accepted: positive integers (gaps: or "
                          "s, scattered), comma-separated")
+    try:
+        strides = [int(t) for t in args.read_strides.split(",") if t.strip()]
+    except ValueError:
+        raise SystemExit(f"{WHO}: --read-strides {args.read_strides!r}; accepted: integers >= 2, comma-separated") from None
+    if any(t < 2 for t in strides):
+        raise SystemExit(f"{WHO}: --read-strides {args.read_strides!r}; accepted: integers >= 2, comma-separated")
+    if args.no_runs:
+        runs = []
     rows = [s.strip() for s in args.lights.split(",")]
     if any(s not in ROWS for s in rows):
         raise SystemExit(f"{WHO}: --lights {args.lights!r}; accepted: some of {', '.join(ROWS)}, comma-separated")
@@ -174,8 +214,11 @@ def main() -> None:
     before = load()
     lines = []
     for s in sizes:
-        lines += size_rows(s, lib, runs, gaps, rows, args.repeats, int(args.evict_mb * 2**20), regimes)
-    head = (f"## {cpu_label()}: the `{args.isa}` build, sizes {', '.join(sizes)}, regimes {', '.join(regimes)}\n\n"
+        lines += size_rows(s, lib, runs, gaps, rows, args.repeats, int(args.evict_mb * 2**20), regimes, strides,
+                           relight.WaveletRelighter.FDENSE if args.fdense else 0)
+    head = (f"## {cpu_label()}: the `{args.isa}` build, sizes {', '.join(sizes)}, regimes {', '.join(regimes)}"
+            + (f", read strides {args.read_strides}" if strides else "") + (", no runs" if args.no_runs else "")
+            + (", the float dense loop" if args.fdense else "") + "\n\n"
             f"Kernel {label} ({flags}); one thread's CPU time, the median of {args.repeats} paired repeats (evicted: "
             f"{2 * args.repeats + 1}, each sample 4 calls after a {args.evict_mb:g} MB read) [quartiles]; > 1: the runs "
             f"faster. r: run length (slots of 64 bytes per 32-vertex block), g: the gap used (other dense columns "
@@ -184,7 +227,8 @@ def main() -> None:
             f"gain is under 3%. A/A: column against a second column relighter. The outputs are the same bits in every "
             f"placement (checked). Load average {before:.1f} → {load():.1f}. Reproduce: `.venv/bin/python benchmarks/"
             f"{WHO} --sizes {args.sizes} --isa {args.isa} --runs {args.runs} --gaps {args.gaps} --regimes "
-            f"{args.regimes}`.\n\n"
+            f"{args.regimes}" + (f" --read-strides {args.read_strides}" if strides else "")
+            + (" --no-runs" if args.no_runs else "") + (" --fdense" if args.fdense else "") + "`.\n\n"
             "| size | light | N | dense terms | regime | r | g | column µs | **column / runs** | contiguous / runs | "
             "share | A/A | load |\n" + "|---" * 13 + "|")
     write(args.write, head + "\n" + "\n".join(lines) + "\n",
