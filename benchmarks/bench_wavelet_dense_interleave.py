@@ -1,5 +1,5 @@
 """A timing prototype, not a layout the relighter builds (issue 39, the dense slot order's next step): the dense layout
-with ``--units`` consecutive 32-vertex blocks interleaved per term (``[ceil(V / (32 u)), Pd, u, 32]`` int16: a term's
+with ``--units`` (u: 2, 4, 8 or 16) consecutive 32-vertex blocks interleaved per term (``[ceil(V / (32 u)), Pd, u, 32]`` int16: a term's
 line for block 2i + 1 beside block 2i's, so every term the call reads is a run of u adjacent lines, u x 64 bytes,
 whatever the light), read by ``kernels/wavelet.c`` rewritten for it (substitutions: each block's address, the slots'
 stride and the pair's second block beside the first; the VNNI loop's stride test and its records — one set per pair
@@ -10,7 +10,7 @@ the outputs equal the working tree's on the usual layout bit for bit (the same s
 dense loop (the default; checked to differ from the float loop's, so the call took it) and the float loop (``C |
 FDENSE``). Paired with the working tree's kernel on the usual layout, one thread's CPU time, warm and evicted (a 3 MB
 read before each call), with an A/A (the usual layout against a second relighter of it), occluder_over_plane
-``--sizes`` (one tile: the relighter at one thread), studio N = 10, 30, 100, all (292 kept) and sky N = 10, 30, 100,
+``--sizes`` (``--size``: one, the earlier option; one tile: the relighter at one thread), ``--regimes``, studio N = 10, 30, 100, all (292 kept) and sky N = 10, 30, 100,
 300, 1000, all. Only the AVX-512 build's 16-lane loops take the layout (the 8-lane builds are not timed here). Writes a
 section of reports/benchmarks/wavelet_dense_runs.md (``--write``; '' prints).
 
