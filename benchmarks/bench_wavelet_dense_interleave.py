@@ -11,8 +11,8 @@ dense loop (the default; checked to differ from the float loop's, so the call to
 FDENSE``). Paired with the working tree's kernel on the usual layout, one thread's CPU time, warm and evicted (a 3 MB
 read before each call), with an A/A (the usual layout against a second relighter of it), occluder_over_plane
 ``--sizes`` (``--size``: one, the earlier option; one tile: the relighter at one thread), ``--regimes``, studio
-N = 10, 30, 100, all (292 kept) and sky N = 10, 30, 100, 300, 1000, all. Only the AVX-512 build's 16-lane loops take the layout (the 8-lane builds are not timed here). Writes a
-section of reports/benchmarks/wavelet_dense_runs.md (``--write``; '' prints).
+N = 10, 30, 100, all (292 kept) and sky N = 10, 30, 100, 300, 1000, all. Only the AVX-512 build's 16-lane loops take
+the layout (the 8-lane builds are not timed here). Writes a section of reports/benchmarks/wavelet_dense_runs.md (``--write``; '' prints).
 
     .venv/bin/python benchmarks/bench_wavelet_dense_interleave.py --sizes small,medium,large --units 4
 """
