@@ -30,6 +30,7 @@ import torch  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_wavelet import LIGHTS, OUT, kernel_transfer, load, size_choice  # noqa: E402
+from bench_wavelet_dense_order import regimes_option  # noqa: E402
 from bench_wavelet_isa import bound_call, kernel_build, kernel_source  # noqa: E402
 from bench_wavelet_setup import write  # noqa: E402
 
@@ -166,9 +167,7 @@ def main() -> None:
     sizes = [size_choice(s.strip(), WHO) for s in raw.split(",")]
     if args.units not in (2, 4, 8, 16):
         raise SystemExit(f"{WHO}: --units {args.units}; accepted: 2, 4, 8 or 16")
-    regimes = [g.strip() for g in args.regimes.split(",")]
-    if not regimes or any(g not in ("warm", "evicted") for g in regimes):
-        raise SystemExit(f"{WHO}: --regimes {args.regimes!r}; accepted: warm and/or evicted, comma-separated")
+    regimes = regimes_option(args.regimes, WHO)
     u = args.units
     torch.set_num_threads(1)
     src, label = kernel_source(None, WHO)

@@ -65,6 +65,15 @@ def both_order(rl) -> torch.Tensor:
     return torch.argsort(rank * rl.P + torch.arange(rl.P))
 
 
+def regimes_option(text: str, who: str) -> list[str]:
+    """``--regimes`` checked before any work: ``warm`` and/or ``evicted``, comma-separated, else one line naming
+    ``who``, the option, the value and what is accepted (the dense-order, runs and interleave benchmarks)."""
+    regimes = [g.strip() for g in text.split(",")]
+    if not regimes or any(g not in ("warm", "evicted") for g in regimes):
+        raise SystemExit(f"{who}: --regimes {text!r}; accepted: warm and/or evicted, comma-separated")
+    return regimes
+
+
 def pair(regime: str, a, b, repeats: int, evict_bytes: int) -> list[float]:
     """``a`` against ``b``: [median of b / a per repeat, q1, q3, a's median µs, b's median µs]."""
     if regime == "warm":
@@ -141,9 +150,7 @@ def main() -> None:
     bad = [o for o in orders if o not in ORDERS]
     if bad or not orders:
         raise SystemExit(f"{WHO}: --orders {args.orders!r}; accepted: some of {', '.join(ORDERS)}, comma-separated")
-    regimes = [g.strip() for g in args.regimes.split(",")]
-    if not regimes or any(g not in ("warm", "evicted") for g in regimes):
-        raise SystemExit(f"{WHO}: --regimes {args.regimes!r}; accepted: warm and/or evicted, comma-separated")
+    regimes = regimes_option(args.regimes, WHO)
     try:
         terms = tuple(int(t) for t in args.terms.split(","))
     except ValueError:

@@ -41,7 +41,7 @@ import torch  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_wavelet import LIGHTS, OUT, kernel_transfer, load, size_choice  # noqa: E402
-from bench_wavelet_dense_order import pair, ranking  # noqa: E402
+from bench_wavelet_dense_order import pair, ranking, regimes_option  # noqa: E402
 from bench_wavelet_isa import bound_call, kernel_build, kernel_source  # noqa: E402
 from bench_wavelet_setup import write  # noqa: E402
 
@@ -205,9 +205,7 @@ def main() -> None:
     rows = [s.strip() for s in args.lights.split(",")]
     if any(s not in ROWS for s in rows):
         raise SystemExit(f"{WHO}: --lights {args.lights!r}; accepted: some of {', '.join(ROWS)}, comma-separated")
-    regimes = [g.strip() for g in args.regimes.split(",")]
-    if not regimes or any(g not in ("warm", "evicted") for g in regimes):
-        raise SystemExit(f"{WHO}: --regimes {args.regimes!r}; accepted: warm and/or evicted, comma-separated")
+    regimes = regimes_option(args.regimes, WHO)
     torch.set_num_threads(1)
     src, label = kernel_source(None, WHO)
     lib, flags = kernel_build(src, args.isa, WHO)

@@ -77,3 +77,20 @@ def test_interleaved_kernel_text_applies_to_todays_kernel(bench_module, u):
     src = (ROOT / "prt_torch" / "kernels" / "wavelet.c").read_text()
     out = bi.interleaved_source(src, u)  # SystemExit naming the missing text if wavelet.c moved under it
     assert f"#define ILV_U {u}" in out and f"stride == {u} * BV" in out and out.count("ilv_records(nd, wk);") == 1
+
+
+@pytest.mark.parametrize("script", ["bench_wavelet_dense_order", "bench_wavelet_dense_runs", "bench_wavelet_dense_interleave"])
+def test_bad_regimes_is_one_line_before_any_build(bench_module, monkeypatch, script):
+    import sys
+
+    m = bench_module(script)
+
+    def no_work(*a, **k):
+        raise AssertionError("a kernel was built before the options were checked")
+
+    monkeypatch.setattr(m, "kernel_build", no_work)
+    monkeypatch.setattr(sys, "argv", [f"{script}.py", "--sizes", "small", "--regimes", "warm,hot"])
+    with pytest.raises(SystemExit) as e:
+        m.main()
+    msg = str(e.value.code)
+    assert msg == f"{script}.py: --regimes 'warm,hot'; accepted: warm and/or evicted, comma-separated"
