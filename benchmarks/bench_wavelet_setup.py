@@ -61,16 +61,18 @@ the OpenMP region's pragma removed, its shared variables copied in).
 ``--tsc A,B`` (x86): instead, the parts timed in place in one build — the working tree's kernel with ``rdtsc`` read
 around each tile's sparse pass, each 32-vertex block's ``dense_block`` call (its dense terms, the scratch added back,
 the output) and the tile loop (from the light's quantisation, VNNI_SETUP, to the tiles' end), and from the gather to
-the call's end (Python and ctypes outside) — on two relighters of the same transfer with tiles A and B (vertices), and
-an A/A control (a second relighter of tile A: placement); the calls alternated A, B, B, A, ... (``--tsc-pairs`` pairs,
-50 untimed first; ``--tsc-block K``: K timed calls of one relighter, after an untimed one, then K of the other, the
-pairs taken in order), per pair the difference B − A of each part in TSC ticks (median [quartiles]), converted to µs at
-the TSC's rate (measured against CLOCK_MONOTONIC). Wall time inside the call: a pair preempted in between is in the
-quartiles, not the median. Alternated per call, two relighters whose working sets outgrow the L2 together (at small,
-sky N >= 300: 1.1 MB of dense lines each) find their lines in L2 or L3 by turns, and the differences are bimodal
-(quartiles of +-10 us): ``--tsc-block 100`` there. The ``rdtsc`` pairs themselves cost ~1 µs of a 13 µs call. Probes
-compiled as separate builds (above) charge a part with whatever the next probe's code changes elsewhere (placement, and
-the caches' state the skipped work leaves); this split times one build.
+the call's end (Python and ctypes outside); in the DVNNI build also VNNI_SETUP's parts (``vnni_quantise``'s chunk
+pass, its flush groups, its guard test with the int16 lights' write, and ``vnni_records``) — on two relighters of the
+same transfer with tiles A and B (vertices), and an A/A control (a second relighter of tile A: placement); the calls
+alternated A, B, B, A, ... (``--tsc-pairs`` pairs, 50 untimed first; ``--tsc-block K``: K timed calls of one
+relighter, after an untimed one, then K of the other, the pairs taken in order), per pair the difference B − A of each
+part in TSC ticks (median [quartiles]), converted to µs at the TSC's rate (measured against CLOCK_MONOTONIC). Wall
+time inside the call: a pair preempted in between is in the quartiles, not the median. Alternated per call, two
+relighters whose working sets outgrow the L2 together (at small, sky N >= 300: 1.1 MB of dense lines each) find their
+lines in L2 or L3 by turns, and the differences are bimodal (quartiles of +-10 us): ``--tsc-block 100`` there. The
+``rdtsc`` pairs themselves cost ~1 µs of a 13 µs call. Probes compiled as separate builds (above) charge a part with
+whatever the next probe's code changes elsewhere (placement, and the caches' state the skipped work leaves); this
+split times one build.
 
     .venv/bin/python benchmarks/bench_wavelet_setup.py --tsc 2272,1152 --lights studio:300,studio:100,sky:100
 """
@@ -399,11 +401,14 @@ def pair(args) -> str:
     return "\n".join(L) + "\n"
 
 
-#: (text of kernels/wavelet.c, replacement) for --tsc: rdtsc around the parts, summed per call into prt_tsc [8]:
+#: (text of kernels/wavelet.c, replacement) for --tsc: rdtsc around the parts, summed per call into prt_tsc [16]:
 #: 0 the dense blocks, 1 the sparse passes, 2 the tile loop (from VNNI_SETUP), 3 the gather to the end, 4 tile 0's
-#: blocks 0-1 (its first unit), 5 its blocks 2-3
+#: blocks 0-1 (its first unit), 5 its blocks 2-3; the DVNNI build's set-up (VNNI_SETUP): 6 vnni_quantise's call,
+#: 7 vnni_records, and within vnni_quantise 8 its chunk pass (the chunks' sums, maxima, weights, the guard's norms),
+#: 9 the flush groups (the budget's pass from the back, the merge, the groups' float32 scales and the guard's sums),
+#: 10 the guard's test and the int16 lights written (builds without DVNNI: 6-10 stay 0)
 TSC_SUBS = (
-    ("#include <string.h>\n", "#include <string.h>\n#include <x86intrin.h>\nunsigned long long prt_tsc[8];\n"),
+    ("#include <string.h>\n", "#include <string.h>\n#include <x86intrin.h>\nunsigned long long prt_tsc[16];\n"),
     ("        dense_block_##T(CT_, CO_, OC_, nd, wk,", "        { const unsigned long long t0_ = __rdtsc(); \\\n"
      "        dense_block_##T(CT_, CO_, OC_, nd, wk,"),
     ("                        out + OC_ * v0, nt_out);", "                        out + OC_ * v0, nt_out); "
@@ -420,8 +425,26 @@ TSC_SUBS = (
     ("    memset(mark, 0, (size_t)P);", "    const unsigned long long t3_ = __rdtsc(); \\\n    memset(mark, 0, (size_t)P);"),
     ("    NT_OUT_FENCE(nt_out);                                                                                    \\\n    return 0;",
      "    NT_OUT_FENCE(nt_out); prt_tsc[3] += __rdtsc() - t3_; \\\n    return 0;"))
+#: --tsc's reads inside the DVNNI set-up (applied when the source has them: builds and revisions without DENSE_VNNI's
+#: vnni_quantise leave 6-10 at 0)
+TSC_VNNI = (
+    ("            if (vnni_quantise(nd, lw, vq_,", "            const unsigned long long t6_ = __rdtsc(); \\\n"
+     "            const int q6_ = vnni_quantise(nd, lw, vq_,"),
+    ("L->dnorm ? L->dnorm[Pd] : 0.0)) { /* 0: the guard */ \\\n",
+     "L->dnorm ? L->dnorm[Pd] : 0.0); prt_tsc[6] += __rdtsc() - t6_; \\\n            if (q6_) { /* 0: the guard */ \\\n"),
+    ("                vnni_records(nd, wk, 2 * pstb_, nbk_ * pstb_ >= PFX_MIN);",
+     "                const unsigned long long t7_ = __rdtsc(); \\\n"
+     "                vnni_records(nd, wk, 2 * pstb_, nbk_ * pstb_ >= PFX_MIN); prt_tsc[7] += __rdtsc() - t7_;"),
+    ("    const double *gn = VNNI_GUARD > 0 ? nm : NULL;", "    unsigned long long q_ = __rdtsc(), q1_;\n"
+     "    const double *gn = VNNI_GUARD > 0 ? nm : NULL;"),
+    ("    rest[3 * nc] = rest[3 * nc + 1] = rest[3 * nc + 2] = 0;",
+     "    q1_ = __rdtsc(); prt_tsc[8] += q1_ - q_; q_ = q1_;\n    rest[3 * nc] = rest[3 * nc + 1] = rest[3 * nc + 2] = 0;"),
+    ("    if (gn) /* the guard: sum_G", "    q1_ = __rdtsc(); prt_tsc[9] += q1_ - q_; q_ = q1_;\n    if (gn) /* the guard: sum_G"),
+    ("    return 1;\n}\n/* the dense terms' slots ds", "    prt_tsc[10] += __rdtsc() - q_;\n    return 1;\n}\n/* the dense terms' slots ds"))
 TSC_PARTS = ("set-up (gather → tile loop)", "sparse passes", "dense blocks (terms, add-back, output)", "tile loop",
-             "the call (gather → end)", "tile 0's first unit (blocks 0-1)", "its second unit (blocks 2-3)")
+             "the call (gather → end)", "tile 0's first unit (blocks 0-1)", "its second unit (blocks 2-3)",
+             "VNNI set-up (vnni_quantise + vnni_records)", "  vnni_quantise's chunk pass", "  its flush groups",
+             "  its guard test + int16 write", "  vnni_records", "tile loop − VNNI set-up")
 
 
 def tsc_source(src: str) -> str:
@@ -431,6 +454,11 @@ def tsc_source(src: str) -> str:
         if src.count(old) != 1:
             raise SystemExit(f"{WHO}: kernels/wavelet.c changed: --tsc's text {old.strip()[:60]!r} is not there once")
         src = src.replace(old, new)
+    if "static __attribute__((noinline)) int vnni_quantise(" in src:
+        for old, new in TSC_VNNI:
+            if src.count(old) != 1:
+                raise SystemExit(f"{WHO}: kernels/wavelet.c changed: --tsc's text {old.strip()[:60]!r} is not there once")
+            src = src.replace(old, new)
     return src
 
 
@@ -457,7 +485,7 @@ def tsc_split(args, tiles: list[int]) -> str:
     torch.set_num_threads(1)
     src, label = kernel_source(args.source, f"{WHO} --source")
     lib = kernel_build(tsc_source(src), args.isa, WHO)[0]
-    tsc = (ctypes.c_ulonglong * 8).in_dll(lib, "prt_tsc")
+    tsc = (ctypes.c_ulonglong * 16).in_dll(lib, "prt_tsc")
     mhz = tsc_rate()
     tr = kernel_transfer(args.size)
     rls = {"A": relight.WaveletRelighter(tr, threads=1, layouts="both", tile=tiles[0]),
@@ -485,10 +513,11 @@ def tsc_split(args, tiles: list[int]) -> str:
             fns[k] = bound_call(rl, lib, li, lv, torch.empty(rl.V, 3), 1, per_vertex=True)
 
         def parts(fn):
-            ctypes.memset(tsc, 0, 64)
+            ctypes.memset(tsc, 0, 128)
             fn()
             v = list(tsc)
-            return [v[3] - v[2], v[1], v[0], v[2], v[3], v[4], v[5]]
+            return [v[3] - v[2], v[1], v[0], v[2], v[3], v[4], v[5], v[6] + v[7], v[8], v[9], v[10], v[7],
+                    v[2] - v[6] - v[7]]
 
         diffs = {}
         for other in ("B", "A'"):

@@ -121,17 +121,28 @@ def test_tsc_build_relights_as_the_reference(rl, monkeypatch):
     bs = _bench("bench_wavelet_setup")
     src, _ = _bench("bench_wavelet_isa").kernel_source(None, "test")
     lib, _ = _bench("bench_wavelet_isa").kernel_build(bs.tsc_source(src), None, "test")
-    tsc = (ctypes.c_ulonglong * 8).in_dll(lib, "prt_tsc")
+    tsc = (ctypes.c_ulonglong * 16).in_dll(lib, "prt_tsc")
     li, lv, _ = rl.light("studio", 300, "transport")
     lv = lv.to(torch.float32).contiguous()
     out = torch.empty(rl.V, 3)
     args = _args(rl, li, lv, out)
     out.fill_(float("nan"))
-    ctypes.memset(tsc, 0, 64)
+    ctypes.memset(tsc, 0, 128)
     assert lib.prt_wavelet_relight_i16(*args) == 0
     assert torch.allclose(out.double(), _reference(rl, li, lv), rtol=1e-5, atol=1e-6)
-    dense, sparse, loop, call, u0, u1 = (int(tsc[k]) for k in range(6))
+    dense, sparse, loop, call, u0, u1, quant, rec, chunks, groups, write = (int(tsc[k]) for k in range(11))
     assert 0 < dense + sparse <= loop < call and 0 < u0 + u1 <= dense and sparse > 0, list(tsc)
+    # the DVNNI build's set-up (VNNI_SETUP) within the tile loop, vnni_quantise's three passes within its call; builds
+    # and calls without it: all five zero
+    assert quant + rec + dense + sparse <= loop and chunks + groups + write <= quant, list(tsc)
+    assert (quant > 0) == (rec > 0) and (chunks > 0) == (quant > 0), list(tsc)
+    # the same call without C | FDENSE: the DVNNI build quantises the light (the VNNI loop, or the guard's float loop)
+    ctypes.memset(tsc, 0, 128)
+    assert lib.prt_wavelet_relight_i16(args[0], args[1], args[2], args[3], 3, *args[5:]) == 0
+    dense, sparse, loop, call, u0, u1, quant, rec, chunks, groups, write = (int(tsc[k]) for k in range(11))
+    assert quant + rec + dense + sparse <= loop < call and chunks + groups + write <= quant, list(tsc)
+    if int(lib.prt_wavelet_isa()) & 64:
+        assert quant > 0 and chunks > 0, list(tsc)
     for bad in ("2272", "2272,100", "a,b"):
         monkeypatch.setattr(sys, "argv", ["bench_wavelet_setup.py", "--tsc", bad, "--write", ""])
         with pytest.raises(SystemExit, match=f"--tsc '{bad}'; accepted: two tiles A,B"):
