@@ -551,7 +551,16 @@ static inline void put_rgb8(float *out, v8f r, v8f g, v8f b, int nt) {
  * outputs f1408bf's bits on every row: ~1-2%, also with the sums computed and the decision ignored, and with the sums
  * taken from the column maxima instead of dnorm (not its lines; unexplained, placement suspected); vnni_quantise is
  * noinline (once per call; the kernel body's code then does not move with the set-up's). avx2, znver3, avx512-256,
- * portable, skylake-avx512 and -DDENSE_VNNI=0 objects' .text byte-identical to f1408bf's (gcc + objcopy). */
+ * portable, skylake-avx512 and -DDENSE_VNNI=0 objects' .text byte-identical to f1408bf's (gcc + objcopy).
+ * The set-up on vectors (2026-11-30, branch su19): VNNI_SETUP split in place (bench_wavelet_setup.py --tsc, Intel Xeon
+ * family 6 model 167, small blocker scene): studio 292 kept 0.76 us = chunk pass 0.22 + flush groups 0.11 + guard test
+ * and int16 write 0.34 + records 0.06 (sky N = 1000: 2.66 = 0.92 + 0.34 + 1.13 + 0.22; the guard's sums ride in the
+ * chunk and groups passes, its test is three comparisons). vnni_quantise's chunk pass (a term's channels in one
+ * float64 vector) and its write (a pair's two terms in one, one vdivpd for six divsd) now take the scalar code's
+ * operations per lane: the same groups, scales, lights and outputs, bit for bit; 0.76 -> 0.57 us (2.66 -> 1.95).
+ * Paired with e5b4207 (bench_wavelet_setup.py --pair, load 0.3): the fourth row 1.008-1.016x, sky N = 100-300
+ * 1.036-1.048x, the rest 1.00-1.03x (A/A 0.99-1.01); reports/benchmarks/wavelet_setup19.md. Other builds' .text
+ * byte-identical to e5b4207's (avx2, znver3, avx512-256, portable, skylake-avx512, -DDENSE_VNNI=0; objcopy). */
 #if DVNNI
 #define VNNI_PARAMS const float *vq,
 #define VNNI_ARGS vq,
@@ -1305,8 +1314,34 @@ static inline i64 gather_light(i64 N, const i64 *restrict sel, const float *rest
                                const unsigned char *restrict cls, const int32_t *restrict cblk, unsigned char *restrict mark,
                                float *restrict lp) {
     i64 sb = 0;
+#if DVNNI /* su19: an RGB light's terms 16 at a time transposed to rows (r, g, b, 0), one 16-byte add per term into lp (the
+           * same float additions per channel, in the same order: the same bits); the rest as below */
+    i64 n0 = 0;
     if (C == 3)
-        for (i64 n = 0; n < N; n++) {
+        for (; n0 + 16 <= N; n0 += 16) {
+            float rw[64] __attribute__((aligned(64)));
+            const __m512 r = _mm512_loadu_ps(lv + n0), g = _mm512_loadu_ps(lv + N + n0), b = _mm512_loadu_ps(lv + 2 * N + n0);
+            const __m512 z = _mm512_setzero_ps();
+            const __m512d lo = _mm512_castps_pd(_mm512_unpacklo_ps(r, g)), bl = _mm512_castps_pd(_mm512_unpacklo_ps(b, z)),
+                          hi = _mm512_castps_pd(_mm512_unpackhi_ps(r, g)), bh = _mm512_castps_pd(_mm512_unpackhi_ps(b, z));
+            /* rows 4k + i in vector i's 128-bit lane k */
+            _mm512_store_pd((double *)rw, _mm512_unpacklo_pd(lo, bl));
+            _mm512_store_pd((double *)(rw + 16), _mm512_unpackhi_pd(lo, bl));
+            _mm512_store_pd((double *)(rw + 32), _mm512_unpacklo_pd(hi, bh));
+            _mm512_store_pd((double *)(rw + 48), _mm512_unpackhi_pd(hi, bh));
+            for (int m = 0; m < 16; m++) {
+                const i64 j = sel[n0 + m];
+                float *q = lp + 4 * j;
+                sb += cblk[j] & -(i64)(mark[j] == 0);
+                mark[j] = cls[j];
+                _mm_storeu_ps(q, _mm_add_ps(_mm_loadu_ps(q), _mm_load_ps(rw + 16 * (m & 3) + 4 * (m >> 2))));
+            }
+        }
+#else
+    const i64 n0 = 0;
+#endif
+    if (C == 3)
+        for (i64 n = n0; n < N; n++) {
             const i64 j = sel[n];
             float *q = lp + 4 * j;
             sb += cblk[j] & -(i64)(mark[j] == 0);
