@@ -558,8 +558,10 @@ static inline void put_rgb8(float *out, v8f r, v8f g, v8f b, int nt) {
  * chunk and groups passes, its test is three comparisons). vnni_quantise's chunk pass (a term's channels in one
  * float64 vector) and its write (a pair's two terms in one, one vdivpd for six divsd) now take the scalar code's
  * operations per lane: the same groups, scales, lights and outputs, bit for bit; 0.76 -> 0.57 us (2.66 -> 1.95).
- * Paired with e5b4207 (bench_wavelet_setup.py --pair, load 0.3): the fourth row 1.008-1.016x, sky N = 100-300
- * 1.036-1.048x, the rest 1.00-1.03x (A/A 0.99-1.01); reports/benchmarks/wavelet_setup19.md. Other builds' .text
+ * With gather_light's RGB rows (su19, DVNNI only: 16 terms transposed, one 16-byte add per term; the same bits) paired
+ * with e5b4207 (bench_wavelet_setup.py --pair, load 1.1): the fourth row 1.020-1.032x, sky N = 100-2000 1.03-1.05x,
+ * N = 10 0.99x (A/A 0.97-1.02); bench_wavelet_scratch.py --vnni (the per-vertex factor) warm small 0.99-1.04x (the
+ * fourth row 0.99-1.00x), medium 0.98-1.02x; reports/benchmarks/wavelet_setup19.md. Other builds' .text
  * byte-identical to e5b4207's (avx2, znver3, avx512-256, portable, skylake-avx512, -DDENSE_VNNI=0; objcopy). */
 #if DVNNI
 #define VNNI_PARAMS const float *vq,
