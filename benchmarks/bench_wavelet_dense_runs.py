@@ -126,22 +126,27 @@ def size_rows(size: str, lib, runs, gaps, rows, repeats: int, evict_bytes: int, 
                     f"[{o[1]:.2f}, {o[2]:.2f}] | 1 | 1 | {a[0]:.3f} [{a[1]:.2f}, {a[2]:.2f}] | {load():.1f} |")
             lines.append(line)
             print(f"[dense_runs] {line}", flush=True)
+
+        def emit(f, r_label, g_label) -> None:
+            """One report row per regime: ``f`` paired with the column layout (fc) and the contiguous one (fo)."""
+            for g in regimes:
+                c = pair(g, f, fc, repeats, evict_bytes)
+                o = pair(g, f, fo, repeats, evict_bytes)
+                gain = cells[g]["own"][0] - 1
+                share = (c[0] - 1) / gain if abs(gain) > 0.03 else float("nan")
+                line = (f"| {size} | {light} | {n_label} | {n} | {g} | {r_label} | {g_label} | {c[4]:.1f} | "
+                        f"**{c[0]:.3f}** [{c[1]:.2f}, {c[2]:.2f}] | {o[0]:.3f} [{o[1]:.2f}, {o[2]:.2f}] | {share:.2f} | "
+                        f"{cells[g]['A/A'][0]:.3f} | {load():.1f} |")
+                lines.append(line)
+                print(f"[dense_runs] {line}", flush=True)
+
         for r in runs:
             for gm in gaps:
                 order, gap = runs_order(dcols, lcols, r, None if gm == "s" else int(gm) * r)
                 test.reorder_dense(order)
                 ft()
                 same = same and torch.equal(outs["column"], outs["test"])
-                for g in regimes:
-                    c = pair(g, ft, fc, repeats, evict_bytes)
-                    o = pair(g, ft, fo, repeats, evict_bytes)
-                    gain = cells[g]["own"][0] - 1
-                    share = (c[0] - 1) / gain if abs(gain) > 0.03 else float("nan")
-                    line = (f"| {size} | {light} | {n_label} | {n} | {g} | {r} | {gap} | {c[4]:.1f} | **{c[0]:.3f}** "
-                            f"[{c[1]:.2f}, {c[2]:.2f}] | {o[0]:.3f} [{o[1]:.2f}, {o[2]:.2f}] | {share:.2f} | "
-                            f"{cells[g]['A/A'][0]:.3f} | {load():.1f} |")
-                    lines.append(line)
-                    print(f"[dense_runs] {line}", flush=True)
+                emit(ft, r, gap)
         for st in strides if N <= 256 else ():
             # the contiguous placement read in another time order: the light's terms taken with stride st (the same
             # lines; each step st slots from the last, as a layout that interleaves blocks spreads a term's lines over
@@ -153,16 +158,7 @@ def size_rows(size: str, lib, runs, gaps, rows, repeats: int, evict_bytes: int, 
             fp()
             if float((op - outs["column"]).abs().max()) > 1e-3 * float(outs["column"].abs().max()):
                 raise SystemExit(f"{WHO}: {size} {row}: the strided read's outputs differ beyond rounding")
-            for g in regimes:
-                c = pair(g, fp, fc, repeats, evict_bytes)
-                o = pair(g, fp, fo, repeats, evict_bytes)
-                gain = cells[g]["own"][0] - 1
-                share = (c[0] - 1) / gain if abs(gain) > 0.03 else float("nan")
-                line = (f"| {size} | {light} | {n_label} | {n} | {g} | contiguous, read stride {st} | – | {c[4]:.1f} | "
-                        f"**{c[0]:.3f}** [{c[1]:.2f}, {c[2]:.2f}] | {o[0]:.3f} [{o[1]:.2f}, {o[2]:.2f}] | {share:.2f} | "
-                        f"{cells[g]['A/A'][0]:.3f} | {load():.1f} |")
-                lines.append(line)
-                print(f"[dense_runs] {line}", flush=True)
+            emit(fp, f"contiguous, read stride {st}", "–")
         if not same:
             raise SystemExit(f"{WHO}: {size} {row}: a placement changed the outputs' bits")
     return lines
