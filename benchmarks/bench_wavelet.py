@@ -66,6 +66,8 @@ from prt_torch.transfer.ray_kernels import upper_rays  # noqa: E402
 from prt_torch.transfer.wavelet import bytes_per_vertex, dense_wavelet_transfer, dequantise, precompute_wavelet, quantise, sparsify  # noqa: E402
 from prt_torch.io import atomic_write_text  # noqa: E402
 
+import wavelet_history  # noqa: E402  (benchmarks/: section 7's runs kept across runs)
+
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "reports" / "benchmarks"
 D = "0.3,0.2,1"
@@ -284,7 +286,8 @@ def main() -> None:
 
     # 7. relight time vs N against the bound (paired), studio, K = 256: this build, then the others (child processes)
     before = load()
-    runs = [{"machine": dict(machine_info(), load_before=before), "build": relight.wavelet_kernel_path(),
+    runs = [{"machine": dict(machine_info(), load_before=before), "utc": wavelet_history.now_utc(),
+             "build": relight.wavelet_kernel_path(),
              "rows": kernel_rows(relighters[256], results["selection_default"],
                                  relight.WaveletRelighter(relighters[256].transfer, threads=2))}]  # two threads' tiles
     runs[0]["machine"]["load_after"] = load()
@@ -299,8 +302,11 @@ def main() -> None:
     OUT.mkdir(parents=True, exist_ok=True)
     atomic_write_text(OUT / "wavelet.json", json.dumps(results, indent=1, default=str))
     if len(isas) > 1:  # the other builds' section 7, each in a child process, reading the file just written
-        merge_kernel_runs(results, [child_run(isa) for isa in isas[1:]])
+        more = [child_run(isa) for isa in isas[1:]]
+        merge_kernel_runs(results, more)
+        runs += more
         atomic_write_text(OUT / "wavelet.json", json.dumps(results, indent=1, default=str))
+    keep_history(runs)
     plot(results)
     write_md(results, args.quick)
     print(f"[wavelet] wrote {OUT / 'wavelet.md'}", flush=True)
@@ -658,9 +664,11 @@ def section_only(name: str) -> None:
 
 def kernel_run(selection: str, size: str = "small") -> dict:
     """Section 7 in this process's kernel build (the same transfer: R = 32, K = 256, BITS) on ``occluder_over_plane``
-    at ``size`` (:data:`KERNEL_SIZES`): ``{machine (with the load before and after and the caches' sizes), build
-    (relight.wavelet_kernel_path), size, vertices, precompute_s, rows}``; each row says where its bytes live."""
+    at ``size`` (:data:`KERNEL_SIZES`): ``{machine (with the load before and after and the caches' sizes), utc (the
+    run's start), build (relight.wavelet_kernel_path), size, vertices, precompute_s, rows}``; each row says where its
+    bytes live."""
     mesh = builtin("occluder_over_plane", size)
+    utc = wavelet_history.now_utc()
     t0 = time.perf_counter()
     tr = precompute_wavelet(mesh, 32, 256, BITS, shadows="always", run=RunOptions(workers=1))
     t_pre = time.perf_counter() - t0
@@ -676,7 +684,7 @@ def kernel_run(selection: str, size: str = "small") -> dict:
     rows = kernel_rows(rl, selection, rl2)
     for r in rows:
         r["lives"] = bytes_home(r["bytes"], caches)
-    return {"machine": dict(machine_info(), load_before=before, load_after=load(), **caches),
+    return {"machine": dict(machine_info(), load_before=before, load_after=load(), **caches), "utc": utc,
             "build": relight.wavelet_kernel_path(), "size": size, "vertices": mesh.num_vertices, "precompute_s": t_pre,
             "dense_pages": pages, "rows": rows}
 
@@ -768,8 +776,18 @@ def kernel_only(isas: list[str], size: str = "small") -> None:
     runs = [kernel_run(res["selection_default"], size)] + [child_run(isa, size) for isa in isas[1:]]
     merge_kernel_runs(res, runs)
     atomic_write_text(OUT / "wavelet.json", json.dumps(res, indent=1, default=str))
+    keep_history(runs)
     write_md(res, False)
     print(f"[wavelet] wrote {OUT / 'wavelet.md'} (section 7: {', '.join(kernel_run_key(r) for r in runs)})", flush=True)
+
+
+def keep_history(runs: list[dict]) -> None:
+    """Section 7's ``runs`` added to reports/benchmarks/wavelet_kernel_history.json (``wavelet_history``: each with its
+    start time, this checkout's kernel source and commit), so that section 7 can show each row across runs."""
+    src, head = wavelet_history.kernel_source(), wavelet_history.git_head()
+    n = wavelet_history.append([wavelet_history.record(r, cpu_label(r["machine"]), utc=r.get("utc") or wavelet_history.now_utc(),
+                                                       time_from="run", source=src, commit=head) for r in runs])
+    print(f"[wavelet] {n} run(s) added to {wavelet_history.HISTORY}", flush=True)
 
 
 def bounds_table(run: dict) -> list[str]:
@@ -980,6 +998,19 @@ def write_md(res: dict, quick: bool) -> None:
              "(`timing.measure_paired_cold` with `evict=timing.working_set(...)`: the whole relighter's tensors and the "
              "bound's buffers, written back and evicted from every cache level, untimed), 15 pairs, median of the per-pair "
              "ratios and their quartiles: the memory-bandwidth bound.\n")
+    hist = wavelet_history.load_history()
+    if hist:
+        L.append("### The criterion across runs\n")
+        L.append("On a shared VM the streaming read moves 1.4-2.9x between machine states on the same code, the kernel "
+                 "less, so one run's fraction depends on the hour. Every section-7 run is kept in "
+                 "`wavelet_kernel_history.json` (`benchmarks/wavelet_history.py`; the runs committed before it "
+                 "recorded from the report's git history, timed by their commit: `(commit)`) with its kernel source "
+                 "(a hash of `wavelet.c`'s code, comments left out) and its state: the read speed of the "
+                 f"{wavelet_history.REF_ROW[0]} N = {wavelet_history.REF_ROW[1]} row (its bytes over the streaming "
+                 "read's one-thread CPU time). Below, per CPU, build and size: every run on one line, then each row "
+                 "across the runs on this checkout's kernel source, with the median — the figure to judge a row by "
+                 "(one thread's CPU time as a fraction of the streaming read).\n")
+        L += wavelet_history.history_md(hist, wavelet_history.kernel_source())
     runs = kernel_runs(res)
     by_cpu: dict[tuple[str, str], list[dict]] = {}
     for run in runs:
