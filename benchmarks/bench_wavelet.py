@@ -287,6 +287,7 @@ def main() -> None:
     # 7. relight time vs N against the bound (paired), studio, K = 256: this build, then the others (child processes)
     before = load()
     runs = [{"machine": dict(machine_info(), load_before=before), "utc": wavelet_history.now_utc(),
+             "read_sweep": wavelet_history.read_sweep(),
              "build": relight.wavelet_kernel_path(),
              "rows": kernel_rows(relighters[256], results["selection_default"],
                                  relight.WaveletRelighter(relighters[256].transfer, threads=2))}]  # two threads' tiles
@@ -665,10 +666,10 @@ def section_only(name: str) -> None:
 def kernel_run(selection: str, size: str = "small") -> dict:
     """Section 7 in this process's kernel build (the same transfer: R = 32, K = 256, BITS) on ``occluder_over_plane``
     at ``size`` (:data:`KERNEL_SIZES`): ``{machine (with the load before and after and the caches' sizes), utc (the
-    run's start), build (relight.wavelet_kernel_path), size, vertices, precompute_s, rows}``; each row says where its
-    bytes live."""
+    run's start), read_sweep (``wavelet_history.read_sweep`` then: the machine's state), build
+    (relight.wavelet_kernel_path), size, vertices, precompute_s, rows}``; each row says where its bytes live."""
     mesh = builtin("occluder_over_plane", size)
-    utc = wavelet_history.now_utc()
+    utc, sweep = wavelet_history.now_utc(), wavelet_history.read_sweep()  # the run's start and its machine state
     t0 = time.perf_counter()
     tr = precompute_wavelet(mesh, 32, 256, BITS, shadows="always", run=RunOptions(workers=1))
     t_pre = time.perf_counter() - t0
@@ -684,7 +685,7 @@ def kernel_run(selection: str, size: str = "small") -> dict:
     rows = kernel_rows(rl, selection, rl2)
     for r in rows:
         r["lives"] = bytes_home(r["bytes"], caches)
-    return {"machine": dict(machine_info(), load_before=before, load_after=load(), **caches), "utc": utc,
+    return {"machine": dict(machine_info(), load_before=before, load_after=load(), **caches), "utc": utc, "read_sweep": sweep,
             "build": relight.wavelet_kernel_path(), "size": size, "vertices": mesh.num_vertices, "precompute_s": t_pre,
             "dense_pages": pages, "rows": rows}
 
@@ -1007,7 +1008,9 @@ def write_md(res: dict, quick: bool) -> None:
                  "recorded from the report's git history, timed by their commit: `(commit)`) with its kernel source "
                  "(a hash of `wavelet.c`'s code, comments left out) and its state: the read speed of the "
                  f"{wavelet_history.REF_ROW[0]} N = {wavelet_history.REF_ROW[1]} row (its bytes over the streaming "
-                 "read's one-thread CPU time). Below, per CPU, build and size: every run on one line, then each row "
+                 "read's one-thread CPU time) and a streaming read of 0.5-4 MiB buffers at the run's start "
+                 "(`wavelet_history.read_sweep`: where the read slows tells how much of the L2 the run had). "
+                 "Below, per CPU, build and size: every run on one line, then each row "
                  "across the runs on this checkout's kernel source, with the median — the figure to judge a row by "
                  "(one thread's CPU time as a fraction of the streaming read).\n")
         L += wavelet_history.history_md(hist, wavelet_history.kernel_source())

@@ -14,7 +14,8 @@ their median.
 
 A record: ``{utc, time_from ('run': the run's start; 'commit': the commit that first recorded it, an upper bound),
 cpu, build, size, vertices, kernel_source (12 hex of sha256 over prt_torch/kernels/wavelet.c's code, comments left out), commit, load_before,
-load_after, rows: [{light, N, terms_kept, bytes, relight_cpu_s_1, read_bound_cpu_s_1, of_read_bound_cpu_1,
+load_after, read_sweep ({KiB: GB/s} of :func:`read_sweep` at the run's start, or None),
+rows: [{light, N, terms_kept, bytes, relight_cpu_s_1, read_bound_cpu_s_1, of_read_bound_cpu_1,
 of_read_pick_cpu_1, of_read_bound_cold}]}``.
 """
 from __future__ import annotations
@@ -62,6 +63,44 @@ def git_head(root: Path = ROOT) -> str:
         return "?"
 
 
+#: the buffer sizes (KiB) of :func:`read_sweep`: around the Intel Xeon's 2 MiB L2, where the states differ
+SWEEP_KIB = (512, 1024, 1536, 2048, 4096)
+
+
+def read_sweep(kib: tuple[int, ...] = SWEEP_KIB, seconds: float = 0.15) -> dict[str, float]:
+    """The machine's state as one thread sees it: ``{KiB: GB/s}`` of a streaming read (``torch.sum`` over int64, the
+    read of ``timing.read_bound_fn``) of a buffer of each size in ``kib``, at one thread, by the thread's CPU time:
+    the median of 9 samples of back-to-back calls (~``seconds`` per size). Measured at 11:00 UTC on 2026-11-30 (Intel
+    Xeon, a slow state): 77 / 69 / 41 / 23 / 18 GB/s at 0.5 / 1 / 1.5 / 2 / 4 MiB — the read slows from 1 MiB, not
+    from the L2's 2 MiB."""
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # one thread's read (a two-thread sum's second thread is not in this thread's CPU time)
+    try:
+        return {str(k): _read_gbs(k, seconds) for k in kib}
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _read_gbs(kib: int, seconds: float) -> float:
+    """GB/s of one thread's streaming read of ``kib`` KiB (:func:`read_sweep`)."""
+    import time
+
+    import torch
+
+    src = torch.empty(kib * 1024, dtype=torch.uint8).random_(0, 255).view(torch.int64)
+    src.sum()
+    reps = max(3, int(seconds * 20e9 / (kib * 1024) / 9))
+    ts = []
+    for _ in range(9):
+        t0 = time.thread_time()
+        for _ in range(reps):
+            src.sum()
+        ts.append((time.thread_time() - t0) / reps)
+    return kib * 1024 / statistics.median(ts) / 1e9
+
+
 def build_key(b: dict) -> str:
     """A kernel build in a few words: ISA, ``PRT_TORCH_KERNEL_ISA`` choice, 16 lanes or 8."""
     return f"{b.get('isa')} ({b.get('isa_choice', 'native')}, w16 {bool(b.get('w16'))})"
@@ -79,7 +118,8 @@ def record(run: dict, cpu: str, *, utc: str, time_from: str, source: str, commit
     return {"utc": utc, "time_from": time_from, "cpu": cpu, "build": build_key(run.get("build") or {}),
             "size": run.get("size", "small"), "vertices": run.get("vertices"), "kernel_source": source,
             "commit": commit, "load_before": m.get("load_before", m.get("load_average_1min")),
-            "load_after": m.get("load_after", m.get("load_average_1min")), "rows": rows}
+            "load_after": m.get("load_after", m.get("load_average_1min")), "read_sweep": run.get("read_sweep"),
+            "rows": rows}
 
 
 def fingerprint(rec: dict) -> tuple:
@@ -135,6 +175,11 @@ def _load(rec: dict) -> str:
     return f"{a:.1f} → {b:.1f}" if a is not None and b is not None else "—"
 
 
+def _sweep(rec: dict) -> str:
+    sw = rec.get("read_sweep")
+    return " / ".join(f"{sw[str(k)]:.0f}" if str(k) in sw else "—" for k in SWEEP_KIB) if sw else "—"
+
+
 def history_md(records: list[dict], source: str) -> list[str]:
     """Markdown: per CPU, build and size, one line per run (all kernel sources), then the rows across the runs of
     kernel ``source`` with their median (one thread's CPU time as a fraction of the streaming read)."""
@@ -145,16 +190,16 @@ def history_md(records: list[dict], source: str) -> list[str]:
     for (cpu, build, size), recs in groups.items():
         recs = sorted(recs, key=lambda r: r["utc"])
         L.append(f"#### {cpu} · {build} · {size}\n")
-        L.append(f"| run (UTC) | kernel source | commit | load | read speed ({REF_ROW[0]} N = {REF_ROW[1]}) | lowest row "
-                 f"| rows below {LINE} |")
-        L.append("|---|---|---|---|---|---|---|")
+        L.append(f"| run (UTC) | kernel source | commit | load | read speed ({REF_ROW[0]} N = {REF_ROW[1]}) "
+                 f"| read GB/s at {' / '.join(f'{int(k) / 1024:g}' for k in SWEEP_KIB)} MiB | lowest row | rows below {LINE} |")
+        L.append("|---|---|---|---|---|---|---|---|")
         for rec in recs:
             rs = read_speed(rec)
             low = min(rec["rows"], key=lambda r: r["of_read_bound_cpu_1"])
             below = [f"{_row_label(r)} {r['of_read_bound_cpu_1']:.2f}" for r in rec["rows"] if r["of_read_bound_cpu_1"] < LINE]
             when = rec["utc"][:16].replace("T", " ") + (" (commit)" if rec["time_from"] == "commit" else "")
             L.append(f"| {when} | `{rec['kernel_source']}`{' (this)' if rec['kernel_source'] == source else ''} "
-                     f"| {rec['commit']} | {_load(rec)} | " + (f"{rs:.0f} GB/s" if rs else "—")
+                     f"| {rec['commit']} | {_load(rec)} | " + (f"{rs:.0f} GB/s" if rs else "—") + f" | {_sweep(rec)}"
                      + f" | {_row_label(low)} {low['of_read_bound_cpu_1']:.2f} | {', '.join(below) or 'none'} |")
         L.append("")
         cur = [r for r in recs if r["kernel_source"] == source]

@@ -129,3 +129,17 @@ def test_backfill_reads_a_git_history(wh, tmp_path):
         ("2026-11-29T09:00:00Z", "small", "commit"), ("2026-11-29T12:00:00Z", "medium", "commit")]
     assert recs[0]["kernel_source"] == recs[1]["kernel_source"] == wh.source_hash(b"int k;")
     assert wh.backfill(repo, path) == 0  # nothing new the second time
+
+
+def test_read_sweep_one_thread_and_rendered(wh):
+    import torch
+
+    before = torch.get_num_threads()
+    sw = wh.read_sweep((64, 128), seconds=0.005)
+    assert torch.get_num_threads() == before
+    assert set(sw) == {"64", "128"} and all(0.1 < v < 10_000 for v in sw.values())  # GB/s, not s or B/s
+    run = _run({("sky", 1000): (60e-6, 30e-6, 1_500_000)})
+    run["read_sweep"] = {str(k): float(i + 10) for i, k in enumerate(wh.SWEEP_KIB)}
+    rec = wh.record(run, "C", utc=run["utc"], time_from="run", source="s", commit="c")
+    line = next(x for x in wh.history_md([rec], "s") if x.startswith("| 2026-"))
+    assert "| 10 / 11 / 12 / 13 / 14 |" in line
