@@ -23,7 +23,7 @@ of ``--reps`` calls after one that warms the caches. The two programs run in alt
 ``--rounds`` times each; the report gives each side's median of the per-round medians in ns per
 point, the median and range of the round-by-round ratios (base / test: > 1, test faster) and
 whether the two results' checksums (a sum of the outputs' bits) agree — they must, for a change
-meant to keep the arithmetic. The changes of issue 42 §4 on AMD Zen 3 (docs/codecs.md) were
+meant to keep the arithmetic. The changes of issue 42 §4 on AMD Zen 3 (docs/codecs_log.md) were
 found and measured with it (``--out reports/benchmarks/affine_micro.md``).
 """
 from __future__ import annotations

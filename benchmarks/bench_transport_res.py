@@ -11,7 +11,8 @@ what ``prt compress --codec gaussian --param lobes=N`` runs) and its relative L2
 ‖T̃ − T‖/‖T‖ (texel solid angles) over the whole table and over the functions whose view is 0–60°,
 60–80° and 80–90° from the vertex normal, with each band's share of Σ T² Δω; the fit's fraction of
 lobes at the narrowest resolvable width and whether it warned. One JSON line per fit on stdout
-(docs/precompute.md, "Transport tables: res: auto", has the tables of a run).
+(docs/precompute_log.md, "Transport tables: `res: auto` — what it did to the Gaussian codec", has the tables
+of a run).
 
 Two further figures, clearly secondary to the plain relative L2 (the headline): ``rel_l2_cos``, the
 same error with each function weighted by its view's projected area cos θ_o (what a view's pixels

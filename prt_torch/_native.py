@@ -137,7 +137,7 @@ def _build(cc: str, flags: list[str], sources: dict[str, str], name: str, so: Pa
     by a generated ``<name>.unity.c``: the compiler then sees what it saw when the kernels were one
     source (the relight library's machine code is byte-identical to the former single string's,
     objdump-checked), so it inlines across files and lays the code out as before — these kernels'
-    speed moves by a few per cent with code placement alone (docs/codecs.md). Each file still
+    speed moves by a few per cent with code placement alone (docs/codecs_log.md, "Comparing kernels"). Each file still
     compiles on its own (tests/test_kernel_sources.py), and an error names the file and line."""
     so.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(dir=so.parent) as tmp:

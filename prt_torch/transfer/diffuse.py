@@ -97,7 +97,7 @@ PROBE_RAYS_CHOICES = (FACE_PROBE_RAYS, FACE_PROBE_RAYS // 2, FACE_PROBE_RAYS // 
 #: there — its probe only chooses between the plain sum and the control variate, which a quarter of the cells
 #: does as well; so does a flat face whose first rays all left (read open); the other flat faces go on to every
 #: cell (their guide pools them). One-bounce error unchanged to 3 digits, up to 60% fewer rays per vertex at
-#: N = 64-1024 (4 seeds; reports/benchmarks/face_probe.md, docs/precompute.md)
+#: N = 64-1024 (4 seeds; reports/benchmarks/face_probe.md, docs/precompute_log.md, "The face probe where it pays")
 FIRST_PROBE_RAYS = FACE_PROBE_RAYS // 4
 #: a face's guide pools the probes of the coplanar faces among its GUIDE_POOL nearest centroids; it
 #: is used only where at least GUIDE_MIN_FACES of them are coplanar (a flat region: their cells are

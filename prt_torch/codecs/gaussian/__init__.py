@@ -86,7 +86,7 @@ class GaussianCodec(Codec):
         start take a quarter). Each LM iteration forms the normal equations once and tries up
         to ``fit.LM_TRIES`` = 5 damped steps on them. Was 20 with one try until issue 42 §2,
         where 38% of the functions of 3 lobes on the default tables stopped unconverged
-        (docs/codecs.md, "Convergence").
+        (docs/codecs_log.md, "Convergence").
     optimizer : {'lm', 'lbfgs'}, default='lm'
         'lm': batched Levenberg–Marquardt (Gauss–Newton normal equations per function, one
         4N×4N Cholesky each; per-function damping and convergence). 'lbfgs': torch's L-BFGS

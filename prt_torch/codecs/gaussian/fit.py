@@ -42,7 +42,8 @@ narrower, a fit could put a lobe between texel centres whose prefiltered integra
 uses) the texel values no longer constrain. At 0.6 the bound itself was the error of the default
 tables (Ashikhmin–Shirley N = 40 at res: auto = 13): their energy sits at grazing views, where the
 lobe is cos θ_o times narrower across the plane of incidence, so a quarter to a third of the lobes
-sat at the bound and 3 lobes fitted no better than 1 (docs/precompute.md, "Transport tables").
+sat at the bound and 3 lobes fitted no better than 1
+(docs/precompute_log.md, "Transport tables: `res: auto` — what it did to the Gaussian codec").
 
 Initialisation: peaks and moments — lobe k at the centroid of the half-maximum region around
 the largest remaining value, σ² from that region's solid angle (2π ln2 σ² for a Gaussian),
@@ -80,7 +81,7 @@ _LOG_W_MIN = math.log(1e-10)
 #: takes the whole-table relative L2 of 1 → 3 lobes from 0.560 → 0.547 / 0.586 → 0.572 to 0.310 → 0.202 /
 #: 0.352 → 0.234 (no width-limit warning), and the encodings' constant-light relighting (Σ w, the SG
 #: integrals) from 0.27–0.33 to 0.08–0.19 of the table's texel sum (benchmarks/bench_transport_res.py
-#: --resolve-factor 0.6 0.35; docs/precompute.md)
+#: --resolve-factor 0.6 0.35; docs/precompute_log.md, "Texel averages and the fit's width bound")
 RESOLVE_FACTOR = 0.35
 #: functions still above this relative L2 error after the fit get one restart of their weakest lobe
 #: (_lm_batch). Was 0.02, below the median function's error of two lobes on 6×8×8 tables (0.11-0.12),
@@ -100,7 +101,7 @@ START_FACTOR = 0.6
 #: a third of the trial steps were rejected, each costing a whole iteration, and 38% of the functions of 3 lobes
 #: on the default tables (Ashikhmin–Shirley N = 40, r = 13 texel averages, 150 vertices spread over scan_blob)
 #: stopped unconverged; 5 tries with max_iter 30: 92% converged, relative L2 0.152 -> 0.142 at 3 lobes
-#: (benchmarks/bench_gaussian_convergence.py, docs/codecs.md "Convergence")
+#: (benchmarks/bench_gaussian_convergence.py, docs/codecs_log.md "Convergence")
 LM_TRIES = 5
 
 
@@ -122,7 +123,8 @@ def resolvable_sigma(solid_angles: torch.Tensor) -> float:
     prefiltered integral the data do not constrain. At 0.35 h a lobe's texel sum is that far off, but
     the fitted encodings' constant-light relighting (Σ_k w_k against Σ_p T Δω) errs less than at
     0.6 h (0.05–0.08 vs 0.18 relative at 3 lobes on the default tables, 0.15–0.19 vs 0.09 at one:
-    the fit's residual, not the Riemann error, sets it; docs/precompute.md)."""
+    the fit's residual, not the Riemann error, sets it;
+    docs/precompute_log.md, "Texel averages and the fit's width bound")."""
     return RESOLVE_FACTOR * math.sqrt(float(solid_angles.double().max()))
 
 
