@@ -1,6 +1,6 @@
 """Can the wavelet kernel's dense GEMV and its column-major sparse pass overlap (issue 39, N = 1000, one thread)?
 
-The two passes are bound by different parts of the core (``docs/wavelet.md``): the dense terms' register-blocked
+The two passes are bound by different parts of the core (``docs/wavelet_kernel_log.md``): the dense terms' register-blocked
 GEMV by the multiply-add pipes (12 multiply-adds and 4 int16 -> float conversions per 32 stored values for RGB),
 the sparse pass by the scratch's read-modify-writes (three 32-byte stores per 8-vertex block). Run one after the
 other (the kernel's order, per tile) their times add; interleaved in one instruction stream the out-of-order core

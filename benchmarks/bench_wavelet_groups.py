@@ -20,8 +20,8 @@ layout of ``lighting.haar.haar2d``; a node (f, h, a, b) has three detail sibling
 Per light and N (transport-weighted selection, the default): the light's sparse terms, the groups
 they touch and terms per group, the blocks the pass reads ungrouped and grouped, and the bytes
 (16-bit values, CT = 1: 20 B per ungrouped block). Counts only: the kernel variants were timed side by
-side (docs/wavelet.md "Kernel"). Transfer: the kernel section's (occluder_over_plane small, R = 32,
-K = 256, 16 bits).
+side (docs/wavelet_kernel_log.md "Issue 39, grouped sparse blocks"). Transfer: the kernel section's
+(occluder_over_plane small, R = 32, K = 256, 16 bits).
 
     .venv/bin/python benchmarks/bench_wavelet_groups.py     (about 20 s)
 
@@ -117,7 +117,8 @@ def main() -> None:
     L = ["# Grouped sparse blocks for the wavelet kernel: co-occurrence, blocks and bytes (issue 39)\n",
          f"Transfer: occluder_over_plane small (V = {V}), R = {res}, K = 256, {BITS}-bit, {rl.Pd} dense columns, "
          f"{int(sparse.sum())} sparse columns holding {rl.NB} 8-vertex blocks. Reproduce: "
-         "`.venv/bin/python benchmarks/bench_wavelet_groups.py` (counts only; timings in docs/wavelet.md \"Kernel\").\n"]
+         "`.venv/bin/python benchmarks/bench_wavelet_groups.py` (counts only; timings in "
+         "docs/wavelet_kernel_log.md \"Issue 39, grouped sparse blocks\").\n"]
     # the transfer's co-occurrence: of the kept sparse coefficients, the share whose vertex keeps 1 / 2 / 3 of the node's siblings
     node = keys["siblings 3"]
     un, inv = torch.unique(node[cc], return_inverse=True)

@@ -7,7 +7,7 @@ calls timed paired by one thread's CPU time (``measure_paired(clock=time.thread_
 (what two placements of one layout differ by). Per row: the median over the pairings of the paired ratio (> 1: one
 tile faster) and their range. Why across placements: two relighters of one layout, each paired once, differ by up to
 ~3% warm and up to ~2x evicted at small (``bench_wavelet_scratch.py --base-tile 2272`` against ``--base-first``;
-docs/wavelet.md "The tile follows the relighter's threads"), as much as the tile itself.
+docs/wavelet_kernel_log.md "The tile follows the relighter's threads"), as much as the tile itself.
 
 Lights: occluder_over_plane (``--size``), R = 32, K = 256, 16-bit values (section 7's kernel transfer), studio and sky,
 transport-weighted terms, RGB, at N = 10, 30, 100, 300, 1000 (studio: 292 nonzero terms, so 300 only) and all; every

@@ -359,16 +359,17 @@ class WaveletRelighter:
     ``arith``: the dense terms' arithmetic. ``'auto'`` (default): the build's — in the AVX-512 build on a CPU with
     AVX-512 VNNI (:func:`wavelet_kernel_path`'s ``vnni``) the calls of a 16-bit grey transfer (CT = 1) under an RGB
     light with unequal channels that take the 16-lane loop sum their dense terms by int16 dot products (``vpdpwssd``):
-    the light quantised per call to int16 per channel in groups of 16 dense terms by the column-maximum rule, error per
-    vertex and channel at most f_v Σ_g (s_g / 2) Σ_{k∈g} |T̂_v,k| (s_g the group's step: about max|L̂| / 32767, more
-    where Σ_k tmax_k |L̂_k| would overflow int32): 0.28–0.90× the stored 16-bit transfer's own quantisation bound, an
-    output error of 8e-6–6e-5 relative L2, but up to ~2e-3 relative at the dimmest vertices, where the light's terms
-    cancel — more than the stored transfer's own error there (docs/wavelet.md, "The dense arithmetic" and "the VNNI
-    dense loop by default"). A per-call guard keeps that premise for every light: a call whose L2 bound of the VNNI
-    error, Σ_G (s_G,c / 2) Σ_{k∈G} ‖scale ⊙ T̂_:,k‖₂, exceeds the transfer's own, ‖scale‖₂ Σ_k |L̂_k,c| / 2, in some
-    channel takes the float32 loop (its bits) instead (e.g. one light term 1e4 × the others in its flush group, or
-    the coarse R = 8 layouts). Every other call, and every other build, the float32 loop. ``'float'``: the float32 loop
-    for every call (the kernel's C | FDENSE), the bits of the builds without VNNI.
+    the light quantised per call to int16 per channel in groups of 16 dense terms by the column-maximum rule, error
+    per vertex and channel at most f_v Σ_g (s_g / 2) Σ_{k∈g} |T̂_v,k| (s_g the group's step: about max|L̂| / 32767,
+    more where Σ_k tmax_k |L̂_k| would overflow int32): 0.28–0.90× the stored 16-bit transfer's own quantisation
+    bound, an output error of 8e-6–6e-5 relative L2, but up to ~2e-3 relative at the dimmest vertices, where the
+    light's terms cancel — more than the stored transfer's own error there (docs/wavelet.md, "The dense arithmetic";
+    docs/wavelet_kernel_log.md, "the VNNI dense loop by default"). A per-call guard keeps that premise for every
+    light: a call whose L2 bound of the VNNI error, Σ_G (s_G,c / 2) Σ_{k∈G} ‖scale ⊙ T̂_:,k‖₂, exceeds the transfer's
+    own, ‖scale‖₂ Σ_k |L̂_k,c| / 2, in some channel takes the float32 loop (its bits) instead (e.g. one light term 1e4
+    × the others in its flush group, or the coarse R = 8 layouts). Every other call, and every other build, the
+    float32 loop. ``'float'``: the float32 loop for every call (the kernel's C | FDENSE), the bits of the builds
+    without VNNI.
 
     ``dense_order``: the order of the dense slots in each 32-vertex block (:meth:`_dense_slots`) — ``'column'``
     (default: ascending Haar column), ``'weight'`` (descending transport weight), ``'level'`` (coarse Haar levels
@@ -377,11 +378,12 @@ class WaveletRelighter:
     light then reads a prefix of each block's ~Pd × 64 bytes, adjacent lines, instead of lines scattered over them).
     The layout's bytes, :meth:`bytes_read` and the kernel are the same for every order; the kernel's dense list (and
     so each vertex's summation order) follows the light's order for N ≤ 256 and the column order above it in the
-    AVX-512 build, the slot order in the 8-lane builds. Measured on an Intel Xeon (family 6 model 167; docs/wavelet.md
-    "The dense slot order", reports/benchmarks/wavelet_dense_order.md): a light's own ranking 1.2–1.4× faster warm at
-    the medium blocker (V = 10 585, studio N ≥ 100, sky N = 100; where its lines outgrow the L2 with the neighbours the
-    prefetchers pull), none at small (the layout in L2) or where a light reads nearly every slot; the light-independent
-    orders 0.92–1.09×, so ``'column'`` stays the default. :meth:`reorder_dense` changes the order in place.
+    AVX-512 build, the slot order in the 8-lane builds. Measured on an Intel Xeon (family 6 model 167;
+    docs/wavelet_kernel_log.md "The dense slot order", reports/benchmarks/wavelet_dense_order.md): a light's own
+    ranking 1.2–1.4× faster warm at the medium blocker (V = 10 585, studio N ≥ 100, sky N = 100; where its lines
+    outgrow the L2 with the neighbours the prefetchers pull), none at small (the layout in L2) or where a light reads
+    nearly every slot; the light-independent orders 0.92–1.09×, so ``'column'`` stays the default.
+    :meth:`reorder_dense` changes the order in place.
     """
 
     BLOCK = 32  # vertices per dense block (kernels/wavelet.c BV)
@@ -407,8 +409,8 @@ class WaveletRelighter:
     #: ``dense_min``'s default for 16-bit values in the W16 builds whose dense loop is VNNI (``vnni``: DENSE_VNNI compiled
     #: in; elsewhere, and for other value sizes, b/(4+b): 1/3 for 16-bit values, the bytes rule): a column is dense from
     #: 0.2 of the vertices.
-    #: Measured on an Intel Xeon (family 6 model 167; docs/wavelet.md "The fourth row (small studio, 292 kept) and the
-    #: call's non-dense parts"; blocker scene R = 32, K = 256, one thread's CPU time, paired with a relighter of
+    #: Measured on an Intel Xeon (family 6 model 167; docs/wavelet_kernel_log.md "The fourth row (small studio, 292
+    #: kept) and the call's non-dense parts"; blocker scene R = 32, K = 256, one thread's CPU time, paired with a relighter of
     #: dense_min 1/3 on the same transfer, VNNI on both sides): in the call a VNNI dense (term, 32-vertex block) step
     #: costs ~6 cycles and a sparse 8-vertex block ~6.5; medium N = 30 1.08-1.15x in every run, medium N = 100-300
     #: 1.00-1.09x, small within noise (0.89-1.16x at load 5-6); the float loop on this layout down to 0.74x (evicted),
@@ -1179,8 +1181,8 @@ class WaveletRelighter:
         """A call at ``th`` threads on a default tile built for fewer (``_th_built``): when a relighter built for
         ``th`` would hold more tiles, one warning per relighter — the tiles are the threads' unit of work, so the call
         runs on ``NT`` of its ``th`` threads (at small, one tile on one thread: 0.77-0.94x a two-tile relighter by wall
-        clock at two threads, docs/wavelet.md "The tile follows the relighter's threads"). Build it with ``threads=th``
-        (or an explicit ``tile``)."""
+        clock at two threads, docs/wavelet_kernel_log.md "The tile follows the relighter's threads"). Build it with
+        ``threads=th`` (or an explicit ``tile``)."""
         self._th_seen = th
         if self._th_warned or self._th_built is None or th <= self._th_built or self._tile(self.V, None, th) >= self.TV:
             return

@@ -1,5 +1,5 @@
 """Issue 39's integer multiply-add idea for the wavelet kernel's dense part (measured and not kept:
-docs/wavelet.md; benchmarks/bench_wavelet_madd_micro.py): the claims its report rests on, checked against float64.
+docs/wavelet_kernel_log.md; benchmarks/bench_wavelet_madd_micro.py): the claims its report rests on, checked against float64.
 
 - The light's int16 quantisation (``quantise_light``) never lets an int32 sum overflow: with the columns' largest
   stored magnitudes tmax, Σ_k tmax_k |Lq_k| ≤ 2³¹ − 1 per group and |Lq| ≤ 32767 (integer arithmetic, int64), and
@@ -264,7 +264,7 @@ def test_kernel_vnni_default_hdr_lights_within_the_bound(bench, vnni_rl):
     small ones) on the VNNI default: every vertex within the stated bound (the step of a group follows its largest
     light term, so the error of a vertex follows the group's largest term, not its own radiance); the relative error of
     the vertices the sun does not reach (its own contribution under 1e-3 of its largest: shadowed by the blocker) is
-    printed beside the opt-out's, for docs/wavelet.md."""
+    printed beside the opt-out's, for docs/wavelet_kernel_log.md."""
     rl = vnni_rl
     for name, (li, lv, sun) in bench.hdr_lights(rl).items():
         assert rl._takes_vnni(li, lv)

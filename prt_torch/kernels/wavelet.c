@@ -17,7 +17,7 @@
  * of it instead of 12 (large blocker scene: 0.21 against 0.62 MB per call, beside 1.0 MB of dense lines at N = 10);
  * per 8 vertices one 32-byte load of the factors and the same three multiplies, before the interleave instead of
  * after it (store_rgb8 / put_rgb8), in the 8- and the 16-lane builds alike. Measured: reports/benchmarks/
- * wavelet_factor.md (bench_wavelet_factor.py; docs/wavelet.md "The factor per vertex").
+ * wavelet_factor.md (bench_wavelet_factor.py; docs/wavelet_kernel_log.md "The factor per vertex").
  * DENSE_VNNI (the default since 2026-11-30 in W16 builds whose target has AVX-512 VNNI and BW: DVNNI; -DDENSE_VNNI=0
  * builds the float loop only; above DENSE_TERMS): the 16-lane dense loop on integer dot products (vpdpwssd zmm, two
  * light terms per instruction) for the calls of 16-bit values, CT = 1, CO = 3 that take the 16-lane loop, the dense
@@ -33,10 +33,10 @@
  * builds without DVNNI refuse the bit (1) and are unchanged (avx2, znver3, avx512-256, portable, skylake-avx512 and
  * -DDENSE_VNNI=0 objects byte-identical to fdd5d3e's, objdump). prt_wavelet_isa's bit 64 says the build has it.
  * Measured on the Intel Xeon (bench_wavelet_madd_micro.py --vnni --proto, reports/benchmarks/wavelet_vnni_default.md;
- * docs/wavelet.md), the whole call paired with the opt-out on one layout: small 1.07-1.31x, medium N = 10-30
+ * docs/wavelet_kernel_log.md), the whole call paired with the opt-out on one layout: small 1.07-1.31x, medium N = 10-30
  * 1.12-1.24x, N >= 100 1.00-1.04x (the lines from L3); output error 8e-6-6e-5 rel. L2 against float64, its bound
  * 0.28-0.90x the transfer's own 16-bit bound; per vertex up to ~2e-3 relative at the dimmest vertices (cancellation;
- * under a sun 1e4x the sky at R = 8, 3-6% at the sun-shadowed vertices: docs/wavelet.md).
+ * under a sun 1e4x the sky at R = 8, 3-6% at the sun-shadowed vertices: docs/wavelet_kernel_log.md).
  * OUT_NT (a measurement knob, W16 only, off by default): the RGB output by streaming stores once it holds at least
  * OUT_NT bytes (and out is 32-byte aligned), an sfence at the call's end; not kept (the same report: faster alone at
  * large N = 10, slower with a read of the output right after the call).
@@ -45,7 +45,7 @@
  * column when the relighter is built:
  *  - dense, for the columns most vertices keep (the coarse Haar levels; relight.py's dense_min: at least b/(4+b) of
  *    the vertices for b-byte values, 0.2 for 16-bit values where prt_wavelet_isa reports the VNNI dense loop, bit 64:
- *    its (term, block) step costs about a sparse 8-vertex block's, docs/wavelet.md). dense [ceil(V/32), Pd, CT, 32]:
+ *    its (term, block) step costs about a sparse 8-vertex block's, docs/wavelet_kernel_log.md). dense [ceil(V/32), Pd, CT, 32]:
  *    for each block of 32 vertices, the Pd dense columns' values side by side (zeros where a vertex
  *    did not keep the coefficient), dslot[j] the column's slot (-1: sparse). A block keeps its CO x 4
  *    vectors of 8 sums in registers over every dense light term: one load and CO multiply-adds per 8
@@ -480,7 +480,7 @@ static inline void put_rgb8(float *out, v8f r, v8f g, v8f b, int nt) {
  * pairs a flush (the int32 sums converted, times the group's scales, added to float sums by FMA, zeroed);
  * at the end the vertex order restored (vpermt2ps) into z / y as the float loop leaves them. Error per vertex and
  * channel |dS| <= sum_g (s_g[c] / 2) sum_{k in g} |T_v,k| (+ float rounding): not the same bits as the float loop. Measured: reports/benchmarks/wavelet_madd_micro_vnni.md (the loops),
- * wavelet_vnni_proto.md (the whole call; docs/wavelet.md).
+ * wavelet_vnni_proto.md (the whole call; docs/wavelet_kernel_log.md).
  * The records (2026-11-30, branch vnni17): VNNI_SETUP also rewrites the call's dense slots wk [nd] (int64) in place as
  * records int32 [nd, 2] (vnni_records: the term's row offset in bytes, its prefetch step's target from the unit's start,
  * the same for every unit), so a pair step loads two records and adds them to the block's address — no slot shift, no
@@ -488,7 +488,7 @@ static inline void put_rgb8(float *out, v8f r, v8f g, v8f b, int nt) {
  * step of its own after its group's pairs. The same sums in the same order: the outputs bit for bit those of the loop
  * before (fdd5d3e..2913585's). Where the call's loop cost went, on the Intel Xeon (family 6 model 167), small blocker
  * scene, studio 292 kept (71 dense terms x 71 blocks), one thread's CPU time, timing-only builds paired with main's
- * (bench_wavelet_scratch.py, load 1.3-2.0; docs/wavelet.md "The VNNI dense steps in the call"): of the ~18.4 us call
+ * (bench_wavelet_scratch.py, load 1.3-2.0; docs/wavelet_kernel_log.md "The VNNI dense steps in the call"): of the ~18.4 us call
  * the dense terms ~9.1 us, ~8.4 of it the term loop with its flushes (every dense block's lines from its own block
  * 0.27-0.38 us less: the lines come from L2 at little cost), the per-block work around it (sums zeroed, permutes,
  * the pair's keep) ~0.75 us, one group instead of 16-term groups 0.2-0.5 us less (sky N = 300, 246 dense terms: 2.8 of
@@ -1206,8 +1206,8 @@ DENSE_BLOCK(int16_t)
  * relighter; Intel Xeon family 6 model 167, load 1.1-2.1), one tile's dense blocks take the same time as two tiles'
  * (studio 292 kept -0.03 us [-0.19, +0.12], A/A -0.01) and the pass is what it saves (0.41 us [0.33, 0.50] of the
  * call's 0.47: 157 ranges against 224, ~20 cycles a range; sky N = 1000 2.44 us): the ranges after all, and no per-tile
- * cost in the dense phase (docs/wavelet.md "The tile follows the relighter's threads").
- * The AVX2 and avx512-256 builds keep one block per step, their machine code byte-identical to before (objdump; two and four per step measured no faster on AMD Zen 3, docs/wavelet.md). */
+ * cost in the dense phase (docs/wavelet_kernel_log.md "The tile follows the relighter's threads").
+ * The AVX2 and avx512-256 builds keep one block per step, their machine code byte-identical to before (objdump; two and four per step measured no faster on AMD Zen 3, docs/wavelet_kernel_log.md). */
 #if W16
 /* the block's scratch address held in a register (an empty asm: gcc otherwise forms base + offset + 32 c by one lea
  * per channel, ~3 more uops per block, where one add and the stores' displacements do) */
@@ -1257,7 +1257,7 @@ DENSE_BLOCK(int16_t)
  * terms ahead besides (SP_PFT) 0.99-1.02x, noise. Section 7 at small in one session (load 1.2-2.4), the streaming
  * read: studio 292 kept 0.49 [0.45, 0.55] against 0.47 [0.45, 0.52] with SP_PFR 0. What is left of the pass's excess:
  * re-run right after itself it takes 5.12 us (4.94 with this), in the call 6.39-6.47: ~1 us a call still outside L1
- * (docs/wavelet.md, "The sparse pass's in-call cost"). SP_PFR 0: off (a measurement knob).
+ * (docs/wavelet_kernel_log.md, "The sparse pass's in-call cost"). SP_PFR 0: off (a measurement knob).
  * The 8-lane builds: none (their object code unchanged, objcopy). */
 #ifndef SP_PFR
 #define SP_PFR 2
