@@ -43,10 +43,8 @@ def _in(title: str, heading: str) -> bool:
     return re.search(r"(?<!\w)" + re.escape(title) + r"(?!\w)", heading) is not None
 
 
-#: References known not to resolve, in files this test's author was asked not to edit; each must still fail (so a fix
-#: removes it from here). docs/precompute.md's "Lighting" (held bytes of the studio light's 292 nonzero Haar terms) is
-#: docs/wavelet.md's "Lights and the N-term approximation" (the zero-term rule).
-KNOWN_STALE = {("docs/precompute.md", "wavelet.md", "Lighting")}
+#: References known not to resolve; each must still fail (so a fix removes it from here). None today.
+KNOWN_STALE: set[tuple[str, str, str]] = set()
 
 
 def _sources():
