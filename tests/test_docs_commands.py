@@ -11,7 +11,8 @@ ray}.md (not the dated *_log.md records). What is read, and how:
   docs/lighting.md's usage lines; the indented ``[...]`` lines under one continue it) is not a command line: each
   ``--option`` it names must be an option of its subcommand, nothing more.
 * **Inline code spans** ```prt SUB ...``` in the prose are mostly fragments (``prt relight --terms N``, ``prt bench
-  ... --target-psnr X``): their subcommand must exist and each ``--option`` they name must be one of its options.
+  ... --target-psnr X``): their subcommand must exist and each ``--option`` they name must be one of its options; a
+  span that parses as a whole command has its names checked as a block's line is (below).
 
 A block's ``prt`` command line is parsed with the CLI's own parser (``prt_torch.cli.parse_args`` of
 ``build_parser()``, exactly as ``prt`` parses it: no work is done), then:
@@ -19,10 +20,12 @@ A block's ``prt`` command line is parsed with the CLI's own parser (``prt_torch.
 * every built-in name it uses exists: a scene (``precompute``'s MESH, ``render --method shrm``'s MESH, ``--mesh``;
   ``name`` or ``name:size``, ``prt_torch.scene.list_builtins`` / ``check_size``), a light (``--light``, ``prt light``'s
   LIGHT: a built-in environment or an analytic spec that loads), a config (``prt bench``: a shipped config or an
-  existing ``configs/`` path), a codec (``--codec``), a BRDF model (``--brdf``, ``--transfer-brdf``; ``prt invert
+  existing ``configs/`` path, loaded with the line's ``key=value`` overrides and validated by
+  ``harness.config.load_config``, which does no work), a codec (``--codec``), a BRDF model (``--brdf``, ``--transfer-brdf``; ``prt invert
   --brdf`` takes its own list), a subsurface ``--material``. **A value with a file suffix or a ``/`` is the user's
   file** (``scan.ply``, ``bust.obj``, ``env.exr``, ``light.json``, ``my_sweep.yaml``: the guides say so where they
-  use them) and is not looked up, except a ``configs/...`` path, which must exist in the checkout;
+  use them) and is not looked up, except a ``configs/...`` path, which must exist in the checkout; so is a
+  placeholder in capitals (``MESH``, ``FILE``, ``TRANSPORT_DIR``);
 * the files it reads were written before it: a ``.prt`` input (the positional TRANSFER of ``compress``, ``relight``,
   ``render``, ``validate``, ``info``; ``--codec-file``) is the ``-o`` output of an earlier command line of the same
   guide (not a ``--dry-run``, which writes nothing), or of a command line in a guide the line's comment names
@@ -43,6 +46,7 @@ was written (see the commit message). Parsing everything takes well under a seco
 from __future__ import annotations
 
 import contextlib
+import functools
 import io
 import re
 import shlex
@@ -132,7 +136,10 @@ def documented() -> list[Command]:
                 continue
             if lang is None:
                 for s in INLINE.finditer(line):
-                    words = _drop_env(s.group(1).split())
+                    try:
+                        words = _drop_env(shlex.split(s.group(1)))
+                    except ValueError:  # an unbalanced quote in a fragment
+                        words = _drop_env(s.group(1).split())
                     if words and not any(w.startswith("<") for w in words[:2]):
                         out.append(Command(f"{guide}:{no}", words, kind="inline", guide=guide))
                 continue
@@ -176,13 +183,15 @@ PARSER, SUBS = _parser()
 
 
 def _try_parse(c: Command):
-    """``(namespace, None)``, or ``(None, argparse's error line)``."""
+    """``(namespace, None)``, or ``(None, argparse's error line)``; ``--help`` parses as nothing to check."""
+    if {"-h", "--help"} & set(c.words):
+        return None, None
     err = io.StringIO()
     try:
-        with contextlib.redirect_stderr(err):
+        with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
             return parse_args(PARSER, c.words[1:]), None
     except SystemExit:
-        return None, err.getvalue().strip().splitlines()[-1]
+        return None, (err.getvalue().strip().splitlines() or ["(no message)"])[-1]
 
 
 PARSED = {id(c): _try_parse(c)[0] for c in PRT_LINES}  # what the chain test reads (a line that fails is reported once)
@@ -196,7 +205,20 @@ def _parse(c: Command):
 
 
 def _is_users_file(value: str) -> bool:
-    return "/" in value or Path(value).suffix != ""
+    """A file the user supplies (a suffix or a directory in it), or a placeholder in capitals (``MESH``, ``FILE``)."""
+    return "/" in value or Path(value).suffix != "" or value.replace("_", "").isupper()
+
+
+@functools.cache
+def _config_problem(name: str, overrides: tuple[str, ...]) -> str | None:
+    """The shipped config loaded with the overrides and validated (``harness.config.load_config``: no work)."""
+    from prt_torch.harness.config import load_config
+
+    try:
+        load_config(name, list(overrides))
+    except (ValueError, FileNotFoundError) as e:
+        return str(e)
+    return None
 
 
 def _scene_problem(value: str) -> str | None:
@@ -266,12 +288,16 @@ def _names(c: Command, a) -> list[str]:
         probs.append(_scene_problem(a.mesh))
     for v in lights(getattr(a, "light", None)):
         probs.append(_light_problem(v))
+    if sub == "bench" and a.config is None:
+        probs.append(_config_problem("default", tuple(a.overrides or ())))
     if sub == "bench" and a.config is not None:
         cfg = a.config
         if cfg.startswith("configs/") and not (ROOT / cfg).is_file():
             probs.append(f"config {cfg!r}: no such file in the checkout")
         elif not _is_users_file(cfg) and cfg not in builtin_configs():
             probs.append(f"config {cfg!r}: not shipped ({', '.join(builtin_configs())})")
+        elif not _is_users_file(cfg) or cfg.startswith("configs/"):
+            probs.append(_config_problem(cfg, tuple(a.overrides or ())))
     if sub == "compress" and a.codec is not None and a.codec not in codecs.available():
         probs.append(f"codec {a.codec!r}: accepted {codecs.available()}")
     if sub in ("render", "shrm") and getattr(a, "brdf", None) is not None:
@@ -329,6 +355,10 @@ def test_synopsis_and_inline_options_exist(c):
         m = OPTION.match(w)
         if m and m.group(1) not in known:
             pytest.fail(f"{c.where}: `{' '.join(c.words)}`: prt {sub} has no option {m.group(1)}")
+    a, _ = _try_parse(c) if c.kind == "inline" else (None, None)
+    if a is not None:  # an inline span that is a whole command: its names too
+        probs = _names(c, a)
+        assert not probs, f"{c.where}: `{' '.join(c.words)}`: " + "; ".join(probs)
 
 
 @pytest.mark.parametrize("guide", GUIDES)
