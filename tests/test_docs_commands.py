@@ -12,7 +12,8 @@ ray}.md (not the dated *_log.md records). What is read, and how:
   ``--option`` it names must be an option of its subcommand, nothing more.
 * **Inline code spans** ```prt SUB ...``` in the prose are mostly fragments (``prt relight --terms N``, ``prt bench
   ... --target-psnr X``): their subcommand must exist and each ``--option`` they name must be one of its options; a
-  span that parses as a whole command has its names checked as a block's line is (below).
+  span that parses as a whole command (as written, or with ``-o OUT`` added where it names no output: prose leaves
+  it out, ``prt precompute cornell_box:small --bounces 1``) has its names checked as a block's line is (below).
 
 A block's ``prt`` command line is parsed with the CLI's own parser (``prt_torch.cli.parse_args`` of
 ``build_parser()``, exactly as ``prt`` parses it: no work is done), then:
@@ -356,6 +357,8 @@ def test_synopsis_and_inline_options_exist(c):
         if m and m.group(1) not in known:
             pytest.fail(f"{c.where}: `{' '.join(c.words)}`: prt {sub} has no option {m.group(1)}")
     a, _ = _try_parse(c) if c.kind == "inline" else (None, None)
+    if a is None and c.kind == "inline" and not {"-o", "--output"} & set(c.words):  # prose leaves the output out
+        a, _ = _try_parse(Command(c.where, [*c.words, "-o", "OUT"], kind="inline"))
     if a is not None:  # an inline span that is a whole command: its names too
         probs = _names(c, a)
         assert not probs, f"{c.where}: `{' '.join(c.words)}`: " + "; ".join(probs)
