@@ -403,3 +403,14 @@ def test_named_scripts_exist_and_take_the_options_given():
             if m and f'"{m.group(1)}"' not in src:
                 probs.append(f"{c.where}: {script} has no option {m.group(1)}")
     assert not probs, "\n".join(probs)
+
+
+def test_documented_environment_variables_are_read():
+    """Each ``PRT_*`` environment variable a guide names (``PRT_TORCH_KERNEL_ISA=avx2 prt bench``, ``PRT_TORCH_NATIVE=0``)
+    is read somewhere in the project: the package (Python or C), the tests, the benchmarks or the scripts."""
+    sources = "".join(p.read_text(errors="replace") for top in ("prt_torch", "tests", "benchmarks", "scripts")
+                      for p in sorted((ROOT / top).rglob("*")) if p.suffix in (".py", ".c", ".h", "")
+                      and p.is_file() and p.name != Path(__file__).name)
+    named = {v for g in GUIDES for v in re.findall(r"\bPRT_[A-Z0-9_]+", (ROOT / g).read_text())}
+    assert len(named) >= 5, named
+    assert not sorted(v for v in named if v not in sources), "named by a guide, read nowhere"
