@@ -467,3 +467,20 @@ def test_python_snippets_name_what_exists():
                 if not exists(modules[node.value.id], node.attr):
                     probs.append(f"{where}: {node.value.id}.{node.attr}: {modules[node.value.id]} has no {node.attr}")
     assert not probs, "\n".join(probs)
+
+
+def test_named_ablation_configs_are_shipped():
+    """Each ``ablations/NAME`` a guide names (the README's table, ``prt bench ablations/<bands, samples, ...>``) is a
+    config shipped with the package, and docs/harness.md's list of the shipped ones is complete."""
+    from prt_torch.harness.config import builtin_configs
+
+    shipped = {c for c in builtin_configs() if c.startswith("ablations/")}
+    named = set()
+    for guide in GUIDES:
+        text = (ROOT / guide).read_text()
+        named |= {f"ablations/{n}" for n in re.findall(r"ablations/(\w+)", text)}
+        for group in re.findall(r"ablations/<(\w+(?:, \w+)+)>", text):  # a list; ablations/<name> is a placeholder
+            named |= {f"ablations/{n.strip()}" for n in group.split(",")}
+    assert len(named) >= 8 and not sorted(named - shipped), sorted(named - shipped)
+    listed = re.search(r"Shipped: `prt bench ablations/<([\w, ]+)>`", (ROOT / "docs/harness.md").read_text()).group(1)
+    assert {f"ablations/{n.strip()}" for n in listed.split(",")} == shipped
