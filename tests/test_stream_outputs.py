@@ -372,6 +372,16 @@ def test_compress_dry_run_time_and_refusal(tmp_path, capsys):
     text = capsys.readouterr().out
     assert f"calibration: {tr.num_vertices} rows fitted and encoded in" in text and " s, × 1)" in text
     assert "time ~" in text and "(an estimate;" in text and not out.exists()
+    # the dry run refuses the outputs the run refuses (as prt precompute's and prt relight's do): the same one line
+    out.write_bytes(b"kept")
+    for argv, said in ((base, "exists; pass --overwrite"), (base[:-1] + [str(src)], "is the input TRANSFER")):
+        assert cli_main(argv) == 2  # an existing output; the input as the output
+        run_err = capsys.readouterr().err
+        assert cli_main(argv + ["--dry-run"]) == 2
+        assert capsys.readouterr().err == run_err and len(run_err.strip().splitlines()) == 1 and said in run_err, run_err
+    assert cli_main(base + ["--dry-run", "--overwrite"]) == 0 and out.read_bytes() == b"kept"  # a dry run writes nothing
+    capsys.readouterr()
+    out.unlink()
     m = fit_memory(tr.num_vertices, 9, 4, 2)
     assert cli_main(base + ["--memory-limit", str(0.5 * m["peak"] / 2**30)]) == 2
     err = capsys.readouterr().err.strip().splitlines()

@@ -99,13 +99,22 @@ def _in_cli_words(parser: argparse.ArgumentParser, command: str, message: str, n
     return re.sub(r"(accepted: [^;]*?) or None\b", r"\1 or unset", message)
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+def parse_args(parser: argparse.ArgumentParser, argv: list[str] | None = None) -> argparse.Namespace:
+    """``argv`` (the words after ``prt``; None: ``sys.argv[1:]``) parsed as ``prt`` parses it, without running
+    anything: ``key=value`` overrides after an option still count as overrides (``prt bench CONFIG --dry-run
+    key=value``); anything else left over ends as argparse's usage error (``SystemExit(2)``, one line on stderr).
+    tests/test_docs_commands.py parses every documented command line with it."""
     args, extra = parser.parse_known_args(argv)
     if extra:  # options between the positionals: `prt bench CONFIG --dry-run key=value`
         if any(a.startswith("-") for a in extra) or not hasattr(args, "overrides"):
             parser.error(f"unrecognized arguments: {' '.join(extra)}")
         args.overrides = [*(args.overrides or []), *extra]
+    return args
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parse_args(parser, argv)
     if getattr(args, "func", None) is None:
         if args.command is None and "bench" in parser._subparsers._group_actions[0].choices:  # type: ignore[union-attr]
             # `prt` alone behaves as `prt bench` (the default benchmark).

@@ -252,9 +252,10 @@ def run(args) -> int:
 
     if args.memory_limit is not None and not (math.isfinite(args.memory_limit) and 0 < args.memory_limit <= 1 << 20):
         raise ValueError(f"--memory-limit {args.memory_limit!r} GiB; accepted: a finite number of GiB in (0, 1048576]")
+    # before the fit, and before a dry run, which refuses what the run would (as prt precompute's and prt relight's do)
+    check_outputs({"-o/--output": args.output}, {"TRANSFER": args.transfer}, args.overwrite)
     if args.dry_run:
         return _dry_run(args, codec)
-    check_outputs({"-o/--output": args.output}, {"TRANSFER": args.transfer}, args.overwrite)  # before the fit
     from pathlib import Path
 
     if affine and not Path(args.transfer).is_dir():
