@@ -54,7 +54,7 @@ import functools
 import io
 import re
 import shlex
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import pytest
@@ -79,8 +79,9 @@ class Command:
     where: str  # file:line
     words: list[str]  # environment prefixes dropped; words[0] is the program
     comment: str = ""
-    kind: str = "line"  # line | synopsis | inline
+    kind: str = "line"  # line | synopsis | inline | foreign (a block's command that is not the project's: pip, ray)
     guide: str = ""
+    env: dict[str, str] = field(default_factory=dict)  # the NAME=value prefixes dropped from words
 
 
 def _split_comment(text: str) -> tuple[str, str]:
@@ -96,8 +97,9 @@ def _split_comment(text: str) -> tuple[str, str]:
     return text, ""
 
 
-def _commands_of(text: str) -> list[list[str]]:
-    """The words of each ``&&``-separated command of a shell line, environment prefixes dropped."""
+def _commands_of(text: str) -> list[tuple[dict[str, str], list[str]]]:
+    """``(environment prefixes, words)`` of each ``&&``-separated command of a shell line, the prefixes dropped from
+    the words."""
     out, cur = [], []
     for w in shlex.split(text):
         if w == "&&":
@@ -106,7 +108,13 @@ def _commands_of(text: str) -> list[list[str]]:
         else:
             cur.append(w)
     out.append(cur)
-    return [_drop_env(c) for c in out if c]
+    return [(_env_of(c), _drop_env(c)) for c in out if c]
+
+
+def _env_of(words: list[str]) -> dict[str, str]:
+    """The ``NAME=value`` prefixes of a command's words (``PRT_TORCH_KERNEL_ISA=avx2 prt bench``)."""
+    n = len(words) - len(_drop_env(words))
+    return dict(w.split("=", 1) for w in words[:n])
 
 
 def _drop_env(words: list[str]) -> list[str]:
@@ -166,10 +174,11 @@ def documented() -> list[Command]:
                 parts = _commands_of(cmd)
             except ValueError:  # unbalanced quotes: ASCII art in an unlabelled block
                 continue
-            for words in parts:
-                if _is_project_command(words):
-                    kind = "synopsis" if _is_synopsis(words) else "line"
-                    out.append(Command(f"{guide}:{start}", words, comment, kind, guide))
+            for env, words in parts:
+                if not words or not lang and not _is_project_command(words):  # an unlabelled block's other text
+                    continue
+                kind = "foreign" if not _is_project_command(words) else "synopsis" if _is_synopsis(words) else "line"
+                out.append(Command(f"{guide}:{start}", words, comment, kind, guide, env))
     return out
 
 
