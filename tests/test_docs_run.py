@@ -42,6 +42,7 @@ from test_docs_commands import CITED, COMMANDS, GUIDES, PARSED, PYTHON, ROOT, Co
 from prt_torch.cli import main
 
 SMALL = "small"
+CAPTURE_SIZE = (24, 24)  # photographs for prt invert: 4 views of this many pixels (half of tests/test_inverse.py's edge)
 CAPS = {  # option -> the largest value run: (cap, reason)
     "--samples": (64, "rays per vertex: Monte Carlo noise, not what the line checks"),
     "--bounces": (1, "each bounce re-traces every vertex; one shows the path runs"),
@@ -125,9 +126,9 @@ def _config_file(path: Path) -> None:
 
 
 def _captures(path: Path, mesh_file: str) -> None:
-    """Photographs of ``mesh_file`` (made first if missing) under the studio light: 4 views, 48x48 float EXR with alpha,
+    """Photographs of ``mesh_file`` (made first if missing) under the studio light: 4 views, 24x24 float EXR with alpha,
     rendered by the engine (GL), and their ``transforms.json`` at ``path``: tests/test_inverse.py's cameras."""
-    from test_inverse import RENDER_SIZE, _cams, _transforms
+    from test_inverse import _cams, _transforms
 
     from prt_torch import relight
     from prt_torch.lighting import load_light, write_image
@@ -142,7 +143,7 @@ def _captures(path: Path, mesh_file: str) -> None:
     rad = (relight.diffuse_transfer(T, load_light("studio", 4)) * 0.8).clamp(min=0)
     d = path.parent
     d.mkdir(parents=True, exist_ok=True)
-    cams, (W, H), files = _cams(mesh, 4), RENDER_SIZE, []
+    cams, (W, H), files = _cams(mesh, 4), CAPTURE_SIZE, []  # 24x24: the fits' cost, not what the lines check
     with Renderer(W, H) as r:
         for k, cam in enumerate(cams):
             img, m = r.render_radiance(mesh, rad, cam, W, H, background=float("nan"))
@@ -273,6 +274,12 @@ def _call(r: Run, monkeypatch) -> tuple[int, str]:
     with monkeypatch.context() as m, contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
         for k, v in r.c.env.items():
             m.setenv(k, v)
+        if "PRT_TORCH_KERNEL_ISA" in r.c.env:  # read once per process, at the first kernel load: this line gets its own
+            from prt_torch import relight  # load (if it loads one), and the rest of the session keeps the one it had
+            from prt_torch.codecs import relight_kernels
+
+            m.setattr(relight_kernels, "_state", {})
+            m.setattr(relight, "_WAVELET", {})
         if r.interrupt:
             import prt_torch.transfer as tr
 
