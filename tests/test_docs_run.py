@@ -18,8 +18,10 @@ is not run: ``FOREIGN`` names them. A user's own file a line reads (``scan.ply``
 line reads from another guide its comment cites (``# a wavelet transfer (docs/wavelet.md)``) is made by running that
 guide's line that writes it, under the same rules.
 
-Checks per line: the exit status is 0; every output it names (``-o``, ``--compare``, ``--report``, ``--json PATH``)
-exists afterwards; a ``--dry-run`` creates none of them.
+Checks per line: the exit status is 0 (2 where the line's comment says it is refused: ``REFUSED``; 130 for a line
+interrupted by ``INTERRUPT_RULE``, which must leave its chunks in ``<out>.state/``); every output it names (``-o``,
+``--compare``, ``--report``, ``--json PATH``) exists afterwards; a ``--dry-run`` or a refused line creates none of them;
+a line that names no output file (``prt info``, ``prt light``, ``prt validate``) prints something.
 """
 
 from __future__ import annotations
@@ -81,6 +83,7 @@ RULES = {
     PLOT_RULE: "`prt plot` of the reports the `prt bench` lines above would write (they ran --dry-run): the committed "
                "reports/baseline/results.json copied to each directory it names",
 }
+REFUSED = r"\b(refused|refuses)\b"  # a line whose comment says so is expected to end with status 2 and write nothing
 SKIPS = [  # (pattern on the line as written, reason): the line is not run
     (r"^scripts/setup\b", "sets up the environment the test runs in (a virtual environment, Debian packages)"),
     (r"--ray-address (?!auto\b)\S+", "joins a Ray cluster at HEAD_IP that the line's block started on other nodes"),
@@ -268,10 +271,10 @@ def _make_inputs(r: Run, cwd: Path) -> None:
             shutil.copy(ROOT / "reports" / "baseline" / "results.json", cwd / d / "results.json")
 
 
-def _call(r: Run, monkeypatch) -> tuple[int, str]:
-    """``(exit status, stderr)`` of the line run in process."""
-    err = io.StringIO()
-    with monkeypatch.context() as m, contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+def _call(r: Run, monkeypatch) -> tuple[int, str, str]:
+    """``(exit status, stdout, stderr)`` of the line run in process."""
+    err, out = io.StringIO(), io.StringIO()
+    with monkeypatch.context() as m, contextlib.redirect_stderr(err), contextlib.redirect_stdout(out):
         for k, v in r.c.env.items():
             m.setenv(k, v)
         if "PRT_TORCH_KERNEL_ISA" in r.c.env:  # read once per process, at the first kernel load: this line gets its own
@@ -300,7 +303,7 @@ def _call(r: Run, monkeypatch) -> tuple[int, str]:
                 status = main(r.argv)
         except SystemExit as e:
             status = e.code if isinstance(e.code, int) else (0 if e.code is None else 2)
-    return status, err.getvalue()
+    return status, out.getvalue(), err.getvalue()
 
 
 def _run_line(r: Run, cwd: Path, monkeypatch, log: list[str]) -> None:
@@ -308,18 +311,26 @@ def _run_line(r: Run, cwd: Path, monkeypatch, log: list[str]) -> None:
     _make_inputs(r, cwd)
     before = {o: (cwd / o).exists() for o in _outputs(r)}
     t = time.perf_counter()
-    status, err = _call(r, monkeypatch)
+    status, out, err = _call(r, monkeypatch)
     dt = time.perf_counter() - t
     log.append(f"{dt:6.2f} s  {c.where}  {' '.join(r.argv)}")
-    expected = 130 if r.interrupt else 0
+    refused = re.search(REFUSED, c.comment)
+    expected = 130 if r.interrupt else 2 if refused else 0
     what = (f"{c.where}: `{' '.join(c.words)}`\n  run as: prt {' '.join(r.argv)}"
             + (f"\n  rules: {', '.join(r.rules)}" if r.rules else ""))
     tail = "\n    ".join(err.strip().splitlines()[-6:])
     assert status == expected, f"{what}\n  exit status {status} (expected {expected}); stderr:\n    {tail}"
+    if r.interrupt:  # Ctrl-C after a chunk: the chunks kept in <out>.state/ (--resume reads them), no output yet
+        o = _opt(r.argv, "-o")
+        assert (cwd / f"{o}.state").is_dir() and not (cwd / o).exists(), f"{what}\n  interrupted: no {o}.state/ kept"
     if r.interrupt or c.words[0] in PYTHON:
         return
+    if not before and "--dry-run" not in r.argv:
+        assert out.strip(), f"{what}\n  names no output file and printed nothing"
     for o, existed in before.items():
-        if "--dry-run" in r.argv:
+        if refused:
+            assert (cwd / o).exists() == existed, f"{what}\n  refused (status 2) but created {o}"
+        elif "--dry-run" in r.argv:
             assert (cwd / o).exists() == existed, f"{what}\n  --dry-run created {o}"
         else:
             assert (cwd / o).exists(), f"{what}\n  exit 0 but its output {o} does not exist; stderr:\n    {tail}"
@@ -372,3 +383,15 @@ def test_guide_commands_run_in_order(guide, tmp_path, monkeypatch):
         _cited_input(r, tmp_path, monkeypatch, log)
         _run_line(r, tmp_path, monkeypatch, log)
     print("\n".join(log))
+
+
+def test_every_rule_is_used():
+    """Each rule, cap and skip applies to some line of the guides today (a rule no line needs any more goes)."""
+    plans = [p for g in RUN_GUIDES for p in _plan(g)]
+    used = {rule.split()[0] for _, r, _ in plans if r is not None for rule in r.rules}
+    caps = {rule.split()[1] for _, r, _ in plans if r is not None for rule in r.rules if rule.startswith(CAP_RULE)}
+    texts = [" ".join(c.words) for c, _, _ in plans]
+    assert set(RULES) <= used, sorted(set(RULES) - used)
+    assert set(CAPS) <= caps, sorted(set(CAPS) - caps)
+    assert all(any(re.search(pat, t) for t in texts) for pat, _ in SKIPS)
+    assert any(why == FOREIGN for _, _, why in plans)
