@@ -41,10 +41,10 @@ command line or code span gives a benchmark appears in that script's source as `
 their parsers inside ``main()``, so nothing cheaper shows them). Each ``PRT_*`` environment variable a guide names is
 read somewhere in the project.
 
-Running the commands is not done here (minutes, Mitsuba, EGL, captured photographs): it was done by hand, on small
-inputs, when this test was written. Only a run finds what depends on the data (``prt compress --vectors 4`` of a
-2-band transfer, 4 coefficients, is refused by the fit, not by the parser: docs/validate.md had one). The whole file
-takes about 2 s, most of it importing the CLI and the library.
+Running the commands is not done here: tests/test_docs_run.py runs each guide's block lines in order, on small
+inputs (its rules say which), in about a minute. Only a run finds what depends on the data (``prt compress --vectors
+4`` of a 2-band transfer, 4 coefficients, is refused by the fit, not by the parser: docs/validate.md had one). The
+whole file takes about 2 s, most of it importing the CLI and the library.
 """
 
 from __future__ import annotations

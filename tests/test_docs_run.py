@@ -97,7 +97,7 @@ GUIDES_WITHOUT_BLOCKS = {  # guides whose command lines are inline spans only (t
 
 
 # ------------------------------------------------------------------------------------ users' files
-def _mesh_file(path: Path) -> None:
+def _mesh_file(path: Path, argv: list[str] | None = None) -> None:
     """A scan-like mesh (the built-in scan_blob, small) written as ``path`` (PLY or OBJ)."""
     import trimesh
 
@@ -108,29 +108,28 @@ def _mesh_file(path: Path) -> None:
     trimesh.Trimesh(mesh.vertices.numpy(), mesh.faces.numpy(), process=False).export(path)
 
 
-def _env_file(path: Path) -> None:
+def _env_file(path: Path, argv: list[str]) -> None:
     """The built-in sky environment (lat-long, 32 rows) written as an HDR image."""
     from prt_torch.lighting import builtin_environment, write_image
 
     write_image(path, builtin_environment("sky", size=32).image.numpy())
 
 
-def _transfer_file(path: Path) -> None:
+def _transfer_file(path: Path, argv: list[str]) -> None:
     """A diffuse transfer of bumpy_sphere:small (5 bands: 25 coefficients, as the guides' max_vectors=16 needs; 64
     samples): a user's TRANSFER.prt / BIG.prt."""
     assert main(["precompute", "bumpy_sphere:small", "--bands", "5", "--samples", "64", "-o", str(path)]) == 0
 
 
-def _config_file(path: Path) -> None:
+def _config_file(path: Path, argv: list[str]) -> None:
     """A user's config: the shipped default's file (loaded by path, as a user's is)."""
-    from prt_torch.harness.config import builtin_configs  # noqa: F401 (the shipped configs live beside it)
-
     shutil.copy(ROOT / "configs" / "default.yaml", path)
 
 
-def _captures(path: Path, mesh_file: str) -> None:
-    """Photographs of ``mesh_file`` (made first if missing) under the studio light: 4 views, 24x24 float EXR with alpha,
-    rendered by the engine (GL), and their ``transforms.json`` at ``path``: tests/test_inverse.py's cameras."""
+def _captures(path: Path, argv: list[str]) -> None:
+    """Photographs of the line's ``--mesh`` file (made first if missing) under the studio light: 4 views, 24x24 float
+    EXR with alpha, rendered by the engine (GL), and their ``transforms.json`` at ``path``: tests/test_inverse.py's
+    cameras."""
     from test_inverse import _cams, _transforms
 
     from prt_torch import relight
@@ -139,6 +138,7 @@ def _captures(path: Path, mesh_file: str) -> None:
     from prt_torch.scene import load_scene
     from prt_torch.transfer.diffuse import precompute_diffuse
 
+    mesh_file = _opt(argv, "--mesh")
     if not Path(mesh_file).exists():
         _mesh_file(Path(mesh_file))
     mesh = load_scene(mesh_file, albedo=0.8)
@@ -160,7 +160,7 @@ USER_FILES = {  # a suffix or name a line reads -> (what is made, maker)
     ".obj": ("a scan: the built-in scan_blob (small) written as OBJ", _mesh_file),
     ".exr": ("an environment map: the built-in sky, lat-long, 32 rows", _env_file),
     "transforms.json": ("photographs: 4 engine renders of the line's --mesh under studio light (tests/test_inverse.py's "
-                        "cameras)", None),
+                        "cameras)", _captures),
     "TRANSFER.prt": ("a transfer: bumpy_sphere:small, diffuse, 5 bands, 64 samples", _transfer_file),
     "BIG.prt": ("a transfer: bumpy_sphere:small, diffuse, 5 bands, 64 samples", _transfer_file),
     ".yaml": ("a user's config: a copy of configs/default.yaml", _config_file),
@@ -249,20 +249,13 @@ def _outputs(r: Run) -> list[str]:
 
 
 def _make_inputs(r: Run, cwd: Path) -> None:
-    """The user's files the line reads, made if missing (USER_FILES)."""
+    """The user's files the line reads (USER_FILES, by name or suffix), made if missing."""
     outs = set(_outputs(r))
-    for i, w in enumerate(r.argv):
-        if w in outs or w.startswith("-") or (cwd / w).exists():
-            continue
+    for w in r.argv:
         p = cwd / w
-        if p.name == "transforms.json":
-            _captures(p, _opt(r.argv, "--mesh"))
-        elif p.name in USER_FILES:
-            USER_FILES[p.name][1](p)
-        elif p.suffix in (".ply", ".obj", ".exr") and r.argv[i - 1] not in ("-o", "--output", "--compare"):
-            USER_FILES[p.suffix][1](p)
-        elif p.suffix == ".yaml" and r.argv[0] == "bench":
-            _config_file(p)
+        made = USER_FILES.get(p.name) or USER_FILES.get(p.suffix)
+        if made is not None and w not in outs and _is_users_file(w) and not p.exists():
+            made[1](p, r.argv)
     if r.argv[0] == "plot":
         for d in r.argv[1:]:
             if d.startswith("-") or d == _opt(r.argv, "-o"):
