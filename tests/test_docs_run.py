@@ -22,6 +22,9 @@ Checks per line: the exit status is 0 (2 where the line's comment says it is ref
 interrupted by ``INTERRUPT_RULE``, which must leave its chunks in ``<out>.state/``); every output it names (``-o``,
 ``--compare``, ``--report``, ``--json PATH``) exists afterwards; a ``--dry-run`` or a refused line creates none of them;
 a line that names no output file (``prt info``, ``prt light``, ``prt validate``) prints something.
+
+GL (EGL offscreen) renders ``prt render``'s images and ``prt invert``'s photographs: a guide with such lines is skipped,
+saying so, only with ``PRT_SKIP_GL=1`` outside CI, as tests/conftest.py's ``renderer`` fixture does.
 """
 
 from __future__ import annotations
@@ -301,7 +304,10 @@ def _call(r: Run, monkeypatch) -> tuple[int, str, str]:
 
 def _run_line(r: Run, cwd: Path, monkeypatch, log: list[str]) -> None:
     c = r.c
-    _make_inputs(r, cwd)
+    try:
+        _make_inputs(r, cwd)
+    except Exception as e:  # noqa: BLE001 (named with the line it was for)
+        pytest.fail(f"{c.where}: `{' '.join(c.words)}`: making the user's files it reads (USER_FILES): {e!r}")
     before = {o: (cwd / o).exists() for o in _outputs(r)}
     t = time.perf_counter()
     status, out, err = _call(r, monkeypatch)
@@ -309,7 +315,7 @@ def _run_line(r: Run, cwd: Path, monkeypatch, log: list[str]) -> None:
     log.append(f"{dt:6.2f} s  {c.where}  {' '.join(r.argv)}")
     refused = re.search(REFUSED, c.comment)
     expected = 130 if r.interrupt else 2 if refused else 0
-    what = (f"{c.where}: `{' '.join(c.words)}`\n  run as: prt {' '.join(r.argv)}"
+    what = (f"{c.where}: `{' '.join(c.words)}`\n  run as: {'python' if c.words[0] in PYTHON else 'prt'} {' '.join(r.argv)}"
             + (f"\n  rules: {', '.join(r.rules)}" if r.rules else ""))
     tail = "\n    ".join(err.strip().splitlines()[-6:])
     assert status == expected, f"{what}\n  exit status {status} (expected {expected}); stderr:\n    {tail}"
@@ -369,6 +375,9 @@ def test_guide_commands_run_in_order(guide, tmp_path, monkeypatch):
     log: list[str] = []
     plan = _plan(guide)
     assert any(r is not None for _, r, _ in plan), f"{guide}: no command line is run"
+    gl = [c.where for c, r, _ in plan if r is not None and (r.argv[0] == "render" or "--cameras" in r.argv)]
+    if gl and os.environ.get("PRT_SKIP_GL") == "1" and os.environ.get("CI", "").lower() != "true":
+        pytest.skip(f"PRT_SKIP_GL=1 outside CI (tests/conftest.py's rule): {guide} renders with GL at {', '.join(gl)}")
     for c, r, why in plan:
         if r is None:
             log.append(f"  skip  {c.where}  {' '.join(c.words)}: {why}")
