@@ -121,7 +121,10 @@ def _env_file(path: Path, argv: list[str]) -> None:
 def _transfer_file(path: Path, argv: list[str]) -> None:
     """A diffuse transfer of bumpy_sphere:small (5 bands: 25 coefficients, as the guides' max_vectors=16 needs; 64
     samples): a user's TRANSFER.prt / BIG.prt."""
-    assert main(["precompute", "bumpy_sphere:small", "--bands", "5", "--samples", "64", "-o", str(path)]) == 0
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err):
+        status = main(["precompute", "bumpy_sphere:small", "--bands", "5", "--samples", "64", "-o", str(path)])
+    assert status == 0, err.getvalue()
 
 
 def _config_file(path: Path, argv: list[str]) -> None:
