@@ -58,7 +58,7 @@ def run(args) -> int:
     if args.mesh:
         from ..scene import load_scene
 
-        mesh = load_scene(args.mesh)
+        mesh = load_scene(args.mesh, param="--mesh")  # the one rule for naming a mesh (prt_torch.scene.check_scene)
     try:
         rep = validate(args.transfer, args.light, vertices=args.vertices, spp=args.spp, batches=args.batches, seed=args.seed,
                        codec_file=args.codec_file, light_source=args.light_source, light_name=args.light, mesh=mesh,
