@@ -33,7 +33,7 @@ def register(subparsers) -> None:
             "--json's layout (usable as --light anywhere). docs/inverse.md."
         ),
     )
-    p.add_argument("--mesh", required=True, metavar="MESH", help="mesh file or built-in scene (the known geometry)")
+    p.add_argument("--mesh", required=True, metavar="MESH", help="mesh file or built-in scene NAME or NAME:SIZE (the known geometry)")
     p.add_argument("--cameras", required=True, metavar="transforms.json", help="NeRF/Blender cameras and image paths")
     p.add_argument("--unknown", required=True, choices=UNKNOWNS, help="what to recover")
     p.add_argument("--bands", type=int, default=3, help="SH bands of the light (n² unknowns per channel; default 3)")

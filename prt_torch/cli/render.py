@@ -94,8 +94,8 @@ def register(subparsers) -> None:
     p.add_argument("--decode", default=None, choices=["glsl", "cpu"],
                    help="glsl: decode in the vertex shader (default); cpu: per-vertex radiance from the torch engine")
     p.add_argument("--mesh", default=None, metavar="MESH",
-                   help="SHRM files (prt shrm output) only: the convex object to shade, a built-in scene name or a mesh "
-                        "file (default: the built-in 'convex'); each vertex is shaded from the SHRM's maps for its normal "
+                   help="SHRM files (prt shrm output) only: the convex object to shade, a built-in scene NAME or "
+                        "NAME:SIZE or a mesh file (default: the built-in 'convex'); each vertex is shaded from the SHRM's maps for its normal "
                         "and its view towards the camera")
     p.add_argument("-o", "--output", required=True, help="output image (.png, .exr, .pfm, .hdr, .tif)")
     p.add_argument("--compare", default=None, metavar="OUT.png",

@@ -72,10 +72,12 @@ def check_scene(name_or_path: str | os.PathLike, size: str | int = "small", para
     An existing path is a mesh file (a built-in name is used only when no file of that name
     exists); otherwise ``NAME`` or ``NAME:SIZE`` names a built-in scene (``size`` is used when the
     text has no ``:SIZE``). Returns ``("file", path)`` or ``("builtin", (name, size))`` with the
-    size checked (:func:`check_size`; a vertex count as int). Raises FileNotFoundError /
-    ValueError, one line naming ``param``, the value and the accepted forms (:func:`accepted_meshes`).
+    size checked (:func:`check_size`; a vertex count as int). Raises FileNotFoundError (a missing
+    path with a mesh suffix) or ValueError, one line naming ``param``, the value and the accepted
+    forms (:func:`accepted_meshes`).
     """
     from .builtins import check_size, list_builtins
+    from .mesh import MESH_SUFFIXES
 
     s = str(name_or_path)
     if Path(s).is_file():
@@ -89,7 +91,8 @@ def check_scene(name_or_path: str | os.PathLike, size: str | int = "small", para
                 raise ValueError(f"{param} {s!r}: {e}") from None
             raise ValueError(f"{param} {s!r}: size {sz!r} is not accepted for {name!r}; accepted: {accepted_meshes()}") from None
     what = "a directory" if Path(s).is_dir() else "neither a built-in scene nor an existing mesh file"
-    raise FileNotFoundError(f"{param} {s!r} is {what}; accepted: {accepted_meshes()}")
+    missing_file = not Path(s).exists() and Path(s).suffix.lower() in MESH_SUFFIXES  # as load_mesh: a file that is not there
+    raise (FileNotFoundError if missing_file else ValueError)(f"{param} {s!r} is {what}; accepted: {accepted_meshes()}")
 
 
 def load_scene(name_or_path: str | os.PathLike, size: str = "small", up: str = "z", albedo=None, param: str = "mesh", **kw):
