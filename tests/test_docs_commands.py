@@ -235,17 +235,14 @@ def _config_problem(name: str, overrides: tuple[str, ...]) -> str | None:
 
 
 def _scene_problem(value: str) -> str | None:
-    from prt_torch.scene import check_size, list_builtins
+    """A mesh a guide names, by the commands' one rule (``prt_torch.scene.check_scene``: no mesh is built)."""
+    from prt_torch.scene import check_scene
 
     if _is_users_file(value):
         return None
-    name, _, size = value.partition(":")
-    if name not in list_builtins():
-        return f"scene {value!r} is neither a file nor a built-in scene ({', '.join(list_builtins())})"
     try:
-        if size:
-            check_size(name, size)
-    except ValueError as e:
+        check_scene(value, param="mesh")
+    except (ValueError, FileNotFoundError) as e:
         return str(e)
     return None
 

@@ -68,7 +68,8 @@ NEURAL_RULE = "neural-epochs"
 INTERRUPT_RULE = "interrupt-then-resume"
 PLOT_RULE = "plot-baseline"
 RULES = {
-    SIZE_RULE: "`prt precompute` of a built-in scene at its default size or at medium, large or xl (~10k, 50k, ~1M vertices; the 1M mesh "
+    SIZE_RULE: "`prt precompute` of a built-in scene at its default size, or any command's built-in mesh, at medium, "
+               "large or xl (~10k, 50k, ~1M vertices; the 1M mesh "
                "alone takes ~5 s to build) runs at :small (~2k): the commands and their files are the same, the vertex "
                "count is a parameter the scale tests (tests/test_scale.py) cover",
     CAP_RULE: "numeric options capped (CAPS, each with its reason): sampling and sizes that set the cost, not the path run",
@@ -188,10 +189,18 @@ def _opt(words: list[str], name: str) -> str | None:
 
 
 def _scenes(c: Command) -> list[str]:
-    """The built-in scene a parsed ``prt precompute`` line names (its MESH); ``prt render --mesh`` takes a name without
-    a size (the SHRM's mesh)."""
+    """The built-in scenes a parsed line names: ``prt precompute``'s MESH_OR_BUILTIN, and the mesh of ``prt render
+    --mesh`` / ``--method shrm MESH``, ``prt invert --mesh`` and ``prt validate --mesh`` (the one rule for naming a mesh,
+    ``prt_torch.scene.check_scene``: a size is taken everywhere)."""
+    from prt_torch.scene import list_builtins
+
     a = PARSED[id(c)]
-    return [a.scene] if a.command == "precompute" else []
+    if a.command == "precompute":
+        return [a.scene]
+    names = [getattr(a, "mesh", None)] if a.command in ("render", "invert", "validate") else []
+    if a.command == "render" and getattr(a, "method", None) == "shrm":
+        names.append(a.transfer)
+    return [w for w in names if w and w.partition(":")[0] in list_builtins() and not _is_users_file(w)]
 
 
 def _rewrite(c: Command, next_line: Command | None) -> Run:
@@ -200,9 +209,9 @@ def _rewrite(c: Command, next_line: Command | None) -> Run:
     if c.words[0] in PYTHON:
         return Run(c, [*words, "--help"], [HELP_RULE])
     sub = words[0]
-    for w in _scenes(c):  # built-in scenes at a size (or the default-size bumpy_sphere) -> :small
+    for w in _scenes(c):  # built-in scenes at a size (or precompute's default-size bumpy_sphere) -> :small
         name, _, size = w.partition(":")
-        if not _is_users_file(w) and size != SMALL:
+        if not _is_users_file(w) and size != SMALL and (size or sub == "precompute"):
             words[words.index(w)] = f"{name}:{SMALL}"
             rules.append(SIZE_RULE)
     for opt, (cap, _) in CAPS.items():

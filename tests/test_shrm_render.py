@@ -143,7 +143,7 @@ def test_render_method_shrm_validates_glsl_against_cpu(tmp_path, capsys):
     (["--method", "shrm", "--brdf", "phong", "--orders", "3"], "--orders='3'; accepted: two integers F,P"),
     (["--method", "shrm", "--brdf", "microfacet", "--orders", "120,100"], "GiB (estimated before any work)"),
     (["--method", "shrm", "--brdf", "ward", "--brdf-param", "ax=0.1", "--brdf-param", "ay=0.3"], "anisotropic"),
-    (["--method", "shrm", "nosuch.ply", "--brdf", "phong"], "mesh 'nosuch.ply' is neither a built-in scene"),
+    (["--method", "shrm", "nosuch.ply", "--brdf", "phong"], "MESH 'nosuch.ply' is neither a built-in scene"),
     (["--method", "shrm", "--brdf", "phong", "--light", "nosuch.hdr"], "light 'nosuch.hdr' is neither"),
     (["--method", "shrm", "--brdf", "phong", "--shading", "pixel", "--decode", "glsl"], "accepted: --decode cpu"),
     (["--method", "shrm", "--brdf", "phong", "--shading", "pixel", "--validate"], "accepted with --shading vertex"),

@@ -33,7 +33,7 @@ def register(subparsers) -> None:
             "--json's layout (usable as --light anywhere). docs/inverse.md."
         ),
     )
-    p.add_argument("--mesh", required=True, metavar="MESH", help="mesh file or built-in scene (the known geometry)")
+    p.add_argument("--mesh", required=True, metavar="MESH", help="mesh file or built-in scene NAME or NAME:SIZE (the known geometry)")
     p.add_argument("--cameras", required=True, metavar="transforms.json", help="NeRF/Blender cameras and image paths")
     p.add_argument("--unknown", required=True, choices=UNKNOWNS, help="what to recover")
     p.add_argument("--bands", type=int, default=3, help="SH bands of the light (n² unknowns per channel; default 3)")
@@ -254,11 +254,12 @@ def run(args: argparse.Namespace) -> int:
     from ..io import atomic_write_json, check_outputs
     from ..lighting.spec import load_light
     from ..render.prt import PRTScene
-    from ..scene import RayCaster, load_scene
+    from ..scene import RayCaster, check_scene, load_scene
 
     t0 = time.perf_counter()
     brdf = _brdf(args)
     _check_args(args, brdf)
+    check_scene(args.mesh, param="--mesh")  # the one rule for naming a mesh, before the cameras and images are read
     kind_params = _kind_params(args, brdf)
     if args.report is not None:
         rep = Path(args.report)
@@ -268,7 +269,7 @@ def run(args: argparse.Namespace) -> int:
     check_outputs({"-o": args.output, **_report_names(args.report, len(views))},
                   {"--cameras": args.cameras, "--transfer": args.transfer, "--light": args.light,
                    "image": [str(v.file) for v in views]}, args.overwrite)  # before any work
-    mesh = load_scene(args.mesh, albedo=_albedo(args.albedo))
+    mesh = load_scene(args.mesh, albedo=_albedo(args.albedo), param="--mesh")
     L_known = load_light(args.light, bands=args.bands) if args.light is not None else None
     views, images, masks, infos = inverse.load_images(views)
     quad = brdf["type"] in QUADRATURE

@@ -186,7 +186,7 @@ def run(args) -> int:
 
 
 def _run(args, executor) -> int:
-    from ..scene import load_scene
+    from ..scene import check_scene, load_scene
     from ..transfer import RunOptions, default_state_dir, get_kind
 
     kind = get_kind(args.kind)
@@ -207,6 +207,7 @@ def _run(args, executor) -> int:
 
     check_outputs({"-o/--output": out}, {"MESH_OR_BUILTIN": args.scene, "--light": args.light}, args.overwrite,
                   directories=("-o/--output",) if kind.output == "directory" else ())  # before any work
+    check_scene(args.scene, size=args.size, param="MESH_OR_BUILTIN")  # the one rule for naming a mesh, before any work
     state = default_state_dir(out)
     if args.resume and not state.exists() and not args.dry_run:  # said, not silently a fresh run
         import warnings
@@ -240,7 +241,7 @@ def _run(args, executor) -> int:
     from ..transfer.estimate import rss_bytes
 
     t_mesh, rss0 = time.perf_counter(), rss_bytes()
-    mesh = load_scene(args.scene, size=args.size, up=args.up, albedo=args.albedo)
+    mesh = load_scene(args.scene, size=args.size, up=args.up, albedo=args.albedo, param="MESH_OR_BUILTIN")
     t_mesh, mesh_rss = time.perf_counter() - t_mesh, rss_bytes() - rss0
     print(f"prt precompute: {mesh.name}: {mesh.num_vertices} vertices, {mesh.num_faces} faces", file=sys.stderr)
     plan = RunOptions(chunk_size=args.chunk, workers=args.workers, offset=RunOptions.offset, state_dir=state,

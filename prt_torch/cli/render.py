@@ -94,8 +94,8 @@ def register(subparsers) -> None:
     p.add_argument("--decode", default=None, choices=["glsl", "cpu"],
                    help="glsl: decode in the vertex shader (default); cpu: per-vertex radiance from the torch engine")
     p.add_argument("--mesh", default=None, metavar="MESH",
-                   help="SHRM files (prt shrm output) only: the convex object to shade, a built-in scene name or a mesh "
-                        "file (default: the built-in 'convex'); each vertex is shaded from the SHRM's maps for its normal "
+                   help="SHRM files (prt shrm output) only: the convex object to shade, a built-in scene NAME or "
+                        "NAME:SIZE or a mesh file (default: the built-in 'convex'); each vertex is shaded from the SHRM's maps for its normal "
                         "and its view towards the camera")
     p.add_argument("-o", "--output", required=True, help="output image (.png, .exr, .pfm, .hdr, .tif)")
     p.add_argument("--compare", default=None, metavar="OUT.png",
@@ -370,7 +370,7 @@ def _run_shrm(args, out: Path, cmp_png: Path | None) -> int:
     from ..params import parse_assignments
     from ..render import Camera, Renderer, RenderUnavailable
     from ..render.shrm import render_shrm
-    from ..scene import RayCaster, builtin, list_builtins, load_mesh
+    from ..scene import RayCaster, check_scene, load_scene
     from ..transfer.diffuse import probe_self_occlusion
     from .shrm import parse_orders
 
@@ -382,13 +382,12 @@ def _run_shrm(args, out: Path, cmp_png: Path | None) -> int:
                          "no --light, or --method shrm --brdf TYPE --light L to build one under another light")
     _check_shading(args)
     name = (args.transfer if args.method == "shrm" else None) or args.mesh or "convex"
+    param = "MESH" if args.method == "shrm" and args.transfer else "--mesh"
     if args.method == "shrm":  # every check of the SHRM's inputs before the mesh, the probe or the build
         brdf = S.check_brdf(from_spec({"type": args.brdf, **parse_assignments(args.brdf_param, what="--brdf-param")}))
         orders = parse_orders(args.orders) if args.orders is not None else None
-    if name not in list_builtins() and not Path(name).is_file():
-        raise FileNotFoundError(f"mesh {name!r} is neither a built-in scene ({', '.join(list_builtins())}) nor an "
-                                "existing mesh file")
-    mesh = builtin(name, size="small") if name in list_builtins() else load_mesh(name)
+    check_scene(name, param=param)  # the one rule for naming a mesh (prt_torch.scene.check_scene), before the build
+    mesh = load_scene(name, param=param)
     if args.method == "shrm":
         m = S.build_shrm(brdf, args.light or "sky", epsilon=args.epsilon if args.epsilon is not None else 0.03, orders=orders,
                          height=args.map_size)

@@ -35,7 +35,8 @@ def register(subparsers) -> None:
     p.add_argument("--light-source", choices=["sh", "image"], default="sh",
                    help="what Mitsuba sees: the band-limited light (sh, exact comparison) or the original environment "
                         "image (image; adds the SH-truncation effect)")
-    p.add_argument("--mesh", help="glossy transfer of a vertex subset: the full mesh it was computed on (built-in name or file)")
+    p.add_argument("--mesh", help="glossy transfer of a vertex subset: the full mesh it was computed on (built-in NAME or "
+                                  "NAME:SIZE, or a file; same content hash)")
     p.add_argument("--view-deg", type=float, default=60.0,
                    help="glossy: views drawn within this angle of each vertex normal (default 60)")
     p.add_argument("--json", metavar="PATH", help="also write the full report (per-vertex values) as strict JSON "
@@ -58,7 +59,7 @@ def run(args) -> int:
     if args.mesh:
         from ..scene import load_scene
 
-        mesh = load_scene(args.mesh)
+        mesh = load_scene(args.mesh, param="--mesh")  # the one rule for naming a mesh (prt_torch.scene.check_scene)
     try:
         rep = validate(args.transfer, args.light, vertices=args.vertices, spp=args.spp, batches=args.batches, seed=args.seed,
                        codec_file=args.codec_file, light_source=args.light_source, light_name=args.light, mesh=mesh,

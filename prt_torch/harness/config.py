@@ -401,12 +401,11 @@ def validate(cfg: dict) -> None:
 
     check_writable(Path(cfg["output_dir"]) / str(cfg["name"]), "config key 'output_dir'", directory=True)
     check_writable(cfg["cache_dir"], "config key 'cache_dir'", directory=True)
-    from ..scene import list_builtins
+    from ..scene import check_scene
 
     scene_names = cfg["scene"]["name"] if isinstance(cfg["scene"]["name"], list) else [cfg["scene"]["name"]]
-    for s in scene_names:
-        if s not in list_builtins() and not Path(str(s)).is_file():
-            raise FileNotFoundError(f"config key 'scene.name' = {s!r}: not a built-in scene ({list_builtins()}) nor an existing mesh file")
+    for s in scene_names:  # the one rule for naming a mesh (NAME, NAME:SIZE or a file), scene.size the default size
+        check_scene(s, size=cfg["scene"]["size"], param="config key 'scene.name' =")
     for i, sub in enumerate(part_configs(cfg)):
         try:
             validate(sub)

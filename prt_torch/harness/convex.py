@@ -68,18 +68,18 @@ def _mesh_name(spec: str) -> str:
 
 
 def _check_mesh_spec(i: int, spec: Any) -> None:
-    from ..scene import list_builtins
+    from ..scene import accepted_meshes, check_scene
 
-    accepted = ("'sphere', 'hull:SCENE' (SCENE a built-in scene or mesh file) or a built-in scene "
-                f"({', '.join(list_builtins())}) or mesh file")
     if not isinstance(spec, str) or not spec:
-        raise ValueError(f"config key 'convex.meshes.{i}' = {spec!r}; accepted: {accepted}")
+        raise ValueError(f"config key 'convex.meshes.{i}' = {spec!r}; accepted: 'sphere', 'hull:MESH' or MESH, MESH "
+                         f"{accepted_meshes()}")
     name = spec[5:] if spec.startswith("hull:") else spec
     if name == "sphere" and not spec.startswith("hull:"):
         return
-    if name.split(":", 1)[0] not in list_builtins() and not Path(name).is_file():
-        raise FileNotFoundError(f"config key 'convex.meshes.{i}' = {spec!r}: {name!r} is neither a built-in scene nor "
-                                f"an existing mesh file; accepted: {accepted}")
+    try:  # the one rule for naming a mesh (prt_torch.scene.check_scene)
+        check_scene(name, param=f"config key 'convex.meshes.{i}' = {spec!r}: mesh")
+    except (ValueError, FileNotFoundError) as e:
+        raise type(e)(f"{e}; or 'sphere', or 'hull:' before one") from None
 
 
 def check_convex(cfg: dict) -> None:

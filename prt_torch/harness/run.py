@@ -387,7 +387,7 @@ def load_mesh_within_budget(cfg: dict):
 
     check_codecs_for_kind(cfg["transfer"]["type"], sorted({s["type"] for s in expand_codecs(cfg["codecs"])}))
     sc = cfg["scene"]
-    mesh = load_scene(sc["name"], size=sc["size"], up=sc["up"], albedo=sc["albedo"])
+    mesh = load_scene(sc["name"], size=sc["size"], up=sc["up"], albedo=sc["albedo"], param="config key 'scene.name' =")
     check_settings(cfg, mesh.num_vertices)  # the data-dependent sizes, before any precompute
     from ..lighting import load_light
 

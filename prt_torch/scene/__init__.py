@@ -12,7 +12,8 @@ Public API (imported lazily, PEP 562, so that ray-casting worker processes impor
   ``sphere_on_plane_visibility`` (builtins.py; ``bumpy_sphere:xl`` ~1M vertices, ``bumpy_sphere:100000``)
 * ``scan_like``, ``SCAN_FEATURES`` (scan.py: scan-like meshes, each artefact switchable)
 * ``RayCaster``, ``default_workers`` (raycast.py)
-* ``load_scene(name_or_path, size='small', up='z', albedo=None)``
+* ``load_scene(name_or_path, size='small', up='z', albedo=None, param='mesh')``, ``check_scene`` (the one rule
+  for naming a mesh, checked without building it: every command and config key that takes a mesh), ``accepted_meshes``
 """
 from __future__ import annotations
 
@@ -31,7 +32,7 @@ _LAZY = {
     "RayCaster": "raycast", "default_workers": "raycast",
 }
 
-__all__ = sorted(_LAZY) + ["load_scene"]
+__all__ = sorted(_LAZY) + ["load_scene", "check_scene", "accepted_meshes"]
 
 if TYPE_CHECKING:  # pragma: no cover
     from .builtins import (GEODESIC, SIZES, builtin, check_size, geodesic_sphere, list_builtins,  # noqa: F401
@@ -55,19 +56,55 @@ def __dir__() -> list[str]:
     return sorted(set(globals()) | set(__all__))
 
 
-def load_scene(name_or_path: str | os.PathLike, size: str = "small", up: str = "z", albedo=None, **kw):
-    """A built-in scene by name (``"bumpy_sphere"`` or ``"bumpy_sphere:large"``) or a mesh file -> ``Mesh``.
+def accepted_meshes() -> str:
+    """The forms a mesh argument takes, in words (every command and config key that takes a mesh)."""
+    from .builtins import GEODESIC, MAX_VERTICES, SIZES, list_builtins
+    from .mesh import MESH_SUFFIXES
 
-    A built-in name is used only when no file of that name exists. Extra keywords go to
-    ``load_mesh`` for files.
+    return (f"a built-in scene NAME or NAME:SIZE (NAME one of {', '.join(list_builtins())}; SIZE one of "
+            f"{', '.join(SIZES[:3])}, for {' and '.join(GEODESIC)} also xl or a vertex count in [12, {MAX_VERTICES}]; "
+            f"default small), or an existing mesh file ({', '.join(MESH_SUFFIXES)})")
+
+
+def check_scene(name_or_path: str | os.PathLike, size: str | int = "small", param: str = "mesh") -> tuple[str, Any]:
+    """Resolve a mesh argument without building or reading it: the one rule for naming a mesh.
+
+    An existing path is a mesh file (a built-in name is used only when no file of that name
+    exists); otherwise ``NAME`` or ``NAME:SIZE`` names a built-in scene (``size`` is used when the
+    text has no ``:SIZE``). Returns ``("file", path)`` or ``("builtin", (name, size))`` with the
+    size checked (:func:`check_size`; a vertex count as int). Raises FileNotFoundError (a missing
+    path with a mesh suffix) or ValueError, one line naming ``param``, the value and the accepted
+    forms (:func:`accepted_meshes`).
     """
-    from .builtins import builtin, list_builtins
-    from .mesh import MESH_SUFFIXES, load_mesh
+    from .builtins import check_size, list_builtins
+    from .mesh import MESH_SUFFIXES
 
     s = str(name_or_path)
-    if not Path(s).exists() and s.split(":", 1)[0] in list_builtins():
-        return builtin(s, size=size, albedo=albedo)
-    if not Path(s).exists() and Path(s).suffix.lower() not in MESH_SUFFIXES:
-        raise ValueError(f"{s!r} is neither an existing mesh file nor a built-in scene; "
-                         f"accepted: a path ending in {list(MESH_SUFFIXES)} or one of {list_builtins()} (optionally 'name:size')")
-    return load_mesh(s, up=up, albedo=albedo, **kw)
+    if Path(s).is_file():
+        return "file", s
+    name, colon, sz = s.partition(":")
+    if not Path(s).exists() and name in list_builtins():
+        try:
+            return "builtin", (name, check_size(name, sz if colon else size))
+        except ValueError as e:
+            if not colon:  # the size came separately (precompute's --size, a config's scene.size): its own message
+                raise ValueError(f"{param} {s!r}: {e}") from None
+            raise ValueError(f"{param} {s!r}: size {sz!r} is not accepted for {name!r}; accepted: {accepted_meshes()}") from None
+    what = "a directory" if Path(s).is_dir() else "neither a built-in scene nor an existing mesh file"
+    missing_file = not Path(s).exists() and Path(s).suffix.lower() in MESH_SUFFIXES  # as load_mesh: a file that is not there
+    raise (FileNotFoundError if missing_file else ValueError)(f"{param} {s!r} is {what}; accepted: {accepted_meshes()}")
+
+
+def load_scene(name_or_path: str | os.PathLike, size: str = "small", up: str = "z", albedo=None, param: str = "mesh", **kw):
+    """A built-in scene by name (``"bumpy_sphere"`` or ``"bumpy_sphere:large"``) or a mesh file -> ``Mesh``.
+
+    Resolved by :func:`check_scene` (its errors name ``param``). A built-in name is used only
+    when no file of that name exists. Extra keywords go to ``load_mesh`` for files.
+    """
+    from .builtins import builtin
+    from .mesh import load_mesh
+
+    kind, what = check_scene(name_or_path, size=size, param=param)
+    if kind == "builtin":
+        return builtin(what[0], size=what[1], albedo=albedo)
+    return load_mesh(what, up=up, albedo=albedo, **kw)

@@ -202,8 +202,13 @@ def validate_glossy(transfer: Transfer, L: torch.Tensor, name: str, image: np.nd
     if meta.get("vertices") is not None:
         want = transfer.mesh.meta.get("subset_of")
         if mesh is None or mesh.content_hash() != want:
-            raise ValueError("this glossy transfer holds a vertex subset (no faces to trace); accepted: pass mesh= the full "
-                             "mesh it was computed on (same content hash)")
+            rec = transfer.mesh.meta  # the full mesh's own meta, kept by the subset (built-in name and size if one)
+            on = f"{rec['builtin']}:{rec.get('size', 'small')}" if rec.get("builtin") else "a mesh file"
+            got = "none given" if mesh is None else (f"{mesh.name!r}" + (f" size {mesh.meta['size']!r}" if "size" in mesh.meta
+                                                                         else "") + f", {mesh.num_vertices} vertices")
+            raise ValueError(f"this glossy transfer holds a vertex subset (no faces to trace) of {on} (content hash "
+                             f"{str(want)[:12]}); got mesh= {got}; accepted: pass mesh= the full mesh it was computed on "
+                             "(same content hash)")
         pool = torch.as_tensor(meta["vertices"], dtype=torch.int64)
     else:
         mesh = transfer.mesh
