@@ -7,21 +7,13 @@ from __future__ import annotations
 
 import json
 import subprocess
-import sys
-from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
-
 
 @pytest.fixture(scope="module")
-def wh():
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    try:
-        return __import__("wavelet_history")
-    finally:
-        sys.path.remove(str(ROOT / "benchmarks"))
+def wh(bench_module):
+    return bench_module("wavelet_history")  # conftest's benchmarks/ importer
 
 
 def _run(times: dict, utc: str = "2026-11-30T10:00:00Z", size: str = "small") -> dict:
