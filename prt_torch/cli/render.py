@@ -370,7 +370,7 @@ def _run_shrm(args, out: Path, cmp_png: Path | None) -> int:
     from ..params import parse_assignments
     from ..render import Camera, Renderer, RenderUnavailable
     from ..render.shrm import render_shrm
-    from ..scene import RayCaster, check_scene, load_scene
+    from ..scene import RayCaster, load_scene
     from ..transfer.diffuse import probe_self_occlusion
     from .shrm import parse_orders
 
@@ -386,8 +386,7 @@ def _run_shrm(args, out: Path, cmp_png: Path | None) -> int:
     if args.method == "shrm":  # every check of the SHRM's inputs before the mesh, the probe or the build
         brdf = S.check_brdf(from_spec({"type": args.brdf, **parse_assignments(args.brdf_param, what="--brdf-param")}))
         orders = parse_orders(args.orders) if args.orders is not None else None
-    check_scene(name, param=param)  # the one rule for naming a mesh (prt_torch.scene.check_scene), before the build
-    mesh = load_scene(name, param=param)
+    mesh = load_scene(name, param=param)  # the one rule for naming a mesh (prt_torch.scene.check_scene), before the build
     if args.method == "shrm":
         m = S.build_shrm(brdf, args.light or "sky", epsilon=args.epsilon if args.epsilon is not None else 0.03, orders=orders,
                          height=args.map_size)
